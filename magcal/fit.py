@@ -1,0 +1,479 @@
+"""The maximum-likelihood fitter for any model, one sensor or four together.
+
+:class:`Problem` turns a dataset, a :class:`~magcal.model.Model` and a starting calibration into a residual
+vector and its Jacobian; :func:`fit` minimises it with :func:`scipy.optimize.least_squares`
+(trust-region reflective, optional robust loss) and returns a :class:`FitResult`.
+
+Residuals (nT)
+    * total field, per sensor and sample: ``|B_s| - F_s(t)``;
+    * for arrays whose model has ``misalignment``: inter-sensor consistency, the part of ``B_s - mean_s B_s``
+      perpendicular to the field, scaled by ``sqrt(n/(n-1))`` so that its noise matches one axis's.
+
+Parameters per sensor: the 6 entries of the upper-triangular ``C^-1`` (``scale`` frees the diagonal,
+``non_orthogonality`` the off-diagonal), the bias (3, ``bias``) and, for sensors 2-4, a rotation vector (3,
+``misalignment``, sensor 1 defines the array frame). An unknown reference adds ``F0``; then the overall scale is
+fixed by ``det C^-1 = 1`` for sensor 1 (the product of its scale factors is 1), since total-field data cannot tell
+a larger field from larger gains. Candidate effects add their own parameters (see :mod:`magcal.model`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from . import conventions
+from .calibration import Calibration, SensorCalibration, block_label, contexts, corrected_fields, \
+    expected_total_field
+from .errors import CalibrationError
+from .model import Model
+
+#: Typical change of each base parameter that moves the readings by about 1 nT in a 50 uT field.
+_CINV_SCALE = 2e-5
+_ROT_SCALE = 2e-5
+
+
+def resolve_reference(dataset, reference_total_nT=None):
+    """Where the reference field comes from: ``(value or None, kind)``.
+
+    ``kind`` is ``"given"`` (argument or ``reference_total_nT`` metadata), ``"column"`` (per-sample
+    ``ref_total``; value None) or ``"fitted"`` (unknown: the magnitude is fitted).
+    """
+    if reference_total_nT is not None:
+        return float(reference_total_nT), "given"
+    if dataset.ref_total_nT is not None:
+        return None, "column"
+    if dataset.reference_total_nT:
+        return float(dataset.reference_total_nT), "given"
+    return None, "fitted"
+
+
+def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
+    """A rough start when none is given: a linear sphere fit per sensor and vector alignment of the sensors.
+
+    Good enough for Levenberg-Marquardt from typical fluxgate errors (a few percent); the two-step
+    ellipsoid + Procrustes start of :func:`magcal.pipeline.calibrate` is better and should normally be used.
+    """
+    ref, kind = resolve_reference(dataset, reference_total_nT)
+    sensors, centred = [], []
+    for y in dataset.readings_nT:
+        design = np.column_stack([2 * y, np.ones(len(y))])
+        sol, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
+        centre = sol[:3]
+        radius = np.sqrt(max(sol[3] + centre @ centre, 1e-12))
+        target = ref if ref is not None else (np.median(dataset.ref_total_nT) if kind == "column" else radius)
+        sensors.append(SensorCalibration(np.eye(3) * target / radius, centre))
+        centred.append((y - centre) * target / radius)
+    for s in range(1, len(sensors)):
+        rot, _ = Rotation.align_vectors(centred[0], centred[s])
+        sensors[s].R = rot.as_matrix()
+    return Calibration(sensors, reference_total_nT=ref if ref is not None else (
+        None if kind == "column" else float(np.mean([np.linalg.norm(c, axis=1).mean() for c in centred]))),
+        reference_fitted=kind == "fitted", baseline_m=dataset.baseline_m)
+
+
+class Problem:
+    """Residuals and Jacobian of a model on a dataset, around a starting calibration.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The samples to fit (already restricted to the kept ones).
+    model : Model
+    init : Calibration
+        Starting point; candidate effects missing from ``init.effect_values`` start at zero.
+    reference_total_nT : float, optional
+        Overrides the dataset's reference.
+
+    Attributes
+    ----------
+    x0 : numpy.ndarray
+        Starting parameter vector (physical units).
+    param_names : list of str
+    blocks : dict of str to slice
+        Columns of each parameter block: ``sensorS/base``, ``F0``, and one per effect instance
+        (:func:`magcal.calibration.block_label`).
+    total_field_rows : slice
+        Rows of the total-field residuals (sensor-major: sensor ``s`` sample ``i`` is row ``s*N + i``).
+    """
+
+    def __init__(self, dataset, model: Model, init: Calibration, reference_total_nT=None):
+        self.dataset = dataset
+        self.model = model
+        self.n_sensors = ns = dataset.n_sensors
+        self.n_samples = n = dataset.n_samples
+        self.ctxs = contexts(dataset, init.baseline_m if init.baseline_m is not None else dataset.baseline_m)
+        ref, self.reference_kind = resolve_reference(dataset, reference_total_nT)
+        if self.reference_kind == "fitted" and init.reference_total_nT:
+            ref = float(init.reference_total_nT)
+        self.coupled = ns > 1 and "misalignment" in model.base
+        self.baseline_m = init.baseline_m if init.baseline_m is not None else dataset.baseline_m
+
+        names, values, scales, owners, self.blocks = [], [], [], [], {}
+        self._base_free = []
+        free_c = [k for k, (i, j) in enumerate(conventions.UPPER_TRIANGLE)
+                  if ("scale" in model.base if i == j else "non_orthogonality" in model.base)]
+        init_sensors = [SensorCalibration(c.cinv.copy(), c.bias_nT.copy(), c.R.copy()) for c in init.sensors]
+        if self.reference_kind == "fitted":
+            # gauge: det(C^-1) = 1 for sensor 1; rescale the whole start and the field together.
+            lam = np.linalg.det(init_sensors[0].cinv) ** (-1.0 / 3.0)
+            for c in init_sensors:
+                c.cinv = c.cinv * lam
+            ref = (ref if ref else np.mean(np.linalg.norm(corrected_fields(dataset, init.sensors), axis=2))) * lam
+        self.init_sensors = init_sensors
+        for s, cal in enumerate(init_sensors):
+            start = len(names)
+            cpar = conventions.cinv_to_params(cal.cinv)
+            free = []
+            for k in free_c:
+                if self.reference_kind == "fitted" and s == 0 and k == 5:
+                    continue  # c22 of sensor 1 follows from det = 1
+                names.append(f"s{s + 1}_Cinv{conventions.UPPER_TRIANGLE[k][0]}{conventions.UPPER_TRIANGLE[k][1]}")
+                values.append(cpar[k]); scales.append(_CINV_SCALE); owners.append(s); free.append(("c", k))
+            if "bias" in model.base:
+                for a, axis in enumerate("xyz"):
+                    names.append(f"s{s + 1}_bias_{axis}_nT")
+                    values.append(cal.bias_nT[a]); scales.append(1.0); owners.append(s); free.append(("b", a))
+            if "misalignment" in model.base and s > 0:
+                rv = Rotation.from_matrix(cal.R).as_rotvec()
+                for a, axis in enumerate("xyz"):
+                    names.append(f"s{s + 1}_rotvec_{axis}_rad")
+                    values.append(rv[a]); scales.append(_ROT_SCALE); owners.append(s); free.append(("r", a))
+            self._base_free.append(free)
+            self.blocks[f"sensor{s + 1}/base"] = slice(start, len(names))
+        if self.reference_kind == "fitted":
+            self.blocks["F0"] = slice(len(names), len(names) + 1)
+            names.append("F0_nT"); values.append(ref); scales.append(1.0); owners.append(None)
+        self.reference_value = ref
+        for e, s in model.instances():
+            label = block_label(e, s)
+            start = len(names)
+            pn = e.param_names()
+            prefix = "" if s is None else f"s{s + 1}_"
+            names += [f"{prefix}{e.name}.{p}" for p in pn]
+            v = init.effect_values.get(label)
+            values += list(np.zeros(len(pn)) if v is None else np.asarray(v, float))
+            scales += list(np.asarray(e.param_scale(), dtype=float))
+            owners += [s if (s is not None and e.stage == "raw") else None] * len(pn)
+            self.blocks[label] = slice(start, len(names))
+        self.param_names = names
+        self.x0 = np.asarray(values, dtype=float)
+        self.x_scale = np.asarray(scales, dtype=float)
+        self.owners = owners
+        self.total_field_rows = slice(0, ns * n)
+        self.n_residuals = ns * n * (4 if self.coupled else 1)
+        if len(names) >= ns * n:
+            raise CalibrationError(
+                f"{len(names)} parameters but only {ns * n} total-field values; record more samples "
+                "or use fewer effects"
+            )
+
+    # --- unpacking ------------------------------------------------------------------------------------------
+    def sensors(self, x) -> list:
+        out = []
+        for s, free in enumerate(self._base_free):
+            block = x[self.blocks[f"sensor{s + 1}/base"]]
+            init = self.init_sensors[s]
+            cpar = conventions.cinv_to_params(init.cinv)
+            bias, rotvec = init.bias_nT.copy(), None
+            for (kind, k), value in zip(free, block):
+                if kind == "c":
+                    cpar[k] = value
+                elif kind == "b":
+                    bias[k] = value
+                else:
+                    rotvec = np.zeros(3) if rotvec is None else rotvec
+                    rotvec[k] = value
+            if self.reference_kind == "fitted" and s == 0:
+                cpar[5] = 1.0 / (cpar[0] * cpar[3])
+            rot = init.R if rotvec is None else Rotation.from_rotvec(rotvec).as_matrix()
+            out.append(SensorCalibration(conventions.params_to_cinv(cpar), bias, rot))
+        return out
+
+    def effect_values(self, x) -> dict:
+        return {label: x[sl].copy() for label, sl in self.blocks.items() if "/" not in label and label != "F0"}
+
+    def reference(self, x):
+        return float(x[self.blocks["F0"]][0]) if "F0" in self.blocks else self.reference_value
+
+    def calibration(self, x) -> Calibration:
+        return Calibration(
+            sensors=self.sensors(x),
+            reference_total_nT=self.reference(x),
+            reference_fitted=self.reference_kind == "fitted",
+            baseline_m=self.baseline_m,
+            model=self.model,
+            effect_values=self.effect_values(x),
+        )
+
+    # --- residuals ------------------------------------------------------------------------------------------
+    def fields(self, x):
+        return corrected_fields(self.dataset, self.sensors(x), self.model, self.effect_values(x), self.ctxs)
+
+    def residuals(self, x) -> np.ndarray:
+        """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*3) when coupled."""
+        b = self.fields(x)
+        expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
+                                        self.ctxs)
+        total = (np.linalg.norm(b, axis=2) - expected).ravel()
+        if not self.coupled:
+            return total
+        mean = b.mean(axis=0)
+        u = mean / np.linalg.norm(mean, axis=1, keepdims=True)
+        diff = b - mean
+        perp = diff - np.einsum("sni,ni->sn", diff, u)[..., None] * u
+        factor = np.sqrt(self.n_sensors / (self.n_sensors - 1.0))
+        return np.concatenate([total, factor * perp.ravel()])
+
+    def jacobian(self, x) -> np.ndarray:
+        """Forward-difference Jacobian (m, p); columns of different sensors share evaluations when the
+        sensors are uncoupled."""
+        r0 = self.residuals(x)
+        jac = np.empty((r0.size, x.size))
+        n = self.n_samples
+        steps = 1e-3 * self.x_scale
+        groups = self._column_groups()
+        for group in groups:
+            xp = x.copy()
+            xp[group] += steps[group]
+            diff = self.residuals(xp) - r0
+            if len(group) == 1:
+                jac[:, group[0]] = diff / steps[group[0]]
+                continue
+            jac[:, group] = 0.0
+            for col in group:  # grouped columns belong to different sensors and touch only their rows
+                s = self.owners[col]
+                rows = slice(s * n, (s + 1) * n)
+                jac[rows, col] = diff[rows] / steps[col]
+        return jac
+
+    def _column_groups(self):
+        if getattr(self, "_groups", None) is not None:
+            return self._groups
+        if self.coupled:
+            self._groups = [[k] for k in range(len(self.x0))]
+            return self._groups
+        by_slot, singles = {}, []
+        counters = {}
+        for k, owner in enumerate(self.owners):
+            if owner is None:
+                singles.append([k])
+                continue
+            slot = counters.get(owner, 0)
+            counters[owner] = slot + 1
+            by_slot.setdefault(slot, []).append(k)
+        # columns in one slot must come from distinct sensors
+        groups = []
+        for cols in by_slot.values():
+            owners = [self.owners[c] for c in cols]
+            groups.append(cols) if len(set(owners)) == len(owners) else groups.extend([[c] for c in cols])
+        self._groups = groups + singles
+        return self._groups
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    Attributes
+    ----------
+    calibration : Calibration
+    model : Model
+    param_names : list of str
+    x : numpy.ndarray
+        Fitted parameters (physical units).
+    covariance : numpy.ndarray
+        Parameter covariance ``s^2 (J^T J)^-1``.
+    residuals_nT : numpy.ndarray, shape (n_sensors, N)
+        Total-field residuals of every sample; NaN for samples left out of the fit.
+    residuals_all_nT : numpy.ndarray, shape (n_sensors, N)
+        Total-field residuals of every sample, rejected ones included (for display).
+    vector_residuals_nT : numpy.ndarray, shape (n_sensors, N, 3) or None
+        Inter-sensor consistency residuals of the kept samples (arrays with misalignment).
+    rms_nT : float
+        Total-field RMS over all sensors and kept samples.
+    rms_per_sensor_nT : numpy.ndarray, shape (n_sensors,)
+    noise_nT : float
+        Noise estimate ``sqrt(RSS_total / (n - p))`` from the total-field residuals.
+    rss : float
+        Residual sum of squares of the whole residual vector (nT^2).
+    n_residuals, n_params : int
+    aic, bic : float
+        ``m ln(RSS/m) + 2k`` and ``m ln(RSS/m) + k ln m``.
+    outliers : numpy.ndarray of bool, shape (N,)
+        Kept samples the fit distrusts (any sensor beyond 5 robust sigma).
+    mask : numpy.ndarray of bool, shape (N,)
+        Samples used.
+    effect_params : list of dict
+        ``{effect, sensor (1-based or None), term, params {name: value}, std {name: value}}``.
+    reference_kind : str
+        ``given``, ``column`` or ``fitted``.
+    """
+
+    calibration: Calibration
+    model: Model
+    param_names: list
+    x: np.ndarray
+    covariance: np.ndarray
+    residuals_nT: np.ndarray
+    residuals_all_nT: np.ndarray
+    vector_residuals_nT: np.ndarray | None
+    rms_nT: float
+    rms_per_sensor_nT: np.ndarray
+    noise_nT: float
+    rss: float
+    n_residuals: int
+    n_params: int
+    aic: float
+    bic: float
+    outliers: np.ndarray
+    mask: np.ndarray
+    effect_params: list
+    reference_kind: str
+    nfev: int = 0
+    message: str = ""
+    problem: Problem | None = field(default=None, repr=False)
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard deviations of the parameters (physical units)."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+
+    def summary(self) -> dict:
+        """JSON-ready figures of the fit."""
+        return {
+            "effects": self.model.effect_labels,
+            "rms_nT": self.rms_nT,
+            "rms_per_sensor_nT": self.rms_per_sensor_nT.tolist(),
+            "noise_nT": self.noise_nT,
+            "n_params": self.n_params,
+            "aic": self.aic,
+            "bic": self.bic,
+            "reference": self.reference_kind,
+            "n_outliers": int(self.outliers.sum()),
+        }
+
+
+def fit(dataset, model: Model | None = None, init: Calibration | None = None, loss="linear", f_scale_nT=None,
+        mask=None, reference_total_nT=None, max_nfev=200) -> FitResult:
+    """Maximum-likelihood fit of a model, started from a calibration.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    model : Model, optional
+        Defaults to the base model (bias, scale, non-orthogonality, misalignment for arrays).
+    init : Calibration, optional
+        Warm start, normally the two-step ellipsoid + Procrustes result. Without it a rough sphere-fit start
+        is used (:func:`crude_initial_calibration`).
+    loss : {'linear', 'soft_l1', 'huber', 'cauchy'}
+        scipy's loss; a robust one keeps the fit on the inliers when some samples are gross outliers.
+    f_scale_nT : float, optional
+        Residual size (nT) where a robust loss starts to down-weight; default 3x a robust noise estimate.
+    mask : array_like of bool, shape (N,), optional
+        Samples to use (True = kept); rejected samples are excluded from the fit.
+    reference_total_nT : float, optional
+        Known total field; otherwise the dataset's reference, its ``ref_total`` column, or fitted.
+    max_nfev : int
+        Cap on residual evaluations per Jacobian column (scipy's meaning).
+
+    Returns
+    -------
+    FitResult
+    """
+    model = model or Model.base_model(dataset.n_sensors)
+    if model.n_sensors != dataset.n_sensors:
+        raise CalibrationError(f"the model is for {model.n_sensors} sensor(s), the data have {dataset.n_sensors}")
+    model.check(dataset)
+    n_all = dataset.n_samples
+    mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (n_all,):
+        raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
+    kept = dataset.subset(mask) if not mask.all() else dataset
+    init = init or crude_initial_calibration(kept, reference_total_nT)
+
+    # data-derived constants of the effects, from the starting residuals
+    ref0, kind0 = resolve_reference(kept, reference_total_nT)
+    start_fields = corrected_fields(kept, init.sensors)
+    if kind0 == "fitted":
+        expected0 = init.reference_total_nT or float(np.mean(np.linalg.norm(start_fields, axis=2)))
+    else:
+        expected0 = expected_total_field(kept, ref0)
+    base_resid = np.linalg.norm(start_fields, axis=2) - expected0
+    for e in model.effects:
+        e.configure(kept, base_resid)
+
+    problem = Problem(kept, model, init, reference_total_nT)
+    r_start = problem.residuals(problem.x0)
+    if not np.all(np.isfinite(r_start)):
+        raise CalibrationError("the starting calibration gives non-finite residuals; check the data for NaN")
+    # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
+    # converges, so that gross outliers stop pulling on it.
+    rounds = 1 if (loss == "linear" or f_scale_nT is not None) else 4
+    x, nfev = problem.x0, 0
+    for _ in range(rounds):
+        scale = f_scale_nT if f_scale_nT is not None else 3.0 * _robust_sigma(
+            problem.residuals(x)[problem.total_field_rows])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            sol = least_squares(problem.residuals, x, jac=problem.jacobian, x_scale=problem.x_scale,
+                                loss=loss, f_scale=scale, method="trf", max_nfev=max_nfev,
+                                xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        x, nfev = sol.x, nfev + sol.nfev
+    r = problem.residuals(x)
+    jac = problem.jacobian(x)
+    ns, n = problem.n_sensors, problem.n_samples
+    tf = r[problem.total_field_rows].reshape(ns, n)
+    p = x.size
+    rss = float(r @ r)
+    rss_tf = float(np.sum(tf**2))
+    m = r.size
+    dof_tf = max(ns * n - p, 1)
+    noise = float(np.sqrt(rss_tf / dof_tf))
+    s2 = rss / max(m - p, 1)
+    try:
+        cov = s2 * np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        cov = np.full((p, p), np.nan)
+
+    calibration = problem.calibration(x)
+    resid_all = np.linalg.norm(corrected_fields(dataset, calibration.sensors, model, calibration.effect_values,
+                                                contexts(dataset, problem.baseline_m)), axis=2) \
+        - expected_total_field(dataset, problem.reference(x), model, calibration.effect_values,
+                               contexts(dataset, problem.baseline_m))
+    resid = np.where(mask[None, :], resid_all, np.nan)
+    sigma_robust = _robust_sigma(tf)
+    outliers = np.zeros(n_all, bool)
+    outliers[np.flatnonzero(mask)] = np.any(np.abs(tf) > 5.0 * max(sigma_robust, 1e-9), axis=0)
+    vec = r[ns * n:].reshape(ns, n, 3) if problem.coupled else None
+
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    effect_params = []
+    for e, s in model.instances():
+        sl = problem.blocks[block_label(e, s)]
+        names = e.param_names()
+        effect_params.append({
+            "effect": e.name, "sensor": None if s is None else s + 1, "term": e.label,
+            "params": dict(zip(names, x[sl].tolist())), "std": dict(zip(names, std[sl].tolist())),
+        })
+    rms_per_sensor = np.sqrt(np.mean(tf**2, axis=1))
+    calibration.summary = {"n_samples": int(mask.sum()), "rms_nT": float(np.sqrt(np.mean(tf**2)))}
+    for s, cal in enumerate(calibration.sensors):
+        cal.summary = {"rms_nT": float(rms_per_sensor[s])}
+    return FitResult(
+        calibration=calibration, model=model, param_names=problem.param_names, x=x, covariance=cov,
+        residuals_nT=resid, residuals_all_nT=resid_all, vector_residuals_nT=vec,
+        rms_nT=float(np.sqrt(np.mean(tf**2))), rms_per_sensor_nT=rms_per_sensor, noise_nT=noise, rss=rss,
+        n_residuals=m, n_params=p, aic=m * np.log(rss / m) + 2 * p, bic=m * np.log(rss / m) + p * np.log(m),
+        outliers=outliers, mask=mask, effect_params=effect_params, reference_kind=problem.reference_kind,
+        nfev=int(nfev), message=str(sol.message), problem=problem,
+    )
+
+
+def _robust_sigma(values) -> float:
+    """Normal-consistent median absolute deviation (never zero)."""
+    values = np.asarray(values, dtype=float).ravel()
+    return max(1.4826 * float(np.median(np.abs(values - np.median(values)))), 1e-9)

@@ -1,0 +1,270 @@
+"""The calibration model: a list of named effect terms.
+
+A model always holds the *base* terms (``bias``, ``scale``, ``non_orthogonality`` and, for arrays,
+``misalignment``) unless the user removes them, plus any number of *candidate* effects from the catalogue
+(:data:`EFFECTS`, filled by :mod:`magcal.effects`).
+
+How a term acts is fixed by its ``stage`` (see ``docs/architecture.md``). For sensor ``s`` with raw reading ``y``::
+
+    z0  = y - b                                    base: bias
+    z   = z0 - sum raw_basis(z0, ctx) @ theta      stage "raw"        (sensor frame, nT)
+    B   = R C^-1 z                                 base: scale, non_orthogonality, misalignment
+    B  += sum vector_basis(B, ctx) @ theta         stage "vector"     (array frame, nT)
+    F   = F0 + sum reference_basis(ctx) @ theta    stage "reference"  (nT)
+
+Every candidate term is linear in its parameters; the basis it returns is its Jacobian with respect to them
+(the fitter treats the basis's own dependence on ``z0``/``B`` as second order). Parameters are expressed in units
+chosen so that a parameter of size ``param_scale`` changes the readings by about 1 nT, which keeps the fit
+well conditioned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import MagcalError
+
+#: Names of the base terms, in order.
+BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
+
+#: The catalogue of candidate effects by name (filled by :mod:`magcal.effects` on import).
+EFFECTS: dict[str, type["Effect"]] = {}
+
+
+def register(cls):
+    """Class decorator: add an :class:`Effect` subclass to :data:`EFFECTS` under ``cls.name``."""
+    EFFECTS[cls.name] = cls
+    return cls
+
+
+@dataclass
+class Context:
+    """What an effect's basis may look at for one sensor.
+
+    Attributes
+    ----------
+    dataset : Dataset
+        The (kept-samples) dataset being fitted or corrected.
+    sensor : int
+        0-based sensor index.
+    position_m : numpy.ndarray, shape (3,)
+        The sensor's position in the array frame (m), from :func:`magcal.conventions.sensor_positions`.
+    attitude : scipy.spatial.transform.Rotation or None
+        Array-to-world attitudes, when the dataset has them.
+    """
+
+    dataset: object
+    sensor: int
+    position_m: np.ndarray
+    attitude: Rotation | None = None
+
+    @property
+    def time_s(self):
+        return self.dataset.time_s
+
+    @property
+    def temperature_C(self):
+        return self.dataset.temperature_C
+
+    @property
+    def reading_nT(self):
+        return self.dataset.readings_nT[self.sensor]
+
+
+@dataclass
+class Effect:
+    """A named candidate term of the model.
+
+    Subclasses set the class attributes and implement the basis of their stage, :meth:`param_names`, and
+    :meth:`perturbation` (how the simulator hides this effect in data). ``sensor`` restricts a per-sensor term
+    to one sensor (0-based); ``None`` applies it to every sensor, each with its own parameters.
+
+    Attributes
+    ----------
+    name : str
+        Catalogue name, used identically by the API, the CLI, JSON and the workbench.
+    stage : {'raw', 'vector', 'reference'}
+        Where the term acts (see the module docstring).
+    channels : tuple of str
+        Dataset channels required (keys of :data:`magcal.dataset.CHANNELS`).
+    per_sensor : bool
+        True if each sensor has its own parameters; False for one set shared by the array.
+    min_sensors : int
+        Fewest sensors the term makes sense for (2 for inter-sensor effects).
+    description : str
+        One line for tables and the workbench.
+    """
+
+    name: ClassVar[str] = ""
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ()
+    per_sensor: ClassVar[bool] = True
+    min_sensors: ClassVar[int] = 1
+    description: ClassVar[str] = ""
+
+    sensor: int | None = None
+
+    # --- declared by subclasses -------------------------------------------------------------------------------
+    def param_names(self) -> list[str]:
+        """Names of the parameters of one instance (one sensor, or the array), with units in the name."""
+        raise NotImplementedError
+
+    def param_scale(self) -> np.ndarray:
+        """Typical magnitude of each parameter that changes the readings by ~1 nT (for conditioning)."""
+        return np.ones(len(self.param_names()))
+
+    def configure(self, dataset, residuals_nT=None) -> None:
+        """Set data-derived constants (reference temperature, reference time, knots, step time...).
+
+        Called once before a fit with the kept-samples dataset and, when available, the base model's
+        total-field residuals (n_sensors, N).
+        """
+
+    def raw_basis(self, z0, ctx: Context) -> np.ndarray:
+        """Stage 'raw': basis (N, 3, q); the corrected raw vector is ``z0 - basis @ theta``."""
+        raise NotImplementedError
+
+    def vector_basis(self, field_nT, ctx: Context) -> np.ndarray:
+        """Stage 'vector': basis (N, 3, q); the array-frame field becomes ``B + basis @ theta``."""
+        raise NotImplementedError
+
+    def reference_basis(self, ctx: Context) -> np.ndarray:
+        """Stage 'reference': basis (N, q); the expected total field becomes ``F0 + basis @ theta``."""
+        raise NotImplementedError
+
+    def perturbation(self, magnitude, sensor=None):
+        """A callable for :func:`magcal.simulation.simulate_timeseries` that hides this effect in data."""
+        raise NotImplementedError
+
+    # --- shared ----------------------------------------------------------------------------------------------
+    def applies_to(self, sensor: int) -> bool:
+        """True if this instance has parameters for (or acts on) the given sensor."""
+        return self.sensor is None or self.sensor == sensor
+
+    def missing_channels(self, dataset) -> list[str]:
+        """The required channels the dataset lacks (empty when the term can be fitted)."""
+        missing = [c for c in self.channels if not dataset.has(c)]
+        if dataset.n_sensors < self.min_sensors:
+            missing.append(f"at least {self.min_sensors} sensors")
+        return missing
+
+    def state(self) -> dict:
+        """Data-derived constants set by :meth:`configure`, as JSON-ready values (saved with a calibration)."""
+        return {}
+
+    def set_state(self, state: dict) -> None:
+        """Restore what :meth:`state` returned."""
+
+    @property
+    def label(self) -> str:
+        """``name`` or ``name:S`` (1-based sensor) as used on the command line."""
+        return self.name if self.sensor is None else f"{self.name}:{self.sensor + 1}"
+
+
+def parse_effect(spec: str, n_sensors: int) -> Effect:
+    """Build an effect from ``NAME`` or ``NAME:SENSOR`` (SENSOR 1-based), as the CLI and JSON write it.
+
+    Raises
+    ------
+    MagcalError
+        For an unknown name or a sensor number outside 1..n_sensors.
+    """
+    _ensure_catalogue()
+    name, _, sensor_text = spec.strip().partition(":")
+    name = name.strip()
+    if name in BASE_TERMS:
+        raise MagcalError(f"{name!r} is a base term: it is always in the model unless removed")
+    if name not in EFFECTS:
+        raise MagcalError(f"unknown effect {name!r}; known effects: {', '.join(sorted(EFFECTS))}")
+    sensor = None
+    if sensor_text:
+        try:
+            sensor = int(sensor_text) - 1
+        except ValueError:
+            raise MagcalError(f"effect {spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
+        if not 0 <= sensor < n_sensors:
+            raise MagcalError(f"effect {spec!r}: sensor {sensor + 1} does not exist (the data have {n_sensors})")
+        if not EFFECTS[name].per_sensor:
+            raise MagcalError(f"effect {name!r} is shared by the whole array; it takes no sensor number")
+    return EFFECTS[name](sensor=sensor)
+
+
+def _ensure_catalogue():
+    if not EFFECTS:
+        try:
+            from . import effects  # noqa: F401  (registers the catalogue)
+        except ModuleNotFoundError as exc:
+            if exc.name != "magcal.effects":
+                raise
+
+
+@dataclass
+class Model:
+    """The base terms in use and the candidate effects added to them.
+
+    Parameters
+    ----------
+    n_sensors : int
+        1 to 4.
+    base : tuple of str
+        Base terms kept (subset of :data:`BASE_TERMS`). ``misalignment`` is dropped for one sensor.
+    effects : list of Effect
+        Candidate terms added.
+    """
+
+    n_sensors: int
+    base: tuple = BASE_TERMS
+    effects: list = dataclasses.field(default_factory=list)
+
+    def __post_init__(self):
+        self.base = tuple(t for t in BASE_TERMS if t in self.base and not (t == "misalignment" and self.n_sensors < 2))
+        unknown = [e for e in self.effects if not isinstance(e, Effect)]
+        if unknown:
+            raise MagcalError(f"not effect terms: {unknown}")
+
+    @classmethod
+    def base_model(cls, n_sensors: int) -> "Model":
+        """Bias, scale, non-orthogonality (and misalignment for arrays)."""
+        return cls(n_sensors)
+
+    @classmethod
+    def from_names(cls, names, n_sensors: int, base=BASE_TERMS) -> "Model":
+        """A base model plus the effects named as ``NAME`` or ``NAME:SENSOR`` (1-based)."""
+        effects = [parse_effect(n, n_sensors) for n in names if n.strip()]
+        return cls(n_sensors, base=tuple(base), effects=effects)
+
+    @property
+    def effect_labels(self) -> list[str]:
+        return [e.label for e in self.effects]
+
+    def with_effect(self, effect: Effect) -> "Model":
+        """A new model with one more effect (effects are copied, so the original stays unchanged)."""
+        return Model(self.n_sensors, self.base, [dataclasses.replace(e) for e in self.effects] + [effect])
+
+    def without(self, label: str) -> "Model":
+        """A new model without the effect (or base term) of that label."""
+        if label in BASE_TERMS:
+            return Model(self.n_sensors, tuple(t for t in self.base if t != label), list(self.effects))
+        return Model(self.n_sensors, self.base, [e for e in self.effects if e.label != label])
+
+    def check(self, dataset) -> None:
+        """Raise :class:`MagcalError` naming any effect whose channels the dataset lacks."""
+        problems = [f"{e.label} needs {', '.join(e.missing_channels(dataset))}" for e in self.effects
+                    if e.missing_channels(dataset)]
+        if problems:
+            raise MagcalError("the data cannot support: " + "; ".join(problems))
+
+    def instances(self):
+        """Yield ``(effect, sensor_or_None)`` for every parameter block: per-sensor terms once per sensor."""
+        for e in self.effects:
+            if e.per_sensor:
+                for s in range(self.n_sensors):
+                    if e.applies_to(s):
+                        yield e, s
+            else:
+                yield e, None
