@@ -112,7 +112,7 @@ class Problem:
         self.coupled = ns > 1 and "misalignment" in model.base
         self.baseline_m = init.baseline_m if init.baseline_m is not None else dataset.baseline_m
 
-        names, values, scales, owners, self.blocks = [], [], [], [], {}
+        names, values, scales, self.blocks = [], [], [], {}
         self._base_free = []
         free_c = [k for k, (i, j) in enumerate(conventions.UPPER_TRIANGLE)
                   if ("scale" in model.base if i == j else "non_orthogonality" in model.base)]
@@ -132,21 +132,21 @@ class Problem:
                 if self.reference_kind == "fitted" and s == 0 and k == 5:
                     continue  # c22 of sensor 1 follows from det = 1
                 names.append(f"s{s + 1}_Cinv{conventions.UPPER_TRIANGLE[k][0]}{conventions.UPPER_TRIANGLE[k][1]}")
-                values.append(cpar[k]); scales.append(_CINV_SCALE); owners.append(s); free.append(("c", k))
+                values.append(cpar[k]); scales.append(_CINV_SCALE); free.append(("c", k))
             if "bias" in model.base:
                 for a, axis in enumerate("xyz"):
                     names.append(f"s{s + 1}_bias_{axis}_nT")
-                    values.append(cal.bias_nT[a]); scales.append(1.0); owners.append(s); free.append(("b", a))
+                    values.append(cal.bias_nT[a]); scales.append(1.0); free.append(("b", a))
             if "misalignment" in model.base and s > 0:
-                rv = Rotation.from_matrix(cal.R).as_rotvec()
+                # small rotation about the array axes applied on top of the starting R: R = exp([w]x) R_start
                 for a, axis in enumerate("xyz"):
-                    names.append(f"s{s + 1}_rotvec_{axis}_rad")
-                    values.append(rv[a]); scales.append(_ROT_SCALE); owners.append(s); free.append(("r", a))
+                    names.append(f"s{s + 1}_rotation_{axis}_rad")
+                    values.append(0.0); scales.append(_ROT_SCALE); free.append(("r", a))
             self._base_free.append(free)
             self.blocks[f"sensor{s + 1}/base"] = slice(start, len(names))
         if self.reference_kind == "fitted":
             self.blocks["F0"] = slice(len(names), len(names) + 1)
-            names.append("F0_nT"); values.append(ref); scales.append(1.0); owners.append(None)
+            names.append("F0_nT"); values.append(ref); scales.append(1.0)
         self.reference_value = ref
         for e, s in model.instances():
             label = block_label(e, s)
@@ -157,14 +157,12 @@ class Problem:
             v = init.effect_values.get(label)
             values += list(np.zeros(len(pn)) if v is None else np.asarray(v, float))
             scales += list(np.asarray(e.param_scale(), dtype=float))
-            owners += [s if (s is not None and e.stage == "raw") else None] * len(pn)
             self.blocks[label] = slice(start, len(names))
         self.param_names = names
         self.x0 = np.asarray(values, dtype=float)
         self.x_scale = np.asarray(scales, dtype=float)
-        self.owners = owners
         self.total_field_rows = slice(0, ns * n)
-        self.n_residuals = ns * n * (4 if self.coupled else 1)
+        self.n_residuals = ns * n * (3 if self.coupled else 1)
         if len(names) >= ns * n:
             raise CalibrationError(
                 f"{len(names)} parameters but only {ns * n} total-field values; record more samples "
@@ -189,7 +187,7 @@ class Problem:
                     rotvec[k] = value
             if self.reference_kind == "fitted" and s == 0:
                 cpar[5] = 1.0 / (cpar[0] * cpar[3])
-            rot = init.R if rotvec is None else Rotation.from_rotvec(rotvec).as_matrix()
+            rot = init.R if rotvec is None else Rotation.from_rotvec(rotvec).as_matrix() @ init.R
             out.append(SensorCalibration(conventions.params_to_cinv(cpar), bias, rot))
         return out
 
@@ -214,64 +212,118 @@ class Problem:
         return corrected_fields(self.dataset, self.sensors(x), self.model, self.effect_values(x), self.ctxs)
 
     def residuals(self, x) -> np.ndarray:
-        """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*3) when coupled."""
+        """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*2) when coupled."""
         b = self.fields(x)
         expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
                                         self.ctxs)
         total = (np.linalg.norm(b, axis=2) - expected).ravel()
         if not self.coupled:
             return total
-        mean = b.mean(axis=0)
-        u = mean / np.linalg.norm(mean, axis=1, keepdims=True)
-        diff = b - mean
-        perp = diff - np.einsum("sni,ni->sn", diff, u)[..., None] * u
+        e1, e2 = _perpendicular_basis(b.mean(axis=0))
+        diff = b - b.mean(axis=0)
         factor = np.sqrt(self.n_sensors / (self.n_sensors - 1.0))
+        perp = np.stack([np.einsum("sni,ni->sn", diff, e1), np.einsum("sni,ni->sn", diff, e2)], axis=-1)
         return np.concatenate([total, factor * perp.ravel()])
 
-    def jacobian(self, x) -> np.ndarray:
-        """Forward-difference Jacobian (m, p); columns of different sensors share evaluations when the
-        sensors are uncoupled."""
-        r0 = self.residuals(x)
-        jac = np.empty((r0.size, x.size))
+    def field_derivatives(self, x):
+        """Corrected fields (n_sensors, N, 3) and, per sensor, the columns and derivatives dB_s/dx (N, 3, k).
+
+        The chain rule through each term's basis: entries of C^-1 act through ``R e_i z_j``, the bias through
+        ``-R C^-1``, the rotation through ``[e_a]x B``, raw-stage effects through ``-R C^-1 basis`` and
+        vector-stage effects through their basis. The bases' own dependence on ``z0`` and ``B`` is second order
+        and left out.
+        """
+        sensors = self.sensors(x)
+        values = self.effect_values(x)
+        instances = list(self.model.instances())
         n = self.n_samples
-        steps = 1e-3 * self.x_scale
-        groups = self._column_groups()
-        for group in groups:
-            xp = x.copy()
-            xp[group] += steps[group]
-            diff = self.residuals(xp) - r0
-            if len(group) == 1:
-                jac[:, group[0]] = diff / steps[group[0]]
+        fields = np.empty((self.n_sensors, n, 3))
+        derivs = []
+        for s, cal in enumerate(sensors):
+            ctx = self.ctxs[s]
+            z0 = self.dataset.readings_nT[s] - cal.bias_nT
+            z = z0
+            raw = []
+            for e, es in instances:
+                if e.stage == "raw" and (es == s or (es is None and e.applies_to(s))):
+                    basis = e.raw_basis(z0, ctx)
+                    z = z - basis @ values[block_label(e, es)]
+                    raw.append((self.blocks[block_label(e, es)], basis))
+            rc = cal.R @ cal.cinv
+            b_rot = z @ rc.T
+            cols, parts = [], []
+            start = self.blocks[f"sensor{s + 1}/base"].start
+            c = conventions.cinv_to_params(cal.cinv)
+            for offset, (kind, k) in enumerate(self._base_free[s]):
+                cols.append(start + offset)
+                if kind == "c":
+                    i, j = conventions.UPPER_TRIANGLE[k]
+                    d = z[:, j:j + 1] * cal.R[:, i]
+                    if self.reference_kind == "fitted" and s == 0 and k in (0, 3):
+                        d = d - (c[5] / c[k]) * z[:, 2:3] * cal.R[:, 2]  # through c22 = 1/(c00 c11)
+                elif kind == "b":
+                    d = np.broadcast_to(-rc[:, k], (n, 3))
+                else:
+                    d = np.cross(np.eye(3)[k], b_rot)
+                parts.append(d[..., None])
+            for sl, basis in raw:
+                cols.extend(range(sl.start, sl.stop))
+                parts.append(-np.einsum("ij,njq->niq", rc, basis))
+            b = b_rot.copy()
+            for e, es in instances:
+                if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
+                    basis = e.vector_basis(b_rot, ctx)
+                    b = b + basis @ values[block_label(e, es)]
+                    sl = self.blocks[block_label(e, es)]
+                    cols.extend(range(sl.start, sl.stop))
+                    parts.append(basis)
+            fields[s] = b
+            derivs.append((np.asarray(cols, dtype=int), np.concatenate(parts, axis=2)))
+        return fields, derivs
+
+    def jacobian(self, x) -> np.ndarray:
+        """Analytic Jacobian (m, p) of :meth:`residuals` (see :meth:`field_derivatives`)."""
+        fields, derivs = self.field_derivatives(x)
+        ns, n, p = self.n_sensors, self.n_samples, x.size
+        jac = np.zeros((self.n_residuals, p))
+        norms = np.linalg.norm(fields, axis=2, keepdims=True)
+        units = fields / norms
+        for s, (cols, d) in enumerate(derivs):
+            jac[s * n:(s + 1) * n, cols] += np.einsum("ni,nik->nk", units[s], d)
+        if "F0" in self.blocks:
+            jac[: ns * n, self.blocks["F0"].start] = -1.0
+        values = self.effect_values(x)
+        for e, es in self.model.instances():
+            if e.stage != "reference":
                 continue
-            jac[:, group] = 0.0
-            for col in group:  # grouped columns belong to different sensors and touch only their rows
-                s = self.owners[col]
-                rows = slice(s * n, (s + 1) * n)
-                jac[rows, col] = diff[rows] / steps[col]
+            sl = self.blocks[block_label(e, es)]
+            for s in range(ns):
+                if es is None or es == s:
+                    jac[s * n:(s + 1) * n, sl] -= e.reference_basis(self.ctxs[s])
+        if self.coupled:
+            e1, e2 = _perpendicular_basis(fields.mean(axis=0))
+            factor = np.sqrt(ns / (ns - 1.0))
+            top = ns * n
+            for s, (cols, d) in enumerate(derivs):
+                p1 = factor * np.einsum("ni,nik->nk", e1, d)
+                p2 = factor * np.einsum("ni,nik->nk", e2, d)
+                for k in range(ns):
+                    w = (1.0 if k == s else 0.0) - 1.0 / ns
+                    rows = slice(top + k * 2 * n, top + (k + 1) * 2 * n)
+                    block = jac[rows]
+                    block[0::2, cols] += w * p1
+                    block[1::2, cols] += w * p2
         return jac
 
-    def _column_groups(self):
-        if getattr(self, "_groups", None) is not None:
-            return self._groups
-        if self.coupled:
-            self._groups = [[k] for k in range(len(self.x0))]
-            return self._groups
-        by_slot, singles = {}, []
-        counters = {}
-        for k, owner in enumerate(self.owners):
-            if owner is None:
-                singles.append([k])
-                continue
-            slot = counters.get(owner, 0)
-            counters[owner] = slot + 1
-            by_slot.setdefault(slot, []).append(k)
-        # columns in one slot must come from distinct sensors
-        groups = []
-        for cols in by_slot.values():
-            owners = [self.owners[c] for c in cols]
-            groups.append(cols) if len(set(owners)) == len(owners) else groups.extend([[c] for c in cols])
-        self._groups = groups + singles
-        return self._groups
+
+def _perpendicular_basis(vectors):
+    """Two unit vectors per row, perpendicular to each row of ``vectors`` (N, 3) and to each other."""
+    u = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    helper = np.zeros_like(u)
+    helper[np.arange(len(u)), np.argmin(np.abs(u), axis=1)] = 1.0
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(u, e1)
 
 
 @dataclass
@@ -291,8 +343,9 @@ class FitResult:
         Total-field residuals of every sample; NaN for samples left out of the fit.
     residuals_all_nT : numpy.ndarray, shape (n_sensors, N)
         Total-field residuals of every sample, rejected ones included (for display).
-    vector_residuals_nT : numpy.ndarray, shape (n_sensors, N, 3) or None
-        Inter-sensor consistency residuals of the kept samples (arrays with misalignment).
+    vector_residuals_nT : numpy.ndarray, shape (n_sensors, N, 2) or None
+        Inter-sensor consistency residuals of the kept samples (arrays with misalignment): the two components
+        of ``B_s - mean_s B_s`` perpendicular to the field, scaled to one axis's noise.
     rms_nT : float
         Total-field RMS over all sensors and kept samples.
     rms_per_sensor_nT : numpy.ndarray, shape (n_sensors,)
@@ -448,7 +501,7 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     sigma_robust = _robust_sigma(tf)
     outliers = np.zeros(n_all, bool)
     outliers[np.flatnonzero(mask)] = np.any(np.abs(tf) > 5.0 * max(sigma_robust, 1e-9), axis=0)
-    vec = r[ns * n:].reshape(ns, n, 3) if problem.coupled else None
+    vec = r[ns * n:].reshape(ns, n, 2) if problem.coupled else None
 
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     effect_params = []

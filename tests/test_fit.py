@@ -1,0 +1,131 @@
+"""The maximum-likelihood fitter against simulated truth."""
+
+import numpy as np
+import pytest
+
+from magcal import conventions
+from magcal.fit import Problem, crude_initial_calibration, fit
+from magcal.model import Model
+from magcal.simulation import ArrayTruth, SensorErrors, chi2017_truth, simulate
+
+
+def _random_truth(rng, n_sensors):
+    sensors = []
+    for s in range(n_sensors):
+        sensors.append(SensorErrors(
+            scale=rng.uniform(0.95, 1.05, 3), psi=rng.uniform(-0.03, 0.03), phi=rng.uniform(-0.03, 0.03),
+            theta=rng.uniform(-0.03, 0.03), bias_nT=rng.uniform(-200, 200, 3),
+            alpha=0 if s == 0 else rng.uniform(-0.05, 0.05), beta=0 if s == 0 else rng.uniform(-0.05, 0.05),
+            gamma=0 if s == 0 else rng.uniform(-0.05, 0.05)))
+    return ArrayTruth(sensors, baseline_m=0.4, total_nT=rng.uniform(30_000, 60_000),
+                      declination_deg=rng.uniform(-20, 20), inclination_deg=rng.uniform(-70, 70))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_recovers_truth_within_cramer_rao(seed, n_sensors):
+    rng = np.random.default_rng(100 + seed)
+    truth = _random_truth(rng, n_sensors)
+    sigma, n = 2.0, 600
+    ds = simulate(truth, n_samples=n, noise_nT=sigma, seed=seed)
+    result = fit(ds)
+    for cal, true in zip(result.calibration.sensors, truth.sensors):
+        # Cramer-Rao: sd(b) ~ sigma sqrt(3/N), sd(C^-1 entries) ~ (sigma/F) sqrt(6/N); allow 5 sd
+        assert np.abs(cal.bias_nT - true.bias_nT).max() < 5 * sigma * np.sqrt(3 / n) * 1.5
+        assert np.abs(cal.cinv - true.Cinv).max() < 5 * sigma / truth.total_nT * np.sqrt(15 / n)
+        assert np.abs(cal.R - true.R).max() < 5 * sigma / truth.total_nT * np.sqrt(15 / n)
+    p = 9 + (3 if n_sensors > 1 else 0)
+    floor = conventions.total_field_floor_nT(sigma, n, p)
+    assert result.rms_per_sensor_nT == pytest.approx(np.full(n_sensors, floor), rel=0.12)
+
+
+def test_covariance_matches_scatter_over_seeds():
+    """The reported standard deviations agree with the spread of estimates over independent noise."""
+    truth = chi2017_truth()
+    truth.sensors = truth.sensors[:1]
+    estimates, stds = [], []
+    for seed in range(40):
+        result = fit(simulate(truth, n_samples=200, noise_nT=3.0, seed=seed))
+        estimates.append(result.x[:9])
+        stds.append(result.std[:9])
+    spread = np.std(estimates, axis=0, ddof=1)
+    ratio = spread / np.mean(stds, axis=0)
+    assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio
+
+
+def test_unknown_reference_is_fitted_with_unit_determinant_gauge():
+    truth = chi2017_truth()
+    ds = simulate(truth, seed=3).replace(reference_total_nT=None)
+    result = fit(ds)
+    assert result.reference_kind == "fitted"
+    assert np.linalg.det(result.calibration.sensors[0].cinv) == pytest.approx(1.0, abs=1e-9)
+    # the fitted C1^-1 is lambda * C1^-1(true) with det = 1, so F0 = lambda * F_true
+    expected = truth.total_nT * np.linalg.det(truth.sensors[0].Cinv) ** (-1 / 3)
+    assert result.calibration.reference_total_nT == pytest.approx(expected, rel=2e-4)
+    assert result.rms_nT < 3.3
+
+
+def test_per_sample_reference_column():
+    truth = chi2017_truth()
+    ds = simulate(truth, seed=4)
+    ref = np.full(ds.n_samples, truth.total_nT)
+    result = fit(ds.replace(reference_total_nT=None, ref_total_nT=ref))
+    assert result.reference_kind == "column"
+    assert np.abs(result.calibration.sensors[1].bias_nT - truth.sensors[1].bias_nT).max() < 2.0
+
+
+def test_robust_loss_keeps_inliers_at_floor_and_names_outliers():
+    truth = chi2017_truth()
+    ds = simulate(truth, seed=7)
+    rng = np.random.default_rng(0)
+    bad = rng.choice(ds.n_samples, 10, replace=False)  # 5% gross outliers
+    readings = ds.readings_nT.copy()
+    readings[:, bad] += rng.normal(0, 500, (4, 10, 3))
+    noisy = ds.replace(readings_nT=readings)
+    plain = fit(noisy)
+    robust = fit(noisy, loss="soft_l1")
+    good = np.setdiff1d(np.arange(ds.n_samples), bad)
+    inlier_rms = np.sqrt(np.mean(robust.residuals_all_nT[:, good] ** 2))
+    assert inlier_rms < 1.1 * conventions.total_field_floor_nT(3.0, 190, 12)
+    assert np.sqrt(np.mean(plain.residuals_all_nT[:, good] ** 2)) > 3 * inlier_rms
+    assert set(np.flatnonzero(robust.outliers)) == set(bad)
+
+
+def test_mask_excludes_samples():
+    truth = chi2017_truth()
+    ds = simulate(truth, seed=8)
+    readings = ds.readings_nT.copy()
+    readings[:, :5] += 3000.0
+    mask = np.ones(ds.n_samples, bool)
+    mask[:5] = False
+    result = fit(ds.replace(readings_nT=readings), mask=mask)
+    assert np.isnan(result.residuals_nT[:, :5]).all()
+    assert np.all(np.abs(result.residuals_all_nT[:, :5]) > 1000)
+    assert result.rms_nT < 3.3
+
+
+@pytest.mark.parametrize("reference", [50_000.0, None])
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_analytic_jacobian_matches_finite_differences_near_solution(reference, n_sensors):
+    ds = simulate(chi2017_truth(), n_samples=60, seed=5).sensors(range(n_sensors)).replace(
+        reference_total_nT=reference)
+    problem = Problem(ds, Model.base_model(n_sensors), crude_initial_calibration(ds))
+    x = problem.x0 + problem.x_scale * np.random.default_rng(1).normal(0, 3, problem.x0.size)
+    jac = problem.jacobian(x)
+    r0 = problem.residuals(x)
+    numeric = np.empty_like(jac)
+    for k in range(x.size):
+        step = 1e-3 * problem.x_scale[k]
+        xp = x.copy()
+        xp[k] += step
+        numeric[:, k] = (problem.residuals(xp) - r0) / step
+    assert np.abs(jac - numeric).max() < 2e-2 * np.abs(numeric).max()
+
+
+def test_information_criteria_prefer_true_model():
+    """Dropping non-orthogonality from a sensor that has it raises AIC and BIC."""
+    ds = simulate(chi2017_truth(), seed=9).sensors([0])
+    full = fit(ds)
+    reduced = fit(ds, model=Model(1, base=("bias", "scale")))
+    assert full.bic < reduced.bic and full.aic < reduced.aic
+    assert reduced.n_params == full.n_params - 3

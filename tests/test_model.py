@@ -1,0 +1,36 @@
+"""The model: base terms, effect parsing and channel checks."""
+
+import pytest
+
+import magcal.effects  # noqa: F401  (registers the catalogue)
+from magcal.errors import MagcalError
+from magcal.model import BASE_TERMS, EFFECTS, Model, parse_effect
+from magcal.simulation import simulate
+
+
+def test_base_model_drops_misalignment_for_one_sensor():
+    assert Model.base_model(1).base == ("bias", "scale", "non_orthogonality")
+    assert Model.base_model(4).base == BASE_TERMS
+
+
+def test_without_removes_a_base_term():
+    model = Model.base_model(4).without("non_orthogonality")
+    assert "non_orthogonality" not in model.base and "scale" in model.base
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [("bias", "base term"), ("no_such_effect", "unknown effect"), ("temperature_bias:9", "does not exist"),
+     ("temperature_bias:x", "must be a number")],
+)
+def test_bad_effect_specs_are_explained(spec, message):
+    with pytest.raises(MagcalError, match=message):
+        parse_effect(spec, 4)
+
+
+def test_missing_channels_are_reported():
+    assert "temperature_bias" in EFFECTS
+    ds = simulate("chi2017", seed=0)  # random attitudes: no time, no temperature
+    model = Model.from_names(["temperature_bias"], 4)
+    with pytest.raises(MagcalError, match="temperature"):
+        model.check(ds)
