@@ -1,0 +1,121 @@
+"""``magcal calibrate``: calibrate from a data file and print a report (or JSON), optionally saving the result.
+
+Example::
+
+    magcal calibrate chi2017.csv -o cal.json
+    magcal calibrate chi2017.csv --reference 50000 --json
+    magcal calibrate field.csv --robust --method ml
+
+Other subcommands reuse :func:`add_input_arguments` / :func:`read_input` for the data file options. To add an
+option, add it in :func:`add_arguments` and map it in :func:`calibrate_options`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+
+from ..errors import MagcalError
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``calibrate`` subcommand."""
+    parser = subparsers.add_parser(
+        "calibrate",
+        help="calibrate one to four sensors from readings taken while turning them in a uniform field",
+        description="Calibrate from a magcal CSV file: ellipsoid fit per sensor, Procrustes between sensors, then "
+                    "maximum likelihood. Prints a readable report, or one JSON object with --json.",
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+def add_input_arguments(parser) -> None:
+    """Data-file options shared by the subcommands that read a CSV file."""
+    parser.add_argument("data", metavar="FILE.csv", help="data file (see docs/formats.md)")
+    parser.add_argument("--columns", default=None, metavar="MAP",
+                        help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
+    parser.add_argument("--units", default=None, help="unit of the readings (nT, uT, G, mG); overrides the file")
+    parser.add_argument("--drop-bad", action="store_true",
+                        help="drop rows with missing or non-numeric values (with a warning) instead of refusing")
+
+
+def add_arguments(parser) -> None:
+    """The options of ``magcal calibrate``."""
+    from ..pipeline import METHODS, SEARCH_METHODS
+
+    add_input_arguments(parser)
+    parser.add_argument("--reference", type=float, default=None, metavar="NT",
+                        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
+                             "line; without either the magnitude is fitted)")
+    parser.add_argument("--method", default="ml", choices=METHODS + SEARCH_METHODS,
+                        help="ml (default): ellipsoid, Procrustes, maximum likelihood; ellipsoid: the seed's two "
+                             "steps only; pso, ipso, de: global search")
+    parser.add_argument("--ellipsoid", default="algebraic", choices=("algebraic", "li-griffiths"),
+                        help="step-1 estimator (default algebraic)")
+    parser.add_argument("--robust", action="store_true",
+                        help="robust (soft-L1) loss: gross outliers do not pull the fit; they are reported")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the global-search methods")
+    parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the calibration here")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+
+
+def read_input(args):
+    """Read the data file named by :func:`add_input_arguments` options; returns ``(dataset, warning texts)``."""
+    from .. import io
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = io.read_csv(args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad)
+    return ds, [str(w.message) for w in caught]
+
+
+def effect_names(value) -> list:
+    """Effect names from an ``--effects`` value: ``"a,b"``, ``["a", "b:2"]`` or ``["a,b"]``; None gives []."""
+    if not value:
+        return []
+    items = [value] if isinstance(value, str) else list(value)
+    return [name.strip() for item in items for name in str(item).split(",") if name.strip()]
+
+
+def calibrate_options(args) -> dict:
+    """Keyword arguments of :func:`magcal.pipeline.calibrate` from the parsed options."""
+    return {
+        "method": args.method,
+        "effects": effect_names(getattr(args, "effects", None)),
+        "robust": args.robust,
+        "reference_total_nT": args.reference,
+        "seed": args.seed,
+        "ellipsoid_method": args.ellipsoid,
+    }
+
+
+def run(args) -> int:
+    from ..pipeline import calibrate
+    from ..report import calibration_json, text_report
+
+    if args.reference is not None and not args.reference > 0:
+        raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
+    ds, notes = read_input(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = calibrate(ds, **calibrate_options(args))
+    notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
+    for note in notes:
+        print(f"magcal calibrate: warning: {note}", file=sys.stderr)
+    if args.output:
+        result.calibration.save(args.output)
+    if args.json:
+        json.dump(calibration_json(result), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        if result.warnings:
+            for note in result.warnings:
+                print(f"magcal calibrate: warning: {note}", file=sys.stderr)
+    else:
+        sys.stdout.write(text_report(result, source=args.data))
+        if args.output:
+            print(f"\nsaved the calibration to {args.output}")
+    return 0

@@ -1,0 +1,127 @@
+"""``magcal simulate`` and ``magcal calibrate`` end to end, in-process and as a real process."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from magcal import io
+from magcal.calibration import Calibration
+from magcal.cli import main
+from magcal.simulation import chi2017_truth
+
+ITEM9_TOP = {"format", "version", "reference_total_nT", "baseline_m", "n_samples", "effects", "rms_nT",
+             "tensor_rms_nT_per_m", "sensors"}
+ITEM9_SENSOR = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg", "rms_before_nT", "rms_nT"}
+
+
+@pytest.fixture(scope="module")
+def chi_csv(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "chi.csv"
+    assert main(["simulate", "--preset", "chi2017", "--seed", "21", "-o", str(path)]) == 0
+    return path
+
+
+def test_simulate_writes_a_readable_file(chi_csv):
+    ds = io.read_csv(chi_csv)
+    assert ds.n_sensors == 4 and ds.n_samples == 200
+    assert ds.baseline_m == 0.5 and ds.reference_total_nT == 50_000.0 and ds.noise_nT == 3.0
+    assert ds.metadata["preset"] == "chi2017" and ds.metadata["seed"] == "21"
+
+
+@pytest.mark.parametrize("extra,check", [
+    (["--n", "60", "--noise", "0"], lambda ds: ds.n_samples == 60 and ds.noise_nT == 0.0),
+    (["--timeseries", "--n", "120"], lambda ds: ds.n_samples == 120 and ds.has("time") and ds.has("temperature")),
+    (["--no-reference", "--n", "30"], lambda ds: ds.reference_total_nT is None),
+])
+def test_simulate_options(tmp_path, extra, check):
+    path = tmp_path / "s.csv"
+    assert main(["simulate", "--preset", "chi2017", "-o", str(path)] + extra) == 0
+    assert check(io.read_csv(path))
+
+
+def test_simulate_is_reproducible(tmp_path):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    for p in (a, b):
+        main(["simulate", "--seed", "5", "--n", "40", "-o", str(p)])
+    assert a.read_text() == b.read_text()
+
+
+def test_calibrate_report(chi_csv, capsys):
+    assert main(["calibrate", str(chi_csv)]) == 0
+    out = capsys.readouterr().out
+    for text in ("Sensor 1: total-field RMS", "Sensor 4", "C^-1 =", "b = [", "R =", "scale (gauge-free)",
+                 "axis angles", "Tensor RMS", "Gzz", "floor", "procrustes", "ml"):
+        assert text in out, text
+
+
+def test_calibrate_json_and_saved_file_agree(chi_csv, tmp_path, capsys):
+    cal_path = tmp_path / "cal.json"
+    assert main(["calibrate", str(chi_csv), "--json", "-o", str(cal_path)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads(cal_path.read_text())
+    assert ITEM9_TOP <= set(printed) and ITEM9_TOP <= set(saved)
+    assert printed["format"] == "magcal-calibration" and printed["version"] == 1
+    assert printed["n_samples"] == 200 and printed["effects"] == [] and printed["baseline_m"] == 0.5
+    assert set(printed["tensor_rms_nT_per_m"]) == {"Gxx", "Gxy", "Gxz", "Gyx", "Gyy", "Gyz", "Gzz"}
+    for p, s in zip(printed["sensors"], saved["sensors"]):
+        assert ITEM9_SENSOR <= set(p)
+        assert p["Cinv"] == s["Cinv"] and p["R"] == s["R"] and p["rms_nT"] == s["rms_nT"]
+    assert printed["sensors"][0]["R"] == np.eye(3).tolist()
+    truth = chi2017_truth()
+    for p, t in zip(printed["sensors"], truth.sensors):
+        assert np.max(np.abs(np.array(p["Cinv"]) - t.Cinv)) < 2e-4
+        assert np.max(np.abs(np.array(p["bias_nT"]) - t.bias_nT)) < 2.0
+        assert np.max(np.abs(np.array(p["R"]) - t.R)) < 1.5e-3
+        assert p["rms_before_nT"] > 100 and p["rms_nT"] < 3.6
+    # the saved file applies to the data exactly as the fitted calibration did
+    ds = io.read_csv(chi_csv)
+    total = Calibration.load(cal_path).total_field(ds)
+    assert np.sqrt(np.mean((total - 50_000.0) ** 2)) == pytest.approx(printed["rms_nT"], rel=1e-9)
+
+
+@pytest.mark.parametrize("args", [["--method", "ellipsoid"], ["--robust"], ["--reference", "50000"],
+                                  ["--ellipsoid", "li-griffiths", "--method", "ellipsoid"]])
+def test_calibrate_options(chi_csv, capsys, args):
+    assert main(["calibrate", str(chi_csv), "--json"] + args) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["rms_nT"] < 3.6 and max(doc["tensor_rms_nT_per_m"].values()) < 15
+
+
+def test_calibrate_without_reference_says_it_is_fitted(tmp_path, capsys):
+    path = tmp_path / "noref.csv"
+    main(["simulate", "--no-reference", "--seed", "2", "-o", str(path)])
+    capsys.readouterr()
+    assert main(["calibrate", str(path)]) == 0
+    assert "unknown, fitted" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("setup,args,message", [
+    (None, ["calibrate", "no/such/file.csv"], "no/such/file.csv"),
+    ("chi", ["calibrate", "{chi}", "--reference", "-5"], "--reference"),
+    (None, ["simulate", "--preset", "nope", "-o", "x.csv"], "unknown preset"),
+    ("few", ["calibrate", "{few}"], "too few samples"),
+])
+def test_user_errors_exit_2_without_traceback(tmp_path, chi_csv, capsys, setup, args, message):
+    few = tmp_path / "few.csv"
+    if setup == "few":
+        main(["simulate", "--n", "6", "-o", str(few)])
+        capsys.readouterr()
+    args = [a.format(chi=chi_csv, few=few) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_real_process(tmp_path):
+    """The command as a user runs it: exit codes and no traceback on a user error."""
+    cmd = [sys.executable, "-c", "import sys; from magcal.cli import main; sys.exit(main())"]
+    path = tmp_path / "d.csv"
+    ok = subprocess.run(cmd + ["simulate", "--n", "80", "-o", str(path)], capture_output=True, text=True)
+    assert ok.returncode == 0 and path.exists()
+    ok = subprocess.run(cmd + ["calibrate", str(path), "--method", "ellipsoid"], capture_output=True, text=True)
+    assert ok.returncode == 0 and "Sensor 4" in ok.stdout
+    bad = subprocess.run(cmd + ["calibrate", str(tmp_path / "missing.csv")], capture_output=True, text=True)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "missing.csv" in bad.stderr

@@ -1,0 +1,163 @@
+"""Step 1: ellipsoid fits against known truth, invariances, and the refusals."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from magcal import conventions
+from magcal.ellipsoid import METHODS, MIN_SAMPLES, fit_ellipsoid
+from magcal.errors import CalibrationError
+from magcal.simulation import SensorErrors, chi2017_truth, simulate
+
+
+def _single_sensor_readings(sensor, n, noise_nT, seed, total_nT=50_000.0):
+    rng = np.random.default_rng(seed)
+    directions = Rotation.random(n, random_state=rng).apply([0.0, 0.0, 1.0])
+    return sensor.measure(total_nT * directions) + rng.normal(0.0, noise_nT, (n, 3))
+
+
+@pytest.fixture(scope="module")
+def chi_data():
+    return chi2017_truth(), simulate("chi2017", seed=11)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("sensor", range(4))
+def test_chi2017_step1_recovers_truth(chi_data, method, sensor):
+    truth, ds = chi_data
+    fit = fit_ellipsoid(ds.readings_nT[sensor], method=method, reference_total_nT=truth.total_nT)
+    s = truth.sensors[sensor]
+    assert np.max(np.abs(fit.cinv - s.Cinv)) < 2e-4
+    assert np.max(np.abs(fit.bias_nT - s.bias_nT)) < 2.0
+    assert np.allclose(np.tril(fit.cinv, -1), 0.0) and np.all(np.diag(fit.cinv) > 0)
+    assert np.allclose(fit.cinv.T @ fit.cinv, fit.A)
+    assert not fit.field_fitted and fit.field_nT == truth.total_nT
+    assert fit.rms_nT == pytest.approx(3.0, rel=0.2)  # near the noise, sigma = 3 nT
+    assert fit.coverage.thinnest_spread > 0.2 and not fit.warnings
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_noise_free_fit_is_exact(method):
+    s = SensorErrors(scale=np.array([1.05, 0.97, 1.02]), psi=0.03, phi=-0.02, theta=0.04,
+                     bias_nT=np.array([310.0, -120.0, 45.0]))
+    y = _single_sensor_readings(s, 40, 0.0, seed=3)
+    fit = fit_ellipsoid(y, method=method, reference_total_nT=50_000.0)
+    assert np.allclose(fit.cinv, s.Cinv, atol=1e-9)
+    assert np.allclose(fit.bias_nT, s.bias_nT, atol=1e-5)
+    assert fit.rms_nT < 1e-5
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_zero_bias_is_fine(method):
+    # The seed divides eq. (8) by p, which vanishes when the bias' x component is zero; our normalisation does not.
+    s = SensorErrors(bias_nT=np.zeros(3))
+    fit = fit_ellipsoid(_single_sensor_readings(s, 100, 1.0, seed=5), method=method, reference_total_nT=5e4)
+    assert np.max(np.abs(fit.bias_nT)) < 1.0
+    assert np.max(np.abs(fit.cinv - np.eye(3))) < 1e-4
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_fit_moves_with_the_data(method):
+    # Rotating and translating the readings rotates A and moves the centre; nothing else changes.
+    s = chi2017_truth().sensors[2]
+    y = _single_sensor_readings(s, 150, 3.0, seed=8)
+    q = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    shift = np.array([2000.0, -700.0, 5000.0])
+    a = fit_ellipsoid(y, method=method, reference_total_nT=5e4)
+    b = fit_ellipsoid(y @ q.T + shift, method=method, reference_total_nT=5e4)
+    assert np.allclose(b.bias_nT, q @ a.bias_nT + shift, atol=1e-6)
+    assert np.allclose(b.A, q @ a.A @ q.T, atol=1e-10)
+    assert b.rms_nT == pytest.approx(a.rms_nT, rel=1e-8)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_unknown_field_is_fitted_with_unit_determinant(method):
+    truth = chi2017_truth()
+    s = truth.sensors[1]
+    y = _single_sensor_readings(s, 300, 3.0, seed=9, total_nT=48_000.0)
+    fit = fit_ellipsoid(y, method=method)
+    assert fit.field_fitted
+    assert np.linalg.det(fit.cinv) == pytest.approx(1.0, abs=1e-12)
+    # Only the common gain is unknown: C^-1 is the truth times F_fit / F_true, and F_fit = F det(C)^(1/3).
+    ratio = fit.field_nT / 48_000.0
+    assert ratio == pytest.approx(np.linalg.det(s.C) ** (1 / 3), rel=1e-4)
+    assert np.max(np.abs(fit.cinv - s.Cinv * ratio)) < 2e-4
+    known = fit.with_field(48_000.0, fitted=False, readings_nT=y)
+    assert np.max(np.abs(known.cinv - s.Cinv)) < 2e-4 and not known.field_fitted
+    assert known.rms_nT == pytest.approx(fit.rms_nT, rel=0.05)
+
+
+def test_mask_excludes_samples():
+    s = chi2017_truth().sensors[0]
+    y = _single_sensor_readings(s, 120, 3.0, seed=12)
+    y[:6] += 8000.0  # six wild samples
+    mask = np.ones(120, bool)
+    mask[:6] = False
+    fit = fit_ellipsoid(y, reference_total_nT=5e4, mask=mask)
+    assert fit.n_samples == 114
+    assert np.max(np.abs(fit.bias_nT - s.bias_nT)) < 2.0
+
+
+@pytest.mark.parametrize("n", [0, 5, MIN_SAMPLES - 1])
+def test_refuses_too_few_samples(n):
+    y = _single_sensor_readings(SensorErrors(), max(n, 1), 1.0, seed=1)[:n]
+    with pytest.raises(CalibrationError, match="too few samples"):
+        fit_ellipsoid(y, reference_total_nT=5e4)
+
+
+def test_refuses_non_finite():
+    y = _single_sensor_readings(SensorErrors(), 50, 1.0, seed=1)
+    y[7, 1] = np.nan
+    with pytest.raises(CalibrationError, match="non-finite"):
+        fit_ellipsoid(y)
+
+
+def test_algebraic_refuses_a_hyperboloid():
+    rng = np.random.default_rng(0)
+    u, t = rng.uniform(-1, 1, 300), rng.uniform(0, 2 * np.pi, 300)
+    r = np.sqrt(1 + u**2)
+    y = 5e4 * np.column_stack([r * np.cos(t), r * np.sin(t), u]) + rng.normal(0, 3, (300, 3))
+    with pytest.raises(CalibrationError, match="hyperboloid"):
+        fit_ellipsoid(y, method="algebraic")
+    # The ellipsoid-specific fit always returns an ellipsoid, but this one misses the data by far too much.
+    with pytest.raises(CalibrationError, match="do not lie on an ellipsoid"):
+        fit_ellipsoid(y, method="li-griffiths")
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("wobble_deg", [0.0, 2.0])
+def test_refuses_rotation_about_one_axis(method, wobble_deg):
+    rng = np.random.default_rng(2)
+    truth = chi2017_truth()
+    n = 200
+    angles = np.column_stack([rng.uniform(0, 2 * np.pi, n), np.radians(rng.uniform(-wobble_deg, wobble_deg, (n, 2)))])
+    att = Rotation.from_euler("ZYX", angles)
+    y = truth.sensors[1].measure(att.inv().apply(truth.field_world_nT)) + rng.normal(0, 3, (n, 3))
+    with pytest.raises(CalibrationError, match="degenerate coverage"):
+        fit_ellipsoid(y, method=method, reference_total_nT=truth.total_nT)
+
+
+def test_weak_coverage_warns():
+    # Full turns about z with +-20 deg tilts: determined, but poorly; the fit says so.
+    rng = np.random.default_rng(6)
+    truth = chi2017_truth()
+    n = 300
+    angles = np.column_stack([rng.uniform(0, 2 * np.pi, n), np.radians(rng.uniform(-20, 20, (n, 2)))])
+    y = truth.sensors[0].measure(Rotation.from_euler("ZYX", angles).inv().apply(truth.field_world_nT))
+    fit = fit_ellipsoid(y + rng.normal(0, 3, y.shape), reference_total_nT=truth.total_nT)
+    assert fit.warnings and "weak coverage" in fit.warnings[0]
+    assert fit.coverage.sky_fraction < 0.6
+
+
+def test_unknown_method():
+    with pytest.raises(CalibrationError, match="unknown ellipsoid method"):
+        fit_ellipsoid(np.zeros((20, 3)), method="magic")
+
+
+def test_gauge_free_figures_match_truth(chi_data):
+    truth, ds = chi_data
+    fit = fit_ellipsoid(ds.readings_nT[3], reference_total_nT=truth.total_nT)
+    k, angles = conventions.gauge_free(fit.cinv)
+    k_true, angles_true = conventions.gauge_free(truth.sensors[3].Cinv)
+    assert np.allclose(k, truth.sensors[3].scale, atol=2e-4) and np.allclose(k, k_true, atol=2e-4)
+    assert np.allclose(angles, angles_true, atol=0.02)
