@@ -48,6 +48,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"magcal {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `magcal calibrate --json | head`: the reader left, nothing to report
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":
