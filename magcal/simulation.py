@@ -162,6 +162,61 @@ def chi2017_truth() -> ArrayTruth:
     return ArrayTruth(sensors, baseline_m=0.5, total_nT=50_000.0, declination_deg=-7.0, inclination_deg=55.0)
 
 
+def _ding2024_sensor(bias_nT, scale, angles_deg, hard_iron_nT, soft_iron) -> SensorErrors:
+    """One sensor of Ding (2024), eq. (7): ``Br = K C (B + B_h + S B) + b``.
+
+    Ding's table lists the non-orthogonality angles as ``[phi, theta, psi]`` (deg) with his eq. (3)
+    ``C = [[cos(theta) cos(phi), sin(theta) cos(phi), sin(phi)], [0, cos(psi), sin(psi)], [0, 0, 1]]``: his
+    ``phi`` is the angle of the real x axis *out of* the ideal x-y plane and his ``theta`` the angle of its
+    projection from the ideal x axis. That is Chi's matrix (:func:`magcal.conventions.nonorthogonality_matrix`)
+    with the two letters swapped: Chi's ``theta`` = Ding's ``phi``, Chi's ``phi`` = Ding's ``theta``;
+    ``psi`` means the same in both. ``K = diag(k_x, k_y, k_z)`` is ``scale``.
+    """
+    phi_ding, theta_ding, psi = np.radians(np.asarray(angles_deg, dtype=float))
+    return SensorErrors(
+        scale=np.asarray(scale, dtype=float),
+        psi=float(psi),
+        phi=float(theta_ding),  # in-plane angle (Ding's theta)
+        theta=float(phi_ding),  # out-of-plane angle (Ding's phi)
+        bias_nT=np.asarray(bias_nT, dtype=float),
+        hard_iron_nT=np.asarray(hard_iron_nT, dtype=float),
+        soft_iron=np.asarray(soft_iron, dtype=float),
+    )
+
+
+def ding2024_truth() -> ArrayTruth:
+    """Ding (2024) simulation 1, Table 1: one fluxgate on a platform with hard and soft iron.
+
+    ``b = [75.5, 57.3, -42.6]`` nT, ``k = [1.031, 0.988, 0.982]``, ``[phi, theta, psi] = [-1.01, -0.83, 1.20]`` deg
+    (Ding's letters, see :func:`_ding2024_sensor`), hard iron ``[212, -367, 398]`` nT, soft iron ``S`` as printed.
+    Field 51 500 nT, declination -7 deg, inclination 52 deg.
+    """
+    sensor = _ding2024_sensor(
+        bias_nT=[75.5, 57.3, -42.6],
+        scale=[1.031, 0.988, 0.982],
+        angles_deg=[-1.01, -0.83, 1.20],
+        hard_iron_nT=[212.0, -367.0, 398.0],
+        soft_iron=[[0.11, 0.09, -0.13], [0.13, -0.06, 0.14], [-0.06, 0.13, 0.11]],
+    )
+    return ArrayTruth([sensor], baseline_m=0.0, total_nT=51_500.0, declination_deg=-7.0, inclination_deg=52.0)
+
+
+def ding2024_fluxgate_truth() -> ArrayTruth:
+    """Ding (2024) simulation 2, Table 2: a realistic (domestic fluxgate) sensor on a platform.
+
+    ``b = [52.65, -35.5, 72.4]`` nT, ``k = [1.00002, 0.99997, 1.00005]``, ``[phi, theta, psi] = [0.08, 0.03, -0.02]``
+    deg, hard iron ``[100, -200, 100]`` nT, soft iron ``S`` as printed. Field 51 500 nT, dec -7 deg, inc 52 deg.
+    """
+    sensor = _ding2024_sensor(
+        bias_nT=[52.65, -35.5, 72.4],
+        scale=[1.00002, 0.99997, 1.00005],
+        angles_deg=[0.08, 0.03, -0.02],
+        hard_iron_nT=[100.0, -200.0, 100.0],
+        soft_iron=[[0.09, 0.05, 0.09], [0.15, -0.04, 0.10], [-0.04, 0.09, 0.15]],
+    )
+    return ArrayTruth([sensor], baseline_m=0.0, total_nT=51_500.0, declination_deg=-7.0, inclination_deg=52.0)
+
+
 @dataclass
 class Preset:
     """A named simulation setup: truth factory plus default sample count and noise."""
@@ -176,6 +231,15 @@ class Preset:
 #: Simulation presets by name. Other modules register more (e.g. ``ding2024``).
 PRESETS: dict[str, Preset] = {
     "chi2017": Preset(chi2017_truth, 200, 3.0, "gaussian", "Chi et al. 2017, Table 1: four sensors, N=200, sigma 3 nT"),
+    "ding2024": Preset(
+        ding2024_truth, 300, 2.0, "uniform",
+        "Ding 2024, simulation 1 (Table 1): one sensor with hard/soft iron, N=300, uniform noise of full width 2 nT",
+    ),
+    "ding2024-fluxgate": Preset(
+        ding2024_fluxgate_truth, 300, 2.0, "uniform",
+        "Ding 2024, simulation 2 (Table 2): realistic fluxgate with hard/soft iron, N=300, uniform noise of full "
+        "width 2 nT",
+    ),
 }
 
 
