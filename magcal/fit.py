@@ -473,7 +473,8 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             sol = least_squares(problem.residuals, x, jac=problem.jacobian, x_scale=problem.x_scale,
-                                loss=loss, f_scale=scale, method="trf", max_nfev=max_nfev,
+                                loss=loss, f_scale=scale, method="lm" if loss == "linear" else "trf",
+                                max_nfev=max_nfev,
                                 xtol=1e-10, ftol=1e-10, gtol=1e-10)
         x, nfev = sol.x, nfev + sol.nfev
     r = problem.residuals(x)
