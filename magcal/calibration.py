@@ -296,16 +296,15 @@ class Calibration:
         write_json_atomic(path, self.to_dict())
 
     @classmethod
-    def load(cls, path) -> "Calibration":
-        """Read a calibration file written by :meth:`save`, with a clear message for any problem."""
-        try:
-            with open(path, encoding="utf-8") as fh:
-                doc = json.load(fh)
-        except FileNotFoundError:
-            raise MagcalError(f"{path}: no such calibration file") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise MagcalError(f"{path}: not valid JSON ({exc}); is this a calibration file?") from None
-        return cls.from_dict(doc, source=str(path))
+    def load(cls, path, n_sensors=None) -> "Calibration":
+        """Read a calibration file written by :meth:`save`, with a clear message for any problem.
+
+        The checks (format, version, sensor count, shapes, finite values, rotations) are those of
+        :func:`magcal.apply.load_calibration`.
+        """
+        from .apply import load_calibration
+
+        return load_calibration(path, n_sensors=n_sensors)
 
 
 def write_json_atomic(path, document) -> None:

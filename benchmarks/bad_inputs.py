@@ -1,0 +1,208 @@
+"""Every bad input we could think of, through the real CLI: what each one got.
+
+Run: ``python benchmarks/bad_inputs.py`` (about 10 s). Prints one row per case: the command, the exit status and
+the first line of what magcal said. Verdicts:
+
+* ``refused``  - exit status 2 with a one-line message (no traceback);
+* ``warned``   - went on, with a warning printed (a problem magcal could work around);
+* ``accepted`` - exit 0 and nothing said: **silently accepted** (should not happen for a bad input);
+* ``CRASH``    - any other exception (a traceback): a bug.
+
+The script exits non-zero if any case was silently accepted or crashed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io as _io
+import json
+import sys
+import tempfile
+import textwrap
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from magcal import io, simulation as sim
+from magcal import platform as pf
+from magcal.calibration import Calibration, SensorCalibration
+from magcal.cli import main
+
+
+def run_cli(argv):
+    err, out = _io.StringIO(), _io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out), warnings.catch_warnings():
+            warnings.simplefilter("always")
+            code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse usage errors
+        code = exc.code
+    except Exception as exc:  # noqa: BLE001 - this is what we are hunting
+        return "CRASH", f"{type(exc).__name__}: {exc}"
+    text = err.getvalue().strip()
+    if code == 2 and "error:" in text and "Traceback" not in text:
+        return "refused", text.splitlines()[0]
+    if code == 0 and "warning:" in text:
+        first = next(line for line in text.splitlines() if "warning:" in line)
+        return "warned", first
+    if code == 0:
+        return "accepted", out.getvalue().strip().splitlines()[0] if out.getvalue().strip() else ""
+    return "CRASH", f"exit {code}: {text[:200]}"
+
+
+def make_files(d: Path):
+    truth = pf.platform_truth()
+    rng = np.random.default_rng(0)
+    io.write_csv(d / "free.csv", sim.simulate(truth, n_samples=200, noise_nT=3.0, seed=5))
+    table = pf.simulate_level_table(truth, n_per_group=80, noise_nT=3.0, seed=1)
+    io.write_csv(d / "table.csv", table)
+    io.write_csv(d / "survey.csv", sim.simulate_timeseries(truth, n_samples=300, noise_nT=3.0, seed=3))
+    cal = Calibration([SensorCalibration(s.Cinv, s.bias_nT) for s in truth.sensors], reference_total_nT=50_000.0,
+                      baseline_m=0.5)
+    cal.save(d / "cal.json")
+    doc = cal.to_dict()
+    (d / "v2.json").write_text(json.dumps({**doc, "version": 2}))
+    (d / "two.json").write_text(json.dumps({**doc, "sensors": doc["sensors"][:2]}))
+    bad_r = json.loads(json.dumps(doc))
+    bad_r["sensors"][1]["R"] = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]
+    (d / "reflect.json").write_text(json.dumps(bad_r))
+    (d / "notjson.json").write_text("format: magcal\n")
+    one_axis = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi, (200, 1)))
+    y = np.stack([s.measure(f) for s, f in zip(truth.sensors, sim.true_fields(truth, one_axis))])
+    io.write_csv(d / "oneaxis.csv", sim.simulate(truth, n_samples=200).replace(readings_nT=y + rng.normal(0, 3, y.shape)))
+    t = np.radians(15)
+    tilted = Rotation.from_euler("ZYX", np.column_stack([rng.uniform(-np.pi, np.pi, 200), rng.uniform(-t, t, 200),
+                                                         rng.uniform(-t, t, 200)]))
+    y = np.stack([s.measure(f) for s, f in zip(truth.sensors, sim.true_fields(truth, tilted))])
+    io.write_csv(d / "tilt15.csv", sim.simulate(truth, n_samples=200).replace(readings_nT=y + rng.normal(0, 3, y.shape)))
+    io.write_csv(d / "few.csv", sim.simulate(truth, n_samples=6, seed=2))
+    io.write_csv(d / "onegroup.csv", table.subset(table.group == "z_up"))
+    io.write_csv(d / "noturn.csv", pf.simulate_level_table(truth, n_per_group=60, seed=2, heading_range_deg=2))
+    mislabel = table.group.astype("<U8")
+    mislabel[mislabel == "y_up"] = "y_down"
+    io.write_csv(d / "mislabel.csv", table.replace(group=mislabel))
+    good = (d / "free.csv").read_text().splitlines()
+    hdr = next(i for i, line in enumerate(good) if not line.startswith("#"))
+
+    def edit(name, k, col, value):
+        lines = list(good)
+        cells = lines[hdr + k].split(",")
+        cells[col] = value
+        lines[hdr + k] = ",".join(cells)
+        (d / name).write_text("\n".join(lines) + "\n")
+
+    edit("text.csv", 5, 2, "n/a")
+    edit("nan.csv", 7, 0, "NaN")
+    edit("inf.csv", 9, 4, "inf")
+    edit("emptycell.csv", 11, 1, "")
+    lines = list(good)
+    lines[hdr + 3] = ",".join(lines[hdr + 3].split(",")[:-2])
+    (d / "ragged.csv").write_text("\n".join(lines) + "\n")
+    (d / "uT.csv").write_text((d / "free.csv").read_text().replace("# units: nT", "# units: uT"))
+    surv = (d / "survey.csv").read_text().splitlines()
+    sh = next(i for i, line in enumerate(surv) if not line.startswith("#"))
+    dup = list(surv)
+    dup[sh + 6] = ",".join([dup[sh + 5].split(",")[0]] + dup[sh + 6].split(",")[1:])
+    (d / "duptime.csv").write_text("\n".join(dup) + "\n")
+    back = list(surv)
+    back[sh + 6], back[sh + 7] = back[sh + 7], back[sh + 6]
+    (d / "backtime.csv").write_text("\n".join(back) + "\n")
+    raw = {
+        "empty.csv": b"",
+        "binary.csv": bytes(range(256)) * 16,
+        "latin1.csv": "# site: M\xfcnchen\nx,y,z\n1,2,3\n".encode("latin-1"),
+        "noheader.csv": b"30000,20000,30000\n30001,20001,30001\n",
+        "nosensor.csv": b"a,b,c\n1,2,3\n",
+        "missingaxis.csv": b"s1x,s1y,t\n1,2,3\n",
+        "gap.csv": b"s1x,s1y,s1z,s3x,s3y,s3z\n1,2,3,4,5,6\n",
+        "dupcol.csv": b"x,y,z,x\n1,2,3,4\n",
+        "headeronly.csv": b"# units: nT\ns1x,s1y,s1z\n",
+        "badmeta.csv": b"# baseline_m: half a metre\nx,y,z\n1,2,3\n",
+        "badunits.csv": b"# units: furlongs\nx,y,z\n1,2,3\n",
+        "partialq.csv": b"x,y,z,qw,qx,qy\n1,2,3,1,0,0\n",
+    }
+    for name, content in raw.items():
+        (d / name).write_bytes(content)
+    (d / "dir.csv").mkdir()
+
+
+def cases(d: Path):
+    c, s, o = d / "cal.json", d / "survey.csv", d / "out.csv"
+    return [
+        ("data file", "empty file", ["calibrate", d / "empty.csv"]),
+        ("data file", "binary file", ["calibrate", d / "binary.csv"]),
+        ("data file", "not UTF-8 (Latin-1)", ["calibrate", d / "latin1.csv"]),
+        ("data file", "missing file", ["calibrate", d / "absent.csv"]),
+        ("data file", "a directory", ["calibrate", d / "dir.csv"]),
+        ("data file", "no header row", ["calibrate", d / "noheader.csv"]),
+        ("data file", "no sensor columns", ["calibrate", d / "nosensor.csv"]),
+        ("data file", "sensor without z", ["calibrate", d / "missingaxis.csv"]),
+        ("data file", "sensors 1 and 3, no 2", ["calibrate", d / "gap.csv"]),
+        ("data file", "duplicate column name", ["calibrate", d / "dupcol.csv"]),
+        ("data file", "3 of 4 quaternion columns", ["calibrate", d / "partialq.csv"]),
+        ("data file", "header only", ["calibrate", d / "headeronly.csv"]),
+        ("data file", "metadata baseline not a number", ["calibrate", d / "badmeta.csv"]),
+        ("data file", "unknown unit", ["calibrate", d / "badunits.csv"]),
+        ("data file", "ragged row", ["calibrate", d / "ragged.csv"]),
+        ("data file", "text in a number column", ["calibrate", d / "text.csv"]),
+        ("data file", "NaN", ["calibrate", d / "nan.csv"]),
+        ("data file", "inf", ["calibrate", d / "inf.csv"]),
+        ("data file", "empty cell", ["calibrate", d / "emptycell.csv"]),
+        ("data file", "NaN with --drop-bad", ["calibrate", d / "nan.csv", "--drop-bad"]),
+        ("data file", "repeated time stamp", ["apply", c, d / "duptime.csv", "-o", o]),
+        ("data file", "time going back", ["apply", c, d / "backtime.csv", "-o", o]),
+        ("data file", "readings in nT labelled uT", ["calibrate", d / "uT.csv"]),
+        ("data file", "--units furlong", ["calibrate", d / "free.csv", "--units", "furlong"]),
+        ("data file", "--columns to a missing column", ["calibrate", d / "free.csv", "--columns", "x=magX"]),
+        ("calibration", "6 samples", ["calibrate", d / "few.csv"]),
+        ("calibration", "rotation about one axis", ["calibrate", d / "oneaxis.csv"]),
+        ("calibration", "tilts within +-15 deg (poor coverage)", ["calibrate", d / "tilt15.csv"]),
+        ("calibration", "--reference 52.2 (uT given)", ["calibrate", d / "free.csv", "--reference", "52.2"]),
+        ("cal file", "missing", ["apply", d / "absent.json", s, "-o", o]),
+        ("cal file", "not JSON", ["apply", d / "notjson.json", s, "-o", o]),
+        ("cal file", "version 2", ["apply", d / "v2.json", s, "-o", o]),
+        ("cal file", "2-sensor file for 4-sensor data", ["apply", d / "two.json", s, "-o", o]),
+        ("cal file", "R a reflection", ["apply", d / "reflect.json", s, "-o", o]),
+        ("cal file", "a data file given as calibration", ["apply", s, s, "-o", o]),
+        ("apply", "output = input", ["apply", c, s, "-o", s]),
+        ("apply", "output directory missing", ["apply", c, s, "-o", d / "nodir" / "o.csv"]),
+        ("apply", "--chunk-rows 0", ["apply", c, s, "-o", o, "--chunk-rows", "0"]),
+        ("align", "no group column", ["align", d / "free.csv", "--cal", c]),
+        ("align", "one group only", ["align", d / "onegroup.csv", "--cal", c]),
+        ("align", "array not turned in a group", ["align", d / "noturn.csv", "--cal", c]),
+        ("align", "y_up labelled y_down", ["align", d / "mislabel.csv", "--cal", c]),
+        ("align", "--reference igrf without --lat", ["align", d / "table.csv", "--reference", "igrf"]),
+        ("align", "--reference igrf, date 1850", ["align", d / "table.csv", "--reference", "igrf", "--lat", "36",
+                                                  "--lon", "120", "--date", "1850-01-01"]),
+        ("align", "--noise -1", ["align", d / "table.csv", "--noise", "-1"]),
+    ]
+
+
+def main_():
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        make_files(d)
+        rows = []
+        for kind, name, argv in cases(d):
+            verdict, message = run_cli(argv)
+            message = message.replace(str(d) + "/", "")
+            rows.append((kind, name, argv[0], verdict, message))
+    width = 118
+    print(f"{'input':46s} {'command':9s} {'verdict':9s} message")
+    for kind, name, cmd, verdict, message in rows:
+        short = textwrap.shorten(message.split(": error: ")[-1].split(": warning: ")[-1], width - 66, placeholder="...")
+        print(f"{kind + ': ' + name:46s} {cmd:9s} {verdict:9s} {short}")
+    counts = {v: sum(r[3] == v for r in rows) for v in ("refused", "warned", "accepted", "CRASH")}
+    print(f"\n{len(rows)} cases: " + ", ".join(f"{n} {v}" for v, n in counts.items()))
+    if "--markdown" in sys.argv:
+        print("\n| input | command | result | message (shortened) |\n|---|---|---|---|")
+        for kind, name, cmd, verdict, message in rows:
+            short = textwrap.shorten(message.split(": error: ")[-1].split(": warning: ")[-1], 150, placeholder="...")
+            print(f"| {kind}: {name} | {cmd} | {verdict} | {short.replace('|', '/')} |")
+    return 1 if counts["accepted"] or counts["CRASH"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main_())

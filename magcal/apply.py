@@ -1,0 +1,280 @@
+"""Survey correction (patent S9-S10): apply a calibration to a survey file, streaming, and write the results.
+
+``apply_file(calibration, survey.csv, out.csv)`` copies every input line unchanged and appends
+
+* ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` for every sensor: the corrected field vector in nT, in the calibration's
+  frame (``platform`` after a level-table alignment, otherwise sensor 1's frame);
+* for four sensors with a baseline: the tensor components ``Gxx, Gxy, Gxz, Gyy, Gyz, Gzz`` of eq. (1) (Chi et al.
+  2017) and ``Gyx`` (the second estimate of the xy component; ``Gxy - Gyx`` is a check), in nT/m, and the
+  rotational invariants of the symmetric part ``G = (T + T^T)/2`` (Pedersen & Rasmussen 1990)::
+
+      I0 = tr G                                  (nT/m; zero by construction of eq. (1)'s Gzz)
+      I1 = Gxx Gyy + Gyy Gzz + Gxx Gzz - Gxy^2 - Gyz^2 - Gxz^2      ((nT/m)^2)
+      I2 = det G                                 ((nT/m)^3)
+
+The file is read and written in chunks (``chunk_rows`` lines at a time), so memory stays flat however long the
+survey; the output is written to a temporary file and renamed at the end (atomic), so a failure leaves no partial
+output. A progress bar (tqdm) is shown when stderr is a terminal.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import conventions
+from .dataset import DatasetError
+from .errors import MagcalError
+from .io import CsvSource, atomic_write, check_units, metadata_text
+
+#: Output formats: corrected vectors and tensor components to 1 pT / 1 pT/m; invariants to 7 significant digits.
+VECTOR_FORMAT = "%.3f"
+TENSOR_FORMAT = "%.3f"
+INVARIANT_FORMAT = "%.7g"
+
+#: Tensor columns written for a four-sensor array (eq. 1), in order.
+TENSOR_COLUMNS = ("Gxx", "Gxy", "Gxz", "Gyy", "Gyz", "Gzz", "Gyx")
+INVARIANT_COLUMNS = ("I0", "I1", "I2")
+
+
+def load_calibration(path, n_sensors=None):
+    """Load a calibration file with every check a user needs, as one clear :class:`MagcalError`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    n_sensors : int, optional
+        Refuse a calibration made for a different number of sensors.
+
+    Returns
+    -------
+    magcal.calibration.Calibration
+    """
+    from .calibration import FORMAT, VERSION, Calibration
+
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except FileNotFoundError:
+        raise MagcalError(f"{path}: no such calibration file; check the path") from None
+    except IsADirectoryError:
+        raise MagcalError(f"{path}: is a directory, not a calibration file") from None
+    except OSError as exc:
+        raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise MagcalError(f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file written "
+                          "by magcal calibrate or magcal align") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise MagcalError(f"{path}: not a magcal calibration file (expected \"format\": \"{FORMAT}\")")
+    if doc.get("version") != VERSION:
+        raise MagcalError(
+            f"{path}: calibration file version {doc.get('version')!r} is not supported by this magcal (it reads "
+            f"version {VERSION}); upgrade magcal or recalibrate"
+        )
+    sensors = doc.get("sensors")
+    if not isinstance(sensors, list) or not 1 <= len(sensors) <= 4:
+        raise MagcalError(f"{path}: 'sensors' must list 1 to 4 sensors; the file is damaged, recalibrate")
+    if n_sensors is not None and len(sensors) != int(n_sensors):
+        raise MagcalError(
+            f"{path}: this calibration is for {len(sensors)} sensor(s) but the data have {n_sensors}; use the "
+            "calibration made for this instrument"
+        )
+    for i, s in enumerate(sensors):
+        _check_sensor_entry(path, i, s)
+    try:
+        cal = Calibration.from_dict(doc, source=path)
+    except MagcalError:
+        raise
+    except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
+        raise MagcalError(f"{path}: damaged calibration file ({type(exc).__name__}: {exc}); recalibrate") from None
+    if cal.baseline_m is not None:
+        try:
+            ok = float(cal.baseline_m) > 0 and np.isfinite(float(cal.baseline_m))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise MagcalError(f"{path}: baseline_m {cal.baseline_m!r} must be a positive number of metres")
+    return cal
+
+
+def _check_sensor_entry(path, i, s):
+    where = f"{path}: sensor {i + 1}"
+    if not isinstance(s, dict):
+        raise MagcalError(f"{where}: entry is not an object; the file is damaged, recalibrate")
+    for key, shape in (("Cinv", (3, 3)), ("bias_nT", (3,)), ("R", (3, 3))):
+        if key not in s:
+            if key == "R":
+                continue
+            raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
+        try:
+            a = np.array(s[key], dtype=float)
+        except (TypeError, ValueError):
+            raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
+        if a.shape != shape or not np.all(np.isfinite(a)):
+            raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
+        if key == "Cinv" and abs(np.linalg.det(a)) < 1e-9:
+            raise MagcalError(f"{where}: Cinv is singular; the file is damaged, recalibrate")
+        if key == "R" and (not np.allclose(a @ a.T, np.eye(3), atol=1e-6) or np.linalg.det(a) < 0):
+            raise MagcalError(f"{where}: R is not a proper rotation; the file is damaged, recalibrate")
+
+
+def tensor_invariants(tensor):
+    """Invariants I0, I1, I2 (Pedersen & Rasmussen 1990) of the symmetric part of (N, 3, 3) tensors in nT/m."""
+    t = np.asarray(tensor, dtype=float)
+    g = 0.5 * (t + np.swapaxes(t, -1, -2))
+    i0 = np.trace(g, axis1=-2, axis2=-1)
+    gxx, gyy, gzz = g[..., 0, 0], g[..., 1, 1], g[..., 2, 2]
+    gxy, gxz, gyz = g[..., 0, 1], g[..., 0, 2], g[..., 1, 2]
+    i1 = gxx * gyy + gyy * gzz + gxx * gzz - gxy**2 - gyz**2 - gxz**2
+    i2 = np.linalg.det(g)
+    return i0, i1, i2
+
+
+def output_columns(n_sensors, tensor):
+    """Names of the columns ``apply`` appends."""
+    names = [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "xyz"]
+    if tensor:
+        names += list(TENSOR_COLUMNS) + list(INVARIANT_COLUMNS)
+    return names
+
+
+def correct_block(calibration, dataset):
+    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays."""
+    vectors = calibration.correct(dataset)
+    parts = [vectors.transpose(1, 0, 2).reshape(dataset.n_samples, -1)]
+    if calibration.n_sensors == 4 and calibration.baseline_m:
+        comps = conventions.tensor_components(vectors, calibration.baseline_m)
+        parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
+        i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
+        parts.append(np.column_stack([i0, i1, i2]))
+    return np.hstack(parts)
+
+
+@dataclass
+class ApplySummary:
+    """What :func:`apply_file` did."""
+
+    rows: int
+    columns_added: list
+    seconds: float
+    output: str
+    frame: str
+
+    @property
+    def rows_per_s(self) -> float:
+        return self.rows / self.seconds if self.seconds > 0 else float("inf")
+
+    def text(self) -> str:
+        return (f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s); wrote "
+                f"{self.output} with {len(self.columns_added)} new columns (frame: {self.frame})")
+
+
+def _progress_bar(total_bytes, enabled):
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:  # tqdm is a dependency, but the correction must not fail without it
+        return None
+    return tqdm(total=total_bytes, unit="B", unit_scale=True, desc="magcal apply", file=sys.stderr, leave=False)
+
+
+def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
+               chunk_rows=20_000, progress=None, calibration_name=None):
+    """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
+
+    Parameters
+    ----------
+    calibration : Calibration or str or os.PathLike
+        The calibration or its JSON file.
+    survey_path, output_path : str or os.PathLike
+        Input CSV (docs/formats.md) and output CSV; the output is written atomically.
+    columns, units, drop_bad
+        As in :func:`magcal.io.read_csv`.
+    chunk_rows : int
+        Lines per block; memory use is proportional to it, not to the file.
+    progress : bool, optional
+        Show a tqdm progress bar; default: when stderr is a terminal.
+
+    Returns
+    -------
+    ApplySummary
+
+    Raises
+    ------
+    MagcalError
+        Bad calibration file, a calibration for another number of sensors, missing channels, bad data.
+    """
+    t0 = time.perf_counter()
+    if isinstance(columns, str):
+        from .io import parse_column_mapping
+
+        columns = parse_column_mapping(columns)
+    if not hasattr(calibration, "correct"):
+        calibration_name = calibration_name or os.fspath(calibration)
+        calibration = load_calibration(calibration)
+    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
+    if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
+        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    progress = sys.stderr.isatty() if progress is None else bool(progress)
+    with CsvSource(survey_path, columns=columns, units=units) as src:
+        if src.layout.n_sensors != calibration.n_sensors:
+            raise MagcalError(
+                f"{survey_path}: the survey has {src.layout.n_sensors} sensor(s) but the calibration"
+                f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
+                "calibration made for this instrument"
+            )
+        tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+        new_names = output_columns(calibration.n_sensors, tensor)
+        clash = sorted(set(new_names) & set(src.header))
+        if clash:
+            raise MagcalError(
+                f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); rename "
+                "them or correct the raw survey"
+            )
+        fmt = ",".join([VECTOR_FORMAT] * (3 * calibration.n_sensors)
+                       + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS)
+                          if tensor else []))
+        meta = {}
+        if calibration_name:
+            meta["magcal_calibration"] = calibration_name
+        meta["magcal_frame"] = calibration.frame
+        meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
+        bar = _progress_bar(os.path.getsize(survey_path), progress)
+        rows = 0
+        try:
+            with atomic_write(output_path) as out:
+                for line in src.metadata_lines:
+                    out.write(line + "\n")
+                out.write(metadata_text(meta))
+                header = _io.StringIO()
+                csv.writer(header, lineterminator="\n").writerow(list(src.header) + new_names)
+                out.write(header.getvalue())
+                last_pos = src._file.tell()
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                    if rows == 0:
+                        calibration.check(chunk.dataset)
+                        check_units(chunk.dataset, src.units, src.source, stacklevel=2)
+                    values = correct_block(calibration, chunk.dataset)
+                    out.write("".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist())))
+                    rows += chunk.dataset.n_samples
+                    if bar is not None:
+                        pos = src._file.tell()
+                        bar.update(pos - last_pos)
+                        last_pos = pos
+                if rows == 0:
+                    raise DatasetError(f"{survey_path}: no data rows after the header; nothing to correct")
+        finally:
+            if bar is not None:
+                bar.close()
+    return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)

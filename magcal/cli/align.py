@@ -1,0 +1,83 @@
+"""``magcal align``: level-table platform alignment (patent S5-S8) of every sensor into the platform frame.
+
+Example::
+
+    magcal align table.csv --cal intrinsic.json -o platform.json
+    magcal align table.csv -o platform.json          # intrinsic calibration fitted to the same file
+
+The file needs a ``group`` column labelling the samples ``x_up``, ``y_up``, ``z_up`` (the platform axis that was
+vertical while the array was turned about the vertical); other labels are ignored by the alignment.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+
+from ..errors import MagcalError
+
+
+def register(subparsers):
+    """Add the ``align`` subcommand."""
+    from ..reference import add_reference_arguments
+    from .calibrate import add_input_arguments
+
+    parser = subparsers.add_parser(
+        "align",
+        help="level-table alignment: each sensor's rotation into the carrier platform's frame (patent S5-S8)",
+        description="Estimate every sensor's rotation into the platform frame from level-table records (group "
+                    "column x_up, y_up, z_up), after the intrinsic calibration from --cal (or one fitted to the "
+                    "same file). Saves a calibration whose frame is 'platform'.",
+    )
+    add_input_arguments(parser)
+    parser.add_argument("--cal", default=None, metavar="CAL.json",
+                        help="intrinsic calibration (from magcal calibrate on a free-rotation record)")
+    add_reference_arguments(parser)
+    parser.add_argument("--noise", type=float, default=None, metavar="NT",
+                        help="per-axis noise sigma in nT for the uncertainties (default: the file's noise_nT, "
+                             "else estimated from the residuals)")
+    parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the aligned calibration here")
+    parser.add_argument("--json", action="store_true", help="print the alignment figures as one JSON object")
+    parser.set_defaults(func=run)
+    return parser
+
+
+def run(args) -> int:
+    from ..apply import load_calibration
+    from ..platform import align
+    from ..reference import reference_from_args
+    from .calibrate import read_input
+
+    if args.noise is not None and not args.noise > 0:
+        raise MagcalError(f"--noise must be a positive number of nT, got {args.noise}")
+    ds, notes = read_input(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        calibration = None
+        ref_value, ref_text = None, None
+        if args.cal:
+            calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
+        else:
+            ref = reference_from_args(args, ds)
+            ref_text = ref.text
+            ds = ref.apply(ds)
+            ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None
+        new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value, source=args.data)
+    notes += [str(w.message) for w in caught]
+    for note in dict.fromkeys(notes):
+        print(f"magcal align: warning: {note}", file=sys.stderr)
+    if args.output:
+        new.save(args.output)
+    if args.json:
+        json.dump(result.to_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        if ref_text:
+            print(f"reference: {ref_text}")
+        print(result.text())
+        if args.output:
+            print(f"\nsaved the platform-frame calibration to {args.output}")
+        else:
+            print("\n(not saved: give -o CAL.json to save the aligned calibration)")
+    return 0

@@ -1,0 +1,269 @@
+"""How much of the direction sphere a calibration record covers, and what that costs off the covered directions.
+
+A scalar calibration fits the ellipsoid the readings ``y`` lie on. It is only determined in the directions the
+field took in the sensor frame: fits from tilts limited to a band extrapolate badly to the rest of the sphere,
+and a rotation about one axis (readings on one circle) does not determine a full model at all. This module gives
+
+* the **covered fraction**: the share of the unit sphere lying within ``cap_deg`` of some sample direction
+  ``u = (y - c)/|y - c|`` (``c`` a quick sphere-fit centre), measured on a Fibonacci lattice of test directions;
+* the **largest gap**: the angular radius (deg) of the largest empty cap;
+* the **planarity**: smallest over largest principal spread of the readings (0 for a rotation about one axis);
+* the **expected extrapolation error**: the RMS over the whole sphere of the total-field error that the noise
+  propagates into the 9 parameters of the ellipsoid (``A = C^-T C^-1`` and ``b``), from the linearised Fisher
+  information of the samples actually taken. It is given per nT of noise (a factor ``K``) and, with a noise
+  level, in nT; ``K_full`` is the same figure for the same number of samples spread evenly over the sphere.
+
+:func:`check_coverage` refuses (``DatasetError``) a rotation about one axis or no rotation for a full model, and
+warns (:class:`~magcal.errors.CoverageWarning`) when the expected extrapolation error is more than
+``factor_warn`` times the full-coverage value or the covered fraction is small.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .dataset import Dataset, DatasetError
+from .errors import CoverageWarning
+
+#: Number of parameters of the full single-sensor model seen by total-field data: A (6) and b (3).
+FULL_MODEL_PARAMS = 9
+
+
+def fibonacci_sphere(n):
+    """``n`` nearly evenly spread unit vectors (Fibonacci lattice), shape (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (1.0 + 5.0**0.5) * k
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def sphere_centre(points_nT):
+    """Centre (nT) of the best sphere through the points (linear least squares); zeros if it is not determined.
+
+    The quick centre only serves to turn readings into directions; offsets are small against the Earth's field,
+    so falling back to the origin costs little.
+    """
+    y = np.asarray(points_nT, dtype=float)
+    if y.shape[0] < 4:
+        return np.zeros(3)
+    scale = float(np.median(np.linalg.norm(y, axis=1))) or 1.0
+    ys = y / scale
+    design = np.column_stack([2.0 * ys, np.ones(len(ys))])
+    rhs = np.einsum("ij,ij->i", ys, ys)
+    sol, _, rank, sv = np.linalg.lstsq(design, rhs, rcond=None)
+    if rank < 4 or sv[-1] < 1e-6 * sv[0]:
+        return np.zeros(3)
+    centre = sol[:3]
+    if not np.all(np.isfinite(centre)) or np.linalg.norm(centre) > 0.5:
+        return np.zeros(3)
+    return centre * scale
+
+
+def _jacobian(directions):
+    """Jacobian (N, 9) of ``|z|_A - 1`` in ``A`` (upper triangle) and ``b`` at ``A = I``, ``z = u`` (unit radius)."""
+    u = np.asarray(directions, dtype=float)
+    ux, uy, uz = u.T
+    return np.column_stack([0.5 * ux * ux, ux * uy, ux * uz, 0.5 * uy * uy, uy * uz, 0.5 * uz * uz, -ux, -uy, -uz])
+
+
+def extrapolation_factor(directions, n_test=600):
+    """RMS over the whole sphere of the noise-propagated total-field error, per unit of per-axis noise.
+
+    Parameters
+    ----------
+    directions : array_like, shape (N, 3)
+        Unit field directions in the sensor frame of the calibration samples.
+    n_test : int
+        Test directions on the sphere.
+
+    Returns
+    -------
+    float
+        ``K = sqrt(mean_u g(u)^T (J^T J)^-1 g(u))``; multiply by the noise sigma (nT) for nT. ``inf`` when the
+        samples do not determine the 9 parameters.
+    """
+    j = _jacobian(directions)
+    info = j.T @ j
+    try:
+        w, v = np.linalg.eigh(info)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    if w[0] <= 1e-12 * max(w[-1], 1e-300):
+        return float("inf")
+    g = _jacobian(fibonacci_sphere(n_test)) @ v
+    return float(np.sqrt(np.mean(np.sum(g * g / w, axis=1))))
+
+
+@dataclass
+class Coverage:
+    """Coverage figures per sensor (arrays of length n_sensors)."""
+
+    fraction: np.ndarray
+    largest_gap_deg: np.ndarray
+    planarity: np.ndarray
+    extrapolation_factor: np.ndarray
+    full_factor: float
+    cap_deg: float
+    n_samples: int
+    noise_nT: float | None = None
+
+    @property
+    def extrapolation_nT(self):
+        """Expected whole-sphere total-field error (nT) from the noise, or ``None`` without a noise level."""
+        return None if self.noise_nT is None else self.extrapolation_factor * self.noise_nT
+
+    @property
+    def full_nT(self):
+        """The same for even coverage with the same number of samples (nT), or ``None``."""
+        return None if self.noise_nT is None else self.full_factor * self.noise_nT
+
+    def text(self):
+        """A readable multi-line summary."""
+        lines = [f"direction coverage ({self.n_samples} samples, caps of {self.cap_deg:g} deg):"]
+        for i in range(len(self.fraction)):
+            k = self.extrapolation_factor[i]
+            if self.noise_nT is not None:
+                err = f"expected whole-sphere error {k * self.noise_nT:.3g} nT (even coverage: {self.full_nT:.3g} nT)"
+            else:
+                err = f"expected whole-sphere error {k:.3g} x noise (even coverage: {self.full_factor:.3g} x noise)"
+            lines.append(
+                f"  sensor {i + 1}: {100 * self.fraction[i]:.0f}% of the sphere, largest gap "
+                f"{self.largest_gap_deg[i]:.0f} deg, planarity {self.planarity[i]:.3f}, {err}"
+            )
+        return "\n".join(lines)
+
+
+def sensor_directions(readings_nT):
+    """Unit directions (N, 3) of ``y - c`` for one sensor's readings (N, 3), ``c`` from :func:`sphere_centre`."""
+    y = np.asarray(readings_nT, dtype=float)
+    z = y - sphere_centre(y)
+    norm = np.linalg.norm(z, axis=1)
+    norm[norm == 0] = 1.0
+    return z / norm[:, None]
+
+
+def _planarity(points):
+    centred = points - points.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    return float(sv[-1] / sv[0]) if sv[0] > 0 else 0.0
+
+
+def coverage(data, cap_deg=30.0, noise_nT=None, n_test=2000):
+    """Coverage figures of a dataset (or readings (n_sensors, N, 3) / (N, 3) in nT).
+
+    Parameters
+    ----------
+    data : Dataset or array_like
+    cap_deg : float
+        A test direction counts as covered when a sample direction lies within this angle.
+    noise_nT : float, optional
+        Per-axis noise sigma (nT) for the extrapolation error in nT; the dataset's ``noise_nT`` if omitted.
+    n_test : int
+        Test directions for the covered fraction.
+
+    Returns
+    -------
+    Coverage
+    """
+    if isinstance(data, Dataset):
+        readings = data.readings_nT
+        noise_nT = data.noise_nT if noise_nT is None else noise_nT
+    else:
+        readings = np.asarray(data, dtype=float)
+        if readings.ndim == 2:
+            readings = readings[None]
+    n = readings.shape[1]
+    test = fibonacci_sphere(n_test)
+    frac, gap, plan, fac = [], [], [], []
+    for y in readings:
+        u = sensor_directions(y)
+        dist, _ = cKDTree(u).query(test)
+        angle = np.degrees(2.0 * np.arcsin(np.clip(dist / 2.0, 0.0, 1.0)))
+        frac.append(float(np.mean(angle <= cap_deg)))
+        gap.append(float(angle.max()))
+        plan.append(_planarity(y))
+        fac.append(extrapolation_factor(u) if n >= FULL_MODEL_PARAMS else float("inf"))
+    full = extrapolation_factor(fibonacci_sphere(max(n, FULL_MODEL_PARAMS)))
+    return Coverage(np.array(frac), np.array(gap), np.array(plan), np.array(fac), full, float(cap_deg), n,
+                    None if noise_nT is None else float(noise_nT))
+
+
+def check_coverage(data, full_model=True, cap_deg=30.0, noise_nT=None, factor_warn=3.0, fraction_warn=0.5,
+                   planarity_min=0.02, source=None):
+    """Coverage figures, refusing data that cannot determine a full model and warning when coverage is poor.
+
+    Parameters
+    ----------
+    data : Dataset or array_like
+    full_model : bool
+        The fit has bias, scale and non-orthogonality (9 parameters per sensor). A rotation about one axis only
+        (readings on one circle: ``planarity < planarity_min``) or no rotation is then refused.
+    factor_warn : float
+        Warn when the expected extrapolation error exceeds this many times the even-coverage value.
+    fraction_warn : float
+        Warn when less than this fraction of the sphere is covered.
+
+    Returns
+    -------
+    Coverage
+
+    Raises
+    ------
+    DatasetError
+        For a full model on readings from a rotation about one axis or without rotation.
+    """
+    cov = coverage(data, cap_deg=cap_deg, noise_nT=noise_nT)
+    where = source or (data.source if isinstance(data, Dataset) else None) or "dataset"
+    if full_model:
+        for i in range(len(cov.fraction)):
+            if cov.largest_gap_deg[i] > 150.0 and cov.fraction[i] < 0.1:
+                raise DatasetError(
+                    f"{where}: sensor {i + 1}'s field direction hardly changes (it covers {100 * cov.fraction[i]:.0f}% "
+                    "of the sphere); a calibration needs the sensor turned so that each axis points up and down"
+                )
+            if cov.planarity[i] < planarity_min:
+                raise DatasetError(
+                    f"{where}: sensor {i + 1}'s readings lie on one circle (planarity {cov.planarity[i]:.4f}): the sensor "
+                    "was turned about one axis only, which does not determine bias, scale and non-orthogonality. "
+                    "Record more attitudes with the sensor tilted so that each axis points up and down"
+                )
+    poor = [i for i in range(len(cov.fraction))
+            if cov.extrapolation_factor[i] > factor_warn * cov.full_factor or cov.fraction[i] < fraction_warn]
+    if poor:
+        worst = max(poor, key=lambda i: cov.extrapolation_factor[i])
+        k = cov.extrapolation_factor[worst]
+        if cov.noise_nT is not None:
+            err = (f"expected total-field error away from the covered directions ~{k * cov.noise_nT:.3g} nT "
+                   f"(even coverage with as many samples: {cov.full_nT:.3g} nT)")
+        else:
+            err = (f"expected total-field error away from the covered directions ~{k:.3g} x the noise "
+                   f"(even coverage with as many samples: {cov.full_factor:.3g} x)")
+        warnings.warn(
+            f"{where}: poor direction coverage for sensor(s) {', '.join(str(i + 1) for i in poor)}: "
+            f"{100 * cov.fraction[worst]:.0f}% of the sphere within {cap_deg:g} deg of a sample, largest gap "
+            f"{cov.largest_gap_deg[worst]:.0f} deg; {err}. Record attitudes that fill the gaps",
+            CoverageWarning, stacklevel=2,
+        )
+    return cov
+
+
+def calibration_input_checks(dataset, reference_nT=None):
+    """Checks before a scalar calibration, as warning texts: poor coverage (with the expected extrapolation error)
+    and a given reference far from the readings. Raises for a reference in the wrong unit (e.g. 52.2 meant uT).
+
+    Used by ``magcal calibrate``; the fit itself refuses rotation about one axis and too few samples.
+    """
+    from .reference import resolve_reference
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if reference_nT is not None:
+            resolve_reference(dataset, str(reference_nT))
+        if dataset.n_samples >= FULL_MODEL_PARAMS + 1:
+            check_coverage(dataset, full_model=False)
+    return [str(w.message) for w in caught]

@@ -1,0 +1,257 @@
+"""magcal.apply: streaming survey correction, tensor invariants, and calibration files that load or say why not."""
+
+import json
+import tracemalloc
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from magcal import apply as ap
+from magcal import conventions, io
+from magcal import platform as pf
+from magcal import simulation as sim
+from magcal.calibration import Calibration, SensorCalibration
+from magcal.dataset import DatasetError
+from magcal.errors import DataWarning, MagcalError
+
+
+def exact_calibration(truth, frame="platform"):
+    """The true calibration: C^-1, b and R (sensor frame -> array/platform frame) of every sensor."""
+    return Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors],
+                       reference_total_nT=truth.total_nT, baseline_m=truth.baseline_m, frame=frame)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return pf.platform_truth()
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory, truth):
+    ds = sim.simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=3)
+    ds = ds.replace(extra={"line_id": np.repeat(["L1", "L2,b"], 150), "alt_m": np.linspace(10, 20, 300)})
+    path = tmp_path_factory.mktemp("apply") / "survey.csv"
+    io.write_csv(path, ds)
+    return path, ds
+
+
+def read_out(path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        return io.read_csv(path)
+
+
+def test_corrected_columns_are_the_platform_field(tmp_path, truth, survey):
+    path, ds = survey
+    out = tmp_path / "out.csv"
+    summary = ap.apply_file(exact_calibration(truth), path, out)
+    assert summary.rows == 300
+    res = read_out(out)
+    q = ds.attitude_wxyz
+    b_platform = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]])).inv().apply(truth.field_world_nT)
+    for s in range(4):
+        got = np.column_stack([res.extra[f"s{s + 1}{a}_cal"] for a in "xyz"])
+        np.testing.assert_allclose(got, b_platform, atol=6e-4)  # written to 1 pT
+    # a uniform field has no gradient: the tensor is zero to the output rounding
+    for c in ap.TENSOR_COLUMNS:
+        assert np.max(np.abs(res.extra[c])) < 5e-3
+    assert "# magcal_frame: platform" in out.read_text()
+
+
+def test_every_input_line_is_copied_unchanged(tmp_path, truth, survey):
+    path, _ = survey
+    out = tmp_path / "out.csv"
+    ap.apply_file(exact_calibration(truth), path, out)
+    src = [line for line in path.read_text().splitlines() if not line.startswith("#")]
+    dst = [line for line in out.read_text().splitlines() if not line.startswith("#")]
+    assert len(src) == len(dst)
+    n_new = len(ap.output_columns(4, True))
+    for a, b in zip(src, dst):
+        assert b.startswith(a + ",") and b.count(",") == a.count(",") + n_new
+    meta_in = [line for line in path.read_text().splitlines() if line.startswith("#")]
+    assert meta_in == [line for line in out.read_text().splitlines() if line.startswith("#")][:len(meta_in)]
+
+
+def test_values_match_the_calibration_object_and_tensor(tmp_path, truth, survey):
+    path, ds = survey
+    rng = np.random.default_rng(0)
+    noisy = ds.replace(readings_nT=ds.readings_nT + rng.normal(0, 3, ds.readings_nT.shape))
+    io.write_csv(tmp_path / "noisy.csv", noisy)
+    cal = exact_calibration(truth)
+    ap.apply_file(cal, tmp_path / "noisy.csv", tmp_path / "out.csv")
+    res = read_out(tmp_path / "out.csv")
+    vec = cal.correct(noisy)
+    for s in range(4):
+        for k, a in enumerate("xyz"):
+            np.testing.assert_allclose(res.extra[f"s{s + 1}{a}_cal"], vec[s, :, k], atol=6e-4)
+    comps = conventions.tensor_components(vec, 0.5)
+    for c in ap.TENSOR_COLUMNS:
+        np.testing.assert_allclose(res.extra[c], comps[c], atol=6e-4)
+    # noise-only tensor: RMS at the floor sqrt(2) sigma / d (Gzz 2 sigma / d)
+    floor = conventions.tensor_floor_nT_per_m(3.0, 0.5)
+    for c in ("Gxx", "Gyy", "Gzz"):
+        assert np.sqrt(np.mean(res.extra[c] ** 2)) == pytest.approx(floor[c], rel=0.2)
+    i0, i1, i2 = ap.tensor_invariants(conventions.tensor_matrix(comps))
+    np.testing.assert_allclose(res.extra["I0"], 0.0, atol=1e-9)  # eq. (1)'s Gzz makes the trace vanish
+    np.testing.assert_allclose(res.extra["I1"], i1, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(res.extra["I2"], i2, rtol=1e-6, atol=1e-6)
+
+
+def test_invariants_are_invariant_and_match_eigenvalues():
+    rng = np.random.default_rng(1)
+    a = rng.normal(0, 50, (20, 3, 3))
+    g = a + np.swapaxes(a, 1, 2)
+    g -= np.trace(g, axis1=1, axis2=2)[:, None, None] * np.eye(3) / 3
+    i0, i1, i2 = ap.tensor_invariants(g)
+    lam = np.linalg.eigvalsh(g)
+    np.testing.assert_allclose(i0, 0, atol=1e-9)
+    np.testing.assert_allclose(i1, lam[:, 0] * lam[:, 1] + lam[:, 1] * lam[:, 2] + lam[:, 0] * lam[:, 2], rtol=1e-9)
+    np.testing.assert_allclose(i2, lam.prod(axis=1), rtol=1e-9)
+    q = Rotation.random(20, random_state=rng).as_matrix()
+    rotated = q @ g @ np.swapaxes(q, 1, 2)
+    for x, y in zip(ap.tensor_invariants(rotated), (i0, i1, i2)):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-6)
+
+
+@pytest.mark.parametrize("chunk_rows", [3, 7, 100_000])
+def test_output_does_not_depend_on_the_chunk_size(tmp_path, truth, survey, chunk_rows):
+    path, _ = survey
+    ap.apply_file(exact_calibration(truth), path, tmp_path / "a.csv", chunk_rows=100_000)
+    ap.apply_file(exact_calibration(truth), path, tmp_path / "b.csv", chunk_rows=chunk_rows)
+    a, b = (tmp_path / "a.csv").read_text().splitlines(), (tmp_path / "b.csv").read_text().splitlines()
+    assert len(a) == len(b)
+    for la, lb in zip(a, b):  # identical text except the last digits of rounding-level invariants (~1e-21)
+        ca, cb = la.split(","), lb.split(",")
+        assert ca[:-2] == cb[:-2]
+        if not la.startswith("#") and ca[-1] != "I2":
+            np.testing.assert_allclose(np.array(ca[-2:], float), np.array(cb[-2:], float), atol=1e-12)
+
+
+def test_single_sensor_gets_only_its_columns(tmp_path):
+    truth = sim.chi2017_truth()
+    one = sim.ArrayTruth(truth.sensors[:1])
+    ds = sim.simulate(one, n_samples=50, seed=2)
+    io.write_csv(tmp_path / "one.csv", ds)
+    cal = Calibration([SensorCalibration(one.sensors[0].Cinv, one.sensors[0].bias_nT)], reference_total_nT=50_000.0)
+    summary = ap.apply_file(cal, tmp_path / "one.csv", tmp_path / "out.csv")
+    assert summary.columns_added == ["s1x_cal", "s1y_cal", "s1z_cal"]
+    res = read_out(tmp_path / "out.csv")
+    total = np.linalg.norm(np.column_stack([res.extra[f"s1{a}_cal"] for a in "xyz"]), axis=1)
+    assert np.sqrt(np.mean((total - 50_000) ** 2)) < 5.0  # the noise, 3 nT
+
+
+def test_column_mapping_and_units_in_apply(tmp_path):
+    truth = sim.chi2017_truth()
+    one = sim.ArrayTruth(truth.sensors[:1])
+    ds = sim.simulate(one, n_samples=20, seed=2, noise_nT=0.0)
+    cols = {"Bx": ds.readings_nT[0, :, 0] / 1e3, "By": ds.readings_nT[0, :, 1] / 1e3, "Bz": ds.readings_nT[0, :, 2] / 1e3}
+    io.write_csv(tmp_path / "uT.csv", cols)
+    cal = Calibration([SensorCalibration(one.sensors[0].Cinv, one.sensors[0].bias_nT)])
+    ap.apply_file(cal, tmp_path / "uT.csv", tmp_path / "out.csv", columns="x=Bx,y=By,z=Bz", units="uT")
+    res = io.read_csv(tmp_path / "out.csv", columns="x=Bx,y=By,z=Bz", units="uT")
+    total = np.linalg.norm(np.column_stack([res.extra[f"s1{a}_cal"] for a in "xyz"]), axis=1)
+    np.testing.assert_allclose(total, 50_000.0, atol=1e-2)
+
+
+def test_bad_rows_refuse_and_leave_no_output_or_drop(tmp_path, truth, survey):
+    path, _ = survey
+    lines = path.read_text().splitlines()
+    k = len(lines) - 5
+    cells = lines[k].split(",")
+    cells[3] = "NaN"
+    lines[k] = ",".join(cells)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out.csv"
+    out.write_text("old\n")
+    with pytest.raises(DatasetError, match=f"line {k + 1}"):
+        ap.apply_file(exact_calibration(truth), bad, out, chunk_rows=50)
+    assert out.read_text() == "old\n"  # atomic: the old file is untouched
+    with pytest.warns(DataWarning, match=f"dropped 1 row.*line {k + 1}"):
+        summary = ap.apply_file(exact_calibration(truth), bad, out, drop_bad=True, chunk_rows=50)
+    assert summary.rows == 299
+
+
+def test_refusals(tmp_path, truth, survey):
+    path, ds = survey
+    cal2 = Calibration(exact_calibration(truth).sensors[:2], baseline_m=0.5)
+    with pytest.raises(MagcalError, match="4 sensor.*for 2"):
+        ap.apply_file(cal2, path, tmp_path / "o.csv")
+    with pytest.raises(MagcalError, match="overwrite"):
+        ap.apply_file(exact_calibration(truth), path, path)
+    ap.apply_file(exact_calibration(truth), path, tmp_path / "o.csv")
+    with pytest.raises(MagcalError, match="already has column"):
+        ap.apply_file(exact_calibration(truth), tmp_path / "o.csv", tmp_path / "o2.csv")
+
+
+def test_memory_stays_flat(tmp_path, truth):
+    """Peak memory does not grow with the file: 4x the rows, about the same peak."""
+    peaks = []
+    for n in (2_000, 8_000):
+        ds = sim.simulate(truth, n_samples=n, seed=1)
+        io.write_csv(tmp_path / f"m{n}.csv", ds, float_format="%.3f")
+        tracemalloc.start()
+        ap.apply_file(exact_calibration(truth), tmp_path / f"m{n}.csv", tmp_path / "o.csv", chunk_rows=500,
+                      progress=False)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    assert peaks[1] < 1.5 * peaks[0], peaks
+
+
+# -- calibration files --------------------------------------------------------------------------------------------
+def test_calibration_round_trip(tmp_path, truth):
+    cal = exact_calibration(truth)
+    cal.summary["rms_nT"] = 2.9
+    cal.save(tmp_path / "c.json")
+    back = ap.load_calibration(tmp_path / "c.json", n_sensors=4)
+    assert back.frame == "platform" and back.baseline_m == 0.5 and back.reference_total_nT == truth.total_nT
+    for a, b in zip(cal.sensors, back.sensors):
+        np.testing.assert_array_equal(a.cinv, b.cinv)
+        np.testing.assert_array_equal(a.bias_nT, b.bias_nT)
+        np.testing.assert_array_equal(a.R, b.R)
+    assert back.summary["rms_nT"] == 2.9
+    survey = sim.simulate(truth, n_samples=10, seed=1)
+    np.testing.assert_array_equal(back.correct(survey), cal.correct(survey))
+
+
+def _doc(truth):
+    return exact_calibration(truth).to_dict()
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda d: d.update(version=2), "version 2 is not supported"),
+    (lambda d: d.update(version=None), "version None"),
+    (lambda d: d.update(format="other"), "not a magcal calibration"),
+    (lambda d: d.update(sensors=[]), "1 to 4"),
+    (lambda d: d.update(sensors="abc"), "1 to 4"),
+    (lambda d: d["sensors"][1].update(Cinv=[[1, 0], [0, 1]]), "sensor 2: Cinv"),
+    (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, float("nan"), 0], [0, 0, 1]]), "finite"),
+    (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, 0, 0], [0, 0, 1]]), "singular"),
+    (lambda d: d["sensors"][2].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]), "sensor 3: R is not a proper rotation"),
+    (lambda d: d["sensors"][3].pop("bias_nT"), "sensor 4: missing bias_nT"),
+    (lambda d: d["sensors"][3].update(bias_nT="x"), "not numeric"),
+    (lambda d: d.update(effect_params=[{"nonsense": 1}]), "damaged"),
+    (lambda d: d.update(baseline_m=-1), "baseline_m"),
+])
+def test_damaged_or_foreign_files_are_refused(tmp_path, truth, edit, match):
+    doc = _doc(truth)
+    edit(doc)
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(MagcalError, match=match):
+        ap.load_calibration(path)
+
+
+def test_wrong_sensor_count_and_non_json(tmp_path, truth):
+    exact_calibration(truth).save(tmp_path / "c.json")
+    with pytest.raises(MagcalError, match="for 4 sensor.*data have 1"):
+        ap.load_calibration(tmp_path / "c.json", n_sensors=1)
+    (tmp_path / "bin.json").write_bytes(bytes(range(256)))
+    with pytest.raises(MagcalError, match="not a JSON"):
+        ap.load_calibration(tmp_path / "bin.json")
+    with pytest.raises(MagcalError, match="no such"):
+        ap.load_calibration(tmp_path / "absent.json")
+    with pytest.raises(MagcalError, match="directory"):
+        ap.load_calibration(tmp_path)

@@ -1,0 +1,324 @@
+"""magcal.io: the CSV format of docs/formats.md, column mapping, units, and refusing bad files clearly."""
+
+import os
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from magcal import io
+from magcal.dataset import Dataset, DatasetError
+from magcal.errors import DataWarning
+from magcal.simulation import simulate, simulate_timeseries
+
+
+def write(tmp_path, content, name="d.csv"):
+    path = tmp_path / name
+    path.write_bytes(content.encode("utf-8") if isinstance(content, str) else content)
+    return path
+
+
+def read_quiet(path, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        return io.read_csv(path, **kw)
+
+
+# -- round trip ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n_sensors", [1, 2, 3, 4])
+@pytest.mark.parametrize("channels", [(), ("time", "temperature"), ("attitude", "group", "extra", "ref")])
+def test_round_trip_is_exact(tmp_path, n_sensors, channels):
+    ds = simulate_timeseries("chi2017", n_samples=40, seed=3).sensors(range(n_sensors))
+    rng = np.random.default_rng(0)
+    changes = {}
+    if "time" not in channels:
+        changes.update(time_s=None, temperature_C=None)
+    if "attitude" not in channels:
+        changes["attitude_wxyz"] = None
+    if "group" in channels:
+        changes["group"] = np.array(["x_up", "y up", "z,up", 'q"x'] * 10)
+    if "extra" in channels:
+        changes["extra"] = {"lineno": np.arange(40.0), "note": np.array(["a", "b,c"] * 20)}
+    if "ref" in channels:
+        changes["ref_total_nT"] = 50_000 + rng.normal(0, 5, 40)
+    ds = ds.replace(**changes)
+    path = tmp_path / "rt.csv"
+    io.write_csv(path, ds)
+    back = io.read_csv(path)
+    assert back.n_sensors == n_sensors and back.n_samples == 40
+    np.testing.assert_array_equal(back.readings_nT, ds.readings_nT)
+    for attr in ("time_s", "temperature_C", "ref_total_nT", "attitude_wxyz"):
+        a, b = getattr(ds, attr), getattr(back, attr)
+        assert (a is None) == (b is None), attr
+        if a is not None:
+            np.testing.assert_array_equal(a, b)
+    if ds.group is not None:
+        np.testing.assert_array_equal(back.group, ds.group)
+    for name, value in ds.extra.items():
+        np.testing.assert_array_equal(back.extra[name], value)
+    assert back.reference_total_nT == ds.reference_total_nT and back.noise_nT == ds.noise_nT
+    assert back.source == str(path)
+
+
+def test_metadata_keys_all_kept_and_numbers_parsed(tmp_path):
+    path = write(tmp_path, "# site: range B: north pad\n# comment without colon\n# baseline_m: 0.25\n"
+                           "# reference_total_nT: 52193\n# noise_nT: 0.5\n# operator: A. N. Other\ns1x,s1y,s1z\n"
+                           "50000,1,2\n")
+    ds = read_quiet(path)
+    assert ds.metadata["site"] == "range B: north pad" and ds.metadata["operator"] == "A. N. Other"
+    assert ds.baseline_m == 0.25 and ds.reference_total_nT == 52193.0 and ds.noise_nT == 0.5
+
+
+def test_bare_xyz_is_one_sensor_and_unknown_columns_are_kept(tmp_path):
+    path = write(tmp_path, "x,y,z,heading,status\n30000,20000,30000,12.5,ok\n30010,20010,30020,13.0,bad\n")
+    ds = io.read_csv(path)
+    assert ds.n_sensors == 1
+    np.testing.assert_array_equal(ds.readings_nT[0, 1], [30010, 20010, 30020])
+    np.testing.assert_array_equal(ds.extra["heading"], [12.5, 13.0])
+    assert list(ds.extra["status"]) == ["ok", "bad"]
+
+
+def test_bom_crlf_blank_lines_and_spaces_are_fine(tmp_path):
+    path = write(tmp_path, "\ufeff# units: nT\r\n\r\n s1x , s1y ,s1z\r\n30000, 20000 ,30000\r\n\r\n30001,20001,30001\r\n")
+    ds = io.read_csv(path)
+    np.testing.assert_array_equal(ds.readings_nT[0], [[30000, 20000, 30000], [30001, 20001, 30001]])
+
+
+# -- units --------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("unit,factor", [("nT", 1.0), ("uT", 1e3), ("µT", 1e3), ("G", 1e5), ("mG", 1e2)])
+@pytest.mark.parametrize("where", ["metadata", "argument"])
+def test_units_are_converted_to_nT(tmp_path, unit, factor, where):
+    ds = simulate("chi2017", n_samples=20, seed=1).sensors([0])
+    raw = ds.readings_nT[0] / factor
+    head = f"# units: {unit}\n" if where == "metadata" else ""
+    body = "\n".join(",".join(repr(float(v)) for v in row) for row in raw)
+    path = write(tmp_path, head + "x,y,z\n" + body + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)  # correct units: no sanity warning
+        back = io.read_csv(path, units=unit if where == "argument" else None)
+    np.testing.assert_allclose(back.readings_nT[0], ds.readings_nT[0], rtol=1e-12)
+
+
+@pytest.mark.parametrize("true_unit,factor", [("uT", 1e3), ("G", 1e5), ("mG", 1e2)])
+def test_readings_in_another_unit_give_a_warning_naming_it(tmp_path, true_unit, factor):
+    raw = simulate("chi2017", n_samples=20, seed=1).readings_nT[0] / factor
+    body = "\n".join(",".join(repr(float(v)) for v in row) for row in raw)
+    path = write(tmp_path, "x,y,z\n" + body + "\n")
+    with pytest.warns(DataWarning, match=f"look like {true_unit}"):
+        io.read_csv(path)
+
+
+def test_units_argument_overrides_the_file_with_a_warning(tmp_path):
+    path = write(tmp_path, "# units: nT\nx,y,z\n30,20,30\n31,21,30\n")
+    with pytest.warns(DataWarning, match="overrides"):
+        ds = io.read_csv(path, units="uT")
+    assert ds.readings_nT[0, 0, 0] == 30_000.0
+
+
+# -- column mapping -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("mapping", [
+    {"s1x": "magX", "s1y": "magY", "s1z": "magZ", "t": "time"},
+    {"x": "magX", "y": "magY", "z": "magZ", "t": "time"},
+    "x=magX, y=magY, z=magZ, t=time",
+])
+def test_column_mapping(tmp_path, mapping):
+    path = write(tmp_path, "time,magZ,magX,magY,t\n0.5,30,10,20,zzz\n1.5,31,11,21,yyy\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        ds = io.read_csv(path, columns=mapping, units="uT")
+    np.testing.assert_array_equal(ds.readings_nT[0], [[10000, 20000, 30000], [11000, 21000, 31000]])
+    np.testing.assert_array_equal(ds.time_s, [0.5, 1.5])
+    assert list(ds.extra["t"]) == ["zzz", "yyy"]  # the file's own 't' is kept, not used
+
+
+@pytest.mark.parametrize("mapping,match", [
+    ({"x": "nope", "y": "b", "z": "c"}, "nope.*no such column"),
+    ({"w": "a"}, "not a magcal column"),
+    ("x=a,y", "not of the form"),
+    ({"x": "a", "y": "a", "z": "c"}, "more than one"),
+])
+def test_bad_column_mapping_is_refused(tmp_path, mapping, match):
+    path = write(tmp_path, "a,b,c\n1,2,3\n")
+    with pytest.raises(DatasetError, match=match):
+        io.read_csv(path, columns=mapping)
+
+
+# -- refusals -----------------------------------------------------------------------------------------------------
+BAD_FILES = [
+    ("empty", b"", ["empty"]),
+    ("blank", b"\n\n  \n", ["empty"]),
+    ("only metadata", b"# units: nT\n# baseline_m: 0.5\n", ["no header"]),
+    ("binary", bytes(range(256)) * 4, ["binary"]),
+    ("not utf-8", "# units: nT\nx,y,z\n1,2,3\n\xe9,2,3\n".encode("latin-1"), ["line 4", "UTF-8"]),
+    ("no header", b"1,2,3\n4,5,6\n", ["line 1", "header"]),
+    ("no sensor columns", b"a,b,c\n1,2,3\n", ["no magnetometer columns", "a, b, c"]),
+    ("missing axis", b"s1x,s1y,t\n1,2,3\n", ["sensor 1", "s1z"]),
+    ("sensor gap", b"s1x,s1y,s1z,s3x,s3y,s3z\n1,2,3,4,5,6\n", ["not for 2"]),
+    ("partial quaternion", b"x,y,z,qw,qx\n1,2,3,1,0\n", ["qw,qx,qy,qz"]),
+    ("duplicate column", b"x,y,z,y\n1,2,3,4\n", ["line 1", "'y' appears twice"]),
+    ("ragged short", b"x,y,z\n1,2,3\n4,5\n", ["line 3", "2 field"]),
+    ("ragged long", b"x,y,z\n1,2,3\n4,5,6,7\n", ["line 3", "4 field"]),
+    ("text value", b"# units: nT\nx,y,z\n1,2,3\n4,five,6\n", ["line 4", "column s1y", "'five'"]),
+    ("nan", b"x,y,z\n1,2,3\n4,5,nan\n", ["line 3", "column s1z", "finite"]),
+    ("inf", b"x,y,z\n1,2,3\n-inf,5,6\n", ["line 3", "column s1x"]),
+    ("empty cell", b"x,y,z,temp\n1,2,3,20\n4,5,6,\n", ["line 3", "column temp", "empty"]),
+    ("repeated time", b"t,x,y,z\n0,1,2,3\n1,1,2,3\n1,1,2,3\n", ["line 4", "column t", "repeats", "line 3"]),
+    ("time going back", b"t,x,y,z\n0,1,2,3\n2,1,2,3\n1,1,2,3\n", ["line 4", "goes back", "line 3"]),
+    ("no rows", b"x,y,z\n", ["no data rows"]),
+    ("bad baseline", b"# baseline_m: -0.5\nx,y,z\n1,2,3\n", ["line 1", "baseline_m"]),
+    ("bad reference", b"# reference_total_nT: lots\nx,y,z\n1,2,3\n", ["reference_total_nT"]),
+    ("unknown unit", b"# units: furlongs\nx,y,z\n1,2,3\n", ["unknown unit", "furlongs"]),
+    ("zero quaternion", b"x,y,z,qw,qx,qy,qz\n1,2,3,0,0,0,0\n", ["line 2", "zero"]),
+    ("lone CR", b"x,y,z\r1,2,3\r4,5,6\r", ["carriage return"]),
+    ("sensor 5", b"s1x,s1y,s1z,s5x,s5y,s5z\n1,2,3,4,5,6\n", ["sensor"]),
+]
+
+
+@pytest.mark.parametrize("name,content,needles", BAD_FILES, ids=[b[0] for b in BAD_FILES])
+def test_bad_files_are_refused_with_a_clear_message(tmp_path, name, content, needles):
+    path = write(tmp_path, content)
+    with pytest.raises(DatasetError) as info:
+        read_quiet(path)
+    message = str(info.value)
+    assert str(path) in message
+    for needle in needles:
+        assert needle.lower() in message.lower(), (needle, message)
+
+
+def test_missing_file_and_directory(tmp_path):
+    with pytest.raises(DatasetError, match="no such file"):
+        io.read_csv(tmp_path / "absent.csv")
+    with pytest.raises(DatasetError, match="directory"):
+        io.read_csv(tmp_path)
+
+
+def test_line_numbers_count_metadata_and_blank_lines(tmp_path):
+    lines = ["# a: 1", "# b: 2", "", "x,y,z", "1,2,3", "", "4,5,6", "7,oops,9", "10,11,12"]
+    path = write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match="line 8, column s1y"):
+        io.read_csv(path)
+
+
+def test_drop_bad_drops_exactly_the_bad_rows_and_names_them(tmp_path):
+    rows = ["30000,20000,30000"] * 10
+    rows[2] = "30000,nan,30000"
+    rows[5] = "30000,,30000"
+    rows[7] = "abc,1,2"
+    path = write(tmp_path, "x,y,z\n" + "\n".join(rows) + "\n")
+    with pytest.raises(DatasetError, match="3 row"):
+        io.read_csv(path)
+    with pytest.warns(DataWarning, match=r"dropped 3 row.*line 4.*line 7.*line 9"):
+        ds = io.read_csv(path, drop_bad=True)
+    assert ds.n_samples == 7
+
+
+def test_all_rows_bad_under_drop_bad_is_an_error(tmp_path):
+    path = write(tmp_path, "x,y,z\nnan,1,2\n1,inf,2\n")
+    with pytest.raises(DatasetError, match="no data rows|0 sample"):
+        read_quiet(path, drop_bad=True)
+
+
+def test_too_few_samples(tmp_path):
+    path = write(tmp_path, "x,y,z\n30000,20000,30000\n30001,20000,30000\n")
+    with pytest.raises(DatasetError, match="2 sample.*5 needed"):
+        read_quiet(path, min_samples=5)
+    ds = read_quiet(path)
+    with pytest.raises(DatasetError, match="too few"):
+        io.require_samples(ds, 9, "bias, scale and non-orthogonality")
+
+
+@pytest.mark.parametrize("chunk_rows", [1, 3, 7, 1000])
+def test_chunked_reading_matches_and_checks_time_across_chunks(tmp_path, chunk_rows):
+    ds = simulate_timeseries("chi2017", n_samples=25, seed=2)
+    path = tmp_path / "c.csv"
+    io.write_csv(path, ds)
+    back = io.read_csv(path, chunk_rows=chunk_rows)
+    np.testing.assert_array_equal(back.readings_nT, ds.readings_nT)
+    np.testing.assert_array_equal(back.time_s, ds.time_s)
+    text = path.read_text().splitlines()
+    header_at = next(i for i, line in enumerate(text) if not line.startswith("#"))
+    k = header_at + 11  # 0-based index of the 11th data row; copy the time of the row before it
+    prev_t = text[k - 1].split(",")[0]
+    text[k] = ",".join([prev_t] + text[k].split(",")[1:])
+    path.write_text("\n".join(text) + "\n")
+    with pytest.raises(DatasetError, match=f"line {k + 1}, column t.*repeats.*line {k}"):
+        io.read_csv(path, chunk_rows=chunk_rows)
+
+
+# -- writing ------------------------------------------------------------------------------------------------------
+def test_write_columns_mapping_and_float_format(tmp_path):
+    path = tmp_path / "m.csv"
+    io.write_csv(path, {"x": [1.0, 2.5], "y": [3, 4], "z": [5.0, 6.0], "label": ["a", "b,c"]},
+                 metadata={"units": "uT", "note": "two\nlines"}, float_format="%.2f")
+    text = path.read_text()
+    assert text.startswith("# units: uT\n# note: two lines\nx,y,z,label\n1.00,3.00,5.00,a\n")
+    ds = read_quiet(path)
+    assert ds.readings_nT[0, 1, 0] == 2500.0 and list(ds.extra["label"]) == ["a", "b,c"]
+
+
+def test_write_is_atomic(tmp_path):
+    path = tmp_path / "keep.csv"
+    path.write_text("precious\n")
+    with pytest.raises(DatasetError, match="different lengths"):
+        io.write_csv(path, {"x": [1, 2], "y": [1]})
+    assert path.read_text() == "precious\n"
+
+    class Boom(Exception):
+        pass
+
+    with pytest.raises(Boom):
+        with io.atomic_write(path) as fh:
+            fh.write("half a file")
+            raise Boom()
+    assert path.read_text() == "precious\n"
+    assert os.listdir(tmp_path) == ["keep.csv"]  # no temporary file left behind
+
+
+# -- property tests: any input gives a Dataset or a clean DatasetError -----------------------------------------------
+def _read_any(tmp_path, data):
+    path = tmp_path / "fuzz.csv"
+    path.write_bytes(data)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataWarning)
+            ds = io.read_csv(path)
+    except DatasetError as exc:
+        assert str(exc) and str(path) in str(exc)
+        return None
+    assert isinstance(ds, Dataset) and ds.n_samples >= 1
+    assert np.all(np.isfinite(ds.readings_nT))
+    return ds
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.binary(max_size=400))
+def test_any_bytes_give_a_dataset_or_a_clean_error(tmp_path, data):
+    _read_any(tmp_path, data)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.text(max_size=300))
+def test_any_text_gives_a_dataset_or_a_clean_error(tmp_path, text):
+    _read_any(tmp_path, text.encode("utf-8"))
+
+
+CELLS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-10**6, 10**6).map(str),
+    st.sampled_from(["", " ", "nan", "NaN", "inf", "-", "1e400", "1_000", '"', '"1,2"', "x", "0x10", "١٢", "\t5"]),
+)
+HEADERS = st.lists(st.sampled_from(["x", "y", "z", "s1x", "s1y", "s1z", "s2x", "s2y", "s2z", "t", "temp", "group",
+                                    "ref_total", "qw", "qx", "qy", "qz", "other", ""]), min_size=1, max_size=8)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(HEADERS, st.lists(st.lists(CELLS, min_size=0, max_size=9), max_size=8),
+       st.lists(st.sampled_from(["# units: uT", "# baseline_m: 0.5", "# noise_nT: x", "#", "# units: bogus"]),
+                max_size=3))
+def test_structured_fuzz_gives_a_dataset_or_a_clean_error(tmp_path, header, rows, meta):
+    text = "\n".join(meta + [",".join(header)] + [",".join(r) for r in rows]) + "\n"
+    ds = _read_any(tmp_path, text.encode("utf-8"))
+    if ds is not None:  # what was accepted is what the file said
+        assert ds.n_samples == len(rows)
