@@ -251,9 +251,11 @@ class Calibration:
                 f"(it reads version {VERSION}); upgrade magcal or recalibrate"
             )
         try:
+            derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
             sensors = [
                 SensorCalibration(np.array(s["Cinv"], float), np.array(s["bias_nT"], float),
-                                  np.array(s.get("R", np.eye(3)), float))
+                                  np.array(s.get("R", np.eye(3)), float),
+                                  summary={k: v for k, v in s.items() if k not in derived})
                 for s in doc["sensors"]
             ]
         except (KeyError, TypeError, ValueError) as exc:
