@@ -1,0 +1,85 @@
+"""Screenshots of the workbench for the README (run from the repository root; needs chromium and playwright).
+
+    python assets/make_screenshots.py
+
+Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
+
+* ``workbench-scene.png`` - the four sensors after calibration: raw clouds on their fitted ellipsoids, corrected
+  clouds on the reference sphere coloured by residual, the cross with each sensor's axes, the step tables;
+* ``workbench-loop-before.png`` - Diagnose on the base model: the ranked candidates and their evidence;
+* ``workbench-loop-after.png`` - after Add and a second Diagnose: the verdict, the RMS history falling to the
+  noise-floor line, the evidence plots.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "docs" / "img"
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking"]
+
+
+def _wait_text(page, js_condition, timeout=180_000):
+    page.wait_for_function(f"() => {js_condition}", timeout=timeout)
+
+
+def main() -> int:
+    from playwright.sync_api import sync_playwright
+
+    from magcal import io as mio
+    from workbench.app import Workbench
+    from workbench.lessons import DEMO
+
+    warnings.simplefilter("ignore")
+    OUT.mkdir(parents=True, exist_ok=True)
+    wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(f"http://127.0.0.1:{wb.port}/")
+            _wait_text(page, "document.body.innerText.includes('Total-field RMS') && "
+                             "!document.body.innerText.includes('Connecting')")
+            page.get_by_role("button", name="Run the chosen method").click()
+            _wait_text(page, "/Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)")
+            wb.worker.wait(120)
+            time.sleep(3)
+            for close in page.locator(".mantine-Notification-closeButton").all():
+                close.click()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "workbench-scene.png"))
+
+            page.get_by_role("tab", name="Model").click()
+            page.get_by_role("button", name="Diagnose").click()
+            _wait_text(page, "document.body.innerText.includes('Verdict:')")
+            wb.worker.wait(300)
+            time.sleep(4)
+            page.get_by_text("Verdict:").scroll_into_view_if_needed()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "workbench-loop-before.png"))
+
+            page.get_by_role("button", name="Add the candidate and refit").click()
+            _wait_text(page, "document.body.innerText.includes('Model: temperature_bias')")
+            wb.worker.wait(300)
+            time.sleep(4)
+            page.get_by_role("button", name="Diagnose").click()  # diagnose again: the verdict now reads adequate
+            _wait_text(page, "document.body.innerText.includes('Verdict:')")
+            wb.worker.wait(300)
+            time.sleep(4)
+            page.get_by_text("Candidate", exact=True).scroll_into_view_if_needed()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "workbench-loop-after.png"))
+            browser.close()
+    finally:
+        wb.stop()
+    print(f"wrote {', '.join(sorted(p.name for p in OUT.glob('workbench-*.png')))} in {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

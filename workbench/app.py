@@ -1,0 +1,529 @@
+"""``magcal-workbench [FILE.csv] [--host 127.0.0.1] [--port 8080]``: the browser workbench.
+
+:class:`Workbench` wires the parts together: one :class:`viser.ViserServer` (every browser shares its scene and
+GUI), the :class:`~workbench.controller.Controller` (engine actions and session state), the
+:class:`~workbench.scene.SceneView` and the :class:`~workbench.panels.Panels`. With no file it opens the bundled
+demo (``assets/demo.csv``). It binds to 127.0.0.1 unless another host is asked for, and then warns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import sys
+import threading
+import time
+import traceback
+
+import numpy as np
+
+from magcal.errors import MagcalError
+
+from . import scene as scn
+from .controller import Controller, load_dataset, read_bytes_dataset
+from .jobs import Worker
+from .lessons import DEMO, get_lesson
+from .session import SessionStore
+from .state import SessionState
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def is_loopback(host: str) -> bool:
+    if host in LOOPBACK:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class Workbench:
+    """The running workbench.
+
+    Parameters
+    ----------
+    dataset : magcal.Dataset
+        Data to open.
+    host, port : str, int
+        Where to serve (port 0 picks a free port; read it back with :attr:`port`).
+    store : SessionStore or None
+        Session folder for autosave; None turns autosave off.
+    content : bytes, optional
+        The data file's bytes (to key and copy the session); without it the session is not saved.
+    name : str
+        File name used for the session id.
+    resume : bool
+        Reopen the saved session of the same data if there is one.
+    """
+
+    def __init__(self, dataset, host: str = "127.0.0.1", port: int = 8080, store: SessionStore | None = None,
+                 content: bytes | None = None, name: str = "data.csv", resume: bool = True, lesson: str | None = None,
+                 verbose: bool = False):
+        import viser
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self.store = store
+        self.worker = Worker()
+        self._quiet = False
+        self._last_progress = 0.0
+        self.last_download: tuple[str, bytes] | None = None
+        self.evidence_plot = None
+        self._scene_lock = threading.RLock()
+        self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
+        self.scene_view = scn.SceneView(self.server)
+        from .panels import Panels
+
+        self.panels = Panels(self)
+        self.worker.on_busy_change(self._busy_changed)
+        self.server.scene.on_click()(self._on_click)
+        self.server.scene.on_rect_select(modifier="shift")(self._on_rect_select)
+        self.server.on_client_connect(self._on_connect)
+        self.server.scene.set_up_direction("+z")
+        self._attach(self.ctrl)
+        self.redraw()
+
+    # ------------------------------------------------------------------------------------------------------
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    def stop(self) -> None:
+        self.worker.wait(30)
+        self.server.stop()
+
+    def _make_controller(self, dataset, content, name, resume, lesson) -> Controller:
+        sid, state = None, None
+        if self.store is not None and content is not None:
+            sid = self.store.create(name, content)
+            if resume and self.store.exists(sid):
+                try:
+                    state = self.store.load(sid)
+                except (OSError, ValueError, KeyError) as exc:
+                    print(f"magcal-workbench: the saved session {sid} could not be read ({exc}); starting afresh",
+                          file=sys.stderr)
+            if state is None:
+                state = SessionState(dataset.n_samples, dataset.n_sensors, str(self.store.data_path(sid)), lesson)
+        ctrl = Controller(dataset, state, self.store, sid, worker=self.worker)
+        if lesson is not None:
+            ctrl.state.lesson = lesson
+        ctrl.autosave()
+        return ctrl
+
+    def _attach(self, ctrl: Controller) -> None:
+        ctrl.on_change(lambda kind, c=ctrl: self._changed(c, kind))
+
+    def load(self, dataset, content: bytes | None, name: str, resume: bool = True, lesson: str | None = None):
+        """Replace the data (upload, lesson, reopened session); the scene and panels follow."""
+        self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
+        self._attach(self.ctrl)
+        self.scene_view.clear()
+        self.redraw()
+        self.reset_cameras()
+
+    def redraw(self) -> None:
+        self.update_scene()
+        self.panels.refresh(("all", "data"))
+
+    # ------------------------------------------------------------------------------------------------------
+    # events from the controller
+    # ------------------------------------------------------------------------------------------------------
+    def _changed(self, ctrl: Controller, kind: str) -> None:
+        if ctrl is not self.ctrl:
+            return  # an old session still finishing
+        if kind == "progress":
+            now = time.perf_counter()
+            if ctrl.progress is not None and (ctrl.progress[1] is not None or now - self._last_progress > 0.1):
+                self._last_progress = now  # a search reports thousands of iterations: show ten a second
+                self.panels.set_progress(*ctrl.progress)
+            return
+        if kind in ("result", "view", "data"):
+            self.update_scene()
+        elif kind == "selection":
+            self.scene_view.recolor(self.scene_model())
+            if self.ctrl.inspected is not None:
+                self.scene_view.mark_inspected(self.ctrl.inspected)
+        elif kind == "inspect":
+            self.scene_view.mark_inspected(ctrl.inspected)
+        self.panels.refresh((kind,))
+
+    def _busy_changed(self, busy: bool, name) -> None:
+        self.panels.set_busy(busy, name)
+
+    # ------------------------------------------------------------------------------------------------------
+    # scene
+    # ------------------------------------------------------------------------------------------------------
+    def scene_model(self) -> scn.SceneModel:
+        ctrl, p = self.ctrl, self.panels if hasattr(self, "panels") else None
+        ds = ctrl.dataset
+        shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
+        cal = ctrl.calibration
+        views = []
+        for s in shown:
+            views.append(scn.SensorView(
+                sensor=s, raw_nT=ds.readings_nT[s],
+                corrected_nT=None if ctrl.corrected_nT is None else ctrl.corrected_nT[s],
+                residual_nT=(ctrl.raw_residual_nT()[s] if ctrl.residual_nT is None else ctrl.residual_nT[s]),
+                cinv=None if cal is None else cal.sensors[s].cinv,
+                bias_nT=None if cal is None else cal.sensors[s].bias_nT,
+                R=None if cal is None else cal.sensors[s].R))
+        model = scn.SceneModel(
+            sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.kept, floor_nT=ctrl.floor_nT(),
+            baseline_m=ds.baseline_m,
+            all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
+            inspected=ctrl.inspected)
+        if p is not None:
+            model.distortion_gain = float(p.distortion_gain.value)
+            model.residual_gain = float(p.residual_gain.value)
+            model.axes_gain = float(p.axes_gain.value)
+            model.show_raw = bool(p.show_raw.value)
+            model.show_corrected = bool(p.show_corrected.value)
+            model.show_ellipsoid = bool(p.show_ellipsoid.value)
+        return model
+
+    def update_scene(self) -> None:
+        with self._scene_lock:
+            self.scene_view.update(self.scene_model())
+
+    def legend_html(self) -> str:
+        title = "total-field residual" if self.ctrl.calibration is not None else "raw |y| - F"
+        return scn.legend_html(self.scene_view.last_limit_nT, title)
+
+    def draw_evidence(self) -> None:
+        from .plots import evidence_figure
+
+        fig = evidence_figure(self.ctrl)
+        holder = self.panels.evidence_holder
+        if fig is None:
+            if self.evidence_plot is not None:
+                self.evidence_plot.visible = False
+            return
+        if self.evidence_plot is None:
+            with holder:
+                # viser's client draws plotly at height = width * aspect (the docstring says width/height)
+                self.evidence_plot = self.server.gui.add_plotly(fig, aspect=3.0)
+        else:
+            self.evidence_plot.figure = fig
+            self.evidence_plot.visible = True
+
+    def reset_cameras(self) -> None:
+        for client in self.server.get_clients().values():
+            self._place_camera(client)
+
+    def _place_camera(self, client) -> None:
+        n_groups = 1 if self.ctrl.state.sensor is not None else self.ctrl.dataset.n_sensors
+        try:
+            fov, aspect = float(client.camera.fov), float(client.camera.aspect)
+        except (AssertionError, ZeroDivisionError):  # the browser has not reported its camera yet
+            fov, aspect = np.radians(75.0), 1.6
+        position, look_at = scn.camera_pose(n_groups, fov, aspect)
+        with client.atomic():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look_at)
+
+    def _on_connect(self, client) -> None:
+        self._place_camera(client)
+
+    # ------------------------------------------------------------------------------------------------------
+    # pointer events
+    # ------------------------------------------------------------------------------------------------------
+    def _on_click(self, event) -> None:
+        d = self.scene_view.displayed
+        if d.positions.shape[0] == 0:
+            return
+        i, dist = scn.nearest_to_ray(d.positions, event.ray_origin, event.ray_direction,
+                                     max_distance=4 * self.scene_view.point_size)
+        self.ctrl.inspect(None if i is None else int(d.samples[i]))
+
+    def _on_rect_select(self, event) -> None:
+        cam = event.client.camera
+        self.select_in_rect(cam.wxyz, cam.position, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+
+    def select_in_rect(self, wxyz, position, fov, aspect, screen_min, screen_max) -> int:
+        """Reject (or restore, by the panel's mode) the samples whose shown points fall in a screen box."""
+        d = self.scene_view.displayed
+        inside = scn.points_in_rect(d.positions, wxyz, position, fov, aspect, screen_min, screen_max)
+        samples = np.unique(d.samples[inside])
+        if samples.size == 0:
+            self.ctrl.say("the box holds no point")
+            return 0
+        n = self.ctrl.select(samples, self.panels.box_mode.value)
+        self._maybe_refit()
+        return n
+
+    # ------------------------------------------------------------------------------------------------------
+    # GUI callbacks (every one goes through handle)
+    # ------------------------------------------------------------------------------------------------------
+    def handle(self, func, event, *args):
+        if self._quiet:
+            return
+        try:
+            func(event, *args)
+        except MagcalError as exc:
+            self.ctrl.say(f"**Error:** {exc}")
+            client = getattr(event, "client", None)
+            if client is not None:
+                client.add_notification("magcal", str(exc), color="red", auto_close_seconds=8.0)
+        except Exception as exc:  # never let a callback die silently
+            traceback.print_exc()
+            self.ctrl.say(f"**Unexpected error:** {type(exc).__name__}: {exc}")
+
+    def _set_quiet(self, handle, value) -> None:
+        if handle.value == value:
+            return
+        self._quiet = True
+        try:
+            handle.value = value
+        finally:
+            self._quiet = False
+
+    def _job(self, name, func) -> bool:
+        return self.ctrl.run_job(name, func)
+
+    # settings
+    def set_method(self, event):
+        self.ctrl.state.method = self.panels.method.value
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+
+    def set_reference(self, event):
+        v = float(self.panels.reference.value or 0.0)
+        self.ctrl.state.reference_nT = v if v > 0 else None
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+
+    def set_fit_reference(self, event):
+        self.ctrl.state.fit_reference = bool(self.panels.fit_reference.value)
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+
+    def set_robust(self, event):
+        self.ctrl.state.robust = bool(self.panels.robust.value)
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+
+    def set_sensor(self, event):
+        v = self.panels.sensor_choice.value
+        self.ctrl.state.sensor = None if v == "all sensors" else int(v.split()[-1]) - 1
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+        self.update_scene()
+        self.reset_cameras()
+
+    def view_changed(self, event):
+        self.update_scene()
+        self.panels.legend.content = self.legend_html()
+
+    def candidate_chosen(self, event):
+        from .panels import candidate_evidence_markdown
+
+        self.panels.candidate_evidence.content = candidate_evidence_markdown(
+            self.ctrl.diagnosis, self.panels.candidate_choice.value)
+
+    def toggle_effect(self, event, name):
+        self.ctrl.set_effect(name, bool(self.panels.effect_boxes[name].value))
+
+    # engine steps
+    def do_ellipsoid(self, event):
+        self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
+
+    def do_align(self, event):
+        self._job("align sensors", self.ctrl.step_align)
+
+    def do_refine(self, event):
+        self._job("refine", self.ctrl.step_refine)
+
+    def do_calibrate(self, event):
+        self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
+
+    def do_diagnose(self, event):
+        self._job("diagnose", self.ctrl.step_diagnose)
+
+    def do_add(self, event):
+        choice = self.panels.candidate_choice.value
+        label = None if choice == "-" else choice
+        self._job("add effect", lambda: self.ctrl.step_add(label))
+
+    # outliers
+    def do_threshold(self, event):
+        self.ctrl.reject_threshold(float(self.panels.k_sigma.value))
+        self._maybe_refit()
+
+    def do_undo(self, event):
+        self.ctrl.undo()
+        self._maybe_refit()
+
+    def do_redo(self, event):
+        self.ctrl.redo()
+        self._maybe_refit()
+
+    def do_reset(self, event):
+        self.ctrl.reset_selection()
+        self._maybe_refit()
+
+    def _maybe_refit(self):
+        if self.panels.auto_refit.value and self.ctrl.calibration is not None:
+            if self.ctrl.worker.busy:
+                self.ctrl.say(f"{self.ctrl.message}; refit skipped while {self.ctrl.worker.current} runs")
+                return
+            self._job("refit", self.ctrl.step_refine)
+
+    # files
+    def _download(self, event, filename: str, content: bytes):
+        self.last_download = (filename, content)
+        client = getattr(event, "client", None)
+        if client is not None:
+            client.send_file_download(filename, content)
+
+    def do_download_calibration(self, event):
+        self._download(event, "calibration.json", self.ctrl.calibration_json())
+
+    def do_download_corrected(self, event):
+        self._download(event, "corrected.csv", self.ctrl.corrected_csv())
+
+    def do_upload(self, event):
+        up = self.panels.upload.value
+        name, content = up.name or "upload.csv", up.content
+        if not content:
+            raise MagcalError(f"{name}: the file is empty")
+
+        def job():
+            ds, notes = read_bytes_dataset(name, content)
+            self.load(ds, content, name)
+            self.ctrl.say(f"opened {name}: {ds.describe()}" + "".join(f"  \n- {n}" for n in notes))
+
+        self._job("open file", job)
+
+    def do_reopen(self, event):
+        sid = self.panels.session_choice.value
+        if self.store is None or sid in ("-", None):
+            raise MagcalError("no saved session chosen")
+
+        def job():
+            state = self.store.load(sid)
+            path = self.store.data_path(sid)
+            ds, _ = load_dataset(path)
+            content = path.read_bytes()
+            self.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=state.lesson)
+            self.ctrl.say(f"reopened session `{sid}`")
+
+        self._job("reopen session", job)
+
+    def do_fresh(self, event):
+        ctrl = self.ctrl
+
+        def job():
+            content = None
+            if self.store is not None and ctrl.session_id is not None:
+                content = self.store.data_path(ctrl.session_id).read_bytes()
+                self.store.delete(ctrl.session_id)
+            name = (ctrl.session_id.rsplit("-", 1)[0] + ".csv") if ctrl.session_id else "data.csv"
+            self.load(ctrl.dataset, content, name, resume=False, lesson=ctrl.state.lesson)
+            self.ctrl.say("started afresh: every sample kept, base model, no fit")
+
+        self._job("start afresh", job)
+
+    # lessons
+    def do_open_lesson(self, event):
+        slug = self.panels.lesson_choice.value
+        lesson = get_lesson(slug)
+
+        def job():
+            ds, _ = load_dataset(lesson.data_path)
+            content = lesson.data_path.read_bytes()
+            self.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
+            self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
+            self.panels.lesson_feedback.content = (lesson.answer_markdown() if self.ctrl.state.answer_revealed
+                                                   else "")
+            self.ctrl.say(f"lesson **{lesson.title}** opened")
+
+        self._job("open lesson", job)
+
+    def _lesson(self):
+        if not self.ctrl.state.lesson:
+            raise MagcalError("open a lesson first (Lessons tab)")
+        return get_lesson(self.ctrl.state.lesson)
+
+    def do_check_lesson(self, event):
+        result = self._lesson().check(self.ctrl.state.effects)
+        self.panels.lesson_feedback.content = result["message"]
+        self.ctrl.say(result["message"])
+
+    def do_show_answer(self, event):
+        lesson = self._lesson()
+        self.ctrl.state.answer_revealed = True
+        self.ctrl.state.touch()
+        self.ctrl.autosave()
+        self.panels.lesson_feedback.content = lesson.answer_markdown()
+
+
+# ------------------------------------------------------------------------------------------------------------
+# command line
+# ------------------------------------------------------------------------------------------------------------
+def host_warning(host: str) -> str | None:
+    """The warning printed when the workbench is served beyond this machine (None for loopback)."""
+    if is_loopback(host):
+        return None
+    return (f"WARNING: serving on {host}: anyone who can reach this address can see and change the session "
+            "(data, model, files). Use the default 127.0.0.1 unless you mean to share it.")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="magcal-workbench",
+                                description="Calibrate magnetometers in the browser: fit, diagnose, add effects.")
+    p.add_argument("file", nargs="?", help="data CSV (default: the bundled demo)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1, this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
+    p.add_argument("--session-dir", default=None, help="where sessions are saved (default ~/.magcal/sessions)")
+    p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
+    p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
+    p.add_argument("--lesson", default=None, help="open a lesson by name (see assets/lessons)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        store = None if args.no_session else SessionStore(args.session_dir)
+        lesson = None
+        if args.lesson:
+            try:
+                lesson_obj = get_lesson(args.lesson)
+            except KeyError:
+                raise MagcalError(f"no lesson {args.lesson!r}; see the Lessons tab for the list") from None
+            path, lesson = lesson_obj.data_path, args.lesson
+        else:
+            path = args.file or DEMO
+        try:
+            content = open(path, "rb").read()
+        except OSError as exc:
+            raise MagcalError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+        dataset, notes = load_dataset(path)
+        for n in notes:
+            print(f"magcal-workbench: {n}", file=sys.stderr)
+        warning = host_warning(args.host)
+        if warning:
+            print(f"magcal-workbench: {warning}", file=sys.stderr)
+        import os
+
+        wb = Workbench(dataset, args.host, args.port, store, content, os.path.basename(str(path)),
+                       resume=not args.fresh, lesson=lesson)
+        if lesson:
+            wb.panels.lesson_guide.content = f"### {lesson_obj.title}\n\n{lesson_obj.guide()}"
+    except MagcalError as exc:
+        print(f"magcal-workbench: {exc}", file=sys.stderr)
+        return 2
+    print(f"magcal-workbench: open http://{args.host if args.host != '0.0.0.0' else '127.0.0.1'}:{wb.port} "
+          "in a browser (Ctrl-C stops)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        wb.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

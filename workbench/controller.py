@@ -1,0 +1,549 @@
+"""The workbench's actions: every button calls one method here, which calls the engine and updates the state.
+
+The controller holds the loaded :class:`~magcal.Dataset`, the :class:`~workbench.state.SessionState`, the last
+calibration and its per-sample residuals, and the last diagnosis. It never draws: views subscribe with
+:meth:`Controller.on_change` and redraw. Engine work runs through one :class:`~workbench.jobs.Worker`, so a second
+click while a fit runs starts nothing.
+
+All physics is the engine's (:mod:`magcal.pipeline`, :mod:`magcal.fit`, :mod:`magcal.diagnosis`,
+:mod:`magcal.calibration`); this module only chooses what to run, on which samples, and reports what changed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import threading
+import time
+import traceback
+import warnings
+from typing import Callable
+
+import numpy as np
+
+from magcal import conventions
+from magcal.calibration import Calibration, expected_total_field
+from magcal.errors import MagcalError
+
+from .jobs import Worker
+from .session import SessionStore
+from .state import SessionState, StepRecord
+
+
+def _rms(a) -> float:
+    a = np.asarray(a, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
+
+
+class Controller:
+    """Actions of one workbench session (shared by every connected browser).
+
+    Parameters
+    ----------
+    dataset : magcal.Dataset
+    state : SessionState, optional
+        A reopened session's state; a fresh one is made if omitted.
+    store : SessionStore, optional
+        Where to autosave; None disables autosave.
+    session_id : str, optional
+        Folder of this session in ``store``.
+    """
+
+    def __init__(self, dataset, state: SessionState | None = None, store: SessionStore | None = None,
+                 session_id: str | None = None, worker: Worker | None = None):
+        self.dataset = dataset
+        self.state = state or SessionState(dataset.n_samples, dataset.n_sensors, dataset.source)
+        if (self.state.n_samples, self.state.n_sensors) != (dataset.n_samples, dataset.n_sensors):
+            raise MagcalError("the saved session does not match the data (different size); start a fresh session")
+        self.store = store
+        self.session_id = session_id
+        self.worker = worker or Worker()
+        self.calibration: Calibration | None = None
+        self.fit_result = None            # FitResult of the last ML step, if any
+        self.calibration_result = None    # CalibrationResult of the last pipeline run, if any
+        self.corrected_nT: np.ndarray | None = None   # (n_sensors, N, 3) array frame, every sample
+        self.residual_nT: np.ndarray | None = None    # (n_sensors, N) total-field residual, every sample
+        self.noise_nT: float | None = dataset.noise_nT
+        self.diagnosis = None
+        self.inspected: int | None = None
+        self.message = ""
+        self.progress: tuple[str, float | None] | None = None
+        self._listeners: list[Callable[[str], None]] = []
+        self._lock = threading.RLock()
+        if not self.state.history:
+            raw = self.raw_residual_nT()
+            self.state.history.append(StepRecord("raw readings", _rms(raw[:, self.kept]), None, [],
+                                                 int(self.kept.sum()), "no correction: |y| - F"))
+        if self.state.calibration:
+            try:
+                self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
+            except MagcalError as exc:
+                self.message = f"the saved calibration could not be restored ({exc}); run a fit"
+
+    # ------------------------------------------------------------------------------------------------------
+    # notification
+    # ------------------------------------------------------------------------------------------------------
+    def on_change(self, func: Callable[[str], None]) -> None:
+        """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
+        ``inspect``, ``progress``, ``message`` or ``view``."""
+        self._listeners.append(func)
+
+    def _emit(self, kind: str) -> None:
+        for func in list(self._listeners):
+            try:
+                func(kind)
+            except Exception:
+                traceback.print_exc()
+
+    def say(self, text: str) -> None:
+        self.message = text
+        self._emit("message")
+
+    # ------------------------------------------------------------------------------------------------------
+    # data views
+    # ------------------------------------------------------------------------------------------------------
+    @property
+    def kept(self) -> np.ndarray:
+        return self.state.kept
+
+    @property
+    def field_nT(self) -> float:
+        """Field used to scale the display (nT): the calibration's, the user's, the file's, or the median |raw|."""
+        if self.calibration is not None and self.calibration.reference_total_nT:
+            return float(self.calibration.reference_total_nT)
+        if self.state.reference_nT:
+            return float(self.state.reference_nT)
+        if self.dataset.reference_total_nT:
+            return float(self.dataset.reference_total_nT)
+        if self.dataset.ref_total_nT is not None:
+            return float(np.median(self.dataset.ref_total_nT))
+        return float(np.median(np.linalg.norm(self.dataset.readings_nT, axis=2)))
+
+    def fit_dataset(self):
+        """The dataset the engine sees: without its reference when the user asks to fit the magnitude."""
+        if self.state.fit_reference:
+            return self.dataset.replace(reference_total_nT=None, ref_total_nT=None)
+        return self.dataset
+
+    @property
+    def reference_arg(self):
+        return None if self.state.fit_reference else self.state.reference_nT
+
+    def floor_nT(self) -> float | None:
+        """Total-field floor for the kept samples: ``sigma sqrt(1 - p/N)`` with the known or estimated noise."""
+        if not self.noise_nT:
+            return None
+        n = int(self.kept.sum())
+        p = 9
+        if self.calibration is not None and self.calibration.model is not None:
+            p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances()) / self.dataset.n_sensors
+        return conventions.total_field_floor_nT(self.noise_nT, max(n, 1), p)
+
+    def residual_rms_nT(self) -> float:
+        if self.residual_nT is None:
+            return float("nan")
+        return _rms(self.residual_nT[:, self.kept])
+
+    def rms_per_sensor_nT(self) -> np.ndarray:
+        if self.residual_nT is None:
+            return np.full(self.dataset.n_sensors, np.nan)
+        return np.array([_rms(r[self.kept]) for r in self.residual_nT])
+
+    def raw_residual_nT(self) -> np.ndarray:
+        """``|y| - F`` of the raw readings (n_sensors, N): the starting point of the history."""
+        return np.linalg.norm(self.dataset.readings_nT, axis=2) - self.field_nT
+
+    def tensor_rms(self) -> dict | None:
+        """Tensor component RMS (nT/m) over the kept samples, before (raw) and after, with the floor."""
+        ds = self.dataset
+        if ds.n_sensors != 4 or not ds.baseline_m:
+            return None
+        k = self.kept
+        before = conventions.tensor_components(ds.readings_nT[:, k], ds.baseline_m)
+        out = {"before": {c: _rms(v) for c, v in before.items()}, "after": None, "floor": None}
+        if self.corrected_nT is not None:
+            after = conventions.tensor_components(self.corrected_nT[:, k], ds.baseline_m)
+            out["after"] = {c: _rms(v) for c, v in after.items()}
+        if self.noise_nT:
+            out["floor"] = conventions.tensor_floor_nT_per_m(self.noise_nT, ds.baseline_m)
+        return out
+
+    def sample_info(self, index: int) -> dict:
+        """What a click on a sample shows: index, time, temperature, kept, residual per sensor (nT)."""
+        ds = self.dataset
+        i = int(index)
+        info = {"index": i, "kept": bool(self.kept[i])}
+        if ds.time_s is not None:
+            info["time_s"] = float(ds.time_s[i])
+        if ds.temperature_C is not None:
+            info["temperature_C"] = float(ds.temperature_C[i])
+        if self.residual_nT is not None:
+            info["residual_nT"] = [float(r) for r in self.residual_nT[:, i]]
+        info["raw_nT"] = ds.readings_nT[:, i].tolist()
+        return info
+
+    # ------------------------------------------------------------------------------------------------------
+    # engine steps (synchronous; the page runs them through run_job)
+    # ------------------------------------------------------------------------------------------------------
+    def run_job(self, name: str, job: Callable[[], None]) -> bool:
+        """Run an action in the worker; False (and a message) if another one is running."""
+        started = self.worker.submit(name, job, on_error=self._job_failed)
+        if not started:
+            self.say(f"Busy: {self.worker.current} is still running; wait for it to finish.")
+        return started
+
+    def _job_failed(self, exc: BaseException) -> None:
+        self.progress = None
+        self._emit("progress")
+        if isinstance(exc, MagcalError):
+            self.say(f"**Error:** {exc}")
+        else:
+            traceback.print_exception(exc)
+            self.say(f"**Unexpected error:** {type(exc).__name__}: {exc}")
+
+    def _report_progress(self, message: str, fraction=None) -> None:
+        self.progress = (message, fraction)
+        self._emit("progress")
+
+    def _residuals_of(self, cal: Calibration) -> np.ndarray:
+        ds = self.fit_dataset()
+        fields = cal.correct(ds)
+        expected = expected_total_field(ds, cal.reference_total_nT, cal.model, cal.effect_values)
+        return np.linalg.norm(fields, axis=2) - expected, fields
+
+    def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
+        res, fields = self._residuals_of(cal)
+        self.calibration = cal
+        self.corrected_nT = fields
+        self.residual_nT = res if residual_nT is None else np.asarray(residual_nT, float)
+
+    def _changes(self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float,
+                 tensor_before=None) -> str:
+        """One line: RMS before -> after, and how much each parameter group moved."""
+        parts = [f"RMS {rms_before:.4g} -> {rms_after:.4g} nT"]
+        if old is not None and old.n_sensors == new.n_sensors:
+            db = max(float(np.max(np.abs(a.bias_nT - b.bias_nT))) for a, b in zip(old.sensors, new.sensors))
+            dc = max(float(np.max(np.abs(a.cinv - b.cinv))) for a, b in zip(old.sensors, new.sensors))
+            from magcal.procrustes import rotation_angle_deg
+
+            dr = max(rotation_angle_deg(b.R @ a.R.T) for a, b in zip(old.sensors, new.sensors))
+            parts.append(f"bias moved up to {db:.3g} nT, C^-1 up to {dc * 1e6:.3g} ppm, R up to {dr * 3600:.3g} arcsec")
+        t = self.tensor_rms()
+        if t is not None and t["after"] is not None:
+            worst = max(t["after"].values())
+            prev = max(tensor_before.values()) if tensor_before else max(t["before"].values())
+            parts.append(f"worst tensor RMS {prev:.4g} -> {worst:.4g} nT/m")
+        return "; ".join(parts)
+
+    def _record(self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None,
+                fit=None, notes=()) -> StepRecord:
+        rms_after = self.residual_rms_nT()
+        if fit is not None and not self.dataset.noise_nT:
+            self.noise_nT = float(fit.noise_nT)
+        rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
+                         effects=list(self.state.effects), n_kept=int(self.kept.sum()),
+                         changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
+                         elapsed_s=time.perf_counter() - t0)
+        self.state.record(rec, self.calibration.to_dict())
+        self.autosave()
+        self._emit("result")
+        self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
+        text = f"**{step}**: {rec.changes} ({rec.elapsed_s:.2f} s)"
+        if notes:
+            text += "".join(f"  \n- {n}" for n in dict.fromkeys(notes))
+        self.say(text)
+        return rec
+
+    #: Fewest kept samples a fit is run on (the base model of one sensor has 9 parameters).
+    MIN_KEPT = 20
+
+    def _check_kept(self) -> None:
+        n = int(self.kept.sum())
+        if n < self.MIN_KEPT:
+            raise MagcalError(f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
+                              "rejection or restore samples (Outliers tab)")
+
+    def _before(self):
+        self._check_kept()
+        rms = self.residual_rms_nT()
+        if not np.isfinite(rms):
+            rms = _rms(self.raw_residual_nT()[:, self.kept])
+        t = self.tensor_rms()
+        tb = (t["after"] or t["before"]) if t else None
+        return self.calibration, rms, tb
+
+    def step_ellipsoid(self) -> StepRecord:
+        """Step 1: an ellipsoid per sensor (kept samples); the rotations between sensors are reset."""
+        from magcal import pipeline
+        from magcal.fit import resolve_reference
+
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        ds = self.fit_dataset()
+        kept_ds = ds.subset(self.kept)
+        ref, kind = resolve_reference(kept_ds, self.reference_arg)
+        with warnings.catch_warnings(record=True) as wl:
+            warnings.simplefilter("always")
+            fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
+        notes = [str(w.message) for w in wl]
+        cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
+        notes += [w for f in fits for w in f.warnings]
+        self.fit_result = None
+        self.calibration_result = None
+        self.diagnosis = None
+        self._set_calibration(cal)
+        return self._record("fit ellipsoid", old, rms0, t0, tb, notes=notes)
+
+    def step_align(self) -> StepRecord:
+        """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b."""
+        from magcal.procrustes import procrustes_rotation
+
+        if self.dataset.n_sensors < 2:
+            raise MagcalError("aligning needs at least two sensors; this file has one")
+        if self.calibration is None:
+            raise MagcalError("fit the ellipsoids first (step 1): alignment works on corrected vectors")
+        old, rms0, tb = self._before()
+        t0 = time.perf_counter()
+        k = self.kept
+        y = self.dataset.readings_nT[:, k]
+        vec = [(y[s] - c.bias_nT) @ c.cinv.T for s, c in enumerate(self.calibration.sensors)]
+        cal = Calibration.from_dict(self.calibration.to_dict(), "current calibration")
+        for s in range(1, self.dataset.n_sensors):
+            cal.sensors[s].R = procrustes_rotation(vec[0], vec[s], label=f"sensor {s + 1}")
+        self._set_calibration(cal)
+        return self._record("align sensors", old, rms0, t0, tb)
+
+    def _model(self):
+        from magcal.model import Model
+
+        return Model.from_names(self.state.effects, self.dataset.n_sensors)
+
+    def step_refine(self, label: str = "refine (ML)") -> StepRecord:
+        """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
+        from magcal.fit import fit as ml_fit
+
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        init = self.calibration
+        ds = self.fit_dataset()
+        with warnings.catch_warnings(record=True) as wl:
+            warnings.simplefilter("always")
+            result = ml_fit(ds, self._model(), init=init, loss="soft_l1" if self.state.robust else "linear",
+                                mask=self.kept, reference_total_nT=self.reference_arg)
+        notes = [str(w.message) for w in wl]
+        self.fit_result = result
+        self.calibration_result = None
+        self.diagnosis = None
+        self._set_calibration(result.calibration, result.residuals_all_nT)
+        return self._record(label, old, rms0, t0, tb, fit=result, notes=notes)
+
+    def step_calibrate(self, method: str | None = None) -> StepRecord:
+        """The whole pipeline with the chosen method (ML, the two seed steps, or a global search)."""
+        from magcal import pipeline
+
+        method = method or self.state.method
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        self._report_progress(f"{method}: starting", 0.0)
+        effects = list(self.state.effects) if method == "ml" else []
+        with warnings.catch_warnings(record=True):
+            warnings.simplefilter("always")  # the same concerns are in result.warnings
+            result = pipeline.calibrate(self.fit_dataset(), method=method, effects=effects,
+                                        robust=self.state.robust, reference_total_nT=self.reference_arg, seed=0,
+                                        progress=self._report_progress, mask=self.kept)
+        self.calibration_result = result
+        self.fit_result = result.fit
+        self.diagnosis = None
+        if not self.dataset.noise_nT:
+            self.noise_nT = float(result.noise_nT)
+        self._set_calibration(result.calibration,
+                              None if result.fit is None else result.fit.residuals_all_nT)
+        self.progress = None
+        self._emit("progress")
+        name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
+        return self._record(name, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
+
+    # ------------------------------------------------------------------------------------------------------
+    # the loop: model, diagnose, add
+    # ------------------------------------------------------------------------------------------------------
+    def available_effects(self) -> list[dict]:
+        """The catalogue: ``{"name", "description", "missing" (reasons, empty if usable), "channels"}``."""
+        from magcal import model
+
+        try:
+            model._ensure_catalogue()
+        except ImportError:  # the engine has no catalogue yet
+            return []
+        out = []
+        for name, cls in sorted(model.EFFECTS.items()):
+            try:
+                missing = cls().missing_channels(self.dataset)
+            except Exception as exc:  # an effect that cannot even be made is shown as unusable
+                missing = [str(exc)]
+            out.append({"name": name, "description": getattr(cls, "description", ""),
+                        "channels": list(getattr(cls, "channels", ())), "missing": list(missing)})
+        return out
+
+    def set_effect(self, name: str, on: bool) -> bool:
+        changed = self.state.add_effect(name) if on else self.state.remove_effect(name)
+        if changed:
+            self.autosave()
+            self._emit("model")
+        return changed
+
+    def step_diagnose(self):
+        """Rank the candidate effects for the current fit (runs a base ML fit first if there is none)."""
+        from magcal.diagnosis import diagnose
+
+        if self.fit_result is None:
+            self.step_refine()
+        t0 = time.perf_counter()
+        self._report_progress("diagnosing", None)
+        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress)
+        self.diagnosis = d
+        if not self.dataset.noise_nT and np.isfinite(d.noise_nT):
+            self.noise_nT = float(d.noise_nT)  # from the residuals' sample-to-sample scatter, not the misfit
+        self.progress = None
+        self._emit("progress")
+        self._emit("diagnosis")
+        top = d.candidates[0] if getattr(d, "candidates", None) else None
+        extra = f"; top candidate {candidate_label(top)}" if top is not None else ""
+        self.say(f"**diagnose**: verdict `{d.verdict}`{extra} ({time.perf_counter() - t0:.2f} s)  \n{d.summary}")
+        return d
+
+    def step_add(self, label: str | None = None) -> StepRecord | None:
+        """Put a candidate (the top one by default) into the model and refit."""
+        if label is None:
+            if self.diagnosis is None or not self.diagnosis.candidates:
+                raise MagcalError("diagnose first: there is no suggested effect to add")
+            label = candidate_label(self.diagnosis.candidates[0])
+        if not self.state.add_effect(label):
+            raise MagcalError(f"{label} is already in the model")
+        self._emit("model")
+        return self.step_refine(label=f"add {label}")
+
+    # ------------------------------------------------------------------------------------------------------
+    # outlier rejection
+    # ------------------------------------------------------------------------------------------------------
+    def threshold_mask(self, k_sigma: float) -> np.ndarray:
+        """Samples (kept ones) whose residual on any sensor is beyond k robust standard deviations."""
+        if self.residual_nT is None:
+            raise MagcalError("fit first: the threshold is in units of the residual's standard deviation")
+        k = self.kept
+        r = self.residual_nT
+        med = np.median(r[:, k], axis=1, keepdims=True)
+        mad = 1.4826 * np.median(np.abs(r[:, k] - med), axis=1, keepdims=True)
+        out = np.any(np.abs(r - med) > float(k_sigma) * np.maximum(mad, 1e-12), axis=0)
+        return out & k
+
+    def reject_threshold(self, k_sigma: float) -> int:
+        bad = self.threshold_mask(k_sigma)
+        n = self.state.selection.reject(np.flatnonzero(bad), what=f"threshold {k_sigma:g} sigma")
+        self._selection_changed(f"threshold {k_sigma:g} sigma rejected {n} sample(s)")
+        return n
+
+    def select(self, indices, mode: str = "reject") -> int:
+        """Reject or restore samples (from a box selection)."""
+        idx = np.unique(np.asarray(indices, dtype=int))
+        if mode == "restore":
+            n = self.state.selection.restore(idx, what=f"box restore {idx.size}")
+            self._selection_changed(f"box selection restored {n} sample(s)")
+        else:
+            n = self.state.selection.reject(idx, what=f"box reject {idx.size}")
+            self._selection_changed(f"box selection rejected {n} sample(s)")
+        return n
+
+    def undo(self):
+        what = self.state.selection.undo()
+        self._selection_changed(f"undid: {what}" if what else "nothing to undo")
+
+    def redo(self):
+        what = self.state.selection.redo()
+        self._selection_changed(f"redid: {what}" if what else "nothing to redo")
+
+    def reset_selection(self):
+        self.state.selection.reset()
+        self._selection_changed("every sample kept again")
+
+    def _selection_changed(self, text: str) -> None:
+        self.state.touch()
+        self.autosave()
+        self._emit("selection")
+        self.say(f"{text}; {self.state.selection.n_rejected} of {self.dataset.n_samples} rejected")
+
+    def inspect(self, index: int | None) -> None:
+        self.inspected = None if index is None else int(index)
+        self._emit("inspect")
+
+    # ------------------------------------------------------------------------------------------------------
+    # files
+    # ------------------------------------------------------------------------------------------------------
+    def calibration_json(self) -> bytes:
+        if self.calibration is None:
+            raise MagcalError("nothing to download yet: run a fit first")
+        return (json.dumps(self.calibration.to_dict(), indent=2) + "\n").encode("utf-8")
+
+    def corrected_csv(self) -> bytes:
+        """The data corrected by the current calibration (array frame, nT) plus kept flag and residuals."""
+        from magcal import io as mio
+
+        if self.calibration is None:
+            raise MagcalError("nothing to download yet: run a fit first")
+        extra = dict(self.dataset.extra)
+        extra["kept"] = self.kept.astype(int)
+        for s in range(self.dataset.n_sensors):
+            extra[f"s{s + 1}_residual_nT"] = self.residual_nT[s]
+        ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
+        meta = {"corrected_by": "magcal workbench", "frame": self.calibration.frame,
+                "effects": ",".join(self.state.effects) or "none"}
+        fd, tmp = tempfile.mkstemp(suffix=".csv")
+        os.close(fd)
+        try:
+            mio.write_csv(tmp, ds, metadata=meta)
+            with open(tmp, "rb") as fh:
+                return fh.read()
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+    def autosave(self) -> None:
+        if self.store is None or self.session_id is None:
+            return
+        try:
+            self.store.save(self.session_id, self.state)
+        except OSError as exc:
+            self.message = f"autosave failed: {exc}"
+
+
+def candidate_label(candidate) -> str:
+    """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or dict)."""
+    get = candidate.get if isinstance(candidate, dict) else (lambda k, d=None: getattr(candidate, k, d))
+    effect = get("effect")
+    sensor = get("sensor")
+    return effect if sensor is None else f"{effect}:{sensor}"
+
+
+def load_dataset(path):
+    """Read a CSV with the engine's reader (clear :class:`MagcalError` on problems)."""
+    from magcal import io as mio
+
+    with warnings.catch_warnings(record=True) as wl:
+        warnings.simplefilter("always")
+        ds = mio.read_csv(path)
+    return ds, [str(w.message) for w in wl]
+
+
+def read_bytes_dataset(name: str, content: bytes):
+    """Read an uploaded CSV (bytes) through a temporary file of the same name, so messages name the upload."""
+    safe = os.path.basename(name).replace(os.sep, "_") or "upload.csv"
+    with tempfile.TemporaryDirectory(prefix="magcal-upload-") as folder:
+        path = os.path.join(folder, safe)
+        with open(path, "wb") as fh:
+            fh.write(content)
+        try:
+            ds, notes = load_dataset(path)
+        except MagcalError as exc:
+            raise type(exc)(str(exc).replace(path, safe)) from None
+    return ds.replace(source=safe), [n.replace(path, safe) for n in notes]

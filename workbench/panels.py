@@ -1,0 +1,394 @@
+"""The control panel: tabs for calibration steps, the model loop, outliers, the view, files and lessons.
+
+Every GUI element lives on ``server.gui`` so all connected browsers share one state. Callbacks only call the
+:class:`~workbench.app.Workbench` (which calls the controller); :meth:`Panels.refresh` writes the state back
+into the widgets. Text shown is built by small pure functions (``*_markdown``) that the tests call directly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .state import METHODS
+
+METHOD_LABELS = {
+    "ml": "ml: ellipsoid, align, maximum likelihood",
+    "ellipsoid": "ellipsoid: the seed's two steps",
+    "pso": "pso: particle swarm (global search)",
+    "ipso": "ipso: improved particle swarm",
+    "de": "de: differential evolution",
+}
+ALL_SENSORS = "all sensors"
+
+
+# --- text builders ------------------------------------------------------------------------------------------
+def fmt(v, unit="", digits=4) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "-"
+    return f"{v:.{digits}g}{(' ' + unit) if unit else ''}"
+
+
+def status_markdown(ctrl) -> str:
+    """The always-visible summary: RMS, floor, rejected count, model."""
+    rms = ctrl.residual_rms_nT()
+    floor = ctrl.floor_nT()
+    sel = ctrl.state.selection
+    effects = ", ".join(ctrl.state.effects) or "base terms only"
+    if sel.n_rejected == sel.n_samples:
+        rms_text = "no kept samples"
+    else:
+        rms_text = fmt(rms, "nT") if np.isfinite(rms) else "not fitted yet"
+    return (f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
+            f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
+            f"Model: {effects}")
+
+
+def data_markdown(ctrl) -> str:
+    ds = ctrl.dataset
+    src = ctrl.state.lesson and f"lesson `{ctrl.state.lesson}`" or (ds.source or "simulated data")
+    return f"**Data:** {src}  \n{ds.describe()}"
+
+
+def sensors_markdown(ctrl) -> str:
+    """Per-sensor RMS and the calibration's gauge-free figures, plus the tensor before/after."""
+    from magcal import conventions
+
+    rows = ["| sensor | RMS nT | scale | axis angles deg | bias nT |", "|---|---|---|---|---|"]
+    per = ctrl.rms_per_sensor_nT()
+    for s in range(ctrl.dataset.n_sensors):
+        if ctrl.calibration is not None:
+            c = ctrl.calibration.sensors[s]
+            scale, angles = conventions.gauge_free(c.cinv)
+            rows.append(f"| {s + 1} | {fmt(per[s], digits=4)} | {', '.join(f'{v:.5f}' for v in scale)} | "
+                        f"{', '.join(f'{v:.3f}' for v in angles)} | {', '.join(f'{v:.1f}' for v in c.bias_nT)} |")
+        else:
+            rows.append(f"| {s + 1} | - | - | - | - |")
+    text = "\n".join(rows)
+    t = ctrl.tensor_rms()
+    if t is not None:
+        trows = ["| tensor nT/m | before | after | floor |", "|---|---|---|---|"]
+        for c in t["before"]:
+            after = t["after"][c] if t["after"] else None
+            floor = t["floor"][c] if t["floor"] else None
+            trows.append(f"| {c} | {fmt(t['before'][c])} | {fmt(after)} | {fmt(floor, digits=3)} |")
+        text += "\n\n" + "\n".join(trows)
+    return text
+
+
+def history_markdown(state, last: int = 6) -> str:
+    if not state.history:
+        return "_No step yet._"
+    rows = ["| # | step | RMS nT | what changed |", "|---|---|---|---|"]
+    start = max(0, len(state.history) - last)
+    for i, r in enumerate(state.history[start:], start=start):
+        rows.append(f"| {i} | {r.step} | {fmt(r.rms_nT)} | {r.changes} |")
+    return "\n".join(rows)
+
+
+def candidates_markdown(diagnosis) -> str:
+    if diagnosis is None:
+        return "_Press Diagnose to rank the effects the data may hide in the current fit's residuals._"
+    from .controller import candidate_label
+
+    d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
+    lines = [f"**Verdict:** `{d.get('verdict')}`  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
+             f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"]
+    if d.get("summary"):
+        lines.append(f"_{d['summary']}_")
+    for w in d.get("warnings", []) or []:
+        lines.append(f"- warning: {w}")
+    cands = d.get("candidates", []) or []
+    if cands:
+        lines += ["", "| # | effect | dBIC | RMS after nT |", "|---|---|---|---|"]
+        for i, c in enumerate(cands[:8]):
+            mark = "" if c.get("refitted", True) else "*"
+            lines.append(f"| {i + 1} | `{candidate_label(c)}` | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
+                         f"{fmt(c.get('rms_after_nT'))}{mark} |")
+        if any(not c.get("refitted", True) for c in cands[:8]):
+            lines.append("\n\\* predicted by the score test, not refitted")
+    else:
+        lines.append("_No candidate explains the residual._")
+    return "\n".join(lines)
+
+
+def candidate_evidence_markdown(diagnosis, label: str) -> str:
+    """The one-line evidence of the chosen candidate."""
+    if diagnosis is None:
+        return ""
+    from .controller import candidate_label
+
+    for c in diagnosis.candidates:
+        if candidate_label(c) == label:
+            refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
+            return f"**{label}** ({refit}): {getattr(c, 'evidence', '')}"
+    return ""
+
+
+def inspect_markdown(info: dict | None) -> str:
+    if info is None:
+        return "_Click a point to inspect its sample._"
+    parts = [f"**Sample {info['index']}** ({'kept' if info['kept'] else 'rejected'})"]
+    if "time_s" in info:
+        parts.append(f"t = {info['time_s']:.3f} s")
+    if "temperature_C" in info:
+        parts.append(f"T = {info['temperature_C']:.2f} degC")
+    if "residual_nT" in info:
+        parts.append("residual " + ", ".join(f"s{i + 1} {r:+.2f}" for i, r in enumerate(info["residual_nT"])) + " nT")
+    return "  \n".join(parts)
+
+
+def effect_hint(entry: dict) -> str:
+    if entry["missing"]:
+        return f"Unavailable: the data lack {', '.join(entry['missing'])}. {entry['description']}"
+    return entry["description"] or entry["name"]
+
+
+class Panels:
+    """Builds the GUI on ``server.gui`` and keeps it in step with the workbench.
+
+    Parameters
+    ----------
+    app : workbench.app.Workbench
+    """
+
+    def __init__(self, app):
+        self.app = app
+        gui = app.server.gui
+        self.gui = gui
+        gui.configure_theme(control_width="large", dark_mode=False)
+        self.title = gui.add_markdown("## magcal workbench")
+        self.status = gui.add_markdown("")
+        self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
+        self.progress_text = gui.add_markdown("", visible=False)
+        self.message = gui.add_markdown("")
+        self.legend = gui.add_html("")
+        tabs = gui.add_tab_group()
+        self._engine_buttons = []
+        with tabs.add_tab("Calibrate", icon=None):
+            self._build_calibrate(gui)
+        with tabs.add_tab("Model", icon=None):
+            self._build_model(gui)
+        with tabs.add_tab("Outliers", icon=None):
+            self._build_outliers(gui)
+        with tabs.add_tab("View", icon=None):
+            self._build_view(gui)
+        with tabs.add_tab("Files", icon=None):
+            self._build_files(gui)
+        with tabs.add_tab("Lessons", icon=None):
+            self._build_lessons(gui)
+        self.tabs = tabs
+
+    # --- construction --------------------------------------------------------------------------------------
+    def _button(self, gui, label, handler, engine=True, **kw):
+        b = gui.add_button(label, **kw)
+        b.on_click(lambda event: self.app.handle(handler, event))
+        if engine:
+            self._engine_buttons.append(b)
+        return b
+
+    def _build_calibrate(self, gui):
+        self.data_info = gui.add_markdown("")
+        self.method = gui.add_dropdown("Method", tuple(METHODS), initial_value="ml",
+                                       hint="; ".join(METHOD_LABELS[m] for m in METHODS))
+        self.method.on_update(lambda e: self.app.handle(self.app.set_method, e))
+        self.reference = gui.add_number("Reference field nT", 0.0, min=0.0, step=1.0,
+                                        hint="Total field in nT; 0 = the file's reference (or fitted if none)")
+        self.reference.on_update(lambda e: self.app.handle(self.app.set_reference, e))
+        self.fit_reference = gui.add_checkbox("Fit the field magnitude", False,
+                                              hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)")
+        self.fit_reference.on_update(lambda e: self.app.handle(self.app.set_fit_reference, e))
+        self.robust = gui.add_checkbox("Robust loss (soft L1)", False,
+                                       hint="Down-weight gross outliers in the ML step")
+        self.robust.on_update(lambda e: self.app.handle(self.app.set_robust, e))
+        self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.app.do_ellipsoid)
+        self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.app.do_align)
+        self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.app.do_refine)
+        self.btn_run = self._button(gui, "Run the chosen method", self.app.do_calibrate, color="blue")
+        self.sensors_table = gui.add_markdown("")
+        with gui.add_folder("Step history", expand_by_default=True):
+            self.history = gui.add_markdown("")
+
+    def _build_model(self, gui):
+        gui.add_markdown("Effects beyond bias, scale, non-orthogonality and misalignment. "
+                         "Greyed ones need a channel the data lack (hover for the reason).")
+        self.effect_boxes = {}
+        for entry in self.app.ctrl.available_effects():
+            box = gui.add_checkbox(entry["name"], False, hint=effect_hint(entry))
+            box.on_update(lambda e, name=entry["name"]: self.app.handle(self.app.toggle_effect, e, name))
+            self.effect_boxes[entry["name"]] = box
+        if not self.effect_boxes:
+            gui.add_markdown("_The effect catalogue is not installed in this engine._")
+        self.btn_refit = self._button(gui, "Refit with this model", self.app.do_refine)
+        self.btn_diagnose = self._button(gui, "Diagnose", self.app.do_diagnose, color="violet")
+        self.candidates = gui.add_markdown("")
+        self.candidate_choice = gui.add_dropdown("Candidate", ("-",), initial_value="-")
+        self.candidate_evidence = gui.add_markdown("")
+        self.candidate_choice.on_update(lambda e: self.app.handle(self.app.candidate_chosen, e))
+        self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
+        self.rms_plot = gui.add_uplot(
+            data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan])),
+            series=({"label": "step"}, {"label": "RMS nT", "stroke": "#1f77b4", "width": 2,
+                                         "points": {"show": True, "size": 6}},
+                    {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5}),
+            scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
+            axes=({"label": "step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
+            padding=(14, 16, 0, 0), title="Total-field RMS per step", aspect=1.4)
+        self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
+        self.evidence_plot = None
+
+    def _build_outliers(self, gui):
+        gui.add_markdown("**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
+                         "**click** a point to inspect its sample. Rejected points turn magenta.")
+        self.box_mode = gui.add_dropdown("Box selection", ("reject", "restore"), initial_value="reject")
+        self.k_sigma = gui.add_slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
+        self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.app.do_threshold, engine=False)
+        self.auto_refit = gui.add_checkbox("Refit after each change", True,
+                                           hint="Refit (ML) on the kept samples after every rejection")
+        with gui.add_folder("History", expand_by_default=True):
+            self.btn_undo = self._button(gui, "Undo", self.app.do_undo, engine=False)
+            self.btn_redo = self._button(gui, "Redo", self.app.do_redo, engine=False)
+            self.btn_reset = self._button(gui, "Reset (keep all)", self.app.do_reset, engine=False)
+        self.inspect = gui.add_markdown(inspect_markdown(None))
+
+    def _build_view(self, gui):
+        n = self.app.ctrl.dataset.n_sensors
+        options = self._sensor_options(n)
+        self.sensor_choice = gui.add_dropdown("Sensor", options, initial_value=options[0])
+        self.sensor_choice.on_update(lambda e: self.app.handle(self.app.set_sensor, e))
+        self.distortion_gain = gui.add_slider("Raw distortion x", min=1.0, max=50.0, step=1.0, initial_value=10.0)
+        self.residual_gain = gui.add_slider("Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=100.0,
+                                            initial_value=1000.0)
+        self.axes_gain = gui.add_slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0,
+                                        initial_value=20.0)
+        self.show_raw = gui.add_checkbox("Raw cloud", True)
+        self.show_ellipsoid = gui.add_checkbox("Fitted ellipsoid", True)
+        self.show_corrected = gui.add_checkbox("Corrected cloud", True)
+        for h in (self.distortion_gain, self.residual_gain, self.axes_gain, self.show_raw, self.show_ellipsoid,
+                  self.show_corrected):
+            h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
+
+    def _build_files(self, gui):
+        self.upload = gui.add_upload_button("Open a CSV file", mime_type=".csv,text/csv,text/plain")
+        self.upload.on_upload(lambda e: self.app.handle(self.app.do_upload, e))
+        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration,
+                                       engine=False)
+        self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.app.do_download_corrected, engine=False)
+        gui.add_markdown("**Sessions** (saved automatically after every change)")
+        self.session_info = gui.add_markdown("")
+        self.session_choice = gui.add_dropdown("Saved session", ("-",), initial_value="-")
+        self.btn_reopen = self._button(gui, "Reopen the session", self.app.do_reopen)
+        self.btn_fresh = self._button(gui, "Start this data afresh", self.app.do_fresh)
+
+    def _build_lessons(self, gui):
+        from .lessons import list_lessons
+
+        lessons = list_lessons()
+        opts = tuple(l.slug for l in lessons) or ("-",)
+        gui.add_markdown("Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
+                         "is missing, and check. The answer stays hidden until you ask.")
+        self.lesson_choice = gui.add_dropdown("Lesson", opts, initial_value=opts[0],
+                                              hint="; ".join(f"{l.slug}: {l.title}" for l in lessons))
+        self.btn_lesson = self._button(gui, "Open the lesson", self.app.do_open_lesson)
+        self.lesson_guide = gui.add_markdown("")
+        self.btn_check = self._button(gui, "Check my model", self.app.do_check_lesson, engine=False)
+        self.btn_answer = self._button(gui, "Show the answer", self.app.do_show_answer, engine=False)
+        self.lesson_feedback = gui.add_markdown("")
+
+    @staticmethod
+    def _sensor_options(n):
+        return tuple([ALL_SENSORS] + [f"sensor {i + 1}" for i in range(n)]) if n > 1 else ("sensor 1",)
+
+    # --- refresh -------------------------------------------------------------------------------------------
+    def set_busy(self, busy: bool, name: str | None) -> None:
+        for b in self._engine_buttons:
+            b.disabled = busy
+        self.progress.visible = busy
+        self.progress_text.visible = busy
+        if busy:
+            self.progress.value = 0.0
+            self.progress.animated = True
+            self.progress_text.content = f"Running: {name}..."
+
+    def set_progress(self, message: str, fraction) -> None:
+        self.progress_text.content = message
+        if fraction is not None:
+            self.progress.animated = False
+            self.progress.value = float(np.clip(100.0 * fraction, 0, 100))
+        else:
+            self.progress.animated = True
+
+    def refresh(self, kinds=("all",)) -> None:
+        app, ctrl = self.app, self.app.ctrl
+        kinds = set(kinds)
+        everything = "all" in kinds
+        self.status.content = status_markdown(ctrl)
+        if everything or "message" in kinds:
+            self.message.content = ctrl.message
+        self.legend.content = app.legend_html()
+        if everything or kinds & {"result", "selection", "model"}:
+            self.sensors_table.content = sensors_markdown(ctrl)
+            self.history.content = history_markdown(ctrl.state)
+            x, y, f = ctrl.state.rms_series()
+            if np.isfinite(f).any():  # the floor is a property of the noise: draw it across every step
+                f = np.where(np.isfinite(f), f, f[np.isfinite(f)][0])
+            if len(x) >= 1:
+                if len(x) == 1:
+                    x, y, f = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2)
+                self.rms_plot.data = (x, y, f)
+        if everything or "model" in kinds:
+            for name, box in self.effect_boxes.items():
+                want = ctrl.state.has_effect(name)
+                if box.value != want:
+                    app._quiet = True
+                    try:
+                        box.value = want
+                    finally:
+                        app._quiet = False
+        if everything or "data" in kinds:
+            self.data_info.content = data_markdown(ctrl)
+            entries = {e["name"]: e for e in ctrl.available_effects()}
+            for name, box in self.effect_boxes.items():
+                e = entries.get(name)
+                if e is not None:
+                    box.disabled = bool(e["missing"])
+                    box.hint = effect_hint(e)
+            opts = self._sensor_options(ctrl.dataset.n_sensors)
+            self.sensor_choice.options = opts
+            cur = opts[0] if ctrl.state.sensor is None else f"sensor {ctrl.state.sensor + 1}"
+            app._set_quiet(self.sensor_choice, cur if cur in opts else opts[0])
+            app._set_quiet(self.method, ctrl.state.method)
+            app._set_quiet(self.reference, float(ctrl.state.reference_nT or 0.0))
+            app._set_quiet(self.fit_reference, bool(ctrl.state.fit_reference))
+            app._set_quiet(self.robust, bool(ctrl.state.robust))
+            self.refresh_sessions()
+        if everything or "diagnosis" in kinds or "data" in kinds:
+            self.candidates.content = candidates_markdown(ctrl.diagnosis)
+            from .controller import candidate_label
+
+            cands = [candidate_label(c) for c in (ctrl.diagnosis.candidates if ctrl.diagnosis is not None else [])]
+            opts = tuple(dict.fromkeys(cands)) or ("-",)
+            self.candidate_choice.options = opts
+            app._set_quiet(self.candidate_choice, opts[0])
+            self.candidate_evidence.content = candidate_evidence_markdown(ctrl.diagnosis, opts[0])
+            app.draw_evidence()
+        if everything or "inspect" in kinds or "selection" in kinds:
+            info = ctrl.sample_info(ctrl.inspected) if ctrl.inspected is not None else None
+            self.inspect.content = inspect_markdown(info)
+        self.btn_undo.disabled = not ctrl.state.selection.can_undo
+        self.btn_redo.disabled = not ctrl.state.selection.can_redo
+        has_cal = ctrl.calibration is not None
+        self.btn_dl_cal.disabled = not has_cal
+        self.btn_dl_csv.disabled = not has_cal
+        self.btn_align.visible = ctrl.dataset.n_sensors > 1
+
+    def refresh_sessions(self) -> None:
+        app = self.app
+        if app.store is None:
+            self.session_info.content = "_Autosave is off._"
+            return
+        sessions = app.store.list()
+        self.session_info.content = (f"This session: `{app.ctrl.session_id}` in `{app.store.root}`"
+                                     if app.ctrl.session_id else "_This session is not saved._")
+        opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
+        self.session_choice.options = opts
+        app._set_quiet(self.session_choice, opts[0])
