@@ -11,6 +11,7 @@ The public API, in the order data flows::
 from . import conventions
 from .calibration import Calibration, SensorCalibration
 from .dataset import Dataset, DatasetError
+from .diagnosis import Diagnosis, diagnose
 from .errors import CalibrationError, MagcalError
 from .fit import FitResult, fit
 from .model import EFFECTS, Effect, Model

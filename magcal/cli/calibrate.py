@@ -59,6 +59,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--robust", action="store_true",
                         help="robust (soft-L1) loss: gross outliers do not pull the fit; they are reported")
     parser.add_argument("--seed", type=int, default=None, help="seed of the global-search methods")
+    parser.add_argument("--effects", action="append", default=None, metavar="LIST",
+                        help="candidate effects to add to the base model, comma-separated NAME or NAME:SENSOR "
+                             "(e.g. temperature_bias,bias_step:2; see docs/effects.md); repeatable")
     parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the calibration here")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
 
@@ -94,15 +97,22 @@ def calibrate_options(args) -> dict:
 
 
 def run(args) -> int:
+    from ..coverage import calibration_input_checks
     from ..pipeline import calibrate
     from ..report import calibration_json, text_report
 
     if args.reference is not None and not args.reference > 0:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     ds, notes = read_input(args)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = calibrate(ds, **calibrate_options(args))
+    notes += calibration_input_checks(ds, args.reference)  # coverage and reference sanity (issue 6)
+    bar, progress = _search_progress_bar(args.method, ds.n_sensors)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = calibrate(ds, **calibrate_options(args), progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
     notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
     for note in notes:
         print(f"magcal calibrate: warning: {note}", file=sys.stderr)
@@ -119,3 +129,29 @@ def run(args) -> int:
         if args.output:
             print(f"\nsaved the calibration to {args.output}")
     return 0
+
+
+def _search_progress_bar(method, n_sensors):
+    """A tqdm bar for the global-search methods (pso, ipso, de), on stderr and only when it is a terminal.
+
+    Returns ``(bar, progress)``; both None otherwise. Each search iteration the pipeline reports (a message with
+    no fraction) advances the bar by one; the total is the iteration limit per sensor, so a search that stops
+    early on its tolerance leaves the bar short of the end.
+    """
+    from ..pipeline import SEARCH_METHODS
+
+    if method not in SEARCH_METHODS or not sys.stderr.isatty():
+        return None, None
+    from tqdm import tqdm
+
+    from ..search import DEFAULTS
+
+    bar = tqdm(total=n_sensors * (DEFAULTS[method]["max_iter"] + 1), desc=f"magcal calibrate ({method})", unit="it",
+               file=sys.stderr, leave=False)
+
+    def progress(message, fraction):
+        if fraction is None:  # one search iteration: "<method>: iteration K, best RMS X nT"
+            bar.set_postfix_str(message.rsplit(", ", 1)[-1], refresh=False)
+            bar.update(1)
+
+    return bar, progress

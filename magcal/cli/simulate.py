@@ -41,6 +41,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--timeseries", action="store_true",
                         help="a smooth rotation trajectory with time and temperature columns instead of random "
                              "attitudes")
+    parser.add_argument("--hidden", action="append", default=None, metavar="EFFECT[:SENSOR][=MAGNITUDE]",
+                        help="hide an effect in the data (implies --timeseries; repeatable), e.g. temperature_bias:2=3 "
+                             "(3 nT/K in sensor 2); magnitude in the effect's unit (docs/effects.md), default a "
+                             "clearly visible one; periodic_interference hides an effect outside the catalogue")
     parser.add_argument("--no-reference", action="store_true",
                         help="leave the reference field out of the file (it will then be fitted)")
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv", help="file to write")
@@ -57,11 +61,20 @@ def run(args) -> int:
     if args.noise is not None and args.noise < 0:
         raise MagcalError(f"--noise must be >= 0 nT, got {args.noise}")
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
+    hidden = []
+    if getattr(args, "hidden", None):
+        from ..effects import parse_hidden
+
+        n_sensors = PRESETS[args.preset].truth().n_sensors
+        hidden = [parse_hidden(spec, n_sensors) for spec in args.hidden]
+        args.timeseries = True
     if args.timeseries:
-        ds = simulate_timeseries(args.preset, n_samples=args.n or 1500, **common)
+        ds = simulate_timeseries(args.preset, n_samples=args.n or 1500, perturbations=hidden, **common)
     else:
         ds = simulate(args.preset, n_samples=args.n, **common)
     meta = {"preset": args.preset, "seed": str(args.seed), "mode": "timeseries" if args.timeseries else "random"}
     io.write_csv(args.output, ds, metadata=meta)
     print(f"wrote {args.output}: {ds.describe()}")
+    if hidden:  # not written into the file, so that it can be used as a blind exercise
+        print("hidden: " + "; ".join(p.description for p in hidden))
     return 0

@@ -1,0 +1,81 @@
+"""``magcal diagnose``: where the calibration model fails and which physical effect is missing.
+
+Example::
+
+    magcal simulate --hidden temperature_bias:2 -o hidden.csv
+    magcal diagnose hidden.csv
+    magcal diagnose hidden.csv --effects temperature_bias:2 --json
+
+Fits the base model (plus ``--effects``), then prints a ranked table of candidate effects (score test, confirmed
+by refitting the best ones) and a verdict: ``adequate``, ``missing_effect`` or ``unexplained``. With ``--json``
+it prints one JSON object: ``effects``, ``rms_nT``, ``noise_nT``, ``verdict``, ``warnings``, ``candidates``
+(``effect``, ``sensor``, ``delta_bic``, ``rms_after_nT``, ``evidence``, best first) and more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+
+from ..errors import MagcalError
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``diagnose`` subcommand."""
+    parser = subparsers.add_parser(
+        "diagnose",
+        help="find structure the model leaves in the residuals and the physical effect that explains it",
+        description="Calibrate (base model plus --effects), test every catalogue effect whose channels the file "
+                    "has (score test, then refits of the best), and give a verdict: adequate, missing_effect or "
+                    "unexplained. See docs/effects.md for the effects.",
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+def add_arguments(parser) -> None:
+    """The options of ``magcal diagnose``."""
+    from .calibrate import add_input_arguments
+
+    add_input_arguments(parser)
+    parser.add_argument("--effects", action="append", default=None, metavar="LIST",
+                        help="effects already in the model, comma-separated NAME or NAME:SENSOR (e.g. "
+                             "temperature_bias,bias_step:2); repeatable")
+    parser.add_argument("--reference", type=float, default=None, metavar="NT",
+                        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
+                             "line; without either the magnitude is fitted)")
+    parser.add_argument("--top", type=int, default=3, metavar="K",
+                        help="number of candidate effects confirmed by refitting (default 3)")
+    parser.add_argument("--robust", action="store_true", help="robust (soft-L1) loss for the fits")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+
+
+def run(args) -> int:
+    from ..diagnosis import diagnose
+    from ..pipeline import calibrate
+    from .calibrate import effect_names, read_input
+
+    if args.reference is not None and not args.reference > 0:
+        raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
+    if args.top < 1:
+        raise MagcalError(f"--top must be at least 1, got {args.top}")
+    ds, notes = read_input(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = calibrate(ds, effects=effect_names(args.effects), robust=args.robust,
+                           reference_total_nT=args.reference)
+        diagnosis = diagnose(ds, result, top=args.top)
+    notes += [str(w.message) for w in caught]
+    notes += [w for w in result.warnings if w not in notes]
+    for note in notes:
+        print(f"magcal diagnose: warning: {note}", file=sys.stderr)
+    if args.json:
+        json.dump(diagnosis.to_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        title = f"magcal diagnosis of {args.data}"
+        sys.stdout.write(f"{title}\n{'=' * len(title)}\n{ds.describe()}\n\n{diagnosis.table()}\n")
+    return 0

@@ -1,0 +1,1074 @@
+"""The catalogue of candidate effects beyond the base model.
+
+Every effect here is an :class:`magcal.model.Effect` registered in :data:`magcal.model.EFFECTS` under its name.
+Each one says
+
+* what it adds to the readings (its *basis*, the Jacobian of the correction with respect to its parameters, in
+  the stage of :mod:`magcal.model`: ``raw`` acts on one sensor's raw reading in its own axes, ``vector`` on the
+  corrected vector in the array frame, ``reference`` on the expected total field);
+* its parameters, with units chosen so that the numbers read naturally (nT/K, ppm/K, nT/h, ms, nT/m...), and
+  :meth:`~magcal.model.Effect.param_scale`, the size of each parameter that moves the readings by about 1 nT;
+* the data-derived constants it needs (reference temperature, reference time, step time, time span), set by
+  :meth:`~magcal.model.Effect.configure` and saved with a calibration by :meth:`~magcal.model.Effect.state`;
+* how the simulator hides it in data (:meth:`~magcal.model.Effect.perturbation`), written from the physics of the
+  effect rather than from its fitted basis: a delay is an exact time shift of the signal, hysteresis is a play
+  operator, a site gradient moves the field with the sensor's world position, a reference-field variation scales
+  the field vector, and so on.
+
+Notation: for sensor ``s``, ``z0 = y - b`` is the raw reading minus the bias (nT, sensor axes, approximately
+``C B``), ``T`` the temperature (degC), ``t`` the time (s). The signatures in the total-field residual and the
+confounders of every effect are in ``docs/effects.md``.
+
+A ``magnitude`` given to :meth:`perturbation` is either one number, the largest parameter value (the
+parameters follow a fixed pattern over the axes, different for each sensor), or the full parameter vector of
+one sensor; :meth:`true_params` returns the parameter vector the perturbation corresponds to, where the fitted
+model can represent it exactly (``None`` otherwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.signal import savgol_filter
+from scipy.special import eval_legendre
+
+from .errors import MagcalError
+from .model import EFFECTS, Context, Effect, parse_effect, register
+
+#: Field magnitude (nT) in which nonlinearity coefficients are quoted: ``q`` nT is the deviation of an axis
+#: reading ``50 000 nT``.
+NONLINEARITY_REFERENCE_NT = 50_000.0
+
+#: Temperature (degC) at which the simulator's temperature effects vanish (a factory calibration temperature).
+SIMULATION_REFERENCE_TEMPERATURE_C = 20.0
+
+_AXES = "xyz"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _diagonal_basis(columns):
+    """(N, 3, 3) basis with ``columns[:, j]`` on the diagonal (one parameter per axis)."""
+    columns = np.asarray(columns, dtype=float)
+    basis = np.zeros(columns.shape[:1] + (3, 3))
+    idx = np.arange(3)
+    basis[:, idx, idx] = columns
+    return basis
+
+
+def time_derivative(values, time_s, window=7):
+    """Smoothed time derivative along axis 0 (units of ``values`` per second).
+
+    A Savitzky-Golay derivative (cubic, ``window`` samples) when the sampling is regular, otherwise
+    :func:`numpy.gradient` with the actual sample times.
+
+    Parameters
+    ----------
+    values : numpy.ndarray, shape (N, ...)
+    time_s : numpy.ndarray, shape (N,)
+    window : int
+        Odd number of samples of the smoothing window.
+    """
+    values = np.asarray(values, dtype=float)
+    t = np.asarray(time_s, dtype=float)
+    n = len(t)
+    if n < 3:
+        return np.zeros_like(values)
+    dt = np.diff(t)
+    step = float(np.median(dt))
+    regular = step > 0 and np.all(np.abs(dt - step) <= 0.01 * step)
+    if regular and n >= window:
+        return savgol_filter(values, window, 3, deriv=1, delta=step, axis=0, mode="interp")
+    return np.gradient(values, t, axis=0)
+
+
+class _Cache:
+    """A small per-instance cache keyed by the identity of a dataset (the entry keeps the dataset alive)."""
+
+    def __init__(self):
+        self.entries = {}
+
+    def get(self, dataset, key, compute):
+        full = (id(dataset), key)
+        hit = self.entries.get(full)
+        if hit is not None and hit[0] is dataset:
+            return hit[1]
+        if len(self.entries) > 16:
+            self.entries.clear()
+        value = compute()
+        self.entries[full] = (dataset, value)
+        return value
+
+
+def _sensor_list(sensor, n_sensors, skip_first=False):
+    if sensor is None:
+        return list(range(1 if skip_first else 0, n_sensors))
+    if not 0 <= sensor < n_sensors:
+        raise MagcalError(f"sensor {sensor + 1} does not exist (the simulation has {n_sensors})")
+    return [sensor]
+
+
+def _linear_outputs(context, s):
+    """Noise-free linear output ``C (I + S) B`` (nT) of sensor ``s`` (no offset): what an axis 'sees'."""
+    sensor = context["truth"].sensors[s]
+    return context["fields_nT"][s] @ sensor.total_matrix.T
+
+
+def _shift_in_time(values, time_s, delays_s):
+    """``values(t - delay)`` per column by cubic-spline interpolation (an exact delay of a smooth signal)."""
+    spline = CubicSpline(time_s, values, axis=0, extrapolate=True)
+    out = np.empty_like(values)
+    for j, d in enumerate(np.broadcast_to(delays_s, (values.shape[1],))):
+        out[:, j] = spline(time_s - d)[:, j] if d else values[:, j]
+    return out
+
+
+@dataclass
+class CatalogueEffect(Effect):
+    """Shared machinery of the catalogue: parameter patterns for the simulator and a basis cache."""
+
+    #: Default ``magnitude`` of :meth:`perturbation` (in :attr:`magnitude_unit`): clearly visible with
+    #: 1 500 samples and 3 nT noise.
+    default_magnitude: ClassVar[float] = 1.0
+    #: Unit of ``magnitude``.
+    magnitude_unit: ClassVar[str] = ""
+    #: Pattern of the parameters over the axes (largest entry 1) used when ``magnitude`` is one number.
+    pattern: ClassVar[tuple] = (1.0, -0.7, 0.5)
+    #: Extra degrees of freedom searched in :meth:`configure` per instance (e.g. a step time), for the
+    #: information criteria of the diagnosis.
+    extra_dof: ClassVar[int] = 0
+
+    _cache: object = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self._cache is None:
+            self._cache = _Cache()
+
+    def _cached(self, dataset, key, compute):
+        if self._cache is None:
+            self._cache = _Cache()
+        return self._cache.get(dataset, key, compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        """Parameter vector of one sensor's instance that :meth:`perturbation` hides (None if not exact)."""
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        q = len(self.param_names())
+        if m.size == q:
+            return m.copy()
+        if m.size != 1:
+            raise MagcalError(f"{self.name}: magnitude must be one number or {q} values, got {m.size}")
+        pattern = np.asarray(self.pattern, dtype=float)[:q]
+        return m[0] * np.roll(pattern, sensor or 0) if len(pattern) == 3 else m[0] * pattern
+
+    def perturbation(self, magnitude=None, sensor=None, **options):
+        """A callable ``f(readings, context, rng)`` for :func:`magcal.simulation.simulate_timeseries`.
+
+        Parameters
+        ----------
+        magnitude : float or array_like, optional
+            Largest parameter value (in :attr:`magnitude_unit`), or the whole parameter vector of one sensor.
+            Defaults to :attr:`default_magnitude`.
+        sensor : int, optional
+            0-based sensor to hide the effect in (default: this effect's ``sensor``, or every sensor).
+        """
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        sensor = self.sensor if sensor is None else sensor
+        make = self._perturb
+        effect = self
+
+        def perturb(readings, context, rng):
+            return make(np.array(readings, dtype=float), context, magnitude, sensor, **options)
+
+        where = "all sensors" if sensor is None else f"sensor {sensor + 1}"
+        perturb.description = f"{effect.name} {magnitude} {effect.magnitude_unit} ({where})"
+        perturb.effect = effect.name
+        perturb.sensor = sensor
+        perturb.magnitude = magnitude
+        return perturb
+
+    def refine(self, effect_values: dict) -> bool:
+        """Update data-derived shape constants from fitted parameters (``{block label: values}``).
+
+        Returns True if they changed enough to warrant one more fit; the next :meth:`configure` then keeps
+        them. Most effects have nothing to refine.
+        """
+        return False
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# temperature
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class TemperatureBias(CatalogueEffect):
+    """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
+
+    name: ClassVar[str] = "temperature_bias"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("temperature",)
+    description: ClassVar[str] = "bias changing with temperature, y += beta (T - T0) [nT/K per axis]"
+    default_magnitude: ClassVar[float] = 2.0
+    magnitude_unit: ClassVar[str] = "nT/K"
+
+    reference_temperature_C: float | None = None
+
+    def param_names(self):
+        return [f"beta_{a}_nT_per_K" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 0.3)
+
+    def configure(self, dataset, residuals_nT=None):
+        self.reference_temperature_C = float(np.mean(dataset.temperature_C))
+
+    def state(self):
+        return {"reference_temperature_C": self.reference_temperature_C}
+
+    def set_state(self, state):
+        self.reference_temperature_C = state.get("reference_temperature_C")
+
+    def _dT(self, ctx):
+        t0 = self.reference_temperature_C
+        temp = ctx.temperature_C
+        return temp - (np.mean(temp) if t0 is None else t0)
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis(np.repeat(self._dT(ctx)[:, None], 3, axis=1))
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
+        for s in _sensor_list(sensor, readings.shape[0]):
+            beta = self.true_params(magnitude, s)
+            readings[s] += dT[:, None] * beta
+        return readings
+
+
+@register
+@dataclass
+class TemperatureScale(CatalogueEffect):
+    """Scale factors that change with temperature: ``y_j += alpha_j (T - T0) (C B)_j``, ``alpha`` in ppm/K."""
+
+    name: ClassVar[str] = "temperature_scale"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("temperature",)
+    description: ClassVar[str] = "scale factors changing with temperature, y_j += alpha_j (T - T0) (CB)_j [ppm/K]"
+    default_magnitude: ClassVar[float] = 30.0
+    magnitude_unit: ClassVar[str] = "ppm/K"
+
+    reference_temperature_C: float | None = None
+
+    def param_names(self):
+        return [f"alpha_{a}_ppm_per_K" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 6.0)
+
+    def configure(self, dataset, residuals_nT=None):
+        self.reference_temperature_C = float(np.mean(dataset.temperature_C))
+
+    def state(self):
+        return {"reference_temperature_C": self.reference_temperature_C}
+
+    def set_state(self, state):
+        self.reference_temperature_C = state.get("reference_temperature_C")
+
+    def raw_basis(self, z0, ctx: Context):
+        t0 = self.reference_temperature_C
+        temp = ctx.temperature_C
+        dT = temp - (np.mean(temp) if t0 is None else t0)
+        return _diagonal_basis(1e-6 * dT[:, None] * z0)
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
+        for s in _sensor_list(sensor, readings.shape[0]):
+            alpha = self.true_params(magnitude, s)
+            readings[s] += 1e-6 * dT[:, None] * alpha * _linear_outputs(context, s)
+        return readings
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# time
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class BiasDrift(CatalogueEffect):
+    """Bias drifting linearly in time: ``y += gamma (t - t0)``, ``gamma`` per axis in nT/h."""
+
+    name: ClassVar[str] = "bias_drift"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "bias drifting in time, y += gamma (t - t0) [nT/h per axis]"
+    default_magnitude: ClassVar[float] = 300.0
+    magnitude_unit: ClassVar[str] = "nT/h"
+
+    reference_time_s: float | None = None
+    duration_s: float | None = None
+
+    def param_names(self):
+        return [f"gamma_{a}_nT_per_h" for a in _AXES]
+
+    def param_scale(self):
+        span_h = (self.duration_s or 3600.0) / 3600.0
+        return np.full(3, 3.5 / span_h)
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.reference_time_s = float(np.mean(t))
+        self.duration_s = float(max(t[-1] - t[0], 1e-9))
+
+    def state(self):
+        return {"reference_time_s": self.reference_time_s, "duration_s": self.duration_s}
+
+    def set_state(self, state):
+        self.reference_time_s = state.get("reference_time_s")
+        self.duration_s = state.get("duration_s")
+
+    def raw_basis(self, z0, ctx: Context):
+        t = ctx.time_s
+        t0 = np.mean(t) if self.reference_time_s is None else self.reference_time_s
+        return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        t = context["time_s"]
+        elapsed_h = (t - t[0]) / 3600.0  # drift since power-on
+        for s in _sensor_list(sensor, readings.shape[0]):
+            readings[s] += elapsed_h[:, None] * self.true_params(magnitude, s)
+        return readings
+
+
+def quadric_residuals(readings_nT):
+    """Total-field residuals (nT, Sampson distance) of an algebraic ellipsoid fit to one sensor's readings.
+
+    The effects that search the residuals for a data-derived constant (a step time, a hysteresis width) use
+    these when the residuals they are given are worse (a crude starting calibration).
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    centre = y.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1)))
+    v = (y - centre) / scale
+    x, yy, z = v.T
+    design = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
+                              np.ones(len(v))])
+    _, _, vt = np.linalg.svd(design, full_matrices=False)
+    c = vt[-1]
+    m = np.array([[c[0], c[3], c[4]], [c[3], c[1], c[5]], [c[4], c[5], c[2]]])
+    value = design @ c
+    grad = 2 * (v @ m + c[6:9])
+    r = value / np.maximum(np.linalg.norm(grad, axis=1), 1e-300) * scale
+    try:
+        inside = c[9] - c[6:9] @ np.linalg.solve(m, c[6:9])  # the quadric's value at its centre
+    except np.linalg.LinAlgError:
+        inside = c[9]
+    return -r if inside > 0 else r  # outside the ellipsoid (field too strong) is positive
+
+
+def _better_residuals(readings_nT, residuals_nT):
+    """The given residuals, or those of :func:`quadric_residuals` if they are much smaller (poor start)."""
+    r = np.asarray(residuals_nT, dtype=float)
+    alt = quadric_residuals(readings_nT)
+    return alt if np.sqrt(np.mean(alt**2)) < 0.7 * np.sqrt(np.mean(r**2)) else r
+
+
+_STEP_SCANS = {}
+
+
+def step_scan(readings_nT, margin=0.05, min_samples=10):
+    """Change-point scan for a bias step in one sensor's readings.
+
+    Readings of a calibrated-for sensor turning in a uniform field lie on an ellipsoid; a bias step after sample
+    ``k`` moves the ellipsoid's centre. For every ``k`` the algebraic quadric fit of the (scaled) readings is
+    extended by the columns ``H_k y`` and ``H_k`` (``H_k`` = 1 from sample ``k`` on), which represent a pure
+    step exactly, and the smallest eigenvalue of the design's Gram matrix (the algebraic residual) is computed
+    for all ``k`` at once from cumulative sums. The scan needs no starting calibration.
+
+    Parameters
+    ----------
+    readings_nT : numpy.ndarray, shape (N, 3)
+        Raw readings of the sensor, in time order.
+    margin : float
+        Fraction of the record at each end where no step is looked for.
+    min_samples : int
+        Fewest samples on either side of a step.
+
+    Returns
+    -------
+    index : int
+        First sample after the most likely step.
+    improvement_nT2 : numpy.ndarray, shape (N,)
+        Drop of the (approximate) residual sum of squares, nT^2, for a step before each sample (0 where not
+        scanned).
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    # the same readings are scanned by several candidates and refits: cache by memory location (the cache holds
+    # the array, so the location cannot be reused while cached)
+    key = (y.__array_interface__["data"][0], y.shape, y.strides, margin, min_samples)
+    hit = _STEP_SCANS.get(key)
+    if hit is None:
+        if len(_STEP_SCANS) > 32:
+            _STEP_SCANS.clear()
+        hit = _STEP_SCANS[key] = (y,) + _step_scan(y, margin, min_samples)
+    return hit[1], hit[2].copy()
+
+
+def _step_scan(readings_nT, margin, min_samples):
+    y = np.asarray(readings_nT, dtype=float)
+    n = len(y)
+    centre = y.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1))))
+    v = (y - centre) / scale
+    x, yy, z = v.T
+    quad = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
+                            np.ones(n)])
+    w = np.column_stack([v, np.ones(n)])
+    improvement = np.zeros(n)
+    lo = max(int(np.ceil(margin * n)), min_samples)
+    hi = min(int(np.floor((1 - margin) * n)), n - min_samples)
+    if hi <= lo:
+        return n // 2, improvement
+    g_qq = quad.T @ quad
+    lam0 = np.linalg.eigvalsh(g_qq)[0]
+    g_qw = np.cumsum((quad[:, :, None] * w[:, None, :])[::-1], axis=0)[::-1]
+    g_ww = np.cumsum((w[:, :, None] * w[:, None, :])[::-1], axis=0)[::-1]
+
+    def smallest(ks):
+        gram = np.empty((len(ks), 14, 14))
+        gram[:, :10, :10] = g_qq
+        gram[:, :10, 10:] = g_qw[ks]
+        gram[:, 10:, :10] = np.transpose(g_qw[ks], (0, 2, 1))
+        gram[:, 10:, 10:] = g_ww[ks]
+        return np.linalg.eigvalsh(gram)[:, 0]
+
+    # coarse grid, then every sample around the best coarse point (long records)
+    stride = max(1, (hi - lo) // 2000)
+    ks = np.arange(lo, hi, stride)
+    # algebraic residual ~ (2 distance / scale)^2 per sample
+    improvement[ks] = np.maximum(lam0 - smallest(ks), 0.0) * scale**2 / 4.0
+    if stride > 1:
+        best = int(ks[np.argmax(improvement[ks])])
+        fine = np.arange(max(lo, best - stride), min(hi, best + stride + 1))
+        improvement[fine] = np.maximum(lam0 - smallest(fine), 0.0) * scale**2 / 4.0
+    return int(lo + np.argmax(improvement[lo:hi])), improvement
+
+
+@register
+@dataclass
+class BiasStep(CatalogueEffect):
+    """A bias step (perming after a shock): ``y += db H(t - te)``, ``db`` per axis in nT.
+
+    The step time ``te`` of each sensor is found by :func:`step_scan` on its readings in :meth:`configure`
+    (one extra degree of freedom per sensor for the information criteria).
+    """
+
+    name: ClassVar[str] = "bias_step"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "bias step at a time te found by a change-point scan, y += db H(t - te) [nT]"
+    default_magnitude: ClassVar[float] = 10.0
+    magnitude_unit: ClassVar[str] = "nT"
+    extra_dof: ClassVar[int] = 1
+
+    step_time_s: list | None = None
+
+    def param_names(self):
+        return [f"step_{a}_nT" for a in _AXES]
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        times = []
+        for s in range(dataset.n_sensors):
+            if not self.applies_to(s):
+                times.append(None)
+                continue
+            ok = np.ones(len(t), bool) if residuals_nT is None else np.isfinite(residuals_nT[s])
+            k, _ = step_scan(dataset.readings_nT[s] if ok.all() else dataset.readings_nT[s][ok])
+            tk = t[ok]
+            times.append(float(0.5 * (tk[k - 1] + tk[k])))
+        self.step_time_s = times
+
+    def state(self):
+        return {"step_time_s": self.step_time_s}
+
+    def set_state(self, state):
+        self.step_time_s = state.get("step_time_s")
+
+    def raw_basis(self, z0, ctx: Context):
+        t = ctx.time_s
+        te = None
+        if self.step_time_s is not None and ctx.sensor < len(self.step_time_s):
+            te = self.step_time_s[ctx.sensor]
+        if te is None:
+            te = float(np.median(t))
+        return _diagonal_basis(np.repeat((t >= te).astype(float)[:, None], 3, axis=1))
+
+    def _perturb(self, readings, context, magnitude, sensor, at_fraction=0.6, **options):
+        t = context["time_s"]
+        te = t[0] + at_fraction * (t[-1] - t[0])
+        after = (t >= te).astype(float)
+        for s in _sensor_list(sensor, readings.shape[0]):
+            readings[s] += after[:, None] * self.true_params(magnitude, s)
+        return readings
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# nonlinearity
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class NonlinearityQuadratic(CatalogueEffect):
+    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / 50 uT)^2``, ``q`` in nT."""
+
+    name: ClassVar[str] = "nonlinearity_quadratic"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ()
+    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / 50 uT)^2 [nT at 50 uT]"
+    default_magnitude: ClassVar[float] = 20.0
+    magnitude_unit: ClassVar[str] = "nT at 50 uT"
+
+    def param_names(self):
+        return [f"q_{a}_nT" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 4.0)
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** 2)
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        for s in _sensor_list(sensor, readings.shape[0]):
+            lin = _linear_outputs(context, s)
+            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** 2
+        return readings
+
+
+@register
+@dataclass
+class NonlinearityCubic(CatalogueEffect):
+    """Third-order transfer nonlinearity per axis: ``y_j += c_j ((C B)_j / 50 uT)^3``, ``c`` in nT.
+
+    At constant ``|B|`` it cannot be told from a cross-field effect ``l_j B_j (|B|^2 - B_j^2)``.
+    """
+
+    name: ClassVar[str] = "nonlinearity_cubic"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ()
+    description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / 50 uT)^3 [nT at 50 uT]"
+    default_magnitude: ClassVar[float] = 25.0
+    magnitude_unit: ClassVar[str] = "nT at 50 uT"
+
+    def param_names(self):
+        return [f"c_{a}_nT" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 6.0)
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** 3)
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        for s in _sensor_list(sensor, readings.shape[0]):
+            lin = _linear_outputs(context, s)
+            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** 3
+        return readings
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# dynamics: timing and hysteresis
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _reading_rate(effect, ctx):
+    """d y / d t (nT/s) of the context's sensor, cached per dataset (it does not depend on the bias)."""
+    return effect._cached(ctx.dataset, ("rate", ctx.sensor),
+                          lambda: time_derivative(ctx.reading_nT, ctx.time_s))
+
+
+@register
+@dataclass
+class AxisTimingSkew(CatalogueEffect):
+    """Axes of one sensor sampled at different times: ``y_j(t) = (C B)_j(t - tau_j)``, ``tau`` in ms.
+
+    A delay common to the three axes leaves the total field unchanged, so the delays of x and y are
+    measured relative to the z axis (2 parameters per sensor).
+    """
+
+    name: ClassVar[str] = "axis_timing_skew"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "x and y axes sampled late relative to z, y_j(t) = B_j(t - tau_j) [ms]"
+    default_magnitude: ClassVar[float] = 0.2
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (1.0, -0.6)
+
+    def param_names(self):
+        return ["tau_x_ms", "tau_y_ms"]
+
+    def param_scale(self):
+        return np.full(2, 0.1)
+
+    def raw_basis(self, z0, ctx: Context):
+        rate = _reading_rate(self, ctx)
+        basis = np.zeros((len(z0), 3, 2))
+        basis[:, 0, 0] = -1e-3 * rate[:, 0]
+        basis[:, 1, 1] = -1e-3 * rate[:, 1]
+        return basis
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        if m.size == 2:
+            return m.copy()
+        if m.size == 3:  # absolute delays: only the differences to z are visible
+            return m[:2] - m[2]
+        pattern = np.array(self.pattern) if (sensor or 0) % 2 == 0 else np.array(self.pattern[::-1])
+        return m[0] * pattern
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        t = context["time_s"]
+        for s in _sensor_list(sensor, readings.shape[0]):
+            m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+            delays_ms = m if m.size == 3 else np.append(self.true_params(magnitude, s), 0.0)
+            readings[s] = _shift_in_time(readings[s], t, 1e-3 * delays_ms)
+        return readings
+
+
+@register
+@dataclass
+class SensorTimingSkew(CatalogueEffect):
+    """Sensors of an array sampled at different times: ``B_i(t - dt_i)``, ``dt`` in ms, sensor 1 the reference.
+
+    Invisible in each sensor's total field (a delayed field has the same magnitude); it shows in the
+    inter-sensor consistency as ``dt dB/dt`` perpendicular to the field.
+    """
+
+    name: ClassVar[str] = "sensor_timing_skew"
+    stage: ClassVar[str] = "vector"
+    channels: ClassVar[tuple] = ("time",)
+    min_sensors: ClassVar[int] = 2
+    description: ClassVar[str] = "sensors 2-4 sampled late relative to sensor 1, B_i(t - dt_i) [ms]"
+    default_magnitude: ClassVar[float] = 0.2
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (0.0, 1.0, -0.7, 0.5)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.sensor == 0:
+            raise MagcalError("sensor_timing_skew: sensor 1 is the time reference; name sensor 2, 3 or 4")
+
+    def applies_to(self, sensor):
+        return sensor > 0 and (self.sensor is None or self.sensor == sensor)
+
+    def param_names(self):
+        return ["delay_ms"]
+
+    def param_scale(self):
+        return np.array([0.1])
+
+    def vector_basis(self, field_nT, ctx: Context):
+        rate = time_derivative(field_nT, ctx.time_s)
+        return 1e-3 * rate[:, :, None]
+
+    def true_params(self, magnitude=None, sensor=1):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        if m.size != 1:
+            raise MagcalError(f"{self.name}: magnitude is one delay in ms")
+        return np.array([m[0] * self.pattern[sensor % 4]])
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        if sensor == 0:
+            raise MagcalError("sensor_timing_skew: sensor 1 is the time reference; delay sensor 2, 3 or 4")
+        t = context["time_s"]
+        for s in _sensor_list(sensor, readings.shape[0], skip_first=True):
+            delay = self.true_params(magnitude, s)[0] if sensor is None else float(np.ravel(magnitude)[0])
+            readings[s] = _shift_in_time(readings[s], t, 1e-3 * delay)
+        return readings
+
+
+@register
+@dataclass
+class Hysteresis(CatalogueEffect):
+    """Magnetic hysteresis of each axis: the output lags behind the field by up to ``h_j`` nT, like a play
+    (backlash) operator of half-width ``h_j``; away from reversals ``y_j += -h_j sign(dB_j/dt)``.
+
+    The basis of axis ``j`` is ``(P(y_j) - y_j) / h0_j`` with ``P`` the play operator of a half-width ``h0_j``
+    estimated from the residuals in :meth:`configure` (so that the transitions after each reversal have the
+    right length); where no hysteresis is seen it is ``-sign(dy_j/dt)``. The parameter ``h_j`` (nT) scales it.
+    """
+
+    name: ClassVar[str] = "hysteresis"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "hysteresis, each axis lags by h_j behind the direction of change [nT]"
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+
+    #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
+    shape_half_width_nT: list | None = None
+    #: Keep ``shape_half_width_nT`` in the next :meth:`configure` (set by :meth:`refine`).
+    keep_shape: bool = False
+
+    def param_names(self):
+        return [f"h_{a}_nT" for a in _AXES]
+
+    def configure(self, dataset, residuals_nT=None):
+        if self.keep_shape and self.shape_half_width_nT is not None:
+            self.keep_shape = False
+            return
+        widths = []
+        for s in range(dataset.n_sensors):
+            if residuals_nT is None or not self.applies_to(s):
+                widths.append(None)
+                continue
+            r = np.asarray(residuals_nT[s], dtype=float)
+            ok = np.isfinite(r)
+            y = dataset.readings_nT[s]
+            rate = time_derivative(y, dataset.time_s)
+            widths.append(_hysteresis_widths(y[ok], -np.sign(rate[ok]), _better_residuals(y[ok], r[ok])).tolist())
+        self.shape_half_width_nT = widths
+
+    def state(self):
+        return {"shape_half_width_nT": self.shape_half_width_nT}
+
+    def refine(self, effect_values):
+        if self.shape_half_width_nT is None:
+            return False
+        changed = False
+        widths = [None if w is None else list(w) for w in self.shape_half_width_nT]
+        for s in range(len(widths)):
+            label = self.name if self.sensor is None and len(widths) == 1 and f"{self.name}:1" not in effect_values \
+                else f"{self.name}:{s + 1}"
+            values = effect_values.get(label)
+            if values is None or widths[s] is None:
+                continue
+            new = np.abs(np.asarray(values, dtype=float))
+            old = np.asarray(widths[s], dtype=float)
+            if np.any(np.abs(new - old) > 0.1 * np.maximum(new, 0.5)):
+                changed = True
+            widths[s] = new.tolist()
+        if changed:
+            self.shape_half_width_nT = widths
+            self.keep_shape = True
+        return changed
+
+    def set_state(self, state):
+        self.shape_half_width_nT = state.get("shape_half_width_nT")
+
+    def raw_basis(self, z0, ctx: Context):
+        widths = None
+        if self.shape_half_width_nT is not None and ctx.sensor < len(self.shape_half_width_nT):
+            widths = self.shape_half_width_nT[ctx.sensor]
+        key = ("hyst", ctx.sensor, tuple(widths) if widths else None)
+        columns = self._cached(ctx.dataset, key, lambda: self._columns(ctx, widths))
+        return _diagonal_basis(columns)
+
+    def _columns(self, ctx, widths):
+        y = ctx.reading_nT
+        rate = _reading_rate(self, ctx)
+        cols = -np.sign(rate)
+        if widths:
+            for j, h0 in enumerate(widths):
+                if h0 and h0 > 0:
+                    cols[:, j] = (play_operator(y[:, j], h0) - y[:, j]) / h0
+        return cols
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        for s in _sensor_list(sensor, readings.shape[0]):
+            h = np.abs(self.true_params(magnitude, s))
+            sign = np.sign(self.true_params(magnitude, s))
+            lin = _linear_outputs(context, s)
+            for j in range(3):
+                if h[j] > 0:
+                    readings[s][:, j] += sign[j] * (play_operator(lin[:, j], h[j]) - lin[:, j])
+        return readings
+
+
+def _hysteresis_widths(y, signs, residuals):
+    """Rough per-axis hysteresis half-widths (nT) from one sensor's total-field residuals.
+
+    The residual of a hysteretic sensor is about ``sum_j u_j lag_j`` with ``lag_j = -h_j sign(dB_j/dt)``; ``u`` is
+    approximated by the centred, scaled readings and ``r`` regressed on ``u_j sign_j``. (The terms the base
+    model absorbs cannot be included: the residual is itself a function of the readings.) Widths not clearly
+    above their standard error are 0.
+    """
+    v = y - y.mean(axis=0)
+    v = v / np.sqrt(np.mean(np.sum(v**2, axis=1)))
+    design = np.column_stack([np.ones(len(v)), v * signs])
+    coef, *_ = np.linalg.lstsq(design, residuals, rcond=None)
+    resid = residuals - design @ coef
+    s2 = float(resid @ resid) / max(len(residuals) - design.shape[1], 1)
+    cov = s2 * np.linalg.pinv(design.T @ design)
+    h = coef[-3:]
+    se = np.sqrt(np.maximum(np.diag(cov)[-3:], 1e-300))
+    return np.where(np.abs(h) > 3 * se, np.abs(h), 0.0)
+
+
+def play_operator(x, half_width):
+    """Backlash (play) operator: the output follows ``x`` only when it is more than ``half_width`` away.
+
+    Parameters
+    ----------
+    x : numpy.ndarray, shape (N,)
+        Input signal.
+    half_width : float
+        Half-width of the hysteresis loop (units of ``x``).
+    """
+    out = np.empty(len(x))
+    o = float(x[0])
+    h = float(half_width)
+    for i, v in enumerate(np.asarray(x, dtype=float).tolist()):
+        if v - o > h:
+            o = v - h
+        elif o - v > h:
+            o = v + h
+        out[i] = o
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# reference field and site
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class ReferenceDrift(CatalogueEffect):
+    """The reference field varies slowly during the record (diurnal variation, a drifting reference):
+    ``F(t) = F0 + sum_k c_k P_k(tau)``, Legendre polynomials of the time scaled to [-1, 1], mean removed."""
+
+    name: ClassVar[str] = "reference_drift"
+    stage: ClassVar[str] = "reference"
+    channels: ClassVar[tuple] = ("time",)
+    per_sensor: ClassVar[bool] = False
+    description: ClassVar[str] = "slow variation of the total field, F(t) = F0 + Legendre series in t [nT]"
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+
+    #: Legendre degrees used.
+    order: ClassVar[int] = 4
+
+    time_span_s: list | None = None
+    offsets: list | None = None
+
+    def param_names(self):
+        return [f"P{k}_nT" for k in range(1, self.order + 1)]
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.time_span_s = [float(t[0]), float(t[-1])]
+        self.offsets = None
+        self.offsets = self._raw(t).mean(axis=0).tolist()
+
+    def state(self):
+        return {"time_span_s": self.time_span_s, "offsets": self.offsets}
+
+    def set_state(self, state):
+        self.time_span_s = state.get("time_span_s")
+        self.offsets = state.get("offsets")
+
+    def _raw(self, t):
+        t0, t1 = self.time_span_s or (float(t[0]), float(t[-1]))
+        tau = 2.0 * (t - t0) / max(t1 - t0, 1e-9) - 1.0
+        return np.column_stack([eval_legendre(k, tau) for k in range(1, self.order + 1)])
+
+    def reference_basis(self, ctx: Context):
+        def compute():
+            p = self._raw(ctx.time_s)
+            return p - (np.asarray(self.offsets) if self.offsets is not None else p.mean(axis=0))
+        return self._cached(ctx.dataset, ("ref", tuple(self.time_span_s or ()), tuple(self.offsets or ())), compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        return None
+
+    def _perturb(self, readings, context, magnitude, sensor, period_fraction=1.6, **options):
+        """A slow variation of the field magnitude by ``magnitude`` nT (peak), e.g. the diurnal variation:
+        the whole field vector scales by ``F(t)/F0`` (direction unchanged)."""
+        t = context["time_s"]
+        duration = max(t[-1] - t[0], 1e-9)
+        amplitude = float(np.ravel(magnitude)[0])
+        delta = amplitude * np.sin(2 * np.pi * (t - t[0]) / (period_fraction * duration) + 0.4)
+        total = context["truth"].total_nT
+        for s in range(readings.shape[0]):
+            readings[s] += _linear_outputs(context, s) * (delta / total)[:, None]
+        return readings
+
+
+#: Symmetric traceless basis matrices of a gradient tensor: Gxx, Gxy, Gxz, Gyy, Gyz (Gzz = -Gxx - Gyy).
+GRADIENT_BASIS = np.array([
+    [[1, 0, 0], [0, 0, 0], [0, 0, -1]],
+    [[0, 1, 0], [1, 0, 0], [0, 0, 0]],
+    [[0, 0, 1], [0, 0, 0], [1, 0, 0]],
+    [[0, 0, 0], [0, 1, 0], [0, 0, -1]],
+    [[0, 0, 0], [0, 0, 1], [0, 1, 0]],
+], dtype=float)
+
+
+def gradient_matrix(params_nT_per_m):
+    """The symmetric traceless tensor (3, 3) in nT/m from ``Gxx, Gxy, Gxz, Gyy, Gyz``."""
+    return np.tensordot(np.asarray(params_nT_per_m, dtype=float), GRADIENT_BASIS, axes=1)
+
+
+@register
+@dataclass
+class SiteGradient(CatalogueEffect):
+    """A field gradient at the calibration site (a nearby magnetic object): ``B(p) = B0 + G p`` in the world
+    frame, ``G`` symmetric and traceless (5 parameters, nT/m). Needs the attitude (``qw, qx, qy, qz``).
+
+    The sensors of an array sit at ``p_s`` (array frame); turned by the attitude ``R`` each sees
+    ``R^T G R p_s`` on top of the uniform field. Without attitude the array alone measures, at every sample,
+    the gradient tensor in its own frame (that is what a gradiometer does): a site gradient appears as a tensor
+    that rotates with the array while its invariants stay constant, and its part along the field aliases into
+    the biases (a fake constant tensor offset); its world-frame components cannot be fitted.
+    """
+
+    name: ClassVar[str] = "site_gradient"
+    stage: ClassVar[str] = "vector"
+    channels: ClassVar[tuple] = ("attitude",)
+    per_sensor: ClassVar[bool] = False
+    min_sensors: ClassVar[int] = 2
+    description: ClassVar[str] = "field gradient at the site (world frame), B(p) = B0 + G p [nT/m]; needs attitude"
+    default_magnitude: ClassVar[float] = 20.0
+    magnitude_unit: ClassVar[str] = "nT/m"
+    pattern: ClassVar[tuple] = (1.0, 0.4, -0.3, -0.6, 0.5)
+
+    def param_names(self):
+        return ["Gxx_nT_per_m", "Gxy_nT_per_m", "Gxz_nT_per_m", "Gyy_nT_per_m", "Gyz_nT_per_m"]
+
+    def param_scale(self):
+        return np.full(5, 4.0)
+
+    def vector_basis(self, field_nT, ctx: Context):
+        def compute():
+            att = ctx.attitude
+            world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
+            cols = [-att.inv().apply(world_offset @ g.T) for g in GRADIENT_BASIS]
+            return np.stack(cols, axis=-1)
+        return self._cached(ctx.dataset, ("grad", ctx.sensor, tuple(np.round(ctx.position_m, 9))), compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        return m.copy() if m.size == 5 else m[0] * np.asarray(self.pattern)
+
+    def _perturb(self, readings, context, magnitude, sensor, **options):
+        g = gradient_matrix(self.true_params(magnitude))
+        att = context["attitudes"]
+        truth = context["truth"]
+        for s, p in enumerate(context["positions_m"]):
+            d_world = att.apply(p) @ g.T  # field change at the sensor's world position, nT
+            d_sensor = att.inv().apply(d_world) @ truth.sensors[s].M.T  # into the sensor's ideal frame
+            readings[s] += d_sensor @ truth.sensors[s].total_matrix.T
+        return readings
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# outside the catalogue (for tests and teaching): periodic interference
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62)):
+    """A perturbation *outside* the catalogue: a sinusoidal field (e.g. from nearby machinery) along a fixed
+    direction of the sensor's axes, ``y += a sin(2 pi f t) d``. No catalogue term explains it.
+
+    Parameters
+    ----------
+    amplitude_nT : float
+        Peak amplitude, nT.
+    frequency_hz : float
+        Frequency, Hz.
+    sensor : int, optional
+        0-based sensor; default every sensor.
+    direction : array_like, shape (3,)
+        Direction in the sensor axes (normalised).
+    """
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+
+    def perturb(readings, context, rng):
+        readings = np.array(readings, dtype=float)
+        t = context["time_s"]
+        wave = amplitude_nT * np.sin(2 * np.pi * frequency_hz * t + 0.3)
+        for s in _sensor_list(sensor, readings.shape[0]):
+            readings[s] += wave[:, None] * d
+        return readings
+
+    perturb.description = f"periodic interference {amplitude_nT} nT at {frequency_hz} Hz"
+    perturb.effect = "periodic_interference"
+    perturb.sensor = sensor
+    perturb.magnitude = amplitude_nT
+    return perturb
+
+
+#: Perturbations outside the catalogue that ``magcal simulate --hidden`` also knows (name -> factory taking
+#: ``magnitude`` and ``sensor``).
+EXTRA_PERTURBATIONS = {
+    "periodic_interference": lambda magnitude=None, sensor=None: periodic_interference(
+        5.0 if magnitude is None else float(magnitude), sensor=sensor),
+}
+
+
+def parse_hidden(spec: str, n_sensors: int):
+    """A perturbation from ``EFFECT[:SENSOR][=MAGNITUDE]`` (SENSOR 1-based), as ``magcal simulate --hidden``.
+
+    Returns
+    -------
+    callable
+        For :func:`magcal.simulation.simulate_timeseries`; it has ``description``, ``effect``, ``sensor``
+        (0-based or None) and ``magnitude`` attributes.
+
+    Raises
+    ------
+    MagcalError
+        Unknown effect, bad sensor number or magnitude.
+    """
+    text = spec.strip()
+    head, _, mag_text = text.partition("=")
+    magnitude = None
+    if mag_text.strip():
+        try:
+            values = [float(v) for v in mag_text.replace(";", ",").split(",") if v.strip()]
+        except ValueError:
+            raise MagcalError(f"--hidden {spec!r}: the magnitude after '=' must be a number (or comma-separated "
+                              "numbers, one per parameter)") from None
+        magnitude = values[0] if len(values) == 1 else values
+    name, _, sensor_text = head.partition(":")
+    name = name.strip()
+    if name in EXTRA_PERTURBATIONS:
+        sensor = None
+        if sensor_text.strip():
+            sensor = _parse_sensor(spec, sensor_text, n_sensors)
+        return EXTRA_PERTURBATIONS[name](magnitude, sensor)
+    effect = parse_effect(head, n_sensors)
+    if effect.min_sensors > n_sensors:
+        raise MagcalError(f"--hidden {spec!r}: {name} needs at least {effect.min_sensors} sensors")
+    return effect.perturbation(magnitude, effect.sensor)
+
+
+def _parse_sensor(spec, text, n_sensors):
+    try:
+        s = int(text) - 1
+    except ValueError:
+        raise MagcalError(f"{spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
+    if not 0 <= s < n_sensors:
+        raise MagcalError(f"{spec!r}: sensor {s + 1} does not exist (there are {n_sensors})")
+    return s
+
+
+def catalogue() -> list:
+    """The registered effect classes, in registration order."""
+    return list(EFFECTS.values())
