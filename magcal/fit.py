@@ -354,6 +354,8 @@ class FitResult:
     rss : float
         Residual sum of squares of the whole residual vector (nT^2).
     n_residuals, n_params : int
+        Independent residuals (total field, plus ``2 (n_sensors - 1)`` consistency values per sample for arrays
+        with misalignment) and parameters.
     aic, bic : float
         ``m ln(RSS/m) + 2k`` and ``m ln(RSS/m) + k ln m``.
     outliers : numpy.ndarray of bool, shape (N,)
@@ -484,7 +486,8 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     p = x.size
     rss = float(r @ r)
     rss_tf = float(np.sum(tf**2))
-    m = r.size
+    # independent residuals: the consistency rows of one sample sum to zero over the sensors
+    m = ns * n + (2 * (ns - 1) * n if problem.coupled else 0)
     dof_tf = max(ns * n - p, 1)
     noise = float(np.sqrt(rss_tf / dof_tf))
     s2 = rss / max(m - p, 1)
