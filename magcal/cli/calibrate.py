@@ -46,11 +46,10 @@ def add_input_arguments(parser) -> None:
 def add_arguments(parser) -> None:
     """The options of ``magcal calibrate``."""
     from ..pipeline import METHODS, SEARCH_METHODS
+    from ..reference import add_reference_arguments
 
     add_input_arguments(parser)
-    parser.add_argument("--reference", type=float, default=None, metavar="NT",
-                        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
-                             "line; without either the magnitude is fitted)")
+    add_reference_arguments(parser)
     parser.add_argument("--method", default="ml", choices=METHODS + SEARCH_METHODS,
                         help="ml (default): ellipsoid, Procrustes, maximum likelihood; ellipsoid: the seed's two "
                              "steps only; pso, ipso, de: global search")
@@ -90,7 +89,7 @@ def calibrate_options(args) -> dict:
         "method": args.method,
         "effects": effect_names(getattr(args, "effects", None)),
         "robust": args.robust,
-        "reference_total_nT": args.reference,
+        "reference_total_nT": None,  # resolved into the dataset by run() (number, igrf, column or fit)
         "seed": args.seed,
         "ellipsoid_method": args.ellipsoid,
     }
@@ -101,10 +100,18 @@ def run(args) -> int:
     from ..pipeline import calibrate
     from ..report import calibration_json, text_report
 
-    if args.reference is not None and not args.reference > 0:
-        raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
+    from ..reference import reference_from_args
+
     ds, notes = read_input(args)
-    notes += calibration_input_checks(ds, args.reference)  # coverage and reference sanity (issue 6)
+    with warnings.catch_warnings(record=True) as caught_ref:
+        warnings.simplefilter("always")
+        reference = reference_from_args(args, ds)
+    notes += [str(w.message) for w in caught_ref]
+    ds = reference.apply(ds)
+    if reference.kind == "fitted":
+        ds = ds.replace(ref_total_nT=None)
+    print(f"magcal calibrate: reference: {reference.text}", file=sys.stderr)
+    notes += calibration_input_checks(ds)  # coverage (issue 6)
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
         with warnings.catch_warnings(record=True) as caught:
