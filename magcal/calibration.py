@@ -211,7 +211,7 @@ class Calibration:
                 "scale": scale.tolist(),
                 "axis_angles_deg": angles.tolist(),
             }
-            entry.update(_jsonable(cal.summary))
+            entry.update(jsonable(cal.summary))
             sensors.append(entry)
         effects = []
         if self.model is not None:
@@ -223,7 +223,7 @@ class Calibration:
                     "sensor": None if s is None else s + 1,
                     "term": e.label,
                     "params": dict(zip(e.param_names(), values.tolist())),
-                    "state": _jsonable(e.state()),
+                    "state": jsonable(e.state()),
                 })
         doc = {
             "format": FORMAT,
@@ -237,7 +237,7 @@ class Calibration:
             "effect_params": effects,
             "sensors": sensors,
         }
-        doc.update(_jsonable(self.summary))
+        doc.update(jsonable(self.summary))
         return doc
 
     @classmethod
@@ -325,13 +325,20 @@ def write_json_atomic(path, document) -> None:
         raise
 
 
-def _jsonable(value):
+def jsonable(value):
+    """``value`` with numpy arrays and scalars turned into JSON types; non-finite floats become gaps."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
+        if value.dtype == object:
+            return [jsonable(v) for v in value.tolist()]
+        if value.dtype.kind == "f":  # inf is not JSON; show it as a gap like NaN
+            return np.where(np.isfinite(value), value, np.nan).tolist()
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
     return value

@@ -43,6 +43,7 @@ from scipy.signal import periodogram
 from scipy.special import comb, sph_harm_y
 
 from . import conventions
+from .calibration import jsonable
 from .errors import CalibrationError, MagcalError
 from .model import EFFECTS, Model, _ensure_catalogue
 
@@ -663,7 +664,7 @@ class Diagnosis:
 
     def plot_data(self) -> dict:
         """:attr:`evidence` with arrays turned into lists (JSON-ready), for the workbench."""
-        return _jsonable(self.evidence)
+        return jsonable(self.evidence)
 
     def table(self, limit=12) -> str:
         """A readable ranked table of the candidates."""
@@ -690,19 +691,6 @@ class Diagnosis:
         return "\n".join(lines)
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return [_jsonable(v) for v in value.tolist()] if value.dtype == object else np.where(
-            np.isfinite(value), value, np.nan).tolist() if value.dtype.kind == "f" else value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
 
 
 # ----------------------------------------------------------------------------------------------------------------

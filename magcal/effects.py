@@ -210,25 +210,11 @@ class CatalogueEffect(Effect):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-@register
 @dataclass
-class TemperatureBias(CatalogueEffect):
-    """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
-
-    name: ClassVar[str] = "temperature_bias"
-    stage: ClassVar[str] = "raw"
-    channels: ClassVar[tuple] = ("temperature",)
-    description: ClassVar[str] = "bias changing with temperature, y += beta (T - T0) [nT/K per axis]"
-    default_magnitude: ClassVar[float] = 2.0
-    magnitude_unit: ClassVar[str] = "nT/K"
+class _TemperatureReferenced(CatalogueEffect):
+    """Shared by the temperature terms: ``T0`` is the mean temperature of the fitted data, saved with the fit."""
 
     reference_temperature_C: float | None = None
-
-    def param_names(self):
-        return [f"beta_{a}_nT_per_K" for a in _AXES]
-
-    def param_scale(self):
-        return np.full(3, 0.3)
 
     def configure(self, dataset, residuals_nT=None):
         self.reference_temperature_C = float(np.mean(dataset.temperature_C))
@@ -240,9 +226,29 @@ class TemperatureBias(CatalogueEffect):
         self.reference_temperature_C = state.get("reference_temperature_C")
 
     def _dT(self, ctx):
+        """Temperature minus ``T0`` (K); before any fit, minus the mean temperature."""
         t0 = self.reference_temperature_C
         temp = ctx.temperature_C
         return temp - (np.mean(temp) if t0 is None else t0)
+
+
+@register
+@dataclass
+class TemperatureBias(_TemperatureReferenced):
+    """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
+
+    name: ClassVar[str] = "temperature_bias"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("temperature",)
+    description: ClassVar[str] = "bias changing with temperature, y += beta (T - T0) [nT/K per axis]"
+    default_magnitude: ClassVar[float] = 2.0
+    magnitude_unit: ClassVar[str] = "nT/K"
+
+    def param_names(self):
+        return [f"beta_{a}_nT_per_K" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 0.3)
 
     def raw_basis(self, z0, ctx: Context):
         return _diagonal_basis(np.repeat(self._dT(ctx)[:, None], 3, axis=1))
@@ -257,7 +263,7 @@ class TemperatureBias(CatalogueEffect):
 
 @register
 @dataclass
-class TemperatureScale(CatalogueEffect):
+class TemperatureScale(_TemperatureReferenced):
     """Scale factors that change with temperature: ``y_j += alpha_j (T - T0) (C B)_j``, ``alpha`` in ppm/K."""
 
     name: ClassVar[str] = "temperature_scale"
@@ -267,28 +273,14 @@ class TemperatureScale(CatalogueEffect):
     default_magnitude: ClassVar[float] = 30.0
     magnitude_unit: ClassVar[str] = "ppm/K"
 
-    reference_temperature_C: float | None = None
-
     def param_names(self):
         return [f"alpha_{a}_ppm_per_K" for a in _AXES]
 
     def param_scale(self):
         return np.full(3, 6.0)
 
-    def configure(self, dataset, residuals_nT=None):
-        self.reference_temperature_C = float(np.mean(dataset.temperature_C))
-
-    def state(self):
-        return {"reference_temperature_C": self.reference_temperature_C}
-
-    def set_state(self, state):
-        self.reference_temperature_C = state.get("reference_temperature_C")
-
     def raw_basis(self, z0, ctx: Context):
-        t0 = self.reference_temperature_C
-        temp = ctx.temperature_C
-        dT = temp - (np.mean(temp) if t0 is None else t0)
-        return _diagonal_basis(1e-6 * dT[:, None] * z0)
+        return _diagonal_basis(1e-6 * self._dT(ctx)[:, None] * z0)
 
     def _perturb(self, readings, context, magnitude, sensor, **options):
         dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
