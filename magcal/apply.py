@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import csv
 import io as _io
-import json
 import os
 import sys
 import time
@@ -45,7 +44,7 @@ INVARIANT_COLUMNS = ("I0", "I1", "I2")
 
 
 def load_calibration(path, n_sensors=None):
-    """Load a calibration file with every check a user needs, as one clear :class:`MagcalError`.
+    """Load a calibration file with every check a user needs (:meth:`magcal.calibration.Calibration.load`).
 
     Parameters
     ----------
@@ -57,75 +56,9 @@ def load_calibration(path, n_sensors=None):
     -------
     magcal.calibration.Calibration
     """
-    from .calibration import FORMAT, VERSION, Calibration
+    from .calibration import Calibration
 
-    path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except FileNotFoundError:
-        raise MagcalError(f"{path}: no such calibration file; check the path") from None
-    except IsADirectoryError:
-        raise MagcalError(f"{path}: is a directory, not a calibration file") from None
-    except OSError as exc:
-        raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
-    try:
-        doc = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise MagcalError(f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file written "
-                          "by magcal calibrate or magcal align") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise MagcalError(f"{path}: not a magcal calibration file (expected \"format\": \"{FORMAT}\")")
-    if doc.get("version") != VERSION:
-        raise MagcalError(
-            f"{path}: calibration file version {doc.get('version')!r} is not supported by this magcal (it reads "
-            f"version {VERSION}); upgrade magcal or recalibrate"
-        )
-    sensors = doc.get("sensors")
-    if not isinstance(sensors, list) or not 1 <= len(sensors) <= 4:
-        raise MagcalError(f"{path}: 'sensors' must list 1 to 4 sensors; the file is damaged, recalibrate")
-    if n_sensors is not None and len(sensors) != int(n_sensors):
-        raise MagcalError(
-            f"{path}: this calibration is for {len(sensors)} sensor(s) but the data have {n_sensors}; use the "
-            "calibration made for this instrument"
-        )
-    for i, s in enumerate(sensors):
-        _check_sensor_entry(path, i, s)
-    try:
-        cal = Calibration.from_dict(doc, source=path)
-    except MagcalError:
-        raise
-    except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
-        raise MagcalError(f"{path}: damaged calibration file ({type(exc).__name__}: {exc}); recalibrate") from None
-    if cal.baseline_m is not None:
-        try:
-            ok = float(cal.baseline_m) > 0 and np.isfinite(float(cal.baseline_m))
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise MagcalError(f"{path}: baseline_m {cal.baseline_m!r} must be a positive number of metres")
-    return cal
-
-
-def _check_sensor_entry(path, i, s):
-    where = f"{path}: sensor {i + 1}"
-    if not isinstance(s, dict):
-        raise MagcalError(f"{where}: entry is not an object; the file is damaged, recalibrate")
-    for key, shape in (("Cinv", (3, 3)), ("bias_nT", (3,)), ("R", (3, 3))):
-        if key not in s:
-            if key == "R":
-                continue
-            raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
-        try:
-            a = np.array(s[key], dtype=float)
-        except (TypeError, ValueError):
-            raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
-        if a.shape != shape or not np.all(np.isfinite(a)):
-            raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
-        if key == "Cinv" and abs(np.linalg.det(a)) < 1e-9:
-            raise MagcalError(f"{where}: Cinv is singular; the file is damaged, recalibrate")
-        if key == "R" and (not np.allclose(a @ a.T, np.eye(3), atol=1e-6) or np.linalg.det(a) < 0):
-            raise MagcalError(f"{where}: R is not a proper rotation; the file is damaged, recalibrate")
+    return Calibration.load(path, n_sensors=n_sensors)
 
 
 def tensor_invariants(tensor):

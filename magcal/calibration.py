@@ -241,8 +241,24 @@ class Calibration:
         return doc
 
     @classmethod
-    def from_dict(cls, doc: dict, source: str = "calibration") -> "Calibration":
-        """Rebuild a calibration from :meth:`to_dict` output; refuses other formats and versions clearly."""
+    def from_dict(cls, doc: dict, source: str = "calibration", n_sensors=None) -> "Calibration":
+        """Rebuild a calibration from :meth:`to_dict` output, refusing anything else with one clear message.
+
+        Parameters
+        ----------
+        doc : dict
+            The JSON document.
+        source : str
+            Where it came from (a file name), for the messages.
+        n_sensors : int, optional
+            Refuse a calibration made for a different number of sensors.
+
+        Raises
+        ------
+        MagcalError
+            Wrong format or version, wrong sensor count, a damaged sensor entry (shapes, finite values, a singular
+            ``Cinv``, an ``R`` that is not a proper rotation), a damaged effect entry or a bad baseline.
+        """
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise MagcalError(f"{source}: not a magcal calibration file (expected \"format\": \"{FORMAT}\")")
         if doc.get("version") != VERSION:
@@ -250,43 +266,44 @@ class Calibration:
                 f"{source}: calibration file version {doc.get('version')!r} is not supported by this magcal "
                 f"(it reads version {VERSION}); upgrade magcal or recalibrate"
             )
+        entries = doc.get("sensors")
+        if not isinstance(entries, list) or not 1 <= len(entries) <= 4:
+            raise MagcalError(f"{source}: 'sensors' must list 1 to 4 sensors; the file is damaged, recalibrate")
+        if n_sensors is not None and len(entries) != int(n_sensors):
+            raise MagcalError(
+                f"{source}: this calibration is for {len(entries)} sensor(s) but the data have {n_sensors}; use the "
+                "calibration made for this instrument"
+            )
+        for i, entry in enumerate(entries):
+            _check_sensor_entry(source, i, entry)
+        baseline = doc.get("baseline_m")
+        if baseline is not None:
+            try:
+                ok = float(baseline) > 0 and np.isfinite(float(baseline))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise MagcalError(f"{source}: baseline_m {baseline!r} must be a positive number of metres")
+        derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
+        sensors = [
+            SensorCalibration(np.array(s["Cinv"], float), np.array(s["bias_nT"], float),
+                              np.array(s.get("R", np.eye(3)), float),
+                              summary={k: v for k, v in s.items() if k not in derived})
+            for s in entries
+        ]
         try:
-            derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
-            sensors = [
-                SensorCalibration(np.array(s["Cinv"], float), np.array(s["bias_nT"], float),
-                                  np.array(s.get("R", np.eye(3)), float),
-                                  summary={k: v for k, v in s.items() if k not in derived})
-                for s in doc["sensors"]
-            ]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise MagcalError(f"{source}: damaged sensor entry ({exc}); recalibrate or restore the file") from None
-        if not 1 <= len(sensors) <= 4:
-            raise MagcalError(f"{source}: {len(sensors)} sensors; a calibration holds 1 to 4")
-        model, values = None, {}
-        if doc.get("effect_params") or doc.get("base_terms"):
-            from .model import BASE_TERMS
-
-            base = tuple(doc.get("base_terms") or BASE_TERMS)
-            model = Model(len(sensors), base=base)
-            seen = {}
-            for entry in doc.get("effect_params", []):
-                term = entry.get("term", entry["effect"])
-                if term not in seen:
-                    effect = parse_effect(term, len(sensors))
-                    effect.set_state(entry.get("state") or {})
-                    seen[term] = effect
-                    model.effects.append(effect)
-                effect = seen[term]
-                sensor = entry.get("sensor")
-                label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
-                values[label] = np.array([entry["params"][n] for n in effect.param_names()], dtype=float)
+            model, values = _effects_from_dict(doc, len(sensors))
+        except MagcalError:
+            raise
+        except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
+            raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
         known = {"format", "version", "reference_total_nT", "reference_fitted", "baseline_m", "frame", "base_terms",
                  "effects", "effect_params", "sensors"}
         return cls(
             sensors=sensors,
             reference_total_nT=doc.get("reference_total_nT"),
             reference_fitted=bool(doc.get("reference_fitted", False)),
-            baseline_m=doc.get("baseline_m"),
+            baseline_m=baseline,
             model=model,
             effect_values=values,
             frame=doc.get("frame", "sensor1"),
@@ -299,14 +316,74 @@ class Calibration:
 
     @classmethod
     def load(cls, path, n_sensors=None) -> "Calibration":
-        """Read a calibration file written by :meth:`save`, with a clear message for any problem.
+        """Read a calibration file written by :meth:`save`, with one clear :class:`MagcalError` for any problem.
 
-        The checks (format, version, sensor count, shapes, finite values, rotations) are those of
-        :func:`magcal.apply.load_calibration`.
+        Parameters
+        ----------
+        path : str or os.PathLike
+        n_sensors : int, optional
+            Refuse a calibration made for a different number of sensors.
         """
-        from .apply import load_calibration
+        path = os.fspath(path)
+        try:
+            with open(path, "rb") as fh:
+                raw = fh.read()
+        except FileNotFoundError:
+            raise MagcalError(f"{path}: no such calibration file; check the path") from None
+        except IsADirectoryError:
+            raise MagcalError(f"{path}: is a directory, not a calibration file") from None
+        except OSError as exc:
+            raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raise MagcalError(f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
+                              "written by magcal calibrate or magcal align") from None
+        return cls.from_dict(doc, source=path, n_sensors=n_sensors)
 
-        return load_calibration(path, n_sensors=n_sensors)
+
+def _check_sensor_entry(source, i, s) -> None:
+    """Refuse a damaged sensor entry of a calibration document, naming the sensor and the key."""
+    where = f"{source}: sensor {i + 1}"
+    if not isinstance(s, dict):
+        raise MagcalError(f"{where}: entry is not an object; the file is damaged, recalibrate")
+    for key, shape in (("Cinv", (3, 3)), ("bias_nT", (3,)), ("R", (3, 3))):
+        if key not in s:
+            if key == "R":
+                continue
+            raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
+        try:
+            a = np.array(s[key], dtype=float)
+        except (TypeError, ValueError):
+            raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
+        if a.shape != shape or not np.all(np.isfinite(a)):
+            raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
+        if key == "Cinv" and abs(np.linalg.det(a)) < 1e-9:
+            raise MagcalError(f"{where}: Cinv is singular; the file is damaged, recalibrate")
+        if key == "R" and (not np.allclose(a @ a.T, np.eye(3), atol=1e-6) or np.linalg.det(a) < 0):
+            raise MagcalError(f"{where}: R is not a proper rotation; the file is damaged, recalibrate")
+
+
+def _effects_from_dict(doc, n_sensors):
+    """The model and effect values saved in a calibration document (None, {} when it has none)."""
+    model, values = None, {}
+    if doc.get("effect_params") or doc.get("base_terms"):
+        from .model import BASE_TERMS
+
+        model = Model(n_sensors, base=tuple(doc.get("base_terms") or BASE_TERMS))
+        seen = {}
+        for entry in doc.get("effect_params", []):
+            term = entry.get("term", entry["effect"])
+            if term not in seen:
+                effect = parse_effect(term, n_sensors)
+                effect.set_state(entry.get("state") or {})
+                seen[term] = effect
+                model.effects.append(effect)
+            effect = seen[term]
+            sensor = entry.get("sensor")
+            label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
+            values[label] = np.array([entry["params"][n] for n in effect.param_names()], dtype=float)
+    return model, values
 
 
 def write_json_atomic(path, document) -> None:

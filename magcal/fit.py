@@ -1,8 +1,10 @@
 """The maximum-likelihood fitter for any model, one sensor or four together.
 
 :class:`Problem` turns a dataset, a :class:`~magcal.model.Model` and a starting calibration into a residual
-vector and its Jacobian; :func:`fit` minimises it with :func:`scipy.optimize.least_squares`
-(trust-region reflective, optional robust loss) and returns a :class:`FitResult`.
+vector and its Jacobian; :func:`fit` minimises it and returns a :class:`FitResult`: plain least squares by
+Levenberg-Marquardt on the normal equations (:meth:`Problem.normal_equations` never forms the tall consistency
+rows of an array, which keeps a warm four-sensor refit interactive), robust losses by
+:func:`scipy.optimize.least_squares` (trust-region reflective).
 
 Residuals (nT)
     * total field, per sensor and sample: ``|B_s| - F_s(t)``;
@@ -213,7 +215,9 @@ class Problem:
 
     def residuals(self, x) -> np.ndarray:
         """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*2) when coupled."""
-        b = self.fields(x)
+        return self._residuals_from_fields(self.fields(x), x)
+
+    def _residuals_from_fields(self, b, x) -> np.ndarray:
         expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
                                         self.ctxs)
         total = (np.linalg.norm(b, axis=2) - expected).ravel()
@@ -221,9 +225,13 @@ class Problem:
             return total
         e1, e2 = _perpendicular_basis(b.mean(axis=0))
         diff = b - b.mean(axis=0)
-        factor = np.sqrt(self.n_sensors / (self.n_sensors - 1.0))
         perp = np.stack([np.einsum("sni,ni->sn", diff, e1), np.einsum("sni,ni->sn", diff, e2)], axis=-1)
-        return np.concatenate([total, factor * perp.ravel()])
+        return np.concatenate([total, self._consistency_factor * perp.ravel()])
+
+    @property
+    def _consistency_factor(self) -> float:
+        """Scale of the consistency rows, ``sqrt(n/(n-1))``: the noise of one axis's deviation from the mean."""
+        return float(np.sqrt(self.n_sensors / (self.n_sensors - 1.0)))
 
     def field_derivatives(self, x):
         """Corrected fields (n_sensors, N, 3) and, per sensor, the columns and derivatives dB_s/dx (N, 3, k).
@@ -281,18 +289,15 @@ class Problem:
             derivs.append((np.asarray(cols, dtype=int), np.concatenate(parts, axis=2)))
         return fields, derivs
 
-    def jacobian(self, x) -> np.ndarray:
-        """Analytic Jacobian (m, p) of :meth:`residuals` (see :meth:`field_derivatives`)."""
-        fields, derivs = self.field_derivatives(x)
-        ns, n, p = self.n_sensors, self.n_samples, x.size
-        jac = np.zeros((self.n_residuals, p))
-        norms = np.linalg.norm(fields, axis=2, keepdims=True)
-        units = fields / norms
+    def _total_field_jacobian(self, x, fields, derivs) -> np.ndarray:
+        """Rows of the Jacobian (n_sensors*N, p) for the total-field residuals."""
+        ns, n = self.n_sensors, self.n_samples
+        jac = np.zeros((ns * n, x.size))
+        units = fields / np.linalg.norm(fields, axis=2, keepdims=True)
         for s, (cols, d) in enumerate(derivs):
             jac[s * n:(s + 1) * n, cols] += np.einsum("ni,nik->nk", units[s], d)
         if "F0" in self.blocks:
-            jac[: ns * n, self.blocks["F0"].start] = -1.0
-        values = self.effect_values(x)
+            jac[:, self.blocks["F0"].start] = -1.0
         for e, es in self.model.instances():
             if e.stage != "reference":
                 continue
@@ -300,20 +305,138 @@ class Problem:
             for s in range(ns):
                 if es is None or es == s:
                     jac[s * n:(s + 1) * n, sl] -= e.reference_basis(self.ctxs[s])
-        if self.coupled:
-            e1, e2 = _perpendicular_basis(fields.mean(axis=0))
-            factor = np.sqrt(ns / (ns - 1.0))
-            top = ns * n
-            for s, (cols, d) in enumerate(derivs):
-                p1 = factor * np.einsum("ni,nik->nk", e1, d)
-                p2 = factor * np.einsum("ni,nik->nk", e2, d)
-                for k in range(ns):
-                    w = (1.0 if k == s else 0.0) - 1.0 / ns
-                    rows = slice(top + k * 2 * n, top + (k + 1) * 2 * n)
-                    block = jac[rows]
-                    block[0::2, cols] += w * p1
-                    block[1::2, cols] += w * p2
         return jac
+
+    def _consistency_derivatives(self, fields, derivs):
+        """Per sensor, dP_s/dx (N, 2, k) of the two perpendicular components of ``B_s`` (scaled like the rows).
+
+        The consistency rows of sensor ``k`` are ``sum_s (delta_ks - 1/n) dP_s/dx``; the derivative of the
+        perpendicular basis itself multiplies ``B_s - mean B`` (a few nT) and is left out.
+        """
+        e1, e2 = _perpendicular_basis(fields.mean(axis=0))
+        factor = self._consistency_factor
+        return [factor * np.stack([np.einsum("ni,nik->nk", e1, d), np.einsum("ni,nik->nk", e2, d)], axis=1)
+                for _, d in derivs]
+
+    def jacobian(self, x) -> np.ndarray:
+        """Analytic Jacobian (m, p) of :meth:`residuals` (see :meth:`field_derivatives`)."""
+        fields, derivs = self.field_derivatives(x)
+        ns, n = self.n_sensors, self.n_samples
+        tf = self._total_field_jacobian(x, fields, derivs)
+        if not self.coupled:
+            return tf
+        jac = np.zeros((self.n_residuals, x.size))
+        jac[: ns * n] = tf
+        for s, ((cols, _), p) in enumerate(zip(derivs, self._consistency_derivatives(fields, derivs))):
+            p = p.reshape(2 * n, -1)
+            for k in range(ns):
+                w = (1.0 if k == s else 0.0) - 1.0 / ns
+                jac[ns * n + k * 2 * n: ns * n + (k + 1) * 2 * n, cols] += w * p
+        return jac
+
+    def normal_equations(self, x):
+        """Residuals ``r``, ``J^T J`` and ``J^T r`` at ``x``, without forming the consistency rows of ``J``.
+
+        The consistency rows are the centred per-sensor derivatives ``sum_s (delta_ks - 1/n) P_s``; since the
+        centring matrix is idempotent, their contribution is ``sum_s P_s^T P_s - (1/n) Q^T Q`` with
+        ``Q = sum_s P_s``, and ``J^T r`` is ``sum_s P_s^T r_s`` (the consistency residuals sum to zero over the
+        sensors). For four sensors this is a third of the rows and no dense tall matrix.
+
+        Returns
+        -------
+        r : numpy.ndarray, shape (m,)
+            As :meth:`residuals` (nT).
+        jtj : numpy.ndarray, shape (p, p)
+        jtr : numpy.ndarray, shape (p,)
+        """
+        fields, derivs = self.field_derivatives(x)
+        r = self._residuals_from_fields(fields, x)
+        ns, n = self.n_sensors, self.n_samples
+        tf = self._total_field_jacobian(x, fields, derivs)
+        jtj = tf.T @ tf
+        jtr = tf.T @ r[: ns * n]
+        if self.coupled:
+            rc = r[ns * n:].reshape(ns, 2 * n)
+            q = np.zeros((2 * n, x.size))
+            for s, ((cols, _), p) in enumerate(zip(derivs, self._consistency_derivatives(fields, derivs))):
+                p = p.reshape(2 * n, -1)
+                jtj[np.ix_(cols, cols)] += p.T @ p
+                jtr[cols] += p.T @ rc[s]
+                q[:, cols] += p
+            jtj -= (q.T @ q) / ns
+        return r, jtj, jtr
+
+
+@dataclass
+class _Solution:
+    x: np.ndarray
+    r: np.ndarray
+    jtj: np.ndarray
+    nfev: int
+    message: str
+
+
+def _levenberg_marquardt(problem, x0, max_nfev=200, ftol=1e-10, xtol=1e-10) -> _Solution:
+    """Levenberg-Marquardt on the normal equations of :meth:`Problem.normal_equations`.
+
+    For the plain least-squares cost ``||r||^2 / 2``. The damping is ``lambda diag(D)`` with ``D`` the largest
+    diagonal of ``J^T J`` seen so far (MINPACK's scaling, so parameter units do not matter) and lambda follows
+    Nielsen's gain-ratio update. The tall array Jacobian is never formed, so a warm refit of four sensors costs a
+    few evaluations of ``p x p`` systems instead of a QR of a ``12 N x p`` matrix. ``J^T J`` squares the
+    condition number; the scaled system here stays far from float64's limit (parameters move the readings by
+    about 1 nT per unit of :attr:`Problem.x_scale`), and a factorisation failure raises the damping instead.
+
+    Stops when the relative cost reduction, both actual and predicted, is below ``ftol``, or the scaled step is
+    below ``xtol`` relative to the scaled parameters. ``J^T J`` is returned from the last iterate where it was
+    evaluated, which differs from the returned ``x`` by at most that last, converged step.
+    """
+    from scipy.linalg import cho_factor, cho_solve, LinAlgError
+
+    x = np.asarray(x0, dtype=float).copy()
+    r, jtj, jtr = problem.normal_equations(x)
+    nfev, cost = 1, 0.5 * float(r @ r)
+    diag = np.maximum(np.diag(jtj), 0.0)
+    d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
+    lam, nu = 1e-3, 2.0
+    message = "maximum number of evaluations reached"
+    while nfev < max_nfev:
+        if not np.all(np.isfinite(jtj)) or not np.all(np.isfinite(jtr)):
+            message = "non-finite Jacobian"
+            break
+        if np.max(np.abs(jtr) / np.sqrt(d)) <= 1e-14 * max(np.sqrt(2 * cost), 1e-300):
+            message = "gradient is zero to machine precision"
+            break
+        try:
+            step = cho_solve(cho_factor(jtj + lam * np.diag(d)), -jtr)
+        except LinAlgError:
+            lam, nu = lam * nu, nu * 2
+            if lam > 1e16:
+                message = "the normal equations are singular"
+                break
+            continue
+        x_new = x + step
+        r_new = problem.residuals(x_new)
+        nfev += 1
+        cost_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
+        predicted = -(step @ jtr + 0.5 * step @ jtj @ step)
+        actual = cost - cost_new
+        rho = actual / predicted if predicted > 0 else -1.0
+        small_step = np.sqrt(step**2 @ d) <= xtol * (np.sqrt(x**2 @ d) + xtol)
+        if rho > 0:
+            x, r, cost = x_new, r_new, cost_new
+            lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
+            if (abs(actual) <= ftol * cost and predicted <= ftol * cost) or small_step:
+                message = "converged: the relative cost reduction or step is below tolerance"
+                break
+            r, jtj, jtr = problem.normal_equations(x)
+            nfev += 1
+            d = np.maximum(d, np.diag(jtj))
+        else:
+            if small_step:
+                message = "converged: no smaller step reduces the cost"
+                break
+            lam, nu = lam * nu, nu * 2
+    return _Solution(x=x, r=r, jtj=jtj, nfev=nfev, message=message)
 
 
 def _perpendicular_basis(vectors):
@@ -433,7 +556,7 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     reference_total_nT : float, optional
         Known total field; otherwise the dataset's reference, its ``ref_total`` column, or fitted.
     max_nfev : int
-        Cap on residual evaluations per Jacobian column (scipy's meaning).
+        Cap on evaluations of the residuals (each round of a robust fit has its own).
 
     Returns
     -------
@@ -465,22 +588,25 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     r_start = problem.residuals(problem.x0)
     if not np.all(np.isfinite(r_start)):
         raise CalibrationError("the starting calibration gives non-finite residuals; check the data for NaN")
-    # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
-    # converges, so that gross outliers stop pulling on it.
-    rounds = 1 if (loss == "linear" or f_scale_nT is not None) else 4
-    x, nfev = problem.x0, 0
-    for _ in range(rounds):
-        scale = f_scale_nT if f_scale_nT is not None else 3.0 * _robust_sigma(
-            problem.residuals(x)[problem.total_field_rows])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            sol = least_squares(problem.residuals, x, jac=problem.jacobian, x_scale=problem.x_scale,
-                                loss=loss, f_scale=scale, method="lm" if loss == "linear" else "trf",
-                                max_nfev=max_nfev,
-                                xtol=1e-10, ftol=1e-10, gtol=1e-10)
-        x, nfev = sol.x, nfev + sol.nfev
-    r = problem.residuals(x)
-    jac = problem.jacobian(x)
+    if loss == "linear":
+        sol = _levenberg_marquardt(problem, problem.x0, max_nfev=max_nfev)
+        x, nfev, r, jtj, message = sol.x, sol.nfev, sol.r, sol.jtj, sol.message
+    else:
+        # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
+        # converges, so that gross outliers stop pulling on it.
+        rounds = 1 if f_scale_nT is not None else 4
+        x, nfev = problem.x0, 0
+        for _ in range(rounds):
+            scale = f_scale_nT if f_scale_nT is not None else 3.0 * _robust_sigma(
+                problem.residuals(x)[problem.total_field_rows])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                sol = least_squares(problem.residuals, x, jac=problem.jacobian, x_scale=problem.x_scale,
+                                    loss=loss, f_scale=scale, method="trf", max_nfev=max_nfev,
+                                    xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            x, nfev = sol.x, nfev + sol.nfev
+        r, jtj, _ = problem.normal_equations(x)
+        message = str(sol.message)
     ns, n = problem.n_sensors, problem.n_samples
     tf = r[problem.total_field_rows].reshape(ns, n)
     p = x.size
@@ -492,7 +618,7 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     noise = float(np.sqrt(rss_tf / dof_tf))
     s2 = rss / max(m - p, 1)
     try:
-        cov = s2 * np.linalg.pinv(jac.T @ jac)
+        cov = s2 * np.linalg.pinv(jtj)
     except np.linalg.LinAlgError:
         cov = np.full((p, p), np.nan)
 
@@ -526,7 +652,7 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         rms_nT=float(np.sqrt(np.mean(tf**2))), rms_per_sensor_nT=rms_per_sensor, noise_nT=noise, rss=rss,
         n_residuals=m, n_params=p, aic=m * np.log(rss / m) + 2 * p, bic=m * np.log(rss / m) + p * np.log(m),
         outliers=outliers, mask=mask, effect_params=effect_params, reference_kind=problem.reference_kind,
-        nfev=int(nfev), message=str(sol.message), problem=problem,
+        nfev=int(nfev), message=message, problem=problem,
     )
 
 

@@ -306,9 +306,13 @@ def test_search_methods_are_dispatched():
     pytest.importorskip("magcal.search").search_calibrate  # noqa: B018 (the helper's module must provide it)
     truth = chi2017_truth()
     ds = simulate("chi2017", seed=10, n_samples=150).sensors([1]).replace(baseline_m=None)
-    seen = []
-    r = calibrate(ds, method="de", seed=3, progress=lambda msg, frac: seen.append(msg))
+    seen, fractions = [], []
+    r = calibrate(ds, method="de", seed=3, progress=lambda msg, frac: (seen.append(msg), fractions.append(frac)))
     assert r.fit is None and r.steps[-1].name == "de" and any(m.startswith("de: iteration") for m in seen)
+    # the search reports how far it has gone: fractions that rise and stay within [0, 1]
+    searching = [f for m, f in zip(seen, fractions) if m.startswith("de: iteration")]
+    assert all(f is not None and 0.0 <= f <= 1.0 for f in searching)
+    assert np.all(np.diff(searching) >= 0) and searching[-1] > searching[0]
     assert np.max(np.abs(r.calibration.sensors[0].cinv - truth.sensors[1].Cinv)) < 2e-4
     assert np.max(np.abs(r.calibration.sensors[0].bias_nT - truth.sensors[1].bias_nT)) < 2.0
 

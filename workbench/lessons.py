@@ -16,8 +16,20 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-#: The repository's asset folder (demo data and lessons).
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+
+def _assets_folder() -> Path:
+    """The demo data and lessons: ``assets/`` of a source checkout, else the copy a wheel installs as
+    ``workbench/assets`` (see ``pyproject.toml``)."""
+    here = Path(__file__).resolve().parent
+    for folder in (here.parent / "assets", here / "assets"):
+        if (folder / "demo.csv").is_file():
+            return folder
+    return here.parent / "assets"
+
+
+#: The asset folder (demo data and lessons).
+ASSETS = _assets_folder()
 LESSONS = ASSETS / "lessons"
 DEMO = ASSETS / "demo.csv"
 
