@@ -1,10 +1,10 @@
 """The maximum-likelihood fitter for any model, one sensor or four together.
 
 :class:`Problem` turns a dataset, a :class:`~magcal.model.Model` and a starting calibration into a residual
-vector and its Jacobian; :func:`fit` minimises it and returns a :class:`FitResult`: plain least squares by
-Levenberg-Marquardt on the normal equations (:meth:`Problem.normal_equations` never forms the tall consistency
-rows of an array, which keeps a warm four-sensor refit interactive), robust losses by
-:func:`scipy.optimize.least_squares` (trust-region reflective).
+vector and its Jacobian; :func:`fit` minimises it by Levenberg-Marquardt on the normal equations
+(:meth:`Problem.normal_equations` never forms the tall consistency rows of an array, which keeps a warm
+four-sensor refit interactive) and returns a :class:`FitResult`. Robust losses (scipy's ``soft_l1``, ``huber``,
+``cauchy``) enter as iteratively reweighted least squares.
 
 Residuals (nT)
     * total field, per sensor and sample: ``|B_s| - F_s(t)``;
@@ -20,11 +20,9 @@ a larger field from larger gains. Candidate effects add their own parameters (se
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from . import conventions
@@ -334,13 +332,21 @@ class Problem:
                 jac[ns * n + k * 2 * n: ns * n + (k + 1) * 2 * n, cols] += w * p
         return jac
 
-    def normal_equations(self, x):
-        """Residuals ``r``, ``J^T J`` and ``J^T r`` at ``x``, without forming the consistency rows of ``J``.
+    def normal_equations(self, x, weights=None):
+        """Residuals ``r``, ``J^T W J`` and ``J^T W r`` at ``x``, without forming the consistency rows of ``J``.
 
-        The consistency rows are the centred per-sensor derivatives ``sum_s (delta_ks - 1/n) P_s``; since the
-        centring matrix is idempotent, their contribution is ``sum_s P_s^T P_s - (1/n) Q^T Q`` with
-        ``Q = sum_s P_s``, and ``J^T r`` is ``sum_s P_s^T r_s`` (the consistency residuals sum to zero over the
-        sensors). For four sensors this is a third of the rows and no dense tall matrix.
+        The consistency rows of sensor ``k`` are the centred per-sensor derivatives ``sum_s c_ks P_s`` with
+        ``c = I - 1/n``. Unweighted, since the centring matrix is idempotent, their contribution is
+        ``sum_s P_s^T P_s - (1/n) Q^T Q`` with ``Q = sum_s P_s``, and ``J^T r`` is ``sum_s P_s^T r_s`` (the
+        consistency residuals sum to zero over the sensors). With row weights ``W_k`` the pair ``(s, s')``
+        contributes ``P_s^T (sum_k c_ks c_ks' W_k) P_s'``. For four sensors this is a third of the rows and no
+        dense tall matrix.
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+        weights : numpy.ndarray, shape (m,), optional
+            A weight per residual (as :meth:`residuals` orders them); default 1.
 
         Returns
         -------
@@ -353,17 +359,31 @@ class Problem:
         r = self._residuals_from_fields(fields, x)
         ns, n = self.n_sensors, self.n_samples
         tf = self._total_field_jacobian(x, fields, derivs)
-        jtj = tf.T @ tf
-        jtr = tf.T @ r[: ns * n]
-        if self.coupled:
-            rc = r[ns * n:].reshape(ns, 2 * n)
+        w_tf = None if weights is None else weights[: ns * n]
+        wtf = tf if w_tf is None else tf * w_tf[:, None]
+        jtj = wtf.T @ tf
+        jtr = wtf.T @ r[: ns * n]
+        if not self.coupled:
+            return r, jtj, jtr
+        rc = r[ns * n:].reshape(ns, 2 * n)
+        cols = [c for c, _ in derivs]
+        ps = [p.reshape(2 * n, -1) for p in self._consistency_derivatives(fields, derivs)]
+        if weights is None:
             q = np.zeros((2 * n, x.size))
-            for s, ((cols, _), p) in enumerate(zip(derivs, self._consistency_derivatives(fields, derivs))):
-                p = p.reshape(2 * n, -1)
-                jtj[np.ix_(cols, cols)] += p.T @ p
-                jtr[cols] += p.T @ rc[s]
-                q[:, cols] += p
+            for s in range(ns):
+                jtj[np.ix_(cols[s], cols[s])] += ps[s].T @ ps[s]
+                jtr[cols[s]] += ps[s].T @ rc[s]
+                q[:, cols[s]] += ps[s]
             jtj -= (q.T @ q) / ns
+            return r, jtj, jtr
+        wc = weights[ns * n:].reshape(ns, 2 * n)
+        centring = np.eye(ns) - 1.0 / ns
+        weighted_r = centring.T @ (wc * rc)  # sum_k c_ks W_k r_k, per s
+        for s in range(ns):
+            jtr[cols[s]] += ps[s].T @ weighted_r[s]
+            for s2 in range(ns):
+                pair = (centring[:, s] * centring[:, s2]) @ wc
+                jtj[np.ix_(cols[s], cols[s2])] += ps[s].T @ (pair[:, None] * ps[s2])
         return r, jtj, jtr
 
 
@@ -376,25 +396,51 @@ class _Solution:
     message: str
 
 
-def _levenberg_marquardt(problem, x0, max_nfev=200, ftol=1e-10, xtol=1e-10) -> _Solution:
+#: scipy's robust losses: ``rho(z)`` and ``rho'(z)`` of ``z = (r / f)^2``; the cost is ``f^2/2 sum rho``.
+LOSSES = {
+    "linear": (lambda z: z, lambda z: np.ones_like(z)),
+    "soft_l1": (lambda z: 2.0 * (np.sqrt(1.0 + z) - 1.0), lambda z: 1.0 / np.sqrt(1.0 + z)),
+    "huber": (lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0),
+              lambda z: np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))),
+    "cauchy": (lambda z: np.log1p(z), lambda z: 1.0 / (1.0 + z)),
+}
+
+
+def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, ftol=1e-10,
+                         xtol=1e-10) -> _Solution:
     """Levenberg-Marquardt on the normal equations of :meth:`Problem.normal_equations`.
 
-    For the plain least-squares cost ``||r||^2 / 2``. The damping is ``lambda diag(D)`` with ``D`` the largest
-    diagonal of ``J^T J`` seen so far (MINPACK's scaling, so parameter units do not matter) and lambda follows
+    Minimises ``f^2/2 sum rho((r/f)^2)`` (``||r||^2 / 2`` for the linear loss). A robust loss enters as
+    iteratively reweighted least squares: each step solves the normal equations with the weights
+    ``rho'((r/f)^2)`` of the current residuals, whose right-hand side is the exact gradient of the robust cost,
+    and a step is kept only if it lowers that cost. The damping is ``lambda diag(D)`` with ``D`` the largest
+    diagonal of ``J^T W J`` seen so far (MINPACK's scaling, so parameter units do not matter) and lambda follows
     Nielsen's gain-ratio update. The tall array Jacobian is never formed, so a warm refit of four sensors costs a
     few evaluations of ``p x p`` systems instead of a QR of a ``12 N x p`` matrix. ``J^T J`` squares the
     condition number; the scaled system here stays far from float64's limit (parameters move the readings by
     about 1 nT per unit of :attr:`Problem.x_scale`), and a factorisation failure raises the damping instead.
 
     Stops when the relative cost reduction, both actual and predicted, is below ``ftol``, or the scaled step is
-    below ``xtol`` relative to the scaled parameters. ``J^T J`` is returned from the last iterate where it was
-    evaluated, which differs from the returned ``x`` by at most that last, converged step.
+    below ``xtol`` relative to the scaled parameters. ``J^T W J`` is returned from the last iterate where it
+    was evaluated, which differs from the returned ``x`` by at most that last, converged step.
     """
     from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
+    rho, drho = LOSSES[loss]
+    f2 = float(f_scale) ** 2
+
+    def cost_of(r):
+        return 0.5 * f2 * float(np.sum(rho(r**2 / f2))) if np.all(np.isfinite(r)) else np.inf
+
+    def equations(x):
+        if loss == "linear":
+            return problem.normal_equations(x)
+        r = problem.residuals(x)
+        return problem.normal_equations(x, weights=drho(r**2 / f2))
+
     x = np.asarray(x0, dtype=float).copy()
-    r, jtj, jtr = problem.normal_equations(x)
-    nfev, cost = 1, 0.5 * float(r @ r)
+    r, jtj, jtr = equations(x)
+    nfev, cost = 1, cost_of(r)
     diag = np.maximum(np.diag(jtj), 0.0)
     d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
     lam, nu = 1e-3, 2.0
@@ -415,20 +461,21 @@ def _levenberg_marquardt(problem, x0, max_nfev=200, ftol=1e-10, xtol=1e-10) -> _
                 break
             continue
         x_new = x + step
-        r_new = problem.residuals(x_new)
+        with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step is refused below, not warned
+            r_new = problem.residuals(x_new)
         nfev += 1
-        cost_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else np.inf
+        cost_new = cost_of(r_new)
         predicted = -(step @ jtr + 0.5 * step @ jtj @ step)
         actual = cost - cost_new
-        rho = actual / predicted if predicted > 0 else -1.0
+        rho_gain = actual / predicted if predicted > 0 else -1.0
         small_step = np.sqrt(step**2 @ d) <= xtol * (np.sqrt(x**2 @ d) + xtol)
-        if rho > 0:
+        if rho_gain > 0:
             x, r, cost = x_new, r_new, cost_new
-            lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
+            lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), 2.0
             if (abs(actual) <= ftol * cost and predicted <= ftol * cost) or small_step:
                 message = "converged: the relative cost reduction or step is below tolerance"
                 break
-            r, jtj, jtr = problem.normal_equations(x)
+            r, jtj, jtr = equations(x)
             nfev += 1
             d = np.maximum(d, np.diag(jtj))
         else:
@@ -588,9 +635,11 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     r_start = problem.residuals(problem.x0)
     if not np.all(np.isfinite(r_start)):
         raise CalibrationError("the starting calibration gives non-finite residuals; check the data for NaN")
+    if loss not in LOSSES:
+        raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
     if loss == "linear":
         sol = _levenberg_marquardt(problem, problem.x0, max_nfev=max_nfev)
-        x, nfev, r, jtj, message = sol.x, sol.nfev, sol.r, sol.jtj, sol.message
+        x, nfev, r, jtj = sol.x, sol.nfev, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
         # converges, so that gross outliers stop pulling on it.
@@ -599,14 +648,10 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         for _ in range(rounds):
             scale = f_scale_nT if f_scale_nT is not None else 3.0 * _robust_sigma(
                 problem.residuals(x)[problem.total_field_rows])
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                sol = least_squares(problem.residuals, x, jac=problem.jacobian, x_scale=problem.x_scale,
-                                    loss=loss, f_scale=scale, method="trf", max_nfev=max_nfev,
-                                    xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev)
             x, nfev = sol.x, nfev + sol.nfev
         r, jtj, _ = problem.normal_equations(x)
-        message = str(sol.message)
+    message = sol.message
     ns, n = problem.n_sensors, problem.n_samples
     tf = r[problem.total_field_rows].reshape(ns, n)
     p = x.size

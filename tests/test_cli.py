@@ -125,3 +125,27 @@ def test_real_process(tmp_path):
     assert ok.returncode == 0 and "Sensor 4" in ok.stdout
     bad = subprocess.run(cmd + ["calibrate", str(tmp_path / "missing.csv")], capture_output=True, text=True)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "missing.csv" in bad.stderr
+
+
+@pytest.mark.parametrize("command", ["calibrate", "diagnose"])
+def test_a_fit_the_data_cannot_support_names_the_file(tmp_path, capsys, command):
+    path = tmp_path / "few.csv"
+    assert main(["simulate", "--n", "8", "-o", str(path)]) == 0
+    capsys.readouterr()
+    assert main([command, str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {path}: sensor 1: too few samples (8)" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("method", ["ml", "de"])
+def test_a_coverage_warning_is_shown_once(tmp_path, capsys, method):
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=400, seed=3)
+    y = ds.readings_nT[0]
+    cap = ds.subset(y[:, 2] > 0.2 * np.linalg.norm(y, axis=1))  # only the upper part of the sky
+    path = tmp_path / "cap.csv"
+    io.write_csv(path, cap, metadata={"reference_total_nT": 50_000.0})
+    assert main(["calibrate", str(path), "--method", method, "--seed", "1"]) == 0
+    out = capsys.readouterr()
+    assert (out.out + out.err).count("poor direction coverage") == 1

@@ -195,3 +195,51 @@ def test_levenberg_marquardt_converges_from_a_crude_start_on_an_array():
     assert result.rms_nT < 1.1 * floor
     for s, sensor in enumerate(truth.sensors):
         np.testing.assert_allclose(result.calibration.sensors[s].bias_nT, sensor.bias_nT, atol=3.0)
+
+
+@pytest.mark.parametrize("n_sensors, effects, reference", PROBLEMS[::2])
+def test_weighted_normal_equations_equal_the_dense_products(n_sensors, effects, reference):
+    _, _, problem = _timeseries_problem(n_sensors, effects, reference)
+    rng = np.random.default_rng(4)
+    x = problem.x0 + problem.x_scale * rng.normal(0, 3, problem.x0.size)
+    weights = rng.uniform(0.1, 1.0, problem.n_residuals)
+    jac, r_dense = problem.jacobian(x), problem.residuals(x)
+    _, jtj, jtr = problem.normal_equations(x, weights=weights)
+    expected_jtj, expected_jtr = jac.T @ (weights[:, None] * jac), jac.T @ (weights * r_dense)
+    np.testing.assert_allclose(jtj, expected_jtj, rtol=1e-9, atol=1e-9 * np.abs(expected_jtj).max())
+    np.testing.assert_allclose(jtr, expected_jtr, rtol=1e-8, atol=1e-9 * np.abs(expected_jtr).max())
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber", "cauchy"])
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_robust_losses_reach_scipys_minimum(loss, n_sensors):
+    """With gross outliers in the data, our reweighted solver and scipy's robust trust-region agree."""
+    from scipy.optimize import least_squares
+
+    from magcal.fit import LOSSES, _levenberg_marquardt
+
+    truth = chi2017_truth()
+    ds = simulate(truth, n_samples=150, seed=21).sensors(range(n_sensors))
+    readings = ds.readings_nT.copy()
+    readings[:, :8] += np.random.default_rng(3).normal(0, 400.0, (n_sensors, 8, 3))
+    ds = ds.replace(readings_nT=readings)
+    problem = Problem(ds, Model.base_model(n_sensors), crude_initial_calibration(ds))
+    f = 9.0
+    ours = _levenberg_marquardt(problem, problem.x0, loss=loss, f_scale=f)
+    ref = least_squares(problem.residuals, problem.x0, jac=problem.jacobian, x_scale=problem.x_scale, loss=loss,
+                        f_scale=f, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    rho = LOSSES[loss][0]
+
+    def cost(r):
+        return 0.5 * f**2 * np.sum(rho(r**2 / f**2))
+
+    assert cost(ours.r) <= cost(ref.fun) * (1 + 1e-7)
+    std = np.sqrt(np.diag(np.linalg.pinv(ours.jtj)) * 9.0)
+    assert np.max(np.abs(ours.x - ref.x) / std) < 1e-2
+
+
+def test_unknown_loss_is_refused():
+    from magcal.errors import CalibrationError
+
+    with pytest.raises(CalibrationError, match="unknown loss"):
+        fit(simulate(chi2017_truth(), n_samples=60, seed=1).sensors([0]), loss="l1")

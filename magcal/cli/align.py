@@ -15,7 +15,7 @@ import json
 import sys
 import warnings
 
-from ..errors import MagcalError
+from ..errors import CalibrationError, MagcalError
 
 
 def register(subparsers):
@@ -47,7 +47,7 @@ def run(args) -> int:
     from ..apply import load_calibration
     from ..platform import align
     from ..reference import reference_from_args
-    from .calibrate import read_input
+    from .calibrate import named_error, read_input
 
     if args.noise is not None and not args.noise > 0:
         raise MagcalError(f"--noise must be a positive number of nT, got {args.noise}")
@@ -63,7 +63,11 @@ def run(args) -> int:
             ref_text = ref.text
             ds = ref.apply(ds)
             ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None
-        new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value, source=args.data)
+        try:
+            new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value,
+                                source=args.data)
+        except CalibrationError as exc:
+            raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught]
     for note in dict.fromkeys(notes):
         print(f"magcal align: warning: {note}", file=sys.stderr)

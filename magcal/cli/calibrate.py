@@ -17,7 +17,7 @@ import json
 import sys
 import warnings
 
-from ..errors import MagcalError
+from ..errors import CalibrationError, MagcalError
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -75,6 +75,12 @@ def read_input(args):
     return ds, [str(w.message) for w in caught]
 
 
+def named_error(path, exc) -> str:
+    """The message of a calibration failure with the data file in front (unless it already names it)."""
+    text = str(exc)
+    return text if text.startswith(f"{path}:") else f"{path}: {text}"
+
+
 def effect_names(value) -> list:
     """Effect names from an ``--effects`` value: ``"a,b"``, ``["a", "b:2"]`` or ``["a,b"]``; None gives []."""
     if not value:
@@ -117,19 +123,25 @@ def run(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             result = calibrate(ds, **calibrate_options(args), progress=progress)
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
     finally:
         if bar is not None:
             bar.close()
     notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
-    for note in notes:
-        print(f"magcal calibrate: warning: {note}", file=sys.stderr)
+    # each warning once: the text report lists the calibration's own warnings, so leave those to it
+    printed = set()
+    for note in dict.fromkeys(notes):
+        if args.json or note not in result.warnings:
+            print(f"magcal calibrate: warning: {note}", file=sys.stderr)
+            printed.add(note)
     if args.output:
         result.calibration.save(args.output)
     if args.json:
         json.dump(calibration_json(result), sys.stdout, indent=2)
         sys.stdout.write("\n")
-        if result.warnings:
-            for note in result.warnings:
+        for note in result.warnings:
+            if note not in printed:
                 print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     else:
         sys.stdout.write(text_report(result, source=args.data))

@@ -19,7 +19,7 @@ import json
 import sys
 import warnings
 
-from ..errors import MagcalError
+from ..errors import CalibrationError, MagcalError
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -56,7 +56,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from ..diagnosis import diagnose
     from ..pipeline import calibrate
-    from .calibrate import effect_names, read_input
+    from .calibrate import effect_names, named_error, read_input
 
     if args.reference is not None and not args.reference > 0:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
@@ -65,9 +65,12 @@ def run(args) -> int:
     ds, notes = read_input(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = calibrate(ds, effects=effect_names(args.effects), robust=args.robust,
-                           reference_total_nT=args.reference)
-        diagnosis = diagnose(ds, result, top=args.top)
+        try:
+            result = calibrate(ds, effects=effect_names(args.effects), robust=args.robust,
+                               reference_total_nT=args.reference)
+            diagnosis = diagnose(ds, result, top=args.top)
+        except CalibrationError as exc:
+            raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught]
     notes += [w for w in result.warnings if w not in notes]
     for note in notes:
