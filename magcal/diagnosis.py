@@ -969,14 +969,7 @@ def _refit(dataset, fit, candidate: Candidate):
     for e in new:
         model = model.with_effect(e)
     ref = _reference_override(fit)
-    f1 = ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref)
-    # effects whose basis has a data-derived shape (hysteresis loop width) refine it from the fit, once
-    refined = [e for e in f1.model.effects if hasattr(e, "refine") and e.refine(f1.calibration.effect_values)]
-    if refined:
-        f2 = ml_fit(dataset, f1.model, init=f1.calibration, mask=fit.mask, reference_total_nT=ref)
-        if f2.rss < f1.rss:
-            return f2
-    return f1
+    return ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref)
 
 
 def _delta_bic(fit0, fit1, extra_dof, coupled):

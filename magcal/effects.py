@@ -193,14 +193,6 @@ class CatalogueEffect(Effect):
         perturb.magnitude = magnitude
         return perturb
 
-    def refine(self, effect_values: dict) -> bool:
-        """Update data-derived shape constants from fitted parameters (``{block label: values}``).
-
-        Returns True if they changed enough to warrant one more fit; the next :meth:`configure` then keeps
-        them. Most effects have nothing to refine.
-        """
-        return False
-
     def _perturb(self, readings, context, magnitude, sensor, **options):  # pragma: no cover - abstract
         raise NotImplementedError
 

@@ -608,6 +608,12 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     Returns
     -------
     FitResult
+
+    Notes
+    -----
+    Effects whose basis has a shape estimated from the data (the hysteresis play width) refine it from the
+    fitted parameters (:meth:`magcal.model.Effect.refine`) and the model is fitted once more; the refined shape
+    is kept only if that lowers the residual sum of squares.
     """
     model = model or Model.base_model(dataset.n_sensors)
     if model.n_sensors != dataset.n_sensors:
@@ -617,6 +623,24 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
+    result = _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev)
+    # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
+    # more fit; the refined shape is kept only if it fits better
+    saved = [e.state() for e in model.effects]
+    if any([e.refine(result.calibration.effect_values) for e in model.effects]):
+        second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
+                           max_nfev)
+        if second.rss < result.rss:
+            second.nfev += result.nfev
+            return second
+        for e, state in zip(model.effects, saved):
+            e.set_state(state)
+    return result
+
+
+def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev) -> FitResult:
+    """One fit of :func:`fit` (arguments checked there)."""
+    n_all = dataset.n_samples
     kept = dataset.subset(mask) if not mask.all() else dataset
     init = init or crude_initial_calibration(kept, reference_total_nT)
 

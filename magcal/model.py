@@ -160,6 +160,14 @@ class Effect:
     def set_state(self, state: dict) -> None:
         """Restore what :meth:`state` returned."""
 
+    def refine(self, effect_values: dict) -> bool:
+        """Update data-derived shape constants from fitted parameters (``{block label: values}``).
+
+        Returns True if they changed enough to warrant one more fit (:func:`magcal.fit.fit` then refits); the
+        next :meth:`configure` keeps them. Most effects have nothing to refine.
+        """
+        return False
+
     @property
     def label(self) -> str:
         """``name`` or ``name:S`` (1-based sensor) as used on the command line."""

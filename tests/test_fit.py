@@ -243,3 +243,21 @@ def test_unknown_loss_is_refused():
 
     with pytest.raises(CalibrationError, match="unknown loss"):
         fit(simulate(chi2017_truth(), n_samples=60, seed=1).sensors([0]), loss="l1")
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_hysteresis_shape_is_refined_within_fit(seed):
+    """An effect with a data-derived shape (the hysteresis play width) gets its second pass inside fit()."""
+    from magcal import effects as fx
+    from magcal.simulation import simulate_timeseries
+
+    truth = chi2017_truth()
+    truth.sensors = truth.sensors[:1]
+    ds = simulate_timeseries(truth, n_samples=1500, noise_nT=3.0, seed=seed,
+                             perturbations=[fx.parse_hidden("hysteresis=5", 1)])
+    base = fit(ds)
+    result = fit(ds, Model.from_names(["hysteresis"], 1), init=base.calibration)
+    floor = conventions.total_field_floor_nT(3.0, ds.n_samples, 12)
+    assert base.rms_nT > 1.3 * floor
+    assert result.rms_nT < 1.01 * floor
+    assert result.calibration.model.effects[0].shape_half_width_nT is not None
