@@ -459,7 +459,10 @@ class _Grams:
 
 
 def _grams(kept, model, init, reference_total_nT, chunk_rows=60_000) -> _Grams:
-    """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples."""
+    """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples.
+
+    The chunks bound the memory of the per-sample derivatives of every candidate's parameters.
+    """
     from .fit import Problem
 
     n = kept.n_samples
@@ -471,12 +474,9 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=60_000) -> _Grams:
     for idx in parts:
         sub = kept if len(parts) == 1 else kept.subset(idx)
         problem = Problem(sub, model, init, reference_total_nT)
-        x0 = problem.x0
-        r = problem.residuals(x0)
-        jac = problem.jacobian(x0)
-        ntf = sub.n_sensors * sub.n_samples
-        jt, rt = jac[:ntf], r[:ntf]
-        terms = [jac.T @ jac, jac.T @ r, float(r @ r), jt.T @ jt, jt.T @ rt, float(rt @ rt)]
+        r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
+        rt = r[: sub.n_sensors * sub.n_samples]
+        terms = [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)]
         acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
         blocks = problem.blocks
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], blocks, kept.n_sensors * n)

@@ -332,7 +332,7 @@ class Problem:
                 jac[ns * n + k * 2 * n: ns * n + (k + 1) * 2 * n, cols] += w * p
         return jac
 
-    def normal_equations(self, x, weights=None):
+    def normal_equations(self, x, weights=None, with_total_field=False):
         """Residuals ``r``, ``J^T W J`` and ``J^T W r`` at ``x``, without forming the consistency rows of ``J``.
 
         The consistency rows of sensor ``k`` are the centred per-sensor derivatives ``sum_s c_ks P_s`` with
@@ -347,6 +347,8 @@ class Problem:
         x : numpy.ndarray
         weights : numpy.ndarray, shape (m,), optional
             A weight per residual (as :meth:`residuals` orders them); default 1.
+        with_total_field : bool
+            Also return the total-field rows' own ``(J^T W J, J^T W r)`` as a fourth item.
 
         Returns
         -------
@@ -363,8 +365,9 @@ class Problem:
         wtf = tf if w_tf is None else tf * w_tf[:, None]
         jtj = wtf.T @ tf
         jtr = wtf.T @ r[: ns * n]
+        extra = ((jtj.copy(), jtr.copy()),) if with_total_field else ()
         if not self.coupled:
-            return r, jtj, jtr
+            return (r, jtj, jtr) + extra
         rc = r[ns * n:].reshape(ns, 2 * n)
         cols = [c for c, _ in derivs]
         ps = [p.reshape(2 * n, -1) for p in self._consistency_derivatives(fields, derivs)]
@@ -375,7 +378,7 @@ class Problem:
                 jtr[cols[s]] += ps[s].T @ rc[s]
                 q[:, cols[s]] += ps[s]
             jtj -= (q.T @ q) / ns
-            return r, jtj, jtr
+            return (r, jtj, jtr) + extra
         wc = weights[ns * n:].reshape(ns, 2 * n)
         centring = np.eye(ns) - 1.0 / ns
         weighted_r = centring.T @ (wc * rc)  # sum_k c_ks W_k r_k, per s
@@ -384,7 +387,7 @@ class Problem:
             for s2 in range(ns):
                 pair = (centring[:, s] * centring[:, s2]) @ wc
                 jtj[np.ix_(cols[s], cols[s2])] += ps[s].T @ (pair[:, None] * ps[s2])
-        return r, jtj, jtr
+        return (r, jtj, jtr) + extra
 
 
 @dataclass

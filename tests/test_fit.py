@@ -261,3 +261,13 @@ def test_hysteresis_shape_is_refined_within_fit(seed):
     assert base.rms_nT > 1.3 * floor
     assert result.rms_nT < 1.01 * floor
     assert result.calibration.model.effects[0].shape_half_width_nT is not None
+
+
+@pytest.mark.parametrize("n_sensors, effects, reference", PROBLEMS[1:3])
+def test_normal_equations_return_the_total_field_part(n_sensors, effects, reference):
+    _, _, problem = _timeseries_problem(n_sensors, effects, reference)
+    jac, r = problem.jacobian(problem.x0), problem.residuals(problem.x0)
+    rows = problem.total_field_rows
+    *_, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
+    np.testing.assert_allclose(jtj_tf, jac[rows].T @ jac[rows], rtol=1e-10, atol=1e-12 * np.abs(jtj_tf).max())
+    np.testing.assert_allclose(jtr_tf, jac[rows].T @ r[rows], rtol=1e-9, atol=1e-12 * np.abs(jtr_tf).max())
