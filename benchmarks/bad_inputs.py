@@ -43,7 +43,7 @@ def run_cli(argv):
         return "CRASH", f"{type(exc).__name__}: {exc}"
     text = err.getvalue().strip()
     if code == 2 and "error:" in text and "Traceback" not in text:
-        return "refused", text.splitlines()[0]
+        return "refused", next(line for line in text.splitlines() if "error:" in line)
     if code == 0 and "warning:" in text:
         first = next(line for line in text.splitlines() if "warning:" in line)
         return "warned", first
