@@ -37,20 +37,7 @@ from magcal.simulation import chi2017_truth, simulate_timeseries  # noqa: E402
 
 SIGMA = 3.0
 N = 1500
-#: multipliers of the default magnitude: barely detectable, moderate, strong (as in tests/test_diagnosis.py)
-LEVELS = {
-    "temperature_bias": (0.27, 1.0, 3.0),
-    "temperature_scale": (0.45, 1.5, 3.0),
-    "bias_drift": (0.39, 1.0, 3.0),
-    "bias_step": (0.34, 1.0, 3.0),
-    "nonlinearity_quadratic": (0.31, 1.0, 3.0),
-    "nonlinearity_cubic": (0.53, 1.5, 3.0),
-    "axis_timing_skew": (1.0, 4.0, 6.0),
-    "hysteresis": (0.34, 1.0, 2.0),
-    "reference_drift": (0.39, 1.0, 3.0),
-    "sensor_timing_skew": (0.35, 2.5, 5.0),
-    "site_gradient": (0.15, 1.0, 3.0),
-}
+LEVELS = fx.DETECTION_LEVELS  # barely detectable, moderate, strong (x default magnitude)
 
 
 def truth(n_sensors):

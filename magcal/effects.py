@@ -45,6 +45,24 @@ NONLINEARITY_REFERENCE_NT = 50_000.0
 #: Temperature (degC) at which the simulator's temperature effects vanish (a factory calibration temperature).
 SIMULATION_REFERENCE_TEMPERATURE_C = 20.0
 
+#: Multipliers of each effect's ``default_magnitude`` for a 1 500-sample record at 10 Hz with sigma = 3 nT
+#: (:func:`magcal.simulation.simulate_timeseries`): barely detectable (score statistic of order 100-200, the RMS
+#: only a few percent above the floor), moderate (RMS >~ 1.2x the floor) and strong (RMS 1.4-5x the floor). The
+#: diagnosis tests and ``benchmarks/diagnosis.py`` hide each effect at these sizes.
+DETECTION_LEVELS = {
+    "temperature_bias": (0.27, 1.0, 3.0),
+    "temperature_scale": (0.45, 1.5, 3.0),
+    "bias_drift": (0.39, 1.0, 3.0),
+    "bias_step": (0.34, 1.0, 3.0),
+    "nonlinearity_quadratic": (0.31, 1.0, 3.0),
+    "nonlinearity_cubic": (0.53, 1.5, 3.0),
+    "axis_timing_skew": (1.0, 4.0, 6.0),
+    "hysteresis": (0.34, 1.0, 2.0),
+    "reference_drift": (0.39, 1.0, 3.0),
+    "sensor_timing_skew": (0.35, 2.5, 5.0),
+    "site_gradient": (0.15, 1.0, 3.0),
+}
+
 _AXES = "xyz"
 
 
@@ -512,63 +530,60 @@ class BiasStep(CatalogueEffect):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-@register
 @dataclass
-class NonlinearityQuadratic(CatalogueEffect):
-    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / 50 uT)^2``, ``q`` in nT."""
+class _PowerNonlinearity(CatalogueEffect):
+    """Transfer nonlinearity of one order per axis: ``y_j += k_j ((C B)_j / 50 uT)^order``, ``k`` in nT."""
 
-    name: ClassVar[str] = "nonlinearity_quadratic"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ()
-    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / 50 uT)^2 [nT at 50 uT]"
-    default_magnitude: ClassVar[float] = 20.0
     magnitude_unit: ClassVar[str] = "nT at 50 uT"
+    order: ClassVar[int] = 2
+    symbol: ClassVar[str] = "q"
+    scale_nT: ClassVar[float] = 4.0
 
     def param_names(self):
-        return [f"q_{a}_nT" for a in _AXES]
+        return [f"{self.symbol}_{a}_nT" for a in _AXES]
 
     def param_scale(self):
-        return np.full(3, 4.0)
+        return np.full(3, self.scale_nT)
 
     def raw_basis(self, z0, ctx: Context):
-        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** 2)
+        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** self.order)
 
     def _perturb(self, readings, context, magnitude, sensor, **options):
         for s in _sensor_list(sensor, readings.shape[0]):
             lin = _linear_outputs(context, s)
-            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** 2
+            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** self.order
         return readings
 
 
 @register
 @dataclass
-class NonlinearityCubic(CatalogueEffect):
+class NonlinearityQuadratic(_PowerNonlinearity):
+    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / 50 uT)^2``, ``q`` in nT."""
+
+    name: ClassVar[str] = "nonlinearity_quadratic"
+    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / 50 uT)^2 [nT at 50 uT]"
+    default_magnitude: ClassVar[float] = 20.0
+    order: ClassVar[int] = 2
+    symbol: ClassVar[str] = "q"
+    scale_nT: ClassVar[float] = 4.0
+
+
+@register
+@dataclass
+class NonlinearityCubic(_PowerNonlinearity):
     """Third-order transfer nonlinearity per axis: ``y_j += c_j ((C B)_j / 50 uT)^3``, ``c`` in nT.
 
     At constant ``|B|`` it cannot be told from a cross-field effect ``l_j B_j (|B|^2 - B_j^2)``.
     """
 
     name: ClassVar[str] = "nonlinearity_cubic"
-    stage: ClassVar[str] = "raw"
-    channels: ClassVar[tuple] = ()
     description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / 50 uT)^3 [nT at 50 uT]"
     default_magnitude: ClassVar[float] = 25.0
-    magnitude_unit: ClassVar[str] = "nT at 50 uT"
-
-    def param_names(self):
-        return [f"c_{a}_nT" for a in _AXES]
-
-    def param_scale(self):
-        return np.full(3, 6.0)
-
-    def raw_basis(self, z0, ctx: Context):
-        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** 3)
-
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        for s in _sensor_list(sensor, readings.shape[0]):
-            lin = _linear_outputs(context, s)
-            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** 3
-        return readings
+    order: ClassVar[int] = 3
+    symbol: ClassVar[str] = "c"
+    scale_nT: ClassVar[float] = 6.0
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -432,11 +432,7 @@ def _angle_jacobian(R, h=1e-7):
 
 def rotation_error_rad(R_est, R_true):
     """Angle (rad) of the rotation ``R_est R_true^T`` (0 for a perfect estimate), per sensor."""
-    R_est = np.asarray(R_est, float)
-    R_true = np.asarray(R_true, float)
-    if R_est.ndim == 2:
-        R_est, R_true = R_est[None], R_true[None]
-    return np.array([Rotation.from_matrix(a @ b.T).magnitude() for a, b in zip(R_est, R_true)])
+    return np.linalg.norm(rotation_error_vector_rad(R_est, R_true), axis=1)
 
 
 def rotation_error_vector_rad(R_est, R_true):

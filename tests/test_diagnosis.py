@@ -28,22 +28,7 @@ from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
 SIGMA = 3.0
 N = 1500
 
-#: Multipliers of each effect's default magnitude: barely detectable (score statistic of order 100-200 with
-#: N = 1500 and sigma = 3 nT, the RMS only a few percent above the floor), moderate (RMS >~ 1.2x the floor) and
-#: strong (RMS 1.4-5x the floor).
-LEVELS = {
-    "temperature_bias": (0.27, 1.0, 3.0),
-    "temperature_scale": (0.45, 1.5, 3.0),
-    "bias_drift": (0.39, 1.0, 3.0),
-    "bias_step": (0.34, 1.0, 3.0),
-    "nonlinearity_quadratic": (0.31, 1.0, 3.0),
-    "nonlinearity_cubic": (0.53, 1.5, 3.0),
-    "axis_timing_skew": (1.0, 4.0, 6.0),
-    "hysteresis": (0.34, 1.0, 2.0),
-    "reference_drift": (0.39, 1.0, 3.0),
-    "sensor_timing_skew": (0.35, 2.5, 5.0),
-    "site_gradient": (0.15, 1.0, 3.0),
-}
+LEVELS = fx.DETECTION_LEVELS  # barely detectable, moderate, strong (x default magnitude)
 SINGLE = [n for n in LEVELS if EFFECTS[n].min_sensors == 1]
 VECTOR = ("sensor_timing_skew",)  # invisible in the total field: judged on the consistency residuals
 
