@@ -313,16 +313,15 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
     if search is None or not hasattr(search, "search_calibrate"):
         raise CalibrationError(f"method {method!r} (global search) is not available in this installation; "
                                "use method 'ml' or 'ellipsoid'")
-    callback = None
-    if progress is not None:
-        # the iteration counts on across sensors, sensor s from s * max_iter: a fraction of the most it can run
-        # (a sensor whose search stalls early makes the bar jump to the next sensor's share)
-        total = dataset.n_sensors * search.DEFAULTS[method]["max_iter"]
+    # the iteration counts on across sensors, sensor s from s * max_iter: a fraction of the most it can run
+    # (a sensor whose search stalls early makes the bar jump to the next sensor's share)
+    total = dataset.n_sensors * search.DEFAULTS[method]["max_iter"]
 
-        def callback(iteration, best_rms_nT):
-            progress(f"{method}: iteration {iteration}, best RMS {best_rms_nT:.4g} nT", min(iteration / total, 1.0))
-    return search.search_calibrate(dataset, method, seed=seed, progress=callback, mask=mask,
-                                   reference_total_nT=reference_total_nT)
+    def callback(iteration, best_rms_nT):
+        progress(f"{method}: iteration {iteration}, best RMS {best_rms_nT:.4g} nT", min(iteration / total, 1.0))
+
+    return search.search_calibrate(dataset, method, seed=seed, progress=None if progress is None else callback,
+                                   mask=mask, reference_total_nT=reference_total_nT)
 
 
 def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None,

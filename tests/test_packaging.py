@@ -33,3 +33,40 @@ def test_the_workbench_finds_the_demo_and_the_lessons():
 
     assert lessons.DEMO.is_file()
     assert len(lessons.list_lessons()) >= 4
+
+
+def _third_party_imports(folders):
+    import ast
+    import sys
+
+    names = set()
+    for folder in folders:
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.Import):
+                    names.update(a.name.split(".")[0] for a in node.names)
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names.add(node.module.split(".")[0])
+    return names - set(sys.stdlib_module_names) - {"magcal", "workbench"}
+
+
+def _requirement_names(requirements):
+    import re
+
+    return {re.split(r"[<>=!~\[; ]", r, maxsplit=1)[0].strip().lower() for r in requirements}
+
+
+def test_every_package_the_engine_and_workbench_import_is_a_dependency():
+    """A fresh install must bring what the code imports (plotly was once missing)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    declared = _requirement_names(project["dependencies"])
+    missing = _third_party_imports(["magcal", "workbench"]) - declared
+    assert not missing, f"imported but not in [project] dependencies: {sorted(missing)}"
+
+
+def test_every_package_the_tests_import_is_a_test_dependency():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    declared = _requirement_names(project["dependencies"] + project["optional-dependencies"]["test"])
+    local = {p.stem for p in (ROOT / "tests").glob("*.py")}
+    missing = _third_party_imports(["tests"]) - declared - local
+    assert not missing, f"imported by the tests but not declared: {sorted(missing)}"
