@@ -484,11 +484,16 @@ class BiasStep(CatalogueEffect):
     extra_dof: ClassVar[int] = 1
 
     step_time_s: list | None = None
+    #: Keep ``step_time_s`` in the next :meth:`configure` (set by :meth:`refine`).
+    keep_shape: bool = False
 
     def param_names(self):
         return [f"step_{a}_nT" for a in _AXES]
 
     def configure(self, dataset, residuals_nT=None):
+        if self.keep_shape and self.step_time_s is not None:
+            self.keep_shape = False
+            return
         t = dataset.time_s
         times = []
         for s in range(dataset.n_sensors):
@@ -506,6 +511,37 @@ class BiasStep(CatalogueEffect):
 
     def set_state(self, state):
         self.step_time_s = state.get("step_time_s")
+
+    def refine(self, effect_values, context=None, margin=0.05):
+        """Move each step to the time that minimises the whole residual (profile over the step time).
+
+        :meth:`configure` scans the raw readings, which sees only the total field and is confounded by slow
+        changes of scale (temperature) or drift; where the field is nearly perpendicular to the step the scan is
+        flat. With the fitted parameters held, the residual cost of every sample is computed with the step
+        applied and not applied; the cost of a step before sample ``k`` is then a pair of cumulative sums, total
+        field and inter-sensor consistency together, so every ``k`` is tried at once.
+        """
+        if context is None or self.step_time_s is None or not context.dataset.has("time"):
+            return False
+        t = context.dataset.time_s
+        n = len(t)
+        lo, hi = max(int(np.ceil(margin * n)), 1), min(int(np.floor((1 - margin) * n)), n - 1)
+        times, changed = list(self.step_time_s), False
+        for s in range(len(times)):
+            if times[s] is None or hi <= lo:
+                continue
+            on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
+            off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
+            # cost of a step before sample k: samples < k without it, samples >= k with it
+            cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
+            k = lo + int(np.argmin(cost[lo:hi + 1]))
+            new = float(0.5 * (t[k - 1] + t[k]))
+            if np.any((t >= new) != (t >= times[s])):
+                times[s], changed = new, True
+        if changed:
+            self.step_time_s = times
+            self.keep_shape = True
+        return changed
 
     def raw_basis(self, z0, ctx: Context):
         t = ctx.time_s
@@ -744,7 +780,7 @@ class Hysteresis(CatalogueEffect):
     def state(self):
         return {"shape_half_width_nT": self.shape_half_width_nT}
 
-    def refine(self, effect_values):
+    def refine(self, effect_values, context=None):
         if self.shape_half_width_nT is None:
             return False
         changed = False

@@ -614,9 +614,9 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
 
     Notes
     -----
-    Effects whose basis has a shape estimated from the data (the hysteresis play width) refine it from the
-    fitted parameters (:meth:`magcal.model.Effect.refine`) and the model is fitted once more; the refined shape
-    is kept only if that lowers the residual sum of squares.
+    Effects with constants estimated from the data (the hysteresis play width, the time of a bias step) refine
+    them from the converged fit (:meth:`magcal.model.Effect.refine` with a :class:`RefineContext`) and the
+    model is fitted once more; the refined constants are kept only if that lowers the residual sum of squares.
     """
     model = model or Model.base_model(dataset.n_sensors)
     if model.n_sensors != dataset.n_sensors:
@@ -630,7 +630,8 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
     # more fit; the refined shape is kept only if it fits better
     saved = [e.state() for e in model.effects]
-    if any([e.refine(result.calibration.effect_values) for e in model.effects]):
+    context = RefineContext(result.problem, result.x)
+    if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
         second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
                            max_nfev)
         if second.rss < result.rss:
@@ -639,6 +640,38 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         for e, state in zip(model.effects, saved):
             e.set_state(state)
     return result
+
+
+class RefineContext:
+    """What an effect may use to refine its data-derived constants after a converged fit.
+
+    Parameters
+    ----------
+    problem : Problem
+        The fitted problem (its dataset is the kept samples).
+    x : numpy.ndarray
+        The fitted parameters.
+    """
+
+    def __init__(self, problem, x):
+        self.problem = problem
+        self.x = x
+        self.dataset = problem.dataset
+
+    def cost_per_sample(self, effect, state) -> np.ndarray:
+        """Squared residuals (nT^2) per sample, all sensors' total-field and consistency rows together, with the
+        fitted parameters and ``effect``'s data-derived constants temporarily set to ``state``."""
+        saved = effect.state()
+        effect.set_state(state)
+        try:
+            r = self.problem.residuals(self.x)
+        finally:
+            effect.set_state(saved)
+        ns, n = self.problem.n_sensors, self.problem.n_samples
+        cost = np.sum(r[: ns * n].reshape(ns, n) ** 2, axis=0)
+        if self.problem.coupled:
+            cost += np.sum(r[ns * n:].reshape(ns, n, 2) ** 2, axis=(0, 2))
+        return cost
 
 
 def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev) -> FitResult:

@@ -160,11 +160,21 @@ class Effect:
     def set_state(self, state: dict) -> None:
         """Restore what :meth:`state` returned."""
 
-    def refine(self, effect_values: dict) -> bool:
-        """Update data-derived shape constants from fitted parameters (``{block label: values}``).
+    def refine(self, effect_values: dict, context=None) -> bool:
+        """Update data-derived constants from a converged fit.
 
-        Returns True if they changed enough to warrant one more fit (:func:`magcal.fit.fit` then refits); the
-        next :meth:`configure` keeps them. Most effects have nothing to refine.
+        Parameters
+        ----------
+        effect_values : dict
+            Fitted parameters, ``{block label: values}``.
+        context : magcal.fit.RefineContext, optional
+            The fitted samples, and the residual cost per sample with this effect's constants changed.
+
+        Returns
+        -------
+        bool
+            True if the constants changed enough to warrant one more fit (:func:`magcal.fit.fit` then refits;
+            the next :meth:`configure` keeps them). Most effects have nothing to refine.
         """
         return False
 

@@ -665,3 +665,19 @@ def test_reopen_a_saved_session_and_start_afresh(bench, tmp_path):
     _click(wb, wb.panels.btn_fresh)
     assert wb.ctrl.state.selection.n_rejected == 0 and wb.ctrl.calibration is None
     assert [r.step for r in wb.ctrl.state.history] == ["raw readings"]
+
+
+def test_the_two_effect_lesson_can_be_followed_to_adequate(bench):
+    """The lesson's guide: calibrate, diagnose, add the top candidate, refit, repeat until `adequate`."""
+    lesson = next(l for l in list_lessons() if len(l.answer()["effects"]) >= 2)
+    wb = bench(mio.read_csv(lesson.data_path), store=False)
+    _click(wb, wb.panels.btn_run)
+    for _ in range(3):
+        _click(wb, wb.panels.btn_diagnose)
+        if wb.ctrl.diagnosis.verdict == "adequate":
+            break
+        assert wb.ctrl.diagnosis.verdict == "missing_effect"
+        _click(wb, wb.panels.btn_add)
+    assert wb.ctrl.diagnosis.verdict == "adequate"
+    assert lesson.check(wb.ctrl.state.effects)["solved"]
+    assert wb.ctrl.residual_rms_nT() < 1.02 * wb.ctrl.floor_nT()
