@@ -1254,7 +1254,8 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     elif explained and not remaining:
         verdict = "missing_effect"
         rms_after = current.rms_nT
-        summary = (f"missing {' and '.join(explained)}: adding it brings the total-field RMS from "
+        summary = (f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
+                   "the total-field RMS from "
                    f"{fit0.rms_nT:.3g} to {rms_after:.3g} nT (noise {noise_final.sigma_nT:.3g} nT)")
         if coupled:
             summary += (f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to "
