@@ -190,6 +190,17 @@ class Calibration:
         """Corrected total field (n_sensors, N) in nT."""
         return np.linalg.norm(self.correct(dataset), axis=2)
 
+    def expected_total_field(self, dataset) -> np.ndarray:
+        """The total field (n_sensors, N) in nT this calibration expects on ``dataset``: its reference (the
+        dataset's ``ref_total`` column when it has none) plus its reference-stage effects."""
+        return expected_total_field(dataset, self.reference_total_nT, self.model, self.effect_values,
+                                    contexts(dataset, self.baseline_m))
+
+    def total_field_residuals(self, dataset, corrected=None) -> np.ndarray:
+        """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output."""
+        vectors = self.correct(dataset) if corrected is None else corrected
+        return np.linalg.norm(vectors, axis=2) - self.expected_total_field(dataset)
+
     def tensor(self, dataset, corrected=None) -> dict:
         """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
         if self.n_sensors != 4 or not self.baseline_m:

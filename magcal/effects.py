@@ -36,7 +36,7 @@ from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
 from .errors import MagcalError
-from .model import EFFECTS, Context, Effect, parse_effect, register
+from .model import EFFECTS, Context, Effect, parse_effect, parse_sensor_number, register
 
 #: Field magnitude (nT) in which nonlinearity coefficients are quoted: ``q`` nT is the deviation of an axis
 #: reading ``50 000 nT``.
@@ -484,16 +484,11 @@ class BiasStep(CatalogueEffect):
     extra_dof: ClassVar[int] = 1
 
     step_time_s: list | None = None
-    #: Keep ``step_time_s`` in the next :meth:`configure` (set by :meth:`refine`).
-    keep_shape: bool = False
 
     def param_names(self):
         return [f"step_{a}_nT" for a in _AXES]
 
     def configure(self, dataset, residuals_nT=None):
-        if self.keep_shape and self.step_time_s is not None:
-            self.keep_shape = False
-            return
         t = dataset.time_s
         times = []
         for s in range(dataset.n_sensors):
@@ -540,7 +535,6 @@ class BiasStep(CatalogueEffect):
                 times[s], changed = new, True
         if changed:
             self.step_time_s = times
-            self.keep_shape = True
         return changed
 
     def raw_basis(self, z0, ctx: Context):
@@ -755,16 +749,11 @@ class Hysteresis(CatalogueEffect):
 
     #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
     shape_half_width_nT: list | None = None
-    #: Keep ``shape_half_width_nT`` in the next :meth:`configure` (set by :meth:`refine`).
-    keep_shape: bool = False
 
     def param_names(self):
         return [f"h_{a}_nT" for a in _AXES]
 
     def configure(self, dataset, residuals_nT=None):
-        if self.keep_shape and self.shape_half_width_nT is not None:
-            self.keep_shape = False
-            return
         widths = []
         for s in range(dataset.n_sensors):
             if residuals_nT is None or not self.applies_to(s):
@@ -798,7 +787,6 @@ class Hysteresis(CatalogueEffect):
             widths[s] = new.tolist()
         if changed:
             self.shape_half_width_nT = widths
-            self.keep_shape = True
         return changed
 
     def set_state(self, state):
@@ -1086,22 +1074,12 @@ def parse_hidden(spec: str, n_sensors: int):
     if name in EXTRA_PERTURBATIONS:
         sensor = None
         if sensor_text.strip():
-            sensor = _parse_sensor(spec, sensor_text, n_sensors)
+            sensor = parse_sensor_number(spec, sensor_text, n_sensors)
         return EXTRA_PERTURBATIONS[name](magnitude, sensor)
     effect = parse_effect(head, n_sensors)
     if effect.min_sensors > n_sensors:
         raise MagcalError(f"--hidden {spec!r}: {name} needs at least {effect.min_sensors} sensors")
     return effect.perturbation(magnitude, effect.sensor)
-
-
-def _parse_sensor(spec, text, n_sensors):
-    try:
-        s = int(text) - 1
-    except ValueError:
-        raise MagcalError(f"{spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
-    if not 0 <= s < n_sensors:
-        raise MagcalError(f"{spec!r}: sensor {s + 1} does not exist (there are {n_sensors})")
-    return s
 
 
 def catalogue() -> list:

@@ -633,7 +633,7 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     context = RefineContext(result.problem, result.x)
     if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
         second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
-                           max_nfev)
+                           max_nfev, configure=False)
         if second.rss < result.rss:
             second.nfev += result.nfev
             return second
@@ -674,22 +674,24 @@ class RefineContext:
         return cost
 
 
-def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev) -> FitResult:
-    """One fit of :func:`fit` (arguments checked there)."""
+def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
+              configure=True) -> FitResult:
+    """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
+    constants as they are (the pass after :meth:`~magcal.model.Effect.refine`)."""
     n_all = dataset.n_samples
     kept = dataset.subset(mask) if not mask.all() else dataset
     init = init or crude_initial_calibration(kept, reference_total_nT)
 
-    # data-derived constants of the effects, from the starting residuals
-    ref0, kind0 = resolve_reference(kept, reference_total_nT)
-    start_fields = corrected_fields(kept, init.sensors)
-    if kind0 == "fitted":
-        expected0 = init.reference_total_nT or float(np.mean(np.linalg.norm(start_fields, axis=2)))
-    else:
-        expected0 = expected_total_field(kept, ref0)
-    base_resid = np.linalg.norm(start_fields, axis=2) - expected0
-    for e in model.effects:
-        e.configure(kept, base_resid)
+    if configure and model.effects:  # data-derived constants of the effects, from the starting residuals
+        ref0, kind0 = resolve_reference(kept, reference_total_nT)
+        start_fields = corrected_fields(kept, init.sensors)
+        if kind0 == "fitted":
+            expected0 = init.reference_total_nT or float(np.mean(np.linalg.norm(start_fields, axis=2)))
+        else:
+            expected0 = expected_total_field(kept, ref0)
+        base_resid = np.linalg.norm(start_fields, axis=2) - expected0
+        for e in model.effects:
+            e.configure(kept, base_resid)
 
     problem = Problem(kept, model, init, reference_total_nT)
     r_start = problem.residuals(problem.x0)
@@ -728,10 +730,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         cov = np.full((p, p), np.nan)
 
     calibration = problem.calibration(x)
-    resid_all = np.linalg.norm(corrected_fields(dataset, calibration.sensors, model, calibration.effect_values,
-                                                contexts(dataset, problem.baseline_m)), axis=2) \
-        - expected_total_field(dataset, problem.reference(x), model, calibration.effect_values,
-                               contexts(dataset, problem.baseline_m))
+    resid_all = calibration.total_field_residuals(dataset)
     resid = np.where(mask[None, :], resid_all, np.nan)
     sigma_robust = _robust_sigma(tf)
     outliers = np.zeros(n_all, bool)

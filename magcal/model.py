@@ -173,8 +173,8 @@ class Effect:
         Returns
         -------
         bool
-            True if the constants changed enough to warrant one more fit (:func:`magcal.fit.fit` then refits;
-            the next :meth:`configure` keeps them). Most effects have nothing to refine.
+            True if the constants changed enough to warrant one more fit (:func:`magcal.fit.fit` then refits
+            without calling :meth:`configure`). Most effects have nothing to refine.
         """
         return False
 
@@ -201,15 +201,21 @@ def parse_effect(spec: str, n_sensors: int) -> Effect:
         raise MagcalError(f"unknown effect {name!r}; known effects: {', '.join(sorted(EFFECTS))}")
     sensor = None
     if sensor_text:
-        try:
-            sensor = int(sensor_text) - 1
-        except ValueError:
-            raise MagcalError(f"effect {spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
-        if not 0 <= sensor < n_sensors:
-            raise MagcalError(f"effect {spec!r}: sensor {sensor + 1} does not exist (the data have {n_sensors})")
+        sensor = parse_sensor_number(spec, sensor_text, n_sensors)
         if not EFFECTS[name].per_sensor:
             raise MagcalError(f"effect {name!r} is shared by the whole array; it takes no sensor number")
     return EFFECTS[name](sensor=sensor)
+
+
+def parse_sensor_number(spec: str, text: str, n_sensors: int) -> int:
+    """The 0-based sensor of the 1-based number ``text`` after ``NAME:`` in ``spec``; a clear error otherwise."""
+    try:
+        sensor = int(text) - 1
+    except ValueError:
+        raise MagcalError(f"effect {spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
+    if not 0 <= sensor < n_sensors:
+        raise MagcalError(f"effect {spec!r}: sensor {sensor + 1} does not exist (the data have {n_sensors})")
+    return sensor
 
 
 def _ensure_catalogue():

@@ -267,11 +267,25 @@ def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=Non
 def procrustes_step(dataset, fits, inliers=None):
     """Step 2: rotations ``R_s`` taking each sensor's corrected vectors into sensor 1's frame (``R_1 = I``)."""
     idx = slice(None) if inliers is None else np.asarray(inliers, bool)
-    corrected = [f.correct(y[idx]) for f, y in zip(fits, dataset.readings_nT)]
-    rotations = [np.eye(3)]
-    for s in range(1, len(fits)):
-        rotations.append(procrustes_rotation(corrected[0], corrected[s], label=f"sensor {s + 1}"))
-    return rotations
+    return _rotations_onto_first([f.correct(y[idx]) for f, y in zip(fits, dataset.readings_nT)])
+
+
+def align_sensors(dataset, calibration: Calibration) -> Calibration:
+    """Step 2 on a given calibration: a copy whose ``R_s`` come from Procrustes of each sensor's ``C^-1 (y - b)``
+    onto sensor 1's (the seed's step 2 after any step 1, e.g. one the user refined)."""
+    if dataset.n_sensors < 2:
+        raise CalibrationError("aligning needs at least two sensors; these data have one")
+    corrected = [(y - c.bias_nT) @ c.cinv.T for c, y in zip(calibration.sensors, dataset.readings_nT)]
+    aligned = Calibration.from_dict(calibration.to_dict(), "current calibration")
+    for sensor, rotation in zip(aligned.sensors, _rotations_onto_first(corrected)):
+        sensor.R = rotation
+    return aligned
+
+
+def _rotations_onto_first(corrected):
+    """Procrustes rotations of each sensor's corrected vectors (list of (N, 3), nT) onto sensor 1's."""
+    return [np.eye(3)] + [procrustes_rotation(corrected[0], c, label=f"sensor {s + 1}")
+                          for s, c in enumerate(corrected[1:], start=1)]
 
 
 def two_step_calibration(dataset, fits, rotations, reference_kind) -> Calibration:

@@ -330,3 +330,18 @@ def test_adding_the_hidden_effect_brings_the_fit_to_the_floor():
     assert np.all(np.abs(full.rms_after_per_sensor_nT / floor - 1) < 0.12)
     assert full.effects == ["temperature_bias"] and full.calibration.to_dict()["effects"] == ["temperature_bias"]
     assert full.fit.bic < base.fit.bic
+
+
+def test_align_sensors_recovers_the_misalignment_from_a_given_step_one():
+    """Step 2 alone, on the true C^-1 and b with every R reset to identity, finds the true rotations."""
+    from magcal.calibration import Calibration, SensorCalibration
+    from magcal.pipeline import align_sensors
+
+    truth = chi2017_truth()
+    ds = simulate(truth, seed=13)
+    start = Calibration([SensorCalibration(s.Cinv, s.bias_nT, np.eye(3)) for s in truth.sensors],
+                        reference_total_nT=truth.total_nT, baseline_m=ds.baseline_m)
+    aligned = align_sensors(ds, start)
+    for got, want in zip(aligned.sensors, truth.sensors):
+        assert np.max(np.abs(got.R - want.R)) < 2e-4
+    assert all(np.allclose(s.R, np.eye(3)) for s in start.sensors)  # the input is left as it was

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from magcal import conventions
-from magcal.calibration import Calibration, expected_total_field
+from magcal.calibration import Calibration
 from magcal.errors import MagcalError
 
 from .jobs import Worker
@@ -210,8 +210,7 @@ class Controller:
     def _residuals_of(self, cal: Calibration) -> np.ndarray:
         ds = self.fit_dataset()
         fields = cal.correct(ds)
-        expected = expected_total_field(ds, cal.reference_total_nT, cal.model, cal.effect_values)
-        return np.linalg.norm(fields, axis=2) - expected, fields
+        return cal.total_field_residuals(ds, fields), fields
 
     def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
         res, fields = self._residuals_of(cal)
@@ -298,7 +297,7 @@ class Controller:
 
     def step_align(self) -> StepRecord:
         """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b."""
-        from magcal.procrustes import procrustes_rotation
+        from magcal.pipeline import align_sensors
 
         if self.dataset.n_sensors < 2:
             raise MagcalError("aligning needs at least two sensors; this file has one")
@@ -306,13 +305,7 @@ class Controller:
             raise MagcalError("fit the ellipsoids first (step 1): alignment works on corrected vectors")
         old, rms0, tb = self._before()
         t0 = time.perf_counter()
-        k = self.kept
-        y = self.dataset.readings_nT[:, k]
-        vec = [(y[s] - c.bias_nT) @ c.cinv.T for s, c in enumerate(self.calibration.sensors)]
-        cal = Calibration.from_dict(self.calibration.to_dict(), "current calibration")
-        for s in range(1, self.dataset.n_sensors):
-            cal.sensors[s].R = procrustes_rotation(vec[0], vec[s], label=f"sensor {s + 1}")
-        self._set_calibration(cal)
+        self._set_calibration(align_sensors(self.dataset.subset(self.kept), self.calibration))
         return self._record("align sensors", old, rms0, t0, tb)
 
     def _model(self):
