@@ -8,7 +8,7 @@ The public API, in the order data flows::
     magcal.diagnose(ds, result.fit)             # ranked candidate effects with their evidence
 """
 
-from . import conventions
+from . import conventions, effects  # effects fills the EFFECTS catalogue at import
 from .calibration import Calibration, SensorCalibration
 from .dataset import Dataset, DatasetError
 from .diagnosis import Diagnosis, diagnose

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from . import conventions
 from .errors import MagcalError
-from .model import Context, Model, parse_effect
+from .model import Context, Model, parse_effect, term_label
 
 FORMAT = "magcal-calibration"
 VERSION = 1
@@ -51,7 +50,7 @@ class SensorCalibration:
 
 def block_label(effect, sensor) -> str:
     """Key of one effect instance's parameters: ``name`` (shared) or ``name:S`` (S 1-based)."""
-    return effect.name if sensor is None else f"{effect.name}:{sensor + 1}"
+    return term_label(effect.name, sensor)
 
 
 def contexts(dataset, baseline_m=None):
@@ -398,19 +397,12 @@ def _effects_from_dict(doc, n_sensors):
 
 
 def write_json_atomic(path, document) -> None:
-    """Write ``document`` as indented JSON to ``path`` atomically."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(document, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.io.atomic_write`)."""
+    from .io import atomic_write
+
+    with atomic_write(path, "w", newline=None) as fh:
+        json.dump(document, fh, indent=2)
+        fh.write("\n")
 
 
 def jsonable(value):

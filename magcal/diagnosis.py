@@ -45,7 +45,8 @@ from scipy.special import comb, sph_harm_y
 from . import conventions
 from .calibration import jsonable
 from .errors import CalibrationError, MagcalError
-from .model import EFFECTS, Model, _ensure_catalogue
+from .model import EFFECTS, Model, term_label
+from .noise import robust_sigma
 
 #: Verdicts of :func:`diagnose`.
 VERDICTS = ("adequate", "missing_effect", "unexplained")
@@ -300,8 +301,7 @@ def _difference_variance(r, order=2):
     d = np.diff(np.asarray(r, dtype=float), n=order)
     if len(d) < 10:
         return float("nan")
-    med = np.median(d)
-    mad = 1.4826 * np.median(np.abs(d - med))
+    med, mad = np.median(d), robust_sigma(d)
     if mad > 0:
         d = d[np.abs(d - med) < 6.0 * mad]
     return float(np.mean(d**2) / comb(2 * order, order))
@@ -358,9 +358,10 @@ class Candidate:
     effect : str
         Catalogue name.
     sensor : int or None
-        1-based sensor, or None for all sensors (or a shared / single-sensor term).
+        0-based sensor (as :attr:`magcal.model.Effect.sensor`), or None for all sensors (or a shared /
+        single-sensor term). :meth:`to_dict` writes it 1-based, as the command line and the JSON count.
     label : str
-        ``name`` or ``name:S``.
+        ``name`` or ``name:S`` (S 1-based, :func:`magcal.model.term_label`).
     n_params : int
         Parameters added (identifiable ones).
     lm : float
@@ -401,7 +402,8 @@ class Candidate:
 
     def to_dict(self) -> dict:
         return {
-            "effect": self.effect, "sensor": self.sensor, "delta_bic": _num(self.delta_bic),
+            "effect": self.effect, "sensor": None if self.sensor is None else self.sensor + 1,
+            "delta_bic": _num(self.delta_bic),
             "rms_after_nT": _num(self.rms_after_nT), "evidence": self.evidence, "label": self.label,
             "predicted_delta_bic": _num(self.predicted_delta_bic), "refitted": self.refitted,
             "lm": _num(self.lm), "p_value": _num(self.p_value), "n_params": self.n_params,
@@ -423,7 +425,6 @@ def effective_residual_count(n_sensors, n_samples, coupled) -> int:
 
 def _candidate_effects(dataset, model, names=None):
     """Effect instances to test, grouped by name: ``{name: [instance per sensor or one shared]}``."""
-    _ensure_catalogue()
     out = {}
     for name, cls in EFFECTS.items():
         if names is not None and name not in names:
@@ -565,13 +566,13 @@ class Structure:
     """One significant structure found in residuals (a reason the model is not adequate)."""
 
     kind: str
-    sensor: int | None
+    sensor: int | None  # 0-based; to_dict writes it 1-based
     p: float
     size: float
     text: str
 
     def to_dict(self):
-        return {"kind": self.kind, "sensor": self.sensor, "p": _num(self.p), "size": _num(self.size),
+        return {"kind": self.kind, "sensor": None if self.sensor is None else self.sensor + 1, "p": _num(self.p), "size": _num(self.size),
                 "text": self.text}
 
 
@@ -680,7 +681,7 @@ class Diagnosis:
         lines.append(f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10}  evidence")
         for i, c in enumerate(self.candidates[:limit], 1):
             mark = "" if c.refitted else "*"
-            sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor)
+            sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
             lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g}  "
                          f"{c.evidence}")
         if any(not c.refitted for c in self.candidates[:limit]):
@@ -787,14 +788,14 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
         st.update(rms_nT=float(np.sqrt(np.mean(r[keep] ** 2))), floor_nT=floor, variance_ratio=ratio,
                   excess_z=float(z))
         if noise.source != "residuals" and z > stats.norm.isf(alpha) and ratio > 1.0 + 2 * STRUCTURE_MIN_FRACTION:
-            found.append(Structure("excess", s + 1, float(stats.norm.sf(z)), ratio,
+            found.append(Structure("excess", s, float(stats.norm.sf(z)), ratio,
                                    f"sensor {s + 1}: RMS {st['rms_nT']:.3g} nT is {np.sqrt(ratio):.2f}x "
                                    f"the noise floor {floor:.3g} nT"))
         if ordered:
             q, p, frac = ljung_box(r)
             st.update(ljung_box_q=q, ljung_box_p=p, autocorrelated_fraction=frac, durbin_watson=durbin_watson(r))
             if p < alpha and frac > STRUCTURE_MIN_FRACTION:
-                found.append(Structure("time", s + 1, p, frac,
+                found.append(Structure("time", s, p, frac,
                                        f"sensor {s + 1}: residuals correlated in time (Ljung-Box p={p:.2g}, "
                                        f"Durbin-Watson {st['durbin_watson']:.2f})"))
             spec = spectrum(r, t)
@@ -802,7 +803,7 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
                       peak_amplitude_nT=spec["amplitude_nT"])
             if spec["p"] < alpha and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION:
                 unit = "Hz" if t is not None else "cycles/sample"
-                found.append(Structure("periodic", s + 1, spec["p"], spec["peak_fraction"],
+                found.append(Structure("periodic", s, spec["p"], spec["peak_fraction"],
                                        f"sensor {s + 1}: periodic component at {spec['peak_hz']:.3g} {unit} "
                                        f"(amplitude {spec['amplitude_nT']:.2g} nT, {100 * spec['peak_fraction']:.0f}% "
                                        "of the residual variance)"))
@@ -813,7 +814,7 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
         size = float(np.sum(sh["rms_nT"][hi] ** 2) / max(np.mean(r[keep] ** 2), 1e-300))
         st.update(sh_p=p_sh, sh_degree=deg, sh_fraction=size)
         if p_sh < alpha / 4 and size > STRUCTURE_MIN_FRACTION:
-            found.append(Structure("direction", s + 1, p_sh, size,
+            found.append(Structure("direction", s, p_sh, size,
                                    f"sensor {s + 1}: pattern over the field direction, strongest at spherical-harmonic "
                                    f"degree {deg} ({sh['rms_nT'][deg]:.2g} nT)"))
         if vec is not None:
@@ -825,14 +826,14 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
             zv = (ratio_v - 1.0) / np.sqrt(1.0 / n + noise.relative_variance_error**2)
             st.update(vector_rms_nT=float(np.sqrt(vr)), vector_variance_ratio=ratio_v)
             if noise.source != "residuals" and zv > stats.norm.isf(alpha) and ratio_v > 1 + 2 * STRUCTURE_MIN_FRACTION:
-                found.append(Structure("consistency", s + 1, float(stats.norm.sf(zv)), ratio_v,
+                found.append(Structure("consistency", s, float(stats.norm.sf(zv)), ratio_v,
                                        f"sensor {s + 1}: disagrees with the others in direction by "
                                        f"{np.sqrt(vr):.3g} nT RMS per component ({np.sqrt(ratio_v):.2f}x the noise)"))
             if ordered:
                 pv = min(ljung_box(v[:, k])[1] for k in range(comps))
                 fv = max(ljung_box(v[:, k])[2] for k in range(comps))
                 if pv < alpha / comps and fv > STRUCTURE_MIN_FRACTION:
-                    found.append(Structure("consistency_time", s + 1, pv, fv,
+                    found.append(Structure("consistency_time", s, pv, fv,
                                            f"sensor {s + 1}: the inter-sensor disagreement is correlated in time "
                                            f"(Ljung-Box p={pv:.2g})"))
         per.append(st)
@@ -944,11 +945,11 @@ def _score_from_grams(kept, fit, groups, grams):
             sc = proj.score(cols, rss0, dof0, m_eff, extra)
             if sc is None:
                 continue
-            label = name if sensor is None else f"{name}:{sensor + 1}"
+            label = term_label(name, sensor)
             vec_after = None
             if coupled:
                 vec_after = float(np.sqrt(sc["rss_vec"] / (ns * n * 2)))
-            c = Candidate(effect=name, sensor=None if sensor is None else sensor + 1, label=label, n_params=sc["q"],
+            c = Candidate(effect=name, sensor=sensor, label=label, n_params=sc["q"],
                           lm=sc["lm"], p_value=sc["p"], predicted_delta_bic=sc["dbic"], delta_bic=sc["dbic"],
                           rms_after_nT=sc["rms_tf"], vector_rms_after_nT=vec_after, instances=inst, columns=cols)
             cands.append(c)
@@ -1020,7 +1021,7 @@ def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
             return "step near t = " + ", ".join(f"{t:.4g} s" for t in sorted(set(np.round(times, 3))))
     if c.effect in ("nonlinearity_quadratic", "nonlinearity_cubic") and sh_stats:
         degree = 3 if c.effect == "nonlinearity_quadratic" else 4
-        sensors = [c.sensor - 1] if c.sensor else range(len(sh_stats))
+        sensors = [c.sensor] if c.sensor is not None else range(len(sh_stats))
         rms = [sh_stats[s]["rms_nT"][degree] for s in sensors]
         return f"direction degree {degree}: {max(rms):.2g} nT"
     if c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift") and \

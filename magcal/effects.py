@@ -36,7 +36,7 @@ from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
 from .errors import MagcalError
-from .model import EFFECTS, Context, Effect, parse_effect, parse_sensor_number, register
+from .model import EFFECTS, Context, Effect, parse_effect, parse_sensor_number, register, term_label
 
 #: Field magnitude (nT) in which nonlinearity coefficients are quoted: ``q`` nT is the deviation of an axis
 #: reading ``50 000 nT``.
@@ -775,8 +775,8 @@ class Hysteresis(CatalogueEffect):
         changed = False
         widths = [None if w is None else list(w) for w in self.shape_half_width_nT]
         for s in range(len(widths)):
-            label = self.name if self.sensor is None and len(widths) == 1 and f"{self.name}:1" not in effect_values \
-                else f"{self.name}:{s + 1}"
+            label = self.name if self.sensor is None and len(widths) == 1 and term_label(self.name, 0) not in \
+                effect_values else term_label(self.name, s)
             values = effect_values.get(label)
             if values is None or widths[s] is None:
                 continue

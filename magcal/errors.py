@@ -19,3 +19,10 @@ class DataWarning(UserWarning):
 
 class CoverageWarning(DataWarning):
     """The attitudes cover too little of the direction sphere for the fitted parameters to extrapolate."""
+
+
+class ConvergenceWarning(UserWarning):
+    """A fit stopped before converging (evaluation limit, singular equations): its parameters are not a minimum.
+
+    :attr:`magcal.fit.FitResult.success` is False and :attr:`~magcal.fit.FitResult.message` says why.
+    """

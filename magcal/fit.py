@@ -20,6 +20,7 @@ a larger field from larger gains. Candidate effects add their own parameters (se
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,8 +29,10 @@ from scipy.spatial.transform import Rotation
 from . import conventions
 from .calibration import Calibration, SensorCalibration, block_label, contexts, corrected_fields, \
     expected_total_field
-from .errors import CalibrationError
+from .errors import CalibrationError, ConvergenceWarning
 from .model import Model
+from .noise import robust_sigma
+from .reference import resolve_reference as _resolve
 
 #: Typical change of each base parameter that moves the readings by about 1 nT in a 50 uT field.
 _CINV_SCALE = 2e-5
@@ -37,18 +40,9 @@ _ROT_SCALE = 2e-5
 
 
 def resolve_reference(dataset, reference_total_nT=None):
-    """Where the reference field comes from: ``(value or None, kind)``.
-
-    ``kind`` is ``"given"`` (argument or ``reference_total_nT`` metadata), ``"column"`` (per-sample
-    ``ref_total``; value None) or ``"fitted"`` (unknown: the magnitude is fitted).
-    """
-    if reference_total_nT is not None:
-        return float(reference_total_nT), "given"
-    if dataset.ref_total_nT is not None:
-        return None, "column"
-    if dataset.reference_total_nT:
-        return float(dataset.reference_total_nT), "given"
-    return None, "fitted"
+    """``(value or None, kind)`` of the reference a fit uses (:meth:`magcal.reference.Reference.for_fit` of
+    :func:`magcal.reference.resolve_reference`, without its user-facing checks)."""
+    return _resolve(dataset, reference_total_nT, check=False).for_fit()
 
 
 def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
@@ -397,6 +391,7 @@ class _Solution:
     jtj: np.ndarray
     nfev: int
     message: str
+    status: int = 0
 
 
 #: scipy's robust losses: ``rho(z)`` and ``rho'(z)`` of ``z = (r / f)^2``; the cost is ``f^2/2 sum rho``.
@@ -447,20 +442,20 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     diag = np.maximum(np.diag(jtj), 0.0)
     d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
     lam, nu = 1e-3, 2.0
-    message = "maximum number of evaluations reached"
+    message, status = "maximum number of evaluations reached", 0
     while nfev < max_nfev:
         if not np.all(np.isfinite(jtj)) or not np.all(np.isfinite(jtr)):
-            message = "non-finite Jacobian"
+            message, status = "non-finite Jacobian", -1
             break
         if np.max(np.abs(jtr) / np.sqrt(d)) <= 1e-14 * max(np.sqrt(2 * cost), 1e-300):
-            message = "gradient is zero to machine precision"
+            message, status = "gradient is zero to machine precision", 1
             break
         try:
             step = cho_solve(cho_factor(jtj + lam * np.diag(d)), -jtr)
         except LinAlgError:
             lam, nu = lam * nu, nu * 2
             if lam > 1e16:
-                message = "the normal equations are singular"
+                message, status = "the normal equations are singular", -1
                 break
             continue
         x_new = x + step
@@ -477,16 +472,17 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
             lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), 2.0
             if (abs(actual) <= ftol * cost and predicted <= ftol * cost) or small_step:
                 message = "converged: the relative cost reduction or step is below tolerance"
+                status = 3 if small_step else 2
                 break
             r, jtj, jtr = equations(x)
             nfev += 1
             d = np.maximum(d, np.diag(jtj))
         else:
             if small_step:
-                message = "converged: no smaller step reduces the cost"
+                message, status = "converged: no smaller step reduces the cost", 3
                 break
             lam, nu = lam * nu, nu * 2
-    return _Solution(x=x, r=r, jtj=jtj, nfev=nfev, message=message)
+    return _Solution(x=x, r=r, jtj=jtj, nfev=nfev, message=message, status=status)
 
 
 def _perpendicular_basis(vectors):
@@ -539,6 +535,14 @@ class FitResult:
         ``{effect, sensor (1-based or None), term, params {name: value}, std {name: value}}``.
     reference_kind : str
         ``given``, ``column`` or ``fitted``.
+    nfev : int
+        Evaluations of the residuals.
+    status : int
+        As scipy.optimize.least_squares: ``0`` the evaluation limit was reached, ``-1`` the solver failed
+        (non-finite or singular normal equations), ``1`` gradient zero, ``2`` cost reduction below tolerance,
+        ``3`` step below tolerance.
+    message : str
+        The solver's reason for stopping, in words.
     """
 
     calibration: Calibration
@@ -563,7 +567,13 @@ class FitResult:
     reference_kind: str
     nfev: int = 0
     message: str = ""
+    status: int = 1
     problem: Problem | None = field(default=None, repr=False)
+
+    @property
+    def success(self) -> bool:
+        """True when the solver converged (``status > 0``); a fit that stopped early is not a minimum."""
+        return self.status > 0
 
     @property
     def std(self) -> np.ndarray:
@@ -582,6 +592,10 @@ class FitResult:
             "bic": self.bic,
             "reference": self.reference_kind,
             "n_outliers": int(self.outliers.sum()),
+            "success": self.success,
+            "status": self.status,
+            "message": self.message,
+            "nfev": self.nfev,
         }
 
 
@@ -618,7 +632,8 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     them from the converged fit (:meth:`magcal.model.Effect.refine` with a :class:`RefineContext`) and the
     model is fitted once more; the refined constants are kept only if that lowers the residual sum of squares.
     """
-    model = model or Model.base_model(dataset.n_sensors)
+    # the caller's model (and its effect objects, whose data-derived constants a fit sets) stays untouched
+    model = model.copy() if model is not None else Model.base_model(dataset.n_sensors)
     if model.n_sensors != dataset.n_sensors:
         raise CalibrationError(f"the model is for {model.n_sensors} sensor(s), the data have {dataset.n_sensors}")
     model.check(dataset)
@@ -636,9 +651,16 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
                            max_nfev, configure=False)
         if second.rss < result.rss:
             second.nfev += result.nfev
-            return second
+            return _warn_if_not_converged(second)
         for e, state in zip(model.effects, saved):
             e.set_state(state)
+    return _warn_if_not_converged(result)
+
+
+def _warn_if_not_converged(result: FitResult) -> FitResult:
+    if not result.success:
+        warnings.warn(f"the fit did not converge ({result.message}, {result.nfev} evaluations): its parameters "
+                      "are not a minimum; raise max_nfev or check the data", ConvergenceWarning, stacklevel=3)
     return result
 
 
@@ -708,12 +730,12 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         rounds = 1 if f_scale_nT is not None else 4
         x, nfev = problem.x0, 0
         for _ in range(rounds):
-            scale = f_scale_nT if f_scale_nT is not None else 3.0 * _robust_sigma(
-                problem.residuals(x)[problem.total_field_rows])
+            scale = f_scale_nT if f_scale_nT is not None else 3.0 * robust_sigma(
+                problem.residuals(x)[problem.total_field_rows], floor=1e-9)
             sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev)
             x, nfev = sol.x, nfev + sol.nfev
         r, jtj, _ = problem.normal_equations(x)
-    message = sol.message
+    message, status = sol.message, sol.status
     ns, n = problem.n_sensors, problem.n_samples
     tf = r[problem.total_field_rows].reshape(ns, n)
     p = x.size
@@ -732,7 +754,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
     calibration = problem.calibration(x)
     resid_all = calibration.total_field_residuals(dataset)
     resid = np.where(mask[None, :], resid_all, np.nan)
-    sigma_robust = _robust_sigma(tf)
+    sigma_robust = robust_sigma(tf, floor=1e-9)
     outliers = np.zeros(n_all, bool)
     outliers[np.flatnonzero(mask)] = np.any(np.abs(tf) > 5.0 * max(sigma_robust, 1e-9), axis=0)
     vec = r[ns * n:].reshape(ns, n, 2) if problem.coupled else None
@@ -756,11 +778,5 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         rms_nT=float(np.sqrt(np.mean(tf**2))), rms_per_sensor_nT=rms_per_sensor, noise_nT=noise, rss=rss,
         n_residuals=m, n_params=p, aic=m * np.log(rss / m) + 2 * p, bic=m * np.log(rss / m) + p * np.log(m),
         outliers=outliers, mask=mask, effect_params=effect_params, reference_kind=problem.reference_kind,
-        nfev=int(nfev), message=message, problem=problem,
+        nfev=int(nfev), message=message, status=int(status), problem=problem,
     )
-
-
-def _robust_sigma(values) -> float:
-    """Normal-consistent median absolute deviation (never zero)."""
-    values = np.asarray(values, dtype=float).ravel()
-    return max(1.4826 * float(np.median(np.abs(values - np.median(values)))), 1e-9)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .dataset import Dataset, DatasetError
-from .errors import DataWarning
+from .errors import DataWarning, MagcalError
 
 #: Factor that turns a reading in each unit into nT (keys are lower case; ``u`` and ``µ`` both mean micro).
 UNIT_FACTORS_nT = {
@@ -777,7 +777,10 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
 # -- writing --------------------------------------------------------------------------------------------------------
 @contextlib.contextmanager
 def atomic_write(path, mode="w", encoding="utf-8", newline=""):
-    """Open a temporary file beside ``path``; on success it replaces ``path`` (``os.replace``), else it is removed.
+    """Open a temporary file beside ``path``; on success it is flushed to disk (``fsync``) and replaces ``path``
+    (``os.replace``), else it is removed, so ``path`` holds either its old content or the whole new one.
+
+    The one atomic writer of magcal: CSV and Parquet outputs, calibration files and workbench sessions use it.
 
     Yields the open file object.
     """
@@ -786,7 +789,7 @@ def atomic_write(path, mode="w", encoding="utf-8", newline=""):
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
     except OSError as exc:
-        raise DatasetError(f"{path}: cannot write here ({exc.strerror or exc}); check the directory") from None
+        raise MagcalError(f"{path}: cannot write here ({exc.strerror or exc}); check the directory") from None
     try:
         kwargs = {} if "b" in mode else {"encoding": encoding, "newline": newline}
         with os.fdopen(fd, mode, **kwargs) as fh:

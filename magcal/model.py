@@ -20,6 +20,7 @@ well conditioned.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
@@ -32,7 +33,8 @@ from .errors import MagcalError
 #: Names of the base terms, in order.
 BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
 
-#: The catalogue of candidate effects by name (filled by :mod:`magcal.effects` on import).
+#: The catalogue of candidate effects by name. :mod:`magcal.effects` registers the built-in terms when
+#: ``magcal`` is imported; :func:`register` adds more (a user's own effect).
 EFFECTS: dict[str, type["Effect"]] = {}
 
 
@@ -40,6 +42,16 @@ def register(cls):
     """Class decorator: add an :class:`Effect` subclass to :data:`EFFECTS` under ``cls.name``."""
     EFFECTS[cls.name] = cls
     return cls
+
+
+def term_label(name: str, sensor: int | None) -> str:
+    """The label of an effect term: ``name`` for every sensor (or a shared term), ``name:S`` for one sensor.
+
+    ``sensor`` counts from 0, as everywhere in the Python API (:attr:`Effect.sensor`,
+    :attr:`magcal.diagnosis.Candidate.sensor`); the label shows it from 1, as the command line, the JSON and the
+    workbench do.
+    """
+    return name if sensor is None else f"{name}:{sensor + 1}"
 
 
 @dataclass
@@ -181,7 +193,7 @@ class Effect:
     @property
     def label(self) -> str:
         """``name`` or ``name:S`` (1-based sensor) as used on the command line."""
-        return self.name if self.sensor is None else f"{self.name}:{self.sensor + 1}"
+        return term_label(self.name, self.sensor)
 
 
 def parse_effect(spec: str, n_sensors: int) -> Effect:
@@ -192,7 +204,6 @@ def parse_effect(spec: str, n_sensors: int) -> Effect:
     MagcalError
         For an unknown name or a sensor number outside 1..n_sensors.
     """
-    _ensure_catalogue()
     name, _, sensor_text = spec.strip().partition(":")
     name = name.strip()
     if name in BASE_TERMS:
@@ -216,15 +227,6 @@ def parse_sensor_number(spec: str, text: str, n_sensors: int) -> int:
     if not 0 <= sensor < n_sensors:
         raise MagcalError(f"effect {spec!r}: sensor {sensor + 1} does not exist (the data have {n_sensors})")
     return sensor
-
-
-def _ensure_catalogue():
-    if not EFFECTS:
-        try:
-            from . import effects  # noqa: F401  (registers the catalogue)
-        except ModuleNotFoundError as exc:
-            if exc.name != "magcal.effects":
-                raise
 
 
 @dataclass
@@ -266,15 +268,20 @@ class Model:
     def effect_labels(self) -> list[str]:
         return [e.label for e in self.effects]
 
+    def copy(self) -> "Model":
+        """A deep copy: the effect objects (and their data-derived constants) are new, so fitting the copy never
+        changes this model."""
+        return copy.deepcopy(self)
+
     def with_effect(self, effect: Effect) -> "Model":
-        """A new model with one more effect (effects are copied, so the original stays unchanged)."""
-        return Model(self.n_sensors, self.base, [dataclasses.replace(e) for e in self.effects] + [effect])
+        """A new model with one more effect (every effect is copied, so neither this model nor ``effect`` changes)."""
+        return Model(self.n_sensors, self.base, [copy.deepcopy(e) for e in self.effects + [effect]])
 
     def without(self, label: str) -> "Model":
-        """A new model without the effect (or base term) of that label."""
+        """A new model without the effect (or base term) of that label (the remaining effects are copied)."""
         if label in BASE_TERMS:
-            return Model(self.n_sensors, tuple(t for t in self.base if t != label), list(self.effects))
-        return Model(self.n_sensors, self.base, [e for e in self.effects if e.label != label])
+            return Model(self.n_sensors, tuple(t for t in self.base if t != label), copy.deepcopy(self.effects))
+        return Model(self.n_sensors, self.base, [copy.deepcopy(e) for e in self.effects if e.label != label])
 
     def check(self, dataset) -> None:
         """Raise :class:`MagcalError` naming any effect whose channels the dataset lacks."""

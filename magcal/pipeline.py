@@ -33,6 +33,8 @@ from . import conventions
 from .calibration import Calibration, SensorCalibration, expected_total_field
 from .ellipsoid import fit_ellipsoid
 from .errors import CalibrationError, CoverageWarning, DataWarning
+from .fit import resolve_reference
+from .noise import robust_sigma
 from .procrustes import procrustes_rotation
 
 #: Methods of :func:`calibrate`: the two seed steps alone, or followed by maximum likelihood.
@@ -203,12 +205,6 @@ def _evaluate(name, description, vectors_nT, expected_nT, dataset, wall_s) -> St
                        t_rms, t_max, float(wall_s))
 
 
-def _resolve_reference(dataset, reference_total_nT):
-    from .fit import resolve_reference
-
-    return resolve_reference(dataset, reference_total_nT)
-
-
 def _expected(dataset, calibration, reference_kind):
     """Expected total field (n_sensors, N) of the base model (reference value or column)."""
     value = None if reference_kind == "column" else calibration.reference_total_nT
@@ -252,8 +248,7 @@ def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=Non
     if robust:
         for s, (f, y) in enumerate(zip(fits, dataset.readings_nT)):
             dev = np.linalg.norm(f.correct(y), axis=1) - f.field_nT
-            sigma = 1.4826 * np.median(np.abs(dev - np.median(dev)))
-            inliers &= np.abs(dev - np.median(dev)) <= ROBUST_START_SIGMA * max(sigma, 1e-9)
+            inliers &= np.abs(dev - np.median(dev)) <= ROBUST_START_SIGMA * robust_sigma(dev, floor=1e-9)
         if not inliers.all():
             fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, mask=inliers, label=f"sensor {s + 1}")
                     for s, y in enumerate(dataset.readings_nT)]
@@ -391,7 +386,7 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
     kept = dataset if mask.all() else dataset.subset(mask)
-    ref_value, ref_kind = _resolve_reference(kept, reference_total_nT)
+    ref_value, ref_kind = resolve_reference(kept, reference_total_nT)
     notes = []
 
     def report(message, fraction=None):

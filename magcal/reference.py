@@ -57,6 +57,16 @@ class Reference:
     def known(self) -> bool:
         return self.value_nT is not None
 
+    def for_fit(self):
+        """``(value or None, kind)`` as the fitters use it: ``kind`` is ``"given"`` (one number: given, IGRF or
+        the file's metadata), ``"column"`` (the per-sample column; value None, read from the dataset) or
+        ``"fitted"`` (unknown: the magnitude is fitted)."""
+        if self.kind == "column":
+            return None, "column"
+        if self.value_nT is None:
+            return None, "fitted"
+        return float(self.value_nT), "given"
+
     def apply(self, dataset: Dataset) -> Dataset:
         """The dataset with this reference stored (scalar -> ``reference_total_nT``, array -> ``ref_total_nT``)."""
         if self.value_nT is None:
@@ -166,8 +176,8 @@ def _check_plausible(value, what):
         )
 
 
-def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None):
-    """The reference total field and a sentence saying where it came from.
+def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
+    """The reference total field and a sentence saying where it came from: the one place that decides it.
 
     Parameters
     ----------
@@ -179,6 +189,9 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
         metadata, else fitted).
     lat, lon, alt_km, date
         Place (deg, deg, km above the ellipsoid) and date for IGRF.
+    check : bool
+        Check plausibility (refuse a value in the wrong unit, warn when far from the data). The fitters pass
+        False: the user-facing checks ran once when the command or the workbench resolved the reference.
 
     Returns
     -------
@@ -206,7 +219,7 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     elif choice is not None and choice.lower() == "column":
         if column is None:
             raise MagcalError(f"{where}: --reference column, but the file has no ref_total column")
-        ref = _column_reference(column, where)
+        ref = _column_reference(column, where, check)
     elif choice is not None and choice.lower() in ("fit", "fitted", "none", "unknown"):
         ref = Reference(None, "no reference: the field magnitude is fitted (the scale factors are then relative to "
                               "the fitted magnitude, not absolute)", "fitted")
@@ -217,27 +230,30 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
             raise MagcalError(
                 f"--reference: {reference!r} is neither a number of nT nor 'igrf', 'column' or 'fit'"
             ) from None
-        _check_plausible(value, "--reference")
+        if check:
+            _check_plausible(value, "--reference")
         text = f"given reference: {value:.1f} nT"
         if column is not None:
             text += " (the file's ref_total column is not used)"
         ref = Reference(value, text, "number")
     elif column is not None:
-        ref = _column_reference(column, where)
+        ref = _column_reference(column, where, check)
     elif meta is not None:
-        _check_plausible(meta, f"{where}: metadata reference_total_nT")
+        if check:
+            _check_plausible(meta, f"{where}: metadata reference_total_nT")
         ref = Reference(float(meta), f"file metadata reference_total_nT: {float(meta):.1f} nT", "metadata")
     else:
         ref = Reference(None, "no reference given: the field magnitude is fitted (the scale factors are then relative "
                               "to the fitted magnitude, not absolute)", "fitted")
-    if dataset is not None and ref.known:
+    if check and dataset is not None and ref.known:
         _compare_with_data(dataset, ref)
     return ref
 
 
-def _column_reference(column, where):
+def _column_reference(column, where, check=True):
     col = np.asarray(column, dtype=float)
-    _check_plausible(col, f"{where}: column ref_total")
+    if check:
+        _check_plausible(col, f"{where}: column ref_total")
     spread = float(np.ptp(col)) if col.size else 0.0
     text = (f"per-sample ref_total column: mean {np.mean(col):.1f} nT, spread {spread:.1f} nT over "
             f"{col.size} samples")

@@ -57,7 +57,7 @@ def _check_found(d, name, sensor, level, sigma=SIGMA):
     assert d.verdict == "missing_effect", d.summary
     assert best.effect == name, [(c.label, round(c.delta_bic)) for c in d.candidates[:4]]
     if EFFECTS[name].per_sensor and d.result.calibration.n_sensors > 1:
-        assert best.sensor == (None if sensor is None else sensor + 1)
+        assert best.sensor == sensor  # 0-based, as Effect.sensor
     assert best.refitted and best.delta_bic < -10
     assert d.explained_by == [best.label]
     refit = d.fits[best.label]

@@ -290,3 +290,57 @@ def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
     assert abs(step.step_time_s[3] - true_time) < 0.25  # within a few samples at 10 Hz
     floor = conventions.total_field_floor_nT(3.0, ds.n_samples, 9 + 3 + 3 / 4)
     assert result.rms_nT < 1.02 * floor
+
+
+@pytest.mark.parametrize("effect", ["temperature_bias", "bias_step"])
+def test_fit_leaves_the_callers_model_unchanged(effect):
+    """One Model reused on two records: the first calibration must not move when the second is fitted."""
+    from magcal import effects as fx
+    from magcal.simulation import simulate_timeseries
+
+    truth = chi2017_truth()
+    truth.sensors = truth.sensors[:1]
+    hidden = [fx.EFFECTS[effect]().perturbation(20.0, None)]
+    first = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=11, perturbations=hidden)
+    second = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=12, perturbations=hidden,
+                                 temperature_C=(35.0, 6.0))
+    second.time_s = second.time_s + 500.0  # another recording: other times, another temperature
+    model = Model.from_names([effect], 1)
+    states_before = [e.state() for e in model.effects]
+    cal_first = fit(first, model).calibration
+    corrected_before = cal_first.correct(first).copy()
+    fit(second, model)
+    assert [e.state() for e in model.effects] == states_before
+    np.testing.assert_array_equal(cal_first.correct(first), corrected_before)
+
+
+def test_with_effect_copies_the_added_effect():
+    from magcal.model import EFFECTS
+
+    effect = EFFECTS["temperature_bias"]()
+    m1 = Model.base_model(1).with_effect(effect)
+    assert m1.effects[0] is not effect
+
+
+def test_a_fit_that_stops_early_says_so():
+    from magcal.errors import ConvergenceWarning
+
+    ds = simulate(chi2017_truth(), n_samples=200, seed=3).sensors([0])
+    with pytest.warns(ConvergenceWarning, match="did not converge"):
+        result = fit(ds, max_nfev=2)
+    assert not result.success and result.status == 0
+    assert "maximum number of evaluations" in result.message
+    assert result.summary()["success"] is False
+
+
+def test_a_converged_fit_reports_success():
+    import warnings
+
+    from magcal.errors import ConvergenceWarning
+
+    ds = simulate(chi2017_truth(), n_samples=200, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        result = fit(ds)
+    assert result.success and result.status in (1, 2, 3)
+    assert result.summary()["message"].startswith(("converged", "gradient"))

@@ -561,9 +561,8 @@ def test_two_browsers_share_one_state(bench):
 
 
 def test_diagnose_then_add_brings_the_rms_to_the_floor(bench):
-    from magcal.model import EFFECTS, _ensure_catalogue
+    from magcal.model import EFFECTS
 
-    _ensure_catalogue()
     hidden = EFFECTS["temperature_bias"](sensor=1).perturbation(4.0, 1)
     ds = magcal.simulate_timeseries("chi2017", n_samples=600, seed=11, rate_hz=4.0, perturbations=[hidden])
     wb = bench(ds, store=False)

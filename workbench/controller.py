@@ -25,6 +25,7 @@ import numpy as np
 from magcal import conventions
 from magcal.calibration import Calibration
 from magcal.errors import MagcalError
+from magcal.noise import robust_sigma
 
 from .jobs import Worker
 from .session import SessionStore
@@ -365,10 +366,6 @@ class Controller:
         """The catalogue: ``{"name", "description", "missing" (reasons, empty if usable), "channels"}``."""
         from magcal import model
 
-        try:
-            model._ensure_catalogue()
-        except ImportError:  # the engine has no catalogue yet
-            return []
         out = []
         for name, cls in sorted(model.EFFECTS.items()):
             try:
@@ -427,8 +424,8 @@ class Controller:
         k = self.kept
         r = self.residual_nT
         med = np.median(r[:, k], axis=1, keepdims=True)
-        mad = 1.4826 * np.median(np.abs(r[:, k] - med), axis=1, keepdims=True)
-        out = np.any(np.abs(r - med) > float(k_sigma) * np.maximum(mad, 1e-12), axis=0)
+        mad = robust_sigma(r[:, k], axis=1, keepdims=True, floor=1e-12)
+        out = np.any(np.abs(r - med) > float(k_sigma) * mad, axis=0)
         return out & k
 
     def reject_threshold(self, k_sigma: float) -> int:
@@ -511,11 +508,8 @@ class Controller:
 
 
 def candidate_label(candidate) -> str:
-    """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or dict)."""
-    get = candidate.get if isinstance(candidate, dict) else (lambda k, d=None: getattr(candidate, k, d))
-    effect = get("effect")
-    sensor = get("sensor")
-    return effect if sensor is None else f"{effect}:{sensor}"
+    """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or its dict)."""
+    return candidate["label"] if isinstance(candidate, dict) else candidate.label
 
 
 def load_dataset(path):

@@ -15,9 +15,10 @@ import json
 import os
 import re
 import shutil
-import tempfile
 import time
 from pathlib import Path
+
+from magcal.io import atomic_write
 
 from .state import SessionState
 
@@ -32,18 +33,11 @@ def default_root() -> Path:
 
 
 def write_bytes_atomic(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (a temporary file in the same folder renamed over it)."""
+    """Write ``data`` to ``path`` atomically (the engine's :func:`magcal.io.atomic_write`), making its folder."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb") as fh:
+        fh.write(data)
 
 
 def session_id(name: str, content: bytes) -> str:
