@@ -45,8 +45,12 @@ def fibonacci_sphere(n):
 def sphere_centre(points_nT):
     """Centre (nT) of the best sphere through the points (linear least squares); zeros if it is not determined.
 
-    The quick centre only serves to turn readings into directions; offsets are small against the Earth's field,
-    so falling back to the origin costs little.
+    The quick centre turns readings into directions and gives the field magnitude the readings imply. The fitted
+    centre is used when it is small (under half the radius: any fit will do) or when the readings determine it:
+    they spread over a good part of the sphere (RMS distance from their mean at least half the radius) and lie on
+    it (radial residual under 15 % of the radius). MEMS parts on a platform often carry a hard-iron offset larger
+    than the Earth's field, and the origin is then a poor centre; a small cap of readings does not determine a
+    centre, and the origin is then as good a guess as any.
     """
     y = np.asarray(points_nT, dtype=float)
     if y.shape[0] < 4:
@@ -59,9 +63,29 @@ def sphere_centre(points_nT):
     if rank < 4 or sv[-1] < 1e-6 * sv[0]:
         return np.zeros(3)
     centre = sol[:3]
-    if not np.all(np.isfinite(centre)) or np.linalg.norm(centre) > 0.5:
+    r2 = float(sol[3] + centre @ centre)
+    if not np.all(np.isfinite(centre)) or r2 <= 0:
         return np.zeros(3)
-    return centre * scale
+    radius = np.sqrt(r2)
+    if np.linalg.norm(centre) <= 0.5 * radius:
+        return centre * scale
+    spread = np.sqrt(np.mean(np.sum((ys - ys.mean(axis=0)) ** 2, axis=1)))
+    radial = np.sqrt(np.mean((np.linalg.norm(ys - centre, axis=1) - radius) ** 2))
+    if spread >= 0.5 * radius and radial <= 0.15 * radius:
+        return centre * scale
+    return np.zeros(3)
+
+
+def field_magnitude_nT(readings_nT):
+    """Median magnitude (nT) of one sensor's readings (N, 3) about their :func:`sphere_centre`.
+
+    The field the readings imply, hard iron removed: the figure to compare with the Earth's field or a
+    reference (the raw magnitude, offset included, can be far from either).
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    if y.size == 0:
+        return float("nan")
+    return float(np.median(np.linalg.norm(y - sphere_centre(y), axis=1)))
 
 
 def _jacobian(directions):

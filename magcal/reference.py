@@ -261,15 +261,21 @@ def _column_reference(column, where, check=True):
 
 
 def _compare_with_data(dataset, ref):
-    """Warn when the readings' typical magnitude is far from the reference (wrong units or wrong reference)."""
-    mags = np.linalg.norm(dataset.readings_nT, axis=2)
-    if mags.size == 0:
+    """Warn when the field the readings imply is far from the reference (wrong units or wrong reference).
+
+    The readings' magnitude is taken about their fitted centre, so a hard-iron offset is not mistaken for a
+    wrong reference.
+    """
+    from .coverage import field_magnitude_nT
+
+    if dataset.readings_nT.size == 0:
         return
-    median = float(np.median(mags))
+    median = float(np.median([field_magnitude_nT(y) for y in dataset.readings_nT]))
     value = float(np.median(np.atleast_1d(ref.value_nT)))
     if not 0.8 <= median / value <= 1.25:
         warnings.warn(
-            f"{dataset.source or 'dataset'}: the readings' median magnitude {median:.0f} nT differs from the reference "
+            f"{dataset.source or 'dataset'}: the field the readings imply (median magnitude about their centre, hard "
+            f"iron removed) {median:.0f} nT differs from the reference "
             f"{value:.0f} nT by {100 * (median / value - 1):+.0f}%; check the units and the reference",
             DataWarning, stacklevel=3,
         )

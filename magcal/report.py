@@ -130,7 +130,10 @@ def text_report(result, source: str | None = None) -> str:
 
     if result.fit is not None:
         f = result.fit
-        out.append(f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}")
+        out.append(f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}; " + (
+            f"converged ({f.message}, {f.nfev} evaluations)" if f.success else
+            f"DID NOT CONVERGE ({f.message}, {f.nfev} evaluations): the figures above are not a minimum; "
+            "look at the data (outliers, coverage, units) or refit"))
         for e in f.effect_params:
             params = ", ".join(f"{k} = {v:.4g} +- {e['std'][k]:.2g}" for k, v in e["params"].items())
             where = "" if e["sensor"] is None or ":" in e["term"] else f" (sensor {e['sensor']})"

@@ -149,3 +149,27 @@ def test_a_coverage_warning_is_shown_once(tmp_path, capsys, method):
     assert main(["calibrate", str(path), "--method", method, "--seed", "1"]) == 0
     out = capsys.readouterr()
     assert (out.out + out.err).count("poor direction coverage") == 1
+
+
+@pytest.mark.parametrize("command", ["calibrate", "diagnose"])
+def test_json_carries_every_warning_of_the_run(tmp_path, capsys, command):
+    """Issue 10: the coverage warning (raised before the fit) is in --json, not only on stderr."""
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=400, seed=3)
+    y = ds.readings_nT[0]
+    cap = ds.subset(y[:, 2] > 0.2 * np.linalg.norm(y, axis=1))
+    path = tmp_path / "cap.csv"
+    io.write_csv(path, cap, metadata={"reference_total_nT": 50_000.0})
+    extra = ["--top", "1"] if command == "diagnose" else []
+    assert main([command, str(path), "--json"] + extra) == 0
+    doc = json.loads(capsys.readouterr().out)
+    for text in ["poor direction coverage"]:
+        assert any(text in w for w in doc["warnings"]), doc["warnings"]
+    assert len(doc["warnings"]) == len(set(doc["warnings"]))
+
+
+def test_report_says_whether_the_fit_converged(chi_csv, capsys):
+    assert main(["calibrate", str(chi_csv)]) == 0
+    out = capsys.readouterr().out
+    assert "converged (" in out and "DID NOT CONVERGE" not in out

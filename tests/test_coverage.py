@@ -44,6 +44,31 @@ def test_sphere_centre_finds_the_offset():
     np.testing.assert_allclose(cv.sphere_centre(y), centre, atol=2.0)
 
 
+@pytest.mark.parametrize("offset_fraction", [0.0, 0.8, 1.5, 3.0])
+def test_a_hard_iron_offset_larger_than_the_field_keeps_the_fitted_centre(offset_fraction):
+    """Issue 10: MEMS parts carry offsets above the field; the whole sphere must still read as covered."""
+    rng = np.random.default_rng(5)
+    u = Rotation.random(600, random_state=rng).apply([0.0, 0.0, 1.0])
+    soft = np.array([[1.1, 0.05, 0.0], [0.05, 0.92, 0.03], [0.0, 0.03, 1.0]])  # MEMS-like soft iron
+    centre = offset_fraction * 30_000.0 * np.array([0.6, -0.64, 0.48])
+    y = 30_000.0 * u @ soft.T + centre + rng.normal(0, 50, u.shape)
+    np.testing.assert_allclose(cv.sphere_centre(y), centre, atol=0.03 * 30_000)
+    assert cv.field_magnitude_nT(y) == pytest.approx(30_000, rel=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CoverageWarning)
+        cov = cv.check_coverage(y)
+    assert cov.fraction[0] > 0.95
+
+
+def test_a_small_cap_far_from_the_origin_is_not_called_covered():
+    """A cap of readings does not determine a centre: the quick fit must not invent full coverage."""
+    rng = np.random.default_rng(6)
+    u = Rotation.random(400, random_state=rng).apply([0.0, 0.0, 1.0])
+    u = u[u[:, 2] > np.cos(np.radians(35))]
+    y = 30_000.0 * u + np.array([40_000.0, 0.0, 0.0]) + rng.normal(0, 300, u.shape)
+    assert cv.coverage(y).fraction[0] < 0.5
+
+
 def test_full_sphere_is_covered_and_at_the_even_coverage_error():
     rng = np.random.default_rng(2)
     y = readings(Rotation.random(400, random_state=rng), rng)

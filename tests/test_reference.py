@@ -75,6 +75,18 @@ def test_reference_far_from_the_readings_warns(ds):
         ref.resolve_reference(ds, "35000")
 
 
+def test_a_hard_iron_offset_is_not_a_reference_mismatch(ds):
+    """Issue 10: the comparison uses the field the readings imply (about their centre), not the raw magnitude."""
+    shifted = ds.replace(readings_nT=ds.readings_nT + np.array([70_000.0, -40_000.0, 20_000.0]))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        ref.resolve_reference(shifted, "50000")
+    with pytest.warns(DataWarning, match="differs from the reference"):
+        ref.resolve_reference(shifted, "20000")
+
+
 def test_igrf_is_consistent_and_physical():
     total, comps = ref.igrf_total_nT(36.07, 120.38, 0.0, "2019-06-01")  # Qingdao, the patent's home
     assert total == pytest.approx(np.sqrt(comps["north_nT"] ** 2 + comps["east_nT"] ** 2 + comps["down_nT"] ** 2))

@@ -138,7 +138,10 @@ def run(args) -> int:
     if args.output:
         result.calibration.save(args.output)
     if args.json:
-        json.dump(calibration_json(result), sys.stdout, indent=2)
+        doc = calibration_json(result)
+        # every warning of the run, not only the calibration's own: reading, reference, coverage, fit
+        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
+        json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
         for note in result.warnings:
             if note not in printed:

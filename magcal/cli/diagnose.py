@@ -54,6 +54,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..coverage import calibration_input_checks
     from ..diagnosis import diagnose
     from ..pipeline import calibrate
     from .calibrate import effect_names, named_error, read_input
@@ -63,6 +64,7 @@ def run(args) -> int:
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
     ds, notes = read_input(args)
+    notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -76,7 +78,9 @@ def run(args) -> int:
     for note in notes:
         print(f"magcal diagnose: warning: {note}", file=sys.stderr)
     if args.json:
-        json.dump(diagnosis.to_dict(), sys.stdout, indent=2)
+        doc = diagnosis.to_dict()
+        doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))  # every warning of the run
+        json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         title = f"magcal diagnosis of {args.data}"
