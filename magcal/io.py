@@ -16,6 +16,7 @@ Records are one line each: quoted fields (``"a,b"``) are understood, quoted line
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import csv
 import itertools
@@ -276,33 +277,107 @@ class Chunk:
     line_numbers: np.ndarray
 
 
+class _FileLines:
+    """The lines (UTF-8 bytes, line ends kept) of a caller's file object, binary or text, read block by block.
+
+    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. Closing it
+    leaves the caller's file open.
+    """
+
+    _BLOCK = 1 << 20
+
+    def __init__(self, fh, source):
+        self._fh = fh
+        self._source = source
+        self._lines = collections.deque()
+        self._tail = b""
+        self.head = self._read(_BINARY_PROBE)
+        self._take(self.head)
+
+    def _read(self, n):
+        try:
+            data = self._fh.read(n)
+        except UnicodeDecodeError as exc:  # a text file opened with another encoding than the file's
+            raise DatasetError(
+                f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as "
+                "binary"
+            ) from None
+        if isinstance(data, str):
+            return data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
+        return bytes(data or b"")
+
+    def _take(self, data):
+        parts = (self._tail + data).split(b"\n")
+        self._tail = parts.pop()  # an unfinished line waits for the next block
+        self._lines.extend(part + b"\n" for part in parts)
+
+    def _fill(self):
+        while not self._lines:
+            more = self._read(self._BLOCK)
+            if not more:
+                if self._tail:
+                    self._lines.append(self._tail)
+                    self._tail = b""
+                return
+            self._take(more)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        self._fill()
+        if not self._lines:
+            raise StopIteration
+        return self._lines.popleft()
+
+    def readline(self):
+        return next(self, b"")
+
+    def close(self):
+        self._fh = None
+
+
 class CsvSource:
     """An open magcal CSV file: metadata and header are read at once, the rows in chunks.
 
     Parameters
     ----------
-    path : str or os.PathLike
+    path : str, os.PathLike or file object
+        A path, or an open file (binary, or text) with ``read``: an upload's ``io.BytesIO``, an ``io.StringIO``,
+        ``open(path, "rb")``. A file object is read from where it stands and left open.
     columns : dict, optional
         Mapping canonical name -> file column name (``{"s1x": "magX"}``; ``x`` means ``s1x``).
     units : str, optional
         Unit of the readings (nT, uT, G, mG); overrides the file's ``# units:`` line.
+    name : str, optional
+        What messages and :attr:`Dataset.source` call the file (e.g. an upload's file name); default the path, or
+        the file object's ``name``.
 
     Use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, path, columns=None, units=None):
-        self.path = os.fspath(path)
-        self.source = str(self.path)
+    def __init__(self, path, columns=None, units=None, name=None):
         self.metadata = {}
         self.metadata_lines = []
         self._file = None
         self._lineno = 0
-        self._probe_binary()
+        if hasattr(path, "read"):
+            self.path = None
+            self.source = str(name or getattr(path, "name", None) or "<file object>")
+            self._file = _FileLines(path, self.source)
+            head = self._file.head
+        else:
+            self.path = os.fspath(path)
+            self.source = str(name or self.path)
+            head = self._probe_path()
         try:
-            self._file = open(self.path, "rb")
-        except OSError as exc:
-            raise DatasetError(f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path") from None
-        try:
+            self._check_head(head)
+            if self._file is None:
+                try:
+                    self._file = open(self.path, "rb")
+                except OSError as exc:
+                    raise DatasetError(
+                        f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path") from None
             self._read_head()
             self.layout = _find_layout(self.header, columns, self.source, self.header_line)
             self._resolve_units(units)
@@ -313,16 +388,19 @@ class CsvSource:
         self._last_time_line = None
 
     # -- file head ----------------------------------------------------------------------------------------------
-    def _probe_binary(self):
+    def _probe_path(self):
+        """The first bytes of the file at :attr:`path` (a clear error for a folder or a missing file)."""
         try:
             if os.path.isdir(self.path):
                 raise DatasetError(f"{self.source}: is a directory, not a CSV file")
             with open(self.path, "rb") as fh:
-                head = fh.read(_BINARY_PROBE)
+                return fh.read(_BINARY_PROBE)
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except OSError as exc:
             raise DatasetError(f"{self.source}: cannot read the file ({exc.strerror or exc})") from None
+
+    def _check_head(self, head):
         if not head.strip():
             raise DatasetError(
                 f"{self.source}: the file is empty; it needs a header row (e.g. s1x,s1y,s1z) and data rows"
@@ -686,14 +764,17 @@ def concatenate(datasets):
 def check_units(dataset, units="nT", source=None, stacklevel=3):
     """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit.
 
-    The Earth's field is 20-70 uT; a median vector magnitude far outside that range (after conversion to nT)
-    usually means a wrong ``units`` line. Returns the warning text, or ``None``.
+    The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
+    usually means a wrong ``units`` line. The magnitude is taken about the readings' fitted centre
+    (:func:`magcal.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit error.
+    Returns the warning text, or ``None``.
     """
+    from .coverage import field_magnitude_nT
+
     r = dataset.readings_nT
     if r.size == 0:
         return None
-    mags = np.linalg.norm(r, axis=2)
-    median = float(np.median(mags))
+    median = float(np.median([field_magnitude_nT(y) for y in r]))  # about the fitted centre: hard iron removed
     lo, hi = EARTH_FIELD_RANGE_nT
     if 0.5 * lo <= median <= 1.5 * hi:
         return None
@@ -702,8 +783,8 @@ def check_units(dataset, units="nT", source=None, stacklevel=3):
     guesses = [name for name, f in UNIT_NAMES.items() if lo <= raw * f <= hi and f != factor]
     hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' line)"
             if guesses else "check the units (nT, uT, G, mG) and that the sensor is in the Earth's field")
-    msg = (f"{source or dataset.source or 'dataset'}: the readings' median magnitude is {raw:.4g} {units} "
-           f"= {median:.4g} nT, outside the Earth's field range of 20-70 uT; {hint}")
+    msg = (f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
+           f"centre) is {raw:.4g} {units} = {median:.4g} nT, outside the Earth's field range of 20-70 uT; {hint}")
     warnings.warn(msg, DataWarning, stacklevel=stacklevel)
     return msg
 
@@ -728,12 +809,13 @@ def require_samples(dataset, n_params, what="this model"):
         )
 
 
-def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000):
+def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None):
     """Read a magcal CSV file into a :class:`~magcal.dataset.Dataset` (readings in nT).
 
     Parameters
     ----------
-    path : str or os.PathLike
+    path : str, os.PathLike or file object
+        The file, or an open binary or text file object (``io.BytesIO(uploaded_bytes)``, ``io.StringIO(text)``).
     columns : dict or str, optional
         Column mapping canonical -> file name, e.g. ``{"s1x": "magX", "t": "time"}`` or the CLI form
         ``"x=magX,y=magY,z=magZ,t=time"``.
@@ -744,11 +826,13 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
         otherwise such rows make the whole file refused.
     min_samples : int
         Fewest samples accepted (after dropping rows).
+    name : str, optional
+        What messages and ``Dataset.source`` call the file; default the path (or the file object's ``name``).
 
     Returns
     -------
     Dataset
-        ``source`` is the path, ``metadata`` holds every ``# key: value`` line as text.
+        ``source`` is the path (or ``name``), ``metadata`` holds every ``# key: value`` line as text.
 
     Raises
     ------
@@ -757,7 +841,7 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     """
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
-    with CsvSource(path, columns=columns, units=units) as src:
+    with CsvSource(path, columns=columns, units=units, name=name) as src:
         parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
         if not parts:
             raise DatasetError(

@@ -173,3 +173,27 @@ def test_report_says_whether_the_fit_converged(chi_csv, capsys):
     assert main(["calibrate", str(chi_csv)]) == 0
     out = capsys.readouterr().out
     assert "converged (" in out and "DID NOT CONVERGE" not in out
+
+
+def test_every_subcommand_takes_effects_files():
+    from magcal.cli import SUBCOMMANDS, build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert set(SUBCOMMANDS) <= set(sub.choices)
+    for name, p in sub.choices.items():
+        assert any(a.dest == "effects_file" and "--effects-file" in a.option_strings for a in p._actions), name
+
+
+def test_effects_lists_the_built_in_catalogue(capsys):
+    from magcal.model import EFFECTS
+
+    assert main(["effects"]) == 0
+    out = capsys.readouterr().out
+    for name in EFFECTS:
+        assert f"\n{name}  (" in out, name
+    assert "beta_x, beta_y, beta_z [nT/K]" in out and "Gxx, Gxy, Gxz, Gyy, Gyz [nT/m]" in out
+    assert main(["effects", "bias_step", "--json"]) == 0
+    entry = json.loads(capsys.readouterr().out)["effects"][0]
+    assert entry["name"] == "bias_step" and entry["origin"] == "built-in" and entry["channels"] == ["time"]
+    assert [p["unit"] for p in entry["params"]] == ["nT"] * 3

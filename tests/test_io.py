@@ -2,6 +2,7 @@
 
 import os
 import warnings
+from io import BytesIO, StringIO
 
 import numpy as np
 import pytest
@@ -322,3 +323,69 @@ def test_structured_fuzz_gives_a_dataset_or_a_clean_error(tmp_path, header, rows
     ds = _read_any(tmp_path, text.encode("utf-8"))
     if ds is not None:  # what was accepted is what the file said
         assert ds.n_samples == len(rows)
+
+
+@pytest.mark.parametrize("units, factor, warned", [("nT", 1.0, False), ("nT", 1e-3, True)])
+def test_units_check_looks_past_a_hard_iron_offset(units, factor, warned):
+    """Issue 10: an offset larger than the field (MEMS on a platform) is not a unit error, and uT is still caught."""
+    import warnings
+
+    from magcal.errors import DataWarning
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=200, seed=2)
+    shifted = ds.replace(readings_nT=(ds.readings_nT + np.array([90_000.0, 60_000.0, -30_000.0])) * factor)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        io.check_units(shifted, units)
+    texts = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+    assert bool(texts) == warned, texts
+    if warned:
+        assert "--units uT" in texts[0]
+
+
+# -- file objects (an upload's bytes, text in memory, an open file) ----------------------------------------------------
+FILE_OBJECTS = {
+    "BytesIO": lambda path: BytesIO(path.read_bytes()),
+    "StringIO": lambda path: StringIO(path.read_text(encoding="utf-8")),
+    "binary file": lambda path: open(path, "rb"),
+    "text file": lambda path: open(path, encoding="utf-8", newline=""),
+}
+
+
+@pytest.mark.parametrize("kind", FILE_OBJECTS)
+def test_a_file_object_reads_as_its_path_does(tmp_path, monkeypatch, kind):
+    ds = simulate_timeseries("chi2017", n_samples=300, seed=4)  # longer than the 8 kB probe
+    path = tmp_path / "rt.csv"
+    io.write_csv(path, ds, metadata={"site": "pad B"})
+    monkeypatch.setattr(io._FileLines, "_BLOCK", 7)  # lines cross the blocks the file object is read in
+    with FILE_OBJECTS[kind](path) as fh:
+        back = io.read_csv(fh, name="upload.csv", chunk_rows=64)
+        assert not fh.closed  # the caller's file is left open
+    ref = io.read_csv(path)
+    assert back.source == "upload.csv" and back.metadata == ref.metadata
+    for attr in ("readings_nT", "time_s", "temperature_C", "attitude_wxyz"):
+        np.testing.assert_array_equal(getattr(back, attr), getattr(ref, attr))
+
+
+def test_a_file_object_is_named_by_name_then_its_own_name(tmp_path):
+    path = write(tmp_path, "x,y,z\n50000,1,2\n")
+    with open(path, "rb") as fh:
+        assert read_quiet(fh).source == str(path)
+    assert read_quiet(BytesIO(path.read_bytes())).source == "<file object>"
+
+
+@pytest.mark.parametrize("name,content,needles", BAD_FILES, ids=[b[0] for b in BAD_FILES])
+def test_a_bad_file_object_gives_the_paths_message_with_the_name_given(tmp_path, name, content, needles):
+    path = write(tmp_path, content)
+    with pytest.raises(DatasetError) as from_path:
+        read_quiet(path)
+    with pytest.raises(DatasetError) as from_bytes:
+        read_quiet(BytesIO(content), name="upload.csv")
+    assert str(from_bytes.value) == str(from_path.value).replace(str(path), "upload.csv")
+
+
+def test_a_text_file_in_the_wrong_encoding_is_a_clean_error(tmp_path):
+    path = write(tmp_path, "x,y,z\n50000,1,2\n50001,1,2 \u00b5T\n")
+    with open(path, encoding="ascii") as fh, pytest.raises(DatasetError, match="^upload.csv: .*UTF-8"):
+        read_quiet(fh, name="upload.csv")

@@ -93,10 +93,14 @@ def test_session_state_round_trip():
     st.add_effect("bias_step:1")
     st.method, st.reference_nT, st.robust, st.sensor = "de", 51000.0, True, 1
     st.record(StepRecord("fit ellipsoid", 3.2, 2.9, [], 18, "RMS 700 -> 3.2 nT", 0.1), {"format": "x"})
+    st.record(StepRecord("refine (ML)", 3.1, 2.9, [], 18, "RMS 3.2 -> 3.1 nT", 0.2,
+                         fit={"success": False, "status": 0, "message": "maximum number of evaluations reached",
+                              "nfev": 2}))
     back = SessionState.from_dict(json.loads(json.dumps(st.to_dict())))
     assert back.to_dict() == st.to_dict()
     x, y, f = back.rms_series()
-    assert list(y) == [3.2] and list(f) == [2.9]
+    assert list(y) == [3.2, 3.1] and list(f) == [2.9, 2.9]
+    assert back.history[0].fit is None and back.history[1].fit["success"] is False
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -680,3 +684,81 @@ def test_the_two_effect_lesson_can_be_followed_to_adequate(bench):
     assert wb.ctrl.diagnosis.verdict == "adequate"
     assert lesson.check(wb.ctrl.state.effects)["solved"]
     assert wb.ctrl.residual_rms_nT() < 1.02 * wb.ctrl.floor_nT()
+
+
+def test_a_fit_that_does_not_converge_says_so(bench, monkeypatch):
+    """The engine's FitResult.success/message reach the status, the history and the session file."""
+    import importlib
+
+    fitting = importlib.import_module("magcal.fit")  # the module (``magcal.fit`` is also the function)
+    real = fitting.fit
+    monkeypatch.setattr(fitting, "fit", lambda *a, **kw: real(*a, **{**kw, "max_nfev": 2}))
+    wb = bench()
+    _click(wb, wb.panels.btn_run)
+    status = wb.panels.status.content
+    assert "did not converge" in status and "maximum number of evaluations" in status and "Refine" in status
+    assert "did not converge" in wb.panels.history.content and "did not converge" in wb.ctrl.message
+    saved = json.loads((wb.store.root / wb.ctrl.session_id / "session.json").read_text())
+    fit = saved["history"][-1]["fit"]
+    assert fit["success"] is False and fit["status"] == 0 and fit["nfev"] >= 2
+    monkeypatch.undo()
+    _click(wb, wb.panels.btn_refine)  # continues from where it stopped, with the full budget
+    assert "did not converge" not in wb.panels.status.content
+    assert wb.ctrl.state.history[-1].fit["success"] is True
+    assert wb.ctrl.residual_rms_nT() < 1.1 * SIGMA
+
+
+def test_writing_the_state_into_the_widgets_changes_nothing(bench):
+    """Refresh writes the state into bound widgets; their callbacks see nothing to do (no per-sensor effect widened
+    to all sensors, no autosave), while a user's change still goes through."""
+    wb = bench(store=False)
+    st = wb.ctrl.state
+    st.add_effect("temperature_bias:2")
+    st.method, st.reference_nT, st.robust, st.sensor = "de", 51_000.0, True, 2
+    version = st.version
+    wb.panels.refresh(("all", "data"))
+    p = wb.panels
+    assert p.effect_boxes["temperature_bias"].value and p.method.value == "de" and p.robust.value
+    assert p.reference.value == 51_000.0 and p.sensor_choice.value == "sensor 3"
+    assert st.effects == ["temperature_bias:2"] and st.version == version
+    p.effect_boxes["temperature_bias"].value = False  # the user unticks it
+    assert st.effects == [] and st.version > version
+    p.sensor_choice.value = "all sensors"
+    assert st.sensor is None and wb.scene_view.displayed.positions.shape[0] == 4 * 300
+
+
+def test_upload_and_download_use_no_temporary_file(bench, tmp_path, monkeypatch):
+    import tempfile
+
+    wb = bench(store=False)
+    _click(wb, wb.panels.btn_run)
+
+    def refuse(*a, **kw):
+        raise AssertionError("a temporary file was made")
+
+    for name in ("mkstemp", "TemporaryDirectory", "NamedTemporaryFile", "mkdtemp"):
+        monkeypatch.setattr(tempfile, name, refuse)
+    wb.do_download_corrected(None)
+    name, content = wb.last_download
+
+    class Broken:
+        name = "rows.csv"
+        content = b"s1x,s1y,s1z\n50000,1,2\n50001,oops,2\n"
+
+    wb.panels.upload._impl.value = Broken()
+    wb.do_upload(None)
+    assert wb.worker.wait(60)
+    assert "rows.csv: 1 row(s) with bad values: line 3, column s1y" in wb.ctrl.message
+    monkeypatch.undo()
+    assert name == "corrected.csv" and content == _csv_bytes(tmp_path, wb)
+
+
+def _csv_bytes(tmp_path, wb):
+    """What write_csv makes of the workbench's corrected data (the download must be the same file)."""
+    ctrl = wb.ctrl
+    extra = dict(ctrl.dataset.extra, kept=ctrl.kept.astype(int))
+    extra.update({f"s{s + 1}_residual_nT": ctrl.residual_nT[s] for s in range(ctrl.dataset.n_sensors)})
+    path = tmp_path / "expected.csv"
+    mio.write_csv(path, ctrl.dataset.replace(readings_nT=ctrl.corrected_nT, extra=extra),
+                  metadata={"corrected_by": "magcal workbench", "frame": ctrl.calibration.frame, "effects": "none"})
+    return path.read_bytes()

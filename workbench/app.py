@@ -65,7 +65,6 @@ class Workbench:
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         self.store = store
         self.worker = Worker()
-        self._quiet = False
         self._last_progress = 0.0
         self.last_download: tuple[str, bytes] | None = None
         self.evidence_plot = None
@@ -154,7 +153,7 @@ class Workbench:
     # scene
     # ------------------------------------------------------------------------------------------------------
     def scene_model(self) -> scn.SceneModel:
-        ctrl, p = self.ctrl, self.panels if hasattr(self, "panels") else None
+        ctrl = self.ctrl
         ds = ctrl.dataset
         shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
         cal = ctrl.calibration
@@ -167,19 +166,11 @@ class Workbench:
                 cinv=None if cal is None else cal.sensors[s].cinv,
                 bias_nT=None if cal is None else cal.sensors[s].bias_nT,
                 R=None if cal is None else cal.sensors[s].R))
-        model = scn.SceneModel(
+        return scn.SceneModel(
             sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.kept, floor_nT=ctrl.floor_nT(),
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
-            inspected=ctrl.inspected)
-        if p is not None:
-            model.distortion_gain = float(p.distortion_gain.value)
-            model.residual_gain = float(p.residual_gain.value)
-            model.axes_gain = float(p.axes_gain.value)
-            model.show_raw = bool(p.show_raw.value)
-            model.show_corrected = bool(p.show_corrected.value)
-            model.show_ellipsoid = bool(p.show_ellipsoid.value)
-        return model
+            inspected=ctrl.inspected, **self.panels.view_options())
 
     def update_scene(self) -> None:
         with self._scene_lock:
@@ -253,11 +244,10 @@ class Workbench:
         return n
 
     # ------------------------------------------------------------------------------------------------------
-    # GUI callbacks (every one goes through handle)
+    # GUI callbacks (the panels wire them where the widgets are made; every one goes through handle)
     # ------------------------------------------------------------------------------------------------------
     def handle(self, func, event, *args):
-        if self._quiet:
-            return
+        """Run a callback; an engine error becomes the message (and a toast in the browser that caused it)."""
         try:
             func(event, *args)
         except MagcalError as exc:
@@ -269,60 +259,21 @@ class Workbench:
             traceback.print_exc()
             self.ctrl.say(f"**Unexpected error:** {type(exc).__name__}: {exc}")
 
-    def _set_quiet(self, handle, value) -> None:
-        if handle.value == value:
-            return
-        self._quiet = True
-        try:
-            handle.value = value
-        finally:
-            self._quiet = False
-
     def _job(self, name, func) -> bool:
         return self.ctrl.run_job(name, func)
 
-    # settings
-    def set_method(self, event):
-        self.ctrl.state.method = self.panels.method.value
-        self.ctrl.state.touch()
-        self.ctrl.autosave()
+    # view
+    def set_sensor(self, choice: str) -> None:
+        """Show one sensor (``"sensor 2"``) or all of them (the panels' sensor choice)."""
+        from .panels import ALL_SENSORS
 
-    def set_reference(self, event):
-        v = float(self.panels.reference.value or 0.0)
-        self.ctrl.state.reference_nT = v if v > 0 else None
-        self.ctrl.state.touch()
-        self.ctrl.autosave()
-
-    def set_fit_reference(self, event):
-        self.ctrl.state.fit_reference = bool(self.panels.fit_reference.value)
-        self.ctrl.state.touch()
-        self.ctrl.autosave()
-
-    def set_robust(self, event):
-        self.ctrl.state.robust = bool(self.panels.robust.value)
-        self.ctrl.state.touch()
-        self.ctrl.autosave()
-
-    def set_sensor(self, event):
-        v = self.panels.sensor_choice.value
-        self.ctrl.state.sensor = None if v == "all sensors" else int(v.split()[-1]) - 1
-        self.ctrl.state.touch()
-        self.ctrl.autosave()
+        self.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
         self.update_scene()
         self.reset_cameras()
 
     def view_changed(self, event):
         self.update_scene()
         self.panels.legend.content = self.legend_html()
-
-    def candidate_chosen(self, event):
-        from .panels import candidate_evidence_markdown
-
-        self.panels.candidate_evidence.content = candidate_evidence_markdown(
-            self.ctrl.diagnosis, self.panels.candidate_choice.value)
-
-    def toggle_effect(self, event, name):
-        self.ctrl.set_effect(name, bool(self.panels.effect_boxes[name].value))
 
     # engine steps
     def do_ellipsoid(self, event):

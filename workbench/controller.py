@@ -11,9 +11,10 @@ All physics is the engine's (:mod:`magcal.pipeline`, :mod:`magcal.fit`, :mod:`ma
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
-import tempfile
 import threading
 import time
 import traceback
@@ -24,7 +25,7 @@ import numpy as np
 
 from magcal import conventions
 from magcal.calibration import Calibration
-from magcal.errors import MagcalError
+from magcal.errors import ConvergenceWarning, MagcalError
 from magcal.noise import robust_sigma
 
 from .jobs import Worker
@@ -101,6 +102,20 @@ class Controller:
     def say(self, text: str) -> None:
         self.message = text
         self._emit("message")
+
+    #: Session settings :meth:`configure` changes (attributes of :class:`SessionState`).
+    SETTINGS = ("method", "reference_nT", "fit_reference", "robust", "sensor")
+
+    def configure(self, **settings) -> None:
+        """Change session settings (``method``, ``reference_nT``, ``fit_reference``, ``robust``, ``sensor``) and
+        autosave; they apply to the next step."""
+        unknown = set(settings) - set(self.SETTINGS)
+        if unknown:
+            raise ValueError(f"unknown setting(s) {sorted(unknown)}; known: {', '.join(self.SETTINGS)}")
+        for key, value in settings.items():
+            setattr(self.state, key, value)
+        self.state.touch()
+        self.autosave()
 
     # ------------------------------------------------------------------------------------------------------
     # data views
@@ -242,15 +257,19 @@ class Controller:
         rms_after = self.residual_rms_nT()
         if fit is not None and not self.dataset.noise_nT:
             self.noise_nT = float(fit.noise_nT)
+        outcome = None if fit is None else fit.summary()
         rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
                          effects=list(self.state.effects), n_kept=int(self.kept.sum()),
                          changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
-                         elapsed_s=time.perf_counter() - t0)
+                         elapsed_s=time.perf_counter() - t0,
+                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS})
         self.state.record(rec, self.calibration.to_dict())
         self.autosave()
         self._emit("result")
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
         text = f"**{step}**: {rec.changes} ({rec.elapsed_s:.2f} s)"
+        if fit is not None and not fit.success:
+            text += " - **the fit did not converge** (see above)"
         if notes:
             text += "".join(f"  \n- {n}" for n in dict.fromkeys(notes))
         self.say(text)
@@ -326,7 +345,7 @@ class Controller:
             warnings.simplefilter("always")
             result = ml_fit(ds, self._model(), init=init, loss="soft_l1" if self.state.robust else "linear",
                                 mask=self.kept, reference_total_nT=self.reference_arg)
-        notes = [str(w.message) for w in wl]
+        notes = [str(w.message) for w in wl if not issubclass(w.category, ConvergenceWarning)]  # the status says it
         self.fit_result = result
         self.calibration_result = None
         self.diagnosis = None
@@ -488,15 +507,13 @@ class Controller:
         ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
         meta = {"corrected_by": "magcal workbench", "frame": self.calibration.frame,
                 "effects": ",".join(self.state.effects) or "none"}
-        fd, tmp = tempfile.mkstemp(suffix=".csv")
-        os.close(fd)
-        try:
-            mio.write_csv(tmp, ds, metadata=meta)
-            with open(tmp, "rb") as fh:
-                return fh.read()
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        # in memory from the writer's own parts (write_csv writes only to a path, atomically)
+        columns = mio.dataset_columns(ds)
+        out = io.StringIO(newline="")
+        out.write(mio.metadata_text({**mio.dataset_metadata(ds), **meta}))
+        csv.writer(out, lineterminator="\n").writerow(list(columns))
+        mio.write_rows(out, columns)
+        return out.getvalue().encode("utf-8")
 
     def autosave(self) -> None:
         if self.store is None or self.session_id is None:
@@ -512,25 +529,18 @@ def candidate_label(candidate) -> str:
     return candidate["label"] if isinstance(candidate, dict) else candidate.label
 
 
-def load_dataset(path):
-    """Read a CSV with the engine's reader (clear :class:`MagcalError` on problems)."""
+def load_dataset(source, name: str | None = None):
+    """Read a CSV (a path or an open file object) with the engine's reader; messages and the dataset's source
+    name ``name`` when given. Returns the dataset and the reader's warnings as text (a clear
+    :class:`MagcalError` on problems)."""
     from magcal import io as mio
 
     with warnings.catch_warnings(record=True) as wl:
         warnings.simplefilter("always")
-        ds = mio.read_csv(path)
+        ds = mio.read_csv(source, name=name)
     return ds, [str(w.message) for w in wl]
 
 
 def read_bytes_dataset(name: str, content: bytes):
-    """Read an uploaded CSV (bytes) through a temporary file of the same name, so messages name the upload."""
-    safe = os.path.basename(name).replace(os.sep, "_") or "upload.csv"
-    with tempfile.TemporaryDirectory(prefix="magcal-upload-") as folder:
-        path = os.path.join(folder, safe)
-        with open(path, "wb") as fh:
-            fh.write(content)
-        try:
-            ds, notes = load_dataset(path)
-        except MagcalError as exc:
-            raise type(exc)(str(exc).replace(path, safe)) from None
-    return ds.replace(source=safe), [n.replace(path, safe) for n in notes]
+    """Read an uploaded CSV from its bytes in memory; messages name the upload (its base name)."""
+    return load_dataset(io.BytesIO(content), os.path.basename(name) or "upload.csv")

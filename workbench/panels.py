@@ -1,8 +1,11 @@
 """The control panel: tabs for calibration steps, the model loop, outliers, the view, files and lessons.
 
-Every GUI element lives on ``server.gui`` so all connected browsers share one state. Callbacks only call the
-:class:`~workbench.app.Workbench` (which calls the controller); :meth:`Panels.refresh` writes the state back
-into the widgets. Text shown is built by small pure functions (``*_markdown``) that the tests call directly.
+Every GUI element lives on ``server.gui`` so all connected browsers share one state. Each widget's callback is
+wired where the widget is made: buttons call the :class:`~workbench.app.Workbench` (which calls the controller);
+a setting's widget is *bound* to the session state (:meth:`Panels._bind`), and its callback does nothing when the
+widget already shows what the state holds, so :meth:`Panels.refresh` writes the state back into the widgets
+without re-running anything. Text shown is built by small pure functions (``*_markdown``) that the tests call
+directly.
 """
 
 from __future__ import annotations
@@ -28,8 +31,18 @@ def fmt(v, unit="", digits=4) -> str:
     return f"{v:.{digits}g}{(' ' + unit) if unit else ''}"
 
 
+def convergence_markdown(record) -> str:
+    """A warning when a step's fit stopped before converging (the engine's ``FitResult.success``); else ``""``."""
+    fit = getattr(record, "fit", None)
+    if not fit or fit.get("success", True):
+        return ""
+    return (f"⚠ **Warning: the fit did not converge** ({fit.get('message') or 'no reason given'}, "
+            f"{fit.get('nfev', '?')} evaluations): its figures are not a minimum. Press *3. Refine* to continue "
+            "from where it stopped, or check the data (outliers, attitude coverage, units, reference field).")
+
+
 def status_markdown(ctrl) -> str:
-    """The always-visible summary: RMS, floor, rejected count, model."""
+    """The always-visible summary: RMS, floor, rejected count, model, and a warning if the fit did not converge."""
     rms = ctrl.residual_rms_nT()
     floor = ctrl.floor_nT()
     sel = ctrl.state.selection
@@ -38,9 +51,11 @@ def status_markdown(ctrl) -> str:
         rms_text = "no kept samples"
     else:
         rms_text = fmt(rms, "nT") if np.isfinite(rms) else "not fitted yet"
-    return (f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
+    text = (f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
             f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
             f"Model: {effects}")
+    warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
+    return f"{text}\n\n{warning}" if warning else text
 
 
 def data_markdown(ctrl) -> str:
@@ -81,7 +96,8 @@ def history_markdown(state, last: int = 6) -> str:
     rows = ["| # | step | RMS nT | what changed |", "|---|---|---|---|"]
     start = max(0, len(state.history) - last)
     for i, r in enumerate(state.history[start:], start=start):
-        rows.append(f"| {i} | {r.step} | {fmt(r.rms_nT)} | {r.changes} |")
+        flag = " (did not converge)" if convergence_markdown(r) else ""
+        rows.append(f"| {i} | {r.step} | {fmt(r.rms_nT)}{flag} | {r.changes} |")
     return "\n".join(rows)
 
 
@@ -164,6 +180,7 @@ class Panels:
         self.legend = gui.add_html("")
         tabs = gui.add_tab_group()
         self._engine_buttons = []
+        self._bindings = []  # (widget, the state's value as the widget shows it)
         with tabs.add_tab("Calibrate", icon=None):
             self._build_calibrate(gui)
         with tabs.add_tab("Model", icon=None):
@@ -179,6 +196,21 @@ class Panels:
         self.tabs = tabs
 
     # --- construction --------------------------------------------------------------------------------------
+    def _bind(self, handle, shown, apply):
+        """Wire a setting's widget to the session state, where the widget is made.
+
+        ``shown()`` is the state's value as the widget shows it; ``apply(value)`` puts the value the user chose
+        into the state. A callback whose value the state already holds does nothing, so :meth:`show_state` may
+        write the state into every widget without re-triggering anything.
+        """
+        def changed(event):
+            if handle.value != shown():
+                self.app.handle(lambda _: apply(handle.value), event)
+
+        handle.on_update(changed)
+        self._bindings.append((handle, shown))
+        return handle
+
     def _button(self, gui, label, handler, engine=True, **kw):
         b = gui.add_button(label, **kw)
         b.on_click(lambda event: self.app.handle(handler, event))
@@ -188,18 +220,23 @@ class Panels:
 
     def _build_calibrate(self, gui):
         self.data_info = gui.add_markdown("")
-        self.method = gui.add_dropdown("Method", tuple(METHODS), initial_value="ml",
-                                       hint="; ".join(METHOD_LABELS[m] for m in METHODS))
-        self.method.on_update(lambda e: self.app.handle(self.app.set_method, e))
-        self.reference = gui.add_number("Reference field nT", 0.0, min=0.0, step=1.0,
-                                        hint="Total field in nT; 0 = the file's reference (or fitted if none)")
-        self.reference.on_update(lambda e: self.app.handle(self.app.set_reference, e))
-        self.fit_reference = gui.add_checkbox("Fit the field magnitude", False,
-                                              hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)")
-        self.fit_reference.on_update(lambda e: self.app.handle(self.app.set_fit_reference, e))
-        self.robust = gui.add_checkbox("Robust loss (soft L1)", False,
-                                       hint="Down-weight gross outliers in the ML step")
-        self.robust.on_update(lambda e: self.app.handle(self.app.set_robust, e))
+        state, configure = (lambda: self.app.ctrl.state), (lambda **kw: self.app.ctrl.configure(**kw))
+        self.method = self._bind(
+            gui.add_dropdown("Method", tuple(METHODS), initial_value="ml",
+                             hint="; ".join(METHOD_LABELS[m] for m in METHODS)),
+            lambda: state().method, lambda v: configure(method=v))
+        self.reference = self._bind(
+            gui.add_number("Reference field nT", 0.0, min=0.0, step=1.0,
+                           hint="Total field in nT; 0 = the file's reference (or fitted if none)"),
+            lambda: float(state().reference_nT or 0.0),
+            lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None))
+        self.fit_reference = self._bind(
+            gui.add_checkbox("Fit the field magnitude", False,
+                             hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)"),
+            lambda: bool(state().fit_reference), lambda v: configure(fit_reference=bool(v)))
+        self.robust = self._bind(
+            gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
+            lambda: bool(state().robust), lambda v: configure(robust=bool(v)))
         self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.app.do_ellipsoid)
         self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.app.do_align)
         self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.app.do_refine)
@@ -213,9 +250,11 @@ class Panels:
                          "Greyed ones need a channel the data lack (hover for the reason).")
         self.effect_boxes = {}
         for entry in self.app.ctrl.available_effects():
-            box = gui.add_checkbox(entry["name"], False, hint=effect_hint(entry))
-            box.on_update(lambda e, name=entry["name"]: self.app.handle(self.app.toggle_effect, e, name))
-            self.effect_boxes[entry["name"]] = box
+            name = entry["name"]
+            self.effect_boxes[name] = self._bind(
+                gui.add_checkbox(name, False, hint=effect_hint(entry)),
+                lambda n=name: self.app.ctrl.state.has_effect(n),
+                lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)))
         if not self.effect_boxes:
             gui.add_markdown("_The effect catalogue is not installed in this engine._")
         self.btn_refit = self._button(gui, "Refit with this model", self.app.do_refine)
@@ -223,7 +262,7 @@ class Panels:
         self.candidates = gui.add_markdown("")
         self.candidate_choice = gui.add_dropdown("Candidate", ("-",), initial_value="-")
         self.candidate_evidence = gui.add_markdown("")
-        self.candidate_choice.on_update(lambda e: self.app.handle(self.app.candidate_chosen, e))
+        self.candidate_choice.on_update(lambda e: self.app.handle(lambda _: self._show_candidate_evidence(), e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
         self.rms_plot = gui.add_uplot(
             data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan])),
@@ -251,10 +290,9 @@ class Panels:
         self.inspect = gui.add_markdown(inspect_markdown(None))
 
     def _build_view(self, gui):
-        n = self.app.ctrl.dataset.n_sensors
-        options = self._sensor_options(n)
-        self.sensor_choice = gui.add_dropdown("Sensor", options, initial_value=options[0])
-        self.sensor_choice.on_update(lambda e: self.app.handle(self.app.set_sensor, e))
+        options = self._sensor_options(self.app.ctrl.dataset.n_sensors)
+        self.sensor_choice = self._bind(gui.add_dropdown("Sensor", options, initial_value=options[0]),
+                                        self._sensor_shown, self.app.set_sensor)
         self.distortion_gain = gui.add_slider("Raw distortion x", min=1.0, max=50.0, step=1.0, initial_value=10.0)
         self.residual_gain = gui.add_slider("Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=100.0,
                                             initial_value=1000.0)
@@ -298,6 +336,19 @@ class Panels:
     def _sensor_options(n):
         return tuple([ALL_SENSORS] + [f"sensor {i + 1}" for i in range(n)]) if n > 1 else ("sensor 1",)
 
+    def _sensor_shown(self) -> str:
+        """The sensor choice the state holds, as the dropdown shows it."""
+        ctrl = self.app.ctrl
+        s = ctrl.state.sensor
+        return self._sensor_options(ctrl.dataset.n_sensors)[0] if s is None else f"sensor {s + 1}"
+
+    def view_options(self) -> dict:
+        """The View tab's settings, as :class:`~workbench.scene.SceneModel` fields."""
+        return {"distortion_gain": float(self.distortion_gain.value),
+                "residual_gain": float(self.residual_gain.value), "axes_gain": float(self.axes_gain.value),
+                "show_raw": bool(self.show_raw.value), "show_corrected": bool(self.show_corrected.value),
+                "show_ellipsoid": bool(self.show_ellipsoid.value)}
+
     # --- refresh -------------------------------------------------------------------------------------------
     def set_busy(self, busy: bool, name: str | None) -> None:
         for b in self._engine_buttons:
@@ -335,15 +386,6 @@ class Panels:
                 if len(x) == 1:
                     x, y, f = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2)
                 self.rms_plot.data = (x, y, f)
-        if everything or "model" in kinds:
-            for name, box in self.effect_boxes.items():
-                want = ctrl.state.has_effect(name)
-                if box.value != want:
-                    app._quiet = True
-                    try:
-                        box.value = want
-                    finally:
-                        app._quiet = False
         if everything or "data" in kinds:
             self.data_info.content = data_markdown(ctrl)
             entries = {e["name"]: e for e in ctrl.available_effects()}
@@ -352,15 +394,12 @@ class Panels:
                 if e is not None:
                     box.disabled = bool(e["missing"])
                     box.hint = effect_hint(e)
-            opts = self._sensor_options(ctrl.dataset.n_sensors)
-            self.sensor_choice.options = opts
-            cur = opts[0] if ctrl.state.sensor is None else f"sensor {ctrl.state.sensor + 1}"
-            app._set_quiet(self.sensor_choice, cur if cur in opts else opts[0])
-            app._set_quiet(self.method, ctrl.state.method)
-            app._set_quiet(self.reference, float(ctrl.state.reference_nT or 0.0))
-            app._set_quiet(self.fit_reference, bool(ctrl.state.fit_reference))
-            app._set_quiet(self.robust, bool(ctrl.state.robust))
+            # the state's choice first: new options then never fall back to a stale one (which would apply it)
+            self.sensor_choice.value = self._sensor_shown()
+            self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
             self.refresh_sessions()
+        if everything or kinds & {"model", "data"}:
+            self.show_state()
         if everything or "diagnosis" in kinds or "data" in kinds:
             self.candidates.content = candidates_markdown(ctrl.diagnosis)
             from .controller import candidate_label
@@ -368,8 +407,8 @@ class Panels:
             cands = [candidate_label(c) for c in (ctrl.diagnosis.candidates if ctrl.diagnosis is not None else [])]
             opts = tuple(dict.fromkeys(cands)) or ("-",)
             self.candidate_choice.options = opts
-            app._set_quiet(self.candidate_choice, opts[0])
-            self.candidate_evidence.content = candidate_evidence_markdown(ctrl.diagnosis, opts[0])
+            self.candidate_choice.value = opts[0]
+            self._show_candidate_evidence()
             app.draw_evidence()
         if everything or "inspect" in kinds or "selection" in kinds:
             info = ctrl.sample_info(ctrl.inspected) if ctrl.inspected is not None else None
@@ -381,6 +420,15 @@ class Panels:
         self.btn_dl_csv.disabled = not has_cal
         self.btn_align.visible = ctrl.dataset.n_sensors > 1
 
+    def show_state(self) -> None:
+        """Write the session state into every bound widget (their callbacks see nothing to change)."""
+        for handle, shown in self._bindings:
+            handle.value = shown()
+
+    def _show_candidate_evidence(self) -> None:
+        self.candidate_evidence.content = candidate_evidence_markdown(self.app.ctrl.diagnosis,
+                                                                      self.candidate_choice.value)
+
     def refresh_sessions(self) -> None:
         app = self.app
         if app.store is None:
@@ -391,4 +439,4 @@ class Panels:
                                      if app.ctrl.session_id else "_This session is not saved._")
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts
-        app._set_quiet(self.session_choice, opts[0])
+        self.session_choice.value = opts[0]

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
+from viser.transforms import SO3
 
 from magcal import conventions
 
@@ -182,15 +183,6 @@ def cross_positions(n_sensors: int) -> np.ndarray:
 
 
 # --- picking ------------------------------------------------------------------------------------------------
-def _quat_wxyz_to_matrix(wxyz) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, dtype=float) / np.linalg.norm(wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def project_points(points_world, camera_wxyz, camera_position, fov_rad, aspect):
     """Screen coordinates (0..1, OpenCV: origin top-left, y down) and a visibility flag for world points.
 
@@ -209,7 +201,7 @@ def project_points(points_world, camera_wxyz, camera_position, fov_rad, aspect):
     uv : numpy.ndarray, shape (N, 2)
     in_front : numpy.ndarray of bool, shape (N,)
     """
-    r = _quat_wxyz_to_matrix(camera_wxyz)
+    r = SO3(np.asarray(camera_wxyz, dtype=float)).normalize().as_matrix()
     pc = (np.asarray(points_world, float) - np.asarray(camera_position, float)) @ r  # R^T (p - t)
     z = pc[:, 2]
     in_front = z > 1e-9

@@ -182,7 +182,13 @@ class StepRecord:
         One line saying what changed.
     elapsed_s : float
         Wall time of the step, s.
+    fit : dict or None
+        The solver's outcome when the step ran a fit: ``success``, ``status``, ``message``, ``nfev`` (as
+        :meth:`magcal.fit.FitResult.summary` gives them); None for steps without one.
     """
+
+    #: The keys of :attr:`fit`.
+    FIT_KEYS = ("success", "status", "message", "nfev")
 
     step: str
     rms_nT: float
@@ -191,19 +197,21 @@ class StepRecord:
     n_kept: int = 0
     changes: str = ""
     elapsed_s: float = 0.0
+    fit: dict | None = None
 
     def to_dict(self) -> dict:
         return {
             "step": self.step, "rms_nT": _num(self.rms_nT), "floor_nT": _num(self.floor_nT),
             "effects": list(self.effects), "n_kept": int(self.n_kept), "changes": self.changes,
-            "elapsed_s": float(self.elapsed_s),
+            "elapsed_s": float(self.elapsed_s), "fit": None if self.fit is None else dict(self.fit),
         }
 
     @classmethod
     def from_dict(cls, doc: dict) -> "StepRecord":
         return cls(step=doc["step"], rms_nT=_num(doc["rms_nT"]), floor_nT=_num(doc.get("floor_nT")),
                    effects=list(doc.get("effects", [])), n_kept=int(doc.get("n_kept", 0)),
-                   changes=doc.get("changes", ""), elapsed_s=float(doc.get("elapsed_s", 0.0)))
+                   changes=doc.get("changes", ""), elapsed_s=float(doc.get("elapsed_s", 0.0)),
+                   fit=doc.get("fit"))
 
 
 def _num(v):

@@ -3,6 +3,12 @@
 Each subcommand module defines ``register(subparsers)`` (adds its parser and sets ``func``). User errors are
 raised as :class:`magcal.errors.MagcalError` (or :class:`magcal.dataset.DatasetError`) and printed as one clear
 message with exit status 2, never as a traceback.
+
+Every subcommand takes ``--effects-file FILE.py`` (repeatable): a user's own effects (``docs/user-effects.md``),
+loaded before the command runs, so that ``--effects NAME``, the diagnosis, a calibration JSON naming the effect,
+``apply`` and ``simulate --hidden NAME`` know them. Effects that installed packages declare in the entry-point
+group ``magcal.effects`` are loaded once at start (:func:`magcal.plugins.load_entry_points`; a failing one is a
+warning). An exception raised later inside a user's effect code is reported as its file, line and error.
 """
 
 from __future__ import annotations
@@ -12,7 +18,29 @@ import importlib
 import sys
 
 #: Subcommand modules, in the order ``magcal --help`` lists them.
-SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply")
+SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects")
+
+
+def add_effects_file_argument(parser) -> None:
+    """``--effects-file FILE.py`` (repeatable): a user's effect file to load before the command runs."""
+    parser.add_argument("--effects-file", action="append", default=None, metavar="FILE.py", dest="effects_file",
+                        help="Python file defining your own effects (Effect subclasses decorated with @register; "
+                             "see docs/user-effects.md); repeatable. Needed again wherever the effect is used: "
+                             "calibrate, diagnose, and apply or align with a calibration that includes it")
+
+
+def load_plugins(args, command="magcal") -> None:
+    """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
+    import warnings
+
+    from .. import plugins
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plugins.load_entry_points()
+    for w in caught:
+        print(f"{command}: warning: {w.message}", file=sys.stderr)
+    plugins.load_effects_files(getattr(args, "effects_file", None))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,7 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name != f"magcal.cli.{name}":
                 raise
             continue
-        module.register(sub)
+        sub_parser = module.register(sub)
+        if sub_parser is not None and not any(a.dest == "effects_file" for a in sub_parser._actions):
+            add_effects_file_argument(sub_parser)
     return parser
 
 
@@ -41,9 +71,18 @@ def main(argv=None) -> int:
         parser.print_help()
         return 1
     try:
+        load_plugins(args, f"magcal {args.command}")
         return int(args.func(args) or 0)
     except MagcalError as exc:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug in a user's effect code: its file and line, not a traceback into magcal
+        from ..plugins import user_code_error
+
+        message = user_code_error(exc)
+        if message is None:
+            raise
+        print(f"magcal {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"magcal {args.command}: interrupted", file=sys.stderr)

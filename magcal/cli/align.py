@@ -57,6 +57,9 @@ def run(args) -> int:
         calibration = None
         ref_value, ref_text = None, None
         if args.cal:
+            from ..plugins import check_calibration_effects
+
+            check_calibration_effects(args.cal)  # a user's effect in the file needs --effects-file
             calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
         else:
             ref = reference_from_args(args, ds)

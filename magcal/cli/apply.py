@@ -3,6 +3,7 @@
 Example::
 
     magcal apply platform.json survey.csv -o survey_cal.csv
+    magcal apply cal.json survey.csv -o out.csv --effects-file my_effects.py   # a calibration with your own effect
 
 Writes every input line plus ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` (nT) and, for a four-sensor array, the tensor
 ``Gxx .. Gzz, Gyx`` (nT/m) and its invariants ``I0, I1, I2`` (see docs/formats.md).
@@ -40,9 +41,11 @@ def register(subparsers):
 
 def run(args) -> int:
     from ..apply import apply_file, load_calibration
+    from ..plugins import check_calibration_effects
 
     if args.chunk_rows < 1:
         raise MagcalError(f"--chunk-rows must be at least 1, got {args.chunk_rows}")
+    check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -5,6 +5,7 @@ Example::
     magcal calibrate chi2017.csv -o cal.json
     magcal calibrate chi2017.csv --reference 50000 --json
     magcal calibrate field.csv --robust --method ml
+    magcal calibrate field.csv --effects-file my_effects.py --effects pump_interference -o cal.json
 
 Other subcommands reuse :func:`add_input_arguments` / :func:`read_input` for the data file options. To add an
 option, add it in :func:`add_arguments` and map it in :func:`calibrate_options`.
@@ -60,7 +61,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="seed of the global-search methods")
     parser.add_argument("--effects", action="append", default=None, metavar="LIST",
                         help="candidate effects to add to the base model, comma-separated NAME or NAME:SENSOR "
-                             "(e.g. temperature_bias,bias_step:2; see docs/effects.md); repeatable")
+                             "(e.g. temperature_bias,bias_step:2; see docs/effects.md, and magcal effects for the "
+                             "list); your own effects with --effects-file; repeatable")
     parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the calibration here")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
 
@@ -89,11 +91,21 @@ def effect_names(value) -> list:
     return [name.strip() for item in items for name in str(item).split(",") if name.strip()]
 
 
+def checked_effect_names(args) -> list:
+    """:func:`effect_names` of ``--effects``, refusing a name not in the catalogue with a message that says how to
+    load a user's own effect (``--effects-file``)."""
+    from ..plugins import check_effect_names
+
+    names = effect_names(getattr(args, "effects", None))
+    check_effect_names(names, "--effects")
+    return names
+
+
 def calibrate_options(args) -> dict:
     """Keyword arguments of :func:`magcal.pipeline.calibrate` from the parsed options."""
     return {
         "method": args.method,
-        "effects": effect_names(getattr(args, "effects", None)),
+        "effects": checked_effect_names(args),
         "robust": args.robust,
         "reference_total_nT": None,  # resolved into the dataset by run() (number, igrf, column or fit)
         "seed": args.seed,
@@ -108,6 +120,7 @@ def run(args) -> int:
 
     from ..reference import reference_from_args
 
+    names = checked_effect_names(args)  # before reading: an unknown name fails fast
     ds, notes = read_input(args)
     with warnings.catch_warnings(record=True) as caught_ref:
         warnings.simplefilter("always")

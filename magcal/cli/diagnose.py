@@ -5,6 +5,7 @@ Example::
     magcal simulate --hidden temperature_bias:2 -o hidden.csv
     magcal diagnose hidden.csv
     magcal diagnose hidden.csv --effects temperature_bias:2 --json
+    magcal diagnose field.csv --effects-file my_effects.py      # your own effects are candidates too
 
 Fits the base model (plus ``--effects``), then prints a ranked table of candidate effects (score test, confirmed
 by refitting the best ones) and a verdict: ``adequate``, ``missing_effect`` or ``unexplained``. With ``--json``
@@ -43,7 +44,8 @@ def add_arguments(parser) -> None:
     add_input_arguments(parser)
     parser.add_argument("--effects", action="append", default=None, metavar="LIST",
                         help="effects already in the model, comma-separated NAME or NAME:SENSOR (e.g. "
-                             "temperature_bias,bias_step:2); repeatable")
+                             "temperature_bias,bias_step:2); repeatable. Every catalogue effect, and your own "
+                             "from --effects-file, is a candidate of the diagnosis")
     parser.add_argument("--reference", type=float, default=None, metavar="NT",
                         help="known total field in nT (default: the file's ref_total column or reference_total_nT "
                              "line; without either the magnitude is fitted)")
@@ -57,18 +59,19 @@ def run(args) -> int:
     from ..coverage import calibration_input_checks
     from ..diagnosis import diagnose
     from ..pipeline import calibrate
-    from .calibrate import effect_names, named_error, read_input
+    from .calibrate import checked_effect_names, named_error, read_input
 
     if args.reference is not None and not args.reference > 0:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
+    names = checked_effect_names(args)
     ds, notes = read_input(args)
     notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            result = calibrate(ds, effects=effect_names(args.effects), robust=args.robust,
+            result = calibrate(ds, effects=names, robust=args.robust,
                                reference_total_nT=args.reference)
             diagnosis = diagnose(ds, result, top=args.top)
         except CalibrationError as exc:

@@ -63,10 +63,23 @@ def run(args) -> int:
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
     hidden = []
     if getattr(args, "hidden", None):
-        from ..effects import parse_hidden
+        try:  # the simulator's perturbations are moving to magcal.perturbations
+            from ..perturbations import parse_hidden
+        except ImportError:
+            from ..effects import parse_hidden
+        from ..plugins import reserved_names, check_effect_names
 
+        heads = [spec.partition("=")[0] for spec in args.hidden]
+        check_effect_names([h for h in heads if h.partition(":")[0].strip() not in reserved_names()], "--hidden")
         n_sensors = PRESETS[args.preset].truth().n_sensors
-        hidden = [parse_hidden(spec, n_sensors) for spec in args.hidden]
+        hidden = []
+        for spec in args.hidden:
+            try:
+                hidden.append(parse_hidden(spec, n_sensors))
+            except NotImplementedError:  # an effect (a user's) without a perturbation
+                raise MagcalError(f"--hidden {spec!r}: the effect has no perturbation(), so the simulator cannot "
+                                  "hide it; define perturbation(magnitude, sensor) in its class "
+                                  "(docs/user-effects.md)") from None
         args.timeseries = True
     if args.timeseries:
         ds = simulate_timeseries(args.preset, n_samples=args.n or 1500, perturbations=hidden, **common)
