@@ -81,9 +81,13 @@ def output_columns(n_sensors, tensor):
     return names
 
 
-def correct_block(calibration, dataset):
-    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays."""
-    vectors = calibration.correct(dataset)
+def correct_block(calibration, dataset, record_terms=None):
+    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays.
+
+    ``record_terms`` as in :meth:`magcal.calibration.Calibration.correct`; :func:`apply_file` decides it once for
+    the whole file and passes ``'apply'`` or ``'drop'``.
+    """
+    vectors = calibration.correct(dataset, record_terms)
     parts = [vectors.transpose(1, 0, 2).reshape(dataset.n_samples, -1)]
     if calibration.n_sensors == 4 and calibration.baseline_m:
         comps = conventions.tensor_components(vectors, calibration.baseline_m)
@@ -122,8 +126,52 @@ def _progress_bar(total_bytes, enabled):
     return tqdm(total=total_bytes, unit="B", unit_scale=True, desc="magcal apply", file=sys.stderr, leave=False)
 
 
+def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, stop_after=None):
+    """The record fingerprint (:func:`magcal.calibration.record_fingerprint`) of a CSV file, streamed.
+
+    ``stop_after``: stop reading once the file has more samples than this (it cannot be that record); the
+    fingerprint then covers the samples read.
+    """
+    import warnings
+
+    from .calibration import RecordHasher
+
+    hasher = RecordHasher()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the correcting pass reports the data's problems
+        with CsvSource(os.fspath(survey_path), columns=columns, units=units) as src:
+            for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                hasher.update(chunk.dataset)
+                if stop_after is not None and hasher.n_samples > stop_after:
+                    break
+    return hasher.fingerprint()
+
+
+def record_terms_for_file(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
+                          chunk_rows=20_000):
+    """Decide once for a whole file whether the calibration's record-only terms act on it.
+
+    Returns ``(choice, note)``: ``choice`` is ``'apply'`` or ``'drop'`` for every block, ``note`` the
+    :class:`~magcal.errors.RecordTermWarning` message (None when nothing needs saying). The file is read an extra
+    time, for its fingerprint, only when the calibration holds record-only terms acting on the corrected vectors
+    and ``record_terms`` is None.
+    """
+    from .calibration import VECTOR_STAGES
+
+    if not calibration.record_terms(VECTOR_STAGES):
+        return "apply", None
+    fingerprint = None
+    record = calibration.record
+    if record_terms is None and record:
+        fingerprint = file_fingerprint(survey_path, columns, units, drop_bad, chunk_rows,
+                                       stop_after=record.get("n_samples"))
+    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
+                                                fingerprint=fingerprint if fingerprint is not None else {})
+    return ("drop" if dropped else "apply"), note
+
+
 def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-               chunk_rows=20_000, progress=None, calibration_name=None):
+               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
     Parameters
@@ -138,6 +186,11 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
         Lines per block; memory use is proportional to it, not to the file.
     progress : bool, optional
         Show a tqdm progress bar; default: when stderr is a terminal.
+    record_terms : {None, 'apply', 'drop'}
+        The calibration's record-only terms (bias drift, bias step...: they describe the recording it was fitted
+        on). ``None`` (default): applied when the file is that record (same fingerprint), dropped with one
+        :class:`~magcal.errors.RecordTermWarning` otherwise. ``'apply'`` forces them (you assert it is the same
+        record, or have a reference for it); ``'drop'`` leaves them out.
 
     Returns
     -------
@@ -160,6 +213,14 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
     progress = sys.stderr.isatty() if progress is None else bool(progress)
+    record_choice, record_note = record_terms_for_file(calibration, survey_path, record_terms, columns, units,
+                                                       drop_bad, chunk_rows)
+    if record_note:
+        import warnings
+
+        from .errors import RecordTermWarning
+
+        warnings.warn(record_note, RecordTermWarning, stacklevel=2)
     with CsvSource(survey_path, columns=columns, units=units) as src:
         if src.layout.n_sensors != calibration.n_sensors:
             raise MagcalError(
@@ -198,7 +259,7 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
                     if rows == 0:
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
-                    values = correct_block(calibration, chunk.dataset)
+                    values = correct_block(calibration, chunk.dataset, record_choice)
                     out.write("".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist())))
                     rows += chunk.dataset.n_samples
                     if bar is not None:

@@ -6,19 +6,96 @@ the fitter evaluates the same two functions, so what is fitted is exactly what i
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import conventions
-from .errors import MagcalError
-from .model import Context, Model, parse_effect, term_label
+from .errors import MagcalError, RecordTermWarning
+from .model import EFFECTS, Context, Model, parse_effect, term_label
 
 FORMAT = "magcal-calibration"
 VERSION = 1
+
+#: Effects that describe one recording, used only for an effect class that does not say
+#: (:attr:`magcal.model.Effect.transferable` is the authority).
+RECORD_ONLY_FALLBACK = frozenset({"bias_drift", "bias_step", "reference_drift", "site_gradient"})
+
+#: Choices of ``record_terms`` (:meth:`Calibration.correct`): ``None`` decides from the record fingerprint.
+RECORD_TERM_CHOICES = ("apply", "drop")
+
+#: Stages whose terms change the corrected vectors (``reference`` terms change only the expected total field).
+VECTOR_STAGES = ("raw", "vector")
+
+#: Resolution (nT, s) at which readings and times enter the record fingerprint: far below any sensor's noise,
+#: far above the rounding of a number written to a CSV file and read back.
+_FINGERPRINT_RESOLUTION = 1e-6
+
+
+def is_transferable(effect) -> bool:
+    """True if the effect term describes the instrument and carries to new data; False for a term that describes
+    one recording (:attr:`magcal.model.Effect.transferable`; a class that does not say falls back on
+    :data:`RECORD_ONLY_FALLBACK`)."""
+    flag = getattr(effect, "transferable", None)
+    if isinstance(flag, bool):
+        return flag
+    return getattr(effect, "name", "") not in RECORD_ONLY_FALLBACK
+
+
+class RecordHasher:
+    """Fingerprint of a record built sample by sample, so a streamed file gives the same result as the whole
+    dataset: :func:`record_fingerprint` of a dataset equals feeding its chunks in order to :meth:`update`.
+
+    The hash covers the readings (nT) and the times (s), rounded to 1e-6, sample after sample.
+    """
+
+    def __init__(self):
+        self._hash = hashlib.sha256()
+        self.n_samples = 0
+        self.time_start_s = None
+        self.time_end_s = None
+
+    def update(self, dataset) -> None:
+        """Add the samples of one dataset (a chunk of the record, in time order)."""
+        readings = np.ascontiguousarray(np.transpose(dataset.readings_nT, (1, 0, 2)))  # sample-major
+        rows = np.round(readings.reshape(readings.shape[0], -1) / _FINGERPRINT_RESOLUTION)
+        if dataset.time_s is not None:
+            t = np.asarray(dataset.time_s, dtype=float)
+            rows = np.column_stack([np.round(t / _FINGERPRINT_RESOLUTION), rows])
+            if t.size:
+                self.time_start_s = float(t[0]) if self.time_start_s is None else self.time_start_s
+                self.time_end_s = float(t[-1])
+        self._hash.update(np.ascontiguousarray(rows, dtype="<f8").tobytes())
+        self.n_samples += int(dataset.n_samples)
+
+    def fingerprint(self) -> dict:
+        """``n_samples``, ``time_start_s``, ``time_end_s`` (None without a time column) and ``readings_sha256``."""
+        return {"n_samples": self.n_samples, "time_start_s": self.time_start_s, "time_end_s": self.time_end_s,
+                "readings_sha256": self._hash.hexdigest()}
+
+
+def record_fingerprint(dataset) -> dict:
+    """The fingerprint of the record a calibration is fitted on (see :class:`RecordHasher`).
+
+    Stored as ``Calibration.record`` (the JSON key ``record``), it tells :meth:`Calibration.correct` whether new
+    data are that record, where the record-only terms (bias drift, bias step, reference drift, site gradient)
+    hold, or another one, where they do not.
+    """
+    hasher = RecordHasher()
+    hasher.update(dataset)
+    return hasher.fingerprint()
+
+
+def same_record(fingerprint, other) -> bool:
+    """True when two fingerprints (:func:`record_fingerprint`) describe the same samples."""
+    keys = ("n_samples", "readings_sha256")
+    return (isinstance(fingerprint, dict) and isinstance(other, dict)
+            and all(fingerprint.get(k) is not None and fingerprint.get(k) == other.get(k) for k in keys))
 
 
 @dataclass
@@ -148,6 +225,8 @@ class Calibration:
         The array frame: ``"sensor1"`` (the seed's) or ``"platform"`` (after a level-table alignment).
     summary : dict
         Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
+        Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
+        (:func:`record_fingerprint`): record-only terms (:func:`is_transferable` False) act on that record only.
     """
 
     sensors: list
@@ -179,32 +258,138 @@ class Calibration:
                     f"{', '.join(sorted(missing))}; the data{where} lack them"
                 )
 
-    def correct(self, dataset) -> np.ndarray:
-        """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame."""
+    # --- the record it was fitted on ------------------------------------------------------------------------
+    @property
+    def record(self) -> dict | None:
+        """Fingerprint of the record this calibration was fitted on (:func:`record_fingerprint`), saved in the JSON
+        as ``record``; ``{}`` for a file that does not say (made before magcal saved it); ``None`` when never set."""
+        return self.summary.get("record") if isinstance(self.summary, dict) else None
+
+    @record.setter
+    def record(self, fingerprint) -> None:
+        self.summary = dict(self.summary or {})
+        self.summary["record"] = None if fingerprint is None else dict(fingerprint)
+
+    def fitted_on(self, dataset) -> "Calibration":
+        """Record ``dataset`` (the whole record given to the fit, mask or not) as the one fitted; returns self."""
+        self.record = record_fingerprint(dataset)
+        return self
+
+    def record_terms(self, stages=None) -> list[str]:
+        """Labels of the record-only terms (:func:`is_transferable` False) held, optionally of some stages only."""
+        if self.model is None:
+            return []
+        return [e.label for e in self.model.effects
+                if not is_transferable(e) and (stages is None or e.stage in stages)]
+
+    def record_decision(self, dataset=None, record_terms=None, stages=None, fingerprint=None):
+        """Whether this calibration's record-only terms act on ``dataset``, and why.
+
+        Parameters
+        ----------
+        dataset : Dataset, optional
+            The data to correct (its fingerprint is computed unless ``fingerprint`` is given).
+        record_terms : {None, 'apply', 'drop'}
+            ``None`` (default): apply them on the fitted record itself, drop them on any other data (with a
+            reason), apply them with a caution when the calibration does not say which record it was fitted on.
+            ``'apply'``: the user asserts these data are the fitted record (or has an external reference).
+            ``'drop'``: never apply them.
+        stages : sequence of str, optional
+            Consider only terms of these stages (``VECTOR_STAGES`` for corrected vectors).
+        fingerprint : dict, optional
+            The data's fingerprint, when the caller streamed it (:class:`RecordHasher`).
+
+        Returns
+        -------
+        dropped : list of str
+            Labels of the record-only terms to leave out.
+        note : str or None
+            A message for a :class:`~magcal.errors.RecordTermWarning`, or None when nothing needs saying.
+        """
+        if record_terms is not None and record_terms not in RECORD_TERM_CHOICES:
+            raise MagcalError(f"record_terms must be 'apply' or 'drop' (or None to decide from the record), "
+                              f"got {record_terms!r}")
+        labels = self.record_terms(stages)
+        if not labels or record_terms == "apply":
+            return [], None
+        if record_terms == "drop":
+            return labels, None
+        names = ", ".join(labels)
+        record = self.record
+        if record is None:  # built in memory and never told its record: the caller holds the fit
+            return [], None
+        if not record:
+            return [], (f"the calibration holds the record-only term(s) {names}, which describe the recording they "
+                        "were fitted on, and it does not say which record that was (it was made before magcal "
+                        "saved a record fingerprint); they are applied as fitted. If these data are another "
+                        "record, drop them (record_terms='drop', --record-terms drop) or recalibrate")
+        if fingerprint is None:
+            fingerprint = record_fingerprint(dataset)
+        if same_record(record, fingerprint):
+            return [], None
+        return labels, (f"dropped the record-only term(s) {names}: they describe the recording the calibration was "
+                        f"fitted on ({_record_text(record)}), not the instrument, and these data are another record "
+                        f"({_record_text(fingerprint)}): applied, they would put that recording's drift, step or "
+                        "interference into these data. If they are the same record, or you have a reference for "
+                        "this one, apply them with "
+                        "record_terms='apply' (--record-terms apply)")
+
+    def _model_for(self, dataset, record_terms, stages, warn=True):
+        """The model (and effect values) to evaluate on ``dataset`` after the record-term decision."""
+        dropped, note = self.record_decision(dataset, record_terms, stages)
+        if note and warn:
+            warnings.warn(note, RecordTermWarning, stacklevel=3)
+        if not dropped:
+            return self.model
+        model = self.model
+        for label in dropped:
+            model = model.without(label)
+        return model
+
+    # --- applying it --------------------------------------------------------------------------------------
+    def correct(self, dataset, record_terms=None) -> np.ndarray:
+        """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame.
+
+        Parameters
+        ----------
+        dataset : Dataset
+        record_terms : {None, 'apply', 'drop'}
+            What to do with record-only terms (bias drift, bias step...) on these data; see
+            :meth:`record_decision`. By default they act on the fitted record and are dropped, with a
+            :class:`~magcal.errors.RecordTermWarning` naming them, on any other.
+        """
         self.check(dataset)
-        return corrected_fields(dataset, self.sensors, self.model, self.effect_values,
-                                contexts(dataset, self.baseline_m))
+        model = self._model_for(dataset, record_terms, VECTOR_STAGES)
+        return corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
 
-    def total_field(self, dataset) -> np.ndarray:
-        """Corrected total field (n_sensors, N) in nT."""
-        return np.linalg.norm(self.correct(dataset), axis=2)
+    def total_field(self, dataset, record_terms=None) -> np.ndarray:
+        """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
+        return np.linalg.norm(self.correct(dataset, record_terms), axis=2)
 
-    def expected_total_field(self, dataset) -> np.ndarray:
+    def expected_total_field(self, dataset, record_terms=None) -> np.ndarray:
         """The total field (n_sensors, N) in nT this calibration expects on ``dataset``: its reference (the
-        dataset's ``ref_total`` column when it has none) plus its reference-stage effects."""
-        return expected_total_field(dataset, self.reference_total_nT, self.model, self.effect_values,
+        dataset's ``ref_total`` column when it has none) plus its reference-stage effects (``record_terms`` as in
+        :meth:`correct`: a reference drift of the fitted record is dropped on another)."""
+        model = self._model_for(dataset, record_terms, ("reference",))
+        return expected_total_field(dataset, self.reference_total_nT, model, self.effect_values,
                                     contexts(dataset, self.baseline_m))
 
-    def total_field_residuals(self, dataset, corrected=None) -> np.ndarray:
-        """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output."""
-        vectors = self.correct(dataset) if corrected is None else corrected
-        return np.linalg.norm(vectors, axis=2) - self.expected_total_field(dataset)
+    def total_field_residuals(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output
+        (``record_terms`` as in :meth:`correct`; one warning names every term dropped)."""
+        model = self._model_for(dataset, record_terms, None)
+        ctxs = contexts(dataset, self.baseline_m)
+        if corrected is None:
+            self.check(dataset)
+            corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
+        expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
+        return np.linalg.norm(corrected, axis=2) - expected
 
-    def tensor(self, dataset, corrected=None) -> dict:
+    def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
         """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
         if self.n_sensors != 4 or not self.baseline_m:
             raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
-        vectors = self.correct(dataset) if corrected is None else corrected
+        vectors = self.correct(dataset, record_terms) if corrected is None else corrected
         return conventions.tensor_components(vectors, self.baseline_m)
 
     # --- JSON -----------------------------------------------------------------------------------------------
@@ -248,6 +433,7 @@ class Calibration:
             "sensors": sensors,
         }
         doc.update(jsonable(self.summary))
+        doc["record"] = jsonable(self.record)  # null: never told which record it was fitted on
         return doc
 
     @classmethod
@@ -302,13 +488,20 @@ class Calibration:
             for s in entries
         ]
         try:
-            model, values = _effects_from_dict(doc, len(sensors))
+            model, values = _effects_from_dict(doc, len(sensors), source)
         except MagcalError:
             raise
         except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
             raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
         known = {"format", "version", "reference_total_nT", "reference_fitted", "baseline_m", "frame", "base_terms",
                  "effects", "effect_params", "sensors"}
+        summary = {k: v for k, v in doc.items() if k not in known}
+        record = summary.get("record")
+        if record is not None and not (isinstance(record, dict) and _fingerprint_ok(record)):
+            raise MagcalError(f"{source}: 'record' must be the fingerprint of the fitted record (n_samples, "
+                              "time_start_s, time_end_s, readings_sha256); the file is damaged, recalibrate")
+        if "record" not in doc and model is not None and any(not is_transferable(e) for e in model.effects):
+            summary["record"] = {}  # made before magcal saved the record: which one it was is unknown
         return cls(
             sensors=sensors,
             reference_total_nT=doc.get("reference_total_nT"),
@@ -317,7 +510,7 @@ class Calibration:
             model=model,
             effect_values=values,
             frame=doc.get("frame", "sensor1"),
-            summary={k: v for k, v in doc.items() if k not in known},
+            summary=summary,
         )
 
     def save(self, path) -> None:
@@ -352,6 +545,14 @@ class Calibration:
         return cls.from_dict(doc, source=path, n_sensors=n_sensors)
 
 
+def _record_text(fingerprint) -> str:
+    """``1200 samples, t = 0-119.9 s`` for a fingerprint."""
+    n = fingerprint.get("n_samples")
+    t0, t1 = fingerprint.get("time_start_s"), fingerprint.get("time_end_s")
+    span = f", t = {t0:g}-{t1:g} s" if isinstance(t0, (int, float)) and isinstance(t1, (int, float)) else ""
+    return f"{n} samples{span}"
+
+
 def _check_sensor_entry(source, i, s) -> None:
     """Refuse a damaged sensor entry of a calibration document, naming the sensor and the key."""
     where = f"{source}: sensor {i + 1}"
@@ -374,16 +575,33 @@ def _check_sensor_entry(source, i, s) -> None:
             raise MagcalError(f"{where}: R is not a proper rotation; the file is damaged, recalibrate")
 
 
-def _effects_from_dict(doc, n_sensors):
-    """The model and effect values saved in a calibration document (None, {} when it has none)."""
+def _fingerprint_ok(record) -> bool:
+    """True for ``{}`` (record unknown) or a fingerprint with a sample count and a hash."""
+    if not record:
+        return True
+    n = record.get("n_samples")
+    return (isinstance(n, int) and not isinstance(n, bool) and n >= 0
+            and isinstance(record.get("readings_sha256"), str))
+
+
+def _effects_from_dict(doc, n_sensors, source="calibration"):
+    """The model and effect values saved in a calibration document (None, {} when it has none).
+
+    An effect name that is not in the catalogue is refused with :func:`magcal.plugins.unknown_effect_message`
+    (it may be a user's effect whose file was not loaded).
+    """
     model, values = None, {}
     if doc.get("effect_params") or doc.get("base_terms"):
         from .model import BASE_TERMS
+        from .plugins import unknown_effect_message
 
         model = Model(n_sensors, base=tuple(doc.get("base_terms") or BASE_TERMS))
         seen = {}
         for entry in doc.get("effect_params", []):
             term = entry.get("term", entry["effect"])
+            name = str(term).partition(":")[0].strip()
+            if name not in EFFECTS and name not in BASE_TERMS:
+                raise MagcalError(unknown_effect_message(name, where=source))
             if term not in seen:
                 effect = parse_effect(term, n_sensors)
                 effect.set_state(entry.get("state") or {})

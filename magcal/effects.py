@@ -10,10 +10,12 @@ Each one says
   :meth:`~magcal.model.Effect.param_scale`, the size of each parameter that moves the readings by about 1 nT;
 * the data-derived constants it needs (reference temperature, reference time, step time, time span), set by
   :meth:`~magcal.model.Effect.configure` and saved with a calibration by :meth:`~magcal.model.Effect.state`;
-* how the simulator hides it in data (:meth:`~magcal.model.Effect.perturbation`), written from the physics of the
-  effect rather than from its fitted basis: a delay is an exact time shift of the signal, hysteresis is a play
-  operator, a site gradient moves the field with the sensor's world position, a reference-field variation scales
-  the field vector, and so on.
+* whether it describes the instrument and carries to new data (:attr:`~magcal.model.Effect.transferable`), or
+  one recording only.
+
+How the simulator hides each effect in data (:meth:`~magcal.model.Effect.perturbation`) is in
+:mod:`magcal.perturbations`, written from the physics of the effect rather than from its fitted basis;
+:meth:`CatalogueEffect.perturbation` looks the function up there by the effect's name.
 
 Notation: for sensor ``s``, ``z0 = y - b`` is the raw reading minus the bias (nT, sensor axes, approximately
 ``C B``), ``T`` the temperature (degC), ``t`` the time (s). The signatures in the total-field residual and the
@@ -31,19 +33,16 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
 from .errors import MagcalError
-from .model import EFFECTS, Context, Effect, parse_effect, parse_sensor_number, register, term_label
+from .model import EFFECTS, Context, Effect, register, term_label
 
-#: Field magnitude (nT) in which nonlinearity coefficients are quoted: ``q`` nT is the deviation of an axis
-#: reading ``50 000 nT``.
+#: Field magnitude (nT) nonlinearity coefficients are quoted at when the data's own is not known (an effect never
+#: configured, a calibration saved before the field was recorded with it): ``q`` nT is then the deviation of an
+#: axis reading ``50 000 nT``. Otherwise they are quoted at the data's field (:func:`data_field_magnitude_nT`).
 NONLINEARITY_REFERENCE_NT = 50_000.0
-
-#: Temperature (degC) at which the simulator's temperature effects vanish (a factory calibration temperature).
-SIMULATION_REFERENCE_TEMPERATURE_C = 20.0
 
 #: Multipliers of each effect's ``default_magnitude`` for a 1 500-sample record at 10 Hz with sigma = 3 nT
 #: (:func:`magcal.simulation.simulate_timeseries`): barely detectable (score statistic of order 100-200, the RMS
@@ -124,29 +123,6 @@ class _Cache:
         return value
 
 
-def _sensor_list(sensor, n_sensors, skip_first=False):
-    if sensor is None:
-        return list(range(1 if skip_first else 0, n_sensors))
-    if not 0 <= sensor < n_sensors:
-        raise MagcalError(f"sensor {sensor + 1} does not exist (the simulation has {n_sensors})")
-    return [sensor]
-
-
-def _linear_outputs(context, s):
-    """Noise-free linear output ``C (I + S) B`` (nT) of sensor ``s`` (no offset): what an axis 'sees'."""
-    sensor = context["truth"].sensors[s]
-    return context["fields_nT"][s] @ sensor.total_matrix.T
-
-
-def _shift_in_time(values, time_s, delays_s):
-    """``values(t - delay)`` per column by cubic-spline interpolation (an exact delay of a smooth signal)."""
-    spline = CubicSpline(time_s, values, axis=0, extrapolate=True)
-    out = np.empty_like(values)
-    for j, d in enumerate(np.broadcast_to(delays_s, (values.shape[1],))):
-        out[:, j] = spline(time_s - d)[:, j] if d else values[:, j]
-    return out
-
-
 @dataclass
 class CatalogueEffect(Effect):
     """Shared machinery of the catalogue: parameter patterns for the simulator and a basis cache."""
@@ -186,7 +162,9 @@ class CatalogueEffect(Effect):
         return m[0] * np.roll(pattern, sensor or 0) if len(pattern) == 3 else m[0] * pattern
 
     def perturbation(self, magnitude=None, sensor=None, **options):
-        """A callable ``f(readings, context, rng)`` for :func:`magcal.simulation.simulate_timeseries`.
+        """A callable ``f(readings, context, rng)`` for :func:`magcal.simulation.simulate_timeseries` that hides
+        this effect in data: the function registered for this effect's name in :mod:`magcal.perturbations`
+        (a subclass may override this method instead).
 
         Parameters
         ----------
@@ -195,24 +173,20 @@ class CatalogueEffect(Effect):
             Defaults to :attr:`default_magnitude`.
         sensor : int, optional
             0-based sensor to hide the effect in (default: this effect's ``sensor``, or every sensor).
+
+        Raises
+        ------
+        NotImplementedError
+            When the simulator has no perturbation for the effect.
         """
-        magnitude = self.default_magnitude if magnitude is None else magnitude
-        sensor = self.sensor if sensor is None else sensor
-        make = self._perturb
-        effect = self
+        from .perturbations import catalogue_perturbation
 
-        def perturb(readings, context, rng):
-            return make(np.array(readings, dtype=float), context, magnitude, sensor, **options)
+        return catalogue_perturbation(self, magnitude, sensor, **options)
 
-        where = "all sensors" if sensor is None else f"sensor {sensor + 1}"
-        perturb.description = f"{effect.name} {magnitude} {effect.magnitude_unit} ({where})"
-        perturb.effect = effect.name
-        perturb.sensor = sensor
-        perturb.magnitude = magnitude
-        return perturb
-
-    def _perturb(self, readings, context, magnitude, sensor, **options):  # pragma: no cover - abstract
-        raise NotImplementedError
+    def quote_unit(self, field_nT=None) -> str:
+        """The unit a magnitude or parameter of this effect is quoted in (:attr:`magnitude_unit`); effects whose
+        parameters are quoted at a field magnitude say which (``field_nT``, nT, when known)."""
+        return self.magnitude_unit
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -263,13 +237,6 @@ class TemperatureBias(_TemperatureReferenced):
     def raw_basis(self, z0, ctx: Context):
         return _diagonal_basis(np.repeat(self._dT(ctx)[:, None], 3, axis=1))
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
-        for s in _sensor_list(sensor, readings.shape[0]):
-            beta = self.true_params(magnitude, s)
-            readings[s] += dT[:, None] * beta
-        return readings
-
 
 @register
 @dataclass
@@ -292,13 +259,6 @@ class TemperatureScale(_TemperatureReferenced):
     def raw_basis(self, z0, ctx: Context):
         return _diagonal_basis(1e-6 * self._dT(ctx)[:, None] * z0)
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
-        for s in _sensor_list(sensor, readings.shape[0]):
-            alpha = self.true_params(magnitude, s)
-            readings[s] += 1e-6 * dT[:, None] * alpha * _linear_outputs(context, s)
-        return readings
-
 
 # ----------------------------------------------------------------------------------------------------------------
 # time
@@ -316,6 +276,7 @@ class BiasDrift(CatalogueEffect):
     description: ClassVar[str] = "bias drifting in time, y += gamma (t - t0) [nT/h per axis]"
     default_magnitude: ClassVar[float] = 300.0
     magnitude_unit: ClassVar[str] = "nT/h"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
 
     reference_time_s: float | None = None
     duration_s: float | None = None
@@ -343,13 +304,6 @@ class BiasDrift(CatalogueEffect):
         t = ctx.time_s
         t0 = np.mean(t) if self.reference_time_s is None else self.reference_time_s
         return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
-
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        t = context["time_s"]
-        elapsed_h = (t - t[0]) / 3600.0  # drift since power-on
-        for s in _sensor_list(sensor, readings.shape[0]):
-            readings[s] += elapsed_h[:, None] * self.true_params(magnitude, s)
-        return readings
 
 
 def quadric_residuals(readings_nT):
@@ -481,6 +435,7 @@ class BiasStep(CatalogueEffect):
     description: ClassVar[str] = "bias step at a time te found by a change-point scan, y += db H(t - te) [nT]"
     default_magnitude: ClassVar[float] = 10.0
     magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
     extra_dof: ClassVar[int] = 1
 
     step_time_s: list | None = None
@@ -546,14 +501,6 @@ class BiasStep(CatalogueEffect):
             te = float(np.median(t))
         return _diagonal_basis(np.repeat((t >= te).astype(float)[:, None], 3, axis=1))
 
-    def _perturb(self, readings, context, magnitude, sensor, at_fraction=0.6, **options):
-        t = context["time_s"]
-        te = t[0] + at_fraction * (t[-1] - t[0])
-        after = (t >= te).astype(float)
-        for s in _sensor_list(sensor, readings.shape[0]):
-            readings[s] += after[:, None] * self.true_params(magnitude, s)
-        return readings
-
 
 # ----------------------------------------------------------------------------------------------------------------
 # nonlinearity
@@ -562,14 +509,25 @@ class BiasStep(CatalogueEffect):
 
 @dataclass
 class _PowerNonlinearity(CatalogueEffect):
-    """Transfer nonlinearity of one order per axis: ``y_j += k_j ((C B)_j / 50 uT)^order``, ``k`` in nT."""
+    """Transfer nonlinearity of one order per axis: ``y_j += k_j ((C B)_j / F)^order``, ``k`` in nT.
+
+    ``k_j`` is quoted at the data's own field magnitude ``F``: it is the deviation (nT) of axis ``j`` when that
+    axis reads the whole field, so the number is the size of the effect in these data (a coefficient quoted at
+    50 uT would overstate a nonlinearity seen in a 9 uT field 30-fold for the quadratic term). ``F`` is a
+    data-derived constant (:attr:`field_magnitude_nT`, saved with the calibration) set by :meth:`configure`;
+    without it (an effect never configured, a calibration file written before) ``F`` is 50 uT
+    (:data:`NONLINEARITY_REFERENCE_NT`).
+    """
 
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ()
-    magnitude_unit: ClassVar[str] = "nT at 50 uT"
+    magnitude_unit: ClassVar[str] = "nT at the field magnitude |B|"
     order: ClassVar[int] = 2
     symbol: ClassVar[str] = "q"
     scale_nT: ClassVar[float] = 4.0
+
+    #: The field magnitude (nT) the parameters are quoted at; None: 50 uT.
+    field_magnitude_nT: float | None = None
 
     def param_names(self):
         return [f"{self.symbol}_{a}_nT" for a in _AXES]
@@ -577,23 +535,68 @@ class _PowerNonlinearity(CatalogueEffect):
     def param_scale(self):
         return np.full(3, self.scale_nT)
 
-    def raw_basis(self, z0, ctx: Context):
-        return _diagonal_basis((z0 / NONLINEARITY_REFERENCE_NT) ** self.order)
+    @property
+    def quoted_at_nT(self) -> float:
+        """The field magnitude (nT) the parameters are quoted at: the data's, or 50 uT if unknown."""
+        return float(self.field_magnitude_nT or NONLINEARITY_REFERENCE_NT)
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        for s in _sensor_list(sensor, readings.shape[0]):
-            lin = _linear_outputs(context, s)
-            readings[s] += self.true_params(magnitude, s) * (lin / NONLINEARITY_REFERENCE_NT) ** self.order
-        return readings
+    def quote_unit(self, field_nT=None) -> str:
+        """``"nT at 8.9 uT"``: the unit of the parameters, at ``field_nT`` or at :attr:`quoted_at_nT`."""
+        return f"nT at {(field_nT or self.quoted_at_nT) / 1000.0:.3g} uT"
+
+    def configure(self, dataset, residuals_nT=None):
+        self.field_magnitude_nT = data_field_magnitude_nT(dataset)
+
+    def state(self):
+        return {"field_magnitude_nT": self.field_magnitude_nT}
+
+    def set_state(self, state):
+        value = state.get("field_magnitude_nT")
+        if value is not None:
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                value = float("nan")
+            if not np.isfinite(value) or value <= 0:
+                raise MagcalError(f"{self.label}: field_magnitude_nT must be a positive number of nT (the field the "
+                                  f"parameters are quoted at), got {state.get('field_magnitude_nT')!r}")
+        self.field_magnitude_nT = value
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis((z0 / self.quoted_at_nT) ** self.order)
+
+
+def data_field_magnitude_nT(dataset) -> float:
+    """The magnitude (nT) of the field the data were recorded in.
+
+    The dataset's reference when it has one (the median of its ``ref_total`` column, else its
+    ``reference_total_nT``); otherwise the radius of a sphere fitted to each sensor's readings, averaged over the
+    sensors (the fitted field to within the sensors' scale errors, about 1 %).
+    """
+    column = getattr(dataset, "ref_total_nT", None)
+    if column is not None:
+        values = np.asarray(column, dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size:
+            return float(np.median(values))
+    if getattr(dataset, "reference_total_nT", None):
+        return float(dataset.reference_total_nT)
+    radii = []
+    for y in np.asarray(dataset.readings_nT, dtype=float):
+        design = np.column_stack([2 * y, np.ones(len(y))])
+        sol, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
+        radii.append(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
+    return float(np.mean(radii))
 
 
 @register
 @dataclass
 class NonlinearityQuadratic(_PowerNonlinearity):
-    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / 50 uT)^2``, ``q`` in nT."""
+    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / F)^2``, ``q`` in nT at the data's field
+    magnitude ``F``."""
 
     name: ClassVar[str] = "nonlinearity_quadratic"
-    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / 50 uT)^2 [nT at 50 uT]"
+    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / |B|)^2 [nT at the data's field |B|]"
     default_magnitude: ClassVar[float] = 20.0
     order: ClassVar[int] = 2
     symbol: ClassVar[str] = "q"
@@ -603,13 +606,14 @@ class NonlinearityQuadratic(_PowerNonlinearity):
 @register
 @dataclass
 class NonlinearityCubic(_PowerNonlinearity):
-    """Third-order transfer nonlinearity per axis: ``y_j += c_j ((C B)_j / 50 uT)^3``, ``c`` in nT.
+    """Third-order transfer nonlinearity per axis: ``y_j += c_j ((C B)_j / F)^3``, ``c`` in nT at the data's field
+    magnitude ``F``.
 
     At constant ``|B|`` it cannot be told from a cross-field effect ``l_j B_j (|B|^2 - B_j^2)``.
     """
 
     name: ClassVar[str] = "nonlinearity_cubic"
-    description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / 50 uT)^3 [nT at 50 uT]"
+    description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / |B|)^3 [nT at the data's field |B|]"
     default_magnitude: ClassVar[float] = 25.0
     order: ClassVar[int] = 3
     symbol: ClassVar[str] = "c"
@@ -667,14 +671,6 @@ class AxisTimingSkew(CatalogueEffect):
         pattern = np.array(self.pattern) if (sensor or 0) % 2 == 0 else np.array(self.pattern[::-1])
         return m[0] * pattern
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        t = context["time_s"]
-        for s in _sensor_list(sensor, readings.shape[0]):
-            m = np.atleast_1d(np.asarray(magnitude, dtype=float))
-            delays_ms = m if m.size == 3 else np.append(self.true_params(magnitude, s), 0.0)
-            readings[s] = _shift_in_time(readings[s], t, 1e-3 * delays_ms)
-        return readings
-
 
 @register
 @dataclass
@@ -719,15 +715,6 @@ class SensorTimingSkew(CatalogueEffect):
             raise MagcalError(f"{self.name}: magnitude is one delay in ms")
         return np.array([m[0] * self.pattern[sensor % 4]])
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        if sensor == 0:
-            raise MagcalError("sensor_timing_skew: sensor 1 is the time reference; delay sensor 2, 3 or 4")
-        t = context["time_s"]
-        for s in _sensor_list(sensor, readings.shape[0], skip_first=True):
-            delay = self.true_params(magnitude, s)[0] if sensor is None else float(np.ravel(magnitude)[0])
-            readings[s] = _shift_in_time(readings[s], t, 1e-3 * delay)
-        return readings
-
 
 @register
 @dataclass
@@ -746,12 +733,47 @@ class Hysteresis(CatalogueEffect):
     description: ClassVar[str] = "hysteresis, each axis lags by h_j behind the direction of change [nT]"
     default_magnitude: ClassVar[float] = 5.0
     magnitude_unit: ClassVar[str] = "nT"
+    #: Loop half-widths are widths: every axis hides a non-negative one.
+    pattern: ClassVar[tuple] = (1.0, 0.7, 0.5)
+    #: Why :meth:`param_bounds` holds ``h >= 0``, for the message refusing a negative width.
+    bounds_note: ClassVar[str] = ("a hysteresis loop half-width in nT: the output lags the field by it, it cannot "
+                                  "lead it")
 
     #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
     shape_half_width_nT: list | None = None
 
+    def __post_init__(self):
+        super().__post_init__()
+        self.shape_half_width_nT = self._checked_widths(self.shape_half_width_nT)
+
+    def _checked_widths(self, widths):
+        """The per-sensor shape widths, refused with a clear message if one is negative or not a number."""
+        if widths is None:
+            return None
+        if not isinstance(widths, (list, tuple)):
+            raise MagcalError(f"{self.label}: shape_half_width_nT must be a list (one entry per sensor) of three "
+                              f"half-widths in nT or null, got {widths!r}")
+        out = []
+        for s, w in enumerate(widths):
+            if w is None:
+                out.append(None)
+                continue
+            try:
+                values = np.asarray(w, dtype=float).reshape(-1)
+            except (TypeError, ValueError):
+                values = np.array([np.nan])
+            if values.size != 3 or not np.all(np.isfinite(values)) or np.any(values < 0):
+                raise MagcalError(f"{self.label}: shape_half_width_nT of sensor {s + 1} is {w!r}; it must be three "
+                                  f"numbers >= 0 ({self.bounds_note})")
+            out.append(values.tolist())
+        return out
+
     def param_names(self):
         return [f"h_{a}_nT" for a in _AXES]
+
+    def param_bounds(self):
+        """``h >= 0`` on every axis: a loop half-width is not negative."""
+        return np.zeros(3), np.full(3, np.inf)
 
     def configure(self, dataset, residuals_nT=None):
         widths = []
@@ -790,7 +812,7 @@ class Hysteresis(CatalogueEffect):
         return changed
 
     def set_state(self, state):
-        self.shape_half_width_nT = state.get("shape_half_width_nT")
+        self.shape_half_width_nT = self._checked_widths(state.get("shape_half_width_nT"))
 
     def raw_basis(self, z0, ctx: Context):
         widths = None
@@ -809,16 +831,6 @@ class Hysteresis(CatalogueEffect):
                 if h0 and h0 > 0:
                     cols[:, j] = (play_operator(y[:, j], h0) - y[:, j]) / h0
         return cols
-
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        for s in _sensor_list(sensor, readings.shape[0]):
-            h = np.abs(self.true_params(magnitude, s))
-            sign = np.sign(self.true_params(magnitude, s))
-            lin = _linear_outputs(context, s)
-            for j in range(3):
-                if h[j] > 0:
-                    readings[s][:, j] += sign[j] * (play_operator(lin[:, j], h[j]) - lin[:, j])
-        return readings
 
 
 def _hysteresis_widths(y, signs, residuals):
@@ -881,6 +893,7 @@ class ReferenceDrift(CatalogueEffect):
     description: ClassVar[str] = "slow variation of the total field, F(t) = F0 + Legendre series in t [nT]"
     default_magnitude: ClassVar[float] = 5.0
     magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
 
     #: Legendre degrees used.
     order: ClassVar[int] = 4
@@ -917,18 +930,6 @@ class ReferenceDrift(CatalogueEffect):
 
     def true_params(self, magnitude=None, sensor=0):
         return None
-
-    def _perturb(self, readings, context, magnitude, sensor, period_fraction=1.6, **options):
-        """A slow variation of the field magnitude by ``magnitude`` nT (peak), e.g. the diurnal variation:
-        the whole field vector scales by ``F(t)/F0`` (direction unchanged)."""
-        t = context["time_s"]
-        duration = max(t[-1] - t[0], 1e-9)
-        amplitude = float(np.ravel(magnitude)[0])
-        delta = amplitude * np.sin(2 * np.pi * (t - t[0]) / (period_fraction * duration) + 0.4)
-        total = context["truth"].total_nT
-        for s in range(readings.shape[0]):
-            readings[s] += _linear_outputs(context, s) * (delta / total)[:, None]
-        return readings
 
 
 #: Symmetric traceless basis matrices of a gradient tensor: Gxx, Gxy, Gxz, Gyy, Gyz (Gzz = -Gxx - Gyy).
@@ -967,6 +968,7 @@ class SiteGradient(CatalogueEffect):
     description: ClassVar[str] = "field gradient at the site (world frame), B(p) = B0 + G p [nT/m]; needs attitude"
     default_magnitude: ClassVar[float] = 20.0
     magnitude_unit: ClassVar[str] = "nT/m"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
     pattern: ClassVar[tuple] = (1.0, 0.4, -0.3, -0.6, 0.5)
 
     def param_names(self):
@@ -988,100 +990,21 @@ class SiteGradient(CatalogueEffect):
         m = np.atleast_1d(np.asarray(magnitude, dtype=float))
         return m.copy() if m.size == 5 else m[0] * np.asarray(self.pattern)
 
-    def _perturb(self, readings, context, magnitude, sensor, **options):
-        g = gradient_matrix(self.true_params(magnitude))
-        att = context["attitudes"]
-        truth = context["truth"]
-        for s, p in enumerate(context["positions_m"]):
-            d_world = att.apply(p) @ g.T  # field change at the sensor's world position, nT
-            d_sensor = att.inv().apply(d_world) @ truth.sensors[s].M.T  # into the sensor's ideal frame
-            readings[s] += d_sensor @ truth.sensors[s].total_matrix.T
-        return readings
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# outside the catalogue (for tests and teaching): periodic interference
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62)):
-    """A perturbation *outside* the catalogue: a sinusoidal field (e.g. from nearby machinery) along a fixed
-    direction of the sensor's axes, ``y += a sin(2 pi f t) d``. No catalogue term explains it.
-
-    Parameters
-    ----------
-    amplitude_nT : float
-        Peak amplitude, nT.
-    frequency_hz : float
-        Frequency, Hz.
-    sensor : int, optional
-        0-based sensor; default every sensor.
-    direction : array_like, shape (3,)
-        Direction in the sensor axes (normalised).
-    """
-    d = np.asarray(direction, dtype=float)
-    d = d / np.linalg.norm(d)
-
-    def perturb(readings, context, rng):
-        readings = np.array(readings, dtype=float)
-        t = context["time_s"]
-        wave = amplitude_nT * np.sin(2 * np.pi * frequency_hz * t + 0.3)
-        for s in _sensor_list(sensor, readings.shape[0]):
-            readings[s] += wave[:, None] * d
-        return readings
-
-    perturb.description = f"periodic interference {amplitude_nT} nT at {frequency_hz} Hz"
-    perturb.effect = "periodic_interference"
-    perturb.sensor = sensor
-    perturb.magnitude = amplitude_nT
-    return perturb
-
-
-#: Perturbations outside the catalogue that ``magcal simulate --hidden`` also knows (name -> factory taking
-#: ``magnitude`` and ``sensor``).
-EXTRA_PERTURBATIONS = {
-    "periodic_interference": lambda magnitude=None, sensor=None: periodic_interference(
-        5.0 if magnitude is None else float(magnitude), sensor=sensor),
-}
-
-
-def parse_hidden(spec: str, n_sensors: int):
-    """A perturbation from ``EFFECT[:SENSOR][=MAGNITUDE]`` (SENSOR 1-based), as ``magcal simulate --hidden``.
-
-    Returns
-    -------
-    callable
-        For :func:`magcal.simulation.simulate_timeseries`; it has ``description``, ``effect``, ``sensor``
-        (0-based or None) and ``magnitude`` attributes.
-
-    Raises
-    ------
-    MagcalError
-        Unknown effect, bad sensor number or magnitude.
-    """
-    text = spec.strip()
-    head, _, mag_text = text.partition("=")
-    magnitude = None
-    if mag_text.strip():
-        try:
-            values = [float(v) for v in mag_text.replace(";", ",").split(",") if v.strip()]
-        except ValueError:
-            raise MagcalError(f"--hidden {spec!r}: the magnitude after '=' must be a number (or comma-separated "
-                              "numbers, one per parameter)") from None
-        magnitude = values[0] if len(values) == 1 else values
-    name, _, sensor_text = head.partition(":")
-    name = name.strip()
-    if name in EXTRA_PERTURBATIONS:
-        sensor = None
-        if sensor_text.strip():
-            sensor = parse_sensor_number(spec, sensor_text, n_sensors)
-        return EXTRA_PERTURBATIONS[name](magnitude, sensor)
-    effect = parse_effect(head, n_sensors)
-    if effect.min_sensors > n_sensors:
-        raise MagcalError(f"--hidden {spec!r}: {name} needs at least {effect.min_sensors} sensors")
-    return effect.perturbation(magnitude, effect.sensor)
-
 
 def catalogue() -> list:
     """The registered effect classes, in registration order."""
     return list(EFFECTS.values())
+
+
+#: Names kept here for the old import paths (``magcal.effects.parse_hidden``...); they live in
+#: :mod:`magcal.perturbations`, imported on first use (it imports this module).
+_MOVED_TO_PERTURBATIONS = ("parse_hidden", "periodic_interference", "EXTRA_PERTURBATIONS",
+                           "SIMULATION_REFERENCE_TEMPERATURE_C")
+
+
+def __getattr__(name):
+    if name in _MOVED_TO_PERTURBATIONS:
+        from . import perturbations
+
+        return getattr(perturbations, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -26,3 +26,14 @@ class ConvergenceWarning(UserWarning):
 
     :attr:`magcal.fit.FitResult.success` is False and :attr:`~magcal.fit.FitResult.message` says why.
     """
+
+
+class RecordTermWarning(UserWarning):
+    """A calibration's record-only terms were dropped (or applied without proof) on data that may not be the
+    record they were fitted on.
+
+    Terms such as ``bias_drift``, ``bias_step``, ``reference_drift`` and ``site_gradient``
+    (:attr:`magcal.model.Effect.transferable` False) describe one recording, not the instrument; on another record
+    they would add that recording's drift or step to the new data. :meth:`magcal.calibration.Calibration.correct`
+    drops them there by default; ``record_terms="apply"`` keeps them.
+    """

@@ -149,12 +149,20 @@ class Problem:
             prefix = "" if s is None else f"s{s + 1}_"
             names += [f"{prefix}{e.name}.{p}" for p in pn]
             v = init.effect_values.get(label)
-            values += list(np.zeros(len(pn)) if v is None else np.asarray(v, float))
+            values += list(np.zeros(len(pn)) if v is None else e.check_params(v, f"the starting calibration ({label})"))
             scales += list(np.asarray(e.param_scale(), dtype=float))
             self.blocks[label] = slice(start, len(names))
         self.param_names = names
         self.x0 = np.asarray(values, dtype=float)
         self.x_scale = np.asarray(scales, dtype=float)
+        #: Bounds the fit keeps each parameter in (:meth:`magcal.model.Effect.param_bounds`; base terms free).
+        self.lower = np.full(len(names), -np.inf)
+        self.upper = np.full(len(names), np.inf)
+        for e, s in model.instances():
+            sl = self.blocks[block_label(e, s)]
+            lo, hi = e.param_bounds()
+            self.lower[sl], self.upper[sl] = lo, hi
+        self.x0 = np.clip(self.x0, self.lower, self.upper)
         self.total_field_rows = slice(0, ns * n)
         self.n_residuals = ns * n * (3 if self.coupled else 1)
         if len(names) >= ns * n:
@@ -418,6 +426,10 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     condition number; the scaled system here stays far from float64's limit (parameters move the readings by
     about 1 nT per unit of :attr:`Problem.x_scale`), and a factorisation failure raises the damping instead.
 
+    Bounds of the problem (``problem.lower``, ``problem.upper`` from :meth:`magcal.model.Effect.param_bounds`,
+    e.g. a hysteresis width ``>= 0``) are kept by a projected step: a parameter at a bound that the gradient
+    pushes out of is held for that step, and the step is clipped into the bounds.
+
     Stops when the relative cost reduction, both actual and predicted, is below ``ftol``, or the scaled step is
     below ``xtol`` relative to the scaled parameters. ``J^T W J`` is returned from the last iterate where it
     was evaluated, which differs from the returned ``x`` by at most that last, converged step.
@@ -436,7 +448,14 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
         r = problem.residuals(x)
         return problem.normal_equations(x, weights=drho(r**2 / f2))
 
+    # bounds (Effect.param_bounds, e.g. a hysteresis width >= 0): a parameter held at a bound that the descent
+    # direction points out of is left out of the step, and every step is clipped into the bounds
+    lower = getattr(problem, "lower", None)
+    upper = getattr(problem, "upper", None)
+    bounded = lower is not None and (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     x = np.asarray(x0, dtype=float).copy()
+    if bounded:
+        x = np.clip(x, lower, upper)
     r, jtj, jtr = equations(x)
     nfev, cost = 1, cost_of(r)
     diag = np.maximum(np.diag(jtj), 0.0)
@@ -447,11 +466,19 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
         if not np.all(np.isfinite(jtj)) or not np.all(np.isfinite(jtr)):
             message, status = "non-finite Jacobian", -1
             break
-        if np.max(np.abs(jtr) / np.sqrt(d)) <= 1e-14 * max(np.sqrt(2 * cost), 1e-300):
+        free = np.ones(x.size, bool)
+        if bounded:
+            free = ~(((x <= lower) & (jtr > 0)) | ((x >= upper) & (jtr < 0)))
+        if np.max(np.abs(jtr[free]) / np.sqrt(d[free]), initial=0.0) <= 1e-14 * max(np.sqrt(2 * cost), 1e-300):
             message, status = "gradient is zero to machine precision", 1
             break
         try:
-            step = cho_solve(cho_factor(jtj + lam * np.diag(d)), -jtr)
+            if bounded:
+                step = np.zeros_like(x)
+                step[free] = cho_solve(cho_factor(jtj[np.ix_(free, free)] + lam * np.diag(d[free])), -jtr[free])
+                step = np.clip(x + step, lower, upper) - x
+            else:
+                step = cho_solve(cho_factor(jtj + lam * np.diag(d)), -jtr)
         except LinAlgError:
             lam, nu = lam * nu, nu * 2
             if lam > 1e16:

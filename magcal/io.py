@@ -1,8 +1,9 @@
 """Reading and writing magcal's CSV format (documented in ``docs/formats.md``).
 
 The format: UTF-8 text, comma separated, one header row. Lines before the header that start with ``#`` carry
-metadata as ``# key: value`` (``baseline_m``, ``reference_total_nT``, ``units``, ``noise_nT``; any other key is
-kept as text in :attr:`Dataset.metadata`). Columns ``s1x,s1y,s1z ... s4x,s4y,s4z`` (one to four sensors; bare
+metadata as ``# key: value`` (``baseline_m``, ``reference_total_nT``, ``units``, ``lsb_nT``, ``noise_nT``; any other
+key is kept as text in :attr:`Dataset.metadata`). Readings in raw sensor counts (``units: counts``) need the LSB in
+nT per count (``lsb_nT``, or ``--lsb``). Columns ``s1x,s1y,s1z ... s4x,s4y,s4z`` (one to four sensors; bare
 ``x,y,z`` means one sensor), optional ``t`` (s), ``temp`` (degC), ``ref_total`` (nT), ``qw,qx,qy,qz`` (attitude,
 array frame to world frame), ``group`` (text). Any other column is kept in :attr:`Dataset.extra`.
 
@@ -49,6 +50,9 @@ UNIT_FACTORS_nT = {
 #: The unit names shown to users, with their factor to nT.
 UNIT_NAMES = {"nT": 1.0, "uT": 1.0e3, "G": 1.0e5, "mG": 1.0e2}
 
+#: Unit names (lower case) meaning raw integer counts of the sensor; their factor is the LSB in nT per count.
+COUNT_UNITS = ("counts", "count")
+
 #: Range of the Earth's field at the surface, nT (used by the unit sanity check).
 EARTH_FIELD_RANGE_nT = (20_000.0, 70_000.0)
 
@@ -76,19 +80,58 @@ def canonical_columns(n_sensors=MAX_SENSORS):
     return names + list(CHANNEL_COLUMNS) + list(QUATERNION_COLUMNS) + ["group"]
 
 
-def parse_units(units, where="--units"):
-    """Factor (nT per unit) for a unit name such as ``nT``, ``uT``, ``G`` or ``mG``.
+def is_counts(units) -> bool:
+    """True if ``units`` names raw sensor counts (``counts``)."""
+    return units is not None and str(units).strip().lower() in COUNT_UNITS
+
+
+def parse_lsb(value, where="--lsb"):
+    """The LSB of raw counts in nT per count, from a number or its text.
 
     Raises
     ------
     DatasetError
-        For an unknown unit.
+        Unless it is a positive finite number.
+    """
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else _strict_float(str(value))
+    if number is None or not np.isfinite(number) or number <= 0:
+        raise DatasetError(
+            f"{where}: {value!r} must be a positive number of nT per count (e.g. 150 for 0.15 uT/LSB, "
+            "or 91.74 for a part giving 1090 LSB/G)"
+        )
+    return float(number)
+
+
+def parse_units(units, where="--units", lsb_nT=None):
+    """Factor (nT per unit) for a unit name such as ``nT``, ``uT``, ``G``, ``mG``, or ``counts`` with an LSB.
+
+    Parameters
+    ----------
+    units : str
+        The unit name (case-insensitive).
+    where : str
+        Where the name came from, for messages.
+    lsb_nT : float, optional
+        nT per count; needed for ``counts`` (raw sensor counts), whose factor it is.
+
+    Raises
+    ------
+    DatasetError
+        For an unknown unit, or ``counts`` without an LSB.
     """
     key = str(units).strip()
+    if is_counts(key):
+        if lsb_nT is None:
+            raise DatasetError(
+                f"{where}: readings in raw counts need the LSB in nT per count: pass --lsb NT_PER_COUNT or add a "
+                "'# lsb_nT: ...' line to the file (e.g. 150 for 0.15 uT/LSB; see the sensor's data sheet)"
+            )
+        return parse_lsb(lsb_nT, where="lsb_nT")
     factor = UNIT_FACTORS_nT.get(key.lower())
     if factor is None:
         raise DatasetError(
-            f"{where}: unknown unit {units!r}; use one of {', '.join(UNIT_NAMES)} (nT is the default)"
+            f"{where}: unknown unit {units!r}; use one of {', '.join(UNIT_NAMES)} (nT is the default), or counts "
+            "with --lsb for raw sensor counts"
         )
     return factor
 
@@ -348,15 +391,18 @@ class CsvSource:
     columns : dict, optional
         Mapping canonical name -> file column name (``{"s1x": "magX"}``; ``x`` means ``s1x``).
     units : str, optional
-        Unit of the readings (nT, uT, G, mG); overrides the file's ``# units:`` line.
+        Unit of the readings (nT, uT, G, mG, or counts); overrides the file's ``# units:`` line.
     name : str, optional
         What messages and :attr:`Dataset.source` call the file (e.g. an upload's file name); default the path, or
         the file object's ``name``.
+    lsb_nT : float or str, optional
+        nT per count for readings in raw counts; overrides the file's ``# lsb_nT:`` line. Refused unless the
+        readings are in counts. The LSB used is kept as the metadata ``lsb_nT`` of the datasets.
 
     Use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, path, columns=None, units=None, name=None):
+    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None):
         self.metadata = {}
         self.metadata_lines = []
         self._file = None
@@ -380,7 +426,7 @@ class CsvSource:
                         f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path") from None
             self._read_head()
             self.layout = _find_layout(self.header, columns, self.source, self.header_line)
-            self._resolve_units(units)
+            self._resolve_units(units, lsb_nT)
         except BaseException:
             self.close()
             raise
@@ -485,24 +531,48 @@ class CsvSource:
                     + (" in nT" if key.endswith("_nT") else " in m" if key.endswith("_m") else "")
                 )
         elif key == "units":
-            parse_units(value, where=f"{self.source}: line {self._lineno}: metadata units")
+            if not is_counts(value):
+                parse_units(value, where=f"{self.source}: line {self._lineno}: metadata units")
+            self._units_line = self._lineno
+        elif key == "lsb_nT":
+            parse_lsb(value, where=f"{self.source}: line {self._lineno}: metadata lsb_nT")
 
-    def _resolve_units(self, units):
+    def _resolve_units(self, units, lsb_nT=None):
+        """Set :attr:`units`, :attr:`unit_factor` (nT per unit) and :attr:`lsb_nT` (None unless counts)."""
         file_units = self.metadata.get("units")
-        if units is not None and str(units).strip():
-            self.unit_factor = parse_units(units)
-            self.units = str(units).strip()
-            if file_units is not None and parse_units(file_units) != self.unit_factor:
-                warnings.warn(
-                    f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
-                    DataWarning, stacklevel=3,
+        file_lsb = self.metadata.get("lsb_nT")
+        given = units is not None and bool(str(units).strip())
+        self.units = str(units).strip() if given else file_units if file_units is not None else "nT"
+        counts = is_counts(self.units)
+        lsb = None
+        if lsb_nT is not None and str(lsb_nT).strip():
+            lsb = parse_lsb(lsb_nT, where=f"{self.source}: --lsb")
+            if not counts:
+                origin = "--units" if given else "the file's units line" if file_units is not None else "the default"
+                raise DatasetError(
+                    f"{self.source}: --lsb {lsb_nT} applies to readings in raw counts, but they are in {self.units} "
+                    f"({origin}); add --units counts if the readings are counts, or leave out --lsb"
                 )
+            if file_lsb is not None and parse_lsb(file_lsb) != lsb:
+                warnings.warn(f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'",
+                              DataWarning, stacklevel=3)
+        elif counts and file_lsb is not None:
+            lsb = parse_lsb(file_lsb)
+        if given:
+            where = f"{self.source}: --units {self.units}"
         elif file_units is not None:
-            self.unit_factor = parse_units(file_units)
-            self.units = file_units
+            where = f"{self.source}: line {self._units_line}: metadata units"
         else:
-            self.unit_factor = 1.0
-            self.units = "nT"
+            where = f"{self.source}: units"
+        self.unit_factor = parse_units(self.units, where=where, lsb_nT=lsb)
+        if given and file_units is not None:
+            same = is_counts(file_units) == counts and (counts or parse_units(file_units) == self.unit_factor)
+            if not same:
+                warnings.warn(f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
+                              DataWarning, stacklevel=3)
+        self.lsb_nT = lsb if counts else None
+        if self.lsb_nT is not None:
+            self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
 
     # -- rows --------------------------------------------------------------------------------------------------
     def _read_lines(self, n):
@@ -761,12 +831,13 @@ def concatenate(datasets):
     )
 
 
-def check_units(dataset, units="nT", source=None, stacklevel=3):
-    """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit.
+def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
+    """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit (or another LSB).
 
     The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
-    usually means a wrong ``units`` line. The magnitude is taken about the readings' fitted centre
-    (:func:`magcal.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit error.
+    usually means a wrong ``units`` line, or for raw counts a wrong LSB. The magnitude is taken about the readings'
+    fitted centre (:func:`magcal.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
+    error. ``lsb_nT`` (nT per count) defaults to the dataset's metadata ``lsb_nT`` for ``units="counts"``.
     Returns the warning text, or ``None``.
     """
     from .coverage import field_magnitude_nT
@@ -778,11 +849,19 @@ def check_units(dataset, units="nT", source=None, stacklevel=3):
     lo, hi = EARTH_FIELD_RANGE_nT
     if 0.5 * lo <= median <= 1.5 * hi:
         return None
-    factor = parse_units(units)
-    raw = median / factor
-    guesses = [name for name, f in UNIT_NAMES.items() if lo <= raw * f <= hi and f != factor]
-    hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' line)"
-            if guesses else "check the units (nT, uT, G, mG) and that the sensor is in the Earth's field")
+    if is_counts(units):
+        lsb = lsb_nT if lsb_nT is not None else dataset.metadata.get("lsb_nT")
+        factor = parse_units(units, where=f"{source or dataset.source or 'dataset'}: units", lsb_nT=lsb)
+        raw = median / factor
+        hint = (f"check the LSB: {factor:.4g} nT per count is given, and about {50_000.0 / raw:.3g} nT per count "
+                "would put the field at 50 uT (or the sensor is not in the Earth's field)")
+    else:
+        factor = parse_units(units)
+        raw = median / factor
+        guesses = [name for name, f in UNIT_NAMES.items() if lo <= raw * f <= hi and f != factor]
+        hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' "
+                "line)" if guesses else
+                "check the units (nT, uT, G, mG, or counts with --lsb) and that the sensor is in the Earth's field")
     msg = (f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
            f"centre) is {raw:.4g} {units} = {median:.4g} nT, outside the Earth's field range of 20-70 uT; {hint}")
     warnings.warn(msg, DataWarning, stacklevel=stacklevel)
@@ -809,7 +888,8 @@ def require_samples(dataset, n_params, what="this model"):
         )
 
 
-def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None):
+def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None,
+             lsb_nT=None):
     """Read a magcal CSV file into a :class:`~magcal.dataset.Dataset` (readings in nT).
 
     Parameters
@@ -820,7 +900,8 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
         Column mapping canonical -> file name, e.g. ``{"s1x": "magX", "t": "time"}`` or the CLI form
         ``"x=magX,y=magY,z=magZ,t=time"``.
     units : str, optional
-        Unit of the readings: ``nT`` (default), ``uT``, ``G`` or ``mG``; overrides the file's ``# units:`` line.
+        Unit of the readings: ``nT`` (default), ``uT``, ``G``, ``mG``, or ``counts`` (raw sensor counts, with an
+        LSB); overrides the file's ``# units:`` line.
     drop_bad : bool
         Drop rows whose numeric columns hold NaN, inf, empty cells or text, with a :class:`DataWarning`;
         otherwise such rows make the whole file refused.
@@ -828,6 +909,9 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
         Fewest samples accepted (after dropping rows).
     name : str, optional
         What messages and ``Dataset.source`` call the file; default the path (or the file object's ``name``).
+    lsb_nT : float or str, optional
+        nT per count for ``counts``; overrides the file's ``# lsb_nT:`` line (kept as metadata ``lsb_nT``). An error
+        unless the readings are in counts.
 
     Returns
     -------
@@ -841,7 +925,7 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     """
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
-    with CsvSource(path, columns=columns, units=units, name=name) as src:
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
         parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
         if not parts:
             raise DatasetError(
@@ -854,7 +938,7 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
                 f"{src.source}: {ds.n_samples} sample(s){dropped}, fewer than the {int(min_samples)} needed; "
                 "record more attitudes"
             )
-        check_units(ds, src.units, src.source, stacklevel=3)
+        check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT)
     return ds
 
 

@@ -110,6 +110,14 @@ class Effect:
         Fewest sensors the term makes sense for (2 for inter-sensor effects).
     description : str
         One line for tables and the workbench.
+    transferable : bool
+        True (the default) when the term describes the *instrument* and carries to new data: a temperature
+        coefficient, a nonlinearity, a timing skew, hysteresis are properties of the sensor, and a calibration
+        that includes them corrects later recordings too. False when the term describes *one recording*: a bias
+        drift since power-on, a bias step at one moment, the reference field's drift during the record, the
+        gradient of the calibration site. Such a term is fitted so that it does not bias the instrument terms,
+        but cannot be carried to another record without an external reference (a new step time, the field's
+        variation during that record...).
     """
 
     name: ClassVar[str] = ""
@@ -118,6 +126,7 @@ class Effect:
     per_sensor: ClassVar[bool] = True
     min_sensors: ClassVar[int] = 1
     description: ClassVar[str] = ""
+    transferable: ClassVar[bool] = True
 
     sensor: int | None = None
 
@@ -129,6 +138,47 @@ class Effect:
     def param_scale(self) -> np.ndarray:
         """Typical magnitude of each parameter that changes the readings by ~1 nT (for conditioning)."""
         return np.ones(len(self.param_names()))
+
+    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of each parameter, where physics sets them (a loop width is not negative).
+
+        The fitter (:func:`magcal.fit.fit`) keeps every parameter within them, and :meth:`check_params` refuses
+        values outside them. The default is unbounded (``-inf``, ``inf``).
+        """
+        q = len(self.param_names())
+        return np.full(q, -np.inf), np.full(q, np.inf)
+
+    def check_params(self, values, where: str = "") -> np.ndarray:
+        """``values`` (one instance's parameters) as floats, or a clear :class:`MagcalError` if a value is not a
+        finite number or lies outside :meth:`param_bounds`.
+
+        Parameters
+        ----------
+        values : array_like, shape (q,)
+            Parameters of one instance, in :meth:`param_names` order.
+        where : str, optional
+            Where the values came from (a file, ``init``...), put in front of the message.
+        """
+        head = f"{where}: " if where else ""
+        names = self.param_names()
+        try:
+            v = np.asarray(values, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise MagcalError(f"{head}{self.label}: the parameters must be {len(names)} numbers "
+                              f"({', '.join(names)})") from None
+        if v.size != len(names):
+            raise MagcalError(f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters "
+                              f"({', '.join(names)})")
+        lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in self.param_bounds())
+        for name, value, lo, hi in zip(names, v, lower, upper):
+            if not np.isfinite(value):
+                raise MagcalError(f"{head}{self.label}: {name} = {value} is not a finite number")
+            if value < lo or value > hi:
+                span = f">= {lo:g}" if np.isinf(hi) else f"<= {hi:g}" if np.isinf(lo) else f"in [{lo:g}, {hi:g}]"
+                note = getattr(self, "bounds_note", "")
+                raise MagcalError(f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
+                                  + (f" ({note})" if note else ""))
+        return v
 
     def configure(self, dataset, residuals_nT=None) -> None:
         """Set data-derived constants (reference temperature, reference time, knots, step time...).
@@ -209,7 +259,9 @@ def parse_effect(spec: str, n_sensors: int) -> Effect:
     if name in BASE_TERMS:
         raise MagcalError(f"{name!r} is a base term: it is always in the model unless removed")
     if name not in EFFECTS:
-        raise MagcalError(f"unknown effect {name!r}; known effects: {', '.join(sorted(EFFECTS))}")
+        from .plugins import unknown_effect_message  # it may be a user's effect not loaded (--effects-file)
+
+        raise MagcalError(unknown_effect_message(name))
     sensor = None
     if sensor_text:
         sensor = parse_sensor_number(spec, sensor_text, n_sensors)

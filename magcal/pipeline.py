@@ -143,6 +143,13 @@ class CalibrationResult:
         Samples used.
     wall_s : float
         Total time, s.
+    robust : bool
+        Whether the robust loss was used.
+    effects : list of str
+        Labels of the candidate effects in the model.
+    field_magnitude_nT : float or None
+        The field magnitude of the final calibration, nT: the total field it expects (its reference, given or
+        fitted, or the data's ``ref_total`` column), averaged over the sensors and the samples used.
     """
 
     calibration: Calibration
@@ -168,6 +175,7 @@ class CalibrationResult:
     wall_s: float = 0.0
     robust: bool = False
     effects: list = field(default_factory=list)
+    field_magnitude_nT: float | None = None
 
     @property
     def n_sensors(self) -> int:
@@ -333,6 +341,69 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
                                    mask=mask, reference_total_nT=reference_total_nT)
 
 
+@dataclass
+class _Run:
+    """What the steps of one :func:`calibrate` call share: the data, the reference, the notes and the steps run.
+
+    Attributes
+    ----------
+    dataset : Dataset
+        The whole dataset, as given.
+    mask : numpy.ndarray of bool, shape (N,)
+        Samples used.
+    kept : Dataset
+        The samples used (later, with ``robust``, only the trusted ones).
+    ref_value : float or None
+        The reference total field (nT) the fit uses, or None (a per-sample column, or fitted).
+    ref_kind : str
+        ``given``, ``column`` or ``fitted``.
+    progress : callable or None
+        ``progress(message, fraction_or_None)``.
+    notes : list of str
+        Non-fatal concerns, in the order found (the result's ``warnings``).
+    steps_timed : list of tuple
+        ``(name, description, calibration, wall_s)`` of every step run.
+    ellipsoids : list of EllipsoidFit
+        Step-1 fits per sensor (empty for search methods).
+    inliers : numpy.ndarray of bool
+        Kept samples the ellipsoid start trusted.
+    fit : FitResult or None
+        The ML fit.
+    calibration : Calibration or None
+        The calibration of the last step run.
+    """
+
+    dataset: object
+    mask: np.ndarray
+    kept: object
+    ref_value: float | None
+    ref_kind: str
+    progress: Callable | None = None
+    notes: list = field(default_factory=list)
+    steps_timed: list = field(default_factory=list)
+    ellipsoids: list = field(default_factory=list)
+    inliers: np.ndarray | None = None
+    fit: object | None = None
+    calibration: Calibration | None = None
+
+    def report(self, message, fraction=None):
+        if self.progress is not None:
+            self.progress(message, fraction)
+
+    def caught(self, wlist):
+        """magcal's data warnings become notes; anything else is passed on unchanged."""
+        for w in wlist:
+            if issubclass(w.category, DataWarning):
+                self.notes.append(str(w.message))
+            else:
+                _warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+    def add_step(self, name, description, calibration, t0):
+        """Record a step that started at ``t0`` (``time.perf_counter()``) and made ``calibration``."""
+        self.steps_timed.append((name, description, calibration, time.perf_counter() - t0))
+        self.calibration = calibration
+
+
 def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None,
               seed=None, progress: Callable | None = None, mask=None, ellipsoid_method: str = "algebraic",
               base_terms=None) -> CalibrationResult:
@@ -375,6 +446,32 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
         Unknown method, too few samples, non-ellipsoidal readings, degenerate coverage.
     """
     t_start = time.perf_counter()
+    method, effects, mask = _checked_arguments(dataset, method, effects, mask)
+    run = _resolve_reference_step(dataset, mask, reference_total_nT, progress)
+    model = _model_for(dataset, run.kept, effects, base_terms) if method == "ml" else None
+    if method in SEARCH_METHODS:
+        _search_steps(run, method, seed, reference_total_nT)
+    else:
+        _start_steps(run, ellipsoid_method, robust)
+        if method == "ml":
+            _ml_step(run, model, robust, reference_total_nT)
+    run.report("evaluating", 0.9)
+    outliers = _robust_pass(run, robust)
+    steps = _step_figures(run)
+    result = _summary(run, steps, model, method, robust, outliers, t_start)
+    _store_summary(result)
+    for n in run.notes:
+        if "coverage" in n:
+            _warnings.warn(n, CoverageWarning, stacklevel=2)
+    run.report("done", 1.0)
+    return result
+
+
+# ---- the steps of calibrate, in order ----------------------------------------------------------------------
+
+
+def _checked_arguments(dataset, method, effects, mask):
+    """``(method, effects, mask)`` checked: a known method, effects only with ``ml``, a mask of one per sample."""
     method = str(method).lower()
     if method not in METHODS + SEARCH_METHODS:
         raise CalibrationError(f"unknown method {method!r}; use one of {', '.join(METHODS + SEARCH_METHODS)}")
@@ -385,100 +482,106 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
+    return method, effects, mask
+
+
+def _resolve_reference_step(dataset, mask, reference_total_nT, progress) -> _Run:
+    """The samples used and the reference they are fitted to (given, a per-sample column, or fitted)."""
     kept = dataset if mask.all() else dataset.subset(mask)
     ref_value, ref_kind = resolve_reference(kept, reference_total_nT)
-    notes = []
+    return _Run(dataset=dataset, mask=mask, kept=kept, ref_value=ref_value, ref_kind=ref_kind, progress=progress,
+                inliers=np.ones(kept.n_samples, bool))
 
-    def report(message, fraction=None):
-        if progress is not None:
-            progress(message, fraction)
 
-    def caught(wlist):
-        for w in wlist:  # magcal's data warnings become notes; anything else is passed on unchanged
-            if issubclass(w.category, DataWarning):
-                notes.append(str(w.message))
-            else:
-                _warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+def _model_for(dataset, kept, effects, base_terms):
+    """The ML model: the base terms (all, or ``base_terms``) and the effects, checked against the data's
+    channels."""
+    model = _build_model(dataset, effects)
+    if base_terms is not None:
+        from .model import Model
 
-    model = _build_model(dataset, effects) if method == "ml" else None
-    if model is not None:
-        if base_terms is not None:
-            from .model import Model
+        model = Model(model.n_sensors, base=tuple(base_terms), effects=model.effects)
+    model.check(kept)
+    return model
 
-            model = Model(model.n_sensors, base=tuple(base_terms), effects=model.effects)
-        model.check(kept)
 
-    steps_timed = []  # (name, description, calibration, wall_s)
-    fits, fit_result = [], None
-    inliers = np.ones(kept.n_samples, bool)
-    if method in SEARCH_METHODS:
-        report(f"{method}: global search", 0.0)
+def _search_steps(run: _Run, method, seed, reference_total_nT) -> None:
+    """A global search of ``C^-1`` and ``b`` per sensor, then Procrustes between the sensors when the search left
+    them unrotated."""
+    run.report(f"{method}: global search", 0.0)
+    t0 = time.perf_counter()
+    with _warnings.catch_warnings(record=True) as wl:
+        _warnings.simplefilter("always")
+        calibration = _search(run.dataset, method, seed, run.progress and run.report, run.mask, reference_total_nT)
+    run.caught(wl)
+    if calibration.n_sensors > 1 and all(np.allclose(c.R, np.eye(3)) for c in calibration.sensors[1:]):
+        run.add_step(method, f"global search ({method}) of C^-1 and b per sensor", calibration, t0)
         t0 = time.perf_counter()
-        with _warnings.catch_warnings(record=True) as wl:
-            _warnings.simplefilter("always")
-            calibration = _search(dataset, method, seed, progress and report, mask, reference_total_nT)
-        caught(wl)
-        if calibration.n_sensors > 1 and all(np.allclose(c.R, np.eye(3)) for c in calibration.sensors[1:]):
-            steps_timed.append((method, f"global search ({method}) of C^-1 and b per sensor", calibration,
-                                time.perf_counter() - t0))
-            t0 = time.perf_counter()
-            vectors = [(y - c.bias_nT) @ c.cinv.T for c, y in zip(calibration.sensors, kept.readings_nT)]
-            for s in range(1, calibration.n_sensors):
-                calibration.sensors[s].R = procrustes_rotation(vectors[0], vectors[s], label=f"sensor {s + 1}")
-            steps_timed.append(("procrustes", "rotation of each sensor into sensor 1's frame (eq. 14)",
-                                calibration, time.perf_counter() - t0))
-        else:
-            steps_timed.append((method, f"global search ({method})", calibration, time.perf_counter() - t0))
+        vectors = [(y - c.bias_nT) @ c.cinv.T for c, y in zip(calibration.sensors, run.kept.readings_nT)]
+        for s in range(1, calibration.n_sensors):
+            calibration.sensors[s].R = procrustes_rotation(vectors[0], vectors[s], label=f"sensor {s + 1}")
+        run.add_step("procrustes", "rotation of each sensor into sensor 1's frame (eq. 14)", calibration, t0)
     else:
-        report("step 1: ellipsoid fit per sensor", 0.0)
+        run.add_step(method, f"global search ({method})", calibration, t0)
+
+
+def _start_steps(run: _Run, ellipsoid_method, robust) -> None:
+    """The seed's two steps: an ellipsoid per sensor, then (arrays) Procrustes between the sensors."""
+    kept = run.kept
+    run.report("step 1: ellipsoid fit per sensor", 0.0)
+    t0 = time.perf_counter()
+    run.ellipsoids, run.inliers = ellipsoid_step(kept, ellipsoid_method, run.ref_value, run.ref_kind, robust=robust)
+    for f in run.ellipsoids:
+        run.notes.extend(f.warnings)
+    step1 = two_step_calibration(kept, run.ellipsoids, [np.eye(3)] * len(run.ellipsoids), run.ref_kind)
+    run.add_step("ellipsoid", f"C^-1 and b per sensor ({ellipsoid_method} ellipsoid fit, eqs. 8-13)", step1, t0)
+    if kept.n_sensors > 1:
+        run.report("step 2: Procrustes between sensors", 0.3)
         t0 = time.perf_counter()
-        fits, inliers = ellipsoid_step(kept, ellipsoid_method, ref_value, ref_kind, robust=robust)
-        for f in fits:
-            notes.extend(f.warnings)
-        step1 = two_step_calibration(kept, fits, [np.eye(3)] * len(fits), ref_kind)
-        steps_timed.append(("ellipsoid", f"C^-1 and b per sensor ({ellipsoid_method} ellipsoid fit, eqs. 8-13)",
-                            step1, time.perf_counter() - t0))
-        calibration = step1
-        if kept.n_sensors > 1:
-            report("step 2: Procrustes between sensors", 0.3)
-            t0 = time.perf_counter()
-            rotations = procrustes_step(kept, fits, inliers)
-            calibration = two_step_calibration(kept, fits, rotations, ref_kind)
-            steps_timed.append(("procrustes", "rotation of each sensor into sensor 1's frame (eq. 14)",
-                                calibration, time.perf_counter() - t0))
-        if method == "ml":
-            from .fit import fit as ml_fit
+        rotations = procrustes_step(kept, run.ellipsoids, run.inliers)
+        calibration = two_step_calibration(kept, run.ellipsoids, rotations, run.ref_kind)
+        run.add_step("procrustes", "rotation of each sensor into sensor 1's frame (eq. 14)", calibration, t0)
 
-            report("step 3: maximum-likelihood refinement", 0.5)
-            t0 = time.perf_counter()
-            with _warnings.catch_warnings(record=True) as wl:
-                _warnings.simplefilter("always")
-                fit_result = ml_fit(dataset, model, init=calibration, loss="soft_l1" if robust else "linear",
-                                    mask=mask, reference_total_nT=reference_total_nT)
-            caught(wl)
-            calibration = fit_result.calibration
-            terms = ", ".join(list(model.base) + model.effect_labels)
-            steps_timed.append(("ml", f"maximum likelihood of {terms}" + (" (robust soft-L1 loss)" if robust else ""),
-                                calibration, time.perf_counter() - t0))
-    report("evaluating", 0.9)
 
-    outliers = np.zeros(n_all, bool)
-    if fit_result is not None:
-        outliers = np.asarray(fit_result.outliers, bool)
+def _ml_step(run: _Run, model, robust, reference_total_nT) -> None:
+    """Step 3: every parameter of the model by maximum likelihood, started from the two steps."""
+    from .fit import fit as ml_fit
+
+    run.report("step 3: maximum-likelihood refinement", 0.5)
+    t0 = time.perf_counter()
+    with _warnings.catch_warnings(record=True) as wl:
+        _warnings.simplefilter("always")
+        run.fit = ml_fit(run.dataset, model, init=run.calibration, loss="soft_l1" if robust else "linear",
+                         mask=run.mask, reference_total_nT=reference_total_nT)
+    run.caught(wl)
+    terms = ", ".join(list(model.base) + model.effect_labels)
+    run.add_step("ml", f"maximum likelihood of {terms}" + (" (robust soft-L1 loss)" if robust else ""),
+                 run.fit.calibration, t0)
+
+
+def _robust_pass(run: _Run, robust) -> np.ndarray:
+    """The samples distrusted as outliers (N,); with ``robust`` the figures then leave them out (``run.kept``)."""
+    outliers = np.zeros(run.dataset.n_samples, bool)
+    if run.fit is not None:
+        outliers = np.asarray(run.fit.outliers, bool)
     elif robust:
-        outliers[np.flatnonzero(mask)[~inliers]] = True
+        outliers[np.flatnonzero(run.mask)[~run.inliers]] = True
     if outliers.any():
-        notes.append(f"{int(outliers.sum())} sample(s) distrusted as outliers"
-                     + (" and down-weighted by the robust loss; the figures leave them out" if robust
-                        else "; consider the robust loss"))
+        run.notes.append(f"{int(outliers.sum())} sample(s) distrusted as outliers"
+                         + (" and down-weighted by the robust loss; the figures leave them out" if robust
+                            else "; consider the robust loss"))
     if robust and outliers.any():
-        kept = kept.subset(~outliers[mask])
+        run.kept = run.kept.subset(~outliers[run.mask])
+    return outliers
 
-    # ---- figures: before (raw readings) and after every step, on the kept (and, if robust, trusted) samples ----
-    expected = _expected(kept, calibration, ref_kind)
+
+def _step_figures(run: _Run) -> list:
+    """Figures before (raw readings) and after every step, on the kept (and, if robust, trusted) samples."""
+    kept, ref_kind = run.kept, run.ref_kind
+    expected = _expected(kept, run.calibration, ref_kind)
     raw = _evaluate("raw", "raw readings, no correction", kept.readings_nT, expected, kept, 0.0)
     steps = [raw]
-    for name, description, cal, wall in steps_timed:
+    for name, description, cal, wall in run.steps_timed:
         if cal.model is not None and cal.model.effects:
             vectors = cal.correct(kept)
             exp = expected_total_field(kept, None if ref_kind == "column" else cal.reference_total_nT, cal.model,
@@ -487,9 +590,13 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
             vectors = _base_correct(cal, kept)
             exp = _expected(kept, cal, ref_kind)
         steps.append(_evaluate(name, description, vectors, exp, kept, wall))
-    final = steps[-1]
+    return steps
 
-    # ---- noise and floors ----
+
+def _noise_and_floors(run: _Run, model, final: StepSummary):
+    """``(noise_nT, noise_source, total_field_floor_nT, tensor_floor_nT_per_m)``: the dataset's noise or one
+    estimated from the residuals (a note says so), and the floors it sets."""
+    dataset, kept = run.dataset, run.kept
     n_params = 9
     if model is not None:
         n_params += sum(len(e.param_names()) for e, s in model.instances()) / dataset.n_sensors
@@ -497,26 +604,33 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
         noise, noise_source = float(dataset.noise_nT), "dataset"
     else:
         noise_source = "estimated"
-        if fit_result is not None:
-            noise = float(fit_result.noise_nT)
+        if run.fit is not None:
+            noise = float(run.fit.noise_nT)
         else:
             n = kept.n_samples
             noise = float(np.sqrt(np.mean(final.rms_per_sensor_nT**2) * n / max(n - n_params, 1)))
-        notes.append(f"noise not given: the floors use sigma = {noise:.3g} nT estimated from the residuals")
+        run.notes.append(f"noise not given: the floors use sigma = {noise:.3g} nT estimated from the residuals")
     tf_floor = conventions.total_field_floor_nT(noise, kept.n_samples, n_params)
     t_floor = None
     if _has_tensor(dataset):
         t_floor = {k: float(v) for k, v in conventions.tensor_floor_nT_per_m(noise, dataset.baseline_m).items()}
+    return noise, noise_source, tf_floor, t_floor
 
-    result = CalibrationResult(
+
+def _summary(run: _Run, steps, model, method, robust, outliers, t_start) -> CalibrationResult:
+    """The :class:`CalibrationResult` of the run: the final calibration, the steps' figures, noise and floors."""
+    raw, final = steps[0], steps[-1]
+    noise, noise_source, tf_floor, t_floor = _noise_and_floors(run, model, final)
+    calibration = run.calibration
+    return CalibrationResult(
         calibration=calibration,
-        fit=fit_result,
+        fit=run.fit,
         steps=steps,
-        warnings=notes,
+        warnings=run.notes,
         method=method,
-        reference_kind=ref_kind,
+        reference_kind=run.ref_kind,
         reference_total_nT=calibration.reference_total_nT,
-        n_samples=int(mask.sum()),
+        n_samples=int(run.mask.sum()),
         rms_before_per_sensor_nT=raw.rms_per_sensor_nT,
         rms_after_per_sensor_nT=final.rms_per_sensor_nT,
         rms_nT=float(np.sqrt(np.mean(final.rms_per_sensor_nT**2))),
@@ -526,19 +640,26 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
         noise_source=noise_source,
         total_field_floor_nT=tf_floor,
         tensor_floor_nT_per_m=t_floor,
-        ellipsoids=fits,
+        ellipsoids=run.ellipsoids,
         outliers=outliers,
-        mask=mask,
+        mask=run.mask,
         wall_s=time.perf_counter() - t_start,
         robust=robust,
         effects=model.effect_labels if model is not None else [],
+        field_magnitude_nT=_field_magnitude_nT(run.kept, calibration, run.ref_kind),
     )
-    _store_summary(result)
-    for n in notes:
-        if "coverage" in n:
-            _warnings.warn(n, CoverageWarning, stacklevel=2)
-    report("done", 1.0)
-    return result
+
+
+def _field_magnitude_nT(kept, calibration, ref_kind) -> float:
+    """The field magnitude (nT) of the final calibration, averaged over the sensors and the kept samples: the
+    total field it expects (its reference, given or fitted, with any reference-stage effect, or the data's
+    ``ref_total`` column)."""
+    if calibration.model is not None and calibration.model.effects:
+        expected = expected_total_field(kept, None if ref_kind == "column" else calibration.reference_total_nT,
+                                        calibration.model, calibration.effect_values)
+    else:
+        expected = _expected(kept, calibration, ref_kind)
+    return float(np.mean(np.broadcast_to(expected, (kept.n_sensors, kept.n_samples))))
 
 
 def _base_correct(calibration, dataset):
@@ -569,7 +690,8 @@ def _store_summary(result: CalibrationResult) -> None:
     })
     if result.fit is not None:
         cal.summary.update({"aic": float(result.fit.aic), "bic": float(result.fit.bic),
-                            "noise_estimate_nT": float(result.fit.noise_nT)})
+                            "noise_estimate_nT": float(result.fit.noise_nT),
+                            "field_magnitude_nT": result.field_magnitude_nT})
     if result.tensor_rms_nT_per_m is None:
         cal.summary.pop("tensor_rms_nT_per_m")
         cal.summary.pop("tensor_rms_before_nT_per_m")

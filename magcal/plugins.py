@@ -704,7 +704,9 @@ def describe_effect(name: str) -> dict:
     dict
         ``name``, ``stage``, ``channels``, ``per_sensor``, ``min_sensors``, ``description``, ``doc`` (the class
         docstring), ``params`` (list of ``{"name", "symbol", "unit", "scale"}``; ``scale`` the size that moves
-        the readings by about 1 nT), ``transferable`` (True, False or None when the class does not say),
+        the readings by about 1 nT), ``transferable`` (:attr:`magcal.model.Effect.transferable`: True for an
+        instrument term that carries to new data, False for a record-only term; None only for a class that
+        overrides it with something else),
         ``simulator`` (whether it can be hidden in simulated data), ``origin`` (``built-in``, ``file``,
         ``entry point``, ``python``) and ``source``.
     """

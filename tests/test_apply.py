@@ -13,8 +13,11 @@ from magcal import conventions, io
 from magcal import platform as pf
 from magcal import simulation as sim
 from magcal.calibration import Calibration, SensorCalibration
+from magcal.cli import main
 from magcal.dataset import DatasetError
-from magcal.errors import DataWarning, MagcalError
+from magcal.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.fit import fit
+from magcal.model import EFFECTS, Model
 
 
 def exact_calibration(truth, frame="platform"):
@@ -255,3 +258,99 @@ def test_wrong_sensor_count_and_non_json(tmp_path, truth):
         ap.load_calibration(tmp_path / "absent.json")
     with pytest.raises(MagcalError, match="directory"):
         ap.load_calibration(tmp_path)
+
+
+# -- record-only terms: a bias drift of the calibration record is not carried to another file ------------------------
+@pytest.fixture(scope="module")
+def drift_files(tmp_path_factory):
+    """The calibration record (hidden bias drift) and a later record of the same sensor, as CSV files, and a
+    calibration with a bias drift and a temperature bias fitted on the first, told its record (as read back)."""
+    folder = tmp_path_factory.mktemp("record")
+    truth = sim.chi2017_truth()
+    truth.sensors = truth.sensors[:1]
+    drift = EFFECTS["bias_drift"]()
+    paths = {}
+    for name, seed in (("record", 3), ("later", 4)):
+        ds = sim.simulate_timeseries(truth, n_samples=600, noise_nT=2.0, seed=seed,
+                                     perturbations=[drift.perturbation(2 * drift.default_magnitude)])
+        paths[name] = folder / f"{name}.csv"
+        io.write_csv(paths[name], ds)
+    record = read_out(paths["record"])
+    cal = fit(record, Model.from_names(["bias_drift", "temperature_bias"], 1)).calibration.fitted_on(record)
+    cal_path = folder / "cal.json"
+    cal.save(cal_path)
+    return cal, cal_path, paths
+
+
+def _corrected(path):
+    res = read_out(path)
+    return np.column_stack([res.extra[f"s1{a}_cal"] for a in "xyz"])
+
+
+@pytest.mark.parametrize("chunk_rows", [7, 100_000])
+def test_record_terms_apply_silently_to_the_fitted_record_file(tmp_path, drift_files, chunk_rows):
+    cal, cal_path, paths = drift_files
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RecordTermWarning)
+        ap.apply_file(cal_path, paths["record"], tmp_path / "out.csv", chunk_rows=chunk_rows)
+    expected = cal.correct(read_out(paths["record"]), record_terms="apply")[0]
+    np.testing.assert_allclose(_corrected(tmp_path / "out.csv"), expected, atol=6e-4)
+
+
+@pytest.mark.parametrize("chunk_rows", [7, 100_000])
+def test_record_terms_are_dropped_on_another_file_with_one_warning(tmp_path, drift_files, chunk_rows):
+    cal, cal_path, paths = drift_files
+    with pytest.warns(RecordTermWarning) as caught:
+        ap.apply_file(cal_path, paths["later"], tmp_path / "out.csv", chunk_rows=chunk_rows)
+    notes = [w for w in caught if issubclass(w.category, RecordTermWarning)]
+    text = str(notes[0].message)
+    assert len(notes) == 1 and "bias_drift" in text and "temperature_bias" not in text
+    later = read_out(paths["later"])
+    got = _corrected(tmp_path / "out.csv")
+    np.testing.assert_allclose(got, cal.correct(later, record_terms="drop")[0], atol=6e-4)
+    assert np.max(np.abs(got - cal.correct(later, record_terms="apply")[0])) > 1.0  # the drift was really left out
+
+
+def test_record_terms_apply_forces_them(tmp_path, drift_files):
+    cal, cal_path, paths = drift_files
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RecordTermWarning)
+        ap.apply_file(cal_path, paths["later"], tmp_path / "out.csv", record_terms="apply")
+    np.testing.assert_allclose(_corrected(tmp_path / "out.csv"),
+                               cal.correct(read_out(paths["later"]), record_terms="apply")[0], atol=6e-4)
+
+
+@pytest.mark.parametrize("args, warned", [([], True), (["--record-terms", "drop"], False),
+                                          (["--record-terms", "apply"], False)])
+def test_cli_record_terms(tmp_path, drift_files, capsys, args, warned):
+    cal, cal_path, paths = drift_files
+    out = tmp_path / "out.csv"
+    code = main(["apply", str(cal_path), str(paths["later"]), "-o", str(out), "--no-progress", "--chunk-rows", "50"]
+                + args)
+    err = capsys.readouterr().err
+    assert code == 0 and "Traceback" not in err
+    assert err.count("record-only term") == (1 if warned else 0), err  # printed once, not once per block
+    choice = "apply" if "apply" in args else "drop"
+    np.testing.assert_allclose(_corrected(out), cal.correct(read_out(paths["later"]), record_terms=choice)[0],
+                               atol=6e-4)
+
+
+def test_cli_refuses_a_bad_record_terms_choice(tmp_path, drift_files, capsys):
+    cal, cal_path, paths = drift_files
+    with pytest.raises(SystemExit):
+        main(["apply", str(cal_path), str(paths["later"]), "-o", str(tmp_path / "o.csv"), "--record-terms", "keep"])
+    assert "invalid choice: 'keep'" in capsys.readouterr().err
+
+
+def test_an_old_calibration_file_applies_its_record_terms_with_a_caution(tmp_path, drift_files, capsys):
+    cal, cal_path, paths = drift_files
+    doc = json.loads(cal_path.read_text())
+    del doc["record"]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(doc))
+    out = tmp_path / "out.csv"
+    assert main(["apply", str(old), str(paths["later"]), "-o", str(out), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("does not say which record") == 1
+    np.testing.assert_allclose(_corrected(out), cal.correct(read_out(paths["later"]), record_terms="apply")[0],
+                               atol=6e-4)

@@ -197,3 +197,101 @@ def test_effects_lists_the_built_in_catalogue(capsys):
     entry = json.loads(capsys.readouterr().out)["effects"][0]
     assert entry["name"] == "bias_step" and entry["origin"] == "built-in" and entry["channels"] == ["time"]
     assert [p["unit"] for p in entry["params"]] == ["nT"] * 3
+
+
+# -- data quality and raw counts (issue 10) --------------------------------------------------------------------------
+def _write_counts(path, lsb_nT, seed=3, n=300):
+    """Integer counts of ``lsb_nT`` for the chi2017 array, no units line; returns the dataset in nT."""
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=n, seed=seed)
+    counts = np.round(ds.readings_nT / lsb_nT).astype(int)
+    cols = {f"s{i + 1}{a}": counts[i, :, k] for i in range(4) for k, a in enumerate("xyz")}
+    io.write_csv(path, cols, metadata={"baseline_m": 0.5, "reference_total_nT": 50_000.0})
+    return ds
+
+
+@pytest.mark.parametrize("lsb_nT", [15.0, 150.0])
+def test_calibrate_reads_raw_counts_and_reports_their_quantization(tmp_path, capsys, lsb_nT):
+    path = tmp_path / "counts.csv"
+    _write_counts(path, lsb_nT)
+    assert main(["calibrate", str(path), "--units", "counts", "--lsb", str(lsb_nT), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["rms_nT"] < 3.0 + lsb_nT / np.sqrt(12) * 1.3           # the quantization floor, not more
+    quant = [f for f in doc["quality"]["findings"] if f["kind"] == "quantization"]
+    assert [f["sensor"] for f in quant] == [1, 2, 3, 4]
+    for f in quant:
+        assert f["values"]["step_nT"] == pytest.approx([lsb_nT] * 3) and f["severity"] == "warning"
+        assert f["values"]["step_counts"] == pytest.approx([1.0] * 3)
+        assert any(w.endswith(f["effect"]) and f"sensor {f['sensor']}:" in w for w in doc["warnings"])
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--units", "counts"], "need the LSB in nT per count: pass --lsb"),
+    (["--lsb", "150"], "add --units counts"),
+    (["--units", "counts", "--lsb", "-1"], "positive number of nT per count"),
+])
+def test_counts_without_a_usable_lsb_exit_2_with_a_message(tmp_path, capsys, args, message):
+    path = tmp_path / "counts.csv"
+    _write_counts(path, 150.0, n=40)
+    assert main(["calibrate", str(path)] + args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and str(path) in err
+
+
+def test_text_report_has_a_data_quality_section(tmp_path, chi_csv, capsys):
+    assert main(["calibrate", str(chi_csv)]) == 0
+    out = capsys.readouterr()
+    section = out.out.split("\nData quality\n------------\n")[1]
+    assert section.strip() == "nothing notable" and "WARNING" not in out.out   # the clean simulation
+    # stale readings in sensor 3: a warning in the section (with its effect), not repeated on stderr
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=300, seed=4)
+    y = ds.readings_nT.copy()
+    y[2, 1::4] = y[2, 0:-1:4]                      # every 4th sample of sensor 3 repeats the one before
+    path = tmp_path / "stale.csv"
+    io.write_csv(path, ds.replace(readings_nT=y))
+    assert main(["calibrate", str(path)]) == 0
+    out = capsys.readouterr()
+    section = out.out.split("\nData quality\n------------\n")[1]
+    assert "WARNING sensor 3: 25% of the readings repeat the previous vector" in section
+    assert "weights that direction twice" in section and "stale" not in out.err
+
+
+@pytest.mark.parametrize("command", ["calibrate", "diagnose"])
+def test_fitted_field_outside_the_earths_range_is_flagged(tmp_path, capsys, command):
+    from magcal.simulation import simulate
+
+    ds = simulate("chi2017", n_samples=200, seed=6, with_reference=False)
+    path = tmp_path / "weak.csv"
+    io.write_csv(path, ds.replace(readings_nT=0.3 * ds.readings_nT))   # 15 uT: a shielded room, or a wrong LSB
+    extra = ["--top", "1"] if command == "diagnose" else []
+    assert main([command, str(path), "--json"] + extra) == 0
+    doc = json.loads(capsys.readouterr().out)
+    field = [f for f in doc["quality"]["findings"] if f["kind"] == "field"]
+    assert len(field) == 1 and field[0]["values"]["field_nT"] == pytest.approx(15_000, rel=0.01)
+    assert sum("outside the Earth's field range of 20-70 uT" in w and "--lsb" in w for w in doc["warnings"]) == 1
+    # inside the range: no such finding
+    io.write_csv(path, ds)
+    assert main([command, str(path), "--json"] + extra) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert not [f for f in doc["quality"]["findings"] if f["kind"] == "field"]
+
+
+def test_diagnose_reports_data_quality(tmp_path, capsys):
+    from magcal.simulation import simulate_timeseries
+
+    ds = simulate_timeseries("chi2017", n_samples=600, seed=2)
+    path = tmp_path / "ramp.csv"
+    io.write_csv(path, ds.replace(temperature_C=20.0 + 0.05 * ds.time_s))   # temperature follows time
+    assert main(["diagnose", str(path), "--top", "1"]) == 0
+    out = capsys.readouterr()
+    section = out.out.split("\nData quality\n------------\n")[1]
+    assert "sample rate 10 Hz" in section and "WARNING temperature 20 to 23 degC" in section
+    assert "indistinguishable" in section and "indistinguishable" not in out.err
+    assert main(["diagnose", str(path), "--top", "1", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    kinds = {f["kind"] for f in doc["quality"]["findings"]}
+    assert {"sample_rate", "gaps", "stale", "quantization", "clipping", "static", "temperature"} <= kinds
+    assert any("indistinguishable" in w for w in doc["warnings"])

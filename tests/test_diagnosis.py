@@ -16,12 +16,12 @@ import pytest
 
 import heldout_sim
 import magcal.effects as fx
-from magcal import conventions, io
+from magcal import conventions, io, plugins
 from magcal.cli import main
 from magcal.diagnosis import (
     VERDICTS, cusum_test, diagnose, durbin_watson, estimate_noise, ljung_box, real_sph_harm, sh_analysis, spectrum,
 )
-from magcal.model import EFFECTS
+from magcal.model import EFFECTS, Effect, register
 from magcal.pipeline import calibrate
 from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
 
@@ -403,3 +403,58 @@ def test_score_cross_products_do_not_depend_on_the_chunking():
     cols = np.r_[whole.blocks["sensor1/base"], whole.blocks["temperature_bias:1"]]
     assert np.allclose(whole.g_all[np.ix_(cols, cols)], chunked.g_all[np.ix_(cols, cols)], rtol=1e-9)
     assert np.allclose(whole.v_all, chunked.v_all, rtol=1e-3, atol=1e-6 * np.abs(whole.v_all).max())
+
+
+# ------------------------------------------------------------------------------------------------------------
+# a user's plain Effect subclass (none of the catalogue's extras) is diagnosed like a catalogue term
+# ------------------------------------------------------------------------------------------------------------
+
+HUM_HZ = 0.37  # frequency of the hum the plain effect models (Hz), known to its author
+
+
+class _PlainHum(Effect):
+    """A hum at a known frequency, sine and cosine per sensor axis (nT): a plain subclass of ``magcal.model.Effect``
+    -- not a dataclass of its own, no ``extra_dof``, ``default_magnitude``, ``true_params``, ``DETECTION_LEVELS``."""
+
+    name = "plain_hum_for_diagnosis_test"
+    channels = ("time",)
+
+    def param_names(self):
+        return [f"{kind}_{axis}_nT" for kind in ("sin", "cos") for axis in "xyz"]
+
+    def raw_basis(self, z0, ctx):
+        phase = 2 * np.pi * HUM_HZ * ctx.time_s
+        basis = np.zeros((len(phase), 3, 6))
+        for axis in range(3):
+            basis[:, axis, axis] = np.sin(phase)
+            basis[:, axis, 3 + axis] = np.cos(phase)
+        return basis
+
+
+@pytest.fixture
+def plain_hum():
+    register(_PlainHum)
+    try:
+        yield _PlainHum.name
+    finally:
+        plugins.unregister(_PlainHum.name)
+
+
+@pytest.mark.parametrize("n_sensors, sensor", [(1, None), (4, 2)])
+def test_plain_user_effect_is_found_and_recovers_the_hidden_hum(plain_hum, n_sensors, sensor):
+    for attr in ("extra_dof", "default_magnitude", "true_params", "_cached", "DETECTION_LEVELS"):
+        assert not hasattr(_PlainHum, attr)
+    amplitude_nT, phase0 = 8.0, 0.3  # fx.periodic_interference: y += a sin(2 pi f t + 0.3) d
+    hum = fx.periodic_interference(amplitude_nT, HUM_HZ, sensor)
+    ds = simulate_timeseries(_truth(n_sensors), n_samples=N, noise_nT=SIGMA, seed=1, perturbations=[hum])
+    d = diagnose(ds, calibrate(ds))
+    best = d.candidates[0]
+    assert d.verdict == "missing_effect", d.summary
+    assert best.effect == plain_hum and best.sensor == sensor and best.refitted and best.delta_bic < -100
+    direction = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])  # periodic_interference's default
+    params = best.params[best.label]
+    sin_nT = np.array([params[f"sin_{a}_nT"] for a in "xyz"])
+    cos_nT = np.array([params[f"cos_{a}_nT"] for a in "xyz"])
+    assert np.allclose(sin_nT, amplitude_nT * np.cos(phase0) * direction, atol=0.5)
+    assert np.allclose(cos_nT, amplitude_nT * np.sin(phase0) * direction, atol=0.5)
+    assert d.fits[best.label].rms_nT <= 1.1 * d.floor_nT

@@ -258,7 +258,7 @@ def test_hysteresis_shape_is_refined_within_fit(seed):
     base = fit(ds)
     result = fit(ds, Model.from_names(["hysteresis"], 1), init=base.calibration)
     floor = conventions.total_field_floor_nT(3.0, ds.n_samples, 12)
-    assert base.rms_nT > 1.3 * floor
+    assert base.rms_nT > 1.2 * floor          # the loop is visible above the noise
     assert result.rms_nT < 1.01 * floor
     assert result.calibration.model.effects[0].shape_half_width_nT is not None
 

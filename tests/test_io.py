@@ -1,6 +1,7 @@
 """magcal.io: the CSV format of docs/formats.md, column mapping, units, and refusing bad files clearly."""
 
 import os
+import re
 import warnings
 from io import BytesIO, StringIO
 
@@ -116,6 +117,77 @@ def test_units_argument_overrides_the_file_with_a_warning(tmp_path):
     with pytest.warns(DataWarning, match="overrides"):
         ds = io.read_csv(path, units="uT")
     assert ds.readings_nT[0, 0, 0] == 30_000.0
+
+
+# -- raw counts with an LSB ---------------------------------------------------------------------------------------
+def counts_file(tmp_path, head, lsb_nT=150.0, seed=1):
+    """A one-sensor file of integer counts of ``lsb_nT``; returns (path, the readings in nT)."""
+    ds = simulate("chi2017", n_samples=30, seed=seed).sensors([0])
+    counts = np.round(ds.readings_nT[0] / lsb_nT).astype(int)
+    body = "\n".join(",".join(str(v) for v in row) for row in counts)
+    return write(tmp_path, head + "x,y,z\n" + body + "\n"), counts * lsb_nT
+
+
+@pytest.mark.parametrize("head,kw", [
+    ("# units: counts\n# lsb_nT: 150\n", {}),
+    ("# lsb_nT: 150\n# units: counts\n", {}),                 # order of the lines does not matter
+    ("# units: counts\n", {"lsb_nT": 150.0}),
+    ("", {"units": "counts", "lsb_nT": "150"}),
+    ("# units: counts\n# lsb_nT: 15\n", {"lsb_nT": 150.0}),   # --lsb overrides (with a warning)
+    ("# units: uT\n", {"units": "counts", "lsb_nT": 150.0}),  # --units counts overrides (with a warning)
+])
+def test_raw_counts_are_read_with_their_lsb(tmp_path, head, kw):
+    path, truth_nT = counts_file(tmp_path, head)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = io.read_csv(path, **kw)
+    np.testing.assert_allclose(ds.readings_nT[0], truth_nT, rtol=1e-12)
+    assert float(ds.metadata["lsb_nT"]) == 150.0  # kept for the quality report and written back
+    overrides = [str(w.message) for w in caught]
+    assert len(overrides) == ("lsb_nT: 15\n" in head or "uT" in head), overrides
+    assert all("overrides" in m for m in overrides)
+
+
+@pytest.mark.parametrize("head,kw,needles", [
+    ("# units: counts\n", {}, ["line 1", "metadata units", "--lsb", "lsb_nT"]),
+    ("", {"units": "counts"}, ["--units counts", "--lsb NT_PER_COUNT"]),
+    ("", {"lsb_nT": 150.0}, ["--lsb 150", "raw counts", "--units counts"]),
+    ("# units: uT\n", {"lsb_nT": 150.0}, ["--lsb 150", "in uT", "units line"]),
+    ("# units: counts\n# lsb_nT: zero\n", {}, ["line 2", "lsb_nT", "positive number of nT per count"]),
+    ("# units: counts\n", {"lsb_nT": "-2"}, ["--lsb", "'-2'", "positive number"]),
+])
+def test_counts_without_a_valid_lsb_are_refused_clearly(tmp_path, head, kw, needles):
+    path, _ = counts_file(tmp_path, head)
+    with pytest.raises(DatasetError) as err:
+        read_quiet(path, **kw)
+    for needle in needles:
+        assert needle in str(err.value), str(err.value)
+    assert str(path) in str(err.value) or "--lsb" in str(err.value)
+
+
+@pytest.mark.parametrize("true_lsb,given_lsb,warned", [(150.0, 150.0, False), (150.0, 15.0, True),
+                                                       (15.0, 150.0, True)])
+def test_a_wrong_lsb_gives_a_warning_with_the_lsb_that_fits(tmp_path, true_lsb, given_lsb, warned):
+    path, _ = counts_file(tmp_path, "# units: counts\n", lsb_nT=true_lsb)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        io.read_csv(path, lsb_nT=given_lsb)
+    messages = [str(w.message) for w in caught]
+    assert bool(messages) == warned, messages
+    if warned:
+        assert "check the LSB" in messages[0]
+        suggested = float(re.search(r"about ([0-9.e+-]+) nT per count", messages[0]).group(1))
+        assert suggested == pytest.approx(true_lsb, rel=0.05)
+
+
+def test_counts_round_trip_as_nT_with_the_lsb_kept(tmp_path):
+    path, truth_nT = counts_file(tmp_path, "# units: counts\n# lsb_nT: 150\n")
+    ds = io.read_csv(path)
+    out = tmp_path / "back.csv"
+    io.write_csv(out, ds)
+    back = io.read_csv(out)  # units: nT now; the lsb_nT line is only information
+    np.testing.assert_array_equal(back.readings_nT, ds.readings_nT)
+    assert back.metadata["units"] == "nT" and back.metadata["lsb_nT"] == "150"
 
 
 # -- column mapping -----------------------------------------------------------------------------------------------

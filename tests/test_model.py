@@ -34,3 +34,11 @@ def test_missing_channels_are_reported():
     model = Model.from_names(["temperature_bias"], 4)
     with pytest.raises(MagcalError, match="temperature"):
         model.check(ds)
+
+
+def test_an_unknown_effect_may_be_a_users_effect_not_loaded():
+    """The message says how to load a user's effect, and lists the catalogue."""
+    with pytest.raises(MagcalError, match="unknown effect 'pump_interference'") as info:
+        Model.from_names(["temperature_bias", "pump_interference:2"], 4)
+    message = str(info.value)
+    assert "--effects-file" in message and "temperature_bias" in message and "not loaded" in message

@@ -1,6 +1,11 @@
-"""The wheel carries the bundled demo and lessons (``assets/`` installed as ``workbench/assets``)."""
+"""Packaging: what the wheel carries (every package, the demo and lessons), what each install brings, the console
+scripts, and the README's set-up commands (the ones .ci/run runs)."""
 
 import fnmatch
+import importlib
+import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -56,17 +61,117 @@ def _requirement_names(requirements):
     return {re.split(r"[<>=!~\[; ]", r, maxsplit=1)[0].strip().lower() for r in requirements}
 
 
-def test_every_package_the_engine_and_workbench_import_is_a_dependency():
-    """A fresh install must bring what the code imports (plotly was once missing)."""
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
-    declared = _requirement_names(project["dependencies"])
-    missing = _third_party_imports(["magcal", "workbench"]) - declared
-    assert not missing, f"imported but not in [project] dependencies: {sorted(missing)}"
+def _project():
+    return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+
+
+def test_the_engine_needs_only_the_core_dependencies():
+    """``pip install -e .`` must be enough for magcal itself (the API, the command line), even its lazy imports."""
+    declared = _requirement_names(_project()["dependencies"])
+    missing = _third_party_imports(["magcal"]) - declared
+    assert not missing, f"magcal imports packages that are not core [project] dependencies: {sorted(missing)}"
+
+
+def test_every_package_the_workbench_imports_is_in_its_extra():
+    """A fresh ``pip install -e ".[workbench]"`` must bring what the app imports (plotly was once missing)."""
+    from workbench import _launch
+
+    project = _project()
+    core = _requirement_names(project["dependencies"])
+    extra = _requirement_names(project["optional-dependencies"]["workbench"])
+    imported = _third_party_imports(["workbench"])
+    assert not imported - core - extra, f"imported but not declared: {sorted(imported - core - extra)}"
+    # the launcher checks exactly the extra's packages
+    assert set(_launch.WORKBENCH_PACKAGES) == extra == imported - core
+
+
+def test_the_workbench_packages_are_not_core_dependencies():
+    declared = _requirement_names(_project()["dependencies"])
+    assert not declared & {"viser", "trimesh", "plotly"}, declared
 
 
 def test_every_package_the_tests_import_is_a_test_dependency():
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
-    declared = _requirement_names(project["dependencies"] + project["optional-dependencies"]["test"])
+    project = _project()
+    test = project["optional-dependencies"]["test"]
+    assert "magcal[workbench]" in test  # the tests drive the workbench too
+    declared = _requirement_names(project["dependencies"] + project["optional-dependencies"]["workbench"] + test)
     local = {p.stem for p in (ROOT / "tests").glob("*.py")}
     missing = _third_party_imports(["tests"]) - declared - local
     assert not missing, f"imported by the tests but not declared: {sorted(missing)}"
+
+
+def test_every_python_package_is_in_the_wheel():
+    """A package folder left out of ``packages`` is missing from the wheel (magcal.diagnosis became one)."""
+    listed = set(_setuptools_config()["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for folder in ("magcal", "workbench")
+             for p in (ROOT / folder).rglob("__init__.py") if "__pycache__" not in p.parts}
+    assert found <= listed, f"not in [tool.setuptools] packages: {sorted(found - listed)}"
+
+
+@pytest.mark.parametrize("script, target", [("magcal", "magcal.cli:main"),
+                                            ("magcal-workbench", "workbench._launch:main")])
+def test_console_scripts_point_at_callables(script, target):
+    assert _project()["scripts"][script] == target
+    module, _, name = target.partition(":")
+    assert callable(getattr(importlib.import_module(module), name))
+
+
+def _bash_blocks(text):
+    return [block.strip() for block in re.findall(r"```bash\n(.*?)```", text, re.S)]
+
+
+def _setup_section():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return text[text.index("## Set-up"):text.index("\n## ", text.index("## Set-up") + 1)]
+
+
+def test_readme_first_command_installs_the_workbench_extra_and_starts_it():
+    assert _bash_blocks(_setup_section())[0] == 'pip install -e ".[workbench]" && magcal-workbench'
+
+
+def test_readme_test_command_is_what_ci_runs():
+    test_command = 'pip install -e ".[test]" && python -m pytest'
+    assert test_command in _bash_blocks(_setup_section())
+    ci_lines = [line.strip() for line in (ROOT / ".ci" / "run").read_text(encoding="utf-8").splitlines()]
+    assert test_command in ci_lines
+
+
+def test_the_test_command_runs_the_doctests_of_magcal():
+    options = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["pytest"]["ini_options"]
+    assert options["testpaths"] == ["tests", "magcal"]
+    assert "--doctest-modules" in options["addopts"]
+
+
+def _launch(hide=()):
+    """Run the magcal-workbench entry point in a fresh Python with some packages made unimportable."""
+    code = ("import sys\n"
+            f"for name in {tuple(hide)!r}: sys.modules[name] = None  # import raises ImportError\n"
+            "from workbench._launch import main\n"
+            "sys.exit(main(['--help']))\n")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+
+
+@pytest.mark.parametrize("hide", [("viser",), ("trimesh",), ("plotly",), ("viser", "trimesh", "plotly")])
+def test_without_the_workbench_extra_the_launcher_says_what_to_install(hide):
+    done = _launch(hide)
+    assert done.returncode == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith('magcal-workbench needs the workbench extra: pip install -e ".[workbench]"')
+    assert all(name in lines[0] for name in hide)
+    assert done.stdout == ""
+
+
+def test_with_the_extra_the_launcher_starts_the_app():
+    done = _launch()
+    assert done.returncode == 0, done.stderr
+    assert "usage" in done.stdout and "needs the workbench extra" not in done.stderr
+
+
+def test_the_launcher_hands_its_arguments_to_the_app(monkeypatch):
+    from workbench import _launch, app
+
+    seen = []
+    monkeypatch.setattr(app, "main", lambda argv=None: seen.append(argv) or 7)
+    assert _launch.main(["--port", "9"]) == 7
+    assert seen == [["--port", "9"]]

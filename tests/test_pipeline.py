@@ -345,3 +345,27 @@ def test_align_sensors_recovers_the_misalignment_from_a_given_step_one():
     for got, want in zip(aligned.sensors, truth.sensors):
         assert np.max(np.abs(got.R - want.R)) < 2e-4
     assert all(np.allclose(s.R, np.eye(3)) for s in start.sensors)  # the input is left as it was
+
+
+@pytest.mark.parametrize("total_nT", [50_000.0, 10_000.0])
+@pytest.mark.parametrize("reference", ["given", "column", "fitted"])
+def test_summary_carries_the_fitted_field_magnitude(tmp_path, total_nT, reference):
+    """The field the calibration expects (nT): the given one, the column's, or the fitted F0 (the truth times
+    det(C_1)^(1/3), the common gain total-field data cannot see); saved with the calibration."""
+    from magcal.calibration import Calibration
+
+    truth = chi2017_truth()
+    truth.total_nT = total_nT
+    ds = simulate(truth, seed=21, n_samples=300)
+    if reference == "fitted":
+        ds = ds.replace(reference_total_nT=None)
+    elif reference == "column":
+        ds = ds.replace(reference_total_nT=None, ref_total_nT=np.linspace(total_nT - 20.0, total_nT + 20.0, 300))
+    r = calibrate(ds)
+    assert r.reference_kind == reference
+    expected = total_nT * (np.linalg.det(truth.sensors[0].C) ** (1 / 3) if reference == "fitted" else 1.0)
+    assert r.field_magnitude_nT == pytest.approx(expected, rel=1e-4)  # the gain factor is 3e-3
+    assert r.calibration.summary["field_magnitude_nT"] == r.field_magnitude_nT
+    path = tmp_path / "cal.json"
+    r.calibration.save(path)
+    assert Calibration.load(path).summary["field_magnitude_nT"] == pytest.approx(r.field_magnitude_nT)

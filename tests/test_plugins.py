@@ -236,6 +236,35 @@ def test_cli_effects_lists_the_catalogue_with_the_source(capsys):
     assert code == 2 and "--effects-file" in err
 
 
+RECORD_ONLY = {"bias_drift", "bias_step", "reference_drift", "site_gradient"}
+
+
+@pytest.mark.parametrize("name", ["temperature_bias", "temperature_scale", "nonlinearity_quadratic",
+                                  "nonlinearity_cubic", "axis_timing_skew", "sensor_timing_skew", "hysteresis",
+                                  *sorted(RECORD_ONLY)])
+def test_catalogue_says_which_terms_carry_to_new_data(name, capsys):
+    """Instrument terms carry to new data; a term of one recording (drift since power-on, a step, the field's
+    drift, the site's gradient) does not: the class, describe_effect, the listing and its JSON agree."""
+    expected = name not in RECORD_ONLY
+    assert EFFECTS[name].transferable is expected
+    assert plugins.describe_effect(name)["transferable"] is expected
+    code, out, err = run(["effects", "--json"], capsys)
+    assert code == 0, err
+    assert {e["name"]: e for e in json.loads(out)["effects"]}[name]["transferable"] is expected
+    code, out, err = run(["effects", name], capsys)
+    assert code == 0, err
+    assert ("instrument (carries to new data)" if expected else "record-only (this recording only)") in out
+
+
+def test_an_effect_that_does_not_say_is_an_instrument_term(tmp_path):
+    """The default of magcal.model.Effect: a term describes the instrument unless its class says otherwise."""
+    path = write(tmp_path, "offset.py", HEADER + GOOD_CLASS.format(name="offset", stage="raw"))
+    plugins.load_effects_file(path)
+    assert plugins.describe_effect("offset")["transferable"] is True
+    plugins.load_effects_file(EXAMPLE)
+    assert plugins.describe_effect(NAME)["transferable"] is False  # the example says it is record-only
+
+
 def test_cli_simulate_can_hide_the_user_effect(tmp_path, capsys):
     path = tmp_path / "s.csv"
     code, out, err = run(["simulate", "--hidden", f"{NAME}:2=3", "--n", "200", "-o", path,

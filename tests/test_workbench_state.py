@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -762,3 +763,182 @@ def _csv_bytes(tmp_path, wb):
     mio.write_csv(path, ctrl.dataset.replace(readings_nT=ctrl.corrected_nT, extra=extra),
                   metadata={"corrected_by": "magcal workbench", "frame": ctrl.calibration.frame, "effects": "none"})
     return path.read_bytes()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the user's own effects (issue 10, item 7): loaded from a file, in the Model tab, Diagnose and the session
+# ---------------------------------------------------------------------------------------------------------------
+EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+PUMP = "pump_interference"
+PUMP_SENSOR = 1  # 0-based: the pump is hidden in sensor 2
+
+
+@pytest.fixture
+def clean_catalogue(monkeypatch):
+    """Every test starts and ends with magcal's own catalogue (a user's effect must not leak into other tests)."""
+    import importlib.metadata
+
+    from magcal import plugins
+    from magcal.model import EFFECTS
+
+    before = dict(EFFECTS)
+    monkeypatch.setattr(plugins, "_ORIGINS", {})
+    monkeypatch.setattr(plugins, "_SOURCES", {})
+    monkeypatch.setattr(plugins, "_USER_FILES", set())
+    monkeypatch.setattr(plugins, "_ENTRY_POINTS_LOADED", False)
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda **kw: [])  # no installed package interferes
+    for name in [n for n in EFFECTS if n not in before]:
+        EFFECTS.pop(name)
+    yield
+    EFFECTS.clear()
+    EFFECTS.update(before)
+
+
+@pytest.fixture(scope="module")
+def pump_data():
+    """chi2017 time series (four sensors, 3 nT noise, 10 Hz) hiding a 4 nT pump field at 1.3 Hz in sensor 2 (made
+    with the example file's own perturbation, as tests/test_plugins.py does)."""
+    from magcal import plugins
+    from magcal.model import EFFECTS
+
+    before = dict(EFFECTS)
+    try:
+        plugins.load_effects_file(EXAMPLE)
+        pump = EFFECTS[PUMP]().perturbation(4.0, PUMP_SENSOR)
+        return magcal.simulate_timeseries("chi2017", n_samples=600, seed=3, perturbations=[pump])
+    finally:
+        EFFECTS.clear()
+        EFFECTS.update(before)
+        plugins._ORIGINS.clear(), plugins._SOURCES.clear(), plugins._USER_FILES.clear()
+
+
+@pytest.mark.parametrize("how", ["diagnose and add", "tick and refit"])
+def test_a_user_effect_from_a_file_joins_the_loop(clean_catalogue, pump_data, how):
+    from workbench.controller import Controller
+
+    ctrl = Controller(pump_data)
+    assert PUMP not in [e["name"] for e in ctrl.available_effects()]
+    ctrl.step_calibrate()
+    base = ctrl.residual_rms_nT()
+    assert base > 1.04 * SIGMA  # the pump is not explained by the base model
+    assert ctrl.load_effects_file(EXAMPLE) == [PUMP]
+    entry = {e["name"]: e for e in ctrl.available_effects()}[PUMP]
+    assert entry["origin"] == "file" and entry["source"] == str(EXAMPLE.resolve()) and entry["missing"] == []
+    assert ctrl.state.effects_files == [str(EXAMPLE.resolve())]
+    if how == "diagnose and add":
+        d = ctrl.step_diagnose()
+        assert d.verdict == "missing_effect" and d.candidates[0].label == f"{PUMP}:{PUMP_SENSOR + 1}"
+        ctrl.step_add()  # the top candidate, refitted
+        label = f"{PUMP}:{PUMP_SENSOR + 1}"
+    else:
+        assert ctrl.set_effect(PUMP, True)
+        ctrl.step_refine()
+        label = PUMP
+    after = ctrl.residual_rms_nT()
+    assert ctrl.state.effects == [label] and ctrl.calibration.model.effect_labels == [label]
+    assert after < base / 1.03 and after < 1.01 * SIGMA  # down to the noise
+
+
+@pytest.mark.parametrize("label, says", [("not_loaded", "Load effects file"), ("<img src=x>", "not an effect label"),
+                                         ("temperature_bias:5", "no sensor 5")])
+def test_an_effect_label_the_page_could_not_offer_is_refused(clean_catalogue, pump_data, label, says):
+    from magcal.errors import MagcalError
+    from workbench.controller import Controller
+
+    ctrl = Controller(pump_data)
+    for action in (lambda: ctrl.set_effect(label, True), lambda: ctrl.step_add(label)):
+        with pytest.raises(MagcalError, match=says):
+            action()
+    assert ctrl.state.effects == []
+
+
+def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_data, tmp_path):
+    from magcal import plugins
+    from magcal.model import EFFECTS
+
+    wb = bench(pump_data)
+    assert PUMP not in wb.panels.effect_boxes
+    assert "runs its Python code" in wb.panels.effects_warning.content and not wb.panels.btn_load_effects.disabled
+    wb.panels.effects_path.value = str(EXAMPLE)
+    _click(wb, wb.panels.btn_load_effects)
+    assert PUMP in wb.panels.effect_boxes  # the Model tab's list grows without a restart
+    assert "pump" in wb.panels.user_effects.content and str(EXAMPLE.resolve()) in wb.ctrl.message
+    wb.panels.effect_boxes[PUMP].value = True
+    _click(wb, wb.panels.btn_refine)
+    assert wb.ctrl.calibration.model.effect_labels == [PUMP]
+    saved = json.loads((tmp_path / "sessions" / wb.ctrl.session_id / "session.json").read_text())
+    assert saved["effects_files"] == [str(EXAMPLE.resolve())] and saved["effects"] == [PUMP]
+    rms = wb.ctrl.residual_rms_nT()
+    wb.stop()
+    plugins.unregister(PUMP)  # as in a new process: the effect is not loaded
+    plugins._USER_FILES.clear()
+    again = bench(pump_data)
+    assert PUMP in EFFECTS and again.panels.effect_boxes[PUMP].value
+    assert again.ctrl.calibration.model.effect_labels == [PUMP]  # the saved calibration, with the effect
+    assert abs(again.ctrl.residual_rms_nT() - rms) < 1e-6
+
+
+def test_a_missing_effects_file_does_not_stop_the_session(bench, clean_catalogue, tmp_path):
+    wb = bench()
+    gone = tmp_path / "gone.py"
+    wb.ctrl.state.effects_files.append(str(gone))
+    wb.ctrl.autosave()
+    wb.stop()
+    again = bench()
+    assert "could not be loaded again" in again.ctrl.message and "no such effects file" in again.ctrl.message
+    assert again.ctrl.state.effects_files == [str(gone)]  # kept: the file may come back
+
+
+def test_an_error_in_the_user_code_is_a_clear_message(bench, clean_catalogue, tmp_path, capsys):
+    path = tmp_path / "warm.py"
+    path.write_text(
+        "from dataclasses import dataclass\n"
+        "from typing import ClassVar\n"
+        "import numpy as np\n"
+        "from magcal.model import Effect, register\n"
+        "\n"
+        "@register\n"
+        "@dataclass\n"
+        "class Warm(Effect):\n"
+        "    name: ClassVar[str] = 'warm_offset'\n"
+        "    def param_names(self):\n"
+        "        return ['w_x_nT_per_K', 'w_y_nT_per_K', 'w_z_nT_per_K']\n"
+        "    def raw_basis(self, z0, ctx):\n"
+        "        dT = ctx.temperature_C - 20.0\n"  # line 13: the user forgot to declare the channel
+        "        return np.eye(3)[None] * dT[:, None, None]\n")
+    ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2, rate_hz=2.0).replace(temperature_C=None)
+    wb = bench(ds, store=False)
+    wb.panels.effects_path.value = str(path)
+    _click(wb, wb.panels.btn_load_effects)
+    wb.panels.effect_boxes["warm_offset"].value = True
+    _click(wb, wb.panels.btn_refine)
+    message = wb.ctrl.message
+    assert message.startswith("**Error in your effect's code:**") and "line 13, in raw\\_basis: TypeError" in message
+    assert "dT = ctx.temperature\\_C - 20.0" in message and "Traceback" not in message
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_loading_an_effects_file_is_refused_when_served_beyond_this_machine(bench, clean_catalogue):
+    from magcal.errors import MagcalError
+
+    wb = bench(store=False)
+    wb.local = False  # as with --host 0.0.0.0
+    wb.panels.effects_path.value = str(EXAMPLE)
+    with pytest.raises(MagcalError, match="runs its Python code on the server"):
+        wb.do_load_effects(None)
+    assert PUMP not in wb.panels.effect_boxes
+
+
+def test_command_line_effects_files(tmp_path, capsys, clean_catalogue, monkeypatch):
+    from magcal import plugins
+    from workbench.app import build_parser, main
+
+    args = build_parser().parse_args(["--effects-file", "a.py", "--effects-file", "b.py"])
+    assert args.effects_file == ["a.py", "b.py"]
+    calls = []
+    monkeypatch.setattr(plugins, "load_entry_points", lambda *a, **kw: calls.append(1) or [])
+    missing = tmp_path / "missing.py"
+    assert main(["--no-session", "--effects-file", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert f"{missing}: no such effects file" in err and "Traceback" not in err
+    assert calls == [1]  # installed packages' effects are loaded at start

@@ -1,9 +1,13 @@
-"""``magcal-workbench [FILE.csv] [--host 127.0.0.1] [--port 8080]``: the browser workbench.
+"""``magcal-workbench [FILE.csv] [--host 127.0.0.1] [--port 8080] [--effects-file MY.py]``: the browser workbench.
 
 :class:`Workbench` wires the parts together: one :class:`viser.ViserServer` (every browser shares its scene and
 GUI), the :class:`~workbench.controller.Controller` (engine actions and session state), the
 :class:`~workbench.scene.SceneView` and the :class:`~workbench.panels.Panels`. With no file it opens the bundled
 demo (``assets/demo.csv``). It binds to 127.0.0.1 unless another host is asked for, and then warns.
+
+A user's own effects (:mod:`magcal.plugins`) join the catalogue at start -- installed packages' entry points and
+every ``--effects-file`` -- or later from the Model tab; the session remembers the files and loads them again when
+it reopens. A damaged session file is moved aside and the data open afresh.
 """
 
 from __future__ import annotations
@@ -13,17 +17,19 @@ import ipaddress
 import sys
 import threading
 import time
-import traceback
 
 import numpy as np
 
 from magcal.errors import MagcalError
 
 from . import scene as scn
-from .controller import Controller, load_dataset, read_bytes_dataset
+from .controller import (MESSAGE_LEN, Controller, error_markdown, load_dataset, load_session_effects,
+                         read_bytes_dataset)
 from .jobs import Worker
 from .lessons import DEMO, get_lesson
+from .markup import clean_text, safe_code, safe_text
 from .session import SessionStore
+from .sessionfile import SessionFileError
 from .state import SessionState
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -55,14 +61,21 @@ class Workbench:
         File name used for the session id.
     resume : bool
         Reopen the saved session of the same data if there is one.
+    effects_files : sequence of str, optional
+        The user's effect files already loaded (``--effects-file``); every session opened remembers them.
     """
 
     def __init__(self, dataset, host: str = "127.0.0.1", port: int = 8080, store: SessionStore | None = None,
                  content: bytes | None = None, name: str = "data.csv", resume: bool = True, lesson: str | None = None,
-                 verbose: bool = False):
+                 verbose: bool = False, effects_files=()):
+        import os
+
         import viser
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        #: Whether the page may load effect files (it runs their code): only when served to this machine.
+        self.local = is_loopback(host)
+        self.effects_files = [os.path.abspath(p) for p in effects_files]
         self.store = store
         self.worker = Worker()
         self._last_progress = 0.0
@@ -92,22 +105,52 @@ class Workbench:
         self.server.stop()
 
     def _make_controller(self, dataset, content, name, resume, lesson) -> Controller:
-        sid, state = None, None
+        sid, state, notes = None, None, []
         if self.store is not None and content is not None:
             sid = self.store.create(name, content)
             if resume and self.store.exists(sid):
-                try:
-                    state = self.store.load(sid)
-                except (OSError, ValueError, KeyError) as exc:
-                    print(f"magcal-workbench: the saved session {sid} could not be read ({exc}); starting afresh",
-                          file=sys.stderr)
+                state, note = self._read_session(sid, dataset)
+                if note:
+                    notes.append(note)
+                    sid = self.store.create(name, content)  # the data's copy went with the damaged folder
             if state is None:
                 state = SessionState(dataset.n_samples, dataset.n_sensors, str(self.store.data_path(sid)), lesson)
+        if state is None:
+            state = SessionState(dataset.n_samples, dataset.n_sensors, dataset.source, lesson)
+        for path in self.effects_files:
+            if path not in state.effects_files:
+                state.effects_files.append(path)
+        _, problems = load_session_effects(state.effects_files)
+        notes += [f"the effects file could not be loaded again: {p}" for p in problems]
         ctrl = Controller(dataset, state, self.store, sid, worker=self.worker)
         if lesson is not None:
             ctrl.state.lesson = lesson
+        if notes:
+            ctrl.message = "  \n".join(f"**Note:** {safe_text(n, MESSAGE_LEN)}" for n in notes +
+                                        ([ctrl.message] if ctrl.message else []))
         ctrl.autosave()
         return ctrl
+
+    def _read_session(self, sid, dataset):
+        """The saved state of ``sid`` and ``None``, or ``None`` and a one-line note: a damaged session file is
+        moved aside (``<sid>.damaged-<time>``) and the data start afresh."""
+        try:
+            return self.store.load(sid, expect=(dataset.n_samples, dataset.n_sensors)), None
+        except SessionFileError as exc:
+            try:
+                moved = f"moved aside to {self.store.set_aside(sid)}"
+            except OSError as err:
+                moved = f"could not be moved aside ({err.strerror or err})"
+            note = f"the saved session {sid} is damaged ({exc}); {moved}; starting afresh"
+        except OSError as exc:
+            note = f"the saved session {sid} could not be read ({exc.strerror or exc}); starting afresh"
+        print(f"magcal-workbench: {clean_text(note, MESSAGE_LEN)}", file=sys.stderr)
+        return None, note
+
+    def _say_after_load(self, text: str) -> None:
+        """Say ``text`` (markdown, escaped) and keep what opening the session had to say."""
+        prior = self.ctrl.message
+        self.ctrl.say(text + (f"  \n{prior}" if prior else ""))
 
     def _attach(self, ctrl: Controller) -> None:
         ctrl.on_change(lambda kind, c=ctrl: self._changed(c, kind))
@@ -251,13 +294,12 @@ class Workbench:
         try:
             func(event, *args)
         except MagcalError as exc:
-            self.ctrl.say(f"**Error:** {exc}")
+            self.ctrl.say(error_markdown(exc))
             client = getattr(event, "client", None)
-            if client is not None:
-                client.add_notification("magcal", str(exc), color="red", auto_close_seconds=8.0)
-        except Exception as exc:  # never let a callback die silently
-            traceback.print_exc()
-            self.ctrl.say(f"**Unexpected error:** {type(exc).__name__}: {exc}")
+            if client is not None:  # a toast shows plain text: only cut to length
+                client.add_notification("magcal", clean_text(exc, 300), color="red", auto_close_seconds=8.0)
+        except Exception as exc:  # never let a callback die silently (error_markdown logs the traceback)
+            self.ctrl.say(error_markdown(exc))
 
     def _job(self, name, func) -> bool:
         return self.ctrl.run_job(name, func)
@@ -342,7 +384,8 @@ class Workbench:
         def job():
             ds, notes = read_bytes_dataset(name, content)
             self.load(ds, content, name)
-            self.ctrl.say(f"opened {name}: {ds.describe()}" + "".join(f"  \n- {n}" for n in notes))
+            self._say_after_load(f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
+                                 + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes))
 
         self._job("open file", job)
 
@@ -351,13 +394,19 @@ class Workbench:
         if self.store is None or sid in ("-", None):
             raise MagcalError("no saved session chosen")
 
+        path = self.store.data_path(sid)  # refuses a name outside the session folder
+
         def job():
-            state = self.store.load(sid)
-            path = self.store.data_path(sid)
+            if not path.is_file():
+                raise MagcalError(f"session {sid} has no data file ({path.name}); it cannot be reopened")
+            try:
+                lesson = self.store.load(sid).lesson
+            except (SessionFileError, OSError):
+                lesson = None  # opening it says what is wrong and moves it aside
             ds, _ = load_dataset(path)
             content = path.read_bytes()
-            self.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=state.lesson)
-            self.ctrl.say(f"reopened session `{sid}`")
+            self.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=lesson)
+            self._say_after_load(f"reopened session {safe_code(sid)}")
 
         self._job("reopen session", job)
 
@@ -378,7 +427,7 @@ class Workbench:
     # lessons
     def do_open_lesson(self, event):
         slug = self.panels.lesson_choice.value
-        lesson = get_lesson(slug)
+        lesson = _get_lesson(slug)
 
         def job():
             ds, _ = load_dataset(lesson.data_path)
@@ -387,14 +436,14 @@ class Workbench:
             self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
             self.panels.lesson_feedback.content = (lesson.answer_markdown() if self.ctrl.state.answer_revealed
                                                    else "")
-            self.ctrl.say(f"lesson **{lesson.title}** opened")
+            self._say_after_load(f"lesson **{lesson.title}** opened")
 
         self._job("open lesson", job)
 
     def _lesson(self):
         if not self.ctrl.state.lesson:
             raise MagcalError("open a lesson first (Lessons tab)")
-        return get_lesson(self.ctrl.state.lesson)
+        return _get_lesson(self.ctrl.state.lesson)
 
     def do_check_lesson(self, event):
         result = self._lesson().check(self.ctrl.state.effects)
@@ -407,6 +456,23 @@ class Workbench:
         self.ctrl.state.touch()
         self.ctrl.autosave()
         self.panels.lesson_feedback.content = lesson.answer_markdown()
+
+
+    # the user's effects
+    def do_load_effects(self, event):
+        """Load the effects file typed in the Model tab (runs its code: only when served to this machine)."""
+        if not self.local:
+            raise MagcalError("loading an effects file runs its Python code on the server; it is allowed only when "
+                              "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead")
+        path = self.panels.effects_path.value
+        self._job("load effects file", lambda: self.ctrl.load_effects_file(path))
+
+
+def _get_lesson(slug):
+    try:
+        return get_lesson(slug)
+    except KeyError:
+        raise MagcalError(f"no lesson {clean_text(repr(slug), 80)}; choose one in the Lessons tab") from None
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -431,12 +497,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
     p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
     p.add_argument("--lesson", default=None, help="open a lesson by name (see assets/lessons)")
+    p.add_argument("--effects-file", action="append", default=[], metavar="PATH",
+                   help="a Python file defining your own effects (runs its code; repeat for several files); "
+                        "docs/user-effects.md")
     return p
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    import warnings
+
+    from magcal import plugins
+
+    with warnings.catch_warnings(record=True) as caught:  # a broken installed effect package is reported, skipped
+        warnings.simplefilter("always")
+        plugins.load_entry_points()
+    for w in caught:
+        print(f"magcal-workbench: {w.message}", file=sys.stderr)
     try:
+        plugins.load_effects_files(args.effects_file)
         store = None if args.no_session else SessionStore(args.session_dir)
         lesson = None
         if args.lesson:
@@ -460,7 +539,7 @@ def main(argv=None) -> int:
         import os
 
         wb = Workbench(dataset, args.host, args.port, store, content, os.path.basename(str(path)),
-                       resume=not args.fresh, lesson=lesson)
+                       resume=not args.fresh, lesson=lesson, effects_files=args.effects_file)
         if lesson:
             wb.panels.lesson_guide.content = f"### {lesson_obj.title}\n\n{lesson_obj.guide()}"
     except MagcalError as exc:

@@ -29,8 +29,13 @@ from magcal.errors import ConvergenceWarning, MagcalError
 from magcal.noise import robust_sigma
 
 from .jobs import Worker
+from .markup import clean_text, safe_code, safe_text
 from .session import SessionStore
-from .state import SessionState, StepRecord
+from .sessionfile import LABEL
+from .state import METHODS, SessionState, StepRecord
+
+#: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
+MESSAGE_LEN = 1000
 
 
 def _rms(a) -> float:
@@ -81,15 +86,16 @@ class Controller:
         if self.state.calibration:
             try:
                 self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
-            except MagcalError as exc:
-                self.message = f"the saved calibration could not be restored ({exc}); run a fit"
+            except Exception as exc:  # a damaged or foreign calibration document: the session goes on without it
+                why = exc if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {exc}"
+                self.message = f"the saved calibration could not be restored ({safe_text(why, 500)}); run a fit"
 
     # ------------------------------------------------------------------------------------------------------
     # notification
     # ------------------------------------------------------------------------------------------------------
     def on_change(self, func: Callable[[str], None]) -> None:
         """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
-        ``inspect``, ``progress``, ``message`` or ``view``."""
+        ``inspect``, ``progress``, ``message``, ``view`` or ``effects`` (the catalogue grew)."""
         self._listeners.append(func)
 
     def _emit(self, kind: str) -> None:
@@ -100,6 +106,8 @@ class Controller:
                 traceback.print_exc()
 
     def say(self, text: str) -> None:
+        """Show ``text`` (markdown) as the page's message; untrusted parts must already be escaped
+        (:func:`workbench.markup.safe_text`)."""
         self.message = text
         self._emit("message")
 
@@ -112,10 +120,32 @@ class Controller:
         unknown = set(settings) - set(self.SETTINGS)
         if unknown:
             raise ValueError(f"unknown setting(s) {sorted(unknown)}; known: {', '.join(self.SETTINGS)}")
+        self._check_settings(settings)
         for key, value in settings.items():
             setattr(self.state, key, value)
         self.state.touch()
         self.autosave()
+
+    def _check_settings(self, settings: dict) -> None:
+        """Refuse a setting the page could not have sent (a value comes from a browser: check it)."""
+        from .sessionfile import REFERENCE_RANGE_nT
+
+        if "method" in settings and settings["method"] not in METHODS:
+            raise MagcalError(f"unknown method {clean_text(repr(settings['method']), 40)}; one of "
+                              f"{', '.join(METHODS)}")
+        ref = settings.get("reference_nT")
+        if ref is not None:
+            try:
+                ok = REFERENCE_RANGE_nT[0] <= float(ref) <= REFERENCE_RANGE_nT[1]
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise MagcalError(f"reference field {clean_text(ref, 40)} nT: give a number in "
+                                  f"{REFERENCE_RANGE_nT[0]:g} ... {REFERENCE_RANGE_nT[1]:g} nT, or 0 for none")
+        sensor = settings.get("sensor")
+        if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, (int, np.integer))
+                                   or not 0 <= sensor < self.dataset.n_sensors):
+            raise MagcalError(f"no sensor {clean_text(sensor, 40)}; the data have {self.dataset.n_sensors}")
 
     # ------------------------------------------------------------------------------------------------------
     # data views
@@ -207,17 +237,13 @@ class Controller:
         """Run an action in the worker; False (and a message) if another one is running."""
         started = self.worker.submit(name, job, on_error=self._job_failed)
         if not started:
-            self.say(f"Busy: {self.worker.current} is still running; wait for it to finish.")
+            self.say(f"Busy: {safe_text(self.worker.current)} is still running; wait for it to finish.")
         return started
 
     def _job_failed(self, exc: BaseException) -> None:
         self.progress = None
         self._emit("progress")
-        if isinstance(exc, MagcalError):
-            self.say(f"**Error:** {exc}")
-        else:
-            traceback.print_exception(exc)
-            self.say(f"**Unexpected error:** {type(exc).__name__}: {exc}")
+        self.say(error_markdown(exc))
 
     def _report_progress(self, message: str, fraction=None) -> None:
         self.progress = (message, fraction)
@@ -267,11 +293,11 @@ class Controller:
         self.autosave()
         self._emit("result")
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
-        text = f"**{step}**: {rec.changes} ({rec.elapsed_s:.2f} s)"
+        text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
         if fit is not None and not fit.success:
             text += " - **the fit did not converge** (see above)"
         if notes:
-            text += "".join(f"  \n- {n}" for n in dict.fromkeys(notes))
+            text += "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(notes))
         self.say(text)
         return rec
 
@@ -382,20 +408,84 @@ class Controller:
     # the loop: model, diagnose, add
     # ------------------------------------------------------------------------------------------------------
     def available_effects(self) -> list[dict]:
-        """The catalogue: ``{"name", "description", "missing" (reasons, empty if usable), "channels"}``."""
-        from magcal import model
+        """The catalogue (:func:`magcal.plugins.catalogue`: built-ins first, then the user's effects), each
+        ``{"name", "description", "channels", "missing" (reasons, empty if usable), "origin", "source"}``.
+
+        ``origin`` is ``built-in``, ``file``, ``entry point`` or ``python``; the text is untrusted for a user's
+        effect (escape it before it joins markdown)."""
+        from magcal import plugins
+        from magcal.model import EFFECTS
 
         out = []
-        for name, cls in sorted(model.EFFECTS.items()):
+        for entry in plugins.catalogue():
+            cls = EFFECTS.get(entry["name"])
             try:
                 missing = cls().missing_channels(self.dataset)
             except Exception as exc:  # an effect that cannot even be made is shown as unusable
-                missing = [str(exc)]
-            out.append({"name": name, "description": getattr(cls, "description", ""),
-                        "channels": list(getattr(cls, "channels", ())), "missing": list(missing)})
+                missing = [plugins.user_code_error(exc) or f"{type(exc).__name__}: {exc}"]
+            if entry.get("error"):
+                missing = list(missing) + [entry["error"]]
+            out.append({"name": entry["name"], "description": entry.get("description") or "",
+                        "channels": list(entry.get("channels", ())), "missing": [str(m) for m in missing],
+                        "origin": entry.get("origin", "built-in"), "source": entry.get("source", "")})
         return out
 
+    def load_effects_file(self, path) -> list[str]:
+        """Load a user's effect file (:func:`magcal.plugins.load_effects_file`: *runs the Python code in it*);
+        its effects join the catalogue, and the session remembers the file to load it again when it reopens.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The ``.py`` file (``~`` is expanded; a relative path is taken from the current directory).
+
+        Returns
+        -------
+        list of str
+            The names of the effects the file registers.
+
+        Raises
+        ------
+        MagcalError
+            A clear message naming the file and line (:class:`magcal.plugins.UserEffectError`).
+        """
+        from magcal import plugins
+
+        text = os.fspath(path).strip() if isinstance(path, (str, os.PathLike)) else ""
+        if not text:
+            raise MagcalError("type the path of a Python file (.py) that defines your effect")
+        full = os.path.abspath(os.path.expanduser(text))
+        names = plugins.load_effects_file(full)
+        with self._lock:
+            if full not in self.state.effects_files:
+                self.state.effects_files.append(full)
+            self.state.touch()
+        self.autosave()
+        self._emit("effects")
+        listed = ", ".join(safe_code(n) for n in names)
+        self.say(f"loaded {listed} from {safe_code(full)}; tick it in the Model tab or let Diagnose rank it")
+        return names
+
+    def _check_label(self, label) -> str:
+        """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
+        :class:`MagcalError` (a label may come from a browser)."""
+        from magcal import plugins
+        from magcal.model import EFFECTS
+
+        label = label.strip() if isinstance(label, str) else label
+        m = LABEL.fullmatch(label) if isinstance(label, str) else None
+        if m is None:
+            raise MagcalError(f"{clean_text(repr(label), 80)} is not an effect label (NAME or NAME:SENSOR)")
+        name = label.partition(":")[0]
+        if name not in EFFECTS:
+            raise MagcalError(plugins.unknown_effect_message(name, option="Load effects file (Model tab)"))
+        if m.group(1) is not None and not 1 <= int(m.group(1)) <= self.dataset.n_sensors:
+            raise MagcalError(f"{label}: no sensor {m.group(1)}; the data have {self.dataset.n_sensors}")
+        return label
+
     def set_effect(self, name: str, on: bool) -> bool:
+        if on:
+            name = self._check_label(name)
         changed = self.state.add_effect(name) if on else self.state.remove_effect(name)
         if changed:
             self.autosave()
@@ -418,8 +508,9 @@ class Controller:
         self._emit("progress")
         self._emit("diagnosis")
         top = d.candidates[0] if getattr(d, "candidates", None) else None
-        extra = f"; top candidate {candidate_label(top)}" if top is not None else ""
-        self.say(f"**diagnose**: verdict `{d.verdict}`{extra} ({time.perf_counter() - t0:.2f} s)  \n{d.summary}")
+        extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
+        self.say(f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({time.perf_counter() - t0:.2f} s)  \n"
+                 f"{safe_text(d.summary, MESSAGE_LEN)}")
         return d
 
     def step_add(self, label: str | None = None) -> StepRecord | None:
@@ -428,6 +519,7 @@ class Controller:
             if self.diagnosis is None or not self.diagnosis.candidates:
                 raise MagcalError("diagnose first: there is no suggested effect to add")
             label = candidate_label(self.diagnosis.candidates[0])
+        label = self._check_label(label)
         if not self.state.add_effect(label):
             raise MagcalError(f"{label} is already in the model")
         self._emit("model")
@@ -521,7 +613,46 @@ class Controller:
         try:
             self.store.save(self.session_id, self.state)
         except OSError as exc:
-            self.message = f"autosave failed: {exc}"
+            self.message = f"autosave failed: {safe_text(exc, MESSAGE_LEN)}"
+
+
+def error_markdown(exc: BaseException) -> str:
+    """The page's message for an exception: a user-facing :class:`MagcalError` as it is, an error raised in a
+    user's effect code as its file, line and error (:func:`magcal.plugins.user_code_error`, no traceback),
+    anything else as an unexpected error (its traceback goes to the server's log). Always escaped."""
+    from magcal import plugins
+
+    if isinstance(exc, MagcalError):
+        return f"**Error:** {safe_text(exc, MESSAGE_LEN)}"
+    user = plugins.user_code_error(exc)
+    if user:
+        return f"**Error in your effect's code:** {safe_text(user, MESSAGE_LEN)}"
+    traceback.print_exception(exc)
+    return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {exc}', MESSAGE_LEN)}"
+
+
+def load_session_effects(paths) -> tuple[list[str], list[str]]:
+    """Load again the effect files a session used (those not loaded yet in this process).
+
+    Returns
+    -------
+    names : list of str
+        The effects loaded.
+    problems : list of str
+        One plain-text message per file that failed (missing, broken): the session opens without it.
+    """
+    from magcal import plugins
+
+    names, problems = [], []
+    loaded = set(plugins.user_files())
+    for path in paths or ():
+        if path in loaded:
+            continue
+        try:
+            names += plugins.load_effects_file(path)
+        except MagcalError as exc:
+            problems.append(str(exc))
+    return names, problems
 
 
 def candidate_label(candidate) -> str:

@@ -45,7 +45,14 @@ class Lesson:
 
     @property
     def data_path(self) -> Path:
-        return self.folder / self._doc().get("data", "data.csv")
+        """The lesson's data file: a plain file name inside the lesson's folder (no path, no ``..``)."""
+        name = self._doc().get("data", "data.csv")
+        if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
+            from magcal.errors import MagcalError
+
+            raise MagcalError(f"{self.folder / 'lesson.json'}: 'data' must be a file name in the lesson's folder, "
+                             f"got {name!r}")
+        return self.folder / name
 
     def guide(self) -> str:
         """The guide (markdown), with no answer in it."""
@@ -86,15 +93,22 @@ class Lesson:
         if solved:
             message = "Solved: your model holds exactly the hidden effect(s)."
         elif missing == 0:
-            message = f"All hidden effects are in, plus {len(extra)} more than needed: {', '.join(extra)}."
+            message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."
         else:
             message = (f"{len(found)} of {len(wanted)} hidden effect(s) found"
-                       + (f"; not hidden here: {', '.join(extra)}" if extra else "") + ". Keep looking.")
+                       + (f"; not hidden here: {_labels(extra)}" if extra else "") + ". Keep looking.")
         return {"found": found, "missing": missing, "extra": extra, "solved": solved, "message": message}
 
     def _doc(self) -> dict:
         with open(self.folder / "lesson.json", encoding="utf-8") as fh:
             return json.load(fh)
+
+
+def _labels(labels) -> str:
+    """The user's effect labels for the (markdown) message, escaped: they come from the session."""
+    from .markup import safe_text
+
+    return ", ".join(safe_text(label, 80) for label in labels)
 
 
 def list_lessons(root=None) -> list[Lesson]:

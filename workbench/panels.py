@@ -5,13 +5,17 @@ wired where the widget is made: buttons call the :class:`~workbench.app.Workbenc
 a setting's widget is *bound* to the session state (:meth:`Panels._bind`), and its callback does nothing when the
 widget already shows what the state holds, so :meth:`Panels.refresh` writes the state back into the widgets
 without re-running anything. Text shown is built by small pure functions (``*_markdown``) that the tests call
-directly.
+directly. Text the workbench did not write (file names and contents, session fields, a user's effects) goes
+through :mod:`workbench.markup` before it joins markdown.
 """
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
+from .markup import clean_text, safe_code, safe_text
 from .state import METHODS
 
 METHOD_LABELS = {
@@ -46,7 +50,7 @@ def status_markdown(ctrl) -> str:
     rms = ctrl.residual_rms_nT()
     floor = ctrl.floor_nT()
     sel = ctrl.state.selection
-    effects = ", ".join(ctrl.state.effects) or "base terms only"
+    effects = ", ".join(safe_code(e, 80) for e in ctrl.state.effects) or "base terms only"
     if sel.n_rejected == sel.n_samples:
         rms_text = "no kept samples"
     else:
@@ -60,8 +64,9 @@ def status_markdown(ctrl) -> str:
 
 def data_markdown(ctrl) -> str:
     ds = ctrl.dataset
-    src = ctrl.state.lesson and f"lesson `{ctrl.state.lesson}`" or (ds.source or "simulated data")
-    return f"**Data:** {src}  \n{ds.describe()}"
+    src = (f"lesson {safe_code(ctrl.state.lesson)}" if ctrl.state.lesson
+           else safe_text(ds.source, 200) if ds.source else "simulated data")
+    return f"**Data:** {src}  \n{safe_text(ds.describe(), 1000)}"
 
 
 def sensors_markdown(ctrl) -> str:
@@ -97,7 +102,7 @@ def history_markdown(state, last: int = 6) -> str:
     start = max(0, len(state.history) - last)
     for i, r in enumerate(state.history[start:], start=start):
         flag = " (did not converge)" if convergence_markdown(r) else ""
-        rows.append(f"| {i} | {r.step} | {fmt(r.rms_nT)}{flag} | {r.changes} |")
+        rows.append(f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {safe_text(r.changes, 400)} |")
     return "\n".join(rows)
 
 
@@ -107,18 +112,18 @@ def candidates_markdown(diagnosis) -> str:
     from .controller import candidate_label
 
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
-    lines = [f"**Verdict:** `{d.get('verdict')}`  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
+    lines = [f"**Verdict:** {safe_code(d.get('verdict'))}  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
              f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"]
     if d.get("summary"):
-        lines.append(f"_{d['summary']}_")
+        lines.append(f"_{safe_text(d['summary'], 1000)}_")
     for w in d.get("warnings", []) or []:
-        lines.append(f"- warning: {w}")
+        lines.append(f"- warning: {safe_text(w, 1000)}")
     cands = d.get("candidates", []) or []
     if cands:
         lines += ["", "| # | effect | dBIC | RMS after nT |", "|---|---|---|---|"]
         for i, c in enumerate(cands[:8]):
             mark = "" if c.get("refitted", True) else "*"
-            lines.append(f"| {i + 1} | `{candidate_label(c)}` | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
+            lines.append(f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
                          f"{fmt(c.get('rms_after_nT'))}{mark} |")
         if any(not c.get("refitted", True) for c in cands[:8]):
             lines.append("\n\\* predicted by the score test, not refitted")
@@ -136,7 +141,7 @@ def candidate_evidence_markdown(diagnosis, label: str) -> str:
     for c in diagnosis.candidates:
         if candidate_label(c) == label:
             refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
-            return f"**{label}** ({refit}): {getattr(c, 'evidence', '')}"
+            return f"**{safe_text(label)}** ({refit}): {safe_text(getattr(c, 'evidence', ''), 1000)}"
     return ""
 
 
@@ -154,9 +159,31 @@ def inspect_markdown(info: dict | None) -> str:
 
 
 def effect_hint(entry: dict) -> str:
+    """The tooltip of an effect's checkbox (plain text): what it models, where it comes from, why it is greyed."""
+    origin = entry.get("origin", "built-in")
+    where = "" if origin == "built-in" else f" [your effect: {origin} {entry.get('source', '')}]"
+    text = (entry["description"] or entry["name"]) + where
     if entry["missing"]:
-        return f"Unavailable: the data lack {', '.join(entry['missing'])}. {entry['description']}"
-    return entry["description"] or entry["name"]
+        text = f"Unavailable: the data lack {', '.join(entry['missing'])}. {text}"
+    return clean_text(text, 600)
+
+
+def user_effects_markdown(entries) -> str:
+    """The list of the user's effects in the Model tab: name, origin and description, escaped."""
+    mine = [e for e in entries if e.get("origin", "built-in") != "built-in"]
+    if not mine:
+        return "_No effect of your own is loaded._"
+    rows = ["**Your effects**"]
+    for e in mine:
+        rows.append(f"- {safe_code(e['name'], 80)} ({safe_text(e['origin'])} {safe_code(e.get('source', ''), 200)})"
+                    f": {safe_text(e.get('description', ''), 300)}")
+    return "\n".join(rows)
+
+
+#: Shown next to the control that loads an effects file.
+EFFECTS_FILE_WARNING = ("⚠ **Loading a file runs its Python code** on the machine serving this page, with your "
+                        "permissions: load only files you wrote or trust. Its `@register` effects join the list "
+                        "above, Diagnose and the calibration JSON (docs/user-effects.md).")
 
 
 class Panels:
@@ -249,14 +276,20 @@ class Panels:
         gui.add_markdown("Effects beyond bias, scale, non-orthogonality and misalignment. "
                          "Greyed ones need a channel the data lack (hover for the reason).")
         self.effect_boxes = {}
-        for entry in self.app.ctrl.available_effects():
-            name = entry["name"]
-            self.effect_boxes[name] = self._bind(
-                gui.add_checkbox(name, False, hint=effect_hint(entry)),
-                lambda n=name: self.app.ctrl.state.has_effect(n),
-                lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)))
-        if not self.effect_boxes:
-            gui.add_markdown("_The effect catalogue is not installed in this engine._")
+        self._boxes_lock = threading.Lock()
+        self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
+        self._add_effect_boxes(self.app.ctrl.available_effects())
+        with gui.add_folder("Your own effects", expand_by_default=False):
+            self.user_effects = gui.add_markdown(user_effects_markdown(self.app.ctrl.available_effects()))
+            self.effects_path = gui.add_text("Effects file (.py)", "",
+                                             hint="Path of a Python file on the machine serving this page")
+            self.btn_load_effects = self._button(gui, "Load effects file", self.app.do_load_effects)
+            self.effects_warning = gui.add_markdown(
+                EFFECTS_FILE_WARNING if self.app.local else
+                "_Loading an effects file is off: the page is served beyond this machine. Start the workbench "
+                "with `--effects-file PATH` instead._")
+            self.btn_load_effects.disabled = not self.app.local
+            self.effects_path.disabled = not self.app.local
         self.btn_refit = self._button(gui, "Refit with this model", self.app.do_refine)
         self.btn_diagnose = self._button(gui, "Diagnose", self.app.do_diagnose, color="violet")
         self.candidates = gui.add_markdown("")
@@ -332,6 +365,18 @@ class Panels:
         self.btn_answer = self._button(gui, "Show the answer", self.app.do_show_answer, engine=False)
         self.lesson_feedback = gui.add_markdown("")
 
+    def _add_effect_boxes(self, entries) -> None:
+        """A checkbox for every catalogue effect that has none yet (a user's effects loaded later join the end)."""
+        with self._boxes_lock, self.effects_folder:  # two refreshes at once must not add a box twice
+            for entry in entries:
+                name = entry["name"]
+                if name in self.effect_boxes:
+                    continue
+                self.effect_boxes[name] = self._bind(
+                    self.gui.add_checkbox(clean_text(name, 64), False, hint=effect_hint(entry)),
+                    lambda n=name: self.app.ctrl.state.has_effect(n),
+                    lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)))
+
     @staticmethod
     def _sensor_options(n):
         return tuple([ALL_SENSORS] + [f"sensor {i + 1}" for i in range(n)]) if n > 1 else ("sensor 1",)
@@ -358,10 +403,10 @@ class Panels:
         if busy:
             self.progress.value = 0.0
             self.progress.animated = True
-            self.progress_text.content = f"Running: {name}..."
+            self.progress_text.content = f"Running: {safe_text(name)}..."
 
     def set_progress(self, message: str, fraction) -> None:
-        self.progress_text.content = message
+        self.progress_text.content = safe_text(message)
         if fraction is not None:
             self.progress.animated = False
             self.progress.value = float(np.clip(100.0 * fraction, 0, 100))
@@ -386,19 +431,26 @@ class Panels:
                 if len(x) == 1:
                     x, y, f = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2)
                 self.rms_plot.data = (x, y, f)
-        if everything or "data" in kinds:
-            self.data_info.content = data_markdown(ctrl)
-            entries = {e["name"]: e for e in ctrl.available_effects()}
+        if everything or kinds & {"data", "effects"}:
+            catalogue = ctrl.available_effects()
+            self._add_effect_boxes(catalogue)
+            self.user_effects.content = user_effects_markdown(catalogue)
+            entries = {e["name"]: e for e in catalogue}
             for name, box in self.effect_boxes.items():
                 e = entries.get(name)
                 if e is not None:
                     box.disabled = bool(e["missing"])
                     box.hint = effect_hint(e)
+                else:  # no longer in the catalogue
+                    box.disabled = True
+                    box.hint = "Not loaded: load the file that defines it (Your own effects)"
+        if everything or "data" in kinds:
+            self.data_info.content = data_markdown(ctrl)
             # the state's choice first: new options then never fall back to a stale one (which would apply it)
             self.sensor_choice.value = self._sensor_shown()
             self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
             self.refresh_sessions()
-        if everything or kinds & {"model", "data"}:
+        if everything or kinds & {"model", "data", "effects"}:
             self.show_state()
         if everything or "diagnosis" in kinds or "data" in kinds:
             self.candidates.content = candidates_markdown(ctrl.diagnosis)
@@ -435,7 +487,7 @@ class Panels:
             self.session_info.content = "_Autosave is off._"
             return
         sessions = app.store.list()
-        self.session_info.content = (f"This session: `{app.ctrl.session_id}` in `{app.store.root}`"
+        self.session_info.content = (f"This session: {safe_code(app.ctrl.session_id)} in {safe_code(app.store.root)}"
                                      if app.ctrl.session_id else "_This session is not saved._")
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts

@@ -6,6 +6,11 @@ was uploaded from a browser). The id is the data file's name plus the start of i
 file again finds its session. Every write is atomic (temporary file, then :func:`os.replace`).
 
 The default root is ``~/.magcal/sessions`` (``MAGCAL_SESSION_DIR`` or ``--session-dir`` override it).
+
+A session's name (its id) is only ever a folder *directly inside* the root: :func:`check_session_name` refuses
+``..``, absolute paths and path separators (a name may come from a browser's dropdown). ``session.json`` is read
+by the one validating reader (:mod:`workbench.sessionfile`); a damaged one is moved aside with
+:meth:`SessionStore.set_aside` (renamed ``<id>.damaged-<time>``, never deleted) and the session starts afresh.
 """
 
 from __future__ import annotations
@@ -20,10 +25,30 @@ from pathlib import Path
 
 from magcal.io import atomic_write
 
+from .sessionfile import MAX_BYTES as MAX_READ
+from .sessionfile import SessionError, SessionFileError, read_session_bytes
 from .state import SessionState
 
 SESSION_FILE = "session.json"
 DATA_FILE = "data.csv"
+#: What a session name may look like: one folder name, no separator, not ``.``/``..``, no leading dot.
+SESSION_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,119}$")
+#: Marks a folder moved aside because its session file was damaged.
+DAMAGED = ".damaged-"
+
+
+def check_session_name(sid) -> str:
+    """``sid`` if it names a folder directly inside the session root, else :class:`SessionError`.
+
+    Refused: anything but text, ``.`` and ``..``, absolute paths, ``/`` or ``\\`` separators, a leading dot,
+    characters other than letters, digits, ``_ . -``, and names longer than 120 characters.
+    """
+    if not isinstance(sid, str) or not SESSION_NAME.fullmatch(sid) or sid in (".", ".."):
+        from .markup import clean_text
+
+        raise SessionError(f"{clean_text(repr(sid), 80)} is not a session name: a name is one folder inside the "
+                           "session folder (letters, digits, _ . -; no '..', no path)")
+    return sid
 
 
 def default_root() -> Path:
@@ -42,7 +67,7 @@ def write_bytes_atomic(path, data: bytes) -> None:
 
 def session_id(name: str, content: bytes) -> str:
     """Folder name of a session: a safe form of the file's name plus 10 hex digits of its SHA-1."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem)[:40] or "data"
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem)[:40].lstrip(".-") or "data"
     return f"{stem}-{hashlib.sha1(content).hexdigest()[:10]}"
 
 
@@ -59,7 +84,8 @@ class SessionStore:
         self.root = Path(root) if root is not None else default_root()
 
     def folder(self, sid: str) -> Path:
-        return self.root / sid
+        """The folder of session ``sid`` (directly inside :attr:`root`; :func:`check_session_name` first)."""
+        return self.root / check_session_name(sid)
 
     def create(self, name: str, content: bytes) -> str:
         """Make (or find) the session folder for a data file's bytes; returns its id. The data are copied in."""
@@ -85,36 +111,74 @@ class SessionStore:
         write_bytes_atomic(path, (json.dumps(doc, indent=1) + "\n").encode("utf-8"))
         return path
 
-    def load(self, sid: str) -> SessionState:
-        """Read a saved session (its ``data_path`` points at the session's copy of the data)."""
+    def load(self, sid: str, expect: tuple[int, int] | None = None) -> SessionState:
+        """Read a saved session (its ``data_path`` points at the session's copy of the data).
+
+        Parameters
+        ----------
+        sid : str
+            The session's name.
+        expect : (int, int), optional
+            ``(n_samples, n_sensors)`` of the data it must describe.
+
+        Raises
+        ------
+        SessionFileError
+            The file is damaged (the field is named) or describes other data.
+        SessionError
+            ``sid`` is not a session name.
+        OSError
+            The file cannot be read.
+        """
         path = self.folder(sid) / SESSION_FILE
-        with open(path, encoding="utf-8") as fh:
-            doc = json.load(fh)
-        state = SessionState.from_dict(doc)
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_READ + 1)
+        state = read_session_bytes(data, str(path))
+        if expect is not None and (state.n_samples, state.n_sensors) != tuple(expect):
+            field = "n_samples" if state.n_samples != expect[0] else "n_sensors"
+            raise SessionFileError(str(path), field, f"the session is for {state.n_samples} samples of "
+                                   f"{state.n_sensors} sensor(s), the data have {expect[0]} of {expect[1]}")
         copy = self.data_path(sid)
         if copy.exists():
             state.data_path = str(copy)
         return state
 
+    def set_aside(self, sid: str) -> Path:
+        """Rename a session's folder to ``<sid>.damaged-<YYYYmmdd-HHMMSS>`` (kept for inspection, never deleted);
+        returns the new folder."""
+        old = self.folder(sid)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        new = self.root / f"{sid}{DAMAGED}{stamp}"
+        k = 1
+        while new.exists():
+            k += 1
+            new = self.root / f"{sid}{DAMAGED}{stamp}-{k}"
+        os.replace(old, new)
+        return new
+
     def list(self) -> list[dict]:
-        """Saved sessions, newest first: ``{"id", "saved_at", "lesson", "n_samples", "effects", "rms_nT"}``."""
+        """Saved sessions that can be reopened, newest first: ``{"id", "saved_at", "lesson", "n_samples",
+        "effects", "rms_nT", "mtime"}`` (folders set aside, badly named or with a damaged file are left out)."""
         out = []
         if not self.root.exists():
             return out
         for folder in self.root.iterdir():
             path = folder / SESSION_FILE
-            if not path.is_file():
+            if DAMAGED in folder.name or not SESSION_NAME.fullmatch(folder.name) or not path.is_file():
                 continue
             try:
-                with open(path, encoding="utf-8") as fh:
-                    doc = json.load(fh)
-            except (OSError, json.JSONDecodeError):
+                with open(path, "rb") as fh:
+                    data = fh.read(MAX_READ + 1)
+                state = read_session_bytes(data, str(path))
+                saved_at = json.loads(data).get("saved_at", "")
+                mtime = path.stat().st_mtime
+            except (OSError, SessionError):
                 continue
-            hist = doc.get("history") or []
+            hist = state.history
             out.append({
-                "id": folder.name, "saved_at": doc.get("saved_at", ""), "lesson": doc.get("lesson"),
-                "n_samples": doc.get("n_samples"), "effects": doc.get("effects", []),
-                "rms_nT": hist[-1]["rms_nT"] if hist else None, "mtime": path.stat().st_mtime,
+                "id": folder.name, "saved_at": saved_at if isinstance(saved_at, str) else "",
+                "lesson": state.lesson, "n_samples": state.n_samples, "effects": list(state.effects),
+                "rms_nT": hist[-1].rms_nT if hist else None, "mtime": mtime,
             })
         out.sort(key=lambda d: d["mtime"], reverse=True)
         return out

@@ -244,6 +244,8 @@ class SessionState:
         Kept samples with undo/redo.
     effects : list of str
         Extra effect labels in the model (``NAME`` or ``NAME:SENSOR``, SENSOR 1-based), in the order added.
+    effects_files : list of str
+        Absolute paths of the user's effect files loaded in this session (loaded again when it reopens).
     method : str
         One of :data:`METHODS`.
     reference_nT : float or None
@@ -268,6 +270,7 @@ class SessionState:
         self.lesson = lesson
         self.selection = Selection(self.n_samples)
         self.effects: list[str] = []
+        self.effects_files: list[str] = []
         self.method = "ml"
         self.reference_nT: float | None = None
         self.fit_reference = False
@@ -342,6 +345,7 @@ class SessionState:
                 "n_sensors": self.n_sensors,
                 "selection": self.selection.to_dict(),
                 "effects": list(self.effects),
+                "effects_files": list(self.effects_files),
                 "method": self.method,
                 "reference_nT": self.reference_nT,
                 "fit_reference": self.fit_reference,
@@ -353,19 +357,14 @@ class SessionState:
             }
 
     @classmethod
-    def from_dict(cls, doc: dict) -> "SessionState":
-        if doc.get("format") != "magcal-workbench-session":
-            raise ValueError("not a magcal workbench session file")
-        st = cls(int(doc["n_samples"]), int(doc["n_sensors"]), doc.get("data_path"), doc.get("lesson"))
-        st.selection = Selection.from_dict(doc["selection"], st.n_samples)
-        st.effects = list(doc.get("effects", []))
-        method = doc.get("method", "ml")
-        st.method = method if method in METHODS else "ml"
-        st.reference_nT = doc.get("reference_nT")
-        st.fit_reference = bool(doc.get("fit_reference", False))
-        st.robust = bool(doc.get("robust", False))
-        st.sensor = doc.get("sensor")
-        st.history = [StepRecord.from_dict(r) for r in doc.get("history", [])]
-        st.calibration = doc.get("calibration")
-        st.answer_revealed = bool(doc.get("answer_revealed", False))
-        return st
+    def from_dict(cls, doc: dict, where: str = "session.json") -> "SessionState":
+        """The state a session document holds, every field checked (:mod:`workbench.sessionfile`).
+
+        Raises
+        ------
+        workbench.sessionfile.SessionFileError
+            Naming the damaged field.
+        """
+        from .sessionfile import read_session_document
+
+        return read_session_document(doc, where)

@@ -4,6 +4,10 @@ Example::
 
     magcal apply platform.json survey.csv -o survey_cal.csv
     magcal apply cal.json survey.csv -o out.csv --effects-file my_effects.py   # a calibration with your own effect
+    magcal apply cal.json calib_record.csv -o out.csv --record-terms apply    # keep its bias drift on that record
+
+A calibration with record-only terms (bias drift, bias step, reference drift, site gradient) applies them only to
+the record it was fitted on; on any other file they are dropped, with one warning naming them.
 
 Writes every input line plus ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` (nT) and, for a four-sensor array, the tensor
 ``Gxx .. Gzz, Gyx`` (nT/m) and its invariants ``I0, I1, I2`` (see docs/formats.md).
@@ -35,6 +39,12 @@ def register(subparsers):
                         help="drop rows with missing or non-numeric values (with a warning) instead of refusing")
     parser.add_argument("--chunk-rows", type=int, default=20_000, metavar="N", help="rows per block (memory)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--record-terms", choices=("apply", "drop"), default=None,
+                        help="the calibration's record-only terms (bias_drift, bias_step, reference_drift, "
+                             "site_gradient...: they describe the recording it was fitted on, not the instrument). "
+                             "Default: applied on that very recording, dropped with a warning on any other. "
+                             "'apply' forces them (the same record, or you have a reference for it); 'drop' leaves "
+                             "them out")
     parser.set_defaults(func=run)
     return parser
 
@@ -51,7 +61,8 @@ def run(args) -> int:
         warnings.simplefilter("always")
         summary = apply_file(calibration, args.data, args.output, columns=args.columns, units=args.units,
                              drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
-                             progress=False if args.no_progress else None, calibration_name=args.calibration)
+                             progress=False if args.no_progress else None, calibration_name=args.calibration,
+                             record_terms=args.record_terms)
     for note in dict.fromkeys(str(w.message) for w in caught):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())

@@ -6,6 +6,11 @@ Example::
     magcal calibrate chi2017.csv --reference 50000 --json
     magcal calibrate field.csv --robust --method ml
     magcal calibrate field.csv --effects-file my_effects.py --effects pump_interference -o cal.json
+    magcal calibrate mems.csv --units counts --lsb 150        # raw counts of 150 nT (0.15 uT/LSB)
+
+Before the fit the data's quality is assessed (:mod:`magcal.quality`: sample rate, gaps, stale readings,
+quantization, clipping, static stretches, temperature): the report gets a "Data quality" section with the notable
+findings, ``--json`` gets all of them under ``quality`` and each warning also under ``warnings``.
 
 Other subcommands reuse :func:`add_input_arguments` / :func:`read_input` for the data file options. To add an
 option, add it in :func:`add_arguments` and map it in :func:`calibrate_options`.
@@ -39,7 +44,11 @@ def add_input_arguments(parser) -> None:
     parser.add_argument("data", metavar="FILE.csv", help="data file (see docs/formats.md)")
     parser.add_argument("--columns", default=None, metavar="MAP",
                         help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
-    parser.add_argument("--units", default=None, help="unit of the readings (nT, uT, G, mG); overrides the file")
+    parser.add_argument("--units", default=None,
+                        help="unit of the readings (nT, uT, G, mG, or counts with --lsb); overrides the file")
+    parser.add_argument("--lsb", default=None, metavar="NT_PER_COUNT",
+                        help="for --units counts (raw sensor counts): nT per count, e.g. 150 for 0.15 uT/LSB; "
+                             "overrides the file's '# lsb_nT:' line")
     parser.add_argument("--drop-bad", action="store_true",
                         help="drop rows with missing or non-numeric values (with a warning) instead of refusing")
 
@@ -73,7 +82,8 @@ def read_input(args):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ds = io.read_csv(args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad)
+        ds = io.read_csv(args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad,
+                         lsb_nT=getattr(args, "lsb", None))
     return ds, [str(w.message) for w in caught]
 
 
@@ -116,6 +126,7 @@ def calibrate_options(args) -> dict:
 def run(args) -> int:
     from ..coverage import calibration_input_checks
     from ..pipeline import calibrate
+    from ..quality import assess, field_magnitude_finding
     from ..report import calibration_json, text_report
 
     from ..reference import reference_from_args
@@ -130,6 +141,7 @@ def run(args) -> int:
     if reference.kind == "fitted":
         ds = ds.replace(ref_total_nT=None)
     print(f"magcal calibrate: reference: {reference.text}", file=sys.stderr)
+    quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds)  # coverage (issue 6)
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
@@ -142,10 +154,14 @@ def run(args) -> int:
         if bar is not None:
             bar.close()
     notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
-    # each warning once: the text report lists the calibration's own warnings, so leave those to it
+    quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
+    notes += quality.warnings
+    # each warning once: the text report lists the calibration's own warnings and the data-quality warnings, so
+    # leave those to it
+    in_report = set(result.warnings) | set(quality.warnings)
     printed = set()
     for note in dict.fromkeys(notes):
-        if args.json or note not in result.warnings:
+        if args.json or note not in in_report:
             print(f"magcal calibrate: warning: {note}", file=sys.stderr)
             printed.add(note)
     if args.output:
@@ -154,6 +170,7 @@ def run(args) -> int:
         doc = calibration_json(result)
         # every warning of the run, not only the calibration's own: reading, reference, coverage, fit
         doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
+        doc["quality"] = quality.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
         for note in result.warnings:
@@ -161,6 +178,7 @@ def run(args) -> int:
                 print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     else:
         sys.stdout.write(text_report(result, source=args.data))
+        sys.stdout.write("\n" + quality.section())
         if args.output:
             print(f"\nsaved the calibration to {args.output}")
     return 0

@@ -10,7 +10,9 @@ Example::
 Fits the base model (plus ``--effects``), then prints a ranked table of candidate effects (score test, confirmed
 by refitting the best ones) and a verdict: ``adequate``, ``missing_effect`` or ``unexplained``. With ``--json``
 it prints one JSON object: ``effects``, ``rms_nT``, ``noise_nT``, ``verdict``, ``warnings``, ``candidates``
-(``effect``, ``sensor``, ``delta_bic``, ``rms_after_nT``, ``evidence``, best first) and more.
+(``effect``, ``sensor``, ``delta_bic``, ``rms_after_nT``, ``evidence``, best first), ``quality`` (every finding of
+:func:`magcal.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
+quality" section with the notable findings.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ def run(args) -> int:
     from ..coverage import calibration_input_checks
     from ..diagnosis import diagnose
     from ..pipeline import calibrate
+    from ..quality import assess, field_magnitude_finding
     from .calibrate import checked_effect_names, named_error, read_input
 
     if args.reference is not None and not args.reference > 0:
@@ -67,6 +70,7 @@ def run(args) -> int:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
     names = checked_effect_names(args)
     ds, notes = read_input(args)
+    quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -78,14 +82,19 @@ def run(args) -> int:
             raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught]
     notes += [w for w in result.warnings if w not in notes]
+    quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
+    notes += [w for w in quality.warnings if w not in notes]
     for note in notes:
-        print(f"magcal diagnose: warning: {note}", file=sys.stderr)
+        if args.json or note not in quality.warnings:  # the text output shows those in its Data quality section
+            print(f"magcal diagnose: warning: {note}", file=sys.stderr)
     if args.json:
         doc = diagnosis.to_dict()
         doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))  # every warning of the run
+        doc["quality"] = quality.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         title = f"magcal diagnosis of {args.data}"
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{ds.describe()}\n\n{diagnosis.table()}\n")
+        sys.stdout.write("\n" + quality.section())
     return 0

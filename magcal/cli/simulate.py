@@ -63,11 +63,8 @@ def run(args) -> int:
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
     hidden = []
     if getattr(args, "hidden", None):
-        try:  # the simulator's perturbations are moving to magcal.perturbations
-            from ..perturbations import parse_hidden
-        except ImportError:
-            from ..effects import parse_hidden
-        from ..plugins import reserved_names, check_effect_names
+        from ..perturbations import parse_hidden
+        from ..plugins import check_effect_names, reserved_names
 
         heads = [spec.partition("=")[0] for spec in args.hidden]
         check_effect_names([h for h in heads if h.partition(":")[0].strip() not in reserved_names()], "--hidden")

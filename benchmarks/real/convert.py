@@ -1,0 +1,290 @@
+"""Convert the raw real recordings (see ``fetch.py``) into magcal CSV files in nT.
+
+One function per recording; each reads from ``data/raw/`` and writes ``data/<name>.csv`` with ``# key: value``
+header lines saying where the data came from, the sensor, the unit conversion and the sample rate. The local
+field is not given as ``reference_total_nT`` (a bench is rarely at the IGRF value); the IGRF value of the
+likely site is kept as the information key ``igrf_total_nT``.
+
+Usage::
+
+    python benchmarks/real/fetch.py --mirror /work/.mirror     # or without --mirror to download
+    python benchmarks/real/convert.py --all                    # or: convert.py qmc_filtered ads_rm3100 ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from magcal.io import write_csv
+
+HERE = Path(__file__).resolve().parent
+RAW_DIR = HERE / "data" / "raw"
+OUT_DIR = HERE / "data"
+
+#: nT per gauss.
+NT_PER_GAUSS = 1e5
+
+#: QMC5883L sensitivity (datasheet): 12000 LSB/G at +-2 G, 3000 LSB/G at +-8 G. The recordings' fitted field is
+#: 1071 counts: 8.9 uT with 12000 LSB/G (below the weakest geomagnetic field anywhere, ~22 uT), 35.7 uT with
+#: 3000 LSB/G (IGRF at Mendoza 23.0 uT). See FINDINGS.md for the argument; 3000 LSB/G is used.
+QMC_LSB_NT = NT_PER_GAUSS / 3000.0
+#: ICM-20948 (AK09916 magnetometer): 0.15 uT per LSB.
+ICM20948_LSB_NT = 150.0
+#: RM3100 at the default cycle count 200: 75 counts per uT.
+RM3100_LSB_NT = 1000.0 / 75.0
+#: HMC5883L at the default gain (+-1.3 G): 1090 LSB/G.
+HMC5883L_LSB_NT = NT_PER_GAUSS / 1090.0
+
+
+def _write(name: str, columns: dict, metadata: dict, out_dir: Path) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{name}.csv"
+    write_csv(path, columns, metadata={**metadata, "units": "nT"})
+    return path
+
+
+def _vector_columns(readings_nT: np.ndarray) -> dict:
+    return {"x": readings_nT[:, 0], "y": readings_nT[:, 1], "z": readings_nT[:, 2]}
+
+
+# ---- tomisuarez2/MagnetometerCalibration (QMC5883L) -----------------------------------------------------------
+
+
+def read_qmc_counts(path: Path) -> tuple[float, float, np.ndarray]:
+    """``(rate_Hz, still_s, counts)`` of a QMC logger file: ``Fs,50.00`` / ``Initialization time,60`` /
+    ``mx,my,mz`` then integer rows."""
+    with open(path, encoding="utf-8") as fh:
+        rate = float(fh.readline().split(",")[1])
+        still = float(fh.readline().split(",")[1])
+        header = fh.readline().strip()
+        if header.replace(" ", "") != "mx,my,mz":
+            raise ValueError(f"{path}: line 3: expected the header 'mx,my,mz', found {header!r}")
+        counts = np.loadtxt(fh, delimiter=",", ndmin=2)
+    return rate, still, counts
+
+
+def convert_qmc(which: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR, lsb_nT: float = QMC_LSB_NT) -> Path:
+    """``qmc_filtered`` / ``qmc_noisy``: QMC5883L raw counts x ``lsb_nT``; ``t`` = index / 50 Hz (nominal)."""
+    rate, still, counts = read_qmc_counts(raw_dir / f"qmc_{which}_raw_data.csv")
+    t = np.arange(len(counts)) / rate
+    meta = {
+        "source": f"github.com/tomisuarez2/MagnetometerCalibration 'calibration data/{which}_raw_data.csv'",
+        "licence": "MIT (c) 2025 Tomas Suarez",
+        "sensor": "QMC5883L (GY-63 board) on an Arduino UNO, OSR 512, hand-turned; Universidad Nacional de Cuyo",
+        "conversion": f"raw counts x {lsb_nT:.6g} nT (3000 LSB/G, +-8 G); the sketch asks for +-2 G = 12000 LSB/G "
+                      "but the fitted field would then be 8.9 uT; see FINDINGS.md",
+        "lsb_nT": f"{lsb_nT:.6g}",
+        "rate_Hz": f"{rate:g}",
+        "time": "t = sample index / rate (the file has no time stamps)",
+        "still_s": f"{still:g} (the logger's initialization time: sensor still at the start)",
+        "igrf_total_nT": "23028 (Mendoza, Argentina, 2025.6; site assumed)",
+    }
+    return _write(f"qmc_{which}", {"t": t, **_vector_columns(counts * lsb_nT)}, meta, out_dir)
+
+
+def convert_qmc_filtered(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_qmc("filtered", raw_dir, out_dir)
+
+
+def convert_qmc_noisy(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_qmc("noisy", raw_dir, out_dir)
+
+
+# ---- apujara22/MagCal_W25_MXL (ADS payload: ICM-20948 + RM3100) ------------------------------------------------
+
+
+def _rtc_seconds(text: str) -> float:
+    """``'mm:ss.s'`` (the RTC time as a spreadsheet kept it: hours lost, 0.1 s) in s."""
+    minutes, seconds = text.split(":")
+    return int(minutes) * 60 + float(seconds)
+
+
+def spread_repeats(t: np.ndarray) -> np.ndarray:
+    """Strictly increasing times from stamps that repeat: each run of equal stamps is spread evenly up to the next
+    distinct stamp (the last run by the median interval)."""
+    t = np.asarray(t, dtype=float)
+    out = t.copy()
+    distinct = np.flatnonzero(np.r_[True, np.diff(t) != 0])
+    steps = np.diff(t[distinct])
+    step_end = np.median(steps) if steps.size else 1.0
+    for k, start in enumerate(distinct):
+        stop = distinct[k + 1] if k + 1 < len(distinct) else len(t)
+        gap = (t[stop] - t[start]) if stop < len(t) else step_end * (stop - start)
+        out[start:stop] = t[start] + gap * np.arange(stop - start) / (stop - start)
+    return out
+
+
+def read_ads(path: Path) -> dict:
+    """Columns of ``data_original.csv`` as float arrays (``cur_time`` as RTC seconds, unwrapped over hours)."""
+    with open(path, encoding="utf-8-sig", newline="") as fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]]
+    body = [r for r in rows[1:] if r and any(c.strip() for c in r)]
+    cols = {}
+    for j, name in enumerate(header):
+        if not name:
+            continue
+        if name == "cur_time":
+            rtc = np.array([_rtc_seconds(r[j]) for r in body])
+            rtc += 3600.0 * np.cumsum(np.r_[0, np.diff(rtc) < -1800])   # hour roll-over
+            cols[name] = rtc
+        else:
+            cols[name] = np.array([float(r[j]) for r in body])
+    return cols
+
+
+def convert_ads(sensor: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ads_icm20948`` (imu_m* x 150 nT) / ``ads_rm3100`` (mag_* counts x 13.333 nT) with ``t`` from the RTC and
+    ``temp`` = ICM-20948 die temperature."""
+    c = read_ads(raw_dir / "ads_data_original.csv")
+    if sensor == "icm20948":
+        counts, lsb = np.c_[c["imu_mx"], c["imu_my"], c["imu_mz"]], ICM20948_LSB_NT
+        what = "ICM-20948 (AK09916) magnetometer, counts x 150 nT (0.15 uT/LSB)"
+    elif sensor == "rm3100":
+        counts, lsb = np.c_[c["mag_x"], c["mag_y"], c["mag_z"]], RM3100_LSB_NT
+        what = "PNI RM3100, counts x 13.333 nT (75 LSB/uT, cycle count 200)"
+    else:
+        raise ValueError(f"unknown ADS sensor {sensor!r} (icm20948 or rm3100)")
+    t_rtc = c["cur_time"] - c["cur_time"][0]
+    meta = {
+        "source": "github.com/apujara22/MagCal_W25_MXL 'ADSvehicle/preFlightCali/data_original.csv'",
+        "licence": "none stated: local development only, do not redistribute",
+        "sensor": f"{what}; ADS payload (Raspberry Pi), U. Michigan MXL, pre-flight calibration 2025-02-12, outdoors",
+        "conversion": f"counts x {lsb:.6g} nT (checked against the authors' data_original_imu/_pni.csv in uT)",
+        "lsb_nT": f"{lsb:.6g}",
+        "rate_Hz": "~9.9 (bursts of 10 reads, then sleep to 1 s)",
+        "time": "t from the RTC column cur_time (mm:ss.s, 0.1 s); repeated stamps spread evenly to the next; "
+                "t_rtc_s = the stamps as logged",
+        "temp": "ICM-20948 die temperature (imu_T), degC; enviro_t = BME680 air temperature",
+        "igrf_total_nT": "52856 (Ann Arbor, MI, 2025-02-12; site assumed)",
+    }
+    columns = {"t": spread_repeats(t_rtc), **_vector_columns(counts * lsb), "temp": c["imu_T"],
+               "t_rtc_s": t_rtc, "enviro_t": c["enviro_t"]}
+    return _write(f"ads_{sensor}", columns, meta, out_dir)
+
+
+def convert_ads_icm20948(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_ads("icm20948", raw_dir, out_dir)
+
+
+def convert_ads_rm3100(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_ads("rm3100", raw_dir, out_dir)
+
+
+def convert_mxl_test1(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``mxl_test1``: RM3100 on a quadrotor (uT with 1/75 resolution) -> counts -> nT; no usable time stamps."""
+    uT = np.loadtxt(raw_dir / "mxl_test1_esti_trunc.csv", delimiter=",", skiprows=1, ndmin=2)
+    counts = np.round(uT * 75.0)
+    meta = {
+        "source": "github.com/apujara22/MagCal_W25_MXL 'Matlab Version/20210423_mag_cali/test1_esti_trunc.csv'",
+        "licence": "none stated: local development only, do not redistribute",
+        "sensor": "PNI RM3100 on the EstiBone quadrotor, turned by hand (traj0: 360 deg roll, pitch, yaw), "
+                  "south of MAIR, U. Michigan, 2021-04-23",
+        "conversion": f"uT x 75 rounded to counts, x {RM3100_LSB_NT:.6g} nT",
+        "lsb_nT": f"{RM3100_LSB_NT:.6g}",
+        "rate_Hz": "unknown (the logger's ns time stamps were rounded to 1.47819E+18 by a spreadsheet)",
+        "igrf_total_nT": "53271 (Ann Arbor, MI, 2021-04-23)",
+    }
+    return _write("mxl_test1", _vector_columns(counts * RM3100_LSB_NT), meta, out_dir)
+
+
+# ---- sunsided/sensor-fusion (HMC5883L + MPU6050) ---------------------------------------------------------------
+
+
+def _read_mat73(path: Path, name: str) -> np.ndarray:
+    try:
+        import h5py
+    except ImportError as exc:  # pragma: no cover - depends on the machine
+        raise SystemExit("the sensor-fusion files are MATLAB v7.3 (HDF5): pip install h5py") from exc
+    with h5py.File(path, "r") as f:
+        return np.array(f[name]).T
+
+
+def convert_sf_fullsphere(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``sf_fullsphere``: HMC5883L in gauss -> nT, host time stamps, MPU6050 temperature interpolated."""
+    mag = _read_mat73(raw_dir / "sf_fullsphere_hmc5883l_compass.mat", "compassBuffer")
+    temp = _read_mat73(raw_dir / "sf_fullsphere_mpu6050_temperature.mat", "temperatureBuffer")
+    t = mag[:, 0]
+    readings = np.round(mag[:, 1:4] * 1090.0) * HMC5883L_LSB_NT   # the values are counts / 1090 exactly
+    meta = {
+        "source": "github.com/sunsided/sensor-fusion 'data/set-2/full-sphere/hmc5883l_compass.mat' "
+                  "(+ mpu6050_temperature.mat)",
+        "licence": "EUPL-1.2 (c) Markus Mayer (sunsided)",
+        "sensor": "Honeywell HMC5883L (gain 1090 LSB/G) with an MPU6050 on one board, turned about the centre point "
+                  "through 9 rotations covering the sphere",
+        "conversion": f"gauss x 1e5 (= counts x {HMC5883L_LSB_NT:.6g} nT)",
+        "lsb_nT": f"{HMC5883L_LSB_NT:.6g}",
+        "rate_Hz": "~77 mean (75 Hz nominal); t = host arrival time stamps, s",
+        "temp": "MPU6050 die temperature (100 Hz) interpolated onto the magnetometer times, degC",
+        "igrf_total_nT": "about 49000 (central Europe; site not stated)",
+    }
+    columns = {"t": t, **_vector_columns(readings), "temp": np.interp(t, temp[:, 0], temp[:, 1])}
+    return _write("sf_fullsphere", columns, meta, out_dir)
+
+
+# ---- aleksandrbazhin/ellipsoid_fit_python ------------------------------------------------------------------
+
+
+#: Assumed LSB of ab_mag_out (not stated by the source): 0.3 uT/LSB (AK8975-class) puts the field at ~52 uT.
+AB_ASSUMED_LSB_NT = 300.0
+
+
+def convert_ab_mag_out(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ab_mag_out``: 347 integer vectors of unknown sensor; counts x an assumed 300 nT."""
+    counts = np.loadtxt(raw_dir / "ab_mag_out.txt", ndmin=2)
+    meta = {
+        "source": "github.com/aleksandrbazhin/ellipsoid_fit_python 'mag_out.txt'",
+        "licence": "MIT (c) 2016 aleksandrbazhin",
+        "sensor": "not stated (example input of an ellipsoid-fit tool for magnetometer calibration)",
+        "conversion": f"counts x {AB_ASSUMED_LSB_NT:g} nT: ASSUMED (fitted field 174 counts -> 52 uT); "
+                      "only relative figures (RMS / field) mean anything",
+        "lsb_nT": f"{AB_ASSUMED_LSB_NT:g}",
+        "rate_Hz": "unknown (no time stamps)",
+    }
+    return _write("ab_mag_out", _vector_columns(counts * AB_ASSUMED_LSB_NT), meta, out_dir)
+
+
+#: Every recording: name -> converter.
+CONVERTERS = {
+    "qmc_filtered": convert_qmc_filtered,
+    "qmc_noisy": convert_qmc_noisy,
+    "ads_icm20948": convert_ads_icm20948,
+    "ads_rm3100": convert_ads_rm3100,
+    "mxl_test1": convert_mxl_test1,
+    "sf_fullsphere": convert_sf_fullsphere,
+    "ab_mag_out": convert_ab_mag_out,
+}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="Convert the raw real recordings into magcal CSVs (nT).")
+    parser.add_argument("names", nargs="*", help=f"recordings to convert: {', '.join(CONVERTERS)}")
+    parser.add_argument("--all", action="store_true", help="convert every recording")
+    parser.add_argument("--raw-dir", type=Path, default=RAW_DIR)
+    parser.add_argument("--out-dir", type=Path, default=OUT_DIR)
+    args = parser.parse_args(argv)
+    names = list(CONVERTERS) if args.all else args.names
+    if not names:
+        parser.error("name recordings or give --all")
+    unknown = [n for n in names if n not in CONVERTERS]
+    if unknown:
+        parser.error(f"unknown recording(s) {', '.join(unknown)}; known: {', '.join(CONVERTERS)}")
+    status = 0
+    for name in names:
+        try:
+            path = CONVERTERS[name](args.raw_dir, args.out_dir)
+        except FileNotFoundError as exc:
+            print(f"{name}: raw file missing ({exc.filename}); run benchmarks/real/fetch.py first", file=sys.stderr)
+            status = 1
+            continue
+        print(f"{name}: {path}")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""Obtain the raw files of the real magnetometer recordings used as development data (issue 10).
+
+Nothing here is shipped with magcal: the raw files go to ``benchmarks/real/data/raw/`` (git-ignored) and
+``convert.py`` turns them into magcal CSVs in ``benchmarks/real/data/``. Recordings without a licence
+(``licence: none``) may be used locally for development only; never commit or redistribute them.
+
+Each source is a file at a pinned commit of a public GitHub repository. Two ways to get it:
+
+* ``python benchmarks/real/fetch.py`` downloads ``https://raw.githubusercontent.com/<repo>/<commit>/<path>``;
+* ``python benchmarks/real/fetch.py --mirror DIR`` reads it from local bare clones instead, looked up as
+  ``DIR/<owner>+<name>/repo`` or ``DIR/<name>.git`` (``git clone --bare https://github.com/<repo>``), with
+  ``git --git-dir=... show <commit>:<path>`` (falling back to ``HEAD`` when the commit is not in the clone).
+
+Run ``python benchmarks/real/fetch.py --list`` to print the table of sources.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import urllib.parse
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RAW_DIR = HERE / "data" / "raw"
+
+
+@dataclass(frozen=True)
+class Source:
+    """One raw file of a public recording."""
+
+    local_name: str
+    repo: str
+    commit: str
+    path: str
+    licence: str
+    what: str
+
+    @property
+    def url(self) -> str:
+        return f"https://raw.githubusercontent.com/{self.repo}/{self.commit}/{urllib.parse.quote(self.path)}"
+
+
+QMC = ("tomisuarez2/MagnetometerCalibration", "eb93f820ffc06155579b7d86928795915eef714a")
+MXL = ("apujara22/MagCal_W25_MXL", "b3117ac0dfe91d7350227bccf4c11768a845444a")
+SF = ("sunsided/sensor-fusion", "f16045a9d1d4f9037a183f436fe3c098a38ad99d")
+AB = ("aleksandrbazhin/ellipsoid_fit_python", "bfab4ce68244529640496f466a4374ef15748275")
+
+SOURCES = (
+    Source("qmc_filtered_raw_data.csv", *QMC, "calibration data/filtered_raw_data.csv", "MIT",
+           "QMC5883L on GY-63 + Arduino, hand-turned, 50 Hz, raw counts, first 60 s still"),
+    Source("qmc_noisy_raw_data.csv", *QMC, "calibration data/noisy_raw_data.csv", "MIT",
+           "same set-up, second recording ('noisy')"),
+    Source("ads_data_original.csv", *MXL, "ADSvehicle/preFlightCali/data_original.csv", "none (local only)",
+           "ADS payload pre-flight: ICM-20948 (counts x 0.15 uT) + RM3100 (counts / 75 uT), ~10 Hz, outdoors"),
+    Source("mxl_test1_esti_trunc.csv", *MXL, "Matlab Version/20210423_mag_cali/test1_esti_trunc.csv",
+           "none (local only)", "RM3100 on a quadrotor turned by hand outdoors (Ann Arbor, 2021-04-23), uT"),
+    Source("sf_fullsphere_hmc5883l_compass.mat", *SF, "data/set-2/full-sphere/hmc5883l_compass.mat",
+           "EUPL-1.2", "HMC5883L full-sphere rotation, gauss, host time stamps, ~77 Hz (MATLAB v7.3)"),
+    Source("sf_fullsphere_mpu6050_temperature.mat", *SF, "data/set-2/full-sphere/mpu6050_temperature.mat",
+           "EUPL-1.2", "MPU6050 die temperature of the same board, 100 Hz"),
+    Source("ab_mag_out.txt", *AB, "mag_out.txt", "MIT",
+           "example input of an ellipsoid-fit tool: 347 raw integer vectors, sensor and unit not stated"),
+)
+
+
+def _mirror_git_dir(mirror: Path, repo: str) -> Path | None:
+    owner, name = repo.split("/")
+    for candidate in (mirror / f"{owner}+{name}" / "repo", mirror / f"{name}.git", mirror / name / ".git"):
+        if candidate.is_dir():
+            return candidate
+    return None
+
+
+def _from_mirror(src: Source, mirror: Path) -> bytes:
+    git_dir = _mirror_git_dir(mirror, src.repo)
+    if git_dir is None:
+        raise FileNotFoundError(f"no clone of {src.repo} under {mirror}")
+    for rev in (src.commit, "HEAD"):
+        proc = subprocess.run(["git", f"--git-dir={git_dir}", "show", f"{rev}:{src.path}"], capture_output=True)
+        if proc.returncode == 0:
+            return proc.stdout
+    raise FileNotFoundError(f"{src.repo}: {src.path} not in {git_dir}: {proc.stderr.decode().strip()}")
+
+
+def _download(src: Source) -> bytes:
+    with urllib.request.urlopen(src.url, timeout=60) as response:  # noqa: S310 (fixed https URL)
+        return response.read()
+
+
+def fetch(sources=SOURCES, mirror: Path | None = None, raw_dir: Path = RAW_DIR, force: bool = False) -> list:
+    """Write each source's raw file into ``raw_dir``; returns the paths written or already present."""
+    raw_dir.mkdir(parents=True, exist_ok=True)
+    done = []
+    for src in sources:
+        target = raw_dir / src.local_name
+        if target.exists() and not force:
+            done.append(target)
+            continue
+        data = _from_mirror(src, mirror) if mirror else _download(src)
+        if data.startswith(b"version https://git-lfs"):
+            raise RuntimeError(f"{src.repo}:{src.path} is a Git LFS pointer, not the data")
+        target.write_bytes(data)
+        done.append(target)
+        print(f"{target.name}: {len(data)} bytes from {src.repo}:{src.path}")
+    return done
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--mirror", type=Path, help="directory of local bare clones instead of downloading")
+    parser.add_argument("--force", action="store_true", help="fetch again even if the raw file exists")
+    parser.add_argument("--list", action="store_true", help="print the sources and exit")
+    args = parser.parse_args(argv)
+    if args.list:
+        for s in SOURCES:
+            print(f"{s.local_name}\n    {s.repo} @ {s.commit[:10]} : {s.path}\n    licence {s.licence}; {s.what}")
+        return 0
+    fetch(mirror=args.mirror, force=args.force)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

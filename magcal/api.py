@@ -1,0 +1,106 @@
+"""The one-call API: read, calibrate and diagnose whatever the user holds.
+
+``magcal.calibrate`` and ``magcal.diagnose`` take a :class:`~magcal.dataset.Dataset`, a plain array of raw readings
+in nT (``(N, 3)`` for one sensor, ``(n_sensors, N, 3)`` for an array) or a pandas DataFrame with the columns of
+the data CSV, turn it into a dataset with :func:`magcal.dataset.as_dataset`, and call the engine's
+:func:`magcal.pipeline.calibrate` and :func:`magcal.diagnosis.diagnose`, which keep taking datasets only.
+"""
+
+from __future__ import annotations
+
+from .dataset import as_dataset
+from .io import read_csv
+
+__all__ = ["read_csv", "calibrate", "diagnose", "as_dataset"]
+
+
+def calibrate(data, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None, *, t=None,
+              temp=None, **options):
+    """Calibrate one to four sensors from readings taken while turning them in a uniform field.
+
+    Parameters
+    ----------
+    data : Dataset, array_like or pandas.DataFrame
+        Raw readings in nT: a :class:`~magcal.dataset.Dataset`, an array of shape ``(N, 3)`` (one sensor) or
+        ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns (see :func:`magcal.dataset.as_dataset`).
+    method : {"ml", "ellipsoid", "pso", "ipso", "de"}
+        ``ml`` (default): ellipsoid -> Procrustes -> maximum likelihood; ``ellipsoid``: the seed's two steps only.
+    effects : sequence of str or Effect
+        Effects to add to the base model, by name (``"temperature_bias"``, ``"bias_drift:2"``, sensors 1-based),
+        e.g. those a :func:`diagnose` names in ``explained_by``.
+    robust : bool
+        Soft-L1 loss in the maximum-likelihood step; gross outliers reported in ``outliers``.
+    reference_total_nT : float, optional
+        Known total field in nT; otherwise the data's ``ref_total`` column or metadata, else fitted.
+    t : array_like, shape (N,), optional
+        Sample times in s, for array input (time-dependent effects need them).
+    temp : array_like, shape (N,) or float, optional
+        Temperature in degC, for array input (temperature effects need it).
+    **options
+        Passed on to :func:`magcal.pipeline.calibrate` (``seed``, ``progress``, ``mask``, ``ellipsoid_method``,
+        ``base_terms``).
+
+    Returns
+    -------
+    CalibrationResult
+        ``.calibration`` applies to new data (``.correct(new)``, ``.save(path)``); ``.rms_after_per_sensor_nT``
+        the total-field RMS per sensor in nT.
+
+    Raises
+    ------
+    DatasetError
+        (a ``ValueError``) for input of the wrong shape or with NaN values.
+    CalibrationError
+        Too few samples, degenerate coverage, unknown method or effect.
+
+    Examples
+    --------
+    >>> import numpy as np, magcal
+    >>> readings = magcal.simulate("chi2017", seed=1).readings_nT[0]     # (200, 3) nT, one sensor
+    >>> result = magcal.calibrate(readings, reference_total_nT=50000)
+    >>> result.calibration.n_sensors, bool(result.rms_after_per_sensor_nT[0] < 4.0)   # noise sigma is 3 nT
+    (1, True)
+    """
+    from . import pipeline
+
+    dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
+    return pipeline.calibrate(dataset, method=method, effects=effects, robust=robust,
+                              reference_total_nT=reference_total_nT, **options)
+
+
+def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, **options):
+    """Where the calibration model fails on the data, and which physical effect is missing.
+
+    Parameters
+    ----------
+    data : Dataset, array_like or pandas.DataFrame
+        Raw readings as for :func:`calibrate` (the same record the ``result`` was fitted on).
+    result : CalibrationResult or FitResult, optional
+        The fitted model to diagnose; without it the base model (plus ``effects=``) is fitted first.
+    reference_total_nT : float, optional
+        Known total field in nT (when ``result`` is not given).
+    t : array_like, shape (N,), optional
+        Sample times in s, for array input; the tests against time need them.
+    temp : array_like, shape (N,) or float, optional
+        Temperature in degC, for array input; the tests against temperature need it.
+    **options
+        Passed on to :func:`magcal.diagnosis.diagnose` (``effects``, ``model``, ``top``, ``candidates``,
+        ``max_effects``, ``progress``).
+
+    Returns
+    -------
+    Diagnosis
+        ``.verdict`` (``adequate``, ``missing_effect`` or ``unexplained``), ``.summary``, ``.candidates`` best
+        first, ``.explained_by`` (effect labels to pass to :func:`calibrate` as ``effects=``).
+
+    Examples
+    --------
+    >>> import magcal
+    >>> ds = magcal.simulate("chi2017", seed=1)          # the base model is all there is to find
+    >>> magcal.diagnose(ds, magcal.calibrate(ds)).verdict
+    'adequate'
+    """
+    from .diagnosis import diagnose as _diagnose  # at call time: the diagnosis package loads only when used
+
+    dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
+    return _diagnose(dataset, result, **options)

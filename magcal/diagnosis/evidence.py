@@ -1,0 +1,127 @@
+"""The evidence shown with a diagnosis: one line per candidate, and the plot data of the residuals.
+
+:data:`SIGNATURES` says in one line how each catalogue effect shows in the residuals; :func:`_evidence_line` and
+:func:`_effect_extra` write the evidence column of the candidate table. :func:`_time_evidence`,
+:func:`_temperature_evidence` and :func:`_sensor_evidence` collect plain arrays (residuals in nT against time in
+s, temperature in degC, between sensors) for ``Diagnosis.evidence`` and the workbench plots.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from .. import conventions
+from ._fitted import _vector_rms_per_sensor
+from .scores import Candidate
+from .statistics import cusum_test, durbin_watson, ljung_box
+
+#: One-line signature of each effect, for the evidence column.
+SIGNATURES = {
+    "temperature_bias": "residual follows (T - T0) x field direction (degree 1)",
+    "temperature_scale": "residual follows (T - T0) x direction degrees 0 and 2",
+    "bias_drift": "slow trend in time times field direction",
+    "bias_step": "step in the residual pattern",
+    "nonlinearity_quadratic": "direction pattern of degree 3",
+    "nonlinearity_cubic": "direction pattern of degree 4",
+    "axis_timing_skew": "residual ~ rate of change of the axes; flips with the rotation direction",
+    "sensor_timing_skew": "inter-sensor differences ~ dt dB/dt",
+    "hysteresis": "residual flips sign with each axis's direction of change",
+    "reference_drift": "common to all sensors, independent of direction, slow in time",
+    "site_gradient": "inter-sensor differences follow the attitude (world-fixed gradient)",
+}
+
+
+def _evidence_line(c: Candidate, extra: str = "") -> str:
+    p_text = f"p={c.p_value:.1g}" if c.p_value > 1e-300 else "p<1e-300"
+    parts = [f"score LM={c.lm:.1f} on {c.n_params} parameter(s) ({p_text})"]
+    if extra:
+        parts.append(extra)
+    parts.append(SIGNATURES.get(c.effect, ""))
+    return "; ".join(p for p in parts if p)
+
+
+def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
+    """Effect-specific numbers for the evidence line."""
+    if c.effect == "bias_step":
+        times = []
+        for e in c.instances:
+            step_times_s = getattr(e, "step_time_s", None)
+            if step_times_s:
+                times.extend(t for t in step_times_s if t is not None)
+        if times:
+            return "step near t = " + ", ".join(f"{t:.4g} s" for t in sorted(set(np.round(times, 3))))
+    if c.effect in ("nonlinearity_quadratic", "nonlinearity_cubic") and sh_stats:
+        degree = 3 if c.effect == "nonlinearity_quadratic" else 4
+        sensors = [c.sensor] if c.sensor is not None else range(len(sh_stats))
+        rms = [sh_stats[s]["rms_nT"][degree] for s in sensors]
+        return f"direction degree {degree}: {max(rms):.2g} nT"
+    if c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift") and \
+            kept.temperature_C is not None and kept.time_s is not None:
+        rho = abs(np.corrcoef(kept.temperature_C, kept.time_s)[0, 1])
+        return f"|corr(T, t)| = {rho:.2f}"
+    return ""
+
+
+def _time_evidence(kept, r, ordered):
+    t = kept.time_s if kept.time_s is not None else np.arange(kept.n_samples, dtype=float)
+    n = len(t)
+    w = max(1, n // 60)
+    kernel = np.ones(w) / w
+    smooth = np.array([np.convolve(row, kernel, mode="same") for row in r])
+    ev = {"x": t, "y": r, "smooth": smooth, "x_label": "time (s)" if kept.time_s is not None else "sample",
+          "durbin_watson": np.array([durbin_watson(row) for row in r])}
+    if ordered:
+        lb = [ljung_box(row) for row in r]
+        ev["ljung_box_p"] = np.array([x[1] for x in lb])
+        cs = [cusum_test(row) for row in r]
+        ev["cusum"] = {"index": np.array([c[0] for c in cs]), "statistic": np.array([c[1] for c in cs]),
+                       "p": np.array([c[2] for c in cs]), "time": np.array([t[c[0]] for c in cs])}
+        if kept.time_s is not None:
+            from ..effects import step_scan
+
+            scans = [step_scan(kept.readings_nT[s]) for s in range(r.shape[0])]
+            ev["step_scan"] = {"rss_drop_nT2": np.array([sc[1] for sc in scans]),
+                               "time": np.array([t[sc[0]] for sc in scans])}
+    return ev
+
+
+def _temperature_evidence(kept, r, directions):
+    if kept.temperature_C is None:
+        return None
+    temp = kept.temperature_C
+    d_t = temp - temp.mean()
+    p_vals = []
+    for s in range(r.shape[0]):
+        u = directions[s]
+        base = np.column_stack([np.ones(len(d_t)), u])
+        full = np.column_stack([base, d_t[:, None] * base])
+        rss0 = np.sum((r[s] - base @ np.linalg.lstsq(base, r[s], rcond=None)[0]) ** 2)
+        rss1 = np.sum((r[s] - full @ np.linalg.lstsq(full, r[s], rcond=None)[0]) ** 2)
+        f = (rss0 - rss1) / 4 / max(rss1 / (len(d_t) - 8), 1e-300)
+        p_vals.append(float(stats.f.sf(f, 4, len(d_t) - 8)))
+    order = np.argsort(temp)
+    return {"x": temp, "y": r, "x_label": "temperature (degC)", "f_test_p": np.array(p_vals),
+            "sorted_index": order}
+
+
+def _sensor_evidence(kept, fit, r, fields):
+    ns = r.shape[0]
+    if ns < 2:
+        return None
+    common = r.mean(axis=0)
+    diffs = r - common
+    ev = {"common_mode_nT": common, "differences_nT": diffs,
+          "common_mode_rms_nT": float(np.sqrt(np.mean(common**2))),
+          "difference_rms_nT": np.sqrt(np.mean(diffs**2, axis=1)),
+          "correlation": np.corrcoef(r)}
+    vr = _vector_rms_per_sensor(fit)
+    if vr is not None:
+        ev["vector_rms_nT"] = vr
+    if ns == 4 and fit.calibration.baseline_m:
+        g = conventions.tensor_components(fields, fit.calibration.baseline_m)
+        tensor = conventions.tensor_matrix(g)
+        norm = np.sqrt(np.sum(tensor**2, axis=(1, 2)))
+        ev["tensor_norm_nT_per_m"] = norm
+        ev["tensor_mean_nT_per_m"] = {k: float(np.mean(v)) for k, v in g.items()}
+    return ev

@@ -1,0 +1,394 @@
+"""Score (Lagrange multiplier) tests of candidate effects, and their confirmation by refitting.
+
+From the base model's Jacobian alone (no refit), :func:`_score_round` tests every catalogue effect whose
+channels are present -- per sensor where it applies and for all sensors together -- and ranks the
+:class:`Candidate` s by the predicted change of the Bayesian information criterion
+``BIC = m ln(RSS/m) + k ln m``, with ``m`` the number of independent residuals
+(:func:`effective_residual_count`). :func:`_confirm` refits the best few and replaces the prediction by the
+actual delta-BIC. The cross-products of the Jacobian are accumulated once (:func:`_grams`) and every candidate
+is tested against the base block by a Schur complement (:class:`_Projector`).
+
+Effects are read through the :class:`magcal.model.Effect` interface only (a user's own effect works); the
+optional ``extra_dof`` class attribute (parameters found by a scan, such as a step time) defaults to 0.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ..errors import CalibrationError
+from ..model import EFFECTS, Model, term_label
+from ._fitted import _reference_override, _vector_rms
+
+
+def _extra_dof(cls) -> int:
+    """Parameters an effect finds by a scan rather than by the fit (e.g. a step time); 0 unless it declares them."""
+    return getattr(cls, "extra_dof", 0)
+
+
+def _copy_effect(effect):
+    """A fresh copy of an effect instance (its constructor fields), as :func:`dataclasses.replace` makes it.
+
+    Falls back to a shallow copy for an effect whose constructor does not take its dataclass fields.
+    """
+    try:
+        return dataclasses.replace(effect)
+    except TypeError:
+        return copy.copy(effect)
+
+
+@dataclass
+class Candidate:
+    """One candidate effect (optionally on one sensor) and the evidence for it.
+
+    Attributes
+    ----------
+    effect : str
+        Catalogue name.
+    sensor : int or None
+        0-based sensor (as :attr:`magcal.model.Effect.sensor`), or None for all sensors (or a shared /
+        single-sensor term). :meth:`to_dict` writes it 1-based, as the command line and the JSON count.
+    label : str
+        ``name`` or ``name:S`` (S 1-based, :func:`magcal.model.term_label`).
+    n_params : int
+        Parameters added (identifiable ones).
+    lm : float
+        Score (Lagrange multiplier) statistic.
+    p_value : float
+        Chi-square p-value of ``lm``.
+    predicted_delta_bic : float
+        From the score test.
+    delta_bic : float
+        From the refit when ``refitted``, else the predicted one.
+    rms_after_nT : float
+        Total-field RMS with the effect added (refit, or first-order prediction).
+    vector_rms_after_nT : float or None
+        Consistency residual RMS per component with the effect added (coupled arrays).
+    refitted : bool
+    evidence : str
+        One line.
+    params : dict
+        Fitted parameters (refit only).
+    """
+
+    effect: str
+    sensor: int | None
+    label: str
+    n_params: int
+    lm: float
+    p_value: float
+    predicted_delta_bic: float
+    delta_bic: float
+    rms_after_nT: float
+    vector_rms_after_nT: float | None = None
+    refitted: bool = False
+    evidence: str = ""
+    params: dict = field(default_factory=dict)
+    instances: list = field(default_factory=list, repr=False)
+    columns: np.ndarray | None = field(default=None, repr=False)
+    fit: object = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        return {
+            "effect": self.effect, "sensor": None if self.sensor is None else self.sensor + 1,
+            "delta_bic": _num(self.delta_bic),
+            "rms_after_nT": _num(self.rms_after_nT), "evidence": self.evidence, "label": self.label,
+            "predicted_delta_bic": _num(self.predicted_delta_bic), "refitted": self.refitted,
+            "lm": _num(self.lm), "p_value": _num(self.p_value), "n_params": self.n_params,
+            "vector_rms_after_nT": _num(self.vector_rms_after_nT), "params": self.params,
+        }
+
+
+def _num(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def effective_residual_count(n_sensors, n_samples, coupled) -> int:
+    """Independent residuals: total field, plus ``2 (n_sensors - 1)`` consistency ones per sample if coupled."""
+    return int(n_sensors * n_samples + (2 * (n_sensors - 1) * n_samples if coupled else 0))
+
+
+def _candidate_effects(dataset, model, names=None):
+    """Effect instances to test, grouped by name: ``{name: [instance per sensor or one shared]}``."""
+    out = {}
+    for name, cls in EFFECTS.items():
+        if names is not None and name not in names:
+            continue
+        probe = cls()
+        if probe.missing_channels(dataset):
+            continue
+        existing = [e for e in model.effects if e.name == name]
+        if any(e.sensor is None for e in existing):
+            continue
+        if not cls.per_sensor:
+            out[name] = [cls()]
+            continue
+        covered = {e.sensor for e in existing}
+        sensors = [s for s in range(dataset.n_sensors) if probe.applies_to(s) and s not in covered]
+        if sensors:
+            out[name] = [cls(sensor=s) for s in sensors] if dataset.n_sensors > 1 else [cls()]
+    return out
+
+
+@dataclass
+class _Grams:
+    """Cross-products of the all-candidates Jacobian and residuals at the fitted base model."""
+
+    g_all: np.ndarray
+    v_all: np.ndarray
+    rr_all: float
+    g_tf: np.ndarray
+    v_tf: np.ndarray
+    rr_tf: float
+    blocks: dict
+    m_tf: int
+
+
+def _grams(kept, model, init, reference_total_nT, chunk_rows=60_000) -> _Grams:
+    """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples.
+
+    The chunks bound the memory of the per-sample derivatives of every candidate's parameters.
+    """
+    from ..fit import Problem
+
+    n = kept.n_samples
+    rows_per_sample = kept.n_sensors * (3 if kept.n_sensors > 1 else 1)
+    chunk = max(2_000, chunk_rows // rows_per_sample)
+    parts = np.array_split(np.arange(n), max(1, int(np.ceil(n / chunk))))
+    acc = None
+    blocks = None
+    for idx in parts:
+        sub = kept if len(parts) == 1 else kept.subset(idx)
+        problem = Problem(sub, model, init, reference_total_nT)
+        r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
+        rt = r[: sub.n_sensors * sub.n_samples]
+        terms = [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)]
+        acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
+        blocks = problem.blocks
+    return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], blocks, kept.n_sensors * n)
+
+
+def _columns(blocks, labels):
+    cols = []
+    for label in labels:
+        sl = blocks[label]
+        cols.extend(range(sl.start, sl.stop))
+    return np.asarray(cols, dtype=int)
+
+
+class _Projector:
+    """Solves with the base block of the Gram matrix (Jacobi-scaled, pseudo-inverse)."""
+
+    def __init__(self, grams: _Grams, base_cols):
+        self.g = grams
+        self.base = np.asarray(base_cols, dtype=int)
+        g00 = grams.g_all[np.ix_(self.base, self.base)]
+        d = np.sqrt(np.maximum(np.diag(g00), 1e-300))
+        w, v = np.linalg.eigh(g00 / np.outer(d, d))
+        keep = w > 1e-12 * w.max()
+        self.g00_inv = (v[:, keep] / w[keep]) @ v[:, keep].T / np.outer(d, d)
+
+    def schur(self, a, b=None):
+        """``Jt_a^T Jt_b`` with ``Jt = (I - P_base) J``."""
+        b = a if b is None else b
+        g = self.g.g_all
+        return g[np.ix_(a, b)] - g[np.ix_(a, self.base)] @ self.g00_inv @ g[np.ix_(self.base, b)]
+
+    def score(self, cols, rss0, dof0, m_eff, extra_dof=0):
+        g = self.g
+        base = self.base
+        bmat = self.g00_inv @ g.g_all[np.ix_(base, cols)]  # regression of Je on J0
+        s = g.g_all[np.ix_(cols, cols)] - g.g_all[np.ix_(cols, base)] @ bmat
+        v = g.v_all[cols] - bmat.T @ g.v_all[base]
+        d = np.sqrt(np.maximum(np.diag(g.g_all)[cols], 1e-300))
+        ss = s / np.outer(d, d)
+        ss = 0.5 * (ss + ss.T)
+        w, vec = np.linalg.eigh(ss)
+        keep = w > 1e-7
+        q = int(keep.sum())
+        if q == 0:
+            return None
+        s_pinv = (vec[:, keep] / w[keep]) @ vec[:, keep].T / np.outer(d, d)
+        coef = s_pinv @ v
+        reduction = float(max(v @ coef, 0.0))
+        reduction = min(reduction, 0.999999 * rss0)
+        s2 = rss0 / max(dof0, 1)
+        lm = reduction / s2
+        p = float(stats.chi2.sf(lm, q))
+        dbic = m_eff * np.log(1.0 - reduction / rss0) + (q + extra_dof) * np.log(m_eff)
+        # first-order total-field residual after adding the effect (the base re-adjusting included)
+        jt_r = g.v_tf[cols] - bmat.T @ g.v_tf[base]
+        jt_j = (g.g_tf[np.ix_(cols, cols)] - bmat.T @ g.g_tf[np.ix_(base, cols)]
+                - g.g_tf[np.ix_(cols, base)] @ bmat + bmat.T @ g.g_tf[np.ix_(base, base)] @ bmat)
+        rss_tf = g.rr_tf - 2 * coef @ jt_r + coef @ jt_j @ coef
+        rms_tf = float(np.sqrt(max(rss_tf, 0.0) / g.m_tf))
+        rss_v = (g.rr_all - g.rr_tf) - 2 * coef @ (v - jt_r) + coef @ (s - jt_j) @ coef
+        return {"q": q, "lm": lm, "p": p, "dbic": float(dbic), "rms_tf": rms_tf, "rss_vec": float(max(rss_v, 0.0)),
+                "reduction": reduction}
+
+    def canonical_correlation(self, a, b):
+        """Largest canonical correlation between the projected columns ``a`` and ``b`` (0..1)."""
+        whiten = []
+        for cols in (a, b):
+            s = self.schur(cols)
+            d = np.sqrt(np.maximum(np.diag(s), 1e-300))
+            w, v = np.linalg.eigh(0.5 * (s + s.T) / np.outer(d, d))
+            keep = w > 1e-7
+            if not keep.any():
+                return 0.0
+            whiten.append((v[:, keep] / np.sqrt(w[keep])) / d[:, None])
+        m = whiten[0].T @ self.schur(a, b) @ whiten[1]
+        return float(np.clip(np.linalg.norm(m, 2), 0.0, 1.0))
+
+
+def _score_round(dataset, kept, fit, names=None):
+    """Score tests for every candidate (per sensor and all sensors) at the fitted model ``fit``.
+
+    Returns ``(candidates, projector, grams)``; candidates are sorted by predicted delta-BIC.
+    """
+    model = fit.model
+    groups = _candidate_effects(kept, model, names)
+    if not groups:
+        return [], None, None
+    base_resid = fit.residuals_nT[:, fit.mask]
+    for instances in groups.values():
+        for e in instances:
+            e.configure(kept, base_resid)
+    all_model = Model(model.n_sensors, model.base,
+                      [_copy_effect(e) for e in model.effects] + [e for v in groups.values() for e in v])
+    ref = _reference_override(fit)
+    try:
+        grams = _grams(kept, all_model, fit.calibration, ref)
+    except CalibrationError:
+        # too few samples for every candidate at once: test them one effect at a time
+        return _score_round_separately(dataset, kept, fit, groups)
+    return _score_from_grams(kept, fit, groups, grams)
+
+
+def _score_round_separately(dataset, kept, fit, groups):
+    out = []
+    for name, instances in groups.items():
+        m = Model(fit.model.n_sensors, fit.model.base, [_copy_effect(e) for e in fit.model.effects] + instances)
+        try:
+            grams = _grams(kept, m, fit.calibration, _reference_override(fit))
+        except CalibrationError:
+            continue
+        cands, _, _ = _score_from_grams(kept, fit, {name: instances}, grams)
+        out.extend(cands)
+    out.sort(key=lambda c: c.predicted_delta_bic)
+    return out, None, None
+
+
+def _score_from_grams(kept, fit, groups, grams):
+    from ..calibration import block_label
+
+    cand_labels = {block_label(e, s) for v in groups.values() for e in v
+                   for s in ([None] if not e.per_sensor else [e.sensor] if e.sensor is not None
+                             else [q for q in range(kept.n_sensors) if e.applies_to(q)])}
+    all_cols = np.arange(grams.g_all.shape[0])
+    cand_cols = _columns(grams.blocks, sorted(cand_labels))
+    base_cols = np.setdiff1d(all_cols, cand_cols)
+    proj = _Projector(grams, base_cols)
+    ns, n = kept.n_sensors, kept.n_samples
+    coupled = fit.vector_residuals_nT is not None
+    m_eff = effective_residual_count(ns, n, coupled)
+    rss0 = grams.rr_all
+    dof0 = m_eff - len(base_cols)
+    cands = []
+    for name, instances in groups.items():
+        cls = EFFECTS[name]
+        variants = []
+        if not cls.per_sensor:
+            variants.append((None, instances))
+        elif ns == 1:
+            variants.append((None, instances))
+        else:
+            for e in instances:
+                variants.append((e.sensor, [e]))
+            if len(instances) > 1:
+                variants.append((None, instances))
+        for sensor, inst in variants:
+            labels = []
+            for e in inst:
+                if not e.per_sensor:
+                    labels.append(block_label(e, None))
+                elif e.sensor is not None:
+                    labels.append(block_label(e, e.sensor))
+                else:
+                    labels.extend(block_label(e, q) for q in range(ns) if e.applies_to(q))
+            cols = _columns(grams.blocks, labels)
+            extra = _extra_dof(cls) * len(inst)
+            sc = proj.score(cols, rss0, dof0, m_eff, extra)
+            if sc is None:
+                continue
+            label = term_label(name, sensor)
+            vec_after = None
+            if coupled:
+                vec_after = float(np.sqrt(sc["rss_vec"] / (ns * n * 2)))
+            c = Candidate(effect=name, sensor=sensor, label=label, n_params=sc["q"],
+                          lm=sc["lm"], p_value=sc["p"], predicted_delta_bic=sc["dbic"], delta_bic=sc["dbic"],
+                          rms_after_nT=sc["rms_tf"], vector_rms_after_nT=vec_after, instances=inst, columns=cols)
+            cands.append(c)
+    cands.sort(key=lambda c: c.predicted_delta_bic)
+    return cands, proj, grams
+
+
+def _refit(dataset, fit, candidate: Candidate):
+    """Refit the model with the candidate's effect instances added; returns the FitResult."""
+    from ..fit import fit as ml_fit
+
+    model = fit.model
+    if candidate.sensor is None and len(candidate.instances) > 1 and not any(e.name == candidate.effect
+                                                                            for e in model.effects):
+        new = [EFFECTS[candidate.effect]()]  # one term for all sensors
+    else:
+        new = [_copy_effect(e) for e in candidate.instances]
+    for e in new:
+        model = model.with_effect(e)
+    ref = _reference_override(fit)
+    return ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref)
+
+
+def _delta_bic(fit0, fit1, extra_dof, coupled):
+    ns = fit0.residuals_nT.shape[0]
+    n = int(fit0.mask.sum())
+    m_eff = effective_residual_count(ns, n, coupled)
+    dk = fit1.n_params - fit0.n_params + extra_dof
+    return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
+
+
+def _confirm(dataset, fit, cands, top, coupled, fits):
+    """Refit the best variant of the ``top`` best distinct effects; re-rank."""
+    chosen, seen = [], set()
+    for c in cands:
+        if c.effect in seen:
+            continue
+        seen.add(c.effect)
+        chosen.append(c)
+        if len(chosen) >= top:
+            break
+    for c in chosen:
+        try:
+            f1 = _refit(dataset, fit, c)
+        except (CalibrationError, np.linalg.LinAlgError) as exc:
+            c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {exc}"
+            continue
+        extra = _extra_dof(EFFECTS[c.effect]) * len(c.instances)
+        c.delta_bic = _delta_bic(fit, f1, extra, coupled)
+        c.rms_after_nT = float(f1.rms_nT)
+        c.vector_rms_after_nT = _vector_rms(f1)
+        c.refitted = True
+        c.params = {p["term"]: p["params"] for p in f1.effect_params if p["effect"] == c.effect}
+        c.fit = f1
+        fits[c.label] = f1
+    refitted = sorted([c for c in cands if c.refitted], key=lambda c: c.delta_bic)
+    rest = [c for c in cands if not c.refitted]
+    return refitted + rest

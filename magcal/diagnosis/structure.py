@@ -1,0 +1,157 @@
+"""Significant structure left in a fit's residuals: the reasons a model is not adequate.
+
+:func:`_structure_tests` compares each sensor's total-field residuals (nT) with the noise floor (excess), and
+looks for correlation in time (Ljung-Box), a periodic component (Fisher's g-test), a pattern over the field
+direction (spherical harmonics of degree 3 and above) and, for coupled arrays, disagreement between the sensors.
+Each test runs at :data:`STRUCTURE_P` (Bonferroni-corrected over the sensors) and must carry at least
+:data:`STRUCTURE_MIN_FRACTION` of the residual variance; isolated glitches beyond :data:`GLITCH_SIGMA` are set
+aside first. What is found is a list of :class:`Structure`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from ..noise import NoiseEstimate
+from ._fitted import _floor
+from .scores import _num
+from .statistics import SH_MAX_SAMPLES, durbin_watson, ljung_box, sh_analysis, spectrum
+
+#: Significance level of each structure test (before the Bonferroni factor over sensors and tests).
+STRUCTURE_P = 1e-4
+
+#: Smallest share of the residual variance a structure must carry to count (practical significance).
+STRUCTURE_MIN_FRACTION = 0.02
+
+#: Samples beyond this many noise sigmas count as isolated glitches in the structure tests ...
+GLITCH_SIGMA = 5.0
+#: ... unless they are more than this fraction of the samples (then they are structure).
+GLITCH_MAX_FRACTION = 0.01
+
+
+@dataclass
+class Structure:
+    """One significant structure found in residuals (a reason the model is not adequate).
+
+    Attributes
+    ----------
+    kind : str
+        ``excess``, ``time``, ``periodic``, ``direction``, ``consistency`` or ``consistency_time``.
+    sensor : int or None
+        0-based sensor (:meth:`to_dict` writes it 1-based).
+    p : float
+        p-value of the test that found it.
+    size : float
+        Its effect size: variance ratio to the noise floor (excess, consistency) or share of the residual variance.
+    text : str
+        One line for people.
+    """
+
+    kind: str
+    sensor: int | None  # 0-based; to_dict writes it 1-based
+    p: float
+    size: float
+    text: str
+
+    def to_dict(self):
+        return {"kind": self.kind, "sensor": None if self.sensor is None else self.sensor + 1, "p": _num(self.p),
+                "size": _num(self.size), "text": self.text}
+
+
+def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tests_factor=1):
+    """Significant structure in a fit's residuals: excess over the noise, time, spectrum, direction, consistency.
+
+    Returns ``(structures, stats)`` with ``stats`` the per-sensor numbers behind them.
+    """
+    r_all = fit.residuals_nT[:, fit.mask]
+    ns, n = r_all.shape
+    alpha = STRUCTURE_P / max(ns, 1) / n_tests_factor
+    found, per = [], []
+    t = kept.time_s
+    p_per_sensor = fit.n_params / ns
+    vec = fit.vector_residuals_nT
+    for s in range(ns):
+        r = r_all[s].copy()
+        st = {}
+        # isolated glitches (a few samples beyond 5 sigma: a transient, a jerk of the motion) are counted and set
+        # aside, so that they do not pass for a systematic structure; more than 1 % of them is structure
+        sigma = noise.per_sensor_nT[s]
+        glitch = np.abs(r) > GLITCH_SIGMA * sigma
+        if vec is not None:
+            glitch |= np.linalg.norm(vec[s].reshape(n, -1), axis=1) > (GLITCH_SIGMA + 0.5) * sigma
+        if glitch.sum() > GLITCH_MAX_FRACTION * n:
+            glitch[:] = False
+        st["glitches"] = int(glitch.sum())
+        keep = ~glitch
+        r[glitch] = 0.0
+        floor = _floor(noise.per_sensor_nT[s], n, p_per_sensor)
+        ratio = float(np.mean(r[keep] ** 2) / floor**2)
+        se = np.sqrt(2.0 / n + noise.relative_variance_error**2)
+        z = (ratio - 1.0) / se
+        st.update(rms_nT=float(np.sqrt(np.mean(r[keep] ** 2))), floor_nT=floor, variance_ratio=ratio,
+                  excess_z=float(z))
+        if noise.source != "residuals" and z > stats.norm.isf(alpha) and ratio > 1.0 + 2 * STRUCTURE_MIN_FRACTION:
+            found.append(Structure("excess", s, float(stats.norm.sf(z)), ratio,
+                                   f"sensor {s + 1}: RMS {st['rms_nT']:.3g} nT is {np.sqrt(ratio):.2f}x "
+                                   f"the noise floor {floor:.3g} nT"))
+        if ordered:
+            q, p, frac = ljung_box(r)
+            st.update(ljung_box_q=q, ljung_box_p=p, autocorrelated_fraction=frac, durbin_watson=durbin_watson(r))
+            if p < alpha and frac > STRUCTURE_MIN_FRACTION:
+                found.append(Structure("time", s, p, frac,
+                                       f"sensor {s + 1}: residuals correlated in time (Ljung-Box p={p:.2g}, "
+                                       f"Durbin-Watson {st['durbin_watson']:.2f})"))
+            spec = spectrum(r, t)
+            st.update(peak_hz=spec["peak_hz"], peak_fraction=spec["peak_fraction"], peak_p=spec["p"],
+                      peak_amplitude_nT=spec["amplitude_nT"])
+            if spec["p"] < alpha and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION:
+                unit = "Hz" if t is not None else "cycles/sample"
+                found.append(Structure("periodic", s, spec["p"], spec["peak_fraction"],
+                                       f"sensor {s + 1}: periodic component at {spec['peak_hz']:.3g} {unit} "
+                                       f"(amplitude {spec['amplitude_nT']:.2g} nT, {100 * spec['peak_fraction']:.0f}% "
+                                       "of the residual variance)"))
+        sh = sh_analysis(directions[s][keep], r[keep], max_samples=SH_MAX_SAMPLES)
+        hi = sh["degree"] >= 3
+        p_sh = float(np.nanmin(sh["p"][hi])) if np.any(np.isfinite(sh["p"][hi])) else 1.0
+        deg = int(sh["degree"][hi][np.nanargmin(sh["p"][hi])]) if np.isfinite(p_sh) else -1
+        size = float(np.sum(sh["rms_nT"][hi] ** 2) / max(np.mean(r[keep] ** 2), 1e-300))
+        st.update(sh_p=p_sh, sh_degree=deg, sh_fraction=size)
+        if p_sh < alpha / 4 and size > STRUCTURE_MIN_FRACTION:
+            found.append(Structure("direction", s, p_sh, size,
+                                   f"sensor {s + 1}: pattern over the field direction, strongest at spherical-harmonic "
+                                   f"degree {deg} ({sh['rms_nT'][deg]:.2g} nT)"))
+        if vec is not None:
+            v = vec[s].reshape(n, -1).copy()
+            v[glitch] = 0.0
+            comps = min(v.shape[1], 2)
+            vr = float(np.sum(v**2) / (keep.sum() * comps))
+            ratio_v = vr / noise.per_sensor_nT.mean() ** 2
+            zv = (ratio_v - 1.0) / np.sqrt(1.0 / n + noise.relative_variance_error**2)
+            st.update(vector_rms_nT=float(np.sqrt(vr)), vector_variance_ratio=ratio_v)
+            if noise.source != "residuals" and zv > stats.norm.isf(alpha) and ratio_v > 1 + 2 * STRUCTURE_MIN_FRACTION:
+                found.append(Structure("consistency", s, float(stats.norm.sf(zv)), ratio_v,
+                                       f"sensor {s + 1}: disagrees with the others in direction by "
+                                       f"{np.sqrt(vr):.3g} nT RMS per component ({np.sqrt(ratio_v):.2f}x the noise)"))
+            if ordered:
+                pv = min(ljung_box(v[:, k])[1] for k in range(comps))
+                fv = max(ljung_box(v[:, k])[2] for k in range(comps))
+                if pv < alpha / comps and fv > STRUCTURE_MIN_FRACTION:
+                    found.append(Structure("consistency_time", s, pv, fv,
+                                           f"sensor {s + 1}: the inter-sensor disagreement is correlated in time "
+                                           f"(Ljung-Box p={pv:.2g})"))
+        per.append(st)
+    return found, per
+
+
+def _describe(structures) -> str:
+    kinds = {}
+    for s in structures:
+        kinds.setdefault(s.kind, []).append(s)
+    parts = []
+    for kind in ("periodic", "direction", "time", "excess", "consistency", "consistency_time"):
+        if kind in kinds:
+            parts.append(max(kinds[kind], key=lambda s: s.size).text)
+    return "; ".join(parts)

@@ -1,0 +1,350 @@
+"""The verdict of a diagnosis and :func:`diagnose`, which reaches it.
+
+:func:`diagnose` fits (or takes) a model, runs the score tests (:mod:`.scores`), confirms the best candidates
+by refitting, adds supported effects one after the other while the structure tests (:mod:`.structure`) still
+find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`: ``adequate`` (no significant
+structure left), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
+(significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
+below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates are confounded.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..calibration import jsonable
+from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
+from ._fitted import _fit_of, _floor, _kept, _sensor_directions, _vector_rms
+from .evidence import (
+    _effect_extra, _evidence_line, _sensor_evidence, _temperature_evidence, _time_evidence,
+)
+from .scores import Candidate, _confirm, _num, _score_round
+from .statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
+from .structure import _describe, _structure_tests
+
+#: Verdicts of :func:`diagnose`.
+VERDICTS = ("adequate", "missing_effect", "unexplained")
+
+#: A candidate (or a refit) is supported when its delta-BIC is below this.
+DELTA_BIC_THRESHOLD = -10.0
+
+
+@dataclass
+class Diagnosis:
+    """What :func:`diagnose` found.
+
+    Attributes
+    ----------
+    verdict : str
+        ``adequate``, ``missing_effect`` or ``unexplained``.
+    summary : str
+        One or two sentences for people.
+    effects : list of str
+        Candidate effects already in the diagnosed model.
+    rms_nT : float
+        Total-field RMS of the diagnosed model.
+    rms_per_sensor_nT : numpy.ndarray
+    noise : NoiseEstimate
+    floor_nT : float
+        Total-field RMS floor ``sigma sqrt(1 - p/N)``.
+    candidates : list of Candidate
+        Best first.
+    explained_by : list of str
+        Labels of the effects that, added, bring the residuals to the noise (``missing_effect``).
+    partially_explained_by : list of str
+        Supported effects that reduce the residuals without bringing them to the noise (``unexplained``).
+    warnings : list of str
+    structure : list of Structure
+        Significant structure left in the diagnosed model's residuals.
+    remaining : list of Structure
+        Structure still left after adding ``explained_by`` (or ``partially_explained_by``).
+    evidence : dict
+        Plot data and statistics (plain numpy arrays): ``time``, ``temperature``, ``direction``, ``spectrum``,
+        ``sensors``, ``noise``.
+    result : FitResult
+        The fit diagnosed.
+    fits : dict of str to FitResult
+        Refits by candidate label (and ``"+".join(explained_by)`` for the final model).
+    elapsed_s : float
+    """
+
+    verdict: str
+    summary: str
+    effects: list
+    rms_nT: float
+    rms_per_sensor_nT: np.ndarray
+    noise: NoiseEstimate
+    floor_nT: float
+    candidates: list
+    explained_by: list
+    partially_explained_by: list
+    warnings: list
+    structure: list
+    remaining: list
+    evidence: dict
+    result: object = field(repr=False, default=None)
+    fits: dict = field(repr=False, default_factory=dict)
+    elapsed_s: float = 0.0
+    rms_final_nT: float | None = None
+
+    @property
+    def noise_nT(self) -> float:
+        return self.noise.sigma_nT
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.candidates[0] if self.candidates else None
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``magcal diagnose --json`` (issue 4), best candidate first."""
+        return {
+            "effects": list(self.effects),
+            "rms_nT": _num(self.rms_nT),
+            "noise_nT": _num(self.noise.sigma_nT),
+            "verdict": self.verdict,
+            "warnings": list(self.warnings),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "summary": self.summary,
+            "noise_source": self.noise.source,
+            "floor_nT": _num(self.floor_nT),
+            "rms_per_sensor_nT": [float(v) for v in self.rms_per_sensor_nT],
+            "explained_by": list(self.explained_by),
+            "partially_explained_by": list(self.partially_explained_by),
+            "rms_after_nT": _num(self.rms_final_nT),
+            "structure": [s.to_dict() for s in self.structure],
+            "remaining_structure": [s.to_dict() for s in self.remaining],
+            "elapsed_s": round(float(self.elapsed_s), 3),
+        }
+
+    def plot_data(self) -> dict:
+        """:attr:`evidence` with arrays turned into lists (JSON-ready), for the workbench."""
+        return jsonable(self.evidence)
+
+    def table(self, limit=12) -> str:
+        """A readable ranked table of the candidates."""
+        lines = [
+            f"verdict: {self.verdict}",
+            f"  {self.summary}",
+            f"total-field RMS {self.rms_nT:.3g} nT; noise {self.noise.sigma_nT:.3g} nT ({self.noise.source}); "
+            f"floor {self.floor_nT:.3g} nT",
+        ]
+        if self.effects:
+            lines.append(f"model effects: {', '.join(self.effects)}")
+        lines.append("")
+        lines.append(f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10}  evidence")
+        for i, c in enumerate(self.candidates[:limit], 1):
+            mark = "" if c.refitted else "*"
+            sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
+            lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g}  "
+                         f"{c.evidence}")
+        if any(not c.refitted for c in self.candidates[:limit]):
+            lines.append("  * predicted by the score test (not refitted)")
+        if self.warnings:
+            lines.append("")
+            lines.extend(f"warning: {w}" for w in self.warnings)
+        return "\n".join(lines)
+
+
+def _warnings_for(cands, proj, kept, fit, noise, significant):
+    out = []
+    if noise.source == "residuals":
+        out.append(noise.note)
+    if kept.noise_nT and noise.source == "differences":
+        ratio = noise.sigma_nT / float(kept.noise_nT)
+        if abs(ratio - 1.0) > 0.2:
+            out.append(f"the declared noise_nT {float(kept.noise_nT):.3g} nT differs from the noise seen in the data "
+                       f"({noise.sigma_nT:.3g} nT)")
+    top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
+    if proj is not None and len(top) >= 1:
+        best = top[0]
+        for other in cands[1:8]:
+            if other.effect == best.effect or other.delta_bic >= DELTA_BIC_THRESHOLD:
+                continue
+            try:
+                cc = proj.canonical_correlation(best.columns, other.columns)
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+            gap = other.delta_bic - best.delta_bic
+            if cc > 0.9 and gap < max(10.0, 0.1 * abs(best.delta_bic)):
+                out.append(f"{best.label} and {other.label} are confounded in these data (canonical correlation "
+                           f"{cc:.2f}): the data can hardly tell them apart")
+    names = {c.effect for c in top}
+    if kept.temperature_C is not None and kept.time_s is not None:
+        rho = abs(np.corrcoef(kept.temperature_C, kept.time_s)[0, 1])
+        temp = names & {"temperature_bias", "temperature_scale"}
+        timed = names & {"bias_drift", "reference_drift"}
+        if rho > 0.9 and (temp or timed):
+            out.append(f"temperature follows time (|corr| = {rho:.2f}, e.g. a warm-up): temperature effects and drifts "
+                       "are confounded; record with the temperature varying independently of time to separate them")
+    if cands and cands[0].effect == "nonlinearity_cubic" and cands[0].delta_bic < DELTA_BIC_THRESHOLD:
+        out.append("nonlinearity_cubic cannot be told from cross-field coupling l_j B_j (|B|^2 - B_j^2) at constant "
+                   "|B|; both leave the same degree-4 direction pattern")
+    if top and top[0].effect in ("axis_timing_skew", "hysteresis") and {"axis_timing_skew", "hysteresis"} <= names:
+        out.append("axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
+                   "speed to separate them (a delay scales with speed, hysteresis does not)")
+    if kept.n_sensors > 1 and kept.attitude_wxyz is None:
+        out.append("no attitude columns (qw, qx, qy, qz): site_gradient cannot be tested; the array alone sees a site "
+                   "gradient only as a tensor rotating with it (constant invariants) and as biases")
+    return out
+
+
+def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=None, max_effects=2,
+             progress=None) -> Diagnosis:
+    """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    result : FitResult or CalibrationResult, optional
+        The fitted model to diagnose. Without it the model (``model``, or the base model plus ``effects``) is
+        fitted with :func:`magcal.pipeline.calibrate`.
+    model : Model, optional
+        Model to fit when ``result`` is not given.
+    top : int
+        Number of distinct candidate effects confirmed by refitting.
+    effects : sequence of str, optional
+        Effects (``NAME`` or ``NAME:SENSOR``) to add to the base model when neither ``result`` nor ``model`` is
+        given (as ``magcal diagnose --effects``).
+    candidates : sequence of str, optional
+        Restrict the score tests to these catalogue names (default: every effect whose channels are present).
+    max_effects : int
+        Most effects added one after the other to explain the residuals (greedy forward selection).
+    progress : callable, optional
+        ``progress(message, fraction)``.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    t_start = _time.perf_counter()
+
+    def report(msg, frac):
+        if progress is not None:
+            progress(msg, frac)
+
+    fit0 = _fit_of(result)
+    if fit0 is None:
+        from ..pipeline import calibrate
+
+        report("fitting the model", 0.0)
+        if model is not None:
+            res = calibrate(dataset, effects=list(model.effects), base_terms=model.base)
+        else:
+            res = calibrate(dataset, effects=list(effects or ()))
+        fit0 = res.fit
+    kept = _kept(dataset, fit0)
+    ns = kept.n_sensors
+    n = kept.n_samples
+    coupled = fit0.vector_residuals_nT is not None
+    ordered = is_smooth_sequence(kept)
+    r0 = fit0.residuals_nT[:, fit0.mask]
+    directions, fields = _sensor_directions(kept, fit0)
+
+    report("score tests", 0.2)
+    cands, proj, _ = _score_round(dataset, kept, fit0, candidates)
+    sh_stats = [sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES) for s in range(ns)]
+    fits = {}
+    report("refitting the best candidates", 0.4)
+    cands = _confirm(dataset, fit0, cands, top, coupled, fits)
+    for c in cands:
+        note = c.evidence  # e.g. a failed refit
+        c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
+        if note:
+            c.evidence += "; " + note
+
+    # noise and structure of the model as given
+    noise0 = estimate_noise(kept, r0, fit0.n_params, ordered)
+    structure0, stats0 = _structure_tests(kept, fit0, noise0, ordered, directions)
+
+    # greedy forward selection while the best candidate is supported
+    explained, current, current_noise = [], fit0, noise0
+    remaining, stats_final = structure0, stats0
+    round_cands = cands
+    for step in range(max_effects):
+        supported = [c for c in round_cands if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD]
+        if not supported:
+            break
+        best = supported[0]
+        nxt = best.fit
+        if nxt is None:
+            break
+        explained.append(best.label)
+        current = nxt
+        kept_c = _kept(dataset, current)
+        dirs_c, _ = _sensor_directions(kept_c, current)
+        current_noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered)
+        remaining, stats_final = _structure_tests(kept_c, current, current_noise, ordered, dirs_c)
+        if step + 1 >= max_effects:
+            break
+        report("looking for a further effect", 0.6 + 0.2 * step)
+        more, _, _ = _score_round(dataset, kept_c, current, candidates)
+        more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
+        if not more:
+            break
+        more = _confirm(dataset, current, more, 1, coupled, fits)
+        round_cands = more
+
+    # verdict
+    supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD]
+    noise_final = current_noise if explained else noise0
+    if not structure0 and not supported0:
+        verdict = "adequate"
+        summary = (f"no significant structure: the residuals ({fit0.rms_nT:.3g} nT RMS) look like noise of "
+                   f"{noise0.sigma_nT:.3g} nT")
+    elif explained and not remaining:
+        verdict = "missing_effect"
+        rms_after = current.rms_nT
+        summary = (f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
+                   "the total-field RMS from "
+                   f"{fit0.rms_nT:.3g} to {rms_after:.3g} nT (noise {noise_final.sigma_nT:.3g} nT)")
+        if coupled:
+            summary += (f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to "
+                        f"{_vector_rms(current):.3g} nT")
+    else:
+        verdict = "unexplained"
+        what = _describe(remaining if explained else structure0) or "residual structure the score tests flag"
+        tried = ""
+        if cands:
+            b = cands[0]
+            tried = (f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
+                     f"{b.rms_after_nT:.3g} nT") if b.refitted else ""
+        summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+    partial = []
+    if verdict != "missing_effect":
+        partial, explained = explained, []
+    warnings_ = _warnings_for(cands, proj, kept, fit0, noise0, structure0)
+    if partial:
+        warnings_.append(f"{', '.join(partial)} reduce(s) the residuals significantly but do(es) not bring them to "
+                         "the noise: not the (whole) explanation")
+    glitches = [(s + 1, st["glitches"]) for s, st in enumerate(stats_final) if st.get("glitches")]
+    if glitches:
+        warnings_.append("isolated samples beyond 5 sigma set aside from the structure tests (glitches or sharp "
+                         "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches))
+    if len(explained) > 1 and verdict == "missing_effect":
+        warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
+    if explained or partial:
+        fits["+".join(explained or partial)] = current
+
+    floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
+    evidence = {
+        "time": _time_evidence(kept, r0, ordered),
+        "temperature": _temperature_evidence(kept, r0, directions),
+        "direction": {"u": directions, "y": r0, "per_sensor": [
+            dict(sh) for sh in sh_stats]},
+        "spectrum": [spectrum(row, kept.time_s) for row in r0] if ordered else None,
+        "sensors": _sensor_evidence(kept, fit0, r0, fields),
+        "noise": {"sigma_nT": noise0.sigma_nT, "per_sensor_nT": noise0.per_sensor_nT, "source": noise0.source,
+                  "final_sigma_nT": noise_final.sigma_nT},
+        "tests": stats0,
+    }
+    return Diagnosis(
+        verdict=verdict, summary=summary, effects=fit0.model.effect_labels, rms_nT=float(fit0.rms_nT),
+        rms_per_sensor_nT=np.asarray(fit0.rms_per_sensor_nT), noise=noise_final, floor_nT=floor,
+        candidates=cands, explained_by=explained, partially_explained_by=partial, warnings=warnings_,
+        structure=structure0, remaining=remaining,
+        evidence=evidence, result=fit0, fits=fits, elapsed_s=_time.perf_counter() - t_start,
+        rms_final_nT=float(current.rms_nT),
+    )

@@ -1,0 +1,241 @@
+"""magcal.quality: data quality read before fitting, checked on simulated data whose defects we set."""
+
+import json
+
+import numpy as np
+import pytest
+
+from magcal import quality
+from magcal.simulation import simulate, simulate_timeseries
+
+
+def timeseries(n=1500, noise_nT=3.0, seed=2, **kw):
+    return simulate_timeseries("chi2017", n_samples=n, noise_nT=noise_nT, noise_kind="gaussian", seed=seed, **kw)
+
+
+def only(report, kind, sensor=None):
+    found = report.find(kind, sensor)
+    assert len(found) == 1, [f.to_dict() for f in report.findings]
+    return found[0]
+
+
+# -- clean data ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("make", [
+    lambda: simulate("chi2017", seed=1),
+    lambda: simulate("chi2017", n_samples=1000, noise_nT=0.0, seed=4),
+    lambda: timeseries(seed=2),
+    lambda: timeseries(n=600, noise_nT=30.0, seed=7),
+], ids=["random", "random-noiseless", "timeseries", "timeseries-noisy"])
+def test_clean_data_gives_no_warnings(make):
+    ds = make()
+    report = quality.assess(ds)
+    assert report.warnings == []
+    for s in range(1, ds.n_sensors + 1):
+        assert only(report, "stale", s).values["fraction"] == 0.0
+        assert only(report, "quantization", s).values["step_nT"] == [None, None, None]
+        assert only(report, "clipping", s).values["clipped"] == []
+        assert only(report, "static", s).values["count"] == 0
+    json.dumps(report.to_dict())  # JSON-able as it is
+    assert report.section().startswith("Data quality\n")
+
+
+# -- quantization --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("q_nT,n,offset_nT", [
+    (q, n, off) for q in (0.1, 15.0, 150.0, 300.0) for n, off in ((200, 0.0), (2000, 0.0), (2000, 7.3))
+    if not (q < 1 and n < 1000)  # 200 samples over a million 0.1 nT levels: too sparse to see (and harmless)
+])
+def test_quantization_step_is_found(q_nT, n, offset_nT):
+    ds = simulate("chi2017", n_samples=n, noise_nT=3.0, seed=5)
+    y = q_nT * np.round(ds.readings_nT / q_nT) + offset_nT
+    report = quality.assess(ds.replace(readings_nT=y, noise_nT=None))
+    for s in range(1, 5):
+        f = only(report, "quantization", s)
+        assert f.values["step_nT"] == pytest.approx([q_nT] * 3, rel=1e-6)
+        assert f.values["noise_floor_nT"] == pytest.approx([q_nT / np.sqrt(12)] * 3, rel=1e-6)
+
+
+def test_quantization_step_survives_a_unit_conversion():
+    """Counts of 0.15 uT read as uT and multiplied by 1000: float noise must not hide the 150 nT step."""
+    counts = np.round(np.random.default_rng(3).normal(0, 300, size=800))
+    assert quality.quantization_step(counts * 0.15 * 1e3) == pytest.approx(150.0, rel=1e-9)
+    assert quality.quantization_step(counts * 1e3 * 0.15) == pytest.approx(150.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("values", [
+    np.random.default_rng(0).normal(0, 3e4, 500),      # continuous
+    np.arange(8) * 15.0,                                 # too few levels to tell
+    np.full(100, 42.0),                                  # constant
+])
+def test_no_step_claimed_without_evidence(values):
+    assert quality.quantization_step(values) is None
+
+
+@pytest.mark.parametrize("q_nT,noise_nT,severity", [
+    (150.0, 3.0, "warning"),   # floor 43 nT, far above the noise
+    (15.0, None, "warning"),   # floor 4.3 nT, noise unknown
+    (1.0, 3.0, "info"),        # floor 0.29 nT: under 1 nT
+    (15.0, 100.0, "info"),     # floor 4.3 nT, well below 100 nT of noise
+])
+def test_quantization_severity_follows_its_floor_and_the_noise(q_nT, noise_nT, severity):
+    ds = simulate("chi2017", n_samples=500, noise_nT=noise_nT or 3.0, seed=8)
+    y = q_nT * np.round(ds.readings_nT / q_nT)
+    f = only(quality.assess(ds.replace(readings_nT=y, noise_nT=noise_nT)), "quantization", 1)
+    assert f.severity == severity
+    assert ("q/sqrt(12)" in f.summary) and f.effect
+
+
+# -- stale readings ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("fraction,run,severity", [(0.02, 2, "info"), (0.1, 3, "warning"), (0.3, 4, "warning")])
+def test_stale_fraction_and_longest_run(fraction, run, severity):
+    ds = timeseries(n=1200, seed=3)
+    y = ds.readings_nT.copy()
+    n = y.shape[1]
+    n_repeats = int(round(fraction * n))
+    per_run = run - 1                        # a run of `run` identical samples holds run-1 repeats
+    starts = np.linspace(10, n - 10, n_repeats // per_run).astype(int)
+    starts = starts[np.diff(np.concatenate([[-10], starts])) > run + 1]
+    for a in starts:
+        y[1, a + 1:a + run] = y[1, a]        # sensor 2 only
+    repeats = len(starts) * per_run
+    report = quality.assess(ds.replace(readings_nT=y))
+    f = only(report, "stale", 2)
+    assert f.values["count"] == repeats
+    assert f.values["fraction"] == pytest.approx(repeats / n)
+    assert f.values["longest_run"] == run
+    assert f.severity == severity
+    assert only(report, "stale", 1).values["count"] == 0
+    assert any("sensor 2:" in w and "stale" in w for w in report.warnings) == (severity == "warning")
+
+
+# -- timing --------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("jitter,severity", [(0.0, "info"), (0.03, "info"), (0.25, "warning")])
+def test_sample_rate_and_jitter(jitter, severity):
+    ds = timeseries(n=2000, seed=4)
+    rng = np.random.default_rng(1)
+    interval = 0.02
+    dt = interval * (1 + jitter * rng.standard_normal(ds.n_samples - 1))
+    t = np.concatenate([[0.0], np.cumsum(np.maximum(dt, 1e-4))])
+    f = only(quality.assess(ds.replace(time_s=t)), "sample_rate")
+    assert f.values["rate_Hz"] == pytest.approx(1 / interval, rel=0.01)
+    assert f.values["jitter"] == pytest.approx(jitter, abs=0.01 + 0.1 * jitter)
+    assert f.severity == severity
+
+
+@pytest.mark.parametrize("gaps_s,severity", [
+    ((), None),
+    ((0.5,), "info"),                 # one short gap (5 intervals)
+    ((0.45, 2.0, 0.35), "warning"),   # one of 20 intervals
+    ((0.4,) * 12, "warning"),         # over 1 % of the intervals
+])
+def test_gaps_are_counted_with_the_longest(gaps_s, severity):
+    ds = timeseries(n=1000, seed=5)
+    t = ds.time_s.copy()                      # 10 Hz
+    for k, g in enumerate(gaps_s):
+        t[(k + 1) * 70:] += g - 0.1           # one interval of g s instead of 0.1 s
+    f = only(quality.assess(ds.replace(time_s=t)), "gaps")
+    assert f.values["count"] == len(gaps_s)
+    assert f.values["longest_s"] == pytest.approx(max(gaps_s, default=0.0))
+    if severity:
+        assert f.severity == severity and f.notable
+
+
+@pytest.mark.parametrize("n_repeated", [0, 1, 25])
+def test_repeated_time_stamps(n_repeated):
+    ds = timeseries(n=800, seed=6)
+    t = ds.time_s.copy()
+    for k in range(n_repeated):
+        i = 20 + 30 * k
+        t[i] = t[i - 1]
+    found = quality.assess(ds.replace(time_s=t)).find("time_order")
+    if n_repeated == 0:
+        assert found == []
+    else:
+        assert found[0].values["repeated"] == n_repeated and found[0].severity == "warning"
+
+
+# -- static stretches ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sigma_nT", [1.0, 3.0, 30.0])
+@pytest.mark.parametrize("known_noise", [True, False])
+@pytest.mark.parametrize("length,severity", [(150, "info"), (450, "warning")])
+def test_static_stretch_is_found_with_its_noise(sigma_nT, known_noise, length, severity):
+    ds = timeseries(n=1500, noise_nT=sigma_nT, seed=7)
+    y = ds.readings_nT.copy()
+    rng = np.random.default_rng(2)
+    a, b = 600, 600 + length
+    y[:, a:b] = y[:, a:a + 1] + rng.normal(0.0, sigma_nT, size=(4, length, 3))   # the array held still
+    report = quality.assess(ds.replace(readings_nT=y, noise_nT=sigma_nT if known_noise else None))
+    for s in range(1, 5):
+        f = only(report, "static", s)
+        assert f.values["count"] == 1, f.summary
+        start, stop = f.values["stretches"][0]
+        window = f.values["window_samples"]
+        assert abs(start - a) <= window and abs(stop - b) <= window
+        assert f.values["longest_s"] == pytest.approx((length - 1) * 0.1, abs=window * 0.1)
+        assert f.values["scatter_nT"] == pytest.approx([sigma_nT] * 3, rel=0.2)
+        assert f.severity == severity and f.notable
+
+
+# -- clipping ------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("axis,share", [(0, 0.05), (2, 0.02)])
+def test_clipping_names_the_axis_and_value(axis, share):
+    ds = timeseries(n=2000, seed=8)
+    y = ds.readings_nT.copy()
+    limit = np.quantile(y[0, :, axis], 1 - share)
+    y[0, :, axis] = np.minimum(y[0, :, axis], limit)
+    report = quality.assess(ds.replace(readings_nT=y))
+    f = only(report, "clipping", 1)
+    assert f.severity == "warning"
+    (c,) = f.values["clipped"]
+    assert c["axis"] == "xyz"[axis] and c["end"] == "max" and c["value_nT"] == pytest.approx(limit)
+    assert c["count"] == pytest.approx(share * 2000, rel=0.05)
+    assert only(report, "clipping", 2).values["clipped"] == []
+
+
+# -- temperature ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("profile,severity,notable", [
+    ("ramp", "warning", True),       # proportional to time: confounded with drift
+    ("default", "info", False),      # the simulator's non-monotonic curve
+    ("flat", "info", True),          # 0.2 K: too little to fit temperature terms
+])
+def test_temperature_range_and_correlation_with_time(profile, severity, notable):
+    ds = timeseries(n=1000, seed=9)
+    temp = {"ramp": 15.0 + 0.01 * ds.time_s, "default": ds.temperature_C,
+            "flat": 20.0 + 0.1 * np.sin(ds.time_s)}[profile]
+    f = only(quality.assess(ds.replace(temperature_C=temp)), "temperature")
+    assert f.values["min_C"] == pytest.approx(temp.min()) and f.values["max_C"] == pytest.approx(temp.max())
+    assert f.severity == severity and f.notable == notable
+    if profile == "ramp":
+        assert f.values["corr_with_time"] == pytest.approx(1.0)
+        assert "drift" in f.effect
+
+
+def test_no_temperature_channel_no_temperature_finding():
+    assert quality.assess(simulate("chi2017", seed=1)).find("temperature") == []
+
+
+# -- after the fit -------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("field_nT,kind,warned", [
+    (50_000.0, "fitted", False), (20_500.0, "fitted", False), (5_000.0, "fitted", True),
+    (5.0e6, "fitted", True), (5_000.0, "given", False), (None, "fitted", False),
+])
+def test_field_magnitude_outside_the_earths_range(field_nT, kind, warned):
+    f = quality.field_magnitude_finding(field_nT, kind)
+    assert (f is not None) == warned
+    if warned:
+        assert f.severity == "warning" and "--lsb" in f.effect and "shielded" in f.effect
+
+
+def test_report_text_shows_notable_findings_and_effects():
+    ds = timeseries(n=1000, seed=10)
+    y = 150.0 * np.round(ds.readings_nT / 150.0)
+    report = quality.assess(ds.replace(readings_nT=y, noise_nT=None))
+    text = report.section()
+    assert "sample rate 10 Hz" in text and "quantization step (x, y, z) 150, 150, 150 nT" in text
+    assert "WARNING sensor 1:" in text and "-> the total-field RMS cannot go below" in text
+    assert "no clipping" not in text                     # clean findings are left to --json
+    doc = report.to_dict()
+    assert {f["kind"] for f in doc["findings"]} >= {"sample_rate", "gaps", "stale", "quantization", "clipping",
+                                                    "static", "temperature"}
+    json.dumps(doc)  # plain Python types only (no numpy bools or floats)
+    assert len(report.warnings) == 4 and all(w.startswith(f"sensor {s}:") for s, w in zip(range(1, 5),
+                                                                                        report.warnings))
