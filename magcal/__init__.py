@@ -50,10 +50,17 @@ __all__ = [
     "FitResult",
     # the model and its effects
     "Model", "Effect", "EFFECTS", "register",
+    # flight-controller logs, live sources, parameters out
+    "read_log", "open_source", "LiveSession", "export_calibration",
     # errors
     "MagcalError", "CalibrationError",
     "__version__",
 ]
+
+
+#: Names loaded on first use (module, attribute): flight-controller logs, live sources, parameter export.
+_LAZY = {"read_log": ("logs", "read_log"), "open_source": ("live", "open_source"),
+         "LiveSession": ("live", "LiveSession"), "export_calibration": ("export", "export_calibration")}
 
 
 def __getattr__(name):
@@ -62,4 +69,9 @@ def __getattr__(name):
         from .diagnosis import Diagnosis
 
         return Diagnosis
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
     raise AttributeError(f"module 'magcal' has no attribute {name!r}")

@@ -15,7 +15,7 @@ __all__ = ["read_csv", "calibrate", "diagnose", "as_dataset"]
 
 
 def calibrate(data, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None, *, t=None,
-              temp=None, **options):
+              temp=None, noise_nT=None, validate: bool = False, **options):
     """Calibrate one to four sensors from readings taken while turning them in a uniform field.
 
     Parameters
@@ -36,6 +36,13 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
         Sample times in s, for array input (time-dependent effects need them).
     temp : array_like, shape (N,) or float, optional
         Temperature in degC, for array input (temperature effects need it).
+    noise_nT : float, optional
+        Noise per axis in nT, if known: used for the floors instead of the data's ``noise_nT`` or any estimate
+        (``result.noise_source`` then reads ``given``).
+    validate : bool
+        Also fit the base model and the model with ``effects`` on alternating blocks in time and score them on
+        the blocks between (:func:`magcal.validation.validate_effects`): ``result.validation`` holds the
+        held-out RMS beside the in-sample one (method ``ml`` only).
     **options
         Passed on to :func:`magcal.pipeline.calibrate` (``seed``, ``progress``, ``mask``, ``ellipsoid_method``,
         ``base_terms``).
@@ -44,7 +51,9 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
     -------
     CalibrationResult
         ``.calibration`` applies to new data (``.correct(new)``, ``.save(path)``); ``.rms_after_per_sensor_nT``
-        the total-field RMS per sensor in nT.
+        the total-field RMS per sensor in nT. Without ``mask=`` the calibration knows the record it was fitted on,
+        so its record-only terms (bias drift, step...) act on that record only: on other data ``.correct``
+        drops them with a warning.
 
     Raises
     ------
@@ -64,8 +73,15 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
     from . import pipeline
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
-    return pipeline.calibrate(dataset, method=method, effects=effects, robust=robust,
-                              reference_total_nT=reference_total_nT, **options)
+    result = pipeline.calibrate(dataset, method=method, effects=effects, robust=robust,
+                                reference_total_nT=reference_total_nT, noise_nT=noise_nT, **options)
+    if validate:
+        from .validation import validate_effects
+
+        result.validation = validate_effects(dataset, result)
+    if options.get("mask") is None:
+        result.calibration.fitted_on(dataset)  # record-only terms act on this record only
+    return result
 
 
 def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, **options):
@@ -85,13 +101,15 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, *
         Temperature in degC, for array input; the tests against temperature need it.
     **options
         Passed on to :func:`magcal.diagnosis.diagnose` (``effects``, ``model``, ``top``, ``candidates``,
-        ``max_effects``, ``progress``).
+        ``max_effects``, ``progress``, ``validate``: judge the candidates on held-out samples, default True;
+        ``noise_nT``: the noise per axis in nT, if known, used instead of any estimate).
 
     Returns
     -------
     Diagnosis
         ``.verdict`` (``adequate``, ``missing_effect`` or ``unexplained``), ``.summary``, ``.candidates`` best
-        first, ``.explained_by`` (effect labels to pass to :func:`calibrate` as ``effects=``).
+        first (each with its held-out RMS and ``holds``), ``.explained_by`` (effect labels to pass to
+        :func:`calibrate` as ``effects=``: only effects whose gain holds on held-out data).
 
     Examples
     --------

@@ -419,6 +419,7 @@ class Calibration:
                     "term": e.label,
                     "params": dict(zip(e.param_names(), values.tolist())),
                     "state": jsonable(e.state()),
+                    "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
                 })
         doc = {
             "format": FORMAT,
@@ -610,7 +611,8 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
             effect = seen[term]
             sensor = entry.get("sensor")
             label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
-            values[label] = np.array([entry["params"][n] for n in effect.param_names()], dtype=float)
+            # a non-physical value (a negative hysteresis width...) is refused with the file and parameter named
+            values[label] = effect.check_params([entry["params"][n] for n in effect.param_names()], source)
     return model, values
 
 

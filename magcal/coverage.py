@@ -5,7 +5,8 @@ field took in the sensor frame: fits from tilts limited to a band extrapolate ba
 and a rotation about one axis (readings on one circle) does not determine a full model at all. This module gives
 
 * the **covered fraction**: the share of the unit sphere lying within ``cap_deg`` of some sample direction
-  ``u = (y - c)/|y - c|`` (``c`` a quick sphere-fit centre), measured on a Fibonacci lattice of test directions;
+  ``u = C^-1 (y - c)`` normalised (``c``, ``C^-1`` a quick ellipsoid fit, :func:`field_shape`), measured on a
+  Fibonacci lattice of test directions;
 * the **largest gap**: the angular radius (deg) of the largest empty cap;
 * the **planarity**: smallest over largest principal spread of the readings (0 for a rotation about one axis);
 * the **expected extrapolation error**: the RMS over the whole sphere of the total-field error that the noise
@@ -45,7 +46,7 @@ def fibonacci_sphere(n):
 def sphere_centre(points_nT):
     """Centre (nT) of the best sphere through the points (linear least squares); zeros if it is not determined.
 
-    The quick centre turns readings into directions and gives the field magnitude the readings imply. The fitted
+    The fallback of :func:`field_shape` when no ellipsoid is determined. The fitted
     centre is used when it is small (under half the radius: any fit will do) or when the readings determine it:
     they spread over a good part of the sphere (RMS distance from their mean at least half the radius) and lie on
     it (radial residual under 15 % of the radius). MEMS parts on a platform often carry a hard-iron offset larger
@@ -76,16 +77,120 @@ def sphere_centre(points_nT):
     return np.zeros(3)
 
 
-def field_magnitude_nT(readings_nT):
-    """Median magnitude (nT) of one sensor's readings (N, 3) about their :func:`sphere_centre`.
+#: A record covering this fraction of the sphere (caps of 30 deg) is warned for uneven density only when...
+COVERED_FRACTION = 0.95
+#: ...the expected error off its densest directions is at least this many times the per-axis noise.
+UNEVEN_FACTOR_WARN = 0.5
 
-    The field the readings imply, hard iron removed: the figure to compare with the Earth's field or a
-    reference (the raw magnitude, offset included, can be far from either).
+#: The quick ellipsoid is trusted when its centre is determined to this fraction of the field (1 sigma)...
+SHAPE_CENTRE_TOLERANCE = 0.01
+#: ...and its axes differ by at most this factor (a magnetometer's sensitivities differ by far less).
+SHAPE_MAX_AXIS_RATIO = 4.0
+
+
+@dataclass
+class FieldShape:
+    """The surface one sensor's readings lie on, as the checks before a fit take it.
+
+    Attributes
+    ----------
+    centre_nT : numpy.ndarray, shape (3,)
+        Centre (hard iron), nT.
+    cinv : numpy.ndarray, shape (3, 3)
+        Maps ``y - centre`` to a vector of the field's magnitude (the ellipsoid's correction, normalised to
+        ``det = 1``); the identity for a sphere or the origin.
+    field_nT : float
+        The field magnitude the shape implies, nT: the ellipsoid's geometric-mean radius, or the sphere's radius,
+        or the median ``|y|`` about the origin.
+    source : str
+        ``"ellipsoid"`` (a trusted ellipsoid fit), ``"sphere"`` (the quick sphere, :func:`sphere_centre`) or
+        ``"origin"`` (nothing determines a centre, e.g. a small cap of directions).
+    """
+
+    centre_nT: np.ndarray
+    cinv: np.ndarray
+    field_nT: float
+    source: str
+
+    def corrected(self, readings_nT) -> np.ndarray:
+        """``C^-1 (y - centre)`` (N, 3), nT."""
+        return (np.asarray(readings_nT, dtype=float) - self.centre_nT) @ self.cinv.T
+
+    def directions(self, readings_nT) -> np.ndarray:
+        """Unit field directions (N, 3) in the shape's frame."""
+        z = self.corrected(readings_nT)
+        norm = np.linalg.norm(z, axis=1)
+        norm[norm == 0] = 1.0
+        return z / norm[:, None]
+
+
+def _trusted_ellipsoid(y):
+    """The ellipsoid fit of ``y`` (N, 3) if it is determined, else None.
+
+    Determined: the fit is an ellipsoid with axes within :data:`SHAPE_MAX_AXIS_RATIO` of each other, and the
+    centre's standard error from the linearised fit (its RMS and the Jacobian of :func:`_jacobian` at the fitted
+    directions) is below :data:`SHAPE_CENTRE_TOLERANCE` of the field. A cap of directions passes neither: an
+    ellipsoid through a cap slides along the cap's axis.
+    """
+    from .ellipsoid import MIN_SAMPLES, fit_ellipsoid
+    from .errors import CalibrationError
+
+    if y.shape[0] < max(MIN_SAMPLES, FULL_MODEL_PARAMS + 1):
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit = fit_ellipsoid(y, strict=False)
+    except (CalibrationError, np.linalg.LinAlgError, ValueError):
+        return None
+    eig = np.linalg.eigvalsh(fit.A)
+    if not (np.all(np.isfinite(eig)) and eig[0] > 0 and np.sqrt(eig[-1] / eig[0]) <= SHAPE_MAX_AXIS_RATIO):
+        return None
+    z = fit.correct(y)
+    u = z / np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-300)
+    j = _jacobian(u)
+    try:
+        cov = np.linalg.inv(j.T @ j)
+    except np.linalg.LinAlgError:
+        return None
+    centre_se = fit.rms_nT * float(np.sqrt(max(np.trace(cov[6:, 6:]), 0.0)))
+    if not np.isfinite(centre_se) or centre_se > SHAPE_CENTRE_TOLERANCE * fit.field_nT:
+        return None
+    return fit
+
+
+def field_shape(readings_nT) -> FieldShape:
+    """The centre, shape and field magnitude of one sensor's readings (N, 3) in nT, for the checks before a fit.
+
+    In order of preference: the ellipsoid fit (:func:`magcal.ellipsoid.fit_ellipsoid`, not refusing readings a
+    little off the ellipsoid) when it is determined (:func:`_trusted_ellipsoid`); else the quick sphere of
+    :func:`sphere_centre` when it is determined; else the origin. The ellipsoid matters for MEMS parts: a
+    hard-iron offset several times the field and axis gains differing by 2x put the readings far from any sphere
+    about the origin and off any sphere at all, yet on an ellipsoid.
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    fit = _trusted_ellipsoid(y) if y.ndim == 2 and y.shape[0] else None
+    if fit is not None:
+        cinv = fit.cinv / np.cbrt(np.linalg.det(fit.cinv))  # det 1: the magnitude is the fitted field
+        z = (y - fit.bias_nT) @ cinv.T
+        return FieldShape(fit.bias_nT.copy(), cinv, float(np.median(np.linalg.norm(z, axis=1))), "ellipsoid")
+    centre = sphere_centre(y) if y.ndim == 2 else np.zeros(3)
+    source = "sphere" if np.any(centre != 0) else "origin"
+    magnitude = float(np.median(np.linalg.norm(y - centre, axis=1))) if y.size else float("nan")
+    return FieldShape(centre, np.eye(3), magnitude, source)
+
+
+def field_magnitude_nT(readings_nT):
+    """The field magnitude (nT) one sensor's readings (N, 3) imply: the median ``|C^-1 (y - c)|`` through the
+    shape of :func:`field_shape` (an ellipsoid fit when one is determined).
+
+    The figure to compare with the Earth's field or a reference: hard iron removed and the axes' gains
+    averaged (the raw magnitude, offset included, can be far from either).
     """
     y = np.asarray(readings_nT, dtype=float)
     if y.size == 0:
         return float("nan")
-    return float(np.median(np.linalg.norm(y - sphere_centre(y), axis=1)))
+    return field_shape(y).field_nT
 
 
 def _jacobian(directions):
@@ -163,12 +268,10 @@ class Coverage:
 
 
 def sensor_directions(readings_nT):
-    """Unit directions (N, 3) of ``y - c`` for one sensor's readings (N, 3), ``c`` from :func:`sphere_centre`."""
+    """Unit field directions (N, 3) of one sensor's readings (N, 3): ``C^-1 (y - c)`` normalised, through the
+    shape of :func:`field_shape` (the ellipsoid fit when one is determined, else about the quick centre)."""
     y = np.asarray(readings_nT, dtype=float)
-    z = y - sphere_centre(y)
-    norm = np.linalg.norm(z, axis=1)
-    norm[norm == 0] = 1.0
-    return z / norm[:, None]
+    return field_shape(y).directions(y)
 
 
 def _planarity(points):
@@ -228,7 +331,8 @@ def check_coverage(data, full_model=True, cap_deg=30.0, noise_nT=None, factor_wa
         The fit has bias, scale and non-orthogonality (9 parameters per sensor). A rotation about one axis only
         (readings on one circle: ``planarity < planarity_min``) or no rotation is then refused.
     factor_warn : float
-        Warn when the expected extrapolation error exceeds this many times the even-coverage value.
+        Warn when the expected extrapolation error exceeds this many times the even-coverage value (on a sphere
+        covered to :data:`COVERED_FRACTION`, only if it is also over :data:`UNEVEN_FACTOR_WARN` times the noise).
     fraction_warn : float
         Warn when less than this fraction of the sphere is covered.
 
@@ -256,8 +360,12 @@ def check_coverage(data, full_model=True, cap_deg=30.0, noise_nT=None, factor_wa
                     "was turned about one axis only, which does not determine bias, scale and non-orthogonality. "
                     "Record more attitudes with the sensor tilted so that each axis points up and down"
                 )
+    # uneven density (most samples in a few directions) matters on a sphere covered nearly everywhere only when
+    # the error it leaves off those directions is a good part of the noise
     poor = [i for i in range(len(cov.fraction))
-            if cov.extrapolation_factor[i] > factor_warn * cov.full_factor or cov.fraction[i] < fraction_warn]
+            if cov.fraction[i] < fraction_warn
+            or (cov.extrapolation_factor[i] > factor_warn * cov.full_factor
+                and (cov.fraction[i] < COVERED_FRACTION or cov.extrapolation_factor[i] > UNEVEN_FACTOR_WARN))]
     if poor:
         worst = max(poor, key=lambda i: cov.extrapolation_factor[i])
         k = cov.extrapolation_factor[worst]

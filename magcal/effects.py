@@ -70,6 +70,16 @@ _AXES = "xyz"
 # ----------------------------------------------------------------------------------------------------------------
 
 
+def _field_text(field_nT) -> str:
+    """``"35.7 uT"``: a field magnitude given in nT, as the quotes print it."""
+    return f"{field_nT / 1000.0:.3g} uT"
+
+
+def _axes_text(values, fmt="{:.3g}") -> str:
+    """``"(1.2, -3, 0.5)"``: one number per axis."""
+    return "(" + ", ".join(fmt.format(float(v)) for v in values) + ")"
+
+
 def _diagonal_basis(columns):
     """(N, 3, 3) basis with ``columns[:, j]`` on the diagonal (one parameter per axis)."""
     columns = np.asarray(columns, dtype=float)
@@ -103,6 +113,35 @@ def time_derivative(values, time_s, window=7):
     if regular and n >= window:
         return savgol_filter(values, window, 3, deriv=1, delta=step, axis=0, mode="interp")
     return np.gradient(values, t, axis=0)
+
+
+def _state_number(effect, state, key, minimum=None, positive=False, what=""):
+    """``state[key]`` as a float (None when absent), or a clear :class:`MagcalError` naming the term and the key if
+    it is not a finite number, not above 0 (``positive``) or below ``minimum``: a calibration file's data-derived
+    constants must be physical too."""
+    value = state.get(key)
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    bad = not np.isfinite(number) or (positive and number <= 0) or (minimum is not None and number < minimum)
+    if bad:
+        need = "a positive number" if positive else "a finite number" + (f" >= {minimum:g}" if minimum is not None
+                                                                       else "")
+        raise MagcalError(f"{effect.label}: {key} must be {need}{f' ({what})' if what else ''}, got {value!r}")
+    return number
+
+
+def _state_times(effect, state, key):
+    """``state[key]``: a list of per-sensor times in s (finite numbers or None), or a clear error."""
+    value = state.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)):
+        raise MagcalError(f"{effect.label}: {key} must be a list (one time in s per sensor, or null), got {value!r}")
+    return [_state_number(effect, {key: v}, key, what="a time in s") for v in value]
 
 
 class _Cache:
@@ -207,7 +246,8 @@ class _TemperatureReferenced(CatalogueEffect):
         return {"reference_temperature_C": self.reference_temperature_C}
 
     def set_state(self, state):
-        self.reference_temperature_C = state.get("reference_temperature_C")
+        self.reference_temperature_C = _state_number(self, state, "reference_temperature_C", minimum=-273.15,
+                                                      what="a temperature in degC")
 
     def _dT(self, ctx):
         """Temperature minus ``T0`` (K); before any fit, minus the mean temperature."""
@@ -259,6 +299,14 @@ class TemperatureScale(_TemperatureReferenced):
     def raw_basis(self, z0, ctx: Context):
         return _diagonal_basis(1e-6 * self._dT(ctx)[:, None] * z0)
 
+    def quote(self, values, field_nT=None, sensor=None):
+        """``alpha_j F`` in nT/K: how much an axis reading the whole field ``F`` changes per kelvin."""
+        if not field_nT:
+            return ""
+        per_K = 1e-6 * np.asarray(values, dtype=float) * field_nT
+        return (f"at the data's field {_field_text(field_nT)}: an axis reading the whole field changes by "
+                f"{_axes_text(per_K)} nT/K")
+
 
 # ----------------------------------------------------------------------------------------------------------------
 # time
@@ -297,8 +345,8 @@ class BiasDrift(CatalogueEffect):
         return {"reference_time_s": self.reference_time_s, "duration_s": self.duration_s}
 
     def set_state(self, state):
-        self.reference_time_s = state.get("reference_time_s")
-        self.duration_s = state.get("duration_s")
+        self.reference_time_s = _state_number(self, state, "reference_time_s", what="a time in s")
+        self.duration_s = _state_number(self, state, "duration_s", positive=True, what="the record length in s")
 
     def raw_basis(self, z0, ctx: Context):
         t = ctx.time_s
@@ -460,7 +508,7 @@ class BiasStep(CatalogueEffect):
         return {"step_time_s": self.step_time_s}
 
     def set_state(self, state):
-        self.step_time_s = state.get("step_time_s")
+        self.step_time_s = _state_times(self, state, "step_time_s")
 
     def refine(self, effect_values, context=None, margin=0.05):
         """Move each step to the time that minimises the whole residual (profile over the step time).
@@ -521,7 +569,7 @@ class _PowerNonlinearity(CatalogueEffect):
 
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ()
-    magnitude_unit: ClassVar[str] = "nT at the field magnitude |B|"
+    magnitude_unit: ClassVar[str] = "nT at |B|"
     order: ClassVar[int] = 2
     symbol: ClassVar[str] = "q"
     scale_nT: ClassVar[float] = 4.0
@@ -551,19 +599,31 @@ class _PowerNonlinearity(CatalogueEffect):
         return {"field_magnitude_nT": self.field_magnitude_nT}
 
     def set_state(self, state):
-        value = state.get("field_magnitude_nT")
-        if value is not None:
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                value = float("nan")
-            if not np.isfinite(value) or value <= 0:
-                raise MagcalError(f"{self.label}: field_magnitude_nT must be a positive number of nT (the field the "
-                                  f"parameters are quoted at), got {state.get('field_magnitude_nT')!r}")
-        self.field_magnitude_nT = value
+        self.field_magnitude_nT = _state_number(self, state, "field_magnitude_nT", positive=True,
+                                                what="of nT: the field the parameters are quoted at")
 
     def raw_basis(self, z0, ctx: Context):
         return _diagonal_basis((z0 / self.quoted_at_nT) ** self.order)
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """The deviation (nT, and ppm of the field) of an axis reading the whole field of the data.
+
+        The parameters are quoted at :attr:`quoted_at_nT`, the magnitude of the raw readings the basis divides
+        (a sphere fit, before the scale correction, or the reference). An effect never configured (a file saved
+        before the field was kept) is quoted at 50 uT; given the data's ``field_nT`` its deviation is then
+        converted by ``(F / 50 uT)^order``.
+        """
+        k = np.asarray(values, dtype=float)
+        field = self.quoted_at_nT
+        note = ""
+        if self.field_magnitude_nT is None and field_nT:
+            k = k * (field_nT / field) ** self.order
+            field, note = float(field_nT), f" (converted from the parameters, quoted at {_field_text(field)})"
+        elif field_nT and abs(field_nT / field - 1.0) > 0.005:
+            note = (f" (the readings' magnitude before the scale correction; the fitted field is "
+                    f"{_field_text(field_nT)})")
+        return (f"an axis reading the whole field of the data, {_field_text(field)}, is off by {_axes_text(k)} nT = "
+                f"{_axes_text(1e6 * k / field, '{:.0f}')} ppm{note}")
 
 
 def data_field_magnitude_nT(dataset) -> float:
@@ -581,12 +641,15 @@ def data_field_magnitude_nT(dataset) -> float:
             return float(np.median(values))
     if getattr(dataset, "reference_total_nT", None):
         return float(dataset.reference_total_nT)
-    radii = []
-    for y in np.asarray(dataset.readings_nT, dtype=float):
-        design = np.column_stack([2 * y, np.ones(len(y))])
-        sol, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
-        radii.append(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
-    return float(np.mean(radii))
+    return float(np.mean([_sphere_fit(y)[1] for y in np.asarray(dataset.readings_nT, dtype=float)]))
+
+
+def _sphere_fit(readings_nT):
+    """Centre (3,) and radius (nT) of the sphere fitted (algebraically, least squares) to one sensor's readings."""
+    y = np.asarray(readings_nT, dtype=float)
+    design = np.column_stack([2 * y, np.ones(len(y))])
+    sol, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
+    return sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
 
 
 @register
@@ -775,6 +838,14 @@ class Hysteresis(CatalogueEffect):
         """``h >= 0`` on every axis: a loop half-width is not negative."""
         return np.zeros(3), np.full(3, np.inf)
 
+    def quote(self, values, field_nT=None, sensor=None):
+        """The loop half-widths in ppm of the data's field."""
+        if not field_nT:
+            return ""
+        h = np.asarray(values, dtype=float)
+        return (f"loop half-widths {_axes_text(1e6 * h / field_nT, '{:.0f}')} ppm of the data's field "
+                f"{_field_text(field_nT)}")
+
     def configure(self, dataset, residuals_nT=None):
         widths = []
         for s in range(dataset.n_sensors):
@@ -876,6 +947,276 @@ def play_operator(x, half_width):
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# periodic interference (a source on the platform: motor, pump, aliased mains)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _sample_grid(time_s):
+    """Sample indices on a regular grid and its step (s) when every interval is a whole number of one step (a
+    regular record, or a subset of one with gaps); ``(None, None)`` for irregular time stamps."""
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    if len(t) < 3 or np.any(dt <= 0):
+        return None, None
+    step = float(np.min(dt))
+    ratio = dt / step
+    if np.any(np.abs(ratio - np.round(ratio)) > 0.01) or float(np.sum(np.round(ratio))) > 64 * len(t):
+        return None, None
+    return np.concatenate([[0], np.cumsum(np.round(ratio).astype(np.int64))]), step
+
+
+def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, oversample=4):
+    """Where in frequency a sinusoidal field fixed in the sensor's axes best explains total-field residuals.
+
+    A field ``d(t) = a sin(w t) + b cos(w t)`` added to a sensor's axes changes its total field by about
+    ``u(t) . d(t)`` (``u`` the field direction). For every trial frequency the statistic is the part of the
+    residual sum of squares the six columns ``u_j sin(w t)``, ``u_j cos(w t)`` would remove,
+    ``c^H G^-1 c`` with ``c_j = sum r u_j exp(-i w t)`` and ``G = U^T U / 2``: a periodogram of the residual
+    weighted by the field direction, so that the rotation of the sensor does not smear the line. ``u`` is taken
+    from a sphere fit to the readings. Regular sampling (gaps allowed) uses an FFT, zero-padded ``oversample``
+    times; irregular time stamps a direct sum on a grid of at most 4 096 frequencies.
+
+    Parameters
+    ----------
+    time_s : numpy.ndarray, shape (N,)
+    readings_nT : numpy.ndarray, shape (N, 3)
+        One sensor's raw readings.
+    residuals_nT : numpy.ndarray, shape (N,)
+        Its total-field residuals.
+    min_cycles : float
+        Lowest frequency searched, in cycles per record (slower changes are drifts, not interference).
+    oversample : int
+        Zero-padding factor of the FFT (frequency step ``1 / (oversample T)``).
+
+    Returns
+    -------
+    freq_hz, statistic_nT2 : numpy.ndarray
+        The frequencies searched (up to 0.98 of the Nyquist frequency) and the residual sum of squares (nT^2)
+        a sinusoid at each would remove; empty when the record is too short.
+    """
+    t = np.asarray(time_s, dtype=float)
+    r = np.asarray(residuals_nT, dtype=float)
+    y = np.asarray(readings_nT, dtype=float)
+    centre, _ = _sphere_fit(y)
+    u = y - centre
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+    w = r[:, None] * u  # (N, 3)
+    w = w - w.mean(axis=0)
+    gram_inv = np.linalg.pinv(0.5 * (u.T @ u))
+    duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    index, step = _sample_grid(t)
+    empty = np.zeros(0), np.zeros(0)
+    if duration <= 0 or len(t) < 16:
+        return empty
+    if index is not None:
+        n_fft = 1 << int(np.ceil(np.log2(oversample * (index[-1] + 1))))
+        padded = np.zeros((n_fft, 3))
+        padded[index] = w
+        coef = np.fft.rfft(padded, axis=0)  # (F, 3), c_j at each frequency
+        freq = np.fft.rfftfreq(n_fft, step)
+        nyquist = 0.5 / step
+    else:
+        nyquist = 0.5 / float(np.median(np.diff(t)))
+        freq = np.linspace(min_cycles / duration, 0.98 * nyquist, min(4096, oversample * len(t)))
+        coef = np.empty((len(freq), 3), complex)
+        for lo in range(0, len(freq), 256):
+            phase = np.exp(-2j * np.pi * np.outer(freq[lo:lo + 256], t - t[0]))
+            coef[lo:lo + 256] = phase @ w
+    keep = (freq >= min_cycles / duration) & (freq <= 0.98 * nyquist)
+    freq, coef = freq[keep], coef[keep]
+    stat = np.real(np.einsum("fi,ij,fj->f", np.conj(coef), gram_inv, coef))
+    return freq, np.maximum(stat, 0.0)
+
+
+def dominant_interference_hz(time_s, readings_nT, residuals_nT, min_cycles=5.0):
+    """The frequency (Hz) of :func:`interference_spectrum`'s highest line, refined by a parabola through the
+    three grid points around it; ``None`` when the record is too short to search."""
+    freq, stat = interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles)
+    if len(freq) < 3:
+        return None
+    i = int(np.argmax(stat))
+    if 0 < i < len(freq) - 1:
+        a, b, c = stat[i - 1], stat[i], stat[i + 1]
+        denom = a - 2 * b + c
+        shift = 0.5 * (a - c) / denom if denom < 0 else 0.0
+        return float(freq[i] + np.clip(shift, -0.5, 0.5) * (freq[1] - freq[0]))
+    return float(freq[i])
+
+
+@register
+@dataclass
+class PeriodicInterference(CatalogueEffect):
+    """A periodic field from a source on the platform (a motor, a pump, mains pickup aliased by the sampling),
+    fixed in the sensor's axes: ``y_j += sum_k a_jk sin(2 pi k f (t - t0)) + b_jk cos(2 pi k f (t - t0))``,
+    amplitudes in nT, ``k = 1 .. harmonics``.
+
+    The frequency ``f`` of each sensor is a data-derived constant: :meth:`configure` takes the highest line of
+    :func:`interference_spectrum` of the residuals (at least three cycles per record: slower changes are
+    drifts), and :meth:`refine` profiles the whole residual over ``f`` around it after the fit (one extra degree
+    of freedom per sensor for the information criteria). ``t0`` is the mean time of the fitted record.
+
+    It is a record-only term (:attr:`transferable` False): the source's frequency, phase and amplitude belong to
+    the platform's state during this record (a motor's speed, the pump's duty), not to the instrument; applied to
+    another record it would subtract a sinusoid of unknown phase. An interference source fixed in the *world*
+    (building wiring) rather than on the platform changes the total field by the same ``B/|B| . d(t)`` at every
+    attitude; a per-axis sinusoid represents it only while the sensor turns slowly compared with ``f``.
+    """
+
+    name: ClassVar[str] = "periodic_interference"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = ("periodic interference (motor, pump, aliased mains) at a frequency f found in the "
+                                  "residual spectrum, y_j += a_j sin(2 pi f t) + b_j cos(2 pi f t) [nT]")
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # the platform's state during this record, not the instrument
+    extra_dof: ClassVar[int] = 1
+    #: Direction (sensor axes) of the simulated interference field (normalised by the perturbation).
+    pattern: ClassVar[tuple] = (0.6, -0.5, 0.62)
+    #: Fewest cycles per record the frequency search accepts.
+    min_cycles: ClassVar[float] = 5.0
+
+    #: Number of harmonics (1: the fundamental only; 2: also ``2 f``...).
+    harmonics: int = 1
+    #: Per sensor, the interference frequency (Hz) found in the data (None for a sensor without the term).
+    frequency_hz: list | None = None
+    #: Time origin of the phases (s): the mean time of the fitted record.
+    reference_time_s: float | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if isinstance(self.harmonics, bool) or not isinstance(self.harmonics, (int, np.integer)) \
+                or not 1 <= self.harmonics <= 5:
+            raise MagcalError(f"{self.label}: harmonics must be a whole number 1..5, got {self.harmonics!r}")
+        self.frequency_hz = self._checked_frequencies(self.frequency_hz)
+
+    def _checked_frequencies(self, values):
+        if values is None:
+            return None
+        if not isinstance(values, (list, tuple)):
+            raise MagcalError(f"{self.label}: frequency_hz must be a list (one frequency in Hz per sensor, or null), "
+                              f"got {values!r}")
+        out = []
+        for s, f in enumerate(values):
+            if f is None:
+                out.append(None)
+                continue
+            try:
+                f = float(f)
+            except (TypeError, ValueError):
+                f = float("nan")
+            if not np.isfinite(f) or f <= 0:
+                raise MagcalError(f"{self.label}: frequency_hz of sensor {s + 1} is {values[s]!r}; an interference "
+                                  "frequency must be a positive number of Hz")
+            out.append(f)
+        return out
+
+    def param_names(self):
+        names = []
+        for k in range(1, self.harmonics + 1):
+            suffix = "" if k == 1 else str(k)
+            names += [f"sin{suffix}_{a}_nT" for a in _AXES] + [f"cos{suffix}_{a}_nT" for a in _AXES]
+        return names
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.reference_time_s = float(np.mean(t))
+        frequencies = []
+        for s in range(dataset.n_sensors):
+            if not self.applies_to(s):
+                frequencies.append(None)
+                continue
+            y = dataset.readings_nT[s]
+            if residuals_nT is None:
+                ok, r = np.ones(len(t), bool), quadric_residuals(y)
+            else:
+                r = np.asarray(residuals_nT[s], dtype=float)
+                ok = np.isfinite(r)
+                r = _better_residuals(y[ok], r[ok])
+            frequencies.append(dominant_interference_hz(t[ok], y[ok], r, self.min_cycles))
+        self.frequency_hz = frequencies
+
+    def state(self):
+        return {"frequency_hz": self.frequency_hz, "reference_time_s": self.reference_time_s,
+                "harmonics": self.harmonics}
+
+    def set_state(self, state):
+        harmonics = state.get("harmonics", self.harmonics)
+        if harmonics != self.harmonics:
+            self.harmonics = harmonics
+            self.__post_init__()
+        self.frequency_hz = self._checked_frequencies(state.get("frequency_hz"))
+        self.reference_time_s = state.get("reference_time_s")
+
+    def refine(self, effect_values, context=None, points=13):
+        """Move each sensor's frequency to the one that minimises the whole residual, the fitted amplitudes held,
+        on a grid of ``points`` frequencies within half a cycle per record of it; True if one moved by more than
+        a twentieth of a cycle per record (then the fit is repeated)."""
+        if context is None or not self.frequency_hz or not context.dataset.has("time"):
+            return False
+        t = context.dataset.time_s
+        duration = max(float(t[-1] - t[0]), 1e-9)
+        frequencies, changed = list(self.frequency_hz), False
+        base = self.state()
+        for s, f in enumerate(frequencies):
+            if f is None:
+                continue
+            grid = f + np.linspace(-0.5, 0.5, points) / duration
+            grid = grid[grid > 0]
+            costs = [float(np.sum(context.cost_per_sample(
+                self, dict(base, frequency_hz=frequencies[:s] + [float(g)] + frequencies[s + 1:])))) for g in grid]
+            best = float(grid[int(np.argmin(costs))])
+            if abs(best - f) * duration > 0.05:
+                frequencies[s], changed = best, True
+        if changed:
+            self.frequency_hz = frequencies
+        return changed
+
+    def _frequency(self, ctx):
+        f = None
+        if self.frequency_hz is not None and ctx.sensor < len(self.frequency_hz):
+            f = self.frequency_hz[ctx.sensor]
+        if f is None:  # never configured: the line in the readings' own ellipsoid residuals
+            f = self._cached(ctx.dataset, ("freq", ctx.sensor), lambda: dominant_interference_hz(
+                ctx.time_s, ctx.reading_nT, quadric_residuals(ctx.reading_nT), self.min_cycles))
+        return f
+
+    def raw_basis(self, z0, ctx: Context):
+        f = self._frequency(ctx)
+        t = ctx.time_s
+        t0 = float(np.mean(t)) if self.reference_time_s is None else self.reference_time_s
+        key = ("periodic", f, t0, self.harmonics)
+
+        def compute():
+            columns = []
+            for k in range(1, self.harmonics + 1):
+                phase = 2 * np.pi * k * (f or 0.0) * (t - t0)
+                wave = [np.sin(phase), np.cos(phase)] if f else [np.zeros(len(t))] * 2
+                for w in wave:
+                    columns.append(_diagonal_basis(np.repeat(w[:, None], 3, axis=1)))
+            return np.concatenate(columns, axis=2)
+        return self._cached(ctx.dataset, key, compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        return None  # the phases are measured from the fitted record's mean time
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """The frequency of each harmonic and the peak amplitude per axis (nT) of the fitted sinusoids."""
+        v = np.asarray(values, dtype=float).reshape(self.harmonics, 2, 3)
+        peak = np.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)  # (harmonics, axes)
+        known = [f for f in (self.frequency_hz or []) if f is not None]
+        if sensor is not None and self.frequency_hz and sensor < len(self.frequency_hz):
+            known = [self.frequency_hz[sensor]] if self.frequency_hz[sensor] is not None else []
+        f = known[0] if len(known) == 1 else None
+        parts = []
+        for k in range(self.harmonics):
+            at = f"{(k + 1) * f:.4g} Hz" if f else f"{k + 1} x the fitted frequency"
+            parts.append(f"peak {_axes_text(peak[k])} nT at {at}")
+        return "; ".join(parts) + (f" ({1e6 * float(np.max(peak)) / field_nT:.0f} ppm of the field "
+                                   f"{_field_text(field_nT)})" if field_nT else "")
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # reference field and site
 # ----------------------------------------------------------------------------------------------------------------
 
@@ -914,8 +1255,19 @@ class ReferenceDrift(CatalogueEffect):
         return {"time_span_s": self.time_span_s, "offsets": self.offsets}
 
     def set_state(self, state):
-        self.time_span_s = state.get("time_span_s")
-        self.offsets = state.get("offsets")
+        span, offsets = state.get("time_span_s"), state.get("offsets")
+        if span is not None:
+            ok = isinstance(span, (list, tuple)) and len(span) == 2
+            values = _state_times(self, {"time_span_s": list(span)}, "time_span_s") if ok else None
+            if not ok or None in values or values[1] <= values[0]:
+                raise MagcalError(f"{self.label}: time_span_s must be the first and last time of the record in s, "
+                                  f"the last after the first, got {span!r}")
+            span = values
+        if offsets is not None:
+            if not isinstance(offsets, (list, tuple)) or len(offsets) != self.order:
+                raise MagcalError(f"{self.label}: offsets must be {self.order} numbers, got {offsets!r}")
+            offsets = [_state_number(self, {"offsets": v}, "offsets") for v in offsets]
+        self.time_span_s, self.offsets = span, offsets
 
     def _raw(self, t):
         t0, t1 = self.time_span_s or (float(t[0]), float(t[-1]))

@@ -281,8 +281,177 @@ def _check_planarity(points, label):
         )
 
 
+#: Consecutive parts of the record fitted separately when the readings are off the ellipsoid.
+CAUSE_SEGMENTS = 4
+
+#: The readings' own noise explains an off-ellipsoid RMS when it predicts at least this share of it.
+NOISE_EXPLAINS = 0.8
+
+#: A centre or radius that moves explains it when fitting the parts separately brings the RMS down by this factor.
+MOTION_EXPLAINS = 0.7
+
+
+def _sphere_fit(z):
+    """Centre (3,) and radius of the least-squares sphere through ``z`` (N, 3), or None if not determined."""
+    design = np.column_stack([2.0 * z, np.ones(len(z))])
+    rhs = np.einsum("ij,ij->i", z, z)
+    sol, _, rank, sv = np.linalg.lstsq(design, rhs, rcond=None)
+    if rank < 4 or sv[-1] < 1e-8 * sv[0]:
+        return None
+    r2 = float(sol[3] + sol[:3] @ sol[:3])
+    return (sol[:3], np.sqrt(r2)) if r2 > 0 else None
+
+
+def segment_drift(readings_nT, bias_nT, cinv, n_segments=CAUSE_SEGMENTS):
+    """How the centre and radius of the ellipsoid move between consecutive parts of the record.
+
+    The shape ``C^-1`` of the whole fit is kept and each part (the readings in the order given, split into
+    ``n_segments`` runs of equal length) gets its own centre and radius: a sphere fit to the corrected
+    readings ``C^-1 (y - b)``. A part whose field directions do not spread in three dimensions (a still
+    warm-up, a rotation about one axis) is left out.
+
+    Parameters
+    ----------
+    readings_nT : array_like, shape (N, 3)
+        Raw readings in nT, in time order.
+    bias_nT : array_like, shape (3,)
+        Centre of the whole fit, nT.
+    cinv : array_like, shape (3, 3)
+        Correction matrix of the whole fit.
+    n_segments : int
+        Number of parts.
+
+    Returns
+    -------
+    dict or None
+        ``centres_nT`` (k, 3) raw-frame centres of the parts fitted, ``radii_nT`` (k,), ``segments`` (indices of
+        the parts fitted, 0-based), ``centre_move_nT`` (largest distance between two centres, raw frame),
+        ``radius_range_nT`` (min, max) and ``rms_nT`` (RMS of the parts' own total-field residuals, pooled);
+        None when fewer than two parts can be fitted.
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    cinv = np.asarray(cinv, dtype=float)
+    c_matrix = np.linalg.inv(cinv)
+    z_all = (y - np.asarray(bias_nT, dtype=float)) @ cinv.T
+    centres, radii, used, sq, count = [], [], [], 0.0, 0
+    for k, idx in enumerate(np.array_split(np.arange(y.shape[0]), n_segments)):
+        z = z_all[idx]
+        if z.shape[0] < MIN_SAMPLES or coverage(z).thinnest_spread < WEAK_DIRECTION_SPREAD:
+            continue
+        fit = _sphere_fit(z)
+        if fit is None:
+            continue
+        centre, radius = fit
+        centres.append(c_matrix @ centre + bias_nT)
+        radii.append(radius)
+        used.append(k)
+        sq += float(np.sum((np.linalg.norm(z - centre, axis=1) - radius) ** 2))
+        count += z.shape[0]
+    if len(used) < 2:
+        return None
+    centres = np.array(centres)
+    move = max(float(np.linalg.norm(a - b)) for i, a in enumerate(centres) for b in centres[i + 1:])
+    return {"centres_nT": centres, "radii_nT": np.array(radii), "segments": used, "centre_move_nT": move,
+            "radius_range_nT": (float(min(radii)), float(max(radii))), "rms_nT": float(np.sqrt(sq / count))}
+
+
+def field_noise_nT(readings_nT, bias_nT, cinv):
+    """The readings' own noise on the total field, nT: ``robust_sigma`` of the second differences of the
+    total-field residual ``|C^-1 (y - b)| - F`` in time order, over ``sqrt(6)``.
+
+    Turning the sensor changes each axis but not the magnitude, so motion does not enter (as it does the per-axis
+    differences of a swinging payload); a misfit that varies smoothly with the direction, a drifting centre or a
+    changing field hardly does either. What is left is the sample-to-sample scatter: the noise.
+    """
+    from .noise import robust_sigma
+
+    y = np.asarray(readings_nT, dtype=float)
+    if y.shape[0] < 3:
+        return float("nan")
+    e = np.linalg.norm((y - np.asarray(bias_nT, dtype=float)) @ np.asarray(cinv, dtype=float).T, axis=1)
+    return float(robust_sigma(e[2:] - 2.0 * e[1:-1] + e[:-2])) / np.sqrt(6.0)
+
+
+def off_ellipsoid_cause(readings_nT, bias_nT, cinv, rms_nT, claim=True):
+    """Why readings deviate from their ellipsoid by ``rms_nT``: sentences for the refusal, and whether they
+    name a cause.
+
+    Two causes are measured: the readings' own noise (:func:`field_noise_nT`: at least :data:`NOISE_EXPLAINS` of
+    the RMS) and a centre (hard iron) or radius (field magnitude) that
+    moves between parts of the record (:func:`segment_drift`: the parts fitted separately leave at most
+    :data:`MOTION_EXPLAINS` of the RMS). The movement figures are quoted either way.
+
+    Parameters
+    ----------
+    readings_nT : array_like, shape (N, 3)
+        Raw readings in nT, in time order.
+    bias_nT, cinv
+        Centre (nT) and correction matrix of the whole fit.
+    rms_nT : float
+        The whole fit's total-field RMS, nT.
+    claim : bool
+        Name a cause; ``False`` (another cause is known, e.g. partial coverage) only quotes the figures.
+
+    Returns
+    -------
+    text : str
+        The measured figures and, when one is found, the cause and what to do ("" if nothing could be measured).
+    explained : bool
+        Whether noise or a moving centre or radius accounts for the RMS.
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    parts = []
+    noise_rms = field_noise_nT(y, bias_nT, cinv)
+    noise_explains = claim and np.isfinite(noise_rms) and noise_rms >= NOISE_EXPLAINS * rms_nT
+    drift = segment_drift(y, bias_nT, cinv)
+    motion_explains = claim and drift is not None and drift["rms_nT"] <= MOTION_EXPLAINS * rms_nT
+    if not claim:
+        if np.isfinite(noise_rms):
+            parts.append(f"The total field scatters by {noise_rms:.0f} nT from one sample to the next.")
+        if drift is not None:
+            parts.append(f"Fitted separately on {len(drift['segments'])} consecutive parts, the centre moves by up "
+                         f"to {drift['centre_move_nT']:.0f} nT.")
+        return " ".join(parts), False
+    if drift is not None:
+        lo, hi = drift["radius_range_nT"]
+        moved = (f"Fitted separately on {len(drift['segments'])} consecutive parts of the record (same shape), the "
+                 f"centre (hard iron) moves by up to {drift['centre_move_nT']:.0f} nT and the radius (field) ranges "
+                 f"{lo:.0f}-{hi:.0f} nT, and the parts fit to {drift['rms_nT']:.0f} nT RMS")
+        if motion_explains and not noise_explains:
+            parts.append(moved + ": the hard iron or the field at the sensor changed during the record (a cable, "
+                         "a battery current, a magnet or the temperature changed?); calibrate each part separately "
+                         "or record again.")
+        else:
+            parts.append(moved + ("." if not motion_explains else ": part of it changed during the record."))
+    if noise_explains:
+        parts.insert(0, f"The readings' own noise accounts for it: the total field scatters by {noise_rms:.0f} nT "
+                        "from one sample to the next (second differences in time order); average or low-pass "
+                        "filter the readings (or raise the sensor's oversampling) before calibrating.")
+    elif np.isfinite(noise_rms):
+        parts.append(f"The readings' own noise (sample-to-sample scatter of the total field) accounts for only "
+                     f"{noise_rms:.0f} nT of it.")
+    return " ".join(parts), bool(noise_explains or motion_explains)
+
+
+def _coverage_note(readings_nT) -> str:
+    """`` The readings cover X% of the sphere ...``: the likely cause of a quadric that is no ellipsoid, when the
+    coverage is partial (:func:`magcal.coverage.coverage`); "" when the sphere is covered."""
+    from .coverage import coverage as sphere_coverage
+
+    try:
+        cov = sphere_coverage(readings_nT)
+    except (ValueError, np.linalg.LinAlgError):
+        return ""
+    fraction, gap = float(cov.fraction[0]), float(cov.largest_gap_deg[0])
+    if fraction >= 0.5:
+        return ""
+    return (f" The readings cover only {100 * fraction:.0f}% of the sphere of directions (within 30 deg of a sample; "
+            f"largest gap {gap:.0f} deg): too few directions to determine an ellipsoid, the likely cause here "
+            "(a flight or a drive rather than a calibration rotation?).")
+
+
 def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: float | None = None,
-                  mask=None, label: str = "sensor") -> EllipsoidFit:
+                  mask=None, label: str = "sensor", strict: bool = True) -> EllipsoidFit:
     """Fit the ellipsoid of one sensor's raw readings in a uniform field (step 1).
 
     Parameters
@@ -297,6 +466,11 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
         Samples to use (True = use).
     label : str
         Name used in error messages (e.g. ``"sensor 2"``).
+    strict : bool
+        Refuse readings that deviate from the ellipsoid by more than :data:`MAX_RELATIVE_RMS` of the field and
+        field directions close to one circle. ``False`` returns the best ellipsoid anyway (still refusing readings
+        on one plane and quadrics that are no ellipsoid): the quick shape that the coverage and unit checks take
+        directions and the field magnitude from.
 
     Returns
     -------
@@ -305,7 +479,9 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
     Raises
     ------
     CalibrationError
-        Too few samples, non-finite readings, readings not on an ellipsoid, or degenerate coverage.
+        Too few samples, non-finite readings, readings not on an ellipsoid, or degenerate coverage. When the
+        readings are off the ellipsoid, the message says the likely cause (:func:`off_ellipsoid_cause`): the
+        readings' own noise, or a centre or radius that moves between parts of the record.
     """
     if method not in METHODS:
         raise CalibrationError(f"unknown ellipsoid method {method!r}; use one of {', '.join(METHODS)}")
@@ -332,7 +508,12 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
     scale = float(np.sqrt(np.mean(np.sum((y - mean) ** 2, axis=1))))
     p = (y - mean) / scale
     v = _coefficients_algebraic(p) if method == "algebraic" else _coefficients_li_griffiths(p)
-    centre_p, a1_p = _quadric_to_ellipsoid(v, label)
+    try:
+        centre_p, a1_p = _quadric_to_ellipsoid(v, label)
+    except CalibrationError as exc:
+        if not strict:
+            raise
+        raise CalibrationError(f"{exc}{_coverage_note(y)}") from None
     bias = scale * centre_p + mean
     a1 = a1_p / scale**2
 
@@ -342,15 +523,22 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
     cinv = conventions.cinv_from_quadric(a_matrix)
     corrected = (y - bias) @ cinv.T
     rms = _rms(np.linalg.norm(corrected, axis=1) - field_nT)
-    if rms > MAX_RELATIVE_RMS * field_nT:
+    if strict and rms > MAX_RELATIVE_RMS * field_nT:
+        note = _coverage_note(y)  # partial coverage: the likely cause, and the other figures mean little then
+        cause, explained = off_ellipsoid_cause(y, bias, cinv, rms, claim=not note)
+        if note:
+            cause, explained = f"{note.strip()} {cause}".strip(), True
+        checks = ("" if explained else
+                  " Check that the field was uniform and constant during the rotation, that all three axes are in "
+                  "the same units and that no axis saturates.")
         raise CalibrationError(
             f"{label}: the readings do not lie on an ellipsoid: they deviate from the best one by {rms:.4g} nT RMS "
-            f"({100 * rms / field_nT:.1f}% of the field). Check that the field was uniform and constant during the "
-            "rotation, that all three axes are in the same units and that no axis saturates."
+            f"({100 * rms / field_nT:.1f}% of the field, more than the {100 * MAX_RELATIVE_RMS:.0f}% accepted)."
+            + (f" {cause}" if cause else "") + checks
         )
     cov = coverage(corrected)
     warnings = []
-    if cov.thinnest_spread < MIN_DIRECTION_SPREAD:
+    if strict and cov.thinnest_spread < MIN_DIRECTION_SPREAD:
         raise CalibrationError(
             f"{label}: degenerate coverage: the field directions lie close to one circle (thinnest spread "
             f"{cov.thinnest_spread:.2g}, full sphere 0.33), as from rotation about one axis only; the ellipsoid is "

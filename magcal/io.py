@@ -70,6 +70,9 @@ NUMERIC_METADATA = {
 }
 
 _SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
+#: Largest magnitude a numeric cell may hold: far beyond any reading, temperature or time stamp (epoch ns are
+#: ~2e18) in any unit, and small enough that sums of squares and fourth powers stay finite in float64.
+MAX_ABS_VALUE = 1e30
 _MAX_SHOWN = 5  # problems named in one message
 _BINARY_PROBE = 8192
 
@@ -638,7 +641,7 @@ class CsvSource:
                 values = None
             if values is not None and values.shape != (len(lines), len(num)):
                 values = None
-            if values is not None and not np.isfinite(values).all():
+            if values is not None and not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
                 values = None
         rows = None
         if values is None:
@@ -694,6 +697,10 @@ class CsvSource:
                     break
                 if not np.isfinite(number):
                     bad = f"column {name}: {row[j].strip()!r} is not a finite number"
+                    break
+                if abs(number) > MAX_ABS_VALUE:
+                    bad = (f"column {name}: {row[j].strip()[:40]!r} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
+                           "reading in any unit (a corrupted value)")
                     break
                 values[k, m] = number
             if bad is not None:
@@ -896,6 +903,8 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     ----------
     path : str, os.PathLike or file object
         The file, or an open binary or text file object (``io.BytesIO(uploaded_bytes)``, ``io.StringIO(text)``).
+        A path ending in ``.bin`` (ArduPilot DataFlash) or ``.ulg`` (PX4 ULog) is read by
+        :func:`magcal.logs.read_log` (the options below but ``name`` and ``min_samples`` do not apply).
     columns : dict or str, optional
         Column mapping canonical -> file name, e.g. ``{"s1x": "magX", "t": "time"}`` or the CLI form
         ``"x=magX,y=magY,z=magZ,t=time"``.
@@ -923,6 +932,10 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     DatasetError
         For any problem with the file, naming the file, line (1-based) and column, and what to do.
     """
+    from .logs import is_log, read_log
+
+    if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.logs reads it, in nT
+        return read_log(path, name=name, min_samples=min_samples)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:

@@ -180,6 +180,24 @@ class Effect:
                                   + (f" ({note})" if note else ""))
         return v
 
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        """What one instance's fitted ``values`` do to the readings at the data's own field magnitude, in words
+        (``""`` when the parameters' units say it already).
+
+        Parameters quoted relative to a field (a nonlinearity, a scale change with temperature, a hysteresis
+        width) read differently in a 9 uT and a 50 uT field; the report prints this line beside them.
+
+        Parameters
+        ----------
+        values : array_like, shape (q,)
+            The instance's parameters, in :meth:`param_names` order.
+        field_nT : float, optional
+            The field magnitude of the data (nT): the fitted or the reference total field.
+        sensor : int, optional
+            The instance's sensor (0-based), for constants kept per sensor.
+        """
+        return ""
+
     def configure(self, dataset, residuals_nT=None) -> None:
         """Set data-derived constants (reference temperature, reference time, knots, step time...).
 

@@ -14,9 +14,10 @@ override :meth:`magcal.model.Effect.perturbation` itself). A registered function
 nT; ``context`` is the dict :func:`~magcal.simulation.simulate_timeseries` passes (``fields_nT``, ``time_s``,
 ``temperature_C``, ``attitudes``, ``truth``, ``positions_m``).
 
-:func:`periodic_interference` is a perturbation *outside* the catalogue (no term explains it), and
-:data:`EXTRA_PERTURBATIONS` lists such perturbations for ``magcal simulate --hidden NAME``; :func:`parse_hidden`
-reads ``EFFECT[:SENSOR][=MAGNITUDE]`` as that option writes it.
+:func:`periodic_interference` builds the perturbation of the ``periodic_interference`` effect with its frequency and
+direction spelled out; :data:`EXTRA_PERTURBATIONS` lists perturbations *outside* the catalogue for ``magcal
+simulate --hidden NAME`` (none at present); :func:`parse_hidden` reads ``EFFECT[:SENSOR][=MAGNITUDE]`` as that
+option writes it.
 """
 
 from __future__ import annotations
@@ -258,14 +259,29 @@ def _site_gradient(effect, readings, context, magnitude, sensor, **options):
     return readings
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# outside the catalogue (for tests and teaching): periodic interference
-# ----------------------------------------------------------------------------------------------------------------
+@hides("periodic_interference")
+def _periodic_interference(effect, readings, context, magnitude, sensor, frequency_hz=0.7, direction=None,
+                           phase_rad=0.3, harmonic_fraction=0.0, **options):
+    """A sinusoidal field from a source on the platform (a motor, a pump), fixed in the sensor's axes:
+    ``y += a [sin(2 pi f t + phase) + h sin(4 pi f t + 2 phase)] d``, ``a = magnitude`` nT peak along the unit
+    direction ``d`` (default the effect's ``pattern``), ``h = harmonic_fraction``."""
+    d = np.asarray(effect.pattern if direction is None else direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    amplitude = float(np.ravel(magnitude)[0])
+    if not np.isfinite(frequency_hz) or frequency_hz <= 0:
+        raise MagcalError(f"periodic_interference: the frequency must be a positive number of Hz, got {frequency_hz}")
+    phase = 2 * np.pi * frequency_hz * context["time_s"] + phase_rad
+    wave = amplitude * (np.sin(phase) + harmonic_fraction * np.sin(2 * phase))
+    for s in _sensor_list(sensor, readings.shape[0]):
+        readings[s] += wave[:, None] * d
+    return readings
 
 
-def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62)):
-    """A perturbation *outside* the catalogue: a sinusoidal field (e.g. from nearby machinery) along a fixed
-    direction of the sensor's axes, ``y += a sin(2 pi f t) d``. No catalogue term explains it.
+def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62),
+                          harmonic_fraction=0.0):
+    """The perturbation of the catalogue effect ``periodic_interference`` with its options spelled out: a
+    sinusoidal field (e.g. from machinery on the platform) along a fixed direction of the sensor's axes,
+    ``y += a sin(2 pi f t + 0.3) d`` (plus ``harmonic_fraction`` of it at ``2 f``).
 
     Parameters
     ----------
@@ -277,31 +293,23 @@ def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direc
         0-based sensor; default every sensor.
     direction : array_like, shape (3,)
         Direction in the sensor axes (normalised).
+    harmonic_fraction : float
+        Amplitude of the second harmonic relative to the fundamental.
     """
-    d = np.asarray(direction, dtype=float)
-    d = d / np.linalg.norm(d)
+    from .model import EFFECTS
 
-    def perturb(readings, context, rng):
-        readings = np.array(readings, dtype=float)
-        t = context["time_s"]
-        wave = amplitude_nT * np.sin(2 * np.pi * frequency_hz * t + 0.3)
-        for s in _sensor_list(sensor, readings.shape[0]):
-            readings[s] += wave[:, None] * d
-        return readings
-
-    perturb.description = f"periodic interference {amplitude_nT} nT at {frequency_hz} Hz"
-    perturb.effect = "periodic_interference"
-    perturb.sensor = sensor
-    perturb.magnitude = amplitude_nT
+    perturb = EFFECTS["periodic_interference"]().perturbation(
+        float(amplitude_nT), sensor, frequency_hz=float(frequency_hz), direction=direction,
+        harmonic_fraction=float(harmonic_fraction))
+    perturb.description = f"periodic_interference {amplitude_nT} nT at {frequency_hz} Hz" + (
+        "" if sensor is None else f" (sensor {sensor + 1})")
     return perturb
 
 
 #: Perturbations outside the catalogue that ``magcal simulate --hidden`` also knows (name -> factory taking
 #: ``magnitude`` and ``sensor``). :func:`magcal.plugins.reserved_names` keeps a user's effect from taking them.
-EXTRA_PERTURBATIONS = {
-    "periodic_interference": lambda magnitude=None, sensor=None: periodic_interference(
-        5.0 if magnitude is None else float(magnitude), sensor=sensor),
-}
+#: (Periodic interference was one until it joined the catalogue as ``periodic_interference``.)
+EXTRA_PERTURBATIONS: dict[str, Callable] = {}
 
 
 def parse_hidden(spec: str, n_sensors: int):

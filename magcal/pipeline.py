@@ -34,7 +34,7 @@ from .calibration import Calibration, SensorCalibration, expected_total_field
 from .ellipsoid import fit_ellipsoid
 from .errors import CalibrationError, CoverageWarning, DataWarning
 from .fit import resolve_reference
-from .noise import robust_sigma
+from .noise import estimate_noise, robust_sigma
 from .procrustes import procrustes_rotation
 
 #: Methods of :func:`calibrate`: the two seed steps alone, or followed by maximum likelihood.
@@ -125,9 +125,11 @@ class CalibrationResult:
     tensor_rms_before_nT_per_m, tensor_rms_nT_per_m : dict or None
         RMS of each tensor component before (raw readings) and after calibration, nT/m (four sensors only).
     noise_nT : float
-        Per-axis noise used for the floors: the dataset's ``noise_nT`` if known, else estimated from the fit.
+        Per-axis noise used for the floors, nT: the one given (``noise_nT=`` or the dataset's ``noise_nT``), else
+        estimated (:func:`magcal.noise.estimate_noise`).
     noise_source : str
-        ``dataset`` or ``estimated``.
+        Which method gave it (:data:`magcal.noise.NOISE_SOURCES`): ``given``, ``differences``, ``static``,
+        ``quantization`` or ``residuals``.
     total_field_floor_nT : float
         ``sigma sqrt(1 - p/N)``: the lowest in-sample total-field RMS any estimator can reach (p parameters per
         sensor).
@@ -150,6 +152,11 @@ class CalibrationResult:
     field_magnitude_nT : float or None
         The field magnitude of the final calibration, nT: the total field it expects (its reference, given or
         fitted, or the data's ``ref_total`` column), averaged over the sensors and the samples used.
+    noise : NoiseEstimate
+        The noise with its method and checks (still stretches' figures, quantization floor).
+    validation : EffectsValidation or None
+        Held-out RMS of the base model and of the model with the effects
+        (:func:`magcal.validation.validate_effects`), when asked for.
     """
 
     calibration: Calibration
@@ -176,6 +183,8 @@ class CalibrationResult:
     robust: bool = False
     effects: list = field(default_factory=list)
     field_magnitude_nT: float | None = None
+    noise: object = None
+    validation: object = None
 
     @property
     def n_sensors(self) -> int:
@@ -406,7 +415,7 @@ class _Run:
 
 def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None,
               seed=None, progress: Callable | None = None, mask=None, ellipsoid_method: str = "algebraic",
-              base_terms=None) -> CalibrationResult:
+              base_terms=None, noise_nT=None) -> CalibrationResult:
     """Calibrate one to four sensors from readings taken while turning them in a uniform field.
 
     Parameters
@@ -435,6 +444,9 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
         Estimator of step 1.
     base_terms : sequence of str, optional
         Base terms of the ML model (default all of :data:`magcal.model.BASE_TERMS`).
+    noise_nT : float, optional
+        Noise per axis in nT, given by the user: used for the floors instead of the dataset's ``noise_nT`` or any
+        estimate (:func:`magcal.noise.estimate_noise`).
 
     Returns
     -------
@@ -458,7 +470,7 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     run.report("evaluating", 0.9)
     outliers = _robust_pass(run, robust)
     steps = _step_figures(run)
-    result = _summary(run, steps, model, method, robust, outliers, t_start)
+    result = _summary(run, steps, model, method, robust, outliers, t_start, noise_nT)
     _store_summary(result)
     for n in run.notes:
         if "coverage" in n:
@@ -593,34 +605,38 @@ def _step_figures(run: _Run) -> list:
     return steps
 
 
-def _noise_and_floors(run: _Run, model, final: StepSummary):
-    """``(noise_nT, noise_source, total_field_floor_nT, tensor_floor_nT_per_m)``: the dataset's noise or one
-    estimated from the residuals (a note says so), and the floors it sets."""
+def _noise_and_floors(run: _Run, model, final: StepSummary, noise_nT=None):
+    """``(noise, total_field_floor_nT, tensor_floor_nT_per_m)``: the noise given (``noise_nT``, else the
+    dataset's) or estimated from the final residuals (:func:`magcal.noise.estimate_noise`: differences in time
+    order, still stretches, quantization floor), and the floors it sets."""
     dataset, kept = run.dataset, run.kept
     n_params = 9
     if model is not None:
         n_params += sum(len(e.param_names()) for e, s in model.instances()) / dataset.n_sensors
-    if dataset.noise_nT:
-        noise, noise_source = float(dataset.noise_nT), "dataset"
+    if run.fit is not None:
+        fit = run.fit
+        samples = dataset if fit.mask.all() else dataset.subset(fit.mask)
+        residuals = fit.residuals_nT[:, fit.mask]
     else:
-        noise_source = "estimated"
-        if run.fit is not None:
-            noise = float(run.fit.noise_nT)
-        else:
-            n = kept.n_samples
-            noise = float(np.sqrt(np.mean(final.rms_per_sensor_nT**2) * n / max(n - n_params, 1)))
-        run.notes.append(f"noise not given: the floors use sigma = {noise:.3g} nT estimated from the residuals")
-    tf_floor = conventions.total_field_floor_nT(noise, kept.n_samples, n_params)
+        samples = kept
+        residuals = run.calibration.total_field_residuals(kept, record_terms="apply")
+    noise = estimate_noise(samples, residuals, int(round(n_params * dataset.n_sensors)), noise_nT=noise_nT)
+    if noise.source != "given":
+        run.notes.append(f"noise not given: the floors use sigma = {noise.text()}")
+    if noise.source == "residuals":
+        run.notes.append(noise.note)
+    tf_floor = conventions.total_field_floor_nT(noise.sigma_nT, kept.n_samples, n_params)
     t_floor = None
     if _has_tensor(dataset):
-        t_floor = {k: float(v) for k, v in conventions.tensor_floor_nT_per_m(noise, dataset.baseline_m).items()}
-    return noise, noise_source, tf_floor, t_floor
+        t_floor = {k: float(v) for k, v in conventions.tensor_floor_nT_per_m(noise.sigma_nT,
+                                                                              dataset.baseline_m).items()}
+    return noise, tf_floor, t_floor
 
 
-def _summary(run: _Run, steps, model, method, robust, outliers, t_start) -> CalibrationResult:
+def _summary(run: _Run, steps, model, method, robust, outliers, t_start, noise_nT=None) -> CalibrationResult:
     """The :class:`CalibrationResult` of the run: the final calibration, the steps' figures, noise and floors."""
     raw, final = steps[0], steps[-1]
-    noise, noise_source, tf_floor, t_floor = _noise_and_floors(run, model, final)
+    noise, tf_floor, t_floor = _noise_and_floors(run, model, final, noise_nT)
     calibration = run.calibration
     return CalibrationResult(
         calibration=calibration,
@@ -636,8 +652,8 @@ def _summary(run: _Run, steps, model, method, robust, outliers, t_start) -> Cali
         rms_nT=float(np.sqrt(np.mean(final.rms_per_sensor_nT**2))),
         tensor_rms_before_nT_per_m=raw.tensor_rms_nT_per_m,
         tensor_rms_nT_per_m=final.tensor_rms_nT_per_m,
-        noise_nT=noise,
-        noise_source=noise_source,
+        noise_nT=noise.sigma_nT,
+        noise_source=noise.source,
         total_field_floor_nT=tf_floor,
         tensor_floor_nT_per_m=t_floor,
         ellipsoids=run.ellipsoids,
@@ -647,6 +663,7 @@ def _summary(run: _Run, steps, model, method, robust, outliers, t_start) -> Cali
         robust=robust,
         effects=model.effect_labels if model is not None else [],
         field_magnitude_nT=_field_magnitude_nT(run.kept, calibration, run.ref_kind),
+        noise=noise,
     )
 
 
@@ -682,6 +699,7 @@ def _store_summary(result: CalibrationResult) -> None:
         "tensor_rms_before_nT_per_m": result.tensor_rms_before_nT_per_m,
         "noise_nT": result.noise_nT,
         "noise_source": result.noise_source,
+        "noise": result.noise.to_dict() if result.noise is not None else None,
         "total_field_floor_nT": result.total_field_floor_nT,
         "tensor_floor_nT_per_m": result.tensor_floor_nT_per_m,
         "n_outliers": int(np.sum(result.outliers)) if result.outliers is not None else 0,

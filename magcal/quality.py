@@ -7,8 +7,10 @@ each changes what its figures mean. :func:`assess` measures them and says, for e
 
 =================  =========================================================================================
 ``sample_rate``    median interval of the time stamps (s) and its jitter (robust spread of the intervals over
-                   the median)
-``gaps``           intervals longer than :data:`GAP_FACTOR` times the median: count and longest (s)
+                   the median), the mean rate (samples / duration); stamps that arrive in batches
+                   (:func:`is_batched`) are named so, with the mean rate as the rate
+``gaps``           intervals longer than :data:`GAP_FACTOR` times the median (for batches: the usual interval
+                   between batches): count and longest (s)
 ``time_order``     repeated (equal) or backward time stamps
 ``stale``          consecutive identical vectors per sensor: fraction of the samples and longest run
 ``quantization``   step per axis (nT), found as the greatest common step of the sorted distinct values, and its
@@ -18,6 +20,7 @@ each changes what its figures mean. :func:`assess` measures them and says, for e
                    axis (nT) - a direct measurement of the noise
 ``temperature``    range (degC) and its correlation with time
 ``field``          after a fit: a fitted field magnitude outside the Earth's 20-70 uT (:func:`field_magnitude_finding`)
+``turn_rate``      after a fit: the residual RMS by turn-rate quartile (:func:`turn_rate_finding`)
 =================  =========================================================================================
 
 Each :class:`Finding` has a severity (``info`` or ``warning``), a flag ``notable`` (shown in the text report) and
@@ -35,6 +38,10 @@ from .noise import robust_sigma
 
 #: An interval longer than this many median intervals is a gap.
 GAP_FACTOR = 3.0
+#: Stamps are batched when the median interval is under this fraction of the mean one...
+BATCH_SHORT = 0.5
+#: ...and at least this share of the intervals is over GAP_FACTOR times the median.
+BATCH_LONG_SHARE = 0.05
 #: Jitter (robust spread of the intervals / median interval) above which the timing is a warning.
 JITTER_WARN = 0.10
 #: Fraction of stale (repeated) samples above which they are a warning (any stale sample is notable above 1 %).
@@ -45,6 +52,12 @@ MIN_LEVELS = 12
 MULTIPLE_TOL = 0.1
 #: Share of the differences that must be multiples of q.
 MULTIPLE_SHARE = 0.95
+#: The occupied levels lie on a coarser grid when one spacing holds at least this share of the level spacings...
+GRID_MODE_SHARE = 0.5
+#: ...and smaller spacings (a grid whose origin shifts puts some levels closer) fewer than this share.
+GRID_BELOW_SHARE = 0.35
+#: Share of the level spacings off the step from which the report says the grid shifts.
+GRID_SHIFT_NOTE = 0.02
 #: Quantization noise q/sqrt(12) (nT) from which quantization is a warning (unless far below the noise).
 QUANT_WARN_nT = 1.0
 #: Samples in the sliding window of the static test (at least; with time stamps at least 1 s of them).
@@ -63,6 +76,10 @@ TEMP_SPAN_MIN_K = 0.5
 CLIP_MIN_COUNT = 5
 #: ...this many times the mean count of the next three levels inward.
 CLIP_RATIO = 4.0
+#: The residual grows with the turn rate when the fastest quartile's RMS is this many times the slowest's...
+TURN_RATE_RATIO = 1.2
+#: ...and the rank correlation of |residual| with the rate has a p-value below this.
+TURN_RATE_P = 1e-4
 #: Range of the Earth's field at the surface, nT.
 EARTH_FIELD_RANGE_nT = (20_000.0, 70_000.0)
 
@@ -139,6 +156,13 @@ class Finding:
         return {"kind": self.kind, "severity": self.severity, "sensor": self.sensor, "notable": self.notable,
                 "summary": self.summary, "effect": self.effect, "values": _jsonable(self.values)}
 
+    @classmethod
+    def from_dict(cls, doc) -> "Finding":
+        """The finding :meth:`to_dict` wrote (e.g. from a workbench session or a ``--json`` document)."""
+        return cls(kind=str(doc["kind"]), severity=str(doc["severity"]), summary=str(doc["summary"]),
+                   effect=str(doc["effect"]), sensor=doc.get("sensor"), notable=bool(doc.get("notable", False)),
+                   values=dict(doc.get("values") or {}))
+
 
 @dataclass
 class QualityReport:
@@ -172,9 +196,16 @@ class QualityReport:
         return [f.message(self.source) for f in self.findings if f.severity == "warning"]
 
     def to_dict(self) -> dict:
-        """JSON-able: ``n_sensors``, ``n_samples``, ``findings`` (every finding, see :meth:`Finding.to_dict`)."""
-        return {"n_sensors": self.n_sensors, "n_samples": self.n_samples,
+        """JSON-able: ``n_sensors``, ``n_samples``, ``source``, ``findings`` (every finding, see
+        :meth:`Finding.to_dict`)."""
+        return {"n_sensors": self.n_sensors, "n_samples": self.n_samples, "source": self.source,
                 "findings": [f.to_dict() for f in self.findings]}
+
+    @classmethod
+    def from_dict(cls, doc) -> "QualityReport":
+        """The report :meth:`to_dict` wrote: what the workbench stores and shows."""
+        return cls([Finding.from_dict(f) for f in doc.get("findings", [])], int(doc.get("n_sensors", 0)),
+                   int(doc.get("n_samples", 0)), doc.get("source"))
 
     def lines(self, notable_only=True) -> list:
         """Text lines: the sample-rate line, then each (notable) finding with its effect on the next line."""
@@ -213,7 +244,9 @@ def timing_findings(time_s) -> list:
     Returns
     -------
     list of Finding
-        ``sample_rate`` (always, with ``interval_s``, ``rate_Hz``, ``jitter``), ``gaps``, ``time_order``.
+        ``sample_rate`` (always, with ``interval_s`` and ``rate_Hz``: the sampling interval (s) and rate (Hz),
+        the median ones, or the mean ones when the stamps come in batches; ``median_interval_s``,
+        ``mean_rate_Hz``, ``duration_s``, ``jitter``, ``batched``), ``gaps``, ``time_order``.
     """
     t = np.asarray(time_s, dtype=float)
     if t.size < 3:
@@ -227,33 +260,56 @@ def timing_findings(time_s) -> list:
         return [Finding("sample_rate", "warning", f"all {t.size} time stamps are equal ({t[0]:.6g} s)",
                         "time-dependent terms (drift, bias steps, lag) cannot be fitted from these times",
                         notable=True, values={"interval_s": None, "rate_Hz": None, "jitter": None})]
-    interval = float(np.median(positive))
-    jitter = float(robust_sigma(positive)) / interval
+    median = float(np.median(positive))
+    duration = float(t.max() - t.min())
+    mean = duration / (t.size - 1)
+    batched = is_batched(dt)
+    interval = mean if batched else median  # the sampling interval: the mean when the stamps come in batches
+    jitter = float(robust_sigma(positive)) / median
     rate = 1.0 / interval
-    values = {"interval_s": interval, "rate_Hz": rate, "jitter": jitter, "duration_s": float(t.max() - t.min())}
-    spread = f"{100 * jitter:.2g}%" if jitter >= 1e-3 else "under 0.1%"
-    summary = f"sample rate {rate:.4g} Hz (median interval {interval:.4g} s), jitter {spread} of the interval"
-    if jitter > JITTER_WARN:
+    values = {"interval_s": interval, "rate_Hz": rate, "jitter": jitter, "duration_s": duration,
+              "median_interval_s": median, "mean_rate_Hz": 1.0 / mean if mean > 0 else None, "batched": batched}
+    if batched:
+        short = float(np.mean(dt < BATCH_SHORT * mean))
+        values["short_share"] = short
+        summary = (f"sample rate {rate:.4g} Hz on average ({t.size} samples in {duration:.4g} s); the samples arrive "
+                   f"in batches: {100 * short:.0f}% of the intervals are under half the mean (median "
+                   f"{1000 * median:.3g} ms), the others long (up to {1000 * float(dt.max()):.4g} ms)")
         out.append(Finding("sample_rate", "warning", summary,
-                           "time-dependent terms (drift, bias steps, lag, time derivatives) take the time stamps as "
-                           f"given, so a jitter of {100 * jitter:.0f}% of the interval blurs a lag or rate term by as "
-                           "much", notable=True, values=values))
+                           "the stamps are the host's arrival times, not the sensor's sampling times: rates, lags, "
+                           "time derivatives and periods taken from them are wrong by up to the batch interval "
+                           "(time-stamp at the sensor, or use the mean rate)", notable=True, values=values))
     else:
-        out.append(Finding("sample_rate", "info", summary,
-                           "time stamps are regular enough for time-dependent terms", values=values))
-    gaps = positive > GAP_FACTOR * interval
+        spread = f"{100 * jitter:.2g}%" if jitter >= 1e-3 else "under 0.1%"
+        summary = f"sample rate {rate:.4g} Hz (median interval {interval:.4g} s), jitter {spread} of the interval"
+        if abs(mean / median - 1.0) > 0.1:
+            summary += f"; mean rate {1.0 / mean:.4g} Hz ({t.size} samples in {duration:.4g} s)"
+        if jitter > JITTER_WARN:
+            out.append(Finding("sample_rate", "warning", summary,
+                               "time-dependent terms (drift, bias steps, lag, time derivatives) take the time stamps "
+                               f"as given, so a jitter of {100 * jitter:.0f}% of the interval blurs a lag or rate term "
+                               "by as much", notable=True, values=values))
+        else:
+            out.append(Finding("sample_rate", "info", summary,
+                               "time stamps are regular enough for time-dependent terms", values=values))
+    # a gap is an interval well beyond the usual: the median one, or for batches the usual batch-to-batch one
+    usual = float(np.median(positive[positive >= BATCH_SHORT * mean])) if batched else median
+    gaps = positive > GAP_FACTOR * usual
     n_gaps = int(np.sum(gaps))
     longest = float(positive[gaps].max()) if n_gaps else 0.0
-    gap_values = {"count": n_gaps, "longest_s": longest, "missing_s": float(np.sum(positive[gaps])) if n_gaps else 0.0}
+    gap_values = {"count": n_gaps, "longest_s": longest, "missing_s": float(np.sum(positive[gaps])) if n_gaps else 0.0,
+                  "threshold_s": GAP_FACTOR * usual}
+    what = "the usual interval between batches" if batched else "the median"
     if n_gaps:
-        severe = longest > 10 * interval or n_gaps > 0.01 * dt.size
+        severe = longest > 10 * usual or n_gaps > 0.01 * dt.size
         out.append(Finding("gaps", "warning" if severe else "info",
-                           f"{n_gaps} gap(s) in the time stamps (intervals over {GAP_FACTOR:g}x the median), longest "
+                           f"{n_gaps} gap(s) in the time stamps (intervals over {GAP_FACTOR:g}x {what}), longest "
                            f"{longest:.4g} s",
                            "drift and lag terms see a jump across a gap and time derivatives there are wrong; the "
                            "scalar fit itself only loses the missing directions", notable=True, values=gap_values))
     else:
-        out.append(Finding("gaps", "info", "no gaps in the time stamps", "nothing", values=gap_values))
+        out.append(Finding("gaps", "info", "no gaps in the time stamps",
+                           "drift and lag terms see a continuous record", values=gap_values))
     if n_repeat or n_back:
         parts = ([f"{n_repeat} repeated time stamp(s)"] if n_repeat else []) + (
             [f"{n_back} going back"] if n_back else [])
@@ -262,6 +318,23 @@ def timing_findings(time_s) -> list:
                            "where stamps repeat or go back (the logger's clock is coarser than its sample rate?)",
                            notable=True, values={"repeated": n_repeat, "backward": n_back}))
     return out
+
+
+def is_batched(intervals_s) -> bool:
+    """True when time stamps come in batches: most intervals short, the time carried by a few long ones.
+
+    A host that reads a buffered sensor (USB, a serial link, a polled FIFO) stamps the samples as they arrive:
+    a burst of near-zero intervals, then a long one. The test: the median interval is under
+    :data:`BATCH_SHORT` of the mean (duration / intervals) and at least :data:`BATCH_LONG_SHARE` of the intervals
+    are over :data:`GAP_FACTOR` times the median. A few gaps in a regular record raise the mean but not that share.
+    """
+    dt = np.asarray(intervals_s, dtype=float)
+    dt = dt[np.isfinite(dt)]
+    if dt.size < 10 or np.sum(dt) <= 0:
+        return False
+    mean = float(np.mean(dt))
+    median = float(np.median(dt))
+    return bool(median < BATCH_SHORT * mean and np.mean(dt > GAP_FACTOR * median) >= BATCH_LONG_SHARE)
 
 
 # -- stale readings ------------------------------------------------------------------------------------------------
@@ -291,7 +364,8 @@ def stale_finding(readings_nT, sensor=None) -> Finding:
     longest = max((b - a for a, b in runs), default=0) + (1 if runs else 0)
     values = {"fraction": fraction, "count": int(same.sum()), "longest_run": int(longest)}
     if not same.any():
-        return Finding("stale", "info", "no stale readings (no vector repeats the previous one)", "nothing",
+        return Finding("stale", "info", "no stale readings (no vector repeats the previous one)",
+                       "every sample is a new measurement, weighted once",
                        sensor=sensor, values=values)
     return Finding("stale", "warning" if fraction >= STALE_WARN else "info",
                    f"{100 * fraction:.3g}% of the readings repeat the previous vector exactly (stale), longest run "
@@ -308,14 +382,115 @@ def _multiple_share(d, q):
     return float(np.mean(np.abs(r - np.round(r)) <= MULTIPLE_TOL))
 
 
-def quantization_step(values, min_levels=MIN_LEVELS, max_divisor=50):
-    """The quantization step of one axis: the greatest common step of its distinct values, robustly.
+def _common_step(values, min_levels=MIN_LEVELS, max_divisor=50):
+    """The greatest common step of one axis's distinct values, robustly, and the spacings of those values.
 
     The distinct sorted values are differenced; the candidates are the few smallest differences divided by
     1, 2, ... ``max_divisor``; the largest candidate ``q`` of which at least 95 % of the differences are near
     integer multiples (within 0.1 q) is the step. Continuous readings give None: their differences are not
     multiples of a common step. A step more than ``max_divisor`` times finer than the smallest differences (a
     short record of a fine step, e.g. 200 samples printed to 0.1 nT) is not seen; such a step is harmless.
+
+    Parameters
+    ----------
+    values : array_like, shape (N,)
+        Readings of one axis, nT.
+    min_levels : int
+        Fewest distinct values needed to claim a step.
+    max_divisor : int
+        Largest divisor of a difference tried (a sparse record's smallest difference may be several steps).
+
+    Returns
+    -------
+    q : float or None
+        The step in nT, or None if the values show none (or too few distinct values to tell).
+    spacings : numpy.ndarray
+        Differences of the sorted distinct values, nT.
+    """
+    x = np.asarray(values, dtype=float).ravel()
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return None, np.zeros(0)
+    eps = 1e-9 * max(float(np.max(np.abs(x))), 1.0)  # float noise of a unit conversion
+    u = np.unique(x)
+    if u.size > 1:
+        u = u[np.concatenate([[True], np.diff(u) > eps])]
+    d = np.diff(u)
+    if u.size < min_levels:
+        return None, d
+    sample = d if d.size <= 4000 else d[np.linspace(0, d.size - 1, 4000).astype(int)]
+    bases = np.unique(np.sort(d)[:5])
+    best = None
+    for base in bases:
+        for k in range(1, max_divisor + 1):
+            q = base / k
+            if best is not None and q <= best:
+                break
+            if q <= 10 * eps:
+                break
+            if _multiple_share(sample, q) >= MULTIPLE_SHARE:
+                if sample is d or _multiple_share(d, q) >= MULTIPLE_SHARE:
+                    best = float(q)
+                break
+    return best, d
+
+
+def quantization_grid(values, min_levels=MIN_LEVELS, max_divisor=50):
+    """The grid one axis's values lie on: its step and how regular it is.
+
+    Two figures. The *common step* is the greatest step of which (nearly) every difference of the sorted
+    distinct values is a multiple: a fine grid sampled sparsely shows all its multiples, the smallest most
+    often. The *dominant spacing* is the spacing of the occupied levels: when one multiple ``m`` of the common
+    step holds at least :data:`GRID_MODE_SHARE` of the level spacings and smaller ones fewer than
+    :data:`GRID_BELOW_SHARE`, the values lie on an ``m``-times coarser grid whose origin shifts now and then
+    (QMC5883L z: a 5-count grid shifted by 2-3 counts every ~40 counts; the common step is 1 count). That
+    coarser spacing is the quantization the readings carry.
+
+    Parameters
+    ----------
+    values : array_like, shape (N,)
+        Readings of one axis, nT.
+    min_levels : int
+        Fewest distinct values needed to claim a step.
+    max_divisor : int
+        Largest divisor of a difference tried for the common step.
+
+    Returns
+    -------
+    dict or None
+        ``step_nT`` (the quantization step: the dominant spacing when there is one, else the common step),
+        ``common_step_nT``, ``spacing_multiple`` (``m``, 1 for a regular grid), ``shift_share`` (share of the
+        level spacings that are not multiples of the step: how often the grid shifts); None when the values show
+        no step.
+    """
+    q, d = _common_step(values, min_levels, max_divisor)
+    if q is None:
+        return None
+    k = np.round(d / q).astype(np.int64)
+    k = k[k > 0]
+    multiple = 1
+    if k.size:
+        levels, counts = np.unique(k, return_counts=True)
+        mode = int(levels[np.argmax(counts)])
+        share = counts.max() / k.size
+        if mode > 1 and share >= GRID_MODE_SHARE and np.mean(k < mode) < GRID_BELOW_SHARE:
+            multiple = mode
+    step = multiple * q
+    r = d[d > 0] / step
+    shift = float(np.mean(np.abs(r - np.round(r)) > MULTIPLE_TOL)) if r.size else 0.0
+    return {"step_nT": multiple * q, "common_step_nT": q, "spacing_multiple": multiple, "shift_share": shift}
+
+
+def quantization_step(values, min_levels=MIN_LEVELS, max_divisor=50):
+    """The quantization step of one axis (nT): the spacing of the grid its values lie on (:func:`quantization_grid`).
+
+    The distinct sorted values are differenced; the common step is the largest ``q`` (from the few smallest
+    differences divided by 1, 2, ... ``max_divisor``) of which at least 95 % of the differences are near integer
+    multiples (within 0.1 q); when the occupied levels are mostly one multiple ``m q`` apart and hardly ever
+    closer, the step is ``m q`` (a coarser grid that shifts). Continuous readings give None: their differences
+    are not multiples of a common step. A step more than ``max_divisor`` times finer than the smallest
+    differences (a short record of a fine step, e.g. 200 samples printed to 0.1 nT) is not seen; such a step is
+    harmless.
 
     Parameters
     ----------
@@ -339,35 +514,11 @@ def quantization_step(values, min_levels=MIN_LEVELS, max_divisor=50):
     >>> quantization_step(np.random.default_rng(1).normal(0, 30000, 500)) is None
     True
     """
-    x = np.asarray(values, dtype=float).ravel()
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return None
-    eps = 1e-9 * max(float(np.max(np.abs(x))), 1.0)  # float noise of a unit conversion
-    u = np.unique(x)
-    if u.size > 1:
-        u = u[np.concatenate([[True], np.diff(u) > eps])]
-    if u.size < min_levels:
-        return None
-    d = np.diff(u)
-    sample = d if d.size <= 4000 else d[np.linspace(0, d.size - 1, 4000).astype(int)]
-    bases = np.unique(np.sort(d)[:5])
-    best = None
-    for base in bases:
-        for k in range(1, max_divisor + 1):
-            q = base / k
-            if best is not None and q <= best:
-                break
-            if q <= 10 * eps:
-                break
-            if _multiple_share(sample, q) >= MULTIPLE_SHARE:
-                if sample is d or _multiple_share(d, q) >= MULTIPLE_SHARE:
-                    best = float(q)
-                break
-    return best
+    grid = quantization_grid(values, min_levels, max_divisor)
+    return None if grid is None else float(grid["step_nT"])
 
 
-def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None) -> Finding:
+def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None, noise_source=None) -> Finding:
     """Quantization step per axis of one sensor and its noise floor ``q / sqrt(12)``.
 
     Parameters
@@ -380,14 +531,19 @@ def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None) -
         it) is only information.
     lsb_nT : float, optional
         The LSB the file declared (raw counts), to say the step in counts.
+    noise_source : str, optional
+        Where ``noise_nT`` came from, for the text (e.g. ``"second differences"``).
     """
     y = np.asarray(readings_nT, dtype=float)
-    steps = [quantization_step(y[:, k]) for k in range(3)]
+    grids = [quantization_grid(y[:, k]) for k in range(3)]
+    steps = [None if g is None else float(g["step_nT"]) for g in grids]
     found = [q for q in steps if q is not None]
-    values = {"step_nT": steps, "noise_floor_nT": [None if q is None else q / np.sqrt(12) for q in steps]}
+    values = {"step_nT": steps, "noise_floor_nT": [None if q is None else q / np.sqrt(12) for q in steps],
+              "common_step_nT": [None if g is None else float(g["common_step_nT"]) for g in grids],
+              "shift_share": [None if g is None else g["shift_share"] for g in grids]}
     if not found:
         return Finding("quantization", "info", "no quantization step found (the readings look continuous)",
-                       "nothing", sensor=sensor, values=values)
+                       "no rounding floor under the RMS", sensor=sensor, values=values)
     floor = max(found) / np.sqrt(12)
     text = ", ".join("-" if q is None else f"{q:.4g}" for q in steps)
     counts = ""
@@ -395,12 +551,17 @@ def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None) -
         counts = " = " + ", ".join("-" if q is None else f"{q / lsb_nT:.3g}" for q in steps) + " LSB"
         values["step_counts"] = [None if q is None else q / lsb_nT for q in steps]
     summary = f"quantization step (x, y, z) {text} nT{counts}: noise floor q/sqrt(12) = {floor:.3g} nT"
+    shifting = [f"{AXES[k]} {100 * g['shift_share']:.0f}%" for k, g in enumerate(grids)
+                if g is not None and g["shift_share"] >= GRID_SHIFT_NOTE]
+    if shifting:
+        summary += ("; the grid shifts now and then (level spacings off the step: " + ", ".join(shifting) + ")")
     negligible = noise_nT is not None and noise_nT > 0 and floor < noise_nT / 3
     warn = floor >= QUANT_WARN_nT and not negligible
     effect = (f"the total-field RMS cannot go below about {floor:.3g} nT, and with little noise to dither it the "
               "rounding is not Gaussian: compare the RMS with this floor, not with zero")
     if negligible:
-        effect = f"well below the {noise_nT:.3g} nT noise, so it only adds q^2/12 to the noise variance"
+        source = f" ({noise_source})" if noise_source else ""
+        effect = f"well below the {noise_nT:.3g} nT noise{source}, so it only adds q^2/12 to the noise variance"
     return Finding("quantization", "warning" if warn else "info", summary, effect, sensor=sensor,
                    notable=floor >= 0.1 * QUANT_WARN_nT or warn, values=values)
 
@@ -432,7 +593,8 @@ def clipping_finding(readings_nT, sensor=None, keep=None) -> Finding:
                 total += int(count)
     values = {"clipped": clipped, "fraction": total / max(n, 1)}
     if not clipped:
-        return Finding("clipping", "info", "no readings pile at an axis extreme (no clipping)", "nothing",
+        return Finding("clipping", "info", "no readings pile at an axis extreme (no clipping)",
+                       "no reading is cut off inside the ellipsoid",
                        sensor=sensor, values=values)
     text = ", ".join(f"{c['axis']} at {c['value_nT']:.6g} nT ({c['count']} samples)" for c in clipped)
     return Finding("clipping", "warning", f"readings pile at an axis extreme (clipped?): {text}",
@@ -460,6 +622,21 @@ def motion_noise_nT(readings_nT) -> float:
         return float("inf")
     d2 = y[2:] - 2 * y[1:-1] + y[:-2]
     return float(np.median(robust_sigma(d2, axis=0))) / np.sqrt(6.0)
+
+
+def total_field_scatter_nT(readings_nT) -> float:
+    """The noise of one sensor's readings (N, 3) before any fit, nT: the sample-to-sample scatter of the field
+    magnitude through the quick shape of :func:`magcal.coverage.field_shape`
+    (:func:`magcal.ellipsoid.field_noise_nT`). Turning the sensor leaves the magnitude alone, so unlike
+    :func:`motion_noise_nT` this holds for fast or random attitudes too; NaN for fewer than 3 samples."""
+    from .coverage import field_shape
+    from .ellipsoid import field_noise_nT
+
+    y = np.asarray(readings_nT, dtype=float)
+    if y.shape[0] < 3:
+        return float("nan")
+    shape = field_shape(y)
+    return field_noise_nT(y, shape.centre_nT, shape.cinv)
 
 
 def static_window(n_samples, interval_s=None) -> int:
@@ -549,7 +726,9 @@ def static_finding(readings_nT, sensor=None, noise_nT=None, time_s=None, interva
               "scatter_nT": None if scatter is None else [float(s) for s in scatter],
               "stretches": [list(ab) for ab in stretches]}
     if not stretches:
-        return Finding("static", "info", "no static stretches (the vector moves throughout)", "nothing",
+        return Finding("static", "info", "no static stretches (the vector moves throughout)",
+                       "no direct measurement of the noise: the floor comes from differences of the readings or the "
+                       "residuals",
                        sensor=sensor, values=values), stretches
     span = f"{values['longest_samples']} samples" + (f" = {longest_s:.3g} s" if longest_s is not None else "")
     noise = "" if scatter is None else (
@@ -621,14 +800,82 @@ def field_magnitude_finding(field_nT, kind="fitted", units_hint=True) -> Finding
     lo, hi = EARTH_FIELD_RANGE_nT
     if lo <= field_nT <= hi:
         return None
-    cause = ("the unit or the LSB of the readings may be wrong (check --units / --lsb), or the record was made in a "
-             "shielded room, a coil or near iron" if units_hint else
-             "the record was made in a shielded room, a coil or near iron, or the readings are scaled")
+    cause = ("check --units / --lsb: the unit or the LSB of the readings may be wrong (or the record covers too few "
+             "directions to determine the ellipsoid: see any coverage warning; or it was made in a shielded room, a "
+             "coil or near iron)" if units_hint else
+             "the record covers too few directions to determine the ellipsoid, was made in a shielded room, a coil "
+             "or near iron, or the readings are scaled")
+    side = "below" if field_nT < lo else "above"
     return Finding("field", "warning",
-                   f"the fitted field magnitude {field_nT / 1000:.4g} uT is outside the Earth's field range of "
-                   f"{lo / 1000:.0f}-{hi / 1000:.0f} uT",
+                   f"the fitted field {field_nT / 1000:.3g} uT is {side} any geomagnetic field (outside the Earth's "
+                   f"field range of {lo / 1000:.0f}-{hi / 1000:.0f} uT)",
                    f"{cause}; the fitted scale factors carry the same error", notable=True,
                    values={"field_nT": float(field_nT), "range_nT": [lo, hi]})
+
+
+def turn_rate_finding(directions, residuals_nT, time_s=None, sensor=None) -> Finding | None:
+    """After a fit: whether the total-field residual grows with the turn rate.
+
+    The turn rate is the angle between consecutive field directions over the interval (deg/s; deg/sample
+    without time stamps). The residuals are split into rate quartiles; the finding gives the RMS per quartile
+    and Spearman's rank correlation of ``|residual|`` with the rate. It is a warning when the fastest quartile's
+    RMS is :data:`TURN_RATE_RATIO` times the slowest's and the correlation is significant (p below
+    :data:`TURN_RATE_P`).
+
+    Parameters
+    ----------
+    directions : array_like, shape (N, 3)
+        Unit field directions of the samples in time order (e.g. the corrected readings, normalised).
+    residuals_nT : array_like, shape (N,)
+        Total-field residuals of the fit, nT.
+    time_s : array_like, shape (N,), optional
+        Sample times, s.
+    sensor : int, optional
+        1-based sensor number.
+
+    Returns
+    -------
+    Finding or None
+        None for fewer than 40 samples or no turning.
+    """
+    from scipy import stats
+
+    u = np.asarray(directions, dtype=float)
+    r = np.asarray(residuals_nT, dtype=float)
+    if u.shape[0] < 40:
+        return None
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", u[1:], u[:-1]), -1.0, 1.0)))
+    step = np.ones(angle.size) if time_s is None else np.diff(np.asarray(time_s, dtype=float))
+    ok = step > 0
+    rate = np.full(angle.size, np.nan)
+    rate[ok] = angle[ok] / step[ok]
+    rate = np.concatenate([[np.nan], rate])         # the rate into each sample
+    use = np.isfinite(rate) & np.isfinite(r)
+    if use.sum() < 40 or np.ptp(rate[use]) <= 0:
+        return None
+    edges = np.quantile(rate[use], [0.0, 0.25, 0.5, 0.75, 1.0])
+    bins = np.clip(np.searchsorted(edges, rate[use], side="right") - 1, 0, 3)
+    rms = [float(np.sqrt(np.mean(r[use][bins == k] ** 2))) if np.any(bins == k) else float("nan") for k in range(4)]
+    rho, p = stats.spearmanr(np.abs(r[use]), rate[use])
+    unit = "deg/s" if time_s is not None else "deg/sample"
+    values = {"rate_quartile_edges": [float(e) for e in edges], "rms_nT": rms, "spearman_rho": float(rho),
+              "p": float(p), "unit": unit}
+    summary = (f"total-field residual RMS by turn-rate quartile (slow to fast, up to {edges[-1]:.3g} {unit}): "
+               + ", ".join(f"{v:.3g}" for v in rms) + f" nT (rank correlation of |residual| with the rate {rho:+.2f})")
+    grows = rms[3] >= TURN_RATE_RATIO * rms[0] and p < TURN_RATE_P and rho > 0
+    if grows:
+        return Finding("turn_rate", "warning", summary,
+                       "the error grows with the turn rate: the axes are not sampled at the same instant "
+                       "(axis_timing_skew), the part averages over a turn (oversampling, a filter), or the time "
+                       "stamps are wrong; a model fitted on this record carries it as misfit",
+                       sensor=sensor, notable=True, values=values)
+    if p < TURN_RATE_P and rho > 0:
+        return Finding("turn_rate", "info", summary,
+                       f"the error grows a little with the turn rate (fastest quartile {rms[3] / rms[0]:.2f}x the "
+                       "slowest): a small timing or filtering effect, under the warning level",
+                       sensor=sensor, notable=True, values=values)
+    return Finding("turn_rate", "info", summary, "no dependence of the error on how fast the sensor turns was found",
+                   sensor=sensor, values=values)
 
 
 # -- all together --------------------------------------------------------------------------------------------------
@@ -669,8 +916,13 @@ def assess(dataset, noise_nT=None) -> QualityReport:
         report.add(static)
         measured = static.values.get("scatter_nT")
         sensor_noise = noise if noise is not None else (float(np.median(measured)) if measured else None)
+        source = None
+        if sensor_noise is None:  # no noise given or measured still: the total field's sample-to-sample scatter
+            scatter = total_field_scatter_nT(y)
+            if np.isfinite(scatter) and scatter > 0:
+                sensor_noise, source = scatter, "the total field's sample-to-sample scatter"
         report.add(stale_finding(y, sensor))
-        report.add(quantization_finding(y, sensor, sensor_noise, lsb))
+        report.add(quantization_finding(y, sensor, sensor_noise, lsb, source))
         keep = np.ones(y.shape[0], dtype=bool)
         for a, b in stretches:
             keep[a:b] = False

@@ -263,7 +263,8 @@ def _column_reference(column, where, check=True):
 def _compare_with_data(dataset, ref):
     """Warn when the field the readings imply is far from the reference (wrong units or wrong reference).
 
-    The readings' magnitude is taken about their fitted centre, so a hard-iron offset is not mistaken for a
+    The readings' magnitude is the fitted one (:func:`magcal.coverage.field_magnitude_nT`: about the fitted
+    centre, through the fitted shape), so neither a hard-iron offset nor unequal axis gains are mistaken for a
     wrong reference.
     """
     from .coverage import field_magnitude_nT
@@ -274,8 +275,8 @@ def _compare_with_data(dataset, ref):
     value = float(np.median(np.atleast_1d(ref.value_nT)))
     if not 0.8 <= median / value <= 1.25:
         warnings.warn(
-            f"{dataset.source or 'dataset'}: the field the readings imply (median magnitude about their centre, hard "
-            f"iron removed) {median:.0f} nT differs from the reference "
+            f"{dataset.source or 'dataset'}: the field the readings imply (fitted: hard iron removed, axis gains "
+            f"averaged) {median:.0f} nT differs from the reference "
             f"{value:.0f} nT by {100 * (median / value - 1):+.0f}%; check the units and the reference",
             DataWarning, stacklevel=3,
         )

@@ -30,6 +30,32 @@ def calibration_json(result) -> dict:
     return result.calibration.to_dict()
 
 
+#: How the report says whether an effect term carries to new data (:attr:`magcal.model.Effect.transferable`).
+SCOPE_WORDS = {
+    True: "instrument term: carried to new data",
+    False: "record-only term: describes this recording; applied only to it (magcal apply drops it on other "
+           "data, with a warning)",
+}
+
+
+def effect_scope(name) -> str:
+    """Whether the catalogue effect ``name`` is an instrument term or a record-only one, in words."""
+    from .calibration import is_transferable
+    from .model import EFFECTS
+
+    cls = EFFECTS.get(name)
+    return SCOPE_WORDS[is_transferable(cls if cls is not None else type("_", (), {"name": name}))]
+
+
+def _effect_quote(model, entry, field_nT) -> str:
+    """What a fitted effect's parameters do at the data's own field magnitude (:meth:`magcal.model.Effect.quote`)."""
+    effect = next((e for e in (model.effects if model is not None else []) if e.label == entry["term"]), None)
+    if effect is None:
+        return ""
+    sensor = None if entry["sensor"] is None else entry["sensor"] - 1
+    return effect.quote(list(entry["params"].values()), field_nT, sensor)
+
+
 def _matrix_lines(m, indent, fmt="{:+.6f}"):
     return [indent + "[" + "  ".join(fmt.format(v) for v in row) + "]" for row in np.asarray(m)]
 
@@ -86,15 +112,24 @@ def text_report(result, source: str | None = None) -> str:
     out.append("")
 
     # floors
-    floor_words = "given with the data" if result.noise_source == "dataset" else "estimated from the residuals"
-    out.append(f"Noise sigma = {result.noise_nT:.3g} nT per axis ({floor_words})")
+    noise = result.noise
+    if noise is not None:
+        out.append(f"Noise sigma = {noise.text()}")
+        if noise.note and noise.source != "given":
+            out.append(f"  ({noise.note})")
+    else:
+        out.append(f"Noise sigma = {result.noise_nT:.3g} nT per axis ({result.noise_source})")
     line = (f"Total-field floor sigma*sqrt(1-p/N) = {result.total_field_floor_nT:.3f} nT; after calibration: "
             f"{result.rms_nT:.3f} nT over all sensors")
-    if result.noise_source == "dataset" and result.total_field_floor_nT > 0:
+    if result.noise_source != "residuals" and result.total_field_floor_nT > 0:
         line += f" ({result.rms_nT / result.total_field_floor_nT:.2f} x floor)"
-    elif result.noise_source != "dataset":
-        line += " (the floor comes from the same residuals, so this is no independent check; give noise_nT)"
+    else:
+        line += " (the floor comes from the same residuals, so this is no independent check; give --noise NT)"
     out.append(line)
+    validation = getattr(result, "validation", None)
+    if validation is not None:
+        out.append("")
+        out += validation.text().rstrip("\n").split("\n")
     out.append("")
 
     # per sensor
@@ -138,6 +173,10 @@ def text_report(result, source: str | None = None) -> str:
             params = ", ".join(f"{k} = {v:.4g} +- {e['std'][k]:.2g}" for k, v in e["params"].items())
             where = "" if e["sensor"] is None or ":" in e["term"] else f" (sensor {e['sensor']})"
             out.append(f"  {e['term']}{where}: {params}")
+            quote = _effect_quote(f.model, e, getattr(result, "field_magnitude_nT", None))
+            if quote:
+                out.append(f"    {quote}")
+            out.append(f"    {effect_scope(e['effect'])}")
         out.append("")
     if result.outliers is not None and result.outliers.any():
         idx = np.flatnonzero(result.outliers)

@@ -130,11 +130,17 @@ class ArrayTruth:
         return conventions.earth_field(self.total_nT, self.declination_deg, self.inclination_deg)
 
 
-def chi2017_truth() -> ArrayTruth:
+def chi2017_truth(n_sensors: int = 4) -> ArrayTruth:
     """Chi, Lü & Huang (2017) Table 1: rows kx, ky, kz, psi, phi, theta, bx, by, bz, alpha, beta, gamma.
 
-    Field 50 000 nT, declination -7 deg, inclination 55 deg, baseline 0.5 m.
+    Field 50 000 nT, declination -7 deg, inclination 55 deg, baseline 0.5 m. ``n_sensors`` (1-4) keeps the first
+    sensors of the cross (sensor 1 is the reference of the misalignment).
+
+    >>> [len(chi2017_truth(n).sensors) for n in (1, 4)]
+    [1, 4]
     """
+    if not 1 <= int(n_sensors) <= 4:
+        raise ValueError(f"chi2017 has sensors 1-4: n_sensors={n_sensors} is not 1-4")
     table = np.array(
         [
             [1.013, 1.012, 1.019, 1.015],
@@ -158,7 +164,7 @@ def chi2017_truth() -> ArrayTruth:
             gamma=col[11],
         )
         for col in table.T
-    ]
+    ][: int(n_sensors)]
     return ArrayTruth(sensors, baseline_m=0.5, total_nT=50_000.0, declination_deg=-7.0, inclination_deg=55.0)
 
 

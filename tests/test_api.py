@@ -20,11 +20,6 @@ from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
 SIGMA = 3.0
 
 
-def _truth(n_sensors):
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:n_sensors]
-    return truth
-
 
 def _frame(ds):
     frame = pd.DataFrame(io.dataset_columns(ds))
@@ -44,7 +39,7 @@ FORMS = {
 @pytest.mark.parametrize("n_sensors", [1, 4])
 @pytest.mark.parametrize("form", sorted(FORMS))
 def test_calibrate_takes_any_form_and_recovers_the_truth(form, n_sensors):
-    truth = _truth(n_sensors)
+    truth = chi2017_truth(n_sensors)
     ds = simulate(truth, n_samples=400, noise_nT=SIGMA, seed=5)
     result = magcal.calibrate(FORMS[form](ds), reference_total_nT=truth.total_nT)
     assert result.calibration.n_sensors == n_sensors
@@ -57,7 +52,7 @@ def test_calibrate_takes_any_form_and_recovers_the_truth(form, n_sensors):
 
 def test_a_plain_array_is_what_the_engine_gives_on_the_dataset():
     """It used to fail with "'numpy.ndarray' object has no attribute 'n_samples'"."""
-    ds = simulate(_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
+    ds = simulate(chi2017_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
     from_array = magcal.calibrate(ds.readings_nT[0], reference_total_nT=ds.reference_total_nT)
     from_dataset = magcal.pipeline.calibrate(ds)
     np.testing.assert_allclose(from_array.calibration.sensors[0].cinv, from_dataset.calibration.sensors[0].cinv,
@@ -67,7 +62,7 @@ def test_a_plain_array_is_what_the_engine_gives_on_the_dataset():
 
 
 def test_without_a_reference_the_field_is_fitted_from_an_array():
-    ds = simulate(_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
+    ds = simulate(chi2017_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
     result = magcal.calibrate(ds.readings_nT[0])
     assert result.reference_kind == "fitted"
     assert magcal.calibrate(ds.readings_nT[0], reference_total_nT=50000.0).reference_kind == "given"
@@ -75,7 +70,7 @@ def test_without_a_reference_the_field_is_fitted_from_an_array():
 
 def _hidden_temperature_bias(n_sensors=1, sensor=1, magnitude=2.0, seed=1):
     spec = f"temperature_bias:{sensor}={magnitude}"
-    return simulate_timeseries(_truth(n_sensors), n_samples=1500, noise_nT=SIGMA, seed=seed,
+    return simulate_timeseries(chi2017_truth(n_sensors), n_samples=1500, noise_nT=SIGMA, seed=seed,
                                perturbations=[parse_hidden(spec, n_sensors)])
 
 
@@ -147,7 +142,7 @@ def test_a_wrong_shape_says_the_shape_got_and_the_shapes_accepted(shape, hint):
     (lambda r: r.__setitem__((7, 2), np.inf), "sample 7 (0-based), axis z"),
 ])
 def test_nan_readings_are_refused_naming_the_sample(bad, where):
-    readings = simulate(_truth(1), seed=1).readings_nT[0].copy()
+    readings = simulate(chi2017_truth(1), seed=1).readings_nT[0].copy()
     bad(readings)
     with pytest.raises(DatasetError, match="NaN or infinite") as err:
         as_dataset(readings)
@@ -164,7 +159,7 @@ def test_nan_readings_are_refused_naming_the_sample(bad, where):
     ({"reference_total_nT": "fifty"}, "reference_total_nT: got 'fifty'"),
 ])
 def test_bad_channels_are_refused_with_what_was_expected(keywords, expected):
-    readings = simulate(_truth(1), seed=1).readings_nT[0]
+    readings = simulate(chi2017_truth(1), seed=1).readings_nT[0]
     with pytest.raises(ValueError, match=expected):
         as_dataset(readings, **keywords)
 
@@ -176,7 +171,7 @@ def test_a_single_temperature_applies_to_every_sample():
 
 
 def test_keywords_add_channels_to_a_dataset_without_changing_the_original():
-    ds = simulate(_truth(1), seed=1)
+    ds = simulate(chi2017_truth(1), seed=1)
     with_temp = as_dataset(ds, temp=np.linspace(10, 30, ds.n_samples))
     assert with_temp.has("temperature") and not ds.has("temperature")
     assert as_dataset(ds) is ds
@@ -195,7 +190,7 @@ def test_a_frame_reads_like_the_csv_file(tmp_path):
 
 
 def test_a_frame_with_one_sensor_uses_x_y_z():
-    ds = simulate(_truth(1), seed=1)
+    ds = simulate(chi2017_truth(1), seed=1)
     frame = pd.DataFrame(ds.readings_nT[0], columns=["x", "y", "z"])
     np.testing.assert_allclose(as_dataset(frame).readings_nT, ds.readings_nT, rtol=1e-12)
 
@@ -225,7 +220,7 @@ def test_a_frame_indexed_by_time_keeps_the_times():
 
 
 def test_frame_attrs_are_the_metadata_lines():
-    frame = pd.DataFrame(simulate(_truth(1), seed=1).readings_nT[0], columns=["x", "y", "z"])
+    frame = pd.DataFrame(simulate(chi2017_truth(1), seed=1).readings_nT[0], columns=["x", "y", "z"])
     frame.attrs = {"reference_total_nT": 48000, "site": "range B"}
     ds = as_dataset(frame)
     assert ds.reference_total_nT == 48000.0 and ds.metadata["site"] == "range B"

@@ -266,8 +266,7 @@ def drift_files(tmp_path_factory):
     """The calibration record (hidden bias drift) and a later record of the same sensor, as CSV files, and a
     calibration with a bias drift and a temperature bias fitted on the first, told its record (as read back)."""
     folder = tmp_path_factory.mktemp("record")
-    truth = sim.chi2017_truth()
-    truth.sensors = truth.sensors[:1]
+    truth = sim.chi2017_truth(1)
     drift = EFFECTS["bias_drift"]()
     paths = {}
     for name, seed in (("record", 3), ("later", 4)):

@@ -71,8 +71,7 @@ def test_atomic_save_leaves_no_temporary_files(tmp_path):
 
 # --- record-only terms (bias drift, reference drift...) act on the fitted record only -------------------------------
 def _one_sensor():
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:1]
+    truth = chi2017_truth(1)
     return truth
 
 

@@ -82,7 +82,7 @@ def test_bad_options_fail_cleanly(tmp_path, files, capsys, args, needles):
 
 
 def test_calibration_for_another_instrument(tmp_path, files, capsys):
-    one = sim.ArrayTruth(sim.chi2017_truth().sensors[:1])
+    one = sim.chi2017_truth(1)
     io.write_csv(tmp_path / "one.csv", sim.simulate(one, n_samples=20, seed=1))
     code, _, err = run(["apply", files / "intrinsic.json", tmp_path / "one.csv", "-o", tmp_path / "o.csv"], capsys)
     assert_clean_failure(code, err, "4 sensor", "1 sensor")

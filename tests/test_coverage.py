@@ -160,3 +160,85 @@ def test_dataset_input_uses_its_noise_and_source():
                                           np.random.default_rng(0)))
     with pytest.raises(DatasetError, match="field.csv"):
         cv.check_coverage(ds1)
+
+
+def _mems_readings(n, field_nT, gains, offset_fields, rng, noise_nT=300.0, tilt_deg=None):
+    """Readings of a MEMS-like part: axis gains differing by ``max(gains)/min(gains)``, a few degrees of
+    non-orthogonality and a hard iron ``offset_fields`` times the field (QMC5883L on a board: 2.2x, 6x)."""
+    att = Rotation.random(n, random_state=rng) if tilt_deg is None else tilted(n, tilt_deg, rng)
+    b = att.inv().apply(field_nT * np.array([0.4, 0.0, -0.9165]))
+    shape = np.diag(gains) @ np.array([[1.0, 0.05, -0.02], [0.0, 1.0, 0.04], [0.0, 0.0, 1.0]])
+    offset = offset_fields * field_nT * np.array([0.85, 0.03, 0.52])
+    return b @ shape.T + offset + rng.normal(0.0, noise_nT, b.shape)
+
+
+def test_a_hard_iron_far_beyond_the_field_with_unequal_gains_is_full_coverage():
+    """Issue 10 (qmc_filtered): gains differing 2.2x put the readings 16 % off any sphere; the quick sphere was then
+    rejected and the origin used (hard iron 6x the field): '12 % of the sphere, gap 167 deg'. The ellipsoid fit is
+    the centre and the shape: the whole sphere reads as covered and the magnitude is the field."""
+    rng = np.random.default_rng(21)
+    y = _mems_readings(3000, 35_700.0, [1.0, 0.67, 1.48], 6.0, rng)
+    shape = cv.field_shape(y)
+    assert shape.source == "ellipsoid"
+    np.testing.assert_allclose(shape.centre_nT, 6.0 * 35_700.0 * np.array([0.85, 0.03, 0.52]), atol=300.0)
+    # the gains' geometric mean is 0.995: the magnitude through the fitted shape is the field times it
+    assert cv.field_magnitude_nT(y) == pytest.approx(35_700.0 * np.cbrt(0.67 * 1.48), rel=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CoverageWarning)
+        cov = cv.check_coverage(y, noise_nT=300.0)
+    assert cov.fraction[0] > 0.97 and cov.largest_gap_deg[0] < 30
+    # the directions go through the shape: they spread evenly (covariance I/3), not squeezed along the weak axis
+    u = cv.sensor_directions(y)
+    np.testing.assert_allclose(u.T @ u / len(u), np.eye(3) / 3, atol=0.03)
+
+
+def test_limited_tilts_still_warn_with_a_large_hard_iron():
+    """The ellipsoid centre must not turn a genuinely partial record into a covered one."""
+    rng = np.random.default_rng(22)
+    y = _mems_readings(300, 50_000.0, [1.0, 0.9, 1.1], 3.0, rng, noise_nT=30.0, tilt_deg=15)
+    with pytest.warns(CoverageWarning, match="poor direction coverage"):
+        cov = cv.check_coverage(y, noise_nT=30.0)
+    assert cov.fraction[0] < 0.8
+
+
+@pytest.mark.parametrize("cap_deg, noise_nT", [(35, 30.0), (35, 300.0), (20, 300.0)])
+def test_an_ellipsoid_through_a_cap_is_not_trusted(cap_deg, noise_nT):
+    """A cap of directions does not determine an ellipsoid (its centre slides along the cap's axis): the shape
+    falls back to the quick sphere or the origin, and the cap is not called covered."""
+    rng = np.random.default_rng(cap_deg)
+    u = Rotation.random(4000, random_state=rng).apply([0.0, 0.0, 1.0])
+    u = u[u[:, 2] > np.cos(np.radians(cap_deg))][:400]
+    y = 30_000.0 * u + np.array([40_000.0, 0.0, 0.0]) + rng.normal(0, noise_nT, u.shape)
+    assert cv.field_shape(y).source != "ellipsoid"
+    assert cv.coverage(y).fraction[0] < 0.5
+
+
+def test_the_unit_check_uses_the_fitted_magnitude(tmp_path):
+    """magcal.io.check_units (it calls field_magnitude_nT): no unit warning for a 6x hard iron with 2.2x gains."""
+    from magcal import io
+    from magcal.dataset import Dataset
+    from magcal.errors import DataWarning
+
+    rng = np.random.default_rng(23)
+    y = _mems_readings(2000, 35_700.0, [1.0, 0.67, 1.48], 6.0, rng)
+    ds = Dataset(readings_nT=y[None], source="qmc-like.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        assert io.check_units(ds, "nT") is None
+    with pytest.warns(DataWarning, match="outside the Earth's field range"):
+        io.check_units(ds.replace(readings_nT=0.2 * y[None]), "nT")   # 7 uT: a wrong LSB
+
+
+def test_a_covered_sphere_with_uneven_density_is_not_poor_coverage():
+    """A flight log (ads_flight_rm3100): 99 % of the sphere within 30 deg of a sample, but most samples level;
+    the expected error off the dense directions is a tenth of the noise: 'poor direction coverage' was false."""
+    rng = np.random.default_rng(24)
+    level = readings(tilted(3900, 5, rng), rng)                  # most of the record: near level
+    spread = readings(Rotation.random(100, random_state=rng), rng)
+    y = np.concatenate([level, spread], axis=1)
+    cov = cv.coverage(y, noise_nT=SIGMA)
+    assert np.all(cov.fraction > 0.95)
+    assert np.all(cov.extrapolation_factor > 3 * cov.full_factor) and np.all(cov.extrapolation_factor < 0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CoverageWarning)
+        cv.check_coverage(y, noise_nT=SIGMA)

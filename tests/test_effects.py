@@ -18,16 +18,11 @@ ISSUE_EFFECTS = ("temperature_bias", "temperature_scale", "bias_drift", "bias_st
 UNITS = ("_nT", "_ms", "_ppm_per_K", "_nT_per_K", "_nT_per_h", "_nT_per_m")
 
 
-def _truth(n_sensors):
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:n_sensors]
-    return truth
-
 
 def _pair(name, magnitude=None, n_sensors=1, seed=4, n=600, sensor=None):
     """Noise-free data with and without the effect (same trajectory and temperature)."""
     effect = EFFECTS[name]()
-    truth = _truth(n_sensors)
+    truth = chi2017_truth(n_sensors)
     clean = simulate_timeseries(truth, n_samples=n, noise_nT=0.0, seed=seed)
     pert = simulate_timeseries(truth, n_samples=n, noise_nT=0.0, seed=seed,
                                perturbations=[effect.perturbation(magnitude, sensor)])
@@ -150,7 +145,7 @@ def test_fit_recovers_the_hidden_parameters(name, n_sensors, mult):
     """Units and signs: the fitted parameters equal the simulator's within their standard deviations."""
     effect = EFFECTS[name]()
     magnitude = mult * effect.default_magnitude
-    ds = simulate_timeseries(_truth(n_sensors), n_samples=1200, noise_nT=2.0, seed=7,
+    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=1200, noise_nT=2.0, seed=7,
                              perturbations=[effect.perturbation(magnitude)])
     result = fit(ds, Model.from_names([name], n_sensors))
     for entry in result.effect_params:
@@ -179,7 +174,7 @@ def test_state_survives_json(name):
 
 
 def test_calibration_with_effects_round_trips_through_json(tmp_path):
-    truth = _truth(2)
+    truth = chi2017_truth(2)
     ds = simulate_timeseries(truth, n_samples=800, noise_nT=2.0, seed=3,
                              perturbations=[fx.parse_hidden("bias_step:2=12", 2), fx.parse_hidden("hysteresis", 2)])
     result = fit(ds, Model.from_names(["bias_step:2", "hysteresis", "temperature_bias", "reference_drift"], 2))
@@ -193,7 +188,7 @@ def test_calibration_with_effects_round_trips_through_json(tmp_path):
 
 
 def test_bias_step_time_is_found_by_the_scan():
-    truth = _truth(1)
+    truth = chi2017_truth(1)
     ds = simulate_timeseries(truth, n_samples=1000, noise_nT=3.0, seed=2,
                              perturbations=[fx.parse_hidden("bias_step=15", 1)])
     effect = EFFECTS["bias_step"]()
@@ -265,9 +260,10 @@ def test_sensor_timing_skew_has_no_parameters_for_the_reference_sensor():
         parse_effect("sensor_timing_skew:1", 4)
 
 
-def test_periodic_interference_is_outside_the_catalogue():
-    assert "periodic_interference" not in EFFECTS
-    truth = _truth(1)
+def test_periodic_interference_hides_a_sinusoid_of_the_given_peak():
+    """Its perturbation (the catalogue effect since it learnt the term; tests/test_interference.py fits it)."""
+    assert "periodic_interference" in EFFECTS and not EFFECTS["periodic_interference"].transferable
+    truth = chi2017_truth(1)
     clean = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1)
     pert = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1,
                                perturbations=[fx.periodic_interference(4.0, 0.5)])
@@ -285,7 +281,7 @@ def test_periodic_interference_is_outside_the_catalogue():
 def test_fit_never_returns_a_negative_hysteresis_width(widths_nT, seed):
     """Axes without hysteresis sit at the bound 0 (an unbounded fit puts about half of them below it), and the
     axis with it is still recovered."""
-    ds = simulate_timeseries(_truth(1), n_samples=800, noise_nT=3.0, seed=seed,
+    ds = simulate_timeseries(chi2017_truth(1), n_samples=800, noise_nT=3.0, seed=seed,
                              perturbations=[EFFECTS["hysteresis"]().perturbation(list(widths_nT))])
     result = fit(ds, Model.from_names(["hysteresis"], 1))
     fitted = np.array(list(result.effect_params[0]["params"].values()))
@@ -304,12 +300,12 @@ def test_a_negative_hysteresis_width_is_refused_clearly():
     with pytest.raises(MagcalError, match="shape_half_width_nT of sensor 1"):
         EFFECTS["hysteresis"]().set_state({"shape_half_width_nT": [[-1.0, 0.0, 0.0]]})
     with pytest.raises(MagcalError, match="half-width must be >= 0"):
-        simulate_timeseries(_truth(1), n_samples=100, perturbations=[fx.parse_hidden("hysteresis=-5,0,0", 1)])
+        simulate_timeseries(chi2017_truth(1), n_samples=100, perturbations=[fx.parse_hidden("hysteresis=-5,0,0", 1)])
 
 
 def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
     """A Calibration built by the user (effect_values) and given as the start of a fit."""
-    ds = simulate_timeseries(_truth(1), n_samples=400, noise_nT=3.0, seed=1)
+    ds = simulate_timeseries(chi2017_truth(1), n_samples=400, noise_nT=3.0, seed=1)
     model = Model.from_names(["hysteresis"], 1)
     start = fit(ds).calibration
     start = Calibration(start.sensors, start.reference_total_nT, model=model,
@@ -318,10 +314,8 @@ def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
         fit(ds, model, init=start)
 
 
-@pytest.mark.xfail(strict=True, reason="needs magcal/calibration.py to call Effect.check_params on the values it "
-                                       "loads (requested by effsplit); remove this mark when it does")
 def test_a_calibration_file_with_a_negative_hysteresis_width_is_refused(tmp_path):
-    ds = simulate_timeseries(_truth(1), n_samples=600, noise_nT=3.0, seed=2,
+    ds = simulate_timeseries(chi2017_truth(1), n_samples=600, noise_nT=3.0, seed=2,
                              perturbations=[fx.parse_hidden("hysteresis", 1)])
     path = tmp_path / "cal.json"
     fit(ds, Model.from_names(["hysteresis"], 1)).calibration.save(path)
@@ -342,7 +336,7 @@ def test_a_calibration_file_with_a_negative_hysteresis_width_is_refused(tmp_path
 def test_nonlinearity_is_quoted_at_the_field_of_the_data(name, magnitude, with_reference):
     """In a 10 uT field the coefficient is the deviation at 10 uT (not at 50 uT, which would be 25x / 125x
     larger), known from the reference or, when the field is fitted, from the readings."""
-    truth = _truth(1)
+    truth = chi2017_truth(1)
     truth.total_nT = 10_000.0
     hidden = EFFECTS[name]().perturbation(magnitude)
     ds = simulate_timeseries(truth, n_samples=1200, noise_nT=1.0, seed=7, perturbations=[hidden],
@@ -366,3 +360,59 @@ def test_nonlinearity_without_a_known_field_is_quoted_at_50_uT():
     assert effect.quote_unit() == "nT at 50 uT" and effect.quoted_at_nT == fx.NONLINEARITY_REFERENCE_NT
     with pytest.raises(MagcalError, match="field_magnitude_nT must be a positive number"):
         effect.set_state({"field_magnitude_nT": -3.0})
+
+
+@pytest.mark.parametrize("name, state, message", [
+    ("bias_drift", {"reference_time_s": 5.0, "duration_s": -10.0}, "duration_s must be a positive number"),
+    ("bias_drift", {"reference_time_s": "soon", "duration_s": 10.0}, "reference_time_s must be a finite number"),
+    ("temperature_bias", {"reference_temperature_C": -300.0}, r"reference_temperature_C must be a finite number >= "
+                                                               r"-273.15"),
+    ("bias_step", {"step_time_s": [float("nan")]}, "step_time_s must be a finite number"),
+    ("bias_step", {"step_time_s": 4.0}, "step_time_s must be a list"),
+    ("reference_drift", {"time_span_s": [10.0, 2.0], "offsets": None}, "the last after the first"),
+    ("reference_drift", {"time_span_s": [0.0, 2.0], "offsets": [0.0, 1.0]}, "offsets must be 4 numbers"),
+    ("periodic_interference", {"frequency_hz": [0.0]}, "positive number of Hz"),
+    ("nonlinearity_cubic", {"field_magnitude_nT": 0.0}, "field_magnitude_nT must be a positive number"),
+])
+def test_data_derived_constants_that_are_not_physical_are_refused(name, state, message):
+    with pytest.raises(MagcalError, match=message):
+        EFFECTS[name]().set_state(state)
+
+
+def test_a_calibration_file_with_a_negative_record_length_is_refused(tmp_path):
+    ds = simulate_timeseries(chi2017_truth(1), n_samples=400, noise_nT=3.0, seed=2)
+    path = tmp_path / "cal.json"
+    fit(ds, Model.from_names(["bias_drift"], 1)).calibration.save(path)
+    doc = json.loads(path.read_text())
+    doc["effect_params"][0]["state"]["duration_s"] = -40.0
+    path.write_text(json.dumps(doc))
+    with pytest.raises(MagcalError, match="bias_drift: duration_s must be a positive number"):
+        Calibration.load(path)
+
+
+@pytest.mark.parametrize("name", ["nonlinearity_quadratic", "nonlinearity_cubic"])
+def test_the_report_quotes_a_nonlinearity_at_the_data_field_not_at_50_uT(name):
+    """Issue 10: the cubic term was quoted "at 50 uT" for a field of 8.9 uT."""
+    from magcal import calibrate
+    from magcal.report import text_report
+
+    truth = chi2017_truth(1)
+    truth.total_nT = 8_900.0
+    ds = simulate_timeseries(truth, n_samples=1200, noise_nT=0.5, seed=7,
+                             perturbations=[EFFECTS[name]().perturbation(20.0)])
+    result = calibrate(ds, effects=[name])
+    lines = text_report(result).splitlines()
+    i = next(k for k, line in enumerate(lines) if line.strip().startswith(f"{name} (sensor 1)"))
+    quote = lines[i + 1]
+    assert "an axis reading the whole field of the data, 8.9 uT, is off by" in quote, quote
+    assert "50 uT" not in "\n".join(lines[i:i + 3])
+
+
+@pytest.mark.parametrize("name, values, field_nT, expected", [
+    ("temperature_scale", [100.0, -50.0, 0.0], 35_700.0, "at the data's field 35.7 uT: an axis reading the whole "
+                                                         "field changes by (3.57, -1.78, 0) nT/K"),
+    ("hysteresis", [3.57, 0.0, 35.7], 35_700.0, "loop half-widths (100, 0, 1000) ppm of the data's field 35.7 uT"),
+    ("temperature_bias", [1.0, 2.0, 3.0], 35_700.0, ""),
+])
+def test_field_relative_parameters_are_quoted_at_the_given_field(name, values, field_nT, expected):
+    assert EFFECTS[name]().quote(values, field_nT) == expected

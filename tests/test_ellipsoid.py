@@ -161,3 +161,63 @@ def test_gauge_free_figures_match_truth(chi_data):
     k_true, angles_true = conventions.gauge_free(truth.sensors[3].Cinv)
     assert np.allclose(k, truth.sensors[3].scale, atol=2e-4) and np.allclose(k, k_true, atol=2e-4)
     assert np.allclose(angles, angles_true, atol=0.02)
+
+
+def _turning_record(n, rng, total_nT=50_000.0):
+    """Readings of a sensor turned smoothly through all directions (the turn rate wanders), in time order."""
+    k = np.arange(n)[:, None] + rng.uniform(0, 1000)
+    rate = 0.02 * np.sin(k / np.array([150.0, 230.0, 310.0]) + np.array([0.0, 1.0, 2.0]))  # rad per sample
+    att = [Rotation.identity()]
+    for s in Rotation.from_rotvec(rate[1:]):
+        att.append(s * att[-1])
+    return np.array([a.inv().apply([0.0, 0.0, total_nT]) for a in att])
+
+
+def test_refusal_names_a_centre_that_moves_between_parts():
+    """qmc_noisy-like refusal, with a known cause: the hard iron jumps by 12000 nT halfway through the record."""
+    rng = np.random.default_rng(31)
+    b = _turning_record(4000, rng)
+    y = b @ np.diag([1.05, 0.95, 1.0]).T + np.array([3000.0, -2000.0, 1000.0]) + rng.normal(0, 30.0, b.shape)
+    y[2000:] += np.array([12_000.0, 0.0, 0.0])
+    with pytest.raises(CalibrationError) as exc:
+        fit_ellipsoid(y)
+    text = str(exc.value)
+    assert "do not lie on an ellipsoid" in text and "hard iron or the field at the sensor changed" in text
+    move = float(text.split("centre (hard iron) moves by up to ")[1].split(" nT")[0])
+    assert move == pytest.approx(12_000.0, rel=0.1)
+    assert "own noise accounts for it" not in text
+
+
+def test_refusal_names_the_readings_own_noise():
+    """qmc_noisy: 2 uT of noise per axis on a 36 uT field is 6 % RMS; the message says the noise accounts for it."""
+    rng = np.random.default_rng(32)
+    b = _turning_record(4000, rng, total_nT=36_000.0)
+    y = b + np.array([200_000.0, 8000.0, 115_000.0]) + rng.normal(0, 2000.0, b.shape)
+    with pytest.raises(CalibrationError) as exc:
+        fit_ellipsoid(y)
+    text = str(exc.value)
+    assert "own noise accounts for it" in text and "changed during the record" not in text
+    scatter = float(text.split("the total field scatters by ")[1].split(" nT")[0])
+    assert scatter == pytest.approx(2000.0, rel=0.1)     # isotropic noise: the total field gets sigma too
+
+
+def test_a_lenient_fit_returns_the_best_ellipsoid():
+    rng = np.random.default_rng(33)
+    b = _turning_record(2000, rng, total_nT=36_000.0)
+    y = b + rng.normal(0, 2000.0, b.shape)
+    fit = fit_ellipsoid(y, strict=False)
+    assert fit.field_nT == pytest.approx(36_000.0, rel=0.03)
+    assert np.all(np.abs(fit.bias_nT) < 500.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_refusal_of_a_cap_names_the_coverage(seed):
+    """Flight logs (ap_erlebrain3, px4_sample): a cap of directions gives a hyperboloid or a poor fit; the refusal
+    says how little of the sphere the readings cover."""
+    rng = np.random.default_rng(seed)
+    u = Rotation.random(6000, random_state=rng).apply([0.0, 0.0, 1.0])
+    u = u[u[:, 2] > np.cos(np.radians(20))][:500]
+    y = 50_000.0 * u + rng.normal(0, 500, u.shape)
+    with pytest.raises(CalibrationError, match=r"cover only \d+% of the sphere of directions") as exc:
+        fit_ellipsoid(y)
+    assert "do not lie on an ellipsoid" in str(exc.value)

@@ -41,8 +41,7 @@ def test_recovers_truth_within_cramer_rao(seed, n_sensors):
 
 def test_covariance_matches_scatter_over_seeds():
     """The reported standard deviations agree with the spread of estimates over independent noise."""
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:1]
+    truth = chi2017_truth(1)
     estimates, stds = [], []
     for seed in range(40):
         result = fit(simulate(truth, n_samples=200, noise_nT=3.0, seed=seed))
@@ -136,8 +135,7 @@ def test_information_criteria_prefer_true_model():
 def _timeseries_problem(n_sensors, effects, reference, seed=3, n=400):
     from magcal.simulation import simulate_timeseries
 
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:n_sensors]
+    truth = chi2017_truth(n_sensors)
     ds = simulate_timeseries(truth, n_samples=n, noise_nT=2.0, seed=seed).replace(reference_total_nT=reference)
     model = Model.from_names(list(effects), n_sensors)
     init = crude_initial_calibration(ds)
@@ -251,8 +249,7 @@ def test_hysteresis_shape_is_refined_within_fit(seed):
     from magcal import effects as fx
     from magcal.simulation import simulate_timeseries
 
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:1]
+    truth = chi2017_truth(1)
     ds = simulate_timeseries(truth, n_samples=1500, noise_nT=3.0, seed=seed,
                              perturbations=[fx.parse_hidden("hysteresis=5", 1)])
     base = fit(ds)
@@ -298,8 +295,7 @@ def test_fit_leaves_the_callers_model_unchanged(effect):
     from magcal import effects as fx
     from magcal.simulation import simulate_timeseries
 
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:1]
+    truth = chi2017_truth(1)
     hidden = [fx.EFFECTS[effect]().perturbation(20.0, None)]
     first = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=11, perturbations=hidden)
     second = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=12, perturbations=hidden,

@@ -18,16 +18,11 @@ from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
 N = 3000
 
 
-def _truth(n_sensors):
-    truth = chi2017_truth()
-    truth.sensors = truth.sensors[:n_sensors]
-    return truth
-
 
 @pytest.mark.parametrize("n_sensors", [1, 4])
 @pytest.mark.parametrize("sigma_nT", [0.5, 3.0])
 def test_noise_of_a_fitted_recording_is_the_simulated_sigma(n_sensors, sigma_nT):
-    ds = simulate_timeseries(_truth(n_sensors), n_samples=N, noise_nT=sigma_nT, seed=11)
+    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=N, noise_nT=sigma_nT, seed=11).replace(noise_nT=None)
     fit = calibrate(ds).fit
     noise = estimate_noise(ds, fit.residuals_nT, fit.n_params)
     assert isinstance(noise, NoiseEstimate) and noise.source == "differences"
@@ -42,7 +37,7 @@ def test_noise_of_a_fitted_recording_is_the_simulated_sigma(n_sensors, sigma_nT)
 def test_a_smooth_misfit_does_not_pass_for_noise(n_sensors):
     """Leaving out a temperature effect inflates the residual RMS, not the noise estimate."""
     sigma_nT = 2.0
-    ds = simulate_timeseries(_truth(n_sensors), n_samples=N, noise_nT=sigma_nT, seed=3)
+    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=N, noise_nT=sigma_nT, seed=3).replace(noise_nT=None)
     rng = np.random.default_rng(3)
     t = ds.time_s
     misfit_nT = 20.0 * np.sin(2 * np.pi * t / 60.0) + 6.0 * np.cos(2 * np.pi * t / 17.0)  # slow along the path
@@ -55,9 +50,9 @@ def test_a_smooth_misfit_does_not_pass_for_noise(n_sensors):
     assert np.all(np.sqrt(np.nanmean(residuals_nT**2, axis=1)) > 3 * noise.per_sensor_nT)  # RMS: misfit
 
 
-@pytest.mark.parametrize("declared_nT, source", [(2.0, "dataset"), (None, "residuals")])
+@pytest.mark.parametrize("declared_nT, source", [(2.0, "given"), (None, "residuals")])
 def test_random_attitudes_fall_back_on_the_declared_noise_or_the_residuals(declared_nT, source):
-    ds = simulate(_truth(4), n_samples=800, noise_nT=2.0, seed=4).replace(noise_nT=declared_nT)
+    ds = simulate(chi2017_truth(4), n_samples=800, noise_nT=2.0, seed=4).replace(noise_nT=declared_nT)
     assert not is_smooth_sequence(ds)
     fit = calibrate(ds).fit
     noise = estimate_noise(ds, fit.residuals_nT, fit.n_params)
@@ -68,8 +63,8 @@ def test_random_attitudes_fall_back_on_the_declared_noise_or_the_residuals(decla
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_time_series_is_smooth_and_random_attitudes_are_not(seed):
-    assert is_smooth_sequence(simulate_timeseries(_truth(1), n_samples=500, noise_nT=1.0, seed=seed))
-    assert not is_smooth_sequence(simulate(_truth(1), n_samples=500, noise_nT=1.0, seed=seed))
+    assert is_smooth_sequence(simulate_timeseries(chi2017_truth(1), n_samples=500, noise_nT=1.0, seed=seed))
+    assert not is_smooth_sequence(simulate(chi2017_truth(1), n_samples=500, noise_nT=1.0, seed=seed))
 
 
 @pytest.mark.parametrize("order", [1, 2, 3])

@@ -40,6 +40,10 @@ def test_the_workbench_finds_the_demo_and_the_lessons():
     assert len(lessons.list_lessons()) >= 4
 
 
+#: Packages whose import name is not their distribution's name.
+IMPORT_TO_DISTRIBUTION = {"serial": "pyserial"}
+
+
 def _third_party_imports(folders):
     import ast
     import sys
@@ -52,6 +56,7 @@ def _third_party_imports(folders):
                     names.update(a.name.split(".")[0] for a in node.names)
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                     names.add(node.module.split(".")[0])
+    names = {IMPORT_TO_DISTRIBUTION.get(n, n) for n in names}
     return names - set(sys.stdlib_module_names) - {"magcal", "workbench"}
 
 
@@ -65,11 +70,41 @@ def _project():
     return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
 
 
+def _module_level_imports(folder):
+    """Third-party packages imported at a module's top level (not inside a function) anywhere under ``folder``."""
+    import ast
+
+    names = set()
+    for path in (ROOT / folder).rglob("*.py"):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Import):
+                names.update(a.name.split(".")[0] for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+    return {IMPORT_TO_DISTRIBUTION.get(n, n) for n in names}
+
+
 def test_the_engine_needs_only_the_core_dependencies():
-    """``pip install -e .`` must be enough for magcal itself (the API, the command line), even its lazy imports."""
-    declared = _requirement_names(_project()["dependencies"])
-    missing = _third_party_imports(["magcal"]) - declared
-    assert not missing, f"magcal imports packages that are not core [project] dependencies: {sorted(missing)}"
+    """``pip install -e .`` must be enough for magcal itself (the API, the command line): every package it imports
+    is core, except the ``instruments`` extra's (serial ports, MAVLink, flight logs), which are imported only inside
+    the functions that need them, each with a message naming the extra."""
+    project = _project()
+    core = _requirement_names(project["dependencies"])
+    instruments = _requirement_names(project["optional-dependencies"]["instruments"])
+    imported = _third_party_imports(["magcal"])
+    assert not imported - core - instruments, f"magcal imports undeclared packages: {sorted(imported - core - instruments)}"
+    assert not _module_level_imports("magcal") & instruments, "an instruments package is imported at module level"
+    texts = " ".join(p.read_text(encoding="utf-8") for p in (ROOT / "magcal").rglob("*.py"))
+    assert 'pip install \\"magcal[instruments]\\"' in texts
+
+
+def test_import_magcal_needs_no_optional_package():
+    """``import magcal`` (and its command line) loads none of the workbench's or the instruments' packages."""
+    code = ("import sys, magcal, magcal.cli, magcal.live, magcal.logs, magcal.export; "
+            "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
 
 
 def test_every_package_the_workbench_imports_is_in_its_extra():
@@ -93,8 +128,9 @@ def test_the_workbench_packages_are_not_core_dependencies():
 def test_every_package_the_tests_import_is_a_test_dependency():
     project = _project()
     test = project["optional-dependencies"]["test"]
-    assert "magcal[workbench]" in test  # the tests drive the workbench too
-    declared = _requirement_names(project["dependencies"] + project["optional-dependencies"]["workbench"] + test)
+    assert "magcal[workbench,instruments]" in test  # the tests drive the workbench and the instruments too
+    extras = project["optional-dependencies"]
+    declared = _requirement_names(project["dependencies"] + extras["workbench"] + extras["instruments"] + test)
     local = {p.stem for p in (ROOT / "tests").glob("*.py")}
     missing = _third_party_imports(["tests"]) - declared - local
     assert not missing, f"imported by the tests but not declared: {sorted(missing)}"

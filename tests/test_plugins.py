@@ -26,20 +26,9 @@ AMPLITUDE_NT = 4.0
 
 
 @pytest.fixture(autouse=True)
-def clean_catalogue(monkeypatch):
-    """Every test starts and ends with magcal's own catalogue: a user's effect must not leak into other tests (the
-    diagnosis tests every registered effect)."""
-    before = dict(EFFECTS)
-    monkeypatch.setattr(plugins, "_ORIGINS", {})
-    monkeypatch.setattr(plugins, "_SOURCES", {})
-    monkeypatch.setattr(plugins, "_USER_FILES", set())
-    monkeypatch.setattr(plugins, "_ENTRY_POINTS_LOADED", False)
-    monkeypatch.setattr(importlib.metadata, "entry_points", lambda **kw: [])  # no installed package interferes
-    for name in [n for n in EFFECTS if n not in before]:
-        EFFECTS.pop(name)
+def _own_catalogue(clean_catalogue):
+    """Every test here starts and ends with magcal's own catalogue (tests/conftest.py)."""
     yield
-    EFFECTS.clear()
-    EFFECTS.update(before)
 
 
 @pytest.fixture(scope="module")

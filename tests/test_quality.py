@@ -239,3 +239,131 @@ def test_report_text_shows_notable_findings_and_effects():
     json.dumps(doc)  # plain Python types only (no numpy bools or floats)
     assert len(report.warnings) == 4 and all(w.startswith(f"sensor {s}:") for s, w in zip(range(1, 5),
                                                                                         report.warnings))
+
+
+def _batched_stamps(n, rate_Hz, batch, host_period_s, rng):
+    """Host arrival times of a sensor sampled at ``rate_Hz`` and read ``batch`` samples at a time: each batch
+    arrives ~2 ms apart inside, then the host waits (sf_fullsphere: 77 Hz mean, median interval 3.3 ms)."""
+    t, now, k = [], 0.0, 0
+    while k < n:
+        size = min(batch + int(rng.integers(-1, 2)), n - k)
+        now += max(host_period_s * size / batch * (1 + 0.3 * rng.standard_normal()), 0.0)
+        t.extend(now + 0.002 * np.arange(size) + 0.0003 * rng.random(size))
+        k += size
+    t = np.sort(np.array(t))
+    return t - t[0]
+
+
+def test_batched_stamps_are_named_with_the_mean_rate():
+    """Issue 10 item 2 (sf_fullsphere): 'sample rate 304 Hz, jitter 57 %, 2744 gaps' for 77 Hz arriving in batches."""
+    ds = timeseries(n=3000, seed=8)
+    rng = np.random.default_rng(8)
+    t = _batched_stamps(ds.n_samples, 77.0, 4, 4 / 77.0, rng)
+    report = quality.assess(ds.replace(time_s=t))
+    f = only(report, "sample_rate")
+    mean_rate = (t.size - 1) / (t[-1] - t[0])
+    assert f.values["batched"] and f.severity == "warning"
+    assert f.values["rate_Hz"] == pytest.approx(mean_rate) and mean_rate == pytest.approx(77.0, rel=0.05)
+    assert f.values["median_interval_s"] < 0.004
+    assert "arrive in batches" in f.summary and f"{mean_rate:.4g} Hz on average" in f.summary
+    assert "arrival times" in f.effect
+    gaps = only(report, "gaps")
+    assert gaps.values["count"] < 0.01 * t.size        # the batch-to-batch intervals are not gaps
+
+
+def test_regular_stamps_with_a_few_gaps_are_not_batches():
+    ds = timeseries(n=1000, seed=9)
+    t = ds.time_s.copy()
+    t[500:] += 300.0                             # one long gap carries most of the duration
+    report = quality.assess(ds.replace(time_s=t))
+    f = only(report, "sample_rate")
+    assert not f.values["batched"] and f.values["rate_Hz"] == pytest.approx(10.0)
+    assert "mean rate" in f.summary              # mean and median differ: both are said
+    assert only(report, "gaps").values["count"] == 1
+
+
+@pytest.mark.parametrize("coarse, shift_every, forward", [(5, 8, True), (5, 40, True), (5, 8, False), (4, 15, False)])
+def test_quantization_step_on_a_grid_that_shifts(coarse, shift_every, forward):
+    """Issue 10 item 3 (QMC5883L z): integer counts on a 5-count grid that jumps by 2-3 counts every ~8 levels
+    (mean spacing 5.3 counts). The common step is 1 count, but the readings carry a 5-count quantization.
+    ``forward``: the jumps add to the spacing (5 -> 7, 8, as in the QMC); else the grid's origin moves with
+    the value, which also puts levels 2-3 counts apart."""
+    lsb = 33.3333
+    rng = np.random.default_rng(coarse * 100 + shift_every)
+    if forward:
+        raw = np.round(rng.uniform(-600, 600, 20_000))               # the part's internal integer
+        counts = coarse * raw + np.floor(2.5 * np.floor(raw / shift_every))     # jumps of 2, 3, 2, 3 ... counts
+    else:
+        true = rng.uniform(-3000, 3000, 20_000)
+        origin = np.floor(true / (coarse * shift_every)) * 3
+        counts = coarse * np.round((true - origin) / coarse) + origin
+    x = counts * lsb
+    grid = quality.quantization_grid(x)
+    assert quality.quantization_step(x) == pytest.approx(coarse * lsb, rel=1e-6)
+    # a rare shift (every 40 levels) is tolerated by the common step itself; frequent ones make it 1 count
+    assert grid["common_step_nT"] * grid["spacing_multiple"] == pytest.approx(coarse * lsb, rel=1e-6)
+    assert grid["shift_share"] > 0.01
+    finding = quality.quantization_finding(np.column_stack([x, x, x]), lsb_nT=lsb)
+    assert f"{coarse:g}, {coarse:g}, {coarse:g} LSB" in finding.summary and "grid shifts" in finding.summary
+
+
+@pytest.mark.parametrize("sigma_counts", [0.8, 3.0, 30.0])
+def test_a_fine_grid_sampled_sparsely_keeps_its_step(sigma_counts):
+    """All multiples of the step occur, the smallest most often: the step is not mistaken for a coarser grid."""
+    lsb = 13.3333
+    x = lsb * np.round(np.random.default_rng(3).normal(0, 1500 * sigma_counts / 30, 800))
+    assert quality.quantization_step(x) == pytest.approx(lsb, rel=1e-6)
+
+
+def test_quantization_is_judged_against_the_motion_noise_without_a_still_stretch():
+    """sf_fullsphere: 'WARNING quantization 26.5 nT ... with little noise to dither it' with 150 nT of noise."""
+    ds = timeseries(n=2000, seed=12)
+    rng = np.random.default_rng(12)
+    y = 91.74 * np.round((ds.readings_nT + rng.normal(0, 150.0, ds.readings_nT.shape)) / 91.74)
+    report = quality.assess(ds.replace(readings_nT=y, noise_nT=None))
+    for f in report.find("quantization"):
+        assert f.severity == "info" and "sample-to-sample scatter" in f.effect
+        assert f"well below the {f.effect.split('well below the ')[1].split(' nT')[0]} nT" in f.effect
+    # the scatter of the total field is the noise, whatever the motion (random attitudes here)
+    rnd = simulate("chi2017", n_samples=800, noise_nT=150.0, seed=12)
+    assert quality.total_field_scatter_nT(rnd.readings_nT[0]) == pytest.approx(150.0, rel=0.15)
+
+
+def test_a_field_below_any_geomagnetic_one_says_to_check_the_lsb():
+    """qmc_filtered read at 12000 LSB/G: a fitted field of 8.9 uT."""
+    f = quality.field_magnitude_finding(8_900.0)
+    text = f.message("qmc.csv")
+    assert "fitted field 8.9 uT is below any geomagnetic field" in text and "check --units / --lsb" in text
+    assert "above any geomagnetic field" in quality.field_magnitude_finding(250_000.0).summary
+
+
+def test_every_finding_says_what_it_does_to_the_fit_and_survives_json():
+    ds = timeseries(n=1200, seed=13)
+    report = quality.assess(ds.replace(temperature_C=20.0 + 0.01 * ds.time_s, source="x.csv"))
+    report.add(quality.field_magnitude_finding(9_000.0))
+    for f in report.findings:
+        assert f.effect and f.effect != "nothing" and not f.effect.endswith(".")
+    doc = json.loads(json.dumps(report.to_dict()))
+    back = quality.QualityReport.from_dict(doc)
+    assert back.to_dict() == doc and back.warnings == report.warnings and back.section() == report.section()
+
+
+@pytest.mark.parametrize("lag_nT_per_deg_s, severity", [(0.0, "info"), (2.0, "warning")])
+def test_residual_growing_with_the_turn_rate(lag_nT_per_deg_s, severity):
+    """qmc_filtered: residual RMS 881 -> 1110 nT from the slowest to the fastest turn-rate quartile."""
+    rng = np.random.default_rng(14)
+    n = 4000
+    t = np.arange(n) / 50.0
+    rate_deg_s = 200.0 * (1.0 + np.sin(2 * np.pi * t / 20.0)) + 5.0          # 5 to 405 deg/s, slowly varying
+    angle = np.radians(np.cumsum(rate_deg_s) / 50.0)
+    u = np.column_stack([np.cos(angle), np.sin(angle), 0.3 * np.sin(angle / 7)])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    true_rate = np.degrees(np.r_[np.nan, np.arccos(np.clip(np.einsum("ij,ij->i", u[1:], u[:-1]), -1, 1))]) * 50.0
+    r = rng.normal(0, 300.0, n) + lag_nT_per_deg_s * rng.choice([-1.0, 1.0], n) * np.nan_to_num(true_rate)
+    f = quality.turn_rate_finding(u, r, t, sensor=1)
+    assert f.kind == "turn_rate" and f.severity == severity and "deg/s" in f.summary
+    rms = f.values["rms_nT"]
+    if severity == "warning":
+        assert rms[3] > 1.2 * rms[0] and f.values["spearman_rho"] > 0 and "timing" in f.effect
+    else:
+        assert max(rms) < 1.1 * min(rms)

@@ -135,3 +135,23 @@ def test_cli_arguments_round_trip(ds):
     args = parser.parse_args(["--reference", "igrf", "--lat", "36", "--lon", "120", "--date", "2020-01-01"])
     assert ref.reference_from_args(args).kind == "igrf"
     assert ref.reference_from_args(parser.parse_args([]), ds).kind == "metadata"
+
+
+def test_reference_check_goes_through_the_fitted_shape():
+    """Issue 10: with a hard iron 6x the field and gains differing 2.2x (QMC5883L) the field the readings imply is
+    the fitted one; the raw magnitude (or a sphere about the origin) read '+166 % above IGRF'."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    from magcal.dataset import Dataset
+
+    rng = np.random.default_rng(3)
+    b = Rotation.random(2000, random_state=rng).apply([0.0, 0.0, 23_000.0])
+    y = b @ np.diag([1.0, 0.67, 1.48]).T + 6 * 23_000.0 * np.array([0.85, 0.03, 0.52]) + rng.normal(0, 300, b.shape)
+    ds = Dataset(readings_nT=y[None], source="qmc-like.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        ref.resolve_reference(ds, "23000")
+    with pytest.warns(DataWarning, match=r"differs from the reference 46000 nT by -50%"):
+        ref.resolve_reference(ds, "46000")

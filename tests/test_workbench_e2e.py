@@ -2,8 +2,11 @@
 
 The test starts the workbench itself on 127.0.0.1 (port 0), opens the page, waits for the connection, runs a
 fit from a click and checks the shown RMS changes, shift-drags a box over the scene and checks the rejected
-count changes, and keeps a screenshot under ``test-artifacts/``. Without chromium or playwright it skips with the
-reason, unless ``MAGCAL_REQUIRE_BROWSER=1`` (CI), where it fails.
+count changes, and keeps a screenshot under ``test-artifacts/``. Issue 14: a CSV whose header or file name holds
+``<script>``, ``<img onerror>`` or ``<svg onload>`` is uploaded through the page and runs nothing (window flags stay
+unset, no such element appears), and a page served from another origin cannot open the workbench's websocket.
+Scenes are kept small (software WebGL is slow) and every wait is bounded. Without chromium or playwright the tests
+skip with the reason, unless ``MAGCAL_REQUIRE_BROWSER=1`` (CI), where they fail.
 """
 
 from __future__ import annotations
@@ -165,3 +168,106 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
     assert len(workbench.server.get_clients()) == 2
     other.close()
     page.close()
+
+
+#: Each payload sets a window flag if the page ever runs it.
+PAYLOADS = {
+    "img": '<img src=x onerror="window.__magcal_pwned_img=1">',
+    "script": "<script>window.__magcal_pwned_script=1</script>",
+    "svg": '<svg onload="window.__magcal_pwned_svg=1">',
+}
+FLAGS = ["__magcal_pwned_img", "__magcal_pwned_script", "__magcal_pwned_svg"]
+
+
+def _upload_in_page(page, name: str, content: bytes) -> None:
+    """Choose a file in the page's upload button, as a user would (the browser sends it over the websocket)."""
+    page.get_by_role("tab", name="Files").click(timeout=30_000)
+    with page.expect_file_chooser(timeout=30_000) as chooser:
+        page.get_by_text("Open a CSV file").click(timeout=30_000)
+    chooser.value.set_files(files=[{"name": name, "mimeType": "text/csv", "buffer": content}])
+
+
+def _no_flag(page) -> bool:
+    return page.evaluate(f"() => {FLAGS!r}.every(f => window[f] === undefined)")
+
+
+@pytest.fixture
+def small_workbench(tmp_path):
+    from workbench.app import Workbench
+
+    ds = magcal.simulate("chi2017", n_samples=40, seed=1)
+    path = tmp_path / "small.csv"
+    mio.write_csv(path, ds)
+    wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0, store=None)
+    try:
+        yield wb
+    finally:
+        wb.stop()
+
+
+@pytest.mark.parametrize("where", ["header", "file name"])
+def test_a_hostile_csv_header_or_file_name_runs_nothing(browser, small_workbench, where):
+    """Issue 14: a CSV someone sent you must not run their script in your page, whether the reader echoes its
+    header in an error or the page shows its name."""
+    page = _open(browser, small_workbench.port)
+    assert _no_flag(page)
+    hostile = " ".join(PAYLOADS.values())
+    if where == "header":
+        name, content = "header.csv", f"{hostile},s1y,s1z\n1,2,3\n".encode()
+        shown = PAYLOADS["img"]
+    else:
+        name, content = f"{PAYLOADS['img']}{PAYLOADS['svg']}.csv", b"s1x,s1y,s1z\n1,2\n"
+        shown = PAYLOADS["svg"]
+    _upload_in_page(page, name, content)
+    assert small_workbench.worker.wait(60)
+    # the message shows the hostile text as text (escaped), and the flags stay unset
+    page.wait_for_function("(t) => document.body.innerText.includes(t)", arg=shown, timeout=60_000)
+    page.wait_for_timeout(1500)  # let an injected image fail to load (its onerror would fire now)
+    assert _no_flag(page)
+    assert page.locator("img[src='x']").count() == 0 and page.locator("svg[onload]").count() == 0
+    assert "**Error:**" in small_workbench.ctrl.message
+    page.close()
+
+
+def test_a_page_from_another_origin_cannot_open_the_websocket(browser, small_workbench):
+    """Issue 14: a web page the user visits (here served from another port of this machine) tries to open the
+    workbench's websocket: the browser sends the page's Origin, the handshake is refused, no message arrives."""
+    import http.server
+    import threading
+
+    import viser
+
+    port = small_workbench.port
+    hostile = f"""<!doctype html><title>evil</title><script>
+      window.result = {{open: false, messages: 0, done: false}};
+      const ws = new WebSocket("ws://127.0.0.1:{port}", ["viser-v{viser.__version__}"]);
+      ws.onopen = () => {{ window.result.open = true; }};
+      ws.onmessage = () => {{ window.result.messages += 1; }};
+      ws.onerror = ws.onclose = () => {{ window.result.done = true; }};
+    </script>""".encode()
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.end_headers()
+            self.wfile.write(hostile)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{httpd.server_address[1]}/", wait_until="load", timeout=30_000)
+        page.wait_for_function("() => window.result.done", timeout=30_000)
+        assert page.evaluate("() => window.result") == {"open": False, "messages": 0, "done": True}
+        assert len(small_workbench.server.get_clients()) == 0
+        # the workbench's own page still connects
+        own = _open(browser, port)
+        assert len(small_workbench.server.get_clients()) == 1
+        own.close()
+        page.close()
+    finally:
+        httpd.shutdown()

@@ -8,15 +8,23 @@ demo (``assets/demo.csv``). It binds to 127.0.0.1 unless another host is asked f
 A user's own effects (:mod:`magcal.plugins`) join the catalogue at start -- installed packages' entry points and
 every ``--effects-file`` -- or later from the Model tab; the session remembers the files and loads them again when
 it reopens. A damaged session file is moved aside and the data open afresh.
+
+Hostile pages and careless input (issue 14): only the app's own page may open its websocket
+(:mod:`workbench.guard`); every value a browser sends is checked against what the server offers before it is read
+or saved (:meth:`Workbench.check_value`); every callback, pointer events included, goes through
+:meth:`Workbench.handle`; a job fits the mask it started with and a rejection made meanwhile is refitted after it;
+uploads are bounded (``--max-upload-mb``), the session folder too (``--max-sessions-mb``), and a large file is
+drawn decimated (``--max-points``) and fitted whole.
 """
 
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import sys
+import os
 import threading
 import time
+import traceback
 
 import numpy as np
 
@@ -25,23 +33,35 @@ from magcal.errors import MagcalError
 from . import scene as scn
 from .controller import (MESSAGE_LEN, Controller, error_markdown, load_dataset, load_session_effects,
                          read_bytes_dataset)
+from .guard import LOOPBACK_NAMES, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
 from .lessons import DEMO, get_lesson
-from .markup import clean_text, safe_code, safe_text
-from .session import SessionStore
+from .markup import clean_text, error_text, hide_paths, safe_code, safe_text
+from .session import MAX_STORE_BYTES, SessionStore
 from .sessionfile import SessionFileError
 from .state import SessionState
 
-LOOPBACK = ("127.0.0.1", "localhost", "::1")
+LOOPBACK = LOOPBACK_NAMES
+#: Default upload limit, MB (``--max-upload-mb``).
+DEFAULT_MAX_UPLOAD_MB = 100.0
+#: Longest text a text box may hold, characters (a path).
+MAX_TEXT_CHARS = 4096
+#: Longest uploaded file name kept, characters (the rest is cut; a file system allows 255 bytes).
+MAX_NAME_CHARS = 120
 
 
-def is_loopback(host: str) -> bool:
-    if host in LOOPBACK:
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+def clean_upload_name(name) -> str:
+    """An uploaded file's name made safe to show and to key a session: its last path part, control characters
+    removed, cut to :data:`MAX_NAME_CHARS`; ``upload.csv`` when nothing usable is left (``..``, ``.``, empty)."""
+    text = clean_text(name if isinstance(name, str) else "", 4 * MAX_NAME_CHARS)
+    base = text.replace("\\", "/").rsplit("/", 1)[-1].strip()
+    if base.strip(".") == "":
+        return "upload.csv"
+    if len(base) > MAX_NAME_CHARS:
+        stem, dot, ext = base.rpartition(".")
+        ext = ext if dot and len(ext) <= 8 else ""
+        base = base[:MAX_NAME_CHARS - len(ext) - 1].rstrip() + ("." + ext if ext else "")
+    return base
 
 
 class Workbench:
@@ -63,16 +83,21 @@ class Workbench:
         Reopen the saved session of the same data if there is one.
     effects_files : sequence of str, optional
         The user's effect files already loaded (``--effects-file``); every session opened remembers them.
+    max_upload_mb : float
+        Largest file the page may upload, MB (10^6 bytes); a larger one is refused with a message.
+    max_points : int
+        Most points drawn per cloud (one sensor's raw or corrected readings); larger data are shown decimated
+        (:func:`workbench.scene.level_of_detail`), every sample is still fitted and selectable.
     """
 
     def __init__(self, dataset, host: str = "127.0.0.1", port: int = 8080, store: SessionStore | None = None,
                  content: bytes | None = None, name: str = "data.csv", resume: bool = True, lesson: str | None = None,
-                 verbose: bool = False, effects_files=()):
-        import os
-
-        import viser
-
-        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+                 verbose: bool = False, effects_files=(), max_upload_mb: float = DEFAULT_MAX_UPLOAD_MB,
+                 max_points: int = scn.MAX_POINTS):
+        self.max_upload_bytes = int(max_upload_mb * 1e6)
+        self._refit_pending = False
+        self._pending_lock = threading.Lock()
+        self.server = guarded_viser_server(host, port, verbose)  # refuses other pages' websockets
         #: Whether the page may load effect files (it runs their code): only when served to this machine.
         self.local = is_loopback(host)
         self.effects_files = [os.path.abspath(p) for p in effects_files]
@@ -83,14 +108,17 @@ class Workbench:
         self.evidence_plot = None
         self._scene_lock = threading.RLock()
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
-        self.scene_view = scn.SceneView(self.server)
+        self.scene_view = scn.SceneView(self.server, max_points=max_points)
         from .panels import Panels
 
         self.panels = Panels(self)
+        self._ranges = self._offered_ranges()
+        self._watch_upload_sizes()
         self.worker.on_busy_change(self._busy_changed)
-        self.server.scene.on_click()(self._on_click)
-        self.server.scene.on_rect_select(modifier="shift")(self._on_rect_select)
-        self.server.on_client_connect(self._on_connect)
+        # pointer events go through the error handler like every widget's callback
+        self.server.scene.on_click()(lambda event: self.handle(self._on_click, event))
+        self.server.scene.on_rect_select(modifier="shift")(lambda event: self.handle(self._on_rect_select, event))
+        self.server.on_client_connect(lambda client: self.handle(lambda _: self._on_connect(client), None))
         self.server.scene.set_up_direction("+z")
         self._attach(self.ctrl)
         self.redraw()
@@ -108,6 +136,8 @@ class Workbench:
         sid, state, notes = None, None, []
         if self.store is not None and content is not None:
             sid = self.store.create(name, content)
+            notes += [f"the session folder is bounded to {self.store.max_bytes / 1e6:g} MB: deleted the oldest "
+                      f"session {old} ({size / 1e6:.1f} MB)" for old, size in self.store.pruned]
             if resume and self.store.exists(sid):
                 state, note = self._read_session(sid, dataset)
                 if note:
@@ -138,14 +168,14 @@ class Workbench:
             return self.store.load(sid, expect=(dataset.n_samples, dataset.n_sensors)), None
         except SessionFileError as exc:
             try:
-                moved = f"moved aside to {self.store.set_aside(sid)}"
+                moved = f"moved aside to {self.store.set_aside(sid).name}"
             except OSError as err:
                 moved = f"could not be moved aside ({err.strerror or err})"
             note = f"the saved session {sid} is damaged ({exc}); {moved}; starting afresh"
         except OSError as exc:
             note = f"the saved session {sid} could not be read ({exc.strerror or exc}); starting afresh"
         print(f"magcal-workbench: {clean_text(note, MESSAGE_LEN)}", file=sys.stderr)
-        return None, note
+        return None, hide_paths(note)
 
     def _say_after_load(self, text: str) -> None:
         """Say ``text`` (markdown, escaped) and keep what opening the session had to say."""
@@ -157,6 +187,7 @@ class Workbench:
 
     def load(self, dataset, content: bytes | None, name: str, resume: bool = True, lesson: str | None = None):
         """Replace the data (upload, lesson, reopened session); the scene and panels follow."""
+        self._refit_pending = False  # a refit asked for on the old data
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
         self._attach(self.ctrl)
         self.scene_view.clear()
@@ -191,6 +222,22 @@ class Workbench:
 
     def _busy_changed(self, busy: bool, name) -> None:
         self.panels.set_busy(busy, name)
+        if not busy and self._refit_pending:
+            # the worker calls this before it is idle: start the refit from another thread once it is
+            threading.Thread(target=self._run_pending_refit, name="workbench-pending-refit", daemon=True).start()
+
+    def _run_pending_refit(self) -> None:
+        """The refit asked for while a job ran (a rejection during a fit), now that the job has ended."""
+        self.worker.wait()
+        with self._pending_lock:
+            if not self._refit_pending:
+                return
+            self._refit_pending = False
+            ctrl = self.ctrl
+            if ctrl.calibration is None or not self.panels.auto_refit.value:
+                return
+            if not ctrl.submit_job("refit", ctrl.step_refine):
+                self._refit_pending = True  # another job started first: its end starts the refit
 
     # ------------------------------------------------------------------------------------------------------
     # scene
@@ -210,7 +257,8 @@ class Workbench:
                 bias_nT=None if cal is None else cal.sensors[s].bias_nT,
                 R=None if cal is None else cal.sensors[s].R))
         return scn.SceneModel(
-            sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.kept, floor_nT=ctrl.floor_nT(),
+            sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.state.kept,  # live, even in a job
+            floor_nT=ctrl.floor_nT(),
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
             inspected=ctrl.inspected, **self.panels.view_options())
@@ -276,13 +324,11 @@ class Workbench:
 
     def select_in_rect(self, wxyz, position, fov, aspect, screen_min, screen_max) -> int:
         """Reject (or restore, by the panel's mode) the samples whose shown points fall in a screen box."""
-        d = self.scene_view.displayed
-        inside = scn.points_in_rect(d.positions, wxyz, position, fov, aspect, screen_min, screen_max)
-        samples = np.unique(d.samples[inside])
+        samples = self.scene_view.samples_in_rect(wxyz, position, fov, aspect, screen_min, screen_max)
         if samples.size == 0:
             self.ctrl.say("the box holds no point")
             return 0
-        n = self.ctrl.select(samples, self.panels.box_mode.value)
+        n = self.ctrl.select(samples, self.check_value(self.panels.box_mode))
         self._maybe_refit()
         return n
 
@@ -290,25 +336,115 @@ class Workbench:
     # GUI callbacks (the panels wire them where the widgets are made; every one goes through handle)
     # ------------------------------------------------------------------------------------------------------
     def handle(self, func, event, *args):
-        """Run a callback; an engine error becomes the message (and a toast in the browser that caused it)."""
+        """Run a callback; an engine error becomes the message (and a toast in the browser that caused it).
+
+        The widget that changed (``event.target``) is checked first (:meth:`check_value`): a value the page
+        could not have offered is refused before anything reads or saves it."""
         try:
+            target = getattr(event, "target", None)
+            if target is not None:
+                self.check_value(target)
             func(event, *args)
         except MagcalError as exc:
             self.ctrl.say(error_markdown(exc))
             client = getattr(event, "client", None)
             if client is not None:  # a toast shows plain text: only cut to length
-                client.add_notification("magcal", clean_text(exc, 300), color="red", auto_close_seconds=8.0)
+                client.add_notification("magcal", clean_text(error_text(exc), 300), color="red",
+                                        auto_close_seconds=8.0)
         except Exception as exc:  # never let a callback die silently (error_markdown logs the traceback)
             self.ctrl.say(error_markdown(exc))
 
     def _job(self, name, func) -> bool:
         return self.ctrl.run_job(name, func)
 
+    # ------------------------------------------------------------------------------------------------------
+    # values from the page: a browser may send any value for any widget (viser checks none); they are checked
+    # against what the server offers -- the session folder, the lessons, the diagnosis, the data -- never
+    # against the widget's own options or range, which a client may change too
+    # ------------------------------------------------------------------------------------------------------
+    def _offered_ranges(self) -> dict:
+        """``id(widget) -> (min, max)`` of every slider and number as the panels made them."""
+        import viser
+
+        return {id(h): (h.min, h.max) for h in vars(self.panels).values()
+                if isinstance(h, (viser.GuiSliderHandle, viser.GuiNumberHandle))}
+
+    def allowed_choices(self, handle) -> tuple:
+        """The values a dropdown may hold: what the server offers for it now (its first one is the default)."""
+        from .controller import candidate_label
+        from .lessons import list_lessons
+        from .panels import Panels
+        from .state import METHODS
+
+        p, ctrl = self.panels, self.ctrl
+        if handle is p.session_choice:
+            ids = tuple(s["id"] for s in self.store.list()) if self.store is not None else ()
+            return ids + ("-",)
+        if handle is p.lesson_choice:
+            return tuple(l.slug for l in list_lessons()) or ("-",)
+        if handle is p.candidate_choice:
+            cands = ctrl.diagnosis.candidates if ctrl.diagnosis is not None else []
+            return tuple(dict.fromkeys(candidate_label(c) for c in cands)) + ("-",)
+        if handle is p.sensor_choice:
+            return Panels._sensor_options(ctrl.dataset.n_sensors)
+        if handle is p.method:
+            return tuple(METHODS)
+        if handle is p.box_mode:
+            return ("reject", "restore")
+        return tuple(handle.options)
+
+    def check_value(self, handle):
+        """The value of ``handle`` if the page could have sent it, else a :class:`MagcalError` saying so (and the
+        widget is put back to the state's value or the first choice, so every browser shows a valid one).
+
+        Checked: a dropdown's value is one of :meth:`allowed_choices`; a slider's or number's is a finite number
+        within the range it was made with; a text is at most :data:`MAX_TEXT_CHARS` characters."""
+        import math
+
+        import viser
+
+        value = handle.value
+        label = clean_text(getattr(handle, "label", "value"), 60)
+        if isinstance(handle, viser.GuiDropdownHandle):
+            allowed = self.allowed_choices(handle)
+            if value not in allowed:
+                self._put_back(handle, allowed[0])
+                raise MagcalError(f"{label}: {clean_text(repr(value), 60)} is not one of the choices offered; "
+                                  "refused (nothing was read or saved)")
+        elif isinstance(handle, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
+            lo, hi = self._ranges.get(id(handle), (None, None))
+            ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                  and (lo is None or value >= lo) and (hi is None or value <= hi))
+            if not ok:
+                good = lo if lo is not None else 0.0
+                if isinstance(value, (int, float)) and math.isfinite(value):
+                    good = min(max(value, lo if lo is not None else value), hi if hi is not None else value)
+                self._put_back(handle, good)
+                span = f"{'-inf' if lo is None else f'{lo:g}'} ... {'inf' if hi is None else f'{hi:g}'}"
+                raise MagcalError(f"{label}: {clean_text(repr(value), 40)} is outside {span}; refused")
+        elif isinstance(handle, viser.GuiTextHandle):
+            if not isinstance(value, str) or len(value) > MAX_TEXT_CHARS:
+                self._put_back(handle, "")
+                raise MagcalError(f"{label}: a text of at most {MAX_TEXT_CHARS} characters; refused")
+        return value
+
+    def _put_back(self, handle, default) -> None:
+        for bound, shown in getattr(self.panels, "_bindings", ()):
+            if bound is handle:
+                default = shown()
+                break
+        try:
+            handle.value = default
+        except Exception:  # a widget that refuses even that: leave it, the value was refused anyway
+            traceback.print_exc()
+
     # view
     def set_sensor(self, choice: str) -> None:
         """Show one sensor (``"sensor 2"``) or all of them (the panels' sensor choice)."""
         from .panels import ALL_SENSORS
 
+        if choice not in self.allowed_choices(self.panels.sensor_choice):
+            raise MagcalError(f"no sensor choice {clean_text(repr(choice), 40)}; refused")
         self.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
         self.update_scene()
         self.reset_cameras()
@@ -318,29 +454,48 @@ class Workbench:
         self.panels.legend.content = self.legend_html()
 
     # engine steps
+    def _check_readings(self) -> None:
+        """Refuse an engine step on a sensor whose kept readings are all one vector (a zero-filled file, a
+        disconnected sensor): no fit or diagnosis can say anything true about them."""
+        ctrl = self.ctrl
+        kept = ctrl.kept
+        for s, r in enumerate(ctrl.dataset.readings_nT):
+            r = r[kept]
+            if r.shape[0] and np.all(r == r[0]):
+                raise MagcalError(
+                    f"sensor {s + 1}: every kept reading is the same vector ({', '.join(f'{v:g}' for v in r[0])}) "
+                    "nT, so the data hold no field measurement to fit or diagnose (a zero-filled file or a "
+                    "disconnected sensor?); check the sensor's output")
+
     def do_ellipsoid(self, event):
+        self._check_readings()
         self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
 
     def do_align(self, event):
+        self._check_readings()
         self._job("align sensors", self.ctrl.step_align)
 
     def do_refine(self, event):
+        self._check_readings()
         self._job("refine", self.ctrl.step_refine)
 
     def do_calibrate(self, event):
+        self._check_readings()
         self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
 
     def do_diagnose(self, event):
+        self._check_readings()
         self._job("diagnose", self.ctrl.step_diagnose)
 
     def do_add(self, event):
-        choice = self.panels.candidate_choice.value
+        self._check_readings()
+        choice = self.check_value(self.panels.candidate_choice)
         label = None if choice == "-" else choice
         self._job("add effect", lambda: self.ctrl.step_add(label))
 
     # outliers
     def do_threshold(self, event):
-        self.ctrl.reject_threshold(float(self.panels.k_sigma.value))
+        self.ctrl.reject_threshold(float(self.check_value(self.panels.k_sigma)))
         self._maybe_refit()
 
     def do_undo(self, event):
@@ -357,10 +512,19 @@ class Workbench:
 
     def _maybe_refit(self):
         if self.panels.auto_refit.value and self.ctrl.calibration is not None:
-            if self.ctrl.worker.busy:
-                self.ctrl.say(f"{self.ctrl.message}; refit skipped while {self.ctrl.worker.current} runs")
+            with self._pending_lock:
+                busy = self.ctrl.worker.busy or self._refit_pending
+                if busy:
+                    self._refit_pending = True  # applied after the running job, with this change
+            if busy:
+                self.ctrl.say(f"{self.ctrl.message}; the refit follows when "
+                              f"{safe_text(self.ctrl.worker.current or 'the running step')} ends")
                 return
-            self._job("refit", self.ctrl.step_refine)
+            if not self.ctrl.submit_job("refit", self.ctrl.step_refine):
+                with self._pending_lock:  # a job started in between: the refit follows it
+                    self._refit_pending = True
+                if not self.worker.busy:  # ... unless it has already ended
+                    threading.Thread(target=self._run_pending_refit, daemon=True).start()
 
     # files
     def _download(self, event, filename: str, content: bytes):
@@ -375,11 +539,46 @@ class Workbench:
     def do_download_corrected(self, event):
         self._download(event, "corrected.csv", self.ctrl.corrected_csv())
 
+    def _watch_upload_sizes(self) -> None:
+        """Refuse an upload over the limit when it starts (the browser declares its size), before its parts
+        are buffered in memory. viser keeps an upload's parts in ``gui._current_file_upload_states`` (no public
+        hook): dropping the entry makes viser ignore the parts that follow. :meth:`do_upload` checks the size
+        again in any case."""
+        from viser import _messages
+
+        gui = self.server.gui
+        if not hasattr(gui, "_current_file_upload_states"):
+            return  # another viser: the check after the upload still refuses it
+
+        def started(client_id, message) -> None:
+            if message.source_component_uuid != self.panels.upload._impl.uuid:
+                return
+            if message.size_bytes <= self.max_upload_bytes:
+                return
+            gui._current_file_upload_states.pop(message.transfer_uuid, None)
+            text = (f"{clean_upload_name(message.filename)}: {message.size_bytes / 1e6:.1f} MB is more than the "
+                    f"upload limit of {self.max_upload_bytes / 1e6:g} MB; refused")
+
+            def tell():  # off viser's event loop, like every callback
+                self.ctrl.say(f"**Error:** {safe_text(text)}")
+                client = self.server.get_clients().get(client_id)
+                if client is not None:
+                    client.add_notification("magcal", text, color="red", auto_close_seconds=8.0)
+
+            threading.Thread(target=tell, name="workbench-upload-refused", daemon=True).start()
+
+        self.server._websock_server.register_handler(_messages.FileTransferStartUpload, started)
+        self._upload_started = started
+
     def do_upload(self, event):
         up = self.panels.upload.value
-        name, content = up.name or "upload.csv", up.content
+        name, content = clean_upload_name(up.name), up.content
         if not content:
             raise MagcalError(f"{name}: the file is empty")
+        if len(content) > self.max_upload_bytes:
+            raise MagcalError(f"{name}: {len(content) / 1e6:.1f} MB is more than the upload limit of "
+                              f"{self.max_upload_bytes / 1e6:g} MB; open it from the command line "
+                              "(magcal-workbench FILE.csv) or start the workbench with a larger --max-upload-mb")
 
         def job():
             ds, notes = read_bytes_dataset(name, content)
@@ -390,7 +589,7 @@ class Workbench:
         self._job("open file", job)
 
     def do_reopen(self, event):
-        sid = self.panels.session_choice.value
+        sid = self.check_value(self.panels.session_choice)
         if self.store is None or sid in ("-", None):
             raise MagcalError("no saved session chosen")
 
@@ -403,12 +602,25 @@ class Workbench:
                 lesson = self.store.load(sid).lesson
             except (SessionFileError, OSError):
                 lesson = None  # opening it says what is wrong and moves it aside
-            ds, _ = load_dataset(path)
+            ds, _ = load_dataset(path, f"{sid}/{path.name}")  # messages name the session, not the server's path
             content = path.read_bytes()
             self.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=lesson)
             self._say_after_load(f"reopened session {safe_code(sid)}")
 
         self._job("reopen session", job)
+
+    def do_delete_session(self, event):
+        """Delete the chosen saved session's folder (not the one open now)."""
+        sid = self.check_value(self.panels.session_choice)
+        if self.store is None or sid in ("-", None):
+            raise MagcalError("no saved session chosen")
+        if sid == self.ctrl.session_id:
+            raise MagcalError(f"session {sid} is the one open; open other data first, or use Start this data "
+                              "afresh")
+        freed = self.store.size_bytes(sid)
+        self.store.delete(sid)
+        self.panels.refresh_sessions()
+        self.ctrl.say(f"deleted session {safe_code(sid)} ({freed / 1e6:.1f} MB)")
 
     def do_fresh(self, event):
         ctrl = self.ctrl
@@ -426,11 +638,11 @@ class Workbench:
 
     # lessons
     def do_open_lesson(self, event):
-        slug = self.panels.lesson_choice.value
+        slug = self.check_value(self.panels.lesson_choice)
         lesson = _get_lesson(slug)
 
         def job():
-            ds, _ = load_dataset(lesson.data_path)
+            ds, _ = load_dataset(lesson.data_path, f"lesson {slug}")
             content = lesson.data_path.read_bytes()
             self.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
             self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
@@ -464,7 +676,7 @@ class Workbench:
         if not self.local:
             raise MagcalError("loading an effects file runs its Python code on the server; it is allowed only when "
                               "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead")
-        path = self.panels.effects_path.value
+        path = self.check_value(self.panels.effects_path)
         self._job("load effects file", lambda: self.ctrl.load_effects_file(path))
 
 
@@ -497,6 +709,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
     p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
     p.add_argument("--lesson", default=None, help="open a lesson by name (see assets/lessons)")
+    p.add_argument("--max-upload-mb", type=float, default=DEFAULT_MAX_UPLOAD_MB, metavar="MB",
+                   help=f"largest file the page may upload, MB (default {DEFAULT_MAX_UPLOAD_MB:g})")
+    p.add_argument("--max-sessions-mb", type=float, default=MAX_STORE_BYTES / 1e6, metavar="MB",
+                   help="bound of the session folder, MB: the oldest sessions are deleted to stay within it "
+                        f"(default {MAX_STORE_BYTES / 1e6:g})")
+    p.add_argument("--max-points", type=int, default=scn.MAX_POINTS, metavar="N",
+                   help=f"most points drawn per sensor's cloud; larger files are shown decimated, fitted whole "
+                        f"(default {scn.MAX_POINTS})")
     p.add_argument("--effects-file", action="append", default=[], metavar="PATH",
                    help="a Python file defining your own effects (runs its code; repeat for several files); "
                         "docs/user-effects.md")
@@ -516,7 +736,7 @@ def main(argv=None) -> int:
         print(f"magcal-workbench: {w.message}", file=sys.stderr)
     try:
         plugins.load_effects_files(args.effects_file)
-        store = None if args.no_session else SessionStore(args.session_dir)
+        store = None if args.no_session else SessionStore(args.session_dir, int(args.max_sessions_mb * 1e6))
         lesson = None
         if args.lesson:
             try:
@@ -536,17 +756,17 @@ def main(argv=None) -> int:
         warning = host_warning(args.host)
         if warning:
             print(f"magcal-workbench: {warning}", file=sys.stderr)
-        import os
-
+        if not args.max_upload_mb > 0 or args.max_points < 1:
+            raise MagcalError("--max-upload-mb and --max-points must be positive")
         wb = Workbench(dataset, args.host, args.port, store, content, os.path.basename(str(path)),
-                       resume=not args.fresh, lesson=lesson, effects_files=args.effects_file)
+                       resume=not args.fresh, lesson=lesson, effects_files=args.effects_file,
+                       max_upload_mb=args.max_upload_mb, max_points=args.max_points)
         if lesson:
             wb.panels.lesson_guide.content = f"### {lesson_obj.title}\n\n{lesson_obj.guide()}"
     except MagcalError as exc:
         print(f"magcal-workbench: {exc}", file=sys.stderr)
         return 2
-    print(f"magcal-workbench: open http://{args.host if args.host != '0.0.0.0' else '127.0.0.1'}:{wb.port} "
-          "in a browser (Ctrl-C stops)", flush=True)
+    print(f"magcal-workbench: open {page_url(args.host, wb.port)} in a browser (Ctrl-C stops)", flush=True)
     try:
         while True:
             time.sleep(3600)

@@ -29,13 +29,32 @@ from magcal.errors import ConvergenceWarning, MagcalError
 from magcal.noise import robust_sigma
 
 from .jobs import Worker
-from .markup import clean_text, safe_code, safe_text
+from .markup import clean_text, error_text, safe_code, safe_text
 from .session import SessionStore
 from .sessionfile import LABEL
 from .state import METHODS, SessionState, StepRecord
 
 #: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
 MESSAGE_LEN = 1000
+
+
+def format_number(v, digits: int = 4) -> str:
+    """``v`` to ``digits`` significant digits, written out in full from 10^4 to 10^7 (``24010``, not
+    ``2.401e+04``: raw readings of a MEMS part are tens of thousands of nT); ``"-"`` for None or not finite."""
+    if v is None:
+        return "-"
+    v = float(v)
+    if not np.isfinite(v):
+        return "-"
+    if 10.0 ** digits <= abs(v) < 1e7:
+        return f"{v:.0f}"
+    return f"{v:.{digits}g}"
+
+
+def fmt_nT(v) -> str:
+    """``"12.3 nT"`` (four significant digits, see :func:`format_number`) or ``"-"``."""
+    text = format_number(v)
+    return text if text == "-" else f"{text} nT"
 
 
 def _rms(a) -> float:
@@ -72,13 +91,18 @@ class Controller:
         self.calibration_result = None    # CalibrationResult of the last pipeline run, if any
         self.corrected_nT: np.ndarray | None = None   # (n_sensors, N, 3) array frame, every sample
         self.residual_nT: np.ndarray | None = None    # (n_sensors, N) total-field residual, every sample
-        self.noise_nT: float | None = dataset.noise_nT
+        #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
+        #: estimated after each fit (:attr:`noise` says how).
+        self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
+        self.noise = None                 # NoiseEstimate of the last fit (magcal.noise.estimate_noise)
+        self._quality = None              # QualityReport of the data (magcal.quality.assess), made when first asked
         self.diagnosis = None
         self.inspected: int | None = None
         self.message = ""
         self.progress: tuple[str, float | None] | None = None
         self._listeners: list[Callable[[str], None]] = []
         self._lock = threading.RLock()
+        self._job_pin = threading.local()  # the mask and model of the job running in this thread
         if not self.state.history:
             raw = self.raw_residual_nT()
             self.state.history.append(StepRecord("raw readings", _rms(raw[:, self.kept]), None, [],
@@ -86,6 +110,7 @@ class Controller:
         if self.state.calibration:
             try:
                 self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
+                self._estimate_noise()
             except Exception as exc:  # a damaged or foreign calibration document: the session goes on without it
                 why = exc if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {exc}"
                 self.message = f"the saved calibration could not be restored ({safe_text(why, 500)}); run a fit"
@@ -152,7 +177,10 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     @property
     def kept(self) -> np.ndarray:
-        return self.state.kept
+        """The kept mask; inside a job, the one the job started with (:meth:`submit_job`), so that a rejection
+        made meanwhile neither changes what the job fits nor what its history row says it fitted."""
+        pinned = getattr(self._job_pin, "kept", None)
+        return pinned.copy() if pinned is not None else self.state.kept
 
     @property
     def field_nT(self) -> float:
@@ -231,14 +259,184 @@ class Controller:
         return info
 
     # ------------------------------------------------------------------------------------------------------
+    # data quality, noise, held-out validation, transferable terms (all the engine's)
+    # ------------------------------------------------------------------------------------------------------
+    def quality_report(self):
+        """The data's quality findings (:func:`magcal.quality.assess`, with the given noise if any), made once per
+        data and noise setting."""
+        if self._quality is None:
+            from magcal import quality
+
+            self._quality = quality.assess(self.dataset, noise_nT=self.state.noise_nT)
+        return self._quality
+
+    def quality_with_fit(self):
+        """:meth:`quality_report` plus what the current fit adds: a fitted field magnitude outside the Earth's
+        range (:func:`magcal.quality.field_magnitude_finding`: a wrong unit or LSB, or a record near iron)."""
+        from magcal import quality
+
+        report = self.quality_report()
+        cal = self.calibration
+        if cal is None or not cal.reference_fitted or not cal.reference_total_nT:
+            return report
+        finding = quality.field_magnitude_finding(float(cal.reference_total_nT))
+        if finding is None:
+            return report
+        return quality.QualityReport(list(report.findings) + [finding], report.n_sensors, report.n_samples,
+                                     report.source)
+
+    @property
+    def noise_given_nT(self) -> float | None:
+        """The noise the user typed (nT per axis), else the one declared in the file (``# noise_nT:``), else None."""
+        return self.state.noise_nT or self.dataset.noise_nT or None
+
+    def _n_params_total(self, fit=None) -> int:
+        """Parameters of the current fit, all sensors together (the floors' and the noise's degrees of freedom)."""
+        if fit is not None:
+            return int(fit.n_params)
+        p = 9 * self.dataset.n_sensors
+        if self.calibration is not None and self.calibration.model is not None:
+            p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances())
+        return p
+
+    def _estimate_noise(self, fit=None) -> None:
+        """The noise behind the floors, from the current fit's kept residuals (:func:`magcal.noise.estimate_noise`:
+        the given one, else differences in time order or still stretches, never below the quantization floor)."""
+        from magcal.noise import estimate_noise
+
+        if self.residual_nT is None:
+            self.noise, self.noise_nT = None, self.noise_given_nT
+            return
+        k = self.kept
+        try:
+            self.noise = estimate_noise(self.fit_dataset().subset(k), self.residual_nT[:, k],
+                                        self._n_params_total(fit), noise_nT=self.state.noise_nT)
+        except MagcalError:
+            self.noise = None
+        self.noise_nT = self.noise.sigma_nT if self.noise is not None else self.noise_given_nT
+
+    def set_noise(self, noise_nT) -> None:
+        """Give the noise per axis (nT), or ``None`` / 0 to estimate it again; the floors follow at once and the
+        session saves it.
+
+        Raises
+        ------
+        MagcalError
+            A value that is not a number in :data:`workbench.sessionfile.NOISE_RANGE_nT` (a value comes from a
+            browser: check it).
+        """
+        from .sessionfile import NOISE_RANGE_nT
+
+        value = None
+        if noise_nT is not None:
+            try:
+                value = float(noise_nT)
+            except (TypeError, ValueError):
+                value = float("nan")
+            if value == 0.0:
+                value = None
+            elif not NOISE_RANGE_nT[0] <= value <= NOISE_RANGE_nT[1]:
+                raise MagcalError(f"noise {clean_text(noise_nT, 40)} nT: give a number in {NOISE_RANGE_nT[0]:g} ... "
+                                  f"{NOISE_RANGE_nT[1]:g} nT per axis, or 0 to estimate it")
+        with self._lock:
+            self.state.noise_nT = value
+            self.state.touch()
+            self._quality = None  # the still-stretch test uses the noise
+            self._estimate_noise(self.fit_result)
+        self.autosave()
+        self._emit("result")
+        floor = self.floor_nT()
+        what = f"noise given: {fmt_nT(value)} per axis" if value else "noise estimated again"
+        self.say(f"{what}; {self.noise_text()}; total-field floor {fmt_nT(floor)}")
+
+    def noise_text(self) -> str:
+        """Plain text: the noise behind the floors and the method that gave it (untrusted-free: engine words)."""
+        if self.noise is not None:
+            return f"noise {self.noise.text()}"
+        given = self.noise_given_nT
+        if given:
+            where = "given in the workbench" if self.state.noise_nT else "declared in the file (noise_nT)"
+            return f"noise {given:.3g} nT per axis ({where})"
+        return "noise not known yet: fit first (it is estimated from the fit's residuals) or give it"
+
+    def _held_out_rms(self, fit) -> tuple[float | None, str | None]:
+        """Total-field RMS (nT) on held-out samples of the current model (:func:`magcal.validation.validate`,
+        ``blocks`` scheme: fitted on alternating blocks of time, warm-started from ``fit``, scored on the blocks
+        between); ``(None, why)`` when the record cannot be split, ``(None, None)`` without a maximum-likelihood
+        fit."""
+        from magcal import validation
+
+        if fit is None or getattr(fit, "model", None) is None:
+            return None, None
+        kept = self.fit_dataset().subset(self.kept)
+        problem = validation.split_problem(kept)
+        if problem:
+            return None, f"held-out validation not done: {problem}"
+        self._report_progress("held-out validation (blocks)", None)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                v = validation.validate(kept, model=fit.model, scheme="blocks", init=fit.calibration,
+                                        robust=self.state.robust, reference_total_nT=self.reference_arg)
+        except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
+            from magcal import plugins
+
+            why = plugins.user_code_error(exc) or (error_text(exc) if isinstance(exc, MagcalError)
+                                                     else f"{type(exc).__name__}: {error_text(exc)}")
+            return None, f"held-out validation failed: {why}"
+        finally:
+            self.progress = None
+            self._emit("progress")
+        return float(v.held_out_rms_nT), None
+
+    def model_terms(self) -> list[dict]:
+        """The model's effects, each ``{"label", "name", "transferable" (bool), "description"}``: an instrument
+        term carries to new data, a record-only term describes this record only (:func:`magcal.calibration.
+        is_transferable`). Descriptions of a user's effect are untrusted text."""
+        from magcal.calibration import is_transferable
+        from magcal.model import EFFECTS
+
+        out = []
+        for label in self.state.effects:
+            name = label.partition(":")[0]
+            cls = EFFECTS.get(name)
+            out.append({"label": label, "name": name, "transferable": True if cls is None else is_transferable(cls),
+                        "description": "" if cls is None else (cls.description or "")})
+        return out
+
+    def record_only_applied(self) -> list[str]:
+        """Labels of the record-only terms the current calibration applies to this record's corrected data."""
+        return [] if self.calibration is None else self.calibration.record_terms()
+
+    # ------------------------------------------------------------------------------------------------------
     # engine steps (synchronous; the page runs them through run_job)
     # ------------------------------------------------------------------------------------------------------
     def run_job(self, name: str, job: Callable[[], None]) -> bool:
         """Run an action in the worker; False (and a message) if another one is running."""
-        started = self.worker.submit(name, job, on_error=self._job_failed)
+        started = self.submit_job(name, job)
         if not started:
             self.say(f"Busy: {safe_text(self.worker.current)} is still running; wait for it to finish.")
         return started
+
+    def submit_job(self, name: str, job: Callable[[], None]) -> bool:
+        """Start ``job`` in the worker with the kept mask and the model's effects of this moment pinned for its
+        thread (:attr:`kept`, :meth:`_model`); False, silently, if another job runs."""
+        with self.state.lock:
+            kept, effects = self.state.kept, list(self.state.effects)
+
+        def pinned():
+            self._job_pin.kept, self._job_pin.effects = kept, effects
+            try:
+                return job()
+            finally:
+                self._job_pin.kept = self._job_pin.effects = None
+
+        return self.worker.submit(name, pinned, on_error=self._job_failed)
+
+    def _job_effects(self) -> list:
+        """The model's effects of the running job (as it built its model), else the state's."""
+        pinned = getattr(self._job_pin, "effects", None)
+        return list(pinned) if pinned is not None else list(self.state.effects)
 
     def _job_failed(self, exc: BaseException) -> None:
         self.progress = None
@@ -250,11 +448,14 @@ class Controller:
         self._emit("progress")
 
     def _residuals_of(self, cal: Calibration) -> np.ndarray:
+        # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
         ds = self.fit_dataset()
-        fields = cal.correct(ds)
-        return cal.total_field_residuals(ds, fields), fields
+        fields = cal.correct(ds, record_terms="apply")
+        return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
 
     def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
+        if cal.record is None:  # the downloaded JSON names the record its record-only terms describe
+            cal.fitted_on(self.dataset)
         res, fields = self._residuals_of(cal)
         self.calibration = cal
         self.corrected_nT = fields
@@ -263,14 +464,17 @@ class Controller:
     def _changes(self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float,
                  tensor_before=None) -> str:
         """One line: RMS before -> after, and how much each parameter group moved."""
-        parts = [f"RMS {rms_before:.4g} -> {rms_after:.4g} nT"]
+        parts = [f"RMS {format_number(rms_before)} -> {format_number(rms_after)} nT"]
         if old is not None and old.n_sensors == new.n_sensors:
             db = max(float(np.max(np.abs(a.bias_nT - b.bias_nT))) for a, b in zip(old.sensors, new.sensors))
             dc = max(float(np.max(np.abs(a.cinv - b.cinv))) for a, b in zip(old.sensors, new.sensors))
             from magcal.procrustes import rotation_angle_deg
 
             dr = max(rotation_angle_deg(b.R @ a.R.T) for a, b in zip(old.sensors, new.sensors))
-            parts.append(f"bias moved up to {db:.3g} nT, C^-1 up to {dc * 1e6:.3g} ppm, R up to {dr * 3600:.3g} arcsec")
+            moved = f"bias moved up to {format_number(db, 3)} nT, C^-1 up to {format_number(dc * 1e6, 3)} ppm"
+            if new.n_sensors > 1:  # one sensor's rotation is the identity: nothing to say
+                moved += f", R up to {format_number(dr * 3600, 3)} arcsec"
+            parts.append(moved)
         t = self.tensor_rms()
         if t is not None and t["after"] is not None:
             worst = max(t["after"].values())
@@ -281,19 +485,24 @@ class Controller:
     def _record(self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None,
                 fit=None, notes=()) -> StepRecord:
         rms_after = self.residual_rms_nT()
-        if fit is not None and not self.dataset.noise_nT:
-            self.noise_nT = float(fit.noise_nT)
+        self._estimate_noise(fit)
+        held_out, held_note = self._held_out_rms(fit)
+        if held_note:
+            notes = list(notes) + [held_note]
         outcome = None if fit is None else fit.summary()
         rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
-                         effects=list(self.state.effects), n_kept=int(self.kept.sum()),
+                         effects=self._job_effects(), n_kept=int(self.kept.sum()),
                          changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
                          elapsed_s=time.perf_counter() - t0,
-                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS})
+                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
+                         held_out_rms_nT=held_out)
         self.state.record(rec, self.calibration.to_dict())
         self.autosave()
         self._emit("result")
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
         text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
+        if held_out is not None:
+            text += f"; held-out RMS {fmt_nT(held_out)} (blocks)"
         if fit is not None and not fit.success:
             text += " - **the fit did not converge** (see above)"
         if notes:
@@ -357,7 +566,10 @@ class Controller:
     def _model(self):
         from magcal.model import Model
 
-        return Model.from_names(self.state.effects, self.dataset.n_sensors)
+        effects = list(self.state.effects)
+        if getattr(self._job_pin, "kept", None) is not None:
+            self._job_pin.effects = effects  # the model this job fits (step_add has just added one)
+        return Model.from_names(effects, self.dataset.n_sensors)
 
     def step_refine(self, label: str = "refine (ML)") -> StepRecord:
         """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
@@ -391,12 +603,11 @@ class Controller:
             warnings.simplefilter("always")  # the same concerns are in result.warnings
             result = pipeline.calibrate(self.fit_dataset(), method=method, effects=effects,
                                         robust=self.state.robust, reference_total_nT=self.reference_arg, seed=0,
-                                        progress=self._report_progress, mask=self.kept)
+                                        progress=self._report_progress, mask=self.kept,
+                                        noise_nT=self.state.noise_nT)
         self.calibration_result = result
         self.fit_result = result.fit
         self.diagnosis = None
-        if not self.dataset.noise_nT:
-            self.noise_nT = float(result.noise_nT)
         self._set_calibration(result.calibration,
                               None if result.fit is None else result.fit.residuals_all_nT)
         self.progress = None
@@ -409,7 +620,8 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     def available_effects(self) -> list[dict]:
         """The catalogue (:func:`magcal.plugins.catalogue`: built-ins first, then the user's effects), each
-        ``{"name", "description", "channels", "missing" (reasons, empty if usable), "origin", "source"}``.
+        ``{"name", "description", "channels", "missing" (reasons, empty if usable), "origin", "source",
+        "transferable"}`` (True: an instrument term, carried to new data; False: record-only; None: not said).
 
         ``origin`` is ``built-in``, ``file``, ``entry point`` or ``python``; the text is untrusted for a user's
         effect (escape it before it joins markdown)."""
@@ -427,7 +639,8 @@ class Controller:
                 missing = list(missing) + [entry["error"]]
             out.append({"name": entry["name"], "description": entry.get("description") or "",
                         "channels": list(entry.get("channels", ())), "missing": [str(m) for m in missing],
-                        "origin": entry.get("origin", "built-in"), "source": entry.get("source", "")})
+                        "origin": entry.get("origin", "built-in"), "source": entry.get("source", ""),
+                        "transferable": entry.get("transferable")})
         return out
 
     def load_effects_file(self, path) -> list[str]:
@@ -500,10 +713,9 @@ class Controller:
             self.step_refine()
         t0 = time.perf_counter()
         self._report_progress("diagnosing", None)
-        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress)
+        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress,
+                     noise_nT=self.state.noise_nT)
         self.diagnosis = d
-        if not self.dataset.noise_nT and np.isfinite(d.noise_nT):
-            self.noise_nT = float(d.noise_nT)  # from the residuals' sample-to-sample scatter, not the misfit
         self.progress = None
         self._emit("progress")
         self._emit("diagnosis")
@@ -597,8 +809,11 @@ class Controller:
         for s in range(self.dataset.n_sensors):
             extra[f"s{s + 1}_residual_nT"] = self.residual_nT[s]
         ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
+        record_only = self.record_only_applied()
         meta = {"corrected_by": "magcal workbench", "frame": self.calibration.frame,
-                "effects": ",".join(self.state.effects) or "none"}
+                "effects": ",".join(self.state.effects) or "none",
+                # record-only terms describe this recording: applied here, they would not carry to another one
+                "record_only_terms_applied": ",".join(record_only) or "none"}
         # in memory from the writer's own parts (write_csv writes only to a path, atomically)
         columns = mio.dataset_columns(ds)
         out = io.StringIO(newline="")
@@ -613,7 +828,7 @@ class Controller:
         try:
             self.store.save(self.session_id, self.state)
         except OSError as exc:
-            self.message = f"autosave failed: {safe_text(exc, MESSAGE_LEN)}"
+            self.message = f"autosave failed: {safe_text(error_text(exc), MESSAGE_LEN)}"
 
 
 def error_markdown(exc: BaseException) -> str:
@@ -623,12 +838,12 @@ def error_markdown(exc: BaseException) -> str:
     from magcal import plugins
 
     if isinstance(exc, MagcalError):
-        return f"**Error:** {safe_text(exc, MESSAGE_LEN)}"
+        return f"**Error:** {safe_text(error_text(exc), MESSAGE_LEN)}"
     user = plugins.user_code_error(exc)
     if user:
         return f"**Error in your effect's code:** {safe_text(user, MESSAGE_LEN)}"
     traceback.print_exception(exc)
-    return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {exc}', MESSAGE_LEN)}"
+    return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {error_text(exc)}', MESSAGE_LEN)}"
 
 
 def load_session_effects(paths) -> tuple[list[str], list[str]]:

@@ -9,6 +9,10 @@ string. Text of plain-text widgets (notifications, hints, labels: React escapes 
 :func:`clean_text` so that a 3 MB header does not become a 3 MB toast.
 
 The bundled lesson guides and the workbench's own wording are trusted and are not escaped.
+
+Error messages do not show where files live on the server: :func:`hide_paths` shortens every absolute path to
+``…/`` and its last part (``/home/me/data/x.csv`` -> ``…/x.csv``) in the text of an exception before it reaches
+the page (:func:`error_text`); the server's terminal keeps the full paths.
 """
 
 from __future__ import annotations
@@ -30,6 +34,11 @@ _ESCAPES = str.maketrans({
     "\\": "\\\\", "`": "\\`", "*": "\\*", "_": "\\_", "[": "\\[", "]": "\\]", "|": "\\|", "#": "\\#",
     "!": "\\!", "~": "\\~", "$": "\\$",
 })
+
+#: An absolute path of two or more parts (POSIX ``/a/b``, ``~/a/b``, Windows ``C:\a\b``) that does not continue
+#: a word, a URL (``http://x/y``) or a relative path (``a/b``); group 1 is its last part.
+_ABS_PATH = re.compile(r"(?<![\w:/.~\\-])(?:~|[A-Za-z]:)?(?:[/\\][^\s/\\'\"`<>|,;:()\[\]]+){1,}[/\\]"
+                       r"([^\s/\\'\"`<>|,;:()\[\]]+)")
 
 #: What makes a line a list item, a heading underline or a thematic break when it starts the text.
 _LINE_START = re.compile(r"^(\s*\d*)([-+=.)])")
@@ -57,6 +66,19 @@ def clean_text(text, max_len: int = MAX_LEN) -> str:
     if len(s) > max_len:
         s = s[:max(max_len - 1, 0)].rstrip() + ELLIPSIS
     return s
+
+
+def hide_paths(text: str) -> str:
+    """``text`` with every absolute path cut to ``…/`` and its last part (where a file lives on the server is
+    not the page's business; the file's name is)."""
+    return _ABS_PATH.sub(lambda m: f"{ELLIPSIS}/{m.group(1)}", text)
+
+
+def error_text(exc: BaseException) -> str:
+    """An exception's message for the page: its text with absolute paths hidden (:func:`hide_paths`), cut to a
+    length the page can hold before escaping (:func:`clean_text` cuts it further)."""
+    s = str(exc)
+    return hide_paths(s[:20_000])
 
 
 def safe_text(text, max_len: int = MAX_LEN) -> str:

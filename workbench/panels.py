@@ -30,9 +30,11 @@ ALL_SENSORS = "all sensors"
 
 # --- text builders ------------------------------------------------------------------------------------------
 def fmt(v, unit="", digits=4) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "-"
-    return f"{v:.{digits}g}{(' ' + unit) if unit else ''}"
+    """A number for the page (:func:`workbench.controller.format_number`) with its unit, or ``-``."""
+    from .controller import format_number
+
+    text = format_number(v, digits)
+    return text if text == "-" else f"{text}{(' ' + unit) if unit else ''}"
 
 
 def convergence_markdown(record) -> str:
@@ -96,14 +98,24 @@ def sensors_markdown(ctrl) -> str:
 
 
 def history_markdown(state, last: int = 6) -> str:
+    """The last steps: in-sample RMS of the kept samples and, after a maximum-likelihood fit, the held-out RMS
+    (the model fitted on alternating blocks of time, scored on the blocks between: :func:`magcal.validation.
+    validate`)."""
     if not state.history:
         return "_No step yet._"
-    rows = ["| # | step | RMS nT | what changed |", "|---|---|---|---|"]
+    rows = ["| # | step | RMS nT | held-out nT | what changed |", "|---|---|---|---|---|"]
     start = max(0, len(state.history) - last)
     for i, r in enumerate(state.history[start:], start=start):
         flag = " (did not converge)" if convergence_markdown(r) else ""
-        rows.append(f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {safe_text(r.changes, 400)} |")
+        held = fmt(getattr(r, "held_out_rms_nT", None))
+        rows.append(f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {held} | "
+                    f"{safe_text(r.changes, 400)} |")
     return "\n".join(rows)
+
+
+#: Under the step history: what its held-out column means.
+HELD_OUT_NOTE = ("_held-out: the same model fitted on alternating blocks of time and scored on the blocks between; "
+                 "an added effect is real when it lowers this too._")
 
 
 def candidates_markdown(diagnosis) -> str:
@@ -116,24 +128,51 @@ def candidates_markdown(diagnosis) -> str:
              f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"]
     if d.get("summary"):
         lines.append(f"_{safe_text(d['summary'], 1000)}_")
+    validation = d.get("validation") or {}
+    blocks = (validation.get("schemes") or {}).get("blocks") if validation.get("validated") else None
+    if blocks:
+        base = fmt(blocks.get("base_held_out_rms_nT"), "nT")
+        lines.append(f"\nHeld-out check: each candidate refitted on alternating blocks of time and scored on the "
+                     f"{blocks.get('n_test')} samples between (base model {base}); only candidates whose gain holds "
+                     "there are recommended.")
+    elif validation.get("skipped"):
+        lines.append(f"\nHeld-out check not done: {safe_text(validation['skipped'], 300)}")
     for w in d.get("warnings", []) or []:
         lines.append(f"- warning: {safe_text(w, 1000)}")
     cands = d.get("candidates", []) or []
     if cands:
-        lines += ["", "| # | effect | dBIC | RMS after nT |", "|---|---|---|---|"]
+        lines += ["", "| # | effect | dBIC | RMS after nT | held-out nT | holds? |",
+                  "|---|---|---|---|---|---|"]
         for i, c in enumerate(cands[:8]):
             mark = "" if c.get("refitted", True) else "*"
             lines.append(f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
-                         f"{fmt(c.get('rms_after_nT'))}{mark} |")
+                         f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c.get('holds'))} |")
         if any(not c.get("refitted", True) for c in cands[:8]):
             lines.append("\n\\* predicted by the score test, not refitted")
+        if any(c.get("holds") is False for c in cands[:8]):
+            lines.append("\n⚠ A candidate that **does not hold on held-out data** lowers the error only on the "
+                         "samples it was fitted to: it describes something of this record (or its noise), not the "
+                         "instrument. You may still add it to see.")
     else:
         lines.append("_No candidate explains the residual._")
     return "\n".join(lines)
 
 
+def held_out_pair(candidate: dict) -> str:
+    """``"12.1 -> 10.4"``: the held-out RMS (nT) without and with a candidate (``blocks`` scheme), or ``-``."""
+    before, after = candidate.get("held_out_rms_before_nT"), candidate.get("held_out_rms_after_nT")
+    if before is None or after is None:
+        return "-"
+    return f"{fmt(before)}→{fmt(after)}"
+
+
+def holds_words(holds) -> str:
+    """Whether a candidate's in-sample gain holds on held-out data, in words for the table."""
+    return {True: "holds", False: "⚠ **does not hold**"}.get(holds, "-")
+
+
 def candidate_evidence_markdown(diagnosis, label: str) -> str:
-    """The one-line evidence of the chosen candidate."""
+    """The evidence of the chosen candidate, with a warning when its gain does not hold on held-out data."""
     if diagnosis is None:
         return ""
     from .controller import candidate_label
@@ -141,7 +180,11 @@ def candidate_evidence_markdown(diagnosis, label: str) -> str:
     for c in diagnosis.candidates:
         if candidate_label(c) == label:
             refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
-            return f"**{safe_text(label)}** ({refit}): {safe_text(getattr(c, 'evidence', ''), 1000)}"
+            text = f"**{safe_text(label)}** ({refit}): {safe_text(getattr(c, 'evidence', ''), 1000)}"
+            if getattr(c, "holds", None) is False:
+                text = ("⚠ **This candidate does not hold on held-out data**: its gain is on the fitted samples "
+                        "only. Adding it is allowed, but it will not carry.  \n" + text)
+            return text
     return ""
 
 
@@ -162,7 +205,9 @@ def effect_hint(entry: dict) -> str:
     """The tooltip of an effect's checkbox (plain text): what it models, where it comes from, why it is greyed."""
     origin = entry.get("origin", "built-in")
     where = "" if origin == "built-in" else f" [your effect: {origin} {entry.get('source', '')}]"
-    text = (entry["description"] or entry["name"]) + where
+    carry = {True: f" {TRANSFER_WORDS[True]}.", False: f" {TRANSFER_WORDS[False]}."}.get(entry.get("transferable"),
+                                                                                       "")
+    text = (entry["description"] or entry["name"]) + where + carry
     if entry["missing"]:
         text = f"Unavailable: the data lack {', '.join(entry['missing'])}. {text}"
     return clean_text(text, 600)
@@ -180,10 +225,141 @@ def user_effects_markdown(entries) -> str:
     return "\n".join(rows)
 
 
+def sessions_markdown(sessions, max_bytes=None, last: int = 10) -> str:
+    """The saved sessions (newest first) with their sizes, and the folder's total against its bound."""
+    if not sessions:
+        return "_No saved session._"
+    rows = ["| session | saved | MB |", "|---|---|---|"]
+    rows += [f"| {safe_text(s['id'], 80)} | {safe_text(s.get('saved_at', ''), 20)} | {s.get('bytes', 0) / 1e6:.2f} |"
+             for s in sessions[:last]]
+    total = sum(s.get("bytes", 0) for s in sessions)
+    bound = f" of {max_bytes / 1e6:.0f} MB kept (the oldest go first)" if max_bytes else ""
+    more = f", {len(sessions) - last} older not listed" if len(sessions) > last else ""
+    return "\n".join(rows) + f"\n\n{len(sessions)} session(s), {total / 1e6:.1f} MB{bound}{more}"
+
+
+#: What a term's :attr:`magcal.model.Effect.transferable` means, one line each.
+TRANSFER_WORDS = {
+    True: "Instrument term: a property of the sensor, carried to new data by the calibration",
+    False: "Record-only term: describes this recording (a drift, a step, the site's field); fitted so the "
+           "instrument terms stay unbiased, applied to this record only, never carried to new data",
+}
+
+
+def model_terms_markdown(terms) -> str:
+    """The model's effects marked instrument (carried to new data) or record-only (this record only)."""
+    if not terms:
+        return "_The model has the base terms only (bias, scale, non-orthogonality, misalignment): all instrument._"
+    rows = ["**In the model**"]
+    for t in terms:
+        kind = "instrument" if t["transferable"] else "record-only"
+        why = ("carried to new data" if t["transferable"] else
+               "this record only: not carried to new data without an external reference")
+        rows.append(f"- {safe_code(t['label'], 80)} **{kind}**: {why}")
+    return "\n".join(rows)
+
+
+def quality_markdown(report) -> str:
+    """The data-quality findings (:func:`magcal.quality.assess`), warnings first and marked, each with what it does
+    to the fit; the findings with nothing to say are listed in one line at the end."""
+    if report is None:
+        return "_No quality report._"
+    findings = list(report.findings)
+    shown = [f for f in findings if f.severity == "warning" or f.notable or f.kind == "sample_rate"]
+    shown.sort(key=lambda f: f.severity != "warning")
+    lines = []
+    for f in shown:
+        where = f"sensor {f.sensor}: " if f.sensor is not None else ""
+        head = f"{where}{f.summary}"
+        if f.severity == "warning":
+            lines.append(f"- ⚠ **Warning: {safe_text(head, 600)}**  \n  → {safe_text(f.effect, 600)}")
+        else:
+            lines.append(f"- {safe_text(head, 600)}  \n  → _{safe_text(f.effect, 600)}_")
+    quiet = [f for f in findings if f not in shown]
+    if quiet:
+        seen = sorted({f.kind.replace("_", " ") for f in quiet})
+        lines.append(f"\nChecked, nothing to say: {safe_text(', '.join(seen), 300)}.")
+    n_warn = sum(f.severity == "warning" for f in findings)
+    head = (f"**Data quality**: {n_warn} warning(s)" if n_warn else "**Data quality**: no warning")
+    return head + "\n\n" + "\n".join(lines)
+
+
+def noise_markdown(ctrl) -> str:
+    """The noise behind the floors, the method that gave it, and the floor it sets."""
+    floor = ctrl.floor_nT()
+    text = (f"**Noise:** {safe_text(ctrl.noise_text(), 800)}  \n"
+            f"Total-field floor of the current fit: {fmt(floor, 'nT', 3)}")
+    noise = ctrl.noise
+    if noise is not None and noise.note:
+        text += f"  \n_{safe_text(noise.note, 600)}_"
+    return text
+
+
+def download_markdown(ctrl) -> str:
+    """What the corrected-CSV download holds: the model and the record-only terms applied to it."""
+    if ctrl.calibration is None:
+        return "_Fit first to download a calibration or corrected data._"
+    applied = ctrl.record_only_applied()
+    if not applied:
+        return "The corrected CSV applies instrument terms only: the calibration JSON corrects new data the same way."
+    return (f"The corrected CSV applies the record-only term(s) {', '.join(safe_code(a, 80) for a in applied)}: "
+            "right for this record; the calibration JSON drops them on other data (magcal apply says so).")
+
+
 #: Shown next to the control that loads an effects file.
 EFFECTS_FILE_WARNING = ("⚠ **Loading a file runs its Python code** on the machine serving this page, with your "
                         "permissions: load only files you wrote or trust. Its `@register` effects join the list "
                         "above, Diagnose and the calibration JSON (docs/user-effects.md).")
+
+
+def rms_plot_data(ctrl):
+    """``(step, in-sample RMS, floor, held-out RMS)`` arrays (nT) for the history plot. The floor is a property of
+    the noise: the current one (given or estimated) is drawn across every step, else the steps' own."""
+    state = ctrl.state
+    x, y, f = state.rms_series()
+    held = np.array([np.nan if getattr(r, "held_out_rms_nT", None) is None else r.held_out_rms_nT
+                     for r in state.history], dtype=float)
+    # the plot cannot leave a gap (uPlot draws NaN as a value): a step without a held-out figure is drawn at its
+    # in-sample RMS (exact for the raw readings, where nothing is fitted; the table shows "-" for it)
+    held = np.where(np.isfinite(held), held, y)
+    floor = ctrl.floor_nT()
+    if floor:
+        f = np.full_like(y, float(floor))
+    elif np.isfinite(f).any():
+        f = np.where(np.isfinite(f), f, f[np.isfinite(f)][0])
+    if len(x) == 1:
+        x, y, f, held = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2), np.repeat(held, 2)
+    return x, y, f, held
+
+
+#: Largest default gains of the View tab (those of data near a clean sensor in the Earth's field).
+DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX = 10.0, 1000.0
+#: Drawn radial deviation the default gains aim for: the raw ellipsoid's typical one, and the residual RMS...
+DRAWN_DISTORTION, DRAWN_RESIDUAL = 0.15, 0.05
+#: ...and the raw cloud's largest one (its 99th percentile), so that it stays within its place in the scene.
+DRAWN_DISTORTION_MAX = 0.3
+
+
+def view_gains(ctrl) -> tuple[float, float]:
+    """Default (distortion, residual) gains of the View tab for these data: the raw cloud's typical departure from
+    the field's sphere drawn at about :data:`DRAWN_DISTORTION` of the radius, the residual RMS at about
+    :data:`DRAWN_RESIDUAL`, neither above the defaults for clean data (:data:`DISTORTION_GAIN_MAX`,
+    :data:`RESIDUAL_GAIN_MAX`). A MEMS part with a hard-iron offset of the field's size, or residuals of hundreds
+    of nT, would otherwise be drawn far outside the screen."""
+    F = float(ctrl.field_nT)
+    if not (np.isfinite(F) and F > 0):  # an all-zero file: nothing to scale by
+        return DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX
+    k = ctrl.kept
+    raw = np.linalg.norm(ctrl.dataset.readings_nT[:, k], axis=2) / F
+    depart = np.abs(raw - 1.0)
+    typical, largest = (float(np.median(depart)), float(np.percentile(depart, 99))) if raw.size else (0.0, 0.0)
+    # below 1 the raw cloud is drawn closer to the sphere than it is (a hard iron above the field)
+    distortion = DISTORTION_GAIN_MAX if typical <= 0 else float(np.clip(
+        min(DRAWN_DISTORTION / typical, DRAWN_DISTORTION_MAX / largest), 0.1, DISTORTION_GAIN_MAX))
+    rms = ctrl.residual_rms_nT()
+    residual = (RESIDUAL_GAIN_MAX if not np.isfinite(rms) or rms <= 0 else
+                float(np.clip(DRAWN_RESIDUAL * F / rms, 1.0, RESIDUAL_GAIN_MAX)))
+    return float(round(distortion, 1) if distortion < 1 else round(distortion)), float(round(residual))
 
 
 class Panels:
@@ -212,6 +388,8 @@ class Panels:
             self._build_calibrate(gui)
         with tabs.add_tab("Model", icon=None):
             self._build_model(gui)
+        with tabs.add_tab("Quality", icon=None):
+            self._build_quality(gui)
         with tabs.add_tab("Outliers", icon=None):
             self._build_outliers(gui)
         with tabs.add_tab("View", icon=None):
@@ -271,6 +449,7 @@ class Panels:
         self.sensors_table = gui.add_markdown("")
         with gui.add_folder("Step history", expand_by_default=True):
             self.history = gui.add_markdown("")
+            gui.add_markdown(HELD_OUT_NOTE)
 
     def _build_model(self, gui):
         gui.add_markdown("Effects beyond bias, scale, non-orthogonality and misalignment. "
@@ -279,6 +458,7 @@ class Panels:
         self._boxes_lock = threading.Lock()
         self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
         self._add_effect_boxes(self.app.ctrl.available_effects())
+        self.model_terms = gui.add_markdown(model_terms_markdown(self.app.ctrl.model_terms()))
         with gui.add_folder("Your own effects", expand_by_default=False):
             self.user_effects = gui.add_markdown(user_effects_markdown(self.app.ctrl.available_effects()))
             self.effects_path = gui.add_text("Effects file (.py)", "",
@@ -298,15 +478,34 @@ class Panels:
         self.candidate_choice.on_update(lambda e: self.app.handle(lambda _: self._show_candidate_evidence(), e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
         self.rms_plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan])),
+            data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan]),
+                  np.array([np.nan, np.nan])),
             series=({"label": "step"}, {"label": "RMS nT", "stroke": "#1f77b4", "width": 2,
                                          "points": {"show": True, "size": 6}},
-                    {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5}),
+                    {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
+                    {"label": "held-out RMS nT", "stroke": "#ff7f0e", "width": 2, "spanGaps": True,
+                     "points": {"show": True, "size": 6}}),
             scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
             axes=({"label": "step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
             padding=(14, 16, 0, 0), title="Total-field RMS per step", aspect=1.4)
         self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
         self.evidence_plot = None
+
+    def _build_quality(self, gui):
+        """Data quality read before fitting, and the noise behind the floors (given or estimated)."""
+        from .sessionfile import NOISE_RANGE_nT
+
+        self.noise_info = gui.add_markdown("")
+        self.noise_input = gui.add_number(
+            "Noise nT per axis", 0.0, min=0.0, max=NOISE_RANGE_nT[1], step=0.1,
+            hint="The sensor's noise per axis (standard deviation, nT) if you know it; 0 = estimate it from the "
+                 "data (differences in time, still stretches, never below the quantization floor)")
+        self.btn_noise = self._button(gui, "Use this noise for the floors", self._apply_noise, engine=False)
+        self.quality = gui.add_markdown("")
+
+    def _apply_noise(self, event) -> None:
+        value = float(self.app.check_value(self.noise_input))
+        self.app.ctrl.set_noise(value if value > 0 else None)
 
     def _build_outliers(self, gui):
         gui.add_markdown("**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
@@ -326,14 +525,16 @@ class Panels:
         options = self._sensor_options(self.app.ctrl.dataset.n_sensors)
         self.sensor_choice = self._bind(gui.add_dropdown("Sensor", options, initial_value=options[0]),
                                         self._sensor_shown, self.app.set_sensor)
-        self.distortion_gain = gui.add_slider("Raw distortion x", min=1.0, max=50.0, step=1.0, initial_value=10.0)
-        self.residual_gain = gui.add_slider("Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=100.0,
+        self.distortion_gain = gui.add_slider("Raw distortion x", min=0.1, max=50.0, step=0.1, initial_value=10.0)
+        self.residual_gain = gui.add_slider("Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=1.0,
                                             initial_value=1000.0)
         self.axes_gain = gui.add_slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0,
                                         initial_value=20.0)
         self.show_raw = gui.add_checkbox("Raw cloud", True)
         self.show_ellipsoid = gui.add_checkbox("Fitted ellipsoid", True)
         self.show_corrected = gui.add_checkbox("Corrected cloud", True)
+        #: The gains last set to suit the data (:func:`view_gains`); a gain the user moved is left alone.
+        self._auto_gains = {id(self.distortion_gain): 10.0, id(self.residual_gain): 1000.0}
         for h in (self.distortion_gain, self.residual_gain, self.axes_gain, self.show_raw, self.show_ellipsoid,
                   self.show_corrected):
             h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
@@ -344,11 +545,13 @@ class Panels:
         self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration,
                                        engine=False)
         self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.app.do_download_corrected, engine=False)
+        self.download_info = gui.add_markdown("")
         gui.add_markdown("**Sessions** (saved automatically after every change)")
         self.session_info = gui.add_markdown("")
         self.session_choice = gui.add_dropdown("Saved session", ("-",), initial_value="-")
         self.btn_reopen = self._button(gui, "Reopen the session", self.app.do_reopen)
         self.btn_fresh = self._button(gui, "Start this data afresh", self.app.do_fresh)
+        self.btn_delete_session = self._button(gui, "Delete the chosen session", self.app.do_delete_session)
 
     def _build_lessons(self, gui):
         from .lessons import list_lessons
@@ -373,7 +576,8 @@ class Panels:
                 if name in self.effect_boxes:
                     continue
                 self.effect_boxes[name] = self._bind(
-                    self.gui.add_checkbox(clean_text(name, 64), False, hint=effect_hint(entry)),
+                    # spaces, not underscores: the narrow label column wraps a long name at its words
+                    self.gui.add_checkbox(clean_text(name.replace("_", " "), 64), False, hint=effect_hint(entry)),
                     lambda n=name: self.app.ctrl.state.has_effect(n),
                     lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)))
 
@@ -393,6 +597,14 @@ class Panels:
                 "residual_gain": float(self.residual_gain.value), "axes_gain": float(self.axes_gain.value),
                 "show_raw": bool(self.show_raw.value), "show_corrected": bool(self.show_corrected.value),
                 "show_ellipsoid": bool(self.show_ellipsoid.value)}
+
+    def fit_view_to_data(self) -> None:
+        """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
+        distortion, residual = view_gains(self.app.ctrl)
+        for handle, value in ((self.distortion_gain, distortion), (self.residual_gain, residual)):
+            if handle.value == self._auto_gains.get(id(handle)) and handle.value != value:
+                self._auto_gains[id(handle)] = value
+                handle.value = value  # its callback redraws the scene
 
     # --- refresh -------------------------------------------------------------------------------------------
     def set_busy(self, busy: bool, name: str | None) -> None:
@@ -421,16 +633,18 @@ class Panels:
         if everything or "message" in kinds:
             self.message.content = ctrl.message
         self.legend.content = app.legend_html()
+        if everything or kinds & {"result", "data"}:
+            self.fit_view_to_data()
         if everything or kinds & {"result", "selection", "model"}:
             self.sensors_table.content = sensors_markdown(ctrl)
             self.history.content = history_markdown(ctrl.state)
-            x, y, f = ctrl.state.rms_series()
-            if np.isfinite(f).any():  # the floor is a property of the noise: draw it across every step
-                f = np.where(np.isfinite(f), f, f[np.isfinite(f)][0])
-            if len(x) >= 1:
-                if len(x) == 1:
-                    x, y, f = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2)
-                self.rms_plot.data = (x, y, f)
+            data = rms_plot_data(ctrl)
+            if len(data[0]):
+                self.rms_plot.data = data
+            self.noise_info.content = noise_markdown(ctrl)
+            self.quality.content = quality_markdown(ctrl.quality_with_fit())
+            self.download_info.content = download_markdown(ctrl)
+            self.model_terms.content = model_terms_markdown(ctrl.model_terms())
         if everything or kinds & {"data", "effects"}:
             catalogue = ctrl.available_effects()
             self._add_effect_boxes(catalogue)
@@ -446,6 +660,7 @@ class Panels:
                     box.hint = "Not loaded: load the file that defines it (Your own effects)"
         if everything or "data" in kinds:
             self.data_info.content = data_markdown(ctrl)
+            self.noise_input.value = float(ctrl.state.noise_nT or 0.0)
             # the state's choice first: new options then never fall back to a stale one (which would apply it)
             self.sensor_choice.value = self._sensor_shown()
             self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
@@ -489,6 +704,7 @@ class Panels:
         sessions = app.store.list()
         self.session_info.content = (f"This session: {safe_code(app.ctrl.session_id)} in {safe_code(app.store.root)}"
                                      if app.ctrl.session_id else "_This session is not saved._")
+        self.session_info.content += "\n\n" + sessions_markdown(sessions, app.store.max_bytes)
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts
         self.session_choice.value = opts[0]

@@ -41,11 +41,13 @@ def evidence_figure(ctrl):
     ev = _evidence(ctrl.diagnosis)
     has_temp = ds.temperature_C is not None
     ns = ds.n_sensors
-    fig = make_subplots(rows=4, cols=1, subplot_titles=(
-        "residual vs time" if ds.time_s is not None else "residual vs sample",
-        "residual vs temperature" if has_temp else "no temperature channel",
-        "residual RMS per spherical-harmonic degree", "per sensor"),
-        vertical_spacing=0.09)
+    # one row per panel; without a temperature channel its panel is left out (an empty panel reads as a fault)
+    titles = ["residual vs time" if ds.time_s is not None else "residual vs sample"]
+    titles += ["residual vs temperature"] if has_temp else []
+    titles += ["RMS per spherical-harmonic degree", "total-field RMS per sensor"]
+    row_time, row_temp = 1, (2 if has_temp else None)
+    row_sh, row_sensors = len(titles) - 1, len(titles)
+    fig = make_subplots(rows=len(titles), cols=1, subplot_titles=titles, vertical_spacing=0.36 / len(titles))
 
     time_ev = ev.get("time")
     if time_ev is not None:
@@ -61,11 +63,11 @@ def evidence_figure(ctrl):
         colour = SENSOR_COLOURS[s % 4]
         fig.add_trace(go.Scattergl(x=x_t[idx], y=r_t[s, idx], mode="markers", opacity=0.45,
                                    marker={"size": 3, "color": colour}, name=f"sensor {s + 1}",
-                                   legendgroup=f"s{s}"), row=1, col=1)
+                                   legendgroup=f"s{s}"), row=row_time, col=1)
         if smooth is not None:
             fig.add_trace(go.Scattergl(x=x_t[idx], y=smooth[s, idx], mode="lines", line={"color": colour, "width": 2},
                                        name=f"s{s + 1} running mean", legendgroup=f"s{s}", showlegend=False),
-                          row=1, col=1)
+                          row=row_time, col=1)
     temp_ev = ev.get("temperature")
     if has_temp:
         if temp_ev is not None:
@@ -76,35 +78,36 @@ def evidence_figure(ctrl):
         for s in range(ns):
             fig.add_trace(go.Scattergl(x=x_c[idx], y=r_c[s, idx], mode="markers", opacity=0.45,
                                        marker={"size": 3, "color": SENSOR_COLOURS[s % 4]}, name=f"sensor {s + 1}",
-                                       legendgroup=f"s{s}", showlegend=False), row=2, col=1)
+                                       legendgroup=f"s{s}", showlegend=False), row=row_temp, col=1)
     direction = ev.get("direction") or {}
     per = direction.get("per_sensor") if isinstance(direction, dict) else None
     if per:
         for s, sh in enumerate(per):
             fig.add_trace(go.Bar(x=np.asarray(sh["degree"]), y=np.asarray(sh["rms_nT"]),
                                  marker={"color": SENSOR_COLOURS[s % 4]}, name=f"sensor {s + 1}",
-                                 legendgroup=f"s{s}", showlegend=False), row=3, col=1)
+                                 legendgroup=f"s{s}", showlegend=False), row=row_sh, col=1)
     else:
-        fig.add_annotation(text="press Diagnose", xref="x3 domain", yref="y3 domain", x=0.5, y=0.5,
-                           showarrow=False)
+        # in paper coordinates: the page's plotly.js reads "x3 domain" references as data coordinates
+        y_domain = fig.layout[f"yaxis{row_sh}"].domain
+        fig.add_annotation(text="press Diagnose", xref="paper", yref="paper", x=0.5,
+                           y=0.5 * (y_domain[0] + y_domain[1]), showarrow=False)
     labels = [f"s{s + 1}" for s in range(ns)]
     fig.add_trace(go.Bar(x=labels, y=ctrl.rms_per_sensor_nT(), name="total-field RMS",
-                         marker={"color": list(SENSOR_COLOURS[:ns])}, showlegend=False), row=4, col=1)
+                         marker={"color": list(SENSOR_COLOURS[:ns])}, showlegend=False), row=row_sensors, col=1)
     sensors = ev.get("sensors") or {}
     if sensors and sensors.get("difference_rms_nT") is not None:
         fig.add_trace(go.Scatter(x=labels, y=np.asarray(sensors["difference_rms_nT"]), mode="markers",
                                  marker={"symbol": "diamond", "size": 10, "color": "black"},
-                                 name="difference from the common mode"), row=4, col=1)
+                                 name="difference from the common mode"), row=row_sensors, col=1)
     floor = ctrl.floor_nT()
     if floor:
-        fig.add_hline(y=floor, line_dash="dash", line_color="#d62728", row=4, col=1)
-    fig.update_yaxes(title_text="nT", row=1, col=1)
-    fig.update_yaxes(title_text="nT", row=2, col=1)
-    fig.update_yaxes(title_text="nT", row=3, col=1)
-    fig.update_yaxes(title_text="nT", row=4, col=1)
-    fig.update_xaxes(title_text=x_label, row=1, col=1)
-    fig.update_xaxes(title_text="degC", row=2, col=1)
-    fig.update_xaxes(title_text="degree", row=3, col=1)
-    fig.update_layout(height=1100, margin={"l": 45, "r": 10, "t": 30, "b": 30},
+        fig.add_hline(y=floor, line_dash="dash", line_color="#d62728", row=row_sensors, col=1)
+    fig.update_yaxes(title_text="nT")  # every panel is in nT
+    fig.update_xaxes(title_text=x_label, row=row_time, col=1)
+    if row_temp is not None:
+        fig.update_xaxes(title_text="degC", row=row_temp, col=1)
+    fig.update_xaxes(title_text="degree", row=row_sh, col=1)
+    # the top margin keeps the first title clear of plotly's toolbar
+    fig.update_layout(height=275 * len(titles), margin={"l": 55, "r": 10, "t": 60, "b": 30},
                       legend={"orientation": "h", "y": -0.12}, template="plotly_white", barmode="group")
     return fig

@@ -33,6 +33,11 @@ GROUP_DX = 2 * PAIR_OFFSET + 2.9
 GROUP_DZ = 2.9
 #: Length of the cross's baseline in scene units (its proportions are real).
 CROSS_SPAN = 2.0
+#: Most points drawn per cloud (one sensor's raw or corrected readings); larger data are drawn decimated.
+MAX_POINTS = 20_000
+#: Share of a decimated cloud given to the samples with the largest |residual| (outliers stay visible).
+OUTLIER_SHARE = 0.1
+
 #: Colours (RGB 0-255).
 REJECTED_RGB = (230, 0, 230)
 INSPECT_RGB = (255, 200, 0)
@@ -282,25 +287,73 @@ class Displayed:
     sensors: np.ndarray
 
 
-def layout(model: SceneModel):
-    """World positions of every drawn cloud: list of ``(name, sensor, kind, positions (N,3))`` and the legend limit.
+def display_scale_nT(field_nT) -> float:
+    """The field the clouds are divided by (nT): the reference, or 1 nT when there is none to speak of (a
+    zero-filled file), so that nothing is drawn at NaN."""
+    F = float(field_nT) if field_nT is not None else 0.0
+    return F if np.isfinite(F) and F > 0 else 1.0
 
-    ``kind`` is ``"raw"`` or ``"corrected"``.
+
+def level_of_detail(n_samples: int, max_points: int = MAX_POINTS, residual_nT=None) -> np.ndarray:
+    """Sorted indices of the samples to draw: all of them up to ``max_points``, else an even stride through the
+    recording plus the samples with the largest |residual| on any sensor (:data:`OUTLIER_SHARE` of the budget),
+    so a million-sample file sends ~``max_points`` points per cloud and its outliers are still seen.
+
+    Parameters
+    ----------
+    n_samples : int
+    max_points : int
+        Most indices returned.
+    residual_nT : numpy.ndarray, shape (n_sensors, N) or (N,), optional
+        Total-field residuals, nT (NaN where not fitted).
     """
+    n, m = int(n_samples), max(int(max_points), 1)
+    if n <= m:
+        return np.arange(n)
+    n_out = 0
+    if residual_nT is not None:
+        r = np.abs(np.nan_to_num(np.asarray(residual_nT, float), nan=0.0)).reshape(-1, n).max(axis=0)
+        n_out = int(OUTLIER_SHARE * m) if np.any(r > 0) else 0
+    stride = np.linspace(0, n - 1, m - n_out).round().astype(np.int64)
+    if not n_out:
+        return np.unique(stride)
+    worst = np.argpartition(r, n - n_out)[n - n_out:]
+    return np.union1d(stride, worst)
+
+
+def decimated(model: SceneModel, idx: np.ndarray) -> SceneModel:
+    """``model`` restricted to the samples ``idx`` (the same fields, every per-sample array indexed)."""
+    from dataclasses import replace
+
+    def cut(a):
+        return None if a is None else np.asarray(a)[idx]
+
+    sensors = [replace(sv, raw_nT=sv.raw_nT[idx], corrected_nT=cut(sv.corrected_nT), residual_nT=cut(sv.residual_nT))
+               for sv in model.sensors]
+    return replace(model, sensors=sensors, kept=np.asarray(model.kept, bool)[idx])
+
+
+def iter_layout(model: SceneModel):
+    """The drawn clouds one at a time: ``(name, sensor, kind, positions (N, 3))`` (see :func:`layout`)."""
     rows = len(model.sensors)
-    out = []
-    F = float(model.field_nT)
+    F = display_scale_nT(model.field_nT)
     for k, sv in enumerate(model.sensors):
         centre = group_offset(k, rows)
         if model.show_raw:
             raw = exaggerate_radial(sv.raw_nT / F, model.distortion_gain)
-            out.append((f"/data/s{sv.sensor + 1}/raw", sv.sensor, "raw", raw + centre - [PAIR_OFFSET, 0, 0]))
+            yield f"/data/s{sv.sensor + 1}/raw", sv.sensor, "raw", raw + centre - [PAIR_OFFSET, 0, 0]
         if model.show_corrected and sv.corrected_nT is not None:
             corr = residual_radius_points(sv.corrected_nT / F, sv.residual_nT if sv.residual_nT is not None
                                           else np.zeros(len(sv.corrected_nT)), F, model.residual_gain)
-            out.append((f"/data/s{sv.sensor + 1}/corrected", sv.sensor, "corrected",
-                        corr + centre + [PAIR_OFFSET, 0, 0]))
-    return out
+            yield f"/data/s{sv.sensor + 1}/corrected", sv.sensor, "corrected", corr + centre + [PAIR_OFFSET, 0, 0]
+
+
+def layout(model: SceneModel):
+    """World positions of every drawn cloud: list of ``(name, sensor, kind, positions (N,3))``.
+
+    ``kind`` is ``"raw"`` or ``"corrected"``.
+    """
+    return list(iter_layout(model))
 
 
 class SceneView:
@@ -312,11 +365,23 @@ class SceneView:
         Scene nodes go to ``server.scene`` (shared by every connected browser).
     point_size : float
         Point size in scene units.
+    max_points : int
+        Most points drawn per cloud (:func:`level_of_detail`).
+
+    Attributes
+    ----------
+    displayed : Displayed
+        The drawn points (for clicks); :meth:`samples_in_rect` tests every sample, drawn or not.
+    shown_samples : numpy.ndarray
+        Indices of the samples drawn.
     """
 
-    def __init__(self, server, point_size: float = 0.022):
+    def __init__(self, server, point_size: float = 0.022, max_points: int = MAX_POINTS):
         self.server = server
         self.point_size = point_size
+        self.max_points = int(max_points)
+        self.shown_samples = np.zeros(0, int)
+        self._full_model: SceneModel | None = None
         self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
         self._clouds: dict = {}       # name -> handle
         self._static: dict = {}       # name -> handle (meshes, frames, labels)
@@ -331,6 +396,12 @@ class SceneView:
         resid_all = [sv.residual_nT for sv in model.sensors if sv.residual_nT is not None]
         limit = colour_limit_nT(np.concatenate([r[kept] for r in resid_all]) if resid_all else [1.0], floor)
         self.last_limit_nT = limit
+        self._full_model = model
+        idx = level_of_detail(len(kept), self.max_points, np.array(resid_all) if resid_all else None)
+        self.shown_samples = idx
+        if idx.size < len(kept):
+            model = decimated(model, idx)
+            kept = kept[idx]
         clouds = layout(model)
         key = (tuple(c[0] for c in clouds), len(model.sensors), model.n_sensors)
         positions, samples, sensors = [], [], []
@@ -357,7 +428,7 @@ class SceneView:
                         name, pts.astype(np.float32), colors, point_size=self.point_size, point_shape="circle",
                         precision="float32", point_shading="flat")
                 positions.append(pts)
-                samples.append(np.arange(len(pts)))
+                samples.append(idx[:len(pts)])
                 sensors.append(np.full(len(pts), s))
             self._draw_static(model)
             if positions:
@@ -375,7 +446,23 @@ class SceneView:
         self._clouds.clear()
         self._static.clear()
         self._shape_key = None
+        self._full_model = None
+        self.shown_samples = np.zeros(0, int)
         self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
+
+    def samples_in_rect(self, camera_wxyz, camera_position, fov_rad, aspect, screen_min, screen_max) -> np.ndarray:
+        """Indices of the samples (drawn or not: a decimated cloud stands for all of them) whose point in any
+        shown cloud projects inside the screen box; sorted, unique."""
+        model = self._full_model
+        if model is None:
+            return np.zeros(0, int)
+        if self.shown_samples.size == len(model.kept):
+            d = self.displayed
+            inside = points_in_rect(d.positions, camera_wxyz, camera_position, fov_rad, aspect, screen_min, screen_max)
+            return np.unique(d.samples[inside])
+        hits = [np.flatnonzero(points_in_rect(pts, camera_wxyz, camera_position, fov_rad, aspect, screen_min,
+                                              screen_max)) for _, _, _, pts in iter_layout(model)]
+        return np.unique(np.concatenate(hits)) if hits else np.zeros(0, int)
 
     def mark_inspected(self, sample: int | None) -> None:
         """Put (or remove) the marker on every shown point of one sample."""
@@ -402,7 +489,8 @@ class SceneView:
                 if sv is None:
                     continue
                 resid = sv.residual_nT if sv.residual_nT is not None else np.full(len(kept), np.nan)
-                handle.colors = residual_colors(resid, self.last_limit_nT, kept)
+                idx = self.shown_samples if self.shown_samples.size < len(kept) else slice(None)
+                handle.colors = residual_colors(np.asarray(resid)[idx], self.last_limit_nT, kept[idx])
 
     # --- helpers ----------------------------------------------------------------------------------------------
     def _put(self, name, factory):
@@ -414,7 +502,7 @@ class SceneView:
     def _draw_static(self, model: SceneModel) -> None:
         scene = self.server.scene
         rows = len(model.sensors)
-        F = float(model.field_nT)
+        F = display_scale_nT(model.field_nT)
         sv_faces = sphere_mesh(2)
         for k, sv in enumerate(model.sensors):
             centre = group_offset(k, rows)

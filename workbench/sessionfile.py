@@ -21,9 +21,11 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``method``          one of :data:`~workbench.state.METHODS`
 ``reference_nT``    number 1 ... 10^7 nT, or null
 ``fit_reference``, ``robust``, ``answer_revealed``: true or false
+``noise_nT``        the noise per axis the user gave, number 1e-6 ... 10^6 nT, or null (estimated)
 ``sensor``          whole number 0 ... n_sensors - 1, or null
 ``history``         list of steps ``{"step", "rms_nT", "floor_nT", "effects", "n_kept", "changes", "elapsed_s",
-                    "fit"}`` (numbers finite, ``n_kept`` 0 ... N)
+                    "fit", "held_out_rms_nT"}`` (numbers finite, ``n_kept`` 0 ... N; ``held_out_rms_nT`` null
+                    when the step ran no held-out validation)
 ``calibration``     an object (checked by :meth:`magcal.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -54,6 +56,8 @@ MAX_HISTORY = 100_000
 MAX_UNDO = 200
 #: Reference field range accepted, nT (well beyond any geomagnetic or laboratory field).
 REFERENCE_RANGE_nT = (1.0, 1e7)
+#: Range of a noise level the user gives (``noise_nT``: per-axis standard deviation), nT.
+NOISE_RANGE_nT = (1e-6, 1e6)
 
 LABEL = re.compile(r"^[a-z][a-z0-9_]{0,63}(?::([0-9]{1,2}))?$")
 SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -202,7 +206,8 @@ class _Reader:
             n_kept=self.integer(f"{field}.n_kept", doc.get("n_kept", 0), 0, n_samples),
             changes=self.text(f"{field}.changes", doc.get("changes", "")),
             elapsed_s=self.number(f"{field}.elapsed_s", doc.get("elapsed_s", 0.0), 0.0),
-            fit=fit)
+            fit=fit, held_out_rms_nT=self.number(f"{field}.held_out_rms_nT", doc.get("held_out_rms_nT"), 0.0,
+                                                 null=True))
 
     def selection(self, field, value, n):
         from .state import Selection
@@ -277,6 +282,7 @@ def read_session_document(doc, where: str = "session.json"):
     st.fit_reference = r.boolean("fit_reference", doc.get("fit_reference", False))
     st.robust = r.boolean("robust", doc.get("robust", False))
     st.answer_revealed = r.boolean("answer_revealed", doc.get("answer_revealed", False))
+    st.noise_nT = r.number("noise_nT", doc.get("noise_nT"), *NOISE_RANGE_nT, null=True)
     sensor = doc.get("sensor")
     st.sensor = None if sensor is None else r.integer("sensor", sensor, 0, n_sensors - 1)
     history = r.listing("history", doc.get("history", []), MAX_HISTORY)

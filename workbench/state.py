@@ -8,6 +8,10 @@ file, and is tested without a browser.
 The rejection of samples is a per-*sample* mask shared by all sensors (a sample is one row of the file: every
 sensor's reading at one instant). Every change to the mask goes through :class:`Selection`, which keeps an
 undo/redo history.
+
+Threads: viser runs callbacks in a thread pool and engine steps run in a worker thread, so one re-entrant lock
+(:attr:`SessionState.lock`, shared by its :class:`Selection`) guards every change of the state, its version
+and its serialisation (the autosave holds it while it writes): two rejections at once both count.
 """
 
 from __future__ import annotations
@@ -48,9 +52,12 @@ class Selection:
         Number of samples N.
     kept : numpy.ndarray of bool, shape (N,), optional
         Initial mask (all kept if omitted).
+    lock : threading.RLock, optional
+        The lock every read-modify-write of the mask takes (the owning state's; a new one if omitted).
     """
 
-    def __init__(self, n_samples: int, kept=None):
+    def __init__(self, n_samples: int, kept=None, lock=None):
+        self.lock = lock if lock is not None else threading.RLock()
         self.n_samples = int(n_samples)
         self._kept = np.ones(self.n_samples, bool) if kept is None else np.array(kept, dtype=bool).copy()
         if self._kept.shape != (self.n_samples,):
@@ -82,6 +89,7 @@ class Selection:
 
     # --- changing --------------------------------------------------------------------------------------------
     def _apply(self, new: np.ndarray, what: str) -> bool:
+        # callers hold self.lock: the mask they changed is the one replaced
         if np.array_equal(new, self._kept):
             return False
         self._undo.append((self._kept.copy(), what))
@@ -93,19 +101,21 @@ class Selection:
     def reject(self, indices, what: str = "reject") -> int:
         """Reject samples by index; returns how many changed from kept to rejected."""
         idx = self._check(indices)
-        new = self._kept.copy()
-        new[idx] = False
-        changed = int(np.count_nonzero(self._kept[idx]))
-        self._apply(new, what)
+        with self.lock:
+            new = self._kept.copy()
+            new[idx] = False
+            changed = int(np.count_nonzero(self._kept[np.unique(idx)]))
+            self._apply(new, what)
         return changed
 
     def restore(self, indices, what: str = "restore") -> int:
         """Restore (keep again) samples by index; returns how many changed from rejected to kept."""
         idx = self._check(indices)
-        new = self._kept.copy()
-        new[idx] = True
-        changed = int(np.count_nonzero(~self._kept[idx]))
-        self._apply(new, what)
+        with self.lock:
+            new = self._kept.copy()
+            new[idx] = True
+            changed = int(np.count_nonzero(~self._kept[np.unique(idx)]))
+            self._apply(new, what)
         return changed
 
     def set_kept(self, kept, what: str = "set") -> bool:
@@ -113,29 +123,33 @@ class Selection:
         new = np.array(kept, dtype=bool)
         if new.shape != (self.n_samples,):
             raise ValueError(f"kept mask has shape {new.shape}, expected ({self.n_samples},)")
-        return self._apply(new, what)
+        with self.lock:
+            return self._apply(new, what)
 
     def reset(self) -> bool:
         """Keep every sample again (one undo step)."""
-        return self._apply(np.ones(self.n_samples, bool), "reset")
+        with self.lock:
+            return self._apply(np.ones(self.n_samples, bool), "reset")
 
     def undo(self) -> str | None:
         """Go back one change; returns its description, or None if there was nothing to undo."""
-        if not self._undo:
-            return None
-        previous, what = self._undo.pop()
-        self._redo.append((self._kept, what))
-        self._kept = previous
-        return what
+        with self.lock:
+            if not self._undo:
+                return None
+            previous, what = self._undo.pop()
+            self._redo.append((self._kept, what))
+            self._kept = previous
+            return what
 
     def redo(self) -> str | None:
         """Redo the last undone change; returns its description, or None."""
-        if not self._redo:
-            return None
-        nxt, what = self._redo.pop()
-        self._undo.append((self._kept, what))
-        self._kept = nxt
-        return what
+        with self.lock:
+            if not self._redo:
+                return None
+            nxt, what = self._redo.pop()
+            self._undo.append((self._kept, what))
+            self._kept = nxt
+            return what
 
     def _check(self, indices) -> np.ndarray:
         idx = np.asarray(indices, dtype=int).reshape(-1)
@@ -145,12 +159,13 @@ class Selection:
 
     # --- session file ----------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {
-            "n_samples": self.n_samples,
-            "kept": pack_mask(self._kept),
-            "undo": [[pack_mask(m), w] for m, w in self._undo[-50:]],
-            "redo": [[pack_mask(m), w] for m, w in self._redo[-50:]],
-        }
+        with self.lock:
+            return {
+                "n_samples": self.n_samples,
+                "kept": pack_mask(self._kept),
+                "undo": [[pack_mask(m), w] for m, w in self._undo[-50:]],
+                "redo": [[pack_mask(m), w] for m, w in self._redo[-50:]],
+            }
 
     @classmethod
     def from_dict(cls, doc: dict, n_samples: int) -> "Selection":
@@ -198,12 +213,14 @@ class StepRecord:
     changes: str = ""
     elapsed_s: float = 0.0
     fit: dict | None = None
+    held_out_rms_nT: float | None = None
 
     def to_dict(self) -> dict:
         return {
             "step": self.step, "rms_nT": _num(self.rms_nT), "floor_nT": _num(self.floor_nT),
             "effects": list(self.effects), "n_kept": int(self.n_kept), "changes": self.changes,
             "elapsed_s": float(self.elapsed_s), "fit": None if self.fit is None else dict(self.fit),
+            "held_out_rms_nT": _num(self.held_out_rms_nT),
         }
 
     @classmethod
@@ -211,7 +228,7 @@ class StepRecord:
         return cls(step=doc["step"], rms_nT=_num(doc["rms_nT"]), floor_nT=_num(doc.get("floor_nT")),
                    effects=list(doc.get("effects", [])), n_kept=int(doc.get("n_kept", 0)),
                    changes=doc.get("changes", ""), elapsed_s=float(doc.get("elapsed_s", 0.0)),
-                   fit=doc.get("fit"))
+                   fit=doc.get("fit"), held_out_rms_nT=_num(doc.get("held_out_rms_nT")))
 
 
 def _num(v):
@@ -264,6 +281,7 @@ class SessionState:
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
+        self._lock = threading.RLock()
         self.n_samples = int(n_samples)
         self.n_sensors = int(n_sensors)
         self.data_path = data_path
@@ -279,8 +297,22 @@ class SessionState:
         self.history: list[StepRecord] = []
         self.calibration: dict | None = None
         self.answer_revealed = False
+        self.noise_nT: float | None = None  # per-axis noise given by the user (nT); None = the data's or estimated
         self.version = 0  # bumped on every change; the autosave and the views compare it
-        self._lock = threading.RLock()
+
+    @property
+    def lock(self) -> threading.RLock:
+        """The one lock of the session: changes, the version and the autosave's serialisation take it."""
+        return self._lock
+
+    @property
+    def selection(self) -> Selection:
+        return self._selection
+
+    @selection.setter
+    def selection(self, sel: Selection) -> None:
+        sel.lock = self._lock  # a selection read from a session file joins the state's lock
+        self._selection = sel
 
     # --- model ----------------------------------------------------------------------------------------------
     def add_effect(self, label: str) -> bool:
@@ -331,7 +363,8 @@ class SessionState:
         return self.selection.kept
 
     def touch(self) -> None:
-        self.version += 1
+        with self._lock:
+            self.version += 1
 
     # --- session file ---------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -354,6 +387,7 @@ class SessionState:
                 "history": [r.to_dict() for r in self.history],
                 "calibration": self.calibration,
                 "answer_revealed": self.answer_revealed,
+                "noise_nT": self.noise_nT,
             }
 
     @classmethod

@@ -176,6 +176,89 @@ def convert_ads_rm3100(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
     return convert_ads("rm3100", raw_dir, out_dir)
 
 
+#: The authors' flight window (unix s): first and last stamp of ``postFlightCali/data_ADSflight_times.csv``.
+ADS_FLIGHT_WINDOW = (1740235658.99726, 1740241184.5163)
+#: Columns of the ADS logger's raw files (no header; as in ``data_original.csv``), 0-based.
+ADS_COLUMNS = {"unix_time": 0, "imu_mx": 8, "imu_my": 9, "imu_mz": 10, "imu_T": 11, "mag_x": 12, "mag_y": 13,
+               "mag_z": 14, "enviro_t": 16, "enviro_p": 17}
+#: An RM3100 count beyond this on any axis is a read glitch (the flight field is ~4000 counts per axis at most).
+ADS_GLITCH_COUNTS = 20000
+#: The flight is written at every ADS_FLIGHT_DECIMATION-th sample (~2.4 Hz) to keep the benchmark short.
+ADS_FLIGHT_DECIMATION = 4
+
+
+def read_ads_flight(raw_dir: Path = RAW_DIR) -> tuple[np.ndarray, int]:
+    """Rows (unix time, then the columns of :data:`ADS_COLUMNS`) of the flight's raw logger files inside the
+    flight window, and the number of malformed lines skipped."""
+    from fetch import ADS_FLIGHT_FILES  # the same directory
+
+    rows, skipped = [], 0
+    keys = list(ADS_COLUMNS.values())
+    for stamp in ADS_FLIGHT_FILES:
+        with open(raw_dir / f"ads_flight_{stamp}.csv", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                parts = line.strip().split(",")
+                try:
+                    rows.append([float(parts[k]) for k in keys])
+                except (IndexError, ValueError):
+                    skipped += 1
+    a = np.asarray(rows, dtype=float)
+    a = a[np.argsort(a[:, 0], kind="stable")]
+    inside = (a[:, 0] >= ADS_FLIGHT_WINDOW[0]) & (a[:, 0] <= ADS_FLIGHT_WINDOW[1])
+    return a[inside], skipped
+
+
+def convert_ads_flight(sensor: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ads_flight_rm3100`` / ``ads_flight_icm20948``: the ADS payload's balloon flight (2025-02-22), every 4th
+    sample, RM3100 read glitches dropped; ``temp`` = ICM-20948 die temperature, ``pressure_hPa`` and ``air_t``."""
+    a, skipped = read_ads_flight(raw_dir)
+    c = {name: a[:, j] for j, name in enumerate(ADS_COLUMNS)}
+    rm = np.c_[c["mag_x"], c["mag_y"], c["mag_z"]]
+    glitch = np.any(np.abs(rm) > ADS_GLITCH_COUNTS, axis=1)
+    repeat = np.r_[False, np.diff(c["unix_time"]) <= 0]
+    keep = ~glitch & ~repeat
+    keep &= (np.cumsum(keep) - 1) % ADS_FLIGHT_DECIMATION == 0
+    if sensor == "icm20948":
+        counts, lsb = np.c_[c["imu_mx"], c["imu_my"], c["imu_mz"]], ICM20948_LSB_NT
+        what = "ICM-20948 (AK09916) magnetometer, counts x 150 nT"
+    elif sensor == "rm3100":
+        counts, lsb = rm, RM3100_LSB_NT
+        what = "PNI RM3100, counts x 13.333 nT (75 LSB/uT)"
+    else:
+        raise ValueError(f"unknown ADS sensor {sensor!r} (icm20948 or rm3100)")
+    t = c["unix_time"][keep]
+    meta = {
+        "source": "github.com/apujara22/MagCal_W25_MXL 'ADSvehicle/postFlightCali/Telem/data_1740235425.csv' ... "
+                  "'data_1740241125.csv' (20 files of 5 min)",
+        "licence": "none stated: local development only, do not redistribute",
+        "sensor": f"{what}; ADS payload (Raspberry Pi) on a high-altitude balloon flight, U. Michigan MXL, "
+                  "2025-02-22: ground to ~10 hPa (~26 km) and down; the payload swings and spins",
+        "conversion": f"counts x {lsb:.6g} nT",
+        "lsb_nT": f"{lsb:.6g}",
+        "rate_Hz": f"~{9.7 / ADS_FLIGHT_DECIMATION:.2g} (sample numbers 0, {ADS_FLIGHT_DECIMATION}, "
+                   f"{2 * ADS_FLIGHT_DECIMATION}, ... of the ~9.7 Hz log)",
+        "time": "t = logger unix time - 1740235659 s (the authors' flight window, data_ADSflight_times.csv)",
+        "dropped": f"{int(glitch.sum())} RM3100 read glitches (|count| > {ADS_GLITCH_COUNTS}), "
+                   f"{int(repeat.sum())} repeated stamps, {skipped} malformed lines",
+        "temp": "ICM-20948 die temperature (imu_T), degC: -32 to +5 degC, not monotonic in time "
+                "(cooling through the troposphere, warming in the stratosphere, cooling on descent)",
+        "what_for": "flight log, not a calibration rotation: partial attitude coverage; the field changes with "
+                    "altitude (~-650 nT at 26 km) and position; temperature varies independently of time",
+        "igrf_total_nT": "about 53000 at the ground (south-east Michigan; launch site assumed)",
+    }
+    columns = {"t": t - ADS_FLIGHT_WINDOW[0], **_vector_columns(counts[keep] * lsb), "temp": c["imu_T"][keep],
+               "pressure_hPa": c["enviro_p"][keep], "air_t": c["enviro_t"][keep]}
+    return _write(f"ads_flight_{sensor}", columns, meta, out_dir)
+
+
+def convert_ads_flight_rm3100(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_ads_flight("rm3100", raw_dir, out_dir)
+
+
+def convert_ads_flight_icm20948(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    return convert_ads_flight("icm20948", raw_dir, out_dir)
+
+
 def convert_mxl_test1(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
     """``mxl_test1``: RM3100 on a quadrotor (uT with 1/75 resolution) -> counts -> nT; no usable time stamps."""
     uT = np.loadtxt(raw_dir / "mxl_test1_esti_trunc.csv", delimiter=",", skiprows=1, ndmin=2)
@@ -249,6 +332,102 @@ def convert_ab_mag_out(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
     return _write("ab_mag_out", _vector_columns(counts * AB_ASSUMED_LSB_NT), meta, out_dir)
 
 
+# ---- flight-controller logs (PX4 ULog, ArduPilot DataFlash) ---------------------------------------------------
+#
+# Read with magcal's own log reader (magcal.logs: pyulog for .ulg, pymavlink for .bin; `pip install pyulog
+# pymavlink`), which gives the field in nT, the log's time in s, the vehicle's attitude as qw..qz and, for
+# ArduPilot, the raw field with the logged calibration (COMPASS_OFS*, motor offsets, DIA/ODI/SCALE) undone.
+# These are flights or bench logs, not calibration rotations: the attitudes cover part of the sphere at best.
+
+
+def _read_flight_log(raw_name: str, raw_dir: Path):
+    """A :class:`magcal.dataset.Dataset` from a raw log, with the reader's warnings collected as strings."""
+    import warnings
+
+    try:
+        from magcal.logs import read_log
+    except ImportError as exc:  # pragma: no cover - magcal without its log reader
+        raise SystemExit(f"this magcal has no magcal.logs reader for flight logs ({exc})") from exc
+    path = raw_dir / raw_name
+    if not path.exists():
+        raise FileNotFoundError(2, "no such file", str(path))
+    from magcal.errors import DataWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        try:
+            ds = read_log(path, name=raw_name)
+        except ValueError as exc:  # DatasetError: e.g. pyulog / pymavlink missing
+            raise SystemExit(f"{raw_name}: {exc}") from exc
+    return ds, [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+
+
+def _write_log(name: str, ds, notes: list, metadata: dict, out_dir: Path) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{name}.csv"
+    meta = {**metadata, "units": "nT"}
+    if notes:
+        meta["reader_notes"] = " | ".join(n.replace("\n", " ") for n in notes)[:600]
+    write_csv(path, ds, metadata=meta)
+    return path
+
+
+def convert_px4_sample(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``px4_sample``: pyulog's test log (PX4 on an AUAV-X2.1, 2016): ``sensor_combined.magnetometer_ga``, the
+    field the vehicle had already calibrated (CAL_MAG0 offsets), gauss -> nT, one sample per magnetometer update."""
+    ds, notes = _read_flight_log("px4_sample.ulg", raw_dir)
+    meta = {
+        "source": "github.com/PX4/pyulog 'test/sample.ulg'",
+        "licence": "BSD-3-Clause (c) 2016 PX4 Pro Drone Autopilot (pyulog)",
+        "sensor": "PX4 on an AUAV-X2.1 autopilot (HMC5883-class external compass assumed, not stated), disarmed, "
+                  "tilted by hand +-22 deg roll, +-9 deg pitch, 28 deg of yaw in 69 s",
+        "conversion": "gauss x 1e5; the field as calibrated by the vehicle (CAL_MAG0_*OFF subtracted, "
+                      "scales 1.0), not raw",
+        "rate_Hz": "~98 (magnetometer updates inside sensor_combined at 248 Hz; repeats dropped)",
+        "time": "t = log time stamp + magnetometer_timestamp_relative, s",
+        "what_for": "not a calibration rotation: magnitude stability under small tilts, timing, quantization",
+    }
+    return _write_log("px4_sample", ds, notes, meta, out_dir)
+
+
+def _ardupilot_meta(path: str, what: str) -> dict:
+    return {
+        "source": f"github.com/erlerobot/logs '{path}'",
+        "licence": "none stated: local development only, do not redistribute",
+        "sensor": f"ArduCopter compass 1 (HMC5883L-class on the Erle PXF / Erle-Brain board); {what}",
+        "conversion": "MAG milligauss x 100 (the log stores whole milligauss: a 100 nT step); the logged calibration "
+                      "(OfsX..Z, motor offsets) undone by magcal.logs",
+        "lsb_nT": "100",
+        "time": "t = TimeMS / TimeUS of the MAG messages, s",
+        "igrf_total_nT": "about 45000 (Vitoria-Gasteiz, Spain, where Erle Robotics flew; site assumed)",
+        "what_for": "flight log, not a calibration rotation: attitude coverage partial, motors and battery current on",
+    }
+
+
+def convert_ap_erlebrain3(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ap_erlebrain3``: ArduCopter fly test of an Erle-Brain 3 (2016), MAG ~9.4 Hz."""
+    ds, notes = _read_flight_log("ap_erlebrain3.bin", raw_dir)
+    meta = _ardupilot_meta("pxf/copter/Erle-Brain3.BIN", "fly test, 265 s, yaw through 360 deg, roll/pitch +-40 deg")
+    return _write_log("ap_erlebrain3", ds, notes, {**meta, "rate_Hz": "~9.4 (MAG logged at the 10 Hz loop)"},
+                      out_dir)
+
+
+def convert_ap_pxf_rpi(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ap_pxf_rpi``: ArduCopter on a PXF v2.0b cape + Raspberry Pi (2015), MAG ~3.8 Hz for 20 min."""
+    ds, notes = _read_flight_log("ap_pxf_rpi.bin", raw_dir)
+    meta = _ardupilot_meta("pxf/copter/PXFv2.0b+Rpi.BIN", "1231 s, yaw through 360 deg, roll/pitch +-30 deg")
+    return _write_log("ap_pxf_rpi", ds, notes, {**meta, "rate_Hz": "~3.8 mean (MAG logged irregularly)"}, out_dir)
+
+
+def convert_ap_pxf_flip(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ap_pxf_flip``: ArduCopter PXF v1.4 log (2014-12-15): level flight, then the vehicle turns over."""
+    ds, notes = _read_flight_log("ap_pxf_flip.bin", raw_dir)
+    meta = _ardupilot_meta("pxf/copter/15-12-2014/16.BIN",
+                           "152 s of level flight (roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle "
+                           "turns over in its last seconds (roll -108, pitch 81 deg)")
+    return _write_log("ap_pxf_flip", ds, notes, {**meta, "rate_Hz": "10 (MAG at the 10 Hz loop)"}, out_dir)
+
+
 #: Every recording: name -> converter.
 CONVERTERS = {
     "qmc_filtered": convert_qmc_filtered,
@@ -258,6 +437,12 @@ CONVERTERS = {
     "mxl_test1": convert_mxl_test1,
     "sf_fullsphere": convert_sf_fullsphere,
     "ab_mag_out": convert_ab_mag_out,
+    "ads_flight_rm3100": convert_ads_flight_rm3100,
+    "ads_flight_icm20948": convert_ads_flight_icm20948,
+    "px4_sample": convert_px4_sample,
+    "ap_erlebrain3": convert_ap_erlebrain3,
+    "ap_pxf_rpi": convert_ap_pxf_rpi,
+    "ap_pxf_flip": convert_ap_pxf_flip,
 }
 
 
@@ -267,7 +452,13 @@ def main(argv=None) -> int:
     parser.add_argument("--all", action="store_true", help="convert every recording")
     parser.add_argument("--raw-dir", type=Path, default=RAW_DIR)
     parser.add_argument("--out-dir", type=Path, default=OUT_DIR)
+    parser.add_argument("--flight-every", type=int, default=ADS_FLIGHT_DECIMATION,
+                        help=f"keep every N-th sample of the ADS flight (default {ADS_FLIGHT_DECIMATION}; 1 = all "
+                             "53 000 samples at 9.7 Hz, about 2.5 min for benchmarks/real.py on it alone)")
     args = parser.parse_args(argv)
+    if args.flight_every < 1:
+        parser.error(f"--flight-every must be at least 1, got {args.flight_every}")
+    globals()["ADS_FLIGHT_DECIMATION"] = args.flight_every
     names = list(CONVERTERS) if args.all else args.names
     if not names:
         parser.error("name recordings or give --all")

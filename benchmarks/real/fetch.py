@@ -48,6 +48,12 @@ QMC = ("tomisuarez2/MagnetometerCalibration", "eb93f820ffc06155579b7d86928795915
 MXL = ("apujara22/MagCal_W25_MXL", "b3117ac0dfe91d7350227bccf4c11768a845444a")
 SF = ("sunsided/sensor-fusion", "f16045a9d1d4f9037a183f436fe3c098a38ad99d")
 AB = ("aleksandrbazhin/ellipsoid_fit_python", "bfab4ce68244529640496f466a4374ef15748275")
+PYULOG = ("PX4/pyulog", "3cf17793f14709713ab297d3743314c658874068")
+ERLE = ("erlerobot/logs", "3f7d4a0d17f2485f7fa5cb7124fc2a5b13d6c688")
+
+#: The ADS payload's flight (2025-02-22, U. Michigan MXL): the logger's 5-min files that span the authors' flight
+#: window (``ADSvehicle/postFlightCali/data_ADSflight_times.csv``: unix 1740235659 to 1740241185).
+ADS_FLIGHT_FILES = tuple(range(1740235425, 1740241126, 300))
 
 SOURCES = (
     Source("qmc_filtered_raw_data.csv", *QMC, "calibration data/filtered_raw_data.csv", "MIT",
@@ -64,6 +70,21 @@ SOURCES = (
            "EUPL-1.2", "MPU6050 die temperature of the same board, 100 Hz"),
     Source("ab_mag_out.txt", *AB, "mag_out.txt", "MIT",
            "example input of an ellipsoid-fit tool: 347 raw integer vectors, sensor and unit not stated"),
+    *(Source(f"ads_flight_{stamp}.csv", *MXL, f"ADSvehicle/postFlightCali/Telem/data_{stamp}.csv", "none (local only)",
+             "ADS payload balloon flight, raw logger file (5 min): ICM-20948 + RM3100 counts, die and air temperature, "
+             "pressure, ~9.7 Hz") for stamp in ADS_FLIGHT_FILES),
+    Source("px4_sample.ulg", *PYULOG, "test/sample.ulg", "BSD-3-Clause",
+           "PX4 ULog test file of pyulog: AUAV-X2.1, disarmed, hand-tilted +-22 deg for 69 s; sensor_combined "
+           "magnetometer_ga (already calibrated by the vehicle), ~98 Hz"),
+    Source("ap_erlebrain3.bin", *ERLE, "pxf/copter/Erle-Brain3.BIN", "none (local only)",
+           "ArduCopter DataFlash log, Erle-Brain 3 fly test (2016): MAG ~9.4 Hz for 265 s, yaw through 360 deg, "
+           "roll/pitch +-40 deg"),
+    Source("ap_pxf_rpi.bin", *ERLE, "pxf/copter/PXFv2.0b+Rpi.BIN", "none (local only)",
+           "ArduCopter DataFlash log, PXF v2.0b on a Raspberry Pi (2015): MAG ~3.8 Hz for 1231 s, yaw through "
+           "360 deg, roll/pitch +-30 deg"),
+    Source("ap_pxf_flip.bin", *ERLE, "pxf/copter/15-12-2014/16.BIN", "none (local only)",
+           "ArduCopter DataFlash log, Erle-Copter PXF v1.4 (2014-12-15): MAG 10 Hz for 152 s, level flight "
+           "(roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle turns over at the end (roll -108, pitch 81)"),
 )
 
 

@@ -18,7 +18,7 @@ import importlib
 import sys
 
 #: Subcommand modules, in the order ``magcal --help`` lists them.
-SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects")
+SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects", "export")
 
 
 def add_effects_file_argument(parser) -> None:

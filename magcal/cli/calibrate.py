@@ -7,6 +7,12 @@ Example::
     magcal calibrate field.csv --robust --method ml
     magcal calibrate field.csv --effects-file my_effects.py --effects pump_interference -o cal.json
     magcal calibrate mems.csv --units counts --lsb 150        # raw counts of 150 nT (0.15 uT/LSB)
+    magcal calibrate field.csv --effects temperature_bias --noise 80   # held-out RMS beside the in-sample one
+
+With ``--effects`` the report and ``--json`` (``validation``) also give the held-out total-field RMS (blocks
+scheme of :mod:`magcal.validation`) of the base model and of the model with the effects, beside the in-sample
+RMS, so that a gain that only fits this record shows; and, per effect, whether it is an instrument term (carried to
+new data) or record-only (applied only to this record).
 
 Before the fit the data's quality is assessed (:mod:`magcal.quality`: sample rate, gaps, stale readings,
 quantization, clipping, static stretches, temperature): the report gets a "Data quality" section with the notable
@@ -74,6 +80,28 @@ def add_arguments(parser) -> None:
                              "list); your own effects with --effects-file; repeatable")
     parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the calibration here")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    parser.add_argument("--no-validate", dest="validate", action="store_false",
+                        help="with --effects: skip the held-out RMS of the base model and of the model with the "
+                             "effects (fitted on alternating blocks in time, scored on the blocks between)")
+    add_noise_argument(parser)
+
+
+def add_noise_argument(parser) -> None:
+    """``--noise NT``: the noise per axis, known (shared by calibrate and diagnose)."""
+    parser.add_argument("--noise", type=float, default=None, metavar="NT",
+                        help="noise per axis in nT, if you know it (e.g. from a still recording): used for the floors "
+                             "and the verdict instead of the file's '# noise_nT:' line or any estimate; the report "
+                             "says 'given'")
+
+
+def checked_noise(args):
+    """``--noise`` checked: a positive finite number of nT, or None."""
+    import math
+
+    noise = getattr(args, "noise", None)
+    if noise is not None and not (math.isfinite(noise) and noise > 0):
+        raise MagcalError(f"--noise must be a positive noise per axis in nT, got {noise}")
+    return noise
 
 
 def read_input(args):
@@ -120,6 +148,7 @@ def calibrate_options(args) -> dict:
         "reference_total_nT": None,  # resolved into the dataset by run() (number, igrf, column or fit)
         "seed": args.seed,
         "ellipsoid_method": args.ellipsoid,
+        "noise_nT": checked_noise(args),
     }
 
 
@@ -132,6 +161,7 @@ def run(args) -> int:
     from ..reference import reference_from_args
 
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
+    checked_noise(args)
     ds, notes = read_input(args)
     with warnings.catch_warnings(record=True) as caught_ref:
         warnings.simplefilter("always")
@@ -154,6 +184,9 @@ def run(args) -> int:
         if bar is not None:
             bar.close()
     notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
+    if names and args.method == "ml" and getattr(args, "validate", True):
+        notes += _attach_validation(result, ds)
+    result.calibration.fitted_on(ds)  # record-only terms then act on this record only (magcal apply)
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
     notes += quality.warnings
     # each warning once: the text report lists the calibration's own warnings and the data-quality warnings, so
@@ -168,6 +201,8 @@ def run(args) -> int:
         result.calibration.save(args.output)
     if args.json:
         doc = calibration_json(result)
+        if getattr(result, "validation", None) is not None:
+            doc["validation"] = result.validation.to_dict()
         # every warning of the run, not only the calibration's own: reading, reference, coverage, fit
         doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
         doc["quality"] = quality.to_dict()
@@ -182,6 +217,19 @@ def run(args) -> int:
         if args.output:
             print(f"\nsaved the calibration to {args.output}")
     return 0
+
+
+def _attach_validation(result, ds) -> list:
+    """Held-out RMS of the base model and of the model with the effects (:func:`magcal.validation.validate_effects`),
+    set as ``result.validation`` for the report and the JSON; returns warnings (a record too short to split)."""
+    from ..validation import validate_effects
+
+    try:
+        result.validation = validate_effects(ds, result)
+    except (CalibrationError, MagcalError) as exc:
+        result.validation = None
+        return [f"held-out validation not done: {exc}"]
+    return list(result.validation.notes_for_user)
 
 
 def _search_progress_bar(method, n_sensors):

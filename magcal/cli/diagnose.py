@@ -6,11 +6,15 @@ Example::
     magcal diagnose hidden.csv
     magcal diagnose hidden.csv --effects temperature_bias:2 --json
     magcal diagnose field.csv --effects-file my_effects.py      # your own effects are candidates too
+    magcal diagnose field.csv --noise 80                         # the noise per axis is known: 80 nT
 
 Fits the base model (plus ``--effects``), then prints a ranked table of candidate effects (score test, confirmed
 by refitting the best ones) and a verdict: ``adequate``, ``missing_effect`` or ``unexplained``. With ``--json``
-it prints one JSON object: ``effects``, ``rms_nT``, ``noise_nT``, ``verdict``, ``warnings``, ``candidates``
-(``effect``, ``sensor``, ``delta_bic``, ``rms_after_nT``, ``evidence``, best first), ``quality`` (every finding of
+it prints one JSON object: ``effects``, ``rms_nT``, ``noise_nT``, ``noise_source``, ``noise`` (the method and its
+checks), ``verdict``, ``warnings``, ``candidates`` (``effect``, ``sensor``, ``delta_bic``, ``rms_after_nT``,
+``held_out_rms_before_nT`` / ``_after_nT``, ``later_rms_before_nT`` / ``_after_nT``, ``holds``, ``evidence``, best
+first), ``validation`` (the held-out judgement: a candidate is recommended only if its gain holds on samples the
+fit did not see; ``--no-validate`` skips it), ``quality`` (every finding of
 :func:`magcal.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
 quality" section with the notable findings.
 """
@@ -55,6 +59,13 @@ def add_arguments(parser) -> None:
                         help="number of candidate effects confirmed by refitting (default 3)")
     parser.add_argument("--robust", action="store_true", help="robust (soft-L1) loss for the fits")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    parser.add_argument("--no-validate", dest="validate", action="store_false",
+                        help="skip the held-out validation of the supported candidates (by default each is fitted on "
+                             "alternating blocks in time and on the first part of the record, and recommended only "
+                             "if its gain holds on the samples held out)")
+    from .calibrate import add_noise_argument
+
+    add_noise_argument(parser)
 
 
 def run(args) -> int:
@@ -68,6 +79,9 @@ def run(args) -> int:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
+    from .calibrate import checked_noise
+
+    checked_noise(args)
     names = checked_effect_names(args)
     ds, notes = read_input(args)
     quality = assess(ds)  # data quality, read before the fit (issue 10)
@@ -76,8 +90,8 @@ def run(args) -> int:
         warnings.simplefilter("always")
         try:
             result = calibrate(ds, effects=names, robust=args.robust,
-                               reference_total_nT=args.reference)
-            diagnosis = diagnose(ds, result, top=args.top)
+                               reference_total_nT=args.reference, noise_nT=args.noise)
+            diagnosis = diagnose(ds, result, top=args.top, validate=args.validate, noise_nT=args.noise)
         except CalibrationError as exc:
             raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught]

@@ -55,6 +55,11 @@ def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
         degree = 3 if c.effect == "nonlinearity_quadratic" else 4
         sensors = [c.sensor] if c.sensor is not None else range(len(sh_stats))
         rms = [sh_stats[s]["rms_nT"][degree] for s in sensors]
+        rms = [v for v in rms if np.isfinite(v)]
+        if not rms:  # withheld by sh_analysis: the coverage does not resolve the degree
+            top = max(int(sh_stats[s].get("max_resolved_degree", -1)) for s in sensors)
+            return (f"direction degree {degree}: not resolved by the coverage (directions resolve degrees up to "
+                    f"{top}), so its size is not measured")
         return f"direction degree {degree}: {max(rms):.2g} nT"
     if c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift") and \
             kept.temperature_C is not None and kept.time_s is not None:

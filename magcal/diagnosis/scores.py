@@ -74,6 +74,17 @@ class Candidate:
         One line.
     params : dict
         Fitted parameters (refit only).
+    held_out_before_nT, held_out_after_nT : float or None
+        Total-field RMS on held-out samples without and with the effect, ``blocks`` scheme (interpolation in
+        time; :mod:`magcal.validation`; for arrays the inter-sensor consistency is judged too, and quoted in the
+        evidence), nT; None when not validated.
+    later_before_nT, later_after_nT : float or None
+        The same on the last stretch of the record (``later`` scheme: what a calibration does for later data;
+        for a record-only term, both models with the record's level on that stretch taken out,
+        :func:`magcal.validation.relevel`), nT.
+    holds : bool or None
+        Whether the in-sample gain holds on held-out data (:func:`magcal.validation.judge`); None when not
+        validated (not supported in-sample, validation skipped or refused).
     """
 
     effect: str
@@ -89,6 +100,11 @@ class Candidate:
     refitted: bool = False
     evidence: str = ""
     params: dict = field(default_factory=dict)
+    held_out_before_nT: float | None = None
+    held_out_after_nT: float | None = None
+    later_before_nT: float | None = None
+    later_after_nT: float | None = None
+    holds: bool | None = None
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
@@ -101,7 +117,16 @@ class Candidate:
             "predicted_delta_bic": _num(self.predicted_delta_bic), "refitted": self.refitted,
             "lm": _num(self.lm), "p_value": _num(self.p_value), "n_params": self.n_params,
             "vector_rms_after_nT": _num(self.vector_rms_after_nT), "params": self.params,
+            "held_out_rms_before_nT": _num(self.held_out_before_nT),
+            "held_out_rms_after_nT": _num(self.held_out_after_nT),
+            "later_rms_before_nT": _num(self.later_before_nT), "later_rms_after_nT": _num(self.later_after_nT),
+            "holds": self.holds,
         }
+
+    @property
+    def recommendable(self) -> bool:
+        """Refitted, and not refuted on held-out data (holds, or was not validated)."""
+        return self.refitted and self.holds is not False
 
 
 def _num(x):

@@ -1,7 +1,8 @@
 """Statistics of one residual series, used by the diagnosis to find structure the model leaves.
 
 In time order: :func:`durbin_watson`, :func:`autocorrelation`, the Ljung-Box whiteness test :func:`ljung_box`, the
-CUSUM change-point scan :func:`cusum_test` and the periodogram with Fisher's g-test :func:`spectrum`. Over the
+CUSUM change-point scan :func:`cusum_test` and the periodogram with Fisher's g-test :func:`spectrum` (Lomb-Scargle
+on irregular stamps). Over the
 field direction: real orthonormal spherical harmonics :func:`real_sph_harm` and the least-squares expansion with
 an F-test per degree :func:`sh_analysis` (degree up to :data:`SH_DEGREE`). Residuals are in nT, times in s.
 """
@@ -13,8 +14,16 @@ from scipy import stats
 from scipy.signal import periodogram
 from scipy.special import sph_harm_y
 
+#: Stamps deviating from a uniform grid by more than this fraction of the mean interval are irregular: the
+#: spectrum is then the Lomb-Scargle periodogram.
+IRREGULAR_DEVIATION = 0.5
+
 #: Highest spherical-harmonic degree of the direction analysis.
 SH_DEGREE = 6
+
+#: A spherical-harmonic degree is resolved by the sample directions when the smallest eigenvalue of the
+#: column-normalised Gram matrix of the degrees up to it is at least this (1 for even coverage of the sphere).
+SH_MIN_EIGEN = 0.01
 
 #: The direction analysis uses at most this many samples (evenly spread) per sensor.
 SH_MAX_SAMPLES = 6_000
@@ -77,28 +86,109 @@ def cusum_test(r):
     return k, stat, float(stats.kstwobign.sf(stat))
 
 
+def irregular_stamps(time_s) -> bool:
+    """True when time stamps are too far from a uniform grid for an FFT periodogram.
+
+    The stamps are compared with the straight line through them (sample index against time): a deviation of more
+    than :data:`IRREGULAR_DEVIATION` of the mean interval anywhere (gaps, batches of host arrival times, a
+    wandering interval) makes them irregular. Repeated or backward stamps do too.
+    """
+    t = np.asarray(time_s, dtype=float)
+    if t.size < 3:
+        return False
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        return True
+    i = np.arange(t.size, dtype=float)
+    slope, intercept = np.polyfit(i, t, 1)
+    return bool(np.max(np.abs(t - (intercept + slope * i))) > IRREGULAR_DEVIATION * slope)
+
+
+def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
+    """Lomb-Scargle periodogram of ``r`` at the frequencies ``df_hz, 2 df_hz, ... n_freq df_hz``.
+
+    The classical (unnormalised) periodogram of :func:`scipy.signal.lombscargle` (same values), computed for
+    a uniform frequency grid by recurrence: ``exp(i 2 pi k df t)`` is the ``k``-th power of
+    ``exp(i 2 pi df t)``, so each frequency costs a few products of length ``N`` instead of ``N`` sines and
+    cosines (scipy's takes seconds on a record of 10 000 samples).
+
+    Parameters
+    ----------
+    time_s : array_like, shape (N,)
+        Sample times, s (any order; irregular).
+    r : array_like, shape (N,)
+        Values (e.g. residuals in nT), mean removed by the caller.
+    df_hz : float
+        Frequency step and first frequency, Hz.
+    n_freq : int
+        Number of frequencies.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_freq,)
+        ``0.5 [ (sum r cos w(t - tau))^2 / sum cos^2 w(t - tau) + (sum r sin w(t - tau))^2 / sum sin^2 w(t - tau) ]``
+        with ``tan 2 w tau = sum sin 2wt / sum cos 2wt``, nT^2.
+    """
+    t = np.asarray(time_s, dtype=float)
+    t = t - t.min()
+    r = np.asarray(r, dtype=float)
+    n = t.size
+    step = np.exp(2j * np.pi * df_hz * t)
+    z = np.ones(n, dtype=complex)
+    out = np.empty(int(n_freq))
+    for k in range(int(n_freq)):
+        z *= step
+        if k % 64 == 63:  # renormalise now and then: the recurrence's rounding grows the modulus slowly
+            z /= np.abs(z)
+        yz = r @ z                       # sum r cos wt + i sum r sin wt
+        z2 = np.sum(z * z)               # sum cos 2wt + i sum sin 2wt
+        two_tau = np.angle(z2)
+        rot = np.exp(-0.5j * two_tau)
+        yc, ys = (yz * rot).real, (yz * rot).imag
+        cc = 0.5 * n + 0.5 * abs(z2)
+        ss = n - cc
+        out[k] = 0.5 * (yc * yc / max(cc, 1e-300) + ys * ys / max(ss, 1e-300))
+    return out
+
+
 def spectrum(r, time_s=None):
-    """Periodogram of ``r`` and Fisher's g-test for one dominant periodic component.
+    """Power spectrum of ``r`` and Fisher's g-test for one dominant periodic component.
+
+    Regular stamps (or none: then frequencies are in cycles per sample) give the FFT periodogram. Irregular
+    stamps (:func:`irregular_stamps`: gaps, host arrival times in batches) give the Lomb-Scargle periodogram
+    (:func:`scipy.signal.lombscargle`) at the stamps as they are, on a grid of frequencies ``k / T`` (``T`` the
+    duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for the FFT,
+    so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular samples
+    puts the peak at the wrong frequency (the median interval is not the sampling interval).
 
     Returns
     -------
     dict
         ``freq_hz``, ``power`` (arrays, without the zero frequency), ``peak_hz``, ``peak_fraction`` (share of
-        the variance in the three bins around the peak), ``amplitude_nT`` (of a sinusoid carrying it) and ``p``
-        (Fisher's g-test p-value).
+        the variance in the three bins around the peak), ``amplitude_nT`` (of a sinusoid carrying it), ``p``
+        (Fisher's g-test p-value) and ``method`` (``"periodogram"`` or ``"lomb-scargle"``).
     """
     r = np.asarray(r, dtype=float)
     r = r - r.mean()
     n = len(r)
-    fs = 1.0
-    if time_s is not None and n > 2:
-        dt = float(np.median(np.diff(time_s)))
-        fs = 1.0 / dt if dt > 0 else 1.0
-    freq, power = periodogram(r, fs=fs, detrend=False)
-    freq, power = freq[1:], power[1:]
+    method = "periodogram"
+    if time_s is not None and n > 2 and irregular_stamps(time_s):
+        t = np.asarray(time_s, dtype=float)
+        duration = float(t.max() - t.min())
+        n_freq = max(n // 2, 1)
+        freq = np.arange(1, n_freq + 1) / duration if duration > 0 else np.zeros(0)
+        power = lomb_scargle_grid(t, r, freq[0], freq.size) if freq.size else np.zeros(0)
+        method = "lomb-scargle"
+    else:
+        fs = 1.0
+        if time_s is not None and n > 2:
+            dt = float(np.median(np.diff(time_s)))
+            fs = 1.0 / dt if dt > 0 else 1.0
+        freq, power = periodogram(r, fs=fs, detrend=False)
+        freq, power = freq[1:], power[1:]
     if len(power) < 3 or power.sum() <= 0:
         return {"freq_hz": freq, "power": power, "peak_hz": float("nan"), "peak_fraction": 0.0,
-                "amplitude_nT": 0.0, "p": 1.0}
+                "amplitude_nT": 0.0, "p": 1.0, "method": method}
     i = int(np.argmax(power))
     g = float(power[i] / power.sum())
     nf = len(power)
@@ -108,7 +198,7 @@ def spectrum(r, time_s=None):
     frac = float(power[lo:hi].sum() / power.sum())
     var = float(np.mean(r**2))
     return {"freq_hz": freq, "power": power, "peak_hz": float(freq[i]), "peak_fraction": frac,
-            "amplitude_nT": float(np.sqrt(2 * frac * var)), "p": p}
+            "amplitude_nT": float(np.sqrt(2 * frac * var)), "p": p, "method": method}
 
 
 def real_sph_harm(u, lmax=SH_DEGREE) -> np.ndarray:
@@ -143,16 +233,59 @@ def real_sph_harm(u, lmax=SH_DEGREE) -> np.ndarray:
     return np.column_stack(cols)
 
 
+def sh_resolved_degrees(y, min_eigen=None) -> np.ndarray:
+    """Which spherical-harmonic degrees a set of directions resolves.
+
+    Degree ``l`` is resolved when the smallest eigenvalue of the column-normalised Gram matrix of the harmonics of
+    degrees ``0..l`` at the sample directions is at least ``min_eigen`` (:data:`SH_MIN_EIGEN`): even coverage of
+    the sphere gives 1 (the harmonics are orthogonal), and ``1 / eigenvalue`` is how much the worst combination's
+    variance is inflated. Samples on a few great circles (a drone rolled, pitched and yawed) resolve degrees 0-2
+    and no higher: an expansion to degree 6 on them is fitted to noise in the directions not visited. The
+    eigenvalue can only fall as degrees are added, so the resolved degrees are ``0..L``.
+
+    Parameters
+    ----------
+    y : numpy.ndarray, shape (N, (lmax + 1)^2)
+        The harmonics at the sample directions (:func:`real_sph_harm`).
+    min_eigen : float, optional
+        Threshold; default :data:`SH_MIN_EIGEN`.
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (lmax + 1,)
+    """
+    min_eigen = SH_MIN_EIGEN if min_eigen is None else float(min_eigen)
+    lmax = int(round(np.sqrt(y.shape[1]))) - 1
+    gram = y.T @ y
+    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    g_s = gram / np.outer(scale, scale)
+    out = np.zeros(lmax + 1, dtype=bool)
+    for degree in range(lmax + 1):
+        k = (degree + 1) ** 2
+        if y.shape[0] <= k or np.linalg.eigvalsh(g_s[:k, :k])[0] < min_eigen:
+            break
+        out[degree] = True
+    return out
+
+
 def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
     """Least-squares real spherical-harmonic expansion of ``r(u)`` and the evidence per degree.
+
+    The expansion and its F-tests go to ``lmax`` whatever the coverage (an F-test stays valid on an
+    ill-conditioned design; it only loses power). The RMS over the sphere of a degree the directions do not
+    resolve (:func:`sh_resolved_degrees`) is withheld (NaN): it would be an extrapolation to directions never
+    visited (on three great circles the degree-4 part of a 300 nT residual came out at 5 uT). What the degrees
+    3 and above explain at the directions visited is given instead (``high_rms_in_sample_nT``).
 
     Returns
     -------
     dict
-        ``degree`` (0..lmax), ``rms_nT`` (RMS over the sphere of each degree's part), ``F``, ``p`` (F-test of each
-        degree against the full expansion), ``coverage_rank`` (numerical rank of the design), and ``map``: the
-        fitted function of degrees 3 and above on a latitude/longitude grid (``lat_deg``, ``lon_deg``,
-        ``value_nT``) for plotting.
+        ``degree`` (0..lmax), ``rms_nT`` (RMS over the sphere of each degree's part; NaN where not resolved),
+        ``F``, ``p`` (F-test of each degree against the full expansion), ``resolved`` (bool per degree),
+        ``max_resolved_degree`` (-1 if none), ``high_rms_in_sample_nT`` (RMS over the samples of the reduction of
+        the residual by degrees 3 and above: ``sqrt((RSS without them - RSS) / N)``), ``coverage_rank``
+        (numerical rank of the design), ``n_functions``, and ``map``: the fitted function of the resolved degrees
+        3 and above on a latitude/longitude grid (``lat_deg``, ``lon_deg``, ``value_nT``) for plotting.
     """
     u = np.asarray(u, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -161,16 +294,24 @@ def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
         u, r = u[pick], r[pick]
     y = real_sph_harm(u, lmax)
     n, p = y.shape
-    gram = y.T @ y
-    scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
-    g_s = gram / np.outer(scale, scale)
-    w, v = np.linalg.eigh(g_s)
-    keep = w > 1e-8 * w.max()
-    inv = (v[:, keep] / w[keep]) @ v[:, keep].T / np.outer(scale, scale)
-    coef = inv @ (y.T @ r)
+    resolved = sh_resolved_degrees(y)
+    top = int(np.flatnonzero(resolved)[-1]) if resolved.any() else -1
+
+    def lstsq(design):
+        gram = design.T @ design
+        scale = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+        g_s = gram / np.outer(scale, scale)
+        w, v = np.linalg.eigh(g_s)
+        keep = w > 1e-8 * w.max()
+        inv = (v[:, keep] / w[keep]) @ v[:, keep].T / np.outer(scale, scale)
+        return inv @ (design.T @ r), inv, keep
+
+    coef, inv, keep = lstsq(y)
     rss = float(np.sum((r - y @ coef) ** 2))
     dof = max(n - int(keep.sum()), 1)
     s2 = rss / dof
+    low_coef, _, _ = lstsq(y[:, :9])
+    rss_low = float(np.sum((r - y[:, :9] @ low_coef) ** 2))
     degrees, rms, fstat, pval = [], [], [], []
     for degree in range(lmax + 1):
         idx = np.arange(degree**2, (degree + 1) ** 2)
@@ -182,7 +323,7 @@ def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
             drss = float("nan")
         f = drss / len(idx) / s2 if s2 > 0 else float("nan")
         degrees.append(degree)
-        rms.append(float(np.sqrt(np.sum(c**2) / (4 * np.pi))))
+        rms.append(float(np.sqrt(np.sum(c**2) / (4 * np.pi))) if resolved[degree] else float("nan"))
         fstat.append(f)
         pval.append(float(stats.f.sf(f, len(idx), dof)) if np.isfinite(f) else float("nan"))
     lat = np.linspace(-90, 90, grid[0])
@@ -191,7 +332,10 @@ def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
     g = np.column_stack([(np.cos(la) * np.cos(lo)).ravel(), (np.cos(la) * np.sin(lo)).ravel(), np.sin(la).ravel()])
     high = coef.copy()
     high[:9] = 0.0
+    high[(top + 1) ** 2:] = 0.0  # no map where the coverage does not resolve the pattern
     values = (real_sph_harm(g, lmax) @ high).reshape(la.shape)
     return {"degree": np.array(degrees), "rms_nT": np.array(rms), "F": np.array(fstat), "p": np.array(pval),
+            "resolved": resolved, "max_resolved_degree": top,
+            "high_rms_in_sample_nT": float(np.sqrt(max(rss_low - rss, 0.0) / max(n, 1))),
             "coverage_rank": int(keep.sum()), "n_functions": p,
             "map": {"lat_deg": lat, "lon_deg": lon, "value_nT": values}}

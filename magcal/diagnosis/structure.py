@@ -117,12 +117,21 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
         hi = sh["degree"] >= 3
         p_sh = float(np.nanmin(sh["p"][hi])) if np.any(np.isfinite(sh["p"][hi])) else 1.0
         deg = int(sh["degree"][hi][np.nanargmin(sh["p"][hi])]) if np.isfinite(p_sh) else -1
-        size = float(np.sum(sh["rms_nT"][hi] ** 2) / max(np.mean(r[keep] ** 2), 1e-300))
-        st.update(sh_p=p_sh, sh_degree=deg, sh_fraction=size)
+        variance = max(np.mean(r[keep] ** 2), 1e-300)
+        if np.all(sh["resolved"][hi]):  # the sphere is resolved: the degrees' RMS over the whole sphere
+            size = float(np.sum(sh["rms_nT"][hi] ** 2) / variance)
+        else:  # only what degrees 3+ explain at the directions visited (their RMS over the sphere is not known)
+            size = float(sh["high_rms_in_sample_nT"] ** 2 / variance)
+        st.update(sh_p=p_sh, sh_degree=deg, sh_fraction=size, sh_max_resolved_degree=sh["max_resolved_degree"])
         if p_sh < alpha / 4 and size > STRUCTURE_MIN_FRACTION:
+            if deg >= 0 and sh["resolved"][deg]:
+                what = f"strongest at spherical-harmonic degree {deg} ({sh['rms_nT'][deg]:.2g} nT)"
+            else:
+                what = (f"strongest at spherical-harmonic degree {deg}; degrees 3 and above explain "
+                        f"{sh['high_rms_in_sample_nT']:.2g} nT RMS at the directions visited (the coverage resolves "
+                        f"degrees up to {sh['max_resolved_degree']} only, so their size elsewhere is not known)")
             found.append(Structure("direction", s, p_sh, size,
-                                   f"sensor {s + 1}: pattern over the field direction, strongest at spherical-harmonic "
-                                   f"degree {deg} ({sh['rms_nT'][deg]:.2g} nT)"))
+                                   f"sensor {s + 1}: pattern over the field direction, {what}"))
         if vec is not None:
             v = vec[s].reshape(n, -1).copy()
             v[glitch] = 0.0

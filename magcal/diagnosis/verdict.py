@@ -6,6 +6,17 @@ find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`:
 structure left), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
 (significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
 below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates are confounded.
+
+Held-out judgement
+    With ``validate=True`` (default) every supported candidate that is refitted is also fitted on part of the
+    record and scored on the rest (:mod:`magcal.validation`, warm-started from the refit): the ``blocks`` scheme
+    (alternating blocks in time, every term interpolated) and the ``later`` scheme (the last quarter of the
+    record; record-only terms held at their fitted average). A candidate is *recommended* -- it may enter
+    ``explained_by``, the ``missing_effect`` verdict and the advice -- only if its held-out RMS falls by at least
+    :data:`magcal.validation.MIN_RELATIVE_GAIN` on ``blocks`` and does not rise on ``later`` by more than
+    :data:`magcal.validation.LATER_TOLERANCE_SE` standard errors (:func:`magcal.validation.judge`). A candidate
+    whose in-sample gain does not hold is ranked below those that hold and its evidence says so. A record too
+    short to split (:func:`magcal.validation.split_problem`) is judged in-sample only, with a note.
 """
 
 from __future__ import annotations
@@ -16,8 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..calibration import jsonable
+from .. import validation as _validation
+from ..errors import CalibrationError, MagcalError
 from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
-from ._fitted import _fit_of, _floor, _kept, _sensor_directions, _vector_rms
+from ._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
 from .evidence import (
     _effect_extra, _evidence_line, _sensor_evidence, _temperature_evidence, _time_evidence,
 )
@@ -69,6 +82,12 @@ class Diagnosis:
     fits : dict of str to FitResult
         Refits by candidate label (and ``"+".join(explained_by)`` for the final model).
     elapsed_s : float
+    rms_final_nT : float or None
+        Total-field RMS with ``explained_by`` (or ``partially_explained_by``) added, nT.
+    validation : dict
+        The held-out judgement: ``validated`` (bool), ``skipped`` (why not, or None), ``schemes`` (per scheme:
+        ``n_train``, ``n_test``, ``base_held_out_rms_nT``), ``min_relative_gain``, ``later_tolerance_se``,
+        and ``held_out_rms_before_nT`` / ``held_out_rms_after_nT`` of the recommended effects (blocks scheme).
     """
 
     verdict: str
@@ -89,6 +108,7 @@ class Diagnosis:
     fits: dict = field(repr=False, default_factory=dict)
     elapsed_s: float = 0.0
     rms_final_nT: float | None = None
+    validation: dict = field(default_factory=dict)
 
     @property
     def noise_nT(self) -> float:
@@ -117,6 +137,8 @@ class Diagnosis:
             "structure": [s.to_dict() for s in self.structure],
             "remaining_structure": [s.to_dict() for s in self.remaining],
             "elapsed_s": round(float(self.elapsed_s), 3),
+            "noise": self.noise.to_dict(),
+            "validation": jsonable(self.validation),
         }
 
     def plot_data(self) -> dict:
@@ -128,35 +150,59 @@ class Diagnosis:
         lines = [
             f"verdict: {self.verdict}",
             f"  {self.summary}",
-            f"total-field RMS {self.rms_nT:.3g} nT; noise {self.noise.sigma_nT:.3g} nT ({self.noise.source}); "
-            f"floor {self.floor_nT:.3g} nT",
+            f"total-field RMS {self.rms_nT:.3g} nT; noise {self.noise.text()}; floor {self.floor_nT:.3g} nT",
         ]
+        v = self.validation or {}
+        if v.get("validated"):
+            blocks = v["schemes"]["blocks"]
+            later = v["schemes"].get("later")
+            line = (f"held-out validation: blocks ({blocks['n_test']} of {blocks['n_train'] + blocks['n_test']} "
+                    f"samples held out, base model {blocks['base_held_out_rms_nT']:.4g} nT)")
+            if later:
+                line += f", later (last {later['n_test']} samples, base {later['base_held_out_rms_nT']:.4g} nT)"
+            lines.append(line)
+        elif v.get("skipped"):
+            lines.append(f"held-out validation skipped: {v['skipped']}")
         if self.effects:
             lines.append(f"model effects: {', '.join(self.effects)}")
         lines.append("")
-        lines.append(f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10}  evidence")
+        lines.append(f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10} "
+                     f"{'held-out':>17} {'later':>17} {'holds':>5}  evidence")
         for i, c in enumerate(self.candidates[:limit], 1):
             mark = "" if c.refitted else "*"
             sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
-            lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g}  "
-                         f"{c.evidence}")
+            holds = "-" if c.holds is None else "yes" if c.holds else "NO"
+            lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g} "
+                         f"{_pair(c.held_out_before_nT, c.held_out_after_nT):>17} "
+                         f"{_pair(c.later_before_nT, c.later_after_nT):>17} {holds:>5}  {c.evidence}")
         if any(not c.refitted for c in self.candidates[:limit]):
             lines.append("  * predicted by the score test (not refitted)")
+        if v.get("validated"):
+            lines.append("  held-out, later: total-field RMS without -> with the effect on samples the fit did not "
+                         "see (nT); holds: the gain holds on them (recommended only then)")
         if self.warnings:
             lines.append("")
             lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)
 
 
+def _pair(before, after) -> str:
+    """``"1011 -> 963"`` (nT), or ``"-"``."""
+    if before is None or after is None:
+        return "-"
+    return f"{before:.4g} -> {after:.4g}"
+
+
 def _warnings_for(cands, proj, kept, fit, noise, significant):
     out = []
     if noise.source == "residuals":
         out.append(noise.note)
-    if kept.noise_nT and noise.source == "differences":
-        ratio = noise.sigma_nT / float(kept.noise_nT)
-        if abs(ratio - 1.0) > 0.2:
-            out.append(f"the declared noise_nT {float(kept.noise_nT):.3g} nT differs from the noise seen in the data "
-                       f"({noise.sigma_nT:.3g} nT)")
+    if noise.source == "given":
+        seen = estimate_noise(kept.replace(noise_nT=None), fit.residuals_nT[:, fit.mask], fit.n_params)
+        ratio = noise.sigma_nT / seen.sigma_nT if seen.sigma_nT > 0 else 1.0
+        if seen.source != "residuals" and abs(ratio - 1.0) > 0.2:
+            out.append(f"the given noise {noise.sigma_nT:.3g} nT ({noise.note}) differs from the noise seen in the "
+                       f"data: {seen.text()}")
     top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
     if proj is not None and len(top) >= 1:
         best = top[0]
@@ -191,8 +237,88 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
     return out
 
 
+class _HeldOut:
+    """Held-out judgement of refitted candidates (:mod:`magcal.validation`) on the samples a fit used.
+
+    The base model of each round is validated once per scheme and reused for every candidate of that round;
+    every held-out fit is warm-started from the full-record fit of the same model.
+    """
+
+    def __init__(self, kept, fit0):
+        self.kept = kept
+        self.reference = _reference_override(fit0)
+        self.masks = {scheme: _validation.holdout_masks(kept, scheme) for scheme in _validation.SCHEMES}
+        self.bases = {}
+        self.schemes = {}
+
+    def _base(self, fit, scheme):
+        key = (id(fit), scheme)
+        if key not in self.bases:
+            self.bases[key] = _validation.validate(self.kept, model=fit.model, init=fit.calibration,
+                                                   reference_total_nT=self.reference, scheme=scheme,
+                                                   masks=self.masks[scheme])
+        return self.bases[key]
+
+    def judge(self, base_fit, c) -> str | None:
+        """Fill the candidate's held-out figures and ``holds``; append to its evidence. Returns a warning when
+        the gain does not hold."""
+        comparisons = {}
+        for scheme in _validation.SCHEMES:
+            base = self._base(base_fit, scheme)
+            comparisons[scheme] = _validation.compare(
+                self.kept, added_effect=c.label, scheme=scheme, base=base, with_model=c.fit.model,
+                with_init=c.fit.calibration, reference_total_nT=self.reference)
+            if base_fit is not None and scheme not in self.schemes:
+                self.schemes[scheme] = {"n_train": base.n_train, "n_test": base.n_test,
+                                        "base_held_out_rms_nT": base.held_out_rms_nT,
+                                        "base_in_sample_rms_nT": base.in_sample_rms_nT}
+        blocks, later = comparisons["blocks"], comparisons["later"]
+        c.held_out_before_nT = float(blocks.base.held_out_rms_nT)
+        c.held_out_after_nT = float(blocks.with_effect.held_out_rms_nT)
+        relevelled = bool(later.with_effect.dropped) and later.with_effect.relevelled_rms_nT is not None
+        c.later_before_nT = float(later.base.relevelled_rms_nT if relevelled else later.base.held_out_rms_nT)
+        c.later_after_nT = float(later.with_effect.relevelled_rms_nT if relevelled
+                                 else later.with_effect.held_out_rms_nT)
+        c.holds = _validation.judge(blocks, later)
+        held = (f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
+                f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT")
+        if relevelled:
+            held += " (record-only: level on the later stretch taken out)"
+        if blocks.base.held_out_consistency_rms_nT is not None:
+            held += (f", inter-sensor consistency (blocks) {blocks.base.held_out_consistency_rms_nT:.4g} -> "
+                     f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT")
+        if c.holds:
+            c.evidence += f"; {held}: holds on held-out data"
+        else:
+            why = ("the blocks' RMS does not fall by {:.0%}".format(_validation.MIN_RELATIVE_GAIN)
+                   if not blocks.holds else "the later stretch's RMS rises")
+            text = (f"in-sample {float(base_fit.rms_nT):.4g} -> {c.rms_after_nT:.4g} nT, {held}: does not hold on "
+                    f"held-out data ({why})")
+            c.evidence += "; " + text
+            return f"{c.label}: {text}; not recommended"
+        return None
+
+
+def _judge_round(held_out, base_fit, cands, notes):
+    """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
+    data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
+    predictions."""
+    if held_out is not None:
+        for c in cands:
+            if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None:
+                try:
+                    warning = held_out.judge(base_fit, c)
+                    if warning:
+                        notes.append(warning)
+                except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
+                    notes.append(f"held-out validation of {c.label} failed ({exc}); judged in-sample only")
+    held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
+    rest = sorted([c for c in cands if c.refitted and not c.holds], key=lambda c: c.delta_bic)
+    return held + rest + [c for c in cands if not c.refitted]
+
+
 def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=None, max_effects=2,
-             progress=None) -> Diagnosis:
+             progress=None, validate=True, noise_nT=None) -> Diagnosis:
     """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
 
     Parameters
@@ -214,6 +340,12 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         Most effects added one after the other to explain the residuals (greedy forward selection).
     progress : callable, optional
         ``progress(message, fraction)``.
+    validate : bool
+        Judge the supported candidates on held-out samples (module docstring); skipped, with a note, when the
+        record is too short to split (:func:`magcal.validation.split_problem`).
+    noise_nT : float, optional
+        Noise per axis in nT given by the user; takes precedence over the dataset's ``noise_nT`` and over any
+        estimate (:func:`magcal.noise.estimate_noise`).
 
     Returns
     -------
@@ -255,16 +387,32 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         if note:
             c.evidence += "; " + note
 
+    # held-out judgement of the supported refits
+    validation_notes = []
+    skipped = None if validate else "not asked for (validate=False, --no-validate)"
+    if validate and any(c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD for c in cands):
+        skipped = _validation.split_problem(kept)
+    held_out = None
+    if validate and skipped is None:
+        report("held-out validation of the supported candidates", 0.5)
+        try:
+            held_out = _HeldOut(kept, fit0)
+        except MagcalError as exc:
+            skipped = str(exc)
+    if skipped and validate:
+        validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
+    cands = _judge_round(held_out, fit0, cands, validation_notes)
+
     # noise and structure of the model as given
-    noise0 = estimate_noise(kept, r0, fit0.n_params, ordered)
+    noise0 = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
     structure0, stats0 = _structure_tests(kept, fit0, noise0, ordered, directions)
 
     # greedy forward selection while the best candidate is supported
-    explained, current, current_noise = [], fit0, noise0
+    explained, chosen, current, current_noise = [], [], fit0, noise0
     remaining, stats_final = structure0, stats0
     round_cands = cands
     for step in range(max_effects):
-        supported = [c for c in round_cands if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD]
+        supported = [c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD]
         if not supported:
             break
         best = supported[0]
@@ -272,10 +420,12 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         if nxt is None:
             break
         explained.append(best.label)
+        chosen.append(best)
         current = nxt
         kept_c = _kept(dataset, current)
         dirs_c, _ = _sensor_directions(kept_c, current)
-        current_noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered)
+        current_noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered,
+                                       noise_nT=noise_nT)
         remaining, stats_final = _structure_tests(kept_c, current, current_noise, ordered, dirs_c)
         if step + 1 >= max_effects:
             break
@@ -285,10 +435,10 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         if not more:
             break
         more = _confirm(dataset, current, more, 1, coupled, fits)
-        round_cands = more
+        round_cands = _judge_round(held_out, current, more, validation_notes)
 
     # verdict
-    supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD]
+    supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
     noise_final = current_noise if explained else noise0
     if not structure0 and not supported0:
         verdict = "adequate"
@@ -303,6 +453,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         if coupled:
             summary += (f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to "
                         f"{_vector_rms(current):.3g} nT")
+        summary += _held_out_words(chosen)
     else:
         verdict = "unexplained"
         what = _describe(remaining if explained else structure0) or "residual structure the score tests flag"
@@ -312,6 +463,8 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             tried = (f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
                      f"{b.rms_after_nT:.3g} nT") if b.refitted else ""
         summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+        if explained:
+            summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
     partial = []
     if verdict != "missing_effect":
         partial, explained = explained, []
@@ -323,6 +476,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     if glitches:
         warnings_.append("isolated samples beyond 5 sigma set aside from the structure tests (glitches or sharp "
                          "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches))
+    warnings_ += validation_notes
     if len(explained) > 1 and verdict == "missing_effect":
         warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
     if explained or partial:
@@ -337,7 +491,8 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         "spectrum": [spectrum(row, kept.time_s) for row in r0] if ordered else None,
         "sensors": _sensor_evidence(kept, fit0, r0, fields),
         "noise": {"sigma_nT": noise0.sigma_nT, "per_sensor_nT": noise0.per_sensor_nT, "source": noise0.source,
-                  "final_sigma_nT": noise_final.sigma_nT},
+                  "final_sigma_nT": noise_final.sigma_nT, "static_noise_nT": noise0.static_noise_nT,
+                  "static_scatter_nT": noise0.static_scatter_nT, "note": noise0.note},
         "tests": stats0,
     }
     return Diagnosis(
@@ -347,4 +502,24 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         structure=structure0, remaining=remaining,
         evidence=evidence, result=fit0, fits=fits, elapsed_s=_time.perf_counter() - t_start,
         rms_final_nT=float(current.rms_nT),
+        validation=_validation_summary(held_out, skipped, chosen),
     )
+
+
+def _held_out_words(chosen) -> str:
+    """``"; held-out 1011 -> 963 nT"`` for the effects chosen (blocks scheme), or ``""`` when not validated."""
+    if not chosen or chosen[0].held_out_before_nT is None or chosen[-1].held_out_after_nT is None:
+        return ""
+    return (f"; on held-out samples (blocks) from {chosen[0].held_out_before_nT:.3g} to "
+            f"{chosen[-1].held_out_after_nT:.3g} nT")
+
+
+def _validation_summary(held_out, skipped, chosen) -> dict:
+    out = {"validated": held_out is not None and bool(held_out.schemes), "skipped": skipped,
+           "schemes": dict(held_out.schemes) if held_out is not None else {},
+           "min_relative_gain": _validation.MIN_RELATIVE_GAIN,
+           "later_tolerance_se": _validation.LATER_TOLERANCE_SE}
+    if chosen and chosen[0].held_out_before_nT is not None and chosen[-1].held_out_after_nT is not None:
+        out["held_out_rms_before_nT"] = chosen[0].held_out_before_nT
+        out["held_out_rms_after_nT"] = chosen[-1].held_out_after_nT
+    return out

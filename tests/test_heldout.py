@@ -1,0 +1,230 @@
+"""Issue 10, items 3-5: the noise floor honest, record-only terms never carried silently, and the diagnose-add-refit
+loop judged on held-out data (simulated truth throughout)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import magcal
+import magcal.effects as fx
+from magcal import io, validation as val
+from magcal.cli import main
+from magcal.diagnosis import diagnose
+from magcal.model import EFFECTS
+from magcal.noise import estimate_noise
+from magcal.pipeline import calibrate
+from magcal.report import text_report
+from magcal.simulation import chi2017_truth, simulate_timeseries
+
+SIGMA = 3.0
+N = 1500
+
+
+
+def _record(hidden=None, n=N, seed=5, n_sensors=1, perturbations=()):
+    perts = list(perturbations)
+    if hidden:
+        perts.append(EFFECTS[hidden]().perturbation(EFFECTS[hidden].default_magnitude))
+    return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=SIGMA, seed=seed, perturbations=perts)
+
+
+# --- item 3: noise -----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("step_nT, stale_share", [(6.0, 0.0), (0.0, 0.25), (6.0, 0.25)])
+def test_noise_estimate_survives_quantization_and_stale_repeats(step_nT, stale_share):
+    """Readings on a grid of ``step_nT`` and a share of exact repeats of the previous sample (a host polling faster
+    than the part converts): the estimate stays within 10 % of sqrt(sigma^2 + q^2/12)."""
+    ds = _record(n=4000, seed=8).replace(noise_nT=None)
+    y = ds.readings_nT.copy()
+    if step_nT:
+        y = step_nT * np.round(y / step_nT)
+    if stale_share:
+        rng = np.random.default_rng(1)
+        repeat = np.flatnonzero(rng.random(y.shape[1]) < stale_share)
+        repeat = repeat[repeat > 0]
+        for i in repeat:  # in order, so runs of repeats hold one reading
+            y[:, i] = y[:, i - 1]
+    ds = ds.replace(readings_nT=y)
+    fit = calibrate(ds).fit
+    noise = estimate_noise(ds, fit.residuals_nT, fit.n_params)
+    truth = np.sqrt(SIGMA**2 + step_nT**2 / 12.0)
+    assert noise.source == "differences"
+    assert noise.sigma_nT == pytest.approx(truth, rel=0.10)
+    if step_nT:
+        assert noise.quantization_floor_nT[0] == pytest.approx(step_nT / np.sqrt(12.0), rel=0.01)
+
+
+def test_noise_never_goes_below_the_quantization_floor():
+    ds = _record(n=2000, seed=9).replace(noise_nT=None)
+    y = 60.0 * np.round(ds.readings_nT / 60.0)  # q/sqrt(12) = 17 nT, far above the 3 nT noise
+    ds = ds.replace(readings_nT=y)
+    noise = estimate_noise(ds, np.random.default_rng(0).normal(0.0, 1.0, (1, ds.n_samples)))
+    assert noise.source == "quantization"
+    assert noise.sigma_nT == pytest.approx(60.0 / np.sqrt(12.0), rel=0.01)
+
+
+def test_still_stretches_measure_the_noise_and_are_reported():
+    """A record that starts with a still stretch: the noise comes from it (free of the model's misfit)."""
+    ds = _record(n=3000, seed=10).replace(noise_nT=None)
+    y = ds.readings_nT.copy()
+    rng = np.random.default_rng(2)
+    y[:, :600] = y[:, :1] + rng.normal(0.0, SIGMA, (1, 600, 3))  # 60 s still at the start
+    ds = ds.replace(readings_nT=y)
+    misfit = 40.0 * np.sin(ds.time_s / 7.0)[None]  # a misfit that leaks into the residuals' differences
+    noise = estimate_noise(ds, misfit + rng.normal(0.0, SIGMA, (1, ds.n_samples)))
+    assert noise.source == "static"
+    assert noise.sigma_nT == pytest.approx(SIGMA, rel=0.1)
+    assert noise.static_scatter_nT[0] == pytest.approx(SIGMA, rel=0.15)
+    assert "still stretches" in noise.text()
+
+
+def test_given_noise_beats_the_file_and_any_estimate():
+    ds = _record(seed=11)  # the simulator declares noise_nT = 3 nT
+    fit = calibrate(ds).fit
+    assert estimate_noise(ds, fit.residuals_nT).source == "given"
+    assert estimate_noise(ds, fit.residuals_nT).sigma_nT == SIGMA
+    given = estimate_noise(ds, fit.residuals_nT, noise_nT=7.0)
+    assert (given.source, given.sigma_nT, given.note) == ("given", 7.0, "given by the user")
+    with pytest.raises(magcal.MagcalError, match="positive"):
+        estimate_noise(ds, fit.residuals_nT, noise_nT=-1.0)
+
+
+def test_floors_use_the_given_noise():
+    ds = _record(seed=12).replace(noise_nT=None)
+    estimated = calibrate(ds)
+    given = calibrate(ds, noise_nT=10.0)
+    assert estimated.noise_source == "differences" and estimated.noise_nT == pytest.approx(SIGMA, rel=0.1)
+    assert given.noise_source == "given" and given.noise_nT == 10.0
+    assert given.total_field_floor_nT == pytest.approx(10.0 * estimated.total_field_floor_nT / estimated.noise_nT)
+    assert "(given)" in text_report(given)
+    d = diagnose(ds, given, noise_nT=10.0)
+    assert d.noise.source == "given" and d.noise_nT == 10.0
+    assert any("differs from the noise seen" in w for w in d.warnings)  # 10 nT is not what the data show
+
+
+@pytest.fixture
+def noisy_file(tmp_path):
+    path = tmp_path / "rec.csv"
+    io.write_csv(path, _record(seed=13).replace(noise_nT=None))
+    return path
+
+
+def test_cli_noise_option_and_file_line(tmp_path, noisy_file, capsys):
+    assert main(["calibrate", str(noisy_file), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["noise_source"] == "differences" and doc["noise"]["source"] == "differences"
+    assert main(["calibrate", str(noisy_file), "--json", "--noise", "8"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["noise_source"], doc["noise_nT"]) == ("given", 8.0)
+    declared = tmp_path / "declared.csv"
+    declared.write_text("# noise_nT: 4.5\n" + noisy_file.read_text())
+    assert main(["calibrate", str(declared), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["noise_nT"] == 4.5
+    assert main(["diagnose", str(declared), "--json", "--noise", "6"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["noise_source"], doc["noise_nT"]) == ("given", 6.0)
+    assert main(["calibrate", str(declared)]) == 0
+    assert "4.5 nT per axis (given)" in capsys.readouterr().out
+    assert main(["calibrate", str(noisy_file), "--noise", "-3"]) != 0
+    assert "--noise must be a positive" in capsys.readouterr().err
+
+
+# --- item 5: held-out judgement in diagnose ------------------------------------------------------------------------
+def test_an_in_sample_gain_that_does_not_hold_is_not_recommended():
+    """A slow interference (15 nT at 0.02 Hz) that a temperature bias fits in-sample but not on held-out blocks."""
+    ds = _record(seed=4, perturbations=[fx.periodic_interference(15.0, 0.02)])
+    outside = [n for n in EFFECTS if n != "periodic_interference"]  # the interference is outside the catalogue
+    unjudged = diagnose(ds, validate=False, candidates=outside)
+    assert "temperature_bias" in unjudged.explained_by + unjudged.partially_explained_by  # the old advice
+    d = diagnose(ds, candidates=outside)
+    assert "temperature_bias" not in d.explained_by + d.partially_explained_by
+    assert d.verdict != "missing_effect"
+    c = next(c for c in d.candidates if c.effect == "temperature_bias")
+    assert c.refitted and c.delta_bic < -10 and c.rms_after_nT < d.rms_nT  # in-sample it looks good
+    assert c.holds is False and c.held_out_after_nT > c.held_out_before_nT
+    assert "does not hold on held-out data" in c.evidence
+    assert any(w.startswith("temperature_bias: in-sample") and "does not hold" in w for w in d.warnings)
+    assert d.candidates.index(c) > max((d.candidates.index(o) for o in d.candidates if o.holds), default=-1)
+
+
+@pytest.mark.parametrize("hidden", ["temperature_bias", "nonlinearity_quadratic", "bias_drift", "bias_step",
+                                    "reference_drift"])
+def test_a_hidden_effect_is_recommended_with_a_held_out_gain(hidden):
+    """Instrument terms and record-only ones (interpolated in blocks, held at their fitted average later)."""
+    d = diagnose(_record(hidden, seed=6))
+    assert d.verdict == "missing_effect" and d.explained_by == [hidden], d.summary
+    c = d.candidates[0]
+    assert c.effect == hidden and c.holds is True
+    assert c.held_out_after_nT <= (1 - val.MIN_RELATIVE_GAIN) * c.held_out_before_nT
+    assert c.later_after_nT <= c.later_before_nT + val.rise_tolerance_nT(c.later_before_nT, 375)
+    assert d.validation["validated"] and d.validation["held_out_rms_after_nT"] == c.held_out_after_nT
+    assert "held-out samples" in d.summary
+    doc = d.to_dict()
+    assert doc["candidates"][0]["holds"] is True and doc["validation"]["validated"] is True
+    assert {"held_out_rms_before_nT", "held_out_rms_after_nT", "later_rms_before_nT",
+            "later_rms_after_nT"} <= set(doc["candidates"][0])
+    assert "held-out" in d.table() and "later" in d.table()
+
+
+def test_record_only_terms_are_held_at_their_average_on_later_data():
+    """The later score of a real bias drift: dropping it outright would leave the bias of the fitted stretch's
+    centre; holding it at its average keeps the level a model without it has, so the instrument terms are judged."""
+    ds = _record("bias_drift", seed=7)
+    cmp = val.compare(ds, added_effect="bias_drift", scheme="later")
+    assert cmp.with_effect.dropped == ["bias_drift"]
+    assert cmp.does_not_rise
+    assert "average" in cmp.with_effect.notes[0]
+
+
+def test_a_record_too_short_to_split_is_judged_in_sample_with_a_note():
+    ds = _record("temperature_bias", n=120, seed=3)
+    assert val.split_problem(ds) is not None
+    d = diagnose(ds)
+    assert not d.validation["validated"] and d.validation["skipped"]
+    assert any("held-out validation skipped" in w for w in d.warnings)
+    assert all(c.holds is None for c in d.candidates)
+
+
+def test_no_validate(tmp_path, capsys):
+    path = tmp_path / "hidden.csv"
+    io.write_csv(path, _record("temperature_bias", seed=6))
+    assert main(["diagnose", str(path), "--json", "--no-validate"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["validation"]["validated"] is False and doc["candidates"][0]["holds"] is None
+    assert main(["diagnose", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "held-out validation: blocks" in out and " yes " in out
+
+
+# --- items 2 and 4: calibrate --effects, transferable terms -------------------------------------------------------
+def test_calibrate_reports_held_out_rms_and_the_scope_of_each_effect(tmp_path, capsys):
+    path = tmp_path / "drift.csv"
+    io.write_csv(path, _record("bias_drift", seed=6))
+    assert main(["calibrate", str(path), "--effects", "bias_drift,temperature_bias", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    v = doc["validation"]
+    assert v["scheme"] == "blocks" and v["holds"] is True
+    assert v["with_effects"]["held_out_rms_nT"] < v["base"]["held_out_rms_nT"]
+    assert v["in_sample_rms_with_effects_nT"] < v["in_sample_rms_base_nT"]
+    scope = {e["effect"]: e["transferable"] for e in doc["effect_params"]}
+    assert scope == {"bias_drift": False, "temperature_bias": True}
+    assert main(["calibrate", str(path), "--effects", "bias_drift,temperature_bias"]) == 0
+    out = capsys.readouterr().out
+    assert "Held-out validation" in out and "record-only term" in out and "instrument term" in out
+    result = magcal.calibrate(_record("bias_drift", seed=6), effects=["bias_drift"], validate=True)
+    assert result.validation.holds is True
+
+
+def test_a_calibration_saved_by_the_cli_never_carries_a_record_only_term_silently(tmp_path, capsys):
+    """Before: ``calibrate -o`` saved ``"record": null`` and ``apply`` put the drift into another record."""
+    first, other = tmp_path / "first.csv", tmp_path / "other.csv"
+    io.write_csv(first, _record("bias_drift", seed=1))
+    io.write_csv(other, _record("bias_drift", seed=2))
+    cal = tmp_path / "cal.json"
+    assert main(["calibrate", str(first), "--effects", "bias_drift", "-o", str(cal)]) == 0
+    assert json.loads(cal.read_text())["record"] is not None
+    capsys.readouterr()
+    assert main(["apply", str(cal), str(other), "-o", str(tmp_path / "out.csv")]) == 0
+    assert "dropped the record-only term(s) bias_drift" in capsys.readouterr().err
+    assert main(["apply", str(cal), str(first), "-o", str(tmp_path / "same.csv")]) == 0
+    assert "record-only" not in capsys.readouterr().err  # its own record: applied silently

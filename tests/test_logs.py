@@ -1,0 +1,301 @@
+"""Flight-controller logs in (magcal.logs): ArduPilot DataFlash .bin and PX4 .ulg, written here with known truth.
+
+The writers below follow each format's documentation: DataFlash is a stream of messages ``A3 95 type payload``
+described by FMT messages (pymavlink's DFReader reads them); ULog is a 16-byte header, then messages
+``uint16 size, uint8 type, payload`` (B flags, F formats, A subscriptions, D data), as PX4's ULog file format
+page describes.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import magcal
+from magcal.cli import main
+from magcal.dataset import DatasetError
+from magcal.logs import read_log
+
+pytest.importorskip("pymavlink")
+pytest.importorskip("pyulog")
+
+FIELD_NED_nT = np.array([19_000.0, 1_500.0, 45_000.0])  # |F| about 48.8 uT
+
+
+def _attitudes(n, seed=3):
+    return Rotation.random(n, random_state=seed)
+
+
+# -- DataFlash writer ------------------------------------------------------------------------------------------------
+_DF_FORMATS = {  # name: (type id, struct format chars, columns)
+    "PARM": (64, "QNf", "TimeUS,Name,Value"),
+    "MAG": (65, "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
+    "IMU": (66, "QBf", "TimeUS,I,T"),
+    "ATT": (67, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"),
+}
+_DF_STRUCT = {"Q": "Q", "B": "B", "h": "h", "I": "I", "f": "f", "N": "16s", "n": "4s", "Z": "64s"}
+
+
+def _df_message(type_id, fmt, values):
+    return struct.pack("<BBB", 0xA3, 0x95, type_id) + struct.pack("<" + "".join(_DF_STRUCT[c] for c in fmt), *values)
+
+
+def write_dataflash(path, messages):
+    """A DataFlash log: the FMT messages, then ``messages`` as (name, values) in order."""
+    out = bytearray()
+    fmt_self = "BBnNZ"
+    out += _df_message(128, fmt_self, (128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns"))
+    for name, (type_id, fmt, cols) in _DF_FORMATS.items():
+        length = 3 + struct.calcsize("<" + "".join(_DF_STRUCT[c] for c in fmt))
+        out += _df_message(128, fmt_self, (type_id, length, name.encode(), fmt.encode(), cols.encode()))
+    for name, values in messages:
+        type_id, fmt, _ = _DF_FORMATS[name]
+        out += _df_message(type_id, fmt, values)
+    path.write_bytes(bytes(out))
+
+
+def ardupilot_case(n=400, compasses=2):
+    """Raw compass fields (mG, body frame) from known sensor errors, the firmware's logged (corrected) values and
+    its parameters; returns the message list and the truth."""
+    rng = np.random.default_rng(7)
+    att = _attitudes(n)
+    body = att.inv().apply(FIELD_NED_nT)  # field in the body frame, nT
+    t_us = 20_000 * np.arange(n) + 1_000_000
+    truth = []
+    params = [("COMPASS_OFS_X", 30.0), ("COMPASS_DIA_X", 1.02), ("COMPASS_DIA_Y", 0.98), ("COMPASS_DIA_Z", 1.01),
+              ("COMPASS_ODI_X", 0.01), ("COMPASS_ODI_Y", -0.02), ("COMPASS_ODI_Z", 0.015), ("COMPASS_SCALE", 1.0),
+              ("COMPASS_OFS2_Y", -12.0)]
+    messages = [("PARM", (0, name.encode(), value)) for name, value in params]
+    m1 = np.array([[1.02, 0.01, -0.02], [0.01, 0.98, 0.015], [-0.02, 0.015, 1.01]])
+    matrices = [m1, np.eye(3)]
+    offsets = [np.array([30.0, 0.0, 0.0]), np.array([0.0, -12.0, 0.0])]
+    sensors = []
+    for k in range(compasses):
+        c = np.eye(3) + rng.normal(0, 0.03, (3, 3))
+        b = rng.normal(0, 3000, 3)
+        raw_nT = body @ c.T + b + rng.normal(0, 20, body.shape)
+        sensors.append((c, b))
+        truth.append(raw_nT)
+    for i in range(n):
+        messages.append(("IMU", (int(t_us[i]) - 5000, 0, 25.0 + 0.01 * i)))
+        roll, pitch, yaw = att[i].as_euler("ZYX", degrees=True)[::-1]
+        messages.append(("ATT", (int(t_us[i]), 0.0, roll, 0.0, pitch, 0.0, yaw)))  # at compass 1's times
+        for k in range(compasses):
+            raw_mG = truth[k][i] / 100.0
+            logged = matrices[k] @ (raw_mG + offsets[k])
+            mo = np.array([2.0, -1.0, 0.0]) if k == 0 else np.zeros(3)  # motor offsets, added after the matrix
+            logged = np.round(logged + mo)
+            messages.append(("MAG", (int(t_us[i]) + 100 * k, k, *logged.astype(int), *np.round(offsets[k]).astype(int),
+                                     *mo.astype(int), 1, 0)))
+    return messages, truth, att, sensors
+
+
+@pytest.fixture(scope="module")
+def ardupilot_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bin") / "flight.bin"
+    messages, truth, att, sensors = ardupilot_case()
+    write_dataflash(path, messages)
+    return path, truth, att, sensors
+
+
+def test_dataflash_compasses_raw_field_recovered(ardupilot_log):
+    path, truth, att, _ = ardupilot_log
+    ds = read_log(path)
+    assert ds.n_sensors == 2 and ds.n_samples == len(truth[0])
+    # the firmware logged M (raw + OFS) + MO rounded to 1 mG; undoing it gives the raw field to within that step
+    for k in range(2):
+        assert np.max(np.abs(ds.readings_nT[k] - truth[k])) < 1.2 * 100
+    assert np.allclose(ds.time_s[1:] - ds.time_s[:-1], 0.02)
+    assert ds.temperature_C is not None and np.allclose(ds.temperature_C[[0, -1]], [25.0, 25.0 + 0.01 * 399], atol=0.01)
+    # attitude: body -> NED; the true field rotated by it comes back within the rounding
+    q = ds.attitude_wxyz
+    rot = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
+    assert np.max((rot * att.inv()).magnitude()) < 1e-5
+    assert {"att_roll_deg", "att_pitch_deg", "att_yaw_deg"} <= set(ds.extra)
+
+
+def test_dataflash_logged_field_kept_when_asked(ardupilot_log):
+    path, truth, _, _ = ardupilot_log
+    logged = read_log(path, undo_calibration=False)
+    raw = read_log(path)
+    assert np.max(np.abs(logged.readings_nT[0] - raw.readings_nT[0])) > 1000  # the calibration of the time differs
+    assert logged.metadata["log_field"].startswith("as logged")
+
+
+def test_dataflash_one_compass_chosen(ardupilot_log):
+    path, truth, _, _ = ardupilot_log
+    ds = read_log(path, sensors=[1])
+    assert ds.n_sensors == 1
+    assert np.max(np.abs(ds.readings_nT[0] - truth[1])) < 1.2 * 100
+
+
+def test_cli_calibrate_reads_a_dataflash_log(ardupilot_log, tmp_path):
+    path, truth, _, _ = ardupilot_log
+    one = tmp_path / "one.bin"
+    messages, *_ = ardupilot_case(compasses=1)
+    write_dataflash(one, messages)
+    cal = tmp_path / "cal.json"
+    assert main(["calibrate", str(one), "-o", str(cal)]) == 0
+    c = magcal.Calibration.load(cal)
+    ds = read_log(one)
+    field = np.linalg.norm(c.correct(ds)[0], axis=1)
+    # the calibrated magnitude is flat to the noise (20 nT) and the 1 mG rounding of the log (29 nT rms)
+    assert np.std(field) < 60
+    assert abs(np.mean(field) - np.linalg.norm(FIELD_NED_nT)) < 0.05 * np.linalg.norm(FIELD_NED_nT) or \
+        c.reference_fitted
+
+
+def test_dataflash_without_compass_is_refused(tmp_path):
+    path = tmp_path / "nomag.bin"
+    write_dataflash(path, [("ATT", (1000, 0.0, 1.0, 0.0, 2.0, 0.0, 3.0))])
+    with pytest.raises(DatasetError, match=r"nomag\.bin: no MAG messages"):
+        read_log(path)
+
+
+def test_damaged_logs_are_refused(tmp_path):
+    bad = tmp_path / "junk.ulg"
+    bad.write_bytes(b"not a ulog at all" * 10)
+    with pytest.raises(DatasetError, match=r"junk\.ulg: not a readable PX4 ULog"):
+        magcal.read_csv(bad)
+    with pytest.raises(DatasetError, match="no such file"):
+        magcal.read_csv(tmp_path / "missing.bin")
+
+
+# -- ULog writer -----------------------------------------------------------------------------------------------------
+def _ulog_msg(kind, payload):
+    return struct.pack("<HB", len(payload), ord(kind)) + payload
+
+
+def write_ulog(path, topics):
+    """A ULog file: ``topics`` is a list of (name, multi_id, fields [(type, name)], rows [tuple]) with rows in
+    time order per topic; data messages are interleaved by their first field (the timestamp)."""
+    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0))
+    out += _ulog_msg("B", bytes(16) + struct.pack("<QQQ", 0, 0, 0))
+    codes = {"uint64_t": "Q", "uint32_t": "I", "float": "f", "uint8_t": "B", "bool": "?"}
+    defined = set()
+    for name, _, fields, _ in topics:
+        if name in defined:
+            continue
+        defined.add(name)
+        text = name + ":" + "".join(f"{t} {f};" for t, f in fields)
+        out += _ulog_msg("F", text.encode())
+    data = []
+    for msg_id, (name, multi_id, fields, rows) in enumerate(topics):
+        out += _ulog_msg("A", struct.pack("<BH", multi_id, msg_id) + name.encode())
+        fmt = "<" + "".join(codes[t.split("[")[0]] * (int(t.split("[")[1][:-1]) if "[" in t else 1)
+                            for t, _ in fields)
+        for row in rows:
+            data.append((row[0], msg_id, struct.pack("<H", msg_id) + struct.pack(fmt, *row)))
+    for _, _, payload in sorted(data, key=lambda d: (d[0], d[1])):
+        out += _ulog_msg("D", payload)
+    path.write_bytes(bytes(out))
+
+
+MAG_FIELDS = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+              ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"), ("uint32_t", "error_count"),
+              ("bool", "is_external")]
+ATT_FIELDS = [("uint64_t", "timestamp"), ("float[4]", "q")]
+
+
+def px4_case(n=300):
+    rng = np.random.default_rng(11)
+    att = _attitudes(n, seed=5)
+    body = att.inv().apply(FIELD_NED_nT)
+    c = np.eye(3) + rng.normal(0, 0.02, (3, 3))
+    b = np.array([12_000.0, -4_000.0, 7_000.0])
+    raw_nT = body @ c.T + b
+    t_us = 1_000_000 + 10_000 * np.arange(n)
+    mag_rows = [(int(t) + 50, int(t), 197_130, *(raw_nT[i] / 1e5), 30.0 + 0.02 * i, 0, False)
+                for i, t in enumerate(t_us)]
+    q = att.as_quat()
+    att_rows = [(int(t) - 2_000, q[i, 3], q[i, 0], q[i, 1], q[i, 2]) for i, t in enumerate(t_us)]
+    topics = [("sensor_mag", 0, MAG_FIELDS, mag_rows), ("vehicle_attitude", 0, ATT_FIELDS, att_rows)]
+    return topics, raw_nT, att, c, b
+
+
+def test_ulog_sensor_mag_and_attitude(tmp_path):
+    topics, raw_nT, att, _, _ = px4_case()
+    path = tmp_path / "flight.ulg"
+    write_ulog(path, topics)
+    ds = magcal.read_csv(path)  # the one reading entry point dispatches on .ulg
+    assert ds.n_sensors == 1 and ds.n_samples == len(raw_nT)
+    assert np.max(np.abs(ds.readings_nT[0] - raw_nT)) < 0.01 * 1e5 * 1e-4  # float32 gauss: well under 1 nT
+    assert np.allclose(ds.temperature_C[[0, -1]], [30.0, 30.0 + 0.02 * (len(raw_nT) - 1)], atol=1e-4)
+    q = ds.attitude_wxyz
+    rot = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
+    # 2 ms of interpolation error at most along a random sequence: the rotation at the mag time is near the truth
+    world = rot.apply(ds.readings_nT[0] * 0 + att.inv().apply(FIELD_NED_nT))
+    assert np.median(np.linalg.norm(world - FIELD_NED_nT, axis=1)) < 0.5 * np.linalg.norm(FIELD_NED_nT)
+    assert ds.metadata["log_device_ids"] == "197130"
+
+
+def test_ulog_two_magnetometers_paired(tmp_path):
+    topics, raw_nT, *_ = px4_case()
+    name, _, fields, rows = topics[0]
+    second = [(r[0] + 300, r[1] + 300, 655_000, r[3] * 0.5, r[4], r[5], float("nan"), 0, True) for r in rows[:-10]]
+    path = tmp_path / "two.ulg"
+    write_ulog(path, [topics[0], (name, 1, fields, second), topics[1]])
+    with pytest.warns(magcal.errors.DataWarning, match="no sample of every other one"):
+        ds = read_log(path)
+    assert ds.n_sensors == 2 and ds.n_samples == len(rows) - 10
+    assert np.allclose(ds.readings_nT[1, :, 0], 0.5 * raw_nT[:-10, 0], atol=1)
+
+
+def test_ulog_without_sensor_mag_is_refused(tmp_path):
+    topics, *_ = px4_case(n=5)
+    path = tmp_path / "noatt.ulg"
+    write_ulog(path, [topics[1]])
+    with pytest.raises(DatasetError, match="no sensor_mag"):
+        read_log(path)
+
+
+def test_dead_compass_left_out_and_unhealthy_samples_dropped(tmp_path):
+    """A compass that logs one constant vector (zero: none fitted, as in public 2014 ArduPilot logs) is left out;
+    samples the firmware marked unhealthy are dropped; a log with only dead compasses is refused."""
+    messages, truth, _, _ = ardupilot_case(n=120)
+    edited = []
+    for name, values in messages:
+        if name == "MAG" and values[1] == 1:
+            values = (values[0], 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0)  # compass 2 reads zero throughout
+        elif name == "MAG" and values[1] == 0 and values[0] < 1_000_000 + 20_000 * 10:
+            values = values[:11] + (0, 0)  # the first 10 samples of compass 1 unhealthy
+        edited.append((name, values))
+    path = tmp_path / "dead.bin"
+    write_dataflash(path, edited)
+    with pytest.warns(magcal.errors.DataWarning) as caught:
+        ds = read_log(path)
+    text = " ".join(str(w.message) for w in caught)
+    assert "compass 2 reads the same vector (0, 0, 0)" in text and "10 sample(s) the firmware marked unhealthy" in text
+    assert ds.n_sensors == 1 and ds.n_samples == 110
+    assert np.max(np.abs(ds.readings_nT[0] - truth[0][10:])) < 1.2 * 100
+    only_dead = tmp_path / "alldead.bin"
+    write_dataflash(only_dead, [(n, v) for n, v in edited if not (n == "MAG" and v[1] == 0)])
+    with pytest.raises(DatasetError, match="every magnetometer in the log reads one constant vector"), \
+            pytest.warns(magcal.errors.DataWarning, match="compass 2 reads the same vector"):
+        read_log(only_dead)
+
+
+def test_log_to_firmware_parameters_end_to_end(tmp_path, capsys):
+    """An ArduPilot log in, calibrated, exported as ArduPilot parameters: the firmware's correction of the raw
+    compass field with them is flat (the Earth's field is constant), where the raw field varies by kilo-nT."""
+    from magcal.export import parse_parameter_file
+
+    path = tmp_path / "one.bin"
+    messages, truth, _, _ = ardupilot_case(compasses=1)
+    write_dataflash(path, messages)
+    cal = tmp_path / "cal.json"
+    params = tmp_path / "compass.param"
+    assert main(["calibrate", str(path), "-o", str(cal)]) == 0
+    assert main(["export", str(cal), "--format", "ardupilot", "-o", str(params)]) == 0
+    p = parse_parameter_file(params.read_text())
+    raw_mG = truth[0] / 100.0  # the compass's raw body-frame field, before any calibration
+    m = np.array([[p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+                  [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+                  [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]]])
+    ofs = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    field_nT = np.linalg.norm((p["COMPASS_SCALE"] * (raw_mG + ofs)) @ m.T, axis=1) * 100.0
+    assert np.std(np.linalg.norm(truth[0], axis=1)) > 1000
+    assert np.std(field_nT) < 60  # 20 nT noise and the log's 1 mG (100 nT) rounding
