@@ -7,8 +7,8 @@ prints and writes:
 * the noise estimate with the method that gave it and its check (still stretches' scatter where there is one,
   the quantization floor);
 * the loop followed exactly as a user would: base fit -> :func:`magcal.diagnose` -> add the effect it recommends
-  (the first of ``explained_by``, else of ``partially_explained_by``, else the best candidate that is
-  ``recommendable``) -> refit -> diagnose again ..., at most ``--steps`` effects. Per step: the effect added, its
+  (the first of ``explained_by``, else of ``partially_explained_by``: what the report advises; nothing when the
+  diagnosis says the base calibration is not determined by the data) -> refit -> diagnose again ..., at most ``--steps`` effects. Per step: the effect added, its
   delta-BIC (from the diagnosis that recommended it), the in-sample total-field RMS, the held-out RMS of
   :func:`magcal.validation.validate` on the ``blocks`` scheme (alternating blocks in time) and on the ``later``
   scheme (last quarter), and the verdict of diagnosing the refitted model;
@@ -23,7 +23,7 @@ Usage::
 
     python benchmarks/real/fetch.py --mirror /work/.mirror     # or without --mirror: download (pinned commits)
     python benchmarks/real/convert.py --all                    # h5py for sf_*, pymavlink / pyulog for the logs
-    OPENBLAS_NUM_THREADS=1 python benchmarks/real.py           # all recordings (about 3 min on 2 shared cores)
+    OPENBLAS_NUM_THREADS=1 python benchmarks/real.py           # all recordings (30-70 s on 2 shared cores)
     python benchmarks/real.py qmc_filtered sf_fullsphere --steps 2
 
 Writes ``benchmarks/out/real_loop.json`` (everything) and ``benchmarks/out/real_loop.csv`` (one row per step);
@@ -185,9 +185,6 @@ def recommended(diagnosis):
     by_label = {c.label: c for c in diagnosis.candidates}
     for label in list(diagnosis.explained_by) + list(diagnosis.partially_explained_by):
         return label, by_label.get(label)
-    for c in diagnosis.candidates:
-        if getattr(c, "recommendable", c.refitted) and c.delta_bic < DELTA_BIC_SUPPORTED:
-            return c.label, c
     return None, None
 
 

@@ -31,3 +31,36 @@ def clean_catalogue(monkeypatch):
     yield
     EFFECTS.clear()
     EFFECTS.update(before)
+
+
+@pytest.fixture
+def bench(tmp_path, request):
+    """Start real workbench servers on loopback (port 0, no browser) and stop them after the test.
+
+    ``bench(ds=None, store=True, name="data.csv", root=None, **kw)`` writes ``ds`` (default: the chi2017 time series
+    of ``BENCH_SAMPLES`` samples at 2 Hz, a module may set that constant; 300 if it does not) as a CSV, opens it
+    as the workbench does, with a session store in ``root`` (default ``tmp_path/sessions``) unless ``store`` is
+    false, and returns the :class:`workbench.app.Workbench`; ``kw`` go to its constructor.
+    """
+    import magcal
+    from magcal import io as mio
+    from workbench.app import Workbench
+    from workbench.session import SessionStore
+
+    n_samples = getattr(request.module, "BENCH_SAMPLES", 300)
+    made = []
+
+    def make(ds=None, store=True, name="data.csv", root=None, **kw):
+        if ds is None:
+            ds = magcal.simulate_timeseries("chi2017", n_samples=n_samples, seed=5, rate_hz=2.0)
+        path = tmp_path / name
+        mio.write_csv(path, ds)
+        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
+                       store=SessionStore(root or tmp_path / "sessions") if store else None,
+                       content=path.read_bytes(), name=name, **kw)
+        made.append(wb)
+        return wb
+
+    yield make
+    for wb in made:
+        wb.stop()

@@ -21,7 +21,6 @@ SIGMA = 3.0
 N = 1500
 
 
-
 def _record(hidden=None, n=N, seed=5, n_sensors=1, perturbations=()):
     perts = list(perturbations)
     if hidden:
@@ -183,6 +182,24 @@ def test_a_record_too_short_to_split_is_judged_in_sample_with_a_note():
     assert not d.validation["validated"] and d.validation["skipped"]
     assert any("held-out validation skipped" in w for w in d.warnings)
     assert all(c.holds is None for c in d.candidates)
+
+
+@pytest.mark.parametrize("hidden", [None, "bias_drift"])
+def test_nothing_is_recommended_when_the_base_calibration_is_not_determined(hidden):
+    """A record that turns the sensor through a cap of directions only (the field within ~35 deg of the sensor's x
+    axis) and gives no reference field: the fit extrapolates and its field magnitude trades off with the gains,
+    so a candidate's gain says nothing about the instrument. The diagnosis recommends nothing and says why."""
+    truth = chi2017_truth(1)
+    ds = simulate_timeseries(truth, n_samples=12_000, noise_nT=SIGMA, seed=4, perturbations=[
+        EFFECTS[hidden]().perturbation(EFFECTS[hidden].default_magnitude)] if hidden else [])
+    y = ds.readings_nT[0] - truth.sensors[0].bias_nT
+    cap = (y / np.linalg.norm(y, axis=1, keepdims=True))[:, 0] > 0.82
+    ds = ds.subset(cap).replace(reference_total_nT=None)
+    assert 300 < ds.n_samples < 6000
+    with pytest.warns(Warning):  # the weak coverage is said at the fit too
+        d = diagnose(ds)
+    assert d.explained_by == [] and d.verdict != "missing_effect"
+    assert any("not determined by these data" in w and "weak coverage" in w for w in d.warnings)
 
 
 def test_no_validate(tmp_path, capsys):

@@ -20,30 +20,12 @@ from magcal.errors import MagcalError
 
 pytest.importorskip("viser")
 
-from workbench.app import Workbench, clean_upload_name  # noqa: E402
+from workbench.app import clean_upload_name  # noqa: E402
 from workbench.session import SessionStore  # noqa: E402
 from workbench.state import Selection, SessionState  # noqa: E402
 
 WAIT_S = 60
-
-
-@pytest.fixture
-def bench(tmp_path):
-    made = []
-
-    def make(ds=None, store=True, name="data.csv", **kw):
-        ds = ds if ds is not None else magcal.simulate_timeseries("chi2017", n_samples=200, seed=5, rate_hz=2.0)
-        path = tmp_path / name
-        mio.write_csv(path, ds)
-        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
-                       store=SessionStore(tmp_path / "sessions") if store else None,
-                       content=path.read_bytes(), name=name, **kw)
-        made.append(wb)
-        return wb
-
-    yield make
-    for wb in made:
-        wb.stop()
+BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default
 
 
 def _as_browser(handle, value):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,29 +25,8 @@ import magcal
 from magcal import conventions
 from magcal import io as mio
 from magcal.model import EFFECTS
-from workbench.session import SessionStore
 
 SIGMA = 3.0  # the chi2017 preset's noise per axis, nT
-
-
-@pytest.fixture
-def bench(tmp_path):
-    from workbench.app import Workbench
-
-    made = []
-
-    def make(ds, store=True, name="data.csv"):
-        path = tmp_path / name
-        mio.write_csv(path, ds)
-        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
-                       store=SessionStore(tmp_path / "sessions") if store else None,
-                       content=path.read_bytes(), name=name)
-        made.append(wb)
-        return wb
-
-    yield make
-    for wb in made:
-        wb.stop()
 
 
 def _click(wb, button):
@@ -168,10 +148,15 @@ def test_candidates_that_do_not_hold_are_marked_and_may_still_be_added(bench, wa
         {"label": "bias_drift", "delta_bic": -40.0, "rms_after_nT": 9.0, "refitted": True,
          "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 12.5, "holds": False},
         {"label": "<img src=x onerror=alert(1)>", "delta_bic": -20.0, "rms_after_nT": 9.5, "refitted": True,
-         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 10.0, "holds": True}]}
+         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 10.0, "holds": True},
+        {"label": "bias_step", "delta_bic": -15.0, "rms_after_nT": 9.6, "refitted": True,
+         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 10.5, "later_rms_before_nT": 20.0,
+         "later_rms_after_nT": 25.0, "holds": False}]}
     text = candidates_markdown(doc)
     drift = next(line for line in text.splitlines() if "`bias_drift`" in line)
-    assert "11→12.5" in drift and "does not hold" in drift
+    assert "11→12.5" in drift and "does not hold" in drift and "later" not in drift
+    step = next(line for line in text.splitlines() if "`bias_step`" in line)
+    assert "does not hold**: later 20→25" in step  # the blocks fall, the later stretch rises
     assert "<img" not in text.replace("`<img src=x onerror=alert(1)>`", "")  # escaped as a code span
 
     class Cand:
@@ -257,26 +242,8 @@ def test_a_fitted_field_outside_the_earths_range_joins_the_quality_list(bench):
 # ---------------------------------------------------------------------------------------------------------------
 # the user's own effect (a record-only one) in the Model tab and Diagnose
 # ---------------------------------------------------------------------------------------------------------------
-EXAMPLE = __import__("pathlib").Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).with_name("user_effects_example.py")
 PUMP = "pump_interference"  # declared transferable = False in the example file
-
-
-@pytest.fixture
-def clean_catalogue(monkeypatch):
-    """magcal's own catalogue before and after (a user's effect must not leak into other tests)."""
-    import importlib.metadata
-
-    from magcal import plugins
-
-    before = dict(EFFECTS)
-    monkeypatch.setattr(plugins, "_ORIGINS", {})
-    monkeypatch.setattr(plugins, "_SOURCES", {})
-    monkeypatch.setattr(plugins, "_USER_FILES", set())
-    monkeypatch.setattr(plugins, "_ENTRY_POINTS_LOADED", False)
-    monkeypatch.setattr(importlib.metadata, "entry_points", lambda **kw: [])
-    yield
-    EFFECTS.clear()
-    EFFECTS.update(before)
 
 
 def test_a_user_effect_is_marked_by_its_own_transferable_flag(bench, clean_catalogue):

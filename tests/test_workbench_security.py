@@ -103,25 +103,7 @@ def test_control_characters_and_direction_overrides_are_removed():
 # ---------------------------------------------------------------------------------------------------------------
 # the page's code paths, headless (real viser server, no browser)
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.fixture
-def bench(tmp_path):
-    from workbench.app import Workbench
-
-    made = []
-
-    def make(ds=None, store=True, name="data.csv", root=None):
-        ds = ds if ds is not None else magcal.simulate_timeseries("chi2017", n_samples=200, seed=5, rate_hz=2.0)
-        path = tmp_path / name
-        mio.write_csv(path, ds)
-        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
-                       store=SessionStore(root or tmp_path / "sessions") if store else None,
-                       content=path.read_bytes(), name=name)
-        made.append(wb)
-        return wb
-
-    yield make
-    for wb in made:
-        wb.stop()
+BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default
 
 
 def _upload(wb, name, content):

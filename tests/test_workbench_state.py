@@ -281,26 +281,6 @@ def _csv(tmp_path, ds, name="data.csv"):
     return path
 
 
-@pytest.fixture
-def bench(tmp_path):
-    from workbench.app import Workbench
-
-    made = []
-
-    def make(ds=None, store=True, name="data.csv"):
-        ds = ds if ds is not None else magcal.simulate_timeseries("chi2017", n_samples=300, seed=5, rate_hz=2.0)
-        path = _csv(tmp_path, ds, name)
-        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
-                       store=SessionStore(tmp_path / "sessions") if store else None,
-                       content=path.read_bytes(), name=name)
-        made.append(wb)
-        return wb
-
-    yield make
-    for wb in made:
-        wb.stop()
-
-
 def _click(wb, button):
     button.value = True  # what a click does: the callbacks run
     time.sleep(0.05)

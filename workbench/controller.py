@@ -486,20 +486,24 @@ class Controller:
                 fit=None, notes=()) -> StepRecord:
         rms_after = self.residual_rms_nT()
         self._estimate_noise(fit)
-        held_out, held_note = self._held_out_rms(fit)
-        if held_note:
-            notes = list(notes) + [held_note]
         outcome = None if fit is None else fit.summary()
         rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
                          effects=self._job_effects(), n_kept=int(self.kept.sum()),
                          changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
                          elapsed_s=time.perf_counter() - t0,
-                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
-                         held_out_rms_nT=held_out)
+                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS})
         self.state.record(rec, self.calibration.to_dict())
-        self.autosave()
-        self._emit("result")
+        self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
+        held_out, held_note = self._held_out_rms(fit)
+        if held_note:
+            notes = list(notes) + [held_note]
+        if held_out is not None:
+            with self.state.lock:
+                rec.held_out_rms_nT = held_out
+                self.state.touch()
+            self._emit("model")  # the history table and the RMS plot gain the held-out figure
+        self.autosave()
         text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
         if held_out is not None:
             text += f"; held-out RMS {fmt_nT(held_out)} (blocks)"

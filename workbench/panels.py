@@ -146,7 +146,7 @@ def candidates_markdown(diagnosis) -> str:
         for i, c in enumerate(cands[:8]):
             mark = "" if c.get("refitted", True) else "*"
             lines.append(f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
-                         f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c.get('holds'))} |")
+                         f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c)} |")
         if any(not c.get("refitted", True) for c in cands[:8]):
             lines.append("\n\\* predicted by the score test, not refitted")
         if any(c.get("holds") is False for c in cands[:8]):
@@ -166,9 +166,21 @@ def held_out_pair(candidate: dict) -> str:
     return f"{fmt(before)}→{fmt(after)}"
 
 
-def holds_words(holds) -> str:
-    """Whether a candidate's in-sample gain holds on held-out data, in words for the table."""
-    return {True: "holds", False: "⚠ **does not hold**"}.get(holds, "-")
+def holds_words(candidate: dict) -> str:
+    """Whether a candidate's in-sample gain holds on held-out data (:attr:`magcal.diagnosis.Candidate.holds`), in
+    words for the table; when the blocks' figure falls but the gain still does not hold, the later stretch's RMS
+    rose (quoted, nT)."""
+    holds = candidate.get("holds")
+    if holds is None:
+        return "-"
+    if holds:
+        return "holds"
+    before, after = candidate.get("held_out_rms_before_nT"), candidate.get("held_out_rms_after_nT")
+    later_before, later_after = candidate.get("later_rms_before_nT"), candidate.get("later_rms_after_nT")
+    blocks_fall = before is not None and after is not None and after < before
+    if blocks_fall and later_before is not None and later_after is not None and later_after > later_before:
+        return f"⚠ **does not hold**: later {fmt(later_before)}→{fmt(later_after)}"
+    return "⚠ **does not hold**"
 
 
 def candidate_evidence_markdown(diagnosis, label: str) -> str:

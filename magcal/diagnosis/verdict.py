@@ -299,6 +299,49 @@ class _HeldOut:
         return None
 
 
+def _undetermined(fit, directions) -> str | None:
+    """Why the fitted base calibration is not determined by the data, or None.
+
+    An effect can only be judged against a base calibration the data fix. Two signs that they do not: the
+    directions cover too little of the sphere (thinnest direction spread below
+    :data:`magcal.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and a fitted field magnitude
+    outside the geomagnetic range (the scale and the field trade off along the directions not seen). Then
+    adding a term mostly moves the poorly fixed base parameters, and no candidate is recommended.
+    """
+    from ..ellipsoid import WEAK_DIRECTION_SPREAD, coverage
+    from ..quality import EARTH_FIELD_RANGE_nT
+
+    reasons = []
+    for s, u in enumerate(directions):
+        spread = coverage(u).thinnest_spread
+        if spread < WEAK_DIRECTION_SPREAD:
+            reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere "
+                           "0.33)")
+    field_nT = fit.calibration.reference_total_nT
+    lo, hi = EARTH_FIELD_RANGE_nT
+    if fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
+        reasons.append(f"fitted field {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-"
+                       f"{hi / 1000:.0f} uT")
+    return "; ".join(reasons) or None
+
+
+def _changes_the_field(base_fit, c) -> str | None:
+    """Why a candidate's refit is not a finding because it moves the fitted field magnitude out of the Earth's
+    range or by more than 5 % (the term trades off with the base parameters the data barely fix), or None."""
+    from ..quality import EARTH_FIELD_RANGE_nT
+
+    if c.fit is None or base_fit.reference_kind != "fitted":
+        return None
+    before, after = base_fit.calibration.reference_total_nT, c.fit.calibration.reference_total_nT
+    if not before or not after:
+        return None
+    lo, hi = EARTH_FIELD_RANGE_nT
+    if lo <= before <= hi and (not lo <= after <= hi or abs(after / before - 1.0) > 0.05):
+        return (f"{c.label}: its refit moves the fitted field from {before / 1000:.4g} to {after / 1000:.4g} uT: "
+                "the term trades off with the base calibration; not recommended")
+    return None
+
+
 def _judge_round(held_out, base_fit, cands, notes):
     """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
     data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
@@ -402,6 +445,16 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     if skipped and validate:
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
     cands = _judge_round(held_out, fit0, cands, validation_notes)
+    undetermined = _undetermined(fit0, directions)
+    if undetermined:
+        validation_notes.append(f"the base calibration is not determined by these data ({undetermined}): no effect "
+                                "is recommended until the record covers more directions")
+    for c in cands:
+        changed = _changes_the_field(fit0, c)
+        if changed and c.holds is not False:
+            c.holds = False
+            c.evidence += "; " + changed
+            validation_notes.append(changed)
 
     # noise and structure of the model as given
     noise0 = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
@@ -412,7 +465,8 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     remaining, stats_final = structure0, stats0
     round_cands = cands
     for step in range(max_effects):
-        supported = [c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD]
+        supported = [c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD
+                     and not undetermined]
         if not supported:
             break
         best = supported[0]
@@ -463,6 +517,9 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             tried = (f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
                      f"{b.rms_after_nT:.3g} nT") if b.refitted else ""
         summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+        if undetermined:
+            summary = (f"the base calibration is not determined by these data ({undetermined}), so no effect can "
+                       f"be judged; {summary}")
         if explained:
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
     partial = []
