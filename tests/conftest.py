@@ -6,8 +6,15 @@ may import them.
 """
 
 import importlib.metadata
+import os
 
 import pytest
+
+# The suite runs in parallel processes (pytest-xdist, ``-n auto`` in pyproject.toml): one BLAS thread each, or on a
+# two-core machine the workers' BLAS threads fight over the cores (the suite then takes three times as long). This
+# module is loaded before the workers start, and they inherit the setting; an explicit value is kept.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 collect_ignore = ["user_effects_example.py", "heldout_sim.py"]
 
