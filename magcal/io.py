@@ -869,8 +869,9 @@ def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
         hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' "
                 "line)" if guesses else
                 "check the units (nT, uT, G, mG, or counts with --lsb) and that the sensor is in the Earth's field")
+    value = f"{median:.4g} nT" if factor == 1.0 else f"{raw:.4g} {units} = {median:.4g} nT"
     msg = (f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
-           f"centre) is {raw:.4g} {units} = {median:.4g} nT, outside the Earth's field range of 20-70 uT; {hint}")
+           f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}")
     warnings.warn(msg, DataWarning, stacklevel=stacklevel)
     return msg
 
