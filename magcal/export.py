@@ -258,18 +258,23 @@ def _fmt(value) -> str:
     return f"{float(value):.9g}"
 
 
+def _offset_and_matrix(offset, matrix, offset_name, diagonal_name, off_diagonal_name) -> dict:
+    """Parameters of one compass: the offset per axis and the symmetric matrix's diagonal and off-diagonal
+    (xy, xz, yz), each name a template whose ``{}`` is the axis letter (X, Y, Z; for the off-diagonal, X = xy,
+    Y = xz, Z = yz, as both firmwares number them). The offset is in the firmware's unit and sign already."""
+    params = {offset_name.format(axis): float(offset[k]) for k, axis in enumerate("XYZ")}
+    params.update({diagonal_name.format(axis): float(matrix[k, k]) for k, axis in enumerate("XYZ")})
+    params.update({off_diagonal_name.format(axis): float(matrix[i, j])
+                   for (i, j), axis in zip(((0, 1), (0, 2), (1, 2)), "XYZ")})
+    return params
+
+
 def _ardupilot(exports, calibration, source, dropped, notes):
     params = {}
     for e in exports:
         tag = "" if e.slot == 1 else str(e.slot)
-        ofs = -e.bias_nT / NT_PER_MILLIGAUSS
-        m = e.matrix
-        for k, axis in enumerate("XYZ"):
-            params[f"COMPASS_OFS{tag}_{axis}"] = float(ofs[k])
-        for k, axis in enumerate("XYZ"):
-            params[f"COMPASS_DIA{tag}_{axis}"] = float(m[k, k])
-        for (i, j), axis in zip(((0, 1), (0, 2), (1, 2)), "XYZ"):
-            params[f"COMPASS_ODI{tag}_{axis}"] = float(m[i, j])
+        params.update(_offset_and_matrix(-e.bias_nT / NT_PER_MILLIGAUSS, e.matrix, f"COMPASS_OFS{tag}_{{}}",
+                                         f"COMPASS_DIA{tag}_{{}}", f"COMPASS_ODI{tag}_{{}}"))
         params[f"COMPASS_SCALE{tag}"] = 1.0
     head = _header_lines(calibration, source, dropped, notes,
                          "corrected_mG = [DIA_X ODI_X ODI_Y; ODI_X DIA_Y ODI_Z; ODI_Y ODI_Z DIA_Z] "
@@ -284,14 +289,8 @@ def _px4(exports, calibration, source, dropped, notes):
     params = {}
     for e in exports:
         pre = f"CAL_MAG{e.slot}_"
-        off = e.bias_nT / NT_PER_GAUSS
-        m = e.matrix
-        for k, axis in enumerate("XYZ"):
-            params[f"{pre}{axis}OFF"] = float(off[k])
-        for k, axis in enumerate("XYZ"):
-            params[f"{pre}{axis}SCALE"] = float(m[k, k])
-        for (i, j), axis in zip(((0, 1), (0, 2), (1, 2)), "XYZ"):
-            params[f"{pre}{axis}ODIAG"] = float(m[i, j])
+        params.update(_offset_and_matrix(e.bias_nT / NT_PER_GAUSS, e.matrix, pre + "{}OFF", pre + "{}SCALE",
+                                         pre + "{}ODIAG"))
     head = _header_lines(calibration, source, dropped, notes,
                          "corrected_G = rot ([XSCALE XODIAG YODIAG; XODIAG YSCALE ZODIAG; YODIAG ZODIAG ZSCALE] "
                          "(raw_G - [XOFF YOFF ZOFF])), offsets in gauss")

@@ -478,33 +478,27 @@ def quantization_grid(values, min_levels=MIN_LEVELS, max_divisor=50):
     step = multiple * q
     r = d[d > 0] / step
     shift = float(np.mean(np.abs(r - np.round(r)) > MULTIPLE_TOL)) if r.size else 0.0
-    return {"step_nT": multiple * q, "common_step_nT": q, "spacing_multiple": multiple, "shift_share": shift}
+    return {"step_nT": step, "common_step_nT": q, "spacing_multiple": multiple, "shift_share": shift}
 
 
 def quantization_step(values, min_levels=MIN_LEVELS, max_divisor=50):
-    """The quantization step of one axis (nT): the spacing of the grid its values lie on (:func:`quantization_grid`).
+    """The quantization step of one axis (nT): the spacing of the grid its values lie on.
 
-    The distinct sorted values are differenced; the common step is the largest ``q`` (from the few smallest
-    differences divided by 1, 2, ... ``max_divisor``) of which at least 95 % of the differences are near integer
-    multiples (within 0.1 q); when the occupied levels are mostly one multiple ``m q`` apart and hardly ever
-    closer, the step is ``m q`` (a coarser grid that shifts). Continuous readings give None: their differences
-    are not multiples of a common step. A step more than ``max_divisor`` times finer than the smallest
-    differences (a short record of a fine step, e.g. 200 samples printed to 0.1 nT) is not seen; such a step is
-    harmless.
+    The ``step_nT`` of :func:`quantization_grid` (which says how it is found): the common step of the distinct
+    values, or a multiple of it when the occupied levels sit on a coarser grid that shifts now and then.
+    Continuous readings, or too few distinct values to tell, give None.
 
     Parameters
     ----------
     values : array_like, shape (N,)
         Readings of one axis, nT.
-    min_levels : int
-        Fewest distinct values needed to claim a step.
-    max_divisor : int
-        Largest divisor of a difference tried (a sparse record's smallest difference may be several steps).
+    min_levels, max_divisor : int
+        As in :func:`quantization_grid`.
 
     Returns
     -------
     float or None
-        The step q in nT, or None if the values show none (or too few distinct values to tell).
+        The step in nT.
 
     Examples
     --------
