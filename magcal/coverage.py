@@ -399,3 +399,148 @@ def calibration_input_checks(dataset, reference_nT=None):
         if dataset.n_samples >= FULL_MODEL_PARAMS + 1:
             check_coverage(dataset, full_model=False)
     return [str(w.message) for w in caught]
+
+
+# --- where to turn next (the live view) --------------------------------------------------------------------------
+#: Covered fraction from which the direction coverage of a live recording counts as enough for a full model.
+ENOUGH_FRACTION = 0.85
+
+#: The scalar residual RMS counts as at the noise floor up to this multiple of the expected RMS.
+ENOUGH_RMS_FACTOR = 1.5
+
+
+@dataclass
+class DirectionMap:
+    """Which directions of the sphere one sensor's samples have visited, and where the largest gap lies.
+
+    Directions are unit vectors in the sensor frame (``C^-1 (y - c)`` normalised, :func:`sensor_directions`).
+
+    Attributes
+    ----------
+    cells : numpy.ndarray, shape (M, 3)
+        Unit vectors spread evenly over the sphere (a Fibonacci lattice).
+    visited : numpy.ndarray, shape (M,), bool
+        A sample direction lies within ``cap_deg`` of the cell.
+    nearest_deg : numpy.ndarray, shape (M,)
+        Angle from each cell to the nearest sample direction, deg.
+    cap_deg : float
+    n_samples : int
+    """
+
+    cells: np.ndarray
+    visited: np.ndarray
+    nearest_deg: np.ndarray
+    cap_deg: float
+    n_samples: int
+
+    @property
+    def fraction(self) -> float:
+        """Share of the sphere visited (0-1)."""
+        return float(np.mean(self.visited)) if self.visited.size else 0.0
+
+    @property
+    def gap_deg(self) -> float:
+        """Angular radius of the largest unvisited cap, deg (0 when there are no samples to speak of)."""
+        return float(self.nearest_deg.max()) if self.nearest_deg.size else 180.0
+
+    @property
+    def next_direction(self) -> np.ndarray | None:
+        """Centre of the largest unvisited cap (unit vector, sensor frame), or None when every cell is visited."""
+        if self.visited.all():
+            return None
+        return self.cells[int(np.argmax(self.nearest_deg))]
+
+    @property
+    def enough(self) -> bool:
+        """The covered fraction reaches :data:`ENOUGH_FRACTION`."""
+        return self.fraction >= ENOUGH_FRACTION
+
+    def advice(self) -> str:
+        """What to do next, in words: where to turn the sensor, or that the sphere is covered."""
+        d = self.next_direction
+        if self.n_samples < FULL_MODEL_PARAMS:
+            return "turn the sensor slowly through every orientation"
+        if d is None or self.enough:
+            return (f"{100 * self.fraction:.0f} % of the directions visited: the sphere is covered"
+                    + ("" if d is None else f" (a gap of {self.gap_deg:.0f} deg remains around the sensor's "
+                                            f"{axis_words(d)})"))
+        return (f"{100 * self.fraction:.0f} % of the directions visited; largest gap {self.gap_deg:.0f} deg: turn "
+                f"the sensor so that its {axis_words(d)} points along the field (north and down in "
+                "the northern hemisphere, north and up in the southern)")
+
+
+def axis_words(direction) -> str:
+    """A sensor-frame direction named by its main axes, e.g. ``+x axis``, ``-y-z direction`` (components at least
+    half the largest)."""
+    d = np.asarray(direction, dtype=float)
+    big = np.abs(d) >= 0.5 * np.abs(d).max()
+    name = "".join(f"{'+' if d[k] >= 0 else '-'}{'xyz'[k]}" for k in range(3) if big[k])
+    return f"{name} axis" if big.sum() == 1 else f"{name} direction"
+
+
+def direction_map(readings_nT, n_cells: int = 400, cap_deg: float = 30.0, shape: FieldShape | None = None
+                  ) -> DirectionMap:
+    """The visited and missing directions of one sensor's readings.
+
+    Parameters
+    ----------
+    readings_nT : array_like, shape (N, 3)
+        Raw readings, nT.
+    n_cells : int
+        Cells on the sphere.
+    cap_deg : float
+        A cell counts as visited when a sample direction lies within this angle (deg).
+    shape : FieldShape, optional
+        The centre and shape to take directions about (e.g. from the latest fit); default :func:`field_shape`
+        of the readings.
+
+    Returns
+    -------
+    DirectionMap
+    """
+    y = np.asarray(readings_nT, dtype=float).reshape(-1, 3)
+    y = y[np.all(np.isfinite(y), axis=1)]
+    cells = fibonacci_sphere(int(n_cells))
+    if y.shape[0] == 0:
+        return DirectionMap(cells, np.zeros(len(cells), bool), np.full(len(cells), 180.0), float(cap_deg), 0)
+    u = (shape if shape is not None else field_shape(y)).directions(y)
+    u = u[np.all(np.isfinite(u), axis=1)]
+    if u.shape[0] == 0:
+        return DirectionMap(cells, np.zeros(len(cells), bool), np.full(len(cells), 180.0), float(cap_deg), 0)
+    dist, _ = cKDTree(u).query(cells)
+    angle = np.degrees(2.0 * np.arcsin(np.clip(dist / 2.0, 0.0, 1.0)))
+    return DirectionMap(cells, angle <= cap_deg, angle, float(cap_deg), int(y.shape[0]))
+
+
+def live_sufficient(maps, rms_nT=None, expected_rms_nT=None) -> tuple[bool, str]:
+    """Whether a live recording holds enough for a calibration: every sensor's direction coverage
+    (:attr:`DirectionMap.enough`) and a fit whose residual RMS is within :data:`ENOUGH_RMS_FACTOR` of the RMS
+    the noise alone would give.
+
+    Parameters
+    ----------
+    maps : sequence of DirectionMap
+        One per sensor.
+    rms_nT : float, optional
+        Total-field residual RMS of the latest fit, nT (None before a fit).
+    expected_rms_nT : float, optional
+        The RMS the noise alone gives, nT (the noise floor).
+
+    Returns
+    -------
+    (bool, str)
+        The verdict and a sentence saying why.
+    """
+    short = [i + 1 for i, m in enumerate(maps) if not m.enough]
+    if short:
+        who = "sensor " + ", ".join(map(str, short)) if len(maps) > 1 else "the sensor"
+        return False, f"not yet: {who} has visited too few directions ({ENOUGH_FRACTION:.0%} needed)"
+    if rms_nT is None:
+        return False, "coverage is enough; waiting for the fit"
+    if expected_rms_nT is None or not np.isfinite(expected_rms_nT) or expected_rms_nT <= 0:
+        return True, f"coverage is enough and the fit's RMS is {rms_nT:.3g} nT (no noise level to judge it against)"
+    if rms_nT <= ENOUGH_RMS_FACTOR * expected_rms_nT:
+        return True, (f"enough: the directions are covered and the fit's RMS {rms_nT:.3g} nT is at the noise floor "
+                      f"({expected_rms_nT:.3g} nT); stop and calibrate")
+    return False, (f"coverage is enough but the fit's RMS {rms_nT:.3g} nT is above the noise floor "
+                   f"({expected_rms_nT:.3g} nT): stop and diagnose what the model is missing")

@@ -1,4 +1,5 @@
-"""``magcal-workbench [FILE.csv] [--host 127.0.0.1] [--port 8080] [--effects-file MY.py]``: the browser workbench.
+"""``magcal-workbench [FILE.csv] [--live SOURCE] [--host 127.0.0.1] [--port 8080] [--effects-file MY.py]``: the
+browser workbench.
 
 :class:`Workbench` wires the parts together: one :class:`viser.ViserServer` (every browser shares its scene and
 GUI), the :class:`~workbench.controller.Controller` (engine actions and session state), the
@@ -106,6 +107,8 @@ class Workbench:
         self._last_progress = 0.0
         self.last_download: tuple[str, bytes] | None = None
         self.evidence_plot = None
+        #: The live session (:class:`workbench.live.LiveView`) while one is open or after it stopped, else None.
+        self.live = None
         self._scene_lock = threading.RLock()
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
         self.scene_view = scn.SceneView(self.server, max_points=max_points)
@@ -243,6 +246,11 @@ class Workbench:
     # scene
     # ------------------------------------------------------------------------------------------------------
     def scene_model(self) -> scn.SceneModel:
+        live = self.live
+        if live is not None and live.active:  # a live session owns the scene until it stops
+            model = live.scene_model(self.panels.view_options())
+            if model is not None:
+                return model
         ctrl = self.ctrl
         ds = ctrl.dataset
         shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
@@ -311,6 +319,8 @@ class Workbench:
     # pointer events
     # ------------------------------------------------------------------------------------------------------
     def _on_click(self, event) -> None:
+        if self.live is not None and self.live.active:
+            return  # the points of a stream are not the opened data's samples
         d = self.scene_view.displayed
         if d.positions.shape[0] == 0:
             return
@@ -324,6 +334,8 @@ class Workbench:
 
     def select_in_rect(self, wxyz, position, fov, aspect, screen_min, screen_max) -> int:
         """Reject (or restore, by the panel's mode) the samples whose shown points fall in a screen box."""
+        if self.live is not None and self.live.active:
+            raise MagcalError("stop the live session first: rejecting works on the recording once it is opened")
         samples = self.scene_view.samples_in_rect(wxyz, position, fov, aspect, screen_min, screen_max)
         if samples.size == 0:
             self.ctrl.say("the box holds no point")
@@ -636,6 +648,55 @@ class Workbench:
 
         self._job("start afresh", job)
 
+    # live
+    def start_live(self, url: str, path=None):
+        """Open a live source (:mod:`workbench.live`); its samples are recorded to ``path`` (default a new file in
+        the session folder's ``recordings``, or the current folder without sessions)."""
+        from .live import LiveView, default_recording_path, recording_folder
+
+        if self.live is not None and self.live.active:
+            raise MagcalError("a live session is running; stop it first")
+        path = default_recording_path(recording_folder(self.store)) if path is None else path
+        self.live = LiveView(self, url, path)
+        self.scene_view.clear()
+        self.reset_cameras()
+        self.panels.refresh_live()
+        return self.live
+
+    def do_live_start(self, event):
+        from .live import check_page_source
+
+        url = check_page_source(self.check_value(self.panels.live_url), self.local)
+        live = self.start_live(url)
+        self.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.path.name)}")
+
+    def do_live_pause(self, event):
+        if self.live is not None and self.live.active:
+            self.live.pause()
+        self.panels.refresh_live()
+
+    def do_live_resume(self, event):
+        if self.live is not None and self.live.active:
+            self.live.resume()
+        self.panels.refresh_live()
+
+    def do_live_stop(self, event):
+        """Stop the live session and open its recording like any file (Calibrate and Model work on it)."""
+        live = self.live
+        if live is None or not live.active:
+            raise MagcalError("no live session is running")
+        path = live.stop()
+        self.panels.refresh_live()
+
+        def job():
+            ds, notes = load_dataset(path, path.name)
+            self.load(ds, path.read_bytes(), path.name, resume=False)
+            self._say_after_load(f"opened the recording {safe_code(path.name)}: "
+                                 f"{safe_text(ds.describe(), MESSAGE_LEN)}"
+                                 + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes))
+
+        self._job("open the recording", job)
+
     # lessons
     def do_open_lesson(self, event):
         slug = self.check_value(self.panels.lesson_choice)
@@ -717,6 +778,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-points", type=int, default=scn.MAX_POINTS, metavar="N",
                    help=f"most points drawn per sensor's cloud; larger files are shown decimated, fitted whole "
                         f"(default {scn.MAX_POINTS})")
+    p.add_argument("--live", default=None, metavar="SOURCE",
+                   help="calibrate live from an instrument: serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+                        "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)")
+    p.add_argument("--record", default=None, metavar="PATH",
+                   help="with --live: the CSV recording (a new file; default live-DATE-TIME.csv in the session "
+                        "folder's recordings, or here with --no-session)")
     p.add_argument("--effects-file", action="append", default=[], metavar="PATH",
                    help="a Python file defining your own effects (runs its code; repeat for several files); "
                         "docs/user-effects.md")
@@ -763,6 +830,11 @@ def main(argv=None) -> int:
                        max_upload_mb=args.max_upload_mb, max_points=args.max_points)
         if lesson:
             wb.panels.lesson_guide.content = f"### {lesson_obj.title}\n\n{lesson_obj.guide()}"
+        if args.live:
+            live = wb.start_live(args.live, args.record)
+            print(f"magcal-workbench: live from {args.live}, recording to {live.path}", file=sys.stderr)
+        elif args.record:
+            raise MagcalError("--record goes with --live SOURCE")
     except MagcalError as exc:
         print(f"magcal-workbench: {exc}", file=sys.stderr)
         return 2

@@ -392,6 +392,8 @@ class Panels:
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.progress_text = gui.add_markdown("", visible=False)
         self.message = gui.add_markdown("")
+        #: The live session's figures (source, samples, coverage, fit), shown while one is open.
+        self.live_status = gui.add_markdown("", visible=False)
         self.legend = gui.add_html("")
         tabs = gui.add_tab_group()
         self._engine_buttons = []
@@ -564,6 +566,38 @@ class Panels:
         self.btn_reopen = self._button(gui, "Reopen the session", self.app.do_reopen)
         self.btn_fresh = self._button(gui, "Start this data afresh", self.app.do_fresh)
         self.btn_delete_session = self._button(gui, "Delete the chosen session", self.app.do_delete_session)
+        self._build_live(gui)
+
+    def _build_live(self, gui):
+        """The live source: a URL, Start, Pause/Resume, Stop (:mod:`workbench.live`)."""
+        from magcal.simulation import PRESETS
+
+        gui.add_markdown("**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
+                         "opens the recording here")
+        sample = "sim://chi2017?rate=50" if "chi2017" in PRESETS else f"sim://{next(iter(PRESETS))}?rate=50"
+        self.live_url = gui.add_text("Live source", sample,
+                                     hint="serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+                                          "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://PRESET?rate=50")
+        self.btn_live_start = self._button(gui, "Start live", self.app.do_live_start, engine=False)
+        self.btn_live_pause = self._button(gui, "Pause", self.app.do_live_pause, engine=False, visible=False)
+        self.btn_live_resume = self._button(gui, "Resume", self.app.do_live_resume, engine=False, visible=False)
+        self.btn_live_stop = self._button(gui, "Stop and open the recording", self.app.do_live_stop, engine=False,
+                                          visible=False)
+
+    def refresh_live(self) -> None:
+        """Show the live session's state (called by the live view's thread after each update)."""
+        live = self.app.live
+        running = live is not None and live.active
+        self.live_status.visible = live is not None
+        if live is not None:
+            self.live_status.content = live.status_markdown()
+        paused = running and live.session.paused
+        self.btn_live_start.disabled = running
+        self.btn_live_pause.visible = running and not paused
+        self.btn_live_resume.visible = running and paused
+        self.btn_live_stop.visible = running
+        for b in self._engine_buttons:  # the engine steps act on the opened data, not on the stream
+            b.disabled = running or self.app.worker.busy
 
     def _build_lessons(self, gui):
         from .lessons import list_lessons
