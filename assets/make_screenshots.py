@@ -9,6 +9,12 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``workbench-loop-before.png`` - Diagnose on the base model: the ranked candidates and their evidence;
 * ``workbench-loop-after.png`` - after Add and a second Diagnose: the verdict, the RMS history falling to the
   noise-floor line, the evidence plots.
+
+``python assets/make_screenshots.py live`` saves the live view instead (a simulated instrument streamed in):
+
+* ``live-growing.png`` - part way: the growing clouds, each sensor's coverage sphere (visited green, missing grey,
+  the largest gap's centre orange) and the advice on where to turn;
+* ``live-enough.png`` - at the end: the directions covered, the fit at the noise floor, "enough".
 """
 
 from __future__ import annotations
@@ -28,7 +34,54 @@ def _wait_text(page, js_condition, timeout=180_000):
     page.wait_for_function(f"() => {js_condition}", timeout=timeout)
 
 
+def live() -> int:
+    """The live view's screenshots (see the module docstring)."""
+    import re
+    import tempfile
+
+    from playwright.sync_api import sync_playwright
+
+    from magcal import io as mio
+    from workbench.app import Workbench
+    from workbench.lessons import DEMO
+
+    warnings.simplefilter("ignore")
+    wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(f"http://127.0.0.1:{wb.port}/")
+            _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+            rec = Path(tempfile.mkdtemp()) / "live.csv"
+            wb.start_live("sim://chi2017?rate=50&n=6000&speed=4", rec)
+
+            def received():
+                m = re.search(r"(\d+) samples received", page.inner_text("body"))
+                return int(m.group(1)) if m else 0
+
+            while received() < 1600:
+                time.sleep(0.2)
+            time.sleep(1)
+            for close in page.locator(".mantine-Notification-closeButton").all():
+                close.click()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "live-growing.png"))
+            _wait_text(page, "document.body.innerText.includes('enough:')", timeout=300_000)
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "live-enough.png"))
+            browser.close()
+    finally:
+        if wb.live is not None and wb.live.active:
+            wb.live.stop()
+        wb.stop()
+    print(f"wrote live-growing.png, live-enough.png in {OUT}")
+    return 0
+
+
 def main() -> int:
+    if sys.argv[1:] == ["live"]:
+        return live()
     from playwright.sync_api import sync_playwright
 
     from magcal import io as mio

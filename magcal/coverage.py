@@ -455,18 +455,21 @@ class DirectionMap:
         """The covered fraction reaches :data:`ENOUGH_FRACTION`."""
         return self.fraction >= ENOUGH_FRACTION
 
+    def summary(self) -> str:
+        """``74 % of the directions visited, largest gap 67 deg (around the -x+z direction)``."""
+        d = self.next_direction
+        where = "" if d is None else f" (around the {axis_words(d)})"
+        return f"{100 * self.fraction:.0f} % of the directions visited, largest gap {self.gap_deg:.0f} deg{where}"
+
     def advice(self) -> str:
         """What to do next, in words: where to turn the sensor, or that the sphere is covered."""
         d = self.next_direction
         if self.n_samples < FULL_MODEL_PARAMS:
             return "turn the sensor slowly through every orientation"
         if d is None or self.enough:
-            return (f"{100 * self.fraction:.0f} % of the directions visited: the sphere is covered"
-                    + ("" if d is None else f" (a gap of {self.gap_deg:.0f} deg remains around the sensor's "
-                                            f"{axis_words(d)})"))
-        return (f"{100 * self.fraction:.0f} % of the directions visited; largest gap {self.gap_deg:.0f} deg: turn "
-                f"the sensor so that its {axis_words(d)} points along the field (north and down in "
-                "the northern hemisphere, north and up in the southern)")
+            return "the sphere is covered"
+        return (f"turn the sensor so that its {axis_words(d)} points along the field (north and down in the "
+                "northern hemisphere, north and up in the southern)")
 
 
 def axis_words(direction) -> str:

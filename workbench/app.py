@@ -276,7 +276,9 @@ class Workbench:
             self.scene_view.update(self.scene_model())
 
     def legend_html(self) -> str:
-        title = "total-field residual" if self.ctrl.calibration is not None else "raw |y| - F"
+        live = self.live
+        fitted = (live.fit is not None) if live is not None and live.active else self.ctrl.calibration is not None
+        title = "total-field residual" if fitted else "raw |y| - F"
         return scn.legend_html(self.scene_view.last_limit_nT, title)
 
     def draw_evidence(self) -> None:

@@ -319,7 +319,10 @@ class LiveView:
             lines.append(f"- **the source stopped:** {safe_text(s.error, 300)}")
         for i, m in enumerate(self.maps):
             who = f"sensor {i + 1}: " if len(self.maps) > 1 else ""
-            lines.append(f"- {who}{safe_text(m.advice(), 300)}")
+            lines.append(f"- {who}{safe_text(m.summary(), 200)}")
+        if self.maps:
+            worst = min(self.maps, key=lambda m: m.fraction)
+            lines.append(f"- **next:** {safe_text(worst.advice(), 300)}")
         fit = self.fit
         if fit is not None:
             sd = []

@@ -374,6 +374,11 @@ def view_gains(ctrl) -> tuple[float, float]:
     return float(round(distortion, 1) if distortion < 1 else round(distortion)), float(round(residual))
 
 
+#: The status line while a live session owns the scene.
+LIVE_STATUS = ("**Live session**: the Calibrate, Model and Outliers tabs work on the recording once it is stopped "
+               "(Files tab)")
+
+
 class Panels:
     """Builds the GUI on ``server.gui`` and keeps it in step with the workbench.
 
@@ -588,6 +593,9 @@ class Panels:
         """Show the live session's state (called by the live view's thread after each update)."""
         live = self.app.live
         running = live is not None and live.active
+        if running:
+            self.status.content = LIVE_STATUS
+            self.legend.content = self.app.legend_html()
         self.live_status.visible = live is not None
         if live is not None:
             self.live_status.content = live.status_markdown()
@@ -675,7 +683,8 @@ class Panels:
         app, ctrl = self.app, self.app.ctrl
         kinds = set(kinds)
         everything = "all" in kinds
-        self.status.content = status_markdown(ctrl)
+        live = app.live
+        self.status.content = status_markdown(ctrl) if live is None or not live.active else LIVE_STATUS
         if everything or "message" in kinds:
             self.message.content = ctrl.message
         self.legend.content = app.legend_html()

@@ -535,7 +535,8 @@ class SceneView:
         n = model.n_sensors
         cx = cross_x(len(model.sensors))
         positions = cross_positions(n) @ ARRAY_TO_SCENE.T + [cx, 0, 0]
-        base = f"baseline {model.baseline_m:g} m" if model.baseline_m else "single sensor"
+        base = (f"baseline {model.baseline_m:g} m" if model.baseline_m else
+                "single sensor" if n == 1 else "baseline not given")
         self._put("/cross/label", lambda: scene.add_label(
             "/cross/label", f"cross ({base}); array z toward you",
             position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6), anchor="bottom-center"))
