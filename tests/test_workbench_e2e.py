@@ -183,7 +183,7 @@ def _upload_in_page(page, name: str, content: bytes) -> None:
     """Choose a file in the page's upload button, as a user would (the browser sends it over the websocket)."""
     page.get_by_role("tab", name="Files").click(timeout=30_000)
     with page.expect_file_chooser(timeout=30_000) as chooser:
-        page.get_by_text("Open a CSV file").click(timeout=30_000)
+        page.get_by_text("Open a file (CSV, .bin, .ulg)").click(timeout=30_000)
     chooser.value.set_files(files=[{"name": name, "mimeType": "text/csv", "buffer": content}])
 
 

@@ -405,6 +405,10 @@ class Workbench:
             return tuple(METHODS)
         if handle is p.box_mode:
             return ("reject", "restore")
+        if handle is p.upload_units:
+            from .panels import UPLOAD_UNITS
+
+            return UPLOAD_UNITS
         return tuple(handle.options)
 
     def check_value(self, handle):
@@ -593,12 +597,48 @@ class Workbench:
             raise MagcalError(f"{name}: {len(content) / 1e6:.1f} MB is more than the upload limit of "
                               f"{self.max_upload_bytes / 1e6:g} MB; open it from the command line "
                               "(magcal-workbench FILE.csv) or start the workbench with a larger --max-upload-mb")
+        self._last_upload = (name, content)
+        self._open_upload(name, content)
+
+    def do_reread(self, event):
+        """Read the last upload again with the Files tab's Columns, Units and LSB (no new upload needed)."""
+        if getattr(self, "_last_upload", None) is None:
+            raise MagcalError("upload a file first (Open a file), then set Columns or Units and re-read it")
+        self._open_upload(*self._last_upload)
+
+    def read_options(self) -> dict:
+        """The Files tab's reading options, checked (``columns``, ``units``, ``lsb_nT`` for the engine's reader)."""
+        from .panels import UPLOAD_UNITS
+
+        p = self.panels
+        columns = self.check_value(p.upload_columns).strip() or None
+        units = self.check_value(p.upload_units)
+        lsb = float(self.check_value(p.upload_lsb))
+        return {"columns": columns, "units": None if units == UPLOAD_UNITS[0] else units,
+                "lsb_nT": lsb if lsb > 0 else None}
+
+    def _open_upload(self, name: str, content: bytes) -> None:
+        from magcal.logs import is_log
+
+        from .controller import canonical_csv, page_words
+
+        options = self.read_options()
+        mapped = is_log(name) or any(v is not None for v in options.values())
 
         def job():
-            ds, notes = read_bytes_dataset(name, content)
-            self.load(ds, content, name)
+            header = content[:4096].decode("utf-8", "replace").splitlines()
+            found = next((line for line in header if line.strip() and not line.startswith("#")), "")
+            self.panels.upload_info.content = "" if is_log(name) else \
+                f"Columns in {safe_code(name)}: {safe_text(found, 400)}"
+            try:
+                ds, notes = read_bytes_dataset(name, content, **options)
+            except MagcalError as exc:
+                raise MagcalError(page_words(str(exc))) from None
+            # a session keeps data read through a mapping, units or a log reader as magcal's own CSV
+            self.load(ds, canonical_csv(ds) if mapped else content, name if not mapped else
+                      os.path.splitext(name)[0] + ".csv")
             self._say_after_load(f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
-                                 + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes))
+                                 + "".join(f"  \n- {safe_text(page_words(n), MESSAGE_LEN)}" for n in notes))
 
         self._job("open file", job)
 

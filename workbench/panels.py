@@ -374,6 +374,10 @@ def view_gains(ctrl) -> tuple[float, float]:
     return float(round(distortion, 1) if distortion < 1 else round(distortion)), float(round(residual))
 
 
+#: The Units choices of an upload (the first keeps the file's own ``# units:`` line).
+UPLOAD_UNITS = ("from the file", "nT", "uT", "G", "mG", "counts")
+
+
 #: The status line while a live session owns the scene.
 LIVE_STATUS = ("**Live session**: the Calibrate, Model and Outliers tabs work on the recording once it is stopped "
                "(Files tab)")
@@ -559,8 +563,19 @@ class Panels:
             h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
 
     def _build_files(self, gui):
-        self.upload = gui.add_upload_button("Open a CSV file", mime_type=".csv,text/csv,text/plain")
+        self.upload = gui.add_upload_button("Open a file (CSV, .bin, .ulg)",
+                                            mime_type=".csv,.txt,.bin,.ulg,text/csv,text/plain")
         self.upload.on_upload(lambda e: self.app.handle(self.app.do_upload, e))
+        self.upload_columns = gui.add_text(
+            "Columns", "", hint="Your column names mapped onto magcal's, as the command line's --columns: "
+                                "x=magX,y=magY,z=magZ,t=time,temp=T (empty: the file's own names)")
+        self.upload_units = gui.add_dropdown(
+            "Units", UPLOAD_UNITS, initial_value=UPLOAD_UNITS[0],
+            hint="Unit of the readings; 'from the file' reads its '# units:' line (nT without one)")
+        self.upload_lsb = gui.add_number("LSB nT/count", 0.0, min=0.0, max=1e9, step=0.001,
+                                         hint="nT per count for raw counts (0: the file's '# lsb_nT:' line)")
+        self.btn_reread = self._button(gui, "Re-read the last upload with these", self.app.do_reread)
+        self.upload_info = gui.add_markdown("")
         self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration,
                                        engine=False)
         self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.app.do_download_corrected, engine=False)

@@ -541,8 +541,9 @@ class SceneView:
             "/cross/label", f"cross ({base}); array z toward you",
             position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6), anchor="bottom-center"))
         if "/cross/arms" not in self._static:
-            if n > 1:
-                segs = np.array([[positions[0], positions[2]], [positions[1], positions[3 if n > 3 else 1]]])
+            if n > 1:  # the cross's arms join opposite sensors (1-3, 2-4); two sensors: one baseline
+                segs = (np.array([[positions[0], positions[2]], [positions[1], positions[3 if n > 3 else 1]]])
+                        if n > 2 else np.array([[positions[0], positions[1]]]))
                 self._put("/cross/arms", lambda: scene.add_line_segments(
                     "/cross/arms", segs.astype(np.float32), colors=(120, 120, 120), thickness=3.0,
                     thickness_units="screen"))
