@@ -202,6 +202,10 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
         Bad calibration file, a calibration for another number of sensors, missing channels, bad data.
     """
     t0 = time.perf_counter()
+    from .logs import is_log
+
+    if is_log(survey_path):
+        return apply_log(calibration, survey_path, output_path, calibration_name, record_terms, t0)
     if isinstance(columns, str):
         from .io import parse_column_mapping
 
@@ -272,3 +276,51 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
             if bar is not None:
                 bar.close()
     return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
+
+
+def apply_log(calibration, log_path, output_path, calibration_name=None, record_terms=None, t0=None):
+    """Correct a flight-controller log (ArduPilot ``.bin``, PX4 ``.ulg``; :mod:`magcal.logs`) with a calibration.
+
+    The log is read whole (its reader decodes every message anyway), corrected as one block
+    (:func:`correct_block`) and written as magcal's CSV: the log's channels (time, readings in nT, temperature,
+    attitude) plus the corrected columns. ``record_terms`` as in :func:`apply_file`.
+
+    Returns
+    -------
+    ApplySummary
+    """
+    import warnings
+
+    from .calibration import VECTOR_STAGES
+    from .errors import RecordTermWarning
+    from .io import dataset_columns, dataset_metadata, write_csv
+    from .logs import read_log
+
+    t0 = time.perf_counter() if t0 is None else t0
+    if not hasattr(calibration, "correct"):
+        calibration_name = calibration_name or os.fspath(calibration)
+        calibration = load_calibration(calibration)
+    log_path, output_path = os.fspath(log_path), os.fspath(output_path)
+    dataset = read_log(log_path)
+    if dataset.n_sensors != calibration.n_sensors:
+        raise MagcalError(
+            f"{log_path}: the log has {dataset.n_sensors} compass(es) but the calibration"
+            f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
+            "calibration made for this vehicle's compasses")
+    calibration.check(dataset)
+    dropped, note = calibration.record_decision(dataset, record_terms, VECTOR_STAGES)
+    if note:
+        warnings.warn(note, RecordTermWarning, stacklevel=2)
+    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+    names = output_columns(calibration.n_sensors, tensor)
+    values = correct_block(calibration, dataset, "drop" if dropped else "apply")
+    columns = dataset_columns(dataset)
+    columns.update({name: values[:, k] for k, name in enumerate(names)})
+    meta = dataset_metadata(dataset)
+    if calibration_name:
+        meta["magcal_calibration"] = calibration_name
+    meta["magcal_frame"] = calibration.frame
+    meta["magcal_columns"] = "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
+    write_csv(output_path, columns, metadata=meta)
+    return ApplySummary(dataset.n_samples, names, time.perf_counter() - t0, output_path, calibration.frame)
+

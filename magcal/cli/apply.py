@@ -5,6 +5,7 @@ Example::
     magcal apply platform.json survey.csv -o survey_cal.csv
     magcal apply cal.json survey.csv -o out.csv --effects-file my_effects.py   # a calibration with your own effect
     magcal apply cal.json calib_record.csv -o out.csv --record-terms apply    # keep its bias drift on that record
+    magcal apply cal.json flight.bin -o flight_cal.csv                       # a flight-controller log (.bin, .ulg)
 
 A calibration with record-only terms (bias drift, bias step, reference drift, site gradient) applies them only to
 the record it was fitted on; on any other file they are dropped, with one warning naming them.
@@ -30,7 +31,8 @@ def register(subparsers):
                     "the input columns plus the corrected ones.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("data", metavar="SURVEY.csv", help="survey data file (see docs/formats.md)")
+    parser.add_argument("data", metavar="SURVEY.csv", help="survey data file (see docs/formats.md), or an ArduPilot "
+                                                            ".bin / PX4 .ulg flight log")
     parser.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="output file (written atomically)")
     parser.add_argument("--columns", default=None, metavar="MAP",
                         help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
