@@ -109,6 +109,11 @@ class Workbench:
         self.evidence_plot = None
         #: The live session (:class:`workbench.live.LiveView`) while one is open or after it stopped, else None.
         self.live = None
+        from .timewindow import TimeWindow
+
+        #: The time scrubber's window (View tab): the samples drawn and the evidence plots' shaded band.
+        self.window = TimeWindow(self._window_moved)
+        self._last_evidence_t = 0.0
         self._scene_lock = threading.RLock()
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
         self.scene_view = scn.SceneView(self.server, max_points=max_points)
@@ -191,6 +196,7 @@ class Workbench:
     def load(self, dataset, content: bytes | None, name: str, resume: bool = True, lesson: str | None = None):
         """Replace the data (upload, lesson, reopened session); the scene and panels follow."""
         self._refit_pending = False  # a refit asked for on the old data
+        self.window.pause()  # the window's percentages carry over to the new data; playback does not
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
         self._attach(self.ctrl)
         self.scene_view.clear()
@@ -264,12 +270,16 @@ class Workbench:
                 cinv=None if cal is None else cal.sensors[s].cinv,
                 bias_nT=None if cal is None else cal.sensors[s].bias_nT,
                 R=None if cal is None else cal.sensors[s].R))
+        from .timewindow import sample_times
+
+        times = sample_times(ds)
         return scn.SceneModel(
             sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.state.kept,  # live, even in a job
             floor_nT=ctrl.floor_nT(),
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
-            inspected=ctrl.inspected, **self.panels.view_options())
+            inspected=ctrl.inspected, window=self.window.mask(times), current=self.window.current(times),
+            **self.panels.view_options())
 
     def update_scene(self) -> None:
         with self._scene_lock:
@@ -283,8 +293,10 @@ class Workbench:
 
     def draw_evidence(self) -> None:
         from .plots import evidence_figure
+        from .timewindow import sample_times
 
-        fig = evidence_figure(self.ctrl)
+        band = self.window.bounds_s(sample_times(self.ctrl.dataset)) if self.window.enabled else None
+        fig = evidence_figure(self.ctrl, window_s=band)
         holder = self.panels.evidence_holder
         if fig is None:
             if self.evidence_plot is not None:
@@ -470,6 +482,45 @@ class Workbench:
     def view_changed(self, event):
         self.update_scene()
         self.panels.legend.content = self.legend_html()
+
+    # the time scrubber
+    def window_changed(self, event):
+        """A Time window widget moved: take its values (checked) into the window, which redraws."""
+        p = self.panels
+        self.window.set(enabled=bool(self.check_value(p.window_on)), start_pct=float(self.check_value(p.window_start)),
+                        width_pct=float(self.check_value(p.window_width)), speed=float(self.check_value(p.play_speed)))
+
+    def _window_moved(self) -> None:
+        from .timewindow import sample_times
+
+        self.update_scene()
+        times = sample_times(self.ctrl.dataset)
+        self.panels.window_info.content = safe_text(self.window.describe(times))
+        now = time.monotonic()
+        if not self.window.playing or now - self._last_evidence_t > 1.0:  # the plots' band: at most once a second
+            self._last_evidence_t = now
+            self.draw_evidence()
+
+    def do_play(self, event):
+        """Replay the recording: the window's start advances at the Play speed until the end or Pause."""
+        from .timewindow import sample_times
+
+        times = sample_times(self.ctrl.dataset)
+        if not self.panels.window_on.value:
+            self.panels.window_on.value = True  # its callback turns the window on
+        self.window.play(float(np.nanmax(times) - np.nanmin(times)),
+                         advance=lambda pct: setattr(self.panels.window_start, "value", round(pct, 1)))
+        self.panels.window_info.content = safe_text(self.window.describe(times))
+
+    def do_pause_play(self, event):
+        from .timewindow import sample_times
+
+        self.window.pause()
+        self._window_moved()
+
+    def do_show_all(self, event):
+        self.window.pause()
+        self.panels.window_on.value = False  # its callback shows every sample
 
     # engine steps
     def _check_readings(self) -> None:

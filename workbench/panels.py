@@ -561,6 +561,23 @@ class Panels:
         for h in (self.distortion_gain, self.residual_gain, self.axes_gain, self.show_raw, self.show_ellipsoid,
                   self.show_corrected):
             h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
+        with gui.add_folder("Time window", expand_by_default=True):
+            self._build_time(gui)
+
+    def _build_time(self, gui):
+        """The time scrubber (:mod:`workbench.timewindow`): a window of the recording on the sphere, replayed."""
+        self.window_on = gui.add_checkbox("Show a time window", False,
+                                          hint="Draw only the samples in the window; the evidence plots shade it")
+        self.window_start = gui.add_slider("Window start %", min=0.0, max=100.0, step=0.1, initial_value=0.0)
+        self.window_width = gui.add_slider("Window width %", min=0.5, max=100.0, step=0.5, initial_value=10.0)
+        self.play_speed = gui.add_slider("Play speed x", min=1.0, max=100.0, step=1.0, initial_value=10.0,
+                                         hint="Multiple of real time")
+        self.btn_play = self._button(gui, "Play", self.app.do_play, engine=False)
+        self.btn_pause = self._button(gui, "Pause", self.app.do_pause_play, engine=False)
+        self.btn_show_all = self._button(gui, "Show all", self.app.do_show_all, engine=False)
+        self.window_info = gui.add_markdown("")
+        for h in (self.window_on, self.window_start, self.window_width, self.play_speed):
+            h.on_update(lambda e: self.app.handle(self.app.window_changed, e))
 
     def _build_files(self, gui):
         self.upload = gui.add_upload_button("Open a file (CSV, .bin, .ulg)",

@@ -25,8 +25,10 @@ def _evidence(diagnosis) -> dict:
     return ev if isinstance(ev, dict) else {}
 
 
-def evidence_figure(ctrl):
+def evidence_figure(ctrl, window_s=None):
     """A 2 x 2 plotly figure (time, temperature, spherical-harmonic degree, sensors), or None before any fit.
+
+    ``window_s``: ``(t0, t1)`` of the time scrubber's window (s), shaded on the time panel.
 
     Before a diagnosis the time and temperature panels show the current residuals; after it, the diagnosis's own
     evidence (its residuals of the diagnosed fit, their running mean in time, power per degree per sensor, and
@@ -68,6 +70,9 @@ def evidence_figure(ctrl):
             fig.add_trace(go.Scattergl(x=x_t[idx], y=smooth[s, idx], mode="lines", line={"color": colour, "width": 2},
                                        name=f"s{s + 1} running mean", legendgroup=f"s{s}", showlegend=False),
                           row=row_time, col=1)
+    if window_s is not None:
+        fig.add_vrect(x0=float(window_s[0]), x1=float(window_s[1]), fillcolor="#f5b041", opacity=0.3, line_width=0,
+                      row=row_time, col=1)
     temp_ev = ev.get("temperature")
     if has_temp:
         if temp_ev is not None:

@@ -41,6 +41,7 @@ OUTLIER_SHARE = 0.1
 #: Colours (RGB 0-255).
 REJECTED_RGB = (230, 0, 230)
 INSPECT_RGB = (255, 200, 0)
+CURRENT_RGB = (20, 20, 20)
 AXIS_RGB = ((220, 50, 50), (50, 170, 50), (60, 90, 230))
 IDEAL_AXIS_RGB = (150, 150, 150)
 ELLIPSOID_RGB = (90, 170, 255)
@@ -276,6 +277,8 @@ class SceneModel:
     show_raw: bool = True
     show_corrected: bool = True
     show_ellipsoid: bool = True
+    window: np.ndarray | None = None    # (N,) bool: draw only these samples (the time scrubber), None for all
+    current: int | None = None          # the window's last sample: each sensor's current direction, marked
 
 
 @dataclass
@@ -397,7 +400,13 @@ class SceneView:
         limit = colour_limit_nT(np.concatenate([r[kept] for r in resid_all]) if resid_all else [1.0], floor)
         self.last_limit_nT = limit
         self._full_model = model
-        idx = level_of_detail(len(kept), self.max_points, np.array(resid_all) if resid_all else None)
+        if model.window is not None:  # the time scrubber: only the window's samples, decimated within it
+            base = np.flatnonzero(np.asarray(model.window, bool))
+            sub = level_of_detail(base.size, self.max_points,
+                                  np.array(resid_all)[:, base] if resid_all else None)
+            idx = base[sub]
+        else:
+            idx = level_of_detail(len(kept), self.max_points, np.array(resid_all) if resid_all else None)
         self.shown_samples = idx
         if idx.size < len(kept):
             model = decimated(model, idx)
@@ -437,6 +446,38 @@ class SceneView:
             else:
                 self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
             self.mark_inspected(model.inspected)
+            self.mark_current(model.current)
+
+    def mark_current(self, sample: int | None) -> None:
+        """Mark one sample on every shown cloud (the time window's current direction): a large point, and on the
+        corrected side a line from the sphere's centre to it."""
+        for name in ("/window/current", "/window/direction"):
+            if name in self._static:
+                self._static.pop(name).remove()
+        if sample is None:
+            return
+        on = self.displayed.samples == int(sample)
+        pts = self.displayed.positions[on]
+        if len(pts) == 0:
+            return
+        self._put("/window/current", lambda: self.server.scene.add_point_cloud(
+            "/window/current", pts.astype(np.float32), CURRENT_RGB, point_size=self.point_size * 5,
+            point_shape="circle", precision="float32", point_shading="flat"))
+        model = self._full_model
+        segs = []
+        if model is not None and model.show_corrected:
+            rows = len(model.sensors)
+            for k, sv in enumerate(model.sensors):
+                if sv.corrected_nT is None:
+                    continue
+                centre = group_offset(k, rows) + [PAIR_OFFSET, 0, 0]
+                tips = self.displayed.positions[on & (self.displayed.sensors == sv.sensor)]
+                if len(tips):  # the corrected point is the one nearer the corrected sphere's centre
+                    segs.append([centre, tips[np.argmin(np.linalg.norm(tips - centre, axis=1))]])
+        if segs:
+            arr = np.array(segs, np.float32)
+            self._put("/window/direction", lambda: self.server.scene.add_line_segments(
+                "/window/direction", arr, colors=CURRENT_RGB, thickness=4.0, thickness_units="screen"))
 
     def clear(self) -> None:
         """Remove every node (before loading other data)."""
@@ -462,7 +503,10 @@ class SceneView:
             return np.unique(d.samples[inside])
         hits = [np.flatnonzero(points_in_rect(pts, camera_wxyz, camera_position, fov_rad, aspect, screen_min,
                                               screen_max)) for _, _, _, pts in iter_layout(model)]
-        return np.unique(np.concatenate(hits)) if hits else np.zeros(0, int)
+        hit = np.unique(np.concatenate(hits)) if hits else np.zeros(0, int)
+        if model.window is not None:  # only what the time window shows
+            hit = hit[np.asarray(model.window, bool)[hit]]
+        return hit
 
     def mark_inspected(self, sample: int | None) -> None:
         """Put (or remove) the marker on every shown point of one sample."""

@@ -1,0 +1,123 @@
+"""The time scrubber and the layout (issue 15): a window of the recording drawn on the sphere, replayed.
+
+Driven through the panels' own widgets on a real server (their callbacks are the page's), and in Chromium through
+the page.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from test_workbench_e2e import browser, _open  # noqa: F401  (the fixture: real headless Chromium)
+
+BENCH_SAMPLES = 300  # 2 Hz: 150 s
+
+
+def _drawn(wb) -> int:
+    """Samples drawn (each shown cloud holds the same samples)."""
+    return int(np.unique(wb.scene_view.displayed.samples).size)
+
+
+def _wait(condition, timeout_s=20.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.parametrize("start, width", [(0.0, 10.0), (40.0, 20.0), (90.0, 10.0)])
+def test_the_window_draws_exactly_its_samples_and_marks_the_current_one(bench, start, width):
+    wb = bench()
+    wb.ctrl.step_calibrate("ml")
+    assert _drawn(wb) == BENCH_SAMPLES
+    p = wb.panels
+    p.window_width.value = width
+    p.window_start.value = start
+    p.window_on.value = True
+    t = wb.ctrl.dataset.time_s
+    t0 = t.min() + (t.max() - t.min()) * start / 100
+    t1 = t0 + (t.max() - t.min()) * width / 100
+    inside = np.flatnonzero((t >= t0) & (t <= t1))
+    assert set(np.unique(wb.scene_view.displayed.samples)) == set(inside)
+    assert "/window/current" in wb.scene_view._static and "/window/direction" in wb.scene_view._static
+    current = wb.scene_view._static["/window/current"]
+    # the marker sits on the window's last sample in every shown cloud (raw and corrected of four sensors)
+    last = wb.scene_view.displayed.positions[wb.scene_view.displayed.samples == inside[-1]]
+    np.testing.assert_allclose(np.sort(current.points, axis=0), np.sort(last.astype(np.float32), axis=0))
+    assert f"{len(inside)} samples" in p.window_info.content
+    p.window_on.value = False
+    assert _drawn(wb) == BENCH_SAMPLES and "/window/current" not in wb.scene_view._static
+
+
+def test_play_advances_the_window_and_pause_stops_it(bench):
+    wb = bench()
+    p = wb.panels
+    p.window_width.value = 5.0
+    p.play_speed.value = 100.0  # 150 s at 100x: the window crosses the record in ~1.5 s
+    wb.do_play(None)
+    assert _wait(lambda: p.window_start.value > 20.0, 10)
+    wb.do_pause_play(None)
+    here = p.window_start.value
+    time.sleep(0.8)
+    assert p.window_start.value == here and not wb.window.playing
+    wb.do_play(None)
+    assert _wait(lambda: not wb.window.playing, 15)  # stops at the end
+    assert p.window_start.value == pytest.approx(95.0, abs=0.11)
+
+
+def test_the_evidence_plot_shades_the_window(bench):
+    wb = bench()
+    wb.ctrl.step_calibrate("ml")
+    wb.panels.window_start.value = 30.0
+    wb.panels.window_on.value = True
+    shapes = [sh for sh in wb.evidence_plot.figure.layout.shapes if sh.type == "rect"]
+    assert len(shapes) == 1
+    t = wb.ctrl.dataset.time_s
+    assert shapes[0].x0 == pytest.approx(t.min() + 0.3 * (t.max() - t.min()))
+
+
+def test_a_box_selection_takes_only_what_the_window_shows(bench):
+    wb = bench(max_points=50)  # decimated: the box is tested on every sample of the layout
+    wb.ctrl.step_calibrate("ml")
+    wb.panels.window_start.value = 0.0
+    wb.panels.window_width.value = 20.0
+    wb.panels.window_on.value = True
+    from workbench.scene import camera_pose
+
+    pos, look = camera_pose(4)
+    # the default camera: looking along +y, z up (camera axes x right, y down, z forward); the whole screen
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]])).as_quat()
+    picked = wb.scene_view.samples_in_rect(q[[3, 0, 1, 2]], pos, np.radians(75), 1.6, (0, 0), (1, 1))
+    window = wb.window.mask(wb.ctrl.dataset.time_s)
+    assert picked.size > 0 and window[picked].all()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_the_window_moves_and_plays_in_the_page(browser, bench):
+    """In Chromium: switch the window on and move its start with the keyboard; Play advances it."""
+    wb = bench()
+    page = _open(browser, wb.port)
+    page.get_by_role("tab", name="View").click(timeout=30_000)
+    page.get_by_text("Show a time window").click()
+    assert _wait(lambda: wb.window.enabled and 0 < _drawn(wb) < BENCH_SAMPLES, 20)
+    first = set(np.unique(wb.scene_view.displayed.samples))
+    # viser draws a slider with a number box beside it (the label's `for` names the slider): type into the box
+    fid = page.locator("label:text-is('Window start %')").get_attribute("for")
+    box = page.locator(f'[id="{fid}"]').locator("xpath=..").locator("input:not([type=hidden])")
+    box.fill("30")
+    box.press("Enter")
+    assert _wait(lambda: wb.panels.window_start.value == 30.0, 20)
+    assert set(np.unique(wb.scene_view.displayed.samples)) != first
+    page.get_by_role("button", name="Play").click()
+    before = wb.panels.window_start.value
+    assert _wait(lambda: wb.panels.window_start.value > before + 2.0, 20)
+    page.get_by_role("button", name="Pause").click()
+    assert _wait(lambda: not wb.window.playing, 10)
