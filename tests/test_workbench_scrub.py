@@ -121,3 +121,47 @@ def test_the_window_moves_and_plays_in_the_page(browser, bench):
     assert _wait(lambda: wb.panels.window_start.value > before + 2.0, 20)
     page.get_by_role("button", name="Pause").click()
     assert _wait(lambda: not wb.window.playing, 10)
+
+
+def test_full_size_evidence_shows_the_same_data_and_downloads(bench):
+    from workbench.plots import evidence_panels
+
+    wb = bench()
+    with pytest.raises(Exception, match="fit first"):
+        wb.do_full_evidence(None)
+    wb.ctrl.step_calibrate("ml")
+    wb.panels.window_on.value = True
+    wb.do_full_evidence(None)
+    overlay = wb.panels.evidence_overlay
+    assert overlay.visible and "data:image/png;base64," in overlay.content
+    assert wb.panels.btn_full_evidence.label == "Back to the scene"
+    # the plotly panel and the full-size image are drawn from the same panels: time, temperature, SH, sensors
+    panels = evidence_panels(wb.ctrl, wb._evidence_band())
+    titles = [a.text for a in wb.evidence_plot.figure.layout.annotations if a.text in {p["title"] for p in panels}]
+    assert titles == [p["title"] for p in panels] and panels[0]["band"] is not None
+    np.testing.assert_allclose(panels[-1]["traces"][0]["y"], wb.ctrl.rms_per_sensor_nT())
+    wb.do_full_evidence(None)
+    assert not overlay.visible and wb.panels.btn_full_evidence.label == "Full-size evidence"
+    wb.do_download_evidence_svg(None)
+    name, svg = wb.last_download
+    assert name == "evidence.svg" and svg.lstrip().startswith(b"<?xml") and b"<svg" in svg
+    wb.do_download_evidence_png(None)
+    name, png = wb.last_download
+    assert name == "evidence.png" and png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_full_size_evidence_opens_and_closes_in_the_page(browser, bench):
+    wb = bench()
+    wb.ctrl.step_calibrate("ml")
+    page = _open(browser, wb.port)
+    page.get_by_role("tab", name="Model").click(timeout=30_000)
+    page.get_by_role("button", name="Full-size evidence").click()
+    img = page.locator("img[alt='evidence plots']")
+    img.wait_for(state="visible", timeout=30_000)
+    box = img.bounding_box()
+    viewport = page.viewport_size
+    assert box["width"] > 0.55 * viewport["width"]  # the canvas, not the side panel
+    page.get_by_role("button", name="Back to the scene").click()
+    img.wait_for(state="detached", timeout=30_000)

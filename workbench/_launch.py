@@ -10,7 +10,7 @@ import importlib
 import sys
 
 #: Packages of the ``workbench`` extra (pyproject.toml), by the name they are imported under.
-WORKBENCH_PACKAGES = ("viser", "trimesh", "plotly", "websockets")
+WORKBENCH_PACKAGES = ("viser", "trimesh", "plotly", "matplotlib", "websockets")
 
 MISSING_EXTRA = 'magcal-workbench needs the workbench extra: pip install -e ".[workbench]"'
 

@@ -293,15 +293,15 @@ class Workbench:
 
     def draw_evidence(self) -> None:
         from .plots import evidence_figure
-        from .timewindow import sample_times
 
-        band = self.window.bounds_s(sample_times(self.ctrl.dataset)) if self.window.enabled else None
-        fig = evidence_figure(self.ctrl, window_s=band)
+        fig = evidence_figure(self.ctrl, window_s=self._evidence_band())
         holder = self.panels.evidence_holder
         if fig is None:
             if self.evidence_plot is not None:
                 self.evidence_plot.visible = False
             return
+        if self.panels.evidence_overlay.visible:
+            self.show_full_evidence(True)
         if self.evidence_plot is None:
             with holder:
                 # viser's client draws plotly at height = width * aspect (the docstring says width/height)
@@ -309,6 +309,57 @@ class Workbench:
         else:
             self.evidence_plot.figure = fig
             self.evidence_plot.visible = True
+
+    # evidence at full size
+    def _evidence_band(self):
+        from .timewindow import sample_times
+
+        return self.window.bounds_s(sample_times(self.ctrl.dataset)) if self.window.enabled else None
+
+    def _evidence_title(self) -> str:
+        ctrl = self.ctrl
+        model = ", ".join(ctrl.state.effects) or "base terms only"
+        return f"{ctrl.dataset.source and os.path.basename(str(ctrl.dataset.source))}: model {model}"
+
+    def show_full_evidence(self, on: bool) -> None:
+        """Show (or hide) the evidence plots over the canvas, left of the panel: a PNG drawn by the engine's
+        numbers (:func:`workbench.plots.evidence_image`), the same data as the Model tab's plots."""
+        import base64
+
+        from .plots import evidence_image
+
+        overlay = self.panels.evidence_overlay
+        if not on:
+            overlay.visible = False
+            self.panels.btn_full_evidence.label = "Full-size evidence"
+            return
+        png = evidence_image(self.ctrl, "png", self._evidence_band(), self._evidence_title())
+        if png is None:
+            raise MagcalError("fit first: the evidence plots show the residuals of a fit")
+        data = base64.b64encode(png).decode("ascii")
+        overlay.content = ('<div style="position:fixed;left:0;top:0;width:calc(100vw - 27em);height:100vh;'
+                           'background:white;z-index:50;overflow:auto;padding:0.5em;box-sizing:border-box">'
+                           f'<img alt="evidence plots" src="data:image/png;base64,{data}" '
+                           'style="width:100%;height:auto;display:block"></div>')
+        overlay.visible = True
+        self.panels.btn_full_evidence.label = "Back to the scene"
+
+    def do_full_evidence(self, event):
+        self.show_full_evidence(not self.panels.evidence_overlay.visible)
+
+    def _download_evidence(self, event, fmt: str):
+        from .plots import evidence_image
+
+        data = evidence_image(self.ctrl, fmt, self._evidence_band(), self._evidence_title())
+        if data is None:
+            raise MagcalError("fit first: the evidence plots show the residuals of a fit")
+        self._download(event, f"evidence.{fmt}", data)
+
+    def do_download_evidence_png(self, event):
+        self._download_evidence(event, "png")
+
+    def do_download_evidence_svg(self, event):
+        self._download_evidence(event, "svg")
 
     def reset_cameras(self) -> None:
         for client in self.server.get_clients().values():

@@ -404,6 +404,8 @@ class Panels:
         #: The live session's figures (source, samples, coverage, fit), shown while one is open.
         self.live_status = gui.add_markdown("", visible=False)
         self.legend = gui.add_html("")
+        #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
+        self.evidence_overlay = gui.add_html("", visible=False)
         tabs = gui.add_tab_group()
         self._engine_buttons = []
         self._bindings = []  # (widget, the state's value as the widget shows it)
@@ -511,6 +513,13 @@ class Panels:
             scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
             axes=({"label": "step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
             padding=(14, 16, 0, 0), title="Total-field RMS per step", aspect=1.4)
+        self.btn_full_evidence = self._button(gui, "Full-size evidence", self.app.do_full_evidence, engine=False,
+                                              hint="The evidence plots over the scene, full size (press again to "
+                                                   "go back); the same data as below")
+        self.btn_evidence_png = self._button(gui, "Download evidence PNG", self.app.do_download_evidence_png,
+                                             engine=False)
+        self.btn_evidence_svg = self._button(gui, "Download evidence SVG", self.app.do_download_evidence_svg,
+                                             engine=False)
         self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
         self.evidence_plot = None
 
