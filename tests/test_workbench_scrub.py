@@ -165,3 +165,51 @@ def test_full_size_evidence_opens_and_closes_in_the_page(browser, bench):
     assert box["width"] > 0.55 * viewport["width"]  # the canvas, not the side panel
     page.get_by_role("button", name="Back to the scene").click()
     img.wait_for(state="detached", timeout=30_000)
+
+
+def test_full_size_evidence_after_a_diagnosis(bench):
+    """With the diagnosis's spherical-harmonic bars per sensor (grouped bars)."""
+    wb = bench()
+    wb.ctrl.step_calibrate("ml")
+    wb.ctrl.step_diagnose()
+    wb.do_full_evidence(None)
+    assert wb.panels.evidence_overlay.visible
+
+
+@pytest.mark.parametrize("limit, text", [(2310.4, "2,310"), (11.2, "11.2"), (4.5, "4.5"), (0.0123, "0.012"),
+                                         (2.5e6, "2,500 uT")])
+def test_the_legend_prints_numbers_a_person_reads(limit, text):
+    from workbench.scene import legend_html
+
+    html = legend_html(limit)
+    assert f"-{text}<" in html and f"+{text}<" in html and "e+" not in html
+
+
+@pytest.mark.parametrize("n_groups", [1, 2, 4])
+@pytest.mark.parametrize("aspect", [1.3, 1.6, 2.2])
+def test_the_default_camera_frames_everything_left_of_the_panel(n_groups, aspect):
+    """Every corner of the scene's bounds projects inside the part of the canvas the panel leaves free."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.scene import camera_pose, project_points, scene_bounds
+
+    fov = np.radians(75.0)
+    pos, look = camera_pose(n_groups, fov, aspect, panel_fraction=0.25)
+    x0, x1, z0, z1 = scene_bounds(n_groups)
+    corners = np.array([[x, y, z] for x in (x0, x1) for y in (-1.5, 1.5) for z in (z0, z1)])
+    q = Rotation.from_matrix(np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]])).as_quat()
+    uv, front = project_points(corners, q[[3, 0, 1, 2]], pos, fov, aspect)
+    assert front.all()
+    assert (uv[:, 0] > 0.0).all() and (uv[:, 0] < 0.75).all()  # clear of the panel (the right quarter)
+    assert (uv[:, 1] > 0.0).all() and (uv[:, 1] < 1.0).all()
+
+
+def test_the_reference_shown_is_the_one_used_and_says_where_from(bench):
+    wb = bench()  # the simulated file carries '# reference_total_nT: 50000'
+    info = wb.panels.reference_info
+    assert "50,000 nT from the file" in info.content.replace("50000", "50,000")
+    wb.panels.reference.value = 48_000.0
+    assert "typed here" in info.content and "48" in info.content
+    wb.panels.fit_reference.value = True
+    wb.ctrl.step_calibrate("ml")
+    assert "fitted" in info.content and "the last fit found" in info.content

@@ -150,6 +150,7 @@ class Controller:
             setattr(self.state, key, value)
         self.state.touch()
         self.autosave()
+        self._emit("settings")
 
     def _check_settings(self, settings: dict) -> None:
         """Refuse a setting the page could not have sent (a value comes from a browser: check it)."""

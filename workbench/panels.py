@@ -296,6 +296,23 @@ def quality_markdown(report) -> str:
     return head + "\n\n" + "\n".join(lines)
 
 
+def reference_markdown(ctrl) -> str:
+    """The reference field the fits use, and where it comes from (the box above shows 0 for "not typed")."""
+    ds, state, cal = ctrl.dataset, ctrl.state, ctrl.calibration
+    fitted = (f"; the last fit found {fmt(cal.reference_total_nT, 'nT', 6)}"
+              if cal is not None and cal.reference_total_nT else "")
+    if state.fit_reference:
+        return f"_Reference used:_ fitted (you asked to fit the field magnitude){fitted}"
+    if state.reference_nT:
+        return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, typed here"
+    if ds.ref_total_nT is not None:
+        return (f"_Reference used:_ per sample, the file's `ref_total` column (median "
+                f"{fmt(float(np.median(ds.ref_total_nT)), 'nT', 6)})")
+    if ds.reference_total_nT:
+        return f"_Reference used:_ {fmt(ds.reference_total_nT, 'nT', 6)} from the file (`# reference_total_nT`)"
+    return f"_Reference used:_ none given, so the field magnitude is fitted{fitted}"
+
+
 def noise_markdown(ctrl) -> str:
     """The noise behind the floors, the method that gave it, and the floor it sets."""
     floor = ctrl.floor_nT()
@@ -464,6 +481,7 @@ class Panels:
             gui.add_checkbox("Fit the field magnitude", False,
                              hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)"),
             lambda: bool(state().fit_reference), lambda v: configure(fit_reference=bool(v)))
+        self.reference_info = gui.add_markdown("")
         self.robust = self._bind(
             gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
             lambda: bool(state().robust), lambda v: configure(robust=bool(v)))
@@ -763,6 +781,8 @@ class Panels:
             self.refresh_sessions()
         if everything or kinds & {"model", "data", "effects"}:
             self.show_state()
+        if everything or kinds & {"model", "data", "result", "settings"}:
+            self.reference_info.content = reference_markdown(ctrl)
         if everything or "diagnosis" in kinds or "data" in kinds:
             self.candidates.content = candidates_markdown(ctrl.diagnosis)
             from .controller import candidate_label

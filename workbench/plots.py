@@ -180,7 +180,7 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None):
             elif tr["kind"] == "line":
                 ax.plot(tr["x"], tr["y"], "-", lw=2, color=_colour(tr))
             elif tr["kind"] == "bar" and tr["sensor"] is not None:  # grouped by sensor
-                k = bars.index(tr)
+                k = next(i for i, b in enumerate(bars) if b is tr)
                 ax.bar(np.asarray(tr["x"], float) + (k - 0.5 * (len(bars) - 1)) * width,
                        np.nan_to_num(np.asarray(tr["y"], float)), width, color=_colour(tr), label=tr["name"])
             elif tr["kind"] == "bar":

@@ -77,12 +77,27 @@ def colour_limit_nT(residual_nT, floor_nT=None) -> float:
     return max(lim, 1e-6)
 
 
+def readable_nT(value: float) -> str:
+    """A number of nT as a person reads it on a scale: ``2,310`` not ``2.31e+03``, ``4.5``, ``0.012``; microtesla
+    beyond 10^6 nT (``1.2e+03 uT`` would still be unreadable, so plain ``1,200 uT``)."""
+    v = abs(float(value))
+    if not np.isfinite(v):
+        return "-"
+    if v >= 1e6:
+        return f"{v / 1e3:,.0f} uT"
+    if v >= 100:
+        return f"{v:,.0f}"
+    if v >= 1:
+        return f"{v:.3g}"
+    return f"{v:.2g}"
+
+
 def legend_html(limit_nT: float, title: str = "total-field residual") -> str:
     """An HTML colour bar with ticks in nT, plus the rejected colour."""
     stops = ", ".join(f"rgb({int(c[0])},{int(c[1])},{int(c[2])}) {int(100 * (s + 1) / 2)}%"
                       for s, c in zip(_CMAP_STOPS, _CMAP_RGB))
     rej = "rgb({},{},{})".format(*REJECTED_RGB)
-    fmt = (lambda v: f"{v:.3g}")
+    fmt = readable_nT
     return (
         f'<div style="font-size:0.8em;padding:2px 4px">{title} (nT)'
         f'<div style="height:12px;border-radius:3px;background:linear-gradient(to right, {stops})"></div>'
@@ -166,14 +181,25 @@ def scene_bounds(n_groups: int):
     return -half_x, cross_x(n_groups) + 0.5 * CROSS_SPAN + 0.3, -half_z, half_z
 
 
+#: Half the depth (scene y) of what is drawn: the clouds' radius with the default exaggeration, scene units.
+SCENE_HALF_DEPTH = 1.5
+
+
 def camera_pose(n_groups: int, fov_rad: float = np.radians(75.0), aspect: float = 1.6, panel_fraction=0.25):
-    """Camera position and look-at point (looking along +y, z up) that frame the scene left of the panel."""
+    """Camera position and look-at point (looking along +y, z up) that frame the scene left of the panel.
+
+    The scene's bounds (:func:`scene_bounds`, depth :data:`SCENE_HALF_DEPTH`) must fit in the canvas left of the
+    panel (``panel_fraction`` of its width) at their nearest depth, where they look largest."""
     x0, x1, z0, z1 = scene_bounds(n_groups)
     t = np.tan(0.5 * fov_rad)
     usable = max(1.0 - panel_fraction, 0.4)
-    dist = 1.08 * max(0.5 * (z1 - z0) / t, 0.5 * (x1 - x0) / (t * aspect * usable))
-    half_w = dist * t * aspect
-    cx = 0.5 * (x0 + x1) + panel_fraction * half_w  # shift so the content sits left of the panel
+    # the nearest depth must hold the whole height, and the whole width in the free part of the canvas
+    d_near = 1.04 * max(0.5 * (z1 - z0) / t, 0.5 * (x1 - x0) / (t * aspect * usable))
+    half_w = d_near * t * aspect  # half the canvas width at the nearest depth
+    # centre so that, at the nearest depth, the left edge stays on the canvas and the right edge left of the panel
+    # (farther points are drawn smaller, so they stay inside too)
+    cx = 0.5 * ((x1 - (1.0 - 2.0 * panel_fraction) * half_w) + (x0 + half_w))
+    dist = d_near + SCENE_HALF_DEPTH
     return np.array([cx, -dist, 0.0]), np.array([cx, 0.0, 0.0])
 
 
