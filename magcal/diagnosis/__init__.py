@@ -41,6 +41,9 @@ from __future__ import annotations
 
 from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
 from .evidence import SIGNATURES
+from .maps import (
+    DirectionPattern, candidate_change, candidate_patterns, direction_pattern, pattern_correlation, residual_patterns,
+)
 from .scores import Candidate, _candidate_effects, _grams, effective_residual_count
 from .statistics import (
     SH_DEGREE, SH_MAX_SAMPLES, autocorrelation, cusum_test, durbin_watson, ljung_box, real_sph_harm, sh_analysis,
@@ -58,6 +61,9 @@ __all__ = [
     # statistics of a residual series
     "durbin_watson", "autocorrelation", "ljung_box", "cusum_test", "spectrum", "real_sph_harm", "sh_analysis",
     "SH_DEGREE", "SH_MAX_SAMPLES",
+    # residual patterns on the direction sphere
+    "DirectionPattern", "direction_pattern", "residual_patterns", "candidate_change", "candidate_patterns",
+    "pattern_correlation",
     # noise (defined in magcal.noise, re-exported for compatibility)
     "NoiseEstimate", "estimate_noise", "is_smooth_sequence",
 ]
