@@ -113,6 +113,10 @@ class Workbench:
 
         #: The time scrubber's window (View tab): the samples drawn and the evidence plots' shaded band.
         self.window = TimeWindow(self._window_moved)
+        from .maps import SphereMaps
+
+        #: The residual-map surfaces (View tab's Sphere surface).
+        self.maps = SphereMaps(self)
         self._last_evidence_t = 0.0
         self._scene_lock = threading.RLock()
         self.ctrl = self._make_controller(dataset, content, name, resume, lesson)
@@ -201,6 +205,8 @@ class Workbench:
         self._attach(self.ctrl)
         self.scene_view.clear()
         self.redraw()
+        self.maps.fit_changed(self.ctrl)
+        self.refresh_maps()
         self.reset_cameras()
 
     def redraw(self) -> None:
@@ -221,6 +227,10 @@ class Workbench:
             return
         if kind in ("result", "view", "data"):
             self.update_scene()
+        if kind in ("result", "data"):
+            self.maps.fit_changed(ctrl)
+        if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
+            self.refresh_maps()
         elif kind == "selection":
             self.scene_view.recolor(self.scene_model())
             if self.ctrl.inspected is not None:
@@ -468,6 +478,10 @@ class Workbench:
             return tuple(METHODS)
         if handle is p.box_mode:
             return ("reject", "restore")
+        if handle is p.surface_choice:
+            from .maps import SURFACE_CHOICES
+
+            return SURFACE_CHOICES
         if handle is p.upload_units:
             from .panels import UPLOAD_UNITS
 
@@ -528,11 +542,26 @@ class Workbench:
             raise MagcalError(f"no sensor choice {clean_text(repr(choice), 40)}; refused")
         self.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
         self.update_scene()
+        self.maps.draw()
         self.reset_cameras()
 
     def view_changed(self, event):
         self.update_scene()
         self.panels.legend.content = self.legend_html()
+
+    # residual maps
+    def refresh_maps(self) -> None:
+        """Recompute and redraw the sphere surfaces for the current choice; an engine refusal becomes the note."""
+        try:
+            self.maps.refresh()
+        except MagcalError as exc:
+            self.maps.patterns, self.maps.note = [], str(exc)
+            self.maps.clear()
+        self.panels.maps_info.content = safe_text(self.maps.describe(), 600)
+
+    def surface_changed(self, event):
+        self.maps.choice = self.check_value(self.panels.surface_choice)
+        self.refresh_maps()
 
     # the time scrubber
     def window_changed(self, event):

@@ -518,7 +518,7 @@ class Panels:
         self.candidates = gui.add_markdown("")
         self.candidate_choice = gui.add_dropdown("Candidate", ("-",), initial_value="-")
         self.candidate_evidence = gui.add_markdown("")
-        self.candidate_choice.on_update(lambda e: self.app.handle(lambda _: self._show_candidate_evidence(), e))
+        self.candidate_choice.on_update(lambda e: self.app.handle(self._candidate_chosen, e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
         self.rms_plot = gui.add_uplot(
             data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan]),
@@ -588,6 +588,14 @@ class Panels:
         for h in (self.distortion_gain, self.residual_gain, self.axes_gain, self.show_raw, self.show_ellipsoid,
                   self.show_corrected):
             h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
+        from .maps import SURFACE_CHOICES
+
+        self.surface_choice = gui.add_dropdown(
+            "Sphere surface", SURFACE_CHOICES, initial_value=SURFACE_CHOICES[0],
+            hint="A smooth surface inside each corrected cloud, coloured by a direction pattern (nT): the residual's, "
+                 "the chosen candidate's (what adding it would explain), or what the last fit took away")
+        self.surface_choice.on_update(lambda e: self.app.handle(self.app.surface_changed, e))
+        self.maps_info = gui.add_markdown("")
         with gui.add_folder("Time window", expand_by_default=True):
             self._build_time(gui)
 
@@ -807,6 +815,11 @@ class Panels:
         """Write the session state into every bound widget (their callbacks see nothing to change)."""
         for handle, shown in self._bindings:
             handle.value = shown()
+
+    def _candidate_chosen(self, event) -> None:
+        self._show_candidate_evidence()
+        if self.app.maps.choice == "candidate's pattern":
+            self.app.refresh_maps()
 
     def _show_candidate_evidence(self) -> None:
         self.candidate_evidence.content = candidate_evidence_markdown(self.app.ctrl.diagnosis,
