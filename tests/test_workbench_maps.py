@@ -79,3 +79,15 @@ def test_a_candidates_pattern_appears_on_the_sphere_in_the_page(browser, bent):
     assert wb.worker.wait(120)
     wb.panels.surface_choice.value = "change at the last step"
     assert len(wb.maps.patterns) == 4 and wb.maps.patterns[2].amplitude_nT > 0
+
+
+def test_the_evidence_plot_shows_the_rms_before_the_last_fit(bent):
+    wb = bent
+    wb.ctrl.step_calibrate("ml")
+    before = wb.ctrl.rms_per_sensor_nT()
+    wb.ctrl.step_diagnose()
+    wb.ctrl.step_add(wb.panels.candidate_choice.value)
+    traces = [t for t in wb.evidence_plot.figure.data if t.name == "before the last fit"]
+    assert len(traces) == 1
+    np.testing.assert_allclose(traces[0].y, before, rtol=1e-6)
+    assert wb.ctrl.rms_per_sensor_nT()[2] < 0.9 * before[2]

@@ -227,16 +227,16 @@ class Workbench:
             return
         if kind in ("result", "view", "data"):
             self.update_scene()
-        if kind in ("result", "data"):
-            self.maps.fit_changed(ctrl)
-        if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
-            self.refresh_maps()
         elif kind == "selection":
             self.scene_view.recolor(self.scene_model())
             if self.ctrl.inspected is not None:
                 self.scene_view.mark_inspected(self.ctrl.inspected)
         elif kind == "inspect":
             self.scene_view.mark_inspected(ctrl.inspected)
+        if kind in ("result", "data"):
+            self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
+        if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
+            self.refresh_maps()
         self.panels.refresh((kind,))
 
     def _busy_changed(self, busy: bool, name) -> None:
@@ -299,12 +299,16 @@ class Workbench:
         live = self.live
         fitted = (live.fit is not None) if live is not None and live.active else self.ctrl.calibration is not None
         title = "total-field residual" if fitted else "raw |y| - F"
-        return scn.legend_html(self.scene_view.last_limit_nT, title)
+        html = scn.legend_html(self.scene_view.last_limit_nT, title)
+        if self.maps.patterns and not (live is not None and live.active):
+            html += scn.legend_html(self.maps.limit_nT, f"sphere surface: {self.maps.choice}; grey: not visited",
+                                    swatches=False)
+        return html
 
     def draw_evidence(self) -> None:
         from .plots import evidence_figure
 
-        fig = evidence_figure(self.ctrl, window_s=self._evidence_band())
+        fig = evidence_figure(self.ctrl, window_s=self._evidence_band(), before_rms_nT=self.maps.before_rms_nT(self.ctrl))
         holder = self.panels.evidence_holder
         if fig is None:
             if self.evidence_plot is not None:
@@ -343,7 +347,8 @@ class Workbench:
             overlay.visible = False
             self.panels.btn_full_evidence.label = "Full-size evidence"
             return
-        png = evidence_image(self.ctrl, "png", self._evidence_band(), self._evidence_title())
+        png = evidence_image(self.ctrl, "png", self._evidence_band(), self._evidence_title(),
+                             self.maps.before_rms_nT(self.ctrl))
         if png is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         data = base64.b64encode(png).decode("ascii")
@@ -360,7 +365,8 @@ class Workbench:
     def _download_evidence(self, event, fmt: str):
         from .plots import evidence_image
 
-        data = evidence_image(self.ctrl, fmt, self._evidence_band(), self._evidence_title())
+        data = evidence_image(self.ctrl, fmt, self._evidence_band(), self._evidence_title(),
+                              self.maps.before_rms_nT(self.ctrl))
         if data is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         self._download(event, f"evidence.{fmt}", data)
@@ -558,6 +564,7 @@ class Workbench:
             self.maps.patterns, self.maps.note = [], str(exc)
             self.maps.clear()
         self.panels.maps_info.content = safe_text(self.maps.describe(), 600)
+        self.panels.legend.content = self.legend_html()
 
     def surface_changed(self, event):
         self.maps.choice = self.check_value(self.panels.surface_choice)

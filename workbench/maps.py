@@ -9,8 +9,9 @@ Beside (inside) each corrected cloud the View tab's *Sphere surface* draws one o
 * ``change at the last step``: the residual before the last fit minus the residual now, on the same samples:
   what the last Add-and-refit (or any refit) took away (model against model).
 
-Directions the samples never visited are grey: an expansion there is an extrapolation. Each surface has its own
-colour scale, printed beside it. The patterns are the engine's; this module draws them.
+Directions the samples never visited are grey: an expansion there is an extrapolation. The surfaces share one colour
+scale (the largest pattern), so the sensor that fails stands out; the legend prints it. The patterns are the
+engine's; this module draws them.
 """
 
 from __future__ import annotations
@@ -68,6 +69,13 @@ class SphereMaps:
             return
         self._previous = self._current
         self._current = (key, np.array(ctrl.residual_nT, float))
+
+    def before_rms_nT(self, ctrl):
+        """Total-field RMS per sensor (kept samples) before the last fit of these data, or None."""
+        if self._previous is None or ctrl.residual_nT is None or self._previous[1].shape != ctrl.residual_nT.shape:
+            return None
+        r = self._previous[1][:, ctrl.kept]
+        return np.sqrt(np.nanmean(r * r, axis=1))
 
     # --- computing --------------------------------------------------------------------------------------------
     def compute(self, choice: str):
@@ -128,21 +136,21 @@ class SphereMaps:
         shown = list(shown)
         verts, faces = self._vf
         scene = self.app.server.scene
+        limit = self.limit_nT
         with self.app.server.atomic():
             for k, s in enumerate(shown):
                 p = self.patterns[s]
                 centre = scn.group_offset(k, len(shown)) + [scn.PAIR_OFFSET, 0, 0]
                 mesh = trimesh.Trimesh(SURFACE_RADIUS * verts, faces, process=False)
-                rgba = np.column_stack([pattern_colours(p), np.full(len(verts), 255, np.uint8)])
+                rgba = np.column_stack([pattern_colours(p, limit), np.full(len(verts), 255, np.uint8)])
                 mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba)
                 name = f"/maps/s{s + 1}/surface"
                 self._nodes[name] = scene.add_mesh_trimesh(name, mesh, position=tuple(centre))
-                label = f"/maps/s{s + 1}/label"
-                text = f"S{s + 1} {self.choice}: +-{scn.readable_nT(p.amplitude_nT)} nT"
-                if p.max_degree < 0:
-                    text = f"S{s + 1}: directions too few for a pattern"
-                self._nodes[label] = scene.add_label(label, text, position=tuple(centre + [0, 0, -1.3]),
-                                                     anchor="top-center")
+
+    @property
+    def limit_nT(self) -> float:
+        """The surfaces' common colour scale: the largest supported value of any pattern, nT."""
+        return max([p.amplitude_nT for p in self.patterns] + [1e-9])
 
     def describe(self) -> str:
         """The View tab's line under the choice."""

@@ -31,13 +31,14 @@ def _evidence(diagnosis) -> dict:
     return ev if isinstance(ev, dict) else {}
 
 
-def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS) -> list[dict] | None:
+def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rms_nT=None) -> list[dict] | None:
     """The evidence plots' data, one dict per panel, or None before any fit.
 
     Each panel: ``title``, ``x_label``, ``y_label`` (nT), ``traces`` (dicts with ``kind`` ``markers`` / ``line``
     / ``bar`` / ``diamonds``, ``x``, ``y``, ``sensor`` (0-based or None), ``name``), ``hline`` (the noise floor,
     nT, or None), ``band`` (the time window ``(t0, t1)`` s, or None), ``note`` (text shown when the panel is
-    empty). Before a diagnosis the time and temperature panels show the current residuals; after it, the
+    empty). ``before_rms_nT``: the RMS per sensor before the last fit (model against model), drawn beside the
+    current bars. Before a diagnosis the time and temperature panels show the current residuals; after it, the
     diagnosis's own evidence (its residuals of the diagnosed fit, their running mean in time, power per degree per
     sensor, and the inter-sensor figures). Without a temperature channel its panel is left out (an empty panel
     reads as a fault).
@@ -88,6 +89,9 @@ def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS) -> list[d
 
     labels = [f"s{s + 1}" for s in range(ns)]
     traces = [{"kind": "bar", "x": labels, "y": ctrl.rms_per_sensor_nT(), "sensor": None, "name": "total-field RMS"}]
+    if before_rms_nT is not None:
+        traces.append({"kind": "before", "x": labels, "y": np.asarray(before_rms_nT, float), "sensor": None,
+                       "name": "before the last fit"})
     sensors = ev.get("sensors") or {}
     if sensors and sensors.get("difference_rms_nT") is not None:
         traces.append({"kind": "diamonds", "x": labels, "y": np.asarray(sensors["difference_rms_nT"]), "sensor": None,
@@ -108,12 +112,12 @@ def _colour(trace, n_bars=0):
     return list(SENSOR_COLOURS[:n_bars]) if trace["kind"] == "bar" else "black"
 
 
-def evidence_figure(ctrl, window_s=None):
+def evidence_figure(ctrl, window_s=None, before_rms_nT=None):
     """The panels of :func:`evidence_panels` as one plotly figure (a column of panels), or None before any fit.
 
     ``window_s``: ``(t0, t1)`` of the time scrubber's window (s), shaded on the time panel.
     """
-    panels = evidence_panels(ctrl, window_s)
+    panels = evidence_panels(ctrl, window_s, before_rms_nT=before_rms_nT)
     if panels is None:
         return None
     import plotly.graph_objects as go
@@ -139,6 +143,10 @@ def evidence_figure(ctrl, window_s=None):
             elif tr["kind"] == "bar":
                 fig.add_trace(go.Bar(x=tr["x"], y=tr["y"], name=tr["name"], showlegend=False,
                                      marker={"color": _colour(tr, len(tr["x"]))}, **group), row=row, col=1)
+            elif tr["kind"] == "before":
+                fig.add_trace(go.Scatter(x=tr["x"], y=tr["y"], mode="markers", name=tr["name"],
+                                         marker={"symbol": "line-ew-open", "size": 40, "color": "#555555",
+                                                 "line": {"width": 3}}), row=row, col=1)
             else:
                 fig.add_trace(go.Scatter(x=tr["x"], y=tr["y"], mode="markers", name=tr["name"],
                                          marker={"symbol": "diamond", "size": 10, "color": "black"}), row=row, col=1)
@@ -160,9 +168,9 @@ def evidence_figure(ctrl, window_s=None):
     return fig
 
 
-def evidence_matplotlib(ctrl, window_s=None, title: str | None = None):
+def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rms_nT=None):
     """The panels of :func:`evidence_panels` as a matplotlib figure (2 x 2 grid, full size), or None."""
-    panels = evidence_panels(ctrl, window_s, max_points=20_000)
+    panels = evidence_panels(ctrl, window_s, max_points=20_000, before_rms_nT=before_rms_nT)
     if panels is None:
         return None
     from matplotlib.figure import Figure
@@ -185,6 +193,8 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None):
                        np.nan_to_num(np.asarray(tr["y"], float)), width, color=_colour(tr), label=tr["name"])
             elif tr["kind"] == "bar":
                 ax.bar(tr["x"], tr["y"], color=_colour(tr, len(tr["x"])))
+            elif tr["kind"] == "before":
+                ax.plot(tr["x"], tr["y"], "_", ms=40, mew=3, color="#555555", label=tr["name"])
             else:
                 ax.plot(tr["x"], tr["y"], "D", color="black", label=tr["name"])
         if p["band"] is not None:
@@ -206,11 +216,12 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None):
     return fig
 
 
-def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = None) -> bytes | None:
+def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = None,
+                   before_rms_nT=None) -> bytes | None:
     """The full-size evidence as an image file's bytes (``svg`` or ``png``), or None before any fit."""
     if fmt not in ("svg", "png"):
         raise ValueError(f"format {fmt!r}: svg or png")
-    fig = evidence_matplotlib(ctrl, window_s, title)
+    fig = evidence_matplotlib(ctrl, window_s, title, before_rms_nT)
     if fig is None:
         return None
     buf = io.BytesIO()

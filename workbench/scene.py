@@ -92,8 +92,8 @@ def readable_nT(value: float) -> str:
     return f"{v:.2g}"
 
 
-def legend_html(limit_nT: float, title: str = "total-field residual") -> str:
-    """An HTML colour bar with ticks in nT, plus the rejected colour."""
+def legend_html(limit_nT: float, title: str = "total-field residual", swatches: bool = True) -> str:
+    """An HTML colour bar with ticks in nT, plus (``swatches``) the rejected and not-fitted colours."""
     stops = ", ".join(f"rgb({int(c[0])},{int(c[1])},{int(c[2])}) {int(100 * (s + 1) / 2)}%"
                       for s, c in zip(_CMAP_STOPS, _CMAP_RGB))
     rej = "rgb({},{},{})".format(*REJECTED_RGB)
@@ -103,9 +103,10 @@ def legend_html(limit_nT: float, title: str = "total-field residual") -> str:
         f'<div style="height:12px;border-radius:3px;background:linear-gradient(to right, {stops})"></div>'
         f'<div style="display:flex;justify-content:space-between"><span>-{fmt(limit_nT)}</span><span>0</span>'
         f'<span>+{fmt(limit_nT)}</span></div>'
-        f'<div><span style="display:inline-block;width:10px;height:10px;background:{rej}"></span> rejected '
-        f'&nbsp;<span style="display:inline-block;width:10px;height:10px;background:rgb(180,180,180)"></span> '
-        "not fitted</div></div>"
+        + (f'<div><span style="display:inline-block;width:10px;height:10px;background:{rej}"></span> rejected '
+           f'&nbsp;<span style="display:inline-block;width:10px;height:10px;background:rgb(180,180,180)"></span> '
+           "not fitted</div>" if swatches else "")
+        + "</div>"
     )
 
 
