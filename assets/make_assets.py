@@ -90,7 +90,14 @@ LESSONS = {
 
 1. Calibrate, diagnose, add the top candidate and refit.
 2. Diagnose again: is there still structure? Look at the RMS history against the floor line.
-3. Keep going until the verdict reads `adequate`, then check.""",
+3. Watch it happen: in the View tab's *Time window*, tick *Show a time window*, set the width to 10 % and press
+   *Play*. The sphere shows only the samples of the moving window (a black dot and line: each sensor's current
+   direction), and the evidence plot's time panel shades the same window. Look at sensor 4's corrected cloud:
+   before about 60 % of the recording (90 s) one side of its sphere is blue and the other red; after it the colours
+   flip and stay flipped, while the other sensors show no such pattern. A bias that changes at one moment and stays is a step (its
+   residual is the step's direction pattern, with one sign before and the other after), not a drift or a
+   temperature effect.
+4. Add what the diagnosis names for it and keep going until the verdict reads `adequate`, then check.""",
         "Every sensor's scale factors change with temperature (30 ppm/K), and sensor 4's bias jumps by about "
         "10 nT partway through the recording (perming after a field shock). Each is found only once the "
         "other is in the model or out of the way.",

@@ -213,3 +213,38 @@ def test_the_reference_shown_is_the_one_used_and_says_where_from(bench):
     wb.panels.fit_reference.value = True
     wb.ctrl.step_calibrate("ml")
     assert "fitted" in info.content and "the last fit found" in info.content
+
+
+def test_the_two_effect_lessons_scrubber_step_shows_the_bias_step(bench):
+    """The guide's step 3: with the temperature term in, sensor 4's residual on the sphere follows the step's
+    direction pattern ``db . u`` with one sign in a window before ~90 s and the other sign after it (its colours
+    flip), while the other sensors' residuals follow no such pattern."""
+    import magcal
+    from magcal import io as mio
+    from magcal.diagnosis.maps import corrected_directions
+    from workbench.lessons import get_lesson
+
+    lesson = get_lesson("two-culprits")
+    assert "Time window" in lesson.guide() and "Play" in lesson.guide()
+    ds = mio.read_csv(lesson.data_path)
+    wb = bench(ds, store=False)
+    wb.ctrl.step_calibrate("ml")
+    wb.ctrl.step_diagnose()
+    wb.ctrl.step_add(None)  # step 1: the top candidate
+    assert "temperature_scale" in wb.ctrl.state.effects
+    # the step's direction, from the full model (the lesson's answer), only to score what the window shows
+    full = magcal.calibrate(ds, effects=lesson.answer()["effects"])
+    db = dict(full.calibration.effect_values)["bias_step:4"]
+    u = corrected_directions(ds, wb.ctrl.calibration)
+    p = wb.panels
+    p.window_width.value = 10.0
+    p.window_on.value = True
+
+    def follows(start_pct):
+        p.window_start.value = start_pct
+        shown = np.unique(wb.scene_view.displayed.samples)  # what the sphere draws
+        return [np.corrcoef(wb.ctrl.residual_nT[s, shown], u[s, shown] @ db)[0, 1] for s in range(4)]
+
+    before, after = follows(30.0), follows(70.0)  # windows well before / after the step at ~90 s (60 %)
+    assert before[3] < -0.5 and after[3] > 0.5
+    assert max(abs(c) for c in before[:3] + after[:3]) < 0.5
