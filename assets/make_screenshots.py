@@ -15,6 +15,14 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``live-growing.png`` - part way: the growing clouds, each sensor's coverage sphere (visited green, missing grey,
   the largest gap's centre orange) and the advice on where to turn;
 * ``live-enough.png`` - at the end: the directions covered, the fit at the noise floor, "enough".
+
+``python assets/make_screenshots.py see`` saves where a model fails (issue 15):
+
+* ``see-scrubber.png`` - the two-effect lesson with its temperature term added, a time window after the bias step;
+* ``see-residual-map.png`` - the bent-response lesson: the residual pattern surfaces (sensor 3 stands out);
+* ``see-candidate.png`` - the same with the top candidate's pattern: what adding it would explain;
+* ``see-evidence.png`` - after Add: the evidence plots at full size over the canvas, with each sensor's RMS before
+  the last fit.
 """
 
 from __future__ import annotations
@@ -79,9 +87,73 @@ def live() -> int:
     return 0
 
 
+def _page(p, wb):
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page.goto(f"http://127.0.0.1:{wb.port}/")
+    _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+    time.sleep(2)
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        close.click()
+    return browser, page
+
+
+def see() -> int:
+    """The screenshots of where a model fails (see the module docstring)."""
+    from playwright.sync_api import sync_playwright
+
+    from magcal import io as mio
+    from workbench.app import Workbench
+    from workbench.lessons import get_lesson
+
+    warnings.simplefilter("ignore")
+    with sync_playwright() as p:
+        wb = Workbench(mio.read_csv(get_lesson("two-culprits").data_path), host="127.0.0.1", port=0, store=None)
+        try:
+            wb.ctrl.step_calibrate("ml")
+            wb.ctrl.step_diagnose()
+            wb.ctrl.step_add(None)
+            browser, page = _page(p, wb)
+            page.get_by_role("tab", name="View").click()
+            wb.panels.window_width.value = 10.0
+            wb.panels.window_start.value = 70.0
+            wb.panels.window_on.value = True
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "see-scrubber.png"))
+            browser.close()
+        finally:
+            wb.stop()
+        wb = Workbench(mio.read_csv(get_lesson("bent-response").data_path), host="127.0.0.1", port=0, store=None)
+        try:
+            wb.ctrl.step_calibrate("ml")
+            wb.ctrl.step_diagnose()
+            browser, page = _page(p, wb)
+            page.get_by_role("tab", name="View").click()
+            wb.panels.surface_choice.value = "residual pattern"
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "see-residual-map.png"))
+            wb.panels.surface_choice.value = "candidate's pattern"
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "see-candidate.png"))
+            page.get_by_role("tab", name="Model").click()
+            page.get_by_role("button", name="Add the candidate and refit").click()
+            _wait_text(page, "document.body.innerText.includes('Model: nonlinearity')")
+            wb.worker.wait(120)
+            page.get_by_role("button", name="Full-size evidence").click()
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "see-evidence.png"))
+            browser.close()
+        finally:
+            wb.stop()
+    print(f"wrote {', '.join(sorted(p.name for p in OUT.glob('see-*.png')))} in {OUT}")
+    return 0
+
+
 def main() -> int:
     if sys.argv[1:] == ["live"]:
         return live()
+    if sys.argv[1:] == ["see"]:
+        return see()
     from playwright.sync_api import sync_playwright
 
     from magcal import io as mio

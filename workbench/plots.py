@@ -207,8 +207,11 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rm
         ax.set_xlabel(p["x_label"])
         ax.set_ylabel(p["y_label"])
         ax.grid(alpha=0.3)
+        if p["hline"]:  # room above the bars for the legend
+            top = max([float(np.nanmax(np.asarray(t["y"], float))) for t in p["traces"]] + [p["hline"]])
+            ax.set_ylim(0, 1.35 * top)
         if p["title"].startswith("residual vs t") or p["hline"]:
-            ax.legend(loc="best", fontsize=8, markerscale=3)
+            ax.legend(loc="upper left" if p["hline"] else "best", fontsize=8, markerscale=3 if not p["hline"] else 1)
     for ax in axes[len(panels):]:
         ax.set_visible(False)
     if title:
