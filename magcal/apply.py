@@ -206,6 +206,11 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
 
     if is_log(survey_path):
         return apply_log(calibration, survey_path, output_path, calibration_name, record_terms, t0)
+    from .io import is_parquet
+
+    if is_parquet(survey_path) or is_parquet(output_path):
+        return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
+                             calibration_name, record_terms, t0)
     if isinstance(columns, str):
         from .io import parse_column_mapping
 
@@ -323,4 +328,143 @@ def apply_log(calibration, log_path, output_path, calibration_name=None, record_
     meta["magcal_columns"] = "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
     write_csv(output_path, columns, metadata=meta)
     return ApplySummary(dataset.n_samples, names, time.perf_counter() - t0, output_path, calibration.frame)
+
+
+def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000):
+    """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
+    metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.io.CsvSource`; a Parquet file by its
+    record batches (``columns`` and ``units`` do not apply: its columns are magcal's and its readings in the
+    metadata's units)."""
+    from .io import _pyarrow, is_parquet, parquet_metadata
+
+    path = os.fspath(survey_path)
+    if not is_parquet(path):
+        src = CsvSource(path, columns=columns, units=units)
+
+        def csv_chunks():
+            with src:
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                    yield chunk.dataset
+
+        return dict(src.metadata), csv_chunks()
+    _pyarrow(path)
+    import pyarrow.parquet as pq
+
+    from .dataset import _from_dataframe
+
+    try:
+        pf = pq.ParquetFile(path)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file; check the path") from None
+    except Exception as exc:
+        raise DatasetError(f"{path}: not a readable Parquet file ({exc})") from None
+    meta = parquet_metadata(pf.schema_arrow)
+
+    def parquet_chunks():
+        row = 0
+        for batch in pf.iter_batches(batch_size=int(chunk_rows)):
+            frame = batch.to_pandas()
+            frame.index = frame.index + row + 1  # messages name the file's rows, 1-based
+            frame.attrs = meta
+            try:
+                ds = _from_dataframe(frame)
+            except DatasetError as exc:
+                from .io import parquet_message
+
+                raise DatasetError(parquet_message(str(exc), path)) from None
+            row += batch.num_rows
+            yield ds.replace(source=path)
+
+    return meta, parquet_chunks()
+
+
+def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
+                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None):
+    """:func:`apply_file` for Parquet input or output: the survey's columns as magcal writes them (readings in
+    nT) plus the corrected ones, chunk by chunk (memory stays flat), to Parquet (``.parquet``: one row group per
+    chunk, the metadata in the schema) or CSV.
+
+    Returns
+    -------
+    ApplySummary
+    """
+    import warnings
+
+    from .calibration import VECTOR_STAGES, RecordHasher
+    from .errors import RecordTermWarning
+    from .io import dataset_columns, is_parquet, parquet_table, write_rows
+
+    t0 = time.perf_counter() if t0 is None else t0
+    if not hasattr(calibration, "correct"):
+        calibration_name = calibration_name or os.fspath(calibration)
+        calibration = load_calibration(calibration)
+    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
+    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
+        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    choice, note = "apply", None
+    if calibration.record_terms(VECTOR_STAGES):
+        fingerprint = None
+        if record_terms is None and calibration.record:
+            hasher = RecordHasher()
+            for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
+                hasher.update(ds)
+            fingerprint = hasher.fingerprint()
+        dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
+                                                    fingerprint=fingerprint if fingerprint is not None else {})
+        choice = "drop" if dropped else "apply"
+    if note:
+        warnings.warn(note, RecordTermWarning, stacklevel=3)
+    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)
+    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+    names = output_columns(calibration.n_sensors, tensor)
+    meta = {**meta, "units": "nT", "magcal_frame": calibration.frame,
+            "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")}
+    if calibration_name:
+        meta["magcal_calibration"] = calibration_name
+    rows = 0
+    to_parquet = is_parquet(output_path)
+    tmp = f"{output_path}.tmp-{os.getpid()}"
+    writer = None
+    import contextlib
+
+    try:
+        with (contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="")) as fh:
+            for ds in chunks:
+                if rows == 0:
+                    if ds.n_sensors != calibration.n_sensors:
+                        raise MagcalError(
+                            f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
+                            f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument")
+                    calibration.check(ds)
+                values = correct_block(calibration, ds, choice)
+                cols = dataset_columns(ds)
+                clash = sorted(set(names) & set(cols))
+                if clash:
+                    raise MagcalError(f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an "
+                                      "apply output?); rename them or correct the raw survey")
+                cols.update({name: values[:, k] for k, name in enumerate(names)})
+                if to_parquet:
+                    import pyarrow.parquet as pq
+
+                    table = parquet_table(cols, meta)
+                    if writer is None:
+                        writer = pq.ParquetWriter(tmp, table.schema)
+                    writer.write_table(table)
+                else:
+                    if rows == 0:
+                        fh.write(metadata_text(meta) + ",".join(cols) + "\n")
+                    write_rows(fh, cols)
+                rows += ds.n_samples
+            if writer is not None:
+                writer.close()
+                writer = None
+        if rows == 0:
+            raise DatasetError(f"{survey_path}: no data rows; nothing to correct")
+        os.replace(tmp, output_path)
+    finally:
+        if writer is not None:
+            writer.close()
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)
 

@@ -140,6 +140,17 @@ class Dataset:
         """A new dataset with only the listed sensors (0-based indices)."""
         return dataclasses.replace(self, readings_nT=self.readings_nT[list(indices)], metadata=dict(self.metadata))
 
+    def to_dataframe(self):
+        """The data as a pandas DataFrame with the data CSV's columns (readings in nT) and the metadata in
+        ``attrs``; :func:`as_dataset` reads it back."""
+        import pandas as pd
+
+        from .io import dataset_columns, dataset_metadata
+
+        frame = pd.DataFrame({k: np.asarray(v) for k, v in dataset_columns(self).items()})
+        frame.attrs = dataset_metadata(self)
+        return frame
+
     def replace(self, **changes) -> "Dataset":
         """A copy with some fields replaced (see :func:`dataclasses.replace`)."""
         return dataclasses.replace(self, **changes)

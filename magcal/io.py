@@ -905,7 +905,8 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     path : str, os.PathLike or file object
         The file, or an open binary or text file object (``io.BytesIO(uploaded_bytes)``, ``io.StringIO(text)``).
         A path ending in ``.bin`` (ArduPilot DataFlash) or ``.ulg`` (PX4 ULog) is read by
-        :func:`magcal.logs.read_log` (the options below but ``name`` and ``min_samples`` do not apply).
+        :func:`magcal.logs.read_log` (the options below but ``name`` and ``min_samples`` do not apply); one ending
+        in ``.parquet`` by :func:`read_parquet` (the CSV's columns and metadata, in Parquet).
     columns : dict or str, optional
         Column mapping canonical -> file name, e.g. ``{"s1x": "magX", "t": "time"}`` or the CLI form
         ``"x=magX,y=magY,z=magZ,t=time"``.
@@ -937,6 +938,8 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
 
     if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.logs reads it, in nT
         return read_log(path, name=name, min_samples=min_samples)
+    if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
+        return read_parquet(path, name=name)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
@@ -1081,3 +1084,102 @@ def write_csv(path, data, metadata=None, float_format=None):
         fh.write(metadata_text(meta))
         csv.writer(fh, lineterminator="\n").writerow(list(columns))
         write_rows(fh, columns, float_format)
+
+
+# -- Parquet ----------------------------------------------------------------------------------------------------------
+#: File endings read and written as Parquet (case-insensitive).
+PARQUET_EXTENSIONS = (".parquet", ".pq")
+#: The key of the schema's key-value metadata that holds the data CSV's ``# key: value`` lines (a JSON object).
+PARQUET_METADATA_KEY = b"magcal"
+
+
+def is_parquet(path) -> bool:
+    """True if ``path`` names a Parquet file (by its ending)."""
+    return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(PARQUET_EXTENSIONS)
+
+
+def _pyarrow(source):
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError:
+        raise DatasetError(f"{source}: Parquet files need pyarrow: pip install \"magcal[survey]\"") from None
+    return pyarrow
+
+
+def parquet_metadata(schema) -> dict:
+    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none)."""
+    import json
+
+    raw = (schema.metadata or {}).get(PARQUET_METADATA_KEY)
+    if not raw:
+        return {}
+    doc = json.loads(raw.decode("utf-8"))
+    return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+
+
+def read_parquet(path, name=None) -> Dataset:
+    """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
+
+    The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
+    kept as extra channels); the CSV's ``# key: value`` lines are the JSON object under the schema's key-value
+    metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies, and messages name the
+    file and the row (1-based) and column.
+    """
+    source = name or os.fspath(path)
+    _pyarrow(source)
+    import pyarrow.parquet as pq
+
+    from .dataset import _from_dataframe
+
+    try:
+        table = pq.read_table(os.fspath(path))
+    except FileNotFoundError:
+        raise DatasetError(f"{source}: no such file; check the path") from None
+    except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
+        raise DatasetError(f"{source}: not a readable Parquet file ({exc})") from None
+    frame = table.to_pandas()
+    frame.index = np.arange(1, len(frame) + 1)  # messages name the file's rows, 1-based
+    frame.attrs = parquet_metadata(table.schema)
+    try:
+        ds = _from_dataframe(frame)
+    except DatasetError as exc:
+        raise DatasetError(parquet_message(str(exc), source)) from None
+    return ds.replace(source=source)
+
+
+def parquet_message(message: str, source: str) -> str:
+    """A DataFrame reader's message about a Parquet file's rows, naming the file (no pandas advice)."""
+    return message.replace("DataFrame", source, 1).replace(", or drop them with frame.dropna()", "")
+
+
+def parquet_table(columns, metadata=None):
+    """A pyarrow Table of ``columns`` (name -> array) carrying ``metadata`` under the ``magcal`` key."""
+    import json
+
+    pa = _pyarrow("parquet")
+    table = pa.table({str(k): np.asarray(v) for k, v in columns.items()})
+    meta = {PARQUET_METADATA_KEY: json.dumps({str(k): str(v) for k, v in (metadata or {}).items()}).encode()}
+    return table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+
+
+def write_parquet(path, data, metadata=None) -> None:
+    """Write a dataset (or an ordered mapping of columns) as Parquet, atomically (a temporary file, then
+    ``os.replace``): the CSV's columns, readings in nT, and the metadata in the schema (``magcal`` key)."""
+    if isinstance(data, Dataset):
+        columns = dataset_columns(data)
+        meta = dataset_metadata(data)
+        meta.update(metadata or {})
+    else:
+        columns, meta = dict(data), dict(metadata or {})
+    table = parquet_table(columns, meta)
+    import pyarrow.parquet as pq
+
+    path = os.fspath(path)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        pq.write_table(table, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)

@@ -86,22 +86,25 @@ def _module_level_imports(folder):
 
 def test_the_engine_needs_only_the_core_dependencies():
     """``pip install -e .`` must be enough for magcal itself (the API, the command line): every package it imports
-    is core, except the ``instruments`` extra's (serial ports, MAVLink, flight logs), which are imported only inside
-    the functions that need them, each with a message naming the extra."""
+    is core, except the ``instruments`` extra's (serial ports, MAVLink, flight logs) and the ``survey`` extra's
+    (Parquet, DataFrames), which are imported only inside the functions that need them, each with a message naming
+    the extra."""
     project = _project()
     core = _requirement_names(project["dependencies"])
-    instruments = _requirement_names(project["optional-dependencies"]["instruments"])
+    optional = set()
+    for extra in ("instruments", "survey"):
+        optional |= _requirement_names(project["optional-dependencies"][extra])
     imported = _third_party_imports(["magcal"])
-    assert not imported - core - instruments, f"magcal imports undeclared packages: {sorted(imported - core - instruments)}"
-    assert not _module_level_imports("magcal") & instruments, "an instruments package is imported at module level"
+    assert not imported - core - optional, f"magcal imports undeclared packages: {sorted(imported - core - optional)}"
+    assert not _module_level_imports("magcal") & optional, "an optional package is imported at module level"
     texts = " ".join(p.read_text(encoding="utf-8") for p in (ROOT / "magcal").rglob("*.py"))
-    assert 'pip install \\"magcal[instruments]\\"' in texts
+    assert 'pip install \\"magcal[instruments]\\"' in texts and 'pip install \\"magcal[survey]\\"' in texts
 
 
 def test_import_magcal_needs_no_optional_package():
     """``import magcal`` (and its command line) loads none of the workbench's or the instruments' packages."""
     code = ("import sys, magcal, magcal.cli, magcal.live, magcal.logs, magcal.export; "
-            "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog') "
+            "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog', 'pyarrow') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out
@@ -128,9 +131,10 @@ def test_the_workbench_packages_are_not_core_dependencies():
 def test_every_package_the_tests_import_is_a_test_dependency():
     project = _project()
     test = project["optional-dependencies"]["test"]
-    assert "magcal[workbench,instruments]" in test  # the tests drive the workbench and the instruments too
+    assert "magcal[workbench,instruments,survey]" in test  # the tests drive the workbench, instruments, Parquet
     extras = project["optional-dependencies"]
-    declared = _requirement_names(project["dependencies"] + extras["workbench"] + extras["instruments"] + test)
+    declared = _requirement_names(project["dependencies"] + extras["workbench"] + extras["instruments"]
+                                  + extras["survey"] + test)
     local = {p.stem for p in (ROOT / "tests").glob("*.py")}
     missing = _third_party_imports(["tests"]) - declared - local
     assert not missing, f"imported by the tests but not declared: {sorted(missing)}"
