@@ -6,6 +6,8 @@ and ~3 GB out and takes several minutes; files are written to a temporary direct
 Each size: a four-sensor survey (time + 12 readings, 3 decimals) is generated in blocks, then ``magcal apply`` runs
 in a fresh process (the real console command path, progress bar off) and the table reports its wall time, rows/s
 and peak resident memory (``VmHWM`` of that process). Flat memory means the peak does not grow with the rows.
+With ``--parquet`` the same survey is also converted to Parquet (streamed) and applied CSV -> Parquet and
+Parquet -> Parquet, side by side.
 """
 
 from __future__ import annotations
@@ -46,6 +48,22 @@ def write_survey(path: Path, n_rows: int, truth) -> None:
             done += n
 
 
+def to_parquet(survey: Path, out: Path) -> None:
+    """The survey CSV as Parquet, streamed chunk by chunk (one row group each)."""
+    import pyarrow.parquet as pq
+
+    from magcal import io as mio
+
+    writer = None
+    with mio.CsvSource(survey) as src:
+        meta = dict(src.metadata)
+        for chunk in src.chunks(BLOCK, text_columns=False):
+            table = mio.parquet_table(mio.dataset_columns(chunk.dataset), meta)
+            writer = writer or pq.ParquetWriter(out, table.schema)
+            writer.write_table(table)
+    writer.close()
+
+
 def run_apply(cal: Path, survey: Path, out: Path):
     # VmHWM (peak resident set of this program image): ru_maxrss would carry over the parent's peak across exec
     code = ("import sys, time; from magcal.cli import main; t0 = time.perf_counter(); "
@@ -63,6 +81,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="1e5,1e6,1e7")
     parser.add_argument("--dir", default=None)
+    parser.add_argument("--parquet", action="store_true", help="also CSV -> Parquet and Parquet -> Parquet")
     args = parser.parse_args()
     sizes = [int(float(s)) for s in args.sizes.split(",")]
     truth = pf.platform_truth()
@@ -73,21 +92,32 @@ def main():
                               capture_output=True, text=True)
     idle_mb = int(baseline.stdout.strip()) / 1024.0
     print(f"python + magcal imported, idle: {idle_mb:.0f} MB resident")
-    print(f"{'rows':>10} {'in MB':>8} {'out MB':>8} {'write s':>8} {'apply s':>8} {'rows/s':>10} {'peak MB':>8}")
+    print(f"{'rows':>10} {'path':>17} {'in MB':>8} {'out MB':>8} {'write s':>8} {'apply s':>8} {'rows/s':>10} "
+          f"{'peak MB':>8}")
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         d = Path(tmp)
         cal.save(d / "cal.json")
         for n in sizes:
-            survey, out = d / f"survey_{n}.csv", d / f"out_{n}.csv"
+            survey = d / f"survey_{n}.csv"
             t0 = time.perf_counter()
             write_survey(survey, n, truth)
             t_write = time.perf_counter() - t0
-            rc, dt, peak = run_apply(d / "cal.json", survey, out)
-            assert rc == 0
-            print(f"{n:>10d} {survey.stat().st_size / 2**20:>8.0f} {out.stat().st_size / 2**20:>8.0f} {t_write:>8.1f} "
-                  f"{dt:>8.1f} {n / dt:>10,.0f} {peak:>8.0f}", flush=True)
-            os.unlink(survey)
-            os.unlink(out)
+            runs = [("csv -> csv", survey, d / f"out_{n}.csv")]
+            if args.parquet:
+                t1 = time.perf_counter()
+                to_parquet(survey, d / f"survey_{n}.parquet")
+                t_pq = time.perf_counter() - t1
+                runs += [("csv -> parquet", survey, d / f"out_{n}.parquet"),
+                         ("parquet -> parquet", d / f"survey_{n}.parquet", d / f"out2_{n}.parquet")]
+            for label, src, out in runs:
+                rc, dt, peak = run_apply(d / "cal.json", src, out)
+                assert rc == 0
+                made = t_pq if src.suffix == ".parquet" else t_write
+                print(f"{n:>10d} {label:>17} {src.stat().st_size / 2**20:>8.0f} {out.stat().st_size / 2**20:>8.0f} "
+                      f"{made:>8.1f} {dt:>8.1f} {n / dt:>10,.0f} {peak:>8.0f}", flush=True)
+                os.unlink(out)
+            for f in d.glob(f"survey_{n}.*"):
+                os.unlink(f)
 
 
 if __name__ == "__main__":

@@ -335,7 +335,7 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
     metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.io.CsvSource`; a Parquet file by its
     record batches (``columns`` and ``units`` do not apply: its columns are magcal's and its readings in the
     metadata's units)."""
-    from .io import _pyarrow, is_parquet, parquet_metadata
+    from .io import ParquetSource, is_parquet
 
     path = os.fspath(survey_path)
     if not is_parquet(path):
@@ -347,35 +347,8 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
                     yield chunk.dataset
 
         return dict(src.metadata), csv_chunks()
-    _pyarrow(path)
-    import pyarrow.parquet as pq
-
-    from .dataset import _from_dataframe
-
-    try:
-        pf = pq.ParquetFile(path)
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: no such file; check the path") from None
-    except Exception as exc:
-        raise DatasetError(f"{path}: not a readable Parquet file ({exc})") from None
-    meta = parquet_metadata(pf.schema_arrow)
-
-    def parquet_chunks():
-        row = 0
-        for batch in pf.iter_batches(batch_size=int(chunk_rows)):
-            frame = batch.to_pandas()
-            frame.index = frame.index + row + 1  # messages name the file's rows, 1-based
-            frame.attrs = meta
-            try:
-                ds = _from_dataframe(frame)
-            except DatasetError as exc:
-                from .io import parquet_message
-
-                raise DatasetError(parquet_message(str(exc), path)) from None
-            row += batch.num_rows
-            yield ds.replace(source=path)
-
-    return meta, parquet_chunks()
+    src = ParquetSource(path)
+    return dict(src.metadata), src.chunks(chunk_rows)
 
 
 def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,

@@ -1118,39 +1118,76 @@ def parquet_metadata(schema) -> dict:
     return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
 
 
-def read_parquet(path, name=None) -> Dataset:
+class ParquetSource:
+    """A Parquet file read by record batches through the CSV reader's own layout, units and checks.
+
+    The metadata and the column names are given to a :class:`CsvSource` as a CSV head with no rows (so the layout,
+    the units, the metadata checks are the CSV's, and the same messages); each batch's numeric columns then go to
+    the same dataset builder as a CSV block. A value that is not a finite number is refused naming the file, the
+    row (1-based) and the column.
+    """
+
+    def __init__(self, path, name=None):
+        self.source = str(name or os.fspath(path))
+        _pyarrow(self.source)
+        import pyarrow.parquet as pq
+
+        try:
+            self.file = pq.ParquetFile(os.fspath(path))
+        except FileNotFoundError:
+            raise DatasetError(f"{self.source}: no such file; check the path") from None
+        except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
+            raise DatasetError(f"{self.source}: not a readable Parquet file ({exc})") from None
+        self.metadata = parquet_metadata(self.file.schema_arrow)
+        self.header = list(self.file.schema_arrow.names)
+        head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
+        import io as _stdio
+
+        self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
+        self.layout = self._csv.layout
+
+    def chunks(self, chunk_rows=200_000):
+        """Datasets of at most ``chunk_rows`` samples (readings in nT)."""
+        layout = self.layout
+        row = 0
+        for batch in self.file.iter_batches(batch_size=int(chunk_rows)):
+            n = batch.num_rows
+            values = np.empty((n, len(layout.numeric)))
+            for m, (j, name) in enumerate(layout.numeric):
+                try:
+                    col = np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
+                except (TypeError, ValueError):
+                    raise DatasetError(f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
+                                       "readings, time and channels must be numeric") from None
+                bad = ~np.isfinite(col) | (np.abs(col) > MAX_ABS_VALUE)
+                if bad.any():
+                    k = int(np.argmax(bad))
+                    raise DatasetError(f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
+                                       f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows")
+                values[:, m] = col
+            text = {}
+            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
+                text[j] = np.asarray(batch.column(j).to_numpy(zero_copy_only=False)).astype(str)
+            numbers = np.arange(row + 1, row + n + 1)
+            row += n
+            yield self._csv._dataset(values, text, numbers)
+
+
+def read_parquet(path, name=None, chunk_rows=200_000) -> Dataset:
     """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
 
     The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
     kept as extra channels); the CSV's ``# key: value`` lines are the JSON object under the schema's key-value
-    metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies, and messages name the
-    file and the row (1-based) and column.
+    metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies
+    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column.
     """
-    source = name or os.fspath(path)
-    _pyarrow(source)
-    import pyarrow.parquet as pq
-
-    from .dataset import _from_dataframe
-
-    try:
-        table = pq.read_table(os.fspath(path))
-    except FileNotFoundError:
-        raise DatasetError(f"{source}: no such file; check the path") from None
-    except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
-        raise DatasetError(f"{source}: not a readable Parquet file ({exc})") from None
-    frame = table.to_pandas()
-    frame.index = np.arange(1, len(frame) + 1)  # messages name the file's rows, 1-based
-    frame.attrs = parquet_metadata(table.schema)
-    try:
-        ds = _from_dataframe(frame)
-    except DatasetError as exc:
-        raise DatasetError(parquet_message(str(exc), source)) from None
-    return ds.replace(source=source)
-
-
-def parquet_message(message: str, source: str) -> str:
-    """A DataFrame reader's message about a Parquet file's rows, naming the file (no pandas advice)."""
-    return message.replace("DataFrame", source, 1).replace(", or drop them with frame.dropna()", "")
+    src = ParquetSource(path, name)
+    parts = list(src.chunks(chunk_rows))
+    if not parts:
+        raise DatasetError(f"{src.source}: no rows; the file has no samples")
+    ds = concatenate(parts)
+    check_units(ds, src._csv.units, src.source, stacklevel=3, lsb_nT=src._csv.lsb_nT)
+    return ds
 
 
 def parquet_table(columns, metadata=None):
