@@ -351,6 +351,25 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
     return dict(src.metadata), src.chunks(chunk_rows)
 
 
+def record_choice(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
+                  chunk_rows=20_000):
+    """:func:`record_terms_for_file` for a CSV or a Parquet survey: ``('apply' | 'drop', note or None)``, the
+    fingerprint streamed through :func:`survey_chunks` only when it decides something."""
+    from .calibration import VECTOR_STAGES, RecordHasher
+
+    if not calibration.record_terms(VECTOR_STAGES):
+        return "apply", None
+    fingerprint = None
+    if record_terms is None and calibration.record:
+        hasher = RecordHasher()
+        for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
+            hasher.update(ds)
+        fingerprint = hasher.fingerprint()
+    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
+                                                fingerprint=fingerprint if fingerprint is not None else {})
+    return ("drop" if dropped else "apply"), note
+
+
 def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
                   chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None):
     """:func:`apply_file` for Parquet input or output: the survey's columns as magcal writes them (readings in
@@ -363,7 +382,6 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     """
     import warnings
 
-    from .calibration import VECTOR_STAGES, RecordHasher
     from .errors import RecordTermWarning
     from .io import dataset_columns, is_parquet, parquet_table, write_rows
 
@@ -374,17 +392,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
     if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
-    choice, note = "apply", None
-    if calibration.record_terms(VECTOR_STAGES):
-        fingerprint = None
-        if record_terms is None and calibration.record:
-            hasher = RecordHasher()
-            for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
-                hasher.update(ds)
-            fingerprint = hasher.fingerprint()
-        dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
-                                                    fingerprint=fingerprint if fingerprint is not None else {})
-        choice = "drop" if dropped else "apply"
+    choice, note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
     if note:
         warnings.warn(note, RecordTermWarning, stacklevel=3)
     meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)

@@ -1146,11 +1146,12 @@ class ParquetSource:
         self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
         self.layout = self._csv.layout
 
-    def chunks(self, chunk_rows=200_000):
-        """Datasets of at most ``chunk_rows`` samples (readings in nT)."""
+    def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
+        """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
+        (whose first row is the file's row ``first_row``, 1-based, for messages)."""
         layout = self.layout
-        row = 0
-        for batch in self.file.iter_batches(batch_size=int(chunk_rows)):
+        row = int(first_row) - 1
+        for batch in self.file.iter_batches(batch_size=int(chunk_rows), row_groups=row_groups):
             n = batch.num_rows
             values = np.empty((n, len(layout.numeric)))
             for m, (j, name) in enumerate(layout.numeric):

@@ -6,6 +6,9 @@ Example::
     magcal apply cal.json survey.csv -o out.csv --effects-file my_effects.py   # a calibration with your own effect
     magcal apply cal.json calib_record.csv -o out.csv --record-terms apply    # keep its bias drift on that record
     magcal apply cal.json flight.bin -o flight_cal.csv                       # a flight-controller log (.bin, .ulg)
+    magcal apply cal.json survey.csv -o survey_cal.parquet                   # Parquet out (or in)
+    magcal apply cal.json day1.csv day2.csv -o corrected/ --workers 2        # Dask: partitions in parallel
+    magcal apply cal.json big.parquet -o corrected/ --scheduler tcp://10.0.0.5:8786   # on a Dask cluster
 
 A calibration with record-only terms (bias drift, bias step, reference drift, site gradient) applies them only to
 the record it was fitted on; on any other file they are dropped, with one warning naming them.
@@ -31,9 +34,20 @@ def register(subparsers):
                     "the input columns plus the corrected ones.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("data", metavar="SURVEY.csv", help="survey data file (see docs/formats.md), or an ArduPilot "
-                                                            ".bin / PX4 .ulg flight log")
-    parser.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="output file (written atomically)")
+    parser.add_argument("data", metavar="SURVEY.csv", nargs="+",
+                        help="survey data file (see docs/formats.md; .parquet too), or an ArduPilot .bin / PX4 .ulg "
+                             "flight log; several files (or --workers/--scheduler) are corrected in parallel")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT.csv",
+                        help="output file (written atomically; .parquet for Parquet), or with several files or "
+                             "--workers/--scheduler a new directory of partitions")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="correct in parallel on a local Dask cluster of N worker processes")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="correct in parallel on an existing dask.distributed cluster (e.g. tcp://host:8786)")
+    parser.add_argument("--format", choices=("parquet", "csv"), default="parquet",
+                        help="partition files written in parallel mode (default parquet)")
+    parser.add_argument("--partition-rows", type=int, default=None, metavar="N",
+                        help="CSV lines per partition in parallel mode (Parquet: one per row group)")
     parser.add_argument("--columns", default=None, metavar="MAP",
                         help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
     parser.add_argument("--units", default=None, help="unit of the readings (nT, uT, G, mG); overrides the file")
@@ -59,12 +73,24 @@ def run(args) -> int:
         raise MagcalError(f"--chunk-rows must be at least 1, got {args.chunk_rows}")
     check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
+    parallel = len(args.data) > 1 or args.workers is not None or args.scheduler is not None
+    if args.workers is not None and args.workers < 1:
+        raise MagcalError(f"--workers must be at least 1, got {args.workers}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        summary = apply_file(calibration, args.data, args.output, columns=args.columns, units=args.units,
-                             drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
-                             progress=False if args.no_progress else None, calibration_name=args.calibration,
-                             record_terms=args.record_terms)
+        if parallel:
+            from ..survey import PARTITION_ROWS, apply_partitioned
+
+            summary = apply_partitioned(calibration, args.data, args.output, fmt=args.format,
+                                        workers=args.workers or 2, scheduler=args.scheduler,
+                                        partition_rows=args.partition_rows or PARTITION_ROWS, columns=args.columns,
+                                        units=args.units, drop_bad=args.drop_bad, record_terms=args.record_terms,
+                                        progress=False if args.no_progress else None)
+        else:
+            summary = apply_file(calibration, args.data[0], args.output, columns=args.columns, units=args.units,
+                                 drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
+                                 progress=False if args.no_progress else None, calibration_name=args.calibration,
+                                 record_terms=args.record_terms)
     for note in dict.fromkeys(str(w.message) for w in caught):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())
