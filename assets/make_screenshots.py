@@ -42,6 +42,17 @@ def _wait_text(page, js_condition, timeout=180_000):
     page.wait_for_function(f"() => {js_condition}", timeout=timeout)
 
 
+def _page(p, wb):
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+    page.goto(f"http://127.0.0.1:{wb.port}/")
+    _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+    time.sleep(2)
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        close.click()
+    return browser, page
+
+
 def live() -> int:
     """The live view's screenshots (see the module docstring)."""
     import re
@@ -57,10 +68,7 @@ def live() -> int:
     wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.goto(f"http://127.0.0.1:{wb.port}/")
-            _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+            browser, page = _page(p, wb)
             rec = Path(tempfile.mkdtemp()) / "live.csv"
             wb.start_live("sim://chi2017?rate=50&n=6000&speed=4", rec)
 
@@ -70,9 +78,6 @@ def live() -> int:
 
             while received() < 1600:
                 time.sleep(0.2)
-            time.sleep(1)
-            for close in page.locator(".mantine-Notification-closeButton").all():
-                close.click()
             time.sleep(1)
             page.screenshot(path=str(OUT / "live-growing.png"))
             _wait_text(page, "document.body.innerText.includes('enough:')", timeout=300_000)
@@ -85,17 +90,6 @@ def live() -> int:
         wb.stop()
     print(f"wrote live-growing.png, live-enough.png in {OUT}")
     return 0
-
-
-def _page(p, wb):
-    browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page.goto(f"http://127.0.0.1:{wb.port}/")
-    _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
-    time.sleep(2)
-    for close in page.locator(".mantine-Notification-closeButton").all():
-        close.click()
-    return browser, page
 
 
 def see() -> int:

@@ -204,11 +204,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     t0 = time.perf_counter()
     from .logs import is_log
 
-    if is_log(survey_path):
-        return apply_log(calibration, survey_path, output_path, calibration_name, record_terms, t0)
     from .io import is_parquet
 
-    if is_parquet(survey_path) or is_parquet(output_path):
+    if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
         return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
                              calibration_name, record_terms, t0)
     if isinstance(columns, str):
@@ -283,61 +281,18 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
 
 
-def apply_log(calibration, log_path, output_path, calibration_name=None, record_terms=None, t0=None):
-    """Correct a flight-controller log (ArduPilot ``.bin``, PX4 ``.ulg``; :mod:`magcal.logs`) with a calibration.
-
-    The log is read whole (its reader decodes every message anyway), corrected as one block
-    (:func:`correct_block`) and written as magcal's CSV: the log's channels (time, readings in nT, temperature,
-    attitude) plus the corrected columns. ``record_terms`` as in :func:`apply_file`.
-
-    Returns
-    -------
-    ApplySummary
-    """
-    import warnings
-
-    from .calibration import VECTOR_STAGES
-    from .errors import RecordTermWarning
-    from .io import dataset_columns, dataset_metadata, write_csv
-    from .logs import read_log
-
-    t0 = time.perf_counter() if t0 is None else t0
-    if not hasattr(calibration, "correct"):
-        calibration_name = calibration_name or os.fspath(calibration)
-        calibration = load_calibration(calibration)
-    log_path, output_path = os.fspath(log_path), os.fspath(output_path)
-    dataset = read_log(log_path)
-    if dataset.n_sensors != calibration.n_sensors:
-        raise MagcalError(
-            f"{log_path}: the log has {dataset.n_sensors} compass(es) but the calibration"
-            f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
-            "calibration made for this vehicle's compasses")
-    calibration.check(dataset)
-    dropped, note = calibration.record_decision(dataset, record_terms, VECTOR_STAGES)
-    if note:
-        warnings.warn(note, RecordTermWarning, stacklevel=2)
-    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
-    names = output_columns(calibration.n_sensors, tensor)
-    values = correct_block(calibration, dataset, "drop" if dropped else "apply")
-    columns = dataset_columns(dataset)
-    columns.update({name: values[:, k] for k, name in enumerate(names)})
-    meta = dataset_metadata(dataset)
-    if calibration_name:
-        meta["magcal_calibration"] = calibration_name
-    meta["magcal_frame"] = calibration.frame
-    meta["magcal_columns"] = "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
-    write_csv(output_path, columns, metadata=meta)
-    return ApplySummary(dataset.n_samples, names, time.perf_counter() - t0, output_path, calibration.frame)
-
-
 def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000):
     """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
     metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.io.CsvSource`; a Parquet file by its
-    record batches (``columns`` and ``units`` do not apply: its columns are magcal's and its readings in the
-    metadata's units)."""
-    from .io import ParquetSource, is_parquet
+    record batches; a flight-controller log (:mod:`magcal.logs`) is read whole, as one block (its reader decodes
+    every message anyway). ``columns`` and ``units`` apply to a CSV only."""
+    from .io import ParquetSource, dataset_metadata, is_parquet
+    from .logs import is_log, read_log
 
     path = os.fspath(survey_path)
+    if is_log(path):
+        dataset = read_log(path)
+        return dataset_metadata(dataset), iter([dataset])
     if not is_parquet(path):
         src = CsvSource(path, columns=columns, units=units)
 
@@ -372,9 +327,9 @@ def record_choice(calibration, survey_path, record_terms=None, columns=None, uni
 
 def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
                   chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None):
-    """:func:`apply_file` for Parquet input or output: the survey's columns as magcal writes them (readings in
-    nT) plus the corrected ones, chunk by chunk (memory stays flat), to Parquet (``.parquet``: one row group per
-    chunk, the metadata in the schema) or CSV.
+    """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
+    writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
+    (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
 
     Returns
     -------
