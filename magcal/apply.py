@@ -37,6 +37,8 @@ from .io import CsvSource, atomic_write, check_units, metadata_text
 VECTOR_FORMAT = "%.3f"
 TENSOR_FORMAT = "%.3f"
 INVARIANT_FORMAT = "%.7g"
+#: Standard deviations (``--uncertainty``): 4 significant digits.
+SD_FORMAT = "%.4g"
 
 #: Tensor columns written for a four-sensor array (eq. 1), in order.
 TENSOR_COLUMNS = ("Gxx", "Gxy", "Gxz", "Gyy", "Gyz", "Gzz", "Gyx")
@@ -73,27 +75,46 @@ def tensor_invariants(tensor):
     return i0, i1, i2
 
 
-def output_columns(n_sensors, tensor):
-    """Names of the columns ``apply`` appends."""
+def output_columns(n_sensors, tensor, uncertainty=False):
+    """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
+    ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``)."""
     names = [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "xyz"]
     if tensor:
         names += list(TENSOR_COLUMNS) + list(INVARIANT_COLUMNS)
+    if uncertainty:
+        names += [f"s{i + 1}{a}_cal_sd" for i in range(n_sensors) for a in "xyz"]
+        names += [f"s{i + 1}_F_sd" for i in range(n_sensors)]
+        if tensor:
+            names += [f"{c}_sd" for c in TENSOR_COLUMNS]
     return names
 
 
-def correct_block(calibration, dataset, record_terms=None):
-    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays.
+def correct_block(calibration, dataset, record_terms=None, uncertainty=False):
+    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
+    ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
+    order of :func:`output_columns`.
 
     ``record_terms`` as in :meth:`magcal.calibration.Calibration.correct`; :func:`apply_file` decides it once for
     the whole file and passes ``'apply'`` or ``'drop'``.
     """
     vectors = calibration.correct(dataset, record_terms)
-    parts = [vectors.transpose(1, 0, 2).reshape(dataset.n_samples, -1)]
-    if calibration.n_sensors == 4 and calibration.baseline_m:
+    n = dataset.n_samples
+    parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
+    tensor = calibration.n_sensors == 4 and calibration.baseline_m
+    if tensor:
         comps = conventions.tensor_components(vectors, calibration.baseline_m)
         parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
         i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
         parts.append(np.column_stack([i0, i1, i2]))
+    if uncertainty:
+        u = calibration.uncertainty(dataset, vectors)
+        if u is None:
+            raise MagcalError("this calibration carries no parameter covariance (it was made before magcal saved "
+                              "one, or without a maximum-likelihood fit): recalibrate to get error bars")
+        parts.append(u["vector_sd_nT"].transpose(1, 0, 2).reshape(n, -1))
+        parts.append(u["total_sd_nT"].T)
+        if tensor:
+            parts.append(np.column_stack([u["tensor_sd_nT_per_m"][c] for c in TENSOR_COLUMNS]))
     return np.hstack(parts)
 
 
@@ -171,7 +192,7 @@ def record_terms_for_file(calibration, survey_path, record_terms=None, columns=N
 
 
 def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None):
+               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None, uncertainty=False):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
     Parameters
@@ -191,6 +212,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
         on). ``None`` (default): applied when the file is that record (same fingerprint), dropped with one
         :class:`~magcal.errors.RecordTermWarning` otherwise. ``'apply'`` forces them (you assert it is the same
         record, or have a reference for it); ``'drop'`` leaves them out.
+    uncertainty : bool
+        Also write the calibration's standard deviations of every new column (:func:`output_columns`), from its
+        parameter covariance (:mod:`magcal.uncertainty`).
 
     Returns
     -------
@@ -208,7 +232,7 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
 
     if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
         return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
-                             calibration_name, record_terms, t0)
+                             calibration_name, record_terms, t0, uncertainty)
     if isinstance(columns, str):
         from .io import parse_column_mapping
 
@@ -236,7 +260,7 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
                 "calibration made for this instrument"
             )
         tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
-        new_names = output_columns(calibration.n_sensors, tensor)
+        new_names = output_columns(calibration.n_sensors, tensor, uncertainty)
         clash = sorted(set(new_names) & set(src.header))
         if clash:
             raise MagcalError(
@@ -245,7 +269,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
             )
         fmt = ",".join([VECTOR_FORMAT] * (3 * calibration.n_sensors)
                        + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS)
-                          if tensor else []))
+                          if tensor else [])
+                       + ([SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
+                          if uncertainty else []))
         meta = {}
         if calibration_name:
             meta["magcal_calibration"] = calibration_name
@@ -266,7 +292,7 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
                     if rows == 0:
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
-                    values = correct_block(calibration, chunk.dataset, record_choice)
+                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty)
                     out.write("".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist())))
                     rows += chunk.dataset.n_samples
                     if bar is not None:
@@ -326,7 +352,7 @@ def record_choice(calibration, survey_path, record_terms=None, columns=None, uni
 
 
 def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None):
+                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None, uncertainty=False):
     """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
     writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
     (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
@@ -352,7 +378,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
         warnings.warn(note, RecordTermWarning, stacklevel=3)
     meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
-    names = output_columns(calibration.n_sensors, tensor)
+    names = output_columns(calibration.n_sensors, tensor, uncertainty)
     meta = {**meta, "units": "nT", "magcal_frame": calibration.frame,
             "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")}
     if calibration_name:
@@ -372,7 +398,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                             f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument")
                     calibration.check(ds)
-                values = correct_block(calibration, ds, choice)
+                values = correct_block(calibration, ds, choice, uncertainty)
                 cols = dataset_columns(ds)
                 clash = sorted(set(names) & set(cols))
                 if clash:

@@ -223,6 +223,10 @@ class Calibration:
         Fitted parameters of each effect instance, keyed by :func:`block_label`.
     frame : str
         The array frame: ``"sensor1"`` (the seed's) or ``"platform"`` (after a level-table alignment).
+    base_covariance : numpy.ndarray or None
+        Covariance (12 n_sensors square) of every sensor's ``M = R C^-1`` (row by row) and bias (nT) from the fit
+        (:func:`magcal.uncertainty.base_covariance`), saved with the file; :meth:`uncertainty` carries it to the
+        corrected field and the tensor. None without a maximum-likelihood fit.
     summary : dict
         Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
         Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
@@ -237,6 +241,7 @@ class Calibration:
     effect_values: dict = field(default_factory=dict)
     frame: str = "sensor1"
     summary: dict = field(default_factory=dict)
+    base_covariance: np.ndarray | None = None
 
     @property
     def n_sensors(self) -> int:
@@ -385,6 +390,13 @@ class Calibration:
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return np.linalg.norm(corrected, axis=2) - expected
 
+    def uncertainty(self, dataset, corrected=None) -> dict | None:
+        """The calibration's standard deviations carried to each sample's corrected field and tensor
+        (:func:`magcal.uncertainty.field_uncertainty`), or None without a :attr:`base_covariance`."""
+        from .uncertainty import field_uncertainty
+
+        return field_uncertainty(self, dataset, corrected)
+
     def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
         """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
         if self.n_sensors != 4 or not self.baseline_m:
@@ -433,6 +445,10 @@ class Calibration:
             "effect_params": effects,
             "sensors": sensors,
         }
+        if self.base_covariance is not None:
+            doc["base_covariance"] = {
+                "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3)",
+                "matrix": np.asarray(self.base_covariance, float).tolist()}
         doc.update(jsonable(self.summary))
         doc["record"] = jsonable(self.record)  # null: never told which record it was fitted on
         return doc
@@ -495,7 +511,18 @@ class Calibration:
         except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
             raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
         known = {"format", "version", "reference_total_nT", "reference_fitted", "baseline_m", "frame", "base_terms",
-                 "effects", "effect_params", "sensors"}
+                 "effects", "effect_params", "sensors", "base_covariance"}
+        cov = None
+        if doc.get("base_covariance") is not None:
+            size = 12 * len(sensors)
+            try:
+                cov = np.array(doc["base_covariance"]["matrix"], float)
+                ok = cov.shape == (size, size) and np.all(np.isfinite(cov))
+            except (TypeError, ValueError, KeyError):
+                ok = False
+            if not ok:
+                raise MagcalError(f"{source}: 'base_covariance' must hold a {size} x {size} matrix of numbers; the "
+                                  "file is damaged, recalibrate")
         summary = {k: v for k, v in doc.items() if k not in known}
         record = summary.get("record")
         if record is not None and not (isinstance(record, dict) and _fingerprint_ok(record)):
@@ -512,6 +539,7 @@ class Calibration:
             effect_values=values,
             frame=doc.get("frame", "sensor1"),
             summary=summary,
+            base_covariance=cov,
         )
 
     def save(self, path) -> None:

@@ -799,7 +799,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
     calibration.summary = {"n_samples": int(mask.sum()), "rms_nT": float(np.sqrt(np.mean(tf**2)))}
     for s, cal in enumerate(calibration.sensors):
         cal.summary = {"rms_nT": float(rms_per_sensor[s])}
-    return FitResult(
+    result = FitResult(
         calibration=calibration, model=model, param_names=problem.param_names, x=x, covariance=cov,
         residuals_nT=resid, residuals_all_nT=resid_all, vector_residuals_nT=vec,
         rms_nT=float(np.sqrt(np.mean(tf**2))), rms_per_sensor_nT=rms_per_sensor, noise_nT=noise, rss=rss,
@@ -807,3 +807,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         outliers=outliers, mask=mask, effect_params=effect_params, reference_kind=problem.reference_kind,
         nfev=int(nfev), message=message, status=int(status), problem=problem,
     )
+    from .uncertainty import base_covariance
+
+    calibration.base_covariance = base_covariance(result)  # the error bars the calibration carries to apply
+    return result

@@ -119,7 +119,7 @@ def _read_partition(part: Partition, columns=None, units=None, drop_bad=False):
 
 
 def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, fmt: str, record_choice: str,
-                      columns=None, units=None, drop_bad=False) -> tuple[str, int]:
+                      columns=None, units=None, drop_bad=False, uncertainty=False) -> tuple[str, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task). Returns the
     file written and its rows."""
     from .apply import correct_block, output_columns
@@ -132,9 +132,9 @@ def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, f
         raise MagcalError(f"{part.path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                           f"{calibration.n_sensors}; use the calibration made for this instrument")
     calibration.check(ds)
-    values = correct_block(calibration, ds, record_choice)
+    values = correct_block(calibration, ds, record_choice, uncertainty)
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
-    names = output_columns(calibration.n_sensors, tensor)
+    names = output_columns(calibration.n_sensors, tensor, uncertainty)
     cols = dataset_columns(ds)
     cols["source_file"] = np.full(ds.n_samples, os.path.basename(part.path))
     cols.update({name: values[:, k] for k, name in enumerate(names)})
@@ -173,7 +173,7 @@ class PartitionedSummary:
 
 def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", workers: int = 2, scheduler=None,
                       partition_rows: int = PARTITION_ROWS, columns=None, units=None, drop_bad=False,
-                      record_terms=None, progress=None) -> PartitionedSummary:
+                      record_terms=None, progress=None, uncertainty=False) -> PartitionedSummary:
     """Correct survey files in parallel on a Dask cluster into a directory of partitions.
 
     Parameters
@@ -190,7 +190,7 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
         Address of an existing ``dask.distributed`` scheduler (``tcp://host:8786``).
     partition_rows : int
         CSV lines per partition (Parquet: one partition per row group).
-    columns, units, drop_bad, record_terms
+    columns, units, drop_bad, record_terms, uncertainty
         As in :func:`magcal.apply.apply_file`.
     progress : bool, optional
         A progress bar (tqdm) over the partitions; default when stderr is a terminal.
@@ -247,7 +247,7 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
             where = f"a local cluster of {int(workers)} worker(s)"
         try:
             futures = [client.submit(correct_partition, doc, p, output_dir, fmt, choices[p.path], columns, units,
-                                     drop_bad, pure=False) for p in parts]
+                                     drop_bad, uncertainty, pure=False) for p in parts]
             bar = None
             if progress:
                 from tqdm import tqdm

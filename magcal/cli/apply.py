@@ -40,6 +40,10 @@ def register(subparsers):
     parser.add_argument("-o", "--output", required=True, metavar="OUT.csv",
                         help="output file (written atomically; .parquet for Parquet), or with several files or "
                              "--workers/--scheduler a new directory of partitions")
+    parser.add_argument("--uncertainty", action="store_true",
+                        help="also write the calibration's standard deviation of every corrected component, of |B| "
+                             "per sensor and of each tensor component (s1x_cal_sd .., s1_F_sd, Gxx_sd ..; from its "
+                             "parameter covariance)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="correct in parallel on a local Dask cluster of N worker processes")
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -85,12 +89,12 @@ def run(args) -> int:
                                         workers=args.workers or 2, scheduler=args.scheduler,
                                         partition_rows=args.partition_rows or PARTITION_ROWS, columns=args.columns,
                                         units=args.units, drop_bad=args.drop_bad, record_terms=args.record_terms,
-                                        progress=False if args.no_progress else None)
+                                        progress=False if args.no_progress else None, uncertainty=args.uncertainty)
         else:
             summary = apply_file(calibration, args.data[0], args.output, columns=args.columns, units=args.units,
                                  drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
                                  progress=False if args.no_progress else None, calibration_name=args.calibration,
-                                 record_terms=args.record_terms)
+                                 record_terms=args.record_terms, uncertainty=args.uncertainty)
     for note in dict.fromkeys(str(w.message) for w in caught):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())

@@ -1,0 +1,95 @@
+"""The calibration's error bars carried to the corrected field and the tensor (magcal.uncertainty), checked against
+Monte Carlo draws of the fitted parameters from their covariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import magcal
+from magcal import conventions
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    ds = magcal.simulate("chi2017", n_samples=150, seed=3)
+    result = magcal.calibrate(ds)
+    new = magcal.simulate("chi2017", n_samples=60, seed=8)
+    return result, new
+
+
+def test_linear_propagation_matches_monte_carlo(fitted):
+    result, new = fitted
+    cal, fit = result.calibration, result.fit
+    u = cal.uncertainty(new)
+    rng = np.random.default_rng(0)
+    draws = rng.multivariate_normal(fit.x, fit.covariance, size=600)
+    vecs, tens = [], []
+    for x in draws:
+        c = fit.problem.calibration(x)
+        b = c.correct(new)
+        vecs.append(b)
+        tens.append(np.array(list(conventions.tensor_components(b, cal.baseline_m).values())))
+    vecs, tens = np.array(vecs), np.array(tens)
+    mc_vec = vecs.std(axis=0)
+    ratio = u["vector_sd_nT"] / mc_vec
+    assert 0.85 < np.median(ratio) < 1.15 and np.percentile(ratio, 5) > 0.75 and np.percentile(ratio, 95) < 1.3
+    mc_total = np.linalg.norm(vecs, axis=3).std(axis=0)
+    assert 0.85 < np.median(u["total_sd_nT"] / mc_total) < 1.15
+    names = list(conventions.tensor_components(vecs[0], cal.baseline_m))
+    mc_tensor = tens.std(axis=0)
+    for i, name in enumerate(names):
+        assert 0.85 < np.median(u["tensor_sd_nT_per_m"][name] / mc_tensor[i]) < 1.15, name
+
+
+def test_more_samples_smaller_error_bars():
+    small = magcal.calibrate(magcal.simulate("chi2017", n_samples=100, seed=4)).calibration
+    large = magcal.calibrate(magcal.simulate("chi2017", n_samples=1600, seed=4)).calibration
+    new = magcal.simulate("chi2017", n_samples=50, seed=9)
+    ratio = small.uncertainty(new)["total_sd_nT"].mean() / large.uncertainty(new)["total_sd_nT"].mean()
+    assert 3.0 < ratio < 5.5  # ~ sqrt(16) = 4
+
+
+def test_the_covariance_travels_in_the_json_and_old_files_still_load(fitted, tmp_path):
+    result, new = fitted
+    cal = result.calibration
+    cal.save(tmp_path / "cal.json")
+    back = magcal.Calibration.load(tmp_path / "cal.json")
+    np.testing.assert_allclose(back.base_covariance, cal.base_covariance)
+    np.testing.assert_allclose(back.uncertainty(new)["total_sd_nT"], cal.uncertainty(new)["total_sd_nT"])
+    doc = cal.to_dict()
+    doc.pop("base_covariance")
+    assert magcal.Calibration.from_dict(doc).uncertainty(new) is None  # a file from before: no error bars
+    doc["base_covariance"] = {"matrix": [[1.0, 2.0]]}
+    with pytest.raises(magcal.MagcalError, match="base_covariance"):
+        magcal.Calibration.from_dict(doc)
+
+
+@pytest.mark.parametrize("out_name", ["out.csv", "out.parquet"])
+def test_apply_writes_the_error_bars(fitted, tmp_path, out_name):
+    from magcal import io as mio
+    from magcal.cli import main
+
+    result, new = fitted
+    result.calibration.save(tmp_path / "cal.json")
+    mio.write_csv(tmp_path / "survey.csv", new)
+    out = tmp_path / out_name
+    assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "survey.csv"), "-o", str(out),
+                 "--uncertainty", "--no-progress"]) == 0
+    got = magcal.read_csv(out)
+    u = result.calibration.uncertainty(new)
+    np.testing.assert_allclose(np.asarray(got.extra["s2y_cal_sd"], float), u["vector_sd_nT"][1, :, 1], rtol=1e-3)
+    np.testing.assert_allclose(np.asarray(got.extra["s4_F_sd"], float), u["total_sd_nT"][3], rtol=1e-3)
+    np.testing.assert_allclose(np.asarray(got.extra["Gzz_sd"], float), u["tensor_sd_nT_per_m"]["Gzz"], rtol=1e-3)
+
+
+def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
+    from magcal import io as mio
+    from magcal.apply import apply_file
+
+    result, new = fitted
+    doc = result.calibration.to_dict()
+    doc.pop("base_covariance")
+    mio.write_csv(tmp_path / "survey.csv", new)
+    with pytest.raises(magcal.MagcalError, match="recalibrate to get error bars"):
+        apply_file(magcal.Calibration.from_dict(doc), tmp_path / "survey.csv", tmp_path / "o.csv", uncertainty=True)
