@@ -124,6 +124,10 @@ class FieldShape:
         return z / norm[:, None]
 
 
+#: Most samples the checks before a fit take the field's shape from (an even subsample of longer records).
+SHAPE_MAX_SAMPLES = 20_000
+
+
 def _trusted_ellipsoid(y):
     """The ellipsoid fit of ``y`` (N, 3) if it is determined, else None.
 
@@ -166,9 +170,12 @@ def field_shape(readings_nT) -> FieldShape:
     little off the ellipsoid) when it is determined (:func:`_trusted_ellipsoid`); else the quick sphere of
     :func:`sphere_centre` when it is determined; else the origin. The ellipsoid matters for MEMS parts: a
     hard-iron offset several times the field and axis gains differing by 2x put the readings far from any sphere
-    about the origin and off any sphere at all, yet on an ellipsoid.
+    about the origin and off any sphere at all, yet on an ellipsoid. Records longer than
+    :data:`SHAPE_MAX_SAMPLES` are represented by an even subsample of that size.
     """
     y = np.asarray(readings_nT, dtype=float)
+    if y.ndim == 2 and y.shape[0] > SHAPE_MAX_SAMPLES:  # an even subsample: the shape of a million samples is
+        y = y[::int(np.ceil(y.shape[0] / SHAPE_MAX_SAMPLES))]  # that of twenty thousand of them
     fit = _trusted_ellipsoid(y) if y.ndim == 2 and y.shape[0] else None
     if fit is not None:
         cinv = fit.cinv / np.cbrt(np.linalg.det(fit.cinv))  # det 1: the magnitude is the fitted field

@@ -942,6 +942,11 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
         return read_parquet(path, name=name)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
+    if not hasattr(path, "read") and not drop_bad:
+        ds = _read_csv_arrow(path, columns, units, name, lsb_nT)  # None: take the line-by-line reader
+        if ds is not None:
+            if ds.n_samples >= int(min_samples):
+                return ds
     with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
         parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
         if not parts:
@@ -956,6 +961,75 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
                 "record more attitudes"
             )
         check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT)
+    return ds
+
+
+def _read_csv_arrow(path, columns, units, name, lsb_nT):
+    """The whole file read by pyarrow's CSV reader when it is clean, else None (the caller then reads it line by
+    line, which finds and names every problem).
+
+    The head (metadata, header, layout, units) is read by :class:`CsvSource` itself, so its checks and messages
+    are the same; the data lines go to pyarrow with the numeric columns typed float64, and the values to the same
+    dataset builder as a CSV block. Anything unusual -- pyarrow missing, a field it cannot convert, a quoted or
+    short line, a non-finite value, a problem the builder would report (it names lines, which blank lines would
+    shift here) -- returns None.
+    """
+    try:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+    except ImportError:
+        return None
+    with warnings.catch_warnings(record=True) as head_warnings:
+        warnings.simplefilter("always")
+        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+            header_line = src.header_line
+            layout, header = src.layout, list(src.header)
+    if head_warnings or len(set(header)) != len(header) or any(not h for h in header):
+        return None
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            raw = fh.read()
+        offset = 0
+        for _ in range(header_line):
+            offset = raw.index(b"\n", offset) + 1
+        numeric = [header[j] for j, _ in layout.numeric]
+        table = pacsv.read_csv(
+            pa.py_buffer(memoryview(raw)[offset:]),
+            read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
+            parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
+            convert_options=pacsv.ConvertOptions(column_types={h: pa.float64() for h in numeric},
+                                                 include_columns=numeric + [header[j] for j in
+                                                                           ([layout.group] if layout.group is not
+                                                                            None else []) + list(layout.extra.values())],
+                                                 strings_can_be_null=False, quoted_strings_can_be_null=False))
+    except (ValueError, OSError, pa.ArrowException):
+        return None
+    n = table.num_rows
+    if n == 0:
+        return None
+    values = np.empty((n, len(numeric)))
+    for m, h in enumerate(numeric):
+        col = table.column(h)
+        if col.null_count:
+            return None
+        values[:, m] = col.to_numpy()
+    if not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+        return None
+    text = {j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
+            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())}
+    with warnings.catch_warnings(record=True) as build_warnings:
+        warnings.simplefilter("always")
+        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+            try:
+                ds = src._dataset(values, text, np.arange(header_line + 1, header_line + 1 + n))
+            except DatasetError:
+                return None
+            units_used, lsb_used, source = src.units, src.lsb_nT, src.source
+    if build_warnings:
+        return None  # e.g. quaternions normalised: the line-by-line reader warns with the right line numbers
+    for w in head_warnings:
+        warnings.warn(w.message, w.category, stacklevel=3)
+    check_units(ds, units_used, source, stacklevel=4, lsb_nT=lsb_used)
     return ds
 
 

@@ -461,3 +461,37 @@ def test_a_text_file_in_the_wrong_encoding_is_a_clean_error(tmp_path):
     path = write(tmp_path, "x,y,z\n50000,1,2\n50001,1,2 \u00b5T\n")
     with open(path, encoding="ascii") as fh, pytest.raises(DatasetError, match="^upload.csv: .*UTF-8"):
         read_quiet(fh, name="upload.csv")
+
+
+def test_a_clean_file_is_read_by_pyarrow_with_the_same_result(tmp_path, monkeypatch):
+    """The whole-file fast path (pyarrow's CSV reader feeding the same dataset builder) gives exactly the
+    line-by-line reader's dataset; a file with a problem still gets the line-by-line reader's precise message."""
+    pytest.importorskip("pyarrow")
+    mio = io
+    ds = simulate_timeseries("chi2017", n_samples=400, seed=3, rate_hz=5.0)
+    path = tmp_path / "clean.csv"
+    mio.write_csv(path, ds)
+    text = path.read_text().replace("t,s1x", "site,t,s1x", 1)
+    lines = text.splitlines()
+    head = [i for i, line in enumerate(lines) if line.startswith("site,")][0]
+    lines = lines[:head + 1] + [f"B{i % 3}," + line for i, line in enumerate(lines[head + 1:])]
+    path.write_text("\n".join(lines) + "\n")
+    with mio.CsvSource(path) as src:
+        slow = mio.concatenate([c.dataset for c in src.chunks(150)])
+    fast = mio._read_csv_arrow(path, None, None, None, None)
+    assert fast is not None
+    np.testing.assert_array_equal(fast.readings_nT, slow.readings_nT)
+    np.testing.assert_array_equal(fast.time_s, slow.time_s)
+    np.testing.assert_array_equal(fast.temperature_C, slow.temperature_C)
+    np.testing.assert_array_equal(fast.attitude_wxyz, slow.attitude_wxyz)
+    assert fast.metadata == slow.metadata and list(fast.extra["site"]) == list(slow.extra["site"])
+    # read_csv takes the fast path for it: the line-by-line chunks are never asked for
+    monkeypatch.setattr(mio.CsvSource, "chunks", lambda *a, **k: (_ for _ in ()).throw(AssertionError("slow")))
+    assert mio.read_csv(path).n_samples == 400
+    monkeypatch.undo()
+    bad = tmp_path / "bad.csv"
+    lines[head + 60] = lines[head + 60].replace(",", ",x", 3)
+    bad.write_text("\n".join(lines) + "\n")
+    assert mio._read_csv_arrow(bad, None, None, None, None) is None
+    with pytest.raises(mio.DatasetError, match=rf"line {head + 61}"):
+        mio.read_csv(bad)
