@@ -608,6 +608,15 @@ def _window_std(x, w):
     return np.sqrt(np.maximum(var, 0.0))
 
 
+#: Most values a robust scale (a median) of this module is taken from: an even subsample of longer series.
+SCALE_MAX_SAMPLES = 200_000
+
+
+def _even(values, m=SCALE_MAX_SAMPLES):
+    """An even subsample of at most ``m`` rows (a median of a million values is that of 200 000 of them)."""
+    return values if values.shape[0] <= m else values[::int(np.ceil(values.shape[0] / m))]
+
+
 def motion_noise_nT(readings_nT) -> float:
     """A quick per-axis noise estimate from second differences, ``robust_sigma(y[i+1] - 2 y[i] + y[i-1]) / sqrt(6)``
     (median over the axes), nT. Right for smooth motion sampled fast; far too large for random attitudes."""
@@ -615,7 +624,7 @@ def motion_noise_nT(readings_nT) -> float:
     if y.shape[0] < 3:
         return float("inf")
     d2 = y[2:] - 2 * y[1:-1] + y[:-2]
-    return float(np.median(robust_sigma(d2, axis=0))) / np.sqrt(6.0)
+    return float(np.median(robust_sigma(_even(d2), axis=0))) / np.sqrt(6.0)
 
 
 def total_field_scatter_nT(readings_nT) -> float:
@@ -669,8 +678,9 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW):
     sigma = motion_noise_nT(y) if noise_nT is None else float(noise_nT)
     q = [quantization_step(y[:, k]) for k in range(3)]
     sigma = max(sigma, max((s for s in q if s is not None), default=0.0) / np.sqrt(12), 1e-3)
-    field_nT = float(np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1)))
-    field_nT = max(field_nT, float(np.median(np.linalg.norm(y, axis=1))))
+    ys = _even(y)
+    field_nT = float(np.median(np.linalg.norm(ys - np.median(ys, axis=0), axis=1)))
+    field_nT = max(field_nT, float(np.median(np.linalg.norm(ys, axis=1))))
     limit = min(STATIC_SIGMAS * sigma, STATIC_FIELD_FRACTION * field_nT) if field_nT > 0 else STATIC_SIGMAS * sigma
     quiet = np.all(_window_std(y, window) <= limit, axis=1)
     covered = np.zeros(n + 1, dtype=np.int64)
