@@ -307,6 +307,34 @@ class Problem:
                     jac[s * n:(s + 1) * n, sl] -= e.reference_basis(self.ctxs[s])
         return jac
 
+    def _total_field_normal(self, x, fields, derivs, r_tf, w_tf=None):
+        """``J^T W J`` and ``J^T W r`` of the total-field rows, sensor by sensor: each sensor's rows touch only its
+        own columns (and the shared reference terms), so its block is accumulated from an (N, k) matrix instead of
+        the (n_sensors N, p) Jacobian of :meth:`_total_field_jacobian` (mostly zeros for an array)."""
+        ns, n = self.n_sensors, self.n_samples
+        p = x.size
+        jtj, jtr = np.zeros((p, p)), np.zeros(p)
+        norms = np.linalg.norm(fields, axis=2, keepdims=True)
+        units = fields / norms
+        ref_instances = [(e, es) for e, es in self.model.instances() if e.stage == "reference"]
+        for s, (cols, d) in enumerate(derivs):
+            blocks, idx = [np.einsum("ni,nik->nk", units[s], d)], [np.asarray(cols, dtype=int)]
+            if "F0" in self.blocks:
+                blocks.append(np.full((n, 1), -1.0))
+                idx.append(np.array([self.blocks["F0"].start]))
+            for e, es in ref_instances:
+                if es is None or es == s:
+                    sl = self.blocks[block_label(e, es)]
+                    blocks.append(-np.asarray(e.reference_basis(self.ctxs[s]), float).reshape(n, -1))
+                    idx.append(np.arange(sl.start, sl.stop))
+            j = np.hstack(blocks) if len(blocks) > 1 else blocks[0]
+            at = np.concatenate(idx)
+            rs = r_tf[s * n:(s + 1) * n]
+            wj = j if w_tf is None else j * w_tf[s * n:(s + 1) * n, None]
+            jtj[np.ix_(at, at)] += wj.T @ j
+            jtr[at] += wj.T @ rs
+        return jtj, jtr
+
     def _consistency_derivatives(self, fields, derivs):
         """Per sensor, dP_s/dx (N, 2, k) of the two perpendicular components of ``B_s`` (scaled like the rows).
 
@@ -362,11 +390,8 @@ class Problem:
         fields, derivs = self.field_derivatives(x)
         r = self._residuals_from_fields(fields, x)
         ns, n = self.n_sensors, self.n_samples
-        tf = self._total_field_jacobian(x, fields, derivs)
         w_tf = None if weights is None else weights[: ns * n]
-        wtf = tf if w_tf is None else tf * w_tf[:, None]
-        jtj = wtf.T @ tf
-        jtr = wtf.T @ r[: ns * n]
+        jtj, jtr = self._total_field_normal(x, fields, derivs, r[: ns * n], w_tf)
         extra = ((jtj.copy(), jtr.copy()),) if with_total_field else ()
         if not self.coupled:
             return (r, jtj, jtr) + extra
