@@ -432,3 +432,10 @@ def test_each_damaged_session_of_the_issue_starts_cleanly(bench, tmp_path, capsy
     assert f"field '{field}" in shown and "moved aside" in shown
     assert str(tmp_path) not in again.ctrl.message  # the page is not told where the folder lives
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_data_line_names_the_file_not_where_the_server_keeps_it(bench, tmp_path):
+    wb = bench(store=False)
+    wb.panels.refresh(("all", "data"))
+    text = wb.panels.data_info.content
+    assert "data.csv" in text and str(tmp_path) not in text

@@ -15,7 +15,7 @@ import threading
 
 import numpy as np
 
-from .markup import clean_text, safe_code, safe_text
+from .markup import clean_text, hide_paths, safe_code, safe_text
 from .state import METHODS
 
 METHOD_LABELS = {
@@ -67,7 +67,7 @@ def status_markdown(ctrl) -> str:
 def data_markdown(ctrl) -> str:
     ds = ctrl.dataset
     src = (f"lesson {safe_code(ctrl.state.lesson)}" if ctrl.state.lesson
-           else safe_text(ds.source, 200) if ds.source else "simulated data")
+           else safe_text(hide_paths(str(ds.source)), 200) if ds.source else "simulated data")
     return f"**Data:** {src}  \n{safe_text(ds.describe(), 1000)}"
 
 
