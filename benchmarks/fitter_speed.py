@@ -1,0 +1,101 @@
+"""One sensor, N = 1e6: magcal's maximum likelihood against magyc (PyPI) side by side, at held-out accuracy.
+
+    python -m venv /tmp/magyc-venv && /tmp/magyc-venv/bin/pip install magyc     # once: magyc pins numpy<2, jax
+    OPENBLAS_NUM_THREADS=1 python benchmarks/fitter_speed.py [--n 1000000] [--magyc-python /tmp/magyc-venv/bin/python]
+
+The same simulated readings (sensor 1 of the chi2017 preset: its scale, non-orthogonality and bias, random
+attitudes in a 50 000 nT field, 3 nT noise per axis) are split at random 80/20. Each method fits the 80 % and is
+timed in its own process (magyc in its own venv, since it needs numpy < 2); the corrected field of the held-out
+20 % is then scored by its total-field RMS, made scale-free (``|B| / median|B| - 1``, times 50 000 nT) since magyc's
+fits return the field on their own scale. The floor is the noise's: ``3 nT`` per axis gives a total-field RMS of
+3 nT. magcal is timed end to end (``magcal.calibrate``: the data checks, the ellipsoid start, the ML fit, its
+covariance and the noise estimate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+MAGYC_SCRIPT = r"""
+import json, sys, time
+import numpy as np
+import magyc
+train = np.load(sys.argv[1]); test = np.load(sys.argv[2])
+out = {}
+for name in ("ellipsoid_fit_fang", "twostep_hsi"):
+    fn = getattr(magyc, name)
+    args = (train,) if name == "ellipsoid_fit_fang" else (train, np.array([0.0, 0.0, 50000.0]))
+    fn(*args[:1] if name == "ellipsoid_fit_fang" else args)  # warm (imports, jit)
+    t0 = time.perf_counter()
+    res = fn(*args)
+    dt = time.perf_counter() - t0
+    hi, si = np.asarray(res[0], float).ravel(), np.asarray(res[1], float)
+    cal = (np.linalg.inv(si) @ (test.T - hi[:, None])).T
+    out[name] = {"seconds": dt, "test_norm": np.linalg.norm(cal, axis=1).tolist()}
+print(json.dumps(out))
+"""
+
+
+def heldout_rms_nT(norms) -> float:
+    """Scale-free total-field RMS of held-out corrected fields, nT at 50 000 nT."""
+    norms = np.asarray(norms, float)
+    return float(np.sqrt(np.mean((norms / np.median(norms) - 1.0) ** 2)) * 50_000.0)
+
+
+def main(argv=None) -> int:
+    import warnings
+
+    import magcal
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=float, default=1e6)
+    p.add_argument("--magyc-python", default="/tmp/magyc-venv/bin/python")
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore")
+    n = int(args.n)
+    ds = magcal.simulate("chi2017", n_samples=n, seed=1)
+    one = ds.replace(readings_nT=ds.readings_nT[:1], baseline_m=None)
+    rng = np.random.default_rng(0)
+    test_mask = rng.random(n) < 0.2
+    train, test = one.subset(np.flatnonzero(~test_mask)), one.subset(np.flatnonzero(test_mask))
+    magcal.calibrate(train.subset(np.arange(5000)))  # warm the imports
+    t0 = time.perf_counter()
+    result = magcal.calibrate(train)
+    t_ours = time.perf_counter() - t0
+    ours = heldout_rms_nT(np.linalg.norm(result.calibration.correct(test)[0], axis=1))
+    rows = [("magcal ML (calibrate, end to end)", t_ours, ours)]
+    if os.path.exists(args.magyc_python):
+        with tempfile.TemporaryDirectory() as tmp:
+            a, b, script = os.path.join(tmp, "train.npy"), os.path.join(tmp, "test.npy"), os.path.join(tmp, "m.py")
+            np.save(a, train.readings_nT[0])
+            np.save(b, test.readings_nT[0])
+            with open(script, "w") as fh:
+                fh.write(MAGYC_SCRIPT)
+            proc = subprocess.run([args.magyc_python, script, a, b], capture_output=True, text=True,
+                                  env={**os.environ, "JAX_PLATFORMS": "cpu"})
+        if proc.returncode == 0:
+            res = json.loads(proc.stdout.strip().splitlines()[-1])
+            for name, r in res.items():
+                rows.append((f"magyc {name}", r["seconds"], heldout_rms_nT(r["test_norm"])))
+        else:
+            rows.append((f"magyc failed: {proc.stderr.strip().splitlines()[-1][:80]}", float("nan"), float("nan")))
+    else:
+        rows.append(("magyc: not installed (see the docstring)", float("nan"), float("nan")))
+    print(f"\nOne sensor, N = {n:,} ({int((~test_mask).sum()):,} fitted, {int(test_mask.sum()):,} held out); "
+          "noise floor 3.00 nT")
+    print(f"{'method':<42}{'time s':>8}{'held-out RMS nT':>17}")
+    for name, t, rms in rows:
+        print(f"{name:<42}{t:>8.2f}{rms:>17.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
