@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from . import conventions
 from .errors import MagcalError, RecordTermWarning
 from .model import EFFECTS, Context, Model, parse_effect, term_label
+from .vectors import row_norm
 
 FORMAT = "magcal-calibration"
 VERSION = 1
@@ -369,7 +370,7 @@ class Calibration:
 
     def total_field(self, dataset, record_terms=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
-        return np.linalg.norm(self.correct(dataset, record_terms), axis=2)
+        return row_norm(self.correct(dataset, record_terms))
 
     def expected_total_field(self, dataset, record_terms=None) -> np.ndarray:
         """The total field (n_sensors, N) in nT this calibration expects on ``dataset``: its reference (the
@@ -388,7 +389,7 @@ class Calibration:
             self.check(dataset)
             corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
-        return np.linalg.norm(corrected, axis=2) - expected
+        return row_norm(corrected) - expected
 
     def uncertainty(self, dataset, corrected=None) -> dict | None:
         """The calibration's standard deviations carried to each sample's corrected field and tensor

@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from .dataset import Dataset, DatasetError
 from .errors import CoverageWarning
+from .vectors import row_norm
 
 #: Number of parameters of the full single-sensor model seen by total-field data: A (6) and b (3).
 FULL_MODEL_PARAMS = 9
@@ -56,7 +57,7 @@ def sphere_centre(points_nT):
     y = np.asarray(points_nT, dtype=float)
     if y.shape[0] < 4:
         return np.zeros(3)
-    scale = float(np.median(np.linalg.norm(y, axis=1))) or 1.0
+    scale = float(np.median(row_norm(y))) or 1.0
     ys = y / scale
     design = np.column_stack([2.0 * ys, np.ones(len(ys))])
     rhs = np.einsum("ij,ij->i", ys, ys)
@@ -71,7 +72,7 @@ def sphere_centre(points_nT):
     if np.linalg.norm(centre) <= 0.5 * radius:
         return centre * scale
     spread = np.sqrt(np.mean(np.sum((ys - ys.mean(axis=0)) ** 2, axis=1)))
-    radial = np.sqrt(np.mean((np.linalg.norm(ys - centre, axis=1) - radius) ** 2))
+    radial = np.sqrt(np.mean((row_norm(ys - centre) - radius) ** 2))
     if spread >= 0.5 * radius and radial <= 0.15 * radius:
         return centre * scale
     return np.zeros(3)
@@ -119,7 +120,7 @@ class FieldShape:
     def directions(self, readings_nT) -> np.ndarray:
         """Unit field directions (N, 3) in the shape's frame."""
         z = self.corrected(readings_nT)
-        norm = np.linalg.norm(z, axis=1)
+        norm = row_norm(z)
         norm[norm == 0] = 1.0
         return z / norm[:, None]
 
@@ -151,7 +152,7 @@ def _trusted_ellipsoid(y):
     if not (np.all(np.isfinite(eig)) and eig[0] > 0 and np.sqrt(eig[-1] / eig[0]) <= SHAPE_MAX_AXIS_RATIO):
         return None
     z = fit.correct(y)
-    u = z / np.maximum(np.linalg.norm(z, axis=1, keepdims=True), 1e-300)
+    u = z / np.maximum(row_norm(z)[..., None], 1e-300)
     j = _jacobian(u)
     try:
         cov = np.linalg.inv(j.T @ j)
@@ -180,10 +181,10 @@ def field_shape(readings_nT) -> FieldShape:
     if fit is not None:
         cinv = fit.cinv / np.cbrt(np.linalg.det(fit.cinv))  # det 1: the magnitude is the fitted field
         z = (y - fit.bias_nT) @ cinv.T
-        return FieldShape(fit.bias_nT.copy(), cinv, float(np.median(np.linalg.norm(z, axis=1))), "ellipsoid")
+        return FieldShape(fit.bias_nT.copy(), cinv, float(np.median(row_norm(z))), "ellipsoid")
     centre = sphere_centre(y) if y.ndim == 2 else np.zeros(3)
     source = "sphere" if np.any(centre != 0) else "origin"
-    magnitude = float(np.median(np.linalg.norm(y - centre, axis=1))) if y.size else float("nan")
+    magnitude = float(np.median(row_norm(y - centre))) if y.size else float("nan")
     return FieldShape(centre, np.eye(3), magnitude, source)
 
 

@@ -262,6 +262,7 @@ class TemperatureBias(_TemperatureReferenced):
     """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
 
     name: ClassVar[str] = "temperature_bias"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("temperature",)
     description: ClassVar[str] = "bias changing with temperature, y += beta (T - T0) [nT/K per axis]"
@@ -319,6 +320,7 @@ class BiasDrift(CatalogueEffect):
     """Bias drifting linearly in time: ``y += gamma (t - t0)``, ``gamma`` per axis in nT/h."""
 
     name: ClassVar[str] = "bias_drift"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     description: ClassVar[str] = "bias drifting in time, y += gamma (t - t0) [nT/h per axis]"
@@ -478,6 +480,7 @@ class BiasStep(CatalogueEffect):
     """
 
     name: ClassVar[str] = "bias_step"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     description: ClassVar[str] = "bias step at a time te found by a change-point scan, y += db H(t - te) [nT]"
@@ -1063,6 +1066,7 @@ class PeriodicInterference(CatalogueEffect):
     """
 
     name: ClassVar[str] = "periodic_interference"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     description: ClassVar[str] = ("periodic interference (motor, pump, aliased mains) at a frequency f found in the "
@@ -1228,6 +1232,7 @@ class ReferenceDrift(CatalogueEffect):
     ``F(t) = F0 + sum_k c_k P_k(tau)``, Legendre polynomials of the time scaled to [-1, 1], mean removed."""
 
     name: ClassVar[str] = "reference_drift"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "reference"
     channels: ClassVar[tuple] = ("time",)
     per_sensor: ClassVar[bool] = False

@@ -47,6 +47,7 @@ import scipy.linalg
 
 from . import conventions
 from .errors import CalibrationError
+from .vectors import row_norm
 
 #: Fewest samples accepted: 9 parameters plus one degree of freedom to measure a residual.
 MIN_SAMPLES = 10
@@ -156,7 +157,7 @@ class EllipsoidFit:
             warnings=list(self.warnings),
         )
         if readings_nT is not None:
-            new.rms_nT = _rms(np.linalg.norm(new.correct(readings_nT), axis=1) - new.field_nT)
+            new.rms_nT = _rms(row_norm(new.correct(readings_nT)) - new.field_nT)
         return new
 
 
@@ -171,28 +172,64 @@ def _design(points):
                             np.ones_like(x)])
 
 
-def _least_squares(a, b):
-    """``argmin |a x - b|`` for a tall ``a``: normal equations on scaled columns with one step of iterative
-    refinement (two passes over the data instead of an SVD of it: 5x faster at 1e6 rows, the same solution to
-    rounding); ``numpy.linalg.lstsq`` when the scaled Gram matrix is ill-conditioned."""
-    scale = np.sqrt(np.einsum("ij,ij->j", a, a))
+#: Samples an ellipsoid start takes at most (an even subsample) when maximum likelihood refines it on every sample:
+#: its parameters' scatter is then sqrt(N / 1e5) times the full fit's, far inside the refinement's reach.
+START_MAX_SAMPLES = 100_000
+
+#: Rows per block when a design matrix is reduced to its Gram matrix: a block's rows stay in cache, so a
+#: million samples cost two passes over the readings instead of a dozen over (N, 10) temporaries.
+BLOCK_ROWS = 1 << 14
+
+
+def _blockwise(points, rows, reduce):
+    """``sum_blocks reduce(rows(points[block]))`` over blocks of :data:`BLOCK_ROWS` samples."""
+    total = None
+    for start in range(0, len(points), BLOCK_ROWS):
+        part = reduce(rows(points[start:start + BLOCK_ROWS]))
+        total = part if total is None else total + part
+    return total
+
+
+def _algebraic_rows(points):
+    """Rows ``[x^2 - z^2, y^2 - z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1 | -3 z^2]`` of eq. (8) with ``a + b + c = 3``."""
+    x, y, z = points.T
+    out = np.empty((len(points), 10))
+    zz = z * z
+    np.subtract(x * x, zz, out=out[:, 0])
+    np.subtract(y * y, zz, out=out[:, 1])
+    np.multiply(y, 2 * z, out=out[:, 2])
+    np.multiply(x, 2 * z, out=out[:, 3])
+    np.multiply(x, 2 * y, out=out[:, 4])
+    np.multiply(points, 2.0, out=out[:, 5:8])
+    out[:, 8] = 1.0
+    np.multiply(zz, -3.0, out=out[:, 9])
+    return out
+
+
+def _least_squares_blockwise(points, rows):
+    """``argmin |a x - b|`` where ``rows(block)`` gives ``[a | b]`` for a block of points: normal equations on
+    scaled columns, accumulated block by block, with one step of iterative refinement (the residual ``b - a x``
+    recomputed from the rows, so the normal equations' rounding is removed; the same solution as an SVD of
+    ``a`` to rounding); ``numpy.linalg.lstsq`` of the whole design when the scaled Gram matrix is
+    ill-conditioned."""
+    full = _blockwise(points, rows, lambda m: m.T @ m)
+    gram, rhs = full[:-1, :-1], full[:-1, -1]
+    scale = np.sqrt(np.diag(gram))
     scale[scale == 0] = 1.0
-    an = a / scale
-    gram = an.T @ an
-    if np.linalg.cond(gram) > 1e10:
-        return np.linalg.lstsq(a, b, rcond=None)[0]
-    x = np.linalg.solve(gram, an.T @ b)
-    x += np.linalg.solve(gram, an.T @ (b - an @ x))  # refinement: the normal equations' rounding removed
-    return x / scale
+    gram_n = gram / np.outer(scale, scale)
+    if np.linalg.cond(gram_n) > 1e10:
+        m = rows(points)
+        return np.linalg.lstsq(m[:, :-1], m[:, -1], rcond=None)[0]
+    xn = np.linalg.solve(gram_n, rhs / scale)
+    x = xn / scale
+    correction = _blockwise(points, rows, lambda m: m[:, :-1].T @ (m[:, -1] - m[:, :-1] @ x))
+    return x + np.linalg.solve(gram_n, correction / scale) / scale
 
 
 def _coefficients_algebraic(points):
     """Linear least squares for eq. (8) with the trace ``a + b + c`` fixed to 3."""
-    d = _design(points)
     # a x^2 + b y^2 + (3 - a - b) z^2 + ... = 0  ->  a (x^2 - z^2) + b (y^2 - z^2) + ... = -3 z^2
-    lhs = np.column_stack([d[:, 0] - d[:, 2], d[:, 1] - d[:, 2], d[:, 3:]])
-    rhs = -3.0 * d[:, 2]
-    sol = _least_squares(lhs, rhs)
+    sol = _least_squares_blockwise(points, _algebraic_rows)
     a, b = sol[0], sol[1]
     return np.concatenate([[a, b, 3.0 - a - b], sol[2:]])
 
@@ -206,8 +243,7 @@ _LI_GRIFFITHS_C1 = np.block([
 
 def _coefficients_li_griffiths(points):
     """Li & Griffiths (2004) ellipsoid-specific fit: generalised eigenproblem ``S_red v1 = lambda C1 v1``."""
-    d = _design(points)
-    s = d.T @ d
+    s = _blockwise(points, _design, lambda d: d.T @ d)
     s11, s12, s22 = s[:6, :6], s[:6, 6:], s[6:, 6:]
     s22_inv_s21 = np.linalg.solve(s22, s12.T)
     s_red = s11 - s12 @ s22_inv_s21
@@ -280,8 +316,8 @@ def coverage(vectors) -> Coverage:
         Field vectors (corrected, centred), any units.
     """
     v = np.asarray(vectors, dtype=float)
-    u = v / np.linalg.norm(v, axis=1, keepdims=True)
-    cov = np.cov(u.T, bias=True) if u.shape[0] > 1 else np.zeros((3, 3))
+    u = v / row_norm(v)[..., None]
+    cov = _covariance(u) if u.shape[0] > 1 else np.zeros((3, 3))
     spread = np.sort(np.linalg.eigvalsh(cov))[::-1]
     cells = _fibonacci_sphere(SKY_CELLS)
     step = max(1, int(np.ceil(u.shape[0] / SKY_MAX_SAMPLES)))  # the cells a million directions visit are those
@@ -289,9 +325,17 @@ def coverage(vectors) -> Coverage:
     return Coverage(spread_eigenvalues=np.clip(spread, 0.0, None), sky_fraction=visited.size / SKY_CELLS)
 
 
-def _check_planarity(points, label):
-    """Refuse before fitting when the readings lie close to one plane (a circle: rotation about one axis)."""
-    spread = np.sort(np.linalg.eigvalsh(np.cov(points.T, bias=True)))[::-1]
+def _covariance(points, mean=None):
+    """Covariance (3, 3) of the rows of ``points`` (N, 3) about ``mean`` (default their mean), divided by N."""
+    centred = points - (points.mean(axis=0) if mean is None else mean)
+    return centred.T @ centred / len(points)
+
+
+def _check_planarity(points, label, covariance=None):
+    """Refuse before fitting when the readings lie close to one plane (a circle: rotation about one axis);
+    ``covariance`` is the points' own (N-divided) when the caller has it."""
+    cov = _covariance(points) if covariance is None else covariance
+    spread = np.sort(np.linalg.eigvalsh(cov))[::-1]
     if spread[0] <= 0 or spread[2] <= (1e-2) ** 2 * spread[0]:
         raise CalibrationError(
             f"{label}: degenerate coverage: the readings lie close to one plane (out-of-plane spread "
@@ -365,7 +409,7 @@ def segment_drift(readings_nT, bias_nT, cinv, n_segments=CAUSE_SEGMENTS):
         centres.append(c_matrix @ centre + bias_nT)
         radii.append(radius)
         used.append(k)
-        sq += float(np.sum((np.linalg.norm(z - centre, axis=1) - radius) ** 2))
+        sq += float(np.sum((row_norm(z - centre) - radius) ** 2))
         count += z.shape[0]
     if len(used) < 2:
         return None
@@ -388,7 +432,7 @@ def field_noise_nT(readings_nT, bias_nT, cinv):
     y = np.asarray(readings_nT, dtype=float)
     if y.shape[0] < 3:
         return float("nan")
-    e = np.linalg.norm((y - np.asarray(bias_nT, dtype=float)) @ np.asarray(cinv, dtype=float).T, axis=1)
+    e = row_norm((y - np.asarray(bias_nT, dtype=float)) @ np.asarray(cinv, dtype=float).T)
     return float(robust_sigma(e[2:] - 2.0 * e[1:-1] + e[:-2])) / np.sqrt(6.0)
 
 
@@ -471,7 +515,8 @@ def _coverage_note(readings_nT) -> str:
 
 
 def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: float | None = None,
-                  mask=None, label: str = "sensor", strict: bool = True) -> EllipsoidFit:
+                  mask=None, label: str = "sensor", strict: bool = True, max_samples: int | None = None
+                  ) -> EllipsoidFit:
     """Fit the ellipsoid of one sensor's raw readings in a uniform field (step 1).
 
     Parameters
@@ -510,6 +555,8 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
         raise CalibrationError(f"{label}: readings must have shape (N, 3), got {y.shape}")
     if mask is not None:
         y = y[np.asarray(mask, dtype=bool)]
+    if max_samples is not None and y.shape[0] > max_samples:
+        y = y[::int(np.ceil(y.shape[0] / max_samples))]
     if not np.all(np.isfinite(y)):
         bad = int(np.sum(~np.all(np.isfinite(y), axis=1)))
         raise CalibrationError(f"{label}: {bad} sample(s) have missing or non-finite readings; remove them first")
@@ -521,12 +568,13 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
         )
     if reference_total_nT is not None and not reference_total_nT > 0:
         raise CalibrationError(f"{label}: the reference field must be positive (nT), got {reference_total_nT}")
-    _check_planarity(y, label)
-
     # Condition: centre on the mean and scale by the RMS radius; fit; map back (c = s c' + m, A = A' / s^2).
     mean = y.mean(axis=0)
-    scale = float(np.sqrt(np.mean(np.sum((y - mean) ** 2, axis=1))))
-    p = (y - mean) / scale
+    p = y - mean
+    centred_cov = p.T @ p / n
+    _check_planarity(y, label, centred_cov)
+    scale = float(np.sqrt(np.trace(centred_cov)))
+    p /= scale
     v = _coefficients_algebraic(p) if method == "algebraic" else _coefficients_li_griffiths(p)
     try:
         centre_p, a1_p = _quadric_to_ellipsoid(v, label)
@@ -542,7 +590,7 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
     a_matrix = field_nT**2 * a1
     cinv = conventions.cinv_from_quadric(a_matrix)
     corrected = (y - bias) @ cinv.T
-    rms = _rms(np.linalg.norm(corrected, axis=1) - field_nT)
+    rms = _rms(row_norm(corrected) - field_nT)
     if strict and rms > MAX_RELATIVE_RMS * field_nT:
         note = _coverage_note(y)  # partial coverage: the likely cause, and the other figures mean little then
         cause, explained = off_ellipsoid_cause(y, bias, cinv, rms, claim=not note)

@@ -20,6 +20,7 @@ a larger field from larger gains. Candidate effects add their own parameters (se
 
 from __future__ import annotations
 
+import copy
 import warnings
 from dataclasses import dataclass, field
 
@@ -33,6 +34,14 @@ from .errors import CalibrationError, ConvergenceWarning
 from .model import Model
 from .noise import robust_sigma
 from .reference import resolve_reference as _resolve
+from .vectors import cross_rows, row_norm
+
+#: Samples per block when a model of base terms only is evaluated block by block (:meth:`Problem.normal_equations`).
+BLOCK_ROWS = 1 << 16
+
+#: Samples of the even subsample a base model is first converged on when the record has more than twice as many
+#: (:func:`fit`): the fit of every sample then starts within a few of its standard errors of the minimum.
+WARMUP_SAMPLES = 100_000
 
 #: Typical change of each base parameter that moves the readings by about 1 nT in a 50 uT field.
 _CINV_SCALE = 2e-5
@@ -65,7 +74,7 @@ def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
         rot, _ = Rotation.align_vectors(centred[0], centred[s])
         sensors[s].R = rot.as_matrix()
     return Calibration(sensors, reference_total_nT=ref if ref is not None else (
-        None if kind == "column" else float(np.mean([np.linalg.norm(c, axis=1).mean() for c in centred]))),
+        None if kind == "column" else float(np.mean([row_norm(c).mean() for c in centred]))),
         reference_fitted=kind == "fitted", baseline_m=dataset.baseline_m)
 
 
@@ -104,6 +113,9 @@ class Problem:
         if self.reference_kind == "fitted" and init.reference_total_nT:
             ref = float(init.reference_total_nT)
         self.coupled = ns > 1 and "misalignment" in model.base
+        #: The analytic Jacobian is exact (no effect whose basis depends on the readings: that dependence is left
+        #: out of :meth:`field_derivatives`; :attr:`magcal.model.Effect.basis_uses_readings`).
+        self.exact_jacobian = not any(e.basis_uses_readings for e, _ in model.instances())
         self.baseline_m = init.baseline_m if init.baseline_m is not None else dataset.baseline_m
 
         names, values, scales, self.blocks = [], [], [], {}
@@ -116,7 +128,7 @@ class Problem:
             lam = np.linalg.det(init_sensors[0].cinv) ** (-1.0 / 3.0)
             for c in init_sensors:
                 c.cinv = c.cinv * lam
-            ref = (ref if ref else np.mean(np.linalg.norm(corrected_fields(dataset, init.sensors), axis=2))) * lam
+            ref = (ref if ref else np.mean(row_norm(corrected_fields(dataset, init.sensors)))) * lam
         self.init_sensors = init_sensors
         for s, cal in enumerate(init_sensors):
             start = len(names)
@@ -215,17 +227,35 @@ class Problem:
 
     def residuals(self, x) -> np.ndarray:
         """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*2) when coupled."""
-        return self._residuals_from_fields(self.fields(x), x)
+        blocks = self._row_blocks()
+        if blocks is None:
+            return self._residuals_from_fields(self.fields(x), x)
+        ns, n = self.n_sensors, self.n_samples
+        r = np.empty(self.n_residuals)
+        total = r[: ns * n].reshape(ns, n)
+        cons = r[ns * n:].reshape(ns, n, 2) if self.coupled else None
+        for a, b, part in blocks:
+            rb = part._residuals_from_fields(part.fields(x), x)
+            total[:, a:b] = rb[: ns * (b - a)].reshape(ns, b - a)
+            if self.coupled:
+                cons[:, a:b] = rb[ns * (b - a):].reshape(ns, b - a, 2)
+        return r
 
-    def _residuals_from_fields(self, b, x) -> np.ndarray:
+    def _residuals_from_fields(self, b, x, basis=None) -> np.ndarray:
+        """Residuals (as :meth:`residuals`) of the corrected fields ``b``; ``basis`` is
+        ``_perpendicular_basis(b.mean(axis=0))`` when the caller has it."""
         expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
                                         self.ctxs)
-        total = (np.linalg.norm(b, axis=2) - expected).ravel()
+        total = (row_norm(b) - expected).ravel()
         if not self.coupled:
             return total
-        e1, e2 = _perpendicular_basis(b.mean(axis=0))
+        e1, e2 = _perpendicular_basis(b.mean(axis=0)) if basis is None else basis
         diff = b - b.mean(axis=0)
-        perp = np.stack([np.einsum("sni,ni->sn", diff, e1), np.einsum("sni,ni->sn", diff, e2)], axis=-1)
+        perp = np.empty(diff.shape[:2] + (2,))
+        for k, e in enumerate((e1, e2)):
+            np.multiply(diff[..., 0], e[:, 0], out=perp[..., k])
+            perp[..., k] += diff[..., 1] * e[:, 1]
+            perp[..., k] += diff[..., 2] * e[:, 2]
         return np.concatenate([total, self._consistency_factor * perp.ravel()])
 
     @property
@@ -234,12 +264,13 @@ class Problem:
         return float(np.sqrt(self.n_sensors / (self.n_sensors - 1.0)))
 
     def field_derivatives(self, x):
-        """Corrected fields (n_sensors, N, 3) and, per sensor, the columns and derivatives dB_s/dx (N, 3, k).
+        """Corrected fields (n_sensors, N, 3) and, per sensor, its derivatives dB_s/dx as a :class:`_Derivative`.
 
         The chain rule through each term's basis: entries of C^-1 act through ``R e_i z_j``, the bias through
         ``-R C^-1``, the rotation through ``[e_a]x B``, raw-stage effects through ``-R C^-1 basis`` and
         vector-stage effects through their basis. The bases' own dependence on ``z0`` and ``B`` is second order
-        and left out.
+        and left out. The derivatives are kept as these factors: the residuals need only their projections on
+        a direction per sample (:meth:`_Derivative.project`), an (N, k) matrix, never the (N, 3, k) array.
         """
         sensors = self.sensors(x)
         values = self.effect_values(x)
@@ -259,43 +290,34 @@ class Problem:
                     raw.append((self.blocks[block_label(e, es)], basis))
             rc = cal.R @ cal.cinv
             b_rot = z @ rc.T
-            cols, parts = [], []
             start = self.blocks[f"sensor{s + 1}/base"].start
             c = conventions.cinv_to_params(cal.cinv)
+            base = []
             for offset, (kind, k) in enumerate(self._base_free[s]):
-                cols.append(start + offset)
                 if kind == "c":
                     i, j = conventions.UPPER_TRIANGLE[k]
-                    d = z[:, j:j + 1] * cal.R[:, i]
-                    if self.reference_kind == "fitted" and s == 0 and k in (0, 3):
-                        d = d - (c[5] / c[k]) * z[:, 2:3] * cal.R[:, 2]  # through c22 = 1/(c00 c11)
-                elif kind == "b":
-                    d = np.broadcast_to(-rc[:, k], (n, 3))
+                    tied = (c[5] / c[k]) if (self.reference_kind == "fitted" and s == 0 and k in (0, 3)) else None
+                    base.append(("c", i, j, tied))  # through c22 = 1/(c00 c11) when tied
                 else:
-                    d = np.cross(np.eye(3)[k], b_rot)
-                parts.append(d[..., None])
-            for sl, basis in raw:
-                cols.extend(range(sl.start, sl.stop))
-                parts.append(-np.einsum("ij,njq->niq", rc, basis))
-            b = b_rot.copy()
+                    base.append((kind, k, None, None))
+            b = b_rot.copy() if any(e.stage == "vector" for e, _ in instances) else b_rot
+            vector = []
             for e, es in instances:
                 if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
                     basis = e.vector_basis(b_rot, ctx)
                     b = b + basis @ values[block_label(e, es)]
-                    sl = self.blocks[block_label(e, es)]
-                    cols.extend(range(sl.start, sl.stop))
-                    parts.append(basis)
+                    vector.append((self.blocks[block_label(e, es)], basis))
             fields[s] = b
-            derivs.append((np.asarray(cols, dtype=int), np.concatenate(parts, axis=2)))
+            derivs.append(_Derivative(start, base, z, cal.R, rc, b_rot, raw, vector))
         return fields, derivs
 
     def _total_field_jacobian(self, x, fields, derivs) -> np.ndarray:
         """Rows of the Jacobian (n_sensors*N, p) for the total-field residuals."""
         ns, n = self.n_sensors, self.n_samples
         jac = np.zeros((ns * n, x.size))
-        units = fields / np.linalg.norm(fields, axis=2, keepdims=True)
-        for s, (cols, d) in enumerate(derivs):
-            jac[s * n:(s + 1) * n, cols] += np.einsum("ni,nik->nk", units[s], d)
+        units = fields / row_norm(fields)[..., None]
+        for s, d in enumerate(derivs):
+            jac[s * n:(s + 1) * n, d.cols] += d.project(units[s])
         if "F0" in self.blocks:
             jac[:, self.blocks["F0"].start] = -1.0
         for e, es in self.model.instances():
@@ -310,41 +332,50 @@ class Problem:
     def _total_field_normal(self, x, fields, derivs, r_tf, w_tf=None):
         """``J^T W J`` and ``J^T W r`` of the total-field rows, sensor by sensor: each sensor's rows touch only its
         own columns (and the shared reference terms), so its block is accumulated from an (N, k) matrix instead of
-        the (n_sensors N, p) Jacobian of :meth:`_total_field_jacobian` (mostly zeros for an array)."""
+        the (n_sensors N, p) Jacobian of :meth:`_total_field_jacobian` (mostly zeros for an array); and that
+        matrix is built and multiplied :func:`_row_blocks` rows at a time, so that it stays in cache."""
         ns, n = self.n_sensors, self.n_samples
         p = x.size
         jtj, jtr = np.zeros((p, p)), np.zeros(p)
-        norms = np.linalg.norm(fields, axis=2, keepdims=True)
-        units = fields / norms
         ref_instances = [(e, es) for e, es in self.model.instances() if e.stage == "reference"]
-        for s, (cols, d) in enumerate(derivs):
-            blocks, idx = [np.einsum("ni,nik->nk", units[s], d)], [np.asarray(cols, dtype=int)]
-            if "F0" in self.blocks:
-                blocks.append(np.full((n, 1), -1.0))
-                idx.append(np.array([self.blocks["F0"].start]))
-            for e, es in ref_instances:
-                if es is None or es == s:
-                    sl = self.blocks[block_label(e, es)]
-                    blocks.append(-np.asarray(e.reference_basis(self.ctxs[s]), float).reshape(n, -1))
-                    idx.append(np.arange(sl.start, sl.stop))
-            j = np.hstack(blocks) if len(blocks) > 1 else blocks[0]
-            at = np.concatenate(idx)
-            rs = r_tf[s * n:(s + 1) * n]
-            wj = j if w_tf is None else j * w_tf[s * n:(s + 1) * n, None]
-            jtj[np.ix_(at, at)] += wj.T @ j
-            jtr[at] += wj.T @ rs
+        has_f0 = "F0" in self.blocks
+        for s, d in enumerate(derivs):
+            extra = [np.asarray(e.reference_basis(self.ctxs[s]), float).reshape(n, -1)
+                     for e, es in ref_instances if es is None or es == s]
+            extra_idx = [np.arange(self.blocks[block_label(e, es)].start, self.blocks[block_label(e, es)].stop)
+                         for e, es in ref_instances if es is None or es == s]
+            at = np.concatenate([d.cols] + ([np.array([self.blocks["F0"].start])] if has_f0 else []) + extra_idx)
+            k = at.size
+            norms = row_norm(fields[s])
+            gram, rhs = np.zeros((k, k)), np.zeros(k)
+            for rows in _row_blocks(n, k):
+                m = rows.stop - rows.start
+                j = np.empty((k, m)).T  # column-major: each column written contiguously
+                d.project(fields[s, rows] / norms[rows, None], out=j[:, :len(d.cols)], rows=rows)
+                at_col = len(d.cols)
+                if has_f0:
+                    j[:, at_col] = -1.0
+                    at_col += 1
+                for e in extra:
+                    np.negative(e[rows], out=j[:, at_col:at_col + e.shape[1]])
+                    at_col += e.shape[1]
+                rs = r_tf[s * n + rows.start:s * n + rows.stop]
+                wj = j if w_tf is None else j * w_tf[s * n + rows.start:s * n + rows.stop, None]
+                gram += wj.T @ j
+                rhs += wj.T @ rs
+            jtj[np.ix_(at, at)] += gram
+            jtr[at] += rhs
         return jtj, jtr
 
-    def _consistency_derivatives(self, fields, derivs):
+    def _consistency_derivatives(self, fields, derivs, basis=None):
         """Per sensor, dP_s/dx (N, 2, k) of the two perpendicular components of ``B_s`` (scaled like the rows).
 
         The consistency rows of sensor ``k`` are ``sum_s (delta_ks - 1/n) dP_s/dx``; the derivative of the
         perpendicular basis itself multiplies ``B_s - mean B`` (a few nT) and is left out.
         """
-        e1, e2 = _perpendicular_basis(fields.mean(axis=0))
+        e1, e2 = _perpendicular_basis(fields.mean(axis=0)) if basis is None else basis
         factor = self._consistency_factor
-        return [factor * np.stack([np.einsum("ni,nik->nk", e1, d), np.einsum("ni,nik->nk", e2, d)], axis=1)
-                for _, d in derivs]
+        return [factor * np.stack([d.project(e1), d.project(e2)], axis=1) for d in derivs]
 
     def jacobian(self, x) -> np.ndarray:
         """Analytic Jacobian (m, p) of :meth:`residuals` (see :meth:`field_derivatives`)."""
@@ -355,14 +386,61 @@ class Problem:
             return tf
         jac = np.zeros((self.n_residuals, x.size))
         jac[: ns * n] = tf
-        for s, ((cols, _), p) in enumerate(zip(derivs, self._consistency_derivatives(fields, derivs))):
-            p = p.reshape(2 * n, -1)
+        for s, (d, p) in enumerate(zip(derivs, self._consistency_derivatives(fields, derivs))):
+            cols, p = d.cols, p.reshape(2 * n, -1)
             for k in range(ns):
                 w = (1.0 if k == s else 0.0) - 1.0 / ns
                 jac[ns * n + k * 2 * n: ns * n + (k + 1) * 2 * n, cols] += w * p
         return jac
 
     def normal_equations(self, x, weights=None, with_total_field=False):
+        """Residuals ``r``, ``J^T W J`` and ``J^T W r`` at ``x`` (see :meth:`_normal_equations_whole`).
+
+        A model of base terms only (no effect, whose bases may depend on the whole record) is evaluated in
+        blocks of :data:`BLOCK_ROWS` samples and the blocks' sums added: the same equations, but each block's
+        temporaries stay in cache instead of a dozen (N, k) arrays going through memory.
+        """
+        blocks = self._row_blocks()
+        if blocks is None:
+            return self._normal_equations_whole(x, weights, with_total_field)
+        ns, n = self.n_sensors, self.n_samples
+        r = np.empty(self.n_residuals)
+        total = r[: ns * n].reshape(ns, n)
+        cons = r[ns * n:].reshape(ns, n, 2) if self.coupled else None
+        w_total = None if weights is None else weights[: ns * n].reshape(ns, n)
+        w_cons = None if weights is None or not self.coupled else weights[ns * n:].reshape(ns, n, 2)
+        sums = None
+        for a, b, part in blocks:
+            w = None
+            if weights is not None:
+                w = w_total[:, a:b].ravel()
+                if self.coupled:
+                    w = np.concatenate([w, w_cons[:, a:b].ravel()])
+            out = part._normal_equations_whole(x, w, with_total_field)
+            rb = out[0]
+            total[:, a:b] = rb[: ns * (b - a)].reshape(ns, b - a)
+            if self.coupled:
+                cons[:, a:b] = rb[ns * (b - a):].reshape(ns, b - a, 2)
+            flat = [out[1], out[2]] + ([out[3][0], out[3][1]] if with_total_field else [])
+            sums = flat if sums is None else [s + f for s, f in zip(sums, flat)]
+        return (r, sums[0], sums[1]) + (((sums[2], sums[3]),) if with_total_field else ())
+
+    def _row_blocks(self):
+        """``(start, stop, problem of those rows)`` per block, or None when the model has effects or the data
+        fit in one block."""
+        if self.n_samples <= BLOCK_ROWS or any(True for _ in self.model.instances()):
+            return None
+        out = []
+        for a in range(0, self.n_samples, BLOCK_ROWS):
+            b = min(a + BLOCK_ROWS, self.n_samples)
+            part = copy.copy(self)
+            part.dataset, part.n_samples = _Rows(self.dataset, a, b), b - a
+            part.n_residuals = self.n_sensors * (b - a) * (3 if self.coupled else 1)
+            part.total_field_rows = slice(0, self.n_sensors * (b - a))
+            out.append((a, b, part))
+        return out
+
+    def _normal_equations_whole(self, x, weights=None, with_total_field=False):
         """Residuals ``r``, ``J^T W J`` and ``J^T W r`` at ``x``, without forming the consistency rows of ``J``.
 
         The consistency rows of sensor ``k`` are the centred per-sensor derivatives ``sum_s c_ks P_s`` with
@@ -388,7 +466,8 @@ class Problem:
         jtr : numpy.ndarray, shape (p,)
         """
         fields, derivs = self.field_derivatives(x)
-        r = self._residuals_from_fields(fields, x)
+        basis = _perpendicular_basis(fields.mean(axis=0)) if self.coupled else None
+        r = self._residuals_from_fields(fields, x, basis)
         ns, n = self.n_sensors, self.n_samples
         w_tf = None if weights is None else weights[: ns * n]
         jtj, jtr = self._total_field_normal(x, fields, derivs, r[: ns * n], w_tf)
@@ -396,16 +475,34 @@ class Problem:
         if not self.coupled:
             return (r, jtj, jtr) + extra
         rc = r[ns * n:].reshape(ns, 2 * n)
-        cols = [c for c, _ in derivs]
-        ps = [p.reshape(2 * n, -1) for p in self._consistency_derivatives(fields, derivs)]
+        cols = [d.cols for d in derivs]
         if weights is None:
-            q = np.zeros((2 * n, x.size))
+            # every sensor's P_s side by side in one (2N, K) matrix: one product gives all the pairs P_s^T P_s'
+            edges = np.cumsum([0] + [len(c) for c in cols])
+            gram = np.zeros((edges[-1], edges[-1]))
+            rhs = [np.zeros(len(c)) for c in cols]
+            factor = self._consistency_factor
+            rows_of = rc.reshape(ns, n, 2)
+            for rows in _row_blocks(n, 2 * edges[-1]):
+                m = rows.stop - rows.start
+                both = np.empty((edges[-1], 2, m))  # column-major (2m, K): each column written contiguously
+                for s, d in enumerate(derivs):
+                    for k, e in enumerate(basis):
+                        d.project(e[rows], out=both[edges[s]:edges[s + 1], k].T, rows=rows)
+                both *= factor
+                both = both.reshape(edges[-1], 2 * m)
+                gram += both @ both.T
+                block_r = rows_of[:, rows].transpose(0, 2, 1).reshape(ns, 2 * m)  # the rows' order in ``both``
+                for s in range(ns):
+                    rhs[s] += both[edges[s]:edges[s + 1]] @ block_r[s]
             for s in range(ns):
-                jtj[np.ix_(cols[s], cols[s])] += ps[s].T @ ps[s]
-                jtr[cols[s]] += ps[s].T @ rc[s]
-                q[:, cols[s]] += ps[s]
-            jtj -= (q.T @ q) / ns
+                own = slice(edges[s], edges[s + 1])
+                jtr[cols[s]] += rhs[s]
+                for s2 in range(ns):
+                    pair = gram[own, edges[s2]:edges[s2 + 1]]
+                    jtj[np.ix_(cols[s], cols[s2])] += pair * ((1.0 if s == s2 else 0.0) - 1.0 / ns)
             return (r, jtj, jtr) + extra
+        ps = [p.reshape(2 * n, -1) for p in self._consistency_derivatives(fields, derivs, basis)]
         wc = weights[ns * n:].reshape(ns, 2 * n)
         centring = np.eye(ns) - 1.0 / ns
         weighted_r = centring.T @ (wc * rc)  # sum_k c_ks W_k r_k, per s
@@ -415,6 +512,81 @@ class Problem:
                 pair = (centring[:, s] * centring[:, s2]) @ wc
                 jtj[np.ix_(cols[s], cols[s2])] += ps[s].T @ (pair[:, None] * ps[s2])
         return (r, jtj, jtr) + extra
+
+
+class _Derivative:
+    """dB/dx of one sensor's corrected field, kept as its factors (see :meth:`Problem.field_derivatives`).
+
+    ``cols`` are the parameter indices the sensor's field depends on; :meth:`project` gives ``w_n . dB_n/dx``
+    for a direction per sample (N, k) and :meth:`dense` the whole (N, 3, k) array (tests, small problems).
+    """
+
+    def __init__(self, start, base, z, rot, rc, b_rot, raw, vector):
+        self._base, self._z, self._rot, self._rc, self._b_rot = base, z, rot, rc, b_rot
+        self._raw, self._vector = raw, vector
+        self._zt = self._bt = None
+        cols = [start + i for i in range(len(base))]
+        for sl, _ in raw + vector:
+            cols.extend(range(sl.start, sl.stop))
+        self.cols = np.asarray(cols, dtype=int)
+
+    def project(self, w, out=None, rows=None):
+        """``sum_i w[n, i] dB[n, i]/dx_k`` (N, k) for directions ``w`` (N, 3); with ``rows`` (a slice), for those
+        samples only (``w`` then has their directions)."""
+        n = len(w)
+        out = np.empty((len(self.cols), n)).T if out is None else out
+        if self._zt is None:  # components as contiguous rows, once for all the directions projected on
+            self._zt, self._bt = np.ascontiguousarray(self._z.T), np.ascontiguousarray(self._b_rot.T)
+        rows = slice(None) if rows is None else rows
+        zt, bt = self._zt[:, rows], self._bt[:, rows]
+        wt = w.T
+        wr = self._rot.T @ wt  # (R^T w)_i: an entry (i, j) of C^-1 moves B by R e_i z_j
+        wrc = None
+        for col, (kind, a, bcol, tied) in enumerate(self._base):
+            if kind == "c":
+                np.multiply(wr[a], zt[bcol], out=out[:, col])
+                if tied is not None:
+                    out[:, col] -= tied * wr[2] * zt[2]
+            elif kind == "b":
+                wrc = self._rc.T @ wt if wrc is None else wrc
+                np.negative(wrc[a], out=out[:, col])
+            else:  # w . (e_a x B) = (B x w)_a
+                i, j = ((1, 2), (2, 0), (0, 1))[a]
+                np.multiply(bt[i], wt[j], out=out[:, col])
+                out[:, col] -= bt[j] * wt[i]
+        col = len(self._base)
+        for sl, basis in self._raw:
+            wrc = self._rc.T @ wt if wrc is None else wrc
+            q = sl.stop - sl.start
+            np.negative(np.einsum("in,niq->nq", wrc, basis[rows]), out=out[:, col:col + q])
+            col += q
+        for sl, basis in self._vector:
+            q = sl.stop - sl.start
+            out[:, col:col + q] = np.einsum("ni,niq->nq", w, basis[rows])
+            col += q
+        return out
+
+    def dense(self):
+        """The whole derivative (N, 3, k)."""
+        n = len(self._z)
+        return np.stack([self.project(np.broadcast_to(np.eye(3)[i], (n, 3))) for i in range(3)], axis=1)
+
+
+def _row_blocks(n, width):
+    """Slices of ``range(n)`` for accumulating products of an (N, ``width``) matrix block by block: about 2 MB of
+    it per block (at least 1 024 rows)."""
+    step = max(1024, (1 << 18) // max(int(width), 1))
+    return [slice(a, min(a + step, n)) for a in range(0, n, step)]
+
+
+class _Rows:
+    """Rows ``start:stop`` of a dataset, as much of it as a model of base terms reads (views, no copy)."""
+
+    def __init__(self, dataset, start, stop):
+        self.readings_nT = dataset.readings_nT[:, start:stop]
+        self.ref_total_nT = None if dataset.ref_total_nT is None else dataset.ref_total_nT[start:stop]
+        self.n_sensors, self.n_samples = dataset.n_sensors, stop - start
+        self.source = dataset.source
 
 
 @dataclass
@@ -456,8 +628,15 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     pushes out of is held for that step, and the step is clipped into the bounds.
 
     Stops when the relative cost reduction, both actual and predicted, is below ``ftol``, or the scaled step is
-    below ``xtol`` relative to the scaled parameters. ``J^T W J`` is returned from the last iterate where it
-    was evaluated, which differs from the returned ``x`` by at most that last, converged step.
+    below ``xtol`` relative to the scaled parameters, or, when the problem's Jacobian is exact
+    (``problem.exact_jacobian``: base terms only), before taking it when the next, barely damped step would lower
+    the cost by less than ``ftol`` relative: the minimum is then reached to well within the parameters' standard
+    errors (``ftol`` of the cost is ``ftol m / 2`` noise variances). With an effect's approximate Jacobian the
+    predicted reduction does not measure the distance to the minimum, so only the actual reduction stops. After an accepted step
+    the trial point's normal equations are evaluated at once instead of its residuals alone, since they are the
+    next iteration's when it is accepted: near the minimum one pass over the data per iteration. ``J^T W J`` is
+    returned from the last iterate where it was evaluated, which differs from the returned ``x`` by at most that
+    last, converged step.
     """
     from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
@@ -482,10 +661,14 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     if bounded:
         x = np.clip(x, lower, upper)
     r, jtj, jtr = equations(x)
+    if not np.all(np.isfinite(r)):
+        raise CalibrationError("the starting calibration gives non-finite residuals; check the data for NaN")
     nfev, cost = 1, cost_of(r)
     diag = np.maximum(np.diag(jtj), 0.0)
     d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
     lam, nu = 1e-3, 2.0
+    optimistic = True
+    exact = bool(getattr(problem, "exact_jacobian", False))
     message, status = "maximum number of evaluations reached", 0
     while nfev < max_nfev:
         if not np.all(np.isfinite(jtj)) or not np.all(np.isfinite(jtr)):
@@ -510,41 +693,55 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
                 message, status = "the normal equations are singular", -1
                 break
             continue
+        predicted = -(step @ jtr + 0.5 * step @ jtj @ step)
+        small_step = np.sqrt(step**2 @ d) <= xtol * (np.sqrt(x**2 @ d) + xtol)
+        if exact and lam <= 1e-2 and (predicted <= ftol * cost or small_step):
+            # the (nearly undamped) Gauss-Newton step from here lowers the cost by less than the tolerance
+            message = "converged: the next step would lower the cost by less than the tolerance"
+            status = 3 if small_step else 2
+            break
         x_new = x + step
+        # after an accepted step the trial point's normal equations are computed at once (they are the next
+        # iteration's if it is accepted, as it nearly always is near the minimum); after a refusal, only its
+        # residuals
         with np.errstate(over="ignore", invalid="ignore"):  # a wild trial step is refused below, not warned
-            r_new = problem.residuals(x_new)
+            trial = equations(x_new) if optimistic else None
+            r_new = trial[0] if trial is not None else problem.residuals(x_new)
         nfev += 1
         cost_new = cost_of(r_new)
-        predicted = -(step @ jtr + 0.5 * step @ jtj @ step)
         actual = cost - cost_new
         rho_gain = actual / predicted if predicted > 0 else -1.0
-        small_step = np.sqrt(step**2 @ d) <= xtol * (np.sqrt(x**2 @ d) + xtol)
         if rho_gain > 0:
             x, r, cost = x_new, r_new, cost_new
             lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), 2.0
+            if trial is not None:
+                r, jtj, jtr = trial
             if (abs(actual) <= ftol * cost and predicted <= ftol * cost) or small_step:
                 message = "converged: the relative cost reduction or step is below tolerance"
                 status = 3 if small_step else 2
                 break
-            r, jtj, jtr = equations(x)
-            nfev += 1
+            if trial is None:
+                r, jtj, jtr = equations(x)
+                nfev += 1
             d = np.maximum(d, np.diag(jtj))
+            optimistic = True
         else:
             if small_step:
                 message, status = "converged: no smaller step reduces the cost", 3
                 break
             lam, nu = lam * nu, nu * 2
+            optimistic = False
     return _Solution(x=x, r=r, jtj=jtj, nfev=nfev, message=message, status=status)
 
 
 def _perpendicular_basis(vectors):
     """Two unit vectors per row, perpendicular to each row of ``vectors`` (N, 3) and to each other."""
-    u = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    u = vectors / row_norm(vectors)[..., None]
     helper = np.zeros_like(u)
     helper[np.arange(len(u)), np.argmin(np.abs(u), axis=1)] = 1.0
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    return e1, np.cross(u, e1)
+    e1 = cross_rows(u, helper)
+    e1 /= row_norm(e1)[..., None]
+    return e1, cross_rows(u, e1)
 
 
 @dataclass
@@ -760,22 +957,28 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         ref0, kind0 = resolve_reference(kept, reference_total_nT)
         start_fields = corrected_fields(kept, init.sensors)
         if kind0 == "fitted":
-            expected0 = init.reference_total_nT or float(np.mean(np.linalg.norm(start_fields, axis=2)))
+            expected0 = init.reference_total_nT or float(np.mean(row_norm(start_fields)))
         else:
             expected0 = expected_total_field(kept, ref0)
-        base_resid = np.linalg.norm(start_fields, axis=2) - expected0
+        base_resid = row_norm(start_fields) - expected0
         for e in model.effects:
             e.configure(kept, base_resid)
 
     problem = Problem(kept, model, init, reference_total_nT)
-    r_start = problem.residuals(problem.x0)
-    if not np.all(np.isfinite(r_start)):
-        raise CalibrationError("the starting calibration gives non-finite residuals; check the data for NaN")
     if loss not in LOSSES:
         raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
     if loss == "linear":
-        sol = _levenberg_marquardt(problem, problem.x0, max_nfev=max_nfev)
-        x, nfev, r, jtj = sol.x, sol.nfev, sol.r, sol.jtj
+        x0, nfev0 = problem.x0, 0
+        if not model.effects and problem.n_samples > 2 * WARMUP_SAMPLES:
+            # converge on an even subsample first (same parametrisation: the same model and start), so that the
+            # passes over every sample start next to their minimum
+            every = int(np.ceil(problem.n_samples / WARMUP_SAMPLES))
+            warm = _levenberg_marquardt(Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init,
+                                                reference_total_nT), problem.x0, max_nfev=max_nfev)
+            if warm.status > 0:
+                x0, nfev0 = warm.x, warm.nfev
+        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev)
+        x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
         # converges, so that gross outliers stop pulling on it.
@@ -804,7 +1007,10 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         cov = np.full((p, p), np.nan)
 
     calibration = problem.calibration(x)
-    resid_all = calibration.total_field_residuals(dataset)
+    if mask.all() and not model.effects:  # the fitted rows are every sample's residual already
+        resid_all = tf.copy()
+    else:
+        resid_all = calibration.total_field_residuals(dataset)
     resid = np.where(mask[None, :], resid_all, np.nan)
     sigma_robust = robust_sigma(tf, floor=1e-9)
     outliers = np.zeros(n_all, bool)

@@ -127,6 +127,10 @@ class Effect:
     min_sensors: ClassVar[int] = 1
     description: ClassVar[str] = ""
     transferable: ClassVar[bool] = True
+    #: The basis depends on the readings or the field (``z0``, ``B``), not only on channels such as time and
+    #: temperature. The fitter leaves that dependence out of its Jacobian, so only a model whose effects all
+    #: declare False has an exact one (:attr:`magcal.fit.Problem.exact_jacobian`). Plug-ins keep the safe True.
+    basis_uses_readings: ClassVar[bool] = True
 
     sensor: int | None = None
 

@@ -42,6 +42,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import comb
 
+from .vectors import row_norm
+
 #: MAD -> standard deviation for Gaussian data: 1 / Phi^-1(3/4).
 MAD_TO_SIGMA = 1.4826
 
@@ -181,7 +183,7 @@ def is_smooth_sequence(dataset) -> bool:
     y = dataset.readings_nT[0]
     if len(y) < 20:
         return False
-    step = np.median(np.linalg.norm(np.diff(y, axis=0), axis=1))
+    step = np.median(row_norm(np.diff(y, axis=0)))
     spread = np.sqrt(np.sum(np.var(y, axis=0)))
     return bool(step < 0.25 * spread)
 
@@ -241,24 +243,34 @@ def fresh_samples(readings_nT) -> np.ndarray:
     return ~stale_mask(readings_nT)
 
 
-def quantization_floor_nT(readings_nT) -> float | None:
-    """``q / sqrt(12)`` (nT) of one sensor's readings, ``q`` the root mean square over the axes of their
-    quantization steps (:func:`magcal.quality.quantization_step`); None when no axis shows a step."""
+def quantization_steps_nT(readings_nT) -> list:
+    """The quantization step (nT, or None) of each axis of one sensor's readings (N, 3)
+    (:func:`magcal.quality.quantization_step`)."""
     from .quality import quantization_step
 
-    steps = [quantization_step(np.asarray(readings_nT, float)[:, k]) for k in range(3)]
+    y = np.asarray(readings_nT, float)
+    return [quantization_step(y[:, k]) for k in range(3)]
+
+
+def quantization_floor_nT(readings_nT, steps_nT=None) -> float | None:
+    """``q / sqrt(12)`` (nT) of one sensor's readings, ``q`` the root mean square over the axes of their
+    quantization steps (:func:`quantization_steps_nT`, or ``steps_nT`` when the caller has them); None when no
+    axis shows a step."""
+    steps = quantization_steps_nT(readings_nT) if steps_nT is None else steps_nT
     steps = [q for q in steps if q is not None]
     if not steps:
         return None
     return float(np.sqrt(np.mean(np.square(steps)) / 12.0))
 
 
-def still_noise_nT(dataset):
+def still_noise_nT(dataset, steps_nT=None):
     """Noise of each sensor measured in its still stretches (:func:`magcal.quality.static_stretches`).
 
     Parameters
     ----------
     dataset : magcal.dataset.Dataset
+    steps_nT : list, optional
+        Per sensor, the axes' quantization steps (:func:`quantization_steps_nT`) when the caller has them.
 
     Returns
     -------
@@ -279,7 +291,8 @@ def still_noise_nT(dataset):
     diff_nT, scatter_nT, samples = np.full(ns, np.nan), np.full(ns, np.nan), np.zeros(ns, int)
     for s in range(ns):
         y = np.asarray(dataset.readings_nT[s], float)
-        stretches = static_stretches(y, window=static_window(len(y), interval))
+        stretches = static_stretches(y, window=static_window(len(y), interval),
+                                     steps_nT=None if steps_nT is None else steps_nT[s])
         scatter = static_scatter_nT(y, stretches)
         if scatter is not None:
             scatter_nT[s] = float(np.sqrt(np.mean(np.square(scatter))))
@@ -335,10 +348,11 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
 
     r = np.asarray(residuals_nT, dtype=float)
     ns = r.shape[0]
-    still_nT, scatter_nT, still_samples = still_noise_nT(dataset)
+    steps = [quantization_steps_nT(y) for y in dataset.readings_nT]
+    still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
     static = None if np.all(np.isnan(still_nT)) else still_nT
     scatter = None if np.all(np.isnan(scatter_nT)) else scatter_nT
-    floors = [quantization_floor_nT(dataset.readings_nT[s]) for s in range(ns)]
+    floors = [quantization_floor_nT(y, q) for y, q in zip(dataset.readings_nT, steps)]
     q_floor = None if all(f is None for f in floors) else np.array([f or 0.0 for f in floors])
     declared, where = noise_nT, "given by the user"
     if declared is None and dataset.noise_nT:

@@ -31,11 +31,12 @@ import numpy as np
 
 from . import conventions
 from .calibration import Calibration, SensorCalibration, expected_total_field
-from .ellipsoid import fit_ellipsoid
+from .ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from .errors import CalibrationError, CoverageWarning, DataWarning
 from .fit import resolve_reference
 from .noise import estimate_noise, robust_sigma
 from .procrustes import procrustes_rotation
+from .vectors import row_norm
 
 #: Methods of :func:`calibrate`: the two seed steps alone, or followed by maximum likelihood.
 METHODS = ("ml", "ellipsoid")
@@ -209,7 +210,7 @@ def _has_tensor(dataset) -> bool:
 
 def _evaluate(name, description, vectors_nT, expected_nT, dataset, wall_s) -> StepSummary:
     """Figures of one step from the array-frame vectors (n_sensors, N, 3) of the kept samples."""
-    dev = np.linalg.norm(vectors_nT, axis=2) - expected_nT
+    dev = row_norm(vectors_nT) - expected_nT
     diff = None
     if vectors_nT.shape[0] > 1:
         diff = np.sqrt(np.mean(np.sum((vectors_nT - vectors_nT[0]) ** 2, axis=2), axis=1))
@@ -234,7 +235,7 @@ def _expected(dataset, calibration, reference_kind):
 
 
 def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=None, reference_kind="given",
-                   robust=False):
+                   robust=False, max_samples=None):
     """Step 1 for every sensor; with an unknown field, all sensors share sensor 1's fitted magnitude.
 
     Parameters
@@ -248,6 +249,9 @@ def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=Non
         ``given``, ``column`` or ``fitted`` (see :func:`magcal.fit.resolve_reference`).
     robust : bool
         Refit once without samples beyond :data:`ROBUST_START_SIGMA` robust standard deviations.
+    max_samples : int, optional
+        Fit each ellipsoid to an even subsample of at most this many samples (a start for maximum likelihood,
+        :data:`magcal.ellipsoid.START_MAX_SAMPLES`); the inliers are still judged on every sample.
 
     Returns
     -------
@@ -260,14 +264,15 @@ def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=Non
     else:
         field_nT = reference_total_nT
     inliers = np.ones(dataset.n_samples, bool)
-    fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, label=f"sensor {s + 1}")
+    fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, label=f"sensor {s + 1}", max_samples=max_samples)
             for s, y in enumerate(dataset.readings_nT)]
     if robust:
         for s, (f, y) in enumerate(zip(fits, dataset.readings_nT)):
-            dev = np.linalg.norm(f.correct(y), axis=1) - f.field_nT
+            dev = row_norm(f.correct(y)) - f.field_nT
             inliers &= np.abs(dev - np.median(dev)) <= ROBUST_START_SIGMA * robust_sigma(dev, floor=1e-9)
         if not inliers.all():
-            fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, mask=inliers, label=f"sensor {s + 1}")
+            fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, mask=inliers, label=f"sensor {s + 1}",
+                                  max_samples=max_samples)
                     for s, y in enumerate(dataset.readings_nT)]
     if reference_kind == "fitted" and len(fits) > 1:
         common = fits[0].field_nT  # det C^-1 = 1 for sensor 1, the fitter's gauge
@@ -464,7 +469,7 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     if method in SEARCH_METHODS:
         _search_steps(run, method, seed, reference_total_nT)
     else:
-        _start_steps(run, ellipsoid_method, robust)
+        _start_steps(run, ellipsoid_method, robust, start_only=method == "ml")
         if method == "ml":
             _ml_step(run, model, robust, reference_total_nT)
     run.report("evaluating", 0.9)
@@ -537,12 +542,16 @@ def _search_steps(run: _Run, method, seed, reference_total_nT) -> None:
         run.add_step(method, f"global search ({method})", calibration, t0)
 
 
-def _start_steps(run: _Run, ellipsoid_method, robust) -> None:
-    """The seed's two steps: an ellipsoid per sensor, then (arrays) Procrustes between the sensors."""
+def _start_steps(run: _Run, ellipsoid_method, robust, start_only=False) -> None:
+    """The seed's two steps: an ellipsoid per sensor, then (arrays) Procrustes between the sensors.
+
+    ``start_only``: the steps only start maximum likelihood, so each ellipsoid is fitted to an even subsample of
+    at most :data:`magcal.ellipsoid.START_MAX_SAMPLES` samples (ML then fits every sample)."""
     kept = run.kept
     run.report("step 1: ellipsoid fit per sensor", 0.0)
     t0 = time.perf_counter()
-    run.ellipsoids, run.inliers = ellipsoid_step(kept, ellipsoid_method, run.ref_value, run.ref_kind, robust=robust)
+    run.ellipsoids, run.inliers = ellipsoid_step(kept, ellipsoid_method, run.ref_value, run.ref_kind, robust=robust,
+                                                 max_samples=START_MAX_SAMPLES if start_only else None)
     for f in run.ellipsoids:
         run.notes.extend(f.warnings)
     step1 = two_step_calibration(kept, run.ellipsoids, [np.eye(3)] * len(run.ellipsoids), run.ref_kind)

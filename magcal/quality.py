@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .noise import robust_sigma
+from .vectors import row_norm
 
 #: An interval longer than this many median intervals is a gap.
 GAP_FACTOR = 3.0
@@ -420,18 +421,21 @@ def _common_step(values, min_levels=MIN_LEVELS, max_divisor=50):
         return None, d
     sample = d if d.size <= 4000 else d[np.linspace(0, d.size - 1, 4000).astype(int)]
     bases = np.unique(np.sort(d)[:5])
+    # every candidate step base / k at once: the share of the sample's differences near a multiple of each
+    candidates = bases[:, None] / np.arange(1, max_divisor + 1)[None, :]
+    ratio = sample[None, None, :] / candidates[..., None]
+    shares = np.mean(np.abs(ratio - np.round(ratio)) <= MULTIPLE_TOL, axis=2)
     best = None
-    for base in bases:
-        for k in range(1, max_divisor + 1):
-            q = base / k
-            if best is not None and q <= best:
-                break
-            if q <= 10 * eps:
-                break
-            if _multiple_share(sample, q) >= MULTIPLE_SHARE:
-                if sample is d or _multiple_share(d, q) >= MULTIPLE_SHARE:
-                    best = float(q)
-                break
+    for row, share in zip(candidates, shares):
+        # the divisors of this base in turn, stopping at the first that passes (or once q is no candidate)
+        usable = (row > 10 * eps) if best is None else (row > 10 * eps) & (row > best)
+        stop = np.flatnonzero(~usable)
+        last = stop[0] if stop.size else row.size
+        passing = np.flatnonzero(share[:last] >= MULTIPLE_SHARE)
+        if passing.size:
+            q = row[passing[0]]
+            if sample is d or _multiple_share(d, q) >= MULTIPLE_SHARE:
+                best = float(q)
     return best, d
 
 
@@ -600,12 +604,15 @@ def clipping_finding(readings_nT, sensor=None, keep=None) -> Finding:
 # -- static stretches ----------------------------------------------------------------------------------------------
 def _window_std(x, w):
     """Per-axis standard deviation (ddof 0) of every window of ``w`` consecutive rows, shape (N - w + 1, 3)."""
-    x = x - np.median(x, axis=0)
-    c1 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    c2 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
-    mean = (c1[w:] - c1[:-w]) / w
-    var = (c2[w:] - c2[:-w]) / w - mean**2
-    return np.sqrt(np.maximum(var, 0.0))
+    xt = np.ascontiguousarray((x - np.median(_even(x), axis=0)).T)  # axis by axis: contiguous running sums
+    out = np.empty((x.shape[0] - w + 1, x.shape[1]))
+    for k, col in enumerate(xt):
+        c1 = np.concatenate([[0.0], np.cumsum(col)])
+        c2 = np.concatenate([[0.0], np.cumsum(col * col)])
+        mean = (c1[w:] - c1[:-w]) / w
+        var = (c2[w:] - c2[:-w]) / w - mean * mean
+        out[:, k] = np.sqrt(np.maximum(var, 0.0))
+    return out
 
 
 #: Most values a robust scale (a median) of this module is taken from: an even subsample of longer series.
@@ -650,7 +657,7 @@ def static_window(n_samples, interval_s=None) -> int:
     return int(max(3, min(w, n_samples // 2)))
 
 
-def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW):
+def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW, steps_nT=None):
     """Stretches where the vector moves no more than the noise.
 
     A window of ``window`` samples is static when every axis's standard deviation in it is at most
@@ -665,6 +672,8 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW):
         Per-axis noise; default :func:`motion_noise_nT` of the readings.
     window : int
         Window length, samples.
+    steps_nT : sequence of float or None, optional
+        The axes' quantization steps (:func:`quantization_step`) when the caller has them already.
 
     Returns
     -------
@@ -676,18 +685,16 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW):
     if n < 2 * window:
         return []
     sigma = motion_noise_nT(y) if noise_nT is None else float(noise_nT)
-    q = [quantization_step(y[:, k]) for k in range(3)]
+    q = [quantization_step(y[:, k]) for k in range(3)] if steps_nT is None else list(steps_nT)
     sigma = max(sigma, max((s for s in q if s is not None), default=0.0) / np.sqrt(12), 1e-3)
     ys = _even(y)
-    field_nT = float(np.median(np.linalg.norm(ys - np.median(ys, axis=0), axis=1)))
-    field_nT = max(field_nT, float(np.median(np.linalg.norm(ys, axis=1))))
+    field_nT = float(np.median(row_norm(ys - np.median(ys, axis=0))))
+    field_nT = max(field_nT, float(np.median(row_norm(ys))))
     limit = min(STATIC_SIGMAS * sigma, STATIC_FIELD_FRACTION * field_nT) if field_nT > 0 else STATIC_SIGMAS * sigma
     quiet = np.all(_window_std(y, window) <= limit, axis=1)
-    covered = np.zeros(n + 1, dtype=np.int64)
-    starts = np.flatnonzero(quiet)
-    np.add.at(covered, starts, 1)
-    np.add.at(covered, starts + window, -1)
-    mask = np.cumsum(covered)[:n] > 0
+    # sample i is covered when a quiet window starts in [i - window + 1, i]
+    starts = np.concatenate([[0], np.cumsum(quiet), np.full(window - 1, int(quiet.sum()))])
+    mask = (starts[1:n + 1] - starts[np.maximum(np.arange(n) - window + 1, 0)]) > 0
     return [(int(a), int(b)) for a, b in _runs(mask) if b - a >= 2 * window]
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import conventions
+from .vectors import row_norm
 
 #: Numbers per sensor in ``theta``: ``M`` row by row (9), then the bias (3).
 THETA_PER_SENSOR = 12
@@ -120,7 +121,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None) -> dict | None:
         for k in range(3):
             H[:, 3 * s + k] = z @ rows[3 * k: 3 * k + 3] - (M[k] @ rows[9:12])[None, :]
     vector_sd = np.sqrt(np.sum(H * H, axis=2)).reshape(n, ns, 3).transpose(1, 0, 2)
-    unit = corrected_nT / np.linalg.norm(corrected_nT, axis=2, keepdims=True)
+    unit = corrected_nT / row_norm(corrected_nT)[..., None]
     total = np.einsum("snk,nskr->snr", unit, H.reshape(n, ns, 3, -1))
     out = {"vector_sd_nT": vector_sd, "total_sd_nT": np.sqrt(np.sum(total * total, axis=2))}
     if ns == 4 and calibration.baseline_m:

@@ -38,6 +38,7 @@ import numpy as np
 
 from .calibration import is_transferable
 from .errors import MagcalError
+from .vectors import row_norm
 
 SCHEMES = ("blocks", "later")
 
@@ -255,7 +256,7 @@ def _held_at_training_average(cal, train_ds, test_ds):
     with_terms = cal.correct(train_ds, record_terms="apply")
     without = cal.correct(train_ds, record_terms="drop")
     vector_offset = np.mean(with_terms - without, axis=1, keepdims=True)  # (n_sensors, 1, 3)
-    norm = np.linalg.norm(with_terms, axis=2)
+    norm = row_norm(with_terms)
     expected_with = norm - cal.total_field_residuals(train_ds, with_terms, record_terms="apply")
     expected_without = norm - cal.total_field_residuals(train_ds, with_terms, record_terms="drop")
     reference_offset = np.mean(expected_with - expected_without, axis=1, keepdims=True)  # (n_sensors, 1)
@@ -280,7 +281,7 @@ def relevel(residuals_nT, vectors_nT):
     n = r.shape[1]
     tau = np.linspace(-1.0, 1.0, n)[:, None] if n > 1 else np.zeros((n, 1))
     for s in range(r.shape[0]):
-        u = v[s] / np.linalg.norm(v[s], axis=1, keepdims=True)
+        u = v[s] / row_norm(v[s])[..., None]
         design = np.column_stack([u, u * tau, -np.ones(n), -tau[:, 0]])
         coef, *_ = np.linalg.lstsq(design, -r[s], rcond=None)
         r[s] += design @ coef
@@ -297,7 +298,7 @@ def consistency_rms_nT(vectors) -> float | None:
     if ns < 2:
         return None
     mean = v.mean(axis=0)
-    u = mean / np.linalg.norm(mean, axis=1, keepdims=True)
+    u = mean / row_norm(mean)[..., None]
     diff = v - mean
     perp = diff - np.einsum("sni,ni->sn", diff, u)[..., None] * u
     return float(np.sqrt(np.sum(perp**2) * ns / (ns - 1) / (2 * ns * v.shape[1])))

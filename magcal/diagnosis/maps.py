@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .statistics import SH_DEGREE, SH_MAX_SAMPLES, real_sph_harm, sh_resolved_degrees
+from ..vectors import row_norm
 
 #: A vertex farther than this from every sample direction is not supported by the data (deg).
 SUPPORT_CAP_DEG = 30.0
@@ -119,7 +120,7 @@ def corrected_directions(dataset, calibration) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # record-only terms on their own record: nothing to say here
         b = calibration.correct(dataset)
-    norm = np.linalg.norm(b, axis=2, keepdims=True)
+    norm = row_norm(b)[..., None]
     return b / np.where(norm > 0, norm, 1.0)
 
 
