@@ -572,10 +572,16 @@ class _Derivative:
         return np.stack([self.project(np.broadcast_to(np.eye(3)[i], (n, 3))) for i in range(3)], axis=1)
 
 
+#: Elements of an (N, k) matrix built at once when its products are accumulated block by block (2 MB), and the
+#: fewest rows of a block (:func:`_row_blocks`).
+ROW_BLOCK_ELEMENTS = 1 << 18
+MIN_BLOCK_ROWS = 1024
+
+
 def _row_blocks(n, width):
-    """Slices of ``range(n)`` for accumulating products of an (N, ``width``) matrix block by block: about 2 MB of
-    it per block (at least 1 024 rows)."""
-    step = max(1024, (1 << 18) // max(int(width), 1))
+    """Slices of ``range(n)`` for accumulating products of an (N, ``width``) matrix block by block
+    (:data:`ROW_BLOCK_ELEMENTS` per block, at least :data:`MIN_BLOCK_ROWS` rows)."""
+    step = max(MIN_BLOCK_ROWS, ROW_BLOCK_ELEMENTS // max(int(width), 1))
     return [slice(a, min(a + step, n)) for a in range(0, n, step)]
 
 

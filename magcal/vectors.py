@@ -18,6 +18,8 @@ def row_norm(vectors) -> np.ndarray:
     array([5., 2.])
     """
     v = np.asarray(vectors, dtype=float)
+    if v.ndim == 1:
+        return np.sqrt(v @ v)
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     out = x * x
     out += y * y

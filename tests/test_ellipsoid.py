@@ -221,3 +221,33 @@ def test_refusal_of_a_cap_names_the_coverage(seed):
     with pytest.raises(CalibrationError, match=r"cover only \d+% of the sphere of directions") as exc:
         fit_ellipsoid(y)
     assert "do not lie on an ellipsoid" in str(exc.value)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_gram_matrix_accumulated_in_blocks_gives_the_whole_designs_solution(monkeypatch, method):
+    """Block by block (a few dozen rows each) the quadric is the one of the whole design matrix: numpy's lstsq of
+    it for the algebraic fit, the unblocked eigenproblem for Li-Griffiths."""
+    import magcal.ellipsoid as ell
+
+    y = _single_sensor_readings(chi2017_truth().sensors[2], 700, 3.0, seed=4)
+    p = (y - y.mean(axis=0)) / 5e4
+    whole = ell._coefficients_algebraic(p) if method == "algebraic" else ell._coefficients_li_griffiths(p)
+    monkeypatch.setattr(ell, "BLOCK_ROWS", 37)
+    blocked = ell._coefficients_algebraic(p) if method == "algebraic" else ell._coefficients_li_griffiths(p)
+    scale = np.abs(whole).max()
+    np.testing.assert_allclose(blocked / scale, whole / scale, rtol=0, atol=1e-12)
+    if method == "algebraic":
+        rows = ell._algebraic_rows(p)
+        reference = np.linalg.lstsq(rows[:, :-1], rows[:, -1], rcond=None)[0]
+        np.testing.assert_allclose(np.delete(blocked, 2), reference, rtol=0, atol=1e-12 * np.abs(reference).max())
+
+
+def test_a_start_fits_an_even_subsample_of_at_most_max_samples():
+    y = _single_sensor_readings(chi2017_truth().sensors[1], 1000, 3.0, seed=5)
+    start = fit_ellipsoid(y, max_samples=300)
+    every = int(np.ceil(1000 / 300))
+    same = fit_ellipsoid(y[::every])
+    assert start.n_samples == same.n_samples == len(y[::every])
+    np.testing.assert_allclose(start.cinv, same.cinv, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(start.bias_nT, same.bias_nT, rtol=0, atol=1e-9)
+    assert fit_ellipsoid(y, max_samples=5000).n_samples == 1000

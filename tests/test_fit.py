@@ -340,3 +340,67 @@ def test_a_converged_fit_reports_success():
         result = fit(ds)
     assert result.success and result.status in (1, 2, 3)
     assert result.summary()["message"].startswith(("converged", "gradient"))
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Row blocks of a few dozen samples, so that a 400-sample problem is accumulated in many blocks."""
+    import importlib
+
+    fit_module = importlib.import_module("magcal.fit")
+    monkeypatch.setattr(fit_module, "BLOCK_ROWS", 97)
+    monkeypatch.setattr(fit_module, "MIN_BLOCK_ROWS", 13)
+    monkeypatch.setattr(fit_module, "ROW_BLOCK_ELEMENTS", 600)
+    return fit_module
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("n_sensors, effects, reference", PROBLEMS)
+def test_normal_equations_in_row_blocks_equal_the_dense_products(small_blocks, n_sensors, effects, reference,
+                                                                 weighted):
+    """Accumulated over many row blocks (and, for base terms, evaluated block by block) the normal equations are
+    the dense Jacobian's."""
+    _, model, problem = _timeseries_problem(n_sensors, effects, reference)
+    rng = np.random.default_rng(5)
+    x = problem.x0 + problem.x_scale * rng.normal(0, 3, problem.x0.size)
+    weights = rng.uniform(0.1, 1.0, problem.n_residuals) if weighted else None
+    if not model.effects:
+        assert problem._row_blocks() is not None and len(problem._row_blocks()) > 3
+    jac, r_dense = problem.jacobian(x), problem.residuals(x)
+    w = np.ones(r_dense.size) if weights is None else weights
+    r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(x, weights=weights, with_total_field=True)
+    expected_jtj, expected_jtr = jac.T @ (w[:, None] * jac), jac.T @ (w * r_dense)
+    np.testing.assert_allclose(r, r_dense, rtol=0, atol=1e-9 * np.abs(r_dense).max())
+    np.testing.assert_allclose(jtj, expected_jtj, rtol=1e-9, atol=1e-9 * np.abs(expected_jtj).max())
+    np.testing.assert_allclose(jtr, expected_jtr, rtol=1e-8, atol=1e-9 * np.abs(expected_jtr).max())
+    tf = problem.total_field_rows
+    tf_jtj = jac[tf].T @ (w[tf, None] * jac[tf])
+    np.testing.assert_allclose(jtj_tf, tf_jtj, rtol=1e-9, atol=1e-9 * np.abs(tf_jtj).max())
+
+
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_derivative_projection_is_the_dense_derivative_on_a_direction(n_sensors):
+    _, _, problem = _timeseries_problem(n_sensors, ("temperature_bias", "nonlinearity_quadratic"), None)
+    fields, derivs = problem.field_derivatives(problem.x0)
+    w = np.random.default_rng(6).normal(size=(problem.n_samples, 3))
+    for d in derivs:
+        np.testing.assert_allclose(d.project(w), np.einsum("ni,nik->nk", w, d.dense()), rtol=1e-12, atol=1e-9)
+        rows = slice(31, 77)
+        np.testing.assert_allclose(d.project(w[rows], rows=rows), d.project(w)[rows], rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_a_large_record_converged_on_a_subsample_first_reaches_the_same_minimum(monkeypatch, n_sensors):
+    """The warm-up on an even subsample only changes where the fit of every sample starts, not where it ends."""
+    import importlib
+
+    fit_module = importlib.import_module("magcal.fit")
+    ds = simulate(chi2017_truth(n_sensors), n_samples=1500, noise_nT=3.0, seed=8)
+    init = crude_initial_calibration(ds)
+    monkeypatch.setattr(fit_module, "WARMUP_SAMPLES", 10**9)
+    direct = fit(ds, init=init)
+    monkeypatch.setattr(fit_module, "WARMUP_SAMPLES", 200)
+    warmed = fit(ds, init=init)
+    assert warmed.rss <= direct.rss * (1 + 1e-9)
+    assert np.max(np.abs(warmed.x - direct.x) / direct.std) < 1e-2
+    assert warmed.success

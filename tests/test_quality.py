@@ -367,3 +367,50 @@ def test_residual_growing_with_the_turn_rate(lag_nT_per_deg_s, severity):
         assert rms[3] > 1.2 * rms[0] and f.values["spearman_rho"] > 0 and "timing" in f.effect
     else:
         assert max(rms) < 1.1 * min(rms)
+
+
+def _common_step_one_by_one(values, min_levels=quality.MIN_LEVELS, max_divisor=50):
+    """The common step found by trying each base's divisors in turn (the definition quality._common_step
+    evaluates for all candidates at once)."""
+    x = np.asarray(values, dtype=float)
+    eps = 1e-9 * max(float(np.max(np.abs(x))), 1.0)
+    u = np.unique(x)
+    u = u[np.concatenate([[True], np.diff(u) > eps])]
+    d = np.diff(u)
+    if u.size < min_levels:
+        return None
+    sample = d if d.size <= 4000 else d[np.linspace(0, d.size - 1, 4000).astype(int)]
+    best = None
+    for base in np.unique(np.sort(d)[:5]):
+        for k in range(1, max_divisor + 1):
+            q = base / k
+            if (best is not None and q <= best) or q <= 10 * eps:
+                break
+            if quality._multiple_share(sample, q) >= quality.MULTIPLE_SHARE:
+                if sample is d or quality._multiple_share(d, q) >= quality.MULTIPLE_SHARE:
+                    best = float(q)
+                break
+    return best
+
+
+@pytest.mark.parametrize("kind", ["grid", "shifting", "continuous", "sparse", "two_grids"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_common_step_is_the_one_found_divisor_by_divisor(kind, seed):
+    rng = np.random.default_rng(seed)
+    n = 3000
+    if kind == "grid":
+        v = np.round(rng.normal(0, 2e4, n) / 0.15) * 0.15
+    elif kind == "shifting":
+        v = np.round(rng.normal(0, 3e3, n) / 5.0) * 5.0 + 2.0 * (rng.random(n) < 0.3)
+    elif kind == "continuous":
+        v = rng.normal(0, 2e4, n)
+    elif kind == "sparse":
+        v = np.round(rng.normal(0, 5e4, 200) / 0.1) * 0.1
+    else:
+        v = np.concatenate([np.round(rng.normal(0, 1e3, n // 2) / 3.0) * 3.0,
+                            np.round(rng.normal(0, 1e3, n // 2) / 7.0) * 7.0])
+    found, _ = quality._common_step(v)
+    expected = _common_step_one_by_one(v)
+    assert (found is None) == (expected is None)
+    if expected is not None:
+        assert found == pytest.approx(expected, rel=1e-12)

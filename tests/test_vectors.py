@@ -1,0 +1,36 @@
+"""Row-wise vector operations (magcal.vectors) against numpy's general forms."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from magcal.vectors import cross_rows, row_norm, unit_rows
+
+finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
+
+
+@pytest.mark.parametrize("shape", [(3,), (7, 3), (4, 5, 3), (0, 3)])
+def test_row_norm_is_numpys_norm_over_the_last_axis(shape):
+    v = np.random.default_rng(0).normal(0, 5e4, shape)
+    np.testing.assert_allclose(row_norm(v), np.linalg.norm(v, axis=-1), rtol=1e-15, atol=0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(a=arrays(float, (6, 3), elements=finite), b=arrays(float, (6, 3), elements=finite))
+def test_cross_rows_is_numpys_cross(a, b):
+    expected = np.cross(a, b)
+    np.testing.assert_allclose(cross_rows(a, b), expected, rtol=1e-12, atol=1e-12 * (1 + np.abs(expected).max()))
+
+
+def test_cross_rows_broadcasts_one_vector_against_many():
+    a = np.random.default_rng(1).normal(size=(5, 3))
+    np.testing.assert_allclose(cross_rows(a, [0.0, 0.0, 1.0]), np.cross(a, [0.0, 0.0, 1.0]))
+
+
+def test_unit_rows_have_unit_length_and_keep_direction():
+    v = np.random.default_rng(2).normal(0, 3e4, (50, 3))
+    u = unit_rows(v)
+    np.testing.assert_allclose(row_norm(u), 1.0, rtol=1e-15)
+    np.testing.assert_allclose(np.sum(u * v, axis=1), row_norm(v), rtol=1e-12)
