@@ -71,7 +71,7 @@ class RecordHasher:
             if t.size:
                 self.time_start_s = float(t[0]) if self.time_start_s is None else self.time_start_s
                 self.time_end_s = float(t[-1])
-        self._hash.update(np.ascontiguousarray(rows, dtype="<f8").tobytes())
+        self._hash.update(np.ascontiguousarray(rows, dtype="<f8"))  # the buffer itself: no copy of its bytes
         self.n_samples += int(dataset.n_samples)
 
     def fingerprint(self) -> dict:

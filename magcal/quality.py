@@ -423,8 +423,16 @@ def _common_step(values, min_levels=MIN_LEVELS, max_divisor=50):
     bases = np.unique(np.sort(d)[:5])
     # every candidate step base / k at once: the share of the sample's differences near a multiple of each
     candidates = bases[:, None] / np.arange(1, max_divisor + 1)[None, :]
-    ratio = sample[None, None, :] / candidates[..., None]
-    shares = np.mean(np.abs(ratio - np.round(ratio)) <= MULTIPLE_TOL, axis=2)
+    # a candidate missed by more than (1 - MULTIPLE_SHARE) of the sample within its first few hundred values
+    # cannot pass: those (every candidate of continuous readings) are settled on that head alone
+    head = sample[:400]
+    ratio = head[None, None, :] / candidates[..., None]
+    misses = np.sum(np.abs(ratio - np.round(ratio)) > MULTIPLE_TOL, axis=2)
+    shares = np.zeros(candidates.shape)
+    open_ = misses <= (1.0 - MULTIPLE_SHARE) * sample.size
+    if open_.any():
+        ratio = sample[None, :] / candidates[open_][:, None]
+        shares[open_] = np.mean(np.abs(ratio - np.round(ratio)) <= MULTIPLE_TOL, axis=1)
     best = None
     for row, share in zip(candidates, shares):
         # the divisors of this base in turn, stopping at the first that passes (or once q is no candidate)
@@ -602,17 +610,23 @@ def clipping_finding(readings_nT, sensor=None, keep=None) -> Finding:
 
 
 # -- static stretches ----------------------------------------------------------------------------------------------
-def _window_std(x, w):
-    """Per-axis standard deviation (ddof 0) of every window of ``w`` consecutive rows, shape (N - w + 1, 3)."""
-    xt = np.ascontiguousarray((x - np.median(_even(x), axis=0)).T)  # axis by axis: contiguous running sums
-    out = np.empty((x.shape[0] - w + 1, x.shape[1]))
-    for k, col in enumerate(xt):
-        c1 = np.concatenate([[0.0], np.cumsum(col)])
-        c2 = np.concatenate([[0.0], np.cumsum(col * col)])
+def _quiet_windows(x, w, limit):
+    """True for every window of ``w`` consecutive rows of ``x`` (N, 3) whose per-axis standard deviation (ddof 0)
+    is at most ``limit`` on every axis, shape (N - w + 1,): running sums axis by axis, variances against
+    ``limit**2``."""
+    n = x.shape[0]
+    quiet = np.ones(n - w + 1, bool)
+    c1, c2 = np.empty(n + 1), np.empty(n + 1)
+    c1[0] = c2[0] = 0.0
+    centre = np.median(_even(x), axis=0)  # running sums of small numbers keep their precision
+    for k in range(x.shape[1]):
+        col = x[:, k] - centre[k]
+        np.cumsum(col, out=c1[1:])
+        np.cumsum(col * col, out=c2[1:])
         mean = (c1[w:] - c1[:-w]) / w
         var = (c2[w:] - c2[:-w]) / w - mean * mean
-        out[:, k] = np.sqrt(np.maximum(var, 0.0))
-    return out
+        quiet &= var <= limit * limit
+    return quiet
 
 
 #: Most values a robust scale (a median) of this module is taken from: an even subsample of longer series.
@@ -630,8 +644,9 @@ def motion_noise_nT(readings_nT) -> float:
     y = np.asarray(readings_nT, dtype=float)
     if y.shape[0] < 3:
         return float("inf")
-    d2 = y[2:] - 2 * y[1:-1] + y[:-2]
-    return float(np.median(robust_sigma(_even(d2), axis=0))) / np.sqrt(6.0)
+    first = np.arange(0, y.shape[0] - 2, max(1, int(np.ceil((y.shape[0] - 2) / SCALE_MAX_SAMPLES))))
+    d2 = y[first + 2] - 2 * y[first + 1] + y[first]  # the second differences of an even subsample of the rows
+    return float(np.median(robust_sigma(d2, axis=0))) / np.sqrt(6.0)
 
 
 def total_field_scatter_nT(readings_nT) -> float:
@@ -691,7 +706,7 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW, steps_nT=
     field_nT = float(np.median(row_norm(ys - np.median(ys, axis=0))))
     field_nT = max(field_nT, float(np.median(row_norm(ys))))
     limit = min(STATIC_SIGMAS * sigma, STATIC_FIELD_FRACTION * field_nT) if field_nT > 0 else STATIC_SIGMAS * sigma
-    quiet = np.all(_window_std(y, window) <= limit, axis=1)
+    quiet = _quiet_windows(y, window, limit)
     # sample i is covered when a quiet window starts in [i - window + 1, i]
     starts = np.concatenate([[0], np.cumsum(quiet), np.full(window - 1, int(quiet.sum()))])
     mask = (starts[1:n + 1] - starts[np.maximum(np.arange(n) - window + 1, 0)]) > 0
