@@ -39,6 +39,10 @@ from .vectors import cross_rows, row_norm
 #: Samples per block when a model of base terms only is evaluated block by block (:meth:`Problem.normal_equations`).
 BLOCK_ROWS = 1 << 16
 
+#: ``cost_tolerance`` (noise variances) of the fits that are only compared, by an information criterion or a held-out
+#: RMS (the diagnosis's confirming refits, the held-out fits): parameters within ~0.14 standard errors of the minimum.
+COMPARISON_COST_TOLERANCE = 0.01
+
 #: Samples of the even subsample a base model is first converged on when the record has more than twice as many
 #: (:func:`fit`): the fit of every sample then starts within a few of its standard errors of the minimum.
 WARMUP_SAMPLES = 100_000
@@ -855,7 +859,7 @@ class FitResult:
 
 
 def fit(dataset, model: Model | None = None, init: Calibration | None = None, loss="linear", f_scale_nT=None,
-        mask=None, reference_total_nT=None, max_nfev=200) -> FitResult:
+        mask=None, reference_total_nT=None, max_nfev=200, cost_tolerance=None) -> FitResult:
     """Maximum-likelihood fit of a model, started from a calibration.
 
     Parameters
@@ -876,6 +880,11 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         Known total field; otherwise the dataset's reference, its ``ref_total`` column, or fitted.
     max_nfev : int
         Cap on evaluations of the residuals (each round of a robust fit has its own).
+    cost_tolerance : float, optional
+        Stop once a step lowers the cost ``||r||^2 / 2`` by less than this many noise variances (estimated as
+        ``||r||^2 / (m - p)``): parameters then lie within about ``sqrt(2 cost_tolerance)`` standard errors of the
+        minimum. Default: a relative reduction of 1e-10 (far tighter); the diagnosis judges its refits with 0.01,
+        which is irrelevant to a change of the information criterion or of a held-out RMS.
 
     Returns
     -------
@@ -896,14 +905,15 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
-    result = _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev)
+    result = _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
+                       cost_tolerance=cost_tolerance)
     # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
     # more fit; the refined shape is kept only if it fits better
     saved = [e.state() for e in model.effects]
     context = RefineContext(result.problem, result.x)
     if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
         second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
-                           max_nfev, configure=False)
+                           max_nfev, configure=False, cost_tolerance=cost_tolerance)
         if second.rss < result.rss:
             second.nfev += result.nfev
             return _warn_if_not_converged(second)
@@ -952,7 +962,7 @@ class RefineContext:
 
 
 def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
-              configure=True) -> FitResult:
+              configure=True, cost_tolerance=None) -> FitResult:
     """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
     constants as they are (the pass after :meth:`~magcal.model.Effect.refine`)."""
     n_all = dataset.n_samples
@@ -973,6 +983,9 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
     problem = Problem(kept, model, init, reference_total_nT)
     if loss not in LOSSES:
         raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
+    ftol = 1e-10
+    if cost_tolerance is not None:  # in noise variances: relative to the cost, 2 tol / (m - p)
+        ftol = max(ftol, 2.0 * float(cost_tolerance) / max(problem.n_residuals - problem.x0.size, 1))
     if loss == "linear":
         x0, nfev0 = problem.x0, 0
         if not model.effects and problem.n_samples > 2 * WARMUP_SAMPLES:
@@ -983,7 +996,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
                                                 reference_total_nT), problem.x0, max_nfev=max_nfev)
             if warm.status > 0:
                 x0, nfev0 = warm.x, warm.nfev
-        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev)
+        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol)
         x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
@@ -993,7 +1006,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         for _ in range(rounds):
             scale = f_scale_nT if f_scale_nT is not None else 3.0 * robust_sigma(
                 problem.residuals(x)[problem.total_field_rows], floor=1e-9)
-            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev)
+            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol)
             x, nfev = sol.x, nfev + sol.nfev
         r, jtj, _ = problem.normal_equations(x)
     message, status = sol.message, sol.status

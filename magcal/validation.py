@@ -341,6 +341,7 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
     train, test = np.asarray(train, bool), np.asarray(test, bool)
     specs, base = _effects_of(model, effects)
     if init is not None:
+        from .fit import COMPARISON_COST_TOLERANCE
         from .fit import fit as ml_fit
         from .model import Model
         from .pipeline import _build_model
@@ -348,7 +349,7 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
         built = _build_model(dataset, specs)
         full = Model(built.n_sensors, base=tuple(base) if base is not None else built.base, effects=built.effects)
         fitted = ml_fit(dataset, full, init=init, loss="soft_l1" if robust else "linear", mask=train,
-                        reference_total_nT=reference_total_nT)
+                        reference_total_nT=reference_total_nT, cost_tolerance=COMPARISON_COST_TOLERANCE)
         cal, labels = fitted.calibration, fitted.model.effect_labels
     else:
         from .pipeline import calibrate

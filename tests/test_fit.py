@@ -404,3 +404,16 @@ def test_a_large_record_converged_on_a_subsample_first_reaches_the_same_minimum(
     assert warmed.rss <= direct.rss * (1 + 1e-9)
     assert np.max(np.abs(warmed.x - direct.x) / direct.std) < 1e-2
     assert warmed.success
+
+
+def test_a_cost_tolerance_in_noise_variances_stops_within_a_fraction_of_a_standard_error():
+    """``cost_tolerance`` (the diagnosis's comparison fits) stops earlier but still at the minimum to within
+    sqrt(2 tolerance) standard errors, with the same residual sum of squares to the tolerance."""
+    ds = simulate(chi2017_truth(4), n_samples=800, noise_nT=3.0, seed=12)
+    init = crude_initial_calibration(ds)
+    strict = fit(ds, init=init)
+    loose = fit(ds, init=init, cost_tolerance=0.01)
+    assert loose.nfev < strict.nfev  # from a crude start the last, tiny step is not taken
+    sigma2 = strict.rss / (strict.n_residuals - strict.n_params)
+    assert 0.0 <= 0.5 * (loose.rss - strict.rss) <= 0.01 * sigma2 * 1.5
+    assert np.max(np.abs(loose.x - strict.x) / strict.std) < np.sqrt(2 * 0.01) * 1.5

@@ -177,7 +177,7 @@ class _Grams:
     m_tf: int
 
 
-def _grams(kept, model, init, reference_total_nT, chunk_rows=60_000) -> _Grams:
+def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
     """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples.
 
     The chunks bound the memory of the per-sample derivatives of every candidate's parameters.
@@ -368,6 +368,7 @@ def _score_from_grams(kept, fit, groups, grams):
 
 def _refit(dataset, fit, candidate: Candidate):
     """Refit the model with the candidate's effect instances added; returns the FitResult."""
+    from ..fit import COMPARISON_COST_TOLERANCE
     from ..fit import fit as ml_fit
 
     model = fit.model
@@ -379,7 +380,8 @@ def _refit(dataset, fit, candidate: Candidate):
     for e in new:
         model = model.with_effect(e)
     ref = _reference_override(fit)
-    return ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref)
+    return ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref,
+                  cost_tolerance=COMPARISON_COST_TOLERANCE)
 
 
 def _delta_bic(fit0, fit1, extra_dof, coupled):
