@@ -71,7 +71,8 @@ def tensor_invariants(tensor):
     gxx, gyy, gzz = g[..., 0, 0], g[..., 1, 1], g[..., 2, 2]
     gxy, gxz, gyz = g[..., 0, 1], g[..., 0, 2], g[..., 1, 2]
     i1 = gxx * gyy + gyy * gzz + gxx * gzz - gxy**2 - gyz**2 - gxz**2
-    i2 = np.linalg.det(g)
+    # the determinant of the symmetric 3 x 3, written out (numpy's batched LU is ~10x slower per sample)
+    i2 = gxx * (gyy * gzz - gyz**2) - gxy * (gxy * gzz - gyz * gxz) + gxz * (gxy * gyz - gyy * gxz)
     return i0, i1, i2
 
 
@@ -364,7 +365,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     import warnings
 
     from .errors import RecordTermWarning
-    from .io import dataset_columns, is_parquet, parquet_table, write_rows
+    from .io import dataset_columns, is_parquet, parquet_table, parquet_write_options, write_rows
 
     t0 = time.perf_counter() if t0 is None else t0
     if not hasattr(calibration, "correct"):
@@ -410,7 +411,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
 
                     table = parquet_table(cols, meta)
                     if writer is None:
-                        writer = pq.ParquetWriter(tmp, table.schema)
+                        writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table))
                     writer.write_table(table)
                 else:
                     if rows == 0:

@@ -124,7 +124,7 @@ def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, f
     file written and its rows."""
     from .apply import correct_block, output_columns
     from .calibration import Calibration
-    from .io import dataset_columns, parquet_table, write_csv
+    from .io import dataset_columns, parquet_table, parquet_write_options, write_csv
 
     calibration = Calibration.from_dict(calibration_doc)
     ds, meta = _read_partition(part, columns, units, drop_bad)
@@ -145,7 +145,8 @@ def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, f
     if fmt == "parquet":
         import pyarrow.parquet as pq
 
-        pq.write_table(parquet_table(cols, meta), tmp)
+        table = parquet_table(cols, meta)
+        pq.write_table(table, tmp, **parquet_write_options(table))
         os.replace(tmp, out)
     else:
         write_csv(out, cols, metadata=meta)
