@@ -24,6 +24,7 @@ from scipy import stats
 from ..errors import CalibrationError
 from ..model import EFFECTS, Model, term_label
 from ._fitted import _reference_override, _vector_rms
+from ._parallel import in_parallel
 
 
 def _extra_dof(cls) -> int:
@@ -188,16 +189,16 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
     rows_per_sample = kept.n_sensors * (3 if kept.n_sensors > 1 else 1)
     chunk = max(2_000, chunk_rows // rows_per_sample)
     parts = np.array_split(np.arange(n), max(1, int(np.ceil(n / chunk))))
-    acc = None
-    blocks = None
-    for idx in parts:
+    def chunk(idx):
         sub = kept if len(parts) == 1 else kept.subset(idx)
         problem = Problem(sub, model, init, reference_total_nT)
         r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
         rt = r[: sub.n_sensors * sub.n_samples]
-        terms = [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)]
+        return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem.blocks
+
+    acc = None
+    for terms, blocks in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
         acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
-        blocks = problem.blocks
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], blocks, kept.n_sensors * n)
 
 
@@ -284,9 +285,8 @@ def _score_round(dataset, kept, fit, names=None):
     if not groups:
         return [], None, None
     base_resid = fit.residuals_nT[:, fit.mask]
-    for instances in groups.values():
-        for e in instances:
-            e.configure(kept, base_resid)
+    in_parallel([lambda e=e: e.configure(kept, base_resid)  # each candidate's data-derived constants, side by side
+                 for instances in groups.values() for e in instances])
     all_model = Model(model.n_sensors, model.base,
                       [_copy_effect(e) for e in model.effects] + [e for v in groups.values() for e in v])
     ref = _reference_override(fit)
@@ -402,11 +402,15 @@ def _confirm(dataset, fit, cands, top, coupled, fits):
         chosen.append(c)
         if len(chosen) >= top:
             break
-    for c in chosen:
+    def refit(c):
         try:
-            f1 = _refit(dataset, fit, c)
+            return _refit(dataset, fit, c)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
-            c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {exc}"
+            return exc
+
+    for c, f1 in zip(chosen, in_parallel([lambda c=c: refit(c) for c in chosen])):  # independent refits
+        if isinstance(f1, Exception):
+            c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {f1}"
             continue
         extra = _extra_dof(EFFECTS[c.effect]) * len(c.instances)
         c.delta_bic = _delta_bic(fit, f1, extra, coupled)

@@ -31,6 +31,7 @@ from .. import validation as _validation
 from ..errors import CalibrationError, MagcalError
 from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
 from ._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
+from ._parallel import in_parallel
 from .evidence import (
     _effect_extra, _evidence_line, _sensor_evidence, _temperature_evidence, _time_evidence,
 )
@@ -251,6 +252,10 @@ class _HeldOut:
         self.bases = {}
         self.schemes = {}
 
+    def base(self, fit, scheme):
+        """The held-out fit of the round's base model ``fit`` on ``scheme``'s split (computed once)."""
+        return self._base(fit, scheme)
+
     def _base(self, fit, scheme):
         key = (id(fit), scheme)
         if key not in self.bases:
@@ -347,14 +352,26 @@ def _judge_round(held_out, base_fit, cands, notes):
     data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
     predictions."""
     if held_out is not None:
-        for c in cands:
-            if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None:
-                try:
-                    warning = held_out.judge(base_fit, c)
-                    if warning:
-                        notes.append(warning)
-                except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
-                    notes.append(f"held-out validation of {c.label} failed ({exc}); judged in-sample only")
+        todo = [c for c in cands
+                if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None]
+
+        def judge(c):
+            try:
+                return held_out.judge(base_fit, c)
+            except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
+                return f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
+
+        if todo:
+            # the base model's held-out fits first (shared by every candidate), then the candidates': independent
+            # fits, run side by side on the machine's cores (numpy releases the interpreter in its loops)
+            try:
+                in_parallel([lambda scheme=scheme: held_out.base(base_fit, scheme)
+                              for scheme in _validation.SCHEMES])
+            except (CalibrationError, MagcalError, np.linalg.LinAlgError):
+                pass  # each candidate's judgement meets the same failure and says so
+            for warning in in_parallel([lambda c=c: judge(c) for c in todo]):
+                if warning:
+                    notes.append(warning)
     held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
     rest = sorted([c for c in cands if c.refitted and not c.holds], key=lambda c: c.delta_bic)
     return held + rest + [c for c in cands if not c.refitted]

@@ -1,0 +1,59 @@
+"""Independent fits of a diagnosis side by side (magcal.diagnosis._parallel): the same diagnosis as one by one."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import magcal.effects as fx
+from magcal.diagnosis import _parallel, diagnose
+from magcal.pipeline import calibrate
+from magcal.simulation import chi2017_truth, simulate_timeseries
+
+
+@pytest.mark.parametrize("workers", [None, 1, 3])
+def test_results_come_back_in_the_order_of_the_calls(monkeypatch, workers):
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
+    delays = [0.03, 0.0, 0.02, 0.01]
+
+    def call(k):
+        time.sleep(delays[k])
+        return k, threading.current_thread().name
+
+    out = _parallel.in_parallel([lambda k=k: call(k) for k in range(4)])
+    assert [k for k, _ in out] == [0, 1, 2, 3]
+    if workers == 1:
+        assert {name for _, name in out} == {threading.current_thread().name}
+
+
+def test_an_exception_of_one_call_is_raised(monkeypatch):
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+
+    def bad():
+        raise ValueError("boom")
+
+    with pytest.raises(ValueError, match="boom"):
+        _parallel.in_parallel([lambda: 1, bad])
+
+
+def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeypatch):
+    """Two hidden effects on four sensors: the confirming refits, the held-out fits and the score chunks run on
+    threads; the candidates, their figures and the verdict are those of the sequential run."""
+    ds = simulate_timeseries(chi2017_truth(4), n_samples=3000, noise_nT=3.0, seed=4,
+                             perturbations=[fx.parse_hidden("temperature_bias=2", 4), fx.parse_hidden("bias_step:3", 4)])
+    res = calibrate(ds)
+    results = {}
+    for workers in (1, 2):
+        monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
+        results[workers] = diagnose(ds, res)
+    one, two = results[1], results[2]
+    assert one.verdict == two.verdict and one.verdict == "missing_effect"
+    assert [c.label for c in one.candidates] == [c.label for c in two.candidates]
+    for a, b in zip(one.candidates, two.candidates):
+        assert a.holds == b.holds
+        for name in ("delta_bic", "rms_after_nT", "held_out_after_nT", "later_after_nT"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None and y is None) or x == pytest.approx(y, rel=1e-9, abs=1e-9), name
+    assert one.explained_by == two.explained_by and "temperature_bias" in one.explained_by
+    assert one.summary == two.summary
