@@ -444,7 +444,7 @@ def rise_tolerance_nT(rms_nT, n_test) -> float:
 def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks", n_blocks: int | None = None,
             test_fraction: float = 0.25, min_relative_gain: float = MIN_RELATIVE_GAIN, robust: bool = False,
             reference_total_nT=None, base=None, base_model=None, base_init=None, with_model=None,
-            with_init=None) -> Comparison:
+            with_init=None, with_effect=None) -> Comparison:
     """Does adding ``added_effect`` to ``base_effects`` lower the error on held-out samples?
 
     Both models are fitted on the same training samples and scored on the same held-out ones.
@@ -469,6 +469,9 @@ def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks",
         only names the effect).
     base_init, with_init : Calibration, optional
         Warm starts of the two fits (:func:`validate`'s ``init``).
+    with_effect : ValidationResult, optional
+        The model with the effect already validated on the same split as ``base`` (so that the fits of several
+        candidates and schemes can run side by side before they are compared).
 
     Returns
     -------
@@ -481,7 +484,9 @@ def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks",
     if base is None:
         base = (validate(dataset, model=base_model, init=base_init, **kwargs) if base_model is not None
                 else validate(dataset, effects=list(base_effects), init=base_init, **kwargs))
-    if with_model is not None:
+    if with_effect is not None:
+        pass
+    elif with_model is not None:
         with_effect = validate(dataset, model=with_model, init=with_init, **kwargs)
     else:
         with_effect = validate(dataset, effects=list(base_effects) + [added_effect], init=with_init, **kwargs)

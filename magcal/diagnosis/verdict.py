@@ -264,15 +264,22 @@ class _HeldOut:
                                                    masks=self.masks[scheme])
         return self.bases[key]
 
-    def judge(self, base_fit, c) -> str | None:
+    def with_effect(self, c, scheme):
+        """The held-out fit of the candidate's refitted model on ``scheme``'s split."""
+        return _validation.validate(self.kept, model=c.fit.model, init=c.fit.calibration,
+                                    reference_total_nT=self.reference, scheme=scheme, masks=self.masks[scheme])
+
+    def judge(self, base_fit, c, fitted=None) -> str | None:
         """Fill the candidate's held-out figures and ``holds``; append to its evidence. Returns a warning when
-        the gain does not hold."""
+        the gain does not hold. ``fitted``: the candidate's held-out fits per scheme (:meth:`with_effect`),
+        when already made."""
         comparisons = {}
         for scheme in _validation.SCHEMES:
             base = self._base(base_fit, scheme)
             comparisons[scheme] = _validation.compare(
                 self.kept, added_effect=c.label, scheme=scheme, base=base, with_model=c.fit.model,
-                with_init=c.fit.calibration, reference_total_nT=self.reference)
+                with_init=c.fit.calibration, reference_total_nT=self.reference,
+                with_effect=(fitted or {}).get(scheme))
             if base_fit is not None and scheme not in self.schemes:
                 self.schemes[scheme] = {"n_train": base.n_train, "n_test": base.n_test,
                                         "base_held_out_rms_nT": base.held_out_rms_nT,
@@ -354,22 +361,31 @@ def _judge_round(held_out, base_fit, cands, notes):
     if held_out is not None:
         todo = [c for c in cands
                 if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None]
+        failures = (CalibrationError, MagcalError, np.linalg.LinAlgError)
 
-        def judge(c):
+        def attempt(call):
             try:
-                return held_out.judge(base_fit, c)
-            except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
-                return f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
+                return call()
+            except failures as exc:
+                return exc
 
         if todo:
-            # the base model's held-out fits first (shared by every candidate), then the candidates': independent
-            # fits, run side by side on the machine's cores (numpy releases the interpreter in its loops)
-            try:
-                in_parallel([lambda scheme=scheme: held_out.base(base_fit, scheme)
-                              for scheme in _validation.SCHEMES])
-            except (CalibrationError, MagcalError, np.linalg.LinAlgError):
-                pass  # each candidate's judgement meets the same failure and says so
-            for warning in in_parallel([lambda c=c: judge(c) for c in todo]):
+            # every held-out fit of the round at once, side by side on the machine's cores (numpy releases the
+            # interpreter in its loops): the base model's per scheme, shared by every candidate, and each
+            # candidate's per scheme; then the comparisons, in the candidates' order
+            schemes = _validation.SCHEMES
+            calls = [lambda scheme=scheme: held_out.base(base_fit, scheme) for scheme in schemes]
+            calls += [lambda c=c, scheme=scheme: held_out.with_effect(c, scheme) for c in todo for scheme in schemes]
+            done = in_parallel([lambda call=call: attempt(call) for call in calls])[len(schemes):]
+            for k, c in enumerate(todo):
+                fitted = dict(zip(schemes, done[k * len(schemes):(k + 1) * len(schemes)]))
+                failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
+                try:
+                    if failed is not None:
+                        raise failed
+                    warning = held_out.judge(base_fit, c, fitted)
+                except failures as exc:
+                    warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
                 if warning:
                     notes.append(warning)
     held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
