@@ -108,7 +108,7 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False):
         i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
         parts.append(np.column_stack([i0, i1, i2]))
     if uncertainty:
-        u = calibration.uncertainty(dataset, vectors)
+        u = calibration.uncertainty(dataset, vectors, record_terms)
         if u is None:
             raise MagcalError("this calibration carries no parameter covariance (it was made before magcal saved "
                               "one, or without a maximum-likelihood fit): recalibrate to get error bars")

@@ -225,7 +225,8 @@ class Calibration:
     frame : str
         The array frame: ``"sensor1"`` (the seed's) or ``"platform"`` (after a level-table alignment).
     base_covariance : numpy.ndarray or None
-        Covariance (12 n_sensors square) of every sensor's ``M = R C^-1`` (row by row) and bias (nT) from the fit
+        Covariance of every sensor's ``M = R C^-1`` (row by row) and bias (nT), followed by the effects'
+        parameters (in the model's order; 12 n_sensors square for the base model) from the fit
         (:func:`magcal.uncertainty.base_covariance`), saved with the file; :meth:`uncertainty` carries it to the
         corrected field and the tensor. None without a maximum-likelihood fit.
     summary : dict
@@ -391,12 +392,13 @@ class Calibration:
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
-    def uncertainty(self, dataset, corrected=None) -> dict | None:
+    def uncertainty(self, dataset, corrected=None, record_terms=None) -> dict | None:
         """The calibration's standard deviations carried to each sample's corrected field and tensor
-        (:func:`magcal.uncertainty.field_uncertainty`), or None without a :attr:`base_covariance`."""
+        (:func:`magcal.uncertainty.field_uncertainty`; ``record_terms`` as in :meth:`correct`), or None without a
+        :attr:`base_covariance`."""
         from .uncertainty import field_uncertainty
 
-        return field_uncertainty(self, dataset, corrected)
+        return field_uncertainty(self, dataset, corrected, record_terms)
 
     def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
         """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
@@ -448,7 +450,8 @@ class Calibration:
         }
         if self.base_covariance is not None:
             doc["base_covariance"] = {
-                "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3)",
+                "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
+                         "in the order of 'effects'",
                 "matrix": np.asarray(self.base_covariance, float).tolist()}
         doc.update(jsonable(self.summary))
         doc["record"] = jsonable(self.record)  # null: never told which record it was fitted on
@@ -515,14 +518,19 @@ class Calibration:
                  "effects", "effect_params", "sensors", "base_covariance"}
         cov = None
         if doc.get("base_covariance") is not None:
+            from .uncertainty import covariance_size
+
             size = 12 * len(sensors)
+            joint = covariance_size(len(sensors), model)  # with the effects' parameters (files made since)
             try:
                 cov = np.array(doc["base_covariance"]["matrix"], float)
-                ok = cov.shape == (size, size) and np.all(np.isfinite(cov))
+                ok = cov.ndim == 2 and cov.shape[0] == cov.shape[1] and cov.shape[0] in (size, joint) \
+                    and np.all(np.isfinite(cov))
             except (TypeError, ValueError, KeyError):
                 ok = False
             if not ok:
-                raise MagcalError(f"{source}: 'base_covariance' must hold a {size} x {size} matrix of numbers; the "
+                shapes = f"{size} x {size}" + (f" or {joint} x {joint}" if joint != size else "")
+                raise MagcalError(f"{source}: 'base_covariance' must hold a {shapes} matrix of numbers; the "
                                   "file is damaged, recalibrate")
         summary = {k: v for k, v in doc.items() if k not in known}
         record = summary.get("record")

@@ -93,3 +93,49 @@ def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
     mio.write_csv(tmp_path / "survey.csv", new)
     with pytest.raises(magcal.MagcalError, match="recalibrate to get error bars"):
         apply_file(magcal.Calibration.from_dict(doc), tmp_path / "survey.csv", tmp_path / "o.csv", uncertainty=True)
+
+
+@pytest.fixture(scope="module")
+def fitted_with_effects():
+    """Four sensors along a time series with a temperature bias (raw stage) and a sensor timing skew (vector
+    stage) hidden and fitted; new data from the same instrument."""
+    import magcal.effects as fx
+    from magcal.simulation import chi2017_truth, simulate_timeseries
+
+    hidden = [fx.parse_hidden("temperature_bias=2", 4), fx.parse_hidden("sensor_timing_skew:3", 4)]
+    ds = simulate_timeseries(chi2017_truth(4), n_samples=400, noise_nT=3.0, seed=5, perturbations=hidden)
+    result = magcal.calibrate(ds, effects=["temperature_bias", "sensor_timing_skew:3"])
+    new = simulate_timeseries(chi2017_truth(4), n_samples=80, noise_nT=3.0, seed=9, perturbations=hidden)
+    return result, new
+
+
+def test_the_effects_parameters_are_carried_with_their_correlations(fitted_with_effects):
+    """Linear propagation of the joint covariance (base terms and both effects) against Monte Carlo draws of every
+    fitted parameter, and larger error bars than the base terms alone give."""
+    result, new = fitted_with_effects
+    cal, fit = result.calibration, result.fit
+    q = sum(len(e.param_names()) for e, _ in cal.model.instances())
+    assert cal.base_covariance.shape == (48 + q, 48 + q)
+    u = cal.uncertainty(new)
+    rng = np.random.default_rng(1)
+    draws = rng.multivariate_normal(fit.x, fit.covariance, size=600, check_valid="ignore", method="eigh")
+    vecs = np.array([fit.problem.calibration(x).correct(new) for x in draws])
+    ratio = u["vector_sd_nT"] / vecs.std(axis=0)
+    assert 0.85 < np.median(ratio) < 1.15 and np.percentile(ratio, 5) > 0.7 and np.percentile(ratio, 95) < 1.35
+    assert 0.85 < np.median(u["total_sd_nT"] / np.linalg.norm(vecs, axis=3).std(axis=0)) < 1.15
+    base_only = magcal.Calibration.from_dict(cal.to_dict())
+    base_only.base_covariance = cal.base_covariance[:48, :48]
+    assert np.median(u["vector_sd_nT"] / base_only.uncertainty(new)["vector_sd_nT"]) > 1.05
+
+
+def test_a_joint_covariance_travels_in_the_json(fitted_with_effects, tmp_path):
+    result, new = fitted_with_effects
+    cal = result.calibration
+    cal.save(tmp_path / "cal.json")
+    back = magcal.Calibration.load(tmp_path / "cal.json")
+    np.testing.assert_allclose(back.base_covariance, cal.base_covariance)
+    np.testing.assert_allclose(back.uncertainty(new)["vector_sd_nT"], cal.uncertainty(new)["vector_sd_nT"])
+    doc = cal.to_dict()
+    doc["base_covariance"]["matrix"] = np.eye(50).tolist()
+    with pytest.raises(magcal.MagcalError, match="base_covariance"):
+        magcal.Calibration.from_dict(doc)
