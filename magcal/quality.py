@@ -618,7 +618,7 @@ def _quiet_windows(x, w, limit):
     quiet = np.ones(n - w + 1, bool)
     c1, c2 = np.empty(n + 1), np.empty(n + 1)
     c1[0] = c2[0] = 0.0
-    centre = np.median(_even(x), axis=0)  # running sums of small numbers keep their precision
+    centre = np.median(np.ascontiguousarray(_even(x).T), axis=1)  # running sums of small numbers stay precise
     for k in range(x.shape[1]):
         col = x[:, k] - centre[k]
         np.cumsum(col, out=c1[1:])
@@ -646,7 +646,7 @@ def motion_noise_nT(readings_nT) -> float:
         return float("inf")
     first = np.arange(0, y.shape[0] - 2, max(1, int(np.ceil((y.shape[0] - 2) / SCALE_MAX_SAMPLES))))
     d2 = y[first + 2] - 2 * y[first + 1] + y[first]  # the second differences of an even subsample of the rows
-    return float(np.median(robust_sigma(d2, axis=0))) / np.sqrt(6.0)
+    return float(np.median(robust_sigma(np.ascontiguousarray(d2.T), axis=1))) / np.sqrt(6.0)  # axis by axis
 
 
 def total_field_scatter_nT(readings_nT) -> float:
@@ -703,7 +703,7 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW, steps_nT=
     q = [quantization_step(y[:, k]) for k in range(3)] if steps_nT is None else list(steps_nT)
     sigma = max(sigma, max((s for s in q if s is not None), default=0.0) / np.sqrt(12), 1e-3)
     ys = _even(y)
-    field_nT = float(np.median(row_norm(ys - np.median(ys, axis=0))))
+    field_nT = float(np.median(row_norm(ys - np.median(np.ascontiguousarray(ys.T), axis=1))))
     field_nT = max(field_nT, float(np.median(row_norm(ys))))
     limit = min(STATIC_SIGMAS * sigma, STATIC_FIELD_FRACTION * field_nT) if field_nT > 0 else STATIC_SIGMAS * sigma
     quiet = _quiet_windows(y, window, limit)
