@@ -38,6 +38,7 @@ from scipy.special import eval_legendre
 
 from .errors import MagcalError
 from .model import EFFECTS, Context, Effect, register, term_label
+from .vectors import row_norm
 
 #: Field magnitude (nT) nonlinearity coefficients are quoted at when the data's own is not known (an effect never
 #: configured, a calibration saved before the field was recorded with it): ``q`` nT is then the deviation of an
@@ -369,12 +370,15 @@ def quadric_residuals(readings_nT):
     x, yy, z = v.T
     design = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
                               np.ones(len(v))])
-    _, _, vt = np.linalg.svd(design, full_matrices=False)
-    c = vt[-1]
+    # the right singular vector of the smallest singular value, as the eigenvector of the Gram matrix's smallest
+    # eigenvalue (one product instead of an SVD of the tall design; the coordinates are centred and scaled, so
+    # squaring the condition number costs nothing that matters here)
+    _, vectors = np.linalg.eigh(design.T @ design)
+    c = vectors[:, 0]
     m = np.array([[c[0], c[3], c[4]], [c[3], c[1], c[5]], [c[4], c[5], c[2]]])
     value = design @ c
     grad = 2 * (v @ m + c[6:9])
-    r = value / np.maximum(np.linalg.norm(grad, axis=1), 1e-300) * scale
+    r = value / np.maximum(row_norm(grad), 1e-300) * scale
     try:
         inside = c[9] - c[6:9] @ np.linalg.solve(m, c[6:9])  # the quadric's value at its centre
     except np.linalg.LinAlgError:
@@ -447,15 +451,25 @@ def _step_scan(readings_nT, margin, min_samples):
         return n // 2, improvement
     g_qq = quad.T @ quad
     lam0 = np.linalg.eigvalsh(g_qq)[0]
-    g_qw = np.cumsum((quad[:, :, None] * w[:, None, :])[::-1], axis=0)[::-1]
-    g_ww = np.cumsum((w[:, :, None] * w[:, None, :])[::-1], axis=0)[::-1]
+    x_all = np.column_stack([quad, w])  # (N, 14): the step columns' products with both blocks at once
+
+    def suffix(ks):
+        """``sum_{i >= k} x_i w_i^T`` (len(ks), 14, 4) for increasing, evenly spaced (or consecutive) ``ks``:
+        the sums of the segments between them (one batched product), then their running sum from the end."""
+        step_k = int(ks[1] - ks[0]) if len(ks) > 1 else 1
+        m = len(ks)
+        body = slice(int(ks[0]), int(ks[0]) + m * step_k)
+        seg = np.matmul(x_all[body].reshape(m, step_k, 14).transpose(0, 2, 1), w[body].reshape(m, step_k, 4))
+        tail = x_all[body.stop:].T @ w[body.stop:]
+        return np.cumsum(seg[::-1], axis=0)[::-1] + tail
 
     def smallest(ks):
+        s_k = suffix(ks)
         gram = np.empty((len(ks), 14, 14))
         gram[:, :10, :10] = g_qq
-        gram[:, :10, 10:] = g_qw[ks]
-        gram[:, 10:, :10] = np.transpose(g_qw[ks], (0, 2, 1))
-        gram[:, 10:, 10:] = g_ww[ks]
+        gram[:, :10, 10:] = s_k[:, :10]
+        gram[:, 10:, :10] = np.transpose(s_k[:, :10], (0, 2, 1))
+        gram[:, 10:, 10:] = s_k[:, 10:]
         return np.linalg.eigvalsh(gram)[:, 0]
 
     # coarse grid, then every sample around the best coarse point (long records)
@@ -528,11 +542,26 @@ class BiasStep(CatalogueEffect):
         n = len(t)
         lo, hi = max(int(np.ceil(margin * n)), 1), min(int(np.floor((1 - margin) * n)), n - 1)
         times, changed = list(self.step_time_s), False
+        # the step is linear in the corrected field: sensor s's field with its step at every sample ("on") or at
+        # none ("off") is the fitted field plus a multiple of R C^-1 db, so every trial costs residuals only
+        fields = context.fields() if hasattr(context, "fields") else None
+        values = context.values() if fields is not None else None
         for s in range(len(times)):
             if times[s] is None or hi <= lo:
                 continue
-            on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
-            off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
+            if fields is None:  # a context without fields: evaluate each trial whole
+                on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
+                off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
+            else:
+                cal = context.sensors()[s]
+                db = values[term_label(self.name, s if self.per_sensor else None)]
+                shift = (cal.R @ cal.cinv) @ db  # the step's move of sensor s's corrected field, nT
+                now = (t >= times[s]).astype(float)
+                trial = fields.copy()
+                trial[s] = fields[s] + now[:, None] * shift  # off: the current step taken out
+                off = context.cost_of_fields(trial)
+                trial[s] -= shift  # on: the step at every sample
+                on = context.cost_of_fields(trial)
             # cost of a step before sample k: samples < k without it, samples >= k with it
             cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
             k = lo + int(np.argmin(cost[lo:hi + 1]))
@@ -1013,9 +1042,9 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
         return empty
     if index is not None:
         n_fft = 1 << int(np.ceil(np.log2(oversample * (index[-1] + 1))))
-        padded = np.zeros((n_fft, 3))
-        padded[index] = w
-        coef = np.fft.rfft(padded, axis=0)  # (F, 3), c_j at each frequency
+        padded = np.zeros((3, n_fft))  # axis by axis, each a contiguous row: the FFT runs along memory
+        padded[:, index] = w.T
+        coef = np.fft.rfft(padded, axis=1).T  # (F, 3), c_j at each frequency
         freq = np.fft.rfftfreq(n_fft, step)
         nyquist = 0.5 / step
     else:

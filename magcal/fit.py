@@ -951,9 +951,27 @@ class RefineContext:
         saved = effect.state()
         effect.set_state(state)
         try:
-            r = self.problem.residuals(self.x)
+            return self.cost_of_fields(self.problem.fields(self.x))
         finally:
             effect.set_state(saved)
+
+    def fields(self) -> np.ndarray:
+        """The corrected fields (n_sensors, N, 3) of the fit, nT (for an effect that knows how a change of its
+        constants moves them, so that each trial costs only :meth:`cost_of_fields`)."""
+        return self.problem.fields(self.x)
+
+    def sensors(self) -> list:
+        """The fitted :class:`~magcal.calibration.SensorCalibration` of each sensor."""
+        return self.problem.sensors(self.x)
+
+    def values(self) -> dict:
+        """The fitted parameters of each effect instance, by :func:`~magcal.calibration.block_label`."""
+        return self.problem.effect_values(self.x)
+
+    def cost_of_fields(self, fields) -> np.ndarray:
+        """:meth:`cost_per_sample` of given corrected fields (n_sensors, N, 3) with the fitted parameters (the
+        expected total field, reference-stage effects included, as fitted)."""
+        r = self.problem._residuals_from_fields(fields, self.x)
         ns, n = self.problem.n_sensors, self.problem.n_samples
         cost = np.sum(r[: ns * n].reshape(ns, n) ** 2, axis=0)
         if self.problem.coupled:

@@ -417,3 +417,41 @@ def test_a_cost_tolerance_in_noise_variances_stops_within_a_fraction_of_a_standa
     sigma2 = strict.rss / (strict.n_residuals - strict.n_params)
     assert 0.0 <= 0.5 * (loose.rss - strict.rss) <= 0.01 * sigma2 * 1.5
     assert np.max(np.abs(loose.x - strict.x) / strict.std) < np.sqrt(2 * 0.01) * 1.5
+
+
+@pytest.mark.parametrize("spec", ["bias_step:4", "bias_step"])
+def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec):
+    """The step's refinement moves each sensor's corrected field by R C^-1 db instead of evaluating every trial
+    whole: the costs, and so the refined times, are those of whole evaluations."""
+    from magcal import effects as fx
+    from magcal.fit import RefineContext
+    from magcal.simulation import simulate_timeseries
+
+    ds = simulate_timeseries(chi2017_truth(), n_samples=900, noise_nT=3.0, seed=2,
+                             perturbations=[fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)])
+    result = fit(ds, Model.from_names([spec], 4), init=fit(ds).calibration)
+    step = result.model.effects[0]
+    context = RefineContext(result.problem, result.x)
+
+    class WholeOnly:  # the same context without the shortcut
+        dataset = context.dataset
+        cost_per_sample = staticmethod(context.cost_per_sample)
+
+    times = list(step.step_time_s)
+    fields = context.fields()
+    for s, te in enumerate(times):
+        if te is None:
+            continue
+        on = context.cost_per_sample(step, {"step_time_s": times[:s] + [ds.time_s[0] - 1.0] + times[s + 1:]})
+        label = f"bias_step:{s + 1}" if step.per_sensor else "bias_step"
+        cal = context.sensors()[s]
+        trial = fields.copy()
+        trial[s] += (ds.time_s >= te)[:, None] * (cal.R @ cal.cinv @ context.values()[label]) - \
+            cal.R @ cal.cinv @ context.values()[label]
+        np.testing.assert_allclose(context.cost_of_fields(trial), on, rtol=1e-9, atol=1e-9)
+    saved = step.state()
+    step.refine(result.calibration.effect_values, context)
+    moved = list(step.step_time_s)
+    step.set_state(saved)
+    step.refine(result.calibration.effect_values, WholeOnly())
+    assert moved == step.step_time_s
