@@ -47,7 +47,7 @@ import scipy.linalg
 
 from . import conventions
 from .errors import CalibrationError
-from .vectors import row_norm
+from .vectors import row_norm, unit_rows
 
 #: Fewest samples accepted: 9 parameters plus one degree of freedom to measure a residual.
 MIN_SAMPLES = 10
@@ -316,7 +316,7 @@ def coverage(vectors) -> Coverage:
         Field vectors (corrected, centred), any units.
     """
     v = np.asarray(vectors, dtype=float)
-    u = v / row_norm(v)[..., None]
+    u = unit_rows(v)
     cov = _covariance(u) if u.shape[0] > 1 else np.zeros((3, 3))
     spread = np.sort(np.linalg.eigvalsh(cov))[::-1]
     cells = _fibonacci_sphere(SKY_CELLS)

@@ -34,7 +34,7 @@ from .errors import CalibrationError, ConvergenceWarning
 from .model import Model
 from .noise import robust_sigma
 from .reference import resolve_reference as _resolve
-from .vectors import cross_rows, row_norm
+from .vectors import cross_rows, row_norm, unit_rows
 
 #: Samples per block when a model of base terms only is evaluated block by block (:meth:`Problem.normal_equations`).
 BLOCK_ROWS = 1 << 16
@@ -231,18 +231,12 @@ class Problem:
 
     def residuals(self, x) -> np.ndarray:
         """Residual vector (nT): total field (n_sensors*N), then consistency (n_sensors*N*2) when coupled."""
-        blocks = self._row_blocks()
+        blocks = self._sample_blocks()
         if blocks is None:
             return self._residuals_from_fields(self.fields(x), x)
-        ns, n = self.n_sensors, self.n_samples
         r = np.empty(self.n_residuals)
-        total = r[: ns * n].reshape(ns, n)
-        cons = r[ns * n:].reshape(ns, n, 2) if self.coupled else None
         for a, b, part in blocks:
-            rb = part._residuals_from_fields(part.fields(x), x)
-            total[:, a:b] = rb[: ns * (b - a)].reshape(ns, b - a)
-            if self.coupled:
-                cons[:, a:b] = rb[ns * (b - a):].reshape(ns, b - a, 2)
+            r[self._rows_of_samples(a, b)] = part._residuals_from_fields(part.fields(x), x)
         return r
 
     def _residuals_from_fields(self, b, x, basis=None) -> np.ndarray:
@@ -319,7 +313,7 @@ class Problem:
         """Rows of the Jacobian (n_sensors*N, p) for the total-field residuals."""
         ns, n = self.n_sensors, self.n_samples
         jac = np.zeros((ns * n, x.size))
-        units = fields / row_norm(fields)[..., None]
+        units = unit_rows(fields)
         for s, d in enumerate(derivs):
             jac[s * n:(s + 1) * n, d.cols] += d.project(units[s])
         if "F0" in self.blocks:
@@ -404,32 +398,31 @@ class Problem:
         blocks of :data:`BLOCK_ROWS` samples and the blocks' sums added: the same equations, but each block's
         temporaries stay in cache instead of a dozen (N, k) arrays going through memory.
         """
-        blocks = self._row_blocks()
+        blocks = self._sample_blocks()
         if blocks is None:
             return self._normal_equations_whole(x, weights, with_total_field)
-        ns, n = self.n_sensors, self.n_samples
         r = np.empty(self.n_residuals)
-        total = r[: ns * n].reshape(ns, n)
-        cons = r[ns * n:].reshape(ns, n, 2) if self.coupled else None
-        w_total = None if weights is None else weights[: ns * n].reshape(ns, n)
-        w_cons = None if weights is None or not self.coupled else weights[ns * n:].reshape(ns, n, 2)
         sums = None
         for a, b, part in blocks:
-            w = None
-            if weights is not None:
-                w = w_total[:, a:b].ravel()
-                if self.coupled:
-                    w = np.concatenate([w, w_cons[:, a:b].ravel()])
-            out = part._normal_equations_whole(x, w, with_total_field)
-            rb = out[0]
-            total[:, a:b] = rb[: ns * (b - a)].reshape(ns, b - a)
-            if self.coupled:
-                cons[:, a:b] = rb[ns * (b - a):].reshape(ns, b - a, 2)
+            rows = self._rows_of_samples(a, b)
+            out = part._normal_equations_whole(x, None if weights is None else weights[rows], with_total_field)
+            r[rows] = out[0]
             flat = [out[1], out[2]] + ([out[3][0], out[3][1]] if with_total_field else [])
             sums = flat if sums is None else [s + f for s, f in zip(sums, flat)]
         return (r, sums[0], sums[1]) + (((sums[2], sums[3]),) if with_total_field else ())
 
-    def _row_blocks(self):
+    def _rows_of_samples(self, a, b) -> np.ndarray:
+        """Indices of the residual rows of samples ``a:b`` (:meth:`residuals`' order), in the order a problem of
+        those samples alone lists them: total field sensor by sensor, then the consistency rows."""
+        ns, n = self.n_sensors, self.n_samples
+        total = (np.arange(ns)[:, None] * n + np.arange(a, b)[None, :]).ravel()
+        if not self.coupled:
+            return total
+        cons = ns * n + ((np.arange(ns)[:, None, None] * n + np.arange(a, b)[None, :, None]) * 2
+                         + np.arange(2)[None, None, :]).ravel()
+        return np.concatenate([total, cons])
+
+    def _sample_blocks(self):
         """``(start, stop, problem of those rows)`` per block, or None when the model has effects or the data
         fit in one block."""
         if self.n_samples <= BLOCK_ROWS or any(True for _ in self.model.instances()):
@@ -746,7 +739,7 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
 
 def _perpendicular_basis(vectors):
     """Two unit vectors per row, perpendicular to each row of ``vectors`` (N, 3) and to each other."""
-    u = vectors / row_norm(vectors)[..., None]
+    u = unit_rows(vectors)
     helper = np.zeros_like(u)
     helper[np.arange(len(u)), np.argmin(np.abs(u), axis=1)] = 1.0
     e1 = cross_rows(u, helper)

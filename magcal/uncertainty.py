@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import conventions
-from .vectors import row_norm
+from .vectors import unit_rows
 
 #: Numbers per sensor in ``theta``: ``M`` row by row (9), then the bias (3).
 THETA_PER_SENSOR = 12
@@ -180,7 +180,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
             if e.stage == "vector":                    # dB = basis dp
                 part += np.einsum("nkq,qr->nkr", e.vector_basis(b_rot, ctxs[s]), L[rows_of[label]], optimize=True)
     vector_sd = np.sqrt(np.sum(H * H, axis=2)).reshape(n, ns, 3).transpose(1, 0, 2)
-    unit = corrected_nT / row_norm(corrected_nT)[..., None]
+    unit = unit_rows(corrected_nT)
     total = np.einsum("snk,nskr->snr", unit, H.reshape(n, ns, 3, -1))
     out = {"vector_sd_nT": vector_sd, "total_sd_nT": np.sqrt(np.sum(total * total, axis=2))}
     if ns == 4 and calibration.baseline_m:

@@ -38,7 +38,7 @@ import numpy as np
 
 from .calibration import is_transferable
 from .errors import MagcalError
-from .vectors import row_norm
+from .vectors import row_norm, unit_rows
 
 SCHEMES = ("blocks", "later")
 
@@ -281,7 +281,7 @@ def relevel(residuals_nT, vectors_nT):
     n = r.shape[1]
     tau = np.linspace(-1.0, 1.0, n)[:, None] if n > 1 else np.zeros((n, 1))
     for s in range(r.shape[0]):
-        u = v[s] / row_norm(v[s])[..., None]
+        u = unit_rows(v[s])
         design = np.column_stack([u, u * tau, -np.ones(n), -tau[:, 0]])
         coef, *_ = np.linalg.lstsq(design, -r[s], rcond=None)
         r[s] += design @ coef
@@ -298,7 +298,7 @@ def consistency_rms_nT(vectors) -> float | None:
     if ns < 2:
         return None
     mean = v.mean(axis=0)
-    u = mean / row_norm(mean)[..., None]
+    u = unit_rows(mean)
     diff = v - mean
     perp = diff - np.einsum("sni,ni->sn", diff, u)[..., None] * u
     return float(np.sqrt(np.sum(perp**2) * ns / (ns - 1) / (2 * ns * v.shape[1])))

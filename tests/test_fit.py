@@ -365,7 +365,7 @@ def test_normal_equations_in_row_blocks_equal_the_dense_products(small_blocks, n
     x = problem.x0 + problem.x_scale * rng.normal(0, 3, problem.x0.size)
     weights = rng.uniform(0.1, 1.0, problem.n_residuals) if weighted else None
     if not model.effects:
-        assert problem._row_blocks() is not None and len(problem._row_blocks()) > 3
+        assert problem._sample_blocks() is not None and len(problem._sample_blocks()) > 3
     jac, r_dense = problem.jacobian(x), problem.residuals(x)
     w = np.ones(r_dense.size) if weights is None else weights
     r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(x, weights=weights, with_total_field=True)

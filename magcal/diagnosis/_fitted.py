@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import conventions
 from ..errors import MagcalError
-from ..vectors import row_norm
+from ..vectors import unit_rows
 
 def _fit_of(result):
     """A FitResult from a FitResult or a pipeline CalibrationResult."""
@@ -45,7 +45,7 @@ def _sensor_directions(kept, fit):
     out = np.empty_like(b)
     for s, cal in enumerate(fit.calibration.sensors):
         v = b[s] @ cal.R  # R^T applied to rows: array frame -> sensor frame
-        out[s] = v / row_norm(v)[..., None]
+        out[s] = unit_rows(v)
     return out, b
 
 
