@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from . import conventions
 from .errors import MagcalError, RecordTermWarning
 from .model import EFFECTS, Context, Model, parse_effect, term_label
-from .vectors import row_norm
+from .vectors import basis_times, row_norm
 
 FORMAT = "magcal-calibration"
 VERSION = 1
@@ -170,13 +170,13 @@ def corrected_fields(dataset, sensors, model=None, effect_values=None, ctxs=None
         z = z0
         for e, es in instances:
             if e.stage == "raw" and (es == s or (es is None and e.applies_to(s))):
-                z = z - e.raw_basis(z0, ctxs[s]) @ effect_values[block_label(e, es)]
+                z = z - basis_times(e.raw_basis(z0, ctxs[s]), effect_values[block_label(e, es)])
         out[s] = z @ (cal.R @ cal.cinv).T
     for s in range(len(sensors)):
         b = out[s].copy()
         for e, es in instances:
             if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
-                out[s] = out[s] + e.vector_basis(b, ctxs[s]) @ effect_values[block_label(e, es)]
+                out[s] = out[s] + basis_times(e.vector_basis(b, ctxs[s]), effect_values[block_label(e, es)])
     return out
 
 

@@ -34,7 +34,7 @@ from .errors import CalibrationError, ConvergenceWarning
 from .model import Model
 from .noise import robust_sigma
 from .reference import resolve_reference as _resolve
-from .vectors import cross_rows, row_norm, unit_rows
+from .vectors import basis_times, cross_rows, row_norm, unit_rows
 
 #: Samples per block when a model of base terms only is evaluated block by block (:meth:`Problem.normal_equations`).
 BLOCK_ROWS = 1 << 16
@@ -189,25 +189,27 @@ class Problem:
 
     # --- unpacking ------------------------------------------------------------------------------------------
     def sensors(self, x) -> list:
-        out = []
-        for s, free in enumerate(self._base_free):
-            block = x[self.blocks[f"sensor{s + 1}/base"]]
-            init = self.init_sensors[s]
-            cpar = conventions.cinv_to_params(init.cinv)
-            bias, rotvec = init.bias_nT.copy(), None
-            for (kind, k), value in zip(free, block):
-                if kind == "c":
-                    cpar[k] = value
-                elif kind == "b":
-                    bias[k] = value
-                else:
-                    rotvec = np.zeros(3) if rotvec is None else rotvec
-                    rotvec[k] = value
-            if self.reference_kind == "fitted" and s == 0:
-                cpar[5] = 1.0 / (cpar[0] * cpar[3])
-            rot = init.R if rotvec is None else Rotation.from_rotvec(rotvec).as_matrix() @ init.R
-            out.append(SensorCalibration(conventions.params_to_cinv(cpar), bias, rot))
-        return out
+        """Each sensor's :class:`~magcal.calibration.SensorCalibration` at ``x``."""
+        return [self.sensor(x, s) for s in range(self.n_sensors)]
+
+    def sensor(self, x, s) -> SensorCalibration:
+        """Sensor ``s``'s calibration at ``x``: it depends only on the columns ``blocks[f"sensor{s + 1}/base"]``."""
+        block = x[self.blocks[f"sensor{s + 1}/base"]]
+        init = self.init_sensors[s]
+        cpar = conventions.cinv_to_params(init.cinv)
+        bias, rotvec = init.bias_nT.copy(), None
+        for (kind, k), value in zip(self._base_free[s], block):
+            if kind == "c":
+                cpar[k] = value
+            elif kind == "b":
+                bias[k] = value
+            else:
+                rotvec = np.zeros(3) if rotvec is None else rotvec
+                rotvec[k] = value
+        if self.reference_kind == "fitted" and s == 0:
+            cpar[5] = 1.0 / (cpar[0] * cpar[3])
+        rot = init.R if rotvec is None else Rotation.from_rotvec(rotvec).as_matrix() @ init.R
+        return SensorCalibration(conventions.params_to_cinv(cpar), bias, rot)
 
     def effect_values(self, x) -> dict:
         return {label: x[sl].copy() for label, sl in self.blocks.items() if "/" not in label and label != "F0"}
@@ -284,7 +286,7 @@ class Problem:
             for e, es in instances:
                 if e.stage == "raw" and (es == s or (es is None and e.applies_to(s))):
                     basis = e.raw_basis(z0, ctx)
-                    z = z - basis @ values[block_label(e, es)]
+                    z = z - basis_times(basis, values[block_label(e, es)])
                     raw.append((self.blocks[block_label(e, es)], basis))
             rc = cal.R @ cal.cinv
             b_rot = z @ rc.T
@@ -303,7 +305,7 @@ class Problem:
             for e, es in instances:
                 if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
                     basis = e.vector_basis(b_rot, ctx)
-                    b = b + basis @ values[block_label(e, es)]
+                    b = b + basis_times(basis, values[block_label(e, es)])
                     vector.append((self.blocks[block_label(e, es)], basis))
             fields[s] = b
             derivs.append(_Derivative(start, base, z, cal.R, rc, b_rot, raw, vector))
@@ -570,9 +572,11 @@ class _Derivative:
 
 
 #: Elements of an (N, k) matrix built at once when its products are accumulated block by block (2 MB), and the
-#: fewest rows of a block (:func:`_row_blocks`).
+#: fewest rows of a block (:func:`_row_blocks`): a wide matrix (the diagnosis's ~170 candidate columns) still gets
+#: 4 096 rows, so that the few dozen numpy calls per block, which hold the interpreter, stay few (at 1 024 rows
+#: two threads accumulating side by side were 40 % slower).
 ROW_BLOCK_ELEMENTS = 1 << 18
-MIN_BLOCK_ROWS = 1024
+MIN_BLOCK_ROWS = 4096
 
 
 def _row_blocks(n, width):
@@ -613,7 +617,7 @@ LOSSES = {
 
 
 def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, ftol=1e-10,
-                         xtol=1e-10) -> _Solution:
+                         xtol=1e-10, max_steps=None) -> _Solution:
     """Levenberg-Marquardt on the normal equations of :meth:`Problem.normal_equations`.
 
     Minimises ``f^2/2 sum rho((r/f)^2)`` (``||r||^2 / 2`` for the linear loss). A robust loss enters as
@@ -640,6 +644,11 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     next iteration's when it is accepted: near the minimum one pass over the data per iteration. ``J^T W J`` is
     returned from the last iterate where it was evaluated, which differs from the returned ``x`` by at most that
     last, converged step.
+
+    ``max_steps`` stops after that many accepted steps (status 4). With one step from a start already within a
+    few standard errors of the minimum (a warm start from a fit of more data), the damping starts at a
+    negligible ``1e-9``, so the step is the Gauss-Newton step: the one-step estimator, equal to the minimum to
+    first order, for one pass over the data and one evaluation of the residuals.
     """
     from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
@@ -669,8 +678,9 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     nfev, cost = 1, cost_of(r)
     diag = np.maximum(np.diag(jtj), 0.0)
     d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
-    lam, nu = 1e-3, 2.0
-    optimistic = True
+    lam, nu = (1e-9 if max_steps is not None else 1e-3), 2.0
+    steps = 0
+    optimistic = max_steps is None or max_steps > 1  # the last allowed step needs its residuals only
     exact = bool(getattr(problem, "exact_jacobian", False))
     message, status = "maximum number of evaluations reached", 0
     while nfev < max_nfev:
@@ -719,15 +729,19 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
             lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), 2.0
             if trial is not None:
                 r, jtj, jtr = trial
+            steps += 1
             if (abs(actual) <= ftol * cost and predicted <= ftol * cost) or small_step:
                 message = "converged: the relative cost reduction or step is below tolerance"
                 status = 3 if small_step else 2
+                break
+            if max_steps is not None and steps >= max_steps:
+                message, status = f"stopped after {steps} step(s) from the start, as asked (one-step estimate)", 4
                 break
             if trial is None:
                 r, jtj, jtr = equations(x)
                 nfev += 1
             d = np.maximum(d, np.diag(jtj))
-            optimistic = True
+            optimistic = max_steps is None or steps + 1 < max_steps
         else:
             if small_step:
                 message, status = "converged: no smaller step reduces the cost", 3
@@ -792,7 +806,8 @@ class FitResult:
     status : int
         As scipy.optimize.least_squares: ``0`` the evaluation limit was reached, ``-1`` the solver failed
         (non-finite or singular normal equations), ``1`` gradient zero, ``2`` cost reduction below tolerance,
-        ``3`` step below tolerance.
+        ``3`` step below tolerance; ``4`` (magcal's own) stopped after the ``max_steps`` steps :func:`fit` was
+        asked for.
     message : str
         The solver's reason for stopping, in words.
     """
@@ -852,7 +867,7 @@ class FitResult:
 
 
 def fit(dataset, model: Model | None = None, init: Calibration | None = None, loss="linear", f_scale_nT=None,
-        mask=None, reference_total_nT=None, max_nfev=200, cost_tolerance=None) -> FitResult:
+        mask=None, reference_total_nT=None, max_nfev=200, cost_tolerance=None, max_steps=None) -> FitResult:
     """Maximum-likelihood fit of a model, started from a calibration.
 
     Parameters
@@ -878,6 +893,12 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         ``||r||^2 / (m - p)``): parameters then lie within about ``sqrt(2 cost_tolerance)`` standard errors of the
         minimum. Default: a relative reduction of 1e-10 (far tighter); the diagnosis judges its refits with 0.01,
         which is irrelevant to a change of the information criterion or of a held-out RMS.
+    max_steps : int, optional
+        Stop after this many accepted steps (status 4). ``max_steps=1`` from a warm start that is already
+        within a few standard errors of the minimum (``init`` fitted on a superset of the samples) gives the
+        one-step estimator: one Gauss-Newton step, equal to the minimum to first order in the distance from
+        the start (Le Cam), for one pass over the data; :func:`magcal.validation.validate` fits its training
+        samples so.
 
     Returns
     -------
@@ -899,14 +920,14 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
     result = _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
-                       cost_tolerance=cost_tolerance)
+                       cost_tolerance=cost_tolerance, max_steps=max_steps)
     # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
     # more fit; the refined shape is kept only if it fits better
     saved = [e.state() for e in model.effects]
     context = RefineContext(result.problem, result.x)
     if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
         second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
-                           max_nfev, configure=False, cost_tolerance=cost_tolerance)
+                           max_nfev, configure=False, cost_tolerance=cost_tolerance, max_steps=max_steps)
         if second.rss < result.rss:
             second.nfev += result.nfev
             return _warn_if_not_converged(second)
@@ -973,7 +994,7 @@ class RefineContext:
 
 
 def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
-              configure=True, cost_tolerance=None) -> FitResult:
+              configure=True, cost_tolerance=None, max_steps=None) -> FitResult:
     """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
     constants as they are (the pass after :meth:`~magcal.model.Effect.refine`)."""
     n_all = dataset.n_samples
@@ -999,7 +1020,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         ftol = max(ftol, 2.0 * float(cost_tolerance) / max(problem.n_residuals - problem.x0.size, 1))
     if loss == "linear":
         x0, nfev0 = problem.x0, 0
-        if not model.effects and problem.n_samples > 2 * WARMUP_SAMPLES:
+        if not model.effects and problem.n_samples > 2 * WARMUP_SAMPLES and max_steps is None:
             # converge on an even subsample first (same parametrisation: the same model and start), so that the
             # passes over every sample start next to their minimum
             every = int(np.ceil(problem.n_samples / WARMUP_SAMPLES))
@@ -1007,7 +1028,7 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
                                                 reference_total_nT), problem.x0, max_nfev=max_nfev)
             if warm.status > 0:
                 x0, nfev0 = warm.x, warm.nfev
-        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol)
+        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps)
         x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
@@ -1017,7 +1038,8 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         for _ in range(rounds):
             scale = f_scale_nT if f_scale_nT is not None else 3.0 * robust_sigma(
                 problem.residuals(x)[problem.total_field_rows], floor=1e-9)
-            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol)
+            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol,
+                                       max_steps=max_steps)
             x, nfev = sol.x, nfev + sol.nfev
         r, jtj, _ = problem.normal_equations(x)
     message, status = sol.message, sol.status

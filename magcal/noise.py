@@ -316,6 +316,31 @@ def _difference_sigma(r, fresh):
     return (float(np.sqrt(min(variances))) if variances else float("nan")), int(x.size)
 
 
+#: What :func:`estimate_noise` learns from the readings alone (still stretches, quantization floors, fresh samples),
+#: kept for the last few readings arrays (and time columns): a diagnosis estimates the noise of one record several times (before and
+#: after each effect it adds), and these do not change with the residuals. Keyed by the arrays' identity; the
+#: entry holds them, and datasets are never changed in place.
+_READINGS_FACTS: dict = {}
+
+
+def _readings_facts(dataset):
+    """``(still_nT, scatter_nT, still_samples, quantization floors, fresh-sample masks)`` of the dataset's readings,
+    computed once per readings array (:data:`_READINGS_FACTS`)."""
+    readings, time_s = dataset.readings_nT, dataset.time_s
+    key = (id(readings), id(time_s))
+    hit = _READINGS_FACTS.get(key)
+    if hit is not None and hit[0] is readings and hit[1] is time_s:
+        return hit[2]
+    steps = [quantization_steps_nT(y) for y in readings]
+    still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
+    floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
+    facts = (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
+    if len(_READINGS_FACTS) >= 4:
+        _READINGS_FACTS.clear()
+    _READINGS_FACTS[key] = (readings, time_s, facts)
+    return facts
+
+
 def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=None) -> NoiseEstimate:
     """Noise level: the declared one, else estimated from the residuals' differences (smooth trajectories), the
     still stretches' scatter or the residual RMS, never below the quantization floor.
@@ -348,11 +373,9 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
 
     r = np.asarray(residuals_nT, dtype=float)
     ns = r.shape[0]
-    steps = [quantization_steps_nT(y) for y in dataset.readings_nT]
-    still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
+    still_nT, scatter_nT, still_samples, floors, fresh = _readings_facts(dataset)
     static = None if np.all(np.isnan(still_nT)) else still_nT
     scatter = None if np.all(np.isnan(scatter_nT)) else scatter_nT
-    floors = [quantization_floor_nT(y, q) for y, q in zip(dataset.readings_nT, steps)]
     q_floor = None if all(f is None for f in floors) else np.array([f or 0.0 for f in floors])
     declared, where = noise_nT, "given by the user"
     if declared is None and dataset.noise_nT:
@@ -370,13 +393,13 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
         note = (f"measured in the still stretches ({int(still_samples.min())}+ samples per sensor), free of any "
                 "misfit of the model")
         if ordered:
-            moving = np.array([_difference_sigma(r[s], fresh_samples(dataset.readings_nT[s]))[0]
+            moving = np.array([_difference_sigma(r[s], fresh[s])[0]
                                for s in range(ns)])
             note += "; the residuals' differences give " + _values(moving) + " nT"
     elif ordered:
         per, counts = [], []
         for s in range(ns):
-            sig, m = _difference_sigma(r[s], fresh_samples(dataset.readings_nT[s]))
+            sig, m = _difference_sigma(r[s], fresh[s])
             per.append(sig)
             counts.append(m)
         per, source = np.array(per), "differences"

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import conventions
-from .vectors import unit_rows
+from .vectors import basis_times, unit_rows
 
 #: Numbers per sensor in ``theta``: ``M`` row by row (9), then the bias (3).
 THETA_PER_SENSOR = 12
@@ -68,17 +68,19 @@ def base_covariance(fit_result) -> np.ndarray | None:
     if cov is None or problem is None or x is None or not np.all(np.isfinite(cov)):
         return None
     x = np.asarray(x, float)
-    t0 = theta_of(problem.sensors(x))
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    jac = np.zeros((t0.size, x.size))
-    for p in range(x.size):
-        h = max(1e-3 * sd[p], 1e-9 * max(abs(x[p]), 1.0))
-        if h == 0 or not np.isfinite(h):
-            continue
-        xp, xm = x.copy(), x.copy()
-        xp[p] += h
-        xm[p] -= h
-        jac[:, p] = (theta_of(problem.sensors(xp)) - theta_of(problem.sensors(xm))) / (2 * h)
+    jac = np.zeros((THETA_PER_SENSOR * problem.n_sensors, x.size))
+    for s in range(problem.n_sensors):  # sensor s's theta depends only on its own base columns
+        rows = slice(THETA_PER_SENSOR * s, THETA_PER_SENSOR * (s + 1))
+        block = problem.blocks[f"sensor{s + 1}/base"]
+        for p in range(block.start, block.stop):
+            h = max(1e-3 * sd[p], 1e-9 * max(abs(x[p]), 1.0))
+            if h == 0 or not np.isfinite(h):
+                continue
+            xp, xm = x.copy(), x.copy()
+            xp[p] += h
+            xm[p] -= h
+            jac[rows, p] = (theta_of([problem.sensor(xp, s)]) - theta_of([problem.sensor(xm, s)])) / (2 * h)
     rows = [jac]
     for label, *_ in effect_layout(problem.model):  # the effects' parameters are the fit's own
         block = problem.blocks[label]
@@ -166,7 +168,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
         for label, e in mine:
             if e.stage == "raw":
                 basis = e.raw_basis(z0, ctxs[s])
-                z = z - basis @ values[label]
+                z = z - basis_times(basis, values[label])
                 raw.append((label, basis))
         rows = L[THETA_PER_SENSOR * s: THETA_PER_SENSOR * (s + 1)]   # (12, r)
         # dB_k = sum_j z_j dM_kj - sum_j M_kj db_j

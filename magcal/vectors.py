@@ -48,3 +48,19 @@ def cross_rows(a, b) -> np.ndarray:
         np.multiply(a[..., i], b[..., j], out=out[..., k])
         out[..., k] -= a[..., j] * b[..., i]
     return out
+
+
+def basis_times(basis, theta) -> np.ndarray:
+    """``basis @ theta`` for an effect's basis (N, 3, q) and its parameters (q,): the vectors (N, 3).
+
+    One (3N, q) matrix-vector product (BLAS) instead of numpy's batched ``matmul`` over N small matrices, which is
+    about six times slower.
+
+    Examples
+    --------
+    >>> basis_times(np.arange(12.0).reshape(2, 3, 2), np.array([1.0, -1.0]))
+    array([[-1., -1., -1.],
+           [-1., -1., -1.]])
+    """
+    b = np.asarray(basis, dtype=float)
+    return (b.reshape(-1, b.shape[-1]) @ np.asarray(theta, dtype=float)).reshape(b.shape[:-1])

@@ -109,6 +109,7 @@ class Candidate:
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
+    start: object = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         return {
@@ -176,6 +177,7 @@ class _Grams:
     rr_tf: float
     blocks: dict
     m_tf: int
+    problem: object = None
 
 
 def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
@@ -194,12 +196,12 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
         problem = Problem(sub, model, init, reference_total_nT)
         r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
         rt = r[: sub.n_sensors * sub.n_samples]
-        return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem.blocks
+        return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem
 
     acc = None
-    for terms, blocks in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
+    for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
         acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
-    return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], blocks, kept.n_sensors * n)
+    return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], problem.blocks, kept.n_sensors * n, problem)
 
 
 def _columns(blocks, labels):
@@ -259,6 +261,20 @@ class _Projector:
         rss_v = (g.rr_all - g.rr_tf) - 2 * coef @ (v - jt_r) + coef @ (s - jt_j) @ coef
         return {"q": q, "lm": lm, "p": p, "dbic": float(dbic), "rms_tf": rms_tf, "rss_vec": float(max(rss_v, 0.0)),
                 "reduction": reduction}
+
+    def start(self, cols):
+        """The calibration one Gauss-Newton step from the fitted base model predicts with the columns ``cols``
+        (a candidate's parameters) added: the base and the candidate's parameters solved jointly from the
+        Gram matrix (Jacobi-scaled pseudo-inverse), the other candidates' left at zero, kept in their bounds.
+        Its refit starts there, next to its minimum, so it needs about one pass over the data."""
+        g, problem = self.g, self.g.problem
+        sel = np.concatenate([self.base, np.asarray(cols, dtype=int)])
+        d = np.sqrt(np.maximum(np.diag(g.g_all)[sel], 1e-300))
+        w, v = np.linalg.eigh(g.g_all[np.ix_(sel, sel)] / np.outer(d, d))
+        keep = w > 1e-12 * w.max()
+        x = problem.x0.copy()
+        x[sel] -= ((v[:, keep] / w[keep]) @ (v[:, keep].T @ (g.v_all[sel] / d))) / d
+        return problem.calibration(np.clip(x, problem.lower, problem.upper))
 
     def canonical_correlation(self, a, b):
         """Largest canonical correlation between the projected columns ``a`` and ``b`` (0..1)."""
@@ -367,7 +383,8 @@ def _score_from_grams(kept, fit, groups, grams):
 
 
 def _refit(dataset, fit, candidate: Candidate):
-    """Refit the model with the candidate's effect instances added; returns the FitResult."""
+    """Refit the model with the candidate's effect instances added, from the score test's predicted start
+    (:meth:`_Projector.start`) when there is one; returns the FitResult."""
     from ..fit import COMPARISON_COST_TOLERANCE
     from ..fit import fit as ml_fit
 
@@ -380,7 +397,7 @@ def _refit(dataset, fit, candidate: Candidate):
     for e in new:
         model = model.with_effect(e)
     ref = _reference_override(fit)
-    return ml_fit(dataset, model, init=fit.calibration, mask=fit.mask, reference_total_nT=ref,
+    return ml_fit(dataset, model, init=candidate.start or fit.calibration, mask=fit.mask, reference_total_nT=ref,
                   cost_tolerance=COMPARISON_COST_TOLERANCE)
 
 
@@ -392,8 +409,9 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
-def _confirm(dataset, fit, cands, top, coupled, fits):
-    """Refit the best variant of the ``top`` best distinct effects; re-rank."""
+def _confirm(dataset, fit, cands, top, coupled, fits, proj=None):
+    """Refit the best variant of the ``top`` best distinct effects (from the start ``proj``, the score round's
+    :class:`_Projector`, predicts); re-rank."""
     chosen, seen = [], set()
     for c in cands:
         if c.effect in seen:
@@ -402,6 +420,13 @@ def _confirm(dataset, fit, cands, top, coupled, fits):
         chosen.append(c)
         if len(chosen) >= top:
             break
+    if proj is not None and proj.g.problem is not None:
+        for c in chosen:
+            try:
+                c.start = proj.start(c.columns)
+            except (CalibrationError, np.linalg.LinAlgError, ValueError):
+                c.start = None  # the refit starts from the base fit instead
+
     def refit(c):
         try:
             return _refit(dataset, fit, c)
