@@ -164,6 +164,26 @@ def test_score_test_predicts_the_refit(name):
     assert best.rms_after_nT == pytest.approx(d.fits[best.label].rms_nT, rel=1e-9)
 
 
+@pytest.mark.parametrize("name", ["temperature_bias", "nonlinearity_quadratic", "bias_drift"])
+def test_a_confirming_refit_starts_where_the_score_test_predicts(name):
+    """The refit of a candidate starts at the score test's joint Gauss-Newton step (Projector.start): it is
+    next to the minimum, so the refit takes one or two passes over the data, and it ends where a refit from the
+    base calibration does, to the comparison fits' tolerance (0.01 noise variances of cost, so sqrt(0.02)
+    standard errors)."""
+    from magcal.diagnosis import scores
+
+    d = diagnose(_hidden(name, 1))
+    best = d.candidates[0]
+    assert best.effect == name and best.refitted and best.start is not None
+    fast = d.fits[best.label]
+    assert fast.nfev <= 2
+    best.start = None  # the refit as it was: from the base calibration
+    slow = scores._refit(_hidden(name, 1), d.result, best)
+    assert slow.nfev > fast.nfev
+    assert abs(fast.rss - slow.rss) / (slow.rss / (slow.n_residuals - slow.n_params)) < 0.05
+    assert np.max(np.abs(fast.x - slow.x) / slow.std) < 1.5 * np.sqrt(2 * 0.01)
+
+
 # ------------------------------------------------------------------------------------------------------------
 # hidden effects, magcal's simulator
 # ------------------------------------------------------------------------------------------------------------

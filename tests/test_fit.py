@@ -5,7 +5,7 @@ import pytest
 
 from magcal import conventions
 from magcal.fit import Problem, crude_initial_calibration, fit
-from magcal.model import Model
+from magcal.model import EFFECTS as EFFECTS_BY_NAME, Model
 from magcal.simulation import ArrayTruth, SensorErrors, chi2017_truth, simulate
 
 
@@ -455,3 +455,23 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
     step.set_state(saved)
     step.refine(result.calibration.effect_values, WholeOnly())
     assert moved == step.step_time_s
+
+
+@pytest.mark.parametrize("n_sensors, effects", [(1, []), (4, []), (1, ["temperature_bias"]), (4, ["bias_drift"])])
+def test_one_step_from_the_whole_record_reaches_the_training_minimum(n_sensors, effects):
+    """``max_steps=1`` from the whole record's fit (the held-out fits of the validation) is the one-step
+    estimator: one pass, status 4, and the training samples' converged minimum to a small fraction of a standard
+    error, with the same residual sum of squares to a thousandth of a noise variance."""
+    from magcal.simulation import simulate_timeseries
+
+    hidden = [EFFECTS_BY_NAME[name]().perturbation(EFFECTS_BY_NAME[name].default_magnitude) for name in effects]
+    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=1500, noise_nT=3.0, seed=21, perturbations=hidden)
+    model = Model.from_names(effects, n_sensors)
+    whole = fit(ds, model)
+    train = (np.arange(ds.n_samples) // 150) % 2 == 0  # alternate blocks, as the validation holds out
+    converged = fit(ds, model, init=whole.calibration, mask=train)
+    one = fit(ds, model, init=whole.calibration, mask=train, max_steps=1)
+    assert one.status == 4 and one.success and one.nfev == 2  # the start's equations and the step's residuals
+    assert np.max(np.abs(one.x - converged.x) / converged.std) < 0.02
+    sigma2 = converged.rss / (converged.n_residuals - converged.n_params)
+    assert abs(one.rss - converged.rss) <= 1e-3 * sigma2

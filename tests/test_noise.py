@@ -110,3 +110,24 @@ def test_robust_sigma_floor_for_stale_samples():
     assert robust_sigma(stale) == 0.0
     assert robust_sigma(stale, floor=1e-6) == 1e-6
     assert robust_sigma(stale[None], axis=1, floor=1e-6) == pytest.approx([1e-6])
+
+
+def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
+    """A diagnosis estimates the noise of one record several times: what depends on the readings alone (still
+    stretches, quantization floors, stale samples) is computed once, and the estimate is the same."""
+    import magcal.noise as noise_module
+
+    ds = simulate_timeseries(chi2017_truth(2), n_samples=600, noise_nT=2.0, seed=3).replace(noise_nT=None)
+    fitted = calibrate(ds).fit
+    residuals = fitted.residuals_nT
+    calls = []
+    original = noise_module.still_noise_nT
+    monkeypatch.setattr(noise_module, "still_noise_nT", lambda *a, **k: calls.append(1) or original(*a, **k))
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", {})
+    first = estimate_noise(ds, residuals, fitted.n_params)
+    second = estimate_noise(ds, residuals, fitted.n_params)
+    assert len(calls) == 1
+    assert first.sigma_nT == second.sigma_nT and first.source == second.source
+    other = ds.subset(np.arange(ds.n_samples) < 500)  # other readings: computed anew
+    estimate_noise(other, residuals[:, :500], fitted.n_params)
+    assert len(calls) == 2

@@ -129,3 +129,26 @@ def test_the_effects_parameters_are_carried_with_their_correlations(fitted_with_
     base_only = magcal.Calibration.from_dict(cal.to_dict())
     base_only.base_covariance = cal.base_covariance[:48, :48]
     assert np.median(u["vector_sd_nT"] / base_only.uncertainty(new)["vector_sd_nT"]) > 1.05
+
+
+@pytest.mark.parametrize("which", ["fitted", "fitted_with_effects"])
+def test_theta_covariance_is_the_whole_vectors_finite_difference(request, which):
+    """base_covariance differentiates each sensor's theta by its own base columns only; differentiating theta of
+    every sensor by every parameter gives the same covariance (the other columns do not move a sensor)."""
+    from magcal.uncertainty import THETA_PER_SENSOR, base_covariance, theta_of
+
+    result, _ = request.getfixturevalue(which)
+    fit = result.fit
+    problem, x = fit.problem, fit.x
+    sd = np.sqrt(np.diag(fit.covariance))
+    jac = np.zeros((THETA_PER_SENSOR * problem.n_sensors, x.size))
+    for p in range(x.size):
+        h = max(1e-3 * sd[p], 1e-9 * max(abs(x[p]), 1.0))
+        xp, xm = x.copy(), x.copy()
+        xp[p] += h
+        xm[p] -= h
+        jac[:, p] = (theta_of(problem.sensors(xp)) - theta_of(problem.sensors(xm))) / (2 * h)
+    theta_cov = jac @ fit.covariance @ jac.T
+    got = base_covariance(fit)[:jac.shape[0], :jac.shape[0]]
+    np.testing.assert_allclose(got, 0.5 * (theta_cov + theta_cov.T), rtol=1e-9,
+                               atol=1e-12 * np.max(np.abs(theta_cov)))

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from magcal.vectors import cross_rows, row_norm, unit_rows
+from magcal.vectors import basis_times, cross_rows, row_norm, unit_rows
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 
@@ -34,3 +34,12 @@ def test_unit_rows_have_unit_length_and_keep_direction():
     u = unit_rows(v)
     np.testing.assert_allclose(row_norm(u), 1.0, rtol=1e-15)
     np.testing.assert_allclose(np.sum(u * v, axis=1), row_norm(v), rtol=1e-12)
+
+
+@pytest.mark.parametrize("n, q", [(0, 3), (1, 1), (500, 3), (500, 12)])
+def test_basis_times_is_numpys_batched_matmul(n, q):
+    rng = np.random.default_rng(n + q)
+    basis, theta = rng.normal(size=(n, 3, q)), rng.normal(size=q)
+    np.testing.assert_allclose(basis_times(basis, theta), basis @ theta, rtol=1e-12, atol=1e-12)
+    view = rng.normal(size=(2 * n, 3, q))[::2]  # a strided view of rows, as an effect's cached basis may be
+    np.testing.assert_allclose(basis_times(view, theta), view @ theta, rtol=1e-12, atol=1e-12)

@@ -9,6 +9,8 @@ an F-test per degree :func:`sh_analysis` (degree up to :data:`SH_DEGREE`). Resid
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import stats
 from scipy.signal import periodogram
@@ -220,17 +222,29 @@ def real_sph_harm(u, lmax=SH_DEGREE) -> np.ndarray:
     u = np.asarray(u, dtype=float)
     theta = np.arccos(np.clip(u[:, 2], -1.0, 1.0))
     phi = np.arctan2(u[:, 1], u[:, 0])
-    cols = []
+    out = np.empty((len(u), (lmax + 1) ** 2))
     for degree in range(lmax + 1):
-        for order in range(-degree, degree + 1):
-            y = sph_harm_y(degree, abs(order), theta, phi)
-            if order > 0:
-                cols.append(np.sqrt(2.0) * (-1) ** order * y.real)
-            elif order < 0:
-                cols.append(np.sqrt(2.0) * (-1) ** order * y.imag)
+        centre = degree * (degree + 1)  # column of order 0
+        for order in range(degree + 1):  # the complex harmonic of order |m| gives both real ones
+            y = sph_harm_y(degree, order, theta, phi)
+            if order == 0:
+                out[:, centre] = y.real
             else:
-                cols.append(y.real)
-    return np.column_stack(cols)
+                sign = np.sqrt(2.0) * (-1) ** order
+                out[:, centre + order] = sign * y.real
+                out[:, centre - order] = sign * y.imag
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def _grid_harmonics(grid, lmax) -> np.ndarray:
+    """:func:`real_sph_harm` on the latitude/longitude grid of :func:`sh_analysis`'s map (the same every time)."""
+    la, lo = np.meshgrid(np.radians(np.linspace(-90, 90, grid[0])), np.radians(np.linspace(-180, 180, grid[1])),
+                         indexing="ij")
+    g = np.column_stack([(np.cos(la) * np.cos(lo)).ravel(), (np.cos(la) * np.sin(lo)).ravel(), np.sin(la).ravel()])
+    out = real_sph_harm(g, lmax)
+    out.setflags(write=False)
+    return out
 
 
 def sh_resolved_degrees(y, min_eigen=None) -> np.ndarray:
@@ -328,12 +342,10 @@ def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
         pval.append(float(stats.f.sf(f, len(idx), dof)) if np.isfinite(f) else float("nan"))
     lat = np.linspace(-90, 90, grid[0])
     lon = np.linspace(-180, 180, grid[1])
-    la, lo = np.meshgrid(np.radians(lat), np.radians(lon), indexing="ij")
-    g = np.column_stack([(np.cos(la) * np.cos(lo)).ravel(), (np.cos(la) * np.sin(lo)).ravel(), np.sin(la).ravel()])
     high = coef.copy()
     high[:9] = 0.0
     high[(top + 1) ** 2:] = 0.0  # no map where the coverage does not resolve the pattern
-    values = (real_sph_harm(g, lmax) @ high).reshape(la.shape)
+    values = (_grid_harmonics(tuple(grid), lmax) @ high).reshape(len(lat), len(lon))
     return {"degree": np.array(degrees), "rms_nT": np.array(rms), "F": np.array(fstat), "p": np.array(pval),
             "resolved": resolved, "max_resolved_degree": top,
             "high_rms_in_sample_nT": float(np.sqrt(max(rss_low - rss, 0.0) / max(n, 1))),
