@@ -37,7 +37,7 @@ from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
 from .errors import MagcalError
-from .model import EFFECTS, Context, Effect, register, term_label
+from .model import EFFECTS, Context, Effect, SingleAxisBasis, register, term_label
 from .vectors import row_norm
 
 #: Field magnitude (nT) nonlinearity coefficients are quoted at when the data's own is not known (an effect never
@@ -82,12 +82,9 @@ def _axes_text(values, fmt="{:.3g}") -> str:
 
 
 def _diagonal_basis(columns):
-    """(N, 3, 3) basis with ``columns[:, j]`` on the diagonal (one parameter per axis)."""
-    columns = np.asarray(columns, dtype=float)
-    basis = np.zeros(columns.shape[:1] + (3, 3))
-    idx = np.arange(3)
-    basis[:, idx, idx] = columns
-    return basis
+    """(N, 3, 3) basis with ``columns[:, j]`` on the diagonal (one parameter per axis), a
+    :class:`~magcal.model.SingleAxisBasis`."""
+    return SingleAxisBasis(columns, np.arange(3))
 
 
 def time_derivative(values, time_s, window=7):
@@ -755,10 +752,7 @@ class AxisTimingSkew(CatalogueEffect):
 
     def raw_basis(self, z0, ctx: Context):
         rate = _reading_rate(self, ctx)
-        basis = np.zeros((len(z0), 3, 2))
-        basis[:, 0, 0] = -1e-3 * rate[:, 0]
-        basis[:, 1, 1] = -1e-3 * rate[:, 1]
-        return basis
+        return SingleAxisBasis(-1e-3 * rate[:, :2], [0, 1])
 
     def true_params(self, magnitude=None, sensor=0):
         magnitude = self.default_magnitude if magnitude is None else magnitude
@@ -1229,9 +1223,8 @@ class PeriodicInterference(CatalogueEffect):
             for k in range(1, self.harmonics + 1):
                 phase = 2 * np.pi * k * (f or 0.0) * (t - t0)
                 wave = [np.sin(phase), np.cos(phase)] if f else [np.zeros(len(t))] * 2
-                for w in wave:
-                    columns.append(_diagonal_basis(np.repeat(w[:, None], 3, axis=1)))
-            return np.concatenate(columns, axis=2)
+                columns += [w for w in wave for _ in range(3)]  # sin on x, y, z, then cos on x, y, z
+            return SingleAxisBasis(np.column_stack(columns), np.tile(np.arange(3), 2 * self.harmonics))
         return self._cached(ctx.dataset, key, compute)
 
     def true_params(self, magnitude=None, sensor=0):

@@ -523,11 +523,18 @@ class _Derivative:
     def __init__(self, start, base, z, rot, rc, b_rot, raw, vector):
         self._base, self._z, self._rot, self._rc, self._b_rot = base, z, rot, rc, b_rot
         self._raw, self._vector = raw, vector
-        self._zt = self._bt = None
+        self._zt = self._bt = self._one_axis = None
         cols = [start + i for i in range(len(base))]
         for sl, _ in raw + vector:
             cols.extend(range(sl.start, sl.stop))
         self.cols = np.asarray(cols, dtype=int)
+
+    @staticmethod
+    def _single_axis(basis):
+        """``(axes, axis_values)`` of a :class:`~magcal.model.SingleAxisBasis` (each parameter moves one axis:
+        its projections are q products instead of a contraction over the whole array, 8x), else None."""
+        axes = getattr(basis, "axes", None)
+        return None if axes is None else (axes, basis.axis_values)
 
     def project(self, w, out=None, rows=None):
         """``sum_i w[n, i] dB[n, i]/dx_k`` (N, k) for directions ``w`` (N, 3); with ``rows`` (a slice), for those
@@ -536,6 +543,8 @@ class _Derivative:
         out = np.empty((len(self.cols), n)).T if out is None else out
         if self._zt is None:  # components as contiguous rows, once for all the directions projected on
             self._zt, self._bt = np.ascontiguousarray(self._z.T), np.ascontiguousarray(self._b_rot.T)
+            self._one_axis = ([self._single_axis(b) for _, b in self._raw],
+                              [self._single_axis(b) for _, b in self._vector])
         rows = slice(None) if rows is None else rows
         zt, bt = self._zt[:, rows], self._bt[:, rows]
         wt = w.T
@@ -554,14 +563,23 @@ class _Derivative:
                 np.multiply(bt[i], wt[j], out=out[:, col])
                 out[:, col] -= bt[j] * wt[i]
         col = len(self._base)
-        for sl, basis in self._raw:
+        raw_axes, vector_axes = self._one_axis
+        for (sl, basis), single in zip(self._raw, raw_axes):
             wrc = self._rc.T @ wt if wrc is None else wrc
             q = sl.stop - sl.start
-            np.negative(np.einsum("in,niq->nq", wrc, basis[rows]), out=out[:, col:col + q])
+            part = out[:, col:col + q]
+            if single is None:
+                np.negative(np.einsum("in,niq->nq", wrc, basis[rows]), out=part)
+            else:
+                np.multiply(-wrc[single[0]], single[1][:, rows], out=part.T)
             col += q
-        for sl, basis in self._vector:
+        for (sl, basis), single in zip(self._vector, vector_axes):
             q = sl.stop - sl.start
-            out[:, col:col + q] = np.einsum("ni,niq->nq", w, basis[rows])
+            part = out[:, col:col + q]
+            if single is None:
+                part[...] = np.einsum("ni,niq->nq", w, basis[rows])
+            else:
+                np.multiply(wt[single[0]], single[1][:, rows], out=part.T)
             col += q
         return out
 

@@ -389,6 +389,30 @@ def test_derivative_projection_is_the_dense_derivative_on_a_direction(n_sensors)
         np.testing.assert_allclose(d.project(w[rows], rows=rows), d.project(w)[rows], rtol=1e-14, atol=0)
 
 
+@pytest.mark.parametrize("name", [n for n, cls in EFFECTS_BY_NAME.items() if cls.stage in ("raw", "vector")])
+def test_projection_of_a_single_axis_basis_is_the_general_contraction(monkeypatch, name):
+    """Bases whose parameters each move one axis (most raw-stage terms) are projected by products; every
+    catalogue term's projection equals the general contraction's, and the shortcut is taken where it applies."""
+    from magcal.fit import _Derivative
+
+    n_sensors = max(2, EFFECTS_BY_NAME[name].min_sensors) if name != "site_gradient" else 4
+    ds, model, problem = _timeseries_problem(n_sensors, (name,), 50_000.0)
+    if EFFECTS_BY_NAME[name]().missing_channels(ds):
+        pytest.skip(f"{name} needs channels the simulated record lacks")
+    w = np.random.default_rng(8).normal(size=(problem.n_samples, 3))
+    rows = slice(40, 333)
+    _, derivs = problem.field_derivatives(problem.x0)
+    fast = [(d.project(w), d.project(w[rows], rows=rows)) for d in derivs]
+    singles = [s for d in derivs for s in d._one_axis[0] + d._one_axis[1]]
+    monkeypatch.setattr(_Derivative, "_single_axis", staticmethod(lambda basis: None))
+    _, derivs = problem.field_derivatives(problem.x0)
+    for (whole, part), d in zip(fast, derivs):
+        np.testing.assert_allclose(whole, d.project(w), rtol=1e-13, atol=1e-12)
+        np.testing.assert_allclose(part, d.project(w[rows], rows=rows), rtol=1e-13, atol=1e-12)
+    if name in ("temperature_bias", "bias_drift", "nonlinearity_cubic", "bias_step"):
+        assert any(s is not None for s in singles)
+
+
 @pytest.mark.parametrize("n_sensors", [1, 4])
 def test_a_large_record_converged_on_a_subsample_first_reaches_the_same_minimum(monkeypatch, n_sensors):
     """The warm-up on an even subsample only changes where the fit of every sample starts, not where it ends."""

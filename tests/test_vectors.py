@@ -43,3 +43,15 @@ def test_basis_times_is_numpys_batched_matmul(n, q):
     np.testing.assert_allclose(basis_times(basis, theta), basis @ theta, rtol=1e-12, atol=1e-12)
     view = rng.normal(size=(2 * n, 3, q))[::2]  # a strided view of rows, as an effect's cached basis may be
     np.testing.assert_allclose(basis_times(view, theta), view @ theta, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("axes", [[0, 1, 2], [0, 1], [2, 0, 1, 0, 1, 2]])
+def test_basis_times_of_a_single_axis_basis_is_the_dense_product(axes):
+    from magcal.model import SingleAxisBasis
+
+    rng = np.random.default_rng(len(axes))
+    basis = SingleAxisBasis(rng.normal(size=(50, len(axes))), axes)
+    theta = rng.normal(size=len(axes))
+    dense = np.asarray(basis).copy()
+    np.testing.assert_allclose(basis_times(basis, theta), dense @ theta, rtol=1e-13, atol=1e-12)
+    assert basis[3:7].axes is None  # a view is a plain basis
