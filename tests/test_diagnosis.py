@@ -282,6 +282,40 @@ def test_two_hidden_effects_are_both_named():
     assert any("more than one effect" in w for w in d.warnings)
 
 
+@pytest.mark.parametrize("n_sensors, hidden", [
+    (1, ["temperature_bias=2", "nonlinearity_quadratic=25"]),
+    (4, ["temperature_scale=40", "bias_step:4=10"]),
+    (4, ["temperature_bias=0.5", "sensor_timing_skew:3=0.5"]),
+])
+def test_the_next_round_scores_from_the_carried_gram_matrix_as_from_a_new_one(n_sensors, hidden):
+    """After the first effect is added, the candidates whose data-derived constants did not change are scored
+    from the first round's Gram matrix carried along the refit's step: the same ranking and, to first order, the
+    same predicted delta-BIC and residual RMS as a Gram matrix computed anew at the refit."""
+    from magcal.diagnosis import scores
+    from magcal.diagnosis._fitted import _kept
+
+    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=3000, noise_nT=SIGMA, seed=6,
+                             perturbations=[fx.parse_hidden(h, n_sensors) for h in hidden])
+    fit0 = calibrate(ds).fit
+    first, _, _ = scores._score_round(ds, _kept(ds, fit0), fit0)
+    best = scores._confirm(ds, fit0, first, 1, n_sensors > 1, {})[0]
+    fit1 = best.fit
+    kept = _kept(ds, fit1)
+    groups = scores._candidate_effects(kept, fit1.model, None)
+    for instances in groups.values():
+        for e in instances:
+            e.configure(kept, fit1.residuals_nT[:, fit1.mask])
+    reusable, _, changed = scores._carried(best, kept, fit1, groups)
+    assert len(reusable) >= len(changed)
+    carried, _, _ = scores._score_round(ds, kept, fit1, previous=best)
+    fresh = {c.label: c for c in scores._score_round(ds, kept, fit1)[0]}
+    assert [c.label for c in carried[:3]] == sorted(fresh, key=lambda k: fresh[k].predicted_delta_bic)[:3]
+    for c in carried:
+        f = fresh[c.label]
+        assert c.predicted_delta_bic == pytest.approx(f.predicted_delta_bic, rel=0.01, abs=1.0)
+        assert c.rms_after_nT == pytest.approx(f.rms_after_nT, rel=1e-3)
+
+
 def test_warm_up_confounds_temperature_and_drift():
     ds = simulate_timeseries(chi2017_truth(1), n_samples=N, noise_nT=SIGMA, seed=7)
     t = ds.time_s

@@ -110,6 +110,7 @@ class Candidate:
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
     start: object = field(default=None, repr=False)
+    projector: object = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         return {
@@ -178,6 +179,15 @@ class _Grams:
     blocks: dict
     m_tf: int
     problem: object = None
+    #: The parameters (the problem's layout) the Gram matrix is taken at (None: ``problem.x0``), and the problem's
+    #: column each of its rows stands for (None: all, in order): a round's Gram matrix carried to the next round
+    #: keeps a subset of the columns, moved along the step the chosen effect took (:func:`_carried`).
+    x: np.ndarray | None = None
+    index: np.ndarray | None = None
+    #: Labels of the round's candidate terms (the rest are the fitted model's), the fitted samples, the reference.
+    candidate_labels: frozenset = frozenset()
+    mask: np.ndarray | None = None
+    reference: float | None = None
 
 
 def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
@@ -202,6 +212,81 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
     for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
         acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], problem.blocks, kept.n_sensors * n, problem)
+
+
+def _carried(previous, kept, fit, groups):
+    """The score round at ``fit`` from the previous round's Gram matrix, or None when it cannot be carried.
+
+    ``previous`` is the candidate chosen in the previous round, whose refit is ``fit``. To first order the Jacobian
+    does not change along the step its refit took, and the residuals change by ``J delta``: the previous Gram
+    matrix, its columns restricted to the previous base model, the chosen term and the candidates whose
+    data-derived constants (``Effect.state``) are those of the previous round, with ``J^T r`` and ``r^T r``
+    moved along ``delta`` (the score test's own predicted step, :meth:`_Projector.step`), is the Gram matrix at
+    ``fit`` (the score of a candidate against the enlarged base does not depend on ``delta`` at all; the
+    predicted residual RMS does). Candidates whose constants changed with the residuals (a step time, an
+    interference frequency) get a Gram matrix of their own.
+
+    Returns
+    -------
+    (reusable groups, carried grams, changed groups) or None
+        None when the refit does not describe the previous round's model (other samples, another reference, or
+        the chosen term's constants changed in its refit).
+    """
+    proj = previous.projector
+    g = None if proj is None else proj.g
+    if g is None or g.problem is None or g.mask is None or not np.array_equal(g.mask, fit.mask) \
+            or g.reference != _reference_override(fit):
+        return None
+    from ..calibration import block_label, jsonable
+
+    before = {block_label(e, s): e for e, s in g.problem.model.instances()}
+
+    def same(e, s):
+        old = before.get(block_label(e, s))
+        return old is not None and old.name == e.name and jsonable(old.state()) == jsonable(e.state())
+
+    chosen = {label for label, sl in g.blocks.items() if sl.start in set(previous.columns.tolist())}
+    model_labels = {block_label(e, s) for e, s in fit.model.instances()}
+    if not chosen <= model_labels or not all(same(e, s) for e, s in fit.model.instances()):
+        return None
+    base = [label for label in g.blocks if label not in g.candidate_labels] + sorted(chosen)
+    if {label for label in base if "/" not in label and label != "F0"} != model_labels:
+        return None
+    reusable, changed = {}, {}
+    for name, instances in groups.items():
+        labels = [block_label(e, s) for e in instances for s in _sensors_of(e, kept.n_sensors)]
+        ok = all(label in g.blocks for label in labels) and all(
+            same(e, s) for e in instances for s in _sensors_of(e, kept.n_sensors))
+        (reusable if ok else changed)[name] = instances
+    keep_labels = sorted(set(base) | {block_label(e, s) for v in reusable.values() for e in v
+                                      for s in _sensors_of(e, kept.n_sensors)}, key=lambda label: g.blocks[label].start)
+    keep = np.concatenate([np.arange(g.blocks[label].start, g.blocks[label].stop) for label in keep_labels])
+    blocks, at = {}, 0
+    for label in keep_labels:
+        width = g.blocks[label].stop - g.blocks[label].start
+        blocks[label] = slice(at, at + width)
+        at += width
+    delta = proj.step(previous.columns)[keep]
+    sub = np.ix_(keep, keep)
+    g_all, g_tf = g.g_all[sub], g.g_tf[sub]
+    v_all, v_tf = g.v_all[keep], g.v_tf[keep]
+    index = keep if g.index is None else g.index[keep]
+    x = (g.problem.x0 if g.x is None else g.x).copy()
+    x[index] += delta
+    carried = _Grams(
+        g_all, v_all + g_all @ delta, float(g.rr_all + 2 * delta @ v_all + delta @ g_all @ delta),
+        g_tf, v_tf + g_tf @ delta, float(g.rr_tf + 2 * delta @ v_tf + delta @ g_tf @ delta),
+        blocks, g.m_tf, g.problem, x=x, index=index, mask=g.mask, reference=g.reference)
+    return reusable, carried, changed
+
+
+def _sensors_of(effect, n_sensors):
+    """The sensors (0-based, or None for a shared term) of an effect instance's parameter blocks."""
+    if not effect.per_sensor:
+        return [None]
+    if effect.sensor is not None:
+        return [effect.sensor]
+    return [s for s in range(n_sensors) if effect.applies_to(s)]
 
 
 def _columns(blocks, labels):
@@ -262,18 +347,26 @@ class _Projector:
         return {"q": q, "lm": lm, "p": p, "dbic": float(dbic), "rms_tf": rms_tf, "rss_vec": float(max(rss_v, 0.0)),
                 "reduction": reduction}
 
-    def start(self, cols):
-        """The calibration one Gauss-Newton step from the fitted base model predicts with the columns ``cols``
-        (a candidate's parameters) added: the base and the candidate's parameters solved jointly from the
-        Gram matrix (Jacobi-scaled pseudo-inverse), the other candidates' left at zero, kept in their bounds.
-        Its refit starts there, next to its minimum, so it needs about one pass over the data."""
-        g, problem = self.g, self.g.problem
+    def step(self, cols):
+        """The Gauss-Newton step (one value per row of the Gram matrix) with the columns ``cols`` (a candidate's
+        parameters) added to the base model: the base and the candidate's parameters solved jointly
+        (Jacobi-scaled pseudo-inverse), the other candidates' left at zero."""
+        g = self.g
         sel = np.concatenate([self.base, np.asarray(cols, dtype=int)])
         d = np.sqrt(np.maximum(np.diag(g.g_all)[sel], 1e-300))
         w, v = np.linalg.eigh(g.g_all[np.ix_(sel, sel)] / np.outer(d, d))
         keep = w > 1e-12 * w.max()
-        x = problem.x0.copy()
-        x[sel] -= ((v[:, keep] / w[keep]) @ (v[:, keep].T @ (g.v_all[sel] / d))) / d
+        out = np.zeros(len(g.v_all))
+        out[sel] = -((v[:, keep] / w[keep]) @ (v[:, keep].T @ (g.v_all[sel] / d))) / d
+        return out
+
+    def start(self, cols):
+        """The calibration one Gauss-Newton step from the fitted base model predicts with the columns ``cols``
+        added (:meth:`step`), kept in the parameters' bounds. A candidate's refit starts there, next to its
+        minimum, so it needs about one pass over the data."""
+        g, problem = self.g, self.g.problem
+        x = (problem.x0 if g.x is None else g.x).copy()
+        x[np.arange(x.size) if g.index is None else g.index] += self.step(cols)
         return problem.calibration(np.clip(x, problem.lower, problem.upper))
 
     def canonical_correlation(self, a, b):
@@ -291,8 +384,12 @@ class _Projector:
         return float(np.clip(np.linalg.norm(m, 2), 0.0, 1.0))
 
 
-def _score_round(dataset, kept, fit, names=None):
+def _score_round(dataset, kept, fit, names=None, previous=None):
     """Score tests for every candidate (per sensor and all sensors) at the fitted model ``fit``.
+
+    ``previous``: the candidate of the previous round whose refit ``fit`` is; the candidates whose data-derived
+    constants did not change are then scored from that round's Gram matrix carried along the step
+    (:func:`_carried`), and only the others from a new one.
 
     Returns ``(candidates, projector, grams)``; candidates are sorted by predicted delta-BIC.
     """
@@ -303,6 +400,27 @@ def _score_round(dataset, kept, fit, names=None):
     base_resid = fit.residuals_nT[:, fit.mask]
     in_parallel([lambda e=e: e.configure(kept, base_resid)  # each candidate's data-derived constants, side by side
                  for instances in groups.values() for e in instances])
+    carried = _carried(previous, kept, fit, groups) if previous is not None else None
+    if carried is not None and carried[0]:
+        reusable, grams, changed = carried
+        grams.candidate_labels = _labels_of(reusable, kept.n_sensors)
+        cands, proj, _ = _score_from_grams(kept, fit, reusable, grams)
+        if changed:
+            more, _, _ = _score_round_fresh(kept, fit, changed)
+            cands = sorted(cands + more, key=lambda c: c.predicted_delta_bic)
+        return cands, proj, grams
+    return _score_round_fresh(kept, fit, groups)
+
+
+def _labels_of(groups, n_sensors) -> frozenset:
+    from ..calibration import block_label
+
+    return frozenset(block_label(e, s) for v in groups.values() for e in v for s in _sensors_of(e, n_sensors))
+
+
+def _score_round_fresh(kept, fit, groups):
+    """The score round of ``groups`` (configured) from a Gram matrix at ``fit``."""
+    model = fit.model
     all_model = Model(model.n_sensors, model.base,
                       [_copy_effect(e) for e in model.effects] + [e for v in groups.values() for e in v])
     ref = _reference_override(fit)
@@ -310,11 +428,12 @@ def _score_round(dataset, kept, fit, names=None):
         grams = _grams(kept, all_model, fit.calibration, ref)
     except CalibrationError:
         # too few samples for every candidate at once: test them one effect at a time
-        return _score_round_separately(dataset, kept, fit, groups)
+        return _score_round_separately(kept, fit, groups)
+    grams.candidate_labels, grams.mask, grams.reference = _labels_of(groups, kept.n_sensors), fit.mask, ref
     return _score_from_grams(kept, fit, groups, grams)
 
 
-def _score_round_separately(dataset, kept, fit, groups):
+def _score_round_separately(kept, fit, groups):
     out = []
     for name, instances in groups.items():
         m = Model(fit.model.n_sensors, fit.model.base, [_copy_effect(e) for e in fit.model.effects] + instances)
@@ -376,7 +495,8 @@ def _score_from_grams(kept, fit, groups, grams):
                 vec_after = float(np.sqrt(sc["rss_vec"] / (ns * n * 2)))
             c = Candidate(effect=name, sensor=sensor, label=label, n_params=sc["q"],
                           lm=sc["lm"], p_value=sc["p"], predicted_delta_bic=sc["dbic"], delta_bic=sc["dbic"],
-                          rms_after_nT=sc["rms_tf"], vector_rms_after_nT=vec_after, instances=inst, columns=cols)
+                          rms_after_nT=sc["rms_tf"], vector_rms_after_nT=vec_after, instances=inst, columns=cols,
+                          projector=proj)
             cands.append(c)
     cands.sort(key=lambda c: c.predicted_delta_bic)
     return cands, proj, grams
@@ -409,9 +529,9 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
-def _confirm(dataset, fit, cands, top, coupled, fits, proj=None):
-    """Refit the best variant of the ``top`` best distinct effects (from the start ``proj``, the score round's
-    :class:`_Projector`, predicts); re-rank."""
+def _confirm(dataset, fit, cands, top, coupled, fits):
+    """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
+    :meth:`_Projector.start`); re-rank."""
     chosen, seen = [], set()
     for c in cands:
         if c.effect in seen:
@@ -420,10 +540,10 @@ def _confirm(dataset, fit, cands, top, coupled, fits, proj=None):
         chosen.append(c)
         if len(chosen) >= top:
             break
-    if proj is not None and proj.g.problem is not None:
-        for c in chosen:
+    for c in chosen:
+        if c.projector is not None and c.projector.g.problem is not None:
             try:
-                c.start = proj.start(c.columns)
+                c.start = c.projector.start(c.columns)
             except (CalibrationError, np.linalg.LinAlgError, ValueError):
                 c.start = None  # the refit starts from the base fit instead
 

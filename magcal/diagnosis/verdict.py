@@ -456,7 +456,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     sh_stats = [sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES) for s in range(ns)]
     fits = {}
     report("refitting the best candidates", 0.4)
-    cands = _confirm(dataset, fit0, cands, top, coupled, fits, proj)
+    cands = _confirm(dataset, fit0, cands, top, coupled, fits)
     for c in cands:
         note = c.evidence  # e.g. a failed refit
         c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
@@ -517,11 +517,11 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         if step + 1 >= max_effects:
             break
         report("looking for a further effect", 0.6 + 0.2 * step)
-        more, more_proj, _ = _score_round(dataset, kept_c, current, candidates)
+        more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best)
         more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
         if not more:
             break
-        more = _confirm(dataset, current, more, 1, coupled, fits, more_proj)
+        more = _confirm(dataset, current, more, 1, coupled, fits)
         round_cands = _judge_round(held_out, current, more, validation_notes)
 
     # verdict
