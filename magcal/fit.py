@@ -43,8 +43,9 @@ BLOCK_ROWS = 1 << 16
 #: RMS (the diagnosis's confirming refits, the held-out fits): parameters within ~0.14 standard errors of the minimum.
 COMPARISON_COST_TOLERANCE = 0.01
 
-#: Samples of the even subsample a base model is first converged on when the record has more than twice as many
-#: (:func:`fit`): the fit of every sample then starts within a few of its standard errors of the minimum.
+#: Readings (samples times sensors) of the even subsample a base model is first converged on when the record has
+#: more than twice as many (:func:`fit`): the fit of every sample then starts within a few of its standard errors
+#: of the minimum, and takes two passes over the record instead of three or four.
 WARMUP_SAMPLES = 100_000
 
 #: Typical change of each base parameter that moves the readings by about 1 nT in a 50 uT field.
@@ -635,7 +636,7 @@ LOSSES = {
 
 
 def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, ftol=1e-10,
-                         xtol=1e-10, max_steps=None) -> _Solution:
+                         xtol=1e-10, max_steps=None, damping=1e-3) -> _Solution:
     """Levenberg-Marquardt on the normal equations of :meth:`Problem.normal_equations`.
 
     Minimises ``f^2/2 sum rho((r/f)^2)`` (``||r||^2 / 2`` for the linear loss). A robust loss enters as
@@ -663,10 +664,11 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     returned from the last iterate where it was evaluated, which differs from the returned ``x`` by at most that
     last, converged step.
 
-    ``max_steps`` stops after that many accepted steps (status 4). With one step from a start already within a
-    few standard errors of the minimum (a warm start from a fit of more data), the damping starts at a
-    negligible ``1e-9``, so the step is the Gauss-Newton step: the one-step estimator, equal to the minimum to
-    first order, for one pass over the data and one evaluation of the residuals.
+    ``damping`` is the starting lambda: ``1e-3`` (Nielsen's) from afar; from a start already within a few
+    standard errors of the minimum (converged on a subsample, or a warm start from a fit of more data) a
+    negligible ``1e-9``, so that the first step is the Gauss-Newton step and lands at the minimum. ``max_steps``
+    stops after that many accepted steps (status 4): with one step from such a start, the one-step estimator,
+    equal to the minimum to first order, for one pass over the data and one evaluation of the residuals.
     """
     from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
@@ -696,7 +698,7 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     nfev, cost = 1, cost_of(r)
     diag = np.maximum(np.diag(jtj), 0.0)
     d = np.maximum(diag, 1e-12 * max(diag.max(), 1e-300))
-    lam, nu = (1e-9 if max_steps is not None else 1e-3), 2.0
+    lam, nu = float(damping), 2.0
     steps = 0
     optimistic = max_steps is None or max_steps > 1  # the last allowed step needs its residuals only
     exact = bool(getattr(problem, "exact_jacobian", False))
@@ -1038,15 +1040,19 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         ftol = max(ftol, 2.0 * float(cost_tolerance) / max(problem.n_residuals - problem.x0.size, 1))
     if loss == "linear":
         x0, nfev0 = problem.x0, 0
-        if not model.effects and problem.n_samples > 2 * WARMUP_SAMPLES and max_steps is None:
+        readings = problem.n_samples * problem.n_sensors
+        if not model.effects and readings > 2 * WARMUP_SAMPLES and max_steps is None:
             # converge on an even subsample first (same parametrisation: the same model and start), so that the
             # passes over every sample start next to their minimum
-            every = int(np.ceil(problem.n_samples / WARMUP_SAMPLES))
+            every = int(np.ceil(readings / WARMUP_SAMPLES))
             warm = _levenberg_marquardt(Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init,
                                                 reference_total_nT), problem.x0, max_nfev=max_nfev)
             if warm.status > 0:
                 x0, nfev0 = warm.x, warm.nfev
-        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps)
+        # next to the minimum (warmed up, or one step asked for) the first step is the Gauss-Newton one
+        near = nfev0 > 0 or max_steps is not None
+        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps,
+                                   damping=1e-9 if near else 1e-3)
         x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
