@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
+import scipy.fft
 from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
@@ -1039,10 +1040,10 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
     if duration <= 0 or len(t) < 16:
         return empty
     if index is not None:
-        n_fft = 1 << int(np.ceil(np.log2(oversample * (index[-1] + 1))))
+        n_fft = scipy.fft.next_fast_len(oversample * (index[-1] + 1), real=True)
         padded = np.zeros((3, n_fft))  # axis by axis, each a contiguous row: the FFT runs along memory
         padded[:, index] = w.T
-        coef = np.fft.rfft(padded, axis=1).T  # (F, 3), c_j at each frequency
+        coef = scipy.fft.rfft(padded, axis=1).T  # (F, 3), c_j at each frequency
         freq = np.fft.rfftfreq(n_fft, step)
         nyquist = 0.5 / step
     else:
@@ -1054,7 +1055,8 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
             coef[lo:lo + 256] = phase @ w
     keep = (freq >= min_cycles / duration) & (freq <= 0.98 * nyquist)
     freq, coef = freq[keep], coef[keep]
-    stat = np.real(np.einsum("fi,ij,fj->f", np.conj(coef), gram_inv, coef))
+    # c^H G^-1 c with G^-1 real symmetric: the real and imaginary parts' quadratic forms
+    stat = np.sum((coef.real @ gram_inv) * coef.real, axis=1) + np.sum((coef.imag @ gram_inv) * coef.imag, axis=1)
     return freq, np.maximum(stat, 0.0)
 
 
