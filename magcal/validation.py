@@ -355,15 +355,14 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
         fitted = ml_fit(dataset, full, init=init, loss="soft_l1" if robust else "linear", mask=train,
                         reference_total_nT=reference_total_nT, cost_tolerance=COMPARISON_COST_TOLERANCE,
                         max_steps=1)
-        cal, labels = fitted.calibration, fitted.model.effect_labels
     else:
         from .pipeline import calibrate
 
         result = calibrate(dataset, effects=specs, robust=robust, reference_total_nT=reference_total_nT,
                            mask=train, base_terms=base)
-        cal, labels = result.calibration, list(result.effects)
-    train_ds, test_ds = dataset.subset(train), dataset.subset(test)
-    in_res = cal.total_field_residuals(train_ds, record_terms="apply")
+        fitted = result.fit
+    cal, labels = fitted.calibration, fitted.model.effect_labels
+    test_ds = dataset.subset(test)
     notes, dropped = [], []
     record_only = [e.label for e in (cal.model.effects if cal.model is not None else []) if not is_transferable(e)]
     if scheme == "later" and record_only:
@@ -371,14 +370,15 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
         notes.append(f"{', '.join(record_only)} describe(s) the fitted record only and cannot be extrapolated to "
                      "later samples: fitted (so the instrument terms are not biased) but held at its average over "
                      "the fitted stretch in the held-out score")
-        out_res, vectors = _held_at_training_average(cal, train_ds, test_ds)
+        out_res, vectors = _held_at_training_average(cal, dataset.subset(train), test_ds)
     else:
         if record_only:
             notes.append(f"{', '.join(record_only)} describe(s) the record: evaluated at held-out times between "
                          "training blocks (interpolation in time)")
         vectors = cal.correct(test_ds, record_terms="apply")
         out_res = cal.total_field_residuals(test_ds, vectors, record_terms="apply")
-    in_per, in_all = _rms(in_res)
+    # in-sample: the fit's own residuals on the training samples (record-only terms applied, as fitted)
+    in_per, in_all = np.asarray(fitted.rms_per_sensor_nT, float), float(fitted.rms_nT)
     out_per, out_all = _rms(out_res)
     relevelled = relevelled_consistency = None
     if scheme == "later":
