@@ -529,9 +529,10 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
-def _confirm(dataset, fit, cands, top, coupled, fits):
+def _confirm(dataset, fit, cands, top, coupled, fits, alongside=()):
     """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
-    :meth:`_Projector.start`); re-rank."""
+    :meth:`_Projector.start`); re-rank. ``alongside``: other independent work (functions of no argument, their
+    results dropped) run side by side with the refits."""
     chosen, seen = [], set()
     for c in cands:
         if c.effect in seen:
@@ -553,7 +554,8 @@ def _confirm(dataset, fit, cands, top, coupled, fits):
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             return exc
 
-    for c, f1 in zip(chosen, in_parallel([lambda c=c: refit(c) for c in chosen])):  # independent refits
+    done = in_parallel([lambda c=c: refit(c) for c in chosen] + list(alongside))  # independent refits
+    for c, f1 in zip(chosen, done[:len(chosen)]):
         if isinstance(f1, Exception):
             c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {f1}"
             continue

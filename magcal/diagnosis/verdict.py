@@ -264,6 +264,13 @@ class _HeldOut:
                                                    masks=self.masks[scheme])
         return self.bases[key]
 
+    def prepare(self, fit, scheme):
+        """:meth:`base`, ahead of time; a failure is left for :meth:`base` to meet again and report."""
+        try:
+            self._base(fit, scheme)
+        except (CalibrationError, MagcalError, np.linalg.LinAlgError):
+            pass
+
     def with_effect(self, c, scheme):
         """The held-out fit of the candidate's refitted model on ``scheme``'s split."""
         return _validation.validate(self.kept, model=c.fit.model, init=c.fit.calibration,
@@ -456,7 +463,18 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     sh_stats = [sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES) for s in range(ns)]
     fits = {}
     report("refitting the best candidates", 0.4)
-    cands = _confirm(dataset, fit0, cands, top, coupled, fits)
+    # the base model's held-out fits need fit0 alone: when a candidate is predicted to be supported, they are made
+    # beside the refits (a core is often idle while the longest refit runs), else only if a refit is supported
+    early = None
+    if validate and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in cands) \
+            and _validation.split_problem(kept) is None:
+        try:
+            early = _HeldOut(kept, fit0)
+        except MagcalError:
+            early = None
+    cands = _confirm(dataset, fit0, cands, top, coupled, fits,
+                     alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s)
+                                                         for s in _validation.SCHEMES])
     for c in cands:
         note = c.evidence  # e.g. a failed refit
         c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
@@ -472,7 +490,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     if validate and skipped is None:
         report("held-out validation of the supported candidates", 0.5)
         try:
-            held_out = _HeldOut(kept, fit0)
+            held_out = early if early is not None else _HeldOut(kept, fit0)
         except MagcalError as exc:
             skipped = str(exc)
     if skipped and validate:
