@@ -667,8 +667,11 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
     ``damping`` is the starting lambda: ``1e-3`` (Nielsen's) from afar; from a start already within a few
     standard errors of the minimum (converged on a subsample, or a warm start from a fit of more data) a
     negligible ``1e-9``, so that the first step is the Gauss-Newton step and lands at the minimum. ``max_steps``
-    stops after that many accepted steps (status 4): with one step from such a start, the one-step estimator,
-    equal to the minimum to first order, for one pass over the data and one evaluation of the residuals.
+    stops after that many accepted steps (status 4) when the last one lowered the cost by what the quadratic
+    model predicted, to within the tolerance: with one step from such a start, the one-step estimator, equal to
+    the minimum to first order, for one pass over the data and one evaluation of the residuals. When the cost
+    did not fall as predicted (the start was far from the minimum along directions the data barely fix, where
+    the model is not quadratic over the step), the iterations go on to the minimum.
     """
     from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
@@ -755,8 +758,12 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
                 status = 3 if small_step else 2
                 break
             if max_steps is not None and steps >= max_steps:
-                message, status = f"stopped after {steps} step(s) from the start, as asked (one-step estimate)", 4
-                break
+                if abs(actual - predicted) <= ftol * cost:
+                    message = (f"stopped after {steps} step(s) from the start, as asked: the cost fell as the "
+                               "quadratic model predicted, to the tolerance (one-step estimate)")
+                    status = 4
+                    break
+                max_steps = None  # the model does not hold over the step (far from a flat minimum): go on to it
             if trial is None:
                 r, jtj, jtr = equations(x)
                 nfev += 1
@@ -914,11 +921,13 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
         minimum. Default: a relative reduction of 1e-10 (far tighter); the diagnosis judges its refits with 0.01,
         which is irrelevant to a change of the information criterion or of a held-out RMS.
     max_steps : int, optional
-        Stop after this many accepted steps (status 4). ``max_steps=1`` from a warm start that is already
-        within a few standard errors of the minimum (``init`` fitted on a superset of the samples) gives the
-        one-step estimator: one Gauss-Newton step, equal to the minimum to first order in the distance from
-        the start (Le Cam), for one pass over the data; :func:`magcal.validation.validate` fits its training
-        samples so.
+        Stop after this many accepted steps (status 4) if the last one lowered the cost by what the quadratic
+        model predicted, to within the tolerance; else go on to the minimum. ``max_steps=1`` from a warm start
+        that is already within a few standard errors of the minimum (``init`` fitted on a superset of the
+        samples) gives the one-step estimator: one Gauss-Newton step, equal to the minimum to first order in the
+        distance from the start (Le Cam), for one pass over the data; :func:`magcal.validation.validate` fits
+        its training samples so. Where the data barely fix some directions the start can be far from the
+        training samples' minimum along them; the cost then does not fall as predicted and the fit converges.
 
     Returns
     -------

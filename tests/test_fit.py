@@ -483,9 +483,10 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
 
 @pytest.mark.parametrize("n_sensors, effects", [(1, []), (4, []), (1, ["temperature_bias"]), (4, ["bias_drift"])])
 def test_one_step_from_the_whole_record_reaches_the_training_minimum(n_sensors, effects):
-    """``max_steps=1`` from the whole record's fit (the held-out fits of the validation) is the one-step
-    estimator: one pass, status 4, and the training samples' converged minimum to a small fraction of a standard
-    error, with the same residual sum of squares to a thousandth of a noise variance."""
+    """``max_steps=1`` from the whole record's fit (the held-out fits of the validation, with their tolerance of
+    0.01 noise variances) is the one-step estimator: one pass, status 4, and the training samples' converged
+    minimum to a small fraction of a standard error, with the same residual sum of squares to a thousandth of a
+    noise variance."""
     from magcal.simulation import simulate_timeseries
 
     hidden = [EFFECTS_BY_NAME[name]().perturbation(EFFECTS_BY_NAME[name].default_magnitude) for name in effects]
@@ -494,8 +495,22 @@ def test_one_step_from_the_whole_record_reaches_the_training_minimum(n_sensors, 
     whole = fit(ds, model)
     train = (np.arange(ds.n_samples) // 150) % 2 == 0  # alternate blocks, as the validation holds out
     converged = fit(ds, model, init=whole.calibration, mask=train)
-    one = fit(ds, model, init=whole.calibration, mask=train, max_steps=1)
+    one = fit(ds, model, init=whole.calibration, mask=train, max_steps=1, cost_tolerance=0.01)  # as validate
     assert one.status == 4 and one.success and one.nfev == 2  # the start's equations and the step's residuals
     assert np.max(np.abs(one.x - converged.x) / converged.std) < 0.02
     sigma2 = converged.rss / (converged.n_residuals - converged.n_params)
     assert abs(one.rss - converged.rss) <= 1e-3 * sigma2
+
+
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_one_step_from_afar_goes_on_to_the_minimum(n_sensors):
+    """``max_steps=1`` stops only when the step lowered the cost as the quadratic model predicted; from a start
+    far from the minimum (a crude sphere fit) it does not, and the fit goes on to the same minimum as without the
+    limit."""
+    ds = simulate(chi2017_truth(n_sensors), n_samples=600, noise_nT=3.0, seed=4)
+    init = crude_initial_calibration(ds)
+    full = fit(ds, init=init)
+    limited = fit(ds, init=init, max_steps=1)
+    assert limited.status in (1, 2, 3) and limited.nfev > 2
+    sigma2 = full.rss / (full.n_residuals - full.n_params)
+    assert abs(limited.rss - full.rss) <= 1e-3 * sigma2
