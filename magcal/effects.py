@@ -355,13 +355,39 @@ class BiasDrift(CatalogueEffect):
         return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
 
 
+_READINGS_CACHE = {}
+
+
+def _on_readings(y, key, compute):
+    """``compute()`` once per readings array and ``key``: the candidates of every score round and the refits
+    look at the same readings. Keyed by the array's memory location, shape and strides; the entry holds the array,
+    so the location cannot be reused while it is cached (at most 32 entries)."""
+    full = (y.__array_interface__["data"][0], y.shape, y.strides) + tuple(key)
+    hit = _READINGS_CACHE.get(full)
+    if hit is None:
+        if len(_READINGS_CACHE) > 32:
+            _READINGS_CACHE.clear()
+        hit = _READINGS_CACHE[full] = (y, compute())
+    return hit[1]
+
+
 def quadric_residuals(readings_nT):
-    """Total-field residuals (nT, Sampson distance) of an algebraic ellipsoid fit to one sensor's readings.
+    """Total-field residuals (nT, Sampson distance) of an algebraic ellipsoid fit to one sensor's readings
+    (read-only; computed once per readings array).
 
     The effects that search the residuals for a data-derived constant (a step time, a hysteresis width) use
     these when the residuals they are given are worse (a crude starting calibration).
     """
     y = np.asarray(readings_nT, dtype=float)
+
+    def compute():
+        r = _quadric_residuals(y)
+        r.setflags(write=False)
+        return r
+    return _on_readings(y, ("quadric",), compute)
+
+
+def _quadric_residuals(y):
     centre = y.mean(axis=0)
     scale = np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1)))
     v = (y - centre) / scale
@@ -391,9 +417,6 @@ def _better_residuals(readings_nT, residuals_nT):
     return alt if np.sqrt(np.mean(alt**2)) < 0.7 * np.sqrt(np.mean(r**2)) else r
 
 
-_STEP_SCANS = {}
-
-
 def step_scan(readings_nT, margin=0.05, min_samples=10):
     """Change-point scan for a bias step in one sensor's readings.
 
@@ -421,15 +444,9 @@ def step_scan(readings_nT, margin=0.05, min_samples=10):
         scanned).
     """
     y = np.asarray(readings_nT, dtype=float)
-    # the same readings are scanned by several candidates and refits: cache by memory location (the cache holds
-    # the array, so the location cannot be reused while cached)
-    key = (y.__array_interface__["data"][0], y.shape, y.strides, margin, min_samples)
-    hit = _STEP_SCANS.get(key)
-    if hit is None:
-        if len(_STEP_SCANS) > 32:
-            _STEP_SCANS.clear()
-        hit = _STEP_SCANS[key] = (y,) + _step_scan(y, margin, min_samples)
-    return hit[1], hit[2].copy()
+    # the same readings are scanned by several candidates and refits (_on_readings)
+    index, improvement = _on_readings(y, ("step", margin, min_samples), lambda: _step_scan(y, margin, min_samples))
+    return index, improvement.copy()
 
 
 def _step_scan(readings_nT, margin, min_samples):
@@ -887,7 +904,8 @@ class Hysteresis(CatalogueEffect):
             ok = np.isfinite(r)
             y = dataset.readings_nT[s]
             rate = time_derivative(y, dataset.time_s)
-            widths.append(_hysteresis_widths(y[ok], -np.sign(rate[ok]), _better_residuals(y[ok], r[ok])).tolist())
+            y_ok = y if ok.all() else y[ok]  # the readings themselves when all are kept (quadric_residuals' cache)
+            widths.append(_hysteresis_widths(y_ok, -np.sign(rate[ok]), _better_residuals(y_ok, r[ok])).tolist())
         self.shape_half_width_nT = widths
 
     def state(self):
@@ -1028,12 +1046,16 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
     t = np.asarray(time_s, dtype=float)
     r = np.asarray(residuals_nT, dtype=float)
     y = np.asarray(readings_nT, dtype=float)
-    centre, _ = _sphere_fit(y)
-    u = y - centre
-    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+
+    def directions():
+        centre, _ = _sphere_fit(y)
+        u = y - centre
+        u /= np.maximum(row_norm(u)[:, None], 1e-300)
+        u.setflags(write=False)
+        return u, np.linalg.pinv(0.5 * (u.T @ u))
+    u, gram_inv = _on_readings(y, ("sphere directions",), directions)  # the readings' alone: once per record
     w = r[:, None] * u  # (N, 3)
     w = w - w.mean(axis=0)
-    gram_inv = np.linalg.pinv(0.5 * (u.T @ u))
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     index, step = _sample_grid(t)
     empty = np.zeros(0), np.zeros(0)
@@ -1165,8 +1187,10 @@ class PeriodicInterference(CatalogueEffect):
             else:
                 r = np.asarray(residuals_nT[s], dtype=float)
                 ok = np.isfinite(r)
-                r = _better_residuals(y[ok], r[ok])
-            frequencies.append(dominant_interference_hz(t[ok], y[ok], r, self.min_cycles))
+                r = _better_residuals(y if ok.all() else y[ok], r[ok])
+            every = ok.all()  # the arrays themselves (the readings' directions are then cached)
+            frequencies.append(dominant_interference_hz(t if every else t[ok], y if every else y[ok], r,
+                                                        self.min_cycles))
         self.frequency_hz = frequencies
 
     def state(self):
