@@ -242,16 +242,17 @@ class Problem:
             r[self._rows_of_samples(a, b)] = part._residuals_from_fields(part.fields(x), x)
         return r
 
-    def _residuals_from_fields(self, b, x, basis=None) -> np.ndarray:
-        """Residuals (as :meth:`residuals`) of the corrected fields ``b``; ``basis`` is
-        ``_perpendicular_basis(b.mean(axis=0))`` when the caller has it."""
+    def _residuals_from_fields(self, b, x, basis=None, mean=None) -> np.ndarray:
+        """Residuals (as :meth:`residuals`) of the corrected fields ``b``; ``mean`` is ``b.mean(axis=0)`` and
+        ``basis`` ``_perpendicular_basis(mean)`` when the caller has them."""
         expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
                                         self.ctxs)
         total = (row_norm(b) - expected).ravel()
         if not self.coupled:
             return total
-        e1, e2 = _perpendicular_basis(b.mean(axis=0)) if basis is None else basis
-        diff = b - b.mean(axis=0)
+        mean = b.mean(axis=0) if mean is None else mean
+        e1, e2 = _perpendicular_basis(mean) if basis is None else basis
+        diff = b - mean
         perp = np.empty(diff.shape[:2] + (2,))
         for k, e in enumerate((e1, e2)):
             np.multiply(diff[..., 0], e[:, 0], out=perp[..., k])
@@ -466,8 +467,9 @@ class Problem:
         jtr : numpy.ndarray, shape (p,)
         """
         fields, derivs = self.field_derivatives(x)
-        basis = _perpendicular_basis(fields.mean(axis=0)) if self.coupled else None
-        r = self._residuals_from_fields(fields, x, basis)
+        mean = fields.mean(axis=0) if self.coupled else None
+        basis = _perpendicular_basis(mean) if self.coupled else None
+        r = self._residuals_from_fields(fields, x, basis, mean)
         ns, n = self.n_sensors, self.n_samples
         w_tf = None if weights is None else weights[: ns * n]
         jtj, jtr = self._total_field_normal(x, fields, derivs, r[: ns * n], w_tf)

@@ -318,8 +318,8 @@ def _difference_sigma(r, fresh):
 
 #: What :func:`estimate_noise` learns from the readings alone (still stretches, quantization floors, fresh samples),
 #: kept for the last few readings arrays (and time columns): a diagnosis estimates the noise of one record several times (before and
-#: after each effect it adds), and these do not change with the residuals. Keyed by the arrays' identity; the
-#: entry holds them, and datasets are never changed in place.
+#: after each effect it adds), and these do not change with the residuals. Keyed by the readings array's identity
+#: (with the same time stamps); the entry holds it, and datasets are never changed in place.
 _READINGS_FACTS: dict = {}
 
 
@@ -327,9 +327,10 @@ def _readings_facts(dataset):
     """``(still_nT, scatter_nT, still_samples, quantization floors, fresh-sample masks)`` of the dataset's readings,
     computed once per readings array (:data:`_READINGS_FACTS`)."""
     readings, time_s = dataset.readings_nT, dataset.time_s
-    key = (id(readings), id(time_s))
+    key = id(readings)
     hit = _READINGS_FACTS.get(key)
-    if hit is not None and hit[0] is readings and hit[1] is time_s:
+    if hit is not None and hit[0] is readings and (hit[1] is time_s or (
+            hit[1] is not None and time_s is not None and np.array_equal(hit[1], time_s))):
         return hit[2]
     steps = [quantization_steps_nT(y) for y in readings]
     still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
