@@ -420,7 +420,7 @@ def _common_step(values, min_levels=MIN_LEVELS, max_divisor=50):
     if u.size < min_levels:
         return None, d
     sample = d if d.size <= 4000 else d[np.linspace(0, d.size - 1, 4000).astype(int)]
-    bases = np.unique(np.sort(d)[:5])
+    bases = np.unique(np.partition(d, 4)[:5] if d.size > 5 else d)  # the five smallest (no full sort)
     # every candidate step base / k at once: the share of the sample's differences near a multiple of each
     candidates = bases[:, None] / np.arange(1, max_divisor + 1)[None, :]
     # a candidate missed by more than (1 - MULTIPLE_SHARE) of the sample within its first few hundred values
