@@ -591,13 +591,18 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         fits["+".join(explained or partial)] = current
 
     floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
+    # the evidence's independent parts side by side (FFTs and correlations: numpy frees the interpreter)
+    time_ev, temperature_ev, spectra, sensors_ev = in_parallel([
+        lambda: _time_evidence(kept, r0, ordered), lambda: _temperature_evidence(kept, r0, directions),
+        lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
+        lambda: _sensor_evidence(kept, fit0, r0, fields)])
     evidence = {
-        "time": _time_evidence(kept, r0, ordered),
-        "temperature": _temperature_evidence(kept, r0, directions),
+        "time": time_ev,
+        "temperature": temperature_ev,
         "direction": {"u": directions, "y": r0, "per_sensor": [
             dict(sh) for sh in sh_stats]},
-        "spectrum": [spectrum(row, kept.time_s) for row in r0] if ordered else None,
-        "sensors": _sensor_evidence(kept, fit0, r0, fields),
+        "spectrum": spectra,
+        "sensors": sensors_ev,
         "noise": {"sigma_nT": noise0.sigma_nT, "per_sensor_nT": noise0.per_sensor_nT, "source": noise0.source,
                   "final_sigma_nT": noise_final.sigma_nT, "static_noise_nT": noise0.static_noise_nT,
                   "static_scatter_nT": noise0.static_scatter_nT, "note": noise0.note},
