@@ -29,6 +29,7 @@ model can represent it exactly (``None`` otherwise).
 
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -355,19 +356,24 @@ class BiasDrift(CatalogueEffect):
         return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
 
 
-_READINGS_CACHE = {}
+_READINGS_CACHE = collections.OrderedDict()
 
 
 def _on_readings(y, key, compute):
     """``compute()`` once per readings array and ``key``: the candidates of every score round and the refits
     look at the same readings. Keyed by the array's memory location, shape and strides; the entry holds the array,
-    so the location cannot be reused while it is cached (at most 32 entries)."""
+    so the location cannot be reused while it is cached (the 32 most recently used entries are kept)."""
     full = (y.__array_interface__["data"][0], y.shape, y.strides) + tuple(key)
     hit = _READINGS_CACHE.get(full)
     if hit is None:
-        if len(_READINGS_CACHE) > 32:
-            _READINGS_CACHE.clear()
         hit = _READINGS_CACHE[full] = (y, compute())
+        while len(_READINGS_CACHE) > 32:
+            _READINGS_CACHE.popitem(last=False)
+    else:
+        try:
+            _READINGS_CACHE.move_to_end(full)
+        except KeyError:  # evicted by another thread meanwhile
+            pass
     return hit[1]
 
 

@@ -37,6 +37,7 @@ Every estimate reports the still stretches' figures and the quantization floor b
 
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
 
 import numpy as np
@@ -320,7 +321,7 @@ def _difference_sigma(r, fresh):
 #: kept for the last few readings arrays (and time columns): a diagnosis estimates the noise of one record several times (before and
 #: after each effect it adds), and these do not change with the residuals. Keyed by the readings array's identity
 #: (with the same time stamps); the entry holds it, and datasets are never changed in place.
-_READINGS_FACTS: dict = {}
+_READINGS_FACTS: collections.OrderedDict = collections.OrderedDict()
 
 
 def _readings_facts(dataset):
@@ -336,9 +337,9 @@ def _readings_facts(dataset):
     still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
     floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
     facts = (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
-    if len(_READINGS_FACTS) >= 4:
-        _READINGS_FACTS.clear()
     _READINGS_FACTS[key] = (readings, time_s, facts)
+    while len(_READINGS_FACTS) > 4:  # the oldest out
+        _READINGS_FACTS.popitem(last=False)
     return facts
 
 

@@ -5,6 +5,8 @@ check that :func:`estimate_noise` finds it from the residuals of a fitted model 
 for one sensor and for an array of four -- and that :func:`robust_sigma` ignores a few gross outliers.
 """
 
+import collections
+
 import numpy as np
 import pytest
 
@@ -123,7 +125,7 @@ def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
     calls = []
     original = noise_module.still_noise_nT
     monkeypatch.setattr(noise_module, "still_noise_nT", lambda *a, **k: calls.append(1) or original(*a, **k))
-    monkeypatch.setattr(noise_module, "_READINGS_FACTS", {})
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
     first = estimate_noise(ds, residuals, fitted.n_params)
     second = estimate_noise(ds, residuals, fitted.n_params)
     assert len(calls) == 1
