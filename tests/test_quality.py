@@ -414,3 +414,23 @@ def test_common_step_is_the_one_found_divisor_by_divisor(kind, seed):
     assert (found is None) == (expected is None)
     if expected is not None:
         assert found == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["grid", "shifting", "continuous"])
+def test_a_large_record_is_screened_on_a_subsample_with_the_same_step(monkeypatch, kind):
+    """Above SCREEN_FROM_SAMPLES values the step is first looked for in an even subsample: continuous readings
+    give None without sorting every value, and a grid gives the step of the whole computation."""
+    rng = np.random.default_rng(3)
+    n = quality.SCREEN_FROM_SAMPLES + 50_000
+    if kind == "grid":
+        v = np.round(rng.normal(0, 2e4, n) / 0.15) * 0.15
+    elif kind == "shifting":
+        v = np.round(rng.normal(0, 3e3, n) / 5.0) * 5.0 + 2.0 * (rng.random(n) < 0.3)
+    else:
+        v = rng.normal(0, 2e4, n)
+    screened = quality.quantization_grid(v)
+    monkeypatch.setattr(quality, "SCREEN_FROM_SAMPLES", 10**9)
+    whole = quality.quantization_grid(v)
+    assert (screened is None) == (whole is None) == (kind == "continuous")
+    if whole is not None:
+        assert screened == pytest.approx(whole, rel=1e-12)
