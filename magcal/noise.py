@@ -343,6 +343,32 @@ def _readings_facts(dataset):
     return facts
 
 
+#: Readings (samples x sensors) from which :func:`prefetch_readings_facts` starts the work on another thread.
+PREFETCH_FROM_READINGS = 20_000
+_PREFETCH = []
+
+
+def prefetch_readings_facts(dataset):
+    """Start :func:`estimate_noise`'s readings-only work (still stretches, quantization) for ``dataset`` on a
+    background thread, while the caller fits (:func:`magcal.pipeline.calibrate` does; the fit's passes use one
+    core). Returns a function that waits for it (its failure is left for :func:`estimate_noise` to meet again), or
+    one that returns at once for a small record."""
+    if dataset.n_samples * dataset.n_sensors < PREFETCH_FROM_READINGS:
+        return lambda: None
+    if not _PREFETCH:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _PREFETCH.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="magcal-noise"))
+    future = _PREFETCH[0].submit(_readings_facts, dataset)
+
+    def wait():
+        try:
+            future.result()
+        except Exception:  # noqa: BLE001 - estimate_noise computes (and reports) it again
+            pass
+    return wait
+
+
 def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=None) -> NoiseEstimate:
     """Noise level: the declared one, else estimated from the residuals' differences (smooth trajectories), the
     still stretches' scatter or the residual RMS, never below the quantization floor.

@@ -34,7 +34,7 @@ from .calibration import Calibration, SensorCalibration, expected_total_field
 from .ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from .errors import CalibrationError, CoverageWarning, DataWarning
 from .fit import resolve_reference
-from .noise import estimate_noise, robust_sigma
+from .noise import estimate_noise, prefetch_readings_facts, robust_sigma
 from .procrustes import procrustes_rotation
 from .vectors import row_norm
 
@@ -465,6 +465,7 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     t_start = time.perf_counter()
     method, effects, mask = _checked_arguments(dataset, method, effects, mask)
     run = _resolve_reference_step(dataset, mask, reference_total_nT, progress)
+    noise_facts = prefetch_readings_facts(run.kept)  # the noise's readings-only work, beside the fit
     model = _model_for(dataset, run.kept, effects, base_terms) if method == "ml" else None
     if method in SEARCH_METHODS:
         _search_steps(run, method, seed, reference_total_nT)
@@ -475,6 +476,7 @@ def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, ref
     run.report("evaluating", 0.9)
     outliers = _robust_pass(run, robust)
     steps = _step_figures(run)
+    noise_facts()
     result = _summary(run, steps, model, method, robust, outliers, t_start, noise_nT)
     _store_summary(result)
     for n in run.notes:

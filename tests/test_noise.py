@@ -133,3 +133,24 @@ def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
     other = ds.subset(np.arange(ds.n_samples) < 500)  # other readings: computed anew
     estimate_noise(other, residuals[:, :500], fitted.n_params)
     assert len(calls) == 2
+
+
+def test_calibrate_prefetches_the_readings_facts_beside_the_fit(monkeypatch):
+    """calibrate starts the noise's readings-only work on another thread while it fits: the facts are computed
+    once, and the noise and floors are those computed in line."""
+    import magcal.noise as noise_module
+
+    ds = simulate_timeseries(chi2017_truth(4), n_samples=6000, noise_nT=2.0, seed=4).replace(noise_nT=None)
+    assert ds.n_samples * ds.n_sensors >= noise_module.PREFETCH_FROM_READINGS
+    calls = []
+    original = noise_module.still_noise_nT
+    monkeypatch.setattr(noise_module, "still_noise_nT", lambda *a, **k: calls.append(1) or original(*a, **k))
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
+    prefetched = calibrate(ds)
+    assert len(calls) == 1
+    monkeypatch.setattr(noise_module, "PREFETCH_FROM_READINGS", 10**12)
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
+    in_line = calibrate(ds)
+    assert len(calls) == 2
+    assert prefetched.noise.sigma_nT == in_line.noise.sigma_nT and prefetched.noise.source == in_line.noise.source
+    assert prefetched.total_field_floor_nT == in_line.total_field_floor_nT
