@@ -29,7 +29,6 @@ model can represent it exactly (``None`` otherwise).
 
 from __future__ import annotations
 
-import collections
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -40,6 +39,7 @@ from scipy.special import eval_legendre
 
 from .errors import MagcalError
 from .model import EFFECTS, Context, Effect, SingleAxisBasis, register, term_label
+from .readings_cache import ReadingsCache
 from .vectors import row_norm
 
 #: Field magnitude (nT) nonlinearity coefficients are quoted at when the data's own is not known (an effect never
@@ -356,25 +356,9 @@ class BiasDrift(CatalogueEffect):
         return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
 
 
-_READINGS_CACHE = collections.OrderedDict()
-
-
-def _on_readings(y, key, compute):
-    """``compute()`` once per readings array and ``key``: the candidates of every score round and the refits
-    look at the same readings. Keyed by the array's memory location, shape and strides; the entry holds the array,
-    so the location cannot be reused while it is cached (the 32 most recently used entries are kept)."""
-    full = (y.__array_interface__["data"][0], y.shape, y.strides) + tuple(key)
-    hit = _READINGS_CACHE.get(full)
-    if hit is None:
-        hit = _READINGS_CACHE[full] = (y, compute())
-        while len(_READINGS_CACHE) > 32:
-            _READINGS_CACHE.popitem(last=False)
-    else:
-        try:
-            _READINGS_CACHE.move_to_end(full)
-        except KeyError:  # evicted by another thread meanwhile
-            pass
-    return hit[1]
+#: One sensor's readings-only work for the candidates' constants (step scans, quadric residuals, field directions):
+#: the candidates of every score round and the refits look at the same readings.
+_READINGS_CACHE = ReadingsCache(32)
 
 
 def quadric_residuals(readings_nT):
@@ -390,7 +374,7 @@ def quadric_residuals(readings_nT):
         r = _quadric_residuals(y)
         r.setflags(write=False)
         return r
-    return _on_readings(y, ("quadric",), compute)
+    return _READINGS_CACHE.get(y, ("quadric",), compute)
 
 
 def _quadric_residuals(y):
@@ -450,8 +434,9 @@ def step_scan(readings_nT, margin=0.05, min_samples=10):
         scanned).
     """
     y = np.asarray(readings_nT, dtype=float)
-    # the same readings are scanned by several candidates and refits (_on_readings)
-    index, improvement = _on_readings(y, ("step", margin, min_samples), lambda: _step_scan(y, margin, min_samples))
+    # the same readings are scanned by several candidates and refits (_READINGS_CACHE)
+    index, improvement = _READINGS_CACHE.get(y, ("step", margin, min_samples),
+                                             lambda: _step_scan(y, margin, min_samples))
     return index, improvement.copy()
 
 
@@ -1059,7 +1044,7 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
         u /= np.maximum(row_norm(u)[:, None], 1e-300)
         u.setflags(write=False)
         return u, np.linalg.pinv(0.5 * (u.T @ u))
-    u, gram_inv = _on_readings(y, ("sphere directions",), directions)  # the readings' alone: once per record
+    u, gram_inv = _READINGS_CACHE.get(y, ("sphere directions",), directions)  # the readings' alone: once per record
     w = r[:, None] * u  # (N, 3)
     w = w - w.mean(axis=0)
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0

@@ -836,7 +836,7 @@ class FitResult:
         As scipy.optimize.least_squares: ``0`` the evaluation limit was reached, ``-1`` the solver failed
         (non-finite or singular normal equations), ``1`` gradient zero, ``2`` cost reduction below tolerance,
         ``3`` step below tolerance; ``4`` (magcal's own) stopped after the ``max_steps`` steps :func:`fit` was
-        asked for.
+        asked for, the last having lowered the cost as the quadratic model predicted.
     message : str
         The solver's reason for stopping, in words.
     """

@@ -37,12 +37,12 @@ Every estimate reports the still stretches' figures and the quantization floor b
 
 from __future__ import annotations
 
-import collections
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import comb
 
+from .readings_cache import ReadingsCache
 from .vectors import row_norm
 
 #: MAD -> standard deviation for Gaussian data: 1 / Phi^-1(3/4).
@@ -318,29 +318,27 @@ def _difference_sigma(r, fresh):
 
 
 #: What :func:`estimate_noise` learns from the readings alone (still stretches, quantization floors, fresh samples),
-#: kept for the last few readings arrays (and time columns): a diagnosis estimates the noise of one record several times (before and
-#: after each effect it adds), and these do not change with the residuals. Keyed by the readings array's identity
-#: (with the same time stamps); the entry holds it, and datasets are never changed in place.
-_READINGS_FACTS: collections.OrderedDict = collections.OrderedDict()
+#: kept for the last few records: a diagnosis estimates the noise of one record several times (before and after each
+#: effect it adds), and these do not change with the residuals. Valid for the same readings with the same time
+#: stamps (a dataset replaced with other metadata has a new time array of the same values).
+_READINGS_FACTS = ReadingsCache(4)
 
 
 def _readings_facts(dataset):
     """``(still_nT, scatter_nT, still_samples, quantization floors, fresh-sample masks)`` of the dataset's readings,
-    computed once per readings array (:data:`_READINGS_FACTS`)."""
+    computed once per record (:data:`_READINGS_FACTS`)."""
     readings, time_s = dataset.readings_nT, dataset.time_s
-    key = id(readings)
-    hit = _READINGS_FACTS.get(key)
-    if hit is not None and hit[0] is readings and (hit[1] is time_s or (
-            hit[1] is not None and time_s is not None and np.array_equal(hit[1], time_s))):
-        return hit[2]
-    steps = [quantization_steps_nT(y) for y in readings]
-    still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
-    floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
-    facts = (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
-    _READINGS_FACTS[key] = (readings, time_s, facts)
-    while len(_READINGS_FACTS) > 4:  # the oldest out
-        _READINGS_FACTS.popitem(last=False)
-    return facts
+
+    def compute():
+        steps = [quantization_steps_nT(y) for y in readings]
+        still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
+        floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
+        return time_s, (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
+
+    def same_time(value):
+        cached = value[0]
+        return cached is time_s or (cached is not None and time_s is not None and np.array_equal(cached, time_s))
+    return _READINGS_FACTS.get(readings, ("noise facts",), compute, valid=same_time)[1]
 
 
 #: Readings (samples x sensors) from which :func:`prefetch_readings_facts` starts the work on another thread.

@@ -5,8 +5,6 @@ check that :func:`estimate_noise` finds it from the residuals of a fitted model 
 for one sensor and for an array of four -- and that :func:`robust_sigma` ignores a few gross outliers.
 """
 
-import collections
-
 import numpy as np
 import pytest
 
@@ -15,6 +13,7 @@ from magcal.noise import (
     robust_sigma,
 )
 from magcal.pipeline import calibrate
+from magcal.readings_cache import ReadingsCache
 from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
 
 N = 3000
@@ -125,7 +124,7 @@ def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
     calls = []
     original = noise_module.still_noise_nT
     monkeypatch.setattr(noise_module, "still_noise_nT", lambda *a, **k: calls.append(1) or original(*a, **k))
-    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", ReadingsCache(4))
     first = estimate_noise(ds, residuals, fitted.n_params)
     second = estimate_noise(ds, residuals, fitted.n_params)
     assert len(calls) == 1
@@ -145,11 +144,11 @@ def test_calibrate_prefetches_the_readings_facts_beside_the_fit(monkeypatch):
     calls = []
     original = noise_module.still_noise_nT
     monkeypatch.setattr(noise_module, "still_noise_nT", lambda *a, **k: calls.append(1) or original(*a, **k))
-    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", ReadingsCache(4))
     prefetched = calibrate(ds)
     assert len(calls) == 1
     monkeypatch.setattr(noise_module, "PREFETCH_FROM_READINGS", 10**12)
-    monkeypatch.setattr(noise_module, "_READINGS_FACTS", collections.OrderedDict())
+    monkeypatch.setattr(noise_module, "_READINGS_FACTS", ReadingsCache(4))
     in_line = calibrate(ds)
     assert len(calls) == 2
     assert prefetched.noise.sigma_nT == in_line.noise.sigma_nT and prefetched.noise.source == in_line.noise.source

@@ -245,7 +245,8 @@ def _carried(previous, kept, fit, groups):
         old = before.get(block_label(e, s))
         return old is not None and old.name == e.name and jsonable(old.state()) == jsonable(e.state())
 
-    chosen = {label for label, sl in g.blocks.items() if sl.start in set(previous.columns.tolist())}
+    chosen_columns = set(previous.columns.tolist())
+    chosen = {label for label, sl in g.blocks.items() if sl.start in chosen_columns}
     model_labels = {block_label(e, s) for e, s in fit.model.instances()}
     if not chosen <= model_labels or not all(same(e, s) for e, s in fit.model.instances()):
         return None

@@ -1,0 +1,51 @@
+"""What is computed from a record's readings alone, kept for the next use of the same readings.
+
+A diagnosis looks at one record many times: every score round's candidates, the refits and the held-out fits
+find their data-derived constants from the same readings, and the noise is estimated before and after each effect
+is added. What depends on the readings alone (a step scan, the quadric residuals, the still stretches and the
+quantization step) is computed once. Records are never changed in place, so an array's memory location, shape and
+strides identify its values while the cache holds the array (which keeps the location from being reused).
+"""
+
+from __future__ import annotations
+
+import collections
+
+
+class ReadingsCache:
+    """The values computed from readings arrays, for the ``size`` most recently used (array, key) pairs.
+
+    Parameters
+    ----------
+    size : int
+        Entries kept; the least recently used goes first.
+    """
+
+    def __init__(self, size: int):
+        self.size = int(size)
+        self._entries = collections.OrderedDict()
+
+    def get(self, array, key, compute, valid=None):
+        """``compute()`` for ``array`` and ``key`` (a tuple), computed once while cached.
+
+        ``valid(value)``, when given, says whether a cached value still applies (e.g. the same time stamps);
+        a value it refuses is computed again and replaces it. Safe to call from several threads (at worst a
+        value is computed twice).
+        """
+        full = (array.__array_interface__["data"][0], array.shape, array.strides) + tuple(key)
+        hit = self._entries.get(full)
+        if hit is not None and (valid is None or valid(hit[1])):
+            try:
+                self._entries.move_to_end(full)
+            except KeyError:  # evicted by another thread meanwhile
+                pass
+            return hit[1]
+        value = compute()
+        self._entries[full] = (array, value)
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+        return value
+
+    def clear(self):
+        """Forget every entry."""
+        self._entries.clear()

@@ -1,0 +1,37 @@
+"""magcal.readings_cache: computed once per readings array and key, the least recently used forgotten first."""
+
+import numpy as np
+import pytest
+
+from magcal.readings_cache import ReadingsCache
+
+
+def test_a_value_is_computed_once_per_array_and_key():
+    cache, calls = ReadingsCache(4), []
+    y = np.arange(12.0).reshape(4, 3)
+    compute = lambda: calls.append(1) or float(y.sum())  # noqa: E731
+    assert cache.get(y, ("sum",), compute) == cache.get(y, ("sum",), compute) == 66.0
+    assert len(calls) == 1
+    cache.get(y, ("other",), compute)  # another key
+    cache.get(y.copy(), ("sum",), compute)  # another array with the same values
+    assert len(calls) == 3
+
+
+@pytest.mark.parametrize("size", [1, 3])
+def test_the_least_recently_used_goes_first(size):
+    cache, calls = ReadingsCache(size), []
+    arrays = [np.full((2, 3), float(k)) for k in range(size + 1)]
+    for a in arrays[:size]:
+        cache.get(a, (), lambda a=a: calls.append(a[0, 0]))
+    cache.get(arrays[0], (), lambda: calls.append("again"))  # used again: now the most recent
+    cache.get(arrays[size], (), lambda: calls.append(size))  # evicts the least recent
+    cache.get(arrays[0], (), lambda: calls.append("again"))
+    assert calls.count("again") == (1 if size == 1 else 0)
+
+
+def test_a_value_the_caller_refuses_is_computed_again():
+    cache = ReadingsCache(2)
+    y = np.zeros((3, 3))
+    assert cache.get(y, (), lambda: 1) == 1
+    assert cache.get(y, (), lambda: 2, valid=lambda v: v == 2) == 2  # refused, replaced
+    assert cache.get(y, (), lambda: 3, valid=lambda v: v == 2) == 2
