@@ -549,25 +549,23 @@ class BiasStep(CatalogueEffect):
         lo, hi = max(int(np.ceil(margin * n)), 1), min(int(np.floor((1 - margin) * n)), n - 1)
         times, changed = list(self.step_time_s), False
         # the step is linear in the corrected field: sensor s's field with its step at every sample ("on") or at
-        # none ("off") is the fitted field plus a multiple of R C^-1 db, so every trial costs residuals only
-        fields = context.fields() if hasattr(context, "fields") else None
-        values = context.values() if fields is not None else None
+        # none ("off") is the fitted field plus a multiple of R C^-1 db, so every trial costs that sensor's
+        # residuals only (RefineContext.cost_with_sensor_moved)
+        shortcut = hasattr(context, "cost_with_sensor_moved")
+        values = context.values() if shortcut else None
         for s in range(len(times)):
             if times[s] is None or hi <= lo:
                 continue
-            if fields is None:  # a context without fields: evaluate each trial whole
+            if not shortcut:  # a context without it: evaluate each trial whole
                 on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
                 off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
             else:
                 cal = context.sensors()[s]
                 db = values[term_label(self.name, s if self.per_sensor else None)]
                 shift = (cal.R @ cal.cinv) @ db  # the step's move of sensor s's corrected field, nT
-                now = (t >= times[s]).astype(float)
-                trial = fields.copy()
-                trial[s] = fields[s] + now[:, None] * shift  # off: the current step taken out
-                off = context.cost_of_fields(trial)
-                trial[s] -= shift  # on: the step at every sample
-                on = context.cost_of_fields(trial)
+                now = (t >= times[s]).astype(float)[:, None]
+                off = context.cost_with_sensor_moved(s, now * shift)  # the current step taken out
+                on = context.cost_with_sensor_moved(s, (now - 1.0) * shift)  # the step at every sample
             # cost of a step before sample k: samples < k without it, samples >= k with it
             cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
             k = lo + int(np.argmin(cost[lo:hi + 1]))

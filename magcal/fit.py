@@ -288,7 +288,9 @@ class Problem:
             for e, es in instances:
                 if e.stage == "raw" and (es == s or (es is None and e.applies_to(s))):
                     basis = e.raw_basis(z0, ctx)
-                    z = z - basis_times(basis, values[block_label(e, es)])
+                    theta = values[block_label(e, es)]
+                    if np.any(theta):  # a candidate at zero (the score tests' Gram matrix) moves nothing
+                        z = z - basis_times(basis, theta)
                     raw.append((self.blocks[block_label(e, es)], basis))
             rc = cal.R @ cal.cinv
             b_rot = z @ rc.T
@@ -302,12 +304,14 @@ class Problem:
                     base.append(("c", i, j, tied))  # through c22 = 1/(c00 c11) when tied
                 else:
                     base.append((kind, k, None, None))
-            b = b_rot.copy() if any(e.stage == "vector" for e, _ in instances) else b_rot
+            b = b_rot  # the terms below make new arrays: b_rot itself is kept for the derivatives
             vector = []
             for e, es in instances:
                 if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
                     basis = e.vector_basis(b_rot, ctx)
-                    b = b + basis_times(basis, values[block_label(e, es)])
+                    theta = values[block_label(e, es)]
+                    if np.any(theta):
+                        b = b + basis_times(basis, theta)
                     vector.append((self.blocks[block_label(e, es)], basis))
             fields[s] = b
             derivs.append(_Derivative(start, base, z, cal.R, rc, b_rot, raw, vector))
@@ -1013,15 +1017,61 @@ class RefineContext:
         """The fitted parameters of each effect instance, by :func:`~magcal.calibration.block_label`."""
         return self.problem.effect_values(self.x)
 
-    def cost_of_fields(self, fields) -> np.ndarray:
-        """:meth:`cost_per_sample` of given corrected fields (n_sensors, N, 3) with the fitted parameters (the
-        expected total field, reference-stage effects included, as fitted)."""
-        r = self.problem._residuals_from_fields(fields, self.x)
+    def cost_with_sensor_moved(self, sensor, delta_nT) -> np.ndarray:
+        """:meth:`cost_of_fields` of the fitted fields with sensor ``sensor``'s moved by ``delta_nT`` (N, 3), nT,
+        from that sensor's samples alone.
+
+        The other sensors' total-field rows do not change; the consistency rows of all sensors do, through the
+        mean: with ``d_k`` the deviations from the mean and ``P`` the projection perpendicular to it, moving
+        sensor ``s`` by ``delta`` adds ``f^2 (2 P d_s . P delta) + |P delta|^2`` (``f^2 = n/(n-1)``, the rows'
+        scale squared) to the sum of the squared consistency rows. The perpendicular basis is held at the fitted
+        mean (the mean moves by ``delta / n``, a few nT of tens of thousands: the change is second order).
+        """
+        fields, r, base = self._fitted_costs()
+        problem = self.problem
+        n = problem.n_samples
+        delta = np.asarray(delta_nT, float)
+        tf = r[sensor * n:(sensor + 1) * n]
+        moved = fields[sensor] + delta
+        new_tf = row_norm(moved) - (row_norm(fields[sensor]) - tf)
+        cost = base + (new_tf - tf) * (new_tf + tf)
+        if problem.coupled:
+            e1, e2, deviation = self._consistency_frame(fields, sensor)
+            f2 = problem._consistency_factor ** 2
+            for e, d in zip((e1, e2), deviation):
+                pd = np.einsum("ni,ni->n", delta, e)
+                cost += pd * (2.0 * f2 * d + pd)
+        return cost
+
+    def _fitted_costs(self):
+        """``(fields, residuals, cost per sample)`` at the fit, computed once."""
+        if getattr(self, "_fitted", None) is None:
+            fields = self.problem.fields(self.x)
+            mean = fields.mean(axis=0) if self.problem.coupled else None
+            self._basis = _perpendicular_basis(mean) if self.problem.coupled else None
+            r = self.problem._residuals_from_fields(fields, self.x, self._basis, mean)
+            self._fitted = (fields, r, self._cost_of_residuals(r))
+        return self._fitted
+
+    def _consistency_frame(self, fields, sensor):
+        """The perpendicular basis at the fitted mean and sensor ``sensor``'s deviation from the mean along it
+        (the fit's consistency rows of that sensor, unscaled)."""
+        _, r, _ = self._fitted_costs()
+        ns, n = self.problem.n_sensors, self.problem.n_samples
+        rows = r[ns * n:].reshape(ns, n, 2)[sensor] / self.problem._consistency_factor
+        return self._basis[0], self._basis[1], (rows[:, 0], rows[:, 1])
+
+    def _cost_of_residuals(self, r):
         ns, n = self.problem.n_sensors, self.problem.n_samples
         cost = np.sum(r[: ns * n].reshape(ns, n) ** 2, axis=0)
         if self.problem.coupled:
             cost += np.sum(r[ns * n:].reshape(ns, n, 2) ** 2, axis=(0, 2))
         return cost
+
+    def cost_of_fields(self, fields) -> np.ndarray:
+        """:meth:`cost_per_sample` of given corrected fields (n_sensors, N, 3) with the fitted parameters (the
+        expected total field, reference-stage effects included, as fitted)."""
+        return self._cost_of_residuals(self.problem._residuals_from_fields(fields, self.x))
 
 
 def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,

@@ -37,6 +37,50 @@ def test_an_exception_of_one_call_is_raised(monkeypatch):
         _parallel.in_parallel([lambda: 1, bad])
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_pool_runs_follow_ups_and_waits_for_everything(monkeypatch, workers):
+    """A call may hand the pool further calls (a candidate's held-out fits when its refit returns); leaving the
+    pool waits for all of them, and each future gives its call's result or raises its exception."""
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
+    follow = {}
+
+    def refit(k):
+        time.sleep(0.01 * (3 - k))
+        follow[k] = pool.submit(lambda: 10 * k, _parallel.CHAIN)
+        return k
+
+    def bad():
+        raise ValueError("boom")
+
+    with _parallel.Pool() as pool:
+        firsts = [pool.submit(lambda k=k: refit(k)) for k in range(3)]
+        failing = pool.submit(bad, _parallel.FILLER)
+    assert [f.result() for f in firsts] == [0, 1, 2]
+    assert all(follow[k].done() and follow[k].result() == 10 * k for k in range(3))
+    with pytest.raises(ValueError, match="boom"):
+        failing.result()
+
+
+def test_a_pool_starts_work_by_priority(monkeypatch):
+    """Queued work starts by priority, then in the order submitted: the longest chain of fits is never queued
+    behind evidence that can wait. (One thread is held back, so the other takes the queue one call at a time.)"""
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    started, held, busy = [], threading.Event(), threading.Event()
+    with _parallel.Pool() as pool:
+        blockers = [pool.submit(held.wait), pool.submit(busy.wait)]  # both threads busy while the queue fills
+        time.sleep(0.05)
+        for name, priority in [("filler", _parallel.FILLER), ("shared", _parallel.SHARED),
+                               ("chain 1", _parallel.CHAIN), ("chain 2", _parallel.CHAIN)]:
+            pool.submit(lambda name=name: started.append(name), priority)
+        busy.set()
+        deadline = time.monotonic() + 10
+        while len(started) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        held.set()
+    assert all(b.result() for b in blockers)
+    assert started == ["chain 1", "chain 2", "shared", "filler"]
+
+
 def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeypatch):
     """Two hidden effects on four sensors: the confirming refits, the held-out fits and the score chunks run on
     threads; the candidates, their figures and the verdict are those of the sequential run."""

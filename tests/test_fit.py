@@ -446,7 +446,8 @@ def test_a_cost_tolerance_in_noise_variances_stops_within_a_fraction_of_a_standa
 @pytest.mark.parametrize("spec", ["bias_step:4", "bias_step"])
 def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec):
     """The step's refinement moves each sensor's corrected field by R C^-1 db instead of evaluating every trial
-    whole: the costs, and so the refined times, are those of whole evaluations."""
+    whole, and costs the move from that sensor's samples: the costs, and so the refined times, are those of
+    whole evaluations."""
     from magcal import effects as fx
     from magcal.fit import RefineContext
     from magcal.simulation import simulate_timeseries
@@ -473,6 +474,9 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
         trial[s] += (ds.time_s >= te)[:, None] * (cal.R @ cal.cinv @ context.values()[label]) - \
             cal.R @ cal.cinv @ context.values()[label]
         np.testing.assert_allclose(context.cost_of_fields(trial), on, rtol=1e-9, atol=1e-9)
+        # the same trial from sensor s's samples alone (the consistency basis held at the fitted mean)
+        moved_alone = context.cost_with_sensor_moved(s, trial[s] - fields[s])
+        np.testing.assert_allclose(moved_alone, on, rtol=5e-4)
     saved = step.state()
     step.refine(result.calibration.effect_values, context)
     moved = list(step.step_time_s)

@@ -24,7 +24,7 @@ from scipy import stats
 from ..errors import CalibrationError
 from ..model import EFFECTS, Model, term_label
 from ._fitted import _reference_override, _vector_rms
-from ._parallel import in_parallel
+from ._parallel import CHAIN, SHARED, in_parallel
 
 
 def _extra_dof(cls) -> int:
@@ -530,10 +530,15 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
-def _confirm(dataset, fit, cands, top, coupled, fits, alongside=()):
+def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, after_refit=None):
     """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
-    :meth:`_Projector.start`); re-rank. ``alongside``: other independent work (functions of no argument, their
-    results dropped) run side by side with the refits."""
+    :meth:`_Projector.start`); re-rank.
+
+    ``alongside``: other independent work (functions of no argument, their results dropped) run side by side
+    with the refits. ``pool``: a :class:`~magcal.diagnosis._parallel.Pool` to run the refits and that work on
+    (by default a batch of its own); ``after_refit(c)``, called in the refit's thread as soon as candidate ``c``
+    is refitted and its figures are set, may hand the pool the work that needed the refit.
+    """
     chosen, seen = [], set()
     for c in cands:
         if c.effect in seen:
@@ -551,15 +556,10 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=()):
 
     def refit(c):
         try:
-            return _refit(dataset, fit, c)
+            f1 = _refit(dataset, fit, c)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
-            return exc
-
-    done = in_parallel([lambda c=c: refit(c) for c in chosen] + list(alongside))  # independent refits
-    for c, f1 in zip(chosen, done[:len(chosen)]):
-        if isinstance(f1, Exception):
-            c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {f1}"
-            continue
+            c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {exc}"
+            return None
         extra = _extra_dof(EFFECTS[c.effect]) * len(c.instances)
         c.delta_bic = _delta_bic(fit, f1, extra, coupled)
         c.rms_after_nT = float(f1.rms_nT)
@@ -567,7 +567,19 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=()):
         c.refitted = True
         c.params = {p["term"]: p["params"] for p in f1.effect_params if p["effect"] == c.effect}
         c.fit = f1
-        fits[c.label] = f1
+        if after_refit is not None:
+            after_refit(c)
+        return f1
+
+    calls = [lambda c=c: refit(c) for c in chosen] + list(alongside)
+    if pool is None:
+        in_parallel(calls)  # independent refits
+    else:
+        for future in [pool.submit(call, CHAIN if k < len(chosen) else SHARED) for k, call in enumerate(calls)]:
+            future.result()
+    for c in chosen:
+        if c.refitted:
+            fits[c.label] = c.fit
     refitted = sorted([c for c in cands if c.refitted], key=lambda c: c.delta_bic)
     rest = [c for c in cands if not c.refitted]
     return refitted + rest

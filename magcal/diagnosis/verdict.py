@@ -31,7 +31,7 @@ from .. import validation as _validation
 from ..errors import CalibrationError, MagcalError
 from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
 from ._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
-from ._parallel import in_parallel
+from ._parallel import CHAIN, FILLER, SHARED, Pool
 from .evidence import (
     _effect_extra, _evidence_line, _sensor_evidence, _temperature_evidence, _time_evidence,
 )
@@ -361,37 +361,56 @@ def _changes_the_field(base_fit, c) -> str | None:
     return None
 
 
-def _judge_round(held_out, base_fit, cands, notes):
+_FAILURES = (CalibrationError, MagcalError, np.linalg.LinAlgError)
+
+
+def _attempt(call):
+    """``call()``, or the failure it raised (a failed held-out fit is reported, not raised)."""
+    try:
+        return call()
+    except _FAILURES as exc:
+        return exc
+
+
+def _to_validate(c) -> bool:
+    """Whether a candidate's held-out fits are wanted: refitted, supported in-sample, not yet judged."""
+    return c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None
+
+
+def _held_out_fits(pool, held_out, c) -> dict:
+    """The candidate's held-out fits per scheme, handed to ``pool`` (futures; each gives the fit or its failure)."""
+    return {scheme: pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.with_effect(c, scheme)), CHAIN)
+            for scheme in _validation.SCHEMES}
+
+
+def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
     """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
     data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
-    predictions."""
+    predictions. ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
+    scheme, :func:`_held_out_fits`)."""
     if held_out is not None:
-        todo = [c for c in cands
-                if c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None]
-        failures = (CalibrationError, MagcalError, np.linalg.LinAlgError)
-
-        def attempt(call):
-            try:
-                return call()
-            except failures as exc:
-                return exc
-
+        todo = [c for c in cands if _to_validate(c)]
         if todo:
-            # every held-out fit of the round at once, side by side on the machine's cores (numpy releases the
-            # interpreter in its loops): the base model's per scheme, shared by every candidate, and each
-            # candidate's per scheme; then the comparisons, in the candidates' order
-            schemes = _validation.SCHEMES
-            calls = [lambda scheme=scheme: held_out.base(base_fit, scheme) for scheme in schemes]
-            calls += [lambda c=c, scheme=scheme: held_out.with_effect(c, scheme) for c in todo for scheme in schemes]
-            done = in_parallel([lambda call=call: attempt(call) for call in calls])[len(schemes):]
-            for k, c in enumerate(todo):
-                fitted = dict(zip(schemes, done[k * len(schemes):(k + 1) * len(schemes)]))
+            # every held-out fit of the round side by side on the machine's cores (numpy releases the interpreter
+            # in its loops): the base model's per scheme, shared by every candidate, and each candidate's per
+            # scheme (those handed over when its refit returned already under way); then the comparisons, in
+            # the candidates' order
+            pending = dict(pending or {})
+            bases = [pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
+                     for scheme in _validation.SCHEMES]
+            for c in todo:
+                if c.label not in pending:
+                    pending[c.label] = _held_out_fits(pool, held_out, c)
+            for future in bases:
+                future.result()
+            for c in todo:
+                fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
                 failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
                 try:
                     if failed is not None:
                         raise failed
                     warning = held_out.judge(base_fit, c, fitted)
-                except failures as exc:
+                except _FAILURES as exc:
                     warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
                 if warning:
                     notes.append(warning)
@@ -451,20 +470,43 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             res = calibrate(dataset, effects=list(effects or ()))
         fit0 = res.fit
     kept = _kept(dataset, fit0)
-    ns = kept.n_sensors
-    n = kept.n_samples
-    coupled = fit0.vector_residuals_nT is not None
-    ordered = is_smooth_sequence(kept)
-    r0 = fit0.residuals_nT[:, fit0.mask]
     directions, fields = _sensor_directions(kept, fit0)
 
     report("score tests", 0.2)
     cands, proj, _ = _score_round(dataset, kept, fit0, candidates)
-    sh_stats = [sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES) for s in range(ns)]
+    with Pool() as pool:
+        return _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, report, top=top,
+                             candidates=candidates, max_effects=max_effects, validate=validate, noise_nT=noise_nT,
+                             t_start=t_start)
+
+
+def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, report, top, candidates,
+                  max_effects, validate, noise_nT, t_start) -> Diagnosis:
+    """:func:`diagnose` from the first round's score tests on: refits, held-out judgement, forward selection and
+    evidence, each piece handed to ``pool`` as soon as what it needs is ready."""
+    ns, n = kept.n_sensors, kept.n_samples
+    coupled = fit0.vector_residuals_nT is not None
+    ordered = is_smooth_sequence(kept)
+    r0 = fit0.residuals_nT[:, fit0.mask]
+    # what depends on the base fit alone is worked out while the refits run
+    sh_futures = [pool.submit(lambda s=s: sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES), SHARED)
+                  for s in range(ns)]
+
+    def noise_and_structure():
+        noise = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
+        return (noise,) + tuple(_structure_tests(kept, fit0, noise, ordered, directions))
+
+    structure_future = pool.submit(noise_and_structure, SHARED)
+    undetermined_future = pool.submit(lambda: _undetermined(fit0, directions), FILLER)
+    evidence_futures = [pool.submit(call, FILLER) for call in (
+        lambda: _time_evidence(kept, r0, ordered), lambda: _temperature_evidence(kept, r0, directions),
+        lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
+        lambda: _sensor_evidence(kept, fit0, r0, fields))]
     fits = {}
     report("refitting the best candidates", 0.4)
     # the base model's held-out fits need fit0 alone: when a candidate is predicted to be supported, they are made
-    # beside the refits (a core is often idle while the longest refit runs), else only if a refit is supported
+    # beside the refits, and a supported candidate's own the moment its refit returns; else only if a refit is
+    # supported
     early = None
     if validate and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in cands) \
             and _validation.split_problem(kept) is None:
@@ -472,9 +514,17 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             early = _HeldOut(kept, fit0)
         except MagcalError:
             early = None
+    pending = {}
+
+    def after_refit(c):
+        if early is not None and _to_validate(c):
+            pending[c.label] = _held_out_fits(pool, early, c)
+
     cands = _confirm(dataset, fit0, cands, top, coupled, fits,
                      alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s)
-                                                         for s in _validation.SCHEMES])
+                                                         for s in _validation.SCHEMES],
+                     pool=pool, after_refit=after_refit)
+    sh_stats = [future.result() for future in sh_futures]
     for c in cands:
         note = c.evidence  # e.g. a failed refit
         c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
@@ -495,8 +545,9 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             skipped = str(exc)
     if skipped and validate:
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
-    cands = _judge_round(held_out, fit0, cands, validation_notes)
-    undetermined = _undetermined(fit0, directions)
+    cands = _judge_round(held_out, fit0, cands, validation_notes, pool,
+                         pending if held_out is early else None)
+    undetermined = undetermined_future.result()
     if undetermined:
         validation_notes.append(f"the base calibration is not determined by these data ({undetermined}): no effect "
                                 "is recommended until the record covers more directions")
@@ -508,8 +559,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
             validation_notes.append(changed)
 
     # noise and structure of the model as given
-    noise0 = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
-    structure0, stats0 = _structure_tests(kept, fit0, noise0, ordered, directions)
+    noise0, structure0, stats0 = structure_future.result()
 
     # greedy forward selection while the best candidate is supported
     explained, chosen, current, current_noise = [], [], fit0, noise0
@@ -528,19 +578,25 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         chosen.append(best)
         current = nxt
         kept_c = _kept(dataset, current)
-        dirs_c, _ = _sensor_directions(kept_c, current)
-        current_noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered,
-                                       noise_nT=noise_nT)
-        remaining, stats_final = _structure_tests(kept_c, current, current_noise, ordered, dirs_c)
+
+        def noise_and_structure(kept_c=kept_c, current=current):
+            dirs_c, _ = _sensor_directions(kept_c, current)
+            noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered,
+                                   noise_nT=noise_nT)
+            return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
+
+        structure_c = pool.submit(noise_and_structure, SHARED)  # beside the next round's score tests
         if step + 1 >= max_effects:
+            current_noise, remaining, stats_final = structure_c.result()
             break
         report("looking for a further effect", 0.6 + 0.2 * step)
         more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best)
+        current_noise, remaining, stats_final = structure_c.result()
         more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
         if not more:
             break
-        more = _confirm(dataset, current, more, 1, coupled, fits)
-        round_cands = _judge_round(held_out, current, more, validation_notes)
+        more = _confirm(dataset, current, more, 1, coupled, fits, pool=pool)
+        round_cands = _judge_round(held_out, current, more, validation_notes, pool)
 
     # verdict
     supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
@@ -591,11 +647,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         fits["+".join(explained or partial)] = current
 
     floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
-    # the evidence's independent parts side by side (FFTs and correlations: numpy frees the interpreter)
-    time_ev, temperature_ev, spectra, sensors_ev = in_parallel([
-        lambda: _time_evidence(kept, r0, ordered), lambda: _temperature_evidence(kept, r0, directions),
-        lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
-        lambda: _sensor_evidence(kept, fit0, r0, fields)])
+    time_ev, temperature_ev, spectra, sensors_ev = [future.result() for future in evidence_futures]
     evidence = {
         "time": time_ev,
         "temperature": temperature_ev,
