@@ -128,6 +128,12 @@ class SingleAxisBasis(np.ndarray):
     def __array_finalize__(self, obj):
         self.axes = self.axis_values = None
 
+    def __deepcopy__(self, memo):
+        """A copy that keeps ``axes`` and ``axis_values`` (numpy's own copy would drop them)."""
+        if self.axes is None:
+            return np.array(self)
+        return SingleAxisBasis(self.axis_values.T, self.axes)
+
 
 @dataclass
 class Effect:

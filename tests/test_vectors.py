@@ -55,3 +55,22 @@ def test_basis_times_of_a_single_axis_basis_is_the_dense_product(axes):
     dense = np.asarray(basis).copy()
     np.testing.assert_allclose(basis_times(basis, theta), dense @ theta, rtol=1e-13, atol=1e-12)
     assert basis[3:7].axes is None  # a view is a plain basis
+
+
+@pytest.mark.parametrize("axes", [[0, 1, 2], [2, 0, 1, 0, 1, 2]])
+def test_a_copied_single_axis_basis_keeps_its_axes(axes):
+    """Effects are deep-copied with their cached bases (every fit copies its model): the copy keeps the axes, so
+    the fitter still projects it by products, and equals the original; a view copies to a plain array."""
+    import copy
+
+    from magcal.model import SingleAxisBasis
+
+    basis = SingleAxisBasis(np.random.default_rng(1).normal(size=(20, len(axes))), axes)
+    clone = copy.deepcopy(basis)
+    assert isinstance(clone, SingleAxisBasis) and clone.axes.tolist() == list(axes)
+    np.testing.assert_array_equal(clone, basis)
+    np.testing.assert_array_equal(clone.axis_values, basis.axis_values)
+    assert not np.shares_memory(clone, basis)
+    view = copy.deepcopy(basis[2:5])
+    assert type(view) is np.ndarray
+    np.testing.assert_array_equal(view, basis[2:5])
