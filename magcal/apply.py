@@ -193,7 +193,8 @@ def record_terms_for_file(calibration, survey_path, record_terms=None, columns=N
 
 
 def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None, uncertainty=False):
+               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None, uncertainty=False,
+               compression=None):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
     Parameters
@@ -216,6 +217,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     uncertainty : bool
         Also write the calibration's standard deviations of every new column (:func:`output_columns`), from its
         parameter covariance (:mod:`magcal.uncertainty`).
+    compression : str, optional
+        Codec of the float columns of a Parquet output (:data:`magcal.io.PARQUET_CODECS`; default snappy,
+        :data:`magcal.io.PARQUET_FLOAT_CODEC`).
 
     Returns
     -------
@@ -233,7 +237,7 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
 
     if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
         return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
-                             calibration_name, record_terms, t0, uncertainty)
+                             calibration_name, record_terms, t0, uncertainty, compression)
     if isinstance(columns, str):
         from .io import parse_column_mapping
 
@@ -353,7 +357,8 @@ def record_choice(calibration, survey_path, record_terms=None, columns=None, uni
 
 
 def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None, uncertainty=False):
+                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None, uncertainty=False,
+                  compression=None):
     """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
     writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
     (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
@@ -365,9 +370,11 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     import warnings
 
     from .errors import RecordTermWarning
-    from .io import dataset_columns, is_parquet, parquet_table, parquet_write_options, write_rows
+    from .io import (check_parquet_codec, dataset_columns, is_parquet, parquet_table, parquet_write_options,
+                     write_rows)
 
     t0 = time.perf_counter() if t0 is None else t0
+    compression = check_parquet_codec(compression)  # a bad name before any work
     if not hasattr(calibration, "correct"):
         calibration_name = calibration_name or os.fspath(calibration)
         calibration = load_calibration(calibration)
@@ -387,7 +394,7 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     rows = 0
     to_parquet = is_parquet(output_path)
     tmp = f"{output_path}.tmp-{os.getpid()}"
-    writer = None
+    writer = behind = None
     import contextlib
 
     try:
@@ -411,23 +418,68 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
 
                     table = parquet_table(cols, meta)
                     if writer is None:
-                        writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table))
-                    writer.write_table(table)
+                        writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table, compression))
+                        behind = _WriteBehind()
+                    behind.put(lambda table=table, writer=writer: writer.write_table(table))
                 else:
                     if rows == 0:
                         fh.write(metadata_text(meta) + ",".join(cols) + "\n")
                     write_rows(fh, cols)
                 rows += ds.n_samples
             if writer is not None:
+                behind, done = None, behind
+                done.close()  # every block written (or the first error raised)
                 writer.close()
                 writer = None
         if rows == 0:
             raise DatasetError(f"{survey_path}: no data rows; nothing to correct")
         os.replace(tmp, output_path)
     finally:
+        if behind is not None:  # an error while reading or correcting: stop the writing thread first
+            behind.close(raise_error=False)
         if writer is not None:
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
     return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)
+
+
+class _WriteBehind:
+    """Writes of a Parquet output on a thread of their own, at most ``depth`` blocks behind the reading and
+    correcting: pyarrow's encoding and compression and the disk release the interpreter, so the file's writing
+    overlaps the next blocks' work (memory stays bounded by ``depth`` blocks). Calls run in order; after the first
+    error the rest are skipped and the error is raised by the next :meth:`put` or by :meth:`close`."""
+
+    def __init__(self, depth=2):
+        import queue
+        import threading
+
+        self._queue = queue.Queue(maxsize=depth)
+        self._error = None
+        self._thread = threading.Thread(target=self._run, name="magcal-write", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while True:
+            call = self._queue.get()
+            if call is None:
+                return
+            if self._error is None:
+                try:
+                    call()
+                except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+                    self._error = exc
+
+    def put(self, call):
+        """Queue ``call`` (a function of no argument); waits while ``depth`` calls are queued."""
+        if self._error is not None:
+            raise self._error
+        self._queue.put(call)
+
+    def close(self, raise_error=True):
+        """Wait for every queued call, stop the thread; raise the first error (unless ``raise_error`` is False)."""
+        self._queue.put(None)
+        self._thread.join()
+        if raise_error and self._error is not None:
+            raise self._error
 

@@ -1276,12 +1276,35 @@ def parquet_table(columns, metadata=None):
     return table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
 
 
-def parquet_write_options(table) -> dict:
-    """Keyword arguments of pyarrow's Parquet writers for a table of magcal columns: dictionary encoding only for
-    the non-float columns (a float channel has nearly as many values as rows, so a dictionary costs two thirds
-    of the writing time and makes the file larger)."""
+#: Codecs of Parquet's float columns magcal writes (``compression`` of :func:`parquet_write_options`).
+PARQUET_CODECS = ("none", "snappy", "zstd", "lz4", "gzip", "brotli")
+
+#: The float columns' codec by default: snappy, Parquet's usual one. Readings and corrected vectors are float64
+#: with noise in their last digits, so it shrinks a corrected survey by only about 11 %; ``"none"`` writes faster
+#: (benchmarks/README.md), ``"zstd"`` smaller. The other columns (text, integers) are always snappy-compressed.
+PARQUET_FLOAT_CODEC = "snappy"
+
+
+def parquet_write_options(table, compression=None) -> dict:
+    """Keyword arguments of pyarrow's Parquet writers for a table of magcal columns.
+
+    Dictionary encoding only for the non-float columns (a float channel has nearly as many values as rows, so a
+    dictionary costs two thirds of the writing time and makes the file larger); the float columns compressed with
+    ``compression`` (one of :data:`PARQUET_CODECS`; default :data:`PARQUET_FLOAT_CODEC`), the others with snappy.
+    """
     pa = _pyarrow("parquet")
-    return {"use_dictionary": [f.name for f in table.schema if not pa.types.is_floating(f.type)]}
+    codec = check_parquet_codec(compression)
+    floats = {f.name for f in table.schema if pa.types.is_floating(f.type)}
+    return {"use_dictionary": [f.name for f in table.schema if f.name not in floats],
+            "compression": {f.name: (codec if f.name in floats else "snappy") for f in table.schema}}
+
+
+def check_parquet_codec(compression) -> str:
+    """``compression`` (None: :data:`PARQUET_FLOAT_CODEC`) checked against :data:`PARQUET_CODECS`, lower case."""
+    codec = PARQUET_FLOAT_CODEC if compression is None else str(compression).lower()
+    if codec not in PARQUET_CODECS:
+        raise MagcalError(f"Parquet compression {compression!r}: use one of {', '.join(PARQUET_CODECS)}")
+    return codec
 
 
 def write_parquet(path, data, metadata=None) -> None:

@@ -119,7 +119,8 @@ def _read_partition(part: Partition, columns=None, units=None, drop_bad=False):
 
 
 def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, fmt: str, record_choice: str,
-                      columns=None, units=None, drop_bad=False, uncertainty=False) -> tuple[str, int]:
+                      columns=None, units=None, drop_bad=False, uncertainty=False,
+                      compression=None) -> tuple[str, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task). Returns the
     file written and its rows."""
     from .apply import correct_block, output_columns
@@ -146,7 +147,7 @@ def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, f
         import pyarrow.parquet as pq
 
         table = parquet_table(cols, meta)
-        pq.write_table(table, tmp, **parquet_write_options(table))
+        pq.write_table(table, tmp, **parquet_write_options(table, compression))
         os.replace(tmp, out)
     else:
         write_csv(out, cols, metadata=meta)
@@ -174,7 +175,7 @@ class PartitionedSummary:
 
 def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", workers: int = 2, scheduler=None,
                       partition_rows: int = PARTITION_ROWS, columns=None, units=None, drop_bad=False,
-                      record_terms=None, progress=None, uncertainty=False) -> PartitionedSummary:
+                      record_terms=None, progress=None, uncertainty=False, compression=None) -> PartitionedSummary:
     """Correct survey files in parallel on a Dask cluster into a directory of partitions.
 
     Parameters
@@ -191,7 +192,7 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
         Address of an existing ``dask.distributed`` scheduler (``tcp://host:8786``).
     partition_rows : int
         CSV lines per partition (Parquet: one partition per row group).
-    columns, units, drop_bad, record_terms, uncertainty
+    columns, units, drop_bad, record_terms, uncertainty, compression
         As in :func:`magcal.apply.apply_file`.
     progress : bool, optional
         A progress bar (tqdm) over the partitions; default when stderr is a terminal.
@@ -209,6 +210,9 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
     t0 = time.perf_counter()
     if fmt not in ("parquet", "csv"):
         raise MagcalError(f"--format {fmt!r}: parquet or csv")
+    from .io import check_parquet_codec
+
+    compression = check_parquet_codec(compression)
     if isinstance(columns, str):
         from .io import parse_column_mapping
 
@@ -248,7 +252,7 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
             where = f"a local cluster of {int(workers)} worker(s)"
         try:
             futures = [client.submit(correct_partition, doc, p, output_dir, fmt, choices[p.path], columns, units,
-                                     drop_bad, uncertainty, pure=False) for p in parts]
+                                     drop_bad, uncertainty, compression, pure=False) for p in parts]
             bar = None
             if progress:
                 from tqdm import tqdm

@@ -73,3 +73,81 @@ def test_apply_to_and_from_parquet_gives_the_numbers_of_the_csv_path(survey, tmp
     for name in ("s1x_cal", "s4z_cal", "Gxx", "Gyz", "I1"):
         a, b = np.asarray(got.extra[name], float), np.asarray(want.extra[name], float)
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=2e-3)  # the CSV path rounds to 1 pT
+
+
+@pytest.mark.parametrize("compression, expected", [(None, "SNAPPY"), ("zstd", "ZSTD"), ("none", "UNCOMPRESSED")])
+def test_apply_writes_float_columns_with_the_codec_asked_and_the_same_numbers(survey, tmp_path, compression,
+                                                                              expected):
+    """Float columns of a Parquet output use snappy by default or the codec asked for; the values are the same
+    whatever the codec."""
+    import pyarrow.parquet as pq
+
+    ds, csv_path = survey
+    cal = magcal.calibrate(ds).calibration
+    out = tmp_path / "out.parquet"
+    apply_file(cal, csv_path, out, chunk_rows=170, compression=compression)
+    meta = pq.ParquetFile(out).metadata
+    codecs = {meta.schema.column(j).name: meta.row_group(0).column(j).compression for j in range(meta.num_columns)}
+    assert codecs["s1x_cal"] == codecs["Gxx"] == codecs["t"] == expected
+    reference = tmp_path / "reference.parquet"
+    apply_file(cal, csv_path, reference, chunk_rows=170, compression="gzip")
+    got, want = pq.read_table(out).to_pydict(), pq.read_table(reference).to_pydict()
+    assert got == want
+
+
+def test_an_unknown_codec_is_refused_before_any_work(survey, tmp_path, capsys):
+    from magcal.cli import main
+
+    ds, csv_path = survey
+    cal_path = tmp_path / "cal.json"
+    magcal.calibrate(ds).calibration.save(cal_path)
+    with pytest.raises(magcal.MagcalError, match="Parquet compression 'lzma'.*none, snappy, zstd"):
+        apply_file(cal_path, csv_path, tmp_path / "out.parquet", compression="lzma")
+    assert not (tmp_path / "out.parquet").exists()
+    assert main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "o.parquet"), "--compression",
+                 "zstd", "--no-progress"]) == 0
+    with pytest.raises(SystemExit):
+        main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "p.parquet"), "--compression", "lzma"])
+    assert "invalid choice: 'lzma'" in capsys.readouterr().err
+
+
+def test_blocks_are_written_in_order_behind_the_work_and_a_write_error_is_raised():
+    from magcal.apply import _WriteBehind
+
+    done = []
+    behind = _WriteBehind(depth=2)
+    for k in range(20):
+        behind.put(lambda k=k: done.append(k))
+    behind.close()
+    assert done == list(range(20))
+
+    def fail():
+        raise OSError("disk full")
+
+    behind = _WriteBehind()
+    behind.put(fail)
+    behind.put(lambda: done.append("after"))  # skipped: the file is already broken
+    with pytest.raises(OSError, match="disk full"):
+        behind.close()
+    assert "after" not in done
+
+
+def test_a_bad_row_late_in_the_survey_leaves_no_parquet_output_and_no_writing_thread(survey, tmp_path):
+    """The write-behind thread is stopped and the temporary file removed when a block fails after others were
+    written: nothing half-written is left under the output's name."""
+    import threading
+
+    ds, csv_path = survey
+    cal = magcal.calibrate(ds).calibration
+    lines = csv_path.read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 400  # the 400th sample
+    cells = lines[k].split(",")
+    cells[2] = "oops"
+    lines[k] = ",".join(cells)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out.parquet"
+    with pytest.raises(magcal.MagcalError, match="bad.csv"):
+        apply_file(cal, bad, out, chunk_rows=50)
+    assert not out.exists() and not list(tmp_path.glob("out.parquet.tmp*"))
+    assert not [t for t in threading.enumerate() if t.name == "magcal-write"]

@@ -49,8 +49,13 @@ def test_a_local_cluster_gives_the_single_process_numbers(surveys, tmp_path):
 
     d, cal, a, b = surveys
     out = tmp_path / "parts"
-    summary = apply_partitioned(cal, [a, b], out, workers=2, partition_rows=150, progress=False)
+    summary = apply_partitioned(cal, [a, b], out, workers=2, partition_rows=150, progress=False,
+                                compression="zstd")
     assert summary.rows == 900 and len(summary.files) == 5  # 4 CSV partitions + 1 row group
+    import pyarrow.parquet as pq
+
+    meta = pq.ParquetFile(summary.files[0]).metadata  # the codec asked for reaches the workers
+    assert meta.row_group(0).column(meta.schema.names.index("s1x_cal")).compression == "ZSTD"
     got = [_table(f) for f in summary.files]
     want = []
     for src in (a, b):

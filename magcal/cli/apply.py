@@ -23,6 +23,7 @@ import sys
 import warnings
 
 from ..errors import MagcalError
+from ..io import PARQUET_CODECS
 
 
 def register(subparsers):
@@ -50,6 +51,10 @@ def register(subparsers):
                         help="correct in parallel on an existing dask.distributed cluster (e.g. tcp://host:8786)")
     parser.add_argument("--format", choices=("parquet", "csv"), default="parquet",
                         help="partition files written in parallel mode (default parquet)")
+    parser.add_argument("--compression", choices=PARQUET_CODECS, default=None,
+                        help="codec of the float columns of Parquet output (default snappy; float64 survey "
+                             "values shrink by only about 11%% with it: none writes faster, zstd smaller; text "
+                             "columns are always snappy)")
     parser.add_argument("--partition-rows", type=int, default=None, metavar="N",
                         help="CSV lines per partition in parallel mode (Parquet: one per row group)")
     parser.add_argument("--columns", default=None, metavar="MAP",
@@ -89,12 +94,14 @@ def run(args) -> int:
                                         workers=args.workers or 2, scheduler=args.scheduler,
                                         partition_rows=args.partition_rows or PARTITION_ROWS, columns=args.columns,
                                         units=args.units, drop_bad=args.drop_bad, record_terms=args.record_terms,
-                                        progress=False if args.no_progress else None, uncertainty=args.uncertainty)
+                                        progress=False if args.no_progress else None, uncertainty=args.uncertainty,
+                                        compression=args.compression)
         else:
             summary = apply_file(calibration, args.data[0], args.output, columns=args.columns, units=args.units,
                                  drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
                                  progress=False if args.no_progress else None, calibration_name=args.calibration,
-                                 record_terms=args.record_terms, uncertainty=args.uncertainty)
+                                 record_terms=args.record_terms, uncertainty=args.uncertainty,
+                                 compression=args.compression)
     for note in dict.fromkeys(str(w.message) for w in caught):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())
