@@ -71,3 +71,20 @@ def bench(tmp_path, request):
     yield make
     for wb in made:
         wb.stop()
+
+
+@pytest.fixture
+def corrupt_csv(tmp_path):
+    """``corrupt_csv(path, line, column, value)``: a copy of the CSV ``path`` (``bad.csv`` in tmp_path) whose cell
+    ``column`` (0-based) on line ``line`` (0-based, comment lines counted) is ``value``."""
+
+    def corrupt(path, line, column, value):
+        lines = path.read_text().splitlines()
+        cells = lines[line].split(",")
+        cells[column] = value
+        lines[line] = ",".join(cells)
+        bad = tmp_path / "bad.csv"
+        bad.write_text("\n".join(lines) + "\n")
+        return bad
+
+    return corrupt

@@ -158,15 +158,10 @@ def test_column_mapping_and_units_in_apply(tmp_path):
     np.testing.assert_allclose(total, 50_000.0, atol=1e-2)
 
 
-def test_bad_rows_refuse_and_leave_no_output_or_drop(tmp_path, truth, survey):
+def test_bad_rows_refuse_and_leave_no_output_or_drop(tmp_path, truth, survey, corrupt_csv):
     path, _ = survey
-    lines = path.read_text().splitlines()
-    k = len(lines) - 5
-    cells = lines[k].split(",")
-    cells[3] = "NaN"
-    lines[k] = ",".join(cells)
-    bad = tmp_path / "bad.csv"
-    bad.write_text("\n".join(lines) + "\n")
+    k = len(path.read_text().splitlines()) - 5
+    bad = corrupt_csv(path, k, 3, "NaN")
     out = tmp_path / "out.csv"
     out.write_text("old\n")
     with pytest.raises(DatasetError, match=f"line {k + 1}"):

@@ -132,7 +132,7 @@ def test_blocks_are_written_in_order_behind_the_work_and_a_write_error_is_raised
     assert "after" not in done
 
 
-def test_a_bad_row_late_in_the_survey_leaves_no_parquet_output_and_no_writing_thread(survey, tmp_path):
+def test_a_bad_row_late_in_the_survey_leaves_no_parquet_output_and_no_writing_thread(survey, tmp_path, corrupt_csv):
     """The write-behind thread is stopped and the temporary file removed when a block fails after others were
     written: nothing half-written is left under the output's name."""
     import threading
@@ -140,12 +140,8 @@ def test_a_bad_row_late_in_the_survey_leaves_no_parquet_output_and_no_writing_th
     ds, csv_path = survey
     cal = magcal.calibrate(ds).calibration
     lines = csv_path.read_text().splitlines()
-    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 400  # the 400th sample
-    cells = lines[k].split(",")
-    cells[2] = "oops"
-    lines[k] = ",".join(cells)
-    bad = tmp_path / "bad.csv"
-    bad.write_text("\n".join(lines) + "\n")
+    header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    bad = corrupt_csv(csv_path, header + 400, 2, "oops")  # the 400th sample
     out = tmp_path / "out.parquet"
     with pytest.raises(magcal.MagcalError, match="bad.csv"):
         apply_file(cal, bad, out, chunk_rows=50)
