@@ -19,8 +19,13 @@ import queue
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
-#: Threads for independent fits (None: one per core, at most one per fit; 1: one after the other).
+#: Threads for independent fits (None: one per core, at most :data:`MAX_THREADS` and one per fit; 1: one after
+#: the other).
 PARALLEL_FITS = None
+
+#: Most threads by default: every fit in flight holds its own temporaries (about 100 MB for 4 x 1e5 samples), and
+#: a diagnosis rarely has more than a dozen pieces of work at once.
+MAX_THREADS = 8
 
 #: Priorities of a :class:`Pool`'s work (lower first): fits on the longest chain (refits and the held-out fits
 #: they lead to), fits every candidate waits for, and evidence that is only read at the end.
@@ -28,7 +33,7 @@ CHAIN, SHARED, FILLER = 0, 1, 2
 
 
 def _workers(n_calls=None):
-    workers = PARALLEL_FITS or os.cpu_count() or 1
+    workers = PARALLEL_FITS or min(os.cpu_count() or 1, MAX_THREADS)
     return workers if n_calls is None else min(n_calls, workers)
 
 
