@@ -112,3 +112,17 @@ def test_the_default_number_of_threads_is_one_per_core_and_bounded(monkeypatch):
     assert _parallel._workers() == 2
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 16)  # asked for explicitly: as asked
     assert _parallel._workers() == 16
+
+
+def test_leaving_a_pool_on_an_error_cancels_what_has_not_started(monkeypatch):
+    """An error (or Ctrl-C) in the diagnosis does not wait for the queued work: what has not started is cancelled,
+    what runs finishes."""
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    with pytest.raises(RuntimeError, match="stop"):
+        with _parallel.Pool() as pool:
+            running = [pool.submit(lambda: time.sleep(0.3) or True) for _ in range(2)]  # both threads busy
+            time.sleep(0.05)
+            queued = [pool.submit(lambda: time.sleep(5)) for _ in range(4)]
+            raise RuntimeError("stop")
+    assert all(f.result() for f in running)
+    assert all(f.cancelled() for f in queued)

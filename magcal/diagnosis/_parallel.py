@@ -83,8 +83,16 @@ class Pool:
                 return
             _run(call, future)
 
-    def close(self):
-        """Wait for every call submitted, then stop the threads."""
+    def close(self, cancel=False):
+        """Wait for every call submitted, then stop the threads; with ``cancel``, calls not yet started are
+        cancelled instead (their futures raise :class:`~concurrent.futures.CancelledError`)."""
+        if cancel:
+            while True:
+                try:
+                    _, _, call, future = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                future.cancel()
         for _ in self._threads:
             self._queue.put((FILLER + 1, next(self._order), None, None))
         for thread in self._threads:
@@ -94,8 +102,8 @@ class Pool:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
-        self.close()
+    def __exit__(self, exc_type, exc, tb):
+        self.close(cancel=exc_type is not None)  # after an error (or Ctrl-C) nothing more is started
 
 
 def _run(call, future):
