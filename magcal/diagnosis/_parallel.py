@@ -89,7 +89,7 @@ class Pool:
         if cancel:
             while True:
                 try:
-                    _, _, call, future = self._queue.get_nowait()
+                    *_, future = self._queue.get_nowait()
                 except queue.Empty:
                     break
                 future.cancel()
