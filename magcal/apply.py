@@ -235,6 +235,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
 
     from .io import is_parquet
 
+    if compression is not None and not is_parquet(output_path):
+        raise MagcalError(f"{os.fspath(output_path)}: a compression ({compression!r}) is for Parquet output; name "
+                          "the output .parquet or leave the compression out")
     if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
         return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
                              calibration_name, record_terms, t0, uncertainty, compression)

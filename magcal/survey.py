@@ -212,6 +212,9 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
         raise MagcalError(f"--format {fmt!r}: parquet or csv")
     from .io import check_parquet_codec
 
+    if compression is not None and fmt != "parquet":
+        raise MagcalError(f"a compression ({compression!r}) is for Parquet partitions; leave it out with --format "
+                          f"{fmt}")
     compression = check_parquet_codec(compression)
     if isinstance(columns, str):
         from .io import parse_column_mapping

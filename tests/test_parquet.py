@@ -109,6 +109,12 @@ def test_an_unknown_codec_is_refused_before_any_work(survey, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "p.parquet"), "--compression", "lzma"])
     assert "invalid choice: 'lzma'" in capsys.readouterr().err
+    # a codec for a CSV output is a mistake worth saying (nothing would be compressed)
+    assert main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "o.csv"), "--compression",
+                 "zstd"]) == 2
+    err = capsys.readouterr().err
+    assert "o.csv" in err and "for Parquet output" in err and "Traceback" not in err
+    assert not (tmp_path / "o.csv").exists()
 
 
 def test_blocks_are_written_in_order_behind_the_work_and_a_write_error_is_raised():

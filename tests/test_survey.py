@@ -101,3 +101,12 @@ def test_the_output_directory_must_be_new_or_empty(surveys, tmp_path):
     (tmp_path / "full" / "keep.txt").write_text("mine")
     with pytest.raises(magcal.MagcalError, match="not an empty directory"):
         apply_partitioned(cal, [a], tmp_path / "full", progress=False)
+
+
+def test_a_codec_with_csv_partitions_is_refused_before_any_work(surveys, tmp_path):
+    from magcal.survey import apply_partitioned
+
+    d, cal, a, b = surveys
+    with pytest.raises(magcal.MagcalError, match="for Parquet partitions"):
+        apply_partitioned(cal, [a], tmp_path / "x", fmt="csv", compression="zstd", progress=False)
+    assert not (tmp_path / "x").exists()
