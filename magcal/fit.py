@@ -993,6 +993,7 @@ class RefineContext:
         self.problem = problem
         self.x = x
         self.dataset = problem.dataset
+        self._fitted = None  # (fields, residuals, cost per sample, perpendicular basis), once asked for
 
     def cost_per_sample(self, effect, state) -> np.ndarray:
         """Squared residuals (nT^2) per sample, all sensors' total-field and consistency rows together, with the
@@ -1027,39 +1028,30 @@ class RefineContext:
         scale squared) to the sum of the squared consistency rows. The perpendicular basis is held at the fitted
         mean (the mean moves by ``delta / n``, a few nT of tens of thousands: the change is second order).
         """
-        fields, r, base = self._fitted_costs()
+        fields, r, base, basis = self._fitted_costs()
         problem = self.problem
-        n = problem.n_samples
+        ns, n = problem.n_sensors, problem.n_samples
         delta = np.asarray(delta_nT, float)
         tf = r[sensor * n:(sensor + 1) * n]
-        moved = fields[sensor] + delta
-        new_tf = row_norm(moved) - (row_norm(fields[sensor]) - tf)
+        new_tf = row_norm(fields[sensor] + delta) - (row_norm(fields[sensor]) - tf)  # the expected field held
         cost = base + (new_tf - tf) * (new_tf + tf)
         if problem.coupled:
-            e1, e2, deviation = self._consistency_frame(fields, sensor)
-            f2 = problem._consistency_factor ** 2
-            for e, d in zip((e1, e2), deviation):
+            f = problem._consistency_factor
+            deviation = r[ns * n:].reshape(ns, n, 2)[sensor] / f  # P d_s: the fit's consistency rows, unscaled
+            for k, e in enumerate(basis):
                 pd = np.einsum("ni,ni->n", delta, e)
-                cost += pd * (2.0 * f2 * d + pd)
+                cost += pd * (2.0 * f**2 * deviation[:, k] + pd)
         return cost
 
     def _fitted_costs(self):
-        """``(fields, residuals, cost per sample)`` at the fit, computed once."""
-        if getattr(self, "_fitted", None) is None:
+        """``(fields, residuals, cost per sample, perpendicular basis or None)`` at the fit, computed once."""
+        if self._fitted is None:
             fields = self.problem.fields(self.x)
             mean = fields.mean(axis=0) if self.problem.coupled else None
-            self._basis = _perpendicular_basis(mean) if self.problem.coupled else None
-            r = self.problem._residuals_from_fields(fields, self.x, self._basis, mean)
-            self._fitted = (fields, r, self._cost_of_residuals(r))
+            basis = _perpendicular_basis(mean) if self.problem.coupled else None
+            r = self.problem._residuals_from_fields(fields, self.x, basis, mean)
+            self._fitted = (fields, r, self._cost_of_residuals(r), basis)
         return self._fitted
-
-    def _consistency_frame(self, fields, sensor):
-        """The perpendicular basis at the fitted mean and sensor ``sensor``'s deviation from the mean along it
-        (the fit's consistency rows of that sensor, unscaled)."""
-        _, r, _ = self._fitted_costs()
-        ns, n = self.problem.n_sensors, self.problem.n_samples
-        rows = r[ns * n:].reshape(ns, n, 2)[sensor] / self.problem._consistency_factor
-        return self._basis[0], self._basis[1], (rows[:, 0], rows[:, 1])
 
     def _cost_of_residuals(self, r):
         ns, n = self.problem.n_sensors, self.problem.n_samples

@@ -57,12 +57,12 @@ class Pool:
     """
 
     def __init__(self):
-        self._n = _workers()
+        workers = _workers()
         self._queue = queue.PriorityQueue()
         self._order = itertools.count()
         self._threads = []
-        if self._n > 1:
-            for k in range(self._n):
+        if workers > 1:
+            for k in range(workers):
                 thread = threading.Thread(target=self._work, name=f"magcal-fit_{k}", daemon=True)
                 thread.start()
                 self._threads.append(thread)
