@@ -2,8 +2,8 @@
 
     python assets/make_assets.py
 
-Every file comes from the engine's simulator (:func:`magcal.simulation.simulate_timeseries`) with effects hidden
-by the catalogue's own perturbations (:mod:`magcal.effects`), so the data and the model agree on what each effect
+Every file comes from the engine's simulator (:func:`magcal.data.simulation.simulate_timeseries`) with effects hidden
+by the catalogue's own perturbations (:mod:`magcal.model.effects`), so the data and the model agree on what each effect
 is. Seeds are fixed: running the script again writes the same files.
 
 Outputs (committed):
@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 import magcal
-from magcal import io as mio
-from magcal.model import EFFECTS  # the catalogue is registered when magcal is imported
+from magcal.data import io as mio
+from magcal.model.terms import EFFECTS  # the catalogue is registered when magcal is imported
 
 HERE = Path(__file__).resolve().parent
 N_SAMPLES = 1500

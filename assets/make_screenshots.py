@@ -60,9 +60,9 @@ def live() -> int:
 
     from playwright.sync_api import sync_playwright
 
-    from magcal import io as mio
-    from workbench.app import Workbench
-    from workbench.lessons import DEMO
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.lessons import DEMO
 
     warnings.simplefilter("ignore")
     wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
@@ -96,9 +96,9 @@ def see() -> int:
     """The screenshots of where a model fails (see the module docstring)."""
     from playwright.sync_api import sync_playwright
 
-    from magcal import io as mio
-    from workbench.app import Workbench
-    from workbench.lessons import get_lesson
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.lessons import get_lesson
 
     warnings.simplefilter("ignore")
     with sync_playwright() as p:
@@ -150,9 +150,9 @@ def main() -> int:
         return see()
     from playwright.sync_api import sync_playwright
 
-    from magcal import io as mio
-    from workbench.app import Workbench
-    from workbench.lessons import DEMO
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.lessons import DEMO
 
     warnings.simplefilter("ignore")
     OUT.mkdir(parents=True, exist_ok=True)

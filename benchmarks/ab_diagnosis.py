@@ -23,12 +23,13 @@ import sys
 RUN = r"""
 import os, resource, time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-import magcal.effects as fx
+import magcal.model.effects as fx
+from magcal.model import perturbations
 from magcal import calibrate, diagnose
-from magcal.simulation import chi2017_truth, simulate_timeseries
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
 
 ds = simulate_timeseries(chi2017_truth(4), n_samples=100_000, noise_nT=3.0, seed=1,
-                         perturbations=[fx.parse_hidden("temperature_bias=0.5", 4)])
+                         perturbations=[perturbations.parse_hidden("temperature_bias=0.5", 4)])
 t0 = time.perf_counter()
 res = calibrate(ds)
 t1 = time.perf_counter()

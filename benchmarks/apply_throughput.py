@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from magcal import platform as pf
-from magcal import simulation as sim
-from magcal.calibration import Calibration, SensorCalibration
+from magcal.calibration.calibration import Calibration, SensorCalibration
+from magcal.data import simulation as sim
+from magcal.fitting import platform as pf
 
 BLOCK = 200_000
 
@@ -52,7 +52,7 @@ def to_parquet(survey: Path, out: Path) -> None:
     """The survey CSV as Parquet, streamed chunk by chunk (one row group each)."""
     import pyarrow.parquet as pq
 
-    from magcal import io as mio
+    from magcal.data import io as mio
 
     writer = None
     with mio.CsvSource(survey) as src:
@@ -89,7 +89,7 @@ def main():
     truth = pf.platform_truth()
     cal = Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], reference_total_nT=50_000.0,
                       baseline_m=0.5, frame="platform")
-    baseline = subprocess.run([sys.executable, "-c", "import magcal.apply, magcal.cli; "
+    baseline = subprocess.run([sys.executable, "-c", "import magcal.output.apply, magcal.cli; "
                                "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0])"],
                               capture_output=True, text=True)
     idle_mb = int(baseline.stdout.strip()) / 1024.0

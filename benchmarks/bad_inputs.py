@@ -25,10 +25,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from magcal import io, simulation as sim
-from magcal import platform as pf
-from magcal.calibration import Calibration, SensorCalibration
+from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.cli import main
+from magcal.data import io
+from magcal.data import simulation as sim
+from magcal.fitting import platform as pf
 
 
 def run_cli(argv):

@@ -7,7 +7,7 @@ Command::
 For 8 records (both Ding presets x 4 noise realisations, N = 150, uniform noise of full width 2 nT) and 3 search
 seeds each, every variant runs until its best RMS is within 0.1 % of the exact least-squares minimum (found by
 Levenberg-Marquardt from the truth) or 1500 generations pass. Printed: how many runs got there, and the median and
-90th-percentile objective evaluations they needed. ``magcal.search``'s ``de`` is the row ``ours``.
+90th-percentile objective evaluations they needed. ``magcal.fitting.search``'s ``de`` is the row ``ours``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from scipy.optimize import differential_evolution, least_squares
 from scipy.stats import qmc
 
 import magcal
-from magcal import conventions, search
+from magcal.core import conventions
+from magcal.fitting import search
 
 FIELD_NT = 51_500.0
 MAX_GEN = 1500

@@ -28,12 +28,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one BLAS thread: faster on
 
 import numpy as np  # noqa: E402
 
-import magcal.effects as fx  # noqa: E402
-from magcal import conventions, io  # noqa: E402
+import magcal.model.effects as fx  # noqa: E402
+from magcal.model import perturbations  # noqa: E402
+from magcal.core import conventions  # noqa: E402
+from magcal.data import io
+from magcal.data.simulation import chi2017_truth, simulate_timeseries  # noqa: E402
 from magcal.diagnosis import diagnose  # noqa: E402
-from magcal.model import EFFECTS  # noqa: E402
-from magcal.pipeline import calibrate  # noqa: E402
-from magcal.simulation import chi2017_truth, simulate_timeseries  # noqa: E402
+from magcal.fitting.pipeline import calibrate  # noqa: E402
+from magcal.model.terms import EFFECTS  # noqa: E402
 
 SIGMA = 3.0
 N = 1500
@@ -105,7 +107,7 @@ def part1(seeds):
     found, unnamed = [], []
     for seed in seeds:
         ds = simulate_timeseries(chi2017_truth(1), n_samples=N, noise_nT=SIGMA, seed=seed,
-                                 perturbations=[fx.periodic_interference(8.0, 0.7)])
+                                 perturbations=[perturbations.periodic_interference(8.0, 0.7)])
         d = diagnose(ds)
         found.append(f"{d.verdict} {'+'.join(d.explained_by) or '-'}")
         unnamed.append(diagnose(ds, candidates=outside).verdict)
@@ -136,14 +138,14 @@ def part2(sizes):
     for ns in (1, 4):
         for n in sizes:
             ds = simulate_timeseries(chi2017_truth(ns), n_samples=n, noise_nT=SIGMA, seed=1,
-                                     perturbations=[fx.parse_hidden("temperature_bias=0.5", ns)])
+                                     perturbations=[perturbations.parse_hidden("temperature_bias=0.5", ns)])
             repeats = 3 if n <= 10_000 else 1
             t_cal, res = timed(lambda: calibrate(ds), repeats)
             t_diag, d = timed(lambda: diagnose(ds, res), repeats)
             print(f"{ns:>8}{n:>9}{t_cal:>13.3f}{t_diag:>12.2f}{t_cal + t_diag:>9.2f}  {d.verdict} / "
                   f"{d.candidates[0].label}")
     ds = simulate_timeseries(chi2017_truth(4), n_samples=1500, noise_nT=SIGMA, seed=2,
-                             perturbations=[fx.parse_hidden("hysteresis:3", 4)])
+                             perturbations=[perturbations.parse_hidden("hysteresis:3", 4)])
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "four.csv")
         io.write_csv(path, ds)

@@ -3,7 +3,7 @@
     python benchmarks/live_latency.py [--seconds 30]
 
 A simulated instrument (``sim://chi2017``, four sensors) streams in real time into a workbench with a real viser
-server and no browser; :class:`workbench.live.LiveView` redraws the growing clouds and coverage spheres at most
+server and no browser; :class:`magcal_workbench.live.LiveView` redraws the growing clouds and coverage spheres at most
 every ``DRAW_INTERVAL_S`` and refits in the background. For every sample, the latency is the time from the moment
 the source emits it (its due time, on the host's monotonic clock) to the end of the scene update that first shows
 it. viser then sends the point arrays to the browsers; network and WebGL time are not included.
@@ -17,7 +17,6 @@ seed has no live mode, so the comparison is with the floor.
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
 import time
 import warnings
@@ -27,10 +26,9 @@ import numpy as np
 
 
 def run(rate_hz: float, seconds: float):
-    from magcal import io as mio
-    from workbench import live as lv
-    from workbench.app import Workbench
-    from workbench.lessons import DEMO
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.lessons import DEMO
 
     wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
     update_s = []
@@ -75,7 +73,7 @@ def run(rate_hz: float, seconds: float):
 
 
 def main(argv=None) -> int:
-    from workbench.live import DRAW_INTERVAL_S
+    from magcal_workbench.live import DRAW_INTERVAL_S
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=30.0, help="length of each stream, s")

@@ -3,7 +3,7 @@
 Run: ``python benchmarks/platform_alignment.py`` (about a minute).
 
 Setup: the Chi et al. (2017) Table 1 sensors with sensor 1 also misaligned to the platform
-(:func:`magcal.platform.platform_truth`), F = 50 000 nT, I = 55 deg, Gaussian sigma = 3 nT per axis (the seed's
+(:func:`magcal.fitting.platform.platform_truth`), F = 50 000 nT, I = 55 deg, Gaussian sigma = 3 nT per axis (the seed's
 noise), three level-table groups (x_up, y_up, z_up) of N_g samples each, the array turned to random headings.
 
 Printed:
@@ -24,9 +24,9 @@ import warnings
 
 import numpy as np
 
-from magcal import platform as pf
-from magcal import simulation as sim
-from magcal.calibration import Calibration, SensorCalibration
+from magcal.calibration.calibration import Calibration, SensorCalibration
+from magcal.data import simulation as sim
+from magcal.fitting import platform as pf
 
 SIGMA = 3.0
 NAMES = ("alpha", "beta", "gamma")
@@ -72,7 +72,7 @@ def main():
           f"{np.median(rms / np.abs(true)):.1e}; share of estimates within 1e-3 x |angle|: {100 * np.mean(inside):.0f}%; "
           f"largest error {1e6 * np.max(np.abs(err)):.1f} urad = {np.degrees(np.max(np.abs(err))):.5f} deg")
 
-    from magcal.pipeline import calibrate
+    from magcal.fitting.pipeline import calibrate
 
     runs2 = 30
     errs2, std2 = [], []

@@ -3,14 +3,14 @@
 For every converted real recording (``benchmarks/real/data/*.csv``; see ``benchmarks/real/README.md``) this
 prints and writes:
 
-* N, sample rate, the data-quality findings read before fitting (:func:`magcal.quality.assess`, notable ones);
+* N, sample rate, the data-quality findings read before fitting (:func:`magcal.checks.quality.assess`, notable ones);
 * the noise estimate with the method that gave it and its check (still stretches' scatter where there is one,
   the quantization floor);
 * the loop followed exactly as a user would: base fit -> :func:`magcal.diagnose` -> add the effect it recommends
   (the first of ``explained_by``, else of ``partially_explained_by``: what the report advises; nothing when the
   diagnosis says the base calibration is not determined by the data) -> refit -> diagnose again ..., at most ``--steps`` effects. Per step: the effect added, its
   delta-BIC (from the diagnosis that recommended it), the in-sample total-field RMS, the held-out RMS of
-  :func:`magcal.validation.validate` on the ``blocks`` scheme (alternating blocks in time) and on the ``later``
+  :func:`magcal.fitting.validation.validate` on the ``blocks`` scheme (alternating blocks in time) and on the ``later``
   scheme (last quarter), and the verdict of diagnosing the refitted model;
 * beside it an independent ellipsoid fit written here (algebraic least-squares quadric, no magcal code) with its
   in-sample and held-out RMS on the same splits, in the same gauge (soft-iron matrix of unit determinant);
@@ -50,9 +50,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 import magcal  # noqa: E402
-from magcal import validation  # noqa: E402
-from magcal.errors import MagcalError  # noqa: E402
-from magcal.quality import assess, field_magnitude_finding  # noqa: E402
+from magcal.checks.quality import assess, field_magnitude_finding  # noqa: E402
+from magcal.core.errors import MagcalError  # noqa: E402
+from magcal.fitting import validation  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DATA_DIR = HERE / "real" / "data"
@@ -296,7 +296,7 @@ def judge_claim(steps) -> dict:
     verdict reads adequate); the loop ends adequate or unexplained with its remaining structure named.
 
     Rises are counted on the plain held-out RMS of both schemes (what the user's calibration does on samples it
-    did not see); ``rises_beyond_half_se`` keeps those beyond :func:`magcal.validation.rise_tolerance_nT`;
+    did not see); ``rises_beyond_half_se`` keeps those beyond :func:`magcal.fitting.validation.rise_tolerance_nT`;
     ``rises_relevelled`` judges the ``later`` scheme as magcal does when the model holds record-only terms
     (both models scored with the record's level on the later stretch taken out)."""
     rises, rises_beyond_tol, rises_relevelled, falls = [], [], [], []

@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
-from magcal import conventions
-from magcal.ellipsoid import fit_ellipsoid
-from magcal.errors import CalibrationError
-from magcal.pipeline import calibrate
-from magcal.procrustes import procrustes_rotation
-from magcal.simulation import SensorErrors, chi2017_truth, simulate
+from magcal.core import conventions
+from magcal.core.errors import CalibrationError
+from magcal.data.simulation import SensorErrors, chi2017_truth, simulate
+from magcal.fitting.pipeline import calibrate
+from magcal.geometry.ellipsoid import fit_ellipsoid
+from magcal.geometry.procrustes import procrustes_rotation
 
 # Table 2 as printed (R only for sensors 2-4).
 PAPER_CINV = [

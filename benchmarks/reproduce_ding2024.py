@@ -7,7 +7,7 @@ Command::
 
 Part 1 (the paper's Fig. 5 figures and simulation 2): for both presets (``ding2024`` = simulation 1, Table 1;
 ``ding2024-fluxgate`` = simulation 2, Table 2), uniform noise of full width a = 0, 2, 5, 10 nT, N = 300, and every
-method - ``pso``, ``ipso``, ``de`` (magcal.search), ``ellipsoid`` and ``ml`` (magcal.pipeline) and two reference
+method - ``pso``, ``ipso``, ``de`` (magcal.fitting.search), ``ellipsoid`` and ``ml`` (magcal.fitting.pipeline) and two reference
 rows (``pso-w0.8-c2``: constant-coefficient PSO with w = 0.8, c1 = c2 = 2, a common textbook setting;
 ``de-scipy-default``: scipy's differential evolution with its defaults, no polishing) - the total-field RMS, wall
 time and objective evaluations, pooled over ``--repeats`` noise realisations (sqrt of the mean of RMS^2), beside the
@@ -32,8 +32,8 @@ import time
 import numpy as np
 
 import magcal
-from magcal import search
-from magcal.pipeline import calibrate
+from magcal.fitting import search
+from magcal.fitting.pipeline import calibrate
 
 PRESETS = ("ding2024", "ding2024-fluxgate")
 NOISE = (0.0, 2.0, 5.0, 10.0)

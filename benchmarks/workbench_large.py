@@ -15,7 +15,7 @@ Steps (each a separate process, as a user would run them):
 5. headless Chromium (Debian's /usr/bin/chromium, software WebGL): the time from ``goto`` until the canvas shows the
    clouds (pixels that are not background), then a click on *Run the chosen method* and the time until the page
    shows the fitted RMS; the fit's own time is the one the page reports (``(... s)``), the same engine call as the
-   CLI (:func:`magcal.pipeline.calibrate`, no per-sample Python loop); the websocket client of step 4, still
+   CLI (:func:`magcal.fitting.pipeline.calibrate`, no per-sample Python loop); the websocket client of step 4, still
    connected, counts the bytes the fit's redraw sends;
 6. the server's peak memory (``VmHWM``) at the end.
 
@@ -46,7 +46,7 @@ ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 def data_file(n: int) -> Path:
     import magcal
-    from magcal import io as mio
+    from magcal.data import io as mio
 
     folder = Path(tempfile.gettempdir()) / "magcal_bench"
     folder.mkdir(exist_ok=True)
@@ -75,8 +75,8 @@ def run_cli(path: Path) -> dict:
 
 _FIT_CODE = """
 import sys, time, warnings, magcal
-from magcal import io
-from workbench.controller import Controller
+from magcal.data import io
+from magcal_workbench.controller import Controller
 ds = io.read_csv(sys.argv[1])
 warnings.simplefilter("ignore")
 import numpy as np
@@ -92,7 +92,7 @@ print(engine, step)
 def fit_times_s(path: Path) -> tuple[float, float]:
     """Wall times, s, on the file's data in one quiet process (no server, no browser): the CLI's engine call
     (:func:`magcal.calibrate`, ML) and the workbench's *Run the chosen method* step
-    (:meth:`workbench.controller.Controller.step_calibrate`: the same call on the kept mask, then the residuals of
+    (:meth:`magcal_workbench.controller.Controller.step_calibrate`: the same call on the kept mask, then the residuals of
     every sample and the history row)."""
     out = subprocess.run([sys.executable, "-c", _FIT_CODE, str(path)], env=ENV, capture_output=True, text=True,
                          timeout=900, check=True)
@@ -228,7 +228,7 @@ def main(argv=None) -> int:
           flush=True)
 
     t0 = time.perf_counter()
-    server = subprocess.Popen([sys.executable, "-m", "workbench._launch", str(path), "--port", "0", "--no-session",
+    server = subprocess.Popen([sys.executable, "-m", "magcal_workbench._launch", str(path), "--port", "0", "--no-session",
                                "--max-points", str(args.max_points)], env=ENV, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     port = None

@@ -9,7 +9,7 @@ arrays to browsers zero-copy, so the synchronous calls timed here are the server
 
 Rows, for N samples per sensor (four sensors):
 
-* ``ML refit (ours)``: :func:`magcal.fit.fit` warm-started, the full model (the workbench's default refit);
+* ``ML refit (ours)``: :func:`magcal.fitting.fitter.fit` warm-started, the full model (the workbench's default refit);
 * ``two-step refit (seed)``: the seed's ellipsoid + Procrustes steps on the kept samples (no iteration);
 * ``scene update``: recolouring and redrawing every cloud (``2 x 4 x N`` points) and the meshes;
 * ``panels``: the status, tables and RMS history;
@@ -33,7 +33,7 @@ import warnings
 import numpy as np
 
 import magcal
-from magcal import conventions
+from magcal.core import conventions
 
 
 def _timed(func, repeat):
@@ -46,7 +46,7 @@ def _timed(func, repeat):
 
 
 def bench_refit(n, repeat, seed=1):
-    from workbench.app import Workbench
+    from magcal_workbench.app import Workbench
 
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=seed)
     wb = Workbench(ds, host="127.0.0.1", port=0, store=None)
@@ -72,7 +72,7 @@ def bench_refit(n, repeat, seed=1):
             orig_refresh(kinds)
             timings["panels"].append(time.perf_counter() - t)
 
-        fit_module = sys.modules["magcal.fit"]  # (``magcal.fit`` the attribute is the function)
+        fit_module = sys.modules["magcal.fitting.fitter"]  # (``magcal.fitting.fitter`` the attribute is the function)
         engine_fit = fit_module.fit
 
         def timed_fit(*args, **kwargs):
@@ -95,8 +95,8 @@ def bench_refit(n, repeat, seed=1):
         wb.update_scene, wb.panels.refresh = orig_update, orig_refresh
         fit_module.fit = engine_fit
 
-        from magcal import pipeline
-        from magcal.fit import resolve_reference
+        from magcal.fitting import pipeline
+        from magcal.fitting.fitter import resolve_reference
 
         def two_step():
             kept = ds.subset(ctrl.kept)
@@ -120,7 +120,7 @@ def bench_refit(n, repeat, seed=1):
 
 
 def bench_scene(n, repeat, seed=2):
-    from workbench.app import Workbench
+    from magcal_workbench.app import Workbench
 
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=seed)
     wb = Workbench(ds, host="127.0.0.1", port=0, store=None)
@@ -141,9 +141,9 @@ def bench_solvers(n, repeat, seed=3):
     """Our normal-equations LM against MINPACK on the same 4-sensor problem, warm and cold."""
     from scipy.optimize import least_squares
 
-    from magcal import pipeline
-    from magcal.fit import Problem, _levenberg_marquardt, crude_initial_calibration, resolve_reference
-    from magcal.model import Model
+    from magcal.fitting import pipeline
+    from magcal.fitting.fitter import Problem, _levenberg_marquardt, crude_initial_calibration, resolve_reference
+    from magcal.model.terms import Model
 
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=seed)
     ref, kind = resolve_reference(ds)
@@ -180,7 +180,7 @@ def main(argv=None):
     print(f"\nRejection -> refit -> scene update, four sensors, N = {r['n']} per sensor, {r['points']} points shown "
           f"(median of {args.repeat}; target 300 ms)")
     print(f"{'step':<34}{'ms':>10}")
-    print(f"{'ML refit (ours, warm start)':<34}{1e3 * r['fit']:>10.0f}   (engine magcal.fit.fit: "
+    print(f"{'ML refit (ours, warm start)':<34}{1e3 * r['fit']:>10.0f}   (engine magcal.fitting.fitter.fit: "
           f"{1e3 * r['engine']:.0f}, workbench bookkeeping: {1e3 * (r['fit'] - r['engine']):.0f})")
     print(f"{'two-step refit (seed method)':<34}{1e3 * r['seed']:>10.0f}")
     print(f"{'scene update':<34}{1e3 * r['scene']:>10.0f}")

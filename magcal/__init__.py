@@ -28,50 +28,46 @@ True
 True
 """
 
-from . import conventions, effects  # effects fills the EFFECTS catalogue at import
-from .api import calibrate, diagnose, read_csv
-from .calibration import Calibration, SensorCalibration
-from .dataset import Dataset, DatasetError, as_dataset
-from .errors import CalibrationError, MagcalError
-from .fit import FitResult, fit
-from .model import EFFECTS, Effect, Model, register
-from .perturbations import parse_hidden
-from .pipeline import CalibrationResult
-from .simulation import PRESETS, ArrayTruth, SensorErrors, simulate, simulate_timeseries
+import importlib
+
+# Only numpy and scipy.linalg load with ``import magcal``: each public name loads its module when first used
+# (``import magcal`` is paid by every command line call and every process of a parallel apply).
+import numpy  # noqa: F401
+import scipy.linalg  # noqa: F401
 
 __version__ = "0.1.0"
 
-__all__ = [
+#: Each public name and the module that holds it, in the order data flows.
+_PUBLIC = {
     # data in
-    "read_csv", "as_dataset", "Dataset", "DatasetError", "simulate", "simulate_timeseries", "parse_hidden",
-    "PRESETS", "ArrayTruth", "SensorErrors",
+    "read_csv": "magcal.data.io", "as_dataset": "magcal.data.inputs", "Dataset": "magcal.data.dataset",
+    "DatasetError": "magcal.data.dataset", "simulate": "magcal.data.simulation",
+    "simulate_timeseries": "magcal.data.simulation", "PRESETS": "magcal.data.simulation",
+    "ArrayTruth": "magcal.data.simulation", "SensorErrors": "magcal.data.simulation",
+    "parse_hidden": "magcal.model.perturbations",
     # calibrate, diagnose, apply
-    "calibrate", "CalibrationResult", "Calibration", "SensorCalibration", "diagnose", "Diagnosis", "fit",
-    "FitResult",
+    "calibrate": "magcal.api", "diagnose": "magcal.api", "CalibrationResult": "magcal.fitting.pipeline",
+    "Calibration": "magcal.calibration.calibration", "SensorCalibration": "magcal.calibration.calibration",
+    "Diagnosis": "magcal.diagnosis", "fit": "magcal.fitting.fitter", "FitResult": "magcal.fitting.fitter",
     # the model and its effects
-    "Model", "Effect", "EFFECTS", "register",
+    "Model": "magcal.model.terms", "Effect": "magcal.model.terms", "EFFECTS": "magcal.model", "register": "magcal.model.terms",
     # flight-controller logs, live sources, parameters out
-    "read_log", "open_source", "LiveSession", "export_calibration",
+    "read_log": "magcal.data.logs", "open_source": "magcal.data.live", "LiveSession": "magcal.data.live",
+    "export_calibration": "magcal.output.export",
     # errors
-    "MagcalError", "CalibrationError",
-    "__version__",
-]
+    "MagcalError": "magcal.core.errors", "CalibrationError": "magcal.core.errors",
+}
 
-
-#: Names loaded on first use (module, attribute): flight-controller logs, live sources, parameter export.
-_LAZY = {"read_log": ("logs", "read_log"), "open_source": ("live", "open_source"),
-         "LiveSession": ("live", "LiveSession"), "export_calibration": ("export", "export_calibration")}
+__all__ = [*_PUBLIC, "__version__"]
 
 
 def __getattr__(name):
-    # the diagnosis package is loaded when first used, so ``import magcal`` stays light
-    if name == "Diagnosis":
-        from .diagnosis import Diagnosis
-
-        return Diagnosis
-    if name in _LAZY:
-        import importlib
-
-        module, attr = _LAZY[name]
-        return getattr(importlib.import_module(f"{__name__}.{module}"), attr)
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        globals()[name] = value  # found at once the next time
+        return value
     raise AttributeError(f"module 'magcal' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted([*globals(), *_PUBLIC])

@@ -1,15 +1,18 @@
 """The one-call API: read, calibrate and diagnose whatever the user holds.
 
-``magcal.calibrate`` and ``magcal.diagnose`` take a :class:`~magcal.dataset.Dataset`, a plain array of raw readings
+``magcal.calibrate`` and ``magcal.diagnose`` take a :class:`~magcal.data.dataset.Dataset`, a plain array of raw readings
 in nT (``(N, 3)`` for one sensor, ``(n_sensors, N, 3)`` for an array) or a pandas DataFrame with the columns of
-the data CSV, turn it into a dataset with :func:`magcal.dataset.as_dataset`, and call the engine's
-:func:`magcal.pipeline.calibrate` and :func:`magcal.diagnosis.diagnose`, which keep taking datasets only.
+the data CSV, turn it into a dataset with :func:`magcal.data.dataset.as_dataset`, and call the engine's
+:func:`magcal.fitting.pipeline.calibrate` and :func:`magcal.diagnosis.diagnose`, which keep taking datasets only.
 """
 
 from __future__ import annotations
 
-from .dataset import as_dataset
-from .io import read_csv
+from magcal.data.inputs import as_dataset
+from magcal.data.io import read_csv
+from magcal.diagnosis import diagnose as _diagnose
+from magcal.fitting import pipeline
+from magcal.fitting.validation import validate_effects
 
 __all__ = ["read_csv", "calibrate", "diagnose", "as_dataset"]
 
@@ -21,8 +24,8 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
     Parameters
     ----------
     data : Dataset, array_like or pandas.DataFrame
-        Raw readings in nT: a :class:`~magcal.dataset.Dataset`, an array of shape ``(N, 3)`` (one sensor) or
-        ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns (see :func:`magcal.dataset.as_dataset`).
+        Raw readings in nT: a :class:`~magcal.data.dataset.Dataset`, an array of shape ``(N, 3)`` (one sensor) or
+        ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns (see :func:`magcal.data.dataset.as_dataset`).
     method : {"ml", "ellipsoid", "pso", "ipso", "de"}
         ``ml`` (default): ellipsoid -> Procrustes -> maximum likelihood; ``ellipsoid``: the seed's two steps only.
     effects : sequence of str or Effect
@@ -41,10 +44,10 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
         (``result.noise_source`` then reads ``given``).
     validate : bool
         Also fit the base model and the model with ``effects`` on alternating blocks in time and score them on
-        the blocks between (:func:`magcal.validation.validate_effects`): ``result.validation`` holds the
+        the blocks between (:func:`magcal.fitting.validation.validate_effects`): ``result.validation`` holds the
         held-out RMS beside the in-sample one (method ``ml`` only).
     **options
-        Passed on to :func:`magcal.pipeline.calibrate` (``seed``, ``progress``, ``mask``, ``ellipsoid_method``,
+        Passed on to :func:`magcal.fitting.pipeline.calibrate` (``seed``, ``progress``, ``mask``, ``ellipsoid_method``,
         ``base_terms``).
 
     Returns
@@ -70,13 +73,11 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
     >>> result.calibration.n_sensors, bool(result.rms_after_per_sensor_nT[0] < 4.0)   # noise sigma is 3 nT
     (1, True)
     """
-    from . import pipeline
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
     result = pipeline.calibrate(dataset, method=method, effects=effects, robust=robust,
                                 reference_total_nT=reference_total_nT, noise_nT=noise_nT, **options)
     if validate:
-        from .validation import validate_effects
 
         result.validation = validate_effects(dataset, result)
     if options.get("mask") is None:
@@ -118,7 +119,6 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, *
     >>> magcal.diagnose(ds, magcal.calibrate(ds)).verdict
     'adequate'
     """
-    from .diagnosis import diagnose as _diagnose  # at call time: the diagnosis package loads only when used
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
     return _diagnose(dataset, result, **options)

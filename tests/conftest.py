@@ -24,8 +24,8 @@ def clean_catalogue(monkeypatch):
     """Start and end with magcal's own effect catalogue: a user's effect (from a file or an entry point) must not
     leak into other tests, since the diagnosis tests every registered effect. Installed packages' entry points are
     hidden too."""
-    from magcal import plugins
-    from magcal.model import EFFECTS
+    from magcal.model import plugins
+    from magcal.model.terms import EFFECTS
 
     before = dict(EFFECTS)
     monkeypatch.setattr(plugins, "_ORIGINS", {})
@@ -47,12 +47,12 @@ def bench(tmp_path, request):
     ``bench(ds=None, store=True, name="data.csv", root=None, **kw)`` writes ``ds`` (default: the chi2017 time series
     of ``BENCH_SAMPLES`` samples at 2 Hz, a module may set that constant; 300 if it does not) as a CSV, opens it
     as the workbench does, with a session store in ``root`` (default ``tmp_path/sessions``) unless ``store`` is
-    false, and returns the :class:`workbench.app.Workbench`; ``kw`` go to its constructor.
+    false, and returns the :class:`magcal_workbench.app.Workbench`; ``kw`` go to its constructor.
     """
     import magcal
-    from magcal import io as mio
-    from workbench.app import Workbench
-    from workbench.session import SessionStore
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.session import SessionStore
 
     n_samples = getattr(request.module, "BENCH_SAMPLES", 300)
     made = []

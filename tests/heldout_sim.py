@@ -1,5 +1,5 @@
-"""An independent simulator for held-out diagnosis tests (written separately from :mod:`magcal.simulation` and
-:mod:`magcal.effects`): its own rotation path (integrated random angular velocity, sampled by slerp at any time,
+"""An independent simulator for held-out diagnosis tests (written separately from :mod:`magcal.data.simulation` and
+:mod:`magcal.model.effects`): its own rotation path (integrated random angular velocity, sampled by slerp at any time,
 so that delays are exact), its own sensor errors (general sensor matrices), its own forward model of each effect,
 and its own CSV writer following ``docs/formats.md``.
 """

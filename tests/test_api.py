@@ -1,6 +1,6 @@
 """The one-call API (``magcal.calibrate``, ``magcal.diagnose``, ``magcal.read_csv``) on whatever the user holds.
 
-Arrays, (n_sensors, N, 3) stacks, DataFrames and datasets all go through :func:`magcal.dataset.as_dataset`; the
+Arrays, (n_sensors, N, 3) stacks, DataFrames and datasets all go through :func:`magcal.data.dataset.as_dataset`; the
 results must recover the simulated truth and equal what the engine gives on the dataset itself.
 """
 
@@ -12,10 +12,12 @@ import pandas as pd
 import pytest
 
 import magcal
-from magcal import io, plugins
-from magcal.dataset import DatasetError, as_dataset
-from magcal.perturbations import parse_hidden
-from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.data import io
+from magcal.data.dataset import DatasetError
+from magcal.data.inputs import as_dataset
+from magcal.data.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.model import plugins
+from magcal.model.perturbations import parse_hidden
 
 SIGMA = 3.0
 
@@ -54,7 +56,7 @@ def test_a_plain_array_is_what_the_engine_gives_on_the_dataset():
     """It used to fail with "'numpy.ndarray' object has no attribute 'n_samples'"."""
     ds = simulate(chi2017_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
     from_array = magcal.calibrate(ds.readings_nT[0], reference_total_nT=ds.reference_total_nT)
-    from_dataset = magcal.pipeline.calibrate(ds)
+    from_dataset = magcal.fitting.pipeline.calibrate(ds)
     np.testing.assert_allclose(from_array.calibration.sensors[0].cinv, from_dataset.calibration.sensors[0].cinv,
                                rtol=0, atol=1e-9)
     np.testing.assert_allclose(from_array.calibration.sensors[0].bias_nT,
@@ -104,7 +106,7 @@ def test_diagnose_takes_a_dataset_or_a_frame_with_a_fitted_result(form):
 
 def test_the_engine_functions_still_take_datasets():
     from magcal.diagnosis import diagnose
-    from magcal.pipeline import calibrate
+    from magcal.fitting.pipeline import calibrate
 
     ds = _hidden_temperature_bias()
     assert diagnose(ds, calibrate(ds)).explained_by == ["temperature_bias"]
@@ -230,7 +232,8 @@ def test_frame_attrs_are_the_metadata_lines():
 
 
 def test_the_public_names_are_there():
-    from magcal import model, perturbations
+    from magcal.model import perturbations
+    from magcal.model import terms as model
 
     for name in magcal.__all__:
         assert getattr(magcal, name) is not None, name
@@ -257,8 +260,8 @@ def test_importing_magcal_loads_none_of_the_heavy_packages():
 
 def test_the_effects_catalogue_is_whole_at_import():
     """Nothing imported later (diagnosis, command line, hidden-effect simulation) adds a built-in effect."""
-    code = ("import magcal; first = sorted(magcal.EFFECTS); import magcal.diagnosis, magcal.cli, magcal.perturbations,"
-            " magcal.plugins, magcal.validation, magcal.quality; print(first == sorted(magcal.EFFECTS), *first)")
+    code = ("import magcal; first = sorted(magcal.EFFECTS); import magcal.diagnosis, magcal.cli, magcal.model.perturbations,"
+            " magcal.model.plugins, magcal.fitting.validation, magcal.checks.quality; print(first == sorted(magcal.EFFECTS), *first)")
     same, *names = _in_fresh_python(code).split()
     assert same == "True"
     assert set(names) == {name for name in magcal.EFFECTS if plugins.is_builtin(name)}

@@ -1,4 +1,4 @@
-"""magcal.apply: streaming survey correction, tensor invariants, and calibration files that load or say why not."""
+"""magcal.output.apply: streaming survey correction, tensor invariants, and calibration files that load or say why not."""
 
 import json
 import tracemalloc
@@ -8,16 +8,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from magcal import apply as ap
-from magcal import conventions, io
-from magcal import platform as pf
-from magcal import simulation as sim
-from magcal.calibration import Calibration, SensorCalibration
+from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.cli import main
-from magcal.dataset import DatasetError
-from magcal.errors import DataWarning, MagcalError, RecordTermWarning
-from magcal.fit import fit
-from magcal.model import EFFECTS, Model
+from magcal.core import conventions
+from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.data import io
+from magcal.data import simulation as sim
+from magcal.data.dataset import DatasetError
+from magcal.fitting import platform as pf
+from magcal.fitting.fitter import fit
+from magcal.model.terms import EFFECTS, Model
+from magcal.output import apply as ap
 
 
 def exact_calibration(truth, frame="platform"):

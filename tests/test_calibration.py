@@ -6,12 +6,12 @@ import warnings
 import numpy as np
 import pytest
 
-from magcal import conventions
-from magcal.calibration import Calibration, SensorCalibration, is_transferable, record_fingerprint
-from magcal.errors import MagcalError, RecordTermWarning
-from magcal.fit import fit
-from magcal.model import EFFECTS, Model
-from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.calibration.calibration import Calibration, SensorCalibration, is_transferable, record_fingerprint
+from magcal.core import conventions
+from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.data.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.fitting.fitter import fit
+from magcal.model.terms import EFFECTS, Model
 
 
 def test_truth_calibration_corrects_to_the_field():

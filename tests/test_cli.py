@@ -7,10 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from magcal import io
-from magcal.calibration import Calibration
+from magcal.calibration.calibration import Calibration
 from magcal.cli import main
-from magcal.simulation import chi2017_truth
+from magcal.data import io
+from magcal.data.simulation import chi2017_truth
 
 ITEM9_TOP = {"format", "version", "reference_total_nT", "baseline_m", "n_samples", "effects", "rms_nT",
              "tensor_rms_nT_per_m", "sensors"}
@@ -139,7 +139,7 @@ def test_a_fit_the_data_cannot_support_names_the_file(tmp_path, capsys, command)
 
 @pytest.mark.parametrize("method", ["ml", "de"])
 def test_a_coverage_warning_is_shown_once(tmp_path, capsys, method):
-    from magcal.simulation import simulate
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=400, seed=3)
     y = ds.readings_nT[0]
@@ -154,7 +154,7 @@ def test_a_coverage_warning_is_shown_once(tmp_path, capsys, method):
 @pytest.mark.parametrize("command", ["calibrate", "diagnose"])
 def test_json_carries_every_warning_of_the_run(tmp_path, capsys, command):
     """Issue 10: the coverage warning (raised before the fit) is in --json, not only on stderr."""
-    from magcal.simulation import simulate
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=400, seed=3)
     y = ds.readings_nT[0]
@@ -186,7 +186,7 @@ def test_every_subcommand_takes_effects_files():
 
 
 def test_effects_lists_the_built_in_catalogue(capsys):
-    from magcal.model import EFFECTS
+    from magcal.model.terms import EFFECTS
 
     assert main(["effects"]) == 0
     out = capsys.readouterr().out
@@ -202,7 +202,7 @@ def test_effects_lists_the_built_in_catalogue(capsys):
 # -- data quality and raw counts (issue 10) --------------------------------------------------------------------------
 def _write_counts(path, lsb_nT, seed=3, n=300):
     """Integer counts of ``lsb_nT`` for the chi2017 array, no units line; returns the dataset in nT."""
-    from magcal.simulation import simulate
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=n, seed=seed)
     counts = np.round(ds.readings_nT / lsb_nT).astype(int)
@@ -245,7 +245,7 @@ def test_text_report_has_a_data_quality_section(tmp_path, chi_csv, capsys):
     section = out.out.split("\nData quality\n------------\n")[1]
     assert section.strip() == "nothing notable" and "WARNING" not in out.out   # the clean simulation
     # stale readings in sensor 3: a warning in the section (with its effect), not repeated on stderr
-    from magcal.simulation import simulate
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=300, seed=4)
     y = ds.readings_nT.copy()
@@ -261,7 +261,7 @@ def test_text_report_has_a_data_quality_section(tmp_path, chi_csv, capsys):
 
 @pytest.mark.parametrize("command", ["calibrate", "diagnose"])
 def test_fitted_field_outside_the_earths_range_is_flagged(tmp_path, capsys, command):
-    from magcal.simulation import simulate
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=200, seed=6, with_reference=False)
     path = tmp_path / "weak.csv"
@@ -280,7 +280,7 @@ def test_fitted_field_outside_the_earths_range_is_flagged(tmp_path, capsys, comm
 
 
 def test_diagnose_reports_data_quality(tmp_path, capsys):
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
 
     ds = simulate_timeseries("chi2017", n_samples=600, seed=2)
     path = tmp_path / "ramp.csv"

@@ -6,14 +6,13 @@ import sys
 
 import numpy as np
 import pytest
-
-from magcal import io
-from magcal import platform as pf
-from magcal import simulation as sim
-from magcal.cli import main
-from magcal.calibration import Calibration, SensorCalibration
-
 from test_io import BAD_FILES
+
+from magcal.calibration.calibration import Calibration, SensorCalibration
+from magcal.cli import main
+from magcal.data import io
+from magcal.data import simulation as sim
+from magcal.fitting import platform as pf
 
 
 @pytest.fixture(scope="module")

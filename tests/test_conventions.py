@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from magcal import conventions
-from magcal.simulation import chi2017_truth
+from magcal.core import conventions
+from magcal.data.simulation import chi2017_truth
 
 # Chi et al. (2017) Table 2, as printed (the calibrated matrices of their simulation; R for sensors 2-4).
 TABLE2_CINV = [

@@ -1,4 +1,4 @@
-"""magcal.coverage: covered fraction, expected extrapolation error, refusing a rotation about one axis."""
+"""magcal.checks.coverage: covered fraction, expected extrapolation error, refusing a rotation about one axis."""
 
 import warnings
 
@@ -7,10 +7,11 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from magcal import coverage as cv
-from magcal import simulation as sim
-from magcal.dataset import DatasetError
-from magcal.errors import CoverageWarning
+from magcal.checks import coverage as cv
+from magcal.geometry import shape, sphere
+from magcal.core.errors import CoverageWarning
+from magcal.data import simulation as sim
+from magcal.data.dataset import DatasetError
 
 SIGMA = 3.0
 
@@ -30,7 +31,7 @@ def tilted(n, tilt_deg, rng):
 
 
 def test_fibonacci_sphere_is_even():
-    u = cv.fibonacci_sphere(2000)
+    u = sphere.fibonacci_sphere(2000)
     np.testing.assert_allclose(np.linalg.norm(u, axis=1), 1.0)
     np.testing.assert_allclose(u.mean(axis=0), 0.0, atol=2e-3)
     np.testing.assert_allclose(u.T @ u / len(u), np.eye(3) / 3, atol=2e-3)
@@ -38,10 +39,10 @@ def test_fibonacci_sphere_is_even():
 
 def test_sphere_centre_finds_the_offset():
     rng = np.random.default_rng(1)
-    u = cv.fibonacci_sphere(300)
+    u = sphere.fibonacci_sphere(300)
     centre = np.array([120.0, -340.0, 80.0])
     y = 50_000 * u + centre + rng.normal(0, 3, u.shape)
-    np.testing.assert_allclose(cv.sphere_centre(y), centre, atol=2.0)
+    np.testing.assert_allclose(sphere.sphere_centre(y), centre, atol=2.0)
 
 
 @pytest.mark.parametrize("offset_fraction", [0.0, 0.8, 1.5, 3.0])
@@ -52,8 +53,8 @@ def test_a_hard_iron_offset_larger_than_the_field_keeps_the_fitted_centre(offset
     soft = np.array([[1.1, 0.05, 0.0], [0.05, 0.92, 0.03], [0.0, 0.03, 1.0]])  # MEMS-like soft iron
     centre = offset_fraction * 30_000.0 * np.array([0.6, -0.64, 0.48])
     y = 30_000.0 * u @ soft.T + centre + rng.normal(0, 50, u.shape)
-    np.testing.assert_allclose(cv.sphere_centre(y), centre, atol=0.03 * 30_000)
-    assert cv.field_magnitude_nT(y) == pytest.approx(30_000, rel=0.1)
+    np.testing.assert_allclose(sphere.sphere_centre(y), centre, atol=0.03 * 30_000)
+    assert shape.field_magnitude_nT(y) == pytest.approx(30_000, rel=0.1)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CoverageWarning)
         cov = cv.check_coverage(y)
@@ -110,7 +111,7 @@ def _fit_ellipsoid(y, F):
         z = (y - b) / F
         return F * (np.sqrt(np.einsum("ij,jk,ik->i", z, a, z)) - 1.0)
 
-    p0 = np.array([1, 0, 0, 1, 0, 1, *cv.sphere_centre(y)], float)
+    p0 = np.array([1, 0, 0, 1, 0, 1, *sphere.sphere_centre(y)], float)
     sol = least_squares(res, p0, method="lm", x_scale=np.r_[np.full(6, 1e-4), np.full(3, 1.0)])
     return unpack(sol.x)
 
@@ -123,8 +124,8 @@ def test_predicted_extrapolation_error_matches_monte_carlo():
     b_true = np.array([40.0, -25.0, 60.0])
     u_sensor = att.inv().apply(sim.conventions.earth_field(1.0, 0.0, 60.0))
     clean = F * u_sensor + b_true
-    predicted = cv.extrapolation_factor(cv.sensor_directions(clean)) * SIGMA
-    test_u = cv.fibonacci_sphere(400)
+    predicted = shape.extrapolation_factor(shape.sensor_directions(clean)) * SIGMA
+    test_u = sphere.fibonacci_sphere(400)
     errs = []
     for _ in range(40):
         a, b = _fit_ellipsoid(clean + rng.normal(0, SIGMA, clean.shape), F)
@@ -178,17 +179,17 @@ def test_a_hard_iron_far_beyond_the_field_with_unequal_gains_is_full_coverage():
     the centre and the shape: the whole sphere reads as covered and the magnitude is the field."""
     rng = np.random.default_rng(21)
     y = _mems_readings(3000, 35_700.0, [1.0, 0.67, 1.48], 6.0, rng)
-    shape = cv.field_shape(y)
-    assert shape.source == "ellipsoid"
-    np.testing.assert_allclose(shape.centre_nT, 6.0 * 35_700.0 * np.array([0.85, 0.03, 0.52]), atol=300.0)
+    fitted = shape.field_shape(y)
+    assert fitted.source == "ellipsoid"
+    np.testing.assert_allclose(fitted.centre_nT, 6.0 * 35_700.0 * np.array([0.85, 0.03, 0.52]), atol=300.0)
     # the gains' geometric mean is 0.995: the magnitude through the fitted shape is the field times it
-    assert cv.field_magnitude_nT(y) == pytest.approx(35_700.0 * np.cbrt(0.67 * 1.48), rel=0.01)
+    assert shape.field_magnitude_nT(y) == pytest.approx(35_700.0 * np.cbrt(0.67 * 1.48), rel=0.01)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CoverageWarning)
         cov = cv.check_coverage(y, noise_nT=300.0)
     assert cov.fraction[0] > 0.97 and cov.largest_gap_deg[0] < 30
     # the directions go through the shape: they spread evenly (covariance I/3), not squeezed along the weak axis
-    u = cv.sensor_directions(y)
+    u = shape.sensor_directions(y)
     np.testing.assert_allclose(u.T @ u / len(u), np.eye(3) / 3, atol=0.03)
 
 
@@ -209,15 +210,15 @@ def test_an_ellipsoid_through_a_cap_is_not_trusted(cap_deg, noise_nT):
     u = Rotation.random(4000, random_state=rng).apply([0.0, 0.0, 1.0])
     u = u[u[:, 2] > np.cos(np.radians(cap_deg))][:400]
     y = 30_000.0 * u + np.array([40_000.0, 0.0, 0.0]) + rng.normal(0, noise_nT, u.shape)
-    assert cv.field_shape(y).source != "ellipsoid"
+    assert shape.field_shape(y).source != "ellipsoid"
     assert cv.coverage(y).fraction[0] < 0.5
 
 
 def test_the_unit_check_uses_the_fitted_magnitude(tmp_path):
-    """magcal.io.check_units (it calls field_magnitude_nT): no unit warning for a 6x hard iron with 2.2x gains."""
-    from magcal import io
-    from magcal.dataset import Dataset
-    from magcal.errors import DataWarning
+    """magcal.data.io.check_units (it calls field_magnitude_nT): no unit warning for a 6x hard iron with 2.2x gains."""
+    from magcal.core.errors import DataWarning
+    from magcal.data import io
+    from magcal.data.dataset import Dataset
 
     rng = np.random.default_rng(23)
     y = _mems_readings(2000, 35_700.0, [1.0, 0.67, 1.48], 6.0, rng)

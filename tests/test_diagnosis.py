@@ -4,26 +4,37 @@ Hidden-effect tests hide one catalogue effect (or one outside it) in simulated d
 check that the diagnosis ranks it first, reads ``missing_effect``, that adding it brings the total-field RMS to
 within 10 % of the noise floor and that leaving it out leaves the RMS clearly above it. Clean data must read
 ``adequate``. The same is checked on held-out CSV files written by an independent simulator
-(``tests/heldout_sim.py``) and read back with :func:`magcal.io.read_csv`.
+(``tests/heldout_sim.py``) and read back with :func:`magcal.data.io.read_csv`.
 """
 
 import json
 import time
 import warnings
 
+import heldout_sim
 import numpy as np
 import pytest
 
-import heldout_sim
-import magcal.effects as fx
-from magcal import conventions, io, plugins
+import magcal.model.effects as fx
+from magcal.model import perturbations
 from magcal.cli import main
+from magcal.core import conventions
+from magcal.data import io
+from magcal.data.simulation import chi2017_truth, simulate, simulate_timeseries
 from magcal.diagnosis import (
-    VERDICTS, cusum_test, diagnose, durbin_watson, estimate_noise, ljung_box, real_sph_harm, sh_analysis, spectrum,
+    VERDICTS,
+    cusum_test,
+    diagnose,
+    durbin_watson,
+    estimate_noise,
+    ljung_box,
+    real_sph_harm,
+    sh_analysis,
+    spectrum,
 )
-from magcal.model import EFFECTS, Effect, register
-from magcal.pipeline import calibrate
-from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.fitting.pipeline import calibrate
+from magcal.model import plugins
+from magcal.model.terms import EFFECTS, Effect, register
 
 SIGMA = 3.0
 N = 1500
@@ -39,7 +50,7 @@ OUTSIDE = [n for n in EFFECTS if n != "periodic_interference"]
 def _hidden(name, level, n_sensors=1, sensor=None, seed=1, n=N):
     magnitude = LEVELS[name][level] * EFFECTS[name].default_magnitude
     spec = name if sensor is None else f"{name}:{sensor + 1}"
-    pert = fx.parse_hidden(f"{spec}={magnitude}", n_sensors)
+    pert = perturbations.parse_hidden(f"{spec}={magnitude}", n_sensors)
     return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=SIGMA, seed=seed, perturbations=[pert])
 
 
@@ -250,7 +261,7 @@ def test_clean_data_reads_adequate_in_95_percent_of_seeds(n_sensors, seeds):
 @pytest.mark.parametrize("frequency_hz, n_sensors, sensor", [(0.7, 1, None), (2.1, 1, None), (0.23, 4, 2)])
 def test_periodic_interference_reads_unexplained(frequency_hz, n_sensors, sensor):
     ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=N, noise_nT=SIGMA, seed=3,
-                             perturbations=[fx.periodic_interference(8.0, frequency_hz, sensor)])
+                             perturbations=[perturbations.periodic_interference(8.0, frequency_hz, sensor)])
     d = diagnose(ds, candidates=OUTSIDE)
     assert d.verdict == "unexplained", d.summary
     assert d.explained_by == []  # not attributed to a wrong term
@@ -275,8 +286,8 @@ def test_model_with_the_effect_reads_adequate_and_is_not_tested_again():
 
 def test_two_hidden_effects_are_both_named():
     ds = simulate_timeseries(chi2017_truth(1), n_samples=N, noise_nT=SIGMA, seed=6,
-                             perturbations=[fx.parse_hidden("temperature_bias=2", 1),
-                                            fx.parse_hidden("nonlinearity_quadratic=25", 1)])
+                             perturbations=[perturbations.parse_hidden("temperature_bias=2", 1),
+                                            perturbations.parse_hidden("nonlinearity_quadratic=25", 1)])
     d = diagnose(ds)
     assert d.verdict == "missing_effect" and set(d.explained_by) == {"temperature_bias", "nonlinearity_quadratic"}
     assert any("more than one effect" in w for w in d.warnings)
@@ -295,7 +306,7 @@ def test_the_next_round_scores_from_the_carried_gram_matrix_as_from_a_new_one(n_
     from magcal.diagnosis._fitted import _kept
 
     ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=3000, noise_nT=SIGMA, seed=6,
-                             perturbations=[fx.parse_hidden(h, n_sensors) for h in hidden])
+                             perturbations=[perturbations.parse_hidden(h, n_sensors) for h in hidden])
     fit0 = calibrate(ds).fit
     first, _, _ = scores._score_round(ds, _kept(ds, fit0), fit0)
     best = scores._confirm(ds, fit0, first, 1, n_sensors > 1, {})[0]
@@ -449,7 +460,7 @@ def test_cli_refuses_bad_hidden_effects(tmp_path, capsys, monkeypatch, argv, mes
 def test_score_cross_products_do_not_depend_on_the_chunking():
     """Long records are accumulated in chunks of samples; the score statistics must not change."""
     from magcal.diagnosis import _candidate_effects, _grams
-    from magcal.model import Model
+    from magcal.model.terms import Model
 
     ds = _hidden("temperature_bias", 0, n=5000)
     fit0 = calibrate(ds).fit
@@ -474,7 +485,7 @@ HUM_HZ = 0.37  # frequency of the hum the plain effect models (Hz), known to its
 
 
 class _PlainHum(Effect):
-    """A hum at a known frequency, sine and cosine per sensor axis (nT): a plain subclass of ``magcal.model.Effect``
+    """A hum at a known frequency, sine and cosine per sensor axis (nT): a plain subclass of ``magcal.model.terms.Effect``
     -- not a dataclass of its own, no ``extra_dof``, ``default_magnitude``, ``true_params``, ``DETECTION_LEVELS``."""
 
     name = "plain_hum_for_diagnosis_test"
@@ -505,8 +516,8 @@ def plain_hum():
 def test_plain_user_effect_is_found_and_recovers_the_hidden_hum(plain_hum, n_sensors, sensor):
     for attr in ("extra_dof", "default_magnitude", "true_params", "_cached", "DETECTION_LEVELS"):
         assert not hasattr(_PlainHum, attr)
-    amplitude_nT, phase0 = 8.0, 0.3  # fx.periodic_interference: y += a sin(2 pi f t + 0.3) d
-    hum = fx.periodic_interference(amplitude_nT, HUM_HZ, sensor)
+    amplitude_nT, phase0 = 8.0, 0.3  # perturbations.periodic_interference: y += a sin(2 pi f t + 0.3) d
+    hum = perturbations.periodic_interference(amplitude_nT, HUM_HZ, sensor)
     ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=N, noise_nT=SIGMA, seed=1, perturbations=[hum])
     d = diagnose(ds, calibrate(ds))
     best = d.candidates[0]

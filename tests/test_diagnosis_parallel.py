@@ -3,13 +3,13 @@
 import threading
 import time
 
-import numpy as np
 import pytest
 
-import magcal.effects as fx
+import magcal.model.effects as fx
+from magcal.model import perturbations
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import _parallel, diagnose
-from magcal.pipeline import calibrate
-from magcal.simulation import chi2017_truth, simulate_timeseries
+from magcal.fitting.pipeline import calibrate
 
 
 @pytest.mark.parametrize("workers", [None, 1, 3])
@@ -85,7 +85,7 @@ def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeyp
     """Two hidden effects on four sensors: the confirming refits, the held-out fits and the score chunks run on
     threads; the candidates, their figures and the verdict are those of the sequential run."""
     ds = simulate_timeseries(chi2017_truth(4), n_samples=3000, noise_nT=3.0, seed=4,
-                             perturbations=[fx.parse_hidden("temperature_bias=2", 4), fx.parse_hidden("bias_step:3", 4)])
+                             perturbations=[perturbations.parse_hidden("temperature_bias=2", 4), perturbations.parse_hidden("bias_step:3", 4)])
     res = calibrate(ds)
     results = {}
     for workers in (1, 2):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal.simulation import PRESETS, ding2024_fluxgate_truth, ding2024_truth
+from magcal.data.simulation import PRESETS, ding2024_fluxgate_truth, ding2024_truth
 
 # Ding (2024) Tables 1 and 2 as printed: b (nT), k, [phi, theta, psi] (deg, Ding's letters), B_h (nT), S.
 TABLES = {
@@ -83,6 +83,6 @@ def test_maximum_amplitude_a_is_uniform_of_full_width_a(a):
     # with that reading the paper's improved-PSO RMS figures (0.58, 1.42, 2.84 nT for a = 2, 5, 10) are the
     # in-sample floor for N = 300 and 9 parameters; the "half-width a" or "sigma = a" readings are 2x or 3.5x off
     paper = {2.0: 0.58, 5.0: 1.42, 10.0: 2.84}[a]
-    floor = magcal.conventions.total_field_floor_nT(np.std(noise), 300)
+    floor = magcal.core.conventions.total_field_floor_nT(np.std(noise), 300)
     assert floor == pytest.approx(paper, rel=0.03)
     assert not 2 * floor == pytest.approx(paper, rel=0.3)

@@ -5,13 +5,14 @@ import json
 import numpy as np
 import pytest
 
-import magcal.effects as fx
-from magcal import conventions
-from magcal.calibration import Calibration, contexts
-from magcal.errors import MagcalError
-from magcal.fit import fit
-from magcal.model import EFFECTS, Model, parse_effect
-from magcal.simulation import chi2017_truth, simulate_timeseries
+import magcal.model.effects as fx
+from magcal.model import perturbations
+from magcal.calibration.calibration import Calibration
+from magcal.core import conventions
+from magcal.core.errors import MagcalError
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
+from magcal.fitting.fitter import fit
+from magcal.model.terms import EFFECTS, Model, contexts, parse_effect
 
 ISSUE_EFFECTS = ("temperature_bias", "temperature_scale", "bias_drift", "bias_step", "nonlinearity_quadratic",
                  "nonlinearity_cubic", "axis_timing_skew", "sensor_timing_skew", "reference_drift", "site_gradient")
@@ -176,7 +177,7 @@ def test_state_survives_json(name):
 def test_calibration_with_effects_round_trips_through_json(tmp_path):
     truth = chi2017_truth(2)
     ds = simulate_timeseries(truth, n_samples=800, noise_nT=2.0, seed=3,
-                             perturbations=[fx.parse_hidden("bias_step:2=12", 2), fx.parse_hidden("hysteresis", 2)])
+                             perturbations=[perturbations.parse_hidden("bias_step:2=12", 2), perturbations.parse_hidden("hysteresis", 2)])
     result = fit(ds, Model.from_names(["bias_step:2", "hysteresis", "temperature_bias", "reference_drift"], 2))
     path = tmp_path / "cal.json"
     result.calibration.save(path)
@@ -190,7 +191,7 @@ def test_calibration_with_effects_round_trips_through_json(tmp_path):
 def test_bias_step_time_is_found_by_the_scan():
     truth = chi2017_truth(1)
     ds = simulate_timeseries(truth, n_samples=1000, noise_nT=3.0, seed=2,
-                             perturbations=[fx.parse_hidden("bias_step=15", 1)])
+                             perturbations=[perturbations.parse_hidden("bias_step=15", 1)])
     effect = EFFECTS["bias_step"]()
     effect.configure(ds, _true_residuals(truth, ds))
     te = effect.step_time_s[0]
@@ -239,7 +240,7 @@ def test_play_operator_lags_by_its_half_width():
     ("periodic_interference:4=2", "periodic_interference", 3, 2.0),
 ])
 def test_parse_hidden(spec, effect, sensor, magnitude):
-    p = fx.parse_hidden(spec, 4)
+    p = perturbations.parse_hidden(spec, 4)
     assert p.effect == effect and p.sensor == sensor and p.magnitude == magnitude and p.description
 
 
@@ -250,7 +251,7 @@ def test_parse_hidden(spec, effect, sensor, magnitude):
 ])
 def test_parse_hidden_refuses_clearly(spec, n_sensors, message):
     with pytest.raises(MagcalError, match=message):
-        fx.parse_hidden(spec, n_sensors)
+        perturbations.parse_hidden(spec, n_sensors)
 
 
 def test_sensor_timing_skew_has_no_parameters_for_the_reference_sensor():
@@ -266,7 +267,7 @@ def test_periodic_interference_hides_a_sinusoid_of_the_given_peak():
     truth = chi2017_truth(1)
     clean = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1)
     pert = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1,
-                               perturbations=[fx.periodic_interference(4.0, 0.5)])
+                               perturbations=[perturbations.periodic_interference(4.0, 0.5)])
     d = pert.readings_nT[0] - clean.readings_nT[0]
     assert np.allclose(np.linalg.norm(d, axis=1).max(), 4.0, rtol=0.01)
 
@@ -300,7 +301,7 @@ def test_a_negative_hysteresis_width_is_refused_clearly():
     with pytest.raises(MagcalError, match="shape_half_width_nT of sensor 1"):
         EFFECTS["hysteresis"]().set_state({"shape_half_width_nT": [[-1.0, 0.0, 0.0]]})
     with pytest.raises(MagcalError, match="half-width must be >= 0"):
-        simulate_timeseries(chi2017_truth(1), n_samples=100, perturbations=[fx.parse_hidden("hysteresis=-5,0,0", 1)])
+        simulate_timeseries(chi2017_truth(1), n_samples=100, perturbations=[perturbations.parse_hidden("hysteresis=-5,0,0", 1)])
 
 
 def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
@@ -316,7 +317,7 @@ def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
 
 def test_a_calibration_file_with_a_negative_hysteresis_width_is_refused(tmp_path):
     ds = simulate_timeseries(chi2017_truth(1), n_samples=600, noise_nT=3.0, seed=2,
-                             perturbations=[fx.parse_hidden("hysteresis", 1)])
+                             perturbations=[perturbations.parse_hidden("hysteresis", 1)])
     path = tmp_path / "cal.json"
     fit(ds, Model.from_names(["hysteresis"], 1)).calibration.save(path)
     doc = json.loads(path.read_text())
@@ -394,7 +395,7 @@ def test_a_calibration_file_with_a_negative_record_length_is_refused(tmp_path):
 def test_the_report_quotes_a_nonlinearity_at_the_data_field_not_at_50_uT(name):
     """Issue 10: the cubic term was quoted "at 50 uT" for a field of 8.9 uT."""
     from magcal import calibrate
-    from magcal.report import text_report
+    from magcal.calibration.report import text_report
 
     truth = chi2017_truth(1)
     truth.total_nT = 8_900.0

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from magcal import conventions
-from magcal.ellipsoid import METHODS, MIN_SAMPLES, fit_ellipsoid
-from magcal.errors import CalibrationError
-from magcal.simulation import SensorErrors, chi2017_truth, simulate
+from magcal.core import conventions
+from magcal.core.errors import CalibrationError
+from magcal.data.simulation import SensorErrors, chi2017_truth, simulate
+from magcal.geometry.ellipsoid import METHODS, MIN_SAMPLES, fit_ellipsoid
 
 
 def _single_sensor_readings(sensor, n, noise_nT, seed, total_nT=50_000.0):
@@ -227,7 +227,7 @@ def test_refusal_of_a_cap_names_the_coverage(seed):
 def test_gram_matrix_accumulated_in_blocks_gives_the_whole_designs_solution(monkeypatch, method):
     """Block by block (a few dozen rows each) the quadric is the one of the whole design matrix: numpy's lstsq of
     it for the algebraic fit, the unblocked eigenproblem for Li-Griffiths."""
-    import magcal.ellipsoid as ell
+    import magcal.geometry.ellipsoid as ell
 
     y = _single_sensor_readings(chi2017_truth().sensors[2], 700, 3.0, seed=4)
     p = (y - y.mean(axis=0)) / 5e4

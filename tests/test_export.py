@@ -1,10 +1,10 @@
-"""Parameters out (magcal.export): each firmware's documented correction, applied to the exported parameters,
+"""Parameters out (magcal.output.export): each firmware's documented correction, applied to the exported parameters,
 gives magcal's corrected field.
 
 ArduPilot (AP_Compass_Backend::correct_field): corrected = M (SCALE (raw + OFS)), milligauss, M symmetric from
 COMPASS_DIA*/COMPASS_ODI*. PX4 (calibration::Magnetometer::Correct): corrected = rot (S (raw - OFF)), gauss, S
 symmetric from CAL_MAGn_*SCALE/*ODIAG. Both are reimplemented here from those formulas, independently of
-magcal.export's helpers.
+magcal.output.export's helpers.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from scipy.spatial.transform import Rotation
 
 import magcal
 from magcal.cli import main
-from magcal.errors import MagcalError
-from magcal.export import export_calibration, parse_parameter_file, symmetric_factor
-from magcal.simulation import ArrayTruth, SensorErrors
+from magcal.core.errors import MagcalError
+from magcal.data.simulation import ArrayTruth, SensorErrors
+from magcal.output.export import export_calibration, parse_parameter_file, symmetric_factor
 
 F_nT = 50_000.0
 
@@ -200,7 +200,7 @@ def test_rotation_error_figure_matches_the_vector_difference(calibrated):
 
 
 def test_long_offsets_get_an_ardupilot_note():
-    from magcal.calibration import Calibration, SensorCalibration
+    from magcal.calibration.calibration import Calibration, SensorCalibration
 
     cal = Calibration(sensors=[SensorCalibration(np.eye(3), [150_000.0, 0.0, 0.0])], reference_total_nT=F_nT)
     ap = export_calibration(cal, "ardupilot")

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from magcal import conventions
-from magcal.fit import Problem, crude_initial_calibration, fit
-from magcal.model import EFFECTS as EFFECTS_BY_NAME, Model
-from magcal.simulation import ArrayTruth, SensorErrors, chi2017_truth, simulate
+from magcal.core import conventions
+from magcal.data.simulation import ArrayTruth, SensorErrors, chi2017_truth, simulate
+from magcal.fitting.fitter import Problem, crude_initial_calibration, fit
+from magcal.model.terms import EFFECTS as EFFECTS_BY_NAME
+from magcal.model.terms import Model
 
 
 def _random_truth(rng, n_sensors):
@@ -133,7 +134,7 @@ def test_information_criteria_prefer_true_model():
 # --- the normal-equations solver ---------------------------------------------------------------------------------
 
 def _timeseries_problem(n_sensors, effects, reference, seed=3, n=400):
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
 
     truth = chi2017_truth(n_sensors)
     ds = simulate_timeseries(truth, n_samples=n, noise_nT=2.0, seed=seed).replace(reference_total_nT=reference)
@@ -170,7 +171,7 @@ def test_levenberg_marquardt_reaches_the_minpack_minimum(n_sensors, effects, ref
     """Our normal-equations solver and MINPACK's QR-based one find the same minimum from the same start."""
     from scipy.optimize import least_squares
 
-    from magcal.fit import _levenberg_marquardt
+    from magcal.fitting.fitter import _levenberg_marquardt
 
     _, _, problem = _timeseries_problem(n_sensors, effects, reference)
     ours = _levenberg_marquardt(problem, problem.x0)
@@ -214,7 +215,7 @@ def test_robust_losses_reach_scipys_minimum(loss, n_sensors):
     """With gross outliers in the data, our reweighted solver and scipy's robust trust-region agree."""
     from scipy.optimize import least_squares
 
-    from magcal.fit import LOSSES, _levenberg_marquardt
+    from magcal.fitting.fitter import LOSSES, _levenberg_marquardt
 
     truth = chi2017_truth()
     ds = simulate(truth, n_samples=150, seed=21).sensors(range(n_sensors))
@@ -237,7 +238,7 @@ def test_robust_losses_reach_scipys_minimum(loss, n_sensors):
 
 
 def test_unknown_loss_is_refused():
-    from magcal.errors import CalibrationError
+    from magcal.core.errors import CalibrationError
 
     with pytest.raises(CalibrationError, match="unknown loss"):
         fit(simulate(chi2017_truth(), n_samples=60, seed=1).sensors([0]), loss="l1")
@@ -246,12 +247,13 @@ def test_unknown_loss_is_refused():
 @pytest.mark.parametrize("seed", [2, 3])
 def test_hysteresis_shape_is_refined_within_fit(seed):
     """An effect with a data-derived shape (the hysteresis play width) gets its second pass inside fit()."""
-    from magcal import effects as fx
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
+    from magcal.model import effects as fx
+    from magcal.model import perturbations
 
     truth = chi2017_truth(1)
     ds = simulate_timeseries(truth, n_samples=1500, noise_nT=3.0, seed=seed,
-                             perturbations=[fx.parse_hidden("hysteresis=5", 1)])
+                             perturbations=[perturbations.parse_hidden("hysteresis=5", 1)])
     base = fit(ds)
     result = fit(ds, Model.from_names(["hysteresis"], 1), init=base.calibration)
     floor = conventions.total_field_floor_nT(3.0, ds.n_samples, 12)
@@ -273,8 +275,9 @@ def test_normal_equations_return_the_total_field_part(n_sensors, effects, refere
 @pytest.mark.parametrize("seed", [104, 7])
 def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
     """A slow temperature change of scale moves the raw change point; the refine pass finds the true step."""
-    from magcal import effects as fx
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
+    from magcal.model import effects as fx
+    from magcal.model import perturbations
 
     hidden = [fx.EFFECTS["temperature_scale"]().perturbation(30.0, None),
               fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)]
@@ -292,8 +295,9 @@ def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
 @pytest.mark.parametrize("effect", ["temperature_bias", "bias_step"])
 def test_fit_leaves_the_callers_model_unchanged(effect):
     """One Model reused on two records: the first calibration must not move when the second is fitted."""
-    from magcal import effects as fx
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
+    from magcal.model import effects as fx
+    from magcal.model import perturbations
 
     truth = chi2017_truth(1)
     hidden = [fx.EFFECTS[effect]().perturbation(20.0, None)]
@@ -311,7 +315,7 @@ def test_fit_leaves_the_callers_model_unchanged(effect):
 
 
 def test_with_effect_copies_the_added_effect():
-    from magcal.model import EFFECTS
+    from magcal.model.terms import EFFECTS
 
     effect = EFFECTS["temperature_bias"]()
     m1 = Model.base_model(1).with_effect(effect)
@@ -319,7 +323,7 @@ def test_with_effect_copies_the_added_effect():
 
 
 def test_a_fit_that_stops_early_says_so():
-    from magcal.errors import ConvergenceWarning
+    from magcal.core.errors import ConvergenceWarning
 
     ds = simulate(chi2017_truth(), n_samples=200, seed=3).sensors([0])
     with pytest.warns(ConvergenceWarning, match="did not converge"):
@@ -332,7 +336,7 @@ def test_a_fit_that_stops_early_says_so():
 def test_a_converged_fit_reports_success():
     import warnings
 
-    from magcal.errors import ConvergenceWarning
+    from magcal.core.errors import ConvergenceWarning
 
     ds = simulate(chi2017_truth(), n_samples=200, seed=3)
     with warnings.catch_warnings():
@@ -347,7 +351,7 @@ def small_blocks(monkeypatch):
     """Row blocks of a few dozen samples, so that a 400-sample problem is accumulated in many blocks."""
     import importlib
 
-    fit_module = importlib.import_module("magcal.fit")
+    fit_module = importlib.import_module("magcal.fitting.fitter")
     monkeypatch.setattr(fit_module, "BLOCK_ROWS", 97)
     monkeypatch.setattr(fit_module, "MIN_BLOCK_ROWS", 13)
     monkeypatch.setattr(fit_module, "ROW_BLOCK_ELEMENTS", 600)
@@ -393,7 +397,7 @@ def test_derivative_projection_is_the_dense_derivative_on_a_direction(n_sensors)
 def test_projection_of_a_single_axis_basis_is_the_general_contraction(monkeypatch, name):
     """Bases whose parameters each move one axis (most raw-stage terms) are projected by products; every
     catalogue term's projection equals the general contraction's, and the shortcut is taken where it applies."""
-    from magcal.fit import _Derivative
+    from magcal.fitting.fitter import _Derivative
 
     n_sensors = max(2, EFFECTS_BY_NAME[name].min_sensors) if name != "site_gradient" else 4
     ds, model, problem = _timeseries_problem(n_sensors, (name,), 50_000.0)
@@ -418,7 +422,7 @@ def test_a_large_record_converged_on_a_subsample_first_reaches_the_same_minimum(
     """The warm-up on an even subsample only changes where the fit of every sample starts, not where it ends."""
     import importlib
 
-    fit_module = importlib.import_module("magcal.fit")
+    fit_module = importlib.import_module("magcal.fitting.fitter")
     ds = simulate(chi2017_truth(n_sensors), n_samples=1500, noise_nT=3.0, seed=8)
     init = crude_initial_calibration(ds)
     monkeypatch.setattr(fit_module, "WARMUP_SAMPLES", 10**9)
@@ -448,9 +452,10 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
     """The step's refinement moves each sensor's corrected field by R C^-1 db instead of evaluating every trial
     whole, and costs the move from that sensor's samples: the costs, and so the refined times, are those of
     whole evaluations."""
-    from magcal import effects as fx
-    from magcal.fit import RefineContext
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
+    from magcal.fitting.fitter import RefineContext
+    from magcal.model import effects as fx
+    from magcal.model import perturbations
 
     ds = simulate_timeseries(chi2017_truth(), n_samples=900, noise_nT=3.0, seed=2,
                              perturbations=[fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)])
@@ -491,7 +496,7 @@ def test_one_step_from_the_whole_record_reaches_the_training_minimum(n_sensors, 
     0.01 noise variances) is the one-step estimator: one pass, status 4, and the training samples' converged
     minimum to a small fraction of a standard error, with the same residual sum of squares to a thousandth of a
     noise variance."""
-    from magcal.simulation import simulate_timeseries
+    from magcal.data.simulation import simulate_timeseries
 
     hidden = [EFFECTS_BY_NAME[name]().perturbation(EFFECTS_BY_NAME[name].default_magnitude) for name in effects]
     ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=1500, noise_nT=3.0, seed=21, perturbations=hidden)

@@ -7,15 +7,17 @@ import numpy as np
 import pytest
 
 import magcal
-import magcal.effects as fx
-from magcal import io, validation as val
+import magcal.model.effects as fx
+from magcal.model import perturbations
+from magcal.calibration.report import text_report
+from magcal.checks.noise import estimate_noise
 from magcal.cli import main
+from magcal.data import io
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import diagnose
-from magcal.model import EFFECTS
-from magcal.noise import estimate_noise
-from magcal.pipeline import calibrate
-from magcal.report import text_report
-from magcal.simulation import chi2017_truth, simulate_timeseries
+from magcal.fitting import validation as val
+from magcal.fitting.pipeline import calibrate
+from magcal.model.terms import EFFECTS
 
 SIGMA = 3.0
 N = 1500
@@ -131,7 +133,7 @@ def test_cli_noise_option_and_file_line(tmp_path, noisy_file, capsys):
 # --- item 5: held-out judgement in diagnose ------------------------------------------------------------------------
 def test_an_in_sample_gain_that_does_not_hold_is_not_recommended():
     """A slow interference (15 nT at 0.02 Hz) that a temperature bias fits in-sample but not on held-out blocks."""
-    ds = _record(seed=4, perturbations=[fx.periodic_interference(15.0, 0.02)])
+    ds = _record(seed=4, perturbations=[perturbations.periodic_interference(15.0, 0.02)])
     outside = [n for n in EFFECTS if n != "periodic_interference"]  # the interference is outside the catalogue
     unjudged = diagnose(ds, validate=False, candidates=outside)
     assert "temperature_bias" in unjudged.explained_by + unjudged.partially_explained_by  # the old advice

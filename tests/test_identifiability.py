@@ -7,14 +7,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import magcal
-from magcal import conventions, identifiability, search
-from magcal.simulation import ArrayTruth, SensorErrors, ding2024_truth
+from magcal.core import conventions
+from magcal.data.simulation import ArrayTruth, SensorErrors, ding2024_truth
+from magcal.fitting import search
+from magcal.model import identifiability
 
 FAST = {"pop_size": 30, "max_iter": 400}
 
 
 def _split_by_hand(sensor, scale, psi, phi, theta, bias_nT):
-    """Another sensor/platform split of the same M and I, computed here without magcal.identifiability."""
+    """Another sensor/platform split of the same M and I, computed here without magcal.model.identifiability."""
     m = sensor.total_matrix
     offset = sensor.total_offset_nT
     ct, cp = np.cos(theta), np.cos(phi)

@@ -6,13 +6,14 @@ import json
 import numpy as np
 import pytest
 
-import magcal.effects as fx
+import magcal.model.effects as fx
+from magcal.model import perturbations
 from magcal import calibrate, diagnose
-from magcal.calibration import Calibration
-from magcal.errors import MagcalError
-from magcal.fit import fit
-from magcal.model import EFFECTS, Model
-from magcal.simulation import chi2017_truth, simulate_timeseries
+from magcal.calibration.calibration import Calibration
+from magcal.core.errors import MagcalError
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
+from magcal.fitting.fitter import fit
+from magcal.model.terms import EFFECTS, Model
 
 SIGMA = 3.0
 N = 1500
@@ -22,7 +23,7 @@ DIRECTION = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])  # t
 
 def _hum(amplitude_nT, frequency_hz, sensor=None, n_sensors=1, seed=3, harmonic_fraction=0.0, n=N):
     return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=SIGMA, seed=seed, perturbations=[
-        fx.periodic_interference(amplitude_nT, frequency_hz, sensor, harmonic_fraction=harmonic_fraction)])
+        perturbations.periodic_interference(amplitude_nT, frequency_hz, sensor, harmonic_fraction=harmonic_fraction)])
 
 
 def _peaks(params, harmonic=1):
@@ -110,7 +111,7 @@ def test_a_bad_number_of_harmonics_is_refused(harmonics):
 def test_the_report_quotes_the_frequency_and_the_peak():
     import re
 
-    from magcal.report import text_report
+    from magcal.calibration.report import text_report
 
     result = calibrate(_hum(8.0, 0.7), effects=["periodic_interference"])
     line = next(x for x in text_report(result).splitlines() if x.strip().startswith("peak ("))

@@ -1,4 +1,4 @@
-"""magcal.io: the CSV format of docs/formats.md, column mapping, units, and refusing bad files clearly."""
+"""magcal.data.io: the CSV format of docs/formats.md, column mapping, units, and refusing bad files clearly."""
 
 import os
 import re
@@ -10,10 +10,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from magcal import io
-from magcal.dataset import Dataset, DatasetError
-from magcal.errors import DataWarning
-from magcal.simulation import simulate, simulate_timeseries
+from magcal.core.errors import DataWarning
+from magcal.data import io
+from magcal.data.dataset import Dataset, DatasetError
+from magcal.data.simulation import simulate, simulate_timeseries
 
 
 def write(tmp_path, content, name="d.csv"):
@@ -402,8 +402,8 @@ def test_units_check_looks_past_a_hard_iron_offset(units, factor, warned):
     """Issue 10: an offset larger than the field (MEMS on a platform) is not a unit error, and uT is still caught."""
     import warnings
 
-    from magcal.errors import DataWarning
-    from magcal.simulation import simulate
+    from magcal.core.errors import DataWarning
+    from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=200, seed=2)
     shifted = ds.replace(readings_nT=(ds.readings_nT + np.array([90_000.0, 60_000.0, -30_000.0])) * factor)

@@ -1,4 +1,4 @@
-"""Live sources and the recorder (magcal.live): serial through a pseudo-terminal, UDP and TCP lines, MAVLink over
+"""Live sources and the recorder (magcal.data.live): serial through a pseudo-terminal, UDP and TCP lines, MAVLink over
 loopback UDP, the simulated source's pace, and a recording that survives SIGKILL.
 
 Every wait is bounded; loopback addresses only; no assertion depends on how fast the machine is, except generous
@@ -19,8 +19,16 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal.live import (LineParser, LiveError, LiveSession, Recorder, SimSource, concatenate_chunks, open_source,
-                         record)
+from magcal.data.live import (
+    LineParser,
+    LiveError,
+    LiveSession,
+    Recorder,
+    SimSource,
+    concatenate_chunks,
+    open_source,
+    record,
+)
 
 pytest.importorskip("serial")
 pytest.importorskip("pymavlink")
@@ -209,7 +217,7 @@ def test_sim_source_plays_in_real_time_and_is_deterministic():
 def test_sim_source_from_a_file_ends(tmp_path):
     ds = magcal.simulate("chi2017", n_samples=30, seed=4).sensors([0])
     path = tmp_path / "play.csv"
-    magcal.io.write_csv(path, ds)
+    magcal.data.io.write_csv(path, ds)
     src = open_source(f"sim://{path}?rate=1000")
     chunk = concatenate_chunks(list(src))
     assert src.ended and len(chunk) == 30
@@ -225,7 +233,7 @@ def test_recorder_lines_never_cross_a_page(tmp_path):
     rec._page = 512  # small pages: many boundaries in a short file
     for start in range(0, 600, 37):
         samples = [src.sample(k) for k in range(start, min(start + 37, 600))]
-        from magcal.live import LiveChunk
+        from magcal.data.live import LiveChunk
 
         rec.write(LiveChunk(np.array([s[0] for s in samples]), np.stack([s[1] for s in samples], axis=1),
                             np.array([s[2] for s in samples])))
@@ -244,7 +252,7 @@ def test_recording_survives_sigkill(tmp_path):
     the sample the deterministic source sent."""
     path = tmp_path / "killed.csv"
     rate = 100
-    proc = subprocess.Popen([sys.executable, "-m", "magcal.live", f"sim://chi2017?rate={rate}", str(path),
+    proc = subprocess.Popen([sys.executable, "-m", "magcal.data.live", f"sim://chi2017?rate={rate}", str(path),
                              "--flush", "0.2", "--progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
     flushed = []

@@ -1,4 +1,4 @@
-"""Flight-controller logs in (magcal.logs): ArduPilot DataFlash .bin and PX4 .ulg, written here with known truth.
+"""Flight-controller logs in (magcal.data.logs): ArduPilot DataFlash .bin and PX4 .ulg, written here with known truth.
 
 The writers below follow each format's documentation: DataFlash is a stream of messages ``A3 95 type payload``
 described by FMT messages (pymavlink's DFReader reads them); ULog is a 16-byte header, then messages
@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 
 import magcal
 from magcal.cli import main
-from magcal.dataset import DatasetError
-from magcal.logs import read_log
+from magcal.data.dataset import DatasetError
+from magcal.data.logs import read_log
 
 pytest.importorskip("pymavlink")
 pytest.importorskip("pyulog")
@@ -238,7 +238,7 @@ def test_ulog_two_magnetometers_paired(tmp_path):
     second = [(r[0] + 300, r[1] + 300, 655_000, r[3] * 0.5, r[4], r[5], float("nan"), 0, True) for r in rows[:-10]]
     path = tmp_path / "two.ulg"
     write_ulog(path, [topics[0], (name, 1, fields, second), topics[1]])
-    with pytest.warns(magcal.errors.DataWarning, match="no sample of every other one"):
+    with pytest.warns(magcal.core.errors.DataWarning, match="no sample of every other one"):
         ds = read_log(path)
     assert ds.n_sensors == 2 and ds.n_samples == len(rows) - 10
     assert np.allclose(ds.readings_nT[1, :, 0], 0.5 * raw_nT[:-10, 0], atol=1)
@@ -265,7 +265,7 @@ def test_dead_compass_left_out_and_unhealthy_samples_dropped(tmp_path):
         edited.append((name, values))
     path = tmp_path / "dead.bin"
     write_dataflash(path, edited)
-    with pytest.warns(magcal.errors.DataWarning) as caught:
+    with pytest.warns(magcal.core.errors.DataWarning) as caught:
         ds = read_log(path)
     text = " ".join(str(w.message) for w in caught)
     assert "compass 2 reads the same vector (0, 0, 0)" in text and "10 sample(s) the firmware marked unhealthy" in text
@@ -274,14 +274,14 @@ def test_dead_compass_left_out_and_unhealthy_samples_dropped(tmp_path):
     only_dead = tmp_path / "alldead.bin"
     write_dataflash(only_dead, [(n, v) for n, v in edited if not (n == "MAG" and v[1] == 0)])
     with pytest.raises(DatasetError, match="every magnetometer in the log reads one constant vector"), \
-            pytest.warns(magcal.errors.DataWarning, match="compass 2 reads the same vector"):
+            pytest.warns(magcal.core.errors.DataWarning, match="compass 2 reads the same vector"):
         read_log(only_dead)
 
 
 def test_log_to_firmware_parameters_end_to_end(tmp_path, capsys):
     """An ArduPilot log in, calibrated, exported as ArduPilot parameters: the firmware's correction of the raw
     compass field with them is flat (the Earth's field is constant), where the raw field varies by kilo-nT."""
-    from magcal.export import parse_parameter_file
+    from magcal.output.export import parse_parameter_file
 
     path = tmp_path / "one.bin"
     messages, truth, _, _ = ardupilot_case(compasses=1)

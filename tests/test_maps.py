@@ -6,10 +6,14 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal.coverage import fibonacci_sphere
 from magcal.diagnosis import (
-    candidate_patterns, direction_pattern, pattern_correlation, real_sph_harm, residual_patterns,
+    candidate_patterns,
+    direction_pattern,
+    pattern_correlation,
+    real_sph_harm,
+    residual_patterns,
 )
+from magcal.geometry.sphere import fibonacci_sphere
 
 VERTS = fibonacci_sphere(400)
 

@@ -2,10 +2,10 @@
 
 import pytest
 
-import magcal.effects  # noqa: F401  (registers the catalogue)
-from magcal.errors import MagcalError
-from magcal.model import BASE_TERMS, EFFECTS, Model, parse_effect
-from magcal.simulation import simulate
+import magcal.model.effects  # noqa: F401  (registers the catalogue)
+from magcal.core.errors import MagcalError
+from magcal.data.simulation import simulate
+from magcal.model.terms import BASE_TERMS, EFFECTS, Model, parse_effect
 
 
 def test_base_model_drops_misalignment_for_one_sensor():

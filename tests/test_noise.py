@@ -1,4 +1,4 @@
-"""The noise of a recording (magcal.noise): the estimate a fit is judged against, and the robust spread.
+"""The noise of a recording (magcal.checks.noise): the estimate a fit is judged against, and the robust spread.
 
 The truth is known: magcal's simulator adds Gaussian noise of a given sigma per axis (nT), and the tests below
 check that :func:`estimate_noise` finds it from the residuals of a fitted model -- with a smooth misfit left in,
@@ -8,13 +8,17 @@ for one sensor and for an array of four -- and that :func:`robust_sigma` ignores
 import numpy as np
 import pytest
 
-from magcal.noise import (
-    NoiseEstimate, _difference_variance, _difference_variance_error, estimate_noise, is_smooth_sequence,
-    robust_sigma,
+from magcal.checks.noise import (
+    NoiseEstimate,
+    _difference_variance,
+    _difference_variance_error,
+    estimate_noise,
+    is_smooth_sequence,
 )
-from magcal.pipeline import calibrate
-from magcal.readings_cache import ReadingsCache
-from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.core.readings_cache import ReadingsCache
+from magcal.core.stats import robust_sigma
+from magcal.data.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.fitting.pipeline import calibrate
 
 N = 3000
 
@@ -116,7 +120,7 @@ def test_robust_sigma_floor_for_stale_samples():
 def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
     """A diagnosis estimates the noise of one record several times: what depends on the readings alone (still
     stretches, quantization floors, stale samples) is computed once, and the estimate is the same."""
-    import magcal.noise as noise_module
+    import magcal.checks.noise as noise_module
 
     ds = simulate_timeseries(chi2017_truth(2), n_samples=600, noise_nT=2.0, seed=3).replace(noise_nT=None)
     fitted = calibrate(ds).fit
@@ -137,7 +141,7 @@ def test_the_readings_facts_are_computed_once_per_record(monkeypatch):
 def test_calibrate_prefetches_the_readings_facts_beside_the_fit(monkeypatch):
     """calibrate starts the noise's readings-only work on another thread while it fits: the facts are computed
     once, and the noise and floors are those computed in line."""
-    import magcal.noise as noise_module
+    import magcal.checks.noise as noise_module
 
     ds = simulate_timeseries(chi2017_truth(4), n_samples=6000, noise_nT=2.0, seed=4).replace(noise_nT=None)
     assert ds.n_samples * ds.n_sensors >= noise_module.PREFETCH_FROM_READINGS

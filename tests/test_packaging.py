@@ -20,21 +20,21 @@ def _setuptools_config():
 
 def test_assets_are_mapped_into_the_workbench_package():
     cfg = _setuptools_config()
-    assert cfg["package-dir"]["workbench.assets"] == "assets"
-    assert "workbench.assets" in cfg["packages"]
+    assert cfg["package-dir"]["magcal_workbench.assets"] == "assets"
+    assert "magcal_workbench.assets" in cfg["packages"]
 
 
 @pytest.mark.parametrize("path", sorted(p.relative_to(ROOT / "assets").as_posix()
                                         for p in (ROOT / "assets").rglob("*")
                                         if p.is_file() and p.suffix != ".py" and "__pycache__" not in p.parts))
 def test_every_data_file_of_assets_is_package_data(path):
-    patterns = _setuptools_config()["package-data"]["workbench.assets"]
+    patterns = _setuptools_config()["package-data"]["magcal_workbench.assets"]
     assert any(fnmatch.fnmatch(path, pat) and path.count("/") == pat.count("/") for pat in patterns), (
         f"assets/{path} would be left out of the wheel: add a pattern for it to pyproject.toml")
 
 
 def test_the_workbench_finds_the_demo_and_the_lessons():
-    from workbench import lessons
+    from magcal_workbench import lessons
 
     assert lessons.DEMO.is_file()
     assert len(lessons.list_lessons()) >= 4
@@ -57,7 +57,7 @@ def _third_party_imports(folders):
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                     names.add(node.module.split(".")[0])
     names = {IMPORT_TO_DISTRIBUTION.get(n, n) for n in names}
-    return names - set(sys.stdlib_module_names) - {"magcal", "workbench"}
+    return names - set(sys.stdlib_module_names) - {"magcal", "magcal_workbench"}
 
 
 def _requirement_names(requirements):
@@ -103,7 +103,7 @@ def test_the_engine_needs_only_the_core_dependencies():
 
 def test_import_magcal_needs_no_optional_package():
     """``import magcal`` (and its command line) loads none of the workbench's or the instruments' packages."""
-    code = ("import sys, magcal, magcal.cli, magcal.live, magcal.logs, magcal.export; "
+    code = ("import sys, magcal, magcal.cli, magcal.data.live, magcal.data.logs, magcal.output.export; "
             "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog', 'pyarrow') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
@@ -112,12 +112,12 @@ def test_import_magcal_needs_no_optional_package():
 
 def test_every_package_the_workbench_imports_is_in_its_extra():
     """A fresh ``pip install -e ".[workbench]"`` must bring what the app imports (plotly was once missing)."""
-    from workbench import _launch
+    from magcal_workbench import _launch
 
     project = _project()
     core = _requirement_names(project["dependencies"])
     extra = _requirement_names(project["optional-dependencies"]["workbench"])
-    imported = _third_party_imports(["workbench"])
+    imported = _third_party_imports(["magcal_workbench"])
     assert not imported - core - extra, f"imported but not declared: {sorted(imported - core - extra)}"
     # the launcher checks exactly the extra's packages
     assert set(_launch.WORKBENCH_PACKAGES) == extra == imported - core
@@ -131,7 +131,7 @@ def test_the_workbench_packages_are_not_core_dependencies():
 def test_every_package_the_tests_import_is_a_test_dependency():
     project = _project()
     test = project["optional-dependencies"]["test"]
-    assert "magcal[workbench,instruments,survey]" in test  # the tests drive the workbench, instruments, Parquet
+    assert "magcal-workbench[workbench,instruments,survey]" in test  # the tests drive the workbench, instruments, Parquet
     extras = project["optional-dependencies"]
     declared = _requirement_names(project["dependencies"] + extras["workbench"] + extras["instruments"]
                                   + extras["survey"] + test)
@@ -143,13 +143,13 @@ def test_every_package_the_tests_import_is_a_test_dependency():
 def test_every_python_package_is_in_the_wheel():
     """A package folder left out of ``packages`` is missing from the wheel (magcal.diagnosis became one)."""
     listed = set(_setuptools_config()["packages"])
-    found = {".".join(p.parent.relative_to(ROOT).parts) for folder in ("magcal", "workbench")
+    found = {".".join(p.parent.relative_to(ROOT).parts) for folder in ("magcal", "magcal_workbench")
              for p in (ROOT / folder).rglob("__init__.py") if "__pycache__" not in p.parts}
     assert found <= listed, f"not in [tool.setuptools] packages: {sorted(found - listed)}"
 
 
 @pytest.mark.parametrize("script, target", [("magcal", "magcal.cli:main"),
-                                            ("magcal-workbench", "workbench._launch:main")])
+                                            ("magcal-workbench", "magcal_workbench._launch:main")])
 def test_console_scripts_point_at_callables(script, target):
     assert _project()["scripts"][script] == target
     module, _, name = target.partition(":")
@@ -186,7 +186,7 @@ def _launch(hide=()):
     """Run the magcal-workbench entry point in a fresh Python with some packages made unimportable."""
     code = ("import sys\n"
             f"for name in {tuple(hide)!r}: sys.modules[name] = None  # import raises ImportError\n"
-            "from workbench._launch import main\n"
+            "from magcal_workbench._launch import main\n"
             "sys.exit(main(['--help']))\n")
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
 
@@ -209,7 +209,7 @@ def test_with_the_extra_the_launcher_starts_the_app():
 
 
 def test_the_launcher_hands_its_arguments_to_the_app(monkeypatch):
-    from workbench import _launch, app
+    from magcal_workbench import _launch, app
 
     seen = []
     monkeypatch.setattr(app, "main", lambda argv=None: seen.append(argv) or 7)

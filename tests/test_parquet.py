@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import io as mio
-from magcal.apply import apply_file
+from magcal.data import io as mio
+from magcal.output.apply import apply_file
 
 pytest.importorskip("pyarrow")
 
@@ -118,7 +118,7 @@ def test_an_unknown_codec_is_refused_before_any_work(survey, tmp_path, capsys):
 
 
 def test_blocks_are_written_in_order_behind_the_work_and_a_write_error_is_raised():
-    from magcal.apply import _WriteBehind
+    from magcal.output.apply import _WriteBehind
 
     done = []
     behind = _WriteBehind(depth=2)

@@ -12,10 +12,11 @@ import csv
 import numpy as np
 import pytest
 
-from magcal import conventions, io
-from magcal.errors import CalibrationError
-from magcal.pipeline import calibrate
-from magcal.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.core import conventions
+from magcal.core.errors import CalibrationError
+from magcal.data import io
+from magcal.data.simulation import chi2017_truth, simulate, simulate_timeseries
+from magcal.fitting.pipeline import calibrate
 
 CHI_SEEDS = range(1000, 1024)
 SIGMA = 3.0
@@ -181,8 +182,8 @@ def test_refusals(kwargs, message):
 def test_degenerate_array_coverage_is_refused():
     from scipy.spatial.transform import Rotation
 
-    from magcal.dataset import Dataset
-    from magcal.simulation import true_fields
+    from magcal.data.dataset import Dataset
+    from magcal.data.simulation import true_fields
 
     truth = chi2017_truth()
     att = Rotation.from_euler("z", np.linspace(0, 2 * np.pi, 100, endpoint=False)[:, None])  # yaw only
@@ -195,7 +196,7 @@ def test_degenerate_array_coverage_is_refused():
 
 # ---------------------------------------------------------------------------------------------------------------
 # Files from an independent simulator: the seed's equations written out here, other error values, written with
-# the csv module (readings in uT, extra columns), read back through magcal.io.
+# the csv module (readings in uT, extra columns), read back through magcal.data.io.
 # ---------------------------------------------------------------------------------------------------------------
 
 IND_F_nT, IND_DEC, IND_INC = 47_500.0, 12.0, -38.0  # a southern-hemisphere site
@@ -303,7 +304,7 @@ def test_progress_is_reported():
 
 
 def test_search_methods_are_dispatched():
-    pytest.importorskip("magcal.search").search_calibrate  # noqa: B018 (the helper's module must provide it)
+    pytest.importorskip("magcal.fitting.search").search_calibrate  # noqa: B018 (the helper's module must provide it)
     truth = chi2017_truth()
     ds = simulate("chi2017", seed=10, n_samples=150).sensors([1]).replace(baseline_m=None)
     seen, fractions = [], []
@@ -318,7 +319,7 @@ def test_search_methods_are_dispatched():
 
 
 def test_adding_the_hidden_effect_brings_the_fit_to_the_floor():
-    from magcal.model import parse_effect
+    from magcal.model.terms import parse_effect
 
     effect = parse_effect("temperature_bias", 4)
     ds = simulate_timeseries("chi2017", n_samples=600, seed=12, perturbations=[effect.perturbation(20.0)])
@@ -334,8 +335,8 @@ def test_adding_the_hidden_effect_brings_the_fit_to_the_floor():
 
 def test_align_sensors_recovers_the_misalignment_from_a_given_step_one():
     """Step 2 alone, on the true C^-1 and b with every R reset to identity, finds the true rotations."""
-    from magcal.calibration import Calibration, SensorCalibration
-    from magcal.pipeline import align_sensors
+    from magcal.calibration.calibration import Calibration, SensorCalibration
+    from magcal.fitting.pipeline import align_sensors
 
     truth = chi2017_truth()
     ds = simulate(truth, seed=13)
@@ -352,7 +353,7 @@ def test_align_sensors_recovers_the_misalignment_from_a_given_step_one():
 def test_summary_carries_the_fitted_field_magnitude(tmp_path, total_nT, reference):
     """The field the calibration expects (nT): the given one, the column's, or the fitted F0 (the truth times
     det(C_1)^(1/3), the common gain total-field data cannot see); saved with the calibration."""
-    from magcal.calibration import Calibration
+    from magcal.calibration.calibration import Calibration
 
     truth = chi2017_truth()
     truth.total_nT = total_nT

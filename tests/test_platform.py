@@ -1,4 +1,4 @@
-"""magcal.platform: level-table alignment of every sensor into the platform frame (patent S5-S8)."""
+"""magcal.fitting.platform: level-table alignment of every sensor into the platform frame (patent S5-S8)."""
 
 import dataclasses
 import warnings
@@ -6,11 +6,11 @@ import warnings
 import numpy as np
 import pytest
 
-from magcal import platform as pf
-from magcal import simulation as sim
-from magcal.calibration import Calibration, SensorCalibration
-from magcal.dataset import DatasetError
-from magcal.errors import DataWarning
+from magcal.calibration.calibration import Calibration, SensorCalibration
+from magcal.core.errors import DataWarning
+from magcal.data import simulation as sim
+from magcal.data.dataset import DatasetError
+from magcal.fitting import platform as pf
 
 SIGMA = 3.0  # the seed's noise (Chi et al. 2017)
 
@@ -85,7 +85,7 @@ def test_the_bound_is_the_real_spread(truth):
 
 def test_full_procedure_with_a_scalar_calibration_first(truth):
     """S3-S4 (scalar calibration on free rotations) then S7-S8, with the intrinsic uncertainty propagated."""
-    from magcal.pipeline import calibrate
+    from magcal.fitting.pipeline import calibrate
 
     free = sim.simulate(truth, n_samples=200, noise_nT=SIGMA, seed=5)
     cal = calibrate(free).calibration
@@ -177,14 +177,14 @@ def test_a_group_not_turned_is_refused(truth):
 
 def test_wrong_sensor_count_is_refused(truth):
     ds = pf.simulate_level_table(truth, n_per_group=30, noise_nT=SIGMA, seed=17).sensors([0, 1])
-    from magcal.errors import MagcalError
+    from magcal.core.errors import MagcalError
 
     with pytest.raises(MagcalError, match="4 sensor"):
         pf.align(ds, true_calibration(truth))
 
 
 def test_saved_aligned_calibration_round_trips(tmp_path, truth):
-    from magcal.apply import load_calibration
+    from magcal.output.apply import load_calibration
 
     ds = pf.simulate_level_table(truth, n_per_group=60, noise_nT=SIGMA, seed=18)
     new, res = pf.align(ds, true_calibration(truth))

@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import io, plugins
-from magcal.calibration import Calibration
+from magcal.calibration.calibration import Calibration
 from magcal.cli import main
-from magcal.errors import MagcalError
-from magcal.model import EFFECTS
+from magcal.core.errors import MagcalError
+from magcal.data import io
+from magcal.model import plugins
+from magcal.model.terms import EFFECTS
 
 EXAMPLE = Path(__file__).with_name("user_effects_example.py")
 NAME = "pump_interference"
@@ -82,14 +83,14 @@ def test_loading_the_file_registers_the_effect():
     # the model builds it like a built-in one, by name and by NAME:S
     model = magcal.Model.from_names([NAME, "temperature_bias:2"], 4)
     assert model.effect_labels == [NAME, "temperature_bias:2"]
-    assert magcal.model.parse_effect(f"{NAME}:3", 4).sensor == 2
+    assert magcal.model.terms.parse_effect(f"{NAME}:3", 4).sensor == 2
     # loading it again (after an edit) replaces it: same name, new class, no clash with itself
     old = EFFECTS[NAME]
     assert plugins.load_effects_file(EXAMPLE) == [NAME] and EFFECTS[NAME] is not old
 
 
 def test_import_magcal_stays_light():
-    code = "import sys, magcal; print('magcal.plugins' in sys.modules, 'pump_interference' in magcal.EFFECTS)"
+    code = "import sys, magcal; print('magcal.model.plugins' in sys.modules, 'pump_interference' in magcal.EFFECTS)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
 
@@ -246,7 +247,7 @@ def test_catalogue_says_which_terms_carry_to_new_data(name, capsys):
 
 
 def test_an_effect_that_does_not_say_is_an_instrument_term(tmp_path):
-    """The default of magcal.model.Effect: a term describes the instrument unless its class says otherwise."""
+    """The default of magcal.model.terms.Effect: a term describes the instrument unless its class says otherwise."""
     path = write(tmp_path, "offset.py", HEADER + GOOD_CLASS.format(name="offset", stage="raw"))
     plugins.load_effects_file(path)
     assert plugins.describe_effect("offset")["transferable"] is True
@@ -281,7 +282,7 @@ HEADER = '''
     from dataclasses import dataclass
     from typing import ClassVar
     import numpy as np
-    from magcal.model import Effect, register
+    from magcal.model.terms import Effect, register
 '''
 
 BROKEN = {
@@ -415,7 +416,7 @@ def test_an_error_in_the_user_code_during_a_fit_names_the_file_and_line(tmp_path
 
 
 class FakeEntryPoint:
-    """What importlib.metadata returns for a package's ``[project.entry-points."magcal.effects"]`` line."""
+    """What importlib.metadata returns for a package's ``[project.entry-points."magcal.model.effects"]`` line."""
 
     def __init__(self, name, value, load, dist="pump-effects"):
         self.name, self.value, self.group, self._load = name, value, plugins.ENTRY_POINT_GROUP, load
@@ -468,7 +469,7 @@ def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, t
     assert any("clash" in m and "built-in" in m for m in messages)
     assert plugins.origin(NAME) == ("entry point", "pump = pump_effects_pkg:PumpInterference (pump-effects)")
     assert plugins.origin("coil_offset")[0] == "entry point"
-    assert EFFECTS["temperature_bias"].__module__ == "magcal.effects"
+    assert EFFECTS["temperature_bias"].__module__ == "magcal.model.effects"
     assert plugins.load_entry_points() == [] and len(calls) == 1  # once
 
     # the command line loads them at start (here already loaded) and lists where each came from

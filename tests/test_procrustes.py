@@ -5,9 +5,9 @@ import pytest
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
-from magcal.errors import CalibrationError
-from magcal.procrustes import procrustes_rotation, rotation_angle_deg
-from magcal.simulation import chi2017_truth, simulate
+from magcal.core.errors import CalibrationError
+from magcal.data.simulation import chi2017_truth, simulate
+from magcal.geometry.procrustes import procrustes_rotation, rotation_angle_deg
 
 
 def _field_vectors(n, seed, total_nT=50_000.0):

@@ -1,12 +1,12 @@
-"""magcal.quality: data quality read before fitting, checked on simulated data whose defects we set."""
+"""magcal.checks.quality: data quality read before fitting, checked on simulated data whose defects we set."""
 
 import json
 
 import numpy as np
 import pytest
 
-from magcal import quality
-from magcal.simulation import simulate, simulate_timeseries
+from magcal.checks import quality
+from magcal.data.simulation import simulate, simulate_timeseries
 
 
 def timeseries(n=1500, noise_nT=3.0, seed=2, **kw):

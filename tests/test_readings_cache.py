@@ -1,9 +1,9 @@
-"""magcal.readings_cache: computed once per readings array and key, the least recently used forgotten first."""
+"""magcal.core.readings_cache: computed once per readings array and key, the least recently used forgotten first."""
 
 import numpy as np
 import pytest
 
-from magcal.readings_cache import ReadingsCache
+from magcal.core.readings_cache import ReadingsCache
 
 
 def test_a_value_is_computed_once_per_array_and_key():

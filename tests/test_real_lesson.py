@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 import magcal
-from magcal.model import EFFECTS
-from magcal.validation import compare
+from magcal.fitting.validation import compare
+from magcal.model.terms import EFFECTS
 
 FOLDER = Path(__file__).resolve().parent.parent / "assets" / "lessons" / "real-qmc5883l"
 

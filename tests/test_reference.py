@@ -1,4 +1,4 @@
-"""magcal.reference: where the reference total field comes from, said in words."""
+"""magcal.checks.reference: where the reference total field comes from, said in words."""
 
 import argparse
 import datetime as dt
@@ -6,9 +6,9 @@ import datetime as dt
 import numpy as np
 import pytest
 
-from magcal import reference as ref
-from magcal.errors import DataWarning, MagcalError
-from magcal.simulation import simulate
+from magcal.checks import reference as ref
+from magcal.core.errors import DataWarning, MagcalError
+from magcal.data.simulation import simulate
 
 
 @pytest.fixture
@@ -144,7 +144,7 @@ def test_reference_check_goes_through_the_fitted_shape():
 
     from scipy.spatial.transform import Rotation
 
-    from magcal.dataset import Dataset
+    from magcal.data.dataset import Dataset
 
     rng = np.random.default_rng(3)
     b = Rotation.random(2000, random_state=rng).apply([0.0, 0.0, 23_000.0])

@@ -8,10 +8,11 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 import magcal
-from magcal import conventions, search
-from magcal.errors import MagcalError
-from magcal.io import read_csv
-from magcal.simulation import SensorErrors, ding2024_fluxgate_truth, ding2024_truth
+from magcal.core import conventions
+from magcal.core.errors import MagcalError
+from magcal.data.io import read_csv
+from magcal.data.simulation import SensorErrors, ding2024_fluxgate_truth, ding2024_truth
+from magcal.fitting import search
 
 FAST = {"pop_size": 30, "max_iter": 400}
 
@@ -181,7 +182,7 @@ def test_objective_matches_eq17_for_a_population():
 def test_search_calibrate_returns_a_calibration(small_problem):
     truth, ds, rms_min, u_min, b_min = small_problem
     cal = search.search_calibrate(ds, "ipso", seed=2, **FAST)
-    assert isinstance(cal, magcal.calibration.Calibration)
+    assert isinstance(cal, magcal.calibration.calibration.Calibration)
     assert cal.reference_total_nT == truth.total_nT and not cal.reference_fitted
     rms = np.sqrt(np.mean((cal.total_field(ds)[0] - truth.total_nT) ** 2))
     assert rms <= rms_min * 1.001
@@ -231,7 +232,7 @@ def test_rotation_about_one_axis_is_refused():
 
 
 def test_array_sensors_are_searched_then_aligned():
-    truth = magcal.simulation.chi2017_truth()
+    truth = magcal.data.simulation.chi2017_truth()
     ds = magcal.simulate(truth, n_samples=120, seed=4)
     cal = search.search_calibrate(ds, "ipso", seed=0, **FAST)
     for fitted, s in zip(cal.sensors, truth.sensors):

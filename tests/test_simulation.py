@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from magcal import conventions
-from magcal.simulation import PRESETS, chi2017_truth, noise_sigma, simulate, simulate_timeseries, true_fields
+from magcal.core import conventions
+from magcal.data.simulation import PRESETS, chi2017_truth, noise_sigma, simulate, simulate_timeseries, true_fields
 
 
 def test_seeded_and_reproducible():

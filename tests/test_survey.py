@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import io as mio
-from magcal.apply import apply_file
+from magcal.data import io as mio
+from magcal.output.apply import apply_file
 
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
@@ -31,7 +31,7 @@ def _table(path):
 
 
 def test_partitions_split_csv_by_lines_and_parquet_by_row_groups(surveys):
-    from magcal.survey import partitions
+    from magcal.output.survey import partitions
 
     d, cal, a, b = surveys
     parts = partitions([a, b], partition_rows=120)
@@ -45,7 +45,7 @@ def test_partitions_split_csv_by_lines_and_parquet_by_row_groups(surveys):
 @pytest.mark.slow
 def test_a_local_cluster_gives_the_single_process_numbers(surveys, tmp_path):
     """dask.distributed's LocalCluster (two worker processes) against apply_file on each file."""
-    from magcal.survey import apply_partitioned
+    from magcal.output.survey import apply_partitioned
 
     d, cal, a, b = surveys
     out = tmp_path / "parts"
@@ -84,7 +84,7 @@ def test_the_command_line_corrects_several_files_in_parallel(surveys, tmp_path, 
 
 
 def test_an_unreachable_scheduler_is_said_in_bounded_time(surveys, tmp_path):
-    from magcal.survey import CONNECT_TIMEOUT_S, apply_partitioned
+    from magcal.output.survey import CONNECT_TIMEOUT_S, apply_partitioned
 
     d, cal, a, b = surveys
     t0 = time.monotonic()
@@ -94,7 +94,7 @@ def test_an_unreachable_scheduler_is_said_in_bounded_time(surveys, tmp_path):
 
 
 def test_the_output_directory_must_be_new_or_empty(surveys, tmp_path):
-    from magcal.survey import apply_partitioned
+    from magcal.output.survey import apply_partitioned
 
     d, cal, a, b = surveys
     (tmp_path / "full").mkdir()
@@ -104,7 +104,7 @@ def test_the_output_directory_must_be_new_or_empty(surveys, tmp_path):
 
 
 def test_a_codec_with_csv_partitions_is_refused_before_any_work(surveys, tmp_path):
-    from magcal.survey import apply_partitioned
+    from magcal.output.survey import apply_partitioned
 
     d, cal, a, b = surveys
     with pytest.raises(magcal.MagcalError, match="for Parquet partitions"):

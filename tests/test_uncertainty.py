@@ -1,4 +1,4 @@
-"""The calibration's error bars carried to the corrected field and the tensor (magcal.uncertainty), checked against
+"""The calibration's error bars carried to the corrected field and the tensor (magcal.calibration.uncertainty), checked against
 Monte Carlo draws of the fitted parameters from their covariance."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import conventions
+from magcal.core import conventions
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +70,8 @@ def test_the_covariance_travels_in_the_json_and_old_files_still_load(request, tm
 
 @pytest.mark.parametrize("out_name", ["out.csv", "out.parquet"])
 def test_apply_writes_the_error_bars(fitted, tmp_path, out_name):
-    from magcal import io as mio
     from magcal.cli import main
+    from magcal.data import io as mio
 
     result, new = fitted
     result.calibration.save(tmp_path / "cal.json")
@@ -87,8 +87,8 @@ def test_apply_writes_the_error_bars(fitted, tmp_path, out_name):
 
 
 def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
-    from magcal import io as mio
-    from magcal.apply import apply_file
+    from magcal.data import io as mio
+    from magcal.output.apply import apply_file
 
     result, new = fitted
     doc = result.calibration.to_dict()
@@ -102,10 +102,11 @@ def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
 def fitted_with_effects():
     """Four sensors along a time series with a temperature bias (raw stage) and a sensor timing skew (vector
     stage) hidden and fitted; new data from the same instrument."""
-    import magcal.effects as fx
-    from magcal.simulation import chi2017_truth, simulate_timeseries
+    import magcal.model.effects as fx
+    from magcal.model import perturbations
+    from magcal.data.simulation import chi2017_truth, simulate_timeseries
 
-    hidden = [fx.parse_hidden("temperature_bias=2", 4), fx.parse_hidden("sensor_timing_skew:3", 4)]
+    hidden = [perturbations.parse_hidden("temperature_bias=2", 4), perturbations.parse_hidden("sensor_timing_skew:3", 4)]
     ds = simulate_timeseries(chi2017_truth(4), n_samples=400, noise_nT=3.0, seed=5, perturbations=hidden)
     result = magcal.calibrate(ds, effects=["temperature_bias", "sensor_timing_skew:3"])
     new = simulate_timeseries(chi2017_truth(4), n_samples=80, noise_nT=3.0, seed=9, perturbations=hidden)
@@ -135,7 +136,7 @@ def test_the_effects_parameters_are_carried_with_their_correlations(fitted_with_
 def test_theta_covariance_is_the_whole_vectors_finite_difference(request, which):
     """base_covariance differentiates each sensor's theta by its own base columns only; differentiating theta of
     every sensor by every parameter gives the same covariance (the other columns do not move a sensor)."""
-    from magcal.uncertainty import THETA_PER_SENSOR, base_covariance, theta_of
+    from magcal.calibration.uncertainty import THETA_PER_SENSOR, base_covariance, theta_of
 
     result, _ = request.getfixturevalue(which)
     fit = result.fit

@@ -1,12 +1,12 @@
-"""magcal.validation: time splits, held-out scores, and whether an effect's gain is real (simulated truth)."""
+"""magcal.fitting.validation: time splits, held-out scores, and whether an effect's gain is real (simulated truth)."""
 
 import numpy as np
 import pytest
 
-from magcal import validation as val
-from magcal.errors import MagcalError
-from magcal.model import EFFECTS, Model
-from magcal.simulation import chi2017_truth, simulate_timeseries
+from magcal.core.errors import MagcalError
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
+from magcal.fitting import validation as val
+from magcal.model.terms import EFFECTS, Model
 
 NOISE_NT = 2.0
 

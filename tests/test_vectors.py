@@ -1,4 +1,4 @@
-"""Row-wise vector operations (magcal.vectors) against numpy's general forms."""
+"""Row-wise vector operations (magcal.core.vectors) against numpy's general forms."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from magcal.vectors import basis_times, cross_rows, row_norm, unit_rows
+from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 
@@ -47,7 +47,7 @@ def test_basis_times_is_numpys_batched_matmul(n, q):
 
 @pytest.mark.parametrize("axes", [[0, 1, 2], [0, 1], [2, 0, 1, 0, 1, 2]])
 def test_basis_times_of_a_single_axis_basis_is_the_dense_product(axes):
-    from magcal.model import SingleAxisBasis
+    from magcal.model.terms import SingleAxisBasis
 
     rng = np.random.default_rng(len(axes))
     basis = SingleAxisBasis(rng.normal(size=(50, len(axes))), axes)
@@ -63,7 +63,7 @@ def test_a_copied_single_axis_basis_keeps_its_axes(axes):
     the fitter still projects it by products, and equals the original; a view copies to a plain array."""
     import copy
 
-    from magcal.model import SingleAxisBasis
+    from magcal.model.terms import SingleAxisBasis
 
     basis = SingleAxisBasis(np.random.default_rng(1).normal(size=(20, len(axes))), axes)
     clone = copy.deepcopy(basis)

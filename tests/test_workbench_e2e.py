@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import io as mio
+from magcal.data import io as mio
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking"]
@@ -55,8 +55,8 @@ def browser():
 
 @pytest.fixture
 def workbench(tmp_path):
-    from workbench.app import Workbench
-    from workbench.session import SessionStore
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.session import SessionStore
 
     ds = magcal.simulate_timeseries("chi2017", n_samples=240, seed=3, rate_hz=1.0)
     path = tmp_path / "e2e.csv"
@@ -127,7 +127,7 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
     # aim at sensor 1's raw cloud: project its shown points with the browser's own camera
     client = next(iter(workbench.server.get_clients().values()))
     cam = client.camera
-    from workbench.scene import project_points
+    from magcal_workbench.scene import project_points
 
     d = workbench.scene_view.displayed
     uv, front = project_points(d.positions, cam.wxyz, cam.position, cam.fov, cam.aspect)
@@ -193,7 +193,7 @@ def _no_flag(page) -> bool:
 
 @pytest.fixture
 def small_workbench(tmp_path):
-    from workbench.app import Workbench
+    from magcal_workbench.app import Workbench
 
     ds = magcal.simulate("chi2017", n_samples=40, seed=1)
     path = tmp_path / "small.csv"

@@ -17,7 +17,7 @@ pytest.importorskip("viser")
 websockets_client = pytest.importorskip("websockets.asyncio.client")
 from websockets.exceptions import InvalidStatus  # noqa: E402
 
-from workbench import guard  # noqa: E402
+from magcal_workbench import guard  # noqa: E402
 
 TIMEOUT_S = 10.0
 

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import io as mio
-from magcal.errors import MagcalError
+from magcal.core.errors import MagcalError
+from magcal.data import io as mio
 
 pytest.importorskip("viser")
 
-from workbench.app import clean_upload_name  # noqa: E402
-from workbench.session import SessionStore  # noqa: E402
-from workbench.state import Selection, SessionState  # noqa: E402
+from magcal_workbench.app import clean_upload_name  # noqa: E402
+from magcal_workbench.session import SessionStore  # noqa: E402
+from magcal_workbench.state import Selection, SessionState  # noqa: E402
 
 WAIT_S = 60
 BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default
@@ -143,7 +143,7 @@ def racy():
 
 @pytest.mark.parametrize("through", ["selection", "controller"])
 def test_eight_threads_of_disjoint_rejects_lose_nothing(racy, through):
-    from workbench.controller import Controller
+    from magcal_workbench.controller import Controller
 
     n, per_call, calls = 32_000, 10, 400
     ds = magcal.simulate("chi2017", n_samples=n, seed=1)
@@ -177,7 +177,7 @@ def test_the_selection_and_its_state_share_one_lock():
 
 
 def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, monkeypatch):
-    fit_module = sys.modules["magcal.fit"]  # (magcal.fit is also the name of the API's function)
+    fit_module = sys.modules["magcal.fitting.fitter"]  # (magcal.fitting.fitter is also the name of the API's function)
 
     wb = bench()
     ctrl = wb.ctrl
@@ -294,7 +294,7 @@ def test_a_large_file_is_drawn_decimated_and_fitted_whole(bench):
 
 @pytest.mark.parametrize("n, limit", [(100, 500), (10_000, 500), (1_000_000, 20_000)])
 def test_level_of_detail_keeps_the_budget(n, limit):
-    from workbench.scene import level_of_detail
+    from magcal_workbench.scene import level_of_detail
 
     r = np.zeros((2, n))
     r[1, n // 3] = 50.0
@@ -380,11 +380,11 @@ def test_the_workbench_refuses_a_foreign_origin(bench):
 
 
 def test_the_command_line_prints_an_ipv6_url():
-    from workbench.app import build_parser
+    from magcal_workbench.app import build_parser
 
     args = build_parser().parse_args(["--host", "::1", "--max-upload-mb", "5", "--max-points", "1000"])
     assert args.max_upload_mb == 5 and args.max_points == 1000
-    from workbench.guard import page_url
+    from magcal_workbench.guard import page_url
 
     assert page_url(args.host, 8080) == "http://[::1]:8080"
 

@@ -11,10 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_workbench_e2e import browser  # noqa: F401  (the fixture: real headless Chromium)
 
 import magcal
-from magcal.coverage import direction_map, fibonacci_sphere, live_sufficient
-from test_workbench_e2e import browser  # noqa: F401  (the fixture: real headless Chromium)
+from magcal.checks.coverage import direction_map, live_sufficient
+from magcal.geometry.sphere import fibonacci_sphere
 
 LESSON = Path(__file__).resolve().parent.parent / "assets" / "lessons" / "warm-sensor" / "data.csv"
 
@@ -82,7 +83,7 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
     rec = live.stop()
     assert magcal.read_csv(rec).n_samples == n
     # Stop opens the recording (the page's button does this in a job): the engine steps work on it
-    from workbench.controller import load_dataset
+    from magcal_workbench.controller import load_dataset
 
     ds, _ = load_dataset(rec, rec.name)
     wb.load(ds, rec.read_bytes(), rec.name, resume=False)
@@ -97,7 +98,7 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
 
 
 def test_a_page_beyond_this_machine_may_start_only_a_simulated_preset():
-    from workbench.live import check_page_source
+    from magcal_workbench.live import check_page_source
 
     assert check_page_source("sim://chi2017?rate=50", local=False) == "sim://chi2017?rate=50"
     for url in ("serial:///dev/ttyUSB0", "udp://0.0.0.0:14550", f"sim://{LESSON}"):

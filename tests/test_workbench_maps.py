@@ -6,19 +6,17 @@ surface of the true candidate matches it, and after Add-and-refit the change sur
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
+from test_workbench_e2e import _open, browser  # noqa: F401  (the fixture: real headless Chromium)
 
 from magcal.diagnosis import pattern_correlation
-from test_workbench_e2e import browser, _open  # noqa: F401  (the fixture: real headless Chromium)
 
 
 @pytest.fixture
 def bent(bench):
-    from workbench.controller import load_dataset
-    from workbench.lessons import get_lesson
+    from magcal_workbench.controller import load_dataset
+    from magcal_workbench.lessons import get_lesson
 
     lesson = get_lesson("bent-response")
     ds, _ = load_dataset(lesson.data_path)

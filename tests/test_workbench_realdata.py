@@ -1,10 +1,10 @@
 """The workbench shows what issue 10 adds to the engine, driven through the page's handles on a real (browserless)
 viser server, on simulated data whose truth the tests set:
 
-- the Quality tab lists :func:`magcal.quality.assess` findings, warnings marked, each with what it does to the fit;
+- the Quality tab lists :func:`magcal.checks.quality.assess` findings, warnings marked, each with what it does to the fit;
 - the noise behind the floors says how it was found, and a noise the user gives sets the floor and is saved with
   the session;
-- every maximum-likelihood step gets a held-out RMS (:func:`magcal.validation.validate`, blocks) beside its
+- every maximum-likelihood step gets a held-out RMS (:func:`magcal.fitting.validation.validate`, blocks) beside its
   in-sample RMS, and a hidden effect's held-out figure falls once it is added;
 - the Model tab marks each term instrument or record-only, and the corrected CSV names the record-only terms it
   applied;
@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 import magcal
-from magcal import conventions
-from magcal import io as mio
-from magcal.model import EFFECTS
+from magcal.core import conventions
+from magcal.data import io as mio
+from magcal.model.terms import EFFECTS
 
 SIGMA = 3.0  # the chi2017 preset's noise per axis, nT
 
@@ -91,7 +91,7 @@ def test_a_given_noise_shows_as_given_and_sets_the_floor(bench, tmp_path, how):
 
 @pytest.mark.parametrize("value", [-1.0, float("nan"), 1e9])
 def test_a_noise_the_page_could_not_offer_is_refused(bench, value):
-    from magcal.errors import MagcalError
+    from magcal.core.errors import MagcalError
 
     wb = bench(_series(), store=False)
     wb.panels.noise_input._impl.value = value  # a browser may send any value
@@ -142,7 +142,7 @@ def test_a_hidden_effect_held_out_figure_falls_after_add(bench, warm_data):
 def test_candidates_that_do_not_hold_are_marked_and_may_still_be_added(bench, warm_data):
     """Rendering of the engine's held-out figures: a candidate whose gain does not hold is marked, with its
     figures, and Add stays enabled for it (the user may try it)."""
-    from workbench.panels import candidate_evidence_markdown, candidates_markdown
+    from magcal_workbench.panels import candidate_evidence_markdown, candidates_markdown
 
     doc = {"verdict": "unexplained", "rms_nT": 10.0, "noise_nT": 3.0, "floor_nT": 2.9, "candidates": [
         {"label": "bias_drift", "delta_bic": -40.0, "rms_after_nT": 9.0, "refitted": True,
@@ -247,7 +247,7 @@ PUMP = "pump_interference"  # declared transferable = False in the example file
 
 
 def test_a_user_effect_is_marked_by_its_own_transferable_flag(bench, clean_catalogue):
-    from magcal import plugins
+    from magcal.model import plugins
 
     plugins.load_effects_file(EXAMPLE)
     pump = EFFECTS[PUMP]().perturbation(4.0, 1)  # 4 nT at 1.3 Hz in sensor 2, as tests/test_plugins.py hides it
@@ -267,7 +267,7 @@ def test_a_user_effect_is_marked_by_its_own_transferable_flag(bench, clean_catal
 
 
 def test_a_failed_held_out_check_keeps_the_fit_and_says_why(bench, monkeypatch):
-    from magcal import validation
+    from magcal.fitting import validation
 
     def broken(*args, **kwargs):
         raise RuntimeError("no split today")

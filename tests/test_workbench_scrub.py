@@ -10,8 +10,7 @@ import time
 
 import numpy as np
 import pytest
-
-from test_workbench_e2e import browser, _open  # noqa: F401  (the fixture: real headless Chromium)
+from test_workbench_e2e import _open, browser  # noqa: F401  (the fixture: real headless Chromium)
 
 BENCH_SAMPLES = 300  # 2 Hz: 150 s
 
@@ -87,7 +86,7 @@ def test_a_box_selection_takes_only_what_the_window_shows(bench):
     wb.panels.window_start.value = 0.0
     wb.panels.window_width.value = 20.0
     wb.panels.window_on.value = True
-    from workbench.scene import camera_pose
+    from magcal_workbench.scene import camera_pose
 
     pos, look = camera_pose(4)
     # the default camera: looking along +y, z up (camera axes x right, y down, z forward); the whole screen
@@ -124,7 +123,7 @@ def test_the_window_moves_and_plays_in_the_page(browser, bench):
 
 
 def test_full_size_evidence_shows_the_same_data_and_downloads(bench):
-    from workbench.plots import evidence_panels
+    from magcal_workbench.plots import evidence_panels
 
     wb = bench()
     with pytest.raises(Exception, match="fit first"):
@@ -179,7 +178,7 @@ def test_full_size_evidence_after_a_diagnosis(bench):
 @pytest.mark.parametrize("limit, text", [(2310.4, "2,310"), (11.2, "11.2"), (4.5, "4.5"), (0.0123, "0.012"),
                                          (2.5e6, "2,500 uT")])
 def test_the_legend_prints_numbers_a_person_reads(limit, text):
-    from workbench.scene import legend_html
+    from magcal_workbench.scene import legend_html
 
     html = legend_html(limit)
     assert f"-{text}<" in html and f"+{text}<" in html and "e+" not in html
@@ -191,7 +190,7 @@ def test_the_default_camera_frames_everything_left_of_the_panel(n_groups, aspect
     """Every corner of the scene's bounds projects inside the part of the canvas the panel leaves free."""
     from scipy.spatial.transform import Rotation
 
-    from workbench.scene import camera_pose, project_points, scene_bounds
+    from magcal_workbench.scene import camera_pose, project_points, scene_bounds
 
     fov = np.radians(75.0)
     pos, look = camera_pose(n_groups, fov, aspect, panel_fraction=0.25)
@@ -220,9 +219,9 @@ def test_the_two_effect_lessons_scrubber_step_shows_the_bias_step(bench):
     direction pattern ``db . u`` with one sign in a window before ~90 s and the other sign after it (its colours
     flip), while the other sensors' residuals follow no such pattern."""
     import magcal
-    from magcal import io as mio
+    from magcal.data import io as mio
     from magcal.diagnosis.maps import corrected_directions
-    from workbench.lessons import get_lesson
+    from magcal_workbench.lessons import get_lesson
 
     lesson = get_lesson("two-culprits")
     assert "Time window" in lesson.guide() and "Play" in lesson.guide()

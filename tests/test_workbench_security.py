@@ -19,11 +19,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import magcal
-from magcal import io as mio
-from workbench.markup import ELLIPSIS, clean_text, safe_code, safe_text
-from workbench.session import SessionStore, check_session_name
-from workbench.sessionfile import (SessionError, SessionFileError, read_session_bytes, read_session_document)
-from workbench.state import SessionState, StepRecord
+from magcal.data import io as mio
+from magcal_workbench.markup import ELLIPSIS, clean_text, safe_code, safe_text
+from magcal_workbench.session import SessionStore, check_session_name
+from magcal_workbench.sessionfile import SessionError, SessionFileError, read_session_bytes, read_session_document
+from magcal_workbench.state import SessionState, StepRecord
 
 XSS = "<img src=x onerror=alert(1)>"
 
@@ -176,7 +176,7 @@ def test_a_user_effect_description_is_escaped(bench, tmp_path, clean_catalogue):
         from dataclasses import dataclass
         from typing import ClassVar
         import numpy as np
-        from magcal.model import Effect, register
+        from magcal.model.terms import Effect, register
 
         @register
         @dataclass
@@ -200,7 +200,7 @@ def test_a_user_effect_description_is_escaped(bench, tmp_path, clean_catalogue):
 
 
 def test_a_toast_is_plain_text_cut_to_length(bench):
-    from magcal.errors import MagcalError
+    from magcal.core.errors import MagcalError
 
     wb = bench(store=False)
     toasts = []
@@ -249,7 +249,7 @@ def test_reopen_refuses_a_name_outside_the_folder(bench, tmp_path):
 
 @pytest.mark.parametrize("stem", [".hidden", "..", "-x", "a b/c"])
 def test_session_ids_are_valid_names(stem):
-    from workbench.session import session_id
+    from magcal_workbench.session import session_id
 
     assert check_session_name(session_id(f"{stem}.csv", b"x")) == session_id(f"{stem}.csv", b"x")
 

@@ -7,16 +7,15 @@ ArduPilot ``.bin`` and PX4 ``.ulg`` logs written by the tests open by upload.
 
 from __future__ import annotations
 
-import io
 import time
 
 import numpy as np
 import pytest
+from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
+from test_workbench_e2e import _open, _upload_in_page, browser  # noqa: F401  (the fixture: real Chromium)
 
 import magcal
-from magcal import io as mio
-from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
-from test_workbench_e2e import browser, _open, _upload_in_page  # noqa: F401  (the fixture: real Chromium)
+from magcal.data import io as mio
 
 TRUTH_NOISE_nT = 3.0
 

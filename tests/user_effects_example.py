@@ -23,7 +23,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from magcal.model import Context, Effect, register
+from magcal.model.terms import Context, Effect, register
 
 HARMONIC_RATIO = 0.4  # simulator: amplitude of the second harmonic relative to the fundamental
 
@@ -86,7 +86,7 @@ class PumpInterference(Effect):
         return basis
 
     def perturbation(self, magnitude=None, sensor=None):
-        """A callable for :func:`magcal.simulation.simulate_timeseries` that adds the pump's field.
+        """A callable for :func:`magcal.data.simulation.simulate_timeseries` that adds the pump's field.
 
         Parameters
         ----------

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.io import write_csv
+from magcal.data.io import write_csv
 
 HERE = Path(__file__).resolve().parent
 RAW_DIR = HERE / "data" / "raw"
@@ -334,24 +334,24 @@ def convert_ab_mag_out(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
 
 # ---- flight-controller logs (PX4 ULog, ArduPilot DataFlash) ---------------------------------------------------
 #
-# Read with magcal's own log reader (magcal.logs: pyulog for .ulg, pymavlink for .bin; `pip install pyulog
+# Read with magcal's own log reader (magcal.data.logs: pyulog for .ulg, pymavlink for .bin; `pip install pyulog
 # pymavlink`), which gives the field in nT, the log's time in s, the vehicle's attitude as qw..qz and, for
 # ArduPilot, the raw field with the logged calibration (COMPASS_OFS*, motor offsets, DIA/ODI/SCALE) undone.
 # These are flights or bench logs, not calibration rotations: the attitudes cover part of the sphere at best.
 
 
 def _read_flight_log(raw_name: str, raw_dir: Path):
-    """A :class:`magcal.dataset.Dataset` from a raw log, with the reader's warnings collected as strings."""
+    """A :class:`magcal.data.dataset.Dataset` from a raw log, with the reader's warnings collected as strings."""
     import warnings
 
     try:
-        from magcal.logs import read_log
+        from magcal.data.logs import read_log
     except ImportError as exc:  # pragma: no cover - magcal without its log reader
-        raise SystemExit(f"this magcal has no magcal.logs reader for flight logs ({exc})") from exc
+        raise SystemExit(f"this magcal has no magcal.data.logs reader for flight logs ({exc})") from exc
     path = raw_dir / raw_name
     if not path.exists():
         raise FileNotFoundError(2, "no such file", str(path))
-    from magcal.errors import DataWarning
+    from magcal.core.errors import DataWarning
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
@@ -396,7 +396,7 @@ def _ardupilot_meta(path: str, what: str) -> dict:
         "licence": "none stated: local development only, do not redistribute",
         "sensor": f"ArduCopter compass 1 (HMC5883L-class on the Erle PXF / Erle-Brain board); {what}",
         "conversion": "MAG milligauss x 100 (the log stores whole milligauss: a 100 nT step); the logged calibration "
-                      "(OfsX..Z, motor offsets) undone by magcal.logs",
+                      "(OfsX..Z, motor offsets) undone by magcal.data.logs",
         "lsb_nT": "100",
         "time": "t = TimeMS / TimeUS of the MAG messages, s",
         "igrf_total_nT": "about 45000 (Vitoria-Gasteiz, Spain, where Erle Robotics flew; site assumed)",

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from magcal.checks.quality import assess
+from magcal.core.errors import MagcalError
+from magcal.data.io import read_csv
 from magcal.diagnosis import diagnose
 from magcal.diagnosis.statistics import sh_analysis
-from magcal.errors import MagcalError
-from magcal.io import read_csv
-from magcal.pipeline import calibrate
-from magcal.quality import assess
+from magcal.fitting.pipeline import calibrate
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"

@@ -1,13 +1,13 @@
 """The ``magcal`` command line: one module per subcommand.
 
 Each subcommand module defines ``register(subparsers)`` (adds its parser and sets ``func``). User errors are
-raised as :class:`magcal.errors.MagcalError` (or :class:`magcal.dataset.DatasetError`) and printed as one clear
+raised as :class:`magcal.core.errors.MagcalError` (or :class:`magcal.data.dataset.DatasetError`) and printed as one clear
 message with exit status 2, never as a traceback.
 
 Every subcommand takes ``--effects-file FILE.py`` (repeatable): a user's own effects (``docs/user-effects.md``),
 loaded before the command runs, so that ``--effects NAME``, the diagnosis, a calibration JSON naming the effect,
 ``apply`` and ``simulate --hidden NAME`` know them. Effects that installed packages declare in the entry-point
-group ``magcal.effects`` are loaded once at start (:func:`magcal.plugins.load_entry_points`; a failing one is a
+group ``magcal.effects`` are loaded once at start (:func:`magcal.model.plugins.load_entry_points`; a failing one is a
 warning). An exception raised later inside a user's effect code is reported as its file, line and error.
 """
 
@@ -16,6 +16,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+
+from magcal.core.errors import MagcalError
+from magcal.model import plugins
+from magcal.model.plugins import user_code_error
 
 #: Subcommand modules, in the order ``magcal --help`` lists them.
 SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects", "export")
@@ -33,7 +37,6 @@ def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
     import warnings
 
-    from .. import plugins
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -63,7 +66,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from ..errors import MagcalError
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -77,7 +79,6 @@ def main(argv=None) -> int:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug in a user's effect code: its file and line, not a traceback into magcal
-        from ..plugins import user_code_error
 
         message = user_code_error(exc)
         if message is None:

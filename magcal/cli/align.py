@@ -15,13 +15,16 @@ import json
 import sys
 import warnings
 
-from ..errors import CalibrationError, MagcalError
+from magcal.checks.reference import add_reference_arguments, reference_from_args
+from magcal.cli.calibrate import add_input_arguments, named_error, read_input
+from magcal.core.errors import CalibrationError, MagcalError
+from magcal.fitting.platform import align
+from magcal.model.plugins import check_calibration_effects
+from magcal.output.apply import load_calibration
 
 
 def register(subparsers):
     """Add the ``align`` subcommand."""
-    from ..reference import add_reference_arguments
-    from .calibrate import add_input_arguments
 
     parser = subparsers.add_parser(
         "align",
@@ -44,10 +47,6 @@ def register(subparsers):
 
 
 def run(args) -> int:
-    from ..apply import load_calibration
-    from ..platform import align
-    from ..reference import reference_from_args
-    from .calibrate import named_error, read_input
 
     if args.noise is not None and not args.noise > 0:
         raise MagcalError(f"--noise must be a positive number of nT, got {args.noise}")
@@ -57,7 +56,6 @@ def run(args) -> int:
         calibration = None
         ref_value, ref_text = None, None
         if args.cal:
-            from ..plugins import check_calibration_effects
 
             check_calibration_effects(args.cal)  # a user's effect in the file needs --effects-file
             calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)

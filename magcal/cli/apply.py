@@ -22,8 +22,11 @@ from __future__ import annotations
 import sys
 import warnings
 
-from ..errors import MagcalError
-from ..io import PARQUET_CODECS
+from magcal.core.errors import MagcalError
+from magcal.data.io import PARQUET_CODECS
+from magcal.model.plugins import check_calibration_effects
+from magcal.output.apply import apply_file, load_calibration
+from magcal.output.survey import PARTITION_ROWS, apply_partitioned
 
 
 def register(subparsers):
@@ -75,8 +78,6 @@ def register(subparsers):
 
 
 def run(args) -> int:
-    from ..apply import apply_file, load_calibration
-    from ..plugins import check_calibration_effects
 
     if args.chunk_rows < 1:
         raise MagcalError(f"--chunk-rows must be at least 1, got {args.chunk_rows}")
@@ -88,7 +89,6 @@ def run(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if parallel:
-            from ..survey import PARTITION_ROWS, apply_partitioned
 
             summary = apply_partitioned(calibration, args.data, args.output, fmt=args.format,
                                         workers=args.workers or 2, scheduler=args.scheduler,

@@ -10,11 +10,11 @@ Example::
     magcal calibrate field.csv --effects temperature_bias --noise 80   # held-out RMS beside the in-sample one
 
 With ``--effects`` the report and ``--json`` (``validation``) also give the held-out total-field RMS (blocks
-scheme of :mod:`magcal.validation`) of the base model and of the model with the effects, beside the in-sample
+scheme of :mod:`magcal.fitting.validation`) of the base model and of the model with the effects, beside the in-sample
 RMS, so that a gain that only fits this record shows; and, per effect, whether it is an instrument term (carried to
 new data) or record-only (applied only to this record).
 
-Before the fit the data's quality is assessed (:mod:`magcal.quality`: sample rate, gaps, stale readings,
+Before the fit the data's quality is assessed (:mod:`magcal.checks.quality`: sample rate, gaps, stale readings,
 quantization, clipping, static stretches, temperature): the report gets a "Data quality" section with the notable
 findings, ``--json`` gets all of them under ``quality`` and each warning also under ``warnings``.
 
@@ -29,7 +29,16 @@ import json
 import sys
 import warnings
 
-from ..errors import CalibrationError, MagcalError
+from magcal.calibration.report import calibration_json, text_report
+from magcal.checks.coverage import calibration_input_checks
+from magcal.checks.quality import assess, field_magnitude_finding
+from magcal.checks.reference import add_reference_arguments, reference_from_args
+from magcal.core.errors import CalibrationError, MagcalError
+from magcal.data import io
+from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
+from magcal.fitting.search import DEFAULTS
+from magcal.fitting.validation import validate_effects
+from magcal.model.terms import check_effect_names
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -61,8 +70,6 @@ def add_input_arguments(parser) -> None:
 
 def add_arguments(parser) -> None:
     """The options of ``magcal calibrate``."""
-    from ..pipeline import METHODS, SEARCH_METHODS
-    from ..reference import add_reference_arguments
 
     add_input_arguments(parser)
     add_reference_arguments(parser)
@@ -106,7 +113,6 @@ def checked_noise(args):
 
 def read_input(args):
     """Read the data file named by :func:`add_input_arguments` options; returns ``(dataset, warning texts)``."""
-    from .. import io
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -132,7 +138,6 @@ def effect_names(value) -> list:
 def checked_effect_names(args) -> list:
     """:func:`effect_names` of ``--effects``, refusing a name not in the catalogue with a message that says how to
     load a user's own effect (``--effects-file``)."""
-    from ..plugins import check_effect_names
 
     names = effect_names(getattr(args, "effects", None))
     check_effect_names(names, "--effects")
@@ -140,7 +145,7 @@ def checked_effect_names(args) -> list:
 
 
 def calibrate_options(args) -> dict:
-    """Keyword arguments of :func:`magcal.pipeline.calibrate` from the parsed options."""
+    """Keyword arguments of :func:`magcal.fitting.pipeline.calibrate` from the parsed options."""
     return {
         "method": args.method,
         "effects": checked_effect_names(args),
@@ -153,12 +158,7 @@ def calibrate_options(args) -> dict:
 
 
 def run(args) -> int:
-    from ..coverage import calibration_input_checks
-    from ..pipeline import calibrate
-    from ..quality import assess, field_magnitude_finding
-    from ..report import calibration_json, text_report
 
-    from ..reference import reference_from_args
 
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
@@ -220,9 +220,8 @@ def run(args) -> int:
 
 
 def _attach_validation(result, ds) -> list:
-    """Held-out RMS of the base model and of the model with the effects (:func:`magcal.validation.validate_effects`),
+    """Held-out RMS of the base model and of the model with the effects (:func:`magcal.fitting.validation.validate_effects`),
     set as ``result.validation`` for the report and the JSON; returns warnings (a record too short to split)."""
-    from ..validation import validate_effects
 
     try:
         result.validation = validate_effects(ds, result)
@@ -239,13 +238,11 @@ def _search_progress_bar(method, n_sensors):
     no fraction) advances the bar by one; the total is the iteration limit per sensor, so a search that stops
     early on its tolerance leaves the bar short of the end.
     """
-    from ..pipeline import SEARCH_METHODS
 
     if method not in SEARCH_METHODS or not sys.stderr.isatty():
         return None, None
     from tqdm import tqdm
 
-    from ..search import DEFAULTS
 
     bar = tqdm(total=n_sensors * (DEFAULTS[method]["max_iter"] + 1), desc=f"magcal calibrate ({method})", unit="it",
                file=sys.stderr, leave=False)

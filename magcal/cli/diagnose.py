@@ -15,7 +15,7 @@ checks), ``verdict``, ``warnings``, ``candidates`` (``effect``, ``sensor``, ``de
 ``held_out_rms_before_nT`` / ``_after_nT``, ``later_rms_before_nT`` / ``_after_nT``, ``holds``, ``evidence``, best
 first), ``validation`` (the held-out judgement: a candidate is recommended only if its gain holds on samples the
 fit did not see; ``--no-validate`` skips it), ``quality`` (every finding of
-:func:`magcal.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
+:func:`magcal.checks.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
 quality" section with the notable findings.
 """
 
@@ -26,7 +26,19 @@ import json
 import sys
 import warnings
 
-from ..errors import CalibrationError, MagcalError
+from magcal.checks.coverage import calibration_input_checks
+from magcal.checks.quality import assess, field_magnitude_finding
+from magcal.cli.calibrate import (
+    add_input_arguments,
+    add_noise_argument,
+    checked_effect_names,
+    checked_noise,
+    named_error,
+    read_input,
+)
+from magcal.core.errors import CalibrationError, MagcalError
+from magcal.diagnosis import diagnose
+from magcal.fitting.pipeline import calibrate
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -45,7 +57,6 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def add_arguments(parser) -> None:
     """The options of ``magcal diagnose``."""
-    from .calibrate import add_input_arguments
 
     add_input_arguments(parser)
     parser.add_argument("--effects", action="append", default=None, metavar="LIST",
@@ -63,23 +74,16 @@ def add_arguments(parser) -> None:
                         help="skip the held-out validation of the supported candidates (by default each is fitted on "
                              "alternating blocks in time and on the first part of the record, and recommended only "
                              "if its gain holds on the samples held out)")
-    from .calibrate import add_noise_argument
 
     add_noise_argument(parser)
 
 
 def run(args) -> int:
-    from ..coverage import calibration_input_checks
-    from ..diagnosis import diagnose
-    from ..pipeline import calibrate
-    from ..quality import assess, field_magnitude_finding
-    from .calibrate import checked_effect_names, named_error, read_input
 
     if args.reference is not None and not args.reference > 0:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
-    from .calibrate import checked_noise
 
     checked_noise(args)
     names = checked_effect_names(args)

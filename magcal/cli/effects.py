@@ -21,7 +21,9 @@ import json
 import sys
 import textwrap
 
-from ..errors import MagcalError
+from magcal.core.errors import MagcalError
+from magcal.model.plugins import catalogue, describe_effect
+from magcal.model.terms import EFFECTS, unknown_effect_message
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -85,12 +87,9 @@ def _entry_text(d, full=False) -> str:
 
 
 def run(args) -> int:
-    from ..plugins import catalogue, describe_effect
-    from ..model import EFFECTS
 
     if args.name is not None:
         if args.name not in EFFECTS:
-            from ..plugins import unknown_effect_message
 
             raise MagcalError(unknown_effect_message(args.name))
         entries = [describe_effect(args.name)]

@@ -14,10 +14,15 @@ from __future__ import annotations
 
 import sys
 
+from magcal.core.errors import MagcalError
+from magcal.data.io import atomic_write
+from magcal.model.plugins import check_calibration_effects
+from magcal.output.apply import load_calibration
+from magcal.output.export import FORMATS, export_calibration
+
 
 def register(subparsers):
     """Add the ``export`` subcommand."""
-    from ..export import FORMATS
 
     parser = subparsers.add_parser(
         "export",
@@ -43,11 +48,6 @@ def register(subparsers):
 
 
 def run(args) -> int:
-    from ..apply import load_calibration
-    from ..errors import MagcalError
-    from ..export import export_calibration
-    from ..io import atomic_write
-    from ..plugins import check_calibration_effects
 
     if args.slot and not args.sensor:
         raise MagcalError("--slot needs --sensor (one --slot per --sensor)")

@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import MagcalError
+from magcal.core.errors import MagcalError
+from magcal.data import io
+from magcal.data.simulation import PRESETS, simulate, simulate_timeseries
+from magcal.model.perturbations import parse_hidden
+from magcal.model.plugins import reserved_names
+from magcal.model.terms import check_effect_names
 
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``simulate`` subcommand."""
-    from ..simulation import PRESETS
 
     presets = "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items())
     parser = subparsers.add_parser(
@@ -51,8 +55,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from .. import io
-    from ..simulation import PRESETS, simulate, simulate_timeseries
 
     if args.preset not in PRESETS:
         raise MagcalError(f"unknown preset {args.preset!r}; known presets: {', '.join(sorted(PRESETS))}")
@@ -63,8 +65,6 @@ def run(args) -> int:
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
     hidden = []
     if getattr(args, "hidden", None):
-        from ..perturbations import parse_hidden
-        from ..plugins import check_effect_names, reserved_names
 
         heads = [spec.partition("=")[0] for spec in args.hidden]
         check_effect_names([h for h in heads if h.partition(":")[0].strip() not in reserved_names()], "--hidden")

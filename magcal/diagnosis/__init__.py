@@ -31,7 +31,7 @@ Information criterion
     found by a scan counts as one more parameter.
 
 Modules
-    :mod:`.statistics` (tests and transforms of one residual series), :mod:`magcal.noise` (the noise estimate),
+    :mod:`.statistics` (tests and transforms of one residual series), :mod:`magcal.checks.noise` (the noise estimate),
     :mod:`.scores` (candidates, score tests, refits), :mod:`.structure` (significant structure left),
     :mod:`.evidence` (evidence lines and plot data), :mod:`.verdict` (:class:`Diagnosis` and :func:`diagnose`).
     Everything is importable from :mod:`magcal.diagnosis` itself.
@@ -39,18 +39,30 @@ Modules
 
 from __future__ import annotations
 
-from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
-from .evidence import SIGNATURES
-from .maps import (
-    DirectionPattern, candidate_change, candidate_patterns, direction_pattern, pattern_correlation, residual_patterns,
+from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
+from magcal.diagnosis.evidence import SIGNATURES
+from magcal.diagnosis.maps import (
+    DirectionPattern,
+    candidate_change,
+    candidate_patterns,
+    direction_pattern,
+    pattern_correlation,
+    residual_patterns,
 )
-from .scores import Candidate, _candidate_effects, _grams, effective_residual_count
-from .statistics import (
-    SH_DEGREE, SH_MAX_SAMPLES, autocorrelation, cusum_test, durbin_watson, ljung_box, real_sph_harm, sh_analysis,
+from magcal.diagnosis.scores import Candidate, _candidate_effects, _grams, effective_residual_count
+from magcal.diagnosis.statistics import (
+    SH_DEGREE,
+    SH_MAX_SAMPLES,
+    autocorrelation,
+    cusum_test,
+    durbin_watson,
+    ljung_box,
+    real_sph_harm,
+    sh_analysis,
     spectrum,
 )
-from .structure import GLITCH_MAX_FRACTION, GLITCH_SIGMA, STRUCTURE_MIN_FRACTION, STRUCTURE_P, Structure
-from .verdict import DELTA_BIC_THRESHOLD, VERDICTS, Diagnosis, diagnose
+from magcal.diagnosis.structure import GLITCH_MAX_FRACTION, GLITCH_SIGMA, STRUCTURE_MIN_FRACTION, STRUCTURE_P, Structure
+from magcal.diagnosis.verdict import DELTA_BIC_THRESHOLD, VERDICTS, Diagnosis, diagnose
 
 __all__ = [
     # the diagnosis
@@ -64,7 +76,7 @@ __all__ = [
     # residual patterns on the direction sphere
     "DirectionPattern", "direction_pattern", "residual_patterns", "candidate_change", "candidate_patterns",
     "pattern_correlation",
-    # noise (defined in magcal.noise, re-exported for compatibility)
+    # noise (defined in magcal.checks.noise, re-exported for compatibility)
     "NoiseEstimate", "estimate_noise", "is_smooth_sequence",
 ]
 

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import conventions
-from ..errors import MagcalError
-from ..vectors import unit_rows
+from magcal.calibration.calibration import corrected_fields
+from magcal.core import conventions
+from magcal.core.errors import MagcalError
+from magcal.core.vectors import unit_rows
+from magcal.model.terms import contexts
+
 
 def _fit_of(result):
     """A FitResult from a FitResult or a pipeline CalibrationResult."""
@@ -33,7 +36,6 @@ def _kept(dataset, fit):
 
 
 def _model_fields(kept, fit):
-    from ..calibration import contexts, corrected_fields
 
     cal = fit.calibration
     return corrected_fields(kept, cal.sensors, cal.model, cal.effect_values, contexts(kept, cal.baseline_m))

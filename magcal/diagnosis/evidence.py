@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from .. import conventions
-from ._fitted import _vector_rms_per_sensor
-from .scores import Candidate
-from .statistics import cusum_test, durbin_watson, ljung_box
+from magcal.core import conventions
+from magcal.diagnosis._fitted import _vector_rms_per_sensor
+from magcal.diagnosis.scores import Candidate
+from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box
+from magcal.model.effects import step_scan
 
 #: One-line signature of each effect, for the evidence column.
 SIGNATURES = {
@@ -83,7 +84,6 @@ def _time_evidence(kept, r, ordered):
         ev["cusum"] = {"index": np.array([c[0] for c in cs]), "statistic": np.array([c[1] for c in cs]),
                        "p": np.array([c[2] for c in cs]), "time": np.array([t[c[0]] for c in cs])}
         if kept.time_s is not None:
-            from ..effects import step_scan
 
             scans = [step_scan(kept.readings_nT[s]) for s in range(r.shape[0])]
             ev["step_scan"] = {"rss_drop_nT2": np.array([sc[1] for sc in scans]),

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .statistics import SH_DEGREE, SH_MAX_SAMPLES, real_sph_harm, sh_resolved_degrees
-from ..vectors import row_norm
+from magcal.core.vectors import row_norm
+from magcal.diagnosis.scores import _refit
+from magcal.diagnosis.statistics import SH_DEGREE, SH_MAX_SAMPLES, real_sph_harm, sh_resolved_degrees
 
 #: A vertex farther than this from every sample direction is not supported by the data (deg).
 SUPPORT_CAP_DEG = 30.0
@@ -151,7 +152,6 @@ def candidate_change(dataset, diagnosis, candidate) -> np.ndarray:
     """What adding ``candidate`` removes from the total-field residual: base residual minus the residual with the
     effect refitted, (n_sensors, N) nT, NaN for samples the fit left out. Uses the diagnosis's own refit when it
     made one, else refits (the same refit the diagnosis would make)."""
-    from .scores import _refit
 
     fit1 = candidate.fit if candidate.fit is not None else _refit(dataset, diagnosis.result, candidate)
     return np.asarray(diagnosis.result.residuals_nT, float) - np.asarray(fit1.residuals_nT, float)

@@ -8,7 +8,7 @@ channels are present -- per sensor where it applies and for all sensors together
 actual delta-BIC. The cross-products of the Jacobian are accumulated once (:func:`_grams`) and every candidate
 is tested against the base block by a Schur complement (:class:`_Projector`).
 
-Effects are read through the :class:`magcal.model.Effect` interface only (a user's own effect works); the
+Effects are read through the :class:`magcal.model.terms.Effect` interface only (a user's own effect works); the
 optional ``extra_dof`` class attribute (parameters found by a scan, such as a step time) defaults to 0.
 """
 
@@ -21,10 +21,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from ..errors import CalibrationError
-from ..model import EFFECTS, Model, term_label
-from ._fitted import _reference_override, _vector_rms
-from ._parallel import CHAIN, SHARED, in_parallel
+from magcal.core.errors import CalibrationError
+from magcal.core.jsonable import jsonable
+from magcal.diagnosis._fitted import _reference_override, _vector_rms
+from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
+from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem
+from magcal.fitting.fitter import fit as ml_fit
+from magcal.model.terms import EFFECTS, Model, block_label, term_label
 
 
 def _extra_dof(cls) -> int:
@@ -52,10 +55,10 @@ class Candidate:
     effect : str
         Catalogue name.
     sensor : int or None
-        0-based sensor (as :attr:`magcal.model.Effect.sensor`), or None for all sensors (or a shared /
+        0-based sensor (as :attr:`magcal.model.terms.Effect.sensor`), or None for all sensors (or a shared /
         single-sensor term). :meth:`to_dict` writes it 1-based, as the command line and the JSON count.
     label : str
-        ``name`` or ``name:S`` (S 1-based, :func:`magcal.model.term_label`).
+        ``name`` or ``name:S`` (S 1-based, :func:`magcal.model.terms.term_label`).
     n_params : int
         Parameters added (identifiable ones).
     lm : float
@@ -77,14 +80,14 @@ class Candidate:
         Fitted parameters (refit only).
     held_out_before_nT, held_out_after_nT : float or None
         Total-field RMS on held-out samples without and with the effect, ``blocks`` scheme (interpolation in
-        time; :mod:`magcal.validation`; for arrays the inter-sensor consistency is judged too, and quoted in the
+        time; :mod:`magcal.fitting.validation`; for arrays the inter-sensor consistency is judged too, and quoted in the
         evidence), nT; None when not validated.
     later_before_nT, later_after_nT : float or None
         The same on the last stretch of the record (``later`` scheme: what a calibration does for later data;
         for a record-only term, both models with the record's level on that stretch taken out,
-        :func:`magcal.validation.relevel`), nT.
+        :func:`magcal.fitting.validation.relevel`), nT.
     holds : bool or None
-        Whether the in-sample gain holds on held-out data (:func:`magcal.validation.judge`); None when not
+        Whether the in-sample gain holds on held-out data (:func:`magcal.fitting.validation.judge`); None when not
         validated (not supported in-sample, validation skipped or refused).
     """
 
@@ -195,7 +198,6 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
 
     The chunks bound the memory of the per-sample derivatives of every candidate's parameters.
     """
-    from ..fit import Problem
 
     n = kept.n_samples
     rows_per_sample = kept.n_sensors * (3 if kept.n_sensors > 1 else 1)
@@ -237,7 +239,6 @@ def _carried(previous, kept, fit, groups):
     if g is None or g.problem is None or g.mask is None or not np.array_equal(g.mask, fit.mask) \
             or g.reference != _reference_override(fit):
         return None
-    from ..calibration import block_label, jsonable
 
     before = {block_label(e, s): e for e, s in g.problem.model.instances()}
 
@@ -414,7 +415,6 @@ def _score_round(dataset, kept, fit, names=None, previous=None):
 
 
 def _labels_of(groups, n_sensors) -> frozenset:
-    from ..calibration import block_label
 
     return frozenset(block_label(e, s) for v in groups.values() for e in v for s in _sensors_of(e, n_sensors))
 
@@ -449,7 +449,6 @@ def _score_round_separately(kept, fit, groups):
 
 
 def _score_from_grams(kept, fit, groups, grams):
-    from ..calibration import block_label
 
     cand_labels = {block_label(e, s) for v in groups.values() for e in v
                    for s in ([None] if not e.per_sensor else [e.sensor] if e.sensor is not None
@@ -506,8 +505,6 @@ def _score_from_grams(kept, fit, groups, grams):
 def _refit(dataset, fit, candidate: Candidate):
     """Refit the model with the candidate's effect instances added, from the score test's predicted start
     (:meth:`_Projector.start`) when there is one; returns the FitResult."""
-    from ..fit import COMPARISON_COST_TOLERANCE
-    from ..fit import fit as ml_fit
 
     model = fit.model
     if candidate.sensor is None and len(candidate.instances) > 1 and not any(e.name == candidate.effect

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from ..noise import NoiseEstimate
-from ._fitted import _floor
-from .scores import _num
-from .statistics import SH_MAX_SAMPLES, durbin_watson, ljung_box, sh_analysis, spectrum
+from magcal.checks.noise import NoiseEstimate
+from magcal.diagnosis._fitted import _floor
+from magcal.diagnosis.scores import _num
+from magcal.diagnosis.statistics import SH_MAX_SAMPLES, durbin_watson, ljung_box, sh_analysis, spectrum
 
 #: Significance level of each structure test (before the Bonferroni factor over sensors and tests).
 STRUCTURE_P = 1e-4

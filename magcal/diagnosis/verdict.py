@@ -9,14 +9,14 @@ below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates ar
 
 Held-out judgement
     With ``validate=True`` (default) every supported candidate that is refitted is also fitted on part of the
-    record and scored on the rest (:mod:`magcal.validation`, warm-started from the refit): the ``blocks`` scheme
+    record and scored on the rest (:mod:`magcal.fitting.validation`, warm-started from the refit): the ``blocks`` scheme
     (alternating blocks in time, every term interpolated) and the ``later`` scheme (the last quarter of the
     record; record-only terms held at their fitted average). A candidate is *recommended* -- it may enter
     ``explained_by``, the ``missing_effect`` verdict and the advice -- only if its held-out RMS falls by at least
-    :data:`magcal.validation.MIN_RELATIVE_GAIN` on ``blocks`` and does not rise on ``later`` by more than
-    :data:`magcal.validation.LATER_TOLERANCE_SE` standard errors (:func:`magcal.validation.judge`). A candidate
+    :data:`magcal.fitting.validation.MIN_RELATIVE_GAIN` on ``blocks`` and does not rise on ``later`` by more than
+    :data:`magcal.fitting.validation.LATER_TOLERANCE_SE` standard errors (:func:`magcal.fitting.validation.judge`). A candidate
     whose in-sample gain does not hold is ranked below those that hold and its evidence says so. A record too
-    short to split (:func:`magcal.validation.split_problem`) is judged in-sample only, with a note.
+    short to split (:func:`magcal.fitting.validation.split_problem`) is judged in-sample only, with a note.
 """
 
 from __future__ import annotations
@@ -26,18 +26,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..calibration import jsonable
-from .. import validation as _validation
-from ..errors import CalibrationError, MagcalError
-from ..noise import NoiseEstimate, estimate_noise, is_smooth_sequence
-from ._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
-from ._parallel import CHAIN, FILLER, SHARED, Pool
-from .evidence import (
-    _effect_extra, _evidence_line, _sensor_evidence, _temperature_evidence, _time_evidence,
+from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
+from magcal.checks.quality import EARTH_FIELD_RANGE_nT
+from magcal.core.errors import CalibrationError, MagcalError
+from magcal.core.jsonable import jsonable
+from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
+from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
+from magcal.diagnosis.evidence import (
+    _effect_extra,
+    _evidence_line,
+    _sensor_evidence,
+    _temperature_evidence,
+    _time_evidence,
 )
-from .scores import Candidate, _confirm, _num, _score_round
-from .statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
-from .structure import _describe, _structure_tests
+from magcal.diagnosis.scores import Candidate, _confirm, _num, _score_round
+from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
+from magcal.diagnosis.structure import _describe, _structure_tests
+from magcal.fitting import validation as _validation
+from magcal.fitting.pipeline import calibrate
+from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, coverage
 
 #: Verdicts of :func:`diagnose`.
 VERDICTS = ("adequate", "missing_effect", "unexplained")
@@ -239,7 +246,7 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
 
 
 class _HeldOut:
-    """Held-out judgement of refitted candidates (:mod:`magcal.validation`) on the samples a fit used.
+    """Held-out judgement of refitted candidates (:mod:`magcal.fitting.validation`) on the samples a fit used.
 
     The base model of each round is validated once per scheme and reused for every candidate of that round;
     every held-out fit is warm-started from the full-record fit of the same model.
@@ -323,12 +330,10 @@ def _undetermined(fit, directions) -> str | None:
 
     An effect can only be judged against a base calibration the data fix. Two signs that they do not: the
     directions cover too little of the sphere (thinnest direction spread below
-    :data:`magcal.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and a fitted field magnitude
+    :data:`magcal.geometry.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and a fitted field magnitude
     outside the geomagnetic range (the scale and the field trade off along the directions not seen). Then
     adding a term mostly moves the poorly fixed base parameters, and no candidate is recommended.
     """
-    from ..ellipsoid import WEAK_DIRECTION_SPREAD, coverage
-    from ..quality import EARTH_FIELD_RANGE_nT
 
     reasons = []
     for s, u in enumerate(directions):
@@ -347,7 +352,6 @@ def _undetermined(fit, directions) -> str | None:
 def _changes_the_field(base_fit, c) -> str | None:
     """Why a candidate's refit is not a finding because it moves the fitted field magnitude out of the Earth's
     range or by more than 5 % (the term trades off with the base parameters the data barely fix), or None."""
-    from ..quality import EARTH_FIELD_RANGE_nT
 
     if c.fit is None or base_fit.reference_kind != "fitted":
         return None
@@ -428,7 +432,7 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     dataset : Dataset
     result : FitResult or CalibrationResult, optional
         The fitted model to diagnose. Without it the model (``model``, or the base model plus ``effects``) is
-        fitted with :func:`magcal.pipeline.calibrate`.
+        fitted with :func:`magcal.fitting.pipeline.calibrate`.
     model : Model, optional
         Model to fit when ``result`` is not given.
     top : int
@@ -444,10 +448,10 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
         ``progress(message, fraction)``.
     validate : bool
         Judge the supported candidates on held-out samples (module docstring); skipped, with a note, when the
-        record is too short to split (:func:`magcal.validation.split_problem`).
+        record is too short to split (:func:`magcal.fitting.validation.split_problem`).
     noise_nT : float, optional
         Noise per axis in nT given by the user; takes precedence over the dataset's ``noise_nT`` and over any
-        estimate (:func:`magcal.noise.estimate_noise`).
+        estimate (:func:`magcal.checks.noise.estimate_noise`).
 
     Returns
     -------
@@ -461,7 +465,6 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
 
     fit0 = _fit_of(result)
     if fit0 is None:
-        from ..pipeline import calibrate
 
         report("fitting the model", 0.0)
         if model is not None:

@@ -1,0 +1,652 @@
+"""The calibration: apply a fitted model to new data, and save or load it as JSON.
+
+:func:`corrected_fields` and :func:`expected_total_field` are *the* correction model (see :mod:`magcal.model.terms`);
+the fitter evaluates the same two functions, so what is fitted is exactly what is applied.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magcal.calibration.uncertainty import covariance_size, field_uncertainty
+from magcal.core import conventions
+from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.core.jsonable import jsonable
+from magcal.core.vectors import basis_times, row_norm
+from magcal.data.io import atomic_write
+from magcal.model.terms import (
+    BASE_TERMS,
+    EFFECTS,
+    VECTOR_STAGES,
+    Model,
+    block_label,
+    contexts,
+    parse_effect,
+    unknown_effect_message,
+)
+
+FORMAT = "magcal-calibration"
+VERSION = 1
+
+#: Effects that describe one recording, used only for an effect class that does not say
+#: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
+RECORD_ONLY_FALLBACK = frozenset({"bias_drift", "bias_step", "reference_drift", "site_gradient"})
+
+#: Choices of ``record_terms`` (:meth:`Calibration.correct`): ``None`` decides from the record fingerprint.
+RECORD_TERM_CHOICES = ("apply", "drop")
+
+
+#: Resolution (nT, s) at which readings and times enter the record fingerprint: far below any sensor's noise,
+#: far above the rounding of a number written to a CSV file and read back.
+_FINGERPRINT_RESOLUTION = 1e-6
+
+
+def is_transferable(effect) -> bool:
+    """True if the effect term describes the instrument and carries to new data; False for a term that describes
+    one recording (:attr:`magcal.model.terms.Effect.transferable`; a class that does not say falls back on
+    :data:`RECORD_ONLY_FALLBACK`)."""
+    flag = getattr(effect, "transferable", None)
+    if isinstance(flag, bool):
+        return flag
+    return getattr(effect, "name", "") not in RECORD_ONLY_FALLBACK
+
+
+class RecordHasher:
+    """Fingerprint of a record built sample by sample, so a streamed file gives the same result as the whole
+    dataset: :func:`record_fingerprint` of a dataset equals feeding its chunks in order to :meth:`update`.
+
+    The hash covers the readings (nT) and the times (s), rounded to 1e-6, sample after sample.
+    """
+
+    def __init__(self):
+        self._hash = hashlib.sha256()
+        self.n_samples = 0
+        self.time_start_s = None
+        self.time_end_s = None
+
+    def update(self, dataset) -> None:
+        """Add the samples of one dataset (a chunk of the record, in time order)."""
+        readings = np.ascontiguousarray(np.transpose(dataset.readings_nT, (1, 0, 2)))  # sample-major
+        rows = np.round(readings.reshape(readings.shape[0], -1) / _FINGERPRINT_RESOLUTION)
+        if dataset.time_s is not None:
+            t = np.asarray(dataset.time_s, dtype=float)
+            rows = np.column_stack([np.round(t / _FINGERPRINT_RESOLUTION), rows])
+            if t.size:
+                self.time_start_s = float(t[0]) if self.time_start_s is None else self.time_start_s
+                self.time_end_s = float(t[-1])
+        self._hash.update(np.ascontiguousarray(rows, dtype="<f8"))  # the buffer itself: no copy of its bytes
+        self.n_samples += int(dataset.n_samples)
+
+    def fingerprint(self) -> dict:
+        """``n_samples``, ``time_start_s``, ``time_end_s`` (None without a time column) and ``readings_sha256``."""
+        return {"n_samples": self.n_samples, "time_start_s": self.time_start_s, "time_end_s": self.time_end_s,
+                "readings_sha256": self._hash.hexdigest()}
+
+
+def record_fingerprint(dataset) -> dict:
+    """The fingerprint of the record a calibration is fitted on (see :class:`RecordHasher`).
+
+    Stored as ``Calibration.record`` (the JSON key ``record``), it tells :meth:`Calibration.correct` whether new
+    data are that record, where the record-only terms (bias drift, bias step, reference drift, site gradient)
+    hold, or another one, where they do not.
+    """
+    hasher = RecordHasher()
+    hasher.update(dataset)
+    return hasher.fingerprint()
+
+
+def same_record(fingerprint, other) -> bool:
+    """True when two fingerprints (:func:`record_fingerprint`) describe the same samples."""
+    keys = ("n_samples", "readings_sha256")
+    return (isinstance(fingerprint, dict) and isinstance(other, dict)
+            and all(fingerprint.get(k) is not None and fingerprint.get(k) == other.get(k) for k in keys))
+
+
+@dataclass
+class SensorCalibration:
+    """Calibration of one triaxial sensor.
+
+    Attributes
+    ----------
+    cinv : numpy.ndarray, shape (3, 3)
+        Correction matrix ``C^-1`` (dimensionless), upper triangular in the seed's gauge.
+    bias_nT : numpy.ndarray, shape (3,)
+        Bias in nT (in a platform-interference model it holds ``C B_hard + b``).
+    R : numpy.ndarray, shape (3, 3)
+        Rotation taking this sensor's corrected vector into the array frame (identity for the reference sensor).
+    summary : dict
+        Figures from the fit (e.g. ``rms_before_nT``, ``rms_nT``), written to JSON as they are.
+    """
+
+    cinv: np.ndarray
+    bias_nT: np.ndarray
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    summary: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.cinv = np.asarray(self.cinv, dtype=float).reshape(3, 3)
+        self.bias_nT = np.asarray(self.bias_nT, dtype=float).reshape(3)
+        self.R = np.asarray(self.R, dtype=float).reshape(3, 3)
+
+
+def corrected_fields(dataset, sensors, model=None, effect_values=None, ctxs=None):
+    """Corrected field vectors in the array frame, nT, shape (n_sensors, N, 3).
+
+    Parameters
+    ----------
+    dataset : Dataset
+    sensors : list of SensorCalibration
+    model : Model, optional
+        Candidate effects to undo (base terms are in ``sensors``).
+    effect_values : dict of str to numpy.ndarray, optional
+        Parameters of each effect instance by :func:`block_label`.
+    ctxs : list of Context, optional
+        Precomputed :func:`contexts` (the fitter passes them to save work).
+    """
+    if len(sensors) != dataset.n_sensors:
+        raise MagcalError(
+            f"the calibration is for {len(sensors)} sensor(s) but the data {dataset.source or ''} have "
+            f"{dataset.n_sensors}; use a calibration made for this instrument"
+        )
+    ctxs = ctxs or contexts(dataset)
+    effect_values = effect_values or {}
+    instances = list(model.instances()) if model is not None else []
+    out = np.empty_like(dataset.readings_nT)
+    for s, cal in enumerate(sensors):
+        z0 = dataset.readings_nT[s] - cal.bias_nT
+        z = z0
+        for e, es in instances:
+            if e.stage == "raw" and (es == s or (es is None and e.applies_to(s))):
+                z = z - basis_times(e.raw_basis(z0, ctxs[s]), effect_values[block_label(e, es)])
+        out[s] = z @ (cal.R @ cal.cinv).T
+    for s in range(len(sensors)):
+        b = out[s].copy()
+        for e, es in instances:
+            if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
+                out[s] = out[s] + basis_times(e.vector_basis(b, ctxs[s]), effect_values[block_label(e, es)])
+    return out
+
+
+def expected_total_field(dataset, reference_total_nT, model=None, effect_values=None, ctxs=None):
+    """Expected total field (n_sensors, N) in nT: the reference plus reference-stage effects.
+
+    ``reference_total_nT`` is a number, or ``None`` to use the dataset's per-sample ``ref_total_nT`` column.
+    """
+    n = dataset.n_samples
+    if reference_total_nT is None:
+        if dataset.ref_total_nT is None:
+            raise MagcalError("no reference field: give one, add a ref_total column, or let it be fitted")
+        base = dataset.ref_total_nT
+    else:
+        base = np.full(n, float(reference_total_nT))
+    total = np.tile(base, (dataset.n_sensors, 1))
+    if model is not None:
+        ctxs = ctxs or contexts(dataset)
+        effect_values = effect_values or {}
+        for e, es in model.instances():
+            if e.stage != "reference":
+                continue
+            for s in range(dataset.n_sensors):
+                if es is None or es == s:
+                    total[s] = total[s] + e.reference_basis(ctxs[s]) @ effect_values[block_label(e, es)]
+    return total
+
+
+@dataclass
+class Calibration:
+    """A fitted calibration of one to four sensors, ready to apply to new data.
+
+    Attributes
+    ----------
+    sensors : list of SensorCalibration
+    reference_total_nT : float or None
+        The total field used (given or fitted) in nT; ``None`` when a per-sample reference column was used.
+    reference_fitted : bool
+        True if the field magnitude was fitted because no reference was given.
+    baseline_m : float or None
+        Array baseline in m (for the tensor).
+    model : Model or None
+        The candidate effects included (their data-derived constants travel with them).
+    effect_values : dict of str to numpy.ndarray
+        Fitted parameters of each effect instance, keyed by :func:`block_label`.
+    frame : str
+        The array frame: ``"sensor1"`` (the seed's) or ``"platform"`` (after a level-table alignment).
+    base_covariance : numpy.ndarray or None
+        Covariance of every sensor's ``M = R C^-1`` (row by row) and bias (nT), followed by the effects'
+        parameters (in the model's order; 12 n_sensors square for the base model) from the fit
+        (:func:`magcal.calibration.uncertainty.base_covariance`), saved with the file; :meth:`uncertainty` carries it to the
+        corrected field and the tensor. None without a maximum-likelihood fit.
+    summary : dict
+        Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
+        Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
+        (:func:`record_fingerprint`): record-only terms (:func:`is_transferable` False) act on that record only.
+    """
+
+    sensors: list
+    reference_total_nT: float | None = None
+    reference_fitted: bool = False
+    baseline_m: float | None = None
+    model: Model | None = None
+    effect_values: dict = field(default_factory=dict)
+    frame: str = "sensor1"
+    summary: dict = field(default_factory=dict)
+    base_covariance: np.ndarray | None = None
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensors)
+
+    def check(self, dataset) -> None:
+        """Raise a clear error if this calibration cannot be applied to the dataset."""
+        where = f" ({dataset.source})" if dataset.source else ""
+        if dataset.n_sensors != self.n_sensors:
+            raise MagcalError(
+                f"the calibration is for {self.n_sensors} sensor(s) but the data{where} have {dataset.n_sensors}; "
+                "use a calibration made for this instrument"
+            )
+        if self.model is not None:
+            missing = {c for e in self.model.effects for c in e.missing_channels(dataset)}
+            if missing:
+                raise MagcalError(
+                    f"the calibration includes {', '.join(self.model.effect_labels)}, which need "
+                    f"{', '.join(sorted(missing))}; the data{where} lack them"
+                )
+
+    # --- the record it was fitted on ------------------------------------------------------------------------
+    @property
+    def record(self) -> dict | None:
+        """Fingerprint of the record this calibration was fitted on (:func:`record_fingerprint`), saved in the JSON
+        as ``record``; ``{}`` for a file that does not say (made before magcal saved it); ``None`` when never set."""
+        return self.summary.get("record") if isinstance(self.summary, dict) else None
+
+    @record.setter
+    def record(self, fingerprint) -> None:
+        self.summary = dict(self.summary or {})
+        self.summary["record"] = None if fingerprint is None else dict(fingerprint)
+
+    def fitted_on(self, dataset) -> "Calibration":
+        """Record ``dataset`` (the whole record given to the fit, mask or not) as the one fitted; returns self."""
+        self.record = record_fingerprint(dataset)
+        return self
+
+    def record_terms(self, stages=None) -> list[str]:
+        """Labels of the record-only terms (:func:`is_transferable` False) held, optionally of some stages only."""
+        if self.model is None:
+            return []
+        return [e.label for e in self.model.effects
+                if not is_transferable(e) and (stages is None or e.stage in stages)]
+
+    def record_decision(self, dataset=None, record_terms=None, stages=None, fingerprint=None):
+        """Whether this calibration's record-only terms act on ``dataset``, and why.
+
+        Parameters
+        ----------
+        dataset : Dataset, optional
+            The data to correct (its fingerprint is computed unless ``fingerprint`` is given).
+        record_terms : {None, 'apply', 'drop'}
+            ``None`` (default): apply them on the fitted record itself, drop them on any other data (with a
+            reason), apply them with a caution when the calibration does not say which record it was fitted on.
+            ``'apply'``: the user asserts these data are the fitted record (or has an external reference).
+            ``'drop'``: never apply them.
+        stages : sequence of str, optional
+            Consider only terms of these stages (``VECTOR_STAGES`` for corrected vectors).
+        fingerprint : dict, optional
+            The data's fingerprint, when the caller streamed it (:class:`RecordHasher`).
+
+        Returns
+        -------
+        dropped : list of str
+            Labels of the record-only terms to leave out.
+        note : str or None
+            A message for a :class:`~magcal.core.errors.RecordTermWarning`, or None when nothing needs saying.
+        """
+        if record_terms is not None and record_terms not in RECORD_TERM_CHOICES:
+            raise MagcalError(f"record_terms must be 'apply' or 'drop' (or None to decide from the record), "
+                              f"got {record_terms!r}")
+        labels = self.record_terms(stages)
+        if not labels or record_terms == "apply":
+            return [], None
+        if record_terms == "drop":
+            return labels, None
+        names = ", ".join(labels)
+        record = self.record
+        if record is None:  # built in memory and never told its record: the caller holds the fit
+            return [], None
+        if not record:
+            return [], (f"the calibration holds the record-only term(s) {names}, which describe the recording they "
+                        "were fitted on, and it does not say which record that was (it was made before magcal "
+                        "saved a record fingerprint); they are applied as fitted. If these data are another "
+                        "record, drop them (record_terms='drop', --record-terms drop) or recalibrate")
+        if fingerprint is None:
+            fingerprint = record_fingerprint(dataset)
+        if same_record(record, fingerprint):
+            return [], None
+        return labels, (f"dropped the record-only term(s) {names}: they describe the recording the calibration was "
+                        f"fitted on ({_record_text(record)}), not the instrument, and these data are another record "
+                        f"({_record_text(fingerprint)}): applied, they would put that recording's drift, step or "
+                        "interference into these data. If they are the same record, or you have a reference for "
+                        "this one, apply them with "
+                        "record_terms='apply' (--record-terms apply)")
+
+    def _model_for(self, dataset, record_terms, stages, warn=True):
+        """The model (and effect values) to evaluate on ``dataset`` after the record-term decision."""
+        dropped, note = self.record_decision(dataset, record_terms, stages)
+        if note and warn:
+            warnings.warn(note, RecordTermWarning, stacklevel=3)
+        if not dropped:
+            return self.model
+        model = self.model
+        for label in dropped:
+            model = model.without(label)
+        return model
+
+    # --- applying it --------------------------------------------------------------------------------------
+    def correct(self, dataset, record_terms=None) -> np.ndarray:
+        """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame.
+
+        Parameters
+        ----------
+        dataset : Dataset
+        record_terms : {None, 'apply', 'drop'}
+            What to do with record-only terms (bias drift, bias step...) on these data; see
+            :meth:`record_decision`. By default they act on the fitted record and are dropped, with a
+            :class:`~magcal.core.errors.RecordTermWarning` naming them, on any other.
+        """
+        self.check(dataset)
+        model = self._model_for(dataset, record_terms, VECTOR_STAGES)
+        return corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+
+    def total_field(self, dataset, record_terms=None) -> np.ndarray:
+        """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
+        return row_norm(self.correct(dataset, record_terms))
+
+    def expected_total_field(self, dataset, record_terms=None) -> np.ndarray:
+        """The total field (n_sensors, N) in nT this calibration expects on ``dataset``: its reference (the
+        dataset's ``ref_total`` column when it has none) plus its reference-stage effects (``record_terms`` as in
+        :meth:`correct`: a reference drift of the fitted record is dropped on another)."""
+        model = self._model_for(dataset, record_terms, ("reference",))
+        return expected_total_field(dataset, self.reference_total_nT, model, self.effect_values,
+                                    contexts(dataset, self.baseline_m))
+
+    def total_field_residuals(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output
+        (``record_terms`` as in :meth:`correct`; one warning names every term dropped)."""
+        model = self._model_for(dataset, record_terms, None)
+        ctxs = contexts(dataset, self.baseline_m)
+        if corrected is None:
+            self.check(dataset)
+            corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
+        expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
+        return row_norm(corrected) - expected
+
+    def uncertainty(self, dataset, corrected=None, record_terms=None) -> dict | None:
+        """The calibration's standard deviations carried to each sample's corrected field and tensor
+        (:func:`magcal.calibration.uncertainty.field_uncertainty`; ``record_terms`` as in :meth:`correct`), or None without a
+        :attr:`base_covariance`."""
+
+        return field_uncertainty(self, dataset, corrected, record_terms)
+
+    def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
+        """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
+        if self.n_sensors != 4 or not self.baseline_m:
+            raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
+        vectors = self.correct(dataset, record_terms) if corrected is None else corrected
+        return conventions.tensor_components(vectors, self.baseline_m)
+
+    # --- JSON -----------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The versioned JSON document (``format``, ``version``, per-sensor ``Cinv``, ``bias_nT``, ``R``...)."""
+        sensors = []
+        for i, cal in enumerate(self.sensors):
+            scale, angles = conventions.gauge_free(cal.cinv)
+            entry = {
+                "id": i + 1,
+                "Cinv": cal.cinv.tolist(),
+                "bias_nT": cal.bias_nT.tolist(),
+                "R": cal.R.tolist(),
+                "scale": scale.tolist(),
+                "axis_angles_deg": angles.tolist(),
+            }
+            entry.update(jsonable(cal.summary))
+            sensors.append(entry)
+        effects = []
+        if self.model is not None:
+            for e, s in self.model.instances():
+                label = block_label(e, s)
+                values = np.asarray(self.effect_values.get(label, np.zeros(len(e.param_names()))), dtype=float)
+                effects.append({
+                    "effect": e.name,
+                    "sensor": None if s is None else s + 1,
+                    "term": e.label,
+                    "params": dict(zip(e.param_names(), values.tolist())),
+                    "state": jsonable(e.state()),
+                    "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
+                })
+        doc = {
+            "format": FORMAT,
+            "version": VERSION,
+            "reference_total_nT": self.reference_total_nT,
+            "reference_fitted": self.reference_fitted,
+            "baseline_m": self.baseline_m,
+            "frame": self.frame,
+            "base_terms": list(self.model.base) if self.model is not None else None,
+            "effects": self.model.effect_labels if self.model is not None else [],
+            "effect_params": effects,
+            "sensors": sensors,
+        }
+        if self.base_covariance is not None:
+            doc["base_covariance"] = {
+                "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
+                         "in the order of 'effects'",
+                "matrix": np.asarray(self.base_covariance, float).tolist()}
+        doc.update(jsonable(self.summary))
+        doc["record"] = jsonable(self.record)  # null: never told which record it was fitted on
+        return doc
+
+    @classmethod
+    def from_dict(cls, doc: dict, source: str = "calibration", n_sensors=None) -> "Calibration":
+        """Rebuild a calibration from :meth:`to_dict` output, refusing anything else with one clear message.
+
+        Parameters
+        ----------
+        doc : dict
+            The JSON document.
+        source : str
+            Where it came from (a file name), for the messages.
+        n_sensors : int, optional
+            Refuse a calibration made for a different number of sensors.
+
+        Raises
+        ------
+        MagcalError
+            Wrong format or version, wrong sensor count, a damaged sensor entry (shapes, finite values, a singular
+            ``Cinv``, an ``R`` that is not a proper rotation), a damaged effect entry or a bad baseline.
+        """
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+            raise MagcalError(f"{source}: not a magcal calibration file (expected \"format\": \"{FORMAT}\")")
+        if doc.get("version") != VERSION:
+            raise MagcalError(
+                f"{source}: calibration file version {doc.get('version')!r} is not supported by this magcal "
+                f"(it reads version {VERSION}); upgrade magcal or recalibrate"
+            )
+        entries = doc.get("sensors")
+        if not isinstance(entries, list) or not 1 <= len(entries) <= 4:
+            raise MagcalError(f"{source}: 'sensors' must list 1 to 4 sensors; the file is damaged, recalibrate")
+        if n_sensors is not None and len(entries) != int(n_sensors):
+            raise MagcalError(
+                f"{source}: this calibration is for {len(entries)} sensor(s) but the data have {n_sensors}; use the "
+                "calibration made for this instrument"
+            )
+        for i, entry in enumerate(entries):
+            _check_sensor_entry(source, i, entry)
+        baseline = doc.get("baseline_m")
+        if baseline is not None:
+            try:
+                ok = float(baseline) > 0 and np.isfinite(float(baseline))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise MagcalError(f"{source}: baseline_m {baseline!r} must be a positive number of metres")
+        derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
+        sensors = [
+            SensorCalibration(np.array(s["Cinv"], float), np.array(s["bias_nT"], float),
+                              np.array(s.get("R", np.eye(3)), float),
+                              summary={k: v for k, v in s.items() if k not in derived})
+            for s in entries
+        ]
+        try:
+            model, values = _effects_from_dict(doc, len(sensors), source)
+        except MagcalError:
+            raise
+        except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
+            raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
+        known = {"format", "version", "reference_total_nT", "reference_fitted", "baseline_m", "frame", "base_terms",
+                 "effects", "effect_params", "sensors", "base_covariance"}
+        cov = None
+        if doc.get("base_covariance") is not None:
+
+            size = 12 * len(sensors)
+            joint = covariance_size(len(sensors), model)  # with the effects' parameters (files made since)
+            try:
+                cov = np.array(doc["base_covariance"]["matrix"], float)
+                ok = cov.ndim == 2 and cov.shape[0] == cov.shape[1] and cov.shape[0] in (size, joint) \
+                    and np.all(np.isfinite(cov))
+            except (TypeError, ValueError, KeyError):
+                ok = False
+            if not ok:
+                shapes = f"{size} x {size}" + (f" or {joint} x {joint}" if joint != size else "")
+                raise MagcalError(f"{source}: 'base_covariance' must hold a {shapes} matrix of numbers; the "
+                                  "file is damaged, recalibrate")
+        summary = {k: v for k, v in doc.items() if k not in known}
+        record = summary.get("record")
+        if record is not None and not (isinstance(record, dict) and _fingerprint_ok(record)):
+            raise MagcalError(f"{source}: 'record' must be the fingerprint of the fitted record (n_samples, "
+                              "time_start_s, time_end_s, readings_sha256); the file is damaged, recalibrate")
+        if "record" not in doc and model is not None and any(not is_transferable(e) for e in model.effects):
+            summary["record"] = {}  # made before magcal saved the record: which one it was is unknown
+        return cls(
+            sensors=sensors,
+            reference_total_nT=doc.get("reference_total_nT"),
+            reference_fitted=bool(doc.get("reference_fitted", False)),
+            baseline_m=baseline,
+            model=model,
+            effect_values=values,
+            frame=doc.get("frame", "sensor1"),
+            summary=summary,
+            base_covariance=cov,
+        )
+
+    def save(self, path) -> None:
+        """Write the JSON file atomically (a temporary file renamed over the target)."""
+        write_json_atomic(path, self.to_dict())
+
+    @classmethod
+    def load(cls, path, n_sensors=None) -> "Calibration":
+        """Read a calibration file written by :meth:`save`, with one clear :class:`MagcalError` for any problem.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+        n_sensors : int, optional
+            Refuse a calibration made for a different number of sensors.
+        """
+        path = os.fspath(path)
+        try:
+            with open(path, "rb") as fh:
+                raw = fh.read()
+        except FileNotFoundError:
+            raise MagcalError(f"{path}: no such calibration file; check the path") from None
+        except IsADirectoryError:
+            raise MagcalError(f"{path}: is a directory, not a calibration file") from None
+        except OSError as exc:
+            raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raise MagcalError(f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
+                              "written by magcal calibrate or magcal align") from None
+        return cls.from_dict(doc, source=path, n_sensors=n_sensors)
+
+
+def _record_text(fingerprint) -> str:
+    """``1200 samples, t = 0-119.9 s`` for a fingerprint."""
+    n = fingerprint.get("n_samples")
+    t0, t1 = fingerprint.get("time_start_s"), fingerprint.get("time_end_s")
+    span = f", t = {t0:g}-{t1:g} s" if isinstance(t0, (int, float)) and isinstance(t1, (int, float)) else ""
+    return f"{n} samples{span}"
+
+
+def _check_sensor_entry(source, i, s) -> None:
+    """Refuse a damaged sensor entry of a calibration document, naming the sensor and the key."""
+    where = f"{source}: sensor {i + 1}"
+    if not isinstance(s, dict):
+        raise MagcalError(f"{where}: entry is not an object; the file is damaged, recalibrate")
+    for key, shape in (("Cinv", (3, 3)), ("bias_nT", (3,)), ("R", (3, 3))):
+        if key not in s:
+            if key == "R":
+                continue
+            raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
+        try:
+            a = np.array(s[key], dtype=float)
+        except (TypeError, ValueError):
+            raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
+        if a.shape != shape or not np.all(np.isfinite(a)):
+            raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
+        if key == "Cinv" and abs(np.linalg.det(a)) < 1e-9:
+            raise MagcalError(f"{where}: Cinv is singular; the file is damaged, recalibrate")
+        if key == "R" and (not np.allclose(a @ a.T, np.eye(3), atol=1e-6) or np.linalg.det(a) < 0):
+            raise MagcalError(f"{where}: R is not a proper rotation; the file is damaged, recalibrate")
+
+
+def _fingerprint_ok(record) -> bool:
+    """True for ``{}`` (record unknown) or a fingerprint with a sample count and a hash."""
+    if not record:
+        return True
+    n = record.get("n_samples")
+    return (isinstance(n, int) and not isinstance(n, bool) and n >= 0
+            and isinstance(record.get("readings_sha256"), str))
+
+
+def _effects_from_dict(doc, n_sensors, source="calibration"):
+    """The model and effect values saved in a calibration document (None, {} when it has none).
+
+    An effect name that is not in the catalogue is refused with :func:`magcal.model.terms.unknown_effect_message`
+    (it may be a user's effect whose file was not loaded).
+    """
+    model, values = None, {}
+    if doc.get("effect_params") or doc.get("base_terms"):
+
+        model = Model(n_sensors, base=tuple(doc.get("base_terms") or BASE_TERMS))
+        seen = {}
+        for entry in doc.get("effect_params", []):
+            term = entry.get("term", entry["effect"])
+            name = str(term).partition(":")[0].strip()
+            if name not in EFFECTS and name not in BASE_TERMS:
+                raise MagcalError(unknown_effect_message(name, where=source))
+            if term not in seen:
+                effect = parse_effect(term, n_sensors)
+                effect.set_state(entry.get("state") or {})
+                seen[term] = effect
+                model.effects.append(effect)
+            effect = seen[term]
+            sensor = entry.get("sensor")
+            label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
+            # a non-physical value (a negative hysteresis width...) is refused with the file and parameter named
+            values[label] = effect.check_params([entry["params"][n] for n in effect.param_names()], source)
+    return model, values
+
+
+def write_json_atomic(path, document) -> None:
+    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.data.io.atomic_write`)."""
+
+    with atomic_write(path, "w", newline=None) as fh:
+        json.dump(document, fh, indent=2)
+        fh.write("\n")
+
+

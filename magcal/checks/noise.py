@@ -1,0 +1,408 @@
+"""The noise of a recording: robust spread and the noise floor a fit is judged against.
+
+:func:`robust_sigma` is the one robust standard deviation of magcal (fit, outlier rejection, robust starts,
+diagnosis): the median absolute deviation about the median, scaled by 1.4826 so that it equals the standard
+deviation for Gaussian noise, and insensitive to the few gross outliers that real recordings have.
+
+:func:`estimate_noise` gives the per-axis noise level (nT) a fit's residuals are judged against
+(:class:`NoiseEstimate`), independently of the model's misfit, and says which method gave it (``source``):
+
+``given``
+    A noise the user declared (``noise_nT=``, ``--noise NT``, or the data file's ``# noise_nT:`` line) always
+    takes precedence over any estimate.
+``differences``
+    Along a smooth trajectory a missing effect changes slowly from sample to sample while the noise does not, so
+    the noise is estimated from the differences of the residuals in time order (``var(d^k r) = C(2k, k) sigma^2``
+    for white noise), with gross jumps clipped: the smaller of the 2nd- and 3rd-order estimates (a slow misfit
+    leaks least into the higher order, content near the sampling rate least into the lower one). Samples that
+    repeat the previous reading exactly (stale: the host polled faster than the part converts) are dropped
+    before differencing: their differences are zero and would bias the estimate low.
+``static``
+    The record has still stretches (:func:`magcal.checks.quality.static_stretches`) holding at least
+    :data:`MIN_STATIC_SAMPLES` samples: the second differences of the readings in them, stale samples dropped.
+    A direct measurement, free of any misfit of the model, so it is preferred to ``differences``; the stretches'
+    scatter about a straight line (:func:`magcal.checks.quality.static_scatter_nT`, which a slow wander of the still
+    sensor inflates) is reported beside it.
+``quantization``
+    The estimate fell below the quantization floor ``q / sqrt(12)`` (:func:`magcal.checks.quality.quantization_step`),
+    which no noise estimate goes under.
+``residuals``
+    No smooth order, no still stretch, nothing declared: the residual RMS itself (then a misfit cannot be told
+    from noise by its size, only by its structure).
+
+Every estimate reports the still stretches' figures and the quantization floor beside it
+(:attr:`NoiseEstimate.static_noise_nT`, :attr:`NoiseEstimate.static_scatter_nT`,
+:attr:`NoiseEstimate.quantization_floor_nT`), so a reader can check one against the other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import comb
+
+from magcal.checks.quality import quantization_step, stale_mask, static_scatter_nT, static_stretches, static_window
+from magcal.core.errors import MagcalError
+from magcal.core.readings_cache import ReadingsCache
+from magcal.core.stats import robust_sigma
+from magcal.core.vectors import row_norm
+
+#: Sources of :class:`NoiseEstimate`, in the order they are tried.
+NOISE_SOURCES = ("given", "differences", "static", "quantization", "residuals")
+
+#: Orders of the differences of :func:`estimate_noise` (the smaller estimate is kept).
+DIFFERENCE_ORDERS = (2, 3)
+
+#: Fewest samples in still stretches (per sensor) for their second differences to be the noise (``static``).
+MIN_STATIC_SAMPLES = 100
+
+_SOURCE_WORDS = {
+    "given": "given",
+    "differences": "estimated from the differences of the residuals in time order",
+    "static": "estimated from the second differences of the readings in still stretches",
+    "quantization": "the quantization floor q/sqrt(12): the estimate fell below it",
+    "residuals": "estimated from the residual RMS itself (no independent check of the fit)",
+}
+
+
+@dataclass
+class NoiseEstimate:
+    """The per-axis noise level used for floors and the verdict of a diagnosis.
+
+    Attributes
+    ----------
+    sigma_nT : float
+        Noise standard deviation per axis (nT), pooled over the sensors (root mean square of ``per_sensor_nT``).
+    per_sensor_nT : numpy.ndarray, shape (n_sensors,)
+        Noise standard deviation of each sensor (nT).
+    source : str
+        One of :data:`NOISE_SOURCES`: ``"given"`` (declared by the user or the data file), ``"differences"``,
+        ``"static"``, ``"quantization"`` (the floor ``q/sqrt(12)``) or ``"residuals"`` (residual RMS; cannot tell
+        misfit from noise by size).
+    relative_variance_error : float
+        Relative standard error of ``sigma^2`` per sensor (dimensionless, for the excess test; 0 when given).
+    note : str
+        Where a given noise came from, or why a fallback source was used.
+    static_noise_nT : numpy.ndarray or None, shape (n_sensors,)
+        Noise per axis (nT, root mean square over the axes) from the second differences of each sensor's
+        readings in its still stretches (NaN for a sensor without enough of them); None if no sensor has any.
+    static_scatter_nT : numpy.ndarray or None, shape (n_sensors,)
+        Scatter per axis (nT, root mean square over the axes) of the readings in the still stretches about a
+        straight line (a slow wander of the still sensor included); None if no sensor has a still stretch.
+    quantization_floor_nT : numpy.ndarray or None, shape (n_sensors,)
+        ``q / sqrt(12)`` per sensor (nT, root mean square over the axes' steps q); None if the readings show no
+        step.
+    """
+
+    sigma_nT: float
+    per_sensor_nT: np.ndarray
+    source: str
+    relative_variance_error: float
+    note: str = ""
+    static_scatter_nT: np.ndarray | None = None
+    quantization_floor_nT: np.ndarray | None = None
+    static_noise_nT: np.ndarray | None = None
+
+    def text(self) -> str:
+        """``"3.02 nT (given)"``, ``"709 nT (estimated from the differences ...; still stretches scatter ...)"``."""
+        words = _SOURCE_WORDS.get(self.source, self.source)
+        out = f"{self.sigma_nT:.3g} nT per axis ({words}"
+        if self.static_noise_nT is not None and self.source != "static":
+            out += "; still stretches' differences " + _values(self.static_noise_nT) + " nT"
+        if self.static_scatter_nT is not None:
+            out += "; still stretches' scatter " + _values(self.static_scatter_nT) + " nT"
+        if self.quantization_floor_nT is not None and self.source != "quantization":
+            out += f"; quantization floor {np.max(self.quantization_floor_nT):.3g} nT"
+        return out + ")"
+
+    def to_dict(self) -> dict:
+        """JSON-ready figures: ``noise_nT``, ``per_sensor_nT``, ``source``, ``note``, ``static_scatter_nT``,
+        ``quantization_floor_nT`` (nT; NaN written as None)."""
+        def _list(v):
+            return None if v is None else [float(x) if np.isfinite(x) else None for x in np.asarray(v, float)]
+
+        return {"noise_nT": float(self.sigma_nT), "per_sensor_nT": _list(self.per_sensor_nT),
+                "source": self.source, "note": self.note, "static_noise_nT": _list(self.static_noise_nT),
+                "static_scatter_nT": _list(self.static_scatter_nT),
+                "quantization_floor_nT": _list(self.quantization_floor_nT)}
+
+
+def is_smooth_sequence(dataset) -> bool:
+    """True if consecutive samples are close in attitude (a smooth trajectory in time order).
+
+    Compares the typical step between consecutive raw readings of the first sensor with their spread: about 1.4
+    for independent random attitudes, a few percent for a sensor turned continuously and sampled at several Hz.
+
+    Parameters
+    ----------
+    dataset : magcal.data.dataset.Dataset
+        The recording; its ``readings_nT`` (n_sensors, N, 3) in nT.
+
+    Returns
+    -------
+    bool
+        True when the median step is below a quarter of the spread; False for fewer than 20 samples.
+    """
+    y = dataset.readings_nT[0]
+    if len(y) < 20:
+        return False
+    step = np.median(row_norm(np.diff(y, axis=0)))
+    spread = np.sqrt(np.sum(np.var(y, axis=0)))
+    return bool(step < 0.25 * spread)
+
+
+def _difference_variance(r, order=2):
+    """Noise variance from the ``order``-th differences of ``r``.
+
+    Parameters
+    ----------
+    r : array_like, shape (N,)
+        Residuals in time order (nT), without NaN.
+    order : int
+        Order ``k`` of the differences.
+
+    Returns
+    -------
+    float
+        ``mean(d^2) / C(2k, k)`` (nT^2) over the differences within 6 robust sigmas of their median (gross jumps
+        clipped); NaN for fewer than 10 differences.
+    """
+    d = np.diff(np.asarray(r, dtype=float), n=order)
+    if len(d) < 10:
+        return float("nan")
+    return _clipped_mean_square(d) / comb(2 * order, order)
+
+
+def _clipped_mean_square(d) -> float:
+    """Mean square of ``d`` over the values within 6 robust sigmas of their median (gross jumps clipped)."""
+    med, mad = np.median(d), robust_sigma(d)
+    if mad > 0:
+        d = d[np.abs(d - med) < 6.0 * mad]
+    return float(np.mean(d**2))
+
+
+def _difference_variance_error(n, order=2):
+    """Relative standard error of :func:`_difference_variance` for white Gaussian noise of ``n`` samples.
+
+    The differences are correlated (binomial weights ``C(2k, k + j)``), so the error is larger than the
+    ``sqrt(2 / n)`` of independent samples: ``sqrt(70 / 18 / n)`` ~ ``1.97 / sqrt(n)`` for ``k = 2``.
+    """
+    c = np.array([comb(2 * order, order + k) for k in range(-order, order + 1)], dtype=float)
+    return float(np.sqrt(2.0 * np.sum(c**2) / comb(2 * order, order) ** 2 / max(n, 1)))
+
+
+def _values(v) -> str:
+    return ", ".join("-" if not np.isfinite(x) else f"{x:.3g}" for x in np.asarray(v, float))
+
+
+def fresh_samples(readings_nT) -> np.ndarray:
+    """True for the samples that do not repeat the previous reading exactly (all three axes), shape (N,).
+
+    A stale sample (the host polled faster than the part converts) is the previous reading counted twice: its
+    difference with it is zero, which biases a difference estimate of the noise low.
+    """
+
+    return ~stale_mask(readings_nT)
+
+
+def quantization_steps_nT(readings_nT) -> list:
+    """The quantization step (nT, or None) of each axis of one sensor's readings (N, 3)
+    (:func:`magcal.checks.quality.quantization_step`)."""
+
+    y = np.asarray(readings_nT, float)
+    return [quantization_step(y[:, k]) for k in range(3)]
+
+
+def quantization_floor_nT(readings_nT, steps_nT=None) -> float | None:
+    """``q / sqrt(12)`` (nT) of one sensor's readings, ``q`` the root mean square over the axes of their
+    quantization steps (:func:`quantization_steps_nT`, or ``steps_nT`` when the caller has them); None when no
+    axis shows a step."""
+    steps = quantization_steps_nT(readings_nT) if steps_nT is None else steps_nT
+    steps = [q for q in steps if q is not None]
+    if not steps:
+        return None
+    return float(np.sqrt(np.mean(np.square(steps)) / 12.0))
+
+
+def still_noise_nT(dataset, steps_nT=None):
+    """Noise of each sensor measured in its still stretches (:func:`magcal.checks.quality.static_stretches`).
+
+    Parameters
+    ----------
+    dataset : magcal.data.dataset.Dataset
+    steps_nT : list, optional
+        Per sensor, the axes' quantization steps (:func:`quantization_steps_nT`) when the caller has them.
+
+    Returns
+    -------
+    differences_nT, scatter_nT, samples : numpy.ndarray, shape (n_sensors,)
+        Per-axis noise (nT, root mean square over the axes) from the second differences of the readings in the
+        stretches, stale samples dropped and gross jumps clipped (NaN without 10 differences); their scatter
+        about a straight line per stretch (:func:`magcal.checks.quality.static_scatter_nT`, NaN without a stretch); and
+        the number of samples in the stretches.
+    """
+
+    interval = None
+    if dataset.time_s is not None and dataset.n_samples > 1:
+        dt = np.diff(np.asarray(dataset.time_s, float))
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        interval = float(np.median(dt)) if dt.size else None
+    ns = dataset.n_sensors
+    diff_nT, scatter_nT, samples = np.full(ns, np.nan), np.full(ns, np.nan), np.zeros(ns, int)
+    for s in range(ns):
+        y = np.asarray(dataset.readings_nT[s], float)
+        stretches = static_stretches(y, window=static_window(len(y), interval),
+                                     steps_nT=None if steps_nT is None else steps_nT[s])
+        scatter = static_scatter_nT(y, stretches)
+        if scatter is not None:
+            scatter_nT[s] = float(np.sqrt(np.mean(np.square(scatter))))
+        fresh = fresh_samples(y)
+        d2 = [np.diff(y[a:b][fresh[a:b]], n=2, axis=0) for a, b in stretches]
+        d2 = np.concatenate([d for d in d2 if len(d)], axis=0) if any(len(d) for d in d2) else np.empty((0, 3))
+        samples[s] = sum(b - a for a, b in stretches)
+        if len(d2) >= 10:
+            variances = [_clipped_mean_square(d2[:, k]) / comb(4, 2) for k in range(3)]
+            diff_nT[s] = float(np.sqrt(np.mean(variances)))
+    return diff_nT, scatter_nT, samples
+
+
+def _difference_sigma(r, fresh):
+    """Noise sigma (nT) of one residual series from its differences, stale samples dropped: the smallest of the
+    :data:`DIFFERENCE_ORDERS` estimates, with the number of samples used."""
+    keep = np.isfinite(r) & fresh
+    x = r[keep]
+    variances = [_difference_variance(x, k) for k in DIFFERENCE_ORDERS]
+    variances = [v for v in variances if np.isfinite(v)]
+    return (float(np.sqrt(min(variances))) if variances else float("nan")), int(x.size)
+
+
+#: What :func:`estimate_noise` learns from the readings alone (still stretches, quantization floors, fresh samples),
+#: kept for the last few records: a diagnosis estimates the noise of one record several times (before and after each
+#: effect it adds), and these do not change with the residuals. Valid for the same readings with the same time
+#: stamps (a dataset replaced with other metadata has a new time array of the same values).
+_READINGS_FACTS = ReadingsCache(4)
+
+
+def _readings_facts(dataset):
+    """``(still_nT, scatter_nT, still_samples, quantization floors, fresh-sample masks)`` of the dataset's readings,
+    computed once per record (:data:`_READINGS_FACTS`)."""
+    readings, time_s = dataset.readings_nT, dataset.time_s
+
+    def compute():
+        steps = [quantization_steps_nT(y) for y in readings]
+        still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
+        floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
+        return time_s, (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
+
+    def same_time(value):
+        cached = value[0]
+        return cached is time_s or (cached is not None and time_s is not None and np.array_equal(cached, time_s))
+    return _READINGS_FACTS.get(readings, ("noise facts",), compute, valid=same_time)[1]
+
+
+#: Readings (samples x sensors) from which :func:`prefetch_readings_facts` starts the work on another thread.
+PREFETCH_FROM_READINGS = 20_000
+_PREFETCH = []
+
+
+def prefetch_readings_facts(dataset):
+    """Start :func:`estimate_noise`'s readings-only work (still stretches, quantization) for ``dataset`` on a
+    background thread, while the caller fits (:func:`magcal.fitting.pipeline.calibrate` does; the fit's passes use one
+    core). Returns a function that waits for it (its failure is left for :func:`estimate_noise` to meet again), or
+    one that returns at once for a small record."""
+    if dataset.n_samples * dataset.n_sensors < PREFETCH_FROM_READINGS:
+        return lambda: None
+    if not _PREFETCH:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _PREFETCH.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="magcal-noise"))
+    future = _PREFETCH[0].submit(_readings_facts, dataset)
+
+    def wait():
+        try:
+            future.result()
+        except Exception:  # noqa: BLE001 - estimate_noise computes (and reports) it again
+            pass
+    return wait
+
+
+def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=None) -> NoiseEstimate:
+    """Noise level: the declared one, else estimated from the residuals' differences (smooth trajectories), the
+    still stretches' scatter or the residual RMS, never below the quantization floor.
+
+    Parameters
+    ----------
+    dataset : magcal.data.dataset.Dataset
+        The fitted samples (its ``noise_nT``, if declared, is used unless ``noise_nT`` is given; its readings give
+        the stale samples, the quantization step and the still stretches).
+    residuals_nT : numpy.ndarray, shape (n_sensors, N)
+        Total-field residuals in time order (nT; NaN for samples left out).
+    n_params : int
+        Parameters of the fit, all sensors together (for the residual-RMS fallback's degrees of freedom).
+    ordered : bool, optional
+        Whether the samples follow a smooth trajectory (default :func:`is_smooth_sequence`).
+    noise_nT : float, optional
+        Noise per axis (nT) declared by the user; takes precedence over the dataset's and over any estimate.
+
+    Returns
+    -------
+    NoiseEstimate
+        ``source`` says which method gave it (:data:`NOISE_SOURCES`).
+
+    Raises
+    ------
+    MagcalError
+        A declared noise that is not a positive finite number.
+    """
+
+    r = np.asarray(residuals_nT, dtype=float)
+    ns = r.shape[0]
+    still_nT, scatter_nT, still_samples, floors, fresh = _readings_facts(dataset)
+    static = None if np.all(np.isnan(still_nT)) else still_nT
+    scatter = None if np.all(np.isnan(scatter_nT)) else scatter_nT
+    q_floor = None if all(f is None for f in floors) else np.array([f or 0.0 for f in floors])
+    declared, where = noise_nT, "given by the user"
+    if declared is None and dataset.noise_nT:
+        declared, where = dataset.noise_nT, "declared with the data (noise_nT)"
+    if declared is not None:
+        sigma = float(declared)
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise MagcalError(f"the noise must be a positive number of nT, got {declared!r}")
+        return NoiseEstimate(sigma, np.full(ns, sigma), "given", 0.0, where, scatter, q_floor, static)
+    ordered = is_smooth_sequence(dataset) if ordered is None else ordered
+    note = ""
+    if static is not None and np.all(np.isfinite(static)) and still_samples.min() >= MIN_STATIC_SAMPLES:
+        per, source = static.copy(), "static"
+        rel_error = _difference_variance_error(int(still_samples.min()), 2)
+        note = (f"measured in the still stretches ({int(still_samples.min())}+ samples per sensor), free of any "
+                "misfit of the model")
+        if ordered:
+            moving = np.array([_difference_sigma(r[s], fresh[s])[0]
+                               for s in range(ns)])
+            note += "; the residuals' differences give " + _values(moving) + " nT"
+    elif ordered:
+        per, counts = [], []
+        for s in range(ns):
+            sig, m = _difference_sigma(r[s], fresh[s])
+            per.append(sig)
+            counts.append(m)
+        per, source = np.array(per), "differences"
+        stale = dataset.n_samples - min(counts)
+        if stale > 0:
+            note = f"{stale} stale sample(s) (exact repeats of the previous reading) left out of the differences"
+        rel_error = _difference_variance_error(min(counts), min(DIFFERENCE_ORDERS))
+    else:
+        n = np.isfinite(r).sum(axis=1)
+        per = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n - n_params / ns, 1))
+        source, rel_error = "residuals", float(np.sqrt(2.0 / max(n.min(), 1)))
+        note = ("no smooth time order, no still stretch and no declared noise: the noise is taken from the "
+                "residual RMS, so only structure (not size) can reveal a misfit; give it (--noise NT)")
+    if q_floor is not None and np.any(per < q_floor):
+        low = per < q_floor
+        per = np.where(low, q_floor, per)
+        if np.all(low):
+            source = "quantization"
+        note = (note + "; " if note else "") + ("the estimate fell below the quantization floor q/sqrt(12) "
+                                                 f"({np.max(q_floor):.3g} nT) and is held at it")
+    return NoiseEstimate(float(np.sqrt(np.mean(per**2))), per, source, rel_error, note, scatter, q_floor, static)

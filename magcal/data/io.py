@@ -1,0 +1,1298 @@
+"""Reading and writing magcal's CSV format (documented in ``docs/formats.md``).
+
+The format: UTF-8 text, comma separated, one header row. Lines before the header that start with ``#`` carry
+metadata as ``# key: value`` (``baseline_m``, ``reference_total_nT``, ``units``, ``lsb_nT``, ``noise_nT``; any other
+key is kept as text in :attr:`Dataset.metadata`). Readings in raw sensor counts (``units: counts``) need the LSB in
+nT per count (``lsb_nT``, or ``--lsb``). Columns ``s1x,s1y,s1z ... s4x,s4y,s4z`` (one to four sensors; bare
+``x,y,z`` means one sensor), optional ``t`` (s), ``temp`` (degC), ``ref_total`` (nT), ``qw,qx,qy,qz`` (attitude,
+array frame to world frame), ``group`` (text). Any other column is kept in :attr:`Dataset.extra`.
+
+The reader tells the truth about the file: every problem is a :class:`~magcal.data.dataset.DatasetError` naming the
+file, the 1-based line number of the file and the column, and saying what to do; problems it can work around
+(dropped rows, suspicious units) are :class:`~magcal.core.errors.DataWarning` warnings. It never lets another exception
+through for bad input.
+
+Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import csv
+import itertools
+import os
+import re
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magcal.core.errors import DataWarning, MagcalError
+from magcal.data.dataset import (
+    QUATERNION_COLUMNS,
+    SENSOR_AXES,
+    Dataset,
+    DatasetError,
+    dataset_columns,
+    dataset_metadata,
+)
+from magcal.data.logs import is_log, read_log
+from magcal.geometry.shape import field_magnitude_nT
+
+#: Factor that turns a reading in each unit into nT (keys are lower case; ``u`` and ``µ`` both mean micro).
+UNIT_FACTORS_nT = {
+    "nt": 1.0,
+    "ut": 1.0e3,
+    "µt": 1.0e3,
+    "μt": 1.0e3,
+    "mt": 1.0e6,
+    "t": 1.0e9,
+    "g": 1.0e5,
+    "mg": 1.0e2,
+    "gauss": 1.0e5,
+    "mgauss": 1.0e2,
+    "gamma": 1.0,
+}
+
+#: The unit names shown to users, with their factor to nT.
+UNIT_NAMES = {"nT": 1.0, "uT": 1.0e3, "G": 1.0e5, "mG": 1.0e2}
+
+#: Unit names (lower case) meaning raw integer counts of the sensor; their factor is the LSB in nT per count.
+COUNT_UNITS = ("counts", "count")
+
+#: Range of the Earth's field at the surface, nT (used by the unit sanity check).
+EARTH_FIELD_RANGE_nT = (20_000.0, 70_000.0)
+
+#: Optional single columns: canonical name -> Dataset attribute.
+CHANNEL_COLUMNS = {"t": "time_s", "temp": "temperature_C", "ref_total": "ref_total_nT"}
+MAX_SENSORS = 4
+
+#: Metadata keys the reader turns into numbers: key -> (Dataset attribute, must be > 0).
+NUMERIC_METADATA = {
+    "baseline_m": ("baseline_m", True),
+    "reference_total_nT": ("reference_total_nT", True),
+    "noise_nT": ("noise_nT", False),
+}
+
+_SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
+#: Largest magnitude a numeric cell may hold: far beyond any reading, temperature or time stamp (epoch ns are
+#: ~2e18) in any unit, and small enough that sums of squares and fourth powers stay finite in float64.
+MAX_ABS_VALUE = 1e30
+_MAX_SHOWN = 5  # problems named in one message
+_BINARY_PROBE = 8192
+
+
+def canonical_columns(n_sensors=MAX_SENSORS):
+    """All canonical column names for up to ``n_sensors`` sensors."""
+    names = [f"s{i}{a}" for i in range(1, n_sensors + 1) for a in SENSOR_AXES]
+    return names + list(CHANNEL_COLUMNS) + list(QUATERNION_COLUMNS) + ["group"]
+
+
+def is_counts(units) -> bool:
+    """True if ``units`` names raw sensor counts (``counts``)."""
+    return units is not None and str(units).strip().lower() in COUNT_UNITS
+
+
+def parse_lsb(value, where="--lsb"):
+    """The LSB of raw counts in nT per count, from a number or its text.
+
+    Raises
+    ------
+    DatasetError
+        Unless it is a positive finite number.
+    """
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else _strict_float(str(value))
+    if number is None or not np.isfinite(number) or number <= 0:
+        raise DatasetError(
+            f"{where}: {value!r} must be a positive number of nT per count (e.g. 150 for 0.15 uT/LSB, "
+            "or 91.74 for a part giving 1090 LSB/G)"
+        )
+    return float(number)
+
+
+def parse_units(units, where="--units", lsb_nT=None):
+    """Factor (nT per unit) for a unit name such as ``nT``, ``uT``, ``G``, ``mG``, or ``counts`` with an LSB.
+
+    Parameters
+    ----------
+    units : str
+        The unit name (case-insensitive).
+    where : str
+        Where the name came from, for messages.
+    lsb_nT : float, optional
+        nT per count; needed for ``counts`` (raw sensor counts), whose factor it is.
+
+    Raises
+    ------
+    DatasetError
+        For an unknown unit, or ``counts`` without an LSB.
+    """
+    key = str(units).strip()
+    if is_counts(key):
+        if lsb_nT is None:
+            raise DatasetError(
+                f"{where}: readings in raw counts need the LSB in nT per count: pass --lsb NT_PER_COUNT or add a "
+                "'# lsb_nT: ...' line to the file (e.g. 150 for 0.15 uT/LSB; see the sensor's data sheet)"
+            )
+        return parse_lsb(lsb_nT, where="lsb_nT")
+    factor = UNIT_FACTORS_nT.get(key.lower())
+    if factor is None:
+        raise DatasetError(
+            f"{where}: unknown unit {units!r}; use one of {', '.join(UNIT_NAMES)} (nT is the default), or counts "
+            "with --lsb for raw sensor counts"
+        )
+    return factor
+
+
+def parse_column_mapping(text):
+    """Parse a CLI column mapping ``"x=magX,y=magY,z=magZ,t=time"`` into ``{"s1x": "magX", ...}``.
+
+    Parameters
+    ----------
+    text : str
+        Comma-separated ``canonical=file_column`` pairs. Bare ``x,y,z`` mean sensor 1.
+
+    Raises
+    ------
+    DatasetError
+        If a pair is malformed or names an unknown canonical column.
+    """
+    mapping = {}
+    if text is None or not str(text).strip():
+        return mapping
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise DatasetError(
+                f"--columns: {part!r} is not of the form name=file_column (e.g. x=magX,y=magY,z=magZ,t=time)"
+            )
+        key, value = (s.strip() for s in part.split("=", 1))
+        if not key or not value:
+            raise DatasetError(f"--columns: {part!r} has an empty name; write name=file_column")
+        mapping[key] = value
+    return _normalise_mapping(mapping, "--columns")
+
+
+def _normalise_mapping(columns, where):
+    allowed = set(canonical_columns())
+    out = {}
+    for key, value in dict(columns).items():
+        k = str(key).strip()
+        if k in SENSOR_AXES:
+            k = f"s1{k}"
+        if k not in allowed:
+            raise DatasetError(
+                f"{where}: {key!r} is not a magcal column; map onto one of "
+                f"s1x..s4z (or x,y,z), {', '.join(CHANNEL_COLUMNS)}, {', '.join(QUATERNION_COLUMNS)}, group"
+            )
+        if k in out:
+            raise DatasetError(f"{where}: column {k} is mapped twice")
+        out[k] = str(value).strip()
+    if len(set(out.values())) != len(out):
+        dup = sorted({v for v in out.values() if list(out.values()).count(v) > 1})
+        raise DatasetError(f"{where}: file column(s) {', '.join(dup)} mapped to more than one magcal column")
+    return out
+
+
+@dataclass
+class Layout:
+    """Where each magcal quantity sits in a file's columns (0-based indices into the header)."""
+
+    header: list
+    sensors: list  # per sensor: (ix, iy, iz)
+    channels: dict = field(default_factory=dict)  # canonical name -> index (t, temp, ref_total)
+    quaternion: tuple | None = None
+    group: int | None = None
+    extra: dict = field(default_factory=dict)  # file column name -> index
+
+    @property
+    def n_sensors(self):
+        return len(self.sensors)
+
+    @property
+    def numeric(self):
+        """(index, canonical name) of every column that must hold finite numbers."""
+        cols = []
+        for i, idx in enumerate(self.sensors):
+            cols += [(j, f"s{i + 1}{a}") for j, a in zip(idx, SENSOR_AXES)]
+        cols += [(j, name) for name, j in self.channels.items()]
+        if self.quaternion:
+            cols += [(j, name) for j, name in zip(self.quaternion, QUATERNION_COLUMNS)]
+        return cols
+
+
+def _find_layout(header, columns, source, header_line=1):
+    """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name."""
+    names = list(header)
+    index = {}
+    for j, name in enumerate(names):
+        if not name:
+            continue
+        if name in index:
+            raise DatasetError(
+                f"{source}: line {header_line} (the header): column {name!r} appears twice (columns {index[name] + 1} "
+                f"and {j + 1}); rename one of them"
+            )
+        index[name] = j
+    canonical = {}  # canonical name -> file index
+    mapped_files = set()
+    if columns:
+        mapping = _normalise_mapping(columns, "column mapping")
+        for canon, file_name in mapping.items():
+            if file_name not in index:
+                raise DatasetError(
+                    f"{source}: the column mapping names {file_name!r} (for {canon}) but the file has no such column; "
+                    f"its columns are: {', '.join(names)}"
+                )
+            canonical[canon] = index[file_name]
+            mapped_files.add(file_name)
+    for j, name in enumerate(names):
+        if name in mapped_files:
+            continue
+        key = name
+        if key in SENSOR_AXES:
+            key = f"s1{key}"
+            if any(_SENSOR_RE.match(n) for n in names):  # s1x... and bare x: keep x as an extra column
+                warnings.warn(
+                    f"{source}: the file has both s1x-style columns and a bare {name!r} column; {name!r} is kept "
+                    "as an unused column", DataWarning, stacklevel=4,
+                )
+                continue
+        if key in canonical:
+            continue  # a mapped column took this role; the file's own column is kept as an extra
+        if key in set(canonical_columns()):
+            canonical[key] = j
+    for name in names:
+        m = re.match(r"^s(\d+)[xyz]$", name)
+        if m and not 1 <= int(m.group(1)) <= MAX_SENSORS and name not in mapped_files:
+            raise DatasetError(
+                f"{source}: column {name!r} names sensor {int(m.group(1))}; magcal handles sensors 1 to "
+                f"{MAX_SENSORS} (s1x .. s{MAX_SENSORS}z). Rename or remove it"
+            )
+    sensors = []
+    present = sorted({int(m.group(1)) for m in map(_SENSOR_RE.match, canonical) if m})
+    if not present:
+        raise DatasetError(
+            f"{source}: no magnetometer columns; the header is {', '.join(names) or '(empty)'}. Name the columns "
+            "s1x,s1y,s1z (... s4x,s4y,s4z) or x,y,z, or map yours with --columns x=magX,y=magY,z=magZ"
+        )
+    if present[-1] > MAX_SENSORS:
+        raise DatasetError(f"{source}: sensor {present[-1]} found; magcal handles one to four sensors (s1..s4)")
+    if present != list(range(1, len(present) + 1)):
+        missing = sorted(set(range(1, present[-1] + 1)) - set(present))
+        raise DatasetError(
+            f"{source}: sensor columns for sensor(s) {', '.join(map(str, present))} but not for "
+            f"{', '.join(map(str, missing))}; sensors are numbered by position (1 +x, 2 +y, 3 -x, 4 -y), so add the "
+            "missing sensor's columns or map yours onto s1.. with --columns"
+        )
+    for i in present:
+        need = [f"s{i}{a}" for a in SENSOR_AXES]
+        lacking = [n for n in need if n not in canonical]
+        if lacking:
+            raise DatasetError(
+                f"{source}: sensor {i} lacks column(s) {', '.join(lacking)}; every sensor needs x, y and z "
+                f"(header: {', '.join(names)})"
+            )
+        sensors.append(tuple(canonical[n] for n in need))
+    channels = {name: canonical[name] for name in CHANNEL_COLUMNS if name in canonical}
+    q = [name for name in QUATERNION_COLUMNS if name in canonical]
+    if q and len(q) != 4:
+        raise DatasetError(
+            f"{source}: attitude needs all four columns qw,qx,qy,qz; found only {', '.join(q)}"
+        )
+    quaternion = tuple(canonical[n] for n in QUATERNION_COLUMNS) if q else None
+    used = set(canonical.values())
+    extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
+    return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra)
+
+
+def _strict_float(text):
+    """``float(text)`` for plain ASCII decimal numbers; ``None`` for anything else."""
+    s = text.strip()
+    if not s or "_" in s or not s.isascii():
+        return None
+    try:
+        return float(s)
+    except ValueError:
+        return None
+
+
+@dataclass
+class Chunk:
+    """One block of rows of a file: the dataset, the raw lines and their 1-based line numbers."""
+
+    dataset: Dataset
+    lines: list
+    line_numbers: np.ndarray
+
+
+class _FileLines:
+    """The lines (UTF-8 bytes, line ends kept) of a caller's file object, binary or text, read block by block.
+
+    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. Closing it
+    leaves the caller's file open.
+    """
+
+    _BLOCK = 1 << 20
+
+    def __init__(self, fh, source):
+        self._fh = fh
+        self._source = source
+        self._lines = collections.deque()
+        self._tail = b""
+        self.head = self._read(_BINARY_PROBE)
+        self._take(self.head)
+
+    def _read(self, n):
+        try:
+            data = self._fh.read(n)
+        except UnicodeDecodeError as exc:  # a text file opened with another encoding than the file's
+            raise DatasetError(
+                f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as "
+                "binary"
+            ) from None
+        if isinstance(data, str):
+            return data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
+        return bytes(data or b"")
+
+    def _take(self, data):
+        parts = (self._tail + data).split(b"\n")
+        self._tail = parts.pop()  # an unfinished line waits for the next block
+        self._lines.extend(part + b"\n" for part in parts)
+
+    def _fill(self):
+        while not self._lines:
+            more = self._read(self._BLOCK)
+            if not more:
+                if self._tail:
+                    self._lines.append(self._tail)
+                    self._tail = b""
+                return
+            self._take(more)
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        self._fill()
+        if not self._lines:
+            raise StopIteration
+        return self._lines.popleft()
+
+    def readline(self):
+        return next(self, b"")
+
+    def close(self):
+        self._fh = None
+
+
+class CsvSource:
+    """An open magcal CSV file: metadata and header are read at once, the rows in chunks.
+
+    Parameters
+    ----------
+    path : str, os.PathLike or file object
+        A path, or an open file (binary, or text) with ``read``: an upload's ``io.BytesIO``, an ``io.StringIO``,
+        ``open(path, "rb")``. A file object is read from where it stands and left open.
+    columns : dict, optional
+        Mapping canonical name -> file column name (``{"s1x": "magX"}``; ``x`` means ``s1x``).
+    units : str, optional
+        Unit of the readings (nT, uT, G, mG, or counts); overrides the file's ``# units:`` line.
+    name : str, optional
+        What messages and :attr:`Dataset.source` call the file (e.g. an upload's file name); default the path, or
+        the file object's ``name``.
+    lsb_nT : float or str, optional
+        nT per count for readings in raw counts; overrides the file's ``# lsb_nT:`` line. Refused unless the
+        readings are in counts. The LSB used is kept as the metadata ``lsb_nT`` of the datasets.
+
+    Use as a context manager, or call :meth:`close`.
+    """
+
+    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None):
+        self.metadata = {}
+        self.metadata_lines = []
+        self._file = None
+        self._lineno = 0
+        if hasattr(path, "read"):
+            self.path = None
+            self.source = str(name or getattr(path, "name", None) or "<file object>")
+            self._file = _FileLines(path, self.source)
+            head = self._file.head
+        else:
+            self.path = os.fspath(path)
+            self.source = str(name or self.path)
+            head = self._probe_path()
+        try:
+            self._check_head(head)
+            if self._file is None:
+                try:
+                    self._file = open(self.path, "rb")
+                except OSError as exc:
+                    raise DatasetError(
+                        f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path") from None
+            self._read_head()
+            self.layout = _find_layout(self.header, columns, self.source, self.header_line)
+            self._resolve_units(units, lsb_nT)
+        except BaseException:
+            self.close()
+            raise
+        self._last_time = None
+        self._last_time_line = None
+
+    # -- file head ----------------------------------------------------------------------------------------------
+    def _probe_path(self):
+        """The first bytes of the file at :attr:`path` (a clear error for a folder or a missing file)."""
+        try:
+            if os.path.isdir(self.path):
+                raise DatasetError(f"{self.source}: is a directory, not a CSV file")
+            with open(self.path, "rb") as fh:
+                return fh.read(_BINARY_PROBE)
+        except FileNotFoundError:
+            raise DatasetError(f"{self.source}: no such file; check the path") from None
+        except OSError as exc:
+            raise DatasetError(f"{self.source}: cannot read the file ({exc.strerror or exc})") from None
+
+    def _check_head(self, head):
+        if not head.strip():
+            raise DatasetError(
+                f"{self.source}: the file is empty; it needs a header row (e.g. s1x,s1y,s1z) and data rows"
+            )
+        if b"\x00" in head:
+            raise DatasetError(
+                f"{self.source}: this looks like a binary file (it contains NUL bytes), not CSV text; export the "
+                "data as UTF-8 CSV (docs/formats.md)"
+            )
+        if b"\r" in head and b"\n" not in head and len(head.strip().splitlines()) > 1:
+            raise DatasetError(
+                f"{self.source}: the lines end with a lone carriage return (old Mac style); convert the file to "
+                "Unix or Windows line endings"
+            )
+
+    def _decode(self, raw, line_no):
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise DatasetError(
+                f"{self.source}: line {line_no} is not UTF-8 text ({exc.reason} at byte {exc.start} of the line); "
+                "this looks like a binary file or another encoding: save it as UTF-8 CSV"
+            ) from None
+        if line_no == 1 and text.startswith("\ufeff"):
+            text = text[1:]
+        return text.rstrip("\n").rstrip("\r")
+
+    def _readline(self):
+        raw = self._file.readline()
+        if not raw:
+            return None
+        self._lineno += 1
+        return self._decode(raw, self._lineno)
+
+    def _read_head(self):
+        while True:
+            text = self._readline()
+            if text is None:
+                raise DatasetError(
+                    f"{self.source}: no header row found (only blank or # lines); add a header such as s1x,s1y,s1z"
+                )
+            if not text.strip():
+                continue
+            if text.lstrip().startswith("#"):
+                self.metadata_lines.append(text)
+                body = text.lstrip()[1:]
+                if ":" in body:
+                    key, value = body.split(":", 1)
+                    key, value = key.strip(), value.strip()
+                    if key:
+                        if key in self.metadata and self.metadata[key] != value:
+                            warnings.warn(
+                                f"{self.source}: line {self._lineno}: metadata {key!r} given twice; the last value "
+                                f"{value!r} is used", DataWarning, stacklevel=3,
+                            )
+                        self.metadata[key] = value
+                        self._check_metadata(key, value)
+                continue
+            break
+        self.header_line = self._lineno
+        if "\x00" in text:
+            raise DatasetError(f"{self.source}: line {self._lineno} contains NUL bytes; this is not a CSV text file")
+        try:
+            header = next(csv.reader([text]))
+        except csv.Error as exc:
+            raise DatasetError(f"{self.source}: line {self._lineno}: the header cannot be read as CSV ({exc})") from None
+        self.header = [h.strip() for h in header]
+        if all(_strict_float(h) is not None for h in self.header):
+            raise DatasetError(
+                f"{self.source}: line {self._lineno} is the first non-comment line but holds only numbers; the file "
+                "needs a header row naming the columns (e.g. s1x,s1y,s1z,t)"
+            )
+
+    def _check_metadata(self, key, value):
+        if key in NUMERIC_METADATA:
+            number = _strict_float(value)
+            positive = NUMERIC_METADATA[key][1]
+            if number is None or not np.isfinite(number) or number < 0 or (positive and number == 0):
+                need = "a positive number" if positive else "a number >= 0"
+                raise DatasetError(
+                    f"{self.source}: line {self._lineno}: metadata {key}: {value!r} must be {need}"
+                    + (" in nT" if key.endswith("_nT") else " in m" if key.endswith("_m") else "")
+                )
+        elif key == "units":
+            if not is_counts(value):
+                parse_units(value, where=f"{self.source}: line {self._lineno}: metadata units")
+            self._units_line = self._lineno
+        elif key == "lsb_nT":
+            parse_lsb(value, where=f"{self.source}: line {self._lineno}: metadata lsb_nT")
+
+    def _resolve_units(self, units, lsb_nT=None):
+        """Set :attr:`units`, :attr:`unit_factor` (nT per unit) and :attr:`lsb_nT` (None unless counts)."""
+        file_units = self.metadata.get("units")
+        file_lsb = self.metadata.get("lsb_nT")
+        given = units is not None and bool(str(units).strip())
+        self.units = str(units).strip() if given else file_units if file_units is not None else "nT"
+        counts = is_counts(self.units)
+        lsb = None
+        if lsb_nT is not None and str(lsb_nT).strip():
+            lsb = parse_lsb(lsb_nT, where=f"{self.source}: --lsb")
+            if not counts:
+                origin = "--units" if given else "the file's units line" if file_units is not None else "the default"
+                raise DatasetError(
+                    f"{self.source}: --lsb {lsb_nT} applies to readings in raw counts, but they are in {self.units} "
+                    f"({origin}); add --units counts if the readings are counts, or leave out --lsb"
+                )
+            if file_lsb is not None and parse_lsb(file_lsb) != lsb:
+                warnings.warn(f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'",
+                              DataWarning, stacklevel=3)
+        elif counts and file_lsb is not None:
+            lsb = parse_lsb(file_lsb)
+        if given:
+            where = f"{self.source}: --units {self.units}"
+        elif file_units is not None:
+            where = f"{self.source}: line {self._units_line}: metadata units"
+        else:
+            where = f"{self.source}: units"
+        self.unit_factor = parse_units(self.units, where=where, lsb_nT=lsb)
+        if given and file_units is not None:
+            same = is_counts(file_units) == counts and (counts or parse_units(file_units) == self.unit_factor)
+            if not same:
+                warnings.warn(f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
+                              DataWarning, stacklevel=3)
+        self.lsb_nT = lsb if counts else None
+        if self.lsb_nT is not None:
+            self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
+
+    # -- rows --------------------------------------------------------------------------------------------------
+    def _read_lines(self, n):
+        """Up to ``n`` non-blank lines (text without line ends) and their 1-based line numbers."""
+        raws = list(itertools.islice(self._file, int(n)))
+        if not raws:
+            return [], np.zeros(0, dtype=np.int64)
+        first = self._lineno + 1
+        self._lineno += len(raws)
+        try:
+            text = b"".join(raws).decode("utf-8")
+        except UnicodeDecodeError:
+            for k, raw in enumerate(raws):
+                self._decode(raw, first + k)  # raises with the exact line number
+            raise
+        lines = text.split("\n")
+        if text.endswith("\n"):
+            lines.pop()
+        if "\r" in text:
+            lines = [line.rstrip("\r") for line in lines]
+        numbers = np.arange(first, first + len(lines), dtype=np.int64)
+        keep = [bool(line.strip()) for line in lines]
+        if not all(keep):
+            lines = [line for line, k in zip(lines, keep) if k]
+            numbers = numbers[np.asarray(keep, dtype=bool)]
+        return lines, numbers
+
+    def chunks(self, chunk_rows=200_000, drop_bad=False, text_columns=True):
+        """Yield :class:`Chunk` objects of up to ``chunk_rows`` rows.
+
+        Parameters
+        ----------
+        chunk_rows : int
+            Rows per chunk.
+        drop_bad : bool
+            Drop rows with NaN, inf, empty cells or text in numeric columns (with a :class:`DataWarning`) instead
+            of refusing the file.
+        text_columns : bool
+            Also read the ``group`` and unused columns (``Dataset.group``, ``Dataset.extra``).
+        """
+        while True:
+            lines, numbers = self._read_lines(int(chunk_rows))
+            if not lines:
+                return
+            yield self._parse(lines, numbers, drop_bad, text_columns)
+
+    def _parse(self, lines, numbers, drop_bad, text_columns):
+        layout = self.layout
+        ncol = len(layout.header)
+        num = layout.numeric
+        values = None
+        fast = not any('"' in line for line in lines)
+        if fast:
+            commas = np.fromiter((line.count(",") for line in lines), dtype=np.int64, count=len(lines))
+            fast = bool(np.all(commas == ncol - 1))
+        if fast:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    values = np.loadtxt(lines, delimiter=",", usecols=[j for j, _ in num], dtype=float,
+                                        comments=None, ndmin=2, quotechar='"')
+            except (ValueError, TypeError, IndexError):
+                values = None
+            if values is not None and values.shape != (len(lines), len(num)):
+                values = None
+            if values is not None and not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+                values = None
+        rows = None
+        if values is None:
+            rows, values, keep = self._parse_carefully(lines, numbers, drop_bad)
+            lines = [line for line, k in zip(lines, keep) if k]
+            numbers = numbers[keep]
+            rows = [r for r, k in zip(rows, keep) if k]
+        text = {}
+        if text_columns and (layout.group is not None or layout.extra):
+            want = ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
+            if rows is None:
+                rows = self._split(lines, numbers)
+            for j in want:
+                text[j] = np.array([r[j].strip() for r in rows], dtype=str) if rows else np.array([], dtype=str)
+        ds = self._dataset(values, text, numbers)
+        return Chunk(ds, lines, numbers)
+
+    def _split(self, lines, numbers):
+        rows = []
+        try:
+            for row, line_no in zip(csv.reader(lines), numbers):
+                rows.append(row)
+        except csv.Error as exc:
+            raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+        return rows
+
+    def _parse_carefully(self, lines, numbers, drop_bad):
+        layout = self.layout
+        ncol = len(layout.header)
+        num = layout.numeric
+        rows = []
+        problems = []  # (line, message)
+        values = np.empty((len(lines), len(num)))
+        keep = np.ones(len(lines), dtype=bool)
+        reader = csv.reader(lines)
+        for k, line_no in enumerate(numbers):
+            try:
+                row = next(reader)
+            except csv.Error as exc:
+                raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+            rows.append(row)
+            if len(row) != ncol:
+                raise DatasetError(
+                    f"{self.source}: line {line_no} has {len(row)} field(s) but the header (line {self.header_line}) "
+                    f"has {ncol}; every row needs one value per column (check for a missing or extra comma)"
+                )
+            bad = None
+            for m, (j, name) in enumerate(num):
+                number = _strict_float(row[j])
+                if number is None:
+                    cell = row[j].strip()
+                    bad = f"column {name}: " + (f"{cell[:40]!r} is not a number" if cell else "empty cell")
+                    break
+                if not np.isfinite(number):
+                    bad = f"column {name}: {row[j].strip()!r} is not a finite number"
+                    break
+                if abs(number) > MAX_ABS_VALUE:
+                    bad = (f"column {name}: {row[j].strip()[:40]!r} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
+                           "reading in any unit (a corrupted value)")
+                    break
+                values[k, m] = number
+            if bad is not None:
+                keep[k] = False
+                problems.append((int(line_no), bad))
+        if problems:
+            shown = "; ".join(f"line {ln}, {msg}" for ln, msg in problems[:_MAX_SHOWN])
+            more = f" (and {len(problems) - _MAX_SHOWN} more)" if len(problems) > _MAX_SHOWN else ""
+            if not drop_bad:
+                raise DatasetError(
+                    f"{self.source}: {len(problems)} row(s) with bad values: {shown}{more}. Fix or delete these rows, "
+                    "or drop them with --drop-bad (drop_bad=True)"
+                )
+            warnings.warn(
+                f"{self.source}: dropped {len(problems)} row(s) with bad values: {shown}{more}",
+                DataWarning, stacklevel=4,
+            )
+        return rows, values[keep], keep
+
+    def _dataset(self, values, text, numbers):
+        layout = self.layout
+        n = values.shape[0]
+        pos = {name: m for m, (_, name) in enumerate(layout.numeric)}
+        readings = np.stack(
+            [values[:, [pos[f"s{i + 1}{a}"] for a in SENSOR_AXES]] for i in range(layout.n_sensors)]
+        ).reshape(layout.n_sensors, n, 3) * self.unit_factor
+        kwargs = {attr: values[:, pos[name]] for name, attr in CHANNEL_COLUMNS.items() if name in layout.channels}
+        if layout.quaternion is not None:
+            q = values[:, [pos[name] for name in QUATERNION_COLUMNS]]
+            norm = np.linalg.norm(q, axis=1)
+            zero = norm < 1e-12
+            if zero.any():
+                raise DatasetError(
+                    f"{self.source}: line {numbers[np.argmax(zero)]}: the attitude quaternion qw,qx,qy,qz is zero; "
+                    "give a unit quaternion (array frame to world frame)"
+                )
+            if np.any(np.abs(norm - 1.0) > 1e-3):
+                worst = int(np.argmax(np.abs(norm - 1.0)))
+                warnings.warn(
+                    f"{self.source}: attitude quaternions are not unit length (line {numbers[worst]}: "
+                    f"|q| = {norm[worst]:.4g}); they are normalised", DataWarning, stacklevel=4,
+                )
+            off = np.abs(norm - 1.0) > 1e-9
+            if off.any():
+                q = q.copy()
+                q[off] /= norm[off, None]
+            kwargs["attitude_wxyz"] = q
+        if "t" in layout.channels:
+            self._check_time(kwargs["time_s"], numbers)
+        if layout.group is not None and layout.group in text:
+            kwargs["group"] = text[layout.group]
+        extra = {}
+        for name, j in layout.extra.items():
+            if j in text:
+                extra[name] = _maybe_numeric(text[j])
+        meta_numbers = {}
+        for key, (attr, _) in NUMERIC_METADATA.items():
+            if key in self.metadata:
+                meta_numbers[attr] = float(self.metadata[key])
+        return Dataset(
+            readings_nT=readings, metadata=dict(self.metadata), extra=extra, source=self.source,
+            **kwargs, **meta_numbers,
+        )
+
+    def _check_time(self, t, numbers):
+        if t.size == 0:
+            return
+        prev = np.concatenate([[self._last_time], t[:-1]]) if self._last_time is not None else None
+        if prev is None:
+            steps = np.diff(t)
+            bad = np.flatnonzero(steps <= 0) + 1
+            prev_lines = numbers[:-1]
+            prev_t = t[:-1]
+            offset = 1
+        else:
+            steps = t - prev
+            bad = np.flatnonzero(steps <= 0)
+            prev_lines = np.concatenate([[self._last_time_line], numbers[:-1]])
+            prev_t = prev
+            offset = 0
+        if bad.size:
+            k = int(bad[0])
+            p = k - offset
+            kind = "repeats" if t[k] == prev_t[p] else "goes back from"
+            raise DatasetError(
+                f"{self.source}: line {numbers[k]}, column t: time {t[k]:.9g} s {kind} {prev_t[p]:.9g} s on line "
+                f"{prev_lines[p]}; time stamps must increase strictly ({bad.size} such row(s) in this block). Sort the "
+                "file by time, remove duplicated rows, or rename the t column if it is not a time stamp"
+            )
+        self._last_time = float(t[-1])
+        self._last_time_line = int(numbers[-1])
+
+    def close(self):
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _maybe_numeric(strings):
+    """A float array if every entry is a plain number, else the strings."""
+    if strings.size == 0:
+        return strings
+    values = [_strict_float(s) for s in strings]
+    if any(v is None for v in values):
+        return strings
+    return np.asarray(values, dtype=float)
+
+
+def concatenate(datasets):
+    """Join datasets with the same layout along the sample axis (metadata of the first)."""
+    first = datasets[0]
+    if len(datasets) == 1:
+        return first
+
+    def cat(attr):
+        arrays = [getattr(d, attr) for d in datasets]
+        return None if arrays[0] is None else np.concatenate(arrays)
+
+    extra = {}
+    for name in first.extra:
+        parts = [d.extra[name] for d in datasets]
+        if any(p.dtype.kind in "US" for p in parts):
+            parts = [p.astype(str) for p in parts]
+        extra[name] = np.concatenate(parts)
+    return first.replace(
+        readings_nT=np.concatenate([d.readings_nT for d in datasets], axis=1),
+        time_s=cat("time_s"), temperature_C=cat("temperature_C"), ref_total_nT=cat("ref_total_nT"),
+        attitude_wxyz=cat("attitude_wxyz"), group=cat("group"), extra=extra,
+    )
+
+
+def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
+    """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit (or another LSB).
+
+    The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
+    usually means a wrong ``units`` line, or for raw counts a wrong LSB. The magnitude is taken about the readings'
+    fitted centre (:func:`magcal.checks.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
+    error. ``lsb_nT`` (nT per count) defaults to the dataset's metadata ``lsb_nT`` for ``units="counts"``.
+    Returns the warning text, or ``None``.
+    """
+
+    r = dataset.readings_nT
+    if r.size == 0:
+        return None
+    median = float(np.median([field_magnitude_nT(y) for y in r]))  # about the fitted centre: hard iron removed
+    lo, hi = EARTH_FIELD_RANGE_nT
+    if 0.5 * lo <= median <= 1.5 * hi:
+        return None
+    if is_counts(units):
+        lsb = lsb_nT if lsb_nT is not None else dataset.metadata.get("lsb_nT")
+        factor = parse_units(units, where=f"{source or dataset.source or 'dataset'}: units", lsb_nT=lsb)
+        raw = median / factor
+        hint = (f"check the LSB: {factor:.4g} nT per count is given, and about {50_000.0 / raw:.3g} nT per count "
+                "would put the field at 50 uT (or the sensor is not in the Earth's field)")
+    else:
+        factor = parse_units(units)
+        raw = median / factor
+        guesses = [name for name, f in UNIT_NAMES.items() if lo <= raw * f <= hi and f != factor]
+        hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' "
+                "line)" if guesses else
+                "check the units (nT, uT, G, mG, or counts with --lsb) and that the sensor is in the Earth's field")
+    value = f"{median:.4g} nT" if factor == 1.0 else f"{raw:.4g} {units} = {median:.4g} nT"
+    msg = (f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
+           f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}")
+    warnings.warn(msg, DataWarning, stacklevel=stacklevel)
+    return msg
+
+
+def require_samples(dataset, n_params, what="this model"):
+    """Raise :class:`DatasetError` unless every sensor has more samples than ``n_params``.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    n_params : int
+        Number of parameters fitted per sensor (9 for bias, scale and non-orthogonality).
+    what : str
+        The model's name, for the message.
+    """
+    need = int(n_params) + 1
+    if dataset.n_samples < need:
+        raise DatasetError(
+            f"{dataset.source or 'dataset'}: {dataset.n_samples} sample(s) is too few for {what} "
+            f"({n_params} parameters per sensor need at least {need}, and a good fit several times that); "
+            "record more attitudes"
+        )
+
+
+def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None,
+             lsb_nT=None):
+    """Read a magcal CSV file into a :class:`~magcal.data.dataset.Dataset` (readings in nT).
+
+    Parameters
+    ----------
+    path : str, os.PathLike or file object
+        The file, or an open binary or text file object (``io.BytesIO(uploaded_bytes)``, ``io.StringIO(text)``).
+        A path ending in ``.bin`` (ArduPilot DataFlash) or ``.ulg`` (PX4 ULog) is read by
+        :func:`magcal.data.logs.read_log` (the options below but ``name`` and ``min_samples`` do not apply); one ending
+        in ``.parquet`` by :func:`read_parquet` (the CSV's columns and metadata, in Parquet).
+    columns : dict or str, optional
+        Column mapping canonical -> file name, e.g. ``{"s1x": "magX", "t": "time"}`` or the CLI form
+        ``"x=magX,y=magY,z=magZ,t=time"``.
+    units : str, optional
+        Unit of the readings: ``nT`` (default), ``uT``, ``G``, ``mG``, or ``counts`` (raw sensor counts, with an
+        LSB); overrides the file's ``# units:`` line.
+    drop_bad : bool
+        Drop rows whose numeric columns hold NaN, inf, empty cells or text, with a :class:`DataWarning`;
+        otherwise such rows make the whole file refused.
+    min_samples : int
+        Fewest samples accepted (after dropping rows).
+    name : str, optional
+        What messages and ``Dataset.source`` call the file; default the path (or the file object's ``name``).
+    lsb_nT : float or str, optional
+        nT per count for ``counts``; overrides the file's ``# lsb_nT:`` line (kept as metadata ``lsb_nT``). An error
+        unless the readings are in counts.
+
+    Returns
+    -------
+    Dataset
+        ``source`` is the path (or ``name``), ``metadata`` holds every ``# key: value`` line as text.
+
+    Raises
+    ------
+    DatasetError
+        For any problem with the file, naming the file, line (1-based) and column, and what to do.
+    """
+
+    if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.data.logs reads it, in nT
+        return read_log(path, name=name, min_samples=min_samples)
+    if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
+        return read_parquet(path, name=name)
+    if isinstance(columns, str):
+        columns = parse_column_mapping(columns)
+    if not hasattr(path, "read") and not drop_bad:
+        ds = _read_csv_arrow(path, columns, units, name, lsb_nT)  # None: take the line-by-line reader
+        if ds is not None:
+            if ds.n_samples >= int(min_samples):
+                return ds
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+        parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
+        if not parts:
+            raise DatasetError(
+                f"{src.source}: no data rows after the header (line {src.header_line}); the file has no samples"
+            )
+        ds = concatenate(parts)
+        if ds.n_samples < int(min_samples):
+            dropped = " after dropping bad rows" if drop_bad else ""
+            raise DatasetError(
+                f"{src.source}: {ds.n_samples} sample(s){dropped}, fewer than the {int(min_samples)} needed; "
+                "record more attitudes"
+            )
+        check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT)
+    return ds
+
+
+def _read_csv_arrow(path, columns, units, name, lsb_nT):
+    """The whole file read by pyarrow's CSV reader when it is clean, else None (the caller then reads it line by
+    line, which finds and names every problem).
+
+    The head (metadata, header, layout, units) is read by :class:`CsvSource` itself, so its checks and messages
+    are the same; the data lines go to pyarrow with the numeric columns typed float64, and the values to the same
+    dataset builder as a CSV block. Anything unusual -- pyarrow missing, a field it cannot convert, a quoted or
+    short line, a non-finite value, a problem the builder would report (it names lines, which blank lines would
+    shift here) -- returns None.
+    """
+    try:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+    except ImportError:
+        return None
+    with warnings.catch_warnings(record=True) as head_warnings:
+        warnings.simplefilter("always")
+        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+            header_line = src.header_line
+            layout, header = src.layout, list(src.header)
+    if head_warnings or len(set(header)) != len(header) or any(not h for h in header):
+        return None
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            raw = fh.read()
+        offset = 0
+        for _ in range(header_line):
+            offset = raw.index(b"\n", offset) + 1
+        numeric = [header[j] for j, _ in layout.numeric]
+        table = pacsv.read_csv(
+            pa.py_buffer(memoryview(raw)[offset:]),
+            read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
+            parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
+            convert_options=pacsv.ConvertOptions(column_types={h: pa.float64() for h in numeric},
+                                                 include_columns=numeric + [header[j] for j in
+                                                                           ([layout.group] if layout.group is not
+                                                                            None else []) + list(layout.extra.values())],
+                                                 strings_can_be_null=False, quoted_strings_can_be_null=False))
+    except (ValueError, OSError, pa.ArrowException):
+        return None
+    n = table.num_rows
+    if n == 0:
+        return None
+    values = np.empty((n, len(numeric)))
+    for m, h in enumerate(numeric):
+        col = table.column(h)
+        if col.null_count:
+            return None
+        values[:, m] = col.to_numpy()
+    if not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+        return None
+    text = {j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
+            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())}
+    with warnings.catch_warnings(record=True) as build_warnings:
+        warnings.simplefilter("always")
+        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+            try:
+                ds = src._dataset(values, text, np.arange(header_line + 1, header_line + 1 + n))
+            except DatasetError:
+                return None
+            units_used, lsb_used, source = src.units, src.lsb_nT, src.source
+    if build_warnings:
+        return None  # e.g. quaternions normalised: the line-by-line reader warns with the right line numbers
+    for w in head_warnings:
+        warnings.warn(w.message, w.category, stacklevel=3)
+    check_units(ds, units_used, source, stacklevel=4, lsb_nT=lsb_used)
+    return ds
+
+
+# -- writing --------------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_write(path, mode="w", encoding="utf-8", newline=""):
+    """Open a temporary file beside ``path``; on success it is flushed to disk (``fsync``) and replaces ``path``
+    (``os.replace``), else it is removed, so ``path`` holds either its old content or the whole new one.
+
+    The one atomic writer of magcal: CSV and Parquet outputs, calibration files and workbench sessions use it.
+
+    Yields the open file object.
+    """
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    except OSError as exc:
+        raise MagcalError(f"{path}: cannot write here ({exc.strerror or exc}); check the directory") from None
+    try:
+        kwargs = {} if "b" in mode else {"encoding": encoding, "newline": newline}
+        with os.fdopen(fd, mode, **kwargs) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def format_column(values, float_format=None):
+    """Text of one column: floats in the shortest exact form (or ``float_format``), other values as text."""
+    a = np.asarray(values)
+    if a.dtype.kind in "fiub":
+        a = a.astype(float)
+        if float_format is None:
+            return a.astype(str)
+        return np.char.mod(float_format, a)
+    return a.astype(str)
+
+
+def metadata_text(metadata):
+    """``# key: value`` lines (with newline) for a metadata dict; line breaks inside values become spaces."""
+    out = []
+    for key, value in metadata.items():
+        key = " ".join(str(key).replace(":", " ").split())
+        value = " ".join(str(value).splitlines())
+        if key:
+            out.append(f"# {key}: {value}\n")
+    return "".join(out)
+
+
+def write_rows(fh, columns, float_format=None):
+    """Write the data rows (no header) of an ordered mapping name -> array to an open text file."""
+    texts = [format_column(v, float_format) for v in columns.values()]
+    if not texts:
+        return
+    writer = csv.writer(fh, lineterminator="\n")
+    writer.writerows(zip(*texts))
+
+
+def write_csv(path, data, metadata=None, float_format=None):
+    """Write a dataset, or an ordered mapping of columns, as a magcal CSV file (atomically).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    data : Dataset or dict of str to array_like
+        A dataset is written in the documented layout with readings in nT; a mapping is written column by column
+        in its order.
+    metadata : dict, optional
+        ``# key: value`` lines; for a dataset they are added to (and override) the dataset's own.
+    float_format : str, optional
+        printf-style format for numbers (e.g. ``"%.6f"``); the default writes the shortest text that reads back
+        to the same float.
+    """
+    if isinstance(data, Dataset):
+        columns = dataset_columns(data)
+        meta = dataset_metadata(data)
+        meta.update(metadata or {})
+    else:
+        columns = {str(k): np.asarray(v) for k, v in dict(data).items()}
+        lengths = {len(v) for v in columns.values()}
+        if len(lengths) > 1:
+            raise DatasetError(f"{path}: columns of different lengths {sorted(lengths)} cannot be written as one table")
+        meta = dict(metadata or {})
+    with atomic_write(path) as fh:
+        fh.write(metadata_text(meta))
+        csv.writer(fh, lineterminator="\n").writerow(list(columns))
+        write_rows(fh, columns, float_format)
+
+
+# -- Parquet ----------------------------------------------------------------------------------------------------------
+#: File endings read and written as Parquet (case-insensitive).
+PARQUET_EXTENSIONS = (".parquet", ".pq")
+#: The key of the schema's key-value metadata that holds the data CSV's ``# key: value`` lines (a JSON object).
+PARQUET_METADATA_KEY = b"magcal"
+
+
+def is_parquet(path) -> bool:
+    """True if ``path`` names a Parquet file (by its ending)."""
+    return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(PARQUET_EXTENSIONS)
+
+
+def _pyarrow(source):
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError:
+        raise DatasetError(f"{source}: Parquet files need pyarrow: pip install \"magcal[survey]\"") from None
+    return pyarrow
+
+
+def parquet_metadata(schema) -> dict:
+    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none)."""
+    import json
+
+    raw = (schema.metadata or {}).get(PARQUET_METADATA_KEY)
+    if not raw:
+        return {}
+    doc = json.loads(raw.decode("utf-8"))
+    return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+
+
+class ParquetSource:
+    """A Parquet file read by record batches through the CSV reader's own layout, units and checks.
+
+    The metadata and the column names are given to a :class:`CsvSource` as a CSV head with no rows (so the layout,
+    the units, the metadata checks are the CSV's, and the same messages); each batch's numeric columns then go to
+    the same dataset builder as a CSV block. A value that is not a finite number is refused naming the file, the
+    row (1-based) and the column.
+    """
+
+    def __init__(self, path, name=None):
+        self.source = str(name or os.fspath(path))
+        _pyarrow(self.source)
+        import pyarrow.parquet as pq
+
+        try:
+            # no pre-buffering and a bounded read buffer: memory stays flat (pre-buffered, a 3e6-row file took 3x)
+            self.file = pq.ParquetFile(os.fspath(path), pre_buffer=False, buffer_size=1 << 20)
+        except FileNotFoundError:
+            raise DatasetError(f"{self.source}: no such file; check the path") from None
+        except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
+            raise DatasetError(f"{self.source}: not a readable Parquet file ({exc})") from None
+        self.metadata = parquet_metadata(self.file.schema_arrow)
+        self.header = list(self.file.schema_arrow.names)
+        head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
+        import io as _stdio
+
+        self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
+        self.layout = self._csv.layout
+
+    def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
+        """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
+        (whose first row is the file's row ``first_row``, 1-based, for messages)."""
+        layout = self.layout
+        row = int(first_row) - 1
+        for batch in self.file.iter_batches(batch_size=int(chunk_rows), row_groups=row_groups, use_threads=False):
+            n = batch.num_rows
+            values = np.empty((n, len(layout.numeric)))
+            for m, (j, name) in enumerate(layout.numeric):
+                try:
+                    col = np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
+                except (TypeError, ValueError):
+                    raise DatasetError(f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
+                                       "readings, time and channels must be numeric") from None
+                bad = ~np.isfinite(col) | (np.abs(col) > MAX_ABS_VALUE)
+                if bad.any():
+                    k = int(np.argmax(bad))
+                    raise DatasetError(f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
+                                       f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows")
+                values[:, m] = col
+            text = {}
+            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
+                text[j] = np.asarray(batch.column(j).to_numpy(zero_copy_only=False)).astype(str)
+            numbers = np.arange(row + 1, row + n + 1)
+            row += n
+            yield self._csv._dataset(values, text, numbers)
+
+
+def read_parquet(path, name=None, chunk_rows=200_000) -> Dataset:
+    """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
+
+    The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
+    kept as extra channels); the CSV's ``# key: value`` lines are the JSON object under the schema's key-value
+    metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies
+    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column.
+    """
+    src = ParquetSource(path, name)
+    parts = list(src.chunks(chunk_rows))
+    if not parts:
+        raise DatasetError(f"{src.source}: no rows; the file has no samples")
+    ds = concatenate(parts)
+    check_units(ds, src._csv.units, src.source, stacklevel=3, lsb_nT=src._csv.lsb_nT)
+    return ds
+
+
+def parquet_table(columns, metadata=None):
+    """A pyarrow Table of ``columns`` (name -> array) carrying ``metadata`` under the ``magcal`` key."""
+    import json
+
+    pa = _pyarrow("parquet")
+    table = pa.table({str(k): np.asarray(v) for k, v in columns.items()})
+    meta = {PARQUET_METADATA_KEY: json.dumps({str(k): str(v) for k, v in (metadata or {}).items()}).encode()}
+    return table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+
+
+#: Codecs of Parquet's float columns magcal writes (``compression`` of :func:`parquet_write_options`).
+PARQUET_CODECS = ("none", "snappy", "zstd", "lz4", "gzip", "brotli")
+
+#: The float columns' codec by default: snappy, Parquet's usual one. Readings and corrected vectors are float64
+#: with noise in their last digits, so it shrinks a corrected survey by only about 11 %; ``"none"`` writes faster
+#: (benchmarks/README.md), ``"zstd"`` smaller. The other columns (text, integers) are always snappy-compressed.
+PARQUET_FLOAT_CODEC = "snappy"
+
+
+def parquet_write_options(table, compression=None) -> dict:
+    """Keyword arguments of pyarrow's Parquet writers for a table of magcal columns.
+
+    Dictionary encoding only for the non-float columns (a float channel has nearly as many values as rows, so a
+    dictionary costs two thirds of the writing time and makes the file larger); the float columns compressed with
+    ``compression`` (one of :data:`PARQUET_CODECS`; default :data:`PARQUET_FLOAT_CODEC`), the others with snappy.
+    """
+    pa = _pyarrow("parquet")
+    codec = check_parquet_codec(compression)
+    floats = {f.name for f in table.schema if pa.types.is_floating(f.type)}
+    return {"use_dictionary": [f.name for f in table.schema if f.name not in floats],
+            "compression": {f.name: (codec if f.name in floats else "snappy") for f in table.schema}}
+
+
+def check_parquet_codec(compression) -> str:
+    """``compression`` (None: :data:`PARQUET_FLOAT_CODEC`) checked against :data:`PARQUET_CODECS`, lower case."""
+    codec = PARQUET_FLOAT_CODEC if compression is None else str(compression).lower()
+    if codec not in PARQUET_CODECS:
+        raise MagcalError(f"Parquet compression {compression!r}: use one of {', '.join(PARQUET_CODECS)}")
+    return codec
+
+
+def write_parquet(path, data, metadata=None) -> None:
+    """Write a dataset (or an ordered mapping of columns) as Parquet, atomically (a temporary file, then
+    ``os.replace``): the CSV's columns, readings in nT, and the metadata in the schema (``magcal`` key)."""
+    if isinstance(data, Dataset):
+        columns = dataset_columns(data)
+        meta = dataset_metadata(data)
+        meta.update(metadata or {})
+    else:
+        columns, meta = dict(data), dict(metadata or {})
+    table = parquet_table(columns, meta)
+    import pyarrow.parquet as pq
+
+    path = os.fspath(path)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        pq.write_table(table, tmp, **parquet_write_options(table))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)

@@ -1,0 +1,1075 @@
+"""Live sources: time-stamped magnetometer samples as they arrive, and a recorder that keeps every one on disk.
+
+One interface for every instrument (``docs/export.md`` has the URL forms):
+
+``serial:///dev/ttyUSB0?baud=115200&columns=x,y,z``
+    Text lines of numbers from a serial port (pyserial). Also ``&mavlink`` for MAVLink over the port.
+``udp://127.0.0.1:14550?format=lines`` / ``tcp://127.0.0.1:5760``
+    Text lines in UDP datagrams (listening on the address) or from a TCP server (connecting to it).
+``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``)
+    MAVLink (pymavlink): the magnetometer fields of ``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``
+    or ``HIGHRES_IMU`` in the units the message definition declares (mgauss, gauss), converted to nT, with the
+    temperature where the message sends one.
+``sim://chi2017?rate=50`` / ``sim://path/to/file.csv?rate=50``
+    A simulated instrument playing a preset (:func:`magcal.data.simulation.simulate_timeseries`, deterministic for a
+    given ``seed``) or a magcal CSV file in real time: for tests, teaching and demonstrations without hardware.
+
+Text-line options: ``columns`` (comma-separated names of the fields of a line: ``x,y,z`` or ``s1x..s4z``, ``t``
+in s, ``temp`` in degC, ``_`` for a field to skip; default ``x,y,z``), ``sep`` (the separator; default commas,
+semicolons, tabs or spaces), ``units`` (``nT`` default, ``uT``, ``G``, ``mG``, ``counts`` with ``lsb`` in nT per
+count), ``prefix`` (only lines starting with it are data, e.g. ``Raw:``). Without a ``t`` column the samples are
+stamped with the host's monotonic clock, in s since the source opened.
+
+:meth:`LiveSource.read` returns a :class:`LiveChunk` of whatever arrived within a timeout (possibly empty);
+iterating a source yields non-empty chunks until it ends or is closed. Lines or messages that cannot be read are
+counted in :attr:`LiveSource.stats` (with the last reason), never raised. Every wait is bounded.
+
+:class:`Recorder` appends the samples to a magcal CSV as they arrive: whole lines only, flushed to disk (``fsync``)
+at least every ``flush_interval_s``, so a recording cut by a crash or a kill reopens with
+:func:`magcal.read_csv` holding every sample up to the last flush. :class:`LiveSession` runs a source and a
+recorder in a thread with pause, resume, stop and listeners (the workbench's live view).
+
+Run ``python -m magcal.data.live URL OUT.csv --seconds 60`` to record from the command line.
+"""
+
+from __future__ import annotations
+
+import collections
+import datetime as _dt
+import os
+import re
+import socket
+import threading
+import time
+import urllib.parse
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+from magcal.data.dataset import SENSOR_AXES, Dataset
+from magcal.data.io import format_column, is_counts, metadata_text, parse_units, read_csv
+from magcal.data.simulation import PRESETS, simulate_timeseries
+
+#: URL schemes and what they read.
+SCHEMES = ("serial", "udp", "tcp", "sim")
+
+#: Longest text line accepted (bytes); longer ones are counted as bad and skipped.
+MAX_LINE_BYTES = 4096
+
+#: nT per unit of the magnetometer fields as MAVLink message definitions declare them.
+MAVLINK_FIELD_UNITS_nT = {"mgauss": 100.0, "mG": 100.0, "gauss": 1.0e5, "G": 1.0e5, "uT": 1.0e3, "nT": 1.0}
+
+#: MAVLink messages carrying a magnetometer, and the time field of each.
+MAVLINK_MESSAGES = {"RAW_IMU": "time_usec", "SCALED_IMU": "time_boot_ms", "SCALED_IMU2": "time_boot_ms",
+                    "SCALED_IMU3": "time_boot_ms", "HIGHRES_IMU": "time_usec"}
+
+#: HIGHRES_IMU ``fields_updated`` bits of xmag, ymag, zmag and of the temperature.
+_HIGHRES_MAG_BITS = 0b111 << 6
+_HIGHRES_TEMP_BIT = 1 << 12
+
+
+class LiveError(MagcalError):
+    """A live source cannot be opened or has failed (a bad URL, a port that does not open, a lost device)."""
+
+
+@dataclass
+class LiveChunk:
+    """Samples that arrived together.
+
+    Attributes
+    ----------
+    time_s : numpy.ndarray, shape (n,)
+        Sample times in s, strictly increasing within and across the chunks of one source.
+    readings_nT : numpy.ndarray, shape (n_sensors, n, 3)
+        Raw readings in nT.
+    temperature_C : numpy.ndarray, shape (n,), optional
+        Temperature in degC, when the source sends one.
+    """
+
+    time_s: np.ndarray
+    readings_nT: np.ndarray
+    temperature_C: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.time_s.size)
+
+    @property
+    def n_sensors(self) -> int:
+        return int(self.readings_nT.shape[0])
+
+    def to_dataset(self, source=None) -> Dataset:
+        """The samples as a :class:`Dataset` (readings nT, ``time_s``, ``temperature_C``)."""
+        return Dataset(readings_nT=self.readings_nT, time_s=self.time_s, temperature_C=self.temperature_C,
+                       source=source)
+
+
+def _empty_chunk(n_sensors, temperature):
+    return LiveChunk(np.zeros(0), np.zeros((max(n_sensors or 1, 1), 0, 3)), np.zeros(0) if temperature else None)
+
+
+def concatenate_chunks(chunks) -> LiveChunk | None:
+    """One chunk from several of the same source (None for none)."""
+    chunks = [c for c in chunks if len(c)]
+    if not chunks:
+        return None
+    temps = [c.temperature_C for c in chunks]
+    return LiveChunk(np.concatenate([c.time_s for c in chunks]),
+                     np.concatenate([c.readings_nT for c in chunks], axis=1),
+                     None if any(t is None for t in temps) else np.concatenate(temps))
+
+
+@dataclass
+class SourceStats:
+    """What a source has received: samples kept, lines or messages refused and why."""
+
+    n_samples: int = 0
+    n_bad: int = 0
+    last_bad: str | None = None
+    reasons: collections.Counter = field(default_factory=collections.Counter)
+
+    def bad(self, reason: str, where: str = "") -> None:
+        """Count one refused line or message."""
+        self.n_bad += 1
+        key = reason.split(":")[0]
+        self.reasons[key] += 1
+        self.last_bad = f"{where}: {reason}" if where else reason
+
+    def summary(self) -> str:
+        """``1200 samples, 3 bad (2 not a number, 1 wrong field count); last: ...``."""
+        text = f"{self.n_samples} samples, {self.n_bad} bad"
+        if self.n_bad:
+            text += " (" + ", ".join(f"{n} {k}" for k, n in self.reasons.most_common()) + f"); last: {self.last_bad}"
+        return text
+
+
+# -- the source interface ----------------------------------------------------------------------------------------
+class LiveSource:
+    """A live source of magnetometer samples (the base of every kind; open one with :func:`open_source`).
+
+    Attributes
+    ----------
+    url : str
+    n_sensors : int or None
+        Number of triaxial sensors per sample (None until known).
+    has_temperature : bool or None
+        Whether samples carry a temperature (None until known).
+    stats : SourceStats
+    ended : bool
+        True when a finite source (a file, a closed TCP connection) has nothing more to give.
+    """
+
+    def __init__(self, url):
+        self.url = url
+        self.n_sensors = None
+        self.has_temperature = None
+        self.stats = SourceStats()
+        self.ended = False
+        self.closed = False
+        self._last_t = None
+        self._t0 = time.monotonic()
+
+    # subclasses implement _poll(deadline, max_samples) -> list of (t or None, readings (n_sensors, 3), temp)
+    def _poll(self, deadline, max_samples):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def read(self, timeout_s: float = 1.0, max_samples: int = 10_000) -> LiveChunk:
+        """The samples that arrive within ``timeout_s`` seconds (returns as soon as some have), possibly none.
+
+        Samples whose time does not increase, or whose sensor count or temperature differs from the first
+        sample's, are counted as bad and left out.
+        """
+        if self.closed:
+            raise LiveError(f"{self.url}: the source is closed")
+        deadline = time.monotonic() + max(0.0, float(timeout_s))
+        samples = [] if self.ended else self._poll(deadline, int(max_samples))
+        times, readings, temps = [], [], []
+        for t, r, temp in samples:
+            if t is None:  # host clock, at arrival; lines that came together are 1 us apart
+                t = time.monotonic() - self._t0
+                if self._last_t is not None and t <= self._last_t:
+                    t = self._last_t + 1e-6
+            r = np.asarray(r, dtype=float).reshape(-1, 3)
+            if self.n_sensors is None:
+                self.n_sensors = r.shape[0]
+            if self.has_temperature is None:
+                self.has_temperature = temp is not None
+            if r.shape[0] != self.n_sensors:
+                self.stats.bad(f"sensor count: {r.shape[0]} sensor(s), the stream has {self.n_sensors}")
+                continue
+            if (temp is not None) != self.has_temperature:
+                self.stats.bad("temperature: present in some samples only (the first decides)")
+                continue
+            if not np.all(np.isfinite(r)) or (temp is not None and not np.isfinite(temp)):
+                self.stats.bad("not finite: NaN or infinite value")
+                continue
+            if self._last_t is not None and t <= self._last_t:
+                self.stats.bad(f"time going back: {t:.6g} s after {self._last_t:.6g} s")
+                continue
+            self._last_t = t
+            times.append(t)
+            readings.append(r)
+            temps.append(temp)
+        self.stats.n_samples += len(times)
+        if not times:
+            return _empty_chunk(self.n_sensors, self.has_temperature)
+        return LiveChunk(np.asarray(times, dtype=float), np.stack(readings, axis=1),
+                         np.asarray(temps, dtype=float) if self.has_temperature else None)
+
+    def __iter__(self):
+        while not self.closed:
+            chunk = self.read(timeout_s=0.5)
+            if len(chunk):
+                yield chunk
+            elif self.ended:
+                return
+
+    def close(self) -> None:
+        """Release the port or socket; further reads raise :class:`LiveError`."""
+        self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def describe(self) -> str:
+        """One line: the URL and what was received."""
+        return f"{self.url}: {self.stats.summary()}"
+
+
+# -- text lines ------------------------------------------------------------------------------------------------------
+_SPLIT_DEFAULT = re.compile(r"[,;\t ]+")
+_COLUMN_RE = re.compile(r"^(?:s([1-4]))?([xyz])$")
+
+
+class LineParser:
+    """Turns one text line of numbers into a sample.
+
+    Parameters
+    ----------
+    columns : str or sequence of str
+        Names of the fields in order: ``x,y,z`` (sensor 1) or ``s1x..s4z``, ``t`` (s), ``temp`` (degC), ``_``
+        (skipped).
+    sep : str, optional
+        Field separator; default any run of commas, semicolons, tabs or spaces.
+    units : str
+        Unit of the readings (``nT``, ``uT``, ``G``, ``mG``, or ``counts`` with ``lsb_nT``).
+    lsb_nT : float, optional
+        nT per count for ``counts``.
+    prefix : str, optional
+        Only lines starting with it are data (it is removed); other lines are ignored, not counted as bad.
+    """
+
+    def __init__(self, columns="x,y,z", sep=None, units="nT", lsb_nT=None, prefix=None):
+        names = [c.strip() for c in (columns.split(",") if isinstance(columns, str) else columns)]
+        self.columns = names
+        self.sep = sep
+        self.prefix = prefix or None
+        self.factor = parse_units(units, where="live source units", lsb_nT=lsb_nT if is_counts(units) else None)
+        self.index_t = self.index_temp = None
+        axes = {}
+        for j, name in enumerate(names):
+            if name in ("_", "-", ""):
+                continue
+            if name == "t":
+                self.index_t = j
+            elif name == "temp":
+                self.index_temp = j
+            else:
+                m = _COLUMN_RE.match(name)
+                if not m:
+                    raise LiveError(f"columns: {name!r} is not one of x, y, z, s1x..s4z, t, temp or _ (skip)")
+                key = (int(m.group(1) or 1), m.group(2))
+                if key in axes:
+                    raise LiveError(f"columns: {name!r} appears twice")
+                axes[key] = j
+        sensors = sorted({s for s, _ in axes})
+        if not sensors or sensors != list(range(1, len(sensors) + 1)):
+            raise LiveError(f"columns {','.join(names)}: name sensors 1.. without gaps (x,y,z or s1x,s1y,s1z,...)")
+        for s in sensors:
+            if any((s, a) not in axes for a in SENSOR_AXES):
+                raise LiveError(f"columns {','.join(names)}: sensor {s} needs x, y and z")
+        self.index_xyz = np.array([[axes[(s, a)] for a in SENSOR_AXES] for s in sensors])
+        self.n_sensors = len(sensors)
+
+    def parse(self, text):
+        """``(t or None, readings (n_sensors, 3) nT, temperature or None)``, or ``None`` for a line to ignore.
+
+        Raises
+        ------
+        ValueError
+            With the reason, for a line that should be data but is not.
+        """
+        text = text.strip()
+        if not text or text.startswith("#"):
+            return None
+        if self.prefix is not None:
+            if not text.startswith(self.prefix):
+                return None
+            text = text[len(self.prefix):].strip()
+        fields = text.split(self.sep) if self.sep else _SPLIT_DEFAULT.split(text)
+        if len(fields) != len(self.columns):
+            raise ValueError(f"field count: {len(fields)} field(s), expected {len(self.columns)} "
+                             f"({','.join(self.columns)})")
+        try:
+            values = [float(f) if f.strip() else np.nan for f in fields]
+        except ValueError:
+            bad = next(f for f in fields if not _is_number(f))
+            raise ValueError(f"not a number: {bad[:30]!r}") from None
+        values = np.asarray(values)
+        readings = values[self.index_xyz] * self.factor
+        t = None if self.index_t is None else float(values[self.index_t])
+        temp = None if self.index_temp is None else float(values[self.index_temp])
+        return t, readings, temp
+
+
+def _is_number(text):
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+class _LineSource(LiveSource):
+    """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``."""
+
+    def __init__(self, url, parser):
+        super().__init__(url)
+        self.parser = parser
+        self.n_sensors = parser.n_sensors
+        self.has_temperature = parser.index_temp is not None
+        self._buffer = b""
+        self._line_no = 0
+        self._skip_partial = False
+
+    def _receive(self, timeout_s):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _lines(self, data):
+        self._buffer += data
+        *lines, self._buffer = re.split(rb"\r\n|\n|\r", self._buffer)
+        if len(self._buffer) > MAX_LINE_BYTES:
+            self._line_no += 1
+            self.stats.bad(f"line too long: over {MAX_LINE_BYTES} bytes without a line end", f"line {self._line_no}")
+            self._buffer = b""
+            self._skip_partial = True
+        return lines
+
+    def _poll(self, deadline, max_samples):
+        samples = []
+        while not samples and not self.ended:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            data = self._receive(min(remaining, 0.2))
+            for raw in self._lines(data):
+                self._line_no += 1
+                if self._skip_partial:  # the rest of an over-long line
+                    self._skip_partial = False
+                    continue
+                if len(raw) > MAX_LINE_BYTES:
+                    self.stats.bad(f"line too long: {len(raw)} bytes, over {MAX_LINE_BYTES}", f"line {self._line_no}")
+                    continue
+                try:
+                    sample = self.parser.parse(raw.decode("utf-8"))
+                except UnicodeDecodeError:
+                    self.stats.bad("not text: bytes that are not UTF-8", f"line {self._line_no}")
+                    continue
+                except ValueError as exc:
+                    self.stats.bad(str(exc), f"line {self._line_no}")
+                    continue
+                if sample is not None:
+                    samples.append(sample)
+            if len(samples) >= max_samples:
+                break
+        return samples
+
+
+class SerialSource(_LineSource):
+    """Text lines from a serial port (pyserial)."""
+
+    def __init__(self, url, port, baud, parser):
+        super().__init__(url, parser)
+        try:
+            import serial
+        except ImportError:
+            raise LiveError(f"{url}: serial ports need pyserial: pip install \"magcal[instruments]\"") from None
+        self._serial_error = serial.SerialException
+        try:
+            self._port = serial.Serial(port, baudrate=baud, timeout=0.1)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LiveError(f"{url}: cannot open the serial port {port} ({exc}); check the device path and that no "
+                            "other program holds it") from None
+
+    def _receive(self, timeout_s):
+        try:
+            self._port.timeout = max(timeout_s, 0.001)
+            return self._port.read(max(1, self._port.in_waiting))
+        except (self._serial_error, OSError) as exc:
+            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?") from None
+
+    def close(self):
+        super().close()
+        self._port.close()
+
+
+class UdpLineSource(_LineSource):
+    """Text lines in UDP datagrams received on ``host:port``."""
+
+    def __init__(self, url, host, port, parser):
+        super().__init__(url, parser)
+        self._sock = _bind_udp(url, host, port)
+
+    def _receive(self, timeout_s):
+        self._sock.settimeout(max(timeout_s, 0.001))
+        try:
+            data, _ = self._sock.recvfrom(65536)
+        except (socket.timeout, BlockingIOError):
+            return b""
+        except OSError as exc:
+            raise LiveError(f"{self.url}: receiving failed ({exc})") from None
+        return data if data.endswith((b"\n", b"\r")) else data + b"\n"  # a datagram holds whole lines
+
+    def close(self):
+        super().close()
+        self._sock.close()
+
+
+class TcpLineSource(_LineSource):
+    """Text lines from a TCP server at ``host:port`` (magcal connects to it)."""
+
+    def __init__(self, url, host, port, parser, connect_timeout_s=5.0):
+        super().__init__(url, parser)
+        try:
+            self._sock = socket.create_connection((host, port), timeout=connect_timeout_s)
+        except OSError as exc:
+            raise LiveError(f"{url}: cannot connect to {host}:{port} ({exc}); is the server running?") from None
+
+    def _receive(self, timeout_s):
+        self._sock.settimeout(max(timeout_s, 0.001))
+        try:
+            data = self._sock.recv(65536)
+        except (socket.timeout, BlockingIOError):
+            return b""
+        except OSError as exc:
+            raise LiveError(f"{self.url}: the connection failed ({exc})") from None
+        if not data:
+            self.ended = True
+            return b"\n" if self._buffer else b""
+        return data
+
+    def close(self):
+        super().close()
+        self._sock.close()
+
+
+def _bind_udp(url, host, port):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise LiveError(f"{url}: cannot listen on UDP {host}:{port} ({exc}); is another program using the port?") \
+            from None
+    return sock
+
+
+# -- MAVLink ---------------------------------------------------------------------------------------------------------
+class MavlinkSource(LiveSource):
+    """Magnetometer fields of MAVLink IMU messages (pymavlink), converted to nT.
+
+    Parameters
+    ----------
+    url : str
+    device : str
+        pymavlink connection string (``udpin:127.0.0.1:14550``, ``tcp:host:port``, a serial device).
+    message : str, optional
+        Read only this message (``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``, ``HIGHRES_IMU``);
+        default the first of them that arrives.
+    baud : int
+        For a serial device.
+    raw_lsb_nT : float
+        nT per unit of ``RAW_IMU``'s magnetometer fields when the message definition declares no unit (older
+        dialects; ArduPilot sends milligauss: 100).
+
+    Times are the vehicle's (``time_boot_ms``, ``time_usec``); when they jump back by more than 1 s (a reboot),
+    later samples are shifted to follow on (:attr:`clock_resets` counts it), so a recording goes on.
+    """
+
+    def __init__(self, url, device, message=None, baud=115200, raw_lsb_nT=100.0):
+        super().__init__(url)
+        try:
+            from pymavlink import mavutil
+        except ImportError:
+            raise LiveError(f"{url}: MAVLink needs pymavlink: pip install \"magcal[instruments]\"") from None
+        if message is not None and message not in MAVLINK_MESSAGES:
+            raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
+        self.message = message
+        self.raw_lsb_nT = float(raw_lsb_nT)
+        self.n_sensors = 1
+        self.clock_resets = 0  # vehicle reboots seen: its clock went back by more than 1 s
+        self._vehicle_t = None
+        self._clock_offset = 0.0
+        try:
+            self._conn = mavutil.mavlink_connection(device, baud=baud, source_system=255, autoreconnect=False)
+        except Exception as exc:  # pymavlink raises many kinds for a device that does not open
+            raise LiveError(f"{url}: cannot open the MAVLink connection {device} ({exc})") from None
+
+    def _factor(self, msg, name):
+        units = getattr(msg, "fieldunits_by_name", {}) or {}
+        unit = units.get(name)
+        if unit is None:
+            return self.raw_lsb_nT
+        if unit not in MAVLINK_FIELD_UNITS_nT:
+            raise ValueError(f"unit: {msg.get_type()}.{name} is in {unit!r}, which magcal does not convert")
+        return MAVLINK_FIELD_UNITS_nT[unit]
+
+    def _sample(self, msg):
+        kind = msg.get_type()
+        if self.message is None:
+            self.message = kind
+        if kind != self.message:
+            return None
+        if kind == "HIGHRES_IMU" and not (int(msg.fields_updated) & _HIGHRES_MAG_BITS):
+            return None  # no new magnetometer sample in this message
+        factor = self._factor(msg, "xmag")
+        readings = np.array([[msg.xmag, msg.ymag, msg.zmag]], dtype=float) * factor
+        time_field = MAVLINK_MESSAGES[kind]
+        t = float(getattr(msg, time_field)) * (1e-3 if time_field == "time_boot_ms" else 1e-6)
+        if self._vehicle_t is not None and t < self._vehicle_t - 1.0:  # the vehicle rebooted: its clock restarted
+            self._clock_offset += self._vehicle_t - t + 1e-3
+            self.clock_resets += 1
+        self._vehicle_t = t
+        t += self._clock_offset
+        temp = None
+        if self.has_temperature is not False and hasattr(msg, "temperature"):
+            units = (getattr(msg, "fieldunits_by_name", {}) or {}).get("temperature")
+            value = float(msg.temperature)
+            if units == "cdegC":
+                temp = None if value == 0 else value * 0.01  # 0: the IMU sends no temperature
+            elif kind == "HIGHRES_IMU":
+                temp = value if int(msg.fields_updated) & _HIGHRES_TEMP_BIT or self.has_temperature else None
+            else:
+                temp = value
+        return t, readings, temp
+
+    def _poll(self, deadline, max_samples):
+        samples = []
+        while len(samples) < max_samples:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            try:
+                msg = self._conn.recv_match(blocking=True, timeout=min(remaining, 0.2))
+            except Exception as exc:  # a damaged packet pymavlink cannot decode
+                self.stats.bad(f"bad packet: {exc}")
+                continue
+            if msg is None:
+                if samples:
+                    break
+                continue
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                self.stats.bad("bad packet: not MAVLink or a failed checksum")
+                continue
+            if kind not in MAVLINK_MESSAGES:
+                continue
+            try:
+                sample = self._sample(msg)
+            except (ValueError, AttributeError, TypeError) as exc:
+                self.stats.bad(str(exc), kind)
+                continue
+            if sample is not None:
+                if not samples:  # gather what follows within 50 ms, then return: low latency for viewers
+                    deadline = min(deadline, time.monotonic() + 0.05)
+                samples.append(sample)
+        return samples
+
+    def close(self):
+        super().close()
+        try:
+            self._conn.close()
+        except Exception:  # closing a dead connection: nothing left to release
+            pass
+
+
+# -- simulation ------------------------------------------------------------------------------------------------------
+class SimSource(LiveSource):
+    """A preset or a magcal CSV file played in real time.
+
+    Sample ``k`` is always the same (deterministic): time ``t_k`` (``k / rate`` for a preset, the file's own times
+    for a file unless ``rate`` is given) and the ``k``-th reading (modulo the length when looping).
+
+    Parameters
+    ----------
+    url : str
+    name : str
+        A preset of :data:`magcal.data.simulation.PRESETS` or a path to a magcal CSV file.
+    rate_hz : float, optional
+        Samples per second (default 50 for a preset; the file's own times, or 10 Hz, for a file).
+    n_samples : int
+        Samples simulated for a preset.
+    seed : int
+        Seed of the preset's noise.
+    loop : bool
+        Start again at the end (times go on increasing); otherwise the source ends.
+    speed : float
+        Play faster (> 1) or slower than real time.
+    """
+
+    def __init__(self, url, name, rate_hz=None, n_samples=3000, seed=0, loop=False, speed=1.0):
+        super().__init__(url)
+
+        if rate_hz is not None and not float(rate_hz) > 0:
+            raise LiveError(f"{url}: rate must be a positive number of samples per second")
+        if not float(speed) > 0:
+            raise LiveError(f"{url}: speed must be positive")
+        if name in PRESETS:
+            rate = 50.0 if rate_hz is None else float(rate_hz)
+            ds = simulate_timeseries(name, n_samples=int(n_samples), seed=int(seed), rate_hz=rate)
+            times = np.arange(ds.n_samples) / rate
+        else:
+
+            if not os.path.exists(name):
+                raise LiveError(f"{url}: {name!r} is neither a preset ({', '.join(PRESETS)}) nor a file")
+            ds = read_csv(name)
+            if rate_hz is not None:
+                times = np.arange(ds.n_samples) / float(rate_hz)
+            elif ds.time_s is not None:
+                times = ds.time_s - ds.time_s[0]
+            else:
+                times = np.arange(ds.n_samples) / 10.0
+        self.dataset = ds
+        self._times = times
+        self._period = float(times[-1] + (np.median(np.diff(times)) if times.size > 1 else 0.1))
+        self.loop = bool(loop)
+        self.speed = float(speed)
+        self.n_sensors = ds.n_sensors
+        self.has_temperature = ds.temperature_C is not None
+        self._k = 0
+        self._start = None
+
+    def sample(self, k):
+        """Sample ``k`` as the source sends it: ``(t_s, readings (n_sensors, 3) nT, temperature or None)``."""
+        n = self._times.size
+        i = k % n
+        t = float(self._times[i] + (k // n) * self._period)
+        temp = None if self.dataset.temperature_C is None else float(self.dataset.temperature_C[i])
+        return t, self.dataset.readings_nT[:, i], temp
+
+    def _poll(self, deadline, max_samples):
+        now = time.monotonic()
+        if self._start is None:
+            self._start = now
+        n = self._times.size
+        samples = []
+        while len(samples) < max_samples:
+            if not self.loop and self._k >= n:
+                self.ended = True
+                break
+            t, r, temp = self.sample(self._k)
+            due = self._start + t / self.speed
+            now = time.monotonic()
+            if due > now:
+                if samples or due > deadline:
+                    if not samples:
+                        time.sleep(max(0.0, deadline - now))
+                    break
+                time.sleep(due - now)
+            samples.append((t, r, temp))
+            self._k += 1
+        return samples
+
+
+# -- opening a URL ---------------------------------------------------------------------------------------------------
+def _flag(params, name):
+    return name in params and params[name] in ("", "1", "true", "yes", "on")
+
+
+def open_source(url: str, **options) -> LiveSource:
+    """Open a live source from its URL (see the module docstring); ``options`` override URL parameters.
+
+    Raises
+    ------
+    LiveError
+        A malformed URL, an unknown scheme or option, or a port that cannot be opened.
+    """
+    parsed = urllib.parse.urlsplit(str(url))
+    scheme = parsed.scheme.lower()
+    if scheme not in SCHEMES:
+        raise LiveError(f"{url}: unknown source; use serial://DEVICE, udp://HOST:PORT, tcp://HOST:PORT or "
+                        "sim://PRESET (e.g. sim://chi2017?rate=50)")
+    params = {k: v[-1] for k, v in urllib.parse.parse_qs(parsed.query, keep_blank_values=True).items()}
+    params.update({k: str(v) for k, v in options.items()})
+    known = {"baud", "columns", "sep", "units", "lsb", "prefix", "format", "mavlink", "message", "rate", "seed",
+             "n", "loop", "speed", "raw_lsb_nT", "timeout"}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise LiveError(f"{url}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    mavlink = _flag(params, "mavlink") or params.get("format", "").lower() == "mavlink"
+
+    def number(name, default, kind=float):
+        try:
+            return kind(params[name]) if name in params else default
+        except ValueError:
+            raise LiveError(f"{url}: {name}={params[name]!r} is not a number") from None
+
+    def parser():
+        try:
+            return LineParser(params.get("columns", "x,y,z"), params.get("sep") or None, params.get("units", "nT"),
+                              params.get("lsb"), params.get("prefix"))
+        except MagcalError as exc:
+            raise LiveError(f"{url}: {exc}") from None
+
+    if scheme == "sim":
+        name = (parsed.netloc + parsed.path) if parsed.netloc else parsed.path
+        return SimSource(url, urllib.parse.unquote(name), rate_hz=number("rate", None),
+                         n_samples=number("n", 3000, int), seed=number("seed", 0, int), loop=_flag(params, "loop"),
+                         speed=number("speed", 1.0))
+    if scheme == "serial":
+        device = urllib.parse.unquote(parsed.path if not parsed.netloc else parsed.netloc + parsed.path)
+        baud = number("baud", 115200, int)
+        if mavlink:
+            return MavlinkSource(url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0))
+        return SerialSource(url, device, baud, parser())
+    host, port = parsed.hostname, parsed.port
+    if not host or not port:
+        raise LiveError(f"{url}: give the address as {scheme}://HOST:PORT (e.g. {scheme}://127.0.0.1:14550)")
+    if mavlink:
+        device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
+        return MavlinkSource(url, device, params.get("message"), raw_lsb_nT=number("raw_lsb_nT", 100.0))
+    if params.get("format", "lines").lower() != "lines":
+        raise LiveError(f"{url}: format={params['format']!r}: use format=lines or mavlink")
+    if scheme == "udp":
+        return UdpLineSource(url, host, port, parser())
+    return TcpLineSource(url, host, port, parser(), connect_timeout_s=number("timeout", 5.0))
+
+
+# -- recording -------------------------------------------------------------------------------------------------------
+class Recorder:
+    """Append live samples to a magcal CSV file, crash-safe.
+
+    The header (metadata lines and column names) is written when the first chunk fixes the layout. Samples are
+    kept in memory and written at :meth:`flush` (called by :meth:`write` at least every ``flush_interval_s``):
+    whole lines only, each ``write`` system call confined to one page of the file so that a kill cannot leave
+    part of one (a line that would cross a page boundary is preceded by a blank padding line, which readers
+    skip), then ``fsync``. A recording cut at any moment reopens with :func:`magcal.read_csv` holding every
+    sample of the last flush.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The CSV file; an existing file is refused (a recording is never overwritten).
+    metadata : dict, optional
+        ``# key: value`` lines (``units: nT`` is added).
+    flush_interval_s : float
+        Longest time between flushes to disk (s).
+    """
+
+    def __init__(self, path, metadata=None, flush_interval_s=1.0):
+        self.path = os.fspath(path)
+        self.metadata = dict(metadata or {})
+        self.flush_interval_s = float(flush_interval_s)
+        self.n_written = 0  # samples on disk (flushed)
+        self.n_pending = 0
+        self._pending = []
+        self._fd = None
+        self._columns = None
+        self._last_flush = time.monotonic()
+        self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o644)
+        except FileExistsError:
+            raise LiveError(f"{self.path}: already exists; a recording is never overwritten: choose another name") \
+                from None
+        except OSError as exc:
+            raise LiveError(f"{self.path}: cannot create the recording ({exc.strerror or exc})") from None
+        self._offset = 0
+
+    def _header(self, chunk):
+        cols = ["t"] + [f"s{i + 1}{a}" for i in range(chunk.n_sensors) for a in SENSOR_AXES]
+        if chunk.temperature_C is not None:
+            cols.append("temp")
+        self._columns = cols
+        meta = {"recorded_by": "magcal.data.live", "started_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(
+            timespec="seconds")}
+        meta.update(self.metadata)
+        meta["units"] = "nT"
+        return (metadata_text(meta) + ",".join(cols) + "\n").encode("utf-8")
+
+    def write(self, chunk: LiveChunk) -> None:
+        """Add the chunk's samples; flushes to disk when ``flush_interval_s`` has passed since the last flush."""
+        if self._fd is None:
+            raise LiveError(f"{self.path}: the recording is closed")
+        if len(chunk):
+            if self._columns is None:
+                self._pending.append(self._header(chunk))
+            elif (chunk.temperature_C is not None) != ("temp" in self._columns) or \
+                    3 * chunk.n_sensors != sum(c[0] == "s" for c in self._columns):
+                raise LiveError(f"{self.path}: the samples changed layout (sensors or temperature) mid-recording")
+            parts = [format_column(chunk.time_s)]
+            for i in range(chunk.n_sensors):
+                parts += [format_column(chunk.readings_nT[i, :, k]) for k in range(3)]
+            if chunk.temperature_C is not None:
+                parts.append(format_column(chunk.temperature_C))
+            self._pending.append(("\n".join(",".join(row) for row in zip(*parts)) + "\n").encode("ascii"))
+            self.n_pending += len(chunk)
+        if time.monotonic() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+
+    def _write_page_confined(self, data: bytes) -> None:
+        """Write whole lines so that no ``write`` call spans a page boundary of the file."""
+        page = self._page
+        batch = bytearray()
+        for line in data.splitlines(keepends=True):
+            pos = self._offset + len(batch)
+            if batch and (len(line) > page - pos % page or pos % page == 0):
+                self._put(bytes(batch))  # the batch ends inside (or exactly at the end of) its page
+                batch = bytearray()
+            room = page - self._offset % page
+            if not batch and len(line) > room and room < page and len(line) <= page:
+                self._put(b" " * (room - 1) + b"\n")  # a blank line up to the page boundary; readers skip it
+            batch += line
+        if batch:
+            self._put(bytes(batch))
+
+    def _put(self, data):
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(self._fd, view)
+            except OSError as exc:
+                raise LiveError(f"{self.path}: cannot write the recording ({exc.strerror or exc}); is the disk "
+                                "full? The samples flushed before are kept") from None
+            self._offset += n
+            view = view[n:]
+
+    def flush(self) -> int:
+        """Write the pending samples as whole lines and ``fsync``; returns the samples now on disk."""
+        if self._fd is None:
+            return self.n_written
+        if self._pending:
+            self._write_page_confined(b"".join(self._pending))
+            self._pending = []
+            try:
+                os.fsync(self._fd)
+            except OSError as exc:
+                raise LiveError(f"{self.path}: cannot flush the recording to disk ({exc.strerror or exc})") from None
+            self.n_written += self.n_pending
+            self.n_pending = 0
+        self._last_flush = time.monotonic()
+        return self.n_written
+
+    def close(self) -> None:
+        """Flush and close the file."""
+        if self._fd is not None:
+            try:
+                self.flush()
+            finally:
+                os.close(self._fd)
+                self._fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def record(url_or_source, path, duration_s=None, max_samples=None, flush_interval_s=1.0, on_flush=None,
+           stop=None) -> SourceStats:
+    """Record a live source into a magcal CSV until ``duration_s``, ``max_samples``, the source's end or ``stop``.
+
+    Parameters
+    ----------
+    url_or_source : str or LiveSource
+    path : str or os.PathLike
+        The recording (must not exist).
+    duration_s : float, optional
+        Stop after this many seconds.
+    max_samples : int, optional
+        Stop after this many samples.
+    flush_interval_s : float
+        Longest time between flushes to disk (s).
+    on_flush : callable, optional
+        Called with the number of samples on disk after each flush that wrote some.
+    stop : threading.Event, optional
+        Set it to stop.
+
+    Returns
+    -------
+    SourceStats
+    """
+    source = open_source(url_or_source) if isinstance(url_or_source, str) else url_or_source
+    end = None if duration_s is None else time.monotonic() + float(duration_s)
+    try:
+        with Recorder(path, {"source": source.url}, flush_interval_s) as rec:
+            written = 0
+            while not (stop is not None and stop.is_set()):
+                remaining = None if end is None else end - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    break
+                want = 10_000 if max_samples is None else max_samples - rec.n_written - rec.n_pending
+                if want <= 0:
+                    break
+                wait = min(0.25, max(flush_interval_s, 0.01), 0.25 if remaining is None else max(remaining, 0.01))
+                chunk = source.read(timeout_s=wait, max_samples=want)
+                rec.write(chunk)
+                if on_flush is not None and rec.n_written != written:
+                    written = rec.n_written
+                    on_flush(written)
+                if source.ended and not len(chunk):
+                    break
+            rec.flush()
+            if on_flush is not None and rec.n_written != written:
+                on_flush(rec.n_written)
+    finally:
+        if isinstance(url_or_source, str):
+            source.close()
+    return source.stats
+
+
+# -- a live session for viewers ----------------------------------------------------------------------------------------
+class LiveSession:
+    """A source read in a background thread, recorded to disk and kept in memory for viewers.
+
+    The workbench's live view is built on it: several browsers :meth:`subscribe` to the same session, the fit
+    reruns on :meth:`dataset`, and :meth:`pause`, :meth:`resume`, :meth:`stop` act on it.
+
+    Parameters
+    ----------
+    url_or_source : str or LiveSource
+    path : str or os.PathLike, optional
+        The recording; None keeps the samples in memory only.
+    flush_interval_s : float
+        Longest time between flushes to disk (s).
+    listeners : sequence of callable, optional
+        Subscribed before the first sample (see :meth:`subscribe`).
+    """
+
+    def __init__(self, url_or_source, path=None, flush_interval_s=1.0, listeners=()):
+        self.source = open_source(url_or_source) if isinstance(url_or_source, str) else url_or_source
+        self.path = None if path is None else os.fspath(path)
+        self._recorder = None if path is None else Recorder(path, {"source": self.source.url}, flush_interval_s)
+        self._chunks = []
+        self._lock = threading.Lock()
+        self._listeners = list(listeners)
+        self._paused = threading.Event()
+        self._stop = threading.Event()
+        self.error = None
+        self._thread = threading.Thread(target=self._run, name="magcal-live", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        try:
+            while not self._stop.is_set():
+                chunk = self.source.read(timeout_s=0.2)
+                if self._paused.is_set():  # paused: what arrives is dropped, and counted
+                    continue
+                if len(chunk):
+                    with self._lock:
+                        self._chunks.append(chunk)
+                if self._recorder is not None:
+                    self._recorder.write(chunk)
+                if len(chunk):
+                    for listener in list(self._listeners):
+                        try:
+                            listener(chunk)
+                        except Exception as exc:  # a viewer's failure must not stop the recording
+                            warnings.warn(f"live listener failed: {exc}", RuntimeWarning, stacklevel=1)
+                if self.source.ended and not len(chunk):
+                    break
+        except MagcalError as exc:
+            self.error = str(exc)
+        except Exception as exc:  # anything else ends the session too, and is reported rather than lost
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            if self._recorder is not None:
+                self._recorder.close()
+            self.source.close()
+
+    @property
+    def running(self) -> bool:
+        """True while the thread reads the source."""
+        return self._thread.is_alive()
+
+    @property
+    def n_samples(self) -> int:
+        with self._lock:
+            return sum(len(c) for c in self._chunks)
+
+    @property
+    def n_recorded(self) -> int:
+        """Samples flushed to the recording."""
+        return 0 if self._recorder is None else self._recorder.n_written
+
+    def dataset(self) -> Dataset | None:
+        """Everything received so far as a :class:`Dataset` (None before the first sample)."""
+        with self._lock:
+            chunk = concatenate_chunks(self._chunks)
+            if chunk is not None and len(self._chunks) > 1:
+                self._chunks = [chunk]
+        return None if chunk is None else chunk.to_dataset(source=self.path or self.source.url)
+
+    def subscribe(self, listener) -> None:
+        """Call ``listener(chunk)`` (in the session's thread) for every chunk received from now on."""
+        self._listeners.append(listener)
+
+    def unsubscribe(self, listener) -> None:
+        if listener in self._listeners:
+            self._listeners.remove(listener)
+
+    def pause(self) -> None:
+        """Stop keeping samples (the source is still read, so nothing piles up)."""
+        self._paused.set()
+
+    def resume(self) -> None:
+        self._paused.clear()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    def stop(self, timeout_s=5.0) -> None:
+        """Stop reading, flush and close the recording (waits at most ``timeout_s``)."""
+        self._stop.set()
+        self._thread.join(timeout_s)
+
+
+def main(argv=None) -> int:
+    """``python -m magcal.data.live URL OUT.csv [--seconds S] [--samples N] [--flush S] [--progress]``."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m magcal.data.live", description="Record a live magnetometer source "
+                                     "into a magcal CSV file (flushed to disk at least every --flush seconds).")
+    parser.add_argument("url", help="the source, e.g. serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+                                    "udp://127.0.0.1:14550?mavlink, sim://chi2017?rate=50")
+    parser.add_argument("output", help="the recording (a new file)")
+    parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    parser.add_argument("--samples", type=int, default=None, help="stop after this many samples")
+    parser.add_argument("--flush", type=float, default=1.0, help="longest time between flushes to disk, s")
+    parser.add_argument("--progress", action="store_true", help="print 'flushed N' after each flush")
+    args = parser.parse_args(argv)
+
+    def progress(n):
+        print(f"flushed {n}", flush=True)
+
+    try:
+        stats = record(args.url, args.output, args.seconds, args.samples, args.flush,
+                       on_flush=progress if args.progress else None)
+    except MagcalError as exc:
+        print(f"magcal.data.live: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    print(f"magcal.data.live: {args.output}: {stats.summary()}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

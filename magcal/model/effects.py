@@ -1,0 +1,1353 @@
+"""The catalogue of candidate effects beyond the base model.
+
+Every effect here is an :class:`magcal.model.terms.Effect` registered in :data:`magcal.model.terms.EFFECTS` under its name.
+Each one says
+
+* what it adds to the readings (its *basis*, the Jacobian of the correction with respect to its parameters, in
+  the stage of :mod:`magcal.model.terms`: ``raw`` acts on one sensor's raw reading in its own axes, ``vector`` on the
+  corrected vector in the array frame, ``reference`` on the expected total field);
+* its parameters, with units chosen so that the numbers read naturally (nT/K, ppm/K, nT/h, ms, nT/m...), and
+  :meth:`~magcal.model.terms.Effect.param_scale`, the size of each parameter that moves the readings by about 1 nT;
+* the data-derived constants it needs (reference temperature, reference time, step time, time span), set by
+  :meth:`~magcal.model.terms.Effect.configure` and saved with a calibration by :meth:`~magcal.model.terms.Effect.state`;
+* whether it describes the instrument and carries to new data (:attr:`~magcal.model.terms.Effect.transferable`), or
+  one recording only.
+
+How the simulator hides each effect in data (:meth:`~magcal.model.terms.Effect.perturbation`) is in
+:mod:`magcal.model.perturbations`, written from the physics of the effect rather than from its fitted basis;
+:meth:`CatalogueEffect.perturbation` looks the function up there by the effect's name.
+
+Notation: for sensor ``s``, ``z0 = y - b`` is the raw reading minus the bias (nT, sensor axes, approximately
+``C B``), ``T`` the temperature (degC), ``t`` the time (s). The signatures in the total-field residual and the
+confounders of every effect are in ``docs/effects.md``.
+
+A ``magnitude`` given to :meth:`perturbation` is either one number, the largest parameter value (the
+parameters follow a fixed pattern over the axes, different for each sensor), or the full parameter vector of
+one sensor; :meth:`true_params` returns the parameter vector the perturbation corresponds to, where the fitted
+model can represent it exactly (``None`` otherwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import scipy.fft
+from scipy.signal import savgol_filter
+from scipy.special import eval_legendre
+
+from magcal.core.errors import MagcalError
+from magcal.core.readings_cache import ReadingsCache
+from magcal.core.vectors import row_norm
+from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
+from magcal.model.perturbations import catalogue_perturbation
+from magcal.model.terms import EFFECTS, Context, Effect, SingleAxisBasis, register, term_label
+
+#: Multipliers of each effect's ``default_magnitude`` for a 1 500-sample record at 10 Hz with sigma = 3 nT
+#: (:func:`magcal.data.simulation.simulate_timeseries`): barely detectable (score statistic of order 100-200, the RMS
+#: only a few percent above the floor), moderate (RMS >~ 1.2x the floor) and strong (RMS 1.4-5x the floor). The
+#: diagnosis tests and ``benchmarks/diagnosis.py`` hide each effect at these sizes.
+DETECTION_LEVELS = {
+    "temperature_bias": (0.27, 1.0, 3.0),
+    "temperature_scale": (0.45, 1.5, 3.0),
+    "bias_drift": (0.39, 1.0, 3.0),
+    "bias_step": (0.34, 1.0, 3.0),
+    "nonlinearity_quadratic": (0.31, 1.0, 3.0),
+    "nonlinearity_cubic": (0.53, 1.5, 3.0),
+    "axis_timing_skew": (1.0, 4.0, 6.0),
+    "hysteresis": (0.34, 1.0, 2.0),
+    "reference_drift": (0.39, 1.0, 3.0),
+    "sensor_timing_skew": (0.35, 2.5, 5.0),
+    "site_gradient": (0.15, 1.0, 3.0),
+}
+
+_AXES = "xyz"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _field_text(field_nT) -> str:
+    """``"35.7 uT"``: a field magnitude given in nT, as the quotes print it."""
+    return f"{field_nT / 1000.0:.3g} uT"
+
+
+def _axes_text(values, fmt="{:.3g}") -> str:
+    """``"(1.2, -3, 0.5)"``: one number per axis."""
+    return "(" + ", ".join(fmt.format(float(v)) for v in values) + ")"
+
+
+def _diagonal_basis(columns):
+    """(N, 3, 3) basis with ``columns[:, j]`` on the diagonal (one parameter per axis), a
+    :class:`~magcal.model.terms.SingleAxisBasis`."""
+    return SingleAxisBasis(columns, np.arange(3))
+
+
+def time_derivative(values, time_s, window=7):
+    """Smoothed time derivative along axis 0 (units of ``values`` per second).
+
+    A Savitzky-Golay derivative (cubic, ``window`` samples) when the sampling is regular, otherwise
+    :func:`numpy.gradient` with the actual sample times.
+
+    Parameters
+    ----------
+    values : numpy.ndarray, shape (N, ...)
+    time_s : numpy.ndarray, shape (N,)
+    window : int
+        Odd number of samples of the smoothing window.
+    """
+    values = np.asarray(values, dtype=float)
+    t = np.asarray(time_s, dtype=float)
+    n = len(t)
+    if n < 3:
+        return np.zeros_like(values)
+    dt = np.diff(t)
+    step = float(np.median(dt))
+    regular = step > 0 and np.all(np.abs(dt - step) <= 0.01 * step)
+    if regular and n >= window:
+        return savgol_filter(values, window, 3, deriv=1, delta=step, axis=0, mode="interp")
+    return np.gradient(values, t, axis=0)
+
+
+def _state_number(effect, state, key, minimum=None, positive=False, what=""):
+    """``state[key]`` as a float (None when absent), or a clear :class:`MagcalError` naming the term and the key if
+    it is not a finite number, not above 0 (``positive``) or below ``minimum``: a calibration file's data-derived
+    constants must be physical too."""
+    value = state.get(key)
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    bad = not np.isfinite(number) or (positive and number <= 0) or (minimum is not None and number < minimum)
+    if bad:
+        need = "a positive number" if positive else "a finite number" + (f" >= {minimum:g}" if minimum is not None
+                                                                       else "")
+        raise MagcalError(f"{effect.label}: {key} must be {need}{f' ({what})' if what else ''}, got {value!r}")
+    return number
+
+
+def _state_times(effect, state, key):
+    """``state[key]``: a list of per-sensor times in s (finite numbers or None), or a clear error."""
+    value = state.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)):
+        raise MagcalError(f"{effect.label}: {key} must be a list (one time in s per sensor, or null), got {value!r}")
+    return [_state_number(effect, {key: v}, key, what="a time in s") for v in value]
+
+
+class _Cache:
+    """A small per-instance cache keyed by the identity of a dataset (the entry keeps the dataset alive)."""
+
+    def __init__(self):
+        self.entries = {}
+
+    def get(self, dataset, key, compute):
+        full = (id(dataset), key)
+        hit = self.entries.get(full)
+        if hit is not None and hit[0] is dataset:
+            return hit[1]
+        if len(self.entries) > 16:
+            self.entries.clear()
+        value = compute()
+        self.entries[full] = (dataset, value)
+        return value
+
+
+@dataclass
+class CatalogueEffect(Effect):
+    """Shared machinery of the catalogue: parameter patterns for the simulator and a basis cache."""
+
+    #: Default ``magnitude`` of :meth:`perturbation` (in :attr:`magnitude_unit`): clearly visible with
+    #: 1 500 samples and 3 nT noise.
+    default_magnitude: ClassVar[float] = 1.0
+    #: Unit of ``magnitude``.
+    magnitude_unit: ClassVar[str] = ""
+    #: Pattern of the parameters over the axes (largest entry 1) used when ``magnitude`` is one number.
+    pattern: ClassVar[tuple] = (1.0, -0.7, 0.5)
+    #: Extra degrees of freedom searched in :meth:`configure` per instance (e.g. a step time), for the
+    #: information criteria of the diagnosis.
+    extra_dof: ClassVar[int] = 0
+
+    _cache: object = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self._cache is None:
+            self._cache = _Cache()
+
+    def _cached(self, dataset, key, compute):
+        if self._cache is None:
+            self._cache = _Cache()
+        return self._cache.get(dataset, key, compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        """Parameter vector of one sensor's instance that :meth:`perturbation` hides (None if not exact)."""
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        q = len(self.param_names())
+        if m.size == q:
+            return m.copy()
+        if m.size != 1:
+            raise MagcalError(f"{self.name}: magnitude must be one number or {q} values, got {m.size}")
+        pattern = np.asarray(self.pattern, dtype=float)[:q]
+        return m[0] * np.roll(pattern, sensor or 0) if len(pattern) == 3 else m[0] * pattern
+
+    def perturbation(self, magnitude=None, sensor=None, **options):
+        """A callable ``f(readings, context, rng)`` for :func:`magcal.data.simulation.simulate_timeseries` that hides
+        this effect in data: the function registered for this effect's name in :mod:`magcal.model.perturbations`
+        (a subclass may override this method instead).
+
+        Parameters
+        ----------
+        magnitude : float or array_like, optional
+            Largest parameter value (in :attr:`magnitude_unit`), or the whole parameter vector of one sensor.
+            Defaults to :attr:`default_magnitude`.
+        sensor : int, optional
+            0-based sensor to hide the effect in (default: this effect's ``sensor``, or every sensor).
+
+        Raises
+        ------
+        NotImplementedError
+            When the simulator has no perturbation for the effect.
+        """
+
+        return catalogue_perturbation(self, magnitude, sensor, **options)
+
+    def quote_unit(self, field_nT=None) -> str:
+        """The unit a magnitude or parameter of this effect is quoted in (:attr:`magnitude_unit`); effects whose
+        parameters are quoted at a field magnitude say which (``field_nT``, nT, when known)."""
+        return self.magnitude_unit
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# temperature
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _TemperatureReferenced(CatalogueEffect):
+    """Shared by the temperature terms: ``T0`` is the mean temperature of the fitted data, saved with the fit."""
+
+    reference_temperature_C: float | None = None
+
+    def configure(self, dataset, residuals_nT=None):
+        self.reference_temperature_C = float(np.mean(dataset.temperature_C))
+
+    def state(self):
+        return {"reference_temperature_C": self.reference_temperature_C}
+
+    def set_state(self, state):
+        self.reference_temperature_C = _state_number(self, state, "reference_temperature_C", minimum=-273.15,
+                                                      what="a temperature in degC")
+
+    def _dT(self, ctx):
+        """Temperature minus ``T0`` (K); before any fit, minus the mean temperature."""
+        t0 = self.reference_temperature_C
+        temp = ctx.temperature_C
+        return temp - (np.mean(temp) if t0 is None else t0)
+
+
+@register
+@dataclass
+class TemperatureBias(_TemperatureReferenced):
+    """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
+
+    name: ClassVar[str] = "temperature_bias"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("temperature",)
+    description: ClassVar[str] = "bias changing with temperature, y += beta (T - T0) [nT/K per axis]"
+    default_magnitude: ClassVar[float] = 2.0
+    magnitude_unit: ClassVar[str] = "nT/K"
+
+    def param_names(self):
+        return [f"beta_{a}_nT_per_K" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 0.3)
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis(np.repeat(self._dT(ctx)[:, None], 3, axis=1))
+
+
+@register
+@dataclass
+class TemperatureScale(_TemperatureReferenced):
+    """Scale factors that change with temperature: ``y_j += alpha_j (T - T0) (C B)_j``, ``alpha`` in ppm/K."""
+
+    name: ClassVar[str] = "temperature_scale"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("temperature",)
+    description: ClassVar[str] = "scale factors changing with temperature, y_j += alpha_j (T - T0) (CB)_j [ppm/K]"
+    default_magnitude: ClassVar[float] = 30.0
+    magnitude_unit: ClassVar[str] = "ppm/K"
+
+    def param_names(self):
+        return [f"alpha_{a}_ppm_per_K" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 6.0)
+
+    def raw_basis(self, z0, ctx: Context):
+        return _diagonal_basis(1e-6 * self._dT(ctx)[:, None] * z0)
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """``alpha_j F`` in nT/K: how much an axis reading the whole field ``F`` changes per kelvin."""
+        if not field_nT:
+            return ""
+        per_K = 1e-6 * np.asarray(values, dtype=float) * field_nT
+        return (f"at the data's field {_field_text(field_nT)}: an axis reading the whole field changes by "
+                f"{_axes_text(per_K)} nT/K")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# time
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class BiasDrift(CatalogueEffect):
+    """Bias drifting linearly in time: ``y += gamma (t - t0)``, ``gamma`` per axis in nT/h."""
+
+    name: ClassVar[str] = "bias_drift"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "bias drifting in time, y += gamma (t - t0) [nT/h per axis]"
+    default_magnitude: ClassVar[float] = 300.0
+    magnitude_unit: ClassVar[str] = "nT/h"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
+
+    reference_time_s: float | None = None
+    duration_s: float | None = None
+
+    def param_names(self):
+        return [f"gamma_{a}_nT_per_h" for a in _AXES]
+
+    def param_scale(self):
+        span_h = (self.duration_s or 3600.0) / 3600.0
+        return np.full(3, 3.5 / span_h)
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.reference_time_s = float(np.mean(t))
+        self.duration_s = float(max(t[-1] - t[0], 1e-9))
+
+    def state(self):
+        return {"reference_time_s": self.reference_time_s, "duration_s": self.duration_s}
+
+    def set_state(self, state):
+        self.reference_time_s = _state_number(self, state, "reference_time_s", what="a time in s")
+        self.duration_s = _state_number(self, state, "duration_s", positive=True, what="the record length in s")
+
+    def raw_basis(self, z0, ctx: Context):
+        t = ctx.time_s
+        t0 = np.mean(t) if self.reference_time_s is None else self.reference_time_s
+        return _diagonal_basis(np.repeat(((t - t0) / 3600.0)[:, None], 3, axis=1))
+
+
+#: One sensor's readings-only work for the candidates' constants (step scans, quadric residuals, field directions):
+#: the candidates of every score round and the refits look at the same readings.
+_READINGS_CACHE = ReadingsCache(32)
+
+
+def quadric_residuals(readings_nT):
+    """Total-field residuals (nT, Sampson distance) of an algebraic ellipsoid fit to one sensor's readings
+    (read-only; computed once per readings array).
+
+    The effects that search the residuals for a data-derived constant (a step time, a hysteresis width) use
+    these when the residuals they are given are worse (a crude starting calibration).
+    """
+    y = np.asarray(readings_nT, dtype=float)
+
+    def compute():
+        r = _quadric_residuals(y)
+        r.setflags(write=False)
+        return r
+    return _READINGS_CACHE.get(y, ("quadric",), compute)
+
+
+def _quadric_residuals(y):
+    centre = y.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1)))
+    v = (y - centre) / scale
+    x, yy, z = v.T
+    design = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
+                              np.ones(len(v))])
+    # the right singular vector of the smallest singular value, as the eigenvector of the Gram matrix's smallest
+    # eigenvalue (one product instead of an SVD of the tall design; the coordinates are centred and scaled, so
+    # squaring the condition number costs nothing that matters here)
+    _, vectors = np.linalg.eigh(design.T @ design)
+    c = vectors[:, 0]
+    m = np.array([[c[0], c[3], c[4]], [c[3], c[1], c[5]], [c[4], c[5], c[2]]])
+    value = design @ c
+    grad = 2 * (v @ m + c[6:9])
+    r = value / np.maximum(row_norm(grad), 1e-300) * scale
+    try:
+        inside = c[9] - c[6:9] @ np.linalg.solve(m, c[6:9])  # the quadric's value at its centre
+    except np.linalg.LinAlgError:
+        inside = c[9]
+    return -r if inside > 0 else r  # outside the ellipsoid (field too strong) is positive
+
+
+def _better_residuals(readings_nT, residuals_nT):
+    """The given residuals, or those of :func:`quadric_residuals` if they are much smaller (poor start)."""
+    r = np.asarray(residuals_nT, dtype=float)
+    alt = quadric_residuals(readings_nT)
+    return alt if np.sqrt(np.mean(alt**2)) < 0.7 * np.sqrt(np.mean(r**2)) else r
+
+
+def step_scan(readings_nT, margin=0.05, min_samples=10):
+    """Change-point scan for a bias step in one sensor's readings.
+
+    Readings of a calibrated-for sensor turning in a uniform field lie on an ellipsoid; a bias step after sample
+    ``k`` moves the ellipsoid's centre. For every ``k`` the algebraic quadric fit of the (scaled) readings is
+    extended by the columns ``H_k y`` and ``H_k`` (``H_k`` = 1 from sample ``k`` on), which represent a pure
+    step exactly, and the smallest eigenvalue of the design's Gram matrix (the algebraic residual) is computed
+    for all ``k`` at once from cumulative sums. The scan needs no starting calibration.
+
+    Parameters
+    ----------
+    readings_nT : numpy.ndarray, shape (N, 3)
+        Raw readings of the sensor, in time order.
+    margin : float
+        Fraction of the record at each end where no step is looked for.
+    min_samples : int
+        Fewest samples on either side of a step.
+
+    Returns
+    -------
+    index : int
+        First sample after the most likely step.
+    improvement_nT2 : numpy.ndarray, shape (N,)
+        Drop of the (approximate) residual sum of squares, nT^2, for a step before each sample (0 where not
+        scanned).
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    # the same readings are scanned by several candidates and refits (_READINGS_CACHE)
+    index, improvement = _READINGS_CACHE.get(y, ("step", margin, min_samples),
+                                             lambda: _step_scan(y, margin, min_samples))
+    return index, improvement.copy()
+
+
+def _step_scan(readings_nT, margin, min_samples):
+    y = np.asarray(readings_nT, dtype=float)
+    n = len(y)
+    centre = y.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1))))
+    v = (y - centre) / scale
+    x, yy, z = v.T
+    quad = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
+                            np.ones(n)])
+    w = np.column_stack([v, np.ones(n)])
+    improvement = np.zeros(n)
+    lo = max(int(np.ceil(margin * n)), min_samples)
+    hi = min(int(np.floor((1 - margin) * n)), n - min_samples)
+    if hi <= lo:
+        return n // 2, improvement
+    g_qq = quad.T @ quad
+    lam0 = np.linalg.eigvalsh(g_qq)[0]
+    x_all = np.column_stack([quad, w])  # (N, 14): the step columns' products with both blocks at once
+
+    def suffix(ks):
+        """``sum_{i >= k} x_i w_i^T`` (len(ks), 14, 4) for increasing, evenly spaced (or consecutive) ``ks``:
+        the sums of the segments between them (one batched product), then their running sum from the end."""
+        step_k = int(ks[1] - ks[0]) if len(ks) > 1 else 1
+        m = len(ks)
+        body = slice(int(ks[0]), int(ks[0]) + m * step_k)
+        seg = np.matmul(x_all[body].reshape(m, step_k, 14).transpose(0, 2, 1), w[body].reshape(m, step_k, 4))
+        tail = x_all[body.stop:].T @ w[body.stop:]
+        return np.cumsum(seg[::-1], axis=0)[::-1] + tail
+
+    def smallest(ks):
+        s_k = suffix(ks)
+        gram = np.empty((len(ks), 14, 14))
+        gram[:, :10, :10] = g_qq
+        gram[:, :10, 10:] = s_k[:, :10]
+        gram[:, 10:, :10] = np.transpose(s_k[:, :10], (0, 2, 1))
+        gram[:, 10:, 10:] = s_k[:, 10:]
+        return np.linalg.eigvalsh(gram)[:, 0]
+
+    # coarse grid, then every sample around the best coarse point (long records)
+    stride = max(1, (hi - lo) // 2000)
+    ks = np.arange(lo, hi, stride)
+    # algebraic residual ~ (2 distance / scale)^2 per sample
+    improvement[ks] = np.maximum(lam0 - smallest(ks), 0.0) * scale**2 / 4.0
+    if stride > 1:
+        best = int(ks[np.argmax(improvement[ks])])
+        fine = np.arange(max(lo, best - stride), min(hi, best + stride + 1))
+        improvement[fine] = np.maximum(lam0 - smallest(fine), 0.0) * scale**2 / 4.0
+    return int(lo + np.argmax(improvement[lo:hi])), improvement
+
+
+@register
+@dataclass
+class BiasStep(CatalogueEffect):
+    """A bias step (perming after a shock): ``y += db H(t - te)``, ``db`` per axis in nT.
+
+    The step time ``te`` of each sensor is found by :func:`step_scan` on its readings in :meth:`configure`
+    (one extra degree of freedom per sensor for the information criteria).
+    """
+
+    name: ClassVar[str] = "bias_step"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "bias step at a time te found by a change-point scan, y += db H(t - te) [nT]"
+    default_magnitude: ClassVar[float] = 10.0
+    magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
+    extra_dof: ClassVar[int] = 1
+
+    step_time_s: list | None = None
+
+    def param_names(self):
+        return [f"step_{a}_nT" for a in _AXES]
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        times = []
+        for s in range(dataset.n_sensors):
+            if not self.applies_to(s):
+                times.append(None)
+                continue
+            ok = np.ones(len(t), bool) if residuals_nT is None else np.isfinite(residuals_nT[s])
+            k, _ = step_scan(dataset.readings_nT[s] if ok.all() else dataset.readings_nT[s][ok])
+            tk = t[ok]
+            times.append(float(0.5 * (tk[k - 1] + tk[k])))
+        self.step_time_s = times
+
+    def state(self):
+        return {"step_time_s": self.step_time_s}
+
+    def set_state(self, state):
+        self.step_time_s = _state_times(self, state, "step_time_s")
+
+    def refine(self, effect_values, context=None, margin=0.05):
+        """Move each step to the time that minimises the whole residual (profile over the step time).
+
+        :meth:`configure` scans the raw readings, which sees only the total field and is confounded by slow
+        changes of scale (temperature) or drift; where the field is nearly perpendicular to the step the scan is
+        flat. With the fitted parameters held, the residual cost of every sample is computed with the step
+        applied and not applied; the cost of a step before sample ``k`` is then a pair of cumulative sums, total
+        field and inter-sensor consistency together, so every ``k`` is tried at once.
+        """
+        if context is None or self.step_time_s is None or not context.dataset.has("time"):
+            return False
+        t = context.dataset.time_s
+        n = len(t)
+        lo, hi = max(int(np.ceil(margin * n)), 1), min(int(np.floor((1 - margin) * n)), n - 1)
+        times, changed = list(self.step_time_s), False
+        # the step is linear in the corrected field: sensor s's field with its step at every sample ("on") or at
+        # none ("off") is the fitted field plus a multiple of R C^-1 db, so every trial costs that sensor's
+        # residuals only (RefineContext.cost_with_sensor_moved)
+        shortcut = hasattr(context, "cost_with_sensor_moved")
+        values = context.values() if shortcut else None
+        for s in range(len(times)):
+            if times[s] is None or hi <= lo:
+                continue
+            if not shortcut:  # a context without it: evaluate each trial whole
+                on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
+                off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
+            else:
+                cal = context.sensors()[s]
+                db = values[term_label(self.name, s if self.per_sensor else None)]
+                shift = (cal.R @ cal.cinv) @ db  # the step's move of sensor s's corrected field, nT
+                now = (t >= times[s]).astype(float)[:, None]
+                off = context.cost_with_sensor_moved(s, now * shift)  # the current step taken out
+                on = context.cost_with_sensor_moved(s, (now - 1.0) * shift)  # the step at every sample
+            # cost of a step before sample k: samples < k without it, samples >= k with it
+            cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
+            k = lo + int(np.argmin(cost[lo:hi + 1]))
+            new = float(0.5 * (t[k - 1] + t[k]))
+            if np.any((t >= new) != (t >= times[s])):
+                times[s], changed = new, True
+        if changed:
+            self.step_time_s = times
+        return changed
+
+    def raw_basis(self, z0, ctx: Context):
+        t = ctx.time_s
+        te = None
+        if self.step_time_s is not None and ctx.sensor < len(self.step_time_s):
+            te = self.step_time_s[ctx.sensor]
+        if te is None:
+            te = float(np.median(t))
+        return _diagonal_basis(np.repeat((t >= te).astype(float)[:, None], 3, axis=1))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# nonlinearity
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _PowerNonlinearity(CatalogueEffect):
+    """Transfer nonlinearity of one order per axis: ``y_j += k_j ((C B)_j / F)^order``, ``k`` in nT.
+
+    ``k_j`` is quoted at the data's own field magnitude ``F``: it is the deviation (nT) of axis ``j`` when that
+    axis reads the whole field, so the number is the size of the effect in these data (a coefficient quoted at
+    50 uT would overstate a nonlinearity seen in a 9 uT field 30-fold for the quadratic term). ``F`` is a
+    data-derived constant (:attr:`field_magnitude_nT`, saved with the calibration) set by :meth:`configure`;
+    without it (an effect never configured, a calibration file written before) ``F`` is 50 uT
+    (:data:`NONLINEARITY_REFERENCE_NT`).
+    """
+
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ()
+    magnitude_unit: ClassVar[str] = "nT at |B|"
+    order: ClassVar[int] = 2
+    symbol: ClassVar[str] = "q"
+    scale_nT: ClassVar[float] = 4.0
+
+    #: The field magnitude (nT) the parameters are quoted at; None: 50 uT.
+    field_magnitude_nT: float | None = None
+
+    def param_names(self):
+        return [f"{self.symbol}_{a}_nT" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, self.scale_nT)
+
+    @property
+    def quoted_at_nT(self) -> float:
+        """The field magnitude (nT) the parameters are quoted at: the data's, or 50 uT if unknown."""
+        return float(self.field_magnitude_nT or NONLINEARITY_REFERENCE_NT)
+
+    def quote_unit(self, field_nT=None) -> str:
+        """``"nT at 8.9 uT"``: the unit of the parameters, at ``field_nT`` or at :attr:`quoted_at_nT`."""
+        return f"nT at {(field_nT or self.quoted_at_nT) / 1000.0:.3g} uT"
+
+    def configure(self, dataset, residuals_nT=None):
+        self.field_magnitude_nT = data_field_magnitude_nT(dataset)
+
+    def state(self):
+        return {"field_magnitude_nT": self.field_magnitude_nT}
+
+    def set_state(self, state):
+        self.field_magnitude_nT = _state_number(self, state, "field_magnitude_nT", positive=True,
+                                                what="of nT: the field the parameters are quoted at")
+
+    def raw_basis(self, z0, ctx: Context):
+        u = z0 / self.quoted_at_nT
+        power = u.copy()
+        for _ in range(self.order - 1):  # repeated products: numpy's general power is ~10x slower for a cube
+            power *= u
+        return _diagonal_basis(power)
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """The deviation (nT, and ppm of the field) of an axis reading the whole field of the data.
+
+        The parameters are quoted at :attr:`quoted_at_nT`, the magnitude of the raw readings the basis divides
+        (a sphere fit, before the scale correction, or the reference). An effect never configured (a file saved
+        before the field was kept) is quoted at 50 uT; given the data's ``field_nT`` its deviation is then
+        converted by ``(F / 50 uT)^order``.
+        """
+        k = np.asarray(values, dtype=float)
+        field = self.quoted_at_nT
+        note = ""
+        if self.field_magnitude_nT is None and field_nT:
+            k = k * (field_nT / field) ** self.order
+            field, note = float(field_nT), f" (converted from the parameters, quoted at {_field_text(field)})"
+        elif field_nT and abs(field_nT / field - 1.0) > 0.005:
+            note = (f" (the readings' magnitude before the scale correction; the fitted field is "
+                    f"{_field_text(field_nT)})")
+        return (f"an axis reading the whole field of the data, {_field_text(field)}, is off by {_axes_text(k)} nT = "
+                f"{_axes_text(1e6 * k / field, '{:.0f}')} ppm{note}")
+
+
+def data_field_magnitude_nT(dataset) -> float:
+    """The magnitude (nT) of the field the data were recorded in.
+
+    The dataset's reference when it has one (the median of its ``ref_total`` column, else its
+    ``reference_total_nT``); otherwise the radius of a sphere fitted to each sensor's readings, averaged over the
+    sensors (the fitted field to within the sensors' scale errors, about 1 %).
+    """
+    column = getattr(dataset, "ref_total_nT", None)
+    if column is not None:
+        values = np.asarray(column, dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size:
+            return float(np.median(values))
+    if getattr(dataset, "reference_total_nT", None):
+        return float(dataset.reference_total_nT)
+    return float(np.mean([_sphere_fit(y)[1] for y in np.asarray(dataset.readings_nT, dtype=float)]))
+
+
+def _sphere_fit(readings_nT):
+    """Centre (3,) and radius (nT) of the sphere fitted (algebraically, least squares) to one sensor's readings."""
+    y = np.asarray(readings_nT, dtype=float)
+    design = np.column_stack([2 * y, np.ones(len(y))])
+    sol, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
+    return sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
+
+
+@register
+@dataclass
+class NonlinearityQuadratic(_PowerNonlinearity):
+    """Second-order transfer nonlinearity per axis: ``y_j += q_j ((C B)_j / F)^2``, ``q`` in nT at the data's field
+    magnitude ``F``."""
+
+    name: ClassVar[str] = "nonlinearity_quadratic"
+    description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / |B|)^2 [nT at the data's field |B|]"
+    default_magnitude: ClassVar[float] = 20.0
+    order: ClassVar[int] = 2
+    symbol: ClassVar[str] = "q"
+    scale_nT: ClassVar[float] = 4.0
+
+
+@register
+@dataclass
+class NonlinearityCubic(_PowerNonlinearity):
+    """Third-order transfer nonlinearity per axis: ``y_j += c_j ((C B)_j / F)^3``, ``c`` in nT at the data's field
+    magnitude ``F``.
+
+    At constant ``|B|`` it cannot be told from a cross-field effect ``l_j B_j (|B|^2 - B_j^2)``.
+    """
+
+    name: ClassVar[str] = "nonlinearity_cubic"
+    description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / |B|)^3 [nT at the data's field |B|]"
+    default_magnitude: ClassVar[float] = 25.0
+    order: ClassVar[int] = 3
+    symbol: ClassVar[str] = "c"
+    scale_nT: ClassVar[float] = 6.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# dynamics: timing and hysteresis
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _reading_rate(effect, ctx):
+    """d y / d t (nT/s) of the context's sensor, cached per dataset (it does not depend on the bias)."""
+    return effect._cached(ctx.dataset, ("rate", ctx.sensor),
+                          lambda: time_derivative(ctx.reading_nT, ctx.time_s))
+
+
+@register
+@dataclass
+class AxisTimingSkew(CatalogueEffect):
+    """Axes of one sensor sampled at different times: ``y_j(t) = (C B)_j(t - tau_j)``, ``tau`` in ms.
+
+    A delay common to the three axes leaves the total field unchanged, so the delays of x and y are
+    measured relative to the z axis (2 parameters per sensor).
+    """
+
+    name: ClassVar[str] = "axis_timing_skew"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "x and y axes sampled late relative to z, y_j(t) = B_j(t - tau_j) [ms]"
+    default_magnitude: ClassVar[float] = 0.2
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (1.0, -0.6)
+
+    def param_names(self):
+        return ["tau_x_ms", "tau_y_ms"]
+
+    def param_scale(self):
+        return np.full(2, 0.1)
+
+    def raw_basis(self, z0, ctx: Context):
+        rate = _reading_rate(self, ctx)
+        return SingleAxisBasis(-1e-3 * rate[:, :2], [0, 1])
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        if m.size == 2:
+            return m.copy()
+        if m.size == 3:  # absolute delays: only the differences to z are visible
+            return m[:2] - m[2]
+        pattern = np.array(self.pattern) if (sensor or 0) % 2 == 0 else np.array(self.pattern[::-1])
+        return m[0] * pattern
+
+
+@register
+@dataclass
+class SensorTimingSkew(CatalogueEffect):
+    """Sensors of an array sampled at different times: ``B_i(t - dt_i)``, ``dt`` in ms, sensor 1 the reference.
+
+    Invisible in each sensor's total field (a delayed field has the same magnitude); it shows in the
+    inter-sensor consistency as ``dt dB/dt`` perpendicular to the field.
+    """
+
+    name: ClassVar[str] = "sensor_timing_skew"
+    stage: ClassVar[str] = "vector"
+    channels: ClassVar[tuple] = ("time",)
+    min_sensors: ClassVar[int] = 2
+    description: ClassVar[str] = "sensors 2-4 sampled late relative to sensor 1, B_i(t - dt_i) [ms]"
+    default_magnitude: ClassVar[float] = 0.2
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (0.0, 1.0, -0.7, 0.5)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.sensor == 0:
+            raise MagcalError("sensor_timing_skew: sensor 1 is the time reference; name sensor 2, 3 or 4")
+
+    def applies_to(self, sensor):
+        return sensor > 0 and (self.sensor is None or self.sensor == sensor)
+
+    def param_names(self):
+        return ["delay_ms"]
+
+    def param_scale(self):
+        return np.array([0.1])
+
+    def vector_basis(self, field_nT, ctx: Context):
+        rate = time_derivative(field_nT, ctx.time_s)
+        return 1e-3 * rate[:, :, None]
+
+    def true_params(self, magnitude=None, sensor=1):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        if m.size != 1:
+            raise MagcalError(f"{self.name}: magnitude is one delay in ms")
+        return np.array([m[0] * self.pattern[sensor % 4]])
+
+
+@register
+@dataclass
+class Hysteresis(CatalogueEffect):
+    """Magnetic hysteresis of each axis: the output lags behind the field by up to ``h_j`` nT, like a play
+    (backlash) operator of half-width ``h_j``; away from reversals ``y_j += -h_j sign(dB_j/dt)``.
+
+    The basis of axis ``j`` is ``(P(y_j) - y_j) / h0_j`` with ``P`` the play operator of a half-width ``h0_j``
+    estimated from the residuals in :meth:`configure` (so that the transitions after each reversal have the
+    right length); where no hysteresis is seen it is ``-sign(dy_j/dt)``. The parameter ``h_j`` (nT) scales it.
+    """
+
+    name: ClassVar[str] = "hysteresis"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = "hysteresis, each axis lags by h_j behind the direction of change [nT]"
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+    #: Loop half-widths are widths: every axis hides a non-negative one.
+    pattern: ClassVar[tuple] = (1.0, 0.7, 0.5)
+    #: Why :meth:`param_bounds` holds ``h >= 0``, for the message refusing a negative width.
+    bounds_note: ClassVar[str] = ("a hysteresis loop half-width in nT: the output lags the field by it, it cannot "
+                                  "lead it")
+
+    #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
+    shape_half_width_nT: list | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.shape_half_width_nT = self._checked_widths(self.shape_half_width_nT)
+
+    def _checked_widths(self, widths):
+        """The per-sensor shape widths, refused with a clear message if one is negative or not a number."""
+        if widths is None:
+            return None
+        if not isinstance(widths, (list, tuple)):
+            raise MagcalError(f"{self.label}: shape_half_width_nT must be a list (one entry per sensor) of three "
+                              f"half-widths in nT or null, got {widths!r}")
+        out = []
+        for s, w in enumerate(widths):
+            if w is None:
+                out.append(None)
+                continue
+            try:
+                values = np.asarray(w, dtype=float).reshape(-1)
+            except (TypeError, ValueError):
+                values = np.array([np.nan])
+            if values.size != 3 or not np.all(np.isfinite(values)) or np.any(values < 0):
+                raise MagcalError(f"{self.label}: shape_half_width_nT of sensor {s + 1} is {w!r}; it must be three "
+                                  f"numbers >= 0 ({self.bounds_note})")
+            out.append(values.tolist())
+        return out
+
+    def param_names(self):
+        return [f"h_{a}_nT" for a in _AXES]
+
+    def param_bounds(self):
+        """``h >= 0`` on every axis: a loop half-width is not negative."""
+        return np.zeros(3), np.full(3, np.inf)
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """The loop half-widths in ppm of the data's field."""
+        if not field_nT:
+            return ""
+        h = np.asarray(values, dtype=float)
+        return (f"loop half-widths {_axes_text(1e6 * h / field_nT, '{:.0f}')} ppm of the data's field "
+                f"{_field_text(field_nT)}")
+
+    def configure(self, dataset, residuals_nT=None):
+        widths = []
+        for s in range(dataset.n_sensors):
+            if residuals_nT is None or not self.applies_to(s):
+                widths.append(None)
+                continue
+            r = np.asarray(residuals_nT[s], dtype=float)
+            ok = np.isfinite(r)
+            y = dataset.readings_nT[s]
+            rate = time_derivative(y, dataset.time_s)
+            y_ok = y if ok.all() else y[ok]  # the readings themselves when all are kept (quadric_residuals' cache)
+            widths.append(_hysteresis_widths(y_ok, -np.sign(rate[ok]), _better_residuals(y_ok, r[ok])).tolist())
+        self.shape_half_width_nT = widths
+
+    def state(self):
+        return {"shape_half_width_nT": self.shape_half_width_nT}
+
+    def refine(self, effect_values, context=None):
+        if self.shape_half_width_nT is None:
+            return False
+        changed = False
+        widths = [None if w is None else list(w) for w in self.shape_half_width_nT]
+        for s in range(len(widths)):
+            label = self.name if self.sensor is None and len(widths) == 1 and term_label(self.name, 0) not in \
+                effect_values else term_label(self.name, s)
+            values = effect_values.get(label)
+            if values is None or widths[s] is None:
+                continue
+            new = np.abs(np.asarray(values, dtype=float))
+            old = np.asarray(widths[s], dtype=float)
+            if np.any(np.abs(new - old) > 0.1 * np.maximum(new, 0.5)):
+                changed = True
+            widths[s] = new.tolist()
+        if changed:
+            self.shape_half_width_nT = widths
+        return changed
+
+    def set_state(self, state):
+        self.shape_half_width_nT = self._checked_widths(state.get("shape_half_width_nT"))
+
+    def raw_basis(self, z0, ctx: Context):
+        widths = None
+        if self.shape_half_width_nT is not None and ctx.sensor < len(self.shape_half_width_nT):
+            widths = self.shape_half_width_nT[ctx.sensor]
+        key = ("hyst", ctx.sensor, tuple(widths) if widths else None)
+        columns = self._cached(ctx.dataset, key, lambda: self._columns(ctx, widths))
+        return _diagonal_basis(columns)
+
+    def _columns(self, ctx, widths):
+        y = ctx.reading_nT
+        rate = _reading_rate(self, ctx)
+        cols = -np.sign(rate)
+        if widths:
+            for j, h0 in enumerate(widths):
+                if h0 and h0 > 0:
+                    cols[:, j] = (play_operator(y[:, j], h0) - y[:, j]) / h0
+        return cols
+
+
+def _hysteresis_widths(y, signs, residuals):
+    """Rough per-axis hysteresis half-widths (nT) from one sensor's total-field residuals.
+
+    The residual of a hysteretic sensor is about ``sum_j u_j lag_j`` with ``lag_j = -h_j sign(dB_j/dt)``; ``u`` is
+    approximated by the centred, scaled readings and ``r`` regressed on ``u_j sign_j``. (The terms the base
+    model absorbs cannot be included: the residual is itself a function of the readings.) Widths not clearly
+    above their standard error are 0.
+    """
+    v = y - y.mean(axis=0)
+    v = v / np.sqrt(np.mean(np.sum(v**2, axis=1)))
+    design = np.column_stack([np.ones(len(v)), v * signs])
+    coef, *_ = np.linalg.lstsq(design, residuals, rcond=None)
+    resid = residuals - design @ coef
+    s2 = float(resid @ resid) / max(len(residuals) - design.shape[1], 1)
+    cov = s2 * np.linalg.pinv(design.T @ design)
+    h = coef[-3:]
+    se = np.sqrt(np.maximum(np.diag(cov)[-3:], 1e-300))
+    return np.where(np.abs(h) > 3 * se, np.abs(h), 0.0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# periodic interference (a source on the platform: motor, pump, aliased mains)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _sample_grid(time_s):
+    """Sample indices on a regular grid and its step (s) when every interval is a whole number of one step (a
+    regular record, or a subset of one with gaps); ``(None, None)`` for irregular time stamps."""
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    if len(t) < 3 or np.any(dt <= 0):
+        return None, None
+    step = float(np.min(dt))
+    ratio = dt / step
+    if np.any(np.abs(ratio - np.round(ratio)) > 0.01) or float(np.sum(np.round(ratio))) > 64 * len(t):
+        return None, None
+    return np.concatenate([[0], np.cumsum(np.round(ratio).astype(np.int64))]), step
+
+
+def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, oversample=4):
+    """Where in frequency a sinusoidal field fixed in the sensor's axes best explains total-field residuals.
+
+    A field ``d(t) = a sin(w t) + b cos(w t)`` added to a sensor's axes changes its total field by about
+    ``u(t) . d(t)`` (``u`` the field direction). For every trial frequency the statistic is the part of the
+    residual sum of squares the six columns ``u_j sin(w t)``, ``u_j cos(w t)`` would remove,
+    ``c^H G^-1 c`` with ``c_j = sum r u_j exp(-i w t)`` and ``G = U^T U / 2``: a periodogram of the residual
+    weighted by the field direction, so that the rotation of the sensor does not smear the line. ``u`` is taken
+    from a sphere fit to the readings. Regular sampling (gaps allowed) uses an FFT, zero-padded ``oversample``
+    times; irregular time stamps a direct sum on a grid of at most 4 096 frequencies.
+
+    Parameters
+    ----------
+    time_s : numpy.ndarray, shape (N,)
+    readings_nT : numpy.ndarray, shape (N, 3)
+        One sensor's raw readings.
+    residuals_nT : numpy.ndarray, shape (N,)
+        Its total-field residuals.
+    min_cycles : float
+        Lowest frequency searched, in cycles per record (slower changes are drifts, not interference).
+    oversample : int
+        Zero-padding factor of the FFT (frequency step ``1 / (oversample T)``).
+
+    Returns
+    -------
+    freq_hz, statistic_nT2 : numpy.ndarray
+        The frequencies searched (up to 0.98 of the Nyquist frequency) and the residual sum of squares (nT^2)
+        a sinusoid at each would remove; empty when the record is too short.
+    """
+    t = np.asarray(time_s, dtype=float)
+    r = np.asarray(residuals_nT, dtype=float)
+    y = np.asarray(readings_nT, dtype=float)
+
+    def directions():
+        centre, _ = _sphere_fit(y)
+        u = y - centre
+        u /= np.maximum(row_norm(u)[:, None], 1e-300)
+        u.setflags(write=False)
+        return u, np.linalg.pinv(0.5 * (u.T @ u))
+    u, gram_inv = _READINGS_CACHE.get(y, ("sphere directions",), directions)  # the readings' alone: once per record
+    w = r[:, None] * u  # (N, 3)
+    w = w - w.mean(axis=0)
+    duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    index, step = _sample_grid(t)
+    empty = np.zeros(0), np.zeros(0)
+    if duration <= 0 or len(t) < 16:
+        return empty
+    if index is not None:
+        n_fft = scipy.fft.next_fast_len(oversample * (index[-1] + 1), real=True)
+        padded = np.zeros((3, n_fft))  # axis by axis, each a contiguous row: the FFT runs along memory
+        padded[:, index] = w.T
+        coef = scipy.fft.rfft(padded, axis=1).T  # (F, 3), c_j at each frequency
+        freq = np.fft.rfftfreq(n_fft, step)
+        nyquist = 0.5 / step
+    else:
+        nyquist = 0.5 / float(np.median(np.diff(t)))
+        freq = np.linspace(min_cycles / duration, 0.98 * nyquist, min(4096, oversample * len(t)))
+        coef = np.empty((len(freq), 3), complex)
+        for lo in range(0, len(freq), 256):
+            phase = np.exp(-2j * np.pi * np.outer(freq[lo:lo + 256], t - t[0]))
+            coef[lo:lo + 256] = phase @ w
+    keep = (freq >= min_cycles / duration) & (freq <= 0.98 * nyquist)
+    freq, coef = freq[keep], coef[keep]
+    # c^H G^-1 c with G^-1 real symmetric: the real and imaginary parts' quadratic forms
+    stat = np.sum((coef.real @ gram_inv) * coef.real, axis=1) + np.sum((coef.imag @ gram_inv) * coef.imag, axis=1)
+    return freq, np.maximum(stat, 0.0)
+
+
+def dominant_interference_hz(time_s, readings_nT, residuals_nT, min_cycles=5.0):
+    """The frequency (Hz) of :func:`interference_spectrum`'s highest line, refined by a parabola through the
+    three grid points around it; ``None`` when the record is too short to search."""
+    freq, stat = interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles)
+    if len(freq) < 3:
+        return None
+    i = int(np.argmax(stat))
+    if 0 < i < len(freq) - 1:
+        a, b, c = stat[i - 1], stat[i], stat[i + 1]
+        denom = a - 2 * b + c
+        shift = 0.5 * (a - c) / denom if denom < 0 else 0.0
+        return float(freq[i] + np.clip(shift, -0.5, 0.5) * (freq[1] - freq[0]))
+    return float(freq[i])
+
+
+@register
+@dataclass
+class PeriodicInterference(CatalogueEffect):
+    """A periodic field from a source on the platform (a motor, a pump, mains pickup aliased by the sampling),
+    fixed in the sensor's axes: ``y_j += sum_k a_jk sin(2 pi k f (t - t0)) + b_jk cos(2 pi k f (t - t0))``,
+    amplitudes in nT, ``k = 1 .. harmonics``.
+
+    The frequency ``f`` of each sensor is a data-derived constant: :meth:`configure` takes the highest line of
+    :func:`interference_spectrum` of the residuals (at least three cycles per record: slower changes are
+    drifts), and :meth:`refine` profiles the whole residual over ``f`` around it after the fit (one extra degree
+    of freedom per sensor for the information criteria). ``t0`` is the mean time of the fitted record.
+
+    It is a record-only term (:attr:`transferable` False): the source's frequency, phase and amplitude belong to
+    the platform's state during this record (a motor's speed, the pump's duty), not to the instrument; applied to
+    another record it would subtract a sinusoid of unknown phase. An interference source fixed in the *world*
+    (building wiring) rather than on the platform changes the total field by the same ``B/|B| . d(t)`` at every
+    attitude; a per-axis sinusoid represents it only while the sensor turns slowly compared with ``f``.
+    """
+
+    name: ClassVar[str] = "periodic_interference"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    description: ClassVar[str] = ("periodic interference (motor, pump, aliased mains) at a frequency f found in the "
+                                  "residual spectrum, y_j += a_j sin(2 pi f t) + b_j cos(2 pi f t) [nT]")
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # the platform's state during this record, not the instrument
+    extra_dof: ClassVar[int] = 1
+    #: Direction (sensor axes) of the simulated interference field (normalised by the perturbation).
+    pattern: ClassVar[tuple] = (0.6, -0.5, 0.62)
+    #: Fewest cycles per record the frequency search accepts.
+    min_cycles: ClassVar[float] = 5.0
+
+    #: Number of harmonics (1: the fundamental only; 2: also ``2 f``...).
+    harmonics: int = 1
+    #: Per sensor, the interference frequency (Hz) found in the data (None for a sensor without the term).
+    frequency_hz: list | None = None
+    #: Time origin of the phases (s): the mean time of the fitted record.
+    reference_time_s: float | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if isinstance(self.harmonics, bool) or not isinstance(self.harmonics, (int, np.integer)) \
+                or not 1 <= self.harmonics <= 5:
+            raise MagcalError(f"{self.label}: harmonics must be a whole number 1..5, got {self.harmonics!r}")
+        self.frequency_hz = self._checked_frequencies(self.frequency_hz)
+
+    def _checked_frequencies(self, values):
+        if values is None:
+            return None
+        if not isinstance(values, (list, tuple)):
+            raise MagcalError(f"{self.label}: frequency_hz must be a list (one frequency in Hz per sensor, or null), "
+                              f"got {values!r}")
+        out = []
+        for s, f in enumerate(values):
+            if f is None:
+                out.append(None)
+                continue
+            try:
+                f = float(f)
+            except (TypeError, ValueError):
+                f = float("nan")
+            if not np.isfinite(f) or f <= 0:
+                raise MagcalError(f"{self.label}: frequency_hz of sensor {s + 1} is {values[s]!r}; an interference "
+                                  "frequency must be a positive number of Hz")
+            out.append(f)
+        return out
+
+    def param_names(self):
+        names = []
+        for k in range(1, self.harmonics + 1):
+            suffix = "" if k == 1 else str(k)
+            names += [f"sin{suffix}_{a}_nT" for a in _AXES] + [f"cos{suffix}_{a}_nT" for a in _AXES]
+        return names
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.reference_time_s = float(np.mean(t))
+        frequencies = []
+        for s in range(dataset.n_sensors):
+            if not self.applies_to(s):
+                frequencies.append(None)
+                continue
+            y = dataset.readings_nT[s]
+            if residuals_nT is None:
+                ok, r = np.ones(len(t), bool), quadric_residuals(y)
+            else:
+                r = np.asarray(residuals_nT[s], dtype=float)
+                ok = np.isfinite(r)
+                r = _better_residuals(y if ok.all() else y[ok], r[ok])
+            every = ok.all()  # the arrays themselves (the readings' directions are then cached)
+            frequencies.append(dominant_interference_hz(t if every else t[ok], y if every else y[ok], r,
+                                                        self.min_cycles))
+        self.frequency_hz = frequencies
+
+    def state(self):
+        return {"frequency_hz": self.frequency_hz, "reference_time_s": self.reference_time_s,
+                "harmonics": self.harmonics}
+
+    def set_state(self, state):
+        harmonics = state.get("harmonics", self.harmonics)
+        if harmonics != self.harmonics:
+            self.harmonics = harmonics
+            self.__post_init__()
+        self.frequency_hz = self._checked_frequencies(state.get("frequency_hz"))
+        self.reference_time_s = state.get("reference_time_s")
+
+    def refine(self, effect_values, context=None, points=13):
+        """Move each sensor's frequency to the one that minimises the whole residual, the fitted amplitudes held,
+        on a grid of ``points`` frequencies within half a cycle per record of it; True if one moved by more than
+        a twentieth of a cycle per record (then the fit is repeated)."""
+        if context is None or not self.frequency_hz or not context.dataset.has("time"):
+            return False
+        t = context.dataset.time_s
+        duration = max(float(t[-1] - t[0]), 1e-9)
+        frequencies, changed = list(self.frequency_hz), False
+        base = self.state()
+        for s, f in enumerate(frequencies):
+            if f is None:
+                continue
+            grid = f + np.linspace(-0.5, 0.5, points) / duration
+            grid = grid[grid > 0]
+            costs = [float(np.sum(context.cost_per_sample(
+                self, dict(base, frequency_hz=frequencies[:s] + [float(g)] + frequencies[s + 1:])))) for g in grid]
+            best = float(grid[int(np.argmin(costs))])
+            if abs(best - f) * duration > 0.05:
+                frequencies[s], changed = best, True
+        if changed:
+            self.frequency_hz = frequencies
+        return changed
+
+    def _frequency(self, ctx):
+        f = None
+        if self.frequency_hz is not None and ctx.sensor < len(self.frequency_hz):
+            f = self.frequency_hz[ctx.sensor]
+        if f is None:  # never configured: the line in the readings' own ellipsoid residuals
+            f = self._cached(ctx.dataset, ("freq", ctx.sensor), lambda: dominant_interference_hz(
+                ctx.time_s, ctx.reading_nT, quadric_residuals(ctx.reading_nT), self.min_cycles))
+        return f
+
+    def raw_basis(self, z0, ctx: Context):
+        f = self._frequency(ctx)
+        t = ctx.time_s
+        t0 = float(np.mean(t)) if self.reference_time_s is None else self.reference_time_s
+        key = ("periodic", f, t0, self.harmonics)
+
+        def compute():
+            columns = []
+            for k in range(1, self.harmonics + 1):
+                phase = 2 * np.pi * k * (f or 0.0) * (t - t0)
+                wave = [np.sin(phase), np.cos(phase)] if f else [np.zeros(len(t))] * 2
+                columns += [w for w in wave for _ in range(3)]  # sin on x, y, z, then cos on x, y, z
+            return SingleAxisBasis(np.column_stack(columns), np.tile(np.arange(3), 2 * self.harmonics))
+        return self._cached(ctx.dataset, key, compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        return None  # the phases are measured from the fitted record's mean time
+
+    def quote(self, values, field_nT=None, sensor=None):
+        """The frequency of each harmonic and the peak amplitude per axis (nT) of the fitted sinusoids."""
+        v = np.asarray(values, dtype=float).reshape(self.harmonics, 2, 3)
+        peak = np.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)  # (harmonics, axes)
+        known = [f for f in (self.frequency_hz or []) if f is not None]
+        if sensor is not None and self.frequency_hz and sensor < len(self.frequency_hz):
+            known = [self.frequency_hz[sensor]] if self.frequency_hz[sensor] is not None else []
+        f = known[0] if len(known) == 1 else None
+        parts = []
+        for k in range(self.harmonics):
+            at = f"{(k + 1) * f:.4g} Hz" if f else f"{k + 1} x the fitted frequency"
+            parts.append(f"peak {_axes_text(peak[k])} nT at {at}")
+        return "; ".join(parts) + (f" ({1e6 * float(np.max(peak)) / field_nT:.0f} ppm of the field "
+                                   f"{_field_text(field_nT)})" if field_nT else "")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# reference field and site
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@register
+@dataclass
+class ReferenceDrift(CatalogueEffect):
+    """The reference field varies slowly during the record (diurnal variation, a drifting reference):
+    ``F(t) = F0 + sum_k c_k P_k(tau)``, Legendre polynomials of the time scaled to [-1, 1], mean removed."""
+
+    name: ClassVar[str] = "reference_drift"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
+    stage: ClassVar[str] = "reference"
+    channels: ClassVar[tuple] = ("time",)
+    per_sensor: ClassVar[bool] = False
+    description: ClassVar[str] = "slow variation of the total field, F(t) = F0 + Legendre series in t [nT]"
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
+
+    #: Legendre degrees used.
+    order: ClassVar[int] = 4
+
+    time_span_s: list | None = None
+    offsets: list | None = None
+
+    def param_names(self):
+        return [f"P{k}_nT" for k in range(1, self.order + 1)]
+
+    def configure(self, dataset, residuals_nT=None):
+        t = dataset.time_s
+        self.time_span_s = [float(t[0]), float(t[-1])]
+        self.offsets = None
+        self.offsets = self._raw(t).mean(axis=0).tolist()
+
+    def state(self):
+        return {"time_span_s": self.time_span_s, "offsets": self.offsets}
+
+    def set_state(self, state):
+        span, offsets = state.get("time_span_s"), state.get("offsets")
+        if span is not None:
+            ok = isinstance(span, (list, tuple)) and len(span) == 2
+            values = _state_times(self, {"time_span_s": list(span)}, "time_span_s") if ok else None
+            if not ok or None in values or values[1] <= values[0]:
+                raise MagcalError(f"{self.label}: time_span_s must be the first and last time of the record in s, "
+                                  f"the last after the first, got {span!r}")
+            span = values
+        if offsets is not None:
+            if not isinstance(offsets, (list, tuple)) or len(offsets) != self.order:
+                raise MagcalError(f"{self.label}: offsets must be {self.order} numbers, got {offsets!r}")
+            offsets = [_state_number(self, {"offsets": v}, "offsets") for v in offsets]
+        self.time_span_s, self.offsets = span, offsets
+
+    def _raw(self, t):
+        t0, t1 = self.time_span_s or (float(t[0]), float(t[-1]))
+        tau = 2.0 * (t - t0) / max(t1 - t0, 1e-9) - 1.0
+        return np.column_stack([eval_legendre(k, tau) for k in range(1, self.order + 1)])
+
+    def reference_basis(self, ctx: Context):
+        def compute():
+            p = self._raw(ctx.time_s)
+            return p - (np.asarray(self.offsets) if self.offsets is not None else p.mean(axis=0))
+        return self._cached(ctx.dataset, ("ref", tuple(self.time_span_s or ()), tuple(self.offsets or ())), compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        return None
+
+
+@register
+@dataclass
+class SiteGradient(CatalogueEffect):
+    """A field gradient at the calibration site (a nearby magnetic object): ``B(p) = B0 + G p`` in the world
+    frame, ``G`` symmetric and traceless (5 parameters, nT/m). Needs the attitude (``qw, qx, qy, qz``).
+
+    The sensors of an array sit at ``p_s`` (array frame); turned by the attitude ``R`` each sees
+    ``R^T G R p_s`` on top of the uniform field. Without attitude the array alone measures, at every sample,
+    the gradient tensor in its own frame (that is what a gradiometer does): a site gradient appears as a tensor
+    that rotates with the array while its invariants stay constant, and its part along the field aliases into
+    the biases (a fake constant tensor offset); its world-frame components cannot be fitted.
+    """
+
+    name: ClassVar[str] = "site_gradient"
+    stage: ClassVar[str] = "vector"
+    channels: ClassVar[tuple] = ("attitude",)
+    per_sensor: ClassVar[bool] = False
+    min_sensors: ClassVar[int] = 2
+    description: ClassVar[str] = "field gradient at the site (world frame), B(p) = B0 + G p [nT/m]; needs attitude"
+    default_magnitude: ClassVar[float] = 20.0
+    magnitude_unit: ClassVar[str] = "nT/m"
+    transferable: ClassVar[bool] = False  # describes this recording, not the instrument
+    pattern: ClassVar[tuple] = (1.0, 0.4, -0.3, -0.6, 0.5)
+
+    def param_names(self):
+        return ["Gxx_nT_per_m", "Gxy_nT_per_m", "Gxz_nT_per_m", "Gyy_nT_per_m", "Gyz_nT_per_m"]
+
+    def param_scale(self):
+        return np.full(5, 4.0)
+
+    def vector_basis(self, field_nT, ctx: Context):
+        def compute():
+            att = ctx.attitude
+            world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
+            cols = [-att.inv().apply(world_offset @ g.T) for g in GRADIENT_BASIS]
+            return np.stack(cols, axis=-1)
+        return self._cached(ctx.dataset, ("grad", ctx.sensor, tuple(np.round(ctx.position_m, 9))), compute)
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        return m.copy() if m.size == 5 else m[0] * np.asarray(self.pattern)
+
+
+def catalogue() -> list:
+    """The registered effect classes, in registration order."""
+    return list(EFFECTS.values())

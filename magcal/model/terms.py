@@ -1,0 +1,460 @@
+"""The calibration model: a list of named effect terms.
+
+A model always holds the *base* terms (``bias``, ``scale``, ``non_orthogonality`` and, for arrays,
+``misalignment``) unless the user removes them, plus any number of *candidate* effects from the catalogue
+(:data:`EFFECTS`, filled by :mod:`magcal.model.effects`).
+
+How a term acts is fixed by its ``stage`` (see ``docs/architecture.md``). For sensor ``s`` with raw reading ``y``::
+
+    z0  = y - b                                    base: bias
+    z   = z0 - sum raw_basis(z0, ctx) @ theta      stage "raw"        (sensor frame, nT)
+    B   = R C^-1 z                                 base: scale, non_orthogonality, misalignment
+    B  += sum vector_basis(B, ctx) @ theta         stage "vector"     (array frame, nT)
+    F   = F0 + sum reference_basis(ctx) @ theta    stage "reference"  (nT)
+
+Every candidate term is linear in its parameters; the basis it returns is its Jacobian with respect to them
+(the fitter treats the basis's own dependence on ``z0``/``B`` as second order). Parameters are expressed in units
+chosen so that a parameter of size ``param_scale`` changes the readings by about 1 nT, which keeps the fit
+well conditioned.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from magcal.core import conventions
+from magcal.core.errors import MagcalError
+
+#: Names of the base terms, in order.
+BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
+
+#: The catalogue of candidate effects by name. :mod:`magcal.model.effects` registers the built-in terms when
+#: ``magcal`` is imported; :func:`register` adds more (a user's own effect).
+EFFECTS: dict[str, type["Effect"]] = {}
+
+
+def register(cls):
+    """Class decorator: add an :class:`Effect` subclass to :data:`EFFECTS` under ``cls.name``."""
+    EFFECTS[cls.name] = cls
+    return cls
+
+
+def term_label(name: str, sensor: int | None) -> str:
+    """The label of an effect term: ``name`` for every sensor (or a shared term), ``name:S`` for one sensor.
+
+    ``sensor`` counts from 0, as everywhere in the Python API (:attr:`Effect.sensor`,
+    :attr:`magcal.diagnosis.Candidate.sensor`); the label shows it from 1, as the command line, the JSON and the
+    workbench do.
+    """
+    return name if sensor is None else f"{name}:{sensor + 1}"
+
+
+@dataclass
+class Context:
+    """What an effect's basis may look at for one sensor.
+
+    Attributes
+    ----------
+    dataset : Dataset
+        The (kept-samples) dataset being fitted or corrected.
+    sensor : int
+        0-based sensor index.
+    position_m : numpy.ndarray, shape (3,)
+        The sensor's position in the array frame (m), from :func:`magcal.core.conventions.sensor_positions`.
+    attitude : scipy.spatial.transform.Rotation or None
+        Array-to-world attitudes, when the dataset has them.
+    """
+
+    dataset: object
+    sensor: int
+    position_m: np.ndarray
+    attitude: Rotation | None = None
+
+    @property
+    def time_s(self):
+        return self.dataset.time_s
+
+    @property
+    def temperature_C(self):
+        return self.dataset.temperature_C
+
+    @property
+    def reading_nT(self):
+        return self.dataset.readings_nT[self.sensor]
+
+
+class SingleAxisBasis(np.ndarray):
+    """An effect's basis (N, 3, q) in which parameter ``k`` moves axis ``axes[k]`` only, as most raw-stage terms
+    have (a temperature bias, a drift, a step, a nonlinearity: one parameter per axis).
+
+    It is the dense array, usable as any basis, that also keeps its non-zero entries: ``axes`` (q,) and
+    ``axis_values`` (q, N), parameter ``k`` moving axis ``axes[k]`` by ``axis_values[k]`` per unit. The fitter
+    projects such a basis on a direction per sample with q products instead of a contraction over the whole
+    array (8x). Views and results of arithmetic are plain bases (``axes`` None).
+
+    Parameters
+    ----------
+    columns : numpy.ndarray, shape (N, q)
+        ``axis_values`` transposed: column ``k`` is parameter ``k``'s effect on its axis.
+    axes : sequence of int, shape (q,)
+        The axis (0, 1, 2) each parameter moves.
+
+    Examples
+    --------
+    >>> b = SingleAxisBasis(np.array([[1.0, 2.0, 3.0]]), [0, 1, 2])
+    >>> b[0]
+    SingleAxisBasis([[1., 0., 0.],
+                     [0., 2., 0.],
+                     [0., 0., 3.]])
+    >>> b.axes.tolist(), b.axis_values.ravel().tolist()
+    ([0, 1, 2], [1.0, 2.0, 3.0])
+    """
+
+    def __new__(cls, columns, axes):
+        columns = np.asarray(columns, dtype=float)
+        axes = np.asarray(axes, dtype=int)
+        n, q = columns.shape
+        dense = np.zeros((n, 3, q))
+        dense[:, axes, np.arange(q)] = columns
+        out = dense.view(cls)
+        out.axes, out.axis_values = axes, np.ascontiguousarray(columns.T)
+        return out
+
+    def __array_finalize__(self, obj):
+        self.axes = self.axis_values = None
+
+    def __deepcopy__(self, memo):
+        """A copy that keeps ``axes`` and ``axis_values`` (numpy's own copy would drop them)."""
+        if self.axes is None:
+            return np.array(self)
+        return SingleAxisBasis(self.axis_values.T, self.axes)
+
+
+@dataclass
+class Effect:
+    """A named candidate term of the model.
+
+    Subclasses set the class attributes and implement the basis of their stage, :meth:`param_names`, and
+    :meth:`perturbation` (how the simulator hides this effect in data). ``sensor`` restricts a per-sensor term
+    to one sensor (0-based); ``None`` applies it to every sensor, each with its own parameters.
+
+    Attributes
+    ----------
+    name : str
+        Catalogue name, used identically by the API, the CLI, JSON and the workbench.
+    stage : {'raw', 'vector', 'reference'}
+        Where the term acts (see the module docstring).
+    channels : tuple of str
+        Dataset channels required (keys of :data:`magcal.data.dataset.CHANNELS`).
+    per_sensor : bool
+        True if each sensor has its own parameters; False for one set shared by the array.
+    min_sensors : int
+        Fewest sensors the term makes sense for (2 for inter-sensor effects).
+    description : str
+        One line for tables and the workbench.
+    transferable : bool
+        True (the default) when the term describes the *instrument* and carries to new data: a temperature
+        coefficient, a nonlinearity, a timing skew, hysteresis are properties of the sensor, and a calibration
+        that includes them corrects later recordings too. False when the term describes *one recording*: a bias
+        drift since power-on, a bias step at one moment, the reference field's drift during the record, the
+        gradient of the calibration site. Such a term is fitted so that it does not bias the instrument terms,
+        but cannot be carried to another record without an external reference (a new step time, the field's
+        variation during that record...).
+    """
+
+    name: ClassVar[str] = ""
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ()
+    per_sensor: ClassVar[bool] = True
+    min_sensors: ClassVar[int] = 1
+    description: ClassVar[str] = ""
+    transferable: ClassVar[bool] = True
+    #: The basis depends on the readings or the field (``z0``, ``B``), not only on channels such as time and
+    #: temperature. The fitter leaves that dependence out of its Jacobian, so only a model whose effects all
+    #: declare False has an exact one (:attr:`magcal.fitting.fitter.Problem.exact_jacobian`). Plug-ins keep the safe True.
+    basis_uses_readings: ClassVar[bool] = True
+
+    sensor: int | None = None
+
+    # --- declared by subclasses -------------------------------------------------------------------------------
+    def param_names(self) -> list[str]:
+        """Names of the parameters of one instance (one sensor, or the array), with units in the name."""
+        raise NotImplementedError
+
+    def param_scale(self) -> np.ndarray:
+        """Typical magnitude of each parameter that changes the readings by ~1 nT (for conditioning)."""
+        return np.ones(len(self.param_names()))
+
+    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of each parameter, where physics sets them (a loop width is not negative).
+
+        The fitter (:func:`magcal.fitting.fitter.fit`) keeps every parameter within them, and :meth:`check_params` refuses
+        values outside them. The default is unbounded (``-inf``, ``inf``).
+        """
+        q = len(self.param_names())
+        return np.full(q, -np.inf), np.full(q, np.inf)
+
+    def check_params(self, values, where: str = "") -> np.ndarray:
+        """``values`` (one instance's parameters) as floats, or a clear :class:`MagcalError` if a value is not a
+        finite number or lies outside :meth:`param_bounds`.
+
+        Parameters
+        ----------
+        values : array_like, shape (q,)
+            Parameters of one instance, in :meth:`param_names` order.
+        where : str, optional
+            Where the values came from (a file, ``init``...), put in front of the message.
+        """
+        head = f"{where}: " if where else ""
+        names = self.param_names()
+        try:
+            v = np.asarray(values, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise MagcalError(f"{head}{self.label}: the parameters must be {len(names)} numbers "
+                              f"({', '.join(names)})") from None
+        if v.size != len(names):
+            raise MagcalError(f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters "
+                              f"({', '.join(names)})")
+        lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in self.param_bounds())
+        for name, value, lo, hi in zip(names, v, lower, upper):
+            if not np.isfinite(value):
+                raise MagcalError(f"{head}{self.label}: {name} = {value} is not a finite number")
+            if value < lo or value > hi:
+                span = f">= {lo:g}" if np.isinf(hi) else f"<= {hi:g}" if np.isinf(lo) else f"in [{lo:g}, {hi:g}]"
+                note = getattr(self, "bounds_note", "")
+                raise MagcalError(f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
+                                  + (f" ({note})" if note else ""))
+        return v
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        """What one instance's fitted ``values`` do to the readings at the data's own field magnitude, in words
+        (``""`` when the parameters' units say it already).
+
+        Parameters quoted relative to a field (a nonlinearity, a scale change with temperature, a hysteresis
+        width) read differently in a 9 uT and a 50 uT field; the report prints this line beside them.
+
+        Parameters
+        ----------
+        values : array_like, shape (q,)
+            The instance's parameters, in :meth:`param_names` order.
+        field_nT : float, optional
+            The field magnitude of the data (nT): the fitted or the reference total field.
+        sensor : int, optional
+            The instance's sensor (0-based), for constants kept per sensor.
+        """
+        return ""
+
+    def configure(self, dataset, residuals_nT=None) -> None:
+        """Set data-derived constants (reference temperature, reference time, knots, step time...).
+
+        Called once before a fit with the kept-samples dataset and, when available, the base model's
+        total-field residuals (n_sensors, N).
+        """
+
+    def raw_basis(self, z0, ctx: Context) -> np.ndarray:
+        """Stage 'raw': basis (N, 3, q); the corrected raw vector is ``z0 - basis @ theta``. A basis whose
+        parameters each move one axis may be returned as a :class:`SingleAxisBasis` (the fitter is faster on it)."""
+        raise NotImplementedError
+
+    def vector_basis(self, field_nT, ctx: Context) -> np.ndarray:
+        """Stage 'vector': basis (N, 3, q); the array-frame field becomes ``B + basis @ theta``."""
+        raise NotImplementedError
+
+    def reference_basis(self, ctx: Context) -> np.ndarray:
+        """Stage 'reference': basis (N, q); the expected total field becomes ``F0 + basis @ theta``."""
+        raise NotImplementedError
+
+    def perturbation(self, magnitude, sensor=None):
+        """A callable for :func:`magcal.data.simulation.simulate_timeseries` that hides this effect in data."""
+        raise NotImplementedError
+
+    # --- shared ----------------------------------------------------------------------------------------------
+    def applies_to(self, sensor: int) -> bool:
+        """True if this instance has parameters for (or acts on) the given sensor."""
+        return self.sensor is None or self.sensor == sensor
+
+    def missing_channels(self, dataset) -> list[str]:
+        """The required channels the dataset lacks (empty when the term can be fitted)."""
+        missing = [c for c in self.channels if not dataset.has(c)]
+        if dataset.n_sensors < self.min_sensors:
+            missing.append(f"at least {self.min_sensors} sensors")
+        return missing
+
+    def state(self) -> dict:
+        """Data-derived constants set by :meth:`configure`, as JSON-ready values (saved with a calibration)."""
+        return {}
+
+    def set_state(self, state: dict) -> None:
+        """Restore what :meth:`state` returned."""
+
+    def refine(self, effect_values: dict, context=None) -> bool:
+        """Update data-derived constants from a converged fit.
+
+        Parameters
+        ----------
+        effect_values : dict
+            Fitted parameters, ``{block label: values}``.
+        context : magcal.fitting.fitter.RefineContext, optional
+            The fitted samples, and the residual cost per sample with this effect's constants changed.
+
+        Returns
+        -------
+        bool
+            True if the constants changed enough to warrant one more fit (:func:`magcal.fitting.fitter.fit` then refits
+            without calling :meth:`configure`). Most effects have nothing to refine.
+        """
+        return False
+
+    @property
+    def label(self) -> str:
+        """``name`` or ``name:S`` (1-based sensor) as used on the command line."""
+        return term_label(self.name, self.sensor)
+
+
+def parse_effect(spec: str, n_sensors: int) -> Effect:
+    """Build an effect from ``NAME`` or ``NAME:SENSOR`` (SENSOR 1-based), as the CLI and JSON write it.
+
+    Raises
+    ------
+    MagcalError
+        For an unknown name or a sensor number outside 1..n_sensors.
+    """
+    name, _, sensor_text = spec.strip().partition(":")
+    name = name.strip()
+    if name in BASE_TERMS:
+        raise MagcalError(f"{name!r} is a base term: it is always in the model unless removed")
+    if name not in EFFECTS:
+        raise MagcalError(unknown_effect_message(name))
+    sensor = None
+    if sensor_text:
+        sensor = parse_sensor_number(spec, sensor_text, n_sensors)
+        if not EFFECTS[name].per_sensor:
+            raise MagcalError(f"effect {name!r} is shared by the whole array; it takes no sensor number")
+    return EFFECTS[name](sensor=sensor)
+
+
+def parse_sensor_number(spec: str, text: str, n_sensors: int) -> int:
+    """The 0-based sensor of the 1-based number ``text`` after ``NAME:`` in ``spec``; a clear error otherwise."""
+    try:
+        sensor = int(text) - 1
+    except ValueError:
+        raise MagcalError(f"effect {spec!r}: the sensor after ':' must be a number 1..{n_sensors}") from None
+    if not 0 <= sensor < n_sensors:
+        raise MagcalError(f"effect {spec!r}: sensor {sensor + 1} does not exist (the data have {n_sensors})")
+    return sensor
+
+
+@dataclass
+class Model:
+    """The base terms in use and the candidate effects added to them.
+
+    Parameters
+    ----------
+    n_sensors : int
+        1 to 4.
+    base : tuple of str
+        Base terms kept (subset of :data:`BASE_TERMS`). ``misalignment`` is dropped for one sensor.
+    effects : list of Effect
+        Candidate terms added.
+    """
+
+    n_sensors: int
+    base: tuple = BASE_TERMS
+    effects: list = dataclasses.field(default_factory=list)
+
+    def __post_init__(self):
+        self.base = tuple(t for t in BASE_TERMS if t in self.base and not (t == "misalignment" and self.n_sensors < 2))
+        unknown = [e for e in self.effects if not isinstance(e, Effect)]
+        if unknown:
+            raise MagcalError(f"not effect terms: {unknown}")
+
+    @classmethod
+    def base_model(cls, n_sensors: int) -> "Model":
+        """Bias, scale, non-orthogonality (and misalignment for arrays)."""
+        return cls(n_sensors)
+
+    @classmethod
+    def from_names(cls, names, n_sensors: int, base=BASE_TERMS) -> "Model":
+        """A base model plus the effects named as ``NAME`` or ``NAME:SENSOR`` (1-based)."""
+        effects = [parse_effect(n, n_sensors) for n in names if n.strip()]
+        return cls(n_sensors, base=tuple(base), effects=effects)
+
+    @property
+    def effect_labels(self) -> list[str]:
+        return [e.label for e in self.effects]
+
+    def copy(self) -> "Model":
+        """A deep copy: the effect objects (and their data-derived constants) are new, so fitting the copy never
+        changes this model."""
+        return copy.deepcopy(self)
+
+    def with_effect(self, effect: Effect) -> "Model":
+        """A new model with one more effect (every effect is copied, so neither this model nor ``effect`` changes)."""
+        return Model(self.n_sensors, self.base, [copy.deepcopy(e) for e in self.effects + [effect]])
+
+    def without(self, label: str) -> "Model":
+        """A new model without the effect (or base term) of that label (the remaining effects are copied)."""
+        if label in BASE_TERMS:
+            return Model(self.n_sensors, tuple(t for t in self.base if t != label), copy.deepcopy(self.effects))
+        return Model(self.n_sensors, self.base, [copy.deepcopy(e) for e in self.effects if e.label != label])
+
+    def check(self, dataset) -> None:
+        """Raise :class:`MagcalError` naming any effect whose channels the dataset lacks."""
+        problems = [f"{e.label} needs {', '.join(e.missing_channels(dataset))}" for e in self.effects
+                    if e.missing_channels(dataset)]
+        if problems:
+            raise MagcalError("the data cannot support: " + "; ".join(problems))
+
+    def instances(self):
+        """Yield ``(effect, sensor_or_None)`` for every parameter block: per-sensor terms once per sensor."""
+        for e in self.effects:
+            if e.per_sensor:
+                for s in range(self.n_sensors):
+                    if e.applies_to(s):
+                        yield e, s
+            else:
+                yield e, None
+
+
+def unknown_effect_message(name: str, where: str = "", option: str = "--effects-file FILE.py") -> str:
+    """The message for an effect name that is not in the catalogue: it may be a user's effect not loaded."""
+    head = f"{where}: " if where else ""
+    known = ", ".join(sorted(EFFECTS))
+    return (f"{head}unknown effect {name!r}: it is not built in, so it is either misspelt or a user's own effect "
+            f"that is not loaded; give the file that defines it with {option} (or install the package that provides "
+            f"it). Known effects: {known}")
+
+
+def check_effect_names(specs, where: str = "", option: str = "--effects-file FILE.py") -> None:
+    """Refuse any ``NAME`` / ``NAME:S`` in ``specs`` whose name is not in the catalogue (base terms are left to
+    :func:`magcal.model.terms.parse_effect`), with :func:`unknown_effect_message`."""
+    for spec in specs or ():
+        name = str(spec).partition(":")[0].strip()
+        if name and name not in BASE_TERMS and name not in EFFECTS:
+            raise MagcalError(unknown_effect_message(name, where, option))
+
+
+#: Stages whose terms change the corrected vectors (``reference`` terms change only the expected total field).
+VECTOR_STAGES = ("raw", "vector")
+
+
+def block_label(effect, sensor) -> str:
+    """Key of one effect instance's parameters: ``name`` (shared) or ``name:S`` (S 1-based)."""
+    return term_label(effect.name, sensor)
+
+
+def contexts(dataset, baseline_m=None):
+    """One :class:`~magcal.model.terms.Context` per sensor of the dataset."""
+    baseline = baseline_m if baseline_m is not None else (dataset.baseline_m or 0.0)
+    positions = conventions.sensor_positions(baseline, dataset.n_sensors)
+    attitude = None
+    if dataset.attitude_wxyz is not None:
+        q = dataset.attitude_wxyz
+        attitude = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
+    return [Context(dataset, s, positions[s], attitude) for s in range(dataset.n_sensors)]

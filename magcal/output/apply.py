@@ -1,0 +1,490 @@
+"""Survey correction (patent S9-S10): apply a calibration to a survey file, streaming, and write the results.
+
+``apply_file(calibration, survey.csv, out.csv)`` copies every input line unchanged and appends
+
+* ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` for every sensor: the corrected field vector in nT, in the calibration's
+  frame (``platform`` after a level-table alignment, otherwise sensor 1's frame);
+* for four sensors with a baseline: the tensor components ``Gxx, Gxy, Gxz, Gyy, Gyz, Gzz`` of eq. (1) (Chi et al.
+  2017) and ``Gyx`` (the second estimate of the xy component; ``Gxy - Gyx`` is a check), in nT/m, and the
+  rotational invariants of the symmetric part ``G = (T + T^T)/2`` (Pedersen & Rasmussen 1990)::
+
+      I0 = tr G                                  (nT/m; zero by construction of eq. (1)'s Gzz)
+      I1 = Gxx Gyy + Gyy Gzz + Gxx Gzz - Gxy^2 - Gyz^2 - Gxz^2      ((nT/m)^2)
+      I2 = det G                                 ((nT/m)^3)
+
+The file is read and written in chunks (``chunk_rows`` lines at a time), so memory stays flat however long the
+survey; the output is written to a temporary file and renamed at the end (atomic), so a failure leaves no partial
+output. A progress bar (tqdm) is shown when stderr is a terminal.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.calibration.calibration import Calibration, RecordHasher
+from magcal.core import conventions
+from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
+from magcal.data.io import (
+    CsvSource,
+    ParquetSource,
+    atomic_write,
+    check_parquet_codec,
+    check_units,
+    is_parquet,
+    metadata_text,
+    parquet_table,
+    parquet_write_options,
+    parse_column_mapping,
+    write_rows,
+)
+from magcal.data.logs import is_log, read_log
+from magcal.model.terms import VECTOR_STAGES
+
+#: Output formats: corrected vectors and tensor components to 1 pT / 1 pT/m; invariants to 7 significant digits.
+VECTOR_FORMAT = "%.3f"
+TENSOR_FORMAT = "%.3f"
+INVARIANT_FORMAT = "%.7g"
+#: Standard deviations (``--uncertainty``): 4 significant digits.
+SD_FORMAT = "%.4g"
+
+#: Tensor columns written for a four-sensor array (eq. 1), in order.
+TENSOR_COLUMNS = ("Gxx", "Gxy", "Gxz", "Gyy", "Gyz", "Gzz", "Gyx")
+INVARIANT_COLUMNS = ("I0", "I1", "I2")
+
+
+def load_calibration(path, n_sensors=None):
+    """Load a calibration file with every check a user needs (:meth:`magcal.calibration.calibration.Calibration.load`).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    n_sensors : int, optional
+        Refuse a calibration made for a different number of sensors.
+
+    Returns
+    -------
+    magcal.calibration.calibration.Calibration
+    """
+
+    return Calibration.load(path, n_sensors=n_sensors)
+
+
+def tensor_invariants(tensor):
+    """Invariants I0, I1, I2 (Pedersen & Rasmussen 1990) of the symmetric part of (N, 3, 3) tensors in nT/m."""
+    t = np.asarray(tensor, dtype=float)
+    g = 0.5 * (t + np.swapaxes(t, -1, -2))
+    i0 = np.trace(g, axis1=-2, axis2=-1)
+    gxx, gyy, gzz = g[..., 0, 0], g[..., 1, 1], g[..., 2, 2]
+    gxy, gxz, gyz = g[..., 0, 1], g[..., 0, 2], g[..., 1, 2]
+    i1 = gxx * gyy + gyy * gzz + gxx * gzz - gxy**2 - gyz**2 - gxz**2
+    # the determinant of the symmetric 3 x 3, written out (numpy's batched LU is ~10x slower per sample)
+    i2 = gxx * (gyy * gzz - gyz**2) - gxy * (gxy * gzz - gyz * gxz) + gxz * (gxy * gyz - gyy * gxz)
+    return i0, i1, i2
+
+
+def output_columns(n_sensors, tensor, uncertainty=False):
+    """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
+    ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``)."""
+    names = [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "xyz"]
+    if tensor:
+        names += list(TENSOR_COLUMNS) + list(INVARIANT_COLUMNS)
+    if uncertainty:
+        names += [f"s{i + 1}{a}_cal_sd" for i in range(n_sensors) for a in "xyz"]
+        names += [f"s{i + 1}_F_sd" for i in range(n_sensors)]
+        if tensor:
+            names += [f"{c}_sd" for c in TENSOR_COLUMNS]
+    return names
+
+
+def correct_block(calibration, dataset, record_terms=None, uncertainty=False):
+    """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
+    ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
+    order of :func:`output_columns`.
+
+    ``record_terms`` as in :meth:`magcal.calibration.calibration.Calibration.correct`; :func:`apply_file` decides it once for
+    the whole file and passes ``'apply'`` or ``'drop'``.
+    """
+    vectors = calibration.correct(dataset, record_terms)
+    n = dataset.n_samples
+    parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
+    tensor = calibration.n_sensors == 4 and calibration.baseline_m
+    if tensor:
+        comps = conventions.tensor_components(vectors, calibration.baseline_m)
+        parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
+        i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
+        parts.append(np.column_stack([i0, i1, i2]))
+    if uncertainty:
+        u = calibration.uncertainty(dataset, vectors, record_terms)
+        if u is None:
+            raise MagcalError("this calibration carries no parameter covariance (it was made before magcal saved "
+                              "one, or without a maximum-likelihood fit): recalibrate to get error bars")
+        parts.append(u["vector_sd_nT"].transpose(1, 0, 2).reshape(n, -1))
+        parts.append(u["total_sd_nT"].T)
+        if tensor:
+            parts.append(np.column_stack([u["tensor_sd_nT_per_m"][c] for c in TENSOR_COLUMNS]))
+    return np.hstack(parts)
+
+
+@dataclass
+class ApplySummary:
+    """What :func:`apply_file` did."""
+
+    rows: int
+    columns_added: list
+    seconds: float
+    output: str
+    frame: str
+
+    @property
+    def rows_per_s(self) -> float:
+        return self.rows / self.seconds if self.seconds > 0 else float("inf")
+
+    def text(self) -> str:
+        return (f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s); wrote "
+                f"{self.output} with {len(self.columns_added)} new columns (frame: {self.frame})")
+
+
+def _progress_bar(total_bytes, enabled):
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:  # tqdm is a dependency, but the correction must not fail without it
+        return None
+    return tqdm(total=total_bytes, unit="B", unit_scale=True, desc="magcal apply", file=sys.stderr, leave=False)
+
+
+def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, stop_after=None):
+    """The record fingerprint (:func:`magcal.calibration.calibration.record_fingerprint`) of a CSV file, streamed.
+
+    ``stop_after``: stop reading once the file has more samples than this (it cannot be that record); the
+    fingerprint then covers the samples read.
+    """
+    import warnings
+
+
+    hasher = RecordHasher()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the correcting pass reports the data's problems
+        with CsvSource(os.fspath(survey_path), columns=columns, units=units) as src:
+            for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                hasher.update(chunk.dataset)
+                if stop_after is not None and hasher.n_samples > stop_after:
+                    break
+    return hasher.fingerprint()
+
+
+def record_terms_for_file(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
+                          chunk_rows=20_000):
+    """Decide once for a whole file whether the calibration's record-only terms act on it.
+
+    Returns ``(choice, note)``: ``choice`` is ``'apply'`` or ``'drop'`` for every block, ``note`` the
+    :class:`~magcal.core.errors.RecordTermWarning` message (None when nothing needs saying). The file is read an extra
+    time, for its fingerprint, only when the calibration holds record-only terms acting on the corrected vectors
+    and ``record_terms`` is None.
+    """
+
+    if not calibration.record_terms(VECTOR_STAGES):
+        return "apply", None
+    fingerprint = None
+    record = calibration.record
+    if record_terms is None and record:
+        fingerprint = file_fingerprint(survey_path, columns, units, drop_bad, chunk_rows,
+                                       stop_after=record.get("n_samples"))
+    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
+                                                fingerprint=fingerprint if fingerprint is not None else {})
+    return ("drop" if dropped else "apply"), note
+
+
+def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
+               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None, uncertainty=False,
+               compression=None):
+    """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
+
+    Parameters
+    ----------
+    calibration : Calibration or str or os.PathLike
+        The calibration or its JSON file.
+    survey_path, output_path : str or os.PathLike
+        Input CSV (docs/formats.md) and output CSV; the output is written atomically.
+    columns, units, drop_bad
+        As in :func:`magcal.data.io.read_csv`.
+    chunk_rows : int
+        Lines per block; memory use is proportional to it, not to the file.
+    progress : bool, optional
+        Show a tqdm progress bar; default: when stderr is a terminal.
+    record_terms : {None, 'apply', 'drop'}
+        The calibration's record-only terms (bias drift, bias step...: they describe the recording it was fitted
+        on). ``None`` (default): applied when the file is that record (same fingerprint), dropped with one
+        :class:`~magcal.core.errors.RecordTermWarning` otherwise. ``'apply'`` forces them (you assert it is the same
+        record, or have a reference for it); ``'drop'`` leaves them out.
+    uncertainty : bool
+        Also write the calibration's standard deviations of every new column (:func:`output_columns`), from its
+        parameter covariance (:mod:`magcal.calibration.uncertainty`).
+    compression : str, optional
+        Codec of the float columns of a Parquet output (:data:`magcal.data.io.PARQUET_CODECS`; default snappy,
+        :data:`magcal.data.io.PARQUET_FLOAT_CODEC`).
+
+    Returns
+    -------
+    ApplySummary
+
+    Raises
+    ------
+    MagcalError
+        Bad calibration file, a calibration for another number of sensors, missing channels, bad data.
+    """
+    t0 = time.perf_counter()
+
+
+    if compression is not None and not is_parquet(output_path):
+        raise MagcalError(f"{os.fspath(output_path)}: a compression ({compression!r}) is for Parquet output; name "
+                          "the output .parquet or leave the compression out")
+    if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
+        return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
+                             calibration_name, record_terms, t0, uncertainty, compression)
+    if isinstance(columns, str):
+
+        columns = parse_column_mapping(columns)
+    if not hasattr(calibration, "correct"):
+        calibration_name = calibration_name or os.fspath(calibration)
+        calibration = load_calibration(calibration)
+    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
+    if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
+        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    progress = sys.stderr.isatty() if progress is None else bool(progress)
+    record_choice, record_note = record_terms_for_file(calibration, survey_path, record_terms, columns, units,
+                                                       drop_bad, chunk_rows)
+    if record_note:
+        import warnings
+
+
+        warnings.warn(record_note, RecordTermWarning, stacklevel=2)
+    with CsvSource(survey_path, columns=columns, units=units) as src:
+        if src.layout.n_sensors != calibration.n_sensors:
+            raise MagcalError(
+                f"{survey_path}: the survey has {src.layout.n_sensors} sensor(s) but the calibration"
+                f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
+                "calibration made for this instrument"
+            )
+        tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+        new_names = output_columns(calibration.n_sensors, tensor, uncertainty)
+        clash = sorted(set(new_names) & set(src.header))
+        if clash:
+            raise MagcalError(
+                f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); rename "
+                "them or correct the raw survey"
+            )
+        fmt = ",".join([VECTOR_FORMAT] * (3 * calibration.n_sensors)
+                       + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS)
+                          if tensor else [])
+                       + ([SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
+                          if uncertainty else []))
+        meta = {}
+        if calibration_name:
+            meta["magcal_calibration"] = calibration_name
+        meta["magcal_frame"] = calibration.frame
+        meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
+        bar = _progress_bar(os.path.getsize(survey_path), progress)
+        rows = 0
+        try:
+            with atomic_write(output_path) as out:
+                for line in src.metadata_lines:
+                    out.write(line + "\n")
+                out.write(metadata_text(meta))
+                header = _io.StringIO()
+                csv.writer(header, lineterminator="\n").writerow(list(src.header) + new_names)
+                out.write(header.getvalue())
+                last_pos = src._file.tell()
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                    if rows == 0:
+                        calibration.check(chunk.dataset)
+                        check_units(chunk.dataset, src.units, src.source, stacklevel=2)
+                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty)
+                    out.write("".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist())))
+                    rows += chunk.dataset.n_samples
+                    if bar is not None:
+                        pos = src._file.tell()
+                        bar.update(pos - last_pos)
+                        last_pos = pos
+                if rows == 0:
+                    raise DatasetError(f"{survey_path}: no data rows after the header; nothing to correct")
+        finally:
+            if bar is not None:
+                bar.close()
+    return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
+
+
+def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000):
+    """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
+    metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.data.io.CsvSource`; a Parquet file by its
+    record batches; a flight-controller log (:mod:`magcal.data.logs`) is read whole, as one block (its reader decodes
+    every message anyway). ``columns`` and ``units`` apply to a CSV only."""
+
+    path = os.fspath(survey_path)
+    if is_log(path):
+        dataset = read_log(path)
+        return dataset_metadata(dataset), iter([dataset])
+    if not is_parquet(path):
+        src = CsvSource(path, columns=columns, units=units)
+
+        def csv_chunks():
+            with src:
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                    yield chunk.dataset
+
+        return dict(src.metadata), csv_chunks()
+    src = ParquetSource(path)
+    return dict(src.metadata), src.chunks(chunk_rows)
+
+
+def record_choice(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
+                  chunk_rows=20_000):
+    """:func:`record_terms_for_file` for a CSV or a Parquet survey: ``('apply' | 'drop', note or None)``, the
+    fingerprint streamed through :func:`survey_chunks` only when it decides something."""
+
+    if not calibration.record_terms(VECTOR_STAGES):
+        return "apply", None
+    fingerprint = None
+    if record_terms is None and calibration.record:
+        hasher = RecordHasher()
+        for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
+            hasher.update(ds)
+        fingerprint = hasher.fingerprint()
+    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
+                                                fingerprint=fingerprint if fingerprint is not None else {})
+    return ("drop" if dropped else "apply"), note
+
+
+def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
+                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None, uncertainty=False,
+                  compression=None):
+    """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
+    writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
+    (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
+
+    Returns
+    -------
+    ApplySummary
+    """
+    import warnings
+
+
+    t0 = time.perf_counter() if t0 is None else t0
+    compression = check_parquet_codec(compression)  # a bad name before any work
+    if not hasattr(calibration, "correct"):
+        calibration_name = calibration_name or os.fspath(calibration)
+        calibration = load_calibration(calibration)
+    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
+    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
+        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    choice, note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
+    if note:
+        warnings.warn(note, RecordTermWarning, stacklevel=3)
+    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)
+    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+    names = output_columns(calibration.n_sensors, tensor, uncertainty)
+    meta = {**meta, "units": "nT", "magcal_frame": calibration.frame,
+            "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")}
+    if calibration_name:
+        meta["magcal_calibration"] = calibration_name
+    rows = 0
+    to_parquet = is_parquet(output_path)
+    tmp = f"{output_path}.tmp-{os.getpid()}"
+    writer = behind = None
+    import contextlib
+
+    try:
+        with (contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="")) as fh:
+            for ds in chunks:
+                if rows == 0:
+                    if ds.n_sensors != calibration.n_sensors:
+                        raise MagcalError(
+                            f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
+                            f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument")
+                    calibration.check(ds)
+                values = correct_block(calibration, ds, choice, uncertainty)
+                cols = dataset_columns(ds)
+                clash = sorted(set(names) & set(cols))
+                if clash:
+                    raise MagcalError(f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an "
+                                      "apply output?); rename them or correct the raw survey")
+                cols.update({name: values[:, k] for k, name in enumerate(names)})
+                if to_parquet:
+                    import pyarrow.parquet as pq
+
+                    table = parquet_table(cols, meta)
+                    if writer is None:
+                        writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table, compression))
+                        behind = _WriteBehind()
+                    behind.put(lambda table=table, writer=writer: writer.write_table(table))
+                else:
+                    if rows == 0:
+                        fh.write(metadata_text(meta) + ",".join(cols) + "\n")
+                    write_rows(fh, cols)
+                rows += ds.n_samples
+            if writer is not None:
+                behind, done = None, behind
+                done.close()  # every block written (or the first error raised)
+                writer.close()
+                writer = None
+        if rows == 0:
+            raise DatasetError(f"{survey_path}: no data rows; nothing to correct")
+        os.replace(tmp, output_path)
+    finally:
+        if behind is not None:  # an error while reading or correcting: stop the writing thread first
+            behind.close(raise_error=False)
+        if writer is not None:
+            writer.close()
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)
+
+
+class _WriteBehind:
+    """Writes of a Parquet output on a thread of their own, at most ``depth`` blocks behind the reading and
+    correcting: pyarrow's encoding and compression and the disk release the interpreter, so the file's writing
+    overlaps the next blocks' work (memory stays bounded by ``depth`` blocks). Calls run in order; after the first
+    error the rest are skipped and the error is raised by the next :meth:`put` or by :meth:`close`."""
+
+    def __init__(self, depth=2):
+        import queue
+        import threading
+
+        self._queue = queue.Queue(maxsize=depth)
+        self._error = None
+        self._thread = threading.Thread(target=self._run, name="magcal-write", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while True:
+            call = self._queue.get()
+            if call is None:
+                return
+            if self._error is None:
+                try:
+                    call()
+                except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+                    self._error = exc
+
+    def put(self, call):
+        """Queue ``call`` (a function of no argument); waits while ``depth`` calls are queued."""
+        if self._error is not None:
+            raise self._error
+        self._queue.put(call)
+
+    def close(self, raise_error=True):
+        """Wait for every queued call, stop the thread; raise the first error (unless ``raise_error`` is False)."""
+        self._queue.put(None)
+        self._thread.join()
+        if raise_error and self._error is not None:
+            raise self._error
+

@@ -1,0 +1,939 @@
+"""The workbench's actions: every button calls one method here, which calls the engine and updates the state.
+
+The controller holds the loaded :class:`~magcal.Dataset`, the :class:`~magcal_workbench.state.SessionState`, the last
+calibration and its per-sample residuals, and the last diagnosis. It never draws: views subscribe with
+:meth:`Controller.on_change` and redraw. Engine work runs through one :class:`~magcal_workbench.jobs.Worker`, so a second
+click while a fit runs starts nothing.
+
+All physics is the engine's (:mod:`magcal.fitting.pipeline`, :mod:`magcal.fitting.fitter`, :mod:`magcal.diagnosis`,
+:mod:`magcal.calibration.calibration`); this module only chooses what to run, on which samples, and reports what changed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import threading
+import time
+import traceback
+import warnings
+from typing import Callable
+
+import numpy as np
+
+from magcal.calibration.calibration import Calibration
+from magcal.core import conventions
+from magcal.core.errors import ConvergenceWarning, MagcalError
+from magcal.core.stats import robust_sigma
+from magcal.model.terms import unknown_effect_message
+
+from .jobs import Worker
+from .markup import clean_text, error_text, safe_code, safe_text
+from .session import SessionStore
+from .sessionfile import LABEL
+from .state import METHODS, SessionState, StepRecord
+
+#: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
+MESSAGE_LEN = 1000
+
+
+def format_number(v, digits: int = 4) -> str:
+    """``v`` to ``digits`` significant digits, written out in full from 10^4 to 10^7 (``24010``, not
+    ``2.401e+04``: raw readings of a MEMS part are tens of thousands of nT); ``"-"`` for None or not finite."""
+    if v is None:
+        return "-"
+    v = float(v)
+    if not np.isfinite(v):
+        return "-"
+    if 10.0 ** digits <= abs(v) < 1e7:
+        return f"{v:.0f}"
+    return f"{v:.{digits}g}"
+
+
+def fmt_nT(v) -> str:
+    """``"12.3 nT"`` (four significant digits, see :func:`format_number`) or ``"-"``."""
+    text = format_number(v)
+    return text if text == "-" else f"{text} nT"
+
+
+def _rms(a) -> float:
+    a = np.asarray(a, dtype=float)
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
+
+
+class Controller:
+    """Actions of one workbench session (shared by every connected browser).
+
+    Parameters
+    ----------
+    dataset : magcal.Dataset
+    state : SessionState, optional
+        A reopened session's state; a fresh one is made if omitted.
+    store : SessionStore, optional
+        Where to autosave; None disables autosave.
+    session_id : str, optional
+        Folder of this session in ``store``.
+    """
+
+    def __init__(self, dataset, state: SessionState | None = None, store: SessionStore | None = None,
+                 session_id: str | None = None, worker: Worker | None = None):
+        self.dataset = dataset
+        self.state = state or SessionState(dataset.n_samples, dataset.n_sensors, dataset.source)
+        if (self.state.n_samples, self.state.n_sensors) != (dataset.n_samples, dataset.n_sensors):
+            raise MagcalError("the saved session does not match the data (different size); start a fresh session")
+        self.store = store
+        self.session_id = session_id
+        self.worker = worker or Worker()
+        self.calibration: Calibration | None = None
+        self.fit_result = None            # FitResult of the last ML step, if any
+        self.calibration_result = None    # CalibrationResult of the last pipeline run, if any
+        self.corrected_nT: np.ndarray | None = None   # (n_sensors, N, 3) array frame, every sample
+        self.residual_nT: np.ndarray | None = None    # (n_sensors, N) total-field residual, every sample
+        #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
+        #: estimated after each fit (:attr:`noise` says how).
+        self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
+        self.noise = None                 # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
+        self._quality = None              # QualityReport of the data (magcal.checks.quality.assess), made when first asked
+        self.diagnosis = None
+        self.inspected: int | None = None
+        self.message = ""
+        self.progress: tuple[str, float | None] | None = None
+        self._listeners: list[Callable[[str], None]] = []
+        self._lock = threading.RLock()
+        self._job_pin = threading.local()  # the mask and model of the job running in this thread
+        if not self.state.history:
+            raw = self.raw_residual_nT()
+            self.state.history.append(StepRecord("raw readings", _rms(raw[:, self.kept]), None, [],
+                                                 int(self.kept.sum()), "no correction: |y| - F"))
+        if self.state.calibration:
+            try:
+                self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
+                self._estimate_noise()
+            except Exception as exc:  # a damaged or foreign calibration document: the session goes on without it
+                why = exc if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {exc}"
+                self.message = f"the saved calibration could not be restored ({safe_text(why, 500)}); run a fit"
+
+    # ------------------------------------------------------------------------------------------------------
+    # notification
+    # ------------------------------------------------------------------------------------------------------
+    def on_change(self, func: Callable[[str], None]) -> None:
+        """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
+        ``inspect``, ``progress``, ``message``, ``view`` or ``effects`` (the catalogue grew)."""
+        self._listeners.append(func)
+
+    def _emit(self, kind: str) -> None:
+        for func in list(self._listeners):
+            try:
+                func(kind)
+            except Exception:
+                traceback.print_exc()
+
+    def say(self, text: str) -> None:
+        """Show ``text`` (markdown) as the page's message; untrusted parts must already be escaped
+        (:func:`magcal_workbench.markup.safe_text`)."""
+        self.message = text
+        self._emit("message")
+
+    #: Session settings :meth:`configure` changes (attributes of :class:`SessionState`).
+    SETTINGS = ("method", "reference_nT", "fit_reference", "robust", "sensor")
+
+    def configure(self, **settings) -> None:
+        """Change session settings (``method``, ``reference_nT``, ``fit_reference``, ``robust``, ``sensor``) and
+        autosave; they apply to the next step."""
+        unknown = set(settings) - set(self.SETTINGS)
+        if unknown:
+            raise ValueError(f"unknown setting(s) {sorted(unknown)}; known: {', '.join(self.SETTINGS)}")
+        self._check_settings(settings)
+        for key, value in settings.items():
+            setattr(self.state, key, value)
+        self.state.touch()
+        self.autosave()
+        self._emit("settings")
+
+    def _check_settings(self, settings: dict) -> None:
+        """Refuse a setting the page could not have sent (a value comes from a browser: check it)."""
+        from .sessionfile import REFERENCE_RANGE_nT
+
+        if "method" in settings and settings["method"] not in METHODS:
+            raise MagcalError(f"unknown method {clean_text(repr(settings['method']), 40)}; one of "
+                              f"{', '.join(METHODS)}")
+        ref = settings.get("reference_nT")
+        if ref is not None:
+            try:
+                ok = REFERENCE_RANGE_nT[0] <= float(ref) <= REFERENCE_RANGE_nT[1]
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise MagcalError(f"reference field {clean_text(ref, 40)} nT: give a number in "
+                                  f"{REFERENCE_RANGE_nT[0]:g} ... {REFERENCE_RANGE_nT[1]:g} nT, or 0 for none")
+        sensor = settings.get("sensor")
+        if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, (int, np.integer))
+                                   or not 0 <= sensor < self.dataset.n_sensors):
+            raise MagcalError(f"no sensor {clean_text(sensor, 40)}; the data have {self.dataset.n_sensors}")
+
+    # ------------------------------------------------------------------------------------------------------
+    # data views
+    # ------------------------------------------------------------------------------------------------------
+    @property
+    def kept(self) -> np.ndarray:
+        """The kept mask; inside a job, the one the job started with (:meth:`submit_job`), so that a rejection
+        made meanwhile neither changes what the job fits nor what its history row says it fitted."""
+        pinned = getattr(self._job_pin, "kept", None)
+        return pinned.copy() if pinned is not None else self.state.kept
+
+    @property
+    def field_nT(self) -> float:
+        """Field used to scale the display (nT): the calibration's, the user's, the file's, or the median |raw|."""
+        if self.calibration is not None and self.calibration.reference_total_nT:
+            return float(self.calibration.reference_total_nT)
+        if self.state.reference_nT:
+            return float(self.state.reference_nT)
+        if self.dataset.reference_total_nT:
+            return float(self.dataset.reference_total_nT)
+        if self.dataset.ref_total_nT is not None:
+            return float(np.median(self.dataset.ref_total_nT))
+        return float(np.median(np.linalg.norm(self.dataset.readings_nT, axis=2)))
+
+    def fit_dataset(self):
+        """The dataset the engine sees: without its reference when the user asks to fit the magnitude."""
+        if self.state.fit_reference:
+            return self.dataset.replace(reference_total_nT=None, ref_total_nT=None)
+        return self.dataset
+
+    @property
+    def reference_arg(self):
+        return None if self.state.fit_reference else self.state.reference_nT
+
+    def floor_nT(self) -> float | None:
+        """Total-field floor for the kept samples: ``sigma sqrt(1 - p/N)`` with the known or estimated noise."""
+        if not self.noise_nT:
+            return None
+        n = int(self.kept.sum())
+        p = 9
+        if self.calibration is not None and self.calibration.model is not None:
+            p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances()) / self.dataset.n_sensors
+        return conventions.total_field_floor_nT(self.noise_nT, max(n, 1), p)
+
+    def residual_rms_nT(self) -> float:
+        if self.residual_nT is None:
+            return float("nan")
+        return _rms(self.residual_nT[:, self.kept])
+
+    def rms_per_sensor_nT(self) -> np.ndarray:
+        if self.residual_nT is None:
+            return np.full(self.dataset.n_sensors, np.nan)
+        return np.array([_rms(r[self.kept]) for r in self.residual_nT])
+
+    def raw_residual_nT(self) -> np.ndarray:
+        """``|y| - F`` of the raw readings (n_sensors, N): the starting point of the history."""
+        return np.linalg.norm(self.dataset.readings_nT, axis=2) - self.field_nT
+
+    def tensor_rms(self) -> dict | None:
+        """Tensor component RMS (nT/m) over the kept samples, before (raw) and after, with the floor."""
+        ds = self.dataset
+        if ds.n_sensors != 4 or not ds.baseline_m:
+            return None
+        k = self.kept
+        before = conventions.tensor_components(ds.readings_nT[:, k], ds.baseline_m)
+        out = {"before": {c: _rms(v) for c, v in before.items()}, "after": None, "floor": None}
+        if self.corrected_nT is not None:
+            after = conventions.tensor_components(self.corrected_nT[:, k], ds.baseline_m)
+            out["after"] = {c: _rms(v) for c, v in after.items()}
+        if self.noise_nT:
+            out["floor"] = conventions.tensor_floor_nT_per_m(self.noise_nT, ds.baseline_m)
+        return out
+
+    def sample_info(self, index: int) -> dict:
+        """What a click on a sample shows: index, time, temperature, kept, residual per sensor (nT)."""
+        ds = self.dataset
+        i = int(index)
+        info = {"index": i, "kept": bool(self.kept[i])}
+        if ds.time_s is not None:
+            info["time_s"] = float(ds.time_s[i])
+        if ds.temperature_C is not None:
+            info["temperature_C"] = float(ds.temperature_C[i])
+        if self.residual_nT is not None:
+            info["residual_nT"] = [float(r) for r in self.residual_nT[:, i]]
+        info["raw_nT"] = ds.readings_nT[:, i].tolist()
+        return info
+
+    # ------------------------------------------------------------------------------------------------------
+    # data quality, noise, held-out validation, transferable terms (all the engine's)
+    # ------------------------------------------------------------------------------------------------------
+    def quality_report(self):
+        """The data's quality findings (:func:`magcal.checks.quality.assess`, with the given noise if any), made once per
+        data and noise setting."""
+        if self._quality is None:
+            from magcal.checks import quality
+
+            self._quality = quality.assess(self.dataset, noise_nT=self.state.noise_nT)
+        return self._quality
+
+    def quality_with_fit(self):
+        """:meth:`quality_report` plus what the current fit adds: a fitted field magnitude outside the Earth's
+        range (:func:`magcal.checks.quality.field_magnitude_finding`: a wrong unit or LSB, or a record near iron)."""
+        from magcal.checks import quality
+
+        report = self.quality_report()
+        cal = self.calibration
+        if cal is None or not cal.reference_fitted or not cal.reference_total_nT:
+            return report
+        finding = quality.field_magnitude_finding(float(cal.reference_total_nT))
+        if finding is None:
+            return report
+        return quality.QualityReport(list(report.findings) + [finding], report.n_sensors, report.n_samples,
+                                     report.source)
+
+    @property
+    def noise_given_nT(self) -> float | None:
+        """The noise the user typed (nT per axis), else the one declared in the file (``# noise_nT:``), else None."""
+        return self.state.noise_nT or self.dataset.noise_nT or None
+
+    def _n_params_total(self, fit=None) -> int:
+        """Parameters of the current fit, all sensors together (the floors' and the noise's degrees of freedom)."""
+        if fit is not None:
+            return int(fit.n_params)
+        p = 9 * self.dataset.n_sensors
+        if self.calibration is not None and self.calibration.model is not None:
+            p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances())
+        return p
+
+    def _estimate_noise(self, fit=None) -> None:
+        """The noise behind the floors, from the current fit's kept residuals (:func:`magcal.checks.noise.estimate_noise`:
+        the given one, else differences in time order or still stretches, never below the quantization floor)."""
+        from magcal.checks.noise import estimate_noise
+
+        if self.residual_nT is None:
+            self.noise, self.noise_nT = None, self.noise_given_nT
+            return
+        k = self.kept
+        try:
+            self.noise = estimate_noise(self.fit_dataset().subset(k), self.residual_nT[:, k],
+                                        self._n_params_total(fit), noise_nT=self.state.noise_nT)
+        except MagcalError:
+            self.noise = None
+        self.noise_nT = self.noise.sigma_nT if self.noise is not None else self.noise_given_nT
+
+    def set_noise(self, noise_nT) -> None:
+        """Give the noise per axis (nT), or ``None`` / 0 to estimate it again; the floors follow at once and the
+        session saves it.
+
+        Raises
+        ------
+        MagcalError
+            A value that is not a number in :data:`magcal_workbench.sessionfile.NOISE_RANGE_nT` (a value comes from a
+            browser: check it).
+        """
+        from .sessionfile import NOISE_RANGE_nT
+
+        value = None
+        if noise_nT is not None:
+            try:
+                value = float(noise_nT)
+            except (TypeError, ValueError):
+                value = float("nan")
+            if value == 0.0:
+                value = None
+            elif not NOISE_RANGE_nT[0] <= value <= NOISE_RANGE_nT[1]:
+                raise MagcalError(f"noise {clean_text(noise_nT, 40)} nT: give a number in {NOISE_RANGE_nT[0]:g} ... "
+                                  f"{NOISE_RANGE_nT[1]:g} nT per axis, or 0 to estimate it")
+        with self._lock:
+            self.state.noise_nT = value
+            self.state.touch()
+            self._quality = None  # the still-stretch test uses the noise
+            self._estimate_noise(self.fit_result)
+        self.autosave()
+        self._emit("result")
+        floor = self.floor_nT()
+        what = f"noise given: {fmt_nT(value)} per axis" if value else "noise estimated again"
+        self.say(f"{what}; {self.noise_text()}; total-field floor {fmt_nT(floor)}")
+
+    def noise_text(self) -> str:
+        """Plain text: the noise behind the floors and the method that gave it (untrusted-free: engine words)."""
+        if self.noise is not None:
+            return f"noise {self.noise.text()}"
+        given = self.noise_given_nT
+        if given:
+            where = "given in the workbench" if self.state.noise_nT else "declared in the file (noise_nT)"
+            return f"noise {given:.3g} nT per axis ({where})"
+        return "noise not known yet: fit first (it is estimated from the fit's residuals) or give it"
+
+    def _held_out_rms(self, fit) -> tuple[float | None, str | None]:
+        """Total-field RMS (nT) on held-out samples of the current model (:func:`magcal.fitting.validation.validate`,
+        ``blocks`` scheme: fitted on alternating blocks of time, warm-started from ``fit``, scored on the blocks
+        between); ``(None, why)`` when the record cannot be split, ``(None, None)`` without a maximum-likelihood
+        fit."""
+        from magcal.fitting import validation
+
+        if fit is None or getattr(fit, "model", None) is None:
+            return None, None
+        kept = self.fit_dataset().subset(self.kept)
+        problem = validation.split_problem(kept)
+        if problem:
+            return None, f"held-out validation not done: {problem}"
+        self._report_progress("held-out validation (blocks)", None)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                v = validation.validate(kept, model=fit.model, scheme="blocks", init=fit.calibration,
+                                        robust=self.state.robust, reference_total_nT=self.reference_arg)
+        except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
+            from magcal.model import plugins
+
+            why = plugins.user_code_error(exc) or (error_text(exc) if isinstance(exc, MagcalError)
+                                                     else f"{type(exc).__name__}: {error_text(exc)}")
+            return None, f"held-out validation failed: {why}"
+        finally:
+            self.progress = None
+            self._emit("progress")
+        return float(v.held_out_rms_nT), None
+
+    def model_terms(self) -> list[dict]:
+        """The model's effects, each ``{"label", "name", "transferable" (bool), "description"}``: an instrument
+        term carries to new data, a record-only term describes this record only (:func:`magcal.calibration.calibration.
+        is_transferable`). Descriptions of a user's effect are untrusted text."""
+        from magcal.calibration.calibration import is_transferable
+        from magcal.model.terms import EFFECTS
+
+        out = []
+        for label in self.state.effects:
+            name = label.partition(":")[0]
+            cls = EFFECTS.get(name)
+            out.append({"label": label, "name": name, "transferable": True if cls is None else is_transferable(cls),
+                        "description": "" if cls is None else (cls.description or "")})
+        return out
+
+    def record_only_applied(self) -> list[str]:
+        """Labels of the record-only terms the current calibration applies to this record's corrected data."""
+        return [] if self.calibration is None else self.calibration.record_terms()
+
+    # ------------------------------------------------------------------------------------------------------
+    # engine steps (synchronous; the page runs them through run_job)
+    # ------------------------------------------------------------------------------------------------------
+    def run_job(self, name: str, job: Callable[[], None]) -> bool:
+        """Run an action in the worker; False (and a message) if another one is running."""
+        started = self.submit_job(name, job)
+        if not started:
+            self.say(f"Busy: {safe_text(self.worker.current)} is still running; wait for it to finish.")
+        return started
+
+    def submit_job(self, name: str, job: Callable[[], None]) -> bool:
+        """Start ``job`` in the worker with the kept mask and the model's effects of this moment pinned for its
+        thread (:attr:`kept`, :meth:`_model`); False, silently, if another job runs."""
+        with self.state.lock:
+            kept, effects = self.state.kept, list(self.state.effects)
+
+        def pinned():
+            self._job_pin.kept, self._job_pin.effects = kept, effects
+            try:
+                return job()
+            finally:
+                self._job_pin.kept = self._job_pin.effects = None
+
+        return self.worker.submit(name, pinned, on_error=self._job_failed)
+
+    def _job_effects(self) -> list:
+        """The model's effects of the running job (as it built its model), else the state's."""
+        pinned = getattr(self._job_pin, "effects", None)
+        return list(pinned) if pinned is not None else list(self.state.effects)
+
+    def _job_failed(self, exc: BaseException) -> None:
+        self.progress = None
+        self._emit("progress")
+        self.say(error_markdown(exc))
+
+    def _report_progress(self, message: str, fraction=None) -> None:
+        self.progress = (message, fraction)
+        self._emit("progress")
+
+    def _residuals_of(self, cal: Calibration) -> np.ndarray:
+        # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
+        ds = self.fit_dataset()
+        fields = cal.correct(ds, record_terms="apply")
+        return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
+
+    def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
+        if cal.record is None:  # the downloaded JSON names the record its record-only terms describe
+            cal.fitted_on(self.dataset)
+        res, fields = self._residuals_of(cal)
+        self.calibration = cal
+        self.corrected_nT = fields
+        self.residual_nT = res if residual_nT is None else np.asarray(residual_nT, float)
+
+    def _changes(self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float,
+                 tensor_before=None) -> str:
+        """One line: RMS before -> after, and how much each parameter group moved."""
+        parts = [f"RMS {format_number(rms_before)} -> {format_number(rms_after)} nT"]
+        if old is not None and old.n_sensors == new.n_sensors:
+            db = max(float(np.max(np.abs(a.bias_nT - b.bias_nT))) for a, b in zip(old.sensors, new.sensors))
+            dc = max(float(np.max(np.abs(a.cinv - b.cinv))) for a, b in zip(old.sensors, new.sensors))
+            from magcal.geometry.procrustes import rotation_angle_deg
+
+            dr = max(rotation_angle_deg(b.R @ a.R.T) for a, b in zip(old.sensors, new.sensors))
+            moved = f"bias moved up to {format_number(db, 3)} nT, C^-1 up to {format_number(dc * 1e6, 3)} ppm"
+            if new.n_sensors > 1:  # one sensor's rotation is the identity: nothing to say
+                moved += f", R up to {format_number(dr * 3600, 3)} arcsec"
+            parts.append(moved)
+        t = self.tensor_rms()
+        if t is not None and t["after"] is not None:
+            worst = max(t["after"].values())
+            prev = max(tensor_before.values()) if tensor_before else max(t["before"].values())
+            parts.append(f"worst tensor RMS {prev:.4g} -> {worst:.4g} nT/m")
+        return "; ".join(parts)
+
+    def _record(self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None,
+                fit=None, notes=()) -> StepRecord:
+        rms_after = self.residual_rms_nT()
+        self._estimate_noise(fit)
+        outcome = None if fit is None else fit.summary()
+        rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
+                         effects=self._job_effects(), n_kept=int(self.kept.sum()),
+                         changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
+                         elapsed_s=time.perf_counter() - t0,
+                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS})
+        self.state.record(rec, self.calibration.to_dict())
+        self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
+        self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
+        held_out, held_note = self._held_out_rms(fit)
+        if held_note:
+            notes = list(notes) + [held_note]
+        if held_out is not None:
+            with self.state.lock:
+                rec.held_out_rms_nT = held_out
+                self.state.touch()
+            self._emit("model")  # the history table and the RMS plot gain the held-out figure
+        self.autosave()
+        text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
+        if held_out is not None:
+            text += f"; held-out RMS {fmt_nT(held_out)} (blocks)"
+        if fit is not None and not fit.success:
+            text += " - **the fit did not converge** (see above)"
+        if notes:
+            text += "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(notes))
+        self.say(text)
+        return rec
+
+    #: Fewest kept samples a fit is run on (the base model of one sensor has 9 parameters).
+    MIN_KEPT = 20
+
+    def _check_kept(self) -> None:
+        n = int(self.kept.sum())
+        if n < self.MIN_KEPT:
+            raise MagcalError(f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
+                              "rejection or restore samples (Outliers tab)")
+
+    def _before(self):
+        self._check_kept()
+        rms = self.residual_rms_nT()
+        if not np.isfinite(rms):
+            rms = _rms(self.raw_residual_nT()[:, self.kept])
+        t = self.tensor_rms()
+        tb = (t["after"] or t["before"]) if t else None
+        return self.calibration, rms, tb
+
+    def step_ellipsoid(self) -> StepRecord:
+        """Step 1: an ellipsoid per sensor (kept samples); the rotations between sensors are reset."""
+        from magcal.fitting import pipeline
+        from magcal.fitting.fitter import resolve_reference
+
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        ds = self.fit_dataset()
+        kept_ds = ds.subset(self.kept)
+        ref, kind = resolve_reference(kept_ds, self.reference_arg)
+        with warnings.catch_warnings(record=True) as wl:
+            warnings.simplefilter("always")
+            fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
+        notes = [str(w.message) for w in wl]
+        cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
+        notes += [w for f in fits for w in f.warnings]
+        self.fit_result = None
+        self.calibration_result = None
+        self.diagnosis = None
+        self._set_calibration(cal)
+        return self._record("fit ellipsoid", old, rms0, t0, tb, notes=notes)
+
+    def step_align(self) -> StepRecord:
+        """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b."""
+        from magcal.fitting.pipeline import align_sensors
+
+        if self.dataset.n_sensors < 2:
+            raise MagcalError("aligning needs at least two sensors; this file has one")
+        if self.calibration is None:
+            raise MagcalError("fit the ellipsoids first (step 1): alignment works on corrected vectors")
+        old, rms0, tb = self._before()
+        t0 = time.perf_counter()
+        self._set_calibration(align_sensors(self.dataset.subset(self.kept), self.calibration))
+        return self._record("align sensors", old, rms0, t0, tb)
+
+    def _model(self):
+        from magcal.model.terms import Model
+
+        effects = list(self.state.effects)
+        if getattr(self._job_pin, "kept", None) is not None:
+            self._job_pin.effects = effects  # the model this job fits (step_add has just added one)
+        return Model.from_names(effects, self.dataset.n_sensors)
+
+    def step_refine(self, label: str = "refine (ML)") -> StepRecord:
+        """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
+        from magcal.fitting.fitter import fit as ml_fit
+
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        init = self.calibration
+        ds = self.fit_dataset()
+        with warnings.catch_warnings(record=True) as wl:
+            warnings.simplefilter("always")
+            result = ml_fit(ds, self._model(), init=init, loss="soft_l1" if self.state.robust else "linear",
+                                mask=self.kept, reference_total_nT=self.reference_arg)
+        notes = [str(w.message) for w in wl if not issubclass(w.category, ConvergenceWarning)]  # the status says it
+        self.fit_result = result
+        self.calibration_result = None
+        self.diagnosis = None
+        self._set_calibration(result.calibration, result.residuals_all_nT)
+        return self._record(label, old, rms0, t0, tb, fit=result, notes=notes)
+
+    def step_calibrate(self, method: str | None = None) -> StepRecord:
+        """The whole pipeline with the chosen method (ML, the two seed steps, or a global search)."""
+        from magcal.fitting import pipeline
+
+        method = method or self.state.method
+        t0 = time.perf_counter()
+        old, rms0, tb = self._before()
+        self._report_progress(f"{method}: starting", 0.0)
+        effects = list(self.state.effects) if method == "ml" else []
+        with warnings.catch_warnings(record=True):
+            warnings.simplefilter("always")  # the same concerns are in result.warnings
+            result = pipeline.calibrate(self.fit_dataset(), method=method, effects=effects,
+                                        robust=self.state.robust, reference_total_nT=self.reference_arg, seed=0,
+                                        progress=self._report_progress, mask=self.kept,
+                                        noise_nT=self.state.noise_nT)
+        self.calibration_result = result
+        self.fit_result = result.fit
+        self.diagnosis = None
+        self._set_calibration(result.calibration,
+                              None if result.fit is None else result.fit.residuals_all_nT)
+        self.progress = None
+        self._emit("progress")
+        name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
+        return self._record(name, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
+
+    # ------------------------------------------------------------------------------------------------------
+    # the loop: model, diagnose, add
+    # ------------------------------------------------------------------------------------------------------
+    def available_effects(self) -> list[dict]:
+        """The catalogue (:func:`magcal.model.plugins.catalogue`: built-ins first, then the user's effects), each
+        ``{"name", "description", "channels", "missing" (reasons, empty if usable), "origin", "source",
+        "transferable"}`` (True: an instrument term, carried to new data; False: record-only; None: not said).
+
+        ``origin`` is ``built-in``, ``file``, ``entry point`` or ``python``; the text is untrusted for a user's
+        effect (escape it before it joins markdown)."""
+        from magcal.model import plugins
+        from magcal.model.terms import EFFECTS
+
+        out = []
+        for entry in plugins.catalogue():
+            cls = EFFECTS.get(entry["name"])
+            try:
+                missing = cls().missing_channels(self.dataset)
+            except Exception as exc:  # an effect that cannot even be made is shown as unusable
+                missing = [plugins.user_code_error(exc) or f"{type(exc).__name__}: {exc}"]
+            if entry.get("error"):
+                missing = list(missing) + [entry["error"]]
+            out.append({"name": entry["name"], "description": entry.get("description") or "",
+                        "channels": list(entry.get("channels", ())), "missing": [str(m) for m in missing],
+                        "origin": entry.get("origin", "built-in"), "source": entry.get("source", ""),
+                        "transferable": entry.get("transferable")})
+        return out
+
+    def load_effects_file(self, path) -> list[str]:
+        """Load a user's effect file (:func:`magcal.model.plugins.load_effects_file`: *runs the Python code in it*);
+        its effects join the catalogue, and the session remembers the file to load it again when it reopens.
+
+        Parameters
+        ----------
+        path : str or os.PathLike
+            The ``.py`` file (``~`` is expanded; a relative path is taken from the current directory).
+
+        Returns
+        -------
+        list of str
+            The names of the effects the file registers.
+
+        Raises
+        ------
+        MagcalError
+            A clear message naming the file and line (:class:`magcal.model.plugins.UserEffectError`).
+        """
+        from magcal.model import plugins
+
+        text = os.fspath(path).strip() if isinstance(path, (str, os.PathLike)) else ""
+        if not text:
+            raise MagcalError("type the path of a Python file (.py) that defines your effect")
+        full = os.path.abspath(os.path.expanduser(text))
+        names = plugins.load_effects_file(full)
+        with self._lock:
+            if full not in self.state.effects_files:
+                self.state.effects_files.append(full)
+            self.state.touch()
+        self.autosave()
+        self._emit("effects")
+        listed = ", ".join(safe_code(n) for n in names)
+        self.say(f"loaded {listed} from {safe_code(full)}; tick it in the Model tab or let Diagnose rank it")
+        return names
+
+    def _check_label(self, label) -> str:
+        """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
+        :class:`MagcalError` (a label may come from a browser)."""
+        from magcal.model import plugins
+        from magcal.model.terms import EFFECTS
+
+        label = label.strip() if isinstance(label, str) else label
+        m = LABEL.fullmatch(label) if isinstance(label, str) else None
+        if m is None:
+            raise MagcalError(f"{clean_text(repr(label), 80)} is not an effect label (NAME or NAME:SENSOR)")
+        name = label.partition(":")[0]
+        if name not in EFFECTS:
+            raise MagcalError(unknown_effect_message(name, option="Load effects file (Model tab)"))
+        if m.group(1) is not None and not 1 <= int(m.group(1)) <= self.dataset.n_sensors:
+            raise MagcalError(f"{label}: no sensor {m.group(1)}; the data have {self.dataset.n_sensors}")
+        return label
+
+    def set_effect(self, name: str, on: bool) -> bool:
+        if on:
+            name = self._check_label(name)
+        changed = self.state.add_effect(name) if on else self.state.remove_effect(name)
+        if changed:
+            self.autosave()
+            self._emit("model")
+        return changed
+
+    def step_diagnose(self):
+        """Rank the candidate effects for the current fit (runs a base ML fit first if there is none)."""
+        from magcal.diagnosis import diagnose
+
+        if self.fit_result is None:
+            self.step_refine()
+        t0 = time.perf_counter()
+        self._report_progress("diagnosing", None)
+        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress,
+                     noise_nT=self.state.noise_nT)
+        self.diagnosis = d
+        self.progress = None
+        self._emit("progress")
+        self._emit("diagnosis")
+        top = d.candidates[0] if getattr(d, "candidates", None) else None
+        extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
+        self.say(f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({time.perf_counter() - t0:.2f} s)  \n"
+                 f"{safe_text(d.summary, MESSAGE_LEN)}")
+        return d
+
+    def step_add(self, label: str | None = None) -> StepRecord | None:
+        """Put a candidate (the top one by default) into the model and refit."""
+        if label is None:
+            if self.diagnosis is None or not self.diagnosis.candidates:
+                raise MagcalError("diagnose first: there is no suggested effect to add")
+            label = candidate_label(self.diagnosis.candidates[0])
+        label = self._check_label(label)
+        if not self.state.add_effect(label):
+            raise MagcalError(f"{label} is already in the model")
+        self._emit("model")
+        return self.step_refine(label=f"add {label}")
+
+    # ------------------------------------------------------------------------------------------------------
+    # outlier rejection
+    # ------------------------------------------------------------------------------------------------------
+    def threshold_mask(self, k_sigma: float) -> np.ndarray:
+        """Samples (kept ones) whose residual on any sensor is beyond k robust standard deviations."""
+        if self.residual_nT is None:
+            raise MagcalError("fit first: the threshold is in units of the residual's standard deviation")
+        k = self.kept
+        r = self.residual_nT
+        med = np.median(r[:, k], axis=1, keepdims=True)
+        mad = robust_sigma(r[:, k], axis=1, keepdims=True, floor=1e-12)
+        out = np.any(np.abs(r - med) > float(k_sigma) * mad, axis=0)
+        return out & k
+
+    def reject_threshold(self, k_sigma: float) -> int:
+        bad = self.threshold_mask(k_sigma)
+        n = self.state.selection.reject(np.flatnonzero(bad), what=f"threshold {k_sigma:g} sigma")
+        self._selection_changed(f"threshold {k_sigma:g} sigma rejected {n} sample(s)")
+        return n
+
+    def select(self, indices, mode: str = "reject") -> int:
+        """Reject or restore samples (from a box selection)."""
+        idx = np.unique(np.asarray(indices, dtype=int))
+        if mode == "restore":
+            n = self.state.selection.restore(idx, what=f"box restore {idx.size}")
+            self._selection_changed(f"box selection restored {n} sample(s)")
+        else:
+            n = self.state.selection.reject(idx, what=f"box reject {idx.size}")
+            self._selection_changed(f"box selection rejected {n} sample(s)")
+        return n
+
+    def undo(self):
+        what = self.state.selection.undo()
+        self._selection_changed(f"undid: {what}" if what else "nothing to undo")
+
+    def redo(self):
+        what = self.state.selection.redo()
+        self._selection_changed(f"redid: {what}" if what else "nothing to redo")
+
+    def reset_selection(self):
+        self.state.selection.reset()
+        self._selection_changed("every sample kept again")
+
+    def _selection_changed(self, text: str) -> None:
+        self.state.touch()
+        self.autosave()
+        self._emit("selection")
+        self.say(f"{text}; {self.state.selection.n_rejected} of {self.dataset.n_samples} rejected")
+
+    def inspect(self, index: int | None) -> None:
+        self.inspected = None if index is None else int(index)
+        self._emit("inspect")
+
+    # ------------------------------------------------------------------------------------------------------
+    # files
+    # ------------------------------------------------------------------------------------------------------
+    def calibration_json(self) -> bytes:
+        if self.calibration is None:
+            raise MagcalError("nothing to download yet: run a fit first")
+        return (json.dumps(self.calibration.to_dict(), indent=2) + "\n").encode("utf-8")
+
+    def corrected_csv(self) -> bytes:
+        """The data corrected by the current calibration (array frame, nT) plus kept flag and residuals."""
+        from magcal.data import io as mio
+
+        if self.calibration is None:
+            raise MagcalError("nothing to download yet: run a fit first")
+        extra = dict(self.dataset.extra)
+        extra["kept"] = self.kept.astype(int)
+        for s in range(self.dataset.n_sensors):
+            extra[f"s{s + 1}_residual_nT"] = self.residual_nT[s]
+        ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
+        record_only = self.record_only_applied()
+        meta = {"corrected_by": "magcal workbench", "frame": self.calibration.frame,
+                "effects": ",".join(self.state.effects) or "none",
+                # record-only terms describe this recording: applied here, they would not carry to another one
+                "record_only_terms_applied": ",".join(record_only) or "none"}
+        # in memory from the writer's own parts (write_csv writes only to a path, atomically)
+        columns = mio.dataset_columns(ds)
+        out = io.StringIO(newline="")
+        out.write(mio.metadata_text({**mio.dataset_metadata(ds), **meta}))
+        csv.writer(out, lineterminator="\n").writerow(list(columns))
+        mio.write_rows(out, columns)
+        return out.getvalue().encode("utf-8")
+
+    def autosave(self) -> None:
+        if self.store is None or self.session_id is None:
+            return
+        try:
+            self.store.save(self.session_id, self.state)
+        except OSError as exc:
+            self.message = f"autosave failed: {safe_text(error_text(exc), MESSAGE_LEN)}"
+
+
+def error_markdown(exc: BaseException) -> str:
+    """The page's message for an exception: a user-facing :class:`MagcalError` as it is, an error raised in a
+    user's effect code as its file, line and error (:func:`magcal.model.plugins.user_code_error`, no traceback),
+    anything else as an unexpected error (its traceback goes to the server's log). Always escaped."""
+    from magcal.model import plugins
+
+    if isinstance(exc, MagcalError):
+        return f"**Error:** {safe_text(error_text(exc), MESSAGE_LEN)}"
+    user = plugins.user_code_error(exc)
+    if user:
+        return f"**Error in your effect's code:** {safe_text(user, MESSAGE_LEN)}"
+    traceback.print_exception(exc)
+    return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {error_text(exc)}', MESSAGE_LEN)}"
+
+
+def load_session_effects(paths) -> tuple[list[str], list[str]]:
+    """Load again the effect files a session used (those not loaded yet in this process).
+
+    Returns
+    -------
+    names : list of str
+        The effects loaded.
+    problems : list of str
+        One plain-text message per file that failed (missing, broken): the session opens without it.
+    """
+    from magcal.model import plugins
+
+    names, problems = [], []
+    loaded = set(plugins.user_files())
+    for path in paths or ():
+        if path in loaded:
+            continue
+        try:
+            names += plugins.load_effects_file(path)
+        except MagcalError as exc:
+            problems.append(str(exc))
+    return names, problems
+
+
+def candidate_label(candidate) -> str:
+    """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or its dict)."""
+    return candidate["label"] if isinstance(candidate, dict) else candidate.label
+
+
+def load_dataset(source, name: str | None = None, **options):
+    """Read a CSV (a path or an open file object) with the engine's reader; messages and the dataset's source
+    name ``name`` when given; ``options`` (``columns``, ``units``, ``lsb_nT``) go to :func:`magcal.data.io.read_csv`.
+    Returns the dataset and the reader's warnings as text (a clear :class:`MagcalError` on problems)."""
+    from magcal.data import io as mio
+
+    options = {k: v for k, v in options.items() if v is not None}
+    with warnings.catch_warnings(record=True) as wl:
+        warnings.simplefilter("always")
+        ds = mio.read_csv(source, name=name, **options)
+    return ds, [str(w.message) for w in wl]
+
+
+def read_bytes_dataset(name: str, content: bytes, **options):
+    """Read an uploaded file from its bytes; messages name the upload (its base name). A flight-controller log
+    (``.bin``, ``.ulg``; :mod:`magcal.data.logs`) is written to a temporary file for its reader, which needs a path, and
+    the column and unit options do not apply to it (a note says so when some were given)."""
+    import tempfile
+
+    from magcal.data.logs import is_log
+
+    name = os.path.basename(name) or "upload.csv"
+    if not is_log(name):
+        return load_dataset(io.BytesIO(content), name, **options)
+    with tempfile.TemporaryDirectory(prefix="magcal-upload-") as folder:
+        path = os.path.join(folder, "upload" + os.path.splitext(name)[1].lower())
+        with open(path, "wb") as fh:
+            fh.write(content)
+        ds, notes = load_dataset(path, name)
+    given = [k for k, v in options.items() if v is not None]
+    if given:
+        notes.append(f"{name}: a flight-controller log carries its own fields and units; "
+                     f"{', '.join(given)} ignored")
+    return ds, notes
+
+
+def canonical_csv(dataset) -> bytes:
+    """The dataset as magcal's own CSV (readings in nT, canonical column names): what a session keeps of data
+    that needed a column mapping, units or a log reader to open, so that it reopens without them."""
+    import tempfile
+
+    from magcal.data import io as mio
+
+    with tempfile.TemporaryDirectory(prefix="magcal-canonical-") as folder:
+        path = os.path.join(folder, "data.csv")
+        mio.write_csv(path, dataset)
+        with open(path, "rb") as fh:
+            return fh.read()
+
+
+def page_words(text: str) -> str:
+    """An engine message with the command line's option names replaced by the page's widgets."""
+    for flag, widget in (("--columns", "the Files tab's Columns box:"), ("--units", "the Files tab's Units choice"),
+                         ("--lsb", "the Files tab's LSB box")):
+        text = text.replace(flag, widget)
+    return text

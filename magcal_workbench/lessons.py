@@ -1,0 +1,134 @@
+"""Lessons: datasets that each hide a physical effect, with a short guide; the answer stays hidden until asked.
+
+A lesson is a folder under ``assets/lessons/``::
+
+    <slug>/lesson.json   {"title", "order", "data": "data.csv", "guide": "guide.md",
+                          "answer": {"effects": ["temperature_bias:2", ...], "explanation": "..."}}
+    <slug>/guide.md      what to look at (never names the answer)
+    <slug>/data.csv      the data (made by ``assets/make_assets.py`` from the engine's simulator)
+
+:meth:`Lesson.check` compares the user's model with the answer without revealing it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def _assets_folder() -> Path:
+    """The demo data and lessons: ``assets/`` of a source checkout, else the copy a wheel installs as
+    ``magcal_workbench/assets`` (see ``pyproject.toml``)."""
+    here = Path(__file__).resolve().parent
+    for folder in (here.parent / "assets", here / "assets"):
+        if (folder / "demo.csv").is_file():
+            return folder
+    return here.parent / "assets"
+
+
+#: The asset folder (demo data and lessons).
+ASSETS = _assets_folder()
+LESSONS = ASSETS / "lessons"
+DEMO = ASSETS / "demo.csv"
+
+
+@dataclass
+class Lesson:
+    """One lesson folder."""
+
+    slug: str
+    folder: Path
+    title: str
+    order: int
+
+    @property
+    def data_path(self) -> Path:
+        """The lesson's data file: a plain file name inside the lesson's folder (no path, no ``..``)."""
+        name = self._doc().get("data", "data.csv")
+        if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
+            from magcal.core.errors import MagcalError
+
+            raise MagcalError(f"{self.folder / 'lesson.json'}: 'data' must be a file name in the lesson's folder, "
+                             f"got {name!r}")
+        return self.folder / name
+
+    def guide(self) -> str:
+        """The guide (markdown), with no answer in it."""
+        return (self.folder / self._doc().get("guide", "guide.md")).read_text(encoding="utf-8")
+
+    def answer(self) -> dict:
+        """``{"effects": [labels], "explanation": str}`` — show only when the user asks."""
+        ans = self._doc().get("answer", {})
+        return {"effects": list(ans.get("effects", [])), "explanation": ans.get("explanation", "")}
+
+    def answer_markdown(self) -> str:
+        ans = self.answer()
+        terms = ", ".join(f"`{e}`" for e in ans["effects"])
+        return f"**Answer:** {terms}\n\n{ans['explanation']}"
+
+    def check(self, effects) -> dict:
+        """Compare the model's effect labels with the answer.
+
+        Returns
+        -------
+        dict
+            ``found`` (answer labels the model covers), ``missing`` count (not names: the answer stays
+            hidden), ``extra`` (model labels not in the answer), ``solved`` (all found, nothing extra) and a
+            one-line ``message``.
+        """
+        wanted = self.answer()["effects"]
+        have = [e.strip() for e in effects]
+        found, covered = [], set()
+        for w in wanted:
+            name = w.partition(":")[0]
+            match = next((h for h in have if h == w or h == name), None)
+            if match is not None:
+                found.append(w)
+                covered.add(match)
+        extra = [h for h in have if h not in covered]
+        missing = len(wanted) - len(found)
+        solved = missing == 0 and not extra
+        if solved:
+            message = "Solved: your model holds exactly the hidden effect(s)."
+        elif missing == 0:
+            message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."
+        else:
+            message = (f"{len(found)} of {len(wanted)} hidden effect(s) found"
+                       + (f"; not hidden here: {_labels(extra)}" if extra else "") + ". Keep looking.")
+        return {"found": found, "missing": missing, "extra": extra, "solved": solved, "message": message}
+
+    def _doc(self) -> dict:
+        with open(self.folder / "lesson.json", encoding="utf-8") as fh:
+            return json.load(fh)
+
+
+def _labels(labels) -> str:
+    """The user's effect labels for the (markdown) message, escaped: they come from the session."""
+    from .markup import safe_text
+
+    return ", ".join(safe_text(label, 80) for label in labels)
+
+
+def list_lessons(root=None) -> list[Lesson]:
+    """Lessons under ``root`` (default :data:`LESSONS`), in their ``order``."""
+    root = Path(root) if root is not None else LESSONS
+    out = []
+    if not root.is_dir():
+        return out
+    for folder in sorted(root.iterdir()):
+        meta = folder / "lesson.json"
+        if not meta.is_file():
+            continue
+        with open(meta, encoding="utf-8") as fh:
+            doc = json.load(fh)
+        out.append(Lesson(folder.name, folder, doc.get("title", folder.name), int(doc.get("order", 99))))
+    out.sort(key=lambda l: (l.order, l.slug))
+    return out
+
+
+def get_lesson(slug: str, root=None) -> Lesson:
+    for lesson in list_lessons(root):
+        if lesson.slug == slug:
+            return lesson
+    raise KeyError(f"no lesson {slug!r}")

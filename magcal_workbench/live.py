@@ -1,0 +1,384 @@
+"""The live view: an instrument's samples drawn as they arrive, with the coverage and the fit following them.
+
+``magcal-workbench --live SOURCE`` (or the Files tab's *Live source*) opens a :class:`magcal.data.live.LiveSession`:
+the source is read in the session's thread and every sample is appended to a CSV recording (flushed to disk at
+least every second). :class:`LiveView` then, in a thread of its own,
+
+* redraws the raw cloud as it grows (at most :data:`DRAW_INTERVAL_S` apart), through the same
+  :class:`~magcal_workbench.scene.SceneView` as a file, so every browser watching sees it;
+* draws per sensor a coverage sphere: the directions the field has taken in the sensor frame (green), the ones
+  still missing (grey) and the centre of the largest gap (orange), from :func:`magcal.checks.coverage.direction_map`,
+  with the engine's advice on where to turn next;
+* refits (:func:`magcal.calibrate`, maximum likelihood) in a background thread as samples accumulate, showing the
+  residual RMS against the noise floor and the parameters' standard errors, and says when coverage and residuals
+  suffice (:func:`magcal.checks.coverage.live_sufficient`).
+
+Pause keeps the source read but drops what arrives; Stop closes the recording and opens it like any file, so the
+Calibrate and Model tabs work on what was recorded. The physics (coverage, fit, noise) is the engine's; this module
+schedules and draws.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import magcal
+from magcal.checks.coverage import direction_map, live_sufficient
+from magcal.core.errors import MagcalError
+
+from . import scene as scn
+from .markup import safe_code, safe_text
+
+#: Shortest time between two scene updates while samples arrive, s.
+DRAW_INTERVAL_S = 0.2
+#: Refit when the samples have grown by this factor since the last fit (or :data:`REFIT_INTERVAL_S` has passed).
+REFIT_GROWTH = 1.15
+#: Longest time between two refits while samples arrive, s.
+REFIT_INTERVAL_S = 3.0
+#: Fewest samples before the first fit.
+MIN_FIT_SAMPLES = 60
+#: Cells of a coverage sphere.
+COVERAGE_CELLS = 300
+#: Radius of a coverage sphere in scene units (the corrected cloud has radius 1).
+COVERAGE_RADIUS = 0.55
+VISITED_RGB = (60, 170, 90)
+MISSING_RGB = (205, 205, 205)
+NEXT_RGB = (240, 140, 20)
+#: Sources the page may start when the workbench is served beyond this machine: simulated presets only (a
+#: serial port, a socket or a file path is chosen on the command line).
+REMOTE_SCHEMES = ("sim",)
+
+
+def default_recording_path(folder) -> Path:
+    """A new recording's path in ``folder``: ``live-YYYYmmdd-HHMMSS.csv`` (a counter appended if it exists)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = folder / f"live-{stamp}.csv"
+    k = 1
+    while path.exists():
+        path = folder / f"live-{stamp}-{k}.csv"
+        k += 1
+    return path
+
+
+class LiveFit:
+    """The figures of the latest live fit (what the panel shows)."""
+
+    def __init__(self, result, n_samples: int):
+        self.result = result
+        self.calibration = result.calibration
+        self.n_samples = int(n_samples)
+        self.rms_nT = float(result.rms_nT)
+        self.floor_nT = float(result.total_field_floor_nT)
+        self.noise_nT = float(result.noise_nT)
+        self.noise_source = result.noise_source
+        fit = result.fit
+        sd = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None)) if fit is not None and fit.covariance is not None \
+            else None
+        names = fit.param_names if fit is not None else []
+        #: Largest standard error of a bias component (nT) and of a C^-1 entry, over the sensors.
+        self.bias_sd_nT = self._largest(sd, names, "_bias_")
+        self.cinv_sd = self._largest(sd, names, "_Cinv")
+
+    @staticmethod
+    def _largest(sd, names, key):
+        if sd is None:
+            return None
+        vals = [s for s, n in zip(sd, names) if key in n and np.isfinite(s)]
+        return float(max(vals)) if vals else None
+
+
+class LiveView:
+    """A live session drawn in the workbench.
+
+    Parameters
+    ----------
+    app : magcal_workbench.app.Workbench
+    url : str
+        The source (:func:`magcal.data.live.open_source`).
+    path : str or os.PathLike
+        The recording (a new file).
+    """
+
+    def __init__(self, app, url: str, path):
+        from magcal.data.live import LiveSession
+
+        self.app = app
+        self.url = url
+        self.path = Path(path)
+        self.session = LiveSession(url, self.path)
+        self.maps = []
+        self.fit: LiveFit | None = None
+        self.fit_error: str | None = None
+        self.verdict = (False, "waiting for samples")
+        self.n_drawn = 0
+        self.last_draw_monotonic = None  # when the scene last took new samples (for the latency benchmark)
+        self.draw_log = []                # (monotonic time of the update, samples drawn)
+        self._dataset = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._fitting = False
+        self._last_fit_t = 0.0
+        self._fit_tried = 0
+        self._coverage_nodes = {}
+        self.stopped = False
+        self._thread = threading.Thread(target=self._loop, name="workbench-live", daemon=True)
+        self._thread.start()
+
+    # --- state ------------------------------------------------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        return self.session.n_samples
+
+    @property
+    def active(self) -> bool:
+        """True until :meth:`stop` (the view owns the scene)."""
+        return not self.stopped
+
+    def dataset(self):
+        with self._lock:
+            return self._dataset
+
+    # --- the loop -------------------------------------------------------------------------------------------
+    def _loop(self) -> None:
+        ended_said = False
+        while not self._stop.wait(DRAW_INTERVAL_S):
+            try:
+                if not self.tick():
+                    ds = self.dataset()
+                    if ds is not None:
+                        self._maybe_refit(ds, idle=True)  # the last samples get their fit too
+                if not self.session.running and not ended_said:
+                    ended_said = True
+                    self.app.panels.refresh_live()  # the source ended or failed: say so
+            except Exception as exc:  # the live view must not die silently
+                self.fit_error = f"{type(exc).__name__}: {exc}"
+                self.app.panels.refresh_live()
+
+    def tick(self) -> bool:
+        """Take the samples received since the last call: redraw, refresh the coverage, maybe refit. Returns
+        whether anything was new."""
+        n = self.session.n_samples
+        if n == self.n_drawn or self.stopped:
+            return False
+        ds = self.session.dataset()
+        if ds is None:
+            return False
+        with self._lock:
+            self._dataset = ds
+        fit = self.fit
+        shapes = [None] * ds.n_sensors
+        if fit is not None:
+            shapes = [self._shape_of(fit.calibration.sensors[s]) for s in range(ds.n_sensors)]
+        self.maps = [direction_map(ds.readings_nT[s], COVERAGE_CELLS, shape=shapes[s]) for s in range(ds.n_sensors)]
+        self.verdict = live_sufficient(self.maps, None if fit is None else fit.rms_nT,
+                                       None if fit is None else fit.floor_nT)
+        self.app.update_scene()
+        self.draw_coverage()
+        self.n_drawn = ds.n_samples
+        self.last_draw_monotonic = time.monotonic()
+        self.draw_log.append((self.last_draw_monotonic, self.n_drawn))
+        del self.draw_log[:-1000]
+        self.app.panels.refresh_live()
+        self._maybe_refit(ds)
+        return True
+
+    @staticmethod
+    def _shape_of(sensor):
+        from magcal.geometry.shape import FieldShape
+
+        return FieldShape(centre_nT=np.asarray(sensor.bias_nT, float), cinv=np.asarray(sensor.cinv, float),
+                          field_nT=float("nan"), source="fit")
+
+    def _maybe_refit(self, ds, idle: bool = False) -> None:
+        """Start a refit in the background when the samples have grown enough since the last one, or some time
+        has passed, or (``idle``) nothing new arrives and the last fit has not seen everything."""
+        if self._fitting or ds.n_samples < MIN_FIT_SAMPLES:
+            return
+        newer = self.fit is None or ds.n_samples > self.fit.n_samples
+        if idle and self.fit_error is not None and self._fit_tried == ds.n_samples:
+            return  # that very data already failed to fit: wait for more
+        last = self.fit.n_samples if self.fit is not None else self._fit_tried
+        grown = ds.n_samples >= REFIT_GROWTH * last
+        waited = time.monotonic() - self._last_fit_t
+        due = newer and (waited >= REFIT_INTERVAL_S or (idle and waited >= DRAW_INTERVAL_S))
+        if not (grown or due):
+            return
+        self._fitting = True
+        self._fit_tried = ds.n_samples
+        threading.Thread(target=self._refit, args=(ds,), name="workbench-live-fit", daemon=True).start()
+
+    def _refit(self, ds) -> None:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # weak coverage early on is the point of the live view
+                result = magcal.calibrate(ds, method="ml")
+            self.fit = LiveFit(result, ds.n_samples)
+            self.fit_error = None
+            self.verdict = live_sufficient(self.maps, self.fit.rms_nT, self.fit.floor_nT)
+        except MagcalError as exc:
+            self.fit_error = str(exc)
+        except Exception as exc:  # a fit that fails on partial data must not end the live view
+            self.fit_error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self._last_fit_t = time.monotonic()
+            self._fitting = False
+        if not self.stopped:
+            self.app.update_scene()
+            self.app.panels.refresh_live()
+
+    # --- what is drawn ----------------------------------------------------------------------------------------
+    def scene_model(self, options: dict) -> scn.SceneModel | None:
+        """The scene of the samples received so far (raw cloud; corrected by the latest fit), or None before any."""
+        ds = self.dataset()
+        if ds is None:
+            return None
+        fit = self.fit
+        corrected = residual = None
+        F = float(np.median(np.linalg.norm(ds.readings_nT, axis=2)))
+        if fit is not None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                corrected = fit.calibration.correct(ds)
+                residual = fit.calibration.total_field_residuals(ds, corrected=corrected)
+            if fit.calibration.reference_total_nT:
+                F = float(fit.calibration.reference_total_nT)
+        else:
+            residual = np.linalg.norm(ds.readings_nT, axis=2) - F
+        cal = None if fit is None else fit.calibration
+        views = [scn.SensorView(
+            sensor=s, raw_nT=ds.readings_nT[s], corrected_nT=None if corrected is None else corrected[s],
+            residual_nT=residual[s], cinv=None if cal is None else cal.sensors[s].cinv,
+            bias_nT=None if cal is None else cal.sensors[s].bias_nT, R=None if cal is None else cal.sensors[s].R)
+            for s in range(ds.n_sensors)]
+        return scn.SceneModel(
+            sensors=views, n_sensors=ds.n_sensors, field_nT=F, kept=np.ones(ds.n_samples, bool),
+            floor_nT=None if fit is None else fit.floor_nT, baseline_m=ds.baseline_m,
+            all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors], **options)
+
+    def draw_coverage(self) -> None:
+        """One coverage sphere per sensor, where its corrected cloud is drawn: visited cells green, missing grey,
+        the centre of the largest gap orange."""
+        scene = self.app.server.scene
+        n = len(self.maps)
+        with self.app.server.atomic():
+            for s, m in enumerate(self.maps):
+                centre = scn.group_offset(s, n) + [scn.PAIR_OFFSET, 0, 0]
+                colors = np.where(m.visited[:, None], np.array(VISITED_RGB, np.uint8),
+                                  np.array(MISSING_RGB, np.uint8)).astype(np.uint8)
+                pts = (COVERAGE_RADIUS * m.cells + centre).astype(np.float32)
+                name = f"/live/s{s + 1}/coverage"
+                handle = self._coverage_nodes.get(name)
+                if handle is None:
+                    self._coverage_nodes[name] = scene.add_point_cloud(
+                        name, pts, colors, point_size=0.05, point_shape="circle", precision="float32",
+                        point_shading="flat")
+                else:
+                    handle.colors = colors
+                d = m.next_direction
+                mark = f"/live/s{s + 1}/next"
+                old = self._coverage_nodes.pop(mark, None)
+                if old is not None:
+                    old.remove()
+                if d is not None and not m.enough:
+                    seg = np.array([[centre, centre + 1.3 * COVERAGE_RADIUS * d]], np.float32)
+                    self._coverage_nodes[mark] = scene.add_line_segments(
+                        mark, seg, colors=NEXT_RGB, thickness=6.0, thickness_units="screen")
+                label = f"/live/s{s + 1}/label"
+                old = self._coverage_nodes.pop(label, None)
+                if old is not None:
+                    old.remove()
+                self._coverage_nodes[label] = scene.add_label(
+                    label, f"S{s + 1} directions {100 * m.fraction:.0f} %",
+                    position=tuple(centre + [0, 0, -1.25]), anchor="top-center")
+
+    def clear_coverage(self) -> None:
+        for handle in self._coverage_nodes.values():
+            handle.remove()
+        self._coverage_nodes.clear()
+
+    def status_markdown(self) -> str:
+        """The Files tab's live panel: source, samples, recording, coverage, fit, verdict."""
+        s = self.session
+        state = "stopped" if self.stopped else ("paused" if s.paused else ("receiving" if s.running else "ended"))
+        lines = [f"**Live** {safe_code(self.url)}: {state}; {s.n_samples} samples received, {s.n_recorded} "
+                 f"on disk in {safe_code(self.path.name)}"]
+        stats = s.source.stats
+        if stats.n_bad:
+            lines.append(f"- {stats.n_bad} lines or messages could not be read (last: "
+                         f"{safe_text(stats.last_bad or '', 120)})")
+        if s.error:
+            lines.append(f"- **the source stopped:** {safe_text(s.error, 300)}")
+        for i, m in enumerate(self.maps):
+            who = f"sensor {i + 1}: " if len(self.maps) > 1 else ""
+            lines.append(f"- {who}{safe_text(m.summary(), 200)}")
+        if self.maps:
+            worst = min(self.maps, key=lambda m: m.fraction)
+            lines.append(f"- **next:** {safe_text(worst.advice(), 300)}")
+        fit = self.fit
+        if fit is not None:
+            sd = []
+            if fit.bias_sd_nT is not None:
+                sd.append(f"bias +-{fit.bias_sd_nT:.3g} nT")
+            if fit.cinv_sd is not None:
+                sd.append(f"C^-1 entries +-{fit.cinv_sd:.2g}")
+            lines.append(f"- fit on {fit.n_samples} samples: RMS **{fit.rms_nT:.3g} nT** (noise floor "
+                         f"{fit.floor_nT:.3g} nT, noise from {fit.noise_source}); standard errors "
+                         + (", ".join(sd) or "not available"))
+        elif self.fit_error:
+            lines.append(f"- no fit yet: {safe_text(self.fit_error, 300)}")
+        ok, why = self.verdict
+        lines.append(("**" if ok else "") + safe_text(why, 300) + ("**" if ok else ""))
+        return "  \n".join(lines)
+
+    # --- control ----------------------------------------------------------------------------------------------
+    def pause(self) -> None:
+        self.session.pause()
+
+    def resume(self) -> None:
+        self.session.resume()
+
+    def stop(self):
+        """Stop the source, close the recording and return ``(dataset, content)`` of the file on disk, or raise
+        :class:`MagcalError` when it holds no sample."""
+        self.stopped = True
+        self._stop.set()
+        self.session.stop()
+        self._thread.join(5.0)
+        self.clear_coverage()
+        if self.session.n_recorded == 0:
+            raise MagcalError(f"{self.path.name}: nothing was recorded (no sample arrived from {self.url})")
+        return self.path
+
+
+def check_page_source(url: str, local: bool) -> str:
+    """A source URL typed in the page, checked: a short text; beyond this machine only :data:`REMOTE_SCHEMES`
+    presets (a device, socket or file is the command line's choice)."""
+    url = (url or "").strip()
+    if not url:
+        raise MagcalError("type a live source, e.g. sim://chi2017?rate=50 or serial:///dev/ttyUSB0?baud=115200")
+    scheme = url.split(":", 1)[0].lower()
+    if not local:
+        from magcal.data.simulation import PRESETS
+
+        name = url.split("://", 1)[-1].split("?", 1)[0]
+        if scheme not in REMOTE_SCHEMES or name not in PRESETS:
+            raise MagcalError("the workbench is served beyond this machine: the page may start only a simulated "
+                              f"preset ({', '.join('sim://' + p for p in PRESETS)}); start a device, socket or "
+                              "file from the command line (magcal-workbench --live SOURCE)")
+    return url
+
+
+def recording_folder(store) -> Path:
+    """Where a live recording goes by default: the session folder's ``recordings``, else the current folder."""
+    if store is not None:
+        return Path(store.root) / "recordings"
+    return Path(os.getcwd())

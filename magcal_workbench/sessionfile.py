@@ -1,0 +1,308 @@
+"""The one reader of ``session.json``: every field checked for type and range before a session is reopened.
+
+A session file is written by the workbench, but it sits on disk where a crash, a full disk, a hand edit or a
+copied folder can damage it, and its text reaches the page. :func:`read_session_document` turns a decoded JSON
+document into a :class:`~magcal_workbench.state.SessionState` or raises :class:`SessionFileError` -- one line naming the
+file, the field and what is wrong -- and nothing else: no ``KeyError``, ``TypeError`` or ``binascii.Error`` from
+a damaged file escapes. :func:`read_session_bytes` does the same from the file's bytes (not JSON, not UTF-8, too
+large). The caller (:class:`~magcal_workbench.session.SessionStore`, the workbench at start) then moves the folder aside
+and starts afresh.
+
+The fields (all written by :meth:`SessionState.to_dict`):
+
+==================  =========================================================================================
+``format``          ``"magcal-workbench-session"``
+``version``         1
+``n_samples``       whole number 1 ... 10^8; ``n_sensors`` whole number 1 ... 4
+``data_path``       text or null; ``lesson`` a lesson's slug or null
+``selection``       ``{"n_samples": N, "kept": packed mask of N bits, "undo"/"redo": [[mask, text], ...]}``
+``effects``         list of effect labels ``NAME`` or ``NAME:S`` (S = 1 ... n_sensors), no repeats
+``effects_files``   list of absolute paths of ``.py`` files (the user's effects to load again)
+``method``          one of :data:`~magcal_workbench.state.METHODS`
+``reference_nT``    number 1 ... 10^7 nT, or null
+``fit_reference``, ``robust``, ``answer_revealed``: true or false
+``noise_nT``        the noise per axis the user gave, number 1e-6 ... 10^6 nT, or null (estimated)
+``sensor``          whole number 0 ... n_sensors - 1, or null
+``history``         list of steps ``{"step", "rms_nT", "floor_nT", "effects", "n_kept", "changes", "elapsed_s",
+                    "fit", "held_out_rms_nT"}`` (numbers finite, ``n_kept`` 0 ... N; ``held_out_rms_nT`` null
+                    when the step ran no held-out validation)
+``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
+==================  =========================================================================================
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import math
+import re
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+
+from .markup import clean_text
+
+FORMAT = "magcal-workbench-session"
+VERSION = 1
+#: Largest session file read, bytes (a session of 10^8 samples with its undo masks is far smaller).
+MAX_BYTES = 256 * 1024 * 1024
+MAX_SAMPLES = 10**8
+MAX_SENSORS = 4
+#: Longest text field kept (a step's description, a path), characters.
+MAX_TEXT = 10_000
+MAX_HISTORY = 100_000
+MAX_UNDO = 200
+#: Reference field range accepted, nT (well beyond any geomagnetic or laboratory field).
+REFERENCE_RANGE_nT = (1.0, 1e7)
+#: Range of a noise level the user gives (``noise_nT``: per-axis standard deviation), nT.
+NOISE_RANGE_nT = (1e-6, 1e6)
+
+LABEL = re.compile(r"^[a-z][a-z0-9_]{0,63}(?::([0-9]{1,2}))?$")
+SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+class SessionError(MagcalError):
+    """A session cannot be opened: a name outside the session folder, or a damaged file."""
+
+
+class SessionFileError(SessionError):
+    """``session.json`` is damaged: the message names the file and the field, on one line.
+
+    Attributes
+    ----------
+    where : str
+        The file (or a description of the document).
+    field : str
+        The field, as a path: ``selection.kept``, ``history[3].rms_nT``.
+    problem : str
+        What is wrong with it.
+    """
+
+    def __init__(self, where: str, field: str, problem: str):
+        self.where, self.field, self.problem = where, field, problem
+        super().__init__(clean_text(f"{where}: field {field!r}: {problem}", 400))
+
+
+def _show(value) -> str:
+    """A short picture of a bad value for the message."""
+    if isinstance(value, (dict, list)):
+        return f"{type(value).__name__} of {len(value)}"
+    return clean_text(repr(value), 40)
+
+
+def _kind(value) -> str:
+    return {bool: "true/false", int: "a whole number", float: "a number", str: "text", list: "a list",
+            dict: "an object", type(None): "null"}.get(type(value), type(value).__name__)
+
+
+class _Reader:
+    """Checks one document; every check raises :class:`SessionFileError` naming the field."""
+
+    def __init__(self, where: str):
+        self.where = where
+
+    def fail(self, field: str, problem: str):
+        raise SessionFileError(self.where, field, problem)
+
+    def wrong(self, field: str, value, wanted: str):
+        self.fail(field, f"must be {wanted}, got {_kind(value)} {_show(value)}")
+
+    # --- scalar checks ----------------------------------------------------------------------------------------
+    def integer(self, field, value, lo, hi):
+        if type(value) is not int:
+            self.wrong(field, value, f"a whole number {lo} ... {hi}")
+        if not lo <= value <= hi:
+            self.fail(field, f"{value} is outside {lo} ... {hi}")
+        return value
+
+    def number(self, field, value, lo=-math.inf, hi=math.inf, null=False):
+        if value is None and null:
+            return None
+        if type(value) not in (int, float):
+            self.wrong(field, value, "a number" + (" or null" if null else ""))
+        v = float(value)
+        if not math.isfinite(v):
+            self.fail(field, f"must be a finite number, got {value!r}")
+        if not lo <= v <= hi:
+            self.fail(field, f"{v:g} is outside {lo:g} ... {hi:g}")
+        return v
+
+    def boolean(self, field, value):
+        if type(value) is not bool:
+            self.wrong(field, value, "true or false")
+        return value
+
+    def text(self, field, value, null=False, max_len=MAX_TEXT):
+        if value is None and null:
+            return None
+        if type(value) is not str:
+            self.wrong(field, value, "text" + (" or null" if null else ""))
+        if len(value) > max_len:
+            self.fail(field, f"is {len(value)} characters long; at most {max_len}")
+        if "\x00" in value:
+            self.fail(field, "holds a NUL character")
+        return value
+
+    def listing(self, field, value, max_len):
+        if type(value) is not list:
+            self.wrong(field, value, "a list")
+        if len(value) > max_len:
+            self.fail(field, f"holds {len(value)} entries; at most {max_len}")
+        return value
+
+    def obj(self, field, value):
+        if type(value) is not dict:
+            self.wrong(field, value, "an object")
+        return value
+
+    # --- composite checks -------------------------------------------------------------------------------------
+    def mask(self, field, value, n):
+        self.text(field, value, max_len=MAX_SAMPLES // 4)
+        try:
+            raw = base64.b64decode(value.encode("ascii"), validate=True)
+        except (binascii.Error, ValueError, UnicodeEncodeError):
+            self.fail(field, "is not a packed sample mask (base64 text)")
+        if len(raw) != (n + 7) // 8:
+            self.fail(field, f"holds {8 * len(raw)} bits, expected a mask of {n} samples")
+        return np.unpackbits(np.frombuffer(raw, dtype=np.uint8))[:n].astype(bool)
+
+    def labels(self, field, value, n_sensors):
+        self.listing(field, value, 1000)
+        out = []
+        for i, label in enumerate(value):
+            f = f"{field}[{i}]"
+            self.text(f, label, max_len=80)
+            m = LABEL.fullmatch(label)
+            if not m:
+                self.fail(f, f"{_show(label)} is not an effect label NAME or NAME:SENSOR (lower-case name)")
+            if m.group(1) is not None and not 1 <= int(m.group(1)) <= n_sensors:
+                self.fail(f, f"sensor {m.group(1)} is outside 1 ... {n_sensors}")
+            out.append(label)
+        return out
+
+    def step(self, field, value, n_samples, n_sensors):
+        from .state import StepRecord
+
+        doc = self.obj(field, value)
+        if "step" not in doc or "rms_nT" not in doc:
+            self.fail(field, "a step needs 'step' and 'rms_nT'")
+        fit = doc.get("fit")
+        if fit is not None:
+            self.obj(f"{field}.fit", fit)
+            fit = {}
+            for key, check in (("success", lambda f, v: self.boolean(f, v)),
+                               ("status", lambda f, v: self.integer(f, v, -1000, 1000)),
+                               ("message", lambda f, v: self.text(f, v, null=True)),
+                               ("nfev", lambda f, v: self.integer(f, v, 0, 10**12))):
+                if key in doc["fit"]:
+                    fit[key] = check(f"{field}.fit.{key}", doc["fit"][key])
+        return StepRecord(
+            step=self.text(f"{field}.step", doc["step"]),
+            rms_nT=self.number(f"{field}.rms_nT", doc["rms_nT"], 0.0, null=True),
+            floor_nT=self.number(f"{field}.floor_nT", doc.get("floor_nT"), 0.0, null=True),
+            effects=self.labels(f"{field}.effects", doc.get("effects", []), n_sensors),
+            n_kept=self.integer(f"{field}.n_kept", doc.get("n_kept", 0), 0, n_samples),
+            changes=self.text(f"{field}.changes", doc.get("changes", "")),
+            elapsed_s=self.number(f"{field}.elapsed_s", doc.get("elapsed_s", 0.0), 0.0),
+            fit=fit, held_out_rms_nT=self.number(f"{field}.held_out_rms_nT", doc.get("held_out_rms_nT"), 0.0,
+                                                 null=True))
+
+    def selection(self, field, value, n):
+        from .state import Selection
+
+        doc = self.obj(field, value)
+        if "kept" not in doc:
+            self.fail(f"{field}.kept", "is missing")
+        self.integer(f"{field}.n_samples", doc.get("n_samples"), n, n)
+        sel = Selection(n, self.mask(f"{field}.kept", doc["kept"], n))
+        for which in ("undo", "redo"):
+            stack = []
+            entries = self.listing(f"{field}.{which}", doc.get(which, []), MAX_UNDO)
+            for i, entry in enumerate(entries):
+                f = f"{field}.{which}[{i}]"
+                if type(entry) is not list or len(entry) != 2:
+                    self.wrong(f, entry, "a pair [mask, description]")
+                stack.append((self.mask(f"{f}[0]", entry[0], n), self.text(f"{f}[1]", entry[1], max_len=500)))
+            setattr(sel, f"_{which}", stack)
+        return sel
+
+
+def read_session_document(doc, where: str = "session.json"):
+    """A :class:`~magcal_workbench.state.SessionState` from a decoded session document, every field checked.
+
+    Parameters
+    ----------
+    doc : object
+        What ``json.loads`` gave.
+    where : str
+        The file, for messages.
+
+    Returns
+    -------
+    SessionState
+
+    Raises
+    ------
+    SessionFileError
+        On the first damaged field (its name, what is wrong): the only exception this function raises.
+    """
+    from .state import METHODS, SessionState
+
+    r = _Reader(where)
+    if type(doc) is not dict:
+        r.wrong("(document)", doc, "an object")
+    if doc.get("format") != FORMAT:
+        r.fail("format", f"must be {FORMAT!r}: this is not a workbench session file")
+    r.integer("version", doc.get("version", VERSION), VERSION, VERSION)
+    for key in ("n_samples", "n_sensors", "selection"):
+        if key not in doc:
+            r.fail(key, "is missing")
+    n = r.integer("n_samples", doc["n_samples"], 1, MAX_SAMPLES)
+    n_sensors = r.integer("n_sensors", doc["n_sensors"], 1, MAX_SENSORS)
+    lesson = r.text("lesson", doc.get("lesson"), null=True, max_len=64)
+    if lesson is not None and not SLUG.fullmatch(lesson):
+        r.fail("lesson", f"{_show(lesson)} is not a lesson name")
+    st = SessionState(n, n_sensors, r.text("data_path", doc.get("data_path"), null=True, max_len=4096), lesson)
+    st.selection = r.selection("selection", doc["selection"], n)
+    st.effects = r.labels("effects", doc.get("effects", []), n_sensors)
+    if len(set(st.effects)) != len(st.effects):
+        r.fail("effects", "names an effect twice")
+    files = r.listing("effects_files", doc.get("effects_files", []), 100)
+    for i, path in enumerate(files):
+        r.text(f"effects_files[{i}]", path, max_len=4096)
+        if not path.endswith(".py") or not (path.startswith("/") or re.match(r"^[A-Za-z]:[\\/]", path)):
+            r.fail(f"effects_files[{i}]", f"{_show(path)} is not the absolute path of a .py file")
+    st.effects_files = list(files)
+    st.method = r.text("method", doc.get("method", "ml"), max_len=16)
+    if st.method not in METHODS:
+        r.fail("method", f"{_show(st.method)} is not one of {', '.join(METHODS)}")
+    st.reference_nT = r.number("reference_nT", doc.get("reference_nT"), *REFERENCE_RANGE_nT, null=True)
+    st.fit_reference = r.boolean("fit_reference", doc.get("fit_reference", False))
+    st.robust = r.boolean("robust", doc.get("robust", False))
+    st.answer_revealed = r.boolean("answer_revealed", doc.get("answer_revealed", False))
+    st.noise_nT = r.number("noise_nT", doc.get("noise_nT"), *NOISE_RANGE_nT, null=True)
+    sensor = doc.get("sensor")
+    st.sensor = None if sensor is None else r.integer("sensor", sensor, 0, n_sensors - 1)
+    history = r.listing("history", doc.get("history", []), MAX_HISTORY)
+    st.history = [r.step(f"history[{i}]", h, n, n_sensors) for i, h in enumerate(history)]
+    cal = doc.get("calibration")
+    st.calibration = None if cal is None else r.obj("calibration", cal)
+    return st
+
+
+def read_session_bytes(data: bytes, where: str = "session.json"):
+    """:func:`read_session_document` of a file's bytes; undecodable bytes are a :class:`SessionFileError`."""
+    if len(data) > MAX_BYTES:
+        raise SessionFileError(where, "(file)", f"is {len(data)} bytes; at most {MAX_BYTES}")
+    try:
+        doc = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SessionFileError(where, "(file)", f"is not UTF-8 text (byte {exc.start})") from None
+    except json.JSONDecodeError as exc:
+        raise SessionFileError(where, "(file)", f"is not JSON (line {exc.lineno}, column {exc.colno}: "
+                                                f"{exc.msg})") from None
+    except (ValueError, RecursionError) as exc:
+        raise SessionFileError(where, "(file)", f"is not JSON ({type(exc).__name__})") from None
+    return read_session_document(doc, where)

@@ -1,0 +1,404 @@
+"""Session state of the workbench, free of the engine and of viser.
+
+Everything a person changes in the workbench lives here: which samples are kept, the model's extra effects, the
+method and reference field, the selected sensor, the history of steps with their RMS, and the lesson being
+worked on. The state is plain data (numpy arrays, lists, strings), serialises to a JSON-ready dict for the session
+file, and is tested without a browser.
+
+The rejection of samples is a per-*sample* mask shared by all sensors (a sample is one row of the file: every
+sensor's reading at one instant). Every change to the mask goes through :class:`Selection`, which keeps an
+undo/redo history.
+
+Threads: viser runs callbacks in a thread pool and engine steps run in a worker thread, so one re-entrant lock
+(:attr:`SessionState.lock`, shared by its :class:`Selection`) guards every change of the state, its version
+and its serialisation (the autosave holds it while it writes): two rejections at once both count.
+"""
+
+from __future__ import annotations
+
+import base64
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Largest number of mask snapshots kept for undo.
+UNDO_DEPTH = 200
+
+#: Methods the workbench offers, in the order shown (names as :func:`magcal.fitting.pipeline.calibrate` takes them).
+METHODS = ("ml", "ellipsoid", "pso", "ipso", "de")
+
+
+def pack_mask(mask: np.ndarray) -> str:
+    """A boolean mask as compact text (bit-packed, base64) for the session file."""
+    mask = np.asarray(mask, dtype=bool)
+    return base64.b64encode(np.packbits(mask).tobytes()).decode("ascii")
+
+
+def unpack_mask(text: str, n: int) -> np.ndarray:
+    """Inverse of :func:`pack_mask` for a mask of ``n`` samples."""
+    bits = np.unpackbits(np.frombuffer(base64.b64decode(text.encode("ascii")), dtype=np.uint8))
+    if bits.size < n:
+        raise ValueError(f"mask holds {bits.size} samples, expected {n}")
+    return bits[:n].astype(bool)
+
+
+class Selection:
+    """The kept-samples mask with undo and redo.
+
+    Parameters
+    ----------
+    n_samples : int
+        Number of samples N.
+    kept : numpy.ndarray of bool, shape (N,), optional
+        Initial mask (all kept if omitted).
+    lock : threading.RLock, optional
+        The lock every read-modify-write of the mask takes (the owning state's; a new one if omitted).
+    """
+
+    def __init__(self, n_samples: int, kept=None, lock=None):
+        self.lock = lock if lock is not None else threading.RLock()
+        self.n_samples = int(n_samples)
+        self._kept = np.ones(self.n_samples, bool) if kept is None else np.array(kept, dtype=bool).copy()
+        if self._kept.shape != (self.n_samples,):
+            raise ValueError(f"kept mask has shape {self._kept.shape}, expected ({self.n_samples},)")
+        self._undo: list[tuple[np.ndarray, str]] = []
+        self._redo: list[tuple[np.ndarray, str]] = []
+
+    # --- reading ---------------------------------------------------------------------------------------------
+    @property
+    def kept(self) -> np.ndarray:
+        """A copy of the mask: True = sample used by the fits."""
+        return self._kept.copy()
+
+    @property
+    def n_rejected(self) -> int:
+        return int(self.n_samples - np.count_nonzero(self._kept))
+
+    @property
+    def rejected_indices(self) -> np.ndarray:
+        return np.flatnonzero(~self._kept)
+
+    @property
+    def can_undo(self) -> bool:
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        return bool(self._redo)
+
+    # --- changing --------------------------------------------------------------------------------------------
+    def _apply(self, new: np.ndarray, what: str) -> bool:
+        # callers hold self.lock: the mask they changed is the one replaced
+        if np.array_equal(new, self._kept):
+            return False
+        self._undo.append((self._kept.copy(), what))
+        del self._undo[:-UNDO_DEPTH]
+        self._redo.clear()
+        self._kept = new
+        return True
+
+    def reject(self, indices, what: str = "reject") -> int:
+        """Reject samples by index; returns how many changed from kept to rejected."""
+        idx = self._check(indices)
+        with self.lock:
+            new = self._kept.copy()
+            new[idx] = False
+            changed = int(np.count_nonzero(self._kept[np.unique(idx)]))
+            self._apply(new, what)
+        return changed
+
+    def restore(self, indices, what: str = "restore") -> int:
+        """Restore (keep again) samples by index; returns how many changed from rejected to kept."""
+        idx = self._check(indices)
+        with self.lock:
+            new = self._kept.copy()
+            new[idx] = True
+            changed = int(np.count_nonzero(~self._kept[np.unique(idx)]))
+            self._apply(new, what)
+        return changed
+
+    def set_kept(self, kept, what: str = "set") -> bool:
+        """Replace the whole mask (one undo step); returns True if it changed."""
+        new = np.array(kept, dtype=bool)
+        if new.shape != (self.n_samples,):
+            raise ValueError(f"kept mask has shape {new.shape}, expected ({self.n_samples},)")
+        with self.lock:
+            return self._apply(new, what)
+
+    def reset(self) -> bool:
+        """Keep every sample again (one undo step)."""
+        with self.lock:
+            return self._apply(np.ones(self.n_samples, bool), "reset")
+
+    def undo(self) -> str | None:
+        """Go back one change; returns its description, or None if there was nothing to undo."""
+        with self.lock:
+            if not self._undo:
+                return None
+            previous, what = self._undo.pop()
+            self._redo.append((self._kept, what))
+            self._kept = previous
+            return what
+
+    def redo(self) -> str | None:
+        """Redo the last undone change; returns its description, or None."""
+        with self.lock:
+            if not self._redo:
+                return None
+            nxt, what = self._redo.pop()
+            self._undo.append((self._kept, what))
+            self._kept = nxt
+            return what
+
+    def _check(self, indices) -> np.ndarray:
+        idx = np.asarray(indices, dtype=int).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_samples):
+            raise IndexError(f"sample index out of range 0..{self.n_samples - 1}")
+        return idx
+
+    # --- session file ----------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        with self.lock:
+            return {
+                "n_samples": self.n_samples,
+                "kept": pack_mask(self._kept),
+                "undo": [[pack_mask(m), w] for m, w in self._undo[-50:]],
+                "redo": [[pack_mask(m), w] for m, w in self._redo[-50:]],
+            }
+
+    @classmethod
+    def from_dict(cls, doc: dict, n_samples: int) -> "Selection":
+        if int(doc.get("n_samples", -1)) != n_samples:
+            raise ValueError(f"the saved selection is for {doc.get('n_samples')} samples, the data have {n_samples}")
+        sel = cls(n_samples, unpack_mask(doc["kept"], n_samples))
+        sel._undo = [(unpack_mask(m, n_samples), w) for m, w in doc.get("undo", [])]
+        sel._redo = [(unpack_mask(m, n_samples), w) for m, w in doc.get("redo", [])]
+        return sel
+
+
+@dataclass
+class StepRecord:
+    """One engine step as the history shows it.
+
+    Attributes
+    ----------
+    step : str
+        What ran (``"fit ellipsoid"``, ``"align sensors"``, ``"refine (ml)"``, ``"add temperature_bias"`` ...).
+    rms_nT : float
+        Total-field RMS over all sensors and kept samples after the step, nT.
+    floor_nT : float or None
+        The noise floor to compare with (estimated or known), nT.
+    effects : list of str
+        The model's extra effects at that step.
+    n_kept : int
+        Samples used.
+    changes : str
+        One line saying what changed.
+    elapsed_s : float
+        Wall time of the step, s.
+    fit : dict or None
+        The solver's outcome when the step ran a fit: ``success``, ``status``, ``message``, ``nfev`` (as
+        :meth:`magcal.fitting.fitter.FitResult.summary` gives them); None for steps without one.
+    """
+
+    #: The keys of :attr:`fit`.
+    FIT_KEYS = ("success", "status", "message", "nfev")
+
+    step: str
+    rms_nT: float
+    floor_nT: float | None = None
+    effects: list = field(default_factory=list)
+    n_kept: int = 0
+    changes: str = ""
+    elapsed_s: float = 0.0
+    fit: dict | None = None
+    held_out_rms_nT: float | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "step": self.step, "rms_nT": _num(self.rms_nT), "floor_nT": _num(self.floor_nT),
+            "effects": list(self.effects), "n_kept": int(self.n_kept), "changes": self.changes,
+            "elapsed_s": float(self.elapsed_s), "fit": None if self.fit is None else dict(self.fit),
+            "held_out_rms_nT": _num(self.held_out_rms_nT),
+        }
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "StepRecord":
+        return cls(step=doc["step"], rms_nT=_num(doc["rms_nT"]), floor_nT=_num(doc.get("floor_nT")),
+                   effects=list(doc.get("effects", [])), n_kept=int(doc.get("n_kept", 0)),
+                   changes=doc.get("changes", ""), elapsed_s=float(doc.get("elapsed_s", 0.0)),
+                   fit=doc.get("fit"), held_out_rms_nT=_num(doc.get("held_out_rms_nT")))
+
+
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def effect_name(label: str) -> str:
+    """``temperature_bias:2`` -> ``temperature_bias``."""
+    return label.partition(":")[0]
+
+
+class SessionState:
+    """All user-facing state of one workbench session.
+
+    Parameters
+    ----------
+    n_samples, n_sensors : int
+        Size of the loaded data.
+    data_path : str, optional
+        The data file (CSV) the session works on.
+    lesson : str, optional
+        Name of the lesson, when the data come from one.
+
+    Attributes
+    ----------
+    selection : Selection
+        Kept samples with undo/redo.
+    effects : list of str
+        Extra effect labels in the model (``NAME`` or ``NAME:SENSOR``, SENSOR 1-based), in the order added.
+    effects_files : list of str
+        Absolute paths of the user's effect files loaded in this session (loaded again when it reopens).
+    method : str
+        One of :data:`METHODS`.
+    reference_nT : float or None
+        Reference total field in nT typed by the user; None = use the file's or fit it.
+    fit_reference : bool
+        Fit the field magnitude even when a reference is known.
+    robust : bool
+        Use the robust loss.
+    sensor : int or None
+        Selected sensor (0-based) for the scene; None shows all.
+    history : list of StepRecord
+    calibration : dict or None
+        The last calibration as its JSON document (``Calibration.to_dict``).
+    answer_revealed : bool
+        Whether the lesson's answer has been shown.
+    """
+
+    def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
+        self._lock = threading.RLock()
+        self.n_samples = int(n_samples)
+        self.n_sensors = int(n_sensors)
+        self.data_path = data_path
+        self.lesson = lesson
+        self.selection = Selection(self.n_samples)
+        self.effects: list[str] = []
+        self.effects_files: list[str] = []
+        self.method = "ml"
+        self.reference_nT: float | None = None
+        self.fit_reference = False
+        self.robust = False
+        self.sensor: int | None = None
+        self.history: list[StepRecord] = []
+        self.calibration: dict | None = None
+        self.answer_revealed = False
+        self.noise_nT: float | None = None  # per-axis noise given by the user (nT); None = the data's or estimated
+        self.version = 0  # bumped on every change; the autosave and the views compare it
+
+    @property
+    def lock(self) -> threading.RLock:
+        """The one lock of the session: changes, the version and the autosave's serialisation take it."""
+        return self._lock
+
+    @property
+    def selection(self) -> Selection:
+        return self._selection
+
+    @selection.setter
+    def selection(self, sel: Selection) -> None:
+        sel.lock = self._lock  # a selection read from a session file joins the state's lock
+        self._selection = sel
+
+    # --- model ----------------------------------------------------------------------------------------------
+    def add_effect(self, label: str) -> bool:
+        """Add an effect label; returns False if it (or the same effect for all sensors) is already in."""
+        label = label.strip()
+        with self._lock:
+            name = effect_name(label)
+            if label in self.effects or name in self.effects:
+                return False
+            if ":" not in label:  # the all-sensor term replaces per-sensor ones of the same effect
+                self.effects = [e for e in self.effects if effect_name(e) != name]
+            self.effects.append(label)
+            self.touch()
+            return True
+
+    def remove_effect(self, name: str) -> bool:
+        """Remove every label of an effect (``name``) or one exact label; returns True if any went."""
+        with self._lock:
+            keep = [e for e in self.effects if e != name and effect_name(e) != name]
+            changed = len(keep) != len(self.effects)
+            self.effects = keep
+            if changed:
+                self.touch()
+            return changed
+
+    def has_effect(self, name: str) -> bool:
+        return any(effect_name(e) == name for e in self.effects)
+
+    # --- steps ---------------------------------------------------------------------------------------------
+    def record(self, record: StepRecord, calibration: dict | None = None) -> None:
+        """Append a step to the history (and keep the calibration it produced)."""
+        with self._lock:
+            self.history.append(record)
+            if calibration is not None:
+                self.calibration = calibration
+            self.touch()
+
+    def rms_series(self):
+        """(step index, RMS nT, floor nT or NaN) arrays for the history plot."""
+        x = np.arange(len(self.history), dtype=float)
+        y = np.array([np.nan if r.rms_nT is None else r.rms_nT for r in self.history], dtype=float)
+        f = np.array([np.nan if r.floor_nT is None else r.floor_nT for r in self.history], dtype=float)
+        return x, y, f
+
+    # --- selection shortcuts -------------------------------------------------------------------------------
+    @property
+    def kept(self) -> np.ndarray:
+        return self.selection.kept
+
+    def touch(self) -> None:
+        with self._lock:
+            self.version += 1
+
+    # --- session file ---------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        with self._lock:
+            return {
+                "format": "magcal-workbench-session",
+                "version": 1,
+                "data_path": self.data_path,
+                "lesson": self.lesson,
+                "n_samples": self.n_samples,
+                "n_sensors": self.n_sensors,
+                "selection": self.selection.to_dict(),
+                "effects": list(self.effects),
+                "effects_files": list(self.effects_files),
+                "method": self.method,
+                "reference_nT": self.reference_nT,
+                "fit_reference": self.fit_reference,
+                "robust": self.robust,
+                "sensor": self.sensor,
+                "history": [r.to_dict() for r in self.history],
+                "calibration": self.calibration,
+                "answer_revealed": self.answer_revealed,
+                "noise_nT": self.noise_nT,
+            }
+
+    @classmethod
+    def from_dict(cls, doc: dict, where: str = "session.json") -> "SessionState":
+        """The state a session document holds, every field checked (:mod:`workbench.sessionfile`).
+
+        Raises
+        ------
+        magcal_workbench.sessionfile.SessionFileError
+            Naming the damaged field.
+        """
+        from .sessionfile import read_session_document
+
+        return read_session_document(doc, where)
