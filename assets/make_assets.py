@@ -32,7 +32,8 @@ FLOAT_FORMAT = "%.8g"  # 0.001 nT at 50 000 nT; well below the 3 nT noise
 #: slug -> (order, title, hidden [(effect, sensor 0-based or None, magnitude or None)], guide, explanation)
 LESSONS = {
     "warm-sensor": (
-        1, "A sensor that feels the heat",
+        1,
+        "A sensor that feels the heat",
         [("temperature_bias", 1, 2.0)],
         """The array was turned slowly for two and a half minutes while the room warmed and cooled.
 
@@ -48,7 +49,8 @@ LESSONS = {
         "its uncertainty.",
     ),
     "slow-drift": (
-        2, "Offsets that wander",
+        2,
+        "Offsets that wander",
         [("bias_drift", None, 300.0)],
         """A long recording. The two-step calibration looks fine at first sight, but is it at the noise floor?
 
@@ -59,7 +61,8 @@ LESSONS = {
         "a slow trend that changes sign with the field direction, because the drift is a vector offset.",
     ),
     "bent-response": (
-        3, "A response that is not quite linear",
+        3,
+        "A response that is not quite linear",
         [("nonlinearity_quadratic", 2, None)],
         """Here time and temperature tell you nothing. Where does the residual live, then?
 
@@ -72,7 +75,8 @@ LESSONS = {
         "spherical-harmonic degree 3 in that sensor only; time and temperature are innocent.",
     ),
     "breathing-field": (
-        4, "The Earth moves (a little)",
+        4,
+        "The Earth moves (a little)",
         [("reference_drift", None, None)],
         """The sensors are fine, the field is not: or is it the other way round?
 
@@ -84,7 +88,8 @@ LESSONS = {
         "magnetic storm or the daily variation gives). All four sensors see it alike, whatever their attitude.",
     ),
     "two-culprits": (
-        5, "Two effects at once",
+        5,
+        "Two effects at once",
         [("temperature_scale", None, 30.0), ("bias_step", 3, 10.0)],
         """This one hides **two** effects. Adding the first will not bring you to the floor.
 
@@ -125,10 +130,13 @@ def label(name, sensor):
 
 def write_demo():
     ds = simulate(DEMO_HIDDEN, seed=2017)
-    meta = {"description": "magcal demo: Chi et al. (2017) cross, Table 1 errors, 3 nT noise; one effect hidden "
-                           "(the workbench's Diagnose finds it)"}
-    mio.write_csv(HERE / "demo.csv", ds.replace(metadata={"simulated": "true"}), metadata=meta,
-                  float_format=FLOAT_FORMAT)
+    meta = {
+        "description": "magcal demo: Chi et al. (2017) cross, Table 1 errors, 3 nT noise; one effect hidden "
+        "(the workbench's Diagnose finds it)"
+    }
+    mio.write_csv(
+        HERE / "demo.csv", ds.replace(metadata={"simulated": "true"}), metadata=meta, float_format=FLOAT_FORMAT
+    )
 
 
 def write_lessons():
@@ -137,12 +145,22 @@ def write_lessons():
         folder = root / slug
         folder.mkdir(parents=True, exist_ok=True)
         ds = simulate(hidden, seed)
-        mio.write_csv(folder / "data.csv", ds.replace(metadata={"simulated": "true"}),
-                      metadata={"lesson": slug}, float_format=FLOAT_FORMAT)
+        mio.write_csv(
+            folder / "data.csv",
+            ds.replace(metadata={"simulated": "true"}),
+            metadata={"lesson": slug},
+            float_format=FLOAT_FORMAT,
+        )
         (folder / "guide.md").write_text(guide.strip() + "\n", encoding="utf-8")
-        doc = {"title": title, "order": order, "data": "data.csv", "guide": "guide.md",
-               "answer": {"effects": [label(n, s) for n, s, _ in hidden], "explanation": explanation},
-               "made_by": "assets/make_assets.py", "seed": seed}
+        doc = {
+            "title": title,
+            "order": order,
+            "data": "data.csv",
+            "guide": "guide.md",
+            "answer": {"effects": [label(n, s) for n, s, _ in hidden], "explanation": explanation},
+            "made_by": "assets/make_assets.py",
+            "seed": seed,
+        }
         (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
 
 
@@ -198,12 +216,13 @@ def write_real_lesson(source=REAL_SOURCE, step=REAL_STEP):
             rate = float(x.partition(":")[2])
             x = f"# rate_Hz: {rate / step:g}"
         elif key == "time":
-            x = (f"# time: t = original sample index / {rate or 50:g} Hz (the recording has no time stamps); every "
-                 f"{step}th sample kept for the magcal lesson {REAL_SLUG}")
+            x = (
+                f"# time: t = original sample index / {rate or 50:g} Hz (the recording has no time stamps); every "
+                f"{step}th sample kept for the magcal lesson {REAL_SLUG}"
+            )
         x = x.replace("see FINDINGS.md", "see guide.md")
         out.append(x)
-    out.insert(2, "# licence_text: LICENSE.md beside this file (MIT licence of the source repository, kept as it "
-                  "asks)")
+    out.insert(2, "# licence_text: LICENSE.md beside this file (MIT licence of the source repository, kept as it asks)")
     body = []
     for row in data[::step]:
         values = [float(v) for v in row.split(",")]
@@ -213,10 +232,16 @@ def write_real_lesson(source=REAL_SOURCE, step=REAL_STEP):
     (folder / "data.csv").write_text("\n".join(out + [columns] + body) + "\n", encoding="utf-8")
     (folder / "LICENSE.md").write_text(QMC_LICENSE, encoding="utf-8")
     (folder / "guide.md").write_text(REAL_GUIDE.strip() + "\n", encoding="utf-8")
-    doc = {"title": REAL_TITLE, "order": 6, "data": "data.csv", "guide": "guide.md",
-           "answer": {"effects": REAL_ANSWER, "explanation": REAL_EXPLANATION},
-           "made_by": "assets/make_assets.py", "source": "github.com/tomisuarez2/MagnetometerCalibration "
-           "'calibration data/filtered_raw_data.csv' (MIT, (c) 2025 Tom\u00e1s Su\u00e1rez; see LICENSE.md)"}
+    doc = {
+        "title": REAL_TITLE,
+        "order": 6,
+        "data": "data.csv",
+        "guide": "guide.md",
+        "answer": {"effects": REAL_ANSWER, "explanation": REAL_EXPLANATION},
+        "made_by": "assets/make_assets.py",
+        "source": "github.com/tomisuarez2/MagnetometerCalibration "
+        "'calibration data/filtered_raw_data.csv' (MIT, (c) 2025 Tom\u00e1s Su\u00e1rez; see LICENSE.md)",
+    }
     (folder / "lesson.json").write_text(json.dumps(doc, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
     return True
 
@@ -231,7 +256,8 @@ REAL_EXPLANATION = (
     "during this record (the x axis wanders in the still minute too), a record-only term that says nothing about "
     "the next recording. What remains (about 1.2x the noise floor) is not in the catalogue: a degree-4 direction "
     "pattern, a slow 0.004 Hz component and an error that grows with the turn rate; the terms that lower it "
-    "in-sample (reference_drift, periodic_interference) raise it on held-out data.")
+    "in-sample (reference_drift, periodic_interference) raise it on held-out data."
+)
 REAL_GUIDE = """
 Every other lesson is simulated: the answer was put in by the simulator. This one is a **real recording**: a
 QMC5883L three-axis magnetometer (GY-63 board, Arduino UNO) turned by hand for about 7 minutes after a still

@@ -162,8 +162,11 @@ def main() -> int:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
             page.goto(f"http://127.0.0.1:{wb.port}/")
-            _wait_text(page, "document.body.innerText.includes('Total-field RMS') && "
-                             "!document.body.innerText.includes('Connecting')")
+            _wait_text(
+                page,
+                "document.body.innerText.includes('Total-field RMS') && "
+                "!document.body.innerText.includes('Connecting')",
+            )
             page.get_by_role("button", name="Run the chosen method").click()
             _wait_text(page, "/Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)")
             wb.worker.wait(120)

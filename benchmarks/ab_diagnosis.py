@@ -69,8 +69,10 @@ def main():
     for path, rows in runs.items():
         cal, diag, cpu, faults = ([r[k] for r in rows] for k in range(4))
         verdicts = sorted({r[4] for r in rows})
-        print(f"{path:<28}{statistics.median(cal):>12.3f}{statistics.median(diag):>10.3f} ({min(diag):.3f})"
-              f"{statistics.median(cpu):>8.2f}{int(statistics.median(faults)):>9d}  {', '.join(verdicts)}")
+        print(
+            f"{path:<28}{statistics.median(cal):>12.3f}{statistics.median(diag):>10.3f} ({min(diag):.3f})"
+            f"{statistics.median(cpu):>8.2f}{int(statistics.median(faults)):>9d}  {', '.join(verdicts)}"
+        )
 
 
 if __name__ == "__main__":

@@ -66,12 +66,17 @@ def to_parquet(survey: Path, out: Path) -> None:
 
 def run_apply(cal: Path, survey: Path, out: Path, extra=()):
     # VmHWM (peak resident set of this program image): ru_maxrss would carry over the parent's peak across exec
-    code = ("import sys, time; from magcal.cli import main; t0 = time.perf_counter(); "
-            "rc = main(sys.argv[1:]); dt = time.perf_counter() - t0; "
-            "hwm = [l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0]; "
-            "print('RESULT', rc, dt, hwm, file=sys.stderr)")
-    proc = subprocess.run([sys.executable, "-c", code, "apply", str(cal), str(survey), "-o", str(out),
-                           "--no-progress", *extra], capture_output=True, text=True)
+    code = (
+        "import sys, time; from magcal.cli import main; t0 = time.perf_counter(); "
+        "rc = main(sys.argv[1:]); dt = time.perf_counter() - t0; "
+        "hwm = [l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0]; "
+        "print('RESULT', rc, dt, hwm, file=sys.stderr)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, "apply", str(cal), str(survey), "-o", str(out), "--no-progress", *extra],
+        capture_output=True,
+        text=True,
+    )
     line = next(x for x in proc.stderr.splitlines() if x.startswith("RESULT"))
     _, rc, dt, maxrss_kb = line.split()
     return int(rc), float(dt), int(maxrss_kb) / 1024.0
@@ -82,20 +87,34 @@ def main():
     parser.add_argument("--sizes", default="1e5,1e6,1e7")
     parser.add_argument("--dir", default=None)
     parser.add_argument("--parquet", action="store_true", help="also CSV -> Parquet and Parquet -> Parquet")
-    parser.add_argument("--dask", action="store_true",
-                        help="also Parquet -> Parquet partitions on a local Dask cluster of two workers")
+    parser.add_argument(
+        "--dask", action="store_true", help="also Parquet -> Parquet partitions on a local Dask cluster of two workers"
+    )
     args = parser.parse_args()
     sizes = [int(float(s)) for s in args.sizes.split(",")]
     truth = pf.platform_truth()
-    cal = Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], reference_total_nT=50_000.0,
-                      baseline_m=0.5, frame="platform")
-    baseline = subprocess.run([sys.executable, "-c", "import magcal.output.apply, magcal.cli; "
-                               "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0])"],
-                              capture_output=True, text=True)
+    cal = Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors],
+        reference_total_nT=50_000.0,
+        baseline_m=0.5,
+        frame="platform",
+    )
+    baseline = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import magcal.output.apply, magcal.cli; "
+            "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0])",
+        ],
+        capture_output=True,
+        text=True,
+    )
     idle_mb = int(baseline.stdout.strip()) / 1024.0
     print(f"python + magcal imported, idle: {idle_mb:.0f} MB resident")
-    print(f"{'rows':>10} {'path':>17} {'in MB':>8} {'out MB':>8} {'write s':>8} {'apply s':>8} {'rows/s':>10} "
-          f"{'peak MB':>8}")
+    print(
+        f"{'rows':>10} {'path':>17} {'in MB':>8} {'out MB':>8} {'write s':>8} {'apply s':>8} {'rows/s':>10} "
+        f"{'peak MB':>8}"
+    )
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         d = Path(tmp)
         cal.save(d / "cal.json")
@@ -109,8 +128,10 @@ def main():
                 t1 = time.perf_counter()
                 to_parquet(survey, d / f"survey_{n}.parquet")
                 t_pq = time.perf_counter() - t1
-                runs += [("csv -> parquet", survey, d / f"out_{n}.parquet"),
-                         ("parquet -> parquet", d / f"survey_{n}.parquet", d / f"out2_{n}.parquet")]
+                runs += [
+                    ("csv -> parquet", survey, d / f"out_{n}.parquet"),
+                    ("parquet -> parquet", d / f"survey_{n}.parquet", d / f"out2_{n}.parquet"),
+                ]
             if args.dask and args.parquet:
                 runs.append(("dask 2 workers", d / f"survey_{n}.parquet", d / f"parts_{n}"))
             for label, src, out in runs:
@@ -118,9 +139,12 @@ def main():
                 rc, dt, peak = run_apply(d / "cal.json", src, out, extra)
                 assert rc == 0
                 made = t_pq if src.suffix == ".parquet" else t_write
-                size = (sum(f.stat().st_size for f in out.iterdir()) if out.is_dir() else out.stat().st_size)
-                print(f"{n:>10d} {label:>17} {src.stat().st_size / 2**20:>8.0f} {size / 2**20:>8.0f} "
-                      f"{made:>8.1f} {dt:>8.1f} {n / dt:>10,.0f} {peak:>8.0f}", flush=True)
+                size = sum(f.stat().st_size for f in out.iterdir()) if out.is_dir() else out.stat().st_size
+                print(
+                    f"{n:>10d} {label:>17} {src.stat().st_size / 2**20:>8.0f} {size / 2**20:>8.0f} "
+                    f"{made:>8.1f} {dt:>8.1f} {n / dt:>10,.0f} {peak:>8.0f}",
+                    flush=True,
+                )
                 if out.is_dir():
                     import shutil
 

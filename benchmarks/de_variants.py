@@ -40,8 +40,9 @@ def records():
         for k in range(4):
             y = magcal.simulate(preset, n_samples=150, noise_nT=2.0, seed=k).readings_nT[0]
             f = search.ScalarObjective(y, FIELD_NT)
-            sol = least_squares(lambda p: f.residuals(p)[0], p0, method="lm",
-                                x_scale=np.r_[np.full(6, 1e-5), np.ones(3)])
+            sol = least_squares(
+                lambda p: f.residuals(p)[0], p0, method="lm", x_scale=np.r_[np.full(6, 1e-5), np.ones(3)]
+            )
             out.append((y, float(np.sqrt(np.mean(sol.fun**2))) * 1.001))
     return out
 
@@ -77,10 +78,23 @@ def scipy_de(y, target, seed, pop, strategy="best1bin", cr=0.9, init="lhs", fall
             raise Reached
 
     try:
-        differential_evolution(lambda x: objective(x.T), list(zip(bounds.lower, bounds.upper)), strategy=strategy,
-                               maxiter=MAX_GEN, popsize=popsize, init=start, mutation=mutation, recombination=cr,
-                               tol=0.0, atol=0.0, polish=False, updating="deferred", vectorized=True, rng=seed,
-                               callback=callback)
+        differential_evolution(
+            lambda x: objective(x.T),
+            list(zip(bounds.lower, bounds.upper)),
+            strategy=strategy,
+            maxiter=MAX_GEN,
+            popsize=popsize,
+            init=start,
+            mutation=mutation,
+            recombination=cr,
+            tol=0.0,
+            atol=0.0,
+            polish=False,
+            updating="deferred",
+            vectorized=True,
+            rng=seed,
+            callback=callback,
+        )
     except Reached:
         return objective.n_evaluations
     return None
@@ -140,11 +154,13 @@ VARIANTS = {
 def main():
     t0 = time.perf_counter()
     data = records()
-    print("evaluations until the best RMS is within 0.1 % of the least-squares minimum "
-          f"({len(data)} records x 3 seeds, N = 150, a = 2 nT)")
+    print(
+        "evaluations until the best RMS is within 0.1 % of the least-squares minimum "
+        f"({len(data)} records x 3 seeds, N = 150, a = 2 nT)"
+    )
     print(f"  {'variant':42s} {'members':>7s} {'reached':>8s} {'median':>8s} {'90 %':>8s}")
     for name, run in VARIANTS.items():
-        for pop in ((135,) if name.startswith("scipy") else (20, 40)):
+        for pop in (135,) if name.startswith("scipy") else (20, 40):
             evals = [run(y, target, 1000 * rep + k, pop) for rep in range(3) for k, (y, target) in enumerate(data)]
             ok = [e for e in evals if e is not None]
             med = f"{np.median(ok):8.0f}" if ok else f"{'-':>8s}"

@@ -26,21 +26,20 @@ import warnings
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one BLAS thread: faster on a shared 2-core machine
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import magcal.model.effects as fx  # noqa: E402
-from magcal.model import perturbations  # noqa: E402
-from magcal.core import conventions  # noqa: E402
+import magcal.model.effects as fx
+from magcal.core import conventions
 from magcal.data import io
-from magcal.data.simulation import chi2017_truth, simulate_timeseries  # noqa: E402
-from magcal.diagnosis import diagnose  # noqa: E402
-from magcal.fitting.pipeline import calibrate  # noqa: E402
-from magcal.model.terms import EFFECTS  # noqa: E402
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
+from magcal.diagnosis import diagnose
+from magcal.fitting.pipeline import calibrate
+from magcal.model import perturbations
+from magcal.model.terms import EFFECTS
 
 SIGMA = 3.0
 N = 1500
 LEVELS = fx.DETECTION_LEVELS  # barely detectable, moderate, strong (x default magnitude)
-
 
 
 def consistency_rms(vectors):
@@ -62,8 +61,10 @@ def rank_of(d, name):
 
 def part1(seeds):
     print("Part 1: hidden effect x magnitude (N = 1500, sigma = 3 nT; rank of the true effect, 1 = found first)")
-    print(f"{'effect':<24}{'magnitude':>22}{'rank':>9}{'dBIC':>10}{'two-step':>10}{'ML base':>9}{'+effect':>9}"
-          f"{'floor':>7}  verdicts")
+    print(
+        f"{'effect':<24}{'magnitude':>22}{'rank':>9}{'dBIC':>10}{'two-step':>10}{'ML base':>9}{'+effect':>9}"
+        f"{'floor':>7}  verdicts"
+    )
     for name, levels in LEVELS.items():
         cls = EFFECTS[name]
         ns = 4 if cls.min_sensors > 1 else 1
@@ -71,8 +72,13 @@ def part1(seeds):
             magnitude = mult * cls.default_magnitude
             ranks, dbics, rms2, rms0, rms1, floors, verdicts = [], [], [], [], [], [], []
             for seed in seeds:
-                ds = simulate_timeseries(chi2017_truth(ns), n_samples=N, noise_nT=SIGMA, seed=seed,
-                                         perturbations=[cls().perturbation(magnitude)])
+                ds = simulate_timeseries(
+                    chi2017_truth(ns),
+                    n_samples=N,
+                    noise_nT=SIGMA,
+                    seed=seed,
+                    perturbations=[cls().perturbation(magnitude)],
+                )
                 two = calibrate(ds, method="ellipsoid")
                 base = calibrate(ds)
                 d = diagnose(ds, base)
@@ -83,9 +89,11 @@ def part1(seeds):
                 if refit is None:  # not among the refitted: fit it for the table
                     refit = calibrate(ds, effects=[name]).fit
                 if name == "sensor_timing_skew":  # invisible in the total field: the consistency residual
+
                     def vec(f):
                         v = f.vector_residuals_nT
                         return float(np.sqrt(np.sum(v**2) / (2 * v.shape[0] * v.shape[1])))
+
                     rms0.append(vec(base.fit))
                     rms1.append(vec(refit))
                     rms2.append(consistency_rms(two.calibration.correct(ds)))
@@ -96,18 +104,29 @@ def part1(seeds):
                 floors.append(conventions.total_field_floor_nT(SIGMA, N, refit.n_params / ns))
                 verdicts.append(d.verdict)
             counts = {v: verdicts.count(v) for v in sorted(set(verdicts))}
-            print(f"{name:<24}{magnitude:>9.3g} {cls.magnitude_unit:<12}{','.join(str(r) for r in ranks):>9}"
-                  f"{np.median(dbics):>10.0f}{np.nanmedian(rms2):>10.2f}{np.median(rms0):>9.2f}{np.median(rms1):>9.2f}"
-                  f"{np.median(floors):>7.2f}  {counts}")
-    print("(sensor_timing_skew: RMS of the inter-sensor consistency residual per component; it does not change the"
-          " total field)")
-    print("Periodic interference 8 nT at 0.7 Hz, one sensor: with its catalogue term, and with the term left out"
-          " (an effect outside the catalogue must read unexplained, not be attributed to another term):")
+            print(
+                f"{name:<24}{magnitude:>9.3g} {cls.magnitude_unit:<12}{','.join(str(r) for r in ranks):>9}"
+                f"{np.median(dbics):>10.0f}{np.nanmedian(rms2):>10.2f}{np.median(rms0):>9.2f}{np.median(rms1):>9.2f}"
+                f"{np.median(floors):>7.2f}  {counts}"
+            )
+    print(
+        "(sensor_timing_skew: RMS of the inter-sensor consistency residual per component; it does not change the"
+        " total field)"
+    )
+    print(
+        "Periodic interference 8 nT at 0.7 Hz, one sensor: with its catalogue term, and with the term left out"
+        " (an effect outside the catalogue must read unexplained, not be attributed to another term):"
+    )
     outside = [n for n in EFFECTS if n != "periodic_interference"]
     found, unnamed = [], []
     for seed in seeds:
-        ds = simulate_timeseries(chi2017_truth(1), n_samples=N, noise_nT=SIGMA, seed=seed,
-                                 perturbations=[perturbations.periodic_interference(8.0, 0.7)])
+        ds = simulate_timeseries(
+            chi2017_truth(1),
+            n_samples=N,
+            noise_nT=SIGMA,
+            seed=seed,
+            perturbations=[perturbations.periodic_interference(8.0, 0.7)],
+        )
         d = diagnose(ds)
         found.append(f"{d.verdict} {'+'.join(d.explained_by) or '-'}")
         unnamed.append(diagnose(ds, candidates=outside).verdict)
@@ -115,9 +134,10 @@ def part1(seeds):
     print(f"  left out of the candidates: {unnamed}")
     print("Clean data (no hidden effect):")
     for ns in (1, 4):
-        verdicts = [diagnose(simulate_timeseries(chi2017_truth(ns), n_samples=N, noise_nT=SIGMA,
-                                                 seed=200 + s)).verdict
-                    for s in range(10 if len(seeds) > 1 else 3)]
+        verdicts = [
+            diagnose(simulate_timeseries(chi2017_truth(ns), n_samples=N, noise_nT=SIGMA, seed=200 + s)).verdict
+            for s in range(10 if len(seeds) > 1 else 3)
+        ]
         print(f"  {ns} sensor(s): {verdicts.count('adequate')}/{len(verdicts)} adequate")
 
 
@@ -137,15 +157,27 @@ def part2(sizes):
     print(f"{'sensors':>8}{'N':>9}{'calibrate s':>13}{'diagnose s':>12}{'total s':>9}  verdict / best")
     for ns in (1, 4):
         for n in sizes:
-            ds = simulate_timeseries(chi2017_truth(ns), n_samples=n, noise_nT=SIGMA, seed=1,
-                                     perturbations=[perturbations.parse_hidden("temperature_bias=0.5", ns)])
+            ds = simulate_timeseries(
+                chi2017_truth(ns),
+                n_samples=n,
+                noise_nT=SIGMA,
+                seed=1,
+                perturbations=[perturbations.parse_hidden("temperature_bias=0.5", ns)],
+            )
             repeats = 3 if n <= 10_000 else 1
             t_cal, res = timed(lambda: calibrate(ds), repeats)
             t_diag, d = timed(lambda: diagnose(ds, res), repeats)
-            print(f"{ns:>8}{n:>9}{t_cal:>13.3f}{t_diag:>12.2f}{t_cal + t_diag:>9.2f}  {d.verdict} / "
-                  f"{d.candidates[0].label}")
-    ds = simulate_timeseries(chi2017_truth(4), n_samples=1500, noise_nT=SIGMA, seed=2,
-                             perturbations=[perturbations.parse_hidden("hysteresis:3", 4)])
+            print(
+                f"{ns:>8}{n:>9}{t_cal:>13.3f}{t_diag:>12.2f}{t_cal + t_diag:>9.2f}  {d.verdict} / "
+                f"{d.candidates[0].label}"
+            )
+    ds = simulate_timeseries(
+        chi2017_truth(4),
+        n_samples=1500,
+        noise_nT=SIGMA,
+        seed=2,
+        perturbations=[perturbations.parse_hidden("hysteresis:3", 4)],
+    )
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "four.csv")
         io.write_csv(path, ds)
@@ -157,8 +189,10 @@ def part2(sizes):
             return diagnose(data)
 
         t_file, d = timed(run, 5)
-    print(f"four-sensor 1500-sample file, read_csv + diagnose (median of 5): {t_file:.2f} s  ({d.verdict}, "
-          f"{d.candidates[0].label})")
+    print(
+        f"four-sensor 1500-sample file, read_csv + diagnose (median of 5): {t_file:.2f} s  ({d.verdict}, "
+        f"{d.candidates[0].label})"
+    )
 
 
 def main(argv=None):

@@ -84,9 +84,11 @@ def main(argv=None) -> int:
         seeds.append(time.perf_counter() - t0)
     ours = heldout_rms_nT(np.linalg.norm(result.calibration.correct(test)[0], axis=1))
     seed_rms = heldout_rms_nT(np.linalg.norm(seed.calibration.correct(test)[0], axis=1))
-    rows = [("magcal ML fit (ellipsoid start + ML)", float(np.median(fits)), ours),
-            ("magcal ML (calibrate, end to end)", float(np.median(walls)), ours),
-            ("seed two-step (calibrate ellipsoid, e2e)", float(np.median(seeds)), seed_rms)]
+    rows = [
+        ("magcal ML fit (ellipsoid start + ML)", float(np.median(fits)), ours),
+        ("magcal ML (calibrate, end to end)", float(np.median(walls)), ours),
+        ("seed two-step (calibrate ellipsoid, e2e)", float(np.median(seeds)), seed_rms),
+    ]
     if os.path.exists(args.magyc_python):
         with tempfile.TemporaryDirectory() as tmp:
             a, b, script = os.path.join(tmp, "train.npy"), os.path.join(tmp, "test.npy"), os.path.join(tmp, "m.py")
@@ -94,8 +96,12 @@ def main(argv=None) -> int:
             np.save(b, test.readings_nT[0])
             with open(script, "w") as fh:
                 fh.write(MAGYC_SCRIPT)
-            proc = subprocess.run([args.magyc_python, script, a, b], capture_output=True, text=True,
-                                  env={**os.environ, "JAX_PLATFORMS": "cpu"})
+            proc = subprocess.run(
+                [args.magyc_python, script, a, b],
+                capture_output=True,
+                text=True,
+                env={**os.environ, "JAX_PLATFORMS": "cpu"},
+            )
         if proc.returncode == 0:
             res = json.loads(proc.stdout.strip().splitlines()[-1])
             for name, r in res.items():
@@ -113,11 +119,16 @@ def main(argv=None) -> int:
         four_walls.append(time.perf_counter() - t0)
         for step in res4.steps:
             four_steps.setdefault(step.name, []).append(step.wall_s)
-    print(f"\nFour sensors, N = 100,000 each: calibrate end to end {np.median(four_walls):.2f} s (median of "
-          f"{len(four_walls)}; steps " + ", ".join(f"{k} {np.median(v):.3f} s" for k, v in four_steps.items()
-                                                if k != "raw") + f"); total-field RMS {res4.rms_nT:.3f} nT")
-    print(f"\nOne sensor, N = {n:,} ({int((~test_mask).sum()):,} fitted, {int(test_mask.sum()):,} held out); "
-          "noise floor 3.00 nT")
+    print(
+        f"\nFour sensors, N = 100,000 each: calibrate end to end {np.median(four_walls):.2f} s (median of "
+        f"{len(four_walls)}; steps "
+        + ", ".join(f"{k} {np.median(v):.3f} s" for k, v in four_steps.items() if k != "raw")
+        + f"); total-field RMS {res4.rms_nT:.3f} nT"
+    )
+    print(
+        f"\nOne sensor, N = {n:,} ({int((~test_mask).sum()):,} fitted, {int(test_mask.sum()):,} held out); "
+        "noise floor 3.00 nT"
+    )
     print(f"{'method':<42}{'time s':>8}{'held-out RMS nT':>17}")
     for name, t, rms in rows:
         print(f"{name:<42}{t:>8.2f}{rms:>17.3f}")

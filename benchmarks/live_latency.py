@@ -65,9 +65,16 @@ def run(rate_hz: float, seconds: float):
             lat.append(t_draw - due[prev:n_drawn])
             prev = n_drawn
         lat = np.concatenate(lat) if lat else np.zeros(0)
-        return {"rate": rate_hz, "n": n, "received": prev, "latency": lat, "updates": len(log),
-                "update_last_s": float(np.median(update_s[-5:])) if update_s else float("nan"),
-                "fits": len(fit_s), "fit_last_s": fit_s[-1] if fit_s else float("nan")}
+        return {
+            "rate": rate_hz,
+            "n": n,
+            "received": prev,
+            "latency": lat,
+            "updates": len(log),
+            "update_last_s": float(np.median(update_s[-5:])) if update_s else float("nan"),
+            "fits": len(fit_s),
+            "fit_last_s": fit_s[-1] if fit_s else float("nan"),
+        }
     finally:
         wb.stop()
 
@@ -80,16 +87,22 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
     rows = [run(rate, args.seconds) for rate in (50.0, 500.0)]
-    print(f"\nLive latency, sample emitted -> scene updated (server side), four sensors, {args.seconds:g} s streams; "
-          f"draw interval {DRAW_INTERVAL_S * 1e3:.0f} ms")
-    print(f"{'rate':>7} {'samples':>8} {'updates':>8} {'median':>9} {'p95':>9} {'max':>9} {'floor mean':>11} "
-          f"{'update':>9} {'fits':>5} {'last fit':>9}")
+    print(
+        f"\nLive latency, sample emitted -> scene updated (server side), four sensors, {args.seconds:g} s streams; "
+        f"draw interval {DRAW_INTERVAL_S * 1e3:.0f} ms"
+    )
+    print(
+        f"{'rate':>7} {'samples':>8} {'updates':>8} {'median':>9} {'p95':>9} {'max':>9} {'floor mean':>11} "
+        f"{'update':>9} {'fits':>5} {'last fit':>9}"
+    )
     for r in rows:
         lat = r["latency"] * 1e3
         floor = (0.5 * DRAW_INTERVAL_S + r["update_last_s"]) * 1e3
-        print(f"{r['rate']:>5.0f}Hz {r['received']:>8d} {r['updates']:>8d} {np.median(lat):>7.0f}ms "
-              f"{np.percentile(lat, 95):>7.0f}ms {lat.max():>7.0f}ms {floor:>9.0f}ms "
-              f"{r['update_last_s'] * 1e3:>7.0f}ms {r['fits']:>5d} {r['fit_last_s'] * 1e3:>7.0f}ms")
+        print(
+            f"{r['rate']:>5.0f}Hz {r['received']:>8d} {r['updates']:>8d} {np.median(lat):>7.0f}ms "
+            f"{np.percentile(lat, 95):>7.0f}ms {lat.max():>7.0f}ms {floor:>9.0f}ms "
+            f"{r['update_last_s'] * 1e3:>7.0f}ms {r['fits']:>5d} {r['fit_last_s'] * 1e3:>7.0f}ms"
+        )
     return 0
 
 

@@ -39,20 +39,20 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # the shared 2-core machine: a second BLAS thread only contends
 
-import argparse  # noqa: E402
-import csv  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import csv
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import magcal  # noqa: E402
-from magcal.checks.quality import assess, field_magnitude_finding  # noqa: E402
-from magcal.core.errors import MagcalError  # noqa: E402
-from magcal.fitting import validation  # noqa: E402
+import magcal
+from magcal.checks.quality import assess, field_magnitude_finding
+from magcal.core.errors import MagcalError
+from magcal.fitting import validation
 
 HERE = Path(__file__).resolve().parent
 DATA_DIR = HERE / "real" / "data"
@@ -99,8 +99,7 @@ def fit_ellipsoid_independent(readings):
     scale = float(np.sqrt(np.mean(np.sum((y - mean) ** 2, axis=1))))
     u = (y - mean) / scale
     x1, x2, x3 = u.T
-    design = np.column_stack([x1 * x1, x2 * x2, x3 * x3, 2 * x1 * x2, 2 * x1 * x3, 2 * x2 * x3, 2 * x1, 2 * x2,
-                              2 * x3])
+    design = np.column_stack([x1 * x1, x2 * x2, x3 * x3, 2 * x1 * x2, 2 * x1 * x3, 2 * x2 * x3, 2 * x1, 2 * x2, 2 * x3])
     coef, *_ = np.linalg.lstsq(design, np.ones(len(u)), rcond=None)
     a, b, c, d, e, f, g, h, i = coef
     shape = np.array([[a, d, e], [d, b, f], [e, f, c]])
@@ -114,7 +113,7 @@ def fit_ellipsoid_independent(readings):
     vals, vecs = np.linalg.eigh(m)
     if not np.all(vals > 0) or not np.isfinite(k):
         raise EllipsoidFailure(f"quadric eigenvalues {np.round(vals, 4).tolist()}: not an ellipsoid")
-    w = vecs @ np.diag(np.sqrt(vals)) @ vecs.T / scale        # |w (y - centre)| = 1, raw units
+    w = vecs @ np.diag(np.sqrt(vals)) @ vecs.T / scale  # |w (y - centre)| = 1, raw units
     det = float(np.linalg.det(w))
     matrix = w / det ** (1.0 / 3.0)
     return mean + scale * centre_u, matrix, det ** (-1.0 / 3.0)
@@ -190,8 +189,11 @@ def recommended(diagnosis):
 
 def quality_lines(report) -> list:
     """The notable findings and warnings of a quality report, one short line each."""
-    return [f"{f.kind}{' (warning)' if f.severity == 'warning' else ''}: {f.where}{f.summary}"
-            for f in report.findings if f.notable or f.severity == "warning"]
+    return [
+        f"{f.kind}{' (warning)' if f.severity == 'warning' else ''}: {f.where}{f.summary}"
+        for f in report.findings
+        if f.notable or f.severity == "warning"
+    ]
 
 
 def rate_of(report):
@@ -201,12 +203,19 @@ def rate_of(report):
 
 def noise_record(noise) -> dict:
     """The noise estimate and its checks (nT)."""
+
     def values(v):
         return None if v is None else [round(float(x), 4) if np.isfinite(x) else None for x in np.asarray(v, float)]
 
-    return {"sigma_nT": float(noise.sigma_nT), "source": noise.source, "note": noise.note,
-            "static_noise_nT": values(noise.static_noise_nT), "static_scatter_nT": values(noise.static_scatter_nT),
-            "quantization_floor_nT": values(noise.quantization_floor_nT), "text": noise.text()}
+    return {
+        "sigma_nT": float(noise.sigma_nT),
+        "source": noise.source,
+        "note": noise.note,
+        "static_noise_nT": values(noise.static_noise_nT),
+        "static_scatter_nT": values(noise.static_scatter_nT),
+        "quantization_floor_nT": values(noise.quantization_floor_nT),
+        "text": noise.text(),
+    }
 
 
 def held_out(ds, effects, masks, init) -> dict:
@@ -217,7 +226,7 @@ def held_out(ds, effects, masks, init) -> dict:
             v = validation.validate(ds, effects=list(effects), scheme=scheme, masks=mask_pair, init=init)
             out[scheme] = float(v.held_out_rms_nT)
             out[f"{scheme}_in_sample"] = float(v.in_sample_rms_nT)
-            relevelled = getattr(v, "relevelled_rms_nT", None)   # record's level on the held-out part taken out
+            relevelled = getattr(v, "relevelled_rms_nT", None)  # record's level on the held-out part taken out
             if relevelled is not None:
                 out[f"{scheme}_relevelled"] = float(relevelled)
             out[f"{scheme}_dropped"] = list(v.dropped)
@@ -250,24 +259,44 @@ def run_loop(ds, max_steps, masks, residuals=None) -> tuple[list, list]:
             magcal_warnings += [f"calibrate: {w}" for w in result.warnings]
         nxt, cand = recommended(diag)
         row = {
-            "step": step, "added": added, "effects": list(effects),
+            "step": step,
+            "added": added,
+            "effects": list(effects),
             "delta_bic": None if added_cand is None else float(added_cand.delta_bic),
-            "diag_held_out": None if added_cand is None else [added_cand.held_out_before_nT,
-                                                                added_cand.held_out_after_nT,
-                                                                added_cand.later_before_nT,
-                                                                added_cand.later_after_nT],
+            "diag_held_out": None
+            if added_cand is None
+            else [
+                added_cand.held_out_before_nT,
+                added_cand.held_out_after_nT,
+                added_cand.later_before_nT,
+                added_cand.later_after_nT,
+            ],
             "in_sample_rms_nT": float(result.rms_nT),
             "field_nT": None if result.field_magnitude_nT is None else float(result.field_magnitude_nT),
             **held_out(ds, effects, masks, result.calibration),
-            "verdict": diag.verdict, "summary": diag.summary,
+            "verdict": diag.verdict,
+            "summary": diag.summary,
             "noise": noise_record(diag.noise if step == 0 else result.noise),
-            "explained_by": list(diag.explained_by), "partially_explained_by": list(diag.partially_explained_by),
-            "remaining": [s.text for s in _by_kind(diag.remaining if diag.explained_by or diag.partially_explained_by
-                                                    else diag.structure)],
-            "next": nxt, "diagnosis_warnings": list(diag.warnings),
-            "top": [{"label": c.label, "delta_bic": float(c.delta_bic), "holds": c.holds,
-                     "held_out": [c.held_out_before_nT, c.held_out_after_nT],
-                     "later": [c.later_before_nT, c.later_after_nT]} for c in diag.candidates[:4]],
+            "explained_by": list(diag.explained_by),
+            "partially_explained_by": list(diag.partially_explained_by),
+            "remaining": [
+                s.text
+                for s in _by_kind(
+                    diag.remaining if diag.explained_by or diag.partially_explained_by else diag.structure
+                )
+            ],
+            "next": nxt,
+            "diagnosis_warnings": list(diag.warnings),
+            "top": [
+                {
+                    "label": c.label,
+                    "delta_bic": float(c.delta_bic),
+                    "holds": c.holds,
+                    "held_out": [c.held_out_before_nT, c.held_out_after_nT],
+                    "later": [c.later_before_nT, c.later_after_nT],
+                }
+                for c in diag.candidates[:4]
+            ],
             "seconds": time.perf_counter() - t0,
         }
         if step == 0:
@@ -321,7 +350,9 @@ def judge_claim(steps) -> dict:
             falls.append(cur["blocks"] <= (1 - validation.MIN_RELATIVE_GAIN) * prev["blocks"])
     last = steps[-1]
     return {
-        "never_rises": not rises, "rises": rises, "rises_beyond_half_se": rises_beyond_tol,
+        "never_rises": not rises,
+        "rises": rises,
+        "rises_beyond_half_se": rises_beyond_tol,
         "rises_by_magcal_rule": rises_relevelled,
         "falls_or_adequate": bool(any(falls) or steps[0]["verdict"] == "adequate"),
         "end_verdict": last["verdict"],
@@ -418,13 +449,29 @@ def run_recording(path: Path, max_steps: int, figure_dir: Path | None = None) ->
         try:
             ds = magcal.read_csv(path)
         except ValueError as exc:  # DatasetError: the file is at fault; say so and go on with the others
-            return {"name": path.stem, "n": 0, "sensors": 0, "refused": f"read_csv: {exc}", "steps": [],
-                    "quality": [], "independent": {}, "seconds": time.perf_counter() - t0}
-    rec = {"name": path.stem, "n": int(ds.n_samples), "sensors": int(ds.n_sensors),
-           "read_warnings": [str(w.message) for w in caught]}
+            return {
+                "name": path.stem,
+                "n": 0,
+                "sensors": 0,
+                "refused": f"read_csv: {exc}",
+                "steps": [],
+                "quality": [],
+                "independent": {},
+                "seconds": time.perf_counter() - t0,
+            }
+    rec = {
+        "name": path.stem,
+        "n": int(ds.n_samples),
+        "sensors": int(ds.n_sensors),
+        "read_warnings": [str(w.message) for w in caught],
+    }
     norm = np.linalg.norm(ds.readings_nT, axis=2)
-    rec["raw_magnitude_nT"] = {"mean": float(norm.mean()), "rms_about_mean": float(norm.std()),
-                               "p5": float(np.percentile(norm, 5)), "p95": float(np.percentile(norm, 95))}
+    rec["raw_magnitude_nT"] = {
+        "mean": float(norm.mean()),
+        "rms_about_mean": float(norm.std()),
+        "p5": float(np.percentile(norm, 5)),
+        "p95": float(np.percentile(norm, 95)),
+    }
     quality = assess(ds)
     rec["rate_Hz"] = rate_of(quality)
     rec["quality"] = quality_lines(quality)
@@ -448,9 +495,16 @@ def run_recording(path: Path, max_steps: int, figure_dir: Path | None = None) ->
     rec["independent"] = independent_fit(ds, masks) if masks else {}
     if not masks:  # too short to split: in-sample only
         try:
-            rec["independent"] = {"in_sample_rms_nT": _rms(np.concatenate(
-                [independent_residuals(ds.readings_nT[s], *fit_ellipsoid_independent(ds.readings_nT[s]))
-                 for s in range(ds.n_sensors)]))}
+            rec["independent"] = {
+                "in_sample_rms_nT": _rms(
+                    np.concatenate(
+                        [
+                            independent_residuals(ds.readings_nT[s], *fit_ellipsoid_independent(ds.readings_nT[s]))
+                            for s in range(ds.n_sensors)
+                        ]
+                    )
+                )
+            }
         except EllipsoidFailure as exc:
             rec["independent"] = {"failed": str(exc)}
     if figure_dir is not None and residuals:
@@ -469,17 +523,21 @@ def _f(v, fmt="{:.4g}"):
 
 def markdown(records) -> str:
     """The tables of benchmarks/README.md: one line per recording, one per loop step."""
-    lines = ["| recording | N | rate (Hz) | field (uT) | noise (nT, method) | still scatter (nT) | quantization floor "
-             "(nT) | independent ellipsoid in / blocks / later | data quality (notable) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| recording | N | rate (Hz) | field (uT) | noise (nT, method) | still scatter (nT) | quantization floor "
+        "(nT) | independent ellipsoid in / blocks / later | data quality (notable) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in records:
         if not r["steps"]:
             raw = r.get("raw_magnitude_nT") or {}
             kinds = ", ".join(sorted({q.split(":")[0] for q in r["quality"]}))
-            lines.append(f"| {r['name']} | {r['n']} | {_f(r.get('rate_Hz'))} | raw "
-                         f"{_f(raw.get('mean', 0) / 1000, '{:.1f}')} +- {_f(raw.get('rms_about_mean'), '{:.0f}')} nT | "
-                         f"refused: {r.get('refused', '')[:150]} | | | {_independent_text(r['independent'])} | "
-                         f"{kinds or '-'} |")
+            lines.append(
+                f"| {r['name']} | {r['n']} | {_f(r.get('rate_Hz'))} | raw "
+                f"{_f(raw.get('mean', 0) / 1000, '{:.1f}')} +- {_f(raw.get('rms_about_mean'), '{:.0f}')} nT | "
+                f"refused: {r.get('refused', '')[:150]} | | | {_independent_text(r['independent'])} | "
+                f"{kinds or '-'} |"
+            )
             continue
         noise = r["steps"][0]["noise"]
         ind_text = _independent_text(r["independent"])
@@ -487,39 +545,57 @@ def markdown(records) -> str:
         lines.append(
             f"| {r['name']} | {r['n']} | {_f(r.get('rate_Hz'))} | {_f(r['steps'][0]['field_nT'] / 1000, '{:.1f}')} | "
             f"{noise['sigma_nT']:.3g} ({noise['source']}) | {_list(noise['static_scatter_nT'])} | "
-            f"{_list(noise['quantization_floor_nT'])} | {ind_text} | {', '.join(kinds) or '-'} |")
-    lines += ["", "| recording | step | effect added | dBIC | in-sample | held-out blocks | held-out later "
-                  "(relevelled) | verdict | next recommended |", "|---|---|---|---|---|---|---|---|---|"]
+            f"{_list(noise['quantization_floor_nT'])} | {ind_text} | {', '.join(kinds) or '-'} |"
+        )
+    lines += [
+        "",
+        "| recording | step | effect added | dBIC | in-sample | held-out blocks | held-out later "
+        "(relevelled) | verdict | next recommended |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in records:
         for s in r["steps"]:
             later = _f(s.get("later"))
             if s.get("later_relevelled") is not None:
                 later += f" ({s['later_relevelled']:.4g})"
-            lines.append(f"| {r['name']} | {s['step']} | {s['added'] or 'base'} | {_f(s['delta_bic'], '{:.0f}')} | "
-                         f"{s['in_sample_rms_nT']:.4g} | {_f(s.get('blocks'))} | {later} | "
-                         f"{s['verdict']} | {s['next'] or '-'} |")
-    lines += ["", "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | by magcal's rule "
-                  "(later relevelled for record-only terms) | falls or adequate | loop ends | structure named at the "
-                  "end |", "|---|---|---|---|---|---|"]
+            lines.append(
+                f"| {r['name']} | {s['step']} | {s['added'] or 'base'} | {_f(s['delta_bic'], '{:.0f}')} | "
+                f"{s['in_sample_rms_nT']:.4g} | {_f(s.get('blocks'))} | {later} | "
+                f"{s['verdict']} | {s['next'] or '-'} |"
+            )
+    lines += [
+        "",
+        "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | by magcal's rule "
+        "(later relevelled for record-only terms) | falls or adequate | loop ends | structure named at the "
+        "end |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in records:
         c = r.get("claim")
         if not c:
             continue
-        rises = "yes" if c["never_rises"] else "no: " + "; ".join(
-            f"**{x}**" if x in c["rises_beyond_half_se"] else x for x in c["rises"])
+        rises = (
+            "yes"
+            if c["never_rises"]
+            else "no: " + "; ".join(f"**{x}**" if x in c["rises_beyond_half_se"] else x for x in c["rises"])
+        )
         rule = "yes" if not c["rises_by_magcal_rule"] else "NO: " + "; ".join(c["rises_by_magcal_rule"])
         named = "; ".join(t[:120] for t in r["steps"][-1]["remaining"][:3]) or (
-            "(no structure test; supported candidates that do not hold)" if c["end_verdict"] == "unexplained" else "-")
-        lines.append(f"| {r['name']} | {rises} | {rule} | {'yes' if c['falls_or_adequate'] else 'no'} | "
-                     f"{c['end_verdict']} | {named} |")
+            "(no structure test; supported candidates that do not hold)" if c["end_verdict"] == "unexplained" else "-"
+        )
+        lines.append(
+            f"| {r['name']} | {rises} | {rule} | {'yes' if c['falls_or_adequate'] else 'no'} | "
+            f"{c['end_verdict']} | {named} |"
+        )
     return "\n".join(lines)
 
 
 def _independent_text(ind):
     if not ind:
         return "-"
-    return ind.get("failed") or " / ".join(_f(ind.get(k)) for k in ("in_sample_rms_nT", "blocks_rms_nT",
-                                                                      "later_rms_nT"))
+    return ind.get("failed") or " / ".join(
+        _f(ind.get(k)) for k in ("in_sample_rms_nT", "blocks_rms_nT", "later_rms_nT")
+    )
 
 
 def _list(v):
@@ -529,20 +605,50 @@ def _list(v):
 def write_outputs(records, out_json: Path) -> None:
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(records, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
-    fields = ["recording", "n", "rate_Hz", "step", "added", "delta_bic", "in_sample_rms_nT", "blocks_rms_nT",
-              "later_rms_nT", "verdict", "next", "noise_nT", "noise_source", "independent_in_nT",
-              "independent_blocks_nT", "independent_later_nT"]
+    fields = [
+        "recording",
+        "n",
+        "rate_Hz",
+        "step",
+        "added",
+        "delta_bic",
+        "in_sample_rms_nT",
+        "blocks_rms_nT",
+        "later_rms_nT",
+        "verdict",
+        "next",
+        "noise_nT",
+        "noise_source",
+        "independent_in_nT",
+        "independent_blocks_nT",
+        "independent_later_nT",
+    ]
     with open(out_json.with_suffix(".csv"), "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(fields)
         for r in records:
             ind = r.get("independent", {})
             for s in r["steps"] or [{}]:
-                w.writerow([r["name"], r["n"], r.get("rate_Hz"), s.get("step"), s.get("added"), s.get("delta_bic"),
-                            s.get("in_sample_rms_nT"), s.get("blocks"), s.get("later"),
-                            s.get("verdict", r.get("refused")), s.get("next"),
-                            (s.get("noise") or {}).get("sigma_nT"), (s.get("noise") or {}).get("source"),
-                            ind.get("in_sample_rms_nT"), ind.get("blocks_rms_nT"), ind.get("later_rms_nT")])
+                w.writerow(
+                    [
+                        r["name"],
+                        r["n"],
+                        r.get("rate_Hz"),
+                        s.get("step"),
+                        s.get("added"),
+                        s.get("delta_bic"),
+                        s.get("in_sample_rms_nT"),
+                        s.get("blocks"),
+                        s.get("later"),
+                        s.get("verdict", r.get("refused")),
+                        s.get("next"),
+                        (s.get("noise") or {}).get("sigma_nT"),
+                        (s.get("noise") or {}).get("source"),
+                        ind.get("in_sample_rms_nT"),
+                        ind.get("blocks_rms_nT"),
+                        ind.get("later_rms_nT"),
+                    ]
+                )
 
 
 def main(argv=None) -> int:
@@ -551,16 +657,22 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=3, help="most effects added by the loop (default 3)")
     parser.add_argument("--data-dir", type=Path, default=DATA_DIR)
     parser.add_argument("--out", type=Path, default=OUT_DIR / "real_loop.json")
-    parser.add_argument("--figures", action="store_true",
-                        help="also draw each recording's residuals (first and last model) against time, temperature "
-                             "and altitude: <out dir>/real_<name>.png")
+    parser.add_argument(
+        "--figures",
+        action="store_true",
+        help="also draw each recording's residuals (first and last model) against time, temperature "
+        "and altitude: <out dir>/real_<name>.png",
+    )
     args = parser.parse_args(argv)
     paths = sorted(args.data_dir.glob("*.csv"))
     if args.names:
         paths = [p for p in paths if p.stem in args.names]
     if not paths:
-        print(f"no recordings in {args.data_dir}: run python benchmarks/real/fetch.py --mirror DIR (or without) and "
-              "python benchmarks/real/convert.py --all first", file=sys.stderr)
+        print(
+            f"no recordings in {args.data_dir}: run python benchmarks/real/fetch.py --mirror DIR (or without) and "
+            "python benchmarks/real/convert.py --all first",
+            file=sys.stderr,
+        )
         return 1
     check_independent_fit()
     records = []
@@ -568,8 +680,11 @@ def main(argv=None) -> int:
     for path in paths:
         rec = run_recording(path, args.steps, args.out.parent if args.figures else None)
         records.append(rec)
-        steps = " -> ".join(f"{s['added'] or 'base'} {s['in_sample_rms_nT']:.4g}/{_f(s.get('blocks'))}/"
-                            f"{_f(s.get('later'))} [{s['verdict']}]" for s in rec["steps"]) or rec.get("refused")
+        steps = " -> ".join(
+            f"{s['added'] or 'base'} {s['in_sample_rms_nT']:.4g}/{_f(s.get('blocks'))}/"
+            f"{_f(s.get('later'))} [{s['verdict']}]"
+            for s in rec["steps"]
+        ) or rec.get("refused")
         print(f"{rec['name']}: N={rec['n']} ({rec['seconds']:.1f} s): {steps}", flush=True)
     print()
     print(markdown(records))

@@ -38,12 +38,18 @@ PAPER_CINV = [
     [[0.9817, -0.0247, -0.0127], [0, 0.9893, 0.0183], [0, 0, 1.0183]],
     [[0.9858, -0.0179, 0.0272], [0, 0.9922, 0.0157], [0, 0, 0.9794]],
 ]
-PAPER_B = [[26.107, 84.437, -32.4425], [-54.1996, 30.7201, 19.1364], [-16.9111, -29.4376, 55.1021],
-           [45.7411, 21.2188, -37.1252]]
-PAPER_R = [None,
-           [[0.9994, 0.023, 0.0274], [-0.0223, 0.9994, -0.0257], [-0.028, 0.025, 0.9993]],
-           [[0.9993, -0.021, 0.0304], [0.0202, 0.9994, 0.0266], [-0.031, -0.026, 0.9992]],
-           [[0.9987, 0.038, 0.035], [-0.0389, 0.9989, 0.0266], [-0.034, -0.028, 0.999]]]
+PAPER_B = [
+    [26.107, 84.437, -32.4425],
+    [-54.1996, 30.7201, 19.1364],
+    [-16.9111, -29.4376, 55.1021],
+    [45.7411, 21.2188, -37.1252],
+]
+PAPER_R = [
+    None,
+    [[0.9994, 0.023, 0.0274], [-0.0223, 0.9994, -0.0257], [-0.028, 0.025, 0.9993]],
+    [[0.9993, -0.021, 0.0304], [0.0202, 0.9994, 0.0266], [-0.031, -0.026, 0.9992]],
+    [[0.9987, 0.038, 0.035], [-0.0389, 0.9989, 0.0266], [-0.034, -0.028, 0.999]],
+]
 PAPER_TOTAL_BEFORE_nT, PAPER_TOTAL_AFTER_nT = 2600.0, 10.0
 PAPER_TENSOR_BEFORE, PAPER_TENSOR_AFTER = 16000.0, 30.0
 
@@ -52,8 +58,7 @@ PAPER_TENSOR_BEFORE, PAPER_TENSOR_AFTER = 16000.0, 30.0
 def seed_ellipsoid_as_printed(y, field_nT):
     """Eqs. (9)-(13) literally: least squares for P with right-hand side -2x, then A, b, Cholesky."""
     x, yy, z = y.T
-    design = np.column_stack([x * x, yy * yy, z * z, 2 * yy * z, 2 * x * z, 2 * x * yy, 2 * yy, 2 * z,
-                              np.ones_like(x)])
+    design = np.column_stack([x * x, yy * yy, z * z, 2 * yy * z, 2 * x * z, 2 * x * yy, 2 * yy, 2 * z, np.ones_like(x)])
     p, *_ = np.linalg.lstsq(design, -2 * x, rcond=None)
     a, b, c, f, g, h, q, r, d = p
     m = np.array([[a, h, g], [h, b, f], [g, f, c]])
@@ -84,9 +89,11 @@ METHODS = {
 
 def errors(result, truth):
     cinv, bias, rots = result
-    return (max(np.max(np.abs(c - s.Cinv)) for c, s in zip(cinv, truth.sensors)),
-            max(np.max(np.abs(b - s.bias_nT)) for b, s in zip(bias, truth.sensors)),
-            max(np.max(np.abs(r - s.R)) for r, s in zip(rots, truth.sensors)))
+    return (
+        max(np.max(np.abs(c - s.Cinv)) for c, s in zip(cinv, truth.sensors)),
+        max(np.max(np.abs(b - s.bias_nT)) for b, s in zip(bias, truth.sensors)),
+        max(np.max(np.abs(r - s.R)) for r, s in zip(rots, truth.sensors)),
+    )
 
 
 def fmt_rows(m, fmt="{:+.4f}"):
@@ -113,8 +120,10 @@ def main():
     ds = simulate("chi2017", seed=args.seed)
     result = calibrate(ds)
     cal = result.calibration
-    print(f"Chi, Lü & Huang (2017) simulation, seed {args.seed}: 4 sensors, N = {n}, sigma = {sigma} nT, "
-          f"d = {d} m, F = 50 000 nT, D = -7 deg, I = 55 deg\n")
+    print(
+        f"Chi, Lü & Huang (2017) simulation, seed {args.seed}: 4 sensors, N = {n}, sigma = {sigma} nT, "
+        f"d = {d} m, F = 50 000 nT, D = -7 deg, I = 55 deg\n"
+    )
 
     # ---- Table 2 ----
     print("Table 2: paper | ours (ML) | truth (Table 1 inverted)")
@@ -127,36 +136,49 @@ def main():
             paper_dev[0, 1] = 0.0
             note = "  (without the paper's (1,2): -0.0212 is a misprint of the exact -0.0242)"
         print(f"   max |C^-1 - truth|: paper {paper_dev.max():.1e}, ours {np.abs(sc.cinv - ts.Cinv).max():.1e}{note}")
-        side_by_side(f" sensor {s + 1}: b (nT)", [("paper", PAPER_B[s]), ("ours", sc.bias_nT), ("truth", ts.bias_nT)],
-                     width=34)
-        print(f"   max |b - truth|: paper {np.abs(np.array(PAPER_B[s]) - ts.bias_nT).max():.2f} nT, "
-              f"ours {np.abs(sc.bias_nT - ts.bias_nT).max():.2f} nT")
+        side_by_side(
+            f" sensor {s + 1}: b (nT)", [("paper", PAPER_B[s]), ("ours", sc.bias_nT), ("truth", ts.bias_nT)], width=34
+        )
+        print(
+            f"   max |b - truth|: paper {np.abs(np.array(PAPER_B[s]) - ts.bias_nT).max():.2f} nT, "
+            f"ours {np.abs(sc.bias_nT - ts.bias_nT).max():.2f} nT"
+        )
         if s > 0:
             side_by_side(f" sensor {s + 1}: R", [("paper", PAPER_R[s]), ("ours", sc.R), ("truth", ts.R)])
-            print(f"   max |R - truth|: paper {np.abs(np.array(PAPER_R[s]) - ts.R).max():.1e}, "
-                  f"ours {np.abs(sc.R - ts.R).max():.1e}")
+            print(
+                f"   max |R - truth|: paper {np.abs(np.array(PAPER_R[s]) - ts.R).max():.1e}, "
+                f"ours {np.abs(sc.R - ts.R).max():.1e}"
+            )
         print()
 
     # ---- total field ----
     floor = conventions.total_field_floor_nT(sigma, n)
     raw, final = result.steps[0], result.steps[-1]
-    print(f"Total field |B| - 50 000 nT        paper: up to {PAPER_TOTAL_BEFORE_nT:.0f} nT before, "
-          f"within +-{PAPER_TOTAL_AFTER_nT:.0f} nT after")
+    print(
+        f"Total field |B| - 50 000 nT        paper: up to {PAPER_TOTAL_BEFORE_nT:.0f} nT before, "
+        f"within +-{PAPER_TOTAL_AFTER_nT:.0f} nT after"
+    )
     print(f"  {'sensor':<8}{'max before':>12}{'RMS before':>12}{'max after':>11}{'RMS after':>11}{'floor':>8}")
     for s in range(4):
-        print(f"  {s + 1:<8}{raw.max_abs_per_sensor_nT[s]:>12.0f}{raw.rms_per_sensor_nT[s]:>12.1f}"
-              f"{final.max_abs_per_sensor_nT[s]:>11.2f}{final.rms_per_sensor_nT[s]:>11.3f}{floor:>8.3f}")
+        print(
+            f"  {s + 1:<8}{raw.max_abs_per_sensor_nT[s]:>12.0f}{raw.rms_per_sensor_nT[s]:>12.1f}"
+            f"{final.max_abs_per_sensor_nT[s]:>11.2f}{final.rms_per_sensor_nT[s]:>11.3f}{floor:>8.3f}"
+        )
     print()
 
     # ---- tensor ----
     step1 = result.step("ellipsoid")
     t_floor = conventions.tensor_floor_nT_per_m(sigma, d)
-    print(f"Tensor (true value 0) nT/m         paper: up to {PAPER_TENSOR_BEFORE:.0f} before, within "
-          f"+-{PAPER_TENSOR_AFTER:.0f} after")
+    print(
+        f"Tensor (true value 0) nT/m         paper: up to {PAPER_TENSOR_BEFORE:.0f} before, within "
+        f"+-{PAPER_TENSOR_AFTER:.0f} after"
+    )
     print(f"  {'comp':<6}{'max before':>12}{'max step 1':>12}{'max after':>11}{'RMS after':>11}{'floor':>8}")
     for k in conventions.TENSOR_COMPONENTS:
-        print(f"  {k:<6}{raw.tensor_max_abs_nT_per_m[k]:>12.0f}{step1.tensor_max_abs_nT_per_m[k]:>12.0f}"
-              f"{final.tensor_max_abs_nT_per_m[k]:>11.1f}{final.tensor_rms_nT_per_m[k]:>11.2f}{t_floor[k]:>8.2f}")
+        print(
+            f"  {k:<6}{raw.tensor_max_abs_nT_per_m[k]:>12.0f}{step1.tensor_max_abs_nT_per_m[k]:>12.0f}"
+            f"{final.tensor_max_abs_nT_per_m[k]:>11.1f}{final.tensor_rms_nT_per_m[k]:>11.2f}{t_floor[k]:>8.2f}"
+        )
     print("  (step 1 alone corrects each sensor but not the misalignment: the tensor stays wrong until step 2)\n")
 
     # ---- statistics over seeds ----
@@ -167,8 +189,10 @@ def main():
     print("  total field per sensor: " + "  ".join(f"{v:.3f}" for v in tf) + "   (issue 2: within 3%)")
     print("  tensor: " + "  ".join(f"{k} {v:.3f}" for k, v in tens.items()) + "   (issue 2: within 10%)\n")
 
-    print(f"Parameter errors (worst over {args.seeds} seeds and 4 sensors) and wall time of a 4-sensor, N = {n} "
-          "calibration")
+    print(
+        f"Parameter errors (worst over {args.seeds} seeds and 4 sensors) and wall time of a 4-sensor, N = {n} "
+        "calibration"
+    )
     print(f"  {'method':<50}{'C^-1':>9}{'b nT':>8}{'R':>9}{'time ms':>9}")
     for name, method in METHODS.items():
         worst = np.max([errors(method(simulate("chi2017", seed=1000 + k)), truth) for k in range(args.seeds)], axis=0)
@@ -193,8 +217,9 @@ def main():
         seed_text = f"fails ({exc})"
     try:
         f = fit_ellipsoid(y, reference_total_nT=5e4)
-        ours_text = (f"max |C^-1 err| {np.abs(f.cinv - zero.Cinv).max():.1e}, "
-                     f"max |b err| {np.abs(f.bias_nT).max():.2f} nT")
+        ours_text = (
+            f"max |C^-1 err| {np.abs(f.cinv - zero.Cinv).max():.1e}, max |b err| {np.abs(f.bias_nT).max():.2f} nT"
+        )
     except CalibrationError as exc:
         ours_text = f"fails ({exc})"
     print(f"  seed as printed: {seed_text}\n  scale-free:      {ours_text}")

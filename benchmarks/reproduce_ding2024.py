@@ -64,8 +64,14 @@ def run_scipy_default_de(ds, seed):
     objective = search.ScalarObjective(y, FIELD_NT)
     bounds = search.bounds_from_data(y, FIELD_NT)
     t0 = time.perf_counter()
-    res = differential_evolution(lambda x: objective(x.T), list(zip(bounds.lower, bounds.upper)), rng=seed,
-                                 polish=False, vectorized=True, updating="deferred")
+    res = differential_evolution(
+        lambda x: objective(x.T),
+        list(zip(bounds.lower, bounds.upper)),
+        rng=seed,
+        polish=False,
+        vectorized=True,
+        updating="deferred",
+    )
     wall = time.perf_counter() - t0
     return float(res.fun), wall, objective.n_evaluations
 
@@ -75,8 +81,7 @@ def run_method(ds, method, seed):
     if method == "de-scipy-default":
         return run_scipy_default_de(ds, seed)
     if method == "pso-w0.8-c2":
-        r = search.search(ds.readings_nT[0], FIELD_NT, "pso", seed=seed,
-                          coefficients={"w": 0.8, "c1": 2.0, "c2": 2.0})
+        r = search.search(ds.readings_nT[0], FIELD_NT, "pso", seed=seed, coefficients={"w": 0.8, "c1": 2.0, "c2": 2.0})
         return r.rms_nT, r.wall_s, r.n_evaluations
     t0 = time.perf_counter()
     result = calibrate(ds, method=method, seed=seed)
@@ -93,13 +98,16 @@ def run_method(ds, method, seed):
 def part1(repeats, out_dir):
     rows = []
     print("Part 1 - total-field RMS after calibration (nT), pooled over", repeats, "realisation(s), N = 300")
-    print("  floor = (a/sqrt 12) sqrt(1 - 9/N); ratio = pooled RMS / floor; at-floor: within 5 % "
-          "(a = 0: RMS < 1e-6 nT)")
+    print(
+        "  floor = (a/sqrt 12) sqrt(1 - 9/N); ratio = pooled RMS / floor; at-floor: within 5 % (a = 0: RMS < 1e-6 nT)"
+    )
     for preset in PRESETS:
         records = {a: [magcal.simulate(preset, noise_nT=a, seed=k) for k in range(repeats)] for a in NOISE}
         print(f"\n  {preset}")
-        print(f"  {'method':18s} {'a nT':>5s} {'floor':>9s} {'RMS':>10s} {'ratio':>7s} {'vs ml':>9s} {'paper':>9s}"
-              f" {'time s':>8s} {'evals':>8s}  at-floor")
+        print(
+            f"  {'method':18s} {'a nT':>5s} {'floor':>9s} {'RMS':>10s} {'ratio':>7s} {'vs ml':>9s} {'paper':>9s}"
+            f" {'time s':>8s} {'evals':>8s}  at-floor"
+        )
         ml_rms = {}
         results = {}
         for method in ("ml",) + tuple(m for m in METHODS if m != "ml"):
@@ -119,16 +127,32 @@ def part1(repeats, out_dir):
                 at_floor = pooled < 1e-6 if a == 0 else abs(ratio - 1.0) <= 0.05
                 paper = PAPER.get((preset, "pso" if method.startswith("pso") else method))
                 paper_txt = f"{paper[i]:.4g}" if paper else ""
-                print(f"  {method:18s} {a:5.0f} {fl:9.4f} {pooled:10.4g} {ratio:7.3f} {vs_ml:9.6f} {paper_txt:>9s}"
-                      f" {wall:8.3f} {evals:8d}  {'yes' if at_floor else 'NO'}")
-                rows.append({"preset": preset, "method": method, "noise_full_width_nT": a, "floor_nT": fl,
-                             "pooled_rms_nT": pooled, "ratio_to_floor": ratio, "worst_ratio_to_ml": vs_ml,
-                             "paper_rms_nT": paper[i] if paper else "", "median_wall_s": wall,
-                             "median_evaluations": evals, "at_floor": at_floor, "repeats": repeats})
+                print(
+                    f"  {method:18s} {a:5.0f} {fl:9.4f} {pooled:10.4g} {ratio:7.3f} {vs_ml:9.6f} {paper_txt:>9s}"
+                    f" {wall:8.3f} {evals:8d}  {'yes' if at_floor else 'NO'}"
+                )
+                rows.append(
+                    {
+                        "preset": preset,
+                        "method": method,
+                        "noise_full_width_nT": a,
+                        "floor_nT": fl,
+                        "pooled_rms_nT": pooled,
+                        "ratio_to_floor": ratio,
+                        "worst_ratio_to_ml": vs_ml,
+                        "paper_rms_nT": paper[i] if paper else "",
+                        "median_wall_s": wall,
+                        "median_evaluations": evals,
+                        "at_floor": at_floor,
+                        "repeats": repeats,
+                    }
+                )
     _write_csv(os.path.join(out_dir, "ding2024_table.csv"), rows)
     failures = [r for r in rows if r["method"] in MUST_BE_AT_FLOOR and not r["at_floor"]]
-    print("\n  ipso, de and ml at the floor on both presets at every noise level:",
-          "yes" if not failures else f"NO ({len(failures)} cells)")
+    print(
+        "\n  ipso, de and ml at the floor on both presets at every noise level:",
+        "yes" if not failures else f"NO ({len(failures)} cells)",
+    )
     return rows
 
 
@@ -146,8 +170,10 @@ def part2(repeats):
     print("\nPart 2 - ml against ipso side by side (same records, same process; times are the best of repeats)")
     print("  ipso: defaults (NP = 50, up to 800 iterations, stall stop); to-ml: ipso's time until its best RMS first")
     print("  reaches ml's RMS x (1 + 1e-6); paper-setting: NP = 200, 500 iterations without early stop (Fig. 4)")
-    print(f"  {'preset':18s} {'a nT':>5s} {'ml ms':>7s} {'ipso ms':>8s} {'to-ml ms':>9s} {'paper-set ms':>12s}"
-          f" {'ipso/ml':>8s} {'to-ml/ml':>9s} {'paper/ml':>9s} {'evals ipso/ml':>14s} {'|dRMS|/RMS':>11s}")
+    print(
+        f"  {'preset':18s} {'a nT':>5s} {'ml ms':>7s} {'ipso ms':>8s} {'to-ml ms':>9s} {'paper-set ms':>12s}"
+        f" {'ipso/ml':>8s} {'to-ml/ml':>9s} {'paper/ml':>9s} {'evals ipso/ml':>14s} {'|dRMS|/RMS':>11s}"
+    )
     summary = {"full": [], "to_ml": [], "paper": []}
     for preset in PRESETS:
         for a in NOISE[1:]:
@@ -158,26 +184,36 @@ def part2(repeats):
             def run_ipso():
                 stamps.clear()
                 t_start = time.perf_counter()
-                cal = search.search_calibrate(ds, "ipso", seed=0,
-                                              progress=lambda it, best: stamps.append((time.perf_counter(), best)))
+                cal = search.search_calibrate(
+                    ds, "ipso", seed=0, progress=lambda it, best: stamps.append((time.perf_counter(), best))
+                )
                 return cal, t_start
 
             t_ipso, (cal, t_start) = _best_time(run_ipso, repeats)
             target = ml.rms_nT * (1 + 1e-6)
             t_to_ml = next((t for t, best in stamps if best <= target), stamps[-1][0]) - t_start
-            t_paper, _ = _best_time(lambda: search.search(ds.readings_nT[0], FIELD_NT, "ipso", seed=0, pop_size=200,
-                                                          max_iter=500, tol=-1.0, patience=10**9), 1)
+            t_paper, _ = _best_time(
+                lambda: search.search(
+                    ds.readings_nT[0], FIELD_NT, "ipso", seed=0, pop_size=200, max_iter=500, tol=-1.0, patience=10**9
+                ),
+                1,
+            )
             rms_ipso = float(np.sqrt(np.mean((cal.total_field(ds)[0] - FIELD_NT) ** 2)))
             d_rms = abs(rms_ipso - ml.rms_nT) / ml.rms_nT
             evals = cal.summary["n_evaluations"] / ml.fit.nfev
             summary["full"].append(t_ipso / t_ml)
             summary["to_ml"].append(t_to_ml / t_ml)
             summary["paper"].append(t_paper / t_ml)
-            print(f"  {preset:18s} {a:5.0f} {1e3 * t_ml:7.2f} {1e3 * t_ipso:8.1f} {1e3 * t_to_ml:9.1f} "
-                  f"{1e3 * t_paper:12.1f} {t_ipso / t_ml:8.0f} {t_to_ml / t_ml:9.0f} {t_paper / t_ml:9.0f} "
-                  f"{evals:14.0f} {d_rms:11.2e}")
-    for key, label in (("full", "a full ipso run (defaults)"), ("to_ml", "ipso's time to reach ml's RMS"),
-                       ("paper", "ipso at the paper's NP = 200 x 500 iterations")):
+            print(
+                f"  {preset:18s} {a:5.0f} {1e3 * t_ml:7.2f} {1e3 * t_ipso:8.1f} {1e3 * t_to_ml:9.1f} "
+                f"{1e3 * t_paper:12.1f} {t_ipso / t_ml:8.0f} {t_to_ml / t_ml:9.0f} {t_paper / t_ml:9.0f} "
+                f"{evals:14.0f} {d_rms:11.2e}"
+            )
+    for key, label in (
+        ("full", "a full ipso run (defaults)"),
+        ("to_ml", "ipso's time to reach ml's RMS"),
+        ("paper", "ipso at the paper's NP = 200 x 500 iterations"),
+    ):
         print(f"  ml is {min(summary[key]):.0f}-{max(summary[key]):.0f}x faster than {label}")
     return summary
 
@@ -202,8 +238,10 @@ def part3(out_dir, quick):
             h = _history(r, n_iter_pop)
             pop_curves[(method, pop)] = h
             pop_rows += [{"method": method, "pop_size": pop, "iteration": i, "best_rms_nT": v} for i, v in enumerate(h)]
-            print(f"  population {pop:4d} {method:5s}: RMS after {n_iter_pop} iterations {h[-1]:.4g} nT "
-                  f"(floor {floor_nT(a):.4f}), {r.wall_s:.2f} s")
+            print(
+                f"  population {pop:4d} {method:5s}: RMS after {n_iter_pop} iterations {h[-1]:.4g} nT "
+                f"(floor {floor_nT(a):.4f}), {r.wall_s:.2f} s"
+            )
     count_rows, count_curves = [], {}
     for n in counts:
         dsn = magcal.simulate("ding2024", n_samples=n, noise_nT=a, seed=0)
@@ -213,8 +251,10 @@ def part3(out_dir, quick):
         count_rows += [{"n_samples": n, "iteration": i, "best_rms_nT": v} for i, v in enumerate(h)]
         de = search.search(dsn.readings_nT[0], FIELD_NT, "de", seed=0)
         ml = calibrate(dsn, method="ml")
-        print(f"  N = {n:4d}: ipso (NP 200) {h[-1]:.4g} nT, de {de.rms_nT:.4g} nT, ml {ml.rms_nT:.4g} nT; "
-              f"floor {floor_nT(a, n):.4f} nT")
+        print(
+            f"  N = {n:4d}: ipso (NP 200) {h[-1]:.4g} nT, de {de.rms_nT:.4g} nT, ml {ml.rms_nT:.4g} nT; "
+            f"floor {floor_nT(a, n):.4f} nT"
+        )
     noise_rows, noise_curves = [], {}
     for a_i in NOISE:
         dsa = magcal.simulate("ding2024", noise_nT=a_i, seed=0)
@@ -222,8 +262,10 @@ def part3(out_dir, quick):
             r = search.search(dsa.readings_nT[0], FIELD_NT, method, seed=0, pop_size=50, max_iter=n_iter_pop, **never)
             h = _history(r, n_iter_pop)
             noise_curves[(method, a_i)] = h
-            noise_rows += [{"method": method, "noise_full_width_nT": a_i, "iteration": i, "best_rms_nT": v}
-                           for i, v in enumerate(h)]
+            noise_rows += [
+                {"method": method, "noise_full_width_nT": a_i, "iteration": i, "best_rms_nT": v}
+                for i, v in enumerate(h)
+            ]
     _write_csv(os.path.join(out_dir, "ding2024_population_sweep.csv"), pop_rows)
     _write_csv(os.path.join(out_dir, "ding2024_samples_sweep.csv"), count_rows)
     _write_csv(os.path.join(out_dir, "ding2024_pso_vs_ipso.csv"), noise_rows)
@@ -243,23 +285,36 @@ def _plot(path, pop_curves, count_curves, noise_curves, a):
     for (method, pop), h in pop_curves.items():
         ax.semilogy(h, color=colours(pops.index(pop)), ls="-" if method == "ipso" else ":", label=f"{method} NP={pop}")
     ax.axhline(floor_nT(a), color="k", lw=0.8, ls="--", label="floor")
-    ax.set(title=f"Fig. 3: population size (ding2024, a = {a:g} nT, N = 300)", xlabel="iteration",
-           ylabel="best total-field RMS (nT); solid ipso, dotted pso")
+    ax.set(
+        title=f"Fig. 3: population size (ding2024, a = {a:g} nT, N = 300)",
+        xlabel="iteration",
+        ylabel="best total-field RMS (nT); solid ipso, dotted pso",
+    )
     ax.legend(fontsize=6, ncol=2)
     ax = axes[1]
     for i, (n, h) in enumerate(count_curves.items()):
         ax.semilogy(h, color=colours(i), label=f"N={n}")
         ax.axhline(floor_nT(a, n), color=colours(i), lw=0.6, ls="--")
-    ax.set(title=f"Fig. 4: sample count (ipso, NP = 200, a = {a:g} nT)", xlabel="iteration",
-           ylabel="best total-field RMS (nT); dashed: floor per N")
+    ax.set(
+        title=f"Fig. 4: sample count (ipso, NP = 200, a = {a:g} nT)",
+        xlabel="iteration",
+        ylabel="best total-field RMS (nT); dashed: floor per N",
+    )
     ax.legend(fontsize=7)
     ax = axes[2]
     levels = sorted({a_i for _, a_i in noise_curves})
     for (method, a_i), h in noise_curves.items():
-        ax.semilogy(np.maximum(h, 1e-13), color=colours(levels.index(a_i)), ls="-" if method == "ipso" else ":",
-                    label=f"{method} a={a_i:g} nT")
-    ax.set(title="Fig. 5: standard (dotted) vs improved (solid) PSO, NP = 50", xlabel="iteration",
-           ylabel="best total-field RMS (nT)")
+        ax.semilogy(
+            np.maximum(h, 1e-13),
+            color=colours(levels.index(a_i)),
+            ls="-" if method == "ipso" else ":",
+            label=f"{method} a={a_i:g} nT",
+        )
+    ax.set(
+        title="Fig. 5: standard (dotted) vs improved (solid) PSO, NP = 50",
+        xlabel="iteration",
+        ylabel="best total-field RMS (nT)",
+    )
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     tmp = path + ".tmp.png"

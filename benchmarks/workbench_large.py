@@ -61,9 +61,20 @@ def data_file(n: int) -> Path:
 
 def run_cli(path: Path) -> dict:
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", "import sys; from magcal.cli import main; sys.exit(main())",
-                          "calibrate", str(path), "--json"], env=ENV,
-                         capture_output=True, text=True, timeout=600)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from magcal.cli import main; sys.exit(main())",
+            "calibrate",
+            str(path),
+            "--json",
+        ],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     wall = time.perf_counter() - t0
     if out.returncode != 0:
         raise SystemExit(f"magcal calibrate failed: {out.stderr[-2000:]}")
@@ -94,8 +105,9 @@ def fit_times_s(path: Path) -> tuple[float, float]:
     (:func:`magcal.calibrate`, ML) and the workbench's *Run the chosen method* step
     (:meth:`magcal_workbench.controller.Controller.step_calibrate`: the same call on the kept mask, then the residuals of
     every sample and the history row)."""
-    out = subprocess.run([sys.executable, "-c", _FIT_CODE, str(path)], env=ENV, capture_output=True, text=True,
-                         timeout=900, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", _FIT_CODE, str(path)], env=ENV, capture_output=True, text=True, timeout=900, check=True
+    )
     engine, step = out.stdout.split()[-2:]
     return float(engine), float(step)
 
@@ -107,7 +119,7 @@ def proc_memory_MB(pid: int) -> tuple[float, float]:
         for line in fh:
             key, _, value = line.partition(":")
             fields[key] = value.strip()
-    kb = lambda k: float(fields[k].split()[0]) / 1e3  # noqa: E731
+    kb = lambda k: float(fields[k].split()[0]) / 1e3
     return kb("VmRSS"), kb("VmHWM")
 
 
@@ -127,12 +139,17 @@ class WebsocketCounter:
         import viser
         from websockets.asyncio.client import connect
 
-        async with connect(f"ws://127.0.0.1:{self.port}", origin=f"http://127.0.0.1:{self.port}", max_size=None,
-                           subprotocols=[f"viser-v{viser.__version__}"], open_timeout=60) as ws:
+        async with connect(
+            f"ws://127.0.0.1:{self.port}",
+            origin=f"http://127.0.0.1:{self.port}",
+            max_size=None,
+            subprotocols=[f"viser-v{viser.__version__}"],
+            open_timeout=60,
+        ) as ws:
             while not self._stop.is_set():
                 try:
                     msg = await asyncio.wait_for(ws.recv(), 0.5)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     continue
                 self.bytes += len(msg)
                 self.messages += 1
@@ -173,8 +190,9 @@ def browser_timings(port: int, n: int, timeout_s=240.0) -> dict:
             page = b.new_page(viewport={"width": 1400, "height": 900})
             t0 = time.perf_counter()
             page.goto(f"http://127.0.0.1:{port}/", wait_until="domcontentloaded", timeout=60_000)
-            page.wait_for_function("() => document.body && document.body.innerText.includes('Total-field RMS')",
-                                   timeout=timeout_s * 1000)
+            page.wait_for_function(
+                "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=timeout_s * 1000
+            )
             out["gui_s"] = time.perf_counter() - t0
             while time.perf_counter() - t0 < timeout_s:
                 if canvas_drawn(page) > 5000:
@@ -183,11 +201,13 @@ def browser_timings(port: int, n: int, timeout_s=240.0) -> dict:
             out["first_picture_s"] = time.perf_counter() - t0
             t1 = time.perf_counter()
             page.get_by_role("button", name="Run the chosen method").click(timeout=60_000)
-            page.wait_for_function("() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)",
-                                   timeout=timeout_s * 1000)
+            page.wait_for_function(
+                "() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=timeout_s * 1000
+            )
             out["click_to_rms_s"] = time.perf_counter() - t1
-            page.wait_for_function(r"() => /calibrate \(ML\): RMS .*\([0-9.]+ s\)/.test(document.body.innerText)",
-                                   timeout=timeout_s * 1000)  # the step's message follows the status
+            page.wait_for_function(
+                r"() => /calibrate \(ML\): RMS .*\([0-9.]+ s\)/.test(document.body.innerText)", timeout=timeout_s * 1000
+            )  # the step's message follows the status
             text = page.inner_text("body")
             m = re.search(r"calibrate \(ML\): RMS ([0-9.]+) -> ([0-9.]+) nT[^\n]*?\(([0-9.]+) s\)", text)
             if m:
@@ -198,11 +218,13 @@ def browser_timings(port: int, n: int, timeout_s=240.0) -> dict:
             page.get_by_role("tab", name="Outliers").click(timeout=30_000)
             t2 = time.perf_counter()
             page.get_by_role("button", name="Reject beyond k sigma").click(timeout=60_000)
-            page.wait_for_function(r"() => /Rejected: [1-9][0-9]* of/.test(document.body.innerText)",
-                                   timeout=timeout_s * 1000)
+            page.wait_for_function(
+                r"() => /Rejected: [1-9][0-9]* of/.test(document.body.innerText)", timeout=timeout_s * 1000
+            )
             out["reject_s"] = time.perf_counter() - t2
-            page.wait_for_function(r"() => /refine \(ML\): RMS .*\([0-9.]+ s\)/.test(document.body.innerText)",
-                                   timeout=timeout_s * 1000)
+            page.wait_for_function(
+                r"() => /refine \(ML\): RMS .*\([0-9.]+ s\)/.test(document.body.innerText)", timeout=timeout_s * 1000
+            )
             out["reject_refit_s"] = time.perf_counter() - t2
             m = re.search(r"refine \(ML\): RMS [^\n]*?\(([0-9.]+) s\)", page.inner_text("body"))
             if m:
@@ -224,13 +246,29 @@ def main(argv=None) -> int:
     cli = run_cli(path)
     print(f"CLI: {cli['wall_s']:.1f} s, peak {cli['peak_MB']:.0f} MB", flush=True)
     cli["engine_s"], cli["step_s"] = fit_times_s(path)
-    print(f"quiet process: magcal.calibrate {cli['engine_s']:.2f} s, the workbench's step {cli['step_s']:.2f} s",
-          flush=True)
+    print(
+        f"quiet process: magcal.calibrate {cli['engine_s']:.2f} s, the workbench's step {cli['step_s']:.2f} s",
+        flush=True,
+    )
 
     t0 = time.perf_counter()
-    server = subprocess.Popen([sys.executable, "-m", "magcal_workbench._launch", str(path), "--port", "0", "--no-session",
-                               "--max-points", str(args.max_points)], env=ENV, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "magcal_workbench._launch",
+            str(path),
+            "--port",
+            "0",
+            "--no-session",
+            "--max-points",
+            str(args.max_points),
+        ],
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     port = None
     log = []
     try:
@@ -260,24 +298,32 @@ def main(argv=None) -> int:
         server.terminate()
         server.wait(30)
 
-    fmt = lambda k, f="{:.1f}": f.format(row[k]) if k in row else "-"  # noqa: E731
+    fmt = lambda k, f="{:.1f}": f.format(row[k]) if k in row else "-"
     print()
     print(f"| {args.n:,} rows x 4 sensors, --max-points {args.max_points} | workbench | CLI |")
     print("|---|---|---|")
     print(f"| start (read + first scene), s | {fmt('start_s')} | - |")
-    print(f"| server memory after start / peak, MB | {fmt('rss_start_MB', '{:.0f}')} / {fmt('peak_MB', '{:.0f}')} | "
-          f"peak {cli['peak_MB']:.0f} |")
+    print(
+        f"| server memory after start / peak, MB | {fmt('rss_start_MB', '{:.0f}')} / {fmt('peak_MB', '{:.0f}')} | "
+        f"peak {cli['peak_MB']:.0f} |"
+    )
     print(f"| sent to a browser on connect, MB | {fmt('sent_connect_MB')} | - |")
     print(f"| sent to a browser by the fit's redraw, MB | {fmt('sent_fit_MB')} | - |")
     print(f"| Chromium: panel shown / first picture, s | {fmt('gui_s')} / {fmt('first_picture_s')} | - |")
-    print(f"| ML fit in a quiet process, s | {cli['step_s']:.2f} (Controller.step_calibrate) | "
-          f"{cli['engine_s']:.2f} (magcal.calibrate) |")
-    print(f"| ML fit in the served workbench, browser rendering beside it, s | {fmt('fit_s', '{:.2f}')} "
-          "(the page's figure) | - |")
+    print(
+        f"| ML fit in a quiet process, s | {cli['step_s']:.2f} (Controller.step_calibrate) | "
+        f"{cli['engine_s']:.2f} (magcal.calibrate) |"
+    )
+    print(
+        f"| ML fit in the served workbench, browser rendering beside it, s | {fmt('fit_s', '{:.2f}')} "
+        "(the page's figure) | - |"
+    )
     print(f"| whole CLI run (start, read, fit, report), s | - | {cli['wall_s']:.1f} |")
     print(f"| click -> RMS shown, s | {fmt('click_to_rms_s')} | - |")
-    print(f"| threshold reject shown / its warm ML refit done, s | {fmt('reject_s')} / {fmt('reject_refit_s')} "
-          f"(refit {fmt('refit_s', '{:.2f}')}) | - |")
+    print(
+        f"| threshold reject shown / its warm ML refit done, s | {fmt('reject_s')} / {fmt('reject_refit_s')} "
+        f"(refit {fmt('refit_s', '{:.2f}')}) | - |"
+    )
     cli_rms = f"{cli['rms']:.3f}" if isinstance(cli["rms"], (int, float)) else "-"
     print(f"| RMS after, nT | {fmt('rms_after_nT', '{:.3f}')} | {cli_rms} |")
     print(f"\n(whole benchmark {time.perf_counter() - t_all:.0f} s)")

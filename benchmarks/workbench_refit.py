@@ -108,12 +108,17 @@ def bench_refit(n, repeat, seed=1):
         floor = conventions.total_field_floor_nT(ds.noise_nT, int(ctrl.kept.sum()), 9)
         points = wb.scene_view.displayed.positions.shape[0]
         return {
-            "n": n, "points": points, "fit": statistics.median(timings["fit"]),
+            "n": n,
+            "points": points,
+            "fit": statistics.median(timings["fit"]),
             "engine": statistics.median(timings["engine"]),
             "scene": statistics.median(timings["scene"]) if timings["scene"] else float("nan"),
             "panels": statistics.median(timings["panels"]) if timings["panels"] else float("nan"),
-            "total": statistics.median(timings["total"]), "total_min": min(timings["total"]),
-            "seed": t_seed, "rms": ctrl.residual_rms_nT(), "floor": floor,
+            "total": statistics.median(timings["total"]),
+            "total_min": min(timings["total"]),
+            "seed": t_seed,
+            "rms": ctrl.residual_rms_nT(),
+            "floor": floor,
         }
     finally:
         wb.stop()
@@ -131,8 +136,14 @@ def bench_scene(n, repeat, seed=2):
         t_update, t_update_min, _ = _timed(wb.update_scene, repeat)
         model = wb.scene_model()
         t_recolor, t_recolor_min, _ = _timed(lambda: wb.scene_view.recolor(model), repeat)
-        return {"n": n, "points": wb.scene_view.displayed.positions.shape[0], "update": t_update,
-                "update_min": t_update_min, "recolor": t_recolor, "recolor_min": t_recolor_min}
+        return {
+            "n": n,
+            "points": wb.scene_view.displayed.positions.shape[0],
+            "update": t_update,
+            "update_min": t_update_min,
+            "recolor": t_recolor,
+            "recolor_min": t_recolor_min,
+        }
     finally:
         wb.stop()
 
@@ -156,14 +167,23 @@ def bench_solvers(n, repeat, seed=3):
         problem = Problem(ds, Model.base_model(ds.n_sensors), init)
 
         def minpack():
-            return least_squares(problem.residuals, problem.x0, jac=problem.jacobian, x_scale=problem.x_scale,
-                                 method="lm", xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            return least_squares(
+                problem.residuals,
+                problem.x0,
+                jac=problem.jacobian,
+                x_scale=problem.x_scale,
+                method="lm",
+                xtol=1e-10,
+                ftol=1e-10,
+                gtol=1e-10,
+            )
 
         t_ours, _, ours = _timed(lambda: _levenberg_marquardt(problem, problem.x0), repeat)
         t_mp, _, mp = _timed(minpack, repeat)
         n_rows = problem.n_residuals
-        rows.append((start, t_ours, ours.nfev, float(ours.r @ ours.r) / n_rows, t_mp, mp.nfev,
-                     float(mp.fun @ mp.fun) / n_rows))
+        rows.append(
+            (start, t_ours, ours.nfev, float(ours.r @ ours.r) / n_rows, t_mp, mp.nfev, float(mp.fun @ mp.fun) / n_rows)
+        )
     return rows
 
 
@@ -172,16 +192,25 @@ def main(argv=None):
     p.add_argument("--n", type=int, default=10_000, help="samples per sensor for the refit table")
     p.add_argument("--points", type=int, default=100_000, help="points shown for the scene table")
     p.add_argument("--repeat", type=int, default=5)
-    p.add_argument("--solver-n", type=int, nargs="*", default=[10_000, 100_000],
-                   help="samples per sensor for the solver comparison (empty to skip)")
+    p.add_argument(
+        "--solver-n",
+        type=int,
+        nargs="*",
+        default=[10_000, 100_000],
+        help="samples per sensor for the solver comparison (empty to skip)",
+    )
     args = p.parse_args(argv)
 
     r = bench_refit(args.n, args.repeat)
-    print(f"\nRejection -> refit -> scene update, four sensors, N = {r['n']} per sensor, {r['points']} points shown "
-          f"(median of {args.repeat}; target 300 ms)")
+    print(
+        f"\nRejection -> refit -> scene update, four sensors, N = {r['n']} per sensor, {r['points']} points shown "
+        f"(median of {args.repeat}; target 300 ms)"
+    )
     print(f"{'step':<34}{'ms':>10}")
-    print(f"{'ML refit (ours, warm start)':<34}{1e3 * r['fit']:>10.0f}   (engine magcal.fitting.fitter.fit: "
-          f"{1e3 * r['engine']:.0f}, workbench bookkeeping: {1e3 * (r['fit'] - r['engine']):.0f})")
+    print(
+        f"{'ML refit (ours, warm start)':<34}{1e3 * r['fit']:>10.0f}   (engine magcal.fitting.fitter.fit: "
+        f"{1e3 * r['engine']:.0f}, workbench bookkeeping: {1e3 * (r['fit'] - r['engine']):.0f})"
+    )
     print(f"{'two-step refit (seed method)':<34}{1e3 * r['seed']:>10.0f}")
     print(f"{'scene update':<34}{1e3 * r['scene']:>10.0f}")
     print(f"{'panels':<34}{1e3 * r['panels']:>10.0f}")
@@ -191,8 +220,9 @@ def main(argv=None):
     n_scene = int(np.ceil(args.points / 8))
     s = bench_scene(n_scene, args.repeat)
     print(f"\nScene alone, N = {s['n']} per sensor: {s['points']} points shown")
-    print(f"{'full update (points, colours, meshes)':<40}{1e3 * s['update']:>8.0f} ms "
-          f"(best {1e3 * s['update_min']:.0f})")
+    print(
+        f"{'full update (points, colours, meshes)':<40}{1e3 * s['update']:>8.0f} ms (best {1e3 * s['update_min']:.0f})"
+    )
     print(f"{'recolour only (after a rejection)':<40}{1e3 * s['recolor']:>8.0f} ms (best {1e3 * s['recolor_min']:.0f})")
 
     for n in args.solver_n:

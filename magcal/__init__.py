@@ -40,22 +40,38 @@ __version__ = "0.1.0"
 #: Each public name and the module that holds it, in the order data flows.
 _PUBLIC = {
     # data in
-    "read_csv": "magcal.data.io", "as_dataset": "magcal.data.inputs", "Dataset": "magcal.data.dataset",
-    "DatasetError": "magcal.data.dataset", "simulate": "magcal.data.simulation",
-    "simulate_timeseries": "magcal.data.simulation", "PRESETS": "magcal.data.simulation",
-    "ArrayTruth": "magcal.data.simulation", "SensorErrors": "magcal.data.simulation",
+    "read_csv": "magcal.data.io",
+    "as_dataset": "magcal.data.inputs",
+    "Dataset": "magcal.data.dataset",
+    "DatasetError": "magcal.data.dataset",
+    "simulate": "magcal.data.simulation",
+    "simulate_timeseries": "magcal.data.simulation",
+    "PRESETS": "magcal.data.simulation",
+    "ArrayTruth": "magcal.data.simulation",
+    "SensorErrors": "magcal.data.simulation",
     "parse_hidden": "magcal.model.perturbations",
     # calibrate, diagnose, apply
-    "calibrate": "magcal.api", "diagnose": "magcal.api", "CalibrationResult": "magcal.fitting.pipeline",
-    "Calibration": "magcal.calibration.calibration", "SensorCalibration": "magcal.calibration.calibration",
-    "Diagnosis": "magcal.diagnosis", "fit": "magcal.fitting.fitter", "FitResult": "magcal.fitting.fitter",
+    "calibrate": "magcal.api",
+    "diagnose": "magcal.api",
+    "CalibrationResult": "magcal.fitting.pipeline",
+    "Calibration": "magcal.calibration.calibration",
+    "SensorCalibration": "magcal.calibration.calibration",
+    "Diagnosis": "magcal.diagnosis",
+    "fit": "magcal.fitting.fitter",
+    "FitResult": "magcal.fitting.fitter",
     # the model and its effects
-    "Model": "magcal.model.terms", "Effect": "magcal.model.terms", "EFFECTS": "magcal.model", "register": "magcal.model.terms",
+    "Model": "magcal.model.terms",
+    "Effect": "magcal.model.terms",
+    "EFFECTS": "magcal.model",
+    "register": "magcal.model.terms",
     # flight-controller logs, live sources, parameters out
-    "read_log": "magcal.data.logs", "open_source": "magcal.data.live", "LiveSession": "magcal.data.live",
+    "read_log": "magcal.data.logs",
+    "open_source": "magcal.data.live",
+    "LiveSession": "magcal.data.live",
     "export_calibration": "magcal.output.export",
     # errors
-    "MagcalError": "magcal.core.errors", "CalibrationError": "magcal.core.errors",
+    "MagcalError": "magcal.core.errors",
+    "CalibrationError": "magcal.core.errors",
 }
 
 __all__ = [*_PUBLIC, "__version__"]

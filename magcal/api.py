@@ -17,8 +17,19 @@ from magcal.fitting.validation import validate_effects
 __all__ = ["read_csv", "calibrate", "diagnose", "as_dataset"]
 
 
-def calibrate(data, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None, *, t=None,
-              temp=None, noise_nT=None, validate: bool = False, **options):
+def calibrate(
+    data,
+    method: str = "ml",
+    effects=(),
+    robust: bool = False,
+    reference_total_nT=None,
+    *,
+    t=None,
+    temp=None,
+    noise_nT=None,
+    validate: bool = False,
+    **options,
+):
     """Calibrate one to four sensors from readings taken while turning them in a uniform field.
 
     Parameters
@@ -75,10 +86,16 @@ def calibrate(data, method: str = "ml", effects=(), robust: bool = False, refere
     """
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
-    result = pipeline.calibrate(dataset, method=method, effects=effects, robust=robust,
-                                reference_total_nT=reference_total_nT, noise_nT=noise_nT, **options)
+    result = pipeline.calibrate(
+        dataset,
+        method=method,
+        effects=effects,
+        robust=robust,
+        reference_total_nT=reference_total_nT,
+        noise_nT=noise_nT,
+        **options,
+    )
     if validate:
-
         result.validation = validate_effects(dataset, result)
     if options.get("mask") is None:
         result.calibration.fitted_on(dataset)  # record-only terms act on this record only

@@ -60,7 +60,7 @@ def clean_upload_name(name) -> str:
     if len(base) > MAX_NAME_CHARS:
         stem, dot, ext = base.rpartition(".")
         ext = ext if dot and len(ext) <= 8 else ""
-        base = base[:MAX_NAME_CHARS - len(ext) - 1].rstrip() + ("." + ext if ext else "")
+        base = base[: MAX_NAME_CHARS - len(ext) - 1].rstrip() + ("." + ext if ext else "")
     return base
 
 
@@ -90,10 +90,21 @@ class Workbench:
         (:func:`magcal_workbench.scene.level_of_detail`), every sample is still fitted and selectable.
     """
 
-    def __init__(self, dataset, host: str = "127.0.0.1", port: int = 8080, store: SessionStore | None = None,
-                 content: bytes | None = None, name: str = "data.csv", resume: bool = True, lesson: str | None = None,
-                 verbose: bool = False, effects_files=(), max_upload_mb: float = DEFAULT_MAX_UPLOAD_MB,
-                 max_points: int = scn.MAX_POINTS):
+    def __init__(
+        self,
+        dataset,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        store: SessionStore | None = None,
+        content: bytes | None = None,
+        name: str = "data.csv",
+        resume: bool = True,
+        lesson: str | None = None,
+        verbose: bool = False,
+        effects_files=(),
+        max_upload_mb: float = DEFAULT_MAX_UPLOAD_MB,
+        max_points: int = scn.MAX_POINTS,
+    ):
         self.max_upload_bytes = int(max_upload_mb * 1e6)
         self._refit_pending = False
         self._pending_lock = threading.Lock()
@@ -147,8 +158,11 @@ class Workbench:
         sid, state, notes = None, None, []
         if self.store is not None and content is not None:
             sid = self.store.create(name, content)
-            notes += [f"the session folder is bounded to {self.store.max_bytes / 1e6:g} MB: deleted the oldest "
-                      f"session {old} ({size / 1e6:.1f} MB)" for old, size in self.store.pruned]
+            notes += [
+                f"the session folder is bounded to {self.store.max_bytes / 1e6:g} MB: deleted the oldest "
+                f"session {old} ({size / 1e6:.1f} MB)"
+                for old, size in self.store.pruned
+            ]
             if resume and self.store.exists(sid):
                 state, note = self._read_session(sid, dataset)
                 if note:
@@ -167,8 +181,9 @@ class Workbench:
         if lesson is not None:
             ctrl.state.lesson = lesson
         if notes:
-            ctrl.message = "  \n".join(f"**Note:** {safe_text(n, MESSAGE_LEN)}" for n in notes +
-                                        ([ctrl.message] if ctrl.message else []))
+            ctrl.message = "  \n".join(
+                f"**Note:** {safe_text(n, MESSAGE_LEN)}" for n in notes + ([ctrl.message] if ctrl.message else [])
+            )
         ctrl.autosave()
         return ctrl
 
@@ -272,23 +287,33 @@ class Workbench:
         cal = ctrl.calibration
         views = []
         for s in shown:
-            views.append(scn.SensorView(
-                sensor=s, raw_nT=ds.readings_nT[s],
-                corrected_nT=None if ctrl.corrected_nT is None else ctrl.corrected_nT[s],
-                residual_nT=(ctrl.raw_residual_nT()[s] if ctrl.residual_nT is None else ctrl.residual_nT[s]),
-                cinv=None if cal is None else cal.sensors[s].cinv,
-                bias_nT=None if cal is None else cal.sensors[s].bias_nT,
-                R=None if cal is None else cal.sensors[s].R))
+            views.append(
+                scn.SensorView(
+                    sensor=s,
+                    raw_nT=ds.readings_nT[s],
+                    corrected_nT=None if ctrl.corrected_nT is None else ctrl.corrected_nT[s],
+                    residual_nT=(ctrl.raw_residual_nT()[s] if ctrl.residual_nT is None else ctrl.residual_nT[s]),
+                    cinv=None if cal is None else cal.sensors[s].cinv,
+                    bias_nT=None if cal is None else cal.sensors[s].bias_nT,
+                    R=None if cal is None else cal.sensors[s].R,
+                )
+            )
         from .timewindow import sample_times
 
         times = sample_times(ds)
         return scn.SceneModel(
-            sensors=views, n_sensors=ds.n_sensors, field_nT=ctrl.field_nT, kept=ctrl.state.kept,  # live, even in a job
+            sensors=views,
+            n_sensors=ds.n_sensors,
+            field_nT=ctrl.field_nT,
+            kept=ctrl.state.kept,  # live, even in a job
             floor_nT=ctrl.floor_nT(),
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
-            inspected=ctrl.inspected, window=self.window.mask(times), current=self.window.current(times),
-            **self.panels.view_options())
+            inspected=ctrl.inspected,
+            window=self.window.mask(times),
+            current=self.window.current(times),
+            **self.panels.view_options(),
+        )
 
     def update_scene(self) -> None:
         with self._scene_lock:
@@ -300,14 +325,17 @@ class Workbench:
         title = "total-field residual" if fitted else "raw |y| - F"
         html = scn.legend_html(self.scene_view.last_limit_nT, title)
         if self.maps.patterns and not (live is not None and live.active):
-            html += scn.legend_html(self.maps.limit_nT, f"sphere surface: {self.maps.choice}; grey: not visited",
-                                    swatches=False)
+            html += scn.legend_html(
+                self.maps.limit_nT, f"sphere surface: {self.maps.choice}; grey: not visited", swatches=False
+            )
         return html
 
     def draw_evidence(self) -> None:
         from .plots import evidence_figure
 
-        fig = evidence_figure(self.ctrl, window_s=self._evidence_band(), before_rms_nT=self.maps.before_rms_nT(self.ctrl))
+        fig = evidence_figure(
+            self.ctrl, window_s=self._evidence_band(), before_rms_nT=self.maps.before_rms_nT(self.ctrl)
+        )
         holder = self.panels.evidence_holder
         if fig is None:
             if self.evidence_plot is not None:
@@ -346,15 +374,18 @@ class Workbench:
             overlay.visible = False
             self.panels.btn_full_evidence.label = "Full-size evidence"
             return
-        png = evidence_image(self.ctrl, "png", self._evidence_band(), self._evidence_title(),
-                             self.maps.before_rms_nT(self.ctrl))
+        png = evidence_image(
+            self.ctrl, "png", self._evidence_band(), self._evidence_title(), self.maps.before_rms_nT(self.ctrl)
+        )
         if png is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         data = base64.b64encode(png).decode("ascii")
-        overlay.content = ('<div style="position:fixed;left:0;top:0;width:calc(100vw - 27em);height:100vh;'
-                           'background:white;z-index:50;overflow:auto;padding:0.5em;box-sizing:border-box">'
-                           f'<img alt="evidence plots" src="data:image/png;base64,{data}" '
-                           'style="width:100%;height:auto;display:block"></div>')
+        overlay.content = (
+            '<div style="position:fixed;left:0;top:0;width:calc(100vw - 27em);height:100vh;'
+            'background:white;z-index:50;overflow:auto;padding:0.5em;box-sizing:border-box">'
+            f'<img alt="evidence plots" src="data:image/png;base64,{data}" '
+            'style="width:100%;height:auto;display:block"></div>'
+        )
         overlay.visible = True
         self.panels.btn_full_evidence.label = "Back to the scene"
 
@@ -364,8 +395,9 @@ class Workbench:
     def _download_evidence(self, event, fmt: str):
         from .plots import evidence_image
 
-        data = evidence_image(self.ctrl, fmt, self._evidence_band(), self._evidence_title(),
-                              self.maps.before_rms_nT(self.ctrl))
+        data = evidence_image(
+            self.ctrl, fmt, self._evidence_band(), self._evidence_title(), self.maps.before_rms_nT(self.ctrl)
+        )
         if data is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         self._download(event, f"evidence.{fmt}", data)
@@ -404,8 +436,9 @@ class Workbench:
         d = self.scene_view.displayed
         if d.positions.shape[0] == 0:
             return
-        i, dist = scn.nearest_to_ray(d.positions, event.ray_origin, event.ray_direction,
-                                     max_distance=4 * self.scene_view.point_size)
+        i, dist = scn.nearest_to_ray(
+            d.positions, event.ray_origin, event.ray_direction, max_distance=4 * self.scene_view.point_size
+        )
         self.ctrl.inspect(None if i is None else int(d.samples[i]))
 
     def _on_rect_select(self, event) -> None:
@@ -441,8 +474,7 @@ class Workbench:
             self.ctrl.say(error_markdown(exc))
             client = getattr(event, "client", None)
             if client is not None:  # a toast shows plain text: only cut to length
-                client.add_notification("magcal", clean_text(error_text(exc), 300), color="red",
-                                        auto_close_seconds=8.0)
+                client.add_notification("magcal", clean_text(error_text(exc), 300), color="red", auto_close_seconds=8.0)
         except Exception as exc:  # never let a callback die silently (error_markdown logs the traceback)
             self.ctrl.say(error_markdown(exc))
 
@@ -458,8 +490,11 @@ class Workbench:
         """``id(widget) -> (min, max)`` of every slider and number as the panels made them."""
         import viser
 
-        return {id(h): (h.min, h.max) for h in vars(self.panels).values()
-                if isinstance(h, (viser.GuiSliderHandle, viser.GuiNumberHandle))}
+        return {
+            id(h): (h.min, h.max)
+            for h in vars(self.panels).values()
+            if isinstance(h, (viser.GuiSliderHandle, viser.GuiNumberHandle))
+        }
 
     def allowed_choices(self, handle) -> tuple:
         """The values a dropdown may hold: what the server offers for it now (its first one is the default)."""
@@ -509,12 +544,19 @@ class Workbench:
             allowed = self.allowed_choices(handle)
             if value not in allowed:
                 self._put_back(handle, allowed[0])
-                raise MagcalError(f"{label}: {clean_text(repr(value), 60)} is not one of the choices offered; "
-                                  "refused (nothing was read or saved)")
+                raise MagcalError(
+                    f"{label}: {clean_text(repr(value), 60)} is not one of the choices offered; "
+                    "refused (nothing was read or saved)"
+                )
         elif isinstance(handle, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
             lo, hi = self._ranges.get(id(handle), (None, None))
-            ok = (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                  and (lo is None or value >= lo) and (hi is None or value <= hi))
+            ok = (
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and (lo is None or value >= lo)
+                and (hi is None or value <= hi)
+            )
             if not ok:
                 good = lo if lo is not None else 0.0
                 if isinstance(value, (int, float)) and math.isfinite(value):
@@ -573,8 +615,12 @@ class Workbench:
     def window_changed(self, event):
         """A Time window widget moved: take its values (checked) into the window, which redraws."""
         p = self.panels
-        self.window.set(enabled=bool(self.check_value(p.window_on)), start_pct=float(self.check_value(p.window_start)),
-                        width_pct=float(self.check_value(p.window_width)), speed=float(self.check_value(p.play_speed)))
+        self.window.set(
+            enabled=bool(self.check_value(p.window_on)),
+            start_pct=float(self.check_value(p.window_start)),
+            width_pct=float(self.check_value(p.window_width)),
+            speed=float(self.check_value(p.play_speed)),
+        )
 
     def _window_moved(self) -> None:
         from .timewindow import sample_times
@@ -594,8 +640,10 @@ class Workbench:
         times = sample_times(self.ctrl.dataset)
         if not self.panels.window_on.value:
             self.panels.window_on.value = True  # its callback turns the window on
-        self.window.play(float(np.nanmax(times) - np.nanmin(times)),
-                         advance=lambda pct: setattr(self.panels.window_start, "value", round(pct, 1)))
+        self.window.play(
+            float(np.nanmax(times) - np.nanmin(times)),
+            advance=lambda pct: setattr(self.panels.window_start, "value", round(pct, 1)),
+        )
         self.panels.window_info.content = safe_text(self.window.describe(times))
 
     def do_pause_play(self, event):
@@ -619,7 +667,8 @@ class Workbench:
                 raise MagcalError(
                     f"sensor {s + 1}: every kept reading is the same vector ({', '.join(f'{v:g}' for v in r[0])}) "
                     "nT, so the data hold no field measurement to fit or diagnose (a zero-filled file or a "
-                    "disconnected sensor?); check the sensor's output")
+                    "disconnected sensor?); check the sensor's output"
+                )
 
     def do_ellipsoid(self, event):
         self._check_readings()
@@ -671,8 +720,10 @@ class Workbench:
                 if busy:
                     self._refit_pending = True  # applied after the running job, with this change
             if busy:
-                self.ctrl.say(f"{self.ctrl.message}; the refit follows when "
-                              f"{safe_text(self.ctrl.worker.current or 'the running step')} ends")
+                self.ctrl.say(
+                    f"{self.ctrl.message}; the refit follows when "
+                    f"{safe_text(self.ctrl.worker.current or 'the running step')} ends"
+                )
                 return
             if not self.ctrl.submit_job("refit", self.ctrl.step_refine):
                 with self._pending_lock:  # a job started in between: the refit follows it
@@ -710,8 +761,10 @@ class Workbench:
             if message.size_bytes <= self.max_upload_bytes:
                 return
             gui._current_file_upload_states.pop(message.transfer_uuid, None)
-            text = (f"{clean_upload_name(message.filename)}: {message.size_bytes / 1e6:.1f} MB is more than the "
-                    f"upload limit of {self.max_upload_bytes / 1e6:g} MB; refused")
+            text = (
+                f"{clean_upload_name(message.filename)}: {message.size_bytes / 1e6:.1f} MB is more than the "
+                f"upload limit of {self.max_upload_bytes / 1e6:g} MB; refused"
+            )
 
             def tell():  # off viser's event loop, like every callback
                 self.ctrl.say(f"**Error:** {safe_text(text)}")
@@ -730,9 +783,11 @@ class Workbench:
         if not content:
             raise MagcalError(f"{name}: the file is empty")
         if len(content) > self.max_upload_bytes:
-            raise MagcalError(f"{name}: {len(content) / 1e6:.1f} MB is more than the upload limit of "
-                              f"{self.max_upload_bytes / 1e6:g} MB; open it from the command line "
-                              "(magcal-workbench FILE.csv) or start the workbench with a larger --max-upload-mb")
+            raise MagcalError(
+                f"{name}: {len(content) / 1e6:.1f} MB is more than the upload limit of "
+                f"{self.max_upload_bytes / 1e6:g} MB; open it from the command line "
+                "(magcal-workbench FILE.csv) or start the workbench with a larger --max-upload-mb"
+            )
         self._last_upload = (name, content)
         self._open_upload(name, content)
 
@@ -750,8 +805,11 @@ class Workbench:
         columns = self.check_value(p.upload_columns).strip() or None
         units = self.check_value(p.upload_units)
         lsb = float(self.check_value(p.upload_lsb))
-        return {"columns": columns, "units": None if units == UPLOAD_UNITS[0] else units,
-                "lsb_nT": lsb if lsb > 0 else None}
+        return {
+            "columns": columns,
+            "units": None if units == UPLOAD_UNITS[0] else units,
+            "lsb_nT": lsb if lsb > 0 else None,
+        }
 
     def _open_upload(self, name: str, content: bytes) -> None:
         from magcal.data.logs import is_log
@@ -764,17 +822,21 @@ class Workbench:
         def job():
             header = content[:4096].decode("utf-8", "replace").splitlines()
             found = next((line for line in header if line.strip() and not line.startswith("#")), "")
-            self.panels.upload_info.content = "" if is_log(name) else \
-                f"Columns in {safe_code(name)}: {safe_text(found, 400)}"
+            self.panels.upload_info.content = (
+                "" if is_log(name) else f"Columns in {safe_code(name)}: {safe_text(found, 400)}"
+            )
             try:
                 ds, notes = read_bytes_dataset(name, content, **options)
             except MagcalError as exc:
                 raise MagcalError(page_words(str(exc))) from None
             # a session keeps data read through a mapping, units or a log reader as magcal's own CSV
-            self.load(ds, canonical_csv(ds) if mapped else content, name if not mapped else
-                      os.path.splitext(name)[0] + ".csv")
-            self._say_after_load(f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
-                                 + "".join(f"  \n- {safe_text(page_words(n), MESSAGE_LEN)}" for n in notes))
+            self.load(
+                ds, canonical_csv(ds) if mapped else content, name if not mapped else os.path.splitext(name)[0] + ".csv"
+            )
+            self._say_after_load(
+                f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
+                + "".join(f"  \n- {safe_text(page_words(n), MESSAGE_LEN)}" for n in notes)
+            )
 
         self._job("open file", job)
 
@@ -805,8 +867,7 @@ class Workbench:
         if self.store is None or sid in ("-", None):
             raise MagcalError("no saved session chosen")
         if sid == self.ctrl.session_id:
-            raise MagcalError(f"session {sid} is the one open; open other data first, or use Start this data "
-                              "afresh")
+            raise MagcalError(f"session {sid} is the one open; open other data first, or use Start this data afresh")
         freed = self.store.size_bytes(sid)
         self.store.delete(sid)
         self.panels.refresh_sessions()
@@ -869,9 +930,11 @@ class Workbench:
         def job():
             ds, notes = load_dataset(path, path.name)
             self.load(ds, path.read_bytes(), path.name, resume=False)
-            self._say_after_load(f"opened the recording {safe_code(path.name)}: "
-                                 f"{safe_text(ds.describe(), MESSAGE_LEN)}"
-                                 + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes))
+            self._say_after_load(
+                f"opened the recording {safe_code(path.name)}: "
+                f"{safe_text(ds.describe(), MESSAGE_LEN)}"
+                + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes)
+            )
 
         self._job("open the recording", job)
 
@@ -885,8 +948,7 @@ class Workbench:
             content = lesson.data_path.read_bytes()
             self.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
             self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
-            self.panels.lesson_feedback.content = (lesson.answer_markdown() if self.ctrl.state.answer_revealed
-                                                   else "")
+            self.panels.lesson_feedback.content = lesson.answer_markdown() if self.ctrl.state.answer_revealed else ""
             self._say_after_load(f"lesson **{lesson.title}** opened")
 
         self._job("open lesson", job)
@@ -908,13 +970,14 @@ class Workbench:
         self.ctrl.autosave()
         self.panels.lesson_feedback.content = lesson.answer_markdown()
 
-
     # the user's effects
     def do_load_effects(self, event):
         """Load the effects file typed in the Model tab (runs its code: only when served to this machine)."""
         if not self.local:
-            raise MagcalError("loading an effects file runs its Python code on the server; it is allowed only when "
-                              "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead")
+            raise MagcalError(
+                "loading an effects file runs its Python code on the server; it is allowed only when "
+                "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
+            )
         path = self.check_value(self.panels.effects_path)
         self._job("load effects file", lambda: self.ctrl.load_effects_file(path))
 
@@ -933,38 +996,67 @@ def host_warning(host: str) -> str | None:
     """The warning printed when the workbench is served beyond this machine (None for loopback)."""
     if is_loopback(host):
         return None
-    return (f"WARNING: serving on {host}: anyone who can reach this address can see and change the session "
-            "(data, model, files). Use the default 127.0.0.1 unless you mean to share it.")
+    return (
+        f"WARNING: serving on {host}: anyone who can reach this address can see and change the session "
+        "(data, model, files). Use the default 127.0.0.1 unless you mean to share it."
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="magcal-workbench",
-                                description="Calibrate magnetometers in the browser: fit, diagnose, add effects.")
+    p = argparse.ArgumentParser(
+        prog="magcal-workbench", description="Calibrate magnetometers in the browser: fit, diagnose, add effects."
+    )
     p.add_argument("file", nargs="?", help="data CSV (default: the bundled demo)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to serve on (default 127.0.0.1, this machine only)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
     p.add_argument("--session-dir", default=None, help="where sessions are saved (default ~/.magcal/sessions)")
     p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
     p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
     p.add_argument("--lesson", default=None, help="open a lesson by name (see assets/lessons)")
-    p.add_argument("--max-upload-mb", type=float, default=DEFAULT_MAX_UPLOAD_MB, metavar="MB",
-                   help=f"largest file the page may upload, MB (default {DEFAULT_MAX_UPLOAD_MB:g})")
-    p.add_argument("--max-sessions-mb", type=float, default=MAX_STORE_BYTES / 1e6, metavar="MB",
-                   help="bound of the session folder, MB: the oldest sessions are deleted to stay within it "
-                        f"(default {MAX_STORE_BYTES / 1e6:g})")
-    p.add_argument("--max-points", type=int, default=scn.MAX_POINTS, metavar="N",
-                   help=f"most points drawn per sensor's cloud; larger files are shown decimated, fitted whole "
-                        f"(default {scn.MAX_POINTS})")
-    p.add_argument("--live", default=None, metavar="SOURCE",
-                   help="calibrate live from an instrument: serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-                        "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)")
-    p.add_argument("--record", default=None, metavar="PATH",
-                   help="with --live: the CSV recording (a new file; default live-DATE-TIME.csv in the session "
-                        "folder's recordings, or here with --no-session)")
-    p.add_argument("--effects-file", action="append", default=[], metavar="PATH",
-                   help="a Python file defining your own effects (runs its code; repeat for several files); "
-                        "docs/user-effects.md")
+    p.add_argument(
+        "--max-upload-mb",
+        type=float,
+        default=DEFAULT_MAX_UPLOAD_MB,
+        metavar="MB",
+        help=f"largest file the page may upload, MB (default {DEFAULT_MAX_UPLOAD_MB:g})",
+    )
+    p.add_argument(
+        "--max-sessions-mb",
+        type=float,
+        default=MAX_STORE_BYTES / 1e6,
+        metavar="MB",
+        help="bound of the session folder, MB: the oldest sessions are deleted to stay within it "
+        f"(default {MAX_STORE_BYTES / 1e6:g})",
+    )
+    p.add_argument(
+        "--max-points",
+        type=int,
+        default=scn.MAX_POINTS,
+        metavar="N",
+        help=f"most points drawn per sensor's cloud; larger files are shown decimated, fitted whole "
+        f"(default {scn.MAX_POINTS})",
+    )
+    p.add_argument(
+        "--live",
+        default=None,
+        metavar="SOURCE",
+        help="calibrate live from an instrument: serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+        "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)",
+    )
+    p.add_argument(
+        "--record",
+        default=None,
+        metavar="PATH",
+        help="with --live: the CSV recording (a new file; default live-DATE-TIME.csv in the session "
+        "folder's recordings, or here with --no-session)",
+    )
+    p.add_argument(
+        "--effects-file",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="a Python file defining your own effects (runs its code; repeat for several files); docs/user-effects.md",
+    )
     return p
 
 
@@ -1003,9 +1095,19 @@ def main(argv=None) -> int:
             print(f"magcal-workbench: {warning}", file=sys.stderr)
         if not args.max_upload_mb > 0 or args.max_points < 1:
             raise MagcalError("--max-upload-mb and --max-points must be positive")
-        wb = Workbench(dataset, args.host, args.port, store, content, os.path.basename(str(path)),
-                       resume=not args.fresh, lesson=lesson, effects_files=args.effects_file,
-                       max_upload_mb=args.max_upload_mb, max_points=args.max_points)
+        wb = Workbench(
+            dataset,
+            args.host,
+            args.port,
+            store,
+            content,
+            os.path.basename(str(path)),
+            resume=not args.fresh,
+            lesson=lesson,
+            effects_files=args.effects_file,
+            max_upload_mb=args.max_upload_mb,
+            max_points=args.max_points,
+        )
         if lesson:
             wb.panels.lesson_guide.content = f"### {lesson_obj.title}\n\n{lesson_obj.guide()}"
         if args.live:

@@ -19,7 +19,7 @@ import threading
 import time
 import traceback
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -47,7 +47,7 @@ def format_number(v, digits: int = 4) -> str:
     v = float(v)
     if not np.isfinite(v):
         return "-"
-    if 10.0 ** digits <= abs(v) < 1e7:
+    if 10.0**digits <= abs(v) < 1e7:
         return f"{v:.0f}"
     return f"{v:.{digits}g}"
 
@@ -78,8 +78,14 @@ class Controller:
         Folder of this session in ``store``.
     """
 
-    def __init__(self, dataset, state: SessionState | None = None, store: SessionStore | None = None,
-                 session_id: str | None = None, worker: Worker | None = None):
+    def __init__(
+        self,
+        dataset,
+        state: SessionState | None = None,
+        store: SessionStore | None = None,
+        session_id: str | None = None,
+        worker: Worker | None = None,
+    ):
         self.dataset = dataset
         self.state = state or SessionState(dataset.n_samples, dataset.n_sensors, dataset.source)
         if (self.state.n_samples, self.state.n_sensors) != (dataset.n_samples, dataset.n_sensors):
@@ -88,15 +94,15 @@ class Controller:
         self.session_id = session_id
         self.worker = worker or Worker()
         self.calibration: Calibration | None = None
-        self.fit_result = None            # FitResult of the last ML step, if any
-        self.calibration_result = None    # CalibrationResult of the last pipeline run, if any
-        self.corrected_nT: np.ndarray | None = None   # (n_sensors, N, 3) array frame, every sample
-        self.residual_nT: np.ndarray | None = None    # (n_sensors, N) total-field residual, every sample
+        self.fit_result = None  # FitResult of the last ML step, if any
+        self.calibration_result = None  # CalibrationResult of the last pipeline run, if any
+        self.corrected_nT: np.ndarray | None = None  # (n_sensors, N, 3) array frame, every sample
+        self.residual_nT: np.ndarray | None = None  # (n_sensors, N) total-field residual, every sample
         #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
         #: estimated after each fit (:attr:`noise` says how).
         self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
-        self.noise = None                 # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
-        self._quality = None              # QualityReport of the data (magcal.checks.quality.assess), made when first asked
+        self.noise = None  # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
+        self._quality = None  # QualityReport of the data (magcal.checks.quality.assess), made when first asked
         self.diagnosis = None
         self.inspected: int | None = None
         self.message = ""
@@ -106,8 +112,11 @@ class Controller:
         self._job_pin = threading.local()  # the mask and model of the job running in this thread
         if not self.state.history:
             raw = self.raw_residual_nT()
-            self.state.history.append(StepRecord("raw readings", _rms(raw[:, self.kept]), None, [],
-                                                 int(self.kept.sum()), "no correction: |y| - F"))
+            self.state.history.append(
+                StepRecord(
+                    "raw readings", _rms(raw[:, self.kept]), None, [], int(self.kept.sum()), "no correction: |y| - F"
+                )
+            )
         if self.state.calibration:
             try:
                 self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
@@ -158,8 +167,7 @@ class Controller:
         from .sessionfile import REFERENCE_RANGE_nT
 
         if "method" in settings and settings["method"] not in METHODS:
-            raise MagcalError(f"unknown method {clean_text(repr(settings['method']), 40)}; one of "
-                              f"{', '.join(METHODS)}")
+            raise MagcalError(f"unknown method {clean_text(repr(settings['method']), 40)}; one of {', '.join(METHODS)}")
         ref = settings.get("reference_nT")
         if ref is not None:
             try:
@@ -167,11 +175,16 @@ class Controller:
             except (TypeError, ValueError):
                 ok = False
             if not ok:
-                raise MagcalError(f"reference field {clean_text(ref, 40)} nT: give a number in "
-                                  f"{REFERENCE_RANGE_nT[0]:g} ... {REFERENCE_RANGE_nT[1]:g} nT, or 0 for none")
+                raise MagcalError(
+                    f"reference field {clean_text(ref, 40)} nT: give a number in "
+                    f"{REFERENCE_RANGE_nT[0]:g} ... {REFERENCE_RANGE_nT[1]:g} nT, or 0 for none"
+                )
         sensor = settings.get("sensor")
-        if sensor is not None and (isinstance(sensor, bool) or not isinstance(sensor, (int, np.integer))
-                                   or not 0 <= sensor < self.dataset.n_sensors):
+        if sensor is not None and (
+            isinstance(sensor, bool)
+            or not isinstance(sensor, (int, np.integer))
+            or not 0 <= sensor < self.dataset.n_sensors
+        ):
             raise MagcalError(f"no sensor {clean_text(sensor, 40)}; the data have {self.dataset.n_sensors}")
 
     # ------------------------------------------------------------------------------------------------------
@@ -284,8 +297,9 @@ class Controller:
         finding = quality.field_magnitude_finding(float(cal.reference_total_nT))
         if finding is None:
             return report
-        return quality.QualityReport(list(report.findings) + [finding], report.n_sensors, report.n_samples,
-                                     report.source)
+        return quality.QualityReport(
+            list(report.findings) + [finding], report.n_sensors, report.n_samples, report.source
+        )
 
     @property
     def noise_given_nT(self) -> float | None:
@@ -311,8 +325,12 @@ class Controller:
             return
         k = self.kept
         try:
-            self.noise = estimate_noise(self.fit_dataset().subset(k), self.residual_nT[:, k],
-                                        self._n_params_total(fit), noise_nT=self.state.noise_nT)
+            self.noise = estimate_noise(
+                self.fit_dataset().subset(k),
+                self.residual_nT[:, k],
+                self._n_params_total(fit),
+                noise_nT=self.state.noise_nT,
+            )
         except MagcalError:
             self.noise = None
         self.noise_nT = self.noise.sigma_nT if self.noise is not None else self.noise_given_nT
@@ -338,8 +356,10 @@ class Controller:
             if value == 0.0:
                 value = None
             elif not NOISE_RANGE_nT[0] <= value <= NOISE_RANGE_nT[1]:
-                raise MagcalError(f"noise {clean_text(noise_nT, 40)} nT: give a number in {NOISE_RANGE_nT[0]:g} ... "
-                                  f"{NOISE_RANGE_nT[1]:g} nT per axis, or 0 to estimate it")
+                raise MagcalError(
+                    f"noise {clean_text(noise_nT, 40)} nT: give a number in {NOISE_RANGE_nT[0]:g} ... "
+                    f"{NOISE_RANGE_nT[1]:g} nT per axis, or 0 to estimate it"
+                )
         with self._lock:
             self.state.noise_nT = value
             self.state.touch()
@@ -378,13 +398,20 @@ class Controller:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                v = validation.validate(kept, model=fit.model, scheme="blocks", init=fit.calibration,
-                                        robust=self.state.robust, reference_total_nT=self.reference_arg)
+                v = validation.validate(
+                    kept,
+                    model=fit.model,
+                    scheme="blocks",
+                    init=fit.calibration,
+                    robust=self.state.robust,
+                    reference_total_nT=self.reference_arg,
+                )
         except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
             from magcal.model import plugins
 
-            why = plugins.user_code_error(exc) or (error_text(exc) if isinstance(exc, MagcalError)
-                                                     else f"{type(exc).__name__}: {error_text(exc)}")
+            why = plugins.user_code_error(exc) or (
+                error_text(exc) if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {error_text(exc)}"
+            )
             return None, f"held-out validation failed: {why}"
         finally:
             self.progress = None
@@ -402,8 +429,14 @@ class Controller:
         for label in self.state.effects:
             name = label.partition(":")[0]
             cls = EFFECTS.get(name)
-            out.append({"label": label, "name": name, "transferable": True if cls is None else is_transferable(cls),
-                        "description": "" if cls is None else (cls.description or "")})
+            out.append(
+                {
+                    "label": label,
+                    "name": name,
+                    "transferable": True if cls is None else is_transferable(cls),
+                    "description": "" if cls is None else (cls.description or ""),
+                }
+            )
         return out
 
     def record_only_applied(self) -> list[str]:
@@ -463,8 +496,9 @@ class Controller:
         self.corrected_nT = fields
         self.residual_nT = res if residual_nT is None else np.asarray(residual_nT, float)
 
-    def _changes(self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float,
-                 tensor_before=None) -> str:
+    def _changes(
+        self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float, tensor_before=None
+    ) -> str:
         """One line: RMS before -> after, and how much each parameter group moved."""
         parts = [f"RMS {format_number(rms_before)} -> {format_number(rms_after)} nT"]
         if old is not None and old.n_sensors == new.n_sensors:
@@ -484,16 +518,22 @@ class Controller:
             parts.append(f"worst tensor RMS {prev:.4g} -> {worst:.4g} nT/m")
         return "; ".join(parts)
 
-    def _record(self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None,
-                fit=None, notes=()) -> StepRecord:
+    def _record(
+        self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None, fit=None, notes=()
+    ) -> StepRecord:
         rms_after = self.residual_rms_nT()
         self._estimate_noise(fit)
         outcome = None if fit is None else fit.summary()
-        rec = StepRecord(step=step, rms_nT=rms_after, floor_nT=self.floor_nT(),
-                         effects=self._job_effects(), n_kept=int(self.kept.sum()),
-                         changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
-                         elapsed_s=time.perf_counter() - t0,
-                         fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS})
+        rec = StepRecord(
+            step=step,
+            rms_nT=rms_after,
+            floor_nT=self.floor_nT(),
+            effects=self._job_effects(),
+            n_kept=int(self.kept.sum()),
+            changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
+            elapsed_s=time.perf_counter() - t0,
+            fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
+        )
         self.state.record(rec, self.calibration.to_dict())
         self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
@@ -522,8 +562,10 @@ class Controller:
     def _check_kept(self) -> None:
         n = int(self.kept.sum())
         if n < self.MIN_KEPT:
-            raise MagcalError(f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
-                              "rejection or restore samples (Outliers tab)")
+            raise MagcalError(
+                f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
+                "rejection or restore samples (Outliers tab)"
+            )
 
     def _before(self):
         self._check_kept()
@@ -587,8 +629,14 @@ class Controller:
         ds = self.fit_dataset()
         with warnings.catch_warnings(record=True) as wl:
             warnings.simplefilter("always")
-            result = ml_fit(ds, self._model(), init=init, loss="soft_l1" if self.state.robust else "linear",
-                                mask=self.kept, reference_total_nT=self.reference_arg)
+            result = ml_fit(
+                ds,
+                self._model(),
+                init=init,
+                loss="soft_l1" if self.state.robust else "linear",
+                mask=self.kept,
+                reference_total_nT=self.reference_arg,
+            )
         notes = [str(w.message) for w in wl if not issubclass(w.category, ConvergenceWarning)]  # the status says it
         self.fit_result = result
         self.calibration_result = None
@@ -607,15 +655,21 @@ class Controller:
         effects = list(self.state.effects) if method == "ml" else []
         with warnings.catch_warnings(record=True):
             warnings.simplefilter("always")  # the same concerns are in result.warnings
-            result = pipeline.calibrate(self.fit_dataset(), method=method, effects=effects,
-                                        robust=self.state.robust, reference_total_nT=self.reference_arg, seed=0,
-                                        progress=self._report_progress, mask=self.kept,
-                                        noise_nT=self.state.noise_nT)
+            result = pipeline.calibrate(
+                self.fit_dataset(),
+                method=method,
+                effects=effects,
+                robust=self.state.robust,
+                reference_total_nT=self.reference_arg,
+                seed=0,
+                progress=self._report_progress,
+                mask=self.kept,
+                noise_nT=self.state.noise_nT,
+            )
         self.calibration_result = result
         self.fit_result = result.fit
         self.diagnosis = None
-        self._set_calibration(result.calibration,
-                              None if result.fit is None else result.fit.residuals_all_nT)
+        self._set_calibration(result.calibration, None if result.fit is None else result.fit.residuals_all_nT)
         self.progress = None
         self._emit("progress")
         name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
@@ -643,10 +697,17 @@ class Controller:
                 missing = [plugins.user_code_error(exc) or f"{type(exc).__name__}: {exc}"]
             if entry.get("error"):
                 missing = list(missing) + [entry["error"]]
-            out.append({"name": entry["name"], "description": entry.get("description") or "",
-                        "channels": list(entry.get("channels", ())), "missing": [str(m) for m in missing],
-                        "origin": entry.get("origin", "built-in"), "source": entry.get("source", ""),
-                        "transferable": entry.get("transferable")})
+            out.append(
+                {
+                    "name": entry["name"],
+                    "description": entry.get("description") or "",
+                    "channels": list(entry.get("channels", ())),
+                    "missing": [str(m) for m in missing],
+                    "origin": entry.get("origin", "built-in"),
+                    "source": entry.get("source", ""),
+                    "transferable": entry.get("transferable"),
+                }
+            )
         return out
 
     def load_effects_file(self, path) -> list[str]:
@@ -688,7 +749,6 @@ class Controller:
     def _check_label(self, label) -> str:
         """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
         :class:`MagcalError` (a label may come from a browser)."""
-        from magcal.model import plugins
         from magcal.model.terms import EFFECTS
 
         label = label.strip() if isinstance(label, str) else label
@@ -719,16 +779,17 @@ class Controller:
             self.step_refine()
         t0 = time.perf_counter()
         self._report_progress("diagnosing", None)
-        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress,
-                     noise_nT=self.state.noise_nT)
+        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress, noise_nT=self.state.noise_nT)
         self.diagnosis = d
         self.progress = None
         self._emit("progress")
         self._emit("diagnosis")
         top = d.candidates[0] if getattr(d, "candidates", None) else None
         extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
-        self.say(f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({time.perf_counter() - t0:.2f} s)  \n"
-                 f"{safe_text(d.summary, MESSAGE_LEN)}")
+        self.say(
+            f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({time.perf_counter() - t0:.2f} s)  \n"
+            f"{safe_text(d.summary, MESSAGE_LEN)}"
+        )
         return d
 
     def step_add(self, label: str | None = None) -> StepRecord | None:
@@ -816,10 +877,13 @@ class Controller:
             extra[f"s{s + 1}_residual_nT"] = self.residual_nT[s]
         ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
         record_only = self.record_only_applied()
-        meta = {"corrected_by": "magcal workbench", "frame": self.calibration.frame,
-                "effects": ",".join(self.state.effects) or "none",
-                # record-only terms describe this recording: applied here, they would not carry to another one
-                "record_only_terms_applied": ",".join(record_only) or "none"}
+        meta = {
+            "corrected_by": "magcal workbench",
+            "frame": self.calibration.frame,
+            "effects": ",".join(self.state.effects) or "none",
+            # record-only terms describe this recording: applied here, they would not carry to another one
+            "record_only_terms_applied": ",".join(record_only) or "none",
+        }
         # in memory from the writer's own parts (write_csv writes only to a path, atomically)
         columns = mio.dataset_columns(ds)
         out = io.StringIO(newline="")
@@ -912,8 +976,7 @@ def read_bytes_dataset(name: str, content: bytes, **options):
         ds, notes = load_dataset(path, name)
     given = [k for k, v in options.items() if v is not None]
     if given:
-        notes.append(f"{name}: a flight-controller log carries its own fields and units; "
-                     f"{', '.join(given)} ignored")
+        notes.append(f"{name}: a flight-controller log carries its own fields and units; {', '.join(given)} ignored")
     return ds, notes
 
 
@@ -933,7 +996,10 @@ def canonical_csv(dataset) -> bytes:
 
 def page_words(text: str) -> str:
     """An engine message with the command line's option names replaced by the page's widgets."""
-    for flag, widget in (("--columns", "the Files tab's Columns box:"), ("--units", "the Files tab's Units choice"),
-                         ("--lsb", "the Files tab's LSB box")):
+    for flag, widget in (
+        ("--columns", "the Files tab's Columns box:"),
+        ("--units", "the Files tab's Units choice"),
+        ("--lsb", "the Files tab's LSB box"),
+    ):
         text = text.replace(flag, widget)
     return text

@@ -154,5 +154,6 @@ def guarded_viser_server(host: str, port: int, verbose: bool = False):
         server.stop()
         raise HandshakeHookMissing(
             f"viser {viser.__version__} no longer starts its server through websockets' serve(process_request="
-            f"{VISER_HOOK}); the workbench cannot check who connects and does not start (see workbench/guard.py)")
+            f"{VISER_HOOK}); the workbench cannot check who connects and does not start (see workbench/guard.py)"
+        )
     return server

@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from typing import Callable
+from collections.abc import Callable
 
 
 class Worker:
@@ -35,8 +35,13 @@ class Worker:
         """``func(busy, job_name)`` is called when a job starts and when it ends."""
         self._listeners.append(func)
 
-    def submit(self, name: str, job: Callable[[], object], on_done: Callable[[object], None] | None = None,
-               on_error: Callable[[BaseException], None] | None = None) -> bool:
+    def submit(
+        self,
+        name: str,
+        job: Callable[[], object],
+        on_done: Callable[[object], None] | None = None,
+        on_error: Callable[[BaseException], None] | None = None,
+    ) -> bool:
         """Start ``job`` in the background unless another job runs; returns False (and starts nothing) if busy.
 
         ``on_done(result)`` or ``on_error(exc)`` run in the worker thread after the job.
@@ -46,8 +51,9 @@ class Worker:
                 return False
             self._idle.clear()
             self.current = name
-            self._thread = threading.Thread(target=self._run, args=(name, job, on_done, on_error),
-                                            name=f"workbench-{name}", daemon=True)
+            self._thread = threading.Thread(
+                target=self._run, args=(name, job, on_done, on_error), name=f"workbench-{name}", daemon=True
+            )
         self._notify(True, name)
         self._thread.start()
         return True

@@ -49,8 +49,9 @@ class Lesson:
         if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
             from magcal.core.errors import MagcalError
 
-            raise MagcalError(f"{self.folder / 'lesson.json'}: 'data' must be a file name in the lesson's folder, "
-                             f"got {name!r}")
+            raise MagcalError(
+                f"{self.folder / 'lesson.json'}: 'data' must be a file name in the lesson's folder, got {name!r}"
+            )
         return self.folder / name
 
     def guide(self) -> str:
@@ -94,8 +95,11 @@ class Lesson:
         elif missing == 0:
             message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."
         else:
-            message = (f"{len(found)} of {len(wanted)} hidden effect(s) found"
-                       + (f"; not hidden here: {_labels(extra)}" if extra else "") + ". Keep looking.")
+            message = (
+                f"{len(found)} of {len(wanted)} hidden effect(s) found"
+                + (f"; not hidden here: {_labels(extra)}" if extra else "")
+                + ". Keep looking."
+            )
         return {"found": found, "missing": missing, "extra": extra, "solved": solved, "message": message}
 
     def _doc(self) -> dict:

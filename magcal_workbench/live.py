@@ -81,8 +81,11 @@ class LiveFit:
         self.noise_nT = float(result.noise_nT)
         self.noise_source = result.noise_source
         fit = result.fit
-        sd = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None)) if fit is not None and fit.covariance is not None \
+        sd = (
+            np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None))
+            if fit is not None and fit.covariance is not None
             else None
+        )
         names = fit.param_names if fit is not None else []
         #: Largest standard error of a bias component (nT) and of a C^-1 entry, over the sensors.
         self.bias_sd_nT = self._largest(sd, names, "_bias_")
@@ -121,7 +124,7 @@ class LiveView:
         self.verdict = (False, "waiting for samples")
         self.n_drawn = 0
         self.last_draw_monotonic = None  # when the scene last took new samples (for the latency benchmark)
-        self.draw_log = []                # (monotonic time of the update, samples drawn)
+        self.draw_log = []  # (monotonic time of the update, samples drawn)
         self._dataset = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -179,8 +182,9 @@ class LiveView:
         if fit is not None:
             shapes = [self._shape_of(fit.calibration.sensors[s]) for s in range(ds.n_sensors)]
         self.maps = [direction_map(ds.readings_nT[s], COVERAGE_CELLS, shape=shapes[s]) for s in range(ds.n_sensors)]
-        self.verdict = live_sufficient(self.maps, None if fit is None else fit.rms_nT,
-                                       None if fit is None else fit.floor_nT)
+        self.verdict = live_sufficient(
+            self.maps, None if fit is None else fit.rms_nT, None if fit is None else fit.floor_nT
+        )
         self.app.update_scene()
         self.draw_coverage()
         self.n_drawn = ds.n_samples
@@ -195,8 +199,12 @@ class LiveView:
     def _shape_of(sensor):
         from magcal.geometry.shape import FieldShape
 
-        return FieldShape(centre_nT=np.asarray(sensor.bias_nT, float), cinv=np.asarray(sensor.cinv, float),
-                          field_nT=float("nan"), source="fit")
+        return FieldShape(
+            centre_nT=np.asarray(sensor.bias_nT, float),
+            cinv=np.asarray(sensor.cinv, float),
+            field_nT=float("nan"),
+            source="fit",
+        )
 
     def _maybe_refit(self, ds, idle: bool = False) -> None:
         """Start a refit in the background when the samples have grown enough since the last one, or some time
@@ -254,15 +262,28 @@ class LiveView:
         else:
             residual = np.linalg.norm(ds.readings_nT, axis=2) - F
         cal = None if fit is None else fit.calibration
-        views = [scn.SensorView(
-            sensor=s, raw_nT=ds.readings_nT[s], corrected_nT=None if corrected is None else corrected[s],
-            residual_nT=residual[s], cinv=None if cal is None else cal.sensors[s].cinv,
-            bias_nT=None if cal is None else cal.sensors[s].bias_nT, R=None if cal is None else cal.sensors[s].R)
-            for s in range(ds.n_sensors)]
+        views = [
+            scn.SensorView(
+                sensor=s,
+                raw_nT=ds.readings_nT[s],
+                corrected_nT=None if corrected is None else corrected[s],
+                residual_nT=residual[s],
+                cinv=None if cal is None else cal.sensors[s].cinv,
+                bias_nT=None if cal is None else cal.sensors[s].bias_nT,
+                R=None if cal is None else cal.sensors[s].R,
+            )
+            for s in range(ds.n_sensors)
+        ]
         return scn.SceneModel(
-            sensors=views, n_sensors=ds.n_sensors, field_nT=F, kept=np.ones(ds.n_samples, bool),
-            floor_nT=None if fit is None else fit.floor_nT, baseline_m=ds.baseline_m,
-            all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors], **options)
+            sensors=views,
+            n_sensors=ds.n_sensors,
+            field_nT=F,
+            kept=np.ones(ds.n_samples, bool),
+            floor_nT=None if fit is None else fit.floor_nT,
+            baseline_m=ds.baseline_m,
+            all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
+            **options,
+        )
 
     def draw_coverage(self) -> None:
         """One coverage sphere per sensor, where its corrected cloud is drawn: visited cells green, missing grey,
@@ -272,15 +293,22 @@ class LiveView:
         with self.app.server.atomic():
             for s, m in enumerate(self.maps):
                 centre = scn.group_offset(s, n) + [scn.PAIR_OFFSET, 0, 0]
-                colors = np.where(m.visited[:, None], np.array(VISITED_RGB, np.uint8),
-                                  np.array(MISSING_RGB, np.uint8)).astype(np.uint8)
+                colors = np.where(
+                    m.visited[:, None], np.array(VISITED_RGB, np.uint8), np.array(MISSING_RGB, np.uint8)
+                ).astype(np.uint8)
                 pts = (COVERAGE_RADIUS * m.cells + centre).astype(np.float32)
                 name = f"/live/s{s + 1}/coverage"
                 handle = self._coverage_nodes.get(name)
                 if handle is None:
                     self._coverage_nodes[name] = scene.add_point_cloud(
-                        name, pts, colors, point_size=0.05, point_shape="circle", precision="float32",
-                        point_shading="flat")
+                        name,
+                        pts,
+                        colors,
+                        point_size=0.05,
+                        point_shape="circle",
+                        precision="float32",
+                        point_shading="flat",
+                    )
                 else:
                     handle.colors = colors
                 d = m.next_direction
@@ -291,14 +319,18 @@ class LiveView:
                 if d is not None and not m.enough:
                     seg = np.array([[centre, centre + 1.3 * COVERAGE_RADIUS * d]], np.float32)
                     self._coverage_nodes[mark] = scene.add_line_segments(
-                        mark, seg, colors=NEXT_RGB, thickness=6.0, thickness_units="screen")
+                        mark, seg, colors=NEXT_RGB, thickness=6.0, thickness_units="screen"
+                    )
                 label = f"/live/s{s + 1}/label"
                 old = self._coverage_nodes.pop(label, None)
                 if old is not None:
                     old.remove()
                 self._coverage_nodes[label] = scene.add_label(
-                    label, f"S{s + 1} directions {100 * m.fraction:.0f} %",
-                    position=tuple(centre + [0, 0, -1.25]), anchor="top-center")
+                    label,
+                    f"S{s + 1} directions {100 * m.fraction:.0f} %",
+                    position=tuple(centre + [0, 0, -1.25]),
+                    anchor="top-center",
+                )
 
     def clear_coverage(self) -> None:
         for handle in self._coverage_nodes.values():
@@ -309,12 +341,15 @@ class LiveView:
         """The Files tab's live panel: source, samples, recording, coverage, fit, verdict."""
         s = self.session
         state = "stopped" if self.stopped else ("paused" if s.paused else ("receiving" if s.running else "ended"))
-        lines = [f"**Live** {safe_code(self.url)}: {state}; {s.n_samples} samples received, {s.n_recorded} "
-                 f"on disk in {safe_code(self.path.name)}"]
+        lines = [
+            f"**Live** {safe_code(self.url)}: {state}; {s.n_samples} samples received, {s.n_recorded} "
+            f"on disk in {safe_code(self.path.name)}"
+        ]
         stats = s.source.stats
         if stats.n_bad:
-            lines.append(f"- {stats.n_bad} lines or messages could not be read (last: "
-                         f"{safe_text(stats.last_bad or '', 120)})")
+            lines.append(
+                f"- {stats.n_bad} lines or messages could not be read (last: {safe_text(stats.last_bad or '', 120)})"
+            )
         if s.error:
             lines.append(f"- **the source stopped:** {safe_text(s.error, 300)}")
         for i, m in enumerate(self.maps):
@@ -330,9 +365,11 @@ class LiveView:
                 sd.append(f"bias +-{fit.bias_sd_nT:.3g} nT")
             if fit.cinv_sd is not None:
                 sd.append(f"C^-1 entries +-{fit.cinv_sd:.2g}")
-            lines.append(f"- fit on {fit.n_samples} samples: RMS **{fit.rms_nT:.3g} nT** (noise floor "
-                         f"{fit.floor_nT:.3g} nT, noise from {fit.noise_source}); standard errors "
-                         + (", ".join(sd) or "not available"))
+            lines.append(
+                f"- fit on {fit.n_samples} samples: RMS **{fit.rms_nT:.3g} nT** (noise floor "
+                f"{fit.floor_nT:.3g} nT, noise from {fit.noise_source}); standard errors "
+                + (", ".join(sd) or "not available")
+            )
         elif self.fit_error:
             lines.append(f"- no fit yet: {safe_text(self.fit_error, 300)}")
         ok, why = self.verdict
@@ -371,9 +408,11 @@ def check_page_source(url: str, local: bool) -> str:
 
         name = url.split("://", 1)[-1].split("?", 1)[0]
         if scheme not in REMOTE_SCHEMES or name not in PRESETS:
-            raise MagcalError("the workbench is served beyond this machine: the page may start only a simulated "
-                              f"preset ({', '.join('sim://' + p for p in PRESETS)}); start a device, socket or "
-                              "file from the command line (magcal-workbench --live SOURCE)")
+            raise MagcalError(
+                "the workbench is served beyond this machine: the page may start only a simulated "
+                f"preset ({', '.join('sim://' + p for p in PRESETS)}); start a device, socket or "
+                "file from the command line (magcal-workbench --live SOURCE)"
+            )
     return url
 
 

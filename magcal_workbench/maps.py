@@ -51,10 +51,10 @@ class SphereMaps:
     def __init__(self, app):
         self.app = app
         self.choice = SURFACE_CHOICES[0]
-        self.patterns = []          # DirectionPattern per shown sensor (for tests and the legend)
+        self.patterns = []  # DirectionPattern per shown sensor (for tests and the legend)
         self.note = ""
         self._nodes = {}
-        self._previous = None       # (calibration id, residual (n_sensors, N)) before the last fit
+        self._previous = None  # (calibration id, residual (n_sensors, N)) before the last fit
         self._current = None
         self._vf = None
 
@@ -160,5 +160,7 @@ class SphereMaps:
             return self.note
         amps = ", ".join(f"S{i + 1} +-{scn.readable_nT(p.amplitude_nT)}" for i, p in enumerate(self.patterns))
         lead = f"{self.note}: " if self.note else ""
-        return (f"{lead}colour scale per sensor (nT): {amps}; grey: directions never visited; degree up to "
-                f"{max(p.max_degree for p in self.patterns)}")
+        return (
+            f"{lead}colour scale per sensor (nT): {amps}; grey: directions never visited; degree up to "
+            f"{max(p.max_degree for p in self.patterns)}"
+        )

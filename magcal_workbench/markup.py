@@ -29,16 +29,31 @@ _CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069\u200e\u200f
 
 #: HTML-active characters become entities; markdown-active punctuation is backslash-escaped (CommonMark allows
 #: a backslash before any ASCII punctuation). One translation table, so nothing is escaped twice.
-_ESCAPES = str.maketrans({
-    "&": "&amp;", "<": "&lt;", ">": "&gt;",
-    "\\": "\\\\", "`": "\\`", "*": "\\*", "_": "\\_", "[": "\\[", "]": "\\]", "|": "\\|", "#": "\\#",
-    "!": "\\!", "~": "\\~", "$": "\\$",
-})
+_ESCAPES = str.maketrans(
+    {
+        "&": "&amp;",
+        "<": "&lt;",
+        ">": "&gt;",
+        "\\": "\\\\",
+        "`": "\\`",
+        "*": "\\*",
+        "_": "\\_",
+        "[": "\\[",
+        "]": "\\]",
+        "|": "\\|",
+        "#": "\\#",
+        "!": "\\!",
+        "~": "\\~",
+        "$": "\\$",
+    }
+)
 
 #: An absolute path of two or more parts (POSIX ``/a/b``, ``~/a/b``, Windows ``C:\a\b``) that does not continue
 #: a word, a URL (``http://x/y``) or a relative path (``a/b``); group 1 is its last part.
-_ABS_PATH = re.compile(r"(?<![\w:/.~\\-])(?:~|[A-Za-z]:)?(?:[/\\][^\s/\\'\"`<>|,;:()\[\]]+){1,}[/\\]"
-                       r"([^\s/\\'\"`<>|,;:()\[\]]+)")
+_ABS_PATH = re.compile(
+    r"(?<![\w:/.~\\-])(?:~|[A-Za-z]:)?(?:[/\\][^\s/\\'\"`<>|,;:()\[\]]+){1,}[/\\]"
+    r"([^\s/\\'\"`<>|,;:()\[\]]+)"
+)
 
 #: What makes a line a list item, a heading underline or a thematic break when it starts the text.
 _LINE_START = re.compile(r"^(\s*\d*)([-+=.)])")
@@ -61,10 +76,10 @@ def clean_text(text, max_len: int = MAX_LEN) -> str:
         return ""
     s = text if isinstance(text, str) else str(text)
     if len(s) > 4 * max_len + 64:  # cut before the regular expression: a 3 MB header is not scanned whole
-        s = s[:4 * max_len + 64]
+        s = s[: 4 * max_len + 64]
     s = _CONTROL.sub(" ", s).strip()
     if len(s) > max_len:
-        s = s[:max(max_len - 1, 0)].rstrip() + ELLIPSIS
+        s = s[: max(max_len - 1, 0)].rstrip() + ELLIPSIS
     return s
 
 

@@ -42,9 +42,11 @@ def convergence_markdown(record) -> str:
     fit = getattr(record, "fit", None)
     if not fit or fit.get("success", True):
         return ""
-    return (f"⚠ **Warning: the fit did not converge** ({fit.get('message') or 'no reason given'}, "
-            f"{fit.get('nfev', '?')} evaluations): its figures are not a minimum. Press *3. Refine* to continue "
-            "from where it stopped, or check the data (outliers, attitude coverage, units, reference field).")
+    return (
+        f"⚠ **Warning: the fit did not converge** ({fit.get('message') or 'no reason given'}, "
+        f"{fit.get('nfev', '?')} evaluations): its figures are not a minimum. Press *3. Refine* to continue "
+        "from where it stopped, or check the data (outliers, attitude coverage, units, reference field)."
+    )
 
 
 def status_markdown(ctrl) -> str:
@@ -57,17 +59,24 @@ def status_markdown(ctrl) -> str:
         rms_text = "no kept samples"
     else:
         rms_text = fmt(rms, "nT") if np.isfinite(rms) else "not fitted yet"
-    text = (f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
-            f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
-            f"Model: {effects}")
+    text = (
+        f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
+        f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
+        f"Model: {effects}"
+    )
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
 
 
 def data_markdown(ctrl) -> str:
     ds = ctrl.dataset
-    src = (f"lesson {safe_code(ctrl.state.lesson)}" if ctrl.state.lesson
-           else safe_text(hide_paths(str(ds.source)), 200) if ds.source else "simulated data")
+    src = (
+        f"lesson {safe_code(ctrl.state.lesson)}"
+        if ctrl.state.lesson
+        else safe_text(hide_paths(str(ds.source)), 200)
+        if ds.source
+        else "simulated data"
+    )
     return f"**Data:** {src}  \n{safe_text(ds.describe(), 1000)}"
 
 
@@ -81,8 +90,10 @@ def sensors_markdown(ctrl) -> str:
         if ctrl.calibration is not None:
             c = ctrl.calibration.sensors[s]
             scale, angles = conventions.gauge_free(c.cinv)
-            rows.append(f"| {s + 1} | {fmt(per[s], digits=4)} | {', '.join(f'{v:.5f}' for v in scale)} | "
-                        f"{', '.join(f'{v:.3f}' for v in angles)} | {', '.join(f'{v:.1f}' for v in c.bias_nT)} |")
+            rows.append(
+                f"| {s + 1} | {fmt(per[s], digits=4)} | {', '.join(f'{v:.5f}' for v in scale)} | "
+                f"{', '.join(f'{v:.3f}' for v in angles)} | {', '.join(f'{v:.1f}' for v in c.bias_nT)} |"
+            )
         else:
             rows.append(f"| {s + 1} | - | - | - | - |")
     text = "\n".join(rows)
@@ -108,14 +119,17 @@ def history_markdown(state, last: int = 6) -> str:
     for i, r in enumerate(state.history[start:], start=start):
         flag = " (did not converge)" if convergence_markdown(r) else ""
         held = fmt(getattr(r, "held_out_rms_nT", None))
-        rows.append(f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {held} | "
-                    f"{safe_text(r.changes, 400)} |")
+        rows.append(
+            f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {held} | {safe_text(r.changes, 400)} |"
+        )
     return "\n".join(rows)
 
 
 #: Under the step history: what its held-out column means.
-HELD_OUT_NOTE = ("_held-out: the same model fitted on alternating blocks of time and scored on the blocks between; "
-                 "an added effect is real when it lowers this too._")
+HELD_OUT_NOTE = (
+    "_held-out: the same model fitted on alternating blocks of time and scored on the blocks between; "
+    "an added effect is real when it lowers this too._"
+)
 
 
 def candidates_markdown(diagnosis) -> str:
@@ -124,35 +138,42 @@ def candidates_markdown(diagnosis) -> str:
     from .controller import candidate_label
 
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
-    lines = [f"**Verdict:** {safe_code(d.get('verdict'))}  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
-             f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"]
+    lines = [
+        f"**Verdict:** {safe_code(d.get('verdict'))}  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
+        f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"
+    ]
     if d.get("summary"):
         lines.append(f"_{safe_text(d['summary'], 1000)}_")
     validation = d.get("validation") or {}
     blocks = (validation.get("schemes") or {}).get("blocks") if validation.get("validated") else None
     if blocks:
         base = fmt(blocks.get("base_held_out_rms_nT"), "nT")
-        lines.append(f"\nHeld-out check: each candidate refitted on alternating blocks of time and scored on the "
-                     f"{blocks.get('n_test')} samples between (base model {base}); only candidates whose gain holds "
-                     "there are recommended.")
+        lines.append(
+            f"\nHeld-out check: each candidate refitted on alternating blocks of time and scored on the "
+            f"{blocks.get('n_test')} samples between (base model {base}); only candidates whose gain holds "
+            "there are recommended."
+        )
     elif validation.get("skipped"):
         lines.append(f"\nHeld-out check not done: {safe_text(validation['skipped'], 300)}")
     for w in d.get("warnings", []) or []:
         lines.append(f"- warning: {safe_text(w, 1000)}")
     cands = d.get("candidates", []) or []
     if cands:
-        lines += ["", "| # | effect | dBIC | RMS after nT | held-out nT | holds? |",
-                  "|---|---|---|---|---|---|"]
+        lines += ["", "| # | effect | dBIC | RMS after nT | held-out nT | holds? |", "|---|---|---|---|---|---|"]
         for i, c in enumerate(cands[:8]):
             mark = "" if c.get("refitted", True) else "*"
-            lines.append(f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
-                         f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c)} |")
+            lines.append(
+                f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
+                f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c)} |"
+            )
         if any(not c.get("refitted", True) for c in cands[:8]):
             lines.append("\n\\* predicted by the score test, not refitted")
         if any(c.get("holds") is False for c in cands[:8]):
-            lines.append("\n⚠ A candidate that **does not hold on held-out data** lowers the error only on the "
-                         "samples it was fitted to: it describes something of this record (or its noise), not the "
-                         "instrument. You may still add it to see.")
+            lines.append(
+                "\n⚠ A candidate that **does not hold on held-out data** lowers the error only on the "
+                "samples it was fitted to: it describes something of this record (or its noise), not the "
+                "instrument. You may still add it to see."
+            )
     else:
         lines.append("_No candidate explains the residual._")
     return "\n".join(lines)
@@ -194,8 +215,10 @@ def candidate_evidence_markdown(diagnosis, label: str) -> str:
             refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
             text = f"**{safe_text(label)}** ({refit}): {safe_text(getattr(c, 'evidence', ''), 1000)}"
             if getattr(c, "holds", None) is False:
-                text = ("⚠ **This candidate does not hold on held-out data**: its gain is on the fitted samples "
-                        "only. Adding it is allowed, but it will not carry.  \n" + text)
+                text = (
+                    "⚠ **This candidate does not hold on held-out data**: its gain is on the fitted samples "
+                    "only. Adding it is allowed, but it will not carry.  \n" + text
+                )
             return text
     return ""
 
@@ -217,8 +240,7 @@ def effect_hint(entry: dict) -> str:
     """The tooltip of an effect's checkbox (plain text): what it models, where it comes from, why it is greyed."""
     origin = entry.get("origin", "built-in")
     where = "" if origin == "built-in" else f" [your effect: {origin} {entry.get('source', '')}]"
-    carry = {True: f" {TRANSFER_WORDS[True]}.", False: f" {TRANSFER_WORDS[False]}."}.get(entry.get("transferable"),
-                                                                                       "")
+    carry = {True: f" {TRANSFER_WORDS[True]}.", False: f" {TRANSFER_WORDS[False]}."}.get(entry.get("transferable"), "")
     text = (entry["description"] or entry["name"]) + where + carry
     if entry["missing"]:
         text = f"Unavailable: the data lack {', '.join(entry['missing'])}. {text}"
@@ -232,8 +254,10 @@ def user_effects_markdown(entries) -> str:
         return "_No effect of your own is loaded._"
     rows = ["**Your effects**"]
     for e in mine:
-        rows.append(f"- {safe_code(e['name'], 80)} ({safe_text(e['origin'])} {safe_code(e.get('source', ''), 200)})"
-                    f": {safe_text(e.get('description', ''), 300)}")
+        rows.append(
+            f"- {safe_code(e['name'], 80)} ({safe_text(e['origin'])} {safe_code(e.get('source', ''), 200)})"
+            f": {safe_text(e.get('description', ''), 300)}"
+        )
     return "\n".join(rows)
 
 
@@ -242,8 +266,10 @@ def sessions_markdown(sessions, max_bytes=None, last: int = 10) -> str:
     if not sessions:
         return "_No saved session._"
     rows = ["| session | saved | MB |", "|---|---|---|"]
-    rows += [f"| {safe_text(s['id'], 80)} | {safe_text(s.get('saved_at', ''), 20)} | {s.get('bytes', 0) / 1e6:.2f} |"
-             for s in sessions[:last]]
+    rows += [
+        f"| {safe_text(s['id'], 80)} | {safe_text(s.get('saved_at', ''), 20)} | {s.get('bytes', 0) / 1e6:.2f} |"
+        for s in sessions[:last]
+    ]
     total = sum(s.get("bytes", 0) for s in sessions)
     bound = f" of {max_bytes / 1e6:.0f} MB kept (the oldest go first)" if max_bytes else ""
     more = f", {len(sessions) - last} older not listed" if len(sessions) > last else ""
@@ -254,7 +280,7 @@ def sessions_markdown(sessions, max_bytes=None, last: int = 10) -> str:
 TRANSFER_WORDS = {
     True: "Instrument term: a property of the sensor, carried to new data by the calibration",
     False: "Record-only term: describes this recording (a drift, a step, the site's field); fitted so the "
-           "instrument terms stay unbiased, applied to this record only, never carried to new data",
+    "instrument terms stay unbiased, applied to this record only, never carried to new data",
 }
 
 
@@ -265,8 +291,11 @@ def model_terms_markdown(terms) -> str:
     rows = ["**In the model**"]
     for t in terms:
         kind = "instrument" if t["transferable"] else "record-only"
-        why = ("carried to new data" if t["transferable"] else
-               "this record only: not carried to new data without an external reference")
+        why = (
+            "carried to new data"
+            if t["transferable"]
+            else "this record only: not carried to new data without an external reference"
+        )
         rows.append(f"- {safe_code(t['label'], 80)} **{kind}**: {why}")
     return "\n".join(rows)
 
@@ -292,22 +321,27 @@ def quality_markdown(report) -> str:
         seen = sorted({f.kind.replace("_", " ") for f in quiet})
         lines.append(f"\nChecked, nothing to say: {safe_text(', '.join(seen), 300)}.")
     n_warn = sum(f.severity == "warning" for f in findings)
-    head = (f"**Data quality**: {n_warn} warning(s)" if n_warn else "**Data quality**: no warning")
+    head = f"**Data quality**: {n_warn} warning(s)" if n_warn else "**Data quality**: no warning"
     return head + "\n\n" + "\n".join(lines)
 
 
 def reference_markdown(ctrl) -> str:
     """The reference field the fits use, and where it comes from (the box above shows 0 for "not typed")."""
     ds, state, cal = ctrl.dataset, ctrl.state, ctrl.calibration
-    fitted = (f"; the last fit found {fmt(cal.reference_total_nT, 'nT', 6)}"
-              if cal is not None and cal.reference_total_nT else "")
+    fitted = (
+        f"; the last fit found {fmt(cal.reference_total_nT, 'nT', 6)}"
+        if cal is not None and cal.reference_total_nT
+        else ""
+    )
     if state.fit_reference:
         return f"_Reference used:_ fitted (you asked to fit the field magnitude){fitted}"
     if state.reference_nT:
         return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, typed here"
     if ds.ref_total_nT is not None:
-        return (f"_Reference used:_ per sample, the file's `ref_total` column (median "
-                f"{fmt(float(np.median(ds.ref_total_nT)), 'nT', 6)})")
+        return (
+            f"_Reference used:_ per sample, the file's `ref_total` column (median "
+            f"{fmt(float(np.median(ds.ref_total_nT)), 'nT', 6)})"
+        )
     if ds.reference_total_nT:
         return f"_Reference used:_ {fmt(ds.reference_total_nT, 'nT', 6)} from the file (`# reference_total_nT`)"
     return f"_Reference used:_ none given, so the field magnitude is fitted{fitted}"
@@ -316,8 +350,9 @@ def reference_markdown(ctrl) -> str:
 def noise_markdown(ctrl) -> str:
     """The noise behind the floors, the method that gave it, and the floor it sets."""
     floor = ctrl.floor_nT()
-    text = (f"**Noise:** {safe_text(ctrl.noise_text(), 800)}  \n"
-            f"Total-field floor of the current fit: {fmt(floor, 'nT', 3)}")
+    text = (
+        f"**Noise:** {safe_text(ctrl.noise_text(), 800)}  \nTotal-field floor of the current fit: {fmt(floor, 'nT', 3)}"
+    )
     noise = ctrl.noise
     if noise is not None and noise.note:
         text += f"  \n_{safe_text(noise.note, 600)}_"
@@ -331,14 +366,18 @@ def download_markdown(ctrl) -> str:
     applied = ctrl.record_only_applied()
     if not applied:
         return "The corrected CSV applies instrument terms only: the calibration JSON corrects new data the same way."
-    return (f"The corrected CSV applies the record-only term(s) {', '.join(safe_code(a, 80) for a in applied)}: "
-            "right for this record; the calibration JSON drops them on other data (magcal apply says so).")
+    return (
+        f"The corrected CSV applies the record-only term(s) {', '.join(safe_code(a, 80) for a in applied)}: "
+        "right for this record; the calibration JSON drops them on other data (magcal apply says so)."
+    )
 
 
 #: Shown next to the control that loads an effects file.
-EFFECTS_FILE_WARNING = ("⚠ **Loading a file runs its Python code** on the machine serving this page, with your "
-                        "permissions: load only files you wrote or trust. Its `@register` effects join the list "
-                        "above, Diagnose and the calibration JSON (docs/user-effects.md).")
+EFFECTS_FILE_WARNING = (
+    "⚠ **Loading a file runs its Python code** on the machine serving this page, with your "
+    "permissions: load only files you wrote or trust. Its `@register` effects join the list "
+    "above, Diagnose and the calibration JSON (docs/user-effects.md)."
+)
 
 
 def rms_plot_data(ctrl):
@@ -346,8 +385,10 @@ def rms_plot_data(ctrl):
     the noise: the current one (given or estimated) is drawn across every step, else the steps' own."""
     state = ctrl.state
     x, y, f = state.rms_series()
-    held = np.array([np.nan if getattr(r, "held_out_rms_nT", None) is None else r.held_out_rms_nT
-                     for r in state.history], dtype=float)
+    held = np.array(
+        [np.nan if getattr(r, "held_out_rms_nT", None) is None else r.held_out_rms_nT for r in state.history],
+        dtype=float,
+    )
     # the plot cannot leave a gap (uPlot draws NaN as a value): a step without a held-out figure is drawn at its
     # in-sample RMS (exact for the raw readings, where nothing is fitted; the table shows "-" for it)
     held = np.where(np.isfinite(held), held, y)
@@ -383,11 +424,17 @@ def view_gains(ctrl) -> tuple[float, float]:
     depart = np.abs(raw - 1.0)
     typical, largest = (float(np.median(depart)), float(np.percentile(depart, 99))) if raw.size else (0.0, 0.0)
     # below 1 the raw cloud is drawn closer to the sphere than it is (a hard iron above the field)
-    distortion = DISTORTION_GAIN_MAX if typical <= 0 else float(np.clip(
-        min(DRAWN_DISTORTION / typical, DRAWN_DISTORTION_MAX / largest), 0.1, DISTORTION_GAIN_MAX))
+    distortion = (
+        DISTORTION_GAIN_MAX
+        if typical <= 0
+        else float(np.clip(min(DRAWN_DISTORTION / typical, DRAWN_DISTORTION_MAX / largest), 0.1, DISTORTION_GAIN_MAX))
+    )
     rms = ctrl.residual_rms_nT()
-    residual = (RESIDUAL_GAIN_MAX if not np.isfinite(rms) or rms <= 0 else
-                float(np.clip(DRAWN_RESIDUAL * F / rms, 1.0, RESIDUAL_GAIN_MAX)))
+    residual = (
+        RESIDUAL_GAIN_MAX
+        if not np.isfinite(rms) or rms <= 0
+        else float(np.clip(DRAWN_RESIDUAL * F / rms, 1.0, RESIDUAL_GAIN_MAX))
+    )
     return float(round(distortion, 1) if distortion < 1 else round(distortion)), float(round(residual))
 
 
@@ -396,8 +443,9 @@ UPLOAD_UNITS = ("from the file", "nT", "uT", "G", "mG", "counts")
 
 
 #: The status line while a live session owns the scene.
-LIVE_STATUS = ("**Live session**: the Calibrate, Model and Outliers tabs work on the recording once it is stopped "
-               "(Files tab)")
+LIVE_STATUS = (
+    "**Live session**: the Calibrate, Model and Outliers tabs work on the recording once it is stopped (Files tab)"
+)
 
 
 class Panels:
@@ -450,6 +498,7 @@ class Panels:
         into the state. A callback whose value the state already holds does nothing, so :meth:`show_state` may
         write the state into every widget without re-triggering anything.
         """
+
         def changed(event):
             if handle.value != shown():
                 self.app.handle(lambda _: apply(handle.value), event)
@@ -469,22 +518,36 @@ class Panels:
         self.data_info = gui.add_markdown("")
         state, configure = (lambda: self.app.ctrl.state), (lambda **kw: self.app.ctrl.configure(**kw))
         self.method = self._bind(
-            gui.add_dropdown("Method", tuple(METHODS), initial_value="ml",
-                             hint="; ".join(METHOD_LABELS[m] for m in METHODS)),
-            lambda: state().method, lambda v: configure(method=v))
+            gui.add_dropdown(
+                "Method", tuple(METHODS), initial_value="ml", hint="; ".join(METHOD_LABELS[m] for m in METHODS)
+            ),
+            lambda: state().method,
+            lambda v: configure(method=v),
+        )
         self.reference = self._bind(
-            gui.add_number("Reference field nT", 0.0, min=0.0, step=1.0,
-                           hint="Total field in nT; 0 = the file's reference (or fitted if none)"),
+            gui.add_number(
+                "Reference field nT",
+                0.0,
+                min=0.0,
+                step=1.0,
+                hint="Total field in nT; 0 = the file's reference (or fitted if none)",
+            ),
             lambda: float(state().reference_nT or 0.0),
-            lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None))
+            lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None),
+        )
         self.fit_reference = self._bind(
-            gui.add_checkbox("Fit the field magnitude", False,
-                             hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)"),
-            lambda: bool(state().fit_reference), lambda v: configure(fit_reference=bool(v)))
+            gui.add_checkbox(
+                "Fit the field magnitude", False, hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)"
+            ),
+            lambda: bool(state().fit_reference),
+            lambda v: configure(fit_reference=bool(v)),
+        )
         self.reference_info = gui.add_markdown("")
         self.robust = self._bind(
             gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
-            lambda: bool(state().robust), lambda v: configure(robust=bool(v)))
+            lambda: bool(state().robust),
+            lambda v: configure(robust=bool(v)),
+        )
         self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.app.do_ellipsoid)
         self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.app.do_align)
         self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.app.do_refine)
@@ -495,8 +558,10 @@ class Panels:
             gui.add_markdown(HELD_OUT_NOTE)
 
     def _build_model(self, gui):
-        gui.add_markdown("Effects beyond bias, scale, non-orthogonality and misalignment. "
-                         "Greyed ones need a channel the data lack (hover for the reason).")
+        gui.add_markdown(
+            "Effects beyond bias, scale, non-orthogonality and misalignment. "
+            "Greyed ones need a channel the data lack (hover for the reason)."
+        )
         self.effect_boxes = {}
         self._boxes_lock = threading.Lock()
         self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
@@ -504,13 +569,16 @@ class Panels:
         self.model_terms = gui.add_markdown(model_terms_markdown(self.app.ctrl.model_terms()))
         with gui.add_folder("Your own effects", expand_by_default=False):
             self.user_effects = gui.add_markdown(user_effects_markdown(self.app.ctrl.available_effects()))
-            self.effects_path = gui.add_text("Effects file (.py)", "",
-                                             hint="Path of a Python file on the machine serving this page")
+            self.effects_path = gui.add_text(
+                "Effects file (.py)", "", hint="Path of a Python file on the machine serving this page"
+            )
             self.btn_load_effects = self._button(gui, "Load effects file", self.app.do_load_effects)
             self.effects_warning = gui.add_markdown(
-                EFFECTS_FILE_WARNING if self.app.local else
-                "_Loading an effects file is off: the page is served beyond this machine. Start the workbench "
-                "with `--effects-file PATH` instead._")
+                EFFECTS_FILE_WARNING
+                if self.app.local
+                else "_Loading an effects file is off: the page is served beyond this machine. Start the workbench "
+                "with `--effects-file PATH` instead._"
+            )
             self.btn_load_effects.disabled = not self.app.local
             self.effects_path.disabled = not self.app.local
         self.btn_refit = self._button(gui, "Refit with this model", self.app.do_refine)
@@ -521,23 +589,43 @@ class Panels:
         self.candidate_choice.on_update(lambda e: self.app.handle(self._candidate_chosen, e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
         self.rms_plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan]),
-                  np.array([np.nan, np.nan])),
-            series=({"label": "step"}, {"label": "RMS nT", "stroke": "#1f77b4", "width": 2,
-                                         "points": {"show": True, "size": 6}},
-                    {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
-                    {"label": "held-out RMS nT", "stroke": "#ff7f0e", "width": 2, "spanGaps": True,
-                     "points": {"show": True, "size": 6}}),
+            data=(
+                np.array([0.0, 1.0]),
+                np.array([np.nan, np.nan]),
+                np.array([np.nan, np.nan]),
+                np.array([np.nan, np.nan]),
+            ),
+            series=(
+                {"label": "step"},
+                {"label": "RMS nT", "stroke": "#1f77b4", "width": 2, "points": {"show": True, "size": 6}},
+                {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
+                {
+                    "label": "held-out RMS nT",
+                    "stroke": "#ff7f0e",
+                    "width": 2,
+                    "spanGaps": True,
+                    "points": {"show": True, "size": 6},
+                },
+            ),
             scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
             axes=({"label": "step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
-            padding=(14, 16, 0, 0), title="Total-field RMS per step", aspect=1.4)
-        self.btn_full_evidence = self._button(gui, "Full-size evidence", self.app.do_full_evidence, engine=False,
-                                              hint="The evidence plots over the scene, full size (press again to "
-                                                   "go back); the same data as below")
-        self.btn_evidence_png = self._button(gui, "Download evidence PNG", self.app.do_download_evidence_png,
-                                             engine=False)
-        self.btn_evidence_svg = self._button(gui, "Download evidence SVG", self.app.do_download_evidence_svg,
-                                             engine=False)
+            padding=(14, 16, 0, 0),
+            title="Total-field RMS per step",
+            aspect=1.4,
+        )
+        self.btn_full_evidence = self._button(
+            gui,
+            "Full-size evidence",
+            self.app.do_full_evidence,
+            engine=False,
+            hint="The evidence plots over the scene, full size (press again to go back); the same data as below",
+        )
+        self.btn_evidence_png = self._button(
+            gui, "Download evidence PNG", self.app.do_download_evidence_png, engine=False
+        )
+        self.btn_evidence_svg = self._button(
+            gui, "Download evidence SVG", self.app.do_download_evidence_svg, engine=False
+        )
         self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
         self.evidence_plot = None
 
@@ -547,9 +635,14 @@ class Panels:
 
         self.noise_info = gui.add_markdown("")
         self.noise_input = gui.add_number(
-            "Noise nT per axis", 0.0, min=0.0, max=NOISE_RANGE_nT[1], step=0.1,
+            "Noise nT per axis",
+            0.0,
+            min=0.0,
+            max=NOISE_RANGE_nT[1],
+            step=0.1,
             hint="The sensor's noise per axis (standard deviation, nT) if you know it; 0 = estimate it from the "
-                 "data (differences in time, still stretches, never below the quantization floor)")
+            "data (differences in time, still stretches, never below the quantization floor)",
+        )
         self.btn_noise = self._button(gui, "Use this noise for the floors", self._apply_noise, engine=False)
         self.quality = gui.add_markdown("")
 
@@ -558,13 +651,16 @@ class Panels:
         self.app.ctrl.set_noise(value if value > 0 else None)
 
     def _build_outliers(self, gui):
-        gui.add_markdown("**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
-                         "**click** a point to inspect its sample. Rejected points turn magenta.")
+        gui.add_markdown(
+            "**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
+            "**click** a point to inspect its sample. Rejected points turn magenta."
+        )
         self.box_mode = gui.add_dropdown("Box selection", ("reject", "restore"), initial_value="reject")
         self.k_sigma = gui.add_slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
         self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.app.do_threshold, engine=False)
-        self.auto_refit = gui.add_checkbox("Refit after each change", True,
-                                           hint="Refit (ML) on the kept samples after every rejection")
+        self.auto_refit = gui.add_checkbox(
+            "Refit after each change", True, hint="Refit (ML) on the kept samples after every rejection"
+        )
         with gui.add_folder("History", expand_by_default=True):
             self.btn_undo = self._button(gui, "Undo", self.app.do_undo, engine=False)
             self.btn_redo = self._button(gui, "Redo", self.app.do_redo, engine=False)
@@ -573,27 +669,37 @@ class Panels:
 
     def _build_view(self, gui):
         options = self._sensor_options(self.app.ctrl.dataset.n_sensors)
-        self.sensor_choice = self._bind(gui.add_dropdown("Sensor", options, initial_value=options[0]),
-                                        self._sensor_shown, self.app.set_sensor)
+        self.sensor_choice = self._bind(
+            gui.add_dropdown("Sensor", options, initial_value=options[0]), self._sensor_shown, self.app.set_sensor
+        )
         self.distortion_gain = gui.add_slider("Raw distortion x", min=0.1, max=50.0, step=0.1, initial_value=10.0)
-        self.residual_gain = gui.add_slider("Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=1.0,
-                                            initial_value=1000.0)
-        self.axes_gain = gui.add_slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0,
-                                        initial_value=20.0)
+        self.residual_gain = gui.add_slider(
+            "Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=1.0, initial_value=1000.0
+        )
+        self.axes_gain = gui.add_slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0, initial_value=20.0)
         self.show_raw = gui.add_checkbox("Raw cloud", True)
         self.show_ellipsoid = gui.add_checkbox("Fitted ellipsoid", True)
         self.show_corrected = gui.add_checkbox("Corrected cloud", True)
         #: The gains last set to suit the data (:func:`view_gains`); a gain the user moved is left alone.
         self._auto_gains = {id(self.distortion_gain): 10.0, id(self.residual_gain): 1000.0}
-        for h in (self.distortion_gain, self.residual_gain, self.axes_gain, self.show_raw, self.show_ellipsoid,
-                  self.show_corrected):
+        for h in (
+            self.distortion_gain,
+            self.residual_gain,
+            self.axes_gain,
+            self.show_raw,
+            self.show_ellipsoid,
+            self.show_corrected,
+        ):
             h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
         from .maps import SURFACE_CHOICES
 
         self.surface_choice = gui.add_dropdown(
-            "Sphere surface", SURFACE_CHOICES, initial_value=SURFACE_CHOICES[0],
+            "Sphere surface",
+            SURFACE_CHOICES,
+            initial_value=SURFACE_CHOICES[0],
             hint="A smooth surface inside each corrected cloud, coloured by a direction pattern (nT): the residual's, "
-                 "the chosen candidate's (what adding it would explain), or what the last fit took away")
+            "the chosen candidate's (what adding it would explain), or what the last fit took away",
+        )
         self.surface_choice.on_update(lambda e: self.app.handle(self.app.surface_changed, e))
         self.maps_info = gui.add_markdown("")
         with gui.add_folder("Time window", expand_by_default=True):
@@ -601,12 +707,14 @@ class Panels:
 
     def _build_time(self, gui):
         """The time scrubber (:mod:`workbench.timewindow`): a window of the recording on the sphere, replayed."""
-        self.window_on = gui.add_checkbox("Show a time window", False,
-                                          hint="Draw only the samples in the window; the evidence plots shade it")
+        self.window_on = gui.add_checkbox(
+            "Show a time window", False, hint="Draw only the samples in the window; the evidence plots shade it"
+        )
         self.window_start = gui.add_slider("Window start %", min=0.0, max=100.0, step=0.1, initial_value=0.0)
         self.window_width = gui.add_slider("Window width %", min=0.5, max=100.0, step=0.5, initial_value=10.0)
-        self.play_speed = gui.add_slider("Play speed x", min=1.0, max=100.0, step=1.0, initial_value=10.0,
-                                         hint="Multiple of real time")
+        self.play_speed = gui.add_slider(
+            "Play speed x", min=1.0, max=100.0, step=1.0, initial_value=10.0, hint="Multiple of real time"
+        )
         self.btn_play = self._button(gui, "Play", self.app.do_play, engine=False)
         self.btn_pause = self._button(gui, "Pause", self.app.do_pause_play, engine=False)
         self.btn_show_all = self._button(gui, "Show all", self.app.do_show_all, engine=False)
@@ -615,21 +723,33 @@ class Panels:
             h.on_update(lambda e: self.app.handle(self.app.window_changed, e))
 
     def _build_files(self, gui):
-        self.upload = gui.add_upload_button("Open a file (CSV, .bin, .ulg)",
-                                            mime_type=".csv,.txt,.bin,.ulg,text/csv,text/plain")
+        self.upload = gui.add_upload_button(
+            "Open a file (CSV, .bin, .ulg)", mime_type=".csv,.txt,.bin,.ulg,text/csv,text/plain"
+        )
         self.upload.on_upload(lambda e: self.app.handle(self.app.do_upload, e))
         self.upload_columns = gui.add_text(
-            "Columns", "", hint="Your column names mapped onto magcal's, as the command line's --columns: "
-                                "x=magX,y=magY,z=magZ,t=time,temp=T (empty: the file's own names)")
+            "Columns",
+            "",
+            hint="Your column names mapped onto magcal's, as the command line's --columns: "
+            "x=magX,y=magY,z=magZ,t=time,temp=T (empty: the file's own names)",
+        )
         self.upload_units = gui.add_dropdown(
-            "Units", UPLOAD_UNITS, initial_value=UPLOAD_UNITS[0],
-            hint="Unit of the readings; 'from the file' reads its '# units:' line (nT without one)")
-        self.upload_lsb = gui.add_number("LSB nT/count", 0.0, min=0.0, max=1e9, step=0.001,
-                                         hint="nT per count for raw counts (0: the file's '# lsb_nT:' line)")
+            "Units",
+            UPLOAD_UNITS,
+            initial_value=UPLOAD_UNITS[0],
+            hint="Unit of the readings; 'from the file' reads its '# units:' line (nT without one)",
+        )
+        self.upload_lsb = gui.add_number(
+            "LSB nT/count",
+            0.0,
+            min=0.0,
+            max=1e9,
+            step=0.001,
+            hint="nT per count for raw counts (0: the file's '# lsb_nT:' line)",
+        )
         self.btn_reread = self._button(gui, "Re-read the last upload with these", self.app.do_reread)
         self.upload_info = gui.add_markdown("")
-        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration,
-                                       engine=False)
+        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration, engine=False)
         self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.app.do_download_corrected, engine=False)
         self.download_info = gui.add_markdown("")
         gui.add_markdown("**Sessions** (saved automatically after every change)")
@@ -644,17 +764,23 @@ class Panels:
         """The live source: a URL, Start, Pause/Resume, Stop (:mod:`workbench.live`)."""
         from magcal.data.simulation import PRESETS
 
-        gui.add_markdown("**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
-                         "opens the recording here")
+        gui.add_markdown(
+            "**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
+            "opens the recording here"
+        )
         sample = "sim://chi2017?rate=50" if "chi2017" in PRESETS else f"sim://{next(iter(PRESETS))}?rate=50"
-        self.live_url = gui.add_text("Live source", sample,
-                                     hint="serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-                                          "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://PRESET?rate=50")
+        self.live_url = gui.add_text(
+            "Live source",
+            sample,
+            hint="serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+            "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://PRESET?rate=50",
+        )
         self.btn_live_start = self._button(gui, "Start live", self.app.do_live_start, engine=False)
         self.btn_live_pause = self._button(gui, "Pause", self.app.do_live_pause, engine=False, visible=False)
         self.btn_live_resume = self._button(gui, "Resume", self.app.do_live_resume, engine=False, visible=False)
-        self.btn_live_stop = self._button(gui, "Stop and open the recording", self.app.do_live_stop, engine=False,
-                                          visible=False)
+        self.btn_live_stop = self._button(
+            gui, "Stop and open the recording", self.app.do_live_stop, engine=False, visible=False
+        )
 
     def refresh_live(self) -> None:
         """Show the live session's state (called by the live view's thread after each update)."""
@@ -679,10 +805,13 @@ class Panels:
 
         lessons = list_lessons()
         opts = tuple(l.slug for l in lessons) or ("-",)
-        gui.add_markdown("Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
-                         "is missing, and check. The answer stays hidden until you ask.")
-        self.lesson_choice = gui.add_dropdown("Lesson", opts, initial_value=opts[0],
-                                              hint="; ".join(f"{l.slug}: {l.title}" for l in lessons))
+        gui.add_markdown(
+            "Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
+            "is missing, and check. The answer stays hidden until you ask."
+        )
+        self.lesson_choice = gui.add_dropdown(
+            "Lesson", opts, initial_value=opts[0], hint="; ".join(f"{l.slug}: {l.title}" for l in lessons)
+        )
         self.btn_lesson = self._button(gui, "Open the lesson", self.app.do_open_lesson)
         self.lesson_guide = gui.add_markdown("")
         self.btn_check = self._button(gui, "Check my model", self.app.do_check_lesson, engine=False)
@@ -700,7 +829,8 @@ class Panels:
                     # spaces, not underscores: the narrow label column wraps a long name at its words
                     self.gui.add_checkbox(clean_text(name.replace("_", " "), 64), False, hint=effect_hint(entry)),
                     lambda n=name: self.app.ctrl.state.has_effect(n),
-                    lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)))
+                    lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)),
+                )
 
     @staticmethod
     def _sensor_options(n):
@@ -714,10 +844,14 @@ class Panels:
 
     def view_options(self) -> dict:
         """The View tab's settings, as :class:`~magcal_workbench.scene.SceneModel` fields."""
-        return {"distortion_gain": float(self.distortion_gain.value),
-                "residual_gain": float(self.residual_gain.value), "axes_gain": float(self.axes_gain.value),
-                "show_raw": bool(self.show_raw.value), "show_corrected": bool(self.show_corrected.value),
-                "show_ellipsoid": bool(self.show_ellipsoid.value)}
+        return {
+            "distortion_gain": float(self.distortion_gain.value),
+            "residual_gain": float(self.residual_gain.value),
+            "axes_gain": float(self.axes_gain.value),
+            "show_raw": bool(self.show_raw.value),
+            "show_corrected": bool(self.show_corrected.value),
+            "show_ellipsoid": bool(self.show_ellipsoid.value),
+        }
 
     def fit_view_to_data(self) -> None:
         """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
@@ -822,8 +956,9 @@ class Panels:
             self.app.refresh_maps()
 
     def _show_candidate_evidence(self) -> None:
-        self.candidate_evidence.content = candidate_evidence_markdown(self.app.ctrl.diagnosis,
-                                                                      self.candidate_choice.value)
+        self.candidate_evidence.content = candidate_evidence_markdown(
+            self.app.ctrl.diagnosis, self.candidate_choice.value
+        )
 
     def refresh_sessions(self) -> None:
         app = self.app
@@ -831,8 +966,11 @@ class Panels:
             self.session_info.content = "_Autosave is off._"
             return
         sessions = app.store.list()
-        self.session_info.content = (f"This session: {safe_code(app.ctrl.session_id)} in {safe_code(app.store.root)}"
-                                     if app.ctrl.session_id else "_This session is not saved._")
+        self.session_info.content = (
+            f"This session: {safe_code(app.ctrl.session_id)} in {safe_code(app.store.root)}"
+            if app.ctrl.session_id
+            else "_This session is not saved._"
+        )
         self.session_info.content += "\n\n" + sessions_markdown(sessions, app.store.max_bytes)
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts

@@ -64,10 +64,17 @@ def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rm
     for s in range(ns):
         traces.append({"kind": "markers", "x": x_t[idx], "y": r_t[s, idx], "sensor": s, "name": f"sensor {s + 1}"})
         if smooth is not None:
-            traces.append({"kind": "line", "x": x_t[idx], "y": smooth[s, idx], "sensor": s,
-                           "name": f"s{s + 1} running mean"})
-    panels.append({"title": "residual vs time" if ds.time_s is not None else "residual vs sample",
-                   "x_label": x_label, "traces": traces, "band": window_s})
+            traces.append(
+                {"kind": "line", "x": x_t[idx], "y": smooth[s, idx], "sensor": s, "name": f"s{s + 1} running mean"}
+            )
+    panels.append(
+        {
+            "title": "residual vs time" if ds.time_s is not None else "residual vs sample",
+            "x_label": x_label,
+            "traces": traces,
+            "band": window_s,
+        }
+    )
 
     if ds.temperature_C is not None:
         temp_ev = ev.get("temperature")
@@ -76,28 +83,63 @@ def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rm
         else:
             x_c, r_c = ds.temperature_C[ctrl.kept], ctrl.residual_nT[:, ctrl.kept]
         idx = _decimate(len(x_c), np.ones(len(x_c), bool), max_points)
-        panels.append({"title": "residual vs temperature", "x_label": "degC",
-                       "traces": [{"kind": "markers", "x": x_c[idx], "y": r_c[s, idx], "sensor": s,
-                                   "name": f"sensor {s + 1}"} for s in range(ns)]})
+        panels.append(
+            {
+                "title": "residual vs temperature",
+                "x_label": "degC",
+                "traces": [
+                    {"kind": "markers", "x": x_c[idx], "y": r_c[s, idx], "sensor": s, "name": f"sensor {s + 1}"}
+                    for s in range(ns)
+                ],
+            }
+        )
 
     direction = ev.get("direction") or {}
     per = direction.get("per_sensor") if isinstance(direction, dict) else None
-    panels.append({"title": "RMS per spherical-harmonic degree", "x_label": "degree",
-                   "traces": [{"kind": "bar", "x": np.asarray(sh["degree"]), "y": np.asarray(sh["rms_nT"]),
-                               "sensor": s, "name": f"sensor {s + 1}"} for s, sh in enumerate(per or [])],
-                   "note": None if per else "press Diagnose"})
+    panels.append(
+        {
+            "title": "RMS per spherical-harmonic degree",
+            "x_label": "degree",
+            "traces": [
+                {
+                    "kind": "bar",
+                    "x": np.asarray(sh["degree"]),
+                    "y": np.asarray(sh["rms_nT"]),
+                    "sensor": s,
+                    "name": f"sensor {s + 1}",
+                }
+                for s, sh in enumerate(per or [])
+            ],
+            "note": None if per else "press Diagnose",
+        }
+    )
 
     labels = [f"s{s + 1}" for s in range(ns)]
     traces = [{"kind": "bar", "x": labels, "y": ctrl.rms_per_sensor_nT(), "sensor": None, "name": "total-field RMS"}]
     if before_rms_nT is not None:
-        traces.append({"kind": "before", "x": labels, "y": np.asarray(before_rms_nT, float), "sensor": None,
-                       "name": "before the last fit"})
+        traces.append(
+            {
+                "kind": "before",
+                "x": labels,
+                "y": np.asarray(before_rms_nT, float),
+                "sensor": None,
+                "name": "before the last fit",
+            }
+        )
     sensors = ev.get("sensors") or {}
     if sensors and sensors.get("difference_rms_nT") is not None:
-        traces.append({"kind": "diamonds", "x": labels, "y": np.asarray(sensors["difference_rms_nT"]), "sensor": None,
-                       "name": "difference from the common mode"})
-    panels.append({"title": "total-field RMS per sensor", "x_label": "sensor", "traces": traces,
-                   "hline": ctrl.floor_nT() or None})
+        traces.append(
+            {
+                "kind": "diamonds",
+                "x": labels,
+                "y": np.asarray(sensors["difference_rms_nT"]),
+                "sensor": None,
+                "name": "difference from the common mode",
+            }
+        )
+    panels.append(
+        {"title": "total-field RMS per sensor", "x_label": "sensor", "traces": traces, "hline": ctrl.floor_nT() or None}
+    )
     for p in panels:
         p.setdefault("y_label", "nT")
         p.setdefault("hline", None)
@@ -134,37 +176,99 @@ def evidence_figure(ctrl, window_s=None, before_rms_nT=None):
             if first:
                 shown.add(s)
             if tr["kind"] == "markers":
-                fig.add_trace(go.Scattergl(x=tr["x"], y=tr["y"], mode="markers", opacity=0.45, name=tr["name"],
-                                           marker={"size": 3, "color": _colour(tr)}, showlegend=first, **group),
-                              row=row, col=1)
+                fig.add_trace(
+                    go.Scattergl(
+                        x=tr["x"],
+                        y=tr["y"],
+                        mode="markers",
+                        opacity=0.45,
+                        name=tr["name"],
+                        marker={"size": 3, "color": _colour(tr)},
+                        showlegend=first,
+                        **group,
+                    ),
+                    row=row,
+                    col=1,
+                )
             elif tr["kind"] == "line":
-                fig.add_trace(go.Scattergl(x=tr["x"], y=tr["y"], mode="lines", name=tr["name"], showlegend=False,
-                                           line={"color": _colour(tr), "width": 2}, **group), row=row, col=1)
+                fig.add_trace(
+                    go.Scattergl(
+                        x=tr["x"],
+                        y=tr["y"],
+                        mode="lines",
+                        name=tr["name"],
+                        showlegend=False,
+                        line={"color": _colour(tr), "width": 2},
+                        **group,
+                    ),
+                    row=row,
+                    col=1,
+                )
             elif tr["kind"] == "bar":
-                fig.add_trace(go.Bar(x=tr["x"], y=tr["y"], name=tr["name"], showlegend=False,
-                                     marker={"color": _colour(tr, len(tr["x"]))}, **group), row=row, col=1)
+                fig.add_trace(
+                    go.Bar(
+                        x=tr["x"],
+                        y=tr["y"],
+                        name=tr["name"],
+                        showlegend=False,
+                        marker={"color": _colour(tr, len(tr["x"]))},
+                        **group,
+                    ),
+                    row=row,
+                    col=1,
+                )
             elif tr["kind"] == "before":
-                fig.add_trace(go.Scatter(x=tr["x"], y=tr["y"], mode="markers", name=tr["name"],
-                                         marker={"symbol": "line-ew-open", "size": 40, "color": "#555555",
-                                                 "line": {"width": 3}}), row=row, col=1)
+                fig.add_trace(
+                    go.Scatter(
+                        x=tr["x"],
+                        y=tr["y"],
+                        mode="markers",
+                        name=tr["name"],
+                        marker={"symbol": "line-ew-open", "size": 40, "color": "#555555", "line": {"width": 3}},
+                    ),
+                    row=row,
+                    col=1,
+                )
             else:
-                fig.add_trace(go.Scatter(x=tr["x"], y=tr["y"], mode="markers", name=tr["name"],
-                                         marker={"symbol": "diamond", "size": 10, "color": "black"}), row=row, col=1)
+                fig.add_trace(
+                    go.Scatter(
+                        x=tr["x"],
+                        y=tr["y"],
+                        mode="markers",
+                        name=tr["name"],
+                        marker={"symbol": "diamond", "size": 10, "color": "black"},
+                    ),
+                    row=row,
+                    col=1,
+                )
         if p["band"] is not None:
-            fig.add_vrect(x0=float(p["band"][0]), x1=float(p["band"][1]), fillcolor=WINDOW_COLOUR, opacity=0.3,
-                          line_width=0, row=row, col=1)
+            fig.add_vrect(
+                x0=float(p["band"][0]),
+                x1=float(p["band"][1]),
+                fillcolor=WINDOW_COLOUR,
+                opacity=0.3,
+                line_width=0,
+                row=row,
+                col=1,
+            )
         if p["hline"]:
             fig.add_hline(y=p["hline"], line_dash="dash", line_color=FLOOR_COLOUR, row=row, col=1)
         if p["note"] and not p["traces"]:
             # in paper coordinates: the page's plotly.js reads "x3 domain" references as data coordinates
             y_domain = fig.layout[f"yaxis{row}"].domain
-            fig.add_annotation(text=p["note"], xref="paper", yref="paper", x=0.5,
-                               y=0.5 * (y_domain[0] + y_domain[1]), showarrow=False)
+            fig.add_annotation(
+                text=p["note"], xref="paper", yref="paper", x=0.5, y=0.5 * (y_domain[0] + y_domain[1]), showarrow=False
+            )
         fig.update_xaxes(title_text=p["x_label"], row=row, col=1)
     fig.update_yaxes(title_text="nT")  # every panel is in nT
     # the top margin keeps the first title clear of plotly's toolbar
-    fig.update_layout(height=275 * n, margin={"l": 55, "r": 10, "t": 60, "b": 30},
-                      legend={"orientation": "h", "y": -0.12}, template="plotly_white", barmode="group")
+    fig.update_layout(
+        height=275 * n,
+        margin={"l": 55, "r": 10, "t": 60, "b": 30},
+        legend={"orientation": "h", "y": -0.12},
+        template="plotly_white",
+        barmode="group",
+    )
     return fig
 
 
@@ -189,8 +293,13 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rm
                 ax.plot(tr["x"], tr["y"], "-", lw=2, color=_colour(tr))
             elif tr["kind"] == "bar" and tr["sensor"] is not None:  # grouped by sensor
                 k = next(i for i, b in enumerate(bars) if b is tr)
-                ax.bar(np.asarray(tr["x"], float) + (k - 0.5 * (len(bars) - 1)) * width,
-                       np.nan_to_num(np.asarray(tr["y"], float)), width, color=_colour(tr), label=tr["name"])
+                ax.bar(
+                    np.asarray(tr["x"], float) + (k - 0.5 * (len(bars) - 1)) * width,
+                    np.nan_to_num(np.asarray(tr["y"], float)),
+                    width,
+                    color=_colour(tr),
+                    label=tr["name"],
+                )
             elif tr["kind"] == "bar":
                 ax.bar(tr["x"], tr["y"], color=_colour(tr, len(tr["x"])))
             elif tr["kind"] == "before":
@@ -212,15 +321,14 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rm
             ax.set_ylim(0, 1.35 * top)
         if p["title"].startswith("residual vs t") or p["hline"]:
             ax.legend(loc="upper left" if p["hline"] else "best", fontsize=8, markerscale=3 if not p["hline"] else 1)
-    for ax in axes[len(panels):]:
+    for ax in axes[len(panels) :]:
         ax.set_visible(False)
     if title:
         fig.suptitle(title)
     return fig
 
 
-def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = None,
-                   before_rms_nT=None) -> bytes | None:
+def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = None, before_rms_nT=None) -> bytes | None:
     """The full-size evidence as an image file's bytes (``svg`` or ``png``), or None before any fit."""
     if fmt not in ("svg", "png"):
         raise ValueError(f"format {fmt!r}: svg or png")

@@ -94,18 +94,23 @@ def readable_nT(value: float) -> str:
 
 def legend_html(limit_nT: float, title: str = "total-field residual", swatches: bool = True) -> str:
     """An HTML colour bar with ticks in nT, plus (``swatches``) the rejected and not-fitted colours."""
-    stops = ", ".join(f"rgb({int(c[0])},{int(c[1])},{int(c[2])}) {int(100 * (s + 1) / 2)}%"
-                      for s, c in zip(_CMAP_STOPS, _CMAP_RGB))
+    stops = ", ".join(
+        f"rgb({int(c[0])},{int(c[1])},{int(c[2])}) {int(100 * (s + 1) / 2)}%" for s, c in zip(_CMAP_STOPS, _CMAP_RGB)
+    )
     rej = "rgb({},{},{})".format(*REJECTED_RGB)
     fmt = readable_nT
     return (
         f'<div style="font-size:0.8em;padding:2px 4px">{title} (nT)'
         f'<div style="height:12px;border-radius:3px;background:linear-gradient(to right, {stops})"></div>'
         f'<div style="display:flex;justify-content:space-between"><span>-{fmt(limit_nT)}</span><span>0</span>'
-        f'<span>+{fmt(limit_nT)}</span></div>'
-        + (f'<div><span style="display:inline-block;width:10px;height:10px;background:{rej}"></span> rejected '
-           f'&nbsp;<span style="display:inline-block;width:10px;height:10px;background:rgb(180,180,180)"></span> '
-           "not fitted</div>" if swatches else "")
+        f"<span>+{fmt(limit_nT)}</span></div>"
+        + (
+            f'<div><span style="display:inline-block;width:10px;height:10px;background:{rej}"></span> rejected '
+            f'&nbsp;<span style="display:inline-block;width:10px;height:10px;background:rgb(180,180,180)"></span> '
+            "not fitted</div>"
+            if swatches
+            else ""
+        )
         + "</div>"
     )
 
@@ -278,9 +283,9 @@ class SensorView:
     """Everything drawn for one sensor (engine results already evaluated, in nT)."""
 
     sensor: int
-    raw_nT: np.ndarray                  # (N, 3)
-    corrected_nT: np.ndarray | None     # (N, 3) array frame, or None before any fit
-    residual_nT: np.ndarray | None      # (N,) total-field residual incl. rejected samples
+    raw_nT: np.ndarray  # (N, 3)
+    corrected_nT: np.ndarray | None  # (N, 3) array frame, or None before any fit
+    residual_nT: np.ndarray | None  # (N,) total-field residual incl. rejected samples
     cinv: np.ndarray | None = None
     bias_nT: np.ndarray | None = None
     R: np.ndarray | None = None
@@ -290,13 +295,13 @@ class SensorView:
 class SceneModel:
     """Input of :class:`SceneView.update`."""
 
-    sensors: list                       # list of SensorView, the ones to draw
-    n_sensors: int                      # in the data (for the cross)
+    sensors: list  # list of SensorView, the ones to draw
+    n_sensors: int  # in the data (for the cross)
     field_nT: float
-    kept: np.ndarray                    # (N,) bool
+    kept: np.ndarray  # (N,) bool
     floor_nT: float | None = None
     baseline_m: float | None = None
-    all_calibrations: list = field(default_factory=list)   # (cinv, R) per sensor for the cross, or empty
+    all_calibrations: list = field(default_factory=list)  # (cinv, R) per sensor for the cross, or empty
     distortion_gain: float = 10.0
     residual_gain: float = 1000.0
     axes_gain: float = 20.0
@@ -304,8 +309,8 @@ class SceneModel:
     show_raw: bool = True
     show_corrected: bool = True
     show_ellipsoid: bool = True
-    window: np.ndarray | None = None    # (N,) bool: draw only these samples (the time scrubber), None for all
-    current: int | None = None          # the window's last sample: each sensor's current direction, marked
+    window: np.ndarray | None = None  # (N,) bool: draw only these samples (the time scrubber), None for all
+    current: int | None = None  # the window's last sample: each sensor's current direction, marked
 
 
 @dataclass
@@ -347,7 +352,7 @@ def level_of_detail(n_samples: int, max_points: int = MAX_POINTS, residual_nT=No
     stride = np.linspace(0, n - 1, m - n_out).round().astype(np.int64)
     if not n_out:
         return np.unique(stride)
-    worst = np.argpartition(r, n - n_out)[n - n_out:]
+    worst = np.argpartition(r, n - n_out)[n - n_out :]
     return np.union1d(stride, worst)
 
 
@@ -358,8 +363,10 @@ def decimated(model: SceneModel, idx: np.ndarray) -> SceneModel:
     def cut(a):
         return None if a is None else np.asarray(a)[idx]
 
-    sensors = [replace(sv, raw_nT=sv.raw_nT[idx], corrected_nT=cut(sv.corrected_nT), residual_nT=cut(sv.residual_nT))
-               for sv in model.sensors]
+    sensors = [
+        replace(sv, raw_nT=sv.raw_nT[idx], corrected_nT=cut(sv.corrected_nT), residual_nT=cut(sv.residual_nT))
+        for sv in model.sensors
+    ]
     return replace(model, sensors=sensors, kept=np.asarray(model.kept, bool)[idx])
 
 
@@ -373,8 +380,12 @@ def iter_layout(model: SceneModel):
             raw = exaggerate_radial(sv.raw_nT / F, model.distortion_gain)
             yield f"/data/s{sv.sensor + 1}/raw", sv.sensor, "raw", raw + centre - [PAIR_OFFSET, 0, 0]
         if model.show_corrected and sv.corrected_nT is not None:
-            corr = residual_radius_points(sv.corrected_nT / F, sv.residual_nT if sv.residual_nT is not None
-                                          else np.zeros(len(sv.corrected_nT)), F, model.residual_gain)
+            corr = residual_radius_points(
+                sv.corrected_nT / F,
+                sv.residual_nT if sv.residual_nT is not None else np.zeros(len(sv.corrected_nT)),
+                F,
+                model.residual_gain,
+            )
             yield f"/data/s{sv.sensor + 1}/corrected", sv.sensor, "corrected", corr + centre + [PAIR_OFFSET, 0, 0]
 
 
@@ -413,8 +424,8 @@ class SceneView:
         self.shown_samples = np.zeros(0, int)
         self._full_model: SceneModel | None = None
         self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
-        self._clouds: dict = {}       # name -> handle
-        self._static: dict = {}       # name -> handle (meshes, frames, labels)
+        self._clouds: dict = {}  # name -> handle
+        self._static: dict = {}  # name -> handle (meshes, frames, labels)
         self._shape_key = None
         self.last_limit_nT = 1.0
 
@@ -429,8 +440,7 @@ class SceneView:
         self._full_model = model
         if model.window is not None:  # the time scrubber: only the window's samples, decimated within it
             base = np.flatnonzero(np.asarray(model.window, bool))
-            sub = level_of_detail(base.size, self.max_points,
-                                  np.array(resid_all)[:, base] if resid_all else None)
+            sub = level_of_detail(base.size, self.max_points, np.array(resid_all)[:, base] if resid_all else None)
             idx = base[sub]
         else:
             idx = level_of_detail(len(kept), self.max_points, np.array(resid_all) if resid_all else None)
@@ -461,15 +471,20 @@ class SceneView:
                     if handle is not None:
                         handle.remove()
                     self._clouds[name] = scene.add_point_cloud(
-                        name, pts.astype(np.float32), colors, point_size=self.point_size, point_shape="circle",
-                        precision="float32", point_shading="flat")
+                        name,
+                        pts.astype(np.float32),
+                        colors,
+                        point_size=self.point_size,
+                        point_shape="circle",
+                        precision="float32",
+                        point_shading="flat",
+                    )
                 positions.append(pts)
-                samples.append(idx[:len(pts)])
+                samples.append(idx[: len(pts)])
                 sensors.append(np.full(len(pts), s))
             self._draw_static(model)
             if positions:
-                self.displayed = Displayed(np.concatenate(positions), np.concatenate(samples),
-                                           np.concatenate(sensors))
+                self.displayed = Displayed(np.concatenate(positions), np.concatenate(samples), np.concatenate(sensors))
             else:
                 self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
             self.mark_inspected(model.inspected)
@@ -487,9 +502,18 @@ class SceneView:
         pts = self.displayed.positions[on]
         if len(pts) == 0:
             return
-        self._put("/window/current", lambda: self.server.scene.add_point_cloud(
-            "/window/current", pts.astype(np.float32), CURRENT_RGB, point_size=self.point_size * 5,
-            point_shape="circle", precision="float32", point_shading="flat"))
+        self._put(
+            "/window/current",
+            lambda: self.server.scene.add_point_cloud(
+                "/window/current",
+                pts.astype(np.float32),
+                CURRENT_RGB,
+                point_size=self.point_size * 5,
+                point_shape="circle",
+                precision="float32",
+                point_shading="flat",
+            ),
+        )
         model = self._full_model
         segs = []
         if model is not None and model.show_corrected:
@@ -503,8 +527,12 @@ class SceneView:
                     segs.append([centre, tips[np.argmin(np.linalg.norm(tips - centre, axis=1))]])
         if segs:
             arr = np.array(segs, np.float32)
-            self._put("/window/direction", lambda: self.server.scene.add_line_segments(
-                "/window/direction", arr, colors=CURRENT_RGB, thickness=4.0, thickness_units="screen"))
+            self._put(
+                "/window/direction",
+                lambda: self.server.scene.add_line_segments(
+                    "/window/direction", arr, colors=CURRENT_RGB, thickness=4.0, thickness_units="screen"
+                ),
+            )
 
     def clear(self) -> None:
         """Remove every node (before loading other data)."""
@@ -528,8 +556,10 @@ class SceneView:
             d = self.displayed
             inside = points_in_rect(d.positions, camera_wxyz, camera_position, fov_rad, aspect, screen_min, screen_max)
             return np.unique(d.samples[inside])
-        hits = [np.flatnonzero(points_in_rect(pts, camera_wxyz, camera_position, fov_rad, aspect, screen_min,
-                                              screen_max)) for _, _, _, pts in iter_layout(model)]
+        hits = [
+            np.flatnonzero(points_in_rect(pts, camera_wxyz, camera_position, fov_rad, aspect, screen_min, screen_max))
+            for _, _, _, pts in iter_layout(model)
+        ]
         hit = np.unique(np.concatenate(hits)) if hits else np.zeros(0, int)
         if model.window is not None:  # only what the time window shows
             hit = hit[np.asarray(model.window, bool)[hit]]
@@ -545,9 +575,18 @@ class SceneView:
         pts = self.displayed.positions[self.displayed.samples == int(sample)]
         if len(pts) == 0:
             return
-        self._put(name, lambda: self.server.scene.add_point_cloud(
-            name, pts.astype(np.float32), INSPECT_RGB, point_size=self.point_size * 4, point_shape="diamond",
-            precision="float32", point_shading="flat"))
+        self._put(
+            name,
+            lambda: self.server.scene.add_point_cloud(
+                name,
+                pts.astype(np.float32),
+                INSPECT_RGB,
+                point_size=self.point_size * 4,
+                point_shape="diamond",
+                precision="float32",
+                point_shading="flat",
+            ),
+        )
 
     def recolor(self, model: SceneModel) -> None:
         """Only the colours (after a change of the kept mask): cheap."""
@@ -579,26 +618,56 @@ class SceneView:
             centre = group_offset(k, rows)
             tag = f"s{sv.sensor + 1}"
             if model.show_raw:
-                self._put(f"/data/{tag}/raw_label", lambda: scene.add_label(
-                    f"/data/{tag}/raw_label", f"S{sv.sensor + 1} raw",
-                    position=centre + [-PAIR_OFFSET, 0, 1.2], anchor="bottom-center"))
+                self._put(
+                    f"/data/{tag}/raw_label",
+                    lambda: scene.add_label(
+                        f"/data/{tag}/raw_label",
+                        f"S{sv.sensor + 1} raw",
+                        position=centre + [-PAIR_OFFSET, 0, 1.2],
+                        anchor="bottom-center",
+                    ),
+                )
                 if model.show_ellipsoid and sv.cinv is not None:
                     v, f = ellipsoid_mesh(sv.cinv, sv.bias_nT, F, model.distortion_gain)
-                    self._put(f"/data/{tag}/ellipsoid", lambda: scene.add_mesh_simple(
-                        f"/data/{tag}/ellipsoid", v.astype(np.float32), f, color=ELLIPSOID_RGB, opacity=0.25,
-                        side="double", position=centre - [PAIR_OFFSET, 0, 0], cast_shadow=False,
-                        receive_shadow=False))
+                    self._put(
+                        f"/data/{tag}/ellipsoid",
+                        lambda: scene.add_mesh_simple(
+                            f"/data/{tag}/ellipsoid",
+                            v.astype(np.float32),
+                            f,
+                            color=ELLIPSOID_RGB,
+                            opacity=0.25,
+                            side="double",
+                            position=centre - [PAIR_OFFSET, 0, 0],
+                            cast_shadow=False,
+                            receive_shadow=False,
+                        ),
+                    )
                 elif f"/data/{tag}/ellipsoid" in self._static:
                     self._static.pop(f"/data/{tag}/ellipsoid").remove()
             if model.show_corrected and sv.corrected_nT is not None:
                 if f"/data/{tag}/sphere" not in self._static:
-                    self._put(f"/data/{tag}/sphere", lambda: scene.add_mesh_simple(
-                        f"/data/{tag}/sphere", sv_faces[0].astype(np.float32), sv_faces[1], color=SPHERE_RGB,
-                        wireframe=True, opacity=0.25, position=centre + [PAIR_OFFSET, 0, 0]))
-                self._put(f"/data/{tag}/corr_label", lambda: scene.add_label(
+                    self._put(
+                        f"/data/{tag}/sphere",
+                        lambda: scene.add_mesh_simple(
+                            f"/data/{tag}/sphere",
+                            sv_faces[0].astype(np.float32),
+                            sv_faces[1],
+                            color=SPHERE_RGB,
+                            wireframe=True,
+                            opacity=0.25,
+                            position=centre + [PAIR_OFFSET, 0, 0],
+                        ),
+                    )
+                self._put(
                     f"/data/{tag}/corr_label",
-                    f"S{sv.sensor + 1} corrected",
-                    position=centre + [PAIR_OFFSET, 0, 1.2], anchor="bottom-center"))
+                    lambda: scene.add_label(
+                        f"/data/{tag}/corr_label",
+                        f"S{sv.sensor + 1} corrected",
+                        position=centre + [PAIR_OFFSET, 0, 1.2],
+                        anchor="bottom-center",
+                    ),
+                )
         self._draw_cross(model)
 
     def _draw_cross(self, model: SceneModel) -> None:
@@ -606,32 +675,68 @@ class SceneView:
         n = model.n_sensors
         cx = cross_x(len(model.sensors))
         positions = cross_positions(n) @ ARRAY_TO_SCENE.T + [cx, 0, 0]
-        base = (f"baseline {model.baseline_m:g} m" if model.baseline_m else
-                "single sensor" if n == 1 else "baseline not given")
-        self._put("/cross/label", lambda: scene.add_label(
-            "/cross/label", f"cross ({base}); array z toward you",
-            position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6), anchor="bottom-center"))
+        base = (
+            f"baseline {model.baseline_m:g} m"
+            if model.baseline_m
+            else "single sensor"
+            if n == 1
+            else "baseline not given"
+        )
+        self._put(
+            "/cross/label",
+            lambda: scene.add_label(
+                "/cross/label",
+                f"cross ({base}); array z toward you",
+                position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6),
+                anchor="bottom-center",
+            ),
+        )
         if "/cross/arms" not in self._static:
             if n > 1:  # the cross's arms join opposite sensors (1-3, 2-4); two sensors: one baseline
-                segs = (np.array([[positions[0], positions[2]], [positions[1], positions[3 if n > 3 else 1]]])
-                        if n > 2 else np.array([[positions[0], positions[1]]]))
-                self._put("/cross/arms", lambda: scene.add_line_segments(
-                    "/cross/arms", segs.astype(np.float32), colors=(120, 120, 120), thickness=3.0,
-                    thickness_units="screen"))
+                segs = (
+                    np.array([[positions[0], positions[2]], [positions[1], positions[3 if n > 3 else 1]]])
+                    if n > 2
+                    else np.array([[positions[0], positions[1]]])
+                )
+                self._put(
+                    "/cross/arms",
+                    lambda: scene.add_line_segments(
+                        "/cross/arms",
+                        segs.astype(np.float32),
+                        colors=(120, 120, 120),
+                        thickness=3.0,
+                        thickness_units="screen",
+                    ),
+                )
         for s in range(n):
             tag = f"/cross/s{s + 1}"
             if f"{tag}/label" not in self._static:
-                self._put(f"{tag}/label", lambda: scene.add_label(
-                    f"{tag}/label", f"S{s + 1}", position=positions[s] + [0.12, 0, 0.12], anchor="bottom-left"))
+                self._put(
+                    f"{tag}/label",
+                    lambda: scene.add_label(
+                        f"{tag}/label", f"S{s + 1}", position=positions[s] + [0.12, 0, 0.12], anchor="bottom-left"
+                    ),
+                )
                 ideal = np.concatenate([[positions[s], positions[s] + 0.4 * e] for e in ARRAY_TO_SCENE.T])
-                self._put(f"{tag}/ideal", lambda: scene.add_line_segments(
-                    f"{tag}/ideal", ideal.reshape(3, 2, 3).astype(np.float32), colors=IDEAL_AXIS_RGB,
-                    thickness=1.0, thickness_units="screen"))
+                self._put(
+                    f"{tag}/ideal",
+                    lambda: scene.add_line_segments(
+                        f"{tag}/ideal",
+                        ideal.reshape(3, 2, 3).astype(np.float32),
+                        colors=IDEAL_AXIS_RGB,
+                        thickness=1.0,
+                        thickness_units="screen",
+                    ),
+                )
             cal = model.all_calibrations[s] if s < len(model.all_calibrations) else None
             if cal is None:
                 continue
             axes = sensor_axes(cal[0], cal[1], model.axes_gain)
             segs = np.stack([np.stack([positions[s], positions[s] + 0.5 * a]) for a in axes @ ARRAY_TO_SCENE.T])
             cols = np.repeat(np.array(AXIS_RGB, np.uint8)[:, None, :], 2, axis=1)
-            self._put(f"{tag}/axes", lambda: scene.add_line_segments(
-                f"{tag}/axes", segs.astype(np.float32), colors=cols, thickness=3.0, thickness_units="screen"))
+            self._put(
+                f"{tag}/axes",
+                lambda: scene.add_line_segments(
+                    f"{tag}/axes", segs.astype(np.float32), colors=cols, thickness=3.0, thickness_units="screen"
+                ),
+            )

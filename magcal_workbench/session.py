@@ -55,8 +55,10 @@ def check_session_name(sid) -> str:
     if not isinstance(sid, str) or not SESSION_NAME.fullmatch(sid) or sid in (".", ".."):
         from .markup import clean_text
 
-        raise SessionError(f"{clean_text(repr(sid), 80)} is not a session name: a name is one folder inside the "
-                           "session folder (letters, digits, _ . -; no '..', no path)")
+        raise SessionError(
+            f"{clean_text(repr(sid), 80)} is not a session name: a name is one folder inside the "
+            "session folder (letters, digits, _ . -; no '..', no path)"
+        )
     return sid
 
 
@@ -200,8 +202,12 @@ class SessionStore:
         state = read_session_bytes(data, where)
         if expect is not None and (state.n_samples, state.n_sensors) != tuple(expect):
             field = "n_samples" if state.n_samples != expect[0] else "n_sensors"
-            raise SessionFileError(where, field, f"the session is for {state.n_samples} samples of "
-                                   f"{state.n_sensors} sensor(s), the data have {expect[0]} of {expect[1]}")
+            raise SessionFileError(
+                where,
+                field,
+                f"the session is for {state.n_samples} samples of "
+                f"{state.n_sensors} sensor(s), the data have {expect[0]} of {expect[1]}",
+            )
         copy = self.data_path(sid)
         if copy.exists():
             state.data_path = str(copy)
@@ -241,11 +247,18 @@ class SessionStore:
             except (OSError, SessionError):
                 continue
             hist = state.history
-            out.append({
-                "id": folder.name, "saved_at": saved_at if isinstance(saved_at, str) else "",
-                "lesson": state.lesson, "n_samples": state.n_samples, "effects": list(state.effects),
-                "rms_nT": hist[-1].rms_nT if hist else None, "mtime": mtime, "bytes": size,
-            })
+            out.append(
+                {
+                    "id": folder.name,
+                    "saved_at": saved_at if isinstance(saved_at, str) else "",
+                    "lesson": state.lesson,
+                    "n_samples": state.n_samples,
+                    "effects": list(state.effects),
+                    "rms_nT": hist[-1].rms_nT if hist else None,
+                    "mtime": mtime,
+                    "bytes": size,
+                }
+            )
         out.sort(key=lambda d: d["mtime"], reverse=True)
         return out
 

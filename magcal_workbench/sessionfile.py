@@ -93,8 +93,15 @@ def _show(value) -> str:
 
 
 def _kind(value) -> str:
-    return {bool: "true/false", int: "a whole number", float: "a number", str: "text", list: "a list",
-            dict: "an object", type(None): "null"}.get(type(value), type(value).__name__)
+    return {
+        bool: "true/false",
+        int: "a whole number",
+        float: "a number",
+        str: "text",
+        list: "a list",
+        dict: "an object",
+        type(None): "null",
+    }.get(type(value), type(value).__name__)
 
 
 class _Reader:
@@ -192,10 +199,12 @@ class _Reader:
         if fit is not None:
             self.obj(f"{field}.fit", fit)
             fit = {}
-            for key, check in (("success", lambda f, v: self.boolean(f, v)),
-                               ("status", lambda f, v: self.integer(f, v, -1000, 1000)),
-                               ("message", lambda f, v: self.text(f, v, null=True)),
-                               ("nfev", lambda f, v: self.integer(f, v, 0, 10**12))):
+            for key, check in (
+                ("success", lambda f, v: self.boolean(f, v)),
+                ("status", lambda f, v: self.integer(f, v, -1000, 1000)),
+                ("message", lambda f, v: self.text(f, v, null=True)),
+                ("nfev", lambda f, v: self.integer(f, v, 0, 10**12)),
+            ):
                 if key in doc["fit"]:
                     fit[key] = check(f"{field}.fit.{key}", doc["fit"][key])
         return StepRecord(
@@ -206,8 +215,9 @@ class _Reader:
             n_kept=self.integer(f"{field}.n_kept", doc.get("n_kept", 0), 0, n_samples),
             changes=self.text(f"{field}.changes", doc.get("changes", "")),
             elapsed_s=self.number(f"{field}.elapsed_s", doc.get("elapsed_s", 0.0), 0.0),
-            fit=fit, held_out_rms_nT=self.number(f"{field}.held_out_rms_nT", doc.get("held_out_rms_nT"), 0.0,
-                                                 null=True))
+            fit=fit,
+            held_out_rms_nT=self.number(f"{field}.held_out_rms_nT", doc.get("held_out_rms_nT"), 0.0, null=True),
+        )
 
     def selection(self, field, value, n):
         from .state import Selection
@@ -301,8 +311,9 @@ def read_session_bytes(data: bytes, where: str = "session.json"):
     except UnicodeDecodeError as exc:
         raise SessionFileError(where, "(file)", f"is not UTF-8 text (byte {exc.start})") from None
     except json.JSONDecodeError as exc:
-        raise SessionFileError(where, "(file)", f"is not JSON (line {exc.lineno}, column {exc.colno}: "
-                                                f"{exc.msg})") from None
+        raise SessionFileError(
+            where, "(file)", f"is not JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"
+        ) from None
     except (ValueError, RecursionError) as exc:
         raise SessionFileError(where, "(file)", f"is not JSON ({type(exc).__name__})") from None
     return read_session_document(doc, where)

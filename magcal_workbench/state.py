@@ -168,7 +168,7 @@ class Selection:
             }
 
     @classmethod
-    def from_dict(cls, doc: dict, n_samples: int) -> "Selection":
+    def from_dict(cls, doc: dict, n_samples: int) -> Selection:
         if int(doc.get("n_samples", -1)) != n_samples:
             raise ValueError(f"the saved selection is for {doc.get('n_samples')} samples, the data have {n_samples}")
         sel = cls(n_samples, unpack_mask(doc["kept"], n_samples))
@@ -217,18 +217,30 @@ class StepRecord:
 
     def to_dict(self) -> dict:
         return {
-            "step": self.step, "rms_nT": _num(self.rms_nT), "floor_nT": _num(self.floor_nT),
-            "effects": list(self.effects), "n_kept": int(self.n_kept), "changes": self.changes,
-            "elapsed_s": float(self.elapsed_s), "fit": None if self.fit is None else dict(self.fit),
+            "step": self.step,
+            "rms_nT": _num(self.rms_nT),
+            "floor_nT": _num(self.floor_nT),
+            "effects": list(self.effects),
+            "n_kept": int(self.n_kept),
+            "changes": self.changes,
+            "elapsed_s": float(self.elapsed_s),
+            "fit": None if self.fit is None else dict(self.fit),
             "held_out_rms_nT": _num(self.held_out_rms_nT),
         }
 
     @classmethod
-    def from_dict(cls, doc: dict) -> "StepRecord":
-        return cls(step=doc["step"], rms_nT=_num(doc["rms_nT"]), floor_nT=_num(doc.get("floor_nT")),
-                   effects=list(doc.get("effects", [])), n_kept=int(doc.get("n_kept", 0)),
-                   changes=doc.get("changes", ""), elapsed_s=float(doc.get("elapsed_s", 0.0)),
-                   fit=doc.get("fit"), held_out_rms_nT=_num(doc.get("held_out_rms_nT")))
+    def from_dict(cls, doc: dict) -> StepRecord:
+        return cls(
+            step=doc["step"],
+            rms_nT=_num(doc["rms_nT"]),
+            floor_nT=_num(doc.get("floor_nT")),
+            effects=list(doc.get("effects", [])),
+            n_kept=int(doc.get("n_kept", 0)),
+            changes=doc.get("changes", ""),
+            elapsed_s=float(doc.get("elapsed_s", 0.0)),
+            fit=doc.get("fit"),
+            held_out_rms_nT=_num(doc.get("held_out_rms_nT")),
+        )
 
 
 def _num(v):
@@ -391,7 +403,7 @@ class SessionState:
             }
 
     @classmethod
-    def from_dict(cls, doc: dict, where: str = "session.json") -> "SessionState":
+    def from_dict(cls, doc: dict, where: str = "session.json") -> SessionState:
         """The state a session document holds, every field checked (:mod:`workbench.sessionfile`).
 
         Raises

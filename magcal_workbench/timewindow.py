@@ -74,8 +74,10 @@ class TimeWindow:
         t0, t1 = self.bounds_s(times)
         n = int(self.mask(times).sum())
         state = "playing" if self.playing else "paused"
-        return (f"window {t0:.1f}-{t1:.1f} s of {np.nanmin(times):.1f}-{np.nanmax(times):.1f} s: {n} samples "
-                f"({state}, {self.speed:g}x real time)")
+        return (
+            f"window {t0:.1f}-{t1:.1f} s of {np.nanmin(times):.1f}-{np.nanmax(times):.1f} s: {n} samples "
+            f"({state}, {self.speed:g}x real time)"
+        )
 
     def set(self, enabled=None, start_pct=None, width_pct=None, speed=None) -> None:
         """Change the window (values in percent of the duration; clipped to 0-100)."""

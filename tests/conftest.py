@@ -16,6 +16,10 @@ import pytest
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+#: The browser the end-to-end tests drive (Debian's chromium) and its flags.
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking"]
+
 collect_ignore = ["user_effects_example.py", "heldout_sim.py"]
 
 
@@ -62,9 +66,15 @@ def bench(tmp_path, request):
             ds = magcal.simulate_timeseries("chi2017", n_samples=n_samples, seed=5, rate_hz=2.0)
         path = tmp_path / name
         mio.write_csv(path, ds)
-        wb = Workbench(mio.read_csv(path), host="127.0.0.1", port=0,
-                       store=SessionStore(root or tmp_path / "sessions") if store else None,
-                       content=path.read_bytes(), name=name, **kw)
+        wb = Workbench(
+            mio.read_csv(path),
+            host="127.0.0.1",
+            port=0,
+            store=SessionStore(root or tmp_path / "sessions") if store else None,
+            content=path.read_bytes(),
+            name=name,
+            **kw,
+        )
         made.append(wb)
         return wb
 
@@ -88,3 +98,28 @@ def corrupt_csv(tmp_path):
         return bad
 
     return corrupt
+
+
+def _unavailable(reason: str):
+    if os.environ.get("MAGCAL_REQUIRE_BROWSER") == "1":
+        pytest.fail(f"MAGCAL_REQUIRE_BROWSER=1 but {reason}")
+    pytest.skip(reason)
+
+
+@pytest.fixture
+def browser():
+    if not os.path.exists(CHROMIUM):
+        _unavailable(f"no browser at {CHROMIUM} (apt-get install chromium)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        _unavailable("the playwright package is not installed (pip install playwright)")
+    with sync_playwright() as p:
+        try:
+            b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        except Exception as exc:  # a browser that cannot start is the same as none
+            _unavailable(f"chromium could not be started: {exc}")
+        try:
+            yield b
+        finally:
+            b.close()

@@ -31,8 +31,13 @@ class Path:
         freqs = rng.uniform(0.005, 0.04, (3, 3))
         phases = rng.uniform(0, 2 * np.pi, (3, 3))
         amps = rng.uniform(0.25, 0.45, (3, 3))
-        w = np.stack([np.sum(amps[a, :, None] * np.sin(2 * np.pi * freqs[a, :, None] * self.t + phases[a, :, None]),
-                             axis=0) for a in range(3)], axis=1) + rng.uniform(-0.1, 0.1, 3)
+        w = np.stack(
+            [
+                np.sum(amps[a, :, None] * np.sin(2 * np.pi * freqs[a, :, None] * self.t + phases[a, :, None]), axis=0)
+                for a in range(3)
+            ],
+            axis=1,
+        ) + rng.uniform(-0.1, 0.1, 3)
         rots = [Rotation.from_euler("xyz", rng.uniform(-np.pi, np.pi, 3))]
         steps = Rotation.from_rotvec(w[:-1] * dt)
         current = rots[0]
@@ -147,9 +152,15 @@ def simulate(effect, n_sensors=4, sensor=None, magnitude=1.0, n=1600, seed=0):
                 y = y + np.outer(5.0 * m * np.sin(2 * np.pi * 0.9 * t + 1.0), [0.5, 0.7, -0.5])
         readings.append(y + rng.normal(0, NOISE_NT, (n, 3)))
     q = att_now.as_quat()  # x, y, z, w
-    return {"t": t, "readings": np.array(readings), "temp": temp, "quat_wxyz": np.column_stack([q[:, 3], q[:, :3]]),
-            "reference_total_nT": reference, "baseline_m": BASELINE_M if n_sensors > 1 else None,
-            "noise_nT": NOISE_NT}
+    return {
+        "t": t,
+        "readings": np.array(readings),
+        "temp": temp,
+        "quat_wxyz": np.column_stack([q[:, 3], q[:, :3]]),
+        "reference_total_nT": reference,
+        "baseline_m": BASELINE_M if n_sensors > 1 else None,
+        "noise_nT": NOISE_NT,
+    }
 
 
 def write_csv(path, sim, attitude=True):

@@ -22,7 +22,6 @@ from magcal.model.perturbations import parse_hidden
 SIGMA = 3.0
 
 
-
 def _frame(ds):
     frame = pd.DataFrame(io.dataset_columns(ds))
     frame.attrs.update(io.dataset_metadata(ds))
@@ -57,10 +56,12 @@ def test_a_plain_array_is_what_the_engine_gives_on_the_dataset():
     ds = simulate(chi2017_truth(1), n_samples=300, noise_nT=SIGMA, seed=3)
     from_array = magcal.calibrate(ds.readings_nT[0], reference_total_nT=ds.reference_total_nT)
     from_dataset = magcal.fitting.pipeline.calibrate(ds)
-    np.testing.assert_allclose(from_array.calibration.sensors[0].cinv, from_dataset.calibration.sensors[0].cinv,
-                               rtol=0, atol=1e-9)
-    np.testing.assert_allclose(from_array.calibration.sensors[0].bias_nT,
-                               from_dataset.calibration.sensors[0].bias_nT, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(
+        from_array.calibration.sensors[0].cinv, from_dataset.calibration.sensors[0].cinv, rtol=0, atol=1e-9
+    )
+    np.testing.assert_allclose(
+        from_array.calibration.sensors[0].bias_nT, from_dataset.calibration.sensors[0].bias_nT, rtol=0, atol=1e-6
+    )
 
 
 def test_without_a_reference_the_field_is_fitted_from_an_array():
@@ -72,8 +73,13 @@ def test_without_a_reference_the_field_is_fitted_from_an_array():
 
 def _hidden_temperature_bias(n_sensors=1, sensor=1, magnitude=2.0, seed=1):
     spec = f"temperature_bias:{sensor}={magnitude}"
-    return simulate_timeseries(chi2017_truth(n_sensors), n_samples=1500, noise_nT=SIGMA, seed=seed,
-                               perturbations=[parse_hidden(spec, n_sensors)])
+    return simulate_timeseries(
+        chi2017_truth(n_sensors),
+        n_samples=1500,
+        noise_nT=SIGMA,
+        seed=seed,
+        perturbations=[parse_hidden(spec, n_sensors)],
+    )
 
 
 @pytest.mark.parametrize("n_sensors, sensor", [(1, 1), (4, 3)])
@@ -85,8 +91,9 @@ def test_diagnose_an_array_with_its_temperature_names_the_hidden_effect(n_sensor
     label = "temperature_bias" if n_sensors == 1 else f"temperature_bias:{sensor}"
     assert d.explained_by == [label]
     # adding it, through the same API, brings the fit to the noise
-    fixed = magcal.calibrate(readings, effects=d.explained_by, t=ds.time_s, temp=ds.temperature_C,
-                             reference_total_nT=ds.reference_total_nT)
+    fixed = magcal.calibrate(
+        readings, effects=d.explained_by, t=ds.time_s, temp=ds.temperature_C, reference_total_nT=ds.reference_total_nT
+    )
     assert fixed.rms_nT < 1.1 * SIGMA < magcal.calibrate(readings, reference_total_nT=ds.reference_total_nT).rms_nT
 
 
@@ -120,16 +127,19 @@ def test_read_csv_is_the_io_reader(tmp_path):
     np.testing.assert_allclose(magcal.read_csv(path).readings_nT, ds.readings_nT, rtol=1e-12)
 
 
-@pytest.mark.parametrize("shape, hint", [
-    ((3, 200), "transposed"),
-    ((200, 6), "2 sensors"),
-    ((6, 200, 3), "at most 4 sensors"),
-    ((2, 3, 200), "axes look swapped"),
-    ((200,), ""),
-    ((200, 2), ""),
-    ((1, 2, 200, 3), ""),
-    ((0, 3), "no samples"),
-])
+@pytest.mark.parametrize(
+    "shape, hint",
+    [
+        ((3, 200), "transposed"),
+        ((200, 6), "2 sensors"),
+        ((6, 200, 3), "at most 4 sensors"),
+        ((2, 3, 200), "axes look swapped"),
+        ((200,), ""),
+        ((200, 2), ""),
+        ((1, 2, 200, 3), ""),
+        ((0, 3), "no samples"),
+    ],
+)
 def test_a_wrong_shape_says_the_shape_got_and_the_shapes_accepted(shape, hint):
     with pytest.raises(ValueError) as err:
         magcal.calibrate(np.ones(shape))
@@ -139,10 +149,13 @@ def test_a_wrong_shape_says_the_shape_got_and_the_shapes_accepted(shape, hint):
     assert hint in message
 
 
-@pytest.mark.parametrize("bad, where", [
-    (lambda r: r.__setitem__((40, 1), np.nan), "sample 40 (0-based), axis y"),
-    (lambda r: r.__setitem__((7, 2), np.inf), "sample 7 (0-based), axis z"),
-])
+@pytest.mark.parametrize(
+    "bad, where",
+    [
+        (lambda r: r.__setitem__((40, 1), np.nan), "sample 40 (0-based), axis y"),
+        (lambda r: r.__setitem__((7, 2), np.inf), "sample 7 (0-based), axis z"),
+    ],
+)
 def test_nan_readings_are_refused_naming_the_sample(bad, where):
     readings = simulate(chi2017_truth(1), seed=1).readings_nT[0].copy()
     bad(readings)
@@ -151,15 +164,18 @@ def test_nan_readings_are_refused_naming_the_sample(bad, where):
     assert where in str(err.value)
 
 
-@pytest.mark.parametrize("keywords, expected", [
-    ({"t": np.arange(199.0)}, r"t: got shape \(199,\); accepted is \(200,\)"),
-    ({"t": 1.0}, r"t: got shape \(\); accepted is \(200,\)"),
-    ({"t": np.r_[np.arange(100.0), np.arange(100.0)]}, "strictly increasing; sample 100"),
-    ({"temp": np.ones((200, 2))}, r"temp: got shape \(200, 2\)"),
-    ({"temp": np.r_[np.ones(199), np.nan]}, "temp: 1 value.* NaN or infinite, the first at sample 199"),
-    ({"reference_total_nT": -5}, "reference_total_nT: got -5; a positive number"),
-    ({"reference_total_nT": "fifty"}, "reference_total_nT: got 'fifty'"),
-])
+@pytest.mark.parametrize(
+    "keywords, expected",
+    [
+        ({"t": np.arange(199.0)}, r"t: got shape \(199,\); accepted is \(200,\)"),
+        ({"t": 1.0}, r"t: got shape \(\); accepted is \(200,\)"),
+        ({"t": np.r_[np.arange(100.0), np.arange(100.0)]}, "strictly increasing; sample 100"),
+        ({"temp": np.ones((200, 2))}, r"temp: got shape \(200, 2\)"),
+        ({"temp": np.r_[np.ones(199), np.nan]}, "temp: 1 value.* NaN or infinite, the first at sample 199"),
+        ({"reference_total_nT": -5}, "reference_total_nT: got -5; a positive number"),
+        ({"reference_total_nT": "fifty"}, "reference_total_nT: got 'fifty'"),
+    ],
+)
 def test_bad_channels_are_refused_with_what_was_expected(keywords, expected):
     readings = simulate(chi2017_truth(1), seed=1).readings_nT[0]
     with pytest.raises(ValueError, match=expected):
@@ -188,7 +204,10 @@ def test_a_frame_reads_like_the_csv_file(tmp_path):
     for attr in ("readings_nT", "time_s", "temperature_C", "attitude_wxyz"):
         np.testing.assert_allclose(getattr(from_frame, attr), getattr(from_file, attr), rtol=1e-12)
     assert (from_frame.baseline_m, from_frame.noise_nT, from_frame.reference_total_nT) == (
-        from_file.baseline_m, from_file.noise_nT, from_file.reference_total_nT)
+        from_file.baseline_m,
+        from_file.noise_nT,
+        from_file.reference_total_nT,
+    )
 
 
 def test_a_frame_with_one_sensor_uses_x_y_z():
@@ -197,14 +216,19 @@ def test_a_frame_with_one_sensor_uses_x_y_z():
     np.testing.assert_allclose(as_dataset(frame).readings_nT, ds.readings_nT, rtol=1e-12)
 
 
-@pytest.mark.parametrize("damage, expected", [
-    (lambda f: f.drop(columns="s3z"), "sensor 3 lacks column.* s3z"),
-    (lambda f: f.assign(s2y=f["s2y"].where(f.index != 17)), "row 17, column s2y"),
-    (lambda f: f.set_index(f.index + 100).assign(temp=lambda g: g["temp"].where(g.index != 105)),
-     "row 105, column temp"),
-    (lambda f: f.assign(t=f["t"].where(f.index != 30, 0.0)), "row 30, column t"),
-    (lambda f: f.iloc[:0], "no rows"),
-])
+@pytest.mark.parametrize(
+    "damage, expected",
+    [
+        (lambda f: f.drop(columns="s3z"), "sensor 3 lacks column.* s3z"),
+        (lambda f: f.assign(s2y=f["s2y"].where(f.index != 17)), "row 17, column s2y"),
+        (
+            lambda f: f.set_index(f.index + 100).assign(temp=lambda g: g["temp"].where(g.index != 105)),
+            "row 105, column temp",
+        ),
+        (lambda f: f.assign(t=f["t"].where(f.index != 30, 0.0)), "row 30, column t"),
+        (lambda f: f.iloc[:0], "no rows"),
+    ],
+)
 def test_a_bad_frame_is_refused_naming_the_row_and_column(damage, expected):
     frame = damage(_frame(_hidden_temperature_bias(4, 2)))
     with pytest.raises(DatasetError, match=expected) as err:
@@ -260,8 +284,10 @@ def test_importing_magcal_loads_none_of_the_heavy_packages():
 
 def test_the_effects_catalogue_is_whole_at_import():
     """Nothing imported later (diagnosis, command line, hidden-effect simulation) adds a built-in effect."""
-    code = ("import magcal; first = sorted(magcal.EFFECTS); import magcal.diagnosis, magcal.cli, magcal.model.perturbations,"
-            " magcal.model.plugins, magcal.fitting.validation, magcal.checks.quality; print(first == sorted(magcal.EFFECTS), *first)")
+    code = (
+        "import magcal; first = sorted(magcal.EFFECTS); import magcal.diagnosis, magcal.cli, magcal.model.perturbations,"
+        " magcal.model.plugins, magcal.fitting.validation, magcal.checks.quality; print(first == sorted(magcal.EFFECTS), *first)"
+    )
     same, *names = _in_fresh_python(code).split()
     assert same == "True"
     assert set(names) == {name for name in magcal.EFFECTS if plugins.is_builtin(name)}

@@ -23,8 +23,12 @@ from magcal.output import apply as ap
 
 def exact_calibration(truth, frame="platform"):
     """The true calibration: C^-1, b and R (sensor frame -> array/platform frame) of every sensor."""
-    return Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors],
-                       reference_total_nT=truth.total_nT, baseline_m=truth.baseline_m, frame=frame)
+    return Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors],
+        reference_total_nT=truth.total_nT,
+        baseline_m=truth.baseline_m,
+        frame=frame,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +79,7 @@ def test_every_input_line_is_copied_unchanged(tmp_path, truth, survey):
     for a, b in zip(src, dst):
         assert b.startswith(a + ",") and b.count(",") == a.count(",") + n_new
     meta_in = [line for line in path.read_text().splitlines() if line.startswith("#")]
-    assert meta_in == [line for line in out.read_text().splitlines() if line.startswith("#")][:len(meta_in)]
+    assert meta_in == [line for line in out.read_text().splitlines() if line.startswith("#")][: len(meta_in)]
 
 
 def test_values_match_the_calibration_object_and_tensor(tmp_path, truth, survey):
@@ -150,7 +154,11 @@ def test_column_mapping_and_units_in_apply(tmp_path):
     truth = sim.chi2017_truth()
     one = sim.ArrayTruth(truth.sensors[:1])
     ds = sim.simulate(one, n_samples=20, seed=2, noise_nT=0.0)
-    cols = {"Bx": ds.readings_nT[0, :, 0] / 1e3, "By": ds.readings_nT[0, :, 1] / 1e3, "Bz": ds.readings_nT[0, :, 2] / 1e3}
+    cols = {
+        "Bx": ds.readings_nT[0, :, 0] / 1e3,
+        "By": ds.readings_nT[0, :, 1] / 1e3,
+        "Bz": ds.readings_nT[0, :, 2] / 1e3,
+    }
     io.write_csv(tmp_path / "uT.csv", cols)
     cal = Calibration([SensorCalibration(one.sensors[0].Cinv, one.sensors[0].bias_nT)])
     ap.apply_file(cal, tmp_path / "uT.csv", tmp_path / "out.csv", columns="x=Bx,y=By,z=Bz", units="uT")
@@ -192,8 +200,9 @@ def test_memory_stays_flat(tmp_path, truth):
         ds = sim.simulate(truth, n_samples=n, seed=1)
         io.write_csv(tmp_path / f"m{n}.csv", ds, float_format="%.3f")
         tracemalloc.start()
-        ap.apply_file(exact_calibration(truth), tmp_path / f"m{n}.csv", tmp_path / "o.csv", chunk_rows=500,
-                      progress=False)
+        ap.apply_file(
+            exact_calibration(truth), tmp_path / f"m{n}.csv", tmp_path / "o.csv", chunk_rows=500, progress=False
+        )
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
     assert peaks[1] < 1.5 * peaks[0], peaks
@@ -219,21 +228,27 @@ def _doc(truth):
     return exact_calibration(truth).to_dict()
 
 
-@pytest.mark.parametrize("edit,match", [
-    (lambda d: d.update(version=2), "version 2 is not supported"),
-    (lambda d: d.update(version=None), "version None"),
-    (lambda d: d.update(format="other"), "not a magcal calibration"),
-    (lambda d: d.update(sensors=[]), "1 to 4"),
-    (lambda d: d.update(sensors="abc"), "1 to 4"),
-    (lambda d: d["sensors"][1].update(Cinv=[[1, 0], [0, 1]]), "sensor 2: Cinv"),
-    (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, float("nan"), 0], [0, 0, 1]]), "finite"),
-    (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, 0, 0], [0, 0, 1]]), "singular"),
-    (lambda d: d["sensors"][2].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]), "sensor 3: R is not a proper rotation"),
-    (lambda d: d["sensors"][3].pop("bias_nT"), "sensor 4: missing bias_nT"),
-    (lambda d: d["sensors"][3].update(bias_nT="x"), "not numeric"),
-    (lambda d: d.update(effect_params=[{"nonsense": 1}]), "damaged"),
-    (lambda d: d.update(baseline_m=-1), "baseline_m"),
-])
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (lambda d: d.update(version=2), "version 2 is not supported"),
+        (lambda d: d.update(version=None), "version None"),
+        (lambda d: d.update(format="other"), "not a magcal calibration"),
+        (lambda d: d.update(sensors=[]), "1 to 4"),
+        (lambda d: d.update(sensors="abc"), "1 to 4"),
+        (lambda d: d["sensors"][1].update(Cinv=[[1, 0], [0, 1]]), "sensor 2: Cinv"),
+        (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, float("nan"), 0], [0, 0, 1]]), "finite"),
+        (lambda d: d["sensors"][0].update(Cinv=[[1, 0, 0], [0, 0, 0], [0, 0, 1]]), "singular"),
+        (
+            lambda d: d["sensors"][2].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]),
+            "sensor 3: R is not a proper rotation",
+        ),
+        (lambda d: d["sensors"][3].pop("bias_nT"), "sensor 4: missing bias_nT"),
+        (lambda d: d["sensors"][3].update(bias_nT="x"), "not numeric"),
+        (lambda d: d.update(effect_params=[{"nonsense": 1}]), "damaged"),
+        (lambda d: d.update(baseline_m=-1), "baseline_m"),
+    ],
+)
 def test_damaged_or_foreign_files_are_refused(tmp_path, truth, edit, match):
     doc = _doc(truth)
     edit(doc)
@@ -266,8 +281,13 @@ def drift_files(tmp_path_factory):
     drift = EFFECTS["bias_drift"]()
     paths = {}
     for name, seed in (("record", 3), ("later", 4)):
-        ds = sim.simulate_timeseries(truth, n_samples=600, noise_nT=2.0, seed=seed,
-                                     perturbations=[drift.perturbation(2 * drift.default_magnitude)])
+        ds = sim.simulate_timeseries(
+            truth,
+            n_samples=600,
+            noise_nT=2.0,
+            seed=seed,
+            perturbations=[drift.perturbation(2 * drift.default_magnitude)],
+        )
         paths[name] = folder / f"{name}.csv"
         io.write_csv(paths[name], ds)
     record = read_out(paths["record"])
@@ -311,23 +331,27 @@ def test_record_terms_apply_forces_them(tmp_path, drift_files):
     with warnings.catch_warnings():
         warnings.simplefilter("error", RecordTermWarning)
         ap.apply_file(cal_path, paths["later"], tmp_path / "out.csv", record_terms="apply")
-    np.testing.assert_allclose(_corrected(tmp_path / "out.csv"),
-                               cal.correct(read_out(paths["later"]), record_terms="apply")[0], atol=6e-4)
+    np.testing.assert_allclose(
+        _corrected(tmp_path / "out.csv"), cal.correct(read_out(paths["later"]), record_terms="apply")[0], atol=6e-4
+    )
 
 
-@pytest.mark.parametrize("args, warned", [([], True), (["--record-terms", "drop"], False),
-                                          (["--record-terms", "apply"], False)])
+@pytest.mark.parametrize(
+    "args, warned", [([], True), (["--record-terms", "drop"], False), (["--record-terms", "apply"], False)]
+)
 def test_cli_record_terms(tmp_path, drift_files, capsys, args, warned):
     cal, cal_path, paths = drift_files
     out = tmp_path / "out.csv"
-    code = main(["apply", str(cal_path), str(paths["later"]), "-o", str(out), "--no-progress", "--chunk-rows", "50"]
-                + args)
+    code = main(
+        ["apply", str(cal_path), str(paths["later"]), "-o", str(out), "--no-progress", "--chunk-rows", "50"] + args
+    )
     err = capsys.readouterr().err
     assert code == 0 and "Traceback" not in err
     assert err.count("record-only term") == (1 if warned else 0), err  # printed once, not once per block
     choice = "apply" if "apply" in args else "drop"
-    np.testing.assert_allclose(_corrected(out), cal.correct(read_out(paths["later"]), record_terms=choice)[0],
-                               atol=6e-4)
+    np.testing.assert_allclose(
+        _corrected(out), cal.correct(read_out(paths["later"]), record_terms=choice)[0], atol=6e-4
+    )
 
 
 def test_cli_refuses_a_bad_record_terms_choice(tmp_path, drift_files, capsys):
@@ -347,5 +371,6 @@ def test_an_old_calibration_file_applies_its_record_terms_with_a_caution(tmp_pat
     assert main(["apply", str(old), str(paths["later"]), "-o", str(out), "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert err.count("does not say which record") == 1
-    np.testing.assert_allclose(_corrected(out), cal.correct(read_out(paths["later"]), record_terms="apply")[0],
-                               atol=6e-4)
+    np.testing.assert_allclose(
+        _corrected(out), cal.correct(read_out(paths["later"]), record_terms="apply")[0], atol=6e-4
+    )

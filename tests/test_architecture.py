@@ -16,12 +16,23 @@ import pytest
 ENGINE = pathlib.Path(__file__).resolve().parents[1] / "magcal"
 
 #: The layers, lowest first; ``magcal`` is the package's own ``__init__`` (the public API).
-LAYERS = ("core", "geometry", "data", "checks", "model", "calibration", "fitting", "diagnosis", "output", "api",
-          "cli")
+LAYERS = ("core", "geometry", "data", "checks", "model", "calibration", "fitting", "diagnosis", "output", "api", "cli")
 
 #: Third-party packages that belong to an extra, imported where they are used (never at a module's top).
-OPTIONAL = ("pandas", "pyarrow", "dask", "distributed", "serial", "pymavlink", "pyulog", "viser", "trimesh",
-            "plotly", "matplotlib", "websockets")
+OPTIONAL = (
+    "pandas",
+    "pyarrow",
+    "dask",
+    "distributed",
+    "serial",
+    "pymavlink",
+    "pyulog",
+    "viser",
+    "trimesh",
+    "plotly",
+    "matplotlib",
+    "websockets",
+)
 
 
 def _module_name(path: pathlib.Path) -> str:
@@ -124,7 +135,7 @@ def test_no_import_circle():
         path.append(m)
         for t in sorted(graph[m]):
             if state.get(t) == "open":
-                cycle = path[path.index(t):] + [t]
+                cycle = path[path.index(t) :] + [t]
                 raise AssertionError("import circle: " + " -> ".join(cycle))
             if t not in state:
                 visit(t)

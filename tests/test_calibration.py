@@ -17,8 +17,9 @@ from magcal.model.terms import EFFECTS, Model
 def test_truth_calibration_corrects_to_the_field():
     truth = chi2017_truth()
     ds = simulate(truth, seed=1, noise_nT=0.0)
-    cal = Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], truth.total_nT,
-                      baseline_m=truth.baseline_m)
+    cal = Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], truth.total_nT, baseline_m=truth.baseline_m
+    )
     corrected = cal.correct(ds)
     assert np.allclose(np.linalg.norm(corrected, axis=2), truth.total_nT, atol=1e-6)
     assert np.allclose(corrected, corrected[0], atol=1e-6)  # every sensor agrees in the array frame
@@ -77,8 +78,13 @@ def _one_sensor():
 
 def _record(hidden, seed):
     effect = EFFECTS[hidden]()
-    return simulate_timeseries(_one_sensor(), n_samples=800, noise_nT=2.0, seed=seed,
-                               perturbations=[effect.perturbation(2 * effect.default_magnitude)])
+    return simulate_timeseries(
+        _one_sensor(),
+        n_samples=800,
+        noise_nT=2.0,
+        seed=seed,
+        perturbations=[effect.perturbation(2 * effect.default_magnitude)],
+    )
 
 
 @pytest.fixture(scope="module", params=["bias_drift", "reference_drift"])

@@ -12,8 +12,17 @@ from magcal.cli import main
 from magcal.data import io
 from magcal.data.simulation import chi2017_truth
 
-ITEM9_TOP = {"format", "version", "reference_total_nT", "baseline_m", "n_samples", "effects", "rms_nT",
-             "tensor_rms_nT_per_m", "sensors"}
+ITEM9_TOP = {
+    "format",
+    "version",
+    "reference_total_nT",
+    "baseline_m",
+    "n_samples",
+    "effects",
+    "rms_nT",
+    "tensor_rms_nT_per_m",
+    "sensors",
+}
 ITEM9_SENSOR = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg", "rms_before_nT", "rms_nT"}
 
 
@@ -31,11 +40,14 @@ def test_simulate_writes_a_readable_file(chi_csv):
     assert ds.metadata["preset"] == "chi2017" and ds.metadata["seed"] == "21"
 
 
-@pytest.mark.parametrize("extra,check", [
-    (["--n", "60", "--noise", "0"], lambda ds: ds.n_samples == 60 and ds.noise_nT == 0.0),
-    (["--timeseries", "--n", "120"], lambda ds: ds.n_samples == 120 and ds.has("time") and ds.has("temperature")),
-    (["--no-reference", "--n", "30"], lambda ds: ds.reference_total_nT is None),
-])
+@pytest.mark.parametrize(
+    "extra,check",
+    [
+        (["--n", "60", "--noise", "0"], lambda ds: ds.n_samples == 60 and ds.noise_nT == 0.0),
+        (["--timeseries", "--n", "120"], lambda ds: ds.n_samples == 120 and ds.has("time") and ds.has("temperature")),
+        (["--no-reference", "--n", "30"], lambda ds: ds.reference_total_nT is None),
+    ],
+)
 def test_simulate_options(tmp_path, extra, check):
     path = tmp_path / "s.csv"
     assert main(["simulate", "--preset", "chi2017", "-o", str(path)] + extra) == 0
@@ -52,8 +64,20 @@ def test_simulate_is_reproducible(tmp_path):
 def test_calibrate_report(chi_csv, capsys):
     assert main(["calibrate", str(chi_csv)]) == 0
     out = capsys.readouterr().out
-    for text in ("Sensor 1: total-field RMS", "Sensor 4", "C^-1 =", "b = [", "R =", "scale (gauge-free)",
-                 "axis angles", "Tensor RMS", "Gzz", "floor", "procrustes", "ml"):
+    for text in (
+        "Sensor 1: total-field RMS",
+        "Sensor 4",
+        "C^-1 =",
+        "b = [",
+        "R =",
+        "scale (gauge-free)",
+        "axis angles",
+        "Tensor RMS",
+        "Gzz",
+        "floor",
+        "procrustes",
+        "ml",
+    ):
         assert text in out, text
 
 
@@ -82,8 +106,15 @@ def test_calibrate_json_and_saved_file_agree(chi_csv, tmp_path, capsys):
     assert np.sqrt(np.mean((total - 50_000.0) ** 2)) == pytest.approx(printed["rms_nT"], rel=1e-9)
 
 
-@pytest.mark.parametrize("args", [["--method", "ellipsoid"], ["--robust"], ["--reference", "50000"],
-                                  ["--ellipsoid", "li-griffiths", "--method", "ellipsoid"]])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--method", "ellipsoid"],
+        ["--robust"],
+        ["--reference", "50000"],
+        ["--ellipsoid", "li-griffiths", "--method", "ellipsoid"],
+    ],
+)
 def test_calibrate_options(chi_csv, capsys, args):
     assert main(["calibrate", str(chi_csv), "--json"] + args) == 0
     doc = json.loads(capsys.readouterr().out)
@@ -98,12 +129,15 @@ def test_calibrate_without_reference_says_it_is_fitted(tmp_path, capsys):
     assert "unknown, fitted" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("setup,args,message", [
-    (None, ["calibrate", "no/such/file.csv"], "no/such/file.csv"),
-    ("chi", ["calibrate", "{chi}", "--reference", "-5"], "--reference"),
-    (None, ["simulate", "--preset", "nope", "-o", "x.csv"], "unknown preset"),
-    ("few", ["calibrate", "{few}"], "too few samples"),
-])
+@pytest.mark.parametrize(
+    "setup,args,message",
+    [
+        (None, ["calibrate", "no/such/file.csv"], "no/such/file.csv"),
+        ("chi", ["calibrate", "{chi}", "--reference", "-5"], "--reference"),
+        (None, ["simulate", "--preset", "nope", "-o", "x.csv"], "unknown preset"),
+        ("few", ["calibrate", "{few}"], "too few samples"),
+    ],
+)
 def test_user_errors_exit_2_without_traceback(tmp_path, chi_csv, capsys, setup, args, message):
     few = tmp_path / "few.csv"
     if setup == "few":
@@ -217,7 +251,7 @@ def test_calibrate_reads_raw_counts_and_reports_their_quantization(tmp_path, cap
     _write_counts(path, lsb_nT)
     assert main(["calibrate", str(path), "--units", "counts", "--lsb", str(lsb_nT), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["rms_nT"] < 3.0 + lsb_nT / np.sqrt(12) * 1.3           # the quantization floor, not more
+    assert doc["rms_nT"] < 3.0 + lsb_nT / np.sqrt(12) * 1.3  # the quantization floor, not more
     quant = [f for f in doc["quality"]["findings"] if f["kind"] == "quantization"]
     assert [f["sensor"] for f in quant] == [1, 2, 3, 4]
     for f in quant:
@@ -226,11 +260,14 @@ def test_calibrate_reads_raw_counts_and_reports_their_quantization(tmp_path, cap
         assert any(w.endswith(f["effect"]) and f"sensor {f['sensor']}:" in w for w in doc["warnings"])
 
 
-@pytest.mark.parametrize("args,message", [
-    (["--units", "counts"], "need the LSB in nT per count: pass --lsb"),
-    (["--lsb", "150"], "add --units counts"),
-    (["--units", "counts", "--lsb", "-1"], "positive number of nT per count"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--units", "counts"], "need the LSB in nT per count: pass --lsb"),
+        (["--lsb", "150"], "add --units counts"),
+        (["--units", "counts", "--lsb", "-1"], "positive number of nT per count"),
+    ],
+)
 def test_counts_without_a_usable_lsb_exit_2_with_a_message(tmp_path, capsys, args, message):
     path = tmp_path / "counts.csv"
     _write_counts(path, 150.0, n=40)
@@ -243,13 +280,13 @@ def test_text_report_has_a_data_quality_section(tmp_path, chi_csv, capsys):
     assert main(["calibrate", str(chi_csv)]) == 0
     out = capsys.readouterr()
     section = out.out.split("\nData quality\n------------\n")[1]
-    assert section.strip() == "nothing notable" and "WARNING" not in out.out   # the clean simulation
+    assert section.strip() == "nothing notable" and "WARNING" not in out.out  # the clean simulation
     # stale readings in sensor 3: a warning in the section (with its effect), not repeated on stderr
     from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=300, seed=4)
     y = ds.readings_nT.copy()
-    y[2, 1::4] = y[2, 0:-1:4]                      # every 4th sample of sensor 3 repeats the one before
+    y[2, 1::4] = y[2, 0:-1:4]  # every 4th sample of sensor 3 repeats the one before
     path = tmp_path / "stale.csv"
     io.write_csv(path, ds.replace(readings_nT=y))
     assert main(["calibrate", str(path)]) == 0
@@ -265,7 +302,7 @@ def test_fitted_field_outside_the_earths_range_is_flagged(tmp_path, capsys, comm
 
     ds = simulate("chi2017", n_samples=200, seed=6, with_reference=False)
     path = tmp_path / "weak.csv"
-    io.write_csv(path, ds.replace(readings_nT=0.3 * ds.readings_nT))   # 15 uT: a shielded room, or a wrong LSB
+    io.write_csv(path, ds.replace(readings_nT=0.3 * ds.readings_nT))  # 15 uT: a shielded room, or a wrong LSB
     extra = ["--top", "1"] if command == "diagnose" else []
     assert main([command, str(path), "--json"] + extra) == 0
     doc = json.loads(capsys.readouterr().out)
@@ -284,7 +321,7 @@ def test_diagnose_reports_data_quality(tmp_path, capsys):
 
     ds = simulate_timeseries("chi2017", n_samples=600, seed=2)
     path = tmp_path / "ramp.csv"
-    io.write_csv(path, ds.replace(temperature_C=20.0 + 0.05 * ds.time_s))   # temperature follows time
+    io.write_csv(path, ds.replace(temperature_C=20.0 + 0.05 * ds.time_s))  # temperature follows time
     assert main(["diagnose", str(path), "--top", "1"]) == 0
     out = capsys.readouterr()
     section = out.out.split("\nData quality\n------------\n")[1]

@@ -22,8 +22,9 @@ def files(tmp_path_factory):
     io.write_csv(d / "free.csv", sim.simulate(truth, n_samples=200, noise_nT=3.0, seed=5))
     io.write_csv(d / "table.csv", pf.simulate_level_table(truth, n_per_group=80, noise_nT=3.0, seed=1))
     io.write_csv(d / "survey.csv", sim.simulate_timeseries(truth, n_samples=400, noise_nT=3.0, seed=3))
-    Calibration([SensorCalibration(s.Cinv, s.bias_nT) for s in truth.sensors], reference_total_nT=50_000.0,
-                baseline_m=0.5).save(d / "intrinsic.json")
+    Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT) for s in truth.sensors], reference_total_nT=50_000.0, baseline_m=0.5
+    ).save(d / "intrinsic.json")
     Calibration([SensorCalibration(np.eye(3), np.zeros(3))]).save(d / "one.json")
     return d
 
@@ -59,21 +60,24 @@ def test_bad_data_files_fail_cleanly(tmp_path, files, capsys, command, name, con
     assert not (files / "out_bad.csv").exists()
 
 
-@pytest.mark.parametrize("args,needles", [
-    (["apply", "{d}/absent.json", "{d}/survey.csv", "-o", "{t}/o.csv"], ["no such calibration"]),
-    (["apply", "{d}/survey.csv", "{d}/survey.csv", "-o", "{t}/o.csv"], ["not a JSON"]),
-    (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{d}/survey.csv"], ["overwrite"]),
-    (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--units", "furlong"], ["unknown unit"]),
-    (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--columns", "w=foo"], ["not a magcal"]),
-    (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--chunk-rows", "0"], ["chunk-rows"]),
-    (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/nodir/o.csv"], ["cannot write"]),
-    (["align", "{d}/survey.csv", "--cal", "{d}/intrinsic.json"], ["group column"]),
-    (["align", "{d}/table.csv", "--cal", "{d}/absent.json"], ["no such calibration"]),
-    (["align", "{d}/table.csv", "--noise", "-1"], ["--noise"]),
-    (["align", "{d}/table.csv", "--reference", "igrf"], ["--lat"]),
-    (["align", "{d}/table.csv", "--reference", "52.1"], ["looks like uT"]),
-    (["calibrate", "{d}/survey.csv", "--columns", "x=nothing"], ["nothing"]),
-])
+@pytest.mark.parametrize(
+    "args,needles",
+    [
+        (["apply", "{d}/absent.json", "{d}/survey.csv", "-o", "{t}/o.csv"], ["no such calibration"]),
+        (["apply", "{d}/survey.csv", "{d}/survey.csv", "-o", "{t}/o.csv"], ["not a JSON"]),
+        (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{d}/survey.csv"], ["overwrite"]),
+        (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--units", "furlong"], ["unknown unit"]),
+        (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--columns", "w=foo"], ["not a magcal"]),
+        (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/o.csv", "--chunk-rows", "0"], ["chunk-rows"]),
+        (["apply", "{d}/intrinsic.json", "{d}/survey.csv", "-o", "{t}/nodir/o.csv"], ["cannot write"]),
+        (["align", "{d}/survey.csv", "--cal", "{d}/intrinsic.json"], ["group column"]),
+        (["align", "{d}/table.csv", "--cal", "{d}/absent.json"], ["no such calibration"]),
+        (["align", "{d}/table.csv", "--noise", "-1"], ["--noise"]),
+        (["align", "{d}/table.csv", "--reference", "igrf"], ["--lat"]),
+        (["align", "{d}/table.csv", "--reference", "52.1"], ["looks like uT"]),
+        (["calibrate", "{d}/survey.csv", "--columns", "x=nothing"], ["nothing"]),
+    ],
+)
 def test_bad_options_fail_cleanly(tmp_path, files, capsys, args, needles):
     argv = [a.format(d=files, t=tmp_path) for a in args]
     code, out, err = run(argv, capsys)
@@ -98,17 +102,20 @@ def test_unknown_calibration_version(tmp_path, files, capsys):
 
 
 def test_align_then_apply_end_to_end(tmp_path, files, capsys):
-    code, out, err = run(["align", files / "table.csv", "--cal", files / "intrinsic.json", "-o", tmp_path / "p.json"],
-                         capsys)
+    code, out, err = run(
+        ["align", files / "table.csv", "--cal", files / "intrinsic.json", "-o", tmp_path / "p.json"], capsys
+    )
     assert code == 0, err
     assert "platform alignment" in out and "saved" in out
     cal = Calibration.load(tmp_path / "p.json")
     truth = pf.platform_truth()
     assert cal.frame == "platform"
-    assert np.all(pf.rotation_error_rad(np.array([c.R for c in cal.sensors]), np.array([s.R for s in truth.sensors]))
-                  < 1e-4)
-    code, out, err = run(["apply", tmp_path / "p.json", files / "survey.csv", "-o", tmp_path / "s.csv",
-                          "--no-progress"], capsys)
+    assert np.all(
+        pf.rotation_error_rad(np.array([c.R for c in cal.sensors]), np.array([s.R for s in truth.sensors])) < 1e-4
+    )
+    code, out, err = run(
+        ["apply", tmp_path / "p.json", files / "survey.csv", "-o", tmp_path / "s.csv", "--no-progress"], capsys
+    )
     assert code == 0, err
     assert "corrected 400 rows" in out
     header = next(line for line in (tmp_path / "s.csv").read_text().splitlines() if not line.startswith("#"))
@@ -125,14 +132,21 @@ def test_warnings_are_printed_not_raised(tmp_path, files, capsys):
     assert "warning:" in err and "Earth's field" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize("args", [
-    ["apply", "{d}/intrinsic.json", "{t}/bin.csv", "-o", "{t}/o.csv"],
-    ["align", "{t}/bin.csv"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["apply", "{d}/intrinsic.json", "{t}/bin.csv", "-o", "{t}/o.csv"],
+        ["align", "{t}/bin.csv"],
+    ],
+)
 def test_real_process_exits_2_without_traceback(tmp_path, files, args):
     (tmp_path / "bin.csv").write_bytes(bytes(range(256)) * 8)
     argv = [a.format(d=files, t=tmp_path) for a in args]
-    proc = subprocess.run([sys.executable, "-c", "import sys; from magcal.cli import main; sys.exit(main())", *argv],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys; from magcal.cli import main; sys.exit(main())", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     assert "binary" in proc.stderr and "Traceback" not in proc.stderr

@@ -61,11 +61,14 @@ def test_table2_cinv_is_the_inverse_of_table1_errors(sensor):
     assert np.all(np.diag(cinv) > 0)
 
 
-@pytest.mark.parametrize("scale,psi,phi,theta", [
-    ((1.0, 1.0, 1.0), 0.0, 0.0, 0.0),
-    ((1.013, 0.991, 1.007), 0.017, 0.024, -0.021),
-    ((0.9, 1.1, 1.05), -0.05, 0.03, 0.04),
-])
+@pytest.mark.parametrize(
+    "scale,psi,phi,theta",
+    [
+        ((1.0, 1.0, 1.0), 0.0, 0.0, 0.0),
+        ((1.013, 0.991, 1.007), 0.017, 0.024, -0.021),
+        ((0.9, 1.1, 1.05), -0.05, 0.03, 0.04),
+    ],
+)
 def test_gauge_free_recovers_scale_and_axis_angles(scale, psi, phi, theta):
     c = conventions.sensor_matrix(scale, psi, phi, theta)
     # Rows of C are the sensing axes (times their sensitivity): compute the expected figures directly.
@@ -105,8 +108,15 @@ def test_tensor_of_a_linear_field(d):
     assert np.allclose(pos, [[d / 2, 0, 0], [0, d / 2, 0], [-d / 2, 0, 0], [0, -d / 2, 0]])
     vectors = np.stack([b0 + g @ p for p in pos])
     comp = conventions.tensor_components(vectors, d)
-    expected = {"Gxx": g[0, 0], "Gxy": g[0, 1], "Gxz": g[0, 2], "Gyx": g[1, 0], "Gyy": g[1, 1], "Gyz": g[1, 2],
-                "Gzz": g[2, 2]}
+    expected = {
+        "Gxx": g[0, 0],
+        "Gxy": g[0, 1],
+        "Gxz": g[0, 2],
+        "Gyx": g[1, 0],
+        "Gyy": g[1, 1],
+        "Gyz": g[1, 2],
+        "Gzz": g[2, 2],
+    }
     # Eq. (1) reads column j of G from sensors displaced along j: Gxy = dBx/dy, Gyx = dBy/dx.
     for name, value in expected.items():
         assert np.allclose(comp[name], value, atol=1e-9), name

@@ -8,10 +8,10 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from magcal.checks import coverage as cv
-from magcal.geometry import shape, sphere
 from magcal.core.errors import CoverageWarning
 from magcal.data import simulation as sim
 from magcal.data.dataset import DatasetError
+from magcal.geometry import shape, sphere
 
 SIGMA = 3.0
 
@@ -26,8 +26,9 @@ def readings(attitudes, rng, truth=None, sigma=SIGMA):
 def tilted(n, tilt_deg, rng):
     """Free heading, roll and pitch limited to +-tilt_deg (a sensor kept roughly level)."""
     t = np.radians(tilt_deg)
-    return Rotation.from_euler("ZYX", np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-t, t, n),
-                                                       rng.uniform(-t, t, n)]))
+    return Rotation.from_euler(
+        "ZYX", np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-t, t, n), rng.uniform(-t, t, n)])
+    )
 
 
 def test_fibonacci_sphere_is_even():
@@ -102,6 +103,7 @@ def test_error_grows_as_the_tilt_range_shrinks():
 
 def _fit_ellipsoid(y, F):
     """Reference ML fit of |A^(1/2)(y - b)| = F by least squares (A symmetric, 9 parameters)."""
+
     def unpack(p):
         a = np.array([[p[0], p[1], p[2]], [p[1], p[3], p[4]], [p[2], p[4], p[5]]])
         return a, p[6:]
@@ -157,8 +159,9 @@ def test_dataset_input_uses_its_noise_and_source():
     cov = cv.coverage(ds)
     assert cov.noise_nT == 3.0 and cov.extrapolation_nT.shape == (4,)
     assert "sensor 4" in cov.text()
-    ds1 = ds.replace(readings_nT=readings(Rotation.from_euler("z", np.linspace(0, 6, 200)[:, None]),
-                                          np.random.default_rng(0)))
+    ds1 = ds.replace(
+        readings_nT=readings(Rotation.from_euler("z", np.linspace(0, 6, 200)[:, None]), np.random.default_rng(0))
+    )
     with pytest.raises(DatasetError, match="field.csv"):
         cv.check_coverage(ds1)
 
@@ -227,14 +230,14 @@ def test_the_unit_check_uses_the_fitted_magnitude(tmp_path):
         warnings.simplefilter("error", DataWarning)
         assert io.check_units(ds, "nT") is None
     with pytest.warns(DataWarning, match="outside the Earth's field range"):
-        io.check_units(ds.replace(readings_nT=0.2 * y[None]), "nT")   # 7 uT: a wrong LSB
+        io.check_units(ds.replace(readings_nT=0.2 * y[None]), "nT")  # 7 uT: a wrong LSB
 
 
 def test_a_covered_sphere_with_uneven_density_is_not_poor_coverage():
     """A flight log (ads_flight_rm3100): 99 % of the sphere within 30 deg of a sample, but most samples level;
     the expected error off the dense directions is a tenth of the noise: 'poor direction coverage' was false."""
     rng = np.random.default_rng(24)
-    level = readings(tilted(3900, 5, rng), rng)                  # most of the record: near level
+    level = readings(tilted(3900, 5, rng), rng)  # most of the record: near level
     spread = readings(Rotation.random(100, random_state=rng), rng)
     y = np.concatenate([level, spread], axis=1)
     cov = cv.coverage(y, noise_nT=SIGMA)

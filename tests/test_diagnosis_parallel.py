@@ -5,11 +5,10 @@ import time
 
 import pytest
 
-import magcal.model.effects as fx
-from magcal.model import perturbations
 from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import _parallel, diagnose
 from magcal.fitting.pipeline import calibrate
+from magcal.model import perturbations
 
 
 @pytest.mark.parametrize("workers", [None, 1, 3])
@@ -69,8 +68,12 @@ def test_a_pool_starts_work_by_priority(monkeypatch):
     with _parallel.Pool() as pool:
         blockers = [pool.submit(held.wait), pool.submit(busy.wait)]  # both threads busy while the queue fills
         time.sleep(0.05)
-        for name, priority in [("filler", _parallel.FILLER), ("shared", _parallel.SHARED),
-                               ("chain 1", _parallel.CHAIN), ("chain 2", _parallel.CHAIN)]:
+        for name, priority in [
+            ("filler", _parallel.FILLER),
+            ("shared", _parallel.SHARED),
+            ("chain 1", _parallel.CHAIN),
+            ("chain 2", _parallel.CHAIN),
+        ]:
             pool.submit(lambda name=name: started.append(name), priority)
         busy.set()
         deadline = time.monotonic() + 10
@@ -84,8 +87,16 @@ def test_a_pool_starts_work_by_priority(monkeypatch):
 def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeypatch):
     """Two hidden effects on four sensors: the confirming refits, the held-out fits and the score chunks run on
     threads; the candidates, their figures and the verdict are those of the sequential run."""
-    ds = simulate_timeseries(chi2017_truth(4), n_samples=3000, noise_nT=3.0, seed=4,
-                             perturbations=[perturbations.parse_hidden("temperature_bias=2", 4), perturbations.parse_hidden("bias_step:3", 4)])
+    ds = simulate_timeseries(
+        chi2017_truth(4),
+        n_samples=3000,
+        noise_nT=3.0,
+        seed=4,
+        perturbations=[
+            perturbations.parse_hidden("temperature_bias=2", 4),
+            perturbations.parse_hidden("bias_step:3", 4),
+        ],
+    )
     res = calibrate(ds)
     results = {}
     for workers in (1, 2):

@@ -56,8 +56,9 @@ def test_lomb_scargle_grid_is_scipys_periodogram():
     r = np.sin(2 * np.pi * 0.8 * t) + rng.normal(0, 1, t.size)
     r -= r.mean()
     freq = np.arange(1, 351) / 40.0
-    np.testing.assert_allclose(st.lomb_scargle_grid(t, r, freq[0], freq.size),
-                               lombscargle(t, r, 2 * np.pi * freq), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(
+        st.lomb_scargle_grid(t, r, freq[0], freq.size), lombscargle(t, r, 2 * np.pi * freq), rtol=1e-9, atol=1e-9
+    )
 
 
 def _three_great_circles(n_per):
@@ -69,7 +70,7 @@ def _three_great_circles(n_per):
 
 def _degree4(u):
     """A degree-4 pattern: RMS over the sphere 40 nT."""
-    y = st.real_sph_harm(u, 4)[:, 16 + 4]          # (l=4, m=0)
+    y = st.real_sph_harm(u, 4)[:, 16 + 4]  # (l=4, m=0)
     return 40.0 * np.sqrt(4 * np.pi) * y
 
 
@@ -82,11 +83,11 @@ def test_ring_coverage_withholds_the_degrees_it_cannot_resolve():
     sh = st.sh_analysis(u, r)
     assert list(sh["resolved"]) == [True, True, True, False, False, False, False]
     assert sh["max_resolved_degree"] == 2
-    assert np.all(np.isnan(sh["rms_nT"][3:]))       # withheld: they were 1.5-5.5 uT for 300 nT of residual
-    assert np.all(np.isfinite(sh["p"]))               # the F-tests stay (valid, with less power)
-    assert np.all(sh["rms_nT"][:3] < 50.0)            # the resolved degrees of pure noise stay small
+    assert np.all(np.isnan(sh["rms_nT"][3:]))  # withheld: they were 1.5-5.5 uT for 300 nT of residual
+    assert np.all(np.isfinite(sh["p"]))  # the F-tests stay (valid, with less power)
+    assert np.all(sh["rms_nT"][:3] < 50.0)  # the resolved degrees of pure noise stay small
     assert sh["high_rms_in_sample_nT"] < 0.3 * 300.0  # noise: degrees 3+ explain little where the samples are
-    np.testing.assert_allclose(sh["map"]["value_nT"], 0.0)   # no map of what the coverage does not resolve
+    np.testing.assert_allclose(sh["map"]["value_nT"], 0.0)  # no map of what the coverage does not resolve
 
 
 def test_full_coverage_resolves_and_measures_every_degree():
@@ -114,10 +115,20 @@ def test_a_ring_pattern_is_found_without_a_made_up_size():
 def test_evidence_says_a_withheld_degree_is_not_measured():
     u = Rotation.from_rotvec([0.1, -0.2, 0.05]).apply(_three_great_circles(500))
     sh = st.sh_analysis(u, np.random.default_rng(5).normal(0, 300.0, len(u)))
-    c = Candidate(effect="nonlinearity_cubic", sensor=None, label="nonlinearity_cubic", n_params=3, lm=10.0,
-                  p_value=1e-3, predicted_delta_bic=-5.0, delta_bic=-5.0, rms_after_nT=290.0)
+    c = Candidate(
+        effect="nonlinearity_cubic",
+        sensor=None,
+        label="nonlinearity_cubic",
+        n_params=3,
+        lm=10.0,
+        p_value=1e-3,
+        predicted_delta_bic=-5.0,
+        delta_bic=-5.0,
+        rms_after_nT=290.0,
+    )
     text = _effect_extra(c, None, None, None, [sh])
     assert "not resolved by the coverage" in text and "up to 2" in text and "nan" not in text
-    full = st.sh_analysis(Rotation.random(2000, random_state=6).apply([0, 0, 1.0]),
-                          np.random.default_rng(6).normal(0, 30.0, 2000))
+    full = st.sh_analysis(
+        Rotation.random(2000, random_state=6).apply([0, 0, 1.0]), np.random.default_rng(6).normal(0, 30.0, 2000)
+    )
     assert _effect_extra(c, None, None, None, [full]).startswith("direction degree 4: ")

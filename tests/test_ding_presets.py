@@ -10,12 +10,18 @@ from magcal.data.simulation import PRESETS, ding2024_fluxgate_truth, ding2024_tr
 TABLES = {
     "ding2024": (
         ding2024_truth,
-        [75.5, 57.3, -42.6], [1.031, 0.988, 0.982], [-1.01, -0.83, 1.20], [212, -367, 398],
+        [75.5, 57.3, -42.6],
+        [1.031, 0.988, 0.982],
+        [-1.01, -0.83, 1.20],
+        [212, -367, 398],
         [[0.11, 0.09, -0.13], [0.13, -0.06, 0.14], [-0.06, 0.13, 0.11]],
     ),
     "ding2024-fluxgate": (
         ding2024_fluxgate_truth,
-        [52.65, -35.5, 72.4], [1.00002, 0.99997, 1.00005], [0.08, 0.03, -0.02], [100, -200, 100],
+        [52.65, -35.5, 72.4],
+        [1.00002, 0.99997, 1.00005],
+        [0.08, 0.03, -0.02],
+        [100, -200, 100],
         [[0.09, 0.05, 0.09], [0.15, -0.04, 0.10], [-0.04, 0.09, 0.15]],
     ),
 }
@@ -23,11 +29,13 @@ TABLES = {
 
 def _ding_eq3(phi, theta, psi):
     """Ding's eq. (3) exactly as printed (his phi: out of the x-y plane; his theta: in the plane)."""
-    return np.array([
-        [np.cos(theta) * np.cos(phi), np.sin(theta) * np.cos(phi), np.sin(phi)],
-        [0.0, np.cos(psi), np.sin(psi)],
-        [0.0, 0.0, 1.0],
-    ])
+    return np.array(
+        [
+            [np.cos(theta) * np.cos(phi), np.sin(theta) * np.cos(phi), np.sin(phi)],
+            [0.0, np.cos(psi), np.sin(psi)],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 @pytest.mark.parametrize("name", TABLES)

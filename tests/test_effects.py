@@ -6,18 +6,27 @@ import numpy as np
 import pytest
 
 import magcal.model.effects as fx
-from magcal.model import perturbations
 from magcal.calibration.calibration import Calibration
 from magcal.core import conventions
 from magcal.core.errors import MagcalError
 from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.fitting.fitter import fit
+from magcal.model import perturbations
 from magcal.model.terms import EFFECTS, Model, contexts, parse_effect
 
-ISSUE_EFFECTS = ("temperature_bias", "temperature_scale", "bias_drift", "bias_step", "nonlinearity_quadratic",
-                 "nonlinearity_cubic", "axis_timing_skew", "sensor_timing_skew", "reference_drift", "site_gradient")
+ISSUE_EFFECTS = (
+    "temperature_bias",
+    "temperature_scale",
+    "bias_drift",
+    "bias_step",
+    "nonlinearity_quadratic",
+    "nonlinearity_cubic",
+    "axis_timing_skew",
+    "sensor_timing_skew",
+    "reference_drift",
+    "site_gradient",
+)
 UNITS = ("_nT", "_ms", "_ppm_per_K", "_nT_per_K", "_nT_per_h", "_nT_per_m")
-
 
 
 def _pair(name, magnitude=None, n_sensors=1, seed=4, n=600, sensor=None):
@@ -25,8 +34,9 @@ def _pair(name, magnitude=None, n_sensors=1, seed=4, n=600, sensor=None):
     effect = EFFECTS[name]()
     truth = chi2017_truth(n_sensors)
     clean = simulate_timeseries(truth, n_samples=n, noise_nT=0.0, seed=seed)
-    pert = simulate_timeseries(truth, n_samples=n, noise_nT=0.0, seed=seed,
-                               perturbations=[effect.perturbation(magnitude, sensor)])
+    pert = simulate_timeseries(
+        truth, n_samples=n, noise_nT=0.0, seed=seed, perturbations=[effect.perturbation(magnitude, sensor)]
+    )
     return truth, clean, pert, effect
 
 
@@ -80,8 +90,16 @@ def test_declarations_are_consistent(name):
     assert np.all(np.isfinite(basis))
 
 
-RAW = ["temperature_bias", "temperature_scale", "bias_drift", "bias_step", "nonlinearity_quadratic",
-       "nonlinearity_cubic", "axis_timing_skew", "hysteresis"]
+RAW = [
+    "temperature_bias",
+    "temperature_scale",
+    "bias_drift",
+    "bias_step",
+    "nonlinearity_quadratic",
+    "nonlinearity_cubic",
+    "axis_timing_skew",
+    "hysteresis",
+]
 
 
 @pytest.mark.parametrize("name", RAW)
@@ -129,25 +147,37 @@ def test_reference_drift_basis_spans_a_slow_field_variation():
     effect.configure(pert, None)
     s = truth.sensors[0]
     inv = np.linalg.inv(s.total_matrix)
-    d_total = np.linalg.norm((pert.readings_nT[0] - s.total_offset_nT) @ inv.T, axis=1) \
-        - np.linalg.norm((clean.readings_nT[0] - s.total_offset_nT) @ inv.T, axis=1)
+    d_total = np.linalg.norm((pert.readings_nT[0] - s.total_offset_nT) @ inv.T, axis=1) - np.linalg.norm(
+        (clean.readings_nT[0] - s.total_offset_nT) @ inv.T, axis=1
+    )
     basis = np.column_stack([np.ones(pert.n_samples), effect.reference_basis(contexts(pert)[0])])
     coef, *_ = np.linalg.lstsq(basis, d_total, rcond=None)
     assert np.sqrt(np.mean(d_total**2)) > 3.0
     assert np.sqrt(np.mean((d_total - basis @ coef) ** 2)) < 0.05 * np.std(d_total)
 
 
-@pytest.mark.parametrize("name, n_sensors, mult", [
-    ("temperature_bias", 1, 1), ("temperature_scale", 1, 2), ("bias_drift", 1, 1), ("bias_step", 1, 1),
-    ("nonlinearity_quadratic", 1, 1), ("nonlinearity_cubic", 1, 2), ("axis_timing_skew", 1, 3),
-    ("hysteresis", 1, 1), ("sensor_timing_skew", 4, 2), ("site_gradient", 4, 1),
-])
+@pytest.mark.parametrize(
+    "name, n_sensors, mult",
+    [
+        ("temperature_bias", 1, 1),
+        ("temperature_scale", 1, 2),
+        ("bias_drift", 1, 1),
+        ("bias_step", 1, 1),
+        ("nonlinearity_quadratic", 1, 1),
+        ("nonlinearity_cubic", 1, 2),
+        ("axis_timing_skew", 1, 3),
+        ("hysteresis", 1, 1),
+        ("sensor_timing_skew", 4, 2),
+        ("site_gradient", 4, 1),
+    ],
+)
 def test_fit_recovers_the_hidden_parameters(name, n_sensors, mult):
     """Units and signs: the fitted parameters equal the simulator's within their standard deviations."""
     effect = EFFECTS[name]()
     magnitude = mult * effect.default_magnitude
-    ds = simulate_timeseries(chi2017_truth(n_sensors), n_samples=1200, noise_nT=2.0, seed=7,
-                             perturbations=[effect.perturbation(magnitude)])
+    ds = simulate_timeseries(
+        chi2017_truth(n_sensors), n_samples=1200, noise_nT=2.0, seed=7, perturbations=[effect.perturbation(magnitude)]
+    )
     result = fit(ds, Model.from_names([name], n_sensors))
     for entry in result.effect_params:
         s = 0 if entry["sensor"] is None else entry["sensor"] - 1
@@ -176,8 +206,13 @@ def test_state_survives_json(name):
 
 def test_calibration_with_effects_round_trips_through_json(tmp_path):
     truth = chi2017_truth(2)
-    ds = simulate_timeseries(truth, n_samples=800, noise_nT=2.0, seed=3,
-                             perturbations=[perturbations.parse_hidden("bias_step:2=12", 2), perturbations.parse_hidden("hysteresis", 2)])
+    ds = simulate_timeseries(
+        truth,
+        n_samples=800,
+        noise_nT=2.0,
+        seed=3,
+        perturbations=[perturbations.parse_hidden("bias_step:2=12", 2), perturbations.parse_hidden("hysteresis", 2)],
+    )
     result = fit(ds, Model.from_names(["bias_step:2", "hysteresis", "temperature_bias", "reference_drift"], 2))
     path = tmp_path / "cal.json"
     result.calibration.save(path)
@@ -190,8 +225,9 @@ def test_calibration_with_effects_round_trips_through_json(tmp_path):
 
 def test_bias_step_time_is_found_by_the_scan():
     truth = chi2017_truth(1)
-    ds = simulate_timeseries(truth, n_samples=1000, noise_nT=3.0, seed=2,
-                             perturbations=[perturbations.parse_hidden("bias_step=15", 1)])
+    ds = simulate_timeseries(
+        truth, n_samples=1000, noise_nT=3.0, seed=2, perturbations=[perturbations.parse_hidden("bias_step=15", 1)]
+    )
     effect = EFFECTS["bias_step"]()
     effect.configure(ds, _true_residuals(truth, ds))
     te = effect.step_time_s[0]
@@ -233,22 +269,31 @@ def test_play_operator_lags_by_its_half_width():
     assert np.all(out[101:110] == out[100])  # dead zone after the reversal
 
 
-@pytest.mark.parametrize("spec, effect, sensor, magnitude", [
-    ("temperature_bias:2=3", "temperature_bias", 1, 3.0),
-    ("bias_drift", "bias_drift", None, 300.0),
-    ("site_gradient=1,2,3,4,5", "site_gradient", None, [1.0, 2.0, 3.0, 4.0, 5.0]),
-    ("periodic_interference:4=2", "periodic_interference", 3, 2.0),
-])
+@pytest.mark.parametrize(
+    "spec, effect, sensor, magnitude",
+    [
+        ("temperature_bias:2=3", "temperature_bias", 1, 3.0),
+        ("bias_drift", "bias_drift", None, 300.0),
+        ("site_gradient=1,2,3,4,5", "site_gradient", None, [1.0, 2.0, 3.0, 4.0, 5.0]),
+        ("periodic_interference:4=2", "periodic_interference", 3, 2.0),
+    ],
+)
 def test_parse_hidden(spec, effect, sensor, magnitude):
     p = perturbations.parse_hidden(spec, 4)
     assert p.effect == effect and p.sensor == sensor and p.magnitude == magnitude and p.description
 
 
-@pytest.mark.parametrize("spec, n_sensors, message", [
-    ("no_such=1", 4, "unknown effect"), ("temperature_bias:5", 4, "does not exist"),
-    ("temperature_bias=abc", 4, "must be a number"), ("sensor_timing_skew:1", 4, "time reference"),
-    ("site_gradient", 1, "at least 2 sensors"), ("reference_drift:2", 4, "shared by the whole array"),
-])
+@pytest.mark.parametrize(
+    "spec, n_sensors, message",
+    [
+        ("no_such=1", 4, "unknown effect"),
+        ("temperature_bias:5", 4, "does not exist"),
+        ("temperature_bias=abc", 4, "must be a number"),
+        ("sensor_timing_skew:1", 4, "time reference"),
+        ("site_gradient", 1, "at least 2 sensors"),
+        ("reference_drift:2", 4, "shared by the whole array"),
+    ],
+)
 def test_parse_hidden_refuses_clearly(spec, n_sensors, message):
     with pytest.raises(MagcalError, match=message):
         perturbations.parse_hidden(spec, n_sensors)
@@ -266,8 +311,9 @@ def test_periodic_interference_hides_a_sinusoid_of_the_given_peak():
     assert "periodic_interference" in EFFECTS and not EFFECTS["periodic_interference"].transferable
     truth = chi2017_truth(1)
     clean = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1)
-    pert = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1,
-                               perturbations=[perturbations.periodic_interference(4.0, 0.5)])
+    pert = simulate_timeseries(
+        truth, n_samples=300, noise_nT=0.0, seed=1, perturbations=[perturbations.periodic_interference(4.0, 0.5)]
+    )
     d = pert.readings_nT[0] - clean.readings_nT[0]
     assert np.allclose(np.linalg.norm(d, axis=1).max(), 4.0, rtol=0.01)
 
@@ -282,8 +328,13 @@ def test_periodic_interference_hides_a_sinusoid_of_the_given_peak():
 def test_fit_never_returns_a_negative_hysteresis_width(widths_nT, seed):
     """Axes without hysteresis sit at the bound 0 (an unbounded fit puts about half of them below it), and the
     axis with it is still recovered."""
-    ds = simulate_timeseries(chi2017_truth(1), n_samples=800, noise_nT=3.0, seed=seed,
-                             perturbations=[EFFECTS["hysteresis"]().perturbation(list(widths_nT))])
+    ds = simulate_timeseries(
+        chi2017_truth(1),
+        n_samples=800,
+        noise_nT=3.0,
+        seed=seed,
+        perturbations=[EFFECTS["hysteresis"]().perturbation(list(widths_nT))],
+    )
     result = fit(ds, Model.from_names(["hysteresis"], 1))
     fitted = np.array(list(result.effect_params[0]["params"].values()))
     assert np.all(fitted >= 0.0), fitted
@@ -301,7 +352,9 @@ def test_a_negative_hysteresis_width_is_refused_clearly():
     with pytest.raises(MagcalError, match="shape_half_width_nT of sensor 1"):
         EFFECTS["hysteresis"]().set_state({"shape_half_width_nT": [[-1.0, 0.0, 0.0]]})
     with pytest.raises(MagcalError, match="half-width must be >= 0"):
-        simulate_timeseries(chi2017_truth(1), n_samples=100, perturbations=[perturbations.parse_hidden("hysteresis=-5,0,0", 1)])
+        simulate_timeseries(
+            chi2017_truth(1), n_samples=100, perturbations=[perturbations.parse_hidden("hysteresis=-5,0,0", 1)]
+        )
 
 
 def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
@@ -309,15 +362,21 @@ def test_a_starting_calibration_with_a_negative_hysteresis_width_is_refused():
     ds = simulate_timeseries(chi2017_truth(1), n_samples=400, noise_nT=3.0, seed=1)
     model = Model.from_names(["hysteresis"], 1)
     start = fit(ds).calibration
-    start = Calibration(start.sensors, start.reference_total_nT, model=model,
-                        effect_values={"hysteresis:1": np.array([0.0, -2.0, 0.0])})
+    start = Calibration(
+        start.sensors, start.reference_total_nT, model=model, effect_values={"hysteresis:1": np.array([0.0, -2.0, 0.0])}
+    )
     with pytest.raises(MagcalError, match=r"starting calibration \(hysteresis:1\): hysteresis: h_y_nT = -2"):
         fit(ds, model, init=start)
 
 
 def test_a_calibration_file_with_a_negative_hysteresis_width_is_refused(tmp_path):
-    ds = simulate_timeseries(chi2017_truth(1), n_samples=600, noise_nT=3.0, seed=2,
-                             perturbations=[perturbations.parse_hidden("hysteresis", 1)])
+    ds = simulate_timeseries(
+        chi2017_truth(1),
+        n_samples=600,
+        noise_nT=3.0,
+        seed=2,
+        perturbations=[perturbations.parse_hidden("hysteresis", 1)],
+    )
     path = tmp_path / "cal.json"
     fit(ds, Model.from_names(["hysteresis"], 1)).calibration.save(path)
     doc = json.loads(path.read_text())
@@ -340,8 +399,9 @@ def test_nonlinearity_is_quoted_at_the_field_of_the_data(name, magnitude, with_r
     truth = chi2017_truth(1)
     truth.total_nT = 10_000.0
     hidden = EFFECTS[name]().perturbation(magnitude)
-    ds = simulate_timeseries(truth, n_samples=1200, noise_nT=1.0, seed=7, perturbations=[hidden],
-                             with_reference=with_reference)
+    ds = simulate_timeseries(
+        truth, n_samples=1200, noise_nT=1.0, seed=7, perturbations=[hidden], with_reference=with_reference
+    )
     assert hidden.description == f"{name} {magnitude} nT at 10 uT (all sensors)"
     result = fit(ds, Model.from_names([name], 1))
     effect = result.calibration.model.effects[0]
@@ -363,18 +423,25 @@ def test_nonlinearity_without_a_known_field_is_quoted_at_50_uT():
         effect.set_state({"field_magnitude_nT": -3.0})
 
 
-@pytest.mark.parametrize("name, state, message", [
-    ("bias_drift", {"reference_time_s": 5.0, "duration_s": -10.0}, "duration_s must be a positive number"),
-    ("bias_drift", {"reference_time_s": "soon", "duration_s": 10.0}, "reference_time_s must be a finite number"),
-    ("temperature_bias", {"reference_temperature_C": -300.0}, r"reference_temperature_C must be a finite number >= "
-                                                               r"-273.15"),
-    ("bias_step", {"step_time_s": [float("nan")]}, "step_time_s must be a finite number"),
-    ("bias_step", {"step_time_s": 4.0}, "step_time_s must be a list"),
-    ("reference_drift", {"time_span_s": [10.0, 2.0], "offsets": None}, "the last after the first"),
-    ("reference_drift", {"time_span_s": [0.0, 2.0], "offsets": [0.0, 1.0]}, "offsets must be 4 numbers"),
-    ("periodic_interference", {"frequency_hz": [0.0]}, "positive number of Hz"),
-    ("nonlinearity_cubic", {"field_magnitude_nT": 0.0}, "field_magnitude_nT must be a positive number"),
-])
+@pytest.mark.parametrize(
+    "name, state, message",
+    [
+        ("bias_drift", {"reference_time_s": 5.0, "duration_s": -10.0}, "duration_s must be a positive number"),
+        ("bias_drift", {"reference_time_s": "soon", "duration_s": 10.0}, "reference_time_s must be a finite number"),
+        (
+            "temperature_bias",
+            {"reference_temperature_C": -300.0},
+            r"reference_temperature_C must be a finite number >= "
+            r"-273.15",
+        ),
+        ("bias_step", {"step_time_s": [float("nan")]}, "step_time_s must be a finite number"),
+        ("bias_step", {"step_time_s": 4.0}, "step_time_s must be a list"),
+        ("reference_drift", {"time_span_s": [10.0, 2.0], "offsets": None}, "the last after the first"),
+        ("reference_drift", {"time_span_s": [0.0, 2.0], "offsets": [0.0, 1.0]}, "offsets must be 4 numbers"),
+        ("periodic_interference", {"frequency_hz": [0.0]}, "positive number of Hz"),
+        ("nonlinearity_cubic", {"field_magnitude_nT": 0.0}, "field_magnitude_nT must be a positive number"),
+    ],
+)
 def test_data_derived_constants_that_are_not_physical_are_refused(name, state, message):
     with pytest.raises(MagcalError, match=message):
         EFFECTS[name]().set_state(state)
@@ -399,21 +466,29 @@ def test_the_report_quotes_a_nonlinearity_at_the_data_field_not_at_50_uT(name):
 
     truth = chi2017_truth(1)
     truth.total_nT = 8_900.0
-    ds = simulate_timeseries(truth, n_samples=1200, noise_nT=0.5, seed=7,
-                             perturbations=[EFFECTS[name]().perturbation(20.0)])
+    ds = simulate_timeseries(
+        truth, n_samples=1200, noise_nT=0.5, seed=7, perturbations=[EFFECTS[name]().perturbation(20.0)]
+    )
     result = calibrate(ds, effects=[name])
     lines = text_report(result).splitlines()
     i = next(k for k, line in enumerate(lines) if line.strip().startswith(f"{name} (sensor 1)"))
     quote = lines[i + 1]
     assert "an axis reading the whole field of the data, 8.9 uT, is off by" in quote, quote
-    assert "50 uT" not in "\n".join(lines[i:i + 3])
+    assert "50 uT" not in "\n".join(lines[i : i + 3])
 
 
-@pytest.mark.parametrize("name, values, field_nT, expected", [
-    ("temperature_scale", [100.0, -50.0, 0.0], 35_700.0, "at the data's field 35.7 uT: an axis reading the whole "
-                                                         "field changes by (3.57, -1.78, 0) nT/K"),
-    ("hysteresis", [3.57, 0.0, 35.7], 35_700.0, "loop half-widths (100, 0, 1000) ppm of the data's field 35.7 uT"),
-    ("temperature_bias", [1.0, 2.0, 3.0], 35_700.0, ""),
-])
+@pytest.mark.parametrize(
+    "name, values, field_nT, expected",
+    [
+        (
+            "temperature_scale",
+            [100.0, -50.0, 0.0],
+            35_700.0,
+            "at the data's field 35.7 uT: an axis reading the whole field changes by (3.57, -1.78, 0) nT/K",
+        ),
+        ("hysteresis", [3.57, 0.0, 35.7], 35_700.0, "loop half-widths (100, 0, 1000) ppm of the data's field 35.7 uT"),
+        ("temperature_bias", [1.0, 2.0, 3.0], 35_700.0, ""),
+    ],
+)
 def test_field_relative_parameters_are_quoted_at_the_given_field(name, values, field_nT, expected):
     assert EFFECTS[name]().quote(values, field_nT) == expected

@@ -38,8 +38,9 @@ def test_chi2017_step1_recovers_truth(chi_data, method, sensor):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_noise_free_fit_is_exact(method):
-    s = SensorErrors(scale=np.array([1.05, 0.97, 1.02]), psi=0.03, phi=-0.02, theta=0.04,
-                     bias_nT=np.array([310.0, -120.0, 45.0]))
+    s = SensorErrors(
+        scale=np.array([1.05, 0.97, 1.02]), psi=0.03, phi=-0.02, theta=0.04, bias_nT=np.array([310.0, -120.0, 45.0])
+    )
     y = _single_sensor_readings(s, 40, 0.0, seed=3)
     fit = fit_ellipsoid(y, method=method, reference_total_nT=50_000.0)
     assert np.allclose(fit.cinv, s.Cinv, atol=1e-9)
@@ -198,7 +199,7 @@ def test_refusal_names_the_readings_own_noise():
     text = str(exc.value)
     assert "own noise accounts for it" in text and "changed during the record" not in text
     scatter = float(text.split("the total field scatters by ")[1].split(" nT")[0])
-    assert scatter == pytest.approx(2000.0, rel=0.1)     # isotropic noise: the total field gets sigma too
+    assert scatter == pytest.approx(2000.0, rel=0.1)  # isotropic noise: the total field gets sigma too
 
 
 def test_a_lenient_fit_returns_the_best_ellipsoid():

@@ -170,8 +170,9 @@ int main(void) {{
 """)
     exe = tmp_path / "main"
     subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(program)], check=True, timeout=60)
-    out = np.loadtxt(subprocess.run([str(exe)], capture_output=True, text=True, check=True, timeout=30).stdout
-                     .splitlines())
+    out = np.loadtxt(
+        subprocess.run([str(exe)], capture_output=True, text=True, check=True, timeout=30).stdout.splitlines()
+    )
     magcal_nT = cal.correct(new.subset(np.arange(5)))[0]
     assert np.max(np.abs(np.linalg.norm(out, axis=1) - np.linalg.norm(magcal_nT, axis=1))) < 1.0  # float32 params
 

@@ -13,13 +13,25 @@ from magcal.model.terms import Model
 def _random_truth(rng, n_sensors):
     sensors = []
     for s in range(n_sensors):
-        sensors.append(SensorErrors(
-            scale=rng.uniform(0.95, 1.05, 3), psi=rng.uniform(-0.03, 0.03), phi=rng.uniform(-0.03, 0.03),
-            theta=rng.uniform(-0.03, 0.03), bias_nT=rng.uniform(-200, 200, 3),
-            alpha=0 if s == 0 else rng.uniform(-0.05, 0.05), beta=0 if s == 0 else rng.uniform(-0.05, 0.05),
-            gamma=0 if s == 0 else rng.uniform(-0.05, 0.05)))
-    return ArrayTruth(sensors, baseline_m=0.4, total_nT=rng.uniform(30_000, 60_000),
-                      declination_deg=rng.uniform(-20, 20), inclination_deg=rng.uniform(-70, 70))
+        sensors.append(
+            SensorErrors(
+                scale=rng.uniform(0.95, 1.05, 3),
+                psi=rng.uniform(-0.03, 0.03),
+                phi=rng.uniform(-0.03, 0.03),
+                theta=rng.uniform(-0.03, 0.03),
+                bias_nT=rng.uniform(-200, 200, 3),
+                alpha=0 if s == 0 else rng.uniform(-0.05, 0.05),
+                beta=0 if s == 0 else rng.uniform(-0.05, 0.05),
+                gamma=0 if s == 0 else rng.uniform(-0.05, 0.05),
+            )
+        )
+    return ArrayTruth(
+        sensors,
+        baseline_m=0.4,
+        total_nT=rng.uniform(30_000, 60_000),
+        declination_deg=rng.uniform(-20, 20),
+        inclination_deg=rng.uniform(-70, 70),
+    )
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -107,8 +119,7 @@ def test_mask_excludes_samples():
 @pytest.mark.parametrize("reference", [50_000.0, None])
 @pytest.mark.parametrize("n_sensors", [1, 4])
 def test_analytic_jacobian_matches_finite_differences_near_solution(reference, n_sensors):
-    ds = simulate(chi2017_truth(), n_samples=60, seed=5).sensors(range(n_sensors)).replace(
-        reference_total_nT=reference)
+    ds = simulate(chi2017_truth(), n_samples=60, seed=5).sensors(range(n_sensors)).replace(reference_total_nT=reference)
     problem = Problem(ds, Model.base_model(n_sensors), crude_initial_calibration(ds))
     x = problem.x0 + problem.x_scale * np.random.default_rng(1).normal(0, 3, problem.x0.size)
     jac = problem.jacobian(x)
@@ -132,6 +143,7 @@ def test_information_criteria_prefer_true_model():
 
 
 # --- the normal-equations solver ---------------------------------------------------------------------------------
+
 
 def _timeseries_problem(n_sensors, effects, reference, seed=3, n=400):
     from magcal.data.simulation import simulate_timeseries
@@ -175,8 +187,16 @@ def test_levenberg_marquardt_reaches_the_minpack_minimum(n_sensors, effects, ref
 
     _, _, problem = _timeseries_problem(n_sensors, effects, reference)
     ours = _levenberg_marquardt(problem, problem.x0)
-    ref = least_squares(problem.residuals, problem.x0, jac=problem.jacobian, x_scale=problem.x_scale,
-                        method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    ref = least_squares(
+        problem.residuals,
+        problem.x0,
+        jac=problem.jacobian,
+        x_scale=problem.x_scale,
+        method="lm",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+    )
     cost_ours, cost_ref = ours.r @ ours.r, ref.fun @ ref.fun
     assert cost_ours <= cost_ref * (1 + 1e-8)
     # parameters agree to a small fraction of their standard deviations
@@ -225,8 +245,18 @@ def test_robust_losses_reach_scipys_minimum(loss, n_sensors):
     problem = Problem(ds, Model.base_model(n_sensors), crude_initial_calibration(ds))
     f = 9.0
     ours = _levenberg_marquardt(problem, problem.x0, loss=loss, f_scale=f)
-    ref = least_squares(problem.residuals, problem.x0, jac=problem.jacobian, x_scale=problem.x_scale, loss=loss,
-                        f_scale=f, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    ref = least_squares(
+        problem.residuals,
+        problem.x0,
+        jac=problem.jacobian,
+        x_scale=problem.x_scale,
+        loss=loss,
+        f_scale=f,
+        method="trf",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+    )
     rho = LOSSES[loss][0]
 
     def cost(r):
@@ -248,16 +278,16 @@ def test_unknown_loss_is_refused():
 def test_hysteresis_shape_is_refined_within_fit(seed):
     """An effect with a data-derived shape (the hysteresis play width) gets its second pass inside fit()."""
     from magcal.data.simulation import simulate_timeseries
-    from magcal.model import effects as fx
     from magcal.model import perturbations
 
     truth = chi2017_truth(1)
-    ds = simulate_timeseries(truth, n_samples=1500, noise_nT=3.0, seed=seed,
-                             perturbations=[perturbations.parse_hidden("hysteresis=5", 1)])
+    ds = simulate_timeseries(
+        truth, n_samples=1500, noise_nT=3.0, seed=seed, perturbations=[perturbations.parse_hidden("hysteresis=5", 1)]
+    )
     base = fit(ds)
     result = fit(ds, Model.from_names(["hysteresis"], 1), init=base.calibration)
     floor = conventions.total_field_floor_nT(3.0, ds.n_samples, 12)
-    assert base.rms_nT > 1.2 * floor          # the loop is visible above the noise
+    assert base.rms_nT > 1.2 * floor  # the loop is visible above the noise
     assert result.rms_nT < 1.01 * floor
     assert result.calibration.model.effects[0].shape_half_width_nT is not None
 
@@ -277,10 +307,11 @@ def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
     """A slow temperature change of scale moves the raw change point; the refine pass finds the true step."""
     from magcal.data.simulation import simulate_timeseries
     from magcal.model import effects as fx
-    from magcal.model import perturbations
 
-    hidden = [fx.EFFECTS["temperature_scale"]().perturbation(30.0, None),
-              fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)]
+    hidden = [
+        fx.EFFECTS["temperature_scale"]().perturbation(30.0, None),
+        fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3),
+    ]
     ds = simulate_timeseries(chi2017_truth(), n_samples=1500, noise_nT=3.0, seed=seed, perturbations=hidden)
     true_time = ds.time_s[0] + 0.6 * (ds.time_s[-1] - ds.time_s[0])
     base = fit(ds)
@@ -297,13 +328,13 @@ def test_fit_leaves_the_callers_model_unchanged(effect):
     """One Model reused on two records: the first calibration must not move when the second is fitted."""
     from magcal.data.simulation import simulate_timeseries
     from magcal.model import effects as fx
-    from magcal.model import perturbations
 
     truth = chi2017_truth(1)
     hidden = [fx.EFFECTS[effect]().perturbation(20.0, None)]
     first = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=11, perturbations=hidden)
-    second = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=12, perturbations=hidden,
-                                 temperature_C=(35.0, 6.0))
+    second = simulate_timeseries(
+        truth, n_samples=800, noise_nT=3.0, seed=12, perturbations=hidden, temperature_C=(35.0, 6.0)
+    )
     second.time_s = second.time_s + 500.0  # another recording: other times, another temperature
     model = Model.from_names([effect], 1)
     states_before = [e.state() for e in model.effects]
@@ -360,8 +391,7 @@ def small_blocks(monkeypatch):
 
 @pytest.mark.parametrize("weighted", [False, True])
 @pytest.mark.parametrize("n_sensors, effects, reference", PROBLEMS)
-def test_normal_equations_in_row_blocks_equal_the_dense_products(small_blocks, n_sensors, effects, reference,
-                                                                 weighted):
+def test_normal_equations_in_row_blocks_equal_the_dense_products(small_blocks, n_sensors, effects, reference, weighted):
     """Accumulated over many row blocks (and, for base terms, evaluated block by block) the normal equations are
     the dense Jacobian's."""
     _, model, problem = _timeseries_problem(n_sensors, effects, reference)
@@ -455,10 +485,14 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
     from magcal.data.simulation import simulate_timeseries
     from magcal.fitting.fitter import RefineContext
     from magcal.model import effects as fx
-    from magcal.model import perturbations
 
-    ds = simulate_timeseries(chi2017_truth(), n_samples=900, noise_nT=3.0, seed=2,
-                             perturbations=[fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)])
+    ds = simulate_timeseries(
+        chi2017_truth(),
+        n_samples=900,
+        noise_nT=3.0,
+        seed=2,
+        perturbations=[fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)],
+    )
     result = fit(ds, Model.from_names([spec], 4), init=fit(ds).calibration)
     step = result.model.effects[0]
     context = RefineContext(result.problem, result.x)
@@ -472,12 +506,13 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
     for s, te in enumerate(times):
         if te is None:
             continue
-        on = context.cost_per_sample(step, {"step_time_s": times[:s] + [ds.time_s[0] - 1.0] + times[s + 1:]})
+        on = context.cost_per_sample(step, {"step_time_s": times[:s] + [ds.time_s[0] - 1.0] + times[s + 1 :]})
         label = f"bias_step:{s + 1}" if step.per_sensor else "bias_step"
         cal = context.sensors()[s]
         trial = fields.copy()
-        trial[s] += (ds.time_s >= te)[:, None] * (cal.R @ cal.cinv @ context.values()[label]) - \
+        trial[s] += (ds.time_s >= te)[:, None] * (
             cal.R @ cal.cinv @ context.values()[label]
+        ) - cal.R @ cal.cinv @ context.values()[label]
         np.testing.assert_allclose(context.cost_of_fields(trial), on, rtol=1e-9, atol=1e-9)
         # the same trial from sensor s's samples alone (the consistency basis held at the fitted mean)
         moved_alone = context.cost_with_sensor_moved(s, trial[s] - fields[s])

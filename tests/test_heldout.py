@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 
 import magcal
-import magcal.model.effects as fx
-from magcal.model import perturbations
 from magcal.calibration.report import text_report
 from magcal.checks.noise import estimate_noise
 from magcal.cli import main
@@ -17,6 +15,7 @@ from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import diagnose
 from magcal.fitting import validation as val
 from magcal.fitting.pipeline import calibrate
+from magcal.model import perturbations
 from magcal.model.terms import EFFECTS
 
 SIGMA = 3.0
@@ -148,8 +147,9 @@ def test_an_in_sample_gain_that_does_not_hold_is_not_recommended():
     assert d.candidates.index(c) > max((d.candidates.index(o) for o in d.candidates if o.holds), default=-1)
 
 
-@pytest.mark.parametrize("hidden", ["temperature_bias", "nonlinearity_quadratic", "bias_drift", "bias_step",
-                                    "reference_drift"])
+@pytest.mark.parametrize(
+    "hidden", ["temperature_bias", "nonlinearity_quadratic", "bias_drift", "bias_step", "reference_drift"]
+)
 def test_a_hidden_effect_is_recommended_with_a_held_out_gain(hidden):
     """Instrument terms and record-only ones (interpolated in blocks, held at their fitted average later)."""
     d = diagnose(_record(hidden, seed=6))
@@ -162,8 +162,9 @@ def test_a_hidden_effect_is_recommended_with_a_held_out_gain(hidden):
     assert "held-out samples" in d.summary
     doc = d.to_dict()
     assert doc["candidates"][0]["holds"] is True and doc["validation"]["validated"] is True
-    assert {"held_out_rms_before_nT", "held_out_rms_after_nT", "later_rms_before_nT",
-            "later_rms_after_nT"} <= set(doc["candidates"][0])
+    assert {"held_out_rms_before_nT", "held_out_rms_after_nT", "later_rms_before_nT", "later_rms_after_nT"} <= set(
+        doc["candidates"][0]
+    )
     assert "held-out" in d.table() and "later" in d.table()
 
 
@@ -192,8 +193,13 @@ def test_nothing_is_recommended_when_the_base_calibration_is_not_determined(hidd
     axis) and gives no reference field: the fit extrapolates and its field magnitude trades off with the gains,
     so a candidate's gain says nothing about the instrument. The diagnosis recommends nothing and says why."""
     truth = chi2017_truth(1)
-    ds = simulate_timeseries(truth, n_samples=12_000, noise_nT=SIGMA, seed=4, perturbations=[
-        EFFECTS[hidden]().perturbation(EFFECTS[hidden].default_magnitude)] if hidden else [])
+    ds = simulate_timeseries(
+        truth,
+        n_samples=12_000,
+        noise_nT=SIGMA,
+        seed=4,
+        perturbations=[EFFECTS[hidden]().perturbation(EFFECTS[hidden].default_magnitude)] if hidden else [],
+    )
     y = ds.readings_nT[0] - truth.sensors[0].bias_nT
     cap = (y / np.linalg.norm(y, axis=1, keepdims=True))[:, 0] > 0.82
     ds = ds.subset(cap).replace(reference_total_nT=None)

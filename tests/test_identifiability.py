@@ -24,15 +24,23 @@ def _split_by_hand(sensor, scale, psi, phi, theta, bias_nT):
     c = np.diag(scale) @ c_no
     soft = np.linalg.solve(c, m) - np.eye(3)
     hard = np.linalg.solve(c, offset - np.asarray(bias_nT))
-    return SensorErrors(scale=np.asarray(scale), psi=psi, phi=phi, theta=theta, bias_nT=np.asarray(bias_nT),
-                        hard_iron_nT=hard, soft_iron=soft)
+    return SensorErrors(
+        scale=np.asarray(scale),
+        psi=psi,
+        phi=phi,
+        theta=theta,
+        bias_nT=np.asarray(bias_nT),
+        hard_iron_nT=hard,
+        soft_iron=soft,
+    )
 
 
 @pytest.fixture(scope="module")
 def two_splits():
     a = ding2024_truth()
-    other = _split_by_hand(a.sensors[0], scale=[0.97, 1.06, 1.01], psi=0.02, phi=-0.035, theta=0.015,
-                           bias_nT=[-300.0, 40.0, 900.0])
+    other = _split_by_hand(
+        a.sensors[0], scale=[0.97, 1.06, 1.01], psi=0.02, phi=-0.035, theta=0.015, bias_nT=[-300.0, 40.0, 900.0]
+    )
     b = dataclasses.replace(a, sensors=[other])
     return a, b
 
@@ -72,22 +80,32 @@ def test_a_rotated_matrix_gives_the_same_calibration():
     s = ding2024_truth().sensors[0]
     q = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
     rotated = SensorErrors(matrix=s.total_matrix @ q, bias_nT=s.total_offset_nT)
-    truths = [ArrayTruth([SensorErrors(matrix=s.total_matrix, bias_nT=s.total_offset_nT)], total_nT=51_500.0),
-              ArrayTruth([rotated], total_nT=51_500.0)]
-    cals = [search.search_calibrate(magcal.simulate(t, n_samples=80, noise_nT=0.0, seed=k), "de", seed=1, **FAST)
-            for k, t in enumerate(truths)]
+    truths = [
+        ArrayTruth([SensorErrors(matrix=s.total_matrix, bias_nT=s.total_offset_nT)], total_nT=51_500.0),
+        ArrayTruth([rotated], total_nT=51_500.0),
+    ]
+    cals = [
+        search.search_calibrate(magcal.simulate(t, n_samples=80, noise_nT=0.0, seed=k), "de", seed=1, **FAST)
+        for k, t in enumerate(truths)
+    ]
     assert np.allclose(cals[0].sensors[0].cinv, cals[1].sensors[0].cinv, rtol=0, atol=1e-9)
-    assert np.allclose(identifiability.from_truth(truths[0].sensors[0]).MMt,
-                       identifiability.from_truth(truths[1].sensors[0]).MMt)
+    assert np.allclose(
+        identifiability.from_truth(truths[0].sensors[0]).MMt, identifiability.from_truth(truths[1].sensors[0]).MMt
+    )
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_equivalent_sensor_keeps_m_and_i(seed):
     rng = np.random.default_rng(seed)
     s = ding2024_truth().sensors[0]
-    e = identifiability.equivalent_sensor(s, scale=rng.uniform(0.9, 1.1, 3), psi=rng.uniform(-0.05, 0.05),
-                                          phi=rng.uniform(-0.05, 0.05), theta=rng.uniform(-0.05, 0.05),
-                                          bias_nT=rng.uniform(-500, 500, 3))
+    e = identifiability.equivalent_sensor(
+        s,
+        scale=rng.uniform(0.9, 1.1, 3),
+        psi=rng.uniform(-0.05, 0.05),
+        phi=rng.uniform(-0.05, 0.05),
+        theta=rng.uniform(-0.05, 0.05),
+        bias_nT=rng.uniform(-500, 500, 3),
+    )
     assert np.allclose(e.total_matrix, s.total_matrix, atol=1e-14)
     assert np.allclose(e.total_offset_nT, s.total_offset_nT, atol=1e-9)
     assert not np.allclose(e.soft_iron, s.soft_iron, atol=1e-3)

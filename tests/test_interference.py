@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 import magcal.model.effects as fx
-from magcal.model import perturbations
 from magcal import calibrate, diagnose
 from magcal.calibration.calibration import Calibration
 from magcal.core.errors import MagcalError
 from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.fitting.fitter import fit
+from magcal.model import perturbations
 from magcal.model.terms import EFFECTS, Model
 
 SIGMA = 3.0
@@ -20,10 +20,16 @@ N = 1500
 DIRECTION = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])  # the perturbation's default
 
 
-
 def _hum(amplitude_nT, frequency_hz, sensor=None, n_sensors=1, seed=3, harmonic_fraction=0.0, n=N):
-    return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=SIGMA, seed=seed, perturbations=[
-        perturbations.periodic_interference(amplitude_nT, frequency_hz, sensor, harmonic_fraction=harmonic_fraction)])
+    return simulate_timeseries(
+        chi2017_truth(n_sensors),
+        n_samples=n,
+        noise_nT=SIGMA,
+        seed=seed,
+        perturbations=[
+            perturbations.periodic_interference(amplitude_nT, frequency_hz, sensor, harmonic_fraction=harmonic_fraction)
+        ],
+    )
 
 
 def _peaks(params, harmonic=1):
@@ -32,8 +38,9 @@ def _peaks(params, harmonic=1):
     return np.array([np.hypot(params[f"sin{k}_{a}_nT"], params[f"cos{k}_{a}_nT"]) for a in "xyz"])
 
 
-@pytest.mark.parametrize("frequency_hz, n_sensors, sensor", [(0.7, 1, None), (2.1, 1, None), (0.23, 4, 2),
-                                                             (4.37, 1, None)])
+@pytest.mark.parametrize(
+    "frequency_hz, n_sensors, sensor", [(0.7, 1, None), (2.1, 1, None), (0.23, 4, 2), (4.37, 1, None)]
+)
 def test_diagnose_finds_the_interference_and_adding_it_reaches_the_floor(frequency_hz, n_sensors, sensor):
     """Before the term existed this read `unexplained` (a periodic component no catalogue term removed)."""
     d = diagnose(_hum(8.0, frequency_hz, sensor, n_sensors))

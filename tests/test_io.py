@@ -65,9 +65,12 @@ def test_round_trip_is_exact(tmp_path, n_sensors, channels):
 
 
 def test_metadata_keys_all_kept_and_numbers_parsed(tmp_path):
-    path = write(tmp_path, "# site: range B: north pad\n# comment without colon\n# baseline_m: 0.25\n"
-                           "# reference_total_nT: 52193\n# noise_nT: 0.5\n# operator: A. N. Other\ns1x,s1y,s1z\n"
-                           "50000,1,2\n")
+    path = write(
+        tmp_path,
+        "# site: range B: north pad\n# comment without colon\n# baseline_m: 0.25\n"
+        "# reference_total_nT: 52193\n# noise_nT: 0.5\n# operator: A. N. Other\ns1x,s1y,s1z\n"
+        "50000,1,2\n",
+    )
     ds = read_quiet(path)
     assert ds.metadata["site"] == "range B: north pad" and ds.metadata["operator"] == "A. N. Other"
     assert ds.baseline_m == 0.25 and ds.reference_total_nT == 52193.0 and ds.noise_nT == 0.5
@@ -83,7 +86,9 @@ def test_bare_xyz_is_one_sensor_and_unknown_columns_are_kept(tmp_path):
 
 
 def test_bom_crlf_blank_lines_and_spaces_are_fine(tmp_path):
-    path = write(tmp_path, "\ufeff# units: nT\r\n\r\n s1x , s1y ,s1z\r\n30000, 20000 ,30000\r\n\r\n30001,20001,30001\r\n")
+    path = write(
+        tmp_path, "\ufeff# units: nT\r\n\r\n s1x , s1y ,s1z\r\n30000, 20000 ,30000\r\n\r\n30001,20001,30001\r\n"
+    )
     ds = io.read_csv(path)
     np.testing.assert_array_equal(ds.readings_nT[0], [[30000, 20000, 30000], [30001, 20001, 30001]])
 
@@ -128,14 +133,17 @@ def counts_file(tmp_path, head, lsb_nT=150.0, seed=1):
     return write(tmp_path, head + "x,y,z\n" + body + "\n"), counts * lsb_nT
 
 
-@pytest.mark.parametrize("head,kw", [
-    ("# units: counts\n# lsb_nT: 150\n", {}),
-    ("# lsb_nT: 150\n# units: counts\n", {}),                 # order of the lines does not matter
-    ("# units: counts\n", {"lsb_nT": 150.0}),
-    ("", {"units": "counts", "lsb_nT": "150"}),
-    ("# units: counts\n# lsb_nT: 15\n", {"lsb_nT": 150.0}),   # --lsb overrides (with a warning)
-    ("# units: uT\n", {"units": "counts", "lsb_nT": 150.0}),  # --units counts overrides (with a warning)
-])
+@pytest.mark.parametrize(
+    "head,kw",
+    [
+        ("# units: counts\n# lsb_nT: 150\n", {}),
+        ("# lsb_nT: 150\n# units: counts\n", {}),  # order of the lines does not matter
+        ("# units: counts\n", {"lsb_nT": 150.0}),
+        ("", {"units": "counts", "lsb_nT": "150"}),
+        ("# units: counts\n# lsb_nT: 15\n", {"lsb_nT": 150.0}),  # --lsb overrides (with a warning)
+        ("# units: uT\n", {"units": "counts", "lsb_nT": 150.0}),  # --units counts overrides (with a warning)
+    ],
+)
 def test_raw_counts_are_read_with_their_lsb(tmp_path, head, kw):
     path, truth_nT = counts_file(tmp_path, head)
     with warnings.catch_warnings(record=True) as caught:
@@ -148,14 +156,17 @@ def test_raw_counts_are_read_with_their_lsb(tmp_path, head, kw):
     assert all("overrides" in m for m in overrides)
 
 
-@pytest.mark.parametrize("head,kw,needles", [
-    ("# units: counts\n", {}, ["line 1", "metadata units", "--lsb", "lsb_nT"]),
-    ("", {"units": "counts"}, ["--units counts", "--lsb NT_PER_COUNT"]),
-    ("", {"lsb_nT": 150.0}, ["--lsb 150", "raw counts", "--units counts"]),
-    ("# units: uT\n", {"lsb_nT": 150.0}, ["--lsb 150", "in uT", "units line"]),
-    ("# units: counts\n# lsb_nT: zero\n", {}, ["line 2", "lsb_nT", "positive number of nT per count"]),
-    ("# units: counts\n", {"lsb_nT": "-2"}, ["--lsb", "'-2'", "positive number"]),
-])
+@pytest.mark.parametrize(
+    "head,kw,needles",
+    [
+        ("# units: counts\n", {}, ["line 1", "metadata units", "--lsb", "lsb_nT"]),
+        ("", {"units": "counts"}, ["--units counts", "--lsb NT_PER_COUNT"]),
+        ("", {"lsb_nT": 150.0}, ["--lsb 150", "raw counts", "--units counts"]),
+        ("# units: uT\n", {"lsb_nT": 150.0}, ["--lsb 150", "in uT", "units line"]),
+        ("# units: counts\n# lsb_nT: zero\n", {}, ["line 2", "lsb_nT", "positive number of nT per count"]),
+        ("# units: counts\n", {"lsb_nT": "-2"}, ["--lsb", "'-2'", "positive number"]),
+    ],
+)
 def test_counts_without_a_valid_lsb_are_refused_clearly(tmp_path, head, kw, needles):
     path, _ = counts_file(tmp_path, head)
     with pytest.raises(DatasetError) as err:
@@ -165,8 +176,7 @@ def test_counts_without_a_valid_lsb_are_refused_clearly(tmp_path, head, kw, need
     assert str(path) in str(err.value) or "--lsb" in str(err.value)
 
 
-@pytest.mark.parametrize("true_lsb,given_lsb,warned", [(150.0, 150.0, False), (150.0, 15.0, True),
-                                                       (15.0, 150.0, True)])
+@pytest.mark.parametrize("true_lsb,given_lsb,warned", [(150.0, 150.0, False), (150.0, 15.0, True), (15.0, 150.0, True)])
 def test_a_wrong_lsb_gives_a_warning_with_the_lsb_that_fits(tmp_path, true_lsb, given_lsb, warned):
     path, _ = counts_file(tmp_path, "# units: counts\n", lsb_nT=true_lsb)
     with warnings.catch_warnings(record=True) as caught:
@@ -191,11 +201,14 @@ def test_counts_round_trip_as_nT_with_the_lsb_kept(tmp_path):
 
 
 # -- column mapping -----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mapping", [
-    {"s1x": "magX", "s1y": "magY", "s1z": "magZ", "t": "time"},
-    {"x": "magX", "y": "magY", "z": "magZ", "t": "time"},
-    "x=magX, y=magY, z=magZ, t=time",
-])
+@pytest.mark.parametrize(
+    "mapping",
+    [
+        {"s1x": "magX", "s1y": "magY", "s1z": "magZ", "t": "time"},
+        {"x": "magX", "y": "magY", "z": "magZ", "t": "time"},
+        "x=magX, y=magY, z=magZ, t=time",
+    ],
+)
 def test_column_mapping(tmp_path, mapping):
     path = write(tmp_path, "time,magZ,magX,magY,t\n0.5,30,10,20,zzz\n1.5,31,11,21,yyy\n")
     with warnings.catch_warnings():
@@ -206,12 +219,15 @@ def test_column_mapping(tmp_path, mapping):
     assert list(ds.extra["t"]) == ["zzz", "yyy"]  # the file's own 't' is kept, not used
 
 
-@pytest.mark.parametrize("mapping,match", [
-    ({"x": "nope", "y": "b", "z": "c"}, "nope.*no such column"),
-    ({"w": "a"}, "not a magcal column"),
-    ("x=a,y", "not of the form"),
-    ({"x": "a", "y": "a", "z": "c"}, "more than one"),
-])
+@pytest.mark.parametrize(
+    "mapping,match",
+    [
+        ({"x": "nope", "y": "b", "z": "c"}, "nope.*no such column"),
+        ({"w": "a"}, "not a magcal column"),
+        ("x=a,y", "not of the form"),
+        ({"x": "a", "y": "a", "z": "c"}, "more than one"),
+    ],
+)
 def test_bad_column_mapping_is_refused(tmp_path, mapping, match):
     path = write(tmp_path, "a,b,c\n1,2,3\n")
     with pytest.raises(DatasetError, match=match):
@@ -323,8 +339,12 @@ def test_chunked_reading_matches_and_checks_time_across_chunks(tmp_path, chunk_r
 # -- writing ------------------------------------------------------------------------------------------------------
 def test_write_columns_mapping_and_float_format(tmp_path):
     path = tmp_path / "m.csv"
-    io.write_csv(path, {"x": [1.0, 2.5], "y": [3, 4], "z": [5.0, 6.0], "label": ["a", "b,c"]},
-                 metadata={"units": "uT", "note": "two\nlines"}, float_format="%.2f")
+    io.write_csv(
+        path,
+        {"x": [1.0, 2.5], "y": [3, 4], "z": [5.0, 6.0], "label": ["a", "b,c"]},
+        metadata={"units": "uT", "note": "two\nlines"},
+        float_format="%.2f",
+    )
     text = path.read_text()
     assert text.startswith("# units: uT\n# note: two lines\nx,y,z,label\n1.00,3.00,5.00,a\n")
     ds = read_quiet(path)
@@ -379,17 +399,44 @@ def test_any_text_gives_a_dataset_or_a_clean_error(tmp_path, text):
 
 CELLS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
-    st.integers(-10**6, 10**6).map(str),
+    st.integers(-(10**6), 10**6).map(str),
     st.sampled_from(["", " ", "nan", "NaN", "inf", "-", "1e400", "1_000", '"', '"1,2"', "x", "0x10", "١٢", "\t5"]),
 )
-HEADERS = st.lists(st.sampled_from(["x", "y", "z", "s1x", "s1y", "s1z", "s2x", "s2y", "s2z", "t", "temp", "group",
-                                    "ref_total", "qw", "qx", "qy", "qz", "other", ""]), min_size=1, max_size=8)
+HEADERS = st.lists(
+    st.sampled_from(
+        [
+            "x",
+            "y",
+            "z",
+            "s1x",
+            "s1y",
+            "s1z",
+            "s2x",
+            "s2y",
+            "s2z",
+            "t",
+            "temp",
+            "group",
+            "ref_total",
+            "qw",
+            "qx",
+            "qy",
+            "qz",
+            "other",
+            "",
+        ]
+    ),
+    min_size=1,
+    max_size=8,
+)
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(HEADERS, st.lists(st.lists(CELLS, min_size=0, max_size=9), max_size=8),
-       st.lists(st.sampled_from(["# units: uT", "# baseline_m: 0.5", "# noise_nT: x", "#", "# units: bogus"]),
-                max_size=3))
+@given(
+    HEADERS,
+    st.lists(st.lists(CELLS, min_size=0, max_size=9), max_size=8),
+    st.lists(st.sampled_from(["# units: uT", "# baseline_m: 0.5", "# noise_nT: x", "#", "# units: bogus"]), max_size=3),
+)
 def test_structured_fuzz_gives_a_dataset_or_a_clean_error(tmp_path, header, rows, meta):
     text = "\n".join(meta + [",".join(header)] + [",".join(r) for r in rows]) + "\n"
     ds = _read_any(tmp_path, text.encode("utf-8"))
@@ -474,7 +521,7 @@ def test_a_clean_file_is_read_by_pyarrow_with_the_same_result(tmp_path, monkeypa
     text = path.read_text().replace("t,s1x", "site,t,s1x", 1)
     lines = text.splitlines()
     head = [i for i, line in enumerate(lines) if line.startswith("site,")][0]
-    lines = lines[:head + 1] + [f"B{i % 3}," + line for i, line in enumerate(lines[head + 1:])]
+    lines = lines[: head + 1] + [f"B{i % 3}," + line for i, line in enumerate(lines[head + 1 :])]
     path.write_text("\n".join(lines) + "\n")
     with mio.CsvSource(path) as src:
         slow = mio.concatenate([c.dataset for c in src.chunks(150)])

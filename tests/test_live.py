@@ -78,14 +78,21 @@ def test_serial_source_through_a_pseudo_terminal():
     path = os.ttyname(slave)
     try:
         src = open_source(f"serial://{path}?baud=115200&columns=t,x,y,z,temp&units=uT")
-        lines = ["0.10,20.5,-3.25,41.0,22.5", "garbage line", "0.20,20.6,-3.20,41.1,22.5", "0.30,1e3,oops,3,22.5",
-                 "0.15,1,1,1,22.5", "0.40,20.7,-3.15,41.2,22.6"]
+        lines = [
+            "0.10,20.5,-3.25,41.0,22.5",
+            "garbage line",
+            "0.20,20.6,-3.20,41.1,22.5",
+            "0.30,1e3,oops,3,22.5",
+            "0.15,1,1,1,22.5",
+            "0.40,20.7,-3.15,41.2,22.6",
+        ]
         os.write(master, ("\r\n".join(lines) + "\r\n").encode())
         chunk = collect(src, 3)
         assert len(chunk) == 3
         assert np.allclose(chunk.time_s, [0.1, 0.2, 0.4])
-        assert np.allclose(chunk.readings_nT[0], [[20_500, -3_250, 41_000], [20_600, -3_200, 41_100],
-                                                  [20_700, -3_150, 41_200]])
+        assert np.allclose(
+            chunk.readings_nT[0], [[20_500, -3_250, 41_000], [20_600, -3_200, 41_100], [20_700, -3_150, 41_200]]
+        )
         assert np.allclose(chunk.temperature_C, [22.5, 22.5, 22.6])
         # three bad lines counted, each with its reason: wrong field count, not a number, time going back
         assert src.stats.n_bad == 3
@@ -172,8 +179,24 @@ def test_mavlink_udp_magnetometer_in_nT(kind):
         elif kind == "RAW_IMU":
             m = mav.raw_imu_encode(t_ms * 1000, 0, 0, 1000, 0, 0, 0, x, y, z, 0, 3000)
         else:
-            m = mav.highres_imu_encode(t_ms * 1000, 0, 0, 9.8, 0, 0, 0, x / 1000, y / 1000, z / 1000, 1013, 0, 0,
-                                       24.5, (0b111 << 6) | (1 << 12), 0)
+            m = mav.highres_imu_encode(
+                t_ms * 1000,
+                0,
+                0,
+                9.8,
+                0,
+                0,
+                0,
+                x / 1000,
+                y / 1000,
+                z / 1000,
+                1013,
+                0,
+                0,
+                24.5,
+                (0b111 << 6) | (1 << 12),
+                0,
+            )
         packets.append(m.pack(mav))
     heartbeat = mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav)
     corrupted = bytearray(packets[0])
@@ -187,8 +210,12 @@ def test_mavlink_udp_magnetometer_in_nT(kind):
     assert len(chunk) == 3
     assert np.allclose(chunk.readings_nT[0], np.array(mags_mG) * 100.0, atol=1e-3)  # mgauss (or gauss) -> nT
     assert np.allclose(chunk.time_s, 1.0 + 0.02 * np.arange(3))
-    expected_temp = {"SCALED_IMU": 25.12 + 0.01 * np.arange(3), "SCALED_IMU2": None, "RAW_IMU": [30.0] * 3,
-                     "HIGHRES_IMU": [24.5] * 3}[kind]
+    expected_temp = {
+        "SCALED_IMU": 25.12 + 0.01 * np.arange(3),
+        "SCALED_IMU2": None,
+        "RAW_IMU": [30.0] * 3,
+        "HIGHRES_IMU": [24.5] * 3,
+    }[kind]
     if expected_temp is None:
         assert chunk.temperature_C is None
     else:
@@ -235,11 +262,16 @@ def test_recorder_lines_never_cross_a_page(tmp_path):
         samples = [src.sample(k) for k in range(start, min(start + 37, 600))]
         from magcal.data.live import LiveChunk
 
-        rec.write(LiveChunk(np.array([s[0] for s in samples]), np.stack([s[1] for s in samples], axis=1),
-                            np.array([s[2] for s in samples])))
+        rec.write(
+            LiveChunk(
+                np.array([s[0] for s in samples]),
+                np.stack([s[1] for s in samples], axis=1),
+                np.array([s[2] for s in samples]),
+            )
+        )
     rec.close()
     raw = path.read_bytes()
-    assert all(raw[b - 1:b] == b"\n" for b in range(512, len(raw), 512))
+    assert all(raw[b - 1 : b] == b"\n" for b in range(512, len(raw), 512))
     ds = magcal.read_csv(path)
     assert ds.n_samples == 600
     assert np.allclose(ds.time_s, np.arange(600) / 100)
@@ -252,14 +284,28 @@ def test_recording_survives_sigkill(tmp_path):
     the sample the deterministic source sent."""
     path = tmp_path / "killed.csv"
     rate = 100
-    proc = subprocess.Popen([sys.executable, "-m", "magcal.data.live", f"sim://chi2017?rate={rate}", str(path),
-                             "--flush", "0.2", "--progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "magcal.data.live",
+            f"sim://chi2017?rate={rate}",
+            str(path),
+            "--flush",
+            "0.2",
+            "--progress",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
     flushed = []
     try:
-        reader = threading.Thread(target=lambda: [flushed.append(int(line.split()[1]))
-                                                  for line in proc.stdout if line.startswith("flushed")],
-                                  daemon=True)
+        reader = threading.Thread(
+            target=lambda: [flushed.append(int(line.split()[1])) for line in proc.stdout if line.startswith("flushed")],
+            daemon=True,
+        )
         reader.start()
         end = time.monotonic() + 60
         while (not flushed or flushed[-1] < 60) and time.monotonic() < end and proc.poll() is None:
@@ -293,8 +339,9 @@ def test_record_function_counts_and_stops(tmp_path):
 def test_live_session_records_what_viewers_see(tmp_path):
     path = tmp_path / "session.csv"
     seen = []
-    session = LiveSession("sim://chi2017?rate=50&speed=10", path, flush_interval_s=0.1,
-                          listeners=[lambda chunk: seen.append(len(chunk))])
+    session = LiveSession(
+        "sim://chi2017?rate=50&speed=10", path, flush_interval_s=0.1, listeners=[lambda chunk: seen.append(len(chunk))]
+    )
     late = []
     session.subscribe(late.append)
     end = time.monotonic() + 30

@@ -65,9 +65,17 @@ def ardupilot_case(n=400, compasses=2):
     body = att.inv().apply(FIELD_NED_nT)  # field in the body frame, nT
     t_us = 20_000 * np.arange(n) + 1_000_000
     truth = []
-    params = [("COMPASS_OFS_X", 30.0), ("COMPASS_DIA_X", 1.02), ("COMPASS_DIA_Y", 0.98), ("COMPASS_DIA_Z", 1.01),
-              ("COMPASS_ODI_X", 0.01), ("COMPASS_ODI_Y", -0.02), ("COMPASS_ODI_Z", 0.015), ("COMPASS_SCALE", 1.0),
-              ("COMPASS_OFS2_Y", -12.0)]
+    params = [
+        ("COMPASS_OFS_X", 30.0),
+        ("COMPASS_DIA_X", 1.02),
+        ("COMPASS_DIA_Y", 0.98),
+        ("COMPASS_DIA_Z", 1.01),
+        ("COMPASS_ODI_X", 0.01),
+        ("COMPASS_ODI_Y", -0.02),
+        ("COMPASS_ODI_Z", 0.015),
+        ("COMPASS_SCALE", 1.0),
+        ("COMPASS_OFS2_Y", -12.0),
+    ]
     messages = [("PARM", (0, name.encode(), value)) for name, value in params]
     m1 = np.array([[1.02, 0.01, -0.02], [0.01, 0.98, 0.015], [-0.02, 0.015, 1.01]])
     matrices = [m1, np.eye(3)]
@@ -88,8 +96,20 @@ def ardupilot_case(n=400, compasses=2):
             logged = matrices[k] @ (raw_mG + offsets[k])
             mo = np.array([2.0, -1.0, 0.0]) if k == 0 else np.zeros(3)  # motor offsets, added after the matrix
             logged = np.round(logged + mo)
-            messages.append(("MAG", (int(t_us[i]) + 100 * k, k, *logged.astype(int), *np.round(offsets[k]).astype(int),
-                                     *mo.astype(int), 1, 0)))
+            messages.append(
+                (
+                    "MAG",
+                    (
+                        int(t_us[i]) + 100 * k,
+                        k,
+                        *logged.astype(int),
+                        *np.round(offsets[k]).astype(int),
+                        *mo.astype(int),
+                        1,
+                        0,
+                    ),
+                )
+            )
     return messages, truth, att, sensors
 
 
@@ -144,8 +164,9 @@ def test_cli_calibrate_reads_a_dataflash_log(ardupilot_log, tmp_path):
     field = np.linalg.norm(c.correct(ds)[0], axis=1)
     # the calibrated magnitude is flat to the noise (20 nT) and the 1 mG rounding of the log (29 nT rms)
     assert np.std(field) < 60
-    assert abs(np.mean(field) - np.linalg.norm(FIELD_NED_nT)) < 0.05 * np.linalg.norm(FIELD_NED_nT) or \
-        c.reference_fitted
+    assert (
+        abs(np.mean(field) - np.linalg.norm(FIELD_NED_nT)) < 0.05 * np.linalg.norm(FIELD_NED_nT) or c.reference_fitted
+    )
 
 
 def test_dataflash_without_compass_is_refused(tmp_path):
@@ -185,8 +206,7 @@ def write_ulog(path, topics):
     data = []
     for msg_id, (name, multi_id, fields, rows) in enumerate(topics):
         out += _ulog_msg("A", struct.pack("<BH", multi_id, msg_id) + name.encode())
-        fmt = "<" + "".join(codes[t.split("[")[0]] * (int(t.split("[")[1][:-1]) if "[" in t else 1)
-                            for t, _ in fields)
+        fmt = "<" + "".join(codes[t.split("[")[0]] * (int(t.split("[")[1][:-1]) if "[" in t else 1) for t, _ in fields)
         for row in rows:
             data.append((row[0], msg_id, struct.pack("<H", msg_id) + struct.pack(fmt, *row)))
     for _, _, payload in sorted(data, key=lambda d: (d[0], d[1])):
@@ -194,9 +214,17 @@ def write_ulog(path, topics):
     path.write_bytes(bytes(out))
 
 
-MAG_FIELDS = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
-              ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"), ("uint32_t", "error_count"),
-              ("bool", "is_external")]
+MAG_FIELDS = [
+    ("uint64_t", "timestamp"),
+    ("uint64_t", "timestamp_sample"),
+    ("uint32_t", "device_id"),
+    ("float", "x"),
+    ("float", "y"),
+    ("float", "z"),
+    ("float", "temperature"),
+    ("uint32_t", "error_count"),
+    ("bool", "is_external"),
+]
 ATT_FIELDS = [("uint64_t", "timestamp"), ("float[4]", "q")]
 
 
@@ -208,8 +236,9 @@ def px4_case(n=300):
     b = np.array([12_000.0, -4_000.0, 7_000.0])
     raw_nT = body @ c.T + b
     t_us = 1_000_000 + 10_000 * np.arange(n)
-    mag_rows = [(int(t) + 50, int(t), 197_130, *(raw_nT[i] / 1e5), 30.0 + 0.02 * i, 0, False)
-                for i, t in enumerate(t_us)]
+    mag_rows = [
+        (int(t) + 50, int(t), 197_130, *(raw_nT[i] / 1e5), 30.0 + 0.02 * i, 0, False) for i, t in enumerate(t_us)
+    ]
     q = att.as_quat()
     att_rows = [(int(t) - 2_000, q[i, 3], q[i, 0], q[i, 1], q[i, 2]) for i, t in enumerate(t_us)]
     topics = [("sensor_mag", 0, MAG_FIELDS, mag_rows), ("vehicle_attitude", 0, ATT_FIELDS, att_rows)]
@@ -273,8 +302,10 @@ def test_dead_compass_left_out_and_unhealthy_samples_dropped(tmp_path):
     assert np.max(np.abs(ds.readings_nT[0] - truth[0][10:])) < 1.2 * 100
     only_dead = tmp_path / "alldead.bin"
     write_dataflash(only_dead, [(n, v) for n, v in edited if not (n == "MAG" and v[1] == 0)])
-    with pytest.raises(DatasetError, match="every magnetometer in the log reads one constant vector"), \
-            pytest.warns(magcal.core.errors.DataWarning, match="compass 2 reads the same vector"):
+    with (
+        pytest.raises(DatasetError, match="every magnetometer in the log reads one constant vector"),
+        pytest.warns(magcal.core.errors.DataWarning, match="compass 2 reads the same vector"),
+    ):
         read_log(only_dead)
 
 
@@ -292,9 +323,13 @@ def test_log_to_firmware_parameters_end_to_end(tmp_path, capsys):
     assert main(["export", str(cal), "--format", "ardupilot", "-o", str(params)]) == 0
     p = parse_parameter_file(params.read_text())
     raw_mG = truth[0] / 100.0  # the compass's raw body-frame field, before any calibration
-    m = np.array([[p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
-                  [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
-                  [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]]])
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
     ofs = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"])
     field_nT = np.linalg.norm((p["COMPASS_SCALE"] * (raw_mG + ofs)) @ m.T, axis=1) * 100.0
     assert np.std(np.linalg.norm(truth[0], axis=1)) > 1000

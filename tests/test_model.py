@@ -20,8 +20,12 @@ def test_without_removes_a_base_term():
 
 @pytest.mark.parametrize(
     "spec, message",
-    [("bias", "base term"), ("no_such_effect", "unknown effect"), ("temperature_bias:9", "does not exist"),
-     ("temperature_bias:x", "must be a number")],
+    [
+        ("bias", "base term"),
+        ("no_such_effect", "unknown effect"),
+        ("temperature_bias:9", "does not exist"),
+        ("temperature_bias:x", "must be a number"),
+    ],
 )
 def test_bad_effect_specs_are_explained(spec, message):
     with pytest.raises(MagcalError, match=message):

@@ -23,7 +23,6 @@ from magcal.fitting.pipeline import calibrate
 N = 3000
 
 
-
 @pytest.mark.parametrize("n_sensors", [1, 4])
 @pytest.mark.parametrize("sigma_nT", [0.5, 3.0])
 def test_noise_of_a_fitted_recording_is_the_simulated_sigma(n_sensors, sigma_nT):

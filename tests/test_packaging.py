@@ -24,13 +24,19 @@ def test_assets_are_mapped_into_the_workbench_package():
     assert "magcal_workbench.assets" in cfg["packages"]
 
 
-@pytest.mark.parametrize("path", sorted(p.relative_to(ROOT / "assets").as_posix()
-                                        for p in (ROOT / "assets").rglob("*")
-                                        if p.is_file() and p.suffix != ".py" and "__pycache__" not in p.parts))
+@pytest.mark.parametrize(
+    "path",
+    sorted(
+        p.relative_to(ROOT / "assets").as_posix()
+        for p in (ROOT / "assets").rglob("*")
+        if p.is_file() and p.suffix != ".py" and "__pycache__" not in p.parts
+    ),
+)
 def test_every_data_file_of_assets_is_package_data(path):
     patterns = _setuptools_config()["package-data"]["magcal_workbench.assets"]
     assert any(fnmatch.fnmatch(path, pat) and path.count("/") == pat.count("/") for pat in patterns), (
-        f"assets/{path} would be left out of the wheel: add a pattern for it to pyproject.toml")
+        f"assets/{path} would be left out of the wheel: add a pattern for it to pyproject.toml"
+    )
 
 
 def test_the_workbench_finds_the_demo_and_the_lessons():
@@ -103,9 +109,11 @@ def test_the_engine_needs_only_the_core_dependencies():
 
 def test_import_magcal_needs_no_optional_package():
     """``import magcal`` (and its command line) loads none of the workbench's or the instruments' packages."""
-    code = ("import sys, magcal, magcal.cli, magcal.data.live, magcal.data.logs, magcal.output.export; "
-            "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog', 'pyarrow') "
-            "if m in sys.modules))")
+    code = (
+        "import sys, magcal, magcal.cli, magcal.data.live, magcal.data.logs, magcal.output.export; "
+        "print(sorted(m for m in ('viser', 'trimesh', 'plotly', 'serial', 'pymavlink', 'pyulog', 'pyarrow') "
+        "if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out
 
@@ -131,10 +139,13 @@ def test_the_workbench_packages_are_not_core_dependencies():
 def test_every_package_the_tests_import_is_a_test_dependency():
     project = _project()
     test = project["optional-dependencies"]["test"]
-    assert "magcal-workbench[workbench,instruments,survey]" in test  # the tests drive the workbench, instruments, Parquet
+    assert (
+        "magcal-workbench[workbench,instruments,survey]" in test
+    )  # the tests drive the workbench, instruments, Parquet
     extras = project["optional-dependencies"]
-    declared = _requirement_names(project["dependencies"] + extras["workbench"] + extras["instruments"]
-                                  + extras["survey"] + test)
+    declared = _requirement_names(
+        project["dependencies"] + extras["workbench"] + extras["instruments"] + extras["survey"] + test
+    )
     local = {p.stem for p in (ROOT / "tests").glob("*.py")}
     missing = _third_party_imports(["tests"]) - declared - local
     assert not missing, f"imported by the tests but not declared: {sorted(missing)}"
@@ -143,13 +154,18 @@ def test_every_package_the_tests_import_is_a_test_dependency():
 def test_every_python_package_is_in_the_wheel():
     """A package folder left out of ``packages`` is missing from the wheel (magcal.diagnosis became one)."""
     listed = set(_setuptools_config()["packages"])
-    found = {".".join(p.parent.relative_to(ROOT).parts) for folder in ("magcal", "magcal_workbench")
-             for p in (ROOT / folder).rglob("__init__.py") if "__pycache__" not in p.parts}
+    found = {
+        ".".join(p.parent.relative_to(ROOT).parts)
+        for folder in ("magcal", "magcal_workbench")
+        for p in (ROOT / folder).rglob("__init__.py")
+        if "__pycache__" not in p.parts
+    }
     assert found <= listed, f"not in [tool.setuptools] packages: {sorted(found - listed)}"
 
 
-@pytest.mark.parametrize("script, target", [("magcal", "magcal.cli:main"),
-                                            ("magcal-workbench", "magcal_workbench._launch:main")])
+@pytest.mark.parametrize(
+    "script, target", [("magcal", "magcal.cli:main"), ("magcal-workbench", "magcal_workbench._launch:main")]
+)
 def test_console_scripts_point_at_callables(script, target):
     assert _project()["scripts"][script] == target
     module, _, name = target.partition(":")
@@ -162,7 +178,7 @@ def _bash_blocks(text):
 
 def _setup_section():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text[text.index("## Set-up"):text.index("\n## ", text.index("## Set-up") + 1)]
+    return text[text.index("## Set-up") : text.index("\n## ", text.index("## Set-up") + 1)]
 
 
 def test_readme_first_command_installs_the_workbench_extra_and_starts_it():
@@ -184,10 +200,12 @@ def test_the_test_command_runs_the_doctests_of_magcal():
 
 def _launch(hide=()):
     """Run the magcal-workbench entry point in a fresh Python with some packages made unimportable."""
-    code = ("import sys\n"
-            f"for name in {tuple(hide)!r}: sys.modules[name] = None  # import raises ImportError\n"
-            "from magcal_workbench._launch import main\n"
-            "sys.exit(main(['--help']))\n")
+    code = (
+        "import sys\n"
+        f"for name in {tuple(hide)!r}: sys.modules[name] = None  # import raises ImportError\n"
+        "from magcal_workbench._launch import main\n"
+        "sys.exit(main(['--help']))\n"
+    )
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
 
 

@@ -76,8 +76,7 @@ def test_apply_to_and_from_parquet_gives_the_numbers_of_the_csv_path(survey, tmp
 
 
 @pytest.mark.parametrize("compression, expected", [(None, "SNAPPY"), ("zstd", "ZSTD"), ("none", "UNCOMPRESSED")])
-def test_apply_writes_float_columns_with_the_codec_asked_and_the_same_numbers(survey, tmp_path, compression,
-                                                                              expected):
+def test_apply_writes_float_columns_with_the_codec_asked_and_the_same_numbers(survey, tmp_path, compression, expected):
     """Float columns of a Parquet output use snappy by default or the codec asked for; the values are the same
     whatever the codec."""
     import pyarrow.parquet as pq
@@ -104,14 +103,26 @@ def test_an_unknown_codec_is_refused_before_any_work(survey, tmp_path, capsys):
     with pytest.raises(magcal.MagcalError, match="Parquet compression 'lzma'.*none, snappy, zstd"):
         apply_file(cal_path, csv_path, tmp_path / "out.parquet", compression="lzma")
     assert not (tmp_path / "out.parquet").exists()
-    assert main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "o.parquet"), "--compression",
-                 "zstd", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "apply",
+                str(cal_path),
+                str(csv_path),
+                "-o",
+                str(tmp_path / "o.parquet"),
+                "--compression",
+                "zstd",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     with pytest.raises(SystemExit):
         main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "p.parquet"), "--compression", "lzma"])
     assert "invalid choice: 'lzma'" in capsys.readouterr().err
     # a codec for a CSV output is a mistake worth saying (nothing would be compressed)
-    assert main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "o.csv"), "--compression",
-                 "zstd"]) == 2
+    assert main(["apply", str(cal_path), str(csv_path), "-o", str(tmp_path / "o.csv"), "--compression", "zstd"]) == 2
     err = capsys.readouterr().err
     assert "o.csv" in err and "for Parquet output" in err and "Traceback" not in err
     assert not (tmp_path / "o.csv").exists()

@@ -81,8 +81,9 @@ def test_chi2017_tensor_rms_at_floor(chi_runs):
 def test_chi2017_steps_tell_the_story():
     truth = chi2017_truth()
     r = calibrate(simulate("chi2017", seed=1000))
-    e_c, e_b, e_r = _param_errors(r.calibration, [s.Cinv for s in truth.sensors], [s.bias_nT for s in truth.sensors],
-                                  [s.R for s in truth.sensors])
+    e_c, e_b, e_r = _param_errors(
+        r.calibration, [s.Cinv for s in truth.sensors], [s.bias_nT for s in truth.sensors], [s.R for s in truth.sensors]
+    )
     assert e_c < 2e-4 and e_b < 2.0 and e_r < 1.5e-3
     assert [s.name for s in r.steps] == ["raw", "ellipsoid", "procrustes", "ml"]
     raw, ell, pro, ml = r.steps
@@ -101,8 +102,9 @@ def test_ellipsoid_method_is_the_seed_two_steps():
     truth = chi2017_truth()
     r = calibrate(simulate("chi2017", seed=3), method="ellipsoid")
     assert r.fit is None and [s.name for s in r.steps] == ["raw", "ellipsoid", "procrustes"]
-    e_c, e_b, e_r = _param_errors(r.calibration, [s.Cinv for s in truth.sensors], [s.bias_nT for s in truth.sensors],
-                                  [s.R for s in truth.sensors])
+    e_c, e_b, e_r = _param_errors(
+        r.calibration, [s.Cinv for s in truth.sensors], [s.bias_nT for s in truth.sensors], [s.R for s in truth.sensors]
+    )
     assert e_c < 2e-4 and e_b < 2.0 and e_r < 1.5e-3
 
 
@@ -158,8 +160,12 @@ def test_robust_loss_with_gross_outliers():
     assert np.all(np.abs(rms_in / floor - 1) < 0.12), rms_in / floor
     assert np.array_equal(robust.outliers, ~inliers)  # reports exactly the corrupted samples
     assert any("distrusted" in w for w in robust.warnings)
-    e_c, e_b, e_r = _param_errors(robust.calibration, [s.Cinv for s in truth.sensors],
-                                  [s.bias_nT for s in truth.sensors], [s.R for s in truth.sensors])
+    e_c, e_b, e_r = _param_errors(
+        robust.calibration,
+        [s.Cinv for s in truth.sensors],
+        [s.bias_nT for s in truth.sensors],
+        [s.R for s in truth.sensors],
+    )
     assert e_c < 2e-4 and e_b < 2.0 and e_r < 1.5e-3
     # the figures leave the distrusted samples out and sit at the floor
     assert np.all(robust.rms_after_per_sensor_nT < 1.15 * floor)
@@ -169,11 +175,14 @@ def test_robust_loss_with_gross_outliers():
     assert np.max(rms_in_plain) > 3 * floor
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    ({"method": "magic"}, "unknown method"),
-    ({"method": "ellipsoid", "effects": ["temperature_bias"]}, "only be fitted with method 'ml'"),
-    ({"mask": np.ones(3, bool)}, "mask has shape"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"method": "magic"}, "unknown method"),
+        ({"method": "ellipsoid", "effects": ["temperature_bias"]}, "only be fitted with method 'ml'"),
+        ({"mask": np.ones(3, bool)}, "mask has shape"),
+    ],
+)
 def test_refusals(kwargs, message):
     with pytest.raises(CalibrationError, match=message):
         calibrate(simulate("chi2017", seed=1, n_samples=50), **kwargs)
@@ -214,9 +223,13 @@ IND_ERRORS = [
 
 def _ind_C(kx, ky, kz, psi, phi, theta):
     """Eq. (2): C = diag(k) C_NO."""
-    c_no = np.array([[np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)],
-                     [0.0, np.cos(psi), np.sin(psi)],
-                     [0.0, 0.0, 1.0]])
+    c_no = np.array(
+        [
+            [np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)],
+            [0.0, np.cos(psi), np.sin(psi)],
+            [0.0, 0.0, 1.0],
+        ]
+    )
     return np.diag([kx, ky, kz]) @ c_no
 
 
@@ -233,11 +246,14 @@ def _ind_quaternion_matrices(rng, n):
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
 
 
 def _ind_write(path, seed):
@@ -340,8 +356,11 @@ def test_align_sensors_recovers_the_misalignment_from_a_given_step_one():
 
     truth = chi2017_truth()
     ds = simulate(truth, seed=13)
-    start = Calibration([SensorCalibration(s.Cinv, s.bias_nT, np.eye(3)) for s in truth.sensors],
-                        reference_total_nT=truth.total_nT, baseline_m=ds.baseline_m)
+    start = Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT, np.eye(3)) for s in truth.sensors],
+        reference_total_nT=truth.total_nT,
+        baseline_m=ds.baseline_m,
+    )
     aligned = align_sensors(ds, start)
     for got, want in zip(aligned.sensors, truth.sensors):
         assert np.max(np.abs(got.R - want.R)) < 2e-4

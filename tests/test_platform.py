@@ -22,8 +22,12 @@ def truth():
 
 def true_calibration(truth, frame="sensor1"):
     """The exact intrinsic calibration (C^-1, b) with R = identity."""
-    return Calibration([SensorCalibration(s.Cinv, s.bias_nT) for s in truth.sensors], reference_total_nT=truth.total_nT,
-                       baseline_m=truth.baseline_m, frame=frame)
+    return Calibration(
+        [SensorCalibration(s.Cinv, s.bias_nT) for s in truth.sensors],
+        reference_total_nT=truth.total_nT,
+        baseline_m=truth.baseline_m,
+        frame=frame,
+    )
 
 
 def true_R(truth):
@@ -89,8 +93,9 @@ def test_full_procedure_with_a_scalar_calibration_first(truth):
 
     free = sim.simulate(truth, n_samples=200, noise_nT=SIGMA, seed=5)
     cal = calibrate(free).calibration
-    icov = np.array([pf.intrinsic_covariance(free.readings_nT[i], c.cinv, c.bias_nT, SIGMA)
-                     for i, c in enumerate(cal.sensors)])
+    icov = np.array(
+        [pf.intrinsic_covariance(free.readings_nT[i], c.cinv, c.bias_nT, SIGMA) for i, c in enumerate(cal.sensors)]
+    )
     ds = pf.simulate_level_table(truth, n_per_group=100, noise_nT=SIGMA, seed=6)
     _, alone = pf.align(ds, cal, noise_nT=SIGMA)
     new, res = pf.align(ds, cal, noise_nT=SIGMA, intrinsic_cov=icov)
@@ -157,12 +162,15 @@ def test_mislabelled_group_is_reported(truth):
         pf.align(ds.replace(group=wrong), true_calibration(truth))
 
 
-@pytest.mark.parametrize("change,match", [
-    (lambda ds: ds.replace(group=None), "needs a group column"),
-    (lambda ds: ds.replace(group=np.array(["free"] * ds.n_samples)), "no level-table groups"),
-    (lambda ds: ds.subset(ds.group == "z_up"), "only the group"),
-    (lambda ds: ds.subset(np.r_[np.ones(ds.n_samples - 97, bool), np.zeros(97, bool)]), "at least"),
-])
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        (lambda ds: ds.replace(group=None), "needs a group column"),
+        (lambda ds: ds.replace(group=np.array(["free"] * ds.n_samples)), "no level-table groups"),
+        (lambda ds: ds.subset(ds.group == "z_up"), "only the group"),
+        (lambda ds: ds.subset(np.r_[np.ones(ds.n_samples - 97, bool), np.zeros(97, bool)]), "at least"),
+    ],
+)
 def test_unusable_records_are_refused(truth, change, match):
     ds = pf.simulate_level_table(truth, n_per_group=100, noise_nT=SIGMA, seed=15)
     with pytest.raises(DatasetError, match=match):

@@ -39,10 +39,12 @@ def hidden(tmp_path_factory):
     try:
         plugins.load_effects_file(EXAMPLE)
         effect = EFFECTS[NAME]()
-        ds = magcal.simulate_timeseries("chi2017", n_samples=1500, seed=3,
-                                        perturbations=[effect.perturbation(AMPLITUDE_NT, HIDDEN_SENSOR)])
-        survey = magcal.simulate_timeseries("chi2017", n_samples=300, seed=4,
-                                            perturbations=[effect.perturbation(AMPLITUDE_NT, HIDDEN_SENSOR)])
+        ds = magcal.simulate_timeseries(
+            "chi2017", n_samples=1500, seed=3, perturbations=[effect.perturbation(AMPLITUDE_NT, HIDDEN_SENSOR)]
+        )
+        survey = magcal.simulate_timeseries(
+            "chi2017", n_samples=300, seed=4, perturbations=[effect.perturbation(AMPLITUDE_NT, HIDDEN_SENSOR)]
+        )
     finally:
         EFFECTS.clear()
         EFFECTS.update(before)
@@ -184,14 +186,16 @@ def test_cli_diagnose_with_the_effects_file(hidden, capsys):
 def test_cli_calibrate_then_apply_with_the_effect(hidden, tmp_path, capsys):
     cal = tmp_path / "cal.json"
     label = f"{NAME}:{HIDDEN_SENSOR + 1}"
-    code, out, err = run(["calibrate", hidden["csv"], "--effects-file", EXAMPLE, "--effects", label,
-                          "-o", cal, "--json"], capsys)
+    code, out, err = run(
+        ["calibrate", hidden["csv"], "--effects-file", EXAMPLE, "--effects", label, "-o", cal, "--json"], capsys
+    )
     assert code == 0, err
     doc = json.loads(out)
     assert doc["effects"] == [label] and json.loads(cal.read_text())["effects"] == [label]
     out_csv = tmp_path / "survey_cal.csv"
-    code, out, err = run(["apply", cal, hidden["survey"], "-o", out_csv, "--no-progress",
-                          "--effects-file", EXAMPLE], capsys)
+    code, out, err = run(
+        ["apply", cal, hidden["survey"], "-o", out_csv, "--no-progress", "--effects-file", EXAMPLE], capsys
+    )
     assert code == 0, err
     header = [line for line in out_csv.read_text().splitlines() if not line.startswith("#")][0]
     assert "s2x_cal" in header.split(",")
@@ -229,9 +233,19 @@ def test_cli_effects_lists_the_catalogue_with_the_source(capsys):
 RECORD_ONLY = {"bias_drift", "bias_step", "reference_drift", "site_gradient"}
 
 
-@pytest.mark.parametrize("name", ["temperature_bias", "temperature_scale", "nonlinearity_quadratic",
-                                  "nonlinearity_cubic", "axis_timing_skew", "sensor_timing_skew", "hysteresis",
-                                  *sorted(RECORD_ONLY)])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "temperature_bias",
+        "temperature_scale",
+        "nonlinearity_quadratic",
+        "nonlinearity_cubic",
+        "axis_timing_skew",
+        "sensor_timing_skew",
+        "hysteresis",
+        *sorted(RECORD_ONLY),
+    ],
+)
 def test_catalogue_says_which_terms_carry_to_new_data(name, capsys):
     """Instrument terms carry to new data; a term of one recording (drift since power-on, a step, the field's
     drift, the site's gradient) does not: the class, describe_effect, the listing and its JSON agree."""
@@ -257,8 +271,9 @@ def test_an_effect_that_does_not_say_is_an_instrument_term(tmp_path):
 
 def test_cli_simulate_can_hide_the_user_effect(tmp_path, capsys):
     path = tmp_path / "s.csv"
-    code, out, err = run(["simulate", "--hidden", f"{NAME}:2=3", "--n", "200", "-o", path,
-                          "--effects-file", EXAMPLE], capsys)
+    code, out, err = run(
+        ["simulate", "--hidden", f"{NAME}:2=3", "--n", "200", "-o", path, "--effects-file", EXAMPLE], capsys
+    )
     assert code == 0, err
     assert f"hidden: {NAME} 3.0 nT at 1.3 Hz (sensor 2)" in out and io.read_csv(path).n_samples == 200
 
@@ -267,7 +282,7 @@ def test_cli_simulate_can_hide_the_user_effect(tmp_path, capsys):
 # broken files: one clear message, exit 2, no traceback, the catalogue unchanged
 # ----------------------------------------------------------------------------------------------------------------
 
-GOOD_CLASS = '''
+GOOD_CLASS = """
     @register
     @dataclass
     class Offset(Effect):
@@ -277,50 +292,77 @@ GOOD_CLASS = '''
             return ["o_x_nT", "o_y_nT", "o_z_nT"]
         def raw_basis(self, z0, ctx):
             return np.broadcast_to(np.eye(3), (len(z0), 3, 3)).copy()
-'''
-HEADER = '''
+"""
+HEADER = """
     from dataclasses import dataclass
     from typing import ClassVar
     import numpy as np
     from magcal.model.terms import Effect, register
-'''
+"""
 
 BROKEN = {
-    "syntax": (HEADER + '''
+    "syntax": (
+        HEADER
+        + """
     @register
     class Broken(Effect):
         name = "broken"
         def param_names(self)
             return ["a_nT"]
-    ''', ["line 10", "syntax error", "def param_names(self)"]),
-    "no_param_names": (HEADER + '''
+    """,
+        ["line 10", "syntax error", "def param_names(self)"],
+    ),
+    "no_param_names": (
+        HEADER
+        + """
     @register
     @dataclass
     class NoParams(Effect):
         name: ClassVar[str] = "no_params"
         def raw_basis(self, z0, ctx):
             return np.zeros((len(z0), 3, 1))
-    ''', ["line 7", "effect class NoParams", "no param_names()"]),
-    "clash": (HEADER + GOOD_CLASS.format(name="temperature_bias", stage="raw"),
-              ["line 7", "'temperature_bias' is already a built-in effect", "another name"]),
+    """,
+        ["line 7", "effect class NoParams", "no param_names()"],
+    ),
+    "clash": (
+        HEADER + GOOD_CLASS.format(name="temperature_bias", stage="raw"),
+        ["line 7", "'temperature_bias' is already a built-in effect", "another name"],
+    ),
     "base_term": (HEADER + GOOD_CLASS.format(name="bias", stage="raw"), ["'bias' is a base term"]),
     "bad_name": (HEADER + GOOD_CLASS.format(name="Pump-2", stage="raw"), ["cannot be typed", "lower-case"]),
-    "bad_stage": (HEADER + GOOD_CLASS.format(name="offset", stage="field"),
-                  ["stage 'field' is not one of raw, vector, reference"]),
-    "wrong_basis_method": (HEADER + GOOD_CLASS.format(name="offset", stage="vector"),
-                           ["stage is 'vector' but the class does not define vector_basis()"]),
-    "not_registered": (HEADER.replace("import Effect, register", "import Effect") + '''
+    "bad_stage": (
+        HEADER + GOOD_CLASS.format(name="offset", stage="field"),
+        ["stage 'field' is not one of raw, vector, reference"],
+    ),
+    "wrong_basis_method": (
+        HEADER + GOOD_CLASS.format(name="offset", stage="vector"),
+        ["stage is 'vector' but the class does not define vector_basis()"],
+    ),
+    "not_registered": (
+        HEADER.replace("import Effect, register", "import Effect")
+        + """
     class Lonely(Effect):
         name = "lonely"
-    ''', ["registers no effect", "Lonely", "@register"]),
-    "raises": (HEADER + '''
+    """,
+        ["registers no effect", "Lonely", "@register"],
+    ),
+    "raises": (
+        HEADER
+        + """
     GAIN = 1 / 0
-    ''', ["line 7", "ZeroDivisionError", "GAIN = 1 / 0"]),
-    "missing_import": ('''
+    """,
+        ["line 7", "ZeroDivisionError", "GAIN = 1 / 0"],
+    ),
+    "missing_import": (
+        """
     import numpy as np
     import pumpcontrol_sdk
-    ''', ["line 3", "cannot import", "pumpcontrol_sdk"]),
-    "basis_shape": (HEADER + '''
+    """,
+        ["line 3", "cannot import", "pumpcontrol_sdk"],
+    ),
+    "basis_shape": (
+        HEADER
+        + """
     @register
     @dataclass
     class Flat(Effect):
@@ -329,8 +371,12 @@ BROKEN = {
             return ["a_nT", "b_nT"]
         def raw_basis(self, z0, ctx):
             return np.zeros((len(z0), 3))
-    ''', ["effect class Flat", "raw_basis returned shape (240, 3)", "(240, 3, 2)"]),
-    "unknown_channel": (HEADER + '''
+    """,
+        ["effect class Flat", "raw_basis returned shape (240, 3)", "(240, 3, 2)"],
+    ),
+    "unknown_channel": (
+        HEADER
+        + """
     @register
     @dataclass
     class Motor(Effect):
@@ -340,8 +386,12 @@ BROKEN = {
             return ["k_x_nT_per_A"]
         def raw_basis(self, z0, ctx):
             return np.zeros((len(z0), 3, 1))
-    ''', ["unknown channel(s) 'motor_current'", "time, temperature"]),
-    "basis_raises": (HEADER + '''
+    """,
+        ["unknown channel(s) 'motor_current'", "time, temperature"],
+    ),
+    "basis_raises": (
+        HEADER
+        + """
     @register
     @dataclass
     class Typo(Effect):
@@ -350,7 +400,9 @@ BROKEN = {
             return ["a_nT"]
         def raw_basis(self, z0, ctx):
             return np.zeros((len(z0), 3, 1)) * ctx.temprature_C
-    ''', ["effect class Typo", "AttributeError", "temprature_C", "line 14"]),
+    """,
+        ["effect class Typo", "AttributeError", "temprature_C", "line 14"],
+    ),
 }
 
 
@@ -390,7 +442,11 @@ def test_two_files_may_not_claim_one_name(tmp_path):
 
 def test_an_error_in_the_user_code_during_a_fit_names_the_file_and_line(tmp_path, capsys):
     # the user forgot to declare the temperature channel: the dry run has it, this recording does not
-    path = write(tmp_path, "warm.py", HEADER + '''
+    path = write(
+        tmp_path,
+        "warm.py",
+        HEADER
+        + """
     @register
     @dataclass
     class Warm(Effect):
@@ -400,7 +456,8 @@ def test_an_error_in_the_user_code_during_a_fit_names_the_file_and_line(tmp_path
         def raw_basis(self, z0, ctx):
             dT = ctx.temperature_C - 20.0
             return np.eye(3)[None] * dT[:, None, None]
-    ''')
+    """,
+    )
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2)
     data = tmp_path / "no_temperature.csv"
     io.write_csv(data, ds.replace(temperature_C=None))
@@ -437,8 +494,9 @@ def _import_example_as(module_name):
 def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, tmp_path, capsys):
     module_dir = tmp_path / "site"
     module_dir.mkdir()
-    (module_dir / "coil_effects_pkg.py").write_text(textwrap.dedent(HEADER + GOOD_CLASS.format(name="coil_offset",
-                                                                                                stage="raw")))
+    (module_dir / "coil_effects_pkg.py").write_text(
+        textwrap.dedent(HEADER + GOOD_CLASS.format(name="coil_offset", stage="raw"))
+    )
     monkeypatch.syspath_prepend(str(module_dir))
     monkeypatch.delitem(sys.modules, "coil_effects_pkg", raising=False)
     monkeypatch.delitem(sys.modules, "pump_effects_pkg", raising=False)
@@ -447,8 +505,9 @@ def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, t
         raise ImportError("libpump.so: cannot open shared object file")
 
     eps = [
-        FakeEntryPoint("pump", "pump_effects_pkg:PumpInterference",
-                       lambda: _import_example_as("pump_effects_pkg").PumpInterference),
+        FakeEntryPoint(
+            "pump", "pump_effects_pkg:PumpInterference", lambda: _import_example_as("pump_effects_pkg").PumpInterference
+        ),
         importlib.metadata.EntryPoint(name="coil", value="coil_effects_pkg", group=plugins.ENTRY_POINT_GROUP),
         FakeEntryPoint("broken", "broken_pkg:Effect", broken, dist="broken-pkg"),
         FakeEntryPoint("clash", "clash_pkg:X", lambda: type("X", (EFFECTS["temperature_bias"],), {})),
@@ -464,8 +523,10 @@ def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, t
         names = plugins.load_entry_points()
     assert sorted(names) == ["coil_offset", NAME]
     messages = [str(w.message) for w in caught]
-    assert any("skipped the effect entry point broken = broken_pkg:Effect (broken-pkg)" in m and "libpump" in m
-               for m in messages)
+    assert any(
+        "skipped the effect entry point broken = broken_pkg:Effect (broken-pkg)" in m and "libpump" in m
+        for m in messages
+    )
     assert any("clash" in m and "built-in" in m for m in messages)
     assert plugins.origin(NAME) == ("entry point", "pump = pump_effects_pkg:PumpInterference (pump-effects)")
     assert plugins.origin("coil_offset")[0] == "entry point"
@@ -478,7 +539,11 @@ def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, t
 
 
 def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
-    path = write(tmp_path, "stages.py", HEADER + '''
+    path = write(
+        tmp_path,
+        "stages.py",
+        HEADER
+        + '''
     @register
     @dataclass
     class Lever(Effect):
@@ -506,7 +571,8 @@ def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
             return ["ramp_nT_per_h"]
         def reference_basis(self, ctx):
             return ((ctx.time_s - ctx.time_s.mean()) / 3600.0)[:, None]
-    ''')
+    ''',
+    )
     assert plugins.load_effects_file(path) == ["lever_field", "field_ramp"]
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2)
     result = magcal.calibrate(ds, effects=["lever_field", "field_ramp"])

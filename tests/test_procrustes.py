@@ -79,11 +79,14 @@ def test_refuses_directions_in_a_plane():
         procrustes_rotation(b, b)
 
 
-@pytest.mark.parametrize("a,b,message", [
-    (np.ones((10, 3)), np.ones((9, 3)), "same shape"),
-    (np.eye(3)[:2], np.eye(3)[:2], "at least 3"),
-    (np.full((5, 3), np.nan), np.ones((5, 3)), "non-finite"),
-])
+@pytest.mark.parametrize(
+    "a,b,message",
+    [
+        (np.ones((10, 3)), np.ones((9, 3)), "same shape"),
+        (np.eye(3)[:2], np.eye(3)[:2], "at least 3"),
+        (np.full((5, 3), np.nan), np.ones((5, 3)), "non-finite"),
+    ],
+)
 def test_refuses_bad_input(a, b, message):
     with pytest.raises(CalibrationError, match=message):
         procrustes_rotation(a, b)

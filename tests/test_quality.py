@@ -20,12 +20,16 @@ def only(report, kind, sensor=None):
 
 
 # -- clean data ----------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("make", [
-    lambda: simulate("chi2017", seed=1),
-    lambda: simulate("chi2017", n_samples=1000, noise_nT=0.0, seed=4),
-    lambda: timeseries(seed=2),
-    lambda: timeseries(n=600, noise_nT=30.0, seed=7),
-], ids=["random", "random-noiseless", "timeseries", "timeseries-noisy"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: simulate("chi2017", seed=1),
+        lambda: simulate("chi2017", n_samples=1000, noise_nT=0.0, seed=4),
+        lambda: timeseries(seed=2),
+        lambda: timeseries(n=600, noise_nT=30.0, seed=7),
+    ],
+    ids=["random", "random-noiseless", "timeseries", "timeseries-noisy"],
+)
 def test_clean_data_gives_no_warnings(make):
     ds = make()
     report = quality.assess(ds)
@@ -40,10 +44,15 @@ def test_clean_data_gives_no_warnings(make):
 
 
 # -- quantization --------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("q_nT,n,offset_nT", [
-    (q, n, off) for q in (0.1, 15.0, 150.0, 300.0) for n, off in ((200, 0.0), (2000, 0.0), (2000, 7.3))
-    if not (q < 1 and n < 1000)  # 200 samples over a million 0.1 nT levels: too sparse to see (and harmless)
-])
+@pytest.mark.parametrize(
+    "q_nT,n,offset_nT",
+    [
+        (q, n, off)
+        for q in (0.1, 15.0, 150.0, 300.0)
+        for n, off in ((200, 0.0), (2000, 0.0), (2000, 7.3))
+        if not (q < 1 and n < 1000)  # 200 samples over a million 0.1 nT levels: too sparse to see (and harmless)
+    ],
+)
 def test_quantization_step_is_found(q_nT, n, offset_nT):
     ds = simulate("chi2017", n_samples=n, noise_nT=3.0, seed=5)
     y = q_nT * np.round(ds.readings_nT / q_nT) + offset_nT
@@ -61,21 +70,27 @@ def test_quantization_step_survives_a_unit_conversion():
     assert quality.quantization_step(counts * 1e3 * 0.15) == pytest.approx(150.0, rel=1e-9)
 
 
-@pytest.mark.parametrize("values", [
-    np.random.default_rng(0).normal(0, 3e4, 500),      # continuous
-    np.arange(8) * 15.0,                                 # too few levels to tell
-    np.full(100, 42.0),                                  # constant
-])
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.random.default_rng(0).normal(0, 3e4, 500),  # continuous
+        np.arange(8) * 15.0,  # too few levels to tell
+        np.full(100, 42.0),  # constant
+    ],
+)
 def test_no_step_claimed_without_evidence(values):
     assert quality.quantization_step(values) is None
 
 
-@pytest.mark.parametrize("q_nT,noise_nT,severity", [
-    (150.0, 3.0, "warning"),   # floor 43 nT, far above the noise
-    (15.0, None, "warning"),   # floor 4.3 nT, noise unknown
-    (1.0, 3.0, "info"),        # floor 0.29 nT: under 1 nT
-    (15.0, 100.0, "info"),     # floor 4.3 nT, well below 100 nT of noise
-])
+@pytest.mark.parametrize(
+    "q_nT,noise_nT,severity",
+    [
+        (150.0, 3.0, "warning"),  # floor 43 nT, far above the noise
+        (15.0, None, "warning"),  # floor 4.3 nT, noise unknown
+        (1.0, 3.0, "info"),  # floor 0.29 nT: under 1 nT
+        (15.0, 100.0, "info"),  # floor 4.3 nT, well below 100 nT of noise
+    ],
+)
 def test_quantization_severity_follows_its_floor_and_the_noise(q_nT, noise_nT, severity):
     ds = simulate("chi2017", n_samples=500, noise_nT=noise_nT or 3.0, seed=8)
     y = q_nT * np.round(ds.readings_nT / q_nT)
@@ -91,11 +106,11 @@ def test_stale_fraction_and_longest_run(fraction, run, severity):
     y = ds.readings_nT.copy()
     n = y.shape[1]
     n_repeats = int(round(fraction * n))
-    per_run = run - 1                        # a run of `run` identical samples holds run-1 repeats
+    per_run = run - 1  # a run of `run` identical samples holds run-1 repeats
     starts = np.linspace(10, n - 10, n_repeats // per_run).astype(int)
     starts = starts[np.diff(np.concatenate([[-10], starts])) > run + 1]
     for a in starts:
-        y[1, a + 1:a + run] = y[1, a]        # sensor 2 only
+        y[1, a + 1 : a + run] = y[1, a]  # sensor 2 only
     repeats = len(starts) * per_run
     report = quality.assess(ds.replace(readings_nT=y))
     f = only(report, "stale", 2)
@@ -121,17 +136,20 @@ def test_sample_rate_and_jitter(jitter, severity):
     assert f.severity == severity
 
 
-@pytest.mark.parametrize("gaps_s,severity", [
-    ((), None),
-    ((0.5,), "info"),                 # one short gap (5 intervals)
-    ((0.45, 2.0, 0.35), "warning"),   # one of 20 intervals
-    ((0.4,) * 12, "warning"),         # over 1 % of the intervals
-])
+@pytest.mark.parametrize(
+    "gaps_s,severity",
+    [
+        ((), None),
+        ((0.5,), "info"),  # one short gap (5 intervals)
+        ((0.45, 2.0, 0.35), "warning"),  # one of 20 intervals
+        ((0.4,) * 12, "warning"),  # over 1 % of the intervals
+    ],
+)
 def test_gaps_are_counted_with_the_longest(gaps_s, severity):
     ds = timeseries(n=1000, seed=5)
-    t = ds.time_s.copy()                      # 10 Hz
+    t = ds.time_s.copy()  # 10 Hz
     for k, g in enumerate(gaps_s):
-        t[(k + 1) * 70:] += g - 0.1           # one interval of g s instead of 0.1 s
+        t[(k + 1) * 70 :] += g - 0.1  # one interval of g s instead of 0.1 s
     f = only(quality.assess(ds.replace(time_s=t)), "gaps")
     assert f.values["count"] == len(gaps_s)
     assert f.values["longest_s"] == pytest.approx(max(gaps_s, default=0.0))
@@ -162,7 +180,7 @@ def test_static_stretch_is_found_with_its_noise(sigma_nT, known_noise, length, s
     y = ds.readings_nT.copy()
     rng = np.random.default_rng(2)
     a, b = 600, 600 + length
-    y[:, a:b] = y[:, a:a + 1] + rng.normal(0.0, sigma_nT, size=(4, length, 3))   # the array held still
+    y[:, a:b] = y[:, a : a + 1] + rng.normal(0.0, sigma_nT, size=(4, length, 3))  # the array held still
     report = quality.assess(ds.replace(readings_nT=y, noise_nT=sigma_nT if known_noise else None))
     for s in range(1, 5):
         f = only(report, "static", s)
@@ -192,15 +210,19 @@ def test_clipping_names_the_axis_and_value(axis, share):
 
 
 # -- temperature ---------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("profile,severity,notable", [
-    ("ramp", "warning", True),       # proportional to time: confounded with drift
-    ("default", "info", False),      # the simulator's non-monotonic curve
-    ("flat", "info", True),          # 0.2 K: too little to fit temperature terms
-])
+@pytest.mark.parametrize(
+    "profile,severity,notable",
+    [
+        ("ramp", "warning", True),  # proportional to time: confounded with drift
+        ("default", "info", False),  # the simulator's non-monotonic curve
+        ("flat", "info", True),  # 0.2 K: too little to fit temperature terms
+    ],
+)
 def test_temperature_range_and_correlation_with_time(profile, severity, notable):
     ds = timeseries(n=1000, seed=9)
-    temp = {"ramp": 15.0 + 0.01 * ds.time_s, "default": ds.temperature_C,
-            "flat": 20.0 + 0.1 * np.sin(ds.time_s)}[profile]
+    temp = {"ramp": 15.0 + 0.01 * ds.time_s, "default": ds.temperature_C, "flat": 20.0 + 0.1 * np.sin(ds.time_s)}[
+        profile
+    ]
     f = only(quality.assess(ds.replace(temperature_C=temp)), "temperature")
     assert f.values["min_C"] == pytest.approx(temp.min()) and f.values["max_C"] == pytest.approx(temp.max())
     assert f.severity == severity and f.notable == notable
@@ -214,10 +236,17 @@ def test_no_temperature_channel_no_temperature_finding():
 
 
 # -- after the fit -------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("field_nT,kind,warned", [
-    (50_000.0, "fitted", False), (20_500.0, "fitted", False), (5_000.0, "fitted", True),
-    (5.0e6, "fitted", True), (5_000.0, "given", False), (None, "fitted", False),
-])
+@pytest.mark.parametrize(
+    "field_nT,kind,warned",
+    [
+        (50_000.0, "fitted", False),
+        (20_500.0, "fitted", False),
+        (5_000.0, "fitted", True),
+        (5.0e6, "fitted", True),
+        (5_000.0, "given", False),
+        (None, "fitted", False),
+    ],
+)
 def test_field_magnitude_outside_the_earths_range(field_nT, kind, warned):
     f = quality.field_magnitude_finding(field_nT, kind)
     assert (f is not None) == warned
@@ -232,13 +261,19 @@ def test_report_text_shows_notable_findings_and_effects():
     text = report.section()
     assert "sample rate 10 Hz" in text and "quantization step (x, y, z) 150, 150, 150 nT" in text
     assert "WARNING sensor 1:" in text and "-> the total-field RMS cannot go below" in text
-    assert "no clipping" not in text                     # clean findings are left to --json
+    assert "no clipping" not in text  # clean findings are left to --json
     doc = report.to_dict()
-    assert {f["kind"] for f in doc["findings"]} >= {"sample_rate", "gaps", "stale", "quantization", "clipping",
-                                                    "static", "temperature"}
+    assert {f["kind"] for f in doc["findings"]} >= {
+        "sample_rate",
+        "gaps",
+        "stale",
+        "quantization",
+        "clipping",
+        "static",
+        "temperature",
+    }
     json.dumps(doc)  # plain Python types only (no numpy bools or floats)
-    assert len(report.warnings) == 4 and all(w.startswith(f"sensor {s}:") for s, w in zip(range(1, 5),
-                                                                                        report.warnings))
+    assert len(report.warnings) == 4 and all(w.startswith(f"sensor {s}:") for s, w in zip(range(1, 5), report.warnings))
 
 
 def _batched_stamps(n, rate_Hz, batch, host_period_s, rng):
@@ -268,17 +303,17 @@ def test_batched_stamps_are_named_with_the_mean_rate():
     assert "arrive in batches" in f.summary and f"{mean_rate:.4g} Hz on average" in f.summary
     assert "arrival times" in f.effect
     gaps = only(report, "gaps")
-    assert gaps.values["count"] < 0.01 * t.size        # the batch-to-batch intervals are not gaps
+    assert gaps.values["count"] < 0.01 * t.size  # the batch-to-batch intervals are not gaps
 
 
 def test_regular_stamps_with_a_few_gaps_are_not_batches():
     ds = timeseries(n=1000, seed=9)
     t = ds.time_s.copy()
-    t[500:] += 300.0                             # one long gap carries most of the duration
+    t[500:] += 300.0  # one long gap carries most of the duration
     report = quality.assess(ds.replace(time_s=t))
     f = only(report, "sample_rate")
     assert not f.values["batched"] and f.values["rate_Hz"] == pytest.approx(10.0)
-    assert "mean rate" in f.summary              # mean and median differ: both are said
+    assert "mean rate" in f.summary  # mean and median differ: both are said
     assert only(report, "gaps").values["count"] == 1
 
 
@@ -291,8 +326,8 @@ def test_quantization_step_on_a_grid_that_shifts(coarse, shift_every, forward):
     lsb = 33.3333
     rng = np.random.default_rng(coarse * 100 + shift_every)
     if forward:
-        raw = np.round(rng.uniform(-600, 600, 20_000))               # the part's internal integer
-        counts = coarse * raw + np.floor(2.5 * np.floor(raw / shift_every))     # jumps of 2, 3, 2, 3 ... counts
+        raw = np.round(rng.uniform(-600, 600, 20_000))  # the part's internal integer
+        counts = coarse * raw + np.floor(2.5 * np.floor(raw / shift_every))  # jumps of 2, 3, 2, 3 ... counts
     else:
         true = rng.uniform(-3000, 3000, 20_000)
         origin = np.floor(true / (coarse * shift_every)) * 3
@@ -354,7 +389,7 @@ def test_residual_growing_with_the_turn_rate(lag_nT_per_deg_s, severity):
     rng = np.random.default_rng(14)
     n = 4000
     t = np.arange(n) / 50.0
-    rate_deg_s = 200.0 * (1.0 + np.sin(2 * np.pi * t / 20.0)) + 5.0          # 5 to 405 deg/s, slowly varying
+    rate_deg_s = 200.0 * (1.0 + np.sin(2 * np.pi * t / 20.0)) + 5.0  # 5 to 405 deg/s, slowly varying
     angle = np.radians(np.cumsum(rate_deg_s) / 50.0)
     u = np.column_stack([np.cos(angle), np.sin(angle), 0.3 * np.sin(angle / 7)])
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -407,8 +442,9 @@ def test_common_step_is_the_one_found_divisor_by_divisor(kind, seed):
     elif kind == "sparse":
         v = np.round(rng.normal(0, 5e4, 200) / 0.1) * 0.1
     else:
-        v = np.concatenate([np.round(rng.normal(0, 1e3, n // 2) / 3.0) * 3.0,
-                            np.round(rng.normal(0, 1e3, n // 2) / 7.0) * 7.0])
+        v = np.concatenate(
+            [np.round(rng.normal(0, 1e3, n // 2) / 3.0) * 3.0, np.round(rng.normal(0, 1e3, n // 2) / 7.0) * 7.0]
+        )
     found, _ = quality._common_step(v)
     expected = _common_step_one_by_one(v)
     assert (found is None) == (expected is None)

@@ -9,7 +9,7 @@ from magcal.core.readings_cache import ReadingsCache
 def test_a_value_is_computed_once_per_array_and_key():
     cache, calls = ReadingsCache(4), []
     y = np.arange(12.0).reshape(4, 3)
-    compute = lambda: calls.append(1) or float(y.sum())  # noqa: E731
+    compute = lambda: calls.append(1) or float(y.sum())
     assert cache.get(y, ("sum",), compute) == cache.get(y, ("sum",), compute) == 66.0
     assert len(calls) == 1
     cache.get(y, ("other",), compute)  # another key

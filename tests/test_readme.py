@@ -29,8 +29,11 @@ def test_the_script_uses_only_the_public_api():
         elif isinstance(node, ast.Import):
             imported.update(a.name for a in node.names)
     assert imported <= {"magcal", "numpy"}, imported
-    used = {node.attr for node in ast.walk(tree)
-            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "magcal"}
+    used = {
+        node.attr
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "magcal"
+    }
     assert used, "the script calls nothing of magcal"
     assert used <= set(magcal.__all__), f"not in magcal.__all__: {sorted(used - set(magcal.__all__))}"
 

@@ -51,14 +51,17 @@ def test_apply_stores_scalar_or_array(ds):
     assert ref.Reference(None, "", "fitted").apply(ds).reference_total_nT is None
 
 
-@pytest.mark.parametrize("value,match", [
-    ("52.193", "looks like uT"),
-    ("0.52193", "looks like G"),
-    ("521.93", "looks like mG"),
-    ("-50000", "positive"),
-    ("nan", "finite"),
-    ("lots", "neither a number"),
-])
+@pytest.mark.parametrize(
+    "value,match",
+    [
+        ("52.193", "looks like uT"),
+        ("0.52193", "looks like G"),
+        ("521.93", "looks like mG"),
+        ("-50000", "positive"),
+        ("nan", "finite"),
+        ("lots", "neither a number"),
+    ],
+)
 def test_bad_numbers_are_refused(value, match):
     with pytest.raises(MagcalError, match=match):
         ref.resolve_reference(None, value)
@@ -107,23 +110,29 @@ def test_igrf_reference_text_names_place_date_and_limits():
         assert needle in r.text
 
 
-@pytest.mark.parametrize("kwargs,match", [
-    ({}, "needs the place"),
-    ({"lat": 95, "lon": 0}, "--lat"),
-    ({"lat": 10, "lon": "east"}, "--lon"),
-    ({"lat": 10, "lon": 0, "date": "1850-01-01"}, "outside the IGRF"),
-    ({"lat": 10, "lon": 0, "date": "next tuesday"}, "not a date"),
-])
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({}, "needs the place"),
+        ({"lat": 95, "lon": 0}, "--lat"),
+        ({"lat": 10, "lon": "east"}, "--lon"),
+        ({"lat": 10, "lon": 0, "date": "1850-01-01"}, "outside the IGRF"),
+        ({"lat": 10, "lon": 0, "date": "next tuesday"}, "not a date"),
+    ],
+)
 def test_igrf_bad_arguments(kwargs, match):
     with pytest.raises(MagcalError, match=match):
         ref.resolve_reference(None, "igrf", **kwargs)
 
 
-@pytest.mark.parametrize("text,expected", [
-    ("2024-06-01", dt.datetime(2024, 6, 1)),
-    ("2024.5", dt.datetime(2024, 7, 2)),
-    (dt.date(2020, 1, 2), dt.datetime(2020, 1, 2)),
-])
+@pytest.mark.parametrize(
+    "text,expected",
+    [
+        ("2024-06-01", dt.datetime(2024, 6, 1)),
+        ("2024.5", dt.datetime(2024, 7, 2)),
+        (dt.date(2020, 1, 2), dt.datetime(2020, 1, 2)),
+    ],
+)
 def test_parse_date(text, expected):
     got = ref.parse_date(text)
     assert abs((got - expected).total_seconds()) < 86_400

@@ -32,8 +32,9 @@ def _least_squares_minimum(readings, reference, cinv0, bias0):
         return np.linalg.norm((readings - p[6:]) @ u.T, axis=1) - reference
 
     p0 = np.concatenate([cinv0[np.triu_indices(3)], bias0])
-    sol = least_squares(residuals, p0, method="lm", x_scale=np.r_[np.full(6, 1e-5), np.ones(3)], xtol=1e-15,
-                        ftol=1e-15, gtol=1e-15)
+    sol = least_squares(
+        residuals, p0, method="lm", x_scale=np.r_[np.full(6, 1e-5), np.ones(3)], xtol=1e-15, ftol=1e-15, gtol=1e-15
+    )
     u = np.zeros((3, 3))
     u[np.triu_indices(3)] = sol.x[:6]
     return float(np.sqrt(np.mean(sol.fun**2))), u, sol.x[6:]
@@ -80,8 +81,12 @@ def test_noise_free_data_are_fitted_to_rounding(method, truth_factory):
 def test_pooled_rms_is_at_the_floor(method, preset):
     """Over several N = 300 records the search RMS is the floor (a/sqrt 12) sqrt(1 - 9/N) within 5 %."""
     a = 5.0
-    rms = [search.search(magcal.simulate(preset, noise_nT=a, seed=k).readings_nT[0], 51_500.0, method=method,
-                         seed=k).rms_nT for k in range(6)]
+    rms = [
+        search.search(
+            magcal.simulate(preset, noise_nT=a, seed=k).readings_nT[0], 51_500.0, method=method, seed=k
+        ).rms_nT
+        for k in range(6)
+    ]
     pooled = np.sqrt(np.mean(np.square(rms)))
     assert pooled == pytest.approx(a / np.sqrt(12.0) * np.sqrt(1 - 9 / 300), rel=0.05)
 
@@ -102,8 +107,15 @@ def test_same_seed_same_result_other_seed_other_path(small_problem, method):
 def test_progress_callback_reports_every_iteration(small_problem, method):
     truth, ds, *_ = small_problem
     calls = []
-    res = search.search(ds.readings_nT[0], truth.total_nT, method=method, seed=1, pop_size=20, max_iter=50,
-                        progress=lambda it, best: calls.append((it, best)))
+    res = search.search(
+        ds.readings_nT[0],
+        truth.total_nT,
+        method=method,
+        seed=1,
+        pop_size=20,
+        max_iter=50,
+        progress=lambda it, best: calls.append((it, best)),
+    )
     iterations = [c[0] for c in calls]
     best = np.array([c[1] for c in calls])
     assert iterations == list(range(res.n_iterations + 1))
@@ -117,8 +129,7 @@ def test_progress_callback_reports_every_iteration(small_problem, method):
 def test_stopping_tolerance_ends_a_stalled_search(small_problem, method):
     truth, ds, *_ = small_problem
     y = ds.readings_nT[0]
-    loose = search.search(y, truth.total_nT, method=method, seed=4, pop_size=20, max_iter=2000, tol=1e-3,
-                          patience=20)
+    loose = search.search(y, truth.total_nT, method=method, seed=4, pop_size=20, max_iter=2000, tol=1e-3, patience=20)
     assert loose.stopped_by_tolerance and loose.n_iterations < 2000
     h = loose.history_rms_nT
     assert h[-21] - h[-1] <= 1e-3 * h[-21]
@@ -142,8 +153,9 @@ def test_bounds_come_from_the_data_and_follow_it():
 @pytest.mark.parametrize("method", search.METHODS)
 def test_far_from_preset_values_still_found(method):
     """A sensor unlike the presets (large bias, low gain, other field): the data-derived box still holds it."""
-    sensor = SensorErrors(scale=np.array([0.8, 0.85, 0.78]), psi=0.04, phi=-0.03, theta=0.05,
-                          bias_nT=np.array([4000.0, -2500.0, 6000.0]))
+    sensor = SensorErrors(
+        scale=np.array([0.8, 0.85, 0.78]), psi=0.04, phi=-0.03, theta=0.05, bias_nT=np.array([4000.0, -2500.0, 6000.0])
+    )
     truth = magcal.ArrayTruth([sensor], total_nT=35_000.0, declination_deg=20.0, inclination_deg=-30.0)
     ds = magcal.simulate(truth, n_samples=80, noise_nT=1.0, noise_kind="gaussian", seed=3)
     res = search.search(ds.readings_nT[0], 35_000.0, method=method, seed=0, pop_size=30, max_iter=500)

@@ -49,8 +49,7 @@ def test_a_local_cluster_gives_the_single_process_numbers(surveys, tmp_path):
 
     d, cal, a, b = surveys
     out = tmp_path / "parts"
-    summary = apply_partitioned(cal, [a, b], out, workers=2, partition_rows=150, progress=False,
-                                compression="zstd")
+    summary = apply_partitioned(cal, [a, b], out, workers=2, partition_rows=150, progress=False, compression="zstd")
     assert summary.rows == 900 and len(summary.files) == 5  # 4 CSV partitions + 1 row group
     import pyarrow.parquet as pq
 
@@ -77,8 +76,24 @@ def test_the_command_line_corrects_several_files_in_parallel(surveys, tmp_path, 
     d, cal, a, b = surveys
     cal.save(tmp_path / "cal.json")
     out = tmp_path / "corrected"
-    assert main(["apply", str(tmp_path / "cal.json"), str(a), str(b), "-o", str(out), "--workers", "1",
-                 "--format", "csv", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "apply",
+                str(tmp_path / "cal.json"),
+                str(a),
+                str(b),
+                "-o",
+                str(out),
+                "--workers",
+                "1",
+                "--format",
+                "csv",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "corrected 900 rows" in capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == ["part-00000.csv", "part-00001.csv"]
 

@@ -77,8 +77,20 @@ def test_apply_writes_the_error_bars(fitted, tmp_path, out_name):
     result.calibration.save(tmp_path / "cal.json")
     mio.write_csv(tmp_path / "survey.csv", new)
     out = tmp_path / out_name
-    assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "survey.csv"), "-o", str(out),
-                 "--uncertainty", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "apply",
+                str(tmp_path / "cal.json"),
+                str(tmp_path / "survey.csv"),
+                "-o",
+                str(out),
+                "--uncertainty",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     got = magcal.read_csv(out)
     u = result.calibration.uncertainty(new)
     np.testing.assert_allclose(np.asarray(got.extra["s2y_cal_sd"], float), u["vector_sd_nT"][1, :, 1], rtol=1e-3)
@@ -102,11 +114,13 @@ def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
 def fitted_with_effects():
     """Four sensors along a time series with a temperature bias (raw stage) and a sensor timing skew (vector
     stage) hidden and fitted; new data from the same instrument."""
-    import magcal.model.effects as fx
-    from magcal.model import perturbations
     from magcal.data.simulation import chi2017_truth, simulate_timeseries
+    from magcal.model import perturbations
 
-    hidden = [perturbations.parse_hidden("temperature_bias=2", 4), perturbations.parse_hidden("sensor_timing_skew:3", 4)]
+    hidden = [
+        perturbations.parse_hidden("temperature_bias=2", 4),
+        perturbations.parse_hidden("sensor_timing_skew:3", 4),
+    ]
     ds = simulate_timeseries(chi2017_truth(4), n_samples=400, noise_nT=3.0, seed=5, perturbations=hidden)
     result = magcal.calibrate(ds, effects=["temperature_bias", "sensor_timing_skew:3"])
     new = simulate_timeseries(chi2017_truth(4), n_samples=80, noise_nT=3.0, seed=9, perturbations=hidden)
@@ -150,6 +164,5 @@ def test_theta_covariance_is_the_whole_vectors_finite_difference(request, which)
         xm[p] -= h
         jac[:, p] = (theta_of(problem.sensors(xp)) - theta_of(problem.sensors(xm))) / (2 * h)
     theta_cov = jac @ fit.covariance @ jac.T
-    got = base_covariance(fit)[:jac.shape[0], :jac.shape[0]]
-    np.testing.assert_allclose(got, 0.5 * (theta_cov + theta_cov.T), rtol=1e-9,
-                               atol=1e-12 * np.max(np.abs(theta_cov)))
+    got = base_covariance(fit)[: jac.shape[0], : jac.shape[0]]
+    np.testing.assert_allclose(got, 0.5 * (theta_cov + theta_cov.T), rtol=1e-9, atol=1e-12 * np.max(np.abs(theta_cov)))

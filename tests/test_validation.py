@@ -11,15 +11,15 @@ from magcal.model.terms import EFFECTS, Model
 NOISE_NT = 2.0
 
 
-
 def _record(hidden=None, n_sensors=1, sensor=None, n=1200, seed=5, magnitude=None):
     """A 120 s record (10 Hz) with, optionally, one hidden effect at its default magnitude."""
     perturbations = []
     if hidden:
         effect = EFFECTS[hidden]()
         perturbations = [effect.perturbation(magnitude or effect.default_magnitude, sensor)]
-    return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=NOISE_NT, seed=seed,
-                               perturbations=perturbations)
+    return simulate_timeseries(
+        chi2017_truth(n_sensors), n_samples=n, noise_nT=NOISE_NT, seed=seed, perturbations=perturbations
+    )
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +39,16 @@ def _runs(mask):
 
 
 # --- splits ---------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("scheme, kwargs", [("blocks", {}), ("blocks", {"n_blocks": 5}), ("blocks", {"n_blocks": 3}),
-                                            ("later", {}), ("later", {"test_fraction": 0.4})])
+@pytest.mark.parametrize(
+    "scheme, kwargs",
+    [
+        ("blocks", {}),
+        ("blocks", {"n_blocks": 5}),
+        ("blocks", {"n_blocks": 3}),
+        ("later", {}),
+        ("later", {"test_fraction": 0.4}),
+    ],
+)
 @pytest.mark.parametrize("with_time", [True, False])
 def test_masks_are_disjoint_and_cover_the_record(clean, scheme, kwargs, with_time):
     ds = clean if with_time else clean.replace(time_s=None)
@@ -74,12 +82,17 @@ def test_default_block_count_follows_the_duration(duration_s, blocks):
     assert val.default_n_blocks(ds) == blocks
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"scheme": "random"}, "unknown validation scheme 'random'"),
-    ({"n_blocks": 4}, "odd"), ({"n_blocks": 1}, "at least 3"), ({"n_blocks": 2.5}, "odd"),
-    ({"scheme": "later", "test_fraction": 1.0}, "between 0 and 1"),
-    ({"scheme": "later", "test_fraction": 0}, "between 0 and 1"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"scheme": "random"}, "unknown validation scheme 'random'"),
+        ({"n_blocks": 4}, "odd"),
+        ({"n_blocks": 1}, "at least 3"),
+        ({"n_blocks": 2.5}, "odd"),
+        ({"scheme": "later", "test_fraction": 1.0}, "between 0 and 1"),
+        ({"scheme": "later", "test_fraction": 0}, "between 0 and 1"),
+    ],
+)
 def test_bad_splits_are_refused_clearly(clean, kwargs, message):
     with pytest.raises(MagcalError, match=message):
         val.holdout_masks(clean, **kwargs)

@@ -11,7 +11,6 @@ skip with the reason, unless ``MAGCAL_REQUIRE_BROWSER=1`` (CI), where they fail.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -21,36 +20,9 @@ import pytest
 import magcal
 from magcal.data import io as mio
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking"]
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
-
-
-def _unavailable(reason: str):
-    if os.environ.get("MAGCAL_REQUIRE_BROWSER") == "1":
-        pytest.fail(f"MAGCAL_REQUIRE_BROWSER=1 but {reason}")
-    pytest.skip(reason)
-
-
-@pytest.fixture
-def browser():
-    if not os.path.exists(CHROMIUM):
-        _unavailable(f"no browser at {CHROMIUM} (apt-get install chromium)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        _unavailable("the playwright package is not installed (pip install playwright)")
-    with sync_playwright() as p:
-        try:
-            b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-        except Exception as exc:  # a browser that cannot start is the same as none
-            _unavailable(f"chromium could not be started: {exc}")
-        try:
-            yield b
-        finally:
-            b.close()
 
 
 @pytest.fixture
@@ -62,8 +34,14 @@ def workbench(tmp_path):
     path = tmp_path / "e2e.csv"
     mio.write_csv(path, ds)
     data = mio.read_csv(path)
-    wb = Workbench(data, host="127.0.0.1", port=0, store=SessionStore(tmp_path / "sessions"),
-                   content=path.read_bytes(), name="e2e.csv")
+    wb = Workbench(
+        data,
+        host="127.0.0.1",
+        port=0,
+        store=SessionStore(tmp_path / "sessions"),
+        content=path.read_bytes(),
+        name="e2e.csv",
+    )
     try:
         yield wb
     finally:
@@ -82,8 +60,7 @@ def _dismiss_toasts(page) -> None:
 def _open(browser, port):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(f"http://127.0.0.1:{port}/", wait_until="domcontentloaded")
-    page.wait_for_function("() => document.body && document.body.innerText.includes('Total-field RMS')",
-                           timeout=90_000)
+    page.wait_for_function("() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=90_000)
     page.wait_for_function("() => !document.body.innerText.includes('Connecting')", timeout=90_000)
     return page
 
@@ -111,8 +88,7 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
     before = _rms_text(page)
     assert before is not None and "not fitted" in before
     page.get_by_role("button", name="Run the chosen method").click()
-    page.wait_for_function(
-        "() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=120_000)
+    page.wait_for_function("() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=120_000)
     after = _rms_text(page)
     assert after != before
     rms = float(after.split()[0])
@@ -147,7 +123,8 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
     page.keyboard.up("Shift")
     page.wait_for_function(
         "() => { const m = document.body.innerText.match(/Rejected: (\\d+) of/); return m && +m[1] > 0; }",
-        timeout=60_000)
+        timeout=60_000,
+    )
     n_rejected = _rejected(page)
     assert 0 < n_rejected < 240
     assert workbench.ctrl.state.selection.n_rejected == n_rejected
@@ -162,8 +139,7 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
 
     # a second browser sees the same state: the same RMS and the same rejected count
     other = _open(browser, workbench.port)
-    other.wait_for_function(f"() => document.body.innerText.includes('Rejected: {n_rejected} of 240')",
-                            timeout=60_000)
+    other.wait_for_function(f"() => document.body.innerText.includes('Rejected: {n_rejected} of 240')", timeout=60_000)
     assert _rms_text(other) == _rms_text(page)
     assert len(workbench.server.get_clients()) == 2
     other.close()

@@ -15,9 +15,9 @@ import pytest
 
 pytest.importorskip("viser")
 websockets_client = pytest.importorskip("websockets.asyncio.client")
-from websockets.exceptions import InvalidStatus  # noqa: E402
+from websockets.exceptions import InvalidStatus
 
-from magcal_workbench import guard  # noqa: E402
+from magcal_workbench import guard
 
 TIMEOUT_S = 10.0
 
@@ -38,8 +38,12 @@ def _handshake(port, origin, host="127.0.0.1"):
         sock = socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S)
         try:
             async with websockets_client.connect(
-                    f"ws://{host}:{port}", sock=sock, origin=origin, open_timeout=TIMEOUT_S,
-                    subprotocols=[f"viser-v{viser.__version__}"]) as ws:
+                f"ws://{host}:{port}",
+                sock=sock,
+                origin=origin,
+                open_timeout=TIMEOUT_S,
+                subprotocols=[f"viser-v{viser.__version__}"],
+            ) as ws:
                 return "accepted", await asyncio.wait_for(ws.recv(), TIMEOUT_S)
         except InvalidStatus as exc:
             return "refused", exc.response.status_code
@@ -47,15 +51,18 @@ def _handshake(port, origin, host="127.0.0.1"):
     return asyncio.run(asyncio.wait_for(go(), 3 * TIMEOUT_S))
 
 
-@pytest.mark.parametrize("origin, host", [
-    ("http://evil.example", "127.0.0.1"),                 # another site's page
-    ("http://evil.example:{port}", "127.0.0.1"),
-    ("http://127.0.0.1:1", "127.0.0.1"),                  # another port of this machine (another local app)
-    ("https://127.0.0.1:{port}", "127.0.0.1"),
-    ("null", "127.0.0.1"),                                # a sandboxed iframe or a file:// page
-    (None, "127.0.0.1"),                                  # no Origin: not a browser page
-    ("http://evil.example:{port}", "evil.example"),      # DNS rebinding: Origin and Host agree, Host is foreign
-])
+@pytest.mark.parametrize(
+    "origin, host",
+    [
+        ("http://evil.example", "127.0.0.1"),  # another site's page
+        ("http://evil.example:{port}", "127.0.0.1"),
+        ("http://127.0.0.1:1", "127.0.0.1"),  # another port of this machine (another local app)
+        ("https://127.0.0.1:{port}", "127.0.0.1"),
+        ("null", "127.0.0.1"),  # a sandboxed iframe or a file:// page
+        (None, "127.0.0.1"),  # no Origin: not a browser page
+        ("http://evil.example:{port}", "evil.example"),  # DNS rebinding: Origin and Host agree, Host is foreign
+    ],
+)
 def test_a_foreign_page_cannot_open_the_websocket(server, origin, host):
     port = server.get_port()
     outcome, detail = _handshake(port, origin.format(port=port) if origin else None, host)
@@ -69,19 +76,22 @@ def test_the_page_origin_is_accepted(server, host):
     assert outcome == "accepted" and len(first) > 0  # the scene's messages follow
 
 
-@pytest.mark.parametrize("headers, local, refused", [
-    ({"Host": "127.0.0.1:8080", "Upgrade": "websocket", "Origin": "http://127.0.0.1:8080"}, True, False),
-    ({"Host": "localhost:8080", "Upgrade": "websocket", "Origin": "http://LOCALHOST:8080"}, True, False),
-    ({"Host": "127.0.0.1:8080"}, True, False),                       # the page itself (no data in it)
-    ({"Host": "evil.example:8080"}, True, True),                     # rebinding, even for the page
-    ({"Host": "localhost:9000", "Upgrade": "websocket", "Origin": "http://localhost:9000"}, True, False),  # tunnel
-    ({"Host": "localhost:9000", "Upgrade": "websocket", "Origin": "http://localhost:8080"}, True, True),
-    ({"Host": "127.0.0.1", "Upgrade": "websocket", "Origin": "http://127.0.0.1"}, True, False),  # port 80
-    ({"Host": "192.168.1.5:8080", "Upgrade": "websocket", "Origin": "http://192.168.1.5:8080"}, False, False),
-    ({"Host": "192.168.1.5:8080", "Upgrade": "websocket", "Origin": "http://evil.example"}, False, True),
-    ({"Host": "127.0.0.1:x", "Upgrade": "websocket", "Origin": "http://127.0.0.1:8080"}, True, True),
-    ({}, True, True),
-])
+@pytest.mark.parametrize(
+    "headers, local, refused",
+    [
+        ({"Host": "127.0.0.1:8080", "Upgrade": "websocket", "Origin": "http://127.0.0.1:8080"}, True, False),
+        ({"Host": "localhost:8080", "Upgrade": "websocket", "Origin": "http://LOCALHOST:8080"}, True, False),
+        ({"Host": "127.0.0.1:8080"}, True, False),  # the page itself (no data in it)
+        ({"Host": "evil.example:8080"}, True, True),  # rebinding, even for the page
+        ({"Host": "localhost:9000", "Upgrade": "websocket", "Origin": "http://localhost:9000"}, True, False),  # tunnel
+        ({"Host": "localhost:9000", "Upgrade": "websocket", "Origin": "http://localhost:8080"}, True, True),
+        ({"Host": "127.0.0.1", "Upgrade": "websocket", "Origin": "http://127.0.0.1"}, True, False),  # port 80
+        ({"Host": "192.168.1.5:8080", "Upgrade": "websocket", "Origin": "http://192.168.1.5:8080"}, False, False),
+        ({"Host": "192.168.1.5:8080", "Upgrade": "websocket", "Origin": "http://evil.example"}, False, True),
+        ({"Host": "127.0.0.1:x", "Upgrade": "websocket", "Origin": "http://127.0.0.1:8080"}, True, True),
+        ({}, True, True),
+    ],
+)
 def test_refusal_rules(headers, local, refused):
     assert (guard.refusal(headers, local) is not None) == refused
 
@@ -111,8 +121,16 @@ def test_a_viser_without_the_hook_does_not_start(monkeypatch):
         guard.guarded_viser_server("127.0.0.1", 0)
 
 
-@pytest.mark.parametrize("host, url", [("127.0.0.1", "http://127.0.0.1:8080"), ("::1", "http://[::1]:8080"),
-                                       ("0.0.0.0", "http://127.0.0.1:8080"), ("::", "http://[::1]:8080"),
-                                       ("localhost", "http://localhost:8080"), ("fe80::1", "http://[fe80::1]:8080")])
+@pytest.mark.parametrize(
+    "host, url",
+    [
+        ("127.0.0.1", "http://127.0.0.1:8080"),
+        ("::1", "http://[::1]:8080"),
+        ("0.0.0.0", "http://127.0.0.1:8080"),
+        ("::", "http://[::1]:8080"),
+        ("localhost", "http://localhost:8080"),
+        ("fe80::1", "http://[fe80::1]:8080"),
+    ],
+)
 def test_the_printed_address_is_a_valid_url(host, url):
     assert guard.page_url(host, 8080) == url

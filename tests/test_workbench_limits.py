@@ -20,9 +20,9 @@ from magcal.data import io as mio
 
 pytest.importorskip("viser")
 
-from magcal_workbench.app import clean_upload_name  # noqa: E402
-from magcal_workbench.session import SessionStore  # noqa: E402
-from magcal_workbench.state import Selection, SessionState  # noqa: E402
+from magcal_workbench.app import clean_upload_name
+from magcal_workbench.session import SessionStore
+from magcal_workbench.state import Selection, SessionState
 
 WAIT_S = 60
 BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default
@@ -86,8 +86,15 @@ def test_a_session_outside_the_folder_is_refused_even_if_the_client_changed_the_
     assert str(tmp_path) not in wb.ctrl.message
 
 
-@pytest.mark.parametrize("widget, value", [("lesson_choice", "../../etc"), ("candidate_choice", "bias_drift:9"),
-                                           ("box_mode", "delete everything"), ("method", "magic")])
+@pytest.mark.parametrize(
+    "widget, value",
+    [
+        ("lesson_choice", "../../etc"),
+        ("candidate_choice", "bias_drift:9"),
+        ("box_mode", "delete everything"),
+        ("method", "magic"),
+    ],
+)
 def test_other_dropdowns_outside_their_choices_are_refused(bench, widget, value):
     wb = bench()
     handle = getattr(wb.panels, widget)
@@ -97,9 +104,16 @@ def test_other_dropdowns_outside_their_choices_are_refused(bench, widget, value)
     assert handle.value != value  # put back
 
 
-@pytest.mark.parametrize("widget, value, says", [
-    ("k_sigma", 1e308, "outside 2 ... 10"), ("k_sigma", float("nan"), "outside"), ("distortion_gain", -1.0, "outside"),
-    ("residual_gain", float("inf"), "outside"), ("reference", -5.0, "outside 0 ... inf")])
+@pytest.mark.parametrize(
+    "widget, value, says",
+    [
+        ("k_sigma", 1e308, "outside 2 ... 10"),
+        ("k_sigma", float("nan"), "outside"),
+        ("distortion_gain", -1.0, "outside"),
+        ("residual_gain", float("inf"), "outside"),
+        ("reference", -5.0, "outside 0 ... inf"),
+    ],
+)
 def test_numbers_out_of_range_are_refused(bench, widget, value, says):
     wb = bench()
     handle = getattr(wb.panels, widget)
@@ -257,8 +271,9 @@ def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
     assert ids[-1][0] in listed and ids[0][0] not in listed
     assert all(b >= ids[-1][1] * 0.9 for b in listed.values())
     wb = bench()
-    other = next(s["id"] for s in wb.store.list() if s["id"] != wb.ctrl.session_id) if len(wb.store.list()) > 1 \
-        else None
+    other = (
+        next(s["id"] for s in wb.store.list() if s["id"] != wb.ctrl.session_id) if len(wb.store.list()) > 1 else None
+    )
     assert other is None  # one session so far
     _upload(wb, "second.csv", (tmp_path / "d1.csv").read_bytes())
     first = next(s["id"] for s in wb.store.list() if s["id"] != wb.ctrl.session_id)
@@ -306,9 +321,17 @@ def test_level_of_detail_keeps_the_budget(n, limit):
 # ---------------------------------------------------------------------------------------------------------------
 # the smaller items
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name, shown", [("..", "upload.csv"), (".", "upload.csv"), ("", "upload.csv"),
-                                         ("a" * 300 + ".csv", "a" * 100), ("../../x.csv", "x.csv"),
-                                         ("C:\\\\Users\\\\me\\\\x.csv", "x.csv")])
+@pytest.mark.parametrize(
+    "name, shown",
+    [
+        ("..", "upload.csv"),
+        (".", "upload.csv"),
+        ("", "upload.csv"),
+        ("a" * 300 + ".csv", "a" * 100),
+        ("../../x.csv", "x.csv"),
+        ("C:\\\\Users\\\\me\\\\x.csv", "x.csv"),
+    ],
+)
 def test_awkward_upload_names_open_the_file(bench, tmp_path, name, shown):
     wb = bench()
     ds = magcal.simulate("chi2017", n_samples=60, seed=2)
@@ -368,8 +391,13 @@ def test_the_workbench_refuses_a_foreign_origin(bench):
     async def go(origin):
         sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
         try:
-            async with connect(f"ws://127.0.0.1:{wb.port}", sock=sock, origin=origin, open_timeout=10,
-                               subprotocols=[f"viser-v{viser.__version__}"]) as ws:
+            async with connect(
+                f"ws://127.0.0.1:{wb.port}",
+                sock=sock,
+                origin=origin,
+                open_timeout=10,
+                subprotocols=[f"viser-v{viser.__version__}"],
+            ) as ws:
                 await asyncio.wait_for(ws.recv(), 10)
                 return 101
         except InvalidStatus as exc:

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_workbench_e2e import browser  # noqa: F401  (the fixture: real headless Chromium)
 
 import magcal
 from magcal.checks.coverage import direction_map, live_sufficient
@@ -137,8 +136,9 @@ def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench,
     assert _wait(lambda: received() > first, 20)  # the page follows the stream
     live = wb.live
     assert _wait(lambda: not live.session.running, 60)
-    page.wait_for_function("() => /ended; 1500 samples received, 1500 on disk/.test(document.body.innerText)",
-                           timeout=30_000)
+    page.wait_for_function(
+        "() => /ended; 1500 samples received, 1500 on disk/.test(document.body.innerText)", timeout=30_000
+    )
     sent = live.session.source.stats.n_samples
     _dismiss_toasts(page)
     page.get_by_role("button", name="Stop and open the recording").click()

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_workbench_e2e import _open, browser  # noqa: F401  (the fixture: real headless Chromium)
+from test_workbench_e2e import _open
 
 from magcal.diagnosis import pattern_correlation
 

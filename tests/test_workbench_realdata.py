@@ -144,14 +144,43 @@ def test_candidates_that_do_not_hold_are_marked_and_may_still_be_added(bench, wa
     figures, and Add stays enabled for it (the user may try it)."""
     from magcal_workbench.panels import candidate_evidence_markdown, candidates_markdown
 
-    doc = {"verdict": "unexplained", "rms_nT": 10.0, "noise_nT": 3.0, "floor_nT": 2.9, "candidates": [
-        {"label": "bias_drift", "delta_bic": -40.0, "rms_after_nT": 9.0, "refitted": True,
-         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 12.5, "holds": False},
-        {"label": "<img src=x onerror=alert(1)>", "delta_bic": -20.0, "rms_after_nT": 9.5, "refitted": True,
-         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 10.0, "holds": True},
-        {"label": "bias_step", "delta_bic": -15.0, "rms_after_nT": 9.6, "refitted": True,
-         "held_out_rms_before_nT": 11.0, "held_out_rms_after_nT": 10.5, "later_rms_before_nT": 20.0,
-         "later_rms_after_nT": 25.0, "holds": False}]}
+    doc = {
+        "verdict": "unexplained",
+        "rms_nT": 10.0,
+        "noise_nT": 3.0,
+        "floor_nT": 2.9,
+        "candidates": [
+            {
+                "label": "bias_drift",
+                "delta_bic": -40.0,
+                "rms_after_nT": 9.0,
+                "refitted": True,
+                "held_out_rms_before_nT": 11.0,
+                "held_out_rms_after_nT": 12.5,
+                "holds": False,
+            },
+            {
+                "label": "<img src=x onerror=alert(1)>",
+                "delta_bic": -20.0,
+                "rms_after_nT": 9.5,
+                "refitted": True,
+                "held_out_rms_before_nT": 11.0,
+                "held_out_rms_after_nT": 10.0,
+                "holds": True,
+            },
+            {
+                "label": "bias_step",
+                "delta_bic": -15.0,
+                "rms_after_nT": 9.6,
+                "refitted": True,
+                "held_out_rms_before_nT": 11.0,
+                "held_out_rms_after_nT": 10.5,
+                "later_rms_before_nT": 20.0,
+                "later_rms_after_nT": 25.0,
+                "holds": False,
+            },
+        ],
+    }
     text = candidates_markdown(doc)
     drift = next(line for line in text.splitlines() if "`bias_drift`" in line)
     assert "11→12.5" in drift and "does not hold" in drift and "later" not in drift
@@ -217,8 +246,10 @@ def test_quality_findings_appear_for_a_file_with_stale_repeats(bench):
     assert "25% of the readings repeat the previous vector" in text
     assert "counted twice" in text  # what it does to the fit
     clean = bench(_series(n=300), store=False)
-    assert "no warning" in clean.panels.quality.content and "stale" not in clean.panels.quality.content.split(
-        "Checked, nothing to say")[0]
+    assert (
+        "no warning" in clean.panels.quality.content
+        and "stale" not in clean.panels.quality.content.split("Checked, nothing to say")[0]
+    )
 
 
 def test_a_fitted_field_outside_the_earths_range_joins_the_quality_list(bench):

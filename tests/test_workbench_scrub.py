@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from test_workbench_e2e import _open, browser  # noqa: F401  (the fixture: real headless Chromium)
+from test_workbench_e2e import _open
 
 BENCH_SAMPLES = 300  # 2 Hz: 150 s
 
@@ -175,8 +175,9 @@ def test_full_size_evidence_after_a_diagnosis(bench):
     assert wb.panels.evidence_overlay.visible
 
 
-@pytest.mark.parametrize("limit, text", [(2310.4, "2,310"), (11.2, "11.2"), (4.5, "4.5"), (0.0123, "0.012"),
-                                         (2.5e6, "2,500 uT")])
+@pytest.mark.parametrize(
+    "limit, text", [(2310.4, "2,310"), (11.2, "11.2"), (4.5, "4.5"), (0.0123, "0.012"), (2.5e6, "2,500 uT")]
+)
 def test_the_legend_prints_numbers_a_person_reads(limit, text):
     from magcal_workbench.scene import legend_html
 

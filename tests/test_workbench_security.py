@@ -59,12 +59,29 @@ def rendered(markdown: str) -> tuple[list, str]:
 
 
 #: Where the workbench puts untrusted text, and the elements that context makes by itself.
-CONTEXTS = [("{}", ["p"]), ("**Error:** {}", ["p", "strong"]), ("- {}", ["ul", "li"]),
-            ("| step | what |\n|---|---|\n| 1 | {} |", ["table", "thead", "tr", "th", "th", "tbody", "tr", "td", "td"])]
-HOSTILE = [XSS, "<script>alert(1)</script>", "[click](javascript:alert(1))", "![x](http://evil.example/t.png)",
-           "**bold** _it_ `code` ~~gone~~", "a | b | c", "# heading", "1. item", "- item", "<http://evil.example>",
-           "&lt;img src=x onerror=alert(1)&gt;", "line one\nline two\r\n<b>three</b>", "\x1b[31mred\x00\x7f",
-           "back\\slash \\<b>", "\u202egnp.exe"]
+CONTEXTS = [
+    ("{}", ["p"]),
+    ("**Error:** {}", ["p", "strong"]),
+    ("- {}", ["ul", "li"]),
+    ("| step | what |\n|---|---|\n| 1 | {} |", ["table", "thead", "tr", "th", "th", "tbody", "tr", "td", "td"]),
+]
+HOSTILE = [
+    XSS,
+    "<script>alert(1)</script>",
+    "[click](javascript:alert(1))",
+    "![x](http://evil.example/t.png)",
+    "**bold** _it_ `code` ~~gone~~",
+    "a | b | c",
+    "# heading",
+    "1. item",
+    "- item",
+    "<http://evil.example>",
+    "&lt;img src=x onerror=alert(1)&gt;",
+    "line one\nline two\r\n<b>three</b>",
+    "\x1b[31mred\x00\x7f",
+    "back\\slash \\<b>",
+    "\u202egnp.exe",
+]
 
 
 @pytest.mark.parametrize("context, elements", CONTEXTS)
@@ -125,11 +142,14 @@ def _no_markup(markdown: str, allowed=("p", "strong", "code", "br", "ul", "li"))
     return shown
 
 
-@pytest.mark.parametrize("name, content, shown", [
-    ("data.csv", f"{XSS},s1y,s1z\n1,2,3\n".encode(), XSS),                      # echoed header
-    ("data.csv", b"s1x,s1y,s1z\n1,<b onmouseover=alert(1)>x</b>,3\n", "<b onmouseover=alert(1)>x</b>"),  # cell
-    (f"{XSS}.csv", b"s1x,s1y\n1,2\n", f"{XSS}.csv"),                             # the upload's name
-])
+@pytest.mark.parametrize(
+    "name, content, shown",
+    [
+        ("data.csv", f"{XSS},s1y,s1z\n1,2,3\n".encode(), XSS),  # echoed header
+        ("data.csv", b"s1x,s1y,s1z\n1,<b onmouseover=alert(1)>x</b>,3\n", "<b onmouseover=alert(1)>x</b>"),  # cell
+        (f"{XSS}.csv", b"s1x,s1y\n1,2\n", f"{XSS}.csv"),  # the upload's name
+    ],
+)
 def test_file_names_and_contents_reach_the_page_escaped(bench, name, content, shown):
     wb = bench(store=False)
     message = _upload(wb, name, content)
@@ -172,7 +192,8 @@ def test_session_fields_reach_the_page_escaped(bench, tmp_path):
 
 def test_a_user_effect_description_is_escaped(bench, tmp_path, clean_catalogue):
     path = tmp_path / "hostile.py"
-    path.write_text(textwrap.dedent(f'''
+    path.write_text(
+        textwrap.dedent(f'''
         from dataclasses import dataclass
         from typing import ClassVar
         import numpy as np
@@ -188,7 +209,8 @@ def test_a_user_effect_description_is_escaped(bench, tmp_path, clean_catalogue):
                 return ["h_x_nT", "h_y_nT", "h_z_nT"]
             def raw_basis(self, z0, ctx):
                 return np.broadcast_to(np.eye(3), (len(z0), 3, 3)).copy()
-    '''))
+    ''')
+    )
     wb = bench(store=False)
     wb.panels.effects_path.value = str(path)
     wb.panels.btn_load_effects.value = True
@@ -223,8 +245,26 @@ def test_a_toast_is_plain_text_cut_to_length(bench):
 # ---------------------------------------------------------------------------------------------------------------
 # session names stay inside the session folder
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["..", ".", "../x", "/etc", "/etc/passwd", "a/b", "a\\b", "", ".hidden", "x\n",
-                                  "C:\\x", "a" * 121, None, 3, "x\x00"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "..",
+        ".",
+        "../x",
+        "/etc",
+        "/etc/passwd",
+        "a/b",
+        "a\\b",
+        "",
+        ".hidden",
+        "x\n",
+        "C:\\x",
+        "a" * 121,
+        None,
+        3,
+        "x\x00",
+    ],
+)
 def test_session_names_outside_the_folder_are_refused(tmp_path, name):
     store = SessionStore(tmp_path / "sessions")
     with pytest.raises(SessionError, match="not a session name"):
@@ -264,10 +304,22 @@ def _valid_doc(n=30, n_sensors=2) -> dict:
     st_.add_effect("temperature_bias:2")
     st_.effects_files = ["/home/me/effects.py"]
     st_.method, st_.reference_nT, st_.robust, st_.sensor = "de", 51_000.0, True, 1
-    st_.record(StepRecord("fit ellipsoid", 3.2, 2.9, ["temperature_bias:2"], n - 2, "RMS 700 -> 3.2 nT", 0.1),
-               {"format": "magcal-calibration"})
-    st_.record(StepRecord("refine (ML)", 3.1, None, [], n - 2, "", 0.2,
-                          fit={"success": False, "status": 0, "message": "max nfev", "nfev": 2}))
+    st_.record(
+        StepRecord("fit ellipsoid", 3.2, 2.9, ["temperature_bias:2"], n - 2, "RMS 700 -> 3.2 nT", 0.1),
+        {"format": "magcal-calibration"},
+    )
+    st_.record(
+        StepRecord(
+            "refine (ML)",
+            3.1,
+            None,
+            [],
+            n - 2,
+            "",
+            0.2,
+            fit={"success": False, "status": 0, "message": "max nfev", "nfev": 2},
+        )
+    )
     return json.loads(json.dumps(st_.to_dict()))
 
 
@@ -281,22 +333,38 @@ def test_a_valid_document_reads_back_the_same():
 
 #: One damage per field, and the field the message must name.
 DAMAGE = [
-    ("n_samples", "30", "n_samples"), ("n_samples", 0, "n_samples"), ("n_samples", True, "n_samples"),
+    ("n_samples", "30", "n_samples"),
+    ("n_samples", 0, "n_samples"),
+    ("n_samples", True, "n_samples"),
     ("n_sensors", 9, "n_sensors"),
-    ("selection", [1, 2, 3], "selection"), ("selection.kept", 17, "selection.kept"),
-    ("selection.kept", "not base64!", "selection.kept"), ("selection.kept", "AAAA", "selection.kept"),
-    ("selection.n_samples", 31, "selection.n_samples"), ("selection.undo", [["AAAA"]], "selection.undo[0]"),
-    ("sensor", 2, "sensor"), ("sensor", -1, "sensor"), ("sensor", 1.0, "sensor"),
-    ("reference_nT", "51000", "reference_nT"), ("reference_nT", float("nan"), "reference_nT"),
+    ("selection", [1, 2, 3], "selection"),
+    ("selection.kept", 17, "selection.kept"),
+    ("selection.kept", "not base64!", "selection.kept"),
+    ("selection.kept", "AAAA", "selection.kept"),
+    ("selection.n_samples", 31, "selection.n_samples"),
+    ("selection.undo", [["AAAA"]], "selection.undo[0]"),
+    ("sensor", 2, "sensor"),
+    ("sensor", -1, "sensor"),
+    ("sensor", 1.0, "sensor"),
+    ("reference_nT", "51000", "reference_nT"),
+    ("reference_nT", float("nan"), "reference_nT"),
     ("reference_nT", -5.0, "reference_nT"),
-    ("history", {"step": "x"}, "history"), ("history", ["x"], "history[0]"),
-    ("history.0.rms_nT", "3.2", "history[0].rms_nT"), ("history.0.n_kept", 31, "history[0].n_kept"),
+    ("history", {"step": "x"}, "history"),
+    ("history", ["x"], "history[0]"),
+    ("history.0.rms_nT", "3.2", "history[0].rms_nT"),
+    ("history.0.n_kept", 31, "history[0].n_kept"),
     ("history.1.fit", {"success": "no"}, "history[1].fit.success"),
-    ("effects", "temperature_bias", "effects"), ("effects", [1], "effects[0]"),
-    ("effects", ["<img>"], "effects[0]"), ("effects", ["temperature_bias:3"], "effects[0]"),
-    ("effects_files", ["relative.py"], "effects_files[0]"), ("method", "magic", "method"),
-    ("robust", "yes", "robust"), ("lesson", "../x", "lesson"), ("format", "other", "format"),
-    ("version", 2, "version"), ("calibration", [], "calibration"),
+    ("effects", "temperature_bias", "effects"),
+    ("effects", [1], "effects[0]"),
+    ("effects", ["<img>"], "effects[0]"),
+    ("effects", ["temperature_bias:3"], "effects[0]"),
+    ("effects_files", ["relative.py"], "effects_files[0]"),
+    ("method", "magic", "method"),
+    ("robust", "yes", "robust"),
+    ("lesson", "../x", "lesson"),
+    ("format", "other", "format"),
+    ("version", 2, "version"),
+    ("calibration", [], "calibration"),
 ]
 
 
@@ -319,23 +387,56 @@ def test_a_damaged_field_is_named(where, value, field):
     assert message.startswith(f"s/session.json: field '{field}': ") and "\n" not in message
 
 
-@pytest.mark.parametrize("data, problem", [(b"", "not JSON"), (b"{\"format\": ", "not JSON"),
-                                           (b"\xff\xfe", "not UTF-8"), (b"[" * 100_000, "not JSON"),
-                                           (b"[]", "must be an object"), (b"null", "must be an object")])
+@pytest.mark.parametrize(
+    "data, problem",
+    [
+        (b"", "not JSON"),
+        (b'{"format": ', "not JSON"),
+        (b"\xff\xfe", "not UTF-8"),
+        (b"[" * 100_000, "not JSON"),
+        (b"[]", "must be an object"),
+        (b"null", "must be an object"),
+    ],
+)
 def test_undecodable_bytes_are_one_clear_error(data, problem):
     with pytest.raises(SessionFileError, match=problem):
         read_session_bytes(data)
 
 
 JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-2**40, 2**40) | st.floats(allow_nan=True) | st.text(max_size=12),
+    st.none() | st.booleans() | st.integers(-(2**40), 2**40) | st.floats(allow_nan=True) | st.text(max_size=12),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
-    max_leaves=12)
-FIELDS = ["format", "version", "data_path", "lesson", "n_samples", "n_sensors", "selection", "selection.kept",
-          "selection.n_samples", "selection.undo", "selection.redo", "effects", "effects_files", "method",
-          "reference_nT", "fit_reference", "robust", "sensor", "history", "history.0", "history.0.rms_nT",
-          "history.0.effects", "history.0.n_kept", "history.1.fit", "history.1.fit.nfev", "calibration",
-          "answer_revealed"]
+    max_leaves=12,
+)
+FIELDS = [
+    "format",
+    "version",
+    "data_path",
+    "lesson",
+    "n_samples",
+    "n_sensors",
+    "selection",
+    "selection.kept",
+    "selection.n_samples",
+    "selection.undo",
+    "selection.redo",
+    "effects",
+    "effects_files",
+    "method",
+    "reference_nT",
+    "fit_reference",
+    "robust",
+    "sensor",
+    "history",
+    "history.0",
+    "history.0.rms_nT",
+    "history.0.effects",
+    "history.0.n_kept",
+    "history.1.fit",
+    "history.1.fit.nfev",
+    "calibration",
+    "answer_revealed",
+]
 
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -369,13 +470,16 @@ def test_fuzzed_session_documents_read_or_raise_the_one_error(changes):
 # ---------------------------------------------------------------------------------------------------------------
 # a damaged session at start: moved aside, the data open afresh
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("damage, field", [
-    (lambda doc: b'{"format": "magcal-workbench-session", "n_samp', "(file)"),
-    (lambda doc: json.dumps(_damage(doc, "selection.kept", [1, 2])).encode(), "selection.kept"),
-    (lambda doc: json.dumps(_damage(doc, "sensor", 99)).encode(), "sensor"),
-    (lambda doc: json.dumps(_damage(doc, "history", [None])).encode(), "history[0]"),
-    (lambda doc: json.dumps(_damage(doc, "n_sensors", 1)).encode(), "n_sensors"),  # another data's session
-])
+@pytest.mark.parametrize(
+    "damage, field",
+    [
+        (lambda doc: b'{"format": "magcal-workbench-session", "n_samp', "(file)"),
+        (lambda doc: json.dumps(_damage(doc, "selection.kept", [1, 2])).encode(), "selection.kept"),
+        (lambda doc: json.dumps(_damage(doc, "sensor", 99)).encode(), "sensor"),
+        (lambda doc: json.dumps(_damage(doc, "history", [None])).encode(), "history[0]"),
+        (lambda doc: json.dumps(_damage(doc, "n_sensors", 1)).encode(), "n_sensors"),  # another data's session
+    ],
+)
 def test_a_damaged_session_is_moved_aside_and_the_data_open_afresh(bench, tmp_path, capsys, damage, field):
     wb = bench()
     wb.ctrl.select([1, 2])
@@ -412,8 +516,14 @@ def test_a_damaged_calibration_in_a_valid_session_is_dropped_with_a_message(benc
 
 
 #: The damaged sessions the issue lists (each crashed the start with a traceback; only --fresh recovered).
-ISSUE_DAMAGE = [("n_samples", None), ("selection", []), ("sensor", 7), ("reference_nT", "abc"),
-                ("history", [1, 2]), ("effects", [3.5])]
+ISSUE_DAMAGE = [
+    ("n_samples", None),
+    ("selection", []),
+    ("sensor", 7),
+    ("reference_nT", "abc"),
+    ("history", [1, 2]),
+    ("effects", [3.5]),
+]
 
 
 @pytest.mark.parametrize("field, value", ISSUE_DAMAGE)

@@ -94,9 +94,18 @@ def test_session_state_round_trip():
     st.add_effect("bias_step:1")
     st.method, st.reference_nT, st.robust, st.sensor = "de", 51000.0, True, 1
     st.record(StepRecord("fit ellipsoid", 3.2, 2.9, [], 18, "RMS 700 -> 3.2 nT", 0.1), {"format": "x"})
-    st.record(StepRecord("refine (ML)", 3.1, 2.9, [], 18, "RMS 3.2 -> 3.1 nT", 0.2,
-                         fit={"success": False, "status": 0, "message": "maximum number of evaluations reached",
-                              "nfev": 2}))
+    st.record(
+        StepRecord(
+            "refine (ML)",
+            3.1,
+            2.9,
+            [],
+            18,
+            "RMS 3.2 -> 3.1 nT",
+            0.2,
+            fit={"success": False, "status": 0, "message": "maximum number of evaluations reached", "nfev": 2},
+        )
+    )
     back = SessionState.from_dict(json.loads(json.dumps(st.to_dict())))
     assert back.to_dict() == st.to_dict()
     x, y, f = back.rms_series()
@@ -226,7 +235,7 @@ def test_sensor_axes_follow_the_calibration(sensor):
     assert np.allclose(axes, expected)
     assert np.allclose(scn.sensor_axes(np.eye(3), np.eye(3), 50.0), np.eye(3))
     big = scn.sensor_axes(truth.Cinv, truth.R, gain=20.0)
-    angle = lambda a: np.degrees(np.arccos(np.sum(a * np.eye(3), axis=1)))  # noqa: E731
+    angle = lambda a: np.degrees(np.arccos(np.sum(a * np.eye(3), axis=1)))
     assert np.all(angle(big) > angle(axes))
 
 
@@ -582,9 +591,20 @@ def test_command_line_serves_the_demo_on_loopback(tmp_path):
 
     assert host_warning("127.0.0.1") is None and "0.0.0.0" in host_warning("0.0.0.0")
     assert main([str(tmp_path / "missing.csv"), "--no-session"]) == 2
-    proc = subprocess.Popen([sys.executable, "-c", "from magcal_workbench.app import main; main()", "--port", "0",
-                             "--session-dir", str(tmp_path / "s")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from magcal_workbench.app import main; main()",
+            "--port",
+            "0",
+            "--session-dir",
+            str(tmp_path / "s"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         line = ""
         deadline = time.time() + 120
@@ -743,9 +763,16 @@ def _csv_bytes(tmp_path, wb):
     extra = dict(ctrl.dataset.extra, kept=ctrl.kept.astype(int))
     extra.update({f"s{s + 1}_residual_nT": ctrl.residual_nT[s] for s in range(ctrl.dataset.n_sensors)})
     path = tmp_path / "expected.csv"
-    mio.write_csv(path, ctrl.dataset.replace(readings_nT=ctrl.corrected_nT, extra=extra),
-                  metadata={"corrected_by": "magcal workbench", "frame": ctrl.calibration.frame, "effects": "none",
-                            "record_only_terms_applied": "none"})
+    mio.write_csv(
+        path,
+        ctrl.dataset.replace(readings_nT=ctrl.corrected_nT, extra=extra),
+        metadata={
+            "corrected_by": "magcal workbench",
+            "frame": ctrl.calibration.frame,
+            "effects": "none",
+            "record_only_terms_applied": "none",
+        },
+    )
     return path.read_bytes()
 
 
@@ -802,8 +829,14 @@ def test_a_user_effect_from_a_file_joins_the_loop(clean_catalogue, pump_data, ho
     assert after < base / 1.03 and after < 1.01 * SIGMA  # down to the noise
 
 
-@pytest.mark.parametrize("label, says", [("not_loaded", "Load effects file"), ("<img src=x>", "not an effect label"),
-                                         ("temperature_bias:5", "no sensor 5")])
+@pytest.mark.parametrize(
+    "label, says",
+    [
+        ("not_loaded", "Load effects file"),
+        ("<img src=x>", "not an effect label"),
+        ("temperature_bias:5", "no sensor 5"),
+    ],
+)
 def test_an_effect_label_the_page_could_not_offer_is_refused(clean_catalogue, pump_data, label, says):
     from magcal.core.errors import MagcalError
     from magcal_workbench.controller import Controller
@@ -868,7 +901,8 @@ def test_an_error_in_the_user_code_is_a_clear_message(bench, clean_catalogue, tm
         "        return ['w_x_nT_per_K', 'w_y_nT_per_K', 'w_z_nT_per_K']\n"
         "    def raw_basis(self, z0, ctx):\n"
         "        dT = ctx.temperature_C - 20.0\n"  # line 13: the user forgot to declare the channel
-        "        return np.eye(3)[None] * dT[:, None, None]\n")
+        "        return np.eye(3)[None] * dT[:, None, None]\n"
+    )
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2, rate_hz=2.0).replace(temperature_C=None)
     wb = bench(ds, store=False)
     wb.panels.effects_path.value = str(path)

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
-from test_workbench_e2e import _open, _upload_in_page, browser  # noqa: F401  (the fixture: real Chromium)
+from test_workbench_e2e import _open, _upload_in_page
 
 import magcal
 from magcal.data import io as mio

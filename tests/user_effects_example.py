@@ -42,8 +42,10 @@ class PumpInterference(Effect):
     stage: ClassVar[str] = "raw"  # acts on the raw reading, in the sensor's own axes
     channels: ClassVar[tuple] = ("time",)
     per_sensor: ClassVar[bool] = True
-    description: ClassVar[str] = ("pump field at f0 = 1.3 Hz and 2 f0, a sinusoid per axis fixed in the sensor "
-                                  "[nT, sin and cos per axis and harmonic]")
+    description: ClassVar[str] = (
+        "pump field at f0 = 1.3 Hz and 2 f0, a sinusoid per axis fixed in the sensor "
+        "[nT, sin and cos per axis and harmonic]"
+    )
     #: Instrument terms carry to new data; this one describes one recording (its phase).
     transferable: ClassVar[bool] = False
 
@@ -55,8 +57,9 @@ class PumpInterference(Effect):
     reference_time_s: float | None = None
 
     def param_names(self):
-        return [f"{kind}{k}_{axis}_nT" for k in range(1, self.harmonics + 1) for kind in ("sin", "cos")
-                for axis in "xyz"]
+        return [
+            f"{kind}{k}_{axis}_nT" for k in range(1, self.harmonics + 1) for kind in ("sin", "cos") for axis in "xyz"
+        ]
 
     def param_scale(self):
         # an amplitude of 1 nT moves the readings by about 1 nT
@@ -108,8 +111,9 @@ class PumpInterference(Effect):
                 d2 = np.roll([-0.2, 0.6, 0.77], s)
                 wave1 = np.sin(2 * np.pi * f0 * t + 0.7 + s)
                 wave2 = np.sin(2 * np.pi * 2 * f0 * t + 2.1 - s)
-                readings[s] += amplitude * (wave1[:, None] * d1 / np.linalg.norm(d1)
-                                            + HARMONIC_RATIO * wave2[:, None] * d2 / np.linalg.norm(d2))
+                readings[s] += amplitude * (
+                    wave1[:, None] * d1 / np.linalg.norm(d1) + HARMONIC_RATIO * wave2[:, None] * d2 / np.linalg.norm(d2)
+                )
             return readings
 
         where = "all sensors" if sensor is None else f"sensor {sensor + 1}"

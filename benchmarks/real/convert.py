@@ -77,7 +77,7 @@ def convert_qmc(which: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR, ls
         "licence": "MIT (c) 2025 Tomas Suarez",
         "sensor": "QMC5883L (GY-63 board) on an Arduino UNO, OSR 512, hand-turned; Universidad Nacional de Cuyo",
         "conversion": f"raw counts x {lsb_nT:.6g} nT (3000 LSB/G, +-8 G); the sketch asks for +-2 G = 12000 LSB/G "
-                      "but the fitted field would then be 8.9 uT; see FINDINGS.md",
+        "but the fitted field would then be 8.9 uT; see FINDINGS.md",
         "lsb_nT": f"{lsb_nT:.6g}",
         "rate_Hz": f"{rate:g}",
         "time": "t = sample index / rate (the file has no time stamps)",
@@ -131,7 +131,7 @@ def read_ads(path: Path) -> dict:
             continue
         if name == "cur_time":
             rtc = np.array([_rtc_seconds(r[j]) for r in body])
-            rtc += 3600.0 * np.cumsum(np.r_[0, np.diff(rtc) < -1800])   # hour roll-over
+            rtc += 3600.0 * np.cumsum(np.r_[0, np.diff(rtc) < -1800])  # hour roll-over
             cols[name] = rtc
         else:
             cols[name] = np.array([float(r[j]) for r in body])
@@ -159,12 +159,17 @@ def convert_ads(sensor: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -
         "lsb_nT": f"{lsb:.6g}",
         "rate_Hz": "~9.9 (bursts of 10 reads, then sleep to 1 s)",
         "time": "t from the RTC column cur_time (mm:ss.s, 0.1 s); repeated stamps spread evenly to the next; "
-                "t_rtc_s = the stamps as logged",
+        "t_rtc_s = the stamps as logged",
         "temp": "ICM-20948 die temperature (imu_T), degC; enviro_t = BME680 air temperature",
         "igrf_total_nT": "52856 (Ann Arbor, MI, 2025-02-12; site assumed)",
     }
-    columns = {"t": spread_repeats(t_rtc), **_vector_columns(counts * lsb), "temp": c["imu_T"],
-               "t_rtc_s": t_rtc, "enviro_t": c["enviro_t"]}
+    columns = {
+        "t": spread_repeats(t_rtc),
+        **_vector_columns(counts * lsb),
+        "temp": c["imu_T"],
+        "t_rtc_s": t_rtc,
+        "enviro_t": c["enviro_t"],
+    }
     return _write(f"ads_{sensor}", columns, meta, out_dir)
 
 
@@ -179,8 +184,18 @@ def convert_ads_rm3100(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
 #: The authors' flight window (unix s): first and last stamp of ``postFlightCali/data_ADSflight_times.csv``.
 ADS_FLIGHT_WINDOW = (1740235658.99726, 1740241184.5163)
 #: Columns of the ADS logger's raw files (no header; as in ``data_original.csv``), 0-based.
-ADS_COLUMNS = {"unix_time": 0, "imu_mx": 8, "imu_my": 9, "imu_mz": 10, "imu_T": 11, "mag_x": 12, "mag_y": 13,
-               "mag_z": 14, "enviro_t": 16, "enviro_p": 17}
+ADS_COLUMNS = {
+    "unix_time": 0,
+    "imu_mx": 8,
+    "imu_my": 9,
+    "imu_mz": 10,
+    "imu_T": 11,
+    "mag_x": 12,
+    "mag_y": 13,
+    "mag_z": 14,
+    "enviro_t": 16,
+    "enviro_p": 17,
+}
 #: An RM3100 count beyond this on any axis is a read glitch (the flight field is ~4000 counts per axis at most).
 ADS_GLITCH_COUNTS = 20000
 #: The flight is written at every ADS_FLIGHT_DECIMATION-th sample (~2.4 Hz) to keep the benchmark short.
@@ -229,25 +244,30 @@ def convert_ads_flight(sensor: str, raw_dir: Path = RAW_DIR, out_dir: Path = OUT
     t = c["unix_time"][keep]
     meta = {
         "source": "github.com/apujara22/MagCal_W25_MXL 'ADSvehicle/postFlightCali/Telem/data_1740235425.csv' ... "
-                  "'data_1740241125.csv' (20 files of 5 min)",
+        "'data_1740241125.csv' (20 files of 5 min)",
         "licence": "none stated: local development only, do not redistribute",
         "sensor": f"{what}; ADS payload (Raspberry Pi) on a high-altitude balloon flight, U. Michigan MXL, "
-                  "2025-02-22: ground to ~10 hPa (~26 km) and down; the payload swings and spins",
+        "2025-02-22: ground to ~10 hPa (~26 km) and down; the payload swings and spins",
         "conversion": f"counts x {lsb:.6g} nT",
         "lsb_nT": f"{lsb:.6g}",
         "rate_Hz": f"~{9.7 / ADS_FLIGHT_DECIMATION:.2g} (sample numbers 0, {ADS_FLIGHT_DECIMATION}, "
-                   f"{2 * ADS_FLIGHT_DECIMATION}, ... of the ~9.7 Hz log)",
+        f"{2 * ADS_FLIGHT_DECIMATION}, ... of the ~9.7 Hz log)",
         "time": "t = logger unix time - 1740235659 s (the authors' flight window, data_ADSflight_times.csv)",
         "dropped": f"{int(glitch.sum())} RM3100 read glitches (|count| > {ADS_GLITCH_COUNTS}), "
-                   f"{int(repeat.sum())} repeated stamps, {skipped} malformed lines",
+        f"{int(repeat.sum())} repeated stamps, {skipped} malformed lines",
         "temp": "ICM-20948 die temperature (imu_T), degC: -32 to +5 degC, not monotonic in time "
-                "(cooling through the troposphere, warming in the stratosphere, cooling on descent)",
+        "(cooling through the troposphere, warming in the stratosphere, cooling on descent)",
         "what_for": "flight log, not a calibration rotation: partial attitude coverage; the field changes with "
-                    "altitude (~-650 nT at 26 km) and position; temperature varies independently of time",
+        "altitude (~-650 nT at 26 km) and position; temperature varies independently of time",
         "igrf_total_nT": "about 53000 at the ground (south-east Michigan; launch site assumed)",
     }
-    columns = {"t": t - ADS_FLIGHT_WINDOW[0], **_vector_columns(counts[keep] * lsb), "temp": c["imu_T"][keep],
-               "pressure_hPa": c["enviro_p"][keep], "air_t": c["enviro_t"][keep]}
+    columns = {
+        "t": t - ADS_FLIGHT_WINDOW[0],
+        **_vector_columns(counts[keep] * lsb),
+        "temp": c["imu_T"][keep],
+        "pressure_hPa": c["enviro_p"][keep],
+        "air_t": c["enviro_t"][keep],
+    }
     return _write(f"ads_flight_{sensor}", columns, meta, out_dir)
 
 
@@ -267,7 +287,7 @@ def convert_mxl_test1(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
         "source": "github.com/apujara22/MagCal_W25_MXL 'Matlab Version/20210423_mag_cali/test1_esti_trunc.csv'",
         "licence": "none stated: local development only, do not redistribute",
         "sensor": "PNI RM3100 on the EstiBone quadrotor, turned by hand (traj0: 360 deg roll, pitch, yaw), "
-                  "south of MAIR, U. Michigan, 2021-04-23",
+        "south of MAIR, U. Michigan, 2021-04-23",
         "conversion": f"uT x 75 rounded to counts, x {RM3100_LSB_NT:.6g} nT",
         "lsb_nT": f"{RM3100_LSB_NT:.6g}",
         "rate_Hz": "unknown (the logger's ns time stamps were rounded to 1.47819E+18 by a spreadsheet)",
@@ -293,13 +313,13 @@ def convert_sf_fullsphere(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> P
     mag = _read_mat73(raw_dir / "sf_fullsphere_hmc5883l_compass.mat", "compassBuffer")
     temp = _read_mat73(raw_dir / "sf_fullsphere_mpu6050_temperature.mat", "temperatureBuffer")
     t = mag[:, 0]
-    readings = np.round(mag[:, 1:4] * 1090.0) * HMC5883L_LSB_NT   # the values are counts / 1090 exactly
+    readings = np.round(mag[:, 1:4] * 1090.0) * HMC5883L_LSB_NT  # the values are counts / 1090 exactly
     meta = {
         "source": "github.com/sunsided/sensor-fusion 'data/set-2/full-sphere/hmc5883l_compass.mat' "
-                  "(+ mpu6050_temperature.mat)",
+        "(+ mpu6050_temperature.mat)",
         "licence": "EUPL-1.2 (c) Markus Mayer (sunsided)",
         "sensor": "Honeywell HMC5883L (gain 1090 LSB/G) with an MPU6050 on one board, turned about the centre point "
-                  "through 9 rotations covering the sphere",
+        "through 9 rotations covering the sphere",
         "conversion": f"gauss x 1e5 (= counts x {HMC5883L_LSB_NT:.6g} nT)",
         "lsb_nT": f"{HMC5883L_LSB_NT:.6g}",
         "rate_Hz": "~77 mean (75 Hz nominal); t = host arrival time stamps, s",
@@ -325,7 +345,7 @@ def convert_ab_mag_out(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
         "licence": "MIT (c) 2016 aleksandrbazhin",
         "sensor": "not stated (example input of an ellipsoid-fit tool for magnetometer calibration)",
         "conversion": f"counts x {AB_ASSUMED_LSB_NT:g} nT: ASSUMED (fitted field 174 counts -> 52 uT); "
-                      "only relative figures (RMS / field) mean anything",
+        "only relative figures (RMS / field) mean anything",
         "lsb_nT": f"{AB_ASSUMED_LSB_NT:g}",
         "rate_Hz": "unknown (no time stamps)",
     }
@@ -380,9 +400,9 @@ def convert_px4_sample(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
         "source": "github.com/PX4/pyulog 'test/sample.ulg'",
         "licence": "BSD-3-Clause (c) 2016 PX4 Pro Drone Autopilot (pyulog)",
         "sensor": "PX4 on an AUAV-X2.1 autopilot (HMC5883-class external compass assumed, not stated), disarmed, "
-                  "tilted by hand +-22 deg roll, +-9 deg pitch, 28 deg of yaw in 69 s",
+        "tilted by hand +-22 deg roll, +-9 deg pitch, 28 deg of yaw in 69 s",
         "conversion": "gauss x 1e5; the field as calibrated by the vehicle (CAL_MAG0_*OFF subtracted, "
-                      "scales 1.0), not raw",
+        "scales 1.0), not raw",
         "rate_Hz": "~98 (magnetometer updates inside sensor_combined at 248 Hz; repeats dropped)",
         "time": "t = log time stamp + magnetometer_timestamp_relative, s",
         "what_for": "not a calibration rotation: magnitude stability under small tilts, timing, quantization",
@@ -396,7 +416,7 @@ def _ardupilot_meta(path: str, what: str) -> dict:
         "licence": "none stated: local development only, do not redistribute",
         "sensor": f"ArduCopter compass 1 (HMC5883L-class on the Erle PXF / Erle-Brain board); {what}",
         "conversion": "MAG milligauss x 100 (the log stores whole milligauss: a 100 nT step); the logged calibration "
-                      "(OfsX..Z, motor offsets) undone by magcal.data.logs",
+        "(OfsX..Z, motor offsets) undone by magcal.data.logs",
         "lsb_nT": "100",
         "time": "t = TimeMS / TimeUS of the MAG messages, s",
         "igrf_total_nT": "about 45000 (Vitoria-Gasteiz, Spain, where Erle Robotics flew; site assumed)",
@@ -408,8 +428,7 @@ def convert_ap_erlebrain3(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> P
     """``ap_erlebrain3``: ArduCopter fly test of an Erle-Brain 3 (2016), MAG ~9.4 Hz."""
     ds, notes = _read_flight_log("ap_erlebrain3.bin", raw_dir)
     meta = _ardupilot_meta("pxf/copter/Erle-Brain3.BIN", "fly test, 265 s, yaw through 360 deg, roll/pitch +-40 deg")
-    return _write_log("ap_erlebrain3", ds, notes, {**meta, "rate_Hz": "~9.4 (MAG logged at the 10 Hz loop)"},
-                      out_dir)
+    return _write_log("ap_erlebrain3", ds, notes, {**meta, "rate_Hz": "~9.4 (MAG logged at the 10 Hz loop)"}, out_dir)
 
 
 def convert_ap_pxf_rpi(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
@@ -422,9 +441,11 @@ def convert_ap_pxf_rpi(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
 def convert_ap_pxf_flip(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
     """``ap_pxf_flip``: ArduCopter PXF v1.4 log (2014-12-15): level flight, then the vehicle turns over."""
     ds, notes = _read_flight_log("ap_pxf_flip.bin", raw_dir)
-    meta = _ardupilot_meta("pxf/copter/15-12-2014/16.BIN",
-                           "152 s of level flight (roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle "
-                           "turns over in its last seconds (roll -108, pitch 81 deg)")
+    meta = _ardupilot_meta(
+        "pxf/copter/15-12-2014/16.BIN",
+        "152 s of level flight (roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle "
+        "turns over in its last seconds (roll -108, pitch 81 deg)",
+    )
     return _write_log("ap_pxf_flip", ds, notes, {**meta, "rate_Hz": "10 (MAG at the 10 Hz loop)"}, out_dir)
 
 
@@ -452,9 +473,13 @@ def main(argv=None) -> int:
     parser.add_argument("--all", action="store_true", help="convert every recording")
     parser.add_argument("--raw-dir", type=Path, default=RAW_DIR)
     parser.add_argument("--out-dir", type=Path, default=OUT_DIR)
-    parser.add_argument("--flight-every", type=int, default=ADS_FLIGHT_DECIMATION,
-                        help=f"keep every N-th sample of the ADS flight (default {ADS_FLIGHT_DECIMATION}; 1 = all "
-                             "53 000 samples at 9.7 Hz, about 2.5 min for benchmarks/real.py on it alone)")
+    parser.add_argument(
+        "--flight-every",
+        type=int,
+        default=ADS_FLIGHT_DECIMATION,
+        help=f"keep every N-th sample of the ADS flight (default {ADS_FLIGHT_DECIMATION}; 1 = all "
+        "53 000 samples at 9.7 Hz, about 2.5 min for benchmarks/real.py on it alone)",
+    )
     args = parser.parse_args(argv)
     if args.flight_every < 1:
         parser.error(f"--flight-every must be at least 1, got {args.flight_every}")

@@ -56,35 +56,98 @@ ERLE = ("erlerobot/logs", "3f7d4a0d17f2485f7fa5cb7124fc2a5b13d6c688")
 ADS_FLIGHT_FILES = tuple(range(1740235425, 1740241126, 300))
 
 SOURCES = (
-    Source("qmc_filtered_raw_data.csv", *QMC, "calibration data/filtered_raw_data.csv", "MIT",
-           "QMC5883L on GY-63 + Arduino, hand-turned, 50 Hz, raw counts, first 60 s still"),
-    Source("qmc_noisy_raw_data.csv", *QMC, "calibration data/noisy_raw_data.csv", "MIT",
-           "same set-up, second recording ('noisy')"),
-    Source("ads_data_original.csv", *MXL, "ADSvehicle/preFlightCali/data_original.csv", "none (local only)",
-           "ADS payload pre-flight: ICM-20948 (counts x 0.15 uT) + RM3100 (counts / 75 uT), ~10 Hz, outdoors"),
-    Source("mxl_test1_esti_trunc.csv", *MXL, "Matlab Version/20210423_mag_cali/test1_esti_trunc.csv",
-           "none (local only)", "RM3100 on a quadrotor turned by hand outdoors (Ann Arbor, 2021-04-23), uT"),
-    Source("sf_fullsphere_hmc5883l_compass.mat", *SF, "data/set-2/full-sphere/hmc5883l_compass.mat",
-           "EUPL-1.2", "HMC5883L full-sphere rotation, gauss, host time stamps, ~77 Hz (MATLAB v7.3)"),
-    Source("sf_fullsphere_mpu6050_temperature.mat", *SF, "data/set-2/full-sphere/mpu6050_temperature.mat",
-           "EUPL-1.2", "MPU6050 die temperature of the same board, 100 Hz"),
-    Source("ab_mag_out.txt", *AB, "mag_out.txt", "MIT",
-           "example input of an ellipsoid-fit tool: 347 raw integer vectors, sensor and unit not stated"),
-    *(Source(f"ads_flight_{stamp}.csv", *MXL, f"ADSvehicle/postFlightCali/Telem/data_{stamp}.csv", "none (local only)",
-             "ADS payload balloon flight, raw logger file (5 min): ICM-20948 + RM3100 counts, die and air temperature, "
-             "pressure, ~9.7 Hz") for stamp in ADS_FLIGHT_FILES),
-    Source("px4_sample.ulg", *PYULOG, "test/sample.ulg", "BSD-3-Clause",
-           "PX4 ULog test file of pyulog: AUAV-X2.1, disarmed, hand-tilted +-22 deg for 69 s; sensor_combined "
-           "magnetometer_ga (already calibrated by the vehicle), ~98 Hz"),
-    Source("ap_erlebrain3.bin", *ERLE, "pxf/copter/Erle-Brain3.BIN", "none (local only)",
-           "ArduCopter DataFlash log, Erle-Brain 3 fly test (2016): MAG ~9.4 Hz for 265 s, yaw through 360 deg, "
-           "roll/pitch +-40 deg"),
-    Source("ap_pxf_rpi.bin", *ERLE, "pxf/copter/PXFv2.0b+Rpi.BIN", "none (local only)",
-           "ArduCopter DataFlash log, PXF v2.0b on a Raspberry Pi (2015): MAG ~3.8 Hz for 1231 s, yaw through "
-           "360 deg, roll/pitch +-30 deg"),
-    Source("ap_pxf_flip.bin", *ERLE, "pxf/copter/15-12-2014/16.BIN", "none (local only)",
-           "ArduCopter DataFlash log, Erle-Copter PXF v1.4 (2014-12-15): MAG 10 Hz for 152 s, level flight "
-           "(roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle turns over at the end (roll -108, pitch 81)"),
+    Source(
+        "qmc_filtered_raw_data.csv",
+        *QMC,
+        "calibration data/filtered_raw_data.csv",
+        "MIT",
+        "QMC5883L on GY-63 + Arduino, hand-turned, 50 Hz, raw counts, first 60 s still",
+    ),
+    Source(
+        "qmc_noisy_raw_data.csv",
+        *QMC,
+        "calibration data/noisy_raw_data.csv",
+        "MIT",
+        "same set-up, second recording ('noisy')",
+    ),
+    Source(
+        "ads_data_original.csv",
+        *MXL,
+        "ADSvehicle/preFlightCali/data_original.csv",
+        "none (local only)",
+        "ADS payload pre-flight: ICM-20948 (counts x 0.15 uT) + RM3100 (counts / 75 uT), ~10 Hz, outdoors",
+    ),
+    Source(
+        "mxl_test1_esti_trunc.csv",
+        *MXL,
+        "Matlab Version/20210423_mag_cali/test1_esti_trunc.csv",
+        "none (local only)",
+        "RM3100 on a quadrotor turned by hand outdoors (Ann Arbor, 2021-04-23), uT",
+    ),
+    Source(
+        "sf_fullsphere_hmc5883l_compass.mat",
+        *SF,
+        "data/set-2/full-sphere/hmc5883l_compass.mat",
+        "EUPL-1.2",
+        "HMC5883L full-sphere rotation, gauss, host time stamps, ~77 Hz (MATLAB v7.3)",
+    ),
+    Source(
+        "sf_fullsphere_mpu6050_temperature.mat",
+        *SF,
+        "data/set-2/full-sphere/mpu6050_temperature.mat",
+        "EUPL-1.2",
+        "MPU6050 die temperature of the same board, 100 Hz",
+    ),
+    Source(
+        "ab_mag_out.txt",
+        *AB,
+        "mag_out.txt",
+        "MIT",
+        "example input of an ellipsoid-fit tool: 347 raw integer vectors, sensor and unit not stated",
+    ),
+    *(
+        Source(
+            f"ads_flight_{stamp}.csv",
+            *MXL,
+            f"ADSvehicle/postFlightCali/Telem/data_{stamp}.csv",
+            "none (local only)",
+            "ADS payload balloon flight, raw logger file (5 min): ICM-20948 + RM3100 counts, die and air temperature, "
+            "pressure, ~9.7 Hz",
+        )
+        for stamp in ADS_FLIGHT_FILES
+    ),
+    Source(
+        "px4_sample.ulg",
+        *PYULOG,
+        "test/sample.ulg",
+        "BSD-3-Clause",
+        "PX4 ULog test file of pyulog: AUAV-X2.1, disarmed, hand-tilted +-22 deg for 69 s; sensor_combined "
+        "magnetometer_ga (already calibrated by the vehicle), ~98 Hz",
+    ),
+    Source(
+        "ap_erlebrain3.bin",
+        *ERLE,
+        "pxf/copter/Erle-Brain3.BIN",
+        "none (local only)",
+        "ArduCopter DataFlash log, Erle-Brain 3 fly test (2016): MAG ~9.4 Hz for 265 s, yaw through 360 deg, "
+        "roll/pitch +-40 deg",
+    ),
+    Source(
+        "ap_pxf_rpi.bin",
+        *ERLE,
+        "pxf/copter/PXFv2.0b+Rpi.BIN",
+        "none (local only)",
+        "ArduCopter DataFlash log, PXF v2.0b on a Raspberry Pi (2015): MAG ~3.8 Hz for 1231 s, yaw through "
+        "360 deg, roll/pitch +-30 deg",
+    ),
+    Source(
+        "ap_pxf_flip.bin",
+        *ERLE,
+        "pxf/copter/15-12-2014/16.BIN",
+        "none (local only)",
+        "ArduCopter DataFlash log, Erle-Copter PXF v1.4 (2014-12-15): MAG 10 Hz for 152 s, level flight "
+        "(roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle turns over at the end (roll -108, pitch 81)",
+    ),
 )
 
 
@@ -108,7 +171,7 @@ def _from_mirror(src: Source, mirror: Path) -> bytes:
 
 
 def _download(src: Source) -> bytes:
-    with urllib.request.urlopen(src.url, timeout=60) as response:  # noqa: S310 (fixed https URL)
+    with urllib.request.urlopen(src.url, timeout=60) as response:
         return response.read()
 
 

@@ -64,11 +64,16 @@ def timing(t: np.ndarray | None, n: int) -> dict:
         return {"has_time": False}
     dt = np.diff(t)
     med = float(np.median(dt))
-    return {"has_time": True, "duration_s": float(t[-1] - t[0]), "rate_mean_Hz": float((n - 1) / (t[-1] - t[0])),
-            "median_interval_s": med,
-            "interval_p5_p95_s": [float(np.percentile(dt, 5)), float(np.percentile(dt, 95))],
-            "jitter_rel": float(np.std(dt) / np.mean(dt)), "gaps_over_3_mean": int(np.sum(dt > 3 * np.mean(dt))),
-            "longest_interval_s": float(dt.max())}
+    return {
+        "has_time": True,
+        "duration_s": float(t[-1] - t[0]),
+        "rate_mean_Hz": float((n - 1) / (t[-1] - t[0])),
+        "median_interval_s": med,
+        "interval_p5_p95_s": [float(np.percentile(dt, 5)), float(np.percentile(dt, 95))],
+        "jitter_rel": float(np.std(dt) / np.mean(dt)),
+        "gaps_over_3_mean": int(np.sum(dt > 3 * np.mean(dt))),
+        "longest_interval_s": float(dt.max()),
+    }
 
 
 def second_difference_noise(y: np.ndarray) -> list:
@@ -99,8 +104,12 @@ def held_out(ds, effects=(), robust=False) -> dict:
         warnings.simplefilter("ignore")
         res = calibrate(ds, effects=list(effects), robust=robust, mask=fit_mask)
         r = res.calibration.total_field_residuals(ds, record_terms="apply")[0]
-    return {"fit_rms_nT": rms(r[fit_mask]), "heldout_rms_nT": rms(r[~fit_mask]),
-            "n_fit": int(fit_mask.sum()), "n_heldout": int((~fit_mask).sum())}
+    return {
+        "fit_rms_nT": rms(r[fit_mask]),
+        "heldout_rms_nT": rms(r[~fit_mask]),
+        "n_fit": int(fit_mask.sum()),
+        "n_heldout": int((~fit_mask).sum()),
+    }
 
 
 def spectrum_peak(r: np.ndarray, t: np.ndarray | None) -> dict:
@@ -125,8 +134,11 @@ def spectrum_peak(r: np.ndarray, t: np.ndarray | None) -> dict:
             peaks.append(int(i))
         if len(peaks) == 3:
             break
-    return {"unit": unit, "peaks": [{"f": float(f[i]), "power_fraction": float(p[i])} for i in peaks],
-            "amplitude_nT": float(amp)}
+    return {
+        "unit": unit,
+        "peaks": [{"f": float(f[i]), "power_fraction": float(p[i])} for i in peaks],
+        "amplitude_nT": float(amp),
+    }
 
 
 def residual_structure(ds, res) -> dict:
@@ -141,7 +153,8 @@ def residual_structure(ds, res) -> dict:
     A = np.c_[np.ones_like(tt), tt - tt.mean()]
     coef = np.linalg.lstsq(A, r, rcond=None)[0]
     out["trend_nT_per_min" if t is not None else "trend_nT_per_1000_samples"] = float(
-        coef[1] * (60.0 if t is not None else 1000.0))
+        coef[1] * (60.0 if t is not None else 1000.0)
+    )
     out["spectrum"] = spectrum_peak(r, t)
     if ds.temperature_C is not None:
         T = ds.temperature_C
@@ -155,8 +168,11 @@ def residual_structure(ds, res) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sh = sh_analysis(u, r)
-    out["sh"] = {k: (np.asarray(v).tolist() if hasattr(v, "__len__") else v) for k, v in sh.items()
-                 if k in ("degree", "rms_nT", "p")}
+    out["sh"] = {
+        k: (np.asarray(v).tolist() if hasattr(v, "__len__") else v)
+        for k, v in sh.items()
+        if k in ("degree", "rms_nT", "p")
+    }
     if t is not None:
         # axis timing skew: r ~ sum_j tau_j u_j dB_j/dt  (first-order; tau in s)
         dB = np.gradient(B, t, axis=0)
@@ -183,9 +199,14 @@ def study(name: str) -> dict:
         ds = read_csv(path)
     y = ds.readings_nT[0]
     lsb = float(ds.metadata["lsb_nT"]) if "lsb_nT" in ds.metadata else None
-    rep = {"name": name, "N": ds.n_samples, "timing": timing(ds.time_s, ds.n_samples),
-           "stale_fraction": float(np.mean(np.all(np.diff(y, axis=0) == 0, axis=1))),
-           "quantization": quantization(y, lsb), "noise_second_difference_nT": second_difference_noise(y)}
+    rep = {
+        "name": name,
+        "N": ds.n_samples,
+        "timing": timing(ds.time_s, ds.n_samples),
+        "stale_fraction": float(np.mean(np.all(np.diff(y, axis=0) == 0, axis=1))),
+        "quantization": quantization(y, lsb),
+        "noise_second_difference_nT": second_difference_noise(y),
+    }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         q = assess(ds).to_dict()
@@ -195,8 +216,11 @@ def study(name: str) -> dict:
     if name in KNOWN_STILL_S and ds.time_s is not None:
         still = ds.time_s - ds.time_s[0] < KNOWN_STILL_S[name]
         seg = y[still]
-        rep["known_still"] = {"seconds": KNOWN_STILL_S[name], "std_nT": seg.std(axis=0).tolist(),
-                              "second_difference_nT": second_difference_noise(seg)}
+        rep["known_still"] = {
+            "seconds": KNOWN_STILL_S[name],
+            "std_nT": seg.std(axis=0).tolist(),
+            "second_difference_nT": second_difference_noise(seg),
+        }
     robust = False
     try:
         with warnings.catch_warnings():
@@ -236,8 +260,12 @@ def study(name: str) -> dict:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 full = calibrate(ds, effects=[label], robust=robust)
-            rep["effects"][label] = {"delta_bic": c["delta_bic"], "refitted": c["refitted"],
-                                     "in_sample_rms_nT": full.rms_nT, **held_out(ds, [label], robust)}
+            rep["effects"][label] = {
+                "delta_bic": c["delta_bic"],
+                "refitted": c["refitted"],
+                "in_sample_rms_nT": full.rms_nT,
+                **held_out(ds, [label], robust),
+            }
         except MagcalError as exc:
             rep["effects"][label] = {"error": str(exc)}
     return rep
@@ -247,10 +275,14 @@ def summary_line(rep: dict) -> str:
     if "base" not in rep:
         return f"{rep['name']}: N={rep['N']} no fit: {rep.get('robust_error', rep.get('base_error'))}"
     b = rep["base"]
-    eff = "; ".join(f"{k}: {v.get('in_sample_rms_nT', float('nan')):.1f}/{v.get('heldout_rms_nT', float('nan')):.1f}"
-                    for k, v in rep["effects"].items())
-    return (f"{rep['name']}: N={rep['N']} field {rep['field_nT']:.0f} nT, noise(magcal) {rep['magcal_noise_nT']:.1f}, "
-            f"base in/held-out {b['in_sample_rms_nT']:.1f}/{b['heldout_rms_nT']:.1f} nT; {eff}")
+    eff = "; ".join(
+        f"{k}: {v.get('in_sample_rms_nT', float('nan')):.1f}/{v.get('heldout_rms_nT', float('nan')):.1f}"
+        for k, v in rep["effects"].items()
+    )
+    return (
+        f"{rep['name']}: N={rep['N']} field {rep['field_nT']:.0f} nT, noise(magcal) {rep['magcal_noise_nT']:.1f}, "
+        f"base in/held-out {b['in_sample_rms_nT']:.1f}/{b['heldout_rms_nT']:.1f} nT; {eff}"
+    )
 
 
 def main(argv=None) -> int:

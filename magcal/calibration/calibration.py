@@ -85,8 +85,12 @@ class RecordHasher:
 
     def fingerprint(self) -> dict:
         """``n_samples``, ``time_start_s``, ``time_end_s`` (None without a time column) and ``readings_sha256``."""
-        return {"n_samples": self.n_samples, "time_start_s": self.time_start_s, "time_end_s": self.time_end_s,
-                "readings_sha256": self._hash.hexdigest()}
+        return {
+            "n_samples": self.n_samples,
+            "time_start_s": self.time_start_s,
+            "time_end_s": self.time_end_s,
+            "readings_sha256": self._hash.hexdigest(),
+        }
 
 
 def record_fingerprint(dataset) -> dict:
@@ -104,8 +108,11 @@ def record_fingerprint(dataset) -> dict:
 def same_record(fingerprint, other) -> bool:
     """True when two fingerprints (:func:`record_fingerprint`) describe the same samples."""
     keys = ("n_samples", "readings_sha256")
-    return (isinstance(fingerprint, dict) and isinstance(other, dict)
-            and all(fingerprint.get(k) is not None and fingerprint.get(k) == other.get(k) for k in keys))
+    return (
+        isinstance(fingerprint, dict)
+        and isinstance(other, dict)
+        and all(fingerprint.get(k) is not None and fingerprint.get(k) == other.get(k) for k in keys)
+    )
 
 
 @dataclass
@@ -270,7 +277,7 @@ class Calibration:
         self.summary = dict(self.summary or {})
         self.summary["record"] = None if fingerprint is None else dict(fingerprint)
 
-    def fitted_on(self, dataset) -> "Calibration":
+    def fitted_on(self, dataset) -> Calibration:
         """Record ``dataset`` (the whole record given to the fit, mask or not) as the one fitted; returns self."""
         self.record = record_fingerprint(dataset)
         return self
@@ -279,8 +286,7 @@ class Calibration:
         """Labels of the record-only terms (:func:`is_transferable` False) held, optionally of some stages only."""
         if self.model is None:
             return []
-        return [e.label for e in self.model.effects
-                if not is_transferable(e) and (stages is None or e.stage in stages)]
+        return [e.label for e in self.model.effects if not is_transferable(e) and (stages is None or e.stage in stages)]
 
     def record_decision(self, dataset=None, record_terms=None, stages=None, fingerprint=None):
         """Whether this calibration's record-only terms act on ``dataset``, and why.
@@ -307,8 +313,9 @@ class Calibration:
             A message for a :class:`~magcal.core.errors.RecordTermWarning`, or None when nothing needs saying.
         """
         if record_terms is not None and record_terms not in RECORD_TERM_CHOICES:
-            raise MagcalError(f"record_terms must be 'apply' or 'drop' (or None to decide from the record), "
-                              f"got {record_terms!r}")
+            raise MagcalError(
+                f"record_terms must be 'apply' or 'drop' (or None to decide from the record), got {record_terms!r}"
+            )
         labels = self.record_terms(stages)
         if not labels or record_terms == "apply":
             return [], None
@@ -319,20 +326,24 @@ class Calibration:
         if record is None:  # built in memory and never told its record: the caller holds the fit
             return [], None
         if not record:
-            return [], (f"the calibration holds the record-only term(s) {names}, which describe the recording they "
-                        "were fitted on, and it does not say which record that was (it was made before magcal "
-                        "saved a record fingerprint); they are applied as fitted. If these data are another "
-                        "record, drop them (record_terms='drop', --record-terms drop) or recalibrate")
+            return [], (
+                f"the calibration holds the record-only term(s) {names}, which describe the recording they "
+                "were fitted on, and it does not say which record that was (it was made before magcal "
+                "saved a record fingerprint); they are applied as fitted. If these data are another "
+                "record, drop them (record_terms='drop', --record-terms drop) or recalibrate"
+            )
         if fingerprint is None:
             fingerprint = record_fingerprint(dataset)
         if same_record(record, fingerprint):
             return [], None
-        return labels, (f"dropped the record-only term(s) {names}: they describe the recording the calibration was "
-                        f"fitted on ({_record_text(record)}), not the instrument, and these data are another record "
-                        f"({_record_text(fingerprint)}): applied, they would put that recording's drift, step or "
-                        "interference into these data. If they are the same record, or you have a reference for "
-                        "this one, apply them with "
-                        "record_terms='apply' (--record-terms apply)")
+        return labels, (
+            f"dropped the record-only term(s) {names}: they describe the recording the calibration was "
+            f"fitted on ({_record_text(record)}), not the instrument, and these data are another record "
+            f"({_record_text(fingerprint)}): applied, they would put that recording's drift, step or "
+            "interference into these data. If they are the same record, or you have a reference for "
+            "this one, apply them with "
+            "record_terms='apply' (--record-terms apply)"
+        )
 
     def _model_for(self, dataset, record_terms, stages, warn=True):
         """The model (and effect values) to evaluate on ``dataset`` after the record-term decision."""
@@ -371,8 +382,9 @@ class Calibration:
         dataset's ``ref_total`` column when it has none) plus its reference-stage effects (``record_terms`` as in
         :meth:`correct`: a reference drift of the fitted record is dropped on another)."""
         model = self._model_for(dataset, record_terms, ("reference",))
-        return expected_total_field(dataset, self.reference_total_nT, model, self.effect_values,
-                                    contexts(dataset, self.baseline_m))
+        return expected_total_field(
+            dataset, self.reference_total_nT, model, self.effect_values, contexts(dataset, self.baseline_m)
+        )
 
     def total_field_residuals(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
         """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output
@@ -420,14 +432,16 @@ class Calibration:
             for e, s in self.model.instances():
                 label = block_label(e, s)
                 values = np.asarray(self.effect_values.get(label, np.zeros(len(e.param_names()))), dtype=float)
-                effects.append({
-                    "effect": e.name,
-                    "sensor": None if s is None else s + 1,
-                    "term": e.label,
-                    "params": dict(zip(e.param_names(), values.tolist())),
-                    "state": jsonable(e.state()),
-                    "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
-                })
+                effects.append(
+                    {
+                        "effect": e.name,
+                        "sensor": None if s is None else s + 1,
+                        "term": e.label,
+                        "params": dict(zip(e.param_names(), values.tolist())),
+                        "state": jsonable(e.state()),
+                        "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
+                    }
+                )
         doc = {
             "format": FORMAT,
             "version": VERSION,
@@ -443,14 +457,15 @@ class Calibration:
         if self.base_covariance is not None:
             doc["base_covariance"] = {
                 "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
-                         "in the order of 'effects'",
-                "matrix": np.asarray(self.base_covariance, float).tolist()}
+                "in the order of 'effects'",
+                "matrix": np.asarray(self.base_covariance, float).tolist(),
+            }
         doc.update(jsonable(self.summary))
         doc["record"] = jsonable(self.record)  # null: never told which record it was fitted on
         return doc
 
     @classmethod
-    def from_dict(cls, doc: dict, source: str = "calibration", n_sensors=None) -> "Calibration":
+    def from_dict(cls, doc: dict, source: str = "calibration", n_sensors=None) -> Calibration:
         """Rebuild a calibration from :meth:`to_dict` output, refusing anything else with one clear message.
 
         Parameters
@@ -469,7 +484,7 @@ class Calibration:
             ``Cinv``, an ``R`` that is not a proper rotation), a damaged effect entry or a bad baseline.
         """
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-            raise MagcalError(f"{source}: not a magcal calibration file (expected \"format\": \"{FORMAT}\")")
+            raise MagcalError(f'{source}: not a magcal calibration file (expected "format": "{FORMAT}")')
         if doc.get("version") != VERSION:
             raise MagcalError(
                 f"{source}: calibration file version {doc.get('version')!r} is not supported by this magcal "
@@ -495,9 +510,12 @@ class Calibration:
                 raise MagcalError(f"{source}: baseline_m {baseline!r} must be a positive number of metres")
         derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
         sensors = [
-            SensorCalibration(np.array(s["Cinv"], float), np.array(s["bias_nT"], float),
-                              np.array(s.get("R", np.eye(3)), float),
-                              summary={k: v for k, v in s.items() if k not in derived})
+            SensorCalibration(
+                np.array(s["Cinv"], float),
+                np.array(s["bias_nT"], float),
+                np.array(s.get("R", np.eye(3)), float),
+                summary={k: v for k, v in s.items() if k not in derived},
+            )
             for s in entries
         ]
         try:
@@ -506,28 +524,46 @@ class Calibration:
             raise
         except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
             raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
-        known = {"format", "version", "reference_total_nT", "reference_fitted", "baseline_m", "frame", "base_terms",
-                 "effects", "effect_params", "sensors", "base_covariance"}
+        known = {
+            "format",
+            "version",
+            "reference_total_nT",
+            "reference_fitted",
+            "baseline_m",
+            "frame",
+            "base_terms",
+            "effects",
+            "effect_params",
+            "sensors",
+            "base_covariance",
+        }
         cov = None
         if doc.get("base_covariance") is not None:
-
             size = 12 * len(sensors)
             joint = covariance_size(len(sensors), model)  # with the effects' parameters (files made since)
             try:
                 cov = np.array(doc["base_covariance"]["matrix"], float)
-                ok = cov.ndim == 2 and cov.shape[0] == cov.shape[1] and cov.shape[0] in (size, joint) \
+                ok = (
+                    cov.ndim == 2
+                    and cov.shape[0] == cov.shape[1]
+                    and cov.shape[0] in (size, joint)
                     and np.all(np.isfinite(cov))
+                )
             except (TypeError, ValueError, KeyError):
                 ok = False
             if not ok:
                 shapes = f"{size} x {size}" + (f" or {joint} x {joint}" if joint != size else "")
-                raise MagcalError(f"{source}: 'base_covariance' must hold a {shapes} matrix of numbers; the "
-                                  "file is damaged, recalibrate")
+                raise MagcalError(
+                    f"{source}: 'base_covariance' must hold a {shapes} matrix of numbers; the "
+                    "file is damaged, recalibrate"
+                )
         summary = {k: v for k, v in doc.items() if k not in known}
         record = summary.get("record")
         if record is not None and not (isinstance(record, dict) and _fingerprint_ok(record)):
-            raise MagcalError(f"{source}: 'record' must be the fingerprint of the fitted record (n_samples, "
-                              "time_start_s, time_end_s, readings_sha256); the file is damaged, recalibrate")
+            raise MagcalError(
+                f"{source}: 'record' must be the fingerprint of the fitted record (n_samples, "
+                "time_start_s, time_end_s, readings_sha256); the file is damaged, recalibrate"
+            )
         if "record" not in doc and model is not None and any(not is_transferable(e) for e in model.effects):
             summary["record"] = {}  # made before magcal saved the record: which one it was is unknown
         return cls(
@@ -547,7 +583,7 @@ class Calibration:
         write_json_atomic(path, self.to_dict())
 
     @classmethod
-    def load(cls, path, n_sensors=None) -> "Calibration":
+    def load(cls, path, n_sensors=None) -> Calibration:
         """Read a calibration file written by :meth:`save`, with one clear :class:`MagcalError` for any problem.
 
         Parameters
@@ -569,8 +605,10 @@ class Calibration:
         try:
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-            raise MagcalError(f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
-                              "written by magcal calibrate or magcal align") from None
+            raise MagcalError(
+                f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
+                "written by magcal calibrate or magcal align"
+            ) from None
         return cls.from_dict(doc, source=path, n_sensors=n_sensors)
 
 
@@ -609,8 +647,7 @@ def _fingerprint_ok(record) -> bool:
     if not record:
         return True
     n = record.get("n_samples")
-    return (isinstance(n, int) and not isinstance(n, bool) and n >= 0
-            and isinstance(record.get("readings_sha256"), str))
+    return isinstance(n, int) and not isinstance(n, bool) and n >= 0 and isinstance(record.get("readings_sha256"), str)
 
 
 def _effects_from_dict(doc, n_sensors, source="calibration"):
@@ -621,7 +658,6 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
     """
     model, values = None, {}
     if doc.get("effect_params") or doc.get("base_terms"):
-
         model = Model(n_sensors, base=tuple(doc.get("base_terms") or BASE_TERMS))
         seen = {}
         for entry in doc.get("effect_params", []):
@@ -648,5 +684,3 @@ def write_json_atomic(path, document) -> None:
     with atomic_write(path, "w", newline=None) as fh:
         json.dump(document, fh, indent=2)
         fh.write("\n")
-
-

@@ -36,7 +36,7 @@ def calibration_json(result) -> dict:
 SCOPE_WORDS = {
     True: "instrument term: carried to new data",
     False: "record-only term: describes this recording; applied only to it (magcal apply drops it on other "
-           "data, with a warning)",
+    "data, with a warning)",
 }
 
 
@@ -83,8 +83,10 @@ def text_report(result, source: str | None = None) -> str:
     out.append(f"{ns} sensor(s), {result.n_samples} samples; reference field: {ref_value}{ref_text}")
     if cal.baseline_m:
         out.append(f"baseline d = {cal.baseline_m:g} m")
-    method = {"ml": "ellipsoid -> Procrustes -> maximum likelihood", "ellipsoid": "ellipsoid -> Procrustes "
-              "(the seed's two steps)"}.get(result.method, f"global search ({result.method})")
+    method = {
+        "ml": "ellipsoid -> Procrustes -> maximum likelihood",
+        "ellipsoid": "ellipsoid -> Procrustes (the seed's two steps)",
+    }.get(result.method, f"global search ({result.method})")
     extras = []
     if result.robust:
         extras.append("robust soft-L1 loss")
@@ -94,8 +96,9 @@ def text_report(result, source: str | None = None) -> str:
     out.append("")
 
     # steps
-    out.append("Steps (total-field RMS per sensor, nT; sensor disagreement RMS |B_s - B_1|, nT; "
-               "worst tensor RMS, nT/m)")
+    out.append(
+        "Steps (total-field RMS per sensor, nT; sensor disagreement RMS |B_s - B_1|, nT; worst tensor RMS, nT/m)"
+    )
     header = f"  {'step':<11}" + "".join(f"{'s' + str(s + 1):>10}" for s in range(ns))
     if ns > 1:
         header += f"{'disagree':>10}"
@@ -119,8 +122,10 @@ def text_report(result, source: str | None = None) -> str:
             out.append(f"  ({noise.note})")
     else:
         out.append(f"Noise sigma = {result.noise_nT:.3g} nT per axis ({result.noise_source})")
-    line = (f"Total-field floor sigma*sqrt(1-p/N) = {result.total_field_floor_nT:.3f} nT; after calibration: "
-            f"{result.rms_nT:.3f} nT over all sensors")
+    line = (
+        f"Total-field floor sigma*sqrt(1-p/N) = {result.total_field_floor_nT:.3f} nT; after calibration: "
+        f"{result.rms_nT:.3f} nT over all sensors"
+    )
     if result.noise_source != "residuals" and result.total_field_floor_nT > 0:
         line += f" ({result.rms_nT / result.total_field_floor_nT:.2f} x floor)"
     else:
@@ -135,8 +140,10 @@ def text_report(result, source: str | None = None) -> str:
     # per sensor
     for s, sc in enumerate(cal.sensors):
         scale, angles = conventions.gauge_free(sc.cinv)
-        out.append(f"Sensor {s + 1}: total-field RMS {result.rms_before_per_sensor_nT[s]:.2f} nT before -> "
-                   f"{result.rms_after_per_sensor_nT[s]:.3f} nT after")
+        out.append(
+            f"Sensor {s + 1}: total-field RMS {result.rms_before_per_sensor_nT[s]:.2f} nT before -> "
+            f"{result.rms_after_per_sensor_nT[s]:.3f} nT after"
+        )
         out.append("  C^-1 =")
         out += _matrix_lines(sc.cinv, "    ")
         out.append("  b = [" + "  ".join(f"{v:+.3f}" for v in sc.bias_nT) + "] nT")
@@ -149,8 +156,10 @@ def text_report(result, source: str | None = None) -> str:
             out.append(f"  misalignment alpha, beta, gamma = [{alpha:+.5f}  {beta:+.5f}  {gamma:+.5f}] rad")
         if result.ellipsoids:
             cov = result.ellipsoids[s].coverage
-            out.append(f"  coverage: {100 * cov.sky_fraction:.0f}% of the sky visited, thinnest direction spread "
-                       f"{cov.thinnest_spread:.3f} (full sphere 0.333)")
+            out.append(
+                f"  coverage: {100 * cov.sky_fraction:.0f}% of the sky visited, thinnest direction spread "
+                f"{cov.thinnest_spread:.3f} (full sphere 0.333)"
+            )
         out.append("")
 
     # tensor
@@ -158,17 +167,24 @@ def text_report(result, source: str | None = None) -> str:
         out.append("Tensor RMS in the uniform calibration field (true tensor zero), nT/m")
         out.append(f"  {'':<6}{'before':>12}{'after':>10}{'floor':>10}")
         for k in conventions.TENSOR_COMPONENTS:
-            out.append(f"  {k:<6}{result.tensor_rms_before_nT_per_m[k]:>12.1f}{result.tensor_rms_nT_per_m[k]:>10.2f}"
-                       f"{result.tensor_floor_nT_per_m[k]:>10.2f}")
+            out.append(
+                f"  {k:<6}{result.tensor_rms_before_nT_per_m[k]:>12.1f}{result.tensor_rms_nT_per_m[k]:>10.2f}"
+                f"{result.tensor_floor_nT_per_m[k]:>10.2f}"
+            )
         out.append("  floor: sqrt(2) sigma/d per sensor pair, 2 sigma/d for Gzz")
         out.append("")
 
     if result.fit is not None:
         f = result.fit
-        out.append(f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}; " + (
-            f"converged ({f.message}, {f.nfev} evaluations)" if f.success else
-            f"DID NOT CONVERGE ({f.message}, {f.nfev} evaluations): the figures above are not a minimum; "
-            "look at the data (outliers, coverage, units) or refit"))
+        out.append(
+            f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}; "
+            + (
+                f"converged ({f.message}, {f.nfev} evaluations)"
+                if f.success
+                else f"DID NOT CONVERGE ({f.message}, {f.nfev} evaluations): the figures above are not a minimum; "
+                "look at the data (outliers, coverage, units) or refit"
+            )
+        )
         for e in f.effect_params:
             params = ", ".join(f"{k} = {v:.4g} +- {e['std'][k]:.2g}" for k, v in e["params"].items())
             where = "" if e["sensor"] is None or ":" in e["term"] else f" (sensor {e['sensor']})"

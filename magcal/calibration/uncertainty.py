@@ -139,7 +139,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
     if cov is None:
         return None
     ns = calibration.n_sensors
-    L = _factor(cov)                                  # (12 ns [+ q], r)
+    L = _factor(cov)  # (12 ns [+ q], r)
     y = np.asarray(dataset.readings_nT, float)
     n = y.shape[1]
     if corrected_nT is None:
@@ -153,13 +153,16 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
         rows_of[label] = slice(at, at + q)
         at += q
     joint = cov.shape[0] == at and at > THETA_PER_SENSOR * ns
-    effects = [(label, e, es) for label, e, es, _ in effect_layout(calibration.model)
-               if joint and label in acting_labels and e.stage in ("raw", "vector")]
+    effects = [
+        (label, e, es)
+        for label, e, es, _ in effect_layout(calibration.model)
+        if joint and label in acting_labels and e.stage in ("raw", "vector")
+    ]
     ctxs = contexts(dataset, calibration.baseline_m) if effects else None
     values = calibration.effect_values or {}
     H = np.empty((n, 3 * ns, L.shape[1]))
     for s, sc in enumerate(calibration.sensors):
-        z0 = y[s] - sc.bias_nT                         # (N, 3)
+        z0 = y[s] - sc.bias_nT  # (N, 3)
         M = sc.R @ sc.cinv
         mine = [(label, e) for label, e, es in effects if es == s or (es is None and e.applies_to(s))]
         z = z0
@@ -169,16 +172,16 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
                 basis = e.raw_basis(z0, ctxs[s])
                 z = z - basis_times(basis, values[label])
                 raw.append((label, basis))
-        rows = L[THETA_PER_SENSOR * s: THETA_PER_SENSOR * (s + 1)]   # (12, r)
+        rows = L[THETA_PER_SENSOR * s : THETA_PER_SENSOR * (s + 1)]  # (12, r)
         # dB_k = sum_j z_j dM_kj - sum_j M_kj db_j
         for k in range(3):
-            H[:, 3 * s + k] = z @ rows[3 * k: 3 * k + 3] - (M[k] @ rows[9:12])[None, :]
-        part = H[:, 3 * s: 3 * s + 3]
-        for label, basis in raw:                       # dB = -M basis dp
+            H[:, 3 * s + k] = z @ rows[3 * k : 3 * k + 3] - (M[k] @ rows[9:12])[None, :]
+        part = H[:, 3 * s : 3 * s + 3]
+        for label, basis in raw:  # dB = -M basis dp
             part -= np.einsum("kj,njq,qr->nkr", M, basis, L[rows_of[label]], optimize=True)
         b_rot = z @ M.T
         for label, e in mine:
-            if e.stage == "vector":                    # dB = basis dp
+            if e.stage == "vector":  # dB = basis dp
                 part += np.einsum("nkq,qr->nkr", e.vector_basis(b_rot, ctxs[s]), L[rows_of[label]], optimize=True)
     vector_sd = np.sqrt(np.sum(H * H, axis=2)).reshape(n, ns, 3).transpose(1, 0, 2)
     unit = unit_rows(corrected_nT)

@@ -118,12 +118,28 @@ def coverage(data, cap_deg=30.0, noise_nT=None, n_test=2000):
         plan.append(_planarity(y))
         fac.append(extrapolation_factor(u) if n >= FULL_MODEL_PARAMS else float("inf"))
     full = extrapolation_factor(fibonacci_sphere(max(n, FULL_MODEL_PARAMS)))
-    return Coverage(np.array(frac), np.array(gap), np.array(plan), np.array(fac), full, float(cap_deg), n,
-                    None if noise_nT is None else float(noise_nT))
+    return Coverage(
+        np.array(frac),
+        np.array(gap),
+        np.array(plan),
+        np.array(fac),
+        full,
+        float(cap_deg),
+        n,
+        None if noise_nT is None else float(noise_nT),
+    )
 
 
-def check_coverage(data, full_model=True, cap_deg=30.0, noise_nT=None, factor_warn=3.0, fraction_warn=0.5,
-                   planarity_min=0.02, source=None):
+def check_coverage(
+    data,
+    full_model=True,
+    cap_deg=30.0,
+    noise_nT=None,
+    factor_warn=3.0,
+    fraction_warn=0.5,
+    planarity_min=0.02,
+    source=None,
+):
     """Coverage figures, refusing data that cannot determine a full model and warning when coverage is poor.
 
     Parameters
@@ -164,24 +180,34 @@ def check_coverage(data, full_model=True, cap_deg=30.0, noise_nT=None, factor_wa
                 )
     # uneven density (most samples in a few directions) matters on a sphere covered nearly everywhere only when
     # the error it leaves off those directions is a good part of the noise
-    poor = [i for i in range(len(cov.fraction))
-            if cov.fraction[i] < fraction_warn
-            or (cov.extrapolation_factor[i] > factor_warn * cov.full_factor
-                and (cov.fraction[i] < COVERED_FRACTION or cov.extrapolation_factor[i] > UNEVEN_FACTOR_WARN))]
+    poor = [
+        i
+        for i in range(len(cov.fraction))
+        if cov.fraction[i] < fraction_warn
+        or (
+            cov.extrapolation_factor[i] > factor_warn * cov.full_factor
+            and (cov.fraction[i] < COVERED_FRACTION or cov.extrapolation_factor[i] > UNEVEN_FACTOR_WARN)
+        )
+    ]
     if poor:
         worst = max(poor, key=lambda i: cov.extrapolation_factor[i])
         k = cov.extrapolation_factor[worst]
         if cov.noise_nT is not None:
-            err = (f"expected total-field error away from the covered directions ~{k * cov.noise_nT:.3g} nT "
-                   f"(even coverage with as many samples: {cov.full_nT:.3g} nT)")
+            err = (
+                f"expected total-field error away from the covered directions ~{k * cov.noise_nT:.3g} nT "
+                f"(even coverage with as many samples: {cov.full_nT:.3g} nT)"
+            )
         else:
-            err = (f"expected total-field error away from the covered directions ~{k:.3g} x the noise "
-                   f"(even coverage with as many samples: {cov.full_factor:.3g} x)")
+            err = (
+                f"expected total-field error away from the covered directions ~{k:.3g} x the noise "
+                f"(even coverage with as many samples: {cov.full_factor:.3g} x)"
+            )
         warnings.warn(
             f"{where}: poor direction coverage for sensor(s) {', '.join(str(i + 1) for i in poor)}: "
             f"{100 * cov.fraction[worst]:.0f}% of the sphere within {cap_deg:g} deg of a sample, largest gap "
             f"{cov.largest_gap_deg[worst]:.0f} deg; {err}. Record attitudes that fill the gaps",
-            CoverageWarning, stacklevel=2,
+            CoverageWarning,
+            stacklevel=2,
         )
     return cov
 
@@ -269,8 +295,10 @@ class DirectionMap:
             return "turn the sensor slowly through every orientation"
         if d is None or self.enough:
             return "the sphere is covered"
-        return (f"turn the sensor so that its {axis_words(d)} points along the field (north and down in the "
-                "northern hemisphere, north and up in the southern)")
+        return (
+            f"turn the sensor so that its {axis_words(d)} points along the field (north and down in the "
+            "northern hemisphere, north and up in the southern)"
+        )
 
 
 def axis_words(direction) -> str:
@@ -282,8 +310,9 @@ def axis_words(direction) -> str:
     return f"{name} axis" if big.sum() == 1 else f"{name} direction"
 
 
-def direction_map(readings_nT, n_cells: int = 400, cap_deg: float = 30.0, shape: FieldShape | None = None
-                  ) -> DirectionMap:
+def direction_map(
+    readings_nT, n_cells: int = 400, cap_deg: float = 30.0, shape: FieldShape | None = None
+) -> DirectionMap:
     """The visited and missing directions of one sensor's readings.
 
     Parameters
@@ -344,7 +373,11 @@ def live_sufficient(maps, rms_nT=None, expected_rms_nT=None) -> tuple[bool, str]
     if expected_rms_nT is None or not np.isfinite(expected_rms_nT) or expected_rms_nT <= 0:
         return True, f"coverage is enough and the fit's RMS is {rms_nT:.3g} nT (no noise level to judge it against)"
     if rms_nT <= ENOUGH_RMS_FACTOR * expected_rms_nT:
-        return True, (f"enough: the directions are covered and the fit's RMS {rms_nT:.3g} nT is at the noise floor "
-                      f"({expected_rms_nT:.3g} nT); stop and calibrate")
-    return False, (f"coverage is enough but the fit's RMS {rms_nT:.3g} nT is above the noise floor "
-                   f"({expected_rms_nT:.3g} nT): stop and diagnose what the model is missing")
+        return True, (
+            f"enough: the directions are covered and the fit's RMS {rms_nT:.3g} nT is at the noise floor "
+            f"({expected_rms_nT:.3g} nT); stop and calibrate"
+        )
+    return False, (
+        f"coverage is enough but the fit's RMS {rms_nT:.3g} nT is above the noise floor "
+        f"({expected_rms_nT:.3g} nT): stop and diagnose what the model is missing"
+    )

@@ -119,13 +119,19 @@ class NoiseEstimate:
     def to_dict(self) -> dict:
         """JSON-ready figures: ``noise_nT``, ``per_sensor_nT``, ``source``, ``note``, ``static_scatter_nT``,
         ``quantization_floor_nT`` (nT; NaN written as None)."""
+
         def _list(v):
             return None if v is None else [float(x) if np.isfinite(x) else None for x in np.asarray(v, float)]
 
-        return {"noise_nT": float(self.sigma_nT), "per_sensor_nT": _list(self.per_sensor_nT),
-                "source": self.source, "note": self.note, "static_noise_nT": _list(self.static_noise_nT),
-                "static_scatter_nT": _list(self.static_scatter_nT),
-                "quantization_floor_nT": _list(self.quantization_floor_nT)}
+        return {
+            "noise_nT": float(self.sigma_nT),
+            "per_sensor_nT": _list(self.per_sensor_nT),
+            "source": self.source,
+            "note": self.note,
+            "static_noise_nT": _list(self.static_noise_nT),
+            "static_scatter_nT": _list(self.static_scatter_nT),
+            "quantization_floor_nT": _list(self.quantization_floor_nT),
+        }
 
 
 def is_smooth_sequence(dataset) -> bool:
@@ -252,8 +258,9 @@ def still_noise_nT(dataset, steps_nT=None):
     diff_nT, scatter_nT, samples = np.full(ns, np.nan), np.full(ns, np.nan), np.zeros(ns, int)
     for s in range(ns):
         y = np.asarray(dataset.readings_nT[s], float)
-        stretches = static_stretches(y, window=static_window(len(y), interval),
-                                     steps_nT=None if steps_nT is None else steps_nT[s])
+        stretches = static_stretches(
+            y, window=static_window(len(y), interval), steps_nT=None if steps_nT is None else steps_nT[s]
+        )
         scatter = static_scatter_nT(y, stretches)
         if scatter is not None:
             scatter_nT[s] = float(np.sqrt(np.mean(np.square(scatter))))
@@ -298,6 +305,7 @@ def _readings_facts(dataset):
     def same_time(value):
         cached = value[0]
         return cached is time_s or (cached is not None and time_s is not None and np.array_equal(cached, time_s))
+
     return _READINGS_FACTS.get(readings, ("noise facts",), compute, valid=same_time)[1]
 
 
@@ -322,8 +330,9 @@ def prefetch_readings_facts(dataset):
     def wait():
         try:
             future.result()
-        except Exception:  # noqa: BLE001 - estimate_noise computes (and reports) it again
+        except Exception:
             pass
+
     return wait
 
 
@@ -375,11 +384,12 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
     if static is not None and np.all(np.isfinite(static)) and still_samples.min() >= MIN_STATIC_SAMPLES:
         per, source = static.copy(), "static"
         rel_error = _difference_variance_error(int(still_samples.min()), 2)
-        note = (f"measured in the still stretches ({int(still_samples.min())}+ samples per sensor), free of any "
-                "misfit of the model")
+        note = (
+            f"measured in the still stretches ({int(still_samples.min())}+ samples per sensor), free of any "
+            "misfit of the model"
+        )
         if ordered:
-            moving = np.array([_difference_sigma(r[s], fresh[s])[0]
-                               for s in range(ns)])
+            moving = np.array([_difference_sigma(r[s], fresh[s])[0] for s in range(ns)])
             note += "; the residuals' differences give " + _values(moving) + " nT"
     elif ordered:
         per, counts = [], []
@@ -396,13 +406,16 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
         n = np.isfinite(r).sum(axis=1)
         per = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n - n_params / ns, 1))
         source, rel_error = "residuals", float(np.sqrt(2.0 / max(n.min(), 1)))
-        note = ("no smooth time order, no still stretch and no declared noise: the noise is taken from the "
-                "residual RMS, so only structure (not size) can reveal a misfit; give it (--noise NT)")
+        note = (
+            "no smooth time order, no still stretch and no declared noise: the noise is taken from the "
+            "residual RMS, so only structure (not size) can reveal a misfit; give it (--noise NT)"
+        )
     if q_floor is not None and np.any(per < q_floor):
         low = per < q_floor
         per = np.where(low, q_floor, per)
         if np.all(low):
             source = "quantization"
-        note = (note + "; " if note else "") + ("the estimate fell below the quantization floor q/sqrt(12) "
-                                                 f"({np.max(q_floor):.3g} nT) and is held at it")
+        note = (note + "; " if note else "") + (
+            f"the estimate fell below the quantization floor q/sqrt(12) ({np.max(q_floor):.3g} nT) and is held at it"
+        )
     return NoiseEstimate(float(np.sqrt(np.mean(per**2))), per, source, rel_error, note, scatter, q_floor, static)

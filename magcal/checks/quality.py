@@ -163,15 +163,28 @@ class Finding:
         return f"{head}{self.where}{self.summary}; {self.effect}"
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "severity": self.severity, "sensor": self.sensor, "notable": self.notable,
-                "summary": self.summary, "effect": self.effect, "values": _jsonable(self.values)}
+        return {
+            "kind": self.kind,
+            "severity": self.severity,
+            "sensor": self.sensor,
+            "notable": self.notable,
+            "summary": self.summary,
+            "effect": self.effect,
+            "values": _jsonable(self.values),
+        }
 
     @classmethod
-    def from_dict(cls, doc) -> "Finding":
+    def from_dict(cls, doc) -> Finding:
         """The finding :meth:`to_dict` wrote (e.g. from a workbench session or a ``--json`` document)."""
-        return cls(kind=str(doc["kind"]), severity=str(doc["severity"]), summary=str(doc["summary"]),
-                   effect=str(doc["effect"]), sensor=doc.get("sensor"), notable=bool(doc.get("notable", False)),
-                   values=dict(doc.get("values") or {}))
+        return cls(
+            kind=str(doc["kind"]),
+            severity=str(doc["severity"]),
+            summary=str(doc["summary"]),
+            effect=str(doc["effect"]),
+            sensor=doc.get("sensor"),
+            notable=bool(doc.get("notable", False)),
+            values=dict(doc.get("values") or {}),
+        )
 
 
 @dataclass
@@ -208,14 +221,22 @@ class QualityReport:
     def to_dict(self) -> dict:
         """JSON-able: ``n_sensors``, ``n_samples``, ``source``, ``findings`` (every finding, see
         :meth:`Finding.to_dict`)."""
-        return {"n_sensors": self.n_sensors, "n_samples": self.n_samples, "source": self.source,
-                "findings": [f.to_dict() for f in self.findings]}
+        return {
+            "n_sensors": self.n_sensors,
+            "n_samples": self.n_samples,
+            "source": self.source,
+            "findings": [f.to_dict() for f in self.findings],
+        }
 
     @classmethod
-    def from_dict(cls, doc) -> "QualityReport":
+    def from_dict(cls, doc) -> QualityReport:
         """The report :meth:`to_dict` wrote: what the workbench stores and shows."""
-        return cls([Finding.from_dict(f) for f in doc.get("findings", [])], int(doc.get("n_sensors", 0)),
-                   int(doc.get("n_samples", 0)), doc.get("source"))
+        return cls(
+            [Finding.from_dict(f) for f in doc.get("findings", [])],
+            int(doc.get("n_sensors", 0)),
+            int(doc.get("n_samples", 0)),
+            doc.get("source"),
+        )
 
     def lines(self, notable_only=True) -> list:
         """Text lines: the sample-rate line, then each (notable) finding with its effect on the next line."""
@@ -267,9 +288,16 @@ def timing_findings(time_s) -> list:
     positive = dt[dt > 0]
     out = []
     if positive.size == 0:
-        return [Finding("sample_rate", "warning", f"all {t.size} time stamps are equal ({t[0]:.6g} s)",
-                        "time-dependent terms (drift, bias steps, lag) cannot be fitted from these times",
-                        notable=True, values={"interval_s": None, "rate_Hz": None, "jitter": None})]
+        return [
+            Finding(
+                "sample_rate",
+                "warning",
+                f"all {t.size} time stamps are equal ({t[0]:.6g} s)",
+                "time-dependent terms (drift, bias steps, lag) cannot be fitted from these times",
+                notable=True,
+                values={"interval_s": None, "rate_Hz": None, "jitter": None},
+            )
+        ]
     median = float(np.median(positive))
     duration = float(t.max() - t.min())
     mean = duration / (t.size - 1)
@@ -277,56 +305,113 @@ def timing_findings(time_s) -> list:
     interval = mean if batched else median  # the sampling interval: the mean when the stamps come in batches
     jitter = float(robust_sigma(positive)) / median
     rate = 1.0 / interval
-    values = {"interval_s": interval, "rate_Hz": rate, "jitter": jitter, "duration_s": duration,
-              "median_interval_s": median, "mean_rate_Hz": 1.0 / mean if mean > 0 else None, "batched": batched}
+    values = {
+        "interval_s": interval,
+        "rate_Hz": rate,
+        "jitter": jitter,
+        "duration_s": duration,
+        "median_interval_s": median,
+        "mean_rate_Hz": 1.0 / mean if mean > 0 else None,
+        "batched": batched,
+    }
     if batched:
         short = float(np.mean(dt < BATCH_SHORT * mean))
         values["short_share"] = short
-        summary = (f"sample rate {rate:.4g} Hz on average ({t.size} samples in {duration:.4g} s); the samples arrive "
-                   f"in batches: {100 * short:.0f}% of the intervals are under half the mean (median "
-                   f"{1000 * median:.3g} ms), the others long (up to {1000 * float(dt.max()):.4g} ms)")
-        out.append(Finding("sample_rate", "warning", summary,
-                           "the stamps are the host's arrival times, not the sensor's sampling times: rates, lags, "
-                           "time derivatives and periods taken from them are wrong by up to the batch interval "
-                           "(time-stamp at the sensor, or use the mean rate)", notable=True, values=values))
+        summary = (
+            f"sample rate {rate:.4g} Hz on average ({t.size} samples in {duration:.4g} s); the samples arrive "
+            f"in batches: {100 * short:.0f}% of the intervals are under half the mean (median "
+            f"{1000 * median:.3g} ms), the others long (up to {1000 * float(dt.max()):.4g} ms)"
+        )
+        out.append(
+            Finding(
+                "sample_rate",
+                "warning",
+                summary,
+                "the stamps are the host's arrival times, not the sensor's sampling times: rates, lags, "
+                "time derivatives and periods taken from them are wrong by up to the batch interval "
+                "(time-stamp at the sensor, or use the mean rate)",
+                notable=True,
+                values=values,
+            )
+        )
     else:
         spread = f"{100 * jitter:.2g}%" if jitter >= 1e-3 else "under 0.1%"
         summary = f"sample rate {rate:.4g} Hz (median interval {interval:.4g} s), jitter {spread} of the interval"
         if abs(mean / median - 1.0) > 0.1:
             summary += f"; mean rate {1.0 / mean:.4g} Hz ({t.size} samples in {duration:.4g} s)"
         if jitter > JITTER_WARN:
-            out.append(Finding("sample_rate", "warning", summary,
-                               "time-dependent terms (drift, bias steps, lag, time derivatives) take the time stamps "
-                               f"as given, so a jitter of {100 * jitter:.0f}% of the interval blurs a lag or rate term "
-                               "by as much", notable=True, values=values))
+            out.append(
+                Finding(
+                    "sample_rate",
+                    "warning",
+                    summary,
+                    "time-dependent terms (drift, bias steps, lag, time derivatives) take the time stamps "
+                    f"as given, so a jitter of {100 * jitter:.0f}% of the interval blurs a lag or rate term "
+                    "by as much",
+                    notable=True,
+                    values=values,
+                )
+            )
         else:
-            out.append(Finding("sample_rate", "info", summary,
-                               "time stamps are regular enough for time-dependent terms", values=values))
+            out.append(
+                Finding(
+                    "sample_rate",
+                    "info",
+                    summary,
+                    "time stamps are regular enough for time-dependent terms",
+                    values=values,
+                )
+            )
     # a gap is an interval well beyond the usual: the median one, or for batches the usual batch-to-batch one
     usual = float(np.median(positive[positive >= BATCH_SHORT * mean])) if batched else median
     gaps = positive > GAP_FACTOR * usual
     n_gaps = int(np.sum(gaps))
     longest = float(positive[gaps].max()) if n_gaps else 0.0
-    gap_values = {"count": n_gaps, "longest_s": longest, "missing_s": float(np.sum(positive[gaps])) if n_gaps else 0.0,
-                  "threshold_s": GAP_FACTOR * usual}
+    gap_values = {
+        "count": n_gaps,
+        "longest_s": longest,
+        "missing_s": float(np.sum(positive[gaps])) if n_gaps else 0.0,
+        "threshold_s": GAP_FACTOR * usual,
+    }
     what = "the usual interval between batches" if batched else "the median"
     if n_gaps:
         severe = longest > 10 * usual or n_gaps > 0.01 * dt.size
-        out.append(Finding("gaps", "warning" if severe else "info",
-                           f"{n_gaps} gap(s) in the time stamps (intervals over {GAP_FACTOR:g}x {what}), longest "
-                           f"{longest:.4g} s",
-                           "drift and lag terms see a jump across a gap and time derivatives there are wrong; the "
-                           "scalar fit itself only loses the missing directions", notable=True, values=gap_values))
+        out.append(
+            Finding(
+                "gaps",
+                "warning" if severe else "info",
+                f"{n_gaps} gap(s) in the time stamps (intervals over {GAP_FACTOR:g}x {what}), longest {longest:.4g} s",
+                "drift and lag terms see a jump across a gap and time derivatives there are wrong; the "
+                "scalar fit itself only loses the missing directions",
+                notable=True,
+                values=gap_values,
+            )
+        )
     else:
-        out.append(Finding("gaps", "info", "no gaps in the time stamps",
-                           "drift and lag terms see a continuous record", values=gap_values))
+        out.append(
+            Finding(
+                "gaps",
+                "info",
+                "no gaps in the time stamps",
+                "drift and lag terms see a continuous record",
+                values=gap_values,
+            )
+        )
     if n_repeat or n_back:
         parts = ([f"{n_repeat} repeated time stamp(s)"] if n_repeat else []) + (
-            [f"{n_back} going back"] if n_back else [])
-        out.append(Finding("time_order", "warning", " and ".join(parts) + f" among {t.size} samples",
-                           "rates and lags divide by the interval, so the timing of rate-dependent terms is wrong "
-                           "where stamps repeat or go back (the logger's clock is coarser than its sample rate?)",
-                           notable=True, values={"repeated": n_repeat, "backward": n_back}))
+            [f"{n_back} going back"] if n_back else []
+        )
+        out.append(
+            Finding(
+                "time_order",
+                "warning",
+                " and ".join(parts) + f" among {t.size} samples",
+                "rates and lags divide by the interval, so the timing of rate-dependent terms is wrong "
+                "where stamps repeat or go back (the logger's clock is coarser than its sample rate?)",
+                notable=True,
+                values={"repeated": n_repeat, "backward": n_back},
+            )
+        )
     return out
 
 
@@ -374,16 +459,26 @@ def stale_finding(readings_nT, sensor=None) -> Finding:
     longest = max((b - a for a, b in runs), default=0) + (1 if runs else 0)
     values = {"fraction": fraction, "count": int(same.sum()), "longest_run": int(longest)}
     if not same.any():
-        return Finding("stale", "info", "no stale readings (no vector repeats the previous one)",
-                       "every sample is a new measurement, weighted once",
-                       sensor=sensor, values=values)
-    return Finding("stale", "warning" if fraction >= STALE_WARN else "info",
-                   f"{100 * fraction:.3g}% of the readings repeat the previous vector exactly (stale), longest run "
-                   f"{longest} samples",
-                   "a repeated reading is one point counted twice: it weights that direction twice and adds no new "
-                   "noise sample, so the noise estimate and the uncertainties come out too small (host polling "
-                   "faster than the part converts?)",
-                   sensor=sensor, notable=fraction >= 0.01, values=values)
+        return Finding(
+            "stale",
+            "info",
+            "no stale readings (no vector repeats the previous one)",
+            "every sample is a new measurement, weighted once",
+            sensor=sensor,
+            values=values,
+        )
+    return Finding(
+        "stale",
+        "warning" if fraction >= STALE_WARN else "info",
+        f"{100 * fraction:.3g}% of the readings repeat the previous vector exactly (stale), longest run "
+        f"{longest} samples",
+        "a repeated reading is one point counted twice: it weights that direction twice and adds no new "
+        "noise sample, so the noise estimate and the uncertainties come out too small (host polling "
+        "faster than the part converts?)",
+        sensor=sensor,
+        notable=fraction >= 0.01,
+        values=values,
+    )
 
 
 # -- quantization --------------------------------------------------------------------------------------------------
@@ -421,8 +516,10 @@ def _common_step(values, min_levels=MIN_LEVELS, max_divisor=50):
     x = x[np.isfinite(x)]
     if x.size == 0:
         return None, np.zeros(0)
-    if x.size > SCREEN_FROM_SAMPLES and _common_step(x[::int(np.ceil(x.size / SCREEN_SAMPLES))], min_levels,
-                                                     max_divisor)[0] is None:
+    if (
+        x.size > SCREEN_FROM_SAMPLES
+        and _common_step(x[:: int(np.ceil(x.size / SCREEN_SAMPLES))], min_levels, max_divisor)[0] is None
+    ):
         return None, np.zeros(0)  # no step in an even subsample: continuous readings, told without sorting them all
     eps = 1e-9 * max(float(np.max(np.abs(x))), 1.0)  # float noise of a unit conversion
     u = np.unique(x)
@@ -556,12 +653,21 @@ def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None, n
     grids = [quantization_grid(y[:, k]) for k in range(3)]
     steps = [None if g is None else float(g["step_nT"]) for g in grids]
     found = [q for q in steps if q is not None]
-    values = {"step_nT": steps, "noise_floor_nT": [None if q is None else q / np.sqrt(12) for q in steps],
-              "common_step_nT": [None if g is None else float(g["common_step_nT"]) for g in grids],
-              "shift_share": [None if g is None else g["shift_share"] for g in grids]}
+    values = {
+        "step_nT": steps,
+        "noise_floor_nT": [None if q is None else q / np.sqrt(12) for q in steps],
+        "common_step_nT": [None if g is None else float(g["common_step_nT"]) for g in grids],
+        "shift_share": [None if g is None else g["shift_share"] for g in grids],
+    }
     if not found:
-        return Finding("quantization", "info", "no quantization step found (the readings look continuous)",
-                       "no rounding floor under the RMS", sensor=sensor, values=values)
+        return Finding(
+            "quantization",
+            "info",
+            "no quantization step found (the readings look continuous)",
+            "no rounding floor under the RMS",
+            sensor=sensor,
+            values=values,
+        )
     floor = max(found) / np.sqrt(12)
     text = ", ".join("-" if q is None else f"{q:.4g}" for q in steps)
     counts = ""
@@ -569,19 +675,31 @@ def quantization_finding(readings_nT, sensor=None, noise_nT=None, lsb_nT=None, n
         counts = " = " + ", ".join("-" if q is None else f"{q / lsb_nT:.3g}" for q in steps) + " LSB"
         values["step_counts"] = [None if q is None else q / lsb_nT for q in steps]
     summary = f"quantization step (x, y, z) {text} nT{counts}: noise floor q/sqrt(12) = {floor:.3g} nT"
-    shifting = [f"{AXES[k]} {100 * g['shift_share']:.0f}%" for k, g in enumerate(grids)
-                if g is not None and g["shift_share"] >= GRID_SHIFT_NOTE]
+    shifting = [
+        f"{AXES[k]} {100 * g['shift_share']:.0f}%"
+        for k, g in enumerate(grids)
+        if g is not None and g["shift_share"] >= GRID_SHIFT_NOTE
+    ]
     if shifting:
-        summary += ("; the grid shifts now and then (level spacings off the step: " + ", ".join(shifting) + ")")
+        summary += "; the grid shifts now and then (level spacings off the step: " + ", ".join(shifting) + ")"
     negligible = noise_nT is not None and noise_nT > 0 and floor < noise_nT / 3
     warn = floor >= QUANT_WARN_nT and not negligible
-    effect = (f"the total-field RMS cannot go below about {floor:.3g} nT, and with little noise to dither it the "
-              "rounding is not Gaussian: compare the RMS with this floor, not with zero")
+    effect = (
+        f"the total-field RMS cannot go below about {floor:.3g} nT, and with little noise to dither it the "
+        "rounding is not Gaussian: compare the RMS with this floor, not with zero"
+    )
     if negligible:
         source = f" ({noise_source})" if noise_source else ""
         effect = f"well below the {noise_nT:.3g} nT noise{source}, so it only adds q^2/12 to the noise variance"
-    return Finding("quantization", "warning" if warn else "info", summary, effect, sensor=sensor,
-                   notable=floor >= 0.1 * QUANT_WARN_nT or warn, values=values)
+    return Finding(
+        "quantization",
+        "warning" if warn else "info",
+        summary,
+        effect,
+        sensor=sensor,
+        notable=floor >= 0.1 * QUANT_WARN_nT or warn,
+        values=values,
+    )
 
 
 # -- clipping ------------------------------------------------------------------------------------------------------
@@ -604,21 +722,34 @@ def clipping_finding(readings_nT, sensor=None, keep=None) -> Finding:
         levels, counts = np.unique(y[:, k], return_counts=True)
         if levels.size < 5:
             continue
-        for end, (count, inward, value) in (("min", (counts[0], counts[1:4], levels[0])),
-                                            ("max", (counts[-1], counts[-4:-1], levels[-1]))):
+        for end, (count, inward, value) in (
+            ("min", (counts[0], counts[1:4], levels[0])),
+            ("max", (counts[-1], counts[-4:-1], levels[-1])),
+        ):
             if count >= max(CLIP_MIN_COUNT, 0.002 * n) and count >= CLIP_RATIO * float(np.mean(inward)):
                 clipped.append({"axis": axis, "end": end, "value_nT": float(value), "count": int(count)})
                 total += int(count)
     values = {"clipped": clipped, "fraction": total / max(n, 1)}
     if not clipped:
-        return Finding("clipping", "info", "no readings pile at an axis extreme (no clipping)",
-                       "no reading is cut off inside the ellipsoid",
-                       sensor=sensor, values=values)
+        return Finding(
+            "clipping",
+            "info",
+            "no readings pile at an axis extreme (no clipping)",
+            "no reading is cut off inside the ellipsoid",
+            sensor=sensor,
+            values=values,
+        )
     text = ", ".join(f"{c['axis']} at {c['value_nT']:.6g} nT ({c['count']} samples)" for c in clipped)
-    return Finding("clipping", "warning", f"readings pile at an axis extreme (clipped?): {text}",
-                   "clipped readings lie inside the true ellipsoid, so they pull the bias and shrink the scale of "
-                   "that axis; drop them or record with a larger range",
-                   sensor=sensor, notable=True, values=values)
+    return Finding(
+        "clipping",
+        "warning",
+        f"readings pile at an axis extreme (clipped?): {text}",
+        "clipped readings lie inside the true ellipsoid, so they pull the bias and shrink the scale of "
+        "that axis; drop them or record with a larger range",
+        sensor=sensor,
+        notable=True,
+        values=values,
+    )
 
 
 # -- static stretches ----------------------------------------------------------------------------------------------
@@ -647,7 +778,7 @@ SCALE_MAX_SAMPLES = 200_000
 
 def _even(values, m=SCALE_MAX_SAMPLES):
     """An even subsample of at most ``m`` rows (a median of a million values is that of 200 000 of them)."""
-    return values if values.shape[0] <= m else values[::int(np.ceil(values.shape[0] / m))]
+    return values if values.shape[0] <= m else values[:: int(np.ceil(values.shape[0] / m))]
 
 
 def motion_noise_nT(readings_nT) -> float:
@@ -719,7 +850,7 @@ def static_stretches(readings_nT, noise_nT=None, window=STATIC_WINDOW, steps_nT=
     quiet = _quiet_windows(y, window, limit)
     # sample i is covered when a quiet window starts in [i - window + 1, i]
     starts = np.concatenate([[0], np.cumsum(quiet), np.full(window - 1, int(quiet.sum()))])
-    mask = (starts[1:n + 1] - starts[np.maximum(np.arange(n) - window + 1, 0)]) > 0
+    mask = (starts[1 : n + 1] - starts[np.maximum(np.arange(n) - window + 1, 0)]) > 0
     return [(int(a), int(b)) for a, b in _runs(mask) if b - a >= 2 * window]
 
 
@@ -757,23 +888,40 @@ def static_finding(readings_nT, sensor=None, noise_nT=None, time_s=None, interva
     if longest is not None and time_s is not None:
         longest_s = float(time_s[longest[1] - 1] - time_s[longest[0]])
     scatter = static_scatter_nT(y, stretches)
-    values = {"count": len(stretches), "fraction": fraction, "window_samples": window,
-              "longest_samples": 0 if longest is None else longest[1] - longest[0], "longest_s": longest_s,
-              "scatter_nT": None if scatter is None else [float(s) for s in scatter],
-              "stretches": [list(ab) for ab in stretches]}
+    values = {
+        "count": len(stretches),
+        "fraction": fraction,
+        "window_samples": window,
+        "longest_samples": 0 if longest is None else longest[1] - longest[0],
+        "longest_s": longest_s,
+        "scatter_nT": None if scatter is None else [float(s) for s in scatter],
+        "stretches": [list(ab) for ab in stretches],
+    }
     if not stretches:
-        return Finding("static", "info", "no static stretches (the vector moves throughout)",
-                       "no direct measurement of the noise: the floor comes from differences of the readings or the "
-                       "residuals",
-                       sensor=sensor, values=values), stretches
+        return Finding(
+            "static",
+            "info",
+            "no static stretches (the vector moves throughout)",
+            "no direct measurement of the noise: the floor comes from differences of the readings or the residuals",
+            sensor=sensor,
+            values=values,
+        ), stretches
     span = f"{values['longest_samples']} samples" + (f" = {longest_s:.3g} s" if longest_s is not None else "")
-    noise = "" if scatter is None else (
-        "; their scatter (x, y, z) " + ", ".join(f"{s:.3g}" for s in scatter) + " nT is a direct noise measurement")
-    summary = (f"{len(stretches)} static stretch(es) holding {100 * fraction:.3g}% of the samples, longest {span}"
-               + noise)
+    noise = (
+        ""
+        if scatter is None
+        else (
+            "; their scatter (x, y, z) " + ", ".join(f"{s:.3g}" for s in scatter) + " nT is a direct noise measurement"
+        )
+    )
+    summary = (
+        f"{len(stretches)} static stretch(es) holding {100 * fraction:.3g}% of the samples, longest {span}" + noise
+    )
     if fraction >= STATIC_WARN:
-        effect = ("the fit weights the static direction by its number of samples and learns nothing about the "
-                  "others from them: thin them out or leave them out of the fit")
+        effect = (
+            "the fit weights the static direction by its number of samples and learns nothing about the "
+            "others from them: thin them out or leave them out of the fit"
+        )
         severity = "warning"
     else:
         effect = "they add little direction information; compare the fit's RMS with their scatter"
@@ -801,17 +949,31 @@ def temperature_finding(temperature_C, time_s=None) -> Finding | None:
     if corr is not None:
         summary += f", correlation with {against} {corr:+.2f}"
     if span < TEMP_SPAN_MIN_K:
-        return Finding("temperature", "info", summary,
-                       "too small a span to fit temperature terms: their coefficients are poorly determined",
-                       notable=True, values=values)
+        return Finding(
+            "temperature",
+            "info",
+            summary,
+            "too small a span to fit temperature terms: their coefficients are poorly determined",
+            notable=True,
+            values=values,
+        )
     if corr is not None and abs(corr) >= TEMP_TIME_CORR_WARN:
-        return Finding("temperature", "warning", summary,
-                       "a temperature that follows time makes temperature and drift terms indistinguishable: a "
-                       "fitted temperature coefficient may be a drift, and the other way round",
-                       notable=True, values=values)
-    return Finding("temperature", "info", summary,
-                   "temperature and time vary differently enough to tell temperature terms from drift",
-                   values=values)
+        return Finding(
+            "temperature",
+            "warning",
+            summary,
+            "a temperature that follows time makes temperature and drift terms indistinguishable: a "
+            "fitted temperature coefficient may be a drift, and the other way round",
+            notable=True,
+            values=values,
+        )
+    return Finding(
+        "temperature",
+        "info",
+        summary,
+        "temperature and time vary differently enough to tell temperature terms from drift",
+        values=values,
+    )
 
 
 # -- after the fit -------------------------------------------------------------------------------------------------
@@ -836,17 +998,24 @@ def field_magnitude_finding(field_nT, kind="fitted", units_hint=True) -> Finding
     lo, hi = EARTH_FIELD_RANGE_nT
     if lo <= field_nT <= hi:
         return None
-    cause = ("check --units / --lsb: the unit or the LSB of the readings may be wrong (or the record covers too few "
-             "directions to determine the ellipsoid: see any coverage warning; or it was made in a shielded room, a "
-             "coil or near iron)" if units_hint else
-             "the record covers too few directions to determine the ellipsoid, was made in a shielded room, a coil "
-             "or near iron, or the readings are scaled")
+    cause = (
+        "check --units / --lsb: the unit or the LSB of the readings may be wrong (or the record covers too few "
+        "directions to determine the ellipsoid: see any coverage warning; or it was made in a shielded room, a "
+        "coil or near iron)"
+        if units_hint
+        else "the record covers too few directions to determine the ellipsoid, was made in a shielded room, a coil "
+        "or near iron, or the readings are scaled"
+    )
     side = "below" if field_nT < lo else "above"
-    return Finding("field", "warning",
-                   f"the fitted field {field_nT / 1000:.3g} uT is {side} any geomagnetic field (outside the Earth's "
-                   f"field range of {lo / 1000:.0f}-{hi / 1000:.0f} uT)",
-                   f"{cause}; the fitted scale factors carry the same error", notable=True,
-                   values={"field_nT": float(field_nT), "range_nT": [lo, hi]})
+    return Finding(
+        "field",
+        "warning",
+        f"the fitted field {field_nT / 1000:.3g} uT is {side} any geomagnetic field (outside the Earth's "
+        f"field range of {lo / 1000:.0f}-{hi / 1000:.0f} uT)",
+        f"{cause}; the fitted scale factors carry the same error",
+        notable=True,
+        values={"field_nT": float(field_nT), "range_nT": [lo, hi]},
+    )
 
 
 def turn_rate_finding(directions, residuals_nT, time_s=None, sensor=None) -> Finding | None:
@@ -885,7 +1054,7 @@ def turn_rate_finding(directions, residuals_nT, time_s=None, sensor=None) -> Fin
     ok = step > 0
     rate = np.full(angle.size, np.nan)
     rate[ok] = angle[ok] / step[ok]
-    rate = np.concatenate([[np.nan], rate])         # the rate into each sample
+    rate = np.concatenate([[np.nan], rate])  # the rate into each sample
     use = np.isfinite(rate) & np.isfinite(r)
     if use.sum() < 40 or np.ptp(rate[use]) <= 0:
         return None
@@ -894,24 +1063,50 @@ def turn_rate_finding(directions, residuals_nT, time_s=None, sensor=None) -> Fin
     rms = [float(np.sqrt(np.mean(r[use][bins == k] ** 2))) if np.any(bins == k) else float("nan") for k in range(4)]
     rho, p = stats.spearmanr(np.abs(r[use]), rate[use])
     unit = "deg/s" if time_s is not None else "deg/sample"
-    values = {"rate_quartile_edges": [float(e) for e in edges], "rms_nT": rms, "spearman_rho": float(rho),
-              "p": float(p), "unit": unit}
-    summary = (f"total-field residual RMS by turn-rate quartile (slow to fast, up to {edges[-1]:.3g} {unit}): "
-               + ", ".join(f"{v:.3g}" for v in rms) + f" nT (rank correlation of |residual| with the rate {rho:+.2f})")
+    values = {
+        "rate_quartile_edges": [float(e) for e in edges],
+        "rms_nT": rms,
+        "spearman_rho": float(rho),
+        "p": float(p),
+        "unit": unit,
+    }
+    summary = (
+        f"total-field residual RMS by turn-rate quartile (slow to fast, up to {edges[-1]:.3g} {unit}): "
+        + ", ".join(f"{v:.3g}" for v in rms)
+        + f" nT (rank correlation of |residual| with the rate {rho:+.2f})"
+    )
     grows = rms[3] >= TURN_RATE_RATIO * rms[0] and p < TURN_RATE_P and rho > 0
     if grows:
-        return Finding("turn_rate", "warning", summary,
-                       "the error grows with the turn rate: the axes are not sampled at the same instant "
-                       "(axis_timing_skew), the part averages over a turn (oversampling, a filter), or the time "
-                       "stamps are wrong; a model fitted on this record carries it as misfit",
-                       sensor=sensor, notable=True, values=values)
+        return Finding(
+            "turn_rate",
+            "warning",
+            summary,
+            "the error grows with the turn rate: the axes are not sampled at the same instant "
+            "(axis_timing_skew), the part averages over a turn (oversampling, a filter), or the time "
+            "stamps are wrong; a model fitted on this record carries it as misfit",
+            sensor=sensor,
+            notable=True,
+            values=values,
+        )
     if p < TURN_RATE_P and rho > 0:
-        return Finding("turn_rate", "info", summary,
-                       f"the error grows a little with the turn rate (fastest quartile {rms[3] / rms[0]:.2f}x the "
-                       "slowest): a small timing or filtering effect, under the warning level",
-                       sensor=sensor, notable=True, values=values)
-    return Finding("turn_rate", "info", summary, "no dependence of the error on how fast the sensor turns was found",
-                   sensor=sensor, values=values)
+        return Finding(
+            "turn_rate",
+            "info",
+            summary,
+            f"the error grows a little with the turn rate (fastest quartile {rms[3] / rms[0]:.2f}x the "
+            "slowest): a small timing or filtering effect, under the warning level",
+            sensor=sensor,
+            notable=True,
+            values=values,
+        )
+    return Finding(
+        "turn_rate",
+        "info",
+        summary,
+        "no dependence of the error on how fast the sensor turns was found",
+        sensor=sensor,
+        values=values,
+    )
 
 
 # -- all together --------------------------------------------------------------------------------------------------

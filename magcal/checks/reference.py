@@ -91,7 +91,9 @@ def parse_date(date):
     try:
         year = float(text)
     except ValueError:
-        raise MagcalError(f"--date: {date!r} is not a date; write it as YYYY-MM-DD (e.g. 2024-06-01) or 2024.5") from None
+        raise MagcalError(
+            f"--date: {date!r} is not a date; write it as YYYY-MM-DD (e.g. 2024-06-01) or 2024.5"
+        ) from None
     if not np.isfinite(year) or not 1 <= year < 10_000:
         raise MagcalError(f"--date: {date!r} is not a year between 1 and 9999")
     start = _dt.datetime(int(year), 1, 1)
@@ -145,10 +147,14 @@ def igrf_total_nT(lat, lon, alt_km=0.0, date=None):
     east, north, down = float(np.ravel(be)[0]), float(np.ravel(bn)[0]), -float(np.ravel(bu)[0])
     total = float(np.sqrt(east**2 + north**2 + down**2))
     comps = {
-        "north_nT": north, "east_nT": east, "down_nT": down,
+        "north_nT": north,
+        "east_nT": east,
+        "down_nT": down,
         "inclination_deg": float(np.degrees(np.arctan2(down, np.hypot(north, east)))),
         "declination_deg": float(np.degrees(np.arctan2(east, north))),
-        "model": ppigrf.igrf.__defaults__[0].rsplit("/", 1)[-1].replace(".shc", "") if ppigrf.igrf.__defaults__ else "IGRF",
+        "model": ppigrf.igrf.__defaults__[0].rsplit("/", 1)[-1].replace(".shc", "")
+        if ppigrf.igrf.__defaults__
+        else "IGRF",
     }
     return total, comps
 
@@ -173,7 +179,9 @@ def _check_plausible(value, what):
             )
         warnings.warn(
             f"{what}: {bad:g} nT is outside the Earth's field range {lo:g}-{hi:g} nT; fine for a coil system, "
-            "otherwise check the value", DataWarning, stacklevel=4,
+            "otherwise check the value",
+            DataWarning,
+            stacklevel=4,
         )
 
 
@@ -210,20 +218,28 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     choice = None if reference is None else str(reference).strip()
     if choice is not None and choice.lower() == "igrf":
         if lat is None or lon is None:
-            raise MagcalError("--reference igrf needs the place: --lat DEG --lon DEG (and --alt-km KM, --date YYYY-MM-DD)")
+            raise MagcalError(
+                "--reference igrf needs the place: --lat DEG --lon DEG (and --alt-km KM, --date YYYY-MM-DD)"
+            )
         total, comps = igrf_total_nT(lat, lon, alt_km, date)
         when = parse_date(date if date is not None else _dt.date.today()).date()
-        text = (f"IGRF main field ({comps['model']}) at {float(lat):.4f} N, {float(lon):.4f} E, {float(alt_km):g} km, "
-                f"{when}: {total:.1f} nT (inclination {comps['inclination_deg']:.2f} deg); crustal anomalies and the "
-                "daily variation (tens to hundreds of nT) are not in it")
+        text = (
+            f"IGRF main field ({comps['model']}) at {float(lat):.4f} N, {float(lon):.4f} E, {float(alt_km):g} km, "
+            f"{when}: {total:.1f} nT (inclination {comps['inclination_deg']:.2f} deg); crustal anomalies and the "
+            "daily variation (tens to hundreds of nT) are not in it"
+        )
         ref = Reference(total, text, "igrf")
     elif choice is not None and choice.lower() == "column":
         if column is None:
             raise MagcalError(f"{where}: --reference column, but the file has no ref_total column")
         ref = _column_reference(column, where, check)
     elif choice is not None and choice.lower() in ("fit", "fitted", "none", "unknown"):
-        ref = Reference(None, "no reference: the field magnitude is fitted (the scale factors are then relative to "
-                              "the fitted magnitude, not absolute)", "fitted")
+        ref = Reference(
+            None,
+            "no reference: the field magnitude is fitted (the scale factors are then relative to "
+            "the fitted magnitude, not absolute)",
+            "fitted",
+        )
     elif choice is not None and choice != "":
         try:
             value = float(choice)
@@ -244,8 +260,12 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
             _check_plausible(meta, f"{where}: metadata reference_total_nT")
         ref = Reference(float(meta), f"file metadata reference_total_nT: {float(meta):.1f} nT", "metadata")
     else:
-        ref = Reference(None, "no reference given: the field magnitude is fitted (the scale factors are then relative "
-                              "to the fitted magnitude, not absolute)", "fitted")
+        ref = Reference(
+            None,
+            "no reference given: the field magnitude is fitted (the scale factors are then relative "
+            "to the fitted magnitude, not absolute)",
+            "fitted",
+        )
     if check and dataset is not None and ref.known:
         _compare_with_data(dataset, ref)
     return ref
@@ -256,8 +276,7 @@ def _column_reference(column, where, check=True):
     if check:
         _check_plausible(col, f"{where}: column ref_total")
     spread = float(np.ptp(col)) if col.size else 0.0
-    text = (f"per-sample ref_total column: mean {np.mean(col):.1f} nT, spread {spread:.1f} nT over "
-            f"{col.size} samples")
+    text = f"per-sample ref_total column: mean {np.mean(col):.1f} nT, spread {spread:.1f} nT over {col.size} samples"
     return Reference(col, text, "column")
 
 
@@ -278,16 +297,21 @@ def _compare_with_data(dataset, ref):
             f"{dataset.source or 'dataset'}: the field the readings imply (fitted: hard iron removed, axis gains "
             f"averaged) {median:.0f} nT differs from the reference "
             f"{value:.0f} nT by {100 * (median / value - 1):+.0f}%; check the units and the reference",
-            DataWarning, stacklevel=3,
+            DataWarning,
+            stacklevel=3,
         )
 
 
 def add_reference_arguments(parser) -> None:
     """The ``--reference``, ``--lat``, ``--lon``, ``--alt-km``, ``--date`` options of the CLI subcommands."""
-    parser.add_argument("--reference", default=None, metavar="NT|igrf|column|fit",
-                        help="reference total field: a number in nT, 'igrf' (with --lat, --lon, --alt-km, --date), "
-                             "'column' (the file's ref_total) or 'fit'; default: the file's ref_total column or "
-                             "reference_total_nT line, else fitted")
+    parser.add_argument(
+        "--reference",
+        default=None,
+        metavar="NT|igrf|column|fit",
+        help="reference total field: a number in nT, 'igrf' (with --lat, --lon, --alt-km, --date), "
+        "'column' (the file's ref_total) or 'fit'; default: the file's ref_total column or "
+        "reference_total_nT line, else fitted",
+    )
     parser.add_argument("--lat", type=float, default=None, help="geodetic latitude in degrees (for --reference igrf)")
     parser.add_argument("--lon", type=float, default=None, help="longitude in degrees east (for --reference igrf)")
     parser.add_argument("--alt-km", type=float, default=0.0, help="height above the WGS84 ellipsoid in km (igrf)")
@@ -296,5 +320,6 @@ def add_reference_arguments(parser) -> None:
 
 def reference_from_args(args, dataset=None) -> Reference:
     """:func:`resolve_reference` from the options of :func:`add_reference_arguments`."""
-    return resolve_reference(dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km,
-                             date=args.date)
+    return resolve_reference(
+        dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km, date=args.date
+    )

@@ -27,16 +27,21 @@ SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects",
 
 def add_effects_file_argument(parser) -> None:
     """``--effects-file FILE.py`` (repeatable): a user's effect file to load before the command runs."""
-    parser.add_argument("--effects-file", action="append", default=None, metavar="FILE.py", dest="effects_file",
-                        help="Python file defining your own effects (Effect subclasses decorated with @register; "
-                             "see docs/user-effects.md); repeatable. Needed again wherever the effect is used: "
-                             "calibrate, diagnose, and apply or align with a calibration that includes it")
+    parser.add_argument(
+        "--effects-file",
+        action="append",
+        default=None,
+        metavar="FILE.py",
+        dest="effects_file",
+        help="Python file defining your own effects (Effect subclasses decorated with @register; "
+        "see docs/user-effects.md); repeatable. Needed again wherever the effect is used: "
+        "calibrate, diagnose, and apply or align with a calibration that includes it",
+    )
 
 
 def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
     import warnings
-
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -79,7 +84,6 @@ def main(argv=None) -> int:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug in a user's effect code: its file and line, not a traceback into magcal
-
         message = user_code_error(exc)
         if message is None:
             raise

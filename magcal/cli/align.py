@@ -30,16 +30,25 @@ def register(subparsers):
         "align",
         help="level-table alignment: each sensor's rotation into the carrier platform's frame (patent S5-S8)",
         description="Estimate every sensor's rotation into the platform frame from level-table records (group "
-                    "column x_up, y_up, z_up), after the intrinsic calibration from --cal (or one fitted to the "
-                    "same file). Saves a calibration whose frame is 'platform'.",
+        "column x_up, y_up, z_up), after the intrinsic calibration from --cal (or one fitted to the "
+        "same file). Saves a calibration whose frame is 'platform'.",
     )
     add_input_arguments(parser)
-    parser.add_argument("--cal", default=None, metavar="CAL.json",
-                        help="intrinsic calibration (from magcal calibrate on a free-rotation record)")
+    parser.add_argument(
+        "--cal",
+        default=None,
+        metavar="CAL.json",
+        help="intrinsic calibration (from magcal calibrate on a free-rotation record)",
+    )
     add_reference_arguments(parser)
-    parser.add_argument("--noise", type=float, default=None, metavar="NT",
-                        help="per-axis noise sigma in nT for the uncertainties (default: the file's noise_nT, "
-                             "else estimated from the residuals)")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        metavar="NT",
+        help="per-axis noise sigma in nT for the uncertainties (default: the file's noise_nT, "
+        "else estimated from the residuals)",
+    )
     parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the aligned calibration here")
     parser.add_argument("--json", action="store_true", help="print the alignment figures as one JSON object")
     parser.set_defaults(func=run)
@@ -56,7 +65,6 @@ def run(args) -> int:
         calibration = None
         ref_value, ref_text = None, None
         if args.cal:
-
             check_calibration_effects(args.cal)  # a user's effect in the file needs --effects-file
             calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
         else:
@@ -65,8 +73,7 @@ def run(args) -> int:
             ds = ref.apply(ds)
             ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None
         try:
-            new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value,
-                                source=args.data)
+            new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value, source=args.data)
         except CalibrationError as exc:
             raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught]

@@ -35,44 +35,89 @@ def register(subparsers):
         "apply",
         help="correct a survey file with a calibration: corrected vectors, tensor and invariants",
         description="Apply a calibration to a survey CSV, streaming (memory stays flat for any length), and write "
-                    "the input columns plus the corrected ones.",
+        "the input columns plus the corrected ones.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("data", metavar="SURVEY.csv", nargs="+",
-                        help="survey data file (see docs/formats.md; .parquet too), or an ArduPilot .bin / PX4 .ulg "
-                             "flight log; several files (or --workers/--scheduler) are corrected in parallel")
-    parser.add_argument("-o", "--output", required=True, metavar="OUT.csv",
-                        help="output file (written atomically; .parquet for Parquet), or with several files or "
-                             "--workers/--scheduler a new directory of partitions")
-    parser.add_argument("--uncertainty", action="store_true",
-                        help="also write the calibration's standard deviation of every corrected component, of |B| "
-                             "per sensor and of each tensor component (s1x_cal_sd .., s1_F_sd, Gxx_sd ..; from its "
-                             "parameter covariance)")
-    parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="correct in parallel on a local Dask cluster of N worker processes")
-    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                        help="correct in parallel on an existing dask.distributed cluster (e.g. tcp://host:8786)")
-    parser.add_argument("--format", choices=("parquet", "csv"), default="parquet",
-                        help="partition files written in parallel mode (default parquet)")
-    parser.add_argument("--compression", choices=PARQUET_CODECS, default=None,
-                        help="codec of the float columns of Parquet output (default snappy; float64 survey "
-                             "values shrink by only about 11%% with it: none writes faster, zstd smaller; text "
-                             "columns are always snappy)")
-    parser.add_argument("--partition-rows", type=int, default=None, metavar="N",
-                        help="CSV lines per partition in parallel mode (Parquet: one per row group)")
-    parser.add_argument("--columns", default=None, metavar="MAP",
-                        help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
+    parser.add_argument(
+        "data",
+        metavar="SURVEY.csv",
+        nargs="+",
+        help="survey data file (see docs/formats.md; .parquet too), or an ArduPilot .bin / PX4 .ulg "
+        "flight log; several files (or --workers/--scheduler) are corrected in parallel",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="OUT.csv",
+        help="output file (written atomically; .parquet for Parquet), or with several files or "
+        "--workers/--scheduler a new directory of partitions",
+    )
+    parser.add_argument(
+        "--uncertainty",
+        action="store_true",
+        help="also write the calibration's standard deviation of every corrected component, of |B| "
+        "per sensor and of each tensor component (s1x_cal_sd .., s1_F_sd, Gxx_sd ..; from its "
+        "parameter covariance)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="correct in parallel on a local Dask cluster of N worker processes",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="correct in parallel on an existing dask.distributed cluster (e.g. tcp://host:8786)",
+    )
+    parser.add_argument(
+        "--format",
+        choices=("parquet", "csv"),
+        default="parquet",
+        help="partition files written in parallel mode (default parquet)",
+    )
+    parser.add_argument(
+        "--compression",
+        choices=PARQUET_CODECS,
+        default=None,
+        help="codec of the float columns of Parquet output (default snappy; float64 survey "
+        "values shrink by only about 11%% with it: none writes faster, zstd smaller; text "
+        "columns are always snappy)",
+    )
+    parser.add_argument(
+        "--partition-rows",
+        type=int,
+        default=None,
+        metavar="N",
+        help="CSV lines per partition in parallel mode (Parquet: one per row group)",
+    )
+    parser.add_argument(
+        "--columns",
+        default=None,
+        metavar="MAP",
+        help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time",
+    )
     parser.add_argument("--units", default=None, help="unit of the readings (nT, uT, G, mG); overrides the file")
-    parser.add_argument("--drop-bad", action="store_true",
-                        help="drop rows with missing or non-numeric values (with a warning) instead of refusing")
+    parser.add_argument(
+        "--drop-bad",
+        action="store_true",
+        help="drop rows with missing or non-numeric values (with a warning) instead of refusing",
+    )
     parser.add_argument("--chunk-rows", type=int, default=20_000, metavar="N", help="rows per block (memory)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--record-terms", choices=("apply", "drop"), default=None,
-                        help="the calibration's record-only terms (bias_drift, bias_step, reference_drift, "
-                             "site_gradient...: they describe the recording it was fitted on, not the instrument). "
-                             "Default: applied on that very recording, dropped with a warning on any other. "
-                             "'apply' forces them (the same record, or you have a reference for it); 'drop' leaves "
-                             "them out")
+    parser.add_argument(
+        "--record-terms",
+        choices=("apply", "drop"),
+        default=None,
+        help="the calibration's record-only terms (bias_drift, bias_step, reference_drift, "
+        "site_gradient...: they describe the recording it was fitted on, not the instrument). "
+        "Default: applied on that very recording, dropped with a warning on any other. "
+        "'apply' forces them (the same record, or you have a reference for it); 'drop' leaves "
+        "them out",
+    )
     parser.set_defaults(func=run)
     return parser
 
@@ -89,19 +134,37 @@ def run(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if parallel:
-
-            summary = apply_partitioned(calibration, args.data, args.output, fmt=args.format,
-                                        workers=args.workers or 2, scheduler=args.scheduler,
-                                        partition_rows=args.partition_rows or PARTITION_ROWS, columns=args.columns,
-                                        units=args.units, drop_bad=args.drop_bad, record_terms=args.record_terms,
-                                        progress=False if args.no_progress else None, uncertainty=args.uncertainty,
-                                        compression=args.compression)
+            summary = apply_partitioned(
+                calibration,
+                args.data,
+                args.output,
+                fmt=args.format,
+                workers=args.workers or 2,
+                scheduler=args.scheduler,
+                partition_rows=args.partition_rows or PARTITION_ROWS,
+                columns=args.columns,
+                units=args.units,
+                drop_bad=args.drop_bad,
+                record_terms=args.record_terms,
+                progress=False if args.no_progress else None,
+                uncertainty=args.uncertainty,
+                compression=args.compression,
+            )
         else:
-            summary = apply_file(calibration, args.data[0], args.output, columns=args.columns, units=args.units,
-                                 drop_bad=args.drop_bad, chunk_rows=args.chunk_rows,
-                                 progress=False if args.no_progress else None, calibration_name=args.calibration,
-                                 record_terms=args.record_terms, uncertainty=args.uncertainty,
-                                 compression=args.compression)
+            summary = apply_file(
+                calibration,
+                args.data[0],
+                args.output,
+                columns=args.columns,
+                units=args.units,
+                drop_bad=args.drop_bad,
+                chunk_rows=args.chunk_rows,
+                progress=False if args.no_progress else None,
+                calibration_name=args.calibration,
+                record_terms=args.record_terms,
+                uncertainty=args.uncertainty,
+                compression=args.compression,
+            )
     for note in dict.fromkeys(str(w.message) for w in caught):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())

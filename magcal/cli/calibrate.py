@@ -47,7 +47,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         "calibrate",
         help="calibrate one to four sensors from readings taken while turning them in a uniform field",
         description="Calibrate from a magcal CSV file: ellipsoid fit per sensor, Procrustes between sensors, then "
-                    "maximum likelihood. Prints a readable report, or one JSON object with --json.",
+        "maximum likelihood. Prints a readable report, or one JSON object with --json.",
     )
     add_arguments(parser)
     parser.set_defaults(func=run)
@@ -57,15 +57,27 @@ def register(subparsers) -> argparse.ArgumentParser:
 def add_input_arguments(parser) -> None:
     """Data-file options shared by the subcommands that read a CSV file."""
     parser.add_argument("data", metavar="FILE.csv", help="data file (see docs/formats.md)")
-    parser.add_argument("--columns", default=None, metavar="MAP",
-                        help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time")
-    parser.add_argument("--units", default=None,
-                        help="unit of the readings (nT, uT, G, mG, or counts with --lsb); overrides the file")
-    parser.add_argument("--lsb", default=None, metavar="NT_PER_COUNT",
-                        help="for --units counts (raw sensor counts): nT per count, e.g. 150 for 0.15 uT/LSB; "
-                             "overrides the file's '# lsb_nT:' line")
-    parser.add_argument("--drop-bad", action="store_true",
-                        help="drop rows with missing or non-numeric values (with a warning) instead of refusing")
+    parser.add_argument(
+        "--columns",
+        default=None,
+        metavar="MAP",
+        help="map your column names onto magcal's, e.g. x=magX,y=magY,z=magZ,t=time",
+    )
+    parser.add_argument(
+        "--units", default=None, help="unit of the readings (nT, uT, G, mG, or counts with --lsb); overrides the file"
+    )
+    parser.add_argument(
+        "--lsb",
+        default=None,
+        metavar="NT_PER_COUNT",
+        help="for --units counts (raw sensor counts): nT per count, e.g. 150 for 0.15 uT/LSB; "
+        "overrides the file's '# lsb_nT:' line",
+    )
+    parser.add_argument(
+        "--drop-bad",
+        action="store_true",
+        help="drop rows with missing or non-numeric values (with a warning) instead of refusing",
+    )
 
 
 def add_arguments(parser) -> None:
@@ -73,32 +85,57 @@ def add_arguments(parser) -> None:
 
     add_input_arguments(parser)
     add_reference_arguments(parser)
-    parser.add_argument("--method", default="ml", choices=METHODS + SEARCH_METHODS,
-                        help="ml (default): ellipsoid, Procrustes, maximum likelihood; ellipsoid: the seed's two "
-                             "steps only; pso, ipso, de: global search")
-    parser.add_argument("--ellipsoid", default="algebraic", choices=("algebraic", "li-griffiths"),
-                        help="step-1 estimator (default algebraic)")
-    parser.add_argument("--robust", action="store_true",
-                        help="robust (soft-L1) loss: gross outliers do not pull the fit; they are reported")
+    parser.add_argument(
+        "--method",
+        default="ml",
+        choices=METHODS + SEARCH_METHODS,
+        help="ml (default): ellipsoid, Procrustes, maximum likelihood; ellipsoid: the seed's two "
+        "steps only; pso, ipso, de: global search",
+    )
+    parser.add_argument(
+        "--ellipsoid",
+        default="algebraic",
+        choices=("algebraic", "li-griffiths"),
+        help="step-1 estimator (default algebraic)",
+    )
+    parser.add_argument(
+        "--robust",
+        action="store_true",
+        help="robust (soft-L1) loss: gross outliers do not pull the fit; they are reported",
+    )
     parser.add_argument("--seed", type=int, default=None, help="seed of the global-search methods")
-    parser.add_argument("--effects", action="append", default=None, metavar="LIST",
-                        help="candidate effects to add to the base model, comma-separated NAME or NAME:SENSOR "
-                             "(e.g. temperature_bias,bias_step:2; see docs/effects.md, and magcal effects for the "
-                             "list); your own effects with --effects-file; repeatable")
+    parser.add_argument(
+        "--effects",
+        action="append",
+        default=None,
+        metavar="LIST",
+        help="candidate effects to add to the base model, comma-separated NAME or NAME:SENSOR "
+        "(e.g. temperature_bias,bias_step:2; see docs/effects.md, and magcal effects for the "
+        "list); your own effects with --effects-file; repeatable",
+    )
     parser.add_argument("-o", "--output", default=None, metavar="CAL.json", help="save the calibration here")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
-    parser.add_argument("--no-validate", dest="validate", action="store_false",
-                        help="with --effects: skip the held-out RMS of the base model and of the model with the "
-                             "effects (fitted on alternating blocks in time, scored on the blocks between)")
+    parser.add_argument(
+        "--no-validate",
+        dest="validate",
+        action="store_false",
+        help="with --effects: skip the held-out RMS of the base model and of the model with the "
+        "effects (fitted on alternating blocks in time, scored on the blocks between)",
+    )
     add_noise_argument(parser)
 
 
 def add_noise_argument(parser) -> None:
     """``--noise NT``: the noise per axis, known (shared by calibrate and diagnose)."""
-    parser.add_argument("--noise", type=float, default=None, metavar="NT",
-                        help="noise per axis in nT, if you know it (e.g. from a still recording): used for the floors "
-                             "and the verdict instead of the file's '# noise_nT:' line or any estimate; the report "
-                             "says 'given'")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        metavar="NT",
+        help="noise per axis in nT, if you know it (e.g. from a still recording): used for the floors "
+        "and the verdict instead of the file's '# noise_nT:' line or any estimate; the report "
+        "says 'given'",
+    )
 
 
 def checked_noise(args):
@@ -116,8 +153,9 @@ def read_input(args):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ds = io.read_csv(args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad,
-                         lsb_nT=getattr(args, "lsb", None))
+        ds = io.read_csv(
+            args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad, lsb_nT=getattr(args, "lsb", None)
+        )
     return ds, [str(w.message) for w in caught]
 
 
@@ -158,7 +196,6 @@ def calibrate_options(args) -> dict:
 
 
 def run(args) -> int:
-
 
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
@@ -243,9 +280,13 @@ def _search_progress_bar(method, n_sensors):
         return None, None
     from tqdm import tqdm
 
-
-    bar = tqdm(total=n_sensors * (DEFAULTS[method]["max_iter"] + 1), desc=f"magcal calibrate ({method})", unit="it",
-               file=sys.stderr, leave=False)
+    bar = tqdm(
+        total=n_sensors * (DEFAULTS[method]["max_iter"] + 1),
+        desc=f"magcal calibrate ({method})",
+        unit="it",
+        file=sys.stderr,
+        leave=False,
+    )
 
     def progress(message, fraction):
         if fraction is None:  # one search iteration: "<method>: iteration K, best RMS X nT"

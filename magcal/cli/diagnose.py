@@ -47,8 +47,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         "diagnose",
         help="find structure the model leaves in the residuals and the physical effect that explains it",
         description="Calibrate (base model plus --effects), test every catalogue effect whose channels the file "
-                    "has (score test, then refits of the best), and give a verdict: adequate, missing_effect or "
-                    "unexplained. See docs/effects.md for the effects.",
+        "has (score test, then refits of the best), and give a verdict: adequate, missing_effect or "
+        "unexplained. See docs/effects.md for the effects.",
     )
     add_arguments(parser)
     parser.set_defaults(func=run)
@@ -59,21 +59,36 @@ def add_arguments(parser) -> None:
     """The options of ``magcal diagnose``."""
 
     add_input_arguments(parser)
-    parser.add_argument("--effects", action="append", default=None, metavar="LIST",
-                        help="effects already in the model, comma-separated NAME or NAME:SENSOR (e.g. "
-                             "temperature_bias,bias_step:2); repeatable. Every catalogue effect, and your own "
-                             "from --effects-file, is a candidate of the diagnosis")
-    parser.add_argument("--reference", type=float, default=None, metavar="NT",
-                        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
-                             "line; without either the magnitude is fitted)")
-    parser.add_argument("--top", type=int, default=3, metavar="K",
-                        help="number of candidate effects confirmed by refitting (default 3)")
+    parser.add_argument(
+        "--effects",
+        action="append",
+        default=None,
+        metavar="LIST",
+        help="effects already in the model, comma-separated NAME or NAME:SENSOR (e.g. "
+        "temperature_bias,bias_step:2); repeatable. Every catalogue effect, and your own "
+        "from --effects-file, is a candidate of the diagnosis",
+    )
+    parser.add_argument(
+        "--reference",
+        type=float,
+        default=None,
+        metavar="NT",
+        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
+        "line; without either the magnitude is fitted)",
+    )
+    parser.add_argument(
+        "--top", type=int, default=3, metavar="K", help="number of candidate effects confirmed by refitting (default 3)"
+    )
     parser.add_argument("--robust", action="store_true", help="robust (soft-L1) loss for the fits")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    parser.add_argument("--no-validate", dest="validate", action="store_false",
-                        help="skip the held-out validation of the supported candidates (by default each is fitted on "
-                             "alternating blocks in time and on the first part of the record, and recommended only "
-                             "if its gain holds on the samples held out)")
+    parser.add_argument(
+        "--no-validate",
+        dest="validate",
+        action="store_false",
+        help="skip the held-out validation of the supported candidates (by default each is fitted on "
+        "alternating blocks in time and on the first part of the record, and recommended only "
+        "if its gain holds on the samples held out)",
+    )
 
     add_noise_argument(parser)
 
@@ -93,8 +108,9 @@ def run(args) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            result = calibrate(ds, effects=names, robust=args.robust,
-                               reference_total_nT=args.reference, noise_nT=args.noise)
+            result = calibrate(
+                ds, effects=names, robust=args.robust, reference_total_nT=args.reference, noise_nT=args.noise
+            )
             diagnosis = diagnose(ds, result, top=args.top, validate=args.validate, noise_nT=args.noise)
         except CalibrationError as exc:
             raise MagcalError(named_error(args.data, exc)) from None

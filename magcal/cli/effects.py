@@ -32,9 +32,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         "effects",
         help="list the effect catalogue: built-in terms and your own (--effects-file), with their parameters",
         description="List the effects that calibrate --effects, diagnose and the workbench know: name, stage, "
-                    "channels, parameters and units, description and where each came from (built-in, a file "
-                    "given with --effects-file, or an installed package's entry point). See docs/effects.md and "
-                    "docs/user-effects.md.",
+        "channels, parameters and units, description and where each came from (built-in, a file "
+        "given with --effects-file, or an installed package's entry point). See docs/effects.md and "
+        "docs/user-effects.md.",
     )
     parser.add_argument("name", nargs="?", default=None, metavar="NAME", help="show one effect in full")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the listing")
@@ -44,7 +44,8 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def _transfer_text(value) -> str:
     return {True: "instrument (carries to new data)", False: "record-only (this recording only)"}.get(
-        value, "not stated")
+        value, "not stated"
+    )
 
 
 def _params_text(params) -> str:
@@ -74,8 +75,7 @@ def _entry_text(d, full=False) -> str:
     if d.get("error"):
         lines.append(f"    cannot be made: {d['error']}")
     if full:
-        scales = ", ".join(f"{p['symbol']} {p['scale']:g}{(' ' + p['unit']) if p['unit'] else ''}"
-                           for p in d["params"])
+        scales = ", ".join(f"{p['symbol']} {p['scale']:g}{(' ' + p['unit']) if p['unit'] else ''}" for p in d["params"])
         lines.append(f"    size moving the readings by ~1 nT: {scales or '-'}")
         if d["doc"]:
             lines.append("")
@@ -90,7 +90,6 @@ def run(args) -> int:
 
     if args.name is not None:
         if args.name not in EFFECTS:
-
             raise MagcalError(unknown_effect_message(args.name))
         entries = [describe_effect(args.name)]
     else:
@@ -106,7 +105,9 @@ def run(args) -> int:
     for d in entries:
         counts[d["origin"]] = counts.get(d["origin"], 0) + 1
     tally = ", ".join(f"{n} {kind}" for kind, n in counts.items())
-    sys.stdout.write(f"magcal effects: {len(entries)} in the catalogue ({tally})\n"
-                     "use one with: magcal calibrate FILE --effects NAME[:SENSOR]; details: magcal effects NAME\n\n")
+    sys.stdout.write(
+        f"magcal effects: {len(entries)} in the catalogue ({tally})\n"
+        "use one with: magcal calibrate FILE --effects NAME[:SENSOR]; details: magcal effects NAME\n\n"
+    )
     sys.stdout.write("\n\n".join(_entry_text(d) for d in entries) + "\n")
     return 0

@@ -26,7 +26,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         "simulate",
         help="write simulated readings with known errors (a preset of a paper) to a CSV file",
         description=f"Simulate magnetometer readings with known errors and write them as magcal CSV. Presets: "
-                    f"{presets}.",
+        f"{presets}.",
     )
     add_arguments(parser)
     parser.set_defaults(func=run)
@@ -37,20 +37,37 @@ def add_arguments(parser) -> None:
     """The options of ``magcal simulate`` (separate so other front ends can reuse them)."""
     parser.add_argument("--preset", default="chi2017", help="simulation preset (default chi2017)")
     parser.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same file")
-    parser.add_argument("--n", type=int, default=None, metavar="N",
-                        help="number of samples (default: the preset's, 1500 with --timeseries)")
-    parser.add_argument("--noise", type=float, default=None, metavar="NT",
-                        help="noise per axis in nT: Gaussian sigma, or full width for a uniform-noise preset "
-                             "(default: the preset's)")
-    parser.add_argument("--timeseries", action="store_true",
-                        help="a smooth rotation trajectory with time and temperature columns instead of random "
-                             "attitudes")
-    parser.add_argument("--hidden", action="append", default=None, metavar="EFFECT[:SENSOR][=MAGNITUDE]",
-                        help="hide an effect in the data (implies --timeseries; repeatable), e.g. temperature_bias:2=3 "
-                             "(3 nT/K in sensor 2); magnitude in the effect's unit (docs/effects.md), default a "
-                             "clearly visible one; periodic_interference hides an effect outside the catalogue")
-    parser.add_argument("--no-reference", action="store_true",
-                        help="leave the reference field out of the file (it will then be fitted)")
+    parser.add_argument(
+        "--n",
+        type=int,
+        default=None,
+        metavar="N",
+        help="number of samples (default: the preset's, 1500 with --timeseries)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        metavar="NT",
+        help="noise per axis in nT: Gaussian sigma, or full width for a uniform-noise preset (default: the preset's)",
+    )
+    parser.add_argument(
+        "--timeseries",
+        action="store_true",
+        help="a smooth rotation trajectory with time and temperature columns instead of random attitudes",
+    )
+    parser.add_argument(
+        "--hidden",
+        action="append",
+        default=None,
+        metavar="EFFECT[:SENSOR][=MAGNITUDE]",
+        help="hide an effect in the data (implies --timeseries; repeatable), e.g. temperature_bias:2=3 "
+        "(3 nT/K in sensor 2); magnitude in the effect's unit (docs/effects.md), default a "
+        "clearly visible one; periodic_interference hides an effect outside the catalogue",
+    )
+    parser.add_argument(
+        "--no-reference", action="store_true", help="leave the reference field out of the file (it will then be fitted)"
+    )
     parser.add_argument("-o", "--output", required=True, metavar="FILE.csv", help="file to write")
 
 
@@ -65,7 +82,6 @@ def run(args) -> int:
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
     hidden = []
     if getattr(args, "hidden", None):
-
         heads = [spec.partition("=")[0] for spec in args.hidden]
         check_effect_names([h for h in heads if h.partition(":")[0].strip() not in reserved_names()], "--hidden")
         n_sensors = PRESETS[args.preset].truth().n_sensors
@@ -74,9 +90,11 @@ def run(args) -> int:
             try:
                 hidden.append(parse_hidden(spec, n_sensors))
             except NotImplementedError:  # an effect (a user's) without a perturbation
-                raise MagcalError(f"--hidden {spec!r}: the effect has no perturbation(), so the simulator cannot "
-                                  "hide it; define perturbation(magnitude, sensor) in its class "
-                                  "(docs/user-effects.md)") from None
+                raise MagcalError(
+                    f"--hidden {spec!r}: the effect has no perturbation(), so the simulator cannot "
+                    "hide it; define perturbation(magnitude, sensor) in its class "
+                    "(docs/user-effects.md)"
+                ) from None
         args.timeseries = True
     if args.timeseries:
         ds = simulate_timeseries(args.preset, n_samples=args.n or 1500, perturbations=hidden, **common)

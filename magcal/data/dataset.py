@@ -117,7 +117,7 @@ class Dataset:
         """True if the channel (a key of :data:`CHANNELS`) is present."""
         return getattr(self, CHANNELS[channel]) is not None
 
-    def subset(self, index) -> "Dataset":
+    def subset(self, index) -> Dataset:
         """A new dataset with the samples selected by a boolean mask or an index array."""
         index = np.asarray(index)
 
@@ -136,7 +136,7 @@ class Dataset:
             metadata=dict(self.metadata),
         )
 
-    def sensors(self, indices) -> "Dataset":
+    def sensors(self, indices) -> Dataset:
         """A new dataset with only the listed sensors (0-based indices)."""
         return dataclasses.replace(self, readings_nT=self.readings_nT[list(indices)], metadata=dict(self.metadata))
 
@@ -149,7 +149,7 @@ class Dataset:
         frame.attrs = dataset_metadata(self)
         return frame
 
-    def replace(self, **changes) -> "Dataset":
+    def replace(self, **changes) -> Dataset:
         """A copy with some fields replaced (see :func:`dataclasses.replace`)."""
         return dataclasses.replace(self, **changes)
 

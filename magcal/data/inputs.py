@@ -19,8 +19,9 @@ def _readings_from_array(data) -> np.ndarray:
     try:
         readings = np.asarray(data, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise DatasetError(f"readings: cannot be read as numbers ({exc}); give a numeric array of shape "
-                           f"{_ACCEPTED_SHAPES}") from None
+        raise DatasetError(
+            f"readings: cannot be read as numbers ({exc}); give a numeric array of shape {_ACCEPTED_SHAPES}"
+        ) from None
     shape = readings.shape
     hint = ""
     if readings.ndim == 2 and shape[0] == 3 and shape[1] != 3:
@@ -30,21 +31,27 @@ def _readings_from_array(data) -> np.ndarray:
     elif readings.ndim == 3 and shape[2] == 3 and shape[0] > 4:
         hint = " (at most 4 sensors; is the sample axis first? pass readings.transpose(1, 0, 2))"
     elif readings.ndim == 2 and shape[1] in (6, 9, 12):
-        hint = (f" (for {shape[1] // 3} sensors stack them as (n_sensors, N, 3): "
-                "readings.reshape(N, -1, 3).transpose(1, 0, 2))")
+        hint = (
+            f" (for {shape[1] // 3} sensors stack them as (n_sensors, N, 3): "
+            "readings.reshape(N, -1, 3).transpose(1, 0, 2))"
+        )
     ok = (readings.ndim == 2 and shape[1] == 3) or (readings.ndim == 3 and shape[2] == 3 and 1 <= shape[0] <= 4)
     if not ok:
         raise DatasetError(f"readings: got an array of shape {shape}; accepted shapes are {_ACCEPTED_SHAPES}{hint}")
     if readings.ndim == 2:
         readings = readings[None]
     if readings.shape[1] == 0:
-        raise DatasetError(f"readings: got an array of shape {shape} with no samples; accepted shapes are "
-                           f"{_ACCEPTED_SHAPES} with N >= 1")
+        raise DatasetError(
+            f"readings: got an array of shape {shape} with no samples; accepted shapes are "
+            f"{_ACCEPTED_SHAPES} with N >= 1"
+        )
     bad = ~np.isfinite(readings)
     if bad.any():
         s, i, a = np.argwhere(bad)[0]
-        raise DatasetError(f"readings: {int(bad.sum())} value(s) are NaN or infinite, the first at sensor {s + 1}, "
-                           f"sample {i} (0-based), axis {'xyz'[a]}; drop or fill those samples first")
+        raise DatasetError(
+            f"readings: {int(bad.sum())} value(s) are NaN or infinite, the first at sensor {s + 1}, "
+            f"sample {i} (0-based), axis {'xyz'[a]}; drop or fill those samples first"
+        )
     return readings
 
 
@@ -57,12 +64,15 @@ def _channel(values, name, unit, n, allow_scalar=False) -> np.ndarray:
         values = np.full(n, float(values))
     if values.shape != (n,):
         scalar = " (or a single number for all samples)" if allow_scalar else ""
-        raise DatasetError(f"{name}: got shape {values.shape}; accepted is ({n},), one value per sample in "
-                           f"{unit}{scalar}")
+        raise DatasetError(
+            f"{name}: got shape {values.shape}; accepted is ({n},), one value per sample in {unit}{scalar}"
+        )
     bad = ~np.isfinite(values)
     if bad.any():
-        raise DatasetError(f"{name}: {int(bad.sum())} value(s) are NaN or infinite, the first at sample "
-                           f"{int(np.argmax(bad))} (0-based)")
+        raise DatasetError(
+            f"{name}: {int(bad.sum())} value(s) are NaN or infinite, the first at sample "
+            f"{int(np.argmax(bad))} (0-based)"
+        )
     return values
 
 
@@ -70,11 +80,13 @@ def _check_times(time_s) -> None:
     step = np.diff(time_s)
     if (step <= 0).any():
         i = int(np.argmax(step <= 0)) + 1
-        raise DatasetError(f"t: sample times must be strictly increasing; sample {i} (0-based) is at "
-                           f"{time_s[i]:g} s, after {time_s[i - 1]:g} s; sort the samples by time or drop repeats")
+        raise DatasetError(
+            f"t: sample times must be strictly increasing; sample {i} (0-based) is at "
+            f"{time_s[i]:g} s, after {time_s[i - 1]:g} s; sort the samples by time or drop repeats"
+        )
 
 
-def _from_dataframe(frame) -> "Dataset":
+def _from_dataframe(frame) -> Dataset:
     """Read a DataFrame whose columns are those of the data CSV (``s1x`` ..., ``x,y,z``, ``t``, ``temp`` ...)."""
     import io as _io
 
@@ -84,8 +96,10 @@ def _from_dataframe(frame) -> "Dataset":
     for key, value in frame.attrs.items():  # DataFrame.attrs play the part of the file's "# key: value" lines
         key, value = str(key).strip(), str(value).strip()
         if not key or ":" in key or "\n" in key + value:
-            raise DatasetError(f"DataFrame.attrs[{key!r}]: keys must be single-line names without ':' and values "
-                               "single-line text, as the data CSV's '# key: value' lines")
+            raise DatasetError(
+                f"DataFrame.attrs[{key!r}]: keys must be single-line names without ':' and values "
+                "single-line text, as the data CSV's '# key: value' lines"
+            )
         lines.append(f"# {key}: {value}\n")
     labels = frame.index
     if any(name is not None for name in frame.index.names):
@@ -175,8 +189,9 @@ def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:
         except (TypeError, ValueError):
             value = float("nan")
         if not np.isfinite(value) or value <= 0:
-            raise DatasetError(f"reference_total_nT: got {reference_total_nT!r}; a positive number of nT is needed "
-                               "(e.g. 50000)")
+            raise DatasetError(
+                f"reference_total_nT: got {reference_total_nT!r}; a positive number of nT is needed (e.g. 50000)"
+            )
         changes["reference_total_nT"] = value
     return ds.replace(**changes) if changes else ds
 

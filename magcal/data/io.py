@@ -259,7 +259,9 @@ def _find_layout(header, columns, source, header_line=1):
             if any(_SENSOR_RE.match(n) for n in names):  # s1x... and bare x: keep x as an extra column
                 warnings.warn(
                     f"{source}: the file has both s1x-style columns and a bare {name!r} column; {name!r} is kept "
-                    "as an unused column", DataWarning, stacklevel=4,
+                    "as an unused column",
+                    DataWarning,
+                    stacklevel=4,
                 )
                 continue
         if key in canonical:
@@ -301,9 +303,7 @@ def _find_layout(header, columns, source, header_line=1):
     channels = {name: canonical[name] for name in CHANNEL_COLUMNS if name in canonical}
     q = [name for name in QUATERNION_COLUMNS if name in canonical]
     if q and len(q) != 4:
-        raise DatasetError(
-            f"{source}: attitude needs all four columns qw,qx,qy,qz; found only {', '.join(q)}"
-        )
+        raise DatasetError(f"{source}: attitude needs all four columns qw,qx,qy,qz; found only {', '.join(q)}")
     quaternion = tuple(canonical[n] for n in QUATERNION_COLUMNS) if q else None
     used = set(canonical.values())
     extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
@@ -352,8 +352,7 @@ class _FileLines:
             data = self._fh.read(n)
         except UnicodeDecodeError as exc:  # a text file opened with another encoding than the file's
             raise DatasetError(
-                f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as "
-                "binary"
+                f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as binary"
             ) from None
         if isinstance(data, str):
             return data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
@@ -433,7 +432,8 @@ class CsvSource:
                     self._file = open(self.path, "rb")
                 except OSError as exc:
                     raise DatasetError(
-                        f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path") from None
+                        f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path"
+                    ) from None
             self._read_head()
             self.layout = _find_layout(self.header, columns, self.source, self.header_line)
             self._resolve_units(units, lsb_nT)
@@ -510,7 +510,9 @@ class CsvSource:
                         if key in self.metadata and self.metadata[key] != value:
                             warnings.warn(
                                 f"{self.source}: line {self._lineno}: metadata {key!r} given twice; the last value "
-                                f"{value!r} is used", DataWarning, stacklevel=3,
+                                f"{value!r} is used",
+                                DataWarning,
+                                stacklevel=3,
                             )
                         self.metadata[key] = value
                         self._check_metadata(key, value)
@@ -522,7 +524,9 @@ class CsvSource:
         try:
             header = next(csv.reader([text]))
         except csv.Error as exc:
-            raise DatasetError(f"{self.source}: line {self._lineno}: the header cannot be read as CSV ({exc})") from None
+            raise DatasetError(
+                f"{self.source}: line {self._lineno}: the header cannot be read as CSV ({exc})"
+            ) from None
         self.header = [h.strip() for h in header]
         if all(_strict_float(h) is not None for h in self.header):
             raise DatasetError(
@@ -564,8 +568,11 @@ class CsvSource:
                     f"({origin}); add --units counts if the readings are counts, or leave out --lsb"
                 )
             if file_lsb is not None and parse_lsb(file_lsb) != lsb:
-                warnings.warn(f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'",
-                              DataWarning, stacklevel=3)
+                warnings.warn(
+                    f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'",
+                    DataWarning,
+                    stacklevel=3,
+                )
         elif counts and file_lsb is not None:
             lsb = parse_lsb(file_lsb)
         if given:
@@ -578,8 +585,11 @@ class CsvSource:
         if given and file_units is not None:
             same = is_counts(file_units) == counts and (counts or parse_units(file_units) == self.unit_factor)
             if not same:
-                warnings.warn(f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
-                              DataWarning, stacklevel=3)
+                warnings.warn(
+                    f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
+                    DataWarning,
+                    stacklevel=3,
+                )
         self.lsb_nT = lsb if counts else None
         if self.lsb_nT is not None:
             self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
@@ -642,8 +652,15 @@ class CsvSource:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    values = np.loadtxt(lines, delimiter=",", usecols=[j for j, _ in num], dtype=float,
-                                        comments=None, ndmin=2, quotechar='"')
+                    values = np.loadtxt(
+                        lines,
+                        delimiter=",",
+                        usecols=[j for j, _ in num],
+                        dtype=float,
+                        comments=None,
+                        ndmin=2,
+                        quotechar='"',
+                    )
             except (ValueError, TypeError, IndexError):
                 values = None
             if values is not None and values.shape != (len(lines), len(num)):
@@ -706,8 +723,10 @@ class CsvSource:
                     bad = f"column {name}: {row[j].strip()!r} is not a finite number"
                     break
                 if abs(number) > MAX_ABS_VALUE:
-                    bad = (f"column {name}: {row[j].strip()[:40]!r} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
-                           "reading in any unit (a corrupted value)")
+                    bad = (
+                        f"column {name}: {row[j].strip()[:40]!r} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
+                        "reading in any unit (a corrupted value)"
+                    )
                     break
                 values[k, m] = number
             if bad is not None:
@@ -723,7 +742,8 @@ class CsvSource:
                 )
             warnings.warn(
                 f"{self.source}: dropped {len(problems)} row(s) with bad values: {shown}{more}",
-                DataWarning, stacklevel=4,
+                DataWarning,
+                stacklevel=4,
             )
         return rows, values[keep], keep
 
@@ -731,9 +751,12 @@ class CsvSource:
         layout = self.layout
         n = values.shape[0]
         pos = {name: m for m, (_, name) in enumerate(layout.numeric)}
-        readings = np.stack(
-            [values[:, [pos[f"s{i + 1}{a}"] for a in SENSOR_AXES]] for i in range(layout.n_sensors)]
-        ).reshape(layout.n_sensors, n, 3) * self.unit_factor
+        readings = (
+            np.stack([values[:, [pos[f"s{i + 1}{a}"] for a in SENSOR_AXES]] for i in range(layout.n_sensors)]).reshape(
+                layout.n_sensors, n, 3
+            )
+            * self.unit_factor
+        )
         kwargs = {attr: values[:, pos[name]] for name, attr in CHANNEL_COLUMNS.items() if name in layout.channels}
         if layout.quaternion is not None:
             q = values[:, [pos[name] for name in QUATERNION_COLUMNS]]
@@ -748,7 +771,9 @@ class CsvSource:
                 worst = int(np.argmax(np.abs(norm - 1.0)))
                 warnings.warn(
                     f"{self.source}: attitude quaternions are not unit length (line {numbers[worst]}: "
-                    f"|q| = {norm[worst]:.4g}); they are normalised", DataWarning, stacklevel=4,
+                    f"|q| = {norm[worst]:.4g}); they are normalised",
+                    DataWarning,
+                    stacklevel=4,
                 )
             off = np.abs(norm - 1.0) > 1e-9
             if off.any():
@@ -768,8 +793,12 @@ class CsvSource:
             if key in self.metadata:
                 meta_numbers[attr] = float(self.metadata[key])
         return Dataset(
-            readings_nT=readings, metadata=dict(self.metadata), extra=extra, source=self.source,
-            **kwargs, **meta_numbers,
+            readings_nT=readings,
+            metadata=dict(self.metadata),
+            extra=extra,
+            source=self.source,
+            **kwargs,
+            **meta_numbers,
         )
 
     def _check_time(self, t, numbers):
@@ -840,8 +869,12 @@ def concatenate(datasets):
         extra[name] = np.concatenate(parts)
     return first.replace(
         readings_nT=np.concatenate([d.readings_nT for d in datasets], axis=1),
-        time_s=cat("time_s"), temperature_C=cat("temperature_C"), ref_total_nT=cat("ref_total_nT"),
-        attitude_wxyz=cat("attitude_wxyz"), group=cat("group"), extra=extra,
+        time_s=cat("time_s"),
+        temperature_C=cat("temperature_C"),
+        ref_total_nT=cat("ref_total_nT"),
+        attitude_wxyz=cat("attitude_wxyz"),
+        group=cat("group"),
+        extra=extra,
     )
 
 
@@ -866,18 +899,24 @@ def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
         lsb = lsb_nT if lsb_nT is not None else dataset.metadata.get("lsb_nT")
         factor = parse_units(units, where=f"{source or dataset.source or 'dataset'}: units", lsb_nT=lsb)
         raw = median / factor
-        hint = (f"check the LSB: {factor:.4g} nT per count is given, and about {50_000.0 / raw:.3g} nT per count "
-                "would put the field at 50 uT (or the sensor is not in the Earth's field)")
+        hint = (
+            f"check the LSB: {factor:.4g} nT per count is given, and about {50_000.0 / raw:.3g} nT per count "
+            "would put the field at 50 uT (or the sensor is not in the Earth's field)"
+        )
     else:
         factor = parse_units(units)
         raw = median / factor
         guesses = [name for name, f in UNIT_NAMES.items() if lo <= raw * f <= hi and f != factor]
-        hint = (f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' "
-                "line)" if guesses else
-                "check the units (nT, uT, G, mG, or counts with --lsb) and that the sensor is in the Earth's field")
+        hint = (
+            f"they look like {' or '.join(guesses)}: pass --units {guesses[0]} (or a '# units: {guesses[0]}' line)"
+            if guesses
+            else "check the units (nT, uT, G, mG, or counts with --lsb) and that the sensor is in the Earth's field"
+        )
     value = f"{median:.4g} nT" if factor == 1.0 else f"{raw:.4g} {units} = {median:.4g} nT"
-    msg = (f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
-           f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}")
+    msg = (
+        f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
+        f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}"
+    )
     warnings.warn(msg, DataWarning, stacklevel=stacklevel)
     return msg
 
@@ -902,8 +941,7 @@ def require_samples(dataset, n_params, what="this model"):
         )
 
 
-def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None,
-             lsb_nT=None):
+def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None, lsb_nT=None):
     """Read a magcal CSV file into a :class:`~magcal.data.dataset.Dataset` (readings in nT).
 
     Parameters
@@ -1002,11 +1040,17 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
             pa.py_buffer(memoryview(raw)[offset:]),
             read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
             parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
-            convert_options=pacsv.ConvertOptions(column_types={h: pa.float64() for h in numeric},
-                                                 include_columns=numeric + [header[j] for j in
-                                                                           ([layout.group] if layout.group is not
-                                                                            None else []) + list(layout.extra.values())],
-                                                 strings_can_be_null=False, quoted_strings_can_be_null=False))
+            convert_options=pacsv.ConvertOptions(
+                column_types={h: pa.float64() for h in numeric},
+                include_columns=numeric
+                + [
+                    header[j]
+                    for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
+                ],
+                strings_can_be_null=False,
+                quoted_strings_can_be_null=False,
+            ),
+        )
     except (ValueError, OSError, pa.ArrowException):
         return None
     n = table.num_rows
@@ -1020,8 +1064,10 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
         values[:, m] = col.to_numpy()
     if not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
         return None
-    text = {j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
-            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())}
+    text = {
+        j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
+        for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
+    }
     with warnings.catch_warnings(record=True) as build_warnings:
         warnings.simplefilter("always")
         with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
@@ -1146,7 +1192,7 @@ def _pyarrow(source):
         import pyarrow
         import pyarrow.parquet
     except ImportError:
-        raise DatasetError(f"{source}: Parquet files need pyarrow: pip install \"magcal[survey]\"") from None
+        raise DatasetError(f'{source}: Parquet files need pyarrow: pip install "magcal[survey]"') from None
     return pyarrow
 
 
@@ -1202,13 +1248,17 @@ class ParquetSource:
                 try:
                     col = np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
                 except (TypeError, ValueError):
-                    raise DatasetError(f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
-                                       "readings, time and channels must be numeric") from None
+                    raise DatasetError(
+                        f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
+                        "readings, time and channels must be numeric"
+                    ) from None
                 bad = ~np.isfinite(col) | (np.abs(col) > MAX_ABS_VALUE)
                 if bad.any():
                     k = int(np.argmax(bad))
-                    raise DatasetError(f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
-                                       f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows")
+                    raise DatasetError(
+                        f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
+                        f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows"
+                    )
                 values[:, m] = col
             text = {}
             for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
@@ -1264,8 +1314,10 @@ def parquet_write_options(table, compression=None) -> dict:
     pa = _pyarrow("parquet")
     codec = check_parquet_codec(compression)
     floats = {f.name for f in table.schema if pa.types.is_floating(f.type)}
-    return {"use_dictionary": [f.name for f in table.schema if f.name not in floats],
-            "compression": {f.name: (codec if f.name in floats else "snappy") for f in table.schema}}
+    return {
+        "use_dictionary": [f.name for f in table.schema if f.name not in floats],
+        "compression": {f.name: (codec if f.name in floats else "snappy") for f in table.schema},
+    }
 
 
 def check_parquet_codec(compression) -> str:

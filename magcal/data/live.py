@@ -62,8 +62,13 @@ MAX_LINE_BYTES = 4096
 MAVLINK_FIELD_UNITS_nT = {"mgauss": 100.0, "mG": 100.0, "gauss": 1.0e5, "G": 1.0e5, "uT": 1.0e3, "nT": 1.0}
 
 #: MAVLink messages carrying a magnetometer, and the time field of each.
-MAVLINK_MESSAGES = {"RAW_IMU": "time_usec", "SCALED_IMU": "time_boot_ms", "SCALED_IMU2": "time_boot_ms",
-                    "SCALED_IMU3": "time_boot_ms", "HIGHRES_IMU": "time_usec"}
+MAVLINK_MESSAGES = {
+    "RAW_IMU": "time_usec",
+    "SCALED_IMU": "time_boot_ms",
+    "SCALED_IMU2": "time_boot_ms",
+    "SCALED_IMU3": "time_boot_ms",
+    "HIGHRES_IMU": "time_usec",
+}
 
 #: HIGHRES_IMU ``fields_updated`` bits of xmag, ymag, zmag and of the temperature.
 _HIGHRES_MAG_BITS = 0b111 << 6
@@ -101,8 +106,9 @@ class LiveChunk:
 
     def to_dataset(self, source=None) -> Dataset:
         """The samples as a :class:`Dataset` (readings nT, ``time_s``, ``temperature_C``)."""
-        return Dataset(readings_nT=self.readings_nT, time_s=self.time_s, temperature_C=self.temperature_C,
-                       source=source)
+        return Dataset(
+            readings_nT=self.readings_nT, time_s=self.time_s, temperature_C=self.temperature_C, source=source
+        )
 
 
 def _empty_chunk(n_sensors, temperature):
@@ -115,9 +121,11 @@ def concatenate_chunks(chunks) -> LiveChunk | None:
     if not chunks:
         return None
     temps = [c.temperature_C for c in chunks]
-    return LiveChunk(np.concatenate([c.time_s for c in chunks]),
-                     np.concatenate([c.readings_nT for c in chunks], axis=1),
-                     None if any(t is None for t in temps) else np.concatenate(temps))
+    return LiveChunk(
+        np.concatenate([c.time_s for c in chunks]),
+        np.concatenate([c.readings_nT for c in chunks], axis=1),
+        None if any(t is None for t in temps) else np.concatenate(temps),
+    )
 
 
 @dataclass
@@ -214,8 +222,11 @@ class LiveSource:
         self.stats.n_samples += len(times)
         if not times:
             return _empty_chunk(self.n_sensors, self.has_temperature)
-        return LiveChunk(np.asarray(times, dtype=float), np.stack(readings, axis=1),
-                         np.asarray(temps, dtype=float) if self.has_temperature else None)
+        return LiveChunk(
+            np.asarray(times, dtype=float),
+            np.stack(readings, axis=1),
+            np.asarray(temps, dtype=float) if self.has_temperature else None,
+        )
 
     def __iter__(self):
         while not self.closed:
@@ -309,11 +320,12 @@ class LineParser:
         if self.prefix is not None:
             if not text.startswith(self.prefix):
                 return None
-            text = text[len(self.prefix):].strip()
+            text = text[len(self.prefix) :].strip()
         fields = text.split(self.sep) if self.sep else _SPLIT_DEFAULT.split(text)
         if len(fields) != len(self.columns):
-            raise ValueError(f"field count: {len(fields)} field(s), expected {len(self.columns)} "
-                             f"({','.join(self.columns)})")
+            raise ValueError(
+                f"field count: {len(fields)} field(s), expected {len(self.columns)} ({','.join(self.columns)})"
+            )
         try:
             values = [float(f) if f.strip() else np.nan for f in fields]
         except ValueError:
@@ -397,13 +409,15 @@ class SerialSource(_LineSource):
         try:
             import serial
         except ImportError:
-            raise LiveError(f"{url}: serial ports need pyserial: pip install \"magcal[instruments]\"") from None
+            raise LiveError(f'{url}: serial ports need pyserial: pip install "magcal[instruments]"') from None
         self._serial_error = serial.SerialException
         try:
             self._port = serial.Serial(port, baudrate=baud, timeout=0.1)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LiveError(f"{url}: cannot open the serial port {port} ({exc}); check the device path and that no "
-                            "other program holds it") from None
+            raise LiveError(
+                f"{url}: cannot open the serial port {port} ({exc}); check the device path and that no "
+                "other program holds it"
+            ) from None
 
     def _receive(self, timeout_s):
         try:
@@ -428,7 +442,7 @@ class UdpLineSource(_LineSource):
         self._sock.settimeout(max(timeout_s, 0.001))
         try:
             data, _ = self._sock.recvfrom(65536)
-        except (socket.timeout, BlockingIOError):
+        except (TimeoutError, BlockingIOError):
             return b""
         except OSError as exc:
             raise LiveError(f"{self.url}: receiving failed ({exc})") from None
@@ -453,7 +467,7 @@ class TcpLineSource(_LineSource):
         self._sock.settimeout(max(timeout_s, 0.001))
         try:
             data = self._sock.recv(65536)
-        except (socket.timeout, BlockingIOError):
+        except (TimeoutError, BlockingIOError):
             return b""
         except OSError as exc:
             raise LiveError(f"{self.url}: the connection failed ({exc})") from None
@@ -473,8 +487,9 @@ def _bind_udp(url, host, port):
         sock.bind((host, port))
     except OSError as exc:
         sock.close()
-        raise LiveError(f"{url}: cannot listen on UDP {host}:{port} ({exc}); is another program using the port?") \
-            from None
+        raise LiveError(
+            f"{url}: cannot listen on UDP {host}:{port} ({exc}); is another program using the port?"
+        ) from None
     return sock
 
 
@@ -505,7 +520,7 @@ class MavlinkSource(LiveSource):
         try:
             from pymavlink import mavutil
         except ImportError:
-            raise LiveError(f"{url}: MAVLink needs pymavlink: pip install \"magcal[instruments]\"") from None
+            raise LiveError(f'{url}: MAVLink needs pymavlink: pip install "magcal[instruments]"') from None
         if message is not None and message not in MAVLINK_MESSAGES:
             raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
         self.message = message
@@ -633,7 +648,6 @@ class SimSource(LiveSource):
             ds = simulate_timeseries(name, n_samples=int(n_samples), seed=int(seed), rate_hz=rate)
             times = np.arange(ds.n_samples) / rate
         else:
-
             if not os.path.exists(name):
                 raise LiveError(f"{url}: {name!r} is neither a preset ({', '.join(PRESETS)}) nor a file")
             ds = read_csv(name)
@@ -701,12 +715,30 @@ def open_source(url: str, **options) -> LiveSource:
     parsed = urllib.parse.urlsplit(str(url))
     scheme = parsed.scheme.lower()
     if scheme not in SCHEMES:
-        raise LiveError(f"{url}: unknown source; use serial://DEVICE, udp://HOST:PORT, tcp://HOST:PORT or "
-                        "sim://PRESET (e.g. sim://chi2017?rate=50)")
+        raise LiveError(
+            f"{url}: unknown source; use serial://DEVICE, udp://HOST:PORT, tcp://HOST:PORT or "
+            "sim://PRESET (e.g. sim://chi2017?rate=50)"
+        )
     params = {k: v[-1] for k, v in urllib.parse.parse_qs(parsed.query, keep_blank_values=True).items()}
     params.update({k: str(v) for k, v in options.items()})
-    known = {"baud", "columns", "sep", "units", "lsb", "prefix", "format", "mavlink", "message", "rate", "seed",
-             "n", "loop", "speed", "raw_lsb_nT", "timeout"}
+    known = {
+        "baud",
+        "columns",
+        "sep",
+        "units",
+        "lsb",
+        "prefix",
+        "format",
+        "mavlink",
+        "message",
+        "rate",
+        "seed",
+        "n",
+        "loop",
+        "speed",
+        "raw_lsb_nT",
+        "timeout",
+    }
     unknown = sorted(set(params) - known)
     if unknown:
         raise LiveError(f"{url}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
@@ -720,16 +752,27 @@ def open_source(url: str, **options) -> LiveSource:
 
     def parser():
         try:
-            return LineParser(params.get("columns", "x,y,z"), params.get("sep") or None, params.get("units", "nT"),
-                              params.get("lsb"), params.get("prefix"))
+            return LineParser(
+                params.get("columns", "x,y,z"),
+                params.get("sep") or None,
+                params.get("units", "nT"),
+                params.get("lsb"),
+                params.get("prefix"),
+            )
         except MagcalError as exc:
             raise LiveError(f"{url}: {exc}") from None
 
     if scheme == "sim":
         name = (parsed.netloc + parsed.path) if parsed.netloc else parsed.path
-        return SimSource(url, urllib.parse.unquote(name), rate_hz=number("rate", None),
-                         n_samples=number("n", 3000, int), seed=number("seed", 0, int), loop=_flag(params, "loop"),
-                         speed=number("speed", 1.0))
+        return SimSource(
+            url,
+            urllib.parse.unquote(name),
+            rate_hz=number("rate", None),
+            n_samples=number("n", 3000, int),
+            seed=number("seed", 0, int),
+            loop=_flag(params, "loop"),
+            speed=number("speed", 1.0),
+        )
     if scheme == "serial":
         device = urllib.parse.unquote(parsed.path if not parsed.netloc else parsed.netloc + parsed.path)
         baud = number("baud", 115200, int)
@@ -784,8 +827,9 @@ class Recorder:
         try:
             self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o644)
         except FileExistsError:
-            raise LiveError(f"{self.path}: already exists; a recording is never overwritten: choose another name") \
-                from None
+            raise LiveError(
+                f"{self.path}: already exists; a recording is never overwritten: choose another name"
+            ) from None
         except OSError as exc:
             raise LiveError(f"{self.path}: cannot create the recording ({exc.strerror or exc})") from None
         self._offset = 0
@@ -795,8 +839,10 @@ class Recorder:
         if chunk.temperature_C is not None:
             cols.append("temp")
         self._columns = cols
-        meta = {"recorded_by": "magcal.data.live", "started_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(
-            timespec="seconds")}
+        meta = {
+            "recorded_by": "magcal.data.live",
+            "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        }
         meta.update(self.metadata)
         meta["units"] = "nT"
         return (metadata_text(meta) + ",".join(cols) + "\n").encode("utf-8")
@@ -808,8 +854,9 @@ class Recorder:
         if len(chunk):
             if self._columns is None:
                 self._pending.append(self._header(chunk))
-            elif (chunk.temperature_C is not None) != ("temp" in self._columns) or \
-                    3 * chunk.n_sensors != sum(c[0] == "s" for c in self._columns):
+            elif (chunk.temperature_C is not None) != ("temp" in self._columns) or 3 * chunk.n_sensors != sum(
+                c[0] == "s" for c in self._columns
+            ):
                 raise LiveError(f"{self.path}: the samples changed layout (sensors or temperature) mid-recording")
             parts = [format_column(chunk.time_s)]
             for i in range(chunk.n_sensors):
@@ -843,8 +890,10 @@ class Recorder:
             try:
                 n = os.write(self._fd, view)
             except OSError as exc:
-                raise LiveError(f"{self.path}: cannot write the recording ({exc.strerror or exc}); is the disk "
-                                "full? The samples flushed before are kept") from None
+                raise LiveError(
+                    f"{self.path}: cannot write the recording ({exc.strerror or exc}); is the disk "
+                    "full? The samples flushed before are kept"
+                ) from None
             self._offset += n
             view = view[n:]
 
@@ -880,8 +929,9 @@ class Recorder:
         self.close()
 
 
-def record(url_or_source, path, duration_s=None, max_samples=None, flush_interval_s=1.0, on_flush=None,
-           stop=None) -> SourceStats:
+def record(
+    url_or_source, path, duration_s=None, max_samples=None, flush_interval_s=1.0, on_flush=None, stop=None
+) -> SourceStats:
     """Record a live source into a magcal CSV until ``duration_s``, ``max_samples``, the source's end or ``stop``.
 
     Parameters
@@ -1045,10 +1095,16 @@ def main(argv=None) -> int:
     import argparse
     import sys
 
-    parser = argparse.ArgumentParser(prog="python -m magcal.data.live", description="Record a live magnetometer source "
-                                     "into a magcal CSV file (flushed to disk at least every --flush seconds).")
-    parser.add_argument("url", help="the source, e.g. serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-                                    "udp://127.0.0.1:14550?mavlink, sim://chi2017?rate=50")
+    parser = argparse.ArgumentParser(
+        prog="python -m magcal.data.live",
+        description="Record a live magnetometer source "
+        "into a magcal CSV file (flushed to disk at least every --flush seconds).",
+    )
+    parser.add_argument(
+        "url",
+        help="the source, e.g. serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
+        "udp://127.0.0.1:14550?mavlink, sim://chi2017?rate=50",
+    )
     parser.add_argument("output", help="the recording (a new file)")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
     parser.add_argument("--samples", type=int, default=None, help="stop after this many samples")
@@ -1060,8 +1116,9 @@ def main(argv=None) -> int:
         print(f"flushed {n}", flush=True)
 
     try:
-        stats = record(args.url, args.output, args.seconds, args.samples, args.flush,
-                       on_flush=progress if args.progress else None)
+        stats = record(
+            args.url, args.output, args.seconds, args.samples, args.flush, on_flush=progress if args.progress else None
+        )
     except MagcalError as exc:
         print(f"magcal.data.live: error: {exc}", file=sys.stderr)
         return 2

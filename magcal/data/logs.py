@@ -82,8 +82,10 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
     else:
         raise DatasetError(f"{source}: not a flight-controller log (expected {', '.join(LOG_EXTENSIONS)})")
     if ds.n_samples < int(min_samples):
-        raise DatasetError(f"{source}: {ds.n_samples} magnetometer sample(s), fewer than the {int(min_samples)} "
-                           "needed; record more attitudes")
+        raise DatasetError(
+            f"{source}: {ds.n_samples} magnetometer sample(s), fewer than the {int(min_samples)} "
+            "needed; record more attitudes"
+        )
     return ds
 
 
@@ -95,8 +97,11 @@ def _strictly_increasing(t, values, source, what):
     values = values[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     if not keep.all():
-        warnings.warn(f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped",
-                      DataWarning, stacklevel=4)
+        warnings.warn(
+            f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped",
+            DataWarning,
+            stacklevel=4,
+        )
     return t[keep], values[keep]
 
 
@@ -135,8 +140,12 @@ def pair_by_time(series, source):
         keep &= np.abs(t[nearest] - t0) <= 0.5 * step
         picks.append(nearest)
     if not keep.all():
-        warnings.warn(f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
-                      "of every other one within half a sample interval; they are dropped", DataWarning, stacklevel=4)
+        warnings.warn(
+            f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
+            "of every other one within half a sample interval; they are dropped",
+            DataWarning,
+            stacklevel=4,
+        )
     values = [v0[keep]] + [v[p[keep]] for (_, v), p in zip(series[1:], picks)]
     return t0[keep], values
 
@@ -166,8 +175,9 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
     if attitude is not None:
         kwargs["attitude_wxyz"] = _interp_attitude(t, *attitude)
     extras = {k: _interp(t, ts, v) for k, (ts, v) in (extra or {}).items()}
-    return Dataset(readings_nT=np.stack(values), time_s=t, extra=extras, metadata=dict(metadata or {}),
-                   source=source, **kwargs)
+    return Dataset(
+        readings_nT=np.stack(values), time_s=t, extra=extras, metadata=dict(metadata or {}), source=source, **kwargs
+    )
 
 
 def _alive(series, labels, source):
@@ -176,14 +186,19 @@ def _alive(series, labels, source):
     alive = []
     for k, ((_, v), label) in enumerate(zip(series, labels)):
         if v.shape[0] > 1 and np.all(v == v[0]):
-            warnings.warn(f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
-                          f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out",
-                          DataWarning, stacklevel=4)
+            warnings.warn(
+                f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
+                f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out",
+                DataWarning,
+                stacklevel=4,
+            )
             continue
         alive.append(k)
     if not alive:
-        raise DatasetError(f"{source}: every magnetometer in the log reads one constant vector ({', '.join(labels)}); "
-                           "there is nothing to calibrate: check that the compass was detected and enabled")
+        raise DatasetError(
+            f"{source}: every magnetometer in the log reads one constant vector ({', '.join(labels)}); "
+            "there is nothing to calibrate: check that the compass was detected and enabled"
+        )
     return alive
 
 
@@ -191,14 +206,19 @@ def _select(instances, sensors, source, what):
     """The instances chosen by ``sensors`` (0-based positions), at most :data:`MAX_SENSORS`."""
     if sensors is None:
         if len(instances) > MAX_SENSORS:
-            warnings.warn(f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with "
-                          "sensors=)", DataWarning, stacklevel=4)
+            warnings.warn(
+                f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)",
+                DataWarning,
+                stacklevel=4,
+            )
         return instances[:MAX_SENSORS]
     chosen = []
     for k in sensors:
         if not 0 <= int(k) < len(instances):
-            raise DatasetError(f"{source}: magnetometer {k} asked for, but the log has {len(instances)} "
-                               f"({', '.join(map(str, instances))}) in its {what}")
+            raise DatasetError(
+                f"{source}: magnetometer {k} asked for, but the log has {len(instances)} "
+                f"({', '.join(map(str, instances))}) in its {what}"
+            )
         chosen.append(instances[int(k)])
     return chosen
 
@@ -229,8 +249,9 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
     try:
         from pymavlink import DFReader
     except ImportError:
-        raise DatasetError(f"{source}: reading ArduPilot logs needs pymavlink: "
-                           f"pip install \"magcal[instruments]\"") from None
+        raise DatasetError(
+            f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
+        ) from None
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
             warnings.simplefilter("ignore")
@@ -281,12 +302,17 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
     except Exception as exc:
         raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
     for k, count in sorted(unhealthy.items()):
-        warnings.warn(f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left "
-                      "out", DataWarning, stacklevel=3)
+        warnings.warn(
+            f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out",
+            DataWarning,
+            stacklevel=3,
+        )
     if not mags:
-        raise DatasetError(f"{source}: no MAG messages (compass data); the log holds "
-                           f"{', '.join(sorted(seen_types)) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
-                           "(LOG_BITMASK) and record again")
+        raise DatasetError(
+            f"{source}: no MAG messages (compass data); the log holds "
+            f"{', '.join(sorted(seen_types)) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
+            "(LOG_BITMASK) and record again"
+        )
     instances = _select(sorted(mags), sensors, source, "MAG messages")
     series = []
     for k in instances:
@@ -304,9 +330,11 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
-    metadata = {"log_format": "ArduPilot DataFlash",
-                "log_magnetometers": ", ".join(labels),
-                "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)"}
+    metadata = {
+        "log_format": "ArduPilot DataFlash",
+        "log_magnetometers": ", ".join(labels),
+        "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)",
+    }
     ds = _build(source, series, temperature, attitude, extra, metadata)
     if "att_yaw_deg" in ds.extra:
         ds.extra["att_yaw_deg"] = (ds.extra["att_yaw_deg"] + 180.0) % 360.0 - 180.0
@@ -320,7 +348,7 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     try:
         from pyulog import ULog
     except ImportError:
-        raise DatasetError(f"{source}: reading PX4 logs needs pyulog: pip install \"magcal[instruments]\"") from None
+        raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
     try:
         ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
     except Exception as exc:  # a damaged or foreign file
@@ -340,8 +368,11 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
         t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, f"sensor_mag {d.multi_id}")
         good = np.isfinite(both[:, :3]).all(axis=1)
         if not good.all():
-            warnings.warn(f"{source}: sensor_mag {d.multi_id}: {int((~good).sum())} non-finite sample(s) dropped",
-                          DataWarning, stacklevel=3)
+            warnings.warn(
+                f"{source}: sensor_mag {d.multi_id}: {int((~good).sum())} non-finite sample(s) dropped",
+                DataWarning,
+                stacklevel=3,
+            )
         series.append((t[good], both[good, :3]))
         temps.append((t[good], both[good, 3]))
     keep = _alive(series, [f"sensor_mag {d.multi_id}" for d in chosen], source)
@@ -353,8 +384,11 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
         temperature = (t_temp[finite], v_temp[finite])
     attitude = _ulog_attitude(ulog, source)
     devices = [str(int(d.data["device_id"][0])) for d in chosen if "device_id" in d.data and len(d.data["device_id"])]
-    metadata = {"log_format": "PX4 ULog", "log_magnetometers": ", ".join(f"sensor_mag {d.multi_id}" for d in chosen),
-                "log_field": "raw (sensor_mag, before CAL_MAGn_*)"}
+    metadata = {
+        "log_format": "PX4 ULog",
+        "log_magnetometers": ", ".join(f"sensor_mag {d.multi_id}" for d in chosen),
+        "log_field": "raw (sensor_mag, before CAL_MAGn_*)",
+    }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
     return _build(source, series, temperature, attitude, None, metadata)
@@ -387,9 +421,11 @@ def _ulog_calibrated_field(ulog, source):
         if found:
             break
     else:
-        raise DatasetError(f"{source}: no sensor_mag messages (magnetometer data) in this ULog, nor "
-                           "vehicle_magnetometer or sensor_combined; set SDLOG_PROFILE to log sensor data and record "
-                           "again")
+        raise DatasetError(
+            f"{source}: no sensor_mag messages (magnetometer data) in this ULog, nor "
+            "vehicle_magnetometer or sensor_combined; set SDLOG_PROFILE to log sensor data and record "
+            "again"
+        )
     data = found[0].data
     t = np.asarray(data["timestamp"], dtype=np.int64)
     if "magnetometer_timestamp_relative" in data:
@@ -405,9 +441,16 @@ def _ulog_calibrated_field(ulog, source):
     t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])
     t_s, xyz = t_s[changed], xyz[changed]  # sensor_combined repeats the last magnetometer sample between updates
-    warnings.warn(f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
-                  f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
-                  "its parameters do not replace them", DataWarning, stacklevel=3)
-    metadata = {"log_format": "PX4 ULog", "log_magnetometers": topic,
-                "log_field": f"calibrated by the vehicle ({topic}, body frame)"}
+    warnings.warn(
+        f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
+        f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
+        "its parameters do not replace them",
+        DataWarning,
+        stacklevel=3,
+    )
+    metadata = {
+        "log_format": "PX4 ULog",
+        "log_magnetometers": topic,
+        "log_field": f"calibrated by the vehicle ({topic}, body frame)",
+    }
     return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source), None, metadata)

@@ -20,8 +20,8 @@ Presets are registered in :data:`PRESETS` by name (``chi2017``: Chi et al. 2017,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -160,7 +160,13 @@ def chi2017_truth(n_sensors: int = 4) -> ArrayTruth:
     )
     sensors = [
         SensorErrors(
-            scale=col[0:3], psi=col[3], phi=col[4], theta=col[5], bias_nT=col[6:9], alpha=col[9], beta=col[10],
+            scale=col[0:3],
+            psi=col[3],
+            phi=col[4],
+            theta=col[5],
+            bias_nT=col[6:9],
+            alpha=col[9],
+            beta=col[10],
             gamma=col[11],
         )
         for col in table.T
@@ -238,11 +244,17 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "chi2017": Preset(chi2017_truth, 200, 3.0, "gaussian", "Chi et al. 2017, Table 1: four sensors, N=200, sigma 3 nT"),
     "ding2024": Preset(
-        ding2024_truth, 300, 2.0, "uniform",
+        ding2024_truth,
+        300,
+        2.0,
+        "uniform",
         "Ding 2024, simulation 1 (Table 1): one sensor with hard/soft iron, N=300, uniform noise of full width 2 nT",
     ),
     "ding2024-fluxgate": Preset(
-        ding2024_fluxgate_truth, 300, 2.0, "uniform",
+        ding2024_fluxgate_truth,
+        300,
+        2.0,
+        "uniform",
         "Ding 2024, simulation 2 (Table 2): realistic fluxgate with hard/soft iron, N=300, uniform noise of full "
         "width 2 nT",
     ),
@@ -301,8 +313,15 @@ def _readings(truth, fields, rng, noise_nT, noise_kind):
     return clean + _noise(rng, clean.shape, noise_nT, noise_kind)
 
 
-def simulate(truth: ArrayTruth | str, n_samples=None, noise_nT=None, noise_kind=None, seed=0,
-             with_reference=True, with_attitude=False) -> Dataset:
+def simulate(
+    truth: ArrayTruth | str,
+    n_samples=None,
+    noise_nT=None,
+    noise_kind=None,
+    seed=0,
+    with_reference=True,
+    with_attitude=False,
+) -> Dataset:
     """Random-attitude simulation (the seeds' setup).
 
     Parameters
@@ -334,9 +353,18 @@ def simulate(truth: ArrayTruth | str, n_samples=None, noise_nT=None, noise_kind=
     return _dataset(truth, readings, att if with_attitude else None, with_reference, noise_nT, noise_kind)
 
 
-def simulate_timeseries(truth: ArrayTruth | str, n_samples=1500, noise_nT=None, noise_kind=None, seed=0,
-                        rate_hz=10.0, temperature_C=(20.0, 6.0), perturbations=(), with_reference=True,
-                        with_attitude=True) -> Dataset:
+def simulate_timeseries(
+    truth: ArrayTruth | str,
+    n_samples=1500,
+    noise_nT=None,
+    noise_kind=None,
+    seed=0,
+    rate_hz=10.0,
+    temperature_C=(20.0, 6.0),
+    perturbations=(),
+    with_reference=True,
+    with_attitude=True,
+) -> Dataset:
     """Time-series simulation along :func:`smooth_trajectory`, with time and temperature channels.
 
     Parameters
@@ -366,12 +394,17 @@ def simulate_timeseries(truth: ArrayTruth | str, n_samples=1500, noise_nT=None, 
     duration = max(t[-1], 1e-9)
     mean, half = temperature_C
     phase = rng.uniform(0, 2 * np.pi)
-    temp = mean + half * (0.7 * np.sin(2 * np.pi * 1.3 * t / duration + phase)
-                          + 0.3 * np.sin(2 * np.pi * 0.4 * t / duration + 2 * phase))
+    temp = mean + half * (
+        0.7 * np.sin(2 * np.pi * 1.3 * t / duration + phase) + 0.3 * np.sin(2 * np.pi * 0.4 * t / duration + 2 * phase)
+    )
     fields = true_fields(truth, att)
     clean = np.stack([s.measure(f) for s, f in zip(truth.sensors, fields)])
     context = {
-        "fields_nT": fields, "time_s": t, "temperature_C": temp, "attitudes": att, "truth": truth,
+        "fields_nT": fields,
+        "time_s": t,
+        "temperature_C": temp,
+        "attitudes": att,
+        "truth": truth,
         "positions_m": conventions.sensor_positions(truth.baseline_m, truth.n_sensors),
     }
     for perturb in perturbations:

@@ -49,7 +49,7 @@ from magcal.diagnosis.maps import (
     pattern_correlation,
     residual_patterns,
 )
-from magcal.diagnosis.scores import Candidate, _candidate_effects, _grams, effective_residual_count
+from magcal.diagnosis.scores import Candidate, effective_residual_count
 from magcal.diagnosis.statistics import (
     SH_DEGREE,
     SH_MAX_SAMPLES,
@@ -66,18 +66,38 @@ from magcal.diagnosis.verdict import DELTA_BIC_THRESHOLD, VERDICTS, Diagnosis, d
 
 __all__ = [
     # the diagnosis
-    "diagnose", "Diagnosis", "Candidate", "Structure", "VERDICTS", "SIGNATURES",
+    "diagnose",
+    "Diagnosis",
+    "Candidate",
+    "Structure",
+    "VERDICTS",
+    "SIGNATURES",
     # thresholds
-    "DELTA_BIC_THRESHOLD", "STRUCTURE_P", "STRUCTURE_MIN_FRACTION", "GLITCH_SIGMA", "GLITCH_MAX_FRACTION",
+    "DELTA_BIC_THRESHOLD",
+    "STRUCTURE_P",
+    "STRUCTURE_MIN_FRACTION",
+    "GLITCH_SIGMA",
+    "GLITCH_MAX_FRACTION",
     "effective_residual_count",
     # statistics of a residual series
-    "durbin_watson", "autocorrelation", "ljung_box", "cusum_test", "spectrum", "real_sph_harm", "sh_analysis",
-    "SH_DEGREE", "SH_MAX_SAMPLES",
+    "durbin_watson",
+    "autocorrelation",
+    "ljung_box",
+    "cusum_test",
+    "spectrum",
+    "real_sph_harm",
+    "sh_analysis",
+    "SH_DEGREE",
+    "SH_MAX_SAMPLES",
     # residual patterns on the direction sphere
-    "DirectionPattern", "direction_pattern", "residual_patterns", "candidate_change", "candidate_patterns",
+    "DirectionPattern",
+    "direction_pattern",
+    "residual_patterns",
+    "candidate_change",
+    "candidate_patterns",
     "pattern_correlation",
     # noise (defined in magcal.checks.noise, re-exported for compatibility)
-    "NoiseEstimate", "estimate_noise", "is_smooth_sequence",
+    "NoiseEstimate",
+    "estimate_noise",
+    "is_smooth_sequence",
 ]
-
-# _candidate_effects and _grams are re-exported for tests/test_diagnosis.py; they are not public.

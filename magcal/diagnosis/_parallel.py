@@ -110,5 +110,5 @@ def _run(call, future):
     if future.set_running_or_notify_cancel():
         try:
             future.set_result(call())
-        except BaseException as exc:  # noqa: BLE001 - handed to whoever waits for the result
+        except BaseException as exc:
             future.set_exception(exc)

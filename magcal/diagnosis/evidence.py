@@ -59,11 +59,16 @@ def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
         rms = [v for v in rms if np.isfinite(v)]
         if not rms:  # withheld by sh_analysis: the coverage does not resolve the degree
             top = max(int(sh_stats[s].get("max_resolved_degree", -1)) for s in sensors)
-            return (f"direction degree {degree}: not resolved by the coverage (directions resolve degrees up to "
-                    f"{top}), so its size is not measured")
+            return (
+                f"direction degree {degree}: not resolved by the coverage (directions resolve degrees up to "
+                f"{top}), so its size is not measured"
+            )
         return f"direction degree {degree}: {max(rms):.2g} nT"
-    if c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift") and \
-            kept.temperature_C is not None and kept.time_s is not None:
+    if (
+        c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift")
+        and kept.temperature_C is not None
+        and kept.time_s is not None
+    ):
         rho = abs(np.corrcoef(kept.temperature_C, kept.time_s)[0, 1])
         return f"|corr(T, t)| = {rho:.2f}"
     return ""
@@ -75,19 +80,29 @@ def _time_evidence(kept, r, ordered):
     w = max(1, n // 60)
     kernel = np.ones(w) / w
     smooth = np.array([np.convolve(row, kernel, mode="same") for row in r])
-    ev = {"x": t, "y": r, "smooth": smooth, "x_label": "time (s)" if kept.time_s is not None else "sample",
-          "durbin_watson": np.array([durbin_watson(row) for row in r])}
+    ev = {
+        "x": t,
+        "y": r,
+        "smooth": smooth,
+        "x_label": "time (s)" if kept.time_s is not None else "sample",
+        "durbin_watson": np.array([durbin_watson(row) for row in r]),
+    }
     if ordered:
         lb = [ljung_box(row) for row in r]
         ev["ljung_box_p"] = np.array([x[1] for x in lb])
         cs = [cusum_test(row) for row in r]
-        ev["cusum"] = {"index": np.array([c[0] for c in cs]), "statistic": np.array([c[1] for c in cs]),
-                       "p": np.array([c[2] for c in cs]), "time": np.array([t[c[0]] for c in cs])}
+        ev["cusum"] = {
+            "index": np.array([c[0] for c in cs]),
+            "statistic": np.array([c[1] for c in cs]),
+            "p": np.array([c[2] for c in cs]),
+            "time": np.array([t[c[0]] for c in cs]),
+        }
         if kept.time_s is not None:
-
             scans = [step_scan(kept.readings_nT[s]) for s in range(r.shape[0])]
-            ev["step_scan"] = {"rss_drop_nT2": np.array([sc[1] for sc in scans]),
-                               "time": np.array([t[sc[0]] for sc in scans])}
+            ev["step_scan"] = {
+                "rss_drop_nT2": np.array([sc[1] for sc in scans]),
+                "time": np.array([t[sc[0]] for sc in scans]),
+            }
     return ev
 
 
@@ -106,8 +121,7 @@ def _temperature_evidence(kept, r, directions):
         f = (rss0 - rss1) / 4 / max(rss1 / (len(d_t) - 8), 1e-300)
         p_vals.append(float(stats.f.sf(f, 4, len(d_t) - 8)))
     order = np.argsort(temp)
-    return {"x": temp, "y": r, "x_label": "temperature (degC)", "f_test_p": np.array(p_vals),
-            "sorted_index": order}
+    return {"x": temp, "y": r, "x_label": "temperature (degC)", "f_test_p": np.array(p_vals), "sorted_index": order}
 
 
 def _sensor_evidence(kept, fit, r, fields):
@@ -116,10 +130,13 @@ def _sensor_evidence(kept, fit, r, fields):
         return None
     common = r.mean(axis=0)
     diffs = r - common
-    ev = {"common_mode_nT": common, "differences_nT": diffs,
-          "common_mode_rms_nT": float(np.sqrt(np.mean(common**2))),
-          "difference_rms_nT": np.sqrt(np.mean(diffs**2, axis=1)),
-          "correlation": np.corrcoef(r)}
+    ev = {
+        "common_mode_nT": common,
+        "differences_nT": diffs,
+        "common_mode_rms_nT": float(np.sqrt(np.mean(common**2))),
+        "difference_rms_nT": np.sqrt(np.mean(diffs**2, axis=1)),
+        "correlation": np.corrcoef(r),
+    }
     vr = _vector_rms_per_sensor(fit)
     if vr is not None:
         ev["vector_rms_nT"] = vr

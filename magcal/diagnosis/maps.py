@@ -68,8 +68,14 @@ def _even_pick(n: int, m: int) -> np.ndarray:
     return np.arange(n) if n <= m else np.linspace(0, n - 1, m).round().astype(int)
 
 
-def direction_pattern(directions, values_nT, vertices, lmax: int = SH_DEGREE, max_samples: int = SH_MAX_SAMPLES,
-                      cap_deg: float = SUPPORT_CAP_DEG) -> DirectionPattern:
+def direction_pattern(
+    directions,
+    values_nT,
+    vertices,
+    lmax: int = SH_DEGREE,
+    max_samples: int = SH_MAX_SAMPLES,
+    cap_deg: float = SUPPORT_CAP_DEG,
+) -> DirectionPattern:
     """The least-squares spherical-harmonic expansion of ``values_nT(directions)`` evaluated at ``vertices``.
 
     Parameters

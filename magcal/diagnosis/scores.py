@@ -117,15 +117,23 @@ class Candidate:
 
     def to_dict(self) -> dict:
         return {
-            "effect": self.effect, "sensor": None if self.sensor is None else self.sensor + 1,
+            "effect": self.effect,
+            "sensor": None if self.sensor is None else self.sensor + 1,
             "delta_bic": _num(self.delta_bic),
-            "rms_after_nT": _num(self.rms_after_nT), "evidence": self.evidence, "label": self.label,
-            "predicted_delta_bic": _num(self.predicted_delta_bic), "refitted": self.refitted,
-            "lm": _num(self.lm), "p_value": _num(self.p_value), "n_params": self.n_params,
-            "vector_rms_after_nT": _num(self.vector_rms_after_nT), "params": self.params,
+            "rms_after_nT": _num(self.rms_after_nT),
+            "evidence": self.evidence,
+            "label": self.label,
+            "predicted_delta_bic": _num(self.predicted_delta_bic),
+            "refitted": self.refitted,
+            "lm": _num(self.lm),
+            "p_value": _num(self.p_value),
+            "n_params": self.n_params,
+            "vector_rms_after_nT": _num(self.vector_rms_after_nT),
+            "params": self.params,
             "held_out_rms_before_nT": _num(self.held_out_before_nT),
             "held_out_rms_after_nT": _num(self.held_out_after_nT),
-            "later_rms_before_nT": _num(self.later_before_nT), "later_rms_after_nT": _num(self.later_after_nT),
+            "later_rms_before_nT": _num(self.later_before_nT),
+            "later_rms_after_nT": _num(self.later_after_nT),
             "holds": self.holds,
         }
 
@@ -203,6 +211,7 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
     rows_per_sample = kept.n_sensors * (3 if kept.n_sensors > 1 else 1)
     chunk = max(2_000, chunk_rows // rows_per_sample)
     parts = np.array_split(np.arange(n), max(1, int(np.ceil(n / chunk))))
+
     def chunk(idx):
         sub = kept if len(parts) == 1 else kept.subset(idx)
         problem = Problem(sub, model, init, reference_total_nT)
@@ -236,8 +245,13 @@ def _carried(previous, kept, fit, groups):
     """
     proj = previous.projector
     g = None if proj is None else proj.g
-    if g is None or g.problem is None or g.mask is None or not np.array_equal(g.mask, fit.mask) \
-            or g.reference != _reference_override(fit):
+    if (
+        g is None
+        or g.problem is None
+        or g.mask is None
+        or not np.array_equal(g.mask, fit.mask)
+        or g.reference != _reference_override(fit)
+    ):
         return None
 
     before = {block_label(e, s): e for e, s in g.problem.model.instances()}
@@ -258,10 +272,13 @@ def _carried(previous, kept, fit, groups):
     for name, instances in groups.items():
         labels = [block_label(e, s) for e in instances for s in _sensors_of(e, kept.n_sensors)]
         ok = all(label in g.blocks for label in labels) and all(
-            same(e, s) for e in instances for s in _sensors_of(e, kept.n_sensors))
+            same(e, s) for e in instances for s in _sensors_of(e, kept.n_sensors)
+        )
         (reusable if ok else changed)[name] = instances
-    keep_labels = sorted(set(base) | {block_label(e, s) for v in reusable.values() for e in v
-                                      for s in _sensors_of(e, kept.n_sensors)}, key=lambda label: g.blocks[label].start)
+    keep_labels = sorted(
+        set(base) | {block_label(e, s) for v in reusable.values() for e in v for s in _sensors_of(e, kept.n_sensors)},
+        key=lambda label: g.blocks[label].start,
+    )
     keep = np.concatenate([np.arange(g.blocks[label].start, g.blocks[label].stop) for label in keep_labels])
     blocks, at = {}, 0
     for label in keep_labels:
@@ -276,9 +293,20 @@ def _carried(previous, kept, fit, groups):
     x = (g.problem.x0 if g.x is None else g.x).copy()
     x[index] += delta
     carried = _Grams(
-        g_all, v_all + g_all @ delta, float(g.rr_all + 2 * delta @ v_all + delta @ g_all @ delta),
-        g_tf, v_tf + g_tf @ delta, float(g.rr_tf + 2 * delta @ v_tf + delta @ g_tf @ delta),
-        blocks, g.m_tf, g.problem, x=x, index=index, mask=g.mask, reference=g.reference)
+        g_all,
+        v_all + g_all @ delta,
+        float(g.rr_all + 2 * delta @ v_all + delta @ g_all @ delta),
+        g_tf,
+        v_tf + g_tf @ delta,
+        float(g.rr_tf + 2 * delta @ v_tf + delta @ g_tf @ delta),
+        blocks,
+        g.m_tf,
+        g.problem,
+        x=x,
+        index=index,
+        mask=g.mask,
+        reference=g.reference,
+    )
     return reusable, carried, changed
 
 
@@ -341,13 +369,24 @@ class _Projector:
         dbic = m_eff * np.log(1.0 - reduction / rss0) + (q + extra_dof) * np.log(m_eff)
         # first-order total-field residual after adding the effect (the base re-adjusting included)
         jt_r = g.v_tf[cols] - bmat.T @ g.v_tf[base]
-        jt_j = (g.g_tf[np.ix_(cols, cols)] - bmat.T @ g.g_tf[np.ix_(base, cols)]
-                - g.g_tf[np.ix_(cols, base)] @ bmat + bmat.T @ g.g_tf[np.ix_(base, base)] @ bmat)
+        jt_j = (
+            g.g_tf[np.ix_(cols, cols)]
+            - bmat.T @ g.g_tf[np.ix_(base, cols)]
+            - g.g_tf[np.ix_(cols, base)] @ bmat
+            + bmat.T @ g.g_tf[np.ix_(base, base)] @ bmat
+        )
         rss_tf = g.rr_tf - 2 * coef @ jt_r + coef @ jt_j @ coef
         rms_tf = float(np.sqrt(max(rss_tf, 0.0) / g.m_tf))
         rss_v = (g.rr_all - g.rr_tf) - 2 * coef @ (v - jt_r) + coef @ (s - jt_j) @ coef
-        return {"q": q, "lm": lm, "p": p, "dbic": float(dbic), "rms_tf": rms_tf, "rss_vec": float(max(rss_v, 0.0)),
-                "reduction": reduction}
+        return {
+            "q": q,
+            "lm": lm,
+            "p": p,
+            "dbic": float(dbic),
+            "rms_tf": rms_tf,
+            "rss_vec": float(max(rss_v, 0.0)),
+            "reduction": reduction,
+        }
 
     def step(self, cols):
         """The Gauss-Newton step (one value per row of the Gram matrix) with the columns ``cols`` (a candidate's
@@ -400,8 +439,13 @@ def _score_round(dataset, kept, fit, names=None, previous=None):
     if not groups:
         return [], None, None
     base_resid = fit.residuals_nT[:, fit.mask]
-    in_parallel([lambda e=e: e.configure(kept, base_resid)  # each candidate's data-derived constants, side by side
-                 for instances in groups.values() for e in instances])
+    in_parallel(
+        [
+            lambda e=e: e.configure(kept, base_resid)  # each candidate's data-derived constants, side by side
+            for instances in groups.values()
+            for e in instances
+        ]
+    )
     carried = _carried(previous, kept, fit, groups) if previous is not None else None
     if carried is not None and carried[0]:
         reusable, grams, changed = carried
@@ -422,8 +466,9 @@ def _labels_of(groups, n_sensors) -> frozenset:
 def _score_round_fresh(kept, fit, groups):
     """The score round of ``groups`` (configured) from a Gram matrix at ``fit``."""
     model = fit.model
-    all_model = Model(model.n_sensors, model.base,
-                      [_copy_effect(e) for e in model.effects] + [e for v in groups.values() for e in v])
+    all_model = Model(
+        model.n_sensors, model.base, [_copy_effect(e) for e in model.effects] + [e for v in groups.values() for e in v]
+    )
     ref = _reference_override(fit)
     try:
         grams = _grams(kept, all_model, fit.calibration, ref)
@@ -450,9 +495,18 @@ def _score_round_separately(kept, fit, groups):
 
 def _score_from_grams(kept, fit, groups, grams):
 
-    cand_labels = {block_label(e, s) for v in groups.values() for e in v
-                   for s in ([None] if not e.per_sensor else [e.sensor] if e.sensor is not None
-                             else [q for q in range(kept.n_sensors) if e.applies_to(q)])}
+    cand_labels = {
+        block_label(e, s)
+        for v in groups.values()
+        for e in v
+        for s in (
+            [None]
+            if not e.per_sensor
+            else [e.sensor]
+            if e.sensor is not None
+            else [q for q in range(kept.n_sensors) if e.applies_to(q)]
+        )
+    }
     all_cols = np.arange(grams.g_all.shape[0])
     cand_cols = _columns(grams.blocks, sorted(cand_labels))
     base_cols = np.setdiff1d(all_cols, cand_cols)
@@ -493,10 +547,21 @@ def _score_from_grams(kept, fit, groups, grams):
             vec_after = None
             if coupled:
                 vec_after = float(np.sqrt(sc["rss_vec"] / (ns * n * 2)))
-            c = Candidate(effect=name, sensor=sensor, label=label, n_params=sc["q"],
-                          lm=sc["lm"], p_value=sc["p"], predicted_delta_bic=sc["dbic"], delta_bic=sc["dbic"],
-                          rms_after_nT=sc["rms_tf"], vector_rms_after_nT=vec_after, instances=inst, columns=cols,
-                          projector=proj)
+            c = Candidate(
+                effect=name,
+                sensor=sensor,
+                label=label,
+                n_params=sc["q"],
+                lm=sc["lm"],
+                p_value=sc["p"],
+                predicted_delta_bic=sc["dbic"],
+                delta_bic=sc["dbic"],
+                rms_after_nT=sc["rms_tf"],
+                vector_rms_after_nT=vec_after,
+                instances=inst,
+                columns=cols,
+                projector=proj,
+            )
             cands.append(c)
     cands.sort(key=lambda c: c.predicted_delta_bic)
     return cands, proj, grams
@@ -507,16 +572,25 @@ def _refit(dataset, fit, candidate: Candidate):
     (:meth:`_Projector.start`) when there is one; returns the FitResult."""
 
     model = fit.model
-    if candidate.sensor is None and len(candidate.instances) > 1 and not any(e.name == candidate.effect
-                                                                            for e in model.effects):
+    if (
+        candidate.sensor is None
+        and len(candidate.instances) > 1
+        and not any(e.name == candidate.effect for e in model.effects)
+    ):
         new = [EFFECTS[candidate.effect]()]  # one term for all sensors
     else:
         new = [_copy_effect(e) for e in candidate.instances]
     for e in new:
         model = model.with_effect(e)
     ref = _reference_override(fit)
-    return ml_fit(dataset, model, init=candidate.start or fit.calibration, mask=fit.mask, reference_total_nT=ref,
-                  cost_tolerance=COMPARISON_COST_TOLERANCE)
+    return ml_fit(
+        dataset,
+        model,
+        init=candidate.start or fit.calibration,
+        mask=fit.mask,
+        reference_total_nT=ref,
+        cost_tolerance=COMPARISON_COST_TOLERANCE,
+    )
 
 
 def _delta_bic(fit0, fit1, extra_dof, coupled):

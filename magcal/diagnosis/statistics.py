@@ -142,8 +142,8 @@ def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
         z *= step
         if k % 64 == 63:  # renormalise now and then: the recurrence's rounding grows the modulus slowly
             z /= np.abs(z)
-        yz = r @ z                       # sum r cos wt + i sum r sin wt
-        z2 = np.sum(z * z)               # sum cos 2wt + i sum sin 2wt
+        yz = r @ z  # sum r cos wt + i sum r sin wt
+        z2 = np.sum(z * z)  # sum cos 2wt + i sum sin 2wt
         two_tau = np.angle(z2)
         rot = np.exp(-0.5j * two_tau)
         yc, ys = (yz * rot).real, (yz * rot).imag
@@ -189,8 +189,15 @@ def spectrum(r, time_s=None):
         freq, power = periodogram(r, fs=fs, detrend=False)
         freq, power = freq[1:], power[1:]
     if len(power) < 3 or power.sum() <= 0:
-        return {"freq_hz": freq, "power": power, "peak_hz": float("nan"), "peak_fraction": 0.0,
-                "amplitude_nT": 0.0, "p": 1.0, "method": method}
+        return {
+            "freq_hz": freq,
+            "power": power,
+            "peak_hz": float("nan"),
+            "peak_fraction": 0.0,
+            "amplitude_nT": 0.0,
+            "p": 1.0,
+            "method": method,
+        }
     i = int(np.argmax(power))
     g = float(power[i] / power.sum())
     nf = len(power)
@@ -199,8 +206,15 @@ def spectrum(r, time_s=None):
     lo, hi = max(0, i - 1), min(nf, i + 2)
     frac = float(power[lo:hi].sum() / power.sum())
     var = float(np.mean(r**2))
-    return {"freq_hz": freq, "power": power, "peak_hz": float(freq[i]), "peak_fraction": frac,
-            "amplitude_nT": float(np.sqrt(2 * frac * var)), "p": p, "method": method}
+    return {
+        "freq_hz": freq,
+        "power": power,
+        "peak_hz": float(freq[i]),
+        "peak_fraction": frac,
+        "amplitude_nT": float(np.sqrt(2 * frac * var)),
+        "p": p,
+        "method": method,
+    }
 
 
 def real_sph_harm(u, lmax=SH_DEGREE) -> np.ndarray:
@@ -239,8 +253,9 @@ def real_sph_harm(u, lmax=SH_DEGREE) -> np.ndarray:
 @functools.lru_cache(maxsize=4)
 def _grid_harmonics(grid, lmax) -> np.ndarray:
     """:func:`real_sph_harm` on the latitude/longitude grid of :func:`sh_analysis`'s map (the same every time)."""
-    la, lo = np.meshgrid(np.radians(np.linspace(-90, 90, grid[0])), np.radians(np.linspace(-180, 180, grid[1])),
-                         indexing="ij")
+    la, lo = np.meshgrid(
+        np.radians(np.linspace(-90, 90, grid[0])), np.radians(np.linspace(-180, 180, grid[1])), indexing="ij"
+    )
     g = np.column_stack([(np.cos(la) * np.cos(lo)).ravel(), (np.cos(la) * np.sin(lo)).ravel(), np.sin(la).ravel()])
     out = real_sph_harm(g, lmax)
     out.setflags(write=False)
@@ -344,10 +359,17 @@ def sh_analysis(u, r, lmax=SH_DEGREE, grid=(19, 37), max_samples=None):
     lon = np.linspace(-180, 180, grid[1])
     high = coef.copy()
     high[:9] = 0.0
-    high[(top + 1) ** 2:] = 0.0  # no map where the coverage does not resolve the pattern
+    high[(top + 1) ** 2 :] = 0.0  # no map where the coverage does not resolve the pattern
     values = (_grid_harmonics(tuple(grid), lmax) @ high).reshape(len(lat), len(lon))
-    return {"degree": np.array(degrees), "rms_nT": np.array(rms), "F": np.array(fstat), "p": np.array(pval),
-            "resolved": resolved, "max_resolved_degree": top,
-            "high_rms_in_sample_nT": float(np.sqrt(max(rss_low - rss, 0.0) / max(n, 1))),
-            "coverage_rank": int(keep.sum()), "n_functions": p,
-            "map": {"lat_deg": lat, "lon_deg": lon, "value_nT": values}}
+    return {
+        "degree": np.array(degrees),
+        "rms_nT": np.array(rms),
+        "F": np.array(fstat),
+        "p": np.array(pval),
+        "resolved": resolved,
+        "max_resolved_degree": top,
+        "high_rms_in_sample_nT": float(np.sqrt(max(rss_low - rss, 0.0) / max(n, 1))),
+        "coverage_rank": int(keep.sum()),
+        "n_functions": p,
+        "map": {"lat_deg": lat, "lon_deg": lon, "value_nT": values},
+    }

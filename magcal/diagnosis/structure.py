@@ -57,8 +57,13 @@ class Structure:
     text: str
 
     def to_dict(self):
-        return {"kind": self.kind, "sensor": None if self.sensor is None else self.sensor + 1, "p": _num(self.p),
-                "size": _num(self.size), "text": self.text}
+        return {
+            "kind": self.kind,
+            "sensor": None if self.sensor is None else self.sensor + 1,
+            "p": _num(self.p),
+            "size": _num(self.size),
+            "text": self.text,
+        }
 
 
 def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tests_factor=1):
@@ -91,28 +96,52 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
         ratio = float(np.mean(r[keep] ** 2) / floor**2)
         se = np.sqrt(2.0 / n + noise.relative_variance_error**2)
         z = (ratio - 1.0) / se
-        st.update(rms_nT=float(np.sqrt(np.mean(r[keep] ** 2))), floor_nT=floor, variance_ratio=ratio,
-                  excess_z=float(z))
+        st.update(rms_nT=float(np.sqrt(np.mean(r[keep] ** 2))), floor_nT=floor, variance_ratio=ratio, excess_z=float(z))
         if noise.source != "residuals" and z > stats.norm.isf(alpha) and ratio > 1.0 + 2 * STRUCTURE_MIN_FRACTION:
-            found.append(Structure("excess", s, float(stats.norm.sf(z)), ratio,
-                                   f"sensor {s + 1}: RMS {st['rms_nT']:.3g} nT is {np.sqrt(ratio):.2f}x "
-                                   f"the noise floor {floor:.3g} nT"))
+            found.append(
+                Structure(
+                    "excess",
+                    s,
+                    float(stats.norm.sf(z)),
+                    ratio,
+                    f"sensor {s + 1}: RMS {st['rms_nT']:.3g} nT is {np.sqrt(ratio):.2f}x "
+                    f"the noise floor {floor:.3g} nT",
+                )
+            )
         if ordered:
             q, p, frac = ljung_box(r)
             st.update(ljung_box_q=q, ljung_box_p=p, autocorrelated_fraction=frac, durbin_watson=durbin_watson(r))
             if p < alpha and frac > STRUCTURE_MIN_FRACTION:
-                found.append(Structure("time", s, p, frac,
-                                       f"sensor {s + 1}: residuals correlated in time (Ljung-Box p={p:.2g}, "
-                                       f"Durbin-Watson {st['durbin_watson']:.2f})"))
+                found.append(
+                    Structure(
+                        "time",
+                        s,
+                        p,
+                        frac,
+                        f"sensor {s + 1}: residuals correlated in time (Ljung-Box p={p:.2g}, "
+                        f"Durbin-Watson {st['durbin_watson']:.2f})",
+                    )
+                )
             spec = spectrum(r, t)
-            st.update(peak_hz=spec["peak_hz"], peak_fraction=spec["peak_fraction"], peak_p=spec["p"],
-                      peak_amplitude_nT=spec["amplitude_nT"])
+            st.update(
+                peak_hz=spec["peak_hz"],
+                peak_fraction=spec["peak_fraction"],
+                peak_p=spec["p"],
+                peak_amplitude_nT=spec["amplitude_nT"],
+            )
             if spec["p"] < alpha and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION:
                 unit = "Hz" if t is not None else "cycles/sample"
-                found.append(Structure("periodic", s, spec["p"], spec["peak_fraction"],
-                                       f"sensor {s + 1}: periodic component at {spec['peak_hz']:.3g} {unit} "
-                                       f"(amplitude {spec['amplitude_nT']:.2g} nT, {100 * spec['peak_fraction']:.0f}% "
-                                       "of the residual variance)"))
+                found.append(
+                    Structure(
+                        "periodic",
+                        s,
+                        spec["p"],
+                        spec["peak_fraction"],
+                        f"sensor {s + 1}: periodic component at {spec['peak_hz']:.3g} {unit} "
+                        f"(amplitude {spec['amplitude_nT']:.2g} nT, {100 * spec['peak_fraction']:.0f}% "
+                        "of the residual variance)",
+                    )
+                )
         sh = sh_analysis(directions[s][keep], r[keep], max_samples=SH_MAX_SAMPLES)
         hi = sh["degree"] >= 3
         p_sh = float(np.nanmin(sh["p"][hi])) if np.any(np.isfinite(sh["p"][hi])) else 1.0
@@ -127,11 +156,14 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
             if deg >= 0 and sh["resolved"][deg]:
                 what = f"strongest at spherical-harmonic degree {deg} ({sh['rms_nT'][deg]:.2g} nT)"
             else:
-                what = (f"strongest at spherical-harmonic degree {deg}; degrees 3 and above explain "
-                        f"{sh['high_rms_in_sample_nT']:.2g} nT RMS at the directions visited (the coverage resolves "
-                        f"degrees up to {sh['max_resolved_degree']} only, so their size elsewhere is not known)")
-            found.append(Structure("direction", s, p_sh, size,
-                                   f"sensor {s + 1}: pattern over the field direction, {what}"))
+                what = (
+                    f"strongest at spherical-harmonic degree {deg}; degrees 3 and above explain "
+                    f"{sh['high_rms_in_sample_nT']:.2g} nT RMS at the directions visited (the coverage resolves "
+                    f"degrees up to {sh['max_resolved_degree']} only, so their size elsewhere is not known)"
+                )
+            found.append(
+                Structure("direction", s, p_sh, size, f"sensor {s + 1}: pattern over the field direction, {what}")
+            )
         if vec is not None:
             v = vec[s].reshape(n, -1).copy()
             v[glitch] = 0.0
@@ -141,16 +173,30 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
             zv = (ratio_v - 1.0) / np.sqrt(1.0 / n + noise.relative_variance_error**2)
             st.update(vector_rms_nT=float(np.sqrt(vr)), vector_variance_ratio=ratio_v)
             if noise.source != "residuals" and zv > stats.norm.isf(alpha) and ratio_v > 1 + 2 * STRUCTURE_MIN_FRACTION:
-                found.append(Structure("consistency", s, float(stats.norm.sf(zv)), ratio_v,
-                                       f"sensor {s + 1}: disagrees with the others in direction by "
-                                       f"{np.sqrt(vr):.3g} nT RMS per component ({np.sqrt(ratio_v):.2f}x the noise)"))
+                found.append(
+                    Structure(
+                        "consistency",
+                        s,
+                        float(stats.norm.sf(zv)),
+                        ratio_v,
+                        f"sensor {s + 1}: disagrees with the others in direction by "
+                        f"{np.sqrt(vr):.3g} nT RMS per component ({np.sqrt(ratio_v):.2f}x the noise)",
+                    )
+                )
             if ordered:
                 pv = min(ljung_box(v[:, k])[1] for k in range(comps))
                 fv = max(ljung_box(v[:, k])[2] for k in range(comps))
                 if pv < alpha / comps and fv > STRUCTURE_MIN_FRACTION:
-                    found.append(Structure("consistency_time", s, pv, fv,
-                                           f"sensor {s + 1}: the inter-sensor disagreement is correlated in time "
-                                           f"(Ljung-Box p={pv:.2g})"))
+                    found.append(
+                        Structure(
+                            "consistency_time",
+                            s,
+                            pv,
+                            fv,
+                            f"sensor {s + 1}: the inter-sensor disagreement is correlated in time "
+                            f"(Ljung-Box p={pv:.2g})",
+                        )
+                    )
         per.append(st)
     return found, per
 

@@ -164,8 +164,10 @@ class Diagnosis:
         if v.get("validated"):
             blocks = v["schemes"]["blocks"]
             later = v["schemes"].get("later")
-            line = (f"held-out validation: blocks ({blocks['n_test']} of {blocks['n_train'] + blocks['n_test']} "
-                    f"samples held out, base model {blocks['base_held_out_rms_nT']:.4g} nT)")
+            line = (
+                f"held-out validation: blocks ({blocks['n_test']} of {blocks['n_train'] + blocks['n_test']} "
+                f"samples held out, base model {blocks['base_held_out_rms_nT']:.4g} nT)"
+            )
             if later:
                 line += f", later (last {later['n_test']} samples, base {later['base_held_out_rms_nT']:.4g} nT)"
             lines.append(line)
@@ -174,20 +176,26 @@ class Diagnosis:
         if self.effects:
             lines.append(f"model effects: {', '.join(self.effects)}")
         lines.append("")
-        lines.append(f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10} "
-                     f"{'held-out':>17} {'later':>17} {'holds':>5}  evidence")
+        lines.append(
+            f"{'rank':>4}  {'effect':<24} {'sensor':>6} {'dBIC':>10} {'RMS after':>10} "
+            f"{'held-out':>17} {'later':>17} {'holds':>5}  evidence"
+        )
         for i, c in enumerate(self.candidates[:limit], 1):
             mark = "" if c.refitted else "*"
             sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
             holds = "-" if c.holds is None else "yes" if c.holds else "NO"
-            lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g} "
-                         f"{_pair(c.held_out_before_nT, c.held_out_after_nT):>17} "
-                         f"{_pair(c.later_before_nT, c.later_after_nT):>17} {holds:>5}  {c.evidence}")
+            lines.append(
+                f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g} "
+                f"{_pair(c.held_out_before_nT, c.held_out_after_nT):>17} "
+                f"{_pair(c.later_before_nT, c.later_after_nT):>17} {holds:>5}  {c.evidence}"
+            )
         if any(not c.refitted for c in self.candidates[:limit]):
             lines.append("  * predicted by the score test (not refitted)")
         if v.get("validated"):
-            lines.append("  held-out, later: total-field RMS without -> with the effect on samples the fit did not "
-                         "see (nT); holds: the gain holds on them (recommended only then)")
+            lines.append(
+                "  held-out, later: total-field RMS without -> with the effect on samples the fit did not "
+                "see (nT); holds: the gain holds on them (recommended only then)"
+            )
         if self.warnings:
             lines.append("")
             lines.extend(f"warning: {w}" for w in self.warnings)
@@ -209,8 +217,10 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
         seen = estimate_noise(kept.replace(noise_nT=None), fit.residuals_nT[:, fit.mask], fit.n_params)
         ratio = noise.sigma_nT / seen.sigma_nT if seen.sigma_nT > 0 else 1.0
         if seen.source != "residuals" and abs(ratio - 1.0) > 0.2:
-            out.append(f"the given noise {noise.sigma_nT:.3g} nT ({noise.note}) differs from the noise seen in the "
-                       f"data: {seen.text()}")
+            out.append(
+                f"the given noise {noise.sigma_nT:.3g} nT ({noise.note}) differs from the noise seen in the "
+                f"data: {seen.text()}"
+            )
     top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
     if proj is not None and len(top) >= 1:
         best = top[0]
@@ -223,25 +233,35 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
                 continue
             gap = other.delta_bic - best.delta_bic
             if cc > 0.9 and gap < max(10.0, 0.1 * abs(best.delta_bic)):
-                out.append(f"{best.label} and {other.label} are confounded in these data (canonical correlation "
-                           f"{cc:.2f}): the data can hardly tell them apart")
+                out.append(
+                    f"{best.label} and {other.label} are confounded in these data (canonical correlation "
+                    f"{cc:.2f}): the data can hardly tell them apart"
+                )
     names = {c.effect for c in top}
     if kept.temperature_C is not None and kept.time_s is not None:
         rho = abs(np.corrcoef(kept.temperature_C, kept.time_s)[0, 1])
         temp = names & {"temperature_bias", "temperature_scale"}
         timed = names & {"bias_drift", "reference_drift"}
         if rho > 0.9 and (temp or timed):
-            out.append(f"temperature follows time (|corr| = {rho:.2f}, e.g. a warm-up): temperature effects and drifts "
-                       "are confounded; record with the temperature varying independently of time to separate them")
+            out.append(
+                f"temperature follows time (|corr| = {rho:.2f}, e.g. a warm-up): temperature effects and drifts "
+                "are confounded; record with the temperature varying independently of time to separate them"
+            )
     if cands and cands[0].effect == "nonlinearity_cubic" and cands[0].delta_bic < DELTA_BIC_THRESHOLD:
-        out.append("nonlinearity_cubic cannot be told from cross-field coupling l_j B_j (|B|^2 - B_j^2) at constant "
-                   "|B|; both leave the same degree-4 direction pattern")
+        out.append(
+            "nonlinearity_cubic cannot be told from cross-field coupling l_j B_j (|B|^2 - B_j^2) at constant "
+            "|B|; both leave the same degree-4 direction pattern"
+        )
     if top and top[0].effect in ("axis_timing_skew", "hysteresis") and {"axis_timing_skew", "hysteresis"} <= names:
-        out.append("axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
-                   "speed to separate them (a delay scales with speed, hysteresis does not)")
+        out.append(
+            "axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
+            "speed to separate them (a delay scales with speed, hysteresis does not)"
+        )
     if kept.n_sensors > 1 and kept.attitude_wxyz is None:
-        out.append("no attitude columns (qw, qx, qy, qz): site_gradient cannot be tested; the array alone sees a site "
-                   "gradient only as a tensor rotating with it (constant invariants) and as biases")
+        out.append(
+            "no attitude columns (qw, qx, qy, qz): site_gradient cannot be tested; the array alone sees a site "
+            "gradient only as a tensor rotating with it (constant invariants) and as biases"
+        )
     return out
 
 
@@ -266,9 +286,14 @@ class _HeldOut:
     def _base(self, fit, scheme):
         key = (id(fit), scheme)
         if key not in self.bases:
-            self.bases[key] = _validation.validate(self.kept, model=fit.model, init=fit.calibration,
-                                                   reference_total_nT=self.reference, scheme=scheme,
-                                                   masks=self.masks[scheme])
+            self.bases[key] = _validation.validate(
+                self.kept,
+                model=fit.model,
+                init=fit.calibration,
+                reference_total_nT=self.reference,
+                scheme=scheme,
+                masks=self.masks[scheme],
+            )
         return self.bases[key]
 
     def prepare(self, fit, scheme):
@@ -280,8 +305,14 @@ class _HeldOut:
 
     def with_effect(self, c, scheme):
         """The held-out fit of the candidate's refitted model on ``scheme``'s split."""
-        return _validation.validate(self.kept, model=c.fit.model, init=c.fit.calibration,
-                                    reference_total_nT=self.reference, scheme=scheme, masks=self.masks[scheme])
+        return _validation.validate(
+            self.kept,
+            model=c.fit.model,
+            init=c.fit.calibration,
+            reference_total_nT=self.reference,
+            scheme=scheme,
+            masks=self.masks[scheme],
+        )
 
     def judge(self, base_fit, c, fitted=None) -> str | None:
         """Fill the candidate's held-out figures and ``holds``; append to its evidence. Returns a warning when
@@ -291,35 +322,54 @@ class _HeldOut:
         for scheme in _validation.SCHEMES:
             base = self._base(base_fit, scheme)
             comparisons[scheme] = _validation.compare(
-                self.kept, added_effect=c.label, scheme=scheme, base=base, with_model=c.fit.model,
-                with_init=c.fit.calibration, reference_total_nT=self.reference,
-                with_effect=(fitted or {}).get(scheme))
+                self.kept,
+                added_effect=c.label,
+                scheme=scheme,
+                base=base,
+                with_model=c.fit.model,
+                with_init=c.fit.calibration,
+                reference_total_nT=self.reference,
+                with_effect=(fitted or {}).get(scheme),
+            )
             if base_fit is not None and scheme not in self.schemes:
-                self.schemes[scheme] = {"n_train": base.n_train, "n_test": base.n_test,
-                                        "base_held_out_rms_nT": base.held_out_rms_nT,
-                                        "base_in_sample_rms_nT": base.in_sample_rms_nT}
+                self.schemes[scheme] = {
+                    "n_train": base.n_train,
+                    "n_test": base.n_test,
+                    "base_held_out_rms_nT": base.held_out_rms_nT,
+                    "base_in_sample_rms_nT": base.in_sample_rms_nT,
+                }
         blocks, later = comparisons["blocks"], comparisons["later"]
         c.held_out_before_nT = float(blocks.base.held_out_rms_nT)
         c.held_out_after_nT = float(blocks.with_effect.held_out_rms_nT)
         relevelled = bool(later.with_effect.dropped) and later.with_effect.relevelled_rms_nT is not None
         c.later_before_nT = float(later.base.relevelled_rms_nT if relevelled else later.base.held_out_rms_nT)
-        c.later_after_nT = float(later.with_effect.relevelled_rms_nT if relevelled
-                                 else later.with_effect.held_out_rms_nT)
+        c.later_after_nT = float(
+            later.with_effect.relevelled_rms_nT if relevelled else later.with_effect.held_out_rms_nT
+        )
         c.holds = _validation.judge(blocks, later)
-        held = (f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
-                f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT")
+        held = (
+            f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
+            f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT"
+        )
         if relevelled:
             held += " (record-only: level on the later stretch taken out)"
         if blocks.base.held_out_consistency_rms_nT is not None:
-            held += (f", inter-sensor consistency (blocks) {blocks.base.held_out_consistency_rms_nT:.4g} -> "
-                     f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT")
+            held += (
+                f", inter-sensor consistency (blocks) {blocks.base.held_out_consistency_rms_nT:.4g} -> "
+                f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT"
+            )
         if c.holds:
             c.evidence += f"; {held}: holds on held-out data"
         else:
-            why = ("the blocks' RMS does not fall by {:.0%}".format(_validation.MIN_RELATIVE_GAIN)
-                   if not blocks.holds else "the later stretch's RMS rises")
-            text = (f"in-sample {float(base_fit.rms_nT):.4g} -> {c.rms_after_nT:.4g} nT, {held}: does not hold on "
-                    f"held-out data ({why})")
+            why = (
+                f"the blocks' RMS does not fall by {_validation.MIN_RELATIVE_GAIN:.0%}"
+                if not blocks.holds
+                else "the later stretch's RMS rises"
+            )
+            text = (
+                f"in-sample {float(base_fit.rms_nT):.4g} -> {c.rms_after_nT:.4g} nT, {held}: does not hold on "
+                f"held-out data ({why})"
+            )
             c.evidence += "; " + text
             return f"{c.label}: {text}; not recommended"
         return None
@@ -339,13 +389,11 @@ def _undetermined(fit, directions) -> str | None:
     for s, u in enumerate(directions):
         spread = coverage(u).thinnest_spread
         if spread < WEAK_DIRECTION_SPREAD:
-            reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere "
-                           "0.33)")
+            reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere 0.33)")
     field_nT = fit.calibration.reference_total_nT
     lo, hi = EARTH_FIELD_RANGE_nT
     if fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
-        reasons.append(f"fitted field {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-"
-                       f"{hi / 1000:.0f} uT")
+        reasons.append(f"fitted field {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-{hi / 1000:.0f} uT")
     return "; ".join(reasons) or None
 
 
@@ -360,8 +408,10 @@ def _changes_the_field(base_fit, c) -> str | None:
         return None
     lo, hi = EARTH_FIELD_RANGE_nT
     if lo <= before <= hi and (not lo <= after <= hi or abs(after / before - 1.0) > 0.05):
-        return (f"{c.label}: its refit moves the fitted field from {before / 1000:.4g} to {after / 1000:.4g} uT: "
-                "the term trades off with the base calibration; not recommended")
+        return (
+            f"{c.label}: its refit moves the fitted field from {before / 1000:.4g} to {after / 1000:.4g} uT: "
+            "the term trades off with the base calibration; not recommended"
+        )
     return None
 
 
@@ -383,8 +433,10 @@ def _to_validate(c) -> bool:
 
 def _held_out_fits(pool, held_out, c) -> dict:
     """The candidate's held-out fits per scheme, handed to ``pool`` (futures; each gives the fit or its failure)."""
-    return {scheme: pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.with_effect(c, scheme)), CHAIN)
-            for scheme in _validation.SCHEMES}
+    return {
+        scheme: pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.with_effect(c, scheme)), CHAIN)
+        for scheme in _validation.SCHEMES
+    }
 
 
 def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
@@ -400,8 +452,10 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
             # scheme (those handed over when its refit returned already under way); then the comparisons, in
             # the candidates' order
             pending = dict(pending or {})
-            bases = [pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
-                     for scheme in _validation.SCHEMES]
+            bases = [
+                pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
+                for scheme in _validation.SCHEMES
+            ]
             for c in todo:
                 if c.label not in pending:
                     pending[c.label] = _held_out_fits(pool, held_out, c)
@@ -423,8 +477,18 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
     return held + rest + [c for c in cands if not c.refitted]
 
 
-def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=None, max_effects=2,
-             progress=None, validate=True, noise_nT=None) -> Diagnosis:
+def diagnose(
+    dataset,
+    result=None,
+    model=None,
+    top=3,
+    effects=None,
+    candidates=None,
+    max_effects=2,
+    progress=None,
+    validate=True,
+    noise_nT=None,
+) -> Diagnosis:
     """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
 
     Parameters
@@ -465,7 +529,6 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
 
     fit0 = _fit_of(result)
     if fit0 is None:
-
         report("fitting the model", 0.0)
         if model is not None:
             res = calibrate(dataset, effects=list(model.effects), base_terms=model.base)
@@ -478,13 +541,42 @@ def diagnose(dataset, result=None, model=None, top=3, effects=None, candidates=N
     report("score tests", 0.2)
     cands, proj, _ = _score_round(dataset, kept, fit0, candidates)
     with Pool() as pool:
-        return _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, report, top=top,
-                             candidates=candidates, max_effects=max_effects, validate=validate, noise_nT=noise_nT,
-                             t_start=t_start)
+        return _after_scores(
+            dataset,
+            kept,
+            fit0,
+            cands,
+            proj,
+            directions,
+            fields,
+            pool,
+            report,
+            top=top,
+            candidates=candidates,
+            max_effects=max_effects,
+            validate=validate,
+            noise_nT=noise_nT,
+            t_start=t_start,
+        )
 
 
-def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, report, top, candidates,
-                  max_effects, validate, noise_nT, t_start) -> Diagnosis:
+def _after_scores(
+    dataset,
+    kept,
+    fit0,
+    cands,
+    proj,
+    directions,
+    fields,
+    pool,
+    report,
+    top,
+    candidates,
+    max_effects,
+    validate,
+    noise_nT,
+    t_start,
+) -> Diagnosis:
     """:func:`diagnose` from the first round's score tests on: refits, held-out judgement, forward selection and
     evidence, each piece handed to ``pool`` as soon as what it needs is ready."""
     ns, n = kept.n_sensors, kept.n_samples
@@ -492,8 +584,10 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
     ordered = is_smooth_sequence(kept)
     r0 = fit0.residuals_nT[:, fit0.mask]
     # what depends on the base fit alone is worked out while the refits run
-    sh_futures = [pool.submit(lambda s=s: sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES), SHARED)
-                  for s in range(ns)]
+    sh_futures = [
+        pool.submit(lambda s=s: sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES), SHARED)
+        for s in range(ns)
+    ]
 
     def noise_and_structure():
         noise = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
@@ -501,18 +595,26 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
 
     structure_future = pool.submit(noise_and_structure, SHARED)
     undetermined_future = pool.submit(lambda: _undetermined(fit0, directions), FILLER)
-    evidence_futures = [pool.submit(call, FILLER) for call in (
-        lambda: _time_evidence(kept, r0, ordered), lambda: _temperature_evidence(kept, r0, directions),
-        lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
-        lambda: _sensor_evidence(kept, fit0, r0, fields))]
+    evidence_futures = [
+        pool.submit(call, FILLER)
+        for call in (
+            lambda: _time_evidence(kept, r0, ordered),
+            lambda: _temperature_evidence(kept, r0, directions),
+            lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
+            lambda: _sensor_evidence(kept, fit0, r0, fields),
+        )
+    ]
     fits = {}
     report("refitting the best candidates", 0.4)
     # the base model's held-out fits need fit0 alone: when a candidate is predicted to be supported, they are made
     # beside the refits, and a supported candidate's own the moment its refit returns; else only if a refit is
     # supported
     early = None
-    if validate and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in cands) \
-            and _validation.split_problem(kept) is None:
+    if (
+        validate
+        and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in cands)
+        and _validation.split_problem(kept) is None
+    ):
         try:
             early = _HeldOut(kept, fit0)
         except MagcalError:
@@ -523,10 +625,17 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
         if early is not None and _to_validate(c):
             pending[c.label] = _held_out_fits(pool, early, c)
 
-    cands = _confirm(dataset, fit0, cands, top, coupled, fits,
-                     alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s)
-                                                         for s in _validation.SCHEMES],
-                     pool=pool, after_refit=after_refit)
+    cands = _confirm(
+        dataset,
+        fit0,
+        cands,
+        top,
+        coupled,
+        fits,
+        alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s) for s in _validation.SCHEMES],
+        pool=pool,
+        after_refit=after_refit,
+    )
     sh_stats = [future.result() for future in sh_futures]
     for c in cands:
         note = c.evidence  # e.g. a failed refit
@@ -548,12 +657,13 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
             skipped = str(exc)
     if skipped and validate:
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
-    cands = _judge_round(held_out, fit0, cands, validation_notes, pool,
-                         pending if held_out is early else None)
+    cands = _judge_round(held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None)
     undetermined = undetermined_future.result()
     if undetermined:
-        validation_notes.append(f"the base calibration is not determined by these data ({undetermined}): no effect "
-                                "is recommended until the record covers more directions")
+        validation_notes.append(
+            f"the base calibration is not determined by these data ({undetermined}): no effect "
+            "is recommended until the record covers more directions"
+        )
     for c in cands:
         changed = _changes_the_field(fit0, c)
         if changed and c.holds is not False:
@@ -569,8 +679,9 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
     remaining, stats_final = structure0, stats0
     round_cands = cands
     for step in range(max_effects):
-        supported = [c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD
-                     and not undetermined]
+        supported = [
+            c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not undetermined
+        ]
         if not supported:
             break
         best = supported[0]
@@ -584,8 +695,9 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
 
         def noise_and_structure(kept_c=kept_c, current=current):
             dirs_c, _ = _sensor_directions(kept_c, current)
-            noise = estimate_noise(kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered,
-                                   noise_nT=noise_nT)
+            noise = estimate_noise(
+                kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered, noise_nT=noise_nT
+            )
             return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
 
         structure_c = pool.submit(noise_and_structure, SHARED)  # beside the next round's score tests
@@ -606,17 +718,22 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
     noise_final = current_noise if explained else noise0
     if not structure0 and not supported0:
         verdict = "adequate"
-        summary = (f"no significant structure: the residuals ({fit0.rms_nT:.3g} nT RMS) look like noise of "
-                   f"{noise0.sigma_nT:.3g} nT")
+        summary = (
+            f"no significant structure: the residuals ({fit0.rms_nT:.3g} nT RMS) look like noise of "
+            f"{noise0.sigma_nT:.3g} nT"
+        )
     elif explained and not remaining:
         verdict = "missing_effect"
         rms_after = current.rms_nT
-        summary = (f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
-                   "the total-field RMS from "
-                   f"{fit0.rms_nT:.3g} to {rms_after:.3g} nT (noise {noise_final.sigma_nT:.3g} nT)")
+        summary = (
+            f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
+            "the total-field RMS from "
+            f"{fit0.rms_nT:.3g} to {rms_after:.3g} nT (noise {noise_final.sigma_nT:.3g} nT)"
+        )
         if coupled:
-            summary += (f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to "
-                        f"{_vector_rms(current):.3g} nT")
+            summary += (
+                f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to {_vector_rms(current):.3g} nT"
+            )
         summary += _held_out_words(chosen)
     else:
         verdict = "unexplained"
@@ -624,12 +741,20 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
         tried = ""
         if cands:
             b = cands[0]
-            tried = (f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
-                     f"{b.rms_after_nT:.3g} nT") if b.refitted else ""
+            tried = (
+                (
+                    f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
+                    f"{b.rms_after_nT:.3g} nT"
+                )
+                if b.refitted
+                else ""
+            )
         summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
         if undetermined:
-            summary = (f"the base calibration is not determined by these data ({undetermined}), so no effect can "
-                       f"be judged; {summary}")
+            summary = (
+                f"the base calibration is not determined by these data ({undetermined}), so no effect can "
+                f"be judged; {summary}"
+            )
         if explained:
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
     partial = []
@@ -637,12 +762,16 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
         partial, explained = explained, []
     warnings_ = _warnings_for(cands, proj, kept, fit0, noise0, structure0)
     if partial:
-        warnings_.append(f"{', '.join(partial)} reduce(s) the residuals significantly but do(es) not bring them to "
-                         "the noise: not the (whole) explanation")
+        warnings_.append(
+            f"{', '.join(partial)} reduce(s) the residuals significantly but do(es) not bring them to "
+            "the noise: not the (whole) explanation"
+        )
     glitches = [(s + 1, st["glitches"]) for s, st in enumerate(stats_final) if st.get("glitches")]
     if glitches:
-        warnings_.append("isolated samples beyond 5 sigma set aside from the structure tests (glitches or sharp "
-                         "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches))
+        warnings_.append(
+            "isolated samples beyond 5 sigma set aside from the structure tests (glitches or sharp "
+            "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches)
+        )
     warnings_ += validation_notes
     if len(explained) > 1 and verdict == "missing_effect":
         warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
@@ -654,21 +783,38 @@ def _after_scores(dataset, kept, fit0, cands, proj, directions, fields, pool, re
     evidence = {
         "time": time_ev,
         "temperature": temperature_ev,
-        "direction": {"u": directions, "y": r0, "per_sensor": [
-            dict(sh) for sh in sh_stats]},
+        "direction": {"u": directions, "y": r0, "per_sensor": [dict(sh) for sh in sh_stats]},
         "spectrum": spectra,
         "sensors": sensors_ev,
-        "noise": {"sigma_nT": noise0.sigma_nT, "per_sensor_nT": noise0.per_sensor_nT, "source": noise0.source,
-                  "final_sigma_nT": noise_final.sigma_nT, "static_noise_nT": noise0.static_noise_nT,
-                  "static_scatter_nT": noise0.static_scatter_nT, "note": noise0.note},
+        "noise": {
+            "sigma_nT": noise0.sigma_nT,
+            "per_sensor_nT": noise0.per_sensor_nT,
+            "source": noise0.source,
+            "final_sigma_nT": noise_final.sigma_nT,
+            "static_noise_nT": noise0.static_noise_nT,
+            "static_scatter_nT": noise0.static_scatter_nT,
+            "note": noise0.note,
+        },
         "tests": stats0,
     }
     return Diagnosis(
-        verdict=verdict, summary=summary, effects=fit0.model.effect_labels, rms_nT=float(fit0.rms_nT),
-        rms_per_sensor_nT=np.asarray(fit0.rms_per_sensor_nT), noise=noise_final, floor_nT=floor,
-        candidates=cands, explained_by=explained, partially_explained_by=partial, warnings=warnings_,
-        structure=structure0, remaining=remaining,
-        evidence=evidence, result=fit0, fits=fits, elapsed_s=_time.perf_counter() - t_start,
+        verdict=verdict,
+        summary=summary,
+        effects=fit0.model.effect_labels,
+        rms_nT=float(fit0.rms_nT),
+        rms_per_sensor_nT=np.asarray(fit0.rms_per_sensor_nT),
+        noise=noise_final,
+        floor_nT=floor,
+        candidates=cands,
+        explained_by=explained,
+        partially_explained_by=partial,
+        warnings=warnings_,
+        structure=structure0,
+        remaining=remaining,
+        evidence=evidence,
+        result=fit0,
+        fits=fits,
+        elapsed_s=_time.perf_counter() - t_start,
         rms_final_nT=float(current.rms_nT),
         validation=_validation_summary(held_out, skipped, chosen),
     )
@@ -678,15 +824,20 @@ def _held_out_words(chosen) -> str:
     """``"; held-out 1011 -> 963 nT"`` for the effects chosen (blocks scheme), or ``""`` when not validated."""
     if not chosen or chosen[0].held_out_before_nT is None or chosen[-1].held_out_after_nT is None:
         return ""
-    return (f"; on held-out samples (blocks) from {chosen[0].held_out_before_nT:.3g} to "
-            f"{chosen[-1].held_out_after_nT:.3g} nT")
+    return (
+        f"; on held-out samples (blocks) from {chosen[0].held_out_before_nT:.3g} to "
+        f"{chosen[-1].held_out_after_nT:.3g} nT"
+    )
 
 
 def _validation_summary(held_out, skipped, chosen) -> dict:
-    out = {"validated": held_out is not None and bool(held_out.schemes), "skipped": skipped,
-           "schemes": dict(held_out.schemes) if held_out is not None else {},
-           "min_relative_gain": _validation.MIN_RELATIVE_GAIN,
-           "later_tolerance_se": _validation.LATER_TOLERANCE_SE}
+    out = {
+        "validated": held_out is not None and bool(held_out.schemes),
+        "skipped": skipped,
+        "schemes": dict(held_out.schemes) if held_out is not None else {},
+        "min_relative_gain": _validation.MIN_RELATIVE_GAIN,
+        "later_tolerance_se": _validation.LATER_TOLERANCE_SE,
+    }
     if chosen and chosen[0].held_out_before_nT is not None and chosen[-1].held_out_after_nT is not None:
         out["held_out_rms_before_nT"] = chosen[0].held_out_before_nT
         out["held_out_rms_after_nT"] = chosen[-1].held_out_after_nT

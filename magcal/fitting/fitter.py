@@ -78,9 +78,14 @@ def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
     for s in range(1, len(sensors)):
         rot, _ = Rotation.align_vectors(centred[0], centred[s])
         sensors[s].R = rot.as_matrix()
-    return Calibration(sensors, reference_total_nT=ref if ref is not None else (
-        None if kind == "column" else float(np.mean([row_norm(c).mean() for c in centred]))),
-        reference_fitted=kind == "fitted", baseline_m=dataset.baseline_m)
+    return Calibration(
+        sensors,
+        reference_total_nT=ref
+        if ref is not None
+        else (None if kind == "column" else float(np.mean([row_norm(c).mean() for c in centred]))),
+        reference_fitted=kind == "fitted",
+        baseline_m=dataset.baseline_m,
+    )
 
 
 class Problem:
@@ -125,8 +130,11 @@ class Problem:
 
         names, values, scales, self.blocks = [], [], [], {}
         self._base_free = []
-        free_c = [k for k, (i, j) in enumerate(conventions.UPPER_TRIANGLE)
-                  if ("scale" in model.base if i == j else "non_orthogonality" in model.base)]
+        free_c = [
+            k
+            for k, (i, j) in enumerate(conventions.UPPER_TRIANGLE)
+            if ("scale" in model.base if i == j else "non_orthogonality" in model.base)
+        ]
         init_sensors = [SensorCalibration(c.cinv.copy(), c.bias_nT.copy(), c.R.copy()) for c in init.sensors]
         if self.reference_kind == "fitted":
             # gauge: det(C^-1) = 1 for sensor 1; rescale the whole start and the field together.
@@ -143,21 +151,29 @@ class Problem:
                 if self.reference_kind == "fitted" and s == 0 and k == 5:
                     continue  # c22 of sensor 1 follows from det = 1
                 names.append(f"s{s + 1}_Cinv{conventions.UPPER_TRIANGLE[k][0]}{conventions.UPPER_TRIANGLE[k][1]}")
-                values.append(cpar[k]); scales.append(_CINV_SCALE); free.append(("c", k))
+                values.append(cpar[k])
+                scales.append(_CINV_SCALE)
+                free.append(("c", k))
             if "bias" in model.base:
                 for a, axis in enumerate("xyz"):
                     names.append(f"s{s + 1}_bias_{axis}_nT")
-                    values.append(cal.bias_nT[a]); scales.append(1.0); free.append(("b", a))
+                    values.append(cal.bias_nT[a])
+                    scales.append(1.0)
+                    free.append(("b", a))
             if "misalignment" in model.base and s > 0:
                 # small rotation about the array axes applied on top of the starting R: R = exp([w]x) R_start
                 for a, axis in enumerate("xyz"):
                     names.append(f"s{s + 1}_rotation_{axis}_rad")
-                    values.append(0.0); scales.append(_ROT_SCALE); free.append(("r", a))
+                    values.append(0.0)
+                    scales.append(_ROT_SCALE)
+                    free.append(("r", a))
             self._base_free.append(free)
             self.blocks[f"sensor{s + 1}/base"] = slice(start, len(names))
         if self.reference_kind == "fitted":
             self.blocks["F0"] = slice(len(names), len(names) + 1)
-            names.append("F0_nT"); values.append(ref); scales.append(1.0)
+            names.append("F0_nT")
+            values.append(ref)
+            scales.append(1.0)
         self.reference_value = ref
         for e, s in model.instances():
             label = block_label(e, s)
@@ -245,8 +261,7 @@ class Problem:
     def _residuals_from_fields(self, b, x, basis=None, mean=None) -> np.ndarray:
         """Residuals (as :meth:`residuals`) of the corrected fields ``b``; ``mean`` is ``b.mean(axis=0)`` and
         ``basis`` ``_perpendicular_basis(mean)`` when the caller has them."""
-        expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x),
-                                        self.ctxs)
+        expected = expected_total_field(self.dataset, self.reference(x), self.model, self.effect_values(x), self.ctxs)
         total = (row_norm(b) - expected).ravel()
         if not self.coupled:
             return total
@@ -323,7 +338,7 @@ class Problem:
         jac = np.zeros((ns * n, x.size))
         units = unit_rows(fields)
         for s, d in enumerate(derivs):
-            jac[s * n:(s + 1) * n, d.cols] += d.project(units[s])
+            jac[s * n : (s + 1) * n, d.cols] += d.project(units[s])
         if "F0" in self.blocks:
             jac[:, self.blocks["F0"].start] = -1.0
         for e, es in self.model.instances():
@@ -332,7 +347,7 @@ class Problem:
             sl = self.blocks[block_label(e, es)]
             for s in range(ns):
                 if es is None or es == s:
-                    jac[s * n:(s + 1) * n, sl] -= e.reference_basis(self.ctxs[s])
+                    jac[s * n : (s + 1) * n, sl] -= e.reference_basis(self.ctxs[s])
         return jac
 
     def _total_field_normal(self, x, fields, derivs, r_tf, w_tf=None):
@@ -346,10 +361,16 @@ class Problem:
         ref_instances = [(e, es) for e, es in self.model.instances() if e.stage == "reference"]
         has_f0 = "F0" in self.blocks
         for s, d in enumerate(derivs):
-            extra = [np.asarray(e.reference_basis(self.ctxs[s]), float).reshape(n, -1)
-                     for e, es in ref_instances if es is None or es == s]
-            extra_idx = [np.arange(self.blocks[block_label(e, es)].start, self.blocks[block_label(e, es)].stop)
-                         for e, es in ref_instances if es is None or es == s]
+            extra = [
+                np.asarray(e.reference_basis(self.ctxs[s]), float).reshape(n, -1)
+                for e, es in ref_instances
+                if es is None or es == s
+            ]
+            extra_idx = [
+                np.arange(self.blocks[block_label(e, es)].start, self.blocks[block_label(e, es)].stop)
+                for e, es in ref_instances
+                if es is None or es == s
+            ]
             at = np.concatenate([d.cols] + ([np.array([self.blocks["F0"].start])] if has_f0 else []) + extra_idx)
             k = at.size
             norms = row_norm(fields[s])
@@ -357,16 +378,16 @@ class Problem:
             for rows in _row_blocks(n, k):
                 m = rows.stop - rows.start
                 j = np.empty((k, m)).T  # column-major: each column written contiguously
-                d.project(fields[s, rows] / norms[rows, None], out=j[:, :len(d.cols)], rows=rows)
+                d.project(fields[s, rows] / norms[rows, None], out=j[:, : len(d.cols)], rows=rows)
                 at_col = len(d.cols)
                 if has_f0:
                     j[:, at_col] = -1.0
                     at_col += 1
                 for e in extra:
-                    np.negative(e[rows], out=j[:, at_col:at_col + e.shape[1]])
+                    np.negative(e[rows], out=j[:, at_col : at_col + e.shape[1]])
                     at_col += e.shape[1]
-                rs = r_tf[s * n + rows.start:s * n + rows.stop]
-                wj = j if w_tf is None else j * w_tf[s * n + rows.start:s * n + rows.stop, None]
+                rs = r_tf[s * n + rows.start : s * n + rows.stop]
+                wj = j if w_tf is None else j * w_tf[s * n + rows.start : s * n + rows.stop, None]
                 gram += wj.T @ j
                 rhs += wj.T @ rs
             jtj[np.ix_(at, at)] += gram
@@ -396,7 +417,7 @@ class Problem:
             cols, p = d.cols, p.reshape(2 * n, -1)
             for k in range(ns):
                 w = (1.0 if k == s else 0.0) - 1.0 / ns
-                jac[ns * n + k * 2 * n: ns * n + (k + 1) * 2 * n, cols] += w * p
+                jac[ns * n + k * 2 * n : ns * n + (k + 1) * 2 * n, cols] += w * p
         return jac
 
     def normal_equations(self, x, weights=None, with_total_field=False):
@@ -426,8 +447,12 @@ class Problem:
         total = (np.arange(ns)[:, None] * n + np.arange(a, b)[None, :]).ravel()
         if not self.coupled:
             return total
-        cons = ns * n + ((np.arange(ns)[:, None, None] * n + np.arange(a, b)[None, :, None]) * 2
-                         + np.arange(2)[None, None, :]).ravel()
+        cons = (
+            ns * n
+            + (
+                (np.arange(ns)[:, None, None] * n + np.arange(a, b)[None, :, None]) * 2 + np.arange(2)[None, None, :]
+            ).ravel()
+        )
         return np.concatenate([total, cons])
 
     def _sample_blocks(self):
@@ -480,7 +505,7 @@ class Problem:
         extra = ((jtj.copy(), jtr.copy()),) if with_total_field else ()
         if not self.coupled:
             return (r, jtj, jtr) + extra
-        rc = r[ns * n:].reshape(ns, 2 * n)
+        rc = r[ns * n :].reshape(ns, 2 * n)
         cols = [d.cols for d in derivs]
         if weights is None:
             # every sensor's P_s side by side in one (2N, K) matrix: one product gives all the pairs P_s^T P_s'
@@ -494,22 +519,22 @@ class Problem:
                 both = np.empty((edges[-1], 2, m))  # column-major (2m, K): each column written contiguously
                 for s, d in enumerate(derivs):
                     for k, e in enumerate(basis):
-                        d.project(e[rows], out=both[edges[s]:edges[s + 1], k].T, rows=rows)
+                        d.project(e[rows], out=both[edges[s] : edges[s + 1], k].T, rows=rows)
                 both *= factor
                 both = both.reshape(edges[-1], 2 * m)
                 gram += both @ both.T
                 block_r = rows_of[:, rows].transpose(0, 2, 1).reshape(ns, 2 * m)  # the rows' order in ``both``
                 for s in range(ns):
-                    rhs[s] += both[edges[s]:edges[s + 1]] @ block_r[s]
+                    rhs[s] += both[edges[s] : edges[s + 1]] @ block_r[s]
             for s in range(ns):
                 own = slice(edges[s], edges[s + 1])
                 jtr[cols[s]] += rhs[s]
                 for s2 in range(ns):
-                    pair = gram[own, edges[s2]:edges[s2 + 1]]
+                    pair = gram[own, edges[s2] : edges[s2 + 1]]
                     jtj[np.ix_(cols[s], cols[s2])] += pair * ((1.0 if s == s2 else 0.0) - 1.0 / ns)
             return (r, jtj, jtr) + extra
         ps = [p.reshape(2 * n, -1) for p in self._consistency_derivatives(fields, derivs, basis)]
-        wc = weights[ns * n:].reshape(ns, 2 * n)
+        wc = weights[ns * n :].reshape(ns, 2 * n)
         centring = np.eye(ns) - 1.0 / ns
         weighted_r = centring.T @ (wc * rc)  # sum_k c_ks W_k r_k, per s
         for s in range(ns):
@@ -550,8 +575,10 @@ class _Derivative:
         out = np.empty((len(self.cols), n)).T if out is None else out
         if self._zt is None:  # components as contiguous rows, once for all the directions projected on
             self._zt, self._bt = np.ascontiguousarray(self._z.T), np.ascontiguousarray(self._b_rot.T)
-            self._one_axis = ([self._single_axis(b) for _, b in self._raw],
-                              [self._single_axis(b) for _, b in self._vector])
+            self._one_axis = (
+                [self._single_axis(b) for _, b in self._raw],
+                [self._single_axis(b) for _, b in self._vector],
+            )
         rows = slice(None) if rows is None else rows
         zt, bt = self._zt[:, rows], self._bt[:, rows]
         wt = w.T
@@ -574,7 +601,7 @@ class _Derivative:
         for (sl, basis), single in zip(self._raw, raw_axes):
             wrc = self._rc.T @ wt if wrc is None else wrc
             q = sl.stop - sl.start
-            part = out[:, col:col + q]
+            part = out[:, col : col + q]
             if single is None:
                 np.negative(np.einsum("in,niq->nq", wrc, basis[rows]), out=part)
             else:
@@ -582,7 +609,7 @@ class _Derivative:
             col += q
         for (sl, basis), single in zip(self._vector, vector_axes):
             q = sl.stop - sl.start
-            part = out[:, col:col + q]
+            part = out[:, col : col + q]
             if single is None:
                 part[...] = np.einsum("ni,niq->nq", w, basis[rows])
             else:
@@ -635,14 +662,17 @@ class _Solution:
 LOSSES = {
     "linear": (lambda z: z, lambda z: np.ones_like(z)),
     "soft_l1": (lambda z: 2.0 * (np.sqrt(1.0 + z) - 1.0), lambda z: 1.0 / np.sqrt(1.0 + z)),
-    "huber": (lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0),
-              lambda z: np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))),
+    "huber": (
+        lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0),
+        lambda z: np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0))),
+    ),
     "cauchy": (lambda z: np.log1p(z), lambda z: 1.0 / (1.0 + z)),
 }
 
 
-def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, ftol=1e-10,
-                         xtol=1e-10, max_steps=None, damping=1e-3) -> _Solution:
+def _levenberg_marquardt(
+    problem, x0, loss="linear", f_scale=1.0, max_nfev=200, ftol=1e-10, xtol=1e-10, max_steps=None, damping=1e-3
+) -> _Solution:
     """Levenberg-Marquardt on the normal equations of :meth:`Problem.normal_equations`.
 
     Minimises ``f^2/2 sum rho((r/f)^2)`` (``||r||^2 / 2`` for the linear loss). A robust loss enters as
@@ -765,8 +795,10 @@ def _levenberg_marquardt(problem, x0, loss="linear", f_scale=1.0, max_nfev=200, 
                 break
             if max_steps is not None and steps >= max_steps:
                 if abs(actual - predicted) <= ftol * cost:
-                    message = (f"stopped after {steps} step(s) from the start, as asked: the cost fell as the "
-                               "quadratic model predicted, to the tolerance (one-step estimate)")
+                    message = (
+                        f"stopped after {steps} step(s) from the start, as asked: the cost fell as the "
+                        "quadratic model predicted, to the tolerance (one-step estimate)"
+                    )
                     status = 4
                     break
                 max_steps = None  # the model does not hold over the step (far from a flat minimum): go on to it
@@ -899,8 +931,18 @@ class FitResult:
         }
 
 
-def fit(dataset, model: Model | None = None, init: Calibration | None = None, loss="linear", f_scale_nT=None,
-        mask=None, reference_total_nT=None, max_nfev=200, cost_tolerance=None, max_steps=None) -> FitResult:
+def fit(
+    dataset,
+    model: Model | None = None,
+    init: Calibration | None = None,
+    loss="linear",
+    f_scale_nT=None,
+    mask=None,
+    reference_total_nT=None,
+    max_nfev=200,
+    cost_tolerance=None,
+    max_steps=None,
+) -> FitResult:
     """Maximum-likelihood fit of a model, started from a calibration.
 
     Parameters
@@ -954,15 +996,36 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
     mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
-    result = _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
-                       cost_tolerance=cost_tolerance, max_steps=max_steps)
+    result = _fit_once(
+        dataset,
+        model,
+        init,
+        loss,
+        f_scale_nT,
+        mask,
+        reference_total_nT,
+        max_nfev,
+        cost_tolerance=cost_tolerance,
+        max_steps=max_steps,
+    )
     # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
     # more fit; the refined shape is kept only if it fits better
     saved = [e.state() for e in model.effects]
     context = RefineContext(result.problem, result.x)
     if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
-        second = _fit_once(dataset, model, result.calibration, loss, f_scale_nT, mask, reference_total_nT,
-                           max_nfev, configure=False, cost_tolerance=cost_tolerance, max_steps=max_steps)
+        second = _fit_once(
+            dataset,
+            model,
+            result.calibration,
+            loss,
+            f_scale_nT,
+            mask,
+            reference_total_nT,
+            max_nfev,
+            configure=False,
+            cost_tolerance=cost_tolerance,
+            max_steps=max_steps,
+        )
         if second.rss < result.rss:
             second.nfev += result.nfev
             return _warn_if_not_converged(second)
@@ -973,8 +1036,12 @@ def fit(dataset, model: Model | None = None, init: Calibration | None = None, lo
 
 def _warn_if_not_converged(result: FitResult) -> FitResult:
     if not result.success:
-        warnings.warn(f"the fit did not converge ({result.message}, {result.nfev} evaluations): its parameters "
-                      "are not a minimum; raise max_nfev or check the data", ConvergenceWarning, stacklevel=3)
+        warnings.warn(
+            f"the fit did not converge ({result.message}, {result.nfev} evaluations): its parameters "
+            "are not a minimum; raise max_nfev or check the data",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
     return result
 
 
@@ -1032,12 +1099,12 @@ class RefineContext:
         problem = self.problem
         ns, n = problem.n_sensors, problem.n_samples
         delta = np.asarray(delta_nT, float)
-        tf = r[sensor * n:(sensor + 1) * n]
+        tf = r[sensor * n : (sensor + 1) * n]
         new_tf = row_norm(fields[sensor] + delta) - (row_norm(fields[sensor]) - tf)  # the expected field held
         cost = base + (new_tf - tf) * (new_tf + tf)
         if problem.coupled:
             f = problem._consistency_factor
-            deviation = r[ns * n:].reshape(ns, n, 2)[sensor] / f  # P d_s: the fit's consistency rows, unscaled
+            deviation = r[ns * n :].reshape(ns, n, 2)[sensor] / f  # P d_s: the fit's consistency rows, unscaled
             for k, e in enumerate(basis):
                 pd = np.einsum("ni,ni->n", delta, e)
                 cost += pd * (2.0 * f**2 * deviation[:, k] + pd)
@@ -1057,7 +1124,7 @@ class RefineContext:
         ns, n = self.problem.n_sensors, self.problem.n_samples
         cost = np.sum(r[: ns * n].reshape(ns, n) ** 2, axis=0)
         if self.problem.coupled:
-            cost += np.sum(r[ns * n:].reshape(ns, n, 2) ** 2, axis=(0, 2))
+            cost += np.sum(r[ns * n :].reshape(ns, n, 2) ** 2, axis=(0, 2))
         return cost
 
     def cost_of_fields(self, fields) -> np.ndarray:
@@ -1066,8 +1133,19 @@ class RefineContext:
         return self._cost_of_residuals(self.problem._residuals_from_fields(fields, self.x))
 
 
-def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, max_nfev,
-              configure=True, cost_tolerance=None, max_steps=None) -> FitResult:
+def _fit_once(
+    dataset,
+    model,
+    init,
+    loss,
+    f_scale_nT,
+    mask,
+    reference_total_nT,
+    max_nfev,
+    configure=True,
+    cost_tolerance=None,
+    max_steps=None,
+) -> FitResult:
     """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
     constants as they are (the pass after :meth:`~magcal.model.terms.Effect.refine`)."""
     n_all = dataset.n_samples
@@ -1098,14 +1176,18 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
             # converge on an even subsample first (same parametrisation: the same model and start), so that the
             # passes over every sample start next to their minimum
             every = int(np.ceil(readings / WARMUP_SAMPLES))
-            warm = _levenberg_marquardt(Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init,
-                                                reference_total_nT), problem.x0, max_nfev=max_nfev)
+            warm = _levenberg_marquardt(
+                Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init, reference_total_nT),
+                problem.x0,
+                max_nfev=max_nfev,
+            )
             if warm.status > 0:
                 x0, nfev0 = warm.x, warm.nfev
         # next to the minimum (warmed up, or one step asked for) the first step is the Gauss-Newton one
         near = nfev0 > 0 or max_steps is not None
-        sol = _levenberg_marquardt(problem, x0, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps,
-                                   damping=1e-9 if near else 1e-3)
+        sol = _levenberg_marquardt(
+            problem, x0, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps, damping=1e-9 if near else 1e-3
+        )
         x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
     else:
         # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
@@ -1113,10 +1195,14 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
         rounds = 1 if f_scale_nT is not None else 4
         x, nfev = problem.x0, 0
         for _ in range(rounds):
-            scale = f_scale_nT if f_scale_nT is not None else 3.0 * robust_sigma(
-                problem.residuals(x)[problem.total_field_rows], floor=1e-9)
-            sol = _levenberg_marquardt(problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol,
-                                       max_steps=max_steps)
+            scale = (
+                f_scale_nT
+                if f_scale_nT is not None
+                else 3.0 * robust_sigma(problem.residuals(x)[problem.total_field_rows], floor=1e-9)
+            )
+            sol = _levenberg_marquardt(
+                problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps
+            )
             x, nfev = sol.x, nfev + sol.nfev
         r, jtj, _ = problem.normal_equations(x)
     message, status = sol.message, sol.status
@@ -1144,28 +1230,51 @@ def _fit_once(dataset, model, init, loss, f_scale_nT, mask, reference_total_nT, 
     sigma_robust = robust_sigma(tf, floor=1e-9)
     outliers = np.zeros(n_all, bool)
     outliers[np.flatnonzero(mask)] = np.any(np.abs(tf) > 5.0 * max(sigma_robust, 1e-9), axis=0)
-    vec = r[ns * n:].reshape(ns, n, 2) if problem.coupled else None
+    vec = r[ns * n :].reshape(ns, n, 2) if problem.coupled else None
 
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     effect_params = []
     for e, s in model.instances():
         sl = problem.blocks[block_label(e, s)]
         names = e.param_names()
-        effect_params.append({
-            "effect": e.name, "sensor": None if s is None else s + 1, "term": e.label,
-            "params": dict(zip(names, x[sl].tolist())), "std": dict(zip(names, std[sl].tolist())),
-        })
+        effect_params.append(
+            {
+                "effect": e.name,
+                "sensor": None if s is None else s + 1,
+                "term": e.label,
+                "params": dict(zip(names, x[sl].tolist())),
+                "std": dict(zip(names, std[sl].tolist())),
+            }
+        )
     rms_per_sensor = np.sqrt(np.mean(tf**2, axis=1))
     calibration.summary = {"n_samples": int(mask.sum()), "rms_nT": float(np.sqrt(np.mean(tf**2)))}
     for s, cal in enumerate(calibration.sensors):
         cal.summary = {"rms_nT": float(rms_per_sensor[s])}
     result = FitResult(
-        calibration=calibration, model=model, param_names=problem.param_names, x=x, covariance=cov,
-        residuals_nT=resid, residuals_all_nT=resid_all, vector_residuals_nT=vec,
-        rms_nT=float(np.sqrt(np.mean(tf**2))), rms_per_sensor_nT=rms_per_sensor, noise_nT=noise, rss=rss,
-        n_residuals=m, n_params=p, aic=m * np.log(rss / m) + 2 * p, bic=m * np.log(rss / m) + p * np.log(m),
-        outliers=outliers, mask=mask, effect_params=effect_params, reference_kind=problem.reference_kind,
-        nfev=int(nfev), message=message, status=int(status), problem=problem,
+        calibration=calibration,
+        model=model,
+        param_names=problem.param_names,
+        x=x,
+        covariance=cov,
+        residuals_nT=resid,
+        residuals_all_nT=resid_all,
+        vector_residuals_nT=vec,
+        rms_nT=float(np.sqrt(np.mean(tf**2))),
+        rms_per_sensor_nT=rms_per_sensor,
+        noise_nT=noise,
+        rss=rss,
+        n_residuals=m,
+        n_params=p,
+        aic=m * np.log(rss / m) + 2 * p,
+        bic=m * np.log(rss / m) + p * np.log(m),
+        outliers=outliers,
+        mask=mask,
+        effect_params=effect_params,
+        reference_kind=problem.reference_kind,
+        nfev=int(nfev),
+        message=message,
+        status=int(status),
+        problem=problem,
     )
 
     calibration.base_covariance = base_covariance(result)  # the error bars the calibration carries to apply

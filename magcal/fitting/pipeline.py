@@ -24,8 +24,8 @@ from __future__ import annotations
 import importlib
 import time
 import warnings as _warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -92,7 +92,8 @@ class StepSummary:
             "description": self.description,
             "rms_per_sensor_nT": self.rms_per_sensor_nT.tolist(),
             "max_abs_per_sensor_nT": self.max_abs_per_sensor_nT.tolist(),
-            "sensor_difference_rms_nT": None if self.sensor_difference_rms_nT is None
+            "sensor_difference_rms_nT": None
+            if self.sensor_difference_rms_nT is None
             else self.sensor_difference_rms_nT.tolist(),
             "tensor_rms_nT_per_m": self.tensor_rms_nT_per_m,
             "tensor_max_abs_nT_per_m": self.tensor_max_abs_nT_per_m,
@@ -222,8 +223,16 @@ def _evaluate(name, description, vectors_nT, expected_nT, dataset, wall_s) -> St
         comp = conventions.tensor_components(vectors_nT, dataset.baseline_m)
         t_rms = {k: float(np.sqrt(np.mean(v**2))) for k, v in comp.items()}
         t_max = {k: float(np.max(np.abs(v))) for k, v in comp.items()}
-    return StepSummary(name, description, np.sqrt(np.mean(dev**2, axis=1)), np.max(np.abs(dev), axis=1), diff,
-                       t_rms, t_max, float(wall_s))
+    return StepSummary(
+        name,
+        description,
+        np.sqrt(np.mean(dev**2, axis=1)),
+        np.max(np.abs(dev), axis=1),
+        diff,
+        t_rms,
+        t_max,
+        float(wall_s),
+    )
 
 
 def _expected(dataset, calibration, reference_kind):
@@ -237,8 +246,14 @@ def _expected(dataset, calibration, reference_kind):
 # ------------------------------------------------------------------------------------------------------------
 
 
-def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=None, reference_kind="given",
-                   robust=False, max_samples=None):
+def ellipsoid_step(
+    dataset,
+    ellipsoid_method="algebraic",
+    reference_total_nT=None,
+    reference_kind="given",
+    robust=False,
+    max_samples=None,
+):
     """Step 1 for every sensor; with an unknown field, all sensors share sensor 1's fitted magnitude.
 
     Parameters
@@ -267,20 +282,26 @@ def ellipsoid_step(dataset, ellipsoid_method="algebraic", reference_total_nT=Non
     else:
         field_nT = reference_total_nT
     inliers = np.ones(dataset.n_samples, bool)
-    fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, label=f"sensor {s + 1}", max_samples=max_samples)
-            for s, y in enumerate(dataset.readings_nT)]
+    fits = [
+        fit_ellipsoid(y, ellipsoid_method, field_nT, label=f"sensor {s + 1}", max_samples=max_samples)
+        for s, y in enumerate(dataset.readings_nT)
+    ]
     if robust:
         for s, (f, y) in enumerate(zip(fits, dataset.readings_nT)):
             dev = row_norm(f.correct(y)) - f.field_nT
             inliers &= np.abs(dev - np.median(dev)) <= ROBUST_START_SIGMA * robust_sigma(dev, floor=1e-9)
         if not inliers.all():
-            fits = [fit_ellipsoid(y, ellipsoid_method, field_nT, mask=inliers, label=f"sensor {s + 1}",
-                                  max_samples=max_samples)
-                    for s, y in enumerate(dataset.readings_nT)]
+            fits = [
+                fit_ellipsoid(
+                    y, ellipsoid_method, field_nT, mask=inliers, label=f"sensor {s + 1}", max_samples=max_samples
+                )
+                for s, y in enumerate(dataset.readings_nT)
+            ]
     if reference_kind == "fitted" and len(fits) > 1:
         common = fits[0].field_nT  # det C^-1 = 1 for sensor 1, the fitter's gauge
-        fits = [fits[0]] + [f.with_field(common, fitted=True, readings_nT=y[inliers])
-                            for f, y in zip(fits[1:], dataset.readings_nT[1:])]
+        fits = [fits[0]] + [
+            f.with_field(common, fitted=True, readings_nT=y[inliers]) for f, y in zip(fits[1:], dataset.readings_nT[1:])
+        ]
     return fits, inliers
 
 
@@ -304,8 +325,9 @@ def align_sensors(dataset, calibration: Calibration) -> Calibration:
 
 def _rotations_onto_first(corrected):
     """Procrustes rotations of each sensor's corrected vectors (list of (N, 3), nT) onto sensor 1's."""
-    return [np.eye(3)] + [procrustes_rotation(corrected[0], c, label=f"sensor {s + 1}")
-                          for s, c in enumerate(corrected[1:], start=1)]
+    return [np.eye(3)] + [
+        procrustes_rotation(corrected[0], c, label=f"sensor {s + 1}") for s, c in enumerate(corrected[1:], start=1)
+    ]
 
 
 def two_step_calibration(dataset, fits, rotations, reference_kind) -> Calibration:
@@ -344,8 +366,9 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
             raise
         search = None
     if search is None or not hasattr(search, "search_calibrate"):
-        raise CalibrationError(f"method {method!r} (global search) is not available in this installation; "
-                               "use method 'ml' or 'ellipsoid'")
+        raise CalibrationError(
+            f"method {method!r} (global search) is not available in this installation; use method 'ml' or 'ellipsoid'"
+        )
     # the iteration counts on across sensors, sensor s from s * max_iter: a fraction of the most it can run
     # (a sensor whose search stalls early makes the bar jump to the next sensor's share)
     total = dataset.n_sensors * search.DEFAULTS[method]["max_iter"]
@@ -353,8 +376,14 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
     def callback(iteration, best_rms_nT):
         progress(f"{method}: iteration {iteration}, best RMS {best_rms_nT:.4g} nT", min(iteration / total, 1.0))
 
-    return search.search_calibrate(dataset, method, seed=seed, progress=None if progress is None else callback,
-                                   mask=mask, reference_total_nT=reference_total_nT)
+    return search.search_calibrate(
+        dataset,
+        method,
+        seed=seed,
+        progress=None if progress is None else callback,
+        mask=mask,
+        reference_total_nT=reference_total_nT,
+    )
 
 
 @dataclass
@@ -420,9 +449,19 @@ class _Run:
         self.calibration = calibration
 
 
-def calibrate(dataset, method: str = "ml", effects=(), robust: bool = False, reference_total_nT=None,
-              seed=None, progress: Callable | None = None, mask=None, ellipsoid_method: str = "algebraic",
-              base_terms=None, noise_nT=None) -> CalibrationResult:
+def calibrate(
+    dataset,
+    method: str = "ml",
+    effects=(),
+    robust: bool = False,
+    reference_total_nT=None,
+    seed=None,
+    progress: Callable | None = None,
+    mask=None,
+    ellipsoid_method: str = "algebraic",
+    base_terms=None,
+    noise_nT=None,
+) -> CalibrationResult:
     """Calibrate one to four sensors from readings taken while turning them in a uniform field.
 
     Parameters
@@ -510,8 +549,15 @@ def _resolve_reference_step(dataset, mask, reference_total_nT, progress) -> _Run
     """The samples used and the reference they are fitted to (given, a per-sample column, or fitted)."""
     kept = dataset if mask.all() else dataset.subset(mask)
     ref_value, ref_kind = resolve_reference(kept, reference_total_nT)
-    return _Run(dataset=dataset, mask=mask, kept=kept, ref_value=ref_value, ref_kind=ref_kind, progress=progress,
-                inliers=np.ones(kept.n_samples, bool))
+    return _Run(
+        dataset=dataset,
+        mask=mask,
+        kept=kept,
+        ref_value=ref_value,
+        ref_kind=ref_kind,
+        progress=progress,
+        inliers=np.ones(kept.n_samples, bool),
+    )
 
 
 def _model_for(dataset, kept, effects, base_terms):
@@ -519,7 +565,6 @@ def _model_for(dataset, kept, effects, base_terms):
     channels."""
     model = _build_model(dataset, effects)
     if base_terms is not None:
-
         model = Model(model.n_sensors, base=tuple(base_terms), effects=model.effects)
     model.check(kept)
     return model
@@ -553,8 +598,14 @@ def _start_steps(run: _Run, ellipsoid_method, robust, start_only=False) -> None:
     kept = run.kept
     run.report("step 1: ellipsoid fit per sensor", 0.0)
     t0 = time.perf_counter()
-    run.ellipsoids, run.inliers = ellipsoid_step(kept, ellipsoid_method, run.ref_value, run.ref_kind, robust=robust,
-                                                 max_samples=START_MAX_SAMPLES if start_only else None)
+    run.ellipsoids, run.inliers = ellipsoid_step(
+        kept,
+        ellipsoid_method,
+        run.ref_value,
+        run.ref_kind,
+        robust=robust,
+        max_samples=START_MAX_SAMPLES if start_only else None,
+    )
     for f in run.ellipsoids:
         run.notes.extend(f.warnings)
     step1 = two_step_calibration(kept, run.ellipsoids, [np.eye(3)] * len(run.ellipsoids), run.ref_kind)
@@ -574,12 +625,19 @@ def _ml_step(run: _Run, model, robust, reference_total_nT) -> None:
     t0 = time.perf_counter()
     with _warnings.catch_warnings(record=True) as wl:
         _warnings.simplefilter("always")
-        run.fit = ml_fit(run.dataset, model, init=run.calibration, loss="soft_l1" if robust else "linear",
-                         mask=run.mask, reference_total_nT=reference_total_nT)
+        run.fit = ml_fit(
+            run.dataset,
+            model,
+            init=run.calibration,
+            loss="soft_l1" if robust else "linear",
+            mask=run.mask,
+            reference_total_nT=reference_total_nT,
+        )
     run.caught(wl)
     terms = ", ".join(list(model.base) + model.effect_labels)
-    run.add_step("ml", f"maximum likelihood of {terms}" + (" (robust soft-L1 loss)" if robust else ""),
-                 run.fit.calibration, t0)
+    run.add_step(
+        "ml", f"maximum likelihood of {terms}" + (" (robust soft-L1 loss)" if robust else ""), run.fit.calibration, t0
+    )
 
 
 def _robust_pass(run: _Run, robust) -> np.ndarray:
@@ -590,9 +648,14 @@ def _robust_pass(run: _Run, robust) -> np.ndarray:
     elif robust:
         outliers[np.flatnonzero(run.mask)[~run.inliers]] = True
     if outliers.any():
-        run.notes.append(f"{int(outliers.sum())} sample(s) distrusted as outliers"
-                         + (" and down-weighted by the robust loss; the figures leave them out" if robust
-                            else "; consider the robust loss"))
+        run.notes.append(
+            f"{int(outliers.sum())} sample(s) distrusted as outliers"
+            + (
+                " and down-weighted by the robust loss; the figures leave them out"
+                if robust
+                else "; consider the robust loss"
+            )
+        )
     if robust and outliers.any():
         run.kept = run.kept.subset(~outliers[run.mask])
     return outliers
@@ -607,8 +670,9 @@ def _step_figures(run: _Run) -> list:
     for name, description, cal, wall in run.steps_timed:
         if cal.model is not None and cal.model.effects:
             vectors = cal.correct(kept)
-            exp = expected_total_field(kept, None if ref_kind == "column" else cal.reference_total_nT, cal.model,
-                                       cal.effect_values)
+            exp = expected_total_field(
+                kept, None if ref_kind == "column" else cal.reference_total_nT, cal.model, cal.effect_values
+            )
         else:
             vectors = _base_correct(cal, kept)
             exp = _expected(kept, cal, ref_kind)
@@ -639,8 +703,9 @@ def _noise_and_floors(run: _Run, model, final: StepSummary, noise_nT=None):
     tf_floor = conventions.total_field_floor_nT(noise.sigma_nT, kept.n_samples, n_params)
     t_floor = None
     if _has_tensor(dataset):
-        t_floor = {k: float(v) for k, v in conventions.tensor_floor_nT_per_m(noise.sigma_nT,
-                                                                              dataset.baseline_m).items()}
+        t_floor = {
+            k: float(v) for k, v in conventions.tensor_floor_nT_per_m(noise.sigma_nT, dataset.baseline_m).items()
+        }
     return noise, tf_floor, t_floor
 
 
@@ -683,8 +748,12 @@ def _field_magnitude_nT(kept, calibration, ref_kind) -> float:
     total field it expects (its reference, given or fitted, with any reference-stage effect, or the data's
     ``ref_total`` column)."""
     if calibration.model is not None and calibration.model.effects:
-        expected = expected_total_field(kept, None if ref_kind == "column" else calibration.reference_total_nT,
-                                        calibration.model, calibration.effect_values)
+        expected = expected_total_field(
+            kept,
+            None if ref_kind == "column" else calibration.reference_total_nT,
+            calibration.model,
+            calibration.effect_values,
+        )
     else:
         expected = _expected(kept, calibration, ref_kind)
     return float(np.mean(np.broadcast_to(expected, (kept.n_sensors, kept.n_samples))))
@@ -699,38 +768,47 @@ def _store_summary(result: CalibrationResult) -> None:
     """Write the figures into the calibration's summaries, so the saved JSON carries them (issue 2, item 9)."""
     cal = result.calibration
     cal.summary = dict(cal.summary or {})
-    cal.summary.update({
-        "method": result.method,
-        "robust": result.robust,
-        "reference_kind": result.reference_kind,
-        "n_samples": result.n_samples,
-        "rms_nT": result.rms_nT,
-        "rms_before_nT": float(np.sqrt(np.mean(result.rms_before_per_sensor_nT**2))),
-        "tensor_rms_nT_per_m": result.tensor_rms_nT_per_m,
-        "tensor_rms_before_nT_per_m": result.tensor_rms_before_nT_per_m,
-        "noise_nT": result.noise_nT,
-        "noise_source": result.noise_source,
-        "noise": result.noise.to_dict() if result.noise is not None else None,
-        "total_field_floor_nT": result.total_field_floor_nT,
-        "tensor_floor_nT_per_m": result.tensor_floor_nT_per_m,
-        "n_outliers": int(np.sum(result.outliers)) if result.outliers is not None else 0,
-        "steps": [s.to_dict() for s in result.steps],
-        "warnings": list(result.warnings),
-    })
+    cal.summary.update(
+        {
+            "method": result.method,
+            "robust": result.robust,
+            "reference_kind": result.reference_kind,
+            "n_samples": result.n_samples,
+            "rms_nT": result.rms_nT,
+            "rms_before_nT": float(np.sqrt(np.mean(result.rms_before_per_sensor_nT**2))),
+            "tensor_rms_nT_per_m": result.tensor_rms_nT_per_m,
+            "tensor_rms_before_nT_per_m": result.tensor_rms_before_nT_per_m,
+            "noise_nT": result.noise_nT,
+            "noise_source": result.noise_source,
+            "noise": result.noise.to_dict() if result.noise is not None else None,
+            "total_field_floor_nT": result.total_field_floor_nT,
+            "tensor_floor_nT_per_m": result.tensor_floor_nT_per_m,
+            "n_outliers": int(np.sum(result.outliers)) if result.outliers is not None else 0,
+            "steps": [s.to_dict() for s in result.steps],
+            "warnings": list(result.warnings),
+        }
+    )
     if result.fit is not None:
-        cal.summary.update({"aic": float(result.fit.aic), "bic": float(result.fit.bic),
-                            "noise_estimate_nT": float(result.fit.noise_nT),
-                            "field_magnitude_nT": result.field_magnitude_nT})
+        cal.summary.update(
+            {
+                "aic": float(result.fit.aic),
+                "bic": float(result.fit.bic),
+                "noise_estimate_nT": float(result.fit.noise_nT),
+                "field_magnitude_nT": result.field_magnitude_nT,
+            }
+        )
     if result.tensor_rms_nT_per_m is None:
         cal.summary.pop("tensor_rms_nT_per_m")
         cal.summary.pop("tensor_rms_before_nT_per_m")
         cal.summary.pop("tensor_floor_nT_per_m")
     for s, sensor in enumerate(cal.sensors):
         sensor.summary = dict(sensor.summary or {})
-        sensor.summary.update({
-            "rms_before_nT": float(result.rms_before_per_sensor_nT[s]),
-            "rms_nT": float(result.rms_after_per_sensor_nT[s]),
-        })
+        sensor.summary.update(
+            {
+                "rms_before_nT": float(result.rms_before_per_sensor_nT[s]),
+                "rms_nT": float(result.rms_after_per_sensor_nT[s]),
+            }
+        )
         if result.ellipsoids:
             cov = result.ellipsoids[s].coverage
             sensor.summary["coverage"] = {"thinnest_spread": cov.thinnest_spread, "sky_fraction": cov.sky_fraction}

@@ -59,8 +59,12 @@ from magcal.model.terms import Model, contexts
 
 #: Group labels and the platform axis (unit vector, platform frame) that points up in each.
 GROUP_AXES = {
-    "x_up": np.array([1.0, 0.0, 0.0]), "y_up": np.array([0.0, 1.0, 0.0]), "z_up": np.array([0.0, 0.0, 1.0]),
-    "x_down": np.array([-1.0, 0.0, 0.0]), "y_down": np.array([0.0, -1.0, 0.0]), "z_down": np.array([0.0, 0.0, -1.0]),
+    "x_up": np.array([1.0, 0.0, 0.0]),
+    "y_up": np.array([0.0, 1.0, 0.0]),
+    "z_up": np.array([0.0, 0.0, 1.0]),
+    "x_down": np.array([-1.0, 0.0, 0.0]),
+    "y_down": np.array([0.0, -1.0, 0.0]),
+    "z_down": np.array([0.0, 0.0, -1.0]),
 }
 
 #: Fewest samples per group.
@@ -98,8 +102,17 @@ def _up_rotation(axis_up):
     return rot
 
 
-def simulate_level_table(truth=None, n_per_group=100, noise_nT=3.0, seed=0, groups=("x_up", "y_up", "z_up"),
-                         n_free=0, heading_range_deg=360.0, seat_error_deg=0.0, rate_hz=None) -> Dataset:
+def simulate_level_table(
+    truth=None,
+    n_per_group=100,
+    noise_nT=3.0,
+    seed=0,
+    groups=("x_up", "y_up", "z_up"),
+    n_free=0,
+    heading_range_deg=360.0,
+    seat_error_deg=0.0,
+    rate_hz=None,
+) -> Dataset:
     """Simulated level-table records: the array turned about the vertical with each platform axis up in turn.
 
     Parameters
@@ -245,7 +258,9 @@ class PlatformAlignment:
             "sensor  alpha (mrad)        beta (mrad)         gamma (mrad)        residual RMS (nT)   axes (deg)",
         ]
         for i in range(self.R.shape[0]):
-            ang = "  ".join(f"{1e3 * a:+8.4f} +- {1e3 * s:.4f}" for a, s in zip(self.angles_rad[i], self.angles_std_rad[i]))
+            ang = "  ".join(
+                f"{1e3 * a:+8.4f} +- {1e3 * s:.4f}" for a, s in zip(self.angles_rad[i], self.angles_std_rad[i])
+            )
             res = "/".join(f"{r:.2f}" for r in self.residual_rms_nT[i])
             axes = "/".join("-" if not np.isfinite(a) else f"{a:.3f}" for a in self.axis_angles_deg[i])
             lines.append(f"  {i + 1}     {ang}   {res:18s}  {axes}")
@@ -328,8 +343,10 @@ def estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="d
     notes = []
     other, other_n = np.unique(labels[~np.isin(labels, present)], return_counts=True)
     if other.size:
-        notes.append("samples not used by the alignment: "
-                     + ", ".join(f"{lab or '(empty)'} ({n})" for lab, n in zip(other[:8], other_n[:8])))
+        notes.append(
+            "samples not used by the alignment: "
+            + ", ".join(f"{lab or '(empty)'} ({n})" for lab, n in zip(other[:8], other_n[:8]))
+        )
     R_out, ang, ang_std, cov_out, vert, rms, axang = [], [], [], [], [], [], []
     sigma_used = []
     for s in range(n_sensors):
@@ -410,10 +427,17 @@ def estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="d
                 "(an axis labelled _up that pointed down) before trusting the result"
             )
     result = PlatformAlignment(
-        R=np.array(R_out), angles_rad=np.array(ang), angles_std_rad=np.array(ang_std),
-        rotation_cov_rad2=np.array(cov_out), vertical_nT=np.array(vert), residual_rms_nT=np.array(rms),
-        axis_angles_deg=np.array(axang), groups=list(present), counts=counts,
-        noise_nT=float(np.mean(sigma_used)), notes=notes,
+        R=np.array(R_out),
+        angles_rad=np.array(ang),
+        angles_std_rad=np.array(ang_std),
+        rotation_cov_rad2=np.array(cov_out),
+        vertical_nT=np.array(vert),
+        residual_rms_nT=np.array(rms),
+        axis_angles_deg=np.array(axang),
+        groups=list(present),
+        counts=counts,
+        noise_nT=float(np.mean(sigma_used)),
+        notes=notes,
     )
     for note in notes:
         if "check the group labels" in note:
@@ -488,7 +512,9 @@ def sensor_frame_vectors(calibration, dataset) -> np.ndarray:
     if model is not None:
         model = Model(model.n_sensors, base=model.base, effects=[e for e in model.effects if e.stage == "raw"])
     calibration.check(dataset)
-    return corrected_fields(dataset, sensors, model, calibration.effect_values, contexts(dataset, calibration.baseline_m))
+    return corrected_fields(
+        dataset, sensors, model, calibration.effect_values, contexts(dataset, calibration.baseline_m)
+    )
 
 
 def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, reference_total_nT=None, source=None):
@@ -520,7 +546,6 @@ def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, referenc
 
     source = source or dataset.source or "data"
     if calibration is None:
-
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             result = calibrate(dataset, reference_total_nT=reference_total_nT)
@@ -550,9 +575,14 @@ def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, referenc
     summary = dict(calibration.summary)
     summary["platform_alignment"] = result.to_dict()
     new = Calibration(
-        sensors=sensors, reference_total_nT=calibration.reference_total_nT,
-        reference_fitted=calibration.reference_fitted, baseline_m=calibration.baseline_m or dataset.baseline_m,
-        model=calibration.model, effect_values=dict(calibration.effect_values), frame="platform", summary=summary,
+        sensors=sensors,
+        reference_total_nT=calibration.reference_total_nT,
+        reference_fitted=calibration.reference_fitted,
+        baseline_m=calibration.baseline_m or dataset.baseline_m,
+        model=calibration.model,
+        effect_values=dict(calibration.effect_values),
+        frame="platform",
+        summary=summary,
     )
     return new, result
 
@@ -572,11 +602,12 @@ def _propagate_intrinsic(result, calibration, dataset, intrinsic_cov, noise, pri
             sensors = list(calibration.sensors)
             sensors[s] = dataclasses.replace(c, cinv=conventions.params_to_cinv(p[:6]), bias_nT=p[6:])
             cal_k = dataclasses.replace(calibration, sensors=sensors)
-            v = sensor_frame_vectors(cal_k, dataset)[s:s + 1]
+            v = sensor_frame_vectors(cal_k, dataset)[s : s + 1]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                r = estimate_alignment(v, dataset.group, noise_nT=noise,
-                                       prior_R=None if prior is None else prior[s:s + 1], source=source)
+                r = estimate_alignment(
+                    v, dataset.group, noise_nT=noise, prior_R=None if prior is None else prior[s : s + 1], source=source
+                )
             D[:, k] = rotation_error_vector_rad(r.R[0], base_R[s])[0] / steps[k]
         extra = D @ intrinsic_cov[s] @ D.T
         result.rotation_cov_rad2[s] = result.rotation_cov_rad2[s] + extra

@@ -398,9 +398,20 @@ def _de(objective, bounds, rng, pop_size, max_iter, progress, stall, coefficient
     if progress:
         progress(0, f0)
     res = differential_evolution(
-        func, list(zip(bounds.lower, bounds.upper)), strategy=coefficients["strategy"], maxiter=max_iter, init=init,
-        mutation=tuple(coefficients["F"]), recombination=coefficients["CR"], tol=0.0, atol=0.0, polish=False,
-        updating="deferred", vectorized=True, rng=rng.integers(2**63), callback=callback,
+        func,
+        list(zip(bounds.lower, bounds.upper)),
+        strategy=coefficients["strategy"],
+        maxiter=max_iter,
+        init=init,
+        mutation=tuple(coefficients["F"]),
+        recombination=coefficients["CR"],
+        tol=0.0,
+        atol=0.0,
+        polish=False,
+        updating="deferred",
+        vectorized=True,
+        rng=rng.integers(2**63),
+        callback=callback,
     )
     return np.asarray(res.x), float(res.fun), state["generation"], state["stopped"]
 
@@ -413,8 +424,20 @@ COEFFICIENTS = {
 }
 
 
-def search(readings_nT, reference_nT, method="ipso", seed=None, progress=None, bounds=None, pop_size=None,
-           max_iter=None, tol=1e-10, patience=None, atol_nT=0.0, coefficients=None) -> SearchResult:
+def search(
+    readings_nT,
+    reference_nT,
+    method="ipso",
+    seed=None,
+    progress=None,
+    bounds=None,
+    pop_size=None,
+    max_iter=None,
+    tol=1e-10,
+    patience=None,
+    atol_nT=0.0,
+    coefficients=None,
+) -> SearchResult:
     """Global search for one sensor's ``C^-1`` and offset against a reference total field, eq. (17).
 
     Parameters
@@ -465,14 +488,23 @@ def search(readings_nT, reference_nT, method="ipso", seed=None, progress=None, b
     if method == "de":
         best, best_f, n_it, stopped = _de(objective, bounds, rng, pop_size, max_iter, progress, stall, coeffs)
     else:
-        best, best_f, n_it, stopped = _pso(objective, bounds, rng, pop_size, max_iter, method == "ipso", progress,
-                                           stall, coeffs)
+        best, best_f, n_it, stopped = _pso(
+            objective, bounds, rng, pop_size, max_iter, method == "ipso", progress, stall, coeffs
+        )
     wall = time.perf_counter() - t0
     cinv, bias = unpack(best)
     return SearchResult(
-        method=method, cinv=cinv, bias_nT=bias, rms_nT=float(best_f), history_rms_nT=np.array(stall.history),
-        n_iterations=int(n_it), n_evaluations=int(objective.n_evaluations), wall_s=wall,
-        stopped_by_tolerance=bool(stopped), bounds=bounds, reference_nT=float(np.mean(objective.reference_nT)),
+        method=method,
+        cinv=cinv,
+        bias_nT=bias,
+        rms_nT=float(best_f),
+        history_rms_nT=np.array(stall.history),
+        n_iterations=int(n_it),
+        n_evaluations=int(objective.n_evaluations),
+        wall_s=wall,
+        stopped_by_tolerance=bool(stopped),
+        bounds=bounds,
+        reference_nT=float(np.mean(objective.reference_nT)),
         seed=seed,
     )
 
@@ -482,8 +514,19 @@ def search(readings_nT, reference_nT, method="ipso", seed=None, progress=None, b
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def search_calibrate(dataset, method="ipso", seed=None, progress=None, mask=None, reference_total_nT=None,
-                     max_iter=None, pop_size=None, tol=1e-10, patience=None, bounds=None):
+def search_calibrate(
+    dataset,
+    method="ipso",
+    seed=None,
+    progress=None,
+    mask=None,
+    reference_total_nT=None,
+    max_iter=None,
+    pop_size=None,
+    tol=1e-10,
+    patience=None,
+    bounds=None,
+):
     """Scalar calibration of every sensor by global search (eq. 17), then Procrustes alignment for arrays.
 
     Each sensor's ``C^-1`` (upper triangular) and offset are searched against the reference total field; for two
@@ -550,17 +593,36 @@ def search_calibrate(dataset, method="ipso", seed=None, progress=None, mask=None
     for s in range(ds.n_sensors):
         offset = s * max_iter
         report = None if progress is None else (lambda it, best, _o=offset: progress(_o + it, best))
-        res = search(ds.readings_nT[s], target, method=method, seed=None if seed is None else int(seed) + s,
-                     progress=report, bounds=per_sensor_bounds[s], pop_size=pop_size, max_iter=max_iter, tol=tol,
-                     patience=patience)
+        res = search(
+            ds.readings_nT[s],
+            target,
+            method=method,
+            seed=None if seed is None else int(seed) + s,
+            progress=report,
+            bounds=per_sensor_bounds[s],
+            pop_size=pop_size,
+            max_iter=max_iter,
+            tol=tol,
+            patience=patience,
+        )
         cinv, rms = res.cinv, res.rms_nT
         if kind == "fitted" and s == 0:
             gain = float(np.linalg.det(cinv)) ** (-1.0 / 3.0)
             cinv, rms, target = cinv * gain, rms * gain, target * gain
         results.append(res)
-        sensors.append(SensorCalibration(cinv, res.bias_nT, np.eye(3), summary={
-            "rms_nT": rms, "n_evaluations": res.n_evaluations, "n_iterations": res.n_iterations,
-            "search_wall_s": res.wall_s}))
+        sensors.append(
+            SensorCalibration(
+                cinv,
+                res.bias_nT,
+                np.eye(3),
+                summary={
+                    "rms_nT": rms,
+                    "n_evaluations": res.n_evaluations,
+                    "n_iterations": res.n_iterations,
+                    "search_wall_s": res.wall_s,
+                },
+            )
+        )
     if ds.n_sensors > 1:
         corrected = [(ds.readings_nT[s] - c.bias_nT) @ c.cinv.T for s, c in enumerate(sensors)]
         for s in range(1, ds.n_sensors):

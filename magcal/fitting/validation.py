@@ -93,16 +93,19 @@ def split_problem(dataset) -> str | None:
     """
     n = dataset.n_samples
     if n < 3 * MIN_BLOCK_SAMPLES:
-        return (f"the record has {n} samples, fewer than three blocks of {MIN_BLOCK_SAMPLES}: too short to hold "
-                "samples out")
+        return (
+            f"the record has {n} samples, fewer than three blocks of {MIN_BLOCK_SAMPLES}: too short to hold samples out"
+        )
     if dataset.time_s is not None:
         t = np.asarray(dataset.time_s, float)
         if not np.all(np.isfinite(t)):
             return "the time column has gaps (NaN): the record cannot be split in time"
         duration = float(t.max() - t.min())
         if duration < 3 * MIN_BLOCK_S:
-            return (f"the record lasts {duration:.3g} s, less than three blocks of {MIN_BLOCK_S:g} s: too short to "
-                    "hold samples out without neighbouring samples leaking into the test")
+            return (
+                f"the record lasts {duration:.3g} s, less than three blocks of {MIN_BLOCK_S:g} s: too short to "
+                "hold samples out without neighbouring samples leaking into the test"
+            )
     return None
 
 
@@ -145,10 +148,16 @@ def holdout_masks(dataset, scheme: str = "blocks", n_blocks: int | None = None, 
     position = (t - t.min()) / span if span > 0 else np.arange(n) / max(n - 1, 1)
     if scheme == "blocks":
         n_blocks = default_n_blocks(dataset) if n_blocks is None else n_blocks
-        if isinstance(n_blocks, bool) or not isinstance(n_blocks, (int, np.integer)) or n_blocks < 3 \
-                or n_blocks % 2 == 0:
-            raise MagcalError(f"n_blocks must be an odd whole number of at least 3 (the record starts and ends "
-                              f"with training blocks, so record-only terms interpolate), got {n_blocks!r}")
+        if (
+            isinstance(n_blocks, bool)
+            or not isinstance(n_blocks, (int, np.integer))
+            or n_blocks < 3
+            or n_blocks % 2 == 0
+        ):
+            raise MagcalError(
+                f"n_blocks must be an odd whole number of at least 3 (the record starts and ends "
+                f"with training blocks, so record-only terms interpolate), got {n_blocks!r}"
+            )
         if dataset.time_s is None:
             position = np.arange(n) / n
         block = np.minimum((position * n_blocks).astype(int), n_blocks - 1)  # 0-based: 0, 2, 4... train
@@ -159,8 +168,10 @@ def holdout_masks(dataset, scheme: str = "blocks", n_blocks: int | None = None, 
         train = position < 1.0 - float(test_fraction)
     test = ~train
     if not train.any() or not test.any():
-        raise MagcalError(f"the {scheme!r} split leaves no {'training' if not train.any() else 'held-out'} "
-                          f"samples in this record of {n}; give a longer record")
+        raise MagcalError(
+            f"the {scheme!r} split leaves no {'training' if not train.any() else 'held-out'} "
+            f"samples in this record of {n}; give a longer record"
+        )
     return train, test
 
 
@@ -224,9 +235,11 @@ class ValidationResult:
     def text(self) -> str:
         """A short report."""
         model = ", ".join(self.effects) or "base terms only"
-        lines = [f"held-out validation ({self.scheme}) of {model}: trained on {self.n_train} samples, "
-                 f"scored on {self.n_test}",
-                 f"  RMS in-sample {self.in_sample_rms_nT:.3f} nT, held-out {self.held_out_rms_nT:.3f} nT"]
+        lines = [
+            f"held-out validation ({self.scheme}) of {model}: trained on {self.n_train} samples, "
+            f"scored on {self.n_test}",
+            f"  RMS in-sample {self.in_sample_rms_nT:.3f} nT, held-out {self.held_out_rms_nT:.3f} nT",
+        ]
         for s, (a, b) in enumerate(zip(self.in_sample_rms_per_sensor_nT, self.held_out_rms_per_sensor_nT)):
             lines.append(f"  sensor {s + 1}: in-sample {a:.3f} nT, held-out {b:.3f} nT")
         lines += [f"  note: {n}" for n in self.notes]
@@ -308,9 +321,18 @@ def consistency_rms_nT(vectors) -> float | None:
     return float(np.sqrt(np.sum(perp**2) * ns / (ns - 1) / (2 * ns * v.shape[1])))
 
 
-def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: int | None = None,
-             test_fraction: float = 0.25, robust: bool = False, reference_total_nT=None, masks=None,
-             init=None) -> ValidationResult:
+def validate(
+    dataset,
+    model=None,
+    effects=(),
+    scheme: str = "blocks",
+    n_blocks: int | None = None,
+    test_fraction: float = 0.25,
+    robust: bool = False,
+    reference_total_nT=None,
+    masks=None,
+    init=None,
+) -> ValidationResult:
     """Fit on the training samples of a record and score the total-field residuals on the held-out ones.
 
     Parameters
@@ -349,16 +371,22 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
     train, test = np.asarray(train, bool), np.asarray(test, bool)
     specs, base = _effects_of(model, effects)
     if init is not None:
-
         built = _build_model(dataset, specs)
         full = Model(built.n_sensors, base=tuple(base) if base is not None else built.base, effects=built.effects)
-        fitted = ml_fit(dataset, full, init=init, loss="soft_l1" if robust else "linear", mask=train,
-                        reference_total_nT=reference_total_nT, cost_tolerance=COMPARISON_COST_TOLERANCE,
-                        max_steps=1)
+        fitted = ml_fit(
+            dataset,
+            full,
+            init=init,
+            loss="soft_l1" if robust else "linear",
+            mask=train,
+            reference_total_nT=reference_total_nT,
+            cost_tolerance=COMPARISON_COST_TOLERANCE,
+            max_steps=1,
+        )
     else:
-
-        result = calibrate(dataset, effects=specs, robust=robust, reference_total_nT=reference_total_nT,
-                           mask=train, base_terms=base)
+        result = calibrate(
+            dataset, effects=specs, robust=robust, reference_total_nT=reference_total_nT, mask=train, base_terms=base
+        )
         fitted = result.fit
     cal, labels = fitted.calibration, fitted.model.effect_labels
     test_ds = dataset.subset(test)
@@ -366,14 +394,18 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
     record_only = [e.label for e in (cal.model.effects if cal.model is not None else []) if not is_transferable(e)]
     if scheme == "later" and record_only:
         dropped = record_only
-        notes.append(f"{', '.join(record_only)} describe(s) the fitted record only and cannot be extrapolated to "
-                     "later samples: fitted (so the instrument terms are not biased) but held at its average over "
-                     "the fitted stretch in the held-out score")
+        notes.append(
+            f"{', '.join(record_only)} describe(s) the fitted record only and cannot be extrapolated to "
+            "later samples: fitted (so the instrument terms are not biased) but held at its average over "
+            "the fitted stretch in the held-out score"
+        )
         out_res, vectors = _held_at_training_average(cal, dataset.subset(train), test_ds)
     else:
         if record_only:
-            notes.append(f"{', '.join(record_only)} describe(s) the record: evaluated at held-out times between "
-                         "training blocks (interpolation in time)")
+            notes.append(
+                f"{', '.join(record_only)} describe(s) the record: evaluated at held-out times between "
+                "training blocks (interpolation in time)"
+            )
         vectors = cal.correct(test_ds, record_terms="apply")
         out_res = cal.total_field_residuals(test_ds, vectors, record_terms="apply")
     # in-sample: the fit's own residuals on the training samples (record-only terms applied, as fitted)
@@ -385,11 +417,23 @@ def validate(dataset, model=None, effects=(), scheme: str = "blocks", n_blocks: 
         relevelled = _rms(level_res)[1]
         relevelled_consistency = consistency_rms_nT(level_vec)
     return ValidationResult(
-        scheme=scheme, effects=list(labels), n_train=int(train.sum()), n_test=int(test.sum()),
-        in_sample_rms_per_sensor_nT=in_per, held_out_rms_per_sensor_nT=out_per, in_sample_rms_nT=in_all,
-        held_out_rms_nT=out_all, dropped=dropped, notes=notes, calibration=cal, train=train, test=test,
-        held_out_residuals_nT=out_res, held_out_consistency_rms_nT=consistency_rms_nT(vectors),
-        relevelled_rms_nT=relevelled, relevelled_consistency_rms_nT=relevelled_consistency,
+        scheme=scheme,
+        effects=list(labels),
+        n_train=int(train.sum()),
+        n_test=int(test.sum()),
+        in_sample_rms_per_sensor_nT=in_per,
+        held_out_rms_per_sensor_nT=out_per,
+        in_sample_rms_nT=in_all,
+        held_out_rms_nT=out_all,
+        dropped=dropped,
+        notes=notes,
+        calibration=cal,
+        train=train,
+        test=test,
+        held_out_residuals_nT=out_res,
+        held_out_consistency_rms_nT=consistency_rms_nT(vectors),
+        relevelled_rms_nT=relevelled,
+        relevelled_consistency_rms_nT=relevelled_consistency,
     )
 
 
@@ -434,9 +478,11 @@ class Comparison:
 
     def text(self) -> str:
         verdict = "holds" if self.holds else "does not hold"
-        return (f"{self.effect}: in-sample RMS x{self.in_sample_ratio:.3f}, held-out RMS x{self.held_out_ratio:.3f} "
-                f"({self.with_effect.scheme} scheme; {self.with_effect.n_test} held-out samples): the gain "
-                f"{verdict} on held-out data\n")
+        return (
+            f"{self.effect}: in-sample RMS x{self.in_sample_ratio:.3f}, held-out RMS x{self.held_out_ratio:.3f} "
+            f"({self.with_effect.scheme} scheme; {self.with_effect.n_test} held-out samples): the gain "
+            f"{verdict} on held-out data\n"
+        )
 
 
 def rise_tolerance_nT(rms_nT, n_test) -> float:
@@ -445,10 +491,23 @@ def rise_tolerance_nT(rms_nT, n_test) -> float:
     return float(LATER_TOLERANCE_SE * rms_nT / np.sqrt(2.0 * max(int(n_test), 1)))
 
 
-def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks", n_blocks: int | None = None,
-            test_fraction: float = 0.25, min_relative_gain: float = MIN_RELATIVE_GAIN, robust: bool = False,
-            reference_total_nT=None, base=None, base_model=None, base_init=None, with_model=None,
-            with_init=None, with_effect=None) -> Comparison:
+def compare(
+    dataset,
+    base_effects=(),
+    added_effect=None,
+    scheme: str = "blocks",
+    n_blocks: int | None = None,
+    test_fraction: float = 0.25,
+    min_relative_gain: float = MIN_RELATIVE_GAIN,
+    robust: bool = False,
+    reference_total_nT=None,
+    base=None,
+    base_model=None,
+    base_init=None,
+    with_model=None,
+    with_init=None,
+    with_effect=None,
+) -> Comparison:
     """Does adding ``added_effect`` to ``base_effects`` lower the error on held-out samples?
 
     Both models are fitted on the same training samples and scored on the same held-out ones.
@@ -486,8 +545,11 @@ def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks",
     masks = (base.train, base.test) if base is not None else holdout_masks(dataset, scheme, n_blocks, test_fraction)
     kwargs = dict(scheme=scheme, robust=robust, reference_total_nT=reference_total_nT, masks=masks)
     if base is None:
-        base = (validate(dataset, model=base_model, init=base_init, **kwargs) if base_model is not None
-                else validate(dataset, effects=list(base_effects), init=base_init, **kwargs))
+        base = (
+            validate(dataset, model=base_model, init=base_init, **kwargs)
+            if base_model is not None
+            else validate(dataset, effects=list(base_effects), init=base_init, **kwargs)
+        )
     if with_effect is not None:
         pass
     elif with_model is not None:
@@ -511,11 +573,17 @@ def compare(dataset, base_effects=(), added_effect=None, scheme: str = "blocks",
     in_gain = base.in_sample_rms_nT - with_effect.in_sample_rms_nT
     out_gain = base.held_out_rms_nT - with_effect.held_out_rms_nT
     retained = out_gain / in_gain if in_gain > 0 else 0.0
-    return Comparison(effect=label, base=base, with_effect=with_effect, in_sample_ratio=in_ratio,
-                      held_out_ratio=out_ratio, retained=float(retained),
-                      holds=bool(out_ratio <= 1.0 - min_relative_gain and (len(parts) == 1 or no_rise)),
-                      min_relative_gain=min_relative_gain,
-                      does_not_rise=bool(no_rise))
+    return Comparison(
+        effect=label,
+        base=base,
+        with_effect=with_effect,
+        in_sample_ratio=in_ratio,
+        held_out_ratio=out_ratio,
+        retained=float(retained),
+        holds=bool(out_ratio <= 1.0 - min_relative_gain and (len(parts) == 1 or no_rise)),
+        min_relative_gain=min_relative_gain,
+        does_not_rise=bool(no_rise),
+    )
 
 
 def judge(blocks: Comparison, later: Comparison | None = None) -> bool:
@@ -564,26 +632,40 @@ class EffectsValidation:
         if self.skipped:
             return [f"held-out validation not done: {self.skipped}"]
         if self.holds is False:
-            return [f"the effects {', '.join(self.effects)} do not lower the held-out RMS (blocks) by "
-                    f"{MIN_RELATIVE_GAIN:.0%}: {self.base.held_out_rms_nT:.4g} -> "
-                    f"{self.with_effects.held_out_rms_nT:.4g} nT; their in-sample gain fits this record only"]
+            return [
+                f"the effects {', '.join(self.effects)} do not lower the held-out RMS (blocks) by "
+                f"{MIN_RELATIVE_GAIN:.0%}: {self.base.held_out_rms_nT:.4g} -> "
+                f"{self.with_effects.held_out_rms_nT:.4g} nT; their in-sample gain fits this record only"
+            ]
         return []
 
     def to_dict(self) -> dict:
         """The ``validation`` object of ``magcal calibrate --json`` (RMS in nT)."""
+
         def scores(v):
             if v is None:
                 return None
-            return {"effects": list(v.effects), "n_train": v.n_train, "n_test": v.n_test,
-                    "in_sample_rms_nT": float(v.in_sample_rms_nT), "held_out_rms_nT": float(v.held_out_rms_nT),
-                    "held_out_rms_per_sensor_nT": [float(x) for x in v.held_out_rms_per_sensor_nT],
-                    "notes": list(v.notes)}
+            return {
+                "effects": list(v.effects),
+                "n_train": v.n_train,
+                "n_test": v.n_test,
+                "in_sample_rms_nT": float(v.in_sample_rms_nT),
+                "held_out_rms_nT": float(v.held_out_rms_nT),
+                "held_out_rms_per_sensor_nT": [float(x) for x in v.held_out_rms_per_sensor_nT],
+                "notes": list(v.notes),
+            }
 
-        return {"scheme": "blocks", "effects": list(self.effects), "skipped": self.skipped,
-                "in_sample_rms_base_nT": self.in_sample_base_nT,
-                "in_sample_rms_with_effects_nT": self.in_sample_with_effects_nT,
-                "base": scores(self.base), "with_effects": scores(self.with_effects), "holds": self.holds,
-                "min_relative_gain": MIN_RELATIVE_GAIN}
+        return {
+            "scheme": "blocks",
+            "effects": list(self.effects),
+            "skipped": self.skipped,
+            "in_sample_rms_base_nT": self.in_sample_base_nT,
+            "in_sample_rms_with_effects_nT": self.in_sample_with_effects_nT,
+            "base": scores(self.base),
+            "with_effects": scores(self.with_effects),
+            "holds": self.holds,
+            "min_relative_gain": MIN_RELATIVE_GAIN,
+        }
 
     def text(self) -> str:
         """Lines for the calibration report."""
@@ -591,14 +673,19 @@ class EffectsValidation:
             return f"Held-out validation: not done ({self.skipped})\n"
         b, w = self.base, self.with_effects
         base_in = "-" if self.in_sample_base_nT is None else f"{self.in_sample_base_nT:.4g}"
-        lines = [f"Held-out validation (blocks: fitted on {w.n_train} samples in alternating blocks of time, scored "
-                 f"on the {w.n_test} between), total-field RMS, nT",
-                 f"  {'model':<36}{'in-sample':>12}{'held-out':>12}",
-                 f"  {'base terms':<36}{base_in:>12}{b.held_out_rms_nT:>12.4g}",
-                 f"  {'+ ' + ', '.join(self.effects):<36}{self.in_sample_with_effects_nT:>12.4g}"
-                 f"{w.held_out_rms_nT:>12.4g}",
-                 "  the effects' gain " + ("holds on held-out data" if self.holds else
-                                           f"does NOT hold on held-out data (less than {MIN_RELATIVE_GAIN:.0%})")]
+        lines = [
+            f"Held-out validation (blocks: fitted on {w.n_train} samples in alternating blocks of time, scored "
+            f"on the {w.n_test} between), total-field RMS, nT",
+            f"  {'model':<36}{'in-sample':>12}{'held-out':>12}",
+            f"  {'base terms':<36}{base_in:>12}{b.held_out_rms_nT:>12.4g}",
+            f"  {'+ ' + ', '.join(self.effects):<36}{self.in_sample_with_effects_nT:>12.4g}{w.held_out_rms_nT:>12.4g}",
+            "  the effects' gain "
+            + (
+                "holds on held-out data"
+                if self.holds
+                else f"does NOT hold on held-out data (less than {MIN_RELATIVE_GAIN:.0%})"
+            ),
+        ]
         lines += [f"  note: {n}" for n in w.notes]
         return "\n".join(lines) + "\n"
 
@@ -635,8 +722,16 @@ def validate_effects(dataset, result) -> EffectsValidation:
     if problem:
         return EffectsValidation(effects, None, None, base_in, float(fit.rms_nT), skipped=problem)
     masks = holdout_masks(kept, "blocks")
-    base = validate(kept, model=type(fit.model)(fit.model.n_sensors, fit.model.base, []), masks=masks,
-                    reference_total_nT=reference, init=base_fit.calibration if effects else fit.calibration)
-    with_effects = (validate(kept, model=fit.model, masks=masks, reference_total_nT=reference,
-                             init=fit.calibration) if effects else base)
+    base = validate(
+        kept,
+        model=type(fit.model)(fit.model.n_sensors, fit.model.base, []),
+        masks=masks,
+        reference_total_nT=reference,
+        init=base_fit.calibration if effects else fit.calibration,
+    )
+    with_effects = (
+        validate(kept, model=fit.model, masks=masks, reference_total_nT=reference, init=fit.calibration)
+        if effects
+        else base
+    )
     return EffectsValidation(effects, base, with_effects, base_in, float(fit.rms_nT))

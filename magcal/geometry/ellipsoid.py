@@ -136,7 +136,7 @@ class EllipsoidFit:
         """Corrected vectors ``C^-1 (y - b)`` (N, 3) in nT in the sensor's ideal frame."""
         return (np.asarray(readings_nT, dtype=float) - self.bias_nT) @ self.cinv.T
 
-    def with_field(self, field_nT: float, fitted: bool | None = None, readings_nT=None) -> "EllipsoidFit":
+    def with_field(self, field_nT: float, fitted: bool | None = None, readings_nT=None) -> EllipsoidFit:
         """The same ellipsoid mapped to another field magnitude (``C^-1`` scales with ``field_nT``).
 
         Parameters
@@ -170,8 +170,7 @@ def _rms(x) -> float:
 def _design(points):
     """Rows ``[x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1]`` of eq. (8)."""
     x, y, z = points.T
-    return np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z,
-                            np.ones_like(x)])
+    return np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, np.ones_like(x)])
 
 
 #: Samples an ellipsoid start takes at most (an even subsample) when maximum likelihood refines it on every sample:
@@ -187,7 +186,7 @@ def _blockwise(points, rows, reduce):
     """``sum_blocks reduce(rows(points[block]))`` over blocks of :data:`BLOCK_ROWS` samples."""
     total = None
     for start in range(0, len(points), BLOCK_ROWS):
-        part = reduce(rows(points[start:start + BLOCK_ROWS]))
+        part = reduce(rows(points[start : start + BLOCK_ROWS]))
         total = part if total is None else total + part
     return total
 
@@ -237,10 +236,12 @@ def _coefficients_algebraic(points):
 
 
 #: Li & Griffiths' constraint matrix for k = 4: v1^T C1 v1 = 4J - I^2.
-_LI_GRIFFITHS_C1 = np.block([
-    [np.array([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0]]), np.zeros((3, 3))],
-    [np.zeros((3, 3)), -4.0 * np.eye(3)],
-])
+_LI_GRIFFITHS_C1 = np.block(
+    [
+        [np.array([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0]]), np.zeros((3, 3))],
+        [np.zeros((3, 3)), -4.0 * np.eye(3)],
+    ]
+)
 
 
 def _coefficients_li_griffiths(points):
@@ -416,9 +417,15 @@ def segment_drift(readings_nT, bias_nT, cinv, n_segments=CAUSE_SEGMENTS):
     if len(used) < 2:
         return None
     centres = np.array(centres)
-    move = max(float(np.linalg.norm(a - b)) for i, a in enumerate(centres) for b in centres[i + 1:])
-    return {"centres_nT": centres, "radii_nT": np.array(radii), "segments": used, "centre_move_nT": move,
-            "radius_range_nT": (float(min(radii)), float(max(radii))), "rms_nT": float(np.sqrt(sq / count))}
+    move = max(float(np.linalg.norm(a - b)) for i, a in enumerate(centres) for b in centres[i + 1 :])
+    return {
+        "centres_nT": centres,
+        "radii_nT": np.array(radii),
+        "segments": used,
+        "centre_move_nT": move,
+        "radius_range_nT": (float(min(radii)), float(max(radii))),
+        "rms_nT": float(np.sqrt(sq / count)),
+    }
 
 
 def field_noise_nT(readings_nT, bias_nT, cinv):
@@ -474,27 +481,38 @@ def off_ellipsoid_cause(readings_nT, bias_nT, cinv, rms_nT, claim=True):
         if np.isfinite(noise_rms):
             parts.append(f"The total field scatters by {noise_rms:.0f} nT from one sample to the next.")
         if drift is not None:
-            parts.append(f"Fitted separately on {len(drift['segments'])} consecutive parts, the centre moves by up "
-                         f"to {drift['centre_move_nT']:.0f} nT.")
+            parts.append(
+                f"Fitted separately on {len(drift['segments'])} consecutive parts, the centre moves by up "
+                f"to {drift['centre_move_nT']:.0f} nT."
+            )
         return " ".join(parts), False
     if drift is not None:
         lo, hi = drift["radius_range_nT"]
-        moved = (f"Fitted separately on {len(drift['segments'])} consecutive parts of the record (same shape), the "
-                 f"centre (hard iron) moves by up to {drift['centre_move_nT']:.0f} nT and the radius (field) ranges "
-                 f"{lo:.0f}-{hi:.0f} nT, and the parts fit to {drift['rms_nT']:.0f} nT RMS")
+        moved = (
+            f"Fitted separately on {len(drift['segments'])} consecutive parts of the record (same shape), the "
+            f"centre (hard iron) moves by up to {drift['centre_move_nT']:.0f} nT and the radius (field) ranges "
+            f"{lo:.0f}-{hi:.0f} nT, and the parts fit to {drift['rms_nT']:.0f} nT RMS"
+        )
         if motion_explains and not noise_explains:
-            parts.append(moved + ": the hard iron or the field at the sensor changed during the record (a cable, "
-                         "a battery current, a magnet or the temperature changed?); calibrate each part separately "
-                         "or record again.")
+            parts.append(
+                moved + ": the hard iron or the field at the sensor changed during the record (a cable, "
+                "a battery current, a magnet or the temperature changed?); calibrate each part separately "
+                "or record again."
+            )
         else:
             parts.append(moved + ("." if not motion_explains else ": part of it changed during the record."))
     if noise_explains:
-        parts.insert(0, f"The readings' own noise accounts for it: the total field scatters by {noise_rms:.0f} nT "
-                        "from one sample to the next (second differences in time order); average or low-pass "
-                        "filter the readings (or raise the sensor's oversampling) before calibrating.")
+        parts.insert(
+            0,
+            f"The readings' own noise accounts for it: the total field scatters by {noise_rms:.0f} nT "
+            "from one sample to the next (second differences in time order); average or low-pass "
+            "filter the readings (or raise the sensor's oversampling) before calibrating.",
+        )
     elif np.isfinite(noise_rms):
-        parts.append(f"The readings' own noise (sample-to-sample scatter of the total field) accounts for only "
-                     f"{noise_rms:.0f} nT of it.")
+        parts.append(
+            f"The readings' own noise (sample-to-sample scatter of the total field) accounts for only "
+            f"{noise_rms:.0f} nT of it."
+        )
     return " ".join(parts), bool(noise_explains or motion_explains)
 
 
@@ -509,14 +527,22 @@ def _coverage_note(readings_nT) -> str:
         return ""
     if fraction >= 0.5:
         return ""
-    return (f" The readings cover only {100 * fraction:.0f}% of the sphere of directions (within 30 deg of a sample; "
-            f"largest gap {gap:.0f} deg): too few directions to determine an ellipsoid, the likely cause here "
-            "(a flight or a drive rather than a calibration rotation?).")
+    return (
+        f" The readings cover only {100 * fraction:.0f}% of the sphere of directions (within 30 deg of a sample; "
+        f"largest gap {gap:.0f} deg): too few directions to determine an ellipsoid, the likely cause here "
+        "(a flight or a drive rather than a calibration rotation?)."
+    )
 
 
-def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: float | None = None,
-                  mask=None, label: str = "sensor", strict: bool = True, max_samples: int | None = None
-                  ) -> EllipsoidFit:
+def fit_ellipsoid(
+    readings_nT,
+    method: str = "algebraic",
+    reference_total_nT: float | None = None,
+    mask=None,
+    label: str = "sensor",
+    strict: bool = True,
+    max_samples: int | None = None,
+) -> EllipsoidFit:
     """Fit the ellipsoid of one sensor's raw readings in a uniform field (step 1).
 
     Parameters
@@ -556,7 +582,7 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
     if mask is not None:
         y = y[np.asarray(mask, dtype=bool)]
     if max_samples is not None and y.shape[0] > max_samples:
-        y = y[::int(np.ceil(y.shape[0] / max_samples))]
+        y = y[:: int(np.ceil(y.shape[0] / max_samples))]
     if not np.all(np.isfinite(y)):
         bad = int(np.sum(~np.all(np.isfinite(y), axis=1)))
         raise CalibrationError(f"{label}: {bad} sample(s) have missing or non-finite readings; remove them first")
@@ -596,13 +622,17 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
         cause, explained = off_ellipsoid_cause(y, bias, cinv, rms, claim=not note)
         if note:
             cause, explained = f"{note.strip()} {cause}".strip(), True
-        checks = ("" if explained else
-                  " Check that the field was uniform and constant during the rotation, that all three axes are in "
-                  "the same units and that no axis saturates.")
+        checks = (
+            ""
+            if explained
+            else " Check that the field was uniform and constant during the rotation, that all three axes are in "
+            "the same units and that no axis saturates."
+        )
         raise CalibrationError(
             f"{label}: the readings do not lie on an ellipsoid: they deviate from the best one by {rms:.4g} nT RMS "
             f"({100 * rms / field_nT:.1f}% of the field, more than the {100 * MAX_RELATIVE_RMS:.0f}% accepted)."
-            + (f" {cause}" if cause else "") + checks
+            + (f" {cause}" if cause else "")
+            + checks
         )
     cov = coverage(corrected)
     warnings = []
@@ -619,5 +649,15 @@ def fit_ellipsoid(readings_nT, method: str = "algebraic", reference_total_nT: fl
             "has not seen, and its parameters can be off by tens to hundreds of nT; turn the sensor through more "
             "directions"
         )
-    return EllipsoidFit(cinv=cinv, bias_nT=bias, field_nT=field_nT, field_fitted=field_fitted, method=method,
-                        A=a_matrix, rms_nT=rms, n_samples=n, coverage=cov, warnings=warnings)
+    return EllipsoidFit(
+        cinv=cinv,
+        bias_nT=bias,
+        field_nT=field_nT,
+        field_fitted=field_fitted,
+        method=method,
+        A=a_matrix,
+        rms_nT=rms,
+        n_samples=n,
+        coverage=cov,
+        warnings=warnings,
+    )

@@ -47,8 +47,9 @@ def procrustes_rotation(reference_vectors, vectors, label: str = "sensor") -> np
     b1 = np.asarray(reference_vectors, dtype=float)
     bi = np.asarray(vectors, dtype=float)
     if b1.shape != bi.shape or b1.ndim != 2 or b1.shape[1] != 3:
-        raise CalibrationError(f"{label}: Procrustes needs two (N, 3) arrays of the same shape, got {b1.shape} "
-                               f"and {bi.shape}")
+        raise CalibrationError(
+            f"{label}: Procrustes needs two (N, 3) arrays of the same shape, got {b1.shape} and {bi.shape}"
+        )
     if b1.shape[0] < 3:
         raise CalibrationError(f"{label}: the rotation between sensors needs at least 3 samples, got {b1.shape[0]}")
     if not (np.all(np.isfinite(b1)) and np.all(np.isfinite(bi))):

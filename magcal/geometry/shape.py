@@ -110,7 +110,7 @@ def field_shape(readings_nT) -> FieldShape:
     """
     y = np.asarray(readings_nT, dtype=float)
     if y.ndim == 2 and y.shape[0] > SHAPE_MAX_SAMPLES:  # an even subsample: the shape of a million samples is
-        y = y[::int(np.ceil(y.shape[0] / SHAPE_MAX_SAMPLES))]  # that of twenty thousand of them
+        y = y[:: int(np.ceil(y.shape[0] / SHAPE_MAX_SAMPLES))]  # that of twenty thousand of them
     fit = _trusted_ellipsoid(y) if y.ndim == 2 and y.shape[0] else None
     if fit is not None:
         cinv = fit.cinv / np.cbrt(np.linalg.det(fit.cinv))  # det 1: the magnitude is the fitted field

@@ -125,8 +125,9 @@ def _state_number(effect, state, key, minimum=None, positive=False, what=""):
         number = float("nan")
     bad = not np.isfinite(number) or (positive and number <= 0) or (minimum is not None and number < minimum)
     if bad:
-        need = "a positive number" if positive else "a finite number" + (f" >= {minimum:g}" if minimum is not None
-                                                                       else "")
+        need = (
+            "a positive number" if positive else "a finite number" + (f" >= {minimum:g}" if minimum is not None else "")
+        )
         raise MagcalError(f"{effect.label}: {key} must be {need}{f' ({what})' if what else ''}, got {value!r}")
     return number
 
@@ -242,8 +243,9 @@ class _TemperatureReferenced(CatalogueEffect):
         return {"reference_temperature_C": self.reference_temperature_C}
 
     def set_state(self, state):
-        self.reference_temperature_C = _state_number(self, state, "reference_temperature_C", minimum=-273.15,
-                                                      what="a temperature in degC")
+        self.reference_temperature_C = _state_number(
+            self, state, "reference_temperature_C", minimum=-273.15, what="a temperature in degC"
+        )
 
     def _dT(self, ctx):
         """Temperature minus ``T0`` (K); before any fit, minus the mean temperature."""
@@ -301,8 +303,10 @@ class TemperatureScale(_TemperatureReferenced):
         if not field_nT:
             return ""
         per_K = 1e-6 * np.asarray(values, dtype=float) * field_nT
-        return (f"at the data's field {_field_text(field_nT)}: an axis reading the whole field changes by "
-                f"{_axes_text(per_K)} nT/K")
+        return (
+            f"at the data's field {_field_text(field_nT)}: an axis reading the whole field changes by "
+            f"{_axes_text(per_K)} nT/K"
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -370,6 +374,7 @@ def quadric_residuals(readings_nT):
         r = _quadric_residuals(y)
         r.setflags(write=False)
         return r
+
     return _READINGS_CACHE.get(y, ("quadric",), compute)
 
 
@@ -378,8 +383,9 @@ def _quadric_residuals(y):
     scale = np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1)))
     v = (y - centre) / scale
     x, yy, z = v.T
-    design = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
-                              np.ones(len(v))])
+    design = np.column_stack(
+        [x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z, np.ones(len(v))]
+    )
     # the right singular vector of the smallest singular value, as the eigenvector of the Gram matrix's smallest
     # eigenvalue (one product instead of an SVD of the tall design; the coordinates are centred and scaled, so
     # squaring the condition number costs nothing that matters here)
@@ -431,8 +437,9 @@ def step_scan(readings_nT, margin=0.05, min_samples=10):
     """
     y = np.asarray(readings_nT, dtype=float)
     # the same readings are scanned by several candidates and refits (_READINGS_CACHE)
-    index, improvement = _READINGS_CACHE.get(y, ("step", margin, min_samples),
-                                             lambda: _step_scan(y, margin, min_samples))
+    index, improvement = _READINGS_CACHE.get(
+        y, ("step", margin, min_samples), lambda: _step_scan(y, margin, min_samples)
+    )
     return index, improvement.copy()
 
 
@@ -443,8 +450,7 @@ def _step_scan(readings_nT, margin, min_samples):
     scale = float(np.sqrt(np.mean(np.sum((y - centre) ** 2, axis=1))))
     v = (y - centre) / scale
     x, yy, z = v.T
-    quad = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z,
-                            np.ones(n)])
+    quad = np.column_stack([x * x, yy * yy, z * z, 2 * x * yy, 2 * x * z, 2 * yy * z, 2 * x, 2 * yy, 2 * z, np.ones(n)])
     w = np.column_stack([v, np.ones(n)])
     improvement = np.zeros(n)
     lo = max(int(np.ceil(margin * n)), min_samples)
@@ -462,7 +468,7 @@ def _step_scan(readings_nT, margin, min_samples):
         m = len(ks)
         body = slice(int(ks[0]), int(ks[0]) + m * step_k)
         seg = np.matmul(x_all[body].reshape(m, step_k, 14).transpose(0, 2, 1), w[body].reshape(m, step_k, 4))
-        tail = x_all[body.stop:].T @ w[body.stop:]
+        tail = x_all[body.stop :].T @ w[body.stop :]
         return np.cumsum(seg[::-1], axis=0)[::-1] + tail
 
     def smallest(ks):
@@ -553,8 +559,8 @@ class BiasStep(CatalogueEffect):
             if times[s] is None or hi <= lo:
                 continue
             if not shortcut:  # a context without it: evaluate each trial whole
-                on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1:]})
-                off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1:]})
+                on = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[0] - 1.0] + times[s + 1 :]})
+                off = context.cost_per_sample(self, {"step_time_s": times[:s] + [t[-1] + 1.0] + times[s + 1 :]})
             else:
                 cal = context.sensors()[s]
                 db = values[term_label(self.name, s if self.per_sensor else None)]
@@ -564,7 +570,7 @@ class BiasStep(CatalogueEffect):
                 on = context.cost_with_sensor_moved(s, (now - 1.0) * shift)  # the step at every sample
             # cost of a step before sample k: samples < k without it, samples >= k with it
             cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
-            k = lo + int(np.argmin(cost[lo:hi + 1]))
+            k = lo + int(np.argmin(cost[lo : hi + 1]))
             new = float(0.5 * (t[k - 1] + t[k]))
             if np.any((t >= new) != (t >= times[s])):
                 times[s], changed = new, True
@@ -631,8 +637,9 @@ class _PowerNonlinearity(CatalogueEffect):
         return {"field_magnitude_nT": self.field_magnitude_nT}
 
     def set_state(self, state):
-        self.field_magnitude_nT = _state_number(self, state, "field_magnitude_nT", positive=True,
-                                                what="of nT: the field the parameters are quoted at")
+        self.field_magnitude_nT = _state_number(
+            self, state, "field_magnitude_nT", positive=True, what="of nT: the field the parameters are quoted at"
+        )
 
     def raw_basis(self, z0, ctx: Context):
         u = z0 / self.quoted_at_nT
@@ -656,10 +663,13 @@ class _PowerNonlinearity(CatalogueEffect):
             k = k * (field_nT / field) ** self.order
             field, note = float(field_nT), f" (converted from the parameters, quoted at {_field_text(field)})"
         elif field_nT and abs(field_nT / field - 1.0) > 0.005:
-            note = (f" (the readings' magnitude before the scale correction; the fitted field is "
-                    f"{_field_text(field_nT)})")
-        return (f"an axis reading the whole field of the data, {_field_text(field)}, is off by {_axes_text(k)} nT = "
-                f"{_axes_text(1e6 * k / field, '{:.0f}')} ppm{note}")
+            note = (
+                f" (the readings' magnitude before the scale correction; the fitted field is {_field_text(field_nT)})"
+            )
+        return (
+            f"an axis reading the whole field of the data, {_field_text(field)}, is off by {_axes_text(k)} nT = "
+            f"{_axes_text(1e6 * k / field, '{:.0f}')} ppm{note}"
+        )
 
 
 def data_field_magnitude_nT(dataset) -> float:
@@ -726,8 +736,7 @@ class NonlinearityCubic(_PowerNonlinearity):
 
 def _reading_rate(effect, ctx):
     """d y / d t (nT/s) of the context's sensor, cached per dataset (it does not depend on the bias)."""
-    return effect._cached(ctx.dataset, ("rate", ctx.sensor),
-                          lambda: time_derivative(ctx.reading_nT, ctx.time_s))
+    return effect._cached(ctx.dataset, ("rate", ctx.sensor), lambda: time_derivative(ctx.reading_nT, ctx.time_s))
 
 
 @register
@@ -832,8 +841,9 @@ class Hysteresis(CatalogueEffect):
     #: Loop half-widths are widths: every axis hides a non-negative one.
     pattern: ClassVar[tuple] = (1.0, 0.7, 0.5)
     #: Why :meth:`param_bounds` holds ``h >= 0``, for the message refusing a negative width.
-    bounds_note: ClassVar[str] = ("a hysteresis loop half-width in nT: the output lags the field by it, it cannot "
-                                  "lead it")
+    bounds_note: ClassVar[str] = (
+        "a hysteresis loop half-width in nT: the output lags the field by it, it cannot lead it"
+    )
 
     #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
     shape_half_width_nT: list | None = None
@@ -847,8 +857,10 @@ class Hysteresis(CatalogueEffect):
         if widths is None:
             return None
         if not isinstance(widths, (list, tuple)):
-            raise MagcalError(f"{self.label}: shape_half_width_nT must be a list (one entry per sensor) of three "
-                              f"half-widths in nT or null, got {widths!r}")
+            raise MagcalError(
+                f"{self.label}: shape_half_width_nT must be a list (one entry per sensor) of three "
+                f"half-widths in nT or null, got {widths!r}"
+            )
         out = []
         for s, w in enumerate(widths):
             if w is None:
@@ -859,8 +871,10 @@ class Hysteresis(CatalogueEffect):
             except (TypeError, ValueError):
                 values = np.array([np.nan])
             if values.size != 3 or not np.all(np.isfinite(values)) or np.any(values < 0):
-                raise MagcalError(f"{self.label}: shape_half_width_nT of sensor {s + 1} is {w!r}; it must be three "
-                                  f"numbers >= 0 ({self.bounds_note})")
+                raise MagcalError(
+                    f"{self.label}: shape_half_width_nT of sensor {s + 1} is {w!r}; it must be three "
+                    f"numbers >= 0 ({self.bounds_note})"
+                )
             out.append(values.tolist())
         return out
 
@@ -876,8 +890,10 @@ class Hysteresis(CatalogueEffect):
         if not field_nT:
             return ""
         h = np.asarray(values, dtype=float)
-        return (f"loop half-widths {_axes_text(1e6 * h / field_nT, '{:.0f}')} ppm of the data's field "
-                f"{_field_text(field_nT)}")
+        return (
+            f"loop half-widths {_axes_text(1e6 * h / field_nT, '{:.0f}')} ppm of the data's field "
+            f"{_field_text(field_nT)}"
+        )
 
     def configure(self, dataset, residuals_nT=None):
         widths = []
@@ -902,8 +918,11 @@ class Hysteresis(CatalogueEffect):
         changed = False
         widths = [None if w is None else list(w) for w in self.shape_half_width_nT]
         for s in range(len(widths)):
-            label = self.name if self.sensor is None and len(widths) == 1 and term_label(self.name, 0) not in \
-                effect_values else term_label(self.name, s)
+            label = (
+                self.name
+                if self.sensor is None and len(widths) == 1 and term_label(self.name, 0) not in effect_values
+                else term_label(self.name, s)
+            )
             values = effect_values.get(label)
             if values is None or widths[s] is None:
                 continue
@@ -1016,6 +1035,7 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
         u /= np.maximum(row_norm(u)[:, None], 1e-300)
         u.setflags(write=False)
         return u, np.linalg.pinv(0.5 * (u.T @ u))
+
     u, gram_inv = _READINGS_CACHE.get(y, ("sphere directions",), directions)  # the readings' alone: once per record
     w = r[:, None] * u  # (N, 3)
     w = w - w.mean(axis=0)
@@ -1036,8 +1056,8 @@ def interference_spectrum(time_s, readings_nT, residuals_nT, min_cycles=5.0, ove
         freq = np.linspace(min_cycles / duration, 0.98 * nyquist, min(4096, oversample * len(t)))
         coef = np.empty((len(freq), 3), complex)
         for lo in range(0, len(freq), 256):
-            phase = np.exp(-2j * np.pi * np.outer(freq[lo:lo + 256], t - t[0]))
-            coef[lo:lo + 256] = phase @ w
+            phase = np.exp(-2j * np.pi * np.outer(freq[lo : lo + 256], t - t[0]))
+            coef[lo : lo + 256] = phase @ w
     keep = (freq >= min_cycles / duration) & (freq <= 0.98 * nyquist)
     freq, coef = freq[keep], coef[keep]
     # c^H G^-1 c with G^-1 real symmetric: the real and imaginary parts' quadratic forms
@@ -1083,8 +1103,10 @@ class PeriodicInterference(CatalogueEffect):
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
-    description: ClassVar[str] = ("periodic interference (motor, pump, aliased mains) at a frequency f found in the "
-                                  "residual spectrum, y_j += a_j sin(2 pi f t) + b_j cos(2 pi f t) [nT]")
+    description: ClassVar[str] = (
+        "periodic interference (motor, pump, aliased mains) at a frequency f found in the "
+        "residual spectrum, y_j += a_j sin(2 pi f t) + b_j cos(2 pi f t) [nT]"
+    )
     default_magnitude: ClassVar[float] = 5.0
     magnitude_unit: ClassVar[str] = "nT"
     transferable: ClassVar[bool] = False  # the platform's state during this record, not the instrument
@@ -1103,8 +1125,11 @@ class PeriodicInterference(CatalogueEffect):
 
     def __post_init__(self):
         super().__post_init__()
-        if isinstance(self.harmonics, bool) or not isinstance(self.harmonics, (int, np.integer)) \
-                or not 1 <= self.harmonics <= 5:
+        if (
+            isinstance(self.harmonics, bool)
+            or not isinstance(self.harmonics, (int, np.integer))
+            or not 1 <= self.harmonics <= 5
+        ):
             raise MagcalError(f"{self.label}: harmonics must be a whole number 1..5, got {self.harmonics!r}")
         self.frequency_hz = self._checked_frequencies(self.frequency_hz)
 
@@ -1112,8 +1137,9 @@ class PeriodicInterference(CatalogueEffect):
         if values is None:
             return None
         if not isinstance(values, (list, tuple)):
-            raise MagcalError(f"{self.label}: frequency_hz must be a list (one frequency in Hz per sensor, or null), "
-                              f"got {values!r}")
+            raise MagcalError(
+                f"{self.label}: frequency_hz must be a list (one frequency in Hz per sensor, or null), got {values!r}"
+            )
         out = []
         for s, f in enumerate(values):
             if f is None:
@@ -1124,8 +1150,10 @@ class PeriodicInterference(CatalogueEffect):
             except (TypeError, ValueError):
                 f = float("nan")
             if not np.isfinite(f) or f <= 0:
-                raise MagcalError(f"{self.label}: frequency_hz of sensor {s + 1} is {values[s]!r}; an interference "
-                                  "frequency must be a positive number of Hz")
+                raise MagcalError(
+                    f"{self.label}: frequency_hz of sensor {s + 1} is {values[s]!r}; an interference "
+                    "frequency must be a positive number of Hz"
+                )
             out.append(f)
         return out
 
@@ -1152,13 +1180,17 @@ class PeriodicInterference(CatalogueEffect):
                 ok = np.isfinite(r)
                 r = _better_residuals(y if ok.all() else y[ok], r[ok])
             every = ok.all()  # the arrays themselves (the readings' directions are then cached)
-            frequencies.append(dominant_interference_hz(t if every else t[ok], y if every else y[ok], r,
-                                                        self.min_cycles))
+            frequencies.append(
+                dominant_interference_hz(t if every else t[ok], y if every else y[ok], r, self.min_cycles)
+            )
         self.frequency_hz = frequencies
 
     def state(self):
-        return {"frequency_hz": self.frequency_hz, "reference_time_s": self.reference_time_s,
-                "harmonics": self.harmonics}
+        return {
+            "frequency_hz": self.frequency_hz,
+            "reference_time_s": self.reference_time_s,
+            "harmonics": self.harmonics,
+        }
 
     def set_state(self, state):
         harmonics = state.get("harmonics", self.harmonics)
@@ -1183,8 +1215,16 @@ class PeriodicInterference(CatalogueEffect):
                 continue
             grid = f + np.linspace(-0.5, 0.5, points) / duration
             grid = grid[grid > 0]
-            costs = [float(np.sum(context.cost_per_sample(
-                self, dict(base, frequency_hz=frequencies[:s] + [float(g)] + frequencies[s + 1:])))) for g in grid]
+            costs = [
+                float(
+                    np.sum(
+                        context.cost_per_sample(
+                            self, dict(base, frequency_hz=frequencies[:s] + [float(g)] + frequencies[s + 1 :])
+                        )
+                    )
+                )
+                for g in grid
+            ]
             best = float(grid[int(np.argmin(costs))])
             if abs(best - f) * duration > 0.05:
                 frequencies[s], changed = best, True
@@ -1197,8 +1237,13 @@ class PeriodicInterference(CatalogueEffect):
         if self.frequency_hz is not None and ctx.sensor < len(self.frequency_hz):
             f = self.frequency_hz[ctx.sensor]
         if f is None:  # never configured: the line in the readings' own ellipsoid residuals
-            f = self._cached(ctx.dataset, ("freq", ctx.sensor), lambda: dominant_interference_hz(
-                ctx.time_s, ctx.reading_nT, quadric_residuals(ctx.reading_nT), self.min_cycles))
+            f = self._cached(
+                ctx.dataset,
+                ("freq", ctx.sensor),
+                lambda: dominant_interference_hz(
+                    ctx.time_s, ctx.reading_nT, quadric_residuals(ctx.reading_nT), self.min_cycles
+                ),
+            )
         return f
 
     def raw_basis(self, z0, ctx: Context):
@@ -1214,6 +1259,7 @@ class PeriodicInterference(CatalogueEffect):
                 wave = [np.sin(phase), np.cos(phase)] if f else [np.zeros(len(t))] * 2
                 columns += [w for w in wave for _ in range(3)]  # sin on x, y, z, then cos on x, y, z
             return SingleAxisBasis(np.column_stack(columns), np.tile(np.arange(3), 2 * self.harmonics))
+
         return self._cached(ctx.dataset, key, compute)
 
     def true_params(self, magnitude=None, sensor=0):
@@ -1231,8 +1277,11 @@ class PeriodicInterference(CatalogueEffect):
         for k in range(self.harmonics):
             at = f"{(k + 1) * f:.4g} Hz" if f else f"{k + 1} x the fitted frequency"
             parts.append(f"peak {_axes_text(peak[k])} nT at {at}")
-        return "; ".join(parts) + (f" ({1e6 * float(np.max(peak)) / field_nT:.0f} ppm of the field "
-                                   f"{_field_text(field_nT)})" if field_nT else "")
+        return "; ".join(parts) + (
+            f" ({1e6 * float(np.max(peak)) / field_nT:.0f} ppm of the field {_field_text(field_nT)})"
+            if field_nT
+            else ""
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -1280,8 +1329,10 @@ class ReferenceDrift(CatalogueEffect):
             ok = isinstance(span, (list, tuple)) and len(span) == 2
             values = _state_times(self, {"time_span_s": list(span)}, "time_span_s") if ok else None
             if not ok or None in values or values[1] <= values[0]:
-                raise MagcalError(f"{self.label}: time_span_s must be the first and last time of the record in s, "
-                                  f"the last after the first, got {span!r}")
+                raise MagcalError(
+                    f"{self.label}: time_span_s must be the first and last time of the record in s, "
+                    f"the last after the first, got {span!r}"
+                )
             span = values
         if offsets is not None:
             if not isinstance(offsets, (list, tuple)) or len(offsets) != self.order:
@@ -1298,6 +1349,7 @@ class ReferenceDrift(CatalogueEffect):
         def compute():
             p = self._raw(ctx.time_s)
             return p - (np.asarray(self.offsets) if self.offsets is not None else p.mean(axis=0))
+
         return self._cached(ctx.dataset, ("ref", tuple(self.time_span_s or ()), tuple(self.offsets or ())), compute)
 
     def true_params(self, magnitude=None, sensor=0):
@@ -1340,6 +1392,7 @@ class SiteGradient(CatalogueEffect):
             world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
             cols = [-att.inv().apply(world_offset @ g.T) for g in GRADIENT_BASIS]
             return np.stack(cols, axis=-1)
+
         return self._cached(ctx.dataset, ("grad", ctx.sensor, tuple(np.round(ctx.position_m, 9))), compute)
 
     def true_params(self, magnitude=None, sensor=0):

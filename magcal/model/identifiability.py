@@ -79,7 +79,7 @@ class Identifiable:
         """The 9 numbers: upper triangle of ``M M^T`` (:data:`magcal.core.conventions.UPPER_TRIANGLE` order), then ``I``."""
         return np.concatenate([[self.MMt[i, j] for i, j in conventions.UPPER_TRIANGLE], self.offset_nT])
 
-    def field_error_nT(self, other: "Identifiable", field_nT: float) -> dict:
+    def field_error_nT(self, other: Identifiable, field_nT: float) -> dict:
         """How far two sets of identifiable numbers are apart, in nT for a field of ``field_nT``.
 
         Returns

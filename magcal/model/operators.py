@@ -39,10 +39,13 @@ def gradient_matrix(params_nT_per_m):
 
 
 #: Symmetric traceless basis matrices of a gradient tensor: Gxx, Gxy, Gxz, Gyy, Gyz (Gzz = -Gxx - Gyy).
-GRADIENT_BASIS = np.array([
-    [[1, 0, 0], [0, 0, 0], [0, 0, -1]],
-    [[0, 1, 0], [1, 0, 0], [0, 0, 0]],
-    [[0, 0, 1], [0, 0, 0], [1, 0, 0]],
-    [[0, 0, 0], [0, 1, 0], [0, 0, -1]],
-    [[0, 0, 0], [0, 0, 1], [0, 1, 0]],
-], dtype=float)
+GRADIENT_BASIS = np.array(
+    [
+        [[1, 0, 0], [0, 0, 0], [0, 0, -1]],
+        [[0, 1, 0], [1, 0, 0], [0, 0, 0]],
+        [[0, 0, 1], [0, 0, 0], [1, 0, 0]],
+        [[0, 0, 0], [0, 1, 0], [0, 0, -1]],
+        [[0, 0, 0], [0, 0, 1], [0, 1, 0]],
+    ],
+    dtype=float,
+)

@@ -22,7 +22,7 @@ option writes it.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -41,10 +41,12 @@ PERTURBATIONS: dict[str, Callable] = {}
 
 def hides(*names):
     """Decorator: register a function as the perturbation of the catalogue effects ``names``."""
+
     def decorate(function):
         for name in names:
             PERTURBATIONS[name] = function
         return function
+
     return decorate
 
 
@@ -223,8 +225,10 @@ def _hysteresis(effect, readings, context, magnitude, sensor, **options):
     for s in _sensor_list(sensor, readings.shape[0]):
         h = np.asarray(effect.true_params(magnitude, s), dtype=float)
         if np.any(h < 0):
-            raise MagcalError(f"hysteresis: the loop half-width must be >= 0 nT on every axis, got "
-                              f"{h.tolist()}; a hysteretic output lags the field, it cannot lead it")
+            raise MagcalError(
+                f"hysteresis: the loop half-width must be >= 0 nT on every axis, got "
+                f"{h.tolist()}; a hysteretic output lags the field, it cannot lead it"
+            )
         lin = _linear_outputs(context, s)
         for j in range(3):
             if h[j] > 0:
@@ -260,8 +264,18 @@ def _site_gradient(effect, readings, context, magnitude, sensor, **options):
 
 
 @hides("periodic_interference")
-def _periodic_interference(effect, readings, context, magnitude, sensor, frequency_hz=0.7, direction=None,
-                           phase_rad=0.3, harmonic_fraction=0.0, **options):
+def _periodic_interference(
+    effect,
+    readings,
+    context,
+    magnitude,
+    sensor,
+    frequency_hz=0.7,
+    direction=None,
+    phase_rad=0.3,
+    harmonic_fraction=0.0,
+    **options,
+):
     """A sinusoidal field from a source on the platform (a motor, a pump), fixed in the sensor's axes:
     ``y += a [sin(2 pi f t + phase) + h sin(4 pi f t + 2 phase)] d``, ``a = magnitude`` nT peak along the unit
     direction ``d`` (default the effect's ``pattern``), ``h = harmonic_fraction``."""
@@ -277,8 +291,9 @@ def _periodic_interference(effect, readings, context, magnitude, sensor, frequen
     return readings
 
 
-def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62),
-                          harmonic_fraction=0.0):
+def periodic_interference(
+    amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direction=(0.6, -0.5, 0.62), harmonic_fraction=0.0
+):
     """The perturbation of the catalogue effect ``periodic_interference`` with its options spelled out: a
     sinusoidal field (e.g. from machinery on the platform) along a fixed direction of the sensor's axes,
     ``y += a sin(2 pi f t + 0.3) d`` (plus ``harmonic_fraction`` of it at ``2 f``).
@@ -298,10 +313,15 @@ def periodic_interference(amplitude_nT=5.0, frequency_hz=0.7, sensor=None, direc
     """
 
     perturb = EFFECTS["periodic_interference"]().perturbation(
-        float(amplitude_nT), sensor, frequency_hz=float(frequency_hz), direction=direction,
-        harmonic_fraction=float(harmonic_fraction))
+        float(amplitude_nT),
+        sensor,
+        frequency_hz=float(frequency_hz),
+        direction=direction,
+        harmonic_fraction=float(harmonic_fraction),
+    )
     perturb.description = f"periodic_interference {amplitude_nT} nT at {frequency_hz} Hz" + (
-        "" if sensor is None else f" (sensor {sensor + 1})")
+        "" if sensor is None else f" (sensor {sensor + 1})"
+    )
     return perturb
 
 
@@ -334,8 +354,10 @@ def parse_hidden(spec: str, n_sensors: int):
         try:
             values = [float(v) for v in mag_text.replace(";", ",").split(",") if v.strip()]
         except ValueError:
-            raise MagcalError(f"--hidden {spec!r}: the magnitude after '=' must be a number (or comma-separated "
-                              "numbers, one per parameter)") from None
+            raise MagcalError(
+                f"--hidden {spec!r}: the magnitude after '=' must be a number (or comma-separated "
+                "numbers, one per parameter)"
+            ) from None
         magnitude = values[0] if len(values) == 1 else values
     name, _, sensor_text = head.partition(":")
     name = name.strip()

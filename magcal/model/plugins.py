@@ -163,25 +163,34 @@ def reserved_names() -> set:
 def _check_name(cls, source_key, where) -> str:
     name = getattr(cls, "name", None)
     if not isinstance(name, str) or not name:
-        raise UserEffectError(f"{where}: has no name; set the class attribute name = \"my_effect\" (lower case, "
-                              f"letters, digits and _), the name used by --effects and the JSON ({DOC})")
+        raise UserEffectError(
+            f'{where}: has no name; set the class attribute name = "my_effect" (lower case, '
+            f"letters, digits and _), the name used by --effects and the JSON ({DOC})"
+        )
     if not NAME_PATTERN.match(name):
-        raise UserEffectError(f"{where}: name {name!r} cannot be typed as --effects NAME[:S]; use lower-case "
-                              "letters, digits and _ only, starting with a letter (e.g. \"pump_interference\")")
+        raise UserEffectError(
+            f"{where}: name {name!r} cannot be typed as --effects NAME[:S]; use lower-case "
+            'letters, digits and _ only, starting with a letter (e.g. "pump_interference")'
+        )
     if name in BASE_TERMS:
         raise UserEffectError(f"{where}: name {name!r} is a base term of every model; choose another name")
     current = EFFECTS.get(name)
     if current is not None and current is not cls:
         kind, place = origin(name)
         if kind == "built-in":
-            raise UserEffectError(f"{where}: name {name!r} is already a built-in effect of magcal; a user's effect "
-                                  f"cannot replace it: give yours another name (e.g. \"my_{name}\")")
+            raise UserEffectError(
+                f"{where}: name {name!r} is already a built-in effect of magcal; a user's effect "
+                f'cannot replace it: give yours another name (e.g. "my_{name}")'
+            )
         if _SOURCES.get(name) != source_key:
-            raise UserEffectError(f"{where}: name {name!r} is already taken by the effect from {kind} {place}; "
-                                  "give one of them another name, or load only one of the two")
+            raise UserEffectError(
+                f"{where}: name {name!r} is already taken by the effect from {kind} {place}; "
+                "give one of them another name, or load only one of the two"
+            )
     if name in reserved_names():
-        raise UserEffectError(f"{where}: name {name!r} is taken by the simulator (magcal simulate --hidden "
-                              f"{name}); choose another name")
+        raise UserEffectError(
+            f"{where}: name {name!r} is taken by the simulator (magcal simulate --hidden {name}); choose another name"
+        )
     return name
 
 
@@ -207,30 +216,39 @@ def validate_effect(cls, source_key=None, path=None) -> str:
         a basis of the wrong shape or not finite, or an exception, in a dry run on a synthetic record.
     """
     if not (inspect.isclass(cls) and issubclass(cls, Effect)) or cls is Effect:
-        raise UserEffectError(f"{path or getattr(cls, '__module__', '?')}: {cls!r} is not a subclass of "
-                              "magcal.model.terms.Effect; derive your effect class from it")
+        raise UserEffectError(
+            f"{path or getattr(cls, '__module__', '?')}: {cls!r} is not a subclass of "
+            "magcal.model.terms.Effect; derive your effect class from it"
+        )
     where = _where_class(cls, path)
     name = _check_name(cls, source_key, where)
     stage = getattr(cls, "stage", None)
     if stage not in STAGE_METHODS:
-        raise UserEffectError(f"{where}: stage {stage!r} is not one of raw, vector, reference; set stage to where "
-                              f"the term acts (docs/architecture.md, {DOC})")
+        raise UserEffectError(
+            f"{where}: stage {stage!r} is not one of raw, vector, reference; set stage to where "
+            f"the term acts (docs/architecture.md, {DOC})"
+        )
     method = STAGE_METHODS[stage]
     if getattr(cls, method) is getattr(Effect, method):
-        raise UserEffectError(f"{where}: stage is {stage!r} but the class does not define {method}(); define it "
-                              "(it returns the Jacobian of the correction, one column per parameter)")
-    if getattr(cls, "param_names") is getattr(Effect, "param_names"):
-        raise UserEffectError(f"{where}: no param_names(); define it to return the parameter names with their "
-                              "units, e.g. [\"a_x_nT\", \"a_y_nT\", \"a_z_nT\"]")
+        raise UserEffectError(
+            f"{where}: stage is {stage!r} but the class does not define {method}(); define it "
+            "(it returns the Jacobian of the correction, one column per parameter)"
+        )
+    if cls.param_names is Effect.param_names:
+        raise UserEffectError(
+            f"{where}: no param_names(); define it to return the parameter names with their "
+            'units, e.g. ["a_x_nT", "a_y_nT", "a_z_nT"]'
+        )
 
     channels = getattr(cls, "channels", ())
     if isinstance(channels, str) or not all(isinstance(c, str) for c in channels):
-        raise UserEffectError(f"{where}: channels must be a tuple of channel names, e.g. (\"time\",), got "
-                              f"{channels!r}")
+        raise UserEffectError(f'{where}: channels must be a tuple of channel names, e.g. ("time",), got {channels!r}')
     unknown = [c for c in channels if c not in CHANNELS]
     if unknown:
-        raise UserEffectError(f"{where}: unknown channel(s) {', '.join(map(repr, unknown))}; an effect may use "
-                              f"only the dataset's channels: {', '.join(CHANNELS)}")
+        raise UserEffectError(
+            f"{where}: unknown channel(s) {', '.join(map(repr, unknown))}; an effect may use "
+            f"only the dataset's channels: {', '.join(CHANNELS)}"
+        )
     if not isinstance(getattr(cls, "per_sensor", True), bool):
         raise UserEffectError(f"{where}: per_sensor must be True or False")
     min_sensors = getattr(cls, "min_sensors", 1)
@@ -238,23 +256,28 @@ def validate_effect(cls, source_key=None, path=None) -> str:
         raise UserEffectError(f"{where}: min_sensors must be a whole number 1..4, got {min_sensors!r}")
     transferable = getattr(cls, "transferable", None)
     if transferable is not None and not isinstance(transferable, bool):
-        raise UserEffectError(f"{where}: transferable must be True (the term describes the instrument and carries "
-                              "to new data) or False (it describes one recording)")
+        raise UserEffectError(
+            f"{where}: transferable must be True (the term describes the instrument and carries "
+            "to new data) or False (it describes one recording)"
+        )
     if not isinstance(getattr(cls, "description", ""), str):
         raise UserEffectError(f"{where}: description must be one line of text")
     with _user_code(where):
         instance = cls()
         names = instance.param_names()
     if not isinstance(names, (list, tuple)) or not names or not all(isinstance(n, str) and n for n in names):
-        raise UserEffectError(f"{where}: param_names() must return a non-empty list of names (with units, e.g. "
-                              f"\"a_x_nT\"), got {names!r}")
+        raise UserEffectError(
+            f'{where}: param_names() must return a non-empty list of names (with units, e.g. "a_x_nT"), got {names!r}'
+        )
     if len(set(names)) != len(names):
         raise UserEffectError(f"{where}: param_names() repeats a name: {names}; every parameter needs its own")
     with _user_code(where):
         scale = np.asarray(instance.param_scale(), dtype=float)
     if scale.shape != (len(names),) or not np.all(np.isfinite(scale)) or not np.all(scale > 0):
-        raise UserEffectError(f"{where}: param_scale() must return {len(names)} positive numbers (the size of each "
-                              f"parameter that changes the readings by about 1 nT), got {scale.tolist()}")
+        raise UserEffectError(
+            f"{where}: param_scale() must return {len(names)} positive numbers (the size of each "
+            f"parameter that changes the readings by about 1 nT), got {scale.tolist()}"
+        )
     _dry_run(cls, where, len(names))
     return name
 
@@ -263,7 +286,6 @@ def _synthetic_record(n=240):
     """A small four-sensor record with every channel: 10 Hz, smooth rotation in a 50 uT field, 15-25 degC."""
     from scipy.spatial.transform import Rotation
 
-
     t = np.arange(n) / 10.0
     att = Rotation.from_rotvec(np.column_stack([0.31 * t, 0.17 * t + 0.4, 0.05 * t * np.sin(0.2 * t)]))
     field = np.array([20_000.0, 5_000.0, -45_552.0])
@@ -271,10 +293,17 @@ def _synthetic_record(n=240):
     body = att.inv().apply(field)
     readings = np.stack([body + 30.0 * k for k in range(4)])
     q = att.as_quat()
-    return Dataset(readings, time_s=t, temperature_C=20.0 + 5.0 * np.sin(0.05 * t),
-                   ref_total_nT=np.full(n, 50_000.0), attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]),
-                   group=np.array(["x_up", "y_up", "z_up"] * (n // 3) + ["x_up"] * (n % 3)),
-                   reference_total_nT=50_000.0, baseline_m=0.5, source="synthetic test record")
+    return Dataset(
+        readings,
+        time_s=t,
+        temperature_C=20.0 + 5.0 * np.sin(0.05 * t),
+        ref_total_nT=np.full(n, 50_000.0),
+        attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]),
+        group=np.array(["x_up", "y_up", "z_up"] * (n // 3) + ["x_up"] * (n % 3)),
+        reference_total_nT=50_000.0,
+        baseline_m=0.5,
+        source="synthetic test record",
+    )
 
 
 def _dry_run(cls, where, q):
@@ -291,8 +320,10 @@ def _dry_run(cls, where, q):
     try:
         text = json.dumps(jsonable(state if state is not None else {}), allow_nan=False)
     except (TypeError, ValueError) as exc:
-        raise UserEffectError(f"{where}: state() must return JSON-ready values (numbers, text, lists, dicts) to be "
-                              f"saved with a calibration; {type(exc).__name__}: {exc}") from None
+        raise UserEffectError(
+            f"{where}: state() must return JSON-ready values (numbers, text, lists, dicts) to be "
+            f"saved with a calibration; {type(exc).__name__}: {exc}"
+        ) from None
     with _user_code(where, "restoring its state()"):
         cls().set_state(json.loads(text))
     stage = cls.stage
@@ -308,13 +339,17 @@ def _dry_run(cls, where, q):
         shape = np.shape(basis)
         if shape != expected:
             what = "(N, q)" if stage == "reference" else "(N, 3, q)"
-            raise UserEffectError(f"{where}: {STAGE_METHODS[stage]} returned shape {shape} on a {n}-sample record; "
-                                  f"it must be {what} = {expected}: one row per sample"
-                                  f"{'' if stage == 'reference' else ' and axis'}, one column per parameter "
-                                  f"({q} in param_names())")
+            raise UserEffectError(
+                f"{where}: {STAGE_METHODS[stage]} returned shape {shape} on a {n}-sample record; "
+                f"it must be {what} = {expected}: one row per sample"
+                f"{'' if stage == 'reference' else ' and axis'}, one column per parameter "
+                f"({q} in param_names())"
+            )
         if not np.all(np.isfinite(np.asarray(basis, dtype=float))):
-            raise UserEffectError(f"{where}: {STAGE_METHODS[stage]} returned NaN or infinite values on a synthetic "
-                                  "record; guard divisions and empty channels")
+            raise UserEffectError(
+                f"{where}: {STAGE_METHODS[stage]} returned NaN or infinite values on a synthetic "
+                "record; guard divisions and empty channels"
+            )
 
 
 class _user_code:
@@ -332,8 +367,9 @@ class _user_code:
         frame = _last_user_frame(exc)
         at = f" (at {frame.filename}, line {frame.lineno}: {(frame.line or '').strip()})" if frame else ""
         doing = f" {self.doing}" if self.doing else ""
-        raise UserEffectError(f"{self.where}: raised {type(exc).__name__}: {exc}{doing}{at}; correct the effect "
-                              f"({DOC})") from None
+        raise UserEffectError(
+            f"{self.where}: raised {type(exc).__name__}: {exc}{doing}{at}; correct the effect ({DOC})"
+        ) from None
 
 
 def _last_user_frame(exc, files=None):
@@ -370,21 +406,30 @@ def _file_error(path, exc) -> UserEffectError:
         text = (exc.text or linecache.getline(path, exc.lineno or 0) or "").rstrip()
         code = f"\n    {text.strip()}" if text.strip() else ""
         kind = "indentation error" if isinstance(exc, IndentationError) else "syntax error"
-        return UserEffectError(f"{path}, line {line}: {kind}: {exc.msg}{code}\n  correct this line of your effects "
-                               f"file and run again ({DOC})")
+        return UserEffectError(
+            f"{path}, line {line}: {kind}: {exc.msg}{code}\n  correct this line of your effects "
+            f"file and run again ({DOC})"
+        )
     if isinstance(exc, SystemExit):
-        return UserEffectError(f"{path}: the file exits when imported (sys.exit({exc.code!r})); put script code under "
-                               "if __name__ == \"__main__\": so that importing it only defines the effects")
+        return UserEffectError(
+            f"{path}: the file exits when imported (sys.exit({exc.code!r})); put script code under "
+            'if __name__ == "__main__": so that importing it only defines the effects'
+        )
     frame = _last_user_frame(exc, {path})
     line = frame.lineno if frame else "?"
     code = f"\n    {frame.line.strip()}" if frame and frame.line else ""
     if isinstance(exc, ImportError):
         missing = getattr(exc, "name", None)
-        hint = (f"install {missing!r} (pip install ...) or remove the import" if isinstance(exc, ModuleNotFoundError)
-                and missing else "check the name imported (an Effect and register come from magcal.model.terms)")
+        hint = (
+            f"install {missing!r} (pip install ...) or remove the import"
+            if isinstance(exc, ModuleNotFoundError) and missing
+            else "check the name imported (an Effect and register come from magcal.model.terms)"
+        )
         return UserEffectError(f"{path}, line {line}: cannot import: {exc}{code}\n  {hint}")
-    return UserEffectError(f"{path}, line {line}: {type(exc).__name__}: {exc}{code}\n  the file raised this while it "
-                           f"was loaded; correct it and run again ({DOC})")
+    return UserEffectError(
+        f"{path}, line {line}: {type(exc).__name__}: {exc}{code}\n  the file raised this while it "
+        f"was loaded; correct it and run again ({DOC})"
+    )
 
 
 def _registered_since(before: dict) -> tuple[list, list]:
@@ -409,8 +454,10 @@ def _admit(classes, before, source_key, kind, where, path=None) -> list[str]:
         for cls in classes:
             name = getattr(cls, "name", None)
             if isinstance(name, str) and name in seen and seen[name] is not cls:
-                raise UserEffectError(f"{where}: two effect classes are named {name!r} ({seen[name].__name__} and "
-                                      f"{cls.__name__}); give each its own name")
+                raise UserEffectError(
+                    f"{where}: two effect classes are named {name!r} ({seen[name].__name__} and "
+                    f"{cls.__name__}); give each its own name"
+                )
             name = validate_effect(cls, source_key, path)
             seen[name] = cls
             EFFECTS[name] = cls
@@ -479,11 +526,19 @@ def load_effects_file(path) -> list[str]:
         if not classes:
             _restore(before)
             _put_back(module_name, old_module)
-            local = [c.__name__ for c in vars(module).values()
-                     if inspect.isclass(c) and issubclass(c, Effect) and c.__module__ == module_name]
-            found = (f" It defines {', '.join(local)} without it: put @register (from magcal.model.terms import register) "
-                     "above each class that is an effect.") if local else \
-                " Define a subclass of magcal.model.terms.Effect and decorate it with @register."
+            local = [
+                c.__name__
+                for c in vars(module).values()
+                if inspect.isclass(c) and issubclass(c, Effect) and c.__module__ == module_name
+            ]
+            found = (
+                (
+                    f" It defines {', '.join(local)} without it: put @register (from magcal.model.terms import register) "
+                    "above each class that is an effect."
+                )
+                if local
+                else " Define a subclass of magcal.model.terms.Effect and decorate it with @register."
+            )
             raise UserEffectError(f"{path}: registers no effect.{found} ({DOC})")
         _USER_FILES.add(path)
         try:
@@ -546,8 +601,11 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> li
         try:
             found = importlib.metadata.entry_points(group=group)
         except Exception as exc:  # a broken installation must not stop magcal
-            warnings.warn(f"could not list the {group!r} entry points ({type(exc).__name__}: {exc}); "
-                          "installed effect packages are not loaded", stacklevel=2)
+            warnings.warn(
+                f"could not list the {group!r} entry points ({type(exc).__name__}: {exc}); "
+                "installed effect packages are not loaded",
+                stacklevel=2,
+            )
             return []
         names = []
         for ep in found:
@@ -566,12 +624,16 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> li
                     module_file = inspect.getsourcefile(obj) if obj.__module__ in sys.modules else None
                 elif inspect.ismodule(obj):
                     classes = [EFFECTS[n] for n in added + replaced]
-                    classes += [c for c in EFFECTS.values() if c.__module__ == obj.__name__
-                                and c not in classes and not _is_magcal_module(c.__module__)]
+                    classes += [
+                        c
+                        for c in EFFECTS.values()
+                        if c.__module__ == obj.__name__ and c not in classes and not _is_magcal_module(c.__module__)
+                    ]
                     module_file = getattr(obj, "__file__", None)
                     if not classes:
-                        raise UserEffectError("the module registers no effect (decorate its Effect classes with "
-                                              "@register)")
+                        raise UserEffectError(
+                            "the module registers no effect (decorate its Effect classes with @register)"
+                        )
                 else:
                     raise UserEffectError(f"it names {obj!r}, which is neither an Effect subclass nor a module")
                 if module_file:
@@ -637,9 +699,11 @@ def check_calibration_effects(path, option: str = "--effects-file FILE.py") -> N
     if missing:
         which = ", ".join(repr(n) for n in missing)
         plural = "s" if len(missing) > 1 else ""
-        raise MagcalError(f"{os.fspath(path)}: the calibration uses the effect{plural} {which}, not built into magcal "
-                          f"and not loaded: it is a user's own effect; give the file that defines it with {option} "
-                          "(the same file used to calibrate), or install the package that provides it")
+        raise MagcalError(
+            f"{os.fspath(path)}: the calibration uses the effect{plural} {which}, not built into magcal "
+            f"and not loaded: it is a user's own effect; give the file that defines it with {option} "
+            "(the same file used to calibrate), or install the package that provides it"
+        )
 
 
 def user_code_error(exc: BaseException) -> str | None:
@@ -654,8 +718,10 @@ def user_code_error(exc: BaseException) -> str | None:
     for frame in reversed(frames):
         if os.path.abspath(frame.filename) in _USER_FILES:
             code = f"\n    {frame.line.strip()}" if frame.line else ""
-            return (f"{frame.filename}, line {frame.lineno}, in {frame.name}: {type(exc).__name__}: {exc}{code}\n"
-                    f"  the error is in your effect's code, not in magcal; correct it and run again ({DOC})")
+            return (
+                f"{frame.filename}, line {frame.lineno}, in {frame.name}: {type(exc).__name__}: {exc}{code}\n"
+                f"  the error is in your effect's code, not in magcal; correct it and run again ({DOC})"
+            )
     return None
 
 
@@ -663,8 +729,30 @@ def user_code_error(exc: BaseException) -> str | None:
 # describing the catalogue
 # ----------------------------------------------------------------------------------------------------------------
 
-_UNIT_START = {"nT", "uT", "pT", "mT", "G", "mG", "ppm", "ppb", "percent", "ms", "us", "s", "h", "deg", "rad", "mrad",
-               "urad", "Hz", "m", "K", "degC", "LSB"}
+_UNIT_START = {
+    "nT",
+    "uT",
+    "pT",
+    "mT",
+    "G",
+    "mG",
+    "ppm",
+    "ppb",
+    "percent",
+    "ms",
+    "us",
+    "s",
+    "h",
+    "deg",
+    "rad",
+    "mrad",
+    "urad",
+    "Hz",
+    "m",
+    "K",
+    "degC",
+    "LSB",
+}
 
 
 def split_param_name(name: str) -> tuple[str, str]:
@@ -714,12 +802,18 @@ def describe_effect(name: str) -> dict:
     if doc == inspect.getdoc(Effect):
         doc = ""
     out = {
-        "name": name, "stage": cls.stage, "channels": list(cls.channels), "per_sensor": bool(cls.per_sensor),
-        "min_sensors": int(cls.min_sensors), "description": cls.description or (doc.splitlines()[0] if doc else ""),
-        "doc": doc, "params": params,
+        "name": name,
+        "stage": cls.stage,
+        "channels": list(cls.channels),
+        "per_sensor": bool(cls.per_sensor),
+        "min_sensors": int(cls.min_sensors),
+        "description": cls.description or (doc.splitlines()[0] if doc else ""),
+        "doc": doc,
+        "params": params,
         "transferable": transferable if isinstance(transferable, bool) else None,
         "simulator": bool(simulator),
-        "origin": kind, "source": where,
+        "origin": kind,
+        "source": where,
     }
     if error:
         out["error"] = error

@@ -36,7 +36,7 @@ BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
 
 #: The catalogue of candidate effects by name. :mod:`magcal.model.effects` registers the built-in terms when
 #: ``magcal`` is imported; :func:`register` adds more (a user's own effect).
-EFFECTS: dict[str, type["Effect"]] = {}
+EFFECTS: dict[str, type[Effect]] = {}
 
 
 def register(cls):
@@ -216,11 +216,13 @@ class Effect:
         try:
             v = np.asarray(values, dtype=float).reshape(-1)
         except (TypeError, ValueError):
-            raise MagcalError(f"{head}{self.label}: the parameters must be {len(names)} numbers "
-                              f"({', '.join(names)})") from None
+            raise MagcalError(
+                f"{head}{self.label}: the parameters must be {len(names)} numbers ({', '.join(names)})"
+            ) from None
         if v.size != len(names):
-            raise MagcalError(f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters "
-                              f"({', '.join(names)})")
+            raise MagcalError(
+                f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters ({', '.join(names)})"
+            )
         lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in self.param_bounds())
         for name, value, lo, hi in zip(names, v, lower, upper):
             if not np.isfinite(value):
@@ -228,8 +230,10 @@ class Effect:
             if value < lo or value > hi:
                 span = f">= {lo:g}" if np.isinf(hi) else f"<= {hi:g}" if np.isinf(lo) else f"in [{lo:g}, {hi:g}]"
                 note = getattr(self, "bounds_note", "")
-                raise MagcalError(f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
-                                  + (f" ({note})" if note else ""))
+                raise MagcalError(
+                    f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
+                    + (f" ({note})" if note else "")
+                )
         return v
 
     def quote(self, values, field_nT=None, sensor=None) -> str:
@@ -375,12 +379,12 @@ class Model:
             raise MagcalError(f"not effect terms: {unknown}")
 
     @classmethod
-    def base_model(cls, n_sensors: int) -> "Model":
+    def base_model(cls, n_sensors: int) -> Model:
         """Bias, scale, non-orthogonality (and misalignment for arrays)."""
         return cls(n_sensors)
 
     @classmethod
-    def from_names(cls, names, n_sensors: int, base=BASE_TERMS) -> "Model":
+    def from_names(cls, names, n_sensors: int, base=BASE_TERMS) -> Model:
         """A base model plus the effects named as ``NAME`` or ``NAME:SENSOR`` (1-based)."""
         effects = [parse_effect(n, n_sensors) for n in names if n.strip()]
         return cls(n_sensors, base=tuple(base), effects=effects)
@@ -389,16 +393,16 @@ class Model:
     def effect_labels(self) -> list[str]:
         return [e.label for e in self.effects]
 
-    def copy(self) -> "Model":
+    def copy(self) -> Model:
         """A deep copy: the effect objects (and their data-derived constants) are new, so fitting the copy never
         changes this model."""
         return copy.deepcopy(self)
 
-    def with_effect(self, effect: Effect) -> "Model":
+    def with_effect(self, effect: Effect) -> Model:
         """A new model with one more effect (every effect is copied, so neither this model nor ``effect`` changes)."""
         return Model(self.n_sensors, self.base, [copy.deepcopy(e) for e in self.effects + [effect]])
 
-    def without(self, label: str) -> "Model":
+    def without(self, label: str) -> Model:
         """A new model without the effect (or base term) of that label (the remaining effects are copied)."""
         if label in BASE_TERMS:
             return Model(self.n_sensors, tuple(t for t in self.base if t != label), copy.deepcopy(self.effects))
@@ -406,8 +410,11 @@ class Model:
 
     def check(self, dataset) -> None:
         """Raise :class:`MagcalError` naming any effect whose channels the dataset lacks."""
-        problems = [f"{e.label} needs {', '.join(e.missing_channels(dataset))}" for e in self.effects
-                    if e.missing_channels(dataset)]
+        problems = [
+            f"{e.label} needs {', '.join(e.missing_channels(dataset))}"
+            for e in self.effects
+            if e.missing_channels(dataset)
+        ]
         if problems:
             raise MagcalError("the data cannot support: " + "; ".join(problems))
 
@@ -426,9 +433,11 @@ def unknown_effect_message(name: str, where: str = "", option: str = "--effects-
     """The message for an effect name that is not in the catalogue: it may be a user's effect not loaded."""
     head = f"{where}: " if where else ""
     known = ", ".join(sorted(EFFECTS))
-    return (f"{head}unknown effect {name!r}: it is not built in, so it is either misspelt or a user's own effect "
-            f"that is not loaded; give the file that defines it with {option} (or install the package that provides "
-            f"it). Known effects: {known}")
+    return (
+        f"{head}unknown effect {name!r}: it is not built in, so it is either misspelt or a user's own effect "
+        f"that is not loaded; give the file that defines it with {option} (or install the package that provides "
+        f"it). Known effects: {known}"
+    )
 
 
 def check_effect_names(specs, where: str = "", option: str = "--effects-file FILE.py") -> None:

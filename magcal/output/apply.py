@@ -124,8 +124,10 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False):
     if uncertainty:
         u = calibration.uncertainty(dataset, vectors, record_terms)
         if u is None:
-            raise MagcalError("this calibration carries no parameter covariance (it was made before magcal saved "
-                              "one, or without a maximum-likelihood fit): recalibrate to get error bars")
+            raise MagcalError(
+                "this calibration carries no parameter covariance (it was made before magcal saved "
+                "one, or without a maximum-likelihood fit): recalibrate to get error bars"
+            )
         parts.append(u["vector_sd_nT"].transpose(1, 0, 2).reshape(n, -1))
         parts.append(u["total_sd_nT"].T)
         if tensor:
@@ -148,8 +150,10 @@ class ApplySummary:
         return self.rows / self.seconds if self.seconds > 0 else float("inf")
 
     def text(self) -> str:
-        return (f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s); wrote "
-                f"{self.output} with {len(self.columns_added)} new columns (frame: {self.frame})")
+        return (
+            f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s); wrote "
+            f"{self.output} with {len(self.columns_added)} new columns (frame: {self.frame})"
+        )
 
 
 def _progress_bar(total_bytes, enabled):
@@ -170,7 +174,6 @@ def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chun
     """
     import warnings
 
-
     hasher = RecordHasher()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the correcting pass reports the data's problems
@@ -182,8 +185,9 @@ def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chun
     return hasher.fingerprint()
 
 
-def record_terms_for_file(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
-                          chunk_rows=20_000):
+def record_terms_for_file(
+    calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
+):
     """Decide once for a whole file whether the calibration's record-only terms act on it.
 
     Returns ``(choice, note)``: ``choice`` is ``'apply'`` or ``'drop'`` for every block, ``note`` the
@@ -197,16 +201,29 @@ def record_terms_for_file(calibration, survey_path, record_terms=None, columns=N
     fingerprint = None
     record = calibration.record
     if record_terms is None and record:
-        fingerprint = file_fingerprint(survey_path, columns, units, drop_bad, chunk_rows,
-                                       stop_after=record.get("n_samples"))
-    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
-                                                fingerprint=fingerprint if fingerprint is not None else {})
+        fingerprint = file_fingerprint(
+            survey_path, columns, units, drop_bad, chunk_rows, stop_after=record.get("n_samples")
+        )
+    dropped, note = calibration.record_decision(
+        None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
+    )
     return ("drop" if dropped else "apply"), note
 
 
-def apply_file(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-               chunk_rows=20_000, progress=None, calibration_name=None, record_terms=None, uncertainty=False,
-               compression=None):
+def apply_file(
+    calibration,
+    survey_path,
+    output_path,
+    columns=None,
+    units=None,
+    drop_bad=False,
+    chunk_rows=20_000,
+    progress=None,
+    calibration_name=None,
+    record_terms=None,
+    uncertainty=False,
+    compression=None,
+):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
     Parameters
@@ -244,15 +261,27 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     """
     t0 = time.perf_counter()
 
-
     if compression is not None and not is_parquet(output_path):
-        raise MagcalError(f"{os.fspath(output_path)}: a compression ({compression!r}) is for Parquet output; name "
-                          "the output .parquet or leave the compression out")
+        raise MagcalError(
+            f"{os.fspath(output_path)}: a compression ({compression!r}) is for Parquet output; name "
+            "the output .parquet or leave the compression out"
+        )
     if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
-        return apply_columns(calibration, survey_path, output_path, columns, units, drop_bad, chunk_rows,
-                             calibration_name, record_terms, t0, uncertainty, compression)
+        return apply_columns(
+            calibration,
+            survey_path,
+            output_path,
+            columns,
+            units,
+            drop_bad,
+            chunk_rows,
+            calibration_name,
+            record_terms,
+            t0,
+            uncertainty,
+            compression,
+        )
     if isinstance(columns, str):
-
         columns = parse_column_mapping(columns)
     if not hasattr(calibration, "correct"):
         calibration_name = calibration_name or os.fspath(calibration)
@@ -261,11 +290,11 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
     if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
     progress = sys.stderr.isatty() if progress is None else bool(progress)
-    record_choice, record_note = record_terms_for_file(calibration, survey_path, record_terms, columns, units,
-                                                       drop_bad, chunk_rows)
+    record_choice, record_note = record_terms_for_file(
+        calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows
+    )
     if record_note:
         import warnings
-
 
         warnings.warn(record_note, RecordTermWarning, stacklevel=2)
     with CsvSource(survey_path, columns=columns, units=units) as src:
@@ -283,11 +312,15 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
                 f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); rename "
                 "them or correct the raw survey"
             )
-        fmt = ",".join([VECTOR_FORMAT] * (3 * calibration.n_sensors)
-                       + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS)
-                          if tensor else [])
-                       + ([SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
-                          if uncertainty else []))
+        fmt = ",".join(
+            [VECTOR_FORMAT] * (3 * calibration.n_sensors)
+            + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS) if tensor else [])
+            + (
+                [SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
+                if uncertainty
+                else []
+            )
+        )
         meta = {}
         if calibration_name:
             meta["magcal_calibration"] = calibration_name
@@ -309,7 +342,9 @@ def apply_file(calibration, survey_path, output_path, columns=None, units=None, 
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
                     values = correct_block(calibration, chunk.dataset, record_choice, uncertainty)
-                    out.write("".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist())))
+                    out.write(
+                        "".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist()))
+                    )
                     rows += chunk.dataset.n_samples
                     if bar is not None:
                         pos = src._file.tell()
@@ -346,8 +381,9 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
     return dict(src.metadata), src.chunks(chunk_rows)
 
 
-def record_choice(calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False,
-                  chunk_rows=20_000):
+def record_choice(
+    calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
+):
     """:func:`record_terms_for_file` for a CSV or a Parquet survey: ``('apply' | 'drop', note or None)``, the
     fingerprint streamed through :func:`survey_chunks` only when it decides something."""
 
@@ -359,14 +395,26 @@ def record_choice(calibration, survey_path, record_terms=None, columns=None, uni
         for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
             hasher.update(ds)
         fingerprint = hasher.fingerprint()
-    dropped, note = calibration.record_decision(None, record_terms, VECTOR_STAGES,
-                                                fingerprint=fingerprint if fingerprint is not None else {})
+    dropped, note = calibration.record_decision(
+        None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
+    )
     return ("drop" if dropped else "apply"), note
 
 
-def apply_columns(calibration, survey_path, output_path, columns=None, units=None, drop_bad=False,
-                  chunk_rows=20_000, calibration_name=None, record_terms=None, t0=None, uncertainty=False,
-                  compression=None):
+def apply_columns(
+    calibration,
+    survey_path,
+    output_path,
+    columns=None,
+    units=None,
+    drop_bad=False,
+    chunk_rows=20_000,
+    calibration_name=None,
+    record_terms=None,
+    t0=None,
+    uncertainty=False,
+    compression=None,
+):
     """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
     writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
     (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
@@ -376,7 +424,6 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     ApplySummary
     """
     import warnings
-
 
     t0 = time.perf_counter() if t0 is None else t0
     compression = check_parquet_codec(compression)  # a bad name before any work
@@ -392,8 +439,12 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
     names = output_columns(calibration.n_sensors, tensor, uncertainty)
-    meta = {**meta, "units": "nT", "magcal_frame": calibration.frame,
-            "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else "")}
+    meta = {
+        **meta,
+        "units": "nT",
+        "magcal_frame": calibration.frame,
+        "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else ""),
+    }
     if calibration_name:
         meta["magcal_calibration"] = calibration_name
     rows = 0
@@ -403,20 +454,23 @@ def apply_columns(calibration, survey_path, output_path, columns=None, units=Non
     import contextlib
 
     try:
-        with (contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="")) as fh:
+        with contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="") as fh:
             for ds in chunks:
                 if rows == 0:
                     if ds.n_sensors != calibration.n_sensors:
                         raise MagcalError(
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
-                            f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument")
+                            f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument"
+                        )
                     calibration.check(ds)
                 values = correct_block(calibration, ds, choice, uncertainty)
                 cols = dataset_columns(ds)
                 clash = sorted(set(names) & set(cols))
                 if clash:
-                    raise MagcalError(f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an "
-                                      "apply output?); rename them or correct the raw survey")
+                    raise MagcalError(
+                        f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an "
+                        "apply output?); rename them or correct the raw survey"
+                    )
                 cols.update({name: values[:, k] for k, name in enumerate(names)})
                 if to_parquet:
                     import pyarrow.parquet as pq
@@ -472,7 +526,7 @@ class _WriteBehind:
             if self._error is None:
                 try:
                     call()
-                except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+                except BaseException as exc:
                     self._error = exc
 
     def put(self, call):
@@ -487,4 +541,3 @@ class _WriteBehind:
         self._thread.join()
         if raise_error and self._error is not None:
             raise self._error
-

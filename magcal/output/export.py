@@ -34,7 +34,7 @@ from magcal.core.errors import MagcalError
 #: Export formats and what each writes.
 FORMATS = {
     "ardupilot": "ArduPilot parameter file (NAME,VALUE lines: COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*, "
-                 "COMPASS_SCALE*)",
+    "COMPASS_SCALE*)",
     "px4": "PX4/QGroundControl parameter file (CAL_MAGn_[XYZ]OFF, [XYZ]SCALE, [XYZ]ODIAG)",
     "c": "C header with the correction matrix, offset and formula per sensor",
 }
@@ -128,8 +128,10 @@ def symmetric_factor(cinv):
     """
     cinv = np.asarray(cinv, dtype=float)
     if np.linalg.det(cinv) <= 0:
-        raise MagcalError("the correction matrix has a non-positive determinant (a mirrored axis); no firmware "
-                          "matrix can express it: check the sensor's axis signs")
+        raise MagcalError(
+            "the correction matrix has a non-positive determinant (a mirrored axis); no firmware "
+            "matrix can express it: check the sensor's axis signs"
+        )
     q, s = scipy.linalg.polar(cinv, side="right")
     return q, 0.5 * (s + s.T)
 
@@ -162,10 +164,16 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
     last = first + MAX_SLOTS[fmt] - 1
     for s, k in zip(sensors, slots):
         if not first <= k <= last:
-            where = ("ArduPilot calibrates compasses 1 to 3 (COMPASS_, COMPASS2_, COMPASS3_)" if fmt == "ardupilot"
-                     else "PX4 has CAL_MAG0 to CAL_MAG3" if fmt == "px4" else "slots 1 to 4")
-            raise MagcalError(f"sensor {s} would go to slot {k}, but {where}; export it alone with --sensor {s} "
-                              f"--slot {first}")
+            where = (
+                "ArduPilot calibrates compasses 1 to 3 (COMPASS_, COMPASS2_, COMPASS3_)"
+                if fmt == "ardupilot"
+                else "PX4 has CAL_MAG0 to CAL_MAG3"
+                if fmt == "px4"
+                else "slots 1 to 4"
+            )
+            raise MagcalError(
+                f"sensor {s} would go to slot {k}, but {where}; export it alone with --sensor {s} --slot {first}"
+            )
     field_nT = float(calibration.reference_total_nT or 50_000.0)
     out = []
     for s, k in zip(sensors, slots):
@@ -173,11 +181,18 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
         q, sym = symmetric_factor(cal.cinv)
         frame = cal.R @ q
         angle = rotation_angle_deg(frame)
-        out.append(SensorExport(
-            sensor=s, slot=k, bias_nT=cal.bias_nT.copy(), matrix=sym, frame_rotation=frame,
-            gauge_angle_deg=rotation_angle_deg(q), misalignment_angle_deg=rotation_angle_deg(cal.R),
-            vector_error_nT=2.0 * field_nT * np.sin(np.radians(angle) / 2.0),
-        ))
+        out.append(
+            SensorExport(
+                sensor=s,
+                slot=k,
+                bias_nT=cal.bias_nT.copy(),
+                matrix=sym,
+                frame_rotation=frame,
+                gauge_angle_deg=rotation_angle_deg(q),
+                misalignment_angle_deg=rotation_angle_deg(cal.R),
+                vector_error_nT=2.0 * field_nT * np.sin(np.radians(angle) / 2.0),
+            )
+        )
     return out
 
 
@@ -191,9 +206,11 @@ def unsupported(calibration, exports) -> list[str]:
     for e in exports:
         if e.misalignment_angle_deg > ROTATION_TOLERANCE_DEG:
             err = 2.0 * field_nT * np.sin(np.radians(e.misalignment_angle_deg) / 2.0)
-            lost.append(f"sensor {e.sensor}: its rotation R into the {calibration.frame} frame "
-                        f"({e.misalignment_angle_deg:.4g} deg, up to {err:.4g} nT on a {field_nT:.6g} nT field) "
-                        "cannot be stored; the firmware's vector stays in the sensor's own frame")
+            lost.append(
+                f"sensor {e.sensor}: its rotation R into the {calibration.frame} frame "
+                f"({e.misalignment_angle_deg:.4g} deg, up to {err:.4g} nT on a {field_nT:.6g} nT field) "
+                "cannot be stored; the firmware's vector stays in the sensor's own frame"
+            )
     return lost
 
 
@@ -223,32 +240,40 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
     dropped = unsupported(calibration, exports)
     if dropped and not force:
         raise MagcalError(
-            f"{source}: the calibration holds more than {fmt} parameters can: " + "; ".join(dropped)
+            f"{source}: the calibration holds more than {fmt} parameters can: "
+            + "; ".join(dropped)
             + ". Recalibrate without effects (and per sensor, --sensor N) or pass --force to export without them"
         )
     notes = []
     for e in exports:
         if e.gauge_angle_deg > ROTATION_TOLERANCE_DEG:
-            notes.append(f"sensor {e.sensor}: the symmetric matrix S of C^-1 = Q S is exported; magcal's "
-                         f"upper-triangular frame is turned from the firmware's by {e.gauge_angle_deg:.4g} deg "
-                         "(a gauge: total-field data do not fix it); the field magnitude is the same")
+            notes.append(
+                f"sensor {e.sensor}: the symmetric matrix S of C^-1 = Q S is exported; magcal's "
+                f"upper-triangular frame is turned from the firmware's by {e.gauge_angle_deg:.4g} deg "
+                "(a gauge: total-field data do not fix it); the field magnitude is the same"
+            )
     builder = {"ardupilot": _ardupilot, "px4": _px4, "c": _c_header}[fmt]
     parameters, text = builder(exports, calibration, source, dropped, notes)
     if fmt == "ardupilot":
         for e in exports:
             length = float(np.linalg.norm(e.bias_nT)) / NT_PER_MILLIGAUSS
             if length > ARDUPILOT_OFFSETS_MAX_mG:
-                notes.append(f"compass {e.slot}: the offsets are {length:.0f} mG long; ArduPilot's arming check "
-                             "refuses offsets longer than COMPASS_OFFS_MAX (1250 or 1800 mG by default): move the "
-                             "compass away from the interference, or check the units")
+                notes.append(
+                    f"compass {e.slot}: the offsets are {length:.0f} mG long; ArduPilot's arming check "
+                    "refuses offsets longer than COMPASS_OFFS_MAX (1250 or 1800 mG by default): move the "
+                    "compass away from the interference, or check the units"
+                )
     return Export(fmt, text, parameters, exports, dropped, notes)
 
 
 def _header_lines(calibration, source, dropped, notes, formula):
-    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    lines = [f"magcal export of {source} ({now})", f"firmware formula: {formula}",
-             f"calibration frame: {calibration.frame}; reference field "
-             f"{calibration.reference_total_nT if calibration.reference_total_nT is not None else 'per sample'} nT"]
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        f"magcal export of {source} ({now})",
+        f"firmware formula: {formula}",
+        f"calibration frame: {calibration.frame}; reference field "
+        f"{calibration.reference_total_nT if calibration.reference_total_nT is not None else 'per sample'} nT",
+    ]
     lines += [f"DROPPED: {d}" for d in dropped]
     lines += [f"note: {n}" for n in notes]
     return lines
@@ -264,8 +289,9 @@ def _offset_and_matrix(offset, matrix, offset_name, diagonal_name, off_diagonal_
     Y = xz, Z = yz, as both firmwares number them). The offset is in the firmware's unit and sign already."""
     params = {offset_name.format(axis): float(offset[k]) for k, axis in enumerate("XYZ")}
     params.update({diagonal_name.format(axis): float(matrix[k, k]) for k, axis in enumerate("XYZ")})
-    params.update({off_diagonal_name.format(axis): float(matrix[i, j])
-                   for (i, j), axis in zip(((0, 1), (0, 2), (1, 2)), "XYZ")})
+    params.update(
+        {off_diagonal_name.format(axis): float(matrix[i, j]) for (i, j), axis in zip(((0, 1), (0, 2), (1, 2)), "XYZ")}
+    )
     return params
 
 
@@ -273,12 +299,24 @@ def _ardupilot(exports, calibration, source, dropped, notes):
     params = {}
     for e in exports:
         tag = "" if e.slot == 1 else str(e.slot)
-        params.update(_offset_and_matrix(-e.bias_nT / NT_PER_MILLIGAUSS, e.matrix, f"COMPASS_OFS{tag}_{{}}",
-                                         f"COMPASS_DIA{tag}_{{}}", f"COMPASS_ODI{tag}_{{}}"))
+        params.update(
+            _offset_and_matrix(
+                -e.bias_nT / NT_PER_MILLIGAUSS,
+                e.matrix,
+                f"COMPASS_OFS{tag}_{{}}",
+                f"COMPASS_DIA{tag}_{{}}",
+                f"COMPASS_ODI{tag}_{{}}",
+            )
+        )
         params[f"COMPASS_SCALE{tag}"] = 1.0
-    head = _header_lines(calibration, source, dropped, notes,
-                         "corrected_mG = [DIA_X ODI_X ODI_Y; ODI_X DIA_Y ODI_Z; ODI_Y ODI_Z DIA_Z] "
-                         "(SCALE (raw_mG + OFS)), OFS in milligauss")
+    head = _header_lines(
+        calibration,
+        source,
+        dropped,
+        notes,
+        "corrected_mG = [DIA_X ODI_X ODI_Y; ODI_X DIA_Y ODI_Z; ODI_Y ODI_Z DIA_Z] "
+        "(SCALE (raw_mG + OFS)), OFS in milligauss",
+    )
     body = [f"# {line}" for line in head]
     body += [f"# magcal sensor {e.sensor} -> compass {e.slot}" for e in exports]
     body += [f"{name},{_fmt(value)}" for name, value in params.items()]
@@ -289,14 +327,22 @@ def _px4(exports, calibration, source, dropped, notes):
     params = {}
     for e in exports:
         pre = f"CAL_MAG{e.slot}_"
-        params.update(_offset_and_matrix(e.bias_nT / NT_PER_GAUSS, e.matrix, pre + "{}OFF", pre + "{}SCALE",
-                                         pre + "{}ODIAG"))
-    head = _header_lines(calibration, source, dropped, notes,
-                         "corrected_G = rot ([XSCALE XODIAG YODIAG; XODIAG YSCALE ZODIAG; YODIAG ZODIAG ZSCALE] "
-                         "(raw_G - [XOFF YOFF ZOFF])), offsets in gauss")
+        params.update(
+            _offset_and_matrix(e.bias_nT / NT_PER_GAUSS, e.matrix, pre + "{}OFF", pre + "{}SCALE", pre + "{}ODIAG")
+        )
+    head = _header_lines(
+        calibration,
+        source,
+        dropped,
+        notes,
+        "corrected_G = rot ([XSCALE XODIAG YODIAG; XODIAG YSCALE ZODIAG; YODIAG ZODIAG ZSCALE] "
+        "(raw_G - [XOFF YOFF ZOFF])), offsets in gauss",
+    )
     body = [f"# {line}" for line in head]
-    body += [f"# magcal sensor {e.sensor} -> CAL_MAG{e.slot} (check that CAL_MAG{e.slot}_ID is that magnetometer)"
-             for e in exports]
+    body += [
+        f"# magcal sensor {e.sensor} -> CAL_MAG{e.slot} (check that CAL_MAG{e.slot}_ID is that magnetometer)"
+        for e in exports
+    ]
     body += ["# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
     body += [f"1\t1\t{name}\t{_fmt(value)}\t9" for name, value in params.items()]  # 9: MAV_PARAM_TYPE_REAL32
     return params, "\n".join(body) + "\n"
@@ -304,14 +350,23 @@ def _px4(exports, calibration, source, dropped, notes):
 
 def _c_header(exports, calibration, source, dropped, notes):
     params = {}
-    head = _header_lines(calibration, source, dropped, notes,
-                         "corrected_nT = MAGCAL_Sn_MATRIX * (raw_nT - MAGCAL_Sn_BIAS_NT)")
-    lines = ["/* " + head[0]] + [f" * {line}" for line in head[1:]] + [
-        " * raw_nT: the sensor's reading in nT in its own axes; corrected_nT: the field in nT.",
-        " * MAGCAL_Sn_FRAME turns it into magcal's frame: B_magcal = MAGCAL_Sn_FRAME * corrected_nT.",
-        " */", "#ifndef MAGCAL_CALIBRATION_H", "#define MAGCAL_CALIBRATION_H", "",
-        f"#define MAGCAL_N_SENSORS {len(exports)}", "",
-    ]
+    head = _header_lines(
+        calibration, source, dropped, notes, "corrected_nT = MAGCAL_Sn_MATRIX * (raw_nT - MAGCAL_Sn_BIAS_NT)"
+    )
+    lines = (
+        ["/* " + head[0]]
+        + [f" * {line}" for line in head[1:]]
+        + [
+            " * raw_nT: the sensor's reading in nT in its own axes; corrected_nT: the field in nT.",
+            " * MAGCAL_Sn_FRAME turns it into magcal's frame: B_magcal = MAGCAL_Sn_FRAME * corrected_nT.",
+            " */",
+            "#ifndef MAGCAL_CALIBRATION_H",
+            "#define MAGCAL_CALIBRATION_H",
+            "",
+            f"#define MAGCAL_N_SENSORS {len(exports)}",
+            "",
+        ]
+    )
 
     def matrix(name, m):
         rows = ",\n    ".join("{" + ", ".join(f"{_fmt(v)}f" for v in row) + "}" for row in m)
@@ -320,8 +375,7 @@ def _c_header(exports, calibration, source, dropped, notes):
     for e in exports:
         tag = f"MAGCAL_S{e.sensor}"
         lines.append(f"/* magcal sensor {e.sensor} */")
-        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(f"{_fmt(v)}f" for v in e.bias_nT)
-                     + "};")
+        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(f"{_fmt(v)}f" for v in e.bias_nT) + "};")
         lines += matrix(f"{tag}_MATRIX", e.matrix)
         lines += matrix(f"{tag}_FRAME", e.frame_rotation)
         lines.append("")

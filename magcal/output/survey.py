@@ -56,11 +56,11 @@ class Partition:
     """One piece of one survey file."""
 
     path: str
-    index: int            # the partition's number in the output
-    start: int            # CSV: first byte of the data lines; Parquet: row group
-    stop: int             # CSV: end byte (exclusive); Parquet: row group + 1
-    first_line: int       # CSV: line number of the first data line (1-based); Parquet: first row (1-based)
-    kind: str             # "csv" or "parquet"
+    index: int  # the partition's number in the output
+    start: int  # CSV: first byte of the data lines; Parquet: row group
+    stop: int  # CSV: end byte (exclusive); Parquet: row group + 1
+    first_line: int  # CSV: line number of the first data line (1-based); Parquet: first row (1-based)
+    kind: str  # "csv" or "parquet"
 
 
 def _csv_head(path) -> tuple[bytes, int]:
@@ -111,7 +111,6 @@ def partitions(paths, partition_rows: int = PARTITION_ROWS) -> list[Partition]:
 def _read_partition(part: Partition, columns=None, units=None, drop_bad=False):
     """The partition as a Dataset (readings in nT), read through the one reader with the file's own head."""
     if part.kind == "parquet":
-
         src = ParquetSource(part.path)
         return concatenate(list(src.chunks(PARTITION_ROWS, [part.start], part.first_line))), dict(src.metadata)
 
@@ -128,17 +127,28 @@ def _read_partition(part: Partition, columns=None, units=None, drop_bad=False):
     return concatenate(parts), meta
 
 
-def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, fmt: str, record_choice: str,
-                      columns=None, units=None, drop_bad=False, uncertainty=False,
-                      compression=None) -> tuple[str, int]:
+def correct_partition(
+    calibration_doc: dict,
+    part: Partition,
+    output_dir: str,
+    fmt: str,
+    record_choice: str,
+    columns=None,
+    units=None,
+    drop_bad=False,
+    uncertainty=False,
+    compression=None,
+) -> tuple[str, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task). Returns the
     file written and its rows."""
 
     calibration = Calibration.from_dict(calibration_doc)
     ds, meta = _read_partition(part, columns, units, drop_bad)
     if ds.n_sensors != calibration.n_sensors:
-        raise MagcalError(f"{part.path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
-                          f"{calibration.n_sensors}; use the calibration made for this instrument")
+        raise MagcalError(
+            f"{part.path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
+            f"{calibration.n_sensors}; use the calibration made for this instrument"
+        )
     calibration.check(ds)
     values = correct_block(calibration, ds, record_choice, uncertainty)
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
@@ -146,8 +156,14 @@ def correct_partition(calibration_doc: dict, part: Partition, output_dir: str, f
     cols = dataset_columns(ds)
     cols["source_file"] = np.full(ds.n_samples, os.path.basename(part.path))
     cols.update({name: values[:, k] for k, name in enumerate(names)})
-    meta = {**meta, "units": "nT", "magcal_frame": calibration.frame, "magcal_partition": str(part.index),
-            "magcal_source": os.path.basename(part.path), "magcal_first_row": str(part.first_line)}
+    meta = {
+        **meta,
+        "units": "nT",
+        "magcal_frame": calibration.frame,
+        "magcal_partition": str(part.index),
+        "magcal_source": os.path.basename(part.path),
+        "magcal_first_row": str(part.first_line),
+    }
     out = os.path.join(output_dir, f"part-{part.index:05d}.{fmt}")
     tmp = out + ".tmp"
     if fmt == "parquet":
@@ -176,13 +192,28 @@ class PartitionedSummary:
         return self.rows / self.seconds if self.seconds > 0 else float("inf")
 
     def text(self) -> str:
-        return (f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s) on "
-                f"{self.scheduler}; wrote {len(self.files)} partition(s) to {self.output_dir}")
+        return (
+            f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s) on "
+            f"{self.scheduler}; wrote {len(self.files)} partition(s) to {self.output_dir}"
+        )
 
 
-def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", workers: int = 2, scheduler=None,
-                      partition_rows: int = PARTITION_ROWS, columns=None, units=None, drop_bad=False,
-                      record_terms=None, progress=None, uncertainty=False, compression=None) -> PartitionedSummary:
+def apply_partitioned(
+    calibration,
+    inputs,
+    output_dir,
+    fmt: str = "parquet",
+    workers: int = 2,
+    scheduler=None,
+    partition_rows: int = PARTITION_ROWS,
+    columns=None,
+    units=None,
+    drop_bad=False,
+    record_terms=None,
+    progress=None,
+    uncertainty=False,
+    compression=None,
+) -> PartitionedSummary:
     """Correct survey files in parallel on a Dask cluster into a directory of partitions.
 
     Parameters
@@ -211,24 +242,25 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
     import sys
     import warnings
 
-
     t0 = time.perf_counter()
     if fmt not in ("parquet", "csv"):
         raise MagcalError(f"--format {fmt!r}: parquet or csv")
 
     if compression is not None and fmt != "parquet":
-        raise MagcalError(f"a compression ({compression!r}) is for Parquet partitions; leave it out with --format "
-                          f"{fmt}")
+        raise MagcalError(
+            f"a compression ({compression!r}) is for Parquet partitions; leave it out with --format {fmt}"
+        )
     compression = check_parquet_codec(compression)
     if isinstance(columns, str):
-
         columns = parse_column_mapping(columns)
     if not hasattr(calibration, "correct"):
         calibration = load_calibration(calibration)
     output_dir = os.fspath(output_dir)
     if os.path.exists(output_dir) and (not os.path.isdir(output_dir) or os.listdir(output_dir)):
-        raise MagcalError(f"{output_dir}: exists and is not an empty directory; choose a new one (partitions are "
-                          "never mixed with other files)")
+        raise MagcalError(
+            f"{output_dir}: exists and is not an empty directory; choose a new one (partitions are "
+            "never mixed with other files)"
+        )
     os.makedirs(output_dir, exist_ok=True)
     parts = partitions(inputs, int(partition_rows))
     if not parts:
@@ -247,18 +279,35 @@ def apply_partitioned(calibration, inputs, output_dir, fmt: str = "parquet", wor
             try:
                 client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
             except (OSError, TimeoutError) as exc:
-                raise MagcalError(f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
-                                  f"{CONNECT_TIMEOUT_S:g} s ({exc}); is it running, and is the address right?") \
-                    from None
+                raise MagcalError(
+                    f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
+                    f"{CONNECT_TIMEOUT_S:g} s ({exc}); is it running, and is the address right?"
+                ) from None
             where = f"the cluster at {scheduler}"
         else:
-            cluster = distributed.LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                               dashboard_address=None, silence_logs=40)
+            cluster = distributed.LocalCluster(
+                n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+            )
             client = distributed.Client(cluster)
             where = f"a local cluster of {int(workers)} worker(s)"
         try:
-            futures = [client.submit(correct_partition, doc, p, output_dir, fmt, choices[p.path], columns, units,
-                                     drop_bad, uncertainty, compression, pure=False) for p in parts]
+            futures = [
+                client.submit(
+                    correct_partition,
+                    doc,
+                    p,
+                    output_dir,
+                    fmt,
+                    choices[p.path],
+                    columns,
+                    units,
+                    drop_bad,
+                    uncertainty,
+                    compression,
+                    pure=False,
+                )
+                for p in parts
+            ]
             bar = None
             if progress:
                 from tqdm import tqdm
