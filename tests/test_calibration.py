@@ -241,3 +241,27 @@ def test_an_unknown_effect_names_the_file_and_the_option(drifting, tmp_path):
         Calibration.load(path)
     text = str(err.value)
     assert str(path) in text and "'pump_noise'" in text and "--effects-file" in text and "damaged" not in text
+
+
+@pytest.mark.parametrize("n_sensors", [1, 4])
+def test_correct_and_tensor_take_what_calibrate_takes(n_sensors):
+    """Arrays in, arrays out (issue 27): an array of readings (and t=, temp=) is accepted like a dataset; one
+    sensor's (N, 3) array gives (N, 3) corrected vectors and (N,) total field."""
+    import magcal
+
+    ds = magcal.simulate("chi2017", seed=5)
+    readings = ds.readings_nT[0] if n_sensors == 1 else ds.readings_nT
+    cal = magcal.calibrate(readings, reference_total_nT=ds.reference_total_nT).calibration
+    from_array = cal.correct(readings)
+    from_dataset = cal.correct(magcal.as_dataset(readings))
+    assert from_array.shape == readings.shape
+    np.testing.assert_allclose(np.reshape(from_array, from_dataset.shape), from_dataset, rtol=0, atol=0)
+    field = cal.total_field(readings, t=np.arange(readings.shape[-2]) * 0.1)
+    assert field.shape == readings.shape[:-1]
+    assert np.all(np.abs(field - ds.reference_total_nT) < 8 * 3.0)  # sigma 3 nT per axis
+    residuals = cal.total_field_residuals(readings)
+    np.testing.assert_allclose(residuals.ravel(), (field - ds.reference_total_nT).ravel(), atol=1e-6)
+    if n_sensors == 4:
+        cal.baseline_m = ds.baseline_m
+        tensor = cal.tensor(readings)
+        assert set(tensor) >= {"Gxx", "Gyy", "Gzz"} and tensor["Gxx"].shape == (readings.shape[1],)

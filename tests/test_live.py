@@ -288,7 +288,8 @@ def test_recording_survives_sigkill(tmp_path):
         [
             sys.executable,
             "-m",
-            "magcal.data.live",
+            "magcal",
+            "record",
             f"sim://chi2017?rate={rate}",
             str(path),
             "--flush",

@@ -104,7 +104,7 @@ def test_the_engine_needs_only_the_core_dependencies():
     assert not imported - core - optional, f"magcal imports undeclared packages: {sorted(imported - core - optional)}"
     assert not _module_level_imports("magcal") & optional, "an optional package is imported at module level"
     texts = " ".join(p.read_text(encoding="utf-8") for p in (ROOT / "magcal").rglob("*.py"))
-    assert 'pip install \\"magcal[instruments]\\"' in texts and 'pip install \\"magcal[survey]\\"' in texts
+    assert 'pip install "magcal-workbench[instruments]"' in texts and 'pip install "magcal-workbench[survey]"' in texts
 
 
 def test_import_magcal_needs_no_optional_package():

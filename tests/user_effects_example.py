@@ -23,7 +23,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from magcal.model.terms import Context, Effect, register
+from magcal.model import Context, Effect, register
 
 HARMONIC_RATIO = 0.4  # simulator: amplitude of the second harmonic relative to the fundamental
 

@@ -19,6 +19,7 @@ from magcal.core import conventions
 from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.core.jsonable import jsonable
 from magcal.core.vectors import basis_times, row_norm
+from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
 from magcal.model.terms import (
     BASE_TERMS,
@@ -358,37 +359,65 @@ class Calibration:
         return model
 
     # --- applying it --------------------------------------------------------------------------------------
-    def correct(self, dataset, record_terms=None) -> np.ndarray:
+    @staticmethod
+    def _as_dataset(data, t=None, temp=None):
+        """``data`` as a :class:`~magcal.data.dataset.Dataset` (what :func:`magcal.calibrate` takes), and whether
+        it was one sensor's ``(N, 3)`` array (whose results then drop the sensor axis)."""
+        one = isinstance(data, np.ndarray | list | tuple) and np.ndim(data) == 2
+        return as_dataset(data, t=t, temp=temp), one
+
+    def correct(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
         """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame.
 
         Parameters
         ----------
-        dataset : Dataset
+        data : Dataset, array_like or pandas.DataFrame
+            What :func:`magcal.calibrate` takes: a dataset, raw readings in nT of shape ``(N, 3)`` (one sensor; the
+            result is then ``(N, 3)``) or ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns.
         record_terms : {None, 'apply', 'drop'}
             What to do with record-only terms (bias drift, bias step...) on these data; see
             :meth:`record_decision`. By default they act on the fitted record and are dropped, with a
             :class:`~magcal.core.errors.RecordTermWarning` naming them, on any other.
+        t : array_like, shape (N,), optional
+            Sample times in s, for array input (time-dependent effects need them).
+        temp : array_like, shape (N,) or float, optional
+            Temperature in degC, for array input (temperature effects need it).
+
+        Examples
+        --------
+        >>> import magcal
+        >>> ds = magcal.simulate("chi2017", seed=2)
+        >>> cal = magcal.calibrate(ds.readings_nT[0], reference_total_nT=50_000).calibration
+        >>> cal.correct(ds.readings_nT[0]).shape        # one sensor's (N, 3) readings in, (N, 3) out
+        (200, 3)
         """
+        dataset, one = self._as_dataset(data, t, temp)
         self.check(dataset)
         model = self._model_for(dataset, record_terms, VECTOR_STAGES)
-        return corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        out = corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        return out[0] if one else out
 
-    def total_field(self, dataset, record_terms=None) -> np.ndarray:
-        """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
-        return row_norm(self.correct(dataset, record_terms))
+    def total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
+        """Corrected total field (n_sensors, N) in nT, or (N,) for one sensor's ``(N, 3)`` array (``data``,
+        ``record_terms``, ``t``, ``temp`` as in :meth:`correct`)."""
+        return row_norm(self.correct(data, record_terms, t=t, temp=temp))
 
-    def expected_total_field(self, dataset, record_terms=None) -> np.ndarray:
-        """The total field (n_sensors, N) in nT this calibration expects on ``dataset``: its reference (the
+    def expected_total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
+        """The total field (n_sensors, N) in nT this calibration expects on ``data``: its reference (the
         dataset's ``ref_total`` column when it has none) plus its reference-stage effects (``record_terms`` as in
         :meth:`correct`: a reference drift of the fitted record is dropped on another)."""
+        dataset, _ = self._as_dataset(data, t, temp)
         model = self._model_for(dataset, record_terms, ("reference",))
         return expected_total_field(
             dataset, self.reference_total_nT, model, self.effect_values, contexts(dataset, self.baseline_m)
         )
 
-    def total_field_residuals(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+    def total_field_residuals(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> np.ndarray:
         """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output
-        (``record_terms`` as in :meth:`correct`; one warning names every term dropped)."""
+        (``data``, ``record_terms``, ``t``, ``temp`` as in :meth:`correct`; one warning names every term dropped)."""
+        dataset, _ = self._as_dataset(data, t, temp)
+        if corrected is not None and np.ndim(corrected) == 2:
+            corrected = np.asarray(corrected)[None]
         model = self._model_for(dataset, record_terms, None)
         ctxs = contexts(dataset, self.baseline_m)
         if corrected is None:
@@ -397,18 +426,19 @@ class Calibration:
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
-    def uncertainty(self, dataset, corrected=None, record_terms=None) -> dict | None:
+    def uncertainty(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> dict | None:
         """The calibration's standard deviations carried to each sample's corrected field and tensor
-        (:func:`magcal.calibration.uncertainty.field_uncertainty`; ``record_terms`` as in :meth:`correct`), or None without a
-        :attr:`base_covariance`."""
-
+        (:func:`magcal.calibration.uncertainty.field_uncertainty`; ``data``, ``record_terms``, ``t``, ``temp`` as in
+        :meth:`correct`), or None without a :attr:`base_covariance`."""
+        dataset, _ = self._as_dataset(data, t, temp)
         return field_uncertainty(self, dataset, corrected, record_terms)
 
-    def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
-        """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
+    def tensor(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> dict:
+        """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline
+        (``data``, ``record_terms``, ``t``, ``temp`` as in :meth:`correct`)."""
         if self.n_sensors != 4 or not self.baseline_m:
             raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
-        vectors = self.correct(dataset, record_terms) if corrected is None else corrected
+        vectors = self.correct(data, record_terms, t=t, temp=temp) if corrected is None else corrected
         return conventions.tensor_components(vectors, self.baseline_m)
 
     # --- JSON -----------------------------------------------------------------------------------------------

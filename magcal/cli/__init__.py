@@ -14,15 +14,15 @@ warning). An exception raised later inside a user's effect code is reported as i
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 
+from magcal.cli import align, apply, calibrate, diagnose, effects, export, record, simulate
 from magcal.core.errors import MagcalError
 from magcal.model import plugins
 from magcal.model.plugins import user_code_error
 
 #: Subcommand modules, in the order ``magcal --help`` lists them.
-SUBCOMMANDS = ("simulate", "calibrate", "diagnose", "align", "apply", "effects", "export")
+SUBCOMMANDS = (simulate, calibrate, diagnose, align, apply, effects, export, record)
 
 
 def add_effects_file_argument(parser) -> None:
@@ -57,13 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate triaxial fluxgate magnetometers and the cross magnetic gradient tensor system.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in SUBCOMMANDS:
-        try:
-            module = importlib.import_module(f"magcal.cli.{name}")
-        except ModuleNotFoundError as exc:  # a subcommand still being written
-            if exc.name != f"magcal.cli.{name}":
-                raise
-            continue
+    for module in SUBCOMMANDS:
         sub_parser = module.register(sub)
         if sub_parser is not None and not any(a.dest == "effects_file" for a in sub_parser._actions):
             add_effects_file_argument(sub_parser)
@@ -95,7 +89,3 @@ def main(argv=None) -> int:
     except BrokenPipeError:  # e.g. `magcal calibrate --json | head`: the reader left, nothing to report
         sys.stderr.close()
         return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

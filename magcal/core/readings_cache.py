@@ -3,8 +3,9 @@
 A diagnosis looks at one record many times: every score round's candidates, the refits and the held-out fits
 find their data-derived constants from the same readings, and the noise is estimated before and after each effect
 is added. What depends on the readings alone (a step scan, the quadric residuals, the still stretches and the
-quantization step) is computed once. Records are never changed in place, so an array's memory location, shape and
-strides identify its values while the cache holds the array (which keeps the location from being reused).
+quantization step) is computed once. A dataset's arrays are read-only (:class:`magcal.data.dataset.Dataset` copies
+a writable array it is given), so a read-only array's memory location, shape and strides identify its values while
+the cache holds the array (which keeps the location from being reused); a writable array is never cached.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ class ReadingsCache:
         a value it refuses is computed again and replaces it. Safe to call from several threads (at worst a
         value is computed twice).
         """
+        if array.flags.writeable:  # its values may change in place: nothing about them can be kept
+            return compute()
         full = (array.__array_interface__["data"][0], array.shape, array.strides) + tuple(key)
         hit = self._entries.get(full)
         if hit is not None and (valid is None or valid(hit[1])):

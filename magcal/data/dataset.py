@@ -1,7 +1,8 @@
 """The dataset: raw readings of one to four triaxial sensors plus optional channels and metadata.
 
 A :class:`Dataset` is what every later step takes: the fitter, the diagnosis, the calibration's ``apply``,
-and the workbench. It is immutable in spirit: methods return new datasets.
+and the workbench. Its arrays are read-only (a writable array given to it is copied first) and its methods return
+new datasets, so nothing computed from a dataset goes stale.
 """
 
 from __future__ import annotations
@@ -21,6 +22,22 @@ CHANNELS = {
     "reference": "ref_total_nT",
     "group": "group",
 }
+
+
+def _frozen(value, dtype=float) -> np.ndarray:
+    """``value`` as a read-only array that no one else can change: the caller's own array (or a view of one) is
+    copied, a fresh array is only marked read-only, a read-only array is kept as it is.
+
+    A dataset's arrays never change after it is made, so what is computed from them can be kept
+    (:class:`magcal.core.readings_cache.ReadingsCache`) and a user who later changes their array in place changes
+    nothing the dataset holds.
+    """
+    a = np.asarray(value, dtype=dtype)
+    if a.flags.writeable:
+        if a is value or a.base is not None:
+            a = a.copy()
+        a.flags.writeable = False
+    return a
 
 
 class DatasetError(MagcalError, ValueError):
@@ -73,7 +90,7 @@ class Dataset:
     source: str | None = None
 
     def __post_init__(self):
-        r = np.asarray(self.readings_nT, dtype=float)
+        r = _frozen(self.readings_nT)
         if r.ndim == 2:
             r = r[None]
         if r.ndim != 3 or r.shape[2] != 3 or not 1 <= r.shape[0] <= 4:
@@ -85,18 +102,18 @@ class Dataset:
         for attr in ("time_s", "temperature_C", "ref_total_nT"):
             value = getattr(self, attr)
             if value is not None:
-                value = np.asarray(value, dtype=float).reshape(-1)
+                value = _frozen(np.asarray(value, dtype=float).reshape(-1))
                 if value.shape[0] != n:
                     raise DatasetError(f"{self.source or 'dataset'}: {attr} has {value.shape[0]} rows, expected {n}")
                 setattr(self, attr, value)
         if self.attitude_wxyz is not None:
-            q = np.asarray(self.attitude_wxyz, dtype=float)
+            q = _frozen(self.attitude_wxyz)
             if q.shape != (n, 4):
                 raise DatasetError(f"{self.source or 'dataset'}: attitude must have shape ({n}, 4), got {q.shape}")
             self.attitude_wxyz = q
         if self.group is not None:
-            self.group = np.asarray(self.group).astype(str)
-        self.extra = {k: np.asarray(v) for k, v in self.extra.items()}
+            self.group = _frozen(np.asarray(self.group).astype(str), dtype=None)
+        self.extra = {k: _frozen(v, dtype=None) for k, v in self.extra.items()}
 
     @property
     def n_sensors(self) -> int:

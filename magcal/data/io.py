@@ -1192,7 +1192,7 @@ def _pyarrow(source):
         import pyarrow
         import pyarrow.parquet
     except ImportError:
-        raise DatasetError(f'{source}: Parquet files need pyarrow: pip install "magcal[survey]"') from None
+        raise DatasetError(f'{source}: Parquet files need pyarrow: pip install "magcal-workbench[survey]"') from None
     return pyarrow
 
 

@@ -29,7 +29,7 @@ at least every ``flush_interval_s``, so a recording cut by a crash or a kill reo
 :func:`magcal.read_csv` holding every sample up to the last flush. :class:`LiveSession` runs a source and a
 recorder in a thread with pause, resume, stop and listeners (the workbench's live view).
 
-Run ``python -m magcal.data.live URL OUT.csv --seconds 60`` to record from the command line.
+``magcal record URL OUT.csv --seconds 60`` records from the command line (:mod:`magcal.cli.record`).
 """
 
 from __future__ import annotations
@@ -409,7 +409,7 @@ class SerialSource(_LineSource):
         try:
             import serial
         except ImportError:
-            raise LiveError(f'{url}: serial ports need pyserial: pip install "magcal[instruments]"') from None
+            raise LiveError(f'{url}: serial ports need pyserial: pip install "magcal-workbench[instruments]"') from None
         self._serial_error = serial.SerialException
         try:
             self._port = serial.Serial(port, baudrate=baud, timeout=0.1)
@@ -520,7 +520,7 @@ class MavlinkSource(LiveSource):
         try:
             from pymavlink import mavutil
         except ImportError:
-            raise LiveError(f'{url}: MAVLink needs pymavlink: pip install "magcal[instruments]"') from None
+            raise LiveError(f'{url}: MAVLink needs pymavlink: pip install "magcal-workbench[instruments]"') from None
         if message is not None and message not in MAVLINK_MESSAGES:
             raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
         self.message = message
@@ -1069,10 +1069,6 @@ class LiveSession:
         """Call ``listener(chunk)`` (in the session's thread) for every chunk received from now on."""
         self._listeners.append(listener)
 
-    def unsubscribe(self, listener) -> None:
-        if listener in self._listeners:
-            self._listeners.remove(listener)
-
     def pause(self) -> None:
         """Stop keeping samples (the source is still read, so nothing piles up)."""
         self._paused.set()
@@ -1088,45 +1084,3 @@ class LiveSession:
         """Stop reading, flush and close the recording (waits at most ``timeout_s``)."""
         self._stop.set()
         self._thread.join(timeout_s)
-
-
-def main(argv=None) -> int:
-    """``python -m magcal.data.live URL OUT.csv [--seconds S] [--samples N] [--flush S] [--progress]``."""
-    import argparse
-    import sys
-
-    parser = argparse.ArgumentParser(
-        prog="python -m magcal.data.live",
-        description="Record a live magnetometer source "
-        "into a magcal CSV file (flushed to disk at least every --flush seconds).",
-    )
-    parser.add_argument(
-        "url",
-        help="the source, e.g. serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-        "udp://127.0.0.1:14550?mavlink, sim://chi2017?rate=50",
-    )
-    parser.add_argument("output", help="the recording (a new file)")
-    parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    parser.add_argument("--samples", type=int, default=None, help="stop after this many samples")
-    parser.add_argument("--flush", type=float, default=1.0, help="longest time between flushes to disk, s")
-    parser.add_argument("--progress", action="store_true", help="print 'flushed N' after each flush")
-    args = parser.parse_args(argv)
-
-    def progress(n):
-        print(f"flushed {n}", flush=True)
-
-    try:
-        stats = record(
-            args.url, args.output, args.seconds, args.samples, args.flush, on_flush=progress if args.progress else None
-        )
-    except MagcalError as exc:
-        print(f"magcal.data.live: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    print(f"magcal.data.live: {args.output}: {stats.summary()}", file=sys.stderr)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

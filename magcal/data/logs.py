@@ -250,7 +250,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
         from pymavlink import DFReader
     except ImportError:
         raise DatasetError(
-            f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
+            f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal-workbench[instruments]"'
         ) from None
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
@@ -348,7 +348,9 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     try:
         from pyulog import ULog
     except ImportError:
-        raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
+        raise DatasetError(
+            f'{source}: reading PX4 logs needs pyulog: pip install "magcal-workbench[instruments]"'
+        ) from None
     try:
         ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
     except Exception as exc:  # a damaged or foreign file

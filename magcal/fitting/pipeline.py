@@ -21,7 +21,6 @@ Global-search methods (``pso``, ``ipso``, ``de``) come from :mod:`magcal.fitting
 
 from __future__ import annotations
 
-import importlib
 import time
 import warnings as _warnings
 from collections.abc import Callable
@@ -35,6 +34,7 @@ from magcal.core import conventions
 from magcal.core.errors import CalibrationError, CoverageWarning, DataWarning
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
+from magcal.fitting import search
 from magcal.fitting.fitter import fit as ml_fit
 from magcal.fitting.fitter import resolve_reference
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
@@ -359,16 +359,6 @@ def _build_model(dataset, effects):
 
 
 def _search(dataset, method, seed, progress, mask, reference_total_nT):
-    try:
-        search = importlib.import_module("magcal.fitting.search")
-    except ModuleNotFoundError as exc:
-        if exc.name != "magcal.fitting.search":
-            raise
-        search = None
-    if search is None or not hasattr(search, "search_calibrate"):
-        raise CalibrationError(
-            f"method {method!r} (global search) is not available in this installation; use method 'ml' or 'ellipsoid'"
-        )
     # the iteration counts on across sensors, sensor s from s * max_iter: a fraction of the most it can run
     # (a sensor whose search stalls early makes the bar jump to the next sensor's share)
     total = dataset.n_sensors * search.DEFAULTS[method]["max_iter"]

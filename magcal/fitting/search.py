@@ -185,10 +185,6 @@ class SearchBounds:
         """Map unit-cube points (P, 9) to parameters."""
         return self.lower + np.asarray(unit) * self.width
 
-    def to_unit(self, params):
-        """Map parameters to the unit cube."""
-        return (np.asarray(params) - self.lower) / self.width
-
     def contains(self, params) -> bool:
         p = np.asarray(params, dtype=float)
         return bool(np.all(p >= self.lower) and np.all(p <= self.upper))

@@ -104,12 +104,6 @@ def origin(name: str) -> tuple[str, str]:
     return "python", module
 
 
-def origin_text(name: str) -> str:
-    """:func:`origin` as one phrase: ``built-in``, ``file my_effects.py``, ``entry point pump = ...``."""
-    kind, where = origin(name)
-    return "built-in" if kind == "built-in" else f"{kind} {where}"
-
-
 def is_builtin(name: str) -> bool:
     """True for an effect of magcal's own catalogue."""
     return name in EFFECTS and origin(name)[0] == "built-in"
@@ -314,7 +308,7 @@ def _dry_run(cls, where, q):
     with _user_code(where, "in a dry run on a synthetic 240-sample record"):
         effect = cls()
         if cls.per_sensor:
-            cls(sensor=0)
+            cls(sensor=max(0, getattr(cls, "min_sensors", 1) - 1))  # e.g. sensor 1 may be a time reference
         effect.configure(ds, np.zeros((ds.n_sensors, n)))
         state = effect.state()
     try:
@@ -508,6 +502,8 @@ def load_effects_file(path) -> list[str]:
     module_name = _module_name(path)
     with _LOCK:
         before = dict(EFFECTS)
+        for name in [n for n, src in _SOURCES.items() if src == path]:
+            EFFECTS.pop(name, None)  # loaded again: the file registers its effects anew (put back on any error)
         spec = importlib.util.spec_from_file_location(module_name, path)
         if spec is None or spec.loader is None:
             raise UserEffectError(f"{path}: cannot be imported as a Python file")
@@ -533,11 +529,11 @@ def load_effects_file(path) -> list[str]:
             ]
             found = (
                 (
-                    f" It defines {', '.join(local)} without it: put @register (from magcal.model.terms import register) "
+                    f" It defines {', '.join(local)} without it: put @register (from magcal.model import register) "
                     "above each class that is an effect."
                 )
                 if local
-                else " Define a subclass of magcal.model.terms.Effect and decorate it with @register."
+                else " Define a subclass of magcal.model.Effect and decorate it with @register."
             )
             raise UserEffectError(f"{path}: registers no effect.{found} ({DOC})")
         _USER_FILES.add(path)

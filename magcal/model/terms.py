@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -39,10 +40,56 @@ BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
 EFFECTS: dict[str, type[Effect]] = {}
 
 
-def register(cls):
-    """Class decorator: add an :class:`Effect` subclass to :data:`EFFECTS` under ``cls.name``."""
-    EFFECTS[cls.name] = cls
+def register(cls=None, *, replace: bool = False):
+    """Class decorator: add an :class:`Effect` subclass to :data:`EFFECTS` under ``cls.name``.
+
+    Used as ``@register`` or ``@register(replace=True)``. A name already in the catalogue is refused unless
+    ``replace`` is true: a built-in effect, or another module's, is never replaced by accident. Registering the
+    same class again changes nothing. Every effect, built-in or a user's, is held to the same checks by
+    :func:`magcal.model.plugins.validate_effect` (files and entry points when they load; the catalogue in the
+    test suite).
+
+    Parameters
+    ----------
+    cls : type
+        An :class:`Effect` subclass with a ``name``.
+    replace : bool
+        Replace an effect already registered under that name.
+
+    Raises
+    ------
+    MagcalError
+        For a class that is not an Effect subclass, has no name, or whose name is taken (without ``replace``).
+    """
+    if cls is None:
+        return lambda c: register(c, replace=replace)
+    if not (isinstance(cls, type) and issubclass(cls, Effect)) or cls is Effect:
+        raise MagcalError(f"register: {cls!r} is not a subclass of magcal.model.Effect; derive your effect from it")
+    name = getattr(cls, "name", None)
+    if not isinstance(name, str) or not name:
+        raise MagcalError(f'register: effect class {cls.__name__} has no name; set name = "my_effect"')
+    current = EFFECTS.get(name)
+    if current is not None and current is not cls and not replace:
+        raise MagcalError(
+            f"register: effect name {name!r} is {_owner(current)}; give {cls.__name__} another name "
+            f'(e.g. "my_{name}"), or register it with replace=True to replace the registered one'
+        )
+    EFFECTS[name] = cls
     return cls
+
+
+def _owner(cls) -> str:
+    """Who holds a registered effect class, for messages: a built-in, a file, or a module."""
+    module = getattr(cls, "__module__", "") or ""
+    if module == "magcal" or module.startswith("magcal."):
+        return f"already a built-in effect ({module}.{cls.__qualname__})"
+    try:
+        path = inspect.getsourcefile(cls)
+    except TypeError:
+        path = None
+    if path and module.startswith("_magcal_user_effects_"):  # loaded from a file by magcal.model.plugins
+        return f"already taken by the effect from file {path}"
+    return f"already taken by {module}.{cls.__qualname__}"
 
 
 def term_label(name: str, sensor: int | None) -> str:

@@ -388,35 +388,6 @@ def _c_header(exports, calibration, source, dropped, notes):
     return params, "\n".join(lines)
 
 
-def apply_ardupilot(parameters, raw_mG, slot=1) -> np.ndarray:
-    """ArduPilot's correction of raw readings (milligauss) with exported parameters, as
-    ``AP_Compass_Backend::correct_field`` does it (motor compensation off): ``M (SCALE (raw + OFS))``.
-
-    Returns the corrected field (N, 3) in milligauss.
-    """
-    tag = "" if slot == 1 else str(slot)
-    p = parameters
-    ofs = np.array([p[f"COMPASS_OFS{tag}_{a}"] for a in "XYZ"])
-    dia = np.array([p[f"COMPASS_DIA{tag}_{a}"] for a in "XYZ"])
-    odi = np.array([p[f"COMPASS_ODI{tag}_{a}"] for a in "XYZ"])
-    scale = p.get(f"COMPASS_SCALE{tag}", 1.0)
-    m = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
-    return (scale * (np.asarray(raw_mG, dtype=float) + ofs)) @ m.T
-
-
-def apply_px4(parameters, raw_G, slot=0, rotation=None) -> np.ndarray:
-    """PX4's correction of raw readings (gauss) with exported parameters, as ``calibration::Magnetometer::
-    Correct`` does it (power compensation off): ``rot (S (raw - OFF))``. Returns (N, 3) gauss."""
-    pre = f"CAL_MAG{slot}_"
-    p = parameters
-    off = np.array([p[f"{pre}{a}OFF"] for a in "XYZ"])
-    d = np.array([p[f"{pre}{a}SCALE"] for a in "XYZ"])
-    o = np.array([p[f"{pre}{a}ODIAG"] for a in "XYZ"])
-    s = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
-    rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
-    return (np.asarray(raw_G, dtype=float) - off) @ s.T @ rot.T
-
-
 def parse_parameter_file(text) -> dict:
     """Parameters ``name -> value`` from an ArduPilot (``NAME,VALUE`` or ``NAME VALUE``) or a QGroundControl
     (``vehicle component NAME VALUE type``) parameter file; ``#`` lines are comments."""

@@ -47,7 +47,7 @@ def _distributed():
     try:
         import distributed
     except ImportError:
-        raise MagcalError('parallel apply needs dask.distributed: pip install "magcal[survey]"') from None
+        raise MagcalError('parallel apply needs dask.distributed: pip install "magcal-workbench[survey]"') from None
     return distributed
 
 
