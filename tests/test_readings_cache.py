@@ -6,21 +6,28 @@ import pytest
 from magcal.core.readings_cache import ReadingsCache
 
 
+def frozen(a):
+    """A read-only array, as a dataset holds (magcal.data.dataset.Dataset)."""
+    a = np.array(a, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
 def test_a_value_is_computed_once_per_array_and_key():
     cache, calls = ReadingsCache(4), []
-    y = np.arange(12.0).reshape(4, 3)
+    y = frozen(np.arange(12.0).reshape(4, 3))
     compute = lambda: calls.append(1) or float(y.sum())
     assert cache.get(y, ("sum",), compute) == cache.get(y, ("sum",), compute) == 66.0
     assert len(calls) == 1
     cache.get(y, ("other",), compute)  # another key
-    cache.get(y.copy(), ("sum",), compute)  # another array with the same values
+    cache.get(frozen(y), ("sum",), compute)  # another array with the same values
     assert len(calls) == 3
 
 
 @pytest.mark.parametrize("size", [1, 3])
 def test_the_least_recently_used_goes_first(size):
     cache, calls = ReadingsCache(size), []
-    arrays = [np.full((2, 3), float(k)) for k in range(size + 1)]
+    arrays = [frozen(np.full((2, 3), float(k))) for k in range(size + 1)]
     for a in arrays[:size]:
         cache.get(a, (), lambda a=a: calls.append(a[0, 0]))
     cache.get(arrays[0], (), lambda: calls.append("again"))  # used again: now the most recent
@@ -31,7 +38,18 @@ def test_the_least_recently_used_goes_first(size):
 
 def test_a_value_the_caller_refuses_is_computed_again():
     cache = ReadingsCache(2)
-    y = np.zeros((3, 3))
+    y = frozen(np.zeros((3, 3)))
     assert cache.get(y, (), lambda: 1) == 1
     assert cache.get(y, (), lambda: 2, valid=lambda v: v == 2) == 2  # refused, replaced
     assert cache.get(y, (), lambda: 3, valid=lambda v: v == 2) == 2
+
+
+def test_a_writable_array_is_never_kept():
+    """Its values may change in place (issue 27: a stale noise floor came from such an array): computed each time."""
+    cache, calls = ReadingsCache(4), []
+    y = np.zeros((5, 3))
+    compute = lambda: calls.append(1) or float(y.sum())
+    assert cache.get(y, ("sum",), compute) == 0.0
+    y += 1.0
+    assert cache.get(y, ("sum",), compute) == 15.0
+    assert len(calls) == 2

@@ -34,11 +34,11 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.fft
-from scipy.signal import savgol_filter
 from scipy.special import eval_legendre
 
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
+from magcal.core.stats import savgol_derivative
 from magcal.core.vectors import row_norm
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
 from magcal.model.perturbations import catalogue_perturbation
@@ -108,7 +108,7 @@ def time_derivative(values, time_s, window=7):
     step = float(np.median(dt))
     regular = step > 0 and np.all(np.abs(dt - step) <= 0.01 * step)
     if regular and n >= window:
-        return savgol_filter(values, window, 3, deriv=1, delta=step, axis=0, mode="interp")
+        return savgol_derivative(values, window, step)
     return np.gradient(values, t, axis=0)
 
 
