@@ -212,15 +212,13 @@ def run(args) -> int:
     notes += calibration_input_checks(ds)  # coverage (issue 6)
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = calibrate(ds, **calibrate_options(args), progress=progress)
+        result = calibrate(ds, **calibrate_options(args), progress=progress)
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     finally:
         if bar is not None:
             bar.close()
-    notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
+    notes += [note.text for note in result.notes if note.text not in result.warnings]
     if names and args.method == "ml" and getattr(args, "validate", True):
         notes += _attach_validation(result, ds)
     result.calibration.fitted_on(ds)  # record-only terms then act on this record only (magcal apply)
