@@ -345,7 +345,8 @@ def add_reference_arguments(parser) -> None:
 
 
 def reference_from_args(args, dataset=None) -> Reference:
-    """:func:`resolve_reference` from the options of :func:`add_reference_arguments`."""
-    return resolve_reference(
+    """:func:`resolve_reference_with_notes` from the options of :func:`add_reference_arguments` (the command line
+    prints its ``notes``)."""
+    return resolve_reference_with_notes(
         dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km, date=args.date
     )
