@@ -1064,7 +1064,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from magcal.model import plugins
 
-    skipped = []  # a broken installed effect package is reported, skipped
+    skipped: list = []  # a broken installed effect package is reported, skipped
     plugins.load_entry_points(notes=skipped)
     for note in skipped:
         print(f"magcal-workbench: {note.text}", file=sys.stderr)

@@ -942,7 +942,7 @@ def load_dataset(source, name: str | None = None, **options):
     from magcal.data import io as mio
 
     options = {k: v for k, v in options.items() if v is not None}
-    notes = []  # the reader's notes as values (this may run on the workbench's worker thread)
+    notes: list = []  # the reader's notes as values (this may run on the workbench's worker thread)
     ds = mio.read_csv(source, name=name, notes=notes, **options)
     return ds, [note.text for note in notes]
 

@@ -41,7 +41,7 @@ def add_effects_file_argument(parser) -> None:
 
 def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
-    notes = []
+    notes: list = []
     plugins.load_entry_points(notes=notes)
     for note in notes:
         print(f"{command}: warning: {note.text}", file=sys.stderr)

@@ -986,6 +986,11 @@ def fit(
     -------
     FitResult
 
+    Warns
+    -----
+    ConvergenceWarning
+        When the fit did not converge (its ``notes`` hold the same; :func:`fit_with_notes` does not warn).
+
     Notes
     -----
     Effects with constants estimated from the data (the hysteresis play width, the time of a bias step) refine

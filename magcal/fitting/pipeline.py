@@ -514,6 +514,8 @@ def calibrate(
     Returns
     -------
     CalibrationResult
+        What the steps had to say is in its ``notes`` (and ``warnings``), never raised as a warning here: the
+        steps may run on threads (:mod:`magcal.core.notes`); :func:`magcal.calibrate` raises them.
 
     Raises
     ------
