@@ -8,6 +8,7 @@ the data CSV, turn it into a dataset with :func:`magcal.data.dataset.as_dataset`
 
 from __future__ import annotations
 
+from magcal.core import notes as _notes
 from magcal.data.inputs import as_dataset
 from magcal.data.io import read_csv
 from magcal.diagnosis import diagnose as _diagnose
@@ -28,6 +29,7 @@ def calibrate(
     temp=None,
     noise_nT=None,
     validate: bool = False,
+    warn: bool = True,
     **options,
 ):
     """Calibrate one to four sensors from readings taken while turning them in a uniform field.
@@ -57,6 +59,11 @@ def calibrate(
         Also fit the base model and the model with ``effects`` on alternating blocks in time and score them on
         the blocks between (:func:`magcal.fitting.validation.validate_effects`): ``result.validation`` holds the
         held-out RMS beside the in-sample one (method ``ml`` only).
+    warn : bool
+        Raise the result's ``notes`` (weak coverage, a fit that did not converge) as Python warnings
+        (:class:`~magcal.core.errors.CoverageWarning`, :class:`~magcal.core.errors.ConvergenceWarning`...), the
+        default; False leaves them in ``result.notes`` only (for a program that shows them itself, or calls this
+        from threads: :mod:`warnings` filters are process-wide).
     **options
         Passed on to :func:`magcal.fitting.pipeline.calibrate` (``seed``, ``progress``, ``mask``, ``ellipsoid_method``,
         ``base_terms``).
@@ -97,12 +104,15 @@ def calibrate(
     )
     if validate:
         result.validation = validate_effects(dataset, result)
+        result.notes = _notes.unique(result.notes + result.validation.notes)
     if options.get("mask") is None:
         result.calibration.fitted_on(dataset)  # record-only terms act on this record only
+    if warn:
+        _notes.warn(result.notes)
     return result
 
 
-def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, **options):
+def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, warn: bool = True, **options):
     """Where the calibration model fails on the data, and which physical effect is missing.
 
     Parameters
@@ -117,6 +127,10 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, *
         Sample times in s, for array input; the tests against time need them.
     temp : array_like, shape (N,) or float, optional
         Temperature in degC, for array input; the tests against temperature need it.
+    warn : bool
+        Raise the diagnosis's ``notes`` (what its own fits said: weak coverage of the fit made when ``result``
+        is not given, a refit that did not converge) as Python warnings, the default; False leaves them in
+        ``.notes`` only.
     **options
         Passed on to :func:`magcal.diagnosis.diagnose` (``effects``, ``model``, ``top``, ``candidates``,
         ``max_effects``, ``progress``, ``validate``: judge the candidates on held-out samples, default True;
@@ -138,4 +152,7 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, *
     """
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
-    return _diagnose(dataset, result, **options)
+    diagnosis = _diagnose(dataset, result, **options)
+    if warn:
+        _notes.warn(diagnosis.notes)
+    return diagnosis

@@ -1062,15 +1062,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    import warnings
-
     from magcal.model import plugins
 
-    with warnings.catch_warnings(record=True) as caught:  # a broken installed effect package is reported, skipped
-        warnings.simplefilter("always")
-        plugins.load_entry_points()
-    for w in caught:
-        print(f"magcal-workbench: {w.message}", file=sys.stderr)
+    skipped: list = []  # a broken installed effect package is reported, skipped
+    plugins.load_entry_points(notes=skipped)
+    for note in skipped:
+        print(f"magcal-workbench: {note.text}", file=sys.stderr)
     try:
         plugins.load_effects_files(args.effects_file)
         store = None if args.no_session else SessionStore(args.session_dir, int(args.max_sessions_mb * 1e6))

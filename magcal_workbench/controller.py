@@ -18,7 +18,6 @@ import os
 import threading
 import time
 import traceback
-import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -396,16 +395,14 @@ class Controller:
             return None, f"held-out validation not done: {problem}"
         self._report_progress("held-out validation (blocks)", None)
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                v = validation.validate(
-                    kept,
-                    model=fit.model,
-                    scheme="blocks",
-                    init=fit.calibration,
-                    robust=self.state.robust,
-                    reference_total_nT=self.reference_arg,
-                )
+            v = validation.validate(  # its fit's notes stay in v.fit_notes: the fit itself has said them
+                kept,
+                model=fit.model,
+                scheme="blocks",
+                init=fit.calibration,
+                robust=self.state.robust,
+                reference_total_nT=self.reference_arg,
+            )
         except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
             from magcal.model import plugins
 
@@ -586,12 +583,9 @@ class Controller:
         ds = self.fit_dataset()
         kept_ds = ds.subset(self.kept)
         ref, kind = resolve_reference(kept_ds, self.reference_arg)
-        with warnings.catch_warnings(record=True) as wl:
-            warnings.simplefilter("always")
-            fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
-        notes = [str(w.message) for w in wl]
+        fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
         cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
-        notes += [w for f in fits for w in f.warnings]
+        notes = [w for f in fits for w in f.warnings]
         self.fit_result = None
         self.calibration_result = None
         self.diagnosis = None
@@ -621,23 +615,21 @@ class Controller:
 
     def step_refine(self, label: str = "refine (ML)") -> StepRecord:
         """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
-        from magcal.fitting.fitter import fit as ml_fit
+        from magcal.fitting.fitter import fit_with_notes
 
         t0 = time.perf_counter()
         old, rms0, tb = self._before()
         init = self.calibration
         ds = self.fit_dataset()
-        with warnings.catch_warnings(record=True) as wl:
-            warnings.simplefilter("always")
-            result = ml_fit(
-                ds,
-                self._model(),
-                init=init,
-                loss="soft_l1" if self.state.robust else "linear",
-                mask=self.kept,
-                reference_total_nT=self.reference_arg,
-            )
-        notes = [str(w.message) for w in wl if not issubclass(w.category, ConvergenceWarning)]  # the status says it
+        result = fit_with_notes(
+            ds,
+            self._model(),
+            init=init,
+            loss="soft_l1" if self.state.robust else "linear",
+            mask=self.kept,
+            reference_total_nT=self.reference_arg,
+        )
+        notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result
         self.calibration_result = None
         self.diagnosis = None
@@ -653,19 +645,17 @@ class Controller:
         old, rms0, tb = self._before()
         self._report_progress(f"{method}: starting", 0.0)
         effects = list(self.state.effects) if method == "ml" else []
-        with warnings.catch_warnings(record=True):
-            warnings.simplefilter("always")  # the same concerns are in result.warnings
-            result = pipeline.calibrate(
-                self.fit_dataset(),
-                method=method,
-                effects=effects,
-                robust=self.state.robust,
-                reference_total_nT=self.reference_arg,
-                seed=0,
-                progress=self._report_progress,
-                mask=self.kept,
-                noise_nT=self.state.noise_nT,
-            )
+        result = pipeline.calibrate(  # never warns: its concerns are in result.warnings, its notes in result.notes
+            self.fit_dataset(),
+            method=method,
+            effects=effects,
+            robust=self.state.robust,
+            reference_total_nT=self.reference_arg,
+            seed=0,
+            progress=self._report_progress,
+            mask=self.kept,
+            noise_nT=self.state.noise_nT,
+        )
         self.calibration_result = result
         self.fit_result = result.fit
         self.diagnosis = None
@@ -952,10 +942,9 @@ def load_dataset(source, name: str | None = None, **options):
     from magcal.data import io as mio
 
     options = {k: v for k, v in options.items() if v is not None}
-    with warnings.catch_warnings(record=True) as wl:
-        warnings.simplefilter("always")
-        ds = mio.read_csv(source, name=name, **options)
-    return ds, [str(w.message) for w in wl]
+    notes: list = []  # the reader's notes as values (this may run on the workbench's worker thread)
+    ds = mio.read_csv(source, name=name, notes=notes, **options)
+    return ds, [note.text for note in notes]
 
 
 def read_bytes_dataset(name: str, content: bytes, **options):

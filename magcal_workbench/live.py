@@ -24,7 +24,6 @@ import datetime as _dt
 import os
 import threading
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -226,9 +225,8 @@ class LiveView:
 
     def _refit(self, ds) -> None:
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # weak coverage early on is the point of the live view
-                result = magcal.calibrate(ds, method="ml")
+            # weak coverage early on is the point of the live view: its notes stay in result.notes, unsaid
+            result = magcal.calibrate(ds, method="ml", warn=False)
             self.fit = LiveFit(result, ds.n_samples)
             self.fit_error = None
             self.verdict = live_sufficient(self.maps, self.fit.rms_nT, self.fit.floor_nT)
@@ -253,10 +251,9 @@ class LiveView:
         corrected = residual = None
         F = float(np.median(np.linalg.norm(ds.readings_nT, axis=2)))
         if fit is not None:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                corrected = fit.calibration.correct(ds)
-                residual = fit.calibration.total_field_residuals(ds, corrected=corrected)
+            # the fit is of this recording (grown since): any record-only terms apply, silently
+            corrected = fit.calibration.correct(ds, record_terms="apply")
+            residual = fit.calibration.total_field_residuals(ds, corrected=corrected, record_terms="apply")
             if fit.calibration.reference_total_nT:
                 F = float(fit.calibration.reference_total_nT)
         else:

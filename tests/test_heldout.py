@@ -10,6 +10,7 @@ import magcal
 from magcal.calibration.report import text_report
 from magcal.checks.noise import estimate_noise
 from magcal.cli import main
+from magcal.core.errors import CoverageWarning
 from magcal.data import io
 from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import diagnose
@@ -204,8 +205,9 @@ def test_nothing_is_recommended_when_the_base_calibration_is_not_determined(hidd
     cap = (y / np.linalg.norm(y, axis=1, keepdims=True))[:, 0] > 0.82
     ds = ds.subset(cap).replace(reference_total_nT=None)
     assert 300 < ds.n_samples < 6000
-    with pytest.warns(Warning):  # the weak coverage is said at the fit too
-        d = diagnose(ds)
+    with pytest.warns(CoverageWarning, match="weak coverage"):  # said at the fit too: a note magcal.diagnose raises
+        d = magcal.diagnose(ds)
+    assert any(n.is_a(CoverageWarning) and "weak coverage" in n.text for n in d.notes)
     assert d.explained_by == [] and d.verdict != "missing_effect"
     assert any("not determined by these data" in w and "weak coverage" in w for w in d.warnings)
 

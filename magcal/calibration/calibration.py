@@ -9,15 +9,16 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from magcal.calibration.uncertainty import covariance_size, field_uncertainty
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.core.jsonable import jsonable
+from magcal.core.notes import Note
 from magcal.core.vectors import basis_times, row_norm
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
@@ -347,16 +348,24 @@ class Calibration:
         )
 
     def _model_for(self, dataset, record_terms, stages, warn=True):
-        """The model (and effect values) to evaluate on ``dataset`` after the record-term decision."""
+        """The model (and effect values) to evaluate on ``dataset`` after the record-term decision; its note
+        raised as a :class:`~magcal.core.errors.RecordTermWarning` with ``warn`` (the public methods)."""
+        model, notes = self._model_and_notes(dataset, record_terms, stages)
+        if warn:
+            _notes.warn(notes, stacklevel=3)
+        return model
+
+    def _model_and_notes(self, dataset, record_terms, stages):
+        """``(model, notes)``: the model to evaluate on ``dataset`` after the record-term decision, and its note
+        (:class:`~magcal.core.notes.Note`, RecordTermWarning) in a list."""
         dropped, note = self.record_decision(dataset, record_terms, stages)
-        if note and warn:
-            warnings.warn(note, RecordTermWarning, stacklevel=3)
+        notes = [Note(note, RecordTermWarning, "correct")] if note else []
         if not dropped:
-            return self.model
+            return self.model, notes
         model = self.model
         for label in dropped:
             model = model.without(label)
-        return model
+        return model, notes
 
     # --- applying it --------------------------------------------------------------------------------------
     @staticmethod
@@ -392,10 +401,18 @@ class Calibration:
         (200, 3)
         """
         dataset, one = self._as_dataset(data, t, temp)
+        vectors, notes = self.corrected_with_notes(dataset, record_terms)
+        _notes.warn(notes)
+        return vectors[0] if one else vectors
+
+    def corrected_with_notes(self, dataset, record_terms=None):
+        """``(vectors, notes)``: :meth:`correct`'s vectors (n_sensors, N, 3), nT, and its note (record-only terms
+        dropped or applied unproven: :class:`~magcal.core.notes.Note`, RecordTermWarning) in a list, not raised:
+        for the engine's steps, which pass notes back as values."""
         self.check(dataset)
-        model = self._model_for(dataset, record_terms, VECTOR_STAGES)
-        out = corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
-        return out[0] if one else out
+        model, notes = self._model_and_notes(dataset, record_terms, VECTOR_STAGES)
+        vectors = corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        return vectors, notes
 
     def total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT, or (N,) for one sensor's ``(N, 3)`` array (``data``,

@@ -21,14 +21,15 @@ warns (:class:`~magcal.core.errors.CoverageWarning`) when the expected extrapola
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magcal.checks.reference import resolve_reference
+from magcal.checks.reference import resolve_reference_with_notes
+from magcal.core import notes as _notes
 from magcal.core.errors import CoverageWarning
+from magcal.core.notes import Note
 from magcal.data.dataset import Dataset, DatasetError
 from magcal.geometry.shape import FULL_MODEL_PARAMS, FieldShape, extrapolation_factor, field_shape, sensor_directions
 from magcal.geometry.sphere import direction_cover, fibonacci_sphere
@@ -142,6 +143,27 @@ def check_coverage(
 ):
     """Coverage figures, refusing data that cannot determine a full model and warning when coverage is poor.
 
+    :func:`check_coverage_with_notes`, its note raised as a :class:`~magcal.core.errors.CoverageWarning`.
+    """
+    cov, notes = check_coverage_with_notes(
+        data, full_model, cap_deg, noise_nT, factor_warn, fraction_warn, planarity_min, source
+    )
+    _notes.warn(notes)
+    return cov
+
+
+def check_coverage_with_notes(
+    data,
+    full_model=True,
+    cap_deg=30.0,
+    noise_nT=None,
+    factor_warn=3.0,
+    fraction_warn=0.5,
+    planarity_min=0.02,
+    source=None,
+):
+    """Coverage figures, refusing data that cannot determine a full model; a note when coverage is poor.
+
     Parameters
     ----------
     data : Dataset or array_like
@@ -156,7 +178,9 @@ def check_coverage(
 
     Returns
     -------
-    Coverage
+    cov : Coverage
+    notes : list of Note
+        A :class:`~magcal.core.errors.CoverageWarning` note when the coverage is poor, else empty.
 
     Raises
     ------
@@ -202,14 +226,13 @@ def check_coverage(
                 f"expected total-field error away from the covered directions ~{k:.3g} x the noise "
                 f"(even coverage with as many samples: {cov.full_factor:.3g} x)"
             )
-        warnings.warn(
+        text = (
             f"{where}: poor direction coverage for sensor(s) {', '.join(str(i + 1) for i in poor)}: "
             f"{100 * cov.fraction[worst]:.0f}% of the sphere within {cap_deg:g} deg of a sample, largest gap "
-            f"{cov.largest_gap_deg[worst]:.0f} deg; {err}. Record attitudes that fill the gaps",
-            CoverageWarning,
-            stacklevel=2,
+            f"{cov.largest_gap_deg[worst]:.0f} deg; {err}. Record attitudes that fill the gaps"
         )
-    return cov
+        return cov, [Note(text, CoverageWarning, "coverage")]
+    return cov, []
 
 
 def calibration_input_checks(dataset, reference_nT=None):
@@ -219,13 +242,12 @@ def calibration_input_checks(dataset, reference_nT=None):
     Used by ``magcal calibrate``; the fit itself refuses rotation about one axis and too few samples.
     """
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        if reference_nT is not None:
-            resolve_reference(dataset, str(reference_nT))
-        if dataset.n_samples >= FULL_MODEL_PARAMS + 1:
-            check_coverage(dataset, full_model=False)
-    return [str(w.message) for w in caught]
+    notes = []
+    if reference_nT is not None:
+        notes += resolve_reference_with_notes(dataset, str(reference_nT)).notes
+    if dataset.n_samples >= FULL_MODEL_PARAMS + 1:
+        notes += check_coverage_with_notes(dataset, full_model=False)[1]
+    return [note.text for note in notes]
 
 
 # --- where to turn next (the live view) --------------------------------------------------------------------------

@@ -18,12 +18,14 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import io as _io
-import warnings
-from dataclasses import dataclass
+import warnings  # only to silence ppigrf's own noise
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError
+from magcal.core.notes import Note
 from magcal.data.dataset import Dataset
 from magcal.geometry.shape import field_magnitude_nT
 
@@ -44,11 +46,16 @@ class Reference:
         Where it came from, for reports.
     kind : str
         ``number``, ``igrf``, ``column``, ``metadata`` or ``fitted``.
+    notes : list of Note
+        What the checks found (:mod:`magcal.core.notes`): a value outside the Earth's range, readings far from it.
+        :func:`resolve_reference` raises them as :class:`~magcal.core.errors.DataWarning`;
+        :func:`resolve_reference_with_notes` leaves them here.
     """
 
     value_nT: float | np.ndarray | None
     text: str
     kind: str
+    notes: list = field(default_factory=list, compare=False)
 
     def __iter__(self):  # allows ``value, text = resolve_reference(...)``
         yield self.value_nT
@@ -159,7 +166,8 @@ def igrf_total_nT(lat, lon, alt_km=0.0, date=None):
     return total, comps
 
 
-def _check_plausible(value, what):
+def _check_plausible(value, what) -> list:
+    """Refuse a reference that is no field in nT; a note (in a list) when it lies outside the Earth's range."""
     lo, hi = PLAUSIBLE_TOTAL_nT
     v = np.atleast_1d(np.asarray(value, dtype=float))
     if not np.all(np.isfinite(v)):
@@ -177,16 +185,30 @@ def _check_plausible(value, what):
             raise MagcalError(
                 f"{what}: {bad:g} nT is outside the Earth's field range {lo:g}-{hi:g} nT{hint}; give the reference in nT"
             )
-        warnings.warn(
-            f"{what}: {bad:g} nT is outside the Earth's field range {lo:g}-{hi:g} nT; fine for a coil system, "
-            "otherwise check the value",
-            DataWarning,
-            stacklevel=4,
-        )
+        return [
+            Note(
+                f"{what}: {bad:g} nT is outside the Earth's field range {lo:g}-{hi:g} nT; fine for a coil system, "
+                "otherwise check the value",
+                DataWarning,
+                "reference",
+            )
+        ]
+    return []
 
 
 def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
     """The reference total field and a sentence saying where it came from: the one place that decides it.
+
+    :func:`resolve_reference_with_notes`, its checks' notes raised as :class:`~magcal.core.errors.DataWarning`.
+    """
+    ref = resolve_reference_with_notes(dataset, reference, lat, lon, alt_km, date, check)
+    _notes.warn(ref.notes)
+    return ref
+
+
+def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
+    """The reference total field and a sentence saying where it came from; what the checks found is in its
+    ``notes``, never raised.
 
     Parameters
     ----------
@@ -205,7 +227,7 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     Returns
     -------
     Reference
-        ``value_nT`` (float, (N,) array or None), ``text``, ``kind``; unpacks as ``value, text``.
+        ``value_nT`` (float, (N,) array or None), ``text``, ``kind``, ``notes``; unpacks as ``value, text``.
 
     Raises
     ------
@@ -216,6 +238,7 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     meta = None if dataset is None else dataset.reference_total_nT
     where = (dataset.source if dataset is not None and dataset.source else None) or "data"
     choice = None if reference is None else str(reference).strip()
+    found = []  # the checks' notes
     if choice is not None and choice.lower() == "igrf":
         if lat is None or lon is None:
             raise MagcalError(
@@ -248,7 +271,7 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
                 f"--reference: {reference!r} is neither a number of nT nor 'igrf', 'column' or 'fit'"
             ) from None
         if check:
-            _check_plausible(value, "--reference")
+            found += _check_plausible(value, "--reference")
         text = f"given reference: {value:.1f} nT"
         if column is not None:
             text += " (the file's ref_total column is not used)"
@@ -257,7 +280,7 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
         ref = _column_reference(column, where, check)
     elif meta is not None:
         if check:
-            _check_plausible(meta, f"{where}: metadata reference_total_nT")
+            found += _check_plausible(meta, f"{where}: metadata reference_total_nT")
         ref = Reference(float(meta), f"file metadata reference_total_nT: {float(meta):.1f} nT", "metadata")
     else:
         ref = Reference(
@@ -267,21 +290,21 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
             "fitted",
         )
     if check and dataset is not None and ref.known:
-        _compare_with_data(dataset, ref)
+        found += _compare_with_data(dataset, ref)
+    ref.notes.extend(found)
     return ref
 
 
 def _column_reference(column, where, check=True):
     col = np.asarray(column, dtype=float)
-    if check:
-        _check_plausible(col, f"{where}: column ref_total")
+    found = _check_plausible(col, f"{where}: column ref_total") if check else []
     spread = float(np.ptp(col)) if col.size else 0.0
     text = f"per-sample ref_total column: mean {np.mean(col):.1f} nT, spread {spread:.1f} nT over {col.size} samples"
-    return Reference(col, text, "column")
+    return Reference(col, text, "column", found)
 
 
-def _compare_with_data(dataset, ref):
-    """Warn when the field the readings imply is far from the reference (wrong units or wrong reference).
+def _compare_with_data(dataset, ref) -> list:
+    """A note (in a list) when the field the readings imply is far from the reference (wrong units or wrong reference).
 
     The readings' magnitude is the fitted one (:func:`magcal.checks.coverage.field_magnitude_nT`: about the fitted
     centre, through the fitted shape), so neither a hard-iron offset nor unequal axis gains are mistaken for a
@@ -289,17 +312,20 @@ def _compare_with_data(dataset, ref):
     """
 
     if dataset.readings_nT.size == 0:
-        return
+        return []
     median = float(np.median([field_magnitude_nT(y) for y in dataset.readings_nT]))
     value = float(np.median(np.atleast_1d(ref.value_nT)))
     if not 0.8 <= median / value <= 1.25:
-        warnings.warn(
-            f"{dataset.source or 'dataset'}: the field the readings imply (fitted: hard iron removed, axis gains "
-            f"averaged) {median:.0f} nT differs from the reference "
-            f"{value:.0f} nT by {100 * (median / value - 1):+.0f}%; check the units and the reference",
-            DataWarning,
-            stacklevel=3,
-        )
+        return [
+            Note(
+                f"{dataset.source or 'dataset'}: the field the readings imply (fitted: hard iron removed, axis "
+                f"gains averaged) {median:.0f} nT differs from the reference "
+                f"{value:.0f} nT by {100 * (median / value - 1):+.0f}%; check the units and the reference",
+                DataWarning,
+                "reference",
+            )
+        ]
+    return []
 
 
 def add_reference_arguments(parser) -> None:
@@ -319,7 +345,8 @@ def add_reference_arguments(parser) -> None:
 
 
 def reference_from_args(args, dataset=None) -> Reference:
-    """:func:`resolve_reference` from the options of :func:`add_reference_arguments`."""
-    return resolve_reference(
+    """:func:`resolve_reference_with_notes` from the options of :func:`add_reference_arguments` (the command line
+    prints its ``notes``)."""
+    return resolve_reference_with_notes(
         dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km, date=args.date
     )

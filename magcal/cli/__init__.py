@@ -41,13 +41,10 @@ def add_effects_file_argument(parser) -> None:
 
 def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
-    import warnings
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        plugins.load_entry_points()
-    for w in caught:
-        print(f"{command}: warning: {w.message}", file=sys.stderr)
+    notes: list = []
+    plugins.load_entry_points(notes=notes)
+    for note in notes:
+        print(f"{command}: warning: {note.text}", file=sys.stderr)
     plugins.load_effects_files(getattr(args, "effects_file", None))
 
 

@@ -69,6 +69,7 @@ def run(args) -> int:
             calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
         else:
             ref = reference_from_args(args, ds)
+            notes += [note.text for note in ref.notes]
             ref_text = ref.text
             ds = ref.apply(ds)
             ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None

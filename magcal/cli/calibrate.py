@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import warnings
 
 from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.coverage import calibration_input_checks
@@ -151,12 +150,16 @@ def checked_noise(args):
 def read_input(args):
     """Read the data file named by :func:`add_input_arguments` options; returns ``(dataset, warning texts)``."""
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ds = io.read_csv(
-            args.data, columns=args.columns, units=args.units, drop_bad=args.drop_bad, lsb_nT=getattr(args, "lsb", None)
-        )
-    return ds, [str(w.message) for w in caught]
+    notes = []
+    ds = io.read_csv(
+        args.data,
+        columns=args.columns,
+        units=args.units,
+        drop_bad=args.drop_bad,
+        lsb_nT=getattr(args, "lsb", None),
+        notes=notes,
+    )
+    return ds, [note.text for note in notes]
 
 
 def named_error(path, exc) -> str:
@@ -200,10 +203,8 @@ def run(args) -> int:
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     ds, notes = read_input(args)
-    with warnings.catch_warnings(record=True) as caught_ref:
-        warnings.simplefilter("always")
-        reference = reference_from_args(args, ds)
-    notes += [str(w.message) for w in caught_ref]
+    reference = reference_from_args(args, ds)
+    notes += [note.text for note in reference.notes]
     ds = reference.apply(ds)
     if reference.kind == "fitted":
         ds = ds.replace(ref_total_nT=None)
@@ -212,15 +213,13 @@ def run(args) -> int:
     notes += calibration_input_checks(ds)  # coverage (issue 6)
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = calibrate(ds, **calibrate_options(args), progress=progress)
+        result = calibrate(ds, **calibrate_options(args), progress=progress)
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     finally:
         if bar is not None:
             bar.close()
-    notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
+    notes += [note.text for note in result.notes if note.text not in result.warnings]
     if names and args.method == "ml" and getattr(args, "validate", True):
         notes += _attach_validation(result, ds)
     result.calibration.fitted_on(ds)  # record-only terms then act on this record only (magcal apply)

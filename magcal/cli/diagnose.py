@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import warnings
 
 from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.quality import assess, field_magnitude_finding
@@ -37,6 +36,7 @@ from magcal.cli.calibrate import (
     read_input,
 )
 from magcal.core.errors import CalibrationError, MagcalError
+from magcal.core.notes import unique
 from magcal.diagnosis import diagnose
 from magcal.fitting.pipeline import calibrate
 
@@ -105,16 +105,14 @@ def run(args) -> int:
     ds, notes = read_input(args)
     quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            result = calibrate(
-                ds, effects=names, robust=args.robust, reference_total_nT=args.reference, noise_nT=args.noise
-            )
-            diagnosis = diagnose(ds, result, top=args.top, validate=args.validate, noise_nT=args.noise)
-        except CalibrationError as exc:
-            raise MagcalError(named_error(args.data, exc)) from None
-    notes += [str(w.message) for w in caught]
+    try:
+        result = calibrate(
+            ds, effects=names, robust=args.robust, reference_total_nT=args.reference, noise_nT=args.noise
+        )
+        diagnosis = diagnose(ds, result, top=args.top, validate=args.validate, noise_nT=args.noise)
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    notes += [note.text for note in unique(result.notes + diagnosis.notes)]  # what the fits said, as values
     notes += [w for w in result.warnings if w not in notes]
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
     notes += [w for w in quality.warnings if w not in notes]

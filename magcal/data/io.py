@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import DataWarning, MagcalError
+from magcal.core.notes import say
 from magcal.data.dataset import (
     QUATERNION_COLUMNS,
     SENSOR_AXES,
@@ -146,6 +147,12 @@ def parse_units(units, where="--units", lsb_nT=None):
     return factor
 
 
+def _say(notes, text, stacklevel=2):
+    """A reader's note: appended to ``notes`` (a list) or, when None, raised as a :class:`DataWarning`
+    (:func:`magcal.core.notes.say`)."""
+    say(notes, text, DataWarning, "read", stacklevel + 1)
+
+
 def parse_column_mapping(text):
     """Parse a CLI column mapping ``"x=magX,y=magY,z=magZ,t=time"`` into ``{"s1x": "magX", ...}``.
 
@@ -225,7 +232,7 @@ class Layout:
         return cols
 
 
-def _find_layout(header, columns, source, header_line=1):
+def _find_layout(header, columns, source, header_line=1, notes=None):
     """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name."""
     names = list(header)
     index = {}
@@ -257,10 +264,10 @@ def _find_layout(header, columns, source, header_line=1):
         if key in SENSOR_AXES:
             key = f"s1{key}"
             if any(_SENSOR_RE.match(n) for n in names):  # s1x... and bare x: keep x as an extra column
-                warnings.warn(
+                _say(
+                    notes,
                     f"{source}: the file has both s1x-style columns and a bare {name!r} column; {name!r} is kept "
                     "as an unused column",
-                    DataWarning,
                     stacklevel=4,
                 )
                 continue
@@ -407,11 +414,14 @@ class CsvSource:
     lsb_nT : float or str, optional
         nT per count for readings in raw counts; overrides the file's ``# lsb_nT:`` line. Refused unless the
         readings are in counts. The LSB used is kept as the metadata ``lsb_nT`` of the datasets.
+    notes : list, optional
+        Where the reader's notes go (:class:`~magcal.core.notes.Note`); None: raised as :class:`DataWarning`.
 
     Use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None):
+    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None, notes=None):
+        self._notes = notes
         self.metadata = {}
         self.metadata_lines = []
         self._file = None
@@ -435,7 +445,7 @@ class CsvSource:
                         f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path"
                     ) from None
             self._read_head()
-            self.layout = _find_layout(self.header, columns, self.source, self.header_line)
+            self.layout = _find_layout(self.header, columns, self.source, self.header_line, self._notes)
             self._resolve_units(units, lsb_nT)
         except BaseException:
             self.close()
@@ -508,10 +518,10 @@ class CsvSource:
                     key, value = key.strip(), value.strip()
                     if key:
                         if key in self.metadata and self.metadata[key] != value:
-                            warnings.warn(
+                            _say(
+                                self._notes,
                                 f"{self.source}: line {self._lineno}: metadata {key!r} given twice; the last value "
                                 f"{value!r} is used",
-                                DataWarning,
                                 stacklevel=3,
                             )
                         self.metadata[key] = value
@@ -568,11 +578,7 @@ class CsvSource:
                     f"({origin}); add --units counts if the readings are counts, or leave out --lsb"
                 )
             if file_lsb is not None and parse_lsb(file_lsb) != lsb:
-                warnings.warn(
-                    f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'",
-                    DataWarning,
-                    stacklevel=3,
-                )
+                _say(self._notes, f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'", 3)
         elif counts and file_lsb is not None:
             lsb = parse_lsb(file_lsb)
         if given:
@@ -585,11 +591,7 @@ class CsvSource:
         if given and file_units is not None:
             same = is_counts(file_units) == counts and (counts or parse_units(file_units) == self.unit_factor)
             if not same:
-                warnings.warn(
-                    f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'",
-                    DataWarning,
-                    stacklevel=3,
-                )
+                _say(self._notes, f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'", 3)
         self.lsb_nT = lsb if counts else None
         if self.lsb_nT is not None:
             self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
@@ -740,11 +742,7 @@ class CsvSource:
                     f"{self.source}: {len(problems)} row(s) with bad values: {shown}{more}. Fix or delete these rows, "
                     "or drop them with --drop-bad (drop_bad=True)"
                 )
-            warnings.warn(
-                f"{self.source}: dropped {len(problems)} row(s) with bad values: {shown}{more}",
-                DataWarning,
-                stacklevel=4,
-            )
+            _say(self._notes, f"{self.source}: dropped {len(problems)} row(s) with bad values: {shown}{more}", 4)
         return rows, values[keep], keep
 
     def _dataset(self, values, text, numbers):
@@ -769,10 +767,10 @@ class CsvSource:
                 )
             if np.any(np.abs(norm - 1.0) > 1e-3):
                 worst = int(np.argmax(np.abs(norm - 1.0)))
-                warnings.warn(
+                _say(
+                    self._notes,
                     f"{self.source}: attitude quaternions are not unit length (line {numbers[worst]}: "
                     f"|q| = {norm[worst]:.4g}); they are normalised",
-                    DataWarning,
                     stacklevel=4,
                 )
             off = np.abs(norm - 1.0) > 1e-9
@@ -878,14 +876,14 @@ def concatenate(datasets):
     )
 
 
-def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
+def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None, notes=None):
     """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit (or another LSB).
 
     The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
     usually means a wrong ``units`` line, or for raw counts a wrong LSB. The magnitude is taken about the readings'
     fitted centre (:func:`magcal.checks.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
     error. ``lsb_nT`` (nT per count) defaults to the dataset's metadata ``lsb_nT`` for ``units="counts"``.
-    Returns the warning text, or ``None``.
+    Returns the warning text, or ``None``. With ``notes`` (a list) the note is appended to it instead of raised.
     """
 
     r = dataset.readings_nT
@@ -917,7 +915,7 @@ def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None):
         f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
         f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}"
     )
-    warnings.warn(msg, DataWarning, stacklevel=stacklevel)
+    _say(notes, msg, stacklevel=stacklevel)
     return msg
 
 
@@ -941,7 +939,17 @@ def require_samples(dataset, n_params, what="this model"):
         )
 
 
-def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chunk_rows=200_000, name=None, lsb_nT=None):
+def read_csv(
+    path,
+    columns=None,
+    units=None,
+    drop_bad=False,
+    min_samples=1,
+    chunk_rows=200_000,
+    name=None,
+    lsb_nT=None,
+    notes=None,
+):
     """Read a magcal CSV file into a :class:`~magcal.data.dataset.Dataset` (readings in nT).
 
     Parameters
@@ -967,6 +975,9 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     lsb_nT : float or str, optional
         nT per count for ``counts``; overrides the file's ``# lsb_nT:`` line (kept as metadata ``lsb_nT``). An error
         unless the readings are in counts.
+    notes : list, optional
+        Where the reader's notes go (:class:`~magcal.core.notes.Note`: dropped rows, units that look wrong...): given,
+        they are appended to it; None (default), each is raised as a :class:`DataWarning`.
 
     Returns
     -------
@@ -980,17 +991,17 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
     """
 
     if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.data.logs reads it, in nT
-        return read_log(path, name=name, min_samples=min_samples)
+        return read_log(path, name=name, min_samples=min_samples, notes=notes)
     if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
-        return read_parquet(path, name=name)
+        return read_parquet(path, name=name, notes=notes)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     if not hasattr(path, "read") and not drop_bad:
-        ds = _read_csv_arrow(path, columns, units, name, lsb_nT)  # None: take the line-by-line reader
+        ds = _read_csv_arrow(path, columns, units, name, lsb_nT, notes)  # None: take the line-by-line reader
         if ds is not None:
             if ds.n_samples >= int(min_samples):
                 return ds
-    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=notes) as src:
         parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
         if not parts:
             raise DatasetError(
@@ -1003,11 +1014,11 @@ def read_csv(path, columns=None, units=None, drop_bad=False, min_samples=1, chun
                 f"{src.source}: {ds.n_samples} sample(s){dropped}, fewer than the {int(min_samples)} needed; "
                 "record more attitudes"
             )
-        check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT)
+        check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT, notes=notes)
     return ds
 
 
-def _read_csv_arrow(path, columns, units, name, lsb_nT):
+def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     """The whole file read by pyarrow's CSV reader when it is clean, else None (the caller then reads it line by
     line, which finds and names every problem).
 
@@ -1015,19 +1026,18 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
     are the same; the data lines go to pyarrow with the numeric columns typed float64, and the values to the same
     dataset builder as a CSV block. Anything unusual -- pyarrow missing, a field it cannot convert, a quoted or
     short line, a non-finite value, a problem the builder would report (it names lines, which blank lines would
-    shift here) -- returns None.
+    shift here) -- returns None. ``notes`` as in :func:`read_csv`.
     """
     try:
         import pyarrow as pa
         import pyarrow.csv as pacsv
     except ImportError:
         return None
-    with warnings.catch_warnings(record=True) as head_warnings:
-        warnings.simplefilter("always")
-        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
-            header_line = src.header_line
-            layout, header = src.layout, list(src.header)
-    if head_warnings or len(set(header)) != len(header) or any(not h for h in header):
+    head_notes = []  # the head's notes: any sends the file to the line-by-line reader, which says them
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=head_notes) as src:
+        header_line = src.header_line
+        layout, header = src.layout, list(src.header)
+    if head_notes or len(set(header)) != len(header) or any(not h for h in header):
         return None
     try:
         with open(os.fspath(path), "rb") as fh:
@@ -1068,19 +1078,16 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
         j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
         for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
     }
-    with warnings.catch_warnings(record=True) as build_warnings:
-        warnings.simplefilter("always")
-        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
-            try:
-                ds = src._dataset(values, text, np.arange(header_line + 1, header_line + 1 + n))
-            except DatasetError:
-                return None
-            units_used, lsb_used, source = src.units, src.lsb_nT, src.source
-    if build_warnings:
-        return None  # e.g. quaternions normalised: the line-by-line reader warns with the right line numbers
-    for w in head_warnings:
-        warnings.warn(w.message, w.category, stacklevel=3)
-    check_units(ds, units_used, source, stacklevel=4, lsb_nT=lsb_used)
+    build_notes = []
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=build_notes) as src:
+        try:
+            ds = src._dataset(values, text, np.arange(header_line + 1, header_line + 1 + n))
+        except DatasetError:
+            return None
+        units_used, lsb_used, source = src.units, src.lsb_nT, src.source
+    if build_notes:
+        return None  # e.g. quaternions normalised: the line-by-line reader says it with the right line numbers
+    check_units(ds, units_used, source, stacklevel=4, lsb_nT=lsb_used, notes=notes)
     return ds
 
 
@@ -1216,7 +1223,7 @@ class ParquetSource:
     row (1-based) and the column.
     """
 
-    def __init__(self, path, name=None):
+    def __init__(self, path, name=None, notes=None):
         self.source = str(name or os.fspath(path))
         _pyarrow(self.source)
         import pyarrow.parquet as pq
@@ -1233,7 +1240,7 @@ class ParquetSource:
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
 
-        self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
+        self._csv = CsvSource(_stdio.StringIO(head), name=self.source, notes=notes)  # notes as in CsvSource
         self.layout = self._csv.layout
 
     def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
@@ -1268,20 +1275,21 @@ class ParquetSource:
             yield self._csv._dataset(values, text, numbers)
 
 
-def read_parquet(path, name=None, chunk_rows=200_000) -> Dataset:
+def read_parquet(path, name=None, chunk_rows=200_000, notes=None) -> Dataset:
     """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
 
     The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
     kept as extra channels); the CSV's ``# key: value`` lines are the JSON object under the schema's key-value
     metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies
-    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column.
+    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column. ``notes`` as in
+    :func:`read_csv`.
     """
-    src = ParquetSource(path, name)
+    src = ParquetSource(path, name, notes)
     parts = list(src.chunks(chunk_rows))
     if not parts:
         raise DatasetError(f"{src.source}: no rows; the file has no samples")
     ds = concatenate(parts)
-    check_units(ds, src._csv.units, src.source, stacklevel=3, lsb_nT=src._csv.lsb_nT)
+    check_units(ds, src._csv.units, src.source, stacklevel=3, lsb_nT=src._csv.lsb_nT, notes=notes)
     return ds
 
 

@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal.core.errors import DataWarning
+from magcal.core.notes import say
 from magcal.data.dataset import Dataset, DatasetError
 
 #: File name endings read as flight-controller logs, and the reader of each.
@@ -49,7 +50,7 @@ def is_log(path) -> bool:
     return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(LOG_EXTENSIONS)
 
 
-def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1) -> Dataset:
+def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1, notes=None) -> Dataset:
     """Read an ArduPilot ``.bin`` or PX4 ``.ulg`` log into a :class:`Dataset` (readings in nT).
 
     Parameters
@@ -63,6 +64,9 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
         ArduPilot only: undo the logged calibration to recover the raw field (default), or keep the logged one.
     min_samples : int
         Fewest samples accepted.
+    notes : list, optional
+        Where the reader's notes go (:class:`~magcal.core.notes.Note`: magnetometers left out, samples dropped...):
+        given, they are appended to it; None (default), each is raised as a :class:`DataWarning`.
 
     Raises
     ------
@@ -76,9 +80,9 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
     if not os.path.exists(path):
         raise DatasetError(f"{source}: no such file; check the path")
     if path.lower().endswith(".ulg"):
-        ds = read_ulog(path, sensors=sensors, name=source)
+        ds = read_ulog(path, sensors=sensors, name=source, notes=notes)
     elif path.lower().endswith(".bin"):
-        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration)
+        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration, notes=notes)
     else:
         raise DatasetError(f"{source}: not a flight-controller log (expected {', '.join(LOG_EXTENSIONS)})")
     if ds.n_samples < int(min_samples):
@@ -90,22 +94,24 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
 
 
 # -- pairing several magnetometers and interpolating channels ------------------------------------------------------
-def _strictly_increasing(t, values, source, what):
+def _strictly_increasing(t, values, source, what, notes=None):
     """Sort by time and drop repeated time stamps (with a warning): the dataset's times must increase strictly."""
     order = np.argsort(t, kind="stable")
     t = t[order]
     values = values[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     if not keep.all():
-        warnings.warn(
+        say(
+            notes,
             f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped",
             DataWarning,
+            "read",
             stacklevel=4,
         )
     return t[keep], values[keep]
 
 
-def pair_by_time(series, source):
+def pair_by_time(series, source, notes=None):
     """Pair the samples of several magnetometers by time.
 
     Parameters
@@ -140,10 +146,12 @@ def pair_by_time(series, source):
         keep &= np.abs(t[nearest] - t0) <= 0.5 * step
         picks.append(nearest)
     if not keep.all():
-        warnings.warn(
+        say(
+            notes,
             f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
             "of every other one within half a sample interval; they are dropped",
             DataWarning,
+            "read",
             stacklevel=4,
         )
     values = [v0[keep]] + [v[p[keep]] for (_, v), p in zip(series[1:], picks)]
@@ -164,9 +172,9 @@ def _interp_attitude(t, t_src, rotations):
     return np.column_stack([q[:, 3], q[:, :3]])
 
 
-def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None):
+def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None, notes=None):
     """The dataset from per-magnetometer (t, nT) series and optional (t, values) channels."""
-    t, values = pair_by_time(series, source)
+    t, values = pair_by_time(series, source, notes)
     if t.size == 0:
         raise DatasetError(f"{source}: no magnetometer samples left after pairing the magnetometers by time")
     kwargs = {}
@@ -180,16 +188,18 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
     )
 
 
-def _alive(series, labels, source):
+def _alive(series, labels, source, notes=None):
     """Indices of the magnetometers to keep: those whose samples are not all one vector (zero: no compass fitted,
     or it failed), the others left out with a warning."""
     alive = []
     for k, ((_, v), label) in enumerate(zip(series, labels)):
         if v.shape[0] > 1 and np.all(v == v[0]):
-            warnings.warn(
+            say(
+                notes,
                 f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
                 f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out",
                 DataWarning,
+                "read",
                 stacklevel=4,
             )
             continue
@@ -202,13 +212,15 @@ def _alive(series, labels, source):
     return alive
 
 
-def _select(instances, sensors, source, what):
+def _select(instances, sensors, source, what, notes=None):
     """The instances chosen by ``sensors`` (0-based positions), at most :data:`MAX_SENSORS`."""
     if sensors is None:
         if len(instances) > MAX_SENSORS:
-            warnings.warn(
+            say(
+                notes,
                 f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)",
                 DataWarning,
+                "read",
                 stacklevel=4,
             )
         return instances[:MAX_SENSORS]
@@ -243,7 +255,7 @@ def _ardupilot_matrix(params, index):
     return m
 
 
-def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Dataset:
+def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=None) -> Dataset:
     """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame."""
     source = str(name or path)
     try:
@@ -302,9 +314,11 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
     except Exception as exc:
         raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
     for k, count in sorted(unhealthy.items()):
-        warnings.warn(
+        say(
+            notes,
             f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out",
             DataWarning,
+            "read",
             stacklevel=3,
         )
     if not mags:
@@ -313,20 +327,20 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
             f"{', '.join(sorted(seen_types)) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
             "(LOG_BITMASK) and record again"
         )
-    instances = _select(sorted(mags), sensors, source, "MAG messages")
+    instances = _select(sorted(mags), sensors, source, "MAG messages", notes)
     series = []
     for k in instances:
         rows = np.asarray(mags[k], dtype=float)
-        series.append(_strictly_increasing(rows[:, 0], rows[:, 1:], source, f"compass {k + 1}"))
+        series.append(_strictly_increasing(rows[:, 0], rows[:, 1:], source, f"compass {k + 1}", notes))
     labels = [f"compass {k + 1}" for k in instances]
-    keep = _alive(series, labels, source)
+    keep = _alive(series, labels, source, notes)
     series, labels = [series[i] for i in keep], [labels[i] for i in keep]
     temperature = attitude = None
     extra = {}
     if imu_t:
-        temperature = _strictly_increasing(np.asarray(imu_t), np.asarray(imu_temp), source, "IMU temperature")
+        temperature = _strictly_increasing(np.asarray(imu_t), np.asarray(imu_temp), source, "IMU temperature", notes)
     if att_t:
-        ta, angles = _strictly_increasing(np.asarray(att_t), np.asarray(att), source, "ATT")
+        ta, angles = _strictly_increasing(np.asarray(att_t), np.asarray(att), source, "ATT", notes)
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
@@ -335,14 +349,14 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
         "log_magnetometers": ", ".join(labels),
         "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)",
     }
-    ds = _build(source, series, temperature, attitude, extra, metadata)
+    ds = _build(source, series, temperature, attitude, extra, metadata, notes)
     if "att_yaw_deg" in ds.extra:
         ds.extra["att_yaw_deg"] = (ds.extra["att_yaw_deg"] + 180.0) % 360.0 - 180.0
     return ds
 
 
 # -- PX4 ULog --------------------------------------------------------------------------------------------------------
-def read_ulog(path, sensors=None, name=None) -> Dataset:
+def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     """Read a PX4 ``.ulg`` log (see the module docstring). Readings in nT, each magnetometer's own frame."""
     source = str(name or path)
     try:
@@ -357,8 +371,8 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
         raise DatasetError(f"{source}: not a readable PX4 ULog file ({type(exc).__name__}: {exc})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
     if not mags:
-        return _ulog_calibrated_field(ulog, source)
-    chosen = _select(mags, sensors, source, "sensor_mag instances")
+        return _ulog_calibrated_field(ulog, source, notes)
+    chosen = _select(mags, sensors, source, "sensor_mag instances", notes)
     series = []
     temps = []
     for d in chosen:
@@ -367,24 +381,26 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
         t = np.asarray(data[t_key], dtype=float) * 1e-6
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(float) * NT_PER_GAUSS
         temp = np.asarray(data.get("temperature", np.full(t.size, np.nan)), dtype=float)
-        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, f"sensor_mag {d.multi_id}")
+        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, f"sensor_mag {d.multi_id}", notes)
         good = np.isfinite(both[:, :3]).all(axis=1)
         if not good.all():
-            warnings.warn(
+            say(
+                notes,
                 f"{source}: sensor_mag {d.multi_id}: {int((~good).sum())} non-finite sample(s) dropped",
                 DataWarning,
+                "read",
                 stacklevel=3,
             )
         series.append((t[good], both[good, :3]))
         temps.append((t[good], both[good, 3]))
-    keep = _alive(series, [f"sensor_mag {d.multi_id}" for d in chosen], source)
+    keep = _alive(series, [f"sensor_mag {d.multi_id}" for d in chosen], source, notes)
     series, temps, chosen = [series[i] for i in keep], [temps[i] for i in keep], [chosen[i] for i in keep]
     temperature = None
     t_temp, v_temp = temps[0]
     finite = np.isfinite(v_temp)
     if finite.any() and np.any(v_temp[finite] != 0.0):  # all exactly 0: the driver has no temperature (SITL)
         temperature = (t_temp[finite], v_temp[finite])
-    attitude = _ulog_attitude(ulog, source)
+    attitude = _ulog_attitude(ulog, source, notes)
     devices = [str(int(d.data["device_id"][0])) for d in chosen if "device_id" in d.data and len(d.data["device_id"])]
     metadata = {
         "log_format": "PX4 ULog",
@@ -393,10 +409,10 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    return _build(source, series, temperature, attitude, None, metadata)
+    return _build(source, series, temperature, attitude, None, metadata, notes)
 
 
-def _ulog_attitude(ulog, source):
+def _ulog_attitude(ulog, source, notes=None):
     """``(t, Rotation)`` of the ``vehicle_attitude`` quaternions (body FRD to NED), or None."""
     att = [d for d in ulog.data_list if d.name == "vehicle_attitude"]
     if not att:
@@ -404,7 +420,7 @@ def _ulog_attitude(ulog, source):
     data = att[0].data
     ta = np.asarray(data["timestamp"], dtype=float) * 1e-6
     q = np.column_stack([data[f"q[{k}]"] for k in range(4)]).astype(float)
-    ta, q = _strictly_increasing(ta, q, source, "vehicle_attitude")
+    ta, q = _strictly_increasing(ta, q, source, "vehicle_attitude", notes)
     ok = np.isfinite(q).all(axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
     if not ok.any():
         return None
@@ -415,7 +431,7 @@ def _ulog_attitude(ulog, source):
 _RELATIVE_TIMESTAMP_INVALID = 2_147_483_647
 
 
-def _ulog_calibrated_field(ulog, source):
+def _ulog_calibrated_field(ulog, source, notes=None):
     """A ULog without ``sensor_mag``: the field the vehicle computed with its calibration, from
     ``vehicle_magnetometer`` or (older PX4) ``sensor_combined.magnetometer_ga``, in gauss, body frame."""
     for topic in ("vehicle_magnetometer", "sensor_combined"):
@@ -440,14 +456,16 @@ def _ulog_calibrated_field(ulog, source):
     ok &= np.isfinite(xyz).all(axis=1)
     t, xyz = t[ok], xyz[ok]
     first = np.unique(t, return_index=True)[1]  # sensor_combined repeats a magnetometer sample at each IMU update
-    t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic)
+    t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic, notes)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])
     t_s, xyz = t_s[changed], xyz[changed]  # sensor_combined repeats the last magnetometer sample between updates
-    warnings.warn(
+    say(
+        notes,
         f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
         f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
         "its parameters do not replace them",
         DataWarning,
+        "read",
         stacklevel=3,
     )
     metadata = {
@@ -455,4 +473,4 @@ def _ulog_calibrated_field(ulog, source):
         "log_magnetometers": topic,
         "log_field": f"calibrated by the vehicle ({topic}, body frame)",
     }
-    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source), None, metadata)
+    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), None, metadata, notes)

@@ -122,11 +122,7 @@ def direction_pattern(
 
 def corrected_directions(dataset, calibration) -> np.ndarray:
     """Unit directions of the corrected field, array frame, (n_sensors, N, 3)."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # record-only terms on their own record: nothing to say here
-        b = calibration.correct(dataset)
+    b, _ = calibration.corrected_with_notes(dataset)  # record-only terms on their own record: nothing to say
     norm = row_norm(b)[..., None]
     return b / np.where(norm > 0, norm, 1.0)
 

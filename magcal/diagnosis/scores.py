@@ -25,8 +25,7 @@ from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
-from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem
-from magcal.fitting.fitter import fit as ml_fit
+from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit_with_notes
 from magcal.model.terms import EFFECTS, Model, block_label, term_label
 
 
@@ -583,7 +582,7 @@ def _refit(dataset, fit, candidate: Candidate):
     for e in new:
         model = model.with_effect(e)
     ref = _reference_override(fit)
-    return ml_fit(
+    return fit_with_notes(
         dataset,
         model,
         init=candidate.start or fit.calibration,

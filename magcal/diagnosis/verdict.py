@@ -28,6 +28,7 @@ import numpy as np
 
 from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
 from magcal.checks.quality import EARTH_FIELD_RANGE_nT
+from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
@@ -96,6 +97,11 @@ class Diagnosis:
         The held-out judgement: ``validated`` (bool), ``skipped`` (why not, or None), ``schemes`` (per scheme:
         ``n_train``, ``n_test``, ``base_held_out_rms_nT``), ``min_relative_gain``, ``later_tolerance_se``,
         and ``held_out_rms_before_nT`` / ``held_out_rms_after_nT`` of the recommended effects (blocks scheme).
+    notes : list of Note
+        What the diagnosis's own fits said (:mod:`magcal.core.notes`): the fit of the model when no result was
+        given (weak coverage, ...), any refit or held-out fit that did not converge (those run on the pool's
+        threads: each returns its notes with its fit). :func:`magcal.diagnose` raises them as warnings; this
+        function never does. (``warnings`` are the diagnosis's findings, as its table lists them.)
     """
 
     verdict: str
@@ -117,6 +123,7 @@ class Diagnosis:
     elapsed_s: float = 0.0
     rms_final_nT: float | None = None
     validation: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
 
     @property
     def noise_nT(self) -> float:
@@ -439,11 +446,12 @@ def _held_out_fits(pool, held_out, c) -> dict:
     }
 
 
-def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
+def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes=None):
     """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
     data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
     predictions. ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
-    scheme, :func:`_held_out_fits`)."""
+    scheme, :func:`_held_out_fits`). ``fit_notes``: a list the held-out fits' notes are added to, in the
+    candidates' order (whichever thread made them)."""
     if held_out is not None:
         todo = [c for c in cands if _to_validate(c)]
         if todo:
@@ -460,9 +468,11 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
                 if c.label not in pending:
                     pending[c.label] = _held_out_fits(pool, held_out, c)
             for future in bases:
-                future.result()
+                _add_fit_notes(fit_notes, future.result())
             for c in todo:
                 fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
+                for f in fitted.values():
+                    _add_fit_notes(fit_notes, f)
                 failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
                 try:
                     if failed is not None:
@@ -475,6 +485,17 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None):
     held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
     rest = sorted([c for c in cands if c.refitted and not c.holds], key=lambda c: c.delta_bic)
     return held + rest + [c for c in cands if not c.refitted]
+
+
+def _add_fit_notes(fit_notes, outcome) -> None:
+    """Add the notes of a fit's outcome (a FitResult, a ValidationResult or the failure it raised) to
+    ``fit_notes`` (a list, or None to drop them)."""
+    if fit_notes is None or outcome is None or isinstance(outcome, BaseException):
+        return
+    if isinstance(outcome, _validation.ValidationResult):
+        fit_notes.extend(outcome.fit_notes)
+    else:
+        fit_notes.extend(outcome.notes)
 
 
 def diagnose(
@@ -520,6 +541,7 @@ def diagnose(
     Returns
     -------
     Diagnosis
+        Its ``notes`` hold what its fits said; never raised as warnings here (:func:`magcal.diagnose` does).
     """
     t_start = _time.perf_counter()
 
@@ -528,6 +550,7 @@ def diagnose(
             progress(msg, frac)
 
     fit0 = _fit_of(result)
+    fit_notes = []  # what the diagnosis's own fits say (a given result's notes are its caller's)
     if fit0 is None:
         report("fitting the model", 0.0)
         if model is not None:
@@ -535,6 +558,7 @@ def diagnose(
         else:
             res = calibrate(dataset, effects=list(effects or ()))
         fit0 = res.fit
+        fit_notes += res.notes
     kept = _kept(dataset, fit0)
     directions, fields = _sensor_directions(kept, fit0)
 
@@ -557,6 +581,7 @@ def diagnose(
             validate=validate,
             noise_nT=noise_nT,
             t_start=t_start,
+            fit_notes=fit_notes,
         )
 
 
@@ -576,9 +601,12 @@ def _after_scores(
     validate,
     noise_nT,
     t_start,
+    fit_notes,
 ) -> Diagnosis:
     """:func:`diagnose` from the first round's score tests on: refits, held-out judgement, forward selection and
-    evidence, each piece handed to ``pool`` as soon as what it needs is ready."""
+    evidence, each piece handed to ``pool`` as soon as what it needs is ready. ``fit_notes``: the notes of the
+    fits made so far; those of the refits and held-out fits are added (each fit returns its own, on whichever
+    thread it ran)."""
     ns, n = kept.n_sensors, kept.n_samples
     coupled = fit0.vector_residuals_nT is not None
     ordered = is_smooth_sequence(kept)
@@ -638,6 +666,8 @@ def _after_scores(
     )
     sh_stats = [future.result() for future in sh_futures]
     for c in cands:
+        _add_fit_notes(fit_notes, c.fit)
+    for c in cands:
         note = c.evidence  # e.g. a failed refit
         c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
         if note:
@@ -657,7 +687,9 @@ def _after_scores(
             skipped = str(exc)
     if skipped and validate:
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
-    cands = _judge_round(held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None)
+    cands = _judge_round(
+        held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None, fit_notes
+    )
     undetermined = undetermined_future.result()
     if undetermined:
         validation_notes.append(
@@ -711,7 +743,9 @@ def _after_scores(
         if not more:
             break
         more = _confirm(dataset, current, more, 1, coupled, fits, pool=pool)
-        round_cands = _judge_round(held_out, current, more, validation_notes, pool)
+        for c in more:
+            _add_fit_notes(fit_notes, c.fit)
+        round_cands = _judge_round(held_out, current, more, validation_notes, pool, fit_notes=fit_notes)
 
     # verdict
     supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
@@ -817,6 +851,7 @@ def _after_scores(
         elapsed_s=_time.perf_counter() - t_start,
         rms_final_nT=float(current.rms_nT),
         validation=_validation_summary(held_out, skipped, chosen),
+        notes=_notes.unique(fit_notes),
     )
 
 

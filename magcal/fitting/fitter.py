@@ -21,7 +21,6 @@ a larger field from larger gains. Candidate effects add their own parameters (se
 from __future__ import annotations
 
 import copy
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,7 +30,9 @@ from magcal.calibration.calibration import Calibration, SensorCalibration, corre
 from magcal.calibration.uncertainty import base_covariance
 from magcal.checks.reference import resolve_reference as _resolve
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, ConvergenceWarning
+from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
 from magcal.model.terms import Model, block_label, contexts
@@ -875,6 +876,9 @@ class FitResult:
         asked for, the last having lowered the cost as the quadratic model predicted.
     message : str
         The solver's reason for stopping, in words.
+    notes : list of Note
+        What the fit says besides its figures (:mod:`magcal.core.notes`): a :class:`~magcal.core.errors.ConvergenceWarning`
+        note when it did not converge. :func:`fit` raises them as warnings; :func:`fit_with_notes` leaves them here.
     """
 
     calibration: Calibration
@@ -901,6 +905,7 @@ class FitResult:
     message: str = ""
     status: int = 1
     problem: Problem | None = field(default=None, repr=False)
+    notes: list = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -981,12 +986,47 @@ def fit(
     -------
     FitResult
 
+    Warns
+    -----
+    ConvergenceWarning
+        When the fit did not converge (its ``notes`` hold the same; :func:`fit_with_notes` does not warn).
+
     Notes
     -----
     Effects with constants estimated from the data (the hysteresis play width, the time of a bias step) refine
     them from the converged fit (:meth:`magcal.model.terms.Effect.refine` with a :class:`RefineContext`) and the
     model is fitted once more; the refined constants are kept only if that lowers the residual sum of squares.
     """
+    result = fit_with_notes(
+        dataset,
+        model,
+        init=init,
+        loss=loss,
+        f_scale_nT=f_scale_nT,
+        mask=mask,
+        reference_total_nT=reference_total_nT,
+        max_nfev=max_nfev,
+        cost_tolerance=cost_tolerance,
+        max_steps=max_steps,
+    )
+    _notes.warn(result.notes)
+    return result
+
+
+def fit_with_notes(
+    dataset,
+    model: Model | None = None,
+    init: Calibration | None = None,
+    loss="linear",
+    f_scale_nT=None,
+    mask=None,
+    reference_total_nT=None,
+    max_nfev=200,
+    cost_tolerance=None,
+    max_steps=None,
+) -> FitResult:
+    """:func:`fit`, its notes (a fit that did not converge) left in :attr:`FitResult.notes`, never raised as
+    warnings: the engine's steps call this one (they may run on threads; the API raises the notes)."""
     # the caller's model (and its effect objects, whose data-derived constants a fit sets) stays untouched
     model = model.copy() if model is not None else Model.base_model(dataset.n_sensors)
     if model.n_sensors != dataset.n_sensors:
@@ -1028,19 +1068,21 @@ def fit(
         )
         if second.rss < result.rss:
             second.nfev += result.nfev
-            return _warn_if_not_converged(second)
+            return _note_if_not_converged(second)
         for e, state in zip(model.effects, saved):
             e.set_state(state)
-    return _warn_if_not_converged(result)
+    return _note_if_not_converged(result)
 
 
-def _warn_if_not_converged(result: FitResult) -> FitResult:
+def _note_if_not_converged(result: FitResult) -> FitResult:
     if not result.success:
-        warnings.warn(
-            f"the fit did not converge ({result.message}, {result.nfev} evaluations): its parameters "
-            "are not a minimum; raise max_nfev or check the data",
-            ConvergenceWarning,
-            stacklevel=3,
+        result.notes.append(
+            Note(
+                f"the fit did not converge ({result.message}, {result.nfev} evaluations): its parameters "
+                "are not a minimum; raise max_nfev or check the data",
+                ConvergenceWarning,
+                "fit",
+            )
         )
     return result
 

@@ -22,7 +22,6 @@ Global-search methods (``pso``, ``ipso``, ``de``) come from :mod:`magcal.fitting
 from __future__ import annotations
 
 import time
-import warnings as _warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -31,12 +30,13 @@ import numpy as np
 from magcal.calibration.calibration import Calibration, SensorCalibration, expected_total_field
 from magcal.checks.noise import estimate_noise, prefetch_readings_facts
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, CoverageWarning, DataWarning
+from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
 from magcal.fitting import search
-from magcal.fitting.fitter import fit as ml_fit
-from magcal.fitting.fitter import resolve_reference
+from magcal.fitting.fitter import fit_with_notes, resolve_reference
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from magcal.geometry.procrustes import procrustes_rotation
 from magcal.model.terms import Effect, Model
@@ -115,7 +115,7 @@ class CalibrationResult:
     steps : list of StepSummary
         ``raw`` first, then every step run, in order.
     warnings : list of str
-        Non-fatal concerns (weak coverage, estimated noise, outliers...).
+        Non-fatal concerns (weak coverage, estimated noise, outliers...), as the report lists them.
     method : str
     reference_kind : str
         ``given`` (argument or file metadata), ``column`` (per-sample ``ref_total``) or ``fitted``.
@@ -162,6 +162,11 @@ class CalibrationResult:
     validation : EffectsValidation or None
         Held-out RMS of the base model and of the model with the effects
         (:func:`magcal.fitting.validation.validate_effects`), when asked for.
+    notes : list of Note
+        What the steps said that a user must hear (:mod:`magcal.core.notes`): weak coverage
+        (:class:`~magcal.core.errors.CoverageWarning`), a fit that did not converge
+        (:class:`~magcal.core.errors.ConvergenceWarning`). :func:`magcal.calibrate` raises them as warnings; this
+        function never does.
     """
 
     calibration: Calibration
@@ -190,6 +195,7 @@ class CalibrationResult:
     field_magnitude_nT: float | None = None
     noise: object = None
     validation: object = None
+    notes: list = field(default_factory=list)
 
     @property
     def n_sensors(self) -> int:
@@ -366,7 +372,7 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
     def callback(iteration, best_rms_nT):
         progress(f"{method}: iteration {iteration}, best RMS {best_rms_nT:.4g} nT", min(iteration / total, 1.0))
 
-    return search.search_calibrate(
+    return search.search_calibrate_with_notes(
         dataset,
         method,
         seed=seed,
@@ -396,6 +402,9 @@ class _Run:
         ``progress(message, fraction_or_None)``.
     notes : list of str
         Non-fatal concerns, in the order found (the result's ``warnings``).
+    raised : list of Note
+        Notes for the user that are not data concerns (a fit that did not converge), in the order found; with the
+        coverage concerns they become the result's ``notes``.
     steps_timed : list of tuple
         ``(name, description, calibration, wall_s)`` of every step run.
     ellipsoids : list of EllipsoidFit
@@ -415,6 +424,7 @@ class _Run:
     ref_kind: str
     progress: Callable | None = None
     notes: list = field(default_factory=list)
+    raised: list = field(default_factory=list)
     steps_timed: list = field(default_factory=list)
     ellipsoids: list = field(default_factory=list)
     inliers: np.ndarray | None = None
@@ -425,13 +435,20 @@ class _Run:
         if self.progress is not None:
             self.progress(message, fraction)
 
-    def caught(self, wlist):
-        """magcal's data warnings become notes; anything else is passed on unchanged."""
-        for w in wlist:
-            if issubclass(w.category, DataWarning):
-                self.notes.append(str(w.message))
+    def take(self, notes):
+        """A step's notes (:class:`~magcal.core.notes.Note`): data concerns join the result's ``warnings``, any
+        other note its ``notes``."""
+        for note in notes:
+            if note.is_a(DataWarning):
+                self.notes.append(note.text)
             else:
-                _warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                self.raised.append(note)
+
+    def result_notes(self) -> list:
+        """The result's ``notes``: the steps' other notes, then each coverage concern as a
+        :class:`~magcal.core.errors.CoverageWarning`."""
+        coverage = [Note(n, CoverageWarning, "calibrate") for n in self.notes if "coverage" in n]
+        return _notes.unique(self.raised + coverage)
 
     def add_step(self, name, description, calibration, t0):
         """Record a step that started at ``t0`` (``time.perf_counter()``) and made ``calibration``."""
@@ -487,6 +504,8 @@ def calibrate(
     Returns
     -------
     CalibrationResult
+        What the steps had to say is in its ``notes`` (and ``warnings``), never raised as a warning here: the
+        steps may run on threads (:mod:`magcal.core.notes`); :func:`magcal.calibrate` raises them.
 
     Raises
     ------
@@ -510,9 +529,7 @@ def calibrate(
     noise_facts()
     result = _summary(run, steps, model, method, robust, outliers, t_start, noise_nT)
     _store_summary(result)
-    for n in run.notes:
-        if "coverage" in n:
-            _warnings.warn(n, CoverageWarning, stacklevel=2)
+    result.notes = run.result_notes()
     run.report("done", 1.0)
     return result
 
@@ -565,10 +582,8 @@ def _search_steps(run: _Run, method, seed, reference_total_nT) -> None:
     them unrotated."""
     run.report(f"{method}: global search", 0.0)
     t0 = time.perf_counter()
-    with _warnings.catch_warnings(record=True) as wl:
-        _warnings.simplefilter("always")
-        calibration = _search(run.dataset, method, seed, run.progress and run.report, run.mask, reference_total_nT)
-    run.caught(wl)
+    calibration, notes = _search(run.dataset, method, seed, run.progress and run.report, run.mask, reference_total_nT)
+    run.take(notes)
     if calibration.n_sensors > 1 and all(np.allclose(c.R, np.eye(3)) for c in calibration.sensors[1:]):
         run.add_step(method, f"global search ({method}) of C^-1 and b per sensor", calibration, t0)
         t0 = time.perf_counter()
@@ -613,17 +628,15 @@ def _ml_step(run: _Run, model, robust, reference_total_nT) -> None:
 
     run.report("step 3: maximum-likelihood refinement", 0.5)
     t0 = time.perf_counter()
-    with _warnings.catch_warnings(record=True) as wl:
-        _warnings.simplefilter("always")
-        run.fit = ml_fit(
-            run.dataset,
-            model,
-            init=run.calibration,
-            loss="soft_l1" if robust else "linear",
-            mask=run.mask,
-            reference_total_nT=reference_total_nT,
-        )
-    run.caught(wl)
+    run.fit = fit_with_notes(
+        run.dataset,
+        model,
+        init=run.calibration,
+        loss="soft_l1" if robust else "linear",
+        mask=run.mask,
+        reference_total_nT=reference_total_nT,
+    )
+    run.take(run.fit.notes)
     terms = ", ".join(list(model.base) + model.effect_labels)
     run.add_step(
         "ml", f"maximum likelihood of {terms}" + (" (robust soft-L1 loss)" if robust else ""), run.fit.calibration, t0

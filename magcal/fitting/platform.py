@@ -41,7 +41,6 @@ the figures (recorded in ``benchmarks/README.md``).
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,7 +49,9 @@ from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, corrected_fields
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError
+from magcal.core.notes import Note
 from magcal.data import simulation as sim
 from magcal.data.dataset import Dataset, DatasetError
 from magcal.data.simulation import chi2017_truth
@@ -306,7 +307,24 @@ def _plane_normal(v):
 
 
 def estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="data", fixed_signs=None):
-    """Each sensor's rotation into the platform frame from level-table groups.
+    """Each sensor's rotation into the platform frame from level-table groups (:func:`_estimate_alignment`); a
+    :class:`~magcal.core.errors.DataWarning` when the group labels look wrong."""
+    result = _estimate_alignment(vectors_nT, group, noise_nT, prior_R, source, fixed_signs)
+    _notes.warn(_label_notes(result, source))
+    return result
+
+
+def _label_notes(result, source) -> list:
+    """The notes (:class:`~magcal.core.notes.Note`, DataWarning) a user must hear of an alignment's: group labels
+    that look wrong."""
+    return [
+        Note(f"{source}: {note}", DataWarning, "align") for note in result.notes if "check the group labels" in note
+    ]
+
+
+def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="data", fixed_signs=None):
+    """Each sensor's rotation into the platform frame from level-table groups; never warns (its ``notes`` say
+    what it found).
 
     Parameters
     ----------
@@ -439,9 +457,6 @@ def estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="d
         noise_nT=float(np.mean(sigma_used)),
         notes=notes,
     )
-    for note in notes:
-        if "check the group labels" in note:
-            warnings.warn(f"{source}: {note}", DataWarning, stacklevel=2)
     return result
 
 
@@ -518,6 +533,16 @@ def sensor_frame_vectors(calibration, dataset) -> np.ndarray:
 
 
 def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, reference_total_nT=None, source=None):
+    """Level-table alignment of a dataset (:func:`align_with_notes`), its notes raised as warnings (weak coverage
+    of the scalar calibration fitted first, group labels that look wrong); returns ``(calibration, alignment)``."""
+    new, result, notes = align_with_notes(dataset, calibration, noise_nT, intrinsic_cov, reference_total_nT, source)
+    _notes.warn(notes)
+    return new, result
+
+
+def align_with_notes(
+    dataset, calibration=None, noise_nT=None, intrinsic_cov=None, reference_total_nT=None, source=None
+):
     """Level-table alignment of a dataset: a new calibration whose ``R`` take each sensor into the platform frame.
 
     Parameters
@@ -542,15 +567,15 @@ def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, referenc
     calibration : Calibration
         A copy with ``R`` replaced, ``frame = "platform"`` and ``platform_alignment`` figures in its summary.
     alignment : PlatformAlignment
+    notes : list of Note
+        What the user must hear (:mod:`magcal.core.notes`), never raised here.
     """
 
     source = source or dataset.source or "data"
+    notes = []
     if calibration is None:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = calibrate(dataset, reference_total_nT=reference_total_nT)
-        for w in caught:
-            warnings.warn(str(w.message), w.category if issubclass(w.category, Warning) else DataWarning, stacklevel=2)
+        result = calibrate(dataset, reference_total_nT=reference_total_nT)
+        notes += result.notes
         calibration = result.calibration
         intrinsic_note = "intrinsic calibration fitted to the same file"
     else:
@@ -565,7 +590,8 @@ def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, referenc
     prior = None
     if calibration.frame == "platform":
         prior = np.array([c.R for c in calibration.sensors])
-    result = estimate_alignment(vectors, dataset.group, noise_nT=noise, prior_R=prior, source=source)
+    result = _estimate_alignment(vectors, dataset.group, noise_nT=noise, prior_R=prior, source=source)
+    notes += _label_notes(result, source)
     if intrinsic_cov is not None:
         _propagate_intrinsic(result, calibration, dataset, np.asarray(intrinsic_cov, float), noise, prior, source)
     result.notes.append(intrinsic_note)
@@ -584,7 +610,7 @@ def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, referenc
         frame="platform",
         summary=summary,
     )
-    return new, result
+    return new, result, notes
 
 
 def _propagate_intrinsic(result, calibration, dataset, intrinsic_cov, noise, prior, source, h=None):
@@ -603,11 +629,9 @@ def _propagate_intrinsic(result, calibration, dataset, intrinsic_cov, noise, pri
             sensors[s] = dataclasses.replace(c, cinv=conventions.params_to_cinv(p[:6]), bias_nT=p[6:])
             cal_k = dataclasses.replace(calibration, sensors=sensors)
             v = sensor_frame_vectors(cal_k, dataset)[s : s + 1]
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                r = estimate_alignment(
-                    v, dataset.group, noise_nT=noise, prior_R=None if prior is None else prior[s : s + 1], source=source
-                )
+            r = _estimate_alignment(
+                v, dataset.group, noise_nT=noise, prior_R=None if prior is None else prior[s : s + 1], source=source
+            )
             D[:, k] = rotation_error_vector_rad(r.R[0], base_R[s])[0] / steps[k]
         extra = D @ intrinsic_cov[s] @ D.T
         result.rotation_cov_rad2[s] = result.rotation_cov_rad2[s] + extra

@@ -59,8 +59,9 @@ from scipy.optimize import differential_evolution
 from scipy.stats import qmc
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
-from magcal.checks.coverage import check_coverage
+from magcal.checks.coverage import check_coverage_with_notes
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.fitting.fitter import resolve_reference
 from magcal.geometry.procrustes import procrustes_rotation
@@ -523,6 +524,27 @@ def search_calibrate(
     patience=None,
     bounds=None,
 ):
+    """:func:`search_calibrate_with_notes`'s calibration, its notes (poor coverage) raised as warnings."""
+    calibration, notes = search_calibrate_with_notes(
+        dataset, method, seed, progress, mask, reference_total_nT, max_iter, pop_size, tol, patience, bounds
+    )
+    _notes.warn(notes)
+    return calibration
+
+
+def search_calibrate_with_notes(
+    dataset,
+    method="ipso",
+    seed=None,
+    progress=None,
+    mask=None,
+    reference_total_nT=None,
+    max_iter=None,
+    pop_size=None,
+    tol=1e-10,
+    patience=None,
+    bounds=None,
+):
     """Scalar calibration of every sensor by global search (eq. 17), then Procrustes alignment for arrays.
 
     Each sensor's ``C^-1`` (upper triangular) and offset are searched against the reference total field; for two
@@ -555,14 +577,15 @@ def search_calibrate(
     ------
     MagcalError
         Unknown method, a mask of the wrong length, too few samples, or readings from a rotation about one axis
-        (``DatasetError``: they do not determine the 9 numbers). Poor coverage is a
-        :class:`~magcal.core.errors.CoverageWarning`.
+        (``DatasetError``: they do not determine the 9 numbers). Poor coverage is a note (below).
 
     Returns
     -------
-    magcal.calibration.calibration.Calibration
+    calibration : magcal.calibration.calibration.Calibration
         ``summary`` holds ``method``, ``seed``, ``n_samples``, ``rms_nT`` (per sensor), ``n_evaluations``,
         ``n_iterations`` and ``search_wall_s``; each sensor's ``summary`` its own figures.
+    notes : list of Note
+        What the checks found (poor coverage: a :class:`~magcal.core.errors.CoverageWarning` note).
     """
 
     if method not in METHODS:
@@ -573,7 +596,7 @@ def search_calibrate(
         if mask.shape[0] != ds.n_samples:
             raise MagcalError(f"the mask has {mask.shape[0]} entries but the data have {ds.n_samples} samples")
         ds = ds.subset(mask)
-    check_coverage(ds, full_model=True)  # refuses rotation about one axis; warns (CoverageWarning) when poor
+    _, notes = check_coverage_with_notes(ds, full_model=True)  # refuses rotation about one axis; notes poor coverage
     ref, kind = resolve_reference(ds, reference_total_nT)
     if kind == "column":
         target = ds.ref_total_nT
@@ -632,10 +655,11 @@ def search_calibrate(
         "n_iterations": [r.n_iterations for r in results],
         "search_wall_s": float(sum(r.wall_s for r in results)),
     }
-    return Calibration(
+    calibration = Calibration(
         sensors=sensors,
         reference_total_nT=None if kind == "column" else float(target),
         reference_fitted=kind == "fitted",
         baseline_m=ds.baseline_m,
         summary=summary,
     )
+    return calibration, notes

@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.calibration.calibration import is_transferable
+from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError
 from magcal.core.vectors import row_norm, unit_rows
-from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE
-from magcal.fitting.fitter import fit as ml_fit
+from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit_with_notes
 from magcal.fitting.pipeline import _build_model, calibrate
 from magcal.model.terms import Model
 
@@ -207,6 +207,8 @@ class ValidationResult:
         instrument terms are compared on their own.
     train, test : numpy.ndarray of bool
         The masks used.
+    fit_notes : list of Note
+        What the training fit said (:mod:`magcal.core.notes`: e.g. it did not converge), never raised here.
     """
 
     scheme: str
@@ -226,6 +228,7 @@ class ValidationResult:
     held_out_consistency_rms_nT: float | None = None
     relevelled_rms_nT: float | None = None
     relevelled_consistency_rms_nT: float | None = None
+    fit_notes: list = field(default_factory=list, repr=False)
 
     @property
     def overfit_ratio(self) -> float:
@@ -373,7 +376,7 @@ def validate(
     if init is not None:
         built = _build_model(dataset, specs)
         full = Model(built.n_sensors, base=tuple(base) if base is not None else built.base, effects=built.effects)
-        fitted = ml_fit(
+        fitted = fit_with_notes(
             dataset,
             full,
             init=init,
@@ -388,6 +391,7 @@ def validate(
             dataset, effects=specs, robust=robust, reference_total_nT=reference_total_nT, mask=train, base_terms=base
         )
         fitted = result.fit
+    fit_notes = list(result.notes) if init is None else list(fitted.notes)
     cal, labels = fitted.calibration, fitted.model.effect_labels
     test_ds = dataset.subset(test)
     notes, dropped = [], []
@@ -434,6 +438,7 @@ def validate(
         held_out_consistency_rms_nT=consistency_rms_nT(vectors),
         relevelled_rms_nT=relevelled,
         relevelled_consistency_rms_nT=relevelled_consistency,
+        fit_notes=fit_notes,
     )
 
 
@@ -609,6 +614,8 @@ class EffectsValidation:
         Total-field RMS of the two models fitted on the whole record, nT.
     skipped : str or None
         Why there is no held-out score.
+    notes : list of Note
+        What its fits said (:mod:`magcal.core.notes`), never raised here (:func:`magcal.calibrate` raises them).
     holds : bool or None
         Whether the effects lower the held-out RMS by at least :data:`MIN_RELATIVE_GAIN`.
     """
@@ -619,6 +626,7 @@ class EffectsValidation:
     in_sample_base_nT: float | None
     in_sample_with_effects_nT: float
     skipped: str | None = None
+    notes: list = field(default_factory=list, repr=False)
 
     @property
     def holds(self) -> bool | None:
@@ -712,15 +720,16 @@ def validate_effects(dataset, result) -> EffectsValidation:
     kept = dataset if fit.mask.all() else dataset.subset(fit.mask)
     reference = fit.calibration.reference_total_nT if fit.reference_kind == "given" else None
     effects = list(fit.model.effect_labels)
-    base_in = None
+    base_in, notes = None, []
     if effects:
         base_fit = calibrate(kept, reference_total_nT=reference, base_terms=fit.model.base)
         base_in = float(base_fit.rms_nT)
+        notes += base_fit.notes
     else:
         base_in = float(fit.rms_nT)
     problem = split_problem(kept)
     if problem:
-        return EffectsValidation(effects, None, None, base_in, float(fit.rms_nT), skipped=problem)
+        return EffectsValidation(effects, None, None, base_in, float(fit.rms_nT), skipped=problem, notes=notes)
     masks = holdout_masks(kept, "blocks")
     base = validate(
         kept,
@@ -734,4 +743,5 @@ def validate_effects(dataset, result) -> EffectsValidation:
         if effects
         else base
     )
-    return EffectsValidation(effects, base, with_effects, base_in, float(fit.rms_nT))
+    notes += base.fit_notes + (with_effects.fit_notes if effects else [])
+    return EffectsValidation(effects, base, with_effects, base_in, float(fit.rms_nT), notes=_notes.unique(notes))

@@ -4,7 +4,6 @@ imply, and the total-field error a fit extrapolates off the directions it saw.""
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,8 +76,7 @@ def _trusted_ellipsoid(y):
     if y.shape[0] < max(MIN_SAMPLES, FULL_MODEL_PARAMS + 1):
         return None
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with np.errstate(all="ignore"):  # a degenerate cloud: the checks below turn it down
             fit = fit_ellipsoid(y, strict=False)
     except (CalibrationError, np.linalg.LinAlgError, ValueError):
         return None

@@ -41,12 +41,12 @@ import re
 import sys
 import threading
 import traceback
-import warnings
 
 import numpy as np
 
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
+from magcal.core.notes import say
 from magcal.data.dataset import CHANNELS, Dataset
 from magcal.model.terms import BASE_TERMS, EFFECTS, Effect, contexts
 
@@ -565,7 +565,7 @@ def _entry_point_text(ep) -> str:
     return f"{ep.name} = {ep.value}" + (f" ({dist_name})" if dist_name else "")
 
 
-def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> list[str]:
+def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, notes=None) -> list[str]:
     """Load the effects that installed packages declare in the entry-point group ``magcal.effects``.
 
     Each entry point names an Effect subclass or a module whose ``@register`` classes join the catalogue.
@@ -577,6 +577,9 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> li
         The entry-point group.
     force : bool
         Load again even if already loaded.
+    notes : list, optional
+        Where the skipped entry points' messages go (:class:`~magcal.core.notes.Note`, UserWarning); None
+        (default): raised as warnings.
 
     Returns
     -------
@@ -597,10 +600,12 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> li
         try:
             found = importlib.metadata.entry_points(group=group)
         except Exception as exc:  # a broken installation must not stop magcal
-            warnings.warn(
+            say(
+                notes,
                 f"could not list the {group!r} entry points ({type(exc).__name__}: {exc}); "
                 "installed effect packages are not loaded",
-                stacklevel=2,
+                UserWarning,
+                "plugins",
             )
             return []
         names = []
@@ -637,7 +642,7 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False) -> li
                 names += _admit(classes, before, f"entry point {text}", "entry point", text)
             except Exception as exc:
                 _restore(before)
-                warnings.warn(f"skipped the effect entry point {text}: {exc}", stacklevel=2)
+                say(notes, f"skipped the effect entry point {text}: {exc}", UserWarning, "plugins")
         return names
 
 

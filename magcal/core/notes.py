@@ -1,0 +1,89 @@
+"""Notes: what a step has to say besides its result, passed back as values.
+
+A step of the engine (reading, checking, fitting, diagnosing, applying) that has something to tell the user -- weak
+coverage, a fit that stopped early, record-only terms dropped -- returns it as a :class:`Note` in its result (a
+``notes`` field: :attr:`magcal.fitting.pipeline.CalibrationResult.notes`, :attr:`magcal.fitting.fitter.FitResult.notes`,
+:attr:`magcal.diagnosis.Diagnosis.notes`...) or as a second return value. Notes are raised as Python warnings only at
+the boundary a user calls (:func:`magcal.calibrate`, :func:`magcal.diagnose`, :func:`magcal.read_csv`,
+:meth:`magcal.Calibration.correct`...), with :func:`warn`, and the command line prints them.
+
+Why not warnings all the way: :func:`warnings.catch_warnings` swaps process-wide state, so a step run on a thread
+(the diagnosis's pool, the noise prefetch, the workbench's worker and live refits) could lose a note or hand it to
+another job's report. A note held in its step's result goes where the result goes.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from magcal.core.errors import DataWarning
+
+
+@dataclass(frozen=True)
+class Note:
+    """One thing a step says besides its result.
+
+    Attributes
+    ----------
+    text : str
+        The message, as the user reads it (the warning's text at the boundary).
+    category : type of Warning
+        The warning class it is raised as at the boundary (:mod:`magcal.core.errors`: :class:`DataWarning`,
+        :class:`CoverageWarning`, :class:`ConvergenceWarning`, :class:`RecordTermWarning`; or a standard one).
+    where : str
+        The step that said it (``"fit"``, ``"coverage"``, ``"calibrate"``...), for people reading a log.
+    """
+
+    text: str
+    category: type = DataWarning
+    where: str = ""
+
+    def __post_init__(self):
+        if not (isinstance(self.category, type) and issubclass(self.category, Warning)):
+            raise TypeError(f"a note's category must be a Warning subclass, got {self.category!r}")
+
+    def __str__(self) -> str:
+        return self.text
+
+    def is_a(self, category) -> bool:
+        """Whether the note is raised as ``category`` (or a subclass of it)."""
+        return issubclass(self.category, category)
+
+
+def unique(notes: Iterable[Note]) -> list[Note]:
+    """``notes`` in their order, each text and category once (a note two fits make alike is said once)."""
+    seen, out = set(), []
+    for note in notes:
+        key = (note.text, note.category)
+        if key not in seen:
+            seen.add(key)
+            out.append(note)
+    return out
+
+
+def texts(notes: Iterable[Note], category=Warning) -> list[str]:
+    """The texts of the notes raised as ``category`` (default all), in order."""
+    return [n.text for n in notes if n.is_a(category)]
+
+
+def warn(notes: Iterable[Note], stacklevel: int = 2) -> None:
+    """Raise each note as a Python warning of its category: the API boundary's one use of :mod:`warnings`.
+
+    ``stacklevel`` as in :func:`warnings.warn`, counted from the caller of :func:`warn` (2: the line that called
+    the function calling :func:`warn`).
+    """
+    for note in notes:
+        warnings.warn(note.text, note.category, stacklevel=stacklevel + 1)
+
+
+def say(notes, text: str, category=DataWarning, where: str = "", stacklevel: int = 2) -> None:
+    """A note of a step that a user may also call directly (a reader): appended to ``notes`` (a list: an engine
+    step or the workbench, which may run on a thread) as a :class:`Note`, or raised as a warning of ``category``
+    when ``notes`` is None (a user's call). ``stacklevel`` as in :func:`warnings.warn`, from the caller of
+    :func:`say`."""
+    if notes is None:
+        warnings.warn(text, category, stacklevel=stacklevel + 1)
+    else:
+        notes.append(Note(text, category, where))
