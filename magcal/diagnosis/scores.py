@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from magcal.calibration.calibration import is_transferable
 from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
@@ -83,12 +84,18 @@ class Candidate:
         time; :mod:`magcal.fitting.validation`; for arrays the inter-sensor consistency is judged too, and quoted in the
         evidence), nT; None when not validated.
     later_before_nT, later_after_nT : float or None
-        The same on the last stretch of the record (``later`` scheme: what a calibration does for later data;
-        for a record-only term, both models with the record's level on that stretch taken out,
-        :func:`magcal.fitting.validation.relevel`), nT.
+        The same on the last stretch of the record (``later`` scheme: fitted on the earlier part, applied to the
+        later stretch as ``magcal apply`` does: record-only terms dropped, nothing re-levelled), nT.
     holds : bool or None
-        Whether the in-sample gain holds on held-out data (:func:`magcal.fitting.validation.judge`); None when not
-        validated (not supported in-sample, validation skipped or refused).
+        Whether the effect *describes this record*: its in-sample gain holds on interleaved held-out blocks
+        (:func:`magcal.fitting.validation.judge`); None when not validated (not supported in-sample, validation
+        skipped or refused).
+    transfers : bool or None
+        Whether the effect *improves the calibration for new data*: the later stretch's RMS falls
+        (:func:`magcal.fitting.validation.transfers`); None when not validated.
+    record_only : bool
+        The term describes the recording, not the instrument (:attr:`magcal.model.terms.Effect.transferable`
+        False: drifts, steps, interference, a changing or non-uniform field): ``magcal apply`` drops it on new data.
     """
 
     effect: str
@@ -109,6 +116,8 @@ class Candidate:
     later_before_nT: float | None = None
     later_after_nT: float | None = None
     holds: bool | None = None
+    transfers: bool | None = None
+    record_only: bool = False
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
@@ -135,6 +144,8 @@ class Candidate:
             "later_rms_before_nT": _num(self.later_before_nT),
             "later_rms_after_nT": _num(self.later_after_nT),
             "holds": self.holds,
+            "transfers": self.transfers,
+            "record_only": self.record_only,
         }
 
     @property
@@ -561,6 +572,7 @@ def _score_from_grams(kept, fit, groups, grams):
                 instances=inst,
                 columns=cols,
                 projector=proj,
+                record_only=not is_transferable(cls),
             )
             cands.append(c)
     cands.sort(key=lambda c: c.predicted_delta_bic)

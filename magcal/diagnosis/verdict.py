@@ -74,9 +74,21 @@ class Diagnosis:
     candidates : list of Candidate
         Best first.
     explained_by : list of str
-        Labels of the effects that, added, bring the residuals to the noise (``missing_effect``).
+        The advice for a calibration: labels of the effects that, added, bring the residuals to the noise
+        (``missing_effect``) *and* improve the calibration for new data (fitted on the earlier part of the
+        record, applied to its later stretch as ``magcal apply`` does).
     partially_explained_by : list of str
-        Supported effects that reduce the residuals without bringing them to the noise (``unexplained``).
+        The same for supported effects that reduce the residuals without bringing them to the noise
+        (``unexplained``).
+    record_holds : list of str
+        What this record holds that is not advice for the calibration: record-only terms (drifts, steps,
+        interference, a changing or non-uniform field: :attr:`magcal.model.terms.Effect.transferable` False)
+        and terms that describe the record but do not improve it on its later part. The summary says what to do
+        about each when recording.
+    record_details : list of dict
+        Per ``record_holds`` entry: ``label``, ``record_only``, ``describes_record``, ``improves_new_data``, the
+        later stretch's RMS before and after (nT), ``kept_for_new_data`` (what the calibration keeps when the
+        term is fitted with the base terms) and ``when_recording``.
     warnings : list of str
     structure : list of Structure
         Significant structure left in the diagnosed model's residuals.
@@ -117,6 +129,8 @@ class Diagnosis:
     elapsed_s: float = 0.0
     rms_final_nT: float | None = None
     validation: dict = field(default_factory=dict)
+    record_holds: list = field(default_factory=list)
+    record_details: list = field(default_factory=list)
 
     @property
     def noise_nT(self) -> float:
@@ -147,6 +161,8 @@ class Diagnosis:
             "elapsed_s": round(float(self.elapsed_s), 3),
             "noise": self.noise.to_dict(),
             "validation": jsonable(self.validation),
+            "record_holds": list(self.record_holds),
+            "record_details": jsonable(self.record_details),
         }
 
     def plot_data(self) -> dict:
@@ -341,25 +357,29 @@ class _HeldOut:
         blocks, later = comparisons["blocks"], comparisons["later"]
         c.held_out_before_nT = float(blocks.base.held_out_rms_nT)
         c.held_out_after_nT = float(blocks.with_effect.held_out_rms_nT)
-        relevelled = bool(later.with_effect.dropped) and later.with_effect.relevelled_rms_nT is not None
-        c.later_before_nT = float(later.base.relevelled_rms_nT if relevelled else later.base.held_out_rms_nT)
-        c.later_after_nT = float(
-            later.with_effect.relevelled_rms_nT if relevelled else later.with_effect.held_out_rms_nT
-        )
-        c.holds = _validation.judge(blocks, later)
+        c.later_before_nT = float(later.base.held_out_rms_nT)
+        c.later_after_nT = float(later.with_effect.held_out_rms_nT)
+        # describes this record: the blocks' gain holds; an instrument term must also not make the later stretch
+        # worse (it stays in the calibration); a record-only term is dropped there, so the later stretch only says
+        # whether it improves the calibration for new data
+        c.holds = _validation.judge(blocks) and (c.record_only or later.does_not_rise)
+        c.transfers = _validation.transfers(later)
         held = (
             f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
-            f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT"
+            f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT (fitted before, applied as magcal apply does"
+            + (": record-only terms dropped)" if later.with_effect.dropped else ")")
         )
-        if relevelled:
-            held += " (record-only: level on the later stretch taken out)"
         if blocks.base.held_out_consistency_rms_nT is not None:
             held += (
                 f", inter-sensor consistency (blocks) {blocks.base.held_out_consistency_rms_nT:.4g} -> "
                 f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT"
             )
         if c.holds:
-            c.evidence += f"; {held}: holds on held-out data"
+            c.evidence += f"; {held}: describes this record (holds on held-out data)" + (
+                "; improves the calibration for new data"
+                if c.transfers
+                else "; does not improve the calibration for new data (later stretch)"
+            )
         else:
             why = (
                 f"the blocks' RMS does not fall by {_validation.MIN_RELATIVE_GAIN:.0%}"
@@ -757,6 +777,12 @@ def _after_scores(
             )
         if explained:
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
+    # what describes this record vs what improves the calibration for new data (issue 28)
+    holds_here = [c for c in chosen if c.record_only or c.transfers is False]
+    record_holds = [c.label for c in holds_here]
+    if holds_here:
+        summary += "; " + _record_holds_words(holds_here, chosen)
+    explained = [c.label for c in chosen if _advised(c)]
     partial = []
     if verdict != "missing_effect":
         partial, explained = explained, []
@@ -775,8 +801,8 @@ def _after_scores(
     warnings_ += validation_notes
     if len(explained) > 1 and verdict == "missing_effect":
         warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
-    if explained or partial:
-        fits["+".join(explained or partial)] = current
+    if chosen:
+        fits["+".join(c.label for c in chosen)] = current
 
     floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
     time_ev, temperature_ev, spectra, sensors_ev = [future.result() for future in evidence_futures]
@@ -817,7 +843,91 @@ def _after_scores(
         elapsed_s=_time.perf_counter() - t_start,
         rms_final_nT=float(current.rms_nT),
         validation=_validation_summary(held_out, skipped, chosen),
+        record_holds=record_holds,
+        record_details=[_record_detail(c) for c in holds_here],
     )
+
+
+#: What to do about a record-only finding when recording (by catalogue name); the fallback is for a term that
+#: describes the record but does not carry to later data.
+WHEN_RECORDING = {
+    "bias_drift": "let the sensor and electronics reach a steady temperature before recording, record the "
+    "temperature, and keep the rotation short (or repeat it at the start and end to measure the drift)",
+    "bias_step": "find what changed at that time (a shock, a cable, a power or load change, a magnetised tool "
+    "near the sensor) and record again without it; a sensor permed by a shock keeps its new bias: calibrate "
+    "after it",
+    "reference_drift": "the field at the sensor changed during the record (time of day, a vehicle or iron moving "
+    "nearby, height): record where and when the field is quiet, in less time, or give the field's variation "
+    "(a base-station ref_total column or --reference)",
+    "periodic_interference": "a periodic source near the sensor (a motor, PWM, mains, a blinking load) was on: "
+    "switch it off or move away from it while recording",
+    "site_gradient": "the field is not uniform over the path of the array: turn it in place, away from iron, or "
+    "record its attitude and position",
+}
+WHEN_RECORDING_OTHER = (
+    "it describes this record but does not carry to its later part: repeat the recording with what it depends on "
+    "(temperature, rotation speed) varied independently of time, so that it can be told from a drift"
+)
+
+#: What the calibration kept for new data holds when a record-only term is fitted with the base terms (by name):
+#: the level its parametrisation refers the base terms to (``magcal apply`` drops the term on new data).
+KEPT_FOR_NEW_DATA = {
+    "bias_drift": "the bias at the fitted record's mean time (the drift's reference time)",
+    "bias_step": "the bias before the step",
+    "reference_drift": "the field's mean over the fitted record",
+    "periodic_interference": "the base terms without the interference (a zero-mean sinusoid)",
+    "site_gradient": "the base terms of the sensors at the array's centre",
+}
+
+
+def _advised(c) -> bool:
+    """Whether a chosen effect is advice for a calibration: it improves the calibration for new data (the later
+    stretch, applied as magcal apply does). Without a held-out judgement (a record too short to split) an
+    instrument term is advised on its in-sample evidence and a record-only term is not."""
+    if c.transfers is None:
+        return not c.record_only
+    return bool(c.transfers)
+
+
+def _record_detail(c) -> dict:
+    """The JSON entry of a finding that describes this record (``record_holds``)."""
+    return {
+        "label": c.label,
+        "record_only": c.record_only,
+        "describes_record": c.holds,
+        "improves_new_data": c.transfers,
+        "later_rms_before_nT": _num(c.later_before_nT),
+        "later_rms_after_nT": _num(c.later_after_nT),
+        "kept_for_new_data": KEPT_FOR_NEW_DATA.get(c.effect) if c.record_only else None,
+        "when_recording": WHEN_RECORDING.get(c.effect, WHEN_RECORDING_OTHER) if c.record_only else WHEN_RECORDING_OTHER,
+    }
+
+
+def _record_holds_words(holds_here, chosen) -> str:
+    """The summary's sentence on what this record holds and what to do about it when recording."""
+    parts = []
+    for c in holds_here:
+        what = (
+            "a record-only term (it describes this recording, not the sensor; magcal apply drops it on new data)"
+            if c.record_only
+            else "it describes this record but does not improve the calibration on its later part"
+        )
+        text = f"this record holds {c.label}: {what}"
+        if c.record_only and c.transfers:
+            text += (
+                f"; fitted with the base terms it improves the calibration kept for new data ({KEPT_FOR_NEW_DATA.get(c.effect, 'its base terms')}; "
+                f"later stretch {c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT)"
+            )
+        elif c.later_before_nT is not None:
+            text += (
+                f"; it does not improve the calibration for new data (later stretch {c.later_before_nT:.4g} -> "
+                f"{c.later_after_nT:.4g} nT)"
+            )
+        advice = WHEN_RECORDING.get(c.effect, WHEN_RECORDING_OTHER) if c.record_only else WHEN_RECORDING_OTHER
+        parts.append(f"{text}. When recording: {advice}")
+    if not any(_advised(c) for c in chosen):
+        parts.append("nothing needs adding to the calibration for new data")
+    return "; ".join(parts)
 
 
 def _held_out_words(chosen) -> str:
