@@ -372,6 +372,44 @@ def run_transfer(ds, max_rounds=3) -> dict:
     return out
 
 
+#: Record-only terms whose kept level for new data is measured by :func:`kept_level_study`.
+KEPT_TERMS = ("bias_drift", "bias_step", "reference_drift")
+
+
+def kept_level_study(ds) -> dict:
+    """Which level of a record-only term the calibration for new data should keep (issue 28, item 3).
+
+    Each term of :data:`KEPT_TERMS` is fitted with the base terms on the first half; the calibration is applied to
+    the second half with the term dropped and its level at the first half's start, mean or end kept (a vector
+    offset in the corrected frame for a bias term, the expected field for a reference drift). Returns the held-out
+    total-field RMS (nT) per term and option, beside the base model's."""
+    first, second = halves(ds)
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        base = magcal.calibrate(first).calibration
+        out["base"] = _rms(base.total_field_residuals(second, base.correct(second, "drop"), "drop"))
+        for term in KEPT_TERMS:
+            if first.time_s is None:
+                continue
+            try:
+                cal = magcal.calibrate(first, effects=[term]).calibration
+            except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+                out[term] = {"failed": str(exc)[:80]}
+                continue
+            offset = cal.correct(first, "apply") - cal.correct(first, "drop")  # (ns, N, 3)
+            field = cal.expected_total_field(first, "apply")  # (ns, N)
+            drop = cal.correct(second, "drop")
+            res = {}
+            for option, k in (("start", 0), ("end", first.n_samples - 1), ("mean", None)):
+                v = drop + (offset.mean(axis=1, keepdims=True) if k is None else offset[:, k : k + 1])
+                f = field.mean(axis=1, keepdims=True) if k is None else field[:, k : k + 1]
+                res[option] = _rms(np.linalg.norm(v, axis=2) - f)
+            res["as_dropped"] = _rms(cal.total_field_residuals(second, drop, "drop"))
+            out[term] = res
+    return out
+
+
 def transfer_markdown(records) -> str:
     lines = [
         "| recording | N first / second | base: verdict, held-out | advice followed (held-out after, change) | "

@@ -150,32 +150,59 @@ def test_an_in_sample_gain_that_does_not_hold_is_not_recommended():
 @pytest.mark.parametrize(
     "hidden", ["temperature_bias", "nonlinearity_quadratic", "bias_drift", "bias_step", "reference_drift"]
 )
-def test_a_hidden_effect_is_recommended_with_a_held_out_gain(hidden):
-    """Instrument terms and record-only ones (interpolated in blocks, held at their fitted average later)."""
+def test_a_hidden_effect_is_found_with_a_held_out_gain(hidden):
+    """Instrument terms are advised (explained_by) when they improve the later stretch, scored as magcal apply
+    scores it; record-only terms (interpolated in blocks) are named as what the record holds (record_holds) and
+    advised only if, fitted with the base terms, they improve the calibration kept for new data."""
     d = diagnose(_record(hidden, seed=6))
-    assert d.verdict == "missing_effect" and d.explained_by == [hidden], d.summary
     c = d.candidates[0]
-    assert c.effect == hidden and c.holds is True
+    assert d.verdict == "missing_effect" and c.effect == hidden and c.holds is True, d.summary
     assert c.held_out_after_nT <= (1 - val.MIN_RELATIVE_GAIN) * c.held_out_before_nT
-    assert c.later_after_nT <= c.later_before_nT + val.rise_tolerance_nT(c.later_before_nT, 375)
+    assert c.transfers is (c.later_after_nT < c.later_before_nT - val.rise_tolerance_nT(c.later_before_nT, 375))
+    if EFFECTS[hidden].transferable:
+        assert c.transfers and d.explained_by == [hidden] and d.record_holds == [], d.summary
+    else:
+        assert c.record_only and d.record_holds == [hidden], d.summary
+        assert d.explained_by == ([hidden] if c.transfers else [])
+        assert f"this record holds {hidden}" in d.summary and "When recording:" in d.summary
+        detail = d.to_dict()["record_details"][0]
+        assert detail["label"] == hidden and detail["record_only"] and detail["when_recording"]
+        assert detail["kept_for_new_data"] == EFFECTS[hidden].kept_for_new_data
     assert d.validation["validated"] and d.validation["held_out_rms_after_nT"] == c.held_out_after_nT
     assert "held-out samples" in d.summary
     doc = d.to_dict()
     assert doc["candidates"][0]["holds"] is True and doc["validation"]["validated"] is True
+    assert doc["candidates"][0]["transfers"] is c.transfers
     assert {"held_out_rms_before_nT", "held_out_rms_after_nT", "later_rms_before_nT", "later_rms_after_nT"} <= set(
         doc["candidates"][0]
     )
     assert "held-out" in d.table() and "later" in d.table()
 
 
-def test_record_only_terms_are_held_at_their_average_on_later_data():
-    """The later score of a real bias drift: dropping it outright would leave the bias of the fitted stretch's
-    centre; holding it at its average keeps the level a model without it has, so the instrument terms are judged."""
+def test_record_only_terms_are_dropped_on_later_data_as_apply_drops_them():
+    """The later score of a real bias drift is what magcal apply leaves: the drift dropped, nothing re-levelled."""
     ds = _record("bias_drift", seed=7)
     cmp = val.compare(ds, added_effect="bias_drift", scheme="later")
     assert cmp.with_effect.dropped == ["bias_drift"]
     assert cmp.does_not_rise
-    assert "average" in cmp.with_effect.notes[0]
+    assert "as magcal apply drops them" in cmp.with_effect.notes[0]
+
+
+def test_a_bias_step_keeps_the_bias_after_the_step_for_new_data():
+    """A calibration fitted with a bias step, applied to new data (the step dropped), keeps the bias after it."""
+    ds = _record("bias_step", seed=7)
+    result = calibrate(ds, effects=["bias_step"])
+    cal = result.calibration
+    (label,) = [k for k in cal.effect_values if k.startswith("bias_step")]
+    step = cal.effect_values[label]
+    kept = cal.sensors_for_new_data()[0].bias_nT
+    assert np.allclose(kept, cal.sensors[0].bias_nT + step)
+    later = ds.subset(ds.time_s > cal.model.effects[0].step_time_s[0])
+    applied = cal.correct(later, record_terms="drop")
+    assert np.allclose(applied, cal.correct(later, record_terms="apply"), atol=1e-6)  # after the step: unchanged
+    doc = cal.to_dict()
+    entry = next(e for e in doc["effect_params"] if e["effect"] == "bias_step")
+    assert entry["kept_for_new_data"].startswith("the bias after the step")
 
 
 def test_a_record_too_short_to_split_is_judged_in_sample_with_a_note():

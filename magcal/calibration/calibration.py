@@ -10,7 +10,7 @@ import hashlib
 import json
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -347,15 +347,44 @@ class Calibration:
 
     def _model_for(self, dataset, record_terms, stages, warn=True):
         """The model (and effect values) to evaluate on ``dataset`` after the record-term decision."""
+        return self._acting(dataset, record_terms, stages, warn)[0]
+
+    def _acting(self, dataset, record_terms, stages, warn=True):
+        """``(model, sensors)`` to evaluate on ``dataset`` after the record-term decision: the dropped terms left
+        out of the model and the level each keeps for new data folded into the sensors' biases
+        (:meth:`sensors_for_new_data`)."""
         dropped, note = self.record_decision(dataset, record_terms, stages)
         if note and warn:
             warnings.warn(note, RecordTermWarning, stacklevel=3)
         if not dropped:
-            return self.model
+            return self.model, self.sensors
         model = self.model
         for label in dropped:
             model = model.without(label)
-        return model
+        return model, self.sensors_for_new_data(dropped)
+
+    def sensors_for_new_data(self, dropped=None) -> list:
+        """The sensors' base calibrations as kept for new data: each dropped record-only raw-stage term's kept level
+        (:meth:`magcal.model.terms.Effect.kept_raw_level`, e.g. the bias after a bias step) folded into the bias.
+
+        Parameters
+        ----------
+        dropped : sequence of str, optional
+            Labels of the terms dropped (default: every record-only term).
+        """
+        dropped = set(self.record_terms() if dropped is None else dropped)
+        if self.model is None or not dropped:
+            return self.sensors
+        sensors = [replace(c, bias_nT=c.bias_nT.copy()) for c in self.sensors]
+        for e, es in self.model.instances():
+            if e.label not in dropped or e.stage != "raw":
+                continue
+            for s, cal in enumerate(sensors):
+                if es == s or (es is None and e.applies_to(s)):
+                    level = e.kept_raw_level((self.effect_values or {}).get(block_label(e, es)))
+                    if level is not None:
+                        cal.bias_nT = cal.bias_nT + level
+        return sensors
 
     # --- applying it --------------------------------------------------------------------------------------
     def correct(self, dataset, record_terms=None) -> np.ndarray:
@@ -370,8 +399,8 @@ class Calibration:
             :class:`~magcal.core.errors.RecordTermWarning` naming them, on any other.
         """
         self.check(dataset)
-        model = self._model_for(dataset, record_terms, VECTOR_STAGES)
-        return corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        model, sensors = self._acting(dataset, record_terms, VECTOR_STAGES)
+        return corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
 
     def total_field(self, dataset, record_terms=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
@@ -389,11 +418,11 @@ class Calibration:
     def total_field_residuals(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
         """Total-field residuals ``|B| - F`` (n_sensors, N) in nT; ``corrected`` reuses :meth:`correct`'s output
         (``record_terms`` as in :meth:`correct`; one warning names every term dropped)."""
-        model = self._model_for(dataset, record_terms, None)
+        model, sensors = self._acting(dataset, record_terms, None)
         ctxs = contexts(dataset, self.baseline_m)
         if corrected is None:
             self.check(dataset)
-            corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
+            corrected = corrected_fields(dataset, sensors, model, self.effect_values, ctxs)
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
@@ -442,6 +471,8 @@ class Calibration:
                         "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
                     }
                 )
+                if not is_transferable(e) and getattr(e, "kept_for_new_data", None):
+                    effects[-1]["kept_for_new_data"] = e.kept_for_new_data  # what apply keeps when it drops it
         doc = {
             "format": FORMAT,
             "version": VERSION,

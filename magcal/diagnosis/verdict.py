@@ -45,6 +45,7 @@ from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, coverage
+from magcal.model.terms import EFFECTS
 
 #: Verdicts of :func:`diagnose`.
 VERDICTS = ("adequate", "missing_effect", "unexplained")
@@ -869,16 +870,6 @@ WHEN_RECORDING_OTHER = (
     "(temperature, rotation speed) varied independently of time, so that it can be told from a drift"
 )
 
-#: What the calibration kept for new data holds when a record-only term is fitted with the base terms (by name):
-#: the level its parametrisation refers the base terms to (``magcal apply`` drops the term on new data).
-KEPT_FOR_NEW_DATA = {
-    "bias_drift": "the bias at the fitted record's mean time (the drift's reference time)",
-    "bias_step": "the bias before the step",
-    "reference_drift": "the field's mean over the fitted record",
-    "periodic_interference": "the base terms without the interference (a zero-mean sinusoid)",
-    "site_gradient": "the base terms of the sensors at the array's centre",
-}
-
 
 def _advised(c) -> bool:
     """Whether a chosen effect is advice for a calibration: it improves the calibration for new data (the later
@@ -887,6 +878,12 @@ def _advised(c) -> bool:
     if c.transfers is None:
         return not c.record_only
     return bool(c.transfers)
+
+
+def _kept_words(c) -> str:
+    """What the calibration keeps for new data when the record-only candidate is fitted and dropped."""
+    cls = EFFECTS.get(c.effect)
+    return getattr(cls, "kept_for_new_data", None) or "its base terms"
 
 
 def _record_detail(c) -> dict:
@@ -898,7 +895,7 @@ def _record_detail(c) -> dict:
         "improves_new_data": c.transfers,
         "later_rms_before_nT": _num(c.later_before_nT),
         "later_rms_after_nT": _num(c.later_after_nT),
-        "kept_for_new_data": KEPT_FOR_NEW_DATA.get(c.effect) if c.record_only else None,
+        "kept_for_new_data": _kept_words(c) if c.record_only else None,
         "when_recording": WHEN_RECORDING.get(c.effect, WHEN_RECORDING_OTHER) if c.record_only else WHEN_RECORDING_OTHER,
     }
 
@@ -915,7 +912,7 @@ def _record_holds_words(holds_here, chosen) -> str:
         text = f"this record holds {c.label}: {what}"
         if c.record_only and c.transfers:
             text += (
-                f"; fitted with the base terms it improves the calibration kept for new data ({KEPT_FOR_NEW_DATA.get(c.effect, 'its base terms')}; "
+                f"; fitted with the base terms it improves the calibration kept for new data ({_kept_words(c)}; "
                 f"later stretch {c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT)"
             )
         elif c.later_before_nT is not None:
