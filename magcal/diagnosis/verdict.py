@@ -201,6 +201,9 @@ class Diagnosis:
             mark = "" if c.refitted else "*"
             sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
             holds = "-" if c.holds is None else "yes" if c.holds else "NO"
+            if c.refitted and not c.converged:
+                lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6}  did not converge  {c.evidence}")
+                continue
             lines.append(
                 f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g} "
                 f"{_pair(c.held_out_before_nT, c.held_out_after_nT):>17} "
@@ -364,7 +367,7 @@ class _HeldOut:
         # worse (it stays in the calibration); a record-only term is dropped there, so the later stretch only says
         # whether it improves the calibration for new data
         c.holds = _validation.judge(blocks) and (c.record_only or later.does_not_rise)
-        c.transfers = _validation.transfers(later)
+        c.transfers = _validation.transfers(later, c.record_only)
         held = (
             f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
             f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT (fitted before, applied as magcal apply does"
@@ -401,9 +404,11 @@ def _undetermined(fit, directions) -> str | None:
 
     An effect can only be judged against a base calibration the data fix. Two signs that they do not: the
     directions cover too little of the sphere (thinnest direction spread below
-    :data:`magcal.geometry.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and a fitted field magnitude
-    outside the geomagnetic range (the scale and the field trade off along the directions not seen). Then
-    adding a term mostly moves the poorly fixed base parameters, and no candidate is recommended.
+    :data:`magcal.geometry.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and, with such weak
+    coverage, a fitted field magnitude outside the geomagnetic range (the scale and the field trade off along the
+    directions not seen). Then adding a term mostly moves the poorly fixed base parameters, and no candidate is
+    recommended. With good coverage a field outside the range is a units question (:func:`_units_question`), and
+    the effects are still judged: a common scale error does not change which effect is missing.
     """
 
     reasons = []
@@ -413,9 +418,34 @@ def _undetermined(fit, directions) -> str | None:
             reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere 0.33)")
     field_nT = fit.calibration.reference_total_nT
     lo, hi = EARTH_FIELD_RANGE_nT
-    if fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
+    if reasons and fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
         reasons.append(f"fitted field {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-{hi / 1000:.0f} uT")
     return "; ".join(reasons) or None
+
+
+#: Scale factors tried, simplest first, when a well-covered record's fitted field lies outside the Earth's range
+#: (a logger's LSB off by a power of two or ten, gauss or milligauss read as microtesla...).
+UNIT_FACTORS = (0.5, 2.0, 0.1, 10.0, 0.25, 4.0, 0.01, 100.0, 0.001, 1000.0, 1e-5, 1e5, 1e-6, 1e6)
+
+
+def _units_question(fit, directions) -> str | None:
+    """The units or LSB question a well-covered record raises when its fitted field magnitude lies outside the
+    Earth's range (:data:`magcal.checks.quality.EARTH_FIELD_RANGE_nT`), with the simplest scale factor that
+    brings it inside; None otherwise (the field is given, in range, or the coverage is weak: :func:`_undetermined`)."""
+    field_nT = fit.calibration.reference_total_nT
+    lo, hi = EARTH_FIELD_RANGE_nT
+    if fit.reference_kind != "fitted" or not field_nT or lo <= field_nT <= hi:
+        return None
+    if any(coverage(u).thinnest_spread < WEAK_DIRECTION_SPREAD for u in directions):
+        return None
+    factor = next((f for f in UNIT_FACTORS if lo <= f * field_nT <= hi), None)
+    hint = f"x{factor:g} gives {factor * field_nT / 1000:.3g} uT; " if factor is not None else ""
+    return (
+        f"the fitted field is {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-{hi / 1000:.0f} uT, although "
+        f"the directions cover the sphere: the units or the LSB of the readings are likely off ({hint}pass --units "
+        "or --lsb with the right scale). A common scale does not change which effect is missing: the effects are "
+        "judged as they are"
+    )
 
 
 def _changes_the_field(base_fit, c) -> str | None:
@@ -680,6 +710,9 @@ def _after_scores(
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
     cands = _judge_round(held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None)
     undetermined = undetermined_future.result()
+    units = _units_question(fit0, directions)
+    if units:
+        validation_notes.append(units)
     if undetermined:
         validation_notes.append(
             f"the base calibration is not determined by these data ({undetermined}): no effect "
@@ -778,6 +811,8 @@ def _after_scores(
             )
         if explained:
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
+    if units:
+        summary = f"{units.split('. ')[0]}; {summary}"
     # what describes this record vs what improves the calibration for new data (issue 28)
     holds_here = [c for c in chosen if c.record_only or c.transfers is False]
     record_holds = [c.label for c in holds_here]

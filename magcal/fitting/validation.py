@@ -25,7 +25,7 @@ other:
 :func:`validate` scores one model; :func:`compare` tells whether an added effect's in-sample gain holds on
 held-out data; :func:`judge` is the rule of :func:`magcal.diagnosis.diagnose` for "describes this record"
 (:data:`MIN_RELATIVE_GAIN` on ``blocks``) and :func:`transfers` the rule for "improves the calibration for new
-data" (a fall beyond :data:`LATER_TOLERANCE_SE` standard errors on ``later``). :func:`split_problem` says when a record is too short to split.
+data" (on ``later``: no rise for an instrument term, a fall for a record-only one). :func:`split_problem` says when a record is too short to split.
 """
 
 from __future__ import annotations
@@ -575,11 +575,16 @@ def judge(blocks: Comparison, later: Comparison | None = None) -> bool:
     return bool(blocks.holds)
 
 
-def transfers(later: Comparison) -> bool:
+def transfers(later: Comparison, record_only: bool = False) -> bool:
     """Whether an added effect improves the calibration for new data: fitted on the earlier part and applied to
-    the later stretch as ``magcal apply`` does (record-only terms dropped, nothing re-levelled), the held-out RMS
-    falls by more than :data:`LATER_TOLERANCE_SE` standard errors and nothing rises (:attr:`Comparison.improves`)."""
-    return bool(later.improves)
+    the later stretch as ``magcal apply`` does (record-only terms dropped, nothing re-levelled).
+
+    An instrument term stays in the calibration and acts on the later stretch as it did on the record: it
+    transfers when the later RMS does not rise beyond :data:`LATER_TOLERANCE_SE` standard errors
+    (:attr:`Comparison.does_not_rise`). A record-only term is dropped there, so what it described is gone: it
+    transfers only when the calibration it leaves is measurably better, a fall beyond :data:`LATER_TOLERANCE_SE`
+    standard errors (:attr:`Comparison.improves`)."""
+    return bool(later.improves if record_only else later.does_not_rise)
 
 
 @dataclass
