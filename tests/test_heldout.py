@@ -324,3 +324,15 @@ def test_a_diverged_refit_reads_did_not_converge(monkeypatch):
     row = next(line for line in d.table().splitlines() if "temperature_bias" in line and "did not converge" in line)
     assert "e+" not in row.split("did not converge")[0]
     assert d.to_dict()["candidates"][d.candidates.index(c)]["converged"] is False
+
+
+@pytest.mark.parametrize("cycles, trend", [(1.0, True), (1.8, True), (12.0, False)])
+def test_two_cycles_per_record_or_fewer_is_a_trend_not_a_period(cycles, trend):
+    """A sinusoidal change of the field of one or two cycles over the record is called a trend; twelve cycles are
+    a period."""
+    change = perturbations.catalogue_perturbation(EFFECTS["reference_drift"](), 20.0, period_fraction=1.0 / cycles)
+    ds = _record(seed=3, perturbations=[change])
+    d = diagnose(ds, candidates=["nonlinearity_cubic"], validate=False)
+    texts = [s.text for s in d.structure]
+    assert any(s.kind == "periodic" for s in d.structure) is not trend, texts
+    assert any("slow trend over the record" in t for t in texts) is trend, texts
