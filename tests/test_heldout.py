@@ -336,3 +336,20 @@ def test_two_cycles_per_record_or_fewer_is_a_trend_not_a_period(cycles, trend):
     texts = [s.text for s in d.structure]
     assert any(s.kind == "periodic" for s in d.structure) is not trend, texts
     assert any("slow trend over the record" in t for t in texts) is trend, texts
+
+
+def test_a_bias_step_is_found_where_the_readings_jump_not_inside_a_still_head():
+    """A record whose first 30 s are still, with a bias step (80 nT, across the field) at the moment the turning
+    starts: the total field cannot place the step inside the still head, and the readings do not jump there; the
+    step is placed where they do (before issue 28: 11.9 s, 18 s early)."""
+    truth = chi2017_truth(1)
+    ds = simulate_timeseries(truth, n_samples=1500, noise_nT=SIGMA, seed=4)
+    y = ds.readings_nT.copy()
+    head = 300
+    y[0, :head] = y[0, head] + np.random.default_rng(0).normal(scale=SIGMA, size=(head, 3))
+    u = y[0, head] - truth.sensors[0].bias_nT
+    step = np.cross(u / np.linalg.norm(u), [0.0, 0.0, 1.0])
+    y[0, head:] += 80.0 * step / np.linalg.norm(step)
+    ds = ds.replace(readings_nT=y)
+    fitted = calibrate(ds, effects=["bias_step"]).calibration.model.effects[0].step_time_s[0]
+    assert abs(fitted - 0.5 * (ds.time_s[head - 1] + ds.time_s[head])) < 0.25

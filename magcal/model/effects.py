@@ -493,6 +493,42 @@ def _step_scan(readings_nT, margin, min_samples):
     return int(lo + np.argmax(improvement[lo:hi])), improvement
 
 
+#: A reading's change from the previous sample above this many times the local median change is a jump; a
+#: stretch of samples without one around a step time is still (:func:`_at_the_jump`).
+JUMP_FACTOR = 4.0
+
+#: Fewest samples on each side of a step time, without a jump, for the stretch to count as still.
+STILL_MIN_SAMPLES = 10
+
+
+def _at_the_jump(cost, lo, hi, readings_nT):
+    """The step's first sample ``k`` in ``[lo, hi]`` from the profile ``cost[k]`` (nT^2) of a step before sample
+    ``k``: its minimum, unless that falls inside a still stretch where the readings do not jump -- a step there
+    would show as a jump of the readings, so it cannot be -- and then the edge of the still stretch (the first
+    sample where the readings jump, before or after it) with the lower cost (issue 28: a step was placed inside a
+    still head, seconds before the visible jump)."""
+    window = cost[lo : hi + 1]
+    k = lo + int(np.argmin(window))
+    y = np.asarray(readings_nT, dtype=float)
+    change = np.r_[0.0, np.linalg.norm(np.diff(y, axis=0), axis=1)]  # change[j] = |y_j - y_(j-1)|
+    around = change[max(k - STILL_MIN_SAMPLES, 1) : k + STILL_MIN_SAMPLES + 1]
+    if around.size < 2 * STILL_MIN_SAMPLES:
+        return k
+    threshold = JUMP_FACTOR * float(np.median(around))
+    if change[k] > threshold:
+        return k  # the readings jump here
+    a = k
+    while a - 1 >= lo and change[a - 1] <= threshold:
+        a -= 1
+    b = k
+    while b + 1 <= hi and change[b + 1] <= threshold:
+        b += 1
+    if k - a < STILL_MIN_SAMPLES or b - k < STILL_MIN_SAMPLES:
+        return k  # not inside a still stretch
+    edges = [j for j in (a - 1, b + 1) if lo <= j <= hi]
+    return min(edges, key=lambda j: cost[j]) if edges else k
+
+
 @register
 @dataclass
 class BiasStep(CatalogueEffect):
@@ -572,7 +608,7 @@ class BiasStep(CatalogueEffect):
                 on = context.cost_with_sensor_moved(s, (now - 1.0) * shift)  # the step at every sample
             # cost of a step before sample k: samples < k without it, samples >= k with it
             cost = np.concatenate([[0.0], np.cumsum(off)]) + np.concatenate([np.cumsum(on[::-1])[::-1], [0.0]])
-            k = lo + int(np.argmin(cost[lo : hi + 1]))
+            k = _at_the_jump(cost, lo, hi, context.dataset.readings_nT[s])
             new = float(0.5 * (t[k - 1] + t[k]))
             if np.any((t >= new) != (t >= times[s])):
                 times[s], changed = new, True
