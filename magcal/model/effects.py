@@ -86,6 +86,34 @@ def _diagonal_basis(columns):
     return SingleAxisBasis(columns, np.arange(3))
 
 
+#: Span (s) of the smoothing that the hysteresis term's reversals are found on (:func:`smoothed_readings`).
+REVERSAL_SMOOTHING_S = 0.2
+
+
+def smoothed_readings(values, time_s, span_s=REVERSAL_SMOOTHING_S):
+    """The readings fitted in time (a cubic Savitzky-Golay fit over ``span_s`` seconds, at least 7 samples, at
+    most 51), for regularly sampled records; the readings themselves otherwise.
+
+    The hysteresis term takes its reversals (the play operator's turning points) from this fitted field, not
+    from the noisy readings: at 100 Hz the noise of a few nT turns the play operator of a few-nT loop back and
+    forth while an axis changes slowly (issue 28).
+    """
+    values = np.asarray(values, dtype=float)
+    if time_s is None or len(time_s) < 7:
+        return values
+    t = np.asarray(time_s, dtype=float)
+    n = len(t)
+    dt = np.diff(t)
+    step = float(np.median(dt))
+    if not (step > 0 and np.all(np.abs(dt - step) <= 0.01 * step)):
+        return values
+    window = int(np.clip(round(span_s / step), 7, 51))
+    window += 1 - window % 2
+    if window > n:
+        return values
+    return savgol_filter(values, window, 3, axis=0, mode="interp")
+
+
 def time_derivative(values, time_s, window=7):
     """Smoothed time derivative along axis 0 (units of ``values`` per second).
 
@@ -991,7 +1019,8 @@ class Hysteresis(CatalogueEffect):
         return _diagonal_basis(columns)
 
     def _columns(self, ctx, widths):
-        y = ctx.reading_nT
+        # the reversals from the readings fitted in time, not from their noise (smoothed_readings)
+        y = smoothed_readings(ctx.reading_nT, ctx.time_s)
         rate = _reading_rate(self, ctx)
         cols = -np.sign(rate)
         if widths:
