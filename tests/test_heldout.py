@@ -369,3 +369,22 @@ def test_hysteresis_reversals_come_from_the_fitted_field_not_the_noise():
     d = diagnose(ds)
     assert d.verdict == "missing_effect" and d.explained_by == ["hysteresis"], d.summary
     assert d.fits["hysteresis"].rms_nT <= 1.01 * d.floor_nT
+
+
+def test_smoothed_readings_have_no_floor_to_compare_with():
+    """Low-pass filtered readings (a 4th-order Butterworth at a tenth of the Nyquist frequency, run both ways): the
+    differences say 0.01 nT, which is not the sensor's noise; the estimate says the floor is unknown and no
+    structure is called an excess over a floor. White noise is recognised as white."""
+    from scipy.signal import butter, filtfilt
+
+    from magcal.checks.noise import smoothing_ratio
+
+    ds = _record(seed=1, n=3000)
+    assert abs(smoothing_ratio(calibrate(ds).fit.residuals_nT[0]) - 1.0) < 0.1
+    b, a = butter(4, 0.1)
+    smooth = ds.replace(readings_nT=filtfilt(b, a, ds.readings_nT, axis=1), noise_nT=None)
+    d = diagnose(smooth, validate=False)
+    assert d.noise.source == "residuals" and "smoothed or filtered" in d.noise.note
+    assert d.noise.sigma_nT > 0.5 * d.rms_nT  # the residual RMS stands in, not the 0.01 nT of the differences
+    assert any("smoothed or filtered" in w for w in d.warnings)
+    assert not any(s.kind == "excess" for s in d.structure)
