@@ -388,3 +388,16 @@ def test_smoothed_readings_have_no_floor_to_compare_with():
     assert d.noise.sigma_nT > 0.5 * d.rms_nT  # the residual RMS stands in, not the 0.01 nT of the differences
     assert any("smoothed or filtered" in w for w in d.warnings)
     assert not any(s.kind == "excess" for s in d.structure)
+
+
+def test_an_unexplained_direction_pattern_says_what_it_means():
+    """A degree-4 direction pattern (a cubic nonlinearity) with the nonlinearity terms left out of the candidates:
+    unexplained, and the summary names the likely causes and the recording that separates them."""
+    ds = _record("nonlinearity_cubic", seed=2)
+    others = [n for n in EFFECTS if not n.startswith("nonlinearity")]
+    d = diagnose(ds, candidates=others, validate=False)
+    assert d.verdict == "unexplained", d.summary
+    assert "direction" in {s.kind for s in d.structure}
+    assert "non-uniform field" in d.summary and "turn it in place" in d.summary
+    clean = diagnose(_record("bias_drift", seed=2), candidates=["nonlinearity_cubic"], validate=False)
+    assert "non-uniform field" not in clean.summary  # a drift is structure in time, not a direction pattern

@@ -804,6 +804,9 @@ def _after_scores(
                 else ""
             )
         summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+        meaning = _unexplained_meaning(remaining if explained else structure0)
+        if meaning:
+            summary += f". {meaning}"
         if undetermined:
             summary = (
                 f"the base calibration is not determined by these data ({undetermined}), so no effect can "
@@ -904,6 +907,42 @@ WHEN_RECORDING_OTHER = (
     "it describes this record but does not carry to its later part: repeat the recording with what it depends on "
     "(temperature, rotation speed) varied independently of time, so that it can be told from a drift"
 )
+
+
+#: What an unexplained direction pattern without time structure means, and the recording that tells its causes apart.
+UNEXPLAINED_DIRECTION = (
+    "What is left is a pattern over the field direction with no structure in time: the sensor saw a field that "
+    "depends on its attitude beyond what the calibration terms describe. Likely causes: the sensor moved through "
+    "a non-uniform field while it was turned (near iron, a building, a vehicle: its position changed with its "
+    "attitude), or a magnetised object moved with it (on the mount, in the hand, a cable or battery). To separate "
+    "them: turn it in place about its own centre, away from iron; record its attitude and position; repeat the "
+    "rotation elsewhere -- a non-uniform field changes with the place, an object moving with the sensor does not"
+)
+
+
+#: An unexplained direction pattern is read as having no time structure of its own when its size is at least this
+#: share of the time correlation's (:func:`_unexplained_meaning`).
+DIRECTION_OVER_TIME = 0.3
+
+
+def _unexplained_meaning(structures) -> str | None:
+    """:data:`UNEXPLAINED_DIRECTION` when the structure left is a direction pattern (spherical-harmonic degree 3
+    or more) with no structure in time of its own; None otherwise.
+
+    Along a turned trajectory a direction pattern also correlates the residuals in time (the attitude changes
+    smoothly), so "no time structure" means: the pattern is at least as large as any periodic component and at
+    least :data:`DIRECTION_OVER_TIME` of the time correlation (a drift left in the residuals gives a time
+    correlation ten times its direction pattern; a degree-4 pattern about twice)."""
+
+    def size(kind):
+        return max((float(s.size) for s in structures if s.kind == kind), default=0.0)
+
+    direction = size("direction")
+    if direction <= 0 or size("consistency_time") > 0:
+        return None
+    if direction >= size("periodic") and direction >= DIRECTION_OVER_TIME * size("time"):
+        return UNEXPLAINED_DIRECTION
+    return None
 
 
 def _advised(c) -> bool:
