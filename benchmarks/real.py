@@ -15,7 +15,16 @@ prints and writes:
 * beside it an independent ellipsoid fit written here (algebraic least-squares quadric, no magcal code) with its
   in-sample and held-out RMS on the same splits, in the same gauge (soft-iron matrix of unit determinant);
 * the claim of issue 10 checked per recording: held-out RMS never rises with a recommended effect; it falls (or
-  the verdict reads ``adequate``); the loop ends ``adequate`` or ``unexplained`` with the remaining structure named.
+  the verdict reads ``adequate``); the loop ends ``adequate`` or ``unexplained`` with the remaining structure named;
+* the transfer test of issue 28 (:func:`run_transfer`): the advice followed as a user would on the record's
+  *first half* (diagnose; add the first of ``explained_by``, else of ``partially_explained_by``; refit; diagnose
+  again; at most ``--rounds``), each calibration written to JSON, read back and applied to the *second half*
+  exactly as ``magcal apply`` applies it to another record (record-only terms dropped, nothing refitted or
+  re-levelled): the held-out error is the RMS of ``|B|`` minus the field the calibration expects (the first half's
+  fitted field magnitude), before and after each piece of advice; the claim: it never rises by more than 1 %,
+  and falls by 2 % or more (or the first verdict is ``adequate``) on at least half of the recordings;
+* with ``--kept``, which level a record-only term fitted with the base terms should leave in the calibration for
+  new data (:func:`kept_level_study`: its level at the first half's start, mean or end, applied to the second).
 
 All RMS values are total-field residuals in nT. The recordings' field is fitted (no reference given).
 
@@ -24,6 +33,7 @@ Usage::
     python benchmarks/real/fetch.py --mirror /work/.mirror     # or without --mirror: download (pinned commits)
     python benchmarks/real/convert.py --all                    # h5py for sf_*, pymavlink / pyulog for the logs
     OPENBLAS_NUM_THREADS=1 python benchmarks/real.py           # all recordings (30-70 s on 2 shared cores)
+    python benchmarks/real.py --transfer-only --kept            # the transfer test and the kept levels only
     python benchmarks/real.py qmc_filtered sf_fullsphere --steps 2
 
 Writes ``benchmarks/out/real_loop.json`` (everything) and ``benchmarks/out/real_loop.csv`` (one row per step);
@@ -708,9 +718,9 @@ def markdown(records) -> str:
             )
     lines += [
         "",
-        "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | by magcal's rule "
-        "(later relevelled for record-only terms) | falls or adequate | loop ends | structure named at the "
-        "end |",
+        "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | later relevelled for "
+        "record-only terms (for reading: magcal judges the plain RMS since issue 28) | falls or adequate | loop "
+        "ends | structure named at the end |",
         "|---|---|---|---|---|---|",
     ]
     for r in records:
@@ -810,6 +820,11 @@ def main(argv=None) -> int:
         "--rounds", type=int, default=3, help="most pieces of advice followed by the transfer test (default 3; 0: none)"
     )
     parser.add_argument("--transfer-only", action="store_true", help="only the transfer test (first half -> second)")
+    parser.add_argument(
+        "--kept",
+        action="store_true",
+        help="also measure which level a record-only term should leave for new data (kept_level_study)",
+    )
     args = parser.parse_args(argv)
     paths = sorted(args.data_dir.glob("*.csv"))
     if args.names:
@@ -849,6 +864,29 @@ def main(argv=None) -> int:
             for s in rec["steps"]
         ) or rec.get("refused")
         print(f"{rec['name']}: N={rec['n']} ({rec['seconds']:.1f} s): {steps}", flush=True)
+    if args.kept:
+        print("\nkept level of record-only terms fitted on the first half, held-out RMS on the second (nT):")
+        print("| recording | base | " + " | ".join(f"{t}: start / mean / end (as dropped)" for t in KEPT_TERMS) + " |")
+        print("|---|---|" + "---|" * len(KEPT_TERMS))
+        for path in paths:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ds = magcal.read_csv(path)
+            try:
+                k = kept_level_study(ds)
+            except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+                print(f"| {path.stem} | refused: {str(exc)[:60]} |" + " |" * len(KEPT_TERMS))
+                continue
+            cells = []
+            for t in KEPT_TERMS:
+                x = k.get(t)
+                cells.append(
+                    "-"
+                    if x is None
+                    else x.get("failed")
+                    or f"{x['start']:.4g} / {x['mean']:.4g} / {x['end']:.4g} ({x['as_dropped']:.4g})"
+                )
+            print(f"| {path.stem} | {k['base']:.4g} | " + " | ".join(cells) + " |", flush=True)
     print()
     print(transfer_markdown(records))
     done = [r["transfer"] for r in records if r.get("transfer") and "rows" in r["transfer"]]
