@@ -379,11 +379,19 @@ class _HeldOut:
                 f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT"
             )
         if c.holds:
-            c.evidence += f"; {held}: describes this record (holds on held-out data)" + (
-                "; improves the calibration for new data"
-                if c.transfers
-                else "; does not improve the calibration for new data (later stretch)"
-            )
+            if c.record_only:
+                carries = (
+                    "; fitted with the base terms it improves the calibration kept for new data"
+                    if c.transfers
+                    else "; dropped on new data, it leaves no measurably better calibration (later stretch)"
+                )
+            else:
+                carries = (
+                    "; carries to new data (the later stretch does not get worse)"
+                    if c.transfers
+                    else "; makes the calibration worse on the later stretch"
+                )
+            c.evidence += f"; {held}: describes this record (holds on held-out data){carries}"
         else:
             why = (
                 f"the blocks' RMS does not fall by {_validation.MIN_RELATIVE_GAIN:.0%}"
