@@ -128,7 +128,10 @@ def part1(seeds):
             perturbations=[perturbations.periodic_interference(8.0, 0.7)],
         )
         d = diagnose(ds)
-        found.append(f"{d.verdict} {'+'.join(d.explained_by) or '-'}")
+        found.append(
+            f"{d.verdict} {'+'.join(d.explained_by) or '-'}"
+            + (f" (record holds {'+'.join(d.record_holds)})" if d.record_holds else "")
+        )
         unnamed.append(diagnose(ds, candidates=outside).verdict)
     print(f"  in the catalogue: {found}")
     print(f"  left out of the candidates: {unnamed}")

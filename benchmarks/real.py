@@ -15,7 +15,16 @@ prints and writes:
 * beside it an independent ellipsoid fit written here (algebraic least-squares quadric, no magcal code) with its
   in-sample and held-out RMS on the same splits, in the same gauge (soft-iron matrix of unit determinant);
 * the claim of issue 10 checked per recording: held-out RMS never rises with a recommended effect; it falls (or
-  the verdict reads ``adequate``); the loop ends ``adequate`` or ``unexplained`` with the remaining structure named.
+  the verdict reads ``adequate``); the loop ends ``adequate`` or ``unexplained`` with the remaining structure named;
+* the transfer test of issue 28 (:func:`run_transfer`): the advice followed as a user would on the record's
+  *first half* (diagnose; add the first of ``explained_by``, else of ``partially_explained_by``; refit; diagnose
+  again; at most ``--rounds``), each calibration written to JSON, read back and applied to the *second half*
+  exactly as ``magcal apply`` applies it to another record (record-only terms dropped, nothing refitted or
+  re-levelled): the held-out error is the RMS of ``|B|`` minus the field the calibration expects (the first half's
+  fitted field magnitude), before and after each piece of advice; the claim: it never rises by more than 1 %,
+  and falls by 2 % or more (or the first verdict is ``adequate``) on at least half of the recordings;
+* with ``--kept``, which level a record-only term fitted with the base terms should leave in the calibration for
+  new data (:func:`kept_level_study`: its level at the first half's start, mean or end, applied to the second).
 
 All RMS values are total-field residuals in nT. The recordings' field is fitted (no reference given).
 
@@ -24,6 +33,7 @@ Usage::
     python benchmarks/real/fetch.py --mirror /work/.mirror     # or without --mirror: download (pinned commits)
     python benchmarks/real/convert.py --all                    # h5py for sf_*, pymavlink / pyulog for the logs
     OPENBLAS_NUM_THREADS=1 python benchmarks/real.py           # all recordings (30-70 s on 2 shared cores)
+    python benchmarks/real.py --transfer-only --kept            # the transfer test and the kept levels only
     python benchmarks/real.py qmc_filtered sf_fullsphere --steps 2
 
 Writes ``benchmarks/out/real_loop.json`` (everything) and ``benchmarks/out/real_loop.csv`` (one row per step);
@@ -312,6 +322,134 @@ def run_loop(ds, max_steps, masks, residuals=None) -> tuple[list, list]:
     return steps, [w if k == 1 else f"{w} (x{k})" for w, k in counts.items()]
 
 
+# ---- the transfer test: advice followed on the first half, `magcal apply` on the second (issue 28) ---------------
+
+
+def halves(ds):
+    """The record's first and second half in time (by sample order without a time column)."""
+    t = ds.time_s if ds.time_s is not None else np.arange(ds.n_samples, dtype=float)
+    first = (
+        t < 0.5 * (float(np.min(t)) + float(np.max(t)))
+        if ds.time_s is not None
+        else np.arange(ds.n_samples) < ds.n_samples // 2
+    )
+    return ds.subset(first), ds.subset(~first)
+
+
+def applied_error(calibration, later) -> float:
+    """Held-out total-field RMS (nT) of a saved calibration applied to ``later`` exactly as ``magcal apply`` does:
+    the calibration written to JSON and read back, the record-only terms dropped (``later`` is another record
+    than the fitted one), nothing refitted or re-levelled; the error is ``|B|`` minus the field the calibration
+    expects (the first half's fitted field magnitude, or the reference given)."""
+    saved = type(calibration).from_dict(json.loads(json.dumps(calibration.to_dict())))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the RecordTermWarning that names the dropped terms
+        vectors = saved.correct(later)
+        return _rms(saved.total_field_residuals(later, vectors))
+
+
+def run_transfer(ds, max_rounds=3) -> dict:
+    """Follow the advice on the first half (add the first of ``explained_by``, else of ``partially_explained_by``;
+    refit; diagnose again) and apply each calibration to the second half. One row per calibration: the effects,
+    the verdict and advice of its diagnosis, what the record holds, and the held-out total-field RMS (nT)."""
+    first, second = halves(ds)
+    rows, effects = [], []
+    for _ in range(max_rounds + 1):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = magcal.calibrate(first, effects=list(effects))
+            diag = magcal.diagnose(first, result)
+        nxt, _ = recommended(diag)
+        rows.append(
+            {
+                "effects": list(effects),
+                "in_sample_rms_nT": float(result.rms_nT),
+                "held_out_rms_nT": applied_error(result.calibration, second),
+                "verdict": diag.verdict,
+                "next": nxt,
+                "record_holds": list(getattr(diag, "record_holds", []) or []),
+            }
+        )
+        if nxt is None or nxt in effects:
+            break
+        effects.append(nxt)
+    out = {"n_first": first.n_samples, "n_second": second.n_samples, "rows": rows}
+    base = rows[0]["held_out_rms_nT"]
+    changes = [(r["effects"][-1], r["held_out_rms_nT"] / p["held_out_rms_nT"] - 1) for p, r in zip(rows, rows[1:])]
+    out["changes"] = changes
+    out["never_rises_1pct"] = all(c <= 0.01 for _, c in changes)
+    out["falls_2pct_or_adequate"] = bool(rows[0]["verdict"] == "adequate" or rows[-1]["held_out_rms_nT"] <= 0.98 * base)
+    return out
+
+
+#: Record-only terms whose kept level for new data is measured by :func:`kept_level_study`.
+KEPT_TERMS = ("bias_drift", "bias_step", "reference_drift")
+
+
+def kept_level_study(ds) -> dict:
+    """Which level of a record-only term the calibration for new data should keep (issue 28, item 3).
+
+    Each term of :data:`KEPT_TERMS` is fitted with the base terms on the first half; the calibration is applied to
+    the second half with the term dropped and its level at the first half's start, mean or end kept (a vector
+    offset in the corrected frame for a bias term, the expected field for a reference drift). Returns the held-out
+    total-field RMS (nT) per term and option, beside the base model's."""
+    first, second = halves(ds)
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        base = magcal.calibrate(first).calibration
+        out["base"] = _rms(base.total_field_residuals(second, base.correct(second, "drop"), "drop"))
+        for term in KEPT_TERMS:
+            if first.time_s is None:
+                continue
+            try:
+                cal = magcal.calibrate(first, effects=[term]).calibration
+            except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+                out[term] = {"failed": str(exc)[:80]}
+                continue
+            offset = cal.correct(first, "apply") - cal.correct(first, "drop")  # (ns, N, 3)
+            field = cal.expected_total_field(first, "apply")  # (ns, N)
+            drop = cal.correct(second, "drop")
+            res = {}
+            for option, k in (("start", 0), ("end", first.n_samples - 1), ("mean", None)):
+                v = drop + (offset.mean(axis=1, keepdims=True) if k is None else offset[:, k : k + 1])
+                f = field.mean(axis=1, keepdims=True) if k is None else field[:, k : k + 1]
+                res[option] = _rms(np.linalg.norm(v, axis=2) - f)
+            res["as_dropped"] = _rms(cal.total_field_residuals(second, drop, "drop"))
+            out[term] = res
+    return out
+
+
+def transfer_markdown(records) -> str:
+    lines = [
+        "| recording | N first / second | base: verdict, held-out | advice followed (held-out after, change) | "
+        "record holds (not advised) | never +1 % | -2 % or adequate |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        tr = r.get("transfer")
+        if not tr:
+            continue
+        if "refused" in tr:
+            lines.append(f"| {r['name']} | - | refused: {tr['refused'][:120]} | | | | |")
+            continue
+        rows = tr["rows"]
+        advice = (
+            "; ".join(
+                f"+{row['effects'][-1]} {row['held_out_rms_nT']:.4g} ({100 * c:+.1f} %)"
+                for row, (_, c) in zip(rows[1:], tr["changes"])
+            )
+            or "none"
+        )
+        holds = ", ".join(sorted({h for row in rows for h in row["record_holds"]})) or "-"
+        lines.append(
+            f"| {r['name']} | {tr['n_first']} / {tr['n_second']} | {rows[0]['verdict']}, "
+            f"{rows[0]['held_out_rms_nT']:.4g} | {advice} | {holds} | "
+            f"{'yes' if tr['never_rises_1pct'] else 'NO'} | {'yes' if tr['falls_2pct_or_adequate'] else 'no'} |"
+        )
+    return "\n".join(lines)
+
+
 #: Order in which the remaining structure is quoted: the physically specific kinds first.
 STRUCTURE_ORDER = ("direction", "periodic", "consistency", "consistency_time", "time", "excess")
 
@@ -442,7 +580,17 @@ def figure(path: Path, ds, residuals, out_png: Path) -> None:
     plt.close(fig)
 
 
-def run_recording(path: Path, max_steps: int, figure_dir: Path | None = None) -> dict:
+def transfer_record(ds, rounds) -> dict:
+    """:func:`run_transfer`, or why the record was refused."""
+    try:
+        return run_transfer(ds, rounds)
+    except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"refused": f"{type(exc).__name__}: {exc}"}
+
+
+def run_recording(
+    path: Path, max_steps: int, figure_dir: Path | None = None, transfer_rounds: int = 3, loop: bool = True
+) -> dict:
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -472,6 +620,11 @@ def run_recording(path: Path, max_steps: int, figure_dir: Path | None = None) ->
         "p5": float(np.percentile(norm, 5)),
         "p95": float(np.percentile(norm, 95)),
     }
+    if transfer_rounds:
+        rec["transfer"] = transfer_record(ds, transfer_rounds)
+    if not loop:
+        rec.update(steps=[], quality=[], independent={}, seconds=time.perf_counter() - t0)
+        return rec
     quality = assess(ds)
     rec["rate_Hz"] = rate_of(quality)
     rec["quality"] = quality_lines(quality)
@@ -565,9 +718,9 @@ def markdown(records) -> str:
             )
     lines += [
         "",
-        "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | by magcal's rule "
-        "(later relevelled for record-only terms) | falls or adequate | loop ends | structure named at the "
-        "end |",
+        "| recording | held-out never rises (plain RMS; rises beyond 0.5 SE in bold) | later relevelled for "
+        "record-only terms (for reading: magcal judges the plain RMS since issue 28) | falls or adequate | loop "
+        "ends | structure named at the end |",
         "|---|---|---|---|---|---|",
     ]
     for r in records:
@@ -663,6 +816,15 @@ def main(argv=None) -> int:
         help="also draw each recording's residuals (first and last model) against time, temperature "
         "and altitude: <out dir>/real_<name>.png",
     )
+    parser.add_argument(
+        "--rounds", type=int, default=3, help="most pieces of advice followed by the transfer test (default 3; 0: none)"
+    )
+    parser.add_argument("--transfer-only", action="store_true", help="only the transfer test (first half -> second)")
+    parser.add_argument(
+        "--kept",
+        action="store_true",
+        help="also measure which level a record-only term should leave for new data (kept_level_study)",
+    )
     args = parser.parse_args(argv)
     paths = sorted(args.data_dir.glob("*.csv"))
     if args.names:
@@ -678,14 +840,62 @@ def main(argv=None) -> int:
     records = []
     t0 = time.perf_counter()
     for path in paths:
-        rec = run_recording(path, args.steps, args.out.parent if args.figures else None)
+        rec = run_recording(
+            path, args.steps, args.out.parent if args.figures else None, args.rounds, not args.transfer_only
+        )
         records.append(rec)
+        tr = rec.get("transfer")
+        if tr:
+            print(
+                f"{rec['name']} transfer: "
+                + (
+                    tr.get("refused")
+                    or " -> ".join(
+                        f"{'+'.join(r['effects']) or 'base'} {r['held_out_rms_nT']:.4g} [{r['verdict']}]"
+                        + (f" holds {','.join(r['record_holds'])}" if r["record_holds"] else "")
+                        for r in tr["rows"]
+                    )
+                ),
+                flush=True,
+            )
         steps = " -> ".join(
             f"{s['added'] or 'base'} {s['in_sample_rms_nT']:.4g}/{_f(s.get('blocks'))}/"
             f"{_f(s.get('later'))} [{s['verdict']}]"
             for s in rec["steps"]
         ) or rec.get("refused")
         print(f"{rec['name']}: N={rec['n']} ({rec['seconds']:.1f} s): {steps}", flush=True)
+    if args.kept:
+        print("\nkept level of record-only terms fitted on the first half, held-out RMS on the second (nT):")
+        print("| recording | base | " + " | ".join(f"{t}: start / mean / end (as dropped)" for t in KEPT_TERMS) + " |")
+        print("|---|---|" + "---|" * len(KEPT_TERMS))
+        for path in paths:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ds = magcal.read_csv(path)
+            try:
+                k = kept_level_study(ds)
+            except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+                print(f"| {path.stem} | refused: {str(exc)[:60]} |" + " |" * len(KEPT_TERMS))
+                continue
+            cells = []
+            for t in KEPT_TERMS:
+                x = k.get(t)
+                cells.append(
+                    "-"
+                    if x is None
+                    else x.get("failed")
+                    or f"{x['start']:.4g} / {x['mean']:.4g} / {x['end']:.4g} ({x['as_dropped']:.4g})"
+                )
+            print(f"| {path.stem} | {k['base']:.4g} | " + " | ".join(cells) + " |", flush=True)
+    print()
+    print(transfer_markdown(records))
+    done = [r["transfer"] for r in records if r.get("transfer") and "rows" in r["transfer"]]
+    if done:
+        print(
+            f"\nadvice never raises the held-out error by more than 1 %: {sum(t['never_rises_1pct'] for t in done)}/"
+            f"{len(done)}; lowers it by 2 % or more (or the first verdict is adequate): "
+            f"{sum(t['falls_2pct_or_adequate'] for t in done)}/{len(done)}"
+        )
     print()
     print(markdown(records))
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; written {args.out} and {args.out.with_suffix('.csv')}")

@@ -332,3 +332,17 @@ def test_diagnose_reports_data_quality(tmp_path, capsys):
     kinds = {f["kind"] for f in doc["quality"]["findings"]}
     assert {"sample_rate", "gaps", "stale", "quantization", "clipping", "static", "temperature"} <= kinds
     assert any("indistinguishable" in w for w in doc["warnings"])
+
+
+def test_diagnose_shows_the_reference_given_in_its_header(tmp_path, capsys):
+    """Issue 28: `magcal diagnose FILE --reference 52000` says 52000 nT in its header, not "unknown (fitted)"."""
+    from magcal.data.simulation import simulate_timeseries
+
+    ds = simulate_timeseries("chi2017", n_samples=600, seed=2).replace(reference_total_nT=None)
+    path = tmp_path / "unreferenced.csv"
+    io.write_csv(path, ds)
+    assert main(["diagnose", str(path), "--top", "1", "--no-validate"]) == 0
+    assert "reference field unknown (fitted)" in capsys.readouterr().out
+    assert main(["diagnose", str(path), "--top", "1", "--no-validate", "--reference", "52000"]) == 0
+    header = capsys.readouterr().out.split("\n\n")[0]
+    assert "reference field 52000.0 nT" in header and "unknown" not in header

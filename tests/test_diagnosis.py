@@ -71,7 +71,13 @@ def _check_found(d, name, sensor, level, sigma=SIGMA):
     if EFFECTS[name].per_sensor and d.result.calibration.n_sensors > 1:
         assert best.sensor == sensor  # 0-based, as Effect.sensor
     assert best.refitted and best.delta_bic < -10
-    assert d.explained_by == [best.label]
+    if EFFECTS[name].transferable:  # an instrument term: advice for the calibration
+        assert d.explained_by == [best.label] and d.record_holds == []
+    else:  # record-only (issue 28): named as what the record holds; advised only if the calibration it leaves
+        # for new data is better (the later stretch, scored as magcal apply scores it)
+        assert d.record_holds == [best.label] and best.record_only
+        assert d.explained_by == ([best.label] if best.transfers else [])
+        assert "When recording:" in d.summary
     refit = d.fits[best.label]
     ns = refit.calibration.n_sensors
     floor = conventions.total_field_floor_nT(sigma, refit.mask.sum(), refit.n_params / ns)

@@ -120,7 +120,9 @@ def test_diagnose_finds_the_hidden_user_effect(hidden):
     assert best.delta_bic < -100
     assert diagnosis.verdict == "missing_effect"
     assert f"{NAME}:{HIDDEN_SENSOR + 1}" in diagnosis.summary
-    assert diagnosis.to_dict()["explained_by"] == [f"{NAME}:{HIDDEN_SENSOR + 1}"]
+    # the example is record-only: named as what the record holds, advised only if it leaves a better calibration
+    assert diagnosis.to_dict()["record_holds"] == [f"{NAME}:{HIDDEN_SENSOR + 1}"]
+    assert diagnosis.to_dict()["explained_by"] == ([f"{NAME}:{HIDDEN_SENSOR + 1}"] if best.transfers else [])
 
 
 def test_without_the_file_the_diagnosis_cannot_name_it(hidden):

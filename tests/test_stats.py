@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.signal import periodogram, savgol_filter
 
-from magcal.core.stats import robust_sigma, savgol_derivative
+from magcal.core.stats import robust_sigma, savgol, savgol_derivative
 from magcal.diagnosis.statistics import fft_periodogram
 
 
@@ -19,6 +19,13 @@ def test_savgol_derivative_is_scipys_savgol_filter(shape, window):
     y = np.random.default_rng(sum(shape)).normal(size=shape).cumsum(axis=0)
     expected = savgol_filter(y, window, 3, deriv=1, delta=0.1, axis=0, mode="interp")
     np.testing.assert_allclose(savgol_derivative(y, window, 0.1), expected, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("shape, window", [((50,), 11), ((31, 2, 3), 31), ((200, 3), 51)])
+def test_savgol_smoothing_is_scipys_savgol_filter(shape, window):
+    y = np.random.default_rng(7 + sum(shape)).normal(size=shape).cumsum(axis=0)
+    expected = savgol_filter(y, window, 3, axis=0, mode="interp")
+    np.testing.assert_allclose(savgol(y, window), expected, rtol=1e-9, atol=1e-9)
 
 
 def test_savgol_derivative_of_a_cubic_is_exact():

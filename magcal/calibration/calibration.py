@@ -9,7 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -350,22 +350,47 @@ class Calibration:
     def _model_for(self, dataset, record_terms, stages, warn=True):
         """The model (and effect values) to evaluate on ``dataset`` after the record-term decision; its note
         raised as a :class:`~magcal.core.errors.RecordTermWarning` with ``warn`` (the public methods)."""
-        model, notes = self._model_and_notes(dataset, record_terms, stages)
+        model, _, notes = self._acting(dataset, record_terms, stages)
         if warn:
             _notes.warn(notes, stacklevel=3)
         return model
 
-    def _model_and_notes(self, dataset, record_terms, stages):
-        """``(model, notes)``: the model to evaluate on ``dataset`` after the record-term decision, and its note
-        (:class:`~magcal.core.notes.Note`, RecordTermWarning) in a list."""
+    def _acting(self, dataset, record_terms, stages):
+        """``(model, sensors, notes)`` to evaluate on ``dataset`` after the record-term decision: the dropped terms
+        left out of the model, the level each keeps for new data folded into the sensors' biases
+        (:meth:`sensors_for_new_data`), and the decision's note (:class:`~magcal.core.notes.Note`,
+        RecordTermWarning) in a list."""
         dropped, note = self.record_decision(dataset, record_terms, stages)
         notes = [Note(note, RecordTermWarning, "correct")] if note else []
         if not dropped:
-            return self.model, notes
+            return self.model, self.sensors, notes
         model = self.model
         for label in dropped:
             model = model.without(label)
-        return model, notes
+        return model, self.sensors_for_new_data(dropped), notes
+
+    def sensors_for_new_data(self, dropped=None) -> list:
+        """The sensors' base calibrations as kept for new data: each dropped record-only raw-stage term's kept level
+        (:meth:`magcal.model.terms.Effect.kept_raw_level`, e.g. the bias after a bias step) folded into the bias.
+
+        Parameters
+        ----------
+        dropped : sequence of str, optional
+            Labels of the terms dropped (default: every record-only term).
+        """
+        dropped = set(self.record_terms() if dropped is None else dropped)
+        if self.model is None or not dropped:
+            return self.sensors
+        sensors = [replace(c, bias_nT=c.bias_nT.copy()) for c in self.sensors]
+        for e, es in self.model.instances():
+            if e.label not in dropped or e.stage != "raw":
+                continue
+            for s, cal in enumerate(sensors):
+                if es == s or (es is None and e.applies_to(s)):
+                    level = e.kept_raw_level((self.effect_values or {}).get(block_label(e, es)))
+                    if level is not None:
+                        cal.bias_nT = cal.bias_nT + level
+        return sensors
 
     # --- applying it --------------------------------------------------------------------------------------
     @staticmethod
@@ -410,8 +435,8 @@ class Calibration:
         dropped or applied unproven: :class:`~magcal.core.notes.Note`, RecordTermWarning) in a list, not raised:
         for the engine's steps, which pass notes back as values."""
         self.check(dataset)
-        model, notes = self._model_and_notes(dataset, record_terms, VECTOR_STAGES)
-        vectors = corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        vectors = corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
         return vectors, notes
 
     def total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
@@ -435,11 +460,12 @@ class Calibration:
         dataset, _ = self._as_dataset(data, t, temp)
         if corrected is not None and np.ndim(corrected) == 2:
             corrected = np.asarray(corrected)[None]
-        model = self._model_for(dataset, record_terms, None)
+        model, sensors, notes = self._acting(dataset, record_terms, None)
+        _notes.warn(notes, stacklevel=2)
         ctxs = contexts(dataset, self.baseline_m)
         if corrected is None:
             self.check(dataset)
-            corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
+            corrected = corrected_fields(dataset, sensors, model, self.effect_values, ctxs)
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
@@ -489,6 +515,8 @@ class Calibration:
                         "transferable": is_transferable(e),  # False: record-only, applied only to the fitted record
                     }
                 )
+                if not is_transferable(e) and getattr(e, "kept_for_new_data", None):
+                    effects[-1]["kept_for_new_data"] = e.kept_for_new_data  # what apply keeps when it drops it
         doc = {
             "format": FORMAT,
             "version": VERSION,

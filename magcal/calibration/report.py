@@ -44,7 +44,9 @@ def effect_scope(name) -> str:
     """Whether the catalogue effect ``name`` is an instrument term or a record-only one, in words."""
 
     cls = EFFECTS.get(name)
-    return SCOPE_WORDS[is_transferable(cls if cls is not None else type("_", (), {"name": name}))]
+    words = SCOPE_WORDS[is_transferable(cls if cls is not None else type("_", (), {"name": name}))]
+    kept = getattr(cls, "kept_for_new_data", None)
+    return f"{words}; new data keep {kept}" if kept else words
 
 
 def _effect_quote(model, entry, field_nT) -> str:

@@ -274,6 +274,24 @@ def still_noise_nT(dataset, steps_nT=None):
     return diff_nT, scatter_nT, samples
 
 
+#: Below this :func:`smoothing_ratio` the readings are taken as smoothed or filtered (white noise gives 1).
+SMOOTHED_RATIO = 0.5
+
+
+def smoothing_ratio(r, fresh=None) -> float:
+    """How white a residual series is at the sampling rate: the noise variance its 3rd differences give over the
+    one its 2nd differences give (:func:`_difference_variance`, each normalised for white noise).
+
+    About 1 for white noise (a slow misfit leaks into neither); well below 1 when the readings were smoothed or
+    low-pass filtered (their differences are correlated, the spectrum falls off towards the Nyquist frequency):
+    0.04 for a 4th-order Butterworth at a tenth of the Nyquist frequency. NaN for too short a series.
+    """
+    r = np.asarray(r, dtype=float)
+    keep = np.isfinite(r) if fresh is None else np.isfinite(r) & fresh
+    v2, v3 = _difference_variance(r[keep], 2), _difference_variance(r[keep], 3)
+    return float(v3 / v2) if np.isfinite(v2) and np.isfinite(v3) and v2 > 0 else float("nan")
+
+
 def _difference_sigma(r, fresh):
     """Noise sigma (nT) of one residual series from its differences, stale samples dropped: the smallest of the
     :data:`DIFFERENCE_ORDERS` estimates, with the number of samples used."""
@@ -381,6 +399,29 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
         return NoiseEstimate(sigma, np.full(ns, sigma), "given", 0.0, where, scatter, q_floor, static)
     ordered = is_smooth_sequence(dataset) if ordered is None else ordered
     note = ""
+    smoothing = [smoothing_ratio(r[s], fresh[s]) for s in range(ns)] if ordered else []
+    smoothed = [x for x in smoothing if np.isfinite(x) and x < SMOOTHED_RATIO]
+    if smoothed:
+        # smoothed or filtered readings: their differences are correlated, so neither the differences nor a still
+        # stretch measure the sensor's noise; no floor is claimed (issue 28)
+        n = np.isfinite(r).sum(axis=1)
+        per = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n - n_params / ns, 1))
+        note = (
+            f"the readings are smoothed or filtered (their residuals' 3rd differences carry {min(smoothed):.2g} "
+            "of the variance that white noise would give them): the sensor's noise, hence the floor, is unknown; "
+            "the residual RMS stands in for it, so only structure (not size) can reveal a misfit; give the "
+            "sensor's noise if it is known (--noise NT)"
+        )
+        return NoiseEstimate(
+            float(np.sqrt(np.mean(per**2))),
+            per,
+            "residuals",
+            float(np.sqrt(2.0 / max(n.min(), 1))),
+            note,
+            scatter,
+            q_floor,
+            static,
+        )
     if static is not None and np.all(np.isfinite(static)) and still_samples.min() >= MIN_STATIC_SAMPLES:
         per, source = static.copy(), "static"
         rel_error = _difference_variance_error(int(still_samples.min()), 2)

@@ -127,6 +127,7 @@ def run(args) -> int:
         sys.stdout.write("\n")
     else:
         title = f"magcal diagnosis of {args.data}"
-        sys.stdout.write(f"{title}\n{'=' * len(title)}\n{ds.describe()}\n\n{diagnosis.table()}\n")
+        shown = ds if args.reference is None else ds.replace(reference_total_nT=args.reference)  # the field used
+        sys.stdout.write(f"{title}\n{'=' * len(title)}\n{shown.describe()}\n\n{diagnosis.table()}\n")
         sys.stdout.write("\n" + quality.section())
     return 0

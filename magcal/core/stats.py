@@ -44,13 +44,14 @@ def robust_sigma(values, axis=None, keepdims=False, floor=0.0):
     return np.maximum(out, floor)
 
 
-def savgol_derivative(values, window: int, step: float, order: int = 3) -> np.ndarray:
-    """First derivative along axis 0 by a Savitzky-Golay filter (least-squares polynomial over ``window`` samples).
+def savgol(values, window: int, deriv: int = 0, step: float = 1.0, order: int = 3) -> np.ndarray:
+    """A Savitzky-Golay filter along axis 0: the least-squares polynomial over ``window`` samples, or its first
+    derivative.
 
-    The same values as ``scipy.signal.savgol_filter(values, window, order, deriv=1, delta=step, axis=0,
-    mode="interp")``: inside, the derivative at the centre of each window's fitted polynomial; in the first and
-    last ``window // 2`` samples, the derivative of the polynomial fitted to the first or last window. Written with
-    numpy alone so that the model layer does not load ``scipy.signal`` (half a second of every command's start).
+    The same values as ``scipy.signal.savgol_filter(values, window, order, deriv=deriv, delta=step, axis=0,
+    mode="interp")``: inside, the fitted polynomial (or its derivative) at the centre of each window; in the first
+    and last ``window // 2`` samples, the polynomial fitted to the first or last window. Written with numpy alone so
+    that the model layer does not load ``scipy.signal`` (half a second of every command's start).
 
     Parameters
     ----------
@@ -58,8 +59,10 @@ def savgol_derivative(values, window: int, step: float, order: int = 3) -> np.nd
         Samples on a regular grid (any unit).
     window : int
         Odd number of samples, at most N and more than ``order``.
+    deriv : {0, 1}
+        0 for the smoothed values, 1 for the first derivative.
     step : float
-        Sample spacing (e.g. s): the result is in units of ``values`` per unit of ``step``.
+        Sample spacing (e.g. s): a derivative is in units of ``values`` per unit of ``step``.
     order : int
         Polynomial order.
 
@@ -71,19 +74,28 @@ def savgol_derivative(values, window: int, step: float, order: int = 3) -> np.nd
     y = np.asarray(values, dtype=float)
     n, half = y.shape[0], window // 2
     if window % 2 != 1 or window <= order or window > n:
-        raise ValueError(f"savgol_derivative: window {window} must be odd, above order {order} and at most {n}")
+        raise ValueError(f"savgol: window {window} must be odd, above order {order} and at most {n}")
+    if deriv not in (0, 1):
+        raise ValueError(f"savgol: deriv must be 0 or 1, got {deriv}")
     x = np.arange(-half, half + 1, dtype=float)
     fit = np.linalg.pinv(np.vander(x, order + 1, increasing=True))  # (order + 1, window): samples -> coefficients
     flat = y.reshape(n, -1)
     out = np.empty_like(flat)
     windows = np.lib.stride_tricks.sliding_window_view(flat, window, axis=0)  # (n - window + 1, m, window)
-    out[half : n - half] = windows @ fit[1]
-    powers = np.arange(1, order + 1)
+    out[half : n - half] = windows @ fit[deriv]
+    powers = np.arange(order + 1)
 
-    def edge_slopes(rows, at):  # derivative of the polynomial fitted to ``rows``, at the offsets ``at``
+    def at_offsets(rows, at):  # the polynomial fitted to ``rows`` (or its derivative) at the offsets ``at``
         coefficients = fit @ flat[rows]  # (order + 1, m)
-        return (powers * at[:, None] ** (powers - 1)) @ coefficients[1:]
+        if deriv == 0:
+            return (at[:, None] ** powers) @ coefficients
+        return (powers[1:] * at[:, None] ** (powers[1:] - 1)) @ coefficients[1:]
 
-    out[:half] = edge_slopes(slice(0, window), x[:half])
-    out[n - half :] = edge_slopes(slice(n - window, n), x[half + 1 :])
-    return (out / step).reshape(y.shape)
+    out[:half] = at_offsets(slice(0, window), x[:half])
+    out[n - half :] = at_offsets(slice(n - window, n), x[half + 1 :])
+    return (out / step**deriv).reshape(y.shape)
+
+
+def savgol_derivative(values, window: int, step: float, order: int = 3) -> np.ndarray:
+    """First derivative along axis 0 by a Savitzky-Golay filter: :func:`savgol` with ``deriv=1``."""
+    return savgol(values, window, deriv=1, step=step, order=order)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from magcal.calibration.calibration import is_transferable
 from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
@@ -82,12 +83,22 @@ class Candidate:
         time; :mod:`magcal.fitting.validation`; for arrays the inter-sensor consistency is judged too, and quoted in the
         evidence), nT; None when not validated.
     later_before_nT, later_after_nT : float or None
-        The same on the last stretch of the record (``later`` scheme: what a calibration does for later data;
-        for a record-only term, both models with the record's level on that stretch taken out,
-        :func:`magcal.fitting.validation.relevel`), nT.
+        The same on the last stretch of the record (``later`` scheme: fitted on the earlier part, applied to the
+        later stretch as ``magcal apply`` does: record-only terms dropped, nothing re-levelled), nT.
     holds : bool or None
-        Whether the in-sample gain holds on held-out data (:func:`magcal.fitting.validation.judge`); None when not
-        validated (not supported in-sample, validation skipped or refused).
+        Whether the effect *describes this record*: its in-sample gain holds on interleaved held-out blocks
+        (:func:`magcal.fitting.validation.judge`); None when not validated (not supported in-sample, validation
+        skipped or refused).
+    converged : bool
+        False when the refit stopped above the base model's RMS (a diverged refit): its figures mean nothing and
+        the table says "did not converge".
+    transfers : bool or None
+        Whether the effect *improves the calibration for new data* on the later stretch, scored as ``magcal
+        apply`` scores it: an instrument term must not raise it, a record-only term must lower it
+        (:func:`magcal.fitting.validation.transfers`); None when not validated.
+    record_only : bool
+        The term describes the recording, not the instrument (:attr:`magcal.model.terms.Effect.transferable`
+        False: drifts, steps, interference, a changing or non-uniform field): ``magcal apply`` drops it on new data.
     """
 
     effect: str
@@ -108,6 +119,9 @@ class Candidate:
     later_before_nT: float | None = None
     later_after_nT: float | None = None
     holds: bool | None = None
+    converged: bool = True
+    transfers: bool | None = None
+    record_only: bool = False
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
@@ -134,12 +148,20 @@ class Candidate:
             "later_rms_before_nT": _num(self.later_before_nT),
             "later_rms_after_nT": _num(self.later_after_nT),
             "holds": self.holds,
+            "transfers": self.transfers,
+            "record_only": self.record_only,
+            "converged": self.converged,
         }
 
     @property
     def recommendable(self) -> bool:
-        """Refitted, and not refuted on held-out data (holds, or was not validated)."""
-        return self.refitted and self.holds is not False
+        """Refitted (and converged), and not refuted on held-out data (holds, or was not validated)."""
+        return self.refitted and self.converged and self.holds is not False
+
+
+#: A refit whose RMS (of every residual it minimises) exceeds the base model's by more than this factor did not
+#: converge (an added term cannot raise it at the minimum; 1 % leaves room for the fits' tolerance).
+DIVERGED_RMS_RATIO = 1.01
 
 
 def _num(x):
@@ -560,6 +582,7 @@ def _score_from_grams(kept, fit, groups, grams):
                 instances=inst,
                 columns=cols,
                 projector=proj,
+                record_only=not is_transferable(cls),
             )
             cands.append(c)
     cands.sort(key=lambda c: c.predicted_delta_bic)
@@ -635,6 +658,14 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
         c.rms_after_nT = float(f1.rms_nT)
         c.vector_rms_after_nT = _vector_rms(f1)
         c.refitted = True
+        # a term added to the model cannot raise the RMS at the minimum: a refit above the base model's RMS (or not
+        # finite) stopped far from it, and its figures say nothing about the term
+        c.converged = bool(np.isfinite(f1.rss) and f1.rss <= DIVERGED_RMS_RATIO**2 * fit.rss)
+        if not c.converged:
+            c.evidence = (c.evidence + "; " if c.evidence else "") + (
+                f"the refit did not converge (it stopped at {c.rms_after_nT:.3g} nT RMS, above the model without "
+                f"the term, {float(fit.rms_nT):.3g} nT): no evidence either way"
+            )
         c.params = {p["term"]: p["params"] for p in f1.effect_params if p["effect"] == c.effect}
         c.fit = f1
         if after_refit is not None:

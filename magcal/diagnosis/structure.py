@@ -66,6 +66,10 @@ class Structure:
         }
 
 
+#: A spectral line at this many cycles per record or fewer is a trend, not a period (issue 28).
+MIN_PERIOD_CYCLES = 2.0
+
+
 def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tests_factor=1):
     """Significant structure in a fit's residuals: excess over the noise, time, spectrum, direction, consistency.
 
@@ -129,7 +133,27 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
                 peak_p=spec["p"],
                 peak_amplitude_nT=spec["amplitude_nT"],
             )
-            if spec["p"] < alpha and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION:
+            span = float(np.max(t) - np.min(t)) if t is not None else float(n)  # the spectrum's frequency grid
+            cycles = spec["peak_hz"] * span if np.isfinite(spec["peak_hz"]) else float("nan")
+            st["peak_cycles_per_record"] = cycles
+            if (
+                spec["p"] < alpha
+                and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION
+                and cycles <= MIN_PERIOD_CYCLES + 1e-6
+            ):
+                # two cycles per record or fewer: a trend, not a period (a drift, or a field that changed)
+                found.append(
+                    Structure(
+                        "time",
+                        s,
+                        spec["p"],
+                        spec["peak_fraction"],
+                        f"sensor {s + 1}: slow trend over the record (about {cycles:.1f} cycle(s) per record, "
+                        f"amplitude {spec['amplitude_nT']:.2g} nT, {100 * spec['peak_fraction']:.0f}% of the residual "
+                        "variance): a drift or a change of the field, too slow to be called a period",
+                    )
+                )
+            elif spec["p"] < alpha and spec["peak_fraction"] > STRUCTURE_MIN_FRACTION:
                 unit = "Hz" if t is not None else "cycles/sample"
                 found.append(
                     Structure(

@@ -46,6 +46,7 @@ from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, coverage
+from magcal.model.terms import EFFECTS
 
 #: Verdicts of :func:`diagnose`.
 VERDICTS = ("adequate", "missing_effect", "unexplained")
@@ -75,9 +76,21 @@ class Diagnosis:
     candidates : list of Candidate
         Best first.
     explained_by : list of str
-        Labels of the effects that, added, bring the residuals to the noise (``missing_effect``).
+        The advice for a calibration: labels of the effects that, added, bring the residuals to the noise
+        (``missing_effect``) *and* improve the calibration for new data (fitted on the earlier part of the
+        record, applied to its later stretch as ``magcal apply`` does).
     partially_explained_by : list of str
-        Supported effects that reduce the residuals without bringing them to the noise (``unexplained``).
+        The same for supported effects that reduce the residuals without bringing them to the noise
+        (``unexplained``).
+    record_holds : list of str
+        What this record holds that is not advice for the calibration: record-only terms (drifts, steps,
+        interference, a changing or non-uniform field: :attr:`magcal.model.terms.Effect.transferable` False)
+        and terms that describe the record but do not improve it on its later part. The summary says what to do
+        about each when recording.
+    record_details : list of dict
+        Per ``record_holds`` entry: ``label``, ``record_only``, ``describes_record``, ``improves_new_data``, the
+        later stretch's RMS before and after (nT), ``kept_for_new_data`` (what the calibration keeps when the
+        term is fitted with the base terms) and ``when_recording``.
     warnings : list of str
     structure : list of Structure
         Significant structure left in the diagnosed model's residuals.
@@ -124,6 +137,8 @@ class Diagnosis:
     rms_final_nT: float | None = None
     validation: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    record_holds: list = field(default_factory=list)
+    record_details: list = field(default_factory=list)
 
     @property
     def noise_nT(self) -> float:
@@ -154,6 +169,8 @@ class Diagnosis:
             "elapsed_s": round(float(self.elapsed_s), 3),
             "noise": self.noise.to_dict(),
             "validation": jsonable(self.validation),
+            "record_holds": list(self.record_holds),
+            "record_details": jsonable(self.record_details),
         }
 
     def plot_data(self) -> dict:
@@ -191,6 +208,9 @@ class Diagnosis:
             mark = "" if c.refitted else "*"
             sensor = "-" if len(self.rms_per_sensor_nT) == 1 else "all" if c.sensor is None else str(c.sensor + 1)
             holds = "-" if c.holds is None else "yes" if c.holds else "NO"
+            if c.refitted and not c.converged:
+                lines.append(f"{i:>4}  {c.effect:<24} {sensor:>6}  did not converge  {c.evidence}")
+                continue
             lines.append(
                 f"{i:>4}  {c.effect:<24} {sensor:>6} {c.delta_bic:>9.1f}{mark:1} {c.rms_after_nT:>9.3g} "
                 f"{_pair(c.held_out_before_nT, c.held_out_after_nT):>17} "
@@ -348,25 +368,37 @@ class _HeldOut:
         blocks, later = comparisons["blocks"], comparisons["later"]
         c.held_out_before_nT = float(blocks.base.held_out_rms_nT)
         c.held_out_after_nT = float(blocks.with_effect.held_out_rms_nT)
-        relevelled = bool(later.with_effect.dropped) and later.with_effect.relevelled_rms_nT is not None
-        c.later_before_nT = float(later.base.relevelled_rms_nT if relevelled else later.base.held_out_rms_nT)
-        c.later_after_nT = float(
-            later.with_effect.relevelled_rms_nT if relevelled else later.with_effect.held_out_rms_nT
-        )
-        c.holds = _validation.judge(blocks, later)
+        c.later_before_nT = float(later.base.held_out_rms_nT)
+        c.later_after_nT = float(later.with_effect.held_out_rms_nT)
+        # describes this record: the blocks' gain holds; an instrument term must also not make the later stretch
+        # worse (it stays in the calibration); a record-only term is dropped there, so the later stretch only says
+        # whether it improves the calibration for new data
+        c.holds = _validation.judge(blocks) and (c.record_only or later.does_not_rise)
+        c.transfers = _validation.transfers(later, c.record_only)
         held = (
             f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
-            f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT"
+            f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT (fitted before, applied as magcal apply does"
+            + (": record-only terms dropped)" if later.with_effect.dropped else ")")
         )
-        if relevelled:
-            held += " (record-only: level on the later stretch taken out)"
         if blocks.base.held_out_consistency_rms_nT is not None:
             held += (
                 f", inter-sensor consistency (blocks) {blocks.base.held_out_consistency_rms_nT:.4g} -> "
                 f"{blocks.with_effect.held_out_consistency_rms_nT:.4g} nT"
             )
         if c.holds:
-            c.evidence += f"; {held}: holds on held-out data"
+            if c.record_only:
+                carries = (
+                    "; fitted with the base terms it improves the calibration kept for new data"
+                    if c.transfers
+                    else "; dropped on new data, it leaves no measurably better calibration (later stretch)"
+                )
+            else:
+                carries = (
+                    "; carries to new data (the later stretch does not get worse)"
+                    if c.transfers
+                    else "; makes the calibration worse on the later stretch"
+                )
+            c.evidence += f"; {held}: describes this record (holds on held-out data){carries}"
         else:
             why = (
                 f"the blocks' RMS does not fall by {_validation.MIN_RELATIVE_GAIN:.0%}"
@@ -387,9 +419,11 @@ def _undetermined(fit, directions) -> str | None:
 
     An effect can only be judged against a base calibration the data fix. Two signs that they do not: the
     directions cover too little of the sphere (thinnest direction spread below
-    :data:`magcal.geometry.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and a fitted field magnitude
-    outside the geomagnetic range (the scale and the field trade off along the directions not seen). Then
-    adding a term mostly moves the poorly fixed base parameters, and no candidate is recommended.
+    :data:`magcal.geometry.ellipsoid.WEAK_DIRECTION_SPREAD`: the calibration extrapolates), and, with such weak
+    coverage, a fitted field magnitude outside the geomagnetic range (the scale and the field trade off along the
+    directions not seen). Then adding a term mostly moves the poorly fixed base parameters, and no candidate is
+    recommended. With good coverage a field outside the range is a units question (:func:`_units_question`), and
+    the effects are still judged: a common scale error does not change which effect is missing.
     """
 
     reasons = []
@@ -399,9 +433,34 @@ def _undetermined(fit, directions) -> str | None:
             reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere 0.33)")
     field_nT = fit.calibration.reference_total_nT
     lo, hi = EARTH_FIELD_RANGE_nT
-    if fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
+    if reasons and fit.reference_kind == "fitted" and field_nT and not lo <= field_nT <= hi:
         reasons.append(f"fitted field {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-{hi / 1000:.0f} uT")
     return "; ".join(reasons) or None
+
+
+#: Scale factors tried, simplest first, when a well-covered record's fitted field lies outside the Earth's range
+#: (a logger's LSB off by a power of two or ten, gauss or milligauss read as microtesla...).
+UNIT_FACTORS = (0.5, 2.0, 0.1, 10.0, 0.25, 4.0, 0.01, 100.0, 0.001, 1000.0, 1e-5, 1e5, 1e-6, 1e6)
+
+
+def _units_question(fit, directions) -> str | None:
+    """The units or LSB question a well-covered record raises when its fitted field magnitude lies outside the
+    Earth's range (:data:`magcal.checks.quality.EARTH_FIELD_RANGE_nT`), with the simplest scale factor that
+    brings it inside; None otherwise (the field is given, in range, or the coverage is weak: :func:`_undetermined`)."""
+    field_nT = fit.calibration.reference_total_nT
+    lo, hi = EARTH_FIELD_RANGE_nT
+    if fit.reference_kind != "fitted" or not field_nT or lo <= field_nT <= hi:
+        return None
+    if any(coverage(u).thinnest_spread < WEAK_DIRECTION_SPREAD for u in directions):
+        return None
+    factor = next((f for f in UNIT_FACTORS if lo <= f * field_nT <= hi), None)
+    hint = f"x{factor:g} gives {factor * field_nT / 1000:.3g} uT; " if factor is not None else ""
+    return (
+        f"the fitted field is {field_nT / 1000:.3g} uT, outside the Earth's {lo / 1000:.0f}-{hi / 1000:.0f} uT, although "
+        f"the directions cover the sphere: the units or the LSB of the readings are likely off ({hint}pass --units "
+        "or --lsb with the right scale). A common scale does not change which effect is missing: the effects are "
+        "judged as they are"
+    )
 
 
 def _changes_the_field(base_fit, c) -> str | None:
@@ -691,6 +750,9 @@ def _after_scores(
         held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None, fit_notes
     )
     undetermined = undetermined_future.result()
+    units = _units_question(fit0, directions)
+    if units:
+        validation_notes.append(units)
     if undetermined:
         validation_notes.append(
             f"the base calibration is not determined by these data ({undetermined}): no effect "
@@ -784,6 +846,9 @@ def _after_scores(
                 else ""
             )
         summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+        meaning = _unexplained_meaning(remaining if explained else structure0)
+        if meaning:
+            summary += f". {meaning}"
         if undetermined:
             summary = (
                 f"the base calibration is not determined by these data ({undetermined}), so no effect can "
@@ -791,6 +856,14 @@ def _after_scores(
             )
         if explained:
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
+    if units:
+        summary = f"{units.split('. ')[0]}; {summary}"
+    # what describes this record vs what improves the calibration for new data (issue 28)
+    holds_here = [c for c in chosen if c.record_only or c.transfers is False]
+    record_holds = [c.label for c in holds_here]
+    if holds_here:
+        summary += "; " + _record_holds_words(holds_here, chosen)
+    explained = [c.label for c in chosen if _advised(c)]
     partial = []
     if verdict != "missing_effect":
         partial, explained = explained, []
@@ -809,8 +882,8 @@ def _after_scores(
     warnings_ += validation_notes
     if len(explained) > 1 and verdict == "missing_effect":
         warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
-    if explained or partial:
-        fits["+".join(explained or partial)] = current
+    if chosen:
+        fits["+".join(c.label for c in chosen)] = current
 
     floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
     time_ev, temperature_ev, spectra, sensors_ev = [future.result() for future in evidence_futures]
@@ -852,7 +925,123 @@ def _after_scores(
         rms_final_nT=float(current.rms_nT),
         validation=_validation_summary(held_out, skipped, chosen),
         notes=_notes.unique(fit_notes),
+        record_holds=record_holds,
+        record_details=[_record_detail(c) for c in holds_here],
     )
+
+
+#: What to do about a record-only finding when recording (by catalogue name); the fallback is for a term that
+#: describes the record but does not carry to later data.
+WHEN_RECORDING = {
+    "bias_drift": "let the sensor and electronics reach a steady temperature before recording, record the "
+    "temperature, and keep the rotation short (or repeat it at the start and end to measure the drift)",
+    "bias_step": "find what changed at that time (a shock, a cable, a power or load change, a magnetised tool "
+    "near the sensor) and record again without it; a sensor permed by a shock keeps its new bias: calibrate "
+    "after it",
+    "reference_drift": "the field at the sensor changed during the record (time of day, a vehicle or iron moving "
+    "nearby, height): record where and when the field is quiet, in less time, or give the field's variation "
+    "(a base-station ref_total column or --reference)",
+    "periodic_interference": "a periodic source near the sensor (a motor, PWM, mains, a blinking load) was on: "
+    "switch it off or move away from it while recording",
+    "site_gradient": "the field is not uniform over the path of the array: turn it in place, away from iron, or "
+    "record its attitude and position",
+}
+WHEN_RECORDING_OTHER = (
+    "it describes this record but does not carry to its later part: repeat the recording with what it depends on "
+    "(temperature, rotation speed) varied independently of time, so that it can be told from a drift"
+)
+
+
+#: What an unexplained direction pattern without time structure means, and the recording that tells its causes apart.
+UNEXPLAINED_DIRECTION = (
+    "What is left is a pattern over the field direction with no structure in time: the sensor saw a field that "
+    "depends on its attitude beyond what the calibration terms describe. Likely causes: the sensor moved through "
+    "a non-uniform field while it was turned (near iron, a building, a vehicle: its position changed with its "
+    "attitude), or a magnetised object moved with it (on the mount, in the hand, a cable or battery). To separate "
+    "them: turn it in place about its own centre, away from iron; record its attitude and position; repeat the "
+    "rotation elsewhere -- a non-uniform field changes with the place, an object moving with the sensor does not"
+)
+
+
+#: An unexplained direction pattern is read as having no time structure of its own when its size is at least this
+#: share of the time correlation's (:func:`_unexplained_meaning`).
+DIRECTION_OVER_TIME = 0.3
+
+
+def _unexplained_meaning(structures) -> str | None:
+    """:data:`UNEXPLAINED_DIRECTION` when the structure left is a direction pattern (spherical-harmonic degree 3
+    or more) with no structure in time of its own; None otherwise.
+
+    Along a turned trajectory a direction pattern also correlates the residuals in time (the attitude changes
+    smoothly), so "no time structure" means: the pattern is at least as large as any periodic component and at
+    least :data:`DIRECTION_OVER_TIME` of the time correlation (a drift left in the residuals gives a time
+    correlation ten times its direction pattern; a degree-4 pattern about twice)."""
+
+    def size(kind):
+        return max((float(s.size) for s in structures if s.kind == kind), default=0.0)
+
+    direction = size("direction")
+    if direction <= 0 or size("consistency_time") > 0:
+        return None
+    if direction >= size("periodic") and direction >= DIRECTION_OVER_TIME * size("time"):
+        return UNEXPLAINED_DIRECTION
+    return None
+
+
+def _advised(c) -> bool:
+    """Whether a chosen effect is advice for a calibration: it improves the calibration for new data (the later
+    stretch, applied as magcal apply does). Without a held-out judgement (a record too short to split) an
+    instrument term is advised on its in-sample evidence and a record-only term is not."""
+    if c.transfers is None:
+        return not c.record_only
+    return bool(c.transfers)
+
+
+def _kept_words(c) -> str:
+    """What the calibration keeps for new data when the record-only candidate is fitted and dropped."""
+    cls = EFFECTS.get(c.effect)
+    return getattr(cls, "kept_for_new_data", None) or "its base terms"
+
+
+def _record_detail(c) -> dict:
+    """The JSON entry of a finding that describes this record (``record_holds``)."""
+    return {
+        "label": c.label,
+        "record_only": c.record_only,
+        "describes_record": c.holds,
+        "improves_new_data": c.transfers,
+        "later_rms_before_nT": _num(c.later_before_nT),
+        "later_rms_after_nT": _num(c.later_after_nT),
+        "kept_for_new_data": _kept_words(c) if c.record_only else None,
+        "when_recording": WHEN_RECORDING.get(c.effect, WHEN_RECORDING_OTHER) if c.record_only else WHEN_RECORDING_OTHER,
+    }
+
+
+def _record_holds_words(holds_here, chosen) -> str:
+    """The summary's sentence on what this record holds and what to do about it when recording."""
+    parts = []
+    for c in holds_here:
+        what = (
+            "a record-only term (it describes this recording, not the sensor; magcal apply drops it on new data)"
+            if c.record_only
+            else "it describes this record but does not improve the calibration on its later part"
+        )
+        text = f"this record holds {c.label}: {what}"
+        if c.record_only and c.transfers:
+            text += (
+                f"; fitted with the base terms it improves the calibration kept for new data ({_kept_words(c)}; "
+                f"later stretch {c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT)"
+            )
+        elif c.later_before_nT is not None:
+            text += (
+                f"; it does not improve the calibration for new data (later stretch {c.later_before_nT:.4g} -> "
+                f"{c.later_after_nT:.4g} nT)"
+            )
+        advice = WHEN_RECORDING.get(c.effect, WHEN_RECORDING_OTHER) if c.record_only else WHEN_RECORDING_OTHER
+        parts.append(f"{text}. When recording: {advice}")
+    if not any(_advised(c) for c in chosen):
+        parts.append("nothing needs adding to the calibration for new data")
+    return "; ".join(parts)
 
 
 def _held_out_words(chosen) -> str:

@@ -222,6 +222,9 @@ class Effect:
     min_sensors: ClassVar[int] = 1
     description: ClassVar[str] = ""
     transferable: ClassVar[bool] = True
+    #: A record-only term: what the calibration keeps for new data when the term, fitted with the base terms, is
+    #: dropped (the level its parametrisation refers the base terms to), in words; saved with a calibration.
+    kept_for_new_data: ClassVar[str | None] = None
     #: The basis depends on the readings or the field (``z0``, ``B``), not only on channels such as time and
     #: temperature. The fitter leaves that dependence out of its Jacobian, so only a model whose effects all
     #: declare False has an exact one (:attr:`magcal.fitting.fitter.Problem.exact_jacobian`). Plug-ins keep the safe True.
@@ -343,6 +346,13 @@ class Effect:
 
     def set_state(self, state: dict) -> None:
         """Restore what :meth:`state` returned."""
+
+    def kept_raw_level(self, values) -> np.ndarray | None:
+        """The raw-stage offset (nT per axis, sensor frame) that this record-only term leaves in a sensor's bias
+        when it is dropped on new data (:meth:`magcal.calibration.calibration.Calibration.correct` with
+        ``record_terms="drop"``), given the term's fitted ``values`` for that sensor; None (default): the term's
+        zero is the level kept (a drift referred to the record's mean time, a zero-mean interference)."""
+        return None
 
     def refine(self, effect_values: dict, context=None) -> bool:
         """Update data-derived constants from a converged fit.

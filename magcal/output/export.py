@@ -176,8 +176,9 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
             )
     field_nT = float(calibration.reference_total_nT or 50_000.0)
     out = []
+    kept = calibration.sensors_for_new_data()  # a record-only term's kept level (the bias after a step) folded in
     for s, k in zip(sensors, slots):
-        cal = calibration.sensors[s - 1]
+        cal = kept[s - 1]
         q, sym = symmetric_factor(cal.cinv)
         frame = cal.R @ q
         angle = rotation_angle_deg(frame)
