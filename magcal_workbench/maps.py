@@ -18,7 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from magcal.diagnosis import candidate_patterns, residual_patterns
+
 from . import scene as scn
+from .controller import candidate_label
 
 SURFACE_CHOICES = ("none", "residual pattern", "candidate's pattern", "change at the last step")
 #: Radius of a surface (the corrected cloud lies at radius 1 +- the residual exaggeration), scene units.
@@ -80,9 +83,6 @@ class SphereMaps:
     # --- computing --------------------------------------------------------------------------------------------
     def compute(self, choice: str):
         """The patterns per sensor of the data for ``choice`` and a note (why there are none), engine calls."""
-        from magcal.diagnosis import candidate_patterns, residual_patterns
-
-        from .controller import candidate_label
 
         ctrl = self.app.ctrl
         if choice == "none":

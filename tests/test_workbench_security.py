@@ -130,7 +130,7 @@ def _upload(wb, name, content):
     up = Upload()
     up.name, up.content = name, content
     wb.panels.upload._impl.value = up  # what the browser's upload sets
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60)
     wb.panels.refresh(("message",))
     return wb.panels.message.content
