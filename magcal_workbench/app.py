@@ -118,7 +118,9 @@ class Workbench:
         #: The time scrubber's window (View tab): the samples drawn and the evidence plots' shaded band.
         self.window = TimeWindow(lambda: self.view.window_moved())
         #: The residual-map surfaces (View tab's Sphere surface).
-        self.maps = SphereMaps(self)
+        self.maps = SphereMaps(
+            self.server, ctrl=lambda: self.ctrl, candidate=lambda: self.panels.candidate_choice.value
+        )
         self.sessions = Sessions(self)
         self.uploads = Uploads(self, int(max_upload_mb * 1e6))
         self.downloads = Downloads(lambda: self.ctrl)
