@@ -32,19 +32,19 @@ def run(rate_hz: float, seconds: float):
 
     wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
     update_s = []
-    plain = wb.update_scene
+    plain = wb.view.update_scene
 
     def timed_update():
         t0 = time.perf_counter()
         plain()
         update_s.append(time.perf_counter() - t0)
 
-    wb.update_scene = timed_update
+    wb.view.update_scene = timed_update
     fit_s = []
     try:
         n = int(rate_hz * seconds)
         path = Path(tempfile.mkdtemp()) / "live.csv"
-        live = wb.start_live(f"sim://chi2017?rate={rate_hz:g}&n={n}", path)
+        live = wb.livectl.start(f"sim://chi2017?rate={rate_hz:g}&n={n}", path)
         plain_refit = live._refit
 
         def timed_refit(ds):

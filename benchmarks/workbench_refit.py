@@ -60,7 +60,7 @@ def bench_refit(n, repeat, seed=1):
 
         # one rejection (1 % of the samples, as a box would) then refit + scene + panels, as the page does
         timings = {"fit": [], "engine": [], "scene": [], "panels": [], "total": []}
-        orig_update, orig_refresh = wb.update_scene, wb.panels.refresh
+        orig_update, orig_refresh = wb.view.update_scene, wb.panels.refresh
 
         def timed_update():
             t = time.perf_counter()
@@ -82,7 +82,7 @@ def bench_refit(n, repeat, seed=1):
             return out
 
         fit_module.fit = timed_fit
-        wb.update_scene, wb.panels.refresh = timed_update, timed_refresh
+        wb.view.update_scene, wb.panels.refresh = timed_update, timed_refresh
         for _ in range(repeat):
             ctrl.select(rng.choice(n, size=max(1, n // 100), replace=False))
             timings["scene"].clear(), timings["panels"].clear()
@@ -92,7 +92,7 @@ def bench_refit(n, repeat, seed=1):
             timings["total"].append(total)
             timings["fit"].append(total - sum(timings["scene"]) - sum(timings["panels"]))
             ctrl.undo()
-        wb.update_scene, wb.panels.refresh = orig_update, orig_refresh
+        wb.view.update_scene, wb.panels.refresh = orig_update, orig_refresh
         fit_module.fit = engine_fit
 
         from magcal.fitting import pipeline
@@ -133,8 +133,8 @@ def bench_scene(n, repeat, seed=2):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             wb.ctrl.worker.run_now("calibrate", wb.ctrl.step_calibrate)
-        t_update, t_update_min, _ = _timed(wb.update_scene, repeat)
-        model = wb.scene_model()
+        t_update, t_update_min, _ = _timed(wb.view.update_scene, repeat)
+        model = wb.view.scene_model()
         t_recolor, t_recolor_min, _ = _timed(lambda: wb.scene_view.recolor(model), repeat)
         return {
             "n": n,

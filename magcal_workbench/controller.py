@@ -22,11 +22,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from magcal.calibration.calibration import Calibration
+from magcal.calibration.calibration import Calibration, is_transferable
+from magcal.checks import quality
+from magcal.checks.noise import estimate_noise
 from magcal.core import conventions
 from magcal.core.errors import ConvergenceWarning, MagcalError
 from magcal.core.stats import robust_sigma
-from magcal.model.terms import unknown_effect_message
+from magcal.data import io as mio
+from magcal.diagnosis import diagnose
+from magcal.fitting import fitter, pipeline, validation
+from magcal.fitting.pipeline import align_sensors
+from magcal.geometry.procrustes import rotation_angle_deg
+from magcal.model import plugins
+from magcal.model.terms import EFFECTS, Model, unknown_effect_message
 
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
@@ -94,7 +102,6 @@ class Controller:
         self.worker = worker or Worker()
         self.calibration: Calibration | None = None
         self.fit_result = None  # FitResult of the last ML step, if any
-        self.calibration_result = None  # CalibrationResult of the last pipeline run, if any
         self.corrected_nT: np.ndarray | None = None  # (n_sensors, N, 3) array frame, every sample
         self.residual_nT: np.ndarray | None = None  # (n_sensors, N) total-field residual, every sample
         #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
@@ -279,15 +286,12 @@ class Controller:
         """The data's quality findings (:func:`magcal.checks.quality.assess`, with the given noise if any), made once per
         data and noise setting."""
         if self._quality is None:
-            from magcal.checks import quality
-
             self._quality = quality.assess(self.dataset, noise_nT=self.state.noise_nT)
         return self._quality
 
     def quality_with_fit(self):
         """:meth:`quality_report` plus what the current fit adds: a fitted field magnitude outside the Earth's
         range (:func:`magcal.checks.quality.field_magnitude_finding`: a wrong unit or LSB, or a record near iron)."""
-        from magcal.checks import quality
 
         report = self.quality_report()
         cal = self.calibration
@@ -317,7 +321,6 @@ class Controller:
     def _estimate_noise(self, fit=None) -> None:
         """The noise behind the floors, from the current fit's kept residuals (:func:`magcal.checks.noise.estimate_noise`:
         the given one, else differences in time order or still stretches, never below the quantization floor)."""
-        from magcal.checks.noise import estimate_noise
 
         if self.residual_nT is None:
             self.noise, self.noise_nT = None, self.noise_given_nT
@@ -385,7 +388,6 @@ class Controller:
         ``blocks`` scheme: fitted on alternating blocks of time, warm-started from ``fit``, scored on the blocks
         between); ``(None, why)`` when the record cannot be split, ``(None, None)`` without a maximum-likelihood
         fit."""
-        from magcal.fitting import validation
 
         if fit is None or getattr(fit, "model", None) is None:
             return None, None
@@ -404,8 +406,6 @@ class Controller:
                 reference_total_nT=self.reference_arg,
             )
         except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
-            from magcal.model import plugins
-
             why = plugins.user_code_error(exc) or (
                 error_text(exc) if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {error_text(exc)}"
             )
@@ -419,8 +419,6 @@ class Controller:
         """The model's effects, each ``{"label", "name", "transferable" (bool), "description"}``: an instrument
         term carries to new data, a record-only term describes this record only (:func:`magcal.calibration.calibration.
         is_transferable`). Descriptions of a user's effect are untrusted text."""
-        from magcal.calibration.calibration import is_transferable
-        from magcal.model.terms import EFFECTS
 
         out = []
         for label in self.state.effects:
@@ -501,7 +499,6 @@ class Controller:
         if old is not None and old.n_sensors == new.n_sensors:
             db = max(float(np.max(np.abs(a.bias_nT - b.bias_nT))) for a, b in zip(old.sensors, new.sensors))
             dc = max(float(np.max(np.abs(a.cinv - b.cinv))) for a, b in zip(old.sensors, new.sensors))
-            from magcal.geometry.procrustes import rotation_angle_deg
 
             dr = max(rotation_angle_deg(b.R @ a.R.T) for a, b in zip(old.sensors, new.sensors))
             moved = f"bias moved up to {format_number(db, 3)} nT, C^-1 up to {format_number(dc * 1e6, 3)} ppm"
@@ -575,26 +572,22 @@ class Controller:
 
     def step_ellipsoid(self) -> StepRecord:
         """Step 1: an ellipsoid per sensor (kept samples); the rotations between sensors are reset."""
-        from magcal.fitting import pipeline
-        from magcal.fitting.fitter import resolve_reference
 
         t0 = time.perf_counter()
         old, rms0, tb = self._before()
         ds = self.fit_dataset()
         kept_ds = ds.subset(self.kept)
-        ref, kind = resolve_reference(kept_ds, self.reference_arg)
+        ref, kind = fitter.resolve_reference(kept_ds, self.reference_arg)
         fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
         cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
         notes = [w for f in fits for w in f.warnings]
         self.fit_result = None
-        self.calibration_result = None
         self.diagnosis = None
         self._set_calibration(cal)
         return self._record("fit ellipsoid", old, rms0, t0, tb, notes=notes)
 
     def step_align(self) -> StepRecord:
         """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b."""
-        from magcal.fitting.pipeline import align_sensors
 
         if self.dataset.n_sensors < 2:
             raise MagcalError("aligning needs at least two sensors; this file has one")
@@ -606,7 +599,6 @@ class Controller:
         return self._record("align sensors", old, rms0, t0, tb)
 
     def _model(self):
-        from magcal.model.terms import Model
 
         effects = list(self.state.effects)
         if getattr(self._job_pin, "kept", None) is not None:
@@ -615,13 +607,12 @@ class Controller:
 
     def step_refine(self, label: str = "refine (ML)") -> StepRecord:
         """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
-        from magcal.fitting.fitter import fit_with_notes
 
         t0 = time.perf_counter()
         old, rms0, tb = self._before()
         init = self.calibration
         ds = self.fit_dataset()
-        result = fit_with_notes(
+        result = fitter.fit_with_notes(
             ds,
             self._model(),
             init=init,
@@ -631,14 +622,12 @@ class Controller:
         )
         notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result
-        self.calibration_result = None
         self.diagnosis = None
         self._set_calibration(result.calibration, result.residuals_all_nT)
         return self._record(label, old, rms0, t0, tb, fit=result, notes=notes)
 
     def step_calibrate(self, method: str | None = None) -> StepRecord:
         """The whole pipeline with the chosen method (ML, the two seed steps, or a global search)."""
-        from magcal.fitting import pipeline
 
         method = method or self.state.method
         t0 = time.perf_counter()
@@ -656,7 +645,6 @@ class Controller:
             mask=self.kept,
             noise_nT=self.state.noise_nT,
         )
-        self.calibration_result = result
         self.fit_result = result.fit
         self.diagnosis = None
         self._set_calibration(result.calibration, None if result.fit is None else result.fit.residuals_all_nT)
@@ -675,8 +663,6 @@ class Controller:
 
         ``origin`` is ``built-in``, ``file``, ``entry point`` or ``python``; the text is untrusted for a user's
         effect (escape it before it joins markdown)."""
-        from magcal.model import plugins
-        from magcal.model.terms import EFFECTS
 
         out = []
         for entry in plugins.catalogue():
@@ -719,7 +705,6 @@ class Controller:
         MagcalError
             A clear message naming the file and line (:class:`magcal.model.plugins.UserEffectError`).
         """
-        from magcal.model import plugins
 
         text = os.fspath(path).strip() if isinstance(path, (str, os.PathLike)) else ""
         if not text:
@@ -739,7 +724,6 @@ class Controller:
     def _check_label(self, label) -> str:
         """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
         :class:`MagcalError` (a label may come from a browser)."""
-        from magcal.model.terms import EFFECTS
 
         label = label.strip() if isinstance(label, str) else label
         m = LABEL.fullmatch(label) if isinstance(label, str) else None
@@ -763,7 +747,6 @@ class Controller:
 
     def step_diagnose(self):
         """Rank the candidate effects for the current fit (runs a base ML fit first if there is none)."""
-        from magcal.diagnosis import diagnose
 
         if self.fit_result is None:
             self.step_refine()
@@ -857,7 +840,6 @@ class Controller:
 
     def corrected_csv(self) -> bytes:
         """The data corrected by the current calibration (array frame, nT) plus kept flag and residuals."""
-        from magcal.data import io as mio
 
         if self.calibration is None:
             raise MagcalError("nothing to download yet: run a fit first")
@@ -895,7 +877,6 @@ def error_markdown(exc: BaseException) -> str:
     """The page's message for an exception: a user-facing :class:`MagcalError` as it is, an error raised in a
     user's effect code as its file, line and error (:func:`magcal.model.plugins.user_code_error`, no traceback),
     anything else as an unexpected error (its traceback goes to the server's log). Always escaped."""
-    from magcal.model import plugins
 
     if isinstance(exc, MagcalError):
         return f"**Error:** {safe_text(error_text(exc), MESSAGE_LEN)}"
@@ -906,89 +887,6 @@ def error_markdown(exc: BaseException) -> str:
     return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {error_text(exc)}', MESSAGE_LEN)}"
 
 
-def load_session_effects(paths) -> tuple[list[str], list[str]]:
-    """Load again the effect files a session used (those not loaded yet in this process).
-
-    Returns
-    -------
-    names : list of str
-        The effects loaded.
-    problems : list of str
-        One plain-text message per file that failed (missing, broken): the session opens without it.
-    """
-    from magcal.model import plugins
-
-    names, problems = [], []
-    loaded = set(plugins.user_files())
-    for path in paths or ():
-        if path in loaded:
-            continue
-        try:
-            names += plugins.load_effects_file(path)
-        except MagcalError as exc:
-            problems.append(str(exc))
-    return names, problems
-
-
 def candidate_label(candidate) -> str:
     """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or its dict)."""
     return candidate["label"] if isinstance(candidate, dict) else candidate.label
-
-
-def load_dataset(source, name: str | None = None, **options):
-    """Read a CSV (a path or an open file object) with the engine's reader; messages and the dataset's source
-    name ``name`` when given; ``options`` (``columns``, ``units``, ``lsb_nT``) go to :func:`magcal.data.io.read_csv`.
-    Returns the dataset and the reader's warnings as text (a clear :class:`MagcalError` on problems)."""
-    from magcal.data import io as mio
-
-    options = {k: v for k, v in options.items() if v is not None}
-    notes: list = []  # the reader's notes as values (this may run on the workbench's worker thread)
-    ds = mio.read_csv(source, name=name, notes=notes, **options)
-    return ds, [note.text for note in notes]
-
-
-def read_bytes_dataset(name: str, content: bytes, **options):
-    """Read an uploaded file from its bytes; messages name the upload (its base name). A flight-controller log
-    (``.bin``, ``.ulg``; :mod:`magcal.data.logs`) is written to a temporary file for its reader, which needs a path, and
-    the column and unit options do not apply to it (a note says so when some were given)."""
-    import tempfile
-
-    from magcal.data.logs import is_log
-
-    name = os.path.basename(name) or "upload.csv"
-    if not is_log(name):
-        return load_dataset(io.BytesIO(content), name, **options)
-    with tempfile.TemporaryDirectory(prefix="magcal-upload-") as folder:
-        path = os.path.join(folder, "upload" + os.path.splitext(name)[1].lower())
-        with open(path, "wb") as fh:
-            fh.write(content)
-        ds, notes = load_dataset(path, name)
-    given = [k for k, v in options.items() if v is not None]
-    if given:
-        notes.append(f"{name}: a flight-controller log carries its own fields and units; {', '.join(given)} ignored")
-    return ds, notes
-
-
-def canonical_csv(dataset) -> bytes:
-    """The dataset as magcal's own CSV (readings in nT, canonical column names): what a session keeps of data
-    that needed a column mapping, units or a log reader to open, so that it reopens without them."""
-    import tempfile
-
-    from magcal.data import io as mio
-
-    with tempfile.TemporaryDirectory(prefix="magcal-canonical-") as folder:
-        path = os.path.join(folder, "data.csv")
-        mio.write_csv(path, dataset)
-        with open(path, "rb") as fh:
-            return fh.read()
-
-
-def page_words(text: str) -> str:
-    """An engine message with the command line's option names replaced by the page's widgets."""
-    for flag, widget in (
-        ("--columns", "the Files tab's Columns box:"),
-        ("--units", "the Files tab's Units choice"),
-        ("--lsb", "the Files tab's LSB box"),
-    ):
-        text = text.replace(flag, widget)
-    return text

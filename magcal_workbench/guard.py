@@ -10,24 +10,20 @@ an SSH tunnel (``localhost:9000`` forwarded to the served port) works.
 
 viser 1.1.1 has no public hook for the handshake: it passes its own ``process_request`` (the static-file server)
 to :func:`websockets.asyncio.server.serve` inside its server thread. :func:`guarded_viser_server` chains the
-check in front of it by wrapping ``serve`` *only while the viser server starts* (:class:`viser.ViserServer`
+check in front of it (:mod:`magcal_workbench.viser_adapter`) by wrapping ``serve`` *only while the viser server starts* (:class:`viser.ViserServer`
 returns once the port is bound), and refuses to start when the wrapper was not used -- so a viser that changes
 how it serves fails loudly instead of running unprotected (``tests/test_workbench_guard.py`` checks both).
 """
 
 from __future__ import annotations
 
-import http
 import ipaddress
-import threading
 from urllib.parse import urlsplit
+
+from . import viser_adapter
 
 #: Host names that mean this machine.
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
-#: The name of viser's ``process_request`` function (its static-file server) the check is chained before.
-VISER_HOOK = "viser_http_server"
-
-_START_LOCK = threading.Lock()
 
 
 def is_loopback(host: str) -> bool:
@@ -107,53 +103,9 @@ def refusal(headers, local: bool) -> str | None:
     return None
 
 
-class HandshakeHookMissing(RuntimeError):
-    """viser started its server without the handshake check (its way of serving changed)."""
-
-
 def guarded_viser_server(host: str, port: int, verbose: bool = False):
-    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass :func:`refusal` first.
-
-    Raises
-    ------
-    HandshakeHookMissing
-        If viser did not start its server through ``websockets.asyncio.server.serve`` with its static-file hook
-        (the server is stopped first): the workbench does not run without the check.
-    """
-    import viser
-    import websockets.asyncio.server as ws_server
-
+    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass :func:`refusal` first
+    (:func:`magcal_workbench.viser_adapter.start_server`, which raises
+    :class:`~magcal_workbench.viser_adapter.HandshakeHookMissing` when viser starts without the check)."""
     local = is_loopback(host)
-    chained = []
-
-    def check_first(viser_hook):
-        def process_request(connection, request):
-            why = refusal(request.headers, local)
-            if why is not None:
-                return connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
-            return viser_hook(connection, request)
-
-        return process_request
-
-    original = ws_server.serve
-
-    def serve(*args, **kwargs):
-        hook = kwargs.get("process_request")
-        if getattr(hook, "__name__", None) == VISER_HOOK:
-            kwargs["process_request"] = check_first(hook)
-            chained.append(hook)
-        return original(*args, **kwargs)
-
-    with _START_LOCK:  # one server starts at a time: the wrapper is in place only during its start
-        ws_server.serve = serve
-        try:
-            server = viser.ViserServer(host=host, port=port, verbose=verbose)
-        finally:
-            ws_server.serve = original
-    if not chained:
-        server.stop()
-        raise HandshakeHookMissing(
-            f"viser {viser.__version__} no longer starts its server through websockets' serve(process_request="
-            f"{VISER_HOOK}); the workbench cannot check who connects and does not start (see workbench/guard.py)"
-        )
-    return server
+    return viser_adapter.start_server(host, port, lambda headers: refusal(headers, local), verbose)

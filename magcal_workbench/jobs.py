@@ -9,7 +9,6 @@ buttons of every connected browser can be disabled and re-enabled.
 from __future__ import annotations
 
 import threading
-import time
 import traceback
 from collections.abc import Callable
 
@@ -17,12 +16,13 @@ from collections.abc import Callable
 class Worker:
     """Runs at most one job at a time in a background thread."""
 
-    def __init__(self):
+    def __init__(self, settle: Callable[[], object] | None = None):
+        #: Called when :meth:`wait` finds the worker idle (the workbench: until the page shows the job's end).
+        self._settle = settle
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self.current: str | None = None
         self.last_error: BaseException | None = None
-        self.last_elapsed_s = 0.0
         self._listeners: list[Callable[[bool, str | None], None]] = []
         self._idle = threading.Event()
         self._idle.set()
@@ -78,11 +78,17 @@ class Worker:
             self._finish(name)
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block until idle; returns False on timeout."""
-        return self._idle.wait(timeout)
+        """Block until idle (and, with ``settle``, the updates the job handed on have run); False on timeout."""
+        idle = self._idle.wait(timeout)
+        if idle and self._settle is not None:
+            self._settle()
+        return idle
+
+    def in_job(self) -> bool:
+        """Whether the calling thread is the running job's thread."""
+        return self._thread is not None and threading.current_thread() is self._thread
 
     def _run(self, name, job, on_done, on_error):
-        t0 = time.perf_counter()
         try:
             result = job()
         except BaseException as exc:  # reported to the page, never lost
@@ -103,7 +109,6 @@ class Worker:
                     self.last_error = exc
                     traceback.print_exc()
         finally:
-            self.last_elapsed_s = time.perf_counter() - t0
             self._finish(name)
 
     def _finish(self, name):

@@ -16,6 +16,11 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from magcal.core.errors import MagcalError
+
+from .dataio import load_dataset
+from .markup import clean_text, safe_text
+
 
 def _assets_folder() -> Path:
     """The demo data and lessons: ``assets/`` of a source checkout, else the copy a wheel installs as
@@ -47,8 +52,6 @@ class Lesson:
         """The lesson's data file: a plain file name inside the lesson's folder (no path, no ``..``)."""
         name = self._doc().get("data", "data.csv")
         if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
-            from magcal.core.errors import MagcalError
-
             raise MagcalError(
                 f"{self.folder / 'lesson.json'}: 'data' must be a file name in the lesson's folder, got {name!r}"
             )
@@ -109,8 +112,6 @@ class Lesson:
 
 def _labels(labels) -> str:
     """The user's effect labels for the (markdown) message, escaped: they come from the session."""
-    from .markup import safe_text
-
     return ", ".join(safe_text(label, 80) for label in labels)
 
 
@@ -136,3 +137,70 @@ def get_lesson(slug: str, root=None) -> Lesson:
         if lesson.slug == slug:
             return lesson
     raise KeyError(f"no lesson {slug!r}")
+
+
+def lesson_or_error(slug) -> Lesson:
+    """:func:`get_lesson`, or a :class:`MagcalError` the page can show."""
+    try:
+        return get_lesson(slug)
+    except KeyError:
+        raise MagcalError(f"no lesson {clean_text(repr(slug), 80)}; choose one in the Lessons tab") from None
+
+
+def lesson_slugs() -> tuple:
+    """The Lesson choices the server offers (``-`` when there is none)."""
+    return tuple(lesson.slug for lesson in list_lessons()) or ("-",)
+
+
+class LessonDesk:
+    """The Lessons tab's actions: open a lesson, check the model against its answer, show the answer.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+
+    def show_guide(self, lesson: Lesson) -> None:
+        self.wb.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
+
+    def do_open_lesson(self, event):
+        wb = self.wb
+        slug = wb.values.check(wb.panels.lesson_choice)
+        lesson = lesson_or_error(slug)
+
+        def job():
+            ds, _ = load_dataset(lesson.data_path, f"lesson {slug}")
+            content = lesson.data_path.read_bytes()
+            wb.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
+            revealed = wb.ctrl.state.answer_revealed
+
+            def show():
+                self.show_guide(lesson)
+                wb.panels.lesson_feedback.content = lesson.answer_markdown() if revealed else ""
+
+            wb.ui.post(show)
+            wb.say_after_load(f"lesson **{lesson.title}** opened")
+
+        wb.ctrl.run_job("open lesson", job)
+
+    def current(self) -> Lesson:
+        state = self.wb.ctrl.state
+        if not state.lesson:
+            raise MagcalError("open a lesson first (Lessons tab)")
+        return lesson_or_error(state.lesson)
+
+    def do_check_lesson(self, event):
+        result = self.current().check(self.wb.ctrl.state.effects)
+        self.wb.panels.lesson_feedback.content = result["message"]
+        self.wb.ctrl.say(result["message"])
+
+    def do_show_answer(self, event):
+        lesson = self.current()
+        ctrl = self.wb.ctrl
+        ctrl.state.answer_revealed = True
+        ctrl.state.touch()
+        ctrl.autosave()
+        self.wb.panels.lesson_feedback.content = lesson.answer_markdown()

@@ -31,6 +31,9 @@ import numpy as np
 import magcal
 from magcal.checks.coverage import direction_map, live_sufficient
 from magcal.core.errors import MagcalError
+from magcal.data.live import LiveSession
+from magcal.data.simulation import PRESETS
+from magcal.geometry.shape import FieldShape
 
 from . import scene as scn
 from .markup import safe_code, safe_text
@@ -101,19 +104,30 @@ class LiveFit:
 class LiveView:
     """A live session drawn in the workbench.
 
+    Its threads (the source's loop, the refits) change nothing on the page themselves: every drawing and panel
+    update is handed to the page's thread (``ui``, :class:`magcal_workbench.uiqueue.UiQueue`).
+
     Parameters
     ----------
-    app : magcal_workbench.app.Workbench
     url : str
         The source (:func:`magcal.data.live.open_source`).
     path : str or os.PathLike
         The recording (a new file).
+    server : viser.ViserServer
+        Where the coverage spheres are drawn.
+    ui : magcal_workbench.uiqueue.UiQueue
+        The page's thread.
+    redraw : callable
+        Redraws the scene (which asks :meth:`scene_model`).
+    refresh : callable
+        Shows the live session's state in the panels.
     """
 
-    def __init__(self, app, url: str, path):
-        from magcal.data.live import LiveSession
-
-        self.app = app
+    def __init__(self, url: str, path, server, ui, redraw, refresh):
+        self._server = server
+        self._ui = ui
+        self._redraw = redraw
+        self._refresh = refresh
         self.url = url
         self.path = Path(path)
         self.session = LiveSession(url, self.path)
@@ -160,10 +174,10 @@ class LiveView:
                         self._maybe_refit(ds, idle=True)  # the last samples get their fit too
                 if not self.session.running and not ended_said:
                     ended_said = True
-                    self.app.panels.refresh_live()  # the source ended or failed: say so
+                    self._ui.post(self._refresh)  # the source ended or failed: say so
             except Exception as exc:  # the live view must not die silently
                 self.fit_error = f"{type(exc).__name__}: {exc}"
-                self.app.panels.refresh_live()
+                self._ui.post(self._refresh)
 
     def tick(self) -> bool:
         """Take the samples received since the last call: redraw, refresh the coverage, maybe refit. Returns
@@ -184,19 +198,22 @@ class LiveView:
         self.verdict = live_sufficient(
             self.maps, None if fit is None else fit.rms_nT, None if fit is None else fit.floor_nT
         )
-        self.app.update_scene()
-        self.draw_coverage()
-        self.n_drawn = ds.n_samples
-        self.last_draw_monotonic = time.monotonic()
-        self.draw_log.append((self.last_draw_monotonic, self.n_drawn))
-        del self.draw_log[:-1000]
-        self.app.panels.refresh_live()
+
+        def draw():  # on the page's thread; this one waits for it
+            self._redraw()
+            self.draw_coverage()
+            self.n_drawn = ds.n_samples
+            self.last_draw_monotonic = time.monotonic()
+            self.draw_log.append((self.last_draw_monotonic, self.n_drawn))
+            del self.draw_log[:-1000]
+            self._refresh()
+
+        self._ui.run(draw)
         self._maybe_refit(ds)
         return True
 
     @staticmethod
     def _shape_of(sensor):
-        from magcal.geometry.shape import FieldShape
 
         return FieldShape(
             centre_nT=np.asarray(sensor.bias_nT, float),
@@ -238,8 +255,7 @@ class LiveView:
             self._last_fit_t = time.monotonic()
             self._fitting = False
         if not self.stopped:
-            self.app.update_scene()
-            self.app.panels.refresh_live()
+            self._ui.run(lambda: (self._redraw(), self._refresh()))
 
     # --- what is drawn ----------------------------------------------------------------------------------------
     def scene_model(self, options: dict) -> scn.SceneModel | None:
@@ -285,9 +301,9 @@ class LiveView:
     def draw_coverage(self) -> None:
         """One coverage sphere per sensor, where its corrected cloud is drawn: visited cells green, missing grey,
         the centre of the largest gap orange."""
-        scene = self.app.server.scene
+        scene = self._server.scene
         n = len(self.maps)
-        with self.app.server.atomic():
+        with self._server.atomic():
             for s, m in enumerate(self.maps):
                 centre = scn.group_offset(s, n) + [scn.PAIR_OFFSET, 0, 0]
                 colors = np.where(
@@ -401,8 +417,6 @@ def check_page_source(url: str, local: bool) -> str:
         raise MagcalError("type a live source, e.g. sim://chi2017?rate=50 or serial:///dev/ttyUSB0?baud=115200")
     scheme = url.split(":", 1)[0].lower()
     if not local:
-        from magcal.data.simulation import PRESETS
-
         name = url.split("://", 1)[-1].split("?", 1)[0]
         if scheme not in REMOTE_SCHEMES or name not in PRESETS:
             raise MagcalError(

@@ -18,7 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from magcal.diagnosis import candidate_patterns, residual_patterns
+
 from . import scene as scn
+from .controller import candidate_label
 
 SURFACE_CHOICES = ("none", "residual pattern", "candidate's pattern", "change at the last step")
 #: Radius of a surface (the corrected cloud lies at radius 1 +- the residual exaggeration), scene units.
@@ -46,10 +49,22 @@ def pattern_colours(pattern, limit_nT: float | None = None) -> np.ndarray:
 
 
 class SphereMaps:
-    """The surfaces drawn for the current choice; :meth:`refresh` recomputes and redraws them."""
+    """The surfaces drawn for the current choice; :meth:`refresh` recomputes and redraws them.
 
-    def __init__(self, app):
-        self.app = app
+    Parameters
+    ----------
+    server : viser.ViserServer
+        Where the surfaces are drawn.
+    ctrl : callable
+        Returns the current :class:`~magcal_workbench.controller.Controller`.
+    candidate : callable
+        Returns the candidate chosen in the Model tab (its label, or ``-``).
+    """
+
+    def __init__(self, server, ctrl, candidate):
+        self._server = server
+        self._ctrl = ctrl
+        self._candidate = candidate
         self.choice = SURFACE_CHOICES[0]
         self.patterns = []  # DirectionPattern per shown sensor (for tests and the legend)
         self.note = ""
@@ -80,11 +95,8 @@ class SphereMaps:
     # --- computing --------------------------------------------------------------------------------------------
     def compute(self, choice: str):
         """The patterns per sensor of the data for ``choice`` and a note (why there are none), engine calls."""
-        from magcal.diagnosis import candidate_patterns, residual_patterns
 
-        from .controller import candidate_label
-
-        ctrl = self.app.ctrl
+        ctrl = self._ctrl()
         if choice == "none":
             return [], ""
         if ctrl.calibration is None or ctrl.residual_nT is None:
@@ -103,7 +115,7 @@ class SphereMaps:
         diagnosis = ctrl.diagnosis
         if diagnosis is None or not diagnosis.candidates:
             return [], "press Diagnose and choose a candidate"
-        label = self.app.panels.candidate_choice.value
+        label = self._candidate()
         cand = next((c for c in diagnosis.candidates if candidate_label(c) == label), None)
         if cand is None:
             return [], "choose a candidate in the Model tab"
@@ -129,15 +141,15 @@ class SphereMaps:
         import trimesh
 
         self.clear()
-        ctrl = self.app.ctrl
+        ctrl = self._ctrl()
         if not self.patterns:
             return
         shown = range(ctrl.dataset.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
         shown = list(shown)
         verts, faces = self._vf
-        scene = self.app.server.scene
+        scene = self._server.scene
         limit = self.limit_nT
-        with self.app.server.atomic():
+        with self._server.atomic():
             for k, s in enumerate(shown):
                 p = self.patterns[s]
                 centre = scn.group_offset(k, len(shown)) + [scn.PAIR_OFFSET, 0, 0]

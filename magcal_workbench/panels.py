@@ -15,8 +15,16 @@ import threading
 
 import numpy as np
 
+from magcal.core import conventions
+from magcal.data.simulation import PRESETS
+
+from .controller import candidate_label, format_number
+from .lessons import lesson_slugs, list_lessons
+from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .sessionfile import NOISE_RANGE_nT
 from .state import METHODS
+from .uploads import UPLOAD_UNITS
 
 METHOD_LABELS = {
     "ml": "ml: ellipsoid, align, maximum likelihood",
@@ -31,8 +39,6 @@ ALL_SENSORS = "all sensors"
 # --- text builders ------------------------------------------------------------------------------------------
 def fmt(v, unit="", digits=4) -> str:
     """A number for the page (:func:`magcal_workbench.controller.format_number`) with its unit, or ``-``."""
-    from .controller import format_number
-
     text = format_number(v, digits)
     return text if text == "-" else f"{text}{(' ' + unit) if unit else ''}"
 
@@ -82,7 +88,6 @@ def data_markdown(ctrl) -> str:
 
 def sensors_markdown(ctrl) -> str:
     """Per-sensor RMS and the calibration's gauge-free figures, plus the tensor before/after."""
-    from magcal.core import conventions
 
     rows = ["| sensor | RMS nT | scale | axis angles deg | bias nT |", "|---|---|---|---|---|"]
     per = ctrl.rms_per_sensor_nT()
@@ -135,8 +140,6 @@ HELD_OUT_NOTE = (
 def candidates_markdown(diagnosis) -> str:
     if diagnosis is None:
         return "_Press Diagnose to rank the effects the data may hide in the current fit's residuals._"
-    from .controller import candidate_label
-
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
     lines = [
         f"**Verdict:** {safe_code(d.get('verdict'))}  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
@@ -208,8 +211,6 @@ def candidate_evidence_markdown(diagnosis, label: str) -> str:
     """The evidence of the chosen candidate, with a warning when its gain does not hold on held-out data."""
     if diagnosis is None:
         return ""
-    from .controller import candidate_label
-
     for c in diagnosis.candidates:
         if candidate_label(c) == label:
             refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
@@ -439,7 +440,6 @@ def view_gains(ctrl) -> tuple[float, float]:
 
 
 #: The Units choices of an upload (the first keeps the file's own ``# units:`` line).
-UPLOAD_UNITS = ("from the file", "nT", "uT", "G", "mG", "counts")
 
 
 #: The status line while a live session owns the scene.
@@ -451,14 +451,47 @@ LIVE_STATUS = (
 class Panels:
     """Builds the GUI on ``server.gui`` and keeps it in step with the workbench.
 
+    The panels know nothing of the workbench: they are given what they call and what they read.
+
     Parameters
     ----------
-    app : magcal_workbench.app.Workbench
+    widgets : magcal_workbench.checks.Widgets
+        Makes the input widgets and registers what each may send.
+    handle : callable
+        ``handle(func, event)`` runs a widget's callback (errors become the page's message).
+    on : object
+        The actions the widgets call, as attributes: ``do_*(event)`` handlers, ``set_sensor(choice)``,
+        ``view_changed``, ``surface_changed``, ``window_changed`` (``(event)``), ``refresh_maps()``,
+        ``legend_html()``, ``draw_evidence()``.
+    ctrl : callable
+        Returns the current :class:`~magcal_workbench.controller.Controller` (it changes with the data).
+    live : callable
+        Returns the live session (:class:`~magcal_workbench.live.LiveView`) or None.
+    busy : callable
+        Whether the engine's worker runs a job.
+    maps_choice : callable
+        The sphere surface shown now.
+    session_ids : callable
+        The saved sessions the server offers (the Saved session choices).
+    store : magcal_workbench.session.SessionStore or None
+        The session folder (None: autosave off).
+    local : bool
+        Whether the page is served to this machine only (loading an effects file is allowed).
     """
 
-    def __init__(self, app):
-        self.app = app
-        gui = app.server.gui
+    def __init__(self, widgets, handle, on, ctrl, live, busy, maps_choice, session_ids, store, local: bool):
+        self.w = widgets
+        self.values = widgets.values
+        self.handle = handle
+        self.on = on
+        self.ctrl = ctrl
+        self.live = live
+        self.busy = busy
+        self.maps_choice = maps_choice
+        self.session_ids = session_ids
+        self.store = store
+        self.local = local
+        gui = widgets.gui
         self.gui = gui
         gui.configure_theme(control_width="large", dark_mode=False)
         self.title = gui.add_markdown("## magcal workbench")
@@ -501,31 +534,32 @@ class Panels:
 
         def changed(event):
             if handle.value != shown():
-                self.app.handle(lambda _: apply(handle.value), event)
+                self.handle(lambda _: apply(handle.value), event)
 
         handle.on_update(changed)
         self._bindings.append((handle, shown))
+        self.values.shown_by(handle, shown)
         return handle
 
     def _button(self, gui, label, handler, engine=True, **kw):
         b = gui.add_button(label, **kw)
-        b.on_click(lambda event: self.app.handle(handler, event))
+        b.on_click(lambda event: self.handle(handler, event))
         if engine:
             self._engine_buttons.append(b)
         return b
 
     def _build_calibrate(self, gui):
         self.data_info = gui.add_markdown("")
-        state, configure = (lambda: self.app.ctrl.state), (lambda **kw: self.app.ctrl.configure(**kw))
+        state, configure = (lambda: self.ctrl().state), (lambda **kw: self.ctrl().configure(**kw))
         self.method = self._bind(
-            gui.add_dropdown(
+            self.w.dropdown(
                 "Method", tuple(METHODS), initial_value="ml", hint="; ".join(METHOD_LABELS[m] for m in METHODS)
             ),
             lambda: state().method,
             lambda v: configure(method=v),
         )
         self.reference = self._bind(
-            gui.add_number(
+            self.w.number(
                 "Reference field nT",
                 0.0,
                 min=0.0,
@@ -548,10 +582,10 @@ class Panels:
             lambda: bool(state().robust),
             lambda v: configure(robust=bool(v)),
         )
-        self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.app.do_ellipsoid)
-        self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.app.do_align)
-        self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.app.do_refine)
-        self.btn_run = self._button(gui, "Run the chosen method", self.app.do_calibrate, color="blue")
+        self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.on.do_ellipsoid)
+        self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.on.do_align)
+        self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.on.do_refine)
+        self.btn_run = self._button(gui, "Run the chosen method", self.on.do_calibrate, color="blue")
         self.sensors_table = gui.add_markdown("")
         with gui.add_folder("Step history", expand_by_default=True):
             self.history = gui.add_markdown("")
@@ -565,29 +599,29 @@ class Panels:
         self.effect_boxes = {}
         self._boxes_lock = threading.Lock()
         self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
-        self._add_effect_boxes(self.app.ctrl.available_effects())
-        self.model_terms = gui.add_markdown(model_terms_markdown(self.app.ctrl.model_terms()))
+        self._add_effect_boxes(self.ctrl().available_effects())
+        self.model_terms = gui.add_markdown(model_terms_markdown(self.ctrl().model_terms()))
         with gui.add_folder("Your own effects", expand_by_default=False):
-            self.user_effects = gui.add_markdown(user_effects_markdown(self.app.ctrl.available_effects()))
-            self.effects_path = gui.add_text(
+            self.user_effects = gui.add_markdown(user_effects_markdown(self.ctrl().available_effects()))
+            self.effects_path = self.w.text(
                 "Effects file (.py)", "", hint="Path of a Python file on the machine serving this page"
             )
-            self.btn_load_effects = self._button(gui, "Load effects file", self.app.do_load_effects)
+            self.btn_load_effects = self._button(gui, "Load effects file", self.on.do_load_effects)
             self.effects_warning = gui.add_markdown(
                 EFFECTS_FILE_WARNING
-                if self.app.local
+                if self.local
                 else "_Loading an effects file is off: the page is served beyond this machine. Start the workbench "
                 "with `--effects-file PATH` instead._"
             )
-            self.btn_load_effects.disabled = not self.app.local
-            self.effects_path.disabled = not self.app.local
-        self.btn_refit = self._button(gui, "Refit with this model", self.app.do_refine)
-        self.btn_diagnose = self._button(gui, "Diagnose", self.app.do_diagnose, color="violet")
+            self.btn_load_effects.disabled = not self.local
+            self.effects_path.disabled = not self.local
+        self.btn_refit = self._button(gui, "Refit with this model", self.on.do_refine)
+        self.btn_diagnose = self._button(gui, "Diagnose", self.on.do_diagnose, color="violet")
         self.candidates = gui.add_markdown("")
-        self.candidate_choice = gui.add_dropdown("Candidate", ("-",), initial_value="-")
+        self.candidate_choice = self.w.dropdown("Candidate", ("-",), allowed=self._candidate_options, initial_value="-")
         self.candidate_evidence = gui.add_markdown("")
-        self.candidate_choice.on_update(lambda e: self.app.handle(self._candidate_chosen, e))
-        self.btn_add = self._button(gui, "Add the candidate and refit", self.app.do_add, color="green")
+        self.candidate_choice.on_update(lambda e: self.handle(self._candidate_chosen, e))
+        self.btn_add = self._button(gui, "Add the candidate and refit", self.on.do_add, color="green")
         self.rms_plot = gui.add_uplot(
             data=(
                 np.array([0.0, 1.0]),
@@ -616,25 +650,23 @@ class Panels:
         self.btn_full_evidence = self._button(
             gui,
             "Full-size evidence",
-            self.app.do_full_evidence,
+            self.on.do_full_evidence,
             engine=False,
             hint="The evidence plots over the scene, full size (press again to go back); the same data as below",
         )
         self.btn_evidence_png = self._button(
-            gui, "Download evidence PNG", self.app.do_download_evidence_png, engine=False
+            gui, "Download evidence PNG", self.on.do_download_evidence_png, engine=False
         )
         self.btn_evidence_svg = self._button(
-            gui, "Download evidence SVG", self.app.do_download_evidence_svg, engine=False
+            gui, "Download evidence SVG", self.on.do_download_evidence_svg, engine=False
         )
         self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
         self.evidence_plot = None
 
     def _build_quality(self, gui):
         """Data quality read before fitting, and the noise behind the floors (given or estimated)."""
-        from .sessionfile import NOISE_RANGE_nT
-
         self.noise_info = gui.add_markdown("")
-        self.noise_input = gui.add_number(
+        self.noise_input = self.w.number(
             "Noise nT per axis",
             0.0,
             min=0.0,
@@ -643,40 +675,43 @@ class Panels:
             hint="The sensor's noise per axis (standard deviation, nT) if you know it; 0 = estimate it from the "
             "data (differences in time, still stretches, never below the quantization floor)",
         )
-        self.btn_noise = self._button(gui, "Use this noise for the floors", self._apply_noise, engine=False)
+        self.btn_noise = self._button(gui, "Use this noise for the floors", self.on.do_apply_noise, engine=False)
         self.quality = gui.add_markdown("")
-
-    def _apply_noise(self, event) -> None:
-        value = float(self.app.check_value(self.noise_input))
-        self.app.ctrl.set_noise(value if value > 0 else None)
 
     def _build_outliers(self, gui):
         gui.add_markdown(
             "**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
             "**click** a point to inspect its sample. Rejected points turn magenta."
         )
-        self.box_mode = gui.add_dropdown("Box selection", ("reject", "restore"), initial_value="reject")
-        self.k_sigma = gui.add_slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
-        self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.app.do_threshold, engine=False)
+        self.box_mode = self.w.dropdown("Box selection", ("reject", "restore"), initial_value="reject")
+        self.k_sigma = self.w.slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
+        self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.on.do_threshold, engine=False)
         self.auto_refit = gui.add_checkbox(
             "Refit after each change", True, hint="Refit (ML) on the kept samples after every rejection"
         )
         with gui.add_folder("History", expand_by_default=True):
-            self.btn_undo = self._button(gui, "Undo", self.app.do_undo, engine=False)
-            self.btn_redo = self._button(gui, "Redo", self.app.do_redo, engine=False)
-            self.btn_reset = self._button(gui, "Reset (keep all)", self.app.do_reset, engine=False)
+            self.btn_undo = self._button(gui, "Undo", self.on.do_undo, engine=False)
+            self.btn_redo = self._button(gui, "Redo", self.on.do_redo, engine=False)
+            self.btn_reset = self._button(gui, "Reset (keep all)", self.on.do_reset, engine=False)
         self.inspect = gui.add_markdown(inspect_markdown(None))
 
     def _build_view(self, gui):
-        options = self._sensor_options(self.app.ctrl.dataset.n_sensors)
+        options = self._sensor_options(self.ctrl().dataset.n_sensors)
         self.sensor_choice = self._bind(
-            gui.add_dropdown("Sensor", options, initial_value=options[0]), self._sensor_shown, self.app.set_sensor
+            self.w.dropdown(
+                "Sensor",
+                options,
+                allowed=lambda: self._sensor_options(self.ctrl().dataset.n_sensors),
+                initial_value=options[0],
+            ),
+            self._sensor_shown,
+            self.on.set_sensor,
         )
-        self.distortion_gain = gui.add_slider("Raw distortion x", min=0.1, max=50.0, step=0.1, initial_value=10.0)
-        self.residual_gain = gui.add_slider(
+        self.distortion_gain = self.w.slider("Raw distortion x", min=0.1, max=50.0, step=0.1, initial_value=10.0)
+        self.residual_gain = self.w.slider(
             "Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=1.0, initial_value=1000.0
         )
-        self.axes_gain = gui.add_slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0, initial_value=20.0)
+        self.axes_gain = self.w.slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0, initial_value=20.0)
         self.show_raw = gui.add_checkbox("Raw cloud", True)
         self.show_ellipsoid = gui.add_checkbox("Fitted ellipsoid", True)
         self.show_corrected = gui.add_checkbox("Corrected cloud", True)
@@ -690,17 +725,15 @@ class Panels:
             self.show_ellipsoid,
             self.show_corrected,
         ):
-            h.on_update(lambda e: self.app.handle(self.app.view_changed, e))
-        from .maps import SURFACE_CHOICES
-
-        self.surface_choice = gui.add_dropdown(
+            h.on_update(lambda e: self.handle(self.on.view_changed, e))
+        self.surface_choice = self.w.dropdown(
             "Sphere surface",
             SURFACE_CHOICES,
             initial_value=SURFACE_CHOICES[0],
             hint="A smooth surface inside each corrected cloud, coloured by a direction pattern (nT): the residual's, "
             "the chosen candidate's (what adding it would explain), or what the last fit took away",
         )
-        self.surface_choice.on_update(lambda e: self.app.handle(self.app.surface_changed, e))
+        self.surface_choice.on_update(lambda e: self.handle(self.on.surface_changed, e))
         self.maps_info = gui.add_markdown("")
         with gui.add_folder("Time window", expand_by_default=True):
             self._build_time(gui)
@@ -710,36 +743,36 @@ class Panels:
         self.window_on = gui.add_checkbox(
             "Show a time window", False, hint="Draw only the samples in the window; the evidence plots shade it"
         )
-        self.window_start = gui.add_slider("Window start %", min=0.0, max=100.0, step=0.1, initial_value=0.0)
-        self.window_width = gui.add_slider("Window width %", min=0.5, max=100.0, step=0.5, initial_value=10.0)
-        self.play_speed = gui.add_slider(
+        self.window_start = self.w.slider("Window start %", min=0.0, max=100.0, step=0.1, initial_value=0.0)
+        self.window_width = self.w.slider("Window width %", min=0.5, max=100.0, step=0.5, initial_value=10.0)
+        self.play_speed = self.w.slider(
             "Play speed x", min=1.0, max=100.0, step=1.0, initial_value=10.0, hint="Multiple of real time"
         )
-        self.btn_play = self._button(gui, "Play", self.app.do_play, engine=False)
-        self.btn_pause = self._button(gui, "Pause", self.app.do_pause_play, engine=False)
-        self.btn_show_all = self._button(gui, "Show all", self.app.do_show_all, engine=False)
+        self.btn_play = self._button(gui, "Play", self.on.do_play, engine=False)
+        self.btn_pause = self._button(gui, "Pause", self.on.do_pause_play, engine=False)
+        self.btn_show_all = self._button(gui, "Show all", self.on.do_show_all, engine=False)
         self.window_info = gui.add_markdown("")
         for h in (self.window_on, self.window_start, self.window_width, self.play_speed):
-            h.on_update(lambda e: self.app.handle(self.app.window_changed, e))
+            h.on_update(lambda e: self.handle(self.on.window_changed, e))
 
     def _build_files(self, gui):
         self.upload = gui.add_upload_button(
             "Open a file (CSV, .bin, .ulg)", mime_type=".csv,.txt,.bin,.ulg,text/csv,text/plain"
         )
-        self.upload.on_upload(lambda e: self.app.handle(self.app.do_upload, e))
-        self.upload_columns = gui.add_text(
+        self.upload.on_upload(lambda e: self.handle(self.on.do_upload, e))
+        self.upload_columns = self.w.text(
             "Columns",
             "",
             hint="Your column names mapped onto magcal's, as the command line's --columns: "
             "x=magX,y=magY,z=magZ,t=time,temp=T (empty: the file's own names)",
         )
-        self.upload_units = gui.add_dropdown(
+        self.upload_units = self.w.dropdown(
             "Units",
             UPLOAD_UNITS,
             initial_value=UPLOAD_UNITS[0],
             hint="Unit of the readings; 'from the file' reads its '# units:' line (nT without one)",
         )
-        self.upload_lsb = gui.add_number(
+        self.upload_lsb = self.w.number(
             "LSB nT/count",
             0.0,
             min=0.0,
@@ -747,48 +780,47 @@ class Panels:
             step=0.001,
             hint="nT per count for raw counts (0: the file's '# lsb_nT:' line)",
         )
-        self.btn_reread = self._button(gui, "Re-read the last upload with these", self.app.do_reread)
+        self.btn_reread = self._button(gui, "Re-read the last upload with these", self.on.do_reread)
         self.upload_info = gui.add_markdown("")
-        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.app.do_download_calibration, engine=False)
-        self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.app.do_download_corrected, engine=False)
+        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.on.do_download_calibration, engine=False)
+        self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.on.do_download_corrected, engine=False)
         self.download_info = gui.add_markdown("")
         gui.add_markdown("**Sessions** (saved automatically after every change)")
         self.session_info = gui.add_markdown("")
-        self.session_choice = gui.add_dropdown("Saved session", ("-",), initial_value="-")
-        self.btn_reopen = self._button(gui, "Reopen the session", self.app.do_reopen)
-        self.btn_fresh = self._button(gui, "Start this data afresh", self.app.do_fresh)
-        self.btn_delete_session = self._button(gui, "Delete the chosen session", self.app.do_delete_session)
+        self.session_choice = self.w.dropdown("Saved session", ("-",), allowed=self.session_ids, initial_value="-")
+        self.btn_reopen = self._button(gui, "Reopen the session", self.on.do_reopen)
+        self.btn_fresh = self._button(gui, "Start this data afresh", self.on.do_fresh)
+        self.btn_delete_session = self._button(gui, "Delete the chosen session", self.on.do_delete_session)
         self._build_live(gui)
 
     def _build_live(self, gui):
         """The live source: a URL, Start, Pause/Resume, Stop (:mod:`workbench.live`)."""
-        from magcal.data.simulation import PRESETS
 
         gui.add_markdown(
             "**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
             "opens the recording here"
         )
         sample = "sim://chi2017?rate=50" if "chi2017" in PRESETS else f"sim://{next(iter(PRESETS))}?rate=50"
-        self.live_url = gui.add_text(
+        self.live_url = self.w.text(
             "Live source",
             sample,
             hint="serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
             "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://PRESET?rate=50",
         )
-        self.btn_live_start = self._button(gui, "Start live", self.app.do_live_start, engine=False)
-        self.btn_live_pause = self._button(gui, "Pause", self.app.do_live_pause, engine=False, visible=False)
-        self.btn_live_resume = self._button(gui, "Resume", self.app.do_live_resume, engine=False, visible=False)
+        self.btn_live_start = self._button(gui, "Start live", self.on.do_live_start, engine=False)
+        self.btn_live_pause = self._button(gui, "Pause", self.on.do_live_pause, engine=False, visible=False)
+        self.btn_live_resume = self._button(gui, "Resume", self.on.do_live_resume, engine=False, visible=False)
         self.btn_live_stop = self._button(
-            gui, "Stop and open the recording", self.app.do_live_stop, engine=False, visible=False
+            gui, "Stop and open the recording", self.on.do_live_stop, engine=False, visible=False
         )
 
     def refresh_live(self) -> None:
         """Show the live session's state (called by the live view's thread after each update)."""
-        live = self.app.live
+        live = self.live()
         running = live is not None and live.active
         if running:
             self.status.content = LIVE_STATUS
-            self.legend.content = self.app.legend_html()
+            self.legend.content = self.on.legend_html()
         self.live_status.visible = live is not None
         if live is not None:
             self.live_status.content = live.status_markdown()
@@ -798,24 +830,26 @@ class Panels:
         self.btn_live_resume.visible = running and paused
         self.btn_live_stop.visible = running
         for b in self._engine_buttons:  # the engine steps act on the opened data, not on the stream
-            b.disabled = running or self.app.worker.busy
+            b.disabled = running or self.busy()
 
     def _build_lessons(self, gui):
-        from .lessons import list_lessons
-
         lessons = list_lessons()
-        opts = tuple(l.slug for l in lessons) or ("-",)
+        opts = lesson_slugs()
         gui.add_markdown(
             "Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
             "is missing, and check. The answer stays hidden until you ask."
         )
-        self.lesson_choice = gui.add_dropdown(
-            "Lesson", opts, initial_value=opts[0], hint="; ".join(f"{l.slug}: {l.title}" for l in lessons)
+        self.lesson_choice = self.w.dropdown(
+            "Lesson",
+            opts,
+            allowed=lesson_slugs,
+            initial_value=opts[0],
+            hint="; ".join(f"{l.slug}: {l.title}" for l in lessons),
         )
-        self.btn_lesson = self._button(gui, "Open the lesson", self.app.do_open_lesson)
+        self.btn_lesson = self._button(gui, "Open the lesson", self.on.do_open_lesson)
         self.lesson_guide = gui.add_markdown("")
-        self.btn_check = self._button(gui, "Check my model", self.app.do_check_lesson, engine=False)
-        self.btn_answer = self._button(gui, "Show the answer", self.app.do_show_answer, engine=False)
+        self.btn_check = self._button(gui, "Check my model", self.on.do_check_lesson, engine=False)
+        self.btn_answer = self._button(gui, "Show the answer", self.on.do_show_answer, engine=False)
         self.lesson_feedback = gui.add_markdown("")
 
     def _add_effect_boxes(self, entries) -> None:
@@ -828,9 +862,15 @@ class Panels:
                 self.effect_boxes[name] = self._bind(
                     # spaces, not underscores: the narrow label column wraps a long name at its words
                     self.gui.add_checkbox(clean_text(name.replace("_", " "), 64), False, hint=effect_hint(entry)),
-                    lambda n=name: self.app.ctrl.state.has_effect(n),
-                    lambda on, n=name: self.app.ctrl.set_effect(n, bool(on)),
+                    lambda n=name: self.ctrl().state.has_effect(n),
+                    lambda on, n=name: self.ctrl().set_effect(n, bool(on)),
                 )
+
+    def _candidate_options(self) -> tuple:
+        """The Candidate choices the server offers: the current diagnosis's candidates and ``-``."""
+        diagnosis = self.ctrl().diagnosis
+        cands = diagnosis.candidates if diagnosis is not None else []
+        return tuple(dict.fromkeys(candidate_label(c) for c in cands)) + ("-",)
 
     @staticmethod
     def _sensor_options(n):
@@ -838,7 +878,7 @@ class Panels:
 
     def _sensor_shown(self) -> str:
         """The sensor choice the state holds, as the dropdown shows it."""
-        ctrl = self.app.ctrl
+        ctrl = self.ctrl()
         s = ctrl.state.sensor
         return self._sensor_options(ctrl.dataset.n_sensors)[0] if s is None else f"sensor {s + 1}"
 
@@ -855,7 +895,7 @@ class Panels:
 
     def fit_view_to_data(self) -> None:
         """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
-        distortion, residual = view_gains(self.app.ctrl)
+        distortion, residual = view_gains(self.ctrl())
         for handle, value in ((self.distortion_gain, distortion), (self.residual_gain, residual)):
             if handle.value == self._auto_gains.get(id(handle)) and handle.value != value:
                 self._auto_gains[id(handle)] = value
@@ -881,14 +921,14 @@ class Panels:
             self.progress.animated = True
 
     def refresh(self, kinds=("all",)) -> None:
-        app, ctrl = self.app, self.app.ctrl
+        ctrl = self.ctrl()
         kinds = set(kinds)
         everything = "all" in kinds
-        live = app.live
+        live = self.live()
         self.status.content = status_markdown(ctrl) if live is None or not live.active else LIVE_STATUS
         if everything or "message" in kinds:
             self.message.content = ctrl.message
-        self.legend.content = app.legend_html()
+        self.legend.content = self.on.legend_html()
         if everything or kinds & {"result", "data"}:
             self.fit_view_to_data()
         if everything or kinds & {"result", "selection", "model"}:
@@ -927,14 +967,12 @@ class Panels:
             self.reference_info.content = reference_markdown(ctrl)
         if everything or "diagnosis" in kinds or "data" in kinds:
             self.candidates.content = candidates_markdown(ctrl.diagnosis)
-            from .controller import candidate_label
-
             cands = [candidate_label(c) for c in (ctrl.diagnosis.candidates if ctrl.diagnosis is not None else [])]
             opts = tuple(dict.fromkeys(cands)) or ("-",)
             self.candidate_choice.options = opts
             self.candidate_choice.value = opts[0]
             self._show_candidate_evidence()
-            app.draw_evidence()
+            self.on.draw_evidence()
         if everything or "inspect" in kinds or "selection" in kinds:
             info = ctrl.sample_info(ctrl.inspected) if ctrl.inspected is not None else None
             self.inspect.content = inspect_markdown(info)
@@ -952,26 +990,26 @@ class Panels:
 
     def _candidate_chosen(self, event) -> None:
         self._show_candidate_evidence()
-        if self.app.maps.choice == "candidate's pattern":
-            self.app.refresh_maps()
+        if self.maps_choice() == "candidate's pattern":
+            self.on.refresh_maps()
 
     def _show_candidate_evidence(self) -> None:
         self.candidate_evidence.content = candidate_evidence_markdown(
-            self.app.ctrl.diagnosis, self.candidate_choice.value
+            self.ctrl().diagnosis, self.candidate_choice.value
         )
 
     def refresh_sessions(self) -> None:
-        app = self.app
-        if app.store is None:
+        store = self.store
+        if store is None:
             self.session_info.content = "_Autosave is off._"
             return
-        sessions = app.store.list()
+        sessions = store.list()
         self.session_info.content = (
-            f"This session: {safe_code(app.ctrl.session_id)} in {safe_code(app.store.root)}"
-            if app.ctrl.session_id
+            f"This session: {safe_code(self.ctrl().session_id)} in {safe_code(store.root)}"
+            if self.ctrl().session_id
             else "_This session is not saved._"
         )
-        self.session_info.content += "\n\n" + sessions_markdown(sessions, app.store.max_bytes)
+        self.session_info.content += "\n\n" + sessions_markdown(sessions, store.max_bytes)
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts
         self.session_choice.value = opts[0]

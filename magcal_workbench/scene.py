@@ -19,6 +19,7 @@ The pure functions (projection, ray picking, colours, meshes) are tested without
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import trimesh
@@ -459,7 +460,7 @@ class SceneView:
                 self._static.clear()
                 self._shape_key = key
             views = {sv.sensor: sv for sv in model.sensors}
-            for name, s, kind, pts in clouds:
+            for name, s, _kind, pts in clouds:
                 sv = views[s]
                 resid = sv.residual_nT if sv.residual_nT is not None else np.full(len(pts), np.nan)
                 colors = residual_colors(resid, limit, kept)
@@ -604,6 +605,8 @@ class SceneView:
 
     # --- helpers ----------------------------------------------------------------------------------------------
     def _put(self, name, factory):
+        """Replace the static node ``name`` by ``factory()`` (a :func:`functools.partial` of a ``scene.add_*``:
+        its arguments are bound when it is made, not when the loop has moved on)."""
         old = self._static.pop(name, None)
         if old is not None:
             old.remove()
@@ -620,7 +623,8 @@ class SceneView:
             if model.show_raw:
                 self._put(
                     f"/data/{tag}/raw_label",
-                    lambda: scene.add_label(
+                    partial(
+                        scene.add_label,
                         f"/data/{tag}/raw_label",
                         f"S{sv.sensor + 1} raw",
                         position=centre + [-PAIR_OFFSET, 0, 1.2],
@@ -631,7 +635,8 @@ class SceneView:
                     v, f = ellipsoid_mesh(sv.cinv, sv.bias_nT, F, model.distortion_gain)
                     self._put(
                         f"/data/{tag}/ellipsoid",
-                        lambda: scene.add_mesh_simple(
+                        partial(
+                            scene.add_mesh_simple,
                             f"/data/{tag}/ellipsoid",
                             v.astype(np.float32),
                             f,
@@ -649,7 +654,8 @@ class SceneView:
                 if f"/data/{tag}/sphere" not in self._static:
                     self._put(
                         f"/data/{tag}/sphere",
-                        lambda: scene.add_mesh_simple(
+                        partial(
+                            scene.add_mesh_simple,
                             f"/data/{tag}/sphere",
                             sv_faces[0].astype(np.float32),
                             sv_faces[1],
@@ -661,7 +667,8 @@ class SceneView:
                     )
                 self._put(
                     f"/data/{tag}/corr_label",
-                    lambda: scene.add_label(
+                    partial(
+                        scene.add_label,
                         f"/data/{tag}/corr_label",
                         f"S{sv.sensor + 1} corrected",
                         position=centre + [PAIR_OFFSET, 0, 1.2],
@@ -684,7 +691,8 @@ class SceneView:
         )
         self._put(
             "/cross/label",
-            lambda: scene.add_label(
+            partial(
+                scene.add_label,
                 "/cross/label",
                 f"cross ({base}); array z toward you",
                 position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6),
@@ -700,7 +708,8 @@ class SceneView:
                 )
                 self._put(
                     "/cross/arms",
-                    lambda: scene.add_line_segments(
+                    partial(
+                        scene.add_line_segments,
                         "/cross/arms",
                         segs.astype(np.float32),
                         colors=(120, 120, 120),
@@ -713,14 +722,19 @@ class SceneView:
             if f"{tag}/label" not in self._static:
                 self._put(
                     f"{tag}/label",
-                    lambda: scene.add_label(
-                        f"{tag}/label", f"S{s + 1}", position=positions[s] + [0.12, 0, 0.12], anchor="bottom-left"
+                    partial(
+                        scene.add_label,
+                        f"{tag}/label",
+                        f"S{s + 1}",
+                        position=positions[s] + [0.12, 0, 0.12],
+                        anchor="bottom-left",
                     ),
                 )
                 ideal = np.concatenate([[positions[s], positions[s] + 0.4 * e] for e in ARRAY_TO_SCENE.T])
                 self._put(
                     f"{tag}/ideal",
-                    lambda: scene.add_line_segments(
+                    partial(
+                        scene.add_line_segments,
                         f"{tag}/ideal",
                         ideal.reshape(3, 2, 3).astype(np.float32),
                         colors=IDEAL_AXIS_RGB,
@@ -736,7 +750,12 @@ class SceneView:
             cols = np.repeat(np.array(AXIS_RGB, np.uint8)[:, None, :], 2, axis=1)
             self._put(
                 f"{tag}/axes",
-                lambda: scene.add_line_segments(
-                    f"{tag}/axes", segs.astype(np.float32), colors=cols, thickness=3.0, thickness_units="screen"
+                partial(
+                    scene.add_line_segments,
+                    f"{tag}/axes",
+                    segs.astype(np.float32),
+                    colors=cols,
+                    thickness=3.0,
+                    thickness_units="screen",
                 ),
             )

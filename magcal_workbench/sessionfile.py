@@ -43,6 +43,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 
 from .markup import clean_text
+from .state import METHODS, Selection, SessionState, StepRecord
 
 FORMAT = "magcal-workbench-session"
 VERSION = 1
@@ -190,8 +191,6 @@ class _Reader:
         return out
 
     def step(self, field, value, n_samples, n_sensors):
-        from .state import StepRecord
-
         doc = self.obj(field, value)
         if "step" not in doc or "rms_nT" not in doc:
             self.fail(field, "a step needs 'step' and 'rms_nT'")
@@ -220,8 +219,6 @@ class _Reader:
         )
 
     def selection(self, field, value, n):
-        from .state import Selection
-
         doc = self.obj(field, value)
         if "kept" not in doc:
             self.fail(f"{field}.kept", "is missing")
@@ -258,8 +255,6 @@ def read_session_document(doc, where: str = "session.json"):
     SessionFileError
         On the first damaged field (its name, what is wrong): the only exception this function raises.
     """
-    from .state import METHODS, SessionState
-
     r = _Reader(where)
     if type(doc) is not dict:
         r.wrong("(document)", doc, "an object")

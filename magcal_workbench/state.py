@@ -118,14 +118,6 @@ class Selection:
             self._apply(new, what)
         return changed
 
-    def set_kept(self, kept, what: str = "set") -> bool:
-        """Replace the whole mask (one undo step); returns True if it changed."""
-        new = np.array(kept, dtype=bool)
-        if new.shape != (self.n_samples,):
-            raise ValueError(f"kept mask has shape {new.shape}, expected ({self.n_samples},)")
-        with self.lock:
-            return self._apply(new, what)
-
     def reset(self) -> bool:
         """Keep every sample again (one undo step)."""
         with self.lock:
@@ -401,16 +393,3 @@ class SessionState:
                 "answer_revealed": self.answer_revealed,
                 "noise_nT": self.noise_nT,
             }
-
-    @classmethod
-    def from_dict(cls, doc: dict, where: str = "session.json") -> SessionState:
-        """The state a session document holds, every field checked (:mod:`workbench.sessionfile`).
-
-        Raises
-        ------
-        magcal_workbench.sessionfile.SessionFileError
-            Naming the damaged field.
-        """
-        from .sessionfile import read_session_document
-
-        return read_session_document(doc, where)

@@ -17,7 +17,7 @@ pytest.importorskip("viser")
 websockets_client = pytest.importorskip("websockets.asyncio.client")
 from websockets.exceptions import InvalidStatus
 
-from magcal_workbench import guard
+from magcal_workbench import guard, viser_adapter
 
 TIMEOUT_S = 10.0
 
@@ -116,8 +116,8 @@ def test_viser_still_starts_through_the_hooked_serve(monkeypatch):
 
 
 def test_a_viser_without_the_hook_does_not_start(monkeypatch):
-    monkeypatch.setattr(guard, "VISER_HOOK", "a_function_viser_does_not_have")
-    with pytest.raises(guard.HandshakeHookMissing, match="cannot check who connects"):
+    monkeypatch.setattr(viser_adapter, "VISER_HOOK", "a_function_viser_does_not_have")
+    with pytest.raises(viser_adapter.HandshakeHookMissing, match="cannot check who connects"):
         guard.guarded_viser_server("127.0.0.1", 0)
 
 

@@ -21,9 +21,9 @@ from magcal.data import io as mio
 
 pytest.importorskip("viser")
 
-from magcal_workbench.app import clean_upload_name
 from magcal_workbench.session import SessionStore
 from magcal_workbench.state import Selection, SessionState
+from magcal_workbench.uploads import clean_upload_name
 
 WAIT_S = 60
 BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default
@@ -50,7 +50,7 @@ def _upload(wb, name, content):
     up = Upload()
     up.name, up.content = name, content
     wb.panels.upload._impl.value = up
-    wb.handle(wb.do_upload, None)
+    wb.handle(wb.uploads.do_upload, None)
     assert wb.worker.wait(WAIT_S)
     return wb.ctrl.message
 
@@ -101,7 +101,7 @@ def test_other_dropdowns_outside_their_choices_are_refused(bench, widget, value)
     handle = getattr(wb.panels, widget)
     handle._impl.value = value  # as a browser sets it; read by a button or the widget's own callback
     with pytest.raises(MagcalError, match="not one of the choices"):
-        wb.check_value(handle)
+        wb.values.check(handle)
     assert handle.value != value  # put back
 
 
@@ -122,9 +122,9 @@ def test_numbers_out_of_range_are_refused(bench, widget, value, says):
     assert says in wb.ctrl.message or widget == "k_sigma"  # the slider without a callback: refused when read
     if widget == "k_sigma":
         wb.panels.k_sigma._impl.value = value
-        wb.handle(wb.do_threshold, None)
+        wb.handle(wb.steps.do_threshold, None)
         assert says in wb.ctrl.message and wb.ctrl.state.selection.n_rejected == 0
-    lo, hi = wb._ranges[id(handle)]
+    lo, hi = wb.values.range(handle)
     assert np.isfinite(handle.value) and lo <= handle.value <= (hi if hi is not None else np.inf)
 
 
@@ -134,8 +134,8 @@ def test_pointer_callbacks_go_through_the_error_handler(bench, monkeypatch):
     def broken(event):
         raise ValueError("boom")
 
-    monkeypatch.setattr(wb, "_on_click", broken)
-    monkeypatch.setattr(wb, "_on_rect_select", broken)
+    monkeypatch.setattr(wb.view, "on_click", broken)
+    monkeypatch.setattr(wb.view, "on_rect_select", broken)
     entries = wb.server.scene._scene_pointer_cb
     assert len(entries) == 2
     for entry in entries:
@@ -211,11 +211,11 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
 
     monkeypatch.setattr(fit_module, "fit_with_notes", slow_fit)
     rows = len(ctrl.state.history)
-    wb.handle(wb.do_refine, None)
+    wb.handle(wb.steps.do_refine, None)
     assert entered.wait(WAIT_S)
     rejected = np.arange(10, 47)
     ctrl.select(rejected)  # another page rejects 37 samples while the fit runs
-    wb._maybe_refit()
+    wb.steps.maybe_refit()
     assert "refit follows" in ctrl.message
     release.set()
     assert wb.worker.wait(WAIT_S)
@@ -252,7 +252,7 @@ def test_an_upload_over_the_limit_is_dropped_when_it_starts(bench):
     uuid = wb.panels.upload._impl.uuid
     for tid, size in (("small", 500), ("big", 5_000_000)):
         gui._handle_file_transfer_start(0, _messages.FileTransferStartUpload(uuid, tid, "x.csv", "text/csv", 3, size))
-        wb._upload_started(0, _messages.FileTransferStartUpload(uuid, tid, "x.csv", "text/csv", 3, size))
+        wb.uploads.start_handler(0, _messages.FileTransferStartUpload(uuid, tid, "x.csv", "text/csv", 3, size))
     assert "small" in gui._current_file_upload_states and "big" not in gui._current_file_upload_states
 
 

@@ -65,10 +65,11 @@ def test_live_sufficiency_needs_coverage_and_residuals_at_the_floor(rms, floor, 
 def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench, tmp_path):
     wb = bench()
     path = tmp_path / "rec.csv"
-    live = wb.start_live(f"sim://{LESSON}?speed=40", path)
+    live = wb.livectl.start(f"sim://{LESSON}?speed=40", path)
     sent = live.session.source
     assert _wait(lambda: not live.session.running and live.n_drawn == live.n_samples, 60)
     assert _wait(lambda: live.fit is not None and live.fit.n_samples == live.n_samples, 30)
+    assert wb.ui.wait(30)  # the live threads hand their drawing to the page's thread: let it finish
     n = sent.stats.n_samples
     assert n == 1500 == live.n_samples
     # the scene shows every sample received, raw and corrected, and a coverage sphere per sensor
@@ -82,7 +83,7 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
     rec = live.stop()
     assert magcal.read_csv(rec).n_samples == n
     # Stop opens the recording (the page's button does this in a job): the engine steps work on it
-    from magcal_workbench.controller import load_dataset
+    from magcal_workbench.dataio import load_dataset
 
     ds, _ = load_dataset(rec, rec.name)
     wb.load(ds, rec.read_bytes(), rec.name, resume=False)

@@ -15,7 +15,7 @@ from magcal.diagnosis import pattern_correlation
 
 @pytest.fixture
 def bent(bench):
-    from magcal_workbench.controller import load_dataset
+    from magcal_workbench.dataio import load_dataset
     from magcal_workbench.lessons import get_lesson
 
     lesson = get_lesson("bent-response")
@@ -85,7 +85,7 @@ def test_the_evidence_plot_shows_the_rms_before_the_last_fit(bent):
     before = wb.ctrl.rms_per_sensor_nT()
     wb.ctrl.step_diagnose()
     wb.ctrl.step_add(wb.panels.candidate_choice.value)
-    traces = [t for t in wb.evidence_plot.figure.data if t.name == "before the last fit"]
+    traces = [t for t in wb.evidence.plot.figure.data if t.name == "before the last fit"]
     assert len(traces) == 1
     np.testing.assert_allclose(traces[0].y, before, rtol=1e-6)
     assert wb.ctrl.rms_per_sensor_nT()[2] < 0.9 * before[2]

@@ -216,7 +216,7 @@ def test_a_record_only_term_is_marked_and_named_in_the_download(bench):
     assert wb.ctrl.residual_rms_nT() < 1.1 * SIGMA  # the drift is fitted on this record
     assert "`bias_drift`" in wb.panels.download_info.content and "record-only" in wb.panels.download_info.content
     wb.panels.btn_dl_csv.value = True
-    name, content = wb.last_download
+    name, content = wb.downloads.last
     text = content.decode()
     assert "# record_only_terms_applied: bias_drift\n" in text
     # the download really holds the record-only correction: its residual is the fit's, at the noise
@@ -228,7 +228,7 @@ def test_a_record_only_term_is_marked_and_named_in_the_download(bench):
     _click(wb, wb.panels.btn_refine)
     assert "instrument terms only" in wb.panels.download_info.content
     wb.panels.btn_dl_csv.value = True
-    assert "# record_only_terms_applied: none\n" in wb.last_download[1].decode()
+    assert "# record_only_terms_applied: none\n" in wb.downloads.last[1].decode()
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -58,13 +58,13 @@ def test_play_advances_the_window_and_pause_stops_it(bench):
     p = wb.panels
     p.window_width.value = 5.0
     p.play_speed.value = 100.0  # 150 s at 100x: the window crosses the record in ~1.5 s
-    wb.do_play(None)
+    wb.view.do_play(None)
     assert _wait(lambda: p.window_start.value > 20.0, 10)
-    wb.do_pause_play(None)
+    wb.view.do_pause_play(None)
     here = p.window_start.value
     time.sleep(0.8)
     assert p.window_start.value == here and not wb.window.playing
-    wb.do_play(None)
+    wb.view.do_play(None)
     assert _wait(lambda: not wb.window.playing, 15)  # stops at the end
     assert p.window_start.value == pytest.approx(95.0, abs=0.11)
 
@@ -74,7 +74,7 @@ def test_the_evidence_plot_shades_the_window(bench):
     wb.ctrl.step_calibrate("ml")
     wb.panels.window_start.value = 30.0
     wb.panels.window_on.value = True
-    shapes = [sh for sh in wb.evidence_plot.figure.layout.shapes if sh.type == "rect"]
+    shapes = [sh for sh in wb.evidence.plot.figure.layout.shapes if sh.type == "rect"]
     assert len(shapes) == 1
     t = wb.ctrl.dataset.time_s
     assert shapes[0].x0 == pytest.approx(t.min() + 0.3 * (t.max() - t.min()))
@@ -127,25 +127,25 @@ def test_full_size_evidence_shows_the_same_data_and_downloads(bench):
 
     wb = bench()
     with pytest.raises(Exception, match="fit first"):
-        wb.do_full_evidence(None)
+        wb.evidence.do_full_evidence(None)
     wb.ctrl.step_calibrate("ml")
     wb.panels.window_on.value = True
-    wb.do_full_evidence(None)
+    wb.evidence.do_full_evidence(None)
     overlay = wb.panels.evidence_overlay
     assert overlay.visible and "data:image/png;base64," in overlay.content
     assert wb.panels.btn_full_evidence.label == "Back to the scene"
     # the plotly panel and the full-size image are drawn from the same panels: time, temperature, SH, sensors
-    panels = evidence_panels(wb.ctrl, wb._evidence_band())
-    titles = [a.text for a in wb.evidence_plot.figure.layout.annotations if a.text in {p["title"] for p in panels}]
+    panels = evidence_panels(wb.ctrl, wb.evidence.band())
+    titles = [a.text for a in wb.evidence.plot.figure.layout.annotations if a.text in {p["title"] for p in panels}]
     assert titles == [p["title"] for p in panels] and panels[0]["band"] is not None
     np.testing.assert_allclose(panels[-1]["traces"][0]["y"], wb.ctrl.rms_per_sensor_nT())
-    wb.do_full_evidence(None)
+    wb.evidence.do_full_evidence(None)
     assert not overlay.visible and wb.panels.btn_full_evidence.label == "Full-size evidence"
-    wb.do_download_evidence_svg(None)
-    name, svg = wb.last_download
+    wb.evidence.do_download_evidence_svg(None)
+    name, svg = wb.downloads.last
     assert name == "evidence.svg" and svg.lstrip().startswith(b"<?xml") and b"<svg" in svg
-    wb.do_download_evidence_png(None)
-    name, png = wb.last_download
+    wb.evidence.do_download_evidence_png(None)
+    name, png = wb.downloads.last
     assert name == "evidence.png" and png[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -171,7 +171,7 @@ def test_full_size_evidence_after_a_diagnosis(bench):
     wb = bench()
     wb.ctrl.step_calibrate("ml")
     wb.ctrl.step_diagnose()
-    wb.do_full_evidence(None)
+    wb.evidence.do_full_evidence(None)
     assert wb.panels.evidence_overlay.visible
 
 

@@ -130,7 +130,7 @@ def _upload(wb, name, content):
     up = Upload()
     up.name, up.content = name, content
     wb.panels.upload._impl.value = up  # what the browser's upload sets
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60)
     wb.panels.refresh(("message",))
     return wb.panels.message.content
@@ -463,7 +463,8 @@ def test_fuzzed_session_documents_read_or_raise_the_one_error(changes):
         return
     # what it returns is a usable state: it writes a document the reader takes back unchanged
     again = read_session_document(json.loads(json.dumps(st_.to_dict())))
-    assert again.to_dict() == st_.to_dict()
+    # compared as JSON text: a NaN kept inside the calibration object reads back as NaN (NaN != NaN in Python)
+    assert json.dumps(again.to_dict(), sort_keys=True) == json.dumps(st_.to_dict(), sort_keys=True)
     assert st_.kept.shape == (st_.n_samples,) and (st_.sensor is None or 0 <= st_.sensor < st_.n_sensors)
 
 

@@ -18,6 +18,7 @@ from magcal_workbench import scene as scn
 from magcal_workbench.jobs import Worker
 from magcal_workbench.lessons import list_lessons
 from magcal_workbench.session import SessionStore, session_id
+from magcal_workbench.sessionfile import read_session_document
 from magcal_workbench.state import Selection, SessionState, StepRecord, pack_mask, unpack_mask
 
 SIGMA = 3.0
@@ -106,7 +107,7 @@ def test_session_state_round_trip():
             fit={"success": False, "status": 0, "message": "maximum number of evaluations reached", "nfev": 2},
         )
     )
-    back = SessionState.from_dict(json.loads(json.dumps(st.to_dict())))
+    back = read_session_document(json.loads(json.dumps(st.to_dict())))
     assert back.to_dict() == st.to_dict()
     x, y, f = back.rms_series()
     assert list(y) == [3.2, 3.1] and list(f) == [2.9, 2.9]
@@ -302,7 +303,8 @@ def _rms_shown(wb):
 
 
 def test_binds_loopback_by_default(bench):
-    from magcal_workbench.app import build_parser, is_loopback
+    from magcal_workbench.app import build_parser
+    from magcal_workbench.guard import is_loopback
 
     assert build_parser().parse_args([]).host == "127.0.0.1"
     assert is_loopback("127.0.0.1") and is_loopback("::1") and not is_loopback("0.0.0.0")
@@ -378,7 +380,7 @@ def test_second_click_while_a_fit_runs_starts_nothing(bench):
     wb.panels.btn_run.value = True
     time.sleep(0.05)
     assert wb.worker.busy and all(b.disabled for b in wb.panels._engine_buttons)
-    wb.do_calibrate(None)  # a second click (a disabled button's callback cannot fire; call it directly)
+    wb.steps.do_calibrate(None)  # a second click (a disabled button's callback cannot fire; call it directly)
     assert "Busy" in wb.ctrl.message
     gate.set()
     assert wb.worker.wait(60)
@@ -396,7 +398,7 @@ def test_box_selection_threshold_undo_and_refit_on_kept_points(bench):
     uv, _ = scn.project_points(d.positions, wxyz, cam, fov, aspect)
     s1 = uv[d.sensors == 0]
     lo, hi = np.percentile(s1, 20, axis=0), np.percentile(s1, 45, axis=0)
-    n = wb.select_in_rect(wxyz, cam, fov, aspect, tuple(lo), tuple(hi))
+    n = wb.view.select_in_rect(wxyz, cam, fov, aspect, tuple(lo), tuple(hi))
     assert wb.worker.wait(60)
     sel = wb.ctrl.state.selection
     assert n > 0 and sel.n_rejected == n
@@ -405,7 +407,7 @@ def test_box_selection_threshold_undo_and_refit_on_kept_points(bench):
     assert wb.ctrl.state.history[-1].n_kept == 300 - n
     # restore mode puts them back
     wb.panels.box_mode.value = "restore"
-    wb.select_in_rect(wxyz, cam, fov, aspect, tuple(lo), tuple(hi))
+    wb.view.select_in_rect(wxyz, cam, fov, aspect, tuple(lo), tuple(hi))
     assert wb.worker.wait(60) and sel.n_rejected == 0
     _click(wb, wb.panels.btn_undo)
     assert sel.n_rejected == n
@@ -441,7 +443,7 @@ def test_click_inspects_the_nearest_sample(bench):
         ray_origin = tuple(target + [0.004, -30, 0])
         ray_direction = (0.0, 1.0, 0.0)
 
-    wb._on_click(Event())
+    wb.view.on_click(Event())
     assert wb.ctrl.inspected == d.samples[k]
     text = wb.panels.inspect.content
     assert f"Sample {d.samples[k]}" in text and "t = " in text and "residual" in text
@@ -486,13 +488,13 @@ def test_downloads(bench):
     wb = bench(store=False)
     _click(wb, wb.panels.btn_run)
     wb.panels.btn_dl_cal.value = True
-    name, content = wb.last_download
+    name, content = wb.downloads.last
     doc = json.loads(content)
     assert name == "calibration.json" and doc["format"] == "magcal-calibration" and len(doc["sensors"]) == 4
     wb.ctrl.select([0, 1])
     assert wb.worker.wait(60)
     wb.panels.btn_dl_csv.value = True
-    name, content = wb.last_download
+    name, content = wb.downloads.last
     assert name == "corrected.csv"
     path = wb.ctrl.dataset.source + ".corrected.csv"
     with open(path, "wb") as fh:
@@ -514,7 +516,7 @@ def test_upload_replaces_the_data(bench, tmp_path):
         content = path.read_bytes()
 
     wb.panels.upload._impl.value = Upload()  # what the browser's upload sets
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60)
     assert wb.ctrl.dataset.n_samples == 150 and "Rejected: 0 of 150" in wb.panels.status.content
     bad = b"s1x,s1y\n1,2\n"
@@ -524,7 +526,7 @@ def test_upload_replaces_the_data(bench, tmp_path):
         content = bad
 
     wb.panels.upload._impl.value = Broken()
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60)
     assert "broken.csv" in wb.ctrl.message and wb.ctrl.dataset.n_samples == 150
 
@@ -570,7 +572,7 @@ def test_diagnose_then_add_brings_the_rms_to_the_floor(bench):
     assert wb.ctrl.diagnosis.verdict == "missing_effect"
     assert wb.panels.candidate_choice.value == "temperature_bias:2"
     assert "temperature_bias:2" in wb.panels.candidates.content
-    assert wb.evidence_plot is not None and wb.evidence_plot.visible
+    assert wb.evidence.plot is not None and wb.evidence.plot.visible
     _click(wb, wb.panels.btn_add)
     after = wb.ctrl.residual_rms_nT()
     assert wb.ctrl.state.effects == ["temperature_bias:2"]
@@ -642,7 +644,7 @@ def test_single_sensor_data(bench):
     assert 0.8 * sigma < wb.ctrl.residual_rms_nT() < 1.2 * sigma
     assert wb.scene_view.displayed.positions.shape[0] == 2 * 300
     assert wb.ctrl.tensor_rms() is None and "| Gzz |" not in wb.panels.sensors_table.content
-    wb.do_align(None)
+    wb.steps.do_align(None)
     assert wb.worker.wait(30) and "at least two sensors" in wb.ctrl.message
 
 
@@ -660,7 +662,7 @@ def test_reopen_a_saved_session_and_start_afresh(bench, tmp_path):
         content = path.read_bytes()
 
     wb.panels.upload._impl.value = Upload()
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60) and wb.ctrl.dataset.n_samples == 120
     assert first in wb.panels.session_choice.options
     wb.panels.session_choice.value = first
@@ -742,15 +744,15 @@ def test_upload_and_download_use_no_temporary_file(bench, tmp_path, monkeypatch)
 
     for name in ("mkstemp", "TemporaryDirectory", "NamedTemporaryFile", "mkdtemp"):
         monkeypatch.setattr(tempfile, name, refuse)
-    wb.do_download_corrected(None)
-    name, content = wb.last_download
+    wb.downloads.do_download_corrected(None)
+    name, content = wb.downloads.last
 
     class Broken:
         name = "rows.csv"
         content = b"s1x,s1y,s1z\n50000,1,2\n50001,oops,2\n"
 
     wb.panels.upload._impl.value = Broken()
-    wb.do_upload(None)
+    wb.uploads.do_upload(None)
     assert wb.worker.wait(60)
     assert "rows.csv: 1 row(s) with bad values: line 3, column s1y" in wb.ctrl.message
     monkeypatch.undo()
@@ -922,7 +924,7 @@ def test_loading_an_effects_file_is_refused_when_served_beyond_this_machine(benc
     wb.local = False  # as with --host 0.0.0.0
     wb.panels.effects_path.value = str(EXAMPLE)
     with pytest.raises(MagcalError, match="runs its Python code on the server"):
-        wb.do_load_effects(None)
+        wb.steps.do_load_effects(None)
     assert PUMP not in wb.panels.effect_boxes
 
 

@@ -37,8 +37,8 @@ def test_foreign_columns_are_named_then_mapped_and_reread(bench, units, factor):
     ds = magcal.simulate_timeseries("chi2017", n_samples=600, seed=4, rate_hz=5.0)
     wb = bench()
     content = _foreign_csv(ds, factor)
-    wb._last_upload = ("board.csv", content)
-    wb.do_reread(None)
+    wb.uploads.last = ("board.csv", content)
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     msg = wb.ctrl.message
     assert "board.csv" in msg and "magX" in msg and "Columns box" in msg and "--columns" not in msg
@@ -47,7 +47,7 @@ def test_foreign_columns_are_named_then_mapped_and_reread(bench, units, factor):
     assert before == 300  # the bench's own data are still open: nothing was replaced by the refused file
     wb.panels.upload_columns.value = "x=magX,y=magY,z=magZ,t=time"
     wb.panels.upload_units.value = units
-    wb.do_reread(None)
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     got = wb.ctrl.dataset
     assert got.n_sensors == 1 and got.n_samples == 600
@@ -60,23 +60,23 @@ def test_reading_options_are_checked_on_the_server(bench):
     wb = bench()
     wb.panels.upload_units.value = "parsecs"  # a value the page never offered
     with pytest.raises(magcal.MagcalError, match="not one of the choices"):
-        wb.read_options()
+        wb.uploads.read_options()
     assert wb.panels.upload_units.value == "from the file"
     with pytest.raises(magcal.MagcalError, match="upload a file first"):
-        wb.do_reread(None)
+        wb.uploads.do_reread(None)
 
 
 def test_counts_need_and_use_the_lsb(bench):
     ds = magcal.simulate_timeseries("chi2017", n_samples=400, seed=6, rate_hz=5.0)
     wb = bench()
-    wb._last_upload = ("counts.csv", _foreign_csv(ds, 13.333))
+    wb.uploads.last = ("counts.csv", _foreign_csv(ds, 13.333))
     wb.panels.upload_columns.value = "x=magX,y=magY,z=magZ,t=time"
     wb.panels.upload_units.value = "counts"
-    wb.do_reread(None)
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     assert "LSB box" in wb.ctrl.message and wb.ctrl.dataset.n_samples == 300
     wb.panels.upload_lsb.value = 13.333
-    wb.do_reread(None)
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     np.testing.assert_allclose(wb.ctrl.dataset.readings_nT[0], ds.readings_nT[0], rtol=1e-6, atol=2e-3)
 
@@ -84,9 +84,9 @@ def test_counts_need_and_use_the_lsb(bench):
 def test_a_mapped_upload_reopens_from_its_session_without_the_mapping(bench):
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=8, rate_hz=5.0)
     wb = bench()
-    wb._last_upload = ("mine.csv", _foreign_csv(ds))
+    wb.uploads.last = ("mine.csv", _foreign_csv(ds))
     wb.panels.upload_columns.value = "x=magX,y=magY,z=magZ,t=time"
-    wb.do_reread(None)
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     sid = wb.ctrl.session_id
     kept = mio.read_csv(wb.store.data_path(sid))  # the session keeps magcal's own CSV: reads with no options
@@ -109,8 +109,8 @@ def test_flight_controller_logs_open_by_upload(bench, tmp_path, kind):
         n_sensors = 1
     wb = bench()
     wb.panels.upload_units.value = "uT"  # does not apply to a log: said, and ignored
-    wb._last_upload = (path.name, path.read_bytes())
-    wb.do_reread(None)
+    wb.uploads.last = (path.name, path.read_bytes())
+    wb.uploads.do_reread(None)
     _wait_idle(wb)
     got = wb.ctrl.dataset
     assert got.n_sensors == n_sensors and got.n_samples == len(raw), wb.ctrl.message

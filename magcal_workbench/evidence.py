@@ -1,0 +1,88 @@
+"""The evidence plots: the Model tab's plotly figure, the full-size image over the canvas, and their downloads
+(PNG, SVG). The figures are :mod:`magcal_workbench.plots`'; this module places them."""
+
+from __future__ import annotations
+
+import base64
+import os
+
+from magcal.core.errors import MagcalError
+
+from .plots import evidence_figure, evidence_image
+from .timewindow import sample_times
+
+
+class Evidence:
+    """The evidence plots of the current fit.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        #: The Model tab's plotly handle (made at the first fit).
+        self.plot = None
+
+    def band(self):
+        """The time window's bounds (s) shaded on the plots, or None when the window is off."""
+        wb = self.wb
+        return wb.window.bounds_s(sample_times(wb.ctrl.dataset)) if wb.window.enabled else None
+
+    def title(self) -> str:
+        ctrl = self.wb.ctrl
+        model = ", ".join(ctrl.state.effects) or "base terms only"
+        return f"{ctrl.dataset.source and os.path.basename(str(ctrl.dataset.source))}: model {model}"
+
+    def draw(self) -> None:
+        wb = self.wb
+        fig = evidence_figure(wb.ctrl, window_s=self.band(), before_rms_nT=wb.maps.before_rms_nT(wb.ctrl))
+        if fig is None:
+            if self.plot is not None:
+                self.plot.visible = False
+            return
+        if wb.panels.evidence_overlay.visible:
+            self.show_full(True)
+        if self.plot is None:
+            with wb.panels.evidence_holder:
+                # viser's client draws plotly at height = width * aspect (the docstring says width/height)
+                self.plot = wb.server.gui.add_plotly(fig, aspect=3.0)
+        else:
+            self.plot.figure = fig
+            self.plot.visible = True
+
+    def image(self, fmt: str) -> bytes:
+        wb = self.wb
+        data = evidence_image(wb.ctrl, fmt, self.band(), self.title(), wb.maps.before_rms_nT(wb.ctrl))
+        if data is None:
+            raise MagcalError("fit first: the evidence plots show the residuals of a fit")
+        return data
+
+    def show_full(self, on: bool) -> None:
+        """Show (or hide) the evidence plots over the canvas, left of the panel: a PNG drawn by the engine's
+        numbers (:func:`magcal_workbench.plots.evidence_image`), the same data as the Model tab's plots."""
+        panels = self.wb.panels
+        overlay = panels.evidence_overlay
+        if not on:
+            overlay.visible = False
+            panels.btn_full_evidence.label = "Full-size evidence"
+            return
+        data = base64.b64encode(self.image("png")).decode("ascii")
+        overlay.content = (
+            '<div style="position:fixed;left:0;top:0;width:calc(100vw - 27em);height:100vh;'
+            'background:white;z-index:50;overflow:auto;padding:0.5em;box-sizing:border-box">'
+            f'<img alt="evidence plots" src="data:image/png;base64,{data}" '
+            'style="width:100%;height:auto;display:block"></div>'
+        )
+        overlay.visible = True
+        panels.btn_full_evidence.label = "Back to the scene"
+
+    def do_full_evidence(self, event):
+        self.show_full(not self.wb.panels.evidence_overlay.visible)
+
+    def do_download_evidence_png(self, event):
+        self.wb.downloads.send(event, "evidence.png", self.image("png"))
+
+    def do_download_evidence_svg(self, event):
+        self.wb.downloads.send(event, "evidence.svg", self.image("svg"))

@@ -1,0 +1,80 @@
+"""The Files tab's live source: Start (a source the page may start, :func:`magcal_workbench.live.check_page_source`),
+Pause, Resume, and Stop, which opens the recording like any file. The live view itself is
+:class:`magcal_workbench.live.LiveView`."""
+
+from __future__ import annotations
+
+from magcal.core.errors import MagcalError
+
+from .controller import MESSAGE_LEN
+from .dataio import load_dataset
+from .live import LiveView, check_page_source, default_recording_path, recording_folder
+from .markup import safe_code, safe_text
+
+
+class LiveControl:
+    """Starts and stops the live session; :attr:`view` is the session while one is open or after it stopped.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        #: The live session (:class:`~magcal_workbench.live.LiveView`) while one is open or after it stopped.
+        self.view: LiveView | None = None
+
+    @property
+    def running(self) -> bool:
+        return self.view is not None and self.view.active
+
+    def start(self, url: str, path=None) -> LiveView:
+        """Open a live source (:mod:`magcal_workbench.live`); its samples are recorded to ``path`` (default a new
+        file in the session folder's ``recordings``, or the current folder without sessions)."""
+        wb = self.wb
+        if self.running:
+            raise MagcalError("a live session is running; stop it first")
+        path = default_recording_path(recording_folder(wb.store)) if path is None else path
+        self.view = LiveView(
+            url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
+        )
+        wb.scene_view.clear()
+        wb.view.reset_cameras()
+        wb.panels.refresh_live()
+        return self.view
+
+    def do_live_start(self, event):
+        wb = self.wb
+        url = check_page_source(wb.values.check(wb.panels.live_url), wb.local)
+        live = self.start(url)
+        wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.path.name)}")
+
+    def do_live_pause(self, event):
+        if self.running:
+            self.view.pause()
+        self.wb.panels.refresh_live()
+
+    def do_live_resume(self, event):
+        if self.running:
+            self.view.resume()
+        self.wb.panels.refresh_live()
+
+    def do_live_stop(self, event):
+        """Stop the live session and open its recording like any file (Calibrate and Model work on it)."""
+        wb = self.wb
+        if not self.running:
+            raise MagcalError("no live session is running")
+        path = self.view.stop()
+        wb.panels.refresh_live()
+
+        def job():
+            ds, notes = load_dataset(path, path.name)
+            wb.load(ds, path.read_bytes(), path.name, resume=False)
+            wb.say_after_load(
+                f"opened the recording {safe_code(path.name)}: "
+                f"{safe_text(ds.describe(), MESSAGE_LEN)}"
+                + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes)
+            )
+
+        wb.ctrl.run_job("open the recording", job)

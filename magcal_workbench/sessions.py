@@ -1,0 +1,143 @@
+"""The session folder's use: opening data into a :class:`~magcal_workbench.controller.Controller` (a saved session
+resumed, a damaged one moved aside, autosave wired), and the Files tab's Reopen, Delete and Start afresh.
+
+The folder itself (ids, bounds, atomic writes) is :mod:`magcal_workbench.session`; the file format
+:mod:`magcal_workbench.sessionfile`.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from magcal.core.errors import MagcalError
+
+from .controller import MESSAGE_LEN, Controller
+from .dataio import load_dataset, load_session_effects
+from .markup import clean_text, hide_paths, safe_code, safe_text
+from .sessionfile import SessionFileError
+from .state import SessionState
+
+
+class Sessions:
+    """Opens data as a session of the store (or unsaved without one) and acts on the saved sessions.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+        The workbench whose data the actions replace (:meth:`Workbench.load`).
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+
+    @property
+    def store(self):
+        return self.wb.store
+
+    def make_controller(self, dataset, content, name, resume, lesson) -> Controller:
+        """A controller for ``dataset``: its saved session when ``resume`` and one exists, else a fresh state;
+        every effects file of the command line remembered; autosaved once."""
+        store = self.store
+        sid, state, notes = None, None, []
+        if store is not None and content is not None:
+            sid = store.create(name, content)
+            notes += [
+                f"the session folder is bounded to {store.max_bytes / 1e6:g} MB: deleted the oldest "
+                f"session {old} ({size / 1e6:.1f} MB)"
+                for old, size in store.pruned
+            ]
+            if resume and store.exists(sid):
+                state, note = self.read_session(sid, dataset)
+                if note:
+                    notes.append(note)
+                    sid = store.create(name, content)  # the data's copy went with the damaged folder
+            if state is None:
+                state = SessionState(dataset.n_samples, dataset.n_sensors, str(store.data_path(sid)), lesson)
+        if state is None:
+            state = SessionState(dataset.n_samples, dataset.n_sensors, dataset.source, lesson)
+        for path in self.wb.effects_files:
+            if path not in state.effects_files:
+                state.effects_files.append(path)
+        _, problems = load_session_effects(state.effects_files)
+        notes += [f"the effects file could not be loaded again: {p}" for p in problems]
+        ctrl = Controller(dataset, state, store, sid, worker=self.wb.worker)
+        if lesson is not None:
+            ctrl.state.lesson = lesson
+        if notes:
+            ctrl.message = "  \n".join(
+                f"**Note:** {safe_text(n, MESSAGE_LEN)}" for n in notes + ([ctrl.message] if ctrl.message else [])
+            )
+        ctrl.autosave()
+        return ctrl
+
+    def read_session(self, sid, dataset):
+        """The saved state of ``sid`` and ``None``, or ``None`` and a one-line note: a damaged session file is
+        moved aside (``<sid>.damaged-<time>``) and the data start afresh."""
+        store = self.store
+        try:
+            return store.load(sid, expect=(dataset.n_samples, dataset.n_sensors)), None
+        except SessionFileError as exc:
+            try:
+                moved = f"moved aside to {store.set_aside(sid).name}"
+            except OSError as err:
+                moved = f"could not be moved aside ({err.strerror or err})"
+            note = f"the saved session {sid} is damaged ({exc}); {moved}; starting afresh"
+        except OSError as exc:
+            note = f"the saved session {sid} could not be read ({exc.strerror or exc}); starting afresh"
+        print(f"magcal-workbench: {clean_text(note, MESSAGE_LEN)}", file=sys.stderr)
+        return None, hide_paths(note)
+
+    def session_ids(self) -> tuple:
+        """The Saved session choices the server offers: the folder's sessions and ``-``."""
+        return (tuple(s["id"] for s in self.store.list()) if self.store is not None else ()) + ("-",)
+
+    # --- the Files tab's actions --------------------------------------------------------------------------
+    def _chosen(self) -> str:
+        sid = self.wb.values.check(self.wb.panels.session_choice)
+        if self.store is None or sid in ("-", None):
+            raise MagcalError("no saved session chosen")
+        return sid
+
+    def do_reopen(self, event):
+        sid = self._chosen()
+        path = self.store.data_path(sid)  # refuses a name outside the session folder
+        wb = self.wb
+
+        def job():
+            if not path.is_file():
+                raise MagcalError(f"session {sid} has no data file ({path.name}); it cannot be reopened")
+            try:
+                lesson = self.store.load(sid).lesson
+            except (SessionFileError, OSError):
+                lesson = None  # opening it says what is wrong and moves it aside
+            ds, _ = load_dataset(path, f"{sid}/{path.name}")  # messages name the session, not the server's path
+            content = path.read_bytes()
+            wb.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=lesson)
+            wb.say_after_load(f"reopened session {safe_code(sid)}")
+
+        wb.ctrl.run_job("reopen session", job)
+
+    def do_delete_session(self, event):
+        """Delete the chosen saved session's folder (not the one open now)."""
+        sid = self._chosen()
+        ctrl = self.wb.ctrl
+        if sid == ctrl.session_id:
+            raise MagcalError(f"session {sid} is the one open; open other data first, or use Start this data afresh")
+        freed = self.store.size_bytes(sid)
+        self.store.delete(sid)
+        self.wb.panels.refresh_sessions()
+        ctrl.say(f"deleted session {safe_code(sid)} ({freed / 1e6:.1f} MB)")
+
+    def do_fresh(self, event):
+        wb, ctrl = self.wb, self.wb.ctrl
+
+        def job():
+            content = None
+            if self.store is not None and ctrl.session_id is not None:
+                content = self.store.data_path(ctrl.session_id).read_bytes()
+                self.store.delete(ctrl.session_id)
+            name = (ctrl.session_id.rsplit("-", 1)[0] + ".csv") if ctrl.session_id else "data.csv"
+            wb.load(ctrl.dataset, content, name, resume=False, lesson=ctrl.state.lesson)
+            wb.ctrl.say("started afresh: every sample kept, base model, no fit")
+
+        ctrl.run_job("start afresh", job)

@@ -1,0 +1,153 @@
+"""The engine's steps as the page starts them: fit, align, refine, calibrate, diagnose, add a candidate, reject
+outliers (threshold, undo, redo, reset) and the refit that follows a rejection, and loading a user's effects file.
+
+Each step runs in the worker (:class:`magcal_workbench.jobs.Worker`) with the kept mask it started with; a
+rejection made while a job runs is refitted after it (:meth:`Steps.maybe_refit`)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+
+from .markup import safe_text
+
+
+class Steps:
+    """The Calibrate, Model and Outliers tabs' actions.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        self.refit_pending = False
+        self._pending_lock = threading.Lock()
+
+    @property
+    def ctrl(self):
+        return self.wb.ctrl
+
+    def _job(self, name, func) -> bool:
+        return self.ctrl.run_job(name, func)
+
+    def check_readings(self) -> None:
+        """Refuse an engine step on a sensor whose kept readings are all one vector (a zero-filled file, a
+        disconnected sensor): no fit or diagnosis can say anything true about them."""
+        ctrl = self.ctrl
+        kept = ctrl.kept
+        for s, r in enumerate(ctrl.dataset.readings_nT):
+            r = r[kept]
+            if r.shape[0] and np.all(r == r[0]):
+                raise MagcalError(
+                    f"sensor {s + 1}: every kept reading is the same vector ({', '.join(f'{v:g}' for v in r[0])}) "
+                    "nT, so the data hold no field measurement to fit or diagnose (a zero-filled file or a "
+                    "disconnected sensor?); check the sensor's output"
+                )
+
+    # --- engine steps -------------------------------------------------------------------------------------
+    def do_ellipsoid(self, event):
+        self.check_readings()
+        self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
+
+    def do_align(self, event):
+        self.check_readings()
+        self._job("align sensors", self.ctrl.step_align)
+
+    def do_refine(self, event):
+        self.check_readings()
+        self._job("refine", self.ctrl.step_refine)
+
+    def do_calibrate(self, event):
+        self.check_readings()
+        self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
+
+    def do_diagnose(self, event):
+        self.check_readings()
+        self._job("diagnose", self.ctrl.step_diagnose)
+
+    def do_add(self, event):
+        self.check_readings()
+        choice = self.wb.values.check(self.wb.panels.candidate_choice)
+        label = None if choice == "-" else choice
+        ctrl = self.ctrl
+        self._job("add effect", lambda: ctrl.step_add(label))
+
+    def do_apply_noise(self, event) -> None:
+        value = float(self.wb.values.check(self.wb.panels.noise_input))
+        self.ctrl.set_noise(value if value > 0 else None)
+
+    def do_load_effects(self, event):
+        """Load the effects file typed in the Model tab (runs its code: only when served to this machine)."""
+        if not self.wb.local:
+            raise MagcalError(
+                "loading an effects file runs its Python code on the server; it is allowed only when "
+                "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
+            )
+        path = self.wb.values.check(self.wb.panels.effects_path)
+        ctrl = self.ctrl
+        self._job("load effects file", lambda: ctrl.load_effects_file(path))
+
+    # --- outliers -----------------------------------------------------------------------------------------
+    def do_threshold(self, event):
+        self.ctrl.reject_threshold(float(self.wb.values.check(self.wb.panels.k_sigma)))
+        self.maybe_refit()
+
+    def do_undo(self, event):
+        self.ctrl.undo()
+        self.maybe_refit()
+
+    def do_redo(self, event):
+        self.ctrl.redo()
+        self.maybe_refit()
+
+    def do_reset(self, event):
+        self.ctrl.reset_selection()
+        self.maybe_refit()
+
+    # --- the refit after a rejection ----------------------------------------------------------------------
+    def forget_pending(self) -> None:
+        """New data: a refit asked for on the old data is dropped."""
+        self.refit_pending = False
+
+    def maybe_refit(self):
+        """Refit after a change of the selection when Refit after each change is on and there is a fit; while a
+        job runs, the refit follows it."""
+        ctrl, worker = self.ctrl, self.wb.worker
+        if not (self.wb.panels.auto_refit.value and ctrl.calibration is not None):
+            return
+        with self._pending_lock:
+            busy = worker.busy or self.refit_pending
+            if busy:
+                self.refit_pending = True  # applied after the running job, with this change
+        if busy:
+            ctrl.say(f"{ctrl.message}; the refit follows when {safe_text(worker.current or 'the running step')} ends")
+            return
+        if not ctrl.submit_job("refit", ctrl.step_refine):
+            with self._pending_lock:  # a job started in between: the refit follows it
+                self.refit_pending = True
+            if not worker.busy:  # ... unless it has already ended
+                threading.Thread(target=self.run_pending_refit, daemon=True).start()
+
+    def job_ended(self) -> None:
+        """The worker has ended a job: start the refit asked for meanwhile (from another thread: the worker calls
+        this before it is idle)."""
+        if self.refit_pending:
+            threading.Thread(target=self.run_pending_refit, name="workbench-pending-refit", daemon=True).start()
+
+    def run_pending_refit(self) -> None:
+        """The refit asked for while a job ran (a rejection during a fit), now that the job has ended."""
+        self.wb.worker.wait()
+        with self._pending_lock:
+            if not self.refit_pending:
+                return
+            self.refit_pending = False
+            ctrl = self.ctrl
+            if ctrl.calibration is None or not self.wb.panels.auto_refit.value:
+                return
+            if not ctrl.submit_job("refit", ctrl.step_refine):
+                self.refit_pending = True  # another job started first: its end starts the refit

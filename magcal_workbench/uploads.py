@@ -1,0 +1,139 @@
+"""The Files tab's uploads: a file from the browser (CSV or a flight-controller log) read with the tab's Columns,
+Units and LSB, bounded in size (``--max-upload-mb``) when it starts and again when it has arrived."""
+
+from __future__ import annotations
+
+import os
+
+from magcal.core.errors import MagcalError
+from magcal.data.logs import is_log
+
+from . import viser_adapter
+from .controller import MESSAGE_LEN
+from .dataio import canonical_csv, page_words, read_bytes_dataset
+from .markup import clean_text, safe_code, safe_text
+
+#: Default upload limit, MB (``--max-upload-mb``).
+DEFAULT_MAX_UPLOAD_MB = 100.0
+#: Longest uploaded file name kept, characters (the rest is cut; a file system allows 255 bytes).
+MAX_NAME_CHARS = 120
+#: The Units choices of an upload (the first keeps the file's own ``# units:`` line).
+UPLOAD_UNITS = ("from the file", "nT", "uT", "G", "mG", "counts")
+
+
+def clean_upload_name(name) -> str:
+    """An uploaded file's name made safe to show and to key a session: its last path part, control characters
+    removed, cut to :data:`MAX_NAME_CHARS`; ``upload.csv`` when nothing usable is left (``..``, ``.``, empty)."""
+    text = clean_text(name if isinstance(name, str) else "", 4 * MAX_NAME_CHARS)
+    base = text.replace("\\", "/").rsplit("/", 1)[-1].strip()
+    if base.strip(".") == "":
+        return "upload.csv"
+    if len(base) > MAX_NAME_CHARS:
+        stem, dot, ext = base.rpartition(".")
+        ext = ext if dot and len(ext) <= 8 else ""
+        base = base[: MAX_NAME_CHARS - len(ext) - 1].rstrip() + ("." + ext if ext else "")
+    return base
+
+
+class Uploads:
+    """Reads what the page uploads into the workbench (:meth:`Workbench.load`).
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    max_upload_bytes : int
+        Largest upload accepted, bytes.
+    """
+
+    def __init__(self, wb, max_upload_bytes: int):
+        self.wb = wb
+        self.max_upload_bytes = int(max_upload_bytes)
+        #: ``(name, content)`` of the last upload (Re-read reads it again with other options).
+        self.last: tuple[str, bytes] | None = None
+        #: viser's upload-start handler registered by :meth:`watch_sizes` (None where viser keeps no such state).
+        self.start_handler = None
+
+    def too_large(self, name: str, size_bytes: int) -> str | None:
+        """Why an upload of ``size_bytes`` is refused, or None."""
+        if size_bytes <= self.max_upload_bytes:
+            return None
+        return f"{name}: {size_bytes / 1e6:.1f} MB is more than the upload limit of {self.max_upload_bytes / 1e6:g} MB"
+
+    def watch_sizes(self, upload_handle) -> None:
+        """Refuse an upload over the limit when it starts (the browser declares its size), before its parts are
+        buffered in memory (:func:`magcal_workbench.viser_adapter.watch_upload_starts`); :meth:`do_upload`
+        checks the size again in any case."""
+        wb = self.wb
+
+        def refuse(filename, size_bytes, client_id) -> bool:
+            why = self.too_large(clean_upload_name(filename), size_bytes)
+            if why is None:
+                return False
+            text = f"{why}; refused"
+
+            def tell():
+                wb.ctrl.say(f"**Error:** {safe_text(text)}")
+                wb.notify(client_id, text)
+
+            wb.ui.post(tell)  # off viser's event loop
+            return True
+
+        self.start_handler = viser_adapter.watch_upload_starts(wb.server, upload_handle, refuse)
+
+    def do_upload(self, event):
+        up = self.wb.panels.upload.value
+        name, content = clean_upload_name(up.name), up.content
+        if not content:
+            raise MagcalError(f"{name}: the file is empty")
+        why = self.too_large(name, len(content))
+        if why:
+            raise MagcalError(
+                f"{why}; open it from the command line "
+                "(magcal-workbench FILE.csv) or start the workbench with a larger --max-upload-mb"
+            )
+        self.last = (name, content)
+        self.open(name, content)
+
+    def do_reread(self, event):
+        """Read the last upload again with the Files tab's Columns, Units and LSB (no new upload needed)."""
+        if self.last is None:
+            raise MagcalError("upload a file first (Open a file), then set Columns or Units and re-read it")
+        self.open(*self.last)
+
+    def read_options(self) -> dict:
+        """The Files tab's reading options, checked (``columns``, ``units``, ``lsb_nT`` for the engine's reader)."""
+        p, check = self.wb.panels, self.wb.values.check
+        columns = check(p.upload_columns).strip() or None
+        units = check(p.upload_units)
+        lsb = float(check(p.upload_lsb))
+        return {
+            "columns": columns,
+            "units": None if units == UPLOAD_UNITS[0] else units,
+            "lsb_nT": lsb if lsb > 0 else None,
+        }
+
+    def open(self, name: str, content: bytes) -> None:
+        """Read ``content`` (named ``name``) in the worker and open it; a session keeps data read through a
+        mapping, units or a log reader as magcal's own CSV."""
+        options = self.read_options()
+        mapped = is_log(name) or any(v is not None for v in options.values())
+        wb = self.wb
+
+        def job():
+            header = content[:4096].decode("utf-8", "replace").splitlines()
+            found = next((line for line in header if line.strip() and not line.startswith("#")), "")
+            info = "" if is_log(name) else f"Columns in {safe_code(name)}: {safe_text(found, 400)}"
+            wb.ui.post(lambda: setattr(wb.panels.upload_info, "content", info))
+            try:
+                ds, notes = read_bytes_dataset(name, content, **options)
+            except MagcalError as exc:
+                raise MagcalError(page_words(str(exc))) from None
+            wb.load(
+                ds, canonical_csv(ds) if mapped else content, name if not mapped else os.path.splitext(name)[0] + ".csv"
+            )
+            wb.say_after_load(
+                f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
+                + "".join(f"  \n- {safe_text(page_words(n), MESSAGE_LEN)}" for n in notes)
+            )
+
+        wb.ctrl.run_job("open file", job)

@@ -1,0 +1,216 @@
+"""What the 3-D scene shows and how the page moves it: the scene model of the open data (or of a live session),
+the legend, the cameras, pointer events (click to inspect, shift-drag to reject), the View tab's sensor choice,
+gains and sphere surfaces, and the time scrubber. The drawing itself is :mod:`magcal_workbench.scene`."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+
+from . import scene as scn
+from .markup import clean_text, safe_text
+from .panels import ALL_SENSORS
+from .timewindow import sample_times
+
+
+class SceneControl:
+    """The scene, the camera, pointer events and the View tab's actions.
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        self._lock = threading.RLock()
+        self._last_evidence_t = 0.0
+
+    def _live(self):
+        live = self.wb.live
+        return live if live is not None and live.active else None
+
+    # --- the scene ----------------------------------------------------------------------------------------
+    def scene_model(self) -> scn.SceneModel:
+        wb = self.wb
+        live = self._live()
+        if live is not None:  # a live session owns the scene until it stops
+            model = live.scene_model(wb.panels.view_options())
+            if model is not None:
+                return model
+        ctrl = wb.ctrl
+        ds = ctrl.dataset
+        shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
+        cal = ctrl.calibration
+        views = [
+            scn.SensorView(
+                sensor=s,
+                raw_nT=ds.readings_nT[s],
+                corrected_nT=None if ctrl.corrected_nT is None else ctrl.corrected_nT[s],
+                residual_nT=(ctrl.raw_residual_nT()[s] if ctrl.residual_nT is None else ctrl.residual_nT[s]),
+                cinv=None if cal is None else cal.sensors[s].cinv,
+                bias_nT=None if cal is None else cal.sensors[s].bias_nT,
+                R=None if cal is None else cal.sensors[s].R,
+            )
+            for s in shown
+        ]
+        times = sample_times(ds)
+        return scn.SceneModel(
+            sensors=views,
+            n_sensors=ds.n_sensors,
+            field_nT=ctrl.field_nT,
+            kept=ctrl.state.kept,  # live, even in a job
+            floor_nT=ctrl.floor_nT(),
+            baseline_m=ds.baseline_m,
+            all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
+            inspected=ctrl.inspected,
+            window=wb.window.mask(times),
+            current=wb.window.current(times),
+            **wb.panels.view_options(),
+        )
+
+    def update_scene(self) -> None:
+        with self._lock:
+            self.wb.scene_view.update(self.scene_model())
+
+    def recolor(self) -> None:
+        """The selection changed: recolour the points (and keep the inspected sample marked)."""
+        wb = self.wb
+        wb.scene_view.recolor(self.scene_model())
+        if wb.ctrl.inspected is not None:
+            wb.scene_view.mark_inspected(wb.ctrl.inspected)
+
+    def legend_html(self) -> str:
+        wb = self.wb
+        live = self._live()
+        fitted = (live.fit is not None) if live is not None else wb.ctrl.calibration is not None
+        title = "total-field residual" if fitted else "raw |y| - F"
+        html = scn.legend_html(wb.scene_view.last_limit_nT, title)
+        if wb.maps.patterns and live is None:
+            html += scn.legend_html(
+                wb.maps.limit_nT, f"sphere surface: {wb.maps.choice}; grey: not visited", swatches=False
+            )
+        return html
+
+    # --- cameras ------------------------------------------------------------------------------------------
+    def reset_cameras(self) -> None:
+        for client in self.wb.server.get_clients().values():
+            self.place_camera(client)
+
+    def place_camera(self, client) -> None:
+        ctrl = self.wb.ctrl
+        n_groups = 1 if ctrl.state.sensor is not None else ctrl.dataset.n_sensors
+        try:
+            fov, aspect = float(client.camera.fov), float(client.camera.aspect)
+        except (AssertionError, ZeroDivisionError):  # the browser has not reported its camera yet
+            fov, aspect = np.radians(75.0), 1.6
+        position, look_at = scn.camera_pose(n_groups, fov, aspect)
+        with client.atomic():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look_at)
+
+    # --- pointer events -----------------------------------------------------------------------------------
+    def on_click(self, event) -> None:
+        if self._live() is not None:
+            return  # the points of a stream are not the opened data's samples
+        sv = self.wb.scene_view
+        d = sv.displayed
+        if d.positions.shape[0] == 0:
+            return
+        i, _ = scn.nearest_to_ray(d.positions, event.ray_origin, event.ray_direction, max_distance=4 * sv.point_size)
+        self.wb.ctrl.inspect(None if i is None else int(d.samples[i]))
+
+    def on_rect_select(self, event) -> None:
+        cam = event.client.camera
+        self.select_in_rect(cam.wxyz, cam.position, cam.fov, cam.aspect, event.screen_min, event.screen_max)
+
+    def select_in_rect(self, wxyz, position, fov, aspect, screen_min, screen_max) -> int:
+        """Reject (or restore, by the panel's mode) the samples whose shown points fall in a screen box."""
+        wb = self.wb
+        if self._live() is not None:
+            raise MagcalError("stop the live session first: rejecting works on the recording once it is opened")
+        samples = wb.scene_view.samples_in_rect(wxyz, position, fov, aspect, screen_min, screen_max)
+        if samples.size == 0:
+            wb.ctrl.say("the box holds no point")
+            return 0
+        n = wb.ctrl.select(samples, wb.values.check(wb.panels.box_mode))
+        wb.steps.maybe_refit()
+        return n
+
+    # --- the View tab -------------------------------------------------------------------------------------
+    def set_sensor(self, choice: str) -> None:
+        """Show one sensor (``"sensor 2"``) or all of them (the panels' sensor choice)."""
+        wb = self.wb
+        if choice not in wb.values.allowed(wb.panels.sensor_choice):
+            raise MagcalError(f"no sensor choice {clean_text(repr(choice), 40)}; refused")
+        wb.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
+        self.update_scene()
+        wb.maps.draw()
+        self.reset_cameras()
+
+    def view_changed(self, event):
+        self.update_scene()
+        self.wb.panels.legend.content = self.legend_html()
+
+    def refresh_maps(self) -> None:
+        """Recompute and redraw the sphere surfaces for the current choice; an engine refusal becomes the note."""
+        wb = self.wb
+        try:
+            wb.maps.refresh()
+        except MagcalError as exc:
+            wb.maps.patterns, wb.maps.note = [], str(exc)
+            wb.maps.clear()
+        wb.panels.maps_info.content = safe_text(wb.maps.describe(), 600)
+        wb.panels.legend.content = self.legend_html()
+
+    def surface_changed(self, event):
+        self.wb.maps.choice = self.wb.values.check(self.wb.panels.surface_choice)
+        self.refresh_maps()
+
+    # --- the time scrubber --------------------------------------------------------------------------------
+    def window_changed(self, event):
+        """A Time window widget moved: take its values (checked) into the window, which redraws."""
+        p, check = self.wb.panels, self.wb.values.check
+        self.wb.window.set(
+            enabled=bool(check(p.window_on)),
+            start_pct=float(check(p.window_start)),
+            width_pct=float(check(p.window_width)),
+            speed=float(check(p.play_speed)),
+        )
+
+    def window_moved(self) -> None:
+        wb = self.wb
+        self.update_scene()
+        times = sample_times(wb.ctrl.dataset)
+        wb.panels.window_info.content = safe_text(wb.window.describe(times))
+        now = time.monotonic()
+        if not wb.window.playing or now - self._last_evidence_t > 1.0:  # the plots' band: at most once a second
+            self._last_evidence_t = now
+            wb.evidence.draw()
+
+    def do_play(self, event):
+        """Replay the recording: the window's start advances at the Play speed until the end or Pause."""
+        wb = self.wb
+        times = sample_times(wb.ctrl.dataset)
+        if not wb.panels.window_on.value:
+            wb.panels.window_on.value = True  # its callback turns the window on
+        slider = wb.panels.window_start
+
+        def advance(pct):  # the playback's thread hands the move to the page's thread (and waits for it)
+            wb.ui.run(lambda: setattr(slider, "value", round(pct, 1)))
+
+        wb.window.play(float(np.nanmax(times) - np.nanmin(times)), advance=advance)
+        wb.panels.window_info.content = safe_text(wb.window.describe(times))
+
+    def do_pause_play(self, event):
+        self.wb.window.pause()
+        self.window_moved()
+
+    def do_show_all(self, event):
+        self.wb.window.pause()
+        self.wb.panels.window_on.value = False  # its callback shows every sample

@@ -1,0 +1,152 @@
+"""Every use of viser's internals, in one place.
+
+viser (1.1.1) offers no public hook for three things the workbench needs; each is reached here and nowhere else,
+and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they rely on (:func:`missing_internals`):
+
+* **the handshake check** (:func:`start_server`): viser serves its page and its websocket through
+  ``websockets.asyncio.server.serve(process_request=viser_http_server)``; while the server starts, ``serve`` is
+  wrapped so that ``check(headers)`` (:func:`magcal_workbench.guard.refusal`) runs before viser's own hook on every
+  HTTP request and websocket upgrade. A token check belongs in that ``check``.
+* **an upload's declared size** (:func:`watch_upload_starts`): viser buffers an upload's parts in
+  ``gui._current_file_upload_states``; a handler of ``FileTransferStartUpload`` registered on the websocket
+  server sees the size the browser declares and drops the entry, so viser ignores the parts that follow.
+* **a widget's kind and id** (:func:`widget_kind`, :func:`widget_id`).
+"""
+
+from __future__ import annotations
+
+import http
+import inspect
+import threading
+from collections.abc import Callable
+
+#: The name of viser's ``process_request`` function (its static-file server) the check is chained before.
+VISER_HOOK = "viser_http_server"
+
+_START_LOCK = threading.Lock()
+
+
+class HandshakeHookMissing(RuntimeError):
+    """viser started its server without the handshake check (its way of serving changed)."""
+
+
+def start_server(host: str, port: int, check: Callable[[object], str | None], verbose: bool = False):
+    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request_headers)`` first.
+
+    ``check`` returns None to let the request through or the reason (plain text) it is refused with 403.
+
+    Raises
+    ------
+    HandshakeHookMissing
+        If viser did not start its server through ``websockets.asyncio.server.serve`` with its static-file hook
+        (the server is stopped first): the workbench does not run without the check.
+    """
+    import viser
+    import websockets.asyncio.server as ws_server
+
+    chained = []
+
+    def check_first(viser_hook):
+        def process_request(connection, request):
+            why = check(request.headers)
+            if why is not None:
+                return connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
+            return viser_hook(connection, request)
+
+        return process_request
+
+    original = ws_server.serve
+
+    def serve(*args, **kwargs):
+        hook = kwargs.get("process_request")
+        if getattr(hook, "__name__", None) == VISER_HOOK:
+            kwargs["process_request"] = check_first(hook)
+            chained.append(hook)
+        return original(*args, **kwargs)
+
+    with _START_LOCK:  # one server starts at a time: the wrapper is in place only during its start
+        ws_server.serve = serve
+        try:
+            server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        finally:
+            ws_server.serve = original
+    if not chained:
+        server.stop()
+        raise HandshakeHookMissing(
+            f"viser {viser.__version__} no longer starts its server through websockets' serve(process_request="
+            f"{VISER_HOOK}); the workbench cannot check who connects and does not start "
+            "(see magcal_workbench/viser_adapter.py)"
+        )
+    return server
+
+
+def widget_id(handle) -> str:
+    """The id viser's messages name a widget by."""
+    return handle._impl.uuid
+
+
+def watch_upload_starts(server, upload_handle, refuse: Callable[[str, int, object], bool]):
+    """Call ``refuse(filename, size_bytes, client_id)`` when a browser starts an upload to ``upload_handle``;
+    when it returns True the upload is dropped before its parts are buffered. Returns the handler registered
+    (``handler(client_id, message)``), or None where this viser keeps no such state (the size is then checked
+    after the upload only)."""
+    from viser import _messages
+
+    gui = server.gui
+    if not hasattr(gui, "_current_file_upload_states"):
+        return None
+    uuid = widget_id(upload_handle)
+
+    def started(client_id, message) -> None:
+        if message.source_component_uuid != uuid:
+            return
+        if refuse(message.filename, message.size_bytes, client_id):
+            gui._current_file_upload_states.pop(message.transfer_uuid, None)
+
+    server._websock_server.register_handler(_messages.FileTransferStartUpload, started)
+    return started
+
+
+def widget_kind(handle) -> str | None:
+    """``"choice"`` (a dropdown), ``"number"`` (a slider or number box), ``"text"``, or None (others)."""
+    import viser
+
+    if isinstance(handle, viser.GuiDropdownHandle):
+        return "choice"
+    if isinstance(handle, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
+        return "number"
+    if isinstance(handle, viser.GuiTextHandle):
+        return "text"
+    return None
+
+
+def missing_internals() -> list[str]:
+    """What this module relies on that the installed viser lacks (empty when all is there)."""
+    import viser
+    import websockets.asyncio.server as ws_server
+    from viser import _messages
+    from viser._gui_api import GuiApi
+    from viser.infra import _infra
+
+    problems = []
+    serve_src = inspect.getsource(_infra)
+    if f"def {VISER_HOOK}(" not in serve_src or "process_request=" not in serve_src:
+        problems.append(f"viser.infra no longer serves through websockets serve(process_request={VISER_HOOK})")
+    if not callable(getattr(ws_server, "serve", None)):
+        problems.append("websockets.asyncio.server.serve is gone")
+    msg = getattr(_messages, "FileTransferStartUpload", None)
+    fields = set(getattr(msg, "__dataclass_fields__", {}) or {})
+    need = {"source_component_uuid", "transfer_uuid", "filename", "size_bytes"}
+    if msg is None or not need <= fields:
+        problems.append(f"viser._messages.FileTransferStartUpload lacks {sorted(need - fields)}")
+    if "_current_file_upload_states" not in inspect.getsource(GuiApi.__init__):
+        problems.append("GuiApi no longer keeps _current_file_upload_states")
+    reg = getattr(_infra.WebsockServer, "register_handler", None)
+    if reg is None or list(inspect.signature(reg).parameters)[:3] != ["self", "message_cls", "callback"]:
+        problems.append("WebsockServer.register_handler(message_cls, callback) is gone")
+    if "_websock_server" not in inspect.getsource(viser.ViserServer.__init__):
+        problems.append("ViserServer no longer keeps _websock_server")
+    for name in ("GuiDropdownHandle", "GuiSliderHandle", "GuiNumberHandle", "GuiTextHandle"):
+        if not hasattr(viser, name):
+            problems.append(f"viser.{name} is gone")
+    return problems
