@@ -71,7 +71,7 @@ def base_covariance(fit_result) -> np.ndarray | None:
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     jac = np.zeros((THETA_PER_SENSOR * problem.n_sensors, x.size))
     for s in range(problem.n_sensors):  # sensor s's theta depends only on its own base columns
-        rows = slice(THETA_PER_SENSOR * s, THETA_PER_SENSOR * (s + 1))
+        theta_rows = slice(THETA_PER_SENSOR * s, THETA_PER_SENSOR * (s + 1))
         block = problem.blocks[f"sensor{s + 1}/base"]
         for p in range(block.start, block.stop):
             h = max(1e-3 * sd[p], 1e-9 * max(abs(x[p]), 1.0))
@@ -80,7 +80,7 @@ def base_covariance(fit_result) -> np.ndarray | None:
             xp, xm = x.copy(), x.copy()
             xp[p] += h
             xm[p] -= h
-            jac[rows, p] = (theta_of([problem.sensor(xp, s)]) - theta_of([problem.sensor(xm, s)])) / (2 * h)
+            jac[theta_rows, p] = (theta_of([problem.sensor(xp, s)]) - theta_of([problem.sensor(xm, s)])) / (2 * h)
     rows = [jac]
     for label, *_ in effect_layout(problem.model):  # the effects' parameters are the fit's own
         block = problem.blocks[label]
@@ -103,12 +103,12 @@ def tensor_map(n_sensors: int, baseline_m: float) -> tuple[list, np.ndarray]:
     """The tensor components as a linear map of the stacked corrected vectors: ``(names, T)``, ``T`` of shape
     (components, 3 n_sensors), from :func:`magcal.core.conventions.tensor_components` itself."""
     cols = []
-    names = None
+    names: list = []
     for j in range(3 * n_sensors):
         e = np.zeros((n_sensors, 1, 3))
         e.flat[j] = 1.0
         comps = conventions.tensor_components(e, baseline_m)
-        names = list(comps) if names is None else names
+        names = names or list(comps)
         cols.append([float(np.asarray(comps[k]).ravel()[0]) for k in names])
     return names, np.array(cols).T
 
@@ -158,7 +158,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
         for label, e, es, _ in effect_layout(calibration.model)
         if joint and label in acting_labels and e.stage in ("raw", "vector")
     ]
-    ctxs = contexts(dataset, calibration.baseline_m) if effects else None
+    ctxs = contexts(dataset, calibration.baseline_m) if effects else []
     values = calibration.effect_values or {}
     H = np.empty((n, 3 * ns, L.shape[1]))
     for s, sc in enumerate(calibration.sensors):

@@ -329,7 +329,7 @@ def _readings_facts(dataset):
 
 #: Readings (samples x sensors) from which :func:`prefetch_readings_facts` starts the work on another thread.
 PREFETCH_FROM_READINGS = 20_000
-_PREFETCH = []
+_PREFETCH: list = []
 
 
 def prefetch_readings_facts(dataset):

@@ -1136,8 +1136,8 @@ def assess(dataset, noise_nT=None) -> QualityReport:
             if f.kind == "sample_rate":
                 interval = f.values.get("interval_s")
     try:  # raw counts read with an LSB (magcal.data.io keeps it as metadata lsb_nT)
-        lsb = float(dataset.metadata["lsb_nT"])
-        lsb = lsb if np.isfinite(lsb) and lsb > 0 else None
+        value = float(dataset.metadata["lsb_nT"])
+        lsb = value if np.isfinite(value) and value > 0 else None
     except (KeyError, TypeError, ValueError):
         lsb = None
     for s in range(dataset.n_sensors):

@@ -50,7 +50,7 @@ def _transfer_text(value) -> str:
 
 def _params_text(params) -> str:
     """``beta_x, beta_y, beta_z [nT/K]``: consecutive parameters of one unit share it."""
-    groups = []
+    groups: list = []
     for p in params:
         if groups and groups[-1][0] == p["unit"]:
             groups[-1][1].append(p["symbol"] if p["unit"] else p["name"])
@@ -101,7 +101,7 @@ def run(args) -> int:
     if args.name is not None:
         sys.stdout.write(_entry_text(entries[0], full=True) + "\n")
         return 0
-    counts = {}
+    counts: dict = {}
     for d in entries:
         counts[d["origin"]] = counts.get(d["origin"], 0) + 1
     tally = ", ".join(f"{n} {kind}" for kind, n in counts.items())

@@ -24,7 +24,7 @@ class ReadingsCache:
 
     def __init__(self, size: int):
         self.size = int(size)
-        self._entries = collections.OrderedDict()
+        self._entries: collections.OrderedDict = collections.OrderedDict()
 
     def get(self, array, key, compute, valid=None):
         """``compute()`` for ``array`` and ``key`` (a tuple), computed once while cached.

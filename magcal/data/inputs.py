@@ -176,7 +176,7 @@ def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:
         ds = _from_dataframe(data)
     else:
         ds = Dataset(readings_nT=_readings_from_array(data))
-    changes = {}
+    changes: dict = {}
     n = ds.n_samples
     if t is not None:
         changes["time_s"] = _channel(t, "t", "s", n)

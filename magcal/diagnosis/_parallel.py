@@ -69,7 +69,7 @@ class Pool:
 
     def submit(self, call, priority=CHAIN) -> Future:
         """A :class:`~concurrent.futures.Future` of ``call()`` (a function of no argument)."""
-        future = Future()
+        future: Future = Future()
         if not self._threads:
             _run(call, future)
         else:

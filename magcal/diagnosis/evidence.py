@@ -45,7 +45,7 @@ def _evidence_line(c: Candidate, extra: str = "") -> str:
 def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
     """Effect-specific numbers for the evidence line."""
     if c.effect == "bias_step":
-        times = []
+        times: list = []
         for e in c.instances:
             step_times_s = getattr(e, "step_time_s", None)
             if step_times_s:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -125,7 +126,7 @@ class Candidate:
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
-    start: object = field(default=None, repr=False)
+    start: Any = field(default=None, repr=False)  # a Calibration: the refit's predicted start
     projector: object = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
@@ -230,8 +231,8 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
 
     n = kept.n_samples
     rows_per_sample = kept.n_sensors * (3 if kept.n_sensors > 1 else 1)
-    chunk = max(2_000, chunk_rows // rows_per_sample)
-    parts = np.array_split(np.arange(n), max(1, int(np.ceil(n / chunk))))
+    chunk_samples = max(2_000, chunk_rows // rows_per_sample)
+    parts = np.array_split(np.arange(n), max(1, int(np.ceil(n / chunk_samples))))
 
     def chunk(idx):
         sub = kept if len(parts) == 1 else kept.subset(idx)
@@ -240,9 +241,9 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
         rt = r[: sub.n_sensors * sub.n_samples]
         return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem
 
-    acc = None
+    acc: list = []
     for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
-        acc = terms if acc is None else [a + t for a, t in zip(acc, terms)]
+        acc = terms if not acc else [a + t for a, t in zip(acc, terms)]
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], problem.blocks, kept.n_sensors * n, problem)
 
 

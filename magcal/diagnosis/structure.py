@@ -84,7 +84,7 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
     vec = fit.vector_residuals_nT
     for s in range(ns):
         r = r_all[s].copy()
-        st = {}
+        st: dict = {}
         # isolated glitches (a few samples beyond 5 sigma: a transient, a jerk of the motion) are counted and set
         # aside, so that they do not pass for a systematic structure; more than 1 % of them is structure
         sigma = noise.per_sensor_nT[s]
@@ -226,7 +226,7 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
 
 
 def _describe(structures) -> str:
-    kinds = {}
+    kinds: dict = {}
     for s in structures:
         kinds.setdefault(s.kind, []).append(s)
     parts = []

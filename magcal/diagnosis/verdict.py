@@ -676,7 +676,7 @@ def _after_scores(
         for s in range(ns)
     ]
 
-    def noise_and_structure():
+    def noise_and_structure(kept_c=None, current=None):  # the base fit's (the same name serves later rounds)
         noise = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
         return (noise,) + tuple(_structure_tests(kept, fit0, noise, ordered, directions))
 
@@ -691,7 +691,7 @@ def _after_scores(
             lambda: _sensor_evidence(kept, fit0, r0, fields),
         )
     ]
-    fits = {}
+    fits: dict = {}
     report("refitting the best candidates", 0.4)
     # the base model's held-out fits need fit0 alone: when a candidate is predicted to be supported, they are made
     # beside the refits, and a supported candidate's own the moment its refit returns; else only if a refit is

@@ -129,7 +129,10 @@ class Problem:
         self.exact_jacobian = not any(e.basis_uses_readings for e, _ in model.instances())
         self.baseline_m = init.baseline_m if init.baseline_m is not None else dataset.baseline_m
 
-        names, values, scales, self.blocks = [], [], [], {}
+        names: list = []
+        values: list = []
+        scales: list = []
+        self.blocks = {}
         self._base_free = []
         free_c = [
             k
@@ -728,7 +731,7 @@ def _levenberg_marquardt(
     # direction points out of is left out of the step, and every step is clipped into the bounds
     lower = getattr(problem, "lower", None)
     upper = getattr(problem, "upper", None)
-    bounded = lower is not None and (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
+    bounded = lower is not None and upper is not None and (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)))
     x = np.asarray(x0, dtype=float).copy()
     if bounded:
         x = np.clip(x, lower, upper)

@@ -24,19 +24,21 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from magcal.calibration.calibration import Calibration, SensorCalibration, expected_total_field
-from magcal.checks.noise import estimate_noise, prefetch_readings_facts
+from magcal.checks.noise import NoiseEstimate, estimate_noise, prefetch_readings_facts
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, CoverageWarning, DataWarning
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
+from magcal.data.dataset import Dataset
 from magcal.fitting import search
-from magcal.fitting.fitter import fit_with_notes, resolve_reference
+from magcal.fitting.fitter import FitResult, fit_with_notes, resolve_reference
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from magcal.geometry.procrustes import procrustes_rotation
 from magcal.model.terms import Effect, Model
@@ -170,7 +172,7 @@ class CalibrationResult:
     """
 
     calibration: Calibration
-    fit: object | None
+    fit: FitResult | None
     steps: list
     warnings: list
     method: str
@@ -193,8 +195,8 @@ class CalibrationResult:
     robust: bool = False
     effects: list = field(default_factory=list)
     field_magnitude_nT: float | None = None
-    noise: object = None
-    validation: object = None
+    noise: NoiseEstimate | None = None
+    validation: Any = None  # magcal.fitting.validation.EffectsValidation (that module imports this one)
     notes: list = field(default_factory=list)
 
     @property
@@ -417,9 +419,9 @@ class _Run:
         The calibration of the last step run.
     """
 
-    dataset: object
+    dataset: Dataset
     mask: np.ndarray
-    kept: object
+    kept: Dataset
     ref_value: float | None
     ref_kind: str
     progress: Callable | None = None
@@ -427,9 +429,9 @@ class _Run:
     raised: list = field(default_factory=list)
     steps_timed: list = field(default_factory=list)
     ellipsoids: list = field(default_factory=list)
-    inliers: np.ndarray | None = None
-    fit: object | None = None
-    calibration: Calibration | None = None
+    inliers: Any = None  # numpy.ndarray of bool once the ellipsoid step ran
+    fit: FitResult | None = None
+    calibration: Any = None  # Calibration once the first step ran
 
     def report(self, message, fraction=None):
         if self.progress is not None:
@@ -688,7 +690,7 @@ def _noise_and_floors(run: _Run, model, final: StepSummary, noise_nT=None):
     dataset's) or estimated from the final residuals (:func:`magcal.checks.noise.estimate_noise`: differences in time
     order, still stretches, quantization floor), and the floors it sets."""
     dataset, kept = run.dataset, run.kept
-    n_params = 9
+    n_params: float = 9
     if model is not None:
         n_params += sum(len(e.param_names()) for e, s in model.instances()) / dataset.n_sensors
     if run.fit is not None:

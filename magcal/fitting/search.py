@@ -414,7 +414,7 @@ def _de(objective, bounds, rng, pop_size, max_iter, progress, stall, coefficient
 
 
 #: Coefficients of each method (see the module docstring).
-COEFFICIENTS = {
+COEFFICIENTS: dict[str, dict] = {
     "pso": {"w": 0.7298, "c1": 1.49618, "c2": 1.49618, "vmax": 0.2},
     "ipso": {"w_max": 0.9, "w_min": 0.4, "c1_max": 2.5, "c1_min": 0.5, "c2_max": 2.5, "c2_min": 0.5, "vmax": 0.2},
     "de": {"strategy": "best1bin", "F": (0.5, 1.0), "CR": 0.9},

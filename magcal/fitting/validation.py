@@ -367,6 +367,7 @@ def validate(
         result = calibrate(
             dataset, effects=specs, robust=robust, reference_total_nT=reference_total_nT, mask=train, base_terms=base
         )
+        assert result.fit is not None  # the maximum-likelihood step always runs here
         fitted = result.fit
     fit_notes = list(result.notes) if init is None else list(fitted.notes)
     cal, labels = fitted.calibration, fitted.model.effect_labels
@@ -634,6 +635,7 @@ class EffectsValidation:
         if self.skipped:
             return [f"held-out validation not done: {self.skipped}"]
         if self.holds is False:
+            assert self.base is not None and self.with_effects is not None  # set whenever not skipped
             return [
                 f"the effects {', '.join(self.effects)} do not lower the held-out RMS (blocks) by "
                 f"{MIN_RELATIVE_GAIN:.0%}: {self.base.held_out_rms_nT:.4g} -> "
@@ -674,6 +676,7 @@ class EffectsValidation:
         if self.skipped:
             return f"Held-out validation: not done ({self.skipped})\n"
         b, w = self.base, self.with_effects
+        assert b is not None and w is not None  # set whenever not skipped
         base_in = "-" if self.in_sample_base_nT is None else f"{self.in_sample_base_nT:.4g}"
         lines = [
             f"Held-out validation (blocks: fitted on {w.n_train} samples in alternating blocks of time, scored "

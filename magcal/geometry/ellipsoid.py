@@ -612,7 +612,7 @@ def fit_ellipsoid(
     a1 = a1_p / scale**2
 
     field_fitted = reference_total_nT is None
-    field_nT = float(np.linalg.det(a1) ** (-1.0 / 6.0)) if field_fitted else float(reference_total_nT)
+    field_nT = float(np.linalg.det(a1) ** (-1.0 / 6.0)) if reference_total_nT is None else float(reference_total_nT)
     a_matrix = field_nT**2 * a1
     cinv = conventions.cinv_from_quadric(a_matrix)
     corrected = (y - bias) @ cinv.T

@@ -444,7 +444,7 @@ def _admit(classes, before, source_key, kind, where, path=None) -> list[str]:
     _restore(before)
     names = []
     try:
-        seen = {}
+        seen: dict = {}
         for cls in classes:
             name = getattr(cls, "name", None)
             if isinstance(name, str) and name in seen and seen[name] is not cls:
@@ -561,7 +561,8 @@ def load_effects_files(paths) -> list[str]:
 
 def _entry_point_text(ep) -> str:
     dist = getattr(ep, "dist", None)
-    dist_name = getattr(dist, "name", None) or (dist.metadata["Name"] if getattr(dist, "metadata", None) else None)
+    metadata = getattr(dist, "metadata", None)
+    dist_name = getattr(dist, "name", None) or (metadata["Name"] if metadata else None)
     return f"{ep.name} = {ep.value}" + (f" ({dist_name})" if dist_name else "")
 
 
