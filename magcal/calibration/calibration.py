@@ -19,7 +19,9 @@ from magcal.core import conventions
 from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.core.jsonable import jsonable
 from magcal.core.vectors import basis_times, row_norm
+from magcal.data.attitude import attitude
 from magcal.data.io import atomic_write
+from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import (
     BASE_TERMS,
     EFFECTS,
@@ -229,6 +231,13 @@ class Calibration:
         parameters (in the model's order; 12 n_sensors square for the base model) from the fit
         (:func:`magcal.calibration.uncertainty.base_covariance`), saved with the file; :meth:`uncertainty` carries it to the
         corrected field and the tensor. None without a maximum-likelihood fit.
+    mode : str
+        ``"scalar"`` (a total-field fit: the corrected vectors are in the array frame, turned by a gauge) or
+        ``"vector"`` (a fit with attitude and the field vector, :mod:`magcal.fitting.vector`: each sensor's ``R``
+        is its mounting into the vehicle's body frame, and :meth:`world` gives north-east-down components).
+    platform : PlatformTerms or None
+        The platform's fields a vector fit found (eddy currents, a field per ampere or per unit of throttle),
+        subtracted from the raw readings before the correction.
     summary : dict
         Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
         Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
@@ -244,6 +253,8 @@ class Calibration:
     frame: str = "sensor1"
     summary: dict = field(default_factory=dict)
     base_covariance: np.ndarray | None = None
+    mode: str = "scalar"
+    platform: PlatformTerms | None = None
 
     @property
     def n_sensors(self) -> int:
@@ -264,6 +275,11 @@ class Calibration:
                     f"the calibration includes {', '.join(self.model.effect_labels)}, which need "
                     f"{', '.join(sorted(missing))}; the data{where} lack them"
                 )
+        if self.platform is not None and self.platform.missing(dataset):
+            raise MagcalError(
+                f"the calibration holds the platform term(s) {', '.join(self.platform.names)}, which need "
+                f"{', '.join(self.platform.missing(dataset))}; the data{where} lack them"
+            )
 
     # --- the record it was fitted on ------------------------------------------------------------------------
     @property
@@ -371,7 +387,45 @@ class Calibration:
         """
         self.check(dataset)
         model = self._model_for(dataset, record_terms, VECTOR_STAGES)
+        dataset = self._without_platform(dataset)
         return corrected_fields(dataset, self.sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+
+    def _without_platform(self, dataset):
+        """The dataset with the platform terms' field taken out of the readings (unchanged without any)."""
+        if self.platform is None or not self.platform.names:
+            return dataset
+        return dataset.replace(readings_nT=dataset.readings_nT - self.platform.offsets_nT(dataset))
+
+    def world(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """Corrected field vectors in the world (north-east-down) frame, (n_sensors, N, 3) in nT.
+
+        Needs a vector calibration (``mode == "vector"``: body-frame vectors) and the dataset's attitude
+        (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED): ``B_ned = R(q) B_body``.
+        """
+        if self.mode != "vector":
+            raise MagcalError(
+                "world components need a vector calibration (magcal calibrate --mode vector, with attitude and a "
+                "reference field vector): a total-field calibration leaves the sensor's rotation unknown"
+            )
+        rotation = attitude(dataset)
+        if rotation is None:
+            raise MagcalError(
+                f"the data {dataset.source or ''} have no attitude (qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg): "
+                "world components need it"
+            )
+        body = self.correct(dataset, record_terms) if corrected is None else corrected
+        return np.stack([rotation.apply(b) for b in body])
+
+    def world_tensor(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """The gradient tensor in the world (north-east-down) frame, (N, 3, 3) nT/m: ``G_world = R G_body R^T``
+        with ``R`` the attitude (four sensors, a vector calibration and attitude)."""
+        comps = self.tensor(dataset, corrected, record_terms)
+        g = conventions.tensor_matrix(comps)
+        rotation = attitude(dataset)
+        if rotation is None or self.mode != "vector":
+            raise MagcalError("the tensor in world coordinates needs a vector calibration and the data's attitude")
+        r = rotation.as_matrix()
+        return np.einsum("nij,njk,nlk->nil", r, g, r)
 
     def total_field(self, dataset, record_terms=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
@@ -393,7 +447,7 @@ class Calibration:
         ctxs = contexts(dataset, self.baseline_m)
         if corrected is None:
             self.check(dataset)
-            corrected = corrected_fields(dataset, self.sensors, model, self.effect_values, ctxs)
+            corrected = corrected_fields(self._without_platform(dataset), self.sensors, model, self.effect_values, ctxs)
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
@@ -454,6 +508,10 @@ class Calibration:
             "effect_params": effects,
             "sensors": sensors,
         }
+        if self.mode != "scalar":
+            doc["mode"] = self.mode
+        if self.platform is not None and self.platform.names:
+            doc["platform_terms"] = self.platform.to_dict()
         if self.base_covariance is not None:
             doc["base_covariance"] = {
                 "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
@@ -536,7 +594,15 @@ class Calibration:
             "effect_params",
             "sensors",
             "base_covariance",
+            "mode",
+            "platform_terms",
         }
+        mode = doc.get("mode", "scalar")
+        if mode not in ("scalar", "vector"):
+            raise MagcalError(f"{source}: 'mode' must be 'scalar' or 'vector', got {mode!r}; the file is damaged")
+        platform = None
+        if doc.get("platform_terms") is not None:
+            platform = PlatformTerms.from_dict(doc["platform_terms"], len(sensors), source)
         cov = None
         if doc.get("base_covariance") is not None:
             size = 12 * len(sensors)
@@ -576,6 +642,8 @@ class Calibration:
             frame=doc.get("frame", "sensor1"),
             summary=summary,
             base_covariance=cov,
+            mode=mode,
+            platform=platform,
         )
 
     def save(self, path) -> None:
