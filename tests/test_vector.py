@@ -1,0 +1,320 @@
+"""Vector calibration with attitude (issue 29): frames, the reference vector, the fit against a simulated vehicle's
+truth, the calibration file, apply's world components and the firmware export."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from magcal.calibration.calibration import Calibration
+from magcal.checks.coverage import calibration_input_checks
+from magcal.checks.reference import (
+    igrf_ned_nT,
+    igrf_total_nT,
+    parse_reference_vector,
+    resolve_vector_reference,
+)
+from magcal.cli import main
+from magcal.core.errors import MagcalError
+from magcal.data.attitude import attitude, euler_to_wxyz, wxyz_rotation
+from magcal.data.dataset import Dataset, dataset_columns, dataset_metadata
+from magcal.data.io import write_csv
+from magcal.data.vehicle import simulate_vehicle, vehicle_truth
+from magcal.fitting.pipeline import calibrate
+from magcal.fitting.vector import fit_vector, true_calibration
+from magcal.geometry.orientations import (
+    FIRMWARE_ROTATIONS,
+    RIGHT_ANGLES,
+    euler_matrix,
+    firmware_rotation,
+    nearest_right_angle,
+)
+from magcal.output.export import apply_ardupilot, apply_px4, export_calibration
+
+ROLL_180_YAW_90 = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+ROLL_90_YAW_90 = euler_matrix(90, 0, 90)
+PITCH_270 = euler_matrix(0, 270, 0)
+
+
+def _world_rms(calibration, ds):
+    """RMS per component of the world (NED) field against the reference, and of |B| against |B_ref| (nT)."""
+    world = calibration.world(ds)[0]
+    ref = resolve_vector_reference(ds).ned_nT
+    total = np.linalg.norm(world, axis=1) - np.linalg.norm(ref, axis=1)
+    return float(np.sqrt(np.mean((world - ref) ** 2))), float(np.sqrt(np.mean(total**2)))
+
+
+# -- frames --------------------------------------------------------------------------------------------------------
+def test_the_24_right_angles_all_have_a_firmware_number():
+    assert RIGHT_ANGLES.shape == (24, 3, 3)
+    assert len({tuple(m.ravel()) for m in RIGHT_ANGLES}) == 24
+    assert all(np.isclose(np.linalg.det(m), 1.0) for m in RIGHT_ANGLES)
+    numbers = {firmware_rotation(m) for m in RIGHT_ANGLES}
+    assert None not in numbers and len(numbers) == 24
+    # ArduPilot's rotate(): ROTATION_ROLL_180_YAW_90 makes (x, y, z) -> (y, x, -z); YAW_90 (x, y) -> (-y, x)
+    assert firmware_rotation(ROLL_180_YAW_90) == 10
+    assert np.allclose(euler_matrix(*FIRMWARE_ROTATIONS[2]) @ [1.0, 2.0, 3.0], [-2.0, 1.0, 3.0])
+
+
+@pytest.mark.parametrize("k", [0, 5, 17, 23])
+def test_nearest_right_angle_and_the_angle_off_it(k):
+    off = Rotation.from_rotvec(np.radians(3.0) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    found, angle = nearest_right_angle(RIGHT_ANGLES[k] @ off)
+    assert np.allclose(found, RIGHT_ANGLES[k]) and angle == pytest.approx(3.0, abs=1e-9)
+
+
+def test_euler_columns_are_aerospace_zyx_body_to_ned():
+    q = euler_to_wxyz([0.0, 0.0, 30.0], [0.0, 10.0, 0.0], [90.0, 0.0, 0.0])
+    r = wxyz_rotation(q)
+    nose = r.apply(np.array([1.0, 0.0, 0.0]))
+    assert np.allclose(nose[0], [0.0, 1.0, 0.0], atol=1e-12)  # yaw 90: the nose points east
+    assert nose[1][2] < 0 and np.degrees(np.arcsin(-nose[1][2])) == pytest.approx(10.0)  # pitch up: nose above
+    right_wing = r.apply(np.array([0.0, 1.0, 0.0]))[2]
+    assert right_wing[2] == pytest.approx(np.sin(np.radians(30.0)))  # roll right: the right wing goes down
+    ds = Dataset(
+        np.zeros((1, 3, 3)),
+        extra={
+            "roll_deg": np.array([0.0, 0.0, 30.0]),
+            "pitch_deg": np.array([0.0, 10.0, 0.0]),
+            "yaw_deg": np.array([90.0, 0.0, 0.0]),
+        },
+    )
+    assert np.allclose(attitude(ds).as_matrix(), r.as_matrix())
+    with pytest.raises(MagcalError, match="roll_deg, pitch_deg, yaw_deg"):
+        attitude(Dataset(np.zeros((1, 3, 3)), extra={"roll_deg": np.zeros(3)}))
+
+
+# -- the reference vector -----------------------------------------------------------------------------------------
+def test_vector_reference_from_columns_vector_and_igrf():
+    n = 5
+    ds = Dataset(np.zeros((1, n, 3)), extra={"ref_n": np.full(n, 2e4), "ref_e": np.zeros(n), "ref_d": np.full(n, 4e4)})
+    ref = resolve_vector_reference(ds)
+    assert ref.kind == "column" and np.allclose(ref.ned_nT, [2e4, 0.0, 4e4])
+    given = resolve_vector_reference(ds, vector="19000, 500, 45000")
+    assert given.kind == "vector" and np.allclose(given.ned_nT[3], [19000, 500, 45000])
+    place = resolve_vector_reference(ds, reference="igrf", lat=45.0, lon=7.0, alt_km=0.5, date="2020-06-01")
+    total, comps = igrf_total_nT(45.0, 7.0, 0.5, "2020-06-01")
+    assert place.kind == "igrf" and np.allclose(
+        place.ned_nT[0], [comps["north_nT"], comps["east_nT"], comps["down_nT"]]
+    )
+    assert np.linalg.norm(place.ned_nT[0]) == pytest.approx(total)
+    assert resolve_vector_reference(Dataset(np.zeros((1, n, 3)))) is None
+    with pytest.raises(MagcalError, match="ref_n, ref_e, ref_d"):
+        resolve_vector_reference(Dataset(np.zeros((1, n, 3)), extra={"ref_n": np.zeros(n)}))
+    with pytest.raises(MagcalError, match="three numbers"):
+        parse_reference_vector("1,2")
+    with pytest.raises(MagcalError, match="uT"):
+        parse_reference_vector("20,1,44")  # uT given as nT
+
+
+def test_igrf_along_a_long_track_is_interpolated_within_a_nanotesla():
+    n = 6000  # more than the nodes: evaluated at 2000 samples and interpolated
+    lat = np.linspace(44.0, 45.0, n) + 0.01 * np.sin(np.linspace(0, 20, n))
+    lon = np.linspace(7.0, 8.5, n)
+    alt_m = 1000.0 + 200.0 * np.sin(np.linspace(0, 3, n))
+    ds = Dataset(np.zeros((1, n, 3)), extra={"lat": lat, "lon": lon, "alt_m": alt_m})
+    ref = resolve_vector_reference(ds, reference="igrf", date="2020-06-01")
+    assert ref.kind == "igrf-track" and ref.ned_nT.shape == (n, 3)
+    check = np.arange(1, n, 397)
+    exact = igrf_ned_nT(lat[check], lon[check], alt_m[check] / 1000.0, "2020-06-01")
+    assert np.max(np.abs(ref.ned_nT[check] - exact)) < 1.0
+    assert np.ptp(ref.ned_nT[:, 0]) > 50  # the field changes along the track and the reference follows it
+
+
+# -- the fit against the truth ------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "mounting, seed",
+    [(ROLL_180_YAW_90, 1), (ROLL_90_YAW_90, 2), (PITCH_270, 3), (np.eye(3), 4)],
+    ids=["roll180yaw90", "roll90yaw90", "pitch270", "none"],
+)
+def test_vehicle_calibrated_on_one_flight_gives_world_components_on_another(mounting, seed):
+    truth = vehicle_truth(seed=seed, mounting=mounting, off_deg=2.0)
+    cal_flight, tr = simulate_vehicle(truth, seed=seed, n=4000, noise_nT=3.0, attitude_noise_deg=0.02)
+    test_flight, _ = simulate_vehicle(truth, seed=seed + 100, n=4000, noise_nT=3.0, attitude_noise_deg=0.02)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing to warn about on a good record
+        result = fit_vector(cal_flight, resolve_vector_reference(cal_flight), terms=[])
+    fit = result.sensors[0]
+    ours, ours_total = _world_rms(result.calibration, test_flight)
+    best, best_total = _world_rms(true_calibration(tr), test_flight)
+    assert ours <= 1.15 * best, (ours, best)
+    assert ours_total <= 1.15 * best_total, (ours_total, best_total)
+    # the mounting: the right angle, and how far off it (2 deg) the sensor sits
+    assert np.allclose(fit.right_angle, mounting)
+    true_r = true_calibration(tr).sensors[0].R
+    assert np.degrees(Rotation.from_matrix(fit.mounting.T @ true_r).magnitude()) < 0.02
+    assert fit.angle_off_deg == pytest.approx(2.0, abs=0.02)
+    assert fit.orientation_margin > 3
+    # the vector residual sits at the attitude error times the field, the total-field residual at the noise
+    field = np.linalg.norm(tr.field_ned_nT)
+    assert fit.rms_perpendicular_nT == pytest.approx(np.hypot(np.radians(0.02) * field, 3.0), rel=0.1)
+    assert fit.rms_total_field_nT == pytest.approx(3.0, rel=0.1)
+    assert fit.attitude_noise_deg == pytest.approx(0.02, rel=0.15)
+    # the total-field fit of the same record is told that it is not determined
+    scalar_data = cal_flight.replace(reference_total_nT=float(field))
+    assert any("coverage" in w for w in calibration_input_checks(scalar_data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scalar = calibrate(scalar_data)
+    assert any("weak coverage" in w for w in scalar.warnings)
+
+
+def test_platform_terms_are_recovered_and_matter():
+    truth = vehicle_truth(seed=7, eddy=True, current=True)
+    flight, tr = simulate_vehicle(truth, seed=7, n=6000)
+    other, _ = simulate_vehicle(truth, seed=8, n=6000)
+    ref = resolve_vector_reference(flight)
+    result = fit_vector(flight, ref)
+    assert result.terms == ["eddy", "current"]
+    s, t = result.sensors[0], tr.sensors[0]
+    assert np.max(np.abs(s.terms["current_nT_per_unit"] - t.current_nT_per_unit)) < 0.5  # nT/A of ~25
+    assert np.max(np.abs(s.terms["eddy_ms"] - t.eddy_ms)) < 1.5  # ms of ~10
+    with_terms, _ = _world_rms(result.calibration, other)
+    best, _ = _world_rms(true_calibration(tr), other)
+    assert with_terms <= 1.15 * best
+    without, _ = _world_rms(fit_vector(flight, ref, terms=[]).calibration, other)
+    assert without > 1.5 * with_terms  # the current's field is hundreds of nT: leaving it out shows
+
+
+def test_given_noises_weight_the_fit_and_are_reported():
+    truth = vehicle_truth(seed=3)
+    flight, _ = simulate_vehicle(truth, seed=3, n=2000, attitude_noise_deg=0.1)
+    res = fit_vector(flight, resolve_vector_reference(flight), terms=[], attitude_noise_deg=0.1, noise_nT=3.0)
+    s = res.sensors[0]
+    assert s.attitude_noise_source == "given" and s.attitude_noise_deg == 0.1
+    assert s.sigma_perpendicular_nT == pytest.approx(np.hypot(np.radians(0.1) * 48_769.0, 3.0), rel=1e-3)
+    assert s.rms_perpendicular_nT == pytest.approx(np.radians(0.1) * 48_769.0, rel=0.1)  # 85 nT
+    assert "total-field residual RMS" in res.text() and "perpendicular" in res.text()
+
+
+def test_vector_fit_refuses_data_without_attitude():
+    ds = Dataset(np.ones((1, 50, 3)))
+    ref = resolve_vector_reference(ds, vector="20000,0,44000")
+    with pytest.raises(MagcalError, match="attitude"):
+        fit_vector(ds, ref)
+
+
+# -- the calibration file, apply, export -------------------------------------------------------------------------
+def test_vector_calibration_json_round_trip_and_old_files_load_as_scalar(tmp_path):
+    truth = vehicle_truth(seed=5, eddy=True, current=True)
+    flight, _ = simulate_vehicle(truth, seed=5, n=1500)
+    cal = fit_vector(flight, resolve_vector_reference(flight)).calibration
+    cal.save(tmp_path / "cal.json")
+    back = Calibration.load(tmp_path / "cal.json")
+    assert back.mode == "vector" and back.frame == "body" and back.platform.names == ["eddy", "current"]
+    assert np.allclose(back.world(flight), cal.world(flight))
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert doc["sensors"][0]["mounting_rotation_number"] == 10
+    for key in ("mode", "platform_terms", "vector_fit"):
+        doc.pop(key)
+    old = Calibration.from_dict(doc)
+    assert old.mode == "scalar" and old.platform is None
+    with pytest.raises(MagcalError, match="world components need a vector calibration"):
+        old.world(flight)
+    doc["platform_terms"] = {"eddy_ms": [[1, 2]]}
+    with pytest.raises(MagcalError, match="platform_terms.eddy_ms"):
+        Calibration.from_dict(doc)
+
+
+def test_world_tensor_is_the_body_tensor_turned():
+    truth = vehicle_truth(seed=2, n_sensors=4)
+    flight, _ = simulate_vehicle(truth, seed=2, n=300)
+    flight = flight.replace(baseline_m=0.5)
+    cal = fit_vector(flight, resolve_vector_reference(flight), terms=[]).calibration
+    cal.baseline_m = 0.5
+    from magcal.core import conventions
+
+    g_body = conventions.tensor_matrix(cal.tensor(flight))
+    g_world = cal.world_tensor(flight)
+    r = attitude(flight).as_matrix()
+    k = 123
+    assert np.allclose(g_world[k], r[k] @ g_body[k] @ r[k].T)
+    assert np.allclose(np.trace(g_world, axis1=1, axis2=2), np.trace(g_body, axis1=1, axis2=2))
+
+
+def _write_flight(path, ds, euler=False):
+    cols = dataset_columns(ds)
+    if euler:
+        ypr = wxyz_rotation(ds.attitude_wxyz).as_euler("ZYX", degrees=True)
+        for q in ("qw", "qx", "qy", "qz"):
+            cols.pop(q)
+        cols["roll_deg"], cols["pitch_deg"], cols["yaw_deg"] = ypr[:, 2], ypr[:, 1], ypr[:, 0]
+    write_csv(path, cols, dataset_metadata(ds))
+
+
+def test_cli_calibrate_apply_export_in_vector_mode(tmp_path, capsys):
+    truth = vehicle_truth(seed=11, current=True)
+    one, tr = simulate_vehicle(truth, seed=11, n=2000)
+    two, _ = simulate_vehicle(truth, seed=12, n=2000)
+    _write_flight(tmp_path / "one.csv", one)
+    _write_flight(tmp_path / "two.csv", two, euler=True)  # the other attitude form
+    assert main(["calibrate", str(tmp_path / "one.csv"), "-o", str(tmp_path / "cal.json"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["mode"] == "vector" and doc["terms"] == ["eddy", "current"]
+    assert doc["sensors"][0]["mounting_right_angle"].startswith("ROLL_180_YAW_90")
+    out = tmp_path / "out.csv"
+    assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(out)]) == 0
+    import pandas as pd
+
+    frame = pd.read_csv(out, comment="#")
+    world = frame[["s1n_cal", "s1e_cal", "s1d_cal"]].to_numpy()
+    assert np.sqrt(np.mean((world - tr.field_ned_nT) ** 2)) < 25  # attitude error 0.02 deg on 48.8 uT: 17 nT
+    # scalar mode on the same file: the old fit, told it is undetermined
+    assert main(["calibrate", str(tmp_path / "one.csv"), "--mode", "scalar", "--reference", "48769"]) == 0
+    assert "undetermined" in capsys.readouterr().err
+    # export: the right angle as the orientation parameter, the rest refused unless forced
+    with pytest.raises(MagcalError):
+        export_calibration(Calibration.load(tmp_path / "cal.json"), "px4")
+    cal = Calibration.load(tmp_path / "cal.json")
+    cal.platform = None  # what the firmware's correction leaves out: the current term
+    px4 = export_calibration(cal, "px4", force=True)
+    ardu = export_calibration(cal, "ardupilot", force=True)
+    assert px4.parameters["CAL_MAG0_ROT"] == 10 and ardu.parameters["COMPASS_ORIENT"] == 10
+    raw = one.readings_nT[0][:200]
+    body = cal.correct(
+        one.replace(
+            readings_nT=one.readings_nT[:, :200],
+            time_s=one.time_s[:200],
+            attitude_wxyz=one.attitude_wxyz[:200],
+            extra={},
+        )
+    )[0]
+    bound = px4.sensors[0].vector_error_nT
+    fw_px4 = apply_px4(px4.parameters, raw / 1e5) * 1e5
+    fw_ardu = apply_ardupilot(ardu.parameters, raw / 100.0) * 100.0
+    assert np.allclose(np.linalg.norm(fw_px4, axis=1), np.linalg.norm(body, axis=1), rtol=1e-6)
+    assert np.max(np.linalg.norm(fw_px4 - body, axis=1)) <= bound
+    assert np.allclose(fw_ardu, fw_px4, atol=1e-3)
+
+
+def test_cli_vector_mode_needs_attitude_and_a_field_vector(tmp_path, capsys):
+    truth = vehicle_truth(seed=1)
+    ds, _ = simulate_vehicle(truth, seed=1, n=300)
+    bare = ds.replace(attitude_wxyz=None)
+    _write_flight(tmp_path / "bare.csv", bare)
+    assert main(["calibrate", str(tmp_path / "bare.csv"), "--mode", "vector"]) != 0
+    assert "needs the attitude" in capsys.readouterr().err
+    no_ref = ds.replace(extra={})
+    _write_flight(tmp_path / "noref.csv", no_ref)
+    assert main(["calibrate", str(tmp_path / "noref.csv"), "--mode", "vector"]) != 0
+    assert "field vector" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "calibrate",
+                str(tmp_path / "noref.csv"),
+                "--mode",
+                "vector",
+                "--reference-vector",
+                "21000,1200,44000",
+                "--platform-terms",
+                "none",
+            ]
+        )
+        == 0
+    )
+    assert "ROLL_180_YAW_90" in capsys.readouterr().out
