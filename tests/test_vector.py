@@ -318,3 +318,69 @@ def test_cli_vector_mode_needs_attitude_and_a_field_vector(tmp_path, capsys):
         == 0
     )
     assert "ROLL_180_YAW_90" in capsys.readouterr().out
+
+
+def test_magnav_reader_and_study_on_a_synthetic_file(tmp_path):
+    """benchmarks/real/magnav_vector.py on a file with the MagNav HDF5 fields, written from the simulated vehicle
+    flying where IGRF gives the simulated field: the reader's conventions (ins_* angles, utm_z, line numbers, the
+    date from year/doy) must give back the truth."""
+    h5py = pytest.importorskip("h5py")
+    import importlib.util
+    import pathlib
+
+    script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "real" / "magnav_vector.py"
+    spec = importlib.util.spec_from_file_location("magnav_vector", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    lat, lon, alt_m = 45.3, -75.7, 5182.0
+    field = igrf_ned_nT(lat, lon, alt_m / 1000.0, "2020-07-06")[0]
+    truth = vehicle_truth(seed=21, field_ned_nT=field)
+    parts = [simulate_vehicle(truth, seed=21 + k, n=1500, attitude_noise_deg=0.05)[0] for k in range(2)]
+    fields = {
+        name: []
+        for name in (
+            "flux_d_x",
+            "flux_d_y",
+            "flux_d_z",
+            "tt",
+            "mag_1_c",
+            "ins_roll",
+            "ins_pitch",
+            "ins_yaw",
+            "lat",
+            "lon",
+            "utm_z",
+            "line",
+            "year",
+            "doy",
+        )
+    }
+    for k, ds in enumerate(parts):
+        ypr = wxyz_rotation(ds.attitude_wxyz).as_euler("ZYX", degrees=True)
+        n = ds.n_samples
+        for a, axis in enumerate("xyz"):
+            fields[f"flux_d_{axis}"].append(ds.readings_nT[0, :, a])
+        fields["tt"].append(ds.time_s + 1000.0 * k)
+        fields["mag_1_c"].append(np.full(n, np.linalg.norm(field)))
+        fields["ins_yaw"].append(ypr[:, 0])
+        fields["ins_pitch"].append(ypr[:, 1])
+        fields["ins_roll"].append(ypr[:, 2])
+        fields["lat"].append(np.full(n, lat))
+        fields["lon"].append(np.full(n, lon))
+        fields["utm_z"].append(np.full(n, alt_m))
+        fields["line"].append(np.full(n, 1006.04 if k == 0 else 1006.06))
+        fields["year"].append(np.full(n, 2020.0))
+        fields["doy"].append(np.full(n, 188.0))
+    path = tmp_path / "Flt1006_train.h5"
+    with h5py.File(path, "w") as h5:
+        for name, values in fields.items():
+            h5[name] = np.concatenate(values)
+    segments = mod.read_segments(path, ["1006.04", "1006.06"])
+    assert segments["1006.04"].metadata["date"] == "2020-07-06"
+    result = mod.study(segments, "1006.04", ["1006.06"], terms=[])
+    test = result["tests"]["1006.06"]
+    floor = np.hypot(np.sqrt(2 / 3) * np.radians(0.05) * np.linalg.norm(field), 3.0)
+    assert test["world_rms_nT"] < 1.15 * floor
+    assert test["F_vs_mag1c"]["vector"] < 4.0 and test["F_vs_igrf"]["vector"] < 4.0
+    assert test["F_vs_mag1c"]["raw"] > 100 * test["F_vs_mag1c"]["vector"]
+    assert result["calibration"]["vector"]["sensors"][0]["mounting_right_angle"].startswith("ROLL_180_YAW_90")
