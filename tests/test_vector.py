@@ -384,3 +384,43 @@ def test_magnav_reader_and_study_on_a_synthetic_file(tmp_path):
     assert test["F_vs_mag1c"]["vector"] < 4.0 and test["F_vs_igrf"]["vector"] < 4.0
     assert test["F_vs_mag1c"]["raw"] > 100 * test["F_vs_mag1c"]["vector"]
     assert result["calibration"]["vector"]["sensors"][0]["mounting_right_angle"].startswith("ROLL_180_YAW_90")
+
+
+def test_reported_standard_deviations_match_the_spread_over_seeds():
+    truth = vehicle_truth(seed=30)
+    true_cal = None
+    errors_b, errors_r, sd_b, sd_r = [], [], [], []
+    for seed in range(12):
+        ds, tr = simulate_vehicle(truth, seed=100 + seed, n=1500, attitude_noise_deg=0.05)
+        true_cal = true_cal or true_calibration(tr)
+        fit = fit_vector(ds, resolve_vector_reference(ds), terms=[]).sensors[0]
+        errors_b.append(fit.bias_nT - true_cal.sensors[0].bias_nT)
+        errors_r.append(np.degrees(Rotation.from_matrix(fit.mounting @ true_cal.sensors[0].R.T).as_rotvec()))
+        sd_b.append(fit.bias_sd_nT)
+        sd_r.append(fit.mounting_sd_deg)
+    for errors, sds in ((errors_b, sd_b), (errors_r, sd_r)):
+        ratio = np.sqrt(np.mean(np.square(errors), axis=0)) / np.mean(sds, axis=0)
+        assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
+
+
+def test_robust_fit_ignores_spikes():
+    truth = vehicle_truth(seed=9)
+    ds, tr = simulate_vehicle(truth, seed=9, n=3000)
+    other, _ = simulate_vehicle(truth, seed=10, n=3000)
+    rng = np.random.default_rng(0)
+    spikes = rng.choice(ds.n_samples, 30, replace=False)
+    readings = ds.readings_nT.copy()
+    readings[0, spikes, rng.integers(0, 3, 30)] += rng.choice([-1, 1], 30) * 5000.0
+    spiky = ds.replace(readings_nT=readings)
+    ref = resolve_vector_reference(spiky)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plain = fit_vector(spiky, ref, terms=[])
+    assert plain.sensors[0].n_outliers >= 30 and any("--robust" in str(w.message) for w in caught)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        robust = fit_vector(spiky, ref, terms=[], robust=True)
+    best, _ = _world_rms(true_calibration(tr), other)
+    ours, _ = _world_rms(robust.calibration, other)
+    spoiled, _ = _world_rms(plain.calibration, other)
+    assert ours <= 1.15 * best and spoiled > 1.3 * ours

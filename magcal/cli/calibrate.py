@@ -282,6 +282,7 @@ def run_vector(args, ds, vref, notes) -> int:
                 attitude_noise_deg=att,
                 noise_nT=checked_noise(args),
                 reference_total_nT=ds.ref_total_nT,
+                robust=args.robust,
             )
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None

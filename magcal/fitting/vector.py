@@ -62,6 +62,7 @@ class SensorVectorFit:
     W : numpy.ndarray, shape (3, 3)
         ``R C^-1``: raw reading minus bias and platform terms -> body frame.
     bias_nT : numpy.ndarray, shape (3,)
+        Bias (hard iron), nT; ``bias_sd_nT`` its standard deviation from the fit's covariance.
     mounting : numpy.ndarray, shape (3, 3)
         ``R``, the rotation of the sensor's corrected axes into the body frame.
     cinv : numpy.ndarray, shape (3, 3)
@@ -88,6 +89,12 @@ class SensorVectorFit:
         The attitude error those imply: ``sigma_perp / |B|`` (deg), or the one given.
     attitude_noise_source : str
         ``given`` or ``estimated``.
+    mounting_sd_deg : numpy.ndarray, shape (3,)
+        Standard deviation (deg) of the mounting's small rotations about the body's x, y, z axes, from the
+        covariance ``(J^T J)^-1`` of the weighted fit (the Cramer-Rao bound when the noises are right).
+    n_outliers : int
+        Samples whose residual exceeds 5 of its standard deviations (left out of the start; with ``robust``
+        the soft-L1 loss keeps them from pulling the fit).
     """
 
     W: np.ndarray
@@ -107,6 +114,9 @@ class SensorVectorFit:
     attitude_noise_deg: float
     attitude_noise_source: str
     nfev: int = 0
+    bias_sd_nT: np.ndarray | None = None
+    mounting_sd_deg: np.ndarray | None = None
+    n_outliers: int = 0
 
     def summary(self) -> dict:
         """JSON-ready figures for the calibration file's sensor entry."""
@@ -124,6 +134,9 @@ class SensorVectorFit:
             "sigma_total_field_nT": self.sigma_total_field_nT,
             "attitude_noise_deg": self.attitude_noise_deg,
             "attitude_noise_source": self.attitude_noise_source,
+            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
+            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
+            "n_outliers": self.n_outliers,
         }
 
 
@@ -174,7 +187,10 @@ class VectorFitResult:
                 f"  sensor {i + 1}:",
                 f"    mounting: {s.right_angle_text}, {s.angle_off_deg:.3f} deg off it "
                 f"(next right angle {s.orientation_margin:.1f}x worse)",
-                f"    bias (nT): {np.array2string(s.bias_nT, precision=1)}",
+                f"    bias (nT): {np.array2string(s.bias_nT, precision=1)}"
+                + ("" if s.bias_sd_nT is None else f" +- {np.array2string(s.bias_sd_nT, precision=2)}"),
+                "    mounting sd about body x, y, z (deg): "
+                + ("n/a" if s.mounting_sd_deg is None else np.array2string(s.mounting_sd_deg, precision=5)),
                 f"    vector residual RMS {s.rms_vector_nT:.2f} nT per component (perpendicular to the field "
                 f"{s.rms_perpendicular_nT:.2f} nT: attitude error {s.attitude_noise_deg:.4f} deg, "
                 f"{s.attitude_noise_source}); total-field residual RMS {s.rms_total_field_nT:.2f} nT",
@@ -245,8 +261,20 @@ def _orientation_search(y, b_body):
     return RIGHT_ANGLES[order[0]], rms, margin
 
 
-def _linear_start(y, b_body, bases):
-    """Least squares of ``y = A B_body + b + basis @ theta``: returns ``W = A^-1``, ``b``, ``theta``."""
+def _linear_start(y, b_body, bases, robust=False):
+    """Least squares of ``y = A B_body + b + basis @ theta``: returns ``W = A^-1``, ``b``, ``theta``; with
+    ``robust``, once more without the samples beyond 5 robust standard deviations."""
+    W, b, theta, resid = _linear_lstsq(y, b_body, bases, np.ones(len(y), bool))
+    if robust:
+        size = np.linalg.norm(resid, axis=1)
+        keep = size <= np.median(size) + 5 * robust_sigma(size)
+        if keep.sum() >= len(y) // 2:
+            W, b, theta, _ = _linear_lstsq(y, b_body, bases, keep)
+    return W, b, theta
+
+
+def _linear_lstsq(y, b_body, bases, keep):
+    """One least-squares solve of the linear start on the kept samples; also the residuals (N, 3) of all."""
     n = len(y)
     q = bases.shape[2] if bases is not None else 0
     design = np.zeros((n, 3, 12 + q))
@@ -255,9 +283,25 @@ def _linear_start(y, b_body, bases):
         design[:, j, 9 + j] = 1.0
     if q:
         design[:, :, 12:] = bases
-    coef, *_ = np.linalg.lstsq(design.reshape(3 * n, -1), y.reshape(-1), rcond=None)
+    coef, *_ = np.linalg.lstsq(design[keep].reshape(-1, 12 + q), y[keep].reshape(-1), rcond=None)
     a = coef[:9].reshape(3, 3)
-    return np.linalg.inv(a), coef[9:12], coef[12:]
+    resid = y - np.einsum("njk,k->nj", design, coef)
+    return np.linalg.inv(a), coef[9:12], coef[12:], resid
+
+
+def _mounting_sd_deg(W, cov_w):
+    """Standard deviations (deg) of the mounting's small rotations about the body axes, from the covariance of
+    ``W`` (9 x 9, row by row), through the QR split by finite differences."""
+    r0, _ = _split_w(W, 0)
+    g = np.empty((3, 9))
+    h = 1e-7 * max(np.abs(W).max(), 1e-12)
+    for k in range(9):
+        dw = np.zeros(9)
+        dw[k] = h
+        r1, _ = _split_w(W + dw.reshape(3, 3), 0)
+        g[:, k] = Rotation.from_matrix(r1 @ r0.T).as_rotvec() / h
+    cov = g @ cov_w @ g.T
+    return np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
 class _SensorProblem:
@@ -299,6 +343,7 @@ def fit_vector(
     attitude_noise_deg=None,
     noise_nT=None,
     reference_total_nT=None,
+    robust=False,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -318,6 +363,9 @@ def fit_vector(
     reference_total_nT : numpy.ndarray or float, optional
         The total field for the total-field residual (e.g. a scalar magnetometer's ``ref_total``); default
         ``|B_ned|``.
+    robust : bool
+        Soft-L1 loss (residuals beyond about 3 standard deviations count less), and a start without the samples
+        beyond 5: for records with spikes or drop-outs.
 
     Raises
     ------
@@ -364,7 +412,7 @@ def fit_vector(
         bases = [term_basis(t, dataset, s, column) for t in terms]
         basis = np.concatenate(bases, axis=2) if bases else None
         right, _, margin = _orientation_search(y, b_body)
-        W0, b0, theta0 = _linear_start(y, b_body, basis)
+        W0, b0, theta0 = _linear_start(y, b_body, basis, robust)
         prob = _SensorProblem(y, b_body, f_ref, basis)
         x = np.concatenate([W0.ravel(), b0, theta0])
         total, perp, _ = prob.parts(x)
@@ -377,7 +425,15 @@ def fit_vector(
         scale = np.concatenate([np.full(9, 1e-3), np.full(3, 10.0), np.ones(prob.q)])
         for rnd in range(2):
             sol = least_squares(
-                prob.residuals, x, args=(sigma_f, sigma_p), method="lm", x_scale=scale, xtol=1e-12, ftol=1e-12
+                prob.residuals,
+                x,
+                args=(sigma_f, sigma_p),
+                method="trf" if robust else "lm",
+                loss="soft_l1" if robust else "linear",
+                f_scale=3.0,
+                x_scale=scale,
+                xtol=1e-12,
+                ftol=1e-12,
             )
             x = sol.x
             total, perp, _ = prob.parts(x)
@@ -391,6 +447,21 @@ def fit_vector(
         total, perp, e = prob.parts(x)
         W, b, theta = prob.unpack(x)
         R, cinv = _split_w(W, s)
+        z = prob.residuals(x, sigma_f, sigma_p)
+        n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
+        try:
+            jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
+            s2 = float(z @ z) / max(len(z) - len(x), 1)
+            cov = s2 * jtj_inv
+            bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
+            mount_sd = _mounting_sd_deg(W, cov[:9, :9])
+        except np.linalg.LinAlgError:
+            bias_sd = mount_sd = None
+        if n_out:
+            notes.append(
+                f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
+                + ("" if robust else "; --robust keeps them from pulling the fit")
+            )
         nearest, off = nearest_right_angle(R)
         if not np.allclose(nearest, right):
             notes.append(
@@ -437,6 +508,9 @@ def fit_vector(
                 attitude_noise_deg=att_noise,
                 attitude_noise_source="given" if attitude_noise_deg is not None else "estimated",
                 nfev=int(sol.nfev),
+                bias_sd_nT=bias_sd,
+                mounting_sd_deg=mount_sd,
+                n_outliers=n_out,
             )
         )
     if eddy:
