@@ -424,3 +424,26 @@ def test_robust_fit_ignores_spikes():
     ours, _ = _world_rms(robust.calibration, other)
     spoiled, _ = _world_rms(plain.calibration, other)
     assert ours <= 1.15 * best and spoiled > 1.3 * ours
+
+
+def test_apply_to_parquet_writes_world_components_equal_to_the_csv_path(tmp_path):
+    pytest.importorskip("pyarrow")
+    import pandas as pd
+
+    from magcal.data import io as mio
+
+    truth = vehicle_truth(seed=14, eddy=True, current=True)
+    one, _ = simulate_vehicle(truth, seed=14, n=1500)
+    two, _ = simulate_vehicle(truth, seed=15, n=1500)
+    cal = fit_vector(one, resolve_vector_reference(one)).calibration
+    cal.save(tmp_path / "cal.json")
+    _write_flight(tmp_path / "two.csv", two, euler=True)
+    mio.write_parquet(tmp_path / "two.parquet", dataset_columns(two), dataset_metadata(two))
+    assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(tmp_path / "a.csv")]) == 0
+    args = ["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.parquet"), "-o", str(tmp_path / "b.parquet")]
+    assert main(args) == 0
+    a = pd.read_csv(tmp_path / "a.csv", comment="#")
+    b = pd.read_parquet(tmp_path / "b.parquet")
+    cols = ["s1x_cal", "s1y_cal", "s1z_cal", "s1n_cal", "s1e_cal", "s1d_cal"]
+    assert np.allclose(a[cols].to_numpy(), b[cols].to_numpy(), atol=0.01)  # CSV: 1 pT digits
+    assert np.allclose(b[cols[3:]].to_numpy(), cal.world(two)[0], atol=1e-6)
