@@ -447,3 +447,44 @@ def test_apply_to_parquet_writes_world_components_equal_to_the_csv_path(tmp_path
     cols = ["s1x_cal", "s1y_cal", "s1z_cal", "s1n_cal", "s1e_cal", "s1d_cal"]
     assert np.allclose(a[cols].to_numpy(), b[cols].to_numpy(), atol=0.01)  # CSV: 1 pT digits
     assert np.allclose(b[cols[3:]].to_numpy(), cal.world(two)[0], atol=1e-6)
+
+
+def _test_logs_module():
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parent / "test_logs.py"
+    spec = importlib.util.spec_from_file_location("magcal_test_logs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_ardupilot_log_with_attitude_and_battery_current_calibrates_in_vector_mode(tmp_path, capsys):
+    """A DataFlash log (ATT attitude, BAT current, MAG in whole milligauss): magcal calibrate finds the vector
+    calibration, the mounting and the field per ampere (COMPASS_MOT's quantity) from the log alone."""
+    pytest.importorskip("pymavlink")
+    logs = _test_logs_module()
+    logs._DF_FORMATS["BAT"] = (68, "QBff", "TimeUS,Inst,Volt,Curr")
+    truth = vehicle_truth(seed=17, mounting=np.eye(3), current=True)
+    ds, tr = simulate_vehicle(truth, seed=17, n=3000, attitude_noise_deg=0.02)
+    att = wxyz_rotation(ds.attitude_wxyz)
+    messages = []
+    for i in range(ds.n_samples):
+        t_us = int(1_000_000 + 100_000 * i)
+        roll, pitch, yaw = att[i].as_euler("ZYX", degrees=True)[::-1]
+        messages.append(("ATT", (t_us, 0.0, roll, 0.0, pitch, 0.0, yaw)))
+        messages.append(("BAT", (t_us - 10, 0, 22.2, float(ds.extra["current_A"][i]))))
+        mag_mG = np.round(ds.readings_nT[0, i] / 100.0).astype(int)
+        messages.append(("MAG", (t_us + 50, 0, *mag_mG, 0, 0, 0, 0, 0, 0, 1, 0)))
+    path = tmp_path / "flight.bin"
+    logs.write_dataflash(path, messages)
+    n, e, d = tr.field_ned_nT
+    args = ["calibrate", str(path), "--reference-vector", f"{n},{e},{d}", "--platform-terms", "current", "--json"]
+    assert main(args) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["mode"] == "vector" and doc["terms"] == ["current"]
+    per_amp = np.array(doc["calibration"]["platform_terms"]["current_nT_per_unit"][0])
+    assert np.max(np.abs(per_amp - tr.sensors[0].current_nT_per_unit)) < 1.0  # nT/A, of ~25
+    assert doc["sensors"][0]["mounting_rotation_number"] == 0
+    assert doc["sensors"][0]["mounting_angle_off_deg"] == pytest.approx(2.0, abs=0.1)
