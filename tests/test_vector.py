@@ -488,3 +488,35 @@ def test_ardupilot_log_with_attitude_and_battery_current_calibrates_in_vector_mo
     assert np.max(np.abs(per_amp - tr.sensors[0].current_nT_per_unit)) < 1.0  # nT/A, of ~25
     assert doc["sensors"][0]["mounting_rotation_number"] == 0
     assert doc["sensors"][0]["mounting_angle_off_deg"] == pytest.approx(2.0, abs=0.1)
+
+
+def test_px4_log_battery_current_and_vector_fit(tmp_path):
+    """A ULog with sensor_mag (sensor frame, gauss), vehicle_attitude and battery_status: the current comes in as
+    current_A (PX4's -1 'not measured' rows left out) and the vector fit finds the mounting and the nT/A."""
+    pytest.importorskip("pyulog")
+    from magcal.data.logs import read_log
+
+    logs = _test_logs_module()
+    truth = vehicle_truth(seed=19, current=True)
+    ds, tr = simulate_vehicle(truth, seed=19, n=2000, noise_nT=3.0, attitude_noise_deg=0.02)
+    t_us = (1_000_000 + 1e6 * ds.time_s).astype(np.uint64)
+    q = ds.attitude_wxyz
+    mag_rows = [(int(t), int(t), 1, *(ds.readings_nT[0, i] / 1e5), 30.0, 0, True) for i, t in enumerate(t_us)]
+    att_rows = [(int(t) - 1000, *q[i]) for i, t in enumerate(t_us)]
+    amps = ds.extra["current_A"].copy()
+    bat_rows = [(int(t) - 2000, float(a)) for t, a in zip(t_us, amps)]
+    bat_rows[5] = (bat_rows[5][0], -1.0)
+    logs.write_ulog(
+        tmp_path / "flight.ulg",
+        [
+            ("sensor_mag", 0, logs.MAG_FIELDS, mag_rows),
+            ("vehicle_attitude", 0, logs.ATT_FIELDS, att_rows),
+            ("battery_status", 0, [("uint64_t", "timestamp"), ("float", "current_a")], bat_rows),
+        ],
+    )
+    log = read_log(tmp_path / "flight.ulg")
+    assert "current_A" in log.extra and np.allclose(log.extra["current_A"][10:-10], amps[10:-10], atol=0.2)
+    res = fit_vector(log, resolve_vector_reference(log, vector=tr.field_ned_nT.tolist()), terms=["current"])
+    s = res.sensors[0]
+    assert firmware_rotation(s.right_angle) == 10 and s.angle_off_deg == pytest.approx(2.0, abs=0.05)
+    assert np.max(np.abs(s.terms["current_nT_per_unit"] - tr.sensors[0].current_nT_per_unit)) < 1.0
