@@ -255,6 +255,8 @@ def test_cli_calibrate_apply_export_in_vector_mode(tmp_path, capsys):
     assert main(["calibrate", str(tmp_path / "one.csv"), "-o", str(tmp_path / "cal.json"), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["mode"] == "vector" and doc["terms"] == ["eddy", "current"]
+    held = {tuple(r["terms"]): r["held_total_nT"] for r in doc["validation"]["rows"]}
+    assert held[("eddy", "current")] < 0.5 * held[()]  # the current's field: fitted, it carries to held-out blocks
     assert doc["sensors"][0]["mounting_right_angle"].startswith("ROLL_180_YAW_90")
     out = tmp_path / "out.csv"
     assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(out)]) == 0
@@ -289,6 +291,8 @@ def test_cli_calibrate_apply_export_in_vector_mode(tmp_path, capsys):
     assert np.allclose(np.linalg.norm(fw_px4, axis=1), np.linalg.norm(body, axis=1), rtol=1e-6)
     assert np.max(np.linalg.norm(fw_px4 - body, axis=1)) <= bound
     assert np.allclose(fw_ardu, fw_px4, atol=1e-3)
+    header = export_calibration(cal, "c")  # the C header holds the whole R C^-1: nothing dropped
+    assert not header.dropped and np.allclose(header.sensors[0].matrix, cal.sensors[0].R @ cal.sensors[0].cinv)
 
 
 def test_cli_vector_mode_needs_attitude_and_a_field_vector(tmp_path, capsys):
@@ -520,3 +524,26 @@ def test_px4_log_battery_current_and_vector_fit(tmp_path):
     s = res.sensors[0]
     assert firmware_rotation(s.right_angle) == 10 and s.angle_off_deg == pytest.approx(2.0, abs=0.05)
     assert np.max(np.abs(s.terms["current_nT_per_unit"] - tr.sensors[0].current_nT_per_unit)) < 1.0
+
+
+@pytest.mark.parametrize("with_terms", [True, False])
+def test_held_out_check_judges_the_platform_terms(with_terms):
+    from magcal.fitting.vector import validate_vector
+
+    truth = vehicle_truth(seed=7, eddy=with_terms, current=with_terms)
+    ds, _ = simulate_vehicle(truth, seed=7, n=4000)
+    if not with_terms:  # the same channels, no platform field in the readings
+        ds.extra["current_A"] = simulate_vehicle(vehicle_truth(seed=7, current=True), seed=7, n=4000)[0].extra[
+            "current_A"
+        ]
+    v = validate_vector(ds, resolve_vector_reference(ds))
+    rows = {tuple(r["terms"]): r for r in v.rows}
+    assert set(rows) == {(), ("eddy",), ("current",), ("eddy", "current")}
+    base, full = rows[()], rows[("eddy", "current")]
+    if with_terms:
+        assert full["held_total_nT"] < 0.2 * base["held_total_nT"]
+        assert full["held_vector_nT"] < 0.5 * base["held_vector_nT"]
+        assert full["held_total_nT"] < 1.1 * 3.0  # at the sensor noise
+    else:
+        assert full["held_total_nT"] > 0.98 * base["held_total_nT"]  # nothing to gain on new data
+    assert "held out" in v.text()

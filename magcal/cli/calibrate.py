@@ -44,7 +44,7 @@ from magcal.data.attitude import attitude_source
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.validation import validate_effects
-from magcal.fitting.vector import fit_vector
+from magcal.fitting.vector import fit_vector, validate_vector
 from magcal.model.platform_terms import TERMS as PLATFORM_TERMS
 from magcal.model.terms import check_effect_names
 
@@ -150,8 +150,8 @@ def add_arguments(parser) -> None:
         "--no-validate",
         dest="validate",
         action="store_false",
-        help="with --effects: skip the held-out RMS of the base model and of the model with the "
-        "effects (fitted on alternating blocks in time, scored on the blocks between)",
+        help="with --effects (or vector mode with platform terms): skip the held-out RMS of the base model and "
+        "of the model with the effects (fitted on alternating blocks in time, scored on the blocks between)",
     )
     add_noise_argument(parser)
 
@@ -288,6 +288,20 @@ def run_vector(args, ds, vref, notes) -> int:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
     result.calibration.fitted_on(ds)
+    validation = None
+    if result.terms and getattr(args, "validate", True):
+        try:
+            validation = validate_vector(
+                ds,
+                vref,
+                terms=result.terms,
+                attitude_noise_deg=att,
+                noise_nT=checked_noise(args),
+                reference_total_nT=ds.ref_total_nT,
+                robust=args.robust,
+            )
+        except CalibrationError as exc:
+            notes.append(f"held-out validation not done: {exc}")
     for note in dict.fromkeys(notes):
         print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     if args.output:
@@ -295,11 +309,15 @@ def run_vector(args, ds, vref, notes) -> int:
     if args.json:
         doc = result.to_dict()
         doc["calibration"] = result.calibration.to_dict()
+        if validation is not None:
+            doc["validation"] = validation.to_dict()
         doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         sys.stdout.write(result.text())
+        if validation is not None:
+            sys.stdout.write(validation.text())
         if args.output:
             print(f"\nsaved the calibration to {args.output}")
     return 0

@@ -344,6 +344,7 @@ def fit_vector(
     noise_nT=None,
     reference_total_nT=None,
     robust=False,
+    mask=None,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -366,6 +367,9 @@ def fit_vector(
     robust : bool
         Soft-L1 loss (residuals beyond about 3 standard deviations count less), and a start without the samples
         beyond 5: for records with spikes or drop-outs.
+    mask : numpy.ndarray of bool, shape (N,), optional
+        The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
+        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact.
 
     Raises
     ------
@@ -391,25 +395,28 @@ def fit_vector(
                 + ")"
             )
     n_par = 12 + sum(n_params(t) for t in terms)
-    if dataset.n_samples < max(MIN_SAMPLES, n_par):
+    keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if keep.shape != (dataset.n_samples,):
+        raise CalibrationError(f"mask has shape {keep.shape}, expected ({dataset.n_samples},)")
+    if keep.sum() < max(MIN_SAMPLES, n_par):
         raise CalibrationError(
-            f"{dataset.source or 'data'}: {dataset.n_samples} samples are too few for a vector fit of {n_par} "
+            f"{dataset.source or 'data'}: {int(keep.sum())} samples are too few for a vector fit of {n_par} "
             "parameters per sensor; record more"
         )
-    b_body = body_reference_nT(rotation, ned)
+    b_body = body_reference_nT(rotation, ned)[keep]
     f_ref = (
         np.linalg.norm(ned, axis=1)
         if reference_total_nT is None
         else np.broadcast_to(np.asarray(reference_total_nT, dtype=float), (dataset.n_samples,))
-    )
+    )[keep]
     column = current_column(dataset) if "current" in terms else None
     notes = []
     fits = []
     platform = PlatformTerms(current_column=column)
     eddy, current = [], []
     for s in range(dataset.n_sensors):
-        y = dataset.readings_nT[s]
-        bases = [term_basis(t, dataset, s, column) for t in terms]
+        y = dataset.readings_nT[s][keep]
+        bases = [term_basis(t, dataset, s, column)[keep] for t in terms]
         basis = np.concatenate(bases, axis=2) if bases else None
         right, _, margin = _orientation_search(y, b_body)
         W0, b0, theta0 = _linear_start(y, b_body, basis, robust)
@@ -518,7 +525,7 @@ def fit_vector(
     if current:
         platform.current_nT_per_unit = np.array(current)
     sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
-    tilt = _tilt_range_deg(rotation)
+    tilt = _tilt_range_deg(rotation[np.flatnonzero(keep)])
     if tilt < 5:
         notes.append(
             f"the body tilted at most {tilt:.1f} deg: the vertical axis's scale and the bias along it rest on few "
@@ -538,7 +545,7 @@ def fit_vector(
         reference=reference,
         terms=terms,
         warnings=notes,
-        n_samples=dataset.n_samples,
+        n_samples=int(keep.sum()),
         wall_s=time.perf_counter() - start,
     )
     cal.summary = {"vector_fit": result.to_dict()}
@@ -575,3 +582,86 @@ def true_calibration(truth) -> Calibration:
         mode="vector",
         platform=platform if platform.names else None,
     )
+
+
+@dataclass
+class VectorValidation:
+    """Held-out figures of vector fits with and without platform terms (:func:`validate_vector`).
+
+    Attributes
+    ----------
+    n_blocks : int
+        Blocks in time: the fits use the even ones, the figures ``held_*`` come from the odd ones.
+    rows : list of dict
+        Per model (``terms``: the platform terms fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
+        components against the reference, RMS per component) and ``in_total_nT`` / ``held_total_nT`` (|B| against
+        the reference total field), all sensors together.
+    """
+
+    n_blocks: int
+    rows: list
+
+    def text(self) -> str:
+        lines = [
+            f"  held-out check (fitted on the even of {self.n_blocks} blocks in time, scored on the odd ones; "
+            "world components and |B| against the reference, RMS in nT):"
+        ]
+        for r in self.rows:
+            name = ", ".join(r["terms"]) or "no platform terms"
+            lines.append(
+                f"    {name:28s} vector {r['in_vector_nT']:.2f} in / {r['held_vector_nT']:.2f} held out; "
+                f"|B| {r['in_total_nT']:.2f} in / {r['held_total_nT']:.2f} held out"
+            )
+        return "\n".join(lines) + "\n"
+
+    def to_dict(self) -> dict:
+        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
+
+
+def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> VectorValidation:
+    """Fit on alternate blocks in time and score on the blocks between: the base vector model and the model with
+    the platform terms (each term alone too when there are several), so that a term that only fits this record
+    shows (its held-out figures do not fall).
+
+    Parameters
+    ----------
+    dataset, reference
+        As for :func:`fit_vector` (the dataset needs its attitude).
+    terms : sequence of str, optional
+        The platform terms (default: every one the data support).
+    n_blocks : int
+        Blocks in time (at least 4).
+    **options
+        Passed to :func:`fit_vector` (``attitude_noise_deg``, ``noise_nT``, ``reference_total_nT``, ``robust``).
+    """
+    n = dataset.n_samples
+    n_blocks = max(4, int(n_blocks))
+    train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
+    terms = available_terms(dataset) if terms is None else list(terms)
+    models = [[]] + ([[t] for t in terms] if len(terms) > 1 else []) + ([terms] if terms else [])
+    rotation = dataset_attitude(dataset)
+    ned = np.asarray(reference.ned_nT, dtype=float)
+    f_ref = options.get("reference_total_nT")
+    f_ref = np.linalg.norm(ned, axis=1) if f_ref is None else np.broadcast_to(np.asarray(f_ref, float), (n,))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for model in models:
+            cal = fit_vector(dataset, reference, terms=model, mask=train, **options).calibration
+            world = np.stack([rotation.apply(b) for b in cal.correct(dataset)])
+            err = world - ned[None]
+            total = np.linalg.norm(world, axis=2) - f_ref[None]
+
+            def rms(values, part):
+                return float(np.sqrt(np.mean(values[:, part] ** 2)))
+
+            rows.append(
+                {
+                    "terms": list(model),
+                    "in_vector_nT": rms(err, train),
+                    "held_vector_nT": rms(err, ~train),
+                    "in_total_nT": rms(total, train),
+                    "held_total_nT": rms(total, ~train),
+                }
+            )
+    return VectorValidation(n_blocks, rows)
