@@ -423,10 +423,10 @@ def fit_vector(
         prob = _SensorProblem(y, b_body, f_ref, basis)
         x = np.concatenate([W0.ravel(), b0, theta0])
         total, perp, _ = prob.parts(x)
-        field = float(np.median(f_ref))
+        field_nT = float(np.median(f_ref))
         sigma_f = noise_nT if noise_nT is not None else max(robust_sigma(total), 1e-3)
         if attitude_noise_deg is not None:
-            sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field, sigma_f))
+            sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
         else:
             sigma_p = max(robust_sigma(perp.ravel()), 1e-3)
         scale = np.concatenate([np.full(9, 1e-3), np.full(3, 10.0), np.ones(prob.q)])
@@ -494,7 +494,7 @@ def fit_vector(
         att_noise = (
             float(attitude_noise_deg)
             if attitude_noise_deg is not None
-            else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field))
+            else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field_nT))
         )
         fits.append(
             SensorVectorFit(
