@@ -547,3 +547,13 @@ def test_held_out_check_judges_the_platform_terms(with_terms):
     else:
         assert full["held_total_nT"] > 0.98 * base["held_total_nT"]  # nothing to gain on new data
     assert "held out" in v.text()
+
+
+def test_simulated_attitude_error_has_its_size_and_correlation_time():
+    truth = vehicle_truth(seed=4)
+    ds, tr = simulate_vehicle(truth, seed=4, n=20000, rate_hz=10.0, attitude_noise_deg=0.1, attitude_tau_s=2.0)
+    err = np.degrees((wxyz_rotation(tr.attitude_wxyz).inv() * wxyz_rotation(ds.attitude_wxyz)).as_rotvec())
+    assert np.std(err, axis=0) == pytest.approx([0.1] * 3, rel=0.1)
+    lag = 20  # 2 s = tau: correlation 1/e
+    corr = [np.corrcoef(err[:-lag, k], err[lag:, k])[0, 1] for k in range(3)]
+    assert np.allclose(corr, np.exp(-1.0), atol=0.08)

@@ -114,6 +114,7 @@ def simulate_vehicle(
     noise_nT=3.0,
     attitude_noise_deg=0.02,
     seed=0,
+    attitude_tau_s=0.0,
     **truth_options,
 ):
     """A vehicle's record: readings, measured attitude, times, the field vector and (with a current term) the
@@ -133,7 +134,11 @@ def simulate_vehicle(
     noise_nT : float
         Sensor noise per axis (nT, 1 sigma).
     attitude_noise_deg : float
-        Attitude error per axis (deg, 1 sigma, white) of the recorded attitude.
+        Attitude error per axis (deg, 1 sigma) of the recorded attitude.
+    attitude_tau_s : float
+        Correlation time (s) of the attitude error: 0 (default) for white errors, otherwise a first-order
+        Gauss-Markov process of that time constant and ``attitude_noise_deg`` standard deviation (an INS's slowly
+        wandering error).
     seed : int
         Seed of the trajectory's phases and of the noise.
 
@@ -153,7 +158,15 @@ def simulate_vehicle(
     roll = roll_max_deg * np.sin(2 * np.pi * t / (span / (turns * 2.3)) + phase[1])
     pitch = pitch_max_deg * np.sin(2 * np.pi * t / (span / (turns * 1.7)) + phase[2])
     true_att = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]), degrees=True)
-    noise_rot = Rotation.from_rotvec(rng.normal(0.0, np.radians(attitude_noise_deg), (n, 3)))
+    white = rng.normal(0.0, np.radians(attitude_noise_deg), (n, 3))
+    if attitude_tau_s > 0:
+        a = np.exp(-1.0 / (rate_hz * attitude_tau_s))
+        err = np.empty_like(white)
+        err[0] = white[0]
+        for i in range(1, n):
+            err[i] = a * err[i - 1] + np.sqrt(1.0 - a * a) * white[i]
+        white = err
+    noise_rot = Rotation.from_rotvec(white)
     measured = true_att * noise_rot
     b_body = true_att.inv().apply(truth.field_ned_nT)
     current = 12.0 + 8.0 * np.sin(2 * np.pi * t / (span / 11.0) + phase[3]) + rng.normal(0.0, 0.5, n)
