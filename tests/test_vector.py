@@ -557,3 +557,30 @@ def test_simulated_attitude_error_has_its_size_and_correlation_time():
     lag = 20  # 2 s = tau: correlation 1/e
     corr = [np.corrcoef(err[:-lag, k], err[lag:, k])[0, 1] for k in range(3)]
     assert np.allclose(corr, np.exp(-1.0), atol=0.08)
+
+
+def test_the_diagnosis_proposes_the_current_field_and_the_fit_recovers_it():
+    """The current's field is also a catalogue effect: a scalar record with a current_A column and a hidden
+    current field is diagnosed with it, and calibrating with it recovers the nT/A; without the column it is not
+    a candidate."""
+    import magcal
+    from magcal.data.simulation import chi2017_truth, simulate_timeseries
+    from magcal.model.terms import EFFECTS
+
+    effect = EFFECTS["current_field"]()
+    ds = simulate_timeseries(
+        chi2017_truth(1), n_samples=1500, noise_nT=3.0, seed=3, perturbations=[effect.perturbation(8.0)]
+    )
+    assert "current_A" in ds.extra
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        d = magcal.diagnose(ds)
+    assert d.explained_by and d.explained_by[0].startswith("current_field"), d.explained_by
+    res = magcal.calibrate(ds, effects=["current_field"])
+    (k,) = [v for label, v in res.calibration.effect_values.items() if label.startswith("current_field")]
+    assert np.allclose(k, effect.true_params(8.0, 0), atol=0.3)  # nT/A
+    bare = ds.replace(extra={})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        names = {c.effect for c in magcal.diagnose(bare).candidates}
+    assert "current_field" not in names

@@ -25,22 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import MagcalError
-from magcal.model.effects import time_derivative
+from magcal.model.effects import CURRENT_COLUMNS, current_column, time_derivative
 
 #: Platform term names.
 TERMS = ("eddy", "current")
 
-#: Columns a ``current`` term reads, the first present wins, and their units.
-CURRENT_COLUMNS = {"current_A": "A", "throttle": "unit of throttle"}
-
-
-def current_column(dataset) -> str | None:
-    """The current or throttle column of the dataset (``current_A``, else ``throttle``), or None."""
-    for name in CURRENT_COLUMNS:
-        value = dataset.extra.get(name)
-        if value is not None and np.asarray(value).dtype.kind in "fiu":
-            return name
-    return None
+__all__ = ["CURRENT_COLUMNS", "PlatformTerms", "TERMS", "available_terms", "current_column", "term_basis"]
 
 
 def available_terms(dataset) -> list[str]:
