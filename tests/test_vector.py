@@ -394,10 +394,15 @@ def test_reported_standard_deviations_match_the_spread_over_seeds():
     truth = vehicle_truth(seed=30)
     true_cal = None
     errors_b, errors_r, sd_b, sd_r = [], [], [], []
+    probe, _ = simulate_vehicle(truth, seed=99, n=50, roll_max_deg=60, pitch_max_deg=40)  # directions off the cone
+    fields, field_sd = [], []
     for seed in range(12):
         ds, tr = simulate_vehicle(truth, seed=100 + seed, n=1500, attitude_noise_deg=0.05)
         true_cal = true_cal or true_calibration(tr)
-        fit = fit_vector(ds, resolve_vector_reference(ds), terms=[]).sensors[0]
+        result = fit_vector(ds, resolve_vector_reference(ds), terms=[])
+        fit = result.sensors[0]
+        fields.append(result.calibration.correct(probe)[0])
+        field_sd.append(result.calibration.uncertainty(probe)["vector_sd_nT"][0])
         errors_b.append(fit.bias_nT - true_cal.sensors[0].bias_nT)
         errors_r.append(np.degrees(Rotation.from_matrix(fit.mounting @ true_cal.sensors[0].R.T).as_rotvec()))
         sd_b.append(fit.bias_sd_nT)
@@ -405,6 +410,10 @@ def test_reported_standard_deviations_match_the_spread_over_seeds():
     for errors, sds in ((errors_b, sd_b), (errors_r, sd_r)):
         ratio = np.sqrt(np.mean(np.square(errors), axis=0)) / np.mean(sds, axis=0)
         assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
+    # the calibration's error bars on the corrected field (magcal apply --uncertainty), against the spread
+    spread = np.std(fields, axis=0, ddof=1)
+    ratio = np.sqrt(np.mean(spread**2)) / np.sqrt(np.mean(np.mean(field_sd, axis=0) ** 2))
+    assert 0.6 < ratio < 1.6, ratio
 
 
 def test_robust_fit_ignores_spikes():
@@ -451,6 +460,10 @@ def test_apply_to_parquet_writes_world_components_equal_to_the_csv_path(tmp_path
     cols = ["s1x_cal", "s1y_cal", "s1z_cal", "s1n_cal", "s1e_cal", "s1d_cal"]
     assert np.allclose(a[cols].to_numpy(), b[cols].to_numpy(), atol=0.01)  # CSV: 1 pT digits
     assert np.allclose(b[cols[3:]].to_numpy(), cal.world(two)[0], atol=1e-6)
+    args = ["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(tmp_path / "c.csv")]
+    assert main(args + ["--uncertainty"]) == 0  # the vector fit's covariance of R C^-1 and b, in the file
+    c = pd.read_csv(tmp_path / "c.csv", comment="#")
+    assert np.all((c["s1_F_sd"] > 0) & (c["s1_F_sd"] < 5)) and np.allclose(c[cols].to_numpy(), a[cols].to_numpy())
 
 
 def _test_logs_module():

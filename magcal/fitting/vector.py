@@ -37,6 +37,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -414,6 +415,7 @@ def fit_vector(
     fits = []
     platform = PlatformTerms(current_column=column)
     eddy, current = [], []
+    theta_cov = []  # per sensor: the covariance of W = R C^-1 (row by row) and the bias, the calibration's base_covariance
     for s in range(dataset.n_sensors):
         y = dataset.readings_nT[s][keep]
         bases = [term_basis(t, dataset, s, column)[keep] for t in terms]
@@ -462,6 +464,7 @@ def fit_vector(
             cov = s2 * jtj_inv
             bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
             mount_sd = _mounting_sd_deg(W, cov[:9, :9])
+            theta_cov.append(cov[:12, :12])
         except np.linalg.LinAlgError:
             bias_sd = mount_sd = None
         if n_out:
@@ -538,6 +541,7 @@ def fit_vector(
         frame="body",
         mode="vector",
         platform=platform if platform.names else None,
+        base_covariance=scipy.linalg.block_diag(*theta_cov) if len(theta_cov) == dataset.n_sensors else None,
     )
     result = VectorFitResult(
         calibration=cal,
