@@ -197,7 +197,8 @@ class VectorFitResult:
                 f"{s.attitude_noise_source}); total-field residual RMS {s.rms_total_field_nT:.2f} nT",
             ]
             if "eddy_ms" in s.terms:
-                lines.append(f"    eddy currents E (ms): {np.array2string(s.terms['eddy_ms'], precision=4)}")
+                rows = "; ".join(" ".join(f"{v:.3f}" for v in row) for row in s.terms["eddy_ms"])
+                lines.append(f"    eddy currents E (ms, rows x; y; z): [{rows}]")
             if "current_nT_per_unit" in s.terms:
                 lines.append(
                     f"    field per unit of {self.calibration.platform.current_column} (nT): "
