@@ -597,3 +597,28 @@ def test_the_diagnosis_proposes_the_current_field_and_the_fit_recovers_it():
         warnings.simplefilter("ignore")
         names = {c.effect for c in magcal.diagnose(bare).candidates}
     assert "current_field" not in names
+
+
+def test_apply_writes_the_tensor_in_world_coordinates_for_the_four_sensor_cross(tmp_path):
+    import pandas as pd
+
+    from magcal.core import conventions
+
+    truth = vehicle_truth(seed=23, n_sensors=4)
+    one, _ = simulate_vehicle(truth, seed=23, n=800)
+    two, _ = simulate_vehicle(truth, seed=24, n=400)
+    one, two = one.replace(baseline_m=0.5), two.replace(baseline_m=0.5)
+    cal = fit_vector(one, resolve_vector_reference(one), terms=[]).calibration
+    assert cal.baseline_m == 0.5
+    cal.save(tmp_path / "cal.json")
+    _write_flight(tmp_path / "two.csv", two)
+    assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(tmp_path / "o.csv")]) == 0
+    out = pd.read_csv(tmp_path / "o.csv", comment="#")
+    g_world = cal.world_tensor(two)
+    for name, (i, j) in zip(
+        ("Gnn", "Gne", "Gnd", "Gee", "Ged", "Gdd"), ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    ):
+        assert np.allclose(out[name], g_world[:, i, j], atol=2e-3), name
+    g_body = conventions.tensor_matrix(cal.tensor(two))
+    assert np.allclose(np.linalg.norm(g_world, axis=(1, 2)), np.linalg.norm(g_body, axis=(1, 2)))  # a rotation
+    assert {"s4n_cal", "s4e_cal", "s4d_cal"} <= set(out.columns)
