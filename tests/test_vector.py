@@ -220,20 +220,26 @@ def test_vector_calibration_json_round_trip_and_old_files_load_as_scalar(tmp_pat
         Calibration.from_dict(doc)
 
 
-def test_world_tensor_is_the_body_tensor_turned():
-    truth = vehicle_truth(seed=2, n_sensors=4)
-    flight, _ = simulate_vehicle(truth, seed=2, n=300)
-    flight = flight.replace(baseline_m=0.5)
-    cal = fit_vector(flight, resolve_vector_reference(flight), terms=[]).calibration
-    cal.baseline_m = 0.5
+def test_world_tensor_of_the_cross_recovers_a_world_gradient():
+    """Four sensors on the vehicle, calibrated in a uniform field, then flown through a field with a gradient G
+    (nT/m, NED): the tensor in world coordinates is G. The cross lies along sensor 1's axes (mounted
+    ROLL_180_YAW_90): without turning the body-frame vectors into the cross's frame, eq. 1 would mix the axes."""
+    grad = np.array([[20.0, 5.0, -3.0], [5.0, -8.0, 4.0], [-3.0, 4.0, -12.0]])
+    truth = vehicle_truth(seed=23, n_sensors=4)
+    one, _ = simulate_vehicle(truth, seed=23, n=4000, baseline_m=0.5)
+    two, tr = simulate_vehicle(truth, seed=24, n=4000, baseline_m=0.5, gradient_ned_nT_per_m=grad)
+    cal = fit_vector(one, resolve_vector_reference(one), terms=[]).calibration
+    g_world = cal.world_tensor(two)
+    assert np.max(np.abs(g_world.mean(axis=0) - grad)) < 0.6  # noise of the mean ~0.2 nT/m
+    truth_cal = true_calibration(tr)
+    truth_cal.baseline_m = 0.5
+    assert np.max(np.abs(truth_cal.world_tensor(two).mean(axis=0) - grad)) < 0.6
+    # in the cross's frame the same tensor, turned by the attitude and sensor 1's mounting
     from magcal.core import conventions
 
-    g_body = conventions.tensor_matrix(cal.tensor(flight))
-    g_world = cal.world_tensor(flight)
-    r = attitude(flight).as_matrix()
-    k = 123
-    assert np.allclose(g_world[k], r[k] @ g_body[k] @ r[k].T)
-    assert np.allclose(np.trace(g_world, axis1=1, axis2=2), np.trace(g_body, axis1=1, axis2=2))
+    g_cross = conventions.tensor_matrix(cal.tensor(two))
+    r = attitude(two).as_matrix() @ cal.tensor_frame()
+    assert np.allclose(g_world[7], r[7] @ g_cross[7] @ r[7].T)
 
 
 def _write_flight(path, ds, euler=False):

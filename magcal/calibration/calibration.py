@@ -416,17 +416,6 @@ class Calibration:
         body = self.correct(dataset, record_terms) if corrected is None else corrected
         return np.stack([rotation.apply(b) for b in body])
 
-    def world_tensor(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
-        """The gradient tensor in the world (north-east-down) frame, (N, 3, 3) nT/m: ``G_world = R G_body R^T``
-        with ``R`` the attitude (four sensors, a vector calibration and attitude)."""
-        comps = self.tensor(dataset, corrected, record_terms)
-        g = conventions.tensor_matrix(comps)
-        rotation = attitude(dataset)
-        if rotation is None or self.mode != "vector":
-            raise MagcalError("the tensor in world coordinates needs a vector calibration and the data's attitude")
-        r = rotation.as_matrix()
-        return np.einsum("nij,njk,nlk->nil", r, g, r)
-
     def total_field(self, dataset, record_terms=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT (``record_terms`` as in :meth:`correct`)."""
         return row_norm(self.correct(dataset, record_terms))
@@ -458,12 +447,33 @@ class Calibration:
 
         return field_uncertainty(self, dataset, corrected, record_terms)
 
+    def tensor_frame(self) -> np.ndarray:
+        """Rotation (3, 3) from the cross's own frame (the frame of eq. 1, in which sensor 1 sits at +x, 2 at +y, 3 at
+        -x, 4 at -y) into this calibration's frame: the identity for a total-field calibration (its frame is
+        sensor 1's), sensor 1's mounting ``R`` for a vector calibration (its frame is the vehicle's body; the cross
+        is taken to lie along sensor 1's axes, as in the seed's convention)."""
+        return self.sensors[0].R if self.mode == "vector" else np.eye(3)
+
     def tensor(self, dataset, corrected=None, record_terms=None) -> dict:
-        """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline."""
+        """Gradient tensor components (eq. 1) in nT/m from corrected vectors, in the cross's own frame
+        (:meth:`tensor_frame`); needs four sensors and a baseline."""
         if self.n_sensors != 4 or not self.baseline_m:
             raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
         vectors = self.correct(dataset, record_terms) if corrected is None else corrected
+        if self.mode == "vector":
+            vectors = np.asarray(vectors) @ self.tensor_frame()  # body -> the cross's frame: v_cross = A^T v
         return conventions.tensor_components(vectors, self.baseline_m)
+
+    def world_tensor(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """The gradient tensor in the world (north-east-down) frame, (N, 3, 3) nT/m: ``G_world = R A G A^T R^T`` with
+        ``G`` the cross-frame tensor (:meth:`tensor`), ``A`` the cross's frame in the body (:meth:`tensor_frame`)
+        and ``R`` the attitude (four sensors, a vector calibration and attitude)."""
+        rotation = attitude(dataset)
+        if rotation is None or self.mode != "vector":
+            raise MagcalError("the tensor in world coordinates needs a vector calibration and the data's attitude")
+        g = conventions.tensor_matrix(self.tensor(dataset, corrected, record_terms))
+        r = rotation.as_matrix() @ self.tensor_frame()
+        return np.einsum("nij,njk,nlk->nil", r, g, r)
 
     # --- JSON -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:

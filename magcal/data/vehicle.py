@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from magcal.core.conventions import sensor_positions
 from magcal.data.dataset import Dataset
 
 #: A mid-latitude field (nT, north-east-down): |B| about 48 700 nT, inclination 64 deg.
@@ -115,6 +116,8 @@ def simulate_vehicle(
     attitude_noise_deg=0.02,
     seed=0,
     attitude_tau_s=0.0,
+    baseline_m=None,
+    gradient_ned_nT_per_m=None,
     **truth_options,
 ):
     """A vehicle's record: readings, measured attitude, times, the field vector and (with a current term) the
@@ -141,6 +144,12 @@ def simulate_vehicle(
         wandering error).
     seed : int
         Seed of the trajectory's phases and of the noise.
+    baseline_m : float, optional
+        For four sensors: the cross's baseline (m); the sensors sit at +x, +y, -x, -y of the cross's frame, which is
+        sensor 1's mounting in the body (:func:`magcal.core.conventions.sensor_positions`). Stored in the dataset.
+    gradient_ned_nT_per_m : array_like, shape (3, 3), optional
+        A uniform gradient of the field in the world frame (nT/m, symmetric and traceless for a source-free field):
+        the field at a sensor is ``B_ned + G r``, ``r`` its position in NED relative to the cross's centre.
 
     Returns
     -------
@@ -168,11 +177,16 @@ def simulate_vehicle(
         white = err
     noise_rot = Rotation.from_rotvec(white)
     measured = true_att * noise_rot
-    b_body = true_att.inv().apply(truth.field_ned_nT)
+    n_sensors = len(truth.sensors)
+    positions = np.zeros((n_sensors, 3)) if not baseline_m else sensor_positions(baseline_m, n_sensors)
+    grad = np.zeros((3, 3)) if gradient_ned_nT_per_m is None else np.asarray(gradient_ned_nT_per_m, dtype=float)
+    cross_in_body = truth.sensors[0].mounting
     current = 12.0 + 8.0 * np.sin(2 * np.pi * t / (span / 11.0) + phase[3]) + rng.normal(0.0, 0.5, n)
     current = np.clip(current + 4.0 * (np.floor(t / (span / 9.0)) % 2), 0.0, None)
     readings = []
-    for s in truth.sensors:
+    for k, s in enumerate(truth.sensors):
+        r_ned = true_att.apply(cross_in_body @ positions[k])  # the sensor's position in NED, m
+        b_body = true_att.inv().apply(truth.field_ned_nT + r_ned @ grad.T)
         y0 = b_body @ (s.matrix @ s.mounting.T).T + s.bias_nT
         if s.current_nT_per_unit is not None:
             y0 = y0 + current[:, None] * s.current_nT_per_unit[None, :]
@@ -190,6 +204,7 @@ def simulate_vehicle(
         attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]),
         extra=extra,
         noise_nT=None,
+        baseline_m=baseline_m,
         source="simulated vehicle",
     )
     tq = true_att.as_quat()

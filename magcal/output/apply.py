@@ -141,7 +141,7 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
     tensor = calibration.n_sensors == 4 and calibration.baseline_m
     if tensor:
-        comps = conventions.tensor_components(vectors, calibration.baseline_m)
+        comps = calibration.tensor(dataset, vectors)  # in the cross's own frame (a vector calibration's too)
         parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
         i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
         parts.append(np.column_stack([i0, i1, i2]))
