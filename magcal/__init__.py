@@ -57,6 +57,10 @@ _PUBLIC = {
     "Calibration": "magcal.calibration.calibration",
     "SensorCalibration": "magcal.calibration.calibration",
     "Diagnosis": "magcal.diagnosis",
+    "fit_vector": "magcal.fitting.vector",
+    "VectorFitResult": "magcal.fitting.vector",
+    "resolve_vector_reference": "magcal.checks.reference",
+    "simulate_vehicle": "magcal.data.vehicle",
     "fit": "magcal.fitting.fitter",
     "FitResult": "magcal.fitting.fitter",
     # the model and its effects

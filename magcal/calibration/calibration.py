@@ -20,8 +20,10 @@ from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.vectors import basis_times, row_norm
+from magcal.data.attitude import attitude
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
+from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import (
     BASE_TERMS,
     EFFECTS,
@@ -231,6 +233,13 @@ class Calibration:
         parameters (in the model's order; 12 n_sensors square for the base model) from the fit
         (:func:`magcal.calibration.uncertainty.base_covariance`), saved with the file; :meth:`uncertainty` carries it to the
         corrected field and the tensor. None without a maximum-likelihood fit.
+    mode : str
+        ``"scalar"`` (a total-field fit: the corrected vectors are in the array frame, turned by a gauge) or
+        ``"vector"`` (a fit with attitude and the field vector, :mod:`magcal.fitting.vector`: each sensor's ``R``
+        is its mounting into the vehicle's body frame, and :meth:`world` gives north-east-down components).
+    platform : PlatformTerms or None
+        The platform's fields a vector fit found (eddy currents, a field per ampere or per unit of throttle),
+        subtracted from the raw readings before the correction.
     summary : dict
         Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
         Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
@@ -246,6 +255,8 @@ class Calibration:
     frame: str = "sensor1"
     summary: dict = field(default_factory=dict)
     base_covariance: np.ndarray | None = None
+    mode: str = "scalar"
+    platform: PlatformTerms | None = None
 
     @property
     def n_sensors(self) -> int:
@@ -266,6 +277,11 @@ class Calibration:
                     f"the calibration includes {', '.join(self.model.effect_labels)}, which need "
                     f"{', '.join(sorted(missing))}; the data{where} lack them"
                 )
+        if self.platform is not None and self.platform.missing(dataset):
+            raise MagcalError(
+                f"the calibration holds the platform term(s) {', '.join(self.platform.names)}, which need "
+                f"{', '.join(self.platform.missing(dataset))}; the data{where} lack them"
+            )
 
     # --- the record it was fitted on ------------------------------------------------------------------------
     @property
@@ -436,8 +452,37 @@ class Calibration:
         for the engine's steps, which pass notes back as values."""
         self.check(dataset)
         model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        dataset = self._without_platform(dataset)
         vectors = corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
         return vectors, notes
+
+    def _without_platform(self, dataset):
+        """The dataset with the platform terms' field taken out of the readings (unchanged without any)."""
+        if self.platform is None or not self.platform.names:
+            return dataset
+        return dataset.replace(readings_nT=dataset.readings_nT - self.platform.offsets_nT(dataset))
+
+    def world(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> np.ndarray:
+        """Corrected field vectors in the world (north-east-down) frame, (n_sensors, N, 3) in nT.
+
+        Needs a vector calibration (``mode == "vector"``: body-frame vectors) and the data's attitude
+        (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED): ``B_ned = R(q) B_body`` (``data``,
+        ``record_terms``, ``t``, ``temp`` as in :meth:`correct`).
+        """
+        dataset, _ = self._as_dataset(data, t, temp)
+        if self.mode != "vector":
+            raise MagcalError(
+                "world components need a vector calibration (magcal calibrate --mode vector, with attitude and a "
+                "reference field vector): a total-field calibration leaves the sensor's rotation unknown"
+            )
+        rotation = attitude(dataset)
+        if rotation is None:
+            raise MagcalError(
+                f"the data {dataset.source or ''} have no attitude (qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg): "
+                "world components need it"
+            )
+        body = self.correct(dataset, record_terms) if corrected is None else corrected
+        return np.stack([rotation.apply(b) for b in body])
 
     def total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT, or (N,) for one sensor's ``(N, 3)`` array (``data``,
@@ -465,7 +510,7 @@ class Calibration:
         ctxs = contexts(dataset, self.baseline_m)
         if corrected is None:
             self.check(dataset)
-            corrected = corrected_fields(dataset, sensors, model, self.effect_values, ctxs)
+            corrected = corrected_fields(self._without_platform(dataset), sensors, model, self.effect_values, ctxs)
         expected = expected_total_field(dataset, self.reference_total_nT, model, self.effect_values, ctxs)
         return row_norm(corrected) - expected
 
@@ -476,13 +521,34 @@ class Calibration:
         dataset, _ = self._as_dataset(data, t, temp)
         return field_uncertainty(self, dataset, corrected, record_terms)
 
+    def tensor_frame(self) -> np.ndarray:
+        """Rotation (3, 3) from the cross's own frame (the frame of eq. 1, in which sensor 1 sits at +x, 2 at +y, 3 at
+        -x, 4 at -y) into this calibration's frame: the identity for a total-field calibration (its frame is
+        sensor 1's), sensor 1's mounting ``R`` for a vector calibration (its frame is the vehicle's body; the cross
+        is taken to lie along sensor 1's axes, as in the seed's convention)."""
+        return self.sensors[0].R if self.mode == "vector" else np.eye(3)
+
     def tensor(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> dict:
-        """Gradient tensor components (eq. 1) in nT/m from corrected vectors; needs four sensors and a baseline
-        (``data``, ``record_terms``, ``t``, ``temp`` as in :meth:`correct`)."""
+        """Gradient tensor components (eq. 1) in nT/m from corrected vectors, in the cross's own frame
+        (:meth:`tensor_frame`); needs four sensors and a baseline (``data``, ``record_terms``, ``t``, ``temp`` as in
+        :meth:`correct`)."""
         if self.n_sensors != 4 or not self.baseline_m:
             raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
         vectors = self.correct(data, record_terms, t=t, temp=temp) if corrected is None else corrected
+        if self.mode == "vector":
+            vectors = np.asarray(vectors) @ self.tensor_frame()  # body -> the cross's frame: v_cross = A^T v
         return conventions.tensor_components(vectors, self.baseline_m)
+
+    def world_tensor(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
+        """The gradient tensor in the world (north-east-down) frame, (N, 3, 3) nT/m: ``G_world = R A G A^T R^T`` with
+        ``G`` the cross-frame tensor (:meth:`tensor`), ``A`` the cross's frame in the body (:meth:`tensor_frame`)
+        and ``R`` the attitude (four sensors, a vector calibration and attitude)."""
+        rotation = attitude(dataset)
+        if rotation is None or self.mode != "vector":
+            raise MagcalError("the tensor in world coordinates needs a vector calibration and the data's attitude")
+        g = conventions.tensor_matrix(self.tensor(dataset, corrected, record_terms))
+        r = rotation.as_matrix() @ self.tensor_frame()
+        return np.einsum("nij,njk,nlk->nil", r, g, r)
 
     # --- JSON -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -529,6 +595,10 @@ class Calibration:
             "effect_params": effects,
             "sensors": sensors,
         }
+        if self.mode != "scalar":
+            doc["mode"] = self.mode
+        if self.platform is not None and self.platform.names:
+            doc["platform_terms"] = self.platform.to_dict()
         if self.base_covariance is not None:
             doc["base_covariance"] = {
                 "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
@@ -611,7 +681,15 @@ class Calibration:
             "effect_params",
             "sensors",
             "base_covariance",
+            "mode",
+            "platform_terms",
         }
+        mode = doc.get("mode", "scalar")
+        if mode not in ("scalar", "vector"):
+            raise MagcalError(f"{source}: 'mode' must be 'scalar' or 'vector', got {mode!r}; the file is damaged")
+        platform = None
+        if doc.get("platform_terms") is not None:
+            platform = PlatformTerms.from_dict(doc["platform_terms"], len(sensors), source)
         cov = None
         if doc.get("base_covariance") is not None:
             size = 12 * len(sensors)
@@ -651,6 +729,8 @@ class Calibration:
             frame=doc.get("frame", "sensor1"),
             summary=summary,
             base_covariance=cov,
+            mode=mode,
+            platform=platform,
         )
 
     def save(self, path) -> None:

@@ -350,3 +350,203 @@ def reference_from_args(args, dataset=None) -> Reference:
     return resolve_reference_with_notes(
         dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km, date=args.date
     )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the reference field *vector* (north, east, down) for a vector calibration (issue 29)
+# ----------------------------------------------------------------------------------------------------------------
+
+#: Per-sample reference field components (nT, north-east-down).
+VECTOR_COLUMNS = ("ref_n", "ref_e", "ref_d")
+
+#: Per-sample position for IGRF along the track: geodetic latitude, longitude (deg) and height above the WGS84
+#: ellipsoid (m).
+POSITION_COLUMNS = ("lat", "lon", "alt_m")
+
+#: Along a track longer than this, IGRF is evaluated at this many evenly spaced samples and interpolated between
+#: them (the main field changes by a few nT per km; a survey's samples are metres apart).
+IGRF_TRACK_NODES = 2000
+
+
+@dataclass
+class VectorReference:
+    """The Earth's field vector at every sample, in the world (north-east-down) frame.
+
+    Attributes
+    ----------
+    ned_nT : numpy.ndarray, shape (N, 3)
+        North, east, down components in nT.
+    text : str
+        Where it came from, for reports.
+    kind : str
+        ``vector`` (one given vector), ``igrf`` (IGRF at one place), ``igrf-track`` (IGRF along the ``lat, lon,
+        alt_m`` columns) or ``column`` (the ``ref_n, ref_e, ref_d`` columns).
+    """
+
+    ned_nT: np.ndarray
+    text: str
+    kind: str
+
+    @property
+    def total_nT(self) -> np.ndarray:
+        """``|B_ned|`` per sample (nT)."""
+        return np.sqrt(np.sum(self.ned_nT**2, axis=1))
+
+
+def igrf_ned_nT(lat, lon, alt_km, date=None) -> np.ndarray:
+    """IGRF main field (N, 3) north, east, down in nT at arrays of places (deg, deg, km above the ellipsoid).
+
+    Long tracks are evaluated at :data:`IGRF_TRACK_NODES` samples and linearly interpolated over the sample index.
+    """
+    import ppigrf
+
+    lat, lon, alt_km = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (lat, lon, alt_km))
+    lat, lon, alt_km = np.broadcast_arrays(lat, lon, alt_km)
+    n = lat.size
+    for name, v, lo, hi in (("lat", lat, -90, 90), ("lon", lon, -360, 360), ("alt", alt_km, -10, 2000)):
+        if not np.all(np.isfinite(v)) or np.any((v < lo) | (v > hi)):
+            bad = int(np.argmax(~np.isfinite(v) | (v < lo) | (v > hi)))
+            raise MagcalError(f"{name} of sample {bad + 1} ({v[bad]!r}) must be a number between {lo} and {hi}")
+    nodes = np.arange(n) if n <= IGRF_TRACK_NODES else np.unique(np.linspace(0, n - 1, IGRF_TRACK_NODES).round())
+    nodes = nodes.astype(int)
+    when = parse_date(date if date is not None else _dt.date.today())
+    printed = _io.StringIO()
+    with contextlib.redirect_stdout(printed), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        be, bn, bu = ppigrf.igrf(lon[nodes], lat[nodes], alt_km[nodes], when)
+    comps = np.column_stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)])
+    if "not covered" in printed.getvalue() or not np.all(np.isfinite(comps)):
+        raise MagcalError(
+            f"--date: {when.date()} is outside the IGRF model's range; give a date the model covers, or the "
+            "field vector with --reference-vector N,E,D"
+        )
+    if nodes.size == n:
+        return comps
+    idx = np.arange(n)
+    return np.column_stack([np.interp(idx, nodes, comps[:, k]) for k in range(3)])
+
+
+def parse_reference_vector(text) -> np.ndarray:
+    """``N,E,D`` (nT) from ``--reference-vector`` text or a sequence of three numbers."""
+    try:
+        parts = [float(v) for v in (str(text).replace(" ", "").split(",") if isinstance(text, str) else text)]
+    except (TypeError, ValueError):
+        parts = []
+    v = np.asarray(parts, dtype=float)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise MagcalError(
+            f"--reference-vector: {text!r} must be three numbers N,E,D in nT (e.g. 19500,200,44000: north, east, down)"
+        )
+    _check_plausible(float(np.linalg.norm(v)), "--reference-vector")
+    return v
+
+
+def resolve_vector_reference(
+    dataset, reference=None, lat=None, lon=None, alt_km=0.0, date=None, vector=None
+) -> VectorReference | None:
+    """The reference field vector (north-east-down, nT) for every sample, and where it came from; None when the
+    data and the options give none.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        Supplies ``ref_n, ref_e, ref_d`` (nT) or ``lat, lon, alt_m`` columns (in ``extra``).
+    reference : str, optional
+        ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else along the dataset's ``lat, lon,
+        alt_m`` columns. Anything else (a number, ``column``, ``fit``) is a scalar reference and leaves the vector
+        to the columns.
+    lat, lon, alt_km, date
+        Place (deg, deg, km above the ellipsoid) and date for IGRF.
+    vector : str or sequence, optional
+        ``N,E,D`` in nT (``--reference-vector``): one vector for the whole record; it wins over everything.
+
+    Raises
+    ------
+    MagcalError
+        Bad numbers, a missing column, IGRF without a place.
+    """
+    n = dataset.n_samples
+    where = dataset.source or "data"
+    extra = dataset.extra
+    if vector is not None:
+        v = parse_reference_vector(vector)
+        return VectorReference(
+            np.tile(v, (n, 1)),
+            f"given field vector N {v[0]:.1f}, E {v[1]:.1f}, D {v[2]:.1f} nT (|B| {np.linalg.norm(v):.1f} nT)",
+            "vector",
+        )
+    if reference is not None and str(reference).strip().lower() == "igrf":
+        if lat is not None and lon is not None:
+            ned = igrf_ned_nT(lat, lon, alt_km or 0.0, date)[0]
+            _, comps = igrf_total_nT(lat, lon, alt_km or 0.0, date)
+            when = parse_date(date if date is not None else _dt.date.today()).date()
+            text = (
+                f"IGRF main field vector ({comps['model']}) at {float(lat):.4f} N, {float(lon):.4f} E, "
+                f"{float(alt_km or 0.0):g} km, {when}: N {ned[0]:.1f}, E {ned[1]:.1f}, D {ned[2]:.1f} nT; crustal "
+                "anomalies and the daily variation (tens to hundreds of nT) are not in it"
+            )
+            return VectorReference(np.tile(ned, (n, 1)), text, "igrf")
+        if all(c in extra for c in POSITION_COLUMNS[:2]):
+            cols = []
+            for c in POSITION_COLUMNS:
+                v = extra.get(c, np.zeros(n))
+                if np.asarray(v).dtype.kind not in "fiu":
+                    raise MagcalError(f"{where}: column {c} must hold numbers")
+                cols.append(np.asarray(v, dtype=float))
+            ned = igrf_ned_nT(cols[0], cols[1], cols[2] / 1000.0, date)
+            when = parse_date(date if date is not None else _dt.date.today()).date()
+            text = (
+                f"IGRF main field vector along the track (lat, lon, alt_m columns; {n} samples, {when}): |B| "
+                f"{np.linalg.norm(ned, axis=1).min():.0f}-{np.linalg.norm(ned, axis=1).max():.0f} nT; crustal "
+                "anomalies and the daily variation are not in it"
+            )
+            return VectorReference(ned, text, "igrf-track")
+        raise MagcalError(
+            "--reference igrf needs the place: --lat DEG --lon DEG (and --alt-km KM, --date YYYY-MM-DD), or "
+            f"lat, lon (and alt_m) columns in {where}"
+        )
+    present = [c for c in VECTOR_COLUMNS if c in extra]
+    if present:
+        if len(present) < 3:
+            raise MagcalError(
+                f"{where}: the reference vector needs all three columns {', '.join(VECTOR_COLUMNS)} (nT); found only "
+                f"{', '.join(present)}"
+            )
+        cols = [np.asarray(extra[c]) for c in VECTOR_COLUMNS]
+        if any(c.dtype.kind not in "fiu" for c in cols):
+            raise MagcalError(f"{where}: columns {', '.join(VECTOR_COLUMNS)} must hold numbers (nT)")
+        ned = np.column_stack(cols).astype(float)
+        total = np.linalg.norm(ned, axis=1)
+        _check_plausible(total, f"{where}: columns ref_n, ref_e, ref_d")
+        text = (
+            f"per-sample field vector columns ref_n, ref_e, ref_d: |B| mean {total.mean():.1f} nT, spread "
+            f"{np.ptp(total):.1f} nT"
+        )
+        return VectorReference(ned, text, "column")
+    return None
+
+
+def add_vector_reference_arguments(parser) -> None:
+    """``--reference-vector N,E,D`` (nT), beside :func:`add_reference_arguments`."""
+    parser.add_argument(
+        "--reference-vector",
+        default=None,
+        metavar="N,E,D",
+        help="the Earth's field vector in nT (north, east, down) for a vector calibration; otherwise the file's "
+        "ref_n, ref_e, ref_d columns, or IGRF with --reference igrf (at --lat/--lon or along lat, lon, alt_m "
+        "columns)",
+    )
+
+
+def vector_reference_from_args(args, dataset) -> VectorReference | None:
+    """:func:`resolve_vector_reference` from the options of :func:`add_reference_arguments` and
+    :func:`add_vector_reference_arguments`."""
+    return resolve_vector_reference(
+        dataset,
+        reference=getattr(args, "reference", None),
+        lat=getattr(args, "lat", None),
+        lon=getattr(args, "lon", None),
+        alt_km=getattr(args, "alt_km", 0.0),
+        date=getattr(args, "date", None),
+        vector=getattr(args, "reference_vector", None),
+    )

@@ -31,12 +31,20 @@ import sys
 from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.quality import assess, field_magnitude_finding
-from magcal.checks.reference import add_reference_arguments, reference_from_args
+from magcal.checks.reference import (
+    add_reference_arguments,
+    add_vector_reference_arguments,
+    reference_from_args,
+    vector_reference_from_args,
+)
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
+from magcal.data.attitude import attitude_source
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.validation import validate_effects
+from magcal.fitting.vector import fit_vector, validate_vector
+from magcal.model.platform_terms import TERMS as PLATFORM_TERMS
 from magcal.model.terms import check_effect_names
 
 
@@ -84,6 +92,29 @@ def add_arguments(parser) -> None:
 
     add_input_arguments(parser)
     add_reference_arguments(parser)
+    add_vector_reference_arguments(parser)
+    parser.add_argument(
+        "--mode",
+        default="auto",
+        choices=("auto", "scalar", "vector"),
+        help="scalar: the total-field fit; vector: the fit with attitude (qw..qz or roll_deg, pitch_deg, yaw_deg) "
+        "and the field vector (ref_n, ref_e, ref_d, --reference-vector or --reference igrf), for platforms that "
+        "cannot tumble (docs/vector.md); auto (default): vector when both are present, else scalar",
+    )
+    parser.add_argument(
+        "--attitude-noise-deg",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="vector mode: the attitude's error per axis (deg, 1 sigma); estimated from the residuals if not given",
+    )
+    parser.add_argument(
+        "--platform-terms",
+        default="auto",
+        metavar="LIST",
+        help="vector mode: platform fields to fit, comma-separated eddy (needs t), current (needs current_A or "
+        "throttle), or none; auto (default): every one the data support",
+    )
     parser.add_argument(
         "--method",
         default="ml",
@@ -118,8 +149,8 @@ def add_arguments(parser) -> None:
         "--no-validate",
         dest="validate",
         action="store_false",
-        help="with --effects: skip the held-out RMS of the base model and of the model with the "
-        "effects (fitted on alternating blocks in time, scored on the blocks between)",
+        help="with --effects (or vector mode with platform terms): skip the held-out RMS of the base model and "
+        "of the model with the effects (fitted on alternating blocks in time, scored on the blocks between)",
     )
     add_noise_argument(parser)
 
@@ -198,11 +229,112 @@ def calibrate_options(args) -> dict:
     }
 
 
+def _platform_terms(args):
+    text = str(getattr(args, "platform_terms", "auto") or "auto").strip().lower()
+    if text == "auto":
+        return None
+    if text == "none":
+        return []
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    for t in names:
+        if t not in PLATFORM_TERMS:
+            raise MagcalError(f"--platform-terms: unknown term {t!r}; use {', '.join(PLATFORM_TERMS)}, auto or none")
+    return names
+
+
+def choose_mode(args, ds):
+    """``("vector", reference)`` or ``("scalar", None)`` from ``--mode`` and what the data hold."""
+    mode = getattr(args, "mode", "auto") or "auto"
+    if mode == "scalar":
+        return "scalar", None
+    has_attitude = attitude_source(ds) is not None
+    if mode == "vector" and not has_attitude:
+        raise MagcalError(
+            f"{args.data}: --mode vector needs the attitude: qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg columns "
+            "(body -> north-east-down; docs/formats.md)"
+        )
+    if not has_attitude:
+        return "scalar", None
+    vref = vector_reference_from_args(args, ds)
+    if vref is None:
+        if mode == "vector":
+            raise MagcalError(
+                f"{args.data}: --mode vector needs the Earth's field vector: ref_n, ref_e, ref_d columns (nT), "
+                "--reference-vector N,E,D, or --reference igrf with --lat/--lon (or lat, lon, alt_m columns) and "
+                "--date"
+            )
+        return "scalar", None
+    return "vector", vref
+
+
+def run_vector(args, ds, vref, notes) -> int:
+    """``magcal calibrate`` in vector mode (:func:`magcal.fitting.vector.fit_vector`)."""
+    if checked_effect_names(args):
+        raise MagcalError("--effects: the vector fit takes platform terms (--platform-terms), not catalogue effects")
+    att = getattr(args, "attitude_noise_deg", None)
+    if att is not None and not (att >= 0 and att < 90):
+        raise MagcalError(f"--attitude-noise-deg must be an angle between 0 and 90 deg, got {att}")
+    print(f"magcal calibrate: vector mode; reference: {vref.text}", file=sys.stderr)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = fit_vector(
+                ds,
+                vref,
+                terms=_platform_terms(args),
+                attitude_noise_deg=att,
+                noise_nT=checked_noise(args),
+                reference_total_nT=ds.ref_total_nT,
+                robust=args.robust,
+            )
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
+    result.calibration.fitted_on(ds)
+    validation = None
+    if result.terms and getattr(args, "validate", True):
+        try:
+            validation = validate_vector(
+                ds,
+                vref,
+                terms=result.terms,
+                attitude_noise_deg=att,
+                noise_nT=checked_noise(args),
+                reference_total_nT=ds.ref_total_nT,
+                robust=args.robust,
+            )
+        except CalibrationError as exc:
+            notes.append(f"held-out validation not done: {exc}")
+    for note in dict.fromkeys(notes):
+        print(f"magcal calibrate: warning: {note}", file=sys.stderr)
+    if args.output:
+        result.calibration.save(args.output)
+    if args.json:
+        doc = result.to_dict()
+        doc["calibration"] = result.calibration.to_dict()
+        if validation is not None:
+            doc["validation"] = validation.to_dict()
+        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        sys.stdout.write(result.text())
+        if validation is not None:
+            sys.stdout.write(validation.text())
+        if args.output:
+            print(f"\nsaved the calibration to {args.output}")
+    return 0
+
+
 def run(args) -> int:
 
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
+    _platform_terms(args)
     ds, notes = read_input(args)
+    mode, vref = choose_mode(args, ds)
+    if mode == "vector":
+        return run_vector(args, ds, vref, notes)
     reference = reference_from_args(args, ds)
     notes += [note.text for note in reference.notes]
     ds = reference.apply(ds)
@@ -210,7 +342,15 @@ def run(args) -> int:
         ds = ds.replace(ref_total_nT=None)
     print(f"magcal calibrate: reference: {reference.text}", file=sys.stderr)
     quality = assess(ds)  # data quality, read before the fit (issue 10)
-    notes += calibration_input_checks(ds)  # coverage (issue 6)
+    coverage_notes = calibration_input_checks(ds)  # coverage (issue 6)
+    if coverage_notes and attitude_source(ds) is not None:
+        coverage_notes.append(
+            "the total-field fit is undetermined along the directions this record lacks (a platform that turns in "
+            "yaw and barely tilts sees a cone of field directions); with its attitude, the field vector "
+            "(ref_n, ref_e, ref_d, --reference-vector or --reference igrf) and --mode vector, a vector calibration "
+            "is determined (docs/vector.md)"
+        )
+    notes += coverage_notes
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
         result = calibrate(ds, **calibrate_options(args), progress=progress)

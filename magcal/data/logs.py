@@ -9,11 +9,13 @@ ArduPilot (read with pymavlink's ``DFReader``)
     parameters (``PARM`` messages) in force at each sample (``undo_calibration=False`` keeps the logged field).
     Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times. Attitude:
     ``ATT`` roll, pitch, yaw (deg), as the quaternion channel (body to north-east-down) and as extra columns
-    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``.
+    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``. Current: the first battery's ``BAT`` ``Curr`` (A) as the
+    extra column ``current_A`` (a vector calibration fits the field per ampere, ``COMPASS_MOT``'s quantity).
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
     ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
-    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times.
+    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times. Current: the
+    first ``battery_status``'s ``current_a`` (A) as ``current_A``.
 
 Several magnetometers become magcal sensors 1, 2, 3 in instance order; their samples are paired by time (the
 nearest sample within half the first one's sample interval; unpaired samples are dropped with a warning). Note that
@@ -277,11 +279,12 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
     mags = {}  # (name, instance) -> list of rows (t, x, y, z) nT
     imu_t, imu_temp = [], []
     att_t, att = [], []
+    bat_t, bat = [], []
     seen_types = set()
     unhealthy = {}  # compass -> samples the firmware marked unhealthy (left out)
     try:
         while True:
-            m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT"])
+            m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT"])
             if m is None:
                 break
             kind = m.get_type()
@@ -311,6 +314,10 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
             elif kind == "ATT":
                 att_t.append(t)
                 att.append((float(m.Roll), float(m.Pitch), float(m.Yaw)))
+            elif kind == "BAT":
+                if int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) == 0 and hasattr(m, "Curr"):
+                    bat_t.append(t)
+                    bat.append(float(m.Curr))
     except Exception as exc:
         raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
     for k, count in sorted(unhealthy.items()):
@@ -344,6 +351,8 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
+    if bat_t:
+        extra["current_A"] = _strictly_increasing(np.asarray(bat_t), np.asarray(bat), source, "BAT")
     metadata = {
         "log_format": "ArduPilot DataFlash",
         "log_magnetometers": ", ".join(labels),
@@ -366,7 +375,9 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
             f'{source}: reading PX4 logs needs pyulog: pip install "magcal-workbench[instruments]"'
         ) from None
     try:
-        ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
+        ulog = ULog(
+            path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined", "battery_status"]
+        )
     except Exception as exc:  # a damaged or foreign file
         raise DatasetError(f"{source}: not a readable PX4 ULog file ({type(exc).__name__}: {exc})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
@@ -409,7 +420,21 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    return _build(source, series, temperature, attitude, None, metadata, notes)
+    return _build(source, series, temperature, attitude, _ulog_current(ulog, source), metadata, notes)
+
+
+def _ulog_current(ulog, source):
+    """``{"current_A": (t, A)}`` from the first ``battery_status`` (``current_a``), or None."""
+    bats = sorted((d for d in ulog.data_list if d.name == "battery_status"), key=lambda d: d.multi_id)
+    if not bats or "current_a" not in bats[0].data:
+        return None
+    data = bats[0].data
+    t = np.asarray(data["timestamp"], dtype=float) * 1e-6
+    amps = np.asarray(data["current_a"], dtype=float)
+    good = np.isfinite(amps) & (amps >= 0)  # PX4 writes -1 when the current is not measured
+    if good.sum() < 2:
+        return None
+    return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status")}
 
 
 def _ulog_attitude(ulog, source, notes=None):

@@ -384,7 +384,8 @@ def simulate_timeseries(
     perturbations : sequence of callables
         Each ``f(readings, context, rng)`` returns new readings (n_sensors, N, 3); ``context`` is a dict with
         ``fields_nT`` (true field in each sensor's ideal frame), ``time_s``, ``temperature_C``, ``attitudes``
-        (a Rotation), ``truth``, ``positions_m``. Applied in order, before the noise.
+        (a Rotation), ``truth``, ``positions_m`` and ``extra`` (a dict a perturbation may fill with columns the
+        dataset then holds, e.g. a motor current). Applied in order, before the noise.
     """
     truth, n_samples, noise_nT, noise_kind = _resolve(truth, n_samples, noise_nT, noise_kind)
     rng = np.random.default_rng(seed)
@@ -406,12 +407,13 @@ def simulate_timeseries(
         "attitudes": att,
         "truth": truth,
         "positions_m": conventions.sensor_positions(truth.baseline_m, truth.n_sensors),
+        "extra": {},
     }
     for perturb in perturbations:
         clean = perturb(clean, context, rng)
     readings = clean + _noise(rng, clean.shape, noise_nT, noise_kind)
     ds = _dataset(truth, readings, att if with_attitude else None, with_reference, noise_nT, noise_kind)
-    return ds.replace(time_s=t, temperature_C=temp)
+    return ds.replace(time_s=t, temperature_C=temp, extra=dict(context["extra"]))
 
 
 def _resolve(truth, n_samples, noise_nT, noise_kind):

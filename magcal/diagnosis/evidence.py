@@ -30,6 +30,7 @@ SIGNATURES = {
     "hysteresis": "residual flips sign with each axis's direction of change",
     "reference_drift": "common to all sensors, independent of direction, slow in time",
     "site_gradient": "inter-sensor differences follow the attitude (world-fixed gradient)",
+    "current_field": "residual follows the current (or throttle) column x field direction (degree 1)",
 }
 
 

@@ -338,6 +338,77 @@ class TemperatureScale(_TemperatureReferenced):
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# the platform: a current's field
+# ----------------------------------------------------------------------------------------------------------------
+
+#: Columns (in ``Dataset.extra``) a current's field reads, the first present wins, and their units.
+CURRENT_COLUMNS = {"current_A": "A", "throttle": "unit of throttle"}
+
+
+def current_column(dataset) -> str | None:
+    """The current or throttle column of the dataset (``current_A``, else ``throttle``), or None."""
+    for name in CURRENT_COLUMNS:
+        value = dataset.extra.get(name)
+        if value is not None and np.asarray(value).dtype.kind in "fiu":
+            return name
+    return None
+
+
+@register
+@dataclass
+class CurrentField(CatalogueEffect):
+    """Field of a current on the platform (a motor, a bus, a pump): ``y += k u``, ``u`` the ``current_A`` column
+    (A; else ``throttle``), ``k`` per axis in nT per unit: what ArduPilot's ``COMPASS_MOT_*`` and PX4's
+    ``CAL_MAGn_[XYZ]COMP`` hold. The column is chosen when the term is configured and saved with it."""
+
+    name: ClassVar[str] = "current_field"
+    basis_uses_readings: ClassVar[bool] = False  # a function of the current column only
+    stage: ClassVar[str] = "raw"
+    description: ClassVar[str] = (
+        "field of a motor or bus current, y += k u (u: the current_A or throttle column) [nT per A]"
+    )
+    default_magnitude: ClassVar[float] = 5.0
+    magnitude_unit: ClassVar[str] = "nT/A"
+
+    column: str | None = None
+
+    def _column_of(self, dataset):
+        if self.column is not None:
+            value = dataset.extra.get(self.column)
+            return self.column if value is not None and np.asarray(value).dtype.kind in "fiu" else None
+        return current_column(dataset)
+
+    def missing_channels(self, dataset):
+        missing = [] if self._column_of(dataset) else [self.column or "a current_A or throttle column"]
+        if dataset.n_sensors < self.min_sensors:
+            missing.append(f"at least {self.min_sensors} sensors")
+        return missing
+
+    def configure(self, dataset, residuals_nT=None):
+        self.column = self._column_of(dataset)
+
+    def state(self):
+        return {"column": self.column}
+
+    def set_state(self, state):
+        column = state.get("column")
+        if column is not None and column not in CURRENT_COLUMNS:
+            raise MagcalError(f"{self.label}: column must be one of {', '.join(CURRENT_COLUMNS)}, got {column!r}")
+        self.column = column
+
+    def param_names(self):
+        return [f"k_{a}_nT_per_unit" for a in _AXES]
+
+    def param_scale(self):
+        return np.full(3, 0.1)
+
+    def raw_basis(self, z0, ctx: Context):
+        column = self._column_of(ctx.dataset)
+        u = np.asarray(ctx.dataset.extra[column], dtype=float)
+        return _diagonal_basis(np.repeat(u[:, None], 3, axis=1))
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # time
 # ----------------------------------------------------------------------------------------------------------------
 

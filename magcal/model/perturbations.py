@@ -12,7 +12,8 @@ Each catalogue effect's perturbation is a function registered here under the eff
 override :meth:`magcal.model.terms.Effect.perturbation` itself). A registered function is called as
 ``f(effect, readings, context, magnitude, sensor, **options)`` and returns the new readings (n_sensors, N, 3) in
 nT; ``context`` is the dict :func:`~magcal.data.simulation.simulate_timeseries` passes (``fields_nT``, ``time_s``,
-``temperature_C``, ``attitudes``, ``truth``, ``positions_m``).
+``temperature_C``, ``attitudes``, ``truth``, ``positions_m``, ``extra``: columns a perturbation adds to the
+dataset, such as the ``current_A`` of ``current_field``).
 
 :func:`periodic_interference` builds the perturbation of the ``periodic_interference`` effect with its frequency and
 direction spelled out; :data:`EXTRA_PERTURBATIONS` lists perturbations *outside* the catalogue for ``magcal
@@ -149,6 +150,23 @@ def _temperature_bias(effect, readings, context, magnitude, sensor, **options):
     dT = context["temperature_C"] - SIMULATION_REFERENCE_TEMPERATURE_C
     for s in _sensor_list(sensor, readings.shape[0]):
         readings[s] += dT[:, None] * effect.true_params(magnitude, s)
+    return readings
+
+
+@hides("current_field")
+def _current_field(effect, readings, context, magnitude, sensor, **options):
+    """``y += k u`` with ``u`` a motor current (A) the simulator adds as the ``current_A`` column: a slow swing
+    and steps (throttle changes), neither a function of time's trend nor of the temperature."""
+    extra = context.setdefault("extra", {})
+    if "current_A" not in extra:
+        t = np.asarray(context["time_s"], dtype=float)
+        span = max(float(t[-1] - t[0]), 1e-9)
+        extra["current_A"] = (
+            12.0 + 6.0 * np.sin(2 * np.pi * 3.3 * (t - t[0]) / span) + 4.0 * (np.floor(7.0 * (t - t[0]) / span) % 2)
+        )
+    u = extra["current_A"]
+    for s in _sensor_list(sensor, readings.shape[0]):
+        readings[s] += u[:, None] * effect.true_params(magnitude, s)
     return readings
 
 

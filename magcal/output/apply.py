@@ -4,6 +4,10 @@
 
 * ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` for every sensor: the corrected field vector in nT, in the calibration's
   frame (``platform`` after a level-table alignment, otherwise sensor 1's frame);
+* with a vector calibration (``mode: vector``, :mod:`magcal.fitting.vector`) those are body-frame components, and
+  when the survey has the attitude (``qw..qz`` or ``roll_deg, pitch_deg, yaw_deg``) also the world
+  (north-east-down) components ``s{i}n_cal, s{i}e_cal, s{i}d_cal`` (and, for four sensors, the tensor in world
+  coordinates ``Gnn, Gne, Gnd, Gee, Ged, Gdd`` = ``R G R^T``);
 * for four sensors with a baseline: the tensor components ``Gxx, Gxy, Gxz, Gyy, Gyz, Gzz`` of eq. (1) (Chi et al.
   2017) and ``Gyx`` (the second estimate of the xy component; ``Gxy - Gyx`` is a check), in nT/m, and the
   rotational invariants of the symmetric part ``G = (T + T^T)/2`` (Pedersen & Rasmussen 1990)::
@@ -31,6 +35,7 @@ import numpy as np
 from magcal.calibration.calibration import Calibration, RecordHasher
 from magcal.core import conventions
 from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.data.attitude import EULER_COLUMNS, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import (
     CsvSource,
@@ -58,6 +63,9 @@ SD_FORMAT = "%.4g"
 #: Tensor columns written for a four-sensor array (eq. 1), in order.
 TENSOR_COLUMNS = ("Gxx", "Gxy", "Gxz", "Gyy", "Gyz", "Gzz", "Gyx")
 INVARIANT_COLUMNS = ("I0", "I1", "I2")
+#: The tensor in world (north-east-down) coordinates, written with a vector calibration and attitude.
+WORLD_TENSOR_COLUMNS = ("Gnn", "Gne", "Gnd", "Gee", "Ged", "Gdd")
+_WORLD_TENSOR_INDEX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def load_calibration(path, n_sensors=None):
@@ -90,12 +98,17 @@ def tensor_invariants(tensor):
     return i0, i1, i2
 
 
-def output_columns(n_sensors, tensor, uncertainty=False):
+def output_columns(n_sensors, tensor, uncertainty=False, world=False):
     """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
-    ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``)."""
+    ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``; with ``world``: the north-east-down components
+    ``s{i}n_cal ..`` and, for arrays, ``Gnn ..``)."""
     names = [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "xyz"]
     if tensor:
         names += list(TENSOR_COLUMNS) + list(INVARIANT_COLUMNS)
+    if world:
+        names += [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "ned"]
+        if tensor:
+            names += list(WORLD_TENSOR_COLUMNS)
     if uncertainty:
         names += [f"s{i + 1}{a}_cal_sd" for i in range(n_sensors) for a in "xyz"]
         names += [f"s{i + 1}_F_sd" for i in range(n_sensors)]
@@ -104,23 +117,39 @@ def output_columns(n_sensors, tensor, uncertainty=False):
     return names
 
 
-def correct_block(calibration, dataset, record_terms=None, uncertainty=False):
+def writes_world(calibration, dataset=None, layout=None) -> bool:
+    """True when ``apply`` writes world components: a vector calibration and a survey with attitude (a dataset,
+    or a CSV file's :class:`magcal.data.io.Layout`)."""
+    if getattr(calibration, "mode", "scalar") != "vector":
+        return False
+    if layout is not None:
+        return layout.quaternion is not None or all(c in layout.extra for c in EULER_COLUMNS)
+    return dataset is not None and attitude_source(dataset) is not None
+
+
+def correct_block(calibration, dataset, record_terms=None, uncertainty=False, world=False):
     """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
     ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
     order of :func:`output_columns`.
 
     ``record_terms`` as in :meth:`magcal.calibration.calibration.Calibration.correct`; :func:`apply_file` decides it once for
-    the whole file and passes ``'apply'`` or ``'drop'``.
+    the whole file and passes ``'apply'`` or ``'drop'``. ``world``: also the north-east-down components (a vector
+    calibration and the block's attitude, :meth:`Calibration.world`).
     """
     vectors = calibration.correct(dataset, record_terms)
     n = dataset.n_samples
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
     tensor = calibration.n_sensors == 4 and calibration.baseline_m
     if tensor:
-        comps = conventions.tensor_components(vectors, calibration.baseline_m)
+        comps = calibration.tensor(dataset, vectors)  # in the cross's own frame (a vector calibration's too)
         parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
         i0, i1, i2 = tensor_invariants(conventions.tensor_matrix(comps))
         parts.append(np.column_stack([i0, i1, i2]))
+    if world:
+        parts.append(calibration.world(dataset, vectors).transpose(1, 0, 2).reshape(n, -1))
+        if tensor:
+            g = calibration.world_tensor(dataset, vectors)
+            parts.append(np.column_stack([g[:, i, j] for i, j in _WORLD_TENSOR_INDEX]))
     if uncertainty:
         u = calibration.uncertainty(dataset, vectors, record_terms)
         if u is None:
@@ -302,7 +331,8 @@ def apply_file(
                 "calibration made for this instrument"
             )
         tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
-        new_names = output_columns(calibration.n_sensors, tensor, uncertainty)
+        world = writes_world(calibration, layout=src.layout)
+        new_names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
         clash = sorted(set(new_names) & set(src.header))
         if clash:
             raise MagcalError(
@@ -312,6 +342,8 @@ def apply_file(
         fmt = ",".join(
             [VECTOR_FORMAT] * (3 * calibration.n_sensors)
             + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS) if tensor else [])
+            + ([VECTOR_FORMAT] * (3 * calibration.n_sensors) if world else [])
+            + ([TENSOR_FORMAT] * len(WORLD_TENSOR_COLUMNS) if world and tensor else [])
             + (
                 [SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
                 if uncertainty
@@ -334,11 +366,13 @@ def apply_file(
                 csv.writer(header, lineterminator="\n").writerow(list(src.header) + new_names)
                 out.write(header.getvalue())
                 last_pos = src._file.tell()
-                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                # a vector calibration may read columns magcal keeps as extras (roll_deg.., current_A)
+                vector_mode = getattr(calibration, "mode", "scalar") == "vector"
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=vector_mode):
                     if rows == 0:
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
-                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty)
+                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world)
                     out.write(
                         "".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist()))
                     )
@@ -454,13 +488,15 @@ def apply_columns(
         with contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="") as fh:
             for ds in chunks:
                 if rows == 0:
+                    world = writes_world(calibration, ds)
+                    names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
                     if ds.n_sensors != calibration.n_sensors:
                         raise MagcalError(
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                             f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument"
                         )
                     calibration.check(ds)
-                values = correct_block(calibration, ds, choice, uncertainty)
+                values = correct_block(calibration, ds, choice, uncertainty, world)
                 cols = dataset_columns(ds)
                 clash = sorted(set(names) & set(cols))
                 if clash:

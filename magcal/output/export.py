@@ -19,6 +19,15 @@ symmetric positive definite) gives ``S``, the one symmetric matrix with the same
 is magcal's turned by ``(R Q)^T``: ``B_magcal = R Q B_firmware``. ``Q`` is a gauge (total-field data fix only
 ``C^-T C^-1 = S^2``: the upper-triangular form is a convention); ``R`` is a misalignment the firmware cannot
 store, and is refused unless forced. Candidate effects (temperature, drift, ...) are refused the same way.
+
+A vector calibration (``mode: vector``, :mod:`magcal.fitting.vector`) knows each sensor's mounting ``R`` into the
+vehicle's body frame. Its nearest right angle ``A`` is what the firmwares store as an orientation (ArduPilot
+``COMPASS_ORIENT``, PX4 ``CAL_MAGn_ROT``, :mod:`magcal.geometry.orientations`); the rest, ``A^T R C^-1 = Q S``, is
+split as above, and ``Q`` (the mounting's angle off the right angle, plus the sensor's non-orthogonality) is no
+longer a gauge: it is what the firmware cannot hold. PX4 rotates after its correction, ``B = A S (y - b)``;
+ArduPilot rotates the raw reading first and corrects in the body frame, ``B = (A S A^T) (A y + OFS)`` with
+``OFS = -A b``. The C header holds the whole ``R C^-1``. Platform terms (eddy currents, field per ampere) are
+not written (listed as dropped).
 """
 
 from __future__ import annotations
@@ -30,6 +39,13 @@ import numpy as np
 import scipy.linalg
 
 from magcal.core.errors import MagcalError
+from magcal.geometry.orientations import (
+    FIRMWARE_ROTATIONS,
+    euler_matrix,
+    firmware_rotation,
+    nearest_right_angle,
+    rotation_name,
+)
 
 #: Export formats and what each writes.
 FORMATS = {
@@ -87,10 +103,14 @@ class SensorExport:
     gauge_angle_deg: float
     misalignment_angle_deg: float
     vector_error_nT: float
+    right_angle: np.ndarray | None = None
+    rotation_number: int | None = None
 
     def firmware_corrected_nT(self, raw_nT) -> np.ndarray:
-        """The firmware's corrected field ``S (y - b)`` (nT) for raw readings ``y`` (N, 3) in nT."""
-        return (np.asarray(raw_nT, dtype=float) - self.bias_nT) @ self.matrix.T
+        """The firmware's corrected field ``S (y - b)`` (nT) for raw readings ``y`` (N, 3) in nT; with a right-angle
+        mounting (a vector calibration) ``A S (y - b)``, in the body frame."""
+        out = (np.asarray(raw_nT, dtype=float) - self.bias_nT) @ self.matrix.T
+        return out if self.right_angle is None else out @ self.right_angle.T
 
 
 @dataclass
@@ -179,6 +199,9 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
     kept = calibration.sensors_for_new_data()  # a record-only term's kept level (the bias after a step) folded in
     for s, k in zip(sensors, slots):
         cal = kept[s - 1]
+        if getattr(calibration, "mode", "scalar") == "vector":
+            out.append(_vector_export(cal, s, k, fmt, field_nT))
+            continue
         q, sym = symmetric_factor(cal.cinv)
         frame = cal.R @ q
         angle = rotation_angle_deg(frame)
@@ -197,9 +220,55 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
     return out
 
 
+def _vector_export(cal, sensor, slot, fmt, field_nT) -> SensorExport:
+    """A vector calibration's sensor: its right-angle mounting as the firmware's orientation, the rest split."""
+    w = cal.R @ cal.cinv
+    if fmt == "c":  # the header holds the whole matrix
+        return SensorExport(sensor, slot, cal.bias_nT.copy(), w, np.eye(3), 0.0, 0.0, 0.0)
+    right, _ = nearest_right_angle(cal.R)
+    q, sym = symmetric_factor(right.T @ w)
+    angle = rotation_angle_deg(q)
+    return SensorExport(
+        sensor=sensor,
+        slot=slot,
+        bias_nT=cal.bias_nT.copy(),
+        matrix=sym,
+        frame_rotation=right @ q @ right.T,
+        gauge_angle_deg=0.0,
+        misalignment_angle_deg=angle,
+        vector_error_nT=2.0 * field_nT * np.sin(np.radians(angle) / 2.0),
+        right_angle=right,
+        rotation_number=firmware_rotation(right),
+    )
+
+
 def unsupported(calibration, exports) -> list[str]:
     """What magcal's model holds that no firmware parameter can carry, one line each (empty: nothing)."""
     lost = []
+    platform = getattr(calibration, "platform", None)
+    if platform is not None:
+        for name in platform.names:
+            lost.append(
+                f"platform term {name}: not written (the firmware's motor compensation, COMPASS_MOT_* or "
+                "CAL_MAGn_xCOMP, is left as it is); its correction is dropped"
+                if name == "current"
+                else f"platform term {name}: the firmware has no parameter for it (its correction is dropped)"
+            )
+    if getattr(calibration, "mode", "scalar") == "vector":
+        field_nT = float(calibration.reference_total_nT or 50_000.0)
+        for e in exports:
+            if e.right_angle is None:
+                continue
+            if e.rotation_number is None:
+                lost.append(f"sensor {e.sensor}: its right-angle mounting has no firmware rotation number")
+            if e.misalignment_angle_deg > ROTATION_TOLERANCE_DEG:
+                lost.append(
+                    f"sensor {e.sensor}: its mounting is the right angle {rotation_name(e.rotation_number)} "
+                    f"(rotation {e.rotation_number}, written) turned by a further {e.misalignment_angle_deg:.4g} deg "
+                    f"(the angle off the right angle and the axes' non-orthogonality; up to {e.vector_error_nT:.4g} "
+                    f"nT on a {field_nT:.6g} nT field), which cannot be stored"
+                )
+        return lost
     if calibration.model is not None:
         for label in calibration.model.effect_labels:
             lost.append(f"effect {label}: the firmware has no parameter for it (its correction is dropped)")
@@ -300,16 +369,20 @@ def _ardupilot(exports, calibration, source, dropped, notes):
     params = {}
     for e in exports:
         tag = "" if e.slot == 1 else str(e.slot)
+        # ArduPilot rotates the raw reading by COMPASS_ORIENT first: offsets and matrix in the body frame
+        a = np.eye(3) if e.right_angle is None else e.right_angle
         params.update(
             _offset_and_matrix(
-                -e.bias_nT / NT_PER_MILLIGAUSS,
-                e.matrix,
+                -(a @ e.bias_nT) / NT_PER_MILLIGAUSS,
+                a @ e.matrix @ a.T,
                 f"COMPASS_OFS{tag}_{{}}",
                 f"COMPASS_DIA{tag}_{{}}",
                 f"COMPASS_ODI{tag}_{{}}",
             )
         )
         params[f"COMPASS_SCALE{tag}"] = 1.0
+        if e.rotation_number is not None:
+            params[f"COMPASS_ORIENT{tag}"] = e.rotation_number
     head = _header_lines(
         calibration,
         source,
@@ -331,6 +404,8 @@ def _px4(exports, calibration, source, dropped, notes):
         params.update(
             _offset_and_matrix(e.bias_nT / NT_PER_GAUSS, e.matrix, pre + "{}OFF", pre + "{}SCALE", pre + "{}ODIAG")
         )
+        if e.rotation_number is not None:
+            params[pre + "ROT"] = e.rotation_number
     head = _header_lines(
         calibration,
         source,
@@ -387,6 +462,44 @@ def _c_header(exports, calibration, source, dropped, notes):
                 params[f"{tag}_MATRIX_{i}{j}"] = float(e.matrix[i, j])
     lines += ["#endif /* MAGCAL_CALIBRATION_H */", ""]
     return params, "\n".join(lines)
+
+
+def apply_ardupilot(parameters, raw_mG, slot=1) -> np.ndarray:
+    """ArduPilot's correction of raw readings (milligauss) with exported parameters, as
+    ``AP_Compass_Backend::correct_field`` does it (motor compensation off): ``M (SCALE (raw + OFS))``, the raw
+    reading first turned by ``COMPASS_ORIENT`` when the parameters hold one (a right angle of
+    :data:`magcal.geometry.orientations.FIRMWARE_ROTATIONS`).
+
+    Returns the corrected field (N, 3) in milligauss.
+    """
+    tag = "" if slot == 1 else str(slot)
+    p = parameters
+    ofs = np.array([p[f"COMPASS_OFS{tag}_{a}"] for a in "XYZ"])
+    dia = np.array([p[f"COMPASS_DIA{tag}_{a}"] for a in "XYZ"])
+    odi = np.array([p[f"COMPASS_ODI{tag}_{a}"] for a in "XYZ"])
+    scale = p.get(f"COMPASS_SCALE{tag}", 1.0)
+    m = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    raw = np.asarray(raw_mG, dtype=float)
+    orient = p.get(f"COMPASS_ORIENT{tag}")
+    if orient is not None:
+        raw = raw @ euler_matrix(*FIRMWARE_ROTATIONS[int(orient)]).T
+    return (scale * (raw + ofs)) @ m.T
+
+
+def apply_px4(parameters, raw_G, slot=0, rotation=None) -> np.ndarray:
+    """PX4's correction of raw readings (gauss) with exported parameters, as ``calibration::Magnetometer::
+    Correct`` does it (power compensation off): ``rot (S (raw - OFF))``, ``rot`` the given matrix, else
+    ``CAL_MAGn_ROT`` when the parameters hold one. Returns (N, 3) gauss."""
+    pre = f"CAL_MAG{slot}_"
+    p = parameters
+    off = np.array([p[f"{pre}{a}OFF"] for a in "XYZ"])
+    d = np.array([p[f"{pre}{a}SCALE"] for a in "XYZ"])
+    o = np.array([p[f"{pre}{a}ODIAG"] for a in "XYZ"])
+    s = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+    if rotation is None and p.get(f"{pre}ROT") is not None and int(p[f"{pre}ROT"]) in FIRMWARE_ROTATIONS:
+        rotation = euler_matrix(*FIRMWARE_ROTATIONS[int(p[f"{pre}ROT"])])
+    rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
+    return (np.asarray(raw_G, dtype=float) - off) @ s.T @ rot.T
 
 
 def parse_parameter_file(text) -> dict:

@@ -1,0 +1,672 @@
+"""Vector calibration with attitude: platforms that turn in yaw but cannot tumble (issue 29).
+
+A vehicle, an aircraft or a ship sees the Earth's field over a cone of directions, not a sphere: a total-field fit
+is not determined there. With the body's attitude ``q`` (body -> north-east-down, :mod:`magcal.data.attitude`)
+and the Earth's field vector ``B_ned`` (:func:`magcal.checks.reference.resolve_vector_reference`), every sample
+gives three equations per sensor::
+
+    y = C R^T B_body + b + sum_k basis_k theta_k + n,      B_body = R(q)^T B_ned
+
+with ``b`` the bias (hard iron), ``C`` the sensor's scale, non-orthogonality and the platform's soft iron, ``R``
+the sensor's mounting (its corrected axes -> the body frame; no longer a gauge), and the platform terms of
+:mod:`magcal.model.platform_terms` (eddy currents, a field per ampere or per unit of throttle). The fit finds
+``W = R C^-1`` (nine numbers), ``b`` and ``theta``; ``W = R C^-1`` is split by a QR decomposition into the
+mounting ``R`` and an upper-triangular ``C^-1`` (the seed's gauge; the split is a convention, ``W`` is what the
+data fix).
+
+The likelihood. The corrected field ``B = W (y - b - ...)`` differs from ``R(q)^T B_ned`` by the attitude error,
+the field model's error and the sensor noise. An attitude error ``dtheta`` (rad) turns the field: it moves it by
+``dtheta x B``, perpendicular to the field, ``sigma_att |B|`` per perpendicular component (0.1 deg on 50 uT is
+87 nT). Along the field it moves nothing: there the residual is the total-field residual ``|B| - F``, with the
+sensor's own noise. So each sample's residual is split into the total-field residual (weight ``1/sigma_F``) and
+the two components perpendicular to the reference field (weight ``1/sigma_perp``, ``sigma_perp^2 =
+(sigma_att |B|)^2 + sigma_n^2``): the full likelihood, without counting the along-field part twice. The noises
+are given (``attitude_noise_deg``, ``noise_nT``) or estimated from the residuals (a first fit, then a refit with
+the estimated weights). :func:`scipy.optimize.least_squares` minimises the weighted sum from the linear
+least-squares start.
+
+Mounting. The 24 right-angle orientations are tried first, as ArduPilot's orientation detection does (a gain and
+an offset fitted for each; the best is the one the field vectors agree with), and the fit then refines the
+mounting continuously; the result says which right angle it was and how far off it the sensor sits.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from magcal.calibration.calibration import Calibration, SensorCalibration
+from magcal.checks.reference import VectorReference
+from magcal.core.errors import CalibrationError, DataWarning
+from magcal.core.stats import robust_sigma
+from magcal.data.attitude import attitude as dataset_attitude
+from magcal.data.dataset import Dataset
+from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, firmware_rotation, nearest_right_angle
+from magcal.model.platform_terms import PlatformTerms, available_terms, current_column, n_params, term_basis
+
+#: Fewest samples per sensor for a vector fit (12 base parameters plus platform terms, three equations each).
+MIN_SAMPLES = 20
+
+
+@dataclass
+class SensorVectorFit:
+    """One sensor's vector fit.
+
+    Attributes
+    ----------
+    W : numpy.ndarray, shape (3, 3)
+        ``R C^-1``: raw reading minus bias and platform terms -> body frame.
+    bias_nT : numpy.ndarray, shape (3,)
+        Bias (hard iron), nT; ``bias_sd_nT`` its standard deviation from the fit's covariance.
+    mounting : numpy.ndarray, shape (3, 3)
+        ``R``, the rotation of the sensor's corrected axes into the body frame.
+    cinv : numpy.ndarray, shape (3, 3)
+        Upper-triangular ``C^-1``.
+    right_angle : numpy.ndarray, shape (3, 3)
+        The best of the 24 right-angle orientations (tried first).
+    right_angle_text : str
+        Its firmware name and axis mapping.
+    angle_off_deg : float
+        Angle between the fitted mounting and that right angle, deg.
+    orientation_margin : float
+        RMS of the second-best right angle over the best one's (large: the choice was clear).
+    terms : dict
+        Fitted platform terms: ``eddy_ms`` (3, 3), ``current_nT_per_unit`` (3,).
+    rms_vector_nT : float
+        RMS of the vector residual ``B - R(q)^T B_ned`` per component, nT.
+    rms_perpendicular_nT : float
+        RMS of its components perpendicular to the field (the attitude error's share), nT.
+    rms_total_field_nT : float
+        RMS of the total-field residual ``|B| - F``, nT.
+    sigma_perpendicular_nT, sigma_total_field_nT : float
+        The noises weighting the two residuals (given or estimated), nT.
+    attitude_noise_deg : float
+        The attitude error those imply: ``sigma_perp / |B|`` (deg), or the one given.
+    attitude_noise_source : str
+        ``given`` or ``estimated``.
+    mounting_sd_deg : numpy.ndarray, shape (3,)
+        Standard deviation (deg) of the mounting's small rotations about the body's x, y, z axes, from the
+        covariance ``(J^T J)^-1`` of the weighted fit (the Cramer-Rao bound when the noises are right).
+    n_outliers : int
+        Samples whose residual exceeds 5 of its standard deviations (left out of the start; with ``robust``
+        the soft-L1 loss keeps them from pulling the fit).
+    """
+
+    W: np.ndarray
+    bias_nT: np.ndarray
+    mounting: np.ndarray
+    cinv: np.ndarray
+    right_angle: np.ndarray
+    right_angle_text: str
+    angle_off_deg: float
+    orientation_margin: float
+    terms: dict
+    rms_vector_nT: float
+    rms_perpendicular_nT: float
+    rms_total_field_nT: float
+    sigma_perpendicular_nT: float
+    sigma_total_field_nT: float
+    attitude_noise_deg: float
+    attitude_noise_source: str
+    nfev: int = 0
+    bias_sd_nT: np.ndarray | None = None
+    mounting_sd_deg: np.ndarray | None = None
+    n_outliers: int = 0
+
+    def summary(self) -> dict:
+        """JSON-ready figures for the calibration file's sensor entry."""
+        number = firmware_rotation(self.right_angle)
+        return {
+            "mounting_right_angle": self.right_angle_text,
+            "mounting_rotation_number": number,
+            "mounting_angle_off_deg": self.angle_off_deg,
+            "mounting_rotvec_deg": np.degrees(Rotation.from_matrix(self.mounting).as_rotvec()).tolist(),
+            "orientation_margin": self.orientation_margin,
+            "rms_vector_nT": self.rms_vector_nT,
+            "rms_perpendicular_nT": self.rms_perpendicular_nT,
+            "rms_total_field_nT": self.rms_total_field_nT,
+            "sigma_perpendicular_nT": self.sigma_perpendicular_nT,
+            "sigma_total_field_nT": self.sigma_total_field_nT,
+            "attitude_noise_deg": self.attitude_noise_deg,
+            "attitude_noise_source": self.attitude_noise_source,
+            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
+            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
+            "n_outliers": self.n_outliers,
+        }
+
+
+@dataclass
+class VectorFitResult:
+    """Outcome of :func:`fit_vector`.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        ``mode = "vector"``, ``frame = "body"``: corrected vectors are body-frame components; with attitude,
+        :meth:`Calibration.world` turns them into north-east-down.
+    sensors : list of SensorVectorFit
+    reference : VectorReference
+    terms : list of str
+        Platform terms fitted.
+    warnings : list of str
+    n_samples : int
+    wall_s : float
+    """
+
+    calibration: Calibration
+    sensors: list
+    reference: VectorReference
+    terms: list
+    warnings: list = field(default_factory=list)
+    n_samples: int = 0
+    wall_s: float = 0.0
+
+    @property
+    def rms_vector_nT(self) -> float:
+        return float(np.sqrt(np.mean([s.rms_vector_nT**2 for s in self.sensors])))
+
+    @property
+    def rms_total_field_nT(self) -> float:
+        return float(np.sqrt(np.mean([s.rms_total_field_nT**2 for s in self.sensors])))
+
+    def text(self) -> str:
+        """A readable report."""
+        lines = [
+            f"Vector calibration (attitude and the field vector): {len(self.sensors)} sensor(s), "
+            f"{self.n_samples} samples, {self.wall_s:.2f} s",
+            f"  reference: {self.reference.text}",
+            f"  platform terms: {', '.join(self.terms) or 'none'}",
+        ]
+        for i, s in enumerate(self.sensors):
+            lines += [
+                f"  sensor {i + 1}:",
+                f"    mounting: {s.right_angle_text}, {s.angle_off_deg:.3f} deg off it "
+                f"(next right angle {s.orientation_margin:.1f}x worse)",
+                f"    bias (nT): {np.array2string(s.bias_nT, precision=1)}"
+                + ("" if s.bias_sd_nT is None else f" +- {np.array2string(s.bias_sd_nT, precision=2)}"),
+                "    mounting sd about body x, y, z (deg): "
+                + ("n/a" if s.mounting_sd_deg is None else np.array2string(s.mounting_sd_deg, precision=5)),
+                f"    vector residual RMS {s.rms_vector_nT:.2f} nT per component (perpendicular to the field "
+                f"{s.rms_perpendicular_nT:.2f} nT: attitude error {s.attitude_noise_deg:.4f} deg, "
+                f"{s.attitude_noise_source}); total-field residual RMS {s.rms_total_field_nT:.2f} nT",
+            ]
+            if "eddy_ms" in s.terms:
+                rows = "; ".join(" ".join(f"{v:.3f}" for v in row) for row in s.terms["eddy_ms"])
+                lines.append(f"    eddy currents E (ms, rows x; y; z): [{rows}]")
+            if "current_nT_per_unit" in s.terms:
+                lines.append(
+                    f"    field per unit of {self.calibration.platform.current_column} (nT): "
+                    f"{np.array2string(s.terms['current_nT_per_unit'], precision=2)}"
+                )
+        lines += [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines) + "\n"
+
+    def to_dict(self) -> dict:
+        return {
+            "mode": "vector",
+            "reference": {"text": self.reference.text, "kind": self.reference.kind},
+            "terms": list(self.terms),
+            "n_samples": self.n_samples,
+            "rms_vector_nT": self.rms_vector_nT,
+            "rms_total_field_nT": self.rms_total_field_nT,
+            "sensors": [s.summary() for s in self.sensors],
+            "warnings": list(self.warnings),
+        }
+
+
+def body_reference_nT(rotation: Rotation, reference_ned_nT) -> np.ndarray:
+    """``R(q)^T B_ned`` (N, 3): the reference field in the body frame, nT."""
+    return rotation.inv().apply(np.asarray(reference_ned_nT, dtype=float))
+
+
+def _perpendicular_basis(u):
+    """Two unit vectors (N, 3) each, perpendicular to the unit rows ``u`` and to each other."""
+    helper = np.zeros_like(u)
+    helper[np.arange(len(u)), np.argmin(np.abs(u), axis=1)] = 1.0
+    p1 = np.cross(u, helper)
+    p1 /= np.linalg.norm(p1, axis=1)[:, None]
+    return p1, np.cross(u, p1)
+
+
+def _split_w(W, sensor):
+    """``W = R C^-1``: ``R`` a proper rotation, ``C^-1`` upper triangular with a positive diagonal."""
+    if np.linalg.det(W) <= 0:
+        raise CalibrationError(
+            f"sensor {sensor + 1}: the fitted matrix mirrors an axis (its determinant is negative): one axis's sign "
+            "is reversed against the others (a left-handed sensor); flip it with --columns (e.g. z=-magZ is not "
+            "supported: negate the column) and calibrate again"
+        )
+    q, u = np.linalg.qr(W)
+    d = np.sign(np.diag(u))
+    return q * d[None, :], d[:, None] * u
+
+
+def _orientation_search(y, b_body):
+    """Each of the 24 right angles ``A``: least squares of ``y = g A^T B_body + c`` (gain ``g``, offset ``c``).
+
+    Returns the best right angle, the RMS of every one (24,), and the margin (second-best RMS / best)."""
+    rms = np.empty(len(RIGHT_ANGLES))
+    yc = y - y.mean(axis=0)
+    for k, a in enumerate(RIGHT_ANGLES):
+        pred = b_body @ a  # rows: (A^T B)^T = B^T A
+        pc = pred - pred.mean(axis=0)
+        g = float(np.sum(pc * yc) / max(np.sum(pc * pc), 1e-30))
+        rms[k] = np.sqrt(np.mean((yc - g * pc) ** 2)) if g > 0 else np.inf
+    order = np.argsort(rms)
+    margin = float(rms[order[1]] / max(rms[order[0]], 1e-12))
+    return RIGHT_ANGLES[order[0]], rms, margin
+
+
+def _linear_start(y, b_body, bases, robust=False):
+    """Least squares of ``y = A B_body + b + basis @ theta``: returns ``W = A^-1``, ``b``, ``theta``; with
+    ``robust``, once more without the samples beyond 5 robust standard deviations."""
+    W, b, theta, resid = _linear_lstsq(y, b_body, bases, np.ones(len(y), bool))
+    if robust:
+        size = np.linalg.norm(resid, axis=1)
+        keep = size <= np.median(size) + 5 * robust_sigma(size)
+        if keep.sum() >= len(y) // 2:
+            W, b, theta, _ = _linear_lstsq(y, b_body, bases, keep)
+    return W, b, theta
+
+
+def _linear_lstsq(y, b_body, bases, keep):
+    """One least-squares solve of the linear start on the kept samples; also the residuals (N, 3) of all."""
+    n = len(y)
+    q = bases.shape[2] if bases is not None else 0
+    design = np.zeros((n, 3, 12 + q))
+    for j in range(3):
+        design[:, j, 3 * j : 3 * j + 3] = b_body
+        design[:, j, 9 + j] = 1.0
+    if q:
+        design[:, :, 12:] = bases
+    coef, *_ = np.linalg.lstsq(design[keep].reshape(-1, 12 + q), y[keep].reshape(-1), rcond=None)
+    a = coef[:9].reshape(3, 3)
+    resid = y - np.einsum("njk,k->nj", design, coef)
+    return np.linalg.inv(a), coef[9:12], coef[12:], resid
+
+
+def _mounting_sd_deg(W, cov_w):
+    """Standard deviations (deg) of the mounting's small rotations about the body axes, from the covariance of
+    ``W`` (9 x 9, row by row), through the QR split by finite differences."""
+    r0, _ = _split_w(W, 0)
+    g = np.empty((3, 9))
+    h = 1e-7 * max(np.abs(W).max(), 1e-12)
+    for k in range(9):
+        dw = np.zeros(9)
+        dw[k] = h
+        r1, _ = _split_w(W + dw.reshape(3, 3), 0)
+        g[:, k] = Rotation.from_matrix(r1 @ r0.T).as_rotvec() / h
+    cov = g @ cov_w @ g.T
+    return np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+
+class _SensorProblem:
+    """Residuals of one sensor's vector fit, weighted by their noises."""
+
+    def __init__(self, y, b_body, f_ref, bases):
+        self.y, self.b_body, self.f_ref, self.bases = y, b_body, f_ref, bases
+        self.u = b_body / np.linalg.norm(b_body, axis=1)[:, None]
+        self.p1, self.p2 = _perpendicular_basis(self.u)
+        self.q = 0 if bases is None else bases.shape[2]
+
+    def unpack(self, x):
+        return x[:9].reshape(3, 3), x[9:12], x[12:]
+
+    def corrected(self, x):
+        W, b, theta = self.unpack(x)
+        z = self.y - b
+        if self.q:
+            z = z - np.einsum("njk,k->nj", self.bases, theta)
+        return z @ W.T
+
+    def parts(self, x):
+        """Total-field residual (N,), the two perpendicular components (N, 2), the vector residual (N, 3)."""
+        B = self.corrected(x)
+        e = B - self.b_body
+        total = np.linalg.norm(B, axis=1) - self.f_ref
+        perp = np.column_stack([np.sum(e * self.p1, axis=1), np.sum(e * self.p2, axis=1)])
+        return total, perp, e
+
+    def residuals(self, x, sigma_f, sigma_p):
+        total, perp, _ = self.parts(x)
+        return np.concatenate([total / sigma_f, perp.ravel() / sigma_p])
+
+
+def fit_vector(
+    dataset: Dataset,
+    reference: VectorReference,
+    terms=None,
+    attitude_noise_deg=None,
+    noise_nT=None,
+    reference_total_nT=None,
+    robust=False,
+    mask=None,
+) -> VectorFitResult:
+    """Vector calibration of every sensor into the body frame from attitude and the field vector.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        Readings (nT) and attitude (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED).
+    reference : VectorReference
+        The Earth's field vector per sample (nT, NED).
+    terms : sequence of str, optional
+        Platform terms to fit (``eddy``, ``current``); default: every one the data support
+        (:func:`magcal.model.platform_terms.available_terms`). ``[]`` fits none.
+    attitude_noise_deg : float, optional
+        Attitude error per axis (deg, 1 sigma); estimated from the residuals when None.
+    noise_nT : float, optional
+        Sensor noise per axis (nT); estimated from the total-field residuals when None.
+    reference_total_nT : numpy.ndarray or float, optional
+        The total field for the total-field residual (e.g. a scalar magnetometer's ``ref_total``); default
+        ``|B_ned|``.
+    robust : bool
+        Soft-L1 loss (residuals beyond about 3 standard deviations count less), and a start without the samples
+        beyond 5: for records with spikes or drop-outs.
+    mask : numpy.ndarray of bool, shape (N,), optional
+        The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
+        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact.
+
+    Raises
+    ------
+    CalibrationError
+        No attitude, too few samples, a mirrored axis.
+    """
+    start = time.perf_counter()
+    rotation = dataset_attitude(dataset)
+    if rotation is None:
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: a vector calibration needs the attitude: qw, qx, qy, qz or roll_deg, "
+            "pitch_deg, yaw_deg columns (or a flight log with ATT / vehicle_attitude)"
+        )
+    ned = np.asarray(reference.ned_nT, dtype=float)
+    if ned.shape != (dataset.n_samples, 3):
+        raise CalibrationError(f"the reference vector has shape {ned.shape}, expected ({dataset.n_samples}, 3)")
+    terms = available_terms(dataset) if terms is None else list(terms)
+    for t in terms:
+        if t not in available_terms(dataset):
+            raise CalibrationError(
+                f"platform term {t!r}: the data lack its channel ("
+                + ("sample times t" if t == "eddy" else "a current_A or throttle column")
+                + ")"
+            )
+    n_par = 12 + sum(n_params(t) for t in terms)
+    keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if keep.shape != (dataset.n_samples,):
+        raise CalibrationError(f"mask has shape {keep.shape}, expected ({dataset.n_samples},)")
+    if keep.sum() < max(MIN_SAMPLES, n_par):
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: {int(keep.sum())} samples are too few for a vector fit of {n_par} "
+            "parameters per sensor; record more"
+        )
+    b_body = body_reference_nT(rotation, ned)[keep]
+    f_ref = (
+        np.linalg.norm(ned, axis=1)
+        if reference_total_nT is None
+        else np.broadcast_to(np.asarray(reference_total_nT, dtype=float), (dataset.n_samples,))
+    )[keep]
+    column = current_column(dataset) if "current" in terms else None
+    notes = []
+    fits = []
+    platform = PlatformTerms(current_column=column)
+    eddy, current = [], []
+    theta_cov = []  # per sensor: the covariance of W = R C^-1 (row by row) and the bias, the calibration's base_covariance
+    for s in range(dataset.n_sensors):
+        y = dataset.readings_nT[s][keep]
+        bases = [term_basis(t, dataset, s, column)[keep] for t in terms]
+        basis = np.concatenate(bases, axis=2) if bases else None
+        right, _, margin = _orientation_search(y, b_body)
+        W0, b0, theta0 = _linear_start(y, b_body, basis, robust)
+        prob = _SensorProblem(y, b_body, f_ref, basis)
+        x = np.concatenate([W0.ravel(), b0, theta0])
+        total, perp, _ = prob.parts(x)
+        field_nT = float(np.median(f_ref))
+        sigma_f = noise_nT if noise_nT is not None else max(robust_sigma(total), 1e-3)
+        if attitude_noise_deg is not None:
+            sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
+        else:
+            sigma_p = max(robust_sigma(perp.ravel()), 1e-3)
+        scale = np.concatenate([np.full(9, 1e-3), np.full(3, 10.0), np.ones(prob.q)])
+        for rnd in range(2):
+            sol = least_squares(
+                prob.residuals,
+                x,
+                args=(sigma_f, sigma_p),
+                method="trf" if robust else "lm",
+                loss="soft_l1" if robust else "linear",
+                f_scale=3.0,
+                x_scale=scale,
+                xtol=1e-12,
+                ftol=1e-12,
+            )
+            x = sol.x
+            total, perp, _ = prob.parts(x)
+            if rnd == 1 or (noise_nT is not None and attitude_noise_deg is not None):
+                break
+            new_f = sigma_f if noise_nT is not None else max(robust_sigma(total), 1e-3)
+            new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
+            if abs(new_f / sigma_f - 1) < 0.05 and abs(new_p / sigma_p - 1) < 0.05:
+                break
+            sigma_f, sigma_p = new_f, new_p
+        total, perp, e = prob.parts(x)
+        W, b, theta = prob.unpack(x)
+        R, cinv = _split_w(W, s)
+        z = prob.residuals(x, sigma_f, sigma_p)
+        n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
+        try:
+            jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
+            s2 = float(z @ z) / max(len(z) - len(x), 1)
+            cov = s2 * jtj_inv
+            bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
+            mount_sd = _mounting_sd_deg(W, cov[:9, :9])
+            theta_cov.append(cov[:12, :12])
+        except np.linalg.LinAlgError:
+            bias_sd = mount_sd = None
+        if n_out:
+            notes.append(
+                f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
+                + ("" if robust else "; --robust keeps them from pulling the fit")
+            )
+        nearest, off = nearest_right_angle(R)
+        if not np.allclose(nearest, right):
+            notes.append(
+                f"sensor {s + 1}: the right angle the field vectors chose first ({describe_right_angle(right)}) is not "
+                f"the one nearest the fitted mounting ({describe_right_angle(nearest)}); the mounting is far from "
+                "any right angle or the attitude and reference disagree"
+            )
+        if off > 20:
+            notes.append(
+                f"sensor {s + 1}: the mounting is {off:.1f} deg off the nearest right angle: check the attitude's frame "
+                "(body x forward, y right, z down; world north-east-down) and the reference"
+            )
+        fitted_terms, k = {}, 0
+        for t in terms:
+            q = n_params(t)
+            if t == "eddy":
+                fitted_terms["eddy_ms"] = theta[k : k + q].reshape(3, 3)
+                eddy.append(fitted_terms["eddy_ms"])
+            else:
+                fitted_terms["current_nT_per_unit"] = theta[k : k + q]
+                current.append(fitted_terms["current_nT_per_unit"])
+            k += q
+        att_noise = (
+            float(attitude_noise_deg)
+            if attitude_noise_deg is not None
+            else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field_nT))
+        )
+        fits.append(
+            SensorVectorFit(
+                W=W,
+                bias_nT=b,
+                mounting=R,
+                cinv=cinv,
+                right_angle=right,
+                right_angle_text=describe_right_angle(right),
+                angle_off_deg=off,
+                orientation_margin=margin,
+                terms=fitted_terms,
+                rms_vector_nT=float(np.sqrt(np.mean(e**2))),
+                rms_perpendicular_nT=float(np.sqrt(np.mean(perp**2))),
+                rms_total_field_nT=float(np.sqrt(np.mean(total**2))),
+                sigma_perpendicular_nT=float(sigma_p),
+                sigma_total_field_nT=float(sigma_f),
+                attitude_noise_deg=att_noise,
+                attitude_noise_source="given" if attitude_noise_deg is not None else "estimated",
+                nfev=int(sol.nfev),
+                bias_sd_nT=bias_sd,
+                mounting_sd_deg=mount_sd,
+                n_outliers=n_out,
+            )
+        )
+    if eddy:
+        platform.eddy_ms = np.array(eddy)
+    if current:
+        platform.current_nT_per_unit = np.array(current)
+    sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
+    tilt = _tilt_range_deg(rotation[np.flatnonzero(keep)])
+    if tilt < 5:
+        notes.append(
+            f"the body tilted at most {tilt:.1f} deg: the vertical axis's scale and the bias along it rest on few "
+            "directions; fly some banked turns or pitch changes"
+        )
+    cal = Calibration(
+        sensors=sensors,
+        reference_total_nT=float(np.median(f_ref)),
+        baseline_m=dataset.baseline_m,
+        frame="body",
+        mode="vector",
+        platform=platform if platform.names else None,
+        base_covariance=scipy.linalg.block_diag(*theta_cov) if len(theta_cov) == dataset.n_sensors else None,
+    )
+    result = VectorFitResult(
+        calibration=cal,
+        sensors=fits,
+        reference=reference,
+        terms=terms,
+        warnings=notes,
+        n_samples=int(keep.sum()),
+        wall_s=time.perf_counter() - start,
+    )
+    cal.summary = {"vector_fit": result.to_dict()}
+    for w in notes:
+        warnings.warn(w, DataWarning, stacklevel=2)
+    return result
+
+
+def _tilt_range_deg(rotation: Rotation) -> float:
+    """Largest angle (deg) between the body's z axis and the vertical over the record."""
+    z = rotation.apply(np.array([0.0, 0.0, 1.0]))
+    return float(np.degrees(np.max(np.arccos(np.clip(z[:, 2], -1.0, 1.0)))))
+
+
+def true_calibration(truth) -> Calibration:
+    """The calibration a simulated vehicle's truth (:class:`magcal.data.vehicle.VehicleTruth`) implies: what
+    the fit is compared with."""
+    sensors = []
+    for s in truth.sensors:
+        R, cinv = _split_w(s.mounting @ np.linalg.inv(s.matrix), 0)
+        sensors.append(SensorCalibration(cinv, s.bias_nT, R))
+    platform = PlatformTerms()
+    if any(s.eddy_ms is not None for s in truth.sensors):
+        platform.eddy_ms = np.array([np.zeros((3, 3)) if s.eddy_ms is None else s.eddy_ms for s in truth.sensors])
+    if any(s.current_nT_per_unit is not None for s in truth.sensors):
+        platform.current_nT_per_unit = np.array(
+            [np.zeros(3) if s.current_nT_per_unit is None else s.current_nT_per_unit for s in truth.sensors]
+        )
+        platform.current_column = "current_A"
+    return Calibration(
+        sensors=sensors,
+        reference_total_nT=float(np.linalg.norm(truth.field_ned_nT)),
+        frame="body",
+        mode="vector",
+        platform=platform if platform.names else None,
+    )
+
+
+@dataclass
+class VectorValidation:
+    """Held-out figures of vector fits with and without platform terms (:func:`validate_vector`).
+
+    Attributes
+    ----------
+    n_blocks : int
+        Blocks in time: the fits use the even ones, the figures ``held_*`` come from the odd ones.
+    rows : list of dict
+        Per model (``terms``: the platform terms fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
+        components against the reference, RMS per component) and ``in_total_nT`` / ``held_total_nT`` (|B| against
+        the reference total field), all sensors together.
+    """
+
+    n_blocks: int
+    rows: list
+
+    def text(self) -> str:
+        lines = [
+            f"  held-out check (fitted on the even of {self.n_blocks} blocks in time, scored on the odd ones; "
+            "world components and |B| against the reference, RMS in nT):"
+        ]
+        for r in self.rows:
+            name = ", ".join(r["terms"]) or "no platform terms"
+            lines.append(
+                f"    {name:28s} vector {r['in_vector_nT']:.2f} in / {r['held_vector_nT']:.2f} held out; "
+                f"|B| {r['in_total_nT']:.2f} in / {r['held_total_nT']:.2f} held out"
+            )
+        return "\n".join(lines) + "\n"
+
+    def to_dict(self) -> dict:
+        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
+
+
+def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> VectorValidation:
+    """Fit on alternate blocks in time and score on the blocks between: the base vector model and the model with
+    the platform terms (each term alone too when there are several), so that a term that only fits this record
+    shows (its held-out figures do not fall).
+
+    Parameters
+    ----------
+    dataset, reference
+        As for :func:`fit_vector` (the dataset needs its attitude).
+    terms : sequence of str, optional
+        The platform terms (default: every one the data support).
+    n_blocks : int
+        Blocks in time (at least 4).
+    **options
+        Passed to :func:`fit_vector` (``attitude_noise_deg``, ``noise_nT``, ``reference_total_nT``, ``robust``).
+    """
+    n = dataset.n_samples
+    n_blocks = max(4, int(n_blocks))
+    train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
+    terms = available_terms(dataset) if terms is None else list(terms)
+    models = [[]] + ([[t] for t in terms] if len(terms) > 1 else []) + ([terms] if terms else [])
+    rotation = dataset_attitude(dataset)
+    ned = np.asarray(reference.ned_nT, dtype=float)
+    f_ref = options.get("reference_total_nT")
+    f_ref = np.linalg.norm(ned, axis=1) if f_ref is None else np.broadcast_to(np.asarray(f_ref, float), (n,))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for model in models:
+            cal = fit_vector(dataset, reference, terms=model, mask=train, **options).calibration
+            world = np.stack([rotation.apply(b) for b in cal.correct(dataset)])
+            err = world - ned[None]
+            total = np.linalg.norm(world, axis=2) - f_ref[None]
+
+            def rms(values, part):
+                return float(np.sqrt(np.mean(values[:, part] ** 2)))
+
+            rows.append(
+                {
+                    "terms": list(model),
+                    "in_vector_nT": rms(err, train),
+                    "held_vector_nT": rms(err, ~train),
+                    "in_total_nT": rms(total, train),
+                    "held_total_nT": rms(total, ~train),
+                }
+            )
+    return VectorValidation(n_blocks, rows)
