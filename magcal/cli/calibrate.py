@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 
 from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.coverage import calibration_input_checks
