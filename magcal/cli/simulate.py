@@ -80,7 +80,7 @@ def run(args) -> int:
     if args.noise is not None and args.noise < 0:
         raise MagcalError(f"--noise must be >= 0 nT, got {args.noise}")
     common = dict(noise_nT=args.noise, seed=args.seed, with_reference=not args.no_reference)
-    hidden = []
+    hidden: list = []
     if getattr(args, "hidden", None):
         heads = [spec.partition("=")[0] for spec in args.hidden]
         check_effect_names([h for h in heads if h.partition(":")[0].strip() not in reserved_names()], "--hidden")

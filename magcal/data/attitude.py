@@ -79,5 +79,7 @@ def with_attitude(dataset: Dataset) -> Dataset:
     """The dataset with its Euler columns (if any) turned into the quaternion channel (unchanged otherwise)."""
     if attitude_source(dataset) != "euler":
         return dataset
-    q = attitude(dataset).as_quat()
+    rotation = attitude(dataset)
+    assert rotation is not None  # Euler columns give an attitude
+    q = rotation.as_quat()
     return dataset.replace(attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]))

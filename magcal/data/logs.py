@@ -276,12 +276,12 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
         raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({type(exc).__name__}: {exc})") from None
     params = {}
-    mags = {}  # (name, instance) -> list of rows (t, x, y, z) nT
+    mags: dict = {}  # (name, instance) -> list of rows (t, x, y, z) nT
     imu_t, imu_temp = [], []
     att_t, att = [], []
     bat_t, bat = [], []
     seen_types = set()
-    unhealthy = {}  # compass -> samples the firmware marked unhealthy (left out)
+    unhealthy: dict = {}  # compass -> samples the firmware marked unhealthy (left out)
     try:
         while True:
             m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT"])
@@ -337,7 +337,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
     instances = _select(sorted(mags), sensors, source, "MAG messages", notes)
     series = []
     for k in instances:
-        rows = np.asarray(mags[k], dtype=float)
+        rows = np.array(mags[k], dtype=np.float64)
         series.append(_strictly_increasing(rows[:, 0], rows[:, 1:], source, f"compass {k + 1}", notes))
     labels = [f"compass {k + 1}" for k in instances]
     keep = _alive(series, labels, source, notes)

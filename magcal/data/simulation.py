@@ -416,7 +416,7 @@ def simulate_timeseries(
     return ds.replace(time_s=t, temperature_C=temp, extra=dict(context["extra"]))
 
 
-def _resolve(truth, n_samples, noise_nT, noise_kind):
+def _resolve(truth, n_samples, noise_nT, noise_kind) -> tuple[ArrayTruth, int, float, str]:
     if isinstance(truth, str):
         if truth not in PRESETS:
             raise ValueError(f"unknown preset {truth!r}; known presets: {', '.join(sorted(PRESETS))}")

@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.checks.reference import VectorReference
-from magcal.core.errors import CalibrationError, DataWarning
+from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude as dataset_attitude
 from magcal.data.dataset import Dataset
@@ -199,7 +199,7 @@ class VectorFitResult:
             if "eddy_ms" in s.terms:
                 rows = "; ".join(" ".join(f"{v:.3f}" for v in row) for row in s.terms["eddy_ms"])
                 lines.append(f"    eddy currents E (ms, rows x; y; z): [{rows}]")
-            if "current_nT_per_unit" in s.terms:
+            if "current_nT_per_unit" in s.terms and self.calibration.platform is not None:
                 lines.append(
                     f"    field per unit of {self.calibration.platform.current_column} (nT): "
                     f"{np.array2string(s.terms['current_nT_per_unit'], precision=2)}"
@@ -459,6 +459,8 @@ def fit_vector(
         R, cinv = _split_w(W, s)
         z = prob.residuals(x, sigma_f, sigma_p)
         n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
+        bias_sd: np.ndarray | None
+        mount_sd: np.ndarray | None
         try:
             jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
             s2 = float(z @ z) / max(len(z) - len(x), 1)
@@ -645,6 +647,8 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     terms = available_terms(dataset) if terms is None else list(terms)
     models = [[]] + ([[t] for t in terms] if len(terms) > 1 else []) + ([terms] if terms else [])
     rotation = dataset_attitude(dataset)
+    if rotation is None:
+        raise MagcalError(f"{dataset.source or 'dataset'}: the held-out check of a vector calibration needs attitude")
     ned = np.asarray(reference.ned_nT, dtype=float)
     f_ref = options.get("reference_total_nT")
     f_ref = np.linalg.norm(ned, axis=1) if f_ref is None else np.broadcast_to(np.asarray(f_ref, float), (n,))

@@ -24,7 +24,7 @@ import copy
 import dataclasses
 import inspect
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -118,7 +118,7 @@ class Context:
         Array-to-world attitudes, when the dataset has them.
     """
 
-    dataset: object
+    dataset: Any  # the Dataset (magcal.data.dataset)
     sensor: int
     position_m: np.ndarray
     attitude: Rotation | None = None

@@ -78,7 +78,7 @@ def _csv_head(path) -> tuple[bytes, int]:
 def partitions(paths, partition_rows: int = PARTITION_ROWS) -> list[Partition]:
     """The partitions of the survey files, in order (numbered across files)."""
 
-    out = []
+    out: list = []
     for path in map(os.fspath, paths):
         if not os.path.exists(path):
             raise DatasetError(f"{path}: no such file; check the path")
