@@ -277,7 +277,8 @@ def validate_effect(cls, source_key=None, path=None) -> str:
 
 
 def _synthetic_record(n=240):
-    """A small four-sensor record with every channel: 10 Hz, smooth rotation in a 50 uT field, 15-25 degC."""
+    """A small four-sensor record with every channel: 10 Hz, smooth rotation in a 50 uT field, 15-25 degC, a motor
+    current (``current_A``) and a throttle column."""
     from scipy.spatial.transform import Rotation
 
     t = np.arange(n) / 10.0
@@ -296,6 +297,7 @@ def _synthetic_record(n=240):
         group=np.array(["x_up", "y_up", "z_up"] * (n // 3) + ["x_up"] * (n % 3)),
         reference_total_nT=50_000.0,
         baseline_m=0.5,
+        extra={"current_A": 5.0 + 2.0 * np.sin(0.3 * t), "throttle": 0.5 + 0.2 * np.sin(0.3 * t)},
         source="synthetic test record",
     )
 
