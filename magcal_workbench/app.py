@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import secrets
 import sys
 import time
 from types import SimpleNamespace
@@ -46,7 +47,7 @@ from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
 from .evidence import Evidence
-from .guard import guarded_viser_server, is_loopback, page_url
+from .guard import Gate, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
 from .lessons import DEMO, LessonDesk, get_lesson
 from .livecontrol import LiveControl
@@ -86,6 +87,12 @@ class Workbench:
     max_points : int
         Most points drawn per cloud (one sensor's raw or corrected readings); larger data are shown decimated
         (:func:`magcal_workbench.scene.level_of_detail`), every sample is still fitted and selectable.
+    token : str or None
+        The secret every request must show (:class:`magcal_workbench.guard.Gate`); ``"auto"`` (default) makes one
+        (:func:`secrets.token_urlsafe`), None asks for none (``--no-token``). :attr:`url` is the page's address
+        with it.
+    allow_hosts : sequence of str
+        Beyond loopback, Host names accepted besides this machine's own (``--allow-host``).
     """
 
     def __init__(
@@ -102,12 +109,18 @@ class Workbench:
         effects_files=(),
         max_upload_mb: float = DEFAULT_MAX_UPLOAD_MB,
         max_points: int = scn.MAX_POINTS,
+        token: str | None = "auto",
+        allow_hosts=(),
     ):
         #: The page's thread: every update a background thread makes goes through it.
         self.ui = UiQueue()
         #: What each input widget may send (registered where the panels make it).
         self.values = PageValues()
-        self.server = guarded_viser_server(host, port, verbose)  # refuses other pages' websockets
+        #: The secret in the page's address (None with ``--no-token``).
+        self.token = secrets.token_urlsafe(32) if token == "auto" else token
+        self.host = host
+        # refuses requests without the token, other pages' websockets, and (beyond loopback) foreign Host names
+        self.server = guarded_viser_server(host, port, verbose, Gate(host, self.token, allow_hosts))
         #: Whether the page may load effect files (it runs their code): only when served to this machine.
         self.local = is_loopback(host)
         self.effects_files = [os.path.abspath(p) for p in effects_files]
@@ -175,6 +188,11 @@ class Workbench:
     @property
     def port(self) -> int:
         return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        """The page's address, with its token (what is printed at start): ``http://127.0.0.1:PORT/?token=...``."""
+        return page_url(self.host, self.port, self.token)
 
     @property
     def live(self):
@@ -288,6 +306,12 @@ def host_warning(host: str) -> str | None:
     )
 
 
+NO_TOKEN_WARNING = (
+    "WARNING: --no-token: the page asks for no token; any program or user that can reach the port can see and "
+    "change the session and start live sources"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="magcal-workbench", description="Calibrate magnetometers in the browser: fit, diagnose, add effects."
@@ -295,6 +319,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", nargs="?", help="data CSV (default: the bundled demo)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
+    p.add_argument(
+        "--no-token",
+        action="store_true",
+        help="do not ask for the secret token in the page's address (any process or user that can reach the "
+        "port can then use the workbench; a warning is printed)",
+    )
+    p.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="beyond 127.0.0.1: a further name the page may be reached by (e.g. a proxy's); this machine's own "
+        "names and addresses are always accepted",
+    )
     p.add_argument("--session-dir", default=None, help="where sessions are saved (default ~/.magcal/sessions)")
     p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
     p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
@@ -374,6 +412,8 @@ def main(argv=None) -> int:
         warning = host_warning(args.host)
         if warning:
             print(f"magcal-workbench: {warning}", file=sys.stderr)
+        if args.no_token:
+            print(f"magcal-workbench: {NO_TOKEN_WARNING}", file=sys.stderr)
         if not args.max_upload_mb > 0 or args.max_points < 1:
             raise MagcalError("--max-upload-mb and --max-points must be positive")
         wb = Workbench(
@@ -388,6 +428,8 @@ def main(argv=None) -> int:
             effects_files=args.effects_file,
             max_upload_mb=args.max_upload_mb,
             max_points=args.max_points,
+            token=None if args.no_token else "auto",
+            allow_hosts=args.allow_host,
         )
         if lesson:
             wb.lessons.show_guide(lesson_obj)
@@ -399,7 +441,7 @@ def main(argv=None) -> int:
     except MagcalError as exc:
         print(f"magcal-workbench: {exc}", file=sys.stderr)
         return 2
-    print(f"magcal-workbench: open {page_url(args.host, wb.port)} in a browser (Ctrl-C stops)", flush=True)
+    print(f"magcal-workbench: open {wb.url} in a browser (Ctrl-C stops)", flush=True)
     try:
         while True:
             time.sleep(3600)

@@ -5,8 +5,9 @@ and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they
 
 * **the handshake check** (:func:`start_server`): viser serves its page and its websocket through
   ``websockets.asyncio.server.serve(process_request=viser_http_server)``; while the server starts, ``serve`` is
-  wrapped so that ``check(headers)`` (:func:`magcal_workbench.guard.refusal`) runs before viser's own hook on every
-  HTTP request and websocket upgrade. A token check belongs in that ``check``.
+  wrapped so that ``check(request)`` (:meth:`magcal_workbench.guard.Gate.refusal`: Host, Origin and the page's
+  token) runs before viser's own hook on every HTTP request and websocket upgrade, and ``after(request, response)``
+  may add headers to what viser answers (the token's cookie).
 * **an upload's declared size** (:func:`watch_upload_starts`): viser buffers an upload's parts in
   ``gui._current_file_upload_states``; a handler of ``FileTransferStartUpload`` registered on the websocket
   server sees the size the browser declares and drops the entry, so viser ignores the parts that follow.
@@ -30,10 +31,18 @@ class HandshakeHookMissing(RuntimeError):
     """viser started its server without the handshake check (its way of serving changed)."""
 
 
-def start_server(host: str, port: int, check: Callable[[object], str | None], verbose: bool = False):
-    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request_headers)`` first.
+def start_server(
+    host: str,
+    port: int,
+    check: Callable[[object], str | None],
+    verbose: bool = False,
+    after: Callable[[object, object], None] | None = None,
+):
+    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request)`` first.
 
-    ``check`` returns None to let the request through or the reason (plain text) it is refused with 403.
+    ``check`` gets websockets' request (``.path`` with its query, ``.headers``) and returns None to let it through
+    or the reason (plain text) it is refused with 403. ``after(request, response)``, when given, sees viser's
+    answer to an HTTP request it let through (e.g. to add a ``Set-Cookie`` header to ``response.headers``).
 
     Raises
     ------
@@ -48,10 +57,13 @@ def start_server(host: str, port: int, check: Callable[[object], str | None], ve
 
     def check_first(viser_hook):
         def process_request(connection, request):
-            why = check(request.headers)
+            why = check(request)
             if why is not None:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
-            return viser_hook(connection, request)
+            response = viser_hook(connection, request)
+            if response is not None and after is not None:
+                after(request, response)
+            return response
 
         return process_request
 

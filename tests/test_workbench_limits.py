@@ -393,7 +393,7 @@ def test_the_workbench_refuses_a_foreign_origin(bench):
         sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
         try:
             async with connect(
-                f"ws://127.0.0.1:{wb.port}",
+                f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
                 sock=sock,
                 origin=origin,
                 open_timeout=10,

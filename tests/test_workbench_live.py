@@ -116,7 +116,7 @@ def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench,
     from test_workbench_e2e import _dismiss_toasts, _open
 
     wb = bench(store=True)
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     page.get_by_role("tab", name="Files").click(timeout=30_000)
     # viser's label points at no input id: take the input of the label's own row
     box = page.locator("label:text-is('Live source')").locator("xpath=ancestor::div[.//input][1]//input")

@@ -4,6 +4,7 @@ the page's handles driven from Python on a real (browserless) viser server."""
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from pathlib import Path
@@ -612,7 +613,7 @@ def test_command_line_serves_the_demo_on_loopback(tmp_path):
         deadline = time.time() + 120
         while "open http" not in line and time.time() < deadline:
             line = proc.stdout.readline()
-        assert "open http://127.0.0.1:" in line
+        assert re.search(r"open http://127\.0\.0\.1:\d+/\?token=[\w-]{40,} ", line), line
         assert list((tmp_path / "s").iterdir())[0].name.startswith("demo-")  # the bundled demo, autosaved
     finally:
         proc.terminate()
