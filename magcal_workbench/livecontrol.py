@@ -4,6 +4,8 @@ Pause, Resume, and Stop, which opens the recording like any file. The live view 
 
 from __future__ import annotations
 
+import threading
+
 from magcal.core.errors import MagcalError
 
 from .controller import MESSAGE_LEN
@@ -24,21 +26,38 @@ class LiveControl:
         self.wb = wb
         #: The live session (:class:`~magcal_workbench.live.LiveView`) while one is open or after it stopped.
         self.view: LiveView | None = None
+        self._claim = threading.Lock()
+        self._starting = False
 
     @property
     def running(self) -> bool:
         return self.view is not None and self.view.active
 
+    @property
+    def recording_in_use(self):
+        """The recording a live session is writing (or is about to), or None: the session folder's bound never
+        deletes it (:meth:`magcal_workbench.session.SessionStore.prune`)."""
+        return self.view.path if self.running else None
+
     def start(self, url: str, path=None) -> LiveView:
         """Open a live source (:mod:`magcal_workbench.live`); its samples are recorded to ``path`` (default a new
-        file in the session folder's ``recordings``, or the current folder without sessions)."""
+        file in the session folder's ``recordings``, or the current folder without sessions).
+
+        One live session at a time, decided before the source opens: a Start while another is running or still
+        opening (a slow serial port, several presses of the button) is refused, and leaves no recording."""
         wb = self.wb
-        if self.running:
-            raise MagcalError("a live session is running; stop it first")
-        path = default_recording_path(recording_folder(wb.store)) if path is None else path
-        self.view = LiveView(
-            url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
-        )
+        with self._claim:
+            if self._starting or self.running:
+                raise MagcalError("a live session is running or starting; stop it first")
+            self._starting = True
+        try:
+            path = default_recording_path(recording_folder(wb.store)) if path is None else path
+            self.view = LiveView(
+                url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
+            )
+        finally:
+            with self._claim:
+                self._starting = False
         wb.scene_view.clear()
         wb.view.reset_cameras()
         wb.panels.refresh_live()

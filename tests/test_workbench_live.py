@@ -97,6 +97,51 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
     assert after < 0.95 * rms_before and after < 1.05 * wb.ctrl.floor_nT()  # down to the noise floor
 
 
+def test_four_quick_starts_while_a_slow_source_opens_leave_one_recording(bench, monkeypatch):
+    """Issue 31: Start pressed four times while the source takes half a second to open: one live session, one
+    recording, which Stop ends; the other presses say a session is running and leave no file."""
+    import threading
+
+    from magcal.data.live import LiveSession
+    from magcal_workbench import live as wlive
+
+    opened = []
+
+    class SlowSession(LiveSession):
+        def __init__(self, *args, **kwargs):
+            time.sleep(0.5)  # a serial port or a socket that is slow to open
+            opened.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(wlive, "LiveSession", SlowSession)
+    wb = bench()
+    folder = Path(wb.store.root) / "recordings"
+    errors, barrier = [], threading.Barrier(4)
+
+    def press():
+        barrier.wait()
+        try:
+            wb.livectl.start("sim://chi2017?rate=200&n=2000")
+        except magcal.MagcalError as exc:
+            errors.append(str(exc))
+
+    threads = [threading.Thread(target=press) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert len(opened) == 1 and len(errors) == 3 and all("running or starting" in e for e in errors)
+    assert wb.livectl.running and len(list(folder.iterdir())) == 1
+    assert _wait(lambda: wb.live.session.n_recorded > 0, 30)
+    path = wb.live.stop()
+    assert not wb.livectl.running and not wb.live.session.running
+    assert [p.name for p in folder.iterdir()] == [path.name] and magcal.read_csv(path).n_samples > 0
+    # once stopped, a new session may start
+    wb.livectl.start("sim://chi2017?rate=200&n=200")
+    assert len(list(folder.iterdir())) == 2
+    wb.live.stop()
+
+
 def test_a_page_beyond_this_machine_may_start_only_a_simulated_preset():
     from magcal_workbench.live import check_page_source
 
