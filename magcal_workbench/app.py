@@ -138,6 +138,8 @@ class Workbench:
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
         self.livectl = LiveControl(self)
+        if store is not None:  # the size bound never deletes the recording being written
+            store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
         self.view = SceneControl(self)
         self.steps = Steps(self)

@@ -35,7 +35,7 @@ class LiveControl:
 
     @property
     def recording_in_use(self):
-        """The recording a live session is writing (or is about to), or None: the session folder's bound never
+        """The recording a live session is writing, or None: the session folder's bound never
         deletes it (:meth:`magcal_workbench.session.SessionStore.prune`)."""
         return self.view.path if self.running else None
 

@@ -287,6 +287,35 @@ def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
     assert "is the one open" in wb.ctrl.message and wb.store.exists(wb.ctrl.session_id)
 
 
+def test_the_sessions_bound_keeps_the_live_recording_and_stop_opens_it(bench, tmp_path, capsys):
+    """Issue 31: a live stream, then an upload past --max-sessions-mb: the older sessions go (and the terminal
+    says which), the recordings folder and the recording being written stay, and Stop opens the recording."""
+    import time
+
+    wb = bench()
+    first = wb.ctrl.session_id
+    wb.store.max_bytes = 1_000  # smaller than any upload: every other session must go
+    live = wb.livectl.start("sim://chi2017?rate=400&n=4000")
+    deadline = time.monotonic() + 30
+    while live.session.n_recorded < 200 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert live.session.n_recorded >= 200
+    ds = magcal.simulate("chi2017", n_samples=120, seed=9)
+    mio.write_csv(tmp_path / "up.csv", ds)
+    _upload(wb, "up.csv", (tmp_path / "up.csv").read_bytes())
+    said = capsys.readouterr().err
+    assert f"deleted the session {first}" in said and "recordings" not in said
+    assert not (wb.store.root / first).exists()  # the bound did act
+    assert live.path.is_file() and live.path.parent == wb.store.root / "recordings"
+    assert live.session.error is None and wb.livectl.running
+    _click(wb, wb.panels.btn_live_stop)
+    assert wb.ctrl.dataset.n_samples == live.session.n_recorded >= 200
+    assert wb.ctrl.dataset.n_samples == magcal.read_csv(live.path).n_samples
+    # a later prune with nothing in use still leaves the recordings alone
+    wb.store.prune(0)
+    assert live.path.is_file()
+
+
 def test_a_large_file_is_drawn_decimated_and_fitted_whole(bench):
     n = 3000
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=2, rate_hz=5.0)
