@@ -93,6 +93,9 @@ class Workbench:
         with it.
     allow_hosts : sequence of str
         Beyond loopback, Host names accepted besides this machine's own (``--allow-host``).
+    live_allow : sequence of str
+        Live sources the page may start besides those it is offered (``--live-allow``,
+        :class:`magcal_workbench.live.SourceMenu`).
     """
 
     def __init__(
@@ -111,6 +114,7 @@ class Workbench:
         max_points: int = scn.MAX_POINTS,
         token: str | None = "auto",
         allow_hosts=(),
+        live_allow=(),
     ):
         #: The page's thread: every update a background thread makes goes through it.
         self.ui = UiQueue()
@@ -137,7 +141,7 @@ class Workbench:
         self.uploads = Uploads(self, int(max_upload_mb * 1e6))
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
-        self.livectl = LiveControl(self)
+        self.livectl = LiveControl(self, live_allow)
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
@@ -156,6 +160,7 @@ class Workbench:
             session_ids=self.sessions.session_ids,
             store=self.store,
             local=self.local,
+            live_sources=self.livectl.menu.labels,
         )
         self.uploads.watch_sizes(self.panels.upload)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
@@ -370,6 +375,15 @@ def build_parser() -> argparse.ArgumentParser:
         "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)",
     )
     p.add_argument(
+        "--live-allow",
+        action="append",
+        default=[],
+        metavar="SOURCE",
+        help="a live source the page may start besides the ones it is offered (simulated presets, serial ports "
+        "found, UDP/TCP on 127.0.0.1, the session folder's recordings), e.g. udp://0.0.0.0:14550?mavlink; repeat "
+        "for several",
+    )
+    p.add_argument(
         "--record",
         default=None,
         metavar="PATH",
@@ -432,6 +446,7 @@ def main(argv=None) -> int:
             max_points=args.max_points,
             token=None if args.no_token else "auto",
             allow_hosts=args.allow_host,
+            live_allow=args.live_allow,
         )
         if lesson:
             wb.lessons.show_guide(lesson_obj)

@@ -1,4 +1,4 @@
-"""The Files tab's live source: Start (a source the page may start, :func:`magcal_workbench.live.check_page_source`),
+"""The Files tab's live source: Start (one of the sources the server offers, :class:`magcal_workbench.live.SourceMenu`),
 Pause, Resume, and Stop, which opens the recording like any file. The live view itself is
 :class:`magcal_workbench.live.LiveView`."""
 
@@ -10,7 +10,7 @@ from magcal.core.errors import MagcalError
 
 from .controller import MESSAGE_LEN
 from .dataio import load_dataset
-from .live import LiveView, check_page_source, default_recording_path, recording_folder
+from .live import LiveView, SourceMenu, default_recording_path, recording_folder
 from .markup import safe_code, safe_text
 
 
@@ -20,10 +20,14 @@ class LiveControl:
     Parameters
     ----------
     wb : magcal_workbench.app.Workbench
+    live_allow : sequence of str
+        Sources the command line allowed the page to start (``--live-allow``).
     """
 
-    def __init__(self, wb):
+    def __init__(self, wb, live_allow=()):
         self.wb = wb
+        #: What the page may start (never a URL it sends).
+        self.menu = SourceMenu(wb.local, lambda: None if wb.store is None else recording_folder(wb.store), live_allow)
         #: The live session (:class:`~magcal_workbench.live.LiveView`) while one is open or after it stopped.
         self.view: LiveView | None = None
         self._claim = threading.Lock()
@@ -63,9 +67,28 @@ class LiveControl:
         wb.panels.refresh_live()
         return self.view
 
+    def page_url(self) -> str:
+        """The URL of the source the page chose, built here from the offered list and its checked options."""
+        p, check = self.wb.panels, self.wb.values.check
+        return self.menu.url(
+            check(p.live_source),
+            rate_hz=check(p.live_rate),
+            n_samples=check(p.live_samples),
+            speed=check(p.live_speed),
+            port=check(p.live_port),
+            baud=check(p.live_baud),
+            columns=check(p.live_columns),
+            units=check(p.live_units),
+        )
+
+    def do_live_list(self, event):
+        """List the sources again (a serial port plugged in, a new recording)."""
+        p = self.wb.panels
+        p.live_source.options = self.menu.labels()
+
     def do_live_start(self, event):
         wb = self.wb
-        url = check_page_source(wb.values.check(wb.panels.live_url), wb.local)
+        url = self.page_url()
         live = self.start(url)
         wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.path.name)}")
 
