@@ -620,6 +620,11 @@ class Panels:
             )
             self.btn_load_effects.disabled = not self.local
             self.effects_path.disabled = not self.local
+            #: The effects files the open session names, not loaded (never run when a session opens).
+            self.session_effects = gui.add_markdown("", visible=False)
+            self.btn_session_effects = self._button(
+                gui, "Load the session's effects files", self.on.do_load_session_effects, visible=False
+            )
         self.btn_refit = self._button(gui, "Refit with this model", self.on.do_refine)
         self.btn_diagnose = self._button(gui, "Diagnose", self.on.do_diagnose, color="violet")
         self.candidates = gui.add_markdown("")
@@ -966,6 +971,16 @@ class Panels:
             catalogue = ctrl.available_effects()
             self._add_effect_boxes(catalogue)
             self.user_effects.content = user_effects_markdown(catalogue)
+            pending = ctrl.pending_effects_files()
+            self.session_effects.visible = self.btn_session_effects.visible = bool(pending)
+            self.btn_session_effects.disabled = not self.local
+            self.session_effects.content = (
+                "This session names effects files that were **not** run: "
+                + ", ".join(safe_code(p) for p in pending)
+                + ". An effects file is Python code that runs with your rights: load them only if you trust them."
+                if pending
+                else ""
+            )
             entries = {e["name"]: e for e in catalogue}
             for name, box in self.effect_boxes.items():
                 e = entries.get(name)
