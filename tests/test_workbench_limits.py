@@ -256,6 +256,61 @@ def test_an_upload_over_the_limit_is_dropped_when_it_starts(bench):
     assert "small" in gui._current_file_upload_states and "big" not in gui._current_file_upload_states
 
 
+def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_limit(bench):
+    """Issue 31: a crafted client (a local websocket client with the token) declares 1 KB and sends 64 KB parts:
+    the upload is dropped as soon as the bytes received pass the 0.2 MB limit; viser never holds more than the
+    limit of it, the parts that follow are ignored, nothing is opened."""
+    import asyncio
+    import socket
+    import time
+
+    import msgspec
+    import viser
+    from viser import _messages
+    from websockets.asyncio.client import connect
+
+    wb = bench(store=False, max_upload_mb=0.2)
+    before = wb.ctrl.dataset
+    gui, uuid = wb.server.gui, wb.panels.upload._impl.uuid
+    peak = {"bytes": 0, "parts_seen": 0}
+
+    def measure(client_id, message):  # runs after viser's own buffering: what it holds now
+        state = gui._current_file_upload_states.get(message.transfer_uuid)
+        peak["parts_seen"] += 1
+        if state is not None:
+            peak["bytes"] = max(peak["bytes"], sum(len(p) for p in state["parts"].values()))
+
+    wb.server._websock_server.register_handler(_messages.FileTransferPart, measure)
+    part, n_parts = b"x" * 65_536, 40  # 2.6 MB sent in all
+
+    def encode(message):
+        return msgspec.msgpack.encode(message.as_serializable_dict())
+
+    async def go():
+        sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
+        async with connect(
+            f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
+            sock=sock,
+            origin=f"http://127.0.0.1:{wb.port}",
+            open_timeout=10,
+            subprotocols=[f"viser-v{viser.__version__}"],
+        ) as ws:
+            await ws.send(encode(_messages.FileTransferStartUpload(uuid, "t1", "a.csv", "text/csv", n_parts, 1000)))
+            for i in range(n_parts):
+                await ws.send(encode(_messages.FileTransferPart(uuid, "t1", i, part)))
+            end = time.monotonic() + 20
+            while peak["parts_seen"] < n_parts and time.monotonic() < end:
+                await asyncio.sleep(0.05)
+
+    asyncio.run(asyncio.wait_for(go(), 60))
+    assert peak["parts_seen"] == n_parts  # every part reached the server
+    assert "t1" not in gui._current_file_upload_states
+    assert 0 < peak["bytes"] <= 200_000  # dropped at the part that passed the limit, never buffered whole
+    assert wb.ui.wait(10)
+    assert "passed the upload limit" in wb.ctrl.message and wb.ctrl.dataset is before
+    assert wb.uploads._received == {}
+
+
 def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
     store = SessionStore(tmp_path / "s", max_bytes=60_000)
     ids = []
