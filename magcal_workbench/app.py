@@ -1,5 +1,5 @@
 """``magcal-workbench [FILE.csv] [--live SOURCE] [--host 127.0.0.1] [--port 8080] [--effects-file MY.py]``: the
-browser workbench.
+browser workbench; it prints the page's address with its token (``http://127.0.0.1:8080/?token=...``).
 
 :class:`Workbench` composes the parts and starts them; each concern lives in its own module:
 
@@ -19,7 +19,8 @@ browser workbench.
 With no file it opens the bundled demo (``assets/demo.csv``). It binds to 127.0.0.1 unless another host is asked
 for, and then warns. A user's own effects (:mod:`magcal.model.plugins`) join the catalogue at start -- installed
 packages' entry points and every ``--effects-file`` -- or later from the Model tab; the session remembers the
-files and loads them again when it reopens. A damaged session file is moved aside and the data open afresh.
+files, and when it reopens the page offers to load them again (opening a session never runs code). A damaged
+session file is moved aside and the data open afresh.
 
 Hostile pages and careless input (issue 14): only the app's own page may open its websocket
 (:mod:`magcal_workbench.guard`); every value a browser sends is checked against what the server offers before it
@@ -27,6 +28,12 @@ is read or saved (:class:`magcal_workbench.checks.PageValues`); every callback, 
 through :meth:`Workbench.handle`; a job fits the mask it started with and a rejection made meanwhile is refitted
 after it; uploads are bounded (``--max-upload-mb``), the session folder too (``--max-sessions-mb``), and a large
 file is drawn decimated (``--max-points``) and fitted whole.
+
+A local process or a hostile page (issue 31): every request shows the secret token of the printed address
+(:class:`magcal_workbench.guard.Gate`; ``--no-token`` warns), beyond loopback Host must name this machine
+(``--allow-host``); the page starts only live sources the server offers (:class:`magcal_workbench.live.SourceMenu`,
+``--live-allow``), one at a time; the sessions' bound keeps the recordings; uploads are counted by the bytes
+received.
 """
 
 from __future__ import annotations
