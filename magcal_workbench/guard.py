@@ -34,7 +34,6 @@ import hashlib
 import hmac
 import ipaddress
 import socket
-from http.cookies import CookieError, SimpleCookie
 from urllib.parse import parse_qs, urlsplit
 
 from . import viser_adapter
@@ -203,11 +202,14 @@ class Gate:
             return True
         try:
             raw = "; ".join(request.headers.get_all("Cookie"))
-            jar = SimpleCookie(raw)
-        except (CookieError, AttributeError, Exception):
-            return False
-        morsel = jar.get(self.cookie_name)
-        return morsel is not None and self._shows(morsel.value)
+        except AttributeError:  # headers without get_all (a plain mapping)
+            raw = request.headers.get("Cookie") or ""
+        # split by hand: other local apps' cookies (any characters) must not hide ours, as http.cookies would
+        for pair in raw.split(";"):
+            name, sep, value = pair.strip().partition("=")
+            if sep and name.strip() == self.cookie_name and self._shows(value.strip().strip('"')):
+                return True
+        return False
 
     def refusal(self, request) -> str | None:
         """Why ``request`` (websockets' request: ``.path``, ``.headers``) is refused, or None."""

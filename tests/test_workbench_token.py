@@ -55,6 +55,8 @@ def test_the_page_needs_the_token_and_its_first_load_sets_the_cookie(bench):
     assert _get(wb.port, "/index.html", {"Cookie": name_value[:-2] + "xx"})[0] == 403
     assert ws_handshake(wb.port, cookie=name_value)[0] == "accepted"
     assert ws_handshake(wb.port, cookie="other=1; " + name_value[:-1])[0] == "refused"
+    # another local app's cookie with odd characters (a notebook server's) does not hide ours
+    assert ws_handshake(wb.port, cookie='username-localhost-8888="2|1:0|10:x y"; ' + name_value)[0] == "accepted"
 
 
 def test_two_workbenches_keep_their_cookies_apart(bench):
