@@ -73,8 +73,8 @@ def page_url(host: str, port: int, token: str | None = None) -> str:
 def served_names(host: str, extra=()) -> frozenset:
     """The Host names a server bound to ``host`` answers to beyond loopback (lower case, IPv6 without brackets):
     the bound address (unless a wildcard), this machine's names (:func:`socket.gethostname`, its FQDN), the
-    addresses they resolve to, the addresses of this machine's interfaces (``psutil`` when installed, else the one
-    of the default route), the loopback names, and ``extra`` (``--allow-host``)."""
+    addresses they resolve to, the address of the default route, the loopback names, and ``extra``
+    (``--allow-host``, e.g. a second interface's address or a proxy's name)."""
     names = {n.lower() for n in LOOPBACK_NAMES}
     names.update(str(e).strip("[]").lower() for e in extra if str(e).strip())
     if host not in ("", "0.0.0.0", "::"):
@@ -87,20 +87,12 @@ def served_names(host: str, extra=()) -> frozenset:
             names.update(info[4][0].split("%")[0].lower() for info in socket.getaddrinfo(name, None))
         except OSError:
             pass
-    try:
-        import psutil
-
-        for addrs in psutil.net_if_addrs().values():
-            names.update(
-                a.address.split("%")[0].lower() for a in addrs if a.family in (socket.AF_INET, socket.AF_INET6)
-            )
-    except Exception:  # psutil absent or failing: the default route's address (connect() sends nothing for UDP)
-        try:
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-                s.connect(("192.0.2.1", 9))
-                names.add(s.getsockname()[0])
-        except OSError:
-            pass
+    try:  # the default route's address (connect() on a UDP socket sends nothing)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("192.0.2.1", 9))
+            names.add(s.getsockname()[0])
+    except OSError:
+        pass
     return frozenset(names)
 
 

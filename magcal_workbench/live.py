@@ -33,7 +33,7 @@ import numpy as np
 import magcal
 from magcal.checks.coverage import direction_map, live_sufficient
 from magcal.core.errors import MagcalError
-from magcal.data.live import LiveSession
+from magcal.data.live import LiveSession, serial_ports
 from magcal.data.simulation import PRESETS
 from magcal.geometry.shape import FieldShape
 
@@ -435,18 +435,6 @@ class PageSource:
     kind: str
     target: str = ""
     mavlink: bool = False
-
-
-def serial_ports() -> list[str]:
-    """The serial ports found on this machine (pyserial's ``list_ports``; none without pyserial)."""
-    try:
-        from serial.tools import list_ports
-    except ImportError:
-        return []
-    try:
-        return sorted({p.device for p in list_ports.comports() if p.device})
-    except Exception:  # a platform's enumeration failing offers no port rather than no page
-        return []
 
 
 class SourceMenu:
