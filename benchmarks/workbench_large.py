@@ -126,8 +126,9 @@ def proc_memory_MB(pid: int) -> tuple[float, float]:
 class WebsocketCounter:
     """A websocket client with the page's Origin that counts the bytes it receives (in a thread)."""
 
-    def __init__(self, port: int):
+    def __init__(self, port: int, token: str = ""):
         self.port = port
+        self.token = token
         self.bytes = 0
         self.messages = 0
         self.last = time.perf_counter()
@@ -140,7 +141,7 @@ class WebsocketCounter:
         from websockets.asyncio.client import connect
 
         async with connect(
-            f"ws://127.0.0.1:{self.port}",
+            f"ws://127.0.0.1:{self.port}/?token={self.token}",
             origin=f"http://127.0.0.1:{self.port}",
             max_size=None,
             subprotocols=[f"viser-v{viser.__version__}"],
@@ -180,7 +181,7 @@ def canvas_drawn(page) -> int:
     return int(np.count_nonzero(np.abs(img - background).sum(axis=2) > 60))
 
 
-def browser_timings(port: int, n: int, timeout_s=240.0) -> dict:
+def browser_timings(port: int, n: int, token: str = "", timeout_s=240.0) -> dict:
     from playwright.sync_api import sync_playwright
 
     out = {}
@@ -189,7 +190,7 @@ def browser_timings(port: int, n: int, timeout_s=240.0) -> dict:
         try:
             page = b.new_page(viewport={"width": 1400, "height": 900})
             t0 = time.perf_counter()
-            page.goto(f"http://127.0.0.1:{port}/", wait_until="domcontentloaded", timeout=60_000)
+            page.goto(f"http://127.0.0.1:{port}/?token={token}", wait_until="domcontentloaded", timeout=60_000)
             page.wait_for_function(
                 "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=timeout_s * 1000
             )
@@ -274,9 +275,9 @@ def main(argv=None) -> int:
     try:
         for line in server.stdout:
             log.append(line)
-            m = re.search(r"open http://127\.0\.0\.1:(\d+)", line)
+            m = re.search(r"open http://127\.0\.0\.1:(\d+)/\?token=([\w-]+)", line)
             if m:
-                port = int(m.group(1))
+                port, token = int(m.group(1)), m.group(2)
                 break
             if time.perf_counter() - t0 > 300:
                 break
@@ -285,12 +286,12 @@ def main(argv=None) -> int:
         threading.Thread(target=lambda: [None for _ in server.stdout], daemon=True).start()  # drain its output
         start_s = time.perf_counter() - t0
         rss_start, _ = proc_memory_MB(server.pid)
-        counter = WebsocketCounter(port)
+        counter = WebsocketCounter(port, token)
         sent_connect = counter.wait_quiet()
         counter.bytes = 0
         row = {"start_s": start_s, "rss_start_MB": rss_start, "sent_connect_MB": sent_connect / 1e6}
         if not args.no_browser and os.path.exists(CHROMIUM):
-            row.update(browser_timings(port, args.n))
+            row.update(browser_timings(port, args.n, token))
             row["sent_fit_MB"] = counter.wait_quiet() / 1e6
         counter.stop()
         row["rss_end_MB"], row["peak_MB"] = proc_memory_MB(server.pid)

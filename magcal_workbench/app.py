@@ -1,5 +1,5 @@
 """``magcal-workbench [FILE.csv] [--live SOURCE] [--host 127.0.0.1] [--port 8080] [--effects-file MY.py]``: the
-browser workbench.
+browser workbench; it prints the page's address with its token (``http://127.0.0.1:8080/?token=...``).
 
 :class:`Workbench` composes the parts and starts them; each concern lives in its own module:
 
@@ -19,7 +19,8 @@ browser workbench.
 With no file it opens the bundled demo (``assets/demo.csv``). It binds to 127.0.0.1 unless another host is asked
 for, and then warns. A user's own effects (:mod:`magcal.model.plugins`) join the catalogue at start -- installed
 packages' entry points and every ``--effects-file`` -- or later from the Model tab; the session remembers the
-files and loads them again when it reopens. A damaged session file is moved aside and the data open afresh.
+files, and when it reopens the page offers to load them again (opening a session never runs code). A damaged
+session file is moved aside and the data open afresh.
 
 Hostile pages and careless input (issue 14): only the app's own page may open its websocket
 (:mod:`magcal_workbench.guard`); every value a browser sends is checked against what the server offers before it
@@ -27,12 +28,19 @@ is read or saved (:class:`magcal_workbench.checks.PageValues`); every callback, 
 through :meth:`Workbench.handle`; a job fits the mask it started with and a rejection made meanwhile is refitted
 after it; uploads are bounded (``--max-upload-mb``), the session folder too (``--max-sessions-mb``), and a large
 file is drawn decimated (``--max-points``) and fitted whole.
+
+A local process or a hostile page (issue 31): every request shows the secret token of the printed address
+(:class:`magcal_workbench.guard.Gate`; ``--no-token`` warns), beyond loopback Host must name this machine
+(``--allow-host``); the page starts only live sources the server offers (:class:`magcal_workbench.live.SourceMenu`,
+``--live-allow``), one at a time; the sessions' bound keeps the recordings; uploads are counted by the bytes
+received.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import secrets
 import sys
 import time
 from types import SimpleNamespace
@@ -46,7 +54,7 @@ from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
 from .evidence import Evidence
-from .guard import guarded_viser_server, is_loopback, page_url
+from .guard import Gate, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
 from .lessons import DEMO, LessonDesk, get_lesson
 from .livecontrol import LiveControl
@@ -86,6 +94,15 @@ class Workbench:
     max_points : int
         Most points drawn per cloud (one sensor's raw or corrected readings); larger data are shown decimated
         (:func:`magcal_workbench.scene.level_of_detail`), every sample is still fitted and selectable.
+    token : str or None
+        The secret every request must show (:class:`magcal_workbench.guard.Gate`); ``"auto"`` (default) makes one
+        (:func:`secrets.token_urlsafe`), None asks for none (``--no-token``). :attr:`url` is the page's address
+        with it.
+    allow_hosts : sequence of str
+        Beyond loopback, Host names accepted besides this machine's own (``--allow-host``).
+    live_allow : sequence of str
+        Live sources the page may start besides those it is offered (``--live-allow``,
+        :class:`magcal_workbench.live.SourceMenu`).
     """
 
     def __init__(
@@ -102,12 +119,19 @@ class Workbench:
         effects_files=(),
         max_upload_mb: float = DEFAULT_MAX_UPLOAD_MB,
         max_points: int = scn.MAX_POINTS,
+        token: str | None = "auto",
+        allow_hosts=(),
+        live_allow=(),
     ):
         #: The page's thread: every update a background thread makes goes through it.
         self.ui = UiQueue()
         #: What each input widget may send (registered where the panels make it).
         self.values = PageValues()
-        self.server = guarded_viser_server(host, port, verbose)  # refuses other pages' websockets
+        #: The secret in the page's address (None with ``--no-token``).
+        self.token = secrets.token_urlsafe(32) if token == "auto" else token
+        self.host = host
+        # refuses requests without the token, other pages' websockets, and (beyond loopback) foreign Host names
+        self.server = guarded_viser_server(host, port, verbose, Gate(host, self.token, allow_hosts))
         #: Whether the page may load effect files (it runs their code): only when served to this machine.
         self.local = is_loopback(host)
         self.effects_files = [os.path.abspath(p) for p in effects_files]
@@ -124,7 +148,9 @@ class Workbench:
         self.uploads = Uploads(self, int(max_upload_mb * 1e6))
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
-        self.livectl = LiveControl(self)
+        self.livectl = LiveControl(self, live_allow)
+        if store is not None:  # the size bound never deletes the recording being written
+            store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
         self.view = SceneControl(self)
         self.steps = Steps(self)
@@ -141,6 +167,7 @@ class Workbench:
             session_ids=self.sessions.session_ids,
             store=self.store,
             local=self.local,
+            live_sources=self.livectl.menu.labels,
         )
         self.uploads.watch_sizes(self.panels.upload)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
@@ -175,6 +202,11 @@ class Workbench:
     @property
     def port(self) -> int:
         return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        """The page's address, with its token (what is printed at start): ``http://127.0.0.1:PORT/?token=...``."""
+        return page_url(self.host, self.port, self.token)
 
     @property
     def live(self):
@@ -288,6 +320,12 @@ def host_warning(host: str) -> str | None:
     )
 
 
+NO_TOKEN_WARNING = (
+    "WARNING: --no-token: the page asks for no token; any program or user that can reach the port can see and "
+    "change the session and start live sources"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="magcal-workbench", description="Calibrate magnetometers in the browser: fit, diagnose, add effects."
@@ -295,6 +333,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", nargs="?", help="data CSV (default: the bundled demo)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
+    p.add_argument(
+        "--no-token",
+        action="store_true",
+        help="do not ask for the secret token in the page's address (any process or user that can reach the "
+        "port can then use the workbench; a warning is printed)",
+    )
+    p.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="beyond 127.0.0.1: a further name the page may be reached by (e.g. a proxy's); this machine's own "
+        "names and addresses are always accepted",
+    )
     p.add_argument("--session-dir", default=None, help="where sessions are saved (default ~/.magcal/sessions)")
     p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
     p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
@@ -328,6 +380,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SOURCE",
         help="calibrate live from an instrument: serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
         "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)",
+    )
+    p.add_argument(
+        "--live-allow",
+        action="append",
+        default=[],
+        metavar="SOURCE",
+        help="a live source the page may start besides the ones it is offered (simulated presets, serial ports "
+        "found, UDP/TCP on 127.0.0.1, the session folder's recordings), e.g. udp://0.0.0.0:14550?mavlink; repeat "
+        "for several",
     )
     p.add_argument(
         "--record",
@@ -374,6 +435,8 @@ def main(argv=None) -> int:
         warning = host_warning(args.host)
         if warning:
             print(f"magcal-workbench: {warning}", file=sys.stderr)
+        if args.no_token:
+            print(f"magcal-workbench: {NO_TOKEN_WARNING}", file=sys.stderr)
         if not args.max_upload_mb > 0 or args.max_points < 1:
             raise MagcalError("--max-upload-mb and --max-points must be positive")
         wb = Workbench(
@@ -388,6 +451,9 @@ def main(argv=None) -> int:
             effects_files=args.effects_file,
             max_upload_mb=args.max_upload_mb,
             max_points=args.max_points,
+            token=None if args.no_token else "auto",
+            allow_hosts=args.allow_host,
+            live_allow=args.live_allow,
         )
         if lesson:
             wb.lessons.show_guide(lesson_obj)
@@ -399,7 +465,7 @@ def main(argv=None) -> int:
     except MagcalError as exc:
         print(f"magcal-workbench: {exc}", file=sys.stderr)
         return 2
-    print(f"magcal-workbench: open {page_url(args.host, wb.port)} in a browser (Ctrl-C stops)", flush=True)
+    print(f"magcal-workbench: open {wb.url} in a browser (Ctrl-C stops)", flush=True)
     try:
         while True:
             time.sleep(3600)

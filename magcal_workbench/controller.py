@@ -721,6 +721,40 @@ class Controller:
         self.say(f"loaded {listed} from {safe_code(full)}; tick it in the Model tab or let Diagnose rank it")
         return names
 
+    def pending_effects_files(self) -> list[str]:
+        """The effects files this session names that are not loaded in this process: never run when the session
+        opens (a session someone sends you would run their code), only by :meth:`load_session_effects_files`."""
+        loaded = set(plugins.user_files())
+        return [p for p in self.state.effects_files if p not in loaded]
+
+    def load_session_effects_files(self) -> list[str]:
+        """Load the effects files this session names (*runs the Python code in them*; the user asked), then
+        restore the saved calibration if it needed their effects. Returns the effects loaded; a file that fails is
+        said in the message (the others load)."""
+        names, problems = [], []
+        pending = self.pending_effects_files()
+        if not pending:
+            raise MagcalError("this session names no effects file that is not loaded already")
+        for path in pending:
+            try:
+                names += plugins.load_effects_file(path)
+            except MagcalError as exc:
+                problems.append(str(exc))
+        restored = ""
+        if self.state.calibration and self.calibration is None and names:
+            try:
+                self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
+                self._estimate_noise()
+                restored = "; the saved calibration is restored"
+            except Exception as exc:  # still not restorable: the session goes on without it
+                restored = f"; the saved calibration could not be restored ({safe_text(str(exc), 300)})"
+        self._emit("effects")
+        self._emit("result")
+        text = f"loaded {', '.join(safe_code(n) for n in names) or 'no effect'} from the session's effects files"
+        text += restored + "".join(f"  \n**Note:** {safe_text(p, MESSAGE_LEN)}" for p in problems)
+        self.say(text)
+        return names
+
     def _check_label(self, label) -> str:
         """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
         :class:`MagcalError` (a label may come from a browser)."""

@@ -1,5 +1,6 @@
 """Reading data for the workbench: a file, an upload's bytes (a CSV or a flight-controller log), magcal's own
-CSV of what was read, the effects files a session remembers, and the engine's messages in the page's words."""
+CSV of what was read, and the engine's messages in the page's words. (A session's effects files are loaded only
+when the user asks: :meth:`magcal_workbench.controller.Controller.load_session_effects_files`.)"""
 
 from __future__ import annotations
 
@@ -7,32 +8,8 @@ import io
 import os
 import tempfile
 
-from magcal.core.errors import MagcalError
 from magcal.data import io as mio
 from magcal.data.logs import is_log
-from magcal.model import plugins
-
-
-def load_session_effects(paths) -> tuple[list[str], list[str]]:
-    """Load again the effect files a session used (those not loaded yet in this process).
-
-    Returns
-    -------
-    names : list of str
-        The effects loaded.
-    problems : list of str
-        One plain-text message per file that failed (missing, broken): the session opens without it.
-    """
-    names, problems = [], []
-    loaded = set(plugins.user_files())
-    for path in paths or ():
-        if path in loaded:
-            continue
-        try:
-            names += plugins.load_effects_file(path)
-        except MagcalError as exc:
-            problems.append(str(exc))
-    return names, problems
 
 
 def load_dataset(source, name: str | None = None, **options):

@@ -1,4 +1,17 @@
-"""Only the workbench's own page may talk to the workbench: the websocket handshake checks Origin and Host.
+"""Only the workbench's own page may talk to the workbench: every request shows the page's token, and the
+websocket handshake checks Origin and Host.
+
+**The token** (issue 31): a browser page is not the only thing that can open the websocket -- any process or user
+of this machine can, and send the right ``Origin``. So the workbench makes a secret at start
+(:func:`secrets.token_urlsafe`) and prints the page's address with it (``http://127.0.0.1:8080/?token=...``, as
+notebook servers do). Every HTTP request and every websocket handshake must show it, whatever the host served:
+in the URL's query (``?token=``) or in the cookie the first page load sets (``HttpOnly``, ``SameSite=Strict``;
+viser's page opens its websocket without the query, the browser sends the cookie). ``--no-token`` turns it off
+(with a warning). :class:`Gate` holds the token and the names the server answers to.
+
+**Beyond loopback** (``--host 0.0.0.0``) the Host header must be one of this machine's names or addresses
+(:func:`served_names`; ``--allow-host`` adds one, e.g. a proxy's name): a Host/Origin pair of any other name (DNS
+rebinding) is refused.
 
 A browser lets any web page open a websocket to ``ws://127.0.0.1:8080``; the page then receives the whole scene
 (the user's data) and may press every button. Browsers always send the page's ``Origin`` with a websocket
@@ -17,8 +30,11 @@ how it serves fails loudly instead of running unprotected (``tests/test_workbenc
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import ipaddress
-from urllib.parse import urlsplit
+import socket
+from urllib.parse import parse_qs, urlsplit
 
 from . import viser_adapter
 
@@ -46,10 +62,38 @@ def url_host(host: str) -> str:
         return host
 
 
-def page_url(host: str, port: int) -> str:
-    """The address to open: ``http://127.0.0.1:8080``, ``http://[::1]:8080``; a wildcard bind shows 127.0.0.1."""
+def page_url(host: str, port: int, token: str | None = None) -> str:
+    """The address to open: ``http://127.0.0.1:8080``, ``http://[::1]:8080``; a wildcard bind shows 127.0.0.1;
+    with ``token``, ``http://127.0.0.1:8080/?token=...``."""
     shown = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
-    return f"http://{url_host(shown)}:{int(port)}"
+    url = f"http://{url_host(shown)}:{int(port)}"
+    return url if token is None else f"{url}/?token={token}"
+
+
+def served_names(host: str, extra=()) -> frozenset:
+    """The Host names a server bound to ``host`` answers to beyond loopback (lower case, IPv6 without brackets):
+    the bound address (unless a wildcard), this machine's names (:func:`socket.gethostname`, its FQDN), the
+    addresses they resolve to, the address of the default route, the loopback names, and ``extra``
+    (``--allow-host``, e.g. a second interface's address or a proxy's name)."""
+    names = {n.lower() for n in LOOPBACK_NAMES}
+    names.update(str(e).strip("[]").lower() for e in extra if str(e).strip())
+    if host not in ("", "0.0.0.0", "::"):
+        names.add(host.strip("[]").lower())
+    for name in {socket.gethostname(), socket.getfqdn()}:
+        if not name:
+            continue
+        names.add(name.lower())
+        try:
+            names.update(info[4][0].split("%")[0].lower() for info in socket.getaddrinfo(name, None))
+        except OSError:
+            pass
+    try:  # the default route's address (connect() on a UDP socket sends nothing)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("192.0.2.1", 9))
+            names.add(s.getsockname()[0])
+    except OSError:
+        pass
+    return frozenset(names)
 
 
 def _split_host(value: str) -> tuple[str, int | None]:
@@ -61,7 +105,7 @@ def _split_host(value: str) -> tuple[str, int | None]:
         return "", -1
 
 
-def refusal(headers, local: bool) -> str | None:
+def refusal(headers, local: bool, allowed=None) -> str | None:
     """Why a request is refused, or None when it may proceed.
 
     Parameters
@@ -71,6 +115,8 @@ def refusal(headers, local: bool) -> str | None:
         tunnel forwards another port); a websocket's Origin must name the Host's host and port.
     local : bool
         The server serves this machine only: ``Host`` must then name the loopback interface.
+    allowed : collection of str, optional
+        Beyond loopback, the names ``Host`` may give (:func:`served_names`); None accepts any.
 
     Returns
     -------
@@ -89,6 +135,8 @@ def refusal(headers, local: bool) -> str | None:
     # the Host's port may differ from ours (an SSH tunnel: localhost:9000 -> 127.0.0.1:8080); its name may not
     if not host or host_port == -1 or (local and not is_loopback(host)):
         return "refused: this page is served only to this machine (unexpected Host)"
+    if not local and allowed is not None and host.lower().strip("[]") not in allowed:
+        return "refused: this server does not answer to that name (unexpected Host; see --allow-host)"
     if upgrade.lower() != "websocket":
         return None  # the page's static files hold no data; only the websocket carries the session
     if not origin:
@@ -103,9 +151,75 @@ def refusal(headers, local: bool) -> str | None:
     return None
 
 
-def guarded_viser_server(host: str, port: int, verbose: bool = False):
-    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass :func:`refusal` first
+NO_TOKEN = (
+    "refused: open the address printed when the workbench started (it ends in ?token=...); "
+    "this request did not show the workbench's token"
+)
+
+
+class Gate:
+    """Who may talk to the server: the token (None: no token asked, ``--no-token``) and, beyond loopback, the Host
+    names it answers to.
+
+    Parameters
+    ----------
+    host : str
+        The address served.
+    token : str or None
+        The secret every request must show (query ``token=`` or the cookie :attr:`cookie_name`).
+    allow_hosts : sequence of str
+        Extra Host names accepted beyond loopback (``--allow-host``).
+    """
+
+    def __init__(self, host: str, token: str | None, allow_hosts=()):
+        self.local = is_loopback(host)
+        self.token = token
+        self.allowed = None if self.local else served_names(host, allow_hosts)
+        # one cookie per token: two workbenches on one machine (cookies ignore the port) keep theirs apart
+        digest = hashlib.sha256((token or "").encode()).hexdigest()[:12]
+        self.cookie_name = f"magcal_workbench_{digest}"
+
+    def _query_token(self, path: str) -> str | None:
+        values = parse_qs(urlsplit(path or "").query).get("token")
+        return values[0] if values else None
+
+    def _shows(self, value) -> bool:
+        return isinstance(value, str) and hmac.compare_digest(value.encode(), self.token.encode())
+
+    def has_token(self, request) -> bool:
+        """Whether ``request`` shows the token (always True without one)."""
+        if self.token is None:
+            return True
+        if self._shows(self._query_token(request.path)):
+            return True
+        try:
+            raw = "; ".join(request.headers.get_all("Cookie"))
+        except AttributeError:  # headers without get_all (a plain mapping)
+            raw = request.headers.get("Cookie") or ""
+        # split by hand: other local apps' cookies (any characters) must not hide ours, as http.cookies would
+        for pair in raw.split(";"):
+            name, sep, value = pair.strip().partition("=")
+            if sep and name.strip() == self.cookie_name and self._shows(value.strip().strip('"')):
+                return True
+        return False
+
+    def refusal(self, request) -> str | None:
+        """Why ``request`` (websockets' request: ``.path``, ``.headers``) is refused, or None."""
+        why = refusal(request.headers, self.local, self.allowed)
+        if why is None and not self.has_token(request):
+            why = NO_TOKEN
+        return why
+
+    def set_cookie(self, request, response) -> None:
+        """A page loaded with ``?token=`` gets the token as a cookie, so that its websocket shows it."""
+        if self.token is not None and self._shows(self._query_token(request.path)):
+            response.headers["Set-Cookie"] = f"{self.cookie_name}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+
+
+def guarded_viser_server(host: str, port: int, verbose: bool = False, gate: Gate | None = None):
+    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``gate``'s :meth:`Gate.refusal` first
     (:func:`magcal_workbench.viser_adapter.start_server`, which raises
-    :class:`~magcal_workbench.viser_adapter.HandshakeHookMissing` when viser starts without the check)."""
-    local = is_loopback(host)
-    return viser_adapter.start_server(host, port, lambda headers: refusal(headers, local), verbose)
+    :class:`~magcal_workbench.viser_adapter.HandshakeHookMissing` when viser starts without the check).
+    Without ``gate``, Host and Origin are checked and no token is asked."""
+    gate = Gate(host, None) if gate is None else gate
+    return viser_adapter.start_server(host, port, gate.refusal, verbose, after=gate.set_cookie)

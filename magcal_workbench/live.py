@@ -24,6 +24,8 @@ import datetime as _dt
 import os
 import threading
 import time
+import urllib.parse
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,12 +33,12 @@ import numpy as np
 import magcal
 from magcal.checks.coverage import direction_map, live_sufficient
 from magcal.core.errors import MagcalError
-from magcal.data.live import LiveSession
+from magcal.data.live import LiveSession, serial_ports
 from magcal.data.simulation import PRESETS
 from magcal.geometry.shape import FieldShape
 
 from . import scene as scn
-from .markup import safe_code, safe_text
+from .markup import clean_text, safe_code, safe_text
 
 #: Shortest time between two scene updates while samples arrive, s.
 DRAW_INTERVAL_S = 0.2
@@ -53,9 +55,19 @@ COVERAGE_RADIUS = 0.55
 VISITED_RGB = (60, 170, 90)
 MISSING_RGB = (205, 205, 205)
 NEXT_RGB = (240, 140, 20)
-#: Sources the page may start when the workbench is served beyond this machine: simulated presets only (a
-#: serial port, a socket or a file path is chosen on the command line).
-REMOTE_SCHEMES = ("sim",)
+#: Bounds of what the page may ask of a simulated source (within :mod:`magcal.data.live`'s own): samples per
+#: second, samples simulated, play speed (rate x speed at most 20 000 samples a second).
+PAGE_RATE_HZ = (1.0, 1000.0)
+PAGE_SAMPLES = (100, 100_000)
+PAGE_SPEED = (0.1, 20.0)
+#: Ports the page may name for a UDP or TCP source on 127.0.0.1 (not the privileged ones).
+PAGE_PORT = (1024, 65535)
+#: Serial speeds offered.
+BAUDS = ("115200", "57600", "38400", "19200", "9600", "230400", "460800", "921600")
+#: Units offered for text lines.
+LINE_UNITS = ("nT", "uT", "mG", "G")
+#: Longest Columns text the page may send (e.g. ``s1x,s1y,s1z,t``).
+COLUMNS_CHARS = 200
 
 
 def default_recording_path(folder) -> Path:
@@ -409,22 +421,137 @@ class LiveView:
         return self.path
 
 
-def check_page_source(url: str, local: bool) -> str:
-    """A source URL typed in the page, checked: a short text; beyond this machine only :data:`REMOTE_SCHEMES`
-    presets (a device, socket or file is the command line's choice)."""
-    url = (url or "").strip()
-    if not url:
-        raise MagcalError("type a live source, e.g. sim://chi2017?rate=50 or serial:///dev/ttyUSB0?baud=115200")
-    scheme = url.split(":", 1)[0].lower()
-    if not local:
-        name = url.split("://", 1)[-1].split("?", 1)[0]
-        if scheme not in REMOTE_SCHEMES or name not in PRESETS:
+@dataclass(frozen=True)
+class PageSource:
+    """One source the server offers the page: what the dropdown shows and what it opens.
+
+    ``kind`` is ``"sim"`` (a preset, ``target`` its name), ``"file"`` (a recording in the session folder, played
+    again; ``target`` its path), ``"serial"`` (a port found on this machine, ``target`` its device), ``"udp"`` or
+    ``"tcp"`` (on 127.0.0.1, the page gives the port) or ``"url"`` (a source the command line allowed,
+    ``--live-allow``, opened as given).
+    """
+
+    label: str
+    kind: str
+    target: str = ""
+    mavlink: bool = False
+
+
+class SourceMenu:
+    """The live sources the page may start: a list the server makes, never a URL the page sends.
+
+    The page chooses an entry of :meth:`offered` and bounded options (rate, samples, speed, port, baud, columns,
+    units); :meth:`url` builds the source's URL from them on the server. Offered: the simulated presets (bounded:
+    :data:`PAGE_RATE_HZ`, :data:`PAGE_SAMPLES`, :data:`PAGE_SPEED`); when served to this machine only, also the
+    serial ports found (:func:`serial_ports`), UDP and TCP on 127.0.0.1 (a port in :data:`PAGE_PORT`), and the
+    recordings in the session folder's ``recordings`` played again; in every case the sources the command line
+    allowed (``--live-allow URL``, e.g. ``udp://0.0.0.0:14550?mavlink``). A path, a program or another address
+    typed in the page is never opened: pymavlink runs a "device" that looks like a program as a child process,
+    so no page-given text reaches pymavlink or pyserial.
+
+    Parameters
+    ----------
+    local : bool
+        The workbench serves this machine only.
+    recordings : callable
+        Returns the session folder's ``recordings`` folder, or None (no sessions: no file is offered).
+    allowed_urls : sequence of str
+        Sources the command line allowed (``--live-allow``).
+    """
+
+    def __init__(self, local: bool, recordings, allowed_urls=()):
+        self.local = bool(local)
+        self.recordings = recordings
+        self.allowed_urls = tuple(str(u) for u in allowed_urls)
+
+    def offered(self) -> list[PageSource]:
+        """The sources the page may start now (serial ports and recordings listed afresh)."""
+        out = [PageSource(f"simulated {name}", "sim", name) for name in PRESETS]
+        if self.local:
+            for device in serial_ports():
+                out.append(PageSource(f"serial {device} (text lines)", "serial", device))
+                out.append(PageSource(f"serial {device} (MAVLink)", "serial", device, mavlink=True))
+            out += [
+                PageSource("UDP MAVLink on 127.0.0.1 (port below)", "udp", "127.0.0.1", mavlink=True),
+                PageSource("UDP text lines on 127.0.0.1 (port below)", "udp", "127.0.0.1"),
+                PageSource("TCP text lines from 127.0.0.1 (port below)", "tcp", "127.0.0.1"),
+            ]
+            folder = self.recordings()
+            if folder is not None and Path(folder).is_dir():
+                files = sorted(Path(folder).glob("*.csv"), key=lambda p: p.name)
+                out += [PageSource(f"replay recordings/{f.name}", "file", str(f)) for f in files[-50:] if f.is_file()]
+        out += [PageSource(f"allowed: {url}", "url", url) for url in self.allowed_urls]
+        return out
+
+    def labels(self) -> tuple:
+        """The dropdown's choices (what :class:`~magcal_workbench.checks.PageValues` lets the page send)."""
+        return tuple(s.label for s in self.offered())
+
+    def url(
+        self,
+        label: str,
+        rate_hz: float = 50.0,
+        n_samples: int = 3000,
+        speed: float = 1.0,
+        port: int = 14550,
+        baud: str = BAUDS[0],
+        columns: str = "x,y,z",
+        units: str = LINE_UNITS[0],
+    ) -> str:
+        """The URL of the offered source ``label`` with the page's options, checked against their bounds.
+
+        Raises
+        ------
+        MagcalError
+            ``label`` is not offered now, or an option is outside its bounds.
+        """
+        chosen = next((s for s in self.offered() if s.label == label), None)
+        if chosen is None:
             raise MagcalError(
-                "the workbench is served beyond this machine: the page may start only a simulated "
-                f"preset ({', '.join('sim://' + p for p in PRESETS)}); start a device, socket or "
-                "file from the command line (magcal-workbench --live SOURCE)"
+                f"{safe_text(str(label), 80)}: not a source this workbench offers; choose one from the list "
+                "(other sources are started from the command line: magcal-workbench --live SOURCE)"
             )
-    return url
+
+        def bounded(name, value, lo, hi, kind=float):
+            try:
+                v = kind(value)
+            except (TypeError, ValueError):
+                v = None
+            if v is None or not (lo <= v <= hi):
+                raise MagcalError(f"{name}: {clean_text(repr(value), 40)} is outside {lo:g} ... {hi:g}")
+            return v
+
+        if chosen.kind == "url":
+            return chosen.target
+        if chosen.kind in ("sim", "file"):
+            query = {
+                "rate": f"{bounded('Rate', rate_hz, *PAGE_RATE_HZ):g}",
+                "speed": f"{bounded('Speed', speed, *PAGE_SPEED):g}",
+            }
+            if chosen.kind == "sim":
+                query["n"] = str(bounded("Samples", n_samples, *PAGE_SAMPLES, kind=int))
+            return f"sim://{urllib.parse.quote(chosen.target)}?{urllib.parse.urlencode(query)}"
+        query = {}
+        if chosen.mavlink:
+            query["mavlink"] = "1"
+        else:
+            cols = str(columns).strip()
+            if not cols or len(cols) > COLUMNS_CHARS:
+                raise MagcalError(
+                    f"Columns: give the columns of a line, e.g. x,y,z (at most {COLUMNS_CHARS} characters)"
+                )
+            if units not in LINE_UNITS:
+                raise MagcalError(f"Units: one of {', '.join(LINE_UNITS)}")
+            query.update(columns=cols, units=units)
+        if chosen.kind == "serial":
+            if str(baud) not in BAUDS:
+                raise MagcalError(f"Baud: one of {', '.join(BAUDS)}")
+            if os.path.isfile(chosen.target):  # a device, never a file (pymavlink would run an executable one)
+                raise MagcalError(f"{clean_text(chosen.target, 80)} is a file, not a serial port")
+            query["baud"] = str(baud)
+            return f"serial://{urllib.parse.quote(chosen.target)}?{urllib.parse.urlencode(query)}"
+        p = bounded("Port", port, *PAGE_PORT, kind=int)
+        return f"{chosen.kind}://127.0.0.1:{p}?{urllib.parse.urlencode(query)}"
 
 
 def recording_folder(store) -> Path:

@@ -1,14 +1,16 @@
-"""The Files tab's live source: Start (a source the page may start, :func:`magcal_workbench.live.check_page_source`),
+"""The Files tab's live source: Start (one of the sources the server offers, :class:`magcal_workbench.live.SourceMenu`),
 Pause, Resume, and Stop, which opens the recording like any file. The live view itself is
 :class:`magcal_workbench.live.LiveView`."""
 
 from __future__ import annotations
 
+import threading
+
 from magcal.core.errors import MagcalError
 
 from .controller import MESSAGE_LEN
 from .dataio import load_dataset
-from .live import LiveView, check_page_source, default_recording_path, recording_folder
+from .live import LiveView, SourceMenu, default_recording_path, recording_folder
 from .markup import safe_code, safe_text
 
 
@@ -18,35 +20,75 @@ class LiveControl:
     Parameters
     ----------
     wb : magcal_workbench.app.Workbench
+    live_allow : sequence of str
+        Sources the command line allowed the page to start (``--live-allow``).
     """
 
-    def __init__(self, wb):
+    def __init__(self, wb, live_allow=()):
         self.wb = wb
+        #: What the page may start (never a URL it sends).
+        self.menu = SourceMenu(wb.local, lambda: None if wb.store is None else recording_folder(wb.store), live_allow)
         #: The live session (:class:`~magcal_workbench.live.LiveView`) while one is open or after it stopped.
         self.view: LiveView | None = None
+        self._claim = threading.Lock()
+        self._starting = False
 
     @property
     def running(self) -> bool:
         return self.view is not None and self.view.active
 
+    @property
+    def recording_in_use(self):
+        """The recording a live session is writing, or None: the session folder's bound never
+        deletes it (:meth:`magcal_workbench.session.SessionStore.prune`)."""
+        return self.view.path if self.running else None
+
     def start(self, url: str, path=None) -> LiveView:
         """Open a live source (:mod:`magcal_workbench.live`); its samples are recorded to ``path`` (default a new
-        file in the session folder's ``recordings``, or the current folder without sessions)."""
+        file in the session folder's ``recordings``, or the current folder without sessions).
+
+        One live session at a time, decided before the source opens: a Start while another is running or still
+        opening (a slow serial port, several presses of the button) is refused, and leaves no recording."""
         wb = self.wb
-        if self.running:
-            raise MagcalError("a live session is running; stop it first")
-        path = default_recording_path(recording_folder(wb.store)) if path is None else path
-        self.view = LiveView(
-            url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
-        )
+        with self._claim:
+            if self._starting or self.running:
+                raise MagcalError("a live session is running or starting; stop it first")
+            self._starting = True
+        try:
+            path = default_recording_path(recording_folder(wb.store)) if path is None else path
+            self.view = LiveView(
+                url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
+            )
+        finally:
+            with self._claim:
+                self._starting = False
         wb.scene_view.clear()
         wb.view.reset_cameras()
         wb.panels.refresh_live()
         return self.view
 
+    def page_url(self) -> str:
+        """The URL of the source the page chose, built here from the offered list and its checked options."""
+        p, check = self.wb.panels, self.wb.values.check
+        return self.menu.url(
+            check(p.live_source),
+            rate_hz=check(p.live_rate),
+            n_samples=check(p.live_samples),
+            speed=check(p.live_speed),
+            port=check(p.live_port),
+            baud=check(p.live_baud),
+            columns=check(p.live_columns),
+            units=check(p.live_units),
+        )
+
+    def do_live_list(self, event):
+        """List the sources again (a serial port plugged in, a new recording)."""
+        p = self.wb.panels
+        p.live_source.options = self.menu.labels()
+
     def do_live_start(self, event):
         wb = self.wb
-        url = check_page_source(wb.values.check(wb.panels.live_url), wb.local)
+        url = self.page_url()
         live = self.start(url)
         wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.path.name)}")
 

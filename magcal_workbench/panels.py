@@ -16,10 +16,10 @@ import threading
 import numpy as np
 
 from magcal.core import conventions
-from magcal.data.simulation import PRESETS
 
 from .controller import candidate_label, format_number
 from .lessons import lesson_slugs, list_lessons
+from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import NOISE_RANGE_nT
@@ -477,9 +477,13 @@ class Panels:
         The session folder (None: autosave off).
     local : bool
         Whether the page is served to this machine only (loading an effects file is allowed).
+    live_sources : callable
+        The live sources the server offers (labels of :meth:`magcal_workbench.live.SourceMenu.labels`).
     """
 
-    def __init__(self, widgets, handle, on, ctrl, live, busy, maps_choice, session_ids, store, local: bool):
+    def __init__(
+        self, widgets, handle, on, ctrl, live, busy, maps_choice, session_ids, store, local: bool, live_sources
+    ):
         self.w = widgets
         self.values = widgets.values
         self.handle = handle
@@ -491,6 +495,7 @@ class Panels:
         self.session_ids = session_ids
         self.store = store
         self.local = local
+        self.live_sources = live_sources
         gui = widgets.gui
         self.gui = gui
         gui.configure_theme(control_width="large", dark_mode=False)
@@ -615,6 +620,11 @@ class Panels:
             )
             self.btn_load_effects.disabled = not self.local
             self.effects_path.disabled = not self.local
+            #: The effects files the open session names, not loaded (never run when a session opens).
+            self.session_effects = gui.add_markdown("", visible=False)
+            self.btn_session_effects = self._button(
+                gui, "Load the session's effects files", self.on.do_load_session_effects, visible=False
+            )
         self.btn_refit = self._button(gui, "Refit with this model", self.on.do_refine)
         self.btn_diagnose = self._button(gui, "Diagnose", self.on.do_diagnose, color="violet")
         self.candidates = gui.add_markdown("")
@@ -794,19 +804,35 @@ class Panels:
         self._build_live(gui)
 
     def _build_live(self, gui):
-        """The live source: a URL, Start, Pause/Resume, Stop (:mod:`workbench.live`)."""
+        """The live source: one of the sources the server offers and its bounded options, Start, Pause/Resume,
+        Stop (:mod:`magcal_workbench.live`, :class:`~magcal_workbench.live.SourceMenu`)."""
 
         gui.add_markdown(
             "**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
-            "opens the recording here"
+            "opens the recording here. Other sources start from the command line (--live SOURCE)."
         )
-        sample = "sim://chi2017?rate=50" if "chi2017" in PRESETS else f"sim://{next(iter(PRESETS))}?rate=50"
-        self.live_url = self.w.text(
+        offered = self.live_sources()
+        first = next((o for o in offered if o == "simulated chi2017"), offered[0])
+        self.live_source = self.w.dropdown(
             "Live source",
-            sample,
-            hint="serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-            "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://PRESET?rate=50",
+            offered,
+            allowed=self.live_sources,
+            initial_value=first,
+            hint="a simulated preset, a serial port found on this machine, UDP/TCP on 127.0.0.1, a recording "
+            "of the session folder played again, or a source the command line allowed (--live-allow)",
         )
+        self.live_rate = self.w.number("Rate (Hz)", 50.0, min=PAGE_RATE_HZ[0], max=PAGE_RATE_HZ[1], step=1.0)
+        self.live_samples = self.w.number(
+            "Samples (simulated)", 3000, min=PAGE_SAMPLES[0], max=PAGE_SAMPLES[1], step=100
+        )
+        self.live_speed = self.w.number("Speed (x real time)", 1.0, min=PAGE_SPEED[0], max=PAGE_SPEED[1], step=0.1)
+        self.live_port = self.w.number("Port (UDP/TCP)", 14550, min=PAGE_PORT[0], max=PAGE_PORT[1], step=1)
+        self.live_baud = self.w.dropdown("Baud (serial)", BAUDS, initial_value=BAUDS[0])
+        self.live_columns = self.w.text(
+            "Columns (text lines)", "x,y,z", max_chars=200, hint="e.g. x,y,z or t,s1x,s1y,s1z,s2x,s2y,s2z"
+        )
+        self.live_units = self.w.dropdown("Units (text lines)", LINE_UNITS, initial_value=LINE_UNITS[0])
+        self.btn_live_list = self._button(gui, "List the sources again", self.on.do_live_list, engine=False)
         self.btn_live_start = self._button(gui, "Start live", self.on.do_live_start, engine=False)
         self.btn_live_pause = self._button(gui, "Pause", self.on.do_live_pause, engine=False, visible=False)
         self.btn_live_resume = self._button(gui, "Resume", self.on.do_live_resume, engine=False, visible=False)
@@ -945,6 +971,16 @@ class Panels:
             catalogue = ctrl.available_effects()
             self._add_effect_boxes(catalogue)
             self.user_effects.content = user_effects_markdown(catalogue)
+            pending = ctrl.pending_effects_files()
+            self.session_effects.visible = self.btn_session_effects.visible = bool(pending)
+            self.btn_session_effects.disabled = not self.local
+            self.session_effects.content = (
+                "This session names effects files that were **not** run: "
+                + ", ".join(safe_code(p) for p in pending)
+                + ". An effects file is Python code that runs with your rights: load them only if you trust them."
+                if pending
+                else ""
+            )
             entries = {e["name"]: e for e in catalogue}
             for name, box in self.effect_boxes.items():
                 e = entries.get(name)

@@ -9,7 +9,9 @@ The default root is ``~/.magcal/sessions`` (``MAGCAL_SESSION_DIR`` or ``--sessio
 
 The folder is bounded: when a new session's copy of its data would take the sessions past
 :attr:`SessionStore.max_bytes`, the least recently saved sessions are deleted (:meth:`SessionStore.prune`; the
-open one never, folders set aside never) and the page says which. :meth:`SessionStore.list` gives each
+open one never, folders set aside never; the live recordings in ``recordings`` are not sessions and are neither
+counted nor deleted, nor is any folder holding a recording being written) and the page and the terminal say
+which. :meth:`SessionStore.list` gives each
 session's size, and the page deletes one on request.
 
 A session's name (its id) is only ever a folder *directly inside* the root: :func:`check_session_name` refuses
@@ -25,6 +27,7 @@ import json
 import os
 import re
 import shutil
+import sys
 import threading
 import time
 import weakref
@@ -42,6 +45,8 @@ DATA_FILE = "data.csv"
 SESSION_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,119}$")
 #: Marks a folder moved aside because its session file was damaged.
 DAMAGED = ".damaged-"
+#: The folder of live recordings inside the session folder: not a session, never pruned.
+RECORDINGS = "recordings"
 #: Default bound of the session folder, bytes (``--max-sessions-mb``).
 MAX_STORE_BYTES = 2_000_000_000
 
@@ -102,6 +107,8 @@ class SessionStore:
         self.root = Path(root) if root is not None else default_root()
         self.max_bytes = int(max_bytes)
         self.pruned: list[tuple[str, int]] = []
+        #: Returns the files in use that pruning must keep (the live recording being written); set by the app.
+        self.in_use = lambda: ()
         self._save_lock = threading.Lock()
         self._saved_versions = weakref.WeakKeyDictionary()  # state -> {session id: version last written}
 
@@ -126,13 +133,26 @@ class SessionStore:
     def prune(self, budget_bytes: int, protect=()) -> list[tuple[str, int]]:
         """Delete the least recently saved sessions until the others take at most ``budget_bytes``.
 
-        Folders set aside as damaged and the sessions in ``protect`` are never deleted. Returns the deleted
-        ``(id, bytes)``, oldest first."""
+        Only sessions count and go: folders set aside as damaged, the sessions in ``protect``, the ``recordings``
+        folder, folders holding neither a session file nor a data copy, and any folder holding a file of
+        :attr:`in_use` are never deleted. Each deletion is printed (stderr). Returns the deleted ``(id, bytes)``,
+        oldest first."""
         if not self.root.is_dir():
             return []
+        keep = set()
+        for path in self.in_use() or ():
+            try:
+                keep.add(Path(path).resolve())
+            except OSError:
+                continue
         folders = []
         for folder in self.root.iterdir():
             if not folder.is_dir() or DAMAGED in folder.name or not SESSION_NAME.fullmatch(folder.name):
+                continue
+            if folder.name == RECORDINGS or not any((folder / f).is_file() for f in (SESSION_FILE, DATA_FILE)):
+                continue  # not a session
+            here = folder.resolve()
+            if any(here == p or here in p.parents for p in keep):
                 continue
             try:
                 size = self.size_bytes(folder.name)
@@ -150,6 +170,11 @@ class SessionStore:
             self.delete(name)
             total -= size
             removed.append((name, size))
+            print(
+                f"magcal-workbench: the session folder is bounded to {self.max_bytes / 1e6:g} MB "
+                f"(--max-sessions-mb): deleted the session {name} ({size / 1e6:.1f} MB)",
+                file=sys.stderr,
+            )
         return removed
 
     def data_path(self, sid: str) -> Path:

@@ -17,7 +17,7 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``data_path``       text or null; ``lesson`` a lesson's slug or null
 ``selection``       ``{"n_samples": N, "kept": packed mask of N bits, "undo"/"redo": [[mask, text], ...]}``
 ``effects``         list of effect labels ``NAME`` or ``NAME:S`` (S = 1 ... n_sensors), no repeats
-``effects_files``   list of absolute paths of ``.py`` files (the user's effects to load again)
+``effects_files``   list of absolute paths of ``.py`` files (the user's effects; never run on opening, offered)
 ``method``          one of :data:`~magcal_workbench.state.METHODS`
 ``reference_nT``    number 1 ... 10^7 nT, or null
 ``fit_reference``, ``robust``, ``answer_revealed``: true or false

@@ -7,12 +7,13 @@ The folder itself (ids, bounds, atomic writes) is :mod:`magcal_workbench.session
 
 from __future__ import annotations
 
+import os
 import sys
 
 from magcal.core.errors import MagcalError
 
 from .controller import MESSAGE_LEN, Controller
-from .dataio import load_dataset, load_session_effects
+from .dataio import load_dataset
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import SessionFileError
 from .state import SessionState
@@ -36,7 +37,8 @@ class Sessions:
 
     def make_controller(self, dataset, content, name, resume, lesson) -> Controller:
         """A controller for ``dataset``: its saved session when ``resume`` and one exists, else a fresh state;
-        every effects file of the command line remembered; autosaved once."""
+        every effects file of the command line remembered; autosaved once. The session's other effects files are
+        not run: the message says so, and the Model tab offers to load them (the user's choice)."""
         store = self.store
         sid, state, notes = None, None, []
         if store is not None and content is not None:
@@ -58,9 +60,14 @@ class Sessions:
         for path in self.wb.effects_files:
             if path not in state.effects_files:
                 state.effects_files.append(path)
-        _, problems = load_session_effects(state.effects_files)
-        notes += [f"the effects file could not be loaded again: {p}" for p in problems]
         ctrl = Controller(dataset, state, store, sid, worker=self.wb.worker)
+        pending = ctrl.pending_effects_files()
+        if pending:  # never run when a session opens: a session someone sends you would run their code
+            notes.append(
+                f"this session names {len(pending)} effects file(s) ({', '.join(os.path.basename(p) for p in pending)}),"
+                " not loaded: an effects file is Python code that runs with your rights. Load them (Model tab, Your "
+                "own effects, Load the session's effects files) only if you trust them"
+            )
         if lesson is not None:
             ctrl.state.lesson = lesson
         if notes:

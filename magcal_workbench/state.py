@@ -266,7 +266,7 @@ class SessionState:
     effects : list of str
         Extra effect labels in the model (``NAME`` or ``NAME:SENSOR``, SENSOR 1-based), in the order added.
     effects_files : list of str
-        Absolute paths of the user's effect files loaded in this session (loaded again when it reopens).
+        Absolute paths of the user's effect files loaded in this session (offered, never run, when it reopens).
     method : str
         One of :data:`METHODS`.
     reference_nT : float or None

@@ -92,6 +92,17 @@ class Steps:
         ctrl = self.ctrl
         self._job("load effects file", lambda: ctrl.load_effects_file(path))
 
+    def do_load_session_effects(self, event):
+        """Load the effects files the open session names (runs their code: the user asked; only when served to
+        this machine)."""
+        if not self.wb.local:
+            raise MagcalError(
+                "loading an effects file runs its Python code on the server; it is allowed only when "
+                "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
+            )
+        ctrl = self.ctrl
+        self._job("load the session's effects files", ctrl.load_session_effects_files)
+
     # --- outliers -----------------------------------------------------------------------------------------
     def do_threshold(self, event):
         self.ctrl.reject_threshold(float(self.wb.values.check(self.wb.panels.k_sigma)))

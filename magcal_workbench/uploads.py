@@ -1,9 +1,12 @@
 """The Files tab's uploads: a file from the browser (CSV or a flight-controller log) read with the tab's Columns,
-Units and LSB, bounded in size (``--max-upload-mb``) when it starts and again when it has arrived."""
+Units and LSB, bounded in size (``--max-upload-mb``): by the size declared when it starts, by the bytes received as
+its parts arrive (a client that declares a small size and sends a large one is dropped as soon as it passes the
+bound, before viser buffers the part), and again when it has arrived."""
 
 from __future__ import annotations
 
 import os
+import threading
 
 from magcal.core.errors import MagcalError
 from magcal.data.logs import is_log
@@ -52,6 +55,10 @@ class Uploads:
         self.last: tuple[str, bytes] | None = None
         #: viser's upload-start handler registered by :meth:`watch_sizes` (None where viser keeps no such state).
         self.start_handler = None
+        #: The upload-part handler registered by :meth:`watch_sizes` (None where viser keeps no such state).
+        self.part_handler = None
+        self._received: dict[str, int] = {}  # bytes received so far per upload in flight
+        self._received_lock = threading.Lock()
 
     def too_large(self, name: str, size_bytes: int) -> str | None:
         """Why an upload of ``size_bytes`` is refused, or None."""
@@ -59,26 +66,50 @@ class Uploads:
             return None
         return f"{name}: {size_bytes / 1e6:.1f} MB is more than the upload limit of {self.max_upload_bytes / 1e6:g} MB"
 
+    def _tell(self, client_id, text: str) -> None:
+        wb = self.wb
+
+        def tell():
+            wb.ctrl.say(f"**Error:** {safe_text(text)}")
+            wb.notify(client_id, text)
+
+        wb.ui.post(tell)  # off viser's event loop
+
     def watch_sizes(self, upload_handle) -> None:
-        """Refuse an upload over the limit when it starts (the browser declares its size), before its parts are
-        buffered in memory (:func:`magcal_workbench.viser_adapter.watch_upload_starts`); :meth:`do_upload`
-        checks the size again in any case."""
+        """Refuse an upload over the limit when it starts (the browser declares its size,
+        :func:`magcal_workbench.viser_adapter.watch_upload_starts`) and as its parts arrive (the bytes received
+        counted before viser buffers each part, :func:`magcal_workbench.viser_adapter.watch_upload_parts`): the
+        uploads in flight together hold at most twice the limit. :meth:`do_upload` checks the size again."""
         wb = self.wb
 
         def refuse(filename, size_bytes, client_id) -> bool:
             why = self.too_large(clean_upload_name(filename), size_bytes)
             if why is None:
                 return False
-            text = f"{why}; refused"
-
-            def tell():
-                wb.ctrl.say(f"**Error:** {safe_text(text)}")
-                wb.notify(client_id, text)
-
-            wb.ui.post(tell)  # off viser's event loop
+            self._tell(client_id, f"{why}; refused")
             return True
 
+        def arrived(transfer_uuid, n_bytes, client_id) -> bool:
+            with self._received_lock:
+                for old in [t for t in self._received if not viser_adapter.upload_in_flight(wb.server, t)]:
+                    del self._received[old]  # finished or dropped
+                got = self._received.get(transfer_uuid, 0) + int(n_bytes)
+                in_flight = sum(self._received.values()) + int(n_bytes)
+                over = got > self.max_upload_bytes or in_flight > 2 * self.max_upload_bytes
+                if over:
+                    self._received.pop(transfer_uuid, None)
+                else:
+                    self._received[transfer_uuid] = got
+            if over:
+                self._tell(
+                    client_id,
+                    f"an upload passed the upload limit of {self.max_upload_bytes / 1e6:g} MB "
+                    "(more bytes than it declared, or too many uploads at once); dropped",
+                )
+            return over
+
         self.start_handler = viser_adapter.watch_upload_starts(wb.server, upload_handle, refuse)
+        self.part_handler = viser_adapter.watch_upload_parts(wb.server, upload_handle, arrived)
 
     def do_upload(self, event):
         up = self.wb.panels.upload.value

@@ -5,11 +5,15 @@ and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they
 
 * **the handshake check** (:func:`start_server`): viser serves its page and its websocket through
   ``websockets.asyncio.server.serve(process_request=viser_http_server)``; while the server starts, ``serve`` is
-  wrapped so that ``check(headers)`` (:func:`magcal_workbench.guard.refusal`) runs before viser's own hook on every
-  HTTP request and websocket upgrade. A token check belongs in that ``check``.
+  wrapped so that ``check(request)`` (:meth:`magcal_workbench.guard.Gate.refusal`: Host, Origin and the page's
+  token) runs before viser's own hook on every HTTP request and websocket upgrade, and ``after(request, response)``
+  may add headers to what viser answers (the token's cookie).
 * **an upload's declared size** (:func:`watch_upload_starts`): viser buffers an upload's parts in
   ``gui._current_file_upload_states``; a handler of ``FileTransferStartUpload`` registered on the websocket
   server sees the size the browser declares and drops the entry, so viser ignores the parts that follow.
+* **an upload's bytes as they arrive** (:func:`watch_upload_parts`): a handler of ``FileTransferPart`` put
+  *before* viser's own sees each part's size before viser buffers it, and drops the upload (the same entry) once
+  the bytes received pass the bound, whatever size was declared.
 * **a widget's kind and id** (:func:`widget_kind`, :func:`widget_id`).
 """
 
@@ -30,10 +34,18 @@ class HandshakeHookMissing(RuntimeError):
     """viser started its server without the handshake check (its way of serving changed)."""
 
 
-def start_server(host: str, port: int, check: Callable[[object], str | None], verbose: bool = False):
-    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request_headers)`` first.
+def start_server(
+    host: str,
+    port: int,
+    check: Callable[[object], str | None],
+    verbose: bool = False,
+    after: Callable[[object, object], None] | None = None,
+):
+    """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request)`` first.
 
-    ``check`` returns None to let the request through or the reason (plain text) it is refused with 403.
+    ``check`` gets websockets' request (``.path`` with its query, ``.headers``) and returns None to let it through
+    or the reason (plain text) it is refused with 403. ``after(request, response)``, when given, sees viser's
+    answer to an HTTP request it let through (e.g. to add a ``Set-Cookie`` header to ``response.headers``).
 
     Raises
     ------
@@ -48,10 +60,13 @@ def start_server(host: str, port: int, check: Callable[[object], str | None], ve
 
     def check_first(viser_hook):
         def process_request(connection, request):
-            why = check(request.headers)
+            why = check(request)
             if why is not None:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
-            return viser_hook(connection, request)
+            response = viser_hook(connection, request)
+            if response is not None and after is not None:
+                after(request, response)
+            return response
 
         return process_request
 
@@ -107,6 +122,35 @@ def watch_upload_starts(server, upload_handle, refuse: Callable[[str, int, objec
     return started
 
 
+def watch_upload_parts(server, upload_handle, arrived: Callable[[str, int, object], bool]):
+    """Call ``arrived(transfer_uuid, n_bytes, client_id)`` for every part of an upload to ``upload_handle``
+    *before* viser buffers it; when it returns True the upload is dropped (its buffered parts freed, the parts
+    that follow ignored). Returns the handler, or None where this viser keeps no such state."""
+    from viser import _messages
+
+    gui = server.gui
+    handlers = getattr(server._websock_server, "_incoming_handlers", None)
+    if not hasattr(gui, "_current_file_upload_states") or not isinstance(handlers, dict):
+        return None
+    uuid = widget_id(upload_handle)
+
+    def part(client_id, message) -> None:
+        if message.source_component_uuid != uuid:
+            return
+        if message.transfer_uuid not in gui._current_file_upload_states:
+            return  # dropped already (or never started): viser ignores it too
+        if arrived(message.transfer_uuid, len(message.content), client_id):
+            gui._current_file_upload_states.pop(message.transfer_uuid, None)
+
+    handlers.setdefault(_messages.FileTransferPart, []).insert(0, part)  # before viser's own buffering
+    return part
+
+
+def upload_in_flight(server, transfer_uuid: str) -> bool:
+    """Whether viser still buffers the upload ``transfer_uuid`` (not finished, not dropped)."""
+    return transfer_uuid in getattr(server.gui, "_current_file_upload_states", {})
+
+
 def widget_kind(handle) -> str | None:
     """``"choice"`` (a dropdown), ``"number"`` (a slider or number box), ``"text"``, or None (others)."""
     import viser
@@ -141,6 +185,13 @@ def missing_internals() -> list[str]:
         problems.append(f"viser._messages.FileTransferStartUpload lacks {sorted(need - fields)}")
     if "_current_file_upload_states" not in inspect.getsource(GuiApi.__init__):
         problems.append("GuiApi no longer keeps _current_file_upload_states")
+    part = getattr(_messages, "FileTransferPart", None)
+    fields = set(getattr(part, "__dataclass_fields__", {}) or {})
+    need = {"source_component_uuid", "transfer_uuid", "content"}
+    if part is None or not need <= fields:
+        problems.append(f"viser._messages.FileTransferPart lacks {sorted(need - fields)}")
+    if "_incoming_handlers" not in inspect.getsource(_infra.WebsockServer.register_handler):
+        problems.append("WebsockServer no longer keeps its handlers in _incoming_handlers")
     reg = getattr(_infra.WebsockServer, "register_handler", None)
     if reg is None or list(inspect.signature(reg).parameters)[:3] != ["self", "message_cls", "callback"]:
         problems.append("WebsockServer.register_handler(message_cls, callback) is gone")

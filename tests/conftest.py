@@ -83,6 +83,38 @@ def bench(tmp_path, request):
         wb.stop()
 
 
+def ws_handshake(port, origin=None, token=None, host="127.0.0.1", cookie=None, timeout_s=10.0):
+    """A local process's websocket client (the ``websockets`` package) against a workbench on ``port``: what it
+    gets, ``("accepted", first message bytes)`` or ``("refused", HTTP status)``. ``token`` goes in the URL's query,
+    ``cookie`` (``name=value``) in a Cookie header, ``origin`` (default the page's own) in the Origin header."""
+    import asyncio
+    import socket
+
+    import viser
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import InvalidStatus
+
+    origin = f"http://{host}:{port}" if origin is None else origin
+    query = f"/?token={token}" if token is not None else ""
+
+    async def go():
+        sock = socket.create_connection(("127.0.0.1", port), timeout=timeout_s)
+        try:
+            async with connect(
+                f"ws://{host}:{port}{query}",
+                sock=sock,
+                origin=origin or None,
+                open_timeout=timeout_s,
+                additional_headers={"Cookie": cookie} if cookie else None,
+                subprotocols=[f"viser-v{viser.__version__}"],
+            ) as ws:
+                return "accepted", await asyncio.wait_for(ws.recv(), timeout_s)
+        except InvalidStatus as exc:
+            return "refused", exc.response.status_code
+
+    return asyncio.run(asyncio.wait_for(go(), 3 * timeout_s))
+
+
 @pytest.fixture
 def corrupt_csv(tmp_path):
     """``corrupt_csv(path, line, column, value)``: a copy of the CSV ``path`` (``bad.csv`` in tmp_path) whose cell

@@ -57,9 +57,10 @@ def _dismiss_toasts(page) -> None:
             pass
 
 
-def _open(browser, port):
+def _open(browser, wb):
+    """Open the workbench ``wb``'s page at the address it prints (with its token) and wait until it is connected."""
     page = browser.new_page(viewport={"width": 1400, "height": 900})
-    page.goto(f"http://127.0.0.1:{port}/", wait_until="domcontentloaded")
+    page.goto(wb.url, wait_until="domcontentloaded")
     page.wait_for_function("() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=90_000)
     page.wait_for_function("() => !document.body.innerText.includes('Connecting')", timeout=90_000)
     return page
@@ -80,7 +81,7 @@ def _rejected(page):
 
 
 def test_page_connects_fits_and_box_selects(browser, workbench):
-    page = _open(browser, workbench.port)
+    page = _open(browser, workbench)
     assert "Connecting" not in _status(page)
     assert len(workbench.server.get_clients()) == 1
 
@@ -138,7 +139,7 @@ def test_page_connects_fits_and_box_selects(browser, workbench):
     assert shot.stat().st_size > 10_000
 
     # a second browser sees the same state: the same RMS and the same rejected count
-    other = _open(browser, workbench.port)
+    other = _open(browser, workbench)
     other.wait_for_function(f"() => document.body.innerText.includes('Rejected: {n_rejected} of 240')", timeout=60_000)
     assert _rms_text(other) == _rms_text(page)
     assert len(workbench.server.get_clients()) == 2
@@ -185,7 +186,7 @@ def small_workbench(tmp_path):
 def test_a_hostile_csv_header_or_file_name_runs_nothing(browser, small_workbench, where):
     """Issue 14: a CSV someone sent you must not run their script in your page, whether the reader echoes its
     header in an error or the page shows its name."""
-    page = _open(browser, small_workbench.port)
+    page = _open(browser, small_workbench)
     assert _no_flag(page)
     hostile = " ".join(PAYLOADS.values())
     if where == "header":
@@ -241,9 +242,24 @@ def test_a_page_from_another_origin_cannot_open_the_websocket(browser, small_wor
         assert page.evaluate("() => window.result") == {"open": False, "messages": 0, "done": True}
         assert len(small_workbench.server.get_clients()) == 0
         # the workbench's own page still connects
-        own = _open(browser, port)
+        own = _open(browser, small_workbench)
         assert len(small_workbench.server.get_clients()) == 1
         own.close()
         page.close()
     finally:
         httpd.shutdown()
+
+
+def test_the_page_opens_from_the_printed_url_only(browser, small_workbench):
+    """Issue 31: the address without the token shows the refusal and connects nothing; the printed address (its
+    token then in the page's cookie) connects and shows the session."""
+    wb = small_workbench
+    page = browser.new_page()
+    response = page.goto(f"http://127.0.0.1:{wb.port}/", wait_until="load", timeout=30_000)
+    assert response.status == 403 and "token" in page.inner_text("body")
+    page.wait_for_timeout(500)
+    assert len(wb.server.get_clients()) == 0
+    page.close()
+    own = _open(browser, wb)
+    assert len(wb.server.get_clients()) == 1
+    own.close()

@@ -256,6 +256,61 @@ def test_an_upload_over_the_limit_is_dropped_when_it_starts(bench):
     assert "small" in gui._current_file_upload_states and "big" not in gui._current_file_upload_states
 
 
+def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_limit(bench):
+    """Issue 31: a crafted client (a local websocket client with the token) declares 1 KB and sends 64 KB parts:
+    the upload is dropped as soon as the bytes received pass the 0.2 MB limit; viser never holds more than the
+    limit of it, the parts that follow are ignored, nothing is opened."""
+    import asyncio
+    import socket
+    import time
+
+    import msgspec
+    import viser
+    from viser import _messages
+    from websockets.asyncio.client import connect
+
+    wb = bench(store=False, max_upload_mb=0.2)
+    before = wb.ctrl.dataset
+    gui, uuid = wb.server.gui, wb.panels.upload._impl.uuid
+    peak = {"bytes": 0, "parts_seen": 0}
+
+    def measure(client_id, message):  # runs after viser's own buffering: what it holds now
+        state = gui._current_file_upload_states.get(message.transfer_uuid)
+        peak["parts_seen"] += 1
+        if state is not None:
+            peak["bytes"] = max(peak["bytes"], sum(len(p) for p in state["parts"].values()))
+
+    wb.server._websock_server.register_handler(_messages.FileTransferPart, measure)
+    part, n_parts = b"x" * 65_536, 40  # 2.6 MB sent in all
+
+    def encode(message):
+        return msgspec.msgpack.encode(message.as_serializable_dict())
+
+    async def go():
+        sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
+        async with connect(
+            f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
+            sock=sock,
+            origin=f"http://127.0.0.1:{wb.port}",
+            open_timeout=10,
+            subprotocols=[f"viser-v{viser.__version__}"],
+        ) as ws:
+            await ws.send(encode(_messages.FileTransferStartUpload(uuid, "t1", "a.csv", "text/csv", n_parts, 1000)))
+            for i in range(n_parts):
+                await ws.send(encode(_messages.FileTransferPart(uuid, "t1", i, part)))
+            end = time.monotonic() + 20
+            while peak["parts_seen"] < n_parts and time.monotonic() < end:
+                await asyncio.sleep(0.05)
+
+    asyncio.run(asyncio.wait_for(go(), 60))
+    assert peak["parts_seen"] == n_parts  # every part reached the server
+    assert "t1" not in gui._current_file_upload_states
+    assert 0 < peak["bytes"] <= 200_000  # dropped at the part that passed the limit, never buffered whole
+    assert wb.ui.wait(10)
+    assert "passed the upload limit" in wb.ctrl.message and wb.ctrl.dataset is before
+    assert wb.uploads._received == {}
+
+
 def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
     store = SessionStore(tmp_path / "s", max_bytes=60_000)
     ids = []
@@ -285,6 +340,35 @@ def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
     _as_browser(wb.panels.session_choice, wb.ctrl.session_id)
     _click(wb, wb.panels.btn_delete_session)
     assert "is the one open" in wb.ctrl.message and wb.store.exists(wb.ctrl.session_id)
+
+
+def test_the_sessions_bound_keeps_the_live_recording_and_stop_opens_it(bench, tmp_path, capsys):
+    """Issue 31: a live stream, then an upload past --max-sessions-mb: the older sessions go (and the terminal
+    says which), the recordings folder and the recording being written stay, and Stop opens the recording."""
+    import time
+
+    wb = bench()
+    first = wb.ctrl.session_id
+    wb.store.max_bytes = 1_000  # smaller than any upload: every other session must go
+    live = wb.livectl.start("sim://chi2017?rate=400&n=4000")
+    deadline = time.monotonic() + 30
+    while live.session.n_recorded < 200 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert live.session.n_recorded >= 200
+    ds = magcal.simulate("chi2017", n_samples=120, seed=9)
+    mio.write_csv(tmp_path / "up.csv", ds)
+    _upload(wb, "up.csv", (tmp_path / "up.csv").read_bytes())
+    said = capsys.readouterr().err
+    assert f"deleted the session {first}" in said and "recordings" not in said
+    assert not (wb.store.root / first).exists()  # the bound did act
+    assert live.path.is_file() and live.path.parent == wb.store.root / "recordings"
+    assert live.session.error is None and wb.livectl.running
+    _click(wb, wb.panels.btn_live_stop)
+    assert wb.ctrl.dataset.n_samples == live.session.n_recorded >= 200
+    assert wb.ctrl.dataset.n_samples == magcal.read_csv(live.path).n_samples
+    # a later prune with nothing in use still leaves the recordings alone
+    wb.store.prune(0)
+    assert live.path.is_file()
 
 
 def test_a_large_file_is_drawn_decimated_and_fitted_whole(bench):
@@ -393,7 +477,7 @@ def test_the_workbench_refuses_a_foreign_origin(bench):
         sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
         try:
             async with connect(
-                f"ws://127.0.0.1:{wb.port}",
+                f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
                 sock=sock,
                 origin=origin,
                 open_timeout=10,

@@ -14,6 +14,7 @@ import pytest
 
 import magcal
 from magcal.checks.coverage import direction_map, live_sufficient
+from magcal.data.simulation import PRESETS
 from magcal.geometry.sphere import fibonacci_sphere
 
 LESSON = Path(__file__).resolve().parent.parent / "assets" / "lessons" / "warm-sensor" / "data.csv"
@@ -97,15 +98,181 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
     assert after < 0.95 * rms_before and after < 1.05 * wb.ctrl.floor_nT()  # down to the noise floor
 
 
-def test_a_page_beyond_this_machine_may_start_only_a_simulated_preset():
-    from magcal_workbench.live import check_page_source
+def test_four_quick_starts_while_a_slow_source_opens_leave_one_recording(bench, monkeypatch):
+    """Issue 31: Start pressed four times while the source takes half a second to open: one live session, one
+    recording, which Stop ends; the other presses say a session is running and leave no file."""
+    import threading
 
-    assert check_page_source("sim://chi2017?rate=50", local=False) == "sim://chi2017?rate=50"
-    for url in ("serial:///dev/ttyUSB0", "udp://0.0.0.0:14550", f"sim://{LESSON}"):
-        with pytest.raises(magcal.MagcalError, match="command line"):
-            check_page_source(url, local=False)
-    with pytest.raises(magcal.MagcalError, match="type a live source"):
-        check_page_source("  ", local=True)
+    from magcal.data.live import LiveSession
+    from magcal_workbench import live as wlive
+
+    opened = []
+
+    class SlowSession(LiveSession):
+        def __init__(self, *args, **kwargs):
+            time.sleep(0.5)  # a serial port or a socket that is slow to open
+            opened.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(wlive, "LiveSession", SlowSession)
+    wb = bench()
+    folder = Path(wb.store.root) / "recordings"
+    errors, barrier = [], threading.Barrier(4)
+
+    def press():
+        barrier.wait()
+        try:
+            wb.livectl.start("sim://chi2017?rate=200&n=2000")
+        except magcal.MagcalError as exc:
+            errors.append(str(exc))
+
+    threads = [threading.Thread(target=press) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert len(opened) == 1 and len(errors) == 3 and all("running or starting" in e for e in errors)
+    assert wb.livectl.running and len(list(folder.iterdir())) == 1
+    assert _wait(lambda: wb.live.session.n_recorded > 0, 30)
+    path = wb.live.stop()
+    assert not wb.livectl.running and not wb.live.session.running
+    assert [p.name for p in folder.iterdir()] == [path.name] and magcal.read_csv(path).n_samples > 0
+    # once stopped, a new session may start
+    wb.livectl.start("sim://chi2017?rate=200&n=200")
+    assert len(list(folder.iterdir())) == 2
+    wb.live.stop()
+
+
+def _menu(tmp_path, local=True, allow=()):
+    from magcal_workbench.live import SourceMenu
+
+    folder = tmp_path / "recordings"
+    folder.mkdir(exist_ok=True)
+    return SourceMenu(local, lambda: folder, allow), folder
+
+
+def test_the_page_is_offered_sources_and_the_server_builds_their_urls(tmp_path, monkeypatch):
+    from urllib.parse import parse_qs, urlsplit
+
+    from magcal.data.live import open_source
+    from magcal_workbench import live as wlive
+
+    monkeypatch.setattr(wlive, "serial_ports", lambda: ["/dev/ttyFAKE0"])
+    menu, folder = _menu(tmp_path)
+    ds = magcal.simulate_timeseries("chi2017", n_samples=50, seed=1, rate_hz=10.0)
+    from magcal.data import io as mio
+
+    mio.write_csv(folder / "live-1.csv", ds)
+    labels = menu.labels()
+    assert "simulated chi2017" in labels and "replay recordings/live-1.csv" in labels
+    assert "serial /dev/ttyFAKE0 (MAVLink)" in labels and "UDP MAVLink on 127.0.0.1 (port below)" in labels
+    assert menu.url("simulated chi2017", rate_hz=50, n_samples=3000, speed=2) == "sim://chi2017?rate=50&speed=2&n=3000"
+    replay = menu.url("replay recordings/live-1.csv", rate_hz=20, speed=1)
+    assert replay == f"sim://{folder / 'live-1.csv'}?rate=20&speed=1"
+    assert open_source(replay).dataset.n_samples == 50
+    assert menu.url("UDP MAVLink on 127.0.0.1 (port below)", port=14551) == "udp://127.0.0.1:14551?mavlink=1"
+    url = menu.url("serial /dev/ttyFAKE0 (text lines)", baud="57600", columns="x,y,z&mavlink=1&baud=1", units="uT")
+    query = parse_qs(urlsplit(url).query)
+    assert url.startswith("serial:///dev/ttyFAKE0?") and "mavlink" not in query  # the text cannot add options
+    assert query["columns"] == ["x,y,z&mavlink=1&baud=1"] and query["baud"] == ["57600"] and query["units"] == ["uT"]
+    # beyond this machine: the presets only (and what the command line allowed)
+    remote, _ = _menu(tmp_path, local=False, allow=["udp://0.0.0.0:14550?mavlink"])
+    assert set(remote.labels()) == {f"simulated {p}" for p in PRESETS} | {"allowed: udp://0.0.0.0:14550?mavlink"}
+    assert remote.url("allowed: udp://0.0.0.0:14550?mavlink") == "udp://0.0.0.0:14550?mavlink"
+
+
+@pytest.mark.parametrize(
+    "label",
+    [
+        "/etc/passwd",
+        "sim:///etc/passwd",
+        "sim://chi2017?n=1000000000",
+        "/usr/bin/python3",
+        "serial:///usr/bin/python3?mavlink",
+        "udp://0.0.0.0:14550?mavlink",
+        "tcp://192.0.2.1:5760",
+        "udp://127.0.0.1:14550?mavlink",  # even a loopback URL: the page names an entry, never a URL
+        "replay recordings/../../etc/passwd",
+        "allowed: udp://0.0.0.0:14550?mavlink",  # not allowed on this command line
+    ],
+)
+def test_the_page_cannot_name_a_path_a_program_or_an_address(tmp_path, label):
+    menu, _ = _menu(tmp_path)
+    with pytest.raises(magcal.MagcalError, match="not a source this workbench offers"):
+        menu.url(label)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"rate_hz": 1e9},
+        {"rate_hz": float("nan")},
+        {"n_samples": 10**9},
+        {"speed": 1e6},
+        {"speed": 0.0},
+    ],
+)
+def test_a_preset_s_options_are_bounded(tmp_path, options):
+    menu, _ = _menu(tmp_path)
+    with pytest.raises(magcal.MagcalError, match="outside"):
+        menu.url("simulated chi2017", **options)
+
+
+@pytest.mark.parametrize("port", [0, 80, 70000, "14550; rm -rf"])
+def test_a_port_is_bounded(tmp_path, port):
+    menu, _ = _menu(tmp_path)
+    with pytest.raises(magcal.MagcalError, match="Port"):
+        menu.url("UDP text lines on 127.0.0.1 (port below)", port=port)
+
+
+def test_a_serial_port_that_is_a_program_is_never_opened(tmp_path, monkeypatch):
+    """pymavlink runs a "device" that looks like a program as a child process: a listed port that is a regular
+    file is refused before pymavlink or pyserial see it."""
+    from magcal_workbench import live as wlive
+
+    marker = tmp_path / "ran"
+    program = tmp_path / "bin" / "fake-port"
+    program.parent.mkdir()
+    program.write_text(f"#!/bin/sh\ntouch {marker}\n")
+    program.chmod(0o755)
+    monkeypatch.setattr(wlive, "serial_ports", lambda: [str(program)])
+    menu, _ = _menu(tmp_path)
+    for label in (f"serial {program} (MAVLink)", f"serial {program} (text lines)"):
+        with pytest.raises(magcal.MagcalError, match="is a file, not a serial port"):
+            menu.url(label)
+    assert not marker.exists()
+
+
+def test_the_start_button_refuses_what_the_page_was_not_offered(bench, tmp_path):
+    """Through the page's handler: a value the page sends for the source (a path, a URL, a program) or an option out
+    of bounds is refused before anything opens; no recording is made."""
+    from viser import GuiEvent
+
+    wb = bench()
+    p = wb.panels
+    folder = Path(wb.store.root) / "recordings"
+    for widget, value in (
+        (p.live_source, "sim:///etc/passwd"),
+        (p.live_source, "/usr/bin/python3"),
+        (p.live_source, "udp://0.0.0.0:14550?mavlink"),
+        (p.live_samples, 10**9),
+        (p.live_speed, 1e6),
+        (p.live_port, 22),
+        (p.live_baud, "115200&mavlink=1"),
+        (p.live_units, "nT&x=1"),
+        (p.live_columns, "x" * 5000),
+    ):
+        saved = widget.value
+        widget._impl.value = value  # what a browser's message does (viser checks nothing)
+        wb.handle(wb.livectl.do_live_start, GuiEvent(None, None, p.btn_live_start))
+        assert "refused" in wb.ctrl.message or "not one of" in wb.ctrl.message, (value, wb.ctrl.message)
+        assert not wb.livectl.running and not (folder.exists() and any(folder.iterdir()))
+        widget.value = saved
+    p.live_source.value = "simulated chi2017"
+    p.live_samples.value, p.live_rate.value, p.live_speed.value = 200, 200.0, 1.0
+    wb.handle(wb.livectl.do_live_start, GuiEvent(None, None, p.btn_live_start))
+    assert wb.livectl.running and wb.live.url == "sim://chi2017?rate=200&speed=1&n=200"
+    wb.live.stop()
 
 
 # --- the page ------------------------------------------------------------------------------------------------
@@ -116,13 +283,17 @@ def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench,
     from test_workbench_e2e import _dismiss_toasts, _open
 
     wb = bench(store=True)
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     page.get_by_role("tab", name="Files").click(timeout=30_000)
     # viser's label points at no input id: take the input of the label's own row
-    box = page.locator("label:text-is('Live source')").locator("xpath=ancestor::div[.//input][1]//input")
-    box.fill(f"sim://{LESSON}?rate=50&speed=6")
-    box.press("Enter")
-    assert _wait(lambda: wb.panels.live_url.value.startswith("sim:///"), 20)
+    # a file is played again only from the session folder's recordings: put the lesson there, list the sources
+    recordings = Path(wb.store.root) / "recordings"
+    recordings.mkdir(parents=True, exist_ok=True)
+    (recordings / "warm.csv").write_bytes(LESSON.read_bytes())
+    page.get_by_role("button", name="List the sources again").click()
+    assert _wait(lambda: "replay recordings/warm.csv" in wb.panels.live_source.options, 20)
+    wb.panels.live_source.value = "replay recordings/warm.csv"  # the choice and options, shown in the page
+    wb.panels.live_rate.value, wb.panels.live_speed.value = 50.0, 6.0
     page.get_by_role("button", name="Start live").click()
     page.wait_for_function("() => /\\d+ samples received/.test(document.body.innerText)", timeout=30_000)
 
@@ -144,7 +315,7 @@ def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench,
     _dismiss_toasts(page)
     page.get_by_role("button", name="Stop and open the recording").click()
     page.wait_for_function("() => document.body.innerText.includes('opened the recording')", timeout=60_000)
-    assert magcal.read_csv(live.path).n_samples == sent == 1500
+    assert magcal.read_csv(live.path).n_samples == sent == 1500 and live.url.startswith("sim:///")
     assert wb.ctrl.dataset.n_samples == sent
     page.get_by_role("tab", name="Calibrate").click()
     page.get_by_role("button", name="Run the chosen method").click()

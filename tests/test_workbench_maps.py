@@ -66,7 +66,7 @@ def test_a_candidates_pattern_appears_on_the_sphere_in_the_page(browser, bent):
     wb = bent
     wb.ctrl.step_calibrate("ml")
     wb.ctrl.step_diagnose()
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     page.get_by_role("tab", name="View").click(timeout=30_000)
     wb.panels.surface_choice.value = "candidate's pattern"  # a dropdown: set as the page would (checked the same)
     page.wait_for_function("() => document.body.innerText.includes('what adding')", timeout=30_000)

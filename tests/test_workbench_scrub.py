@@ -103,7 +103,7 @@ def test_a_box_selection_takes_only_what_the_window_shows(bench):
 def test_the_window_moves_and_plays_in_the_page(browser, bench):
     """In Chromium: switch the window on and move its start with the keyboard; Play advances it."""
     wb = bench()
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     page.get_by_role("tab", name="View").click(timeout=30_000)
     page.get_by_text("Show a time window").click()
     assert _wait(lambda: wb.window.enabled and 0 < _drawn(wb) < BENCH_SAMPLES, 20)
@@ -154,7 +154,7 @@ def test_full_size_evidence_shows_the_same_data_and_downloads(bench):
 def test_full_size_evidence_opens_and_closes_in_the_page(browser, bench):
     wb = bench()
     wb.ctrl.step_calibrate("ml")
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     page.get_by_role("tab", name="Model").click(timeout=30_000)
     page.get_by_role("button", name="Full-size evidence").click()
     img = page.locator("img[alt='evidence plots']")

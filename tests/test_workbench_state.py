@@ -4,6 +4,7 @@ the page's handles driven from Python on a real (browserless) viser server."""
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from pathlib import Path
@@ -612,7 +613,7 @@ def test_command_line_serves_the_demo_on_loopback(tmp_path):
         deadline = time.time() + 120
         while "open http" not in line and time.time() < deadline:
             line = proc.stdout.readline()
-        assert "open http://127.0.0.1:" in line
+        assert re.search(r"open http://127\.0\.0\.1:\d+/\?token=[\w-]{40,} ", line), line
         assert list((tmp_path / "s").iterdir())[0].name.startswith("demo-")  # the bundled demo, autosaved
     finally:
         proc.terminate()
@@ -871,7 +872,12 @@ def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_
     plugins.unregister(PUMP)  # as in a new process: the effect is not loaded
     plugins._USER_FILES.clear()
     again = bench(pump_data)
-    assert PUMP in EFFECTS and again.panels.effect_boxes[PUMP].value
+    # reopening runs no code (issue 31): the page says the session names the file and offers to load it
+    assert PUMP not in EFFECTS and again.ctrl.calibration is None
+    assert "effects\\_example.py" in again.ctrl.message and "not loaded" in again.ctrl.message
+    assert again.panels.btn_session_effects.visible and "runs with your rights" in again.panels.session_effects.content
+    _click(again, again.panels.btn_session_effects)  # the user's choice
+    assert PUMP in EFFECTS and again.panels.effect_boxes[PUMP].value and not again.panels.btn_session_effects.visible
     assert again.ctrl.calibration.model.effect_labels == [PUMP]  # the saved calibration, with the effect
     assert abs(again.ctrl.residual_rms_nT() - rms) < 1e-6
 
@@ -883,8 +889,36 @@ def test_a_missing_effects_file_does_not_stop_the_session(bench, clean_catalogue
     wb.ctrl.autosave()
     wb.stop()
     again = bench()
-    assert "could not be loaded again" in again.ctrl.message and "no such effects file" in again.ctrl.message
+    assert "gone.py" in again.ctrl.message and again.panels.btn_session_effects.visible
+    _click(again, again.panels.btn_session_effects)
+    assert "no such effects file" in again.ctrl.message
     assert again.ctrl.state.effects_files == [str(gone)]  # kept: the file may come back
+
+
+def test_opening_a_session_runs_none_of_its_effects_files(bench, clean_catalogue, tmp_path):
+    """Issue 31: a session (one someone sent you) whose effects file would write a marker: opening it, reopening it
+    from the Files tab, writes nothing; the marker appears only when the user presses Load."""
+    marker = tmp_path / "marker"
+    evil = tmp_path / "evil.py"
+    evil.write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    wb = bench()
+    sid = wb.ctrl.session_id
+    wb.ctrl.state.effects_files.append(str(evil))
+    wb.ctrl.autosave()
+    wb.stop()
+    again = bench()
+    assert again.ctrl.session_id == sid and again.ctrl.state.effects_files == [str(evil)]
+    assert not marker.exists()
+    assert "evil.py" in again.ctrl.message and "Python code that runs with your rights" in again.ctrl.message
+    again.panels.session_choice.value = sid
+    _click(again, again.panels.btn_reopen)
+    assert not marker.exists() and again.panels.btn_session_effects.visible
+    again.local = False  # served beyond this machine: the page may not run it at all
+    _click(again, again.panels.btn_session_effects)
+    assert not marker.exists() and "allowed only when" in again.ctrl.message
+    again.local = True
+    _click(again, again.panels.btn_session_effects)
+    assert marker.read_text() == "ran"
 
 
 def test_an_error_in_the_user_code_is_a_clear_message(bench, clean_catalogue, tmp_path, capsys):

@@ -124,7 +124,7 @@ def test_foreign_columns_fixed_in_the_page(browser, bench):
     """Through the real page: upload, read the refusal, type the mapping, choose uT, re-read, fit."""
     ds = magcal.simulate_timeseries("chi2017", n_samples=400, seed=9, rate_hz=5.0)
     wb = bench()
-    page = _open(browser, wb.port)
+    page = _open(browser, wb)
     _upload_in_page(page, "board.csv", _foreign_csv(ds, 1e3))
     page.wait_for_function("() => document.body.innerText.includes('no magnetometer columns')", timeout=60_000)
     box = page.locator("label:text-is('Columns')").locator("xpath=ancestor::div[.//input][1]//input")

@@ -32,8 +32,8 @@ def test_the_internals_check_fails_when_one_is_gone(monkeypatch):
 def server():
     refused = []
 
-    def check(headers):
-        return "refused: test" if headers.get("X-Refuse") else None
+    def check(request):
+        return "refused: test" if request.headers.get("X-Refuse") else None
 
     srv = viser_adapter.start_server("127.0.0.1", 0, check)
     yield srv, refused

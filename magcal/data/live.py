@@ -699,6 +699,18 @@ class SimSource(LiveSource):
         return samples
 
 
+def serial_ports() -> list[str]:
+    """The serial ports found on this machine (pyserial's ``list_ports``), sorted; none without pyserial."""
+    try:
+        from serial.tools import list_ports
+    except ImportError:
+        return []
+    try:
+        return sorted({p.device for p in list_ports.comports() if p.device})
+    except Exception:  # a platform whose enumeration fails offers no port
+        return []
+
+
 # -- opening a URL ---------------------------------------------------------------------------------------------------
 def _flag(params, name):
     return name in params and params[name] in ("", "1", "true", "yes", "on")

@@ -1,0 +1,101 @@
+"""The page's token (issue 31, item 1): a process of this machine that sends the page's Origin is still refused
+without the secret printed at start; with it (in the URL or in the cookie the page's first load sets) it is the
+page. Beyond loopback, Host must be one of this machine's names. Real servers on 127.0.0.1, port 0."""
+
+from __future__ import annotations
+
+import http.client
+import socket
+from types import SimpleNamespace
+
+import pytest
+
+pytest.importorskip("viser")
+pytest.importorskip("websockets")
+
+from conftest import ws_handshake
+from websockets.datastructures import Headers
+
+from magcal_workbench import guard
+from magcal_workbench.app import NO_TOKEN_WARNING, build_parser
+
+
+def _get(port, path, headers=None):
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    conn.request("GET", path, headers=headers or {})
+    response = conn.getresponse()
+    return response.status, response.getheader("Set-Cookie"), response.read()
+
+
+def test_a_local_process_with_the_right_origin_needs_the_token(bench):
+    wb = bench(store=False)
+    assert wb.token and len(wb.token) >= 40 and wb.url == f"http://127.0.0.1:{wb.port}/?token={wb.token}"
+    assert ws_handshake(wb.port) == ("refused", 403)  # the page's own Origin, no token
+    assert ws_handshake(wb.port, token="not-the-token") == ("refused", 403)
+    assert ws_handshake(wb.port, token=wb.token[:-1]) == ("refused", 403)
+    outcome, first = ws_handshake(wb.port, token=wb.token)
+    assert outcome == "accepted" and len(first) > 0  # the scene follows
+    # the token does not excuse a foreign Origin
+    assert ws_handshake(wb.port, origin="http://evil.example", token=wb.token) == ("refused", 403)
+
+
+def test_the_page_needs_the_token_and_its_first_load_sets_the_cookie(bench):
+    wb = bench(store=False)
+    status, cookie, body = _get(wb.port, "/")
+    assert status == 403 and b"token" in body and cookie is None
+    status, _, _ = _get(wb.port, "/?token=wrong")
+    assert status == 403
+    status, cookie, body = _get(wb.port, f"/?token={wb.token}")
+    assert status == 200 and b"<html" in body.lower()
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    name_value = cookie.split(";", 1)[0]
+    assert name_value.endswith("=" + wb.token)
+    # what the page loads next and its websocket carry the cookie, not the query
+    assert _get(wb.port, "/index.html", {"Cookie": name_value})[0] == 200
+    assert _get(wb.port, "/index.html", {"Cookie": name_value[:-2] + "xx"})[0] == 403
+    assert ws_handshake(wb.port, cookie=name_value)[0] == "accepted"
+    assert ws_handshake(wb.port, cookie="other=1; " + name_value[:-1])[0] == "refused"
+    # another local app's cookie with odd characters (a notebook server's) does not hide ours
+    assert ws_handshake(wb.port, cookie='username-localhost-8888="2|1:0|10:x y"; ' + name_value)[0] == "accepted"
+
+
+def test_two_workbenches_keep_their_cookies_apart(bench):
+    a, b = bench(store=False), bench(store=False, name="b.csv")
+    assert a.token != b.token and a.server is not b.server
+    cookie_a = _get(a.port, f"/?token={a.token}")[1].split(";", 1)[0]
+    cookie_b = _get(b.port, f"/?token={b.token}")[1].split(";", 1)[0]
+    assert cookie_a.split("=")[0] != cookie_b.split("=")[0]  # cookies ignore ports: one name per token
+    both = f"{cookie_a}; {cookie_b}"  # what the browser sends to either port
+    assert ws_handshake(a.port, cookie=both)[0] == "accepted" and ws_handshake(b.port, cookie=both)[0] == "accepted"
+    assert ws_handshake(a.port, cookie=cookie_b) == ("refused", 403)
+
+
+def test_no_token_asks_for_none_and_warns(bench):
+    wb = bench(store=False, token=None)
+    assert wb.url == f"http://127.0.0.1:{wb.port}"
+    assert ws_handshake(wb.port)[0] == "accepted"
+    assert build_parser().parse_args(["--no-token"]).no_token
+    assert "WARNING" in NO_TOKEN_WARNING and "any program" in NO_TOKEN_WARNING
+
+
+def _request(host_header, origin=None, path="/?token=T"):
+    headers = Headers(Host=host_header)
+    if origin is not None:
+        headers["Upgrade"] = "websocket"
+        headers["Origin"] = origin
+    return SimpleNamespace(path=path, headers=headers)
+
+
+def test_beyond_loopback_only_this_machines_names_are_answered():
+    gate = guard.Gate("0.0.0.0", "T", allow_hosts=["proxy.example"])
+    me = socket.gethostname()
+    assert gate.refusal(_request(f"{me}:8080", f"http://{me}:8080")) is None
+    assert gate.refusal(_request("127.0.0.1:8080", "http://127.0.0.1:8080")) is None
+    assert gate.refusal(_request("proxy.example:8080", "http://proxy.example:8080")) is None
+    # DNS rebinding: evil.example resolves to this machine; Host and Origin agree, the name is foreign
+    why = gate.refusal(_request("evil.example:8080", "http://evil.example:8080"))
+    assert why is not None and "Host" in why
+    assert gate.refusal(_request("evil.example:8080")) is not None  # the page too
+    # a known name still needs the token
+    assert gate.refusal(_request(f"{me}:8080", f"http://{me}:8080", path="/")) == guard.NO_TOKEN
+    assert guard.Gate("192.0.2.7", "T").refusal(_request("192.0.2.7:80", "http://192.0.2.7")) is None
