@@ -105,6 +105,11 @@ class Workbench:
         :class:`magcal_workbench.live.SourceMenu`).
     """
 
+    # made in __init__ after the parts whose callbacks reach them (the callbacks run later)
+    view: SceneControl
+    ctrl: Controller
+    panels: Panels
+
     def __init__(
         self,
         dataset,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import traceback
 from collections.abc import Callable
+from typing import Any
 
 from magcal.core.errors import MagcalError
 
@@ -27,7 +28,7 @@ class PageValues:
     """What every input widget may send (registered where it is made), and the check of a value against it."""
 
     def __init__(self):
-        self._rules: dict[int, tuple[str, object]] = {}
+        self._rules: dict[int, tuple[str, Any]] = {}
         self._shown: dict[int, Callable[[], object]] = {}
 
     # --- registration -------------------------------------------------------------------------------------
@@ -53,14 +54,14 @@ class PageValues:
     # --- checks -------------------------------------------------------------------------------------------
     def allowed(self, handle) -> tuple:
         """The values a dropdown may hold now."""
-        kind, rule = self._rules.get(id(handle), (None, None))
+        kind, rule = self._rules.get(id(handle), ("", None))
         if kind != "choice":
             raise MagcalError(f"{clean_text(getattr(handle, 'label', 'value'), 60)}: not a choice the page offers")
         return tuple(rule())
 
     def range(self, handle) -> tuple[float | None, float | None]:
         """The range a slider or number was made with."""
-        kind, rule = self._rules.get(id(handle), (None, None))
+        kind, rule = self._rules.get(id(handle), ("", None))
         return rule if kind == "number" else (None, None)
 
     def check(self, handle):

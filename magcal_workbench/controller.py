@@ -19,6 +19,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -101,13 +102,13 @@ class Controller:
         self.session_id = session_id
         self.worker = worker or Worker()
         self.calibration: Calibration | None = None
-        self.fit_result = None  # FitResult of the last ML step, if any
+        self.fit_result: Any = None  # FitResult of the last ML step, if any
         self.corrected_nT: np.ndarray | None = None  # (n_sensors, N, 3) array frame, every sample
         self.residual_nT: np.ndarray | None = None  # (n_sensors, N) total-field residual, every sample
         #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
         #: estimated after each fit (:attr:`noise` says how).
         self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
-        self.noise = None  # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
+        self.noise: Any = None  # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
         self._quality = None  # QualityReport of the data (magcal.checks.quality.assess), made when first asked
         self.diagnosis = None
         self.inspected: int | None = None
@@ -269,7 +270,7 @@ class Controller:
         """What a click on a sample shows: index, time, temperature, kept, residual per sensor (nT)."""
         ds = self.dataset
         i = int(index)
-        info = {"index": i, "kept": bool(self.kept[i])}
+        info: dict = {"index": i, "kept": bool(self.kept[i])}
         if ds.time_s is not None:
             info["time_s"] = float(ds.time_s[i])
         if ds.temperature_C is not None:
@@ -477,7 +478,7 @@ class Controller:
         self.progress = (message, fraction)
         self._emit("progress")
 
-    def _residuals_of(self, cal: Calibration) -> np.ndarray:
+    def _residuals_of(self, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
         # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
         ds = self.fit_dataset()
         fields = cal.correct(ds, record_terms="apply")
@@ -517,6 +518,8 @@ class Controller:
     ) -> StepRecord:
         rms_after = self.residual_rms_nT()
         self._estimate_noise(fit)
+        cal = self.calibration
+        assert cal is not None  # every step leaves a calibration
         outcome = None if fit is None else fit.summary()
         rec = StepRecord(
             step=step,
@@ -524,11 +527,11 @@ class Controller:
             floor_nT=self.floor_nT(),
             effects=self._job_effects(),
             n_kept=int(self.kept.sum()),
-            changes=self._changes(old, self.calibration, rms_before, rms_after, tensor_before),
+            changes=self._changes(old, cal, rms_before, rms_after, tensor_before),
             elapsed_s=time.perf_counter() - t0,
             fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
         )
-        self.state.record(rec, self.calibration.to_dict())
+        self.state.record(rec, cal.to_dict())
         self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
         self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
         held_out, held_note = self._held_out_rms(fit)
@@ -666,7 +669,7 @@ class Controller:
 
         out = []
         for entry in plugins.catalogue():
-            cls = EFFECTS.get(entry["name"])
+            cls = EFFECTS[entry["name"]]
             try:
                 missing = cls().missing_channels(self.dataset)
             except Exception as exc:  # an effect that cannot even be made is shown as unusable
@@ -879,8 +882,10 @@ class Controller:
             raise MagcalError("nothing to download yet: run a fit first")
         extra = dict(self.dataset.extra)
         extra["kept"] = self.kept.astype(int)
+        residual = self.residual_nT
+        assert residual is not None  # set with every calibration
         for s in range(self.dataset.n_sensors):
-            extra[f"s{s + 1}_residual_nT"] = self.residual_nT[s]
+            extra[f"s{s + 1}_residual_nT"] = residual[s]
         ds = self.dataset.replace(readings_nT=self.corrected_nT, extra=extra)
         record_only = self.record_only_applied()
         meta = {

@@ -84,7 +84,7 @@ def served_names(host: str, extra=()) -> frozenset:
             continue
         names.add(name.lower())
         try:
-            names.update(info[4][0].split("%")[0].lower() for info in socket.getaddrinfo(name, None))
+            names.update(str(info[4][0]).split("%")[0].lower() for info in socket.getaddrinfo(name, None))
         except OSError:
             pass
     try:  # the default route's address (connect() on a UDP socket sends nothing)
@@ -184,7 +184,11 @@ class Gate:
         return values[0] if values else None
 
     def _shows(self, value) -> bool:
-        return isinstance(value, str) and hmac.compare_digest(value.encode(), self.token.encode())
+        return (
+            isinstance(value, str)
+            and self.token is not None
+            and hmac.compare_digest(value.encode(), self.token.encode())
+        )
 
     def has_token(self, request) -> bool:
         """Whether ``request`` shows the token (always True without one)."""

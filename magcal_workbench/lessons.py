@@ -118,7 +118,7 @@ def _labels(labels) -> str:
 def list_lessons(root=None) -> list[Lesson]:
     """Lessons under ``root`` (default :data:`LESSONS`), in their ``order``."""
     root = Path(root) if root is not None else LESSONS
-    out = []
+    out: list = []
     if not root.is_dir():
         return out
     for folder in sorted(root.iterdir()):

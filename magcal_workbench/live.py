@@ -27,6 +27,7 @@ import time
 import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -143,20 +144,20 @@ class LiveView:
         self.url = url
         self.path = Path(path)
         self.session = LiveSession(url, self.path)
-        self.maps = []
+        self.maps: list = []
         self.fit: LiveFit | None = None
         self.fit_error: str | None = None
         self.verdict = (False, "waiting for samples")
         self.n_drawn = 0
         self.last_draw_monotonic = None  # when the scene last took new samples (for the latency benchmark)
-        self.draw_log = []  # (monotonic time of the update, samples drawn)
-        self._dataset = None
+        self.draw_log: list = []  # (monotonic time of the update, samples drawn)
+        self._dataset: Any = None  # the session's Dataset once samples arrived
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._fitting = False
         self._last_fit_t = 0.0
         self._fit_tried = 0
-        self._coverage_nodes = {}
+        self._coverage_nodes: dict = {}
         self.stopped = False
         self._thread = threading.Thread(target=self._loop, name="workbench-live", daemon=True)
         self._thread.start()

@@ -241,7 +241,8 @@ def effect_hint(entry: dict) -> str:
     """The tooltip of an effect's checkbox (plain text): what it models, where it comes from, why it is greyed."""
     origin = entry.get("origin", "built-in")
     where = "" if origin == "built-in" else f" [your effect: {origin} {entry.get('source', '')}]"
-    carry = {True: f" {TRANSFER_WORDS[True]}.", False: f" {TRANSFER_WORDS[False]}."}.get(entry.get("transferable"), "")
+    transferable = entry.get("transferable")
+    carry = f" {TRANSFER_WORDS[transferable]}." if isinstance(transferable, bool) else ""
     text = (entry["description"] or entry["name"]) + where + carry
     if entry["missing"]:
         text = f"Unavailable: the data lack {', '.join(entry['missing'])}. {text}"
@@ -510,8 +511,8 @@ class Panels:
         #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
         self.evidence_overlay = gui.add_html("", visible=False)
         tabs = gui.add_tab_group()
-        self._engine_buttons = []
-        self._bindings = []  # (widget, the state's value as the widget shows it)
+        self._engine_buttons: list = []
+        self._bindings: list = []  # (widget, the state's value as the widget shows it)
         with tabs.add_tab("Calibrate", icon=None):
             self._build_calibrate(gui)
         with tabs.add_tab("Model", icon=None):

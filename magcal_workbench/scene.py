@@ -427,7 +427,7 @@ class SceneView:
         self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
         self._clouds: dict = {}  # name -> handle
         self._static: dict = {}  # name -> handle (meshes, frames, labels)
-        self._shape_key = None
+        self._shape_key: tuple | None = None
         self.last_limit_nT = 1.0
 
     def update(self, model: SceneModel) -> None:

@@ -31,6 +31,7 @@ import sys
 import threading
 import time
 import weakref
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from magcal.data.io import atomic_write
@@ -108,9 +109,11 @@ class SessionStore:
         self.max_bytes = int(max_bytes)
         self.pruned: list[tuple[str, int]] = []
         #: Returns the files in use that pruning must keep (the live recording being written); set by the app.
-        self.in_use = lambda: ()
+        self.in_use: Callable[[], Iterable] = lambda: ()
         self._save_lock = threading.Lock()
-        self._saved_versions = weakref.WeakKeyDictionary()  # state -> {session id: version last written}
+        self._saved_versions: weakref.WeakKeyDictionary = (
+            weakref.WeakKeyDictionary()
+        )  # state -> {session id: version last written}
 
     def folder(self, sid: str) -> Path:
         """The folder of session ``sid`` (directly inside :attr:`root`; :func:`check_session_name` first)."""
@@ -255,7 +258,7 @@ class SessionStore:
         """Saved sessions that can be reopened, newest first: ``{"id", "saved_at", "lesson", "n_samples",
         "effects", "rms_nT", "mtime", "bytes"}`` (folders set aside, badly named or with a damaged file are left
         out; ``bytes`` is the folder's size)."""
-        out = []
+        out: list = []
         if not self.root.exists():
             return out
         for folder in self.root.iterdir():

@@ -72,7 +72,8 @@ class TimeWindow:
         if not self.enabled:
             return f"every sample shown ({times.size}); switch the time window on to replay the recording"
         t0, t1 = self.bounds_s(times)
-        n = int(self.mask(times).sum())
+        shown = self.mask(times)
+        n = int(shown.sum()) if shown is not None else times.size
         state = "playing" if self.playing else "paused"
         return (
             f"window {t0:.1f}-{t1:.1f} s of {np.nanmin(times):.1f}-{np.nanmax(times):.1f} s: {n} samples "

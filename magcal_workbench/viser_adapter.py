@@ -80,11 +80,11 @@ def start_server(
         return original(*args, **kwargs)
 
     with _START_LOCK:  # one server starts at a time: the wrapper is in place only during its start
-        ws_server.serve = serve
+        ws_server.serve = serve  # type: ignore[misc,assignment]  # the one place viser's websockets serve is wrapped
         try:
             server = viser.ViserServer(host=host, port=port, verbose=verbose)
         finally:
-            ws_server.serve = original
+            ws_server.serve = original  # type: ignore[misc]
     if not chained:
         server.stop()
         raise HandshakeHookMissing(
