@@ -452,8 +452,8 @@ def convert_ap_pxf_flip(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Pat
 # ---- timspi/mag-calib (CaribouLabs IMU + GNSS logger) ------------------------------------------------------------
 
 #: nT per count of the CaribouLabs logger's magnetometer: ASSUMED 150 nT (1.5 mG/LSB: LIS2MDL, or AK09916 0.15 uT);
-#: the part is not stated. With it the fitted field is ~42 uT, against IGRF ~44 uT in Israel (CaribouLabs' home;
-#: the site is not stated either). 100 nT would give 28 uT (below any geomagnetic field there), 300 nT 84 uT.
+#: the part is not stated. With it the fitted field is ~45 uT, against IGRF ~44 uT in Israel (CaribouLabs' home;
+#: the site is not stated either). 100 nT would give 30 uT (below any geomagnetic field there), 300 nT 91 uT.
 CL_ASSUMED_LSB_NT = 150.0
 #: Seconds per tick of the logger's ``imu_time``: ASSUMED 10 ns. The logged roll/pitch/yaw turn between rows by
 #: 1.5x |gyro| (deg/s) x delta-ticks x 1e-8 s (median over rows turning faster than 50 deg/s): 10 ns ticks with
@@ -473,7 +473,7 @@ def convert_cl_imu_gnss(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Pat
         "licence": "MIT (c) 2025 CaribouLabs.co",
         "sensor": "CaribouLabs IMU + GNSS logger (magnetometer part not stated; no GNSS fix), waved by hand "
         "through the sphere (roll +-180, pitch +-89 deg)",
-        "conversion": f"counts x {CL_ASSUMED_LSB_NT:g} nT: ASSUMED (fitted field ~280 counts -> 42 uT; "
+        "conversion": f"counts x {CL_ASSUMED_LSB_NT:g} nT: ASSUMED (fitted field ~303 counts -> 45 uT; "
         "IGRF ~44 uT in Israel, site not stated)",
         "lsb_nT": f"{CL_ASSUMED_LSB_NT:g}",
         "rate_Hz": "~77 (stamps every 1.30e6 ticks; one gap of 27 rows)",
