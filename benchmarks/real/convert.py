@@ -449,6 +449,88 @@ def convert_ap_pxf_flip(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Pat
     return _write_log("ap_pxf_flip", ds, notes, {**meta, "rate_Hz": "10 (MAG at the 10 Hz loop)"}, out_dir)
 
 
+# ---- timspi/mag-calib (CaribouLabs IMU + GNSS logger) ------------------------------------------------------------
+
+#: nT per count of the CaribouLabs logger's magnetometer: ASSUMED 150 nT (1.5 mG/LSB: LIS2MDL, or AK09916 0.15 uT);
+#: the part is not stated. With it the fitted field is ~45 uT, against IGRF ~44 uT in Israel (CaribouLabs' home;
+#: the site is not stated either). 100 nT would give 30 uT (below any geomagnetic field there), 300 nT 91 uT.
+CL_ASSUMED_LSB_NT = 150.0
+#: Seconds per tick of the logger's ``imu_time``: ASSUMED 10 ns. The logged roll/pitch/yaw turn between rows by
+#: 1.5x |gyro| (deg/s) x delta-ticks x 1e-8 s (median over rows turning faster than 50 deg/s): 10 ns ticks with
+#: a lagging attitude filter, ~77 Hz, 20.7 s in all. (1 us ticks would make 34 min at 0.77 Hz, 1 ns 2 s.)
+CL_TICK_S = 1e-8
+
+
+def convert_cl_imu_gnss(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``cl_imu_gnss``: CaribouLabs logger, integer counts x an assumed 150 nT; ``temp`` = barometer temperature."""
+    with open(raw_dir / "cl_imu_gnss_data.csv", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    col = {k: np.array([float(r[k]) for r in rows]) for k in ("magx", "magy", "magz", "imu_time", "baro_temp_c")}
+    counts = np.c_[col["magx"], col["magy"], col["magz"]]
+    t = (col["imu_time"] - col["imu_time"][0]) * CL_TICK_S
+    meta = {
+        "source": "github.com/timspi/mag-calib 'raw_data/imu_gnss_data.csv'",
+        "licence": "MIT (c) 2025 CaribouLabs.co",
+        "sensor": "CaribouLabs IMU + GNSS logger (magnetometer part not stated; no GNSS fix), waved by hand "
+        "through the sphere (roll +-180, pitch +-89 deg)",
+        "conversion": f"counts x {CL_ASSUMED_LSB_NT:g} nT: ASSUMED (fitted field ~303 counts -> 45 uT; "
+        "IGRF ~44 uT in Israel, site not stated)",
+        "lsb_nT": f"{CL_ASSUMED_LSB_NT:g}",
+        "rate_Hz": "~77 (stamps every 1.30e6 ticks; one gap of 27 rows)",
+        "time": f"t = (imu_time - first) x {CL_TICK_S:g} s: the tick ASSUMED 10 ns (attitude vs gyro, see convert.py)",
+        "temp": "barometer temperature (baro_temp_c), degC: 24.8 -> 25.8, rising with time (hand warmth)",
+    }
+    columns = {"t": t, **_vector_columns(counts * CL_ASSUMED_LSB_NT), "temp": col["baro_temp_c"]}
+    return _write("cl_imu_gnss", columns, meta, out_dir)
+
+
+# ---- michaelwro/mag-cal-example (FXOS8700) -----------------------------------------------------------------------
+
+
+def convert_mw_fxos8700(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``mw_fxos8700``: FXOS8700 in uT (Adafruit driver: 0.1 uT per count) -> nT; ``t`` = index / 10 Hz."""
+    uT = np.loadtxt(raw_dir / "mw_mag_readings.txt", ndmin=2)
+    readings = np.round(uT * 10.0) * 100.0  # the driver prints counts x 0.1 uT with float noise
+    meta = {
+        "source": "github.com/michaelwro/mag-cal-example 'examples/mag-readings.txt'",
+        "licence": "none stated: local development only, do not redistribute",
+        "sensor": "NXP FXOS8700 (Adafruit FXOS8700 + FXAS21002 9-DOF board) on an Arduino Uno, turned by hand "
+        "(Michael Wrona, 2021-01-14)",
+        "conversion": "uT x 1000 (the Adafruit driver gives counts x 0.1 uT)",
+        "lsb_nT": "100",
+        "rate_Hz": "10 nominal (the sketch's delay(100) after each read; no time stamps)",
+        "time": "t = sample index / 10 Hz",
+    }
+    t = np.arange(len(readings)) / 10.0
+    return _write("mw_fxos8700", {"t": t, **_vector_columns(readings)}, meta, out_dir)
+
+
+# ---- CK-Explorer/Magnetometer-and-Accelerometer-Calibration (LSM9DS1) ---------------------------------------------
+
+#: LSM9DS1 magnetometer at +-4 G (datasheet): 0.14 mgauss per LSB = 14 nT. Every value of the file is a multiple of
+#: 0.00014 G to within 1e-12 (and no other sensitivity of the common parts fits: LIS3MDL 1/6842 G, LSM9DS0 0.16 mG,
+#: LIS2MDL 1.5 mG, HMC5883L 1/1090 G all leave residues up to half a step).
+LSM9DS1_4G_LSB_NT = 0.14e-3 * NT_PER_GAUSS
+
+
+def convert_ck_lsm9ds1(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path:
+    """``ck_lsm9ds1``: LSM9DS1 magnetometer in gauss (0.14 mG steps) -> nT; no time stamps."""
+    a = np.loadtxt(raw_dir / "ck_acc_mag_log.csv", delimiter=",", skiprows=1, ndmin=2)
+    counts = np.round(a[:, 3:6] / 0.14e-3)
+    meta = {
+        "source": "github.com/CK-Explorer/Magnetometer-and-Accelerometer-Calibration 'Data Examples/acc_mag_log.csv'",
+        "licence": "Apache-2.0 (CK-Explorer)",
+        "sensor": "ST LSM9DS1 (decided from the data: every reading a multiple of 0.14 mG, its +-4 G sensitivity), "
+        "turned through the sphere with the accelerometer logged beside it",
+        "conversion": f"gauss / 0.14e-3 rounded to counts, x {LSM9DS1_4G_LSB_NT:.6g} nT",
+        "lsb_nT": f"{LSM9DS1_4G_LSB_NT:.6g}",
+        "rate_Hz": "unknown (no time stamps)",
+        "igrf_total_nT": "about 40000 (Malaysia, the author's UTC+8 commits; site not stated); the fitted field is "
+        "~31 uT",
+    }
+    return _write("ck_lsm9ds1", _vector_columns(counts * LSM9DS1_4G_LSB_NT), meta, out_dir)
+
+
 #: Every recording: name -> converter.
 CONVERTERS = {
     "qmc_filtered": convert_qmc_filtered,
@@ -464,6 +546,9 @@ CONVERTERS = {
     "ap_erlebrain3": convert_ap_erlebrain3,
     "ap_pxf_rpi": convert_ap_pxf_rpi,
     "ap_pxf_flip": convert_ap_pxf_flip,
+    "cl_imu_gnss": convert_cl_imu_gnss,
+    "mw_fxos8700": convert_mw_fxos8700,
+    "ck_lsm9ds1": convert_ck_lsm9ds1,
 }
 
 

@@ -50,6 +50,9 @@ SF = ("sunsided/sensor-fusion", "f16045a9d1d4f9037a183f436fe3c098a38ad99d")
 AB = ("aleksandrbazhin/ellipsoid_fit_python", "bfab4ce68244529640496f466a4374ef15748275")
 PYULOG = ("PX4/pyulog", "3cf17793f14709713ab297d3743314c658874068")
 ERLE = ("erlerobot/logs", "3f7d4a0d17f2485f7fa5cb7124fc2a5b13d6c688")
+CARIBOU = ("timspi/mag-calib", "c155daa72a19b42452b58ffc7cfbd6be211fd16e")
+CKX = ("CK-Explorer/Magnetometer-and-Accelerometer-Calibration", "61ac7669f1cbba2e5ce77763a40ebc123d95ac60")
+WRONA = ("michaelwro/mag-cal-example", "226e2e608473b1912320518366d30cdd404c5796")
 
 #: The ADS payload's flight (2025-02-22, U. Michigan MXL): the logger's 5-min files that span the authors' flight
 #: window (``ADSvehicle/postFlightCali/data_ADSflight_times.csv``: unix 1740235659 to 1740241185).
@@ -147,6 +150,30 @@ SOURCES = (
         "none (local only)",
         "ArduCopter DataFlash log, Erle-Copter PXF v1.4 (2014-12-15): MAG 10 Hz for 152 s, level flight "
         "(roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle turns over at the end (roll -108, pitch 81)",
+    ),
+    Source(
+        "cl_imu_gnss_data.csv",
+        *CARIBOU,
+        "raw_data/imu_gnss_data.csv",
+        "MIT",
+        "CaribouLabs IMU + GNSS logger (part not stated): 1252 rows of integer magnetometer counts with the "
+        "logger's tick stamps, accelerometer, gyro, attitude, barometer temperature; waved through the sphere",
+    ),
+    Source(
+        "mw_mag_readings.txt",
+        *WRONA,
+        "examples/mag-readings.txt",
+        "none (local only)",
+        "NXP FXOS8700 (Adafruit FXOS8700 + FXAS21002 board) on an Arduino, uT (0.1 uT steps), 10 Hz for ~32 s, "
+        "turned by hand; no time stamps",
+    ),
+    Source(
+        "ck_acc_mag_log.csv",
+        *CKX,
+        "Data Examples/acc_mag_log.csv",
+        "Apache-2.0",
+        "12000 rows of accelerometer (g) and magnetometer (gauss) readings turned for calibration; every "
+        "magnetometer value a multiple of 0.14 mG (LSM9DS1 at +-4 G); no time stamps",
     ),
 )
 
