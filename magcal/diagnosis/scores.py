@@ -97,6 +97,10 @@ class Candidate:
         Whether the effect *improves the calibration for new data* on the later stretch, scored as ``magcal
         apply`` scores it: an instrument term must not raise it, a record-only term must lower it
         (:func:`magcal.fitting.validation.transfers`); None when not validated.
+    confounded : str
+        Why the effect cannot be told from another on this record, whatever the held-out figures ("" when it can):
+        a temperature term on a record whose temperature follows time is a drift as much as a temperature effect,
+        and a calibration would carry its slope to temperatures the record never had.
     record_only : bool
         The term describes the recording, not the instrument (:attr:`magcal.model.terms.Effect.transferable`
         False: drifts, steps, interference, a changing or non-uniform field): ``magcal apply`` drops it on new data.
@@ -122,6 +126,7 @@ class Candidate:
     holds: bool | None = None
     converged: bool = True
     transfers: bool | None = None
+    confounded: str = ""
     record_only: bool = False
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
@@ -150,6 +155,7 @@ class Candidate:
             "later_rms_after_nT": _num(self.later_after_nT),
             "holds": self.holds,
             "transfers": self.transfers,
+            "confounded": self.confounded or None,
             "record_only": self.record_only,
             "converged": self.converged,
         }

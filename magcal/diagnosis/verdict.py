@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
-from magcal.checks.quality import EARTH_FIELD_RANGE_nT
+from magcal.checks.quality import TEMP_TIME_CORR_WARN, EARTH_FIELD_RANGE_nT
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.jsonable import jsonable
@@ -375,6 +375,9 @@ class _HeldOut:
         # whether it improves the calibration for new data
         c.holds = _validation.judge(blocks) and (c.record_only or later.does_not_rise)
         c.transfers = _validation.transfers(later, c.record_only)
+        c.confounded = _confounded(self.kept, c)
+        if c.confounded:
+            c.transfers = False  # the later stretch cannot tell: it follows the same clock
         held = (
             f"held-out {c.held_out_before_nT:.4g} -> {c.held_out_after_nT:.4g} nT (blocks), later "
             f"{c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT (fitted before, applied as magcal apply does"
@@ -398,6 +401,8 @@ class _HeldOut:
                     if c.transfers
                     else "; makes the calibration worse on the later stretch"
                 )
+            if c.confounded:
+                carries = f"; not advised for new data: {c.confounded}"
             c.evidence += f"; {held}: describes this record (holds on held-out data){carries}"
         else:
             why = (
@@ -858,8 +863,12 @@ def _after_scores(
             summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
     if units:
         summary = f"{units.split('. ')[0]}; {summary}"
-    # what describes this record vs what improves the calibration for new data (issue 28)
-    holds_here = [c for c in chosen if c.record_only or c.transfers is False]
+    # what describes this record vs what improves the calibration for new data (issue 28); a temperature term on a
+    # record whose temperature follows time is never advice, judged held out or not (the later stretch follows the
+    # same clock)
+    for c in chosen:
+        c.confounded = c.confounded or _confounded(kept, c)
+    holds_here = [c for c in chosen if c.record_only or c.transfers is False or c.confounded]
     record_holds = [c.label for c in holds_here]
     if holds_here:
         summary += "; " + _record_holds_words(holds_here, chosen)
@@ -988,10 +997,37 @@ def _unexplained_meaning(structures) -> str | None:
     return None
 
 
+def _confounded(dataset, c) -> str:
+    """Why ``c`` cannot be told from another effect on ``dataset``, or "": a temperature term on a record whose
+    temperature follows time (:data:`magcal.checks.quality.TEMP_TIME_CORR_WARN`) fits a drift as well, and applied
+    to new data it carries the record's slope to temperatures the record never had (on a real bench recording
+    whose temperature rose with time, r = 0.999, a temperature bias advised on the first half tripled the error on
+    the second; benchmarks/README.md, "Real recordings II")."""
+    cls = EFFECTS.get(c.effect)
+    if cls is None or "temperature" not in getattr(cls, "channels", ()):
+        return ""
+    temp, clock = dataset.temperature_C, dataset.time_s
+    if temp is None:
+        return ""
+    clock = np.arange(temp.size, dtype=float) if clock is None else np.asarray(clock, dtype=float)
+    if np.ptp(temp) <= 0 or np.ptp(clock) <= 0:
+        return ""
+    r = float(np.corrcoef(temp, clock)[0, 1])
+    if abs(r) < TEMP_TIME_CORR_WARN:
+        return ""
+    return (
+        f"the temperature follows time on this record (correlation {r:+.3f}), so a temperature term cannot be told "
+        "from a drift, and a calibration would carry its slope to temperatures the record never had; record with "
+        "the temperature changing on its own (warm and cool the sensor while turning it) to judge it"
+    )
+
+
 def _advised(c) -> bool:
     """Whether a chosen effect is advice for a calibration: it improves the calibration for new data (the later
     stretch, applied as magcal apply does). Without a held-out judgement (a record too short to split) an
-    instrument term is advised on its in-sample evidence and a record-only term is not."""
+    instrument term is advised on its in-sample evidence and a record-only term is not; a confounded term never."""
+    if c.confounded:
+        return False
     if c.transfers is None:
         return not c.record_only
     return bool(c.transfers)
@@ -1026,6 +1062,8 @@ def _record_holds_words(holds_here, chosen) -> str:
             if c.record_only
             else "it describes this record but does not improve the calibration on its later part"
         )
+        if c.confounded:
+            what = c.confounded
         text = f"this record holds {c.label}: {what}"
         if c.record_only and c.transfers:
             text += (
