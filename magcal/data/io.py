@@ -31,10 +31,13 @@ import numpy as np
 
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.data.dataset import (
+    BAD_VALUE_TEXT,
+    MAX_ABS_VALUE,
     QUATERNION_COLUMNS,
     SENSOR_AXES,
     Dataset,
     DatasetError,
+    bad_values,
     dataset_columns,
     dataset_metadata,
 )
@@ -77,11 +80,14 @@ NUMERIC_METADATA = {
 }
 
 _SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
-#: Largest magnitude a numeric cell may hold: far beyond any reading, temperature or time stamp (epoch ns are
-#: ~2e18) in any unit, and small enough that sums of squares and fourth powers stay finite in float64.
-MAX_ABS_VALUE = 1e30
 _MAX_SHOWN = 5  # problems named in one message
 _BINARY_PROBE = 8192
+
+#: Longest line of a CSV file (bytes, line end included): far beyond any row of readings and channels, and small
+#: enough that a file of one endless line is refused before it fills the memory.
+MAX_LINE_BYTES = 1 << 20
+#: Most columns a CSV header (or a Parquet schema) may name: a million would make every block of rows huge.
+MAX_COLUMNS = 1000
 
 
 def canonical_columns(n_sensors=MAX_SENSORS):
@@ -331,19 +337,24 @@ class Chunk:
 
 
 class _FileLines:
-    """The lines (UTF-8 bytes, line ends kept) of a caller's file object, binary or text, read block by block.
+    """The lines (UTF-8 bytes, line ends kept) of a file object, binary or text, read block by block.
 
-    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. Closing it
-    leaves the caller's file open.
+    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. A line
+    longer than :data:`MAX_LINE_BYTES` is refused (:class:`DatasetError`, naming it) as soon as that many bytes
+    have come without a line end, so memory stays bounded whatever the file holds. Closing it leaves the file
+    open unless ``owned``.
     """
 
-    _BLOCK = 1 << 20
+    _BLOCK = 1 << 16
 
-    def __init__(self, fh, source):
+    def __init__(self, fh, source, owned=False):
         self._fh = fh
+        self._owned = owned
         self._source = source
         self._lines = collections.deque()
         self._tail = b""
+        self._n_read = 0  # bytes read from the file
+        self._n_lines = 0  # lines split off so far (for the number of an over-long one)
         self.head = self._read(_BINARY_PROBE)
         self._take(self.head)
 
@@ -355,13 +366,27 @@ class _FileLines:
                 f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as binary"
             ) from None
         if isinstance(data, str):
-            return data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
-        return bytes(data or b"")
+            data = data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
+        data = bytes(data or b"")
+        self._n_read += len(data)
+        return data
 
     def _take(self, data):
         parts = (self._tail + data).split(b"\n")
         self._tail = parts.pop()  # an unfinished line waits for the next block
+        longest = max(map(len, parts), default=0)
+        if longest >= MAX_LINE_BYTES or len(self._tail) >= MAX_LINE_BYTES:
+            k = next((i for i, part in enumerate(parts) if len(part) >= MAX_LINE_BYTES), len(parts))
+            raise DatasetError(
+                f"{self._source}: line {self._n_lines + k + 1} is longer than {MAX_LINE_BYTES:,} bytes; this is "
+                "not a CSV of readings (a binary file, or the line ends are missing): check the file"
+            )
+        self._n_lines += len(parts)
         self._lines.extend(part + b"\n" for part in parts)
+
+    def tell(self) -> int:
+        """Bytes of the file consumed so far (read and served as lines)."""
+        return self._n_read - len(self._tail) - sum(map(len, self._lines))
 
     def _fill(self):
         while not self._lines:
@@ -386,6 +411,8 @@ class _FileLines:
         return next(self, b"")
 
     def close(self):
+        if self._owned and self._fh is not None:
+            self._fh.close()
         self._fh = None
 
 
@@ -429,11 +456,12 @@ class CsvSource:
             self._check_head(head)
             if self._file is None:
                 try:
-                    self._file = open(self.path, "rb")
+                    fh = open(self.path, "rb")
                 except OSError as exc:
                     raise DatasetError(
                         f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path"
                     ) from None
+                self._file = _FileLines(fh, self.source, owned=True)
             self._read_head()
             self.layout = _find_layout(self.header, columns, self.source, self.header_line)
             self._resolve_units(units, lsb_nT)
@@ -527,6 +555,11 @@ class CsvSource:
             raise DatasetError(
                 f"{self.source}: line {self._lineno}: the header cannot be read as CSV ({exc})"
             ) from None
+        if len(header) > MAX_COLUMNS:
+            raise DatasetError(
+                f"{self.source}: line {self._lineno}: the header names {len(header):,} columns, more than the "
+                f"{MAX_COLUMNS:,} magcal reads; keep the columns you need (readings, t, temp...) and save again"
+            )
         self.header = [h.strip() for h in header]
         if all(_strict_float(h) is not None for h in self.header):
             raise DatasetError(
@@ -538,7 +571,7 @@ class CsvSource:
         if key in NUMERIC_METADATA:
             number = _strict_float(value)
             positive = NUMERIC_METADATA[key][1]
-            if number is None or not np.isfinite(number) or number < 0 or (positive and number == 0):
+            if number is None or bad_values(number) or number < 0 or (positive and number == 0):
                 need = "a positive number" if positive else "a number >= 0"
                 raise DatasetError(
                     f"{self.source}: line {self._lineno}: metadata {key}: {value!r} must be {need}"
@@ -665,7 +698,7 @@ class CsvSource:
                 values = None
             if values is not None and values.shape != (len(lines), len(num)):
                 values = None
-            if values is not None and not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+            if values is not None and bad_values(values).any():
                 values = None
         rows = None
         if values is None:
@@ -1030,14 +1063,16 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
     if head_warnings or len(set(header)) != len(header) or any(not h for h in header):
         return None
     try:
-        with open(os.fspath(path), "rb") as fh:
-            raw = fh.read()
         offset = 0
-        for _ in range(header_line):
-            offset = raw.index(b"\n", offset) + 1
+        with open(os.fspath(path), "rb") as fh:  # the head's lines are shorter than MAX_LINE_BYTES (checked)
+            for _ in range(header_line):
+                offset += len(fh.readline())
+        # memory-mapped, not read into memory: a line longer than pyarrow's block fails at once (then the line
+        # reader names it), and a large file costs no copy
+        raw = pa.memory_map(os.fspath(path), "r").read_buffer()
         numeric = [header[j] for j, _ in layout.numeric]
         table = pacsv.read_csv(
-            pa.py_buffer(memoryview(raw)[offset:]),
+            pa.BufferReader(raw.slice(offset)),
             read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
             parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
             convert_options=pacsv.ConvertOptions(
@@ -1062,7 +1097,7 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
         if col.null_count:
             return None
         values[:, m] = col.to_numpy()
-    if not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+    if bad_values(values).any():
         return None
     text = {
         j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
@@ -1252,12 +1287,12 @@ class ParquetSource:
                         f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
                         "readings, time and channels must be numeric"
                     ) from None
-                bad = ~np.isfinite(col) | (np.abs(col) > MAX_ABS_VALUE)
+                bad = bad_values(col)
                 if bad.any():
                     k = int(np.argmax(bad))
                     raise DatasetError(
-                        f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
-                        f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows"
+                        f"{self.source}: row {row + k + 1}, column {name}: {float(col[k])!r} is {BAD_VALUE_TEXT} "
+                        f"({int(bad.sum())} such row(s) in this block); fix or delete these rows"
                     )
                 values[:, m] = col
             text = {}

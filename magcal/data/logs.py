@@ -23,14 +23,19 @@ own frame (PX4) or is already rotated to the body frame (ArduPilot).
 
 from __future__ import annotations
 
+import contextlib
+import mmap
 import os
+import re
+import struct
+import time
 import warnings
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal.core.errors import DataWarning
-from magcal.data.dataset import Dataset, DatasetError
+from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 
 #: File name endings read as flight-controller logs, and the reader of each.
 LOG_EXTENSIONS = (".bin", ".ulg")
@@ -43,13 +48,18 @@ ARDUPILOT_SCALE_RANGE = (1.0 / 1.5, 1.5)
 
 MAX_SENSORS = 4
 
+#: Time allowed to read a log: this many seconds per MB of file, and at least :data:`MIN_DEADLINE_S` (pymavlink
+#: reads about 1 MB/s of DataFlash; a log that takes far longer is damaged in a way that loops).
+DEADLINE_S_PER_MB = 10.0
+MIN_DEADLINE_S = 60.0
+
 
 def is_log(path) -> bool:
     """True if ``path`` names a flight-controller log magcal reads (by its ending, case-insensitive)."""
     return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(LOG_EXTENSIONS)
 
 
-def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1) -> Dataset:
+def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None) -> Dataset:
     """Read an ArduPilot ``.bin`` or PX4 ``.ulg`` log into a :class:`Dataset` (readings in nT).
 
     Parameters
@@ -63,11 +73,19 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
         ArduPilot only: undo the logged calibration to recover the raw field (default), or keep the logged one.
     min_samples : int
         Fewest samples accepted.
+    timeout_s : float, optional
+        Give up (with a :class:`DatasetError`) after this many seconds; default :data:`DEADLINE_S_PER_MB` per MB
+        of file, at least :data:`MIN_DEADLINE_S`. Every format field the readers step by is checked first (a
+        DataFlash format shorter than its header, or not the size of its fields, is refused), so a damaged log
+        ends with a message, never a hang.
+
+    Values that are NaN, infinite or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` (the rule of every magcal
+    reader) are dropped, each kind counted in one :class:`DataWarning`.
 
     Raises
     ------
     DatasetError
-        Missing file, a log the reader cannot parse, no magnetometer messages, too few samples.
+        Missing file, a log the reader cannot parse, no magnetometer messages, too few samples, too slow.
     """
     source = str(name or os.fspath(path))
     path = os.fspath(path)
@@ -75,10 +93,12 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
         raise DatasetError(f"{source}: is a directory, not a log file")
     if not os.path.exists(path):
         raise DatasetError(f"{source}: no such file; check the path")
+    if timeout_s is None:
+        timeout_s = max(MIN_DEADLINE_S, DEADLINE_S_PER_MB * os.path.getsize(path) / 1e6)
     if path.lower().endswith(".ulg"):
         ds = read_ulog(path, sensors=sensors, name=source)
     elif path.lower().endswith(".bin"):
-        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration)
+        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration, timeout_s=timeout_s)
     else:
         raise DatasetError(f"{source}: not a flight-controller log (expected {', '.join(LOG_EXTENSIONS)})")
     if ds.n_samples < int(min_samples):
@@ -103,6 +123,25 @@ def _strictly_increasing(t, values, source, what):
             stacklevel=4,
         )
     return t[keep], values[keep]
+
+
+def _drop_bad(source, what, t, *arrays, keep=()):
+    """Rows of ``t`` and ``arrays`` (same length) whose values all pass the one rule of read values
+    (:func:`magcal.data.dataset.bad_values`); the others dropped with one :class:`DataWarning` counting them.
+    The arrays of ``keep`` are not checked, only cut to the same rows (returned after the others)."""
+    bad = bad_values(t)
+    for a in arrays:
+        a = np.asarray(a, dtype=float)
+        bad |= bad_values(a, axis=tuple(range(1, a.ndim))) if a.ndim > 1 else bad_values(a)
+    if bad.any():
+        warnings.warn(
+            f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
+            "(a damaged log); they are dropped",
+            DataWarning,
+            stacklevel=4,
+        )
+    good = ~bad
+    return (np.asarray(t)[good], *(np.asarray(a)[good] for a in arrays + tuple(keep)))
 
 
 def pair_by_time(series, source):
@@ -243,8 +282,96 @@ def _ardupilot_matrix(params, index):
     return m
 
 
-def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Dataset:
-    """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame."""
+#: A DataFlash message: two sync bytes, then the type.
+_DF_HEAD = b"\xa3\x95"
+#: The FMT message (type 128): header, Type B, Length B, Name 4s, Format 16s, Columns 64s.
+_DF_FMT_TYPE = 0x80
+_DF_FMT_LENGTH = 89
+_DF_FMT_RE = re.compile(rb"\xa3\x95\x80", re.DOTALL)
+#: The message types magcal reads: a damaged format of one of them is refused, not skipped.
+_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT")
+
+
+def _c_string(raw: bytes) -> str | None:
+    """The NUL-terminated ASCII text of a fixed-size field, or None if it holds other bytes."""
+    text = raw.split(b"\0", 1)[0]
+    if not all(32 <= b < 127 for b in text):
+        return None
+    return text.decode("ascii")
+
+
+def check_dataflash_formats(path, source=None) -> int:
+    """Check every FMT message of a DataFlash log before pymavlink reads it; returns how many there are.
+
+    pymavlink steps through the file by the lengths the FMT messages declare: a length below the 3-byte header
+    (0 makes it loop forever) or a format whose fields do not fill its length leaves it looping, or silently
+    reading the wrong bytes. Each FMT message found (the sync bytes and type 128, then a printable name, format
+    and column list: another message's bytes cannot pass for one) is checked.
+
+    Raises
+    ------
+    DatasetError
+        Not a DataFlash log (no FMT message, which every DataFlash log begins with), or a format that would make
+        the reader loop or misread (named, with its byte offset).
+    """
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    source = str(source or path)
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size < _DF_FMT_LENGTH:
+            raise DatasetError(
+                f"{source}: not an ArduPilot DataFlash log ({size} bytes, less than one format message); check the file"
+            )
+        data = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    try:
+        count = 0
+        for match in _DF_FMT_RE.finditer(data):
+            ofs = match.start()
+            body = data[ofs + 3 : ofs + _DF_FMT_LENGTH]
+            if len(body) < _DF_FMT_LENGTH - 3:
+                break  # a log cut in the middle of its last message
+            ftype, length, name, fmt, columns = struct.unpack("<BB4s16s64s", body)
+            name, fmt, columns = _c_string(name), _c_string(fmt), _c_string(columns)
+            if not name or fmt is None or columns is None:
+                continue  # not a FMT message: these bytes belong to another one
+            count += 1
+            where = f"{source}: byte {ofs}: the format of message {name} (type {ftype})"
+            unknown = sorted(set(fmt) - set(FORMAT_TO_STRUCT))
+            if unknown:
+                if name in _DF_READ_TYPES:
+                    raise DatasetError(
+                        f"{where} has field type(s) {''.join(unknown)!r} no DataFlash reader knows; the log is damaged"
+                    )
+                continue
+            need = 3 + struct.calcsize("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in fmt))
+            if length < 3:
+                raise DatasetError(
+                    f"{where} declares a length of {length} byte(s), less than the 3-byte message header: the "
+                    "log is damaged (a reader would loop on it); record or download it again"
+                )
+            if (ftype == _DF_FMT_TYPE or name in _DF_READ_TYPES) and length != need:
+                raise DatasetError(
+                    f"{where} declares {length} bytes but its fields ({fmt}) take {need}: the log is damaged; "
+                    "record or download it again"
+                )
+        if count == 0:
+            raise DatasetError(
+                f"{source}: not an ArduPilot DataFlash log: it holds no FMT message, which every DataFlash log "
+                "begins with (is it another kind of file, or a text log? magcal reads the binary .bin)"
+            )
+        return count
+    finally:
+        data.close()
+
+
+def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout_s=None) -> Dataset:
+    """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame.
+
+    Its format messages are checked first (:func:`check_dataflash_formats`); reading stops with a
+    :class:`DatasetError` after ``timeout_s`` seconds (default: no limit). Values NaN, infinite or beyond
+    :data:`magcal.data.dataset.MAX_ABS_VALUE` are dropped with a count.
+    """
     source = str(name or path)
     try:
         from pymavlink import DFReader
@@ -252,81 +379,132 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True) -> Data
         raise DatasetError(
             f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
         ) from None
+    check_dataflash_formats(path, source)
+    deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
+
+    def too_slow():
+        return DatasetError(
+            f"{source}: reading stopped after {float(timeout_s):g} s, far longer than a log of this size takes: "
+            "the log is damaged; record or download it again"
+        )
+
+    def progress(_percent):
+        if deadline is not None and time.monotonic() > deadline:
+            raise too_slow()
+
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
             warnings.simplefilter("ignore")
-            import contextlib
-
             with contextlib.redirect_stdout(devnull):  # pymavlink prints notes about the indexer
-                log = DFReader.DFReader_binary(path, zero_time_base=True)
+                log = DFReader.DFReader_binary(path, zero_time_base=True, progress_callback=progress)
+    except DatasetError:
+        raise
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
         raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({type(exc).__name__}: {exc})") from None
-    params = {}
-    mags = {}  # (name, instance) -> list of rows (t, x, y, z) nT
-    imu_t, imu_temp = [], []
-    att_t, att = [], []
-    seen_types = set()
-    unhealthy = {}  # compass -> samples the firmware marked unhealthy (left out)
+    gathered = {
+        "params": {},
+        "bad_params": [],
+        "mags": {},  # instance -> list of rows (t, x, y, z) nT
+        "imu": [],  # (t, temperature degC) of the first IMU
+        "att": [],  # (t, roll, pitch, yaw) deg
+        "seen": set(),
+        "unhealthy": {},  # compass -> samples the firmware marked unhealthy (left out)
+    }
     try:
-        while True:
-            m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT"])
-            if m is None:
-                break
-            kind = m.get_type()
-            seen_types.add(kind)
-            if kind == "PARM":
-                params[str(m.Name)] = float(m.Value)
-                continue
-            t_us = getattr(m, "TimeUS", None)
-            if t_us is None:
-                t_us = getattr(m, "TimeMS", 0) * 1000.0
-            t = float(t_us) * 1e-6
-            if kind.startswith("MAG"):
-                instance = int(getattr(m, "I", 0) or 0) if kind == "MAG" else int(kind[3:]) - 1
-                if getattr(m, "Health", 1) == 0:
-                    unhealthy[instance] = unhealthy.get(instance, 0) + 1
-                    continue
-                field_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
-                if undo_calibration:
-                    ofs = np.array([getattr(m, f"Ofs{a}", 0.0) for a in "XYZ"], dtype=float)
-                    mot = np.array([getattr(m, f"MO{a}", 0.0) for a in "XYZ"], dtype=float)
-                    field_mG = np.linalg.solve(_ardupilot_matrix(params, instance), field_mG - mot) - ofs
-                mags.setdefault(instance, []).append((t, *(field_mG * NT_PER_MILLIGAUSS)))
-            elif kind == "IMU":
-                if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
-                    imu_t.append(t)
-                    imu_temp.append(float(m.T))
-            elif kind == "ATT":
-                att_t.append(t)
-                att.append((float(m.Roll), float(m.Pitch), float(m.Yaw)))
+        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pymavlink's notes
+            while True:
+                if deadline is not None and time.monotonic() > deadline:
+                    raise too_slow()
+                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT"])
+                if m is None:
+                    break
+                _dataflash_message(m, gathered, undo_calibration)
+    except DatasetError:
+        raise
     except Exception as exc:
         raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
-    for k, count in sorted(unhealthy.items()):
+    finally:
+        with contextlib.suppress(Exception):
+            log.close()
+    return _dataflash_dataset(source, gathered, sensors, undo_calibration)
+
+
+def _dataflash_message(m, gathered, undo_calibration):
+    """Take one PARM, MAG, IMU or ATT message into ``gathered`` (the lists :func:`read_dataflash` fills)."""
+    kind = m.get_type()
+    gathered["seen"].add(kind)
+    if kind == "PARM":
+        value = float(m.Value)
+        if bad_values(value):
+            gathered["bad_params"].append(str(m.Name))
+        else:
+            gathered["params"][str(m.Name)] = value
+        return
+    t_us = getattr(m, "TimeUS", None)
+    if t_us is None:
+        t_us = getattr(m, "TimeMS", 0) * 1000.0
+    t = float(t_us) * 1e-6
+    if kind.startswith("MAG"):
+        instance = int(getattr(m, "I", 0) or 0) if kind == "MAG" else int(kind[3:]) - 1
+        if getattr(m, "Health", 1) == 0:
+            gathered["unhealthy"][instance] = gathered["unhealthy"].get(instance, 0) + 1
+            return
+        field_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
+        if undo_calibration:
+            ofs = np.array([getattr(m, f"Ofs{a}", 0.0) for a in "XYZ"], dtype=float)
+            mot = np.array([getattr(m, f"MO{a}", 0.0) for a in "XYZ"], dtype=float)
+            field_mG = np.linalg.solve(_ardupilot_matrix(gathered["params"], instance), field_mG - mot) - ofs
+        gathered["mags"].setdefault(instance, []).append((t, *(field_mG * NT_PER_MILLIGAUSS)))
+    elif kind == "IMU":
+        if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
+            gathered["imu"].append((t, float(m.T)))
+    elif kind == "ATT":
+        gathered["att"].append((t, float(m.Roll), float(m.Pitch), float(m.Yaw)))
+
+
+def _dataflash_dataset(source, gathered, sensors, undo_calibration):
+    """The dataset from the gathered messages (readings in nT), bad values dropped with a count."""
+    mags = gathered["mags"]
+    if gathered["bad_params"]:
+        warnings.warn(
+            f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
+            f"({', '.join(dict.fromkeys(gathered['bad_params']))})",
+            DataWarning,
+            stacklevel=4,
+        )
+    for k, count in sorted(gathered["unhealthy"].items()):
         warnings.warn(
             f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out",
             DataWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     if not mags:
         raise DatasetError(
             f"{source}: no MAG messages (compass data); the log holds "
-            f"{', '.join(sorted(seen_types)) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
+            f"{', '.join(sorted(gathered['seen'])) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
             "(LOG_BITMASK) and record again"
         )
     instances = _select(sorted(mags), sensors, source, "MAG messages")
     series = []
     for k in instances:
         rows = np.asarray(mags[k], dtype=float)
-        series.append(_strictly_increasing(rows[:, 0], rows[:, 1:], source, f"compass {k + 1}"))
+        t, xyz = _drop_bad(source, f"compass {k + 1}", rows[:, 0], rows[:, 1:])
+        series.append(_strictly_increasing(t, xyz, source, f"compass {k + 1}"))
+    if not any(t.size for t, _ in series):
+        raise DatasetError(f"{source}: no usable MAG samples: every one holds values {BAD_VALUE_TEXT}")
     labels = [f"compass {k + 1}" for k in instances]
     keep = _alive(series, labels, source)
     series, labels = [series[i] for i in keep], [labels[i] for i in keep]
     temperature = attitude = None
     extra = {}
-    if imu_t:
-        temperature = _strictly_increasing(np.asarray(imu_t), np.asarray(imu_temp), source, "IMU temperature")
-    if att_t:
-        ta, angles = _strictly_increasing(np.asarray(att_t), np.asarray(att), source, "ATT")
+    imu = np.asarray(gathered["imu"], dtype=float).reshape(-1, 2)
+    imu_t, imu_temp = _drop_bad(source, "IMU temperature", imu[:, 0], imu[:, 1])
+    if imu_t.size:
+        temperature = _strictly_increasing(imu_t, imu_temp, source, "IMU temperature")
+    att = np.asarray(gathered["att"], dtype=float).reshape(-1, 4)
+    att_t, angles = _drop_bad(source, "ATT", att[:, 0], att[:, 1:])
+    if att_t.size:
+        ta, angles = _strictly_increasing(att_t, angles, source, "ATT")
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
@@ -361,20 +539,19 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     temps = []
     for d in chosen:
         data = d.data
+        what = f"sensor_mag {d.multi_id}"
         t_key = "timestamp_sample" if "timestamp_sample" in data else "timestamp"
+        _require_fields(data, [t_key, "x", "y", "z"], source, what)
         t = np.asarray(data[t_key], dtype=float) * 1e-6
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(float) * NT_PER_GAUSS
         temp = np.asarray(data.get("temperature", np.full(t.size, np.nan)), dtype=float)
-        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, f"sensor_mag {d.multi_id}")
-        good = np.isfinite(both[:, :3]).all(axis=1)
-        if not good.all():
-            warnings.warn(
-                f"{source}: sensor_mag {d.multi_id}: {int((~good).sum())} non-finite sample(s) dropped",
-                DataWarning,
-                stacklevel=3,
-            )
-        series.append((t[good], both[good, :3]))
-        temps.append((t[good], both[good, 3]))
+        temp = np.where(bad_values(temp), np.nan, temp)  # a bad temperature is a missing one (NaN: none)
+        t, xyz, temp = _drop_bad(source, what, t, xyz, keep=(temp,))
+        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, what)
+        series.append((t, both[:, :3]))
+        temps.append((t, both[:, 3]))
+    if not any(t.size for t, _ in series):
+        raise DatasetError(f"{source}: no usable sensor_mag samples: every one holds values {BAD_VALUE_TEXT}")
     keep = _alive(series, [f"sensor_mag {d.multi_id}" for d in chosen], source)
     series, temps, chosen = [series[i] for i in keep], [temps[i] for i in keep], [chosen[i] for i in keep]
     temperature = None
@@ -394,16 +571,28 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     return _build(source, series, temperature, attitude, None, metadata)
 
 
+def _require_fields(data, names, source, what):
+    """Refuse a ULog topic that lacks one of the fields magcal reads (a KeyError otherwise)."""
+    missing = [n for n in names if n not in data]
+    if missing:
+        raise DatasetError(
+            f"{source}: {what} has no field {', '.join(missing)} (its fields: {', '.join(sorted(data)[:12])}); "
+            "this is not the PX4 message magcal reads: the log is damaged or from an unknown firmware"
+        )
+
+
 def _ulog_attitude(ulog, source):
     """``(t, Rotation)`` of the ``vehicle_attitude`` quaternions (body FRD to NED), or None."""
     att = [d for d in ulog.data_list if d.name == "vehicle_attitude"]
     if not att:
         return None
     data = att[0].data
+    _require_fields(data, ["timestamp"] + [f"q[{k}]" for k in range(4)], source, "vehicle_attitude")
     ta = np.asarray(data["timestamp"], dtype=float) * 1e-6
     q = np.column_stack([data[f"q[{k}]"] for k in range(4)]).astype(float)
+    ta, q = _drop_bad(source, "vehicle_attitude", ta, q)
     ta, q = _strictly_increasing(ta, q, source, "vehicle_attitude")
-    ok = np.isfinite(q).all(axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    ok = np.linalg.norm(q, axis=1) > 0.5
     if not ok.any():
         return None
     return ta[ok], Rotation.from_quat(np.column_stack([q[ok, 1:], q[ok, :1]]))
@@ -427,6 +616,7 @@ def _ulog_calibrated_field(ulog, source):
             "again"
         )
     data = found[0].data
+    _require_fields(data, ["timestamp"], source, topic)
     t = np.asarray(data["timestamp"], dtype=np.int64)
     if "magnetometer_timestamp_relative" in data:
         rel = np.asarray(data["magnetometer_timestamp_relative"], dtype=np.int64)
@@ -435,8 +625,9 @@ def _ulog_calibrated_field(ulog, source):
     else:
         ok = np.ones(t.size, dtype=bool)
     xyz = np.column_stack([data[f"magnetometer_ga[{k}]"] for k in range(3)]).astype(float) * NT_PER_GAUSS
-    ok &= np.isfinite(xyz).all(axis=1)
     t, xyz = t[ok], xyz[ok]
+    t, xyz = _drop_bad(source, topic, t, xyz)
+    t = t.astype(np.int64)
     first = np.unique(t, return_index=True)[1]  # sensor_combined repeats a magnetometer sample at each IMU update
     t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])

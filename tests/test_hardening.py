@@ -1,0 +1,353 @@
+"""Hardening (issue 31, the engine's side): readers that end, one rule for bad values, bounds, messages instead of
+tracebacks, outputs checked before the work and never left half-written.
+
+Each test builds its hostile input itself (a crafted log, a NaN time stamp, a URL...) and checks the exact outcome:
+the message, what was dropped and counted, what is on disk. Waits are bounded (a reader that would hang fails the
+test after a few seconds instead of hanging it).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import warnings
+
+import numpy as np
+import pytest
+from test_logs import (  # the writers of known-truth logs (tests/ is on the path, as for every test module)
+    MAG_FIELDS,
+    ardupilot_case,
+    px4_case,
+    write_dataflash,
+    write_ulog,
+)
+
+import magcal
+from magcal.core.errors import DataWarning
+from magcal.data import io
+from magcal.data import simulation as sim
+from magcal.data.dataset import MAX_ABS_VALUE, DatasetError, bad_values
+from magcal.data.live import (
+    SIM_MAX_SAMPLES,
+    LineParser,
+    LiveChunk,
+    LiveError,
+    LiveSource,
+    Recorder,
+    _LineSource,
+    open_source,
+    record,
+)
+from magcal.data.logs import read_log
+from magcal.fitting import platform as pf
+
+pytest.importorskip("pymavlink")
+pytest.importorskip("pyulog")
+
+
+def finishes(fn, seconds=10.0):
+    """``fn()``'s result or exception, or a test failure if it has not ended within ``seconds``."""
+    box = {}
+
+    def run():
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # handed back to the test
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    t0 = time.monotonic()
+    thread.start()
+    thread.join(seconds)
+    if thread.is_alive():
+        pytest.fail(f"still running after {seconds} s (a hang)")
+    box["seconds"] = time.monotonic() - t0
+    return box
+
+
+# -- the one rule ----------------------------------------------------------------------------------------------------
+def test_bad_values_is_one_rule():
+    v = np.array([0.0, -1e30, 1e30, np.nextafter(1e30, 2e30), 3e38, np.nan, np.inf, -np.inf, 1e300, -1e-300])
+    assert bad_values(v).tolist() == [False, False, False, True, True, True, True, True, True, False]
+    rows = np.array([[1.0, 2.0], [np.nan, 0.0], [1e31, 1.0]])
+    assert bad_values(rows, axis=1).tolist() == [False, True, True]
+    assert io.MAX_ABS_VALUE == MAX_ABS_VALUE  # the CSV reader's cap is the same constant
+
+
+# -- DataFlash: crafted formats end at once with a message --------------------------------------------------------------
+@pytest.fixture(scope="module")
+def dataflash_bytes(tmp_path_factory):
+    path = tmp_path_factory.mktemp("df") / "good.bin"
+    messages, *_ = ardupilot_case(n=120, compasses=1)
+    write_dataflash(path, messages)
+    return path.read_bytes()
+
+
+def _fmt_offset(data, name):
+    """Byte offset of the FMT message that defines ``name``."""
+    k = 0
+    while True:
+        k = data.index(b"\xa3\x95\x80", k)
+        if data[k + 5 : k + 9].rstrip(b"\0") == name.encode():
+            return k
+        k += 1
+
+
+@pytest.mark.parametrize("name", ["FMT", "PARM", "MAG", "IMU", "ATT"])
+@pytest.mark.parametrize("length", [0, 1, 2])
+def test_a_format_shorter_than_its_header_ends_in_seconds_with_a_message(tmp_path, dataflash_bytes, name, length):
+    """pymavlink loops forever on a format of length 0 (and misreads below 3): refused before it reads."""
+    data = bytearray(dataflash_bytes)
+    k = _fmt_offset(data, name)
+    data[k + 4] = length
+    path = tmp_path / "crafted.bin"
+    path.write_bytes(bytes(data + bytes(36_000)))  # the size of the log that hung the workbench
+    box = finishes(lambda: read_log(path), seconds=10)
+    assert isinstance(box.get("error"), DatasetError)
+    assert f"byte {k}: the format of message {name}" in str(box["error"])
+    assert f"length of {length} byte(s), less than the 3-byte message header" in str(box["error"])
+    assert box["seconds"] < 5
+
+
+def test_a_format_not_the_size_of_its_fields_is_refused(tmp_path, dataflash_bytes):
+    data = bytearray(dataflash_bytes)
+    k = _fmt_offset(data, "MAG")
+    data[k + 4] = 200
+    path = tmp_path / "crafted.bin"
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"MAG \(type 65\) declares 200 bytes but its fields \(QBhhhhhhhhhBI\)"):
+        read_log(path)
+
+
+def test_garbage_is_not_a_dataflash_log(tmp_path):
+    path = tmp_path / "noise.bin"
+    path.write_bytes(np.random.default_rng(1).integers(0, 256, 36_000, dtype=np.uint8).tobytes())
+    with pytest.raises(DatasetError, match="noise.bin: not an ArduPilot DataFlash log: it holds no FMT message"):
+        magcal.read_csv(path)
+    (tmp_path / "tiny.bin").write_bytes(b"\xa3\x95\x80")
+    with pytest.raises(DatasetError, match="not an ArduPilot DataFlash log"):
+        magcal.read_csv(tmp_path / "tiny.bin")
+
+
+def test_the_deadline_stops_a_slow_read(tmp_path, dataflash_bytes):
+    path = tmp_path / "good.bin"
+    path.write_bytes(dataflash_bytes)
+    assert read_log(path).n_samples == 120
+    with pytest.raises(DatasetError, match=r"good.bin: reading stopped after 0 s"):
+        read_log(path, timeout_s=0)
+
+
+def _nan_log(path, n=120):
+    """A one-compass log whose ATT roll is NaN on samples 3, 4, IMU temperature inf on 5 and a PARM NaN."""
+    messages, *_ = ardupilot_case(n=n, compasses=1)
+    att = [i for i, (name, _) in enumerate(messages) if name == "ATT"]
+    imu = [i for i, (name, _) in enumerate(messages) if name == "IMU"]
+    for k in (3, 4):
+        name, values = messages[att[k]]
+        messages[att[k]] = (name, (values[0], values[1], float("nan"), *values[3:]))
+    name, values = messages[imu[5]]
+    messages[imu[5]] = (name, (values[0], values[1], float("inf")))
+    messages.insert(0, ("PARM", (0, b"COMPASS_DIA_Y", float("nan"))))
+    write_dataflash(path, messages)
+
+
+def test_nan_fields_of_a_dataflash_log_are_dropped_with_a_count(tmp_path):
+    path = tmp_path / "nan.bin"
+    _nan_log(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = read_log(path)
+    notes = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+    assert any("ATT: 2 of 120 sample(s) hold values NaN, infinite or beyond +-1e+30" in n for n in notes), notes
+    assert any("IMU temperature: 1 of 120 sample(s)" in n for n in notes), notes
+    assert any("1 parameter value(s) NaN, infinite or beyond +-1e+30 are ignored (COMPASS_DIA_Y)" in n for n in notes)
+    assert ds.n_samples == 120
+    for a in (ds.readings_nT, ds.attitude_wxyz, ds.temperature_C, *ds.extra.values()):
+        assert np.all(np.isfinite(a))
+
+
+def test_calibrate_and_apply_a_log_with_nan_fields(tmp_path, capsys):
+    """Today: a traceback in calibrate, NaN rows with exit 0 in apply."""
+    from magcal.cli import main
+
+    path = tmp_path / "nan.bin"
+    _nan_log(path, n=400)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "cal.json")]) == 0
+    assert main(["apply", str(tmp_path / "cal.json"), str(path), "-o", str(tmp_path / "out.csv"), "--no-progress"]) == 0
+    out = magcal.read_csv(tmp_path / "out.csv")  # the reader refuses any NaN: every row is finite
+    assert out.n_samples == 400
+
+
+def test_ulog_without_x_y_z_is_a_message(tmp_path):
+    topics, *_ = px4_case(n=50)
+    fields = [f for f in MAG_FIELDS if f[1] != "z"]
+    rows = [tuple(v for (_, name), v in zip(MAG_FIELDS, row) if name != "z") for row in topics[0][3]]
+    path = tmp_path / "noz.ulg"
+    write_ulog(path, [("sensor_mag", 0, fields, rows), topics[1]])
+    with pytest.raises(DatasetError, match=r"noz.ulg: sensor_mag 0 has no field z \(its fields:"):
+        read_log(path)
+
+
+def test_ulog_values_beyond_the_rule_are_dropped(tmp_path):
+    """3e38 G (a float32 near its largest) passed the log readers; the CSV reader capped at 1e30."""
+    topics, raw_nT, *_ = px4_case(n=200)
+    mag = list(topics[0][3])
+    for k, value in ((10, 3e38), (11, float("nan")), (12, float("inf"))):
+        row = list(mag[k])
+        row[3] = value  # x, gauss
+        mag[k] = tuple(row)
+    path = tmp_path / "big.ulg"
+    write_ulog(path, [("sensor_mag", 0, MAG_FIELDS, mag), topics[1]])
+    with pytest.warns(DataWarning, match=r"sensor_mag 0: 3 of 200 sample\(s\) hold values NaN, infinite or beyond"):
+        ds = read_log(path)
+    assert ds.n_samples == 197
+    assert np.allclose(ds.readings_nT[0], np.delete(raw_nT, [10, 11, 12], axis=0), rtol=1e-6)
+
+
+def test_one_rule_in_csv_and_parquet(tmp_path):
+    ds = sim.simulate(pf.platform_truth(), n_samples=50, seed=1)
+    io.write_csv(tmp_path / "a.csv", ds)
+    lines = (tmp_path / "a.csv").read_text().splitlines()
+    h = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    cells = lines[h + 4].split(",")
+    cells[0] = "3e38"
+    lines[h + 4] = ",".join(cells)
+    (tmp_path / "b.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match="line .*beyond \\+-1e\\+30"):
+        magcal.read_csv(tmp_path / "b.csv")
+    with pytest.warns(DataWarning, match="dropped 1 row"):
+        assert magcal.read_csv(tmp_path / "b.csv", drop_bad=True).n_samples == 49
+    pytest.importorskip("pyarrow")
+    cols = io.dataset_columns(ds)
+    cols["s1x"] = np.where(np.arange(50) == 4, 3e38, cols["s1x"])
+    io.write_parquet(tmp_path / "b.parquet", cols)
+    with pytest.raises(DatasetError, match=r"row 5, column s1x: 3e\+38 is NaN, infinite or beyond \+-1e\+30"):
+        magcal.read_csv(tmp_path / "b.parquet")
+
+
+# -- live: the same rule, and bounded URLs ---------------------------------------------------------------------------
+class _Lines(_LineSource):
+    """A line source fed from a list of byte strings (one per read)."""
+
+    def __init__(self, blocks, columns="t,x,y,z"):
+        super().__init__("test://lines", LineParser(columns))
+        self._blocks = list(blocks)
+
+    def _receive(self, timeout_s):
+        if not self._blocks:
+            self.ended = True
+            return b""
+        return self._blocks.pop(0)
+
+
+def test_live_bad_time_stamps_and_values_never_reach_the_recording(tmp_path):
+    lines = [
+        b"0.1,30000,1000,40000\n",
+        b"nan,30000,1000,40000\n",
+        b"inf,30000,1000,40000\n",
+        b"1e300,30000,1000,40000\n",
+        b"0.2,3e38,1000,40000\n",
+        b"0.3,30000,nan,40000\n",
+        b"0.4,30000,1000,40000\n",
+    ]
+    source = _Lines([b"".join(lines)])
+    stats = record(source, tmp_path / "rec.csv")
+    assert stats.n_samples == 2 and stats.n_bad == 5
+    assert stats.reasons["bad value"] == 5
+    ds = magcal.read_csv(tmp_path / "rec.csv")
+    assert ds.time_s.tolist() == [0.1, 0.4]
+
+
+def test_recorder_refuses_bad_samples_handed_to_it(tmp_path):
+    chunk = LiveChunk(
+        np.array([0.0, np.nan, 2.0, 3.0]),
+        np.array([[[30e3, 2e3, 4e4], [30e3, 2e3, 4e4], [np.inf, 2e3, 4e4], [30e3, 2e3, 4e4]]]),
+        np.array([20.0, 20.0, 20.0, 1e300]),
+    )
+    with Recorder(tmp_path / "r.csv") as rec:
+        rec.write(chunk)
+    assert rec.n_refused == 3 and rec.n_written == 1
+    assert magcal.read_csv(tmp_path / "r.csv").time_s.tolist() == [0.0]
+
+
+class _Pushed(LiveSource):
+    """A source whose samples are given (the MAVLink path: times from the vehicle)."""
+
+    def __init__(self, samples):
+        super().__init__("test://pushed")
+        self._samples = samples
+
+    def _poll(self, deadline, max_samples):
+        out, self._samples = self._samples, []
+        self.ended = not out
+        return out
+
+
+def test_live_source_applies_the_rule_to_every_kind():
+    r = np.array([[30000.0, 1000.0, 40000.0]])
+    src = _Pushed(
+        [(1.0, r, 20.0), (float("nan"), r, 20.0), (2.0, r, float("inf")), (3.0, r * 1e27, 20.0), (4.0, r, 20)]
+    )
+    chunk = src.read(timeout_s=0.1)
+    assert chunk.time_s.tolist() == [1.0, 4.0]
+    assert src.stats.reasons["bad value"] == 3
+
+
+@pytest.mark.parametrize(
+    "url, message",
+    [
+        ("tcp://[::1", "not a valid source URL"),
+        ("tcp://127.0.0.1:99999", "port of 1 to 65535"),
+        ("udp://127.0.0.1:x", "port of 1 to 65535"),
+        ("tcp://127.0.0.1", "give the address as tcp://HOST:PORT"),
+        ("sim://chi2017?n=0", f"n=0: give 1 to {SIM_MAX_SAMPLES:,} samples"),
+        ("sim://chi2017?n=100000000", "give 1 to"),
+        ("sim://chi2017?rate=-5", "rate=-5.0: give 0.1 to 10000 samples per second"),
+        ("sim://chi2017?rate=nan", "rate=nan: give"),
+        ("sim://chi2017?speed=0", "speed=0.0: give 0.01 to 100"),
+        ("sim://chi2017?speed=1e9", "speed=1000000000.0: give"),
+        ("sim://chi2017?seed=-1", "seed=-1: give 0 to"),
+        ("serial:///dev/null?baud=-3", "baud='-3': give 50 to"),
+        ("tcp://127.0.0.1:9?timeout=1e9", "timeout='1e9': give 0.01 to 60"),
+        ("tcp://" + "a" * 300 + ":80", "cannot connect"),
+    ],
+)
+def test_malformed_live_urls_are_one_line_errors(url, message):
+    with pytest.raises(LiveError) as err:
+        open_source(url).close()
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+# -- bounds of the CSV reader --------------------------------------------------------------------------------------
+def test_an_endless_line_is_refused_with_bounded_memory(tmp_path):
+    """A 2 GB line exhausted the memory; here 40 MB without a line end: refused once 1 MiB has come, naming it."""
+    import tracemalloc
+
+    path = tmp_path / "long.csv"
+    with open(path, "wb") as fh:
+        fh.write(b"# units: nT\ns1x,s1y,s1z\n30000,1000,40000\n")
+        block = b"1" * (1 << 20)
+        for _ in range(40):
+            fh.write(block)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DatasetError, match=r"long.csv: line 4 is longer than 1,048,576 bytes"):
+            magcal.read_csv(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * (1 << 20), peak
+    with pytest.raises(DatasetError, match=r"line 4 is longer"):  # the streaming reader (apply) too
+        with io.CsvSource(path) as src:
+            list(src.chunks(1000))
+
+
+def test_a_header_of_a_million_columns_is_refused(tmp_path):
+    path = tmp_path / "wide.csv"
+    path.write_text("s1x,s1y,s1z," + ",".join(f"c{k}" for k in range(1_000_000)) + "\n1,2,3\n")
+    with pytest.raises(DatasetError, match=r"wide.csv: line 1 is longer than|the header names 1,000,003 columns"):
+        magcal.read_csv(path)
+    path.write_text("s1x,s1y,s1z," + ",".join(f"c{k}" for k in range(2000)) + "\n")
+    with pytest.raises(DatasetError, match=r"line 1: the header names 2,003 columns, more than the 1,000 magcal reads"):
+        magcal.read_csv(path)
