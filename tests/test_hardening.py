@@ -8,9 +8,12 @@ test after a few seconds instead of hanging it).
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +26,7 @@ from test_logs import (  # the writers of known-truth logs (tests/ is on the pat
 )
 
 import magcal
-from magcal.core.errors import DataWarning
+from magcal.core.errors import DataWarning, MagcalError
 from magcal.data import io
 from magcal.data import simulation as sim
 from magcal.data.dataset import MAX_ABS_VALUE, DatasetError, bad_values
@@ -351,3 +354,198 @@ def test_a_header_of_a_million_columns_is_refused(tmp_path):
     path.write_text("s1x,s1y,s1z," + ",".join(f"c{k}" for k in range(2000)) + "\n")
     with pytest.raises(DatasetError, match=r"line 1: the header names 2,003 columns, more than the 1,000 magcal reads"):
         magcal.read_csv(path)
+
+
+# -- bounds and checks before the work ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def survey_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("survey")
+    ds = magcal.simulate_timeseries("chi2017", n_samples=600, seed=12, rate_hz=10.0)
+    cal = magcal.calibrate(ds).calibration
+    cal.save(d / "cal.json")
+    io.write_csv(d / "survey.csv", ds)
+    return d, cal, ds
+
+
+def _cli(argv, capsys):
+    from magcal.cli import main
+
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_workers_are_bounded_by_the_cores(survey_files, tmp_path, capsys):
+    from magcal.output.survey import WORKERS_PER_CORE, max_workers
+
+    d, *_ = survey_files
+    cores = os.cpu_count() or 1
+    assert max_workers() == WORKERS_PER_CORE * cores
+    t0 = time.monotonic()
+    code, _, err = _cli(["apply", d / "cal.json", d / "survey.csv", "-o", tmp_path / "out", "--workers", 10000], capsys)
+    assert code == 2 and time.monotonic() - t0 < 5  # refused before any cluster starts
+    assert f"--workers 10000: give 1 to {WORKERS_PER_CORE * cores} (at most {WORKERS_PER_CORE} per CPU core" in err
+    assert not (tmp_path / "out").exists()
+    code, _, err = _cli(["apply", d / "cal.json", d / "survey.csv", "-o", tmp_path / "out", "--workers", 0], capsys)
+    assert code == 2 and "--workers 0: give 1 to" in err
+    assert "at most 4 per CPU core" in _help(capsys)
+
+
+def _help(capsys):
+    from magcal.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["apply", "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_outputs_are_checked_before_any_work(survey_files, tmp_path, capsys):
+    """Each refused at once, with one line, and nothing written: the fit or the correction never ran."""
+    d, *_ = survey_files
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "part-00000.parquet").write_text("an earlier run")
+    (tmp_path / "exists.parquet").write_text("keep me")
+    cal, survey = d / "cal.json", d / "survey.csv"
+    cases = [
+        (["calibrate", survey, "-o", tmp_path / "folder"], "is a directory; name a file in it"),
+        (["calibrate", survey, "-o", tmp_path / "nodir" / "cal.json"], "the folder"),
+        (["apply", cal, survey, "-o", tmp_path / "folder"], "is a directory; name a file in it"),
+        (["apply", cal, survey, "-o", tmp_path / "nodir" / "o.csv"], "does not exist"),
+        (["apply", cal, survey, "-o", tmp_path / "parts", "--workers", 1], "exists and is not an empty directory"),
+        (["apply", cal, survey, "-o", tmp_path / "nodir" / "parts", "--workers", 1], "does not exist"),
+        (
+            ["apply", cal, tmp_path / "absent.parquet", "-o", tmp_path / "exists.parquet"],
+            "absent.parquet: no such file",
+        ),
+        (["apply", cal, tmp_path / "absent.bin", "-o", tmp_path / "exists.parquet"], "absent.bin: no such file"),
+        (["simulate", "--preset", "chi2017", "-o", tmp_path / "folder"], "is a directory"),
+    ]
+    for argv, needle in cases:
+        t0 = time.monotonic()
+        code, _, err = _cli(argv, capsys)
+        assert code == 2, (argv, err)
+        assert needle in err and "Traceback" not in err and err.count("\n") == 1, (argv, err)
+        assert time.monotonic() - t0 < 5, argv
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists.parquet", "folder", "parts"]
+    assert (tmp_path / "exists.parquet").read_text() == "keep me" and not any((tmp_path / "folder").iterdir())
+
+
+def test_api_apply_checks_the_output_first(survey_files, tmp_path):
+    from magcal.output.apply import apply_file
+
+    d, cal, _ = survey_files
+    (tmp_path / "folder").mkdir()
+    for out in (tmp_path / "folder", tmp_path / "nodir" / "o.parquet"):
+        with pytest.raises(MagcalError, match="is a directory|does not exist"):
+            apply_file(cal, d / "survey.csv", out)
+    with pytest.raises(DatasetError, match="absent.csv: no such file"):
+        apply_file(cal, tmp_path / "absent.csv", tmp_path / "o.csv")
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o002, 0o077])
+def test_written_files_respect_the_umask(survey_files, tmp_path, umask):
+    """atomic_write made every output 0600 whatever the umask (tempfile.mkstemp); now 0666 less the umask."""
+    from magcal.output.apply import apply_file
+
+    d, cal, ds = survey_files
+    old = os.umask(umask)
+    try:
+        io.write_csv(tmp_path / "a.csv", ds)
+        cal.save(tmp_path / "cal.json")
+        apply_file(cal, d / "survey.csv", tmp_path / "o.csv", progress=False)
+        apply_file(cal, d / "survey.csv", tmp_path / "o.parquet", progress=False)
+    finally:
+        os.umask(old)
+    for name in ("a.csv", "cal.json", "o.csv", "o.parquet"):
+        assert stat_mode(tmp_path / name) == 0o666 & ~umask, name
+    os.chmod(tmp_path / "cal.json", 0o640)  # a file replaced keeps its permissions
+    cal.save(tmp_path / "cal.json")
+    assert stat_mode(tmp_path / "cal.json") == 0o640
+
+
+def stat_mode(path):
+    return os.stat(path).st_mode & 0o777
+
+
+def test_the_reference_and_calibration_values_are_messages(survey_files, tmp_path, capsys):
+    import json
+
+    d, *_ = survey_files
+    for value in ("1e308", "1e-308", "2e7", "0.05"):
+        code, _, err = _cli(["calibrate", d / "survey.csv", "--reference", value], capsys)
+        assert code == 2 and "beyond what any magnetometer magcal calibrates measures" in err, err
+    doc = json.loads((d / "cal.json").read_text())
+    for key, value in [
+        ("effect_params", 5),
+        ("effect_params", [5]),
+        ("effect_params", [{"effect": "temperature_bias", "params": 3}]),
+        ("effects", 1e308),
+        ("effects", [1]),
+        ("base_terms", "scale"),
+        ("reference_total_nT", "50000"),
+        ("reference_total_nT", 1e308),
+        ("reference_fitted", "no"),
+        ("frame", 3),
+    ]:
+        (tmp_path / "bad.json").write_text(json.dumps({**doc, key: value}))
+        code, _, err = _cli(["apply", tmp_path / "bad.json", d / "survey.csv", "-o", tmp_path / "o.csv"], capsys)
+        assert code == 2 and f"bad.json: '{key}' must be" in err and "Traceback" not in err, (key, value, err)
+    assert not (tmp_path / "o.csv").exists()
+
+
+# -- parallel apply: all or nothing under the final name -------------------------------------------------------------
+def _leftovers(folder):
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+@pytest.mark.slow
+def test_a_bad_row_in_a_parallel_apply_leaves_no_partial_output(survey_files, tmp_path):
+    """Today some partitions stayed under the final name; now the temporary folder is removed."""
+    from magcal.output.survey import apply_partitioned
+
+    d, cal, _ = survey_files
+    lines = (d / "survey.csv").read_text().splitlines()
+    lines[-10] = ",".join(["NaN"] + lines[-10].split(",")[1:])  # in the last partition: the others are written first
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "parts"
+    with pytest.raises(DatasetError, match=r"bad.csv \(lines from .*\): 1 row\(s\) with bad values"):
+        apply_partitioned(cal, [tmp_path / "bad.csv"], out, workers=1, partition_rows=100, progress=False)
+    assert not out.exists() and _leftovers(tmp_path) == []
+    summary = apply_partitioned(cal, [d / "survey.csv"], out, workers=1, partition_rows=100, progress=False)
+    assert summary.rows == 600 and len(os.listdir(out)) == 6 and _leftovers(tmp_path) == []
+    assert [Path(f).parent for f in summary.files] == [out] * 6
+    assert stat_mode(out) == 0o777 & ~io.current_umask()
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_a_parallel_apply_leaves_no_partial_output(survey_files, tmp_path):
+    """SIGINT once the first partitions are written: exit 130, nothing under the final name, no temporary folder."""
+    import signal
+    import subprocess
+
+    d, cal, ds = survey_files
+    big = tmp_path / "big.csv"
+    io.write_csv(big, magcal.simulate_timeseries("chi2017", n_samples=60_000, seed=3, rate_hz=10.0))
+    out = tmp_path / "parts"
+    code = "import sys; from magcal.cli import main; sys.exit(main(sys.argv[1:]))"
+    argv = [sys.executable, "-c", code, "apply", str(d / "cal.json"), str(big), "-o", str(out)]
+    argv += ["--workers", "1", "--partition-rows", "500", "--format", "csv", "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(Path(magcal.__file__).parent.parent)}
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    try:
+        end = time.monotonic() + 120
+        while time.monotonic() < end and proc.poll() is None:
+            temps = [p for p in tmp_path.iterdir() if p.name.startswith(".parts.")]
+            if temps and any(name.startswith("part-") for name in os.listdir(temps[0])):
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert not out.exists() and _leftovers(tmp_path) == []

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.calibration.uncertainty import covariance_size, field_uncertainty
+from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
 from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.core.jsonable import jsonable
@@ -500,6 +501,7 @@ class Calibration:
             )
         for i, entry in enumerate(entries):
             _check_sensor_entry(source, i, entry)
+        _check_document_types(doc, source)
         baseline = doc.get("baseline_m")
         if baseline is not None:
             try:
@@ -618,6 +620,56 @@ def _record_text(fingerprint) -> str:
     t0, t1 = fingerprint.get("time_start_s"), fingerprint.get("time_end_s")
     span = f", t = {t0:g}-{t1:g} s" if isinstance(t0, (int, float)) and isinstance(t1, (int, float)) else ""
     return f"{n} samples{span}"
+
+
+#: The keys of a calibration document whose type is checked, and what each must be (None is allowed for all).
+_DOCUMENT_TYPES = {
+    "effects": "a list of effect names",
+    "effect_params": "a list of objects (one per effect block)",
+    "base_terms": "a list of term names",
+    "reference_total_nT": f"a number of nT from {USABLE_TOTAL_nT[0]:g} to {USABLE_TOTAL_nT[1]:g}",
+    "reference_fitted": "true or false",
+    "frame": "a text",
+}
+
+
+def _check_document_types(doc, source) -> None:
+    """Refuse a document whose keys have the wrong type (``effect_params`` a number...), naming the key."""
+
+    def ok(key, value):
+        if value is None:
+            return True
+        if key in ("effects", "base_terms"):
+            return isinstance(value, list) and all(isinstance(v, str) for v in value)
+        if key == "effect_params":
+            return isinstance(value, list) and all(
+                isinstance(e, dict)
+                and isinstance(e.get("effect", e.get("term")), str)
+                and isinstance(e.get("term", ""), str)
+                and isinstance(e.get("params"), dict)
+                and isinstance(e.get("state") or {}, dict)
+                and (e.get("sensor") is None or (isinstance(e["sensor"], int) and not isinstance(e["sensor"], bool)))
+                for e in value
+            )
+        if key == "reference_total_nT":
+            return (
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and np.isfinite(value)
+                and USABLE_TOTAL_nT[0] <= value <= USABLE_TOTAL_nT[1]
+            )
+        if key == "reference_fitted":
+            return isinstance(value, bool)
+        if key == "frame":
+            return isinstance(value, str)
+        return True
+
+    for key, want in _DOCUMENT_TYPES.items():
+        value = doc.get(key)
+        if not ok(key, value):
+            raise MagcalError(
+                f"{source}: {key!r} must be {want}, not {str(value)[:40]!r}; the file is damaged, recalibrate"
+            )
 
 
 def _check_sensor_entry(source, i, s) -> None:

@@ -18,6 +18,7 @@ import importlib
 import sys
 
 from magcal.core.errors import MagcalError
+from magcal.data.io import check_output_path
 from magcal.model import plugins
 from magcal.model.plugins import user_code_error
 
@@ -78,6 +79,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 1
     try:
+        if getattr(args, "output", None) and args.command != "apply":  # apply checks its own (file or folder)
+            check_output_path(args.output, "-o")  # before any work, not after a long fit
         load_plugins(args, f"magcal {args.command}")
         return int(args.func(args) or 0)
     except MagcalError as exc:

@@ -23,7 +23,8 @@ import csv
 import itertools
 import os
 import re
-import tempfile
+import secrets
+import stat
 import warnings
 from dataclasses import dataclass, field
 
@@ -1120,19 +1121,102 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT):
 
 
 # -- writing --------------------------------------------------------------------------------------------------------
+def check_output_path(path, option="-o", directory=False) -> str:
+    """Refuse, before any work is done, an output that could not be written at the end.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    option : str
+        How the command line names it, for the message.
+    directory : bool
+        The output is a new folder of partitions (it must not exist, or be an empty folder); otherwise a file
+        (it must not be a folder).
+
+    Returns
+    -------
+    str
+        The path.
+
+    Raises
+    ------
+    MagcalError
+        Its folder is missing or not writable; a file output names a folder; a folder output names a file or a
+        folder that holds files.
+    """
+    path = os.fspath(path)
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise MagcalError(
+            f"{option} {path}: cannot write there: the folder {parent} does not exist; create it or choose another path"
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise MagcalError(f"{option} {path}: cannot write in the folder {parent} (permission denied)")
+    if directory:
+        if os.path.exists(path) and (not os.path.isdir(path) or os.listdir(path)):
+            raise MagcalError(
+                f"{option} {path}: exists and is not an empty directory; choose a new one (partitions are never "
+                "mixed with other files)"
+            )
+    elif os.path.isdir(path):
+        raise MagcalError(f"{option} {path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.csv')})")
+    return path
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system tells it (Linux ``/proc``); elsewhere set
+    and restored at once."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _create_beside(path):
+    """A new file beside ``path`` named ``.NAME.XXXXXXXX.tmp``, opened for writing: ``(fd, name)``.
+
+    Created with mode 0666 less the umask, as any program's output is (``tempfile.mkstemp`` would make it 0600
+    whatever the umask); when ``path`` exists, it takes that file's permissions instead.
+    """
+    directory = os.path.dirname(os.path.abspath(path))
+    base = os.path.basename(path)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0) | getattr(os, "O_NOFOLLOW", 0)
+    for _ in range(100):
+        tmp = os.path.join(directory, f".{base}.{secrets.token_hex(4)}.tmp")
+        try:
+            fd = os.open(tmp, flags, 0o666)
+        except FileExistsError:
+            continue
+        try:
+            if os.path.isfile(path):
+                os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
+        except OSError:
+            pass
+        return fd, tmp
+    raise FileExistsError(f"no free temporary name beside {path}")
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode="w", encoding="utf-8", newline=""):
     """Open a temporary file beside ``path``; on success it is flushed to disk (``fsync``) and replaces ``path``
     (``os.replace``), else it is removed, so ``path`` holds either its old content or the whole new one.
 
     The one atomic writer of magcal: CSV and Parquet outputs, calibration files and workbench sessions use it.
+    The file gets the permissions of the file it replaces, or 0666 less the umask for a new one.
 
     Yields the open file object.
     """
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise MagcalError(f"{path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.csv')})")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+        fd, tmp = _create_beside(path)
     except OSError as exc:
         raise MagcalError(f"{path}: cannot write here ({exc.strerror or exc}); check the directory") from None
     try:
@@ -1376,6 +1460,8 @@ def write_parquet(path, data, metadata=None) -> None:
     import pyarrow.parquet as pq
 
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise MagcalError(f"{path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.parquet')})")
     tmp = f"{path}.tmp-{os.getpid()}"
     try:
         pq.write_table(table, tmp, **parquet_write_options(table))

@@ -678,10 +678,11 @@ def calibration_effect_names(path) -> list[str]:
     if not isinstance(doc, dict):
         return []
     names = []
-    for entry in doc.get("effect_params") or []:
+    entries, terms = doc.get("effect_params"), doc.get("effects")
+    for entry in entries if isinstance(entries, list) else []:  # another type: the loader says what is wrong
         if isinstance(entry, dict) and isinstance(entry.get("effect"), str):
             names.append(entry["effect"])
-    for term in doc.get("effects") or []:
+    for term in terms if isinstance(terms, list) else []:
         if isinstance(term, str):
             names.append(term.partition(":")[0])
     return list(dict.fromkeys(names))
