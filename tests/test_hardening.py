@@ -549,3 +549,21 @@ def test_ctrl_c_during_a_parallel_apply_leaves_no_partial_output(survey_files, t
     assert proc.returncode == 130, err
     assert "interrupted" in err
     assert not out.exists() and _leftovers(tmp_path) == []
+
+
+# -- effects files are code ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("command", ["calibrate", "diagnose", "apply", "align", "simulate", "export", "effects"])
+def test_every_effects_file_help_says_it_runs_code(command, capsys):
+    from magcal.cli import main
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "The file is Python code and RUNS with your rights" in text
+
+
+def test_the_user_effects_page_says_it_runs_code():
+    page = (Path(__file__).parent.parent / "docs" / "user-effects.md").read_text()
+    head = page[: page.index("## 1.")]
+    assert "**An effects file is Python code, and it runs with your rights.**" in head
+    assert "never one that came with" in head
