@@ -305,6 +305,7 @@ def test_live_source_applies_the_rule_to_every_kind():
         ("tcp://127.0.0.1", "give the address as tcp://HOST:PORT"),
         ("sim://chi2017?n=0", f"n=0: give 1 to {SIM_MAX_SAMPLES:,} samples"),
         ("sim://chi2017?n=100000000", "give 1 to"),
+        ("sim://chi2017?rate=10000&speed=10", "rate x speed = 100000 samples per second; at most 20000"),
         ("sim://chi2017?rate=-5", "rate=-5.0: give 0.1 to 10000 samples per second"),
         ("sim://chi2017?rate=nan", "rate=nan: give"),
         ("sim://chi2017?speed=0", "speed=0.0: give 0.01 to 100"),

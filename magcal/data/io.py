@@ -1315,15 +1315,33 @@ def _pyarrow(source):
     return pyarrow
 
 
-def parquet_metadata(schema) -> dict:
-    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none)."""
+def parquet_metadata(schema, source="Parquet file") -> dict:
+    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none).
+
+    Raises
+    ------
+    DatasetError
+        The ``magcal`` entry is not a JSON text (a damaged or foreign file).
+    """
     import json
 
     raw = (schema.metadata or {}).get(PARQUET_METADATA_KEY)
     if not raw:
         return {}
-    doc = json.loads(raw.decode("utf-8"))
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise DatasetError(
+            f"{source}: the magcal metadata in the Parquet schema is not JSON ({_one_line(exc)}); the file is "
+            "damaged or was not written by magcal: write it again"
+        ) from None
     return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+
+
+def _one_line(exc) -> str:
+    """``Type: message`` of an exception from a library, on one line and short."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:200]}"
 
 
 class ParquetSource:
@@ -1346,8 +1364,8 @@ class ParquetSource:
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
-            raise DatasetError(f"{self.source}: not a readable Parquet file ({exc})") from None
-        self.metadata = parquet_metadata(self.file.schema_arrow)
+            raise DatasetError(f"{self.source}: not a readable Parquet file ({_one_line(exc)})") from None
+        self.metadata = parquet_metadata(self.file.schema_arrow, self.source)
         self.header = list(self.file.schema_arrow.names)
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
@@ -1355,12 +1373,27 @@ class ParquetSource:
         self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
         self.layout = self._csv.layout
 
+    def _batches(self, chunk_rows, row_groups):
+        """The file's record batches; a damaged page or footer is a :class:`DatasetError`, not pyarrow's own."""
+        import pyarrow as pa
+
+        try:
+            batches = iter(self.file.iter_batches(batch_size=chunk_rows, row_groups=row_groups, use_threads=False))
+            while True:
+                try:
+                    batch = next(batches)
+                except StopIteration:
+                    return
+                yield batch
+        except (pa.ArrowException, OSError, ValueError, TypeError, IndexError, KeyError, RuntimeError) as exc:
+            raise DatasetError(f"{self.source}: the Parquet file is damaged ({_one_line(exc)})") from None
+
     def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
         """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
         (whose first row is the file's row ``first_row``, 1-based, for messages)."""
         layout = self.layout
         row = int(first_row) - 1
-        for batch in self.file.iter_batches(batch_size=int(chunk_rows), row_groups=row_groups, use_threads=False):
+        for batch in self._batches(int(chunk_rows), row_groups):
             n = batch.num_rows
             values = np.empty((n, len(layout.numeric)))
             for m, (j, name) in enumerate(layout.numeric):

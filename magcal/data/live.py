@@ -60,9 +60,12 @@ MAX_LINE_BYTES = 4096
 
 #: Bounds of a simulated source's options (``sim://PRESET?n=..&rate=..&speed=..``): samples of a preset, samples
 #: per second, and how much faster than real time it plays. The workbench offers these and nothing beyond.
-SIM_MAX_SAMPLES = 1_000_000
+SIM_MAX_SAMPLES = 100_000  # about 1.5 s to simulate; ``loop`` plays a preset for as long as wanted
 SIM_RATE_RANGE_HZ = (0.1, 10_000.0)
 SIM_SPEED_RANGE = (0.01, 100.0)
+#: Most samples per second a simulated source sends (``rate`` times ``speed``): a recording grows at most
+#: about 1 MB/s.
+SIM_MAX_SAMPLES_PER_S = 20_000.0
 #: Largest seed of a simulated source (numpy's seeds are unsigned 32-bit here).
 SIM_MAX_SEED = 2**32 - 1
 #: Serial speeds accepted (bit/s).
@@ -88,7 +91,17 @@ _HIGHRES_TEMP_BIT = 1 << 12
 
 
 class LiveError(MagcalError):
-    """A live source cannot be opened or has failed (a bad URL, a port that does not open, a lost device)."""
+    """A live source cannot be opened or has failed (a bad URL, a port that does not open, a lost device).
+
+    Its message is one line whatever the URL holds: control characters (a line end in a URL parameter) are
+    shown escaped.
+    """
+
+    def __init__(self, message=""):
+        text = str(message)
+        if not text.isprintable():
+            text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+        super().__init__(text)
 
 
 @dataclass
@@ -657,6 +670,12 @@ class SimSource(LiveSource):
         lo, hi = SIM_SPEED_RANGE
         if not lo <= float(speed) <= hi:
             raise LiveError(f"{url}: speed={speed!r}: give {lo:g} to {hi:g} (times real time)")
+        pace = (50.0 if rate_hz is None else float(rate_hz)) * float(speed)
+        if name in PRESETS and pace > SIM_MAX_SAMPLES_PER_S:
+            raise LiveError(
+                f"{url}: rate x speed = {pace:g} samples per second; at most {SIM_MAX_SAMPLES_PER_S:g} (lower rate or "
+                "speed)"
+            )
         if not 1 <= int(n_samples) <= SIM_MAX_SAMPLES:
             raise LiveError(f"{url}: n={n_samples!r}: give 1 to {SIM_MAX_SAMPLES:,} samples")
         if not 0 <= int(seed) <= SIM_MAX_SEED:

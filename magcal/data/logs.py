@@ -112,6 +112,8 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
 # -- pairing several magnetometers and interpolating channels ------------------------------------------------------
 def _strictly_increasing(t, values, source, what):
     """Sort by time and drop repeated time stamps (with a warning): the dataset's times must increase strictly."""
+    if t.size == 0:
+        return t, values
     order = np.argsort(t, kind="stable")
     t = t[order]
     values = values[order]
@@ -306,7 +308,10 @@ def check_dataflash_formats(path, source=None) -> int:
     pymavlink steps through the file by the lengths the FMT messages declare: a length below the 3-byte header
     (0 makes it loop forever) or a format whose fields do not fill its length leaves it looping, or silently
     reading the wrong bytes. Each FMT message found (the sync bytes and type 128, then a printable name, format
-    and column list: another message's bytes cannot pass for one) is checked.
+    and column list: another message's bytes cannot pass for one) is checked. (A format of length 0 made of
+    damaged bytes that pass for none is caught while reading: :func:`read_dataflash`'s reader refuses a message
+    that does not move it forward; pymavlink's slower Python indexer, used without its compiled one, loops on
+    those too, so then every candidate's length is checked.)
 
     Raises
     ------
@@ -314,9 +319,11 @@ def check_dataflash_formats(path, source=None) -> int:
         Not a DataFlash log (no FMT message, which every DataFlash log begins with), or a format that would make
         the reader loop or misread (named, with its byte offset).
     """
+    from pymavlink import dfindexer
     from pymavlink.DFReader import FORMAT_TO_STRUCT
 
     source = str(source or path)
+    legacy_indexer = not dfindexer.available or os.environ.get("PYMAVLINK_FAST_INDEX", "1") != "1"
     with open(path, "rb") as fh:
         size = os.fstat(fh.fileno()).st_size
         if size < _DF_FMT_LENGTH:
@@ -333,6 +340,11 @@ def check_dataflash_formats(path, source=None) -> int:
                 break  # a log cut in the middle of its last message
             ftype, length, name, fmt, columns = struct.unpack("<BB4s16s64s", body)
             name, fmt, columns = _c_string(name), _c_string(fmt), _c_string(columns)
+            if length < 3 and legacy_indexer:  # pymavlink's Python indexer loops on any of these, named or not
+                raise DatasetError(
+                    f"{source}: byte {ofs}: a format message declares a length of {length} byte(s), less than the "
+                    "3-byte message header: the log is damaged (a reader would loop on it); record it again"
+                )
             if not name or fmt is None or columns is None:
                 continue  # not a FMT message: these bytes belong to another one
             count += 1
@@ -365,6 +377,45 @@ def check_dataflash_formats(path, source=None) -> int:
         data.close()
 
 
+class _Stuck(Exception):
+    """Raised inside pymavlink's reader: ``("slow",)`` past the deadline, ``("loop", offset)`` a message that did
+    not move the reader forward."""
+
+
+def _looping(source, offset):
+    return DatasetError(
+        f"{source}: byte {offset}: a message does not move the reader forward (its format declares a length below "
+        "the 3-byte header): the log is damaged; record or download it again"
+    )
+
+
+_GUARDED = {}
+
+
+def _guarded_reader(DFReader):
+    """pymavlink's ``DFReader_binary`` with two guards on every message it parses (its indexer, its clock set-up,
+    every ``recv_match``): the deadline, and progress -- a message that leaves the reader where it was (a format
+    of length 0 registered from damaged bytes) stops it instead of looping forever."""
+    if "class" not in _GUARDED:
+
+        class GuardedReader(DFReader.DFReader_binary):
+            def __init__(self, *args, deadline=None, **kwargs):
+                self._deadline = deadline
+                super().__init__(*args, **kwargs)
+
+            def _parse_next(self):
+                if self._deadline is not None and time.monotonic() > self._deadline:
+                    raise _Stuck("slow")
+                before = self.offset
+                message = super()._parse_next()
+                if message is not None and self.offset <= before:
+                    raise _Stuck("loop", before)
+                return message
+
+        _GUARDED["class"] = GuardedReader
+    return _GUARDED["class"]
+
+
 def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout_s=None) -> Dataset:
     """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame.
 
@@ -390,15 +441,17 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
 
     def progress(_percent):
         if deadline is not None and time.monotonic() > deadline:
-            raise too_slow()
+            raise _Stuck("slow")
 
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
             warnings.simplefilter("ignore")
             with contextlib.redirect_stdout(devnull):  # pymavlink prints notes about the indexer
-                log = DFReader.DFReader_binary(path, zero_time_base=True, progress_callback=progress)
-    except DatasetError:
-        raise
+                log = _guarded_reader(DFReader)(
+                    path, zero_time_base=True, progress_callback=progress, deadline=deadline
+                )
+    except _Stuck as exc:
+        raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
         raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({type(exc).__name__}: {exc})") from None
     gathered = {
@@ -421,6 +474,8 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
                 _dataflash_message(m, gathered, undo_calibration)
     except DatasetError:
         raise
+    except _Stuck as exc:
+        raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:
         raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
     finally:
@@ -528,7 +583,8 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
     except ImportError:
         raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
     try:
-        ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
+        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pyulog prints its warnings
+            ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
     except Exception as exc:  # a damaged or foreign file
         raise DatasetError(f"{source}: not a readable PX4 ULog file ({type(exc).__name__}: {exc})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
