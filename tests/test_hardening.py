@@ -9,6 +9,7 @@ test after a few seconds instead of hanging it).
 from __future__ import annotations
 
 import os
+import struct
 import sys
 import threading
 import time
@@ -110,6 +111,18 @@ def test_a_format_shorter_than_its_header_ends_in_seconds_with_a_message(tmp_pat
     assert f"byte {k}: the format of message {name}" in str(box["error"])
     assert f"length of {length} byte(s), less than the 3-byte message header" in str(box["error"])
     assert box["seconds"] < 5
+
+
+def test_a_nameless_format_of_length_0_from_damaged_bytes_ends_with_a_message(tmp_path, dataflash_bytes):
+    """A FMT whose name is not text passes no pre-check, yet pymavlink registers it and loops forever on the
+    message after it (the code before this change hung here): the reader refuses a message that does not move it."""
+    fmt = b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", 70, 0, b"\x01\x02\x03\x04", b"", b"")
+    k = 89 * 5  # after the five FMT messages
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(dataflash_bytes[:k] + fmt + b"\xa3\x95\x46" * 3 + dataflash_bytes[k:])
+    box = finishes(lambda: read_log(path), seconds=10)
+    assert isinstance(box.get("error"), DatasetError), box
+    assert f"byte {k + 89}: a message does not move the reader forward" in str(box["error"])
 
 
 def test_a_format_not_the_size_of_its_fields_is_refused(tmp_path, dataflash_bytes):

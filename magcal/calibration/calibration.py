@@ -17,7 +17,7 @@ import numpy as np
 from magcal.calibration.uncertainty import covariance_size, field_uncertainty
 from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
-from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.core.errors import MagcalError, RecordTermWarning, exception_text
 from magcal.core.jsonable import jsonable
 from magcal.core.vectors import basis_times, row_norm
 from magcal.data.io import atomic_write
@@ -525,7 +525,7 @@ class Calibration:
         except MagcalError:
             raise
         except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
-            raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
+            raise MagcalError(f"{source}: damaged effect entry ({exception_text(exc)}); recalibrate") from None
         known = {
             "format",
             "version",
@@ -608,7 +608,7 @@ class Calibration:
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise MagcalError(
-                f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
+                f"{path}: not a JSON calibration file ({exception_text(exc)}); give the file "
                 "written by magcal calibrate or magcal align"
             ) from None
         return cls.from_dict(doc, source=path, n_sensors=n_sensors)

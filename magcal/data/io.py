@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.core.errors import DataWarning, MagcalError
+from magcal.core.errors import DataWarning, MagcalError, exception_text
 from magcal.data.dataset import (
     BAD_VALUE_TEXT,
     MAX_ABS_VALUE,
@@ -1340,8 +1340,7 @@ def parquet_metadata(schema, source="Parquet file") -> dict:
 
 def _one_line(exc) -> str:
     """``Type: message`` of an exception from a library, on one line and short."""
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text[:200]}"
+    return exception_text(exc)
 
 
 class ParquetSource:

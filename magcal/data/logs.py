@@ -34,7 +34,7 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from magcal.core.errors import DataWarning
+from magcal.core.errors import DataWarning, exception_text
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 
 #: File name endings read as flight-controller logs, and the reader of each.
@@ -74,10 +74,11 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
     min_samples : int
         Fewest samples accepted.
     timeout_s : float, optional
-        Give up (with a :class:`DatasetError`) after this many seconds; default :data:`DEADLINE_S_PER_MB` per MB
-        of file, at least :data:`MIN_DEADLINE_S`. Every format field the readers step by is checked first (a
-        DataFlash format shorter than its header, or not the size of its fields, is refused), so a damaged log
-        ends with a message, never a hang.
+        DataFlash: give up (with a :class:`DatasetError`) after this many seconds; default
+        :data:`DEADLINE_S_PER_MB` per MB of file, at least :data:`MIN_DEADLINE_S`. Every format field the reader
+        steps by is checked first (a format shorter than its header, or not the size of its fields, is refused)
+        and every message must move it forward, so a damaged log ends with a message, never a hang. (pyulog reads
+        a ULog in one call that cannot be interrupted; tests/test_fuzz_readers.py shows it ends on damaged files.)
 
     Values that are NaN, infinite or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` (the rule of every magcal
     reader) are dropped, each kind counted in one :class:`DataWarning`.
@@ -284,12 +285,10 @@ def _ardupilot_matrix(params, index):
     return m
 
 
-#: A DataFlash message: two sync bytes, then the type.
-_DF_HEAD = b"\xa3\x95"
 #: The FMT message (type 128): header, Type B, Length B, Name 4s, Format 16s, Columns 64s.
 _DF_FMT_TYPE = 0x80
 _DF_FMT_LENGTH = 89
-_DF_FMT_RE = re.compile(rb"\xa3\x95\x80", re.DOTALL)
+_DF_FMT_RE = re.compile(rb"\xa3\x95\x80")  # the sync bytes, then the type of FMT
 #: The message types magcal reads: a damaged format of one of them is refused, not skipped.
 _DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT")
 
@@ -446,14 +445,15 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
             warnings.simplefilter("ignore")
-            with contextlib.redirect_stdout(devnull):  # pymavlink prints notes about the indexer
+            # pymavlink prints a line per damaged byte (thousands for a damaged log) to stdout and stderr
+            with contextlib.redirect_stdout(devnull), contextlib.redirect_stderr(devnull):
                 log = _guarded_reader(DFReader)(
                     path, zero_time_base=True, progress_callback=progress, deadline=deadline
                 )
     except _Stuck as exc:
         raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
-        raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({type(exc).__name__}: {exc})") from None
+        raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({exception_text(exc)})") from None
     gathered = {
         "params": {},
         "bad_params": [],
@@ -464,7 +464,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         "unhealthy": {},  # compass -> samples the firmware marked unhealthy (left out)
     }
     try:
-        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pymavlink's notes
+        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull), contextlib.redirect_stderr(devnull):
             while True:
                 if deadline is not None and time.monotonic() > deadline:
                     raise too_slow()
@@ -477,7 +477,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
     except _Stuck as exc:
         raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:
-        raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
+        raise DatasetError(f"{source}: the DataFlash log is damaged ({exception_text(exc)})") from None
     finally:
         with contextlib.suppress(Exception):
             log.close()
@@ -586,7 +586,7 @@ def read_ulog(path, sensors=None, name=None) -> Dataset:
         with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pyulog prints its warnings
             ulog = ULog(path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined"])
     except Exception as exc:  # a damaged or foreign file
-        raise DatasetError(f"{source}: not a readable PX4 ULog file ({type(exc).__name__}: {exc})") from None
+        raise DatasetError(f"{source}: not a readable PX4 ULog file ({exception_text(exc)})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
     if not mags:
         return _ulog_calibrated_field(ulog, source)
