@@ -27,6 +27,7 @@ from test_logs import (  # the writers of known-truth logs (tests/ is on the pat
 )
 
 import magcal
+from magcal.calibration.calibration import Calibration
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.data import io
 from magcal.data import simulation as sim
@@ -123,6 +124,18 @@ def test_a_nameless_format_of_length_0_from_damaged_bytes_ends_with_a_message(tm
     box = finishes(lambda: read_log(path), seconds=10)
     assert isinstance(box.get("error"), DatasetError), box
     assert f"byte {k + 89}: a message does not move the reader forward" in str(box["error"])
+
+
+def test_a_library_error_on_a_damaged_log_is_one_line(tmp_path, dataflash_bytes):
+    """pymavlink's error quotes the damaged byte (a line end in MAG's format): the message stays one line."""
+    data = bytearray(dataflash_bytes)
+    k = _fmt_offset(data, "MAG")
+    data[k + 9] = ord("\n")  # the first character of the format
+    path = tmp_path / "crafted.bin"
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError) as err:
+        read_log(path)
+    assert "\n" not in str(err.value) and "Unsupported format char" in str(err.value)
 
 
 def test_a_format_not_the_size_of_its_fields_is_refused(tmp_path, dataflash_bytes):
@@ -488,7 +501,7 @@ def test_the_reference_and_calibration_values_are_messages(survey_files, tmp_pat
     d, *_ = survey_files
     for value in ("1e308", "1e-308", "2e7", "0.05"):
         code, _, err = _cli(["calibrate", d / "survey.csv", "--reference", value], capsys)
-        assert code == 2 and "beyond what any magnetometer magcal calibrates measures" in err, err
+        assert code == 2 and "outside what any magnetometer magcal calibrates measures" in err, err
     doc = json.loads((d / "cal.json").read_text())
     for key, value in [
         ("effect_params", 5),
@@ -581,3 +594,22 @@ def test_the_user_effects_page_says_it_runs_code():
     head = page[: page.index("## 1.")]
     assert "**An effects file is Python code, and it runs with your rights.**" in head
     assert "never one that came with" in head
+
+
+def test_an_effect_block_without_parameters_is_a_message(tmp_path):
+    """Found by the fuzz suite: an effect entry moved to another sensor left a block without parameters, a KeyError
+    when the calibration was applied."""
+    import json
+
+    whole = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2, rate_hz=1.0)
+    one = whole.replace(readings_nT=whole.readings_nT[:1], baseline_m=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = magcal.calibrate(one, effects=["temperature_bias"]).calibration.to_dict()
+    for sensor, needle in ((2, "sensor 2, but the calibration has 1 sensor"), (None, "no parameters for the effect")):
+        bad = json.loads(json.dumps(doc))
+        bad["effect_params"][0]["sensor"] = sensor
+        bad["effect_params"][0]["term"] = "temperature_bias:1" if sensor is None else "temperature_bias"
+        (tmp_path / "bad.json").write_text(json.dumps(bad))
+        with pytest.raises(MagcalError, match=needle):
+            Calibration.load(tmp_path / "bad.json")

@@ -724,9 +724,19 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
                 model.effects.append(effect)
             effect = seen[term]
             sensor = entry.get("sensor")
+            if effect.per_sensor and sensor is not None and not 1 <= sensor <= n_sensors:
+                raise MagcalError(
+                    f"{source}: effect {term}: sensor {sensor}, but the calibration has {n_sensors} sensor(s); the "
+                    "file is damaged, recalibrate"
+                )
             label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
             # a non-physical value (a negative hysteresis width...) is refused with the file and parameter named
             values[label] = effect.check_params([entry["params"][n] for n in effect.param_names()], source)
+        missing = [block_label(e, s) for e, s in model.instances() if block_label(e, s) not in values]
+        if missing:  # every block the model applies needs its parameters (a KeyError when correcting, otherwise)
+            raise MagcalError(
+                f"{source}: no parameters for the effect block(s) {', '.join(missing)}; the file is damaged, recalibrate"
+            )
     return model, values
 
 

@@ -178,7 +178,7 @@ def _check_usable(value, what):
     if np.any((v < lo) | (v > hi)):
         bad = float(v[(v < lo) | (v > hi)][0])
         raise MagcalError(
-            f"{what}: {bad:g} nT is beyond what any magnetometer magcal calibrates measures (magcal accepts "
+            f"{what}: {bad:g} nT is outside what any magnetometer magcal calibrates measures (magcal accepts "
             f"{lo:g} to {hi:g} nT); give the reference in nT"
         )
     return v
