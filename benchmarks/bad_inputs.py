@@ -133,6 +133,19 @@ def make_files(d: Path):
     for name, content in raw.items():
         (d / name).write_bytes(content)
     (d / "dir.csv").mkdir()
+    (d / "outdir").mkdir()
+    # issue 31: hostile logs, wide and endless lines, wrong types in a calibration file
+    import struct
+
+    fmt = b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", 128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
+    mag0 = b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", 65, 0, b"MAG", b"QBhhh", b"TimeUS,I,MagX,MagY,MagZ")
+    (d / "fmt0.bin").write_bytes(fmt + mag0 + b"\xa3\x95\x41" * 12_000)  # 36 KB: hung the reader forever
+    (d / "noise.bin").write_bytes(rng.integers(0, 256, 36_000, dtype=np.uint8).tobytes())
+    (d / "wide.csv").write_text("s1x,s1y,s1z," + ",".join(f"c{k}" for k in range(100_000)) + "\n1,2,3\n")
+    with open(d / "endless.csv", "wb") as fh:
+        fh.write(b"s1x,s1y,s1z\n")
+        fh.write(b"1" * (8 << 20))
+    (d / "params_number.json").write_text(json.dumps({**doc, "effect_params": 5}))
 
 
 def cases(d: Path):
@@ -187,6 +200,17 @@ def cases(d: Path):
             ["align", d / "table.csv", "--reference", "igrf", "--lat", "36", "--lon", "120", "--date", "1850-01-01"],
         ),
         ("align", "--noise -1", ["align", d / "table.csv", "--noise", "-1"]),
+        ("log", "DataFlash format of length 0 (36 KB)", ["calibrate", d / "fmt0.bin"]),
+        ("log", "random bytes named .bin", ["calibrate", d / "noise.bin"]),
+        ("data file", "100 000 header columns", ["calibrate", d / "wide.csv"]),
+        ("data file", "an 8 MB line", ["calibrate", d / "endless.csv"]),
+        ("calibration", "--reference 1e308", ["calibrate", d / "free.csv", "--reference", "1e308"]),
+        ("calibration", "--reference 1e-308", ["calibrate", d / "free.csv", "--reference", "1e-308"]),
+        ("calibration", "-o an existing directory", ["calibrate", d / "free.csv", "-o", d / "outdir"]),
+        ("cal file", "effect_params a number", ["apply", d / "params_number.json", s, "-o", o]),
+        ("apply", "-o an existing directory", ["apply", c, s, "-o", d / "outdir"]),
+        ("apply", "missing input, existing output", ["apply", c, d / "absent.parquet", "-o", s]),
+        ("apply", "--workers 10000", ["apply", c, s, "-o", d / "parts", "--workers", "10000"]),
     ]
 
 

@@ -14,9 +14,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from magcal.calibration.uncertainty import covariance_size, field_uncertainty
+from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
 from magcal.core import notes as _notes
-from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.core.errors import MagcalError, RecordTermWarning, exception_text
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.vectors import basis_times, row_norm
@@ -645,6 +646,7 @@ class Calibration:
             )
         for i, entry in enumerate(entries):
             _check_sensor_entry(source, i, entry)
+        _check_document_types(doc, source)
         baseline = doc.get("baseline_m")
         if baseline is not None:
             try:
@@ -668,7 +670,7 @@ class Calibration:
         except MagcalError:
             raise
         except Exception as exc:  # a damaged effect entry: any failure of the rebuild is the file's fault
-            raise MagcalError(f"{source}: damaged effect entry ({type(exc).__name__}: {exc}); recalibrate") from None
+            raise MagcalError(f"{source}: damaged effect entry ({exception_text(exc)}); recalibrate") from None
         known = {
             "format",
             "version",
@@ -761,7 +763,7 @@ class Calibration:
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             raise MagcalError(
-                f"{path}: not a JSON calibration file ({type(exc).__name__}: {exc}); give the file "
+                f"{path}: not a JSON calibration file ({exception_text(exc)}); give the file "
                 "written by magcal calibrate or magcal align"
             ) from None
         return cls.from_dict(doc, source=path, n_sensors=n_sensors)
@@ -773,6 +775,56 @@ def _record_text(fingerprint) -> str:
     t0, t1 = fingerprint.get("time_start_s"), fingerprint.get("time_end_s")
     span = f", t = {t0:g}-{t1:g} s" if isinstance(t0, (int, float)) and isinstance(t1, (int, float)) else ""
     return f"{n} samples{span}"
+
+
+#: The keys of a calibration document whose type is checked, and what each must be (None is allowed for all).
+_DOCUMENT_TYPES = {
+    "effects": "a list of effect names",
+    "effect_params": "a list of objects (one per effect block)",
+    "base_terms": "a list of term names",
+    "reference_total_nT": f"a number of nT from {USABLE_TOTAL_nT[0]:g} to {USABLE_TOTAL_nT[1]:g}",
+    "reference_fitted": "true or false",
+    "frame": "a text",
+}
+
+
+def _check_document_types(doc, source) -> None:
+    """Refuse a document whose keys have the wrong type (``effect_params`` a number...), naming the key."""
+
+    def ok(key, value):
+        if value is None:
+            return True
+        if key in ("effects", "base_terms"):
+            return isinstance(value, list) and all(isinstance(v, str) for v in value)
+        if key == "effect_params":
+            return isinstance(value, list) and all(
+                isinstance(e, dict)
+                and isinstance(e.get("effect", e.get("term")), str)
+                and isinstance(e.get("term", ""), str)
+                and isinstance(e.get("params"), dict)
+                and isinstance(e.get("state") or {}, dict)
+                and (e.get("sensor") is None or (isinstance(e["sensor"], int) and not isinstance(e["sensor"], bool)))
+                for e in value
+            )
+        if key == "reference_total_nT":
+            return (
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and np.isfinite(value)
+                and USABLE_TOTAL_nT[0] <= value <= USABLE_TOTAL_nT[1]
+            )
+        if key == "reference_fitted":
+            return isinstance(value, bool)
+        if key == "frame":
+            return isinstance(value, str)
+        return True
+
+    for key, want in _DOCUMENT_TYPES.items():
+        value = doc.get(key)
+        if not ok(key, value):
+            raise MagcalError(
+                f"{source}: {key!r} must be {want}, not {str(value)[:40]!r}; the file is damaged, recalibrate"
+            )
 
 
 def _check_sensor_entry(source, i, s) -> None:
@@ -827,9 +879,19 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
                 model.effects.append(effect)
             effect = seen[term]
             sensor = entry.get("sensor")
+            if effect.per_sensor and sensor is not None and not 1 <= sensor <= n_sensors:
+                raise MagcalError(
+                    f"{source}: effect {term}: sensor {sensor}, but the calibration has {n_sensors} sensor(s); the "
+                    "file is damaged, recalibrate"
+                )
             label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
             # a non-physical value (a negative hysteresis width...) is refused with the file and parameter named
             values[label] = effect.check_params([entry["params"][n] for n in effect.param_names()], source)
+        missing = [block_label(e, s) for e, s in model.instances() if block_label(e, s) not in values]
+        if missing:  # every block the model applies needs its parameters (a KeyError when correcting, otherwise)
+            raise MagcalError(
+                f"{source}: no parameters for the effect block(s) {', '.join(missing)}; the file is damaged, recalibrate"
+            )
     return model, values
 
 

@@ -33,6 +33,11 @@ from magcal.geometry.shape import field_magnitude_nT
 #: would put it inside (e.g. 52.2 given in uT), and otherwise accepted with a warning (coil systems).
 PLAUSIBLE_TOTAL_nT = (15_000.0, 80_000.0)
 
+#: A reference outside this range (nT) is refused whatever the setting: no magnetometer magcal calibrates measures
+#: it (1 nT is a fluxgate's noise; 10 mT saturates any fluxgate), and the fit's arithmetic fails far outside it
+#: (1e308 overflows, 1e-308 leaves a singular problem).
+USABLE_TOTAL_nT = (1.0, 1.0e7)
+
 
 @dataclass
 class Reference:
@@ -166,14 +171,40 @@ def igrf_total_nT(lat, lon, alt_km=0.0, date=None):
     return total, comps
 
 
-def _check_plausible(value, what) -> list:
-    """Refuse a reference that is no field in nT; a note (in a list) when it lies outside the Earth's range."""
-    lo, hi = PLAUSIBLE_TOTAL_nT
-    v = np.atleast_1d(np.asarray(value, dtype=float))
+def _check_usable(value, what):
+    """Refuse a reference that is not a finite positive number of nT within :data:`USABLE_TOTAL_nT`."""
+    try:
+        v = np.atleast_1d(np.asarray(value, dtype=float))
+    except (TypeError, ValueError):
+        raise MagcalError(f"{what}: the reference field must be a number of nT, got {str(value)[:40]!r}") from None
     if not np.all(np.isfinite(v)):
         raise MagcalError(f"{what}: the reference field must be a finite number of nT")
     if np.any(v <= 0):
         raise MagcalError(f"{what}: the reference field must be positive (nT)")
+    lo, hi = USABLE_TOTAL_nT
+    if np.any((v < lo) | (v > hi)):
+        bad = float(v[(v < lo) | (v > hi)][0])
+        raise MagcalError(
+            f"{what}: {bad:g} nT is outside what any magnetometer magcal calibrates measures (magcal accepts "
+            f"{lo:g} to {hi:g} nT); give the reference in nT"
+        )
+    return v
+
+
+def _check_plausible(value, what) -> list:
+    """Refuse a reference that is no field in nT (:func:`_check_usable`, a unit hint first); a note (in a list) when
+    it lies outside the Earth's range."""
+    lo, hi = PLAUSIBLE_TOTAL_nT
+    v = np.atleast_1d(np.asarray(value, dtype=float))
+    if np.all(np.isfinite(v)) and np.all(v > 0) and np.any((v < lo) | (v > hi)):
+        bad = float(v[(v < lo) | (v > hi)][0])
+        for unit, f in (("uT", 1e3), ("G", 1e5), ("mG", 1e2)):
+            if lo <= bad * f <= hi:  # a value in another unit: say which, before any other refusal
+                raise MagcalError(
+                    f"{what}: {bad:g} nT is outside the Earth's field range {lo:g}-{hi:g} nT ({bad:g} looks like "
+                    f"{unit}: {bad * f:g} nT); give the reference in nT"
+                )
+    v = _check_usable(value, what)
     if np.any((v < lo) | (v > hi)):
         bad = float(v[(v < lo) | (v > hi)][0])
         hint = ""
@@ -272,6 +303,8 @@ def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=Non
             ) from None
         if check:
             found += _check_plausible(value, "--reference")
+        else:
+            _check_usable(value, "--reference")
         text = f"given reference: {value:.1f} nT"
         if column is not None:
             text += " (the file's ref_total column is not used)"
@@ -281,6 +314,8 @@ def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=Non
     elif meta is not None:
         if check:
             found += _check_plausible(meta, f"{where}: metadata reference_total_nT")
+        else:
+            _check_usable(meta, f"{where}: metadata reference_total_nT")
         ref = Reference(float(meta), f"file metadata reference_total_nT: {float(meta):.1f} nT", "metadata")
     else:
         ref = Reference(
@@ -297,7 +332,11 @@ def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=Non
 
 def _column_reference(column, where, check=True):
     col = np.asarray(column, dtype=float)
-    found = _check_plausible(col, f"{where}: column ref_total") if check else []
+    found: list = []
+    if check:
+        found = _check_plausible(col, f"{where}: column ref_total")
+    else:
+        _check_usable(col, f"{where}: column ref_total")
     spread = float(np.ptp(col)) if col.size else 0.0
     text = f"per-sample ref_total column: mean {np.mean(col):.1f} nT, spread {spread:.1f} nT over {col.size} samples"
     return Reference(col, text, "column", found)

@@ -5,7 +5,7 @@ raised as :class:`magcal.core.errors.MagcalError` (or :class:`magcal.data.datase
 message with exit status 2, never as a traceback.
 
 Every subcommand takes ``--effects-file FILE.py`` (repeatable): a user's own effects (``docs/user-effects.md``),
-loaded before the command runs, so that ``--effects NAME``, the diagnosis, a calibration JSON naming the effect,
+loaded before the command runs -- the file is Python code executed with the user's rights, as its help says, so that ``--effects NAME``, the diagnosis, a calibration JSON naming the effect,
 ``apply`` and ``simulate --hidden NAME`` know them. Effects that installed packages declare in the entry-point
 group ``magcal.effects`` are loaded once at start (:func:`magcal.model.plugins.load_entry_points`; a failing one is a
 warning). An exception raised later inside a user's effect code is reported as its file, line and error.
@@ -18,6 +18,7 @@ import sys
 
 from magcal.cli import align, apply, calibrate, diagnose, effects, export, record, simulate
 from magcal.core.errors import MagcalError
+from magcal.data.io import check_output_path
 from magcal.model import plugins
 from magcal.model.plugins import user_code_error
 
@@ -34,8 +35,10 @@ def add_effects_file_argument(parser) -> None:
         metavar="FILE.py",
         dest="effects_file",
         help="Python file defining your own effects (Effect subclasses decorated with @register; "
-        "see docs/user-effects.md); repeatable. Needed again wherever the effect is used: "
-        "calibrate, diagnose, and apply or align with a calibration that includes it",
+        "see docs/user-effects.md); repeatable. The file is Python code and RUNS with your rights "
+        "(it can read, change or delete anything you can): give only a file you wrote or trust. Needed "
+        "again wherever the effect is used: calibrate, diagnose, and apply or align with a calibration "
+        "that includes it",
     )
 
 
@@ -69,6 +72,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 1
     try:
+        if getattr(args, "output", None) and args.command != "apply":  # apply checks its own (file or folder)
+            check_output_path(args.output, "-o")  # before any work, not after a long fit
         load_plugins(args, f"magcal {args.command}")
         return int(args.func(args) or 0)
     except MagcalError as exc:

@@ -19,14 +19,16 @@ Writes every input line plus ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` (nT) and, for a
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 
 from magcal.core.errors import MagcalError
-from magcal.data.io import PARQUET_CODECS
+from magcal.data.dataset import DatasetError
+from magcal.data.io import PARQUET_CODECS, check_output_path
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import apply_file, load_calibration
-from magcal.output.survey import PARTITION_ROWS, apply_partitioned
+from magcal.output.survey import PARTITION_ROWS, WORKERS_PER_CORE, apply_partitioned, check_workers
 
 
 def register(subparsers):
@@ -65,7 +67,8 @@ def register(subparsers):
         type=int,
         default=None,
         metavar="N",
-        help="correct in parallel on a local Dask cluster of N worker processes",
+        help="correct in parallel on a local Dask cluster of N worker processes (at most "
+        f"{WORKERS_PER_CORE} per CPU core)",
     )
     parser.add_argument(
         "--scheduler",
@@ -126,11 +129,18 @@ def run(args) -> int:
 
     if args.chunk_rows < 1:
         raise MagcalError(f"--chunk-rows must be at least 1, got {args.chunk_rows}")
+    parallel = len(args.data) > 1 or args.workers is not None or args.scheduler is not None
+    if args.workers is not None:
+        check_workers(args.workers)
+    # every check on the paths before any work: the inputs first (a missing input is named even when -o exists)
+    for path in args.data:
+        if not os.path.exists(path):
+            raise DatasetError(f"{path}: no such file; check the path")
+        if os.path.isdir(path):
+            raise DatasetError(f"{path}: is a directory, not a survey file")
+    check_output_path(args.output, "-o", directory=parallel)
     check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
-    parallel = len(args.data) > 1 or args.workers is not None or args.scheduler is not None
-    if args.workers is not None and args.workers < 1:
-        raise MagcalError(f"--workers must be at least 1, got {args.workers}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if parallel:

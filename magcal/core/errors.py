@@ -37,3 +37,15 @@ class RecordTermWarning(UserWarning):
     they would add that recording's drift or step to the new data. :meth:`magcal.calibration.calibration.Calibration.correct`
     drops them there by default; ``record_terms="apply"`` keeps them.
     """
+
+
+def exception_text(exc: BaseException, limit: int = 200) -> str:
+    """``Type: message`` of an exception raised by a library on a damaged input, for a one-line user message:
+    whitespace runs (line ends included) become one space, other control characters are shown escaped, and the
+    text is cut at ``limit`` characters."""
+    text = " ".join(str(exc).split())
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    if len(text) > limit:
+        text = text[:limit] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -44,6 +44,37 @@ class DatasetError(MagcalError, ValueError):
     """Bad input data; the message names the file, row or column and what to do."""
 
 
+# -- the one rule for numbers read from any file or stream ----------------------------------------------------------
+#: Largest magnitude a number read from a file or a stream may hold (readings, time stamps, channels, in any unit):
+#: far beyond any reading, temperature or time stamp (epoch ns are ~2e18), and small enough that sums of squares
+#: and fourth powers stay finite in float64. The CSV and Parquet readers, the flight-log readers and the live
+#: sources and recorder all apply it through :func:`bad_values`.
+MAX_ABS_VALUE = 1e30
+
+#: How the rule reads in a message.
+BAD_VALUE_TEXT = f"NaN, infinite or beyond +-{MAX_ABS_VALUE:g}"
+
+
+def bad_values(values, axis=None):
+    """Where numbers break magcal's one rule for read values: NaN, +-inf or a magnitude above :data:`MAX_ABS_VALUE`.
+
+    Parameters
+    ----------
+    values : array_like of float
+    axis : int or tuple of int, optional
+        Reduce over these axes (True where any value along them is bad), e.g. ``axis=1`` for rows of an (N, k)
+        array; default element-wise.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+    """
+    v = np.asarray(values, dtype=float)
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(v) <= MAX_ABS_VALUE)  # NaN compares False: bad
+    return bad if axis is None else bad.any(axis=axis)
+
+
 @dataclass
 class Dataset:
     """Raw magnetometer readings and their channels.

@@ -23,19 +23,23 @@ import csv
 import itertools
 import os
 import re
-import tempfile
+import secrets
+import stat
 import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.core.errors import DataWarning, MagcalError
+from magcal.core.errors import DataWarning, MagcalError, exception_text
 from magcal.core.notes import say
 from magcal.data.dataset import (
+    BAD_VALUE_TEXT,
+    MAX_ABS_VALUE,
     QUATERNION_COLUMNS,
     SENSOR_AXES,
     Dataset,
     DatasetError,
+    bad_values,
     dataset_columns,
     dataset_metadata,
 )
@@ -78,11 +82,14 @@ NUMERIC_METADATA = {
 }
 
 _SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
-#: Largest magnitude a numeric cell may hold: far beyond any reading, temperature or time stamp (epoch ns are
-#: ~2e18) in any unit, and small enough that sums of squares and fourth powers stay finite in float64.
-MAX_ABS_VALUE = 1e30
 _MAX_SHOWN = 5  # problems named in one message
 _BINARY_PROBE = 8192
+
+#: Longest line of a CSV file (bytes, line end included): far beyond any row of readings and channels, and small
+#: enough that a file of one endless line is refused before it fills the memory.
+MAX_LINE_BYTES = 1 << 20
+#: Most columns a CSV header (or a Parquet schema) may name: a million would make every block of rows huge.
+MAX_COLUMNS = 1000
 
 
 def canonical_columns(n_sensors=MAX_SENSORS):
@@ -338,19 +345,24 @@ class Chunk:
 
 
 class _FileLines:
-    """The lines (UTF-8 bytes, line ends kept) of a caller's file object, binary or text, read block by block.
+    """The lines (UTF-8 bytes, line ends kept) of a file object, binary or text, read block by block.
 
-    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. Closing it
-    leaves the caller's file open.
+    ``head`` holds the first bytes for :meth:`CsvSource._check_head`; they are served again as lines. A line
+    longer than :data:`MAX_LINE_BYTES` is refused (:class:`DatasetError`, naming it) as soon as that many bytes
+    have come without a line end, so memory stays bounded whatever the file holds. Closing it leaves the file
+    open unless ``owned``.
     """
 
-    _BLOCK = 1 << 20
+    _BLOCK = 1 << 16
 
-    def __init__(self, fh, source):
+    def __init__(self, fh, source, owned=False):
         self._fh = fh
+        self._owned = owned
         self._source = source
         self._lines = collections.deque()
         self._tail = b""
+        self._n_read = 0  # bytes read from the file
+        self._n_lines = 0  # lines split off so far (for the number of an over-long one)
         self.head = self._read(_BINARY_PROBE)
         self._take(self.head)
 
@@ -362,13 +374,27 @@ class _FileLines:
                 f"{self._source}: the text cannot be decoded ({exc.reason}); save it as UTF-8 CSV or open it as binary"
             ) from None
         if isinstance(data, str):
-            return data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
-        return bytes(data or b"")
+            data = data.encode("utf-8", "surrogatepass")  # a lone surrogate then fails as "not UTF-8" by line
+        data = bytes(data or b"")
+        self._n_read += len(data)
+        return data
 
     def _take(self, data):
         parts = (self._tail + data).split(b"\n")
         self._tail = parts.pop()  # an unfinished line waits for the next block
+        longest = max(map(len, parts), default=0)
+        if longest >= MAX_LINE_BYTES or len(self._tail) >= MAX_LINE_BYTES:
+            k = next((i for i, part in enumerate(parts) if len(part) >= MAX_LINE_BYTES), len(parts))
+            raise DatasetError(
+                f"{self._source}: line {self._n_lines + k + 1} is longer than {MAX_LINE_BYTES:,} bytes; this is "
+                "not a CSV of readings (a binary file, or the line ends are missing): check the file"
+            )
+        self._n_lines += len(parts)
         self._lines.extend(part + b"\n" for part in parts)
+
+    def tell(self) -> int:
+        """Bytes of the file consumed so far (read and served as lines)."""
+        return self._n_read - len(self._tail) - sum(map(len, self._lines))
 
     def _fill(self):
         while not self._lines:
@@ -393,6 +419,8 @@ class _FileLines:
         return next(self, b"")
 
     def close(self):
+        if self._owned and self._fh is not None:
+            self._fh.close()
         self._fh = None
 
 
@@ -439,11 +467,12 @@ class CsvSource:
             self._check_head(head)
             if self._file is None:
                 try:
-                    self._file = open(self.path, "rb")
+                    fh = open(self.path, "rb")
                 except OSError as exc:
                     raise DatasetError(
                         f"{self.source}: cannot open the file ({exc.strerror or exc}); check the path"
                     ) from None
+                self._file = _FileLines(fh, self.source, owned=True)
             self._read_head()
             self.layout = _find_layout(self.header, columns, self.source, self.header_line, self._notes)
             self._resolve_units(units, lsb_nT)
@@ -537,6 +566,11 @@ class CsvSource:
             raise DatasetError(
                 f"{self.source}: line {self._lineno}: the header cannot be read as CSV ({exc})"
             ) from None
+        if len(header) > MAX_COLUMNS:
+            raise DatasetError(
+                f"{self.source}: line {self._lineno}: the header names {len(header):,} columns, more than the "
+                f"{MAX_COLUMNS:,} magcal reads; keep the columns you need (readings, t, temp...) and save again"
+            )
         self.header = [h.strip() for h in header]
         if all(_strict_float(h) is not None for h in self.header):
             raise DatasetError(
@@ -548,7 +582,7 @@ class CsvSource:
         if key in NUMERIC_METADATA:
             number = _strict_float(value)
             positive = NUMERIC_METADATA[key][1]
-            if number is None or not np.isfinite(number) or number < 0 or (positive and number == 0):
+            if number is None or bad_values(number) or number < 0 or (positive and number == 0):
                 need = "a positive number" if positive else "a number >= 0"
                 raise DatasetError(
                     f"{self.source}: line {self._lineno}: metadata {key}: {value!r} must be {need}"
@@ -667,7 +701,7 @@ class CsvSource:
                 values = None
             if values is not None and values.shape != (len(lines), len(num)):
                 values = None
-            if values is not None and not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+            if values is not None and bad_values(values).any():
                 values = None
         rows = None
         if values is None:
@@ -1040,14 +1074,16 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     if head_notes or len(set(header)) != len(header) or any(not h for h in header):
         return None
     try:
-        with open(os.fspath(path), "rb") as fh:
-            raw = fh.read()
         offset = 0
-        for _ in range(header_line):
-            offset = raw.index(b"\n", offset) + 1
+        with open(os.fspath(path), "rb") as fh:  # the head's lines are shorter than MAX_LINE_BYTES (checked)
+            for _ in range(header_line):
+                offset += len(fh.readline())
+        # memory-mapped, not read into memory: a line longer than pyarrow's block fails at once (then the line
+        # reader names it), and a large file costs no copy
+        raw = pa.memory_map(os.fspath(path), "r").read_buffer()
         numeric = [header[j] for j, _ in layout.numeric]
         table = pacsv.read_csv(
-            pa.py_buffer(memoryview(raw)[offset:]),
+            pa.BufferReader(raw.slice(offset)),
             read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
             parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
             convert_options=pacsv.ConvertOptions(
@@ -1072,7 +1108,7 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
         if col.null_count:
             return None
         values[:, m] = col.to_numpy()
-    if not (np.isfinite(values).all() and np.all(np.abs(values) <= MAX_ABS_VALUE)):
+    if bad_values(values).any():
         return None
     text = {
         j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
@@ -1092,19 +1128,102 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
 
 
 # -- writing --------------------------------------------------------------------------------------------------------
+def check_output_path(path, option="-o", directory=False) -> str:
+    """Refuse, before any work is done, an output that could not be written at the end.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    option : str
+        How the command line names it, for the message.
+    directory : bool
+        The output is a new folder of partitions (it must not exist, or be an empty folder); otherwise a file
+        (it must not be a folder).
+
+    Returns
+    -------
+    str
+        The path.
+
+    Raises
+    ------
+    MagcalError
+        Its folder is missing or not writable; a file output names a folder; a folder output names a file or a
+        folder that holds files.
+    """
+    path = os.fspath(path)
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise MagcalError(
+            f"{option} {path}: cannot write there: the folder {parent} does not exist; create it or choose another path"
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise MagcalError(f"{option} {path}: cannot write in the folder {parent} (permission denied)")
+    if directory:
+        if os.path.exists(path) and (not os.path.isdir(path) or os.listdir(path)):
+            raise MagcalError(
+                f"{option} {path}: exists and is not an empty directory; choose a new one (partitions are never "
+                "mixed with other files)"
+            )
+    elif os.path.isdir(path):
+        raise MagcalError(f"{option} {path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.csv')})")
+    return path
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system tells it (Linux ``/proc``); elsewhere set
+    and restored at once."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _create_beside(path):
+    """A new file beside ``path`` named ``.NAME.XXXXXXXX.tmp``, opened for writing: ``(fd, name)``.
+
+    Created with mode 0666 less the umask, as any program's output is (``tempfile.mkstemp`` would make it 0600
+    whatever the umask); when ``path`` exists, it takes that file's permissions instead.
+    """
+    directory = os.path.dirname(os.path.abspath(path))
+    base = os.path.basename(path)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0) | getattr(os, "O_NOFOLLOW", 0)
+    for _ in range(100):
+        tmp = os.path.join(directory, f".{base}.{secrets.token_hex(4)}.tmp")
+        try:
+            fd = os.open(tmp, flags, 0o666)
+        except FileExistsError:
+            continue
+        try:
+            if os.path.isfile(path):
+                os.chmod(tmp, stat.S_IMODE(os.stat(path).st_mode))
+        except OSError:
+            pass
+        return fd, tmp
+    raise FileExistsError(f"no free temporary name beside {path}")
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode="w", encoding="utf-8", newline=""):
     """Open a temporary file beside ``path``; on success it is flushed to disk (``fsync``) and replaces ``path``
     (``os.replace``), else it is removed, so ``path`` holds either its old content or the whole new one.
 
     The one atomic writer of magcal: CSV and Parquet outputs, calibration files and workbench sessions use it.
+    The file gets the permissions of the file it replaces, or 0666 less the umask for a new one.
 
     Yields the open file object.
     """
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise MagcalError(f"{path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.csv')})")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+        fd, tmp = _create_beside(path)
     except OSError as exc:
         raise MagcalError(f"{path}: cannot write here ({exc.strerror or exc}); check the directory") from None
     try:
@@ -1203,15 +1322,32 @@ def _pyarrow(source):
     return pyarrow
 
 
-def parquet_metadata(schema) -> dict:
-    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none)."""
+def parquet_metadata(schema, source="Parquet file") -> dict:
+    """The ``# key: value`` metadata kept in a Parquet schema (empty when there is none).
+
+    Raises
+    ------
+    DatasetError
+        The ``magcal`` entry is not a JSON text (a damaged or foreign file).
+    """
     import json
 
     raw = (schema.metadata or {}).get(PARQUET_METADATA_KEY)
     if not raw:
         return {}
-    doc = json.loads(raw.decode("utf-8"))
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise DatasetError(
+            f"{source}: the magcal metadata in the Parquet schema is not JSON ({_one_line(exc)}); the file is "
+            "damaged or was not written by magcal: write it again"
+        ) from None
     return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+
+
+def _one_line(exc) -> str:
+    """``Type: message`` of an exception from a library, on one line and short."""
+    return exception_text(exc)
 
 
 class ParquetSource:
@@ -1234,8 +1370,8 @@ class ParquetSource:
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
-            raise DatasetError(f"{self.source}: not a readable Parquet file ({exc})") from None
-        self.metadata = parquet_metadata(self.file.schema_arrow)
+            raise DatasetError(f"{self.source}: not a readable Parquet file ({_one_line(exc)})") from None
+        self.metadata = parquet_metadata(self.file.schema_arrow, self.source)
         self.header = list(self.file.schema_arrow.names)
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
@@ -1243,12 +1379,27 @@ class ParquetSource:
         self._csv = CsvSource(_stdio.StringIO(head), name=self.source, notes=notes)  # notes as in CsvSource
         self.layout = self._csv.layout
 
+    def _batches(self, chunk_rows, row_groups):
+        """The file's record batches; a damaged page or footer is a :class:`DatasetError`, not pyarrow's own."""
+        import pyarrow as pa
+
+        try:
+            batches = iter(self.file.iter_batches(batch_size=chunk_rows, row_groups=row_groups, use_threads=False))
+            while True:
+                try:
+                    batch = next(batches)
+                except StopIteration:
+                    return
+                yield batch
+        except (pa.ArrowException, OSError, ValueError, TypeError, IndexError, KeyError, RuntimeError) as exc:
+            raise DatasetError(f"{self.source}: the Parquet file is damaged ({_one_line(exc)})") from None
+
     def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
         """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
         (whose first row is the file's row ``first_row``, 1-based, for messages)."""
         layout = self.layout
         row = int(first_row) - 1
-        for batch in self.file.iter_batches(batch_size=int(chunk_rows), row_groups=row_groups, use_threads=False):
+        for batch in self._batches(int(chunk_rows), row_groups):
             n = batch.num_rows
             values = np.empty((n, len(layout.numeric)))
             for m, (j, name) in enumerate(layout.numeric):
@@ -1259,12 +1410,12 @@ class ParquetSource:
                         f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
                         "readings, time and channels must be numeric"
                     ) from None
-                bad = ~np.isfinite(col) | (np.abs(col) > MAX_ABS_VALUE)
+                bad = bad_values(col)
                 if bad.any():
                     k = int(np.argmax(bad))
                     raise DatasetError(
-                        f"{self.source}: row {row + k + 1}, column {name}: {col[k]!r} is not a finite "
-                        f"number ({int(bad.sum())} such row(s) in this block); fix or delete these rows"
+                        f"{self.source}: row {row + k + 1}, column {name}: {float(col[k])!r} is {BAD_VALUE_TEXT} "
+                        f"({int(bad.sum())} such row(s) in this block); fix or delete these rows"
                     )
                 values[:, m] = col
             text = {}
@@ -1349,6 +1500,8 @@ def write_parquet(path, data, metadata=None) -> None:
     import pyarrow.parquet as pq
 
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise MagcalError(f"{path}: is a directory; name a file in it (e.g. {os.path.join(path, 'out.parquet')})")
     tmp = f"{path}.tmp-{os.getpid()}"
     try:
         pq.write_table(table, tmp, **parquet_write_options(table))

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import MagcalError
-from magcal.data.dataset import SENSOR_AXES, Dataset
+from magcal.data.dataset import BAD_VALUE_TEXT, SENSOR_AXES, Dataset, bad_values
 from magcal.data.io import format_column, is_counts, metadata_text, parse_units, read_csv
 from magcal.data.simulation import PRESETS, simulate_timeseries
 
@@ -57,6 +57,21 @@ SCHEMES = ("serial", "udp", "tcp", "sim")
 
 #: Longest text line accepted (bytes); longer ones are counted as bad and skipped.
 MAX_LINE_BYTES = 4096
+
+#: Bounds of a simulated source's options (``sim://PRESET?n=..&rate=..&speed=..``): samples of a preset, samples
+#: per second, and how much faster than real time it plays. The workbench offers these and nothing beyond.
+SIM_MAX_SAMPLES = 100_000  # about 1.5 s to simulate; ``loop`` plays a preset for as long as wanted
+SIM_RATE_RANGE_HZ = (0.1, 10_000.0)
+SIM_SPEED_RANGE = (0.01, 100.0)
+#: Most samples per second a simulated source sends (``rate`` times ``speed``): a recording grows at most
+#: about 1 MB/s.
+SIM_MAX_SAMPLES_PER_S = 20_000.0
+#: Largest seed of a simulated source (numpy's seeds are unsigned 32-bit here).
+SIM_MAX_SEED = 2**32 - 1
+#: Serial speeds accepted (bit/s).
+BAUD_RANGE = (50, 10_000_000)
+#: Connect timeout of a TCP source (s).
+TIMEOUT_RANGE_S = (0.01, 60.0)
 
 #: nT per unit of the magnetometer fields as MAVLink message definitions declare them.
 MAVLINK_FIELD_UNITS_nT = {"mgauss": 100.0, "mG": 100.0, "gauss": 1.0e5, "G": 1.0e5, "uT": 1.0e3, "nT": 1.0}
@@ -76,7 +91,17 @@ _HIGHRES_TEMP_BIT = 1 << 12
 
 
 class LiveError(MagcalError):
-    """A live source cannot be opened or has failed (a bad URL, a port that does not open, a lost device)."""
+    """A live source cannot be opened or has failed (a bad URL, a port that does not open, a lost device).
+
+    Its message is one line whatever the URL holds: control characters (a line end in a URL parameter) are
+    shown escaped.
+    """
+
+    def __init__(self, message=""):
+        text = str(message)
+        if not text.isprintable():
+            text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+        super().__init__(text)
 
 
 @dataclass
@@ -209,8 +234,8 @@ class LiveSource:
             if (temp is not None) != self.has_temperature:
                 self.stats.bad("temperature: present in some samples only (the first decides)")
                 continue
-            if not np.all(np.isfinite(r)) or (temp is not None and not np.isfinite(temp)):
-                self.stats.bad("not finite: NaN or infinite value")
+            if bad_values(r).any() or bad_values(t) or (temp is not None and bad_values(temp)):
+                self.stats.bad(f"bad value: {BAD_VALUE_TEXT} (time {t!r})")
                 continue
             if self._last_t is not None and t <= self._last_t:
                 self.stats.bad(f"time going back: {t:.6g} s after {self._last_t:.6g} s")
@@ -460,7 +485,7 @@ class TcpLineSource(_LineSource):
         super().__init__(url, parser)
         try:
             self._sock = socket.create_connection((host, port), timeout=connect_timeout_s)
-        except OSError as exc:
+        except (OSError, UnicodeError, ValueError) as exc:  # UnicodeError: a host name the IDNA codec refuses
             raise LiveError(f"{url}: cannot connect to {host}:{port} ({exc}); is the server running?") from None
 
     def _receive(self, timeout_s):
@@ -485,7 +510,7 @@ def _bind_udp(url, host, port):
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.bind((host, port))
-    except OSError as exc:
+    except (OSError, UnicodeError, ValueError) as exc:
         sock.close()
         raise LiveError(
             f"{url}: cannot listen on UDP {host}:{port} ({exc}); is another program using the port?"
@@ -639,10 +664,22 @@ class SimSource(LiveSource):
     def __init__(self, url, name, rate_hz=None, n_samples=3000, seed=0, loop=False, speed=1.0):
         super().__init__(url)
 
-        if rate_hz is not None and not float(rate_hz) > 0:
-            raise LiveError(f"{url}: rate must be a positive number of samples per second")
-        if not float(speed) > 0:
-            raise LiveError(f"{url}: speed must be positive")
+        lo, hi = SIM_RATE_RANGE_HZ
+        if rate_hz is not None and not lo <= float(rate_hz) <= hi:
+            raise LiveError(f"{url}: rate={rate_hz!r}: give {lo:g} to {hi:g} samples per second")
+        lo, hi = SIM_SPEED_RANGE
+        if not lo <= float(speed) <= hi:
+            raise LiveError(f"{url}: speed={speed!r}: give {lo:g} to {hi:g} (times real time)")
+        pace = (50.0 if rate_hz is None else float(rate_hz)) * float(speed)
+        if name in PRESETS and pace > SIM_MAX_SAMPLES_PER_S:
+            raise LiveError(
+                f"{url}: rate x speed = {pace:g} samples per second; at most {SIM_MAX_SAMPLES_PER_S:g} (lower rate or "
+                "speed)"
+            )
+        if not 1 <= int(n_samples) <= SIM_MAX_SAMPLES:
+            raise LiveError(f"{url}: n={n_samples!r}: give 1 to {SIM_MAX_SAMPLES:,} samples")
+        if not 0 <= int(seed) <= SIM_MAX_SEED:
+            raise LiveError(f"{url}: seed={seed!r}: give 0 to {SIM_MAX_SEED}")
         if name in PRESETS:
             rate = 50.0 if rate_hz is None else float(rate_hz)
             ds = simulate_timeseries(name, n_samples=int(n_samples), seed=int(seed), rate_hz=rate)
@@ -724,7 +761,10 @@ def open_source(url: str, **options) -> LiveSource:
     LiveError
         A malformed URL, an unknown scheme or option, or a port that cannot be opened.
     """
-    parsed = urllib.parse.urlsplit(str(url))
+    try:
+        parsed = urllib.parse.urlsplit(str(url))
+    except ValueError as exc:  # e.g. tcp://[::1 (an unclosed IPv6 bracket)
+        raise LiveError(f"{url}: not a valid source URL ({exc})") from None
     scheme = parsed.scheme.lower()
     if scheme not in SCHEMES:
         raise LiveError(
@@ -756,11 +796,14 @@ def open_source(url: str, **options) -> LiveSource:
         raise LiveError(f"{url}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
     mavlink = _flag(params, "mavlink") or params.get("format", "").lower() == "mavlink"
 
-    def number(name, default, kind=float):
+    def number(name, default, kind=float, bounds=None):
         try:
-            return kind(params[name]) if name in params else default
-        except ValueError:
-            raise LiveError(f"{url}: {name}={params[name]!r} is not a number") from None
+            value = kind(params[name]) if name in params else default
+        except (ValueError, OverflowError):
+            raise LiveError(f"{url}: {name}={params[name][:40]!r} is not a number") from None
+        if bounds is not None and value is not None and not bounds[0] <= value <= bounds[1]:
+            raise LiveError(f"{url}: {name}={params[name][:40]!r}: give {bounds[0]:g} to {bounds[1]:g}")
+        return value
 
     def parser():
         try:
@@ -787,21 +830,28 @@ def open_source(url: str, **options) -> LiveSource:
         )
     if scheme == "serial":
         device = urllib.parse.unquote(parsed.path if not parsed.netloc else parsed.netloc + parsed.path)
-        baud = number("baud", 115200, int)
+        baud = number("baud", 115200, int, BAUD_RANGE)
         if mavlink:
-            return MavlinkSource(url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0))
+            return MavlinkSource(
+                url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0, float, (1e-6, 1e9))
+            )
         return SerialSource(url, device, baud, parser())
-    host, port = parsed.hostname, parsed.port
+    try:
+        host, port = parsed.hostname, parsed.port
+    except ValueError as exc:  # a port that is not a number, or beyond 65535
+        raise LiveError(f"{url}: {exc}; give the address as {scheme}://HOST:PORT with a port of 1 to 65535") from None
     if not host or not port:
         raise LiveError(f"{url}: give the address as {scheme}://HOST:PORT (e.g. {scheme}://127.0.0.1:14550)")
     if mavlink:
         device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
-        return MavlinkSource(url, device, params.get("message"), raw_lsb_nT=number("raw_lsb_nT", 100.0))
+        return MavlinkSource(
+            url, device, params.get("message"), raw_lsb_nT=number("raw_lsb_nT", 100.0, float, (1e-6, 1e9))
+        )
     if params.get("format", "lines").lower() != "lines":
         raise LiveError(f"{url}: format={params['format']!r}: use format=lines or mavlink")
     if scheme == "udp":
         return UdpLineSource(url, host, port, parser())
-    return TcpLineSource(url, host, port, parser(), connect_timeout_s=number("timeout", 5.0))
+    return TcpLineSource(url, host, port, parser(), connect_timeout_s=number("timeout", 5.0, float, TIMEOUT_RANGE_S))
 
 
 # -- recording -------------------------------------------------------------------------------------------------------
@@ -831,6 +881,7 @@ class Recorder:
         self.flush_interval_s = float(flush_interval_s)
         self.n_written = 0  # samples on disk (flushed)
         self.n_pending = 0
+        self.n_refused = 0  # samples with a value NaN, infinite or beyond MAX_ABS_VALUE: never written
         self._pending = []
         self._fd = None
         self._columns = None
@@ -863,6 +914,7 @@ class Recorder:
         """Add the chunk's samples; flushes to disk when ``flush_interval_s`` has passed since the last flush."""
         if self._fd is None:
             raise LiveError(f"{self.path}: the recording is closed")
+        chunk = self._usable(chunk) if len(chunk) else chunk
         if len(chunk):
             if self._columns is None:
                 self._pending.append(self._header(chunk))
@@ -879,6 +931,22 @@ class Recorder:
             self.n_pending += len(chunk)
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
+
+    def _usable(self, chunk):
+        """The chunk without the samples a reader would refuse (the one rule: NaN, infinite or beyond
+        :data:`magcal.data.dataset.MAX_ABS_VALUE`, time included), counted in :attr:`n_refused`."""
+        bad = bad_values(chunk.time_s) | bad_values(chunk.readings_nT, axis=(0, 2))
+        if chunk.temperature_C is not None:
+            bad |= bad_values(chunk.temperature_C)
+        if not bad.any():
+            return chunk
+        self.n_refused += int(bad.sum())
+        keep = ~bad
+        return LiveChunk(
+            chunk.time_s[keep],
+            chunk.readings_nT[:, keep],
+            None if chunk.temperature_C is None else chunk.temperature_C[keep],
+        )
 
     def _write_page_confined(self, data: bytes) -> None:
         """Write whole lines so that no ``write`` call spans a page boundary of the file."""

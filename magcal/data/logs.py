@@ -9,13 +9,11 @@ ArduPilot (read with pymavlink's ``DFReader``)
     parameters (``PARM`` messages) in force at each sample (``undo_calibration=False`` keeps the logged field).
     Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times. Attitude:
     ``ATT`` roll, pitch, yaw (deg), as the quaternion channel (body to north-east-down) and as extra columns
-    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``. Current: the first battery's ``BAT`` ``Curr`` (A) as the
-    extra column ``current_A`` (a vector calibration fits the field per ampere, ``COMPASS_MOT``'s quantity).
+    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``.
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
     ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
-    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times. Current: the
-    first ``battery_status``'s ``current_a`` (A) as ``current_A``.
+    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times.
 
 Several magnetometers become magcal sensors 1, 2, 3 in instance order; their samples are paired by time (the
 nearest sample within half the first one's sample interval; unpaired samples are dropped with a warning). Note that
@@ -25,15 +23,20 @@ own frame (PX4) or is already rotated to the body frame (ArduPilot).
 
 from __future__ import annotations
 
+import contextlib
+import mmap
 import os
+import re
+import struct
+import time
 import warnings
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from magcal.core.errors import DataWarning
+from magcal.core.errors import DataWarning, exception_text
 from magcal.core.notes import say
-from magcal.data.dataset import Dataset, DatasetError
+from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 
 #: File name endings read as flight-controller logs, and the reader of each.
 LOG_EXTENSIONS = (".bin", ".ulg")
@@ -46,13 +49,20 @@ ARDUPILOT_SCALE_RANGE = (1.0 / 1.5, 1.5)
 
 MAX_SENSORS = 4
 
+#: Time allowed to read a log: this many seconds per MB of file, and at least :data:`MIN_DEADLINE_S` (pymavlink
+#: reads about 1 MB/s of DataFlash; a log that takes far longer is damaged in a way that loops).
+DEADLINE_S_PER_MB = 10.0
+MIN_DEADLINE_S = 60.0
+
 
 def is_log(path) -> bool:
     """True if ``path`` names a flight-controller log magcal reads (by its ending, case-insensitive)."""
     return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(LOG_EXTENSIONS)
 
 
-def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1, notes=None) -> Dataset:
+def read_log(
+    path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None, notes=None
+) -> Dataset:
     """Read an ArduPilot ``.bin`` or PX4 ``.ulg`` log into a :class:`Dataset` (readings in nT).
 
     Parameters
@@ -69,11 +79,20 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
     notes : list, optional
         Where the reader's notes go (:class:`~magcal.core.notes.Note`: magnetometers left out, samples dropped...):
         given, they are appended to it; None (default), each is raised as a :class:`DataWarning`.
+    timeout_s : float, optional
+        DataFlash: give up (with a :class:`DatasetError`) after this many seconds; default
+        :data:`DEADLINE_S_PER_MB` per MB of file, at least :data:`MIN_DEADLINE_S`. Every format field the reader
+        steps by is checked first (a format shorter than its header, or not the size of its fields, is refused)
+        and every message must move it forward, so a damaged log ends with a message, never a hang. (pyulog reads
+        a ULog in one call that cannot be interrupted; tests/test_fuzz_readers.py shows it ends on damaged files.)
+
+    Values that are NaN, infinite or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` (the rule of every magcal
+    reader) are dropped, each kind counted in one :class:`DataWarning`.
 
     Raises
     ------
     DatasetError
-        Missing file, a log the reader cannot parse, no magnetometer messages, too few samples.
+        Missing file, a log the reader cannot parse, no magnetometer messages, too few samples, too slow.
     """
     source = str(name or os.fspath(path))
     path = os.fspath(path)
@@ -81,10 +100,14 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
         raise DatasetError(f"{source}: is a directory, not a log file")
     if not os.path.exists(path):
         raise DatasetError(f"{source}: no such file; check the path")
+    if timeout_s is None:
+        timeout_s = max(MIN_DEADLINE_S, DEADLINE_S_PER_MB * os.path.getsize(path) / 1e6)
     if path.lower().endswith(".ulg"):
         ds = read_ulog(path, sensors=sensors, name=source, notes=notes)
     elif path.lower().endswith(".bin"):
-        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration, notes=notes)
+        ds = read_dataflash(
+            path, sensors=sensors, name=source, undo_calibration=undo_calibration, timeout_s=timeout_s, notes=notes
+        )
     else:
         raise DatasetError(f"{source}: not a flight-controller log (expected {', '.join(LOG_EXTENSIONS)})")
     if ds.n_samples < int(min_samples):
@@ -98,6 +121,8 @@ def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1
 # -- pairing several magnetometers and interpolating channels ------------------------------------------------------
 def _strictly_increasing(t, values, source, what, notes=None):
     """Sort by time and drop repeated time stamps (with a warning): the dataset's times must increase strictly."""
+    if t.size == 0:
+        return t, values
     order = np.argsort(t, kind="stable")
     t = t[order]
     values = values[order]
@@ -108,9 +133,30 @@ def _strictly_increasing(t, values, source, what, notes=None):
             f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped",
             DataWarning,
             "read",
-            stacklevel=4,
+            stacklevel=3,
         )
     return t[keep], values[keep]
+
+
+def _drop_bad(source, what, t, *arrays, keep=(), notes=None):
+    """Rows of ``t`` and ``arrays`` (same length) whose values all pass the one rule of read values
+    (:func:`magcal.data.dataset.bad_values`); the others dropped with one :class:`DataWarning` counting them.
+    The arrays of ``keep`` are not checked, only cut to the same rows (returned after the others)."""
+    bad = bad_values(t)
+    for a in arrays:
+        a = np.asarray(a, dtype=float)
+        bad |= bad_values(a, axis=tuple(range(1, a.ndim))) if a.ndim > 1 else bad_values(a)
+    if bad.any():
+        say(
+            notes,
+            f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
+            "(a damaged log); they are dropped",
+            DataWarning,
+            "read",
+            stacklevel=3,
+        )
+    good = ~bad
+    return (np.asarray(t)[good], *(np.asarray(a)[good] for a in arrays + tuple(keep)))
 
 
 def pair_by_time(series, source, notes=None):
@@ -154,7 +200,7 @@ def pair_by_time(series, source, notes=None):
             "of every other one within half a sample interval; they are dropped",
             DataWarning,
             "read",
-            stacklevel=4,
+            stacklevel=3,
         )
     values = [v0[keep]] + [v[p[keep]] for (_, v), p in zip(series[1:], picks)]
     return t0[keep], values
@@ -202,7 +248,7 @@ def _alive(series, labels, source, notes=None):
                 f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out",
                 DataWarning,
                 "read",
-                stacklevel=4,
+                stacklevel=3,
             )
             continue
         alive.append(k)
@@ -223,7 +269,7 @@ def _select(instances, sensors, source, what, notes=None):
                 f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)",
                 DataWarning,
                 "read",
-                stacklevel=4,
+                stacklevel=3,
             )
         return instances[:MAX_SENSORS]
     chosen = []
@@ -257,70 +303,255 @@ def _ardupilot_matrix(params, index):
     return m
 
 
-def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=None) -> Dataset:
-    """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame."""
+#: The FMT message (type 128): header, Type B, Length B, Name 4s, Format 16s, Columns 64s.
+_DF_FMT_TYPE = 0x80
+_DF_FMT_LENGTH = 89
+_DF_FMT_RE = re.compile(rb"\xa3\x95\x80")  # the sync bytes, then the type of FMT
+#: The message types magcal reads: a damaged format of one of them is refused, not skipped.
+_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT")
+
+
+def _c_string(raw: bytes) -> str | None:
+    """The NUL-terminated ASCII text of a fixed-size field, or None if it holds other bytes."""
+    text = raw.split(b"\0", 1)[0]
+    if not all(32 <= b < 127 for b in text):
+        return None
+    return text.decode("ascii")
+
+
+def check_dataflash_formats(path, source=None) -> int:
+    """Check every FMT message of a DataFlash log before pymavlink reads it; returns how many there are.
+
+    pymavlink steps through the file by the lengths the FMT messages declare: a length below the 3-byte header
+    (0 makes it loop forever) or a format whose fields do not fill its length leaves it looping, or silently
+    reading the wrong bytes. Each FMT message found (the sync bytes and type 128, then a printable name, format
+    and column list: another message's bytes cannot pass for one) is checked. (A format of length 0 made of
+    damaged bytes that pass for none is caught while reading: :func:`read_dataflash`'s reader refuses a message
+    that does not move it forward; pymavlink's slower Python indexer, used without its compiled one, loops on
+    those too, so then every candidate's length is checked.)
+
+    Raises
+    ------
+    DatasetError
+        Not a DataFlash log (no FMT message, which every DataFlash log begins with), or a format that would make
+        the reader loop or misread (named, with its byte offset).
+    """
+    from pymavlink import dfindexer
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+    source = str(source or path)
+    legacy_indexer = not dfindexer.available or os.environ.get("PYMAVLINK_FAST_INDEX", "1") != "1"
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size < _DF_FMT_LENGTH:
+            raise DatasetError(
+                f"{source}: not an ArduPilot DataFlash log ({size} bytes, less than one format message); check the file"
+            )
+        data = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    try:
+        count = 0
+        for match in _DF_FMT_RE.finditer(data):
+            ofs = match.start()
+            body = data[ofs + 3 : ofs + _DF_FMT_LENGTH]
+            if len(body) < _DF_FMT_LENGTH - 3:
+                break  # a log cut in the middle of its last message
+            ftype, length, name, fmt, columns = struct.unpack("<BB4s16s64s", body)
+            name, fmt, columns = _c_string(name), _c_string(fmt), _c_string(columns)
+            if length < 3 and legacy_indexer:  # pymavlink's Python indexer loops on any of these, named or not
+                raise DatasetError(
+                    f"{source}: byte {ofs}: a format message declares a length of {length} byte(s), less than the "
+                    "3-byte message header: the log is damaged (a reader would loop on it); record it again"
+                )
+            if not name or fmt is None or columns is None:
+                continue  # not a FMT message: these bytes belong to another one
+            count += 1
+            where = f"{source}: byte {ofs}: the format of message {name} (type {ftype})"
+            unknown = sorted(set(fmt) - set(FORMAT_TO_STRUCT))
+            if unknown:
+                if name in _DF_READ_TYPES:
+                    raise DatasetError(
+                        f"{where} has field type(s) {''.join(unknown)!r} no DataFlash reader knows; the log is damaged"
+                    )
+                continue
+            need = 3 + struct.calcsize("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in fmt))
+            if length < 3:
+                raise DatasetError(
+                    f"{where} declares a length of {length} byte(s), less than the 3-byte message header: the "
+                    "log is damaged (a reader would loop on it); record or download it again"
+                )
+            if (ftype == _DF_FMT_TYPE or name in _DF_READ_TYPES) and length != need:
+                raise DatasetError(
+                    f"{where} declares {length} bytes but its fields ({fmt}) take {need}: the log is damaged; "
+                    "record or download it again"
+                )
+        if count == 0:
+            raise DatasetError(
+                f"{source}: not an ArduPilot DataFlash log: it holds no FMT message, which every DataFlash log "
+                "begins with (is it another kind of file, or a text log? magcal reads the binary .bin)"
+            )
+        return count
+    finally:
+        data.close()
+
+
+class _Stuck(Exception):
+    """Raised inside pymavlink's reader: ``("slow",)`` past the deadline, ``("loop", offset)`` a message that did
+    not move the reader forward."""
+
+
+def _looping(source, offset):
+    return DatasetError(
+        f"{source}: byte {offset}: a message does not move the reader forward (its format declares a length below "
+        "the 3-byte header): the log is damaged; record or download it again"
+    )
+
+
+_GUARDED: dict = {}
+
+
+def _guarded_reader(DFReader):
+    """pymavlink's ``DFReader_binary`` with two guards on every message it parses (its indexer, its clock set-up,
+    every ``recv_match``): the deadline, and progress -- a message that leaves the reader where it was (a format
+    of length 0 registered from damaged bytes) stops it instead of looping forever."""
+    if "class" not in _GUARDED:
+
+        class GuardedReader(DFReader.DFReader_binary):
+            def __init__(self, *args, deadline=None, **kwargs):
+                self._deadline = deadline
+                super().__init__(*args, **kwargs)
+
+            def _parse_next(self):
+                if self._deadline is not None and time.monotonic() > self._deadline:
+                    raise _Stuck("slow")
+                before = self.offset
+                message = super()._parse_next()
+                if message is not None and self.offset <= before:
+                    raise _Stuck("loop", before)
+                return message
+
+        _GUARDED["class"] = GuardedReader
+    return _GUARDED["class"]
+
+
+def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout_s=None, notes=None) -> Dataset:
+    """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame.
+
+    Its format messages are checked first (:func:`check_dataflash_formats`); reading stops with a
+    :class:`DatasetError` after ``timeout_s`` seconds (default: no limit). Values NaN, infinite or beyond
+    :data:`magcal.data.dataset.MAX_ABS_VALUE` are dropped with a count.
+    """
     source = str(name or path)
     try:
         from pymavlink import DFReader
     except ImportError:
         raise DatasetError(
-            f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal-workbench[instruments]"'
+            f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
         ) from None
+    check_dataflash_formats(path, source)
+    deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
+
+    def too_slow():
+        return DatasetError(
+            f"{source}: reading stopped after {float(timeout_s):g} s, far longer than a log of this size takes: "
+            "the log is damaged; record or download it again"
+        )
+
+    def progress(_percent):
+        if deadline is not None and time.monotonic() > deadline:
+            raise _Stuck("slow")
+
     try:
         with warnings.catch_warnings(), open(os.devnull, "w") as devnull:
             warnings.simplefilter("ignore")
-            import contextlib
-
-            with contextlib.redirect_stdout(devnull):  # pymavlink prints notes about the indexer
-                log = DFReader.DFReader_binary(path, zero_time_base=True)
+            # pymavlink prints a line per damaged byte (thousands for a damaged log) to stdout and stderr
+            with contextlib.redirect_stdout(devnull), contextlib.redirect_stderr(devnull):
+                log = _guarded_reader(DFReader)(
+                    path, zero_time_base=True, progress_callback=progress, deadline=deadline
+                )
+    except _Stuck as exc:
+        raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
-        raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({type(exc).__name__}: {exc})") from None
-    params = {}
-    mags: dict = {}  # (name, instance) -> list of rows (t, x, y, z) nT
-    imu_t, imu_temp = [], []
-    att_t, att = [], []
-    bat_t, bat = [], []
-    seen_types = set()
-    unhealthy: dict = {}  # compass -> samples the firmware marked unhealthy (left out)
+        raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({exception_text(exc)})") from None
+    gathered: dict = {
+        "params": {},
+        "bad_params": [],
+        "mags": {},  # instance -> list of rows (t, x, y, z) nT
+        "imu": [],  # (t, temperature degC) of the first IMU
+        "att": [],  # (t, roll, pitch, yaw) deg
+        "bat": [],  # (t, current A) of the first battery
+        "seen": set(),
+        "unhealthy": {},  # compass -> samples the firmware marked unhealthy (left out)
+    }
     try:
-        while True:
-            m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT"])
-            if m is None:
-                break
-            kind = m.get_type()
-            seen_types.add(kind)
-            if kind == "PARM":
-                params[str(m.Name)] = float(m.Value)
-                continue
-            t_us = getattr(m, "TimeUS", None)
-            if t_us is None:
-                t_us = getattr(m, "TimeMS", 0) * 1000.0
-            t = float(t_us) * 1e-6
-            if kind.startswith("MAG"):
-                instance = int(getattr(m, "I", 0) or 0) if kind == "MAG" else int(kind[3:]) - 1
-                if getattr(m, "Health", 1) == 0:
-                    unhealthy[instance] = unhealthy.get(instance, 0) + 1
-                    continue
-                field_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
-                if undo_calibration:
-                    ofs = np.array([getattr(m, f"Ofs{a}", 0.0) for a in "XYZ"], dtype=float)
-                    mot = np.array([getattr(m, f"MO{a}", 0.0) for a in "XYZ"], dtype=float)
-                    field_mG = np.linalg.solve(_ardupilot_matrix(params, instance), field_mG - mot) - ofs
-                mags.setdefault(instance, []).append((t, *(field_mG * NT_PER_MILLIGAUSS)))
-            elif kind == "IMU":
-                if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
-                    imu_t.append(t)
-                    imu_temp.append(float(m.T))
-            elif kind == "ATT":
-                att_t.append(t)
-                att.append((float(m.Roll), float(m.Pitch), float(m.Yaw)))
-            elif kind == "BAT":
-                if int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) == 0 and hasattr(m, "Curr"):
-                    bat_t.append(t)
-                    bat.append(float(m.Curr))
+        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull), contextlib.redirect_stderr(devnull):
+            while True:
+                if deadline is not None and time.monotonic() > deadline:
+                    raise too_slow()
+                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT"])
+                if m is None:
+                    break
+                _dataflash_message(m, gathered, undo_calibration)
+    except DatasetError:
+        raise
+    except _Stuck as exc:
+        raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:
-        raise DatasetError(f"{source}: the DataFlash log is damaged ({type(exc).__name__}: {exc})") from None
-    for k, count in sorted(unhealthy.items()):
+        raise DatasetError(f"{source}: the DataFlash log is damaged ({exception_text(exc)})") from None
+    finally:
+        with contextlib.suppress(Exception):
+            log.close()
+    return _dataflash_dataset(source, gathered, sensors, undo_calibration, notes)
+
+
+def _dataflash_message(m, gathered, undo_calibration):
+    """Take one PARM, MAG, IMU, ATT or BAT message into ``gathered`` (the lists :func:`read_dataflash` fills)."""
+    kind = m.get_type()
+    gathered["seen"].add(kind)
+    if kind == "PARM":
+        value = float(m.Value)
+        if bad_values(value):
+            gathered["bad_params"].append(str(m.Name))
+        else:
+            gathered["params"][str(m.Name)] = value
+        return
+    t_us = getattr(m, "TimeUS", None)
+    if t_us is None:
+        t_us = getattr(m, "TimeMS", 0) * 1000.0
+    t = float(t_us) * 1e-6
+    if kind.startswith("MAG"):
+        instance = int(getattr(m, "I", 0) or 0) if kind == "MAG" else int(kind[3:]) - 1
+        if getattr(m, "Health", 1) == 0:
+            gathered["unhealthy"][instance] = gathered["unhealthy"].get(instance, 0) + 1
+            return
+        field_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
+        if undo_calibration:
+            ofs = np.array([getattr(m, f"Ofs{a}", 0.0) for a in "XYZ"], dtype=float)
+            mot = np.array([getattr(m, f"MO{a}", 0.0) for a in "XYZ"], dtype=float)
+            field_mG = np.linalg.solve(_ardupilot_matrix(gathered["params"], instance), field_mG - mot) - ofs
+        gathered["mags"].setdefault(instance, []).append((t, *(field_mG * NT_PER_MILLIGAUSS)))
+    elif kind == "IMU":
+        if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
+            gathered["imu"].append((t, float(m.T)))
+    elif kind == "ATT":
+        gathered["att"].append((t, float(m.Roll), float(m.Pitch), float(m.Yaw)))
+    elif kind == "BAT":
+        if int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) == 0 and hasattr(m, "Curr"):
+            gathered["bat"].append((t, float(m.Curr)))
+
+
+def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
+    """The dataset from the gathered messages (readings in nT), bad values dropped with a count."""
+    mags = gathered["mags"]
+    if gathered["bad_params"]:
+        say(
+            notes,
+            f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
+            f"({', '.join(dict.fromkeys(gathered['bad_params']))})",
+            DataWarning,
+            "read",
+            stacklevel=3,
+        )
+    for k, count in sorted(gathered["unhealthy"].items()):
         say(
             notes,
             f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out",
@@ -331,28 +562,37 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, notes=N
     if not mags:
         raise DatasetError(
             f"{source}: no MAG messages (compass data); the log holds "
-            f"{', '.join(sorted(seen_types)) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
+            f"{', '.join(sorted(gathered['seen'])) or 'none of MAG, IMU, ATT, PARM'}. Enable compass logging "
             "(LOG_BITMASK) and record again"
         )
     instances = _select(sorted(mags), sensors, source, "MAG messages", notes)
     series = []
     for k in instances:
-        rows = np.array(mags[k], dtype=np.float64)
-        series.append(_strictly_increasing(rows[:, 0], rows[:, 1:], source, f"compass {k + 1}", notes))
+        rows = np.asarray(mags[k], dtype=float)
+        t, xyz = _drop_bad(source, f"compass {k + 1}", rows[:, 0], rows[:, 1:], notes=notes)
+        series.append(_strictly_increasing(t, xyz, source, f"compass {k + 1}", notes))
+    if not any(t.size for t, _ in series):
+        raise DatasetError(f"{source}: no usable MAG samples: every one holds values {BAD_VALUE_TEXT}")
     labels = [f"compass {k + 1}" for k in instances]
     keep = _alive(series, labels, source, notes)
     series, labels = [series[i] for i in keep], [labels[i] for i in keep]
     temperature = attitude = None
     extra = {}
-    if imu_t:
-        temperature = _strictly_increasing(np.asarray(imu_t), np.asarray(imu_temp), source, "IMU temperature", notes)
-    if att_t:
-        ta, angles = _strictly_increasing(np.asarray(att_t), np.asarray(att), source, "ATT", notes)
+    imu = np.asarray(gathered["imu"], dtype=float).reshape(-1, 2)
+    imu_t, imu_temp = _drop_bad(source, "IMU temperature", imu[:, 0], imu[:, 1], notes=notes)
+    if imu_t.size:
+        temperature = _strictly_increasing(imu_t, imu_temp, source, "IMU temperature", notes)
+    att = np.asarray(gathered["att"], dtype=float).reshape(-1, 4)
+    att_t, angles = _drop_bad(source, "ATT", att[:, 0], att[:, 1:], notes=notes)
+    if att_t.size:
+        ta, angles = _strictly_increasing(att_t, angles, source, "ATT", notes)
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
-    if bat_t:
-        extra["current_A"] = _strictly_increasing(np.asarray(bat_t), np.asarray(bat), source, "BAT")
+    bat = np.asarray(gathered["bat"], dtype=float).reshape(-1, 2)
+    bat_t, amps = _drop_bad(source, "BAT", bat[:, 0], bat[:, 1], notes=notes)
+    if bat_t.size:
+        extra["current_A"] = _strictly_increasing(bat_t, amps, source, "BAT", notes)
     metadata = {
         "log_format": "ArduPilot DataFlash",
         "log_magnetometers": ", ".join(labels),
@@ -371,15 +611,14 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     try:
         from pyulog import ULog
     except ImportError:
-        raise DatasetError(
-            f'{source}: reading PX4 logs needs pyulog: pip install "magcal-workbench[instruments]"'
-        ) from None
+        raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
     try:
-        ulog = ULog(
-            path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined", "battery_status"]
-        )
+        with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pyulog prints its warnings
+            ulog = ULog(
+                path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined", "battery_status"]
+            )
     except Exception as exc:  # a damaged or foreign file
-        raise DatasetError(f"{source}: not a readable PX4 ULog file ({type(exc).__name__}: {exc})") from None
+        raise DatasetError(f"{source}: not a readable PX4 ULog file ({exception_text(exc)})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
     if not mags:
         return _ulog_calibrated_field(ulog, source, notes)
@@ -388,22 +627,19 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     temps = []
     for d in chosen:
         data = d.data
+        what = f"sensor_mag {d.multi_id}"
         t_key = "timestamp_sample" if "timestamp_sample" in data else "timestamp"
+        _require_fields(data, [t_key, "x", "y", "z"], source, what)
         t = np.asarray(data[t_key], dtype=float) * 1e-6
         xyz = np.column_stack([data[a] for a in "xyz"]).astype(float) * NT_PER_GAUSS
         temp = np.asarray(data.get("temperature", np.full(t.size, np.nan)), dtype=float)
-        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, f"sensor_mag {d.multi_id}", notes)
-        good = np.isfinite(both[:, :3]).all(axis=1)
-        if not good.all():
-            say(
-                notes,
-                f"{source}: sensor_mag {d.multi_id}: {int((~good).sum())} non-finite sample(s) dropped",
-                DataWarning,
-                "read",
-                stacklevel=3,
-            )
-        series.append((t[good], both[good, :3]))
-        temps.append((t[good], both[good, 3]))
+        temp = np.where(bad_values(temp), np.nan, temp)  # a bad temperature is a missing one (NaN: none)
+        t, xyz, temp = _drop_bad(source, what, t, xyz, keep=(temp,), notes=notes)
+        t, both = _strictly_increasing(t, np.column_stack([xyz, temp]), source, what, notes)
+        series.append((t, both[:, :3]))
+        temps.append((t, both[:, 3]))
+    if not any(t.size for t, _ in series):
+        raise DatasetError(f"{source}: no usable sensor_mag samples: every one holds values {BAD_VALUE_TEXT}")
     keep = _alive(series, [f"sensor_mag {d.multi_id}" for d in chosen], source, notes)
     series, temps, chosen = [series[i] for i in keep], [temps[i] for i in keep], [chosen[i] for i in keep]
     temperature = None
@@ -426,15 +662,25 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
 def _ulog_current(ulog, source):
     """``{"current_A": (t, A)}`` from the first ``battery_status`` (``current_a``), or None."""
     bats = sorted((d for d in ulog.data_list if d.name == "battery_status"), key=lambda d: d.multi_id)
-    if not bats or "current_a" not in bats[0].data:
+    if not bats or "current_a" not in bats[0].data or "timestamp" not in bats[0].data:
         return None
     data = bats[0].data
     t = np.asarray(data["timestamp"], dtype=float) * 1e-6
     amps = np.asarray(data["current_a"], dtype=float)
-    good = np.isfinite(amps) & (amps >= 0)  # PX4 writes -1 when the current is not measured
+    good = ~bad_values(amps) & ~bad_values(t) & (amps >= 0)  # PX4 writes -1 when the current is not measured
     if good.sum() < 2:
         return None
     return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status")}
+
+
+def _require_fields(data, names, source, what):
+    """Refuse a ULog topic that lacks one of the fields magcal reads (a KeyError otherwise)."""
+    missing = [n for n in names if n not in data]
+    if missing:
+        raise DatasetError(
+            f"{source}: {what} has no field {', '.join(missing)} (its fields: {', '.join(sorted(data)[:12])}); "
+            "this is not the PX4 message magcal reads: the log is damaged or from an unknown firmware"
+        )
 
 
 def _ulog_attitude(ulog, source, notes=None):
@@ -443,10 +689,12 @@ def _ulog_attitude(ulog, source, notes=None):
     if not att:
         return None
     data = att[0].data
+    _require_fields(data, ["timestamp"] + [f"q[{k}]" for k in range(4)], source, "vehicle_attitude")
     ta = np.asarray(data["timestamp"], dtype=float) * 1e-6
     q = np.column_stack([data[f"q[{k}]"] for k in range(4)]).astype(float)
+    ta, q = _drop_bad(source, "vehicle_attitude", ta, q, notes=notes)
     ta, q = _strictly_increasing(ta, q, source, "vehicle_attitude", notes)
-    ok = np.isfinite(q).all(axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    ok = np.linalg.norm(q, axis=1) > 0.5
     if not ok.any():
         return None
     return ta[ok], Rotation.from_quat(np.column_stack([q[ok, 1:], q[ok, :1]]))
@@ -470,6 +718,7 @@ def _ulog_calibrated_field(ulog, source, notes=None):
             "again"
         )
     data = found[0].data
+    _require_fields(data, ["timestamp"], source, topic)
     t = np.asarray(data["timestamp"], dtype=np.int64)
     if "magnetometer_timestamp_relative" in data:
         rel = np.asarray(data["magnetometer_timestamp_relative"], dtype=np.int64)
@@ -478,8 +727,9 @@ def _ulog_calibrated_field(ulog, source, notes=None):
     else:
         ok = np.ones(t.size, dtype=bool)
     xyz = np.column_stack([data[f"magnetometer_ga[{k}]"] for k in range(3)]).astype(float) * NT_PER_GAUSS
-    ok &= np.isfinite(xyz).all(axis=1)
     t, xyz = t[ok], xyz[ok]
+    t, xyz = _drop_bad(source, topic, t, xyz, notes=notes)
+    t = t.astype(np.int64)
     first = np.unique(t, return_index=True)[1]  # sensor_combined repeats a magnetometer sample at each IMU update
     t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic, notes)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])
@@ -491,7 +741,7 @@ def _ulog_calibrated_field(ulog, source, notes=None):
         "its parameters do not replace them",
         DataWarning,
         "read",
-        stacklevel=3,
+        stacklevel=2,
     )
     metadata = {
         "log_format": "PX4 ULog",

@@ -4,7 +4,8 @@ When the catalogue (:mod:`magcal.model.effects`) lacks a term, a user writes it 
 subclass and makes it known to magcal in one of two ways (walk-through: ``docs/user-effects.md``):
 
 * **A file** -- ``magcal calibrate data.csv --effects-file my_effects.py`` or, from Python,
-  :func:`load_effects_file`. The rule: *every class the file decorates with* ``@register``
+  :func:`load_effects_file`. *The file is Python code that runs with the user's rights*: only a file the user
+  chose and trusts. The rule: *every class the file decorates with* ``@register``
   (:func:`magcal.model.terms.register`) *joins the catalogue*; nothing else does (helper base classes, imports of other
   effects). A file that registers nothing is refused, naming the undecorated Effect subclasses it found.
 * **A package** that declares entry points in the group ``magcal.effects`` (pyproject:
@@ -474,6 +475,10 @@ def _admit(classes, before, source_key, kind, where, path=None) -> list[str]:
 def load_effects_file(path) -> list[str]:
     """Load a user's effect file: the Effect classes it decorates with ``@register`` join the catalogue.
 
+    **The file is Python code and runs with the rights of the process** (it is imported, as ``python FILE.py``
+    would run it): load only a file the user chose and trusts, never one named by a data file, a calibration or a
+    session document.
+
     The file is imported as a module of its own (a unique name derived from its path, so two files may share a
     stem); loading the same file again replaces its effects (after an edit).
 
@@ -682,10 +687,11 @@ def calibration_effect_names(path) -> list[str]:
     if not isinstance(doc, dict):
         return []
     names = []
-    for entry in doc.get("effect_params") or []:
+    entries, terms = doc.get("effect_params"), doc.get("effects")
+    for entry in entries if isinstance(entries, list) else []:  # another type: the loader says what is wrong
         if isinstance(entry, dict) and isinstance(entry.get("effect"), str):
             names.append(entry["effect"])
-    for term in doc.get("effects") or []:
+    for term in terms if isinstance(terms, list) else []:
         if isinstance(term, str):
             names.append(term.partition(":")[0])
     return list(dict.fromkeys(names))

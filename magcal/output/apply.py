@@ -41,6 +41,7 @@ from magcal.data.io import (
     CsvSource,
     ParquetSource,
     atomic_write,
+    check_output_path,
     check_parquet_codec,
     check_units,
     is_parquet,
@@ -286,6 +287,10 @@ def apply_file(
         Bad calibration file, a calibration for another number of sensors, missing channels, bad data.
     """
     t0 = time.perf_counter()
+    check_output_path(output_path, "output")  # before any work: a folder, a missing folder
+    if not os.path.isfile(survey_path):
+        what = "is a directory, not a survey file" if os.path.isdir(survey_path) else "no such file; check the path"
+        raise DatasetError(f"{os.fspath(survey_path)}: {what}")
 
     if compression is not None and not is_parquet(output_path):
         raise MagcalError(
@@ -462,7 +467,8 @@ def apply_columns(
         calibration_name = calibration_name or os.fspath(calibration)
         calibration = load_calibration(calibration)
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
-    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
+    check_output_path(output_path, "output")
+    if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
     choice, note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
     if note:

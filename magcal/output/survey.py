@@ -6,8 +6,9 @@ independently in a task of a ``dask.distributed`` cluster: a local one (``worker
 existing cluster by its scheduler address. Each task reads its partition through the one reader (the file's own
 metadata and header first, so the layout, units and checks are those of the whole file), corrects it with
 :func:`magcal.output.apply.correct_block` (the same numbers as ``magcal apply`` on the whole file) and writes
-``part-NNNNN.parquet`` (or ``.csv``) in ``output_dir``. The record-only terms are decided once for every file
-before the tasks start, as ``magcal apply`` does.
+``part-NNNNN.parquet`` (or ``.csv``) in a temporary folder beside ``output_dir``, renamed to ``output_dir`` when
+every partition is written: a bad row, a failed task or Ctrl-C leaves nothing under the final name. The
+record-only terms are decided once for every file before the tasks start, as ``magcal apply`` does.
 
 Messages from a task name the file and the line (CSV: counted from the partition's first line, which is given).
 """
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import io as _io
 import os
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 
@@ -25,10 +28,13 @@ from magcal.calibration.calibration import Calibration
 from magcal.core.errors import MagcalError, RecordTermWarning
 from magcal.data.dataset import DatasetError, dataset_columns
 from magcal.data.io import (
+    MAX_LINE_BYTES,
     CsvSource,
     ParquetSource,
+    check_output_path,
     check_parquet_codec,
     concatenate,
+    current_umask,
     is_parquet,
     parquet_table,
     parquet_write_options,
@@ -41,6 +47,24 @@ from magcal.output.apply import correct_block, load_calibration, output_columns,
 PARTITION_ROWS = 250_000
 #: Seconds to wait for a cluster's scheduler.
 CONNECT_TIMEOUT_S = 10.0
+#: Local worker processes allowed per CPU core: more only compete for the cores (and thousands exhaust the machine).
+WORKERS_PER_CORE = 4
+
+
+def max_workers() -> int:
+    """Most worker processes of a local cluster: :data:`WORKERS_PER_CORE` per CPU core of this machine."""
+    return WORKERS_PER_CORE * (os.cpu_count() or 1)
+
+
+def check_workers(workers) -> int:
+    """``workers`` as an int from 1 to :func:`max_workers`, or a :class:`MagcalError` saying the bound."""
+    n = int(workers)
+    if not 1 <= n <= max_workers():
+        raise MagcalError(
+            f"--workers {n}: give 1 to {max_workers()} (at most {WORKERS_PER_CORE} per CPU core; this machine has "
+            f"{os.cpu_count() or 1}); more processes only compete for the cores. Use --scheduler for a cluster"
+        )
+    return n
 
 
 def _distributed():
@@ -63,16 +87,54 @@ class Partition:
     kind: str  # "csv" or "parquet"
 
 
+def _too_long(path, line):
+    return DatasetError(
+        f"{path}: line {line} is longer than {MAX_LINE_BYTES:,} bytes; this is not a CSV of readings (a binary "
+        "file, or the line ends are missing): check the file"
+    )
+
+
 def _csv_head(path) -> tuple[bytes, int]:
     """The metadata and header lines of a CSV (bytes) and the byte offset where the data lines begin."""
     head = bytearray()
     with open(path, "rb") as fh:
-        for line in fh:
+        while True:
+            line = fh.readline(MAX_LINE_BYTES + 1)
+            if not line:
+                break
+            if len(line) > MAX_LINE_BYTES:
+                raise _too_long(path, head.count(b"\n") + 1)
             head += line
             text = line.strip()
             if text and not text.startswith(b"#"):
                 return bytes(head), len(head)
     raise DatasetError(f"{path}: no header line; see docs/formats.md")
+
+
+def _line_ends(path, offset, block=1 << 20):
+    """Byte positions just after each line end of the file from ``offset`` (and the file's end if the last line
+    has none), read block by block; a line over :data:`magcal.data.io.MAX_LINE_BYTES` is refused."""
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        pos = last = offset
+        lines = 0
+        while True:
+            data = fh.read(block)
+            if not data:
+                break
+            ends = np.flatnonzero(np.frombuffer(data, dtype=np.uint8) == 10) + pos + 1
+            starts = np.concatenate([[last], ends[:-1]]) if ends.size else np.array([last])
+            if ends.size and np.any(ends - starts > MAX_LINE_BYTES):
+                raise _too_long(path, lines + int(np.argmax(ends - starts > MAX_LINE_BYTES)) + 1)
+            pos += len(data)
+            if ends.size:
+                lines += ends.size
+                last = int(ends[-1])
+                yield ends
+            if pos - last > MAX_LINE_BYTES:
+                raise _too_long(path, lines + 1)
+        if pos > last:
+            yield np.array([pos])
 
 
 def partitions(paths, partition_rows: int = PARTITION_ROWS) -> list[Partition]:
@@ -93,18 +155,18 @@ def partitions(paths, partition_rows: int = PARTITION_ROWS) -> list[Partition]:
             continue
         head, offset = _csv_head(path)
         line = head.count(b"\n") + 1
-        with open(path, "rb") as fh:
-            fh.seek(offset)
-            start, n, first = offset, 0, line
-            pos = offset
-            for raw in fh:
-                pos += len(raw)
-                n += 1
-                if n == partition_rows:
-                    out.append(Partition(path, len(out), start, pos, first, "csv"))
-                    start, first, n = pos, first + partition_rows, 0
-            if pos > start:
+        start, n, first = offset, 0, line
+        for ends in _line_ends(path, offset):  # memory stays bounded whatever the file holds
+            k = 0
+            while n + (ends.size - k) >= partition_rows:
+                k += partition_rows - n
+                pos = int(ends[k - 1])
                 out.append(Partition(path, len(out), start, pos, first, "csv"))
+                start, first, n = pos, first + partition_rows, 0
+            n += ends.size - k
+        end = os.path.getsize(path)
+        if end > start:
+            out.append(Partition(path, len(out), start, end, first, "csv"))
     return out
 
 
@@ -222,10 +284,12 @@ def apply_partitioned(
     inputs : sequence of str or os.PathLike
         Survey files (CSV or Parquet).
     output_dir : str or os.PathLike
-        A new or empty directory; ``part-NNNNN.parquet`` (or ``.csv``) are written there, in input order.
+        A new or empty directory; ``part-NNNNN.parquet`` (or ``.csv``) are written, in input order, into a
+        temporary folder beside it (``.NAME.XXXXXXXX.tmp``) that takes its name once every partition is written;
+        on any error or interruption the temporary folder is removed and ``output_dir`` is left as it was.
     fmt : {"parquet", "csv"}
     workers : int
-        Worker processes of the local cluster (ignored with ``scheduler``).
+        Worker processes of the local cluster, 1 to :func:`max_workers` (ignored with ``scheduler``).
     scheduler : str, optional
         Address of an existing ``dask.distributed`` scheduler (``tcp://host:8786``).
     partition_rows : int
@@ -253,15 +317,16 @@ def apply_partitioned(
     compression = check_parquet_codec(compression)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
+    if not scheduler:
+        workers = check_workers(workers)
+    output_dir = check_output_path(output_dir, "-o", directory=True)  # before any work
+    for path in map(os.fspath, inputs):
+        if not os.path.isfile(path):
+            raise DatasetError(
+                f"{path}: " + ("is a directory" if os.path.isdir(path) else "no such file; check the path")
+            )
     if not hasattr(calibration, "correct"):
         calibration = load_calibration(calibration)
-    output_dir = os.fspath(output_dir)
-    if os.path.exists(output_dir) and (not os.path.isdir(output_dir) or os.listdir(output_dir)):
-        raise MagcalError(
-            f"{output_dir}: exists and is not an empty directory; choose a new one (partitions are "
-            "never mixed with other files)"
-        )
-    os.makedirs(output_dir, exist_ok=True)
     parts = partitions(inputs, int(partition_rows))
     if not parts:
         raise DatasetError("no data rows in the input files; nothing to correct")
@@ -273,7 +338,10 @@ def apply_partitioned(
     doc = calibration.to_dict()
     distributed = _distributed()
     progress = sys.stderr.isatty() if progress is None else bool(progress)
+    target = os.path.abspath(output_dir)
+    work_dir = tempfile.mkdtemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=os.path.dirname(target))
     cluster = None
+    done = False
     try:
         if scheduler:
             try:
@@ -296,7 +364,7 @@ def apply_partitioned(
                     correct_partition,
                     doc,
                     p,
-                    output_dir,
+                    work_dir,
                     fmt,
                     choices[p.path],
                     columns,
@@ -322,8 +390,28 @@ def apply_partitioned(
                 bar.close()
         finally:
             client.close()
+        try:
+            _publish(work_dir, target)
+        except OSError as exc:
+            done = True  # every partition is written: keep them where they are
+            raise MagcalError(
+                f"{target}: cannot give the finished partitions this name ({exc.strerror or exc}); did another "
+                f"program create it meanwhile? They are in {work_dir}"
+            ) from None
+        done = True
     finally:
         if cluster is not None:
             cluster.close()
-    files = sorted(r[0] for r in results)
+        if not done:  # a bad row, a failed task, Ctrl-C: no partial output under the final name
+            shutil.rmtree(work_dir, ignore_errors=True)
+    files = sorted(os.path.join(output_dir, os.path.basename(r[0])) for r in results)
     return PartitionedSummary(sum(r[1] for r in results), files, time.perf_counter() - t0, output_dir, where)
+
+
+def _publish(work_dir, target):
+    """Give the finished folder of partitions its final name (and the permissions of a folder made by
+    ``mkdir``: 0777 less the umask, where ``mkdtemp`` made it 0700)."""
+    os.chmod(work_dir, 0o777 & ~current_umask())
+    if os.path.isdir(target) and not os.listdir(target):
+        os.rmdir(target)  # the empty folder the user named; os.rename replaces only an empty one on POSIX anyway
+    os.rename(work_dir, target)

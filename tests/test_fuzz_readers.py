@@ -1,0 +1,572 @@
+"""Fuzzing every reader: generated and mutated inputs give a result or a one-line error, within a time bound.
+
+The readers: CSV (whole-file and streaming), Parquet, ArduPilot DataFlash ``.bin``, PX4 ``.ulg``, the calibration
+JSON (loaded, then applied), the workbench's session document, the live sources' line parser (bytes in, chunks
+out, the recording read back) and live URLs. Each target takes a hypothesis-drawn case: valid files built here
+with known content, then mutated (bytes flipped, inserted, deleted, truncated, format fields overwritten), or
+generated from the format's own grammar (headers, metadata lines, numbers from NaN to 1e308, JSON values of
+every type at every key).
+
+The contract checked on every case (:func:`outcome`):
+
+* it returns, or raises :class:`~magcal.core.errors.MagcalError` (``DatasetError``, ``LiveError``,
+  ``SessionFileError`` are kinds of it) whose message is one line: any other exception is a *traceback*;
+* it ends within :data:`TIME_BOUND_S` (run in a thread; one still running then is a *hang*).
+
+``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 30 s on two
+cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
+"""
+
+from __future__ import annotations
+
+import io as _stdio
+import json
+import os
+import socket
+import struct
+import threading
+import time
+import warnings
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import magcal
+from magcal.calibration.calibration import Calibration
+from magcal.core.errors import MagcalError
+from magcal.data import io
+from magcal.data.dataset import MAX_ABS_VALUE
+from magcal.data.live import LineParser, Recorder, _LineSource, open_source
+from magcal.data.logs import read_log
+
+pytest.importorskip("pymavlink")
+pytest.importorskip("pyulog")
+pytest.importorskip("pyarrow")
+
+#: Examples per target (env ``MAGCAL_FUZZ_EXAMPLES``).
+N_EXAMPLES = int(os.environ.get("MAGCAL_FUZZ_EXAMPLES", "600"))
+#: Longest a case may run (s) before it counts as a hang: far above any case's time on a loaded machine.
+TIME_BOUND_S = float(os.environ.get("MAGCAL_FUZZ_TIME_BOUND_S", "20"))
+
+
+# -- the contract ------------------------------------------------------------------------------------------------
+@dataclass
+class Tally:
+    """What a target's cases gave."""
+
+    tried: int = 0
+    results: int = 0
+    messages: int = 0
+    tracebacks: int = 0
+    hangs: int = 0
+    slowest_s: float = 0.0
+    first_failure: str | None = None
+    kinds: Counter = field(default_factory=Counter)
+
+
+TALLIES: dict[str, Tally] = {}
+
+
+def outcome(name, fn):
+    """Run ``fn()`` in a thread within :data:`TIME_BOUND_S`; tally it; fail on a traceback, a hang or a message
+    of several lines."""
+    tally = TALLIES.setdefault(name, Tally())
+    box = {}
+
+    def run():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                box["value"] = fn()
+        except BaseException as exc:  # judged below
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    t0 = time.monotonic()
+    thread.start()
+    thread.join(TIME_BOUND_S)
+    seconds = time.monotonic() - t0
+    tally.tried += 1
+    tally.slowest_s = max(tally.slowest_s, seconds)
+    if thread.is_alive():
+        tally.hangs += 1
+        tally.first_failure = tally.first_failure or f"hang (> {TIME_BOUND_S:g} s)"
+        raise AssertionError(f"{name}: still running after {TIME_BOUND_S:g} s (a hang)")
+    error = box.get("error")
+    if error is None:
+        tally.results += 1
+        return box["value"]
+    if isinstance(error, MagcalError) and "\n" not in str(error).strip() and str(error).strip():
+        tally.messages += 1
+        tally.kinds[type(error).__name__] += 1
+        return None
+    tally.tracebacks += 1
+    text = f"{type(error).__name__}: {str(error)[:300]}"
+    tally.first_failure = tally.first_failure or text
+    raise AssertionError(f"{name}: {text}") from error
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _report_tallies():
+    """With ``MAGCAL_FUZZ_REPORT=DIR`` (benchmarks/fuzz_readers.py), write this process's tallies there."""
+    yield
+    folder = os.environ.get("MAGCAL_FUZZ_REPORT")
+    if folder:
+        doc = {name: {**t.__dict__, "kinds": dict(t.kinds)} for name, t in TALLIES.items()}
+        Path(folder, f"tally-{os.getpid()}.json").write_text(json.dumps(doc))
+
+
+FUZZ = settings(
+    max_examples=N_EXAMPLES,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.function_scoped_fixture],
+)
+
+
+# -- mutations of bytes --------------------------------------------------------------------------------------------
+_INTERESTING = [
+    b"\x00",
+    b"\xff",
+    b"\x7f",
+    b"\x80",
+    b"\x00\x00\x00\x00",
+    b"\xff\xff\xff\xff",
+    struct.pack("<f", float("nan")),
+    struct.pack("<f", float("inf")),
+    struct.pack("<f", 3e38),
+    struct.pack("<d", float("nan")),
+    struct.pack("<d", 1e308),
+    struct.pack("<Q", 2**64 - 1),
+    b"\n",
+    b"\r",
+    b",",
+    b'"',
+    b"nan",
+    b"1e999",
+]
+
+_op = st.one_of(
+    st.tuples(st.just("flip"), st.floats(0, 1), st.integers(0, 7)),
+    st.tuples(st.just("set"), st.floats(0, 1), st.sampled_from(_INTERESTING)),
+    st.tuples(st.just("insert"), st.floats(0, 1), st.binary(min_size=1, max_size=64)),
+    st.tuples(st.just("delete"), st.floats(0, 1), st.integers(1, 200)),
+    st.tuples(st.just("truncate"), st.floats(0, 1), st.none()),
+    st.tuples(st.just("repeat"), st.floats(0, 1), st.integers(1, 300)),
+)
+
+
+def mutate(data: bytes, ops) -> bytes:
+    """Apply the byte mutations ``ops`` (positions as fractions of the length)."""
+    b = bytearray(data)
+    for kind, where, arg in ops:
+        k = min(int(where * len(b)), max(len(b) - 1, 0))
+        if kind == "flip" and b:
+            b[k] ^= 1 << arg
+        elif kind == "set":
+            b[k : k + len(arg)] = arg
+        elif kind == "insert":
+            b[k:k] = arg
+        elif kind == "delete":
+            del b[k : k + arg]
+        elif kind == "truncate":
+            del b[k:]
+        elif kind == "repeat":
+            b[k:k] = b[k : k + arg]
+    return bytes(b)
+
+
+def mutated(seeds):
+    """A seed with a few mutations (three times in four), or bytes from nowhere."""
+    few = st.builds(mutate, st.sampled_from(seeds), st.lists(_op, min_size=1, max_size=2))
+    many = st.builds(mutate, st.sampled_from(seeds), st.lists(_op, min_size=1, max_size=6))
+    return st.one_of(few, few, many, st.binary(max_size=2048))
+
+
+# -- the seed files -----------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def seeds(tmp_path_factory):
+    """Valid files of each kind, built here with known content."""
+    from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
+
+    d = tmp_path_factory.mktemp("fuzz_seeds")
+    ds = magcal.simulate_timeseries("chi2017", n_samples=60, seed=1, rate_hz=10.0)
+    whole = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2, rate_hz=1.0)
+    one = whole.replace(readings_nT=whole.readings_nT[:1], baseline_m=None)  # its first sensor alone
+    out = {"dataset": ds, "one": one}
+    io.write_csv(d / "a.csv", ds)
+    io.write_csv(d / "b.csv", one)
+    out["csv"] = [(d / "a.csv").read_bytes(), (d / "b.csv").read_bytes()]
+    io.write_parquet(d / "a.parquet", ds)
+    out["parquet"] = [(d / "a.parquet").read_bytes()]
+    messages, *_ = ardupilot_case(n=40, compasses=2)
+    write_dataflash(d / "a.bin", messages)
+    out["bin"] = [(d / "a.bin").read_bytes()]
+    topics, *_ = px4_case(n=40)
+    write_ulog(d / "a.ulg", topics)
+    out["ulg"] = [(d / "a.ulg").read_bytes()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = magcal.calibrate(one, effects=["temperature_bias"])  # a calibration with an effect block
+        out["calibration"] = [fit.calibration.to_dict(), magcal.calibrate(whole).calibration.to_dict()]
+    from magcal_workbench.state import SessionState
+
+    st_ = SessionState(60, 4, "/tmp/a.csv", None)
+    out["session"] = [st_.to_dict()]
+    return out
+
+
+def _write(tmp_path, name, data: bytes) -> Path:
+    path = tmp_path / name
+    path.write_bytes(data)
+    return path
+
+
+# -- CSV -----------------------------------------------------------------------------------------------------------
+_number_text = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**20), 10**20).map(str),
+    st.sampled_from(["nan", "NaN", "inf", "-inf", "1e308", "1e-308", "3e38", "1e31", "", " ", "1_000", "0x10", "١٢"]),
+    st.text(max_size=8),
+)
+_column_name = st.one_of(
+    st.sampled_from(["s1x", "s1y", "s1z", "s2x", "s2y", "s2z", "x", "y", "z", "t", "temp", "qw", "qx", "qy", "qz"]),
+    st.sampled_from(["ref_total", "group", "s5x", "s0x", "S1X", ""]),
+    st.text(max_size=6),
+)
+_meta_line = st.builds(
+    lambda k, v: f"# {k}: {v}",
+    st.sampled_from(["units", "lsb_nT", "baseline_m", "reference_total_nT", "noise_nT", "site"]),
+    st.one_of(_number_text, st.sampled_from(["nT", "uT", "G", "mG", "counts", "furlongs"])),
+)
+
+
+_LAYOUTS = [["s1x", "s1y", "s1z"], ["t", "x", "y", "z", "temp"], ["t", "s1x", "s1y", "s1z", "s2x", "s2y", "s2z"]]
+
+
+@st.composite
+def csv_text(draw):
+    if draw(st.booleans()):  # a layout magcal reads, perhaps with more columns
+        header = draw(st.sampled_from(_LAYOUTS)) + draw(st.lists(_column_name, max_size=2))
+    else:
+        header = draw(st.lists(_column_name, min_size=1, max_size=9))
+    cell = st.one_of(st.floats(-1e5, 1e5).map(repr), st.floats(-1e5, 1e5).map(repr), _number_text)
+    width = st.one_of(st.just(len(header)), st.just(len(header)), st.integers(max(len(header) - 1, 0), len(header) + 1))
+    rows = draw(st.lists(width.flatmap(lambda w: st.lists(cell, min_size=w, max_size=w)), max_size=8))
+    meta = draw(st.lists(_meta_line, max_size=3))
+    end = draw(st.sampled_from(["\n", "\r\n", "\r"]))
+    lines = meta + [",".join(header)] + [",".join(r) for r in rows]
+    return end.join(lines).encode("utf-8", "surrogatepass")
+
+
+def _read_csv_both(path):
+    """The whole-file reader (pyarrow first, then the line reader), strict; then the streaming reader of ``apply``
+    dropping bad rows. A message from the strict reader is fine; the streaming one gives the result."""
+    try:
+        magcal.read_csv(path)
+    except MagcalError:
+        pass
+    with io.CsvSource(path) as src:
+        parts = [chunk.dataset for chunk in src.chunks(7, drop_bad=True)]
+    return io.concatenate(parts) if parts else None
+
+
+def test_csv(seeds, tmp_path):
+    @FUZZ
+    @given(st.one_of(mutated(seeds["csv"]), csv_text()))
+    def check(data):
+        path = _write(tmp_path, "case.csv", data)
+        ds = outcome("CSV", lambda: _read_csv_both(path))
+        if ds is not None:  # whatever it read is finite and within the rule
+            assert np.all(np.abs(ds.readings_nT) <= MAX_ABS_VALUE)
+
+    check()
+
+
+# -- Parquet -------------------------------------------------------------------------------------------------------
+_cell = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.none(), st.integers(-(2**63), 2**63 - 1))
+
+
+@st.composite
+def parquet_bytes(draw):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    names = draw(st.lists(_column_name, min_size=1, max_size=6, unique=True))
+    n = draw(st.integers(0, 5))
+    cols = {}
+    for name in names:
+        kind = draw(st.sampled_from(["float", "int", "text", "mixed"]))
+        if kind == "float":
+            cols[name] = pa.array(draw(st.lists(st.floats(allow_nan=True), min_size=n, max_size=n)), pa.float64())
+        elif kind == "int":
+            cols[name] = pa.array(draw(st.lists(st.integers(-(2**63), 2**63 - 1), min_size=n, max_size=n)), pa.int64())
+        elif kind == "text":
+            cols[name] = pa.array(draw(st.lists(st.text(max_size=5), min_size=n, max_size=n)), pa.string())
+        else:
+            cols[name] = pa.array(
+                draw(st.lists(st.one_of(st.floats(), st.none()), min_size=n, max_size=n)), pa.float64()
+            )
+    table = pa.table(cols)
+    meta = draw(
+        st.one_of(st.none(), st.binary(max_size=40), st.dictionaries(st.text(max_size=8), _number_text, max_size=3))
+    )
+    if meta is not None:
+        raw = meta if isinstance(meta, bytes) else json.dumps(meta).encode()
+        table = table.replace_schema_metadata({b"magcal": raw})
+    buf = _stdio.BytesIO()
+    pq.write_table(table, buf)
+    return buf.getvalue()
+
+
+def test_parquet(seeds, tmp_path):
+    @FUZZ
+    @given(st.one_of(mutated(seeds["parquet"]), parquet_bytes()))
+    def check(data):
+        path = _write(tmp_path, "case.parquet", data)
+        outcome("Parquet", lambda: magcal.read_csv(path))
+
+    check()
+
+
+# -- DataFlash .bin ------------------------------------------------------------------------------------------------
+_fmt_op = st.tuples(st.just("fmt"), st.integers(0, 4), st.integers(0, 255), st.sampled_from([4, 3, 5]))
+
+
+def mutate_bin(data, ops):
+    """Byte mutations, and ``("fmt", k, value, field)``: overwrite a field byte (Type 3, Length 4) of FMT number k."""
+    b = bytearray(data)
+    plain = []
+    for op in ops:
+        if op[0] == "fmt":
+            _, k, value, offset = op
+            starts = [m for m in range(len(b) - 2) if b[m : m + 3] == b"\xa3\x95\x80"][: k + 1]
+            if starts:
+                b[starts[-1] + offset] = value
+        else:
+            plain.append(op)
+    return mutate(bytes(b), plain)
+
+
+def test_dataflash(seeds, tmp_path):
+    ops = st.lists(st.one_of(_op, _fmt_op), min_size=1, max_size=5)
+
+    @FUZZ
+    @given(st.one_of(st.builds(mutate_bin, st.sampled_from(seeds["bin"]), ops), st.binary(max_size=2048)))
+    def check(data):
+        path = _write(tmp_path, "case.bin", data)
+        outcome("DataFlash .bin", lambda: read_log(path))
+
+    check()
+
+
+# -- ULog .ulg -----------------------------------------------------------------------------------------------------
+def test_ulog(seeds, tmp_path):
+    @FUZZ
+    @given(mutated(seeds["ulg"]))
+    def check(data):
+        path = _write(tmp_path, "case.ulg", data)
+        outcome("PX4 .ulg", lambda: read_log(path))
+
+    check()
+
+
+# -- calibration JSON ----------------------------------------------------------------------------------------------
+_json_value = st.recursive(
+    st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(-(10**20), 10**20),
+        st.floats(allow_nan=False, allow_infinity=False),
+        st.sampled_from([1e308, -1e308, 1e-308, 0.0]),
+        st.text(max_size=10),
+    ),
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=4)),
+    max_leaves=12,
+)
+
+
+_leaf_number = st.one_of(
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.sampled_from([0, -0.0, 1, -1, 1e308, -1e308, 1e-308, 5e-324, 2**63, 10**30]),
+)
+
+
+def _paths(doc, prefix=()):
+    """Every key path of a JSON document."""
+    yield prefix
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _paths(v, (*prefix, k))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _paths(v, (*prefix, i))
+
+
+@st.composite
+def mutated_document(draw, seeds):
+    doc = json.loads(json.dumps(draw(st.sampled_from(seeds))))
+    for _ in range(draw(st.integers(1, 2))):
+        paths = [p for p in _paths(doc) if p]
+        if not paths:
+            break
+        path = draw(st.sampled_from(paths))
+        parent = doc
+        for key in path[:-1]:
+            parent = parent[key]
+        choice = draw(st.integers(0, 3))
+        if choice == 0 and isinstance(parent, dict):
+            del parent[path[-1]]
+        elif choice == 1 and isinstance(parent[path[-1]], (int, float)) and not isinstance(parent[path[-1]], bool):
+            parent[path[-1]] = draw(_leaf_number)  # a number for a number: passes more checks, reaches further
+        else:
+            parent[path[-1]] = draw(_json_value)
+    return json.dumps(doc).encode()
+
+
+def _load_and_apply(path, dataset):
+    cal = Calibration.load(path)
+    if cal.n_sensors == dataset.n_sensors:
+        corrected = cal.correct(dataset)
+        assert np.asarray(corrected).size
+    return cal
+
+
+def test_calibration_json(seeds, tmp_path):
+    raw = [json.dumps(d).encode() for d in seeds["calibration"]]
+
+    @FUZZ
+    @given(st.one_of(mutated_document(seeds["calibration"]), mutated(raw)))
+    def check(data):
+        path = _write(tmp_path, "case.json", data)
+        datasets = {1: seeds["one"], 4: seeds["dataset"]}
+        outcome("calibration JSON", lambda: _load_and_apply(path, datasets[_n_sensors(data)]))
+
+    check()
+
+
+def _n_sensors(data):
+    try:
+        return 1 if len(json.loads(data)["sensors"]) == 1 else 4
+    except Exception:  # not a document with sensors: any dataset will do
+        return 4
+
+
+# -- the workbench's session document -------------------------------------------------------------------------------
+def test_session_document(seeds):
+    from magcal_workbench.sessionfile import read_session_bytes
+
+    raw = [json.dumps(d).encode() for d in seeds["session"]]
+
+    @FUZZ
+    @given(st.one_of(mutated_document(seeds["session"]), mutated(raw)))
+    def check(data):
+        outcome("session document", lambda: read_session_bytes(data))
+
+    check()
+
+
+# -- live lines: bytes in, chunks out, the recording read back ---------------------------------------------------
+class _Bytes(_LineSource):
+    def __init__(self, blocks, parser):
+        super().__init__("fuzz://lines", parser)
+        self._blocks = list(blocks)
+
+    def _receive(self, timeout_s):
+        if not self._blocks:
+            self.ended = True
+            return b""
+        return self._blocks.pop(0)
+
+
+def _line_bytes():
+    line = st.lists(_number_text, min_size=0, max_size=6).map(lambda f: ",".join(f).encode("utf-8", "surrogatepass"))
+    return st.lists(
+        st.one_of(line.map(lambda b: b + b"\n"), st.binary(max_size=64), st.just(b"x" * 5000)), min_size=1, max_size=6
+    )
+
+
+def _live(columns, units, blocks, path):
+    parser = LineParser(columns, units=units, lsb_nT="100" if units == "counts" else None)
+    source = _Bytes(blocks, parser)
+    chunks = []
+    with Recorder(path) as rec:
+        for _ in range(len(blocks) + 1):
+            chunk = source.read(timeout_s=0.01)
+            rec.write(chunk)
+            chunks.append(chunk)
+    if rec.n_written:  # what the live parser accepted, the CSV reader reads back
+        back = magcal.read_csv(path)
+        assert back.n_samples == rec.n_written
+    return chunks
+
+
+def test_live_lines(tmp_path):
+    columns = st.one_of(
+        st.sampled_from(["x,y,z", "t,x,y,z", "t,x,y,z,temp", "t,s1x,s1y,s1z,s2x,s2y,s2z", "_,x,y,z"]),
+        st.lists(_column_name, max_size=6).map(",".join),
+    )
+    units = st.sampled_from(["nT", "uT", "G", "mG", "counts", "furlongs", ""])
+    counter = iter(range(10**9))
+
+    @FUZZ
+    @given(columns, units, _line_bytes())
+    def check(cols, unit, blocks):
+        path = tmp_path / f"rec{next(counter)}.csv"
+        outcome("live lines", lambda: _live(cols, unit, blocks, path))
+
+    check()
+
+
+# -- live URLs ----------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def closed_port():
+    """A loopback TCP port held bound but not listening: a connection to it is refused at once."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    yield sock.getsockname()[1]
+    sock.close()
+
+
+_param_value = st.one_of(_number_text, st.sampled_from(["1", "0", "-1", "1e12", "true", "lines", "mavlink"]))
+
+
+@st.composite
+def live_url(draw, closed_port, tmp):
+    scheme = draw(st.sampled_from(["sim", "tcp", "udp", "serial", "http", "", "SIM"]))
+    if scheme.lower() == "sim":
+        where = draw(st.one_of(st.sampled_from(["chi2017", "ding2024", "nope"]), st.text(max_size=10)))
+    elif scheme == "serial":
+        where = str(tmp / draw(st.text(alphabet="abc/_.", max_size=8)))  # never a real device
+    else:
+        host = draw(st.sampled_from(["127.0.0.1", "[::1", "[::1]", "", "localhost", "a" * 300, "127.0.0.1:1:2"]))
+        port = draw(st.one_of(st.just(closed_port), st.integers(-5, 70000).map(str), st.text(max_size=4)))
+        where = f"{host}:{port}"
+    keys = ["n", "rate", "speed", "seed", "loop", "baud", "columns", "units", "lsb", "timeout", "format", "sep", "x"]
+    params = draw(st.dictionaries(st.sampled_from(keys), _param_value, max_size=4))
+    if scheme in ("tcp", "udp") and draw(st.booleans()):
+        params["timeout"] = "0.5"
+    query = "&".join(f"{k}={v}" for k, v in params.items())
+    return f"{scheme}://{where}" + (f"?{query}" if query else "")
+
+
+def _open_and_read(url):
+    source = open_source(url)
+    try:
+        source.read(timeout_s=0.05, max_samples=10)
+    finally:
+        source.close()
+
+
+def test_live_urls(closed_port, tmp_path):
+    @FUZZ
+    @given(live_url(closed_port, tmp_path))
+    def check(url):
+        outcome("live URLs", lambda: _open_and_read(url))
+
+    check()
