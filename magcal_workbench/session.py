@@ -75,9 +75,10 @@ def default_root() -> Path:
 
 
 def write_bytes_atomic(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (the engine's :func:`magcal.data.io.atomic_write`), making its folder."""
+    """Write ``data`` to ``path`` atomically (the engine's :func:`magcal.data.io.atomic_write`), making its folder
+    readable by this user only (0700: a session holds the user's data; its files follow the umask)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     with atomic_write(path, "wb") as fh:
         fh.write(data)
 
