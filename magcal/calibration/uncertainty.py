@@ -149,7 +149,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
     acting = calibration._model_for(dataset, record_terms, VECTOR_STAGES, warn=False) if calibration.model else None
     acting_labels = {label for label, *_ in effect_layout(acting)}
     rows_of, at = {}, THETA_PER_SENSOR * ns
-    for label, e, es, q in effect_layout(calibration.model):
+    for label, _e, _es, q in effect_layout(calibration.model):
         rows_of[label] = slice(at, at + q)
         at += q
     joint = cov.shape[0] == at and at > THETA_PER_SENSOR * ns

@@ -721,11 +721,15 @@ class CsvSource:
 
     def _split(self, lines, numbers):
         rows = []
-        try:
-            for row, line_no in zip(csv.reader(lines), numbers):
-                rows.append(row)
-        except csv.Error as exc:
-            raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+        reader = csv.reader(lines)
+        for line_no in numbers:  # the line a row comes from names it in the message
+            try:
+                row = next(reader)
+            except StopIteration:
+                break
+            except csv.Error as exc:
+                raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+            rows.append(row)
         return rows
 
     def _parse_carefully(self, lines, numbers, drop_bad):

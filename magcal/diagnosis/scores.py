@@ -248,7 +248,8 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
         return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem
 
     acc: list = []
-    for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # chunks side by side
+    # chunks side by side; the last chunk's problem carries the blocks
+    for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # noqa: B007
         acc = terms if not acc else [a + t for a, t in zip(acc, terms)]
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], problem.blocks, kept.n_sensors * n, problem)
 

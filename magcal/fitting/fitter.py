@@ -316,7 +316,7 @@ class Problem:
             start = self.blocks[f"sensor{s + 1}/base"].start
             c = conventions.cinv_to_params(cal.cinv)
             base = []
-            for offset, (kind, k) in enumerate(self._base_free[s]):
+            for kind, k in self._base_free[s]:
                 if kind == "c":
                     i, j = conventions.UPPER_TRIANGLE[k]
                     tied = (c[5] / c[k]) if (self.reference_kind == "fitted" and s == 0 and k in (0, 3)) else None

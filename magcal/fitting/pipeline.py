@@ -295,7 +295,7 @@ def ellipsoid_step(
         for s, y in enumerate(dataset.readings_nT)
     ]
     if robust:
-        for s, (f, y) in enumerate(zip(fits, dataset.readings_nT)):
+        for f, y in zip(fits, dataset.readings_nT):
             dev = row_norm(f.correct(y)) - f.field_nT
             inliers &= np.abs(dev - np.median(dev)) <= ROBUST_START_SIGMA * robust_sigma(dev, floor=1e-9)
         if not inliers.all():

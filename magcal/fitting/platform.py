@@ -386,11 +386,11 @@ def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="
         R0 = r0.as_matrix()
         W = [v_all[s][m] @ R0.T for m in masks]  # start-rotated vectors per group
 
-        def residuals(p):
+        def residuals(p, W=W):
             rot = Rotation.from_rotvec(p[:3]).as_matrix()
             return np.concatenate([(w @ rot.T) @ a - u for w, a, u in zip(W, axes_up, p[3:])])
 
-        def jacobian(p):
+        def jacobian(p, W=W):
             rot = Rotation.from_rotvec(p[:3]).as_matrix()
             blocks = []
             for k, (w, a) in enumerate(zip(W, axes_up)):
