@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import warnings
 
 from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.coverage import calibration_input_checks
@@ -277,20 +276,18 @@ def run_vector(args, ds, vref, notes) -> int:
         raise MagcalError(f"--attitude-noise-deg must be an angle between 0 and 90 deg, got {att}")
     print(f"magcal calibrate: vector mode; reference: {vref.text}", file=sys.stderr)
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = fit_vector(
-                ds,
-                vref,
-                terms=_platform_terms(args),
-                attitude_noise_deg=att,
-                noise_nT=checked_noise(args),
-                reference_total_nT=ds.ref_total_nT,
-                robust=args.robust,
-            )
+        result = fit_vector(
+            ds,
+            vref,
+            terms=_platform_terms(args),
+            attitude_noise_deg=att,
+            noise_nT=checked_noise(args),
+            reference_total_nT=ds.ref_total_nT,
+            robust=args.robust,
+            warn=False,  # its notes are result.warnings, printed below
+        )
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
-    notes += [str(w.message) for w in caught if str(w.message) not in result.warnings]
     result.calibration.fitted_on(ds)
     validation = None
     if result.terms and getattr(args, "validate", True):

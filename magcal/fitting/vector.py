@@ -347,6 +347,7 @@ def fit_vector(
     reference_total_nT=None,
     robust=False,
     mask=None,
+    warn=True,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -372,6 +373,10 @@ def fit_vector(
     mask : numpy.ndarray of bool, shape (N,), optional
         The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
         record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact.
+    warn : bool
+        Raise the fit's notes (:attr:`VectorFitResult.warnings`: weak tilt, samples set aside...) as
+        :class:`~magcal.core.errors.DataWarning` (the default, for a user's call); False leaves them in the result
+        only, for the engine's own steps and the command line, which pass notes back as values.
 
     Raises
     ------
@@ -556,8 +561,9 @@ def fit_vector(
         wall_s=time.perf_counter() - start,
     )
     cal.summary = {"vector_fit": result.to_dict()}
-    for w in notes:
-        warnings.warn(w, DataWarning, stacklevel=2)
+    if warn:
+        for w in notes:
+            warnings.warn(w, DataWarning, stacklevel=2)
     return result
 
 
@@ -653,24 +659,23 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     f_ref = options.get("reference_total_nT")
     f_ref = np.linalg.norm(ned, axis=1) if f_ref is None else np.broadcast_to(np.asarray(f_ref, float), (n,))
     rows = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for model in models:
-            cal = fit_vector(dataset, reference, terms=model, mask=train, **options).calibration
-            world = np.stack([rotation.apply(b) for b in cal.correct(dataset)])
-            err = world - ned[None]
-            total = np.linalg.norm(world, axis=2) - f_ref[None]
+    # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
+    for model in models:
+        cal = fit_vector(dataset, reference, terms=model, mask=train, warn=False, **options).calibration
+        world = np.stack([rotation.apply(b) for b in cal.corrected_with_notes(dataset)[0]])
+        err = world - ned[None]
+        total = np.linalg.norm(world, axis=2) - f_ref[None]
 
-            def rms(values, part):
-                return float(np.sqrt(np.mean(values[:, part] ** 2)))
+        def rms(values, part):
+            return float(np.sqrt(np.mean(values[:, part] ** 2)))
 
-            rows.append(
-                {
-                    "terms": list(model),
-                    "in_vector_nT": rms(err, train),
-                    "held_vector_nT": rms(err, ~train),
-                    "in_total_nT": rms(total, train),
-                    "held_total_nT": rms(total, ~train),
-                }
-            )
+        rows.append(
+            {
+                "terms": list(model),
+                "in_vector_nT": rms(err, train),
+                "held_vector_nT": rms(err, ~train),
+                "in_total_nT": rms(total, train),
+                "held_total_nT": rms(total, ~train),
+            }
+        )
     return VectorValidation(n_blocks, rows)

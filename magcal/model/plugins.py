@@ -49,6 +49,7 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import say
 from magcal.data.dataset import CHANNELS, Dataset
+from magcal.model import perturbations
 from magcal.model.terms import BASE_TERMS, EFFECTS, Effect, contexts
 
 #: The entry-point group a package declares its effects in.
@@ -143,16 +144,7 @@ def _where_class(cls, path=None) -> str:
 
 def reserved_names() -> set:
     """Names the simulator already gives to perturbations outside the catalogue (``simulate --hidden NAME``)."""
-    names = set()
-    for module_name in ("magcal.model.perturbations", "magcal.model.effects"):
-        module = sys.modules.get(module_name)
-        if module is None:
-            try:
-                module = importlib.import_module(module_name)
-            except ImportError:
-                continue
-        names |= set(getattr(module, "EXTRA_PERTURBATIONS", {}) or {})
-    return names
+    return set(perturbations.EXTRA_PERTURBATIONS)
 
 
 def _check_name(cls, source_key, where) -> str:
