@@ -271,6 +271,7 @@ def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=Non
     choice = None if reference is None else str(reference).strip()
     found = []  # the checks' notes
     if choice is not None and choice.lower() == "igrf":
+        date = record_date(dataset, date)
         if lat is None or lon is None:
             raise MagcalError(
                 "--reference igrf needs the place: --lat DEG --lon DEG (and --alt-km KM, --date YYYY-MM-DD)"
@@ -480,6 +481,24 @@ def parse_reference_vector(text) -> np.ndarray:
     return v
 
 
+def record_date(dataset, date=None):
+    """The date for IGRF: ``date`` when given, else the record's own (``metadata['date']``, which the flight-log
+    readers take from the GPS), else None (today).
+
+    A record years old evaluated at today's date is off by the secular variation, tens of nT a year in each
+    component (a 2014 flight at 2026 is hundreds of nT off)."""
+    if date is not None or dataset is None:
+        return date
+    found = str((getattr(dataset, "metadata", None) or {}).get("date") or "").strip()
+    if not found:
+        return None
+    try:
+        parse_date(found)
+    except MagcalError:
+        return None  # a free-text date in a file's header is not one IGRF can take: today, as before
+    return found
+
+
 def resolve_vector_reference(
     dataset, reference=None, lat=None, lon=None, alt_km=0.0, date=None, vector=None
 ) -> VectorReference | None:
@@ -495,7 +514,8 @@ def resolve_vector_reference(
         alt_m`` columns. Anything else (a number, ``column``, ``fit``) is a scalar reference and leaves the vector
         to the columns.
     lat, lon, alt_km, date
-        Place (deg, deg, km above the ellipsoid) and date for IGRF.
+        Place (deg, deg, km above the ellipsoid) and date for IGRF; without ``date``, the record's
+        ``metadata['date']`` (:func:`record_date`), else today.
     vector : str or sequence, optional
         ``N,E,D`` in nT (``--reference-vector``): one vector for the whole record; it wins over everything.
 
@@ -507,6 +527,7 @@ def resolve_vector_reference(
     n = dataset.n_samples
     where = dataset.source or "data"
     extra = dataset.extra
+    date = record_date(dataset, date)
     if vector is not None:
         v = parse_reference_vector(vector)
         return VectorReference(

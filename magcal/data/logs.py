@@ -7,13 +7,22 @@ ArduPilot (read with pymavlink's ``DFReader``)
     the motor offsets (``MOX..``) logged beside it. To calibrate, magcal needs the raw field: by default it undoes
     that correction with the logged offsets and the ``COMPASS_DIA*``, ``COMPASS_ODI*``, ``COMPASS_SCALE*``
     parameters (``PARM`` messages) in force at each sample (``undo_calibration=False`` keeps the logged field).
-    Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times. Attitude:
+    Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times. Motor current:
+    ``BAT`` ``Curr`` (A) as ``current_A``; throttle: ``CTUN`` ``ThO`` (0-1; ``ThrOut`` / 1000 before Copter 3.3)
+    as ``throttle`` when it moves (the channels of the vector fit's field-per-unit term). Attitude:
     ``ATT`` roll, pitch, yaw (deg), as the quaternion channel (body to north-east-down) and as extra columns
-    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``.
+    ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``. Position: the first ``GPS`` receiver's samples with a 3D
+    fix (``Status`` >= 3) as the columns ``lat``, ``lon`` (deg) and ``alt_m`` (m above mean sea level, which IGRF
+    takes for height above the ellipsoid: tens of metres, far below a nT), timed by the board's clock (``TimeUS``;
+    in logs before 2015 ``T``, the board's ms: their ``TimeMS`` is the GPS time of week, not the board's); the
+    date of the first fix (``GWk``/``GMS`` or ``Week``/``TimeMS``) as ``metadata['date']``, which the IGRF
+    reference uses when no ``--date`` is given.
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
     ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
-    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times.
+    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times. Position:
+    ``vehicle_gps_position`` or ``sensor_gps`` with a 3D fix (``fix_type`` >= 3) as ``lat``, ``lon``, ``alt_m``,
+    and the date of ``time_utc_usec`` as ``metadata['date']``.
 
 Several magnetometers become magcal sensors 1, 2, 3 in instance order; their samples are paired by time (the
 nearest sample within half the first one's sample interval; unpaired samples are dropped with a warning). Note that
@@ -308,7 +317,7 @@ _DF_FMT_TYPE = 0x80
 _DF_FMT_LENGTH = 89
 _DF_FMT_RE = re.compile(rb"\xa3\x95\x80")  # the sync bytes, then the type of FMT
 #: The message types magcal reads: a damaged format of one of them is refused, not skipped.
-_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT")
+_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "CTUN")
 
 
 def _c_string(raw: bytes) -> str | None:
@@ -479,6 +488,8 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         "imu": [],  # (t, temperature degC) of the first IMU
         "att": [],  # (t, roll, pitch, yaw) deg
         "bat": [],  # (t, current A) of the first battery
+        "gps": [],  # (t, lat deg, lon deg, alt m, GPS week, GPS ms of week) of the first receiver's 3D fixes
+        "thr": [],  # (t, throttle 0-1) of CTUN
         "seen": set(),
         "unhealthy": {},  # compass -> samples the firmware marked unhealthy (left out)
     }
@@ -487,7 +498,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
             while True:
                 if deadline is not None and time.monotonic() > deadline:
                     raise too_slow()
-                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT"])
+                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT", "GPS", "CTUN"])
                 if m is None:
                     break
                 _dataflash_message(m, gathered, undo_calibration)
@@ -504,9 +515,12 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
 
 
 def _dataflash_message(m, gathered, undo_calibration):
-    """Take one PARM, MAG, IMU, ATT or BAT message into ``gathered`` (the lists :func:`read_dataflash` fills)."""
+    """Take one PARM, MAG, IMU, ATT, BAT or GPS message into ``gathered`` (the lists :func:`read_dataflash` fills)."""
     kind = m.get_type()
     gathered["seen"].add(kind)
+    if kind == "GPS":
+        _dataflash_gps(m, gathered["gps"])
+        return
     if kind == "PARM":
         value = float(m.Value)
         if bad_values(value):
@@ -537,6 +551,54 @@ def _dataflash_message(m, gathered, undo_calibration):
     elif kind == "BAT":
         if int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) == 0 and hasattr(m, "Curr"):
             gathered["bat"].append((t, float(m.Curr)))
+    elif kind == "CTUN":
+        if hasattr(m, "ThO"):  # 0..1 (Copter 3.3 and later, Plane)
+            gathered["thr"].append((t, float(m.ThO)))
+        elif hasattr(m, "ThrOut"):  # 0..1000 (Copter before 3.3)
+            gathered["thr"].append((t, float(m.ThrOut) / 1000.0))
+
+
+#: GPS time starts at 1980-01-06 (leap seconds do not matter to a date for IGRF).
+_GPS_EPOCH_DAY = np.datetime64("1980-01-06")
+
+
+def _dataflash_gps(m, rows):
+    """Append one DataFlash ``GPS`` message with a 3D fix of the first receiver to ``rows``.
+
+    The board time is ``TimeUS`` (us), or in logs before 2015 ``T`` (ms): there ``TimeMS`` is the GPS time of week,
+    which must not be taken for the board's clock (it is hundreds of thousands of seconds off)."""
+    if int(getattr(m, "I", 0) or 0) != 0 or int(getattr(m, "Status", 0) or 0) < 3:
+        return
+    if getattr(m, "TimeUS", None) is not None:
+        t = float(m.TimeUS) * 1e-6
+    elif getattr(m, "T", None) is not None:
+        t = float(m.T) * 1e-3
+    else:
+        return  # no board time: a GPS sample cannot be placed beside the compass's
+    week = getattr(m, "GWk", getattr(m, "Week", None))
+    ms = getattr(m, "GMS", getattr(m, "TimeMS", None) if hasattr(m, "Week") else None)
+    lat, lon = float(getattr(m, "Lat", 0.0)), float(getattr(m, "Lng", 0.0))
+    if lat == 0.0 and lon == 0.0:
+        return
+    rows.append((t, lat, lon, float(getattr(m, "Alt", 0.0)), float(week or 0), float(ms or 0)))
+
+
+def gps_week_date(week, ms_of_week) -> str | None:
+    """ISO date (``YYYY-MM-DD``) of a GPS week and millisecond of the week; None for week 0 (no time yet)."""
+    if not week or week <= 0:
+        return None
+    day = _GPS_EPOCH_DAY + np.timedelta64(int(week) * 7 + int(ms_of_week // 86_400_000), "D")
+    return str(day)
+
+
+def _position(source, t, lat, lon, alt_m, what, notes=None):
+    """``{"lat": (t, deg), "lon": ..., "alt_m": ...}`` of fixes, bad or impossible values dropped; {} if none."""
+    t, lat, lon, alt_m = _drop_bad(source, what, np.asarray(t, float), lat, lon, alt_m, notes=notes)
+    ok = (np.abs(lat) <= 90) & (np.abs(lon) <= 360) & (np.abs(alt_m) < 100_000)
+    if not ok.any():
+        return {}
+    t, both = _strictly_increasing(t[ok], np.column_stack([lat[ok], lon[ok], alt_m[ok]]), source, what, notes)
+    return {"lat": (t, both[:, 0]), "lon": (t, both[:, 1]), "alt_m": (t, both[:, 2])}
 
 
 def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
@@ -593,11 +655,24 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
     bat_t, amps = _drop_bad(source, "BAT", bat[:, 0], bat[:, 1], notes=notes)
     if bat_t.size:
         extra["current_A"] = _strictly_increasing(bat_t, amps, source, "BAT", notes)
+    thr = np.asarray(gathered["thr"], dtype=float).reshape(-1, 2)
+    thr_t, throttle = _drop_bad(source, "CTUN throttle", thr[:, 0], thr[:, 1], notes=notes)
+    if thr_t.size > 1 and np.ptp(throttle) > 0:  # a throttle that never moves is no channel (motors off)
+        extra["throttle"] = _strictly_increasing(thr_t, throttle, source, "CTUN", notes)
     metadata = {
         "log_format": "ArduPilot DataFlash",
         "log_magnetometers": ", ".join(labels),
         "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)",
     }
+    gps = np.asarray(gathered["gps"], dtype=float).reshape(-1, 6)
+    if gps.size:
+        extra.update(_position(source, gps[:, 0], gps[:, 1], gps[:, 2], gps[:, 3], "GPS", notes))
+        dated = gps[gps[:, 4] > 0]
+        date = gps_week_date(dated[0, 4], dated[0, 5]) if dated.size else None
+        if date:
+            metadata["date"] = date
+        if "lat" in extra:
+            metadata["position"] = "GPS 3D fixes (lat, lon deg; alt_m above mean sea level)"
     ds = _build(source, series, temperature, attitude, extra, metadata, notes)
     if "att_yaw_deg" in ds.extra:
         ds.extra["att_yaw_deg"] = (ds.extra["att_yaw_deg"] + 180.0) % 360.0 - 180.0
@@ -615,7 +690,16 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     try:
         with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pyulog prints its warnings
             ulog = ULog(
-                path, ["sensor_mag", "vehicle_attitude", "vehicle_magnetometer", "sensor_combined", "battery_status"]
+                path,
+                [
+                    "sensor_mag",
+                    "vehicle_attitude",
+                    "vehicle_magnetometer",
+                    "sensor_combined",
+                    "battery_status",
+                    "vehicle_gps_position",
+                    "sensor_gps",
+                ],
             )
     except Exception as exc:  # a damaged or foreign file
         raise DatasetError(f"{source}: not a readable PX4 ULog file ({exception_text(exc)})") from None
@@ -656,7 +740,42 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    return _build(source, series, temperature, attitude, _ulog_current(ulog, source), metadata, notes)
+    extra = {**(_ulog_current(ulog, source) or {}), **_ulog_position(ulog, source, metadata, notes)}
+    return _build(source, series, temperature, attitude, extra, metadata, notes)
+
+
+def _ulog_position(ulog, source, metadata, notes=None):
+    """``lat, lon, alt_m`` channels from the first ``vehicle_gps_position`` / ``sensor_gps`` with a 3D fix (and the
+    UTC date into ``metadata['date']``); {} when the log has none."""
+    for topic in ("vehicle_gps_position", "sensor_gps"):
+        found = sorted((d for d in ulog.data_list if d.name == topic), key=lambda d: d.multi_id)
+        if found:
+            break
+    else:
+        return {}
+    data = found[0].data
+    if "timestamp" not in data:
+        return {}
+    t = np.asarray(data["timestamp"], dtype=float) * 1e-6
+    if "latitude_deg" in data:
+        lat, lon = (np.asarray(data[k], dtype=float) for k in ("latitude_deg", "longitude_deg"))
+        alt = np.asarray(data.get("altitude_msl_m", np.zeros(t.size)), dtype=float)
+    elif "lat" in data and "lon" in data:
+        lat, lon = (np.asarray(data[k], dtype=float) * 1e-7 for k in ("lat", "lon"))
+        alt = np.asarray(data.get("alt", np.zeros(t.size)), dtype=float) * 1e-3
+    else:
+        return {}
+    fix = np.asarray(data.get("fix_type", np.full(t.size, 3)), dtype=float) >= 3
+    fix &= (lat != 0) | (lon != 0)
+    if not fix.any():
+        return {}
+    utc = np.asarray(data.get("time_utc_usec", np.zeros(t.size)), dtype=float)[fix]
+    if np.any(utc > 0):
+        metadata["date"] = str(np.datetime64(int(utc[utc > 0][0]), "us").astype("datetime64[D]"))
+    out = _position(source, t[fix], lat[fix], lon[fix], alt[fix], topic, notes)
+    if out:
+        metadata["position"] = f"{topic} 3D fixes (lat, lon deg; alt_m above mean sea level)"
+    return out
 
 
 def _ulog_current(ulog, source):
@@ -748,4 +867,5 @@ def _ulog_calibrated_field(ulog, source, notes=None):
         "log_magnetometers": topic,
         "log_field": f"calibrated by the vehicle ({topic}, body frame)",
     }
-    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), None, metadata, notes)
+    position = _ulog_position(ulog, source, metadata, notes)
+    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), position, metadata, notes)
