@@ -381,7 +381,12 @@ def add_reference_arguments(parser) -> None:
     parser.add_argument("--lat", type=float, default=None, help="geodetic latitude in degrees (for --reference igrf)")
     parser.add_argument("--lon", type=float, default=None, help="longitude in degrees east (for --reference igrf)")
     parser.add_argument("--alt-km", type=float, default=0.0, help="height above the WGS84 ellipsoid in km (igrf)")
-    parser.add_argument("--date", default=None, help="date YYYY-MM-DD or decimal year (igrf; default today)")
+    parser.add_argument(
+        "--date",
+        default=None,
+        help="date YYYY-MM-DD or decimal year (igrf; default: the record's own date - a flight log's GPS, a "
+        "'# date:' header line - else today)",
+    )
 
 
 def reference_from_args(args, dataset=None) -> Reference:

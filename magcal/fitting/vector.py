@@ -25,6 +25,16 @@ are given (``attitude_noise_deg``, ``noise_nT``) or estimated from the residuals
 the estimated weights). :func:`scipy.optimize.least_squares` minimises the weighted sum from the linear
 least-squares start.
 
+Standard deviations. The covariance ``(J^T J)^-1`` of the weighted fit counts every sample as independent. An
+attitude error that wanders (an AHRS's or an INS's heading drifts over tens of seconds) makes the residuals of
+neighbouring samples alike, and the record then holds far fewer independent samples: the standard deviations are
+widened by ``sqrt((1 + r) / (1 - r))``, ``r`` the lag-1 correlation of the residuals in record order (the variance of
+the mean of a first-order autoregressive sequence). A bias or mounting whose (widened) standard deviation is
+more than :data:`UNDETERMINED_BIAS_FRACTION` of the field or :data:`UNDETERMINED_MOUNTING_DEG` is reported as not
+determined by the record (a note): found on real flight logs (benchmarks/real/vector_logs.py), where a model
+aircraft carried level with a 3-5 deg attitude error gave biases of 100-170 uT with standard deviations of
+7-27 uT computed for white errors.
+
 Mounting. The 24 right-angle orientations are tried first, as ArduPilot's orientation detection does (a gain and
 an offset fitted for each; the best is the one the field vectors agree with), and the fit then refines the
 mounting continuously; the result says which right angle it was and how far off it the sensor sits.
@@ -52,6 +62,13 @@ from magcal.model.platform_terms import PlatformTerms, available_terms, current_
 
 #: Fewest samples per sensor for a vector fit (12 base parameters plus platform terms, three equations each).
 MIN_SAMPLES = 20
+
+#: A bias whose standard deviation exceeds this fraction of the field is not determined by the record (the
+#: total-field fit's limit on the ellipsoid's misfit is the same 5 %).
+UNDETERMINED_BIAS_FRACTION = 0.05
+
+#: A mounting whose standard deviation about a body axis exceeds this many degrees is not determined.
+UNDETERMINED_MOUNTING_DEG = 2.0
 
 
 @dataclass
@@ -96,6 +113,13 @@ class SensorVectorFit:
     n_outliers : int
         Samples whose residual exceeds 5 of its standard deviations (left out of the start; with ``robust``
         the soft-L1 loss keeps them from pulling the fit).
+    residual_lag1_correlation : float
+        Lag-1 correlation of the weighted residuals in record order (0 for white errors).
+    sd_widening : float
+        Factor the standard deviations were widened by for that correlation (>= 1; see the module docstring).
+    determined : bool
+        False when the bias's or the mounting's standard deviation is beyond :data:`UNDETERMINED_BIAS_FRACTION` of
+        the field or :data:`UNDETERMINED_MOUNTING_DEG`: the record does not fix the calibration (a note says so).
     """
 
     W: np.ndarray
@@ -118,6 +142,9 @@ class SensorVectorFit:
     bias_sd_nT: np.ndarray | None = None
     mounting_sd_deg: np.ndarray | None = None
     n_outliers: int = 0
+    residual_lag1_correlation: float = 0.0
+    sd_widening: float = 1.0
+    determined: bool = True
 
     def summary(self) -> dict:
         """JSON-ready figures for the calibration file's sensor entry."""
@@ -138,6 +165,9 @@ class SensorVectorFit:
             "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
             "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
             "n_outliers": self.n_outliers,
+            "residual_lag1_correlation": self.residual_lag1_correlation,
+            "sd_widening": self.sd_widening,
+            "determined": self.determined,
         }
 
 
@@ -196,6 +226,13 @@ class VectorFitResult:
                 f"{s.rms_perpendicular_nT:.2f} nT: attitude error {s.attitude_noise_deg:.4f} deg, "
                 f"{s.attitude_noise_source}); total-field residual RMS {s.rms_total_field_nT:.2f} nT",
             ]
+            if s.sd_widening > 1.05:
+                lines.append(
+                    f"    standard deviations widened {s.sd_widening:.1f}x: residuals correlated in time (lag-1 r = "
+                    f"{s.residual_lag1_correlation:.3f})"
+                )
+            if not s.determined:
+                lines.append("    NOT DETERMINED by this record (see the warning): do not apply this calibration")
             if "eddy_ms" in s.terms:
                 rows = "; ".join(" ".join(f"{v:.3f}" for v in row) for row in s.terms["eddy_ms"])
                 lines.append(f"    eddy currents E (ms, rows x; y; z): [{rows}]")
@@ -469,12 +506,33 @@ def fit_vector(
         try:
             jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
             s2 = float(z @ z) / max(len(z) - len(x), 1)
-            cov = s2 * jtj_inv
+            lag1 = _lag1_correlation(total, e)
+            widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(total))))
+            cov = s2 * jtj_inv * widening**2
             bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
             mount_sd = _mounting_sd_deg(W, cov[:9, :9])
             theta_cov.append(cov[:12, :12])
         except np.linalg.LinAlgError:
             bias_sd = mount_sd = None
+            lag1, widening = 0.0, 1.0
+        determined = not (
+            (bias_sd is not None and float(np.max(bias_sd)) > UNDETERMINED_BIAS_FRACTION * field_nT)
+            or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
+        )
+        if not determined:
+            notes.append(
+                f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
+                f"to {float(np.max(bias_sd)):.0f} nT ({100 * float(np.max(bias_sd)) / field_nT:.1f} % of the "
+                f"field) and the mounting's {float(np.max(mount_sd)):.2f} deg"
+                + (
+                    f" (widened {widening:.1f}x: the residuals are correlated in time, r = {lag1:.2f})"
+                    if widening > 1.05
+                    else ""
+                )
+                + "; with little tilt the vertical axis's scale and the bias trade against each other, and a "
+                "wandering attitude error does not average out. Do not apply it: record banked turns and pitch "
+                "changes (+-20 deg or more) over several minutes, with a better attitude (an INS)"
+            )
         if n_out:
             notes.append(
                 f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
@@ -529,6 +587,9 @@ def fit_vector(
                 bias_sd_nT=bias_sd,
                 mounting_sd_deg=mount_sd,
                 n_outliers=n_out,
+                residual_lag1_correlation=float(lag1),
+                sd_widening=float(widening),
+                determined=determined,
             )
         )
     if eddy:
@@ -565,6 +626,21 @@ def fit_vector(
         for w in notes:
             warnings.warn(w, DataWarning, stacklevel=2)
     return result
+
+
+def _lag1_correlation(*streams) -> float:
+    """The largest lag-1 correlation (clipped to [0, 0.9999]) of residual sequences in record order (each stream an
+    (N,) or (N, k) array: a column is one sequence; the body-frame vector residual's components follow a wandering
+    attitude error, the total-field residual the sensor's own noise)."""
+    best = 0.0
+    for stream in streams:
+        a = np.asarray(stream, dtype=float).reshape(len(stream), -1)
+        a = a - a.mean(axis=0)
+        den = np.sum(a * a, axis=0)
+        ok = den > 0
+        if a.shape[0] > 2 and ok.any():
+            best = max(best, float(np.max(np.sum(a[1:] * a[:-1], axis=0)[ok] / den[ok])))
+    return float(np.clip(best, 0.0, 0.9999))
 
 
 def _tilt_range_deg(rotation: Rotation) -> float:
