@@ -60,6 +60,7 @@ OLD_FORMATS = {  # ArduCopter 3.2 (2014-2015): times in ms
     "CTUN": (68, "Ih", "TimeMS,ThrOut"),
 }
 NEW_FORMATS = {  # ArduPilot 4.x: times in us, instances
+    "PARM": (64, "QNf", "TimeUS,Name,Value"),
     "MAG": (65, "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
     "ATT": (66, "Qccccff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"),
     "GPS": (67, "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
@@ -238,3 +239,33 @@ def test_record_date_only_takes_a_date_igrf_can_read():
     assert record_date(ds) is None  # free text in a header: today, as before, not an error
     assert record_date(ds.replace(metadata={"date": DATE})) == DATE
     assert record_date(ds.replace(metadata={"date": DATE}), "2020-01-01") == "2020-01-01"  # --date wins
+
+
+@pytest.mark.parametrize("wrong_by_deg", [0.0, 11.0])
+def test_a_wrong_declination_setting_is_named(tmp_path, wrong_by_deg):
+    """ArduPilot's ATT yaw is the magnetic heading plus COMPASS_DEC: set 11 deg wrong (as on a real model aircraft's
+    log, COMPASS_DEC 11.08 deg where IGRF gives 0.07 deg), the logged yaw is 11 deg off true north."""
+    t, att, lat, lon, alt, _, ned = _track(n=600)
+    raw, _, _ = _truth_readings(att, ned)
+    true_dec = float(np.degrees(np.arctan2(np.median(ned[:, 1]), np.median(ned[:, 0]))))
+    setting = true_dec + wrong_by_deg
+    ypr = att.as_euler("ZYX", degrees=True)
+    messages = [("PARM", (0, b"COMPASS_DEC", float(np.radians(setting))))]
+    for i in range(len(t)):
+        us = int(round(t[i] * 1e6))
+        yaw = ypr[i, 0] + wrong_by_deg
+        messages.append(("ATT", (us - 500, 0, int(round(ypr[i, 2] * 100)), 0, int(round(ypr[i, 1] * 100)), 0.0, yaw)))
+        messages.append(("MAG", (us, 0, *np.round(raw[i] / 100).astype(int), 0, 0, 0, 0, 0, 0, 1, us)))
+        la, lo = int(round(lat[i] * 1e7)), int(round(lon[i] * 1e7))
+        gps = (us + 200, 0, 3, MS_OF_WEEK + us // 1000, GPS_WEEK, 12, 80, la, lo, int(alt[i] * 100), 0, 0, 0, 0, 1)
+        messages.append(("GPS", gps))
+    path = tmp_path / "declination.bin"
+    _write_dataflash(path, NEW_FORMATS, messages)
+    ds = read_log(path, notes=[])
+    assert float(ds.metadata["log_declination_deg"]) == pytest.approx(setting, abs=1e-3)
+    fit = fit_vector(ds, resolve_vector_reference(ds, reference="igrf"), terms=[], warn=False)
+    named = [w for w in fit.warnings if "COMPASS_DEC" in w]
+    if wrong_by_deg:
+        assert len(named) == 1 and "+11.0 deg off true north" in named[0]
+    else:
+        assert not named

@@ -16,7 +16,8 @@ ArduPilot (read with pymavlink's ``DFReader``)
     takes for height above the ellipsoid: tens of metres, far below a nT), timed by the board's clock (``TimeUS``;
     in logs before 2015 ``T``, the board's ms: their ``TimeMS`` is the GPS time of week, not the board's); the
     date of the first fix (``GWk``/``GMS`` or ``Week``/``TimeMS``) as ``metadata['date']``, which the IGRF
-    reference uses when no ``--date`` is given.
+    reference uses when no ``--date`` is given. ``COMPASS_DEC`` (the declination the vehicle added to its magnetic
+    heading: ``ATT`` yaw is true heading only if it is right) as ``metadata['log_declination_deg']``.
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
     ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
@@ -664,6 +665,10 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
         "log_magnetometers": ", ".join(labels),
         "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)",
     }
+    if "COMPASS_DEC" in gathered["params"]:  # the declination (rad) the vehicle turned magnetic into true heading with
+        metadata["log_declination_deg"] = f"{np.degrees(gathered['params']['COMPASS_DEC']):.4f}"
+        if "COMPASS_AUTODEC" in gathered["params"]:
+            metadata["log_autodec"] = f"{gathered['params']['COMPASS_AUTODEC']:g}"
     gps = np.asarray(gathered["gps"], dtype=float).reshape(-1, 6)
     if gps.size:
         extra.update(_position(source, gps[:, 0], gps[:, 1], gps[:, 2], gps[:, 3], "GPS", notes))

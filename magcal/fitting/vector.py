@@ -70,6 +70,10 @@ UNDETERMINED_BIAS_FRACTION = 0.05
 #: A mounting whose standard deviation about a body axis exceeds this many degrees is not determined.
 UNDETERMINED_MOUNTING_DEG = 2.0
 
+#: A vehicle whose logged declination (``metadata['log_declination_deg']``, ArduPilot's ``COMPASS_DEC``) differs
+#: from the reference field's by more than this (deg) logged a yaw that far off true north: a note says so.
+DECLINATION_TOLERANCE_DEG = 1.0
+
 
 @dataclass
 class SensorVectorFit:
@@ -454,7 +458,7 @@ def fit_vector(
         else np.broadcast_to(np.asarray(reference_total_nT, dtype=float), (dataset.n_samples,))
     )[keep]
     column = current_column(dataset) if "current" in terms else None
-    notes = []
+    notes = _declination_notes(dataset, ned[keep])
     fits = []
     platform = PlatformTerms(current_column=column)
     eddy, current = [], []
@@ -626,6 +630,27 @@ def fit_vector(
         for w in notes:
             warnings.warn(w, DataWarning, stacklevel=2)
     return result
+
+
+def _declination_notes(dataset, ned) -> list:
+    """A note when the declination the vehicle used for its heading (``metadata['log_declination_deg']``) is not the
+    reference field's: the logged yaw is then off true north by the difference, and no calibration removes that."""
+    try:
+        setting = float((dataset.metadata or {}).get("log_declination_deg"))
+    except (TypeError, ValueError):
+        return []
+    if not np.isfinite(setting):
+        return []
+    field_dec = float(np.degrees(np.arctan2(np.median(ned[:, 1]), np.median(ned[:, 0]))))
+    diff = (setting - field_dec + 180.0) % 360.0 - 180.0
+    if abs(diff) <= DECLINATION_TOLERANCE_DEG:
+        return []
+    return [
+        f"the vehicle turned its magnetic heading into a true heading with a declination of {setting:.2f} deg (the "
+        f"log's COMPASS_DEC), but the reference field's declination is {field_dec:.2f} deg: its logged yaw is about "
+        f"{diff:+.1f} deg off true north, which turns the world components by as much and which no calibration of "
+        "the sensor removes; set COMPASS_DEC right (or COMPASS_AUTODEC 1) and record again"
+    ]
 
 
 def _lag1_correlation(*streams) -> float:
