@@ -53,6 +53,7 @@ ERLE = ("erlerobot/logs", "3f7d4a0d17f2485f7fa5cb7124fc2a5b13d6c688")
 CARIBOU = ("timspi/mag-calib", "c155daa72a19b42452b58ffc7cfbd6be211fd16e")
 CKX = ("CK-Explorer/Magnetometer-and-Accelerometer-Calibration", "61ac7669f1cbba2e5ce77763a40ebc123d95ac60")
 WRONA = ("michaelwro/mag-cal-example", "226e2e608473b1912320518366d30cdd404c5796")
+PFC = ("PyFlightCoach/FlightData", "801c43a7b2243b690c2c775cd6eda7cf47f8cfb3")
 
 #: The ADS payload's flight (2025-02-22, U. Michigan MXL): the logger's 5-min files that span the authors' flight
 #: window (``ADSvehicle/postFlightCali/data_ADSflight_times.csv``: unix 1740235659 to 1740241185).
@@ -150,6 +151,39 @@ SOURCES = (
         "none (local only)",
         "ArduCopter DataFlash log, Erle-Copter PXF v1.4 (2014-12-15): MAG 10 Hz for 152 s, level flight "
         "(roll/pitch within +-8 deg, yaw 25-351 deg), then the vehicle turns over at the end (roll -108, pitch 81)",
+    ),
+    Source(
+        "ap_erle_218.bin",
+        *ERLE,
+        "pxf/copter/5-12-2014/218.BIN",
+        "none (local only)",
+        "ArduCopter 3.2 DataFlash log, Erle-Copter PXF (2014-12-05, Vitoria-Gasteiz): MAG 10 Hz for 335 s with "
+        "ATT and GPS (3D fix), yaw through 360 deg many times, roll/pitch mostly within +-15 deg; the same compass "
+        "offsets as ap_pxf_flip and ap_erle_37 (the same vehicle, flown 10 and 17 days later)",
+    ),
+    Source(
+        "ap_erle_37.bin",
+        *ERLE,
+        "pxf/copter/22-12-2014/37.BIN",
+        "none (local only)",
+        "ArduCopter 3.2 DataFlash log, the same Erle-Copter (2014-12-22): MAG 5 Hz for 180 s with ATT and GPS; "
+        "upside down for about 70 s in the middle",
+    ),
+    Source(
+        "pfc_center_0003.bin",
+        *PFC,
+        "test/data/script_tests/center_0003.bin",
+        "LGPL-3.0",
+        "ArduPlane 4.x DataFlash log of an F3A aerobatic model aircraft carried on its flying field to mark the "
+        "box centre (2025-01-03, near Bristol, UK): MAG 10 Hz for 49 s, ATT, GPS; yaw through 263 deg, level",
+    ),
+    Source(
+        "pfc_pilot_0004.bin",
+        *PFC,
+        "test/data/script_tests/pilot_0004.BIN",
+        "LGPL-3.0",
+        "the same aircraft's next log (2025-01-03), carried to the pilot's position: MAG 10 Hz for 99 s, yaw "
+        "through 321 deg, roll -2..12, pitch -22..8 deg",
     ),
     Source(
         "cl_imu_gnss_data.csv",
