@@ -73,3 +73,15 @@ def test_a_wandering_error_on_a_good_flight_widens_the_sd_but_keeps_it_determine
     bias_err, mount_err = _errors(fit, truth)
     assert s.determined and s.sd_widening > 5
     assert np.all(bias_err < 4 * s.bias_sd_nT) and np.all(mount_err < 4 * s.mounting_sd_deg)
+
+
+def test_a_read_only_reference_vector_is_accepted():
+    """A reference built on a dataset's frozen columns is read-only; scipy's Rotation.apply refuses read-only input
+    (found while scoring the real logs)."""
+    from magcal.checks.reference import VectorReference
+
+    ds, _ = _flight(0, n=300, roll_max_deg=20.0, pitch_max_deg=10.0, attitude_noise_deg=0.02)
+    ned = np.array(resolve_vector_reference(ds).ned_nT)
+    ned.setflags(write=False)
+    fit = fit_vector(ds, VectorReference(ned, "read-only", "column"), terms=[], warn=False)
+    assert fit.sensors[0].rms_total_field_nT < 20.0

@@ -263,7 +263,7 @@ class VectorFitResult:
 
 def body_reference_nT(rotation: Rotation, reference_ned_nT) -> np.ndarray:
     """``R(q)^T B_ned`` (N, 3): the reference field in the body frame, nT."""
-    return rotation.inv().apply(np.asarray(reference_ned_nT, dtype=float))
+    return rotation.inv().apply(np.array(reference_ned_nT, dtype=float))  # a copy: scipy refuses read-only input
 
 
 def _perpendicular_basis(u):
