@@ -20,10 +20,9 @@ from __future__ import annotations
 import sys
 
 from magcal.core.errors import MagcalError
-from magcal.data.io import atomic_write
+from magcal.data.io import atomic_write, read_csv
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
-from magcal.data.io import read_csv
 from magcal.output.bundle import export_all, mask_from_file, parameter_bytes, raw_mask_bytes
 from magcal.output.export import FORMATS
 
