@@ -119,9 +119,13 @@ def mask_from_file(path, n_samples: int) -> np.ndarray:
             values = []
             for k, row in enumerate(reader, start=1):
                 text = (row.get("kept") or "").strip()
-                if text not in ("0", "1"):
+                try:
+                    value = float(text)
+                except ValueError:
+                    value = None
+                if value not in (0.0, 1.0):
                     raise MagcalError(f"{name}: data row {k}: kept is {text[:20]!r}; give 0 (rejected) or 1 (kept)")
-                values.append(text == "1")
+                values.append(value == 1.0)
     except FileNotFoundError:
         raise MagcalError(f"{name}: no such mask file; check the path") from None
     except UnicodeDecodeError:
@@ -168,7 +172,7 @@ def raw_mask_bytes(calibration, dataset, kept=None, calibration_name=CALIBRATION
     columns = dict(mio.dataset_columns(dataset))
     for name in ["kept"] + [f"s{s + 1}_residual_nT" for s in range(dataset.n_sensors)]:
         columns.pop(name, None)  # a file that is itself a raw_mask.csv: its old mask and residuals are replaced
-    columns["kept"] = kept.astype(int)
+    columns["kept"] = np.where(kept, "1", "0")  # written 1/0, not as the floats 1.0/0.0
     for s in range(dataset.n_sensors):
         columns[f"s{s + 1}_residual_nT"] = residual[s]
     meta = {
