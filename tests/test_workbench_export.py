@@ -7,7 +7,9 @@ only for a MAVLink source, reads old -> new first, writes on Confirm, and every 
 from __future__ import annotations
 
 import io
+import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,7 @@ from magcal.cli import main
 from magcal.data import io as mio
 from magcal.output.export import parse_parameter_file
 
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 #: Files of the single-sensor export and the button that downloads each.
 BUTTONS = {
     "calibration.json": "calibration.json",
@@ -116,7 +119,8 @@ def test_each_export_downloads_equal_to_the_command_line(browser, tmp_path, monk
                     close.click(timeout=2000)
                 except Exception:  # already gone
                     pass
-        page.screenshot(path=str(tmp_path / "export.png"))
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "workbench_export.png"))
         context.close()
     finally:
         wb.stop()
@@ -212,3 +216,87 @@ def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path)
     # a Confirm without a fresh preview writes nothing
     wb.handle(wb.exporting.do_send_confirm, None)
     assert "press Send to vehicle again" in wb.ctrl.message
+    # a firmware the page did not offer is refused before anything is read
+    _as_browser(section.firmware, "px4; rm -rf /")
+    wb.handle(wb.exporting.do_send_preview, None)
+    assert "not one of the choices offered" in wb.ctrl.message and section.firmware.value == "ardupilot"
+
+
+def _wait(cond, timeout_s):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.1)
+    return cond()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_send_to_vehicle_in_the_page(browser, tmp_path):
+    """In Chromium: choose the UDP MAVLink source and its port, Send to vehicle (old -> new, nothing written),
+    Confirm (written): the page's read-back table says every value equal, and the fake vehicle holds what
+    ``magcal export`` writes."""
+    pytest.importorskip("pymavlink")
+    from fake_autopilot import FakeAutopilot, free_udp_port
+
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.session import SessionStore
+
+    path = tmp_path / "one.csv"
+    mio.write_csv(path, magcal.simulate("ding2024", seed=3))
+    wb = Workbench(
+        mio.read_csv(path),
+        host="127.0.0.1",
+        port=0,
+        store=SessionStore(tmp_path / "sessions"),
+        content=path.read_bytes(),
+        name="one.csv",
+    )
+    port = free_udp_port()
+    try:
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.goto(wb.url, wait_until="domcontentloaded")
+        page.wait_for_function(
+            "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=WAIT_MS
+        )
+        page.get_by_role("button", name="Run the chosen method").click()
+        page.wait_for_function("() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=WAIT_MS)
+        assert wb.worker.wait(120)
+        (tmp_path / "cli").mkdir()
+        wb.exporting.do_export_calibration(None)  # what the calibration.json button downloads
+        (tmp_path / "cli" / "calibration.json").write_bytes(wb.downloads.last[1])
+        cal, parm = str(tmp_path / "cli" / "calibration.json"), str(tmp_path / "cli" / "c.parm")
+        assert main(["export", cal, "--format", "ardupilot", "-o", parm]) == 0
+        params = parse_parameter_file((tmp_path / "cli" / "c.parm").read_text())
+
+        page.get_by_role("tab", name="Files").click()
+        assert not page.get_by_role("button", name="Send to vehicle").is_visible()
+        fid = page.locator("label:text-is('Live source')").get_attribute("for")
+        page.locator(f'[id="{fid}"]').click()
+        page.get_by_role("option", name="UDP MAVLink on 127.0.0.1 (port below)").click()
+        page.get_by_role("button", name="Send to vehicle").wait_for(timeout=WAIT_MS)
+        box = page.get_by_label("Port (UDP/TCP)", exact=True)
+        box.fill(str(port))
+        box.press("Enter")
+        assert _wait(lambda: wb.panels.live_port.value == port, 20)
+        with FakeAutopilot({n: -7.5 for n in params}, port) as fake:
+            page.get_by_role("button", name="Send to vehicle").click()
+            page.wait_for_function("() => document.body.innerText.includes('Read from the vehicle')", timeout=WAIT_MS)
+            assert fake.sets == []
+            page.get_by_role("button", name="Confirm: write to the vehicle").click()
+            page.wait_for_function(
+                f"() => document.body.innerText.includes('Written and read back: all {len(params)} parameter(s) "
+                "equal')",
+                timeout=WAIT_MS,
+            )
+            vehicle = dict(fake.params)
+        page.get_by_role("button", name="Confirm: write to the vehicle").wait_for(state="hidden", timeout=WAIT_MS)
+        page.locator("text=Written and read back").scroll_into_view_if_needed()
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "workbench_send_to_vehicle.png"))
+        page.close()
+    finally:
+        wb.stop()
+    for name, value in params.items():
+        assert np.float32(vehicle[name]) == np.float32(value), name
