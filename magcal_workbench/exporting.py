@@ -30,6 +30,7 @@ import os
 import tempfile
 import threading
 import time
+import urllib.parse
 from pathlib import Path
 
 from magcal.core.errors import MagcalError
@@ -155,7 +156,15 @@ class Exporting:
             label = self.wb.panels.live_source.value
         except AttributeError:  # the panels are being made
             return False
-        return any(s.label == label and s.mavlink for s in self.wb.livectl.menu.offered())
+        if not isinstance(label, str) or not ("MAVLink" in label or label.startswith("allowed:")):
+            return False  # decided without listing the sources (serial ports, recordings) on every refresh
+        chosen = next((s for s in self.wb.livectl.menu.offered() if s.label == label), None)
+        if chosen is None:
+            return False
+        if chosen.kind == "url":  # a source the command line allowed: MAVLink when its URL says so
+            query = urllib.parse.parse_qs(urllib.parse.urlsplit(chosen.target).query, keep_blank_values=True)
+            return "mavlink" in query or query.get("format", [""])[-1].lower() == "mavlink"
+        return chosen.mavlink
 
     # --- the files ---------------------------------------------------------------------------------------------
     def _calibration(self):

@@ -300,3 +300,17 @@ def test_send_to_vehicle_in_the_page(browser, tmp_path):
         wb.stop()
     for name, value in params.items():
         assert np.float32(vehicle[name]) == np.float32(value), name
+
+
+def test_send_shows_for_an_allowed_mavlink_url_only(bench):
+    wb = bench(live_allow=("udp://0.0.0.0:14551?mavlink", "udp://0.0.0.0:14552?format=lines"))
+    panels = wb.panels
+    for label, shown in (
+        ("allowed: udp://0.0.0.0:14551?mavlink", True),
+        ("allowed: udp://0.0.0.0:14552?format=lines", False),
+        ("UDP text lines on 127.0.0.1 (port below)", False),
+        ("UDP MAVLink on 127.0.0.1 (port below)", True),
+    ):
+        _as_browser(panels.live_source, label)
+        assert wb.exporting.mavlink_chosen() is shown, label
+        assert panels.export.btn_send.visible is shown, label
