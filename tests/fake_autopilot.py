@@ -29,7 +29,7 @@ def free_udp_port() -> int:
 class FakeAutopilot:
     """Run with ``with FakeAutopilot(params, port) as fake:``; ``fake.params`` is the vehicle's table (float32)."""
 
-    def __init__(self, params: dict, port: int, drop=(), alter=(), int_params=(), bytewise=False, lifetime_s=60.0):
+    def __init__(self, params: dict, port: int, drop=(), alter=(), int_params=(), bytewise=False, lifetime_s=300.0):
         from pymavlink import mavutil
 
         self.params = {k: float(np.float32(v)) for k, v in params.items()}

@@ -95,24 +95,24 @@ def test_each_export_downloads_equal_to_the_command_line(browser, tmp_path, monk
         page.wait_for_function(
             "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=WAIT_MS
         )
-        page.get_by_role("button", name="Run the chosen method").click()
+        page.get_by_role("button", name="Run the chosen method").click(timeout=WAIT_MS)
         page.wait_for_function("() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=WAIT_MS)
         assert wb.worker.wait(120)
-        page.get_by_role("tab", name="Outliers").click()
-        page.get_by_role("button", name="Reject beyond k sigma").click()
+        page.get_by_role("tab", name="Outliers").click(timeout=WAIT_MS)
+        page.get_by_role("button", name="Reject beyond k sigma").click(timeout=WAIT_MS)
         page.wait_for_function("() => /Rejected: [1-9]\\d* of 300/.test(document.body.innerText)", timeout=WAIT_MS)
         assert wb.worker.wait(120)
         rejected = np.flatnonzero(~wb.ctrl.state.kept)
         assert set(OUTLIERS) <= set(rejected.tolist())
 
-        page.get_by_role("tab", name="Files").click()
+        page.get_by_role("tab", name="Files").click(timeout=WAIT_MS)
         got = {}
         for name, label in BUTTONS.items():
-            page.get_by_role("button", name=label, exact=True).click()
+            page.get_by_role("button", name=label, exact=True).click(timeout=WAIT_MS)
             link = page.locator(f'a[download="{name}"]').last
             link.wait_for(timeout=WAIT_MS)
             with page.expect_download(timeout=WAIT_MS) as info:
-                link.click()
+                link.click(timeout=WAIT_MS)
             got[name] = open(info.value.path(), "rb").read()
             for close in page.locator(".mantine-Notification-closeButton").all():
                 try:
@@ -260,7 +260,7 @@ def test_send_to_vehicle_in_the_page(browser, tmp_path):
         page.wait_for_function(
             "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=WAIT_MS
         )
-        page.get_by_role("button", name="Run the chosen method").click()
+        page.get_by_role("button", name="Run the chosen method").click(timeout=WAIT_MS)
         page.wait_for_function("() => /Total-field RMS: [0-9.]+ nT/.test(document.body.innerText)", timeout=WAIT_MS)
         assert wb.worker.wait(120)
         (tmp_path / "cli").mkdir()
@@ -270,21 +270,21 @@ def test_send_to_vehicle_in_the_page(browser, tmp_path):
         assert main(["export", cal, "--format", "ardupilot", "-o", parm]) == 0
         params = parse_parameter_file((tmp_path / "cli" / "c.parm").read_text())
 
-        page.get_by_role("tab", name="Files").click()
+        page.get_by_role("tab", name="Files").click(timeout=WAIT_MS)
         assert not page.get_by_role("button", name="Send to vehicle").is_visible()
         fid = page.locator("label:text-is('Live source')").get_attribute("for")
-        page.locator(f'[id="{fid}"]').click()
-        page.get_by_role("option", name="UDP MAVLink on 127.0.0.1 (port below)").click()
+        page.locator(f'[id="{fid}"]').click(timeout=WAIT_MS)
+        page.get_by_role("option", name="UDP MAVLink on 127.0.0.1 (port below)").click(timeout=WAIT_MS)
         page.get_by_role("button", name="Send to vehicle").wait_for(timeout=WAIT_MS)
         box = page.get_by_label("Port (UDP/TCP)", exact=True)
         box.fill(str(port))
         box.press("Enter")
         assert _wait(lambda: wb.panels.live_port.value == port, 20)
         with FakeAutopilot({n: -7.5 for n in params}, port) as fake:
-            page.get_by_role("button", name="Send to vehicle").click()
+            page.get_by_role("button", name="Send to vehicle").click(timeout=WAIT_MS)
             page.wait_for_function("() => document.body.innerText.includes('Read from the vehicle')", timeout=WAIT_MS)
             assert fake.sets == []
-            page.get_by_role("button", name="Confirm: write to the vehicle").click()
+            page.get_by_role("button", name="Confirm: write to the vehicle").click(timeout=WAIT_MS)
             page.wait_for_function(
                 f"() => document.body.innerText.includes('Written and read back: all {len(params)} parameter(s) "
                 "equal')",
