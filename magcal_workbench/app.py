@@ -54,6 +54,7 @@ from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
 from .evidence import Evidence
+from .exporting import Exporting
 from .guard import Gate, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
 from .lessons import DEMO, LessonDesk, get_lesson
@@ -154,6 +155,7 @@ class Workbench:
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
         self.livectl = LiveControl(self, live_allow)
+        self.exporting = Exporting(self)
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
@@ -175,6 +177,7 @@ class Workbench:
             live_sources=self.livectl.menu.labels,
         )
         self.uploads.watch_sizes(self.panels.upload)
+        self.exporting.attach(self.panels.export, self.panels.live_source)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
         # pointer events go through the error handler like every widget's callback
         self.server.scene.on_click()(lambda event: self.handle(lambda e: self.view.on_click(e), event))
@@ -188,7 +191,16 @@ class Workbench:
 
     def _actions(self) -> SimpleNamespace:
         """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``)."""
-        parts = (self.steps, self.uploads, self.downloads, self.sessions, self.lessons, self.livectl, self.evidence)
+        parts = (
+            self.steps,
+            self.uploads,
+            self.downloads,
+            self.sessions,
+            self.lessons,
+            self.livectl,
+            self.evidence,
+            self.exporting,
+        )
         on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
         on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
         v = self.view
@@ -201,6 +213,7 @@ class Workbench:
             refresh_maps=v.refresh_maps,
             legend_html=v.legend_html,
             draw_evidence=self.evidence.draw,
+            refresh_export=self.exporting.refresh,
         )
 
     # ------------------------------------------------------------------------------------------------------

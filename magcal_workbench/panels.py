@@ -18,6 +18,7 @@ import numpy as np
 from magcal.core import conventions
 
 from .controller import candidate_label, format_number
+from .exporting import ExportSection
 from .lessons import lesson_slugs, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED
 from .maps import SURFACE_CHOICES
@@ -796,6 +797,8 @@ class Panels:
         self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.on.do_download_calibration, engine=False)
         self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.on.do_download_corrected, engine=False)
         self.download_info = gui.add_markdown("")
+        with gui.add_folder("Export", expand_by_default=True):  # magcal_workbench.exporting
+            self.export = ExportSection(gui, self.w, self._button, self.on)
         gui.add_markdown("**Sessions** (saved automatically after every change)")
         self.session_info = gui.add_markdown("")
         self.session_choice = self.w.dropdown("Saved session", ("-",), allowed=self.session_ids, initial_value="-")
@@ -1019,6 +1022,7 @@ class Panels:
         self.btn_dl_cal.disabled = not has_cal
         self.btn_dl_csv.disabled = not has_cal
         self.btn_align.visible = ctrl.dataset.n_sensors > 1
+        self.on.refresh_export()
 
     def show_state(self) -> None:
         """Write the session state into every bound widget (their callbacks see nothing to change)."""

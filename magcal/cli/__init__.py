@@ -16,14 +16,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from magcal.cli import align, apply, calibrate, diagnose, effects, export, record, simulate
+from magcal.cli import align, apply, calibrate, diagnose, effects, export, record, send, simulate
 from magcal.core.errors import MagcalError
 from magcal.data.io import check_output_path
 from magcal.model import plugins
 from magcal.model.plugins import user_code_error
 
 #: Subcommand modules, in the order ``magcal --help`` lists them.
-SUBCOMMANDS = (simulate, calibrate, diagnose, align, apply, effects, export, record)
+SUBCOMMANDS = (simulate, calibrate, diagnose, align, apply, effects, export, send, record)
 
 
 def add_effects_file_argument(parser) -> None:

@@ -5,9 +5,14 @@ Example::
     magcal export cal.json --format ardupilot -o compass.param     # COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*
     magcal export cal.json --format px4 -o mag.params --sensor 2   # CAL_MAG1_*, for QGroundControl
     magcal export cal.json --format c                              # a C header on standard output
+    magcal export cal.json --format mask --data rec.csv -o raw_mask.csv   # raw readings, kept mask, residuals
+    magcal export cal.json --format all --data rec.csv -o magcal_export.zip   # every file and a README.txt
 
 A calibration holding more than the firmware can store (candidate effects, a rotation between sensors) is refused
 with the list of what would be lost; ``--force`` exports without it and writes the list into the file.
+
+The files are built by :mod:`magcal.output.bundle`, the functions the workbench's Export section calls: the same
+calibration gives the same bytes from either.
 """
 
 from __future__ import annotations
@@ -15,10 +20,18 @@ from __future__ import annotations
 import sys
 
 from magcal.core.errors import MagcalError
-from magcal.data.io import atomic_write
+from magcal.data.io import atomic_write, read_csv
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
-from magcal.output.export import FORMATS, export_calibration
+from magcal.output.bundle import export_all, mask_from_file, parameter_bytes, raw_mask_bytes
+from magcal.output.export import FORMATS
+
+#: Formats that need the data (--data): the raw readings with the fit's mask, and every file in a zip.
+DATA_FORMATS = {
+    "mask": "the raw readings with a kept column (the fit's mask, --mask) and the total-field residuals, as CSV",
+    "all": "a zip of every file (calibration, each firmware's parameters it allows, the corrected data, raw + "
+    "mask) with a README.txt saying what was not written and why",
+}
 
 
 def register(subparsers):
@@ -28,11 +41,11 @@ def register(subparsers):
         "export",
         help="write a calibration as ArduPilot or PX4 parameters, or a C header",
         description="Write a calibration as the parameters a flight controller loads: "
-        + "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
+        + "; ".join(f"{k}: {v}" for k, v in {**FORMATS, **DATA_FORMATS}.items())
         + ". Conventions and formulas: docs/export.md.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("--format", required=True, choices=tuple(FORMATS), help="what to write")
+    parser.add_argument("--format", required=True, choices=tuple(FORMATS) + tuple(DATA_FORMATS), help="what to write")
     parser.add_argument(
         "-o", "--output", default=None, metavar="FILE", help="output file (written atomically); default standard output"
     )
@@ -59,6 +72,19 @@ def register(subparsers):
         help="export even if effects or rotations between sensors must be dropped (listed in the "
         "file and on standard error)",
     )
+    parser.add_argument(
+        "--data",
+        default=None,
+        metavar="DATA.csv",
+        help="the data (formats mask and all): the record the calibration was fitted on, or any other",
+    )
+    parser.add_argument(
+        "--mask",
+        default=None,
+        metavar="FILE.csv",
+        help="format mask/all: a CSV with a kept column (1 kept, 0 rejected), one row per sample, e.g. the "
+        "workbench's raw_mask.csv; default every sample kept",
+    )
     parser.set_defaults(func=run)
     return parser
 
@@ -69,7 +95,11 @@ def run(args) -> int:
         raise MagcalError("--slot needs --sensor (one --slot per --sensor)")
     check_calibration_effects(args.calibration)
     calibration = load_calibration(args.calibration)
-    result = export_calibration(
+    if args.format in DATA_FORMATS:
+        return _run_data(args, calibration)
+    if args.data or args.mask:
+        raise MagcalError(f"--data and --mask are for --format {' or '.join(DATA_FORMATS)}, not {args.format}")
+    content, result = parameter_bytes(
         calibration, args.format, sensors=args.sensor, slots=args.slot, force=args.force, source=args.calibration
     )
     for line in result.dropped:
@@ -77,8 +107,8 @@ def run(args) -> int:
     for line in result.notes:
         print(f"magcal export: note: {line}", file=sys.stderr)
     if args.output:
-        with atomic_write(args.output) as fh:
-            fh.write(result.text)
+        with atomic_write(args.output, "wb") as fh:
+            fh.write(content)
         print(
             f"magcal export: wrote {len(result.parameters)} value(s) for {len(result.sensors)} sensor(s) to "
             f"{args.output}",
@@ -86,4 +116,31 @@ def run(args) -> int:
         )
     else:
         sys.stdout.write(result.text)
+    return 0
+
+
+def _run_data(args, calibration) -> int:
+    """``--format mask`` and ``--format all``: files built from the calibration and the data."""
+    if args.sensor or args.slot or args.force:
+        raise MagcalError(f"--format {args.format}: --sensor, --slot and --force are for the firmware formats")
+    if not args.data:
+        raise MagcalError(f"--format {args.format} needs the data: --data DATA.csv")
+    if not args.output:
+        raise MagcalError(f"--format {args.format} writes a file: give -o FILE")
+    dataset = read_csv(args.data)
+    kept = mask_from_file(args.mask, dataset.n_samples) if args.mask else None
+    if args.format == "mask":
+        content, notes = raw_mask_bytes(calibration, dataset, kept, calibration_name=args.calibration)
+        said = [f"wrote {dataset.n_samples} sample(s), {int(dataset.n_samples if kept is None else kept.sum())} kept"]
+    else:
+        content, readme = export_all(
+            calibration, dataset=dataset, data_path=args.data, kept=kept, calibration_name=args.calibration
+        )
+        notes = [line.strip() for line in readme if "not written" in line]
+        said = ["wrote the zip (its README.txt lists the files)"]
+    for line in notes:
+        print(f"magcal export: note: {line}", file=sys.stderr)
+    with atomic_write(args.output, "wb") as fh:
+        fh.write(content)
+    print(f"magcal export: {said[0]} to {args.output}", file=sys.stderr)
     return 0

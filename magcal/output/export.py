@@ -32,7 +32,6 @@ not written (listed as dropped).
 
 from __future__ import annotations
 
-import datetime as _dt
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -337,9 +336,9 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
 
 
 def _header_lines(calibration, source, dropped, notes, formula):
-    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    # no clock time: the same calibration gives the same file, from the command line or the workbench
     lines = [
-        f"magcal export of {source} ({now})",
+        f"magcal export of {source}",
         f"firmware formula: {formula}",
         f"calibration frame: {calibration.frame}; reference field "
         f"{calibration.reference_total_nT if calibration.reference_total_nT is not None else 'per sample'} nT",

@@ -1,0 +1,333 @@
+"""The Files tab's Export section: every file ``magcal export`` and ``magcal apply`` write, one click each, and
+*Send to vehicle* for a MAVLink live source.
+
+Each file is built by the engine's own function (:mod:`magcal.output.bundle`) from the calibration as its
+``calibration.json`` holds it (the page's calibration written and read back), so a download is byte for byte what
+the command line writes from that file:
+
+==========================  ====================================================================================
+button                      the command it equals
+==========================  ====================================================================================
+calibration.json            (the file itself)
+ArduPilot .parm             ``magcal export calibration.json --format ardupilot -o compass.parm``
+PX4 .params                 ``magcal export calibration.json --format px4 -o mag.params``
+C header                    ``magcal export calibration.json --format c -o magcal_calibration.h``
+Corrected CSV / Parquet     ``magcal apply calibration.json DATA -o corrected.csv`` (``.parquet``)
+Raw data + mask             ``magcal export calibration.json --format mask --data DATA --mask raw_mask.csv``
+Export all (.zip)           ``magcal export calibration.json --format all --data DATA``, plus ``session.json``
+==========================  ====================================================================================
+
+``DATA`` is the data the session works on (the session folder's ``data.csv``). *Send to vehicle*
+(:mod:`magcal.output.vehicle_params`) is shown only while the chosen live source is a MAVLink one the server
+offers (:class:`magcal_workbench.live.SourceMenu`): the first click reads the vehicle's values and shows old -> new,
+the second (*Confirm*) writes them, after saving the old values in the session folder; the read-back table follows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import threading
+import time
+import urllib.parse
+from pathlib import Path
+
+from magcal.core.errors import MagcalError
+from magcal.output import bundle
+from magcal.output.vehicle_params import default_backup_path, send_parameters, values_to_send
+
+from .dataio import canonical_csv
+from .live import recording_folder
+from .markup import safe_code, safe_text
+
+#: The firmwares *Send to vehicle* offers.
+FIRMWARES = ("ardupilot", "px4")
+#: The parameter-file buttons: format -> label.
+PARAMETER_BUTTONS = {"ardupilot": "ArduPilot .parm", "px4": "PX4 .params", "c": "C header (.h)"}
+#: A preview older than this is shown again before anything is written, s.
+PREVIEW_LIFETIME_S = 300.0
+#: The session file's name in the zip.
+SESSION_FILE = "session.json"
+
+
+def report_markdown(report, title: str) -> str:
+    """A send report (:class:`magcal.output.vehicle_params.SendReport`) as a markdown table."""
+    rows = ["| parameter | old | new | read back | status |", "|---|---|---|---|---|"]
+    rows += [f"| {safe_code(n, 20)} | {o} | {w} | {b} | {safe_text(s, 120)} |" for n, o, w, b, s in report.rows()]
+    lines = [f"**{title}**", "", "\n".join(rows)]
+    if report.backup_path:
+        lines.append(f"\nOld values saved to {safe_code(Path(report.backup_path).name)} in the session folder.")
+    return "\n".join(lines)
+
+
+class ExportSection:
+    """The Export widgets (made inside the Files tab by :class:`~magcal_workbench.panels.Panels`).
+
+    Parameters
+    ----------
+    gui : viser GUI API
+    widgets : magcal_workbench.checks.Widgets
+        Makes the input widgets and registers what each may send.
+    button : callable
+        ``button(gui, label, handler, engine=False, **kw)``: the panels' button maker (errors become messages).
+    on : object
+        The actions: ``do_export_*`` and ``do_send_*`` of :class:`Exporting`.
+    """
+
+    def __init__(self, gui, widgets, button, on):
+        gui.add_markdown(
+            "**Export**: each file is what the command line writes from the downloaded calibration.json "
+            "(`magcal export`, `magcal apply`); *Export all* zips every file the calibration allows, with a "
+            "README.txt saying what was not written and why."
+        )
+        self.force = gui.add_checkbox(
+            "Force (leave out what the firmware cannot hold)",
+            False,
+            hint="As --force: effects and rotations between sensors the firmware cannot store are left out (listed "
+            "in the file)",
+        )
+        self.buttons = {"calibration": button(gui, "calibration.json", on.do_export_calibration, engine=False)}
+        for fmt, label in PARAMETER_BUTTONS.items():
+            self.buttons[fmt] = button(gui, label, getattr(on, f"do_export_{fmt}"), engine=False)
+        self.buttons["csv"] = button(gui, "Corrected CSV (magcal apply)", on.do_export_csv, engine=False)
+        self.buttons["parquet"] = button(gui, "Corrected Parquet", on.do_export_parquet, engine=False)
+        self.buttons["mask"] = button(gui, "Raw data + fit mask (CSV)", on.do_export_mask, engine=False)
+        self.buttons["all"] = button(gui, "Export all (.zip)", on.do_export_all, engine=False, color="blue")
+        self.info = gui.add_markdown("")
+        self.send_title = gui.add_markdown(
+            "**Send to vehicle** (the live source's MAVLink connection): the first click reads the vehicle's "
+            "values and shows old -> new; *Confirm* writes them and reads every one back.",
+            visible=False,
+        )
+        self.firmware = widgets.dropdown(
+            "Vehicle firmware", FIRMWARES, initial_value=FIRMWARES[0], visible=False, hint="ArduPilot or PX4"
+        )
+        self.btn_send = button(gui, "Send to vehicle", on.do_send_preview, engine=False, visible=False)
+        self.btn_confirm = button(
+            gui, "Confirm: write to the vehicle", on.do_send_confirm, engine=False, visible=False, color="red"
+        )
+        self.btn_cancel = button(gui, "Cancel", on.do_send_cancel, engine=False, visible=False)
+        self.send_info = gui.add_markdown("", visible=False)
+
+    def refresh(self, has_calibration: bool, mavlink: bool, pending: bool) -> None:
+        """Enable the buttons with a calibration; show *Send to vehicle* for a MAVLink source, *Confirm* and
+        *Cancel* while a preview waits."""
+        for b in self.buttons.values():
+            b.disabled = not has_calibration
+        for w in (self.send_title, self.firmware, self.btn_send, self.send_info):
+            w.visible = mavlink
+        self.btn_send.disabled = not has_calibration
+        self.btn_confirm.visible = self.btn_cancel.visible = mavlink and pending
+
+
+class Exporting:
+    """The Export section's actions (``do_*``, found by :meth:`magcal_workbench.app.Workbench._actions`).
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        self.section: ExportSection | None = None
+        #: The previewed send: url, firmware, values, and when (the Confirm click writes only these).
+        self._pending: dict | None = None
+        self._lock = threading.Lock()
+
+    # --- wiring --------------------------------------------------------------------------------------------
+    def attach(self, section: ExportSection, live_source) -> None:
+        """Keep ``section`` in step: with the live source's choice (``live_source``, a dropdown) and the data."""
+        self.section = section
+        live_source.on_update(lambda event: self.wb.handle(lambda e: self.refresh(), event))
+        self.refresh()
+
+    def refresh(self) -> None:
+        if self.section is None:
+            return
+        with self._lock:
+            pending = self._pending is not None
+        self.section.refresh(self.wb.ctrl.calibration is not None, self.mavlink_chosen(), pending)
+
+    def mavlink_chosen(self) -> bool:
+        """Whether the Live source the page shows is a MAVLink source the server offers."""
+        try:
+            label = self.wb.panels.live_source.value
+        except AttributeError:  # the panels are being made
+            return False
+        if not isinstance(label, str) or not ("MAVLink" in label or label.startswith("allowed:")):
+            return False  # decided without listing the sources (serial ports, recordings) on every refresh
+        chosen = next((s for s in self.wb.livectl.menu.offered() if s.label == label), None)
+        if chosen is None:
+            return False
+        if chosen.kind == "url":  # a source the command line allowed: MAVLink when its URL says so
+            query = urllib.parse.parse_qs(urllib.parse.urlsplit(chosen.target).query, keep_blank_values=True)
+            return "mavlink" in query or query.get("format", [""])[-1].lower() == "mavlink"
+        return chosen.mavlink
+
+    # --- the files ---------------------------------------------------------------------------------------------
+    def _calibration(self):
+        """The calibration as its downloaded JSON holds it, and that JSON's bytes."""
+        ctrl = self.wb.ctrl
+        if ctrl.calibration is None:
+            raise MagcalError("nothing to export yet: run a fit first")
+        content = bundle.calibration_bytes(ctrl.calibration)
+        return bundle.calibration_from_bytes(content), content
+
+    def _data_file(self, folder):
+        """The data file the session works on (what ``magcal apply`` reads), or magcal's CSV of the data."""
+        ctrl = self.wb.ctrl
+        path = ctrl.state.data_path
+        if path and os.path.isfile(path):
+            return path
+        out = os.path.join(folder, "data.csv")
+        with open(out, "wb") as fh:
+            fh.write(canonical_csv(ctrl.dataset))
+        return out
+
+    def _send(self, event, name, content, notes=()):
+        self.wb.downloads.send(event, name, content)
+        said = f"exported {safe_code(name)} ({len(content):,} bytes)"
+        if notes:
+            said += "".join(f"  \n- {safe_text(n, 400)}" for n in notes)
+        self._say(said)
+
+    def _say(self, text):
+        if self.section is not None:
+            self.section.info.content = text
+        self.wb.ctrl.say(text)
+
+    def do_export_calibration(self, event):
+        _, content = self._calibration()
+        self._send(event, bundle.CALIBRATION_FILE, content)
+
+    def _export_parameters(self, event, fmt):
+        calibration, _ = self._calibration()
+        force = bool(self.section.force.value) if self.section is not None else False
+        content, result = bundle.parameter_bytes(calibration, fmt, force=force)
+        self._send(event, bundle.PARAMETER_FILES[fmt], content, [f"dropped: {d}" for d in result.dropped])
+
+    def do_export_ardupilot(self, event):
+        self._export_parameters(event, "ardupilot")
+
+    def do_export_px4(self, event):
+        self._export_parameters(event, "px4")
+
+    def do_export_c(self, event):
+        self._export_parameters(event, "c")
+
+    def _export_corrected(self, event, kind):
+        calibration, _ = self._calibration()
+        with tempfile.TemporaryDirectory(prefix="magcal-page-export-") as folder:
+            content, notes = bundle.corrected_bytes(calibration, self._data_file(folder), kind)
+        self._send(event, bundle.CORRECTED_FILES[kind], content, notes)
+
+    def do_export_csv(self, event):
+        self._export_corrected(event, "csv")
+
+    def do_export_parquet(self, event):
+        self._export_corrected(event, "parquet")
+
+    def do_export_mask(self, event):
+        calibration, _ = self._calibration()
+        ctrl = self.wb.ctrl
+        content, notes = bundle.raw_mask_bytes(calibration, ctrl.dataset, ctrl.state.kept)
+        self._send(event, bundle.MASK_FILE, content, notes)
+
+    def do_export_all(self, event):
+        calibration, _ = self._calibration()
+        ctrl = self.wb.ctrl
+        session = (json.dumps(ctrl.state.to_dict(), indent=1) + "\n").encode("utf-8")
+        with tempfile.TemporaryDirectory(prefix="magcal-page-export-") as folder:
+            content, readme = bundle.export_all(
+                calibration,
+                dataset=ctrl.dataset,
+                data_path=self._data_file(folder),
+                kept=ctrl.state.kept,
+                extra_files={SESSION_FILE: (session, "the workbench session (mask, model, history)")},
+            )
+        refused = [line.strip() for line in readme if "not written" in line]
+        self._send(event, bundle.BUNDLE_FILE, content, refused)
+
+    # --- send to vehicle -------------------------------------------------------------------------------------
+    def _target(self):
+        """``(url, firmware, values)`` the page would send now: the chosen MAVLink source (built on the server
+        from the offered list, :meth:`magcal_workbench.livecontrol.LiveControl.page_url`), the checked firmware,
+        and the parameters ``magcal export`` writes for it."""
+        wb = self.wb
+        if not self.mavlink_chosen():
+            raise MagcalError("choose a MAVLink live source (Files tab, Live source) to send to a vehicle")
+        if wb.livectl.running:
+            raise MagcalError("stop the live session first: it holds the vehicle's connection")
+        url = wb.livectl.page_url()
+        firmware = wb.values.check(self.section.firmware)
+        calibration, _ = self._calibration()
+        content, _ = bundle.parameter_bytes(calibration, firmware, force=bool(self.section.force.value))
+        return url, firmware, values_to_send(content.decode("utf-8"), firmware)
+
+    def _backup_folder(self) -> Path:
+        wb = self.wb
+        sid = wb.ctrl.session_id
+        if wb.store is not None and sid:
+            return Path(wb.store.folder(sid))
+        return recording_folder(wb.store)
+
+    def do_send_preview(self, event):
+        """First click: read the vehicle's current values (nothing is written) and show old -> new."""
+        url, firmware, values = self._target()
+        wb = self.wb
+
+        def job():
+            report = send_parameters(url, values, firmware, confirm=lambda r: False)
+            with self._lock:
+                self._pending = {"url": url, "firmware": firmware, "values": values, "at": time.monotonic()}
+            text = report_markdown(report, f"Read from the vehicle: {len(values)} parameter(s) to write")
+            wb.ui.post(lambda: self._show_send(text))
+            wb.ctrl.say("read the vehicle's values: check old -> new (Files tab), then press Confirm to write them")
+
+        wb.ctrl.run_job("read the vehicle's parameters", job)
+
+    def do_send_cancel(self, event):
+        with self._lock:
+            self._pending = None
+        self._show_send("_Nothing was written._")
+
+    def do_send_confirm(self, event):
+        """Second click: write what was previewed, if nothing changed since, and show the read-back."""
+        url, firmware, values = self._target()
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if (
+            pending is None
+            or (pending["url"], pending["firmware"], pending["values"]) != (url, firmware, values)
+            or time.monotonic() - pending["at"] > PREVIEW_LIFETIME_S
+        ):
+            self.refresh()
+            raise MagcalError(
+                "the source, the firmware or the calibration changed since the vehicle was read (or it was "
+                "long ago): press Send to vehicle again to see old -> new"
+            )
+        wb = self.wb
+        backup = default_backup_path(self._backup_folder(), firmware)
+        os.makedirs(os.path.dirname(backup), exist_ok=True, mode=0o700)
+
+        def job():
+            report = send_parameters(url, values, firmware, backup_path=backup)
+            title = (
+                f"Written and read back: all {len(values)} parameter(s) equal"
+                if report.ok
+                else f"NOT all written: {len(report.failed)} parameter(s) failed"
+            )
+            wb.ui.post(lambda: self._show_send(report_markdown(report, title)))
+            wb.ctrl.say(
+                f"sent {len(values)} parameter(s) to the vehicle: "
+                + ("every value read back equal" if report.ok else f"{len(report.failed)} FAILED (Files tab)")
+            )
+
+        wb.ctrl.run_job("send to the vehicle", job)
+
+    def _show_send(self, text: str) -> None:
+        if self.section is not None:
+            self.section.send_info.content = text
+        self.refresh()
