@@ -431,7 +431,7 @@ class LineParser:
         self.factor = parse_units(units, where="live source units", lsb_nT=lsb_nT if is_counts(units) else None)
         self.index_t = self.index_temp = None
         self.time_factor = 1.0
-        axes, channels, seen = {}, {}, {}
+        axes, channels, seen, used = {}, {}, {}, []
         for j, name in enumerate(names):
             try:
                 role = lineformats.column_role(name)
@@ -448,6 +448,7 @@ class LineParser:
                     else f"columns: {name!r} appears twice"
                 )
             seen[key] = name
+            used.append(j)
             if kind == "time":
                 self.index_t, self.time_factor = j, role[1]
             elif kind == "temp":
@@ -466,6 +467,7 @@ class LineParser:
         self.n_sensors = len(sensors)
         self.channel_names = tuple(channels)
         self._index_channels = np.array(list(channels.values()), dtype=int)
+        self._used = used
 
     def _split(self, text):
         return text.split(self.sep) if self.sep else _SPLIT_DEFAULT.split(text)
@@ -510,12 +512,13 @@ class LineParser:
                 raise ValueError(
                     f"field count: {len(fields)} field(s), expected {len(self.columns)} ({','.join(self.columns)})"
                 )
-        try:
-            values = [float(f) if f.strip() else np.nan for f in fields]
-        except ValueError:
-            bad = next(f for f in fields if not _is_number(f))
-            raise ValueError(f"not a number: {bad[:30]!r}") from None
-        values = np.asarray(values)
+        values = np.full(len(fields), np.nan)
+        for j in self._used:  # a skipped field may hold anything
+            f = fields[j]
+            try:
+                values[j] = float(f) if f.strip() else np.nan
+            except ValueError:
+                raise ValueError(f"not a number: {f[:30]!r}") from None
         readings = values[self.index_xyz] * self.factor
         t = None if self.index_t is None else float(values[self.index_t]) * self.time_factor
         temp = None if self.index_temp is None else float(values[self.index_temp])
@@ -523,21 +526,14 @@ class LineParser:
         return t, readings, temp, channels
 
 
-def _is_number(text):
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
-
-
 class _LineSource(LiveSource):
     """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``.
 
     Lines that cannot be read before the first sample since the source opened (or reopened its port) are skipped
     as a boot banner or a cut first line (:meth:`SourceStats.skip`); after it, they are bad. When a line's time
-    (a ``t`` column) jumps back by more than :data:`CLOCK_RESET_S` (the board restarted its clock), later samples
-    are shifted to follow on from the last one by the time the host saw pass (:attr:`clock_resets` counts it).
+    (a ``t`` column) jumps back by more than :data:`CLOCK_RESET_S`, or at all in the first sample after the port
+    was reopened (the board restarted its clock), later samples are shifted to follow on from the last one by the
+    time the host saw pass (:attr:`clock_resets` counts it).
     """
 
     def __init__(self, url, parser):
@@ -554,11 +550,14 @@ class _LineSource(LiveSource):
         self._device_t = None  # the last time stamp the device sent, and the shift added to it
         self._clock_offset = 0.0
         self._host_t = None  # host clock at that sample
+        self._restart_possible = False  # the port was reopened: the device may have restarted its clock
 
     def _device_clock(self, t):
         """The device's time ``t`` (s) on the source's time line, across restarts of the device's clock."""
         now = time.monotonic()
-        if self._device_t is not None and t < self._device_t - CLOCK_RESET_S:
+        restarted = self._restart_possible and self._device_t is not None and t <= self._device_t
+        self._restart_possible = False
+        if self._device_t is not None and (restarted or t < self._device_t - CLOCK_RESET_S):
             last = self._device_t + self._clock_offset
             self._clock_offset = last + max(now - self._host_t, 1e-3) - t
             self.clock_resets += 1
@@ -708,6 +707,7 @@ class SerialSource(_LineSource):
         self.stats.last_disconnect = f"{self.stats.last_disconnect}; reopened after {gap:.1f} s"
         self._lost_at = None
         self._seen_data = False  # the board's banner comes first
+        self._restart_possible = True  # and its clock may start again from 0
 
     def _receive(self, timeout_s):
         if self._lost_at is not None:
