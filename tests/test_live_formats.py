@@ -527,3 +527,81 @@ def test_serial_port_that_does_not_come_back_ends_with_a_clear_error(tmp_path):
         os.close(slave)
         if master is not None:
             os.close(master)
+
+
+# -- the command line ----------------------------------------------------------------------------------------------
+def test_magcal_record_reads_a_template_given_on_the_command_line(tmp_path, capsys):
+    import threading
+
+    from magcal.cli import main
+
+    port = free_udp_port()
+    out = tmp_path / "rec.csv"
+    stop = threading.Event()
+
+    def board():  # prints its reading every 50 ms until the recorder has what it wants
+        k = 0
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            while not stop.is_set():
+                tx.sendto(f"Magnetometer reading: [{20 + k}, -3.5, 40.25]\n".encode(), ("127.0.0.1", port))
+                k += 1
+                time.sleep(0.05)
+
+    thread = threading.Thread(target=board, daemon=True)
+    thread.start()
+    try:
+        rc = main(
+            [
+                "record",
+                f"udp://127.0.0.1:{port}?columns=x,y,z",  # the URL's columns give way to --template
+                str(out),
+                "--template",
+                "Magnetometer reading: [{x}, {y}, {z}]",
+                "--units",
+                "uT",
+                "--samples",
+                "5",
+                "--seconds",
+                "20",
+            ]
+        )
+    finally:
+        stop.set()
+        thread.join(5)
+    assert rc == 0
+    ds = magcal.read_csv(out)
+    assert ds.n_samples == 5
+    assert np.allclose(ds.readings_nT[0, :, 1:], [-3_500, 40_250])
+    assert np.all(np.diff(ds.readings_nT[0, :, 0]) == 1000)  # consecutive readings, 1 uT apart
+    assert "5 samples" in capsys.readouterr().err
+
+
+def test_magcal_record_bad_template_is_one_line(tmp_path, capsys):
+    from magcal.cli import main
+
+    rc = main(["record", f"udp://127.0.0.1:{free_udp_port()}", str(tmp_path / "r.csv"), "--template", "x={x} q={q}"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "'q' is not a known field" in err and "Traceback" not in err
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_mavlink_samples_held_for_their_attitude_are_drained_not_lost():
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    port = free_udp_port()
+    src = open_source(f"udp://127.0.0.1:{port}?mavlink&attitude_max_dt=5")  # held up to 5.3 s for an attitude
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets = [mav.attitude_encode(1000, 0.1, 0, 0, 0, 0, 0)]
+    packets += [mav.scaled_imu_encode(1000 + 20 * k, 0, 0, 0, 0, 0, 0, 100 + k, 0, 0, 0) for k in range(3)]
+    packets.append(mav.attitude_encode(1045, 0.2, 0, 0, 0, 0, 0))
+    packets += [mav.scaled_imu_encode(1060 + 20 * k, 0, 0, 0, 0, 0, 0, 103 + k, 0, 0, 0) for k in range(2)]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        for m in packets:
+            tx.sendto(m.pack(mav), ("127.0.0.1", port))
+        first = collect(src, 3, timeout_s=3)
+    assert len(first) == 3  # released: the attitude after them has arrived
+    rest = src.drain()  # the last two wait for an attitude that has not come; stopping keeps them
+    src.close()
+    assert len(rest) == 2 and np.allclose(rest.readings_nT[0, :, 0], [10_300, 10_400])
+    assert np.allclose(rest.channels["roll_deg"], np.degrees(0.2), atol=1e-4)  # the nearest, 15 and 35 ms away
+    assert np.allclose(first.channels["roll_deg"], np.degrees([0.1, 0.1, 0.2]), atol=1e-4)

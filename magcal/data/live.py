@@ -299,6 +299,21 @@ class LiveSource:
             raise LiveError(f"{self.url}: the source is closed")
         deadline = time.monotonic() + max(0.0, float(timeout_s))
         samples = [] if self.ended else self._poll(deadline, int(max_samples))
+        return self._accept(samples)
+
+    def _held(self):
+        """Samples received but held back (a MAVLink sample waiting for its attitude); none by default."""
+        return []
+
+    def drain(self) -> LiveChunk:
+        """The samples received but not yet returned (held for a merge), without waiting: call it before
+        :meth:`close` so that nothing received is lost."""
+        if self.closed:
+            return _empty_chunk(self.n_sensors, self.has_temperature, self.channel_names)
+        return self._accept(self._held())
+
+    def _accept(self, samples) -> LiveChunk:
+        """The samples that pass the stream's checks, as a chunk (the others counted as bad)."""
         times, readings, temps, chans = [], [], [], []
         for sample in samples:
             t, r, temp = sample[:3]
@@ -970,6 +985,9 @@ class MavlinkSource(LiveSource):
             out.append((*sample, channels))
         return out
 
+    def _held(self):
+        return self._release(flush=True)
+
     def _poll(self, deadline, max_samples):
         samples = []
         while len(samples) < max_samples:
@@ -1156,6 +1174,10 @@ def open_source(url: str, **options) -> LiveSource:
             "sim://PRESET (e.g. sim://chi2017?rate=50)"
         )
     params = {k: v[-1] for k, v in urllib.parse.parse_qs(parsed.query, keep_blank_values=True).items()}
+    if "template" in options:  # a template given as an option replaces the URL's columns (and the reverse)
+        params.pop("columns", None)
+    if "columns" in options:
+        params.pop("template", None)
     params.update({k: str(v) for k, v in options.items()})
     known = {
         "baud",
@@ -1461,6 +1483,10 @@ def record(
                     on_flush(written)
                 if source.ended and not len(chunk):
                     break
+            held = source.drain()  # what the source still held
+            if max_samples is not None:
+                held = held.subset(slice(0, max(0, max_samples - rec.n_written - rec.n_pending)))
+            rec.write(held)
             rec.flush()
             if on_flush is not None and rec.n_written != written:
                 on_flush(rec.n_written)
@@ -1520,6 +1546,8 @@ class LiveSession:
                             warnings.warn(f"live listener failed: {exc}", RuntimeWarning, stacklevel=1)
                 if self.source.ended and not len(chunk):
                     break
+            if not self._paused.is_set():
+                self._keep(self.source.drain())  # what the source still held (a sample waiting for its attitude)
         except MagcalError as exc:
             self.error = str(exc)
         except Exception as exc:  # anything else ends the session too, and is reported rather than lost
@@ -1528,6 +1556,14 @@ class LiveSession:
             if self._recorder is not None:
                 self._recorder.close()
             self.source.close()
+
+    def _keep(self, chunk):
+        if not len(chunk):
+            return
+        with self._lock:
+            self._chunks.append(chunk)
+        if self._recorder is not None:
+            self._recorder.write(chunk)
 
     @property
     def running(self) -> bool:
