@@ -605,3 +605,24 @@ def test_mavlink_samples_held_for_their_attitude_are_drained_not_lost():
     assert len(rest) == 2 and np.allclose(rest.readings_nT[0, :, 0], [10_300, 10_400])
     assert np.allclose(rest.channels["roll_deg"], np.degrees(0.2), atol=1e-4)  # the nearest, 15 and 35 ms away
     assert np.allclose(first.channels["roll_deg"], np.degrees([0.1, 0.1, 0.2]), atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "line, options",
+    [
+        ("21.5,-3.2,40.1", {}),
+        ("1234,21.5,-3.2,40.1,22.5", {"columns": "t_ms,x,y,z,temp"}),
+        ("x=21.5 y=-3.2 z=40.1", {"template": "x={x} y={y} z={z}"}),
+        ("Magnetometer reading: [21.5, -3.2, 40.1]", {}),
+        ("Magnetometer reading: [21.5, -3.2, 40.1]", {"template": "Magnetometer reading: [{x}, {y}, {z}]"}),
+        ("mag (21.5 -3.2 40.1) acc (0.01 0.02 0.98)", {"template": "mag ({x} {y} {z}) acc ({_} {_} {_})"}),
+        ("|1234,0.01,0.02,0.98,0.1,0.2,0.3,21.5,-3.2,40.1,1.5,-0.5,87.0*", {"columns": SKETCH_COLUMNS}),
+        ("$PMAG,21.5,-3.2,40.1*36", {"columns": "_,x,y,z"}),
+    ],
+)
+def test_the_examples_of_docs_formats_read_as_documented(line, options):
+    """The table of docs/formats.md's live section, line by line (each reads 21.5, -3.2, 40.1 uT)."""
+    text = open(os.path.join(os.path.dirname(__file__), "..", "docs", "formats.md"), encoding="utf-8").read()
+    assert line.replace("|", "\\|") in text
+    _, readings, _, _ = LineParser(units="uT", **options).parse_sample(line)
+    assert np.allclose(readings, [[21_500, -3_200, 40_100]])

@@ -3,26 +3,38 @@
 One interface for every instrument (``docs/export.md`` has the URL forms):
 
 ``serial:///dev/ttyUSB0?baud=115200&columns=x,y,z``
-    Text lines of numbers from a serial port (pyserial). Also ``&mavlink`` for MAVLink over the port.
+    Text lines from a serial port (pyserial), opened again when it disappears (a board reset, a USB
+    re-enumeration) for up to ``reconnect`` s (default 30), with nothing received lost (:class:`SerialSource`).
+    Also ``&mavlink`` for MAVLink over the port.
 ``udp://127.0.0.1:14550?format=lines`` / ``tcp://127.0.0.1:5760``
     Text lines in UDP datagrams (listening on the address) or from a TCP server (connecting to it).
 ``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``)
     MAVLink (pymavlink): the magnetometer fields of ``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``
     or ``HIGHRES_IMU`` in the units the message definition declares (mgauss, gauss), converted to nT, with the
-    temperature where the message sends one.
+    temperature where the message sends one, ``ATTITUDE`` merged onto each sample (nearest in time within
+    ``attitude_max_dt`` s) and the position of ``GPS_RAW_INT`` / ``GLOBAL_POSITION_INT`` (:class:`MavlinkSource`).
 ``sim://chi2017?rate=50`` / ``sim://path/to/file.csv?rate=50``
     A simulated instrument playing a preset (:func:`magcal.data.simulation.simulate_timeseries`, deterministic for a
     given ``seed``) or a magcal CSV file in real time: for tests, teaching and demonstrations without hardware.
 
-Text-line options: ``columns`` (comma-separated names of the fields of a line: ``x,y,z`` or ``s1x..s4z``, ``t``
-in s, ``temp`` in degC, ``_`` for a field to skip; default ``x,y,z``), ``sep`` (the separator; default commas,
+Text-line options: ``columns`` (comma-separated names of the fields of a line: ``x,y,z`` or ``mx,my,mz`` or
+``s1x..s4z``, ``t`` in s (``t_ms``, ``t_us``), ``temp`` in degC, the channels ``roll, pitch, yaw`` (deg), ``gx,
+gy, gz`` (deg/s), ``ax, ay, az``, ``lat, lon, alt``, ``_`` for a field to skip; default ``x,y,z``), or
+``template`` (the line with its fields in braces: ``x={x} y={y} z={z}``), ``sep`` (the separator; default commas,
 semicolons, tabs or spaces), ``units`` (``nT`` default, ``uT``, ``G``, ``mG``, ``counts`` with ``lsb`` in nT per
-count), ``prefix`` (only lines starting with it are data, e.g. ``Raw:``). Without a ``t`` column the samples are
-stamped with the host's monotonic clock, in s since the source opened.
+count), ``prefix`` (only lines starting with it are data, e.g. ``Raw:``), ``checksum`` (``off``: a trailing ``*hh``
+is not checked). Framed lines (``|...*``, ``$...*hh``) and bracketed lists (``[x, y, z]`` anywhere in a line) are
+read as they come (:mod:`magcal.data.lineformats`). Without a ``t`` column the samples are stamped with the host's
+monotonic clock, in s since the source opened.
+
+Channels other than the readings and the temperature (attitude, gyro, accelerometer, position) travel in
+:attr:`LiveChunk.channels`, into :meth:`LiveChunk.to_dataset`'s ``extra`` and the recording's columns under the
+names :mod:`magcal.data.attitude` and :mod:`magcal.checks.reference` read (``roll_deg``, ``lat``, ...).
 
 :meth:`LiveSource.read` returns a :class:`LiveChunk` of whatever arrived within a timeout (possibly empty);
 iterating a source yields non-empty chunks until it ends or is closed. Lines or messages that cannot be read are
-counted in :attr:`LiveSource.stats` (with the last reason), never raised. Every wait is bounded.
+counted in :attr:`LiveSource.stats` (with the last reason), never raised; lines that are not data (comments, a
+boot banner before the first sample) are counted as skipped. Every wait is bounded.
 
 :class:`Recorder` appends the samples to a magcal CSV as they arrive: whole lines only, flushed to disk (``fsync``)
 at least every ``flush_interval_s``, so a recording cut by a crash or a kill reopens with
