@@ -626,3 +626,24 @@ def test_the_examples_of_docs_formats_read_as_documented(line, options):
     assert line.replace("|", "\\|") in text
     _, readings, _, _ = LineParser(units="uT", **options).parse_sample(line)
     assert np.allclose(readings, [[21_500, -3_200, 40_100]])
+
+
+def test_a_recording_played_again_keeps_its_channels(tmp_path):
+    from magcal.data.vehicle import simulate_vehicle
+
+    flight, _ = simulate_vehicle(n=50, rate_hz=50.0, seed=4)
+    ypr = Rotation.from_quat(flight.attitude_wxyz[:, [1, 2, 3, 0]]).as_euler("ZYX", degrees=True)
+    ds = flight.replace(
+        attitude_wxyz=None,
+        extra={"roll_deg": ypr[:, 2], "pitch_deg": ypr[:, 1], "yaw_deg": ypr[:, 0], "lat": np.full(50, 45.0)},
+    )
+    from magcal.data.io import write_csv
+
+    write_csv(tmp_path / "flight.csv", ds)
+    src = open_source(f"sim://{tmp_path / 'flight.csv'}?speed=50")
+    chunk = collect(src, 50, timeout_s=10)
+    src.close()
+    assert len(chunk) == 50 and set(chunk.channels) == {"roll_deg", "pitch_deg", "yaw_deg", "lat"}
+    back = attitude(chunk.to_dataset())
+    sent = Rotation.from_quat(flight.attitude_wxyz[:, [1, 2, 3, 0]])
+    assert np.degrees((back.inv() * sent).magnitude()).max() < 1e-9

@@ -1115,6 +1115,13 @@ class SimSource(LiveSource):
         self.speed = float(speed)
         self.n_sensors = ds.n_sensors
         self.has_temperature = ds.temperature_C is not None
+        #: a recording's channels (attitude, gyro, position: :data:`magcal.data.lineformats.CHANNEL_UNITS`), played too
+        self._channels = {
+            k: np.asarray(ds.extra[k], dtype=float)
+            for k in lineformats.CHANNEL_UNITS
+            if k in ds.extra and np.asarray(ds.extra[k]).dtype.kind in "fiu"
+        }
+        self.channel_names = tuple(self._channels)
         self._k = 0
         self._start = None
 
@@ -1137,6 +1144,7 @@ class SimSource(LiveSource):
                 self.ended = True
                 break
             t, r, temp = self.sample(self._k)
+            i = self._k % n
             due = self._start + t / self.speed
             now = time.monotonic()
             if due > now:
@@ -1145,7 +1153,7 @@ class SimSource(LiveSource):
                         time.sleep(max(0.0, deadline - now))
                     break
                 time.sleep(due - now)
-            samples.append((t, r, temp))
+            samples.append((t, r, temp, {k: float(v[i]) for k, v in self._channels.items()}))
             self._k += 1
         return samples
 
@@ -1186,11 +1194,11 @@ def open_source(url: str, **options) -> LiveSource:
             "sim://PRESET (e.g. sim://chi2017?rate=50)"
         )
     params = {k: v[-1] for k, v in urllib.parse.parse_qs(parsed.query, keep_blank_values=True).items()}
-    if "template" in options:  # a template given as an option replaces the URL's columns (and the reverse)
+    if options.get("template") is not None:  # a template given as an option replaces the URL's columns
         params.pop("columns", None)
-    if "columns" in options:
+    if options.get("columns") is not None:  # and the reverse
         params.pop("template", None)
-    params.update({k: str(v) for k, v in options.items()})
+    params.update({k: str(v) for k, v in options.items() if v is not None})
     known = {
         "baud",
         "columns",
