@@ -15,6 +15,8 @@ import urllib.parse
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import magcal
@@ -258,6 +260,27 @@ def test_number_syntax_matches_what_python_reads():
         assert m is not None and float(m.group(0)) == pytest.approx(float(text), nan_ok=True)
     for text in ["1.2.3", "e5", "1e", "--1", "."]:
         assert pattern.fullmatch(text) is None
+
+
+_FLOATS = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    values=st.tuples(_FLOATS, _FLOATS, _FLOATS, _FLOATS),
+    spaces=st.lists(st.sampled_from(["", " ", "  ", "\t"]), min_size=8, max_size=8),
+    style=st.sampled_from(["repr", "e", "g", "f3"]),
+)
+def test_a_template_reads_back_any_number_as_printed(values, spaces, style):
+    """Whatever float a sketch prints, in whatever syntax and spacing, the template reads exactly that number."""
+    fmt = {"repr": repr, "e": lambda v: f"{v:.6e}", "g": lambda v: f"{v:g}", "f3": lambda v: f"{v:.3f}"}[style]
+    texts = [fmt(float(v)) for v in values]
+    a = spaces
+    line = f"{a[0]}T{a[1]}={a[2]}{texts[0]};{a[3]}mag{a[4]}({texts[1]},{a[5]}{texts[2]}{a[6]},{texts[3]}){a[7]}"
+    parser = LineParser(template="T={t}; mag({x}, {y}, {z})")
+    t, readings, _, _ = parser.parse_sample(line)
+    assert t == float(texts[0])
+    assert readings.tolist() == [[float(x) for x in texts[1:]]]
 
 
 # -- a stream of lines -------------------------------------------------------------------------------------------
