@@ -312,6 +312,23 @@ def test_a_stream_skips_the_boot_banner_counts_bad_lines_and_reads_the_template_
     assert "skipped" in stats.summary() and "template" in stats.summary()
 
 
+@pytest.mark.filterwarnings("ignore:.*outside the Earth's field range")
+def test_a_board_clock_that_restarts_is_followed_on_and_a_small_step_back_is_bad():
+    port = free_udp_port()
+    src = open_source(f"udp://127.0.0.1:{port}?columns=t,x,y,z")
+    lines = ["10.0,1,2,3", "10.1,4,5,6", "9.8,0,0,0", "0.05,7,8,9", "0.15,10,11,12", "nan,1,1,1", "0.25,13,14,15"]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        tx.sendto(("\n".join(lines) + "\n").encode(), ("127.0.0.1", port))
+        chunk = collect(src, 5, timeout_s=10)
+    src.close()
+    assert np.array_equal(chunk.readings_nT[0, :, 0], [1, 4, 7, 10, 13])
+    t = chunk.time_s
+    assert np.allclose(t[:2], [10.0, 10.1]) and np.all(np.diff(t) > 0)
+    assert np.allclose(np.diff(t[2:]), 0.1)  # the restarted clock's own steps
+    assert src.clock_resets == 1
+    assert src.stats.reasons["time going back"] == 1 and src.stats.reasons["bad value"] == 1
+
+
 def test_options_given_as_keywords_and_a_bad_checksum_option():
     port = free_udp_port()
     src = open_source(f"udp://127.0.0.1:{port}", template="x={x} y={y} z={z}")

@@ -220,9 +220,9 @@ class SourceStats:
     times the port was lost and opened again.
 
     A line is *bad* when it should be data and is not (a wrong field count, not a number, a line that departs from
-    the template, a failed checksum); it is *skipped* when it is not data: a comment, a line without the ``prefix``,
-    a line with no number, and whatever cannot be read before the first sample since the source opened or
-    reconnected (a boot banner, the cut first line). Neither ever gives a sample.
+    the template, a failed checksum); it is *skipped* when it is not data: an empty line, a comment, a line without
+    the ``prefix``, and whatever cannot be read before the first sample since the source opened or reconnected (a
+    boot banner, the cut first line). Neither ever gives a sample.
     """
 
     n_samples: int = 0
@@ -578,18 +578,22 @@ class _LineSource(LiveSource):
         self._clock_offset = 0.0
         self._host_t = None  # host clock at that sample
         self._restart_possible = False  # the port was reopened: the device may have restarted its clock
+        self._out_max = None  # the latest time given so far on the source's time line
 
     def _device_clock(self, t):
         """The device's time ``t`` (s) on the source's time line, across restarts of the device's clock."""
+        if bad_values(t):  # refused later as a bad value; it says nothing about the device's clock
+            return t
         now = time.monotonic()
         restarted = self._restart_possible and self._device_t is not None and t <= self._device_t
         self._restart_possible = False
         if self._device_t is not None and (restarted or t < self._device_t - CLOCK_RESET_S):
-            last = self._device_t + self._clock_offset
-            self._clock_offset = last + max(now - self._host_t, 1e-3) - t
+            self._clock_offset = self._out_max + max(now - self._host_t, 1e-3) - t
             self.clock_resets += 1
         self._device_t, self._host_t = t, now
-        return t + self._clock_offset
+        out = t + self._clock_offset
+        self._out_max = out if self._out_max is None else max(self._out_max, out)
+        return out
 
     def _receive(self, timeout_s):  # pragma: no cover - abstract
         raise NotImplementedError
