@@ -69,6 +69,8 @@ BAUDS = ("115200", "57600", "38400", "19200", "9600", "230400", "460800", "92160
 LINE_UNITS = ("nT", "uT", "mG", "G")
 #: Longest Columns text the page may send (e.g. ``s1x,s1y,s1z,t``).
 COLUMNS_CHARS = 200
+#: Longest line template the page may send (e.g. ``Magnetometer reading: [{x}, {y}, {z}]``).
+TEMPLATE_CHARS = 200
 
 
 def default_recording_path(folder) -> Path:
@@ -376,6 +378,17 @@ class LiveView:
             lines.append(
                 f"- {stats.n_bad} lines or messages could not be read (last: {safe_text(stats.last_bad or '', 120)})"
             )
+        if stats.n_skipped:
+            lines.append(
+                f"- {stats.n_skipped} lines were not data (a banner, comments; last: "
+                f"{safe_text(stats.last_skipped or '', 120)})"
+            )
+        if getattr(s.source, "connected", True) is False:
+            lines.append("- **the port was lost**: reopening it (the recording goes on)")
+        if stats.n_reconnects:
+            lines.append(
+                f"- the port was reopened {stats.n_reconnects} time(s) ({safe_text(stats.last_disconnect or '', 120)})"
+            )
         if s.error:
             lines.append(f"- **the source stopped:** {safe_text(s.error, 300)}")
         for i, m in enumerate(self.maps):
@@ -498,8 +511,12 @@ class SourceMenu:
         baud: str = BAUDS[0],
         columns: str = "x,y,z",
         units: str = LINE_UNITS[0],
+        template: str = "",
     ) -> str:
         """The URL of the offered source ``label`` with the page's options, checked against their bounds.
+
+        A ``template`` (text lines, :mod:`magcal.data.lineformats`) replaces ``columns`` when it is not blank; like the
+        columns, it is only ever a value of the URL's ``template`` parameter.
 
         Raises
         ------
@@ -537,13 +554,22 @@ class SourceMenu:
             query["mavlink"] = "1"
         else:
             cols = str(columns).strip()
-            if not cols or len(cols) > COLUMNS_CHARS:
+            tmpl = str(template or "").strip()
+            if len(tmpl) > TEMPLATE_CHARS or not tmpl.isprintable():
+                raise MagcalError(
+                    f"Template: one line of at most {TEMPLATE_CHARS} characters, e.g. x={{x}} y={{y}} z={{z}}"
+                )
+            if tmpl:
+                query["template"] = tmpl
+            elif not cols or len(cols) > COLUMNS_CHARS:
                 raise MagcalError(
                     f"Columns: give the columns of a line, e.g. x,y,z (at most {COLUMNS_CHARS} characters)"
                 )
+            else:
+                query["columns"] = cols
             if units not in LINE_UNITS:
                 raise MagcalError(f"Units: one of {', '.join(LINE_UNITS)}")
-            query.update(columns=cols, units=units)
+            query["units"] = units
         if chosen.kind == "serial":
             if str(baud) not in BAUDS:
                 raise MagcalError(f"Baud: one of {', '.join(BAUDS)}")

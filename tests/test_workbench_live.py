@@ -331,3 +331,27 @@ def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench,
     assert wb.worker.wait(120)
     after = wb.ctrl.residual_rms_nT()
     assert after < 0.95 * before and after < 1.05 * wb.ctrl.floor_nT()
+
+
+def test_the_page_s_template_becomes_the_url_s_template_and_nothing_else(tmp_path, monkeypatch):
+    from urllib.parse import parse_qs, urlsplit
+
+    from magcal.data.live import open_source
+    from magcal_workbench import live as wlive
+
+    monkeypatch.setattr(wlive, "serial_ports", lambda: ["/dev/ttyFAKE0"])
+    menu, _ = _menu(tmp_path)
+    template = "Magnetometer reading: [{x}, {y}, {z}]&mavlink=1"
+    url = menu.url(
+        "UDP text lines on 127.0.0.1 (port below)", port=14999, columns="x,y,z", units="uT", template=template
+    )
+    query = parse_qs(urlsplit(url).query)
+    assert query == {"template": [template], "units": ["uT"]}  # the text cannot add options; it replaces columns
+    url = menu.url("UDP text lines on 127.0.0.1 (port below)", port=14999, columns="x,y,z", template="  ")
+    assert parse_qs(urlsplit(url).query)["columns"] == ["x,y,z"]  # blank: the columns
+    good = menu.url("UDP text lines on 127.0.0.1 (port below)", port=14999, template="x={x} y={y} z={z}")
+    with open_source(good) as src:  # the engine reads it as a template
+        assert src.parser.parse("x=1 y=2 z=3")[1].tolist() == [[1.0, 2.0, 3.0]]
+    for bad in ["x" * 201, "x={x}\ny={y}"]:
+        with pytest.raises(magcal.MagcalError, match="Template"):
+            menu.url("UDP text lines on 127.0.0.1 (port below)", port=14999, template=bad)

@@ -1114,6 +1114,11 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
         values[:, m] = col.to_numpy()
     if bad_values(values).any():
         return None
+    extra_names = [
+        header[j] for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
+    ]
+    if any(pa.types.is_null(table.column(h).type) for h in extra_names):
+        return None  # a column of nothing but nan (a live recording's channel never sent): the line reader reads it
     text = {
         j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
         for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())

@@ -3,26 +3,38 @@
 One interface for every instrument (``docs/export.md`` has the URL forms):
 
 ``serial:///dev/ttyUSB0?baud=115200&columns=x,y,z``
-    Text lines of numbers from a serial port (pyserial). Also ``&mavlink`` for MAVLink over the port.
+    Text lines from a serial port (pyserial), opened again when it disappears (a board reset, a USB
+    re-enumeration) for up to ``reconnect`` s (default 30), with nothing received lost (:class:`SerialSource`).
+    Also ``&mavlink`` for MAVLink over the port.
 ``udp://127.0.0.1:14550?format=lines`` / ``tcp://127.0.0.1:5760``
     Text lines in UDP datagrams (listening on the address) or from a TCP server (connecting to it).
 ``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``)
     MAVLink (pymavlink): the magnetometer fields of ``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``
     or ``HIGHRES_IMU`` in the units the message definition declares (mgauss, gauss), converted to nT, with the
-    temperature where the message sends one.
+    temperature where the message sends one, ``ATTITUDE`` merged onto each sample (nearest in time within
+    ``attitude_max_dt`` s) and the position of ``GPS_RAW_INT`` / ``GLOBAL_POSITION_INT`` (:class:`MavlinkSource`).
 ``sim://chi2017?rate=50`` / ``sim://path/to/file.csv?rate=50``
     A simulated instrument playing a preset (:func:`magcal.data.simulation.simulate_timeseries`, deterministic for a
     given ``seed``) or a magcal CSV file in real time: for tests, teaching and demonstrations without hardware.
 
-Text-line options: ``columns`` (comma-separated names of the fields of a line: ``x,y,z`` or ``s1x..s4z``, ``t``
-in s, ``temp`` in degC, ``_`` for a field to skip; default ``x,y,z``), ``sep`` (the separator; default commas,
+Text-line options: ``columns`` (comma-separated names of the fields of a line: ``x,y,z`` or ``mx,my,mz`` or
+``s1x..s4z``, ``t`` in s (``t_ms``, ``t_us``), ``temp`` in degC, the channels ``roll, pitch, yaw`` (deg), ``gx,
+gy, gz`` (deg/s), ``ax, ay, az``, ``lat, lon, alt``, ``_`` for a field to skip; default ``x,y,z``), or
+``template`` (the line with its fields in braces: ``x={x} y={y} z={z}``), ``sep`` (the separator; default commas,
 semicolons, tabs or spaces), ``units`` (``nT`` default, ``uT``, ``G``, ``mG``, ``counts`` with ``lsb`` in nT per
-count), ``prefix`` (only lines starting with it are data, e.g. ``Raw:``). Without a ``t`` column the samples are
-stamped with the host's monotonic clock, in s since the source opened.
+count), ``prefix`` (only lines starting with it are data, e.g. ``Raw:``), ``checksum`` (``off``: a trailing ``*hh``
+is not checked). Framed lines (``|...*``, ``$...*hh``) and bracketed lists (``[x, y, z]`` anywhere in a line) are
+read as they come (:mod:`magcal.data.lineformats`). Without a ``t`` column the samples are stamped with the host's
+monotonic clock, in s since the source opened.
+
+Channels other than the readings and the temperature (attitude, gyro, accelerometer, position) travel in
+:attr:`LiveChunk.channels`, into :meth:`LiveChunk.to_dataset`'s ``extra`` and the recording's columns under the
+names :mod:`magcal.data.attitude` and :mod:`magcal.checks.reference` read (``roll_deg``, ``lat``, ...).
 
 :meth:`LiveSource.read` returns a :class:`LiveChunk` of whatever arrived within a timeout (possibly empty);
 iterating a source yields non-empty chunks until it ends or is closed. Lines or messages that cannot be read are
-counted in :attr:`LiveSource.stats` (with the last reason), never raised. Every wait is bounded.
+counted in :attr:`LiveSource.stats` (with the last reason), never raised; lines that are not data (comments, a
+boot banner before the first sample) are counted as skipped. Every wait is bounded.
 
 :class:`Recorder` appends the samples to a magcal CSV as they arrive: whole lines only, flushed to disk (``fsync``)
 at least every ``flush_interval_s``, so a recording cut by a crash or a kill reopens with
@@ -48,7 +60,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import MagcalError
-from magcal.data.dataset import BAD_VALUE_TEXT, SENSOR_AXES, Dataset, bad_values
+from magcal.data import lineformats
+from magcal.data.dataset import BAD_VALUE_TEXT, MAX_ABS_VALUE, SENSOR_AXES, Dataset, bad_values
 from magcal.data.io import format_column, is_counts, metadata_text, parse_units, read_csv
 from magcal.data.simulation import PRESETS, simulate_timeseries
 
@@ -57,6 +70,16 @@ SCHEMES = ("serial", "udp", "tcp", "sim")
 
 #: Longest text line accepted (bytes); longer ones are counted as bad and skipped.
 MAX_LINE_BYTES = 4096
+
+#: A device's time stamps going back by more than this (s) mean its clock restarted (a reboot); later samples are
+#: shifted to follow on. A smaller step back is a bad sample.
+CLOCK_RESET_S = 1.0
+
+#: Longest total wait for a lost serial port to come back (s) unless ``reconnect`` says otherwise, the bounds of
+#: ``reconnect``, and the longest interval between two tries.
+RECONNECT_DEFAULT_S = 30.0
+RECONNECT_RANGE_S = (0.0, 3600.0)
+RECONNECT_MAX_INTERVAL_S = 2.0
 
 #: Bounds of a simulated source's options (``sim://PRESET?n=..&rate=..&speed=..``): samples of a preset, samples
 #: per second, and how much faster than real time it plays. The workbench offers these and nothing beyond.
@@ -84,6 +107,15 @@ MAVLINK_MESSAGES = {
     "SCALED_IMU3": "time_boot_ms",
     "HIGHRES_IMU": "time_usec",
 }
+
+#: The channels a MAVLink source merges from ``ATTITUDE`` (deg, deg/s) and from the GPS messages (deg, deg, m).
+MAVLINK_ATTITUDE_CHANNELS = ("roll_deg", "pitch_deg", "yaw_deg", "gyro_x_dps", "gyro_y_dps", "gyro_z_dps")
+POSITION_CHANNELS = ("lat", "lon", "alt_m")
+#: ``ATTITUDE`` messages kept for the merge; how long (s, host clock) beyond the bound a magnetometer sample waits
+#: for its attitude; the oldest fix (s, host clock) a sample still carries.
+MAVLINK_ATTITUDE_BUFFER = 512
+MAVLINK_HOLD_S = 0.3
+POSITION_MAX_AGE_S = 10.0
 
 #: HIGHRES_IMU ``fields_updated`` bits of xmag, ymag, zmag and of the temperature.
 _HIGHRES_MAG_BITS = 0b111 << 6
@@ -116,11 +148,17 @@ class LiveChunk:
         Raw readings in nT.
     temperature_C : numpy.ndarray, shape (n,), optional
         Temperature in degC, when the source sends one.
+    channels : dict of str to numpy.ndarray, shape (n,)
+        Other channels the source sends, by the name of the Dataset column they become
+        (:data:`magcal.data.lineformats.CHANNEL_UNITS`): ``roll_deg, pitch_deg, yaw_deg`` (deg, body ->
+        north-east-down, the columns :mod:`magcal.data.attitude` reads), ``gyro_x_dps..`` (deg/s), ``accel_x..``,
+        ``lat, lon`` (deg), ``alt_m`` (m). NaN where a sample has no value (e.g. no MAVLink ``ATTITUDE`` near it).
     """
 
     time_s: np.ndarray
     readings_nT: np.ndarray
     temperature_C: np.ndarray | None = None
+    channels: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.time_s.size)
@@ -130,14 +168,34 @@ class LiveChunk:
         return int(self.readings_nT.shape[0])
 
     def to_dataset(self, source=None) -> Dataset:
-        """The samples as a :class:`Dataset` (readings nT, ``time_s``, ``temperature_C``)."""
+        """The samples as a :class:`Dataset` (readings nT, ``time_s``, ``temperature_C``; the channels as ``extra``
+        columns of the same names, so the attitude reads as :func:`magcal.data.attitude.attitude` expects and the
+        position as :func:`magcal.checks.reference.resolve_vector_reference` does)."""
         return Dataset(
-            readings_nT=self.readings_nT, time_s=self.time_s, temperature_C=self.temperature_C, source=source
+            readings_nT=self.readings_nT,
+            time_s=self.time_s,
+            temperature_C=self.temperature_C,
+            extra={k: np.asarray(v, dtype=float) for k, v in self.channels.items()},
+            source=source,
+        )
+
+    def subset(self, keep) -> LiveChunk:
+        """The samples selected by a boolean mask or an index array."""
+        return LiveChunk(
+            self.time_s[keep],
+            self.readings_nT[:, keep],
+            None if self.temperature_C is None else self.temperature_C[keep],
+            {k: v[keep] for k, v in self.channels.items()},
         )
 
 
-def _empty_chunk(n_sensors, temperature):
-    return LiveChunk(np.zeros(0), np.zeros((max(n_sensors or 1, 1), 0, 3)), np.zeros(0) if temperature else None)
+def _empty_chunk(n_sensors, temperature, channels=()):
+    return LiveChunk(
+        np.zeros(0),
+        np.zeros((max(n_sensors or 1, 1), 0, 3)),
+        np.zeros(0) if temperature else None,
+        {k: np.zeros(0) for k in channels or ()},
+    )
 
 
 def concatenate_chunks(chunks) -> LiveChunk | None:
@@ -146,21 +204,38 @@ def concatenate_chunks(chunks) -> LiveChunk | None:
     if not chunks:
         return None
     temps = [c.temperature_C for c in chunks]
+    names = list(chunks[0].channels)
+    same = all(list(c.channels) == names for c in chunks)
     return LiveChunk(
         np.concatenate([c.time_s for c in chunks]),
         np.concatenate([c.readings_nT for c in chunks], axis=1),
         None if any(t is None for t in temps) else np.concatenate(temps),
+        {k: np.concatenate([c.channels[k] for c in chunks]) for k in names} if same else {},
     )
 
 
 @dataclass
 class SourceStats:
-    """What a source has received: samples kept, lines or messages refused and why."""
+    """What a source has received: samples kept, lines or messages refused and why, lines skipped and why, and the
+    times the port was lost and opened again.
+
+    A line is *bad* when it should be data and is not (a wrong field count, not a number, a line that departs from
+    the template, a failed checksum); it is *skipped* when it is not data: an empty line, a comment, a line without
+    the ``prefix``, and whatever cannot be read before the first sample since the source opened or reconnected (a
+    boot banner, the cut first line). Neither ever gives a sample.
+    """
 
     n_samples: int = 0
     n_bad: int = 0
     last_bad: str | None = None
     reasons: collections.Counter = field(default_factory=collections.Counter)
+    n_skipped: int = 0
+    last_skipped: str | None = None
+    skipped: collections.Counter = field(default_factory=collections.Counter)
+    #: Times the source lost its port and opened it again (:class:`SerialSource`).
+    n_reconnects: int = 0
+    #: Why the port was last lost, or None.
+    last_disconnect: str | None = None
 
     def bad(self, reason: str, where: str = "") -> None:
         """Count one refused line or message."""
@@ -169,11 +244,25 @@ class SourceStats:
         self.reasons[key] += 1
         self.last_bad = f"{where}: {reason}" if where else reason
 
+    def skip(self, reason: str, where: str = "") -> None:
+        """Count one line that is not data."""
+        self.n_skipped += 1
+        self.skipped[reason.split(":")[0]] += 1
+        self.last_skipped = f"{where}: {reason}" if where else reason
+
     def summary(self) -> str:
-        """``1200 samples, 3 bad (2 not a number, 1 wrong field count); last: ...``."""
+        """``1200 samples, 3 bad (2 not a number, 1 field count); last: ...; 2 skipped (...); 1 reconnect``."""
         text = f"{self.n_samples} samples, {self.n_bad} bad"
         if self.n_bad:
             text += " (" + ", ".join(f"{n} {k}" for k, n in self.reasons.most_common()) + f"); last: {self.last_bad}"
+        if self.n_skipped:
+            text += (
+                f"; {self.n_skipped} skipped ("
+                + ", ".join(f"{n} {k}" for k, n in self.skipped.most_common())
+                + f"); last: {self.last_skipped}"
+            )
+        if self.n_reconnects:
+            text += f"; {self.n_reconnects} reconnect{'s' if self.n_reconnects > 1 else ''} ({self.last_disconnect})"
         return text
 
 
@@ -188,6 +277,8 @@ class LiveSource:
         Number of triaxial sensors per sample (None until known).
     has_temperature : bool or None
         Whether samples carry a temperature (None until known).
+    channel_names : tuple of str or None
+        The channels of every sample (:attr:`LiveChunk.channels`; None until known).
     stats : SourceStats
     ended : bool
         True when a finite source (a file, a closed TCP connection) has nothing more to give.
@@ -197,28 +288,48 @@ class LiveSource:
         self.url = url
         self.n_sensors = None
         self.has_temperature = None
+        self.channel_names = None
         self.stats = SourceStats()
         self.ended = False
         self.closed = False
         self._last_t = None
         self._t0 = time.monotonic()
 
-    # subclasses implement _poll(deadline, max_samples) -> list of (t or None, readings (n_sensors, 3), temp)
+    # subclasses implement _poll(deadline, max_samples) -> list of (t or None, readings (n_sensors, 3), temp) or
+    # (t or None, readings, temp, channels {name: value})
     def _poll(self, deadline, max_samples):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def read(self, timeout_s: float = 1.0, max_samples: int = 10_000) -> LiveChunk:
         """The samples that arrive within ``timeout_s`` seconds (returns as soon as some have), possibly none.
 
-        Samples whose time does not increase, or whose sensor count or temperature differs from the first
-        sample's, are counted as bad and left out.
+        Samples whose time does not increase, or whose sensor count, temperature or channels differ from the first
+        sample's, are counted as bad and left out. A channel may be NaN (no value for that sample); one infinite
+        or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` makes the sample bad.
         """
         if self.closed:
             raise LiveError(f"{self.url}: the source is closed")
         deadline = time.monotonic() + max(0.0, float(timeout_s))
         samples = [] if self.ended else self._poll(deadline, int(max_samples))
-        times, readings, temps = [], [], []
-        for t, r, temp in samples:
+        return self._accept(samples)
+
+    def _held(self):
+        """Samples received but held back (a MAVLink sample waiting for its attitude); none by default."""
+        return []
+
+    def drain(self) -> LiveChunk:
+        """The samples received but not yet returned (held for a merge), without waiting: call it before
+        :meth:`close` so that nothing received is lost."""
+        if self.closed:
+            return _empty_chunk(self.n_sensors, self.has_temperature, self.channel_names)
+        return self._accept(self._held())
+
+    def _accept(self, samples) -> LiveChunk:
+        """The samples that pass the stream's checks, as a chunk (the others counted as bad)."""
+        times, readings, temps, chans = [], [], [], []
+        for sample in samples:
+            t, r, temp = sample[:3]
+            channels = sample[3] if len(sample) > 3 else {}
             if t is None:  # host clock, at arrival; lines that came together are 1 us apart
                 t = time.monotonic() - self._t0
                 if self._last_t is not None and t <= self._last_t:
@@ -228,14 +339,25 @@ class LiveSource:
                 self.n_sensors = r.shape[0]
             if self.has_temperature is None:
                 self.has_temperature = temp is not None
+            if self.channel_names is None:
+                self.channel_names = tuple(channels)
             if r.shape[0] != self.n_sensors:
                 self.stats.bad(f"sensor count: {r.shape[0]} sensor(s), the stream has {self.n_sensors}")
                 continue
             if (temp is not None) != self.has_temperature:
                 self.stats.bad("temperature: present in some samples only (the first decides)")
                 continue
+            if tuple(channels) != self.channel_names:
+                self.stats.bad(
+                    f"channels: {', '.join(channels) or 'none'}, the stream has {', '.join(self.channel_names) or 'none'}"
+                )
+                continue
             if bad_values(r).any() or bad_values(t) or (temp is not None and bad_values(temp)):
                 self.stats.bad(f"bad value: {BAD_VALUE_TEXT} (time {t!r})")
+                continue
+            values = np.asarray(list(channels.values()), dtype=float)
+            if np.any(bad_values(values) & ~np.isnan(values)):  # NaN: no value for this sample
+                self.stats.bad(f"bad value: a channel is infinite or beyond +-{MAX_ABS_VALUE:g} (time {t!r})")
                 continue
             if self._last_t is not None and t <= self._last_t:
                 self.stats.bad(f"time going back: {t:.6g} s after {self._last_t:.6g} s")
@@ -244,13 +366,16 @@ class LiveSource:
             times.append(t)
             readings.append(r)
             temps.append(temp)
+            chans.append(values)
         self.stats.n_samples += len(times)
         if not times:
-            return _empty_chunk(self.n_sensors, self.has_temperature)
+            return _empty_chunk(self.n_sensors, self.has_temperature, self.channel_names)
+        values = np.asarray(chans, dtype=float).reshape(len(times), len(self.channel_names or ()))
         return LiveChunk(
             np.asarray(times, dtype=float),
             np.stack(readings, axis=1),
             np.asarray(temps, dtype=float) if self.has_temperature else None,
+            {name: values[:, j].copy() for j, name in enumerate(self.channel_names or ())},
         )
 
     def __iter__(self):
@@ -278,17 +403,18 @@ class LiveSource:
 
 # -- text lines ------------------------------------------------------------------------------------------------------
 _SPLIT_DEFAULT = re.compile(r"[,;\t ]+")
-_COLUMN_RE = re.compile(r"^(?:s([1-4]))?([xyz])$")
 
 
 class LineParser:
-    """Turns one text line of numbers into a sample.
+    """Turns one text line into a sample: separated numbers, a framed line, a bracketed list or a template
+    (:mod:`magcal.data.lineformats` has the formats).
 
     Parameters
     ----------
-    columns : str or sequence of str
-        Names of the fields in order: ``x,y,z`` (sensor 1) or ``s1x..s4z``, ``t`` (s), ``temp`` (degC), ``_``
-        (skipped).
+    columns : str or sequence of str, optional
+        Names of the fields in order (default ``x,y,z``): ``x,y,z`` or ``mx,my,mz`` (sensor 1), ``s1x..s4z``,
+        ``t`` (s; ``t_ms``, ``t_us``), ``temp`` (degC), the channels ``roll, pitch, yaw`` (deg), ``gx, gy, gz``
+        (deg/s), ``ax, ay, az``, ``lat, lon`` (deg), ``alt`` (m), ``_`` (skipped).
     sep : str, optional
         Field separator; default any run of commas, semicolons, tabs or spaces.
     units : str
@@ -296,32 +422,68 @@ class LineParser:
     lsb_nT : float, optional
         nT per count for ``counts``.
     prefix : str, optional
-        Only lines starting with it are data (it is removed); other lines are ignored, not counted as bad.
+        Only lines starting with it are data (it is removed); other lines are skipped, not counted as bad.
+    template : str, optional
+        The line written out with its fields in braces, e.g. ``x={x} y={y} z={z}`` (instead of ``columns``).
+    checksum : bool
+        Check a trailing ``*hh`` checksum of a framed line (it is stripped either way).
+
+    Attributes
+    ----------
+    n_sensors : int
+    channel_names : tuple of str
+        The channels each sample carries (:attr:`LiveChunk.channels`).
+    last_skip : str or None
+        Why the last line :meth:`parse` returned None for was not data.
     """
 
-    def __init__(self, columns="x,y,z", sep=None, units="nT", lsb_nT=None, prefix=None):
-        names = [c.strip() for c in (columns.split(",") if isinstance(columns, str) else columns)]
+    def __init__(self, columns=None, sep=None, units="nT", lsb_nT=None, prefix=None, template=None, checksum=True):
+        if template is not None and columns is not None:
+            raise LiveError("give columns or a template, not both (a template names its own fields)")
+        if template is not None:
+            try:
+                self.template = lineformats.LineTemplate(template)
+            except ValueError as exc:
+                raise LiveError(str(exc)) from None
+            names = list(self.template.fields)
+        else:
+            self.template = None
+            columns = "x,y,z" if columns is None else columns
+            names = [c.strip() for c in (columns.split(",") if isinstance(columns, str) else columns)]
         self.columns = names
         self.sep = sep
         self.prefix = prefix or None
+        self.checksum = bool(checksum)
+        self.last_skip = None
         self.factor = parse_units(units, where="live source units", lsb_nT=lsb_nT if is_counts(units) else None)
         self.index_t = self.index_temp = None
-        axes = {}
+        self.time_factor = 1.0
+        axes, channels, seen, used = {}, {}, {}, []
         for j, name in enumerate(names):
-            if name in ("_", "-", ""):
+            try:
+                role = lineformats.column_role(name)
+            except ValueError as exc:
+                raise LiveError(f"columns: {exc}") from None
+            kind = role[0]
+            if kind == "skip":
                 continue
-            if name == "t":
-                self.index_t = j
-            elif name == "temp":
+            key = role if kind != "time" else ("time",)
+            if key in seen:
+                raise LiveError(
+                    f"columns: {name!r} and {seen[key]!r} name the same field"
+                    if seen[key] != name
+                    else f"columns: {name!r} appears twice"
+                )
+            seen[key] = name
+            used.append(j)
+            if kind == "time":
+                self.index_t, self.time_factor = j, role[1]
+            elif kind == "temp":
                 self.index_temp = j
+            elif kind == "channel":
+                channels[role[1]] = j
             else:
-                m = _COLUMN_RE.match(name)
-                if not m:
-                    raise LiveError(f"columns: {name!r} is not one of x, y, z, s1x..s4z, t, temp or _ (skip)")
-                key = (int(m.group(1) or 1), m.group(2))
-                if key in axes:
-                    raise LiveError(f"columns: {name!r} appears twice")
-                axes[key] = j
+                axes[(role[1], role[2])] = j
         sensors = sorted({s for s, _ in axes})
         if not sensors or sensors != list(range(1, len(sensors) + 1)):
             raise LiveError(f"columns {','.join(names)}: name sensors 1.. without gaps (x,y,z or s1x,s1y,s1z,...)")
@@ -330,58 +492,108 @@ class LineParser:
                 raise LiveError(f"columns {','.join(names)}: sensor {s} needs x, y and z")
         self.index_xyz = np.array([[axes[(s, a)] for a in SENSOR_AXES] for s in sensors])
         self.n_sensors = len(sensors)
+        self.channel_names = tuple(channels)
+        self._index_channels = np.array(list(channels.values()), dtype=int)
+        self._used = used
+
+    def _split(self, text):
+        return text.split(self.sep) if self.sep else _SPLIT_DEFAULT.split(text)
+
+    def _skip(self, reason):
+        self.last_skip = reason
+        return None
 
     def parse(self, text):
-        """``(t or None, readings (n_sensors, 3) nT, temperature or None)``, or ``None`` for a line to ignore.
+        """``(t or None, readings (n_sensors, 3) nT, temperature or None)``, or ``None`` for a line that is not data
+        (:attr:`last_skip` says why).
 
         Raises
         ------
         ValueError
             With the reason, for a line that should be data but is not.
         """
+        sample = self.parse_sample(text)
+        return None if sample is None else sample[:3]
+
+    def parse_sample(self, text):
+        """:meth:`parse` with the channels: ``(t, readings, temperature, {channel: value})`` or None."""
+        self.last_skip = None
         text = text.strip()
-        if not text or text.startswith("#"):
-            return None
+        if not text:
+            return self._skip("empty line")
+        if text.startswith("#"):
+            return self._skip("comment")
         if self.prefix is not None:
             if not text.startswith(self.prefix):
-                return None
+                return self._skip(f"no prefix: the line does not start with {self.prefix!r}")
             text = text[len(self.prefix) :].strip()
-        fields = text.split(self.sep) if self.sep else _SPLIT_DEFAULT.split(text)
-        if len(fields) != len(self.columns):
-            raise ValueError(
-                f"field count: {len(fields)} field(s), expected {len(self.columns)} ({','.join(self.columns)})"
-            )
-        try:
-            values = [float(f) if f.strip() else np.nan for f in fields]
-        except ValueError:
-            bad = next(f for f in fields if not _is_number(f))
-            raise ValueError(f"not a number: {bad[:30]!r}") from None
-        values = np.asarray(values)
+        if self.template is not None:
+            fields = self.template.match(text)  # raises "template: ..."
+        else:
+            text = lineformats.strip_frame(text, self.checksum)  # raises "checksum: ..."
+            if lineformats.has_brackets(text):
+                fields = lineformats.bracketed_fields(text, len(self.columns), self._split)
+            else:
+                fields = self._split(text)
+            if len(fields) != len(self.columns):
+                raise ValueError(
+                    f"field count: {len(fields)} field(s), expected {len(self.columns)} ({','.join(self.columns)})"
+                )
+        values = np.full(len(fields), np.nan)
+        for j in self._used:  # a skipped field may hold anything
+            f = fields[j]
+            try:
+                values[j] = float(f) if f.strip() else np.nan
+            except ValueError:
+                raise ValueError(f"not a number: {f[:30]!r}") from None
         readings = values[self.index_xyz] * self.factor
-        t = None if self.index_t is None else float(values[self.index_t])
+        t = None if self.index_t is None else float(values[self.index_t]) * self.time_factor
         temp = None if self.index_temp is None else float(values[self.index_temp])
-        return t, readings, temp
-
-
-def _is_number(text):
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
+        channels = dict(zip(self.channel_names, values[self._index_channels].tolist()))
+        return t, readings, temp, channels
 
 
 class _LineSource(LiveSource):
-    """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``."""
+    """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``.
+
+    Lines that cannot be read before the first sample since the source opened (or reopened its port) are skipped
+    as a boot banner or a cut first line (:meth:`SourceStats.skip`); after it, they are bad. When a line's time
+    (a ``t`` column) jumps back by more than :data:`CLOCK_RESET_S`, or at all in the first sample after the port
+    was reopened (the board restarted its clock), later samples are shifted to follow on from the last one by the
+    time the host saw pass (:attr:`clock_resets` counts it).
+    """
 
     def __init__(self, url, parser):
         super().__init__(url)
         self.parser = parser
         self.n_sensors = parser.n_sensors
         self.has_temperature = parser.index_temp is not None
+        self.channel_names = parser.channel_names
+        self.clock_resets = 0
         self._buffer = b""
         self._line_no = 0
         self._skip_partial = False
+        self._seen_data = False  # a sample since the source opened or reconnected
+        self._device_t = None  # the last time stamp the device sent, and the shift added to it
+        self._clock_offset = 0.0
+        self._host_t = None  # host clock at that sample
+        self._restart_possible = False  # the port was reopened: the device may have restarted its clock
+        self._out_max = None  # the latest time given so far on the source's time line
+
+    def _device_clock(self, t):
+        """The device's time ``t`` (s) on the source's time line, across restarts of the device's clock."""
+        if bad_values(t):  # refused later as a bad value; it says nothing about the device's clock
+            return t
+        now = time.monotonic()
+        restarted = self._restart_possible and self._device_t is not None and t <= self._device_t
+        self._restart_possible = False
+        if self._device_t is not None and (restarted or t < self._device_t - CLOCK_RESET_S):
+            self._clock_offset = self._out_max + max(now - self._host_t, 1e-3) - t
+            self.clock_resets += 1
+        self._device_t, self._host_t = t, now
+        out = t + self._clock_offset
+        self._out_max = out if self._out_max is None else max(self._out_max, out)
+        return out
 
     def _receive(self, timeout_s):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -411,49 +623,140 @@ class _LineSource(LiveSource):
                 if len(raw) > MAX_LINE_BYTES:
                     self.stats.bad(f"line too long: {len(raw)} bytes, over {MAX_LINE_BYTES}", f"line {self._line_no}")
                     continue
+                where = f"line {self._line_no}"
                 try:
-                    sample = self.parser.parse(raw.decode("utf-8"))
-                except UnicodeDecodeError:
-                    self.stats.bad("not text: bytes that are not UTF-8", f"line {self._line_no}")
+                    sample = self.parser.parse_sample(raw.decode("utf-8"))
+                except (UnicodeDecodeError, ValueError) as exc:
+                    reason = "not text: bytes that are not UTF-8" if isinstance(exc, UnicodeDecodeError) else str(exc)
+                    if self._seen_data:
+                        self.stats.bad(reason, where)
+                    else:  # a boot banner, or the first line cut by the opening
+                        self.stats.skip(f"before the first sample: {reason}", where)
                     continue
-                except ValueError as exc:
-                    self.stats.bad(str(exc), f"line {self._line_no}")
+                if sample is None:
+                    self.stats.skip(self.parser.last_skip or "not data", where)
                     continue
-                if sample is not None:
-                    samples.append(sample)
+                self._seen_data = True
+                if sample[0] is not None:
+                    sample = (self._device_clock(sample[0]), *sample[1:])
+                samples.append(sample)
             if len(samples) >= max_samples:
                 break
         return samples
 
 
 class SerialSource(_LineSource):
-    """Text lines from a serial port (pyserial)."""
+    """Text lines from a serial port (pyserial), reopened when it disappears.
 
-    def __init__(self, url, port, baud, parser):
+    When the port fails (a board reset, a USB re-enumeration, a cable pulled), the source closes it and tries to
+    open the same path again, after 0.1 s, then at doubling intervals up to :data:`RECONNECT_MAX_INTERVAL_S`, for
+    at most ``reconnect_s`` in all; reads meanwhile return no samples (within their own timeout), so a
+    :class:`LiveSession` goes on recording across the gap. Each reopening is counted in
+    ``stats.n_reconnects``; the samples read before the loss are kept, a line cut by it is counted as bad, and
+    whatever cannot be read before the first sample after it (the board's boot banner) is skipped. When the port
+    has not come back within ``reconnect_s`` (or with ``reconnect_s=0``) the read raises :class:`LiveError`.
+
+    Parameters
+    ----------
+    url : str
+    port : str
+        The device path (a udev name such as ``/dev/serial/by-id/...`` survives a re-enumeration that renames
+        ``/dev/ttyACM0`` to ``/dev/ttyACM1``).
+    baud : int
+    parser : LineParser
+    reconnect_s : float
+        Longest total wait for the port to come back after it is lost (s); 0 for none.
+    """
+
+    def __init__(self, url, port, baud, parser, reconnect_s=RECONNECT_DEFAULT_S):
         super().__init__(url, parser)
         try:
             import serial
         except ImportError:
             raise LiveError(f'{url}: serial ports need pyserial: pip install "magcal-workbench[instruments]"') from None
+        self._serial = serial
         self._serial_error = serial.SerialException
+        self.device = port
+        self.baud = baud
+        self.reconnect_s = float(reconnect_s)
+        self._lost_at = None  # host time the port was lost, while it is
+        self._next_try = 0.0
+        self._interval = 0.1
         try:
-            self._port = serial.Serial(port, baudrate=baud, timeout=0.1)
+            self._port = self._open()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LiveError(
                 f"{url}: cannot open the serial port {port} ({exc}); check the device path and that no "
                 "other program holds it"
             ) from None
 
+    def _open(self):
+        return self._serial.Serial(self.device, baudrate=self.baud, timeout=0.1)
+
+    @property
+    def connected(self) -> bool:
+        """False while the port is lost and being reopened."""
+        return self._lost_at is None
+
+    def _lose(self, exc):
+        """The port failed: close it, keep what was read, and start reopening it (or raise)."""
+        try:
+            self._port.close()
+        except Exception:  # a port that has gone: nothing left to release
+            pass
+        if self.reconnect_s <= 0:
+            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?")
+        if self._buffer:  # a line cut by the loss: never joined to what comes after
+            self._line_no += 1
+            self.stats.bad("cut line: the port was lost in the middle of it", f"line {self._line_no}")
+            self._buffer = b""
+        self._skip_partial = False
+        self.stats.last_disconnect = f"lost: {exc}"
+        self._lost_at = time.monotonic()
+        self._next_try = self._lost_at + 0.1
+        self._interval = 0.1
+
+    def _reopen(self, timeout_s):
+        """Try to open the port again when the next try is due (waiting at most ``timeout_s``)."""
+        now = time.monotonic()
+        if now - self._lost_at > self.reconnect_s:
+            raise LiveError(
+                f"{self.url}: the serial port {self.device} was lost ({self.stats.last_disconnect}) and did not come "
+                f"back within {self.reconnect_s:g} s; is the device connected?"
+            )
+        if now < self._next_try:
+            time.sleep(max(0.0, min(timeout_s, self._next_try - now)))
+            return
+        try:
+            self._port = self._open()
+        except (self._serial_error, OSError, ValueError):
+            self._interval = min(self._interval * 2.0, RECONNECT_MAX_INTERVAL_S)
+            self._next_try = time.monotonic() + self._interval
+            return
+        gap = time.monotonic() - self._lost_at
+        self.stats.n_reconnects += 1
+        self.stats.last_disconnect = f"{self.stats.last_disconnect}; reopened after {gap:.1f} s"
+        self._lost_at = None
+        self._seen_data = False  # the board's banner comes first
+        self._restart_possible = True  # and its clock may start again from 0
+
     def _receive(self, timeout_s):
+        if self._lost_at is not None:
+            self._reopen(timeout_s)
+            return b""
         try:
             self._port.timeout = max(timeout_s, 0.001)
             return self._port.read(max(1, self._port.in_waiting))
-        except (self._serial_error, OSError) as exc:
-            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?") from None
+        except (self._serial_error, OSError, TypeError) as exc:  # TypeError: pyserial reading a closed descriptor
+            self._lose(exc)
+            return b""
 
     def close(self):
         super().close()
-        self._port.close()
+        try:
+            self._port.close()
+        except Exception:  # a port that has gone: nothing left to release
+            pass
 
 
 class UdpLineSource(_LineSource):
@@ -520,7 +823,8 @@ def _bind_udp(url, host, port):
 
 # -- MAVLink ---------------------------------------------------------------------------------------------------------
 class MavlinkSource(LiveSource):
-    """Magnetometer fields of MAVLink IMU messages (pymavlink), converted to nT.
+    """Magnetometer fields of MAVLink IMU messages (pymavlink), converted to nT, with the vehicle's attitude and
+    position merged onto them.
 
     Parameters
     ----------
@@ -535,12 +839,26 @@ class MavlinkSource(LiveSource):
     raw_lsb_nT : float
         nT per unit of ``RAW_IMU``'s magnetometer fields when the message definition declares no unit (older
         dialects; ArduPilot sends milligauss: 100).
+    attitude_max_dt_s : float
+        Largest time (s) between a magnetometer sample and the ``ATTITUDE`` message merged onto it.
 
     Times are the vehicle's (``time_boot_ms``, ``time_usec``); when they jump back by more than 1 s (a reboot),
     later samples are shifted to follow on (:attr:`clock_resets` counts it), so a recording goes on.
+
+    ``ATTITUDE`` (roll, pitch, yaw and the body rates) is merged onto each magnetometer sample from the message
+    nearest in vehicle time, within ``attitude_max_dt_s`` (NaN beyond), as the channels ``roll_deg, pitch_deg,
+    yaw_deg`` (deg) and ``gyro_x_dps, gyro_y_dps, gyro_z_dps`` (deg/s); a sample is held until the attitude after
+    it has arrived, the vehicle's time has passed it by more than the bound, or the bound plus
+    :data:`MAVLINK_HOLD_S` has passed on the host's clock. ``GPS_RAW_INT`` (with a 2D or 3D fix) and
+    ``GLOBAL_POSITION_INT`` (not 0, 0) give ``lat, lon`` (deg) and ``alt_m`` (m: above the ellipsoid where
+    ``GPS_RAW_INT`` sends ``alt_ellipsoid``, else above mean sea level, which differs by the geoid's height, tens of
+    m, a few nT of IGRF): every sample carries the latest fix received before it, when it is at most
+    :data:`POSITION_MAX_AGE_S` old (NaN otherwise); :attr:`location` is the latest fix. Whether the samples carry
+    the attitude and the position is decided when the first one is released: by whether an ``ATTITUDE`` or a GPS
+    message has arrived by then.
     """
 
-    def __init__(self, url, device, message=None, baud=115200, raw_lsb_nT=100.0):
+    def __init__(self, url, device, message=None, baud=115200, raw_lsb_nT=100.0, attitude_max_dt_s=0.2):
         super().__init__(url)
         try:
             from pymavlink import mavutil
@@ -550,14 +868,32 @@ class MavlinkSource(LiveSource):
             raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
         self.message = message
         self.raw_lsb_nT = float(raw_lsb_nT)
+        self.attitude_max_dt_s = float(attitude_max_dt_s)
         self.n_sensors = 1
         self.clock_resets = 0  # vehicle reboots seen: its clock went back by more than 1 s
         self._vehicle_t = None
         self._clock_offset = 0.0
+        self._mag_boot = 0  # reboots seen in the magnetometer's clock and in ATTITUDE's
+        self._att_boot = 0
+        self._att_last = None
+        #: ATTITUDE messages as (boot, vehicle time s, roll, pitch, yaw deg, p, q, r deg/s), oldest first
+        self._attitudes = collections.deque(maxlen=MAVLINK_ATTITUDE_BUFFER)
+        #: magnetometer samples waiting for their attitude: (boot, raw t, sample, host time, position)
+        self._pending = collections.deque()
+        self._mag_latest = None  # (boot, raw t) of the newest magnetometer sample
+        self._gps_seen = False
+        self._position = None  # (lat, lon, alt_m, host time) of the latest fix
+        self._with_attitude = self._with_position = None  # decided when the first sample is released
         try:
             self._conn = mavutil.mavlink_connection(device, baud=baud, source_system=255, autoreconnect=False)
         except Exception as exc:  # pymavlink raises many kinds for a device that does not open
             raise LiveError(f"{url}: cannot open the MAVLink connection {device} ({exc})") from None
+
+    @property
+    def location(self):
+        """The vehicle's latest position ``(lat_deg, lon_deg, alt_m)`` from ``GPS_RAW_INT`` or
+        ``GLOBAL_POSITION_INT``, or None before a fix (for the reference field: :mod:`magcal.checks.reference`)."""
+        return None if self._position is None else self._position[:3]
 
     def _factor(self, msg, name):
         units = getattr(msg, "fieldunits_by_name", {}) or {}
@@ -579,12 +915,13 @@ class MavlinkSource(LiveSource):
         factor = self._factor(msg, "xmag")
         readings = np.array([[msg.xmag, msg.ymag, msg.zmag]], dtype=float) * factor
         time_field = MAVLINK_MESSAGES[kind]
-        t = float(getattr(msg, time_field)) * (1e-3 if time_field == "time_boot_ms" else 1e-6)
-        if self._vehicle_t is not None and t < self._vehicle_t - 1.0:  # the vehicle rebooted: its clock restarted
-            self._clock_offset += self._vehicle_t - t + 1e-3
+        raw = float(getattr(msg, time_field)) * (1e-3 if time_field == "time_boot_ms" else 1e-6)
+        if self._vehicle_t is not None and raw < self._vehicle_t - CLOCK_RESET_S:  # the vehicle rebooted
+            self._clock_offset += self._vehicle_t - raw + 1e-3
             self.clock_resets += 1
-        self._vehicle_t = t
-        t += self._clock_offset
+            self._mag_boot += 1
+        self._vehicle_t = raw
+        t = raw + self._clock_offset
         temp = None
         if self.has_temperature is not False and hasattr(msg, "temperature"):
             units = (getattr(msg, "fieldunits_by_name", {}) or {}).get("temperature")
@@ -595,7 +932,77 @@ class MavlinkSource(LiveSource):
                 temp = value if int(msg.fields_updated) & _HIGHRES_TEMP_BIT or self.has_temperature else None
             else:
                 temp = value
-        return t, readings, temp
+        self._mag_latest = (self._mag_boot, raw)
+        return self._mag_boot, raw, (t, readings, temp)
+
+    def _attitude(self, msg):
+        raw = float(msg.time_boot_ms) * 1e-3
+        if self._att_last is not None and raw < self._att_last - CLOCK_RESET_S:
+            self._att_boot += 1
+        self._att_last = raw
+        angles = np.degrees([msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed])
+        if not np.all(np.isfinite(angles)):
+            raise ValueError("bad value: ATTITUDE holds a value that is not a number")
+        angles[2] = (angles[2] + 180.0) % 360.0 - 180.0
+        self._attitudes.append((self._att_boot, raw, *angles.tolist()))
+
+    def _gps(self, msg):
+        self._gps_seen = True
+        kind = msg.get_type()
+        if kind == "GPS_RAW_INT":
+            if int(msg.fix_type) < 2:  # no fix
+                return
+            alt_mm = getattr(msg, "alt_ellipsoid", 0) or msg.alt
+        else:
+            alt_mm = msg.alt
+        lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        if (lat == 0 and lon == 0) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            return  # no position yet (ArduPilot sends 0, 0), or not one
+        self._position = (float(lat), float(lon), float(alt_mm) * 1e-3, time.monotonic())
+
+    def _nearest_attitude(self, boot, raw):
+        best = None
+        for a in self._attitudes:
+            if a[0] == boot and (best is None or abs(a[1] - raw) < abs(best[1] - raw)):
+                best = a
+        if best is None or abs(best[1] - raw) > self.attitude_max_dt_s:
+            return [np.nan] * 6
+        return list(best[2:])
+
+    def _release(self, flush=False):
+        """The pending samples whose attitude is settled, with their channels, oldest first."""
+        out = []
+        now = time.monotonic()
+        while self._pending:
+            boot, raw, sample, host, position = self._pending[0]
+            if self._with_attitude is False:
+                ready = True
+            else:  # the attitude after the sample has arrived
+                last = self._attitudes[-1] if self._attitudes else None
+                ready = last is not None and (last[0], last[1]) >= (boot, raw)
+            ready = (
+                ready
+                or flush
+                or (self._mag_latest is not None and self._mag_latest > (boot, raw + self.attitude_max_dt_s))
+                or now - host > self.attitude_max_dt_s + MAVLINK_HOLD_S
+            )
+            if not ready:
+                break
+            self._pending.popleft()
+            if self._with_attitude is None:  # the first sample decides the stream's channels
+                self._with_attitude = bool(self._attitudes)
+                self._with_position = self._gps_seen
+            channels = {}
+            if self._with_attitude:
+                channels.update(zip(MAVLINK_ATTITUDE_CHANNELS, self._nearest_attitude(boot, raw)))
+            if self._with_position:
+                fresh = position is not None and host - position[3] <= POSITION_MAX_AGE_S
+                channels.update(zip(POSITION_CHANNELS, position[:3] if fresh else [np.nan] * 3))
+            out.append((*sample, channels))
+        return out
+
+    def _held(self):
+        return self._release(flush=True)
 
     def _poll(self, deadline, max_samples):
         samples = []
@@ -604,30 +1011,41 @@ class MavlinkSource(LiveSource):
             if remaining <= 0:
                 break
             try:
-                msg = self._conn.recv_match(blocking=True, timeout=min(remaining, 0.2))
+                msg = self._conn.recv_match(blocking=True, timeout=min(remaining, 0.05 if self._pending else 0.2))
             except Exception as exc:  # a damaged packet pymavlink cannot decode
                 self.stats.bad(f"bad packet: {exc}")
                 continue
-            if msg is None:
-                if samples:
-                    break
-                continue
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                self.stats.bad("bad packet: not MAVLink or a failed checksum")
-                continue
-            if kind not in MAVLINK_MESSAGES:
-                continue
-            try:
-                sample = self._sample(msg)
-            except (ValueError, AttributeError, TypeError) as exc:
-                self.stats.bad(str(exc), kind)
-                continue
-            if sample is not None:
+            if msg is not None:
+                self._handle(msg)
+            released = self._release()
+            if released:
                 if not samples:  # gather what follows within 50 ms, then return: low latency for viewers
                     deadline = min(deadline, time.monotonic() + 0.05)
-                samples.append(sample)
+                samples += released
+            elif msg is None and samples:
+                break
         return samples
+
+    def _handle(self, msg):
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            self.stats.bad("bad packet: not MAVLink or a failed checksum")
+            return
+        try:
+            if kind == "ATTITUDE":
+                if self._with_attitude is False:
+                    self.stats.skip("ATTITUDE: began after the first sample, so not in this stream's channels")
+                else:
+                    self._attitude(msg)
+            elif kind in ("GPS_RAW_INT", "GLOBAL_POSITION_INT"):
+                self._gps(msg)
+            elif kind in MAVLINK_MESSAGES:
+                found = self._sample(msg)
+                if found is not None:
+                    boot, raw, sample = found
+                    self._pending.append((boot, raw, sample, time.monotonic(), self._position))
+        except (ValueError, AttributeError, TypeError) as exc:
+            self.stats.bad(str(exc), kind)
 
     def close(self):
         super().close()
@@ -701,6 +1119,13 @@ class SimSource(LiveSource):
         self.speed = float(speed)
         self.n_sensors = ds.n_sensors
         self.has_temperature = ds.temperature_C is not None
+        #: a recording's channels (attitude, gyro, position: :data:`magcal.data.lineformats.CHANNEL_UNITS`), played too
+        self._channels = {
+            k: np.asarray(ds.extra[k], dtype=float)
+            for k in lineformats.CHANNEL_UNITS
+            if k in ds.extra and np.asarray(ds.extra[k]).dtype.kind in "fiu"
+        }
+        self.channel_names = tuple(self._channels)
         self._k = 0
         self._start = None
 
@@ -723,6 +1148,7 @@ class SimSource(LiveSource):
                 self.ended = True
                 break
             t, r, temp = self.sample(self._k)
+            i = self._k % n
             due = self._start + t / self.speed
             now = time.monotonic()
             if due > now:
@@ -731,7 +1157,7 @@ class SimSource(LiveSource):
                         time.sleep(max(0.0, deadline - now))
                     break
                 time.sleep(due - now)
-            samples.append((t, r, temp))
+            samples.append((t, r, temp, {k: float(v[i]) for k, v in self._channels.items()}))
             self._k += 1
         return samples
 
@@ -772,7 +1198,11 @@ def open_source(url: str, **options) -> LiveSource:
             "sim://PRESET (e.g. sim://chi2017?rate=50)"
         )
     params = {k: v[-1] for k, v in urllib.parse.parse_qs(parsed.query, keep_blank_values=True).items()}
-    params.update({k: str(v) for k, v in options.items()})
+    if options.get("template") is not None:  # a template given as an option replaces the URL's columns
+        params.pop("columns", None)
+    if options.get("columns") is not None:  # and the reverse
+        params.pop("template", None)
+    params.update({k: str(v) for k, v in options.items() if v is not None})
     known = {
         "baud",
         "columns",
@@ -790,6 +1220,10 @@ def open_source(url: str, **options) -> LiveSource:
         "speed",
         "raw_lsb_nT",
         "timeout",
+        "template",
+        "checksum",
+        "reconnect",
+        "attitude_max_dt",
     }
     unknown = sorted(set(params) - known)
     if unknown:
@@ -806,16 +1240,23 @@ def open_source(url: str, **options) -> LiveSource:
         return value
 
     def parser():
+        check = params.get("checksum", "on").lower()
+        if check not in ("on", "off", "1", "0", "true", "false", "yes", "no", ""):
+            raise LiveError(f"{url}: checksum={params['checksum'][:20]!r}: give checksum=on or checksum=off")
         try:
             return LineParser(
-                params.get("columns", "x,y,z"),
+                params.get("columns") or None,
                 params.get("sep") or None,
                 params.get("units", "nT"),
                 params.get("lsb"),
                 params.get("prefix"),
+                template=params.get("template") or None,
+                checksum=check not in ("off", "0", "false", "no"),
             )
         except MagcalError as exc:
             raise LiveError(f"{url}: {exc}") from None
+
+    attitude_dt = number("attitude_max_dt", 0.2, float, (0.001, 10.0))
 
     if scheme == "sim":
         name = (parsed.netloc + parsed.path) if parsed.netloc else parsed.path
@@ -833,9 +1274,11 @@ def open_source(url: str, **options) -> LiveSource:
         baud = number("baud", 115200, int, BAUD_RANGE)
         if mavlink:
             return MavlinkSource(
-                url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0, float, (1e-6, 1e9))
+                url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0, float, (1e-6, 1e9)), attitude_dt
             )
-        return SerialSource(url, device, baud, parser())
+        return SerialSource(
+            url, device, baud, parser(), reconnect_s=number("reconnect", RECONNECT_DEFAULT_S, float, RECONNECT_RANGE_S)
+        )
     try:
         host, port = parsed.hostname, parsed.port
     except ValueError as exc:  # a port that is not a number, or beyond 65535
@@ -845,7 +1288,11 @@ def open_source(url: str, **options) -> LiveSource:
     if mavlink:
         device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
         return MavlinkSource(
-            url, device, params.get("message"), raw_lsb_nT=number("raw_lsb_nT", 100.0, float, (1e-6, 1e9))
+            url,
+            device,
+            params.get("message"),
+            raw_lsb_nT=number("raw_lsb_nT", 100.0, float, (1e-6, 1e9)),
+            attitude_max_dt_s=attitude_dt,
         )
     if params.get("format", "lines").lower() != "lines":
         raise LiveError(f"{url}: format={params['format']!r}: use format=lines or mavlink")
@@ -885,6 +1332,7 @@ class Recorder:
         self._pending = []
         self._fd = None
         self._columns = None
+        self._channels = ()
         self._last_flush = time.monotonic()
         self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
         try:
@@ -901,7 +1349,9 @@ class Recorder:
         cols = ["t"] + [f"s{i + 1}{a}" for i in range(chunk.n_sensors) for a in SENSOR_AXES]
         if chunk.temperature_C is not None:
             cols.append("temp")
+        cols += list(chunk.channels)  # roll_deg, gyro_x_dps, lat, ...: NaN written as nan where a sample has none
         self._columns = cols
+        self._channels = tuple(chunk.channels)
         meta = {
             "recorded_by": "magcal.data.live",
             "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -918,15 +1368,20 @@ class Recorder:
         if len(chunk):
             if self._columns is None:
                 self._pending.append(self._header(chunk))
-            elif (chunk.temperature_C is not None) != ("temp" in self._columns) or 3 * chunk.n_sensors != sum(
-                c[0] == "s" for c in self._columns
+            elif (
+                (chunk.temperature_C is not None) != ("temp" in self._columns)
+                or 3 * chunk.n_sensors != sum(c[0] == "s" and c[1:2].isdigit() for c in self._columns)
+                or tuple(chunk.channels) != self._channels
             ):
-                raise LiveError(f"{self.path}: the samples changed layout (sensors or temperature) mid-recording")
+                raise LiveError(
+                    f"{self.path}: the samples changed layout (sensors, temperature or channels) mid-recording"
+                )
             parts = [format_column(chunk.time_s)]
             for i in range(chunk.n_sensors):
                 parts += [format_column(chunk.readings_nT[i, :, k]) for k in range(3)]
             if chunk.temperature_C is not None:
                 parts.append(format_column(chunk.temperature_C))
+            parts += [format_column(np.asarray(v, dtype=float)) for v in chunk.channels.values()]
             self._pending.append(("\n".join(",".join(row) for row in zip(*parts)) + "\n").encode("ascii"))
             self.n_pending += len(chunk)
         if time.monotonic() - self._last_flush >= self.flush_interval_s:
@@ -938,15 +1393,13 @@ class Recorder:
         bad = bad_values(chunk.time_s) | bad_values(chunk.readings_nT, axis=(0, 2))
         if chunk.temperature_C is not None:
             bad |= bad_values(chunk.temperature_C)
+        for v in chunk.channels.values():  # a channel may be NaN (no value), never infinite or huge
+            v = np.asarray(v, dtype=float)
+            bad |= bad_values(v) & ~np.isnan(v)
         if not bad.any():
             return chunk
         self.n_refused += int(bad.sum())
-        keep = ~bad
-        return LiveChunk(
-            chunk.time_s[keep],
-            chunk.readings_nT[:, keep],
-            None if chunk.temperature_C is None else chunk.temperature_C[keep],
-        )
+        return chunk.subset(~bad)
 
     def _write_page_confined(self, data: bytes) -> None:
         """Write whole lines so that no ``write`` call spans a page boundary of the file."""
@@ -1054,6 +1507,10 @@ def record(
                     on_flush(written)
                 if source.ended and not len(chunk):
                     break
+            held = source.drain()  # what the source still held
+            if max_samples is not None:
+                held = held.subset(slice(0, max(0, max_samples - rec.n_written - rec.n_pending)))
+            rec.write(held)
             rec.flush()
             if on_flush is not None and rec.n_written != written:
                 on_flush(rec.n_written)
@@ -1113,6 +1570,8 @@ class LiveSession:
                             warnings.warn(f"live listener failed: {exc}", RuntimeWarning, stacklevel=1)
                 if self.source.ended and not len(chunk):
                     break
+            if not self._paused.is_set():
+                self._keep(self.source.drain())  # what the source still held (a sample waiting for its attitude)
         except MagcalError as exc:
             self.error = str(exc)
         except Exception as exc:  # anything else ends the session too, and is reported rather than lost
@@ -1121,6 +1580,14 @@ class LiveSession:
             if self._recorder is not None:
                 self._recorder.close()
             self.source.close()
+
+    def _keep(self, chunk):
+        if not len(chunk):
+            return
+        with self._lock:
+            self._chunks.append(chunk)
+        if self._recorder is not None:
+            self._recorder.write(chunk)
 
     @property
     def running(self) -> bool:
