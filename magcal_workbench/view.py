@@ -186,6 +186,7 @@ class SceneControl:
     def window_moved(self) -> None:
         wb = self.wb
         self.update_scene()
+        wb.vehicle.redraw()  # the vehicle view follows the scrubber's current sample
         times = sample_times(wb.ctrl.dataset)
         wb.panels.window_info.content = safe_text(wb.window.describe(times))
         now = time.monotonic()
