@@ -347,7 +347,7 @@ the field there: the file has no reference column.
    components N, E, D, the mounting, the attitude noise. Which figures can the total-field fit not give at all, and
    why? Is the world residual at the sensor's noise, or at something else (what does 0.05 deg of attitude error do
    to a 49 uT field)?
-4. View tab: tick **Vehicle view** and press *Play* in the Time window. The green arrow is the model field, the blue
+4. View tab: tick **Show the vehicle view** and press *Play* in the Time window. The green arrow is the model field, the blue
    one the measured field rotated to the world, the red one their difference, exaggerated. Does the red arrow
    follow the turns, or only jitter?
 5. **Check my model** once the vector fit has run.

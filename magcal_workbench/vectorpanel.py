@@ -147,7 +147,7 @@ class VectorPanel:
         p = self.p
         with gui.add_folder("Vehicle view", expand_by_default=True):
             self.vehicle_on = gui.add_checkbox(
-                "Vehicle view",
+                "Show the vehicle view",
                 False,
                 hint="The body turned by its attitude, the model and the measured field in world axes N, E, D, and "
                 "their difference; the time window's Play flies it through the record",
@@ -171,13 +171,15 @@ class VectorPanel:
         everything = "all" in kinds
         vm = self.p.ctrl().vector
         has_attitude = vm.attitude_kind() is not None
+        if "vector" in kinds:  # a location sets the Reference field box: show it
+            self.p.show_state()
         if everything or kinds & {"data", "vector", "settings"}:
             self.info.content = availability_markdown(vm)
             self.location_info.content = location_markdown(vm)
             self.btn_vector.visible = has_attitude
         if everything or kinds & {"data", "vector", "result", "selection", "settings"}:
             self.table.content = comparison_markdown(vm)
-            self.table.visible = has_attitude
+            self.table.visible = vm.available or vm.result is not None
         if everything or "data" in kinds:
             loc = vm.location
             if loc is not None:  # show the session's place (the widgets' callbacks do nothing)

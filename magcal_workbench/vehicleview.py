@@ -32,11 +32,13 @@ NED_FRAME_WXYZ = (0.0, 1.0, 0.0, 0.0)
 #: Where the vehicle view sits in the scene: below the sphere views, out of their camera's sight.
 VEHICLE_ORIGIN = np.array([0.0, 0.0, -30.0])
 #: Length (scene units) at which a field of the reference's magnitude is drawn.
-ARROW_LENGTH = 2.0
+ARROW_LENGTH = 2.5
 #: Length of the world axes drawn (scene units).
-AXIS_LENGTH = 2.8
+AXIS_LENGTH = 3.0
 #: The residual arrow's typical length the automatic exaggeration aims at, as a fraction of :data:`ARROW_LENGTH`.
-RESIDUAL_DRAWN = 0.2
+RESIDUAL_DRAWN = 0.3
+#: Most samples of the time window drawn in the residual trail.
+TRAIL_POINTS = 400
 
 MODEL_RGB = (20, 150, 60)
 MEASURED_RGB = (30, 90, 230)
@@ -111,7 +113,36 @@ def field_arrows(model_ned_nT, measured_ned_nT, field_nT, gain, length=ARROW_LEN
     return out
 
 
-def vehicle_mesh(length=1.6):
+def arrow_mesh(start, end, radius=0.06, head_radius=0.13, head_length=0.3, sections=20):
+    """A solid arrow from ``start`` to ``end`` (3,) as ``(vertices, faces)``: a cylinder and a cone (trimesh); used
+    where an arrow must be translucent (viser's arrows are opaque)."""
+    import trimesh
+
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    d = end - start
+    n = float(np.linalg.norm(d))
+    head = min(head_length, 0.5 * n)
+    shaft = trimesh.creation.cylinder(radius=radius, height=max(n - head, 1e-6), sections=sections)
+    shaft.apply_translation((0.0, 0.0, 0.5 * max(n - head, 1e-6)))
+    cone = trimesh.creation.cone(radius=head_radius, height=max(head, 1e-6), sections=sections)
+    cone.apply_translation((0.0, 0.0, n - head))
+    mesh = trimesh.util.concatenate([shaft, cone])
+    if n > 0:
+        mesh.apply_transform(trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d / n))
+    mesh.apply_translation(start)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def residual_trail(model_ned_nT, measured_ned_nT, field_nT, gain, length=ARROW_LENGTH) -> np.ndarray:
+    """Points (M, 3), NED scene units: each sample's exaggerated residual from the model's tip (the samples of the
+    time window: whether the residual follows the turns or only scatters)."""
+    model = np.atleast_2d(np.asarray(model_ned_nT, float))
+    measured = np.atleast_2d(np.asarray(measured_ned_nT, float))
+    scale = length / float(field_nT)
+    return (model + gain * (measured - model)) * scale
+
+
+def vehicle_mesh(length=1.3):
     """A small aircraft in the body frame (x forward, y right, z down): ``(hull, nose)``, each ``(vertices,
     faces)``; the nose marks the front. Made of boxes with trimesh."""
     import trimesh
@@ -153,7 +184,7 @@ class VehicleView:
     Attributes
     ----------
     enabled : bool
-        Whether the view is shown (View tab's *Vehicle view*).
+        Whether the view is shown (View tab's *Show the vehicle view*).
     nodes : dict
         The scene nodes drawn, by name (``/vehicle/body``, ``/vehicle/model_field``...).
     gain : float
@@ -217,8 +248,9 @@ class VehicleView:
     def camera_pose() -> tuple[np.ndarray, np.ndarray]:
         """Camera position and look-at (scene frame) that show the vehicle view from the south-west, above, with
         the view left of the panel."""
-        look = VEHICLE_ORIGIN + np.array([-0.9, -0.9, -0.2])  # right of the body on screen: the panel covers the right
-        return VEHICLE_ORIGIN + np.array([-4.6, 4.6, 3.4]), look
+        right = np.array([-1.0, -1.0, 0.0]) / np.sqrt(2.0)  # the screen's right, seen from the south-west
+        look = VEHICLE_ORIGIN + 0.9 * right + np.array([0.0, 0.0, -0.8])  # the panel covers the screen's right
+        return VEHICLE_ORIGIN + np.array([-3.6, 3.6, 1.6]), look
 
     def place_cameras(self) -> None:
         position, look = self.camera_pose()
@@ -277,10 +309,15 @@ class VehicleView:
                 self._draw_static(scene)
                 body = self.nodes["/vehicle/body"]
                 body.wxyz = tuple(np.asarray(vectors["attitude_wxyz"], float))
-                for key, name, rgb in (
-                    ("model", "/vehicle/model_field", MODEL_RGB),
-                    ("measured", "/vehicle/measured_field", MEASURED_RGB),
-                    ("residual", "/vehicle/residual", RESIDUAL_RGB),
+                self._remove("/vehicle/model_field")
+                if "model" in arrows:  # translucent and wider: the measured arrow shows inside it
+                    v, f = arrow_mesh(*arrows["model"][0])
+                    self.nodes["/vehicle/model_field"] = scene.add_mesh_simple(
+                        "/vehicle/model_field", v.astype(np.float32), f, color=MODEL_RGB, opacity=0.35
+                    )
+                for key, name, rgb, shaft, head in (
+                    ("measured", "/vehicle/measured_field", MEASURED_RGB, 0.03, 0.08),
+                    ("residual", "/vehicle/residual", RESIDUAL_RGB, 0.022, 0.06),
                 ):
                     self._remove(name)
                     if key in arrows:
@@ -288,11 +325,35 @@ class VehicleView:
                             name,
                             arrows[key].astype(np.float32),
                             rgb,
-                            shaft_radius=0.025 if key != "residual" else 0.02,
-                            head_radius=0.07,
-                            head_length=0.16,
+                            shaft_radius=shaft,
+                            head_radius=head,
+                            head_length=2.2 * head,
                         )
+                self._draw_trail(scene, field_nT)
                 self._labels(scene, vectors, arrows, field_nT)
+
+    def _draw_trail(self, scene, field_nT) -> None:
+        """The time window's residuals as red points around the model's tip (at most :data:`TRAIL_POINTS`)."""
+        self._remove("/vehicle/residual_trail")
+        ctrl = self.wb.ctrl
+        vm = ctrl.vector
+        if vm.world_nT is None or vm.reference_ned_nT is None:
+            return
+        window = self.wb.window.mask(sample_times(ctrl.dataset))
+        idx = np.flatnonzero(window) if window is not None else np.arange(ctrl.dataset.n_samples)
+        if idx.size == 0:
+            return
+        idx = idx[np.unique(np.linspace(0, idx.size - 1, min(idx.size, TRAIL_POINTS)).astype(int))]
+        sensor = min(ctrl.state.sensor or 0, vm.world_nT.shape[0] - 1)
+        pts = residual_trail(vm.reference_ned_nT[idx], vm.world_nT[sensor, idx], field_nT, self.gain)
+        self.nodes["/vehicle/residual_trail"] = scene.add_point_cloud(
+            "/vehicle/residual_trail",
+            pts.astype(np.float32),
+            RESIDUAL_RGB,
+            point_size=0.03,
+            point_shape="circle",
+            precision="float32",
+        )
 
     def _labels(self, scene, vectors, arrows, field_nT) -> None:
         ds = self.wb.ctrl.dataset
@@ -313,12 +374,16 @@ class VehicleView:
             lines.append("run the vector fit (Calibrate tab) to draw the measured field")
         text = "\n".join(lines)
         placed = (
-            ("/vehicle/label_info", text, (-AXIS_LENGTH, -AXIS_LENGTH, -1.4)),
-            ("/vehicle/label_model", "model (reference)", arrows["model"][0, 1] if "model" in arrows else None),
+            ("/vehicle/label_info", text, (0.9 * AXIS_LENGTH, 0.9 * AXIS_LENGTH, -1.6)),
+            (
+                "/vehicle/label_model",
+                "model field (reference)",
+                arrows["model"][0, 1] * 1.08 if "model" in arrows else None,
+            ),
             (
                 "/vehicle/label_measured",
                 "measured (corrected, world)",
-                arrows["measured"][0, 1] * 0.6 if "measured" in arrows else None,
+                arrows["measured"][0, 1] * 0.55 if "measured" in arrows else None,
             ),
         )
         for name, words, where in placed:
@@ -341,8 +406,15 @@ class VehicleView:
         for k, word in enumerate(("N (north)", "E (east)", "D (down)")):
             name = f"/vehicle/axis_{word[0]}"
             self.nodes[name] = scene.add_label(name, word, position=tuple(1.05 * AXIS_LENGTH * np.eye(3)[k]))
-        self.nodes["/vehicle/grid"] = scene.add_grid(
-            "/vehicle/grid", width=2 * AXIS_LENGTH, height=2 * AXIS_LENGTH, plane="xy", cell_size=0.5
+        self.nodes["/vehicle/grid"] = scene.add_grid(  # the horizontal plane (north-east) through the body
+            "/vehicle/grid",
+            width=1.6 * AXIS_LENGTH,
+            height=1.6 * AXIS_LENGTH,
+            plane="xy",
+            cell_size=0.5,
+            cell_color=(228, 228, 228),
+            section_color=(190, 190, 190),
+            shadow_opacity=0.0,
         )
         self.nodes["/vehicle/body"] = scene.add_frame(
             "/vehicle/body", show_axes=True, axes_length=0.7, axes_radius=0.015
@@ -374,7 +446,7 @@ class VehicleView:
         if vm.attitude_kind() is None:
             return "_The vehicle view needs the attitude (`qw..qz` or `roll_deg, pitch_deg, yaw_deg` columns)._"
         if not self.enabled:
-            return "_Tick Vehicle view to see the body, the field in world axes N, E, D, and the residuals._"
+            return "_Tick Show the vehicle view: the body, the field in world axes N, E, D, and the residuals._"
         s = self.shown
         if s is None:
             return "_No reference field vector: type a location (Calibrate tab) or add `ref_n, ref_e, ref_d`._"
