@@ -43,6 +43,7 @@ TRAIL_POINTS = 400
 MODEL_RGB = (20, 150, 60)
 MEASURED_RGB = (30, 90, 230)
 RESIDUAL_RGB = (220, 40, 40)
+TRAIL_RGB = (240, 150, 150)
 AXIS_RGB = (110, 110, 110)
 BODY_RGB = (200, 200, 210)
 NOSE_RGB = (230, 120, 20)
@@ -253,12 +254,15 @@ class VehicleView:
         return VEHICLE_ORIGIN + np.array([-3.6, 3.6, 1.6]), look
 
     def place_cameras(self) -> None:
-        position, look = self.camera_pose()
         for client in self.wb.server.get_clients().values():
-            with client.atomic():
-                client.camera.up_direction = (0.0, 0.0, 1.0)
-                client.camera.position = tuple(position)
-                client.camera.look_at = tuple(look)
+            self.place_camera(client)
+
+    def place_camera(self, client) -> None:
+        position, look = self.camera_pose()
+        with client.atomic():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look)
 
     # --- drawing ----------------------------------------------------------------------------------------------
     def changed(self, kind: str) -> None:
@@ -349,8 +353,8 @@ class VehicleView:
         self.nodes["/vehicle/residual_trail"] = scene.add_point_cloud(
             "/vehicle/residual_trail",
             pts.astype(np.float32),
-            RESIDUAL_RGB,
-            point_size=0.03,
+            TRAIL_RGB,
+            point_size=0.022,
             point_shape="circle",
             precision="float32",
         )
