@@ -361,3 +361,22 @@ def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
     page.screenshot(path=str(shot))
     assert shot.stat().st_size > 10_000
     page.close()
+
+
+def test_a_live_session_fits_with_the_location_s_reference(bench, tmp_path):
+    """Issue 32 item 3: the location typed in the page gives the live fits their reference field."""
+    wb = bench()
+    wb.ctrl.vector.set_location(45.0, 7.6, 300.0, "2024-06-01")
+    wanted = wb.ctrl.state.reference_nT
+    live = wb.livectl.start("sim://chi2017?speed=40&n=600", tmp_path / "rec.csv")
+    end = time.monotonic() + 60
+    while (live.fit is None or live.session.running) and time.monotonic() < end:
+        time.sleep(0.1)
+    end = time.monotonic() + 30
+    while (live.fit is None or live.fit.n_samples < live.n_samples) and time.monotonic() < end:
+        time.sleep(0.1)
+    assert live.fit is not None
+    cal = live.fit.calibration
+    assert cal.reference_total_nT == pytest.approx(wanted) and not cal.reference_fitted
+    assert f"reference field {wanted:.1f} nT" in live.status_markdown()
+    live.stop()
