@@ -329,7 +329,7 @@ def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
     from magcal_workbench.dataio import load_dataset
 
     ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
-    wb = bench(ds=ds)
+    wb = bench(ds=ds, max_points=300)  # software WebGL: a small scene keeps the page responsive
     page = _open(browser, wb)
     page.get_by_text("Reference from a location (IGRF)").click()
     p = wb.panels.vector_panel
@@ -348,7 +348,7 @@ def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
     assert wb.ctrl.state.location == {"lat_deg": 53.0, "lon_deg": 4.5, "alt_m": 1500.0, "date": "2024-06-01"}
     page.get_by_role("button", name="Run the vector fit (attitude-aided)").click()
     page.wait_for_function("() => document.body.innerText.includes('deg off it')", timeout=120_000)
-    text = page.inner_text("body")
+    text = page.inner_text("body", timeout=120_000)
     assert "ROLL_180_YAW_90" in text and "world N RMS" in text
     assert "undetermined" in text  # the total-field fit's warning, beside the vector fit
     page.get_by_role("tab", name="View").click()
@@ -358,7 +358,7 @@ def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
         assert name in wb.vehicle.nodes
     _dismiss_toasts(page)
     shot = tmp_path / "vehicle_view.png"
-    page.screenshot(path=str(shot))
+    page.screenshot(path=str(shot), timeout=120_000)
     assert shot.stat().st_size > 10_000
     page.close()
 
