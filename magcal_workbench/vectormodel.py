@@ -114,7 +114,10 @@ class FitRow:
     attitude_noise : list of str
         Per sensor: the attitude error the vector residual implies (deg) and whether given or estimated.
     warnings : list of str
-        The fit's "undetermined" warning (a total-field fit on a cone of directions) and other notes.
+        The fit's notes.
+    undetermined : list of str
+        Why the fit is not determined by these data (a total-field fit on a cone of directions: the coverage
+        check's notes); empty when it is.
     """
 
     name: str
@@ -123,6 +126,7 @@ class FitRow:
     mounting: list = field(default_factory=list)
     attitude_noise: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    undetermined: list = field(default_factory=list)
 
 
 class VectorModel:
@@ -357,9 +361,7 @@ class VectorModel:
         if ctrl.calibration is not None:
             rms = ctrl.residual_rms_nT()
             row.total_field_rms_nT = float(rms) if np.isfinite(rms) else None
-        notes = self.coverage_notes()
-        if notes:
-            row.warnings = ["undetermined: " + hide_paths(n) for n in notes]
+        row.undetermined = [hide_paths(n) for n in self.coverage_notes()]
         return row
 
     def current_vectors(self, sample: int, sensor: int = 0) -> dict | None:

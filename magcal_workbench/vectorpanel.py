@@ -43,8 +43,8 @@ def comparison_markdown(vm) -> str:
     noise = safe_text("; ".join(vector.attitude_noise), 300) if vector.attitude_noise else "-"
     rows.append(f"| attitude noise | - | {noise} |")
     text = "\n".join(rows)
-    if scalar.warnings:
-        text += "\n\n⚠ **The total-field fit is undetermined here**: " + safe_text(scalar.warnings[0][14:], 600)
+    if scalar.undetermined:
+        text += "\n\n⚠ **The total-field fit is undetermined here**: " + safe_text(scalar.undetermined[0], 600)
     for w in vector.warnings:
         text += f"\n- vector fit: {safe_text(w, 600)}"
     return text

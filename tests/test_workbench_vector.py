@@ -70,10 +70,14 @@ def test_the_total_field_fit_is_said_undetermined_on_a_cone_and_not_on_a_tumble(
     cone, _ = _vehicle()
     ctrl = Controller(cone)
     ctrl.step_calibrate("ml")
-    warned = ctrl.vector.scalar_row().warnings
-    assert warned and warned[0].startswith("undetermined") and "coverage" in warned[0]
+    warned = ctrl.vector.scalar_row().undetermined
+    assert warned and "coverage" in warned[0]
+    from magcal_workbench.vectorpanel import comparison_markdown
+
+    assert "undetermined here" in comparison_markdown(ctrl.vector)
     tumble, _ = _vehicle(roll_max_deg=180.0, pitch_max_deg=85.0, turns=6.0, n=3000)
-    assert Controller(tumble).vector.scalar_row().warnings == []
+    assert Controller(tumble).vector.scalar_row().undetermined == []
+    assert "undetermined" not in comparison_markdown(Controller(tumble).vector)
 
 
 def test_the_vector_fit_uses_the_kept_samples_only():
@@ -180,7 +184,7 @@ def test_the_vehicle_lesson_is_solved_by_the_vector_fit_with_the_right_reference
     ctrl = Controller(ds)
     assert not ctrl.vector.available  # the reference comes from the place and date the guide gives
     ctrl.step_calibrate("ml")
-    assert ctrl.vector.scalar_row().warnings  # the total-field fit is undetermined here
+    assert ctrl.vector.scalar_row().undetermined  # the total-field fit is undetermined here
     first = lesson.check(ctrl.state.effects, ctrl.vector.lesson_findings())
     assert not first["solved"] and "vector fit" in first["message"]
     ctrl.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")
@@ -301,6 +305,24 @@ def test_the_vehicle_view_draws_the_body_and_the_fields_at_the_scrubbers_sample(
     assert wb.vehicle.gain == 1000.0
     p.vehicle_on.value = False
     assert wb.vehicle.nodes == {} and not wb.vehicle.enabled
+
+
+def test_play_flies_the_vehicle_through_the_record(bench):
+    ds, _ = _vehicle(n=600)
+    wb = bench(ds=ds)
+    wb.ctrl.step_vector()
+    wb.panels.window_width.value = 2.0
+    wb.panels.play_speed.value = 100.0  # 60 s at 100x: the window crosses the record in about half a second
+    wb.panels.vector_panel.vehicle_on.value = True
+    seen = [wb.vehicle.shown["sample"]]
+    wb.view.do_play(None)
+    end = time.monotonic() + 20
+    while wb.window.playing and time.monotonic() < end:
+        if wb.vehicle.shown["sample"] != seen[-1]:
+            seen.append(wb.vehicle.shown["sample"])
+        time.sleep(0.02)
+    assert not wb.window.playing
+    assert len(seen) >= 3 and seen == sorted(seen) and seen[-1] == wb.ctrl.dataset.n_samples - 1
 
 
 def test_the_page_location_inputs_are_checked_and_set_the_reference(bench):
