@@ -316,8 +316,9 @@ def test_play_flies_the_vehicle_through_the_record(bench):
     wb.panels.vector_panel.vehicle_on.value = True
     seen = [wb.vehicle.shown["sample"]]
     wb.view.do_play(None)
-    end = time.monotonic() + 20
-    while wb.window.playing and time.monotonic() < end:
+    last = wb.ctrl.dataset.n_samples - 1
+    end = time.monotonic() + 30
+    while (wb.window.playing or seen[-1] != last) and time.monotonic() < end:  # the last move may land late
         if wb.vehicle.shown["sample"] != seen[-1]:
             seen.append(wb.vehicle.shown["sample"])
         time.sleep(0.02)
