@@ -13,6 +13,11 @@ Outputs (committed):
   stops above the noise floor, Diagnose points at the temperature, Add brings the error down to the floor.
 * ``assets/lessons/<slug>/{data.csv, guide.md, lesson.json}`` - one effect hidden per lesson (one lesson hides
   two); ``lesson.json`` holds the answer, which the workbench shows only when asked.
+* ``assets/lessons/cannot-tumble/`` - a simulated vehicle (:func:`magcal.data.vehicle.simulate_vehicle`): full yaw
+  turns, roll within +-20 deg and pitch within +-10 deg, a fluxgate mounted with permuted axes and 2 deg off the
+  right angle, soft and hard iron, its attitude in ``roll_deg, pitch_deg, yaw_deg``; the field is IGRF at the place
+  and date the guide gives (no reference column: the page's location makes it). The total-field fit is
+  undetermined there; the vector fit finds the mounting, which is the answer.
 """
 
 from __future__ import annotations
@@ -319,10 +324,117 @@ quarter of the full recording; neither an axis timing skew nor a lag of the outp
 """
 
 
+#: The vehicle lesson: where and when it was flown (the reference the student types), and its record.
+VEHICLE_SLUG = "cannot-tumble"
+VEHICLE_SITE = {"lat_deg": 53.0, "lon_deg": 4.5, "alt_m": 1500.0, "date": "2024-06-01"}
+VEHICLE_SEED = 2929
+VEHICLE_SAMPLES = 2000
+VEHICLE_ATTITUDE_NOISE_DEG = 0.05
+VEHICLE_TITLE = "A vehicle that cannot tumble"
+VEHICLE_GUIDE = """
+A survey aircraft carries a fluxgate in its tail. It cannot be turned through every direction on a bench: the
+record is a calibration flight of three full turns, banking to +-20 deg and pitching +-10 deg, with the aircraft's
+attitude from its INS in `roll_deg, pitch_deg, yaw_deg` (body x forward, y right, z down; world north-east-down).
+The flight was over the sea at **53.0 N, 4.5 E, 1500 m** above the ellipsoid, on **2024-06-01**. Nobody measured
+the field there: the file has no reference column.
+
+1. **Run the chosen method** (Calibrate tab): the total-field fit. Read the message and the *Vector model* table
+   under the step buttons. Is the fit determined by these data? In the View tab, where on the sphere do the corrected
+   samples lie, and where not?
+2. Open *Reference from a location (IGRF)* (Calibrate tab) and type where and when the aircraft flew; press *Use
+   this location (IGRF)*. What reference field does it set, and what does that change in the total-field fit?
+3. **Run the vector fit (attitude-aided)**. Compare the two columns of the table: the total-field RMS, the world
+   components N, E, D, the mounting, the attitude noise. Which figures can the total-field fit not give at all, and
+   why? Is the world residual at the sensor's noise, or at something else (what does 0.05 deg of attitude error do
+   to a 49 uT field)?
+4. View tab: tick **Show the vehicle view** and press *Play* in the Time window. The green arrow is the model field, the blue
+   one the measured field rotated to the world, the red one their difference, exaggerated. Does the red arrow
+   follow the turns, or only jitter?
+5. **Check my model** once the vector fit has run.
+"""
+VEHICLE_EXPLANATION = (
+    "The fluxgate is mounted ROLL_180_YAW_90 (ArduPilot's rotation 10: sensor x along the body's y, y along x, z up "
+    "instead of down), turned 2 deg off that right angle about a tilted axis; its bias is about 1.5 uT per axis and "
+    "its scale and soft iron a few per cent. A flight that turns in yaw and tilts 20 deg sees a cone of field "
+    "directions: the total-field fit extrapolates to the rest of the sphere (magcal warns of the coverage) and can "
+    "never say how the sensor sits in the aircraft. With the attitude and the IGRF field vector every sample gives "
+    "three equations: the vector fit finds the right angle, the 2 deg, and a world residual of about 0.05 deg x |B| "
+    "(~35-40 nT per horizontal component), the attitude error's floor, with |B| at the 3 nT sensor noise."
+)
+
+
+def write_vehicle_lesson():
+    """The vehicle lesson (``cannot-tumble``): data, guide, answer. The field is IGRF at :data:`VEHICLE_SITE`."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from magcal.checks.reference import igrf_ned_nT
+    from magcal.data.attitude import wxyz_rotation
+    from magcal.data.vehicle import simulate_vehicle
+    from magcal.geometry.orientations import describe_right_angle, nearest_right_angle
+
+    site = VEHICLE_SITE
+    ned = igrf_ned_nT(site["lat_deg"], site["lon_deg"], site["alt_m"] / 1000.0, site["date"])[0]
+    ds, truth = simulate_vehicle(
+        n=VEHICLE_SAMPLES,
+        rate_hz=10.0,
+        turns=3.0,
+        roll_max_deg=20.0,
+        pitch_max_deg=10.0,
+        noise_nT=3.0,
+        attitude_noise_deg=VEHICLE_ATTITUDE_NOISE_DEG,
+        seed=VEHICLE_SEED,
+        field_ned_nT=tuple(float(v) for v in ned),
+        off_deg=2.0,
+    )
+    yaw, pitch, roll = wxyz_rotation(ds.attitude_wxyz).as_euler("ZYX", degrees=True).T
+    extra = {"roll_deg": roll, "pitch_deg": pitch, "yaw_deg": np.mod(yaw, 360.0)}
+    data = ds.replace(attitude_wxyz=None, extra=extra, metadata={"simulated": "true"})
+    folder = HERE / "lessons" / VEHICLE_SLUG
+    folder.mkdir(parents=True, exist_ok=True)
+    mio.write_csv(
+        folder / "data.csv",
+        data,
+        metadata={
+            "lesson": VEHICLE_SLUG,
+            "attitude": "roll_deg, pitch_deg, yaw_deg: aerospace ZYX, body (x forward, y right, z down) -> NED",
+            "site": f"{site['lat_deg']} N, {site['lon_deg']} E, {site['alt_m']:g} m, {site['date']}",
+        },
+        float_format=FLOAT_FORMAT,
+    )
+    mounting = truth.sensors[0].mounting
+    right, off = nearest_right_angle(mounting)
+    (folder / "guide.md").write_text(VEHICLE_GUIDE.strip() + "\n", encoding="utf-8")
+    doc = {
+        "title": VEHICLE_TITLE,
+        "order": 7,
+        "data": "data.csv",
+        "guide": "guide.md",
+        "answer": {
+            "effects": [],
+            "mounting": [describe_right_angle(right).split(" ")[0]],
+            "mounting_off_deg": round(float(off), 3),
+            "mounting_tolerance_deg": 0.1,
+            "explanation": VEHICLE_EXPLANATION,
+        },
+        "made_by": "assets/make_assets.py",
+        "seed": VEHICLE_SEED,
+        "site": site,
+        "truth": {
+            "bias_nT": np.round(truth.sensors[0].bias_nT, 1).tolist(),
+            "mounting_rotvec_deg": np.round(Rotation.from_matrix(mounting).as_rotvec(degrees=True), 3).tolist(),
+            "attitude_noise_deg": VEHICLE_ATTITUDE_NOISE_DEG,
+            "noise_nT": 3.0,
+        },
+    }
+    (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
 def main():
     write_demo()
     write_lessons()
     write_real_lesson()
+    write_vehicle_lesson()
     print(f"wrote {HERE / 'demo.csv'} and {len(LESSONS)} lessons under {HERE / 'lessons'}")
     return 0
 

@@ -16,6 +16,12 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
   the largest gap's centre orange) and the advice on where to turn;
 * ``live-enough.png`` - at the end: the directions covered, the fit at the noise floor, "enough".
 
+``python assets/make_screenshots.py vehicle`` saves the vector model (issue 29), on the lesson ``cannot-tumble``:
+
+* ``vector-table.png`` - the total-field fit and the vector fit side by side (Calibrate tab);
+* ``vehicle-view.png`` - the vehicle view: the body by its attitude, the model and measured field in N, E, D, the
+  residual exaggerated.
+
 ``python assets/make_screenshots.py see`` saves where a model fails (issue 15):
 
 * ``see-scrubber.png`` - the two-effect lesson with its temperature term added, a time window after the bias step;
@@ -143,7 +149,49 @@ def see() -> int:
     return 0
 
 
+def vehicle() -> int:
+    """The vector model's screenshots (see the module docstring)."""
+    from playwright.sync_api import sync_playwright
+
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.dataio import load_dataset
+    from magcal_workbench.lessons import get_lesson
+
+    warnings.simplefilter("ignore")
+    ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
+    wb = Workbench(ds, host="127.0.0.1", port=0, store=None)
+    try:
+        wb.ctrl.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")  # the place and date the lesson's guide gives
+        wb.ctrl.step_calibrate("ml")
+        wb.ctrl.step_vector()
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(wb.url)
+            _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+            time.sleep(2)
+            for close in page.locator(".mantine-Notification-closeButton").all():
+                close.click()
+            page.get_by_text("Vector model (attitude-aided)").scroll_into_view_if_needed()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "vector-table.png"))
+            page.get_by_role("tab", name="View").click()
+            wb.panels.window_width.value = 2.0
+            wb.panels.window_start.value = 55.0
+            wb.panels.vector_panel.vehicle_on.value = True
+            page.get_by_text("Show the vehicle view", exact=True).scroll_into_view_if_needed()
+            time.sleep(4)
+            page.screenshot(path=str(OUT / "vehicle-view.png"))
+            browser.close()
+    finally:
+        wb.stop()
+    print(f"wrote vector-table.png and vehicle-view.png in {OUT}")
+    return 0
+
+
 def main() -> int:
+    if sys.argv[1:] == ["vehicle"]:
+        return vehicle()
     if sys.argv[1:] == ["live"]:
         return live()
     if sys.argv[1:] == ["see"]:

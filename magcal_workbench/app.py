@@ -68,6 +68,7 @@ from .steps import Steps
 from .timewindow import TimeWindow
 from .uiqueue import UiQueue
 from .uploads import DEFAULT_MAX_UPLOAD_MB, Uploads
+from .vehicleview import VehicleView
 from .view import SceneControl
 
 
@@ -161,6 +162,8 @@ class Workbench:
         self.evidence = Evidence(self)
         self.view = SceneControl(self)
         self.steps = Steps(self)
+        #: The vehicle view and the vector model's page actions (issue 29).
+        self.vehicle = VehicleView(self)
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         self.scene_view = scn.SceneView(self.server, max_points=max_points)
         self.panels = Panels(
@@ -200,6 +203,7 @@ class Workbench:
             self.livectl,
             self.evidence,
             self.exporting,
+            self.vehicle,
         )
         on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
         on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
@@ -214,6 +218,7 @@ class Workbench:
             legend_html=v.legend_html,
             draw_evidence=self.evidence.draw,
             refresh_export=self.exporting.refresh,
+            vehicle_text=self.vehicle.describe,
         )
 
     # ------------------------------------------------------------------------------------------------------
@@ -246,10 +251,12 @@ class Workbench:
 
     def _redraw_all(self) -> None:
         self.scene_view.clear()
+        self.vehicle.clear()
         self.redraw()
         self.maps.fit_changed(self.ctrl)
         self.view.refresh_maps()
         self.view.reset_cameras()
+        self.vehicle.redraw()
 
     def redraw(self) -> None:
         self.view.update_scene()
@@ -294,6 +301,7 @@ class Workbench:
             self.view.recolor()
         elif kind == "inspect":
             self.scene_view.mark_inspected(ctrl.inspected)
+        self.vehicle.changed(kind)
         if kind in ("result", "data"):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":

@@ -42,6 +42,7 @@ from .markup import clean_text, error_text, safe_code, safe_text
 from .session import SessionStore
 from .sessionfile import LABEL
 from .state import METHODS, SessionState, StepRecord
+from .vectormodel import VectorModel
 
 #: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
 MESSAGE_LEN = 1000
@@ -117,6 +118,8 @@ class Controller:
         self._listeners: list[Callable[[str], None]] = []
         self._lock = threading.RLock()
         self._job_pin = threading.local()  # the mask and model of the job running in this thread
+        #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
+        self.vector = VectorModel(self)
         if not self.state.history:
             raw = self.raw_residual_nT()
             self.state.history.append(
@@ -137,7 +140,8 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     def on_change(self, func: Callable[[str], None]) -> None:
         """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
-        ``inspect``, ``progress``, ``message``, ``view`` or ``effects`` (the catalogue grew)."""
+        ``inspect``, ``progress``, ``message``, ``view``, ``effects`` (the catalogue grew) or ``vector`` (the vector
+        fit or its reference changed)."""
         self._listeners.append(func)
 
     def _emit(self, kind: str) -> None:
@@ -655,6 +659,11 @@ class Controller:
         self._emit("progress")
         name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
         return self._record(name, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
+
+    def step_vector(self):
+        """The attitude-aided vector fit beside the total-field fit (:meth:`VectorModel.fit`, the engine's
+        :func:`magcal.fitting.vector.fit_vector`); the total-field calibration is left as it is."""
+        return self.vector.fit()
 
     # ------------------------------------------------------------------------------------------------------
     # the loop: model, diagnose, add

@@ -4,6 +4,9 @@ A lesson is a folder under ``assets/lessons/``::
 
     <slug>/lesson.json   {"title", "order", "data": "data.csv", "guide": "guide.md",
                           "answer": {"effects": ["temperature_bias:2", ...], "explanation": "..."}}
+                         a lesson of the vector model (issue 29) adds to its answer "mounting": the right angle
+                         (firmware name) per sensor, "mounting_off_deg" and "mounting_tolerance_deg": solved by a
+                         vector fit that finds them
     <slug>/guide.md      what to look at (never names the answer)
     <slug>/data.csv      the data (made by ``assets/make_assets.py`` from the engine's simulator)
 
@@ -62,17 +65,35 @@ class Lesson:
         return (self.folder / self._doc().get("guide", "guide.md")).read_text(encoding="utf-8")
 
     def answer(self) -> dict:
-        """``{"effects": [labels], "explanation": str}`` — show only when the user asks."""
+        """``{"effects": [labels], "explanation": str}`` (and, for a lesson of the vector model, ``mounting``: the
+        right angle per sensor, ``mounting_off_deg``, ``mounting_tolerance_deg``) — show only when the user asks."""
         ans = self._doc().get("answer", {})
-        return {"effects": list(ans.get("effects", [])), "explanation": ans.get("explanation", "")}
+        out = {"effects": list(ans.get("effects", [])), "explanation": ans.get("explanation", "")}
+        if ans.get("mounting"):
+            out["mounting"] = list(ans["mounting"])
+            out["mounting_off_deg"] = float(ans.get("mounting_off_deg", 0.0))
+            out["mounting_tolerance_deg"] = float(ans.get("mounting_tolerance_deg", 0.5))
+        return out
 
     def answer_markdown(self) -> str:
         ans = self.answer()
-        terms = ", ".join(f"`{e}`" for e in ans["effects"])
+        terms = ", ".join(f"`{e}`" for e in ans["effects"]) or "no effect beyond the base terms"
+        if ans.get("mounting"):
+            terms += "; the vector fit's mounting " + ", ".join(f"`{m}`" for m in ans["mounting"])
+            terms += f", {ans['mounting_off_deg']:g} deg off the right angle"
         return f"**Answer:** {terms}\n\n{ans['explanation']}"
 
-    def check(self, effects) -> dict:
-        """Compare the model's effect labels with the answer.
+    def check(self, effects, vector=None) -> dict:
+        """Compare the model's effect labels (and, for a lesson of the vector model, the vector fit's mounting) with
+        the answer.
+
+        Parameters
+        ----------
+        effects : sequence of str
+            The model's effect labels.
+        vector : dict, optional
+            The vector fit's findings (:meth:`magcal_workbench.vectormodel.VectorModel.lesson_findings`):
+            ``mounting`` (right angle per sensor) and ``angle_off_deg``; None before a vector fit.
 
         Returns
         -------
@@ -92,9 +113,31 @@ class Lesson:
                 covered.add(match)
         extra = [h for h in have if h not in covered]
         missing = len(wanted) - len(found)
+        mounting = self._check_mounting(vector)
+        if mounting is not None:  # a lesson of the vector model: the mounting is one more thing to find
+            wanted = wanted + ["mounting"]
+            if mounting == "found":
+                found.append("mounting")
+            else:
+                missing += 1
         solved = missing == 0 and not extra
-        if solved:
-            message = "Solved: your model holds exactly the hidden effect(s)."
+        if mounting == "no fit":
+            message = (
+                "Not yet: this lesson is judged on the vector fit (Calibrate tab, Run the vector fit), which has not "
+                "been run on these data."
+                + (f" Your model also holds terms not hidden here: {_labels(extra)}." if extra else "")
+            )
+        elif mounting == "wrong":
+            message = (
+                "The vector fit ran, but the mounting it found is not the one hidden in the data: check the reference "
+                "field (where and when was the vehicle flown?) and the samples kept."
+            )
+        elif solved:
+            message = (
+                "Solved: the vector fit found the mounting the vehicle was built with."
+                if mounting
+                else "Solved: your model holds exactly the hidden effect(s)."
+            )
         elif missing == 0:
             message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."
         else:
@@ -104,6 +147,22 @@ class Lesson:
                 + ". Keep looking."
             )
         return {"found": found, "missing": missing, "extra": extra, "solved": solved, "message": message}
+
+    def _check_mounting(self, vector) -> str | None:
+        """None (not a lesson of the vector model), ``no fit``, ``wrong`` or ``found``."""
+        ans = self.answer()
+        if not ans.get("mounting"):
+            return None
+        if not vector:
+            return "no fit"
+        names, offs = list(vector.get("mounting", [])), list(vector.get("angle_off_deg", []))
+        if len(names) != len(ans["mounting"]) or len(offs) != len(names):
+            return "wrong"
+        ok = all(
+            n == want and abs(off - ans["mounting_off_deg"]) <= ans["mounting_tolerance_deg"]
+            for n, want, off in zip(names, ans["mounting"], offs)
+        )
+        return "found" if ok else "wrong"
 
     def _doc(self) -> dict:
         with open(self.folder / "lesson.json", encoding="utf-8") as fh:
@@ -193,7 +252,8 @@ class LessonDesk:
         return lesson_or_error(state.lesson)
 
     def do_check_lesson(self, event):
-        result = self.current().check(self.wb.ctrl.state.effects)
+        ctrl = self.wb.ctrl
+        result = self.current().check(ctrl.state.effects, ctrl.vector.lesson_findings())
         self.wb.panels.lesson_feedback.content = result["message"]
         self.wb.ctrl.say(result["message"])
 

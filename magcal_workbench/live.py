@@ -136,9 +136,13 @@ class LiveView:
         Redraws the scene (which asks :meth:`scene_model`).
     refresh : callable
         Shows the live session's state in the panels.
+    reference_nT : callable, optional
+        The reference total field (nT) the page holds now (typed, or IGRF at a typed location), or None: the live
+        fits use it, else they fit the field's magnitude.
     """
 
-    def __init__(self, url: str, path, server, ui, redraw, refresh):
+    def __init__(self, url: str, path, server, ui, redraw, refresh, reference_nT=None):
+        self._reference_nT = reference_nT or (lambda: None)
         self._server = server
         self._ui = ui
         self._redraw = redraw
@@ -258,7 +262,7 @@ class LiveView:
     def _refit(self, ds) -> None:
         try:
             # weak coverage early on is the point of the live view: its notes stay in result.notes, unsaid
-            result = magcal.calibrate(ds, method="ml", warn=False)
+            result = magcal.calibrate(ds, method="ml", warn=False, reference_total_nT=self._reference_nT())
             self.fit = LiveFit(result, ds.n_samples)
             self.fit_error = None
             self.verdict = live_sufficient(self.maps, self.fit.rms_nT, self.fit.floor_nT)
@@ -404,6 +408,9 @@ class LiveView:
                 sd.append(f"bias +-{fit.bias_sd_nT:.3g} nT")
             if fit.cinv_sd is not None:
                 sd.append(f"C^-1 entries +-{fit.cinv_sd:.2g}")
+            ref = fit.calibration.reference_total_nT
+            if ref and not fit.calibration.reference_fitted:
+                lines.append(f"- reference field {ref:.1f} nT, as the Calibrate tab gives it")
             lines.append(
                 f"- fit on {fit.n_samples} samples: RMS **{fit.rms_nT:.3g} nT** (noise floor "
                 f"{fit.floor_nT:.3g} nT, noise from {fit.noise_source}); standard errors "

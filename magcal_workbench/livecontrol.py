@@ -57,7 +57,13 @@ class LiveControl:
         try:
             path = default_recording_path(recording_folder(wb.store)) if path is None else path
             self.view = LiveView(
-                url, path, wb.server, wb.ui, redraw=wb.view.update_scene, refresh=lambda: wb.panels.refresh_live()
+                url,
+                path,
+                wb.server,
+                wb.ui,
+                redraw=wb.view.update_scene,
+                refresh=lambda: wb.panels.refresh_live(),
+                reference_nT=lambda: wb.ctrl.state.reference_nT,  # typed, or IGRF at the typed location
             )
         finally:
             with self._claim:

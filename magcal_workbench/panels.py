@@ -26,6 +26,7 @@ from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import NOISE_RANGE_nT
 from .state import METHODS
 from .uploads import UPLOAD_UNITS
+from .vectorpanel import VectorPanel
 
 METHOD_LABELS = {
     "ml": "ml: ellipsoid, align, maximum likelihood",
@@ -512,6 +513,7 @@ class Panels:
         #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
         self.evidence_overlay = gui.add_html("", visible=False)
         tabs = gui.add_tab_group()
+        self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
         self._engine_buttons: list = []
         self._bindings: list = []  # (widget, the state's value as the widget shows it)
         with tabs.add_tab("Calibrate", icon=None):
@@ -584,6 +586,7 @@ class Panels:
             lambda v: configure(fit_reference=bool(v)),
         )
         self.reference_info = gui.add_markdown("")
+        self.vector_panel.build_location(gui)
         self.robust = self._bind(
             gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
             lambda: bool(state().robust),
@@ -594,6 +597,7 @@ class Panels:
         self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.on.do_refine)
         self.btn_run = self._button(gui, "Run the chosen method", self.on.do_calibrate, color="blue")
         self.sensors_table = gui.add_markdown("")
+        self.vector_panel.build_calibrate(gui)
         with gui.add_folder("Step history", expand_by_default=True):
             self.history = gui.add_markdown("")
             gui.add_markdown(HELD_OUT_NOTE)
@@ -749,6 +753,7 @@ class Panels:
         self.maps_info = gui.add_markdown("")
         with gui.add_folder("Time window", expand_by_default=True):
             self._build_time(gui)
+        self.vector_panel.build_view(gui)
 
     def _build_time(self, gui):
         """The time scrubber (:mod:`workbench.timewindow`): a window of the recording on the sphere, replayed."""
@@ -1023,6 +1028,7 @@ class Panels:
         self.btn_dl_csv.disabled = not has_cal
         self.btn_align.visible = ctrl.dataset.n_sensors > 1
         self.on.refresh_export()
+        self.vector_panel.refresh(kinds)
 
     def show_state(self) -> None:
         """Write the session state into every bound widget (their callbacks see nothing to change)."""

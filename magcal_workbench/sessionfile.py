@@ -26,6 +26,8 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``history``         list of steps ``{"step", "rms_nT", "floor_nT", "effects", "n_kept", "changes", "elapsed_s",
                     "fit", "held_out_rms_nT"}`` (numbers finite, ``n_kept`` 0 ... N; ``held_out_rms_nT`` null
                     when the step ran no held-out validation)
+``location``        the place typed for IGRF ``{"lat_deg": -90 ... 90, "lon_deg": -180 ... 180, "alt_m": -10^4 ...
+                    2 10^6, "date": text of at most 32 characters}``, or null
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -59,6 +61,12 @@ MAX_UNDO = 200
 REFERENCE_RANGE_nT = (1.0, 1e7)
 #: Range of a noise level the user gives (``noise_nT``: per-axis standard deviation), nT.
 NOISE_RANGE_nT = (1e-6, 1e6)
+#: What the page's location inputs (the IGRF reference) may hold: latitude and longitude (deg), altitude above the
+#: WGS84 ellipsoid (m; IGRF is defined from 10 km below it to 2000 km above), the date's length (characters).
+LAT_RANGE_DEG = (-90.0, 90.0)
+LON_RANGE_DEG = (-180.0, 180.0)
+ALT_RANGE_M = (-10_000.0, 2_000_000.0)
+DATE_CHARS = 32
 
 LABEL = re.compile(r"^[a-z][a-z0-9_]{0,63}(?::([0-9]{1,2}))?$")
 SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -218,6 +226,24 @@ class _Reader:
             held_out_rms_nT=self.number(f"{field}.held_out_rms_nT", doc.get("held_out_rms_nT"), 0.0, null=True),
         )
 
+    def location(self, field, value):
+        """The place typed for IGRF, or None (the ranges of :mod:`magcal_workbench.vectormodel`)."""
+        if value is None:
+            return None
+        doc = self.obj(field, value)
+        unknown = set(doc) - {"lat_deg", "lon_deg", "alt_m", "date"}
+        if unknown:
+            self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
+        for key in ("lat_deg", "lon_deg", "alt_m", "date"):
+            if key not in doc:
+                self.fail(f"{field}.{key}", "is missing")
+        return {
+            "lat_deg": self.number(f"{field}.lat_deg", doc["lat_deg"], *LAT_RANGE_DEG),
+            "lon_deg": self.number(f"{field}.lon_deg", doc["lon_deg"], *LON_RANGE_DEG),
+            "alt_m": self.number(f"{field}.alt_m", doc["alt_m"], *ALT_RANGE_M),
+            "date": self.text(f"{field}.date", doc["date"], max_len=DATE_CHARS),
+        }
+
     def selection(self, field, value, n):
         doc = self.obj(field, value)
         if "kept" not in doc:
@@ -292,6 +318,7 @@ def read_session_document(doc, where: str = "session.json"):
     st.sensor = None if sensor is None else r.integer("sensor", sensor, 0, n_sensors - 1)
     history = r.listing("history", doc.get("history", []), MAX_HISTORY)
     st.history = [r.step(f"history[{i}]", h, n, n_sensors) for i, h in enumerate(history)]
+    st.location = r.location("location", doc.get("location"))
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
     return st

@@ -282,6 +282,9 @@ class SessionState:
         The last calibration as its JSON document (``Calibration.to_dict``).
     answer_revealed : bool
         Whether the lesson's answer has been shown.
+    location : dict or None
+        The place and date typed in the page for the IGRF reference (``lat_deg``, ``lon_deg``, ``alt_m``,
+        ``date``: :class:`magcal_workbench.vectormodel.Location`); None when none was typed.
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
@@ -302,6 +305,7 @@ class SessionState:
         self.calibration: dict | None = None
         self.answer_revealed = False
         self.noise_nT: float | None = None  # per-axis noise given by the user (nT); None = the data's or estimated
+        self.location: dict | None = None  # the place and date typed for IGRF (vectormodel.Location.to_dict)
         self.version = 0  # bumped on every change; the autosave and the views compare it
 
     @property
@@ -392,4 +396,5 @@ class SessionState:
                 "calibration": self.calibration,
                 "answer_revealed": self.answer_revealed,
                 "noise_nT": self.noise_nT,
+                "location": None if self.location is None else dict(self.location),
             }

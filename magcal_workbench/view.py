@@ -102,6 +102,9 @@ class SceneControl:
             self.place_camera(client)
 
     def place_camera(self, client) -> None:
+        if self.wb.vehicle.enabled:  # the vehicle view is shown: its camera (a browser that joins sees it too)
+            self.wb.vehicle.place_camera(client)
+            return
         ctrl = self.wb.ctrl
         n_groups = 1 if ctrl.state.sensor is not None else ctrl.dataset.n_sensors
         try:
@@ -186,6 +189,7 @@ class SceneControl:
     def window_moved(self) -> None:
         wb = self.wb
         self.update_scene()
+        wb.vehicle.redraw()  # the vehicle view follows the scrubber's current sample
         times = sample_times(wb.ctrl.dataset)
         wb.panels.window_info.content = safe_text(wb.window.describe(times))
         now = time.monotonic()

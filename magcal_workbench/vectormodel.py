@@ -1,0 +1,387 @@
+"""The vector model in the workbench (issue 29): the attitude-aided fit beside the total-field fit, and the
+reference from a location typed in the page (issue 32).
+
+A record with attitude (``qw, qx, qy, qz`` or ``roll_deg, pitch_deg, yaw_deg``) and a field vector (``ref_n, ref_e,
+ref_d`` columns, IGRF along ``lat, lon, alt_m`` columns, or IGRF at the place and date typed in the Calibrate tab)
+can be calibrated with :func:`magcal.fitting.vector.fit_vector`: the mounting into the body frame is then
+determined, and so are the world (north-east-down) components. :class:`VectorModel` belongs to one
+:class:`~magcal_workbench.controller.Controller`; it chooses the reference, runs the engine's fit on the kept
+samples, and keeps what the page shows (the comparison table, the vehicle view's vectors). The physics is the
+engine's: the fit, IGRF (:mod:`magcal.checks.reference`), the attitude (:mod:`magcal.data.attitude`), the coverage
+check that says when a total-field fit is undetermined (:func:`magcal.checks.coverage.calibration_input_checks`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magcal.checks.coverage import calibration_input_checks
+from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
+from magcal.core.errors import MagcalError
+from magcal.data.attitude import attitude, attitude_source
+from magcal.fitting.vector import fit_vector
+
+from .markup import clean_text, hide_paths, safe_text
+from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
+
+#: The world components' names, in order.
+NED = ("N", "E", "D")
+
+
+def _rms(a, axis=None):
+    a = np.asarray(a, dtype=float)
+    return np.sqrt(np.nanmean(a**2, axis=axis))
+
+
+@dataclass
+class Location:
+    """A place and date typed in the page: the reference through IGRF.
+
+    Attributes
+    ----------
+    lat_deg, lon_deg : float
+        Geodetic latitude and longitude (deg, north and east positive).
+    alt_m : float
+        Height above the WGS84 ellipsoid (m).
+    date : str
+        ISO date (``2024-06-01``) or decimal year.
+    ned_nT : numpy.ndarray, shape (3,)
+        The IGRF main field there (nT, north-east-down).
+    """
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    date: str
+    ned_nT: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def total_nT(self) -> float:
+        return float(np.linalg.norm(self.ned_nT))
+
+    def to_dict(self) -> dict:
+        """What the session file keeps (the field is computed again when the session reopens)."""
+        return {"lat_deg": self.lat_deg, "lon_deg": self.lon_deg, "alt_m": self.alt_m, "date": self.date}
+
+    def text(self) -> str:
+        n, e, d = self.ned_nT
+        return (
+            f"IGRF at {self.lat_deg:.4f} N, {self.lon_deg:.4f} E, {self.alt_m:g} m, {self.date}: N {n:.1f}, "
+            f"E {e:.1f}, D {d:.1f} nT (|B| {self.total_nT:.1f} nT)"
+        )
+
+
+def check_location(lat_deg, lon_deg, alt_m, date) -> Location:
+    """A :class:`Location` with its IGRF field, or one clear :class:`MagcalError` naming the input that is wrong.
+
+    The values come from a browser: each is checked for type and range before the engine sees it."""
+
+    def number(name, value, lo, hi, unit):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok or not lo <= value <= hi:
+            raise MagcalError(f"{name} {clean_text(repr(value), 40)}: give a number in {lo:g} ... {hi:g} {unit}")
+        return float(value)
+
+    lat = number("latitude", lat_deg, *LAT_RANGE_DEG, "deg")
+    lon = number("longitude", lon_deg, *LON_RANGE_DEG, "deg")
+    alt = number("altitude", alt_m, *ALT_RANGE_M, "m")
+    if not isinstance(date, str) or not date.strip() or len(date) > DATE_CHARS:
+        raise MagcalError("date: type it as YYYY-MM-DD (e.g. 2024-06-01) or a decimal year (2024.5)")
+    text = date.strip()
+    when = parse_date(text)  # a MagcalError naming the date when it is none
+    ned = igrf_ned_nT(lat, lon, alt / 1000.0, when)[0]  # a MagcalError outside the model's years
+    return Location(lat, lon, alt, text, np.asarray(ned, dtype=float))
+
+
+@dataclass
+class FitRow:
+    """One column of the comparison table: a fit's figures on the kept samples.
+
+    Attributes
+    ----------
+    name : str
+    total_field_rms_nT : float or None
+        RMS of ``|B| - F`` (all sensors), nT.
+    world_rms_nT : numpy.ndarray, shape (3,), or None
+        RMS per world component N, E, D of ``B_world - B_ref`` (all sensors), nT; None when the fit cannot give
+        world components (a total-field fit leaves the sensor's rotation a gauge).
+    mounting : list of str
+        Per sensor: the right angle found and the angle off it.
+    attitude_noise : list of str
+        Per sensor: the attitude error the vector residual implies (deg) and whether given or estimated.
+    warnings : list of str
+        The fit's notes.
+    undetermined : list of str
+        Why the fit is not determined by these data (a total-field fit on a cone of directions: the coverage
+        check's notes); empty when it is.
+    """
+
+    name: str
+    total_field_rms_nT: float | None = None
+    world_rms_nT: np.ndarray | None = None
+    mounting: list = field(default_factory=list)
+    attitude_noise: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    undetermined: list = field(default_factory=list)
+
+
+class VectorModel:
+    """The vector model of one controller's data: reference, fit, and what the page shows of it.
+
+    Parameters
+    ----------
+    ctrl : magcal_workbench.controller.Controller
+        Gives the dataset, the session state (kept mask, robust loss, noise, the location), the total-field
+        calibration, and the page's message and change events.
+
+    Attributes
+    ----------
+    result : magcal.fitting.vector.VectorFitResult or None
+        The last vector fit.
+    world_nT : numpy.ndarray, shape (n_sensors, N, 3), or None
+        Its corrected readings rotated to the world frame (every sample).
+    reference_ned_nT : numpy.ndarray, shape (N, 3), or None
+        The reference field vector of the last fit (nT, north-east-down).
+    """
+
+    def __init__(self, ctrl):
+        self.ctrl = ctrl
+        self.result = None
+        self.world_nT: np.ndarray | None = None
+        self.reference_ned_nT: np.ndarray | None = None
+        self.reference_text = ""
+        self.location: Location | None = None
+        self.location_note = ""
+        self._coverage_key = None
+        self._coverage_notes: list = []
+        self._reference_cache: tuple = (None, None)
+        saved = getattr(ctrl.state, "location", None)
+        if saved:
+            try:
+                self.location = check_location(saved["lat_deg"], saved["lon_deg"], saved["alt_m"], saved["date"])
+            except (MagcalError, KeyError, TypeError) as exc:  # IGRF not installed, or a hand-edited session
+                self.location_note = f"the saved location could not be used ({safe_text(str(exc), 300)})"
+
+    # --- what the data offer ----------------------------------------------------------------------------------
+    @property
+    def dataset(self):
+        return self.ctrl.dataset
+
+    def attitude_kind(self) -> str | None:
+        """``"quaternion"``, ``"euler"`` or None (:func:`magcal.data.attitude.attitude_source`)."""
+        return attitude_source(self.dataset)
+
+    def reference(self):
+        """The reference field vector (:class:`magcal.checks.reference.VectorReference`) or None: the location
+        typed in the page first (the user asked for it), then the file's ``ref_n, ref_e, ref_d`` columns, then IGRF
+        along its ``lat, lon, alt_m`` columns (at the typed date, else today)."""
+        ds = self.dataset
+        loc = self.location
+        key = None if loc is None else tuple(loc.to_dict().values())
+        if self._reference_cache[0] == key and self._reference_cache[1] is not None:
+            return self._reference_cache[1]
+        if loc is not None:
+            ref = resolve_vector_reference(ds, "igrf", loc.lat_deg, loc.lon_deg, loc.alt_m / 1000.0, loc.date)
+        elif any(c in ds.extra for c in VECTOR_COLUMNS):
+            ref = resolve_vector_reference(ds)
+        elif "lat" in ds.extra and "lon" in ds.extra:
+            ref = resolve_vector_reference(ds, "igrf")
+        else:
+            ref = None
+        self._reference_cache = (key, ref)
+        return ref
+
+    def missing(self) -> list[str]:
+        """What the vector fit lacks (empty when it can run), in words for the page."""
+        out = []
+        if self.attitude_kind() is None:
+            out.append("the attitude (qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg columns, body -> NED)")
+        ds = self.dataset
+        has_columns = any(c in ds.extra for c in VECTOR_COLUMNS) or ("lat" in ds.extra and "lon" in ds.extra)
+        if self.location is None and not has_columns:
+            out.append(
+                "the field vector (ref_n, ref_e, ref_d or lat, lon, alt_m columns, or a location and date below)"
+            )
+        return out
+
+    @property
+    def available(self) -> bool:
+        return not self.missing()
+
+    # --- the location typed in the page ----------------------------------------------------------------------
+    def set_location(self, lat_deg, lon_deg, alt_m, date) -> Location:
+        """Take the place and date typed in the page: IGRF there becomes the vector reference and its magnitude the
+        scalar reference (the Reference field box); the session remembers the place. Raises a
+        :class:`MagcalError` for a value out of range or a date IGRF does not cover."""
+        loc = check_location(lat_deg, lon_deg, alt_m, date)
+        ctrl = self.ctrl
+        with ctrl.state.lock:
+            self.forget_fit()  # it was made with the old reference
+            self.location = loc
+            self.location_note = ""
+            ctrl.state.location = loc.to_dict()
+            ctrl.state.touch()
+        ctrl.configure(reference_nT=round(loc.total_nT, 1), fit_reference=False)  # autosaves, refreshes the page
+        self._emit()
+        ctrl.say(
+            f"**reference from the location**: {safe_text(loc.text())}; the total-field fits use |B| = "
+            f"{loc.total_nT:.1f} nT, the vector fit the vector. Run a fit to use it."
+        )
+        return loc
+
+    def clear_location(self) -> None:
+        """Forget the typed location (the file's reference, if any, is used again; the Reference field box too)."""
+        ctrl = self.ctrl
+        with ctrl.state.lock:
+            self.forget_fit()
+            self.location = None
+            ctrl.state.location = None
+            ctrl.state.touch()
+        ctrl.configure(reference_nT=None)
+        self._emit()
+        ctrl.say("the location is forgotten: the file's reference is used again (or the field magnitude is fitted)")
+
+    # --- the fit ---------------------------------------------------------------------------------------------
+    def fit(self):
+        """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector`, robust
+        loss and noise as the session says), its world components on every sample, and a message with its figures.
+
+        Returns
+        -------
+        magcal.fitting.vector.VectorFitResult
+
+        Raises
+        ------
+        MagcalError
+            No attitude, no reference, too few samples (the engine's message).
+        """
+        missing = self.missing()
+        if missing:
+            raise MagcalError("the vector fit needs " + " and ".join(missing))
+        t0 = time.perf_counter()
+        ctrl = self.ctrl
+        ds = self.dataset
+        kept = ctrl.kept
+        ctrl._report_progress("vector fit (attitude-aided)", None)
+        try:
+            ref = self.reference()
+            if ref is None:  # missing() said there would be one
+                raise MagcalError("no reference field vector")
+            result = fit_vector(ds, ref, mask=kept, robust=ctrl.state.robust, noise_nT=ctrl.state.noise_nT, warn=False)
+            world = result.calibration.world(ds, record_terms="apply")
+        finally:
+            ctrl.progress = None
+            ctrl._emit("progress")
+        with ctrl.state.lock:
+            self.result = result
+            self.world_nT = np.asarray(world, dtype=float)
+            self.reference_ned_nT = np.asarray(ref.ned_nT, dtype=float)
+            self.reference_text = ref.text
+        self._emit()
+        row = self.vector_row()
+        mount = "; ".join(row.mounting)
+        text = (
+            f"**vector fit (attitude-aided)** on {int(kept.sum())} samples ({time.perf_counter() - t0:.2f} s): "
+            f"total-field RMS {row.total_field_rms_nT:.4g} nT, world RMS N/E/D "
+            + " / ".join(f"{v:.4g}" for v in row.world_rms_nT)
+            + f" nT; mounting {safe_text(mount, 600)}  \nreference: {safe_text(ref.text, 400)}"
+        )
+        text += "".join(f"  \n- {safe_text(w, 600)}" for w in result.warnings)
+        ctrl.say(text)
+        return result
+
+    def forget_fit(self) -> None:
+        """Drop the last vector fit (its reference changed)."""
+        self.result = None
+        self.world_nT = None
+        self.reference_ned_nT = None
+        self.reference_text = ""
+
+    def lesson_findings(self) -> dict | None:
+        """What a lesson's check compares (:meth:`magcal_workbench.lessons.Lesson.check`): per sensor, the right
+        angle the vector fit found (its firmware name) and the angle off it (deg); None before a vector fit."""
+        if self.result is None:
+            return None
+        return {
+            "mounting": [s.right_angle_text.split(" ")[0] for s in self.result.sensors],
+            "angle_off_deg": [float(s.angle_off_deg) for s in self.result.sensors],
+        }
+
+    def _emit(self) -> None:
+        self.ctrl._emit("vector")
+
+    # --- what the page shows ---------------------------------------------------------------------------------
+    def world_residual_nT(self) -> np.ndarray | None:
+        """``B_world - B_ref`` (n_sensors, N, 3) of the last vector fit, nT (every sample), or None."""
+        if self.world_nT is None or self.reference_ned_nT is None:
+            return None
+        return self.world_nT - self.reference_ned_nT[None]
+
+    def vector_row(self) -> FitRow:
+        """The vector fit's column of the comparison (kept samples)."""
+        row = FitRow("vector (attitude-aided)")
+        res = self.result
+        if res is None or self.world_nT is None:
+            return row
+        kept = self.ctrl.kept
+        resid = self.world_residual_nT()
+        ref_total = np.linalg.norm(self.reference_ned_nT, axis=1)
+        total = np.linalg.norm(self.world_nT, axis=2) - ref_total[None]
+        row.total_field_rms_nT = float(_rms(total[:, kept]))
+        row.world_rms_nT = _rms(resid[:, kept].reshape(-1, 3), axis=0)
+        for i, s in enumerate(res.sensors):
+            who = f"s{i + 1}: " if len(res.sensors) > 1 else ""
+            row.mounting.append(f"{who}{s.right_angle_text.split(':')[0]}, {s.angle_off_deg:.2f} deg off it")
+            row.attitude_noise.append(f"{who}{s.attitude_noise_deg:.3g} deg ({s.attitude_noise_source})")
+        row.warnings = list(res.warnings)
+        return row
+
+    def coverage_notes(self) -> list[str]:
+        """The coverage check of the kept samples (:func:`magcal.checks.coverage.calibration_input_checks`): the
+        notes that make a total-field fit undetermined (computed once per kept mask)."""
+        kept = self.ctrl.kept
+        key = (self.ctrl.state.selection.n_rejected, hash(kept.tobytes()))
+        if key != self._coverage_key:
+            try:
+                self._coverage_notes = calibration_input_checks(self.dataset.subset(kept))
+            except MagcalError as exc:  # rotation about one axis: refused outright, which says the same
+                self._coverage_notes = [str(exc)]
+            self._coverage_key = key
+        return list(self._coverage_notes)
+
+    def scalar_row(self) -> FitRow:
+        """The total-field fit's column (kept samples): its RMS, no world components (its rotation is a gauge), and
+        the undetermined warning when the record's directions fill a cone rather than the sphere."""
+        ctrl = self.ctrl
+        row = FitRow("total-field")
+        if ctrl.calibration is not None:
+            rms = ctrl.residual_rms_nT()
+            row.total_field_rms_nT = float(rms) if np.isfinite(rms) else None
+        row.undetermined = [hide_paths(n) for n in self.coverage_notes()]
+        return row
+
+    def current_vectors(self, sample: int, sensor: int = 0) -> dict | None:
+        """What the vehicle view draws at ``sample`` for ``sensor``: ``attitude_wxyz`` (4,), ``model_ned_nT`` (3,),
+        ``measured_ned_nT`` (3,) or None before a vector fit, all world frame; None when the data have no attitude."""
+        ds = self.dataset
+        rot = attitude(ds)
+        if rot is None:
+            return None
+        i = int(np.clip(sample, 0, ds.n_samples - 1))
+        q = rot[i].as_quat()
+        out = {"sample": i, "attitude_wxyz": np.array([q[3], q[0], q[1], q[2]]), "measured_ned_nT": None}
+        if self.reference_ned_nT is not None:
+            out["model_ned_nT"] = self.reference_ned_nT[i]
+        else:
+            try:
+                ref = self.reference()
+            except MagcalError:
+                ref = None
+            out["model_ned_nT"] = None if ref is None else ref.ned_nT[i]
+        if self.world_nT is not None:
+            out["measured_ned_nT"] = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
+        return out

@@ -1,0 +1,464 @@
+"""The vehicle view (issue 29): the body and its attitude through the record, the measured and the model field in
+world coordinates, and the residual vectors.
+
+Drawn in a frame of its own (``/vehicle``), below the sphere views, in north-east-down coordinates: the frame's
+rotation to the scene (z up) is 180 deg about north, so every child node is placed in NED and the world axes are
+labelled N, E, D. The body (a small aircraft: x forward, y right, z down) is turned by the sample's attitude
+(body -> NED); the model field is the reference vector (IGRF or the file's ``ref_n, ref_e, ref_d``), the measured
+field is the vector fit's corrected reading rotated to the world, ``R(q) B_body``; both are drawn at the same
+scale (``|B|`` = :data:`ARROW_LENGTH` scene units), and their difference from the model's tip, exaggerated by a
+stated factor. The sample shown is the time scrubber's current one (:meth:`magcal_workbench.timewindow.TimeWindow.
+current`): *Play* in the Time window flies the body through the record.
+
+The geometry is in pure functions (:func:`world_vectors`, :func:`field_arrows`, :func:`vehicle_mesh`) that the
+tests check; :class:`VehicleView` only draws, and holds the page actions of the vector model (fit, location).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+from magcal.data.attitude import wxyz_rotation
+
+from .timewindow import sample_times
+
+#: Rotation NED -> scene (z up): north -> +x, east -> -y, down -> -z (180 deg about north; a proper rotation).
+NED_TO_SCENE = np.diag([1.0, -1.0, -1.0])
+#: The same as a quaternion (w, x, y, z), the ``/vehicle`` frame's orientation in the scene.
+NED_FRAME_WXYZ = (0.0, 1.0, 0.0, 0.0)
+#: Where the vehicle view sits in the scene: below the sphere views, out of their camera's sight.
+VEHICLE_ORIGIN = np.array([0.0, 0.0, -30.0])
+#: Length (scene units) at which a field of the reference's magnitude is drawn.
+ARROW_LENGTH = 2.5
+#: Length of the world axes drawn (scene units).
+AXIS_LENGTH = 3.0
+#: The residual arrow's typical length the automatic exaggeration aims at, as a fraction of :data:`ARROW_LENGTH`.
+RESIDUAL_DRAWN = 0.3
+#: Most samples of the time window drawn in the residual trail.
+TRAIL_POINTS = 400
+
+MODEL_RGB = (20, 150, 60)
+MEASURED_RGB = (30, 90, 230)
+RESIDUAL_RGB = (220, 40, 40)
+TRAIL_RGB = (240, 150, 150)
+AXIS_RGB = (110, 110, 110)
+BODY_RGB = (200, 200, 210)
+NOSE_RGB = (230, 120, 20)
+
+
+# --- geometry (pure) ------------------------------------------------------------------------------------------
+def world_vectors(attitude_wxyz, body_nT) -> np.ndarray:
+    """Body-frame vectors turned into the world (north-east-down) frame: ``R(q) v`` per row.
+
+    Parameters
+    ----------
+    attitude_wxyz : array_like, shape (N, 4) or (4,)
+        Attitude quaternions ``w, x, y, z`` (body -> NED).
+    body_nT : array_like, shape (N, 3) or (3,)
+        Vectors in the body frame (nT).
+
+    Returns
+    -------
+    numpy.ndarray, shape (N, 3) or (3,)
+        The same vectors in NED (nT).
+    """
+    q = np.atleast_2d(np.asarray(attitude_wxyz, dtype=float))
+    v = np.atleast_2d(np.asarray(body_nT, dtype=float))
+    out = wxyz_rotation(q).apply(v)
+    return out[0] if np.ndim(body_nT) == 1 else out
+
+
+def nice_gain(value: float) -> float:
+    """``value`` rounded down to 1, 2 or 5 times a power of ten (at least 1): a factor a person reads."""
+    if not np.isfinite(value) or value <= 1.0:
+        return 1.0
+    exp = np.floor(np.log10(value))
+    for m in (5.0, 2.0, 1.0):
+        if m * 10**exp <= value:
+            return float(m * 10**exp)
+    return float(10**exp)
+
+
+def residual_gain(residual_rms_nT, field_nT, length=ARROW_LENGTH) -> float:
+    """The residual arrows' exaggeration: a residual of the RMS size drawn :data:`RESIDUAL_DRAWN` of the field
+    arrow's length (:func:`nice_gain`); 1 without a residual."""
+    if residual_rms_nT is None or not np.isfinite(residual_rms_nT) or residual_rms_nT <= 0:
+        return 1.0
+    return nice_gain(RESIDUAL_DRAWN * float(field_nT) / float(residual_rms_nT))
+
+
+def field_arrows(model_ned_nT, measured_ned_nT, field_nT, gain, length=ARROW_LENGTH) -> dict:
+    """The arrows of one sample in NED scene units (|B| = ``length``), each ``(1, 2, 3)`` start and end.
+
+    Returns
+    -------
+    dict
+        ``model`` (origin -> the reference field), ``measured`` (origin -> the measured field in the world frame;
+        absent without one) and ``residual`` (the model's tip -> plus ``gain`` times measured - model; absent
+        without a measurement).
+    """
+    scale = length / float(field_nT)
+    out = {}
+    zero = np.zeros(3)
+    model = None if model_ned_nT is None else np.asarray(model_ned_nT, float) * scale
+    if model is not None:
+        out["model"] = np.array([[zero, model]])
+    if measured_ned_nT is not None:
+        measured = np.asarray(measured_ned_nT, float) * scale
+        out["measured"] = np.array([[zero, measured]])
+        if model is not None:
+            out["residual"] = np.array([[model, model + gain * (measured - model)]])
+    return out
+
+
+def arrow_mesh(start, end, radius=0.06, head_radius=0.13, head_length=0.3, sections=20):
+    """A solid arrow from ``start`` to ``end`` (3,) as ``(vertices, faces)``: a cylinder and a cone (trimesh); used
+    where an arrow must be translucent (viser's arrows are opaque)."""
+    import trimesh
+
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    d = end - start
+    n = float(np.linalg.norm(d))
+    head = min(head_length, 0.5 * n)
+    shaft = trimesh.creation.cylinder(radius=radius, height=max(n - head, 1e-6), sections=sections)
+    shaft.apply_translation((0.0, 0.0, 0.5 * max(n - head, 1e-6)))
+    cone = trimesh.creation.cone(radius=head_radius, height=max(head, 1e-6), sections=sections)
+    cone.apply_translation((0.0, 0.0, n - head))
+    mesh = trimesh.util.concatenate([shaft, cone])
+    if n > 0:
+        mesh.apply_transform(trimesh.geometry.align_vectors([0.0, 0.0, 1.0], d / n))
+    mesh.apply_translation(start)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def residual_trail(model_ned_nT, measured_ned_nT, field_nT, gain, length=ARROW_LENGTH) -> np.ndarray:
+    """Points (M, 3), NED scene units: each sample's exaggerated residual from the model's tip (the samples of the
+    time window: whether the residual follows the turns or only scatters)."""
+    model = np.atleast_2d(np.asarray(model_ned_nT, float))
+    measured = np.atleast_2d(np.asarray(measured_ned_nT, float))
+    scale = length / float(field_nT)
+    return (model + gain * (measured - model)) * scale
+
+
+def vehicle_mesh(length=1.3):
+    """A small aircraft in the body frame (x forward, y right, z down): ``(hull, nose)``, each ``(vertices,
+    faces)``; the nose marks the front. Made of boxes with trimesh."""
+    import trimesh
+
+    def box(extents, centre):
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(centre)
+        return m
+
+    s = length
+    hull = trimesh.util.concatenate(
+        [
+            box((s, 0.16 * s, 0.14 * s), (0.0, 0.0, 0.0)),  # fuselage
+            box((0.28 * s, 1.1 * s, 0.025 * s), (0.05 * s, 0.0, 0.0)),  # wings
+            box((0.14 * s, 0.45 * s, 0.02 * s), (-0.42 * s, 0.0, 0.0)),  # tailplane
+            box((0.16 * s, 0.02 * s, 0.22 * s), (-0.42 * s, 0.0, -0.16 * s)),  # fin, up (-z)
+        ]
+    )
+    nose = box((0.18 * s, 0.17 * s, 0.15 * s), (0.55 * s, 0.0, 0.0))
+    return (np.asarray(hull.vertices), np.asarray(hull.faces)), (np.asarray(nose.vertices), np.asarray(nose.faces))
+
+
+def euler_deg(attitude_wxyz) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (deg, aerospace ZYX) of one attitude quaternion (body -> NED)."""
+    yaw, pitch, roll = wxyz_rotation(np.atleast_2d(attitude_wxyz)).as_euler("ZYX", degrees=True)[0]
+    return float(roll), float(pitch), float(yaw % 360.0)
+
+
+# --- drawing and actions --------------------------------------------------------------------------------------
+class VehicleView:
+    """Draws the vehicle view and runs the vector model's page actions (the vector fit, the typed location).
+
+    Parameters
+    ----------
+    wb : magcal_workbench.app.Workbench
+        Gives the scene, the controller (:attr:`~magcal_workbench.controller.Controller.vector`), the time window
+        and the panels' widgets (read through the checked page values).
+
+    Attributes
+    ----------
+    enabled : bool
+        Whether the view is shown (View tab's *Show the vehicle view*).
+    nodes : dict
+        The scene nodes drawn, by name (``/vehicle/body``, ``/vehicle/model_field``...).
+    gain : float
+        The residual arrows' exaggeration in use.
+    """
+
+    def __init__(self, wb):
+        self.wb = wb
+        self.enabled = False
+        self.nodes: dict = {}
+        self.gain = 1.0
+        self.shown: dict | None = None  # what the last redraw drew: sample, vectors, arrows (for tests and text)
+        self._lock = threading.RLock()
+        self._static_drawn = False
+
+    @property
+    def _panel(self):
+        return self.wb.panels.vector_panel
+
+    # --- page actions --------------------------------------------------------------------------------------
+    def do_vector_fit(self, event):
+        """Calibrate tab: the vector fit (attitude-aided) beside the total-field fit, in the worker."""
+        self.wb.steps.check_readings()
+        ctrl = self.wb.ctrl
+        missing = ctrl.vector.missing()
+        if missing:
+            raise MagcalError("the vector fit needs " + " and ".join(missing))
+        ctrl.run_job("vector fit", ctrl.step_vector)
+
+    def do_use_location(self, event):
+        """Calibrate tab: IGRF at the typed place and date becomes the reference (scalar and vector)."""
+        p, check = self._panel, self.wb.values.check
+        self.wb.ctrl.vector.set_location(check(p.lat), check(p.lon), check(p.alt), check(p.date))
+
+    def do_forget_location(self, event):
+        self.wb.ctrl.vector.clear_location()
+
+    def do_vehicle_view(self, event):
+        """View tab: show or hide the vehicle view; showing it turns the time window on (the scrubber moves the
+        body) and points the cameras at it."""
+        on = bool(self._panel.vehicle_on.value)
+        self.enabled = on
+        if on:
+            if not self.wb.panels.window_on.value:
+                self.wb.panels.window_on.value = True  # its callback turns the window on and redraws (this too)
+            self.redraw()
+            self.place_cameras()
+        else:
+            self.clear()
+            self.wb.view.reset_cameras()
+        self._panel.refresh_vehicle()
+
+    def do_vehicle_options(self, event):
+        """The residual exaggeration changed (0: automatic)."""
+        self.wb.values.check(self._panel.vehicle_gain)
+        self.redraw()
+        self._panel.refresh_vehicle()
+
+    # --- cameras ----------------------------------------------------------------------------------------------
+    @staticmethod
+    def camera_pose() -> tuple[np.ndarray, np.ndarray]:
+        """Camera position and look-at (scene frame) that show the vehicle view from the south-west, above, with
+        the view left of the panel."""
+        right = np.array([-1.0, -1.0, 0.0]) / np.sqrt(2.0)  # the screen's right, seen from the south-west
+        look = VEHICLE_ORIGIN + 0.9 * right + np.array([0.0, 0.0, -0.8])  # the panel covers the screen's right
+        return VEHICLE_ORIGIN + np.array([-3.6, 3.6, 1.6]), look
+
+    def place_cameras(self) -> None:
+        for client in self.wb.server.get_clients().values():
+            self.place_camera(client)
+
+    def place_camera(self, client) -> None:
+        position, look = self.camera_pose()
+        with client.atomic():
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look)
+
+    # --- drawing ----------------------------------------------------------------------------------------------
+    def changed(self, kind: str) -> None:
+        """The controller changed (``result``, ``data``, ``vector``, ``settings``...): redraw when shown."""
+        if self.enabled and kind in ("result", "data", "vector", "settings", "view"):
+            self.redraw()
+            self._panel.refresh_vehicle()
+
+    def current_sample(self) -> int:
+        """The time scrubber's current sample (the window's last), else the first."""
+        ds = self.wb.ctrl.dataset
+        current = self.wb.window.current(sample_times(ds))
+        return 0 if current is None else int(current)
+
+    def chosen_gain(self, field_nT: float) -> float:
+        """The exaggeration typed (View tab), else the automatic one from the vector fit's world residual."""
+        typed = float(self._panel.vehicle_gain.value or 0.0)
+        if typed > 0:
+            return typed
+        vm = self.wb.ctrl.vector
+        resid = vm.world_residual_nT()
+        if resid is None:
+            return 1.0
+        kept = self.wb.ctrl.kept
+        rms = float(np.sqrt(np.mean(resid[:, kept] ** 2))) if kept.any() else float("nan")
+        return residual_gain(rms, field_nT)
+
+    def redraw(self) -> None:
+        """Draw the body, the fields and the residual at the current sample (nothing when hidden or without
+        attitude)."""
+        if not self.enabled:
+            return
+        ctrl = self.wb.ctrl
+        sensor = ctrl.state.sensor or 0
+        vectors = ctrl.vector.current_vectors(self.current_sample(), sensor)
+        with self._lock:
+            if vectors is None:
+                self.clear()
+                self.shown = None
+                return
+            model = vectors["model_ned_nT"]
+            field_nT = float(np.linalg.norm(model)) if model is not None else float(ctrl.field_nT)
+            self.gain = self.chosen_gain(field_nT)
+            arrows = field_arrows(model, vectors["measured_ned_nT"], field_nT, self.gain)
+            self.shown = {**vectors, "arrows": arrows, "field_nT": field_nT, "gain": self.gain, "sensor": sensor}
+            scene = self.wb.server.scene
+            with self.wb.server.atomic():
+                self._draw_static(scene)
+                body = self.nodes["/vehicle/body"]
+                body.wxyz = tuple(np.asarray(vectors["attitude_wxyz"], float))
+                self._remove("/vehicle/model_field")
+                if "model" in arrows:  # translucent and wider: the measured arrow shows inside it
+                    v, f = arrow_mesh(*arrows["model"][0])
+                    self.nodes["/vehicle/model_field"] = scene.add_mesh_simple(
+                        "/vehicle/model_field", v.astype(np.float32), f, color=MODEL_RGB, opacity=0.35
+                    )
+                for key, name, rgb, shaft, head in (
+                    ("measured", "/vehicle/measured_field", MEASURED_RGB, 0.03, 0.08),
+                    ("residual", "/vehicle/residual", RESIDUAL_RGB, 0.022, 0.06),
+                ):
+                    self._remove(name)
+                    if key in arrows:
+                        self.nodes[name] = scene.add_arrows(
+                            name,
+                            arrows[key].astype(np.float32),
+                            rgb,
+                            shaft_radius=shaft,
+                            head_radius=head,
+                            head_length=2.2 * head,
+                        )
+                self._draw_trail(scene, field_nT)
+                self._labels(scene, vectors, arrows, field_nT)
+
+    def _draw_trail(self, scene, field_nT) -> None:
+        """The time window's residuals as red points around the model's tip (at most :data:`TRAIL_POINTS`)."""
+        self._remove("/vehicle/residual_trail")
+        ctrl = self.wb.ctrl
+        vm = ctrl.vector
+        if vm.world_nT is None or vm.reference_ned_nT is None:
+            return
+        window = self.wb.window.mask(sample_times(ctrl.dataset))
+        idx = np.flatnonzero(window) if window is not None else np.arange(ctrl.dataset.n_samples)
+        if idx.size == 0:
+            return
+        idx = idx[np.unique(np.linspace(0, idx.size - 1, min(idx.size, TRAIL_POINTS)).astype(int))]
+        sensor = min(ctrl.state.sensor or 0, vm.world_nT.shape[0] - 1)
+        pts = residual_trail(vm.reference_ned_nT[idx], vm.world_nT[sensor, idx], field_nT, self.gain)
+        self.nodes["/vehicle/residual_trail"] = scene.add_point_cloud(
+            "/vehicle/residual_trail",
+            pts.astype(np.float32),
+            TRAIL_RGB,
+            point_size=0.022,
+            point_shape="circle",
+            precision="float32",
+        )
+
+    def _labels(self, scene, vectors, arrows, field_nT) -> None:
+        ds = self.wb.ctrl.dataset
+        i = vectors["sample"]
+        roll, pitch, yaw = euler_deg(vectors["attitude_wxyz"])
+        t = sample_times(ds)[i]
+        lines = [
+            f"sample {i}, t = {t:.1f} s: roll {roll:+.1f}, pitch {pitch:+.1f}, yaw {yaw:.1f} deg",
+            f"arrows: |B| = {field_nT:.0f} nT drawn {ARROW_LENGTH:g} units",
+        ]
+        if "measured" in arrows:
+            d = vectors["measured_ned_nT"] - vectors["model_ned_nT"]
+            lines.append(
+                f"red: residual x{self.gain:g} (N {d[0]:+.1f}, E {d[1]:+.1f}, D {d[2]:+.1f} nT, "
+                f"|r| {np.linalg.norm(d):.1f} nT)"
+            )
+        else:
+            lines.append("run the vector fit (Calibrate tab) to draw the measured field")
+        text = "\n".join(lines)
+        placed = (
+            ("/vehicle/label_info", text, (0.9 * AXIS_LENGTH, 0.9 * AXIS_LENGTH, -1.6)),
+            (
+                "/vehicle/label_model",
+                "model field (reference)",
+                arrows["model"][0, 1] * 1.08 if "model" in arrows else None,
+            ),
+            (
+                "/vehicle/label_measured",
+                "measured (corrected, world)",
+                arrows["measured"][0, 1] * 0.55 if "measured" in arrows else None,
+            ),
+        )
+        for name, words, where in placed:
+            self._remove(name)
+            if where is not None:
+                self.nodes[name] = scene.add_label(name, words, position=tuple(np.asarray(where, float)))
+
+    def _draw_static(self, scene) -> None:
+        """The frame, the world axes and their labels, the ground grid and the body mesh (once)."""
+        if self._static_drawn and "/vehicle" in self.nodes:
+            return
+        hull, nose = vehicle_mesh()
+        self.nodes["/vehicle"] = scene.add_frame(
+            "/vehicle", wxyz=NED_FRAME_WXYZ, position=tuple(VEHICLE_ORIGIN), show_axes=False
+        )
+        axes = np.array([[np.zeros(3), AXIS_LENGTH * e] for e in np.eye(3)], np.float32)
+        self.nodes["/vehicle/world_axes"] = scene.add_arrows(
+            "/vehicle/world_axes", axes, AXIS_RGB, shaft_radius=0.012, head_radius=0.05, head_length=0.12
+        )
+        for k, word in enumerate(("N (north)", "E (east)", "D (down)")):
+            name = f"/vehicle/axis_{word[0]}"
+            self.nodes[name] = scene.add_label(name, word, position=tuple(1.05 * AXIS_LENGTH * np.eye(3)[k]))
+        self.nodes["/vehicle/grid"] = scene.add_grid(  # the horizontal plane (north-east) through the body
+            "/vehicle/grid",
+            width=1.6 * AXIS_LENGTH,
+            height=1.6 * AXIS_LENGTH,
+            plane="xy",
+            cell_size=0.5,
+            cell_color=(228, 228, 228),
+            section_color=(190, 190, 190),
+            shadow_opacity=0.0,
+        )
+        self.nodes["/vehicle/body"] = scene.add_frame(
+            "/vehicle/body", show_axes=True, axes_length=0.7, axes_radius=0.015
+        )
+        self.nodes["/vehicle/body/hull"] = scene.add_mesh_simple(
+            "/vehicle/body/hull", hull[0].astype(np.float32), hull[1], color=BODY_RGB, flat_shading=True
+        )
+        self.nodes["/vehicle/body/nose"] = scene.add_mesh_simple(
+            "/vehicle/body/nose", nose[0].astype(np.float32), nose[1], color=NOSE_RGB, flat_shading=True
+        )
+        self._static_drawn = True
+
+    def _remove(self, name) -> None:
+        handle = self.nodes.pop(name, None)
+        if handle is not None:
+            handle.remove()
+
+    def clear(self) -> None:
+        """Remove every node of the view (hidden, or other data opened)."""
+        with self._lock:
+            if "/vehicle" in self.nodes:
+                self.wb.server.scene.remove_by_name("/vehicle")  # the frame's children go with it
+            self.nodes.clear()
+            self._static_drawn = False
+
+    def describe(self) -> str:
+        """The View tab's line about the vehicle view (markdown, escaped)."""
+        vm = self.wb.ctrl.vector
+        if vm.attitude_kind() is None:
+            return "_The vehicle view needs the attitude (`qw..qz` or `roll_deg, pitch_deg, yaw_deg` columns)._"
+        if not self.enabled:
+            return "_Tick Show the vehicle view: the body, the field in world axes N, E, D, and the residuals._"
+        s = self.shown
+        if s is None:
+            return "_No reference field vector: type a location (Calibrate tab) or add `ref_n, ref_e, ref_d`._"
+        text = (
+            f"Sample {s['sample']} (the time window's last; **Play** flies the record). Green: the model field; "
+            f"blue: the measured field, corrected and rotated to the world; red: their difference x{s['gain']:g} "
+            f"from the model's tip. |B| = {s['field_nT']:.0f} nT is drawn {ARROW_LENGTH:g} units."
+        )
+        if s["measured_ned_nT"] is None:
+            text += " Run the vector fit (Calibrate tab) to draw the measured field."
+        return text
