@@ -50,6 +50,7 @@ from magcal.model import plugins
 
 from . import scene as scn
 from .checks import PageValues, Widgets
+from .cockpit import Cockpit
 from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
@@ -157,6 +158,8 @@ class Workbench:
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
+        #: The compact table, |B| against time with its region editor, the error histogram.
+        self.cockpit = Cockpit(self)
         self.view = SceneControl(self)
         self.steps = Steps(self)
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
@@ -188,7 +191,16 @@ class Workbench:
 
     def _actions(self) -> SimpleNamespace:
         """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``)."""
-        parts = (self.steps, self.uploads, self.downloads, self.sessions, self.lessons, self.livectl, self.evidence)
+        parts = (
+            self.steps,
+            self.uploads,
+            self.downloads,
+            self.sessions,
+            self.lessons,
+            self.livectl,
+            self.evidence,
+            self.cockpit,
+        )
         on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
         on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
         v = self.view
@@ -201,6 +213,8 @@ class Workbench:
             refresh_maps=v.refresh_maps,
             legend_html=v.legend_html,
             draw_evidence=self.evidence.draw,
+            draw_cockpit=self.cockpit.draw,
+            range_changed=self.cockpit.range_changed,
         )
 
     # ------------------------------------------------------------------------------------------------------
