@@ -18,7 +18,6 @@ from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .timewindow import sample_times
 
-
 #: Without attitude, the tilt ring is sought in the directions of the latest samples: at most this many ...
 RING_RECENT_SAMPLES = 400
 #: ... taken in at most this many seconds before the current sample.
