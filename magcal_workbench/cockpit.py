@@ -151,7 +151,7 @@ class Cockpit:
             t0, t1 = self.pending_s(record)
             n_in = samples_in_range(record.time_s, p.range_from.value, p.range_to.value).size
             moving = (
-                f"; {int(fast.sum())} taken while turning faster than {motion.FAST_TURN_DPS:g} deg/s (ringed red)"
+                f"; {int(fast.sum())} taken while turning faster than {motion.FAST_TURN_DPS:g} deg/s (marked red)"
                 if fast is not None and fast.any()
                 else ""
             )

@@ -695,7 +695,7 @@ class Panels:
                 self.on.do_exclude_fast,
                 engine=False,
                 visible=False,
-                hint="Leave out the samples taken while turning fast (ringed red); the fit reruns",
+                hint="Leave out the samples taken while turning fast (marked red); the fit reruns",
             )
             self.range_info = gui.add_markdown("")
         with gui.add_folder("Error histogram", expand_by_default=True):

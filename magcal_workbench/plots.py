@@ -564,19 +564,24 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
     d = magnitude_series(record, max_points)
     t, kept, ns = d["t"], d["kept"], record.n_sensors
     fig = go.Figure()
+    fig.add_trace(
+        go.Scattergl(
+            x=t, y=d["reference"], mode="lines", line={"color": REFERENCE_COLOUR, "width": 1.5}, name="reference"
+        )
+    )
+    every = " (every sensor)" if ns > 1 else ""
     for key, colour, label in (("raw", RAW_COLOUR, "raw"), ("corrected", CORRECTED_COLOUR, "corrected")):
         values = d[key]
         if values is None:
             continue
         for s in range(ns):
-            who = f" s{s + 1}" if ns > 1 else ""
             fig.add_trace(
                 go.Scattergl(
                     x=t[kept],
                     y=values[s, kept],
                     mode="markers",
                     marker={"size": 3, "color": colour, "opacity": 0.6},
-                    name=f"{label}{who}" if s == 0 or ns == 1 else f"{label}{who}",
+                    name=label + every,
                     legendgroup=key,
                     showlegend=s == 0,
                 )
@@ -593,11 +598,6 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
                         showlegend=key == "raw" and s == 0,
                     )
                 )
-    fig.add_trace(
-        go.Scattergl(
-            x=t, y=d["reference"], mode="lines", line={"color": REFERENCE_COLOUR, "width": 2}, name="reference"
-        )
-    )
     fast = d["fast"]
     if fast is not None and fast.any():
         shown = d["corrected"] if d["corrected"] is not None else d["raw"]
@@ -629,11 +629,14 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
 
 
 def histogram_figure(record: FieldRecord, unit: str = "nT"):
-    """The error histograms before and after calibration overlaid (plotly), each with its RMS in the legend."""
+    """The error histograms before and after calibration overlaid (plotly), each on its own horizontal axis in
+    its colour (raw: bottom, corrected: top), since the raw error spans hundreds of nT and the corrected one a
+    few; each with its RMS in the legend."""
     import plotly.graph_objects as go
 
     h = error_histogram(record, unit)
     fig = go.Figure()
+    axes = {"before": "x", "after": "x2"}
     for key, colour, label in (("before", RAW_COLOUR, "raw"), ("after", CORRECTED_COLOUR, "corrected")):
         part = h[key]
         if part is None or not len(part["counts"]):
@@ -645,20 +648,31 @@ def histogram_figure(record: FieldRecord, unit: str = "nT"):
                 y=part["counts"],
                 width=np.diff(edges),
                 marker={"color": colour},
-                opacity=0.6,
+                opacity=0.55,
                 name=f"{label} (RMS {format_rms(part['rms'], unit)})",
+                xaxis=axes[key],
             )
         )
     fig.update_layout(
         barmode="overlay",
-        height=260,
-        margin={"l": 50, "r": 10, "t": 30, "b": 35},
-        title={"text": f"error |B| - reference ({unit})", "font": {"size": 13}},
-        xaxis_title=unit,
-        yaxis_title="samples",
-        legend={"orientation": "h", "y": -0.3, "font": {"size": 10}},
+        height=280,
+        margin={"l": 50, "r": 10, "t": 75, "b": 40},
+        title={"text": f"error |B| - reference ({unit})", "font": {"size": 13}, "y": 0.98},
+        xaxis={"title": {"text": f"raw, {unit}", "font": {"color": RAW_COLOUR}}, "tickfont": {"color": RAW_COLOUR}},
+        yaxis={"title": {"text": "samples"}},
+        legend={"orientation": "h", "y": -0.32, "font": {"size": 10}},
         template="plotly_white",
     )
+    if h["after"] is not None:
+        fig.update_layout(
+            xaxis2={
+                "title": {"text": f"corrected, {unit}", "font": {"color": CORRECTED_COLOUR}, "standoff": 2},
+                "tickfont": {"color": CORRECTED_COLOUR},
+                "overlaying": "x",
+                "side": "top",
+                "showgrid": False,
+            }
+        )
     return fig
 
 

@@ -13,7 +13,8 @@ Display conventions (no physics here: every number shown comes from the engine's
   to the right at its real proportions (baseline scaled to :data:`CROSS_SPAN` units) with each sensor's
   estimated sensing axes, whose deviation from ideal axes is exaggerated by a slider (a single sensor has no
   cross: none is drawn). The camera frames it all in the canvas left of the panel (:func:`camera_pose`).
-* Motion (:mod:`magcal_workbench.motion`): samples taken while turning fast are ringed red on every cloud; the
+* Motion (:mod:`magcal_workbench.motion`): samples taken while turning fast get a red dot just outside their point
+  on every cloud; the
   tilt ring (the directions a yaw sweep at the current tilt would visit) is drawn on each corrected sphere.
 
 The pure functions (projection, ray picking, colours, meshes) are tested without a browser.
@@ -54,6 +55,8 @@ FAST_RGB = (214, 39, 40)
 RING_RGB = (30, 30, 30)
 #: Radius the tilt ring is drawn at (the corrected sphere's is 1): just outside, so the points do not hide it.
 RING_RADIUS = 1.04
+#: A fast-turning sample's mark sits this much farther from its cloud's centre than its point.
+FAST_MARK_OUT = 1.06
 
 # Diverging colour map (blue - light grey - red), stops at -1, -0.5, 0, 0.5, 1.
 _CMAP_STOPS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
@@ -182,20 +185,27 @@ def group_offset(k: int, n_groups: int) -> np.ndarray:
     return np.array([(col - 0.5) * GROUP_DX, 0.0, (0.5 - row) * GROUP_DZ])
 
 
-def cross_x(n_groups: int) -> float:
-    """x of the cross model's centre: right of the data groups."""
-    right = (0.5 * GROUP_DX if n_groups > 2 else 0.0) + PAIR_OFFSET + 1.4
-    return right + 0.5 * CROSS_SPAN + 0.6
+def cross_centre(n_groups: int) -> np.ndarray:
+    """Centre of the cross model (scene units): right of one or two groups of clouds, below a 2 x 2 grid of them
+    (there the canvas left of the panel has room below, not beside)."""
+    if n_groups > 2:
+        return np.array([0.0, 0.0, -(0.5 * GROUP_DZ + 1.45 + 0.5 * CROSS_SPAN + 0.45)])
+    right = PAIR_OFFSET + 1.4
+    return np.array([right + 0.5 * CROSS_SPAN + 0.6, 0.0, 0.0])
 
 
 def scene_bounds(n_groups: int, cross: bool = True):
     """(x_min, x_max, z_min, z_max) of what the scene shows, for placing the camera: the clouds' groups (radius
-    about 1.3 with the default exaggeration, labels above), and the cross model when it is drawn (more than one
-    sensor)."""
+    about 1.3 with the default exaggeration, labels above), and the cross model (:func:`cross_centre`) when it is
+    drawn (more than one sensor)."""
     half_x = (0.5 * GROUP_DX if n_groups > 2 else 0.0) + PAIR_OFFSET + 1.4
     half_z = (0.5 * GROUP_DZ if n_groups > 1 else 0.0) + 1.5
-    x1 = cross_x(n_groups) + 0.5 * CROSS_SPAN + 0.3 if cross else half_x
-    return -half_x, x1, -half_z, half_z
+    x0, x1, z0, z1 = -half_x, half_x, -half_z, half_z
+    if cross:
+        c = cross_centre(n_groups)
+        x1 = max(x1, c[0] + 0.5 * CROSS_SPAN + 0.3)
+        z0 = min(z0, c[2] - 0.5 * CROSS_SPAN - 0.3)
+    return x0, x1, z0, z1
 
 
 #: Half the depth (scene y) of what is drawn: the clouds' radius with the default exaggeration, scene units.
@@ -227,8 +237,9 @@ def _framed_points(n_groups: int, cross: bool) -> np.ndarray:
     centres = [group_offset(k, n_groups) + [dx, 0, 0] for k in range(n_groups) for dx in (-PAIR_OFFSET, PAIR_OFFSET)]
     pts = [c + blob for c in centres]
     if cross:
-        x0, x1, z0, z1 = scene_bounds(n_groups, True)
-        pts.append(np.array([[cross_x(n_groups) - 0.5 * CROSS_SPAN - 0.3, 0, z0], [x1, 0, z0], [x1, 0, z1]]))
+        c = cross_centre(n_groups)
+        half = 0.5 * CROSS_SPAN + 0.3
+        pts.append(np.array([c + [dx, 0, dz] for dx in (-half, half) for dz in (-half, half + 0.5)]))
     return np.concatenate(pts)
 
 
@@ -247,6 +258,8 @@ def camera_pose(
     f = min(max(float(panel_fraction), 0.0), 0.6)
     m = FRAME_MARGIN
     x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    cz = 0.5 * (z.min() + z.max())  # the camera's height: the middle of what is drawn
+    z = z - cz
 
     def offset(dist):  # the camera x that fits at this distance, or None
         depth = y + dist
@@ -263,7 +276,7 @@ def camera_pose(
         mid = 0.5 * (near + far)
         near, far = (near, mid) if offset(mid) is not None else (mid, far)
     cx = offset(far)
-    return np.array([cx, -far, 0.0]), np.array([cx, 0.0, 0.0])
+    return np.array([cx, -far, cz]), np.array([cx, 0.0, cz])
 
 
 #: How the cross is drawn: the array frame turned so that its x-y plane faces the camera (array x to the right,
@@ -742,7 +755,13 @@ class SceneView:
         ring (a dark circle on each corrected sphere); either removed when the model has none."""
         scene = self.server.scene
         fast = None if model.fast is None else np.asarray(model.fast, bool)
-        pts = [p[fast[: len(p)]] for _, _, _, p in clouds] if fast is not None and fast.any() else []
+        pts = []
+        if fast is not None and fast.any():
+            rows = len(model.sensors)
+            place = {sv.sensor: group_offset(k, rows) for k, sv in enumerate(model.sensors)}
+            for _, s, kind, p in clouds:  # a red dot just outside each marked point (its colour stays seen)
+                centre = place[s] + [-PAIR_OFFSET if kind == "raw" else PAIR_OFFSET, 0, 0]
+                pts.append(centre + (p[fast[: len(p)]] - centre) * FAST_MARK_OUT)
         pts = np.concatenate(pts) if pts else np.zeros((0, 3))
         if len(pts):
             self._put(
@@ -752,8 +771,8 @@ class SceneView:
                     "/motion/fast",
                     pts.astype(np.float32),
                     FAST_RGB,
-                    point_size=self.point_size * 2.2,
-                    point_shape="sparkle",
+                    point_size=self.point_size * 0.8,
+                    point_shape="circle",
                     precision="float32",
                     point_shading="flat",
                 ),
@@ -786,8 +805,8 @@ class SceneView:
     def _draw_cross(self, model: SceneModel) -> None:
         scene = self.server.scene
         n = model.n_sensors
-        cx = cross_x(len(model.sensors))
-        positions = cross_positions(n) @ ARRAY_TO_SCENE.T + [cx, 0, 0]
+        centre = cross_centre(len(model.sensors))
+        positions = cross_positions(n) @ ARRAY_TO_SCENE.T + centre
         base = (
             f"baseline {model.baseline_m:g} m"
             if model.baseline_m
@@ -801,7 +820,7 @@ class SceneView:
                 scene.add_label,
                 "/cross/label",
                 f"cross ({base}); array z toward you",
-                position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6),
+                position=tuple(centre + [0, 0, 0.5 * CROSS_SPAN + 0.45]),
                 anchor="bottom-center",
             ),
         )

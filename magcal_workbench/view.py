@@ -36,9 +36,12 @@ def ring_directions(dataset, corrected_nT, current: int | None):
         return None
     current = int(current)
     q = dataset.attitude_wxyz
+    n = dataset.n_samples if corrected_nT is None else min(dataset.n_samples, len(corrected_nT))
+    if current >= n:
+        return None
     if q is not None:
         vectors = corrected_nT if corrected_nT is not None else dataset.readings_nT[0]
-        idx = np.unique(np.linspace(0, dataset.n_samples - 1, INCLINATION_SAMPLES).astype(int))
+        idx = np.unique(np.linspace(0, n - 1, INCLINATION_SAMPLES).astype(int))
         incl = motion.inclination_from_data(np.asarray(vectors)[idx], np.asarray(q)[idx])
         return motion.tilt_ring(np.asarray(q)[current], incl)
     if corrected_nT is None:
@@ -74,10 +77,12 @@ class SceneControl:
         if live is not None:  # a live session owns the scene until it stops
             model = live.scene_model(wb.panels.view_options())
             if model is not None:
-                ds = live.dataset()
+                ds = live.dataset()  # it may have grown since the model was made: take the model's samples
+                n = len(model.kept)
                 corrected = model.sensors[0].corrected_nT if model.sensors else None
+                fast = motion.fast_turning(ds)
                 return dataclasses.replace(
-                    model, fast=motion.fast_turning(ds), ring=ring_directions(ds, corrected, ds.n_samples - 1)
+                    model, fast=None if fast is None else fast[:n], ring=ring_directions(ds, corrected, n - 1)
                 )
         ctrl = wb.ctrl
         ds = ctrl.dataset
