@@ -189,7 +189,7 @@ def cross_centre(n_groups: int) -> np.ndarray:
     """Centre of the cross model (scene units): right of one or two groups of clouds, below a 2 x 2 grid of them
     (there the canvas left of the panel has room below, not beside)."""
     if n_groups > 2:
-        return np.array([0.0, 0.0, -(0.5 * GROUP_DZ + 1.45 + 0.5 * CROSS_SPAN + 0.45)])
+        return np.array([0.0, 0.0, -(0.5 * GROUP_DZ + 1.45 + 0.5 * CROSS_SPAN + 0.8)])
     right = PAIR_OFFSET + 1.4
     return np.array([right + 0.5 * CROSS_SPAN + 0.6, 0.0, 0.0])
 
@@ -703,23 +703,30 @@ class SceneView:
                         anchor="bottom-center",
                     ),
                 )
+                old = self._static.get(f"/data/{tag}/ellipsoid")
                 if model.show_ellipsoid and sv.cinv is not None:
                     v, f = ellipsoid_mesh(sv.cinv, sv.bias_nT, F, model.distortion_gain)
-                    self._put(
-                        f"/data/{tag}/ellipsoid",
-                        partial(
-                            scene.add_mesh_simple,
+                    if old is not None and len(old.vertices) == len(v):
+                        # moved in place: a mesh removed and made again under its name at every live update was
+                        # drawn at the origin by the page
+                        old.vertices = v.astype(np.float32)
+                        old.position = tuple(centre - [PAIR_OFFSET, 0, 0])
+                    else:
+                        self._put(
                             f"/data/{tag}/ellipsoid",
-                            v.astype(np.float32),
-                            f,
-                            color=ELLIPSOID_RGB,
-                            opacity=0.25,
-                            side="double",
-                            position=centre - [PAIR_OFFSET, 0, 0],
-                            cast_shadow=False,
-                            receive_shadow=False,
-                        ),
-                    )
+                            partial(
+                                scene.add_mesh_simple,
+                                f"/data/{tag}/ellipsoid",
+                                v.astype(np.float32),
+                                f,
+                                color=ELLIPSOID_RGB,
+                                opacity=0.25,
+                                side="double",
+                                position=centre - [PAIR_OFFSET, 0, 0],
+                                cast_shadow=False,
+                                receive_shadow=False,
+                            ),
+                        )
                 elif f"/data/{tag}/ellipsoid" in self._static:
                     self._static.pop(f"/data/{tag}/ellipsoid").remove()
             if model.show_corrected and sv.corrected_nT is not None:
