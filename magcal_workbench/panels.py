@@ -656,7 +656,7 @@ class Panels:
         self.btn_run = self._button(gui, "Run the chosen method", self.on.do_calibrate, color="blue")
         with gui.add_folder("|B| against time", expand_by_default=True):
             # viser's client draws plotly at height = width * aspect
-            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.78)
+            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
             self.range_from = self.w.slider(
                 "From % of the record",
                 min=0.0,

@@ -367,6 +367,8 @@ MIN_BAND_SAMPLES = 3
 MAX_BANDS = 30
 #: Cells of the coverage figure (as the live view's coverage spheres).
 COVERAGE_CELLS = 300
+#: Most samples the coverage figure reads (an even stride through a larger record).
+COVERAGE_SAMPLES = 20_000
 
 
 @dataclass
@@ -517,11 +519,17 @@ def error_histogram(record: FieldRecord, unit: str = "nT", bins: int = 60) -> di
     return out
 
 
-def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS) -> list:
+def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS, max_samples: int = COVERAGE_SAMPLES) -> list:
     """Share (0-1) of the sphere of field directions visited by each sensor's kept samples
     (:func:`magcal.checks.coverage.direction_map`): of the corrected readings about the origin after a fit, else
-    of the raw readings about their own fitted centre."""
+    of the raw readings about their own fitted centre. A larger record is taken at an even stride through time, at
+    most ``max_samples`` of its kept samples: a cell counts as visited when a direction lies within 30 deg of it,
+    and neighbouring samples of a path are far closer than that."""
     kept = np.asarray(record.kept, bool)
+    if kept.sum() > max_samples:
+        chosen = np.flatnonzero(kept)
+        kept = np.zeros_like(kept)
+        kept[chosen[np.linspace(0, chosen.size - 1, max_samples).astype(int)]] = True
     out = []
     for s in range(record.n_sensors):
         if record.corrected_nT is not None:
@@ -622,7 +630,7 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
         title={"text": "|B| against time", "font": {"size": 13}},
         xaxis_title="time (s)",
         yaxis_title="|B| nT",
-        legend={"orientation": "h", "y": -0.25, "font": {"size": 10}},
+        legend={"orientation": "h", "y": -0.3, "font": {"size": 10}},
         template="plotly_white",
     )
     return fig

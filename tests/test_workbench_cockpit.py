@@ -77,6 +77,16 @@ def test_the_table_figures_of_a_known_calibration():
     assert "1.01× floor" in text and "| x | 0.97087" in text and "400.0 |" in text and "Coverage" in text
 
 
+def test_the_coverage_of_a_large_record_is_read_at_a_stride():
+    """A path's neighbouring samples are far closer than the 30 deg cap: a stride reads the same coverage."""
+    t = np.linspace(0, 1, 20_000)
+    u = np.column_stack([np.cos(40 * t) * np.sin(1.2 * t), np.sin(40 * t) * np.sin(1.2 * t), np.cos(1.2 * t)])
+    rec = plots.FieldRecord(t, F_nT * u[None], F_nT * u[None], np.full(t.size, F_nT), np.ones(t.size, bool))
+    full = plots.coverage_fraction(rec, max_samples=t.size)[0]
+    assert 0.3 < full < 0.95  # a part of the sphere, so that a wrong stride would show
+    assert plots.coverage_fraction(rec, max_samples=2000)[0] == pytest.approx(full, abs=0.01)
+
+
 @pytest.mark.parametrize("unit", ["nT", "%"])
 def test_the_error_histogram_before_and_after(unit):
     kept = np.ones(3000, bool)
