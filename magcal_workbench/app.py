@@ -11,8 +11,9 @@ browser workbench; it prints the page's address with its token (``http://127.0.0
   (:mod:`~magcal_workbench.checks`), and the actions they call: :class:`~magcal_workbench.steps.Steps`,
   :class:`~magcal_workbench.uploads.Uploads`, :class:`~magcal_workbench.downloads.Downloads`,
   :class:`~magcal_workbench.lessons.LessonDesk`, :class:`~magcal_workbench.livecontrol.LiveControl`,
-  :class:`~magcal_workbench.evidence.Evidence` and :class:`~magcal_workbench.view.SceneControl` (scene, camera,
-  pointer events, View tab);
+  :class:`~magcal_workbench.evidence.Evidence`, :class:`~magcal_workbench.cockpit.Cockpit` (the compact table,
+  |B| against time with its region editor, the error histogram) and :class:`~magcal_workbench.view.SceneControl`
+  (scene, camera, pointer events, View tab);
 * :class:`~magcal_workbench.uiqueue.UiQueue`: background threads (the worker, live sessions, playback) hand
   every page update to one thread.
 

@@ -144,7 +144,8 @@ class Cockpit:
         sensors = [] if cal is None else [(c.cinv, c.bias_nT) for c in cal.sensors]
         p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor)
         p.field_plot.figure = magnitude_figure(record, self.pending_s(record) if live is None else None)
-        p.histogram_plot.figure = histogram_figure(record, wb.values.check(p.histogram_unit))
+        unit = p.histogram_unit.value if p.histogram_unit.value in ("nT", "%") else "nT"  # checked when it moves
+        p.histogram_plot.figure = histogram_figure(record, unit)
         fast = record.fast
         p.btn_exclude_fast.visible = live is None and fast is not None and bool(fast.any())
         if live is None:

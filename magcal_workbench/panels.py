@@ -546,8 +546,9 @@ class Panels:
         ``handle(func, event)`` runs a widget's callback (errors become the page's message).
     on : object
         The actions the widgets call, as attributes: ``do_*(event)`` handlers, ``set_sensor(choice)``,
-        ``view_changed``, ``surface_changed``, ``window_changed`` (``(event)``), ``refresh_maps()``,
-        ``legend_html()``, ``draw_evidence()``.
+        ``view_changed``, ``surface_changed``, ``window_changed``, ``range_changed`` (``(event)``),
+        ``refresh_maps()``, ``legend_html()``, ``draw_evidence()``, ``draw_cockpit()`` (the compact table and the
+        Calibrate tab's plots, :mod:`magcal_workbench.cockpit`).
     ctrl : callable
         Returns the current :class:`~magcal_workbench.controller.Controller` (it changes with the data).
     live : callable
@@ -599,6 +600,7 @@ class Panels:
         tabs = gui.add_tab_group()
         self._engine_buttons: list = []
         self._bindings: list = []  # (widget, the state's value as the widget shows it)
+        self._live_shown = False  # the tabs describe a live session's stream
         #: The tabs by name (:meth:`section` adds to them).
         self.tab_by_name: dict = {}
         for name, build in (
@@ -1007,6 +1009,10 @@ class Panels:
         if running:
             self.show_live_texts(live)
             self.on.draw_cockpit()  # the table and the plots follow the stream (throttled there)
+            self._live_shown = True
+        elif self._live_shown:  # stopped: the tabs describe the open data again
+            self._live_shown = False
+            self.refresh(("all",))
         paused = running and live.session.paused
         self.btn_live_start.disabled = running
         self.btn_live_pause.visible = running and not paused

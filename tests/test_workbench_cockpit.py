@@ -268,6 +268,25 @@ def test_excluding_a_time_range_refits_and_including_it_restores(bench):
     assert wb.ctrl.state.selection.n_rejected == idx.size
 
 
+def test_a_live_sessions_tabs_describe_the_stream_then_the_recording(bench):
+    wb = bench()
+    assert "data.csv" in wb.panels.data_info.content
+    live = wb.livectl.start("sim://chi2017?rate=50&n=400&speed=4")
+    assert _wait(lambda: live.fit is not None and wb.cockpit.n_plotted >= 60, 60)
+    wb.ui.wait()
+    for text in (wb.panels.data_info.content, wb.panels.sensors_table.content):
+        assert "data.csv" not in text
+    assert "live from `sim://chi2017" in wb.panels.data_info.content
+    assert "Live fit on" in wb.panels.sensors_table.content
+    assert "Live session" in wb.panels.history.content and "Live session" in wb.panels.quality.content
+    assert _wait(lambda: not live.session.running, 60)
+    wb.livectl.do_live_stop(None)
+    assert wb.worker.wait(60)
+    wb.ui.wait()
+    assert live.path.name in wb.panels.data_info.content and "live from" not in wb.panels.data_info.content
+    assert "Live session" not in wb.panels.history.content
+
+
 # --- in the browser ----------------------------------------------------------------------------------------
 def _wait(cond, timeout_s):
     end = time.monotonic() + timeout_s
