@@ -29,6 +29,17 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``see-candidate.png`` - the same with the top candidate's pattern: what adding it would explain;
 * ``see-evidence.png`` - after Add: the evidence plots at full size over the canvas, with each sensor's RMS before
   the last fit.
+
+``python assets/make_screenshots.py cockpit`` saves the cockpit (issue 32):
+
+* ``cockpit-calibrate.png`` - the demo after a fit: the compact table (RMS against the floor, % within +-1/2/5 %,
+  C^-1 and bias, coverage) above the tabs, the scene filling the canvas left of the panel;
+* ``cockpit-field.png`` - |B| against time with an excluded time range (grey band) and the next range (blue);
+* ``cockpit-histogram.png`` - the error histogram before and after calibration;
+* ``cockpit-single.png`` - a single-sensor recording: two clouds, no cross, the tilt ring of the time window's
+  current sample, the fast-turning samples ringed red;
+* ``cockpit-live.png``, ``cockpit-live-plots.png`` - a live session (paused for the picture, so the software-
+  rendered page catches up): the table, |B| and the histogram following the stream.
 """
 
 from __future__ import annotations
@@ -51,7 +62,7 @@ def _wait_text(page, js_condition, timeout=180_000):
 def _page(p, wb):
     browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
     page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page.goto(f"http://127.0.0.1:{wb.port}/")
+    page.goto(wb.url)
     _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
     time.sleep(2)
     for close in page.locator(".mantine-Notification-closeButton").all():
@@ -76,7 +87,7 @@ def live() -> int:
         with sync_playwright() as p:
             browser, page = _page(p, wb)
             rec = Path(tempfile.mkdtemp()) / "live.csv"
-            wb.start_live("sim://chi2017?rate=50&n=6000&speed=4", rec)
+            wb.livectl.start("sim://chi2017?rate=50&n=6000&speed=4", rec)
 
             def received():
                 m = re.search(r"(\d+) samples received", page.inner_text("body"))
@@ -189,9 +200,116 @@ def vehicle() -> int:
     return 0
 
 
+def _scroll_panel(page, dy: float) -> None:
+    """Scroll the control panel (the mouse over it) by ``dy`` pixels."""
+    page.mouse.move(1400, 600)
+    page.mouse.wheel(0, dy)
+    time.sleep(1.5)
+
+
+def _look_from_above(wb, elevation_deg: float = 25.0) -> None:
+    """Raise every browser's camera by ``elevation_deg`` about its look-at point (a ring seen edge-on is a line)."""
+    import numpy as np
+
+    for client in wb.server.get_clients().values():
+        look = np.asarray(client.camera.look_at, float)
+        d = np.asarray(client.camera.position, float) - look
+        e = np.radians(elevation_deg)
+        horizontal = np.hypot(d[0], d[1])
+        d = np.array([d[0], d[1] * np.cos(e) - 0.0, horizontal * np.sin(e) + d[2] * np.cos(e)])
+        with client.atomic():
+            client.camera.position = tuple(look + d)
+            client.camera.look_at = tuple(look)
+
+
+def _single_sensor_demo():
+    """The demo's sensor 1 alone, its second minute turned twice as fast (times halved there), for the
+    single-sensor view."""
+    import numpy as np
+
+    from magcal.data import io as mio
+    from magcal_workbench.lessons import DEMO
+
+    ds = mio.read_csv(DEMO)
+    t = np.asarray(ds.time_s, float).copy()
+    fast = (t > 60) & (t <= 90)
+    dt = np.diff(t, prepend=t[0])
+    dt[fast] *= 0.25  # the same attitudes in a quarter of the time: turning four times as fast
+    return ds.replace(readings_nT=ds.readings_nT[:1], time_s=np.cumsum(dt), baseline_m=None, source="single.csv")
+
+
+def cockpit() -> int:
+    """The cockpit's screenshots (see the module docstring)."""
+    import tempfile
+
+    from playwright.sync_api import sync_playwright
+
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.lessons import DEMO
+
+    warnings.simplefilter("ignore")
+    OUT.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
+        try:
+            wb.ctrl.step_calibrate("ml")
+            browser, page = _page(p, wb)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "cockpit-calibrate.png"))
+            wb.panels.range_from.value, wb.panels.range_to.value = 30.0, 38.0
+            wb.cockpit.do_exclude_range(None)
+            wb.worker.wait(120)
+            wb.ui.wait()
+            wb.panels.range_from.value, wb.panels.range_to.value = 70.0, 76.0
+            _scroll_panel(page, 520)
+            page.screenshot(path=str(OUT / "cockpit-field.png"))
+            _scroll_panel(page, 520)
+            page.screenshot(path=str(OUT / "cockpit-histogram.png"))
+            browser.close()
+        finally:
+            wb.stop()
+        wb = Workbench(_single_sensor_demo(), host="127.0.0.1", port=0, store=None)
+        try:
+            wb.ctrl.step_calibrate("ml")
+            wb.panels.window_width.value = 8.0
+            wb.panels.window_start.value = 44.0
+            wb.panels.window_on.value = True
+            browser, page = _page(p, wb)
+            _look_from_above(wb)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "cockpit-single.png"))
+            browser.close()
+        finally:
+            wb.stop()
+        wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None)
+        try:
+            browser, page = _page(p, wb)
+            rec = Path(tempfile.mkdtemp()) / "live.csv"
+            wb.livectl.start("sim://chi2017?rate=50&n=6000&speed=4", rec)
+            while wb.live.n_samples < 1500 or wb.live.fit is None:
+                time.sleep(0.2)
+            # software WebGL lags behind the redraws (five a second): pause the stream so the page settles
+            wb.live.pause()
+            wb.ui.run(lambda: wb.cockpit.draw(force=True))
+            time.sleep(4)
+            page.screenshot(path=str(OUT / "cockpit-live.png"))
+            _scroll_panel(page, 900)
+            page.screenshot(path=str(OUT / "cockpit-live-plots.png"))
+            browser.close()
+        finally:
+            if wb.live is not None and wb.live.active:
+                wb.live.stop()
+            wb.stop()
+    print(f"wrote {', '.join(sorted(p.name for p in OUT.glob('cockpit-*.png')))} in {OUT}")
+    return 0
+
+
 def main() -> int:
     if sys.argv[1:] == ["vehicle"]:
         return vehicle()
+    if sys.argv[1:] == ["cockpit"]:
+        return cockpit()
     if sys.argv[1:] == ["live"]:
         return live()
     if sys.argv[1:] == ["see"]:
@@ -209,7 +327,7 @@ def main() -> int:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.goto(f"http://127.0.0.1:{wb.port}/")
+            page.goto(wb.url)
             _wait_text(
                 page,
                 "document.body.innerText.includes('Total-field RMS') && "

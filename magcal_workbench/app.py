@@ -11,8 +11,9 @@ browser workbench; it prints the page's address with its token (``http://127.0.0
   (:mod:`~magcal_workbench.checks`), and the actions they call: :class:`~magcal_workbench.steps.Steps`,
   :class:`~magcal_workbench.uploads.Uploads`, :class:`~magcal_workbench.downloads.Downloads`,
   :class:`~magcal_workbench.lessons.LessonDesk`, :class:`~magcal_workbench.livecontrol.LiveControl`,
-  :class:`~magcal_workbench.evidence.Evidence` and :class:`~magcal_workbench.view.SceneControl` (scene, camera,
-  pointer events, View tab);
+  :class:`~magcal_workbench.evidence.Evidence`, :class:`~magcal_workbench.cockpit.Cockpit` (the compact table,
+  |B| against time with its region editor, the error histogram) and :class:`~magcal_workbench.view.SceneControl`
+  (scene, camera, pointer events, View tab);
 * :class:`~magcal_workbench.uiqueue.UiQueue`: background threads (the worker, live sessions, playback) hand
   every page update to one thread.
 
@@ -50,6 +51,7 @@ from magcal.model import plugins
 
 from . import scene as scn
 from .checks import PageValues, Widgets
+from .cockpit import Cockpit
 from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
@@ -160,6 +162,8 @@ class Workbench:
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(self)
+        #: The compact table, |B| against time with its region editor, the error histogram.
+        self.cockpit = Cockpit(self)
         self.view = SceneControl(self)
         self.steps = Steps(self)
         #: The vehicle view and the vector model's page actions (issue 29).
@@ -204,6 +208,7 @@ class Workbench:
             self.evidence,
             self.exporting,
             self.vehicle,
+            self.cockpit,
         )
         on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
         on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
@@ -219,6 +224,8 @@ class Workbench:
             draw_evidence=self.evidence.draw,
             refresh_export=self.exporting.refresh,
             vehicle_text=self.vehicle.describe,
+            draw_cockpit=self.cockpit.draw,
+            range_changed=self.cockpit.range_changed,
         )
 
     # ------------------------------------------------------------------------------------------------------

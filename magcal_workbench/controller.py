@@ -843,15 +843,16 @@ class Controller:
         self._selection_changed(f"threshold {k_sigma:g} sigma rejected {n} sample(s)")
         return n
 
-    def select(self, indices, mode: str = "reject") -> int:
-        """Reject or restore samples (from a box selection)."""
+    def select(self, indices, mode: str = "reject", what: str | None = None) -> int:
+        """Reject or restore samples (a box selection, or ``what`` says which: a time range, the fast-turning
+        samples); one undo step."""
         idx = np.unique(np.asarray(indices, dtype=int))
         if mode == "restore":
-            n = self.state.selection.restore(idx, what=f"box restore {idx.size}")
-            self._selection_changed(f"box selection restored {n} sample(s)")
+            n = self.state.selection.restore(idx, what=what or f"box restore {idx.size}")
+            self._selection_changed(f"{what or 'box selection'}: restored {n} sample(s)")
         else:
-            n = self.state.selection.reject(idx, what=f"box reject {idx.size}")
-            self._selection_changed(f"box selection rejected {n} sample(s)")
+            n = self.state.selection.reject(idx, what=what or f"box reject {idx.size}")
+            self._selection_changed(f"{what or 'box selection'}: rejected {n} sample(s)")
         return n
 
     def undo(self):

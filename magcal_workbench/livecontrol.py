@@ -85,8 +85,7 @@ class LiveControl:
             baud=check(p.live_baud),
             columns=check(p.live_columns),
             units=check(p.live_units),
-            # the Template box (text lines), where the panels offer one
-            template=check(p.live_template) if hasattr(p, "live_template") else "",
+            template=check(p.live_template),
         )
 
     def do_live_list(self, event):

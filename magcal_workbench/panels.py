@@ -20,7 +20,7 @@ from magcal.core import conventions
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
 from .lessons import lesson_slugs, list_lessons
-from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED
+from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import NOISE_RANGE_nT
@@ -74,6 +74,90 @@ def status_markdown(ctrl) -> str:
     )
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
+
+
+def pct(v) -> str:
+    """A share (0-1) as a percentage for the compact table: ``99.7 %``, ``100 %``, ``-``."""
+    if v is None or not np.isfinite(v):
+        return "-"
+    return "100 %" if v >= 1.0 else f"{100.0 * v:.3g} %"
+
+
+def summary_markdown(figures: dict, rms_nT=None, floor_nT=None, sensors=(), sensor: int = 0) -> str:
+    """The compact table the panel opens with: what matters now.
+
+    Parameters
+    ----------
+    figures : dict
+        :func:`magcal_workbench.plots.table_figures` of the open data or the live session.
+    rms_nT, floor_nT : float or None
+        The current fit's total-field RMS of the kept samples and its noise floor, nT (None before a fit).
+    sensors : sequence of (cinv, bias_nT)
+        The calibration's correction matrix ``C^-1`` (3 x 3) and bias (nT) per sensor; empty before a fit.
+    sensor : int
+        Which sensor's matrix and bias are shown (0-based; the View tab's choice).
+
+    The first table: the RMS of ``|B| - reference`` raw and corrected, against the floor (and their ratio), and the
+    share of samples within +-1, +-2 and +-5 % of the reference; the second: the chosen sensor's ``C^-1`` with its
+    bias per axis (nT); then the coverage of the sphere of directions per sensor.
+    """
+    wr, wc = figures["within_raw"], figures.get("within_corrected")
+    bands = list(wr)
+    head = "| | RMS nT | " + " | ".join(f"±{b:g} %" for b in bands) + " |"
+    rows = [head, "|---|---|" + "---|" * len(bands)]
+    rows.append(f"| raw | {fmt(figures['rms_raw_nT'], digits=4)} | " + " | ".join(pct(wr[b]) for b in bands) + " |")
+    if wc is not None:
+        ratio = f" ({rms_nT / floor_nT:.2f}× floor)" if rms_nT and floor_nT and np.isfinite(rms_nT) else ""
+        rows.append(
+            f"| **corrected** | **{fmt(rms_nT, digits=4)}**{ratio} | " + " | ".join(pct(wc[b]) for b in bands) + " |"
+        )
+    kept = f"{figures['n_kept']} of {figures['n_samples']} samples kept"
+    text = f"**Now**: {kept}; noise floor {fmt(floor_nT, 'nT', 3)}\n\n" + "\n".join(rows)
+    if sensors:
+        s = min(max(int(sensor), 0), len(sensors) - 1)
+        cinv, bias = np.asarray(sensors[s][0], float), np.asarray(sensors[s][1], float)
+        who = f"sensor {s + 1} of {len(sensors)}" if len(sensors) > 1 else "the sensor"
+        mrows = [f"| C⁻¹ ({who}) | x | y | z | bias nT |", "|---|---|---|---|---|"]
+        for i, axis in enumerate("xyz"):
+            mrows.append(f"| {axis} | " + " | ".join(f"{v:.5f}" for v in cinv[i]) + f" | {bias[i]:.1f} |")
+        text += "\n\n" + "\n".join(mrows)
+    cov = figures.get("coverage") or []
+    if cov:
+        parts = [f"s{i + 1} {pct(c)}" for i, c in enumerate(cov)] if len(cov) > 1 else [pct(cov[0])]
+        text += "\n\nCoverage of the sphere of directions: " + ", ".join(parts)
+    return text
+
+
+def live_data_markdown(live) -> str:
+    """The Calibrate tab's data line during a live session: the source and what has arrived (not the file that
+    was open before)."""
+    ds = live.dataset()
+    head = f"**Data:** live from {safe_code(live.url)}, recording to {safe_code(live.path.name)}"
+    if ds is None:
+        return head + "  \n_waiting for the first samples_"
+    return f"{head}  \n{safe_text(ds.describe(), 1000)}"
+
+
+def live_sensors_markdown(live) -> str:
+    """Per-sensor figures of the live session's latest fit (bias nT, gauge-free scale and axis angles)."""
+    fit = live.fit
+    if fit is None:
+        return "_The live fit starts after the first samples._"
+    rows = ["| sensor | scale | axis angles deg | bias nT |", "|---|---|---|---|"]
+    for s, c in enumerate(fit.calibration.sensors):
+        scale, angles = conventions.gauge_free(c.cinv)
+        rows.append(
+            f"| {s + 1} | {', '.join(f'{v:.5f}' for v in scale)} | {', '.join(f'{v:.3f}' for v in angles)} | "
+            f"{', '.join(f'{v:.1f}' for v in c.bias_nT)} |"
+        )
+    return f"Live fit on {fit.n_samples} samples, RMS {fmt(fit.rms_nT, 'nT')}\n\n" + "\n".join(rows)
+
+
+#: What the tabs that act on an opened recording say during a live session.
+LIVE_TAB_NOTE = (
+    "_Live session: these figures are the stream's. Stop (Files tab) opens the recording here, and the engine's "
+    "steps, the diagnosis and the outlier tools then work on it._"
+)
 
 
 def data_markdown(ctrl) -> str:
@@ -464,8 +548,9 @@ class Panels:
         ``handle(func, event)`` runs a widget's callback (errors become the page's message).
     on : object
         The actions the widgets call, as attributes: ``do_*(event)`` handlers, ``set_sensor(choice)``,
-        ``view_changed``, ``surface_changed``, ``window_changed`` (``(event)``), ``refresh_maps()``,
-        ``legend_html()``, ``draw_evidence()``.
+        ``view_changed``, ``surface_changed``, ``window_changed``, ``range_changed`` (``(event)``),
+        ``refresh_maps()``, ``legend_html()``, ``draw_evidence()``, ``draw_cockpit()`` (the compact table and the
+        Calibrate tab's plots, :mod:`magcal_workbench.cockpit`).
     ctrl : callable
         Returns the current :class:`~magcal_workbench.controller.Controller` (it changes with the data).
     live : callable
@@ -504,6 +589,8 @@ class Panels:
         gui.configure_theme(control_width="large", dark_mode=False)
         self.title = gui.add_markdown("## magcal workbench")
         self.status = gui.add_markdown("")
+        #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
+        self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
         self.progress_text = gui.add_markdown("", visible=False)
         self.message = gui.add_markdown("")
@@ -516,21 +603,29 @@ class Panels:
         self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
         self._engine_buttons: list = []
         self._bindings: list = []  # (widget, the state's value as the widget shows it)
-        with tabs.add_tab("Calibrate", icon=None):
-            self._build_calibrate(gui)
-        with tabs.add_tab("Model", icon=None):
-            self._build_model(gui)
-        with tabs.add_tab("Quality", icon=None):
-            self._build_quality(gui)
-        with tabs.add_tab("Outliers", icon=None):
-            self._build_outliers(gui)
-        with tabs.add_tab("View", icon=None):
-            self._build_view(gui)
-        with tabs.add_tab("Files", icon=None):
-            self._build_files(gui)
-        with tabs.add_tab("Lessons", icon=None):
-            self._build_lessons(gui)
+        self._live_shown = False  # the tabs describe a live session's stream
+        #: The tabs by name (:meth:`section` adds to them).
+        self.tab_by_name: dict = {}
+        for name, build in (
+            ("Calibrate", self._build_calibrate),
+            ("Model", self._build_model),
+            ("Quality", self._build_quality),
+            ("Outliers", self._build_outliers),
+            ("View", self._build_view),
+            ("Files", self._build_files),
+            ("Lessons", self._build_lessons),
+        ):
+            tab = tabs.add_tab(name, icon=None)
+            self.tab_by_name[name] = tab
+            with tab:
+                build(gui)
         self.tabs = tabs
+
+    def section(self, tab: str, title: str, expand: bool = False):
+        """A new collapsible section at the end of the tab ``tab`` (``"Files"``, ...): its widgets are made inside
+        ``with panels.section("Files", "Export"): ...``; input widgets through :attr:`w` (checked values)."""
+        with self.tab_by_name[tab]:
+            return self.gui.add_folder(title, expand_by_default=expand)
 
     # --- construction --------------------------------------------------------------------------------------
     def _bind(self, handle, shown, apply):
@@ -558,49 +653,109 @@ class Panels:
         return b
 
     def _build_calibrate(self, gui):
-        self.data_info = gui.add_markdown("")
+        """Run, the plots (|B| against time with its region editor, the error histogram), the settings, and the
+        long texts folded away (data, per-sensor figures, step history)."""
+        import plotly.graph_objects as go
+
         state, configure = (lambda: self.ctrl().state), (lambda **kw: self.ctrl().configure(**kw))
-        self.method = self._bind(
-            self.w.dropdown(
-                "Method", tuple(METHODS), initial_value="ml", hint="; ".join(METHOD_LABELS[m] for m in METHODS)
-            ),
-            lambda: state().method,
-            lambda v: configure(method=v),
-        )
-        self.reference = self._bind(
-            self.w.number(
-                "Reference field nT",
-                0.0,
-                min=0.0,
-                step=1.0,
-                hint="Total field in nT; 0 = the file's reference (or fitted if none)",
-            ),
-            lambda: float(state().reference_nT or 0.0),
-            lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None),
-        )
-        self.fit_reference = self._bind(
-            gui.add_checkbox(
-                "Fit the field magnitude", False, hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)"
-            ),
-            lambda: bool(state().fit_reference),
-            lambda v: configure(fit_reference=bool(v)),
-        )
-        self.reference_info = gui.add_markdown("")
-        self.vector_panel.build_location(gui)
-        self.robust = self._bind(
-            gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
-            lambda: bool(state().robust),
-            lambda v: configure(robust=bool(v)),
-        )
-        self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.on.do_ellipsoid)
-        self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.on.do_align)
-        self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.on.do_refine)
         self.btn_run = self._button(gui, "Run the chosen method", self.on.do_calibrate, color="blue")
-        self.sensors_table = gui.add_markdown("")
+        with gui.add_folder("|B| against time", expand_by_default=True):
+            # viser's client draws plotly at height = width * aspect
+            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
+            self.range_from = self.w.slider(
+                "From % of the record",
+                min=0.0,
+                max=100.0,
+                step=0.1,
+                initial_value=40.0,
+                hint="Start of the time range to exclude or include (shaded blue on the plot)",
+            )
+            self.range_to = self.w.slider(
+                "To % of the record",
+                min=0.0,
+                max=100.0,
+                step=0.1,
+                initial_value=50.0,
+                hint="End of the time range to exclude or include",
+            )
+            for h in (self.range_from, self.range_to):
+                h.on_update(lambda e: self.handle(self.on.range_changed, e))
+            self.btn_exclude_range = self._button(
+                gui,
+                "Exclude range",
+                self.on.do_exclude_range,
+                engine=False,
+                hint="Leave the samples in the range out of the fit (undo in the Outliers tab); the fit reruns",
+            )
+            self.btn_include_range = self._button(
+                gui,
+                "Include range",
+                self.on.do_include_range,
+                engine=False,
+                hint="Put the range's excluded samples back into the fit; the fit reruns",
+            )
+            self.btn_exclude_fast = self._button(
+                gui,
+                "Exclude the fast-turning samples",
+                self.on.do_exclude_fast,
+                engine=False,
+                visible=False,
+                hint="Leave out the samples taken while turning fast (marked red); the fit reruns",
+            )
+            self.range_info = gui.add_markdown("")
+        with gui.add_folder("Error histogram", expand_by_default=True):
+            self.histogram_unit = self.w.dropdown(
+                "Error in", ("nT", "%"), initial_value="nT", hint="|B| - reference in nT or in % of the reference"
+            )
+            self.histogram_unit.on_update(lambda e: self.handle(self.on.range_changed, e))
+            self.histogram_plot = gui.add_plotly(go.Figure(), aspect=0.68)
+        with gui.add_folder("Settings", expand_by_default=True):
+            self.method = self._bind(
+                self.w.dropdown(
+                    "Method", tuple(METHODS), initial_value="ml", hint="; ".join(METHOD_LABELS[m] for m in METHODS)
+                ),
+                lambda: state().method,
+                lambda v: configure(method=v),
+            )
+            self.reference = self._bind(
+                self.w.number(
+                    "Reference field nT",
+                    0.0,
+                    min=0.0,
+                    step=1.0,
+                    hint="Total field in nT; 0 = the file's reference (or fitted if none)",
+                ),
+                lambda: float(state().reference_nT or 0.0),
+                lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None),
+            )
+            self.fit_reference = self._bind(
+                gui.add_checkbox(
+                    "Fit the field magnitude",
+                    False,
+                    hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)",
+                ),
+                lambda: bool(state().fit_reference),
+                lambda v: configure(fit_reference=bool(v)),
+            )
+            self.reference_info = gui.add_markdown("")
+            self.vector_panel.build_location(gui)
+            self.robust = self._bind(
+                gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
+                lambda: bool(state().robust),
+                lambda v: configure(robust=bool(v)),
+            )
+        with gui.add_folder("Step by step", expand_by_default=False):
+            self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.on.do_ellipsoid)
+            self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.on.do_align)
+            self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.on.do_refine)
+        with gui.add_folder("Data", expand_by_default=False):
+            self.data_info = gui.add_markdown("")
+        with gui.add_folder("Per sensor", expand_by_default=False):
+            self.sensors_table = gui.add_markdown("")
         self.vector_panel.build_calibrate(gui)
-        with gui.add_folder("Step history", expand_by_default=True):
+        with gui.add_folder("Step history", expand_by_default=False):
             self.history = gui.add_markdown("")
-            gui.add_markdown(HELD_OUT_NOTE)
+            self.history_note = gui.add_markdown(HELD_OUT_NOTE)
 
     def _build_model(self, gui):
         gui.add_markdown(
@@ -840,6 +995,12 @@ class Panels:
         self.live_columns = self.w.text(
             "Columns (text lines)", "x,y,z", max_chars=200, hint="e.g. x,y,z or t,s1x,s1y,s1z,s2x,s2y,s2z"
         )
+        self.live_template = self.w.text(
+            "Template (text lines)",
+            "",
+            max_chars=TEMPLATE_CHARS,
+            hint="e.g. x={x} y={y} z={z} or Magnetometer reading: [{x}, {y}, {z}]; blank: the columns",
+        )
         self.live_units = self.w.dropdown("Units (text lines)", LINE_UNITS, initial_value=LINE_UNITS[0])
         self.btn_live_list = self._button(gui, "List the sources again", self.on.do_live_list, engine=False)
         self.btn_live_start = self._button(gui, "Start live", self.on.do_live_start, engine=False)
@@ -859,6 +1020,13 @@ class Panels:
         self.live_status.visible = live is not None
         if live is not None:
             self.live_status.content = live.status_markdown()
+        if running:
+            self.show_live_texts(live)
+            self.on.draw_cockpit()  # the table and the plots follow the stream (throttled there)
+            self._live_shown = True
+        elif self._live_shown:  # stopped: the tabs describe the open data again
+            self._live_shown = False
+            self.refresh(("all",))
         paused = running and live.session.paused
         self.btn_live_start.disabled = running
         self.btn_live_pause.visible = running and not paused
@@ -1029,6 +1197,36 @@ class Panels:
         self.btn_align.visible = ctrl.dataset.n_sensors > 1
         self.on.refresh_export()
         self.vector_panel.refresh(kinds)
+        if live is not None and live.active:
+            self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
+        elif everything or kinds & {"result", "selection", "data", "settings", "model"}:
+            self.on.draw_cockpit()
+
+    def show_live_texts(self, live) -> None:
+        """During a live session every tab's figures are the stream's: the data line, the per-sensor figures of
+        the live fit, and a note where a tab's tools wait for the recording to be opened."""
+        self.data_info.content = live_data_markdown(live)
+        self.sensors_table.content = live_sensors_markdown(live)
+        self.history.content = LIVE_TAB_NOTE
+        self.candidates.content = LIVE_TAB_NOTE
+        self.candidate_evidence.content = ""
+        self.quality.content = LIVE_TAB_NOTE
+        fit = live.fit
+        self.noise_info.content = (
+            f"**Noise (live fit):** {fmt(fit.noise_nT, 'nT', 3)} per axis, from {safe_text(fit.noise_source, 80)}  \n"
+            f"Total-field floor: {fmt(fit.floor_nT, 'nT', 3)}"
+            if fit is not None
+            else "**Noise:** estimated with the first live fit"
+        )
+        self.inspect.content = LIVE_TAB_NOTE
+        self.range_info.content = LIVE_TAB_NOTE
+        self.reference_info.content = (
+            f"_Reference used by the live fit:_ {fmt(fit.calibration.reference_total_nT, 'nT', 6)}"
+            if fit is not None and fit.calibration.reference_total_nT
+            else "_Reference used by the live fit:_ fitted from the stream"
+        )
+        for b in (self.btn_exclude_range, self.btn_include_range, self.btn_exclude_fast):
+            b.disabled = True
 
     def show_state(self) -> None:
         """Write the session state into every bound widget (their callbacks see nothing to change)."""

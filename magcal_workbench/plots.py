@@ -5,13 +5,23 @@ Only plotting: the numbers come from the controller's residuals and the engine's
 (:func:`magcal.diagnosis.diagnose`, whose ``evidence`` holds the plot data). :func:`evidence_panels` gathers them
 once; :func:`evidence_figure` draws them with plotly (the panel, interactive) and :func:`evidence_image` with
 matplotlib (the full-size view, and PNG/SVG files for teaching), so both show the same data.
+
+The cockpit's plots (issue 32) follow: the total field |B| against time (raw and corrected, with the reference,
+the excluded samples greyed and the excluded stretches shaded, the range being chosen and the samples taken while
+turning fast marked), the error histogram (|B| - reference, before and after calibration) and the figures of the
+compact table (% of samples within +-1/2/5 % of the reference, coverage of the sphere). Their data come from
+:class:`FieldRecord` (the open file's or a live session's) through pure functions the tests call.
 """
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 
 import numpy as np
+
+from magcal.checks.coverage import direction_map
+from magcal.geometry.shape import FieldShape
 
 SENSOR_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd")
 MAX_POINTS = 1500
@@ -338,3 +348,349 @@ def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = No
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=110)
     return buf.getvalue()
+
+
+# --- the cockpit: |B| against time, the error histogram, the compact table's figures ---------------------------
+#: The bands of the compact table: % of the reference field.
+WITHIN_PCT = (1.0, 2.0, 5.0)
+RAW_COLOUR = "#ff7f0e"
+CORRECTED_COLOUR = "#1f77b4"
+REFERENCE_COLOUR = "#2ca02c"
+EXCLUDED_COLOUR = "#b0b0b0"
+FAST_COLOUR = "#d62728"
+#: The range being chosen (region editor) and the excluded stretches, shaded.
+RANGE_COLOUR = "#4dabf7"
+EXCLUDED_BAND_COLOUR = "#9e9e9e"
+#: Shortest run of excluded samples (consecutive in time) drawn as a shaded band; shorter ones show as grey points.
+MIN_BAND_SAMPLES = 3
+#: Most bands drawn (the longest first).
+MAX_BANDS = 30
+#: Cells of the coverage figure (as the live view's coverage spheres).
+COVERAGE_CELLS = 300
+#: Most samples the coverage figure reads (an even stride through a larger record).
+COVERAGE_SAMPLES = 20_000
+
+
+@dataclass
+class FieldRecord:
+    """What the cockpit's plots and table read, for the open file or a live session.
+
+    Attributes
+    ----------
+    time_s : numpy.ndarray, shape (N,)
+        Sample times, s (the sample number when the data have none).
+    raw_nT : numpy.ndarray, shape (n_sensors, N, 3)
+        Raw readings, nT.
+    corrected_nT : numpy.ndarray or None, shape (n_sensors, N, 3)
+        Readings corrected by the current calibration (array frame, nT), or None before a fit.
+    reference_nT : numpy.ndarray, shape (N,)
+        The reference total field per sample, nT (the fit's, the user's or the file's; else the median |raw|).
+    kept : numpy.ndarray of bool, shape (N,)
+        The samples the fit uses.
+    fast : numpy.ndarray of bool or None, shape (N,)
+        Samples taken while turning fast (:func:`magcal_workbench.motion.fast_turning`), None without gyro or
+        attitude.
+    """
+
+    time_s: np.ndarray
+    raw_nT: np.ndarray
+    corrected_nT: np.ndarray | None
+    reference_nT: np.ndarray
+    kept: np.ndarray
+    fast: np.ndarray | None = None
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.raw_nT.shape[1])
+
+    @property
+    def n_sensors(self) -> int:
+        return int(self.raw_nT.shape[0])
+
+
+def within_fractions(magnitude_nT, reference_nT, pcts=WITHIN_PCT) -> dict:
+    """Share (0-1) of the samples whose total field lies within +-p % of the reference, for each ``p`` of
+    ``pcts``; NaN when no sample has both a finite magnitude and a positive reference.
+
+    Parameters
+    ----------
+    magnitude_nT : array_like, shape (..., N)
+        |B| per sample, nT (several sensors pooled).
+    reference_nT : array_like, broadcastable to ``magnitude_nT``
+        The reference total field, nT.
+    """
+    m = np.asarray(magnitude_nT, float)
+    ref = np.broadcast_to(np.asarray(reference_nT, float), m.shape)
+    ok = np.isfinite(m) & np.isfinite(ref) & (ref > 0)
+    rel_pct = 100.0 * np.abs(m[ok] / ref[ok] - 1.0)
+    return {float(p): float(np.mean(rel_pct <= p)) if rel_pct.size else float("nan") for p in pcts}
+
+
+def excluded_bands(time_s, kept, min_samples: int = MIN_BAND_SAMPLES, max_bands: int = MAX_BANDS) -> list:
+    """Stretches of excluded samples, consecutive in time, as ``(t0, t1)`` pairs (s): runs of at least
+    ``min_samples``, the ``max_bands`` longest, in time order."""
+    t = np.asarray(time_s, float)
+    order = np.argsort(t, kind="stable")
+    out = ~np.asarray(kept, bool)[order]
+    edges = np.diff(np.concatenate([[0], out.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    runs = [(s, e) for s, e in zip(starts, ends) if e - s >= min_samples]
+    runs = sorted(sorted(runs, key=lambda r: r[0] - r[1])[:max_bands])
+    ts = t[order]
+    return [(float(ts[s]), float(ts[e - 1])) for s, e in runs]
+
+
+def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
+    """The |B| plot's data, decimated to at most ``max_points`` samples (an even stride through time; every
+    sample still counts in the fit and the table).
+
+    Returns
+    -------
+    dict
+        ``t`` (s), ``raw`` and ``corrected`` (n_sensors, n) |B| in nT (``corrected`` None before a fit),
+        ``reference`` (n,) nT, ``kept`` (n,) bool, ``fast`` (n,) bool or None, ``index`` (n,) the samples shown,
+        ``bands`` (the excluded stretches, :func:`excluded_bands`, over every sample).
+    """
+    n = record.n_samples
+    idx = _decimate(n, np.ones(n, bool), max_points)
+    t = np.asarray(record.time_s, float)
+    raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, idx], axis=2)
+    corr = None
+    if record.corrected_nT is not None:
+        corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, idx], axis=2)
+    return {
+        "t": t[idx],
+        "raw": raw,
+        "corrected": corr,
+        "reference": np.asarray(record.reference_nT, float)[idx],
+        "kept": np.asarray(record.kept, bool)[idx],
+        "fast": None if record.fast is None else np.asarray(record.fast, bool)[idx],
+        "index": idx,
+        "bands": excluded_bands(t, record.kept),
+    }
+
+
+#: Most values the histogram's range (its percentiles) is read from (an even stride); every value is counted.
+RANGE_SAMPLES = 200_000
+
+
+def _histogram(values, bins: int):
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return np.zeros(0), np.zeros(0, int)
+    sample = v[np.linspace(0, v.size - 1, RANGE_SAMPLES).astype(int)] if v.size > RANGE_SAMPLES else v
+    lo, hi = np.percentile(sample, [0.5, 99.5])
+    lo, hi = min(lo, 0.0), max(hi, 0.0)  # zero error is always on the axis
+    if hi - lo <= 0:
+        lo, hi = lo - 1.0, hi + 1.0
+    counts, edges = np.histogram(np.clip(v, lo, hi), bins=bins, range=(lo, hi))
+    return edges, counts
+
+
+def error_histogram(record: FieldRecord, unit: str = "nT", bins: int = 60) -> dict:
+    """The error histograms before and after calibration: ``|B| - reference`` of the kept samples (every sensor
+    pooled), in nT or in % of the reference.
+
+    Each histogram has its own bins (0.5-99.5 percentile range widened to include 0, the tails piled into the
+    end bins): the raw error spans hundreds of nT and the corrected one a few, so shared bins would show the
+    corrected one as one bar.
+
+    Returns
+    -------
+    dict
+        ``unit``; ``before`` and ``after`` (None before a fit) each ``{"edges", "counts", "rms", "n"}``
+        (``rms`` in ``unit``).
+    """
+    if unit not in ("nT", "%"):
+        raise ValueError(f"unit {unit!r}: nT or %")
+    kept = np.asarray(record.kept, bool)
+    ref = np.asarray(record.reference_nT, float)[kept]
+
+    def errors(vectors):
+        m = np.linalg.norm(np.asarray(vectors, float)[:, kept], axis=2)
+        e = m - ref
+        return (100.0 * e / ref if unit == "%" else e).ravel()
+
+    out = {"unit": unit, "before": None, "after": None}
+    for key, vectors in (("before", record.raw_nT), ("after", record.corrected_nT)):
+        if vectors is None or not kept.any():
+            continue
+        e = errors(vectors)
+        edges, counts = _histogram(e, bins)
+        finite = e[np.isfinite(e)]
+        rms = float(np.sqrt(np.mean(finite**2))) if finite.size else float("nan")
+        out[key] = {"edges": edges, "counts": counts, "rms": rms, "n": int(finite.size)}
+    return out
+
+
+def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS, max_samples: int = COVERAGE_SAMPLES) -> list:
+    """Share (0-1) of the sphere of field directions visited by each sensor's kept samples
+    (:func:`magcal.checks.coverage.direction_map`): of the corrected readings about the origin after a fit, else
+    of the raw readings about their own fitted centre. A larger record is taken at an even stride through time, at
+    most ``max_samples`` of its kept samples: a cell counts as visited when a direction lies within 30 deg of it,
+    and neighbouring samples of a path are far closer than that."""
+    kept = np.asarray(record.kept, bool)
+    if kept.sum() > max_samples:
+        chosen = np.flatnonzero(kept)
+        kept = np.zeros_like(kept)
+        kept[chosen[np.linspace(0, chosen.size - 1, max_samples).astype(int)]] = True
+    out = []
+    for s in range(record.n_sensors):
+        if record.corrected_nT is not None:
+            shape = FieldShape(centre_nT=np.zeros(3), cinv=np.eye(3), field_nT=float("nan"), source="origin")
+            m = direction_map(np.asarray(record.corrected_nT[s])[kept], cells, shape=shape)
+        else:
+            m = direction_map(np.asarray(record.raw_nT[s])[kept], cells)
+        out.append(float(m.fraction))
+    return out
+
+
+def table_figures(record: FieldRecord) -> dict:
+    """The compact table's data-derived figures: ``within_raw`` / ``within_corrected`` (:func:`within_fractions`
+    of the kept samples, every sensor pooled; the latter None before a fit), ``rms_raw_nT`` (RMS of
+    ``|raw| - reference``), ``coverage`` (per sensor, :func:`coverage_fraction`), ``n_kept``, ``n_samples``."""
+    kept = np.asarray(record.kept, bool)
+    ref = np.asarray(record.reference_nT, float)[kept]
+    raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, kept], axis=2)
+    err = (raw - ref).ravel()
+    err = err[np.isfinite(err)]
+    corr = None
+    if record.corrected_nT is not None:
+        corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, kept], axis=2)
+    return {
+        "within_raw": within_fractions(raw, ref),
+        "within_corrected": None if corr is None else within_fractions(corr, ref),
+        "rms_raw_nT": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+        "coverage": coverage_fraction(record) if kept.any() else [float("nan")] * record.n_sensors,
+        "n_kept": int(kept.sum()),
+        "n_samples": record.n_samples,
+    }
+
+
+def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_POINTS):
+    """|B| against time (plotly): each sensor's raw and corrected |B| (kept samples in colour, excluded ones
+    grey), the reference, the excluded stretches shaded grey, the range being chosen (``pending_s``, ``(t0, t1)``
+    s) shaded blue, and the samples taken while turning fast ringed red."""
+    import plotly.graph_objects as go
+
+    d = magnitude_series(record, max_points)
+    t, kept, ns = d["t"], d["kept"], record.n_sensors
+    fig = go.Figure()
+    fig.add_trace(
+        go.Scattergl(
+            x=t, y=d["reference"], mode="lines", line={"color": REFERENCE_COLOUR, "width": 1.5}, name="reference"
+        )
+    )
+    every = " (every sensor)" if ns > 1 else ""
+    for key, colour, label in (("raw", RAW_COLOUR, "raw"), ("corrected", CORRECTED_COLOUR, "corrected")):
+        values = d[key]
+        if values is None:
+            continue
+        for s in range(ns):
+            fig.add_trace(
+                go.Scattergl(
+                    x=t[kept],
+                    y=values[s, kept],
+                    mode="markers",
+                    marker={"size": 3, "color": colour, "opacity": 0.6},
+                    name=label + every,
+                    legendgroup=key,
+                    showlegend=s == 0,
+                )
+            )
+            if (~kept).any():
+                fig.add_trace(
+                    go.Scattergl(
+                        x=t[~kept],
+                        y=values[s, ~kept],
+                        mode="markers",
+                        marker={"size": 3, "color": EXCLUDED_COLOUR},
+                        name="excluded",
+                        legendgroup="excluded",
+                        showlegend=key == "raw" and s == 0,
+                    )
+                )
+    fast = d["fast"]
+    if fast is not None and fast.any():
+        shown = d["corrected"] if d["corrected"] is not None else d["raw"]
+        fig.add_trace(
+            go.Scattergl(
+                x=t[fast],
+                y=shown[0, fast],
+                mode="markers",
+                marker={"size": 7, "color": "rgba(0,0,0,0)", "line": {"color": FAST_COLOUR, "width": 1}},
+                name="turning fast",
+            )
+        )
+    for t0, t1 in d["bands"]:
+        fig.add_vrect(x0=t0, x1=t1, fillcolor=EXCLUDED_BAND_COLOUR, opacity=0.35, line_width=0)
+    if pending_s is not None:
+        fig.add_vrect(
+            x0=float(pending_s[0]), x1=float(pending_s[1]), fillcolor=RANGE_COLOUR, opacity=0.25, line_width=0
+        )
+    fig.update_layout(
+        height=300,
+        margin={"l": 60, "r": 10, "t": 30, "b": 35},
+        title={"text": "|B| against time", "font": {"size": 13}},
+        xaxis_title="time (s)",
+        yaxis_title="|B| nT",
+        legend={"orientation": "h", "y": -0.3, "font": {"size": 10}},
+        template="plotly_white",
+    )
+    return fig
+
+
+def histogram_figure(record: FieldRecord, unit: str = "nT"):
+    """The error histograms before and after calibration overlaid (plotly), each on its own horizontal axis in
+    its colour (raw: bottom, corrected: top), since the raw error spans hundreds of nT and the corrected one a
+    few; each with its RMS in the legend."""
+    import plotly.graph_objects as go
+
+    h = error_histogram(record, unit)
+    fig = go.Figure()
+    axes = {"before": "x", "after": "x2"}
+    for key, colour, label in (("before", RAW_COLOUR, "raw"), ("after", CORRECTED_COLOUR, "corrected")):
+        part = h[key]
+        if part is None or not len(part["counts"]):
+            continue
+        edges = part["edges"]
+        fig.add_trace(
+            go.Bar(
+                x=0.5 * (edges[:-1] + edges[1:]),
+                y=part["counts"],
+                width=np.diff(edges),
+                marker={"color": colour},
+                opacity=0.55,
+                name=f"{label} (RMS {format_rms(part['rms'], unit)})",
+                xaxis=axes[key],
+            )
+        )
+    fig.update_layout(
+        barmode="overlay",
+        height=280,
+        margin={"l": 50, "r": 10, "t": 75, "b": 40},
+        title={"text": f"error |B| - reference ({unit})", "font": {"size": 13}, "y": 0.98},
+        xaxis={"title": {"text": f"raw, {unit}", "font": {"color": RAW_COLOUR}}, "tickfont": {"color": RAW_COLOUR}},
+        yaxis={"title": {"text": "samples"}},
+        legend={"orientation": "h", "y": -0.32, "font": {"size": 10}},
+        template="plotly_white",
+    )
+    if h["after"] is not None:
+        fig.update_layout(
+            xaxis2={
+                "title": {"text": f"corrected, {unit}", "font": {"color": CORRECTED_COLOUR}, "standoff": 2},
+                "tickfont": {"color": CORRECTED_COLOUR},
+                "overlaying": "x",
+                "side": "top",
+                "showgrid": False,
+            }
+        )
+    return fig
+
+
+def format_rms(value: float, unit: str) -> str:
+    """An RMS for a legend: ``3.01 nT``, ``0.006 %``."""
+    if not np.isfinite(value):
+        return "-"
+    return f"{value:.3g} {unit}" if unit == "nT" else f"{value:.2g} %"

@@ -9,9 +9,13 @@ Display conventions (no physics here: every number shown comes from the engine's
   the ellipsoid use the distortion gain; the corrected cloud is drawn at radius ``1 + g_r r/F`` where ``r`` is
   the sample's total-field residual (nT), so structure in the residual is visible as shape and colour.
 * Layout: for each shown sensor the raw cloud (with its ellipsoid) on the left and the corrected cloud (on the
-  reference sphere) on the right; "all sensors" stacks the four rows; the cross sits to the right at its real
-  proportions (baseline scaled to :data:`CROSS_SPAN` units) with each sensor's estimated sensing axes, whose
-  deviation from ideal axes is exaggerated by a slider.
+  reference sphere) on the right; "all sensors" stacks the four rows; with more than one sensor the cross sits
+  to the right at its real proportions (baseline scaled to :data:`CROSS_SPAN` units) with each sensor's
+  estimated sensing axes, whose deviation from ideal axes is exaggerated by a slider (a single sensor has no
+  cross: none is drawn). The camera frames it all in the canvas left of the panel (:func:`camera_pose`).
+* Motion (:mod:`magcal_workbench.motion`): samples taken while turning fast get a red dot just outside their point
+  on every cloud; the
+  tilt ring (the directions a yaw sweep at the current tilt would visit) is drawn on each corrected sphere.
 
 The pure functions (projection, ray picking, colours, meshes) are tested without a browser.
 """
@@ -47,6 +51,12 @@ AXIS_RGB = ((220, 50, 50), (50, 170, 50), (60, 90, 230))
 IDEAL_AXIS_RGB = (150, 150, 150)
 ELLIPSOID_RGB = (90, 170, 255)
 SPHERE_RGB = (180, 180, 180)
+FAST_RGB = (214, 39, 40)
+RING_RGB = (30, 30, 30)
+#: Radius the tilt ring is drawn at (the corrected sphere's is 1): just outside, so the points do not hide it.
+RING_RADIUS = 1.04
+#: A fast-turning sample's mark sits this much farther from its cloud's centre than its point.
+FAST_MARK_OUT = 1.06
 
 # Diverging colour map (blue - light grey - red), stops at -1, -0.5, 0, 0.5, 1.
 _CMAP_STOPS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
@@ -175,39 +185,98 @@ def group_offset(k: int, n_groups: int) -> np.ndarray:
     return np.array([(col - 0.5) * GROUP_DX, 0.0, (0.5 - row) * GROUP_DZ])
 
 
-def cross_x(n_groups: int) -> float:
-    """x of the cross model's centre: right of the data groups."""
-    right = (0.5 * GROUP_DX if n_groups > 2 else 0.0) + PAIR_OFFSET + 1.4
-    return right + 0.5 * CROSS_SPAN + 0.6
+def cross_centre(n_groups: int) -> np.ndarray:
+    """Centre of the cross model (scene units): right of one or two groups of clouds, below a 2 x 2 grid of them
+    (there the canvas left of the panel has room below, not beside)."""
+    if n_groups > 2:
+        return np.array([0.0, 0.0, -(0.5 * GROUP_DZ + 1.45 + 0.5 * CROSS_SPAN + 0.8)])
+    right = PAIR_OFFSET + 1.4
+    return np.array([right + 0.5 * CROSS_SPAN + 0.6, 0.0, 0.0])
 
 
-def scene_bounds(n_groups: int):
-    """(x_min, x_max, z_min, z_max) of what the scene shows, for placing the camera."""
+def scene_bounds(n_groups: int, cross: bool = True):
+    """(x_min, x_max, z_min, z_max) of what the scene shows, for placing the camera: the clouds' groups (radius
+    about 1.3 with the default exaggeration, labels above), and the cross model (:func:`cross_centre`) when it is
+    drawn (more than one sensor)."""
     half_x = (0.5 * GROUP_DX if n_groups > 2 else 0.0) + PAIR_OFFSET + 1.4
     half_z = (0.5 * GROUP_DZ if n_groups > 1 else 0.0) + 1.5
-    return -half_x, cross_x(n_groups) + 0.5 * CROSS_SPAN + 0.3, -half_z, half_z
+    x0, x1, z0, z1 = -half_x, half_x, -half_z, half_z
+    if cross:
+        c = cross_centre(n_groups)
+        x1 = max(x1, c[0] + 0.5 * CROSS_SPAN + 0.3)
+        z0 = min(z0, c[2] - 0.5 * CROSS_SPAN - 0.3)
+    return x0, x1, z0, z1
 
 
 #: Half the depth (scene y) of what is drawn: the clouds' radius with the default exaggeration, scene units.
 SCENE_HALF_DEPTH = 1.5
+#: Width of the control panel over the canvas, px: viser's "large" control width (24 em of 16 px) and its margin.
+PANEL_PX = 24 * 16 + 32
+#: Margin kept between what is drawn and the edges of the free canvas, share of its size.
+FRAME_MARGIN = 0.02
 
 
-def camera_pose(n_groups: int, fov_rad: float = np.radians(75.0), aspect: float = 1.6, panel_fraction=0.25):
-    """Camera position and look-at point (looking along +y, z up) that frame the scene left of the panel.
+def panel_fraction(image_width_px) -> float:
+    """Share of the canvas's width the control panel covers (:data:`PANEL_PX` over the browser's canvas width),
+    between 0.1 and 0.6; 0.25 when the width is not known."""
+    try:
+        w = float(image_width_px)
+    except (TypeError, ValueError):
+        return 0.25
+    return float(np.clip(PANEL_PX / w, 0.1, 0.6)) if np.isfinite(w) and w > 0 else 0.25
 
-    The scene's bounds (:func:`scene_bounds`, depth :data:`SCENE_HALF_DEPTH`) must fit in the canvas left of the
-    panel (``panel_fraction`` of its width) at their nearest depth, where they look largest."""
-    x0, x1, z0, z1 = scene_bounds(n_groups)
+
+def _framed_points(n_groups: int, cross: bool) -> np.ndarray:
+    """Points on what the scene draws, for framing: each cloud as an ellipsoid of the half-extents
+    :func:`scene_bounds` allows (1.4 across, :data:`SCENE_HALF_DEPTH` deep, 1.5 high with its label), and the
+    cross's flat bounds."""
+    k = np.arange(200) + 0.5
+    polar, azim = np.arccos(1 - 2 * k / 200), np.pi * (1 + 5**0.5) * k
+    u = np.column_stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar), np.cos(polar)])
+    blob = u * [1.4, SCENE_HALF_DEPTH, 1.5]
+    centres = [group_offset(k, n_groups) + [dx, 0, 0] for k in range(n_groups) for dx in (-PAIR_OFFSET, PAIR_OFFSET)]
+    pts = [c + blob for c in centres]
+    if cross:
+        c = cross_centre(n_groups)
+        half = 0.5 * CROSS_SPAN + 0.3
+        pts.append(np.array([c + [dx, 0, dz] for dx in (-half, half) for dz in (-half, half + 0.5)]))
+    return np.concatenate(pts)
+
+
+def camera_pose(
+    n_groups: int, fov_rad: float = np.radians(75.0), aspect: float = 1.6, panel_fraction=0.25, cross: bool = True
+):
+    """Camera position and look-at point (looking along +y, z up) that frame the scene in the canvas left of the
+    panel, as large as it fits.
+
+    Every drawn object (:func:`_framed_points`, in perspective: a near cloud at the edge looks larger) must project
+    inside the free part of the canvas (``1 - panel_fraction`` of its width, all its height) with a margin of
+    :data:`FRAME_MARGIN`; the camera is moved as close as that allows (bisection on the distance; for each
+    distance the horizontal offset that fits, if any, is an interval, whose middle is taken)."""
+    pts = _framed_points(n_groups, cross)
     t = np.tan(0.5 * fov_rad)
-    usable = max(1.0 - panel_fraction, 0.4)
-    # the nearest depth must hold the whole height, and the whole width in the free part of the canvas
-    d_near = 1.04 * max(0.5 * (z1 - z0) / t, 0.5 * (x1 - x0) / (t * aspect * usable))
-    half_w = d_near * t * aspect  # half the canvas width at the nearest depth
-    # centre so that, at the nearest depth, the left edge stays on the canvas and the right edge left of the panel
-    # (farther points are drawn smaller, so they stay inside too)
-    cx = 0.5 * ((x1 - (1.0 - 2.0 * panel_fraction) * half_w) + (x0 + half_w))
-    dist = d_near + SCENE_HALF_DEPTH
-    return np.array([cx, -dist, 0.0]), np.array([cx, 0.0, 0.0])
+    f = min(max(float(panel_fraction), 0.0), 0.6)
+    m = FRAME_MARGIN
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    cz = 0.5 * (z.min() + z.max())  # the camera's height: the middle of what is drawn
+    z = z - cz
+
+    def offset(dist):  # the camera x that fits at this distance, or None
+        depth = y + dist
+        if np.any(depth <= 1e-6) or np.any(np.abs(z) / (depth * t) > 1 - 2 * m):
+            return None
+        w = depth * t * aspect
+        lo, hi = np.max(x - w * (1 - 2 * f - 2 * m)), np.min(x + w * (1 - 2 * m))
+        return 0.5 * (lo + hi) if lo <= hi else None
+
+    near, far = SCENE_HALF_DEPTH + 1e-3, 10.0
+    while offset(far) is None:
+        far *= 2.0
+    for _ in range(40):
+        mid = 0.5 * (near + far)
+        near, far = (near, mid) if offset(mid) is not None else (mid, far)
+    cx = offset(far)
+    return np.array([cx, -far, cz]), np.array([cx, 0.0, cz])
 
 
 #: How the cross is drawn: the array frame turned so that its x-y plane faces the camera (array x to the right,
@@ -312,6 +381,8 @@ class SceneModel:
     show_ellipsoid: bool = True
     window: np.ndarray | None = None  # (N,) bool: draw only these samples (the time scrubber), None for all
     current: int | None = None  # the window's last sample: each sensor's current direction, marked
+    fast: np.ndarray | None = None  # (N,) bool: samples taken while turning fast (magcal_workbench.motion), marked
+    ring: np.ndarray | None = None  # (M, 3) unit directions (array frame): the tilt ring, on each corrected sphere
 
 
 @dataclass
@@ -368,7 +439,7 @@ def decimated(model: SceneModel, idx: np.ndarray) -> SceneModel:
         replace(sv, raw_nT=sv.raw_nT[idx], corrected_nT=cut(sv.corrected_nT), residual_nT=cut(sv.residual_nT))
         for sv in model.sensors
     ]
-    return replace(model, sensors=sensors, kept=np.asarray(model.kept, bool)[idx])
+    return replace(model, sensors=sensors, kept=np.asarray(model.kept, bool)[idx], fast=cut(model.fast))
 
 
 def iter_layout(model: SceneModel):
@@ -484,6 +555,7 @@ class SceneView:
                 samples.append(idx[: len(pts)])
                 sensors.append(np.full(len(pts), s))
             self._draw_static(model)
+            self._draw_motion(model, clouds)
             if positions:
                 self.displayed = Displayed(np.concatenate(positions), np.concatenate(samples), np.concatenate(sensors))
             else:
@@ -631,23 +703,30 @@ class SceneView:
                         anchor="bottom-center",
                     ),
                 )
+                old = self._static.get(f"/data/{tag}/ellipsoid")
                 if model.show_ellipsoid and sv.cinv is not None:
                     v, f = ellipsoid_mesh(sv.cinv, sv.bias_nT, F, model.distortion_gain)
-                    self._put(
-                        f"/data/{tag}/ellipsoid",
-                        partial(
-                            scene.add_mesh_simple,
+                    if old is not None and len(old.vertices) == len(v):
+                        # moved in place: a mesh removed and made again under its name at every live update was
+                        # drawn at the origin by the page
+                        old.vertices = v.astype(np.float32)
+                        old.position = tuple(centre - [PAIR_OFFSET, 0, 0])
+                    else:
+                        self._put(
                             f"/data/{tag}/ellipsoid",
-                            v.astype(np.float32),
-                            f,
-                            color=ELLIPSOID_RGB,
-                            opacity=0.25,
-                            side="double",
-                            position=centre - [PAIR_OFFSET, 0, 0],
-                            cast_shadow=False,
-                            receive_shadow=False,
-                        ),
-                    )
+                            partial(
+                                scene.add_mesh_simple,
+                                f"/data/{tag}/ellipsoid",
+                                v.astype(np.float32),
+                                f,
+                                color=ELLIPSOID_RGB,
+                                opacity=0.25,
+                                side="double",
+                                position=centre - [PAIR_OFFSET, 0, 0],
+                                cast_shadow=False,
+                                receive_shadow=False,
+                            ),
+                        )
                 elif f"/data/{tag}/ellipsoid" in self._static:
                     self._static.pop(f"/data/{tag}/ellipsoid").remove()
             if model.show_corrected and sv.corrected_nT is not None:
@@ -675,13 +754,66 @@ class SceneView:
                         anchor="bottom-center",
                     ),
                 )
-        self._draw_cross(model)
+        if model.n_sensors > 1:  # one sensor is no cross: nothing to draw
+            self._draw_cross(model)
+
+    def _draw_motion(self, model: SceneModel, clouds) -> None:
+        """The samples taken while turning fast (a red ring round each of their points, every cloud) and the tilt
+        ring (a dark circle on each corrected sphere); either removed when the model has none."""
+        scene = self.server.scene
+        fast = None if model.fast is None else np.asarray(model.fast, bool)
+        pts = []
+        if fast is not None and fast.any():
+            rows = len(model.sensors)
+            place = {sv.sensor: group_offset(k, rows) for k, sv in enumerate(model.sensors)}
+            for _, s, kind, p in clouds:  # a red dot just outside each marked point (its colour stays seen)
+                centre = place[s] + [-PAIR_OFFSET if kind == "raw" else PAIR_OFFSET, 0, 0]
+                pts.append(centre + (p[fast[: len(p)]] - centre) * FAST_MARK_OUT)
+        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+        if len(pts):
+            self._put(
+                "/motion/fast",
+                partial(
+                    scene.add_point_cloud,
+                    "/motion/fast",
+                    pts.astype(np.float32),
+                    FAST_RGB,
+                    point_size=self.point_size * 0.8,
+                    point_shape="circle",
+                    precision="float32",
+                    point_shading="flat",
+                ),
+            )
+        elif "/motion/fast" in self._static:
+            self._static.pop("/motion/fast").remove()
+        segs = []
+        if model.ring is not None and model.show_corrected:
+            ring = np.asarray(model.ring, float) * RING_RADIUS
+            loop = np.stack([ring, np.roll(ring, -1, axis=0)], axis=1)
+            for k, sv in enumerate(model.sensors):
+                if sv.corrected_nT is not None:
+                    segs.append(loop + group_offset(k, len(model.sensors)) + [PAIR_OFFSET, 0, 0])
+        if segs:
+            arr = np.concatenate(segs).astype(np.float32)
+            self._put(
+                "/motion/ring",
+                partial(
+                    scene.add_line_segments,
+                    "/motion/ring",
+                    arr,
+                    colors=RING_RGB,
+                    thickness=3.0,
+                    thickness_units="screen",
+                ),
+            )
+        elif "/motion/ring" in self._static:
+            self._static.pop("/motion/ring").remove()
 
     def _draw_cross(self, model: SceneModel) -> None:
         scene = self.server.scene
         n = model.n_sensors
-        cx = cross_x(len(model.sensors))
-        positions = cross_positions(n) @ ARRAY_TO_SCENE.T + [cx, 0, 0]
+        centre = cross_centre(len(model.sensors))
+        positions = cross_positions(n) @ ARRAY_TO_SCENE.T + centre
         base = (
             f"baseline {model.baseline_m:g} m"
             if model.baseline_m
@@ -695,7 +827,7 @@ class SceneView:
                 scene.add_label,
                 "/cross/label",
                 f"cross ({base}); array z toward you",
-                position=(cx, 0, 0.5 * CROSS_SPAN + 0.45 if n > 1 else 0.6),
+                position=tuple(centre + [0, 0, 0.5 * CROSS_SPAN + 0.45]),
                 anchor="bottom-center",
             ),
         )

@@ -4,6 +4,7 @@ gains and sphere surfaces, and the time scrubber. The drawing itself is :mod:`ma
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 
@@ -11,10 +12,45 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from . import motion
 from . import scene as scn
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .timewindow import sample_times
+
+#: Without attitude, the tilt ring is sought in the directions of the latest samples: at most this many ...
+RING_RECENT_SAMPLES = 400
+#: ... taken in at most this many seconds before the current sample.
+RING_RECENT_S = 20.0
+#: Most samples the field's inclination is estimated from (an even stride through the record).
+INCLINATION_SAMPLES = 5000
+
+
+def ring_directions(dataset, corrected_nT, current: int | None):
+    """The tilt ring at sample ``current`` (unit directions, array frame, :mod:`magcal_workbench.motion`), or
+    None: with attitude, the ring of a yaw sweep at that sample's roll and pitch and the inclination the data show;
+    without, the circle the latest corrected directions lie on, if they lie on one. Nothing before a fit
+    (``corrected_nT`` None) without attitude: raw directions, off-centre by the hard iron, lie on no circle of the
+    sphere drawn."""
+    if dataset is None or current is None or not 0 <= int(current) < dataset.n_samples:
+        return None
+    current = int(current)
+    q = dataset.attitude_wxyz
+    n = dataset.n_samples if corrected_nT is None else min(dataset.n_samples, len(corrected_nT))
+    if current >= n:
+        return None
+    if q is not None:
+        vectors = corrected_nT if corrected_nT is not None else dataset.readings_nT[0]
+        idx = np.unique(np.linspace(0, n - 1, INCLINATION_SAMPLES).astype(int))
+        incl = motion.inclination_from_data(np.asarray(vectors)[idx], np.asarray(q)[idx])
+        return motion.tilt_ring(np.asarray(q)[current], incl)
+    if corrected_nT is None:
+        return None
+    t = sample_times(dataset)
+    lo = max(0, current + 1 - RING_RECENT_SAMPLES)
+    recent = np.arange(lo, current + 1)
+    recent = recent[t[recent] >= t[current] - RING_RECENT_S]
+    return motion.ring_from_directions(np.asarray(corrected_nT)[recent])
 
 
 class SceneControl:
@@ -41,7 +77,13 @@ class SceneControl:
         if live is not None:  # a live session owns the scene until it stops
             model = live.scene_model(wb.panels.view_options())
             if model is not None:
-                return model
+                ds = live.dataset()  # it may have grown since the model was made: take the model's samples
+                n = len(model.kept)
+                corrected = model.sensors[0].corrected_nT if model.sensors else None
+                fast = motion.fast_turning(ds)
+                return dataclasses.replace(
+                    model, fast=None if fast is None else fast[:n], ring=ring_directions(ds, corrected, n - 1)
+                )
         ctrl = wb.ctrl
         ds = ctrl.dataset
         shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
@@ -59,6 +101,7 @@ class SceneControl:
             for s in shown
         ]
         times = sample_times(ds)
+        current = wb.window.current(times)
         return scn.SceneModel(
             sensors=views,
             n_sensors=ds.n_sensors,
@@ -69,7 +112,9 @@ class SceneControl:
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
             inspected=ctrl.inspected,
             window=wb.window.mask(times),
-            current=wb.window.current(times),
+            current=current,
+            fast=motion.fast_turning(ds),
+            ring=None if current is None else ring_directions(ds, views[0].corrected_nT if views else None, current),
             **wb.panels.view_options(),
         )
 
@@ -106,12 +151,16 @@ class SceneControl:
             self.wb.vehicle.place_camera(client)
             return
         ctrl = self.wb.ctrl
-        n_groups = 1 if ctrl.state.sensor is not None else ctrl.dataset.n_sensors
+        live = self._live()
+        ds = live.dataset() if live is not None and live.dataset() is not None else ctrl.dataset
+        n_sensors = ds.n_sensors if live is not None else ctrl.dataset.n_sensors
+        n_groups = 1 if ctrl.state.sensor is not None and live is None else n_sensors
         try:
             fov, aspect = float(client.camera.fov), float(client.camera.aspect)
+            fraction = scn.panel_fraction(client.camera.image_width)
         except (AssertionError, ZeroDivisionError):  # the browser has not reported its camera yet
-            fov, aspect = np.radians(75.0), 1.6
-        position, look_at = scn.camera_pose(n_groups, fov, aspect)
+            fov, aspect, fraction = np.radians(75.0), 1.6, 0.25
+        position, look_at = scn.camera_pose(n_groups, fov, aspect, fraction, cross=n_sensors > 1)
         with client.atomic():
             client.camera.up_direction = (0.0, 0.0, 1.0)
             client.camera.position = tuple(position)

@@ -201,3 +201,8 @@ def missing_internals() -> list[str]:
         if not hasattr(viser, name):
             problems.append(f"viser.{name} is gone")
     return problems
+
+
+def scene_node_names(server) -> list[str]:
+    """The names of the scene nodes the server holds now (what every browser that connects is sent), sorted."""
+    return sorted(server.scene._handle_from_node_name)

@@ -107,6 +107,7 @@ def ws_handshake(port, origin=None, token=None, host="127.0.0.1", cookie=None, t
                 open_timeout=timeout_s,
                 additional_headers={"Cookie": cookie} if cookie else None,
                 subprotocols=[f"viser-v{viser.__version__}"],
+                max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
             ) as ws:
                 return "accepted", await asyncio.wait_for(ws.recv(), timeout_s)
         except InvalidStatus as exc:

@@ -43,6 +43,7 @@ def _handshake(port, origin, host="127.0.0.1"):
                 origin=origin,
                 open_timeout=TIMEOUT_S,
                 subprotocols=[f"viser-v{viser.__version__}"],
+                max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
             ) as ws:
                 return "accepted", await asyncio.wait_for(ws.recv(), TIMEOUT_S)
         except InvalidStatus as exc:

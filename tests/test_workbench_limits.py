@@ -294,6 +294,7 @@ def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_
             origin=f"http://127.0.0.1:{wb.port}",
             open_timeout=10,
             subprotocols=[f"viser-v{viser.__version__}"],
+            max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
         ) as ws:
             await ws.send(encode(_messages.FileTransferStartUpload(uuid, "t1", "a.csv", "text/csv", n_parts, 1000)))
             for i in range(n_parts):
@@ -482,6 +483,7 @@ def test_the_workbench_refuses_a_foreign_origin(bench):
                 origin=origin,
                 open_timeout=10,
                 subprotocols=[f"viser-v{viser.__version__}"],
+                max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
             ) as ws:
                 await asyncio.wait_for(ws.recv(), 10)
                 return 101

@@ -187,21 +187,39 @@ def test_the_legend_prints_numbers_a_person_reads(limit, text):
 
 @pytest.mark.parametrize("n_groups", [1, 2, 4])
 @pytest.mark.parametrize("aspect", [1.3, 1.6, 2.2])
-def test_the_default_camera_frames_everything_left_of_the_panel(n_groups, aspect):
-    """Every corner of the scene's bounds projects inside the part of the canvas the panel leaves free."""
+@pytest.mark.parametrize("fraction", [0.2, 0.25, 0.4])
+def test_the_default_camera_frames_everything_left_of_the_panel(n_groups, aspect, fraction):
+    """Every drawn object (each group's clouds, spheres of radius SCENE_HALF_DEPTH at their real depth, and the
+    cross's bounds) projects inside the part of the canvas the panel leaves free, and fills it: the objects span
+    most of its width or its height (the camera is not farther than it must be)."""
     from scipy.spatial.transform import Rotation
 
-    from magcal_workbench.scene import camera_pose, project_points, scene_bounds
+    from magcal_workbench.scene import (
+        PAIR_OFFSET,
+        SCENE_HALF_DEPTH,
+        camera_pose,
+        group_offset,
+        project_points,
+        scene_bounds,
+    )
 
     fov = np.radians(75.0)
-    pos, look = camera_pose(n_groups, fov, aspect, panel_fraction=0.25)
+    pos, look = camera_pose(n_groups, fov, aspect, panel_fraction=fraction)
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    centres = [group_offset(k, n_groups) + [dx, 0, 0] for k in range(n_groups) for dx in (-PAIR_OFFSET, PAIR_OFFSET)]
+    pts = np.concatenate([c + SCENE_HALF_DEPTH * u * [0.93, 1, 0.87] for c in centres])
     x0, x1, z0, z1 = scene_bounds(n_groups)
-    corners = np.array([[x, y, z] for x in (x0, x1) for y in (-1.5, 1.5) for z in (z0, z1)])
+    pts = np.concatenate([pts, [[x1, 0, z0], [x1, 0, z1]]])
     q = Rotation.from_matrix(np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]])).as_quat()
-    uv, front = project_points(corners, q[[3, 0, 1, 2]], pos, fov, aspect)
+    uv, front = project_points(pts, q[[3, 0, 1, 2]], pos, fov, aspect)
     assert front.all()
-    assert (uv[:, 0] > 0.0).all() and (uv[:, 0] < 0.75).all()  # clear of the panel (the right quarter)
+    assert (uv[:, 0] > 0.0).all() and (uv[:, 0] < 1.0 - fraction).all()  # clear of the panel
     assert (uv[:, 1] > 0.0).all() and (uv[:, 1] < 1.0).all()
+    span_u = (uv[:, 0].max() - uv[:, 0].min()) / (1.0 - fraction)
+    span_v = uv[:, 1].max() - uv[:, 1].min()
+    assert max(span_u, span_v) > 0.85, (span_u, span_v)
 
 
 def test_the_reference_shown_is_the_one_used_and_says_where_from(bench):
