@@ -422,20 +422,22 @@ class Pool:
         Models or effect classes the fits will use (:func:`backend_for`: a user's effect keeps them on threads).
     warm : sequence of functions, optional
         The remote functions to come: worker processes import their modules as they start.
+    workers : int, optional
+        Threads or worker processes (default :data:`PARALLEL_FITS`, else one per core).
     """
 
-    def __init__(self, dataset=None, scheduler=None, effects=(), warm=()):
+    def __init__(self, dataset=None, scheduler=None, effects=(), warm=(), workers=None):
         self.dataset = dataset
         self.backend = (
-            "threads" if dataset is None and scheduler is None else backend_for(dataset, None, scheduler, effects)
+            "threads" if dataset is None and scheduler is None else backend_for(dataset, workers, scheduler, effects)
         )
         self._remote = None
         if self.backend == "processes":
-            self._remote = _Processes(dataset, _workers(cap=MAX_PROCESSES), warm)
+            self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
         elif self.backend == "dask":
             self._remote = _Dask(dataset, scheduler)
         # with workers elsewhere, enough threads here to keep each busy and still run the local work
-        threads = _workers() if self._remote is None else self._remote.workers + 2
+        threads = (workers or _workers()) if self._remote is None else self._remote.workers + 2
         self.workers = threads if self._remote is None else self._remote.workers
         self._queue = queue.PriorityQueue()
         self._order = itertools.count()

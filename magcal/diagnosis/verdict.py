@@ -582,6 +582,7 @@ def diagnose(
     validate=True,
     noise_nT=None,
     scheduler=None,
+    workers=None,
 ) -> Diagnosis:
     """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
 
@@ -615,6 +616,8 @@ def diagnose(
         (``tcp://host:8786``, or a client); by default they run on this machine's cores, in worker processes
         for a large record and on threads for a small one (:mod:`magcal.diagnosis._parallel`). The result is
         the same wherever they run.
+    workers : int, optional
+        Cores to use on this machine (default: every one; :data:`magcal.diagnosis._parallel.PARALLEL_FITS`).
 
     Returns
     -------
@@ -642,7 +645,8 @@ def diagnose(
 
     report("score tests", 0.2)
     in_play = [fit0.model] + [cls for name, cls in EFFECTS.items() if candidates is None or name in candidates]
-    with Pool(dataset, scheduler=scheduler, effects=in_play, warm=(refit_task, validate_task, gram_task)) as pool:
+    warm = (refit_task, validate_task, gram_task)
+    with Pool(dataset, scheduler=scheduler, effects=in_play, warm=warm, workers=workers) as pool:
         cands, proj, _ = _score_round(dataset, kept, fit0, candidates, pool=pool)
         return _after_scores(
             dataset,
