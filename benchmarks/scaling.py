@@ -158,7 +158,9 @@ def part_apply(args, info, report):
         cal = write_survey(survey, rows, int(float(args.row_group)))
         t_make = time.perf_counter() - t0
         in_bytes = survey.stat().st_size
-        print(f"\napply: {rows:,} rows, four sensors, Parquet in ({in_bytes / 2**20:.0f} MB, written in {t_make:.1f} s)")
+        print(
+            f"\napply: {rows:,} rows, four sensors, Parquet in ({in_bytes / 2**20:.0f} MB, written in {t_make:.1f} s)"
+        )
         runs = []
         single = base / "single.parquet"
         t0 = time.perf_counter()
@@ -199,7 +201,9 @@ def part_apply(args, info, report):
         )
         for r in runs:
             started = rows / max(r["seconds"] - r["start_s"], 1e-9)
-            r.update(rows_per_s=rows / r["seconds"], started_rows_per_s=started, of_disk=rows / r["seconds"] / disk_rows)
+            r.update(
+                rows_per_s=rows / r["seconds"], started_rows_per_s=started, of_disk=rows / r["seconds"] / disk_rows
+            )
             print(
                 f"{r['path']:<28}{r['parts']:>6}{r['seconds']:>8.2f}{r['start_s']:>8.2f}{r['rows_per_s']:>12,.0f}"
                 f"{started:>12,.0f}{one / r['seconds']:>9.2f}{r['of_disk']:>8.0%}"

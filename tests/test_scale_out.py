@@ -18,6 +18,8 @@ from magcal.fitting.fitter import fit_with_notes
 from magcal.fitting.pipeline import calibrate
 from magcal.model import perturbations
 
+pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="shared memory is seen in /dev/shm on Linux")
+
 FIGURES = ("delta_bic", "rms_after_nT", "held_out_before_nT", "held_out_after_nT", "later_before_nT", "later_after_nT")
 
 
@@ -91,31 +93,41 @@ def test_fits_in_worker_processes_give_the_serial_diagnosis(record, serial, monk
 
 
 def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, monkeypatch):
-    """The dataset a worker maps is the caller's to the bit; a fit made there comes back with its notes (a fit
-    stopped after one evaluation says it did not converge), as the diagnosis gathers them (tests/test_notes.py)."""
+    """The dataset a worker maps is the caller's to the bit (read-only); a fit made there comes back with its notes
+    (a fit stopped after one evaluation says it did not converge), as the diagnosis gathers them
+    (tests/test_notes.py: notes are values that travel with their fits)."""
     ds, _ = record
-    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     monkeypatch.setattr(_parallel, "BACKEND", "processes")
     with _parallel.Pool(ds) as pool:
         assert pool.is_remote and len(_segments()) == 1
         shared = pool.remote(operator.attrgetter("readings_nT", "temperature_C", "time_s"))
+        assert not pool.remote(operator.attrgetter("readings_nT.flags.writeable"))
+        limits = pool.remote(_blas_threads)
         fitted = pool.remote(fit_with_notes, None, None, "linear", None, None, None, 1)
 
     for a, b in zip(shared, (ds.readings_nT, ds.temperature_C, ds.time_s)):
         np.testing.assert_array_equal(a, b)
+    assert limits and set(limits) == {1}  # BLAS on one thread in the worker, numpy's and scipy's alike
     assert fitted.problem is None and fitted.notes and fitted.notes[0].is_a(ConvergenceWarning)
     assert _segments() == []
 
 
 def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
     ds, _ = record
-    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     monkeypatch.setattr(_parallel, "BACKEND", "processes")
     with pytest.raises(TypeError, match="not subscriptable"):
         with _parallel.Pool(ds) as pool:
             assert len(_segments()) == 1
             pool.remote(operator.getitem, 0)  # raised in the worker, raised here
     assert _segments() == []
+
+
+def _blas_threads(dataset):
+    from threadpoolctl import threadpool_info
+
+    return [lib["num_threads"] for lib in threadpool_info() if lib.get("user_api") == "blas"]
 
 
 def _crash(dataset):
@@ -126,7 +138,7 @@ def test_the_shared_memory_is_unlinked_after_a_worker_dies(record, monkeypatch):
     from concurrent.futures.process import BrokenProcessPool
 
     ds, _ = record
-    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     monkeypatch.setattr(_parallel, "BACKEND", "processes")
     with pytest.raises(BrokenProcessPool):
         with _parallel.Pool(ds) as pool:
@@ -165,3 +177,25 @@ def test_the_diagnosis_on_a_dask_cluster_reads_the_same(record, serial):
         ) as cluster:
             got = diagnose(ds, res, scheduler=cluster.scheduler_address)
     _same(serial, got)
+
+
+def test_a_script_without_a_main_guard_is_not_run_again_in_the_workers(tmp_path):
+    """``spawn`` runs the caller's ``__main__`` again in every worker; a user's script rarely has the
+    ``if __name__ == "__main__":`` guard, and must still run once and diagnose in worker processes."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from magcal.data.simulation import chi2017_truth, simulate_timeseries\n"
+        "from magcal.diagnosis import _parallel, diagnose\n"
+        "_parallel.BACKEND = 'processes'\n"
+        "print('top level ran', flush=True)\n"
+        "ds = simulate_timeseries(chi2017_truth(1), n_samples=1500, noise_nT=3.0, seed=2)\n"
+        "d = diagnose(ds, workers=1)\n"
+        "print('verdict', d.verdict)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.count("top level ran") == 1 and "verdict" in proc.stdout

@@ -269,10 +269,19 @@ def _portable(result):
 _LIMITS = None
 
 
+#: Environment variables that set the BLAS and OpenMP threads of a library loaded after them.
+_ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
 def _init_worker():
-    """A worker process's start: BLAS on one thread (the workers share the cores)."""
+    """A worker process's start: BLAS on one thread (the workers share the cores): the libraries loaded so far
+    (numpy's) limited by threadpoolctl, and those loaded later (scipy's own OpenBLAS) by the environment."""
     global _LIMITS
     from threadpoolctl import threadpool_limits
+
+    for name in _ONE_THREAD:
+        os.environ[name] = "1"
+    import scipy.linalg  # noqa: F401  (its BLAS loaded now, so that the limit below reaches it too)
 
     _LIMITS = threadpool_limits(limits=1)
 
