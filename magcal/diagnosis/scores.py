@@ -245,7 +245,12 @@ def gram_task(dataset, kept_mask, start, stop, model, init, reference_total_nT):
     return _chunk_terms(kept.subset(np.arange(start, stop)), model, init, reference_total_nT)[0]
 
 
-def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000, pool=None, kept_mask=None) -> _Grams:
+#: Residual rows per chunk of a score round's normal equations (:func:`_grams`): 16 chunks for 4 x 1e5 samples, so
+#: that many cores share them; the chunks are the same whatever the cores, so is the sum.
+GRAM_CHUNK_ROWS = 75_000
+
+
+def _grams(kept, model, init, reference_total_nT, chunk_rows=GRAM_CHUNK_ROWS, pool=None, kept_mask=None) -> _Grams:
     """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples.
 
     The chunks bound the memory of the per-sample derivatives of every candidate's parameters; their number does

@@ -386,8 +386,9 @@ class PartitionedSummary:
 
     def text(self) -> str:
         return (
-            f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s) on "
-            f"{self.scheduler}; wrote {len(self.files)} partition(s) to {self.output_dir}"
+            f"corrected {self.rows} rows in {self.seconds:.1f} s ({self.rows_per_s:,.0f} rows/s; the cluster's start "
+            f"{self.start_s:.1f} s of it) on {self.scheduler}; wrote {len(self.files)} partition(s) to "
+            f"{self.output_dir}"
         )
 
 
