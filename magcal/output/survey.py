@@ -48,8 +48,10 @@ from magcal.data.io import (
 )
 from magcal.output.apply import correct_block, load_calibration, output_columns, record_choice, writes_world
 
-#: Rows a task reads, corrects and writes at a time (memory per worker stays bounded whatever the partition's size).
-PARTITION_ROWS = 250_000
+#: Rows a task reads, corrects and writes at a time, as ``magcal apply`` does (its ``--chunk-rows``): memory per
+#: worker stays bounded whatever the partition's size, and a block's few dozen columns stay in the processor's
+#: cache (blocks of 250 000 rows made the correction 6x slower per row than blocks of 20 000 on a busy machine).
+BLOCK_ROWS = 20_000
 #: Partitions per worker thread: enough that the last ones even out the load, few enough that each task's start
 #: (opening the file, its metadata) stays small against its rows.
 TASKS_PER_WORKER = 4
@@ -240,7 +242,7 @@ def partitions(paths, partition_rows: int | None = None, workers: int = 1) -> li
     return out
 
 
-def _parquet_part(part: Partition, chunk_rows=PARTITION_ROWS):
+def _parquet_part(part: Partition, chunk_rows=BLOCK_ROWS):
     """The file's metadata and the partition's rows as datasets of at most ``chunk_rows`` samples, read from the
     row groups its rows lie in (the rows before its start in its first group are read and skipped)."""
     src = ParquetSource(part.path)
@@ -272,7 +274,7 @@ def _csv_part(part: Partition, columns=None, units=None, drop_bad=False):
         body = fh.read(part.stop - part.start)
     name = f"{part.path} (lines from {part.first_line})"
     with CsvSource(_io.BytesIO(head + body), columns=columns, units=units, name=name) as src:
-        parts = [c.dataset for c in src.chunks(PARTITION_ROWS, drop_bad=drop_bad, text_columns=False)]
+        parts = [c.dataset for c in src.chunks(BLOCK_ROWS, drop_bad=drop_bad, text_columns=False)]
         meta = dict(src.metadata)
     if not parts:
         raise DatasetError(f"{name}: no data rows")
@@ -292,7 +294,7 @@ def correct_partition(
     compression=None,
 ) -> tuple[str, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task): read from the
-    file by the task itself, corrected and written :data:`PARTITION_ROWS` rows at a time (a Parquet row group
+    file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
     each). Returns the file written and its rows."""
 
     calibration = Calibration.from_dict(calibration_doc)
