@@ -46,7 +46,14 @@ from magcal.data.io import (
     parse_column_mapping,
     write_csv,
 )
-from magcal.output.apply import correct_block, load_calibration, output_columns, record_choice, writes_world
+from magcal.output.apply import (
+    _WriteBehind,
+    correct_block,
+    load_calibration,
+    output_columns,
+    record_choice,
+    writes_world,
+)
 
 #: Rows a task reads, corrects and writes at a time, as ``magcal apply`` does (its ``--chunk-rows``): memory per
 #: worker stays bounded whatever the partition's size, and a block's few dozen columns stay in the processor's
@@ -313,7 +320,7 @@ def correct_partition(
     }
     out = os.path.join(output_dir, f"part-{part.index:05d}.{fmt}")
     tmp = out + ".tmp"
-    rows, writer, blocks = 0, None, []
+    rows, writer, behind, blocks = 0, None, None, []
     try:
         for ds in chunks:
             if rows == 0:
@@ -342,18 +349,23 @@ def correct_partition(
                 table = parquet_table(cols, meta)
                 if writer is None:
                     writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table, compression))
-                writer.write_table(table)
+                    behind = _WriteBehind()  # encoding, compression and the disk beside the next block's work
+                behind.put(lambda table=table, writer=writer: writer.write_table(table))
             else:
                 blocks.append(cols)
         if rows == 0:
             raise DatasetError(f"{part.path} (rows from {part.first_line}): no data rows")
         if writer is not None:
+            behind, done = None, behind
+            done.close()  # every block written (or the first error raised)
             writer.close()
             writer = None
             os.replace(tmp, out)
         else:
             write_csv(out, {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}, metadata=meta)
     finally:
+        if behind is not None:  # an error while reading or correcting: stop the writing thread first
+            behind.close(raise_error=False)
         if writer is not None:
             writer.close()
         if os.path.exists(tmp):
