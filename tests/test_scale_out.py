@@ -199,3 +199,16 @@ def test_a_script_without_a_main_guard_is_not_run_again_in_the_workers(tmp_path)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.count("top level ran") == 1 and "verdict" in proc.stdout
+
+
+def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record, capsys):
+    from magcal.cli import main
+    from magcal.data import io as mio
+
+    ds, _ = record
+    path = tmp_path / "four.csv"
+    mio.write_csv(path, ds.subset(np.arange(1500)))
+    assert main(["diagnose", str(path), "--workers", "2", "--json", "--no-validate"]) == 0
+    assert '"verdict"' in capsys.readouterr().out
+    assert main(["diagnose", str(path), "--workers", str(4 * _parallel.cores() + 1)]) != 0
+    assert "--workers" in capsys.readouterr().err
