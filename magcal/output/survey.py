@@ -320,7 +320,7 @@ def correct_partition(
     }
     out = os.path.join(output_dir, f"part-{part.index:05d}.{fmt}")
     tmp = out + ".tmp"
-    rows, writer, behind, blocks = 0, None, None, []
+    rows, writer, behind, blocks, source = 0, None, None, [], None
     try:
         for ds in chunks:
             if rows == 0:
@@ -340,7 +340,9 @@ def correct_partition(
                     f"{part.path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); "
                     "rename them or correct the raw survey"
                 )
-            cols["source_file"] = np.full(ds.n_samples, os.path.basename(part.path))
+            if source is None or source.size < ds.n_samples:  # the file's name, made once (a text fill is slow)
+                source = np.full(max(ds.n_samples, BLOCK_ROWS), os.path.basename(part.path))
+            cols["source_file"] = source[: ds.n_samples]
             cols.update({name: values[:, k] for k, name in enumerate(names)})
             rows += ds.n_samples
             if fmt == "parquet":
