@@ -288,6 +288,33 @@ def _csv_part(part: Partition, columns=None, units=None, drop_bad=False):
     return meta, iter(parts)
 
 
+#: Bytes below which glibc's ``malloc`` serves an allocation from the heap in a task's process (:func:`_heap_blocks`).
+MMAP_THRESHOLD_BYTES = 32 << 20
+_HEAP_SET = False
+
+
+def _heap_blocks() -> None:
+    """Let a block's temporaries come from the heap in this (worker) process.
+
+    ``dask.distributed`` starts its workers with ``MALLOC_TRIM_THRESHOLD_`` set, which turns off glibc's dynamic
+    mmap threshold: every array of 128 kB or more (a 20 000-row column is 160 kB) is then a fresh ``mmap`` whose
+    pages fault in one by one and are unmapped when freed. With the threshold raised to
+    :data:`MMAP_THRESHOLD_BYTES` (``mallopt``, once per process; nothing where the C library is not glibc) the
+    correction runs at ``magcal apply``'s pace (a partition of 4e5 rows, four runs each on the 2-core machine:
+    median 5.2 s with Dask's setting, 1.6 s with the threshold raised, 2.1 s with neither)."""
+    global _HEAP_SET
+    if _HEAP_SET:
+        return
+    _HEAP_SET = True
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, MMAP_THRESHOLD_BYTES)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
 def correct_partition(
     calibration_doc: dict,
     part: Partition,
@@ -304,6 +331,7 @@ def correct_partition(
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
     each). Returns the file written and its rows."""
 
+    _heap_blocks()
     calibration = Calibration.from_dict(calibration_doc)
     if part.kind == "parquet":
         meta, chunks = _parquet_part(part)
