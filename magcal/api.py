@@ -134,7 +134,8 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
     **options
         Passed on to :func:`magcal.diagnosis.diagnose` (``effects``, ``model``, ``top``, ``candidates``,
         ``max_effects``, ``progress``, ``validate``: judge the candidates on held-out samples, default True;
-        ``noise_nT``: the noise per axis in nT, if known, used instead of any estimate).
+        ``noise_nT``: the noise per axis in nT, if known, used instead of any estimate; ``workers``: cores for the
+        independent fits, default every one; ``scheduler``: a Dask scheduler's address or client to run them on).
 
     Returns
     -------

@@ -116,10 +116,10 @@ def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeyp
 
 def test_the_default_number_of_threads_is_one_per_core_and_bounded(monkeypatch):
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", None)
-    monkeypatch.setattr(_parallel.os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(_parallel, "cores", lambda: 64)
     assert _parallel._workers() == _parallel.MAX_THREADS
     assert _parallel._workers(3) == 3
-    monkeypatch.setattr(_parallel.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(_parallel, "cores", lambda: 2)
     assert _parallel._workers() == 2
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 16)  # asked for explicitly: as asked
     assert _parallel._workers() == 16

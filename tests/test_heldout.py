@@ -313,8 +313,8 @@ def test_a_diverged_refit_reads_did_not_converge(monkeypatch):
 
     real_refit = scores._refit
 
-    def diverging(dataset, fit, candidate):
-        f1 = real_refit(dataset, fit, candidate)
+    def diverging(dataset, fit, candidate, pool=None):
+        f1 = real_refit(dataset, fit, candidate, pool)
         if candidate.effect != "temperature_bias":
             return f1
         return dataclasses.replace(f1, residuals_nT=f1.residuals_nT * 1e7, rms_nT=f1.rms_nT * 1e7, rss=f1.rss * 1e14)

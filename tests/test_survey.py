@@ -30,7 +30,7 @@ def _table(path):
     return magcal.read_csv(path)
 
 
-def test_partitions_split_csv_by_lines_and_parquet_by_row_groups(surveys):
+def test_partitions_split_csv_by_lines_and_parquet_by_rows(surveys):
     from magcal.output.survey import partitions
 
     d, cal, a, b = surveys
@@ -40,6 +40,45 @@ def test_partitions_split_csv_by_lines_and_parquet_by_row_groups(surveys):
     assert [p.index for p in parts] == list(range(len(parts))) and parts[-1].kind == "parquet"
     # the partitions hold every data line once: their byte ranges tile the file after its head
     assert all(p.stop == q.start for p, q in zip(csv_parts, csv_parts[1:])) and csv_parts[-1].stop == a.stat().st_size
+    # the Parquet file's one row group of 400 rows is split into ranges of about 120 rows that tile it
+    pq_parts = [p for p in parts if p.kind == "parquet"]
+    assert [(p.start, p.stop) for p in pq_parts] == [(0, 133), (133, 266), (266, 400)]
+    assert [p.first_line for p in pq_parts] == [1, 134, 267]
+
+
+def _grouped(path, ds, group_rows):
+    """``ds`` written as Parquet with row groups of ``group_rows`` (a list: one size per group)."""
+    import pyarrow.parquet as pq
+
+    table = mio.parquet_table(mio.dataset_columns(ds), mio.dataset_metadata(ds))
+    with pq.ParquetWriter(path, table.schema) as writer:
+        start = 0
+        for n in group_rows:
+            writer.write_table(table.slice(start, n))
+            start += n
+    return path
+
+
+@pytest.mark.parametrize("workers", [1, 2, 16])
+def test_partitions_are_sized_to_the_workers_not_the_row_groups(tmp_path, workers, monkeypatch):
+    """Many small row groups are joined and a large one split, on the groups' edges where they can be, into about
+    four partitions per worker; the ranges tile the file's rows."""
+    from magcal.output import survey
+
+    monkeypatch.setattr(survey, "MIN_PARTITION_ROWS", 10)
+    ds = magcal.simulate_timeseries("chi2017", n_samples=2000, seed=3, rate_hz=10.0)
+    sizes = [50] * 20 + [1000]  # 20 small groups, then one large one
+    path = _grouped(tmp_path / "g.parquet", ds, sizes)
+    parts = survey.partitions([path], workers=workers)
+    rows = survey.partition_rows_for(2000, workers)
+    assert rows == max(10, -(-2000 // (4 * workers)))
+    assert parts[0].start == 0 and parts[-1].stop == 2000
+    assert all(p.stop == q.start for p, q in zip(parts, parts[1:]))
+    edges = set(np.cumsum([0] + sizes).tolist())
+    if rows >= 75:  # no small group needs splitting: every range among them ends on a group's edge
+        assert all(p.start in edges and p.stop in edges for p in parts if p.stop <= 1000)
+    assert max(p.rows for p in parts) <= 1.5 * rows + 1
+    assert 3 * workers <= len(parts) <= 5 * workers
 
 
 @pytest.mark.slow
@@ -50,7 +89,7 @@ def test_a_local_cluster_gives_the_single_process_numbers(surveys, tmp_path):
     d, cal, a, b = surveys
     out = tmp_path / "parts"
     summary = apply_partitioned(cal, [a, b], out, workers=2, partition_rows=150, progress=False, compression="zstd")
-    assert summary.rows == 900 and len(summary.files) == 5  # 4 CSV partitions + 1 row group
+    assert summary.rows == 900 and len(summary.files) == 7  # 4 CSV partitions + 3 ranges of the row group
     import pyarrow.parquet as pq
 
     meta = pq.ParquetFile(summary.files[0]).metadata  # the codec asked for reaches the workers
@@ -125,3 +164,85 @@ def test_a_codec_with_csv_partitions_is_refused_before_any_work(surveys, tmp_pat
     with pytest.raises(magcal.MagcalError, match="for Parquet partitions"):
         apply_partitioned(cal, [a], tmp_path / "x", fmt="csv", compression="zstd", progress=False)
     assert not (tmp_path / "x").exists()
+
+
+def _same_rows(got, want):
+    """Every column of two apply outputs equal, row for row (magcal's own metadata aside)."""
+    assert list(got.column_names) == list(want.column_names)
+    for name in want.column_names:
+        g, w = got.column(name).to_numpy(zero_copy_only=False), want.column(name).to_numpy(zero_copy_only=False)
+        if g.dtype.kind == "f":
+            np.testing.assert_array_equal(g, w, err_msg=name)
+        else:
+            assert (g.astype(str) == w.astype(str)).all(), name
+
+
+@pytest.fixture(scope="module")
+def grouped(tmp_path_factory):
+    """A four-sensor survey in row groups of uneven sizes (30 small, then one large), its calibration and the
+    single-process apply of it (the reference)."""
+    import pyarrow.parquet as pq
+
+    d = tmp_path_factory.mktemp("grouped")
+    ds = magcal.simulate_timeseries("chi2017", n_samples=3000, seed=5, rate_hz=10.0)
+    cal = magcal.calibrate(ds.subset(np.arange(1000))).calibration
+    path = _grouped(d / "survey.parquet", ds, [40] * 30 + [1800])
+    single = d / "single.parquet"
+    apply_file(cal, path, single)
+    return cal, path, pq.read_table(single)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_partitioned_apply_equals_the_single_process_row_for_row(grouped, tmp_path, workers, monkeypatch):
+    """Partitions sized to the workers (row groups joined and split), each read and written by its own task: the
+    output folder, read as one Parquet dataset, is the single-process output row for row, in order."""
+    import pyarrow.dataset as pads
+
+    from magcal.output import survey
+
+    monkeypatch.setattr(survey, "MIN_PARTITION_ROWS", 100)
+    cal, path, want = grouped
+    out = tmp_path / "parts"
+    summary = survey.apply_partitioned(cal, [path], out, workers=workers, progress=False)
+    assert summary.rows == 3000 and summary.workers == workers
+    assert summary.partitions == len(summary.files) >= 3 * workers  # sized to the workers, not the 31 row groups
+    got = pads.dataset(str(out), format="parquet").to_table()  # the folder is one dataset, parts in order
+    assert got.num_rows == 3000
+    _same_rows(got.drop_columns(["source_file"]), want)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".parts")]  # no temporary folder left
+
+
+@pytest.mark.slow
+def test_the_same_code_runs_on_a_cluster_by_its_address(grouped, tmp_path):
+    """A Dask cluster on loopback reached by its address (--scheduler): the partitions are sized to its worker
+    threads and the output is the single-process one."""
+    import pyarrow.dataset as pads
+
+    from magcal.cli import main
+
+    distributed = pytest.importorskip("distributed")
+    cal, path, want = grouped
+    cal.save(tmp_path / "cal.json")
+    out = tmp_path / "parts"
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=True, host="127.0.0.1", dashboard_address=None, silence_logs=40
+    ) as cluster:
+        t0 = time.monotonic()
+        rc = main(
+            [
+                "apply",
+                str(tmp_path / "cal.json"),
+                str(path),
+                "-o",
+                str(out),
+                "--scheduler",
+                cluster.scheduler_address,
+                "--partition-rows",
+                "500",
+                "--no-progress",
+            ]
+        )
+        assert rc == 0 and time.monotonic() - t0 < 60
+    got = pads.dataset(str(out), format="parquet").to_table()
+    _same_rows(got.drop_columns(["source_file"]), want)

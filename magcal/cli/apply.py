@@ -28,7 +28,7 @@ from magcal.data.dataset import DatasetError
 from magcal.data.io import PARQUET_CODECS, check_output_path
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import apply_file, load_calibration
-from magcal.output.survey import PARTITION_ROWS, WORKERS_PER_CORE, apply_partitioned, check_workers
+from magcal.output.survey import TASKS_PER_WORKER, WORKERS_PER_CORE, apply_partitioned, check_workers
 
 
 def register(subparsers):
@@ -95,7 +95,8 @@ def register(subparsers):
         type=int,
         default=None,
         metavar="N",
-        help="CSV lines per partition in parallel mode (Parquet: one per row group)",
+        help="rows per partition in parallel mode (default: sized to the workers, "
+        f"{TASKS_PER_WORKER} partitions per worker, whatever the file's row groups)",
     )
     parser.add_argument(
         "--columns",
@@ -151,7 +152,7 @@ def run(args) -> int:
                 fmt=args.format,
                 workers=args.workers or 2,
                 scheduler=args.scheduler,
-                partition_rows=args.partition_rows or PARTITION_ROWS,
+                partition_rows=args.partition_rows,
                 columns=args.columns,
                 units=args.units,
                 drop_bad=args.drop_bad,

@@ -38,6 +38,7 @@ from magcal.cli.calibrate import (
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.diagnosis import diagnose
+from magcal.diagnosis._parallel import cores
 from magcal.fitting.pipeline import calibrate
 
 
@@ -90,6 +91,20 @@ def add_arguments(parser) -> None:
         "if its gain holds on the samples held out)",
     )
 
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="cores for the independent fits (default: every core; a large record's fits run in worker "
+        "processes, a small one's on threads; 1: one after the other)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the independent fits on an existing dask.distributed cluster (e.g. tcp://host:8786)",
+    )
     add_noise_argument(parser)
 
 
@@ -99,6 +114,8 @@ def run(args) -> int:
         raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
+    if getattr(args, "workers", None) is not None and not 1 <= args.workers <= 4 * cores():
+        raise MagcalError(f"--workers {args.workers}: give 1 to {4 * cores()} (this machine has {cores()} cores)")
 
     checked_noise(args)
     names = checked_effect_names(args)
@@ -109,7 +126,15 @@ def run(args) -> int:
         result = calibrate(
             ds, effects=names, robust=args.robust, reference_total_nT=args.reference, noise_nT=args.noise
         )
-        diagnosis = diagnose(ds, result, top=args.top, validate=args.validate, noise_nT=args.noise)
+        diagnosis = diagnose(
+            ds,
+            result,
+            top=args.top,
+            validate=args.validate,
+            noise_nT=args.noise,
+            workers=getattr(args, "workers", None),
+            scheduler=getattr(args, "scheduler", None),
+        )
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(result.notes + diagnosis.notes)]  # what the fits said, as values

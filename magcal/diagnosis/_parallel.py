@@ -1,39 +1,90 @@
-"""Independent fits of a diagnosis run side by side on the machine's cores.
+"""Independent fits of a diagnosis run side by side on the machine's cores, or on a Dask cluster.
 
-The confirming refits of the best candidates and the held-out fits of each scheme and candidate do not depend on
-one another; numpy releases the interpreter in its loops and BLAS calls, so threads (not processes: the datasets
-stay shared, nothing is pickled) keep both cores of a small machine busy. Results come back in the order of the
-calls, so the diagnosis reads the same whatever finishes first.
+The confirming refits of the best candidates, the held-out fits of each scheme and candidate and the chunks of a
+score round's normal equations do not depend on one another. Results come back in the order of the calls, so the
+diagnosis reads the same whatever finishes first, and wherever it ran.
 
-:func:`in_parallel` runs a batch and waits for all of it. A :class:`Pool` lives for a whole diagnosis and starts
-each piece of work as soon as what it needs is ready (a candidate's held-out fits the moment its refit returns,
-the evidence about the base fit while the refits run), by priority, so that the longest chain of dependent fits
-is never queued behind work that can wait.
+Where the work runs (:class:`Pool`, chosen per diagnosis):
+
+- **threads** (the fallback): numpy releases the interpreter in its loops and BLAS calls, so threads keep two cores
+  busy and nothing is copied. Python threads contend for the interpreter between numpy calls, so beyond a few cores
+  they stop paying; a small record (fewer than :data:`PROCESS_MIN_READINGS` readings) or one core stays here.
+- **processes** (:class:`~concurrent.futures.ProcessPoolExecutor`, started with ``spawn``): the readings are
+  written once into one shared-memory segment (:class:`SharedDataset`; nothing of them is pickled per task), each
+  worker maps it read-only on its first task and keeps it, and BLAS runs one thread per worker (threadpoolctl), so
+  the workers do not oversubscribe the cores. The segment is unlinked when the diagnosis ends, on an error and on
+  Ctrl-C too. A fit's notes travel back with its result (:class:`~magcal.fitting.fitter.FitResult` ``.notes``).
+- **Dask** (``scheduler``: an address, or a ``distributed.Client``): the dataset is scattered to the workers once;
+  each task gets it by reference.
+
+The fits (module-level functions whose first argument is the dataset: :func:`fit_task`, :func:`validate_task`,
+:func:`normal_equations_task`) go to the processes or the cluster through :meth:`Pool.remote`; everything else
+(orchestration, the structure tests, the evidence) runs on the pool's threads in the calling process. A model holding
+an effect that is not magcal's own (a user's effects file) stays on threads: a worker process could not import it.
+
+:func:`in_parallel` runs a batch of calls on threads and waits for all of it. A :class:`Pool` lives for a whole
+diagnosis and starts each piece of work as soon as what it needs is ready (a candidate's held-out fits the moment
+its refit returns, the evidence about the base fit while the refits run), by priority, so that the longest chain of
+dependent fits is never queued behind work that can wait.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import hashlib
 import itertools
 import os
+import pickle
 import queue
+import sys
 import threading
+import uuid
 from concurrent.futures import Future, ThreadPoolExecutor
 
-#: Threads for independent fits (None: one per core, at most :data:`MAX_THREADS` and one per fit; 1: one after
-#: the other).
+import numpy as np
+
+from magcal.core.errors import MagcalError
+from magcal.data.dataset import Dataset
+
+#: Workers for independent fits (None: one per core, threads at most :data:`MAX_THREADS`; 1: one after the other,
+#: in the calling thread).
 PARALLEL_FITS = None
 
 #: Most threads by default: every fit in flight holds its own temporaries (about 100 MB for 4 x 1e5 samples), and
 #: a diagnosis rarely has more than a dozen pieces of work at once.
 MAX_THREADS = 8
 
+#: Most worker processes by default (each holds its own fit's temporaries: about 1 GB for 4 x 1e6 samples).
+MAX_PROCESSES = 32
+
+#: Where the fits run: None (by the record's size and the cores: :func:`backend_for`), ``"threads"`` or
+#: ``"processes"``.
+BACKEND = None
+
+#: Readings (sensors x samples) from which a diagnosis's fits run in worker processes when there is more than one
+#: core. Below it the processes' start (each imports numpy, scipy and magcal: about 1.2 s of one core on the
+#: 2-core development machine) costs more than the threads lose (benchmarks/scaling.py; benchmarks/README.md).
+PROCESS_MIN_READINGS = 200_000
+
 #: Priorities of a :class:`Pool`'s work (lower first): fits on the longest chain (refits and the held-out fits
 #: they lead to), fits every candidate waits for, and evidence that is only read at the end.
 CHAIN, SHARED, FILLER = 0, 1, 2
 
+#: Prefix of the shared-memory segments' names (``/dev/shm/magcal_<pid>_<hex>`` on Linux).
+SEGMENT_PREFIX = "magcal_"
 
-def _workers(n_calls=None):
-    workers = PARALLEL_FITS or min(os.cpu_count() or 1, MAX_THREADS)
+
+def cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _workers(n_calls=None, cap=MAX_THREADS):
+    workers = PARALLEL_FITS or min(cores(), cap)
     return workers if n_calls is None else min(n_calls, workers)
 
 
@@ -49,20 +100,359 @@ def in_parallel(calls):
         return list(pool.map(lambda call: call(), calls))
 
 
-class Pool:
-    """Threads (:data:`PARALLEL_FITS`) that run submitted calls by priority, then in the order submitted.
+def own_effects(*things) -> bool:
+    """Whether every effect of the given models (or effect classes) is magcal's own: a worker process can import
+    its class (a user's effects file cannot be imported there)."""
+    for thing in things:
+        if isinstance(thing, type):
+            if not thing.__module__.startswith("magcal."):
+                return False
+            continue
+        for e in getattr(thing, "effects", ()) or ():
+            if not type(e).__module__.startswith("magcal."):
+                return False
+    return True
 
-    A call may submit further calls (its follow-ups). With one thread every call runs at once, in the caller's
-    thread, at :meth:`submit`. Use as a context manager: leaving it waits for every call submitted.
+
+def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
+    """``"dask"``, ``"processes"`` or ``"threads"``: where a diagnosis of ``dataset`` runs its fits.
+
+    A scheduler means Dask. Otherwise :data:`BACKEND` when set; else processes when there is more than one worker,
+    the record holds at least :data:`PROCESS_MIN_READINGS` readings and every effect is magcal's own
+    (:func:`own_effects`: ``effects``, models or effect classes); threads otherwise.
+    """
+    if scheduler is not None:
+        return "dask"
+    mine = own_effects(*effects) and not _in_daemon()
+    if BACKEND is not None:
+        return BACKEND if (BACKEND == "threads" or mine) else "threads"
+    workers = _workers(cap=MAX_PROCESSES) if workers is None else int(workers)
+    if workers <= 1 or dataset is None or not mine:
+        return "threads"
+    return "processes" if dataset.n_sensors * dataset.n_samples >= PROCESS_MIN_READINGS else "threads"
+
+
+def _in_daemon() -> bool:
+    """Whether this is a daemonic process (a worker of another pool), which may not start processes."""
+    import multiprocessing
+
+    return bool(multiprocessing.current_process().daemon)
+
+
+# -- the readings in shared memory ----------------------------------------------------------------------------------
+_ALIGN = 64
+
+
+def _aligned(n: int) -> int:
+    return (n + _ALIGN - 1) // _ALIGN * _ALIGN
+
+
+class SharedDataset:
+    """A dataset's arrays in one shared-memory segment, written once, for worker processes to map read-only.
+
+    The segment starts with the dataset's other fields and the arrays' layout (pickled, a few hundred bytes), then
+    the arrays themselves, each aligned to 64 bytes. :meth:`close` unlinks it (also on leaving a ``with``).
+
+    Parameters
+    ----------
+    dataset : Dataset
     """
 
-    def __init__(self):
-        workers = _workers()
+    def __init__(self, dataset):
+        from multiprocessing import shared_memory
+
+        arrays, fields, extra = {}, {}, {}
+        for f in dataclasses.fields(dataset):
+            value = getattr(dataset, f.name)
+            if f.name == "extra":
+                for key, a in value.items():
+                    if isinstance(a, np.ndarray) and a.dtype.kind != "O":
+                        arrays[f"extra/{key}"] = a
+                    else:
+                        extra[key] = a
+            elif isinstance(value, np.ndarray) and value.dtype.kind != "O":
+                arrays[f.name] = value
+            else:
+                fields[f.name] = value
+        fields["extra"] = extra
+        layout, offset = [], 0
+        for key, a in arrays.items():
+            layout.append((key, offset, a.shape, a.dtype.str))
+            offset += _aligned(a.nbytes)
+        header = pickle.dumps((fields, layout), protocol=pickle.HIGHEST_PROTOCOL)
+        start = _aligned(8 + len(header))
+        self.name = f"{SEGMENT_PREFIX}{os.getpid()}_{uuid.uuid4().hex[:16]}"
+        self.nbytes = start + offset
+        self._shm = shared_memory.SharedMemory(name=self.name, create=True, size=max(self.nbytes, 1))
+        try:
+            buf = self._shm.buf
+            buf[:8] = len(header).to_bytes(8, "little")
+            buf[8 : 8 + len(header)] = header
+            for (_, off, shape, dtype), a in zip(layout, arrays.values()):
+                view = np.ndarray(shape, dtype, buffer=buf, offset=start + off)
+                view[...] = a
+                del view  # no view may outlive the segment's mapping
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self):
+        """Unmap and unlink the segment (once; later calls do nothing)."""
+        shm, self._shm = self._shm, None
+        if shm is not None:
+            try:
+                shm.close()
+            finally:
+                shm.unlink()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+#: The segments this worker process has mapped: name -> (segment, dataset). One at a time: a worker serves one
+#: diagnosis.
+_ATTACHED: dict = {}
+#: Subsets of an attached or scattered dataset by mask (a worker's kept samples), the most recent few.
+_SUBSETS: dict = {}
+
+
+def attach(name):
+    """The dataset in shared-memory segment ``name`` (:class:`SharedDataset`), mapped read-only once per process."""
+    hit = _ATTACHED.get(name)
+    if hit is not None:
+        return hit[1]
+    from multiprocessing import shared_memory
+
+    _ATTACHED.clear()
+    _SUBSETS.clear()
+    shm = shared_memory.SharedMemory(name=name)
+    n = int.from_bytes(bytes(shm.buf[:8]), "little")
+    fields, layout = pickle.loads(bytes(shm.buf[8 : 8 + n]))
+    start = _aligned(8 + n)
+    extra = dict(fields.pop("extra"))
+    for key, off, shape, dtype in layout:
+        a = np.ndarray(shape, dtype, buffer=shm.buf, offset=start + off)
+        a.flags.writeable = False  # the dataset keeps a read-only array as it is: no copy
+        if key.startswith("extra/"):
+            extra[key[len("extra/") :]] = a
+        else:
+            fields[key] = a
+    dataset = Dataset(**fields, extra=extra)
+    _ATTACHED[name] = (shm, dataset)
+    return dataset
+
+
+def subset(dataset, mask):
+    """``dataset`` restricted to ``mask`` (None: all of it), made once per worker for the same mask."""
+    if mask is None:
+        return dataset
+    mask = np.asarray(mask, bool)
+    key = (id(dataset), mask.size, hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).hexdigest())
+    hit = _SUBSETS.get(key)
+    if hit is None:
+        hit = _SUBSETS[key] = dataset.subset(mask)
+        while len(_SUBSETS) > 4:
+            _SUBSETS.pop(next(iter(_SUBSETS)))
+    return hit
+
+
+def _portable(result):
+    """A task's result as it travels back: a fit without its ``problem`` (which holds the dataset)."""
+    if dataclasses.is_dataclass(result) and any(f.name == "problem" for f in dataclasses.fields(result)):
+        return dataclasses.replace(result, problem=None)
+    return result
+
+
+_LIMITS = None
+
+
+#: Environment variables that set the BLAS and OpenMP threads of a library loaded after them.
+_ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
+def _init_worker():
+    """A worker process's start: BLAS on one thread (the workers share the cores): the libraries loaded so far
+    (numpy's) limited by threadpoolctl, and those loaded later (scipy's own OpenBLAS) by the environment."""
+    global _LIMITS
+    from threadpoolctl import threadpool_limits
+
+    for name in _ONE_THREAD:
+        os.environ[name] = "1"
+    import scipy.linalg  # noqa: F401  (its BLAS loaded now, so that the limit below reaches it too)
+
+    _LIMITS = threadpool_limits(limits=1)
+
+
+def _process_task(name, fn, args):
+    return _portable(fn(attach(name), *args))
+
+
+def _dask_task(fn, dataset, args):
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        return _portable(fn(dataset, *args))
+
+
+def _ready(*functions):
+    """Nothing: a worker's first task, whose functions (unpickled, so their modules imported) warm it up."""
+    return os.getpid()
+
+
+_MAIN_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _main_left_alone():
+    """While worker processes start: the caller's script is not run again in them.
+
+    ``spawn`` runs the ``__main__`` script again in every new process (as ``__mp_main__``), which a script without
+    an ``if __name__ == "__main__":`` guard does not survive (it would start its own diagnosis there). The workers
+    only run magcal's functions on magcal's objects (:func:`own_effects`), so they do not need the script: its
+    file and spec are hidden from :mod:`multiprocessing` while the processes are started, then put back."""
+    main = sys.modules.get("__main__")
+    with _MAIN_LOCK:
+        saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+        try:
+            if main is not None:
+                main.__dict__.pop("__file__", None)
+                if "__spec__" in saved:
+                    main.__spec__ = None
+            yield
+        finally:
+            if main is not None:
+                main.__dict__.update(saved)
+
+
+class _Processes:
+    """Worker processes (``spawn``) sharing one :class:`SharedDataset`."""
+
+    def __init__(self, dataset, workers, warm=()):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = int(workers)
+        self.shared = SharedDataset(dataset)
+        try:
+            self.executor = ProcessPoolExecutor(
+                max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker
+            )
+            with _main_left_alone():
+                for _ in range(self.workers):  # every worker starts (imports) now, while the score tests run
+                    self.executor.submit(_ready, *warm)
+        except BaseException:
+            self.shared.close()
+            raise
+
+    def submit(self, fn, args) -> Future:
+        return self.executor.submit(_process_task, self.shared.name, fn, args)
+
+    def close(self, cancel=False):
+        try:
+            self.executor.shutdown(wait=True, cancel_futures=cancel)
+        finally:
+            self.shared.close()
+
+
+#: Seconds to wait for a Dask scheduler.
+CONNECT_TIMEOUT_S = 10.0
+
+
+class _Dask:
+    """A ``dask.distributed`` cluster (an address or a Client); the dataset scattered to every worker once."""
+
+    def __init__(self, dataset, scheduler):
+        try:
+            import distributed
+        except ImportError:
+            raise MagcalError(
+                'a diagnosis on Dask needs dask.distributed: pip install "magcal-workbench[survey]"'
+            ) from None
+        self._own = not isinstance(scheduler, distributed.Client)
+        if self._own:
+            try:
+                self.client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+            except (OSError, TimeoutError) as exc:
+                raise MagcalError(
+                    f"--scheduler {scheduler}: cannot reach the Dask scheduler within {CONNECT_TIMEOUT_S:g} s "
+                    f"({exc}); is it running, and is the address right?"
+                ) from None
+        else:
+            self.client = scheduler
+        try:
+            self.data = self.client.scatter(dataset, broadcast=True, hash=False)
+            self.workers = max(1, sum(self.client.nthreads().values()))
+        except BaseException:
+            self.close()
+            raise
+
+    def submit(self, fn, args) -> Future:
+        out: Future = Future()
+        out.set_running_or_notify_cancel()
+
+        def done(f):
+            try:
+                out.set_result(f.result())
+            except BaseException as exc:
+                out.set_exception(exc)
+
+        self.client.submit(_dask_task, fn, self.data, args, pure=False).add_done_callback(done)
+        return out
+
+    def close(self, cancel=False):
+        data, self.data = getattr(self, "data", None), None
+        if data is not None:
+            try:
+                data.release()
+            except Exception:  # the cluster is gone: nothing to release
+                pass
+        if self._own:
+            self.client.close()
+
+
+class Pool:
+    """Threads that run submitted calls by priority, then in the order submitted; with a dataset, the fits
+    handed to :meth:`remote` run in worker processes or on a Dask cluster (module docstring).
+
+    A call may submit further calls (its follow-ups). With one thread and no workers every call runs at once, in
+    the caller's thread, at :meth:`submit`. Use as a context manager: leaving it waits for every call submitted,
+    then stops the workers and unlinks the shared memory.
+
+    Parameters
+    ----------
+    dataset : Dataset, optional
+        The record the remote fits receive as their first argument.
+    scheduler : str or distributed.Client, optional
+        A Dask scheduler's address (``tcp://host:8786``) or a client: the fits run on that cluster.
+    effects : sequence, optional
+        Models or effect classes the fits will use (:func:`backend_for`: a user's effect keeps them on threads).
+    warm : sequence of functions, optional
+        The remote functions to come: worker processes import their modules as they start.
+    workers : int, optional
+        Threads or worker processes (default :data:`PARALLEL_FITS`, else one per core).
+    """
+
+    def __init__(self, dataset=None, scheduler=None, effects=(), warm=(), workers=None):
+        self.dataset = dataset
+        self.backend = (
+            "threads" if dataset is None and scheduler is None else backend_for(dataset, workers, scheduler, effects)
+        )
+        self._remote = None
+        if self.backend == "processes":
+            self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
+        elif self.backend == "dask":
+            self._remote = _Dask(dataset, scheduler)
+        # with workers elsewhere, enough threads here to keep each busy and still run the local work
+        threads = (workers or _workers()) if self._remote is None else self._remote.workers + 2
+        self.workers = threads if self._remote is None else self._remote.workers
         self._queue = queue.PriorityQueue()
         self._order = itertools.count()
         self._threads = []
-        if workers > 1:
-            for k in range(workers):
+        if threads > 1:
+            for k in range(threads):
                 thread = threading.Thread(target=self._work, name=f"magcal-fit_{k}", daemon=True)
                 thread.start()
                 self._threads.append(thread)
@@ -76,6 +466,24 @@ class Pool:
             self._queue.put((priority, next(self._order), call, future))
         return future
 
+    def remote_future(self, fn, *args, local=None) -> Future:
+        """A Future of ``fn(dataset, *args)`` run by a worker (``fn`` a module-level function, its arguments
+        picklable); without workers, of ``local()`` (or ``fn(dataset, *args)``) run here, at once."""
+        if self._remote is not None:
+            return self._remote.submit(fn, args)
+        future: Future = Future()
+        _run(local if local is not None else (lambda: fn(self.dataset, *args)), future)
+        return future
+
+    def remote(self, fn, *args, local=None):
+        """``fn(dataset, *args)`` run by a worker and waited for (:meth:`remote_future`)."""
+        return self.remote_future(fn, *args, local=local).result()
+
+    @property
+    def is_remote(self) -> bool:
+        """Whether the fits run in other processes (or on a cluster)."""
+        return self._remote is not None
+
     def _work(self):
         while True:
             _, _, call, future = self._queue.get()
@@ -84,20 +492,25 @@ class Pool:
             _run(call, future)
 
     def close(self, cancel=False):
-        """Wait for every call submitted, then stop the threads; with ``cancel``, calls not yet started are
-        cancelled instead (their futures raise :class:`~concurrent.futures.CancelledError`)."""
-        if cancel:
-            while True:
-                try:
-                    *_, future = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                future.cancel()
-        for _ in self._threads:
-            self._queue.put((FILLER + 1, next(self._order), None, None))
-        for thread in self._threads:
-            thread.join()
-        self._threads = []
+        """Wait for every call submitted, then stop the threads and the workers; with ``cancel``, calls not yet
+        started are cancelled instead (their futures raise :class:`~concurrent.futures.CancelledError`)."""
+        try:
+            if cancel:
+                while True:
+                    try:
+                        *_, future = self._queue.get_nowait()
+                    except queue.Empty:
+                        break
+                    future.cancel()
+            for _ in self._threads:
+                self._queue.put((FILLER + 1, next(self._order), None, None))
+            for thread in self._threads:
+                thread.join()
+            self._threads = []
+        finally:
+            remote, self._remote = self._remote, None
+            if remote is not None:
+                remote.close(cancel)
 
     def __enter__(self):
         return self

@@ -25,6 +25,7 @@ from scipy import stats
 from magcal.calibration.calibration import is_transferable
 from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
+from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit_with_notes
@@ -229,10 +230,33 @@ class _Grams:
     reference: float | None = None
 
 
-def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
+def _chunk_terms(sub, model, init, reference_total_nT):
+    """The normal-equation terms of one chunk of samples and its Problem."""
+    problem = Problem(sub, model, init, reference_total_nT)
+    r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
+    rt = r[: sub.n_sensors * sub.n_samples]
+    return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem
+
+
+def gram_task(dataset, kept_mask, start, stop, model, init, reference_total_nT):
+    """(A worker's task.) The normal-equation terms of the kept samples ``start:stop`` of ``dataset``
+    (``kept_mask``: the samples the fit kept, None for all)."""
+    kept = _parallel.subset(dataset, kept_mask)
+    return _chunk_terms(kept.subset(np.arange(start, stop)), model, init, reference_total_nT)[0]
+
+
+#: Residual rows per chunk of a score round's normal equations (:func:`_grams`): 16 chunks for 4 x 1e5 samples, so
+#: that many cores share them; the chunks are the same whatever the cores, so is the sum.
+GRAM_CHUNK_ROWS = 75_000
+
+
+def _grams(kept, model, init, reference_total_nT, chunk_rows=GRAM_CHUNK_ROWS, pool=None, kept_mask=None) -> _Grams:
     """Accumulate ``J^T J``, ``J^T r`` (all rows and total-field rows) over chunks of samples.
 
-    The chunks bound the memory of the per-sample derivatives of every candidate's parameters.
+    The chunks bound the memory of the per-sample derivatives of every candidate's parameters; their number does
+    not depend on the workers, and their terms are summed in order, so the result is the same wherever they ran.
+    With a ``pool`` whose fits run elsewhere (:attr:`magcal.diagnosis._parallel.Pool.is_remote`), every chunk but
+    the last goes to the workers (``kept_mask``: the samples of the dataset the pool shares that ``kept`` holds).
     """
 
     n = kept.n_samples
@@ -242,14 +266,20 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=300_000) -> _Grams:
 
     def chunk(idx):
         sub = kept if len(parts) == 1 else kept.subset(idx)
-        problem = Problem(sub, model, init, reference_total_nT)
-        r, jtj, jtr, (jtj_tf, jtr_tf) = problem.normal_equations(problem.x0, with_total_field=True)
-        rt = r[: sub.n_sensors * sub.n_samples]
-        return [jtj, jtr, float(r @ r), jtj_tf, jtr_tf, float(rt @ rt)], problem
+        return _chunk_terms(sub, model, init, reference_total_nT)
 
+    if pool is not None and pool.is_remote and len(parts) > 1:
+        futures = [
+            pool.remote_future(gram_task, kept_mask, int(idx[0]), int(idx[-1]) + 1, model, init, reference_total_nT)
+            for idx in parts[:-1]
+        ]
+        last, problem = chunk(parts[-1])  # here, meanwhile: its problem carries the blocks
+        chunks = [(f.result(), None) for f in futures] + [(last, problem)]
+    else:
+        # chunks side by side on threads; the last chunk's problem carries the blocks
+        chunks = in_parallel([lambda idx=idx: chunk(idx) for idx in parts])
     acc: list = []
-    # chunks side by side; the last chunk's problem carries the blocks
-    for terms, problem in in_parallel([lambda idx=idx: chunk(idx) for idx in parts]):  # noqa: B007
+    for terms, problem in chunks:  # noqa: B007
         acc = terms if not acc else [a + t for a, t in zip(acc, terms)]
     return _Grams(acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], problem.blocks, kept.n_sensors * n, problem)
 
@@ -454,12 +484,15 @@ class _Projector:
         return float(np.clip(np.linalg.norm(m, 2), 0.0, 1.0))
 
 
-def _score_round(dataset, kept, fit, names=None, previous=None):
+def _score_round(dataset, kept, fit, names=None, previous=None, pool=None):
     """Score tests for every candidate (per sensor and all sensors) at the fitted model ``fit``.
 
     ``previous``: the candidate of the previous round whose refit ``fit`` is; the candidates whose data-derived
     constants did not change are then scored from that round's Gram matrix carried along the step
     (:func:`_carried`), and only the others from a new one.
+
+    ``pool``: a :class:`~magcal.diagnosis._parallel.Pool` sharing ``dataset``, whose workers take the chunks of the
+    normal equations (:func:`_grams`).
 
     Returns ``(candidates, projector, grams)``; candidates are sorted by predicted delta-BIC.
     """
@@ -481,10 +514,10 @@ def _score_round(dataset, kept, fit, names=None, previous=None):
         grams.candidate_labels = _labels_of(reusable, kept.n_sensors)
         cands, proj, _ = _score_from_grams(kept, fit, reusable, grams)
         if changed:
-            more, _, _ = _score_round_fresh(kept, fit, changed)
+            more, _, _ = _score_round_fresh(kept, fit, changed, pool)
             cands = sorted(cands + more, key=lambda c: c.predicted_delta_bic)
         return cands, proj, grams
-    return _score_round_fresh(kept, fit, groups)
+    return _score_round_fresh(kept, fit, groups, pool)
 
 
 def _labels_of(groups, n_sensors) -> frozenset:
@@ -492,7 +525,7 @@ def _labels_of(groups, n_sensors) -> frozenset:
     return frozenset(block_label(e, s) for v in groups.values() for e in v for s in _sensors_of(e, n_sensors))
 
 
-def _score_round_fresh(kept, fit, groups):
+def _score_round_fresh(kept, fit, groups, pool=None):
     """The score round of ``groups`` (configured) from a Gram matrix at ``fit``."""
     model = fit.model
     all_model = Model(
@@ -500,7 +533,7 @@ def _score_round_fresh(kept, fit, groups):
     )
     ref = _reference_override(fit)
     try:
-        grams = _grams(kept, all_model, fit.calibration, ref)
+        grams = _grams(kept, all_model, fit.calibration, ref, pool=pool, kept_mask=None if fit.mask.all() else fit.mask)
     except CalibrationError:
         # too few samples for every candidate at once: test them one effect at a time
         return _score_round_separately(kept, fit, groups)
@@ -597,9 +630,22 @@ def _score_from_grams(kept, fit, groups, grams):
     return cands, proj, grams
 
 
-def _refit(dataset, fit, candidate: Candidate):
+def refit_task(dataset, model, init, mask, reference_total_nT):
+    """(A worker's task.) The comparison fit of ``model`` on ``dataset``'s samples ``mask`` from ``init``."""
+    return fit_with_notes(
+        dataset,
+        model,
+        init=init,
+        mask=mask,
+        reference_total_nT=reference_total_nT,
+        cost_tolerance=COMPARISON_COST_TOLERANCE,
+    )
+
+
+def _refit(dataset, fit, candidate: Candidate, pool=None):
     """Refit the model with the candidate's effect instances added, from the score test's predicted start
-    (:meth:`_Projector.start`) when there is one; returns the FitResult."""
+    (:meth:`_Projector.start`) when there is one; returns the FitResult. With ``pool`` (sharing ``dataset``) the
+    fit runs on its workers."""
 
     model = fit.model
     if (
@@ -612,15 +658,8 @@ def _refit(dataset, fit, candidate: Candidate):
         new = [_copy_effect(e) for e in candidate.instances]
     for e in new:
         model = model.with_effect(e)
-    ref = _reference_override(fit)
-    return fit_with_notes(
-        dataset,
-        model,
-        init=candidate.start or fit.calibration,
-        mask=fit.mask,
-        reference_total_nT=ref,
-        cost_tolerance=COMPARISON_COST_TOLERANCE,
-    )
+    args = (model, candidate.start or fit.calibration, fit.mask, _reference_override(fit))
+    return refit_task(dataset, *args) if pool is None else pool.remote(refit_task, *args)
 
 
 def _delta_bic(fit0, fit1, extra_dof, coupled):
@@ -657,7 +696,7 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
 
     def refit(c):
         try:
-            f1 = _refit(dataset, fit, c)
+            f1 = _refit(dataset, fit, c, pool)
         except (CalibrationError, np.linalg.LinAlgError) as exc:
             c.evidence = (c.evidence + "; " if c.evidence else "") + f"refit failed: {exc}"
             return None

@@ -31,6 +31,7 @@ from magcal.checks.quality import TEMP_TIME_CORR_WARN, EARTH_FIELD_RANGE_nT
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.jsonable import jsonable
+from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
 from magcal.diagnosis.evidence import (
@@ -40,7 +41,7 @@ from magcal.diagnosis.evidence import (
     _temperature_evidence,
     _time_evidence,
 )
-from magcal.diagnosis.scores import Candidate, _confirm, _num, _score_round
+from magcal.diagnosis.scores import Candidate, _confirm, _num, _score_round, gram_task, refit_task
 from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
@@ -299,8 +300,10 @@ class _HeldOut:
     every held-out fit is warm-started from the full-record fit of the same model.
     """
 
-    def __init__(self, kept, fit0):
+    def __init__(self, kept, fit0, pool=None):
         self.kept = kept
+        self.pool = pool  # sharing the whole dataset, of which kept holds fit0.mask
+        self.kept_mask = None if fit0.mask.all() else fit0.mask
         self.reference = _reference_override(fit0)
         self.masks = {scheme: _validation.holdout_masks(kept, scheme) for scheme in _validation.SCHEMES}
         self.bases = {}
@@ -313,15 +316,14 @@ class _HeldOut:
     def _base(self, fit, scheme):
         key = (id(fit), scheme)
         if key not in self.bases:
-            self.bases[key] = _validation.validate(
-                self.kept,
-                model=fit.model,
-                init=fit.calibration,
-                reference_total_nT=self.reference,
-                scheme=scheme,
-                masks=self.masks[scheme],
-            )
+            self.bases[key] = self._validate(fit.model, fit.calibration, scheme)
         return self.bases[key]
+
+    def _validate(self, model, init, scheme):
+        args = (self.kept_mask, model, init, self.reference, scheme, self.masks[scheme])
+        if self.pool is None:
+            return validate_task(self.kept, None, *args[1:])
+        return self.pool.remote(validate_task, *args, local=lambda: validate_task(self.kept, None, *args[1:]))
 
     def prepare(self, fit, scheme):
         """:meth:`base`, ahead of time; a failure is left for :meth:`base` to meet again and report."""
@@ -332,14 +334,7 @@ class _HeldOut:
 
     def with_effect(self, c, scheme):
         """The held-out fit of the candidate's refitted model on ``scheme``'s split."""
-        return _validation.validate(
-            self.kept,
-            model=c.fit.model,
-            init=c.fit.calibration,
-            reference_total_nT=self.reference,
-            scheme=scheme,
-            masks=self.masks[scheme],
-        )
+        return self._validate(c.fit.model, c.fit.calibration, scheme)
 
     def judge(self, base_fit, c, fitted=None) -> str | None:
         """Fill the candidate's held-out figures and ``holds``; append to its evidence. Returns a warning when
@@ -417,6 +412,19 @@ class _HeldOut:
             c.evidence += "; " + text
             return f"{c.label}: {text}; not recommended"
         return None
+
+
+def validate_task(dataset, kept_mask, model, init, reference_total_nT, scheme, masks):
+    """(A worker's task.) The held-out fit of ``model`` from ``init`` on the samples ``kept_mask`` of ``dataset``
+    (None: all), split by ``masks`` (:func:`magcal.fitting.validation.validate`)."""
+    return _validation.validate(
+        _parallel.subset(dataset, kept_mask),
+        model=model,
+        init=init,
+        reference_total_nT=reference_total_nT,
+        scheme=scheme,
+        masks=masks,
+    )
 
 
 def _undetermined(fit, directions) -> str | None:
@@ -573,6 +581,8 @@ def diagnose(
     progress=None,
     validate=True,
     noise_nT=None,
+    scheduler=None,
+    workers=None,
 ) -> Diagnosis:
     """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
 
@@ -601,6 +611,13 @@ def diagnose(
     noise_nT : float, optional
         Noise per axis in nT given by the user; takes precedence over the dataset's ``noise_nT`` and over any
         estimate (:func:`magcal.checks.noise.estimate_noise`).
+    scheduler : str or distributed.Client, optional
+        Run the independent fits (refits, held-out fits, chunks of the score tests) on this Dask cluster
+        (``tcp://host:8786``, or a client); by default they run on this machine's cores, in worker processes
+        for a large record and on threads for a small one (:mod:`magcal.diagnosis._parallel`). The result is
+        the same wherever they run.
+    workers : int, optional
+        Cores to use on this machine (default: every one; :data:`magcal.diagnosis._parallel.PARALLEL_FITS`).
 
     Returns
     -------
@@ -627,8 +644,10 @@ def diagnose(
     directions, fields = _sensor_directions(kept, fit0)
 
     report("score tests", 0.2)
-    cands, proj, _ = _score_round(dataset, kept, fit0, candidates)
-    with Pool() as pool:
+    in_play = [fit0.model] + [cls for name, cls in EFFECTS.items() if candidates is None or name in candidates]
+    warm = (refit_task, validate_task, gram_task)
+    with Pool(dataset, scheduler=scheduler, effects=in_play, warm=warm, workers=workers) as pool:
+        cands, proj, _ = _score_round(dataset, kept, fit0, candidates, pool=pool)
         return _after_scores(
             dataset,
             kept,
@@ -708,7 +727,7 @@ def _after_scores(
         and _validation.split_problem(kept) is None
     ):
         try:
-            early = _HeldOut(kept, fit0)
+            early = _HeldOut(kept, fit0, pool)
         except MagcalError:
             early = None
     pending = {}
@@ -746,7 +765,7 @@ def _after_scores(
     if validate and skipped is None:
         report("held-out validation of the supported candidates", 0.5)
         try:
-            held_out = early if early is not None else _HeldOut(kept, fit0)
+            held_out = early if early is not None else _HeldOut(kept, fit0, pool)
         except MagcalError as exc:
             skipped = str(exc)
     if skipped and validate:
@@ -804,7 +823,7 @@ def _after_scores(
             current_noise, remaining, stats_final = structure_c.result()
             break
         report("looking for a further effect", 0.6 + 0.2 * step)
-        more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best)
+        more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best, pool=pool)
         current_noise, remaining, stats_final = structure_c.result()
         more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
         if not more:

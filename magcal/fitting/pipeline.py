@@ -243,6 +243,20 @@ def _evaluate(name, description, vectors_nT, expected_nT, dataset, wall_s) -> St
     )
 
 
+def _evaluate_deviations(name, description, dev, wall_s) -> StepSummary:
+    """Figures of one sensor's step from its total-field deviations (1, N), nT."""
+    return StepSummary(
+        name,
+        description,
+        np.sqrt(np.mean(dev**2, axis=1)),
+        np.max(np.abs(dev), axis=1),
+        None,
+        None,
+        None,
+        float(wall_s),
+    )
+
+
 def _expected(dataset, calibration, reference_kind):
     """Expected total field (n_sensors, N) of the base model (reference value or column)."""
     value = None if reference_kind == "column" else calibration.reference_total_nT
@@ -672,7 +686,19 @@ def _step_figures(run: _Run) -> list:
     expected = _expected(kept, run.calibration, ref_kind)
     raw = _evaluate("raw", "raw readings, no correction", kept.readings_nT, expected, kept, 0.0)
     steps = [raw]
+    fit = run.fit
     for name, description, cal, wall in run.steps_timed:
+        if (
+            name == "ml"
+            and fit is not None
+            and kept.n_sensors == 1
+            and fit.calibration is cal
+            and int(fit.mask.sum()) == kept.n_samples
+        ):
+            # one sensor's figures need only its total-field deviations: the fit's own residuals of these samples
+            # (no second pass over the record to correct it again)
+            steps.append(_evaluate_deviations(name, description, fit.residuals_nT[:, fit.mask], wall))
+            continue
         if cal.model is not None and cal.model.effects:
             vectors = cal.correct(kept)
             exp = expected_total_field(

@@ -1,0 +1,214 @@
+"""The diagnosis on every core (issue 30): its independent fits in worker processes sharing the readings through one
+shared-memory segment, or on a Dask cluster, give the same candidates, scores and verdict as one after the other;
+the segment is gone after a run, after a worker's error and after a worker's crash."""
+
+from __future__ import annotations
+
+import operator
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from magcal.core.errors import ConvergenceWarning
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
+from magcal.diagnosis import _parallel, diagnose
+from magcal.fitting.fitter import fit_with_notes
+from magcal.fitting.pipeline import calibrate
+from magcal.model import perturbations
+
+pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="shared memory is seen in /dev/shm on Linux")
+
+FIGURES = ("delta_bic", "rms_after_nT", "held_out_before_nT", "held_out_after_nT", "later_before_nT", "later_after_nT")
+
+
+def _segments():
+    """This process's shared-memory segments still in /dev/shm."""
+    prefix = f"{_parallel.SEGMENT_PREFIX}{os.getpid()}_"
+    return sorted(name for name in os.listdir("/dev/shm") if name.startswith(prefix))
+
+
+@pytest.fixture(scope="module")
+def record():
+    """Four sensors, a temperature bias and a bias step on sensor 3 hidden; the base fit."""
+    ds = simulate_timeseries(
+        chi2017_truth(4),
+        n_samples=3000,
+        noise_nT=3.0,
+        seed=4,
+        perturbations=[
+            perturbations.parse_hidden("temperature_bias=2", 4),
+            perturbations.parse_hidden("bias_step:3", 4),
+        ],
+    )
+    return ds, calibrate(ds)
+
+
+@pytest.fixture(scope="module")
+def serial(record):
+    """The diagnosis with every fit one after the other, in this thread."""
+    ds, res = record
+    mp = pytest.MonkeyPatch()
+    mp.setattr(_parallel, "PARALLEL_FITS", 1)
+    mp.setattr(_parallel, "BACKEND", "threads")
+    try:
+        return diagnose(ds, res)
+    finally:
+        mp.undo()
+
+
+def _same(one, two):
+    assert one.verdict == two.verdict
+    assert [c.label for c in one.candidates] == [c.label for c in two.candidates]
+    for a, b in zip(one.candidates, two.candidates):
+        assert (a.refitted, a.holds, a.transfers) == (b.refitted, b.holds, b.transfers), a.label
+        assert a.predicted_delta_bic == pytest.approx(b.predicted_delta_bic, rel=1e-9, abs=1e-9), a.label
+        for name in FIGURES:
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None and y is None) or x == pytest.approx(y, rel=1e-9, abs=1e-9), (a.label, name)
+    assert one.explained_by == two.explained_by and one.record_holds == two.record_holds
+    assert one.summary == two.summary
+    assert [n.text for n in one.notes] == [n.text for n in two.notes]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_fits_in_worker_processes_give_the_serial_diagnosis(record, serial, monkeypatch, workers):
+    ds, res = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    made = []
+    real = _parallel._Processes
+
+    def counted(*args, **kwargs):
+        made.append(real(*args, **kwargs))
+        return made[-1]
+
+    monkeypatch.setattr(_parallel, "_Processes", counted)
+    got = diagnose(ds, res)
+    assert len(made) == 1 and made[0].workers == workers  # the fits did run in processes
+    assert serial.verdict == "missing_effect" and "temperature_bias" in serial.explained_by
+    _same(serial, got)
+    assert _segments() == []  # unlinked when the diagnosis ended
+
+
+def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, monkeypatch):
+    """The dataset a worker maps is the caller's to the bit (read-only); a fit made there comes back with its notes
+    (a fit stopped after one evaluation says it did not converge), as the diagnosis gathers them
+    (tests/test_notes.py: notes are values that travel with their fits)."""
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    with _parallel.Pool(ds) as pool:
+        assert pool.is_remote and len(_segments()) == 1
+        shared = pool.remote(operator.attrgetter("readings_nT", "temperature_C", "time_s"))
+        assert not pool.remote(operator.attrgetter("readings_nT.flags.writeable"))
+        limits = pool.remote(_blas_threads)
+        fitted = pool.remote(fit_with_notes, None, None, "linear", None, None, None, 1)
+
+    for a, b in zip(shared, (ds.readings_nT, ds.temperature_C, ds.time_s)):
+        np.testing.assert_array_equal(a, b)
+    assert limits and set(limits) == {1}  # BLAS on one thread in the worker, numpy's and scipy's alike
+    assert fitted.problem is None and fitted.notes and fitted.notes[0].is_a(ConvergenceWarning)
+    assert _segments() == []
+
+
+def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    with pytest.raises(TypeError, match="not subscriptable"):
+        with _parallel.Pool(ds) as pool:
+            assert len(_segments()) == 1
+            pool.remote(operator.getitem, 0)  # raised in the worker, raised here
+    assert _segments() == []
+
+
+def _blas_threads(dataset):
+    from threadpoolctl import threadpool_info
+
+    return [lib["num_threads"] for lib in threadpool_info() if lib.get("user_api") == "blas"]
+
+
+def _crash(dataset):
+    os._exit(3)
+
+
+def test_the_shared_memory_is_unlinked_after_a_worker_dies(record, monkeypatch):
+    from concurrent.futures.process import BrokenProcessPool
+
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    with pytest.raises(BrokenProcessPool):
+        with _parallel.Pool(ds) as pool:
+            pool.remote(_crash)
+    assert _segments() == []
+
+
+def test_small_records_and_one_core_stay_on_threads(record, monkeypatch):
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "BACKEND", None)
+    assert _parallel.backend_for(ds, workers=16) == "threads"  # 4 x 3000 readings: below the threshold
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS", 1000)
+    assert _parallel.backend_for(ds, workers=16) == "processes"
+    assert _parallel.backend_for(ds, workers=1) == "threads"
+
+    class Theirs:  # a user's effect (an effects file): a worker process could not import it
+        pass
+
+    assert _parallel.backend_for(ds, workers=16, effects=[Theirs]) == "threads"
+    assert _parallel.backend_for(ds, workers=16, scheduler="tcp://127.0.0.1:1") == "dask"
+
+
+def test_the_diagnosis_on_a_dask_cluster_reads_the_same(record, serial):
+    """A local cluster on loopback (one worker process of two threads) by its address, as --scheduler gives it."""
+    distributed = pytest.importorskip("distributed")
+    ds, res = record
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the cluster's own start-up chatter
+        with distributed.LocalCluster(
+            n_workers=1,
+            threads_per_worker=2,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            silence_logs=40,
+        ) as cluster:
+            got = diagnose(ds, res, scheduler=cluster.scheduler_address)
+    _same(serial, got)
+
+
+def test_a_script_without_a_main_guard_is_not_run_again_in_the_workers(tmp_path):
+    """``spawn`` runs the caller's ``__main__`` again in every worker; a user's script rarely has the
+    ``if __name__ == "__main__":`` guard, and must still run once and diagnose in worker processes."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from magcal.data.simulation import chi2017_truth, simulate_timeseries\n"
+        "from magcal.diagnosis import _parallel, diagnose\n"
+        "_parallel.BACKEND = 'processes'\n"
+        "print('top level ran', flush=True)\n"
+        "ds = simulate_timeseries(chi2017_truth(1), n_samples=1500, noise_nT=3.0, seed=2)\n"
+        "d = diagnose(ds, workers=1)\n"
+        "print('verdict', d.verdict)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.count("top level ran") == 1 and "verdict" in proc.stdout
+
+
+def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record, capsys):
+    from magcal.cli import main
+    from magcal.data import io as mio
+
+    ds, _ = record
+    path = tmp_path / "four.csv"
+    mio.write_csv(path, ds.subset(np.arange(1500)))
+    assert main(["diagnose", str(path), "--workers", "2", "--json", "--no-validate"]) == 0
+    assert '"verdict"' in capsys.readouterr().out
+    assert main(["diagnose", str(path), "--workers", str(4 * _parallel.cores() + 1)]) != 0
+    assert "--workers" in capsys.readouterr().err
