@@ -29,6 +29,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from magcal.data.attitude import EULER_COLUMNS, euler_to_wxyz
+
 #: Above this rate (deg/s) a sample is marked as taken while turning fast. A sensor whose axes (or whose readings
 #: and their time stamps) are sampled ``dt`` apart sees an error of about ``omega dt F``: at 60 deg/s, 1 ms and
 #: 50 000 nT that is 52 nT, far above a fluxgate's noise.
@@ -36,6 +38,7 @@ FAST_TURN_DPS = 60.0
 #: Gyro column names recognised in a record's extra columns, with the unit each implies (None: see
 #: :func:`angular_rate_dps`).
 GYRO_COLUMNS = (
+    (("gyro_x_dps", "gyro_y_dps", "gyro_z_dps"), "deg/s"),  # what magcal.data.live gives a stream's gyro
     (("gx_dps", "gy_dps", "gz_dps"), "deg/s"),
     (("gx_rad_s", "gy_rad_s", "gz_rad_s"), "rad/s"),
     (("gx", "gy", "gz"), None),
@@ -49,6 +52,28 @@ RING_POINTS = 96
 RING_PLANARITY = 0.05
 #: ... and they spread along an arc of at least this many degrees.
 RING_MIN_ARC_DEG = 40.0
+
+
+def attitude_wxyz(dataset) -> np.ndarray | None:
+    """The record's attitude as ``(N, 4)`` quaternions ``w, x, y, z`` (body -> NED), or None: the quaternion
+    channel, else the ``roll_deg, pitch_deg, yaw_deg`` columns (:data:`magcal.data.attitude.EULER_COLUMNS`, what
+    a file and a live stream give). A sample without attitude (a stream's NaN before its first ATTITUDE) is a row
+    of NaN."""
+    q = getattr(dataset, "attitude_wxyz", None)
+    if q is not None:
+        return np.asarray(q, float)
+    extra = getattr(dataset, "extra", None) or {}
+    if not all(c in extra for c in EULER_COLUMNS):
+        return None
+    try:
+        roll, pitch, yaw = (np.asarray(extra[c], float) for c in EULER_COLUMNS)
+    except (TypeError, ValueError):  # text in an angle column: the engine's reader says so when it is fitted
+        return None
+    out = np.full((len(roll), 4), np.nan)
+    ok = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
+    if ok.any():
+        out[ok] = euler_to_wxyz(roll[ok], pitch[ok], yaw[ok])
+    return out
 
 
 def gyro_units(dataset) -> str:
@@ -70,14 +95,19 @@ def angular_rate_dps(dataset) -> np.ndarray | None:
             w = np.column_stack([np.asarray(extra[n], float) for n in names])
             rate = np.linalg.norm(w, axis=1)
             return np.degrees(rate) if (unit or gyro_units(dataset)) == "rad/s" else rate
-    q, t = dataset.attitude_wxyz, dataset.time_s
-    if q is None or t is None or len(t) < 2:
+    q, t = attitude_wxyz(dataset), dataset.time_s
+    if q is None or t is None:
         return None
-    r = Rotation.from_quat(np.asarray(q, float)[:, [1, 2, 3, 0]])
+    have = np.flatnonzero(np.all(np.isfinite(q), axis=1))  # samples with an attitude
+    if have.size < 2:
+        return None
+    r = Rotation.from_quat(q[have][:, [1, 2, 3, 0]])
     step = (r[:-1].inv() * r[1:]).magnitude()
-    dt = np.diff(np.asarray(t, float))
+    dt = np.diff(np.asarray(t, float)[have])
     rate = np.degrees(step / np.where(dt > 0, dt, np.inf))
-    return np.concatenate([[rate[0]], rate])
+    out = np.zeros(len(q))  # a sample without attitude is not marked
+    out[have] = np.concatenate([[rate[0]], rate])
+    return out
 
 
 def fast_turning(dataset, limit_dps: float = FAST_TURN_DPS) -> np.ndarray | None:

@@ -512,7 +512,7 @@ def error_histogram(record: FieldRecord, unit: str = "nT", bins: int = 60) -> di
         e = m - ref
         return (100.0 * e / ref if unit == "%" else e).ravel()
 
-    out = {"unit": unit, "before": None, "after": None}
+    out: dict = {"unit": unit, "before": None, "after": None}
     for key, vectors in (("before", record.raw_nT), ("after", record.corrected_nT)):
         if vectors is None or not kept.any():
             continue

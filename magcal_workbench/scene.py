@@ -762,14 +762,14 @@ class SceneView:
         ring (a dark circle on each corrected sphere); either removed when the model has none."""
         scene = self.server.scene
         fast = None if model.fast is None else np.asarray(model.fast, bool)
-        pts = []
+        parts: list = []
         if fast is not None and fast.any():
             rows = len(model.sensors)
             place = {sv.sensor: group_offset(k, rows) for k, sv in enumerate(model.sensors)}
             for _, s, kind, p in clouds:  # a red dot just outside each marked point (its colour stays seen)
                 centre = place[s] + [-PAIR_OFFSET if kind == "raw" else PAIR_OFFSET, 0, 0]
-                pts.append(centre + (p[fast[: len(p)]] - centre) * FAST_MARK_OUT)
-        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+                parts.append(centre + (p[fast[: len(p)]] - centre) * FAST_MARK_OUT)
+        pts = np.concatenate(parts) if parts else np.zeros((0, 3))
         if len(pts):
             self._put(
                 "/motion/fast",

@@ -35,13 +35,14 @@ def ring_directions(dataset, corrected_nT, current: int | None):
     if dataset is None or current is None or not 0 <= int(current) < dataset.n_samples:
         return None
     current = int(current)
-    q = dataset.attitude_wxyz
+    q = motion.attitude_wxyz(dataset)
     n = dataset.n_samples if corrected_nT is None else min(dataset.n_samples, len(corrected_nT))
     if current >= n:
         return None
-    if q is not None:
+    if q is not None and np.all(np.isfinite(q[current])):
         vectors = corrected_nT if corrected_nT is not None else dataset.readings_nT[0]
         idx = np.unique(np.linspace(0, n - 1, INCLINATION_SAMPLES).astype(int))
+        idx = idx[np.all(np.isfinite(q[idx]), axis=1)]  # a stream's samples before its first attitude have none
         incl = motion.inclination_from_data(np.asarray(vectors)[idx], np.asarray(q)[idx])
         return motion.tilt_ring(np.asarray(q)[current], incl)
     if corrected_nT is None:

@@ -207,6 +207,38 @@ def test_the_turn_rate_from_attitude_and_from_gyro_columns():
     assert motion.angular_rate_dps(Dataset(readings_nT=np.ones((200, 3)))) is None
 
 
+def test_a_streams_channels_give_the_turn_rate_and_the_tilt_ring():
+    """What a live stream carries (magcal.data.live): roll/pitch/yaw in degrees, NaN before its first ATTITUDE
+    message, and gyro_*_dps columns. Both give the turn rate; the Euler angles give the tilt ring."""
+    from magcal_workbench.view import ring_directions
+
+    t = np.arange(300) * 0.02
+    yaw = np.where(t < 3.0, 20.0 * t, 60.0 + 90.0 * (t - 3.0))  # 20 deg/s, then 90 deg/s
+    roll, pitch = np.full_like(t, 12.0), np.full_like(t, -5.0)
+    att = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]), degrees=True)
+    f = _field_world(incl_deg=65.0)
+    b = att.inv().apply(f)
+    euler = {"roll_deg": roll.copy(), "pitch_deg": pitch.copy(), "yaw_deg": yaw.copy()}
+    for v in euler.values():
+        v[:10] = np.nan  # no attitude yet
+    ds = Dataset(readings_nT=b, time_s=t, extra=euler)
+    q = motion.attitude_wxyz(ds)
+    assert np.isnan(q[:10]).all() and np.allclose(np.abs(np.sum(q[10:] * att.as_quat()[10:, [3, 0, 1, 2]], 1)), 1)
+    rate = motion.angular_rate_dps(ds)
+    assert np.allclose(rate[11:150], 20.0, rtol=1e-6) and np.allclose(rate[151:], 90.0, rtol=1e-6)
+    assert not rate[:10].any()  # no attitude: not marked
+    fast = motion.fast_turning(ds)
+    assert not fast[:150].any() and fast[151:].all()
+    true_rate = np.where(t < 3.0, 20.0, 90.0)
+    gyro = {"gyro_x_dps": np.zeros_like(t), "gyro_y_dps": np.zeros_like(t), "gyro_z_dps": true_rate}
+    assert np.allclose(motion.angular_rate_dps(Dataset(readings_nT=b, time_s=t, extra=gyro)), true_rate)
+    ring = ring_directions(ds, b, current=200)
+    truth = motion.tilt_ring(q[200], np.radians(65.0), n_points=len(ring))
+    gap = np.degrees(np.arccos(np.clip(ring @ truth.T, -1, 1))).min(axis=1)
+    assert gap.max() < 5.0  # the ring at the sample's tilt, the inclination read from the data
+    ring_directions(ds, b, current=5)  # before the stream's first attitude: the ring without attitude, no error
+
+
 # --- the workbench, headless -------------------------------------------------------------------------------
 def _single_sensor(n=300):
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=5, rate_hz=2.0)

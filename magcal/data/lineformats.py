@@ -152,8 +152,8 @@ class LineTemplate:
         except ValueError as exc:  # "Single '}' encountered", "expected '}' before end of string"
             raise ValueError(f"template {self.text!r}: {exc} (write {{{{ and }}}} for literal braces)") from None
         #: (kind, regex, description) per token: kind "lit", "num" or "skip"
-        self._tokens = []
-        self.fields = []
+        self._tokens: list[tuple[str, str, str]] = []
+        self.fields: list[str] = []
         for literal, name, spec, conversion in parts:
             for word in _LITERAL_TOKEN.findall(literal):
                 self._tokens.append(("lit", re.escape(word), repr(word)))

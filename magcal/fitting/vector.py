@@ -524,6 +524,7 @@ def fit_vector(
             or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
         )
         if not determined:
+            assert bias_sd is not None and mount_sd is not None  # both come from the same covariance
             notes.append(
                 f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
                 f"to {float(np.max(bias_sd)):.0f} nT ({100 * float(np.max(bias_sd)) / field_nT:.1f} % of the "
@@ -635,9 +636,12 @@ def fit_vector(
 def _declination_notes(dataset, ned) -> list:
     """A note when the declination the vehicle used for its heading (``metadata['log_declination_deg']``) is not the
     reference field's: the logged yaw is then off true north by the difference, and no calibration removes that."""
+    given = (dataset.metadata or {}).get("log_declination_deg")
     try:
-        setting = float((dataset.metadata or {}).get("log_declination_deg"))
+        setting = float(given) if given is not None else None
     except (TypeError, ValueError):
+        return []
+    if setting is None:
         return []
     if not np.isfinite(setting):
         return []

@@ -380,6 +380,7 @@ def correct_partition(
                 if writer is None:
                     writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table, compression))
                     behind = _WriteBehind()  # encoding, compression and the disk beside the next block's work
+                assert behind is not None  # made with the writer
                 behind.put(lambda table=table, writer=writer: writer.write_table(table))
             else:
                 blocks.append(cols)
@@ -387,6 +388,7 @@ def correct_partition(
             raise DatasetError(f"{part.path} (rows from {part.first_line}): no data rows")
         if writer is not None:
             behind, done = None, behind
+            assert done is not None  # made with the writer
             done.close()  # every block written (or the first error raised)
             writer.close()
             writer = None
