@@ -128,6 +128,19 @@ def writes_world(calibration, dataset=None, layout=None) -> bool:
     return dataset is not None and attitude_source(dataset) is not None
 
 
+def input_columns(where, dataset, names) -> dict:
+    """The block's own columns (:func:`magcal.data.dataset.dataset_columns`), checked not to hold any of the
+    output columns ``names`` (a file that is already an apply output); ``where`` names the file in the message."""
+    cols = dataset_columns(dataset)
+    clash = sorted(set(names) & set(cols))
+    if clash:
+        raise MagcalError(
+            f"{where}: the file already has column(s) {', '.join(clash)} (is it an apply output?); "
+            "rename them or correct the raw survey"
+        )
+    return cols
+
+
 def correct_block(calibration, dataset, record_terms=None, uncertainty=False, world=False):
     """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
     ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
@@ -503,13 +516,7 @@ def apply_columns(
                         )
                     calibration.check(ds)
                 values = correct_block(calibration, ds, choice, uncertainty, world)
-                cols = dataset_columns(ds)
-                clash = sorted(set(names) & set(cols))
-                if clash:
-                    raise MagcalError(
-                        f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an "
-                        "apply output?); rename them or correct the raw survey"
-                    )
+                cols = input_columns(survey_path, ds, names)
                 cols.update({name: values[:, k] for k, name in enumerate(names)})
                 if to_parquet:
                     import pyarrow.parquet as pq

@@ -32,7 +32,7 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration
 from magcal.core.errors import MagcalError, RecordTermWarning
-from magcal.data.dataset import DatasetError, dataset_columns
+from magcal.data.dataset import DatasetError
 from magcal.data.io import (
     MAX_LINE_BYTES,
     CsvSource,
@@ -49,6 +49,7 @@ from magcal.data.io import (
 from magcal.output.apply import (
     _WriteBehind,
     correct_block,
+    input_columns,
     load_calibration,
     output_columns,
     record_choice,
@@ -361,13 +362,7 @@ def correct_partition(
                 world = writes_world(calibration, ds)
                 names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
             values = correct_block(calibration, ds, record_choice, uncertainty, world)
-            cols = dataset_columns(ds)
-            clash = sorted(set(names) & set(cols))
-            if clash:
-                raise MagcalError(
-                    f"{part.path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); "
-                    "rename them or correct the raw survey"
-                )
+            cols = input_columns(part.path, ds, names)
             if source is None or source.size < ds.n_samples:  # the file's name, made once (a text fill is slow)
                 source = np.full(max(ds.n_samples, BLOCK_ROWS), os.path.basename(part.path))
             cols["source_file"] = source[: ds.n_samples]
