@@ -64,8 +64,10 @@ BACKEND = None
 
 #: Readings (sensors x samples) from which a diagnosis's fits run in worker processes when there is more than one
 #: core. Below it the processes' start (each imports numpy, scipy and magcal: about 1.2 s of one core on the
-#: 2-core development machine) costs more than the threads lose (benchmarks/scaling.py; benchmarks/README.md).
-PROCESS_MIN_READINGS = 200_000
+#: 2-core development machine) costs more than the threads lose. Measured there on a quiet machine
+#: (benchmarks/scaling.py, benchmarks/README.md): at 4 x 1e5 readings two threads 5.4 s, two processes 8.8 s; at
+#: 4 x 4e5 threads 21.7 s, processes 17.9 s; a straight line through each puts the crossing near 1e6 readings.
+PROCESS_MIN_READINGS = 1_000_000
 
 #: Priorities of a :class:`Pool`'s work (lower first): fits on the longest chain (refits and the held-out fits
 #: they lead to), fits every candidate waits for, and evidence that is only read at the end.
