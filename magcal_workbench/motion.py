@@ -110,10 +110,23 @@ def angular_rate_dps(dataset) -> np.ndarray | None:
     return out
 
 
+#: The last dataset's turn rate: a :class:`~magcal.data.dataset.Dataset` never changes (its arrays are read-only),
+#: and every redraw of the page asks again (0.5 s for 1e6 attitudes).
+_last_rate: tuple = (None, None)
+
+
 def fast_turning(dataset, limit_dps: float = FAST_TURN_DPS) -> np.ndarray | None:
     """Samples taken while turning faster than ``limit_dps`` (bool, N), or None without gyro or attitude."""
-    rate = angular_rate_dps(dataset)
-    return None if rate is None else np.asarray(rate > float(limit_dps))
+    global _last_rate
+    seen, rate = _last_rate
+    if seen is not dataset:
+        rate = angular_rate_dps(dataset)
+        _last_rate = (dataset, rate)
+    if rate is None:
+        return None
+    fast = np.asarray(rate > float(limit_dps))
+    fast.flags.writeable = False
+    return fast
 
 
 def _rotations(attitude_wxyz) -> Rotation:
