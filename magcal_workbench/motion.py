@@ -29,22 +29,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from magcal.data.attitude import EULER_COLUMNS, euler_to_wxyz
+from magcal.data.attitude import turn_rate_dps
 
 #: Above this rate (deg/s) a sample is marked as taken while turning fast. A sensor whose axes (or whose readings
 #: and their time stamps) are sampled ``dt`` apart sees an error of about ``omega dt F``: at 60 deg/s, 1 ms and
 #: 50 000 nT that is 52 nT, far above a fluxgate's noise.
 FAST_TURN_DPS = 60.0
-#: Gyro column names recognised in a record's extra columns, with the unit each implies (None: see
-#: :func:`angular_rate_dps`).
-GYRO_COLUMNS = (
-    (("gyro_x_dps", "gyro_y_dps", "gyro_z_dps"), "deg/s"),  # what magcal.data.live gives a stream's gyro
-    (("gx_dps", "gy_dps", "gz_dps"), "deg/s"),
-    (("gx_rad_s", "gy_rad_s", "gz_rad_s"), "rad/s"),
-    (("gx", "gy", "gz"), None),
-    (("gyro_x", "gyro_y", "gyro_z"), None),
-    (("wx", "wy", "wz"), None),
-)
 #: Points drawn per ring.
 RING_POINTS = 96
 #: A plane through the latest directions is taken as the ring when their RMS distance from it is below this
@@ -52,62 +42,6 @@ RING_POINTS = 96
 RING_PLANARITY = 0.05
 #: ... and they spread along an arc of at least this many degrees.
 RING_MIN_ARC_DEG = 40.0
-
-
-def attitude_wxyz(dataset) -> np.ndarray | None:
-    """The record's attitude as ``(N, 4)`` quaternions ``w, x, y, z`` (body -> NED), or None: the quaternion
-    channel, else the ``roll_deg, pitch_deg, yaw_deg`` columns (:data:`magcal.data.attitude.EULER_COLUMNS`, what
-    a file and a live stream give). A sample without attitude (a stream's NaN before its first ATTITUDE) is a row
-    of NaN."""
-    q = getattr(dataset, "attitude_wxyz", None)
-    if q is not None:
-        return np.asarray(q, float)
-    extra = getattr(dataset, "extra", None) or {}
-    if not all(c in extra for c in EULER_COLUMNS):
-        return None
-    try:
-        roll, pitch, yaw = (np.asarray(extra[c], float) for c in EULER_COLUMNS)
-    except (TypeError, ValueError):  # text in an angle column: the engine's reader says so when it is fitted
-        return None
-    out = np.full((len(roll), 4), np.nan)
-    ok = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
-    if ok.any():
-        out[ok] = euler_to_wxyz(roll[ok], pitch[ok], yaw[ok])
-    return out
-
-
-def gyro_units(dataset) -> str:
-    """The unit of the dataset's unmarked gyro columns: the file's ``# gyro_units:`` line (``deg/s`` or
-    ``rad/s``), else ``deg/s`` (what most sensor sketches print)."""
-    text = str(dataset.metadata.get("gyro_units", "")).strip().lower().replace(" ", "")
-    return "rad/s" if text in ("rad/s", "rads", "rad/sec", "radps") else "deg/s"
-
-
-def angular_rate_dps(dataset) -> np.ndarray | None:
-    """The instrument's turn rate per sample (deg/s), or None when the data cannot tell.
-
-    From gyro columns in the record's extra columns (:data:`GYRO_COLUMNS`; unmarked ones in :func:`gyro_units`),
-    else from the attitude quaternions and the sample times (the angle between consecutive attitudes over their
-    time step, given to the later sample)."""
-    extra = dataset.extra or {}
-    for names, unit in GYRO_COLUMNS:
-        if all(n in extra for n in names):
-            w = np.column_stack([np.asarray(extra[n], float) for n in names])
-            rate = np.linalg.norm(w, axis=1)
-            return np.degrees(rate) if (unit or gyro_units(dataset)) == "rad/s" else rate
-    q, t = attitude_wxyz(dataset), dataset.time_s
-    if q is None or t is None:
-        return None
-    have = np.flatnonzero(np.all(np.isfinite(q), axis=1))  # samples with an attitude
-    if have.size < 2:
-        return None
-    r = Rotation.from_quat(q[have][:, [1, 2, 3, 0]])
-    step = (r[:-1].inv() * r[1:]).magnitude()
-    dt = np.diff(np.asarray(t, float)[have])
-    rate = np.degrees(step / np.where(dt > 0, dt, np.inf))
-    out = np.zeros(len(q))  # a sample without attitude is not marked
-    out[have] = np.concatenate([[rate[0]], rate])
-    return out
 
 
 #: The last dataset's turn rate: a :class:`~magcal.data.dataset.Dataset` never changes (its arrays are read-only),
@@ -120,7 +54,7 @@ def fast_turning(dataset, limit_dps: float = FAST_TURN_DPS) -> np.ndarray | None
     global _last_rate
     seen, rate = _last_rate
     if seen is not dataset:
-        rate = angular_rate_dps(dataset)
+        rate = turn_rate_dps(dataset)
         _last_rate = (dataset, rate)
     if rate is None:
         return None

@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.data.attitude import attitude_quaternions
 
 from . import motion
 from . import scene as scn
@@ -35,7 +36,7 @@ def ring_directions(dataset, corrected_nT, current: int | None):
     if dataset is None or current is None or not 0 <= int(current) < dataset.n_samples:
         return None
     current = int(current)
-    q = motion.attitude_wxyz(dataset)
+    q = attitude_quaternions(dataset)
     n = dataset.n_samples if corrected_nT is None else min(dataset.n_samples, len(corrected_nT))
     if current >= n:
         return None

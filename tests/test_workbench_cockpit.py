@@ -17,6 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import magcal
+from magcal.data.attitude import attitude_quaternions, turn_rate_dps
 from magcal.data.dataset import Dataset
 from magcal_workbench import motion, plots, viser_adapter
 from magcal_workbench.cockpit import controller_record, range_bounds_s, samples_in_range
@@ -197,14 +198,14 @@ def test_the_turn_rate_from_attitude_and_from_gyro_columns():
     axis = np.array([0.3, -0.2, 0.93]) / np.linalg.norm([0.3, -0.2, 0.93])
     q = Rotation.from_rotvec(np.radians(angle)[:, None] * axis).as_quat()[:, [3, 0, 1, 2]]
     ds = Dataset(readings_nT=np.ones((200, 3)), time_s=t, attitude_wxyz=q)
-    got = motion.angular_rate_dps(ds)
+    got = turn_rate_dps(ds)
     assert np.allclose(got[1:], rate[1:], rtol=1e-6)
     fast = motion.fast_turning(ds)
     assert not fast[:100].any() and fast[101:].all()
     gyro = {"gx": np.radians(rate) * axis[0], "gy": np.radians(rate) * axis[1], "gz": np.radians(rate) * axis[2]}
     in_rad = Dataset(readings_nT=np.ones((200, 3)), extra=gyro, metadata={"gyro_units": "rad/s"})
-    assert np.allclose(motion.angular_rate_dps(in_rad), rate)
-    assert motion.angular_rate_dps(Dataset(readings_nT=np.ones((200, 3)))) is None
+    assert np.allclose(turn_rate_dps(in_rad), rate)
+    assert turn_rate_dps(Dataset(readings_nT=np.ones((200, 3)))) is None
 
 
 def test_a_streams_channels_give_the_turn_rate_and_the_tilt_ring():
@@ -222,16 +223,16 @@ def test_a_streams_channels_give_the_turn_rate_and_the_tilt_ring():
     for v in euler.values():
         v[:10] = np.nan  # no attitude yet
     ds = Dataset(readings_nT=b, time_s=t, extra=euler)
-    q = motion.attitude_wxyz(ds)
+    q = attitude_quaternions(ds)
     assert np.isnan(q[:10]).all() and np.allclose(np.abs(np.sum(q[10:] * att.as_quat()[10:, [3, 0, 1, 2]], 1)), 1)
-    rate = motion.angular_rate_dps(ds)
+    rate = turn_rate_dps(ds)
     assert np.allclose(rate[11:150], 20.0, rtol=1e-6) and np.allclose(rate[151:], 90.0, rtol=1e-6)
     assert not rate[:10].any()  # no attitude: not marked
     fast = motion.fast_turning(ds)
     assert not fast[:150].any() and fast[151:].all()
     true_rate = np.where(t < 3.0, 20.0, 90.0)
     gyro = {"gyro_x_dps": np.zeros_like(t), "gyro_y_dps": np.zeros_like(t), "gyro_z_dps": true_rate}
-    assert np.allclose(motion.angular_rate_dps(Dataset(readings_nT=b, time_s=t, extra=gyro)), true_rate)
+    assert np.allclose(turn_rate_dps(Dataset(readings_nT=b, time_s=t, extra=gyro)), true_rate)
     ring = ring_directions(ds, b, current=200)
     truth = motion.tilt_ring(q[200], np.radians(65.0), n_points=len(ring))
     gap = np.degrees(np.arccos(np.clip(ring @ truth.T, -1, 1))).min(axis=1)

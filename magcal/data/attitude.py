@@ -83,3 +83,68 @@ def with_attitude(dataset: Dataset) -> Dataset:
     assert rotation is not None  # Euler columns give an attitude
     q = rotation.as_quat()
     return dataset.replace(attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]))
+
+
+#: Gyro columns read for the turn rate, with the unit each implies (None: :func:`gyro_units`). The first are what
+#: :mod:`magcal.data.live` gives a stream's gyro (:mod:`magcal.data.lineformats`).
+GYRO_COLUMNS = (
+    (("gyro_x_dps", "gyro_y_dps", "gyro_z_dps"), "deg/s"),
+    (("gx_dps", "gy_dps", "gz_dps"), "deg/s"),
+    (("gx_rad_s", "gy_rad_s", "gz_rad_s"), "rad/s"),
+    (("gx", "gy", "gz"), None),
+    (("gyro_x", "gyro_y", "gyro_z"), None),
+    (("wx", "wy", "wz"), None),
+)
+
+
+def attitude_quaternions(dataset: Dataset) -> np.ndarray | None:
+    """The attitude as ``(N, 4)`` quaternions ``w, x, y, z`` (body -> NED), or None, where some samples may lack
+    one: the quaternion channel, else the Euler columns (:data:`EULER_COLUMNS`), a row of NaN for a sample whose
+    angles are not finite (a stream's samples before its first attitude message). :func:`attitude` is the strict
+    form a calibration needs; this one is for looking at the motion."""
+    if dataset.attitude_wxyz is not None:
+        return np.asarray(dataset.attitude_wxyz, float)
+    if not all(c in dataset.extra for c in EULER_COLUMNS):
+        return None
+    try:
+        roll, pitch, yaw = (np.asarray(dataset.extra[c], float) for c in EULER_COLUMNS)
+    except (TypeError, ValueError):  # text in an angle column: attitude() names it when a fit needs it
+        return None
+    out = np.full((len(roll), 4), np.nan)
+    ok = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
+    if ok.any():
+        out[ok] = euler_to_wxyz(roll[ok], pitch[ok], yaw[ok])
+    return out
+
+
+def gyro_units(dataset: Dataset) -> str:
+    """The unit of the dataset's unmarked gyro columns: the file's ``# gyro_units:`` line (``deg/s`` or
+    ``rad/s``), else ``deg/s`` (what most sensor sketches print)."""
+    text = str(dataset.metadata.get("gyro_units", "")).strip().lower().replace(" ", "")
+    return "rad/s" if text in ("rad/s", "rads", "rad/sec", "radps") else "deg/s"
+
+
+def turn_rate_dps(dataset: Dataset) -> np.ndarray | None:
+    """The instrument's turn rate per sample (deg/s), or None when the data cannot tell.
+
+    From gyro columns (:data:`GYRO_COLUMNS`; unmarked ones in :func:`gyro_units`), else from the attitude
+    (:func:`attitude_quaternions`) and the sample times: the angle between consecutive attitudes over their time
+    step, given to the later sample; a sample without attitude gets 0."""
+    for names, unit in GYRO_COLUMNS:
+        if all(n in dataset.extra for n in names):
+            w = np.column_stack([np.asarray(dataset.extra[n], float) for n in names])
+            rate = np.linalg.norm(w, axis=1)
+            return np.degrees(rate) if (unit or gyro_units(dataset)) == "rad/s" else rate
+    q, t = attitude_quaternions(dataset), dataset.time_s
+    if q is None or t is None:
+        return None
+    have = np.flatnonzero(np.all(np.isfinite(q), axis=1))  # samples with an attitude
+    if have.size < 2:
+        return None
+    r = Rotation.from_quat(q[have][:, [1, 2, 3, 0]])
+    step = (r[:-1].inv() * r[1:]).magnitude()
+    dt = np.diff(np.asarray(t, float)[have])
+    rate = np.degrees(step / np.where(dt > 0, dt, np.inf))
+    out = np.zeros(len(q))
+    out[have] = np.concatenate([[rate[0]], rate])
+    return out
