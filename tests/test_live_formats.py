@@ -22,27 +22,14 @@ from scipy.spatial.transform import Rotation
 import magcal
 from magcal.data import lineformats
 from magcal.data.attitude import EULER_COLUMNS, attitude
-from magcal.data.live import LineParser, LiveError, LiveSession, concatenate_chunks, open_source
+from magcal.data.live import LineParser, LiveError, LiveSession, open_source
 
 pytest.importorskip("serial")
 pytest.importorskip("pymavlink")
 
+from test_live import collect, free_udp_port
+
 SKETCH_COLUMNS = "t_ms,ax,ay,az,gx,gy,gz,mx,my,mz,roll,pitch,yaw"
-
-
-def collect(source, n, timeout_s=20.0):
-    """Read until ``n`` samples arrived or ``timeout_s`` passed; one chunk (None for none)."""
-    chunks = []
-    end = time.monotonic() + timeout_s
-    while sum(len(c) for c in chunks) < n and time.monotonic() < end:
-        chunks.append(source.read(timeout_s=0.2))
-    return concatenate_chunks(chunks)
-
-
-def free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def framed(body, start="|", checksum=True):

@@ -10,11 +10,11 @@ start the workbench on 127.0.0.1 themselves and drive the page in headless Chrom
 from __future__ import annotations
 
 import re
-import time
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_workbench_live import _wait
 
 import magcal
 from magcal.data.attitude import attitude_quaternions, turn_rate_dps
@@ -321,15 +321,6 @@ def test_a_live_sessions_tabs_describe_the_stream_then_the_recording(bench):
 
 
 # --- in the browser ----------------------------------------------------------------------------------------
-def _wait(cond, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return False
-
-
 def _click(page, name):
     """Click the button ``name``; a panel that reflows (plots redrawn) may keep it "unstable" for a while, so a
     click that waited long enough is forced."""

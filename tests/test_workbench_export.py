@@ -7,12 +7,12 @@ only for a MAVLink source, reads old -> new first, writes on Confirm, and every 
 from __future__ import annotations
 
 import io
-import time
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_workbench_live import _wait
 
 import magcal
 from magcal.cli import main
@@ -220,15 +220,6 @@ def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path)
     _as_browser(section.firmware, "px4; rm -rf /")
     wb.handle(wb.exporting.do_send_preview, None)
     assert "not one of the choices offered" in wb.ctrl.message and section.firmware.value == "ardupilot"
-
-
-def _wait(cond, timeout_s):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return cond()
 
 
 @pytest.mark.e2e
