@@ -176,13 +176,7 @@ def vehicle() -> int:
         wb.ctrl.step_calibrate("ml")
         wb.ctrl.step_vector()
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.goto(wb.url)
-            _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
-            time.sleep(2)
-            for close in page.locator(".mantine-Notification-closeButton").all():
-                close.click()
+            browser, page = _page(p, wb)
             page.get_by_text("Vector model (attitude-aided)").scroll_into_view_if_needed()
             time.sleep(1)
             page.screenshot(path=str(OUT / "vector-table.png"))
