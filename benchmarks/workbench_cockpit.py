@@ -2,14 +2,20 @@
 plotly JSON) for records of growing size: every sample counts in the table and histogram, the |B| plot is
 decimated to ``magcal_workbench.plots.MAX_POINTS`` per trace.
 
-    PYTHONPATH=$PWD python benchmarks/workbench_cockpit.py
+    PYTHONPATH=$PWD python benchmarks/workbench_cockpit.py [--page]
 
 Prints one row per record size: the seconds of each part (best of three) and the bytes the two figures send.
+``--page`` also times the whole page's redraw in a served workbench (no browser) on a simulated four-sensor record
+of 1e6 samples with attitude (the chi2017 preset): after a selection (a threshold rejection) and after a fit, best
+of three each, beside one computation of the turn rate from the attitude (:func:`magcal.data.attitude.
+turn_rate_dps`), which the redraw reads once per dataset.
 """
 
 from __future__ import annotations
 
+import sys
 import time
+import warnings
 
 import numpy as np
 
@@ -49,5 +55,30 @@ def main() -> None:
         )
 
 
+def page_redraw(n: int = 1_000_000) -> None:
+    """The served page's redraw after a selection and after a fit (see the module docstring)."""
+    import magcal
+    from magcal.data.attitude import turn_rate_dps
+    from magcal_workbench.app import Workbench
+
+    warnings.simplefilter("ignore")
+    ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=1, rate_hz=50.0)
+    t_rate, _ = best(lambda: turn_rate_dps(ds), repeat=1)
+    wb = Workbench(ds, host="127.0.0.1", port=0, store=None, max_points=20_000)
+    try:
+        wb.ctrl.step_calibrate("ml")
+        wb.ui.wait()
+        wb.ctrl.reject_threshold(4.0)
+        wb.ui.wait()
+        t_sel, _ = best(lambda: wb.ui.run(lambda: wb._changed(wb.ctrl, "selection")))
+        t_fit, _ = best(lambda: wb.ui.run(lambda: wb._changed(wb.ctrl, "result")))
+    finally:
+        wb.stop()
+    print(f"\npage redraw, {n:,} samples x 4 sensors with attitude (served, no browser; best of 3):")
+    print(f"after a selection {t_sel:.2f} s; after a fit {t_fit:.2f} s; the turn rate from the attitude {t_rate:.2f} s")
+
+
 if __name__ == "__main__":
     main()
+    if "--page" in sys.argv[1:]:
+        page_redraw()
