@@ -374,3 +374,36 @@ def test_an_old_calibration_file_applies_its_record_terms_with_a_caution(tmp_pat
     np.testing.assert_allclose(
         _corrected(out), cal.correct(read_out(paths["later"]), record_terms="apply")[0], atol=6e-4
     )
+
+
+@pytest.mark.parametrize("rows, same", [(600, True), (600, False), (900, False), (450, False)])
+def test_a_parquet_survey_of_another_length_is_another_record_without_a_read(
+    tmp_path, drift_files, monkeypatch, rows, same
+):
+    """A Parquet survey whose footer gives another row count than the fitted record's samples is another record:
+    its record-only terms are dropped with the note, and no row is read for the fingerprint (the survey is read
+    once, for the correction). One of the same length is fingerprinted: the record itself keeps its drift."""
+    cal, cal_path, paths = drift_files
+    record = read_out(paths["record"])
+    if same:
+        ds = record
+    else:
+        later = sim.simulate_timeseries(sim.chi2017_truth(1), n_samples=rows, noise_nT=2.0, seed=11)
+        ds = later
+    survey = tmp_path / "survey.parquet"
+    io.write_parquet(survey, ds)
+    hashed = []
+    real_update = ap.RecordHasher.update
+    monkeypatch.setattr(ap.RecordHasher, "update", lambda self, d: hashed.append(d.n_samples) or real_update(self, d))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        choice, note = ap.record_choice(cal, survey)
+    assert not [w for w in caught if issubclass(w.category, RecordTermWarning)]  # a value, said by the caller
+    if same:
+        assert (choice, note) == ("apply", None) and sum(hashed) == rows
+        return
+    assert choice == "drop" and "bias_drift" in note
+    if rows == record.n_samples:
+        assert sum(hashed) == rows  # the same length: only the readings tell
+    else:
+        assert hashed == [] and f"({rows} samples)" in note

@@ -113,6 +113,32 @@ def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, m
     assert _segments() == []
 
 
+def _parent(dataset):
+    return os.getppid()
+
+
+@pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(), reason="no fork server here"
+)
+def test_the_workers_of_every_pool_are_forked_from_one_fork_server(record, monkeypatch):
+    """The workers are not new interpreters importing magcal for each pool: every pool's workers are children of the
+    same fork server (not of this process), which imported magcal once; BLAS still runs one thread in them, and
+    this process's own BLAS setting is left as it was."""
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    parents, limits = set(), []
+    for _ in range(2):
+        with _parallel.Pool(ds) as pool:
+            parents.add(pool.remote(_parent))
+            limits += pool.remote(_blas_threads)
+    assert len(parents) == 1 and os.getpid() not in parents
+    assert set(limits) == {1}
+    assert "OPENBLAS_NUM_THREADS" not in os.environ
+    assert _segments() == []
+
+
 def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
     ds, _ = record
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)

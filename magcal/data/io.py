@@ -1454,11 +1454,12 @@ def read_parquet(path, name=None, chunk_rows=200_000, notes=None) -> Dataset:
 
 
 def parquet_table(columns, metadata=None):
-    """A pyarrow Table of ``columns`` (name -> array) carrying ``metadata`` under the ``magcal`` key."""
+    """A pyarrow Table of ``columns`` (name -> NumPy or Arrow array) carrying ``metadata`` under the ``magcal``
+    key."""
     import json
 
     pa = _pyarrow("parquet")
-    table = pa.table({str(k): np.asarray(v) for k, v in columns.items()})
+    table = pa.table({str(k): v if isinstance(v, pa.Array) else np.asarray(v) for k, v in columns.items()})
     meta = {PARQUET_METADATA_KEY: json.dumps({str(k): str(v) for k, v in (metadata or {}).items()}).encode()}
     return table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
 

@@ -430,20 +430,43 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
     return dict(src.metadata), src.chunks(chunk_rows)
 
 
+def _parquet_rows(path) -> int | None:
+    """Rows of a Parquet file from its footer, or None for another kind of file (or one pyarrow cannot open: the
+    reader then says what is wrong)."""
+    path = os.fspath(path)
+    if is_log(path) or not is_parquet(path):
+        return None
+    try:
+        import pyarrow.parquet as pq
+
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    except Exception:  # unreadable: survey_chunks gives the message naming the file
+        return None
+
+
 def record_choice(
     calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
 ):
     """:func:`record_terms_for_file` for a CSV or a Parquet survey: ``('apply' | 'drop', note or None)``, the
-    fingerprint streamed through :func:`survey_chunks` only when it decides something."""
+    fingerprint streamed through :func:`survey_chunks` only when it decides something.
+
+    A Parquet survey whose row count (from its footer) differs from the fitted record's samples is another record
+    without reading a row (unless ``drop_bad``, which may drop rows): a survey of 1e9 rows is not read twice, nor
+    through one process, to learn that it is not the calibration record.
+    """
 
     if not calibration.record_terms(VECTOR_STAGES):
         return "apply", None
     fingerprint = None
     if record_terms is None and calibration.record:
-        hasher = RecordHasher()
-        for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
-            hasher.update(ds)
-        fingerprint = hasher.fingerprint()
+        rows = None if drop_bad else _parquet_rows(survey_path)
+        if rows is not None and rows != calibration.record.get("n_samples"):
+            fingerprint = {"n_samples": rows, "time_start_s": None, "time_end_s": None, "readings_sha256": None}
+        else:
+            hasher = RecordHasher()
+            for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
+                hasher.update(ds)
+            fingerprint = hasher.fingerprint()
     dropped, note = calibration.record_decision(
         None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
     )

@@ -316,6 +316,17 @@ def _heap_blocks() -> None:
         pass
 
 
+def _source_column(name: str, rows: int, fmt: str):
+    """The ``source_file`` column of ``rows`` rows: for Parquet a dictionary-encoded Arrow array (one string and
+    an index per row; converting a text array to Arrow cost a third of a task's time, 0.35 us a row), for CSV the
+    text itself."""
+    if fmt != "parquet":
+        return np.full(rows, name)
+    import pyarrow as pa
+
+    return pa.DictionaryArray.from_arrays(pa.array(np.zeros(rows, np.int32)), pa.array([name]))
+
+
 def correct_partition(
     calibration_doc: dict,
     part: Partition,
@@ -363,8 +374,8 @@ def correct_partition(
                 names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
             values = correct_block(calibration, ds, record_choice, uncertainty, world)
             cols = input_columns(part.path, ds, names)
-            if source is None or source.size < ds.n_samples:  # the file's name, made once (a text fill is slow)
-                source = np.full(max(ds.n_samples, BLOCK_ROWS), os.path.basename(part.path))
+            if source is None or len(source) < ds.n_samples:  # the file's name, made once
+                source = _source_column(os.path.basename(part.path), max(ds.n_samples, BLOCK_ROWS), fmt)
             cols["source_file"] = source[: ds.n_samples]
             cols.update({name: values[:, k] for k, name in enumerate(names)})
             rows += ds.n_samples
