@@ -22,7 +22,7 @@ import numpy as np
 from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
-from magcal.data.attitude import attitude, attitude_source
+from magcal.data.attitude import attitude_rows, attitude_source
 from magcal.fitting.vector import fit_vector
 
 from .markup import clean_text, hide_paths, safe_text
@@ -118,6 +118,8 @@ class FitRow:
     undetermined : list of str
         Why the fit is not determined by these data (a total-field fit on a cone of directions: the coverage
         check's notes); empty when it is.
+    samples : str
+        The samples fitted, in words: ``"4688 of 5000 kept samples (312 without attitude left out)"``.
     """
 
     name: str
@@ -127,6 +129,21 @@ class FitRow:
     attitude_noise: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     undetermined: list = field(default_factory=list)
+    samples: str = ""
+
+
+def fitted_samples_text(result) -> str:
+    """The samples a vector fit used, in words, naming those left out for lack of an attitude or a reference
+    (:class:`magcal.fitting.vector.SampleGaps`)."""
+    gaps = result.gaps
+    if gaps is None or not gaps.n_left_out:
+        return f"{result.n_samples} kept samples"
+    why = []
+    if gaps.n_without_attitude:
+        why.append(f"{gaps.n_without_attitude} without attitude")
+    if gaps.n_without_reference:
+        why.append(f"{gaps.n_without_reference} without a reference vector")
+    return f"{result.n_samples} of {gaps.n_chosen} kept samples ({' and '.join(why)} left out)"
 
 
 class VectorModel:
@@ -285,7 +302,7 @@ class VectorModel:
         row = self.vector_row()
         mount = "; ".join(row.mounting)
         text = (
-            f"**vector fit (attitude-aided)** on {int(kept.sum())} samples ({time.perf_counter() - t0:.2f} s): "
+            f"**vector fit (attitude-aided)** on {row.samples} ({time.perf_counter() - t0:.2f} s): "
             f"total-field RMS {row.total_field_rms_nT:.4g} nT, world RMS N/E/D "
             + " / ".join(f"{v:.4g}" for v in row.world_rms_nT)
             + f" nT; mounting {safe_text(mount, 600)}  \nreference: {safe_text(ref.text, 400)}"
@@ -338,6 +355,7 @@ class VectorModel:
             row.mounting.append(f"{who}{s.right_angle_text.split(':')[0]}, {s.angle_off_deg:.2f} deg off it")
             row.attitude_noise.append(f"{who}{s.attitude_noise_deg:.3g} deg ({s.attitude_noise_source})")
         row.warnings = list(res.warnings)
+        row.samples = fitted_samples_text(res)
         return row
 
     def coverage_notes(self) -> list[str]:
@@ -366,12 +384,18 @@ class VectorModel:
 
     def current_vectors(self, sample: int, sensor: int = 0) -> dict | None:
         """What the vehicle view draws at ``sample`` for ``sensor``: ``attitude_wxyz`` (4,), ``model_ned_nT`` (3,),
-        ``measured_ned_nT`` (3,) or None before a vector fit, all world frame; None when the data have no attitude."""
+        ``measured_ned_nT`` (3,) or None before a vector fit, all world frame; None when the data have no attitude.
+
+        A sample without attitude (NaN angles: before the first attitude message, a gap) gives ``attitude_wxyz``
+        None and nothing else; a sample without a reference (no position yet) gives ``model_ned_nT`` None."""
         ds = self.dataset
-        rot = attitude(ds)
-        if rot is None:
+        found = attitude_rows(ds)
+        if found is None:
             return None
+        rot, have = found
         i = int(np.clip(sample, 0, ds.n_samples - 1))
+        if not have[i]:
+            return {"sample": i, "attitude_wxyz": None, "model_ned_nT": None, "measured_ned_nT": None}
         q = rot[i].as_quat()
         out = {"sample": i, "attitude_wxyz": np.array([q[3], q[0], q[1], q[2]]), "measured_ned_nT": None}
         if self.reference_ned_nT is not None:
@@ -382,6 +406,9 @@ class VectorModel:
             except MagcalError:
                 ref = None
             out["model_ned_nT"] = None if ref is None else ref.ned_nT[i]
+        if out["model_ned_nT"] is not None and not np.all(np.isfinite(out["model_ned_nT"])):
+            out["model_ned_nT"] = None
         if self.world_nT is not None:
-            out["measured_ned_nT"] = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
+            measured = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
+            out["measured_ned_nT"] = measured if np.all(np.isfinite(measured)) else None
         return out
