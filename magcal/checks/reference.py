@@ -603,8 +603,7 @@ def resolve_vector_reference(
         _check_plausible(total, f"{where}: columns ref_n, ref_e, ref_d")
         text = (
             f"per-sample field vector columns ref_n, ref_e, ref_d: |B| mean {total.mean():.1f} nT, spread "
-            f"{np.ptp(total):.1f} nT"
-            + (f"; {int(n - given.sum())} samples without one" if not given.all() else "")
+            f"{np.ptp(total):.1f} nT" + (f"; {int(n - given.sum())} samples without one" if not given.all() else "")
         )
         return VectorReference(ned, text, "column")
     return None

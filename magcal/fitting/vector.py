@@ -239,7 +239,9 @@ class SampleGaps:
         of = f"{self.n_chosen}" if self.n_chosen == self.n_samples else f"the {self.n_chosen} selected"
         parts = []
         if self.n_without_attitude:
-            parts.append(f"{self.n_without_attitude} of {of} samples have no attitude ({row_runs(self.without_attitude)})")
+            parts.append(
+                f"{self.n_without_attitude} of {of} samples have no attitude ({row_runs(self.without_attitude)})"
+            )
         if self.n_without_reference:
             parts.append(
                 f"{self.n_without_reference}{'' if parts else f' of {of} samples'} have no reference field vector "
