@@ -27,6 +27,7 @@ from magcal.fitting.vector import fit_vector
 
 from .markup import clean_text, hide_paths, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
+from .state import pack_mask, unpack_mask
 
 #: The world components' names, in order.
 NED = ("N", "E", "D")
@@ -263,9 +264,23 @@ class VectorModel:
         ctrl.say("the location is forgotten: the file's reference is used again (or the field magnitude is fitted)")
 
     # --- the fit ---------------------------------------------------------------------------------------------
-    def fit(self):
+    def fit(self, kept=None, robust=None, noise_nT=None, again=False):
         """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector`, robust
         loss and noise as the session says), its world components on every sample, and a message with its figures.
+        The session remembers its settings (:attr:`SessionState.vector_fit`), so that it runs again when the session
+        reopens (:meth:`restore`).
+
+        Parameters
+        ----------
+        kept : numpy.ndarray of bool, optional
+            The samples to fit (default: the kept samples); samples without attitude or reference among them are
+            left out by the engine (a note says how many).
+        robust : bool, optional
+            The robust loss (default: the session's).
+        noise_nT : float, optional
+            The noise per axis (default: the session's, else estimated).
+        again : bool
+            The message says the fit was run again from the saved session.
 
         Returns
         -------
@@ -282,13 +297,15 @@ class VectorModel:
         t0 = time.perf_counter()
         ctrl = self.ctrl
         ds = self.dataset
-        kept = ctrl.kept
+        kept = np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
+        robust = bool(ctrl.state.robust if robust is None else robust)
+        noise_nT = ctrl.state.noise_nT if noise_nT is None else float(noise_nT)
         ctrl._report_progress("vector fit (attitude-aided)", None)
         try:
             ref = self.reference()
             if ref is None:  # missing() said there would be one
                 raise MagcalError("no reference field vector")
-            result = fit_vector(ds, ref, mask=kept, robust=ctrl.state.robust, noise_nT=ctrl.state.noise_nT, warn=False)
+            result = fit_vector(ds, ref, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
             world = result.calibration.world(ds, record_terms="apply")
         finally:
             ctrl.progress = None
@@ -298,11 +315,17 @@ class VectorModel:
             self.world_nT = np.asarray(world, dtype=float)
             self.reference_ned_nT = np.asarray(ref.ned_nT, dtype=float)
             self.reference_text = ref.text
+            ctrl.state.vector_fit = {"kept": pack_mask(kept), "robust": robust, "noise_nT": noise_nT}
+            ctrl.state.touch()
+        ctrl.autosave()
         self._emit()
         row = self.vector_row()
         mount = "; ".join(row.mounting)
         text = (
-            f"**vector fit (attitude-aided)** on {row.samples} ({time.perf_counter() - t0:.2f} s): "
+            ("the saved session's " if again else "")
+            + f"**vector fit (attitude-aided)** on {row.samples} ({time.perf_counter() - t0:.2f} s"
+            + (", run again" if again else "")
+            + "): "
             f"total-field RMS {row.total_field_rms_nT:.4g} nT, world RMS N/E/D "
             + " / ".join(f"{v:.4g}" for v in row.world_rms_nT)
             + f" nT; mounting {safe_text(mount, 600)}  \nreference: {safe_text(ref.text, 400)}"
@@ -312,11 +335,30 @@ class VectorModel:
         return result
 
     def forget_fit(self) -> None:
-        """Drop the last vector fit (its reference changed)."""
+        """Drop the last vector fit (its reference changed); the session forgets it too."""
         self.result = None
         self.world_nT = None
         self.reference_ned_nT = None
         self.reference_text = ""
+        self.ctrl.state.vector_fit = None
+
+    def restore(self) -> str:
+        """Run the saved session's vector fit again (:attr:`SessionState.vector_fit`: its samples, robust loss and
+        noise; the reference is the session's as before). Returns a note for the page: empty when there was
+        nothing to run or it ran (its own message says so), else why it could not run (the session goes on
+        without it)."""
+        saved = self.ctrl.state.vector_fit
+        if not saved:
+            return ""
+        try:
+            kept = unpack_mask(saved["kept"], self.dataset.n_samples)
+            self.fit(kept, saved.get("robust", False), saved.get("noise_nT"), again=True)
+        except (MagcalError, ValueError, KeyError, TypeError) as exc:
+            with self.ctrl.state.lock:
+                self.ctrl.state.vector_fit = None
+                self.ctrl.state.touch()
+            return f"the saved vector fit could not be run again ({safe_text(str(exc), 300)}); run it again"
+        return ""
 
     def lesson_findings(self) -> dict | None:
         """What a lesson's check compares (:meth:`magcal_workbench.lessons.Lesson.check`): per sensor, the right
