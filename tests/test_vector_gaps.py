@@ -21,7 +21,7 @@ from magcal.checks.reference import resolve_vector_reference
 from magcal.cli import main
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs, runs
-from magcal.data.attitude import EULER_COLUMNS, attitude, attitude_rows, wxyz_rotation
+from magcal.data.attitude import EULER_COLUMNS, attitude, attitude_present, attitude_rows, wxyz_rotation
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import write_csv
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
@@ -309,6 +309,10 @@ def test_attitude_rows_flags_zero_and_nan_quaternions():
     q[7, 2] = np.nan
     rotation, have = attitude_rows(ds.replace(attitude_wxyz=q))
     assert list(np.flatnonzero(~have)) == [3, 7] and len(rotation) == 50
+    assert np.array_equal(attitude_present(ds.replace(attitude_wxyz=q)), have)
+    gappy = _without_attitude(ds, ~have, "euler")
+    assert np.array_equal(attitude_present(gappy), have) and np.array_equal(attitude_rows(gappy)[1], have)
+    assert attitude_present(ds.replace(attitude_wxyz=None)) is None
     assert np.allclose(rotation[3].as_matrix(), np.eye(3))
     text = ds.replace(extra={**ds.extra, "roll_deg": np.array(["a"] * 50), "pitch_deg": q[:, 0], "yaw_deg": q[:, 0]})
     with pytest.raises(DatasetError, match="roll_deg must hold angles"):

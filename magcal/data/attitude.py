@@ -124,6 +124,22 @@ def attitude_rows(dataset: Dataset) -> tuple[Rotation, np.ndarray] | None:
     return wxyz_rotation(q), have
 
 
+def attitude_present(dataset: Dataset) -> np.ndarray | None:
+    """Which samples have an attitude (bool, shape (N,)), as :func:`attitude_rows` says, without turning the
+    angles into rotations; None when the dataset has no attitude."""
+    kind = attitude_source(dataset)
+    if kind == "quaternion":
+        return filled_wxyz(dataset.attitude_wxyz)[1]
+    if kind == "euler":
+        try:
+            values = [np.asarray(dataset.extra[c], dtype=float) for c in EULER_COLUMNS]
+        except (TypeError, ValueError):
+            found = attitude_rows(dataset)  # raises the message naming the column
+            return None if found is None else found[1]
+        return np.isfinite(values[0]) & np.isfinite(values[1]) & np.isfinite(values[2])
+    return None
+
+
 def filled_wxyz(q_wxyz) -> tuple[np.ndarray, np.ndarray]:
     """``(q, have)``: the quaternions ``(N, 4)`` ``w, x, y, z`` (a copy) with the identity where a row is not a
     finite, non-zero quaternion (a sample without attitude), and ``have`` (N,) bool, True where the row is one."""

@@ -36,7 +36,7 @@ from magcal.calibration.calibration import Calibration, RecordHasher
 from magcal.core import conventions
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.notes import runs, runs_text
-from magcal.data.attitude import EULER_COLUMNS, attitude_rows, attitude_source
+from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import (
     CsvSource,
@@ -200,13 +200,13 @@ class AttitudeGaps:
 
     def add(self, dataset) -> None:
         """Count one block (the next ``dataset.n_samples`` rows)."""
-        found = attitude_rows(dataset)
-        if found is not None and not found[1].all():
-            new = runs(~found[1], first_row=self.rows + 1)
+        have = attitude_present(dataset)
+        if have is not None and not have.all():
+            new = runs(~have, first_row=self.rows + 1)
             if self.row_runs and new and new[0][0] == self.row_runs[-1][1] + 1:  # a run across the blocks' edge
                 self.row_runs[-1] = (self.row_runs[-1][0], new.pop(0)[1])
             self.row_runs += new
-            self.missing += int(np.count_nonzero(~found[1]))
+            self.missing += int(np.count_nonzero(~have))
         self.rows += dataset.n_samples
 
     def note(self, n_sensors, tensor=False) -> str | None:
