@@ -350,3 +350,35 @@ def test_the_workbench_vector_fit_runs_on_a_record_with_attitude_gaps_and_says_s
     assert ctrl.vector.current_vectors(5)["attitude_wxyz"] is None
     here = ctrl.vector.current_vectors(500)
     assert here["attitude_wxyz"] is not None and np.isfinite(here["measured_ned_nT"]).all()
+
+
+def test_each_partition_of_a_parallel_apply_counts_its_rows_without_attitude(tmp_path):
+    """``magcal apply --workers``: each task (:func:`magcal.output.survey.correct_partition`, run here in this
+    process) writes NaN world columns on its rows without attitude and returns how many; the summary warns once."""
+    pytest.importorskip("pyarrow")
+    import pandas as pd
+
+    from magcal.data import io as mio
+    from magcal.output import survey
+
+    truth = vehicle_truth(seed=14)
+    one, _ = simulate_vehicle(truth, seed=14, n=1200)
+    two, _ = simulate_vehicle(truth, seed=15, n=300)
+    cal = fit_vector(one, resolve_vector_reference(one), terms=[], warn=False).calibration
+    gap = _gap(300, ((10, 20), (140, 160)))
+    gappy = _without_attitude(two, gap, "euler")
+    mio.write_parquet(tmp_path / "two.parquet", dataset_columns(gappy), dataset_metadata(gappy))
+    parts = survey.partitions([tmp_path / "two.parquet"], partition_rows=150)
+    assert len(parts) == 2
+    done = [survey.correct_partition(cal.to_dict(), p, str(tmp_path), "parquet", "apply") for p in parts]
+    assert [d[1:] for d in done] == [(150, 20), (150, 10)]
+    world = np.concatenate([pd.read_parquet(d[0])[["s1n_cal", "s1e_cal", "s1d_cal"]].to_numpy() for d in done])
+    assert np.isnan(world[gap]).all() and np.allclose(world[~gap], cal.world(two)[0][~gap], atol=1e-6)
+    # the whole parallel apply on a local cluster: one warning for the survey
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = survey.apply_partitioned(
+            cal, [tmp_path / "two.parquet"], tmp_path / "parts", workers=1, progress=False
+        )
+    said = [str(w.message) for w in caught if "no attitude" in str(w.message)]
+    assert summary.rows == 300 and len(said) == 1 and said[0].startswith("30 of 300 rows have no attitude")
