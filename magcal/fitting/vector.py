@@ -35,6 +35,11 @@ determined by the record (a note): found on real flight logs (benchmarks/real/ve
 aircraft carried level with a 3-5 deg attitude error gave biases of 100-170 uT with standard deviations of
 7-27 uT computed for white errors.
 
+Samples without attitude or reference. A live recording's samples before its first attitude message, a gap in a
+log, the samples before the GPS's fix (no position for IGRF along the track) hold NaN: the fit uses the other
+samples, exactly as a fit on the clean samples would (:class:`SampleGaps` counts those left out, a note names their
+rows), and refuses only when fewer than its minimum are left.
+
 Mounting. The 24 right-angle orientations are tried first, as ArduPilot's orientation detection does (a gain and
 an offset fitted for each; the best is the one the field vectors agree with), and the fit then refines the
 mounting continuously; the result says which right angle it was and how far off it the sensor sits.
@@ -515,7 +520,10 @@ def fit_vector(
         beyond 5: for records with spikes or drop-outs.
     mask : numpy.ndarray of bool, shape (N,), optional
         The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
-        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact.
+        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact. Samples without an
+        attitude (NaN angles or quaternion: :func:`magcal.data.attitude.attitude_rows`) or without a finite
+        reference vector (no position for IGRF) are left out as well, and a note counts them and names their
+        rows (:attr:`VectorFitResult.gaps`, :attr:`VectorFitResult.fitted`).
     warn : bool
         Raise the fit's notes (:attr:`VectorFitResult.warnings`: weak tilt, samples set aside...) as
         :class:`~magcal.core.errors.DataWarning` (the default, for a user's call); False leaves them in the result
@@ -524,7 +532,8 @@ def fit_vector(
     Raises
     ------
     CalibrationError
-        No attitude, too few samples, a mirrored axis.
+        No attitude, a mirrored axis, too few samples: fewer than :data:`MIN_SAMPLES` (or the parameters per sensor)
+        left with an attitude and a reference (the message says how many had each).
     """
     start = time.perf_counter()
     found = attitude_rows(dataset)
