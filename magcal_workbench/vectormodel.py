@@ -133,6 +133,12 @@ class FitRow:
     samples: str = ""
 
 
+#: Largest record (samples x sensors) whose saved vector fit is run again when its session opens, about 1 s (measured
+#: on a shared two-core machine with the default eddy terms: 6000 samples of one sensor 0.2 s, 10^5 samples 4.5 s);
+#: a larger one keeps its settings and the page says to press the button.
+RESTORE_MAX_SAMPLES = 30_000
+
+
 def fitted_samples_text(result) -> str:
     """The samples a vector fit used, in words, naming those left out for lack of an attitude or a reference
     (:class:`magcal.fitting.vector.SampleGaps`)."""
@@ -350,6 +356,12 @@ class VectorModel:
         saved = self.ctrl.state.vector_fit
         if not saved:
             return ""
+        size = self.dataset.n_samples * self.dataset.n_sensors
+        if size > RESTORE_MAX_SAMPLES:  # not on every opening: the settings stay, the button runs it
+            return (
+                f"the saved session ran the vector fit; on {size:,} sensor samples it is not run again on opening "
+                "(seconds): press Run the vector fit (Calibrate tab) to see it"
+            )
         try:
             kept = unpack_mask(saved["kept"], self.dataset.n_samples)
             self.fit(kept, saved.get("robust", False), saved.get("noise_nT"), again=True)

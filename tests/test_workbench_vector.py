@@ -132,7 +132,7 @@ def test_a_location_sets_both_references_and_the_session_remembers_it():
     assert ctrl.state.location is None and ctrl.state.reference_nT is None and ctrl.vector.reference() is None
 
 
-def test_the_session_remembers_the_vector_fit_and_reopening_runs_it_again(tmp_path):
+def test_the_session_remembers_the_vector_fit_and_reopening_runs_it_again(tmp_path, monkeypatch):
     from magcal_workbench.session import SessionStore
 
     ds, truth = _vehicle(n=800)
@@ -156,6 +156,13 @@ def test_the_session_remembers_the_vector_fit_and_reopening_runs_it_again(tmp_pa
         assert np.allclose(a.W, b.W, rtol=1e-12, atol=1e-12) and np.allclose(a.bias_nT, b.bias_nT, atol=1e-9)
     assert np.allclose(res.sensors[0].mounting, truth.sensors[0].mounting, atol=1e-3)  # the truth it found
     assert "run again" in again.message and again.vector.vector_row().world_rms_nT is not None
+    # a record too large to fit on every opening keeps the settings and says to press the button
+    import magcal_workbench.vectormodel as vm
+
+    monkeypatch.setattr(vm, "RESTORE_MAX_SAMPLES", 799)
+    big = Controller(ds, state=store.load(sid))
+    assert big.vector.result is None and big.state.vector_fit is not None and "press Run the vector fit" in big.message
+    monkeypatch.undo()
     # a new reference forgets the fit, and the session with it
     again.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")
     assert again.vector.result is None and store.load(sid).vector_fit is None
