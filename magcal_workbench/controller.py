@@ -134,6 +134,10 @@ class Controller:
             except Exception as exc:  # a damaged or foreign calibration document: the session goes on without it
                 why = exc if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {exc}"
                 self.message = f"the saved calibration could not be restored ({safe_text(why, 500)}); run a fit"
+        if self.state.vector_fit:  # the saved session's vector fit, run again (its message, or why it could not)
+            kept_message = self.message
+            note = self.vector.restore()
+            self.message = "  \n".join(m for m in (kept_message, note or self.message) if m)
 
     # ------------------------------------------------------------------------------------------------------
     # notification

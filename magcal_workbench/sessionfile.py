@@ -28,6 +28,8 @@ The fields (all written by :meth:`SessionState.to_dict`):
                     when the step ran no held-out validation)
 ``location``        the place typed for IGRF ``{"lat_deg": -90 ... 90, "lon_deg": -180 ... 180, "alt_m": -10^4 ...
                     2 10^6, "date": text of at most 32 characters}``, or null
+``vector_fit``      the last vector fit's settings ``{"kept": packed mask of N bits, "robust": true or false,
+                    "noise_nT": number 1e-6 ... 10^6 or null}`` (run again when the session reopens), or null
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -244,6 +246,23 @@ class _Reader:
             "date": self.text(f"{field}.date", doc["date"], max_len=DATE_CHARS),
         }
 
+    def vector_fit(self, field, value, n):
+        """The last vector fit's settings, or None (:attr:`SessionState.vector_fit`)."""
+        if value is None:
+            return None
+        doc = self.obj(field, value)
+        unknown = set(doc) - {"kept", "robust", "noise_nT"}
+        if unknown:
+            self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
+        if "kept" not in doc:
+            self.fail(f"{field}.kept", "is missing")
+        self.mask(f"{field}.kept", doc["kept"], n)  # checked here, unpacked when the fit runs again
+        return {
+            "kept": doc["kept"],
+            "robust": self.boolean(f"{field}.robust", doc.get("robust", False)),
+            "noise_nT": self.number(f"{field}.noise_nT", doc.get("noise_nT"), *NOISE_RANGE_nT, null=True),
+        }
+
     def selection(self, field, value, n):
         doc = self.obj(field, value)
         if "kept" not in doc:
@@ -319,6 +338,7 @@ def read_session_document(doc, where: str = "session.json"):
     history = r.listing("history", doc.get("history", []), MAX_HISTORY)
     st.history = [r.step(f"history[{i}]", h, n, n_sensors) for i, h in enumerate(history)]
     st.location = r.location("location", doc.get("location"))
+    st.vector_fit = r.vector_fit("vector_fit", doc.get("vector_fit"), n)
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
     return st

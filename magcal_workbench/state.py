@@ -285,6 +285,11 @@ class SessionState:
     location : dict or None
         The place and date typed in the page for the IGRF reference (``lat_deg``, ``lon_deg``, ``alt_m``,
         ``date``: :class:`magcal_workbench.vectormodel.Location`); None when none was typed.
+    vector_fit : dict or None
+        The last vector fit's settings (``kept``: the samples it was asked to use, a packed mask; ``robust``;
+        ``noise_nT`` or None), so that a reopened session runs it again
+        (:meth:`magcal_workbench.vectormodel.VectorModel.restore`); None when none was run (or its reference
+        changed since).
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
@@ -306,6 +311,7 @@ class SessionState:
         self.answer_revealed = False
         self.noise_nT: float | None = None  # per-axis noise given by the user (nT); None = the data's or estimated
         self.location: dict | None = None  # the place and date typed for IGRF (vectormodel.Location.to_dict)
+        self.vector_fit: dict | None = None  # the last vector fit's settings: kept (packed mask), robust, noise_nT
         self.version = 0  # bumped on every change; the autosave and the views compare it
 
     @property
@@ -397,4 +403,5 @@ class SessionState:
                 "answer_revealed": self.answer_revealed,
                 "noise_nT": self.noise_nT,
                 "location": None if self.location is None else dict(self.location),
+                "vector_fit": None if self.vector_fit is None else dict(self.vector_fit),
             }

@@ -22,11 +22,12 @@ import numpy as np
 from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
-from magcal.data.attitude import attitude, attitude_source
+from magcal.data.attitude import attitude_rows, attitude_source
 from magcal.fitting.vector import fit_vector
 
 from .markup import clean_text, hide_paths, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
+from .state import pack_mask, unpack_mask
 
 #: The world components' names, in order.
 NED = ("N", "E", "D")
@@ -118,6 +119,8 @@ class FitRow:
     undetermined : list of str
         Why the fit is not determined by these data (a total-field fit on a cone of directions: the coverage
         check's notes); empty when it is.
+    samples : str
+        The samples fitted, in words: ``"4688 of 5000 kept samples (312 without attitude left out)"``.
     """
 
     name: str
@@ -127,6 +130,27 @@ class FitRow:
     attitude_noise: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     undetermined: list = field(default_factory=list)
+    samples: str = ""
+
+
+#: Largest record (samples x sensors) whose saved vector fit is run again when its session opens, about 1 s (measured
+#: on a shared two-core machine with the default eddy terms: 6000 samples of one sensor 0.2 s, 10^5 samples 4.5 s);
+#: a larger one keeps its settings and the page says to press the button.
+RESTORE_MAX_SAMPLES = 30_000
+
+
+def fitted_samples_text(result) -> str:
+    """The samples a vector fit used, in words, naming those left out for lack of an attitude or a reference
+    (:class:`magcal.fitting.vector.SampleGaps`)."""
+    gaps = result.gaps
+    if gaps is None or not gaps.n_left_out:
+        return f"{result.n_samples} kept samples"
+    why = []
+    if gaps.n_without_attitude:
+        why.append(f"{gaps.n_without_attitude} without attitude")
+    if gaps.n_without_reference:
+        why.append(f"{gaps.n_without_reference} without a reference vector")
+    return f"{result.n_samples} of {gaps.n_chosen} kept samples ({' and '.join(why)} left out)"
 
 
 class VectorModel:
@@ -246,9 +270,23 @@ class VectorModel:
         ctrl.say("the location is forgotten: the file's reference is used again (or the field magnitude is fitted)")
 
     # --- the fit ---------------------------------------------------------------------------------------------
-    def fit(self):
+    def fit(self, kept=None, robust=None, noise_nT=None, again=False):
         """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector`, robust
         loss and noise as the session says), its world components on every sample, and a message with its figures.
+        The session remembers its settings (:attr:`SessionState.vector_fit`), so that it runs again when the session
+        reopens (:meth:`restore`).
+
+        Parameters
+        ----------
+        kept : numpy.ndarray of bool, optional
+            The samples to fit (default: the kept samples); samples without attitude or reference among them are
+            left out by the engine (a note says how many).
+        robust : bool, optional
+            The robust loss (default: the session's).
+        noise_nT : float, optional
+            The noise per axis (default: the session's, else estimated).
+        again : bool
+            The message says the fit was run again from the saved session.
 
         Returns
         -------
@@ -265,13 +303,15 @@ class VectorModel:
         t0 = time.perf_counter()
         ctrl = self.ctrl
         ds = self.dataset
-        kept = ctrl.kept
+        kept = np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
+        robust = bool(ctrl.state.robust if robust is None else robust)
+        noise_nT = ctrl.state.noise_nT if noise_nT is None else float(noise_nT)
         ctrl._report_progress("vector fit (attitude-aided)", None)
         try:
             ref = self.reference()
             if ref is None:  # missing() said there would be one
                 raise MagcalError("no reference field vector")
-            result = fit_vector(ds, ref, mask=kept, robust=ctrl.state.robust, noise_nT=ctrl.state.noise_nT, warn=False)
+            result = fit_vector(ds, ref, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
             world = result.calibration.world(ds, record_terms="apply")
         finally:
             ctrl.progress = None
@@ -281,11 +321,17 @@ class VectorModel:
             self.world_nT = np.asarray(world, dtype=float)
             self.reference_ned_nT = np.asarray(ref.ned_nT, dtype=float)
             self.reference_text = ref.text
+            ctrl.state.vector_fit = {"kept": pack_mask(kept), "robust": robust, "noise_nT": noise_nT}
+            ctrl.state.touch()
+        ctrl.autosave()
         self._emit()
         row = self.vector_row()
         mount = "; ".join(row.mounting)
         text = (
-            f"**vector fit (attitude-aided)** on {int(kept.sum())} samples ({time.perf_counter() - t0:.2f} s): "
+            ("the saved session's " if again else "")
+            + f"**vector fit (attitude-aided)** on {row.samples} ({time.perf_counter() - t0:.2f} s"
+            + (", run again" if again else "")
+            + "): "
             f"total-field RMS {row.total_field_rms_nT:.4g} nT, world RMS N/E/D "
             + " / ".join(f"{v:.4g}" for v in row.world_rms_nT)
             + f" nT; mounting {safe_text(mount, 600)}  \nreference: {safe_text(ref.text, 400)}"
@@ -295,11 +341,36 @@ class VectorModel:
         return result
 
     def forget_fit(self) -> None:
-        """Drop the last vector fit (its reference changed)."""
+        """Drop the last vector fit (its reference changed); the session forgets it too."""
         self.result = None
         self.world_nT = None
         self.reference_ned_nT = None
         self.reference_text = ""
+        self.ctrl.state.vector_fit = None
+
+    def restore(self) -> str:
+        """Run the saved session's vector fit again (:attr:`SessionState.vector_fit`: its samples, robust loss and
+        noise; the reference is the session's as before). Returns a note for the page: empty when there was
+        nothing to run or it ran (its own message says so), else why it could not run (the session goes on
+        without it)."""
+        saved = self.ctrl.state.vector_fit
+        if not saved:
+            return ""
+        size = self.dataset.n_samples * self.dataset.n_sensors
+        if size > RESTORE_MAX_SAMPLES:  # not on every opening: the settings stay, the button runs it
+            return (
+                f"the saved session ran the vector fit; on {size:,} sensor samples it is not run again on opening "
+                "(seconds): press Run the vector fit (Calibrate tab) to see it"
+            )
+        try:
+            kept = unpack_mask(saved["kept"], self.dataset.n_samples)
+            self.fit(kept, saved.get("robust", False), saved.get("noise_nT"), again=True)
+        except (MagcalError, ValueError, KeyError, TypeError) as exc:
+            with self.ctrl.state.lock:
+                self.ctrl.state.vector_fit = None
+                self.ctrl.state.touch()
+            return f"the saved vector fit could not be run again ({safe_text(str(exc), 300)}); run it again"
+        return ""
 
     def lesson_findings(self) -> dict | None:
         """What a lesson's check compares (:meth:`magcal_workbench.lessons.Lesson.check`): per sensor, the right
@@ -338,6 +409,7 @@ class VectorModel:
             row.mounting.append(f"{who}{s.right_angle_text.split(':')[0]}, {s.angle_off_deg:.2f} deg off it")
             row.attitude_noise.append(f"{who}{s.attitude_noise_deg:.3g} deg ({s.attitude_noise_source})")
         row.warnings = list(res.warnings)
+        row.samples = fitted_samples_text(res)
         return row
 
     def coverage_notes(self) -> list[str]:
@@ -366,12 +438,18 @@ class VectorModel:
 
     def current_vectors(self, sample: int, sensor: int = 0) -> dict | None:
         """What the vehicle view draws at ``sample`` for ``sensor``: ``attitude_wxyz`` (4,), ``model_ned_nT`` (3,),
-        ``measured_ned_nT`` (3,) or None before a vector fit, all world frame; None when the data have no attitude."""
+        ``measured_ned_nT`` (3,) or None before a vector fit, all world frame; None when the data have no attitude.
+
+        A sample without attitude (NaN angles: before the first attitude message, a gap) gives ``attitude_wxyz``
+        None and nothing else; a sample without a reference (no position yet) gives ``model_ned_nT`` None."""
         ds = self.dataset
-        rot = attitude(ds)
-        if rot is None:
+        found = attitude_rows(ds)
+        if found is None:
             return None
+        rot, have = found
         i = int(np.clip(sample, 0, ds.n_samples - 1))
+        if not have[i]:
+            return {"sample": i, "attitude_wxyz": None, "model_ned_nT": None, "measured_ned_nT": None}
         q = rot[i].as_quat()
         out = {"sample": i, "attitude_wxyz": np.array([q[3], q[0], q[1], q[2]]), "measured_ned_nT": None}
         if self.reference_ned_nT is not None:
@@ -382,6 +460,9 @@ class VectorModel:
             except MagcalError:
                 ref = None
             out["model_ned_nT"] = None if ref is None else ref.ned_nT[i]
+        if out["model_ned_nT"] is not None and not np.all(np.isfinite(out["model_ned_nT"])):
+            out["model_ned_nT"] = None
         if self.world_nT is not None:
-            out["measured_ned_nT"] = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
+            measured = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
+            out["measured_ned_nT"] = measured if np.all(np.isfinite(measured)) else None
         return out

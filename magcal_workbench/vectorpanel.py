@@ -35,6 +35,8 @@ def comparison_markdown(vm) -> str:
         "|---|---|---|",
         f"| total-field RMS | {sc_total} | {_nT(vector.total_field_rms_nT) if fitted else 'not run yet'} |",
     ]
+    if fitted:
+        rows.append(f"| samples fitted | - | {safe_text(vector.samples, 200)} |")
     for k, c in enumerate(NED):
         world = _nT(vector.world_rms_nT[k]) if vector.world_rms_nT is not None else "-"
         rows.append(f"| world {c} RMS | n/a: its rotation is unknown | {world} |")

@@ -287,7 +287,9 @@ class VehicleView:
         if resid is None:
             return 1.0
         kept = self.wb.ctrl.kept
-        rms = float(np.sqrt(np.mean(resid[:, kept] ** 2))) if kept.any() else float("nan")
+        part = resid[:, kept]
+        finite = np.isfinite(part)  # samples without attitude or reference have no residual
+        rms = float(np.sqrt(np.mean(part[finite] ** 2))) if finite.any() else float("nan")
         return residual_gain(rms, field_nT)
 
     def redraw(self) -> None:
@@ -299,9 +301,9 @@ class VehicleView:
         sensor = ctrl.state.sensor or 0
         vectors = ctrl.vector.current_vectors(self.current_sample(), sensor)
         with self._lock:
-            if vectors is None:
+            if vectors is None or vectors["attitude_wxyz"] is None:  # no attitude at all, or none at this sample
                 self.clear()
-                self.shown = None
+                self.shown = vectors
                 return
             model = vectors["model_ned_nT"]
             field_nT = float(np.linalg.norm(model)) if model is not None else float(ctrl.field_nT)
@@ -350,6 +352,9 @@ class VehicleView:
         idx = idx[np.unique(np.linspace(0, idx.size - 1, min(idx.size, TRAIL_POINTS)).astype(int))]
         sensor = min(ctrl.state.sensor or 0, vm.world_nT.shape[0] - 1)
         pts = residual_trail(vm.reference_ned_nT[idx], vm.world_nT[sensor, idx], field_nT, self.gain)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]  # samples without attitude or reference: no point
+        if pts.shape[0] == 0:
+            return
         self.nodes["/vehicle/residual_trail"] = scene.add_point_cloud(
             "/vehicle/residual_trail",
             pts.astype(np.float32),
@@ -368,7 +373,9 @@ class VehicleView:
             f"sample {i}, t = {t:.1f} s: roll {roll:+.1f}, pitch {pitch:+.1f}, yaw {yaw:.1f} deg",
             f"arrows: |B| = {field_nT:.0f} nT drawn {ARROW_LENGTH:g} units",
         ]
-        if "measured" in arrows:
+        if "measured" in arrows and "residual" not in arrows:
+            lines.append("no reference field vector at this sample (no position yet): no residual")
+        elif "measured" in arrows:
             d = vectors["measured_ned_nT"] - vectors["model_ned_nT"]
             lines.append(
                 f"red: residual x{self.gain:g} (N {d[0]:+.1f}, E {d[1]:+.1f}, D {d[2]:+.1f} nT, "
@@ -452,6 +459,11 @@ class VehicleView:
         if not self.enabled:
             return "_Tick Show the vehicle view: the body, the field in world axes N, E, D, and the residuals._"
         s = self.shown
+        if s is not None and s.get("attitude_wxyz") is None:
+            return (
+                f"_Sample {s['sample']} has no attitude (its angles are empty or NaN: before the first attitude "
+                "message, or a gap): nothing to draw there; move the time window._"
+            )
         if s is None:
             return "_No reference field vector: type a location (Calibrate tab) or add `ref_n, ref_e, ref_d`._"
         text = (

@@ -132,6 +132,80 @@ def test_a_location_sets_both_references_and_the_session_remembers_it():
     assert ctrl.state.location is None and ctrl.state.reference_nT is None and ctrl.vector.reference() is None
 
 
+def test_the_session_remembers_the_vector_fit_and_reopening_runs_it_again(tmp_path, monkeypatch):
+    from magcal_workbench.session import SessionStore
+
+    ds, truth = _vehicle(n=800)
+    store = SessionStore(tmp_path / "sessions")
+    sid = store.create("flight.csv", b"the data's copy")
+    ctrl = Controller(ds, store=store, session_id=sid)
+    ctrl.configure(robust=True)
+    ctrl.state.selection.reject(np.arange(100, 140))
+    ctrl.step_vector()
+    fitted = ctrl.vector.result
+    assert fitted.n_samples == 760
+    # the selection and the settings change after the fit: the fit reopened is the one that was run
+    ctrl.state.selection.restore(np.arange(100, 140))
+    ctrl.configure(robust=False)
+    saved = store.load(sid)
+    assert saved.vector_fit is not None and saved.vector_fit["robust"] is True
+    again = Controller(ds, state=saved, store=store, session_id=sid)
+    res = again.vector.result
+    assert res is not None and res.n_samples == 760 and np.array_equal(res.fitted, fitted.fitted)
+    for a, b in zip(res.sensors, fitted.sensors):
+        assert np.allclose(a.W, b.W, rtol=1e-12, atol=1e-12) and np.allclose(a.bias_nT, b.bias_nT, atol=1e-9)
+    assert np.allclose(res.sensors[0].mounting, truth.sensors[0].mounting, atol=1e-3)  # the truth it found
+    assert "run again" in again.message and again.vector.vector_row().world_rms_nT is not None
+    # a record too large to fit on every opening keeps the settings and says to press the button
+    import magcal_workbench.vectormodel as vm
+
+    monkeypatch.setattr(vm, "RESTORE_MAX_SAMPLES", 799)
+    big = Controller(ds, state=store.load(sid))
+    assert big.vector.result is None and big.state.vector_fit is not None and "press Run the vector fit" in big.message
+    monkeypatch.undo()
+    # a new reference forgets the fit, and the session with it
+    again.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")
+    assert again.vector.result is None and store.load(sid).vector_fit is None
+    assert Controller(ds, state=store.load(sid)).vector.result is None
+    # a saved fit that cannot run any more (its samples now too few) is said, and the session goes on
+    doc = json.loads(json.dumps(ctrl.state.to_dict()))
+    doc["vector_fit"]["kept"] = _packed_few(800)
+    late = Controller(ds, state=read_session_document(doc))
+    assert late.vector.result is None and late.state.vector_fit is None
+    assert "could not be run again" in late.message and "too few" in late.message
+
+
+def _packed_few(n):
+    from magcal_workbench.state import pack_mask
+
+    few = np.zeros(n, bool)
+    few[:5] = True
+    return pack_mask(few)
+
+
+@pytest.mark.parametrize(
+    "vector_fit, field",
+    [
+        ({"robust": True}, "vector_fit.kept"),
+        ({"kept": "@@", "robust": True}, "vector_fit.kept"),
+        ({"kept": None, "robust": True}, "vector_fit.kept"),
+        ({"kept": "KEPT", "robust": "yes"}, "vector_fit.robust"),
+        ({"kept": "KEPT", "robust": False, "noise_nT": -1.0}, "vector_fit.noise_nT"),
+        ({"kept": "KEPT", "robust": False, "run": "rm -rf"}, "vector_fit"),
+        ([1, 2], "vector_fit"),
+    ],
+)
+def test_a_damaged_vector_fit_in_the_session_file_is_named(vector_fit, field):
+    ds, _ = _vehicle(n=100)
+    doc = json.loads(json.dumps(Controller(ds).state.to_dict()))
+    if isinstance(vector_fit, dict) and vector_fit.get("kept") == "KEPT":
+        vector_fit = dict(vector_fit, kept=doc["selection"]["kept"])
+    doc["vector_fit"] = vector_fit
+    with pytest.raises(SessionFileError) as err:
+        read_session_document(doc)
+    assert err.value.field == field
+
+
 @pytest.mark.parametrize(
     "lat, lon, alt, date, words",
     [

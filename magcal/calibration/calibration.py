@@ -21,7 +21,7 @@ from magcal.core.errors import MagcalError, RecordTermWarning, exception_text
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.vectors import basis_times, row_norm
-from magcal.data.attitude import attitude
+from magcal.data.attitude import attitude_rows
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
 from magcal.model.platform_terms import PlatformTerms
@@ -468,7 +468,9 @@ class Calibration:
 
         Needs a vector calibration (``mode == "vector"``: body-frame vectors) and the data's attitude
         (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED): ``B_ned = R(q) B_body`` (``data``,
-        ``record_terms``, ``t``, ``temp`` as in :meth:`correct`).
+        ``record_terms``, ``t``, ``temp`` as in :meth:`correct`). A sample without attitude (NaN angles:
+        :func:`magcal.data.attitude.attitude_rows`) gets NaN world components; its body-frame vector
+        (:meth:`correct`) is still known.
         """
         dataset, _ = self._as_dataset(data, t, temp)
         if self.mode != "vector":
@@ -476,14 +478,17 @@ class Calibration:
                 "world components need a vector calibration (magcal calibrate --mode vector, with attitude and a "
                 "reference field vector): a total-field calibration leaves the sensor's rotation unknown"
             )
-        rotation = attitude(dataset)
-        if rotation is None:
+        found = attitude_rows(dataset)
+        if found is None:
             raise MagcalError(
                 f"the data {dataset.source or ''} have no attitude (qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg): "
                 "world components need it"
             )
+        rotation, have = found
         body = self.correct(dataset, record_terms) if corrected is None else corrected
-        return np.stack([rotation.apply(b) for b in body])
+        world = np.stack([rotation.apply(b) for b in body])
+        world[:, ~have] = np.nan
+        return world
 
     def total_field(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
         """Corrected total field (n_sensors, N) in nT, or (N,) for one sensor's ``(N, 3)`` array (``data``,
@@ -543,13 +548,17 @@ class Calibration:
     def world_tensor(self, dataset, corrected=None, record_terms=None) -> np.ndarray:
         """The gradient tensor in the world (north-east-down) frame, (N, 3, 3) nT/m: ``G_world = R A G A^T R^T`` with
         ``G`` the cross-frame tensor (:meth:`tensor`), ``A`` the cross's frame in the body (:meth:`tensor_frame`)
-        and ``R`` the attitude (four sensors, a vector calibration and attitude)."""
-        rotation = attitude(dataset)
-        if rotation is None or self.mode != "vector":
+        and ``R`` the attitude (four sensors, a vector calibration and attitude); NaN for a sample without
+        attitude."""
+        found = attitude_rows(dataset)
+        if found is None or self.mode != "vector":
             raise MagcalError("the tensor in world coordinates needs a vector calibration and the data's attitude")
+        rotation, have = found
         g = conventions.tensor_matrix(self.tensor(dataset, corrected, record_terms))
         r = rotation.as_matrix() @ self.tensor_frame()
-        return np.einsum("nij,njk,nlk->nil", r, g, r)
+        world = np.einsum("nij,njk,nlk->nil", r, g, r)
+        world[~have] = np.nan
+        return world
 
     # --- JSON -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:

@@ -558,12 +558,26 @@ def resolve_vector_reference(
                 if np.asarray(v).dtype.kind not in "fiu":
                     raise MagcalError(f"{where}: column {c} must hold numbers")
                 cols.append(np.asarray(v, dtype=float))
-            ned = igrf_ned_nT(cols[0], cols[1], cols[2] / 1000.0, date)
+            placed = np.isfinite(cols[0]) & np.isfinite(cols[1]) & np.isfinite(cols[2])  # NaN: no GPS fix yet
+            if not placed.any():
+                raise MagcalError(
+                    f"{where}: no sample has a position (the lat, lon, alt_m columns are empty or NaN: no GPS fix); "
+                    "give the place with --lat DEG --lon DEG, or the field vector with --reference-vector N,E,D"
+                )
+            for c, v, lo, hi in zip(POSITION_COLUMNS, cols, (-90, -360, -10_000), (90, 360, 2_000_000)):
+                out = placed & ((v < lo) | (v > hi))
+                if out.any():
+                    k = int(np.argmax(out))
+                    raise MagcalError(f"{where}: column {c}, data row {k + 1}: {v[k]:g} is not between {lo} and {hi}")
+            ned = np.full((n, 3), np.nan)
+            ned[placed] = igrf_ned_nT(cols[0][placed], cols[1][placed], cols[2][placed] / 1000.0, date)
             when = parse_date(date if date is not None else _dt.date.today()).date()
+            total = np.linalg.norm(ned[placed], axis=1)
+            unplaced = int(n - placed.sum())
             text = (
                 f"IGRF main field vector along the track (lat, lon, alt_m columns; {n} samples, {when}): |B| "
-                f"{np.linalg.norm(ned, axis=1).min():.0f}-{np.linalg.norm(ned, axis=1).max():.0f} nT; crustal "
-                "anomalies and the daily variation are not in it"
+                f"{total.min():.0f}-{total.max():.0f} nT; crustal anomalies and the daily variation are not in it"
+                + (f"; {unplaced} samples without a position have none" if unplaced else "")
             )
             return VectorReference(ned, text, "igrf-track")
         raise MagcalError(
@@ -581,11 +595,15 @@ def resolve_vector_reference(
         if any(c.dtype.kind not in "fiu" for c in cols):
             raise MagcalError(f"{where}: columns {', '.join(VECTOR_COLUMNS)} must hold numbers (nT)")
         ned = np.column_stack(cols).astype(float)
-        total = np.linalg.norm(ned, axis=1)
+        given = np.all(np.isfinite(ned), axis=1)  # an empty (NaN) row: no reference for that sample
+        if not given.any():
+            raise MagcalError(f"{where}: columns {', '.join(VECTOR_COLUMNS)} hold no finite row (nT)")
+        ned[~given] = np.nan
+        total = np.linalg.norm(ned[given], axis=1)
         _check_plausible(total, f"{where}: columns ref_n, ref_e, ref_d")
         text = (
             f"per-sample field vector columns ref_n, ref_e, ref_d: |B| mean {total.mean():.1f} nT, spread "
-            f"{np.ptp(total):.1f} nT"
+            f"{np.ptp(total):.1f} nT" + (f"; {int(n - given.sum())} samples without one" if not given.all() else "")
         )
         return VectorReference(ned, text, "column")
     return None

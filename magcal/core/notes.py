@@ -18,6 +18,8 @@ import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+import numpy as np
+
 from magcal.core.errors import DataWarning
 
 
@@ -87,3 +89,33 @@ def say(notes, text: str, category=DataWarning, where: str = "", stacklevel: int
         warnings.warn(text, category, stacklevel=stacklevel + 1)
     else:
         notes.append(Note(text, category, where))
+
+
+def runs(missing, first_row: int = 1) -> list[tuple[int, int]]:
+    """The runs of consecutive flagged rows in ``missing`` (bool, one per sample) as ``(first, last)`` row numbers,
+    the first sample being row ``first_row``."""
+    idx = np.flatnonzero(np.asarray(missing, dtype=bool))
+    if idx.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts = np.concatenate([idx[:1], idx[breaks + 1]]) + first_row
+    ends = np.concatenate([idx[breaks], idx[-1:]]) + first_row
+    return list(zip(starts.tolist(), ends.tolist()))
+
+
+def runs_text(row_runs_: list[tuple[int, int]], most: int = 3) -> str:
+    """``"rows 1-300, 1201-1212, 4000 and 2 more runs"``: the first ``most`` runs of :func:`runs`."""
+    if not row_runs_:
+        return "no rows"
+    parts = [f"{a}" if a == b else f"{a}-{b}" for a, b in row_runs_[:most]]
+    more = len(row_runs_) - most
+    single = len(row_runs_) == 1 and row_runs_[0][0] == row_runs_[0][1]
+    text = ("row " if single else "rows ") + ", ".join(parts)
+    return text + (f" and {more} more run{'s' if more > 1 else ''}" if more > 0 else "")
+
+
+def row_runs(missing, first_row: int = 1, most: int = 3) -> str:
+    """The rows flagged in ``missing`` (bool, one per sample) as a user counts them: runs of consecutive rows,
+    ``"rows 1-300, 1201-1212, 4000 and 2 more runs"`` (the first ``most`` runs); ``first_row`` is the number of the
+    first sample (1: data rows counted from 1, as the CSV readers' messages do)."""
+    return runs_text(runs(missing, first_row), most)

@@ -50,38 +50,115 @@ def attitude_source(dataset: Dataset) -> str | None:
 def attitude(dataset: Dataset) -> Rotation | None:
     """The body -> NED attitude of every sample, or None when the dataset has none.
 
+    The strict form: every sample must have one. :func:`attitude_rows` takes a record whose first samples (or a
+    gap) have none.
+
+    Raises
+    ------
+    DatasetError
+        Euler columns that are not numbers or not finite, quaternions that are not finite or zero, or only some
+        of the Euler columns present.
+    """
+    found = attitude_rows(dataset)
+    if found is None:
+        return None
+    rotation, have = found
+    if not have.all():
+        where = dataset.source or "data"
+        bad = int(np.argmin(have))
+        if attitude_source(dataset) == "euler":
+            c = next(c for c in EULER_COLUMNS if not np.isfinite(float(dataset.extra[c][bad])))
+            raise DatasetError(
+                f"{where}: column {c} must hold finite angles in degrees (data row {bad + 1} has none; "
+                f"{int(np.count_nonzero(~have))} rows lack an attitude)"
+            )
+        raise DatasetError(
+            f"{where}: the quaternion qw, qx, qy, qz of data row {bad + 1} is not a finite, non-zero quaternion "
+            f"({int(np.count_nonzero(~have))} rows lack an attitude)"
+        )
+    return rotation
+
+
+def attitude_rows(dataset: Dataset) -> tuple[Rotation, np.ndarray] | None:
+    """The body -> NED attitude of every sample and which samples have one, or None when the dataset has none.
+
+    A sample has no attitude when its Euler angles are not all finite (a live recording's samples before its
+    first ``ATTITUDE`` message, a gap in a log: NaN) or its quaternion is not finite or is zero.
+
+    Returns
+    -------
+    rotation : scipy.spatial.transform.Rotation
+        One per sample (N); the identity where a sample has none (so that arrays stay one row per sample).
+    have : numpy.ndarray of bool, shape (N,)
+        True where the sample has an attitude.
+
     Raises
     ------
     DatasetError
         Euler columns that are not numbers, or only some of them present.
     """
     kind = attitude_source(dataset)
+    where = dataset.source or "data"
     if kind == "quaternion":
-        return wxyz_rotation(dataset.attitude_wxyz)
-    present = [c for c in EULER_COLUMNS if c in dataset.extra]
-    if kind is None:
+        q = np.array(dataset.attitude_wxyz, dtype=float)
+    elif kind == "euler":
+        values = []
+        for c in EULER_COLUMNS:
+            v = np.asarray(dataset.extra[c])
+            if v.dtype.kind not in "fiu":
+                raise DatasetError(f"{where}: column {c} must hold angles in degrees (numbers; empty or nan: none)")
+            values.append(v.astype(float))
+        have = np.isfinite(values[0]) & np.isfinite(values[1]) & np.isfinite(values[2])
+        q = np.full((len(have), 4), np.nan)
+        if have.any():
+            q[have] = euler_to_wxyz(*(v[have] for v in values))
+    else:
+        present = [c for c in EULER_COLUMNS if c in dataset.extra]
         if present:
             raise DatasetError(
-                f"{dataset.source or 'data'}: attitude needs all three columns {', '.join(EULER_COLUMNS)} "
-                f"(degrees); found only {', '.join(present)}"
+                f"{where}: attitude needs all three columns {', '.join(EULER_COLUMNS)} (degrees); found only "
+                f"{', '.join(present)}"
             )
         return None
-    values = []
-    for c in EULER_COLUMNS:
-        v = dataset.extra[c]
-        if v.dtype.kind not in "fiu" or not np.all(np.isfinite(v.astype(float))):
-            raise DatasetError(f"{dataset.source or 'data'}: column {c} must hold finite angles in degrees")
-        values.append(v.astype(float))
-    return wxyz_rotation(euler_to_wxyz(*values))
+    q, have = filled_wxyz(q)
+    return wxyz_rotation(q), have
+
+
+def attitude_present(dataset: Dataset) -> np.ndarray | None:
+    """Which samples have an attitude (bool, shape (N,)), as :func:`attitude_rows` says, without turning the
+    angles into rotations; None when the dataset has no attitude."""
+    kind = attitude_source(dataset)
+    if kind == "quaternion":
+        return filled_wxyz(dataset.attitude_wxyz)[1]
+    if kind == "euler":
+        try:
+            values = [np.asarray(dataset.extra[c], dtype=float) for c in EULER_COLUMNS]
+        except (TypeError, ValueError):
+            found = attitude_rows(dataset)  # raises the message naming the column
+            return None if found is None else found[1]
+        return np.isfinite(values[0]) & np.isfinite(values[1]) & np.isfinite(values[2])
+    return None
+
+
+def filled_wxyz(q_wxyz) -> tuple[np.ndarray, np.ndarray]:
+    """``(q, have)``: the quaternions ``(N, 4)`` ``w, x, y, z`` (a copy) with the identity where a row is not a
+    finite, non-zero quaternion (a sample without attitude), and ``have`` (N,) bool, True where the row is one."""
+    q = np.array(q_wxyz, dtype=float).reshape(-1, 4)
+    have = np.all(np.isfinite(q), axis=1)
+    have[have] = np.sum(q[have] ** 2, axis=1) > 0
+    q[~have] = (1.0, 0.0, 0.0, 0.0)
+    return q, have
 
 
 def with_attitude(dataset: Dataset) -> Dataset:
     """The dataset with its Euler columns (if any) turned into the quaternion channel (unchanged otherwise)."""
     if attitude_source(dataset) != "euler":
         return dataset
-    rotation = attitude(dataset)
-    assert rotation is not None  # Euler columns give an attitude
+    found = attitude_rows(dataset)
+    assert found is not None  # Euler columns give one
+    rotation, have = found
     q = rotation.as_quat()
+    q[~have] = np.nan  # a sample without attitude keeps none
     return dataset.replace(attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]))
 
 

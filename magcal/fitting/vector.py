@@ -35,6 +35,11 @@ determined by the record (a note): found on real flight logs (benchmarks/real/ve
 aircraft carried level with a 3-5 deg attitude error gave biases of 100-170 uT with standard deviations of
 7-27 uT computed for white errors.
 
+Samples without attitude or reference. A live recording's samples before its first attitude message, a gap in a
+log, the samples before the GPS's fix (no position for IGRF along the track) hold NaN: the fit uses the other
+samples, exactly as a fit on the clean samples would (:class:`SampleGaps` counts those left out, a note names their
+rows), and refuses only when fewer than its minimum are left.
+
 Mounting. The 24 right-angle orientations are tried first, as ArduPilot's orientation detection does (a gain and
 an offset fitted for each; the best is the one the field vectors agree with), and the fit then refines the
 mounting continuously; the result says which right angle it was and how far off it the sensor sits.
@@ -54,8 +59,9 @@ from scipy.spatial.transform import Rotation
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.checks.reference import VectorReference
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
+from magcal.core.notes import Note, row_runs
 from magcal.core.stats import robust_sigma
-from magcal.data.attitude import attitude as dataset_attitude
+from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, firmware_rotation, nearest_right_angle
 from magcal.model.platform_terms import PlatformTerms, available_terms, current_column, n_params, term_basis
@@ -176,6 +182,92 @@ class SensorVectorFit:
 
 
 @dataclass
+class SampleGaps:
+    """The samples a vector fit leaves out because they lack an attitude or a reference field vector.
+
+    A live recording's samples before its first ``ATTITUDE`` message, a gap in a log, the samples before the GPS's
+    fix (no position for IGRF along the track): each is a sample without the body's attitude or without the field
+    vector, and the fit uses the others (:func:`fit_vector`).
+
+    Attributes
+    ----------
+    n_samples : int
+        Samples in the dataset.
+    n_chosen : int
+        Samples the fit was asked to use (its mask; all without one).
+    without_attitude, without_reference : numpy.ndarray of bool, shape (N,)
+        Chosen samples without an attitude; chosen samples without a finite reference vector (or reference total
+        field).
+    """
+
+    n_samples: int
+    n_chosen: int
+    without_attitude: np.ndarray
+    without_reference: np.ndarray
+
+    @classmethod
+    def count(cls, chosen, have_attitude, have_reference) -> SampleGaps:
+        """From the mask of chosen samples and the per-sample flags (all bool, shape (N,))."""
+        chosen = np.asarray(chosen, dtype=bool)
+        return cls(
+            int(chosen.size), int(chosen.sum()), chosen & ~have_attitude, chosen & ~np.asarray(have_reference, bool)
+        )
+
+    @property
+    def n_without_attitude(self) -> int:
+        return int(np.count_nonzero(self.without_attitude))
+
+    @property
+    def n_without_reference(self) -> int:
+        return int(np.count_nonzero(self.without_reference))
+
+    @property
+    def left_out(self) -> np.ndarray:
+        """Chosen samples left out of the fit (no attitude or no reference), bool (N,)."""
+        return self.without_attitude | self.without_reference
+
+    @property
+    def n_left_out(self) -> int:
+        return int(np.count_nonzero(self.left_out))
+
+    def where(self) -> str:
+        """Which rows lack what (data rows counted from 1)."""
+        parts = []
+        if self.n_without_attitude:
+            parts.append(f"no attitude in {row_runs(self.without_attitude)}")
+        if self.n_without_reference:
+            parts.append(f"no reference field vector in {row_runs(self.without_reference)}")
+        return "; ".join(parts)
+
+    def text(self) -> str:
+        """The note: how many samples were left out and why, naming the first rows."""
+        of = f"{self.n_chosen}" if self.n_chosen == self.n_samples else f"the {self.n_chosen} selected"
+        parts = []
+        if self.n_without_attitude:
+            parts.append(
+                f"{self.n_without_attitude} of {of} samples have no attitude ({row_runs(self.without_attitude)})"
+            )
+        if self.n_without_reference:
+            parts.append(
+                f"{self.n_without_reference}{'' if parts else f' of {of} samples'} have no reference field vector "
+                f"({row_runs(self.without_reference)}: no position for IGRF, e.g. before the GPS's fix, or empty "
+                "ref_n, ref_e, ref_d)"
+            )
+        fitted = self.n_chosen - self.n_left_out
+        if len(parts) == 1:
+            return f"{parts[0]} and were left out of the vector fit ({fitted} samples fitted)"
+        return f"{' and '.join(parts)}: those {self.n_left_out} were left out of the vector fit ({fitted} fitted)"
+
+    def to_dict(self) -> dict:
+        return {
+            "n_chosen": self.n_chosen,
+            "n_without_attitude": self.n_without_attitude,
+            "n_without_reference": self.n_without_reference,
+            "n_left_out": self.n_left_out,
+        }
+
+
+@dataclass
 class VectorFitResult:
     """Outcome of :func:`fit_vector`.
 
@@ -189,8 +281,15 @@ class VectorFitResult:
     terms : list of str
         Platform terms fitted.
     warnings : list of str
+        The fit's notes (:attr:`notes` gives them as :class:`~magcal.core.notes.Note` values).
     n_samples : int
+        Samples fitted.
     wall_s : float
+    fitted : numpy.ndarray of bool, shape (N,), or None
+        One entry per sample of the dataset: True where the sample was fitted (chosen by the mask, with an attitude
+        and a reference field vector).
+    gaps : SampleGaps or None
+        The chosen samples left out for lack of an attitude or a reference (their count is also a note).
     """
 
     calibration: Calibration
@@ -200,6 +299,13 @@ class VectorFitResult:
     warnings: list = field(default_factory=list)
     n_samples: int = 0
     wall_s: float = 0.0
+    fitted: np.ndarray | None = None
+    gaps: SampleGaps | None = None
+
+    @property
+    def notes(self) -> list[Note]:
+        """The fit's notes as values (:class:`~magcal.core.notes.Note`, :class:`DataWarning`)."""
+        return [Note(w, DataWarning, "vector fit") for w in self.warnings]
 
     @property
     def rms_vector_nT(self) -> float:
@@ -254,6 +360,7 @@ class VectorFitResult:
             "reference": {"text": self.reference.text, "kind": self.reference.kind},
             "terms": list(self.terms),
             "n_samples": self.n_samples,
+            "samples_left_out": None if self.gaps is None else self.gaps.to_dict(),
             "rms_vector_nT": self.rms_vector_nT,
             "rms_total_field_nT": self.rms_total_field_nT,
             "sensors": [s.summary() for s in self.sensors],
@@ -413,7 +520,10 @@ def fit_vector(
         beyond 5: for records with spikes or drop-outs.
     mask : numpy.ndarray of bool, shape (N,), optional
         The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
-        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact.
+        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact. Samples without an
+        attitude (NaN angles or quaternion: :func:`magcal.data.attitude.attitude_rows`) or without a finite
+        reference vector (no position for IGRF) are left out as well, and a note counts them and names their
+        rows (:attr:`VectorFitResult.gaps`, :attr:`VectorFitResult.fitted`).
     warn : bool
         Raise the fit's notes (:attr:`VectorFitResult.warnings`: weak tilt, samples set aside...) as
         :class:`~magcal.core.errors.DataWarning` (the default, for a user's call); False leaves them in the result
@@ -422,15 +532,17 @@ def fit_vector(
     Raises
     ------
     CalibrationError
-        No attitude, too few samples, a mirrored axis.
+        No attitude, a mirrored axis, too few samples: fewer than :data:`MIN_SAMPLES` (or the parameters per sensor)
+        left with an attitude and a reference (the message says how many had each).
     """
     start = time.perf_counter()
-    rotation = dataset_attitude(dataset)
-    if rotation is None:
+    found = attitude_rows(dataset)
+    if found is None:
         raise CalibrationError(
             f"{dataset.source or 'data'}: a vector calibration needs the attitude: qw, qx, qy, qz or roll_deg, "
             "pitch_deg, yaw_deg columns (or a flight log with ATT / vehicle_attitude)"
         )
+    rotation, have_attitude = found
     ned = np.asarray(reference.ned_nT, dtype=float)
     if ned.shape != (dataset.n_samples, 3):
         raise CalibrationError(f"the reference vector has shape {ned.shape}, expected ({dataset.n_samples}, 3)")
@@ -443,22 +555,38 @@ def fit_vector(
                 + ")"
             )
     n_par = 12 + sum(n_params(t) for t in terms)
-    keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool)
-    if keep.shape != (dataset.n_samples,):
-        raise CalibrationError(f"mask has shape {keep.shape}, expected ({dataset.n_samples},)")
-    if keep.sum() < max(MIN_SAMPLES, n_par):
+    chosen = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if chosen.shape != (dataset.n_samples,):
+        raise CalibrationError(f"mask has shape {chosen.shape}, expected ({dataset.n_samples},)")
+    f_all = (
+        np.linalg.norm(ned, axis=1)
+        if reference_total_nT is None
+        else np.broadcast_to(np.asarray(reference_total_nT, dtype=float), (dataset.n_samples,))
+    )
+    have_reference = np.all(np.isfinite(ned), axis=1) & np.isfinite(f_all)
+    keep = chosen & have_attitude & have_reference
+    gaps = SampleGaps.count(chosen, have_attitude, have_reference)
+    fewest = max(MIN_SAMPLES, n_par)
+    if keep.sum() < fewest:
+        if gaps.n_left_out:
+            raise CalibrationError(
+                f"{dataset.source or 'data'}: only {int(keep.sum())} of {gaps.n_chosen} samples have both an "
+                f"attitude and a reference field vector ({gaps.n_chosen - gaps.n_without_attitude} have an attitude, "
+                f"{gaps.n_chosen - gaps.n_without_reference} a reference): a vector fit of {n_par} parameters per "
+                f"sensor needs at least {fewest}. "
+                + gaps.where()
+                + "; record longer after the attitude (and the GPS's fix) starts"
+            )
         raise CalibrationError(
             f"{dataset.source or 'data'}: {int(keep.sum())} samples are too few for a vector fit of {n_par} "
             "parameters per sensor; record more"
         )
-    b_body = body_reference_nT(rotation, ned)[keep]
-    f_ref = (
-        np.linalg.norm(ned, axis=1)
-        if reference_total_nT is None
-        else np.broadcast_to(np.asarray(reference_total_nT, dtype=float), (dataset.n_samples,))
-    )[keep]
+    b_body = body_reference_nT(rotation[np.flatnonzero(keep)], ned[keep])
+    f_ref = f_all[keep]
     column = current_column(dataset) if "current" in terms else None
     notes = _declination_notes(dataset, ned[keep])
+    if gaps.n_left_out:
+        notes.append(gaps.text())
     fits = []
     platform = PlatformTerms(current_column=column)
     eddy, current = [], []
@@ -625,6 +753,8 @@ def fit_vector(
         warnings=notes,
         n_samples=int(keep.sum()),
         wall_s=time.perf_counter() - start,
+        fitted=keep,
+        gaps=gaps,
     )
     cal.summary = {"vector_fit": result.to_dict()}
     if warn:
@@ -757,12 +887,14 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
     terms = available_terms(dataset) if terms is None else list(terms)
     models = [[]] + ([[t] for t in terms] if len(terms) > 1 else []) + ([terms] if terms else [])
-    rotation = dataset_attitude(dataset)
-    if rotation is None:
+    found = attitude_rows(dataset)
+    if found is None:
         raise MagcalError(f"{dataset.source or 'dataset'}: the held-out check of a vector calibration needs attitude")
+    rotation, have = found
     ned = np.asarray(reference.ned_nT, dtype=float)
     f_ref = options.get("reference_total_nT")
     f_ref = np.linalg.norm(ned, axis=1) if f_ref is None else np.broadcast_to(np.asarray(f_ref, float), (n,))
+    scored = have & np.all(np.isfinite(ned), axis=1) & np.isfinite(f_ref)  # what the fits could use
     rows = []
     # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
     for model in models:
@@ -772,7 +904,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
         total = np.linalg.norm(world, axis=2) - f_ref[None]
 
         def rms(values, part):
-            return float(np.sqrt(np.mean(values[:, part] ** 2)))
+            return float(np.sqrt(np.mean(values[:, part & scored] ** 2)))
 
         rows.append(
             {

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal.core import conventions
 from magcal.core.errors import MagcalError
+from magcal.data.attitude import filled_wxyz
 
 #: Names of the base terms, in order.
 BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
@@ -521,6 +522,6 @@ def contexts(dataset, baseline_m=None):
     positions = conventions.sensor_positions(baseline, dataset.n_sensors)
     attitude = None
     if dataset.attitude_wxyz is not None:
-        q = dataset.attitude_wxyz
+        q, _ = filled_wxyz(dataset.attitude_wxyz)  # a sample without attitude (NaN): the identity
         attitude = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
     return [Context(dataset, s, positions[s], attitude) for s in range(dataset.n_sensors)]

@@ -34,8 +34,9 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration, RecordHasher
 from magcal.core import conventions
-from magcal.core.errors import MagcalError, RecordTermWarning
-from magcal.data.attitude import EULER_COLUMNS, attitude_source
+from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.core.notes import runs, runs_text
+from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import (
     CsvSource,
@@ -176,6 +177,49 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
         if tensor:
             parts.append(np.column_stack([u["tensor_sd_nT_per_m"][c] for c in TENSOR_COLUMNS]))
     return np.hstack(parts)
+
+
+class AttitudeGaps:
+    """The survey's rows without attitude, counted block by block as :func:`apply_file` corrects them: their world
+    (north-east-down) columns are NaN, their body-frame columns are written as on every row; one note counts them.
+
+    Attributes
+    ----------
+    rows : int
+        Rows seen.
+    missing : int
+        Rows without attitude (NaN angles or quaternion: before the first attitude message, a gap in a log).
+    row_runs : list of (int, int)
+        Their runs of consecutive data rows, counted from 1.
+    """
+
+    def __init__(self):
+        self.rows = 0
+        self.missing = 0
+        self.row_runs: list[tuple[int, int]] = []
+
+    def add(self, dataset) -> None:
+        """Count one block (the next ``dataset.n_samples`` rows)."""
+        have = attitude_present(dataset)
+        if have is not None and not have.all():
+            new = runs(~have, first_row=self.rows + 1)
+            if self.row_runs and new and new[0][0] == self.row_runs[-1][1] + 1:  # a run across the blocks' edge
+                self.row_runs[-1] = (self.row_runs[-1][0], new.pop(0)[1])
+            self.row_runs += new
+            self.missing += int(np.count_nonzero(~have))
+        self.rows += dataset.n_samples
+
+    def note(self, n_sensors, tensor=False) -> str | None:
+        """The note (None when every row had an attitude)."""
+        if not self.missing:
+            return None
+        world = ", ".join(f"s{i + 1}n_cal, s{i + 1}e_cal, s{i + 1}d_cal" for i in range(n_sensors))
+        if tensor:
+            world += ", " + ", ".join(WORLD_TENSOR_COLUMNS)
+        return (
+            f"{self.missing} of {self.rows} rows have no attitude ({runs_text(self.row_runs)}): their world "
+            f"components ({world}) are NaN; the body-frame columns are written for every row"
+        )
 
 
 @dataclass
@@ -375,6 +419,7 @@ def apply_file(
         meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
         bar = _progress_bar(os.path.getsize(survey_path), progress)
         rows = 0
+        gaps = AttitudeGaps()
         try:
             with atomic_write(output_path) as out:
                 for line in src.metadata_lines:
@@ -391,6 +436,8 @@ def apply_file(
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
                     values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world)
+                    if world:
+                        gaps.add(chunk.dataset)
                     out.write(
                         "".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist()))
                     )
@@ -404,6 +451,11 @@ def apply_file(
         finally:
             if bar is not None:
                 bar.close()
+    gap_note = gaps.note(calibration.n_sensors, tensor)
+    if gap_note:
+        import warnings
+
+        warnings.warn(f"{survey_path}: {gap_note}", DataWarning, stacklevel=2)
     return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
 
 
@@ -521,6 +573,7 @@ def apply_columns(
     if calibration_name:
         meta["magcal_calibration"] = calibration_name
     rows = 0
+    gaps = AttitudeGaps()
     to_parquet = is_parquet(output_path)
     tmp = f"{output_path}.tmp-{os.getpid()}"
     writer = behind = None
@@ -539,6 +592,8 @@ def apply_columns(
                         )
                     calibration.check(ds)
                 values = correct_block(calibration, ds, choice, uncertainty, world)
+                if world:
+                    gaps.add(ds)
                 cols = input_columns(survey_path, ds, names)
                 cols.update({name: values[:, k] for k, name in enumerate(names)})
                 if to_parquet:
@@ -569,6 +624,9 @@ def apply_columns(
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
+    gap_note = gaps.note(calibration.n_sensors, tensor)
+    if gap_note:
+        warnings.warn(f"{survey_path}: {gap_note}", DataWarning, stacklevel=3)
     return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)
 
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calibration.calibration import Calibration
-from magcal.core.errors import MagcalError, RecordTermWarning
+from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.data.dataset import DatasetError
 from magcal.data.io import (
     MAX_LINE_BYTES,
@@ -47,6 +47,7 @@ from magcal.data.io import (
     write_csv,
 )
 from magcal.output.apply import (
+    AttitudeGaps,
     _WriteBehind,
     correct_block,
     input_columns,
@@ -338,10 +339,10 @@ def correct_partition(
     drop_bad=False,
     uncertainty=False,
     compression=None,
-) -> tuple[str, int]:
+) -> tuple[str, int, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task): read from the
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
-    each). Returns the file written and its rows."""
+    each). Returns the file written, its rows, and how many of them had no attitude (their world columns NaN)."""
 
     _heap_blocks()
     calibration = Calibration.from_dict(calibration_doc)
@@ -361,6 +362,7 @@ def correct_partition(
     out = os.path.join(output_dir, f"part-{part.index:05d}.{fmt}")
     tmp = out + ".tmp"
     rows, writer, behind, blocks, source = 0, None, None, [], None
+    gaps = AttitudeGaps()
     try:
         for ds in chunks:
             if rows == 0:
@@ -373,6 +375,8 @@ def correct_partition(
                 world = writes_world(calibration, ds)
                 names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
             values = correct_block(calibration, ds, record_choice, uncertainty, world)
+            if world:
+                gaps.add(ds)
             cols = input_columns(part.path, ds, names)
             if source is None or len(source) < ds.n_samples:  # the file's name, made once
                 source = _source_column(os.path.basename(part.path), max(ds.n_samples, BLOCK_ROWS), fmt)
@@ -408,7 +412,7 @@ def correct_partition(
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
-    return out, rows
+    return out, rows, gaps.missing
 
 
 @dataclass
@@ -593,6 +597,16 @@ def apply_partitioned(
         if not done:  # a bad row, a failed task, Ctrl-C: no partial output under the final name
             shutil.rmtree(work_dir, ignore_errors=True)
     files = sorted(os.path.join(output_dir, os.path.basename(r[0])) for r in results)
+    missing = sum(r[2] for r in results)
+    if missing:
+        world = ", ".join(f"s{i + 1}n_cal, s{i + 1}e_cal, s{i + 1}d_cal" for i in range(calibration.n_sensors))
+        warnings.warn(
+            f"{missing} of {sum(r[1] for r in results)} rows have no attitude: their world components ({world}"
+            + (", Gnn.." if calibration.n_sensors == 4 and calibration.baseline_m else "")
+            + ") are NaN; the body-frame columns are written for every row",
+            DataWarning,
+            stacklevel=2,
+        )
     return PartitionedSummary(
         sum(r[1] for r in results),
         files,
