@@ -64,11 +64,14 @@ MAX_PROCESSES = 32
 BACKEND = None
 
 #: Readings (sensors x samples) from which a diagnosis's fits run in worker processes when there is more than one
-#: core. Below it the processes' start (each imports numpy, scipy and magcal: about 1.2 s of one core on the
-#: 2-core development machine) costs more than the threads lose. Measured there on a quiet machine
-#: (benchmarks/scaling.py, benchmarks/README.md): at 4 x 1e5 readings two threads 5.4 s, two processes 8.8 s; at
-#: 4 x 4e5 threads 21.7 s, processes 17.9 s; a straight line through each puts the crossing near 1e6 readings.
-PROCESS_MIN_READINGS = 1_000_000
+#: core. Below it the processes' start (the fork server importing numpy, scipy and magcal once per program: about
+#: 1.2 s of one core on the 2-core development machine) costs more than the threads lose. Measured there with two
+#: workers (2026-11-25, a fresh program each, the fork server cold; benchmarks/README.md): 4 x 5e4 samples serial
+#: 3.1 s, threads 3.0 s, processes 3.4 s; 4 x 1e5 serial 5.6 s, threads 5.3-6.3 s, processes 5.2-5.4 s (4.3 s once
+#: the fork server runs); 4 x 2e5 threads 10.2-12.2 s, processes 9.0-9.7 s. (With ``spawn``, which imported
+#: magcal in every worker of every pool, the crossing lay near 1e6 readings.) More cores only widen the processes'
+#: lead: threads stop paying beyond a few cores, processes do not.
+PROCESS_MIN_READINGS = 400_000
 
 #: Priorities of a :class:`Pool`'s work (lower first): fits on the longest chain (refits and the held-out fits
 #: they lead to), fits every candidate waits for, and evidence that is only read at the end.
