@@ -382,3 +382,37 @@ def test_each_partition_of_a_parallel_apply_counts_its_rows_without_attitude(tmp
         )
     said = [str(w.message) for w in caught if "no attitude" in str(w.message)]
     assert summary.rows == 300 and len(said) == 1 and said[0].startswith("30 of 300 rows have no attitude")
+
+
+@pytest.mark.parametrize("route", ["parquet_out", "workers"])
+def test_an_euler_csv_survey_gets_its_world_columns_by_every_route(tmp_path, route):
+    """A CSV survey whose attitude is in roll_deg, pitch_deg, yaw_deg (extra channels to the CSV reader): applied
+    to Parquet, and in partitions on a local cluster, the world columns are written as ``magcal apply`` to CSV
+    writes them (NaN on rows without attitude), and the angle columns are carried as numbers."""
+    pytest.importorskip("pyarrow")
+    import pandas as pd
+
+    from magcal.output.apply import apply_file
+
+    truth = vehicle_truth(seed=16)
+    one, _ = simulate_vehicle(truth, seed=16, n=1200)
+    two, _ = simulate_vehicle(truth, seed=17, n=300)
+    cal = fit_vector(one, resolve_vector_reference(one), terms=[], warn=False).calibration
+    gap = _gap(300, ((5, 9),))
+    _write_euler_csv(tmp_path / "two.csv", two, gap)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if route == "parquet_out":
+            apply_file(cal, tmp_path / "two.csv", tmp_path / "out.parquet")
+            frame = pd.read_parquet(tmp_path / "out.parquet")
+        else:
+            from magcal.output.survey import apply_partitioned
+
+            summary = apply_partitioned(
+                cal, [tmp_path / "two.csv"], tmp_path / "parts", workers=1, partition_rows=100, progress=False
+            )
+            frame = pd.concat([pd.read_parquet(f) for f in summary.files], ignore_index=True)
+    world = frame[["s1n_cal", "s1e_cal", "s1d_cal"]].to_numpy()
+    assert len(frame) == 300
+    assert np.isnan(world[gap]).all() and np.allclose(world[~gap], cal.world(two)[0][~gap], atol=1e-3)
+    assert frame["roll_deg"].dtype.kind == "f"

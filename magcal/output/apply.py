@@ -429,9 +429,7 @@ def apply_file(
                 csv.writer(header, lineterminator="\n").writerow(list(src.header) + new_names)
                 out.write(header.getvalue())
                 last_pos = src._file.tell()
-                # a vector calibration may read columns magcal keeps as extras (roll_deg.., current_A)
-                vector_mode = getattr(calibration, "mode", "scalar") == "vector"
-                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=vector_mode):
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=reads_extras(calibration)):
                     if rows == 0:
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
@@ -459,11 +457,19 @@ def apply_file(
     return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
 
 
-def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000):
+def reads_extras(calibration) -> bool:
+    """Whether correcting with ``calibration`` needs the columns a CSV reader keeps as extras (a vector
+    calibration's attitude as ``roll_deg, pitch_deg, yaw_deg``, its platform terms' ``current_A``, ``throttle``):
+    then the CSV readers read them too (``text_columns``), which they skip otherwise for speed."""
+    return getattr(calibration, "mode", "scalar") == "vector"
+
+
+def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False):
     """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
     metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.data.io.CsvSource`; a Parquet file by its
     record batches; a flight-controller log (:mod:`magcal.data.logs`) is read whole, as one block (its reader decodes
-    every message anyway). ``columns`` and ``units`` apply to a CSV only."""
+    every message anyway). ``columns`` and ``units`` apply to a CSV only, as does ``extras``: also read the columns
+    a CSV keeps as extra channels (:func:`reads_extras`)."""
 
     path = os.fspath(survey_path)
     if is_log(path):
@@ -474,7 +480,7 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
 
         def csv_chunks():
             with src:
-                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
+                for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=extras):
                     yield chunk.dataset
 
         return dict(src.metadata), csv_chunks()
@@ -561,7 +567,7 @@ def apply_columns(
     choice, note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
     if note:
         warnings.warn(note, RecordTermWarning, stacklevel=3)
-    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)
+    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=reads_extras(calibration))
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
     names = output_columns(calibration.n_sensors, tensor, uncertainty)
     meta = {

@@ -53,6 +53,7 @@ from magcal.output.apply import (
     input_columns,
     load_calibration,
     output_columns,
+    reads_extras,
     record_choice,
     writes_world,
 )
@@ -275,15 +276,16 @@ def _parquet_part(part: Partition, chunk_rows=BLOCK_ROWS):
     return dict(src.metadata), chunks()
 
 
-def _csv_part(part: Partition, columns=None, units=None, drop_bad=False):
-    """The file's metadata and the partition's rows (a CSV's range of lines) as datasets, read with its head."""
+def _csv_part(part: Partition, columns=None, units=None, drop_bad=False, extras=False):
+    """The file's metadata and the partition's rows (a CSV's range of lines) as datasets, read with its head
+    (``extras``: its extra channels too, :func:`magcal.output.apply.reads_extras`)."""
     head, _ = _csv_head(part.path)
     with open(part.path, "rb") as fh:
         fh.seek(part.start)
         body = fh.read(part.stop - part.start)
     name = f"{part.path} (lines from {part.first_line})"
     with CsvSource(_io.BytesIO(head + body), columns=columns, units=units, name=name) as src:
-        parts = [c.dataset for c in src.chunks(BLOCK_ROWS, drop_bad=drop_bad, text_columns=False)]
+        parts = [c.dataset for c in src.chunks(BLOCK_ROWS, drop_bad=drop_bad, text_columns=extras)]
         meta = dict(src.metadata)
     if not parts:
         raise DatasetError(f"{name}: no data rows")
@@ -349,7 +351,7 @@ def correct_partition(
     if part.kind == "parquet":
         meta, chunks = _parquet_part(part)
     else:
-        meta, chunks = _csv_part(part, columns, units, drop_bad)
+        meta, chunks = _csv_part(part, columns, units, drop_bad, extras=reads_extras(calibration))
     tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
     meta = {
         **meta,
