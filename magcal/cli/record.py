@@ -47,7 +47,8 @@ def add_source_arguments(parser) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="serial: longest total wait for a lost port to come back, s (default 30; 0: stop at once)",
+        help="serial (text lines or MAVLink): longest total wait for a lost port to come back, s (default 30; 0: stop "
+        "at once)",
     )
     group.add_argument(
         "--attitude-max-dt",

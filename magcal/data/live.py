@@ -5,7 +5,7 @@ One interface for every instrument (``docs/export.md`` has the URL forms):
 ``serial:///dev/ttyUSB0?baud=115200&columns=x,y,z``
     Text lines from a serial port (pyserial), opened again when it disappears (a board reset, a USB
     re-enumeration) for up to ``reconnect`` s (default 30), with nothing received lost (:class:`SerialSource`).
-    Also ``&mavlink`` for MAVLink over the port.
+    Also ``&mavlink`` for MAVLink over the port, reopened the same way.
 ``udp://127.0.0.1:14550?format=lines`` / ``tcp://127.0.0.1:5760``
     Text lines in UDP datagrams (listening on the address) or from a TCP server (connecting to it).
 ``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``)
@@ -116,6 +116,9 @@ POSITION_CHANNELS = ("lat", "lon", "alt_m")
 MAVLINK_ATTITUDE_BUFFER = 512
 MAVLINK_HOLD_S = 0.3
 POSITION_MAX_AGE_S = 10.0
+
+#: pymavlink connection strings that are not a serial device (any other device string is one).
+_MAVLINK_NETWORK = re.compile(r"(tcp|tcpin|udp|udpin|udpout|udpbcast|mcast|uds|unix|ws|wss|wsserver|csv):", re.I)
 
 #: HIGHRES_IMU ``fields_updated`` bits of xmag, ymag, zmag and of the temperature.
 _HIGHRES_MAG_BITS = 0b111 << 6
@@ -232,7 +235,8 @@ class SourceStats:
     n_skipped: int = 0
     last_skipped: str | None = None
     skipped: collections.Counter = field(default_factory=collections.Counter)
-    #: Times the source lost its port and opened it again (:class:`SerialSource`).
+    #: Times the source lost its port and opened it again (:class:`SerialSource`, :class:`MavlinkSource` on a serial
+    #: device).
     n_reconnects: int = 0
     #: Why the port was last lost, or None.
     last_disconnect: str | None = None
@@ -553,6 +557,110 @@ class LineParser:
         return t, readings, temp, channels
 
 
+class _DeviceClock:
+    """A device's time stamps (s) put on the source's time line across restarts of the device's clock (a reboot).
+
+    The clock restarted when a time stamp goes back by more than :data:`CLOCK_RESET_S`, or at all in the first one
+    after :attr:`restart_possible` was set (the port was reopened: the device may have rebooted); the stamps from
+    then on are shifted to follow on from the latest time given, by the time the host saw pass since the previous
+    stamp (at least 1 ms). :attr:`resets` counts the restarts: the device's boots seen after the first.
+    """
+
+    def __init__(self):
+        self.resets = 0
+        self.restart_possible = False
+        self._device_t = None  # the last time stamp the device sent, and the shift added to it
+        self._offset = 0.0
+        self._host_t = None  # host clock at that stamp
+        self._out_max = None  # the latest time given so far on the source's time line
+
+    def follow(self, t: float) -> float:
+        """The device's time ``t`` (s, finite) on the source's time line (s)."""
+        now = time.monotonic()
+        restarted = self.restart_possible and self._device_t is not None and t <= self._device_t
+        self.restart_possible = False
+        if self._device_t is not None and (restarted or t < self._device_t - CLOCK_RESET_S):
+            self._offset = self._out_max + max(now - self._host_t, 1e-3) - t
+            self.resets += 1
+        self._device_t, self._host_t = t, now
+        out = t + self._offset
+        self._out_max = out if self._out_max is None else max(self._out_max, out)
+        return out
+
+
+class _ReopensPort:
+    """A :class:`LiveSource` on a serial port that reopens it when it disappears (:class:`SerialSource`, and
+    :class:`MavlinkSource` on a serial device).
+
+    When a read fails the source calls :meth:`_lose`; while :attr:`connected` is False it calls :meth:`_reopen`
+    instead of reading, which opens the same path again after 0.1 s, then at doubling intervals up to
+    :data:`RECONNECT_MAX_INTERVAL_S`, for at most ``reconnect_s`` in all, and raises :class:`LiveError` (naming the
+    device and the wait) beyond; with ``reconnect_s=0`` the loss itself raises. The source implements
+    ``_open_port()`` (raising one of ``_port_errors`` while the port is absent), ``_close_port()``, and the hooks
+    ``_port_lost()`` (what the loss cut) and ``_port_back()`` (what a reopened port starts afresh).
+    """
+
+    def _init_reopen(self, device, reconnect_s, errors):
+        self.device = device
+        self.reconnect_s = float(reconnect_s)
+        self._port_errors = errors
+        self._lost_at = None  # host time the port was lost, while it is
+        self._next_try = 0.0
+        self._interval = 0.1
+        self._last_try = None  # why the last try to reopen the port failed
+
+    @property
+    def connected(self) -> bool:
+        """False while the port is lost and being reopened."""
+        return self._lost_at is None
+
+    def _port_lost(self):
+        """What the loss cut (a line, a packet): counted as bad, never joined to what comes after."""
+
+    def _port_back(self):
+        """The port was reopened: the device may have rebooted."""
+
+    def _lose(self, exc):
+        """The port failed: close it, keep what was read, and start reopening it (or raise)."""
+        try:
+            self._close_port()
+        except Exception:  # a port that has gone: nothing left to release
+            pass
+        if self.reconnect_s <= 0:
+            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?")
+        self._port_lost()
+        self.stats.last_disconnect = f"lost: {exc}"
+        self._lost_at = time.monotonic()
+        self._next_try = self._lost_at + 0.1
+        self._interval = 0.1
+        self._last_try = None
+
+    def _reopen(self, timeout_s):
+        """Try to open the port again when the next try is due (waiting at most ``timeout_s``)."""
+        now = time.monotonic()
+        if now - self._lost_at > self.reconnect_s:
+            tried = f" (last try: {self._last_try})" if self._last_try else ""
+            raise LiveError(
+                f"{self.url}: the serial port {self.device} was lost ({self.stats.last_disconnect}) and did not come "
+                f"back within {self.reconnect_s:g} s{tried}; is the device connected?"
+            )
+        if now < self._next_try:
+            time.sleep(max(0.0, min(timeout_s, self._next_try - now)))
+            return
+        try:
+            self._open_port()
+        except self._port_errors as exc:
+            self._last_try = exc
+            self._interval = min(self._interval * 2.0, RECONNECT_MAX_INTERVAL_S)
+            self._next_try = time.monotonic() + self._interval
+            return
+        gap = time.monotonic() - self._lost_at
+        self.stats.n_reconnects += 1
+        self.stats.last_disconnect = f"{self.stats.last_disconnect}; reopened after {gap:.1f} s"
+        self._lost_at = None
+        self._port_back()
+
+
 class _LineSource(LiveSource):
     """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``.
 
@@ -569,31 +677,22 @@ class _LineSource(LiveSource):
         self.n_sensors = parser.n_sensors
         self.has_temperature = parser.index_temp is not None
         self.channel_names = parser.channel_names
-        self.clock_resets = 0
         self._buffer = b""
         self._line_no = 0
         self._skip_partial = False
         self._seen_data = False  # a sample since the source opened or reconnected
-        self._device_t = None  # the last time stamp the device sent, and the shift added to it
-        self._clock_offset = 0.0
-        self._host_t = None  # host clock at that sample
-        self._restart_possible = False  # the port was reopened: the device may have restarted its clock
-        self._out_max = None  # the latest time given so far on the source's time line
+        self._clock = _DeviceClock()
+
+    @property
+    def clock_resets(self) -> int:
+        """Restarts of the device's clock seen (reboots)."""
+        return self._clock.resets
 
     def _device_clock(self, t):
         """The device's time ``t`` (s) on the source's time line, across restarts of the device's clock."""
         if bad_values(t):  # refused later as a bad value; it says nothing about the device's clock
             return t
-        now = time.monotonic()
-        restarted = self._restart_possible and self._device_t is not None and t <= self._device_t
-        self._restart_possible = False
-        if self._device_t is not None and (restarted or t < self._device_t - CLOCK_RESET_S):
-            self._clock_offset = self._out_max + max(now - self._host_t, 1e-3) - t
-            self.clock_resets += 1
-        self._device_t, self._host_t = t, now
-        out = t + self._clock_offset
-        self._out_max = out if self._out_max is None else max(self._out_max, out)
-        return out
+        return self._clock.follow(t)
 
     def _receive(self, timeout_s):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -645,7 +744,7 @@ class _LineSource(LiveSource):
         return samples
 
 
-class SerialSource(_LineSource):
+class SerialSource(_ReopensPort, _LineSource):
     """Text lines from a serial port (pyserial), reopened when it disappears.
 
     When the port fails (a board reset, a USB re-enumeration, a cable pulled), the source closes it and tries to
@@ -675,79 +774,41 @@ class SerialSource(_LineSource):
         except ImportError:
             raise LiveError(f'{url}: serial ports need pyserial: pip install "magcal-workbench[instruments]"') from None
         self._serial = serial
-        self._serial_error = serial.SerialException
-        self.device = port
         self.baud = baud
-        self.reconnect_s = float(reconnect_s)
-        self._lost_at = None  # host time the port was lost, while it is
-        self._next_try = 0.0
-        self._interval = 0.1
+        self._init_reopen(port, reconnect_s, (serial.SerialException, OSError, ValueError))
         try:
-            self._port = self._open()
+            self._open_port()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LiveError(
                 f"{url}: cannot open the serial port {port} ({exc}); check the device path and that no "
                 "other program holds it"
             ) from None
 
-    def _open(self):
-        return self._serial.Serial(self.device, baudrate=self.baud, timeout=0.1)
+    def _open_port(self):
+        self._port = self._serial.Serial(self.device, baudrate=self.baud, timeout=0.1)
 
-    @property
-    def connected(self) -> bool:
-        """False while the port is lost and being reopened."""
-        return self._lost_at is None
+    def _close_port(self):
+        self._port.close()
 
-    def _lose(self, exc):
-        """The port failed: close it, keep what was read, and start reopening it (or raise)."""
-        try:
-            self._port.close()
-        except Exception:  # a port that has gone: nothing left to release
-            pass
-        if self.reconnect_s <= 0:
-            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?")
+    def _port_lost(self):
         if self._buffer:  # a line cut by the loss: never joined to what comes after
             self._line_no += 1
             self.stats.bad("cut line: the port was lost in the middle of it", f"line {self._line_no}")
             self._buffer = b""
         self._skip_partial = False
-        self.stats.last_disconnect = f"lost: {exc}"
-        self._lost_at = time.monotonic()
-        self._next_try = self._lost_at + 0.1
-        self._interval = 0.1
 
-    def _reopen(self, timeout_s):
-        """Try to open the port again when the next try is due (waiting at most ``timeout_s``)."""
-        now = time.monotonic()
-        if now - self._lost_at > self.reconnect_s:
-            raise LiveError(
-                f"{self.url}: the serial port {self.device} was lost ({self.stats.last_disconnect}) and did not come "
-                f"back within {self.reconnect_s:g} s; is the device connected?"
-            )
-        if now < self._next_try:
-            time.sleep(max(0.0, min(timeout_s, self._next_try - now)))
-            return
-        try:
-            self._port = self._open()
-        except (self._serial_error, OSError, ValueError):
-            self._interval = min(self._interval * 2.0, RECONNECT_MAX_INTERVAL_S)
-            self._next_try = time.monotonic() + self._interval
-            return
-        gap = time.monotonic() - self._lost_at
-        self.stats.n_reconnects += 1
-        self.stats.last_disconnect = f"{self.stats.last_disconnect}; reopened after {gap:.1f} s"
-        self._lost_at = None
+    def _port_back(self):
         self._seen_data = False  # the board's banner comes first
-        self._restart_possible = True  # and its clock may start again from 0
+        self._clock.restart_possible = True  # and its clock may start again from 0
 
     def _receive(self, timeout_s):
-        if self._lost_at is not None:
+        if not self.connected:
             self._reopen(timeout_s)
             return b""
         try:
             self._port.timeout = max(timeout_s, 0.001)
             return self._port.read(max(1, self._port.in_waiting))
-        except (self._serial_error, OSError, TypeError) as exc:  # TypeError: pyserial reading a closed descriptor
+        except (OSError, TypeError) as exc:  # TypeError: pyserial reading a closed descriptor
             self._lose(exc)
             return b""
 
@@ -822,7 +883,7 @@ def _bind_udp(url, host, port):
 
 
 # -- MAVLink ---------------------------------------------------------------------------------------------------------
-class MavlinkSource(LiveSource):
+class MavlinkSource(_ReopensPort, LiveSource):
     """Magnetometer fields of MAVLink IMU messages (pymavlink), converted to nT, with the vehicle's attitude and
     position merged onto them.
 
@@ -830,7 +891,9 @@ class MavlinkSource(LiveSource):
     ----------
     url : str
     device : str
-        pymavlink connection string (``udpin:127.0.0.1:14550``, ``tcp:host:port``, a serial device).
+        pymavlink connection string (``udpin:127.0.0.1:14550``, ``tcp:host:port``), or else a serial device's path
+        (``/dev/ttyACM0``, ``/dev/serial/by-path/pci-0000:00:14.0-usb-0:1:1.0``, ``COM3``), always opened as a
+        serial port.
     message : str, optional
         Read only this message (``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``, ``HIGHRES_IMU``);
         default the first of them that arrives.
@@ -841,9 +904,17 @@ class MavlinkSource(LiveSource):
         dialects; ArduPilot sends milligauss: 100).
     attitude_max_dt_s : float
         Largest time (s) between a magnetometer sample and the ``ATTITUDE`` message merged onto it.
+    reconnect_s : float
+        On a serial device: longest total wait for the port to come back after it is lost (s); 0 for none.
 
     Times are the vehicle's (``time_boot_ms``, ``time_usec``); when they jump back by more than 1 s (a reboot),
-    later samples are shifted to follow on (:attr:`clock_resets` counts it), so a recording goes on.
+    or at all in the first message after the serial port was reopened, later samples are shifted to follow on by the
+    time the host saw pass (:attr:`clock_resets` counts it), so a recording goes on.
+
+    A serial device that disappears (an autopilot reset, a USB re-enumeration) is opened again as
+    :class:`SerialSource` does: under the same path, at growing intervals, for at most ``reconnect_s`` in all
+    (``stats.n_reconnects``, ``stats.last_disconnect``, :attr:`connected`), then :class:`LiveError`; the samples
+    read before the loss are kept, and a packet cut by it is counted as bad (``cut packet``).
 
     ``ATTITUDE`` (roll, pitch, yaw and the body rates) is merged onto each magnetometer sample from the message
     nearest in vehicle time, within ``attitude_max_dt_s`` (NaN beyond), as the channels ``roll_deg, pitch_deg,
@@ -855,39 +926,89 @@ class MavlinkSource(LiveSource):
     m, a few nT of IGRF): every sample carries the latest fix received before it, when it is at most
     :data:`POSITION_MAX_AGE_S` old (NaN otherwise); :attr:`location` is the latest fix. Whether the samples carry
     the attitude and the position is decided when the first one is released: by whether an ``ATTITUDE`` or a GPS
-    message has arrived by then.
+    message has arrived by then. The two boots of a vehicle that rebooted are never mixed: a sample gets an
+    ``ATTITUDE`` of its own boot only, and a position received since the serial port was last (re)opened.
     """
 
-    def __init__(self, url, device, message=None, baud=115200, raw_lsb_nT=100.0, attitude_max_dt_s=0.2):
+    def __init__(
+        self,
+        url,
+        device,
+        message=None,
+        baud=115200,
+        raw_lsb_nT=100.0,
+        attitude_max_dt_s=0.2,
+        reconnect_s=RECONNECT_DEFAULT_S,
+    ):
         super().__init__(url)
         try:
             from pymavlink import mavutil
         except ImportError:
             raise LiveError(f'{url}: MAVLink needs pymavlink: pip install "magcal-workbench[instruments]"') from None
+        self._mavutil = mavutil
+        #: Whether the device is a serial port (reopened when it disappears), not a network connection.
+        self.serial = not _MAVLINK_NETWORK.match(device)
+        if self.serial:
+            try:
+                import serial  # noqa: F401 - pymavlink opens the port with it
+            except ImportError:
+                raise LiveError(
+                    f'{url}: serial ports need pyserial: pip install "magcal-workbench[instruments]"'
+                ) from None
+        self.baud = baud
+        # pyserial's SerialException is an OSError
+        self._init_reopen(device, reconnect_s if self.serial else 0.0, (OSError, ValueError))
+        self._link = 0  # losses of the serial port: a fix is merged only onto samples read before the next loss
         if message is not None and message not in MAVLINK_MESSAGES:
             raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
         self.message = message
         self.raw_lsb_nT = float(raw_lsb_nT)
         self.attitude_max_dt_s = float(attitude_max_dt_s)
         self.n_sensors = 1
-        self.clock_resets = 0  # vehicle reboots seen: its clock went back by more than 1 s
-        self._vehicle_t = None
-        self._clock_offset = 0.0
-        self._mag_boot = 0  # reboots seen in the magnetometer's clock and in ATTITUDE's
-        self._att_boot = 0
-        self._att_last = None
+        self._clock = _DeviceClock()  # the magnetometer's vehicle time; its resets number the boots
+        self._att_clock = _DeviceClock()  # ATTITUDE's, for its boots only
         #: ATTITUDE messages as (boot, vehicle time s, roll, pitch, yaw deg, p, q, r deg/s), oldest first
         self._attitudes = collections.deque(maxlen=MAVLINK_ATTITUDE_BUFFER)
         #: magnetometer samples waiting for their attitude: (boot, raw t, sample, host time, position)
         self._pending = collections.deque()
         self._mag_latest = None  # (boot, raw t) of the newest magnetometer sample
         self._gps_seen = False
-        self._position = None  # (lat, lon, alt_m, host time) of the latest fix
+        self._position = None  # (lat, lon, alt_m, host time, link) of the latest fix
         self._with_attitude = self._with_position = None  # decided when the first sample is released
         try:
-            self._conn = mavutil.mavlink_connection(device, baud=baud, source_system=255, autoreconnect=False)
+            self._open_port()
         except Exception as exc:  # pymavlink raises many kinds for a device that does not open
+            if self.serial:
+                raise LiveError(
+                    f"{url}: cannot open the serial port {device} ({exc}); check the device path and that no other "
+                    "program holds it"
+                ) from None
             raise LiveError(f"{url}: cannot open the MAVLink connection {device} ({exc})") from None
+
+    def _open_port(self):
+        if self.serial:  # never pymavlink's guess from the name (a path with colons is no UDP address)
+            self._conn = self._mavutil.mavserial(self.device, baud=self.baud, source_system=255, autoreconnect=False)
+        else:
+            self._conn = self._mavutil.mavlink_connection(
+                self.device, baud=self.baud, source_system=255, autoreconnect=False
+            )
+
+    def _close_port(self):
+        self._conn.close()
+
+    def _port_lost(self):
+        if self._conn.mav.buf_len():  # a packet cut by the loss: the reopened port's parser starts afresh
+            self.stats.bad("cut packet: the port was lost in the middle of it")
+        self._link += 1  # the fix received so far is not merged onto what comes after the loss
+
+    def _port_back(self):
+        self._clock.restart_possible = True  # the vehicle may have rebooted: its clocks start again from 0
+        self._att_clock.restart_possible = True
+
+    @property
+    def clock_resets(self) -> int:
+        """Vehicle reboots seen: its clock went back by more than 1 s, or at all after the port was reopened."""
+        return self._clock.resets
 
     @property
     def location(self):
@@ -916,12 +1037,8 @@ class MavlinkSource(LiveSource):
         readings = np.array([[msg.xmag, msg.ymag, msg.zmag]], dtype=float) * factor
         time_field = MAVLINK_MESSAGES[kind]
         raw = float(getattr(msg, time_field)) * (1e-3 if time_field == "time_boot_ms" else 1e-6)
-        if self._vehicle_t is not None and raw < self._vehicle_t - CLOCK_RESET_S:  # the vehicle rebooted
-            self._clock_offset += self._vehicle_t - raw + 1e-3
-            self.clock_resets += 1
-            self._mag_boot += 1
-        self._vehicle_t = raw
-        t = raw + self._clock_offset
+        t = self._clock.follow(raw)
+        boot = self._clock.resets
         temp = None
         if self.has_temperature is not False and hasattr(msg, "temperature"):
             units = (getattr(msg, "fieldunits_by_name", {}) or {}).get("temperature")
@@ -932,19 +1049,17 @@ class MavlinkSource(LiveSource):
                 temp = value if int(msg.fields_updated) & _HIGHRES_TEMP_BIT or self.has_temperature else None
             else:
                 temp = value
-        self._mag_latest = (self._mag_boot, raw)
-        return self._mag_boot, raw, (t, readings, temp)
+        self._mag_latest = (boot, raw)
+        return boot, raw, (t, readings, temp)
 
     def _attitude(self, msg):
         raw = float(msg.time_boot_ms) * 1e-3
-        if self._att_last is not None and raw < self._att_last - CLOCK_RESET_S:
-            self._att_boot += 1
-        self._att_last = raw
+        self._att_clock.follow(raw)
         angles = np.degrees([msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed])
         if not np.all(np.isfinite(angles)):
             raise ValueError("bad value: ATTITUDE holds a value that is not a number")
         angles[2] = (angles[2] + 180.0) % 360.0 - 180.0
-        self._attitudes.append((self._att_boot, raw, *angles.tolist()))
+        self._attitudes.append((self._att_clock.resets, raw, *angles.tolist()))
 
     def _gps(self, msg):
         self._gps_seen = True
@@ -958,7 +1073,7 @@ class MavlinkSource(LiveSource):
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
         if (lat == 0 and lon == 0) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             return  # no position yet (ArduPilot sends 0, 0), or not one
-        self._position = (float(lat), float(lon), float(alt_mm) * 1e-3, time.monotonic())
+        self._position = (float(lat), float(lon), float(alt_mm) * 1e-3, time.monotonic(), self._link)
 
     def _nearest_attitude(self, boot, raw):
         best = None
@@ -1010,11 +1125,20 @@ class MavlinkSource(LiveSource):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            try:
-                msg = self._conn.recv_match(blocking=True, timeout=min(remaining, 0.05 if self._pending else 0.2))
-            except Exception as exc:  # a damaged packet pymavlink cannot decode
-                self.stats.bad(f"bad packet: {exc}")
-                continue
+            wait = min(remaining, 0.05 if self._pending else 0.2)
+            if not self.connected:  # a lost serial port: nothing to read until it is back
+                self._reopen(wait)
+                msg = None
+            else:
+                try:
+                    msg = self._conn.recv_match(blocking=True, timeout=wait)
+                except Exception as exc:
+                    if self.serial and isinstance(exc, OSError):  # the port failed (pyserial's errors are OSErrors)
+                        self._lose(exc)
+                        msg = None
+                    else:  # a damaged packet pymavlink cannot decode
+                        self.stats.bad(f"bad packet: {exc}")
+                        continue
             if msg is not None:
                 self._handle(msg)
             released = self._release()
@@ -1043,7 +1167,8 @@ class MavlinkSource(LiveSource):
                 found = self._sample(msg)
                 if found is not None:
                     boot, raw, sample = found
-                    self._pending.append((boot, raw, sample, time.monotonic(), self._position))
+                    fix = self._position if self._position is not None and self._position[4] == self._link else None
+                    self._pending.append((boot, raw, sample, time.monotonic(), fix))
         except (ValueError, AttributeError, TypeError) as exc:
             self.stats.bad(str(exc), kind)
 
@@ -1272,13 +1397,18 @@ def open_source(url: str, **options) -> LiveSource:
     if scheme == "serial":
         device = urllib.parse.unquote(parsed.path if not parsed.netloc else parsed.netloc + parsed.path)
         baud = number("baud", 115200, int, BAUD_RANGE)
+        reconnect_s = number("reconnect", RECONNECT_DEFAULT_S, float, RECONNECT_RANGE_S)
         if mavlink:
             return MavlinkSource(
-                url, device, params.get("message"), baud, number("raw_lsb_nT", 100.0, float, (1e-6, 1e9)), attitude_dt
+                url,
+                device,
+                params.get("message"),
+                baud,
+                number("raw_lsb_nT", 100.0, float, (1e-6, 1e9)),
+                attitude_dt,
+                reconnect_s=reconnect_s,
             )
-        return SerialSource(
-            url, device, baud, parser(), reconnect_s=number("reconnect", RECONNECT_DEFAULT_S, float, RECONNECT_RANGE_S)
-        )
+        return SerialSource(url, device, baud, parser(), reconnect_s=reconnect_s)
     try:
         host, port = parsed.hostname, parsed.port
     except ValueError as exc:  # a port that is not a number, or beyond 65535
