@@ -104,11 +104,13 @@ def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, m
         shared = pool.remote(operator.attrgetter("readings_nT", "temperature_C", "time_s"))
         assert not pool.remote(operator.attrgetter("readings_nT.flags.writeable"))
         limits = pool.remote(_blas_threads)
+        heap_kept = pool.remote(_heap_kept)
         fitted = pool.remote(fit_with_notes, None, None, "linear", None, None, None, 1)
 
     for a, b in zip(shared, (ds.readings_nT, ds.temperature_C, ds.time_s)):
         np.testing.assert_array_equal(a, b)
     assert limits and set(limits) == {1}  # BLAS on one thread in the worker, numpy's and scipy's alike
+    assert heap_kept  # the allocator's thresholds raised (tests/test_memory.py), whatever Dask left in the env
     assert fitted.problem is None and fitted.notes and fitted.notes[0].is_a(ConvergenceWarning)
     assert _segments() == []
 
@@ -154,6 +156,12 @@ def _blas_threads(dataset):
     from threadpoolctl import threadpool_info
 
     return [lib["num_threads"] for lib in threadpool_info() if lib.get("user_api") == "blas"]
+
+
+def _heap_kept(dataset):
+    from magcal.core import memory
+
+    return memory._SET
 
 
 def _crash(dataset):

@@ -22,6 +22,7 @@ Messages from a task name the file and the line (CSV: counted from the partition
 from __future__ import annotations
 
 import io as _io
+import multiprocessing
 import os
 import shutil
 import tempfile
@@ -32,6 +33,7 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import DatasetError
 from magcal.data.io import (
     MAX_LINE_BYTES,
@@ -70,6 +72,13 @@ MIN_PARTITION_ROWS = 20_000
 MAX_PARTITION_ROWS = 2_000_000
 #: Seconds to wait for a cluster's scheduler.
 CONNECT_TIMEOUT_S = 10.0
+#: How the local cluster starts its worker processes: forked from a fork server (one per program, which imports
+#: dask.distributed and its libraries once; Dask's ``distributed.worker.multiprocessing-method``) where the platform
+#: has one, else ``spawn`` (Dask's default: every worker a new interpreter importing them all). On the 2-core
+#: development machine (quiet, 2e6 rows of four sensors, Parquet to Parquet, alternating runs): a cluster's first
+#: apply in a program 3.2-3.6 s either way, every later one 1.95-2.25 s forked against 3.35-3.8 s spawned (the
+#: cluster's start 0.5-0.8 s against 0.9-1.2 s, its close 0.03-0.08 s against 0.3-0.45 s).
+LOCAL_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 #: Local worker processes allowed per CPU core: more only compete for the cores (and thousands exhaust the machine).
 WORKERS_PER_CORE = 4
 
@@ -292,33 +301,6 @@ def _csv_part(part: Partition, columns=None, units=None, drop_bad=False, extras=
     return meta, iter(parts)
 
 
-#: Bytes below which glibc's ``malloc`` serves an allocation from the heap in a task's process (:func:`_heap_blocks`).
-MMAP_THRESHOLD_BYTES = 32 << 20
-_HEAP_SET = False
-
-
-def _heap_blocks() -> None:
-    """Let a block's temporaries come from the heap in this (worker) process.
-
-    ``dask.distributed`` starts its workers with ``MALLOC_TRIM_THRESHOLD_`` set, which turns off glibc's dynamic
-    mmap threshold: every array of 128 kB or more (a 20 000-row column is 160 kB) is then a fresh ``mmap`` whose
-    pages fault in one by one and are unmapped when freed. With the threshold raised to
-    :data:`MMAP_THRESHOLD_BYTES` (``mallopt``, once per process; nothing where the C library is not glibc) the
-    correction runs at ``magcal apply``'s pace (a partition of 4e5 rows, four runs each on the 2-core machine:
-    median 5.2 s with Dask's setting, 1.6 s with the threshold raised, 2.1 s with neither)."""
-    global _HEAP_SET
-    if _HEAP_SET:
-        return
-    _HEAP_SET = True
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, MMAP_THRESHOLD_BYTES)  # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):
-        pass
-
-
 def _source_column(name: str, rows: int, fmt: str):
     """The ``source_file`` column of ``rows`` rows: for Parquet a dictionary-encoded Arrow array (one string and
     an index per row; converting a text array to Arrow cost a third of a task's time, 0.35 us a row), for CSV the
@@ -346,7 +328,7 @@ def correct_partition(
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
     each). Returns the file written, its rows, and how many of them had no attitude (their world columns NaN)."""
 
-    _heap_blocks()
+    keep_large_blocks()  # Dask's MALLOC_TRIM_THRESHOLD_ made every block a fresh mmap
     calibration = Calibration.from_dict(calibration_doc)
     if part.kind == "parquet":
         meta, chunks = _parquet_part(part)
@@ -542,9 +524,16 @@ def apply_partitioned(
                 ) from None
             where = f"the cluster at {scheduler}"
         else:
-            cluster = distributed.LocalCluster(
-                n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
-            )
+            import dask
+
+            with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD}):
+                cluster = distributed.LocalCluster(
+                    n_workers=int(workers),
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    silence_logs=40,
+                )
             client = distributed.Client(cluster)
             where = f"a local cluster of {int(workers)} worker(s)"
         start_s = time.perf_counter() - t_start
