@@ -111,7 +111,9 @@ def measure(n, seed=1):
 
     def remote_future(self, fn, *args, local=None):
         call = local if local is not None else (lambda: fn(self.dataset, *args))
-        return clock.run_piece(fn.__name__, call, Future())
+        model = next((a for a in args if hasattr(a, "effect_labels")), None)  # the fit's model: say its terms
+        name = fn.__name__ + (f" ({', '.join(model.effect_labels) or 'base'})" if model is not None else "")
+        return clock.run_piece(name, call, Future())
 
     def in_parallel(calls):
         futures = [clock.run_piece(name_of(c), c, Future()) for c in calls]

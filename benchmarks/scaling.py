@@ -25,7 +25,8 @@ benchmark does not drop the machine's caches.)
 ``benchmarks/diagnosis.py``, part 2): ``diagnose`` timed with its fits one after the other (1 core), then for every
 worker count on threads and in worker processes (:mod:`magcal.diagnosis._parallel`); every run must give the same
 verdict and candidates. ``--big`` adds one diagnosis of 4 x 1e6 samples (processes on every core): its time and
-the peak resident memory of the process and of its largest worker.
+the peak resident memory of the process and of its largest worker. What the diagnosis allows on any number of
+cores (its work and critical path, measured on one) is ``benchmarks/diagnosis_span.py``.
 
 **fitter** -- ``benchmarks/fitter_speed.py`` (one sensor, N = 1e6, magcal's ML against magyc's fits in their own
 virtual environment, ``--magyc-python``) run as it is, its table printed here.
