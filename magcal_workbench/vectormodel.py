@@ -451,17 +451,17 @@ class VectorModel:
         if not have[i]:
             return {"sample": i, "attitude_wxyz": None, "model_ned_nT": None, "measured_ned_nT": None}
         q = rot[i].as_quat()
-        out = {"sample": i, "attitude_wxyz": np.array([q[3], q[0], q[1], q[2]]), "measured_ned_nT": None}
+        out: dict = {"sample": i, "attitude_wxyz": np.array([q[3], q[0], q[1], q[2]]), "measured_ned_nT": None}
+        model_ned = None
         if self.reference_ned_nT is not None:
-            out["model_ned_nT"] = self.reference_ned_nT[i]
+            model_ned = self.reference_ned_nT[i]
         else:
             try:
                 ref = self.reference()
             except MagcalError:
                 ref = None
-            out["model_ned_nT"] = None if ref is None else ref.ned_nT[i]
-        if out["model_ned_nT"] is not None and not np.all(np.isfinite(out["model_ned_nT"])):
-            out["model_ned_nT"] = None
+            model_ned = None if ref is None else ref.ned_nT[i]
+        out["model_ned_nT"] = model_ned if model_ned is not None and np.all(np.isfinite(model_ned)) else None
         if self.world_nT is not None:
             measured = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
             out["measured_ned_nT"] = measured if np.all(np.isfinite(measured)) else None
