@@ -480,38 +480,60 @@ def wait_for(condition, timeout_s=15.0):
     return True
 
 
+class BoardPort:
+    """A board's serial port: a udev-like name (a symlink, ``path``) to a pseudo-terminal whose master end the test
+    writes, which a reset takes away and brings back, a new pty under the same name."""
+
+    def __init__(self, path):
+        self.path = path
+        self.master = self.slave = None
+        self._plug()
+
+    def _plug(self):
+        self.master, self.slave = os.openpty()
+        self.path.symlink_to(os.ttyname(self.slave))
+
+    def write(self, data: bytes):
+        os.write(self.master, data)
+
+    def close(self):
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                os.close(fd)
+        self.master = self.slave = None
+
+    def reset(self, session, away_s=0.6):
+        """The board resets: its pty closed and its name removed while ``session`` records; back after
+        ``away_s`` (the source's tries meanwhile fail and are retried), and the source reopens it once."""
+        src = session.source
+        self.close()
+        self.path.unlink()
+        assert wait_for(lambda: not src.connected)
+        time.sleep(away_s)
+        assert session.running and not src.connected and src.stats.n_reconnects == 0
+        self._plug()
+        assert wait_for(lambda: src.stats.n_reconnects == 1)
+
+
 @pytest.mark.filterwarnings("ignore:.*outside the Earth's field range")  # small numbers, easy to follow
 def test_serial_port_reopened_after_a_board_reset_and_the_recording_goes_on(tmp_path):
     # The board's port is a udev-like name (a symlink) to a pseudo-terminal. The board resets: its pty goes away
     # (the test closes it and removes the name), and comes back as a new pty under the same name, printing its banner
     # and restarting its clock.
-    port = tmp_path / "ttyBOARD"
-    master, slave = os.openpty()
-    port.symlink_to(os.ttyname(slave))
+    board = BoardPort(tmp_path / "ttyBOARD")
     path = tmp_path / "board.csv"
-    session = LiveSession(f"serial://{port}?columns=t,x,y,z&reconnect=20", path, flush_interval_s=0.05)
+    session = LiveSession(f"serial://{board.path}?columns=t,x,y,z&reconnect=20", path, flush_interval_s=0.05)
     src = session.source
     try:
-        os.write(master, b"0.1,1,2,3\r\n0.2,4,5,6\r\n0.3,7,8,9\r\n0.4,10,")  # the last line is cut by the reset
+        board.write(b"0.1,1,2,3\r\n0.2,4,5,6\r\n0.3,7,8,9\r\n0.4,10,")  # the last line is cut by the reset
         assert wait_for(lambda: session.n_samples == 3)
-        os.close(master)
-        os.close(slave)
-        port.unlink()
-        master = slave = None
-        assert wait_for(lambda: not src.connected)
-        time.sleep(0.6)  # tries while the port is absent fail, and are retried
-        assert session.running and not src.connected and src.stats.n_reconnects == 0
-        master, slave = os.openpty()
-        port.symlink_to(os.ttyname(slave))
-        assert wait_for(lambda: src.stats.n_reconnects == 1)
-        os.write(master, b"\r\nBoard v1.2 booting...\r\n0.05,11,12,13\r\n0.15,14,15,16\r\n")
+        board.reset(session)
+        board.write(b"\r\nBoard v1.2 booting...\r\n0.05,11,12,13\r\n0.15,14,15,16\r\n")
         assert wait_for(lambda: session.n_samples == 5)
         assert wait_for(lambda: session.n_recorded == 5)
     finally:
         session.stop()
-        for fd in (master, slave):
-            if fd is not None:
-                os.close(fd)
+        board.close()
     assert session.error is None
     recorded = magcal.read_csv(path)
     expected = np.array([[1, 2, 3], [4, 5, 6], [7, 8, 9], [11, 12, 13], [14, 15, 16]], dtype=float)

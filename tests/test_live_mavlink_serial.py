@@ -23,15 +23,7 @@ pytest.importorskip("serial")
 pytest.importorskip("pymavlink")
 
 from pymavlink.dialects.v20 import common as mavlink2
-
-
-def wait_for(condition, timeout_s=15.0):
-    end = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.02)
-    return True
+from test_live_formats import BoardPort, wait_for
 
 
 class Autopilot:
@@ -62,11 +54,9 @@ class Autopilot:
 @pytest.mark.filterwarnings("ignore:.*outside the Earth's field range")
 def test_mavlink_serial_port_reopened_after_an_autopilot_reboot_and_the_recording_goes_on(tmp_path):
     # a udev by-path name holds colons: still a serial port, not a UDP address
-    port = tmp_path / "pci-0000:00:14.0-usb-0:1:1.0"
-    master, slave = os.openpty()
-    port.symlink_to(os.ttyname(slave))
+    board = BoardPort(tmp_path / "pci-0000:00:14.0-usb-0:1:1.0")
     path = tmp_path / "autopilot.csv"
-    session = LiveSession(f"serial://{port}?mavlink&baud=57600&reconnect=20", path, flush_interval_s=0.05)
+    session = LiveSession(f"serial://{board.path}?mavlink&baud=57600&reconnect=20", path, flush_interval_s=0.05)
     src = session.source
     ap = Autopilot()
     # boot 1: 10 samples at 50 Hz from 100 ms, each ATTITUDE 5 ms after its sample, a fix first
@@ -80,28 +70,17 @@ def test_mavlink_serial_port_reopened_after_an_autopilot_reboot_and_the_recordin
     roll2 = -40.0 - np.arange(20)
     try:
         cut = ap.imu(300, (1, 2, 3))[:12]  # the reset cuts this packet
-        os.write(master, ap.fix(52.2053, 0.1218, 77.0) + ap.stream(t1, mag1, roll1, 5) + cut)
+        board.write(ap.fix(52.2053, 0.1218, 77.0) + ap.stream(t1, mag1, roll1, 5) + cut)
         assert wait_for(lambda: session.n_samples == 10)
         assert wait_for(lambda: src._conn.mav.buf_len() == len(cut))  # the cut packet's start has been read
-        os.close(master)
-        os.close(slave)
-        port.unlink()
-        master = slave = None
-        assert wait_for(lambda: not src.connected)
-        time.sleep(0.6)  # tries while the port is absent fail, and are retried
-        assert session.running and not src.connected and src.stats.n_reconnects == 0
-        master, slave = os.openpty()
-        port.symlink_to(os.ttyname(slave))
-        assert wait_for(lambda: src.stats.n_reconnects == 1)
-        os.write(master, ap.stream(t2[:5], mag2[:5], roll2[:5], 8))
-        os.write(master, ap.fix(-33.9, 18.4, 12.0) + ap.stream(t2[5:], mag2[5:], roll2[5:], 8))
+        board.reset(session)
+        board.write(ap.stream(t2[:5], mag2[:5], roll2[:5], 8))
+        board.write(ap.fix(-33.9, 18.4, 12.0) + ap.stream(t2[5:], mag2[5:], roll2[5:], 8))
         assert wait_for(lambda: session.n_samples == 30)
         assert wait_for(lambda: session.n_recorded == 30)
     finally:
         session.stop()
-        for fd in (master, slave):
-            if fd is not None:
-                os.close(fd)
+        board.close()
     assert session.error is None
     recorded = magcal.read_csv(path)
     expected_nT = 100.0 * np.vstack([mag1, mag2])  # milligauss
