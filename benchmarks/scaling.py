@@ -234,6 +234,59 @@ def _record(n, seed=1):
     )
 
 
+class DescendantsPeak:
+    """The largest peak resident memory (``VmHWM``, MB) of this process's descendants while it is open: the worker
+    processes are children of the fork server, not of this process, so ``RUSAGE_CHILDREN`` does not see them.
+    Linux (``/proc``); read every 0.2 s."""
+
+    def __init__(self):
+        import threading
+
+        self.mb = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+
+    @staticmethod
+    def _parents():
+        out = {}
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    with open(f"/proc/{entry}/stat", encoding="ascii", errors="replace") as fh:
+                        out[int(entry)] = int(fh.read().rsplit(")", 1)[1].split()[1])
+                except (OSError, IndexError, ValueError):
+                    continue
+        return out
+
+    def _watch(self):
+        me = os.getpid()
+        while not self._stop.wait(0.2):
+            parents = self._parents()
+            for pid in parents:
+                p, seen = parents.get(pid), 0
+                while p not in (None, 0, 1, me) and seen < 16:
+                    p, seen = parents.get(p), seen + 1
+                if p != me:
+                    continue
+                try:
+                    with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
+                        for line in fh:
+                            if line.startswith("VmHWM:"):
+                                self.mb = max(self.mb, int(line.split()[1]) / 1024)
+                except OSError:
+                    continue
+
+    def __enter__(self):
+        if os.path.isdir("/proc"):
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
 def _diagnose_timed(ds, res, workers, backend):
     from magcal.diagnosis import _parallel, diagnose
 
@@ -273,9 +326,10 @@ def part_diagnosis(args, info, report):
         t0 = time.perf_counter()
         res_big = calibrate(big)
         t_cal = time.perf_counter() - t0
-        t, d = _diagnose_timed(big, res_big, None, None)
+        with DescendantsPeak() as peak:
+            t, d = _diagnose_timed(big, res_big, None, None)
         self_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        child_mb = peak.mb
         print(
             f"4 x 1,000,000: calibrate {t_cal:.1f} s, diagnose {t:.1f} s on {info['nproc']} core(s) ({d.verdict}, "
             f"{d.candidates[0].label}); peak resident {self_mb:,.0f} MB (this process), {child_mb:,.0f} MB (largest "
