@@ -129,7 +129,7 @@ def test_mavlink_serial_port_that_does_not_come_back_raises_naming_the_device(tm
         os.close(master)
         master = None
         start = time.monotonic()
-        with pytest.raises(LiveError, match="the serial port failed"):
+        with pytest.raises(LiveError, match="the serial port .* failed"):
             src.read(timeout_s=0.5)
         assert time.monotonic() - start < 1.0
         src.close()

@@ -47,8 +47,8 @@ def add_source_arguments(parser) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="serial (text lines or MAVLink): longest total wait for a lost port to come back, s (default 30; 0: stop "
-        "at once)",
+        help="serial (text lines or MAVLink) and MAVLink over TCP: longest total wait for a lost port or a closed "
+        "connection to come back, s (default 30; 0: stop at once)",
     )
     group.add_argument(
         "--attitude-max-dt",

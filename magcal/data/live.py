@@ -8,7 +8,7 @@ One interface for every instrument (``docs/export.md`` has the URL forms):
     Also ``&mavlink`` for MAVLink over the port, reopened the same way.
 ``udp://127.0.0.1:14550?format=lines`` / ``tcp://127.0.0.1:5760``
     Text lines in UDP datagrams (listening on the address) or from a TCP server (connecting to it).
-``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``)
+``udp://127.0.0.1:14550?mavlink`` (also ``tcp://...?mavlink``, connected again for up to ``reconnect`` s when closed)
     MAVLink (pymavlink): the magnetometer fields of ``RAW_IMU``, ``SCALED_IMU``, ``SCALED_IMU2``, ``SCALED_IMU3``
     or ``HIGHRES_IMU`` in the units the message definition declares (mgauss, gauss), converted to nT, with the
     temperature where the message sends one, ``ATTITUDE`` merged onto each sample (nearest in time within
@@ -590,19 +590,23 @@ class _DeviceClock:
 
 class _ReopensPort:
     """A :class:`LiveSource` on a serial port that reopens it when it disappears (:class:`SerialSource`, and
-    :class:`MavlinkSource` on a serial device).
+    :class:`MavlinkSource` on a serial device or a TCP connection, which is connected again when it closes).
 
     When a read fails the source calls :meth:`_lose`; while :attr:`connected` is False it calls :meth:`_reopen`
     instead of reading, which opens the same path again after 0.1 s, then at doubling intervals up to
     :data:`RECONNECT_MAX_INTERVAL_S`, for at most ``reconnect_s`` in all, and raises :class:`LiveError` (naming the
     device and the wait) beyond; with ``reconnect_s=0`` the loss itself raises. The source implements
     ``_open_port()`` (raising one of ``_port_errors`` while the port is absent), ``_close_port()``, and the hooks
-    ``_port_lost()`` (what the loss cut) and ``_port_back()`` (what a reopened port starts afresh).
+    ``_port_lost()`` (what the loss cut) and ``_port_back()`` (what a reopened port starts afresh). ``what`` names
+    the port in messages (``the serial port /dev/ttyACM0``, ``the TCP connection to 127.0.0.1:5760``) and ``hint``
+    says what to check.
     """
 
-    def _init_reopen(self, device, reconnect_s, errors):
+    def _init_reopen(self, device, reconnect_s, errors, what=None, hint="is the device connected?"):
         self.device = device
         self.reconnect_s = float(reconnect_s)
+        self._port_what = what or f"the serial port {device}"
+        self._port_hint = hint
         self._port_errors = errors
         self._lost_at = None  # host time the port was lost, while it is
         self._next_try = 0.0
@@ -627,7 +631,7 @@ class _ReopensPort:
         except Exception:  # a port that has gone: nothing left to release
             pass
         if self.reconnect_s <= 0:
-            raise LiveError(f"{self.url}: the serial port failed ({exc}); is the device still connected?")
+            raise LiveError(f"{self.url}: {self._port_what} failed ({exc}); {self._port_hint}")
         self._port_lost()
         self.stats.last_disconnect = f"lost: {exc}"
         self._lost_at = time.monotonic()
@@ -641,8 +645,8 @@ class _ReopensPort:
         if now - self._lost_at > self.reconnect_s:
             tried = f" (last try: {self._last_try})" if self._last_try else ""
             raise LiveError(
-                f"{self.url}: the serial port {self.device} was lost ({self.stats.last_disconnect}) and did not come "
-                f"back within {self.reconnect_s:g} s{tried}; is the device connected?"
+                f"{self.url}: {self._port_what} was lost ({self.stats.last_disconnect}) and did not come "
+                f"back within {self.reconnect_s:g} s{tried}; {self._port_hint}"
             )
         if now < self._next_try:
             time.sleep(max(0.0, min(timeout_s, self._next_try - now)))
@@ -905,7 +909,11 @@ class MavlinkSource(_ReopensPort, LiveSource):
     attitude_max_dt_s : float
         Largest time (s) between a magnetometer sample and the ``ATTITUDE`` message merged onto it.
     reconnect_s : float
-        On a serial device: longest total wait for the port to come back after it is lost (s); 0 for none.
+        On a serial device or a TCP connection (``tcp:host:port``): longest total wait for the port to come back
+        after it is lost, or the connection after the other end closed it (s); 0 for none. UDP needs none: it is
+        connectionless, a sender that restarts just sends again.
+    connect_timeout_s : float
+        Longest wait for a TCP connection to be accepted (s), when opening and at each try to reconnect.
 
     Times are the vehicle's (``time_boot_ms``, ``time_usec``); when they jump back by more than 1 s (a reboot),
     or at all in the first message after the serial port was reopened, later samples are shifted to follow on by the
@@ -914,7 +922,10 @@ class MavlinkSource(_ReopensPort, LiveSource):
     A serial device that disappears (an autopilot reset, a USB re-enumeration) is opened again as
     :class:`SerialSource` does: under the same path, at growing intervals, for at most ``reconnect_s`` in all
     (``stats.n_reconnects``, ``stats.last_disconnect``, :attr:`connected`), then :class:`LiveError`; the samples
-    read before the loss are kept, and a packet cut by it is counted as bad (``cut packet``).
+    read before the loss are kept, and a packet cut by it is counted as bad (``cut packet``). A TCP connection that
+    the other end closes (an ArduPilot SITL restarting, a telemetry bridge dropped) is connected again the same way,
+    to the same ``host:port``, one try at a time (never pymavlink's own blocking retries); beyond ``reconnect_s``
+    the :class:`LiveError` names ``host:port``, the wait and why the last try failed.
 
     ``ATTITUDE`` (roll, pitch, yaw and the body rates) is merged onto each magnetometer sample from the message
     nearest in vehicle time, within ``attitude_max_dt_s`` (NaN beyond), as the channels ``roll_deg, pitch_deg,
@@ -927,7 +938,8 @@ class MavlinkSource(_ReopensPort, LiveSource):
     :data:`POSITION_MAX_AGE_S` old (NaN otherwise); :attr:`location` is the latest fix. Whether the samples carry
     the attitude and the position is decided when the first one is released: by whether an ``ATTITUDE`` or a GPS
     message has arrived by then. The two boots of a vehicle that rebooted are never mixed: a sample gets an
-    ``ATTITUDE`` of its own boot only, and a position received since the serial port was last (re)opened.
+    ``ATTITUDE`` of its own boot only, and a position received since the serial port or the TCP connection was
+    last (re)opened.
     """
 
     def __init__(
@@ -939,6 +951,7 @@ class MavlinkSource(_ReopensPort, LiveSource):
         raw_lsb_nT=100.0,
         attitude_max_dt_s=0.2,
         reconnect_s=RECONNECT_DEFAULT_S,
+        connect_timeout_s=5.0,
     ):
         super().__init__(url)
         try:
@@ -955,10 +968,17 @@ class MavlinkSource(_ReopensPort, LiveSource):
                 raise LiveError(
                     f'{url}: serial ports need pyserial: pip install "magcal-workbench[instruments]"'
                 ) from None
+        #: Whether the device is a TCP connection (``tcp:host:port``), connected again when the other end closes it.
+        self.tcp = device.lower().startswith("tcp:")
         self.baud = baud
-        # pyserial's SerialException is an OSError
-        self._init_reopen(device, reconnect_s if self.serial else 0.0, (OSError, ValueError))
-        self._link = 0  # losses of the serial port: a fix is merged only onto samples read before the next loss
+        self.connect_timeout_s = float(connect_timeout_s)
+        # pyserial's SerialException is an OSError, and so are socket errors
+        if self.tcp:
+            what, hint = f"the TCP connection to {device[4:]}", "is the autopilot or simulator running and listening?"
+        else:
+            what, hint = f"the serial port {device}", "is the device connected?"
+        self._init_reopen(device, reconnect_s if self.serial or self.tcp else 0.0, (OSError, ValueError), what, hint)
+        self._link = 0  # losses of the port or connection: a fix is merged only onto samples read before the next loss
         if message is not None and message not in MAVLINK_MESSAGES:
             raise LiveError(f"{url}: message {message!r}: use one of {', '.join(MAVLINK_MESSAGES)}")
         self.message = message
@@ -988,6 +1008,12 @@ class MavlinkSource(_ReopensPort, LiveSource):
     def _open_port(self):
         if self.serial:  # never pymavlink's guess from the name (a path with colons is no UDP address)
             self._conn = self._mavutil.mavserial(self.device, baud=self.baud, source_system=255, autoreconnect=False)
+        elif self.tcp:
+            # a try to reconnect waits at most as long as the interval between two tries
+            timeout_s = (
+                self.connect_timeout_s if self.connected else min(self.connect_timeout_s, RECONNECT_MAX_INTERVAL_S)
+            )
+            self._conn = _mavlink_tcp(self._mavutil, self.device[4:], timeout_s)
         else:
             self._conn = self._mavutil.mavlink_connection(
                 self.device, baud=self.baud, source_system=255, autoreconnect=False
@@ -1126,14 +1152,14 @@ class MavlinkSource(_ReopensPort, LiveSource):
             if remaining <= 0:
                 break
             wait = min(remaining, 0.05 if self._pending else 0.2)
-            if not self.connected:  # a lost serial port: nothing to read until it is back
+            if not self.connected:  # a lost serial port or TCP connection: nothing to read until it is back
                 self._reopen(wait)
                 msg = None
             else:
                 try:
                     msg = self._conn.recv_match(blocking=True, timeout=wait)
                 except Exception as exc:
-                    if self.serial and isinstance(exc, OSError):  # the port failed (pyserial's errors are OSErrors)
+                    if (self.serial or self.tcp) and isinstance(exc, OSError):  # the port failed, the connection closed
                         self._lose(exc)
                         msg = None
                     else:  # a damaged packet pymavlink cannot decode
@@ -1178,6 +1204,28 @@ class MavlinkSource(_ReopensPort, LiveSource):
             self._conn.close()
         except Exception:  # closing a dead connection: nothing left to release
             pass
+
+
+def _mavlink_tcp(mavutil, address, timeout_s):
+    """A pymavlink TCP connection to ``host:port``: one try to connect, within ``timeout_s`` (pymavlink's own tries
+    sleep 1 s between them and print), and a close by the other end raised as :class:`ConnectionResetError`
+    (pymavlink prints ``EOF on TCP socket`` and reads nothing, again and again, when it does not reconnect itself).
+    """
+
+    class _Tcp(mavutil.mavtcp):
+        def do_connect(self):
+            self.port = socket.create_connection(self.destination_addr, timeout=timeout_s)
+            self.port.setblocking(False)
+            mavutil.set_close_on_exec(self.port.fileno())
+            self.port.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+        def handle_eof(self):
+            raise ConnectionResetError("closed by the other end")
+
+        def handle_disconnect(self):  # a reset: recv raises its error next
+            pass
+
+    return _Tcp(address, source_system=255)
 
 
 # -- simulation ------------------------------------------------------------------------------------------------------
@@ -1415,7 +1463,7 @@ def open_source(url: str, **options) -> LiveSource:
         raise LiveError(f"{url}: {exc}; give the address as {scheme}://HOST:PORT with a port of 1 to 65535") from None
     if not host or not port:
         raise LiveError(f"{url}: give the address as {scheme}://HOST:PORT (e.g. {scheme}://127.0.0.1:14550)")
-    if mavlink:
+    if mavlink:  # a TCP connection that closes is connected again; UDP is connectionless and needs nothing
         device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
         return MavlinkSource(
             url,
@@ -1423,6 +1471,8 @@ def open_source(url: str, **options) -> LiveSource:
             params.get("message"),
             raw_lsb_nT=number("raw_lsb_nT", 100.0, float, (1e-6, 1e9)),
             attitude_max_dt_s=attitude_dt,
+            reconnect_s=number("reconnect", RECONNECT_DEFAULT_S, float, RECONNECT_RANGE_S),
+            connect_timeout_s=number("timeout", 5.0, float, TIMEOUT_RANGE_S),
         )
     if params.get("format", "lines").lower() != "lines":
         raise LiveError(f"{url}: format={params['format']!r}: use format=lines or mavlink")
