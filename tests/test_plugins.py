@@ -584,3 +584,67 @@ def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
     path.write_text(path.read_text().replace('"field_ramp"', '"field_trend"'))
     assert plugins.load_effects_file(path) == ["lever_field", "field_trend"]
     assert "field_ramp" not in EFFECTS and "field_trend" in EFFECTS
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the user's effect in worker processes (magcal apply --workers)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def test_a_parallel_apply_loads_the_users_effect_in_its_workers(hidden, tmp_path, capsys):
+    """The local cluster's workers do not share this process's catalogue: each task loads the effects file the
+    calibration's effect came from, and the partitions equal the single-process apply row for row (on the fitted
+    record itself, so the record-only pump term is evaluated in the workers)."""
+    pytest.importorskip("distributed")
+    pytest.importorskip("pyarrow")
+    import pyarrow.dataset as pads
+    import pyarrow.parquet as pq
+
+    cal = tmp_path / "cal.json"
+    opt = ["--effects-file", EXAMPLE]
+    assert run(["calibrate", hidden["csv"], "--effects", NAME, "-o", cal, *opt], capsys)[0] == 0
+    single, parts = tmp_path / "single.parquet", tmp_path / "parts"
+    assert run(["apply", cal, hidden["csv"], "-o", single, "--no-progress", *opt], capsys)[0] == 0
+    argv = ["apply", cal, hidden["csv"], "-o", parts, "--workers", "1", "--partition-rows", "500", "--no-progress"]
+    code, out, err = run([*argv, *opt], capsys)
+    assert code == 0 and "Traceback" not in err and "unknown effect" not in err, err
+    got, want = pads.dataset(parts).to_table(), pq.read_table(single)
+    assert got.num_rows == want.num_rows == hidden["ds"].n_samples
+    for name in ("s1x_cal", "s2y_cal", "s4z_cal", "Gxy"):
+        np.testing.assert_allclose(got.column(name).to_numpy(), want.column(name).to_numpy(), rtol=0, atol=1e-9)
+    raw = want.column("s2y").to_numpy() - want.column("s2y_cal").to_numpy()
+    assert np.ptp(raw) > 0  # the corrected column is not the reading
+
+
+def test_a_worker_without_the_effects_file_says_where_it_must_be(tmp_path):
+    with pytest.raises(plugins.UserEffectError, match="not on the file system of the worker on .*where every worker"):
+        plugins.load_for_worker([NAME], [str(tmp_path / "elsewhere" / "my_effects.py")])
+
+
+def test_a_worker_loads_an_effects_file_once_until_it_changes(tmp_path, monkeypatch):
+    monkeypatch.setattr(plugins, "_WORKER_FILES", {})
+    path = tmp_path / "mine.py"
+    path.write_text(EXAMPLE.read_text())
+    loads = []
+    real = plugins.load_effects_file
+    monkeypatch.setattr(plugins, "load_effects_file", lambda p: loads.append(p) or real(p))
+    for _ in range(3):
+        plugins.load_for_worker([NAME], [str(path)])
+    assert NAME in EFFECTS and len(loads) == 1
+    path.write_text(EXAMPLE.read_text() + "\n# edited\n")
+    plugins.load_for_worker([NAME], [str(path)])
+    assert len(loads) == 2
+
+
+def test_a_diagnosis_given_a_cluster_keeps_a_users_effect_on_this_machine_and_says_so(hidden):
+    """A cluster's workers could not unpickle the user's effect class: the fits run here (the unreachable address
+    is never contacted) and the diagnosis says why; without the user's effect the same call means Dask."""
+    from magcal.diagnosis import _parallel
+
+    plugins.load_effects_file(EXAMPLE)
+    res = magcal.calibrate(hidden["ds"])
+    d = magcal.diagnosis.diagnose(hidden["ds"], res, scheduler="tcp://127.0.0.1:1")
+    assert _parallel.ELSEWHERE_NOTE in [n.text for n in d.notes]
+    assert d.candidates and d.candidates[0].effect == NAME  # the hidden pump, found by the fits made here
+    assert _parallel.backend_for(hidden["ds"], scheduler="tcp://127.0.0.1:1", effects=[EFFECTS[NAME]]) == "threads"
+    assert _parallel.backend_for(hidden["ds"], scheduler="tcp://127.0.0.1:1", effects=[EFFECTS["bias_drift"]]) == "dask"

@@ -121,15 +121,24 @@ def own_effects(*things) -> bool:
     return True
 
 
+#: What a diagnosis says when a scheduler was given but a user's effect keeps its fits here.
+ELSEWHERE_NOTE = (
+    "the diagnosis's fits ran on this machine, not on the Dask cluster: a candidate effect comes from your own "
+    "effects file, whose classes the cluster's workers cannot load"
+)
+
+
 def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
     """``"dask"``, ``"processes"`` or ``"threads"``: where a diagnosis of ``dataset`` runs its fits.
 
-    A scheduler means Dask. Otherwise :data:`BACKEND` when set; else processes when there is more than one worker,
-    the record holds at least :data:`PROCESS_MIN_READINGS` readings and every effect is magcal's own
-    (:func:`own_effects`: ``effects``, models or effect classes); threads otherwise.
+    A scheduler means Dask, unless an effect is not magcal's own (a user's effects file: the cluster's workers
+    could not unpickle its class; :data:`ELSEWHERE_NOTE`), which keeps the fits on this machine's threads.
+    Otherwise :data:`BACKEND` when set; else processes when there is more than one worker, the record holds at
+    least :data:`PROCESS_MIN_READINGS` readings and every effect is magcal's own (:func:`own_effects`: ``effects``,
+    models or effect classes); threads otherwise.
     """
     if scheduler is not None:
-        return "dask"
+        return "dask" if own_effects(*effects) else "threads"
     mine = own_effects(*effects) and not _in_daemon()
     if BACKEND is not None:
         return BACKEND if (BACKEND == "threads" or mine) else "threads"

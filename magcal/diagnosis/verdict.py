@@ -647,6 +647,8 @@ def diagnose(
     in_play = [fit0.model] + [cls for name, cls in EFFECTS.items() if candidates is None or name in candidates]
     warm = (refit_task, validate_task, gram_task)
     with Pool(dataset, scheduler=scheduler, effects=in_play, warm=warm, workers=workers) as pool:
+        if scheduler is not None and pool.backend != "dask":
+            fit_notes.append(_notes.Note(_parallel.ELSEWHERE_NOTE, UserWarning, "diagnose"))
         cands, proj, _ = _score_round(dataset, kept, fit0, candidates, pool=pool)
         return _after_scores(
             dataset,

@@ -558,6 +558,42 @@ def load_effects_files(paths) -> list[str]:
     return names
 
 
+#: Effect files this process has loaded for a worker's task (:func:`load_for_worker`): path -> (mtime, size).
+_WORKER_FILES: dict = {}
+
+
+def load_for_worker(names, files=()) -> None:
+    """Make the effects ``names`` (a calibration's) known in this worker process: the user's ``files`` loaded (each
+    once per process, again only when it changed), then the installed packages' entry points if a name is still
+    unknown.
+
+    A process of a local cluster or of a cluster elsewhere does not share the catalogue of the process that loaded
+    the user's file (``--effects-file``): the task is given the file's path and loads it here, as the caller did.
+
+    Raises
+    ------
+    UserEffectError
+        A file that is not on this machine's file system (a cluster's workers must see it, as they see the
+        surveys), or that fails to load (:func:`load_effects_file`).
+    """
+    import socket
+
+    for path in files or ():
+        try:
+            st = os.stat(path)
+        except OSError:
+            raise UserEffectError(
+                f"{path}: the effects file is not on the file system of the worker on {socket.gethostname()}; "
+                "on a cluster put it where every worker sees it, as the surveys and the output folder"
+            ) from None
+        key = (st.st_mtime_ns, st.st_size)
+        if _WORKER_FILES.get(path) != key:
+            load_effects_file(path)
+            _WORKER_FILES[path] = key
+    if any(name not in EFFECTS for name in names or ()):
+        load_entry_points()
+
+
 def _entry_point_text(ep) -> str:
     dist = getattr(ep, "dist", None)
     metadata = getattr(dist, "metadata", None)

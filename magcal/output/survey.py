@@ -22,6 +22,7 @@ Messages from a task name the file and the line (CSV: counted from the partition
 from __future__ import annotations
 
 import io as _io
+import logging
 import multiprocessing
 import os
 import shutil
@@ -48,6 +49,7 @@ from magcal.data.io import (
     parse_column_mapping,
     write_csv,
 )
+from magcal.model import plugins
 from magcal.output.apply import (
     AttitudeGaps,
     _WriteBehind,
@@ -323,12 +325,16 @@ def correct_partition(
     drop_bad=False,
     uncertainty=False,
     compression=None,
+    effects_files=(),
 ) -> tuple[str, int, int]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task): read from the
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
-    each). Returns the file written, its rows, and how many of them had no attitude (their world columns NaN)."""
+    each). ``effects_files``: the user's effect files the calibration's effects come from, loaded in this process
+    first (:func:`magcal.model.plugins.load_for_worker`). Returns the file written, its rows, and how many of them
+    had no attitude (their world columns NaN)."""
 
     keep_large_blocks()  # Dask's MALLOC_TRIM_THRESHOLD_ made every block a fresh mmap
+    plugins.load_for_worker(calibration_doc.get("effects") or [], effects_files)  # a user's effects, loaded here
     calibration = Calibration.from_dict(calibration_doc)
     if part.kind == "parquet":
         meta, chunks = _parquet_part(part)
@@ -506,6 +512,8 @@ def apply_partitioned(
         if note:
             warnings.warn(note, RecordTermWarning, stacklevel=2)
     doc = calibration.to_dict()
+    # a user's effects live in this process's catalogue only: each task loads their files (the same paths)
+    effects_files = tuple(plugins.user_files()) if not all(map(plugins.is_builtin, doc.get("effects") or [])) else ()
     distributed = _distributed()
     progress = sys.stderr.isatty() if progress is None else bool(progress)
     target = os.path.abspath(output_dir)
@@ -532,7 +540,7 @@ def apply_partitioned(
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
-                    silence_logs=40,
+                    silence_logs=logging.CRITICAL,  # a task's error reaches the client, said once there
                 )
             client = distributed.Client(cluster)
             where = f"a local cluster of {int(workers)} worker(s)"
@@ -555,6 +563,7 @@ def apply_partitioned(
                     drop_bad,
                     uncertainty,
                     compression,
+                    effects_files,
                     pure=False,
                 )
                 for p in parts
