@@ -50,6 +50,53 @@ class Autopilot:
             self.imu(t, m) + self.attitude(t + att_lag_ms, r) for t, m, r in zip(t_ms, mag_mgauss, roll_deg)
         )
 
+    # The two boots a reconnection test plays. Boot 1: 10 samples at 50 Hz from 100 ms, each ATTITUDE 5 ms after
+    # its sample, a fix first, then the first CUT_BYTES of a packet the loss cuts. Boot 2, after the loss, its clock
+    # from 0: times overlapping boot 1's, each ATTITUDE 8 ms after its sample (so that a boot-1 ATTITUDE, 5 ms away,
+    # would be nearer were the boots mixed), a new fix after its 5th sample.
+    T1 = 100 + 20 * np.arange(10)
+    MAG1 = np.column_stack([150 + np.arange(10), -220 - 3 * np.arange(10), 410 + 2 * np.arange(10)])
+    ROLL1 = 1.0 + np.arange(10)
+    T2 = 20 + 20 * np.arange(20)
+    MAG2 = np.column_stack([-90 - np.arange(20), 330 + 5 * np.arange(20), 275 - np.arange(20)])
+    ROLL2 = -40.0 - np.arange(20)
+    CUT_BYTES = 12
+
+    def first_boot(self) -> bytes:
+        cut = self.imu(300, (1, 2, 3))[: self.CUT_BYTES]
+        return self.fix(52.2053, 0.1218, 77.0) + self.stream(self.T1, self.MAG1, self.ROLL1, 5) + cut
+
+    def second_boot(self) -> list:
+        """Boot 2's bytes in two writes: five samples, then the new fix and the rest."""
+        return [
+            self.stream(self.T2[:5], self.MAG2[:5], self.ROLL2[:5], 8),
+            self.fix(-33.9, 18.4, 12.0) + self.stream(self.T2[5:], self.MAG2[5:], self.ROLL2[5:], 8),
+        ]
+
+
+def check_two_boots(path, src):
+    """What a recording of :meth:`Autopilot.first_boot`, a loss of at least 0.6 s and :meth:`Autopilot.second_boot`
+    must hold: every sample, in order, to the nT; the restarted clock followed on; each sample the ATTITUDE of its
+    own boot and the fix received since the port (re)opened; one reconnect, one clock reset, one cut packet."""
+    a = Autopilot
+    recorded = magcal.read_csv(path)
+    expected_nT = 100.0 * np.vstack([a.MAG1, a.MAG2])  # milligauss
+    assert recorded.n_samples == 30
+    assert np.allclose(recorded.readings_nT[0], expected_nT, atol=1e-6)
+    t = recorded.time_s
+    assert np.allclose(t[:10], a.T1 * 1e-3) and np.all(np.diff(t) > 0)
+    assert t[10] - t[9] >= 0.6  # the restarted clock follows on after the gap the host saw
+    assert np.allclose(np.diff(t[10:]), 0.02)
+    roll = recorded.extra["roll_deg"]
+    assert np.allclose(roll, np.concatenate([a.ROLL1, a.ROLL2]), atol=1e-4)  # float32 radians
+    lat = recorded.extra["lat"]
+    assert np.allclose(lat[:10], 52.2053) and np.all(np.isnan(lat[10:15])) and np.allclose(lat[15:], -33.9)
+    stats = src.stats
+    assert stats.n_reconnects == 1 and src.clock_resets == 1
+    assert stats.n_bad == 1 and stats.reasons["cut packet"] == 1  # the loss itself is no bad packet
+    assert "1 reconnect" in stats.summary() and "reopened after" in stats.last_disconnect
+    return recorded
+
 
 @pytest.mark.filterwarnings("ignore:.*outside the Earth's field range")
 def test_mavlink_serial_port_reopened_after_an_autopilot_reboot_and_the_recording_goes_on(tmp_path):
@@ -59,49 +106,23 @@ def test_mavlink_serial_port_reopened_after_an_autopilot_reboot_and_the_recordin
     session = LiveSession(f"serial://{board.path}?mavlink&baud=57600&reconnect=20", path, flush_interval_s=0.05)
     src = session.source
     ap = Autopilot()
-    # boot 1: 10 samples at 50 Hz from 100 ms, each ATTITUDE 5 ms after its sample, a fix first
-    t1 = 100 + 20 * np.arange(10)
-    mag1 = np.column_stack([150 + np.arange(10), -220 - 3 * np.arange(10), 410 + 2 * np.arange(10)])
-    roll1 = 1.0 + np.arange(10)
-    # boot 2 after the reset, its clock from 0: times overlapping boot 1's, each ATTITUDE 8 ms after its sample, so
-    # that a boot-1 ATTITUDE (5 ms away) would be nearer were the boots mixed; a new fix after the 5th sample
-    t2 = 20 + 20 * np.arange(20)
-    mag2 = np.column_stack([-90 - np.arange(20), 330 + 5 * np.arange(20), 275 - np.arange(20)])
-    roll2 = -40.0 - np.arange(20)
     try:
-        cut = ap.imu(300, (1, 2, 3))[:12]  # the reset cuts this packet
-        board.write(ap.fix(52.2053, 0.1218, 77.0) + ap.stream(t1, mag1, roll1, 5) + cut)
+        board.write(ap.first_boot())
         assert wait_for(lambda: session.n_samples == 10)
-        assert wait_for(lambda: src._conn.mav.buf_len() == len(cut))  # the cut packet's start has been read
+        assert wait_for(lambda: src._conn.mav.buf_len() == ap.CUT_BYTES)  # the cut packet's start has been read
         board.reset(session)
-        board.write(ap.stream(t2[:5], mag2[:5], roll2[:5], 8))
-        board.write(ap.fix(-33.9, 18.4, 12.0) + ap.stream(t2[5:], mag2[5:], roll2[5:], 8))
+        for part in ap.second_boot():
+            board.write(part)
         assert wait_for(lambda: session.n_samples == 30)
         assert wait_for(lambda: session.n_recorded == 30)
     finally:
         session.stop()
         board.close()
     assert session.error is None
-    recorded = magcal.read_csv(path)
-    expected_nT = 100.0 * np.vstack([mag1, mag2])  # milligauss
-    assert recorded.n_samples == 30
-    assert np.allclose(recorded.readings_nT[0], expected_nT, atol=1e-6)  # every sample, in order, to the nT
-    assert np.allclose(session.dataset().readings_nT[0], expected_nT, atol=1e-6)
+    recorded = check_two_boots(path, src)
+    assert np.allclose(session.dataset().readings_nT[0], recorded.readings_nT[0])
     assert np.allclose(recorded.temperature_C, 21.5)
-    t = recorded.time_s
-    assert np.allclose(t[:10], t1 * 1e-3) and np.all(np.diff(t) > 0)
-    assert t[10] - t[9] >= 0.6  # the restarted clock follows on after the gap the host saw
-    assert np.allclose(np.diff(t[10:]), 0.02)
-    # each sample carries the ATTITUDE of its own boot, and the fix received since the port (re)opened
-    roll = recorded.extra["roll_deg"]
-    assert np.allclose(roll, np.concatenate([roll1, roll2]), atol=1e-4)  # float32 radians
-    lat = recorded.extra["lat"]
-    assert np.allclose(lat[:10], 52.2053) and np.all(np.isnan(lat[10:15])) and np.allclose(lat[15:], -33.9)
     assert src.location == pytest.approx((-33.9, 18.4, 12.0))
-    stats = src.stats
-    assert stats.n_reconnects == 1 and src.clock_resets == 1
-    assert stats.n_bad == 1 and stats.reasons["cut packet"] == 1
-    assert "1 reconnect" in stats.summary() and "reopened after" in stats.last_disconnect
 
 
 def test_mavlink_serial_port_that_does_not_come_back_raises_naming_the_device(tmp_path):

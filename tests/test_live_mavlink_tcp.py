@@ -13,16 +13,14 @@ from __future__ import annotations
 import socket
 import time
 
-import numpy as np
 import pytest
 
-import magcal
 from magcal.data.live import LiveError, LiveSession, open_source
 
 pytest.importorskip("pymavlink")
 
 from test_live_formats import wait_for
-from test_live_mavlink_serial import Autopilot
+from test_live_mavlink_serial import Autopilot, check_two_boots
 
 
 class AutopilotServer:
@@ -62,32 +60,22 @@ def test_mavlink_tcp_connection_closed_by_the_autopilot_is_reconnected_and_the_r
     server = AutopilotServer()
     path = tmp_path / "sitl.csv"
     ap = Autopilot()
-    # connection 1: 10 samples at 50 Hz from 100 ms, each ATTITUDE 5 ms after its sample, a fix first
-    t1 = 100 + 20 * np.arange(10)
-    mag1 = np.column_stack([150 + np.arange(10), -220 - 3 * np.arange(10), 410 + 2 * np.arange(10)])
-    roll1 = 1.0 + np.arange(10)
-    # connection 2, the simulator restarted, its clock from 0: times overlapping connection 1's, each ATTITUDE 8 ms
-    # after its sample (a connection-1 ATTITUDE, 5 ms away, would be nearer were they mixed); a new fix later
-    t2 = 20 + 20 * np.arange(20)
-    mag2 = np.column_stack([-90 - np.arange(20), 330 + 5 * np.arange(20), 275 - np.arange(20)])
-    roll2 = -40.0 - np.arange(20)
     session = None
     try:
         session = LiveSession(f"tcp://127.0.0.1:{server.port}?mavlink&reconnect=20", path, flush_interval_s=0.05)
         src = session.source
         server.accept()
-        cut = ap.imu(300, (1, 2, 3))[:12]  # the close cuts this packet
-        server.send(ap.fix(52.2053, 0.1218, 77.0) + ap.stream(t1, mag1, roll1, 5) + cut)
+        server.send(ap.first_boot())
         assert wait_for(lambda: session.n_samples == 10)
-        assert wait_for(lambda: src._conn.mav.buf_len() == len(cut))  # the cut packet's start has been read
+        assert wait_for(lambda: src._conn.mav.buf_len() == ap.CUT_BYTES)  # the cut packet's start has been read
         server.drop()
         assert wait_for(lambda: not src.connected)
         time.sleep(0.6)  # the source's tries meanwhile are refused and retried
         assert session.running and not src.connected and src.stats.n_reconnects == 0
         server.listen()
         server.accept()
-        server.send(ap.stream(t2[:5], mag2[:5], roll2[:5], 8))
-        server.send(ap.fix(-33.9, 18.4, 12.0) + ap.stream(t2[5:], mag2[5:], roll2[5:], 8))
+        for part in ap.second_boot():
+            server.send(part)
         assert wait_for(lambda: session.n_samples == 30)
         assert wait_for(lambda: session.n_recorded == 30)
     finally:
@@ -95,22 +83,7 @@ def test_mavlink_tcp_connection_closed_by_the_autopilot_is_reconnected_and_the_r
             session.stop()
         server.close()
     assert session.error is None
-    recorded = magcal.read_csv(path)
-    expected_nT = 100.0 * np.vstack([mag1, mag2])  # milligauss
-    assert recorded.n_samples == 30
-    assert np.allclose(recorded.readings_nT[0], expected_nT, atol=1e-6)  # every sample, in order, to the nT
-    t = recorded.time_s
-    assert np.allclose(t[:10], t1 * 1e-3) and np.all(np.diff(t) > 0)
-    assert t[10] - t[9] >= 0.6  # the restarted clock follows on after the gap the host saw
-    assert np.allclose(np.diff(t[10:]), 0.02)
-    roll = recorded.extra["roll_deg"]
-    assert np.allclose(roll, np.concatenate([roll1, roll2]), atol=1e-4)  # each sample its own connection's ATTITUDE
-    lat = recorded.extra["lat"]
-    assert np.allclose(lat[:10], 52.2053) and np.all(np.isnan(lat[10:15])) and np.allclose(lat[15:], -33.9)
-    stats = src.stats
-    assert stats.n_reconnects == 1 and src.clock_resets == 1
-    assert stats.n_bad == 1 and stats.reasons["cut packet"] == 1  # the close itself is no bad packet
-    assert "1 reconnect" in stats.summary() and "reopened after" in stats.last_disconnect
+    check_two_boots(path, src)  # the simulator's second connection is its second boot
 
 
 def test_mavlink_tcp_server_that_does_not_come_back_raises_naming_host_and_port():
