@@ -246,3 +246,28 @@ def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record,
     assert '"verdict"' in capsys.readouterr().out
     assert main(["diagnose", str(path), "--workers", str(4 * _parallel.cores() + 1)]) != 0
     assert "--workers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("guess", ["none", "wrong"])
+def test_the_next_round_started_ahead_changes_nothing(record, serial, monkeypatch, guess):
+    """The forward selection's first round is started at the in-sample best's refit, beside the held-out fits
+    (:func:`magcal.diagnosis.verdict._in_sample_best`); the diagnosis is the same to the bit when nothing is
+    started ahead, and when what was started is for another candidate than the one the judgement keeps first."""
+    from magcal.diagnosis import verdict
+
+    real = verdict._in_sample_best
+
+    started = []
+
+    def other(cands):
+        best = real(cands)
+        rest = [c for c in cands if c is not best and c.refitted and c.fit is not None]
+        started.append(rest[0] if rest else None)
+        return started[-1]
+
+    monkeypatch.setattr(verdict, "_in_sample_best", (lambda cands: None) if guess == "none" else other)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    monkeypatch.setattr(_parallel, "BACKEND", "threads")
+    ds, res = record
+    _same(serial, diagnose(ds, res))
+    assert guess == "none" or any(c is not None for c in started)  # a round for the wrong candidate was started

@@ -518,6 +518,13 @@ def _held_out_fits(pool, held_out, c) -> dict:
     }
 
 
+def _in_sample_best(cands):
+    """The refitted, converged candidate with the lowest delta-BIC below the threshold, or None: the one the
+    forward selection takes first unless the held-out judgement refutes it or ranks another above it."""
+    supported = [c for c in cands if c.refitted and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit]
+    return min(supported, key=lambda c: c.delta_bic) if supported else None
+
+
 def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes=None):
     """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
     data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
@@ -772,6 +779,26 @@ def _after_scores(
             skipped = str(exc)
     if skipped and validate:
         validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
+
+    def structure_of(kept_c, current):  # noise and structure of the residuals of a chosen candidate's fit
+        dirs_c, _ = _sensor_directions(kept_c, current)
+        noise = estimate_noise(
+            kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered, noise_nT=noise_nT
+        )
+        return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
+
+    # the first round of the forward selection below (the structure of the chosen fit's residuals, the next score
+    # tests), started at the in-sample best's refit while the held-out fits run: used only if the judgement keeps
+    # that candidate first (they are then what the loop would compute, from the same inputs), else computed anew
+    guess = _in_sample_best(cands) if max_effects > 0 else None
+    ahead_structure = ahead_scores = None
+    if guess is not None:
+        kept_g = _kept(dataset, guess.fit)
+        ahead_structure = pool.submit(lambda: structure_of(kept_g, guess.fit), SHARED)
+        if max_effects > 1:
+            ahead_scores = pool.submit(
+                lambda: _score_round(dataset, kept_g, guess.fit, candidates, previous=guess, pool=pool), SHARED
+            )
     cands = _judge_round(
         held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None, fit_notes
     )
@@ -812,20 +839,19 @@ def _after_scores(
         chosen.append(best)
         current = nxt
         kept_c = _kept(dataset, current)
-
-        def noise_and_structure(kept_c=kept_c, current=current):
-            dirs_c, _ = _sensor_directions(kept_c, current)
-            noise = estimate_noise(
-                kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered, noise_nT=noise_nT
-            )
-            return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
-
-        structure_c = pool.submit(noise_and_structure, SHARED)  # beside the next round's score tests
+        started = step == 0 and best is guess  # this round's work, started ahead
+        if started and ahead_structure is not None:
+            structure_c = ahead_structure
+        else:
+            structure_c = pool.submit(lambda k=kept_c, c=current: structure_of(k, c), SHARED)  # beside the scores
         if step + 1 >= max_effects:
             current_noise, remaining, stats_final = structure_c.result()
             break
         report("looking for a further effect", 0.6 + 0.2 * step)
-        more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best, pool=pool)
+        if started and ahead_scores is not None:
+            more, _, _ = ahead_scores.result()
+        else:
+            more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best, pool=pool)
         current_noise, remaining, stats_final = structure_c.result()
         more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
         if not more:
