@@ -36,13 +36,11 @@ OUTLIERS = (17, 90, 151, 233)
 WAIT_MS = 120_000
 
 
-def one_sensor_with_outliers(tmp_path):
+def one_sensor_with_outliers():
     ds = magcal.simulate("ding2024", seed=3)
     readings = ds.readings_nT.copy()
     readings[0, list(OUTLIERS)] += 3000.0
-    path = tmp_path / "one.csv"
-    mio.write_csv(path, ds.replace(readings_nT=readings))
-    return path
+    return ds.replace(readings_nT=readings)
 
 
 def command_line(tmp_path, monkeypatch, data_path, mask_file=None):
@@ -75,21 +73,11 @@ def unzip(content):
 
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_each_export_downloads_equal_to_the_command_line(browser, tmp_path, monkeypatch):
-    from magcal_workbench.app import Workbench
-    from magcal_workbench.session import SessionStore
-
-    path = one_sensor_with_outliers(tmp_path)
-    wb = Workbench(
-        mio.read_csv(path),
-        host="127.0.0.1",
-        port=0,
-        store=SessionStore(tmp_path / "sessions"),
-        content=path.read_bytes(),
-        name="one.csv",
-    )
+def test_each_export_downloads_equal_to_the_command_line(browser, bench, tmp_path, monkeypatch):
+    wb = bench(one_sensor_with_outliers(), name="one.csv")  # written to tmp_path/one.csv and opened from it
+    path = tmp_path / "one.csv"
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1400, "height": 1000})
     try:
-        context = browser.new_context(accept_downloads=True, viewport={"width": 1400, "height": 1000})
         page = context.new_page()
         page.goto(wb.url, wait_until="domcontentloaded")
         page.wait_for_function(
@@ -121,9 +109,8 @@ def test_each_export_downloads_equal_to_the_command_line(browser, tmp_path, monk
                     pass
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "workbench_export.png"))
-        context.close()
     finally:
-        wb.stop()
+        context.close()
 
     (tmp_path / "cli").mkdir()
     (tmp_path / "cli" / "calibration.json").write_bytes(got["calibration.json"])
@@ -224,29 +211,17 @@ def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path)
 
 @pytest.mark.e2e
 @pytest.mark.slow
-def test_send_to_vehicle_in_the_page(browser, tmp_path):
+def test_send_to_vehicle_in_the_page(browser, bench, tmp_path):
     """In Chromium: choose the UDP MAVLink source and its port, Send to vehicle (old -> new, nothing written),
     Confirm (written): the page's read-back table says every value equal, and the fake vehicle holds what
     ``magcal export`` writes."""
     pytest.importorskip("pymavlink")
     from fake_autopilot import FakeAutopilot, free_udp_port
 
-    from magcal_workbench.app import Workbench
-    from magcal_workbench.session import SessionStore
-
-    path = tmp_path / "one.csv"
-    mio.write_csv(path, magcal.simulate("ding2024", seed=3))
-    wb = Workbench(
-        mio.read_csv(path),
-        host="127.0.0.1",
-        port=0,
-        store=SessionStore(tmp_path / "sessions"),
-        content=path.read_bytes(),
-        name="one.csv",
-    )
+    wb = bench(magcal.simulate("ding2024", seed=3), name="one.csv")
     port = free_udp_port()
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
     try:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
         page.goto(wb.url, wait_until="domcontentloaded")
         page.wait_for_function(
             "() => document.body && document.body.innerText.includes('Total-field RMS')", timeout=WAIT_MS
@@ -286,9 +261,8 @@ def test_send_to_vehicle_in_the_page(browser, tmp_path):
         page.locator("text=Written and read back").scroll_into_view_if_needed()
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "workbench_send_to_vehicle.png"))
-        page.close()
     finally:
-        wb.stop()
+        page.close()
     for name, value in params.items():
         assert np.float32(vehicle[name]) == np.float32(value), name
 
