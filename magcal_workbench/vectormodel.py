@@ -395,11 +395,10 @@ class VectorModel:
     def vector_row(self) -> FitRow:
         """The vector fit's column of the comparison (kept samples)."""
         row = FitRow("vector (attitude-aided)")
-        res = self.result
-        if res is None or self.world_nT is None or self.reference_ned_nT is None:
+        res, resid = self.result, self.world_residual_nT()
+        if res is None or resid is None or self.world_nT is None or self.reference_ned_nT is None:
             return row
         kept = self.ctrl.kept
-        resid = self.world_nT - self.reference_ned_nT[None]
         ref_total = np.linalg.norm(self.reference_ned_nT, axis=1)
         total = np.linalg.norm(self.world_nT, axis=2) - ref_total[None]
         row.total_field_rms_nT = float(_rms(total[:, kept]))

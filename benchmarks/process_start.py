@@ -1,0 +1,180 @@
+"""What the worker processes cost to start and run, for the diagnosis and the local Dask cluster (issue 30).
+
+Each measurement runs in a fresh program (a child of this script), so that every "first" is really the first:
+
+- ``pools``: a diagnosis's worker pool (two workers, a small record) made twice in one program, started with
+  ``spawn`` (every worker a new interpreter importing numpy, scipy and magcal) and forked from the fork server
+  (:func:`magcal.diagnosis._parallel.process_context`): seconds until both workers answer.
+- ``allocator``: a diagnosis of 4 x 1e5 samples in two worker processes, with Dask's ``MALLOC_TRIM_THRESHOLD_`` in
+  the environment the workers inherit and without it (:func:`magcal.core.memory.keep_large_blocks` undoes it).
+- ``threshold``: threads against processes (two workers) at 4 x 5e4, 4 x 1e5 and 4 x 2e5 samples, the fork server
+  cold (where :data:`magcal.diagnosis._parallel.PROCESS_MIN_READINGS` comes from).
+- ``cluster``: ``apply_partitioned`` of a 2e6-row four-sensor Parquet survey on a local cluster of two workers, twice
+  in one program, spawned and forked (:data:`magcal.output.survey.LOCAL_START_METHOD`).
+- ``source``: one survey partition of 8e5 rows corrected in this process with ``source_file`` written as text and as
+  a dictionary-encoded column.
+
+Usage::
+
+    python benchmarks/process_start.py                       # every part, about 4 minutes on 2 cores
+    python benchmarks/process_start.py --parts pools,cluster
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+PARTS = ("pools", "allocator", "threshold", "cluster", "source")
+
+
+def _record(n):
+    sys.path.insert(0, str(HERE))
+    import scaling
+
+    return scaling._record(n)
+
+
+def child_pools(method):
+    import multiprocessing
+
+    from magcal.diagnosis import _parallel
+
+    if method == "spawn":
+        _parallel.process_context = lambda: multiprocessing.get_context("spawn")
+    _parallel.BACKEND = "processes"  # a small record would stay on threads
+    ds = _record(2000)
+    out = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        with _parallel.Pool(ds, workers=2) as pool:
+            pool.remote(_parallel._ready)
+            out.append(time.perf_counter() - t0)
+    return out
+
+
+def child_diagnosis(n, backend, poison=False):
+    from magcal.diagnosis import _parallel, diagnose
+    from magcal.fitting.pipeline import calibrate
+
+    ds = _record(n)
+    res = calibrate(ds)
+    if poison:
+        os.environ["MALLOC_TRIM_THRESHOLD_"] = "65536"  # as Dask's fork server passes it on
+    _parallel.BACKEND = backend
+    t0 = time.perf_counter()
+    d = diagnose(ds, res, workers=2)
+    return [time.perf_counter() - t0, d.verdict]
+
+
+def child_cluster(method, survey, cal_json):
+    import warnings
+
+    from magcal.calibration.calibration import Calibration
+    from magcal.output import survey as sv
+
+    sv.LOCAL_START_METHOD = method
+    cal = Calibration.from_dict(json.loads(Path(cal_json).read_text()))
+    out = []
+    for k in range(2):
+        target = Path(survey).with_name(f"parts_{method}_{k}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            s = sv.apply_partitioned(cal, [survey], target, workers=2, progress=False)
+        out.append([s.seconds, s.start_s])
+    return out
+
+
+def child_source(survey, cal_json):
+    import numpy as np
+
+    from magcal.output import survey as sv
+
+    doc = json.loads(Path(cal_json).read_text())
+    part = sv.partitions([survey], 800_000, 1)[1]
+    real = sv._source_column
+    out = {}
+    with tempfile.TemporaryDirectory() as d:
+        for name, column in (("text", lambda n, rows, fmt: np.full(rows, n)), ("dictionary", real)):
+            sv._source_column = column
+            times = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                sv.correct_partition(doc, part, d, "parquet", "apply")
+                times.append(time.perf_counter() - t0)
+            out[name] = sorted(times)[1]
+    sv._source_column = real
+    return out
+
+
+def run_child(*args, env=None):
+    cmd = [sys.executable, __file__, "--child", json.dumps(args)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **(env or {})}, timeout=900)
+    if proc.returncode != 0:
+        raise SystemExit(proc.stderr[-3000:])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--parts", default=",".join(PARTS))
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child is not None:
+        kind, *rest = json.loads(args.child)
+        fn = {"pools": child_pools, "diagnosis": child_diagnosis, "cluster": child_cluster, "source": child_source}
+        print(json.dumps(fn[kind](*rest)))
+        return
+    parts = args.parts.split(",")
+    print(f"{os.cpu_count()} core(s), load {os.getloadavg()[0]:.2f} at the start")
+    if "pools" in parts:
+        for method in ("spawn", "forkserver"):
+            first, second = run_child("pools", method)
+            print(f"pools    {method:>10}: two workers ready in {first:.2f} s (first pool), {second:.2f} s (second)")
+    if "allocator" in parts:
+        for poison in (True, False):
+            t, verdict = run_child("diagnosis", 100_000, "processes", poison)
+            what = "with Dask's MALLOC_TRIM_THRESHOLD_" if poison else "without it"
+            print(f"allocator  4 x 100,000, 2 processes {what}: {t:.2f} s ({verdict})")
+    if "threshold" in parts:
+        for n in (50_000, 100_000, 200_000):
+            row = [run_child("diagnosis", n, backend)[0] for backend in ("threads", "processes")]
+            print(f"threshold  4 x {n:>7,}: 2 threads {row[0]:.2f} s, 2 processes {row[1]:.2f} s (fork server cold)")
+    if "cluster" in parts or "source" in parts:
+        import shutil
+
+        import scaling
+
+        base = Path(tempfile.mkdtemp(prefix="magcal_start_"))
+        try:
+            survey = base / "survey.parquet"
+            cal = scaling.write_survey(survey, 2_000_000, 200_000)
+            (base / "cal.json").write_text(json.dumps(cal.to_dict()))
+            if "cluster" in parts:
+                for method in ("spawn", "forkserver"):
+                    (a, a_start), (b, b_start) = run_child("cluster", method, str(survey), str(base / "cal.json"))
+                    print(
+                        f"cluster  {method:>10}: 2e6 rows x 4 on 2 workers {a:.2f} s (start {a_start:.2f}), "
+                        f"again {b:.2f} s (start {b_start:.2f})"
+                    )
+            if "source" in parts:
+                got = run_child("source", str(survey), str(base / "cal.json"))
+                print(
+                    f"source   a partition of 8e5 rows: source_file as text {got['text']:.2f} s, "
+                    f"dictionary-encoded {got['dictionary']:.2f} s (median of 3)"
+                )
+        finally:
+            shutil.rmtree(base, ignore_errors=True)
+    print(f"load {os.getloadavg()[0]:.2f} at the end")
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(HERE))
+    main()
