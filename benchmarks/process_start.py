@@ -13,6 +13,10 @@ Each measurement runs in a fresh program (a child of this script), so that every
   in one program, spawned and forked (:data:`magcal.output.survey.LOCAL_START_METHOD`).
 - ``source``: one survey partition of 8e5 rows corrected in this process with ``source_file`` written as text and as
   a dictionary-encoded column.
+- ``blas``: a diagnosis on two threads (4 x 5e4), on two worker processes (4 x 1e5) and on one core (4 x 1e5), the
+  calling process's BLAS left at OpenBLAS's default threads and held to one while the pool lives
+  (:func:`magcal.diagnosis._parallel.one_blas_thread`); twice in one program, wall and the caller's processor time
+  of the second.
 
 Usage::
 
@@ -32,7 +36,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PARTS = ("pools", "allocator", "threshold", "cluster", "source")
+PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas")
 
 
 def _record(n):
@@ -72,6 +76,25 @@ def child_diagnosis(n, backend, poison=False):
     t0 = time.perf_counter()
     d = diagnose(ds, res, workers=2)
     return [time.perf_counter() - t0, d.verdict]
+
+
+def child_blas(n, backend, workers, limit):
+    import contextlib
+
+    from magcal.diagnosis import _parallel, diagnose
+    from magcal.fitting.pipeline import calibrate
+
+    ds = _record(n)
+    res = calibrate(ds)
+    if not limit:
+        _parallel.one_blas_thread = lambda active=True: contextlib.nullcontext()
+    _parallel.BACKEND = backend
+    out = []
+    for _ in range(2):
+        c0, t0 = time.process_time(), time.perf_counter()
+        diagnose(ds, res, workers=workers)
+        out.append([time.perf_counter() - t0, time.process_time() - c0])
+    return out
 
 
 def child_cluster(method, survey, cal_json):
@@ -114,9 +137,12 @@ def child_source(survey, cal_json):
     return out
 
 
-def run_child(*args, env=None):
+def run_child(*args, env=None, clean=False):
+    """Run one measurement in a fresh program; ``env`` added to this one's environment (or, ``clean``, instead of
+    it)."""
     cmd = [sys.executable, __file__, "--child", json.dumps(args)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **(env or {})}, timeout=900)
+    full = dict(env or {}) if clean else {**os.environ, **(env or {})}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=full, timeout=900)
     if proc.returncode != 0:
         raise SystemExit(proc.stderr[-3000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -129,7 +155,13 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.child is not None:
         kind, *rest = json.loads(args.child)
-        fn = {"pools": child_pools, "diagnosis": child_diagnosis, "cluster": child_cluster, "source": child_source}
+        fn = {
+            "pools": child_pools,
+            "diagnosis": child_diagnosis,
+            "cluster": child_cluster,
+            "source": child_source,
+            "blas": child_blas,
+        }
         print(json.dumps(fn[kind](*rest)))
         return
     parts = args.parts.split(",")
@@ -172,6 +204,15 @@ def main(argv=None):
                 )
         finally:
             shutil.rmtree(base, ignore_errors=True)
+    if "blas" in parts:
+        env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+        for n, backend, workers in ((50_000, "threads", 2), (100_000, "processes", 2), (100_000, "threads", 1)):
+            where = f"{workers} {backend}" if workers > 1 else "1 core"
+            row = []
+            for limit in (False, True):
+                (first, _), (wall, cpu) = run_child("blas", n, backend, workers, limit, env=env, clean=True)
+                row.append(f"{wall:.2f} s (first {first:.2f}, caller's processor {cpu:.2f} s)")
+            print(f"blas     4 x {n:>7,} on {where}: BLAS default {row[0]}; one thread {row[1]}")
     print(f"load {os.getloadavg()[0]:.2f} at the end")
 
 

@@ -308,7 +308,7 @@ def part_diagnosis(args, info, report):
     print(f"\ndiagnosis: 4 x {n:,} samples, temperature_bias hidden (calibrate {res.wall_s:.2f} s first)")
     print(f"{'cores':>6}{'where':>12}{'seconds':>9}{'x 1 core':>9}  verdict / candidates")
     runs, first = [], None
-    t1, d1 = _diagnose_timed(ds, res, 1, "threads")
+    t1, d1 = _diagnose_timed(ds, res, 1, "threads")  # one core: BLAS on one thread too (_parallel.one_blas_thread)
     runs.append({"workers": 1, "backend": "serial", "seconds": t1})
     first = (d1.verdict, [c.label for c in d1.candidates])
     print(f"{1:>6}{'serial':>12}{t1:>9.2f}{1.0:>9.2f}  {d1.verdict} / {', '.join(first[1][:3])}")

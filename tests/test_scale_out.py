@@ -141,6 +141,34 @@ def test_the_workers_of_every_pool_are_forked_from_one_fork_server(record, monke
     assert _segments() == []
 
 
+@pytest.mark.parametrize("backend", ["threads", "processes"])
+def test_this_process_runs_blas_on_one_thread_while_a_pool_lives(record, monkeypatch, backend):
+    """While a diagnosis's pool lives, this process's BLAS runs one thread (its fits share the cores with the pool's
+    others); the user's own setting comes back when the last of two overlapping pools closes, whichever order they
+    close in (two sessions of the workbench diagnosing at once)."""
+    from threadpoolctl import threadpool_limits
+
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "BACKEND", backend)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = set(_blas_threads(None))
+        if before == {1}:
+            pytest.skip("this BLAS runs one thread whatever it is asked")
+        first = _parallel.Pool(ds)
+        second = _parallel.Pool(ds)
+        try:
+            in_pool = first.submit(lambda: _blas_threads(None)).result()
+            first.close()  # the first to open closes first: the second still runs
+            still = set(_blas_threads(None))
+        finally:
+            first.close()
+            second.close()
+        after = set(_blas_threads(None))
+    assert set(in_pool) == {1} and still == {1}
+    assert after == before
+
+
 def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
     ds, _ = record
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)

@@ -369,6 +369,45 @@ def process_context():
     return ctx
 
 
+_BLAS_LOCK = threading.Lock()
+_BLAS_USERS = 0
+_BLAS_LIMITER = None
+
+
+@contextlib.contextmanager
+def one_blas_thread(active=True):
+    """BLAS (and OpenMP) on one thread in this process while the block runs, when ``active``.
+
+    A diagnosis's pool runs its fits side by side, on its threads or in worker processes that already run one BLAS
+    thread each (:func:`_init_worker`); the calling process's own BLAS calls (the pool's threads, the score tests'
+    and the evidence's matrix products) would otherwise each start one thread per core on cores the fits already
+    keep busy. With one worker (``workers=1``) the diagnosis runs on the one core asked for. Measured on the 2-core
+    development machine (benchmarks/README.md): 4 x 5e4 samples on two threads 3.3-4.1 s with OpenBLAS's default
+    threads, 2.2-2.6 s with one; 4 x 1e5 on two worker processes 5.0-5.4 s against 3.5-4.0 s, the calling
+    process's processor time 4.0-4.2 s against 1.7-1.9 s. The limit is the process's (threadpoolctl's limits are not per thread): set by the first diagnosis
+    that enters, put back by the last that leaves, so that two diagnoses at once (two sessions of the workbench)
+    never leave it changed.
+    """
+    global _BLAS_USERS, _BLAS_LIMITER
+    if not active:
+        yield
+        return
+    with _BLAS_LOCK:
+        if _BLAS_USERS == 0:
+            from threadpoolctl import threadpool_limits
+
+            _BLAS_LIMITER = threadpool_limits(limits=1)
+        _BLAS_USERS += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS -= 1
+            if _BLAS_USERS == 0 and _BLAS_LIMITER is not None:
+                _BLAS_LIMITER.restore_original_limits()
+                _BLAS_LIMITER = None
+
+
 _ENV_LOCK = threading.Lock()
 
 
@@ -509,6 +548,10 @@ class Pool:
         # with workers elsewhere, enough threads here to keep each busy and still run the local work
         threads = (workers or _workers()) if self._remote is None else self._remote.workers + 2
         self.workers = threads if self._remote is None else self._remote.workers
+        # the fits side by side here or in this machine's worker processes (or one after the other on the one core
+        # asked for): this process's BLAS on one thread while the pool lives
+        self._blas = contextlib.ExitStack()
+        self._blas.enter_context(one_blas_thread(self.backend != "dask"))
         self._queue = queue.PriorityQueue()
         self._order = itertools.count()
         self._threads = []
@@ -570,8 +613,11 @@ class Pool:
             self._threads = []
         finally:
             remote, self._remote = self._remote, None
-            if remote is not None:
-                remote.close(cancel)
+            try:
+                if remote is not None:
+                    remote.close(cancel)
+            finally:
+                self._blas.close()
 
     def __enter__(self):
         return self
