@@ -169,6 +169,50 @@ def test_this_process_runs_blas_on_one_thread_while_a_pool_lives(record, monkeyp
     assert after == before
 
 
+@pytest.mark.parametrize("backend", ["processes", "threads"])
+@pytest.mark.parametrize("room", [0, 1, 3, 8])
+def test_the_workers_fit_in_the_free_memory(record, monkeypatch, backend, room):
+    """With memory for ``room`` fits (beside this process's own share) the pool runs that many of the 8 workers
+    asked for and says why; with room for one, processes give way to this process's thread; with room for all,
+    or where the free memory cannot be read, nothing changes and nothing is said."""
+    ds, _ = record
+    readings = ds.n_sensors * ds.n_samples
+    each = _parallel.WORKER_BYTES_PER_READING * readings + (
+        _parallel.WORKER_BASE_BYTES if backend == "processes" else 0
+    )
+    free = ((room + 0.5) * each + _parallel.CALLER_BYTES_PER_READING * readings) / _parallel.MEMORY_SHARE
+    monkeypatch.setattr(_parallel.memory, "available_bytes", lambda: free)
+    monkeypatch.setattr(_parallel, "BACKEND", backend)
+    with _parallel.Pool(ds, workers=8) as pool:
+        workers, where, note = pool.workers, pool.backend, pool.note
+    expected = min(max(room, 1), 8)
+    assert workers == expected
+    assert where == (backend if expected > 1 else "threads")
+    if expected < 8:
+        assert note and f"ran {expected} of the 8" in note and f"{readings:,} readings" in note
+    else:
+        assert note is None
+    monkeypatch.setattr(_parallel.memory, "available_bytes", lambda: None)
+    with _parallel.Pool(ds, workers=8) as pool:
+        assert pool.workers == 8 and pool.note is None
+
+
+def test_a_diagnosis_short_of_memory_says_so_and_reads_the_same(record, serial, monkeypatch):
+    ds, res = record
+    readings = ds.n_sensors * ds.n_samples
+    each = _parallel.WORKER_BYTES_PER_READING * readings + _parallel.WORKER_BASE_BYTES
+    free = (2.5 * each + _parallel.CALLER_BYTES_PER_READING * readings) / _parallel.MEMORY_SHARE
+    monkeypatch.setattr(_parallel.memory, "available_bytes", lambda: free)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        d = diagnose(ds, res, workers=4)
+    said = [n for n in d.notes if "ran 2 of the 4 worker processes" in n.text]
+    assert len(said) == 1
+    d.notes = [n for n in d.notes if n not in said]
+    _same(d, serial)  # the same diagnosis, on fewer workers
+
+
 def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
     ds, _ = record
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)

@@ -43,3 +43,37 @@ def keep_large_blocks() -> bool:
         return bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1 and ok)
     except (OSError, AttributeError):
         return False
+
+
+def available_bytes() -> int | None:
+    """Memory this process may still take without the machine (or its container) running out, bytes.
+
+    The smaller of the kernel's estimate of what can be allocated without swapping (``MemAvailable`` in
+    ``/proc/meminfo``) and what a cgroup's limit leaves (``memory.max`` less ``memory.current``, or cgroup v1's
+    ``memory.limit_in_bytes`` less ``memory.usage_in_bytes``), so that a container with a limit below the machine's
+    memory is not taken for the machine. None where neither can be read (not Linux).
+    """
+    found = []
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    found.append(int(line.split()[1]) * 1024)
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit_path, usage_path in (
+        ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+        ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"),
+    ):
+        try:
+            with open(limit_path, encoding="ascii") as fh:
+                limit = fh.read().strip()
+            with open(usage_path, encoding="ascii") as fh:
+                usage = int(fh.read().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 1 << 60:  # "max", or v1's huge number: no limit
+            found.append(max(int(limit) - usage, 0))
+        break
+    return min(found) if found else None

@@ -45,6 +45,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
+from magcal.core import memory
 from magcal.core.errors import MagcalError
 from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import Dataset
@@ -73,6 +74,56 @@ BACKEND = None
 #: magcal in every worker of every pool, the crossing lay near 1e6 readings.) More cores only widen the processes'
 #: lead: threads stop paying beyond a few cores, processes do not.
 PROCESS_MIN_READINGS = 400_000
+
+#: Memory of one worker process of a diagnosis: a fixed part (the interpreter, numpy, scipy, magcal) and a part per
+#: reading (sensors x samples) of the record, its fits' temporaries (a thread's fit takes the second part only).
+#: Measured with ``benchmarks/scaling.py``'s ``DescendantsPeak`` (the largest worker's peak resident memory) on the
+#: 2-core development machine: 285, 467, 820 and 1 940 MB at 4e5, 8e5, 1.6e6 and 4e6 readings (about 110 MB and
+#: 460 bytes a reading); rounded up here.
+WORKER_BASE_BYTES = 120 << 20
+WORKER_BYTES_PER_READING = 500
+
+#: What the calling process still adds while its diagnosis runs, per reading: its peak was 490, 804, 1 359 and
+#: 3 360 MB at those sizes, of which 220-420 MB before the diagnosis started (about 650 bytes a reading); rounded up.
+CALLER_BYTES_PER_READING = 700
+
+#: Share of the memory free at the start that the workers are planned to fill (the rest: other programs, the page
+#: cache the next read needs, the estimate's error).
+MEMORY_SHARE = 0.8
+
+
+def workers_for_memory(dataset, workers: int, backend: str) -> tuple[int, str | None]:
+    """How many of ``workers`` (worker processes, or threads each running a fit) fit in the memory free now, and
+    what to tell the user when that is fewer.
+
+    A diagnosis of 4 x 1e6 samples takes about 2 GB per worker process: on 64 cores with 128 GB, one worker per
+    core would run the machine out of memory. The estimate is :data:`WORKER_BASE_BYTES` (processes only) plus
+    :data:`WORKER_BYTES_PER_READING` per reading per worker, and :data:`CALLER_BYTES_PER_READING` for this process;
+    the free memory is :func:`magcal.core.memory.available_bytes` (a container's limit included). Where it cannot
+    be read, ``workers`` is kept.
+
+    Returns
+    -------
+    workers : int
+        At least 1.
+    note : str or None
+    """
+    free = memory.available_bytes()
+    if free is None or workers <= 1:
+        return workers, None
+    readings = dataset.n_sensors * dataset.n_samples
+    each = WORKER_BYTES_PER_READING * readings + (WORKER_BASE_BYTES if backend == "processes" else 0)
+    budget = MEMORY_SHARE * free - CALLER_BYTES_PER_READING * readings
+    fits = max(1, int(budget // each))
+    if fits >= workers:
+        return workers, None
+    kind = "worker processes" if backend == "processes" else "threads"
+    return fits, (
+        f"the diagnosis ran {fits} of the {workers} {kind} it would have used: each needs about {each / 1e9:.2g} GB "
+        f"for {readings:,} readings and {free / 1e9:.3g} GB of memory were free, so more would have run this machine "
+        "out of memory (with more memory free, or on a Dask cluster with --scheduler, it runs faster)"
+    )
+
 
 #: Priorities of a :class:`Pool`'s work (lower first): fits on the longest chain (refits and the held-out fits
 #: they lead to), fits every candidate waits for, and evidence that is only read at the end.
@@ -541,6 +592,13 @@ class Pool:
             "threads" if dataset is None and scheduler is None else backend_for(dataset, workers, scheduler, effects)
         )
         self._remote = None
+        #: What the pool says to the user, or None: fewer workers than asked for, for want of memory.
+        self.note = None
+        if dataset is not None and self.backend != "dask":
+            wanted = workers or _workers(cap=MAX_PROCESSES if self.backend == "processes" else MAX_THREADS)
+            workers, self.note = workers_for_memory(dataset, wanted, self.backend)
+            if self.note and self.backend == "processes" and workers < 2:
+                self.backend = "threads"  # room for one fit at a time: in this process
         if self.backend == "processes":
             self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
         elif self.backend == "dask":
