@@ -176,3 +176,135 @@ def test_the_vector_fit_of_a_file_with_attitude_gaps_is_the_fit_of_its_samples_w
     assert np.array_equal(got.fitted, ~gap) and got.gaps.n_without_attitude == 170
     for a, b in zip(got.sensors, ref.sensors):
         assert np.allclose(a.W, b.W, rtol=1e-9) and np.allclose(a.bias_nT, b.bias_nT, atol=1e-6)
+
+
+# --- site_gradient on samples without attitude ---------------------------------------------------------------------
+SITE_G = 20.0  # nT/m; the truth is SITE_G * SiteGradient.pattern
+
+
+@pytest.fixture(scope="module")
+def site():
+    """A four-sensor cross in a site gradient (known G), and the same record with attitude gaps."""
+    from magcal.data.simulation import chi2017_truth, simulate_timeseries
+    from magcal.model.terms import EFFECTS
+
+    effect = EFFECTS["site_gradient"]()
+    ds = simulate_timeseries(
+        chi2017_truth(4), n_samples=1200, noise_nT=2.0, seed=7, perturbations=[effect.perturbation(SITE_G)]
+    )
+    gap = np.zeros(ds.n_samples, bool)
+    gap[:100] = True
+    gap[500:520] = True
+    gap[::9] = True  # scattered dropouts too
+    q = np.array(ds.attitude_wxyz)
+    q[gap] = np.nan
+    return ds, ds.replace(attitude_wxyz=q), gap, effect.true_params(SITE_G)
+
+
+def _gradient(result):
+    entry = next(e for e in result.effect_params if e["effect"] == "site_gradient")
+    return np.array(list(entry["params"].values())), np.array(list(entry["std"].values()))
+
+
+def test_site_gradient_fits_the_samples_with_attitude_and_finds_the_truth(site):
+    from magcal.core.errors import MagcalError
+    from magcal.fitting.fitter import fit, fit_with_notes
+    from magcal.model.terms import Model
+
+    clean, gappy, gap, truth = site
+    model = Model.from_names(["site_gradient"], 4)
+    with pytest.warns(DataWarning, match=r"samples have no attitude \(rows 1-100, 109, 118 and \d+ more runs\)"):
+        got = fit(gappy, model)
+    g, sd = _gradient(got)
+    assert np.all(np.abs(g - truth) < 4.0 * sd), (g, sd, truth)  # the truth, within the standard errors
+    # exactly the fit of the samples with attitude, and the fit says which samples those were
+    ref = fit(clean, model, mask=~gap)
+    assert np.array_equal(got.mask, ~gap)
+    assert np.allclose(got.x, ref.x, rtol=1e-9, atol=1e-9) and got.rss == pytest.approx(ref.rss, rel=1e-12)
+    note = next(n for n in fit_with_notes(gappy, model).notes if n.is_a(DataWarning))
+    n_gap = int(gap.sum())
+    assert note.text.startswith(f"{n_gap} of 1200 samples have no attitude (rows 1-100, 109, 118")
+    assert note.text.endswith(
+        f"left out of the fit: site_gradient needs each sample's attitude ({1200 - n_gap} samples fitted)"
+    )
+    # the user's own mask counts "of the selected"
+    mask = np.ones(1200, bool)
+    mask[:50] = False
+    sel = next(n for n in fit_with_notes(gappy, model, mask=mask).notes if n.is_a(DataWarning)).text
+    assert sel.startswith(f"{int((gap & mask).sum())} of the 1150 selected samples have no attitude (rows 51-100, 109")
+    # the old behaviour (the identity for a missing attitude) was tens of standard errors off: the test can fail
+    from magcal.data.attitude import filled_wxyz
+
+    wrong = fit(gappy.replace(attitude_wxyz=filled_wxyz(gappy.attitude_wxyz)[0]), model)
+    assert np.max(np.abs(_gradient(wrong)[0] - truth) / sd) > 10.0
+    # no sample with attitude: one clear error
+    with pytest.raises(MagcalError, match="none of the 100 chosen samples has an attitude"):
+        fit(gappy, model, mask=gap & (np.arange(1200) < 100))
+    # the base model needs no attitude: every sample is fitted, nothing said
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DataWarning)
+        assert fit(gappy, Model.base_model(4)).mask.all()
+
+
+def test_without_attitude_the_site_gradient_predicts_nothing_rather_than_a_wrong_field(site):
+    from magcal.model.terms import EFFECTS, contexts
+
+    clean, gappy, gap, truth = site
+    effect = EFFECTS["site_gradient"]()
+    for ctx_clean, ctx in zip(contexts(clean, clean.baseline_m), contexts(gappy, gappy.baseline_m)):
+        basis = effect.vector_basis(None, ctx)
+        assert np.isnan(basis[gap]).all()
+        assert np.array_equal(basis[~gap], effect.vector_basis(None, ctx_clean)[~gap])
+        assert np.array_equal(ctx.attitude_present, ~gap)
+
+
+def test_calibrate_correct_and_apply_leave_rows_without_attitude_out_and_say_it_once(site, tmp_path, capsys):
+    from magcal.cli import main
+    from magcal.fitting.pipeline import calibrate
+
+    clean, gappy, gap, truth = site
+    res = calibrate(gappy, effects=["site_gradient"])
+    n_gap = int(gap.sum())
+    said = [w for w in res.warnings if "no attitude" in w]
+    assert len(said) == 1 and said[0].startswith(f"{n_gap} of 1200 samples have no attitude (rows 1-100, 109")
+    assert "left out of the calibration: site_gradient needs each sample's attitude" in said[0]
+    assert np.array_equal(res.fit.mask, ~gap)
+    g, sd = _gradient(res.fit)
+    assert np.all(np.abs(g - truth) < 4.0 * sd)
+    # correcting the record: NaN where the term cannot act, with a note; dropping the term corrects every row
+    cal = res.calibration
+    with pytest.warns(
+        DataWarning, match=f"{n_gap} of 1200 samples have no attitude .*: site_gradient cannot be applied"
+    ):
+        v = cal.correct(gappy, record_terms="apply")
+    assert np.isnan(v[:, gap]).all() and np.isfinite(v[:, ~gap]).all()
+    assert np.allclose(v[:, ~gap], cal.correct(clean, record_terms="apply")[:, ~gap])
+    assert np.isfinite(cal.correct(gappy, record_terms="drop")).all()
+    # magcal apply on the fitted record, in blocks: one note over the whole file, rows counted in the file
+    mio.write_csv(tmp_path / "rec.csv", gappy)
+    cal.save(tmp_path / "cal.json")
+    out = tmp_path / "out.csv"
+    argv = ["apply", str(tmp_path / "cal.json"), str(tmp_path / "rec.csv"), "-o", str(out), "--chunk-rows", "300"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    texts = [line for line in err.splitlines() if "no attitude" in line]
+    assert len(texts) == 1 and f"{n_gap} of 1200 rows have no attitude (rows 1-100, 109, 118" in texts[0]
+    assert "site_gradient cannot be applied to them, so their corrected columns (s1x_cal" in texts[0]
+    frame = pytest.importorskip("pandas").read_csv(out, comment="#")
+    body = frame[[f"s{s}{a}_cal" for s in range(1, 5) for a in "xyz"]].to_numpy()
+    assert np.isnan(body[gap]).all() and np.isfinite(body[~gap]).all()
+
+
+def test_the_diagnosis_does_not_test_site_gradient_on_samples_without_attitude_and_says_why(site):
+    from magcal.diagnosis import diagnose
+
+    clean, gappy, gap, _ = site
+    assert diagnose(clean).candidates[0].effect == "site_gradient"  # found where every sample has an attitude
+    d = diagnose(gappy)
+    assert "site_gradient" not in {c.effect for c in d.candidates}
+    line = next(w for w in d.warnings if "no attitude" in w)
+    assert line.startswith(f"{int(gap.sum())} of the 1200 samples fitted have no attitude (rows 1-100, 109")
+    assert "site_gradient was not tested" in line and "exclude those samples to test it" in line
+    # excluded, it is tested again, and found
+    sub = gappy.subset(~gap)
+    assert diagnose(sub).candidates[0].effect == "site_gradient"
