@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io as _stdio
 import os
+import shutil
 import tempfile
 import warnings
 
@@ -308,3 +309,120 @@ def test_the_diagnosis_does_not_test_site_gradient_on_samples_without_attitude_a
     # excluded, it is tested again, and found
     sub = gappy.subset(~gap)
     assert diagnose(sub).candidates[0].effect == "site_gradient"
+
+
+def test_the_workbench_fits_site_gradient_on_a_record_with_gaps_and_draws_every_sample(site):
+    from magcal_workbench import scene as scn
+    from magcal_workbench.controller import Controller
+
+    clean, gappy, gap, truth = site
+    ctrl = Controller(gappy)
+    ctrl.state.effects = ["site_gradient"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # what the steps say goes to the page, not to the server's stderr
+        ctrl.step_calibrate()
+        ctrl.step_refine()
+    n_gap = int(gap.sum())
+    assert f"{n_gap} of 1200 samples have no attitude (rows 1-100, 109" in ctrl.message
+    assert np.array_equal(ctrl.fit_result.mask, ~gap)
+    g, sd = _gradient(ctrl.fit_result)
+    assert np.all(np.abs(g - truth) < 4.0 * sd)
+    # the corrected vectors: NaN where the term cannot act; the figures over the others
+    assert np.isnan(ctrl.corrected_nT[:, gap]).all() and np.isfinite(ctrl.corrected_nT[:, ~gap]).all()
+    assert np.isfinite(ctrl.residual_rms_nT()) and ctrl.residual_rms_nT() < 2.2
+    # the scene gets a finite position for every sample (a NaN one spoils the cloud's bounds in the browser)
+    views = [
+        scn.SensorView(
+            sensor=s,
+            raw_nT=gappy.readings_nT[s],
+            corrected_nT=ctrl.corrected_nT[s],
+            residual_nT=ctrl.residual_nT[s],
+            cinv=ctrl.calibration.sensors[s].cinv,
+            bias_nT=ctrl.calibration.sensors[s].bias_nT,
+            R=ctrl.calibration.sensors[s].R,
+        )
+        for s in range(4)
+    ]
+    model = scn.SceneModel(sensors=views, n_sensors=4, field_nT=ctrl.field_nT, kept=ctrl.state.kept)
+    for name, _, _kind, positions in scn.layout(model):
+        assert positions.shape == (1200, 3) and np.isfinite(positions).all(), name
+
+
+# --- a recording with attitude gaps, end to end ---------------------------------------------------------------------
+def test_magcal_calibrate_and_apply_run_on_a_csv_whose_quaternions_have_gaps(tmp_path, capsys):
+    """The file the engine's writers make of a recording with gaps (NaN quaternion rows) through the commands a
+    user runs: the vector fit leaves those samples out and says which; apply writes NaN world columns there."""
+    from magcal.calibration.calibration import Calibration
+    from magcal.cli import main
+
+    truth = vehicle_truth(seed=21)
+    one, _ = simulate_vehicle(truth, seed=21, n=1500, attitude_noise_deg=0.02)
+    two, tr = simulate_vehicle(truth, seed=22, n=400, attitude_noise_deg=0.02)
+    gap_one, gap_two = np.zeros(1500, bool), np.zeros(400, bool)
+    gap_one[:120], gap_two[:25], gap_two[300:304] = True, True, True
+    for ds, gap, name in ((one, gap_one, "one.csv"), (two, gap_two, "two.csv")):
+        q = np.array(ds.attitude_wxyz)
+        q[gap] = np.nan
+        mio.write_csv(tmp_path / name, ds.replace(attitude_wxyz=q))
+    text = (tmp_path / "one.csv").read_text()
+    (tmp_path / "one.csv").write_text(text.replace(",nan,nan,nan,nan,", ",,,,,"))  # empty cells read the same
+    cal_path = tmp_path / "cal.json"
+    argv = ["calibrate", str(tmp_path / "one.csv"), "--mode", "vector", "--platform-terms", "none", "-o", str(cal_path)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "120 of 1500 samples have no attitude (rows 1-120) and were left out of the vector fit" in out
+    cal = Calibration.load(cal_path)
+    assert cal.mode == "vector"
+    s, t = cal.sensors[0], truth.sensors[0]
+    assert np.degrees(np.arccos(np.clip((np.trace(s.R @ t.mounting.T) - 1) / 2, -1, 1))) < 0.02
+    assert main(["apply", str(cal_path), str(tmp_path / "two.csv"), "-o", str(tmp_path / "out.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "29 of 400 rows have no attitude (rows 1-25, 301-304): their world components (s1n_cal" in err
+    frame = pytest.importorskip("pandas").read_csv(tmp_path / "out.csv", comment="#")
+    world = frame[["s1n_cal", "s1e_cal", "s1d_cal"]].to_numpy()
+    assert np.isnan(world[gap_two]).all() and np.isfinite(world[~gap_two]).all()
+    assert np.sqrt(np.mean((world[~gap_two] - tr.field_ned_nT) ** 2)) < 25.0  # 0.02 deg of 50 uT: 14 nT
+
+
+def _gappy_vehicle(n=600):
+    flight, truth = simulate_vehicle(n=n, seed=4, attitude_noise_deg=0.05)
+    gap = np.zeros(n, bool)
+    gap[:60] = True
+    gap[400:410] = True
+    q = np.array(flight.attitude_wxyz)
+    q[gap] = np.nan
+    return flight.replace(attitude_wxyz=q), gap
+
+
+def test_the_workbench_opens_a_file_with_quaternion_gaps_and_runs_the_vector_fit(bench):
+    ds, gap = _gappy_vehicle()
+    wb = bench(ds=ds)  # written as CSV, opened as the page opens an upload
+    assert np.array_equal(attitude_present(wb.ctrl.dataset), ~gap)
+    p = wb.panels.vector_panel
+    assert p.btn_vector.visible and "quaternions" in p.info.content
+    wb.ctrl.step_vector()
+    assert "530 of 600 kept samples (70 without attitude left out)" in p.table.content
+    assert "70 of 600 samples have no attitude (rows 1-60, 401-410)" in p.table.content
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_the_vector_fit_button_on_a_recording_with_quaternion_gaps_in_the_page(browser, bench, tmp_path):
+    """In Chromium: the vector fit button on a file whose quaternions have gaps gives the fit and says how many
+    samples it left out."""
+    from test_workbench_e2e import _dismiss_toasts, _open
+
+    ds, gap = _gappy_vehicle()
+    wb = bench(ds=ds, max_points=300)
+    page = _open(browser, wb)
+    page.get_by_role("button", name="Run the vector fit (attitude-aided)").click()
+    page.wait_for_function("() => document.body.innerText.includes('deg off it')", timeout=120_000)
+    text = page.inner_text("body", timeout=120_000)
+    assert "70 without attitude left out" in text and "world N RMS" in text
+    _dismiss_toasts(page)
+    shot = tmp_path / "vector_gaps.png"
+    page.screenshot(path=str(shot), timeout=120_000)
+    if os.environ.get("MAGCAL_KEEP_SHOT"):
+        shutil.copy(shot, os.environ["MAGCAL_KEEP_SHOT"])
+    assert shot.stat().st_size > 10_000
+    page.close()
