@@ -426,3 +426,19 @@ def test_the_vector_fit_button_on_a_recording_with_quaternion_gaps_in_the_page(b
         shutil.copy(shot, os.environ["MAGCAL_KEEP_SHOT"])
     assert shot.stat().st_size > 10_000
     page.close()
+
+
+def test_the_tilt_ring_and_the_turn_rate_read_a_record_with_quaternion_gaps(tmp_path):
+    from magcal.data.attitude import turn_rate_dps
+    from magcal_workbench.view import ring_directions
+
+    ds, gap = _gappy_vehicle()
+    mio.write_csv(tmp_path / "d.csv", ds)
+    back = mio.read_csv(tmp_path / "d.csv")
+    rate = turn_rate_dps(back)
+    assert np.isfinite(rate).all() and np.all(rate[gap] == 0.0) and rate[~gap].max() > 1.0
+    corrected = back.readings_nT[0]  # directions enough for the ring's inclination
+    ring = ring_directions(back, corrected, 200)  # a sample with attitude: the yaw sweep at its tilt
+    assert ring is not None and np.isfinite(ring).all() and np.allclose(np.linalg.norm(ring, axis=1), 1.0)
+    gap_ring = ring_directions(back, corrected, 405)  # without: the latest directions' circle, if any
+    assert gap_ring is None or np.isfinite(gap_ring).all()
