@@ -442,3 +442,23 @@ def test_the_tilt_ring_and_the_turn_rate_read_a_record_with_quaternion_gaps(tmp_
     assert ring is not None and np.isfinite(ring).all() and np.allclose(np.linalg.norm(ring, axis=1), 1.0)
     gap_ring = ring_directions(back, corrected, 405)  # without: the latest directions' circle, if any
     assert gap_ring is None or np.isfinite(gap_ring).all()
+
+
+def test_a_recording_no_attitude_reached_gets_the_total_field_fit_unless_vector_is_asked(tmp_path, capsys):
+    from magcal.cli import main
+    from magcal.core.errors import MagcalError
+
+    flight, _ = simulate_vehicle(vehicle_truth(seed=5), seed=5, n=400)
+    mio.write_csv(tmp_path / "none.csv", flight.replace(attitude_wxyz=np.full((400, 4), np.nan)))
+    assert main(["calibrate", str(tmp_path / "none.csv"), "-o", str(tmp_path / "cal.json")]) == 0
+    assert "the attitude columns are empty on every row (no sample has an attitude): the total-field fit" in (
+        capsys.readouterr().err
+    )
+    from magcal.calibration.calibration import Calibration
+
+    assert Calibration.load(tmp_path / "cal.json").mode == "scalar"
+    assert main(["calibrate", str(tmp_path / "none.csv"), "--mode", "vector", "-o", str(tmp_path / "v.json")]) == 2
+    assert "only 0 of 400 samples have both an attitude and a reference field vector" in capsys.readouterr().err
+    with pytest.raises(MagcalError, match="only 0 of 400"):
+        back = mio.read_csv(tmp_path / "none.csv")
+        fit_vector(back, resolve_vector_reference(back), terms=[], warn=False)
