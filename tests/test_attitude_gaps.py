@@ -462,3 +462,73 @@ def test_a_recording_no_attitude_reached_gets_the_total_field_fit_unless_vector_
     with pytest.raises(MagcalError, match="only 0 of 400"):
         back = mio.read_csv(tmp_path / "none.csv")
         fit_vector(back, resolve_vector_reference(back), terms=[], warn=False)
+
+
+# --- flight logs: samples far from any attitude message -------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["dataflash", "ulog"])
+def test_a_log_s_samples_far_from_any_attitude_message_have_none(tmp_path, kind):
+    """Before the first attitude message, after the last and in a long gap the attitude was held or interpolated
+    across whatever the vehicle did meanwhile; now those samples have none (NaN), a note says which, and short gaps
+    are still interpolated. Known truth: the logs of tests/test_logs.py (one attitude per magnetometer sample)."""
+    pytest.importorskip("pymavlink")
+    pytest.importorskip("pyulog")
+    from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
+
+    from magcal.data.logs import LOG_ATTITUDE_HOLD_S, read_log
+
+    # samples every 20 ms (DataFlash) or 10 ms... the attitude messages of samples `drop` are left out
+    if kind == "dataflash":
+        messages, _, att, _ = ardupilot_case(n=400, compasses=1)
+        step = 0.02
+        att_at = [i for i, m in enumerate(messages) if m[0] == "ATT"]
+    else:
+        topics, _, att, _, _ = px4_case(n=400)
+        step = float(np.median(np.diff([r[0] for r in topics[0][3]]))) * 1e-6
+    n = 400
+    head = int(round(1.5 / step))  # no attitude for the first 1.5 s
+    long_gap = np.arange(200, 200 + int(round(1.2 / step)))  # 1.2 s without: longer than the limit
+    short_gap = np.arange(340, 340 + int(round(0.2 / step)))  # 0.2 s: interpolated across
+    drop = set(range(head)) | set(long_gap.tolist()) | set(short_gap.tolist())
+    if kind == "dataflash":
+        messages = [m for i, m in enumerate(messages) if not (m[0] == "ATT" and att_at.index(i) in drop)]
+        path = tmp_path / "gaps.bin"
+        write_dataflash(path, messages)
+    else:
+        name, multi, fields, rows = topics[1]
+        topics[1] = (name, multi, fields, [r for i, r in enumerate(rows) if i not in drop])
+        path = tmp_path / "gaps.ulg"
+        write_ulog(path, topics)
+    notes = []
+    ds = read_log(path, notes=notes)
+    assert ds.n_samples == n
+    have = attitude_present(ds)
+    t = ds.time_s
+    t_att = t[np.setdiff1d(np.arange(n), sorted(drop))]  # (within 2 ms) the attitude messages' times
+    t_att = t_att - (0.002 if kind == "ulog" else 0.0)
+    nearest = np.min(np.abs(t[:, None] - t_att[None, :]), axis=1)
+    expected = nearest <= LOG_ATTITUDE_HOLD_S + 1e-6
+    expected[short_gap] = True  # spanned by messages 0.2 s apart: interpolated
+    assert np.array_equal(have, expected), (np.flatnonzero(have != expected), step)
+    assert have[short_gap].all() and not have[: head - int(round(0.25 / step))].any() and have[head - 3 : head].all()
+    m = int(round(0.25 / step))
+    assert not have[long_gap[m:-m]].any() and have[long_gap[:3]].all()
+    said = [x.text for x in notes if "no attitude" in x.text]
+    assert len(said) == 1 and said[0].startswith(
+        f"{path}: {int((~expected).sum())} of {n} magnetometer samples (rows 1-"
+    )
+    assert (
+        "lie more than 0.2 s from any attitude message, before the first, after the last or in a gap of more"
+        in (said[0])
+    )
+    if kind == "dataflash":  # a sample with its own message has the logged attitude; the logged angles agree
+        own = np.setdiff1d(np.arange(head, n), np.concatenate([long_gap, short_gap]))
+        q = ds.attitude_wxyz[own]
+        from scipy.spatial.transform import Rotation
+
+        got = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
+        assert np.degrees(np.max((got * att[own].inv()).magnitude())) < 0.01
+        assert np.isnan(ds.extra["att_roll_deg"][~expected]).all()
+        assert np.isfinite(ds.extra["att_roll_deg"][expected]).all()
+    # written and read back as CSV, the gaps stay gaps
+    mio.write_csv(tmp_path / "log.csv", ds)
+    _same(mio.read_csv(tmp_path / "log.csv"), ds)
