@@ -532,3 +532,26 @@ def test_a_log_s_samples_far_from_any_attitude_message_have_none(tmp_path, kind)
     # written and read back as CSV, the gaps stay gaps
     mio.write_csv(tmp_path / "log.csv", ds)
     _same(mio.read_csv(tmp_path / "log.csv"), ds)
+
+
+def test_parquet_null_quaternion_cells_from_another_tool_mean_no_attitude(tmp_path):
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    ds, gap = _gappy(n=40, runs=((3, 6),))
+    cols = mio.dataset_columns(ds)
+    table = pa.table(
+        {
+            k: pa.array(np.asarray(v, float), from_pandas=True) if k in ("qw", "qx", "qy", "qz") else v
+            for k, v in cols.items()
+        }
+    )
+    assert table.column("qx").null_count == 3  # NaN written as null, as pandas and others do
+    pq.write_table(table, tmp_path / "nulls.parquet")
+    back = mio.read_parquet(tmp_path / "nulls.parquet")
+    assert np.array_equal(attitude_present(back), ~gap)
+    # a null in a reading is still refused, naming the row and the column
+    table = table.set_column(table.schema.get_field_index("s1y"), "s1y", pa.array([None] + list(cols["s1y"][1:])))
+    pq.write_table(table, tmp_path / "bad.parquet")
+    with pytest.raises(DatasetError, match=r"bad\.parquet: row 1, column s1y: nan is NaN"):
+        mio.read_parquet(tmp_path / "bad.parquet")
