@@ -489,7 +489,8 @@ class Controller:
     def _residuals_of(self, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
         # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
         ds = self.fit_dataset()
-        fields = cal.correct(ds, record_terms="apply")
+        # an effect that needs the attitude leaves NaN on samples without one; the fit's own note says so
+        fields, _ = cal.corrected_with_notes(ds, record_terms="apply")
         return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
 
     def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:

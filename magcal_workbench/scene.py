@@ -136,9 +136,12 @@ def exaggerate_radial(points, gain: float) -> np.ndarray:
 
 
 def residual_radius_points(corrected_scaled, residual_nT, field_nT, gain: float) -> np.ndarray:
-    """Corrected directions drawn at radius ``1 + gain r/F`` (``r`` in nT; NaN residuals at radius 1)."""
+    """Corrected directions drawn at radius ``1 + gain r/F`` (``r`` in nT; NaN residuals at radius 1). A sample
+    with no corrected vector (NaN: an effect that needs the attitude, on a sample without one) is drawn at the
+    sphere's centre, hidden inside it: a NaN position would spoil the whole cloud's bounds in the browser."""
     p = np.asarray(corrected_scaled, dtype=float)
     u = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
+    u = np.where(np.isfinite(u).all(axis=-1, keepdims=True), u, 0.0)
     r = np.nan_to_num(np.asarray(residual_nT, dtype=float), nan=0.0)
     return u * (1.0 + gain * r / float(field_nT))[:, None]
 

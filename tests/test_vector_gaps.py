@@ -288,7 +288,9 @@ def test_apply_of_a_parquet_survey_has_the_same_nan_world_rows(tmp_path):
     two, _ = simulate_vehicle(truth, seed=15, n=300)
     cal = fit_vector(one, resolve_vector_reference(one), terms=[], warn=False).calibration
     gap = _gap(300, ((10, 20), (63, 70)))  # the second run across the first blocks' edge (64 rows each)
-    gappy = _without_attitude(two, gap, "euler")  # the readers refuse NaN in the qw..qz channel: angles are extras
+    gappy = _without_attitude(
+        two, gap, "euler"
+    )  # angles are extras to the readers (tests/test_attitude_gaps.py: qw..qz)
     mio.write_parquet(tmp_path / "two.parquet", dataset_columns(gappy), dataset_metadata(gappy))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -17,9 +17,9 @@ from magcal.calibration.uncertainty import covariance_size, field_uncertainty
 from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
 from magcal.core import notes as _notes
-from magcal.core.errors import MagcalError, RecordTermWarning, exception_text
+from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning, exception_text
 from magcal.core.jsonable import jsonable
-from magcal.core.notes import Note
+from magcal.core.notes import Note, row_runs
 from magcal.core.vectors import basis_times, row_norm
 from magcal.data.attitude import attitude_rows
 from magcal.data.inputs import as_dataset
@@ -30,9 +30,11 @@ from magcal.model.terms import (
     EFFECTS,
     VECTOR_STAGES,
     Model,
+    attitude_effects,
     block_label,
     contexts,
     parse_effect,
+    rows_without_attitude,
     unknown_effect_message,
 )
 
@@ -42,6 +44,10 @@ VERSION = 1
 #: Effects that describe one recording, used only for an effect class that does not say
 #: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
 RECORD_ONLY_FALLBACK = frozenset({"bias_drift", "bias_step", "reference_drift", "site_gradient"})
+
+#: The ``where`` of :meth:`Calibration.corrected_with_notes`'s note on samples an effect cannot correct for want of
+#: an attitude (``magcal apply`` counts those rows over the whole survey instead, :class:`magcal.output.apply.AttitudeGaps`).
+ATTITUDE_GAP_NOTE = "correct: no attitude"
 
 #: Choices of ``record_terms`` (:meth:`Calibration.correct`): ``None`` decides from the record fingerprint.
 RECORD_TERM_CHOICES = ("apply", "drop")
@@ -455,7 +461,27 @@ class Calibration:
         model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
         dataset = self._without_platform(dataset)
         vectors = corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        missing = None if model is None else rows_without_attitude(model, dataset)
+        if missing is not None and missing.any():  # the term has no value there: NaN, said once
+            labels = ", ".join(attitude_effects(model))
+            notes = notes + [
+                Note(
+                    f"{int(missing.sum())} of {missing.size} samples have no attitude ({row_runs(missing)}): {labels} "
+                    "cannot be applied to them and their corrected vectors are NaN; drop the term "
+                    "(record_terms='drop', --record-terms drop) to correct every sample with the base terms",
+                    DataWarning,
+                    ATTITUDE_GAP_NOTE,
+                )
+            ]
         return vectors, notes
+
+    def attitude_terms(self, record_terms=None, dataset=None) -> list[str]:
+        """Labels of the effects acting under ``record_terms`` (:meth:`record_decision` on ``dataset``) that need
+        each sample's attitude (``site_gradient``): a sample without one gets NaN corrected vectors."""
+        if self.model is None:
+            return []
+        dropped, _ = self.record_decision(dataset, record_terms, VECTOR_STAGES)
+        return [label for label in attitude_effects(self.model) if label not in set(dropped)]
 
     def _without_platform(self, dataset):
         """The dataset with the platform terms' field taken out of the readings (unchanged without any)."""

@@ -39,7 +39,7 @@ from magcal.checks.reference import (
 )
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
-from magcal.data.attitude import attitude_source
+from magcal.data.attitude import attitude_present, attitude_source
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.validation import validate_effects
@@ -254,6 +254,14 @@ def choose_mode(args, ds):
             "(body -> north-east-down; docs/formats.md)"
         )
     if not has_attitude:
+        return "scalar", None
+    present = attitude_present(ds)
+    if mode == "auto" and present is not None and not present.any():  # e.g. a recording no ATTITUDE reached
+        print(
+            f"magcal calibrate: {args.data}: the attitude columns are empty on every row (no sample has an attitude): "
+            "the total-field fit",
+            file=sys.stderr,
+        )
         return "scalar", None
     vref = vector_reference_from_args(args, ds)
     if vref is None:

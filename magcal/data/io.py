@@ -5,7 +5,7 @@ metadata as ``# key: value`` (``baseline_m``, ``reference_total_nT``, ``units``,
 key is kept as text in :attr:`Dataset.metadata`). Readings in raw sensor counts (``units: counts``) need the LSB in
 nT per count (``lsb_nT``, or ``--lsb``). Columns ``s1x,s1y,s1z ... s4x,s4y,s4z`` (one to four sensors; bare
 ``x,y,z`` means one sensor), optional ``t`` (s), ``temp`` (degC), ``ref_total`` (nT), ``qw,qx,qy,qz`` (attitude,
-array frame to world frame), ``group`` (text). Any other column is kept in :attr:`Dataset.extra`.
+array frame to world frame; all four empty or ``nan``: a sample without attitude), ``group`` (text). Any other column is kept in :attr:`Dataset.extra`.
 
 The reader tells the truth about the file: every problem is a :class:`~magcal.data.dataset.DatasetError` naming the
 file, the 1-based line number of the file and the column, and saying what to do; problems it can work around
@@ -238,6 +238,33 @@ class Layout:
             cols += [(j, name) for j, name in zip(self.quaternion, QUATERNION_COLUMNS)]
         return cols
 
+    @property
+    def quaternion_positions(self) -> list:
+        """Positions of ``qw, qx, qy, qz`` in :attr:`numeric` (empty without attitude columns): the only numeric
+        cells that may be empty or NaN, all four together (a sample without attitude)."""
+        if not self.quaternion:
+            return []
+        pos = {name: m for m, (_, name) in enumerate(self.numeric)}
+        return [pos[name] for name in QUATERNION_COLUMNS]
+
+
+def bad_numeric_cells(values, quaternion_positions=()):
+    """Where the numeric cells of a block (N, k) break the rule for read values (:func:`bad_values`), a sample
+    without attitude excepted: its four quaternion cells NaN together (the file's empty or ``nan`` cells). One,
+    two or three of them NaN stay bad, as does an infinite or huge value anywhere.
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (N, k)
+    """
+    bad = bad_values(values)
+    if len(quaternion_positions):
+        q = np.asarray(values, dtype=float)[:, list(quaternion_positions)]
+        without = np.all(np.isnan(q), axis=1)  # no attitude for this sample
+        if without.any():
+            bad[np.ix_(without, list(quaternion_positions))] = False
+    return bad
+
 
 def _find_layout(header, columns, source, header_line=1, notes=None):
     """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name."""
@@ -322,6 +349,20 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
     used = set(canonical.values())
     extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
     return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra)
+
+
+def _partial_quaternion(q):
+    """The message for a row whose quaternion cells ``q`` (qw, qx, qy, qz) are some but not all missing (empty or
+    nan), else None."""
+    missing = np.isnan(q)
+    if not missing.any() or missing.all():
+        return None
+    lacking = [n for n, m in zip(QUATERNION_COLUMNS, missing) if m]
+    given = [n for n, m in zip(QUATERNION_COLUMNS, missing) if not m]
+    return (
+        f"column {lacking[0]}: empty or nan while {', '.join(given)} {'holds' if len(given) == 1 else 'hold'} "
+        f"a number; give all four of qw,qx,qy,qz, or leave all four empty for a sample without attitude"
+    )
 
 
 def _strict_float(text):
@@ -447,6 +488,9 @@ class CsvSource:
 
     Use as a context manager, or call :meth:`close`.
     """
+
+    #: What the numbers given to :meth:`_dataset` count in its messages: the file's lines (a Parquet file: rows).
+    _row_word = "line"
 
     def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None, notes=None):
         self._notes = notes
@@ -701,7 +745,7 @@ class CsvSource:
                 values = None
             if values is not None and values.shape != (len(lines), len(num)):
                 values = None
-            if values is not None and bad_values(values).any():
+            if values is not None and bad_numeric_cells(values, layout.quaternion_positions).any():
                 values = None
         rows = None
         if values is None:
@@ -736,6 +780,7 @@ class CsvSource:
         layout = self.layout
         ncol = len(layout.header)
         num = layout.numeric
+        quaternion = layout.quaternion_positions
         rows = []
         problems = []  # (line, message)
         values = np.empty((len(lines), len(num)))
@@ -755,6 +800,11 @@ class CsvSource:
             bad = None
             for m, (j, name) in enumerate(num):
                 number = _strict_float(row[j])
+                if m in quaternion and (
+                    number is None and not row[j].strip() or number is not None and np.isnan(number)
+                ):
+                    values[k, m] = np.nan  # empty or nan: no attitude, if the other three say so too (below)
+                    continue
                 if number is None:
                     cell = row[j].strip()
                     bad = f"column {name}: " + (f"{cell[:40]!r} is not a number" if cell else "empty cell")
@@ -769,6 +819,8 @@ class CsvSource:
                     )
                     break
                 values[k, m] = number
+            if bad is None and quaternion:
+                bad = _partial_quaternion(values[k, quaternion])
             if bad is not None:
                 keep[k] = False
                 problems.append((int(line_no), bad))
@@ -796,22 +848,28 @@ class CsvSource:
         kwargs = {attr: values[:, pos[name]] for name, attr in CHANNEL_COLUMNS.items() if name in layout.channels}
         if layout.quaternion is not None:
             q = values[:, [pos[name] for name in QUATERNION_COLUMNS]]
-            norm = np.linalg.norm(q, axis=1)
+            norm = np.linalg.norm(q, axis=1)  # NaN on a sample without attitude (all four cells empty or nan)
+            partial = np.isnan(q).any(axis=1) & ~np.isnan(q).all(axis=1)  # the readers refuse these; data in code
+            if partial.any():
+                k = int(np.argmax(partial))
+                raise DatasetError(f"{self.source}: {self._row_word} {numbers[k]}, {_partial_quaternion(q[k])}")
             zero = norm < 1e-12
             if zero.any():
                 raise DatasetError(
-                    f"{self.source}: line {numbers[np.argmax(zero)]}: the attitude quaternion qw,qx,qy,qz is zero; "
-                    "give a unit quaternion (array frame to world frame)"
+                    f"{self.source}: {self._row_word} {numbers[np.argmax(zero)]}: the attitude quaternion qw,qx,qy,qz "
+                    "is zero; give a unit quaternion (array frame to world frame), or leave all four cells empty "
+                    "for a sample without attitude"
                 )
-            if np.any(np.abs(norm - 1.0) > 1e-3):
-                worst = int(np.argmax(np.abs(norm - 1.0)))
+            error = np.abs(norm - 1.0)
+            if np.any(error > 1e-3):
+                worst = int(np.nanargmax(error))
                 _say(
                     self._notes,
-                    f"{self.source}: attitude quaternions are not unit length (line {numbers[worst]}: "
+                    f"{self.source}: attitude quaternions are not unit length ({self._row_word} {numbers[worst]}: "
                     f"|q| = {norm[worst]:.4g}); they are normalised",
                     stacklevel=4,
                 )
-            off = np.abs(norm - 1.0) > 1e-9
+            off = error > 1e-9  # False where NaN: a sample without attitude stays NaN
             if off.any():
                 q = q.copy()
                 q[off] /= norm[off, None]
@@ -1107,12 +1165,13 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     if n == 0:
         return None
     values = np.empty((n, len(numeric)))
+    quaternion = layout.quaternion_positions
     for m, h in enumerate(numeric):
         col = table.column(h)
-        if col.null_count:
+        if col.null_count and m not in quaternion:  # an empty or nan cell: the line reader names it
             return None
-        values[:, m] = col.to_numpy()
-    if bad_values(values).any():
+        values[:, m] = col.to_numpy(zero_copy_only=False)  # a null quaternion cell (empty, nan): NaN
+    if bad_numeric_cells(values, quaternion).any():
         return None
     extra_names = [
         header[j] for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
@@ -1386,6 +1445,7 @@ class ParquetSource:
         import io as _stdio
 
         self._csv = CsvSource(_stdio.StringIO(head), name=self.source, notes=notes)  # notes as in CsvSource
+        self._csv._row_word = "row"
         self.layout = self._csv.layout
 
     def _batches(self, chunk_rows, row_groups):
@@ -1407,26 +1467,33 @@ class ParquetSource:
         """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
         (whose first row is the file's row ``first_row``, 1-based, for messages)."""
         layout = self.layout
+        quaternion = layout.quaternion_positions
         row = int(first_row) - 1
         for batch in self._batches(int(chunk_rows), row_groups):
             n = batch.num_rows
             values = np.empty((n, len(layout.numeric)))
             for m, (j, name) in enumerate(layout.numeric):
                 try:
+                    # a null cell (a float column's missing value) reads as NaN
                     col = np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
                 except (TypeError, ValueError):
                     raise DatasetError(
                         f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
                         "readings, time and channels must be numeric"
                     ) from None
-                bad = bad_values(col)
-                if bad.any():
-                    k = int(np.argmax(bad))
-                    raise DatasetError(
-                        f"{self.source}: row {row + k + 1}, column {name}: {float(col[k])!r} is {BAD_VALUE_TEXT} "
-                        f"({int(bad.sum())} such row(s) in this block); fix or delete these rows"
-                    )
                 values[:, m] = col
+            bad = bad_numeric_cells(values, quaternion)  # NaN in all four quaternion cells: no attitude, kept
+            if bad.any():
+                k, m = (int(i) for i in np.argwhere(bad)[0])
+                partial = _partial_quaternion(values[k, quaternion]) if m in quaternion else None
+                if partial is not None and np.isnan(values[k, m]):
+                    what = partial
+                else:
+                    what = f"column {layout.numeric[m][1]}: {float(values[k, m])!r} is {BAD_VALUE_TEXT}"
+                raise DatasetError(
+                    f"{self.source}: row {row + k + 1}, {what} ({int(bad[:, m].sum())} such row(s) in this "
+                    "block); fix or delete these rows"
+                )
             text = {}
             for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
                 text[j] = np.asarray(batch.column(j).to_numpy(zero_copy_only=False)).astype(str)

@@ -21,7 +21,8 @@ ArduPilot (read with pymavlink's ``DFReader``)
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
     ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
-    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times. Position:
+    ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times (both readers:
+    NaN for a sample far from any attitude message, :data:`LOG_ATTITUDE_MAX_GAP_S`). Position:
     ``vehicle_gps_position`` or ``sensor_gps`` with a 3D fix (``fix_type`` >= 3) as ``lat``, ``lon``, ``alt_m``,
     and the date of ``time_utc_usec`` as ``metadata['date']``.
 
@@ -45,7 +46,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal.core.errors import DataWarning, exception_text
-from magcal.core.notes import say
+from magcal.core.notes import row_runs, say
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 
 #: File name endings read as flight-controller logs, and the reader of each.
@@ -221,13 +222,43 @@ def _interp(t, t_src, v_src):
     return np.interp(t, t_src, v_src)
 
 
-def _interp_attitude(t, t_src, rotations):
-    """Attitude quaternions (N, 4) ``w, x, y, z`` at times ``t`` by spherical interpolation (held at the ends)."""
+#: Longest span (s) between two attitude messages that a magnetometer sample's attitude is interpolated across, and
+#: how far (s) from its nearest message a sample outside such a span may be and still take that message's attitude:
+#: a sample in a longer gap, or before the first message or after the last by more than the latter, has no attitude
+#: (NaN): the vehicle may have turned meanwhile. Logs write the attitude at 10-50 Hz; the live MAVLink source takes
+#: the nearest ``ATTITUDE`` within 0.2 s the same way.
+LOG_ATTITUDE_MAX_GAP_S = 1.0
+LOG_ATTITUDE_HOLD_S = 0.2
+
+
+def _interp_attitude(t, t_src, rotations, source="log", notes=None):
+    """Attitude quaternions (N, 4) ``w, x, y, z`` at times ``t`` by spherical interpolation between the messages
+    around each sample; NaN for a sample farther than :data:`LOG_ATTITUDE_HOLD_S` from every message unless the two
+    around it are at most :data:`LOG_ATTITUDE_MAX_GAP_S` apart (a note counts them)."""
+    t = np.asarray(t, float)
+    t_src = np.asarray(t_src, float)
     if t_src.size == 1:
         q = np.repeat(rotations.as_quat()[:1], t.size, axis=0)
     else:
         q = Slerp(t_src, rotations)(np.clip(t, t_src[0], t_src[-1])).as_quat()
-    return np.column_stack([q[:, 3], q[:, :3]])
+    q = np.column_stack([q[:, 3], q[:, :3]])
+    k = np.clip(np.searchsorted(t_src, t), 1, max(t_src.size - 1, 1))  # the messages around each sample
+    before, after = t_src[np.minimum(k - 1, t_src.size - 1)], t_src[np.minimum(k, t_src.size - 1)]
+    nearest = np.minimum(np.abs(t - before), np.abs(after - t))
+    spanned = (t >= t_src[0]) & (t <= t_src[-1]) & (after - before <= LOG_ATTITUDE_MAX_GAP_S)
+    missing = ~spanned & (nearest > LOG_ATTITUDE_HOLD_S + 1e-6)  # 1 us: the logs' resolution
+    if missing.any():
+        q[missing] = np.nan
+        say(
+            notes,
+            f"{source}: {int(missing.sum())} of {t.size} magnetometer samples ({row_runs(missing)}) lie more than "
+            f"{LOG_ATTITUDE_HOLD_S:g} s from any attitude message, before the first, after the last or in a gap of "
+            f"more than {LOG_ATTITUDE_MAX_GAP_S:g} s: they have no attitude (NaN; the vector fit leaves them out)",
+            DataWarning,
+            "read",
+            stacklevel=4,
+        )
+    return q
 
 
 def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None, notes=None):
@@ -238,9 +269,14 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
     kwargs = {}
     if temperature is not None:
         kwargs["temperature_C"] = _interp(t, *temperature)
-    if attitude is not None:
-        kwargs["attitude_wxyz"] = _interp_attitude(t, *attitude)
     extras = {k: _interp(t, ts, v) for k, (ts, v) in (extra or {}).items()}
+    if attitude is not None:
+        q = _interp_attitude(t, *attitude, source=source, notes=notes)
+        kwargs["attitude_wxyz"] = q
+        gap = np.isnan(q).any(axis=1)
+        for k in ("att_roll_deg", "att_pitch_deg", "att_yaw_deg"):  # the angles the quaternion was made from
+            if k in extras and gap.any():
+                extras[k] = np.where(gap, np.nan, extras[k])
     return Dataset(
         readings_nT=np.stack(values), time_s=t, extra=extras, metadata=dict(metadata or {}), source=source, **kwargs
     )

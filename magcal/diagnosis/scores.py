@@ -25,6 +25,7 @@ from scipy import stats
 from magcal.calibration.calibration import is_transferable
 from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
+from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
@@ -185,13 +186,21 @@ def effective_residual_count(n_sensors, n_samples, coupled) -> int:
 
 
 def _candidate_effects(dataset, model, names=None):
-    """Effect instances to test, grouped by name: ``{name: [instance per sensor or one shared]}``."""
+    """Effect instances to test, grouped by name: ``{name: [instance per sensor or one shared]}``.
+
+    An effect that needs each sample's attitude (``site_gradient``) is not tested when some fitted samples have
+    none: its refit would leave them out and be judged on other samples than the model it is compared with (the
+    verdict says so, :func:`magcal.diagnosis.verdict._warnings_for`)."""
     out = {}
+    present = attitude_present(dataset) if dataset.attitude_wxyz is not None else None
+    gaps = present is not None and not present.all()
     for name, cls in EFFECTS.items():
         if names is not None and name not in names:
             continue
         probe = cls()
         if probe.missing_channels(dataset):
+            continue
+        if gaps and "attitude" in getattr(cls, "channels", ()):
             continue
         existing = [e for e in model.effects if e.name == name]
         if any(e.sensor is None for e in existing):

@@ -31,6 +31,8 @@ from magcal.checks.quality import TEMP_TIME_CORR_WARN, EARTH_FIELD_RANGE_nT
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.jsonable import jsonable
+from magcal.core.notes import row_runs
+from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
@@ -285,6 +287,21 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
             "axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
             "speed to separate them (a delay scales with speed, hysteresis does not)"
         )
+    present = attitude_present(kept) if kept.attitude_wxyz is not None else None
+    if present is not None and not present.all():
+        needing = [
+            n
+            for n, cls in EFFECTS.items()
+            if "attitude" in getattr(cls, "channels", ()) and kept.n_sensors >= cls.min_sensors
+        ]
+        if needing:
+            missing = np.zeros(fit.mask.size, bool)
+            missing[np.flatnonzero(fit.mask)[~present]] = True
+            out.append(
+                f"{int(missing.sum())} of the {kept.n_samples} samples fitted have no attitude ({row_runs(missing)}): "
+                f"{', '.join(needing)} {'was' if len(needing) == 1 else 'were'} not tested (a gradient fixed in the "
+                "world has no predicted value where the array's rotation is unknown); exclude those samples to test it"
+            )
     if kept.n_sensors > 1 and kept.attitude_wxyz is None:
         out.append(
             "no attitude columns (qw, qx, qy, qz): site_gradient cannot be tested; the array alone sees a site "

@@ -31,11 +31,18 @@ from magcal.calibration.uncertainty import base_covariance
 from magcal.checks.reference import resolve_reference as _resolve
 from magcal.core import conventions
 from magcal.core import notes as _notes
-from magcal.core.errors import CalibrationError, ConvergenceWarning
-from magcal.core.notes import Note
+from magcal.core.errors import CalibrationError, ConvergenceWarning, DataWarning
+from magcal.core.notes import Note, row_runs
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
-from magcal.model.terms import Model, block_label, contexts
+from magcal.model.terms import (
+    Model,
+    attitude_effects,
+    block_label,
+    contexts,
+    rows_without_attitude,
+    without_attitude_note,
+)
 
 #: Samples per block when a model of base terms only is evaluated block by block (:meth:`Problem.normal_equations`).
 BLOCK_ROWS = 1 << 16
@@ -970,7 +977,10 @@ def fit(
     f_scale_nT : float, optional
         Residual size (nT) where a robust loss starts to down-weight; default 3x a robust noise estimate.
     mask : array_like of bool, shape (N,), optional
-        Samples to use (True = kept); rejected samples are excluded from the fit.
+        Samples to use (True = kept); rejected samples are excluded from the fit. With an effect that needs each
+        sample's attitude (``site_gradient``), samples without one are left out too (a world-fixed gradient has
+        no prediction there), with a :class:`~magcal.core.errors.DataWarning` note counting them and naming their
+        rows; :attr:`FitResult.mask` says which samples were fitted.
     reference_total_nT : float, optional
         Known total field; otherwise the dataset's reference, its ``ref_total`` column, or fitted.
     max_nfev : int
@@ -1043,6 +1053,7 @@ def fit_with_notes(
     mask = np.ones(n_all, bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
+    mask, gap_note = leave_out_rows_without_attitude(dataset, model, mask)
     result = _fit_once(
         dataset,
         model,
@@ -1075,10 +1086,38 @@ def fit_with_notes(
         )
         if second.rss < result.rss:
             second.nfev += result.nfev
-            return _note_if_not_converged(second)
-        for e, state in zip(model.effects, saved):
-            e.set_state(state)
+            result = second
+        else:
+            for e, state in zip(model.effects, saved):
+                e.set_state(state)
+    if gap_note is not None:
+        result.notes.insert(0, gap_note)
     return _note_if_not_converged(result)
+
+
+def leave_out_rows_without_attitude(dataset, model, mask, what="the fit"):
+    """``(mask, note)``: the chosen samples less those without attitude when an effect of ``model`` needs it
+    (:func:`magcal.model.terms.rows_without_attitude`: ``site_gradient`` has no prediction there), and the
+    :class:`~magcal.core.errors.DataWarning` note that counts them and names their rows (None when none was left
+    out).
+
+    Raises
+    ------
+    CalibrationError
+        When no chosen sample has an attitude.
+    """
+    missing = rows_without_attitude(model, dataset)
+    if missing is None or not (missing & mask).any():
+        return mask, None
+    labels = attitude_effects(model)
+    keep = mask & ~missing
+    if not keep.any():
+        raise CalibrationError(
+            f"{dataset.source or 'the data'}: none of the {int(mask.sum())} chosen samples has an attitude "
+            f"({row_runs(missing & mask)} have none); {', '.join(labels)} needs each sample's attitude: fit without "
+            "it, or give the attitude (qw, qx, qy, qz)"
+        )
+    return keep, Note(without_attitude_note(missing, mask, labels, what), DataWarning, "fit")
 
 
 def _note_if_not_converged(result: FitResult) -> FitResult:

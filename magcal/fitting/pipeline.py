@@ -38,7 +38,7 @@ from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
 from magcal.data.dataset import Dataset
 from magcal.fitting import search
-from magcal.fitting.fitter import FitResult, fit_with_notes, resolve_reference
+from magcal.fitting.fitter import FitResult, fit_with_notes, leave_out_rows_without_attitude, resolve_reference
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from magcal.geometry.procrustes import procrustes_rotation
 from magcal.model.terms import Effect, Model
@@ -508,7 +508,8 @@ def calibrate(
     progress : callable, optional
         ``progress(message, fraction_or_None)`` called as the steps run.
     mask : array_like of bool, shape (N,), optional
-        Samples to use (True = use).
+        Samples to use (True = use). With an effect that needs each sample's attitude (``site_gradient``), the
+        samples without one are left out of every step, with a note in ``warnings``.
     ellipsoid_method : {"algebraic", "li-griffiths"}
         Estimator of step 1.
     base_terms : sequence of str, optional
@@ -530,7 +531,14 @@ def calibrate(
     """
     t_start = time.perf_counter()
     method, effects, mask = _checked_arguments(dataset, method, effects, mask)
+    gap_note = None
+    if method == "ml" and effects:  # an effect that needs each sample's attitude: every step fits the same samples
+        mask, gap_note = leave_out_rows_without_attitude(
+            dataset, _build_model(dataset, effects), mask, "the calibration"
+        )
     run = _resolve_reference_step(dataset, mask, reference_total_nT, progress)
+    if gap_note is not None:
+        run.take([gap_note])
     noise_facts = prefetch_readings_facts(run.kept)  # the noise's readings-only work, beside the fit
     model = _model_for(dataset, run.kept, effects, base_terms) if method == "ml" else None
     if method in SEARCH_METHODS:

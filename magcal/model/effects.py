@@ -1513,6 +1513,12 @@ class SiteGradient(CatalogueEffect):
     the gradient tensor in its own frame (that is what a gradiometer does): a site gradient appears as a tensor
     that rotates with the array while its invariants stay constant, and its part along the field aliases into
     the biases (a fake constant tensor offset); its world-frame components cannot be fitted.
+
+    A sample without attitude (a quaternion row of NaN: a recording's samples before its first attitude message,
+    a gap in a log) has no predicted site field: the gradient is fixed in the world and the array's rotation into
+    it is unknown. The basis is NaN there, so a correction that applies the term gives NaN for those samples (not
+    the field rotated by a made-up attitude), and the fitter leaves them out with a note
+    (:func:`magcal.model.terms.rows_without_attitude`).
     """
 
     name: ClassVar[str] = "site_gradient"
@@ -1538,7 +1544,10 @@ class SiteGradient(CatalogueEffect):
             att = ctx.attitude
             world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
             cols = [-att.inv().apply(world_offset @ g.T) for g in GRADIENT_BASIS]
-            return np.stack(cols, axis=-1)
+            basis = np.stack(cols, axis=-1)
+            if ctx.attitude_present is not None and not ctx.attitude_present.all():
+                basis[~ctx.attitude_present] = np.nan  # no attitude: no predicted site field (class docstring)
+            return basis
 
         return self._cached(ctx.dataset, ("grad", ctx.sensor, tuple(np.round(ctx.position_m, 9))), compute)
 

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal.core import conventions
 from magcal.core.errors import MagcalError
+from magcal.core.notes import row_runs
 from magcal.data.attitude import filled_wxyz
 
 #: Names of the base terms, in order.
@@ -116,13 +117,19 @@ class Context:
     position_m : numpy.ndarray, shape (3,)
         The sensor's position in the array frame (m), from :func:`magcal.core.conventions.sensor_positions`.
     attitude : scipy.spatial.transform.Rotation or None
-        Array-to-world attitudes, when the dataset has them.
+        Array-to-world attitudes, when the dataset has them; the identity on a sample without one (see
+        ``attitude_present``).
+    attitude_present : numpy.ndarray of bool, shape (N,), or None
+        True where the sample has an attitude (None when ``attitude`` is None). A basis that needs the attitude
+        has no value where it is False: it returns NaN there (:class:`magcal.model.effects.SiteGradient`), and the
+        fitter leaves such samples out (:func:`rows_without_attitude`).
     """
 
     dataset: Any  # the Dataset (magcal.data.dataset)
     sensor: int
     position_m: np.ndarray
     attitude: Rotation | None = None
+    attitude_present: np.ndarray | None = None
 
     @property
     def time_s(self):
@@ -520,8 +527,41 @@ def contexts(dataset, baseline_m=None):
     """One :class:`~magcal.model.terms.Context` per sensor of the dataset."""
     baseline = baseline_m if baseline_m is not None else (dataset.baseline_m or 0.0)
     positions = conventions.sensor_positions(baseline, dataset.n_sensors)
-    attitude = None
+    attitude, present = None, None
     if dataset.attitude_wxyz is not None:
-        q, _ = filled_wxyz(dataset.attitude_wxyz)  # a sample without attitude (NaN): the identity
+        q, present = filled_wxyz(dataset.attitude_wxyz)  # a sample without attitude (NaN): the identity, flagged
         attitude = Rotation.from_quat(np.column_stack([q[:, 1:], q[:, :1]]))
-    return [Context(dataset, s, positions[s], attitude) for s in range(dataset.n_sensors)]
+    return [Context(dataset, s, positions[s], attitude, present) for s in range(dataset.n_sensors)]
+
+
+def attitude_effects(model) -> list[str]:
+    """Labels of the model's effects whose basis needs each sample's attitude (``"attitude"`` in their
+    ``channels``)."""
+    return [e.label for e in model.effects if "attitude" in getattr(e, "channels", ())]
+
+
+def rows_without_attitude(model, dataset) -> np.ndarray | None:
+    """The samples the model cannot predict for want of an attitude: bool (N,), True where a sample has no
+    attitude (a quaternion row of NaN: a live recording's samples before its first attitude message, a gap in a
+    log) and an effect of the model needs it (:func:`attitude_effects`, e.g. ``site_gradient``: a world-fixed
+    gradient seen through an unknown rotation has no predicted value); None when no effect needs the attitude or
+    the dataset has none (:meth:`Model.check` refuses the latter)."""
+    if not attitude_effects(model) or dataset.attitude_wxyz is None:
+        return None
+    return ~filled_wxyz(dataset.attitude_wxyz)[1]
+
+
+def without_attitude_note(missing, mask, labels, what="the fit") -> str:
+    """The note for samples left out of ``what`` because ``labels`` (effect labels) need their attitude:
+    ``"312 of 3000 samples have no attitude (rows 1-300, 1201-1212) and were left out of the fit: site_gradient
+    needs each sample's attitude (2688 samples fitted)"``; rows counted from 1 over the whole dataset."""
+    missing = np.asarray(missing, bool)
+    mask = np.asarray(mask, bool)
+    chosen = int(mask.sum())
+    left = missing & mask
+    of = f"{chosen}" if chosen == mask.size else f"the {chosen} selected"
+    needs = f"{', '.join(labels)} {'needs' if len(labels) == 1 else 'need'}"
+    return (
+        f"{int(left.sum())} of {of} samples have no attitude ({row_runs(left)}) and were left out of {what}: "
+        f"{needs} each sample's attitude ({chosen - int(left.sum())} samples fitted)"
+    )

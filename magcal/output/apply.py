@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calibration.calibration import Calibration, RecordHasher
+from magcal.calibration.calibration import ATTITUDE_GAP_NOTE, Calibration, RecordHasher
 from magcal.core import conventions
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.notes import runs, runs_text
 from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
@@ -149,9 +150,12 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
 
     ``record_terms`` as in :meth:`magcal.calibration.calibration.Calibration.correct`; :func:`apply_file` decides it once for
     the whole file and passes ``'apply'`` or ``'drop'``. ``world``: also the north-east-down components (a vector
-    calibration and the block's attitude, :meth:`Calibration.world`).
+    calibration and the block's attitude, :meth:`Calibration.world`). A sample without attitude gets NaN
+    corrected vectors where an acting effect needs it (``site_gradient``), unsaid here: the callers count such
+    rows over the survey (:class:`AttitudeGaps`) and say it once.
     """
-    vectors = calibration.correct(dataset, record_terms)
+    vectors, notes = calibration.corrected_with_notes(dataset, record_terms)
+    _notes.warn([n for n in notes if n.where != ATTITUDE_GAP_NOTE], stacklevel=3)
     n = dataset.n_samples
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
     tensor = calibration.n_sensors == 4 and calibration.baseline_m
@@ -209,17 +213,30 @@ class AttitudeGaps:
             self.missing += int(np.count_nonzero(~have))
         self.rows += dataset.n_samples
 
-    def note(self, n_sensors, tensor=False) -> str | None:
-        """The note (None when every row had an attitude)."""
+    def note(self, n_sensors, tensor=False, terms=()) -> str | None:
+        """The note (None when every row had an attitude); ``terms``: the acting effects that need the attitude
+        (:meth:`Calibration.attitude_terms`), which make every corrected column of such a row NaN."""
         if not self.missing:
             return None
-        world = ", ".join(f"s{i + 1}n_cal, s{i + 1}e_cal, s{i + 1}d_cal" for i in range(n_sensors))
-        if tensor:
-            world += ", " + ", ".join(WORLD_TENSOR_COLUMNS)
+        return attitude_gap_text(self.missing, self.rows, n_sensors, tensor, terms, runs_text(self.row_runs))
+
+
+def attitude_gap_text(missing, rows, n_sensors, tensor=False, terms=(), where=None) -> str:
+    """What ``magcal apply`` says of its ``missing`` rows (of ``rows``) without attitude, in ``where`` (row runs):
+    their world columns are NaN; with ``terms`` (effects that need the attitude, ``site_gradient``) every
+    corrected column is."""
+    head = f"{missing} of {rows} rows have no attitude" + (f" ({where})" if where else "")
+    if terms:
+        body = ", ".join(f"s{i + 1}x_cal, s{i + 1}y_cal, s{i + 1}z_cal" for i in range(n_sensors))
         return (
-            f"{self.missing} of {self.rows} rows have no attitude ({runs_text(self.row_runs)}): their world "
-            f"components ({world}) are NaN; the body-frame columns are written for every row"
+            f"{head}: {', '.join(terms)} cannot be applied to them, so their corrected columns ({body}"
+            f"{' and the tensor' if tensor else ''}) are NaN; --record-terms drop corrects every row with the base "
+            "terms"
         )
+    world = ", ".join(f"s{i + 1}n_cal, s{i + 1}e_cal, s{i + 1}d_cal" for i in range(n_sensors))
+    if tensor:
+        world += ", " + ", ".join(WORLD_TENSOR_COLUMNS)
+    return f"{head}: their world components ({world}) are NaN; the body-frame columns are written for every row"
 
 
 @dataclass
@@ -420,6 +437,7 @@ def apply_file(
         bar = _progress_bar(os.path.getsize(survey_path), progress)
         rows = 0
         gaps = AttitudeGaps()
+        terms = calibration.attitude_terms(record_choice)
         try:
             with atomic_write(output_path) as out:
                 for line in src.metadata_lines:
@@ -434,7 +452,7 @@ def apply_file(
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
                     values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world)
-                    if world:
+                    if world or terms:
                         gaps.add(chunk.dataset)
                     out.write(
                         "".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist()))
@@ -449,7 +467,7 @@ def apply_file(
         finally:
             if bar is not None:
                 bar.close()
-    gap_note = gaps.note(calibration.n_sensors, tensor)
+    gap_note = gaps.note(calibration.n_sensors, tensor, terms)
     if gap_note:
         import warnings
 
@@ -580,6 +598,7 @@ def apply_columns(
         meta["magcal_calibration"] = calibration_name
     rows = 0
     gaps = AttitudeGaps()
+    terms = calibration.attitude_terms(choice)
     to_parquet = is_parquet(output_path)
     tmp = f"{output_path}.tmp-{os.getpid()}"
     writer = behind = None
@@ -598,7 +617,7 @@ def apply_columns(
                         )
                     calibration.check(ds)
                 values = correct_block(calibration, ds, choice, uncertainty, world)
-                if world:
+                if world or terms:
                     gaps.add(ds)
                 cols = input_columns(survey_path, ds, names)
                 cols.update({name: values[:, k] for k, name in enumerate(names)})
@@ -630,7 +649,7 @@ def apply_columns(
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
-    gap_note = gaps.note(calibration.n_sensors, tensor)
+    gap_note = gaps.note(calibration.n_sensors, tensor, terms)
     if gap_note:
         warnings.warn(f"{survey_path}: {gap_note}", DataWarning, stacklevel=3)
     return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)

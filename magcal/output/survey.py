@@ -53,6 +53,7 @@ from magcal.model import plugins
 from magcal.output.apply import (
     AttitudeGaps,
     _WriteBehind,
+    attitude_gap_text,
     correct_block,
     input_columns,
     load_calibration,
@@ -353,6 +354,7 @@ def correct_partition(
     tmp = out + ".tmp"
     rows, writer, behind, blocks, source = 0, None, None, [], None
     gaps = AttitudeGaps()
+    terms = calibration.attitude_terms(record_choice)
     try:
         for ds in chunks:
             if rows == 0:
@@ -365,7 +367,7 @@ def correct_partition(
                 world = writes_world(calibration, ds)
                 names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
             values = correct_block(calibration, ds, record_choice, uncertainty, world)
-            if world:
+            if world or terms:
                 gaps.add(ds)
             cols = input_columns(part.path, ds, names)
             if source is None or len(source) < ds.n_samples:  # the file's name, made once
@@ -599,11 +601,10 @@ def apply_partitioned(
     files = sorted(os.path.join(output_dir, os.path.basename(r[0])) for r in results)
     missing = sum(r[2] for r in results)
     if missing:
-        world = ", ".join(f"s{i + 1}n_cal, s{i + 1}e_cal, s{i + 1}d_cal" for i in range(calibration.n_sensors))
+        tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+        terms = list(dict.fromkeys(t for c in choices.values() for t in calibration.attitude_terms(c)))
         warnings.warn(
-            f"{missing} of {sum(r[1] for r in results)} rows have no attitude: their world components ({world}"
-            + (", Gnn.." if calibration.n_sensors == 4 and calibration.baseline_m else "")
-            + ") are NaN; the body-frame columns are written for every row",
+            attitude_gap_text(missing, sum(r[1] for r in results), calibration.n_sensors, tensor, terms),
             DataWarning,
             stacklevel=2,
         )
