@@ -129,6 +129,35 @@ def test_udp_lines():
     assert src.stats.n_bad == 1 and "not text" in src.stats.last_bad
 
 
+def _ipv6_loopback() -> bool:
+    try:
+        with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as probe:
+            probe.bind(("::1", 0))
+        return True
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _ipv6_loopback(), reason="no IPv6 loopback on this machine")
+def test_udp_lines_on_ipv6():
+    """An IPv6 address in brackets (RFC 3986) listens on IPv6; a name stays IPv4, as before."""
+    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as probe:
+        probe.bind(("::1", 0))
+        port = probe.getsockname()[1]
+    src = open_source(f"udp://[::1]:{port}?format=lines&columns=x,y,z")
+    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as tx:
+        tx.sendto(b"100,200,300\n", ("::1", port))
+        chunk = collect(src, 1)
+    src.close()
+    assert np.allclose(chunk.readings_nT[0], [[100, 200, 300]])
+
+
+@pytest.mark.parametrize("scheme", ["udp", "tcp"])
+def test_mavlink_over_ipv6_is_refused_clearly(scheme):
+    with pytest.raises(LiveError, match=r"MAVLink over IPv6 \(::1\) is not supported.*IPv4"):
+        open_source(f"{scheme}://[::1]:14550?mavlink")
+
+
 def test_tcp_lines_until_the_server_closes():
     server = socket.socket()
     server.bind(("127.0.0.1", 0))

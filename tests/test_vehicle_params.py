@@ -186,6 +186,8 @@ def test_refused_connections_and_values(tmp_path):
     with pytest.raises(MagcalError, match="use udp"):
         mavlink_device("http://127.0.0.1:80")
     assert mavlink_device("udp://127.0.0.1:14550?mavlink") == ("udpin:127.0.0.1:14550", 115200)
+    with pytest.raises(MagcalError, match=r"MAVLink over IPv6 \(::1\) is not supported"):
+        mavlink_device("tcp://[::1]:5760")  # pymavlink would read "::1:5760" by its colons
     assert mavlink_device("serial:///dev/ttyACM0?baud=57600") == ("/dev/ttyACM0", 57600)
     with pytest.raises(MagcalError, match="not ardupilot compass parameters"):
         values_to_send("CAL_MAG0_XOFF,1\n", "ardupilot")

@@ -875,7 +875,9 @@ class TcpLineSource(_LineSource):
 
 
 def _bind_udp(url, host, port):
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    """A UDP socket listening on ``host:port``: IPv4 (a name as ``localhost`` too), or IPv6 for an IPv6 address
+    (``udp://[::1]:14550``, ``udp://[::]:14550``)."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.bind((host, port))
     except (OSError, UnicodeError, ValueError) as exc:
@@ -1352,6 +1354,22 @@ def _flag(params, name):
     return name in params and params[name] in ("", "1", "true", "yes", "on")
 
 
+def mavlink_address(url: str, scheme: str, host: str, port: int) -> str:
+    """pymavlink's connection string for a ``udp://HOST:PORT`` (listened on) or ``tcp://HOST:PORT`` URL.
+
+    Raises
+    ------
+    LiveError
+        For an IPv6 address: pymavlink reads ``host:port`` by its one colon and opens IPv4 sockets only.
+    """
+    if ":" in host:
+        raise LiveError(
+            f"{url}: MAVLink over IPv6 ({host}) is not supported (pymavlink takes IPv4 addresses and host names); "
+            f"give the vehicle's IPv4 address or a host name, e.g. {scheme}://127.0.0.1:{port}?mavlink"
+        )
+    return f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
+
+
 def open_source(url: str, **options) -> LiveSource:
     """Open a live source from its URL (see the module docstring); ``options`` override URL parameters.
 
@@ -1464,7 +1482,7 @@ def open_source(url: str, **options) -> LiveSource:
     if not host or not port:
         raise LiveError(f"{url}: give the address as {scheme}://HOST:PORT (e.g. {scheme}://127.0.0.1:14550)")
     if mavlink:  # a TCP connection that closes is connected again; UDP is connectionless and needs nothing
-        device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
+        device = mavlink_address(url, scheme, host, port)
         return MavlinkSource(
             url,
             device,

@@ -41,6 +41,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 from magcal.data.io import atomic_write
+from magcal.data.live import mavlink_address
 from magcal.output.export import parse_parameter_file
 
 #: Firmwares whose parameters are sent, and the prefix of the names each takes.
@@ -199,7 +200,7 @@ def mavlink_device(url: str) -> tuple[str, int]:
             raise MagcalError(f"{url}: {exc}; give {scheme}://HOST:PORT") from None
         if not host or not port:
             raise MagcalError(f"{url}: give the address as {scheme}://HOST:PORT")
-        device = f"udpin:{host}:{port}" if scheme == "udp" else f"tcp:{host}:{port}"
+        device = mavlink_address(url, scheme, host, port)
     elif scheme == "serial":
         device = urllib.parse.unquote(parsed.netloc + parsed.path)
         params = urllib.parse.parse_qs(parsed.query)
