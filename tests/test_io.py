@@ -542,3 +542,83 @@ def test_a_clean_file_is_read_by_pyarrow_with_the_same_result(tmp_path, monkeypa
     assert mio._read_csv_arrow(bad, None, None, None, None) is None
     with pytest.raises(mio.DatasetError, match=rf"line {head + 61}"):
         mio.read_csv(bad)
+
+
+# -- a CSV's rows counted from its bytes (CsvSource.count_rows), and runs of blank lines -----------------------------
+def test_space_lead_bytes_are_the_first_bytes_of_every_whitespace_character():
+    """A line that begins with none of these bytes holds more than whitespace: the count decodes no other line."""
+    firsts = {chr(c).encode("utf-8", "surrogatepass")[0] for c in range(0x110000) if chr(c).isspace()}
+    assert set(io.SPACE_LEAD_BYTES) == firsts
+    for b in range(256):  # the search for a line that may be blank finds exactly these after a line end
+        assert (io._MAYBE_BLANK.search(b"1,2\n" + bytes([b]) + b"3") is not None) == (b in firsts), b
+
+
+#: Lines the reader skips as blank (``str.strip`` empty), and what may stand before a row's first digit.
+BLANK_LINES = ["", " ", "\t", " \t  ", "\r", "\x0b", "\x0c", "\x1c", "\x85", "\xa0", "\u2028", "\u3000", " \xa0\t"]
+ROW_LEADS = ["", "", " ", "\t", "\xa0", "\u3000"]
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    head=st.lists(st.sampled_from(["# units: nT", "#", "# operator: a", "", "  ", "\t"]), max_size=4),
+    body=st.lists(
+        st.one_of(
+            st.tuples(st.just("row"), st.sampled_from(ROW_LEADS)),
+            st.tuples(st.just("blank"), st.sampled_from(BLANK_LINES)),
+        ),
+        max_size=40,
+    ),
+    crlf=st.lists(st.booleans(), min_size=45, max_size=45),
+    last_end=st.booleans(),
+    bom=st.booleans(),
+    block=st.integers(1, 40),
+    chunk_rows=st.integers(1, 6),
+)
+def test_the_row_count_is_the_readers_number_of_samples(tmp_path, head, body, crlf, last_end, bom, block, chunk_rows):
+    """Comment, metadata and blank lines before the header; blank lines of any whitespace, rows that begin with
+    whitespace, LF or CRLF line by line, a last line with or without its end, a BOM, the count's blocks cutting
+    lines anywhere: the count is the samples the reader yields (in blocks of any size), without parsing a row."""
+    lines = [*head, "s1x,s1y,s1z"]
+    rows = 0
+    for kind, text in body:
+        if kind == "row":
+            rows += 1
+            text = f"{text}{rows},{2 * rows}.5,-{rows}e2"
+        lines.append(text)
+    ends = ["\r\n" if c else "\n" for c in crlf[: len(lines)]]
+    text = "".join(line + end for line, end in zip(lines, ends))
+    if not last_end:
+        text = text[: -len(ends[len(lines) - 1])]
+    path = write(tmp_path, ("\ufeff" if bom else "") + text)
+    with io.CsvSource(path) as src:
+        samples = [c.dataset for c in src.chunks(chunk_rows, text_columns=False)]
+    got = np.concatenate([ds.readings_nT[0] for ds in samples]) if samples else np.zeros((0, 3))
+    k = np.arange(1, rows + 1)
+    np.testing.assert_array_equal(got, np.column_stack([k, 2 * k + 0.5, -100 * k]))  # every row, once, in order
+    with io.CsvSource(path) as src:
+        assert src.count_rows(block) == rows
+    with open(path, "rb") as fh, io.CsvSource(fh) as src:  # an open file too (an upload)
+        assert src.count_rows(block) == rows
+
+
+def test_the_row_count_says_when_a_line_has_no_end():
+    """A line running on past MAX_LINE_BYTES: the reader refuses the file, the count does not guess (None)."""
+    data = b"s1x,s1y,s1z\n1,2,3\n" + b"4" * (io.MAX_LINE_BYTES + 10)
+    with io.CsvSource(BytesIO(data)) as src:
+        assert src.count_rows(1 << 16) is None
+
+
+@pytest.mark.parametrize("chunk_rows", [1, 2, 5])
+def test_a_run_of_blank_lines_longer_than_a_block_does_not_end_the_file(tmp_path, chunk_rows):
+    """More blank lines in a row than a block's lines: the rows after them are read, with their line numbers (the
+    reader stopped at the first block of blank lines, silently dropping the rest of the file)."""
+    k = 3 * chunk_rows
+    path = write(tmp_path, "s1x,s1y,s1z\n1,2,3\n" + "\n" * k + "  \r\n" * chunk_rows + "4,5,6\n7,8,9")
+    with io.CsvSource(path) as src:
+        chunks = list(src.chunks(chunk_rows))
+    np.testing.assert_array_equal(
+        np.concatenate([c.dataset.readings_nT[0] for c in chunks]), [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    )
+    lines = np.concatenate([c.line_numbers for c in chunks])
+    np.testing.assert_array_equal(lines, [2, 3 + k + chunk_rows, 4 + k + chunk_rows])
+    assert read_quiet(path).n_samples == 3
