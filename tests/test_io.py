@@ -261,6 +261,7 @@ BAD_FILES = [
     ("unknown unit", b"# units: furlongs\nx,y,z\n1,2,3\n", ["unknown unit", "furlongs"]),
     ("zero quaternion", b"x,y,z,qw,qx,qy,qz\n1,2,3,0,0,0,0\n", ["line 2", "zero"]),
     ("lone CR", b"x,y,z\r1,2,3\r4,5,6\r", ["carriage return"]),
+    ("quote over lines", b'x,y,z,note\n1,2,3,a\n1,2,3,"b\nc"\n4,5,6,d\n', ["line 3", "quoted field", "one line"]),
     ("sensor 5", b"s1x,s1y,s1z,s5x,s5y,s5z\n1,2,3,4,5,6\n", ["sensor"]),
 ]
 
@@ -622,3 +623,26 @@ def test_a_run_of_blank_lines_longer_than_a_block_does_not_end_the_file(tmp_path
     lines = np.concatenate([c.line_numbers for c in chunks])
     np.testing.assert_array_equal(lines, [2, 3 + k + chunk_rows, 4 + k + chunk_rows])
     assert read_quiet(path).n_samples == 3
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    body=st.text(alphabet='0123456789,,,\n\n\n\r \t"#e-.\xa0\u2028\x0c', max_size=120),
+    chunk_rows=st.integers(1, 5),
+    block=st.integers(1, 16),
+    drop_bad=st.booleans(),
+)
+def test_whatever_the_reader_reads_it_yields_the_counted_rows(body, chunk_rows, block, drop_bad):
+    """Any text after a header: when the reader reads it without an error, it yields exactly the counted rows
+    (quotes, lone carriage returns, ``#`` lines and all); with ``drop_bad`` at most that many."""
+    data = ("s1x,s1y,s1z\n" + body).encode("utf-8")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataWarning)
+            with io.CsvSource(BytesIO(data)) as src:
+                samples = sum(c.dataset.n_samples for c in src.chunks(chunk_rows, drop_bad=drop_bad))
+    except DatasetError:
+        return  # refused: the count means nothing
+    with io.CsvSource(BytesIO(data)) as src:
+        rows = src.count_rows(block)
+    assert samples <= rows if drop_bad else samples == rows

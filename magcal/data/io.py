@@ -825,6 +825,11 @@ class CsvSource:
                 row = next(reader)
             except csv.Error as exc:
                 raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+            if reader.line_num != k + 1:  # a quoted field went on over the line end: one row per line here
+                raise DatasetError(
+                    f"{self.source}: line {line_no}: a quoted field is not closed on its line (a '\"' without its "
+                    "pair); every row must be on one line: close or remove the quote"
+                )
             rows.append(row)
             if len(row) != ncol:
                 raise DatasetError(
