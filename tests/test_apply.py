@@ -407,3 +407,120 @@ def test_a_parquet_survey_of_another_length_is_another_record_without_a_read(
         assert sum(hashed) == rows  # the same length: only the readings tell
     else:
         assert hashed == [] and f"({rows} samples)" in note
+
+
+def csv_variant(text, variant):
+    """The same CSV (written by magcal) as another program may write it: the reader yields the same samples."""
+    if variant == "crlf":
+        return text.replace("\n", "\r\n")
+    if variant == "comments":  # comment and blank lines before the metadata and the header
+        return "# written by another logger\n#\n\n   \n# operator: test\n" + text
+    if variant == "blank":  # blank lines of whitespace between the rows and at the end
+        lines = text.split("\n")
+        blanks = ["", "  ", "\t\r", "\xa0", " \u3000"]
+        out = [
+            line + ("\n" + blanks[k % len(blanks)] if k > 12 and k % 37 == 0 else "") for k, line in enumerate(lines)
+        ]
+        return "\n".join(out) + "\n\n  \r\n\t"
+    if variant == "no_end":  # no line end after the last row
+        return text.rstrip("\n")
+    if variant == "bom":
+        return "\ufeff" + text.replace("\n", "\r\n")
+    return text
+
+
+CSV_VARIANTS = ["lf", "crlf", "comments", "blank", "no_end", "bom"]
+
+
+@pytest.mark.parametrize("variant", CSV_VARIANTS)
+@pytest.mark.parametrize("rows, same", [(600, True), (600, False), (900, False), (450, False)])
+def test_a_csv_survey_of_another_length_is_another_record_without_a_parse(
+    tmp_path, drift_files, monkeypatch, variant, rows, same
+):
+    """A CSV survey whose data rows (counted from its line ends, blank lines skipped as the reader skips them)
+    are another number than the fitted record's samples is another record: dropped with the note, and not a row
+    parsed or hashed before the correction. One of the same length is hashed: the record itself, whatever its line
+    ends, comments and blank lines, keeps its drift. The decision is the one of hashing the whole file."""
+    cal, cal_path, paths = drift_files
+    if rows == 600:
+        text = paths["record" if same else "later"].read_text()
+    else:
+        other = tmp_path / "other.csv"
+        io.write_csv(other, sim.simulate_timeseries(sim.chi2017_truth(1), n_samples=rows, noise_nT=2.0, seed=11))
+        text = other.read_text()
+    survey = tmp_path / "survey.csv"
+    survey.write_bytes(csv_variant(text, variant).encode("utf-8"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        whole = ap.file_fingerprint(survey)  # every row read and hashed: what decides
+    assert whole["n_samples"] == rows
+    hashed, parsed = [], []
+    real_update, real_parse = ap.RecordHasher.update, io.CsvSource._parse
+    monkeypatch.setattr(ap.RecordHasher, "update", lambda self, d: hashed.append(d.n_samples) or real_update(self, d))
+    monkeypatch.setattr(
+        io.CsvSource, "_parse", lambda self, lines, *a: parsed.append(len(lines)) or real_parse(self, lines, *a)
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        choice, note = ap.record_choice(cal, survey)
+        assert ap.record_terms_for_file(cal, survey) == (choice, note)  # magcal apply's CSV-to-CSV path
+    assert not caught  # a value, said by the caller; the reader's notes are the correcting pass's
+    dropped, _ = cal.record_decision(None, None, ap.VECTOR_STAGES, fingerprint=whole)
+    assert choice == ("drop" if dropped else "apply")  # the decision of the whole file's hash
+    if same:
+        assert (choice, note) == ("apply", None) and sum(hashed) == 2 * rows
+        return
+    assert choice == "drop" and "bias_drift" in note
+    if rows == 600:
+        assert sum(hashed) == 2 * rows  # the same length: only the readings tell
+    else:
+        assert hashed == [] and parsed == [] and f"({rows} samples)" in note
+
+
+@pytest.mark.parametrize("rows", [600, 450, 900])
+def test_with_drop_bad_a_csv_survey_is_hashed_as_read(tmp_path, drift_files, monkeypatch, rows):
+    """With drop_bad the reader may drop rows, so the line count cannot decide: the survey is hashed as read, up
+    to the block past the record's samples. A bad row dropped from the record makes it another record."""
+    cal, cal_path, paths = drift_files
+    record = lines = paths["record"].read_text().split("\n")
+    head = next(k for k, line in enumerate(lines) if line and not line.startswith("#")) + 1
+    if rows == 450:
+        lines = lines[: head + 450]
+    elif rows == 900:
+        other = tmp_path / "other.csv"
+        io.write_csv(other, sim.simulate_timeseries(sim.chi2017_truth(1), n_samples=rows, noise_nT=2.0, seed=11))
+        lines = other.read_text().split("\n")
+    survey = tmp_path / "survey.csv"
+    survey.write_text("\n".join(lines))
+    hashed = []
+    real_update = ap.RecordHasher.update
+    monkeypatch.setattr(ap.RecordHasher, "update", lambda self, d: hashed.append(d.n_samples) or real_update(self, d))
+    choice, note = ap.record_choice(cal, survey, drop_bad=True, chunk_rows=100)
+    assert choice == ("apply" if rows == 600 else "drop")
+    assert sum(hashed) == min(rows, 700)  # stopped once past the record's 600 samples
+    bad = record[:]
+    bad[head + 10] = "nan," + bad[head + 10].split(",", 1)[1]
+    survey.write_text("\n".join(bad))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        assert ap.record_choice(cal, survey, drop_bad=True)[0] == "drop"
+
+
+@pytest.mark.parametrize("out_name", ["out.csv", "out.parquet"])
+def test_the_record_with_other_line_ends_keeps_its_terms_through_apply(tmp_path, drift_files, out_name):
+    """End to end: the fitted record saved with CRLF, comments and blank lines is still that record (its drift
+    applied, no warning); another file is corrected without it."""
+    pytest.importorskip("pyarrow")
+    cal, cal_path, paths = drift_files
+    for name, choice in (("record", "apply"), ("later", "drop")):
+        survey = tmp_path / f"{name}.csv"
+        survey.write_bytes(csv_variant(csv_variant(paths[name].read_text(), "blank"), "crlf").encode("utf-8"))
+        out = tmp_path / f"{name}_{out_name}"
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            ap.apply_file(cal_path, survey, out, chunk_rows=128)
+        said = [w for w in caught if issubclass(w.category, RecordTermWarning)]
+        assert len(said) == (choice == "drop")
+        np.testing.assert_allclose(
+            _corrected(out), cal.correct(read_out(paths[name]), record_terms=choice)[0], atol=6e-4
+        )

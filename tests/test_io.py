@@ -261,6 +261,7 @@ BAD_FILES = [
     ("unknown unit", b"# units: furlongs\nx,y,z\n1,2,3\n", ["unknown unit", "furlongs"]),
     ("zero quaternion", b"x,y,z,qw,qx,qy,qz\n1,2,3,0,0,0,0\n", ["line 2", "zero"]),
     ("lone CR", b"x,y,z\r1,2,3\r4,5,6\r", ["carriage return"]),
+    ("quote over lines", b'x,y,z,note\n1,2,3,a\n1,2,3,"b\nc"\n4,5,6,d\n', ["line 3", "quoted field", "one line"]),
     ("sensor 5", b"s1x,s1y,s1z,s5x,s5y,s5z\n1,2,3,4,5,6\n", ["sensor"]),
 ]
 
@@ -542,3 +543,106 @@ def test_a_clean_file_is_read_by_pyarrow_with_the_same_result(tmp_path, monkeypa
     assert mio._read_csv_arrow(bad, None, None, None, None) is None
     with pytest.raises(mio.DatasetError, match=rf"line {head + 61}"):
         mio.read_csv(bad)
+
+
+# -- a CSV's rows counted from its bytes (CsvSource.count_rows), and runs of blank lines -----------------------------
+def test_space_lead_bytes_are_the_first_bytes_of_every_whitespace_character():
+    """A line that begins with none of these bytes holds more than whitespace: the count decodes no other line."""
+    firsts = {chr(c).encode("utf-8", "surrogatepass")[0] for c in range(0x110000) if chr(c).isspace()}
+    assert set(io.SPACE_LEAD_BYTES) == firsts
+    for b in range(256):  # the search for a line that may be blank finds exactly these after a line end
+        assert (io._MAYBE_BLANK.search(b"1,2\n" + bytes([b]) + b"3") is not None) == (b in firsts), b
+
+
+#: Lines the reader skips as blank (``str.strip`` empty), and what may stand before a row's first digit.
+BLANK_LINES = ["", " ", "\t", " \t  ", "\r", "\x0b", "\x0c", "\x1c", "\x85", "\xa0", "\u2028", "\u3000", " \xa0\t"]
+ROW_LEADS = ["", "", " ", "\t", "\xa0", "\u3000"]
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    head=st.lists(st.sampled_from(["# units: nT", "#", "# operator: a", "", "  ", "\t"]), max_size=4),
+    body=st.lists(
+        st.one_of(
+            st.tuples(st.just("row"), st.sampled_from(ROW_LEADS)),
+            st.tuples(st.just("blank"), st.sampled_from(BLANK_LINES)),
+        ),
+        max_size=40,
+    ),
+    crlf=st.lists(st.booleans(), min_size=45, max_size=45),
+    last_end=st.booleans(),
+    bom=st.booleans(),
+    block=st.integers(1, 40),
+    chunk_rows=st.integers(1, 6),
+)
+def test_the_row_count_is_the_readers_number_of_samples(tmp_path, head, body, crlf, last_end, bom, block, chunk_rows):
+    """Comment, metadata and blank lines before the header; blank lines of any whitespace, rows that begin with
+    whitespace, LF or CRLF line by line, a last line with or without its end, a BOM, the count's blocks cutting
+    lines anywhere: the count is the samples the reader yields (in blocks of any size), without parsing a row."""
+    lines = [*head, "s1x,s1y,s1z"]
+    rows = 0
+    for kind, text in body:
+        if kind == "row":
+            rows += 1
+            text = f"{text}{rows},{2 * rows}.5,-{rows}e2"
+        lines.append(text)
+    ends = ["\r\n" if c else "\n" for c in crlf[: len(lines)]]
+    text = "".join(line + end for line, end in zip(lines, ends))
+    if not last_end:
+        text = text[: -len(ends[len(lines) - 1])]
+    path = write(tmp_path, ("\ufeff" if bom else "") + text)
+    with io.CsvSource(path) as src:
+        samples = [c.dataset for c in src.chunks(chunk_rows, text_columns=False)]
+    got = np.concatenate([ds.readings_nT[0] for ds in samples]) if samples else np.zeros((0, 3))
+    k = np.arange(1, rows + 1)
+    np.testing.assert_array_equal(got, np.column_stack([k, 2 * k + 0.5, -100 * k]))  # every row, once, in order
+    with io.CsvSource(path) as src:
+        assert src.count_rows(block) == rows
+    with open(path, "rb") as fh, io.CsvSource(fh) as src:  # an open file too (an upload)
+        assert src.count_rows(block) == rows
+
+
+def test_the_row_count_says_when_a_line_has_no_end():
+    """A line running on past MAX_LINE_BYTES: the reader refuses the file, the count does not guess (None)."""
+    data = b"s1x,s1y,s1z\n1,2,3\n" + b"4" * (io.MAX_LINE_BYTES + 10)
+    with io.CsvSource(BytesIO(data)) as src:
+        assert src.count_rows(1 << 16) is None
+
+
+@pytest.mark.parametrize("chunk_rows", [1, 2, 5])
+def test_a_run_of_blank_lines_longer_than_a_block_does_not_end_the_file(tmp_path, chunk_rows):
+    """More blank lines in a row than a block's lines: the rows after them are read, with their line numbers (the
+    reader stopped at the first block of blank lines, silently dropping the rest of the file)."""
+    k = 3 * chunk_rows
+    path = write(tmp_path, "s1x,s1y,s1z\n1,2,3\n" + "\n" * k + "  \r\n" * chunk_rows + "4,5,6\n7,8,9")
+    with io.CsvSource(path) as src:
+        chunks = list(src.chunks(chunk_rows))
+    np.testing.assert_array_equal(
+        np.concatenate([c.dataset.readings_nT[0] for c in chunks]), [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    )
+    lines = np.concatenate([c.line_numbers for c in chunks])
+    np.testing.assert_array_equal(lines, [2, 3 + k + chunk_rows, 4 + k + chunk_rows])
+    assert read_quiet(path).n_samples == 3
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    body=st.text(alphabet='0123456789,,,\n\n\n\r \t"#e-.\xa0\u2028\x0c', max_size=120),
+    chunk_rows=st.integers(1, 5),
+    block=st.integers(1, 16),
+    drop_bad=st.booleans(),
+)
+def test_whatever_the_reader_reads_it_yields_the_counted_rows(body, chunk_rows, block, drop_bad):
+    """Any text after a header: when the reader reads it without an error, it yields exactly the counted rows
+    (quotes, lone carriage returns, ``#`` lines and all); with ``drop_bad`` at most that many."""
+    data = ("s1x,s1y,s1z\n" + body).encode("utf-8")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataWarning)
+            with io.CsvSource(BytesIO(data)) as src:
+                samples = sum(c.dataset.n_samples for c in src.chunks(chunk_rows, drop_bad=drop_bad))
+    except DatasetError:
+        return  # refused: the count means nothing
+    with io.CsvSource(BytesIO(data)) as src:
+        rows = src.count_rows(block)
+    assert samples <= rows if drop_bad else samples == rows

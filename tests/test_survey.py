@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -246,3 +247,61 @@ def test_the_same_code_runs_on_a_cluster_by_its_address(grouped, tmp_path):
         assert rc == 0 and time.monotonic() - t0 < 60
     got = pads.dataset(str(out), format="parquet").to_table()
     _same_rows(got.drop_columns(["source_file"]), want)
+
+
+def test_partitions_of_a_csv_with_a_byte_order_mark_and_comments_read_as_the_whole_file(tmp_path):
+    """A UTF-8 byte order mark before a ``#`` line, blank lines of any whitespace before the header: every
+    partition is read with the whole head (a partition after the first took its first data line for the header)."""
+    from magcal.output.survey import _csv_part, partitions
+
+    ds = magcal.simulate_timeseries("chi2017", n_samples=700, seed=3, rate_hz=10.0)
+    path = tmp_path / "bom.csv"
+    mio.write_csv(path, ds)
+    path.write_bytes(("\ufeff# from a spreadsheet\r\n\xa0\r\n" + path.read_text()).encode("utf-8"))
+    parts = partitions([path], partition_rows=200)
+    assert len(parts) == 4
+    got = mio.concatenate([d for p in parts for d in _csv_part(p)[1]])
+    np.testing.assert_array_equal(got.readings_nT, magcal.read_csv(path).readings_nT)
+
+
+@pytest.mark.slow
+def test_the_partitioned_apply_decides_the_record_terms_as_one_process(tmp_path, monkeypatch):
+    """``magcal apply --workers``: the fitted record, saved again with CRLF, a byte order mark and blank lines,
+    keeps its record-only terms; a file of another length is another record, decided in the client without a row
+    hashed; each file's rows are the single-process apply's."""
+    from magcal.core.errors import RecordTermWarning
+    from magcal.data import simulation as sim
+    from magcal.fitting.fitter import fit
+    from magcal.model.terms import EFFECTS, Model
+    from magcal.output import apply as ap
+    from magcal.output.survey import apply_partitioned
+
+    drift = EFFECTS["bias_drift"]()
+    files = {}
+    for name, n, seed in (("record", 600, 3), ("later", 700, 4)):
+        ds = sim.simulate_timeseries(
+            sim.chi2017_truth(1), n_samples=n, noise_nT=2.0, seed=seed, perturbations=[drift.perturbation(80.0)]
+        )
+        files[name] = tmp_path / f"{name}.csv"
+        mio.write_csv(files[name], ds)
+        text = files[name].read_text().replace("\n", "\r\n").replace("\r\n0.5,", "\r\n \r\n\r\n0.5,")
+        files[name].write_bytes(("\ufeff" + text).encode("utf-8"))
+    record = mio.read_csv(files["record"])
+    cal = fit(record, Model.from_names(["bias_drift", "temperature_bias"], 1)).calibration.fitted_on(record)
+    hashed = []
+    real_update = ap.RecordHasher.update
+    monkeypatch.setattr(ap.RecordHasher, "update", lambda self, d: hashed.append(d.n_samples) or real_update(self, d))
+    out = tmp_path / "parts"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = apply_partitioned(cal, [files["record"], files["later"]], out, workers=1, partition_rows=250)
+    said = [str(w.message) for w in caught if issubclass(w.category, RecordTermWarning)]
+    assert len(said) == 1 and "(700 samples)" in said[0]  # the later file only
+    assert sum(hashed) == 600  # the record alone was hashed, in the client
+    got = mio.concatenate([mio.read_parquet(f) for f in summary.files])
+    source = np.asarray(got.extra["source_file"]).astype(str)
+    for name, choice in (("record", "apply"), ("later", "drop")):
+        mine = source == files[name].name
+        want = cal.correct(mio.read_csv(files[name]), record_terms=choice)[0]
+        calc = np.column_stack([np.asarray(got.extra[f"s1{a}_cal"], float)[mine] for a in "xyz"])
+        np.testing.assert_allclose(calc, want, atol=1e-9)

@@ -90,6 +90,15 @@ _BINARY_PROBE = 8192
 MAX_LINE_BYTES = 1 << 20
 #: Most columns a CSV header (or a Parquet schema) may name: a million would make every block of rows huge.
 MAX_COLUMNS = 1000
+#: The first bytes (UTF-8) of every character ``str.isspace`` calls whitespace (tests check it against every code
+#: point): a line beginning with none of them holds more than whitespace, so the CSV reader reads it as a row.
+SPACE_LEAD_BYTES = b"\t\n\x0b\x0c\r\x1c\x1d\x1e\x1f \xc2\xe1\xe2\xe3"
+_SPACE_LEAD = np.zeros(256, dtype=bool)
+_SPACE_LEAD[list(SPACE_LEAD_BYTES)] = True
+#: A line end followed by a line that may hold only whitespace (it begins with one of :data:`SPACE_LEAD_BYTES`).
+_MAYBE_BLANK = re.compile(b"\n[" + re.escape(SPACE_LEAD_BYTES) + b"]")
+#: Bytes read at a time when counting a CSV's rows (:meth:`CsvSource.count_rows`).
+COUNT_BLOCK_BYTES = 1 << 24
 
 
 def canonical_columns(n_sensors=MAX_SENSORS):
@@ -385,6 +394,28 @@ class Chunk:
     line_numbers: np.ndarray
 
 
+def _blank(raw) -> bool:
+    """Whether a line (bytes) is one the CSV reader skips: nothing but whitespace (``str.strip`` of the text
+    empty). Bytes that are not UTF-8 make it a line it refuses, not a blank one."""
+    return not raw.decode("utf-8", "replace").strip()
+
+
+def _blank_lines(data, end) -> int:
+    """The blank lines (:func:`_blank`) among the whole lines of ``data[:end]`` (``end`` just after a line end).
+
+    Only the lines that begin with one of :data:`SPACE_LEAD_BYTES` can be blank; a block without any (one regular
+    expression search, as fast as counting the line ends) has none."""
+    if not _SPACE_LEAD[data[0]] and _MAYBE_BLANK.search(data, 0, end) is None:
+        return 0
+    codes = np.frombuffer(data, dtype=np.uint8, count=end)
+    ends = np.flatnonzero(codes == 10)
+    starts = np.empty_like(ends)
+    starts[0] = 0
+    starts[1:] = ends[:-1] + 1
+    maybe = _SPACE_LEAD[codes[starts]]  # an empty line begins with its own line end
+    return sum(_blank(data[a:b]) for a, b in zip(starts[maybe].tolist(), ends[maybe].tolist()))
+
+
 class _FileLines:
     """The lines (UTF-8 bytes, line ends kept) of a file object, binary or text, read block by block.
 
@@ -676,7 +707,16 @@ class CsvSource:
 
     # -- rows --------------------------------------------------------------------------------------------------
     def _read_lines(self, n):
-        """Up to ``n`` non-blank lines (text without line ends) and their 1-based line numbers."""
+        """The non-blank lines (text without line ends) among the next ``n`` lines, and their 1-based line numbers;
+        past ``n`` lines that are all blank, to the next non-blank one: none only at the end of the file."""
+        while True:
+            lines, numbers = self._next_lines(n)
+            if lines or not numbers.size:
+                return lines, numbers
+
+    def _next_lines(self, n):
+        """The non-blank lines among the next ``n`` lines of the file and their line numbers: at the end of the
+        file no numbers; when the ``n`` lines are all blank no lines, and the numbers of those read."""
         raws = list(itertools.islice(self._file, int(n)))
         if not raws:
             return [], np.zeros(0, dtype=np.int64)
@@ -695,10 +735,49 @@ class CsvSource:
             lines = [line.rstrip("\r") for line in lines]
         numbers = np.arange(first, first + len(lines), dtype=np.int64)
         keep = [bool(line.strip()) for line in lines]
+        if not any(keep):
+            return [], numbers
         if not all(keep):
             lines = [line for line, k in zip(lines, keep) if k]
             numbers = numbers[np.asarray(keep, dtype=bool)]
         return lines, numbers
+
+    def count_rows(self, block_bytes=COUNT_BLOCK_BYTES) -> int | None:
+        """The rows left to read, counted from the file's bytes without parsing one (the source is then at its end).
+
+        The rows are the lines that :meth:`chunks` reads as rows: every line after the header but the blank ones,
+        which it skips (``str.strip`` of the line empty: an empty line, ``\\r\\n``, spaces, tabs, a no-break
+        space...), a last line without a line end included; a ``#`` line after the header is a row (a bad one).
+        Whenever :meth:`chunks` reads the rest of the file without an error, it yields exactly this many samples
+        with ``drop_bad=False``, and at most this many with ``drop_bad=True`` (which only removes rows). For a file
+        it refuses (a bad row, a line that is not UTF-8) the count means nothing: read it for the message.
+
+        The line ends are counted ``block_bytes`` at a time (:meth:`bytes.count`); only a line that begins with a
+        byte a whitespace character can begin with (:data:`SPACE_LEAD_BYTES`; rare in a data file) is decoded and
+        looked at: about 1 GB/s, 27x faster than parsing the rows (``benchmarks/csv_count.py``, 2e6 rows, 264 MB).
+
+        Returns
+        -------
+        int or None
+            The rows; None when a line runs on for :data:`MAX_LINE_BYTES` without a line end (the reader refuses
+            the file: read it for its message).
+        """
+        lines = self._file
+        n = sum(not _blank(raw) for raw in lines._lines)  # the head's last block, already split into lines
+        lines._lines.clear()
+        carry, lines._tail = lines._tail, b""  # the start of a line whose end is not read yet
+        while True:
+            more = lines._read(int(block_bytes))
+            if not more:
+                break
+            data = carry + more if carry else more
+            end = data.rfind(b"\n") + 1  # data[:end] is whole lines
+            if end:
+                n += data.count(b"\n") - _blank_lines(data, end)
+            carry = data[end:]
+            if len(carry) >= MAX_LINE_BYTES:
+                return None
+        return n + (1 if carry and not _blank(carry) else 0)
 
     def chunks(self, chunk_rows=200_000, drop_bad=False, text_columns=True):
         """Yield :class:`Chunk` objects of up to ``chunk_rows`` rows.
@@ -791,6 +870,11 @@ class CsvSource:
                 row = next(reader)
             except csv.Error as exc:
                 raise DatasetError(f"{self.source}: line {line_no}: cannot be read as CSV ({exc})") from None
+            if reader.line_num != k + 1:  # a quoted field went on over the line end: one row per line here
+                raise DatasetError(
+                    f"{self.source}: line {line_no}: a quoted field is not closed on its line (a '\"' without its "
+                    "pair); every row must be on one line: close or remove the quote"
+                )
             rows.append(row)
             if len(row) != ncol:
                 raise DatasetError(

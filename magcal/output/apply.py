@@ -289,26 +289,12 @@ def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chun
 def record_terms_for_file(
     calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
 ):
-    """Decide once for a whole file whether the calibration's record-only terms act on it.
+    """Decide once for a whole file whether the calibration's record-only terms act on it: :func:`record_choice`.
 
     Returns ``(choice, note)``: ``choice`` is ``'apply'`` or ``'drop'`` for every block, ``note`` the
-    :class:`~magcal.core.errors.RecordTermWarning` message (None when nothing needs saying). The file is read an extra
-    time, for its fingerprint, only when the calibration holds record-only terms acting on the corrected vectors
-    and ``record_terms`` is None.
+    :class:`~magcal.core.errors.RecordTermWarning` message (None when nothing needs saying).
     """
-
-    if not calibration.record_terms(VECTOR_STAGES):
-        return "apply", None
-    fingerprint = None
-    record = calibration.record
-    if record_terms is None and record:
-        fingerprint = file_fingerprint(
-            survey_path, columns, units, drop_bad, chunk_rows, stop_after=record.get("n_samples")
-        )
-    dropped, note = calibration.record_decision(
-        None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
-    )
-    return ("drop" if dropped else "apply"), note
+    return record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
 
 
 def apply_file(
@@ -520,33 +506,84 @@ def _parquet_rows(path) -> int | None:
         return None
 
 
+def survey_rows(survey_path, columns=None, units=None, drop_bad=False) -> int | None:
+    """The samples the reader yields from a survey file, known without parsing a row, or None when they cannot be.
+
+    A Parquet file's rows come from its footer (its reader refuses a bad value, never drops a row, ``drop_bad`` or
+    not). A CSV's head (metadata, header, layout, units) is read by :class:`~magcal.data.io.CsvSource` itself --
+    a head it refuses is refused here, with its message -- and its data rows are counted from the bytes
+    (:meth:`~magcal.data.io.CsvSource.count_rows`: the lines it reads as rows, every line after the header but the
+    blank ones, whatever the line ends): exactly the samples it yields when it reads the file without an error. With
+    ``drop_bad`` a CSV reader may drop rows, so their number is not known: None. None for a log (read whole).
+    """
+    path = os.fspath(survey_path)
+    if is_log(path):
+        return None
+    if is_parquet(path):
+        return _parquet_rows(path)
+    if drop_bad:
+        return None
+    with CsvSource(path, columns=columns, units=units, notes=[]) as src:  # the correcting pass says its notes
+        return src.count_rows()
+
+
 def record_choice(
     calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
 ):
-    """:func:`record_terms_for_file` for a CSV or a Parquet survey: ``('apply' | 'drop', note or None)``, the
-    fingerprint streamed through :func:`survey_chunks` only when it decides something.
+    """Decide once for a whole survey file (CSV, Parquet or a flight-controller log) whether the calibration's
+    record-only terms act on it: ``('apply' | 'drop', note or None)``, the note the
+    :class:`~magcal.core.errors.RecordTermWarning` message (None when nothing needs saying).
 
-    A Parquet survey whose row count (from its footer) differs from the fitted record's samples is another record
-    without reading a row (unless ``drop_bad``, which may drop rows): a survey of 1e9 rows is not read twice, nor
-    through one process, to learn that it is not the calibration record.
+    The decision is :meth:`~magcal.calibration.calibration.Calibration.record_decision`'s on the file's
+    fingerprint, the samples its reader yields hashed (:class:`RecordHasher`): the file is the fitted record, and
+    keeps its drifts and steps, only when it has the record's samples and their hash. The file is read for the
+    hash only when the calibration holds record-only terms acting on the corrected vectors, it says which record it
+    was fitted on, ``record_terms`` is None, and the number of samples cannot tell:
+
+    * the samples are first known without parsing a row (:func:`survey_rows`: a Parquet file's footer, a CSV's
+      line ends counted in large blocks): a file of another number than the record's samples is another record,
+      without a row read or hashed (a survey of 1e9 rows is not parsed twice, nor through one process, to learn
+      that it is not the calibration record; the note then gives its samples, not its time span);
+    * a file of the record's number of samples, or one whose samples are not known so (a CSV with ``drop_bad``,
+      which may drop rows; a log), is hashed as it is read, up to one block past the record's samples (more
+      cannot be that record).
+
+    So the decision is the one hashing the whole file would give, in every case: the count is the number of
+    samples the hash would cover (the reader yields one sample for each counted line, or refuses the file), a file
+    is only declared another record when that number differs from the record's, and the record itself (equal
+    count) is always hashed. A file whose head the reader refuses is refused here; one with a bad row further on
+    and another length is refused by the correcting pass, with the same message.
     """
 
     if not calibration.record_terms(VECTOR_STAGES):
         return "apply", None
     fingerprint = None
-    if record_terms is None and calibration.record:
-        rows = None if drop_bad else _parquet_rows(survey_path)
-        if rows is not None and rows != calibration.record.get("n_samples"):
-            fingerprint = {"n_samples": rows, "time_start_s": None, "time_end_s": None, "readings_sha256": None}
-        else:
-            hasher = RecordHasher()
-            for ds in survey_chunks(survey_path, columns, units, drop_bad, chunk_rows)[1]:
-                hasher.update(ds)
-            fingerprint = hasher.fingerprint()
+    record = calibration.record
+    if record_terms is None and record:
+        fingerprint = survey_fingerprint(survey_path, record.get("n_samples"), columns, units, drop_bad, chunk_rows)
     dropped, note = calibration.record_decision(
         None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
     )
     return ("drop" if dropped else "apply"), note
+
+
+def survey_fingerprint(survey_path, record_samples, columns=None, units=None, drop_bad=False, chunk_rows=20_000):
+    """The fingerprint of a survey file as far as it tells whether the file is a record of ``record_samples``
+    samples (:func:`record_choice`): its samples alone (``readings_sha256`` None) when :func:`survey_rows` knows
+    them and they are another number, else the hash of the samples read, up to the block past ``record_samples``."""
+    counted = isinstance(record_samples, int) and not isinstance(record_samples, bool)
+    rows = survey_rows(survey_path, columns, units, drop_bad)
+    if rows is not None and rows != record_samples:
+        return {"n_samples": rows, "time_start_s": None, "time_end_s": None, "readings_sha256": None}
+    path = os.fspath(survey_path)
+    if not is_log(path) and not is_parquet(path):
+        return file_fingerprint(path, columns, units, drop_bad, chunk_rows, record_samples if counted else None)
+    hasher = RecordHasher()
+    for ds in survey_chunks(path, columns, units, drop_bad, chunk_rows)[1]:
+        hasher.update(ds)
+        if counted and hasher.n_samples > record_samples:
+            break
+    return hasher.fingerprint()
 
 
 def apply_columns(

@@ -14,7 +14,9 @@ description goes to the task and its file name and row count come back, so no da
 folder is renamed to ``output_dir`` when every partition is written (a Parquet dataset: ``pyarrow.dataset`` or
 ``pandas.read_parquet`` read the folder as one table, in order); a bad row, a failed task or Ctrl-C leaves nothing
 under the final name. The record-only terms are decided once for every file before the tasks start, as ``magcal
-apply`` does. On a cluster the input files and the output folder must be on a file system every worker sees.
+apply`` does (:func:`magcal.output.apply.record_choice`: a file of another length than the fitted record, its rows
+counted from a Parquet footer or a CSV's line ends, is another record without a row parsed in the client). On a
+cluster the input files and the output folder must be on a file system every worker sees.
 
 Messages from a task name the file and the line (CSV: counted from the partition's first line, which is given).
 """
@@ -142,7 +144,9 @@ def _too_long(path, line):
 
 
 def _csv_head(path) -> tuple[bytes, int]:
-    """The metadata and header lines of a CSV (bytes) and the byte offset where the data lines begin."""
+    """The metadata and header lines of a CSV (bytes) and the byte offset where the data lines begin: the lines up
+    to the first that is neither blank nor a ``#`` line, by the reader's own rules (:class:`CsvSource`: a UTF-8
+    byte order mark before the first line, any whitespace, a no-break space too, as blank)."""
     head = bytearray()
     with open(path, "rb") as fh:
         while True:
@@ -151,9 +155,12 @@ def _csv_head(path) -> tuple[bytes, int]:
                 break
             if len(line) > MAX_LINE_BYTES:
                 raise _too_long(path, head.count(b"\n") + 1)
+            text = line.decode("utf-8", "replace")
+            if not head:
+                text = text.removeprefix("\ufeff")
             head += line
-            text = line.strip()
-            if text and not text.startswith(b"#"):
+            text = text.strip()
+            if text and not text.startswith("#"):
                 return bytes(head), len(head)
     raise DatasetError(f"{path}: no header line; see docs/formats.md")
 
