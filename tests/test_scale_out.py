@@ -213,6 +213,36 @@ def test_a_diagnosis_short_of_memory_says_so_and_reads_the_same(record, serial, 
     _same(d, serial)  # the same diagnosis, on fewer workers
 
 
+def test_a_pool_that_cannot_start_leaves_nothing_behind(record, monkeypatch):
+    """A pool whose second thread does not start (the machine out of threads) closes what it had made: the worker
+    processes, the shared memory, its first thread and the BLAS limit."""
+    import threading
+
+    from threadpoolctl import threadpool_limits
+
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    real_start, started = threading.Thread.start, []
+
+    def start(self):
+        if self.name.startswith("magcal-fit_") and started:
+            raise RuntimeError("can't start new thread")
+        if self.name.startswith("magcal-fit_"):
+            started.append(self)
+        real_start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = set(_blas_threads(None))
+        with pytest.raises(RuntimeError, match="can't start new thread"):
+            _parallel.Pool(ds)
+        after = set(_blas_threads(None))
+    assert after == before
+    assert _segments() == []
+    assert started and not started[0].is_alive()
+
+
 def test_the_shared_memory_is_unlinked_after_a_workers_error(record, monkeypatch):
     ds, _ = record
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)

@@ -599,25 +599,29 @@ class Pool:
             workers, self.note = workers_for_memory(dataset, wanted, self.backend)
             if self.note and self.backend == "processes" and workers < 2:
                 self.backend = "threads"  # room for one fit at a time: in this process
-        if self.backend == "processes":
-            self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
-        elif self.backend == "dask":
-            self._remote = _Dask(dataset, scheduler)
-        # with workers elsewhere, enough threads here to keep each busy and still run the local work
-        threads = (workers or _workers()) if self._remote is None else self._remote.workers + 2
-        self.workers = threads if self._remote is None else self._remote.workers
-        # the fits side by side here or in this machine's worker processes (or one after the other on the one core
-        # asked for): this process's BLAS on one thread while the pool lives
         self._blas = contextlib.ExitStack()
-        self._blas.enter_context(one_blas_thread(self.backend != "dask"))
-        self._queue = queue.PriorityQueue()
+        self._queue: queue.PriorityQueue = queue.PriorityQueue()
         self._order = itertools.count()
-        self._threads = []
-        if threads > 1:
-            for k in range(threads):
-                thread = threading.Thread(target=self._work, name=f"magcal-fit_{k}", daemon=True)
-                thread.start()
-                self._threads.append(thread)
+        self._threads: list = []
+        try:  # a pool half made (a worker that does not start, no thread left) is closed again: nothing leaks
+            if self.backend == "processes":
+                self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
+            elif self.backend == "dask":
+                self._remote = _Dask(dataset, scheduler)
+            # with workers elsewhere, enough threads here to keep each busy and still run the local work
+            threads = (workers or _workers()) if self._remote is None else self._remote.workers + 2
+            self.workers = threads if self._remote is None else self._remote.workers
+            # the fits side by side here or in this machine's worker processes (or one after the other on the one
+            # core asked for): this process's BLAS on one thread while the pool lives
+            self._blas.enter_context(one_blas_thread(self.backend != "dask"))
+            if threads > 1:
+                for k in range(threads):
+                    thread = threading.Thread(target=self._work, name=f"magcal-fit_{k}", daemon=True)
+                    thread.start()
+                    self._threads.append(thread)
+        except BaseException:
+            self.close(cancel=True)
+            raise
 
     def submit(self, call, priority=CHAIN) -> Future:
         """A :class:`~concurrent.futures.Future` of ``call()`` (a function of no argument)."""
