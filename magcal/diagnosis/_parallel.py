@@ -432,12 +432,16 @@ def one_blas_thread(active=True):
     A diagnosis's pool runs its fits side by side, on its threads or in worker processes that already run one BLAS
     thread each (:func:`_init_worker`); the calling process's own BLAS calls (the pool's threads, the score tests'
     and the evidence's matrix products) would otherwise each start one thread per core on cores the fits already
-    keep busy. With one worker (``workers=1``) the diagnosis runs on the one core asked for. Measured on the 2-core
-    development machine (benchmarks/README.md): 4 x 5e4 samples on two threads 3.3-4.1 s with OpenBLAS's default
-    threads, 2.2-2.6 s with one; 4 x 1e5 on two worker processes 5.0-5.4 s against 3.5-4.0 s, the calling
-    process's processor time 4.0-4.2 s against 1.7-1.9 s. The limit is the process's (threadpoolctl's limits are not per thread): set by the first diagnosis
-    that enters, put back by the last that leaves, so that two diagnoses at once (two sessions of the workbench)
-    never leave it changed.
+    keep busy. With one worker (``workers=1``) the diagnosis runs on the one core asked for.
+
+    Measured on the 2-core development machine (``benchmarks/process_start.py --parts blas``, quiet): 4 x 5e4
+    samples on two threads 3.55 s with OpenBLAS's default threads, 1.98 s with one; 4 x 1e5 on two worker processes
+    4.14 s against 3.64 s (the calling process's processor time 3.49 s against 1.87 s); on one core 6.03 s (using
+    both cores) against 5.13 s.
+
+    The limit is the process's (threadpoolctl's limits are not per thread): set by the first diagnosis that enters,
+    put back by the last that leaves, so that two diagnoses at once (two sessions of the workbench) never leave it
+    changed.
     """
     global _BLAS_USERS, _BLAS_LIMITER
     if not active:
