@@ -4,8 +4,10 @@ the segment is gone after a run, after a worker's error and after a worker's cra
 
 from __future__ import annotations
 
+import json
 import operator
 import os
+import re
 import warnings
 
 import numpy as np
@@ -87,6 +89,9 @@ def test_fits_in_worker_processes_give_the_serial_diagnosis(record, serial, monk
     monkeypatch.setattr(_parallel, "_Processes", counted)
     got = diagnose(ds, res)
     assert len(made) == 1 and made[0].workers == workers  # the fits did run in processes
+    assert got.ran_on == {"where": "processes", "workers": workers}  # and the diagnosis says so
+    assert got.where_text().endswith(f"on {workers} worker processes")
+    assert serial.ran_on == {"where": "threads", "workers": 1} and serial.where_text().endswith("on one core")
     assert serial.verdict == "missing_effect" and "temperature_bias" in serial.explained_by
     _same(serial, got)
     assert _segments() == []  # unlinked when the diagnosis ended
@@ -345,7 +350,10 @@ def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record,
     path = tmp_path / "four.csv"
     mio.write_csv(path, ds.subset(np.arange(1500)))
     assert main(["diagnose", str(path), "--workers", "2", "--json", "--no-validate"]) == 0
-    assert '"verdict"' in capsys.readouterr().out
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["verdict"] and doc["ran_on"] == {"where": "threads", "workers": 2}  # a small record: threads
+    assert main(["diagnose", str(path), "--workers", "1", "--no-validate"]) == 0
+    assert re.search(r"Diagnosed in \d+\.\d s on one core\.", capsys.readouterr().out)
     assert main(["diagnose", str(path), "--workers", str(4 * _parallel.cores() + 1)]) != 0
     assert "--workers" in capsys.readouterr().err
 

@@ -154,5 +154,6 @@ def run(args) -> int:
         title = f"magcal diagnosis of {args.data}"
         shown = ds if args.reference is None else ds.replace(reference_total_nT=args.reference)  # the field used
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{shown.describe()}\n\n{diagnosis.table()}\n")
+        sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
         sys.stdout.write("\n" + quality.section())
     return 0

@@ -107,6 +107,10 @@ class Diagnosis:
     fits : dict of str to FitResult
         Refits by candidate label (and ``"+".join(explained_by)`` for the final model).
     elapsed_s : float
+        Wall-clock seconds the diagnosis took.
+    ran_on : dict
+        Where its fits ran: ``where`` (``"threads"``, ``"processes"`` or ``"dask"``) and ``workers`` (threads or
+        worker processes of this machine; a cluster's worker threads for Dask), so that ``elapsed_s`` can be read.
     rms_final_nT : float or None
         Total-field RMS with ``explained_by`` (or ``partially_explained_by``) added, nT.
     validation : dict
@@ -137,6 +141,7 @@ class Diagnosis:
     result: object = field(repr=False, default=None)
     fits: dict = field(repr=False, default_factory=dict)
     elapsed_s: float = 0.0
+    ran_on: dict = field(default_factory=dict)
     rms_final_nT: float | None = None
     validation: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
@@ -170,11 +175,23 @@ class Diagnosis:
             "structure": [s.to_dict() for s in self.structure],
             "remaining_structure": [s.to_dict() for s in self.remaining],
             "elapsed_s": round(float(self.elapsed_s), 3),
+            "ran_on": dict(self.ran_on),
             "noise": self.noise.to_dict(),
             "validation": jsonable(self.validation),
             "record_holds": list(self.record_holds),
             "record_details": jsonable(self.record_details),
         }
+
+    def where_text(self) -> str:
+        """How long the diagnosis took and where its fits ran, in words (``"4.3 s on 2 worker processes"``)."""
+        where, workers = self.ran_on.get("where"), int(self.ran_on.get("workers") or 1)
+        if where == "dask":
+            on = f"a Dask cluster ({workers} worker thread{'s' if workers != 1 else ''})"
+        elif where == "processes":
+            on = f"{workers} worker processes"
+        else:
+            on = "one core" if workers <= 1 else f"{workers} threads"
+        return f"{float(self.elapsed_s):.1f} s on {on}"
 
     def plot_data(self) -> dict:
         """:attr:`evidence` with arrays turned into lists (JSON-ready), for the workbench."""
@@ -997,6 +1014,7 @@ def _after_scores(
         result=fit0,
         fits=fits,
         elapsed_s=_time.perf_counter() - t_start,
+        ran_on={"where": pool.backend, "workers": int(pool.workers)},
         rms_final_nT=float(current.rms_nT),
         validation=_validation_summary(held_out, skipped, chosen),
         notes=_notes.unique(fit_notes),
