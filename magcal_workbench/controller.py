@@ -801,7 +801,6 @@ class Controller:
 
         if self.fit_result is None:
             self.step_refine()
-        t0 = time.perf_counter()
         self._report_progress("diagnosing", None)
         d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress, noise_nT=self.state.noise_nT)
         self.diagnosis = d
@@ -811,7 +810,7 @@ class Controller:
         top = d.candidates[0] if getattr(d, "candidates", None) else None
         extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
         self.say(
-            f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({time.perf_counter() - t0:.2f} s)  \n"
+            f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({safe_text(d.where_text(), 120)})  \n"
             f"{safe_text(d.summary, MESSAGE_LEN)}"
         )
         return d
