@@ -573,6 +573,7 @@ def test_diagnose_then_add_brings_the_rms_to_the_floor(bench):
     assert before > 1.15 * floor  # the base model is not enough
     _click(wb, wb.panels.btn_diagnose)
     assert wb.ctrl.diagnosis.verdict == "missing_effect"
+    assert wb.ctrl.diagnosis.where_text() in wb.ctrl.message  # how long, and on which cores
     assert wb.panels.candidate_choice.value == "temperature_bias:2"
     assert "temperature_bias:2" in wb.panels.candidates.content
     assert wb.evidence.plot is not None and wb.evidence.plot.visible
