@@ -18,6 +18,7 @@ from magcal.data.simulation import chi2017_truth
 from magcal_workbench import scene as scn
 from magcal_workbench.jobs import Worker
 from magcal_workbench.lessons import list_lessons
+from magcal_workbench.markup import safe_text
 from magcal_workbench.session import SessionStore, session_id
 from magcal_workbench.sessionfile import read_session_document
 from magcal_workbench.state import Selection, SessionState, StepRecord, pack_mask, unpack_mask
@@ -573,7 +574,7 @@ def test_diagnose_then_add_brings_the_rms_to_the_floor(bench):
     assert before > 1.15 * floor  # the base model is not enough
     _click(wb, wb.panels.btn_diagnose)
     assert wb.ctrl.diagnosis.verdict == "missing_effect"
-    assert wb.ctrl.diagnosis.where_text() in wb.ctrl.message  # how long, and on which cores
+    assert safe_text(wb.ctrl.diagnosis.where_text(), 120) in wb.ctrl.message  # how long, and on which cores
     assert wb.panels.candidate_choice.value == "temperature_bias:2"
     assert "temperature_bias:2" in wb.panels.candidates.content
     assert wb.evidence.plot is not None and wb.evidence.plot.visible
