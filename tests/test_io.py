@@ -715,3 +715,21 @@ def test_every_csv_route_reads_the_same_samples_or_gives_the_same_refusal(
     assert all(isinstance(m, str) for m in got.values()), got
     assert message.startswith(f"{path}: ") and re.search(refusal, message), message
     assert arrow is None or arrow == message  # pyarrow does not read it: the line reader says why
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    data=st.binary(max_size=60).map(lambda b: b.translate(bytes(range(256)).replace(b"a", b"\r").replace(b"b", b"\n"))),
+    start=st.integers(0, 8),
+    block=st.integers(1, 9),
+)
+def test_a_cr_inside_a_line_is_found_wherever_the_blocks_cut(data, start, block):
+    """``stray_cr`` (the whole-file reader's look for a CR inside a line) finds the first CR followed by a byte
+    other than CR or LF, looked at in blocks of any size: a CR ending a block is judged by the next byte."""
+    want = re.search(rb"\r[^\r\n]", data[start:])
+    old, io._CR_BLOCK = io._CR_BLOCK, block
+    try:
+        got = io.stray_cr(data, start)
+    finally:
+        io._CR_BLOCK = old
+    assert got == (start + want.start() if want else -1)

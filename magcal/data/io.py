@@ -12,7 +12,9 @@ file, the 1-based line number of the file and the column, and saying what to do;
 (dropped rows, suspicious units) are :class:`~magcal.core.errors.DataWarning` warnings. It never lets another exception
 through for bad input.
 
-Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not.
+Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not. Lines end in LF
+or CRLF (CRs piled before the LF, or ending the file, are part of the line end); a carriage return inside a line
+(:func:`stray_cr`) and old Mac line ends (CR only) are refused, by every reader alike.
 """
 
 from __future__ import annotations
