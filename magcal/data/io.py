@@ -86,7 +86,8 @@ NUMERIC_METADATA = {
 
 _SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
 _MAX_SHOWN = 5  # problems named in one message
-_BINARY_PROBE = 8192
+#: The first bytes of a CSV every reader checks before reading it (:func:`check_csv_head`).
+HEAD_PROBE_BYTES = 8192
 
 #: Longest line of a CSV file (bytes, line end included): far beyond any row of readings and channels, and small
 #: enough that a file of one endless line is refused before it fills the memory.
@@ -420,7 +421,7 @@ def _blank_lines(data, end) -> int:
 
 
 def check_csv_head(head, source):
-    """Refuse a CSV from its first bytes ``head`` (:data:`_BINARY_PROBE` of them): empty, binary (NUL bytes), or
+    """Refuse a CSV from its first bytes ``head`` (:data:`HEAD_PROBE_BYTES` of them): empty, binary (NUL bytes), or
     with old Mac line ends (lines ending in a lone carriage return: CRs and no LF). Every reader of a CSV (the
     whole-file and line-by-line readers, the survey's partitions) checks the same bytes, with the same message.
 
@@ -496,7 +497,7 @@ class _FileLines:
         self._tail = b""
         self._n_read = 0  # bytes read from the file
         self._n_lines = 0  # lines split off so far (for the number of an over-long one)
-        self.head = self._read(_BINARY_PROBE)
+        self.head = self._read(HEAD_PROBE_BYTES)
         self._take(self.head)
 
     def _read(self, n):
@@ -625,7 +626,7 @@ class CsvSource:
             if os.path.isdir(self.path):
                 raise DatasetError(f"{self.source}: is a directory, not a CSV file")
             with open(self.path, "rb") as fh:
-                return fh.read(_BINARY_PROBE)
+                return fh.read(HEAD_PROBE_BYTES)
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except OSError as exc:

@@ -39,7 +39,7 @@ from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import DatasetError
 from magcal.data.io import (
-    _BINARY_PROBE,
+    HEAD_PROBE_BYTES,
     MAX_LINE_BYTES,
     CsvSource,
     ParquetSource,
@@ -151,7 +151,7 @@ def _csv_head(path) -> tuple[bytes, int]:
     byte order mark before the first line, any whitespace, a no-break space too, as blank)."""
     head = bytearray()
     with open(path, "rb") as fh:
-        check_csv_head(fh.read(_BINARY_PROBE), path)  # empty, binary, old Mac line ends: the reader's message
+        check_csv_head(fh.read(HEAD_PROBE_BYTES), path)  # empty, binary, old Mac line ends: the reader's message
         fh.seek(0)
         while True:
             line = fh.readline(MAX_LINE_BYTES + 1)
