@@ -1,9 +1,11 @@
 """magcal.output.apply: streaming survey correction, tensor invariants, and calibration files that load or say why not."""
 
 import json
+import re
 import tracemalloc
 import warnings
 
+import line_ends
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -524,3 +526,39 @@ def test_the_record_with_other_line_ends_keeps_its_terms_through_apply(tmp_path,
         np.testing.assert_allclose(
             _corrected(out), cal.correct(read_out(paths[name]), record_terms=choice)[0], atol=6e-4
         )
+
+
+@pytest.mark.parametrize("variant", line_ends.VARIANTS)
+def test_apply_reads_every_line_end_as_the_reader_or_refuses_alike(tmp_path, truth, survey, capsys, variant):
+    """``magcal apply`` (blocks of rows, ``--drop-bad`` too, CSV and Parquet out): LF, CRLF, CRs before the LF
+    give the LF file's output; CR-only line ends and a CR inside a line are refused with ``read_csv``'s message
+    naming the file and line, and nothing is written."""
+    path, _ = survey
+    cal = exact_calibration(truth)
+    want = {ext: tmp_path / f"want{ext}" for ext in (".csv", ".parquet")}
+    for target in want.values():
+        ap.apply_file(cal, path, target, chunk_rows=70)
+    data, refusal = line_ends.line_end_variant(path.read_text(), variant)
+    src = tmp_path / "survey.csv"
+    src.write_bytes(data)
+    for k, (out, drop_bad) in enumerate([("o.csv", False), ("o.csv", True), ("o.parquet", False)]):
+        out = tmp_path / f"{k}-{out}"
+        if refusal is None:
+            ap.apply_file(cal, src, out, chunk_rows=70, drop_bad=drop_bad)
+            got, ref = read_out(out), read_out(want[out.suffix])
+            np.testing.assert_array_equal(got.readings_nT, ref.readings_nT)
+            for name in [f"s{i}{a}_cal" for i in range(1, 5) for a in "xyz"] + ["Gxx", "I0"]:
+                np.testing.assert_array_equal(np.asarray(got.extra[name], float), np.asarray(ref.extra[name], float))
+            continue
+        with pytest.raises(DatasetError) as info:
+            ap.apply_file(cal, src, out, chunk_rows=70, drop_bad=drop_bad)
+        with pytest.raises(DatasetError) as whole:
+            read_out(src)
+        assert str(info.value) == str(whole.value) and re.search(refusal, str(info.value)), str(info.value)
+        assert not out.exists()
+    if refusal is not None:  # the command line says it, without a traceback
+        cal.save(tmp_path / "cal.json")
+        out = tmp_path / "cli.csv"
+        assert main(["apply", str(tmp_path / "cal.json"), str(src), "-o", str(out), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert re.search(refusal, err) and "Traceback" not in err and not out.exists()

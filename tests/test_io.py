@@ -5,6 +5,7 @@ import re
 import warnings
 from io import BytesIO, StringIO
 
+import line_ends
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -646,3 +647,91 @@ def test_whatever_the_reader_reads_it_yields_the_counted_rows(body, chunk_rows, 
     with io.CsvSource(BytesIO(data)) as src:
         rows = src.count_rows(block)
     assert samples <= rows if drop_bad else samples == rows
+
+
+# -- line ends: every route reads the same samples or gives the same refusal -----------------------------------------
+@pytest.fixture(scope="module")
+def line_end_text(tmp_path_factory):
+    """A CSV written by magcal (metadata lines, time, temperature, attitude, group), its text, and its samples."""
+    ds = simulate_timeseries("chi2017", n_samples=60, seed=5).sensors([0, 1])
+    path = tmp_path_factory.mktemp("ends") / "lf.csv"
+    io.write_csv(path, ds.replace(group=np.array(["a", "b", "c"] * 20)))
+    return path.read_text(), read_quiet(path)
+
+
+def _outcome(fn):
+    """The dataset ``fn`` reads, or the message it refuses with."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataWarning)
+            return fn()
+    except DatasetError as exc:
+        return str(exc)
+
+
+@pytest.mark.parametrize("variant", line_ends.VARIANTS)
+def test_every_csv_route_reads_the_same_samples_or_gives_the_same_refusal(
+    tmp_path, monkeypatch, line_end_text, variant
+):
+    """LF, CRLF, CRs piled before the LF or ending the file: read alike; CR-only (old Mac) line ends, and a CR inside
+    a line, refused naming the file and the line, alike, by the whole-file reader (pyarrow: it read a row's CR as a
+    line end, so ``1,2,3\\r4,5,6`` was two rows there and refused by the line reader), its line-by-line fallback,
+    the block reader, ``drop_bad``; the row count is the samples of a file read."""
+    text, want = line_end_text
+    data, refusal = line_ends.line_end_variant(text, variant)
+    path = write(tmp_path, data)
+
+    def blocks(drop_bad):
+        with io.CsvSource(path) as src:
+            return io.concatenate([c.dataset for c in src.chunks(7, drop_bad=drop_bad)])
+
+    def line_by_line():
+        with monkeypatch.context() as m:
+            m.setattr(io, "_read_csv_arrow", lambda *a, **k: None)
+            return io.read_csv(path)
+
+    routes = {
+        "read_csv": lambda: io.read_csv(path),
+        "line by line": line_by_line,
+        "an open file": lambda: io.read_csv(BytesIO(data), name=str(path)),
+        "blocks": lambda: blocks(False),
+        "drop_bad": lambda: io.read_csv(path, drop_bad=True),
+        "blocks, drop_bad": lambda: blocks(True),
+    }
+    got = {route: _outcome(fn) for route, fn in routes.items()}
+    arrow = _outcome(lambda: io._read_csv_arrow(path, None, None, None, None))
+    if refusal is None:
+        assert isinstance(arrow, Dataset)  # the fast path reads it
+        for route, ds in got.items():
+            assert isinstance(ds, Dataset), (route, ds)
+            for attr in ("readings_nT", "time_s", "temperature_C", "attitude_wxyz", "group"):
+                np.testing.assert_array_equal(getattr(ds, attr), getattr(want, attr), err_msg=route)
+        with io.CsvSource(path) as src:
+            assert src.count_rows() == want.n_samples
+        return
+    messages = set(map(str, got.values()))
+    assert len(messages) == 1, got
+    message = messages.pop()
+    assert all(isinstance(m, str) for m in got.values()), got
+    assert message.startswith(f"{path}: ") and re.search(refusal, message), message
+    assert arrow is None or arrow == message  # pyarrow does not read it: the line reader says why
+    # the row count's source refuses a bad head alike; past the head, the count of a file refused means nothing
+    assert _outcome(lambda: io.CsvSource(path).close()) in (None, message)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    data=st.binary(max_size=60).map(lambda b: b.translate(bytes(range(256)).replace(b"a", b"\r").replace(b"b", b"\n"))),
+    start=st.integers(0, 8),
+    block=st.integers(1, 9),
+)
+def test_a_cr_inside_a_line_is_found_wherever_the_blocks_cut(data, start, block):
+    """``stray_cr`` (the whole-file reader's look for a CR inside a line) finds the first CR followed by a byte
+    other than CR or LF, looked at in blocks of any size: a CR ending a block is judged by the next byte."""
+    want = re.search(rb"\r[^\r\n]", data[start:])
+    old, io._CR_BLOCK = io._CR_BLOCK, block
+    try:
+        got = io.stray_cr(data, start)
+    finally:
+        io._CR_BLOCK = old
+    assert got == (start + want.start() if want else -1)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import re
 import time
 import warnings
 
+import line_ends
 import numpy as np
 import pytest
 
@@ -305,3 +307,33 @@ def test_the_partitioned_apply_decides_the_record_terms_as_one_process(tmp_path,
         want = cal.correct(mio.read_csv(files[name]), record_terms=choice)[0]
         calc = np.column_stack([np.asarray(got.extra[f"s1{a}_cal"], float)[mine] for a in "xyz"])
         np.testing.assert_allclose(calc, want, atol=1e-9)
+
+
+@pytest.mark.parametrize("variant", line_ends.VARIANTS)
+def test_two_partitions_read_every_line_end_as_the_whole_file_or_refuse_alike(tmp_path, variant):
+    """A CSV split into two partitions on its line ends: LF, CRLF, CRs before the LF or ending the file give the
+    whole file's samples; CR-only line ends and a CR inside a line (in the second partition, three quarters through
+    the rows) are refused with ``read_csv``'s own message, naming the file's line (a partition numbered its lines
+    from its head: line 101 for the file's line 301)."""
+    from magcal.output.survey import _csv_part, partitions
+
+    ds = magcal.simulate_timeseries("chi2017", n_samples=400, seed=7, rate_hz=10.0)
+    lf = tmp_path / "lf.csv"
+    mio.write_csv(lf, ds)
+    data, refusal = line_ends.line_end_variant(lf.read_text(), variant)
+    path = tmp_path / "survey.csv"
+    path.write_bytes(data)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            got = mio.concatenate([d for p in partitions([path], partition_rows=200) for d in _csv_part(p)[1]])
+    except mio.DatasetError as exc:
+        got = str(exc)
+    if refusal is None:
+        assert len(partitions([path], partition_rows=200)) == 2
+        np.testing.assert_array_equal(got.readings_nT, magcal.read_csv(lf).readings_nT)
+        np.testing.assert_array_equal(got.time_s, magcal.read_csv(lf).time_s)
+        return
+    with pytest.raises(mio.DatasetError) as whole:
+        magcal.read_csv(path)
+    assert got == str(whole.value) and re.search(refusal, got), got

@@ -12,12 +12,15 @@ file, the 1-based line number of the file and the column, and saying what to do;
 (dropped rows, suspicious units) are :class:`~magcal.core.errors.DataWarning` warnings. It never lets another exception
 through for bad input.
 
-Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not.
+Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not. Lines end in LF
+or CRLF (CRs piled before the LF, or ending the file, are part of the line end); a carriage return inside a line
+(:func:`stray_cr`) and old Mac line ends (CR only) are refused, by every reader alike.
 """
 
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import csv
 import itertools
@@ -83,7 +86,8 @@ NUMERIC_METADATA = {
 
 _SENSOR_RE = re.compile(r"^s([1-9])([xyz])$")
 _MAX_SHOWN = 5  # problems named in one message
-_BINARY_PROBE = 8192
+#: The first bytes of a CSV every reader checks before reading it (:func:`check_csv_head`).
+HEAD_PROBE_BYTES = 8192
 
 #: Longest line of a CSV file (bytes, line end included): far beyond any row of readings and channels, and small
 #: enough that a file of one endless line is refused before it fills the memory.
@@ -416,6 +420,64 @@ def _blank_lines(data, end) -> int:
     return sum(_blank(data[a:b]) for a, b in zip(starts[maybe].tolist(), ends[maybe].tolist()))
 
 
+def check_csv_head(head, source):
+    """Refuse a CSV from its first bytes ``head`` (:data:`HEAD_PROBE_BYTES` of them): empty, binary (NUL bytes), or
+    with old Mac line ends (lines ending in a lone carriage return: CRs and no LF). Every reader of a CSV (the
+    whole-file and line-by-line readers, the survey's partitions) checks the same bytes, with the same message.
+
+    Raises
+    ------
+    DatasetError
+    """
+    if not head.strip():
+        raise DatasetError(f"{source}: the file is empty; it needs a header row (e.g. s1x,s1y,s1z) and data rows")
+    if b"\x00" in head:
+        raise DatasetError(
+            f"{source}: this looks like a binary file (it contains NUL bytes), not CSV text; export the "
+            "data as UTF-8 CSV (docs/formats.md)"
+        )
+    if b"\r" in head and b"\n" not in head and len(head.strip().splitlines()) > 1:
+        raise DatasetError(
+            f"{source}: the lines end with a lone carriage return (old Mac style), which magcal does not read as a "
+            "line end; convert the file to Unix (LF) or Windows (CRLF) line endings (e.g. mac2unix FILE)"
+        )
+
+
+def stray_cr_message(source, line_no) -> str:
+    """The message refusing line ``line_no`` of ``source`` for a carriage return inside it (:func:`stray_cr`)."""
+    return (
+        f"{source}: line {line_no} holds a carriage return (CR, \\r) inside the line; magcal's line ends are LF or "
+        "CRLF, and a lone CR (an old Mac line end, or a stray byte) would split or hide a row: convert the file's "
+        "line endings to LF or CRLF (e.g. mac2unix FILE), or remove the stray CR from that line"
+    )
+
+
+#: Bytes looked at a time by :func:`stray_cr`.
+_CR_BLOCK = 1 << 20
+
+
+def stray_cr(data, start=0) -> int:
+    """Where the first carriage return inside a line of ``data[start:]`` is, or -1: a CR followed by a byte other
+    than CR or LF. CRs that end a line (before its LF: CRLF, CRCRLF; or at the end of ``data``) are line ends.
+
+    The rule of every CSV reader of magcal: the line-by-line reader refuses such a line, and the whole-file reader
+    (pyarrow, which would take the CR for a line end) gives the file to it. ``data`` is any bytes-like object (a
+    memory-mapped file); it is looked at :data:`_CR_BLOCK` bytes at a time, with NumPy.
+    """
+    view = np.frombuffer(data, dtype=np.uint8)
+    for s in range(int(start), view.size, _CR_BLOCK):
+        block = view[s : s + _CR_BLOCK + 1]  # one byte more: the byte after a CR that ends the block
+        after = np.flatnonzero(block[:_CR_BLOCK] == 13) + 1
+        if not after.size:
+            continue
+        after = after[after < block.size]
+        follow = block[after]
+        inside = np.flatnonzero((follow != 10) & (follow != 13))
+        if inside.size:
+            return s + int(after[inside[0]]) - 1
+    return -1
+
+
 class _FileLines:
     """The lines (UTF-8 bytes, line ends kept) of a file object, binary or text, read block by block.
 
@@ -435,7 +497,7 @@ class _FileLines:
         self._tail = b""
         self._n_read = 0  # bytes read from the file
         self._n_lines = 0  # lines split off so far (for the number of an over-long one)
-        self.head = self._read(_BINARY_PROBE)
+        self.head = self._read(HEAD_PROBE_BYTES)
         self._take(self.head)
 
     def _read(self, n):
@@ -564,27 +626,14 @@ class CsvSource:
             if os.path.isdir(self.path):
                 raise DatasetError(f"{self.source}: is a directory, not a CSV file")
             with open(self.path, "rb") as fh:
-                return fh.read(_BINARY_PROBE)
+                return fh.read(HEAD_PROBE_BYTES)
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except OSError as exc:
             raise DatasetError(f"{self.source}: cannot read the file ({exc.strerror or exc})") from None
 
     def _check_head(self, head):
-        if not head.strip():
-            raise DatasetError(
-                f"{self.source}: the file is empty; it needs a header row (e.g. s1x,s1y,s1z) and data rows"
-            )
-        if b"\x00" in head:
-            raise DatasetError(
-                f"{self.source}: this looks like a binary file (it contains NUL bytes), not CSV text; export the "
-                "data as UTF-8 CSV (docs/formats.md)"
-            )
-        if b"\r" in head and b"\n" not in head and len(head.strip().splitlines()) > 1:
-            raise DatasetError(
-                f"{self.source}: the lines end with a lone carriage return (old Mac style); convert the file to "
-                "Unix or Windows line endings"
-            )
+        check_csv_head(head, self.source)
 
     def _decode(self, raw, line_no):
         try:
@@ -596,7 +645,10 @@ class CsvSource:
             ) from None
         if line_no == 1 and text.startswith("\ufeff"):
             text = text[1:]
-        return text.rstrip("\n").rstrip("\r")
+        text = text.rstrip("\n").rstrip("\r")
+        if "\r" in text:
+            raise DatasetError(stray_cr_message(self.source, line_no))
+        return text
 
     def _readline(self):
         raw = self._file.readline()
@@ -706,6 +758,11 @@ class CsvSource:
             self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
 
     # -- rows --------------------------------------------------------------------------------------------------
+    def number_lines_from(self, line_no):
+        """Number the lines still to read from ``line_no`` (1-based) on: for a file object holding a file's head
+        and then a range of its lines (a survey's partition), whose messages then name the file's own lines."""
+        self._lineno = int(line_no) - 1
+
     def _read_lines(self, n):
         """The non-blank lines (text without line ends) among the next ``n`` lines, and their 1-based line numbers;
         past ``n`` lines that are all blank, to the next non-blank one: none only at the end of the file."""
@@ -731,8 +788,11 @@ class CsvSource:
         lines = text.split("\n")
         if text.endswith("\n"):
             lines.pop()
-        if "\r" in text:
+        if "\r" in text:  # CRs before a line's end end it; one inside a line is refused
             lines = [line.rstrip("\r") for line in lines]
+            stray = next((k for k, line in enumerate(lines) if "\r" in line), None)
+            if stray is not None:
+                raise DatasetError(stray_cr_message(self.source, first + stray))
         numbers = np.arange(first, first + len(lines), dtype=np.int64)
         keep = [bool(line.strip()) for line in lines]
         if not any(keep):
@@ -750,7 +810,8 @@ class CsvSource:
         space...), a last line without a line end included; a ``#`` line after the header is a row (a bad one).
         Whenever :meth:`chunks` reads the rest of the file without an error, it yields exactly this many samples
         with ``drop_bad=False``, and at most this many with ``drop_bad=True`` (which only removes rows). For a file
-        it refuses (a bad row, a line that is not UTF-8) the count means nothing: read it for the message.
+        it refuses (a bad row, a line that is not UTF-8, a carriage return inside a line: :func:`stray_cr`) the
+        count means nothing: read it for the message.
 
         The line ends are counted ``block_bytes`` at a time (:meth:`bytes.count`); only a line that begins with a
         byte a whitespace character can begin with (:data:`SPACE_LEAD_BYTES`; rare in a data file) is decoded and
@@ -1198,6 +1259,23 @@ def read_csv(
     return ds
 
 
+def _arrow_table(pa, pacsv, data, header, layout, numeric):
+    """The data lines ``data`` (a pyarrow buffer) read by pyarrow's CSV reader: the ``numeric`` columns as float64,
+    the group and unused columns as text."""
+    return pacsv.read_csv(
+        pa.BufferReader(data),
+        read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
+        parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
+        convert_options=pacsv.ConvertOptions(
+            column_types={h: pa.float64() for h in numeric},
+            include_columns=numeric
+            + [header[j] for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())],
+            strings_can_be_null=False,
+            quoted_strings_can_be_null=False,
+        ),
+    )
+
+
 def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     """The whole file read by pyarrow's CSV reader when it is clean, else None (the caller then reads it line by
     line, which finds and names every problem).
@@ -1228,21 +1306,12 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
         # reader names it), and a large file costs no copy
         raw = pa.memory_map(os.fspath(path), "r").read_buffer()
         numeric = [header[j] for j, _ in layout.numeric]
-        table = pacsv.read_csv(
-            pa.BufferReader(raw.slice(offset)),
-            read_options=pacsv.ReadOptions(column_names=header, use_threads=True),
-            parse_options=pacsv.ParseOptions(delimiter=",", quote_char=False, newlines_in_values=False),
-            convert_options=pacsv.ConvertOptions(
-                column_types={h: pa.float64() for h in numeric},
-                include_columns=numeric
-                + [
-                    header[j]
-                    for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
-                ],
-                strings_can_be_null=False,
-                quoted_strings_can_be_null=False,
-            ),
-        )
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            # a CR inside a line, which pyarrow would take for a line end: looked for beside pyarrow's parsing
+            stray = pool.submit(stray_cr, raw, offset)
+            table = _arrow_table(pa, pacsv, raw.slice(offset), header, layout, numeric)
+            if stray.result() >= 0:
+                return None  # the line reader refuses the line, naming it
     except (ValueError, OSError, pa.ArrowException):
         return None
     n = table.num_rows

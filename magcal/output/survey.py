@@ -39,9 +39,11 @@ from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import DatasetError
 from magcal.data.io import (
+    HEAD_PROBE_BYTES,
     MAX_LINE_BYTES,
     CsvSource,
     ParquetSource,
+    check_csv_head,
     check_output_path,
     check_parquet_codec,
     current_umask,
@@ -149,6 +151,8 @@ def _csv_head(path) -> tuple[bytes, int]:
     byte order mark before the first line, any whitespace, a no-break space too, as blank)."""
     head = bytearray()
     with open(path, "rb") as fh:
+        check_csv_head(fh.read(HEAD_PROBE_BYTES), path)  # empty, binary, old Mac line ends: the reader's message
+        fh.seek(0)
         while True:
             line = fh.readline(MAX_LINE_BYTES + 1)
             if not line:
@@ -303,7 +307,8 @@ def _csv_part(part: Partition, columns=None, units=None, drop_bad=False, extras=
         fh.seek(part.start)
         body = fh.read(part.stop - part.start)
     name = f"{part.path} (lines from {part.first_line})"
-    with CsvSource(_io.BytesIO(head + body), columns=columns, units=units, name=name) as src:
+    with CsvSource(_io.BytesIO(head + body), columns=columns, units=units, name=part.path) as src:
+        src.number_lines_from(part.first_line)  # messages name the file's lines
         parts = [c.dataset for c in src.chunks(BLOCK_ROWS, drop_bad=drop_bad, text_columns=extras)]
         meta = dict(src.metadata)
     if not parts:
