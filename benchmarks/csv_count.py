@@ -12,7 +12,10 @@ a bias drift (a record-only term) fitted on a short record of its own. Timed, al
 * ``after, the record's length``: the survey told to be the calibration record (its fingerprint set as the
   record's): counted, then hashed, as it must be;
 * ``count_rows`` alone and ``read``: the file's bytes read in the same blocks, nothing done with them (the floor);
-* ``apply CSV -> Parquet`` with the old decision and with the new one (``--apply``): the whole command's time.
+* ``apply CSV -> Parquet`` with the old decision and with the new one (``--apply``): the whole command's time;
+* ``partitions``: the Dask path's cutting of the survey for 16 workers (:func:`magcal.output.survey.partitions`):
+  one pass that counts the lines and marks where to cut, against the two it replaced (count, then cut while
+  reading again); the partitions are checked to be the same.
 
 The decision is checked to be the same both ways.
 """
@@ -136,6 +139,23 @@ def main() -> None:
                 print("apply CSV -> Parquet (median, min-max s):")
                 for name, ts in ap_times.items():
                     print(f"  {name:28s} {statistics.median(ts):7.3f}  ({min(ts):.3f}-{max(ts):.3f})")
+        from magcal.output import survey
+
+        part_times: dict = {"partitions, one pass": [], "partitions, two passes": []}
+        got = {}
+        for _ in range(args.repeats):
+            dt, got["one"] = timed(survey.partitions, [path], None, 16)
+            part_times["partitions, one pass"].append(dt)
+            rows = survey.partition_rows_for(n, 16)
+            stride = survey._csv_scan(path).stride  # (not timed) the size the one pass rounds to
+            t0 = time.perf_counter()
+            survey._csv_scan(path)  # the old first pass: count the lines
+            got["two"] = survey.partitions([path], partition_rows=-(-rows // stride) * stride)  # then cut
+            part_times["partitions, two passes"].append(time.perf_counter() - t0)
+        assert got["one"] == got["two"]
+        print(f"partitions for 16 workers ({len(got['one'])} parts; median, min-max s):")
+        for name, ts in part_times.items():
+            print(f"  {name:28s} {statistics.median(ts):7.3f}  ({min(ts):.3f}-{max(ts):.3f})")
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the end")
 
 

@@ -62,6 +62,42 @@ def _grouped(path, ds, group_rows):
     return path
 
 
+@pytest.mark.parametrize("max_marks", [3, 10, 1 << 16])
+@pytest.mark.parametrize("rows", [7, 64, 150])
+@pytest.mark.parametrize("final_newline", [True, False])
+def test_partitions_sized_from_the_count_are_cut_in_that_one_pass(
+    surveys, tmp_path, monkeypatch, max_marks, rows, final_newline
+):
+    """Sized to the workers, a CSV is read once: the pass that counts its lines keeps where every ``stride``-th
+    ends (the stride doubling whenever more than ``MAX_LINE_MARKS`` are kept) and the partitions are cut there,
+    the same partitions as cutting while reading the lines again, to the byte and the line number."""
+    from magcal.output import survey
+
+    d, _, a, _ = surveys
+    path = tmp_path / "survey.csv"
+    text = a.read_bytes()
+    path.write_bytes(text if final_newline else text.rstrip(b"\n"))
+    monkeypatch.setattr(survey, "MAX_LINE_MARKS", max_marks)
+    monkeypatch.setattr(survey, "partition_rows_for", lambda total, workers: rows)
+    passes = []
+    real = survey._line_ends
+
+    def counted(*args, **kwargs):
+        passes.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(survey, "_line_ends", counted)
+    scan = survey._csv_scan(path)
+    assert scan.lines == 500 and scan.marks.size <= max_marks
+    passes.clear()
+    one_pass = survey.partitions([path], workers=2)
+    assert len(passes) == 1  # the count's pass, and no other
+    size = -(-rows // scan.stride) * scan.stride  # rounded up to the marks' stride
+    assert one_pass == survey.partitions([path], partition_rows=size)
+    assert sum(len(list(survey._csv_part(p)[1])) > 0 for p in one_pass) == len(one_pass)
+    assert one_pass[-1].stop == path.stat().st_size
+
+
 @pytest.mark.parametrize("workers", [1, 2, 16])
 def test_partitions_are_sized_to_the_workers_not_the_row_groups(tmp_path, workers, monkeypatch):
     """Many small row groups are joined and a large one split, on the groups' edges where they can be, into about

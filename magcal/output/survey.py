@@ -195,10 +195,40 @@ def _line_ends(path, offset, block=1 << 20):
             yield np.array([pos])
 
 
-def _csv_lines(path) -> int:
-    """Data lines of a CSV (line ends after its head, and a last line without one), counted block by block."""
-    _, offset = _csv_head(path)
-    return sum(int(ends.size) for ends in _line_ends(path, offset))
+#: Most line-end positions :func:`_csv_scan` keeps per file (every ``stride``-th line's; 512 kB).
+MAX_LINE_MARKS = 1 << 16
+
+
+@dataclass
+class _CsvScan:
+    """One pass over a CSV's data lines: how many, and where every ``stride``-th of them ends."""
+
+    head_lines: int  # lines before the first data line, the header included
+    offset: int  # byte where the data lines begin
+    lines: int  # data lines (line ends after the head, and a last line without one)
+    stride: int  # marks[i] is the byte just after data line (i + 1) * stride
+    marks: np.ndarray
+
+
+def _csv_scan(path) -> _CsvScan:
+    """Count a CSV's data lines block by block, keeping the end of every ``stride``-th line: ``stride`` starts at
+    1 and doubles (every other mark dropped) whenever more than :data:`MAX_LINE_MARKS` are kept, so a small file
+    keeps every line's end and a huge one a bounded sample. Partitions of a multiple of ``stride`` lines are then
+    cut from the marks (:func:`_cut_csv`) without a second pass over the bytes."""
+    head, offset = _csv_head(path)
+    stride, lines, kept = 1, 0, []
+    n_kept = 0
+    for ends in _line_ends(path, offset):
+        first = (-lines - 1) % stride  # the index in ``ends`` of the first line whose number is a multiple
+        take = ends[first::stride]
+        kept.append(take)
+        n_kept += take.size
+        lines += ends.size
+        while n_kept > MAX_LINE_MARKS:
+            marks = np.concatenate(kept)[1::2]  # lines 2s, 4s, ...: the multiples of the doubled stride
+            kept, n_kept, stride = [marks], marks.size, 2 * stride
+    marks = np.concatenate(kept) if kept else np.zeros(0, dtype=np.int64)
+    return _CsvScan(head.count(b"\n"), offset, lines, stride, marks.astype(np.int64))
 
 
 def _row_groups(path) -> list:
@@ -248,15 +278,22 @@ def partitions(paths, partition_rows: int | None = None, workers: int = 1) -> li
         if not os.path.exists(path):
             raise DatasetError(f"{path}: no such file; check the path")
     groups = {path: _row_groups(path) for path in paths if is_parquet(path)}
-    if partition_rows is None:
-        total = sum(sum(g) for g in groups.values()) + sum(_csv_lines(p) for p in paths if p not in groups)
+    scans: dict = {}
+    if partition_rows is None:  # sized from the rows: one pass over each CSV counts them and marks where to cut
+        scans = {p: _csv_scan(p) for p in paths if p not in groups}
+        total = sum(sum(g) for g in groups.values()) + sum(scan.lines for scan in scans.values())
         partition_rows = partition_rows_for(total, workers)
+        stride = max((scan.stride for scan in scans.values()), default=1)
+        partition_rows = -(-partition_rows // stride) * stride  # a multiple of every file's marks
     partition_rows = max(1, int(partition_rows))
     out: list = []
     for path in paths:
         if path in groups:
             for start, stop in _parquet_ranges(groups[path], partition_rows):
                 out.append(Partition(path, len(out), start, stop, start + 1, "parquet"))
+            continue
+        if path in scans:
+            _cut_csv(path, scans[path], partition_rows, out)
             continue
         head, offset = _csv_head(path)
         line = head.count(b"\n") + 1
@@ -273,6 +310,20 @@ def partitions(paths, partition_rows: int | None = None, workers: int = 1) -> li
         if end > start:
             out.append(Partition(path, len(out), start, end, first, "csv"))
     return out
+
+
+def _cut_csv(path, scan: _CsvScan, partition_rows: int, out: list) -> None:
+    """Append ``path``'s partitions of ``partition_rows`` lines (a multiple of ``scan.stride``) to ``out``, cut at
+    the marked line ends: the same partitions as cutting while reading the lines again."""
+    step = partition_rows // scan.stride
+    start, first = scan.offset, scan.head_lines + 1
+    for k in range(step - 1, scan.marks.size, step):
+        pos = int(scan.marks[k])
+        out.append(Partition(path, len(out), start, pos, first, "csv"))
+        start, first = pos, first + partition_rows
+    end = os.path.getsize(path)
+    if end > start:
+        out.append(Partition(path, len(out), start, end, first, "csv"))
 
 
 def _parquet_part(part: Partition, chunk_rows=BLOCK_ROWS):
