@@ -526,6 +526,26 @@ class _FileLines:
         self._n_lines += len(parts)
         self._lines.extend(part + b"\n" for part in parts)
 
+    def count_rest(self, block_bytes: int) -> int | None:
+        """The lines not read yet that are not blank (:func:`_blank`), counted ``block_bytes`` at a time without
+        splitting them (:meth:`CsvSource.count_rows`); None when one runs on for :data:`MAX_LINE_BYTES` without a
+        line end. The file is then at its end."""
+        n = sum(not _blank(raw) for raw in self._lines)  # the last block read, already split into lines
+        self._lines.clear()
+        carry, self._tail = self._tail, b""  # the start of a line whose end is not read yet
+        while True:
+            more = self._read(block_bytes)
+            if not more:
+                break
+            data = carry + more if carry else more
+            end = data.rfind(b"\n") + 1  # data[:end] is whole lines
+            if end:
+                n += data.count(b"\n") - _blank_lines(data, end)
+            carry = data[end:]
+            if len(carry) >= MAX_LINE_BYTES:
+                return None
+        return n + (1 if carry and not _blank(carry) else 0)
+
     def tell(self) -> int:
         """Bytes of the file consumed so far (read and served as lines)."""
         return self._n_read - len(self._tail) - sum(map(len, self._lines))
@@ -823,22 +843,7 @@ class CsvSource:
             The rows; None when a line runs on for :data:`MAX_LINE_BYTES` without a line end (the reader refuses
             the file: read it for its message).
         """
-        lines = self._file
-        n = sum(not _blank(raw) for raw in lines._lines)  # the head's last block, already split into lines
-        lines._lines.clear()
-        carry, lines._tail = lines._tail, b""  # the start of a line whose end is not read yet
-        while True:
-            more = lines._read(int(block_bytes))
-            if not more:
-                break
-            data = carry + more if carry else more
-            end = data.rfind(b"\n") + 1  # data[:end] is whole lines
-            if end:
-                n += data.count(b"\n") - _blank_lines(data, end)
-            carry = data[end:]
-            if len(carry) >= MAX_LINE_BYTES:
-                return None
-        return n + (1 if carry and not _blank(carry) else 0)
+        return self._file.count_rest(int(block_bytes))
 
     def chunks(self, chunk_rows=200_000, drop_bad=False, text_columns=True):
         """Yield :class:`Chunk` objects of up to ``chunk_rows`` rows.

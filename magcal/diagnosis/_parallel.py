@@ -47,7 +47,6 @@ import numpy as np
 
 from magcal.core import memory
 from magcal.core.errors import MagcalError
-from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import Dataset
 
 #: Workers for independent fits (None: one per core, threads at most :data:`MAX_THREADS`; 1: one after the other,
@@ -346,7 +345,7 @@ def _init_worker():
     global _LIMITS
     from threadpoolctl import threadpool_limits
 
-    keep_large_blocks()  # a fork server started by Dask passes on its MALLOC_TRIM_THRESHOLD_
+    memory.keep_large_blocks()  # a fork server started by Dask passes on its MALLOC_TRIM_THRESHOLD_
     for name in _ONE_THREAD:
         os.environ[name] = "1"
     import scipy.linalg  # noqa: F401  (its BLAS loaded now, so that the limit below reaches it too)

@@ -101,6 +101,12 @@ def tensor_invariants(tensor):
     return i0, i1, i2
 
 
+def gives_tensor(calibration) -> bool:
+    """Whether corrected vectors of ``calibration`` give a gradient tensor: a cross of four sensors with its
+    baseline known."""
+    return calibration.n_sensors == 4 and bool(calibration.baseline_m)
+
+
 def output_columns(n_sensors, tensor, uncertainty=False, world=False):
     """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
     ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``; with ``world``: the north-east-down components
@@ -158,7 +164,7 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
     _notes.warn([n for n in notes if n.where != ATTITUDE_GAP_NOTE], stacklevel=3)
     n = dataset.n_samples
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
-    tensor = calibration.n_sensors == 4 and calibration.baseline_m
+    tensor = gives_tensor(calibration)
     if tensor:
         comps = calibration.tensor(dataset, vectors)  # in the cross's own frame (a vector calibration's too)
         parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
@@ -276,13 +282,19 @@ def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chun
     ``stop_after``: stop reading once the file has more samples than this (it cannot be that record); the
     fingerprint then covers the samples read.
     """
-    hasher = RecordHasher()
-    unsaid = []  # the reader's notes: the correcting pass says the data's problems
+    unsaid: list = []  # the reader's notes: the correcting pass says the data's problems
     with CsvSource(os.fspath(survey_path), columns=columns, units=units, notes=unsaid) as src:
-        for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False):
-            hasher.update(chunk.dataset)
-            if stop_after is not None and hasher.n_samples > stop_after:
-                break
+        return _hashed((c.dataset for c in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False)), stop_after)
+
+
+def _hashed(datasets, stop_after=None) -> dict:
+    """The record fingerprint of the samples of ``datasets`` (blocks, in order), read until more than
+    ``stop_after`` samples have come (None: all)."""
+    hasher = RecordHasher()
+    for ds in datasets:
+        hasher.update(ds)
+        if stop_after is not None and hasher.n_samples > stop_after:
+            break
     return hasher.fingerprint()
 
 
@@ -395,7 +407,7 @@ def apply_file(
                 f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
                 "calibration made for this instrument"
             )
-        tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+        tensor = gives_tensor(calibration)
         world = writes_world(calibration, layout=src.layout)
         new_names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
         clash = sorted(set(new_names) & set(src.header))
@@ -578,12 +590,7 @@ def survey_fingerprint(survey_path, record_samples, columns=None, units=None, dr
     path = os.fspath(survey_path)
     if not is_log(path) and not is_parquet(path):
         return file_fingerprint(path, columns, units, drop_bad, chunk_rows, record_samples if counted else None)
-    hasher = RecordHasher()
-    for ds in survey_chunks(path, columns, units, drop_bad, chunk_rows)[1]:
-        hasher.update(ds)
-        if counted and hasher.n_samples > record_samples:
-            break
-    return hasher.fingerprint()
+    return _hashed(survey_chunks(path, columns, units, drop_bad, chunk_rows)[1], record_samples if counted else None)
 
 
 def apply_columns(
@@ -623,7 +630,7 @@ def apply_columns(
     if note:
         warnings.warn(note, RecordTermWarning, stacklevel=3)
     meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=reads_extras(calibration))
-    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+    tensor = gives_tensor(calibration)
     names = output_columns(calibration.n_sensors, tensor, uncertainty)
     meta = {
         **meta,

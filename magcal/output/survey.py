@@ -18,7 +18,7 @@ apply`` does (:func:`magcal.output.apply.record_choice`: a file of another lengt
 counted from a Parquet footer or a CSV's line ends, is another record without a row parsed in the client). On a
 cluster the input files and the output folder must be on a file system every worker sees.
 
-Messages from a task name the file and the line (CSV: counted from the partition's first line, which is given).
+Messages from a task name the file and the line (CSV: the file's own line numbers, as ``magcal apply`` gives them).
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ from magcal.output.apply import (
     _WriteBehind,
     attitude_gap_text,
     correct_block,
+    gives_tensor,
     input_columns,
     load_calibration,
     output_columns,
@@ -404,7 +405,7 @@ def correct_partition(
         meta, chunks = _parquet_part(part)
     else:
         meta, chunks = _csv_part(part, columns, units, drop_bad, extras=reads_extras(calibration))
-    tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+    tensor = gives_tensor(calibration)
     meta = {
         **meta,
         "units": "nT",
@@ -664,7 +665,7 @@ def apply_partitioned(
     files = sorted(os.path.join(output_dir, os.path.basename(r[0])) for r in results)
     missing = sum(r[2] for r in results)
     if missing:
-        tensor = calibration.n_sensors == 4 and bool(calibration.baseline_m)
+        tensor = gives_tensor(calibration)
         terms = list(dict.fromkeys(t for c in choices.values() for t in calibration.attitude_terms(c)))
         warnings.warn(
             attitude_gap_text(missing, sum(r[1] for r in results), calibration.n_sensors, tensor, terms),
