@@ -17,11 +17,18 @@ Each measurement runs in a fresh program (a child of this script), so that every
   calling process's BLAS left at OpenBLAS's default threads and held to one while the pool lives
   (:func:`magcal.diagnosis._parallel.one_blas_thread`); twice in one program, wall and the caller's processor time
   of the second.
+- ``memory``: a diagnosis on two worker processes at 4 x 1e5, 2e5 and 4e5 samples: the calling process's peak
+  resident memory before and after, and the largest worker's (``scaling.DescendantsPeak``), where
+  :data:`magcal.diagnosis._parallel.WORKER_BYTES_PER_READING` and ``CALLER_BYTES_PER_READING`` come from.
+- ``gil``: two threads against one on the two kinds of work a fit's sums over blocks hold: matrix products of a
+  56 x 8 738 block (BLAS releases the interpreter) and the short numpy calls on 4 369-row columns between them
+  (each holds it): why threads inside one fit did not pay.
 
 Usage::
 
     python benchmarks/process_start.py                       # every part, about 4 minutes on 2 cores
     python benchmarks/process_start.py --parts pools,cluster
+    python benchmarks/process_start.py --parts blas,memory,gil   # the late session's figures
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas")
+PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil")
 
 
 def _record(n):
@@ -95,6 +102,55 @@ def child_blas(n, backend, workers, limit):
         diagnose(ds, res, workers=workers)
         out.append([time.perf_counter() - t0, time.process_time() - c0])
     return out
+
+
+def child_memory(n):
+    import resource
+
+    import scaling
+
+    from magcal.diagnosis import _parallel, diagnose
+    from magcal.fitting.pipeline import calibrate
+
+    ds = _record(n)
+    res = calibrate(ds)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    _parallel.BACKEND = "processes"
+    with scaling.DescendantsPeak() as peak:
+        diagnose(ds, res, workers=2)
+    return [before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, peak.mb]
+
+
+def child_gil():
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    block = np.random.default_rng(1).random((56, 8738))
+    column = np.random.default_rng(2).random(4369)
+
+    def products(k):
+        for _ in range(k):
+            block @ block.T
+
+    def short_calls(k):
+        out = np.empty_like(column)  # each thread its own
+        for _ in range(k):
+            np.multiply(column, column, out=out)
+            np.add(out, column, out=out)
+            np.negative(out, out=out)
+
+    got = {}
+    with threadpool_limits(limits=1), ThreadPoolExecutor(2) as pool:
+        for name, fn, k in (("products", products, 200), ("short calls", short_calls, 20_000)):
+            t0 = time.perf_counter()
+            fn(k)
+            one = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            list(pool.map(fn, [k // 2, k // 2]))
+            got[name] = [one, time.perf_counter() - t0]
+    return got
 
 
 def child_cluster(method, survey, cal_json):
@@ -161,6 +217,8 @@ def main(argv=None):
             "cluster": child_cluster,
             "source": child_source,
             "blas": child_blas,
+            "memory": child_memory,
+            "gil": child_gil,
         }
         print(json.dumps(fn[kind](*rest)))
         return
@@ -213,6 +271,16 @@ def main(argv=None):
                 (first, _), (wall, cpu) = run_child("blas", n, backend, workers, limit, env=env, clean=True)
                 row.append(f"{wall:.2f} s (first {first:.2f}, caller's processor {cpu:.2f} s)")
             print(f"blas     4 x {n:>7,} on {where}: BLAS default {row[0]}; one thread {row[1]}")
+    if "memory" in parts:
+        for n in (100_000, 200_000, 400_000):
+            before, after, worker = run_child("memory", n)
+            print(
+                f"memory   4 x {n:>7,} on 2 processes: caller {before:,.0f} MB before, {after:,.0f} MB peak; "
+                f"largest worker {worker:,.0f} MB"
+            )
+    if "gil" in parts:
+        for name, (one, two) in run_child("gil").items():
+            print(f"gil      {name:>11}: one thread {one:.3f} s, the same work on two threads {two:.3f} s")
     print(f"load {os.getloadavg()[0]:.2f} at the end")
 
 
