@@ -85,13 +85,15 @@ class Clock:
             st.now = max(st.now, end)
 
 
-def measure(n, seed=1):
+def measure(n, seed=1, cold=False):
     """Work, span and pieces of the diagnosis of four sensors of ``n`` samples with a temperature bias hidden
-    (as ``benchmarks/scaling.py``)."""
+    (as ``benchmarks/scaling.py``). ``cold``: every fit handed to a worker starts with none of the readings' facts
+    this process has worked out (a worker process that has not seen them: the bound for the processes backend)."""
     import scaling
 
     from magcal.diagnosis import _parallel, diagnose, scores
     from magcal.fitting.pipeline import calibrate
+    from magcal.model import effects
 
     ds = scaling._record(n, seed=seed)
     res = calibrate(ds)
@@ -111,6 +113,18 @@ def measure(n, seed=1):
 
     def remote_future(self, fn, *args, local=None):
         call = local if local is not None else (lambda: fn(self.dataset, *args))
+        if cold:  # as a worker process that has not seen these readings: its step scans are its own
+            warm_call = call
+
+            def call():
+                saved = dict(effects._READINGS_CACHE._entries)
+                effects._READINGS_CACHE.clear()
+                try:
+                    return warm_call()
+                finally:
+                    effects._READINGS_CACHE._entries.clear()
+                    effects._READINGS_CACHE._entries.update(saved)
+
         model = next((a for a in args if hasattr(a, "effect_labels")), None)  # the fit's model: say its terms
         name = fn.__name__ + (f" ({', '.join(model.effect_labels) or 'base'})" if model is not None else "")
         return clock.run_piece(name, call, Future())
@@ -119,10 +133,17 @@ def measure(n, seed=1):
         futures = [clock.run_piece(name_of(c), c, Future()) for c in calls]
         return [f.result() for f in futures]
 
-    saved = (Future.result, _parallel.Pool.submit, _parallel.Pool.remote_future, scores.in_parallel)
+    real_init = _parallel.Pool.__init__
+
+    def init(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        self.concurrent = True  # as on many cores: the work a pool with threads hands over ahead is done (and timed)
+
+    saved = (Future.result, _parallel.Pool.submit, _parallel.Pool.remote_future, scores.in_parallel, real_init)
     Future.result = result  # type: ignore[method-assign]
     _parallel.Pool.submit = submit  # type: ignore[method-assign]
     _parallel.Pool.remote_future = remote_future  # type: ignore[method-assign]
+    _parallel.Pool.__init__ = init  # type: ignore[method-assign]
     scores.in_parallel = in_parallel
     try:
         clock.local.__dict__.clear()
@@ -133,7 +154,8 @@ def measure(n, seed=1):
         work = time.thread_time() - cpu0
         wall = time.perf_counter() - t0
     finally:
-        Future.result, _parallel.Pool.submit, _parallel.Pool.remote_future, scores.in_parallel = saved
+        (Future.result, _parallel.Pool.submit, _parallel.Pool.remote_future, scores.in_parallel) = saved[:4]
+        _parallel.Pool.__init__ = saved[4]  # type: ignore[method-assign]
     return {"work_s": work, "span_s": span, "wall_s": wall, "diagnosis": d, "pieces": clock.pieces}
 
 
@@ -141,9 +163,12 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--n", default="1e5", help="samples per sensor (four sensors)")
     p.add_argument("--pieces", type=int, default=8, help="longest pieces to list")
+    p.add_argument(
+        "--cold", action="store_true", help="each fit handed to a worker without the readings' facts worked out here"
+    )
     args = p.parse_args(argv)
     n = int(float(args.n))
-    m = measure(n)
+    m = measure(n, cold=args.cold)
     d, work, span = m["diagnosis"], m["work_s"], m["span_s"]
     print(
         f"diagnosis of 4 x {n:,} samples, temperature_bias hidden: {d.verdict} ({d.candidates[0].label}); "

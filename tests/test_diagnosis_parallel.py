@@ -137,3 +137,101 @@ def test_leaving_a_pool_on_an_error_cancels_what_has_not_started(monkeypatch):
             raise RuntimeError("stop")
     assert all(f.result() for f in running)
     assert all(f.cancelled() for f in queued)
+
+
+def _two_hidden(n=3000):
+    ds = simulate_timeseries(
+        chi2017_truth(4),
+        n_samples=n,
+        noise_nT=3.0,
+        seed=4,
+        perturbations=[
+            perturbations.parse_hidden("temperature_bias=2", 4),
+            perturbations.parse_hidden("bias_step:3", 4),
+        ],
+    )
+    return ds, calibrate(ds)
+
+
+def _watch_fits(monkeypatch, refit_waits_s=0.0):
+    """Record every refit and held-out fit as ``(kind, effect labels, event)``; with ``refit_waits_s``, each refit
+    waits (that long at most) for a held-out fit of its model to start before it fits."""
+    from magcal.diagnosis import scores, verdict
+
+    log, lock = [], threading.Lock()
+    started: dict = {}  # effect labels -> Event set when a held-out fit of that model starts
+
+    def event(labels):
+        with lock:
+            return started.setdefault(labels, threading.Event())
+
+    real_refit, real_validate = scores.refit_task, verdict.validate_task
+
+    def refit_task(dataset, model, *args):
+        labels = tuple(model.effect_labels)
+        seen = event(labels).wait(refit_waits_s) if refit_waits_s else None
+        log.append(("refit", labels, seen))
+        return real_refit(dataset, model, *args)
+
+    def validate_task(dataset, kept_mask, model, *args):
+        labels = tuple(model.effect_labels)
+        event(labels).set()
+        log.append(("held_out", labels, None))
+        return real_validate(dataset, kept_mask, model, *args)
+
+    monkeypatch.setattr(scores, "refit_task", refit_task)
+    monkeypatch.setattr(verdict, "validate_task", validate_task)
+    return log
+
+
+def test_a_candidates_held_out_fits_run_beside_its_refit(monkeypatch):
+    """With cores to spare, the held-out fits of a candidate predicted to be supported start from its predicted
+    start while its refit runs (each refit here waits for them: were they handed over only after it, it would
+    wait in vain); the diagnosis reads as the sequential one."""
+    ds, res = _two_hidden()
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    serial_log = _watch_fits(monkeypatch)
+    one = diagnose(ds, res)
+    monkeypatch.undo()
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 12)  # threads enough for every refit and held-out fit at once
+    log = _watch_fits(monkeypatch, refit_waits_s=10.0)
+    two = diagnose(ds, res)
+    validated = {c.label for c in one.candidates if c.held_out_after_nT is not None}
+    assert "temperature_bias" in validated
+    refits_seen = {labels[-1]: seen for kind, labels, seen in log if kind == "refit" and len(labels) == 1}
+    for label in validated:
+        assert refits_seen[label] is True, f"the held-out fits of {label} waited for its refit"
+    assert [c.label for c in one.candidates] == [c.label for c in two.candidates]
+    for a, b in zip(one.candidates, two.candidates):
+        assert a.holds == b.holds and a.transfers == b.transfers
+        for name in ("held_out_before_nT", "held_out_after_nT", "later_before_nT", "later_after_nT"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None and y is None) or x == pytest.approx(y, rel=1e-9), name
+    assert one.summary == two.summary
+    # one by one, no held-out fit is made for a candidate its refit does not support
+    made = {labels[-1] for kind, labels, _ in serial_log if kind == "held_out" and len(labels) == 1}
+    assert made == validated
+
+
+def test_held_out_fits_start_where_the_refit_starts_and_agree_with_the_refits_start(monkeypatch):
+    """The held-out fits of a candidate start from its score test's predicted start, not from its refit: the
+    held-out RMS agree with those warm-started from the refit (the one-step estimator reaches the training
+    samples' minimum from either) to well within their spread."""
+    from magcal.diagnosis import verdict
+
+    ds, res = _two_hidden(4000)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+    now = diagnose(ds, res)
+
+    def from_the_refit(self, base_fit, c, scheme):
+        return self._validate(c.fit.model, c.fit.calibration, scheme)
+
+    monkeypatch.setattr(verdict._HeldOut, "with_effect", from_the_refit)
+    before = diagnose(ds, res)
+    pairs = [(a, b) for a, b in zip(now.candidates, before.candidates) if a.held_out_after_nT is not None]
+    assert len(pairs) >= 2 and [a.label for a, _ in pairs] == [b.label for _, b in pairs]
+    for a, b in pairs:
+        assert a.holds == b.holds
+        for name in ("held_out_after_nT", "later_after_nT"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x == pytest.approx(y, rel=2e-3), (a.label, name)

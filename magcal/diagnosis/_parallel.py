@@ -606,6 +606,7 @@ class Pool:
         self._queue: queue.PriorityQueue = queue.PriorityQueue()
         self._order = itertools.count()
         self._threads: list = []
+        self.concurrent = False
         try:  # a pool half made (a worker that does not start, no thread left) is closed again: nothing leaks
             if self.backend == "processes":
                 self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
@@ -617,6 +618,9 @@ class Pool:
             # the fits side by side here or in this machine's worker processes (or one after the other on the one
             # core asked for): this process's BLAS on one thread while the pool lives
             self._blas.enter_context(one_blas_thread(self.backend != "dask"))
+            #: Whether submitted calls run beside the caller (on threads), not at once in its thread: work that may
+            #: turn out unneeded is worth handing over ahead only then.
+            self.concurrent = threads > 1
             if threads > 1:
                 for k in range(threads):
                     thread = threading.Thread(target=self._work, name=f"magcal-fit_{k}", daemon=True)

@@ -651,11 +651,9 @@ def refit_task(dataset, model, init, mask, reference_total_nT):
     )
 
 
-def _refit(dataset, fit, candidate: Candidate, pool=None):
-    """Refit the model with the candidate's effect instances added, from the score test's predicted start
-    (:meth:`_Projector.start`) when there is one; returns the FitResult. With ``pool`` (sharing ``dataset``) the
-    fit runs on its workers."""
-
+def candidate_model(fit, candidate: Candidate) -> Model:
+    """The model of ``fit`` with the candidate's effect instances added: the model its refit and its held-out
+    fits fit (one term for all sensors where the candidate is all sensors' and the model lacks the effect)."""
     model = fit.model
     if (
         candidate.sensor is None
@@ -667,7 +665,20 @@ def _refit(dataset, fit, candidate: Candidate, pool=None):
         new = [_copy_effect(e) for e in candidate.instances]
     for e in new:
         model = model.with_effect(e)
-    args = (model, candidate.start or fit.calibration, fit.mask, _reference_override(fit))
+    return model
+
+
+def candidate_start(fit, candidate: Candidate):
+    """Where the fits of :func:`candidate_model` start: the calibration the candidate's score test predicts
+    (:meth:`_Projector.start`, set by :func:`_confirm`), else ``fit``'s own."""
+    return candidate.start or fit.calibration
+
+
+def _refit(dataset, fit, candidate: Candidate, pool=None):
+    """Refit the model with the candidate's effect instances added (:func:`candidate_model`), from the score
+    test's predicted start (:func:`candidate_start`); returns the FitResult. With ``pool`` (sharing ``dataset``)
+    the fit runs on its workers."""
+    args = (candidate_model(fit, candidate), candidate_start(fit, candidate), fit.mask, _reference_override(fit))
     return refit_task(dataset, *args) if pool is None else pool.remote(refit_task, *args)
 
 
@@ -679,14 +690,16 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
-def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, after_refit=None):
+def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, after_refit=None, beside_refit=None):
     """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
     :meth:`_Projector.start`); re-rank.
 
     ``alongside``: other independent work (functions of no argument, their results dropped) run side by side
     with the refits. ``pool``: a :class:`~magcal.diagnosis._parallel.Pool` to run the refits and that work on
     (by default a batch of its own); ``after_refit(c)``, called in the refit's thread as soon as candidate ``c``
-    is refitted and its figures are set, may hand the pool the work that needed the refit.
+    is refitted and its figures are set, may hand the pool the work that needed the refit. ``beside_refit(c)``,
+    called with ``pool`` for each candidate to refit (its start set) before the refits are handed over, may hand
+    the pool work that needs the candidate but not its refit, to run beside it (below the refits' priority).
     """
     chosen, seen = [], set()
     for c in cands:
@@ -728,11 +741,15 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
             after_refit(c)
         return f1
 
-    calls = [lambda c=c: refit(c) for c in chosen] + list(alongside)
+    calls = [lambda c=c: refit(c) for c in chosen]
     if pool is None:
-        in_parallel(calls)  # independent refits
+        in_parallel(calls + list(alongside))  # independent refits
     else:
-        for future in [pool.submit(call, CHAIN if k < len(chosen) else SHARED) for k, call in enumerate(calls)]:
+        if beside_refit is not None:
+            for c in chosen:
+                beside_refit(c)
+        futures = [pool.submit(call, CHAIN) for call in calls] + [pool.submit(call, SHARED) for call in alongside]
+        for future in futures:
             future.result()
     for c in chosen:
         if c.refitted:
