@@ -20,6 +20,9 @@ Each measurement runs in a fresh program (a child of this script), so that every
 - ``memory``: a diagnosis on two worker processes at 4 x 1e5, 2e5 and 4e5 samples: the calling process's peak
   resident memory before and after, and the largest worker's (``scaling.DescendantsPeak``), where
   :data:`magcal.diagnosis._parallel.WORKER_BYTES_PER_READING` and ``CALLER_BYTES_PER_READING`` come from.
+- ``early``: the first diagnosis of a program (4 x 1e5, two worker processes) after the record's calibration, with
+  the fork server started as the record is read (:func:`magcal.diagnosis.start_workers`, as ``magcal diagnose`` and
+  the workbench do) and without: the calibration's and the diagnosis's seconds.
 - ``gil``: two threads against one on the two kinds of work a fit's sums over blocks hold: matrix products of a
   56 x 8 738 block (BLAS releases the interpreter) and the short numpy calls on 4 369-row columns between them
   (each holds it): why threads inside one fit did not pay.
@@ -29,6 +32,7 @@ Usage::
     python benchmarks/process_start.py                       # every part, about 4 minutes on 2 cores
     python benchmarks/process_start.py --parts pools,cluster
     python benchmarks/process_start.py --parts blas,memory,gil   # the late session's figures
+    python benchmarks/process_start.py --parts early
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil")
+PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil", "early")
 
 
 def _record(n):
@@ -69,6 +73,21 @@ def child_pools(method):
             pool.remote(_parallel._ready)
             out.append(time.perf_counter() - t0)
     return out
+
+
+def child_early(n, early):
+    from magcal.diagnosis import _parallel, diagnose, start_workers
+    from magcal.fitting.pipeline import calibrate
+
+    ds = _record(n)
+    _parallel.BACKEND = "processes"
+    t0 = time.perf_counter()
+    if early:
+        start_workers(ds, 2)
+    res = calibrate(ds)
+    t1 = time.perf_counter()
+    d = diagnose(ds, res, workers=2)
+    return t1 - t0, time.perf_counter() - t1, d.verdict
 
 
 def child_diagnosis(n, backend, poison=False):
@@ -219,6 +238,7 @@ def main(argv=None):
             "blas": child_blas,
             "memory": child_memory,
             "gil": child_gil,
+            "early": child_early,
         }
         print(json.dumps(fn[kind](*rest)))
         return
@@ -262,6 +282,14 @@ def main(argv=None):
                 )
         finally:
             shutil.rmtree(base, ignore_errors=True)
+    if "early" in parts:
+        for early in (False, True, False, True):
+            cal, diag, verdict = run_child("early", 100_000, early)
+            what = "started as the record is read" if early else "cold"
+            print(
+                f"early    4 x 100,000, 2 processes, fork server {what:>29}: calibrate {cal:.2f} s, then the "
+                f"diagnosis {diag:.2f} s ({verdict})"
+            )
     if "blas" in parts:
         env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
         for n, backend, workers in ((50_000, "threads", 2), (100_000, "processes", 2), (100_000, "threads", 1)):

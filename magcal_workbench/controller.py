@@ -30,7 +30,7 @@ from magcal.core import conventions
 from magcal.core.errors import ConvergenceWarning, MagcalError
 from magcal.core.stats import robust_sigma
 from magcal.data import io as mio
-from magcal.diagnosis import diagnose
+from magcal.diagnosis import diagnose, start_workers
 from magcal.fitting import fitter, pipeline, validation
 from magcal.fitting.pipeline import align_sensors
 from magcal.geometry.procrustes import rotation_angle_deg
@@ -120,6 +120,9 @@ class Controller:
         self._job_pin = threading.local()  # the mask and model of the job running in this thread
         #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
         self.vector = VectorModel(self)
+        # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
+        # that the first Diagnose does not wait for them
+        start_workers(dataset, effects=tuple(EFFECTS.values()))
         if not self.state.history:
             raw = self.raw_residual_nT()
             self.state.history.append(

@@ -358,26 +358,93 @@ def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record,
     assert "--workers" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("guess", ["none", "wrong"])
-def test_the_next_round_started_ahead_changes_nothing(record, serial, monkeypatch, guess):
+@pytest.mark.parametrize(
+    "guess, workers",
+    [("none", 1), ("wrong", 1), ("none", 3), ("wrong", 3), ("wrong prediction", 3), ("no prediction", 3)],
+)
+def test_the_next_round_started_ahead_changes_nothing(record, serial, monkeypatch, guess, workers):
     """The forward selection's first round is started at the in-sample best's refit, beside the held-out fits
-    (:func:`magcal.diagnosis.verdict._in_sample_best`); the diagnosis is the same to the bit when nothing is
-    started ahead, and when what was started is for another candidate than the one the judgement keeps first."""
+    (:func:`magcal.diagnosis.verdict._in_sample_best`), and with cores to spare at the refit of the candidate
+    predicted best (:func:`~magcal.diagnosis.verdict._predicted_best`); the diagnosis is the same to the bit when
+    nothing is started ahead, and when what was started is for another candidate than the one the judgement keeps
+    first."""
     from magcal.diagnosis import verdict
-
-    real = verdict._in_sample_best
 
     started = []
 
-    def other(cands):
-        best = real(cands)
-        rest = [c for c in cands if c is not best and c.refitted and c.fit is not None]
-        started.append(rest[0] if rest else None)
-        return started[-1]
+    def other(real):
+        def pick(cands):
+            best = real(cands)
+            rest = [c for c in cands if c is not best and (guess == "wrong prediction" or c.refitted and c.fit)]
+            started.append(rest[0] if rest else None)
+            return started[-1]
 
-    monkeypatch.setattr(verdict, "_in_sample_best", (lambda cands: None) if guess == "none" else other)
-    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
+        return pick
+
+    if guess in ("none", "no prediction"):
+        name = "_in_sample_best" if guess == "none" else "_predicted_best"
+        monkeypatch.setattr(verdict, name, lambda cands: None)
+    else:
+        name = "_in_sample_best" if guess == "wrong" else "_predicted_best"
+        monkeypatch.setattr(verdict, name, other(getattr(verdict, name)))
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
     monkeypatch.setattr(_parallel, "BACKEND", "threads")
     ds, res = record
     _same(serial, diagnose(ds, res))
-    assert guess == "none" or any(c is not None for c in started)  # a round for the wrong candidate was started
+    assert "wrong" not in guess or any(c is not None for c in started)  # a round for the wrong one was started
+
+
+@pytest.mark.parametrize("case", ["processes", "one worker", "threads", "a cluster", "a user's effect"])
+def test_the_fork_server_starts_before_the_diagnosis_only_for_processes(record, monkeypatch, case):
+    """:func:`magcal.diagnosis.start_workers` starts the worker processes' fork server as soon as the record is
+    read, so that the diagnosis's first workers do not wait for its imports; the pool's workers are then its
+    children. Where the fits would run on threads or on a cluster it starts nothing."""
+    import multiprocessing.forkserver as forkserver
+
+    from magcal.diagnosis import start_workers
+    from magcal.model.terms import Effect
+
+    class Mine(Effect):
+        name = "mine_for_the_test"
+
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS", 0 if case != "threads" else 10**9)
+    args = {
+        "processes": (2, None, ()),
+        "one worker": (1, None, ()),
+        "threads": (2, None, ()),
+        "a cluster": (2, "tcp://127.0.0.1:9", ()),
+        "a user's effect": (2, None, (Mine,)),
+    }[case]
+    started = start_workers(ds, *args)
+    assert started == (case == "processes")
+    if not started:
+        return
+    server = forkserver._forkserver._forkserver_pid
+    assert server is not None and os.path.exists(f"/proc/{server}")
+    assert start_workers(ds, *args) and forkserver._forkserver._forkserver_pid == server  # once
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    with _parallel.Pool(ds, workers=2) as pool:
+        assert pool.backend == "processes"
+        assert pool.remote(_parent) == server
+
+
+def test_the_command_line_starts_the_workers_before_it_calibrates(tmp_path, record, monkeypatch, capsys):
+    from magcal.cli import diagnose as cli_diagnose
+    from magcal.cli import main
+    from magcal.data import io as mio
+
+    calls = []
+    real_start, real_calibrate = cli_diagnose.start_workers, cli_diagnose.calibrate
+    monkeypatch.setattr(
+        cli_diagnose, "start_workers", lambda ds, *a: calls.append(("start", ds.n_samples, a[0])) or real_start(ds, *a)
+    )
+    monkeypatch.setattr(
+        cli_diagnose, "calibrate", lambda *a, **k: calls.append(("calibrate",)) or real_calibrate(*a, **k)
+    )
+    ds, _ = record
+    path = tmp_path / "four.csv"
+    mio.write_csv(path, ds.subset(np.arange(1500)))
+    assert main(["diagnose", str(path), "--workers", "2", "--no-validate"]) == 0
+    assert calls[:2] == [("start", 1500, 2), ("calibrate",)]
+    assert "Diagnosed in" in capsys.readouterr().out

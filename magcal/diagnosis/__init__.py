@@ -40,6 +40,7 @@ Modules
 from __future__ import annotations
 
 from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
+from magcal.diagnosis._parallel import start_workers
 from magcal.diagnosis.evidence import SIGNATURES
 from magcal.diagnosis.maps import (
     DirectionPattern,
@@ -67,6 +68,7 @@ from magcal.diagnosis.verdict import DELTA_BIC_THRESHOLD, VERDICTS, Diagnosis, d
 __all__ = [
     # the diagnosis
     "diagnose",
+    "start_workers",
     "Diagnosis",
     "Candidate",
     "Structure",

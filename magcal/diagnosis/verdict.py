@@ -9,7 +9,7 @@ below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates ar
 
 Held-out judgement
     With ``validate=True`` (default) every supported candidate that is refitted is also fitted on part of the
-    record and scored on the rest (:mod:`magcal.fitting.validation`, warm-started from the refit): the ``blocks`` scheme
+    record and scored on the rest (:mod:`magcal.fitting.validation`, warm-started where the refit starts): the ``blocks`` scheme
     (alternating blocks in time, every term interpolated) and the ``later`` scheme (the last quarter of the
     record; record-only terms held at their fitted average). A candidate is *recommended* -- it may enter
     ``explained_by``, the ``missing_effect`` verdict and the advice -- only if its held-out RMS falls by at least
@@ -575,6 +575,11 @@ def _cancel(futures) -> None:
         future.cancel()
 
 
+def _predicted_best(cands):
+    """The candidate whose score test predicts the lowest delta-BIC, or None."""
+    return min(cands, key=lambda c: c.predicted_delta_bic) if cands else None
+
+
 def _in_sample_best(cands):
     """The refitted, converged candidate with the lowest delta-BIC below the threshold, or None: the one the
     forward selection takes first unless the held-out judgement refutes it or ranks another above it."""
@@ -818,7 +823,7 @@ def _after_scores(
     # with cores to spare, the next round of the candidate predicted best is started as soon as its refit supports
     # it (the in-sample best, known once every refit has returned, is nearly always that one)
     ahead: dict = {}
-    predicted_best = min(cands, key=lambda c: c.predicted_delta_bic) if cands and max_effects > 0 else None
+    predicted_best = _predicted_best(cands) if max_effects > 0 else None
 
     # a candidate's held-out fits need its predicted start, not its refit (_HeldOut): with cores to spare, those of a
     # candidate predicted to be supported are handed over beside its refit (the refit, a few passes over the whole

@@ -332,10 +332,11 @@ def validate(
     masks : tuple of numpy.ndarray, optional
         ``(train, test)`` to use instead of computing them (so that two models are scored on the same split).
     init : Calibration, optional
-        A calibration of the same model (e.g. fitted on the whole record) to start the maximum-likelihood fit of
-        the training samples from, instead of the ellipsoid and Procrustes steps (the diagnosis warm-starts its
-        held-out fits so). The training fit is then the one-step estimator (:func:`magcal.fitting.fitter.fit` with
-        ``max_steps=1``): the whole-record fit lies within a few standard errors of the training samples' minimum,
+        A calibration of the same model next to its whole-record minimum (fitted on the whole record, or a
+        candidate's predicted start in the diagnosis) to start the maximum-likelihood fit of the training samples
+        from, instead of the ellipsoid and Procrustes steps. The training fit is then the one-step estimator
+        (:func:`magcal.fitting.fitter.fit` with ``max_steps=1``): such a start lies within a few standard errors
+        of the training samples' minimum,
         and one Gauss-Newton step from there reaches it to first order (its remaining error is second order in
         that distance, far below the held-out RMS's own spread), for one pass over the training samples. The
         effects' data-derived constants (a step time, a reference time) are still found from the training
