@@ -427,24 +427,3 @@ def test_the_fork_server_starts_before_the_diagnosis_only_for_processes(record, 
     with _parallel.Pool(ds, workers=2) as pool:
         assert pool.backend == "processes"
         assert pool.remote(_parent) == server
-
-
-def test_the_command_line_starts_the_workers_before_it_calibrates(tmp_path, record, monkeypatch, capsys):
-    from magcal.cli import diagnose as cli_diagnose
-    from magcal.cli import main
-    from magcal.data import io as mio
-
-    calls = []
-    real_start, real_calibrate = cli_diagnose.start_workers, cli_diagnose.calibrate
-    monkeypatch.setattr(
-        cli_diagnose, "start_workers", lambda ds, *a: calls.append(("start", ds.n_samples, a[0])) or real_start(ds, *a)
-    )
-    monkeypatch.setattr(
-        cli_diagnose, "calibrate", lambda *a, **k: calls.append(("calibrate",)) or real_calibrate(*a, **k)
-    )
-    ds, _ = record
-    path = tmp_path / "four.csv"
-    mio.write_csv(path, ds.subset(np.arange(1500)))
-    assert main(["diagnose", str(path), "--workers", "2", "--no-validate"]) == 0
-    assert calls[:2] == [("start", 1500, 2), ("calibrate",)]
-    assert "Diagnosed in" in capsys.readouterr().out

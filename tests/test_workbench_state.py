@@ -979,3 +979,25 @@ def test_command_line_effects_files(tmp_path, capsys, clean_catalogue, monkeypat
     err = capsys.readouterr().err
     assert f"{missing}: no such effects file" in err and "Traceback" not in err
     assert calls == [1]  # installed packages' effects are loaded at start
+
+
+@pytest.mark.parametrize("large", [True, False])
+def test_opening_a_large_record_starts_the_diagnosis_workers_fork_server(monkeypatch, large):
+    """A session on a record whose diagnosis would run in worker processes starts their fork server as it opens
+    (magcal.diagnosis.start_workers), so the first Diagnose does not wait for its imports; a small one does not."""
+    import multiprocessing.forkserver as forkserver
+
+    from magcal.diagnosis import _parallel
+    from magcal_workbench import controller
+
+    calls = []
+    real = controller.start_workers
+    monkeypatch.setattr(controller, "start_workers", lambda ds, **kw: calls.append(real(ds, **kw)) or calls[-1])
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS", 100 if large else 10**9)
+    ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=3)
+    controller.Controller(ds)
+    assert calls == [large]
+    if large:
+        pid = forkserver._forkserver._forkserver_pid
+        assert pid is not None and Path(f"/proc/{pid}").exists()

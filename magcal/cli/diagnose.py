@@ -37,10 +37,9 @@ from magcal.cli.calibrate import (
 )
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
-from magcal.diagnosis import diagnose, start_workers
+from magcal.diagnosis import diagnose
 from magcal.diagnosis._parallel import cores
 from magcal.fitting.pipeline import calibrate
-from magcal.model.terms import EFFECTS
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -121,8 +120,6 @@ def run(args) -> int:
     checked_noise(args)
     names = checked_effect_names(args)
     ds, notes = read_input(args)
-    # the worker processes' fork server imports its modules while this one checks and calibrates the record
-    start_workers(ds, getattr(args, "workers", None), getattr(args, "scheduler", None), tuple(EFFECTS.values()))
     quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
     try:
