@@ -129,7 +129,7 @@ def measure(n, seed=1, cold=False):
         name = fn.__name__ + (f" ({', '.join(model.effect_labels) or 'base'})" if model is not None else "")
         return clock.run_piece(name, call, Future())
 
-    def in_parallel(calls):
+    def in_parallel(calls, pool=None):
         futures = [clock.run_piece(name_of(c), c, Future()) for c in calls]
         return [f.result() for f in futures]
 

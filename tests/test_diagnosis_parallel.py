@@ -235,3 +235,26 @@ def test_held_out_fits_start_where_the_refit_starts_and_agree_with_the_refits_st
         for name in ("held_out_after_nT", "later_after_nT"):
             x, y = getattr(a, name), getattr(b, name)
             assert x == pytest.approx(y, rel=2e-3), (a.label, name)
+
+
+def test_one_worker_runs_everything_in_the_calling_thread(monkeypatch):
+    """``workers=1`` (``--workers 1``) is one core: the candidates' data-derived constants and the score round's
+    chunks, which run side by side on threads otherwise, run in the calling thread too, whatever the cores."""
+    from magcal.model.terms import EFFECTS
+
+    ds, res = _two_hidden(2000)
+    monkeypatch.setattr(_parallel, "cores", lambda: 8)
+    seen = set()
+    for name in ("bias_step", "temperature_bias", "bias_drift"):
+        cls = EFFECTS[name]
+
+        def configure(self, *args, real=cls.configure, **kwargs):
+            seen.add(threading.get_ident())
+            return real(self, *args, **kwargs)
+
+        monkeypatch.setattr(cls, "configure", configure)
+    diagnose(ds, res, workers=1)
+    assert seen == {threading.get_ident()}
+    seen.clear()
+    diagnose(ds, res, workers=3)
+    assert len(seen) > 1  # the test sees threads where they are allowed

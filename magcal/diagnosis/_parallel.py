@@ -145,12 +145,14 @@ def _workers(n_calls=None, cap=MAX_THREADS):
     return workers if n_calls is None else min(n_calls, workers)
 
 
-def in_parallel(calls):
-    """The results of ``calls`` (functions of no argument), in order, run on up to :data:`PARALLEL_FITS` threads.
+def in_parallel(calls, pool=None):
+    """The results of ``calls`` (functions of no argument), in order, run on up to :data:`PARALLEL_FITS` threads,
+    and, with ``pool``, on no more than the pool has workers (a diagnosis asked to use one core runs them one after
+    the other: ``--workers 1`` is one core).
 
     An exception raised by a call is raised here, after the others have finished.
     """
-    workers = _workers(len(calls))
+    workers = _workers(len(calls)) if pool is None else min(_workers(len(calls)), max(1, int(pool.workers)))
     if workers <= 1:
         return [call() for call in calls]
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="magcal-fit") as pool:

@@ -286,7 +286,7 @@ def _grams(kept, model, init, reference_total_nT, chunk_rows=GRAM_CHUNK_ROWS, po
         chunks = [(f.result(), None) for f in futures] + [(last, problem)]
     else:
         # chunks side by side on threads; the last chunk's problem carries the blocks
-        chunks = in_parallel([lambda idx=idx: chunk(idx) for idx in parts])
+        chunks = in_parallel([lambda idx=idx: chunk(idx) for idx in parts], pool)
     acc: list = []
     for terms, problem in chunks:  # noqa: B007
         acc = terms if not acc else [a + t for a, t in zip(acc, terms)]
@@ -515,7 +515,8 @@ def _score_round(dataset, kept, fit, names=None, previous=None, pool=None):
             lambda e=e: e.configure(kept, base_resid)  # each candidate's data-derived constants, side by side
             for instances in groups.values()
             for e in instances
-        ]
+        ],
+        pool,
     )
     carried = _carried(previous, kept, fit, groups) if previous is not None else None
     if carried is not None and carried[0]:
