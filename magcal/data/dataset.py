@@ -8,6 +8,9 @@ new datasets, so nothing computed from a dataset goes stale.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import threading
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +41,12 @@ def _frozen(value, dtype=float) -> np.ndarray:
             a = a.copy()
         a.flags.writeable = False
     return a
+
+
+#: :meth:`Dataset.masked`'s datasets: (id of the dataset, the mask's digest) -> weak references to the dataset and
+#: to its masked one (an entry whose dataset or masked dataset is gone is dropped).
+_MASKED: dict = {}
+_MASKED_LOCK = threading.Lock()
 
 
 class DatasetError(MagcalError, ValueError):
@@ -183,6 +192,38 @@ class Dataset:
             extra={k: v[index] for k, v in self.extra.items()},
             metadata=dict(self.metadata),
         )
+
+    def masked(self, mask) -> Dataset:
+        """The samples a boolean ``mask`` selects: :meth:`subset`, but the same dataset for the same mask while
+        anything still holds it (this dataset when the mask selects every sample).
+
+        What is computed from a dataset's arrays alone (a step scan, the noise's still stretches and quantization:
+        :class:`magcal.core.readings_cache.ReadingsCache`) is then computed once for a record with rejected
+        samples too, where each fit used to cut the samples anew. Like every dataset, the one returned must not be
+        changed (its metadata and extra channels are shared with the other users of the same mask).
+
+        Parameters
+        ----------
+        mask : numpy.ndarray of bool, shape (n_samples,)
+        """
+        mask = np.asarray(mask, bool)
+        if mask.shape != (self.n_samples,):
+            raise DatasetError(f"mask has shape {mask.shape}, expected ({self.n_samples},)")
+        if mask.all():
+            return self
+        key = (id(self), hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).digest())
+        with _MASKED_LOCK:
+            hit = _MASKED.get(key)
+            if hit is not None and hit[0]() is self:
+                kept = hit[1]()
+                if kept is not None:
+                    return kept
+        kept = self.subset(mask)
+        with _MASKED_LOCK:
+            for k in [k for k, (parent, sub) in _MASKED.items() if parent() is None or sub() is None]:
+                del _MASKED[k]
+            _MASKED[key] = (weakref.ref(self), weakref.ref(kept))
+        return kept
 
     def sensors(self, indices) -> Dataset:
         """A new dataset with only the listed sensors (0-based indices)."""

@@ -32,7 +32,7 @@ def _reference_override(fit):
 
 
 def _kept(dataset, fit):
-    return dataset if fit.mask.all() else dataset.subset(fit.mask)
+    return dataset.masked(fit.mask)
 
 
 def _model_fields(kept, fit):

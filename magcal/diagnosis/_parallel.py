@@ -321,7 +321,7 @@ def subset(dataset, mask):
     key = (id(dataset), mask.size, hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).hexdigest())
     hit = _SUBSETS.get(key)
     if hit is None:
-        hit = _SUBSETS[key] = dataset.subset(mask)
+        hit = _SUBSETS[key] = dataset.masked(mask)  # the strong reference keeps it between tasks
         while len(_SUBSETS) > 4:
             _SUBSETS.pop(next(iter(_SUBSETS)))
     return hit

@@ -1237,7 +1237,7 @@ def _fit_once(
     """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
     constants as they are (the pass after :meth:`~magcal.model.terms.Effect.refine`)."""
     n_all = dataset.n_samples
-    kept = dataset.subset(mask) if not mask.all() else dataset
+    kept = dataset.masked(mask)  # the same samples, the same dataset: its readings' facts are computed once
     init = init or crude_initial_calibration(kept, reference_total_nT)
 
     if configure and model.effects:  # data-derived constants of the effects, from the starting residuals

@@ -578,7 +578,7 @@ def _checked_arguments(dataset, method, effects, mask):
 
 def _resolve_reference_step(dataset, mask, reference_total_nT, progress) -> _Run:
     """The samples used and the reference they are fitted to (given, a per-sample column, or fitted)."""
-    kept = dataset if mask.all() else dataset.subset(mask)
+    kept = dataset.masked(mask)
     ref_value, ref_kind = resolve_reference(kept, reference_total_nT)
     return _Run(
         dataset=dataset,
@@ -729,7 +729,7 @@ def _noise_and_floors(run: _Run, model, final: StepSummary, noise_nT=None):
         n_params += sum(len(e.param_names()) for e, s in model.instances()) / dataset.n_sensors
     if run.fit is not None:
         fit = run.fit
-        samples = dataset if fit.mask.all() else dataset.subset(fit.mask)
+        samples = dataset.masked(fit.mask)
         residuals = fit.residuals_nT[:, fit.mask]
     else:
         samples = kept

@@ -372,7 +372,7 @@ def validate(
         fitted = result.fit
     fit_notes = list(result.notes) if init is None else list(fitted.notes)
     cal, labels = fitted.calibration, fitted.model.effect_labels
-    test_ds = dataset.subset(test)
+    test_ds = dataset.masked(test)
     notes, dropped = [], []
     record_only = [e.label for e in (cal.model.effects if cal.model is not None else []) if not is_transferable(e)]
     if scheme == "later" and record_only:
@@ -715,7 +715,7 @@ def validate_effects(dataset, result) -> EffectsValidation:
     fit = getattr(result, "fit", None)
     if fit is None:
         raise MagcalError("held-out validation needs a maximum-likelihood calibration (method 'ml')")
-    kept = dataset if fit.mask.all() else dataset.subset(fit.mask)
+    kept = dataset.masked(fit.mask)
     reference = fit.calibration.reference_total_nT if fit.reference_kind == "given" else None
     effects = list(fit.model.effect_labels)
     base_in, notes = None, []
