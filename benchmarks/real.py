@@ -623,7 +623,7 @@ def run_recording(
     if transfer_rounds:
         rec["transfer"] = transfer_record(ds, transfer_rounds)
     if not loop:
-        rec.update(steps=[], quality=[], independent={}, seconds=time.perf_counter() - t0)
+        rec.update(steps=[], quality=[], independent={}, seconds=time.perf_counter() - t0, loop_run=False)
         return rec
     quality = assess(ds)
     rec["rate_Hz"] = rate_of(quality)
@@ -897,7 +897,8 @@ def main(argv=None) -> int:
             f"{sum(t['falls_2pct_or_adequate'] for t in done)}/{len(done)}"
         )
     print()
-    print(markdown(records))
+    looped = [r for r in records if r.get("loop_run", True)]
+    print(markdown(looped) if looped else "(the loop was not run: --transfer-only)")
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; written {args.out} and {args.out.with_suffix('.csv')}")
     write_outputs(records, args.out)
     return 0
