@@ -22,6 +22,7 @@ Usage::
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/diagnosis_span.py             # 4 x 1e5 samples, the issue's size
     OPENBLAS_NUM_THREADS=1 python benchmarks/diagnosis_span.py --n 1e6 --pieces 12
+    OPENBLAS_NUM_THREADS=1 python benchmarks/diagnosis_span.py --hidden "temperature_bias=0.5 bias_step:3=30"
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ class Clock:
             st.now = max(st.now, end)
 
 
-def measure(n, seed=1, cold=False):
+def measure(n, seed=1, cold=False, hidden=None):
     """Work, span and pieces of the diagnosis of four sensors of ``n`` samples with a temperature bias hidden
     (as ``benchmarks/scaling.py``). ``cold``: every fit handed to a worker starts with none of the readings' facts
     this process has worked out (a worker process that has not seen them: the bound for the processes backend)."""
@@ -95,7 +96,19 @@ def measure(n, seed=1, cold=False):
     from magcal.fitting.pipeline import calibrate
     from magcal.model import effects
 
-    ds = scaling._record(n, seed=seed)
+    if hidden:
+        from magcal.data.simulation import chi2017_truth, simulate_timeseries
+        from magcal.model import perturbations
+
+        ds = simulate_timeseries(
+            chi2017_truth(4),
+            n_samples=n,
+            noise_nT=3.0,
+            seed=seed,
+            perturbations=[perturbations.parse_hidden(h, 4) for h in hidden],
+        )
+    else:
+        ds = scaling._record(n, seed=seed)
     res = calibrate(ds)
     clock = Clock()
 
@@ -166,12 +179,20 @@ def main(argv=None):
     p.add_argument(
         "--cold", action="store_true", help="each fit handed to a worker without the readings' facts worked out here"
     )
+    p.add_argument(
+        "--hidden",
+        default=None,
+        help="effects hidden in the record instead of the temperature bias, as magcal simulate --hidden takes them, "
+        "separated by spaces (e.g. 'temperature_bias=0.5 bias_step:3')",
+    )
     args = p.parse_args(argv)
     n = int(float(args.n))
-    m = measure(n, cold=args.cold)
+    hidden = args.hidden.split() if args.hidden else None
+    m = measure(n, cold=args.cold, hidden=hidden)
     d, work, span = m["diagnosis"], m["work_s"], m["span_s"]
     print(
-        f"diagnosis of 4 x {n:,} samples, temperature_bias hidden: {d.verdict} ({d.candidates[0].label}); "
+        f"diagnosis of 4 x {n:,} samples, {' and '.join(hidden or ['temperature_bias'])} hidden: {d.verdict} "
+        f"({', '.join(d.explained_by) or d.candidates[0].label}); "
         f"{len(m['pieces'])} pieces"
     )
     print(f"work W {work:.2f} s (processor, one thread; wall {m['wall_s']:.2f} s), span S {span:.2f} s")

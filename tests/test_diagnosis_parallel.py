@@ -3,6 +3,7 @@
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from magcal.data.simulation import chi2017_truth, simulate_timeseries
@@ -186,8 +187,8 @@ def _watch_fits(monkeypatch, refit_waits_s=0.0):
 
 def test_a_candidates_held_out_fits_run_beside_its_refit(monkeypatch):
     """With cores to spare, the held-out fits of a candidate predicted to be supported start from its predicted
-    start while its refit runs (each refit here waits for them: were they handed over only after it, it would
-    wait in vain); the diagnosis reads as the sequential one."""
+    start while its refit runs, in the first round and in the next (each refit here waits for them: were they
+    handed over only after it, it would wait in vain); the diagnosis reads as the sequential one."""
     ds, res = _two_hidden()
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     serial_log = _watch_fits(monkeypatch)
@@ -201,6 +202,10 @@ def test_a_candidates_held_out_fits_run_beside_its_refit(monkeypatch):
     refits_seen = {labels[-1]: seen for kind, labels, seen in log if kind == "refit" and len(labels) == 1}
     for label in validated:
         assert refits_seen[label] is True, f"the held-out fits of {label} waited for its refit"
+    # the second round's too: its candidate added to the first round's choice
+    assert one.explained_by == ["temperature_bias", "bias_step:3"] == two.explained_by
+    second = [seen for kind, labels, seen in log if kind == "refit" and labels == ("temperature_bias", "bias_step:3")]
+    assert second == [True]
     assert [c.label for c in one.candidates] == [c.label for c in two.candidates]
     for a, b in zip(one.candidates, two.candidates):
         assert a.holds == b.holds and a.transfers == b.transfers
@@ -258,3 +263,39 @@ def test_one_worker_runs_everything_in_the_calling_thread(monkeypatch):
     seen.clear()
     diagnose(ds, res, workers=3)
     assert len(seen) > 1  # the test sees threads where they are allowed
+
+
+def test_a_rounds_base_held_out_fit_is_made_once_whoever_asks(monkeypatch):
+    """The base model's held-out fit of a round is prepared ahead (beside the refits) and asked for again by the
+    judgement: a second caller while the first is still fitting waits for it instead of fitting again, and a
+    failure reaches both."""
+    from magcal.diagnosis import verdict
+
+    ds, res = _two_hidden(1500)
+    held_out = verdict._HeldOut(ds, res.fit)
+    made = []
+
+    def slow_validate(self, model, init, scheme):
+        made.append(scheme)
+        time.sleep(0.3)
+        if scheme == "later":
+            raise np.linalg.LinAlgError("singular")
+        return object()
+
+    monkeypatch.setattr(verdict._HeldOut, "_validate", slow_validate)
+    got = {}
+
+    def ask(name, scheme):
+        try:
+            got[name] = held_out.base(res.fit, scheme)
+        except np.linalg.LinAlgError as exc:
+            got[name] = exc
+
+    threads = [threading.Thread(target=ask, args=(f"{s}{k}", s)) for s in ("blocks", "later") for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert sorted(made) == ["blocks", "later"]  # one fit per scheme
+    assert got["blocks0"] is got["blocks1"]
+    assert isinstance(got["later0"], np.linalg.LinAlgError) and got["later0"] is got["later1"]

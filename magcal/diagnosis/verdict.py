@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import threading
 import time as _time
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -354,7 +355,8 @@ class _HeldOut:
         self.kept_mask = None if fit0.mask.all() else fit0.mask
         self.reference = _reference_override(fit0)
         self.masks = {scheme: _validation.holdout_masks(kept, scheme) for scheme in _validation.SCHEMES}
-        self.bases = {}
+        self.bases: dict = {}  # (id of the base fit, scheme) -> Future of its held-out fit
+        self._lock = threading.Lock()
         self.schemes = {}
 
     def base(self, fit, scheme):
@@ -362,10 +364,20 @@ class _HeldOut:
         return self._base(fit, scheme)
 
     def _base(self, fit, scheme):
+        # made once, whichever thread asks first (prepare's, ahead of time, or the judgement's); another asking
+        # meanwhile waits for it, and a failure is met again by every caller
         key = (id(fit), scheme)
-        if key not in self.bases:
-            self.bases[key] = self._validate(fit.model, fit.calibration, scheme)
-        return self.bases[key]
+        with self._lock:
+            made = self.bases.get(key)
+            mine = made is None
+            if mine:
+                made = self.bases[key] = Future()
+        if mine:
+            try:
+                made.set_result(self._validate(fit.model, fit.calibration, scheme))
+            except BaseException as exc:
+                made.set_exception(exc)
+        return made.result()
 
     def _validate(self, model, init, scheme):
         args = (self.kept_mask, model, init, self.reference, scheme, self.masks[scheme])
@@ -811,10 +823,11 @@ def _after_scores(
         )
         return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
 
-    def next_round(c):  # the forward selection's next round if it takes c: (structure, score tests) futures
+    def next_round(c, scores=max_effects >= 2):  # the forward selection's round if it takes c: (structure, score
+        # tests) futures; ``scores``: whether that round will look for a further effect
         kept_c = _kept(dataset, c.fit)
         structure = pool.submit(lambda: structure_of(kept_c, c.fit), SHARED)
-        if max_effects < 2:
+        if not scores:
             return structure, None
         return structure, pool.submit(
             lambda: _score_round(dataset, kept_c, c.fit, candidates, previous=c, pool=pool), SHARED
@@ -926,6 +939,7 @@ def _after_scores(
     explained, chosen, current, current_noise = [], [], fit0, noise0
     remaining, stats_final = structure0, stats0
     round_cands = cands
+    round_ahead: dict = {}  # the next iteration's work started at its candidate's refit (below), by label
     for step in range(max_effects):
         supported = [
             c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not undetermined
@@ -940,8 +954,13 @@ def _after_scores(
         chosen.append(best)
         current = nxt
         kept_c = _kept(dataset, current)
-        started = step == 0 and best is guess  # this round's work, started ahead
-        if started and ahead_structure is not None:
+        # this round's work, started ahead: the first round's at the in-sample best's refit, a later one's at the
+        # refit of the previous round's candidate
+        if step == 0:
+            ahead_structure, ahead_scores = (ahead_structure, ahead_scores) if best is guess else (None, None)
+        else:
+            ahead_structure, ahead_scores = round_ahead.get(best.label, (None, None))
+        if ahead_structure is not None:
             structure_c = ahead_structure
         else:
             structure_c = pool.submit(lambda k=kept_c, c=current: structure_of(k, c), SHARED)  # beside the scores
@@ -949,18 +968,42 @@ def _after_scores(
             current_noise, remaining, stats_final = structure_c.result()
             break
         report("looking for a further effect", 0.6 + 0.2 * step)
-        if started and ahead_scores is not None:
+        if ahead_scores is not None:
             more, _, _ = ahead_scores.result()
         else:
             more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best, pool=pool)
-        current_noise, remaining, stats_final = structure_c.result()
         more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
         if not more:
+            current_noise, remaining, stats_final = structure_c.result()
             break
-        more = _confirm(dataset, current, more, 1, coupled, fits, pool=pool)
+        # as in the first round, with cores to spare: the held-out fits of the candidate and of this round's base
+        # model run beside its refit, and the next round's work starts when the refit supports it (the structure
+        # of the chosen fit's residuals, still running, is not waited for until then)
+        round_pending: dict = {}
+        round_ahead = {}
+
+        def beside(c, base=current, handed=round_pending):
+            if held_out is not None and pool.concurrent and c.predicted_delta_bic < DELTA_BIC_THRESHOLD:
+                handed[c.label] = _held_out_fits(pool, held_out, base, c, SHARED)
+
+        def after(c, handed=round_ahead, scores=step + 2 < max_effects):
+            if pool.concurrent and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit:
+                handed[c.label] = next_round(c, scores)
+
+        base_ahead = (
+            [lambda s=s, base=current: held_out.prepare(base, s) for s in _validation.SCHEMES]
+            if held_out is not None and pool.concurrent
+            else []
+        )
+        more = _confirm(
+            dataset, current, more, 1, coupled, fits, base_ahead, pool=pool, after_refit=after, beside_refit=beside
+        )
         for c in more:
             _add_fit_notes(fit_notes, c.fit)
-        round_cands = _judge_round(held_out, current, more, validation_notes, pool, fit_notes=fit_notes)
+            if c.label in round_pending and not _to_validate(c):
+                _cancel(round_pending.pop(c.label))
+        current_noise, remaining, stats_final = structure_c.result()
+        round_cands = _judge_round(held_out, current, more, validation_notes, pool, round_pending, fit_notes=fit_notes)
 
     # verdict
     supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
