@@ -53,3 +53,24 @@ def test_a_writable_array_is_never_kept():
     y += 1.0
     assert cache.get(y, ("sum",), compute) == 15.0
     assert len(calls) == 2
+
+
+def test_single_numbers_are_handed_to_another_holder_of_the_same_readings():
+    """small_facts gives the numbers (not the arrays) kept for an array; seed keeps them for another array of the
+    same readings (a worker process's view of shared memory), which then computes nothing."""
+    cache, calls = ReadingsCache(8), []
+    y = frozen(np.arange(12.0).reshape(4, 3))
+    cache.get(y, ("index", 1), lambda: calls.append(1) or 3)
+    cache.get(y, ("scan",), lambda: calls.append(1) or np.ones(4))
+    cache.get(frozen(y + 1), ("index", 1), lambda: 7)  # another array's
+    facts = cache.small_facts(y)
+    assert facts == [(("index", 1), 3)]
+    there, their_calls = ReadingsCache(8), []
+    twin = frozen(y)
+    for key, value in facts:
+        there.seed(twin, key, value)
+    assert there.get(twin, ("index", 1), lambda: their_calls.append(1) or -1) == 3 and not their_calls
+    writable = np.array(y)
+    there.seed(writable, ("index", 1), 3)  # never kept for an array that may change
+    assert there.get(writable, ("index", 1), lambda: their_calls.append(1) or 5) == 5 and their_calls == [1]
+    assert cache.small_facts(writable) == []

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import collections
 
+import numpy as np
+
 
 class ReadingsCache:
     """The values computed from readings arrays, for the ``size`` most recently used (array, key) pairs.
@@ -48,6 +50,31 @@ class ReadingsCache:
         while len(self._entries) > self.size:
             self._entries.popitem(last=False)
         return value
+
+    def small_facts(self, array) -> list:
+        """``[(key, value)]`` of the values cached for ``array`` that are single numbers (a step's index, a
+        quantization step): what another process holding the same readings can be handed (:meth:`seed`) instead of
+        computing them again. Larger values (arrays) are left out."""
+        if array.flags.writeable:
+            return []
+        where = (array.__array_interface__["data"][0], array.shape, array.strides)
+        out = []
+        for full, (_, value) in list(self._entries.items()):
+            if full[:3] == where and isinstance(value, (int, float, np.integer, np.floating)):
+                out.append((full[3:], value))
+        return out
+
+    def seed(self, array, key, value) -> None:
+        """Keep ``value`` for ``array`` and ``key`` as if computed here (:meth:`small_facts` of the same readings
+        held elsewhere). A writable array is never cached."""
+        if array.flags.writeable:
+            return
+        self._entries[(array.__array_interface__["data"][0], array.shape, array.strides) + tuple(key)] = (
+            array,
+            value,
+        )
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
 
     def clear(self):
         """Forget every entry."""

@@ -30,6 +30,7 @@ from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit_with_notes
+from magcal.model.effects import readings_facts, seed_readings_facts
 from magcal.model.terms import EFFECTS, Model, block_label, term_label
 
 
@@ -640,8 +641,15 @@ def _score_from_grams(kept, fit, groups, grams):
     return cands, proj, grams
 
 
-def refit_task(dataset, model, init, mask, reference_total_nT):
-    """(A worker's task.) The comparison fit of ``model`` on ``dataset``'s samples ``mask`` from ``init``."""
+def refit_task(dataset, model, init, mask, reference_total_nT, facts=()):
+    """(A worker's task.) The comparison fit of ``model`` on ``dataset``'s samples ``mask`` from ``init``.
+
+    ``facts``: ``(sensor, key, value)`` worked out from those samples' readings by the process that handed the
+    fit over (:func:`_readings_facts_of`), kept here first so that this process does not work them out again (a
+    bias step's scan: 0.13 s at 4 x 1e5 samples, 1.3 s at 4 x 1e6)."""
+    kept = dataset.masked(mask)  # held while the fit runs: the fit's samples are these very arrays
+    for s, key, value in facts:
+        seed_readings_facts(kept.readings_nT[s], [(key, value)])
     return fit_with_notes(
         dataset,
         model,
@@ -650,6 +658,13 @@ def refit_task(dataset, model, init, mask, reference_total_nT):
         reference_total_nT=reference_total_nT,
         cost_tolerance=COMPARISON_COST_TOLERANCE,
     )
+
+
+def _readings_facts_of(dataset, mask) -> list:
+    """``(sensor, key, value)``: the single numbers worked out here from the readings of ``dataset``'s samples
+    ``mask`` (:func:`magcal.model.effects.readings_facts`), for a fit of the same samples in a worker."""
+    kept = dataset.masked(mask)
+    return [(s, key, value) for s in range(kept.n_sensors) for key, value in readings_facts(kept.readings_nT[s])]
 
 
 def candidate_model(fit, candidate: Candidate) -> Model:
@@ -680,7 +695,9 @@ def _refit(dataset, fit, candidate: Candidate, pool=None):
     test's predicted start (:func:`candidate_start`); returns the FitResult. With ``pool`` (sharing ``dataset``)
     the fit runs on its workers."""
     args = (candidate_model(fit, candidate), candidate_start(fit, candidate), fit.mask, _reference_override(fit))
-    return refit_task(dataset, *args) if pool is None else pool.remote(refit_task, *args)
+    if pool is None:
+        return refit_task(dataset, *args)
+    return pool.remote(refit_task, *args, _readings_facts_of(dataset, fit.mask))
 
 
 def _delta_bic(fit0, fit1, extra_dof, coupled):

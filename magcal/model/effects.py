@@ -543,6 +543,28 @@ def step_scan(readings_nT, margin=0.05, min_samples=10):
     return index, improvement.copy()
 
 
+def step_index(readings_nT, margin=0.05, min_samples=10) -> int:
+    """The first sample after the most likely bias step in one sensor's readings (:func:`step_scan`'s index),
+    kept as a number of its own: a worker process handed it (:func:`readings_facts`) needs no scan."""
+    y = np.asarray(readings_nT, dtype=float)
+    return _READINGS_CACHE.get(
+        y, ("step index", margin, min_samples), lambda: int(step_scan(y, margin, min_samples)[0])
+    )
+
+
+def readings_facts(readings_nT) -> list:
+    """The single numbers worked out from one sensor's readings alone and kept here (a step's index):
+    ``[(key, value)]`` for :func:`seed_readings_facts` in another process holding the same readings."""
+    return _READINGS_CACHE.small_facts(np.asarray(readings_nT))
+
+
+def seed_readings_facts(readings_nT, facts) -> None:
+    """Keep ``facts`` (:func:`readings_facts` of the same readings, worked out elsewhere) for these readings."""
+    y = np.asarray(readings_nT)
+    for key, value in facts:
+        _READINGS_CACHE.seed(y, key, value)
+
+
 def _step_scan(readings_nT, margin, min_samples):
     y = np.asarray(readings_nT, dtype=float)
     n = len(y)
@@ -661,7 +683,7 @@ class BiasStep(CatalogueEffect):
                 times.append(None)
                 continue
             ok = np.ones(len(t), bool) if residuals_nT is None else np.isfinite(residuals_nT[s])
-            k, _ = step_scan(dataset.readings_nT[s] if ok.all() else dataset.readings_nT[s][ok])
+            k = step_index(dataset.readings_nT[s] if ok.all() else dataset.readings_nT[s][ok])
             tk = t[ok]
             times.append(float(0.5 * (tk[k - 1] + tk[k])))
         self.step_time_s = times
