@@ -912,7 +912,6 @@ def _after_scores(
     guess = _in_sample_best(cands) if max_effects > 0 else None
     if guess is not None and guess.label not in ahead:
         ahead[guess.label] = next_round(guess)
-    ahead_structure, ahead_scores = ahead[guess.label] if guess is not None else (None, None)
     cands = _judge_round(
         held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None, fit_notes
     )
@@ -954,12 +953,9 @@ def _after_scores(
         chosen.append(best)
         current = nxt
         kept_c = _kept(dataset, current)
-        # this round's work, started ahead: the first round's at the in-sample best's refit, a later one's at the
-        # refit of the previous round's candidate
-        if step == 0:
-            ahead_structure, ahead_scores = (ahead_structure, ahead_scores) if best is guess else (None, None)
-        else:
-            ahead_structure, ahead_scores = round_ahead.get(best.label, (None, None))
+        # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once
+        # the in-sample best is known, a later one's at the refit of the previous round's candidate
+        ahead_structure, ahead_scores = (ahead if step == 0 else round_ahead).get(best.label, (None, None))
         if ahead_structure is not None:
             structure_c = ahead_structure
         else:
