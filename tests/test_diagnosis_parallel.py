@@ -5,11 +5,9 @@ import time
 
 import numpy as np
 import pytest
+from two_effects import two_hidden
 
-from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import _parallel, diagnose
-from magcal.fitting.pipeline import calibrate
-from magcal.model import perturbations
 
 
 @pytest.mark.parametrize("workers", [None, 1, 3])
@@ -88,17 +86,7 @@ def test_a_pool_starts_work_by_priority(monkeypatch):
 def test_a_diagnosis_with_fits_side_by_side_reads_the_same_as_one_by_one(monkeypatch):
     """Two hidden effects on four sensors: the confirming refits, the held-out fits and the score chunks run on
     threads; the candidates, their figures and the verdict are those of the sequential run."""
-    ds = simulate_timeseries(
-        chi2017_truth(4),
-        n_samples=3000,
-        noise_nT=3.0,
-        seed=4,
-        perturbations=[
-            perturbations.parse_hidden("temperature_bias=2", 4),
-            perturbations.parse_hidden("bias_step:3", 4),
-        ],
-    )
-    res = calibrate(ds)
+    ds, res = two_hidden()
     results = {}
     for workers in (1, 2):
         monkeypatch.setattr(_parallel, "PARALLEL_FITS", workers)
@@ -140,20 +128,6 @@ def test_leaving_a_pool_on_an_error_cancels_what_has_not_started(monkeypatch):
     assert all(f.cancelled() for f in queued)
 
 
-def _two_hidden(n=3000):
-    ds = simulate_timeseries(
-        chi2017_truth(4),
-        n_samples=n,
-        noise_nT=3.0,
-        seed=4,
-        perturbations=[
-            perturbations.parse_hidden("temperature_bias=2", 4),
-            perturbations.parse_hidden("bias_step:3", 4),
-        ],
-    )
-    return ds, calibrate(ds)
-
-
 def _watch_fits(monkeypatch, refit_waits_s=0.0):
     """Record every refit and held-out fit as ``(kind, effect labels, event)``; with ``refit_waits_s``, each refit
     waits (that long at most) for a held-out fit of its model to start before it fits."""
@@ -189,7 +163,7 @@ def test_a_candidates_held_out_fits_run_beside_its_refit(monkeypatch):
     """With cores to spare, the held-out fits of a candidate predicted to be supported start from its predicted
     start while its refit runs, in the first round and in the next (each refit here waits for them: were they
     handed over only after it, it would wait in vain); the diagnosis reads as the sequential one."""
-    ds, res = _two_hidden()
+    ds, res = two_hidden()
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     serial_log = _watch_fits(monkeypatch)
     one = diagnose(ds, res)
@@ -224,7 +198,7 @@ def test_held_out_fits_start_where_the_refit_starts_and_agree_with_the_refits_st
     samples' minimum from either) to well within their spread."""
     from magcal.diagnosis import verdict
 
-    ds, res = _two_hidden(4000)
+    ds, res = two_hidden(4000)
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     now = diagnose(ds, res)
 
@@ -247,7 +221,7 @@ def test_one_worker_runs_everything_in_the_calling_thread(monkeypatch):
     chunks, which run side by side on threads otherwise, run in the calling thread too, whatever the cores."""
     from magcal.model.terms import EFFECTS
 
-    ds, res = _two_hidden(2000)
+    ds, res = two_hidden(2000)
     monkeypatch.setattr(_parallel, "cores", lambda: 8)
     seen = set()
     for name in ("bias_step", "temperature_bias", "bias_drift"):
@@ -271,7 +245,7 @@ def test_a_rounds_base_held_out_fit_is_made_once_whoever_asks(monkeypatch):
     failure reaches both."""
     from magcal.diagnosis import verdict
 
-    ds, res = _two_hidden(1500)
+    ds, res = two_hidden(1500)
     held_out = verdict._HeldOut(ds, res.fit)
     made = []
 
@@ -309,7 +283,7 @@ def test_a_refit_handed_to_a_worker_takes_the_step_times_found_here(monkeypatch)
     from magcal.model import effects
     from magcal.model.terms import EFFECTS
 
-    ds, res = _two_hidden(2000)
+    ds, res = two_hidden(2000)
     fit = res.fit
     for s in range(ds.n_sensors):
         effects.step_index(ds.readings_nT[s])

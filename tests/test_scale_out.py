@@ -12,13 +12,11 @@ import warnings
 
 import numpy as np
 import pytest
+from two_effects import two_hidden
 
 from magcal.core.errors import ConvergenceWarning
-from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.diagnosis import _parallel, diagnose
 from magcal.fitting.fitter import fit_with_notes
-from magcal.fitting.pipeline import calibrate
-from magcal.model import perturbations
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="shared memory is seen in /dev/shm on Linux")
 
@@ -34,17 +32,7 @@ def _segments():
 @pytest.fixture(scope="module")
 def record():
     """Four sensors, a temperature bias and a bias step on sensor 3 hidden; the base fit."""
-    ds = simulate_timeseries(
-        chi2017_truth(4),
-        n_samples=3000,
-        noise_nT=3.0,
-        seed=4,
-        perturbations=[
-            perturbations.parse_hidden("temperature_bias=2", 4),
-            perturbations.parse_hidden("bias_step:3", 4),
-        ],
-    )
-    return ds, calibrate(ds)
+    return two_hidden()
 
 
 @pytest.fixture(scope="module")
