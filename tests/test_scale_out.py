@@ -415,3 +415,36 @@ def test_the_fork_server_starts_before_the_diagnosis_only_for_processes(record, 
     with _parallel.Pool(ds, workers=2) as pool:
         assert pool.backend == "processes"
         assert pool.remote(_parent) == server
+
+
+_MALLINFO2 = ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")
+
+
+def _mapped_for_a_large_array(dataset):
+    """(A worker's task.) Bytes of fresh mappings a 64 MB array (above glibc's largest mmap threshold) takes."""
+    import ctypes
+
+    class Info(ctypes.Structure):  # glibc's struct mallinfo2
+        _fields_ = [(name, ctypes.c_size_t) for name in _MALLINFO2]
+
+    libc = ctypes.CDLL("libc.so.6")
+    libc.mallinfo2.restype = Info
+    before = libc.mallinfo2().hblkhd
+    a = np.ones(8 << 20)
+    mapped = libc.mallinfo2().hblkhd - before
+    del a
+    return mapped
+
+
+def test_a_worker_serves_a_large_records_temporaries_from_its_heap(record, monkeypatch):
+    """A fit of 4 x 1e6 samples makes temporaries of 30-100 MB; in the worker processes they come from the heap
+    (magcal.core.memory.keep_large_blocks(every_size=True)), not each from a fresh mapping faulted in anew."""
+    ds, _ = record
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    with _parallel.Pool(ds) as pool:
+        try:
+            mapped = pool.remote(_mapped_for_a_large_array)
+        except AttributeError:
+            pytest.skip("glibc before 2.33 has no mallinfo2")
+    assert mapped == 0

@@ -347,7 +347,9 @@ def _init_worker():
     global _LIMITS
     from threadpoolctl import threadpool_limits
 
-    memory.keep_large_blocks()  # a fork server started by Dask passes on its MALLOC_TRIM_THRESHOLD_
+    # a fork server started by Dask passes on its MALLOC_TRIM_THRESHOLD_; and a large record's temporaries (above
+    # 32 MB) are served from the heap, not each a fresh mmap faulted in page by page
+    memory.keep_large_blocks(every_size=True)
     for name in _ONE_THREAD:
         os.environ[name] = "1"
     import scipy.linalg  # noqa: F401  (its BLAS loaded now, so that the limit below reaches it too)
