@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.signal import periodogram, savgol_filter
 
-from magcal.core.stats import robust_sigma, savgol, savgol_derivative
+from magcal.core.stats import moving_mean, robust_sigma, savgol, savgol_derivative
 from magcal.diagnosis.statistics import fft_periodogram
 
 
@@ -51,3 +53,33 @@ def test_fft_periodogram_is_scipys_periodogram(n, fs):
 
 def test_robust_sigma_of_gaussian_noise():
     assert robust_sigma(np.random.default_rng(3).normal(0.0, 3.0, 200_000)) == pytest.approx(3.0, rel=0.01)
+
+
+def _moving_mean_by_hand(y, window):
+    n = y.shape[-1]
+    out = np.empty_like(y, dtype=float)
+    for i in range(n):
+        lo, hi = max(0, i - window // 2), min(n, i + (window - 1) // 2 + 1)
+        out[..., i] = y[..., lo:hi].mean(axis=-1)
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 300), window=st.integers(1, 400), seed=st.integers(0, 2**16))
+def test_moving_mean_is_the_mean_of_each_window_cut_at_the_ends(n, window, seed):
+    y = np.random.default_rng(seed).normal(10.0, 3.0, size=(2, n))
+    np.testing.assert_allclose(moving_mean(y, window), _moving_mean_by_hand(y, window), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("window", [1, 2, 5, 60])
+def test_moving_mean_is_numpys_convolution_away_from_the_ends(window):
+    y = np.random.default_rng(window).normal(size=1000)
+    inside = slice(window, 1000 - window)
+    np.testing.assert_allclose(
+        moving_mean(y, window)[inside], np.convolve(y, np.ones(window) / window, mode="same")[inside], atol=1e-12
+    )
+
+
+def test_moving_mean_refuses_an_empty_window():
+    with pytest.raises(ValueError, match="window"):
+        moving_mean(np.ones(5), 0)

@@ -99,3 +99,33 @@ def savgol(values, window: int, deriv: int = 0, step: float = 1.0, order: int = 
 def savgol_derivative(values, window: int, step: float, order: int = 3) -> np.ndarray:
     """First derivative along axis 0 by a Savitzky-Golay filter: :func:`savgol` with ``deriv=1``."""
     return savgol(values, window, deriv=1, step=step, order=order)
+
+
+def moving_mean(values, window: int) -> np.ndarray:
+    """The mean of the ``window`` samples around each sample, along the last axis, by running sums (O(N)).
+
+    Sample ``i``'s window is ``[i - window // 2, i + (window - 1) // 2]`` (``numpy.convolve(values, ones(window) /
+    window, mode="same")``'s away from the ends), cut at the ends: there the mean is over the samples the window
+    still holds (no zero padding pulls it towards zero).
+
+    Parameters
+    ----------
+    values : array_like, shape (..., N)
+        Samples in order (any unit).
+    window : int
+        Samples per window, at least 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        Same shape as ``values``.
+    """
+    y = np.asarray(values, dtype=float)
+    if window < 1:
+        raise ValueError(f"moving_mean: window must be at least 1, got {window}")
+    n = y.shape[-1]
+    sums = np.concatenate([np.zeros(y.shape[:-1] + (1,)), np.cumsum(y, axis=-1)], axis=-1)
+    i = np.arange(n)
+    lo = np.clip(i - window // 2, 0, n)
+    hi = np.clip(i + (window - 1) // 2 + 1, 0, n)
+    return (sums[..., hi] - sums[..., lo]) / (hi - lo)
