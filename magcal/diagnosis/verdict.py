@@ -355,7 +355,7 @@ class _HeldOut:
         self.kept_mask = None if fit0.mask.all() else fit0.mask
         self.reference = _reference_override(fit0)
         self.masks = {scheme: _validation.holdout_masks(kept, scheme) for scheme in _validation.SCHEMES}
-        self.bases: dict = {}  # (id of the base fit, scheme) -> Future of its held-out fit
+        self.bases = {}  # (id of the base fit, scheme) -> Future of its held-out fit
         self._lock = threading.Lock()
         self.schemes = {}
 
