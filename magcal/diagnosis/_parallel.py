@@ -432,9 +432,11 @@ def start_workers(dataset, workers=None, scheduler=None, effects=()) -> bool:
     looks at the page, and the first Diagnose finds the server ready (first worker in 0.03 s instead of 0.8 s).
     ``magcal diagnose`` does not: it calibrates the record right after reading it, and that fit's BLAS threads
     then share the cores with the server's imports (2 cores: the calibration 0.6 -> 1.45 s, the diagnosis 4.4 ->
-    3.4 s, no gain; ``benchmarks/process_start.py --parts early``). Does nothing (and returns False) where the diagnosis would run its fits on threads or a Dask
-    cluster (:func:`backend_for` with the same arguments), or where the platform has no fork server; starting it
-    twice starts it once.
+    3.4 s, no gain; ``benchmarks/process_start.py --parts early``).
+
+    Does nothing (and returns False) where the diagnosis would run its fits on threads or a Dask cluster
+    (:func:`backend_for` with the same arguments), or where the platform has no fork server; starting it twice
+    starts it once.
 
     Returns
     -------

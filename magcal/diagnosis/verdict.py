@@ -9,9 +9,9 @@ below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates ar
 
 Held-out judgement
     With ``validate=True`` (default) every supported candidate that is refitted is also fitted on part of the
-    record and scored on the rest (:mod:`magcal.fitting.validation`, warm-started where the refit starts): the ``blocks`` scheme
-    (alternating blocks in time, every term interpolated) and the ``later`` scheme (the last quarter of the
-    record; record-only terms held at their fitted average). A candidate is *recommended* -- it may enter
+    record and scored on the rest (:mod:`magcal.fitting.validation`, warm-started where the refit starts): the
+    ``blocks`` scheme (alternating blocks in time, every term interpolated) and the ``later`` scheme (the last
+    quarter of the record; record-only terms held at their fitted average). A candidate is *recommended* -- it may enter
     ``explained_by``, the ``missing_effect`` verdict and the advice -- only if its held-out RMS falls by at least
     :data:`magcal.fitting.validation.MIN_RELATIVE_GAIN` on ``blocks`` and does not rise on ``later`` by more than
     :data:`magcal.fitting.validation.LATER_TOLERANCE_SE` standard errors (:func:`magcal.fitting.validation.judge`). A candidate
