@@ -114,7 +114,8 @@ def test_the_window_moves_and_plays_in_the_page(browser, bench):
     box.fill("30")
     box.press("Enter")
     assert _wait(lambda: wb.panels.window_start.value == 30.0, 20)
-    assert set(np.unique(wb.scene_view.displayed.samples)) != first
+    # the scene is redrawn on the UI thread after the value arrives: wait for it (asserting at once was a race)
+    assert _wait(lambda: set(np.unique(wb.scene_view.displayed.samples)) != first, 20)
     page.get_by_role("button", name="Play").click()
     before = wb.panels.window_start.value
     assert _wait(lambda: wb.panels.window_start.value > before + 2.0, 20)
