@@ -37,7 +37,7 @@ class ReadingsCache:
         """
         if array.flags.writeable:  # its values may change in place: nothing about them can be kept
             return compute()
-        full = (array.__array_interface__["data"][0], array.shape, array.strides) + tuple(key)
+        full = _where(array) + tuple(key)
         hit = self._entries.get(full)
         if hit is not None and (valid is None or valid(hit[1])):
             try:
@@ -57,7 +57,7 @@ class ReadingsCache:
         computing them again. Larger values (arrays) are left out."""
         if array.flags.writeable:
             return []
-        where = (array.__array_interface__["data"][0], array.shape, array.strides)
+        where = _where(array)
         out = []
         for full, (_, value) in list(self._entries.items()):
             if full[:3] == where and isinstance(value, (int, float, np.integer, np.floating)):
@@ -69,13 +69,15 @@ class ReadingsCache:
         held elsewhere). A writable array is never cached."""
         if array.flags.writeable:
             return
-        self._entries[(array.__array_interface__["data"][0], array.shape, array.strides) + tuple(key)] = (
-            array,
-            value,
-        )
+        self._entries[_where(array) + tuple(key)] = (array, value)
         while len(self._entries) > self.size:
             self._entries.popitem(last=False)
 
     def clear(self):
         """Forget every entry."""
         self._entries.clear()
+
+
+def _where(array) -> tuple:
+    """What identifies a read-only array's values while the cache holds it: its memory, shape and strides."""
+    return (array.__array_interface__["data"][0], array.shape, array.strides)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import itertools
 import os
 import pickle
@@ -283,7 +282,8 @@ class SharedDataset:
 #: The segments this worker process has mapped: name -> (segment, dataset). One at a time: a worker serves one
 #: diagnosis.
 _ATTACHED: dict = {}
-#: Subsets of an attached or scattered dataset by mask (a worker's kept samples), the most recent few.
+#: Subsets of an attached or scattered dataset by mask (a worker's kept samples), the most recent few, held so that
+#: :meth:`~magcal.data.dataset.Dataset.masked` gives the same one to the next task: id -> dataset.
 _SUBSETS: dict = {}
 
 
@@ -314,17 +314,16 @@ def attach(name):
 
 
 def subset(dataset, mask):
-    """``dataset`` restricted to ``mask`` (None: all of it), made once per worker for the same mask."""
+    """``dataset`` restricted to ``mask`` (None: all of it), made once per worker for the same mask
+    (:meth:`~magcal.data.dataset.Dataset.masked`, held here between tasks)."""
     if mask is None:
         return dataset
-    mask = np.asarray(mask, bool)
-    key = (id(dataset), mask.size, hashlib.blake2b(np.packbits(mask).tobytes(), digest_size=16).hexdigest())
-    hit = _SUBSETS.get(key)
-    if hit is None:
-        hit = _SUBSETS[key] = dataset.masked(mask)  # the strong reference keeps it between tasks
-        while len(_SUBSETS) > 4:
-            _SUBSETS.pop(next(iter(_SUBSETS)))
-    return hit
+    kept = dataset.masked(mask)
+    _SUBSETS.pop(id(kept), None)
+    _SUBSETS[id(kept)] = kept  # the most recent last
+    while len(_SUBSETS) > 4:
+        _SUBSETS.pop(next(iter(_SUBSETS)))
+    return kept
 
 
 def _portable(result):
