@@ -581,6 +581,54 @@ def _held_out_fits(pool, held_out, base_fit, c, priority=CHAIN, skip=()) -> dict
     }
 
 
+class _BesideRefits:
+    """The held-out fits of a round's candidates, handed to ``pool`` beside their refits where it can.
+
+    A candidate's held-out fits need its predicted start, not its refit (:class:`_HeldOut`). With cores to spare
+    (:attr:`~magcal.diagnosis._parallel.Pool.concurrent`) those of a candidate predicted to be supported are handed
+    over with its refit (:meth:`beside`, below the refits' priority), so that the refit, a few passes over the whole
+    record, no longer waits for them: on many cores the diagnosis's longest chain. Once the refit has returned
+    (:meth:`after`) they are cancelled if not wanted, and those not yet started are moved ahead if wanted; on one
+    core they are handed over only then. :attr:`pending` (by label, futures per scheme) goes to
+    :func:`_judge_round`. ``held_out`` None: nothing is validated.
+    """
+
+    def __init__(self, pool, held_out, base_fit):
+        self.pool, self.held_out, self.base_fit = pool, held_out, base_fit
+        self.pending: dict = {}
+        self._lock = threading.Lock()
+
+    def beside(self, c) -> None:
+        """(``_confirm``'s ``beside_refit``.)"""
+        if self.held_out is None or not self.pool.concurrent or c.predicted_delta_bic >= DELTA_BIC_THRESHOLD:
+            return
+        with self._lock:
+            self.pending[c.label] = _held_out_fits(self.pool, self.held_out, self.base_fit, c, SHARED)
+
+    def after(self, c) -> None:
+        """(Called from ``_confirm``'s ``after_refit``, in the refit's thread.)"""
+        if self.held_out is None:
+            return
+        with self._lock:
+            if not _to_validate(c):
+                _cancel(self.pending.pop(c.label, {}))
+                return
+            handed = self.pending.get(c.label, {})
+            started = [s for s, f in handed.items() if not f.cancel()]
+            self.pending[c.label] = {
+                **handed,
+                **_held_out_fits(self.pool, self.held_out, self.base_fit, c, CHAIN, started),
+            }
+
+    def settle(self, cands) -> dict:
+        """:attr:`pending`, less the fits of candidates whose refit failed (it never said whether they were
+        wanted)."""
+        for c in cands:
+            if c.label in self.pending and not _to_validate(c):
+                _cancel(self.pending.pop(c.label))
+        return self.pending
+
+
 def _cancel(futures) -> None:
     """Cancel the held-out fits ``futures`` (per scheme) not yet started; those under way finish, unread."""
     for future in futures.values():
@@ -838,34 +886,12 @@ def _after_scores(
     ahead: dict = {}
     predicted_best = _predicted_best(cands) if max_effects > 0 else None
 
-    # a candidate's held-out fits need its predicted start, not its refit (_HeldOut): with cores to spare, those of a
-    # candidate predicted to be supported are handed over beside its refit (the refit, a few passes over the whole
-    # record, then no longer waits for them: on many cores the diagnosis's longest chain), and cancelled if the
-    # refit says they are not wanted; else they are handed over once its refit says they are
-    pending: dict = {}
-    pending_lock = threading.Lock()
-
-    def beside_refit(c):
-        if early is None or not pool.concurrent or c.predicted_delta_bic >= DELTA_BIC_THRESHOLD:
-            return
-        with pending_lock:
-            pending[c.label] = _held_out_fits(pool, early, fit0, c, SHARED)  # after the refits, where cores are few
+    beside = _BesideRefits(pool, early, fit0)
 
     def after_refit(c):
         if c is predicted_best and pool.concurrent and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit:
             ahead[c.label] = next_round(c)
-        if early is None:
-            return
-        with pending_lock:
-            if not _to_validate(c):
-                _cancel(pending.pop(c.label, {}))
-                return
-            handed = pending.get(c.label, {})
-            # wanted: those not started yet (or never handed over) go ahead of the rest
-            pending[c.label] = {
-                **handed,
-                **_held_out_fits(pool, early, fit0, c, CHAIN, [s for s, f in handed.items() if not f.cancel()]),
-            }
+        beside.after(c)
 
     cands = _confirm(
         dataset,
@@ -877,11 +903,9 @@ def _after_scores(
         alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s) for s in _validation.SCHEMES],
         pool=pool,
         after_refit=after_refit,
-        beside_refit=beside_refit,
+        beside_refit=beside.beside,
     )
-    for c in cands:  # a refit that failed never said whether its held-out fits were wanted
-        if c.label in pending and not _to_validate(c):
-            _cancel(pending.pop(c.label))
+    pending = beside.settle(cands)
     sh_stats = [future.result() for future in sh_futures]
     for c in cands:
         _add_fit_notes(fit_notes, c.fit)
@@ -975,16 +999,13 @@ def _after_scores(
         # as in the first round, with cores to spare: the held-out fits of the candidate and of this round's base
         # model run beside its refit, and the next round's work starts when the refit supports it (the structure
         # of the chosen fit's residuals, still running, is not waited for until then)
-        round_pending: dict = {}
+        round_beside = _BesideRefits(pool, held_out, current)
         round_ahead = {}
 
-        def beside(c, base=current, handed=round_pending):
-            if held_out is not None and pool.concurrent and c.predicted_delta_bic < DELTA_BIC_THRESHOLD:
-                handed[c.label] = _held_out_fits(pool, held_out, base, c, SHARED)
-
-        def after(c, handed=round_ahead, scores=step + 2 < max_effects):
+        def after(c, handed=round_ahead, scores=step + 2 < max_effects, beside=round_beside):
             if pool.concurrent and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit:
                 handed[c.label] = next_round(c, scores)
+            beside.after(c)
 
         base_ahead = (
             [lambda s=s, base=current: held_out.prepare(base, s) for s in _validation.SCHEMES]
@@ -992,14 +1013,22 @@ def _after_scores(
             else []
         )
         more = _confirm(
-            dataset, current, more, 1, coupled, fits, base_ahead, pool=pool, after_refit=after, beside_refit=beside
+            dataset,
+            current,
+            more,
+            1,
+            coupled,
+            fits,
+            base_ahead,
+            pool=pool,
+            after_refit=after,
+            beside_refit=round_beside.beside,
         )
         for c in more:
             _add_fit_notes(fit_notes, c.fit)
-            if c.label in round_pending and not _to_validate(c):
-                _cancel(round_pending.pop(c.label))
+        pending = round_beside.settle(more)
         current_noise, remaining, stats_final = structure_c.result()
-        round_cands = _judge_round(held_out, current, more, validation_notes, pool, round_pending, fit_notes=fit_notes)
+        round_cands = _judge_round(held_out, current, more, validation_notes, pool, pending, fit_notes=fit_notes)
 
     # verdict
     supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
