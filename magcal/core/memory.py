@@ -36,7 +36,8 @@ def keep_large_blocks(every_size: bool = False) -> bool:
         Also serve arrays above glibc's largest mmap threshold (32 MB) from the heap, and keep up to
         :data:`LARGE_TRIM_THRESHOLD_BYTES` free at its top: such an array is otherwise a fresh ``mmap`` every time,
         each of its pages faulted in and zeroed (at 4 x 1e6 samples a fit's temporaries are 30-100 MB; a refit took
-        14.3 s against 11.7 s served from the heap, the calibration 4.3 against 3.6 s, for 3 % more peak memory).
+        13.3-14.6 s against 10.9-11.1 s served from the heap, the calibration 4.0-4.1 against 3.4-3.6 s, for 3 %
+        more peak memory: ``benchmarks/large_records.py --parts malloc``).
         For the diagnosis's worker processes, which live for one diagnosis.
 
     Returns
