@@ -5,7 +5,7 @@ Usage::
 
     python benchmarks/scaling.py                         # the 2-core development machine: about 10 minutes
     python benchmarks/scaling.py --rows 2e7 --diagnosis-n 1e5 --big   # a 16-core machine (the issue's sizes)
-    python benchmarks/scaling.py --parts apply           # one part: apply, diagnosis, fitter (comma-separated)
+    python benchmarks/scaling.py --parts apply           # one part: apply, diagnosis, big, fitter (comma-separated)
 
 Machine: ``nproc``, the CPU model (``/proc/cpuinfo``) and the memory are printed first; worker counts are
 1, 2, 4, 8, 16 capped at ``nproc``.
@@ -24,7 +24,7 @@ benchmark does not drop the machine's caches.)
 **diagnosis** -- four sensors of ``--diagnosis-n`` samples with a temperature bias hidden (as
 ``benchmarks/diagnosis.py``, part 2): ``diagnose`` timed with its fits one after the other (1 core), then for every
 worker count on threads and in worker processes (:mod:`magcal.diagnosis._parallel`); every run must give the same
-verdict and candidates. ``--big`` adds one diagnosis of 4 x 1e6 samples (processes on every core): its time and
+verdict and candidates. ``--big`` (or the part ``big``) adds one diagnosis of 4 x 1e6 samples (processes on every core): its time and
 the peak resident memory of the process and of its largest worker. What the diagnosis allows on any number of
 cores (its work and critical path, measured on one) is ``benchmarks/diagnosis_span.py``.
 
@@ -327,30 +327,40 @@ def part_diagnosis(args, info, report):
             same = (d.verdict, [c.label for c in d.candidates]) == first
             runs.append({"workers": w, "backend": backend, "seconds": t, "same_as_serial": same})
             print(f"{w:>6}{backend:>12}{t:>9.2f}{t1 / t:>9.2f}  {'same' if same else 'DIFFERENT: ' + d.verdict}")
+    # what `magcal diagnose` does when not told: every core, processes or threads as _parallel.backend_for decides
+    t, d = _diagnose_timed(ds, res, None, None)
+    same = (d.verdict, [c.label for c in d.candidates]) == first
+    runs.append({"workers": info["nproc"], "backend": "default", "seconds": t, "same_as_serial": same})
+    print(f"{info['nproc']:>6}{'default':>12}{t:>9.2f}{t1 / t:>9.2f}  {'same' if same else 'DIFFERENT: ' + d.verdict}")
     report["diagnosis"] = {"n": n, "sensors": 4, "runs": runs}
-    if args.big:
-        big = _record(1_000_000, seed=2)
-        t0 = time.perf_counter()
-        res_big = calibrate(big)
-        t_cal = time.perf_counter() - t0
-        with DescendantsPeak() as peak:
-            t, d = _diagnose_timed(big, res_big, None, None)
-        self_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        child_mb = peak.mb
-        print(
-            f"4 x 1,000,000: calibrate {t_cal:.1f} s, diagnose {t:.1f} s on {info['nproc']} core(s) ({d.verdict}, "
-            f"{d.candidates[0].label}); peak resident {self_mb:,.0f} MB (this process), {child_mb:,.0f} MB (largest "
-            "worker)"
-        )
-        report["diagnosis"]["big"] = {
-            "n": 1_000_000,
-            "calibrate_s": t_cal,
-            "diagnose_s": t,
-            "verdict": d.verdict,
-            "best": d.candidates[0].label,
-            "peak_MB": self_mb,
-            "worker_peak_MB": child_mb,
-        }
+
+
+def part_big(args, info, report):
+    """One diagnosis of 4 x 1e6 samples on every core: its time and peak memories."""
+    from magcal.fitting.pipeline import calibrate
+
+    big = _record(1_000_000, seed=2)
+    t0 = time.perf_counter()
+    res_big = calibrate(big)
+    t_cal = time.perf_counter() - t0
+    with DescendantsPeak() as peak:
+        t, d = _diagnose_timed(big, res_big, None, None)
+    self_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    child_mb = peak.mb
+    print(
+        f"4 x 1,000,000: calibrate {t_cal:.1f} s, diagnose {t:.1f} s on {info['nproc']} core(s) ({d.verdict}, "
+        f"{d.candidates[0].label}); peak resident {self_mb:,.0f} MB (this process), {child_mb:,.0f} MB (largest "
+        "worker)"
+    )
+    report["big"] = {
+        "n": 1_000_000,
+        "calibrate_s": t_cal,
+        "diagnose_s": t,
+        "verdict": d.verdict,
+        "best": d.candidates[0].label,
+        "peak_MB": self_mb,
+        "worker_peak_MB": child_mb,
+    }
 
 
 # -- fitter -------------------------------------------------------------------------------------------------------
@@ -380,8 +390,11 @@ def main(argv=None) -> int:
         f"load {info['load_1min_at_start']} at start"
     )
     report = {"machine": info, "args": vars(args)}
-    parts = {"apply": part_apply, "diagnosis": part_diagnosis, "fitter": part_fitter}
-    for name in args.parts.split(","):
+    parts = {"apply": part_apply, "diagnosis": part_diagnosis, "big": part_big, "fitter": part_fitter}
+    names = [name for name in args.parts.split(",") if name.strip()]
+    if args.big and "big" not in names:
+        names.insert(names.index("diagnosis") + 1 if "diagnosis" in names else len(names), "big")
+    for name in names:
         parts[name.strip()](args, info, report)
     report["machine"]["load_1min_at_end"] = round(os.getloadavg()[0], 2)
     print(f"\nload (1 min) at the end: {report['machine']['load_1min_at_end']}")

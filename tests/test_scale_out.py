@@ -278,10 +278,28 @@ def test_the_shared_memory_is_unlinked_after_a_worker_dies(record, monkeypatch):
 def test_small_records_and_one_core_stay_on_threads(record, monkeypatch):
     ds, _ = record
     monkeypatch.setattr(_parallel, "BACKEND", None)
-    assert _parallel.backend_for(ds, workers=16) == "threads"  # 4 x 3000 readings: below the threshold
+    assert _parallel.backend_for(ds, workers=16) == "threads"  # 4 x 3000 readings: below both thresholds
     monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS", 1000)
-    assert _parallel.backend_for(ds, workers=16) == "processes"
+    assert _parallel.backend_for(ds, workers=2) == "processes"
     assert _parallel.backend_for(ds, workers=1) == "threads"
+
+
+@pytest.mark.parametrize(
+    ("workers", "expected"),
+    [(1, "threads"), (2, "threads"), (3, "threads"), (4, "processes"), (16, "processes"), (None, "processes")],
+)
+def test_many_workers_take_processes_for_smaller_records(record, monkeypatch, workers, expected):
+    """Between the two thresholds the worker count decides: threads stop paying beyond about four workers."""
+    ds, _ = record
+    readings = ds.n_sensors * ds.n_samples
+    monkeypatch.setattr(_parallel, "BACKEND", None)
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS", readings + 1)
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS_MANY", readings)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", None)
+    monkeypatch.setattr(_parallel, "cores", lambda: 16)  # None: one worker per core
+    assert _parallel.backend_for(ds, workers=workers) == expected
+    monkeypatch.setattr(_parallel, "PROCESS_MIN_READINGS_MANY", readings + 1)
+    assert _parallel.backend_for(ds, workers=workers) == "threads"
 
     class Theirs:  # a user's effect (an effects file): a worker process could not import it
         pass

@@ -8,7 +8,8 @@ Where the work runs (:class:`Pool`, chosen per diagnosis):
 
 - **threads** (the fallback): numpy releases the interpreter in its loops and BLAS calls, so threads keep two cores
   busy and nothing is copied. Python threads contend for the interpreter between numpy calls, so beyond a few cores
-  they stop paying; a small record (fewer than :data:`PROCESS_MIN_READINGS` readings) or one core stays here.
+  they stop paying; a small record (fewer than :data:`PROCESS_MIN_READINGS` readings, or
+  :data:`PROCESS_MIN_READINGS_MANY` with :data:`MANY_WORKERS` workers or more) or one core stays here.
 - **processes** (:class:`~concurrent.futures.ProcessPoolExecutor`, forked from a fork server that imported
   magcal once, or started with ``spawn`` where there is none, :func:`process_context`): the readings are
   written once into one shared-memory segment (:class:`SharedDataset`; nothing of them is pickled per task), each
@@ -72,6 +73,18 @@ BACKEND = None
 #: magcal in every worker of every pool, the crossing lay near 1e6 readings.) More cores only widen the processes'
 #: lead: threads stop paying beyond a few cores, processes do not.
 PROCESS_MIN_READINGS = 400_000
+
+#: From this many workers on, the fits run in processes from :data:`PROCESS_MIN_READINGS_MANY` readings instead:
+#: threads stop paying beyond about four (the interpreter's lock), while the processes' start is paid once per
+#: program. Measured on a 16-core Intel Xeon (2026-11-26, ``benchmarks/scaling.py --parts diagnosis``, one program
+#: per size; benchmarks/README.md): threads / processes with 4 workers 0.68 / 0.56 s at 4 x 12 500 samples,
+#: 1.08 / 0.75 s at 4 x 25 000, 1.52 / 1.04 s at 4 x 5e4; with 16, 0.80 / 0.59, 1.14 / 0.68, 1.93 / 0.77 s; with
+#: 2 workers threads still won below 4 x 1e5 (4 x 5e4: 2.15 / 2.75 s).
+MANY_WORKERS = 4
+
+#: Readings from which the fits run in processes when there are at least :data:`MANY_WORKERS` workers: the
+#: smallest record measured (4 x 12 500 samples), where a diagnosis takes about a second on one core.
+PROCESS_MIN_READINGS_MANY = 50_000
 
 #: Memory of one worker process of a diagnosis: a fixed part (the interpreter, numpy, scipy, magcal) and a part per
 #: reading (sensors x samples) of the record, its fits' temporaries (a thread's fit takes the second part only).
@@ -185,8 +198,9 @@ def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
     A scheduler means Dask, unless an effect is not magcal's own (a user's effects file: the cluster's workers
     could not unpickle its class; :data:`ELSEWHERE_NOTE`), which keeps the fits on this machine's threads.
     Otherwise :data:`BACKEND` when set; else processes when there is more than one worker, the record holds at
-    least :data:`PROCESS_MIN_READINGS` readings and every effect is magcal's own (:func:`own_effects`: ``effects``,
-    models or effect classes); threads otherwise.
+    least :data:`PROCESS_MIN_READINGS` readings (:data:`PROCESS_MIN_READINGS_MANY` with :data:`MANY_WORKERS` workers
+    or more) and every effect is magcal's own (:func:`own_effects`: ``effects``, models or effect classes); threads
+    otherwise.
     """
     if scheduler is not None:
         return "dask" if own_effects(*effects) else "threads"
@@ -196,7 +210,8 @@ def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
     workers = _workers(cap=MAX_PROCESSES) if workers is None else int(workers)
     if workers <= 1 or dataset is None or not mine:
         return "threads"
-    return "processes" if dataset.n_sensors * dataset.n_samples >= PROCESS_MIN_READINGS else "threads"
+    least = PROCESS_MIN_READINGS_MANY if workers >= MANY_WORKERS else PROCESS_MIN_READINGS
+    return "processes" if dataset.n_sensors * dataset.n_samples >= least else "threads"
 
 
 def _in_daemon() -> bool:
