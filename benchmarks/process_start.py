@@ -20,9 +20,12 @@ Each measurement runs in a fresh program (a child of this script), so that every
 - ``memory``: a diagnosis on two worker processes at 4 x 1e5, 2e5 and 4e5 samples: the calling process's peak
   resident memory before and after, and the largest worker's (``scaling.DescendantsPeak``), where
   :data:`magcal.diagnosis._parallel.WORKER_BYTES_PER_READING` and ``CALLER_BYTES_PER_READING`` come from.
-- ``early``: the first diagnosis of a program (4 x 1e5, two worker processes) after the record's calibration, with
-  the fork server started as the record is read (:func:`magcal.diagnosis.start_workers`, as ``magcal diagnose`` and
-  the workbench do) and without: the calibration's and the diagnosis's seconds.
+- ``early``: the first diagnosis of a program (4 x 1e5, a worker process per core) after the record's calibration,
+  with the fork server started as the record is read (:func:`magcal.diagnosis.start_workers`, as the workbench
+  does) and without (as ``magcal diagnose`` does): the calibration's and the diagnosis's seconds.
+- ``again``: in one fresh program, a diagnosis of 4 x 1e5 on threads (4 workers) twice, then in worker processes
+  (one per core) three times, then one of another record: what the first diagnosis of a program pays that later
+  ones do not (on 16 cores the first in processes took 3.5 s, the later 1.8-2.0 s).
 - ``gil``: two threads against one on the two kinds of work a fit's sums over blocks hold: matrix products of a
   56 x 8 738 block (BLAS releases the interpreter) and the short numpy calls on 4 369-row columns between them
   (each holds it): why threads inside one fit did not pay.
@@ -32,7 +35,7 @@ Usage::
     python benchmarks/process_start.py                       # every part, about 4 minutes on 2 cores
     python benchmarks/process_start.py --parts pools,cluster
     python benchmarks/process_start.py --parts blas,memory,gil   # the late session's figures
-    python benchmarks/process_start.py --parts early
+    python benchmarks/process_start.py --parts early,again
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil", "early")
+PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil", "early", "again")
 
 
 def _record(n):
@@ -75,6 +78,12 @@ def child_pools(method):
     return out
 
 
+def _parallel_cores():
+    from magcal.diagnosis._parallel import cores
+
+    return cores()
+
+
 def child_early(n, early):
     from magcal.diagnosis import _parallel, diagnose, start_workers
     from magcal.fitting.pipeline import calibrate
@@ -83,11 +92,35 @@ def child_early(n, early):
     _parallel.BACKEND = "processes"
     t0 = time.perf_counter()
     if early:
-        start_workers(ds, 2)
+        start_workers(ds)
     res = calibrate(ds)
     t1 = time.perf_counter()
-    d = diagnose(ds, res, workers=2)
+    d = diagnose(ds, res)  # a worker per core
     return t1 - t0, time.perf_counter() - t1, d.verdict
+
+
+def child_again(n):
+    from magcal.diagnosis import _parallel, diagnose
+    from magcal.fitting.pipeline import calibrate
+
+    ds = _record(n)
+    res = calibrate(ds)
+    out = []
+    for backend, workers, repeats in (("threads", 4, 2), (None, None, 3)):
+        _parallel.BACKEND = backend
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            d = diagnose(ds, res, workers=workers)
+            out.append([f"{backend or 'processes'}", time.perf_counter() - t0, d.verdict])
+    sys.path.insert(0, str(HERE))
+    import scaling
+
+    other = scaling._record(n, seed=5)
+    res_other = calibrate(other)
+    t0 = time.perf_counter()
+    d = diagnose(other, res_other)
+    out.append(["processes, another record", time.perf_counter() - t0, d.verdict])
+    return out
 
 
 def child_diagnosis(n, backend, poison=False):
@@ -239,6 +272,7 @@ def main(argv=None):
             "memory": child_memory,
             "gil": child_gil,
             "early": child_early,
+            "again": child_again,
         }
         print(json.dumps(fn[kind](*rest)))
         return
@@ -287,9 +321,13 @@ def main(argv=None):
             cal, diag, verdict = run_child("early", 100_000, early)
             what = "started as the record is read" if early else "cold"
             print(
-                f"early    4 x 100,000, 2 processes, fork server {what:>29}: calibrate {cal:.2f} s, then the "
+                f"early    4 x 100,000, {_parallel_cores()} processes, fork server {what:>29}: calibrate {cal:.2f} s, "
+                "then the "
                 f"diagnosis {diag:.2f} s ({verdict})"
             )
+    if "again" in parts:
+        for i, (where, seconds, verdict) in enumerate(run_child("again", 100_000)):
+            print(f"again    4 x 100,000, diagnosis {i + 1} of one program, {where:<26}: {seconds:.2f} s ({verdict})")
     if "blas" in parts:
         env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
         for n, backend, workers in ((50_000, "threads", 2), (100_000, "processes", 2), (100_000, "threads", 1)):

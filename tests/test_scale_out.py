@@ -5,9 +5,12 @@ the segment is gone after a run, after a worker's error and after a worker's cra
 from __future__ import annotations
 
 import json
+import multiprocessing
 import operator
 import os
 import re
+import sys
+import time
 import warnings
 
 import numpy as np
@@ -112,9 +115,7 @@ def _parent(dataset):
     return os.getppid()
 
 
-@pytest.mark.skipif(
-    "forkserver" not in __import__("multiprocessing").get_all_start_methods(), reason="no fork server here"
-)
+@pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(), reason="no fork server here")
 def test_the_workers_of_every_pool_are_forked_from_one_fork_server(record, monkeypatch):
     """The workers are not new interpreters importing magcal for each pool: every pool's workers are children of the
     same fork server (not of this process), which imported magcal once; BLAS still runs one thread in them, and
@@ -326,11 +327,60 @@ def test_the_diagnosis_on_a_dask_cluster_reads_the_same(record, serial):
     _same(serial, got)
 
 
+def _nap(dataset, seconds):
+    time.sleep(seconds)
+    return os.getpid()
+
+
+#: Per worker start: whether the caller's script showed, and BLAS's thread setting (_SlowStart).
+_STARTS: list = []
+
+
+class _SlowStart(multiprocessing.get_context("spawn").Process):  # type: ignore[name-defined,misc]
+    """A worker process whose start takes a while (the first worker is idle before the next is asked for)."""
+
+    _start_method = "forkserver"
+
+    @staticmethod
+    def _Popen(process_obj):
+        return multiprocessing.get_context("forkserver").Process._Popen(process_obj)
+
+    def start(self):
+        _STARTS.append(("__file__" in sys.modules["__main__"].__dict__, os.environ.get("OPENBLAS_NUM_THREADS")))
+        super().start()
+        time.sleep(1.5)
+
+
+@pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(), reason="no fork server here")
+def test_workers_started_late_start_with_the_callers_script_hidden(record, monkeypatch, tmp_path):
+    """The executor starts a worker only when a task finds none idle, so a pool's workers can start in the middle
+    of a diagnosis. Each start, early or late, must hide the caller's script (a worker would otherwise run a script
+    without a ``__main__`` guard again) and tell BLAS one thread. Here each start is slowed, so that the first
+    worker is idle before the second is asked for and the others start later, from the tasks."""
+    script = tmp_path / "users_script.py"
+    script.write_text("pass\n")
+    monkeypatch.setattr(sys.modules["__main__"], "__file__", str(script), raising=False)
+    base = multiprocessing.get_context("forkserver")
+
+    class Context(type(base)):  # type: ignore[misc]
+        Process = _SlowStart
+
+    _STARTS.clear()
+    seen = _STARTS
+    monkeypatch.setattr(_parallel, "process_context", lambda: Context())
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    ds, _ = record
+    with _parallel.Pool(ds, workers=3) as pool:
+        pids = {f.result() for f in [pool.remote_future(_nap, 0.5) for _ in range(6)]}
+    assert len(seen) == 3 and len(pids) == 3  # every worker started and worked
+    assert seen == [(False, "1")] * 3, seen  # the third starts from a task, outside the start-up loop
+
+
 def test_a_script_without_a_main_guard_is_not_run_again_in_the_workers(tmp_path):
     """``spawn`` runs the caller's ``__main__`` again in every worker; a user's script rarely has the
-    ``if __name__ == "__main__":`` guard, and must still run once and diagnose in worker processes."""
+    ``if __name__ == "__main__":`` guard, and must still run once and diagnose in worker processes (workers that
+    start late: the test above)."""
     import subprocess
-    import sys
 
     script = tmp_path / "unguarded.py"
     script.write_text(
@@ -433,6 +483,35 @@ def test_the_fork_server_starts_before_the_diagnosis_only_for_processes(record, 
     with _parallel.Pool(ds, workers=2) as pool:
         assert pool.backend == "processes"
         assert pool.remote(_parent) == server
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads the fork server's environment in /proc")
+def test_the_fork_server_started_early_runs_blas_on_one_thread(tmp_path):
+    """start_workers starts the fork server as the pool would: BLAS and OpenMP told one thread (every core's
+    threads would otherwise start in it and be torn down at every fork), the caller's own setting untouched. In a
+    fresh program: the fork server is started once per program."""
+    import subprocess
+
+    script = tmp_path / "early.py"
+    script.write_text(
+        "import os\n"
+        "from multiprocessing import forkserver\n"
+        "from magcal.data.simulation import chi2017_truth, simulate_timeseries\n"
+        "from magcal.diagnosis import _parallel, start_workers\n"
+        "_parallel.BACKEND = 'processes'\n"
+        "ds = simulate_timeseries(chi2017_truth(1), n_samples=500, noise_nT=3.0, seed=2)\n"
+        "assert start_workers(ds, 2)\n"
+        "env = open(f'/proc/{forkserver._forkserver._forkserver_pid}/environ', 'rb').read().split(b'\\0')\n"
+        "print(sorted(v.decode() for v in env if v.startswith((b'BLIS_NUM', b'OPENBLAS_NUM'))))\n"
+        "print(os.environ.get('BLIS_NUM_THREADS'), os.environ.get('OPENBLAS_NUM_THREADS'))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    server, caller = proc.stdout.strip().splitlines()[-2:]
+    assert server == "['BLIS_NUM_THREADS=1', 'OPENBLAS_NUM_THREADS=1']"
+    assert caller == "None None"
 
 
 _MALLINFO2 = ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")

@@ -387,7 +387,7 @@ def _ready(*functions):
     return os.getpid()
 
 
-_MAIN_LOCK = threading.Lock()
+_MAIN_LOCK = threading.RLock()  # re-entered: a worker started within _Processes's start-up
 
 
 @contextlib.contextmanager
@@ -463,7 +463,8 @@ def start_workers(dataset, workers=None, scheduler=None, effects=()) -> bool:
         return False
     from multiprocessing import forkserver
 
-    with _main_left_alone():  # the server would otherwise import the caller's script (see there)
+    # the server would otherwise import the caller's script (see there), and start BLAS's threads for every core
+    with _main_left_alone(), _one_thread_environment():
         forkserver.ensure_running()  # a few milliseconds: the server imports its modules in its own process
     return True
 
@@ -511,7 +512,7 @@ def one_blas_thread(active=True):
                 _BLAS_LIMITER = None
 
 
-_ENV_LOCK = threading.Lock()
+_ENV_LOCK = threading.RLock()  # re-entered likewise
 
 
 @contextlib.contextmanager
@@ -531,20 +532,44 @@ def _one_thread_environment():
                     os.environ[name] = value
 
 
+_EXECUTOR = None
+
+
+def _executor_class():
+    """:class:`~concurrent.futures.ProcessPoolExecutor` whose every worker process starts with the caller's script
+    hidden (:func:`_main_left_alone`) and BLAS told one thread (:func:`_one_thread_environment`).
+
+    The executor does not start its workers all at once: a task submitted while one is idle starts none, so some
+    start later, when a task of the diagnosis finds every worker busy (seen with 16 workers: a worker had finished
+    its first task before the last was asked for). Those late starts need the same care as the first: a script
+    without a ``__main__`` guard was otherwise run again in them. The executor starts each worker in its
+    ``_spawn_process`` (CPython 3.9 and later); tests/test_scale_out.py checks every start.
+    """
+    global _EXECUTOR
+    if _EXECUTOR is None:
+        from concurrent.futures import ProcessPoolExecutor
+
+        class Executor(ProcessPoolExecutor):
+            def _spawn_process(self):
+                with _main_left_alone(), _one_thread_environment():
+                    super()._spawn_process()
+
+        _EXECUTOR = Executor
+    return _EXECUTOR
+
+
 class _Processes:
     """Worker processes (:func:`process_context`) sharing one :class:`SharedDataset`."""
 
     def __init__(self, dataset, workers, warm=()):
-        from concurrent.futures import ProcessPoolExecutor
-
         self.workers = int(workers)
         self.shared = SharedDataset(dataset)
         try:
-            self.executor = ProcessPoolExecutor(
+            self.executor = _executor_class()(
                 max_workers=self.workers, mp_context=process_context(), initializer=_init_worker
             )
             with _main_left_alone(), _one_thread_environment():
-                for _ in range(self.workers):  # every worker starts (imports) now, while the score tests run
+                for _ in range(self.workers):  # workers start now, while the score tests run (some later: see above)
                     self.executor.submit(_ready, *warm)
         except BaseException:
             self.shared.close()
