@@ -4,6 +4,7 @@ the segment is gone after a run, after a worker's error and after a worker's cra
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import operator
@@ -325,6 +326,64 @@ def test_the_diagnosis_on_a_dask_cluster_reads_the_same(record, serial):
         ) as cluster:
             got = diagnose(ds, res, scheduler=cluster.scheduler_address)
     _same(serial, got)
+
+
+def test_too_little_shared_memory_keeps_the_fits_on_threads_and_says_so(record, serial, monkeypatch):
+    """A container's /dev/shm (Docker: 64 MB) may not hold a large record: the diagnosis then runs its fits on
+    threads, with the same results, and its notes say why and what to do."""
+    monkeypatch.setattr(_parallel, "BACKEND", "processes")
+    monkeypatch.setattr(_parallel, "shared_memory_free_bytes", lambda: 1000)
+    ds, res = record
+    with _parallel.Pool(ds, workers=2) as pool:
+        assert pool.backend == "threads" and pool.workers == 2 and pool.concurrent
+        assert "shared memory" in pool.note and "--shm-size" in pool.note
+    got = diagnose(ds, res, workers=2)
+    said = [n for n in got.notes if "--shm-size" in n.text]
+    assert len(said) == 1
+    _same(serial, dataclasses.replace(got, notes=[n for n in got.notes if n not in said]))
+    assert [n for n in os.listdir("/dev/shm") if n.startswith(_parallel.SEGMENT_PREFIX + f"{os.getpid()}_")] == []
+
+
+@pytest.mark.skipif(not os.path.exists("/usr/bin/unshare"), reason="needs unshare to mount a small /dev/shm")
+def test_a_shared_memory_full_while_written_is_an_error_not_a_bus_error(tmp_path):
+    """Past the statvfs check (another program may take the room meanwhile), the segment's pages are reserved as
+    it is made: in an 8 MB /dev/shm a 14 MB record raises SharedMemoryFull, where writing it killed the process
+    with a bus error. Runs in a mount namespace of its own (root, Linux); skipped where that is not allowed."""
+    import subprocess
+
+    script = tmp_path / "small_shm.py"
+    script.write_text(
+        "import os\n"
+        "from magcal.data.simulation import chi2017_truth, simulate_timeseries\n"
+        "from magcal.diagnosis import _parallel\n"
+        "_parallel.shared_memory_free_bytes = lambda: None  # as if the room were taken after the check\n"
+        "ds = simulate_timeseries(chi2017_truth(4), n_samples=100_000, noise_nT=3.0, seed=1)\n"
+        "try:\n"
+        "    _parallel.SharedDataset(ds)\n"
+        "except _parallel.SharedMemoryFull as full:\n"
+        "    print('full', full.needed, os.listdir('/dev/shm'))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    probe = subprocess.run(
+        ["unshare", "-m", "sh", "-c", "mount -t tmpfs -o size=8m tmpfs /dev/shm"], capture_output=True, timeout=30
+    )
+    if probe.returncode != 0:
+        pytest.skip("this machine does not allow a mount namespace here")
+    proc = subprocess.run(
+        [
+            "unshare",
+            "-m",
+            "sh",
+            "-c",
+            f'mount -t tmpfs -o size=8m tmpfs /dev/shm && exec "{sys.executable}" "{script}"',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stdout.split()[:1] == ["full"] and proc.stdout.strip().endswith("[]"), proc.stdout
 
 
 def _nap(dataset, seconds):

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import itertools
 import os
 import pickle
@@ -229,15 +230,54 @@ def _aligned(n: int) -> int:
     return (n + _ALIGN - 1) // _ALIGN * _ALIGN
 
 
+#: Where POSIX shared memory lives on Linux (a tmpfs; Docker gives a container 64 MB of it unless told more).
+SHM_DIR = "/dev/shm"
+
+
+def shared_memory_free_bytes():
+    """Bytes free where the shared-memory segments live (:data:`SHM_DIR`), or None where that cannot be read."""
+    try:
+        st = os.statvfs(SHM_DIR)
+    except (OSError, AttributeError):
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+class SharedMemoryFull(MagcalError):
+    """The shared memory has no room for the record (:class:`SharedDataset`); the fits stay on threads."""
+
+    def __init__(self, needed: int, free):
+        self.needed, self.free = int(needed), free
+        room = "too little" if free is None else _megabytes(free)
+        super().__init__(
+            f"the diagnosis ran its fits on threads, not in worker processes: those share the record through shared "
+            f"memory ({SHM_DIR}), which has {room} free where the record needs {_megabytes(needed)} (in a "
+            "container, give it more, e.g. docker run --shm-size=2g)"
+        )
+
+
+def _megabytes(nbytes) -> str:
+    return f"{nbytes / 1e6:,.0f} MB" if nbytes >= 10e6 else f"{nbytes / 1e6:.2g} MB"
+
+
 class SharedDataset:
     """A dataset's arrays in one shared-memory segment, written once, for worker processes to map read-only.
 
     The segment starts with the dataset's other fields and the arrays' layout (pickled, a few hundred bytes), then
     the arrays themselves, each aligned to 64 bytes. :meth:`close` unlinks it (also on leaving a ``with``).
 
+    The segment's pages are reserved as it is made (``posix_fallocate``), so that a shared memory too small for it
+    (a container's 64 MB ``/dev/shm``) raises :class:`SharedMemoryFull` here; written without, the first page past
+    the room would have killed the process with a bus error.
+
     Parameters
     ----------
     dataset : Dataset
+
+    Raises
+    ------
+    SharedMemoryFull
+        The shared memory has no room for the record.
     """
 
     def __init__(self, dataset):
@@ -265,8 +305,20 @@ class SharedDataset:
         start = _aligned(8 + len(header))
         self.name = f"{SEGMENT_PREFIX}{os.getpid()}_{uuid.uuid4().hex[:16]}"
         self.nbytes = start + offset
+        free = shared_memory_free_bytes()
+        if free is not None and free < self.nbytes:
+            self._shm = None
+            raise SharedMemoryFull(self.nbytes, free)
         self._shm = shared_memory.SharedMemory(name=self.name, create=True, size=max(self.nbytes, 1))
         try:
+            fd = getattr(self._shm, "_fd", -1)  # POSIX: the segment's file; reserve its pages now
+            if fd >= 0 and hasattr(os, "posix_fallocate"):
+                try:
+                    os.posix_fallocate(fd, 0, max(self.nbytes, 1))
+                except OSError as exc:
+                    if exc.errno not in (errno.ENOSPC, errno.ENOMEM):
+                        raise
+                    raise SharedMemoryFull(self.nbytes, shared_memory_free_bytes()) from None
             buf = self._shm.buf
             buf[:8] = len(header).to_bytes(8, "little")
             buf[8 : 8 + len(header)] = header
@@ -664,6 +716,7 @@ class Pool:
     """
 
     def __init__(self, dataset=None, scheduler=None, effects=(), warm=(), workers=None):
+        asked = workers
         self.dataset = dataset
         self.backend = (
             "threads" if dataset is None and scheduler is None else backend_for(dataset, workers, scheduler, effects)
@@ -683,7 +736,11 @@ class Pool:
         self.concurrent = False
         try:  # a pool half made (a worker that does not start, no thread left) is closed again: nothing leaks
             if self.backend == "processes":
-                self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
+                try:
+                    self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
+                except SharedMemoryFull as full:  # the fits run here instead, and the diagnosis says why
+                    self.backend, self.note = "threads", str(full)
+                    workers = asked or min(workers or _workers(), _workers())
             elif self.backend == "dask":
                 self._remote = _Dask(dataset, scheduler)
             # with workers elsewhere, enough threads here to keep each busy and still run the local work
