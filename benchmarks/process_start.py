@@ -27,6 +27,8 @@ Each measurement runs in a fresh program (a child of this script), so that every
 - ``again``: in one fresh program, a diagnosis of 4 x 1e5 on threads (4 workers) twice, then in worker processes
   (one per core) three times, then one of another record: what the first diagnosis of a program pays that later
   ones do not (on 16 cores the first in processes took 3.5 s, the later 1.8-2.0 s).
+- ``cli``: ``magcal diagnose`` of a 4 x 1e5 CSV (``magcal.cli.main``) in fresh programs, with the fork server
+  started before the file is read (as shipped) and without: the command's seconds and its diagnosis's.
 - ``gil``: two threads against one on the two kinds of work a fit's sums over blocks hold: matrix products of a
   56 x 8 738 block (BLAS releases the interpreter) and the short numpy calls on 4 369-row columns between them
   (each holds it): why threads inside one fit did not pay.
@@ -36,7 +38,7 @@ Usage::
     python benchmarks/process_start.py                       # every part, about 4 minutes on 2 cores
     python benchmarks/process_start.py --parts pools,cluster
     python benchmarks/process_start.py --parts blas,memory,gil   # the late session's figures
-    python benchmarks/process_start.py --parts early,again
+    python benchmarks/process_start.py --parts early,again,cli
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil", "early", "again")
+PARTS = ("pools", "allocator", "threshold", "cluster", "source", "blas", "memory", "gil", "early", "again", "cli")
 
 
 def _record(n):
@@ -125,6 +127,24 @@ def child_again(n):
     d = diagnose(other, res_other)
     out.append(["processes, another record", time.perf_counter() - t0, d.verdict])
     return out
+
+
+def child_cli(path, early):
+    import contextlib
+    import io
+
+    from magcal.cli import diagnose as command
+    from magcal.cli import main
+
+    if not early:
+        command._start_workers_while_reading = lambda args: False
+    out = io.StringIO()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(out):
+        rc = main(["diagnose", path, "--json"])
+    wall = time.perf_counter() - t0
+    doc = json.loads(out.getvalue())
+    return wall, doc["elapsed_s"], doc["verdict"], rc
 
 
 def child_diagnosis(n, backend, poison=False):
@@ -277,6 +297,7 @@ def main(argv=None):
             "gil": child_gil,
             "early": child_early,
             "again": child_again,
+            "cli": child_cli,
         }
         print(json.dumps(fn[kind](*rest)))
         return
@@ -332,6 +353,19 @@ def main(argv=None):
     if "again" in parts:
         for i, (where, seconds, verdict) in enumerate(run_child("again", 100_000)):
             print(f"again    4 x 100,000, diagnosis {i + 1} of one program, {where:<26}: {seconds:.2f} s ({verdict})")
+    if "cli" in parts:
+        from magcal.data import io as mio
+
+        with tempfile.TemporaryDirectory() as folder:
+            path = str(Path(folder) / "four_1e5.csv")
+            mio.write_csv(path, _record(100_000))
+            for early in (False, True, False, True, False, True):
+                wall, diag, verdict, rc = run_child("cli", path, early)
+                what = "before the file is read" if early else "not started early"
+                print(
+                    f"cli      magcal diagnose 4 x 100,000 CSV, fork server {what:>24}: {wall:.2f} s, of which the "
+                    f"diagnosis {diag:.2f} s ({verdict}, exit {rc})"
+                )
     if "blas" in parts:
         env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
         for n, backend, workers in ((50_000, "threads", 2), (100_000, "processes", 2), (100_000, "threads", 1)):

@@ -457,6 +457,40 @@ def test_a_script_without_a_main_guard_is_not_run_again_in_the_workers(tmp_path)
     assert proc.stdout.count("top level ran") == 1 and "verdict" in proc.stdout
 
 
+def test_the_command_line_starts_the_fork_server_before_reading_a_large_file(tmp_path, monkeypatch):
+    """magcal diagnose starts the worker processes' fork server before it reads the file when the file's size says
+    the fits will run in processes, so that the server's imports run beside the reading; not for a small file, a
+    user's effects file or a cluster."""
+    import argparse
+
+    from magcal.cli import diagnose as command
+
+    monkeypatch.setattr(_parallel, "BACKEND", None)
+    monkeypatch.setattr(_parallel, "PARALLEL_FITS", None)
+    monkeypatch.setattr(_parallel, "cores", lambda: 2)
+    started = []
+    real = command.start_workers
+    monkeypatch.setattr(command, "start_workers", lambda **kw: started.append(kw) or real(**kw))
+    from multiprocessing import forkserver
+
+    monkeypatch.setattr(forkserver, "ensure_running", lambda: None)  # the decision, not the server
+    big, small = tmp_path / "big.csv", tmp_path / "small.csv"
+    big.write_bytes(b"1" * (command.FILE_BYTES_PER_READING * _parallel.PROCESS_MIN_READINGS))
+    small.write_bytes(b"1" * (command.FILE_BYTES_PER_READING * _parallel.PROCESS_MIN_READINGS - 8))
+
+    def args(path, **kw):
+        return argparse.Namespace(**{"data": str(path), "workers": None, "effects_file": None, "scheduler": None, **kw})
+
+    assert command._start_workers_while_reading(args(big))
+    assert started[-1]["readings"] == _parallel.PROCESS_MIN_READINGS
+    assert not command._start_workers_while_reading(args(small))
+    assert not command._start_workers_while_reading(args(big, workers=1))
+    assert not command._start_workers_while_reading(args(big, effects_file=["mine.py"]))
+    assert not command._start_workers_while_reading(args(big, scheduler="tcp://127.0.0.1:9"))
+    assert not command._start_workers_while_reading(args(tmp_path / "missing.csv"))
+    assert len(started) == 3  # big, small, one worker: the others decided before asking
+
+
 def test_the_command_line_takes_the_cores_and_refuses_too_many(tmp_path, record, capsys):
     from magcal.cli import main
     from magcal.data import io as mio

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from magcal.checks.coverage import calibration_input_checks
@@ -37,7 +38,7 @@ from magcal.cli.calibrate import (
 )
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
-from magcal.diagnosis import diagnose
+from magcal.diagnosis import diagnose, start_workers
 from magcal.diagnosis._parallel import cores
 from magcal.fitting.pipeline import calibrate
 
@@ -108,6 +109,25 @@ def add_arguments(parser) -> None:
     add_noise_argument(parser)
 
 
+#: Bytes of a data file per reading (sensor x sample), at least: a CSV's "49871.23," is 9 and a file has a time
+#: column besides (a Parquet float64, compressed, a little less). The file's size over this overstates its readings,
+#: which only decides whether the worker processes' fork server starts while the file is read.
+FILE_BYTES_PER_READING = 8
+
+
+def _start_workers_while_reading(args) -> bool:
+    """Start the diagnosis's worker processes' fork server now, if its fits will likely run in worker processes,
+    so that its imports run while the file is read and the record calibrated
+    (:func:`magcal.diagnosis.start_workers`). Not with a user's effects file (their fits stay on threads)."""
+    if getattr(args, "effects_file", None) or getattr(args, "scheduler", None):
+        return False
+    try:
+        size = os.path.getsize(args.data)
+    except (OSError, TypeError, ValueError):
+        return False
+    return start_workers(workers=getattr(args, "workers", None), readings=size // FILE_BYTES_PER_READING)
+
+
 def run(args) -> int:
 
     if args.reference is not None and not args.reference > 0:
@@ -119,6 +139,7 @@ def run(args) -> int:
 
     checked_noise(args)
     names = checked_effect_names(args)
+    _start_workers_while_reading(args)
     ds, notes = read_input(args)
     quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate

@@ -193,7 +193,7 @@ ELSEWHERE_NOTE = (
 )
 
 
-def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
+def backend_for(dataset, workers=None, scheduler=None, effects=(), readings=None) -> str:
     """``"dask"``, ``"processes"`` or ``"threads"``: where a diagnosis of ``dataset`` runs its fits.
 
     A scheduler means Dask, unless an effect is not magcal's own (a user's effects file: the cluster's workers
@@ -201,7 +201,7 @@ def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
     Otherwise :data:`BACKEND` when set; else processes when there is more than one worker, the record holds at
     least :data:`PROCESS_MIN_READINGS` readings (:data:`PROCESS_MIN_READINGS_MANY` with :data:`MANY_WORKERS` workers
     or more) and every effect is magcal's own (:func:`own_effects`: ``effects``, models or effect classes); threads
-    otherwise.
+    otherwise. Without a dataset, ``readings`` (sensors x samples, an estimate: the file is not read yet) decides.
     """
     if scheduler is not None:
         return "dask" if own_effects(*effects) else "threads"
@@ -209,10 +209,12 @@ def backend_for(dataset, workers=None, scheduler=None, effects=()) -> str:
     if BACKEND is not None:
         return BACKEND if (BACKEND == "threads" or mine) else "threads"
     workers = _workers(cap=MAX_PROCESSES) if workers is None else int(workers)
-    if workers <= 1 or dataset is None or not mine:
+    if dataset is not None:
+        readings = dataset.n_sensors * dataset.n_samples
+    if workers <= 1 or readings is None or not mine:
         return "threads"
     least = PROCESS_MIN_READINGS_MANY if workers >= MANY_WORKERS else PROCESS_MIN_READINGS
-    return "processes" if dataset.n_sensors * dataset.n_samples >= least else "threads"
+    return "processes" if readings >= least else "threads"
 
 
 def _in_daemon() -> bool:
@@ -489,16 +491,17 @@ def process_context():
     return ctx
 
 
-def start_workers(dataset, workers=None, scheduler=None, effects=()) -> bool:
+def start_workers(dataset=None, workers=None, scheduler=None, effects=(), readings=None) -> bool:
     """Start now, in the background, what a diagnosis of ``dataset`` will fork its worker processes from.
 
     The fork server (:func:`process_context`) imports numpy, scipy and magcal once per program: 0.8-1.0 s on the
     2-core development machine before the first pool's first worker can start, time the diagnosis would otherwise
     spend waiting. The workbench calls this when a session opens a record: those imports then run while the user
     looks at the page, and the first Diagnose finds the server ready (first worker in 0.03 s instead of 0.8 s).
-    ``magcal diagnose`` does not: it calibrates the record right after reading it, and that fit's BLAS threads
-    then share the cores with the server's imports (2 cores: the calibration 0.6 -> 1.45 s, the diagnosis 4.4 ->
-    3.4 s, no gain; ``benchmarks/process_start.py --parts early``).
+    ``magcal diagnose`` calls it before it reads the file, with ``readings`` estimated from the file's size, so
+    that the imports run beside the reading (started only as the calibration began, its BLAS threads shared the
+    cores with them: on 2 cores the calibration 0.6 -> 1.45 s for 1 s gained in the diagnosis;
+    ``benchmarks/process_start.py --parts early,cli``).
 
     Does nothing (and returns False) where the diagnosis would run its fits on threads or a Dask cluster
     (:func:`backend_for` with the same arguments), or where the platform has no fork server; starting it twice
@@ -509,7 +512,7 @@ def start_workers(dataset, workers=None, scheduler=None, effects=()) -> bool:
     bool
         Whether the fork server is running (started now or before).
     """
-    if backend_for(dataset, workers, scheduler, effects) != "processes":
+    if backend_for(dataset, workers, scheduler, effects, readings) != "processes":
         return False
     if process_context().get_start_method() != "forkserver":
         return False
