@@ -37,6 +37,8 @@ Usage::
     python benchmarks/real.py qmc_filtered sf_fullsphere --steps 2
 
 Writes ``benchmarks/out/real_loop.json`` (everything) and ``benchmarks/out/real_loop.csv`` (one row per step);
+with ``--transfer-only`` (no loop), ``real_transfer.json`` and ``.csv`` instead, so that the loop's committed
+output is not replaced by a partial one;
 ``--figures`` adds ``benchmarks/out/real_<name>.png`` (residuals of the first and last model against time,
 temperature and, for the balloon flight, altitude).
 The independent fit needs nothing beyond numpy. (magyc, the obvious PyPI alternative, pins numpy < 2 and needs
@@ -809,7 +811,12 @@ def main(argv=None) -> int:
     parser.add_argument("names", nargs="*", help="recordings (file stems in benchmarks/real/data); default all")
     parser.add_argument("--steps", type=int, default=3, help="most effects added by the loop (default 3)")
     parser.add_argument("--data-dir", type=Path, default=DATA_DIR)
-    parser.add_argument("--out", type=Path, default=OUT_DIR / "real_loop.json")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="JSON output (default benchmarks/out/real_loop.json; real_transfer.json with --transfer-only)",
+    )
     parser.add_argument(
         "--figures",
         action="store_true",
@@ -826,6 +833,8 @@ def main(argv=None) -> int:
         help="also measure which level a record-only term should leave for new data (kept_level_study)",
     )
     args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = OUT_DIR / ("real_transfer.json" if args.transfer_only else "real_loop.json")
     paths = sorted(args.data_dir.glob("*.csv"))
     if args.names:
         paths = [p for p in paths if p.stem in args.names]
