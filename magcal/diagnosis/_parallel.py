@@ -42,7 +42,7 @@ import queue
 import sys
 import threading
 import uuid
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 
@@ -441,7 +441,7 @@ def _ready(*functions):
     return os.getpid()
 
 
-_MAIN_LOCK = threading.RLock()  # re-entered: a worker started within _Processes's start-up
+_MAIN_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -567,7 +567,7 @@ def one_blas_thread(active=True):
                 _BLAS_LIMITER = None
 
 
-_ENV_LOCK = threading.RLock()  # re-entered likewise
+_ENV_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -587,10 +587,7 @@ def _one_thread_environment():
                     os.environ[name] = value
 
 
-_EXECUTOR = None
-
-
-def _executor_class():
+class _Executor(ProcessPoolExecutor):
     """:class:`~concurrent.futures.ProcessPoolExecutor` whose every worker process starts with the caller's script
     hidden (:func:`_main_left_alone`) and BLAS told one thread (:func:`_one_thread_environment`).
 
@@ -600,17 +597,10 @@ def _executor_class():
     without a ``__main__`` guard was otherwise run again in them. The executor starts each worker in its
     ``_spawn_process`` (CPython 3.9 and later); tests/test_scale_out.py checks every start.
     """
-    global _EXECUTOR
-    if _EXECUTOR is None:
-        from concurrent.futures import ProcessPoolExecutor
 
-        class Executor(ProcessPoolExecutor):
-            def _spawn_process(self):
-                with _main_left_alone(), _one_thread_environment():
-                    super()._spawn_process()
-
-        _EXECUTOR = Executor
-    return _EXECUTOR
+    def _spawn_process(self):
+        with _main_left_alone(), _one_thread_environment():
+            super()._spawn_process()
 
 
 class _Processes:
@@ -620,12 +610,9 @@ class _Processes:
         self.workers = int(workers)
         self.shared = SharedDataset(dataset)
         try:
-            self.executor = _executor_class()(
-                max_workers=self.workers, mp_context=process_context(), initializer=_init_worker
-            )
-            with _main_left_alone(), _one_thread_environment():
-                for _ in range(self.workers):  # workers start now, while the score tests run (some later: see above)
-                    self.executor.submit(_ready, *warm)
+            self.executor = _Executor(max_workers=self.workers, mp_context=process_context(), initializer=_init_worker)
+            for _ in range(self.workers):  # workers start now, while the score tests run (some later: _Executor)
+                self.executor.submit(_ready, *warm)
         except BaseException:
             self.shared.close()
             raise
@@ -743,7 +730,7 @@ class Pool:
                     self._remote = _Processes(dataset, workers or _workers(cap=MAX_PROCESSES), warm)
                 except SharedMemoryFull as full:  # the fits run here instead, and the diagnosis says why
                     self.backend, self.note = "threads", str(full)
-                    workers = asked or min(workers or _workers(), _workers())
+                    workers = asked or min(workers, _workers())
             elif self.backend == "dask":
                 self._remote = _Dask(dataset, scheduler)
             # with workers elsewhere, enough threads here to keep each busy and still run the local work

@@ -635,6 +635,11 @@ def _cancel(futures) -> None:
         future.cancel()
 
 
+def _refit_supports(c) -> bool:
+    """Whether the candidate's refit converged and supports it in-sample: the forward selection may take it next."""
+    return c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None
+
+
 def _predicted_best(cands):
     """The candidate whose score test predicts the lowest delta-BIC, or None."""
     return min(cands, key=lambda c: c.predicted_delta_bic) if cands else None
@@ -889,7 +894,7 @@ def _after_scores(
     beside = _BesideRefits(pool, early, fit0)
 
     def after_refit(c):
-        if c is predicted_best and pool.concurrent and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit:
+        if c is predicted_best and pool.concurrent and _refit_supports(c):
             ahead[c.label] = next_round(c)
         beside.after(c)
 
@@ -1003,7 +1008,7 @@ def _after_scores(
         round_ahead = {}
 
         def after(c, handed=round_ahead, scores=step + 2 < max_effects, beside=round_beside):
-            if pool.concurrent and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit:
+            if pool.concurrent and _refit_supports(c):
                 handed[c.label] = next_round(c, scores)
             beside.after(c)
 

@@ -336,11 +336,10 @@ def validate(
         candidate's predicted start in the diagnosis) to start the maximum-likelihood fit of the training samples
         from, instead of the ellipsoid and Procrustes steps. The training fit is then the one-step estimator
         (:func:`magcal.fitting.fitter.fit` with ``max_steps=1``): such a start lies within a few standard errors
-        of the training samples' minimum,
-        and one Gauss-Newton step from there reaches it to first order (its remaining error is second order in
-        that distance, far below the held-out RMS's own spread), for one pass over the training samples. The
-        effects' data-derived constants (a step time, a reference time) are still found from the training
-        samples alone.
+        of the training samples' minimum, and one Gauss-Newton step from there reaches it to first order (its
+        remaining error is second order in that distance, far below the held-out RMS's own spread), for one pass
+        over the training samples. The effects' data-derived constants (a step time, a reference time) are still
+        found from the training samples alone.
 
     Returns
     -------
