@@ -8,12 +8,17 @@ the data CSV, turn it into a dataset with :func:`magcal.data.dataset.as_dataset`
 
 from __future__ import annotations
 
+from magcal.checks.reference import resolve_vector_reference
 from magcal.core import notes as _notes
+from magcal.core.errors import MagcalError
+from magcal.data.attitude import attitude_source
 from magcal.data.inputs import as_dataset
 from magcal.data.io import read_csv
 from magcal.diagnosis import diagnose as _diagnose
+from magcal.diagnosis.vector import Flight, diagnose_vector
 from magcal.fitting import pipeline
 from magcal.fitting.validation import validate_effects
+from magcal.fitting.vector import VectorFitResult
 
 __all__ = ["read_csv", "calibrate", "diagnose", "as_dataset"]
 
@@ -119,8 +124,9 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
     ----------
     data : Dataset, array_like or pandas.DataFrame
         Raw readings as for :func:`calibrate` (the same record the ``result`` was fitted on).
-    result : CalibrationResult or FitResult, optional
-        The fitted model to diagnose; without it the base model (plus ``effects=``) is fitted first.
+    result : CalibrationResult, FitResult or VectorFitResult, optional
+        The fitted model to diagnose; without it the base model (plus ``effects=``) is fitted first. A vector fit's
+        result (:func:`magcal.fitting.vector.fit_vector`) is diagnosed in vector mode.
     reference_total_nT : float, optional
         Known total field in nT (when ``result`` is not given).
     t : array_like, shape (N,), optional
@@ -136,6 +142,11 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
         ``max_effects``, ``progress``, ``validate``: judge the candidates on held-out samples, default True;
         ``noise_nT``: the noise per axis in nT, if known, used instead of any estimate; ``workers``: cores for the
         independent fits, default every one; ``scheduler``: a Dask scheduler's address or client to run them on).
+        Vector mode (a record with the attitude and the field vector, :func:`magcal.diagnosis.vector.diagnose_vector`):
+        ``mode`` (``"auto"``: vector when the record has both and no total-field result is given; ``"scalar"``;
+        ``"vector"``), ``reference`` (the field vector: ``[N, E, D]`` nT, a VectorReference, or ``"igrf"`` along
+        the ``lat, lon, alt_m`` columns; default the ``ref_n, ref_e, ref_d`` columns), ``also`` (other flights of
+        the same vehicle: datasets with those columns, ``(data, reference)`` pairs or Flights), ``attitude_noise_deg``.
 
     Returns
     -------
@@ -153,7 +164,79 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
     """
 
     dataset = as_dataset(data, reference_total_nT=reference_total_nT, t=t, temp=temp)
-    diagnosis = _diagnose(dataset, result, **options)
+    mode = options.pop("mode", "auto")
+    reference = options.pop("reference", None)
+    also = options.pop("also", ())
+    vector = _vector_mode(dataset, result, mode, reference)
+    if vector is not None:
+        flights = [_flight(f, i) for i, f in enumerate(also or (), 1)]
+        vector_options = {k: v for k, v in options.items() if k in _VECTOR_OPTIONS}
+        diagnosis = diagnose_vector(dataset, vector, result=result, also=flights, **vector_options)
+    else:
+        if also:
+            raise MagcalError(
+                "also=: other flights judge a vector calibration; these data are diagnosed in scalar mode"
+            )
+        diagnosis = _diagnose(dataset, result, **options)
     if warn:
         _notes.warn(diagnosis.notes)
     return diagnosis
+
+
+#: The options of :func:`magcal.diagnosis.vector.diagnose_vector` that :func:`diagnose` passes on in vector mode.
+_VECTOR_OPTIONS = (
+    "effects",
+    "candidates",
+    "max_effects",
+    "attitude_noise_deg",
+    "noise_nT",
+    "reference_total_nT",
+    "robust",
+    "validate",
+    "top",
+    "progress",
+)
+
+
+def _vector_mode(dataset, result, mode, reference):
+    """The field vector to diagnose a vector calibration against, or None for the scalar diagnosis: a vector fit's
+    result, ``mode="vector"``, or (``"auto"``, no result given) a record with the attitude and a field vector."""
+    if mode not in ("auto", "scalar", "vector"):
+        raise MagcalError(f"mode must be 'auto', 'scalar' or 'vector', got {mode!r}")
+    if isinstance(result, VectorFitResult):
+        if mode == "scalar":
+            raise MagcalError("mode='scalar' with a vector fit's result: give a total-field calibration's result")
+        return result.reference
+    if mode == "scalar" or result is not None:
+        if mode == "vector":
+            raise MagcalError("mode='vector' takes a vector fit's result (magcal.fitting.vector.fit_vector) or none")
+        return None
+    if attitude_source(dataset) is None:
+        if mode == "vector":
+            raise MagcalError("mode='vector' needs the attitude: qw..qz or roll_deg, pitch_deg, yaw_deg")
+        return None
+    if reference is None or isinstance(reference, str):
+        found = resolve_vector_reference(dataset, reference=reference)
+    elif hasattr(reference, "ned_nT"):
+        found = reference
+    else:
+        found = resolve_vector_reference(dataset, vector=reference)
+    if found is None and mode == "vector":
+        raise MagcalError(
+            "mode='vector' needs the field vector: ref_n, ref_e, ref_d columns, reference=[N, E, D] (nT) or "
+            "reference='igrf' with lat, lon, alt_m columns"
+        )
+    return found
+
+
+def _flight(item, number):
+    """An ``also=`` entry as a :class:`~magcal.diagnosis.vector.Flight`: a Flight, a ``(data, reference)`` pair, or
+    data whose ``ref_n, ref_e, ref_d`` columns give its field vector."""
+    if isinstance(item, Flight):
+        return item
+    data, reference = item if isinstance(item, tuple) else (item, None)
+    ds = as_dataset(data)
+    ref = reference if reference is not None else resolve_vector_reference(ds)
+    if ref is None:
+        raise MagcalError(f"also[{number - 1}]: no field vector (ref_n, ref_e, ref_d columns); give (data, reference)")
+    return Flight(ds, ref, ds.source or f"flight {number + 1}")

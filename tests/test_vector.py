@@ -168,8 +168,10 @@ def test_platform_terms_are_recovered_and_matter():
     flight, tr = simulate_vehicle(truth, seed=7, n=6000)
     other, _ = simulate_vehicle(truth, seed=8, n=6000)
     ref = resolve_vector_reference(flight)
-    result = fit_vector(flight, ref)
-    assert result.terms == ["eddy", "current"]
+    assert fit_vector(flight, ref, warn=False).terms == []  # nothing beyond the base model unless asked
+    result = fit_vector(flight, ref, effects=["eddy_currents", "current_field"])
+    assert result.terms == ["eddy_currents", "current_field"]
+    assert fit_vector(flight, ref, terms=["eddy", "current"], warn=False).terms == result.terms  # the old names
     s, t = result.sensors[0], tr.sensors[0]
     assert np.max(np.abs(s.terms["current_nT_per_unit"] - t.current_nT_per_unit)) < 0.5  # nT/A of ~25
     assert np.max(np.abs(s.terms["eddy_ms"] - t.eddy_ms)) < 1.5  # ms of ~10
@@ -202,22 +204,35 @@ def test_vector_fit_refuses_data_without_attitude():
 def test_vector_calibration_json_round_trip_and_old_files_load_as_scalar(tmp_path):
     truth = vehicle_truth(seed=5, eddy=True, current=True)
     flight, _ = simulate_vehicle(truth, seed=5, n=1500)
-    cal = fit_vector(flight, resolve_vector_reference(flight)).calibration
+    cal = fit_vector(flight, resolve_vector_reference(flight), effects=["eddy_currents", "current_field"]).calibration
     cal.save(tmp_path / "cal.json")
     back = Calibration.load(tmp_path / "cal.json")
-    assert back.mode == "vector" and back.frame == "body" and back.platform.names == ["eddy", "current"]
+    assert back.mode == "vector" and back.frame == "body" and back.platform is None
+    assert back.model.effect_labels == ["eddy_currents", "current_field"]
     assert np.allclose(back.world(flight), cal.world(flight))
     doc = json.loads((tmp_path / "cal.json").read_text())
     assert doc["sensors"][0]["mounting_rotation_number"] == 10
-    for key in ("mode", "platform_terms", "vector_fit"):
-        doc.pop(key)
-    old = Calibration.from_dict(doc)
+    # a file of an earlier version held the same terms as platform_terms: it loads and corrects the same
+    values = cal.effect_values
+    old_doc = {k: v for k, v in doc.items() if k not in ("effects", "effect_params", "base_terms", "base_covariance")}
+    old_doc["platform_terms"] = {
+        "eddy_ms": [np.reshape(values["eddy_currents:1"], (3, 3)).tolist()],
+        "current_nT_per_unit": [np.asarray(values["current_field:1"]).tolist()],
+        "current_column": "current_A",
+    }
+    earlier = Calibration.from_dict(old_doc)
+    assert earlier.platform.names == ["eddy", "current"] and earlier.model is None
+    assert np.max(np.abs(earlier.world(flight) - cal.world(flight))) < 1e-6
+    for key in ("mode", "vector_fit"):
+        old_doc.pop(key)
+    old_doc.pop("platform_terms")
+    old = Calibration.from_dict(old_doc)
     assert old.mode == "scalar" and old.platform is None
     with pytest.raises(MagcalError, match="world components need a vector calibration"):
         old.world(flight)
-    doc["platform_terms"] = {"eddy_ms": [[1, 2]]}
+    old_doc["platform_terms"] = {"eddy_ms": [[1, 2]]}
     with pytest.raises(MagcalError, match="platform_terms.eddy_ms"):
-        Calibration.from_dict(doc)
+        Calibration.from_dict(old_doc)
 
 
 def test_world_tensor_of_the_cross_recovers_a_world_gradient():
@@ -258,11 +273,12 @@ def test_cli_calibrate_apply_export_in_vector_mode(tmp_path, capsys):
     two, _ = simulate_vehicle(truth, seed=12, n=2000)
     _write_flight(tmp_path / "one.csv", one)
     _write_flight(tmp_path / "two.csv", two, euler=True)  # the other attitude form
-    assert main(["calibrate", str(tmp_path / "one.csv"), "-o", str(tmp_path / "cal.json"), "--json"]) == 0
+    args = ["calibrate", str(tmp_path / "one.csv"), "-o", str(tmp_path / "cal.json"), "--json"]
+    assert main(args + ["--effects", "eddy_currents,current_field"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["mode"] == "vector" and doc["terms"] == ["eddy", "current"]
+    assert doc["mode"] == "vector" and doc["terms"] == ["eddy_currents", "current_field"]
     held = {tuple(r["terms"]): r["held_total_nT"] for r in doc["validation"]["rows"]}
-    assert held[("eddy", "current")] < 0.5 * held[()]  # the current's field: fitted, it carries to held-out blocks
+    assert held[("eddy_currents", "current_field")] < 0.5 * held[()]  # the current's field carries to held-out data
     assert doc["sensors"][0]["mounting_right_angle"].startswith("ROLL_180_YAW_90")
     out = tmp_path / "out.csv"
     assert main(["apply", str(tmp_path / "cal.json"), str(tmp_path / "two.csv"), "-o", str(out)]) == 0
@@ -278,7 +294,7 @@ def test_cli_calibrate_apply_export_in_vector_mode(tmp_path, capsys):
     with pytest.raises(MagcalError):
         export_calibration(Calibration.load(tmp_path / "cal.json"), "px4")
     cal = Calibration.load(tmp_path / "cal.json")
-    cal.platform = None  # what the firmware's correction leaves out: the current term
+    cal.model, cal.effect_values = None, {}  # what the firmware's correction leaves out: the effects
     px4 = export_calibration(cal, "px4", force=True)
     ardu = export_calibration(cal, "ardupilot", force=True)
     assert px4.parameters["CAL_MAG0_ROT"] == 10 and ardu.parameters["COMPASS_ORIENT"] == 10
@@ -454,7 +470,7 @@ def test_apply_to_parquet_writes_world_components_equal_to_the_csv_path(tmp_path
     truth = vehicle_truth(seed=14, eddy=True, current=True)
     one, _ = simulate_vehicle(truth, seed=14, n=1500)
     two, _ = simulate_vehicle(truth, seed=15, n=1500)
-    cal = fit_vector(one, resolve_vector_reference(one)).calibration
+    cal = fit_vector(one, resolve_vector_reference(one), effects=["eddy_currents", "current_field"]).calibration
     cal.save(tmp_path / "cal.json")
     _write_flight(tmp_path / "two.csv", two, euler=True)
     mio.write_parquet(tmp_path / "two.parquet", dataset_columns(two), dataset_metadata(two))
@@ -506,8 +522,9 @@ def test_ardupilot_log_with_attitude_and_battery_current_calibrates_in_vector_mo
     args = ["calibrate", str(path), "--reference-vector", f"{n},{e},{d}", "--platform-terms", "current", "--json"]
     assert main(args) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["mode"] == "vector" and doc["terms"] == ["current"]
-    per_amp = np.array(doc["calibration"]["platform_terms"]["current_nT_per_unit"][0])
+    assert doc["mode"] == "vector" and doc["terms"] == ["current_field"]
+    (entry,) = [e for e in doc["calibration"]["effect_params"] if e["term"] == "current_field"]
+    per_amp = np.array(list(entry["params"].values()))
     assert np.max(np.abs(per_amp - tr.sensors[0].current_nT_per_unit)) < 1.0  # nT/A, of ~25
     assert doc["sensors"][0]["mounting_rotation_number"] == 0
     assert doc["sensors"][0]["mounting_angle_off_deg"] == pytest.approx(2.0, abs=0.1)
@@ -557,8 +574,9 @@ def test_held_out_check_judges_the_platform_terms(with_terms):
         ]
     v = validate_vector(ds, resolve_vector_reference(ds))
     rows = {tuple(r["terms"]): r for r in v.rows}
-    assert set(rows) == {(), ("eddy",), ("current",), ("eddy", "current")}
-    base, full = rows[()], rows[("eddy", "current")]
+    both = ("eddy_currents", "current_field")
+    assert set(rows) == {(), both[:1], both[1:], both}
+    base, full = rows[()], rows[both]
     if with_terms:
         assert full["held_total_nT"] < 0.2 * base["held_total_nT"]
         assert full["held_vector_nT"] < 0.5 * base["held_vector_nT"]

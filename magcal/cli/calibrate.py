@@ -43,8 +43,7 @@ from magcal.data.attitude import attitude_present, attitude_source
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.validation import validate_effects
-from magcal.fitting.vector import fit_vector, validate_vector
-from magcal.model.platform_terms import TERMS as PLATFORM_TERMS
+from magcal.fitting.vector import PLATFORM_EFFECTS, fit_vector, validate_vector, vector_model
 from magcal.model.terms import check_effect_names
 
 
@@ -110,10 +109,11 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument(
         "--platform-terms",
-        default="auto",
+        default="none",
         metavar="LIST",
-        help="vector mode: platform fields to fit, comma-separated eddy (needs t), current (needs current_A or "
-        "throttle), or none; auto (default): every one the data support",
+        help="vector mode, the names of earlier versions: eddy (the effect eddy_currents) and current "
+        "(current_field), comma-separated, auto (every one the data support) or none (default); --effects takes "
+        "them and every other effect",
     )
     parser.add_argument(
         "--method",
@@ -230,19 +230,22 @@ def calibrate_options(args) -> dict:
 
 
 def _platform_terms(args):
-    text = str(getattr(args, "platform_terms", "auto") or "auto").strip().lower()
+    text = str(getattr(args, "platform_terms", "none") or "none").strip().lower()
     if text == "auto":
-        return None
+        return list(PLATFORM_EFFECTS)
     if text == "none":
         return []
     names = [t.strip() for t in text.split(",") if t.strip()]
     for t in names:
-        if t not in PLATFORM_TERMS:
-            raise MagcalError(f"--platform-terms: unknown term {t!r}; use {', '.join(PLATFORM_TERMS)}, auto or none")
+        if t not in PLATFORM_EFFECTS:
+            raise MagcalError(
+                f"--platform-terms: unknown term {t!r}; use {', '.join(PLATFORM_EFFECTS)}, auto or none (or "
+                "--effects eddy_currents,current_field)"
+            )
     return names
 
 
-def choose_mode(args, ds):
+def choose_mode(args, ds, command="calibrate"):
     """``("vector", reference)`` or ``("scalar", None)`` from ``--mode`` and what the data hold."""
     mode = getattr(args, "mode", "auto") or "auto"
     if mode == "scalar":
@@ -258,7 +261,7 @@ def choose_mode(args, ds):
     present = attitude_present(ds)
     if mode == "auto" and present is not None and not present.any():  # e.g. a recording no ATTITUDE reached
         print(
-            f"magcal calibrate: {args.data}: the attitude columns are empty on every row (no sample has an attitude): "
+            f"magcal {command}: {args.data}: the attitude columns are empty on every row (no sample has an attitude): "
             "the total-field fit",
             file=sys.stderr,
         )
@@ -275,19 +278,36 @@ def choose_mode(args, ds):
     return "vector", vref
 
 
-def run_vector(args, ds, vref, notes) -> int:
-    """``magcal calibrate`` in vector mode (:func:`magcal.fitting.vector.fit_vector`)."""
-    if checked_effect_names(args):
-        raise MagcalError("--effects: the vector fit takes platform terms (--platform-terms), not catalogue effects")
+def checked_attitude_noise(args):
+    """``--attitude-noise-deg`` checked: an angle in [0, 90) deg, or None."""
     att = getattr(args, "attitude_noise_deg", None)
     if att is not None and not (att >= 0 and att < 90):
         raise MagcalError(f"--attitude-noise-deg must be an angle between 0 and 90 deg, got {att}")
+    return att
+
+
+def vector_effects(args, ds) -> list:
+    """The effects of a vector fit from ``--effects`` and ``--platform-terms`` (its names of earlier versions),
+    checked against the data (:func:`magcal.fitting.vector.vector_model`): one clear message otherwise."""
+    names = checked_effect_names(args) + [PLATFORM_EFFECTS[t] for t in _platform_terms(args)]
+    names = list(dict.fromkeys(names))
+    try:
+        vector_model(ds, names)
+    except (CalibrationError, MagcalError) as exc:
+        raise MagcalError(f"{args.data}: --effects: {exc}") from None
+    return names
+
+
+def run_vector(args, ds, vref, notes) -> int:
+    """``magcal calibrate`` in vector mode (:func:`magcal.fitting.vector.fit_vector`)."""
+    att = checked_attitude_noise(args)
+    effects = vector_effects(args, ds)
     print(f"magcal calibrate: vector mode; reference: {vref.text}", file=sys.stderr)
     try:
         result = fit_vector(
             ds,
             vref,
-            terms=_platform_terms(args),
+            effects=effects,
             attitude_noise_deg=att,
             noise_nT=checked_noise(args),
             reference_total_nT=ds.ref_total_nT,
@@ -303,7 +323,7 @@ def run_vector(args, ds, vref, notes) -> int:
             validation = validate_vector(
                 ds,
                 vref,
-                terms=result.terms,
+                effects=result.terms,
                 attitude_noise_deg=att,
                 noise_nT=checked_noise(args),
                 reference_total_nT=ds.ref_total_nT,

@@ -7,6 +7,8 @@ Example::
     magcal diagnose hidden.csv --effects temperature_bias:2 --json
     magcal diagnose field.csv --effects-file my_effects.py      # your own effects are candidates too
     magcal diagnose field.csv --noise 80                         # the noise per axis is known: 80 nT
+    magcal diagnose flight1.csv --also flight2.csv              # a vehicle: attitude and the field vector
+    magcal diagnose flight.bin --reference igrf --also next.bin  # a flight log, IGRF along the track
 
 Fits the base model (plus ``--effects``), then prints a ranked table of candidate effects (score test, confirmed
 by refitting the best ones) and a verdict: ``adequate``, ``missing_effect`` or ``unexplained``. With ``--json``
@@ -17,6 +19,14 @@ first), ``validation`` (the held-out judgement: a candidate is recommended only 
 fit did not see; ``--no-validate`` skips it), ``quality`` (every finding of
 :func:`magcal.checks.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
 quality" section with the notable findings.
+
+Vector mode (issue 40). A record with the attitude and the field vector (``ref_n, ref_e, ref_d`` columns,
+``--reference-vector``, ``--reference igrf`` at ``--lat/--lon`` or along ``lat, lon, alt_m``) is diagnosed on the
+vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): the candidates are judged on the world north/east/down
+residuals and ``|B|``, fitted on the earlier part and applied to the later part (and to every ``--also`` flight of
+the same vehicle) as ``magcal apply`` applies them. ``--mode scalar|vector`` forces one (``auto``, the default,
+takes the vector fit when the record has both); ``--json`` then prints the vector diagnosis's document (``mode``:
+``vector``).
 """
 
 from __future__ import annotations
@@ -28,18 +38,29 @@ import sys
 
 from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.quality import assess, field_magnitude_finding
+from magcal.checks.reference import (
+    add_reference_arguments,
+    add_vector_reference_arguments,
+    reference_from_args,
+    vector_reference_from_args,
+)
 from magcal.cli.calibrate import (
     add_input_arguments,
     add_noise_argument,
+    checked_attitude_noise,
     checked_effect_names,
     checked_noise,
+    choose_mode,
     named_error,
     read_input,
+    vector_effects,
 )
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
+from magcal.data.attitude import attitude_source
 from magcal.diagnosis import diagnose, start_workers
 from magcal.diagnosis._parallel import cores
+from magcal.diagnosis.vector import JUDGE_TOP, Flight, diagnose_vector
 from magcal.fitting.pipeline import calibrate
 
 
@@ -70,13 +91,30 @@ def add_arguments(parser) -> None:
         "temperature_bias,bias_step:2); repeatable. Every catalogue effect, and your own "
         "from --effects-file, is a candidate of the diagnosis",
     )
+    add_reference_arguments(parser)
+    add_vector_reference_arguments(parser)
     parser.add_argument(
-        "--reference",
+        "--mode",
+        default="auto",
+        choices=("auto", "scalar", "vector"),
+        help="scalar: the total-field fit; vector: the fit with attitude and the field vector (ref_n, ref_e, ref_d, "
+        "--reference-vector or --reference igrf), judged on the world components; auto (default): vector when the "
+        "record has both (docs/vector.md)",
+    )
+    parser.add_argument(
+        "--also",
+        action="append",
+        default=None,
+        metavar="FILE",
+        help="vector mode: another flight of the same vehicle (read with the same options); a candidate is "
+        "recommended only if it improves it too (repeatable)",
+    )
+    parser.add_argument(
+        "--attitude-noise-deg",
         type=float,
         default=None,
-        metavar="NT",
-        help="known total field in nT (default: the file's ref_total column or reference_total_nT "
-        "line; without either the magnitude is fitted)",
+        metavar="DEG",
+        help="vector mode: the attitude's error per axis (deg, 1 sigma); estimated if not given",
     )
     parser.add_argument(
         "--top", type=int, default=3, metavar="K", help="number of candidate effects confirmed by refitting (default 3)"
@@ -128,25 +166,62 @@ def _start_workers_while_reading(args) -> bool:
     return start_workers(workers=getattr(args, "workers", None), readings=size // FILE_BYTES_PER_READING)
 
 
+def _scalar_reference(args, ds):
+    """``(dataset, number or None)`` for the scalar diagnosis from ``--reference``: a number in nT is passed on as
+    before; ``igrf``, ``column`` or ``fit`` are resolved into the dataset as ``magcal calibrate`` does."""
+    text = getattr(args, "reference", None)
+    if text is None:
+        return ds, None
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        value = None
+    if value is not None:
+        if not value > 0 or value != value:
+            raise MagcalError(f"--reference must be a positive field in nT, got {text}")
+        return ds, value
+    reference = reference_from_args(args, ds)
+    ds = reference.apply(ds)
+    if reference.kind == "fitted":
+        ds = ds.replace(ref_total_nT=None)
+    return ds, None
+
+
 def run(args) -> int:
 
-    if args.reference is not None and not args.reference > 0:
-        raise MagcalError(f"--reference must be a positive field in nT, got {args.reference}")
     if args.top < 1:
         raise MagcalError(f"--top must be at least 1, got {args.top}")
     if getattr(args, "workers", None) is not None and not 1 <= args.workers <= 4 * cores():
         raise MagcalError(f"--workers {args.workers}: give 1 to {4 * cores()} (this machine has {cores()} cores)")
+    ref_text = getattr(args, "reference", None)
+    if ref_text is not None and str(ref_text).strip().lower() not in ("igrf", "column", "fit"):
+        try:
+            if not float(ref_text) > 0:
+                raise ValueError
+        except (TypeError, ValueError):
+            raise MagcalError(
+                f"--reference must be a positive field in nT, or igrf, column or fit; got {ref_text}"
+            ) from None
 
     checked_noise(args)
+    checked_attitude_noise(args)
     names = checked_effect_names(args)
-    _start_workers_while_reading(args)
+    if getattr(args, "mode", "auto") != "vector":
+        _start_workers_while_reading(args)
     ds, notes = read_input(args)
-    quality = assess(ds)  # data quality, read before the fit (issue 10)
-    notes += calibration_input_checks(ds, args.reference)  # coverage and reference, as calibrate
-    try:
-        result = calibrate(
-            ds, effects=names, robust=args.robust, reference_total_nT=args.reference, noise_nT=args.noise
+    mode, vref = choose_mode(args, ds, "diagnose")
+    if mode == "vector":
+        return run_vector(args, ds, vref, notes)
+    if getattr(args, "also", None):
+        raise MagcalError(
+            "--also: other flights judge a vector calibration; this record is diagnosed in scalar mode (it lacks the "
+            "attitude or the field vector, or --mode scalar was given)"
         )
+    ds, reference = _scalar_reference(args, ds)
+    quality = assess(ds)  # data quality, read before the fit (issue 10)
+    notes += calibration_input_checks(ds, reference)  # coverage and reference, as calibrate
+    try:
+        result = calibrate(ds, effects=names, robust=args.robust, reference_total_nT=reference, noise_nT=args.noise)
         diagnosis = diagnose(
             ds,
             result,
@@ -173,8 +248,69 @@ def run(args) -> int:
         sys.stdout.write("\n")
     else:
         title = f"magcal diagnosis of {args.data}"
-        shown = ds if args.reference is None else ds.replace(reference_total_nT=args.reference)  # the field used
+        shown = ds if reference is None else ds.replace(reference_total_nT=reference)  # the field used
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{shown.describe()}\n\n{diagnosis.table()}\n")
+        sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
+        sys.stdout.write("\n" + quality.section())
+    return 0
+
+
+def _also_flights(args) -> list:
+    """The ``--also`` flights, each read with the data options and its own field vector."""
+    flights = []
+    for path in getattr(args, "also", None) or ():
+        other = argparse.Namespace(**{**vars(args), "data": path})
+        ds, _ = read_input(other)
+        if attitude_source(ds) is None:
+            raise MagcalError(
+                f"{path}: --also needs a flight with the attitude (qw..qz or roll_deg, pitch_deg, yaw_deg)"
+            )
+        vref = vector_reference_from_args(other, ds)
+        if vref is None:
+            raise MagcalError(
+                f"{path}: --also needs the field vector of that flight: ref_n, ref_e, ref_d columns, --reference-vector, "
+                "or --reference igrf (along its lat, lon, alt_m columns or at --lat/--lon)"
+            )
+        flights.append(Flight(ds, vref, os.path.basename(path)))
+    return flights
+
+
+def run_vector(args, ds, vref, notes) -> int:
+    """``magcal diagnose`` in vector mode (:func:`magcal.diagnosis.vector.diagnose_vector`)."""
+    effects = vector_effects(args, ds)
+    flights = _also_flights(args)
+    quality = assess(ds)
+    print(f"magcal diagnose: vector mode; reference: {vref.text}", file=sys.stderr)
+    try:
+        diagnosis = diagnose_vector(
+            ds,
+            vref,
+            effects=effects,
+            also=flights,
+            attitude_noise_deg=args.attitude_noise_deg,
+            noise_nT=args.noise,
+            reference_total_nT=ds.ref_total_nT,
+            robust=args.robust,
+            validate=args.validate,
+            top=max(args.top, JUDGE_TOP),
+        )
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    notes += [note.text for note in unique(diagnosis.notes)]
+    notes += [w for w in quality.warnings if w not in notes]
+    for note in dict.fromkeys(notes):
+        if args.json or note not in quality.warnings:
+            print(f"magcal diagnose: warning: {note}", file=sys.stderr)
+    if args.json:
+        doc = diagnosis.to_dict()
+        doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))
+        doc["quality"] = quality.to_dict()
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        title = f"magcal diagnosis of {args.data}"
+        described = ds.describe(reference=f"vector ({vref.kind})")
+        sys.stdout.write(f"{title}\n{'=' * len(title)}\n{described}\n\n{diagnosis.table()}\n")
         sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
         sys.stdout.write("\n" + quality.section())
     return 0

@@ -242,9 +242,12 @@ class Dataset:
         """A copy with some fields replaced (see :func:`dataclasses.replace`)."""
         return dataclasses.replace(self, **changes)
 
-    def describe(self) -> str:
-        """One line: sensors, samples, channels, reference, baseline."""
+    def describe(self, reference: str | None = None) -> str:
+        """One line: sensors, samples, channels, reference, baseline (``reference``: what to say of it instead,
+        e.g. a vector calibration's field vector)."""
         ref = f"{self.reference_total_nT:.1f} nT" if self.reference_total_nT else "unknown (fitted)"
+        if reference is not None:
+            ref = reference
         chans = ", ".join(sorted(self.channels)) or "none"
         base = f", baseline {self.baseline_m} m" if self.baseline_m else ""
         return f"{self.n_sensors} sensor(s), {self.n_samples} samples, channels: {chans}, reference field {ref}{base}"

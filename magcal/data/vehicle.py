@@ -118,6 +118,9 @@ def simulate_vehicle(
     attitude_tau_s=0.0,
     baseline_m=None,
     gradient_ned_nT_per_m=None,
+    perturbations=(),
+    temperature=None,
+    log_current=None,
     **truth_options,
 ):
     """A vehicle's record: readings, measured attitude, times, the field vector and (with a current term) the
@@ -150,6 +153,17 @@ def simulate_vehicle(
     gradient_ned_nT_per_m : array_like, shape (3, 3), optional
         A uniform gradient of the field in the world frame (nT/m, symmetric and traceless for a source-free field):
         the field at a sensor is ``B_ned + G r``, ``r`` its position in NED relative to the cross's centre.
+    perturbations : sequence of callables
+        Effects hidden in the readings, as :func:`magcal.data.simulation.simulate_timeseries` takes them
+        (:func:`magcal.model.perturbations.parse_hidden`, ``Effect.perturbation``): each is applied to the
+        noise-free readings (bias, current and eddy fields included) before the noise, with the body-frame field
+        as the sensors' field, the vehicle's temperature and motor current as channels.
+    temperature : bool, optional
+        Record a ``temperature_C`` channel (degC): the electronics warming by 8 K over the first minutes and
+        following the motor current's heating by +-2 K, so that it is neither a function of time alone nor of the
+        current alone. Default: only when a perturbation needs it.
+    log_current : bool, optional
+        Record the motor current (``current_A``, A). Default: when a sensor sees it or a perturbation uses it.
 
     Returns
     -------
@@ -183,7 +197,10 @@ def simulate_vehicle(
     cross_in_body = truth.sensors[0].mounting
     current = 12.0 + 8.0 * np.sin(2 * np.pi * t / (span / 11.0) + phase[3]) + rng.normal(0.0, 0.5, n)
     current = np.clip(current + 4.0 * (np.floor(t / (span / 9.0)) % 2), 0.0, None)
+    heating = np.convolve(current - current.mean(), np.full(int(rate_hz * 20) or 1, 1.0 / (int(rate_hz * 20) or 1)))
+    temp_C = 18.0 + 8.0 * (1.0 - np.exp(-t / 120.0)) + 0.5 * heating[:n]
     readings = []
+    fields = []
     for k, s in enumerate(truth.sensors):
         r_ned = true_att.apply(cross_in_body @ positions[k])  # the sensor's position in NED, m
         b_body = true_att.inv().apply(truth.field_ned_nT + r_ned @ grad.T)
@@ -193,14 +210,36 @@ def simulate_vehicle(
         y = y0.copy()
         if s.eddy_ms is not None:
             y = y + 1e-3 * np.gradient(y0, t, axis=0) @ s.eddy_ms.T
-        readings.append(y + rng.normal(0.0, noise_nT, y.shape))
+        readings.append(y)
+        fields.append(b_body)
+    readings_nT = np.array(readings)
+    context = {
+        "fields_nT": np.array(fields),
+        "time_s": t,
+        "temperature_C": temp_C,
+        "truth": _PerturbationTruth(truth),
+        "attitudes": true_att,
+        "extra": {"current_A": current},
+    }
+    for perturb in perturbations:
+        readings_nT = np.asarray(perturb(readings_nT, context, rng), dtype=float)
+    readings_nT = readings_nT + rng.normal(0.0, noise_nT, readings_nT.shape)
+    hidden = [getattr(p, "effect", "") for p in perturbations]
     q = measured.as_quat()
     extra = {name: np.full(n, truth.field_ned_nT[k]) for k, name in enumerate(("ref_n", "ref_e", "ref_d"))}
-    if any(s.current_nT_per_unit is not None for s in truth.sensors):
-        extra["current_A"] = current
+    for name, values in context["extra"].items():
+        if name != "current_A":
+            extra[name] = values
+    if log_current or (
+        log_current is None
+        and (any(s.current_nT_per_unit is not None for s in truth.sensors) or "current_field" in hidden)
+    ):
+        extra["current_A"] = context["extra"]["current_A"]
+    needs_temperature = any(h.startswith("temperature") for h in hidden)
     ds = Dataset(
-        readings_nT=np.array(readings),
+        readings_nT=readings_nT,
         time_s=t,
+        temperature_C=temp_C if (temperature or (temperature is None and needs_temperature)) else None,
         attitude_wxyz=np.column_stack([q[:, 3], q[:, :3]]),
         extra=extra,
         noise_nT=None,
@@ -216,3 +255,17 @@ def simulate_vehicle(
         float(attitude_noise_deg),
     )
     return ds, out
+
+
+class _PerturbationTruth:
+    """What a catalogue perturbation (:mod:`magcal.model.perturbations`) reads of the truth: each sensor's linear
+    map from the field it is given (here the body-frame field) to its axes, ``C R_m^T``, and the field's
+    magnitude."""
+
+    class _Sensor:
+        def __init__(self, total_matrix):
+            self.total_matrix = total_matrix
+
+    def __init__(self, truth: VehicleTruth):
+        self.sensors = [self._Sensor(s.matrix @ s.mounting.T) for s in truth.sensors]
+        self.total_nT = float(np.linalg.norm(truth.field_ned_nT))

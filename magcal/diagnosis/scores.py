@@ -198,6 +198,8 @@ def _candidate_effects(dataset, model, names=None):
     for name, cls in EFFECTS.items():
         if names is not None and name not in names:
             continue
+        if "scalar" not in getattr(cls, "modes", ("scalar",)):
+            continue  # invisible in the total field (magcal.diagnosis.vector judges it)
         probe = cls()
         if probe.missing_channels(dataset):
             continue

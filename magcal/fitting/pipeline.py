@@ -377,6 +377,12 @@ def _build_model(dataset, effects):
             model = model.with_effect(e)
         elif not isinstance(e, str):
             raise CalibrationError(f"effects must be names (e.g. 'temperature_bias') or Effect objects, got {e!r}")
+    vector_only = [e.label for e in model.effects if "scalar" not in getattr(e, "modes", ("scalar",))]
+    if vector_only:
+        raise CalibrationError(
+            f"{', '.join(vector_only)}: the total field cannot see this term; fit it in vector mode (attitude and the "
+            "field vector: magcal calibrate --mode vector --effects ..., docs/vector.md)"
+        )
     return model
 
 

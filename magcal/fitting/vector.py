@@ -52,7 +52,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -64,7 +63,8 @@ from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, firmware_rotation, nearest_right_angle
-from magcal.model.platform_terms import PlatformTerms, available_terms, current_column, n_params, term_basis
+from magcal.model.platform_terms import available_terms
+from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
 
 #: Fewest samples per sensor for a vector fit (12 base parameters plus platform terms, three equations each).
 MIN_SAMPLES = 20
@@ -104,7 +104,8 @@ class SensorVectorFit:
     orientation_margin : float
         RMS of the second-best right angle over the best one's (large: the choice was clear).
     terms : dict
-        Fitted platform terms: ``eddy_ms`` (3, 3), ``current_nT_per_unit`` (3,).
+        Fitted effects acting on this sensor, by catalogue name: their parameters (e.g. ``current_field``: the
+        field per unit of current in nT, ``eddy_currents``: ``E`` row by row in ms).
     rms_vector_nT : float
         RMS of the vector residual ``B - R(q)^T B_ned`` per component, nT.
     rms_perpendicular_nT : float
@@ -130,6 +131,10 @@ class SensorVectorFit:
     determined : bool
         False when the bias's or the mounting's standard deviation is beyond :data:`UNDETERMINED_BIAS_FRACTION` of
         the field or :data:`UNDETERMINED_MOUNTING_DEG`: the record does not fix the calibration (a note says so).
+    total_residual_nT : numpy.ndarray, shape (n_fitted,)
+        The total-field residual ``|B| - F`` of every fitted sample (:attr:`VectorFitResult.fitted`), nT.
+    vector_residual_nT : numpy.ndarray, shape (n_fitted, 3)
+        The body-frame vector residual ``B - R(q)^T B_ned`` of every fitted sample, nT.
     """
 
     W: np.ndarray
@@ -155,6 +160,8 @@ class SensorVectorFit:
     residual_lag1_correlation: float = 0.0
     sd_widening: float = 1.0
     determined: bool = True
+    total_residual_nT: np.ndarray | None = field(default=None, repr=False)
+    vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
     def summary(self) -> dict:
         """JSON-ready figures for the calibration file's sensor entry."""
@@ -279,7 +286,7 @@ class VectorFitResult:
     sensors : list of SensorVectorFit
     reference : VectorReference
     terms : list of str
-        Platform terms fitted.
+        Labels of the catalogue effects fitted beside the base terms (``calibration.model``).
     warnings : list of str
         The fit's notes (:attr:`notes` gives them as :class:`~magcal.core.notes.Note` values).
     n_samples : int
@@ -321,7 +328,7 @@ class VectorFitResult:
             f"Vector calibration (attitude and the field vector): {len(self.sensors)} sensor(s), "
             f"{self.n_samples} samples, {self.wall_s:.2f} s",
             f"  reference: {self.reference.text}",
-            f"  platform terms: {', '.join(self.terms) or 'none'}",
+            f"  effects: {', '.join(self.terms) or 'none (the base model: bias, C^-1, mounting)'}",
         ]
         for i, s in enumerate(self.sensors):
             lines += [
@@ -343,14 +350,7 @@ class VectorFitResult:
                 )
             if not s.determined:
                 lines.append("    NOT DETERMINED by this record (see the warning): do not apply this calibration")
-            if "eddy_ms" in s.terms:
-                rows = "; ".join(" ".join(f"{v:.3f}" for v in row) for row in s.terms["eddy_ms"])
-                lines.append(f"    eddy currents E (ms, rows x; y; z): [{rows}]")
-            if "current_nT_per_unit" in s.terms and self.calibration.platform is not None:
-                lines.append(
-                    f"    field per unit of {self.calibration.platform.current_column} (nT): "
-                    f"{np.array2string(s.terms['current_nT_per_unit'], precision=2)}"
-                )
+            lines += [f"    {line}" for line in _effect_lines(self.calibration, i)]
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines) + "\n"
 
@@ -359,6 +359,7 @@ class VectorFitResult:
             "mode": "vector",
             "reference": {"text": self.reference.text, "kind": self.reference.kind},
             "terms": list(self.terms),
+            "effects": list(self.terms),
             "n_samples": self.n_samples,
             "samples_left_out": None if self.gaps is None else self.gaps.to_dict(),
             "rms_vector_nT": self.rms_vector_nT,
@@ -366,6 +367,26 @@ class VectorFitResult:
             "sensors": [s.summary() for s in self.sensors],
             "warnings": list(self.warnings),
         }
+
+
+def _effect_lines(calibration, sensor) -> list[str]:
+    """One line per effect acting on ``sensor`` (0-based): its parameters with their names and units, and what
+    they do in words where the effect says (:meth:`magcal.model.terms.Effect.quote`)."""
+    model = calibration.model
+    if model is None:
+        return []
+    lines = []
+    for e, es in model.instances():
+        if not (es == sensor or (es is None and e.applies_to(sensor))):
+            continue
+        values = np.asarray(calibration.effect_values.get(block_label(e, es), []), dtype=float)
+        text = ", ".join(f"{n} {v:.4g}" for n, v in zip(e.param_names(), values))
+        column = getattr(e, "column", None)
+        quote = e.quote(values, calibration.reference_total_nT, sensor)
+        lines.append(
+            f"{e.name}{f' (per unit of {column})' if column else ''}: {text}" + (f" ({quote})" if quote else "")
+        )
+    return lines
 
 
 def body_reference_nT(rotation: Rotation, reference_ned_nT) -> np.ndarray:
@@ -485,10 +506,98 @@ class _SensorProblem:
         total, perp, _ = self.parts(x)
         return np.concatenate([total / sigma_f, perp.ravel() / sigma_p])
 
+    def jacobian(self, x, sigma_f, sigma_p):
+        """The Jacobian of :meth:`residuals` (rows as they are: the total-field residuals, then the two
+        perpendicular components of each sample in turn; columns ``W`` row by row, ``b``, ``theta``)."""
+        W, b, theta = self.unpack(x)
+        z = self.y - b
+        if self.q:
+            z = z - np.einsum("njk,k->nj", self.bases, theta)
+        B = z @ W.T
+        n = len(z)
+        dB = np.zeros((n, 3, 12 + self.q))  # dB_i / dx
+        for i in range(3):
+            dB[:, i, 3 * i : 3 * i + 3] = z
+        dB[:, :, 9:12] = -W[None]
+        if self.q:
+            dB[:, :, 12:] = -np.einsum("ij,njk->nik", W, self.bases)
+        u = B / np.linalg.norm(B, axis=1)[:, None]
+        j_total = np.einsum("ni,nik->nk", u, dB) / sigma_f
+        j_perp = np.stack([np.einsum("ni,nik->nk", self.p1, dB), np.einsum("ni,nik->nk", self.p2, dB)], axis=1)
+        return np.concatenate([j_total, j_perp.reshape(2 * n, -1) / sigma_p])
+
+
+#: The platform terms of earlier versions (``--platform-terms``, ``terms=``) and the catalogue effects they now are.
+PLATFORM_EFFECTS = {"eddy": "eddy_currents", "current": "current_field"}
+
+
+def vector_model(dataset, effects=(), terms=None) -> Model:
+    """The model of a vector fit: the base terms and the catalogue ``effects`` (names ``NAME`` or ``NAME:SENSOR``,
+    :class:`~magcal.model.terms.Effect` objects, or a :class:`~magcal.model.terms.Model`), plus the platform
+    ``terms`` of earlier versions (``eddy``, ``current``: :data:`PLATFORM_EFFECTS`).
+
+    Raises
+    ------
+    CalibrationError
+        An effect the vector fit cannot take (a stage other than ``raw``: it acts on the array frame or the
+        reference total field), one shared by the sensors of an array, or one whose channels the data lack.
+    """
+    if isinstance(effects, Model):
+        model = effects.copy()
+    else:
+        items = list(effects or ())
+        for t in list(terms or ()):
+            if t not in PLATFORM_EFFECTS:
+                raise CalibrationError(f"unknown platform term {t!r}; use {', '.join(PLATFORM_EFFECTS)}")
+            items.append(PLATFORM_EFFECTS[t])
+        names = [e for e in items if isinstance(e, str)]
+        try:
+            model = Model.from_names(names, dataset.n_sensors)
+        except MagcalError as exc:
+            raise CalibrationError(str(exc)) from None
+        for e in items:
+            if isinstance(e, Effect):
+                model = model.with_effect(e)
+            elif not isinstance(e, str):
+                raise CalibrationError(f"effects must be names (e.g. 'current_field') or Effect objects, got {e!r}")
+    seen = set()
+    for e in model.effects:
+        if e.label in seen:
+            raise CalibrationError(f"effect {e.label} is named twice")
+        seen.add(e.label)
+        if e.stage != "raw":
+            raise CalibrationError(
+                f"{e.label}: a vector fit takes effects that act on a sensor's raw reading; this one acts on the "
+                f"{'array frame' if e.stage == 'vector' else 'reference total field'}: fit it in scalar mode"
+            )
+        if not e.per_sensor and dataset.n_sensors > 1:
+            raise CalibrationError(f"{e.label}: shared by the sensors of an array; a vector fit fits each sensor alone")
+        missing = e.missing_channels(dataset)
+        if missing:
+            raise CalibrationError(f"{e.label} needs {', '.join(missing)}; the data lack it")
+    return model
+
+
+def _instances_of(model, sensor) -> list:
+    """``(effect, block label)`` of the model's instances acting on ``sensor``, in the model's order."""
+    return [
+        (e, block_label(e, es)) for e, es in model.instances() if es == sensor or (es is None and e.applies_to(sensor))
+    ]
+
+
+def _raw_bases(instances, dataset, ctx, bias_nT, rows) -> np.ndarray | None:
+    """The raw-stage bases (n_rows, 3, q) of one sensor's effect instances, computed on the whole record (a rate in
+    time stays exact under a mask of blocks) at ``z0 = y - bias`` and cut to ``rows``."""
+    if not instances:
+        return None
+    z0 = dataset.readings_nT[ctx.sensor] - bias_nT
+    return np.concatenate([np.asarray(e.raw_basis(z0, ctx), dtype=float)[rows] for e, _ in instances], axis=2)
+
 
 def fit_vector(
     dataset: Dataset,
     reference: VectorReference,
+    effects=None,
     terms=None,
     attitude_noise_deg=None,
     noise_nT=None,
@@ -505,9 +614,13 @@ def fit_vector(
         Readings (nT) and attitude (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED).
     reference : VectorReference
         The Earth's field vector per sample (nT, NED).
+    effects : sequence of str or Effect, or Model, optional
+        Catalogue effects fitted beside the base terms (``current_field``, ``eddy_currents``,
+        ``attitude_time_offset``, ``temperature_bias:2``, ...; :func:`vector_model`). Default: none, the base
+        model (bias, ``C^-1``, mounting); :func:`magcal.diagnosis.vector.diagnose_vector` says which to add.
     terms : sequence of str, optional
-        Platform terms to fit (``eddy``, ``current``); default: every one the data support
-        (:func:`magcal.model.platform_terms.available_terms`). ``[]`` fits none.
+        The platform terms of earlier versions, ``eddy`` and ``current``: the same as the effects
+        ``eddy_currents`` and ``current_field``.
     attitude_noise_deg : float, optional
         Attitude error per axis (deg, 1 sigma); estimated from the residuals when None.
     noise_nT : float, optional
@@ -519,11 +632,12 @@ def fit_vector(
         Soft-L1 loss (residuals beyond about 3 standard deviations count less), and a start without the samples
         beyond 5: for records with spikes or drop-outs.
     mask : numpy.ndarray of bool, shape (N,), optional
-        The samples fitted (default all). The platform terms' bases (a rate in time) are computed on the whole
-        record, so a mask of blocks in time (:func:`validate_vector`) leaves them exact. Samples without an
-        attitude (NaN angles or quaternion: :func:`magcal.data.attitude.attitude_rows`) or without a finite
-        reference vector (no position for IGRF) are left out as well, and a note counts them and names their
-        rows (:attr:`VectorFitResult.gaps`, :attr:`VectorFitResult.fitted`).
+        The samples fitted (default all). The effects' bases (a rate in time) are computed on the whole record, so
+        a mask of blocks in time leaves them exact; their data-derived constants (a reference temperature, a step
+        time) come from the fitted samples. Samples without an attitude (NaN angles or quaternion:
+        :func:`magcal.data.attitude.attitude_rows`) or without a finite reference vector (no position for IGRF)
+        are left out as well, and a note counts them and names their rows (:attr:`VectorFitResult.gaps`,
+        :attr:`VectorFitResult.fitted`).
     warn : bool
         Raise the fit's notes (:attr:`VectorFitResult.warnings`: weak tilt, samples set aside...) as
         :class:`~magcal.core.errors.DataWarning` (the default, for a user's call); False leaves them in the result
@@ -533,7 +647,8 @@ def fit_vector(
     ------
     CalibrationError
         No attitude, a mirrored axis, too few samples: fewer than :data:`MIN_SAMPLES` (or the parameters per sensor)
-        left with an attitude and a reference (the message says how many had each).
+        left with an attitude and a reference (the message says how many had each); an effect the vector fit
+        cannot take (:func:`vector_model`).
     """
     start = time.perf_counter()
     found = attitude_rows(dataset)
@@ -546,15 +661,8 @@ def fit_vector(
     ned = np.asarray(reference.ned_nT, dtype=float)
     if ned.shape != (dataset.n_samples, 3):
         raise CalibrationError(f"the reference vector has shape {ned.shape}, expected ({dataset.n_samples}, 3)")
-    terms = available_terms(dataset) if terms is None else list(terms)
-    for t in terms:
-        if t not in available_terms(dataset):
-            raise CalibrationError(
-                f"platform term {t!r}: the data lack its channel ("
-                + ("sample times t" if t == "eddy" else "a current_A or throttle column")
-                + ")"
-            )
-    n_par = 12 + sum(n_params(t) for t in terms)
+    model = vector_model(dataset, effects if effects is not None else (), terms)
+    n_par = 12 + max(sum(len(e.param_names()) for e, _ in _instances_of(model, s)) for s in range(dataset.n_sensors))
     chosen = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool)
     if chosen.shape != (dataset.n_samples,):
         raise CalibrationError(f"mask has shape {chosen.shape}, expected ({dataset.n_samples},)")
@@ -581,156 +689,34 @@ def fit_vector(
             f"{dataset.source or 'data'}: {int(keep.sum())} samples are too few for a vector fit of {n_par} "
             "parameters per sensor; record more"
         )
-    b_body = body_reference_nT(rotation[np.flatnonzero(keep)], ned[keep])
+    rows = np.flatnonzero(keep)
+    b_body = body_reference_nT(rotation[rows], ned[keep])
     f_ref = f_all[keep]
-    column = current_column(dataset) if "current" in terms else None
     notes = _declination_notes(dataset, ned[keep])
     if gaps.n_left_out:
         notes.append(gaps.text())
-    fits = []
-    platform = PlatformTerms(current_column=column)
-    eddy, current = [], []
-    theta_cov = []  # per sensor: the covariance of W = R C^-1 (row by row) and the bias, the calibration's base_covariance
+    ctxs = contexts(dataset)
+    starts = [_base_start(dataset.readings_nT[s][keep], b_body) for s in range(dataset.n_sensors)]
+    if model.effects:  # data-derived constants from the fitted samples and the base start's total-field residuals
+        kept = dataset.masked(keep)
+        residuals = np.array(
+            [
+                np.linalg.norm((dataset.readings_nT[s][keep] - b0) @ W0.T, axis=1) - f_ref
+                for s, (W0, b0, _) in enumerate(starts)
+            ]
+        )
+        for e in model.effects:
+            e.configure(kept, residuals)
+    fits, effect_values, blocks = [], {}, []
     for s in range(dataset.n_sensors):
-        y = dataset.readings_nT[s][keep]
-        bases = [term_basis(t, dataset, s, column)[keep] for t in terms]
-        basis = np.concatenate(bases, axis=2) if bases else None
-        right, _, margin = _orientation_search(y, b_body)
-        W0, b0, theta0 = _linear_start(y, b_body, basis, robust)
-        prob = _SensorProblem(y, b_body, f_ref, basis)
-        x = np.concatenate([W0.ravel(), b0, theta0])
-        total, perp, _ = prob.parts(x)
-        field_nT = float(np.median(f_ref))
-        sigma_f = noise_nT if noise_nT is not None else max(robust_sigma(total), 1e-3)
-        if attitude_noise_deg is not None:
-            sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
-        else:
-            sigma_p = max(robust_sigma(perp.ravel()), 1e-3)
-        scale = np.concatenate([np.full(9, 1e-3), np.full(3, 10.0), np.ones(prob.q)])
-        for rnd in range(2):
-            sol = least_squares(
-                prob.residuals,
-                x,
-                args=(sigma_f, sigma_p),
-                method="trf" if robust else "lm",
-                loss="soft_l1" if robust else "linear",
-                f_scale=3.0,
-                x_scale=scale,
-                xtol=1e-12,
-                ftol=1e-12,
-            )
-            x = sol.x
-            total, perp, _ = prob.parts(x)
-            if rnd == 1 or (noise_nT is not None and attitude_noise_deg is not None):
-                break
-            new_f = sigma_f if noise_nT is not None else max(robust_sigma(total), 1e-3)
-            new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
-            if abs(new_f / sigma_f - 1) < 0.05 and abs(new_p / sigma_p - 1) < 0.05:
-                break
-            sigma_f, sigma_p = new_f, new_p
-        total, perp, e = prob.parts(x)
-        W, b, theta = prob.unpack(x)
-        R, cinv = _split_w(W, s)
-        z = prob.residuals(x, sigma_f, sigma_p)
-        n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
-        bias_sd: np.ndarray | None
-        mount_sd: np.ndarray | None
-        try:
-            jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
-            s2 = float(z @ z) / max(len(z) - len(x), 1)
-            lag1 = _lag1_correlation(total, e)
-            widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(total))))
-            cov = s2 * jtj_inv * widening**2
-            bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
-            mount_sd = _mounting_sd_deg(W, cov[:9, :9])
-            theta_cov.append(cov[:12, :12])
-        except np.linalg.LinAlgError:
-            bias_sd = mount_sd = None
-            lag1, widening = 0.0, 1.0
-        determined = not (
-            (bias_sd is not None and float(np.max(bias_sd)) > UNDETERMINED_BIAS_FRACTION * field_nT)
-            or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
+        fit, values, cov = _fit_sensor(
+            s, dataset, model, ctxs[s], rows, b_body, f_ref, starts[s], noise_nT, attitude_noise_deg, robust, notes
         )
-        if not determined:
-            assert bias_sd is not None and mount_sd is not None  # both come from the same covariance
-            notes.append(
-                f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
-                f"to {float(np.max(bias_sd)):.0f} nT ({100 * float(np.max(bias_sd)) / field_nT:.1f} % of the "
-                f"field) and the mounting's {float(np.max(mount_sd)):.2f} deg"
-                + (
-                    f" (widened {widening:.1f}x: the residuals are correlated in time, r = {lag1:.2f})"
-                    if widening > 1.05
-                    else ""
-                )
-                + "; with little tilt the vertical axis's scale and the bias trade against each other, and a "
-                "wandering attitude error does not average out. Do not apply it: record banked turns and pitch "
-                "changes (+-20 deg or more) over several minutes, with a better attitude (an INS)"
-            )
-        if n_out:
-            notes.append(
-                f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
-                + ("" if robust else "; --robust keeps them from pulling the fit")
-            )
-        nearest, off = nearest_right_angle(R)
-        if not np.allclose(nearest, right):
-            notes.append(
-                f"sensor {s + 1}: the right angle the field vectors chose first ({describe_right_angle(right)}) is not "
-                f"the one nearest the fitted mounting ({describe_right_angle(nearest)}); the mounting is far from "
-                "any right angle or the attitude and reference disagree"
-            )
-        if off > 20:
-            notes.append(
-                f"sensor {s + 1}: the mounting is {off:.1f} deg off the nearest right angle: check the attitude's frame "
-                "(body x forward, y right, z down; world north-east-down) and the reference"
-            )
-        fitted_terms, k = {}, 0
-        for t in terms:
-            q = n_params(t)
-            if t == "eddy":
-                fitted_terms["eddy_ms"] = theta[k : k + q].reshape(3, 3)
-                eddy.append(fitted_terms["eddy_ms"])
-            else:
-                fitted_terms["current_nT_per_unit"] = theta[k : k + q]
-                current.append(fitted_terms["current_nT_per_unit"])
-            k += q
-        att_noise = (
-            float(attitude_noise_deg)
-            if attitude_noise_deg is not None
-            else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field_nT))
-        )
-        fits.append(
-            SensorVectorFit(
-                W=W,
-                bias_nT=b,
-                mounting=R,
-                cinv=cinv,
-                right_angle=right,
-                right_angle_text=describe_right_angle(right),
-                angle_off_deg=off,
-                orientation_margin=margin,
-                terms=fitted_terms,
-                rms_vector_nT=float(np.sqrt(np.mean(e**2))),
-                rms_perpendicular_nT=float(np.sqrt(np.mean(perp**2))),
-                rms_total_field_nT=float(np.sqrt(np.mean(total**2))),
-                sigma_perpendicular_nT=float(sigma_p),
-                sigma_total_field_nT=float(sigma_f),
-                attitude_noise_deg=att_noise,
-                attitude_noise_source="given" if attitude_noise_deg is not None else "estimated",
-                nfev=int(sol.nfev),
-                bias_sd_nT=bias_sd,
-                mounting_sd_deg=mount_sd,
-                n_outliers=n_out,
-                residual_lag1_correlation=float(lag1),
-                sd_widening=float(widening),
-                determined=determined,
-            )
-        )
-    if eddy:
-        platform.eddy_ms = np.array(eddy)
-    if current:
-        platform.current_nT_per_unit = np.array(current)
+        fits.append(fit)
+        effect_values.update(values)
+        blocks.append(cov)
     sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
-    tilt = _tilt_range_deg(rotation[np.flatnonzero(keep)])
+    tilt = _tilt_range_deg(rotation[rows])
     if tilt < 5:
         notes.append(
             f"the body tilted at most {tilt:.1f} deg: the vertical axis's scale and the bias along it rest on few "
@@ -742,14 +728,15 @@ def fit_vector(
         baseline_m=dataset.baseline_m,
         frame="body",
         mode="vector",
-        platform=platform if platform.names else None,
-        base_covariance=scipy.linalg.block_diag(*theta_cov) if len(theta_cov) == dataset.n_sensors else None,
+        model=model if model.effects else None,
+        effect_values=effect_values,
+        base_covariance=_joint_covariance(model, blocks),
     )
     result = VectorFitResult(
         calibration=cal,
         sensors=fits,
         reference=reference,
-        terms=terms,
+        terms=model.effect_labels,
         warnings=notes,
         n_samples=int(keep.sum()),
         wall_s=time.perf_counter() - start,
@@ -761,6 +748,199 @@ def fit_vector(
         for w in notes:
             warnings.warn(w, DataWarning, stacklevel=2)
     return result
+
+
+def _base_start(y, b_body):
+    """``(W, b, right angle)``: the linear start of the base model (no effects) and the right angle the field
+    vectors choose."""
+    right, _, margin = _orientation_search(y, b_body)
+    W0, b0, _ = _linear_start(y, b_body, None)
+    return W0, b0, (right, margin)
+
+
+def _joint_covariance(model, blocks) -> np.ndarray | None:
+    """The calibration's ``base_covariance`` from each sensor's covariance of ``(W, b, theta)``: every sensor's
+    ``W`` and bias first, then the effects' parameters in the model's order
+    (:func:`magcal.calibration.uncertainty.effect_layout`); the sensors' fits are independent."""
+    if any(c is None for c in blocks):
+        return None
+    n_s = len(blocks)
+    layout = [(block_label(e, es), es) for e, es in model.instances()]
+    sizes = {block_label(e, es): len(e.param_names()) for e, es in model.instances()}
+    offsets, k = {}, 12 * n_s
+    for label, _ in layout:
+        offsets[label] = k
+        k += sizes[label]
+    cov = np.zeros((k, k))
+    for s, (c, labels) in enumerate(blocks):
+        index = list(range(12 * s, 12 * s + 12))
+        for label in labels:
+            index += list(range(offsets[label], offsets[label] + sizes[label]))
+        cov[np.ix_(index, index)] = c
+    return cov
+
+
+def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, attitude_noise_deg, robust, notes):
+    """One sensor's maximum-likelihood vector fit: ``(SensorVectorFit, effect values, (covariance, labels))``."""
+    y = dataset.readings_nT[s][rows]
+    W_start, b_start, (right, margin) = start
+    instances = _instances_of(model, s)
+    labels = [label for _, label in instances]
+    sizes = [len(e.param_names()) for e, _ in instances]
+    basis = _raw_bases(instances, dataset, ctx, b_start, rows)
+    W0, b0, theta0 = _linear_start(y, b_body, basis, robust) if basis is not None else (W_start, b_start, np.zeros(0))
+    prob = _SensorProblem(y, b_body, f_ref, basis)
+    x = np.concatenate([W0.ravel(), b0, theta0])
+    total, perp, _ = prob.parts(x)
+    field_nT = float(np.median(f_ref))
+    sigma_f = noise_nT if noise_nT is not None else max(robust_sigma(total), 1e-3)
+    if attitude_noise_deg is not None:
+        sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
+    else:
+        sigma_p = max(robust_sigma(perp.ravel()), 1e-3)
+    scale = np.concatenate(
+        [np.full(9, 1e-3), np.full(3, 10.0)] + [np.asarray(e.param_scale(), dtype=float) for e, _ in instances]
+    )
+    rebased = not any(e.basis_uses_readings for e, _ in instances)
+    sol = None
+    for rnd in range(3):
+        sol = least_squares(
+            prob.residuals,
+            x,
+            jac=prob.jacobian,
+            args=(sigma_f, sigma_p),
+            method="trf" if robust else "lm",
+            loss="soft_l1" if robust else "linear",
+            f_scale=3.0,
+            x_scale=scale,
+            xtol=1e-12,
+            ftol=1e-12,
+        )
+        x = sol.x
+        total, perp, _ = prob.parts(x)
+        new_f = sigma_f if noise_nT is not None else max(robust_sigma(total), 1e-3)
+        new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
+        settled = abs(new_f / sigma_f - 1) < 0.05 and abs(new_p / sigma_p - 1) < 0.05
+        sigma_f, sigma_p = new_f, new_p
+        if not rebased:  # a basis of the readings minus the bias: once more at the fitted bias
+            prob = _SensorProblem(y, b_body, f_ref, _raw_bases(instances, dataset, ctx, x[9:12], rows))
+            rebased = True
+            continue
+        if settled or rnd >= 1:
+            break
+    assert sol is not None
+    total, perp, e = prob.parts(x)
+    W, b, theta = prob.unpack(x)
+    R, cinv = _split_w(W, s)
+    z = prob.residuals(x, sigma_f, sigma_p)
+    n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
+    bias_sd: np.ndarray | None
+    mount_sd: np.ndarray | None
+    cov_block = None
+    try:
+        jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
+        s2 = float(z @ z) / max(len(z) - len(x), 1)
+        lag1 = _lag1_correlation(total, e)
+        widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(total))))
+        cov = s2 * jtj_inv * widening**2
+        bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
+        mount_sd = _mounting_sd_deg(W, cov[:9, :9])
+        cov_block = (cov, labels)
+    except np.linalg.LinAlgError:
+        bias_sd = mount_sd = None
+        lag1, widening = 0.0, 1.0
+    determined = not (
+        (bias_sd is not None and float(np.max(bias_sd)) > UNDETERMINED_BIAS_FRACTION * field_nT)
+        or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
+    )
+    notes.extend(_sensor_notes(s, determined, bias_sd, mount_sd, field_nT, widening, lag1, n_out, robust, R, right))
+    values, k = {}, 0
+    for label, q in zip(labels, sizes):
+        values[label] = theta[k : k + q].copy()
+        k += q
+    nearest, off = nearest_right_angle(R)
+    att_noise = (
+        float(attitude_noise_deg)
+        if attitude_noise_deg is not None
+        else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field_nT))
+    )
+    fit = SensorVectorFit(
+        W=W,
+        bias_nT=b,
+        mounting=R,
+        cinv=cinv,
+        right_angle=right,
+        right_angle_text=describe_right_angle(right),
+        angle_off_deg=off,
+        orientation_margin=margin,
+        terms=_terms_of(values),
+        rms_vector_nT=float(np.sqrt(np.mean(e**2))),
+        rms_perpendicular_nT=float(np.sqrt(np.mean(perp**2))),
+        rms_total_field_nT=float(np.sqrt(np.mean(total**2))),
+        sigma_perpendicular_nT=float(sigma_p),
+        sigma_total_field_nT=float(sigma_f),
+        attitude_noise_deg=att_noise,
+        attitude_noise_source="given" if attitude_noise_deg is not None else "estimated",
+        nfev=int(sol.nfev),
+        bias_sd_nT=bias_sd,
+        mounting_sd_deg=mount_sd,
+        n_outliers=n_out,
+        residual_lag1_correlation=float(lag1),
+        sd_widening=float(widening),
+        determined=determined,
+        total_residual_nT=total,
+        vector_residual_nT=e,
+    )
+    return fit, values, cov_block
+
+
+def _terms_of(values) -> dict:
+    """A sensor's fitted effects by catalogue name, and the platform's under the names of earlier versions
+    (``eddy_ms`` (3, 3), ``current_nT_per_unit`` (3,))."""
+    terms = {label.split(":")[0]: np.asarray(v, dtype=float) for label, v in values.items()}
+    if "eddy_currents" in terms:
+        terms["eddy_ms"] = terms["eddy_currents"].reshape(3, 3)
+    if "current_field" in terms:
+        terms["current_nT_per_unit"] = terms["current_field"]
+    return terms
+
+
+def _sensor_notes(s, determined, bias_sd, mount_sd, field_nT, widening, lag1, n_out, robust, R, right) -> list:
+    """What one sensor's fit has to say: not determined, samples far out, a mounting off the right angles."""
+    notes = []
+    if not determined:
+        assert bias_sd is not None and mount_sd is not None  # both come from the same covariance
+        notes.append(
+            f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
+            f"to {float(np.max(bias_sd)):.0f} nT ({100 * float(np.max(bias_sd)) / field_nT:.1f} % of the "
+            f"field) and the mounting's {float(np.max(mount_sd)):.2f} deg"
+            + (
+                f" (widened {widening:.1f}x: the residuals are correlated in time, r = {lag1:.2f})"
+                if widening > 1.05
+                else ""
+            )
+            + "; with little tilt the vertical axis's scale and the bias trade against each other, and a "
+            "wandering attitude error does not average out. Do not apply it: record banked turns and pitch "
+            "changes (+-20 deg or more) over several minutes, with a better attitude (an INS)"
+        )
+    if n_out:
+        notes.append(
+            f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
+            + ("" if robust else "; --robust keeps them from pulling the fit")
+        )
+    nearest, off = nearest_right_angle(R)
+    if not np.allclose(nearest, right):
+        notes.append(
+            f"sensor {s + 1}: the right angle the field vectors chose first ({describe_right_angle(right)}) is not "
+            f"the one nearest the fitted mounting ({describe_right_angle(nearest)}); the mounting is far from "
+            "any right angle or the attitude and reference disagree"
+        )
+    if off > 20:
+        notes.append(
+            f"sensor {s + 1}: the mounting is {off:.1f} deg off the nearest right angle: check the attitude's frame "
+            "(body x forward, y right, z down; world north-east-down) and the reference"
+        )
+    return notes
 
 
 def _declination_notes(dataset, ned) -> list:
@@ -810,38 +990,44 @@ def _tilt_range_deg(rotation: Rotation) -> float:
 
 def true_calibration(truth) -> Calibration:
     """The calibration a simulated vehicle's truth (:class:`magcal.data.vehicle.VehicleTruth`) implies: what
-    the fit is compared with."""
+    the fit is compared with. Its eddy currents and current field are the effects ``eddy_currents`` and
+    ``current_field`` (on ``current_A``); effects hidden by perturbations are not in it (compare on the same flight
+    simulated without them, whose noise is the same)."""
     sensors = []
     for s in truth.sensors:
         R, cinv = _split_w(s.mounting @ np.linalg.inv(s.matrix), 0)
         sensors.append(SensorCalibration(cinv, s.bias_nT, R))
-    platform = PlatformTerms()
+    n = len(truth.sensors)
+    effects, values = [], {}
     if any(s.eddy_ms is not None for s in truth.sensors):
-        platform.eddy_ms = np.array([np.zeros((3, 3)) if s.eddy_ms is None else s.eddy_ms for s in truth.sensors])
+        effects.append(EFFECTS["eddy_currents"]())
+        for k, s in enumerate(truth.sensors):
+            values[block_label(effects[-1], k)] = np.zeros(9) if s.eddy_ms is None else np.ravel(s.eddy_ms)
     if any(s.current_nT_per_unit is not None for s in truth.sensors):
-        platform.current_nT_per_unit = np.array(
-            [np.zeros(3) if s.current_nT_per_unit is None else s.current_nT_per_unit for s in truth.sensors]
-        )
-        platform.current_column = "current_A"
+        effects.append(EFFECTS["current_field"](column="current_A"))
+        for k, s in enumerate(truth.sensors):
+            k_nT = s.current_nT_per_unit
+            values[block_label(effects[-1], k)] = np.zeros(3) if k_nT is None else np.asarray(k_nT, dtype=float)
     return Calibration(
         sensors=sensors,
         reference_total_nT=float(np.linalg.norm(truth.field_ned_nT)),
         frame="body",
         mode="vector",
-        platform=platform if platform.names else None,
+        model=Model(n, effects=effects) if effects else None,
+        effect_values=values,
     )
 
 
 @dataclass
 class VectorValidation:
-    """Held-out figures of vector fits with and without platform terms (:func:`validate_vector`).
+    """Held-out figures of vector fits with and without effects (:func:`validate_vector`).
 
     Attributes
     ----------
     n_blocks : int
         Blocks in time: the fits use the even ones, the figures ``held_*`` come from the odd ones.
     rows : list of dict
-        Per model (``terms``: the platform terms fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
+        Per model (``terms``: the effects fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
         components against the reference, RMS per component) and ``in_total_nT`` / ``held_total_nT`` (|B| against
         the reference total field), all sensors together.
     """
@@ -855,7 +1041,7 @@ class VectorValidation:
             "world components and |B| against the reference, RMS in nT):"
         ]
         for r in self.rows:
-            name = ", ".join(r["terms"]) or "no platform terms"
+            name = ", ".join(r["terms"]) or "base model"
             lines.append(
                 f"    {name:28s} vector {r['in_vector_nT']:.2f} in / {r['held_vector_nT']:.2f} held out; "
                 f"|B| {r['in_total_nT']:.2f} in / {r['held_total_nT']:.2f} held out"
@@ -866,7 +1052,7 @@ class VectorValidation:
         return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
 
 
-def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> VectorValidation:
+def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, **options) -> VectorValidation:
     """Fit on alternate blocks in time and score on the blocks between: the base vector model and the model with
     the platform terms (each term alone too when there are several), so that a term that only fits this record
     shows (its held-out figures do not fall).
@@ -876,7 +1062,10 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     dataset, reference
         As for :func:`fit_vector` (the dataset needs its attitude).
     terms : sequence of str, optional
-        The platform terms (default: every one the data support).
+        The platform terms of earlier versions (``eddy``, ``current``), as effects (:data:`PLATFORM_EFFECTS`).
+    effects : sequence of str, optional
+        Effect labels (``current_field``, ``eddy_currents:2``...). With neither: every platform effect the data
+        support.
     n_blocks : int
         Blocks in time (at least 4).
     **options
@@ -885,7 +1074,9 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     n = dataset.n_samples
     n_blocks = max(4, int(n_blocks))
     train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
-    terms = available_terms(dataset) if terms is None else list(terms)
+    if effects is None and terms is None:
+        terms = available_terms(dataset)
+    terms = list(effects or ()) + [PLATFORM_EFFECTS.get(t, t) for t in terms or ()]
     models = [[]] + ([[t] for t in terms] if len(terms) > 1 else []) + ([terms] if terms else [])
     found = attitude_rows(dataset)
     if found is None:
@@ -898,7 +1089,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, **options) -> V
     rows = []
     # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
     for model in models:
-        cal = fit_vector(dataset, reference, terms=model, mask=train, warn=False, **options).calibration
+        cal = fit_vector(dataset, reference, effects=model, mask=train, warn=False, **options).calibration
         world = np.stack([rotation.apply(b) for b in cal.corrected_with_notes(dataset)[0]])
         err = world - ned[None]
         total = np.linalg.norm(world, axis=2) - f_ref[None]

@@ -408,6 +408,101 @@ class CurrentField(CatalogueEffect):
         return _diagonal_basis(np.repeat(u[:, None], 3, axis=1))
 
 
+@register
+@dataclass
+class EddyCurrents(CatalogueEffect):
+    """Eddy currents in the platform (an airframe, a hull, a board's ground plane): a field proportional to the
+    rate of change of the field the platform sees (Tolles-Lawson's eddy terms), ``y += E dy/dt``, ``E`` a 3 x 3
+    matrix in ms (nT per nT/s, times 1000), row ``j`` moving axis ``j``.
+
+    ``dy/dt`` is the smoothed rate of the sensor's own reading (:func:`time_derivative`), ``C R^T dB_body/dt`` to
+    first order, so ``E`` is the eddy field per body-field rate in the sensor's axes. A delay common to the three
+    axes is ``E = d I`` (:class:`AttitudeTimeOffset` is that one number); the total field cannot see the full
+    matrix, so the term is judged in vector mode only.
+    """
+
+    name: ClassVar[str] = "eddy_currents"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    modes: ClassVar[tuple] = ("vector",)
+    description: ClassVar[str] = "eddy currents of the platform, y += E dy/dt (E a 3 x 3 matrix) [ms]"
+    default_magnitude: ClassVar[float] = 10.0
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (1.0, -0.6, 0.3, 0.4, 0.8, -0.5, -0.2, 0.5, 0.9)
+    signature: ClassVar[str] = "residual follows the rate of change of the field (turns), differently per axis"
+    when_recording: ClassVar[str] = (
+        "eddy currents follow how fast the platform turns: fly the calibration pattern at the turn rates of the "
+        "survey, keep the sensor away from large conducting plates (a boom, a tail stinger)"
+    )
+
+    def param_names(self):
+        return [f"E_{a}{b}_ms" for a in _AXES for b in _AXES]
+
+    def param_scale(self):
+        return np.full(9, 0.1)
+
+    def raw_basis(self, z0, ctx: Context):
+        rate = 1e-3 * _reading_rate(self, ctx)
+        basis = np.zeros((len(rate), 3, 9))
+        for j in range(3):
+            basis[:, j, 3 * j : 3 * j + 3] = rate
+        return basis
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        m = np.atleast_1d(np.asarray(magnitude, dtype=float))
+        if m.size == 9:
+            return m.copy()
+        return m[0] * np.roll(np.asarray(self.pattern), 3 * (sensor or 0))
+
+
+@register
+@dataclass
+class AttitudeTimeOffset(CatalogueEffect):
+    """A time offset between the magnetometer's samples and the attitude they are paired with: the reading stamped
+    ``t`` is the field of the attitude at ``t - d``, ``y(t) = y_true(t - d)``, ``d`` in ms (positive: the
+    magnetometer lags its attitude; negative: it was sampled after it).
+
+    A logging path, a filter or a bus that delays one stream more than the other does this; a vehicle that turns at
+    ``w`` rad/s then sees an error of ``w d |B|`` perpendicular to the field (80 ms at 30 deg/s on 50 uT: 2 uT).
+    The correction is first order, ``z = y + d dy/dt``: its error is ``(w d)^2 |B| / 2`` (0.1 nT at 2 deg/s and
+    80 ms, 44 nT at 30 deg/s). The total field cannot see it (a delayed field has the same magnitude), so it is
+    judged in vector mode only. It belongs to the logging path and carries to new data of the same vehicle.
+    """
+
+    name: ClassVar[str] = "attitude_time_offset"
+    stage: ClassVar[str] = "raw"
+    channels: ClassVar[tuple] = ("time",)
+    modes: ClassVar[tuple] = ("vector",)
+    description: ClassVar[str] = "time offset between the magnetometer and the attitude, y(t) = y_true(t - d) [ms]"
+    default_magnitude: ClassVar[float] = 80.0
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (1.0,)
+    signature: ClassVar[str] = "world residual perpendicular to the field, proportional to the turn rate"
+    when_recording: ClassVar[str] = (
+        "stamp the magnetometer and the attitude on one clock (the autopilot's log does; a companion computer's "
+        "merge may not), or give the offset found here to the logger"
+    )
+
+    def param_names(self):
+        return ["delay_ms"]
+
+    def param_scale(self):
+        return np.array([0.1])
+
+    def raw_basis(self, z0, ctx: Context):
+        rate = _reading_rate(self, ctx)
+        return -1e-3 * rate[:, :, None]
+
+    def true_params(self, magnitude=None, sensor=0):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        return np.atleast_1d(np.asarray(magnitude, dtype=float))[:1].copy()
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        d = float(np.ravel(values)[0])
+        return f"the magnetometer {'lags' if d >= 0 else 'leads'} its attitude by {abs(d):.3g} ms"
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # time
 # ----------------------------------------------------------------------------------------------------------------
@@ -736,6 +831,12 @@ class BiasStep(CatalogueEffect):
         if changed:
             self.step_time_s = times
         return changed
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        times = self.step_time_s or []
+        te = times[sensor] if sensor is not None and sensor < len(times) else (times[0] if times else None)
+        where = "" if te is None else f" at t = {te:.4g} s"
+        return f"a step of {_axes_text(values)} nT{where}"
 
     def kept_raw_level(self, values):
         """The bias *after* the step is kept for new data: the sensor stays permed (issue 28: measured on six real

@@ -224,6 +224,29 @@ def _axis_timing_skew(effect, readings, context, magnitude, sensor, **options):
     return readings
 
 
+@hides("eddy_currents")
+def _eddy_currents(effect, readings, context, magnitude, sensor, **options):
+    """``y += E dy0/dt`` with ``dy0/dt`` the exact rate of the noise-free linear output (a spline's derivative),
+    ``E`` in ms: the field of currents induced in the platform by the changing field it sees."""
+    t = np.asarray(context["time_s"], dtype=float)
+    for s in _sensor_list(sensor, readings.shape[0]):
+        E = np.asarray(effect.true_params(magnitude, s), dtype=float).reshape(3, 3)
+        rate = CubicSpline(t, _linear_outputs(context, s), axis=0)(t, 1)
+        readings[s] += 1e-3 * rate @ E.T
+    return readings
+
+
+@hides("attitude_time_offset")
+def _attitude_time_offset(effect, readings, context, magnitude, sensor, **options):
+    """The magnetometer's readings an exact delay ``d`` (ms) of the field its attitude describes: ``y(t) =
+    y(t - d)`` by a spline through the whole reading (a negative ``d``: sampled after the attitude)."""
+    t = np.asarray(context["time_s"], dtype=float)
+    for s in _sensor_list(sensor, readings.shape[0]):
+        delay_ms = float(np.ravel(effect.true_params(magnitude, s))[0])
+        readings[s] = _shift_in_time(readings[s], t, 1e-3 * delay_ms)
+    return readings
+
+
 @hides("sensor_timing_skew")
 def _sensor_timing_skew(effect, readings, context, magnitude, sensor, **options):
     """Sensors 2-4 read the field late by ``dt_i`` (ms): an exact delay of the whole vector."""

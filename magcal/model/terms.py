@@ -237,6 +237,11 @@ class Effect:
     #: temperature. The fitter leaves that dependence out of its Jacobian, so only a model whose effects all
     #: declare False has an exact one (:attr:`magcal.fitting.fitter.Problem.exact_jacobian`). Plug-ins keep the safe True.
     basis_uses_readings: ClassVar[bool] = True
+    #: The fits that can judge the term: ``"scalar"`` (the total-field fit of a turned instrument) and
+    #: ``"vector"`` (the fit with attitude and the field vector, :mod:`magcal.fitting.vector`). A term the total
+    #: field cannot see (a delay common to a sensor's three axes, a full eddy-current matrix) declares
+    #: ``("vector",)``: the scalar diagnosis never proposes it and the scalar fit refuses it.
+    modes: ClassVar[tuple] = ("scalar", "vector")
 
     sensor: int | None = None
 
