@@ -32,7 +32,7 @@ from magcal.cli import main
 from magcal.core.errors import MagcalError
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
 from magcal.fitting.vector import fit_vector
-from magcal.model.effects import CurrentField
+from magcal.model.effects import CurrentField, TemperatureBias
 from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import Model
 from magcal.output.bundle import export_all, parameter_bytes
@@ -242,6 +242,22 @@ def test_the_current_term_is_read_from_the_platform_terms_and_the_catalogue_alik
     bare.platform = None
     assert current_compensation(bare) == (None, [None, None])
     assert not any("MOT" in n for n in export_calibration(bare, "ardupilot").parameters)
+
+
+def test_other_catalogue_effects_of_a_vector_calibration_are_refused_not_lost(flights):
+    """After the move into the catalogue a vector calibration may hold effects the firmware cannot: they are named,
+    while its current_field is written."""
+    cal, _ = flights["current_A"]
+    cat = as_catalogue(cal)
+    cat.model.effects.append(TemperatureBias(sensor=0))
+    cat.effect_values["temperature_bias:1"] = np.array([2.0, -1.0, 0.5])
+    with pytest.raises(MagcalError, match=r"effect temperature_bias:1: the firmware has no parameter"):
+        export_calibration(cat, "ardupilot")
+    forced = export_calibration(cat, "ardupilot", force=True)
+    assert forced.dropped == [
+        "effect temperature_bias:1: the firmware has no parameter for it (its correction is dropped)"
+    ]
+    assert forced.parameters["COMPASS_MOTCT"] == 2
 
 
 def mixed(cal):
