@@ -9,7 +9,9 @@ Example::
     magcal export cal.json --format all --data rec.csv -o magcal_export.zip   # every file and a README.txt
 
 A calibration holding more than the firmware can store (candidate effects, a rotation between sensors) is refused
-with the list of what would be lost; ``--force`` exports without it and writes the list into the file.
+with the list of what would be lost; ``--force`` exports without it and writes the list into the file. The field of
+the platform's current is written as the firmwares' motor compensation (``COMPASS_MOT*``, ``CAL_MAGn_xCOMP``), a
+vector calibration's mounting off the right angles as ArduPilot's custom rotation (docs/export.md).
 
 The files are built by :mod:`magcal.output.bundle`, the functions the workbench's Export section calls: the same
 calibration gives the same bytes from either.
@@ -73,6 +75,20 @@ def register(subparsers):
         "file and on standard error)",
     )
     parser.add_argument(
+        "--throttle-full-scale",
+        type=float,
+        default=None,
+        metavar="X",
+        help="what the calibration's throttle column reads at full throttle (default 1: 0-1, as ArduPilot's "
+        "CTUN.ThO; 100 for percent): the firmwares' motor compensation is per full throttle",
+    )
+    parser.add_argument(
+        "--no-custom-rotation",
+        action="store_true",
+        help="ArduPilot: write a mounting off the right angles as its nearest right angle (and refuse the rest) "
+        "instead of a custom rotation (COMPASS_ORIENT 101/102, CUST_ROT*; ArduPilot 4.2 and later)",
+    )
+    parser.add_argument(
         "--data",
         default=None,
         metavar="DATA.csv",
@@ -100,7 +116,14 @@ def run(args) -> int:
     if args.data or args.mask:
         raise MagcalError(f"--data and --mask are for --format {' or '.join(DATA_FORMATS)}, not {args.format}")
     content, result = parameter_bytes(
-        calibration, args.format, sensors=args.sensor, slots=args.slot, force=args.force, source=args.calibration
+        calibration,
+        args.format,
+        sensors=args.sensor,
+        slots=args.slot,
+        force=args.force,
+        source=args.calibration,
+        throttle_full_scale=args.throttle_full_scale,
+        custom_rotation=not args.no_custom_rotation,
     )
     for line in result.dropped:
         print(f"magcal export: warning: dropped {line}", file=sys.stderr)
@@ -121,8 +144,11 @@ def run(args) -> int:
 
 def _run_data(args, calibration) -> int:
     """``--format mask`` and ``--format all``: files built from the calibration and the data."""
-    if args.sensor or args.slot or args.force:
-        raise MagcalError(f"--format {args.format}: --sensor, --slot and --force are for the firmware formats")
+    if args.sensor or args.slot or args.force or args.throttle_full_scale is not None or args.no_custom_rotation:
+        raise MagcalError(
+            f"--format {args.format}: --sensor, --slot, --force, --throttle-full-scale and --no-custom-rotation are "
+            "for the firmware formats"
+        )
     if not args.data:
         raise MagcalError(f"--format {args.format} needs the data: --data DATA.csv")
     if not args.output:

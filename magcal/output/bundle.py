@@ -67,13 +67,14 @@ def calibration_from_bytes(content: bytes, source: str = CALIBRATION_FILE) -> Ca
     return Calibration.from_dict(doc, source=source)
 
 
-def parameter_bytes(calibration, fmt, sensors=None, slots=None, force=False, source=CALIBRATION_FILE):
+def parameter_bytes(calibration, fmt, sensors=None, slots=None, force=False, source=CALIBRATION_FILE, **options):
     """A firmware's parameter file (``fmt`` one of :data:`magcal.output.export.FORMATS`) as bytes, with its
     :class:`~magcal.output.export.Export` (dropped terms, notes, the parameters by name).
 
     ``source`` is the calibration's name written into the file's header (``magcal export`` gives the path it was
-    given). Raises :class:`MagcalError` as :func:`magcal.output.export.export_calibration` does."""
-    result = export_calibration(calibration, fmt, sensors=sensors, slots=slots, force=force, source=source)
+    given); ``options`` (``throttle_full_scale``, ``custom_rotation``) go to
+    :func:`magcal.output.export.export_calibration`, whose errors it raises (:class:`MagcalError`)."""
+    result = export_calibration(calibration, fmt, sensors=sensors, slots=slots, force=force, source=source, **options)
     return result.text.encode("utf-8"), result
 
 

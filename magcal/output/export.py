@@ -26,8 +26,14 @@ vehicle's body frame. Its nearest right angle ``A`` is what the firmwares store 
 split as above, and ``Q`` (the mounting's angle off the right angle, plus the sensor's non-orthogonality) is no
 longer a gauge: it is what the firmware cannot hold. PX4 rotates after its correction, ``B = A S (y - b)``;
 ArduPilot rotates the raw reading first and corrects in the body frame, ``B = (A S A^T) (A y + OFS)`` with
-``OFS = -A b``. The C header holds the whole ``R C^-1``. Platform terms (eddy currents, field per ampere) are
-not written (listed as dropped).
+``OFS = -A b``. The C header holds the whole ``R C^-1``. ArduPilot can also hold the whole mounting: a custom
+rotation (``COMPASS_ORIENT`` 101/102 with ``CUST_ROTn_*``) turns the raw reading by the rotation ``U`` of
+``R C^-1 = U S`` and nothing is left out (:mod:`magcal.output.compensation`).
+
+The field of the platform's current (a vector fit's current term, or the catalogue effect ``current_field``) is
+written as the firmwares' motor compensation, ArduPilot ``COMPASS_MOTCT`` and ``COMPASS_MOT*``, PX4
+``CAL_MAG_COMP_TYP`` and ``CAL_MAGn_[XYZ]COMP``, and into the C header (:mod:`magcal.output.compensation` has the
+formulas); eddy currents and the other effects are not written (listed as dropped).
 """
 
 from __future__ import annotations
@@ -45,12 +51,24 @@ from magcal.geometry.orientations import (
     nearest_right_angle,
     rotation_name,
 )
+from magcal.output.compensation import (
+    CURRENT_EFFECT,
+    ARDUPILOT_MOT_RANGE_mG,
+    ardupilot_motor_parameters,
+    compensation_type,
+    current_export,
+    custom_rotation_number,
+    custom_rotation_parameters,
+    px4_compensation_parameters,
+)
 
 #: Export formats and what each writes.
 FORMATS = {
     "ardupilot": "ArduPilot parameter file (NAME,VALUE lines: COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*, "
-    "COMPASS_SCALE*)",
-    "px4": "PX4/QGroundControl parameter file (CAL_MAGn_[XYZ]OFF, [XYZ]SCALE, [XYZ]ODIAG)",
+    "COMPASS_SCALE*; with a vector calibration COMPASS_ORIENT* and CUST_ROT*; with a current term COMPASS_MOTCT, "
+    "COMPASS_MOT*)",
+    "px4": "PX4/QGroundControl parameter file (CAL_MAGn_[XYZ]OFF, [XYZ]SCALE, [XYZ]ODIAG; CAL_MAGn_ROT; with a "
+    "current term CAL_MAG_COMP_TYP, CAL_MAGn_[XYZ]COMP)",
     "c": "C header with the correction matrix, offset and formula per sensor",
 }
 
@@ -92,6 +110,18 @@ class SensorExport:
     vector_error_nT : float
         Largest difference between the firmware's corrected vector and magcal's at the reference field
         ``2 F sin(angle/2)`` for the angle of ``R Q`` (nT); the magnitudes agree exactly.
+    right_angle : numpy.ndarray, shape (3, 3), or None
+        A vector calibration's right-angle mounting the firmware turns the reading by (``COMPASS_ORIENT``,
+        ``CAL_MAGn_ROT``).
+    rotation_number : int or None
+        Its firmware number (101/102: ArduPilot's custom rotation).
+    custom_rotation : numpy.ndarray, shape (3, 3), or None
+        ArduPilot's custom rotation ``U`` (``R C^-1 = U S``) in place of a right angle: nothing is left out.
+    current_nT_per_input : numpy.ndarray, shape (3,), or None
+        The field per unit of the firmware's compensation input (A, kA, full throttle; the C header: per unit of
+        the column), nT, in the sensor's axes: the firmware subtracts ``k u`` from the raw reading, in effect.
+    current_column : str or None
+        The column that input is (``current_A`` or ``throttle``).
     """
 
     sensor: int
@@ -104,12 +134,24 @@ class SensorExport:
     vector_error_nT: float
     right_angle: np.ndarray | None = None
     rotation_number: int | None = None
+    custom_rotation: np.ndarray | None = None
+    current_nT_per_input: np.ndarray | None = None
+    current_column: str | None = None
 
-    def firmware_corrected_nT(self, raw_nT) -> np.ndarray:
-        """The firmware's corrected field ``S (y - b)`` (nT) for raw readings ``y`` (N, 3) in nT; with a right-angle
-        mounting (a vector calibration) ``A S (y - b)``, in the body frame."""
-        out = (np.asarray(raw_nT, dtype=float) - self.bias_nT) @ self.matrix.T
-        return out if self.right_angle is None else out @ self.right_angle.T
+    @property
+    def rotation(self) -> np.ndarray | None:
+        """The rotation the firmware turns the reading by: the custom rotation, else the right angle (or None)."""
+        return self.custom_rotation if self.custom_rotation is not None else self.right_angle
+
+    def firmware_corrected_nT(self, raw_nT, current=None) -> np.ndarray:
+        """The firmware's corrected field ``S (y - b - k u)`` (nT) for raw readings ``y`` (N, 3) in nT and the
+        compensation's input ``u`` (N,) (A, kA or throttle 0-1; ignored without a current term); with a mounting
+        (a vector calibration) ``A S (y - b - k u)``, in the body frame."""
+        z = np.asarray(raw_nT, dtype=float) - self.bias_nT
+        if self.current_nT_per_input is not None and current is not None:
+            z = z - np.asarray(current, dtype=float)[:, None] * self.current_nT_per_input[None, :]
+        out = z @ self.matrix.T
+        return out if self.rotation is None else out @ self.rotation.T
 
 
 @dataclass
@@ -122,6 +164,7 @@ class Export:
     sensors: list
     dropped: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    current_column: str | None = None
 
 
 def rotation_angle_deg(rotation) -> float:
@@ -155,7 +198,7 @@ def symmetric_factor(cinv):
     return q, 0.5 * (s + s.T)
 
 
-def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
+def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotation=True):
     """Per sensor, the firmware's offset and symmetric matrix and the frame rotation left out.
 
     Parameters
@@ -168,6 +211,9 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
         ``i``, PX4 ``CAL_MAG{i-1}``.
     fmt : str
         The format (for the slot numbering and the number of slots).
+    custom_rotation : bool
+        ArduPilot, vector calibration: a mounting off the right angles of compass 1 or 2 as a custom rotation
+        (:func:`magcal.output.compensation.custom_rotation_number`); False keeps the nearest right angle.
     """
     n = calibration.n_sensors
     sensors = list(range(1, n + 1)) if sensors is None else [int(s) for s in sensors]
@@ -199,7 +245,10 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
     for s, k in zip(sensors, slots):
         cal = kept[s - 1]
         if getattr(calibration, "mode", "scalar") == "vector":
-            out.append(_vector_export(cal, s, k, fmt, field_nT))
+            e = _vector_export(cal, s, k, fmt, field_nT)
+            if fmt == "ardupilot" and custom_rotation:
+                e = _ardupilot_custom_export(cal, e)
+            out.append(e)
             continue
         q, sym = symmetric_factor(cal.cinv)
         frame = cal.R @ q
@@ -241,18 +290,42 @@ def _vector_export(cal, sensor, slot, fmt, field_nT) -> SensorExport:
     )
 
 
+def _ardupilot_custom_export(cal, e) -> SensorExport:
+    """A vector calibration's sensor for ArduPilot compass ``e.slot`` with its whole mounting as a custom rotation
+    (``R C^-1 = U S``: ``COMPASS_ORIENT`` 101/102 turns the raw reading by ``U``), when the right angle leaves a
+    remainder and the compass has a custom rotation; otherwise ``e`` unchanged."""
+    number = custom_rotation_number(e.slot)
+    if number is None or e.misalignment_angle_deg <= ROTATION_TOLERANCE_DEG:
+        return e
+    u, sym = symmetric_factor(cal.R @ cal.cinv)
+    return SensorExport(
+        sensor=e.sensor,
+        slot=e.slot,
+        bias_nT=cal.bias_nT.copy(),
+        matrix=sym,
+        frame_rotation=np.eye(3),
+        gauge_angle_deg=0.0,
+        misalignment_angle_deg=0.0,
+        vector_error_nT=0.0,
+        right_angle=None,
+        rotation_number=number,
+        custom_rotation=u,
+    )
+
+
 def unsupported(calibration, exports) -> list[str]:
-    """What magcal's model holds that no firmware parameter can carry, one line each (empty: nothing)."""
+    """What magcal's model holds that no firmware parameter can carry, one line each (empty: nothing). The
+    current's field is not among them: :func:`magcal.output.compensation.current_export` says what of it is lost."""
     lost = []
     platform = getattr(calibration, "platform", None)
     if platform is not None:
         for name in platform.names:
-            lost.append(
-                f"platform term {name}: not written (the firmware's motor compensation, COMPASS_MOT_* or "
-                "CAL_MAGn_xCOMP, is left as it is); its correction is dropped"
-                if name == "current"
-                else f"platform term {name}: the firmware has no parameter for it (its correction is dropped)"
-            )
+            if name != "current":
+                lost.append(f"platform term {name}: the firmware has no parameter for it (its correction is dropped)")
+    if calibration.model is not None:
+        for e in calibration.model.effects:
+            if e.name != CURRENT_EFFECT:
+                lost.append(f"effect {e.label}: the firmware has no parameter for it (its correction is dropped)")
     if getattr(calibration, "mode", "scalar") == "vector":
         field_nT = float(calibration.reference_total_nT or 50_000.0)
         for e in exports:
@@ -268,9 +341,6 @@ def unsupported(calibration, exports) -> list[str]:
                     f"nT on a {field_nT:.6g} nT field), which cannot be stored"
                 )
         return lost
-    if calibration.model is not None:
-        for label in calibration.model.effect_labels:
-            lost.append(f"effect {label}: the firmware has no parameter for it (its correction is dropped)")
     field_nT = float(calibration.reference_total_nT or 50_000.0)
     for e in exports:
         if e.misalignment_angle_deg > ROTATION_TOLERANCE_DEG:
@@ -283,7 +353,16 @@ def unsupported(calibration, exports) -> list[str]:
     return lost
 
 
-def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, source="calibration") -> Export:
+def export_calibration(
+    calibration,
+    fmt,
+    sensors=None,
+    slots=None,
+    force=False,
+    source="calibration",
+    throttle_full_scale=None,
+    custom_rotation=True,
+) -> Export:
     """The parameters of ``calibration`` for a firmware, or a refusal naming what would be lost.
 
     Parameters
@@ -297,6 +376,12 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
         file's comments).
     source : str
         The calibration's file name, for the file header and messages.
+    throttle_full_scale : float, optional
+        What a ``throttle`` column reads at full throttle (default 1; 100 for percent): the firmwares' motor
+        compensation is per full throttle (:func:`magcal.output.compensation.current_export`).
+    custom_rotation : bool
+        ArduPilot: write a vector calibration's mounting off the right angles as a custom rotation (compasses 1
+        and 2); False writes the nearest right angle and refuses the rest, as PX4.
 
     Raises
     ------
@@ -305,8 +390,9 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
     """
     if fmt not in FORMATS:
         raise MagcalError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
-    exports = sensor_exports(calibration, sensors, slots, fmt)
-    dropped = unsupported(calibration, exports)
+    exports = sensor_exports(calibration, sensors, slots, fmt, custom_rotation=custom_rotation)
+    current = _attach_current(calibration, exports, fmt, throttle_full_scale)
+    dropped = unsupported(calibration, exports) + current.dropped
     if dropped and not force:
         raise MagcalError(
             f"{source}: the calibration holds more than {fmt} parameters can: "
@@ -321,6 +407,7 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
                 f"upper-triangular frame is turned from the firmware's by {e.gauge_angle_deg:.4g} deg "
                 "(a gauge: total-field data do not fix it); the field magnitude is the same"
             )
+    notes += current.notes + _mounting_notes(calibration, exports, fmt, custom_rotation)
     builder = {"ardupilot": _ardupilot, "px4": _px4, "c": _c_header}[fmt]
     parameters, text = builder(exports, calibration, source, dropped, notes)
     if fmt == "ardupilot":
@@ -332,7 +419,56 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
                     "refuses offsets longer than COMPASS_OFFS_MAX (1250 or 1800 mG by default): move the "
                     "compass away from the interference, or check the units"
                 )
-    return Export(fmt, text, parameters, exports, dropped, notes)
+        mot = {n: v for n, v in parameters.items() if n.startswith("COMPASS_MOT") and n != "COMPASS_MOTCT"}
+        beyond = [n for n, v in mot.items() if abs(v) > ARDUPILOT_MOT_RANGE_mG]
+        if beyond:
+            notes.append(
+                f"{', '.join(beyond)} beyond ArduPilot's documented range of -{ARDUPILOT_MOT_RANGE_mG:.0f} to "
+                f"{ARDUPILOT_MOT_RANGE_mG:.0f} mG per unit: check the units of the current or throttle column"
+            )
+    return Export(fmt, text, parameters, exports, dropped, notes, current.column)
+
+
+# --- the current's field and the mounting (magcal.output.compensation) -----------------------------------------
+
+
+def _attach_current(calibration, exports, fmt, throttle_full_scale):
+    """The current term in the firmware's units (:func:`magcal.output.compensation.current_export`), set on each
+    exported sensor (``current_nT_per_input``, ``current_column``)."""
+    current = current_export(calibration, [e.sensor for e in exports], fmt, throttle_full_scale)
+    for e in exports:
+        k = current.k_per_input.get(e.sensor)
+        if k is not None:
+            e.current_nT_per_input = np.asarray(k, dtype=float)
+            e.current_column = current.columns.get(e.sensor, current.column)
+    return current
+
+
+def _mounting_notes(calibration, exports, fmt, custom_rotation) -> list[str]:
+    """What to know about ArduPilot's custom rotations: how to load them, and a compass that has none."""
+    if fmt != "ardupilot" or getattr(calibration, "mode", "scalar") != "vector":
+        return []
+    notes = []
+    for e in exports:
+        tag = "" if e.slot == 1 else str(e.slot)
+        if e.custom_rotation is not None:
+            right, off = nearest_right_angle(e.custom_rotation)
+            number = firmware_rotation(right)
+            index = e.rotation_number - 100
+            notes.append(
+                f"compass {e.slot}: its mounting, the right angle {rotation_name(number) if number is not None else ''}"
+                f" turned by {off:.4g} deg (with the axes' non-orthogonality), is written whole as ArduPilot's custom "
+                f"rotation {index} (COMPASS_ORIENT{tag} {e.rotation_number}, CUST_ROT{index}_ROLL/PITCH/YAW), "
+                "ArduPilot 4.2 or later: set CUST_ROT_ENABLE to 1 and reboot before loading this file (the "
+                "CUST_ROT parameters appear then); COMPASS_ORIENT acts on an external compass only"
+            )
+        elif custom_rotation and e.right_angle is not None and e.misalignment_angle_deg > ROTATION_TOLERANCE_DEG:
+            notes.append(
+                f"compass {e.slot}: ArduPilot's two custom rotations are kept for compasses 1 and 2 (custom rotation "
+                "k for compass k, so that files exported one compass at a time never share one); export this "
+                "sensor to --slot 1 or 2 to write its whole mounting"
+            )
+    return notes
 
 
 def _header_lines(calibration, source, dropped, notes, formula):
@@ -352,6 +488,12 @@ def _fmt(value) -> str:
     return f"{float(value):.9g}"
 
 
+def _c_float(value) -> str:
+    """A C ``float`` literal of 9 significant digits (``1.0f``, never ``1f``, which C refuses)."""
+    text = _fmt(value)
+    return (text if any(c in text for c in ".en") else text + ".0") + "f"
+
+
 def _offset_and_matrix(offset, matrix, offset_name, diagonal_name, off_diagonal_name) -> dict:
     """Parameters of one compass: the offset per axis and the symmetric matrix's diagonal and off-diagonal
     (xy, xz, yz), each name a template whose ``{}`` is the axis letter (X, Y, Z; for the off-diagonal, X = xy,
@@ -366,10 +508,13 @@ def _offset_and_matrix(offset, matrix, offset_name, diagonal_name, off_diagonal_
 
 def _ardupilot(exports, calibration, source, dropped, notes):
     params = {}
+    column = next((e.current_column for e in exports if e.current_column is not None), None)
+    if any(e.custom_rotation is not None for e in exports):
+        params["CUST_ROT_ENABLE"] = 1.0  # first: the CUST_ROTn_* parameters exist once it is set (and rebooted)
     for e in exports:
         tag = "" if e.slot == 1 else str(e.slot)
         # ArduPilot rotates the raw reading by COMPASS_ORIENT first: offsets and matrix in the body frame
-        a = np.eye(3) if e.right_angle is None else e.right_angle
+        a = np.eye(3) if e.rotation is None else e.rotation
         params.update(
             _offset_and_matrix(
                 -(a @ e.bias_nT) / NT_PER_MILLIGAUSS,
@@ -382,14 +527,24 @@ def _ardupilot(exports, calibration, source, dropped, notes):
         params[f"COMPASS_SCALE{tag}"] = 1.0
         if e.rotation_number is not None:
             params[f"COMPASS_ORIENT{tag}"] = e.rotation_number
-    head = _header_lines(
-        calibration,
-        source,
-        dropped,
-        notes,
+        if e.custom_rotation is not None:
+            params.update(custom_rotation_parameters(e.rotation_number, e.custom_rotation))
+        if column is not None:  # every exported compass: an old value must not stay active
+            k = np.zeros(3) if e.current_nT_per_input is None else e.current_nT_per_input
+            params.update(ardupilot_motor_parameters(tag, a @ e.matrix, k))
+    formula = (
         "corrected_mG = [DIA_X ODI_X ODI_Y; ODI_X DIA_Y ODI_Z; ODI_Y ODI_Z DIA_Z] "
-        "(SCALE (raw_mG + OFS)), OFS in milligauss",
+        "(SCALE (raw_mG + OFS)), OFS in milligauss"
     )
+    if column is not None:
+        name, value = compensation_type("ardupilot", column)
+        params[name] = value
+        formula += (
+            " + MOT u, MOT in milligauss per "
+            + ("ampere, u the battery current in A" if column == "current_A" else "full throttle, u the throttle 0-1")
+            + f" ({name} {value})"
+        )
+    head = _header_lines(calibration, source, dropped, notes, formula)
     body = [f"# {line}" for line in head]
     body += [f"# magcal sensor {e.sensor} -> compass {e.slot}" for e in exports]
     body += [f"{name},{_fmt(value)}" for name, value in params.items()]
@@ -398,6 +553,7 @@ def _ardupilot(exports, calibration, source, dropped, notes):
 
 def _px4(exports, calibration, source, dropped, notes):
     params = {}
+    column = next((e.current_column for e in exports if e.current_column is not None), None)
     for e in exports:
         pre = f"CAL_MAG{e.slot}_"
         params.update(
@@ -405,29 +561,54 @@ def _px4(exports, calibration, source, dropped, notes):
         )
         if e.rotation_number is not None:
             params[pre + "ROT"] = e.rotation_number
-    head = _header_lines(
-        calibration,
-        source,
-        dropped,
-        notes,
+        if column is not None:  # every exported compass: an old value must not stay active
+            k = np.zeros(3) if e.current_nT_per_input is None else e.current_nT_per_input
+            params.update(px4_compensation_parameters(e.slot, k))
+    formula = (
         "corrected_G = rot ([XSCALE XODIAG YODIAG; XODIAG YSCALE ZODIAG; YODIAG ZODIAG ZSCALE] "
-        "(raw_G - [XOFF YOFF ZOFF])), offsets in gauss",
+        "(raw_G - [XOFF YOFF ZOFF])), offsets in gauss"
     )
+    if column is not None:
+        name, value = compensation_type("px4", column)
+        params[name] = value
+        formula = formula.replace("(raw_G - ", "((raw_G + u [XCOMP YCOMP ZCOMP]) - ") + (
+            ", COMP in gauss per "
+            + ("kA, u the battery current in kA" if column == "current_A" else "full throttle, u the throttle 0-1")
+            + f" ({name} {value})"
+        )
+    head = _header_lines(calibration, source, dropped, notes, formula)
     body = [f"# {line}" for line in head]
     body += [
         f"# magcal sensor {e.sensor} -> CAL_MAG{e.slot} (check that CAL_MAG{e.slot}_ID is that magnetometer)"
         for e in exports
     ]
     body += ["# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
-    body += [f"1\t1\t{name}\t{_fmt(value)}\t9" for name, value in params.items()]  # 9: MAV_PARAM_TYPE_REAL32
+    body += [f"1\t1\t{name}\t{_px4_value(name, value)}" for name, value in params.items()]
     return params, "\n".join(body) + "\n"
+
+
+#: PX4's integer parameters among those written (``PARAM_DEFINE_INT32``): QGroundControl skips a line whose type
+#: is not the parameter's own.
+PX4_INTEGER_PARAMETERS = ("_ROT", "CAL_MAG_COMP_TYP")
+
+
+def _px4_value(name, value) -> str:
+    """``VALUE\tTYPE`` of a QGroundControl parameter line: 6 (MAV_PARAM_TYPE_INT32) for an integer parameter, 9
+    (REAL32) for the others."""
+    if name.endswith(PX4_INTEGER_PARAMETERS[0]) or name == PX4_INTEGER_PARAMETERS[1]:
+        return f"{int(value)}\t6"
+    return f"{_fmt(value)}\t9"
 
 
 def _c_header(exports, calibration, source, dropped, notes):
     params = {}
-    head = _header_lines(
-        calibration, source, dropped, notes, "corrected_nT = MAGCAL_Sn_MATRIX * (raw_nT - MAGCAL_Sn_BIAS_NT)"
-    )
+    formula = "corrected_nT = MAGCAL_Sn_MATRIX * (raw_nT - MAGCAL_Sn_BIAS_NT)"
+    if any(e.current_nT_per_input is not None for e in exports):
+        formula = (
+            "corrected_nT = MAGCAL_Sn_MATRIX * (raw_nT - MAGCAL_Sn_BIAS_NT - MAGCAL_Sn_CURRENT_NT_PER_UNIT * u), "
+            "u the value of the sensor's MAGCAL_Sn_CURRENT_COLUMN (a sensor without it: u = 0)"
+        )
+    head = _header_lines(calibration, source, dropped, notes, formula)
     lines = (
         ["/* " + head[0]]
         + [f" * {line}" for line in head[1:]]
@@ -444,15 +625,24 @@ def _c_header(exports, calibration, source, dropped, notes):
     )
 
     def matrix(name, m):
-        rows = ",\n    ".join("{" + ", ".join(f"{_fmt(v)}f" for v in row) + "}" for row in m)
+        rows = ",\n    ".join("{" + ", ".join(_c_float(v) for v in row) + "}" for row in m)
         return [f"static const float {name}[3][3] = {{\n    {rows}\n}};"]
 
     for e in exports:
         tag = f"MAGCAL_S{e.sensor}"
         lines.append(f"/* magcal sensor {e.sensor} */")
-        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(f"{_fmt(v)}f" for v in e.bias_nT) + "};")
+        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(_c_float(v) for v in e.bias_nT) + "};")
         lines += matrix(f"{tag}_MATRIX", e.matrix)
         lines += matrix(f"{tag}_FRAME", e.frame_rotation)
+        if e.current_nT_per_input is not None:
+            lines.append(f'#define {tag}_CURRENT_COLUMN "{e.current_column}"')
+            lines.append(
+                f"static const float {tag}_CURRENT_NT_PER_UNIT[3] = {{"
+                + ", ".join(_c_float(v) for v in e.current_nT_per_input)
+                + "};"
+            )
+            for k, axis in enumerate("xyz"):
+                params[f"{tag}_CURRENT_NT_PER_UNIT_{axis}"] = float(e.current_nT_per_input[k])
         lines.append("")
         for k, axis in enumerate("xyz"):
             params[f"{tag}_BIAS_NT_{axis}"] = float(e.bias_nT[k])
@@ -463,13 +653,14 @@ def _c_header(exports, calibration, source, dropped, notes):
     return params, "\n".join(lines)
 
 
-def apply_ardupilot(parameters, raw_mG, slot=1) -> np.ndarray:
+def apply_ardupilot(parameters, raw_mG, slot=1, motor=None) -> np.ndarray:
     """ArduPilot's correction of raw readings (milligauss) with exported parameters, as
-    ``AP_Compass_Backend::correct_field`` does it (motor compensation off): ``M (SCALE (raw + OFS))``, the raw
-    reading first turned by ``COMPASS_ORIENT`` when the parameters hold one (a right angle of
-    :data:`magcal.geometry.orientations.FIRMWARE_ROTATIONS`).
+    ``AP_Compass_Backend::correct_field`` does it: ``M (SCALE (raw + OFS)) + MOT u``, the raw reading first turned by
+    ``COMPASS_ORIENT`` when the parameters hold one (a right angle of
+    :data:`magcal.geometry.orientations.FIRMWARE_ROTATIONS`, or 101/102: ``CUST_ROTn_ROLL/PITCH/YAW``).
 
-    Returns the corrected field (N, 3) in milligauss.
+    ``motor`` (N,) is ``u``: the battery current in A (``COMPASS_MOTCT`` 2) or the throttle 0-1 (1); the motor
+    compensation is off without it or without ``COMPASS_MOTCT``. Returns the corrected field (N, 3) in milligauss.
     """
     tag = "" if slot == 1 else str(slot)
     p = parameters
@@ -480,15 +671,23 @@ def apply_ardupilot(parameters, raw_mG, slot=1) -> np.ndarray:
     m = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
     raw = np.asarray(raw_mG, dtype=float)
     orient = p.get(f"COMPASS_ORIENT{tag}")
-    if orient is not None:
+    if orient is not None and int(orient) in (101, 102):
+        index = int(orient) - 100
+        raw = raw @ euler_matrix(*(p[f"CUST_ROT{index}_{a}"] for a in ("ROLL", "PITCH", "YAW"))).T
+    elif orient is not None:
         raw = raw @ euler_matrix(*FIRMWARE_ROTATIONS[int(orient)]).T
-    return (scale * (raw + ofs)) @ m.T
+    out = (scale * (raw + ofs)) @ m.T
+    if motor is not None and p.get("COMPASS_MOTCT", 0) in (1, 2):
+        mot = np.array([p.get(f"COMPASS_MOT{tag}_{a}", 0.0) for a in "XYZ"])
+        out = out + np.asarray(motor, dtype=float)[:, None] * mot[None, :]
+    return out
 
 
-def apply_px4(parameters, raw_G, slot=0, rotation=None) -> np.ndarray:
+def apply_px4(parameters, raw_G, slot=0, rotation=None, power=None) -> np.ndarray:
     """PX4's correction of raw readings (gauss) with exported parameters, as ``calibration::Magnetometer::
-    Correct`` does it (power compensation off): ``rot (S (raw - OFF))``, ``rot`` the given matrix, else
-    ``CAL_MAGn_ROT`` when the parameters hold one. Returns (N, 3) gauss."""
+    Correct`` does it: ``rot (S ((raw + power COMP) - OFF))``, ``rot`` the given matrix, else ``CAL_MAGn_ROT`` when
+    the parameters hold one; ``power`` (N,) the battery current in kA (``CAL_MAG_COMP_TYP`` 2) or the throttle 0-1
+    (1), the compensation off without it. Returns (N, 3) gauss."""
     pre = f"CAL_MAG{slot}_"
     p = parameters
     off = np.array([p[f"{pre}{a}OFF"] for a in "XYZ"])
@@ -498,7 +697,11 @@ def apply_px4(parameters, raw_G, slot=0, rotation=None) -> np.ndarray:
     if rotation is None and p.get(f"{pre}ROT") is not None and int(p[f"{pre}ROT"]) in FIRMWARE_ROTATIONS:
         rotation = euler_matrix(*FIRMWARE_ROTATIONS[int(p[f"{pre}ROT"])])
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
-    return (np.asarray(raw_G, dtype=float) - off) @ s.T @ rot.T
+    raw = np.asarray(raw_G, dtype=float)
+    if power is not None and p.get("CAL_MAG_COMP_TYP", 0) in (1, 2, 3):
+        comp = np.array([p.get(f"{pre}{a}COMP", 0.0) for a in "XYZ"])
+        raw = raw + np.asarray(power, dtype=float)[:, None] * comp[None, :]
+    return (raw - off) @ s.T @ rot.T
 
 
 def parse_parameter_file(text) -> dict:

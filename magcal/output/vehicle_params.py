@@ -44,8 +44,9 @@ from magcal.data.io import atomic_write
 from magcal.data.live import mavlink_address
 from magcal.output.export import parse_parameter_file
 
-#: Firmwares whose parameters are sent, and the prefix of the names each takes.
-FIRMWARE_PREFIXES = {"ardupilot": "COMPASS_", "px4": "CAL_MAG"}
+#: Firmwares whose parameters are sent, and the prefixes of the names each takes (ArduPilot's custom rotations,
+#: ``CUST_ROT*``, hold a compass's mounting off the right angles).
+FIRMWARE_PREFIXES = {"ardupilot": ("COMPASS_", "CUST_ROT"), "px4": ("CAL_MAG",)}
 #: MAV_PARAM_TYPE numbers of the integer types (UINT8 .. INT64) and of REAL32.
 INTEGER_TYPES = {1: "B", 2: "b", 3: "H", 4: "h", 5: "I", 6: "i"}
 REAL32 = 9
@@ -162,11 +163,12 @@ def values_to_send(text: str, firmware: str) -> dict:
     values = read_parameter_text(text)
     if not values:
         raise MagcalError("the parameter file holds no parameter")
-    prefix = FIRMWARE_PREFIXES[firmware]
-    wrong = [n for n in values if not n.startswith(prefix)]
+    prefixes = FIRMWARE_PREFIXES[firmware]
+    wrong = [n for n in values if not n.startswith(prefixes)]
     if wrong:
         raise MagcalError(
-            f"{', '.join(wrong[:4])}: not {firmware} compass parameters ({prefix}*); only those are sent to a vehicle"
+            f"{', '.join(wrong[:4])}: not {firmware} compass parameters ({', '.join(p + '*' for p in prefixes)}); "
+            "only those are sent to a vehicle"
         )
     long = [n for n in values if len(n) > PARAM_ID_CHARS]
     if long:
@@ -179,8 +181,8 @@ def values_to_send(text: str, firmware: str) -> dict:
 
 def firmware_of(values) -> str:
     """The firmware whose names a parameter set holds (``COMPASS_*``: ardupilot, ``CAL_MAG*``: px4)."""
-    for fw, prefix in FIRMWARE_PREFIXES.items():
-        if values and all(str(n).startswith(prefix) for n in values):
+    for fw, prefixes in FIRMWARE_PREFIXES.items():
+        if values and all(str(n).startswith(prefixes) for n in values):
             return fw
     raise MagcalError("the parameters are neither ArduPilot's COMPASS_* nor PX4's CAL_MAG*: nothing to send")
 
