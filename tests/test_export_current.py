@@ -143,7 +143,7 @@ def motor_input(ds, column):
 @pytest.mark.parametrize("column", ["current_A", "throttle"])
 def test_ardupilot_motor_compensation_and_custom_rotation_give_the_body_field(flights, column, tmp_path):
     cal, two = flights[column]
-    assert cal.platform.current_column == column
+    assert current_compensation(cal)[1] == [column, column]
     path = tmp_path / "cal.json"
     cal.save(path)
     out = tmp_path / "compass.parm"
@@ -208,23 +208,23 @@ def test_px4_power_compensation_gives_the_body_field_up_to_the_stated_rotation(f
         assert np.max(np.abs(no_comp @ frame.T - body[n])) > 100.0
 
 
-# -- where the term lives: the platform terms today, the catalogue effect tomorrow ---------------------------------
+# -- where the term lives: the catalogue effect, and the platform terms of files of earlier versions -------------
 
 
-def as_catalogue(cal):
-    """The same calibration with its current term as the catalogue effect ``current_field`` (the lead's move)."""
+def as_platform(cal):
+    """The same calibration with its current term as the platform terms of calibration files of earlier versions."""
     other = copy.deepcopy(cal)
-    column, k = cal.platform.current_column, np.asarray(cal.platform.current_nT_per_unit)
-    other.platform = None
-    other.model = Model(cal.n_sensors, effects=[CurrentField(column=column)])
-    other.effect_values = {f"current_field:{s + 1}": k[s].copy() for s in range(cal.n_sensors)}
+    (effect,) = cal.model.effects
+    k = np.array([cal.effect_values[f"current_field:{s + 1}"] for s in range(cal.n_sensors)])
+    other.model, other.effect_values = None, {}
+    other.platform = PlatformTerms(current_nT_per_unit=k, current_column=effect.column)
     return other
 
 
 @pytest.mark.parametrize("column", ["current_A", "throttle"])
 def test_the_current_term_is_read_from_the_platform_terms_and_the_catalogue_alike(flights, column):
-    cal, two = flights[column]
-    cat = as_catalogue(cal)
+    cat, two = flights[column]
+    cal = as_platform(cat)
     assert np.allclose(cat.correct(two), cal.correct(two), atol=1e-9)  # the same correction, held elsewhere
     k_platform, columns_platform = current_compensation(cal)
     k_catalogue, columns_catalogue = current_compensation(cat)
@@ -238,8 +238,8 @@ def test_the_current_term_is_read_from_the_platform_terms_and_the_catalogue_alik
     back = Calibration.from_dict(cat.to_dict())
     assert export_calibration(back, "ardupilot").parameters == export_calibration(cal, "ardupilot").parameters
     # no current term at all: nothing of the motor compensation is written
-    bare = copy.deepcopy(cal)
-    bare.platform = None
+    bare = copy.deepcopy(cat)
+    bare.model, bare.effect_values = None, {}
     assert current_compensation(bare) == (None, [None, None])
     assert not any("MOT" in n for n in export_calibration(bare, "ardupilot").parameters)
 
@@ -248,7 +248,7 @@ def test_other_catalogue_effects_of_a_vector_calibration_are_refused_not_lost(fl
     """After the move into the catalogue a vector calibration may hold effects the firmware cannot: they are named,
     while its current_field is written."""
     cal, _ = flights["current_A"]
-    cat = as_catalogue(cal)
+    cat = copy.deepcopy(cal)
     cat.model.effects.append(TemperatureBias(sensor=0))
     cat.effect_values["temperature_bias:1"] = np.array([2.0, -1.0, 0.5])
     with pytest.raises(MagcalError, match=r"effect temperature_bias:1: the firmware has no parameter"):
@@ -262,9 +262,8 @@ def test_other_catalogue_effects_of_a_vector_calibration_are_refused_not_lost(fl
 
 def mixed(cal):
     """Sensor 1's field follows the current, sensor 2's the throttle (catalogue effects, one per sensor)."""
-    k = np.asarray(cal.platform.current_nT_per_unit)
+    k = np.asarray(current_compensation(cal)[0])
     other = copy.deepcopy(cal)
-    other.platform = None
     other.model = Model(cal.n_sensors, effects=[CurrentField(sensor=0, column="current_A"),
                                                 CurrentField(sensor=1, column="throttle")])  # fmt: skip
     other.effect_values = {"current_field:1": k[0].copy(), "current_field:2": FULL_THROTTLE_A * k[1]}
@@ -299,7 +298,7 @@ def test_one_compensation_type_per_firmware_refuses_mixed_columns_the_c_header_k
 def test_a_throttle_column_in_percent_is_scaled_to_full_throttle(flights, tmp_path, capsys):
     cal, two = flights["throttle"]
     percent = copy.deepcopy(cal)
-    percent.platform.current_nT_per_unit = np.asarray(cal.platform.current_nT_per_unit) / 100.0  # per percent
+    percent.effect_values = {k: np.asarray(v) / 100.0 for k, v in cal.effect_values.items()}  # per percent
     unit = export_calibration(cal, "ardupilot")
     assert any("--throttle-full-scale 100" in n for n in unit.notes)  # 0-1 assumed, and said
     scaled = export_calibration(percent, "ardupilot", throttle_full_scale=100)
