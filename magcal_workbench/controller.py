@@ -12,9 +12,11 @@ All physics is the engine's (:mod:`magcal.fitting.pipeline`, :mod:`magcal.fittin
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import os
+import sys
 import threading
 import time
 import traceback
@@ -114,6 +116,10 @@ class Controller:
         self.diagnosis = None
         self.inspected: int | None = None
         self.message = ""
+        #: Why the last autosave failed (markdown, escaped), or None: the page shows it, whatever other message
+        #: comes, until an autosave succeeds (:meth:`autosave`).
+        self.save_problem: str | None = None
+        self._saved_at: str | None = None  # when the session was last saved, HH:MM:SS
         self.progress: tuple[str, float | None] | None = None
         self._listeners: list[Callable[[str], None]] = []
         self._lock = threading.RLock()
@@ -147,8 +153,8 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     def on_change(self, func: Callable[[str], None]) -> None:
         """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
-        ``inspect``, ``progress``, ``message``, ``view``, ``effects`` (the catalogue grew) or ``vector`` (the vector
-        fit or its reference changed)."""
+        ``inspect``, ``progress``, ``message``, ``view``, ``effects`` (the catalogue grew), ``vector`` (the vector
+        fit or its reference changed) or ``saved`` (an autosave failed, or succeeded again: :attr:`save_problem`)."""
         self._listeners.append(func)
 
     def _emit(self, kind: str) -> None:
@@ -921,12 +927,61 @@ class Controller:
         return out.getvalue().encode("utf-8")
 
     def autosave(self) -> None:
+        """Save the session (:meth:`SessionStore.save`). A failure (a full disk) is kept in :attr:`save_problem`,
+        which the page shows until a later autosave succeeds; it is never raised (the change itself stands) and
+        never shows the server's paths. Listeners hear ``saved`` when the problem comes or goes."""
         if self.store is None or self.session_id is None:
             return
         try:
             self.store.save(self.session_id, self.state)
-        except OSError as exc:
-            self.message = f"autosave failed: {safe_text(error_text(exc), MESSAGE_LEN)}"
+        except (OSError, MagcalError) as exc:
+            problem = autosave_problem(exc, self._saved_at)
+            if problem != self.save_problem:
+                self.save_problem = problem
+                print(f"magcal-workbench: autosave of session {self.session_id} failed: {exc}", file=sys.stderr)
+                self._emit("saved")
+            return
+        self._saved_at = time.strftime("%H:%M:%S")
+        if self.save_problem is not None:
+            self.save_problem = None
+            print(f"magcal-workbench: session {self.session_id} saved again", file=sys.stderr)
+            self._emit("saved")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` says the disk is full (``ENOSPC``, or the user's quota: ``EDQUOT``), as an
+    :class:`OSError` or as the text of an engine error that wrapped one."""
+    codes = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
+    if isinstance(exc, OSError):
+        return exc.errno in codes
+    return any(os.strerror(code) in str(exc) for code in codes)
+
+
+def unsaved_problem(exc: BaseException) -> str:
+    """The page's lasting warning when opened data cannot become a saved session (their copy in the session
+    folder failed): "the disk is full" when it is; no server path."""
+    if is_disk_full(exc):
+        head = "**This session is not saved: the disk is full.**"
+    else:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else error_text(exc)
+        head = f"**This session is not saved** ({safe_text(why, 300)})."
+    return (
+        f"{head} Your work on these data is lost when the workbench stops; free some space, then open the data again."
+    )
+
+
+def autosave_problem(exc: BaseException, saved_at: str | None) -> str:
+    """The page's lasting warning about a failed autosave (markdown, escaped, no server path): what failed,
+    "the disk is full" when it is, since when the session's changes are not saved, what to do."""
+    since = f"since {saved_at}" if saved_at else "since the session opened"
+    if is_disk_full(exc):
+        head = "**Autosave failed: the disk is full.**"
+        todo = "free some space: your next change saves them"
+    else:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else error_text(exc)
+        head = f"**Autosave failed** ({safe_text(why, 300)})."
+        todo = "your next change tries again"
+    return f"{head} The session's changes {since} are not saved; {todo}."
 
 
 def error_markdown(exc: BaseException) -> str:

@@ -14,8 +14,11 @@ least every second). :class:`LiveView` then, in a thread of its own,
   suffice (:func:`magcal.checks.coverage.live_sufficient`).
 
 Pause keeps the source read but drops what arrives; Stop closes the recording and opens it like any file, so the
-Calibrate and Model tabs work on what was recorded. The physics (coverage, fit, noise) is the engine's; this module
-schedules and draws.
+Calibrate and Model tabs work on what was recorded, and says how many samples it holds and where (inside the session
+folder: ``recordings/live-....csv``, never the server's path). A recording that cannot be written (a full disk) stops
+with every sample of its last flush kept (:class:`magcal.data.live.Recorder`); the page says so, "the disk is full"
+where it is, until Stop (:attr:`LiveView.recording_problem`). The physics (coverage, fit, noise) is the engine's; this
+module schedules and draws.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from magcal.data.simulation import PRESETS
 from magcal.geometry.shape import FieldShape
 
 from . import scene as scn
-from .markup import clean_text, safe_code, safe_text
+from .markup import clean_text, hide_paths, safe_code, safe_text
 
 #: Shortest time between two scene updates while samples arrive, s.
 DRAW_INTERVAL_S = 0.2
@@ -139,9 +142,11 @@ class LiveView:
     reference_nT : callable, optional
         The reference total field (nT) the page holds now (typed, or IGRF at a typed location), or None: the live
         fits use it, else they fit the field's magnitude.
+    name : str, optional
+        The recording as the page names it (default its file name; :func:`shown_name`).
     """
 
-    def __init__(self, url: str, path, server, ui, redraw, refresh, reference_nT=None):
+    def __init__(self, url: str, path, server, ui, redraw, refresh, reference_nT=None, name=None):
         self._reference_nT = reference_nT or (lambda: None)
         self._server = server
         self._ui = ui
@@ -149,6 +154,8 @@ class LiveView:
         self._refresh = refresh
         self.url = url
         self.path = Path(path)
+        #: The recording as the page names it (:func:`shown_name`: inside the session folder, or its file name).
+        self.name = name or self.path.name
         self.session = LiveSession(url, self.path)
         self.maps: list = []
         self.fit: LiveFit | None = None
@@ -375,7 +382,7 @@ class LiveView:
         state = "stopped" if self.stopped else ("paused" if s.paused else ("receiving" if s.running else "ended"))
         lines = [
             f"**Live** {safe_code(self.url)}: {state}; {s.n_samples} samples received, {s.n_recorded} "
-            f"on disk in {safe_code(self.path.name)}"
+            f"on disk in {safe_code(self.name)}"
         ]
         stats = s.source.stats
         if stats.n_bad:
@@ -394,7 +401,8 @@ class LiveView:
                 f"- the port was reopened {stats.n_reconnects} time(s) ({safe_text(stats.last_disconnect or '', 120)})"
             )
         if s.error:
-            lines.append(f"- **the source stopped:** {safe_text(s.error, 300)}")
+            what = "the recording stopped" if self.recording_failed else "the source stopped"
+            lines.append(f"- **{what}:** {safe_text(self._shown(s.error), 300)}")
         for i, m in enumerate(self.maps):
             who = f"sensor {i + 1}: " if len(self.maps) > 1 else ""
             lines.append(f"- {who}{safe_text(m.summary(), 200)}")
@@ -422,6 +430,43 @@ class LiveView:
         lines.append(("**" if ok else "") + safe_text(why, 300) + ("**" if ok else ""))
         return "  \n".join(lines)
 
+    def _shown(self, text: str) -> str:
+        """``text`` as the page may show it: the recording named as the page names it, any other absolute path
+        cut to its last part (:func:`magcal_workbench.markup.hide_paths`)."""
+        return hide_paths(str(text).replace(os.fspath(self.path), self.name))
+
+    @property
+    def recording_failed(self) -> bool:
+        """Whether the recording stopped because it could not be written (the session's error is the recorder's,
+        which names the recording first: :class:`magcal.data.live.Recorder`)."""
+        error = self.session.error
+        return bool(error) and error.startswith(os.fspath(self.path) + ":")
+
+    @property
+    def recording_problem(self) -> str | None:
+        """The page's lasting warning while the recording has stopped for want of a disk (markdown, escaped), or
+        None: shown until Stop, whatever other message comes meanwhile."""
+        if self.stopped or not self.recording_failed:
+            return None
+        s = self.session
+        then = (
+            f"Stop opens the {s.n_recorded} samples on disk."
+            if s.n_recorded
+            else "Nothing is on disk: Stop has nothing to open."
+        )
+        return f"**The live recording stopped:** {safe_text(self._shown(s.error), 400)}. {then}"
+
+    def stop_summary(self) -> str:
+        """What Stop says (markdown, escaped): how many samples the recording holds and where, and why it stopped
+        early when it did."""
+        s = self.session
+        text = f"recorded {s.n_recorded} samples in {safe_code(self.name)}"
+        if s.n_samples > s.n_recorded:
+            text += f" of the {s.n_samples} received"
+        if self.recording_failed:
+            text += f"  \n**The recording had stopped early:** {safe_text(self._shown(s.error), 400)}"
+        return text
+
     # --- control ----------------------------------------------------------------------------------------------
     def pause(self) -> None:
         self.session.pause()
@@ -437,8 +482,13 @@ class LiveView:
         self.session.stop()
         self._thread.join(5.0)
         self.clear_coverage()
-        if self.session.n_recorded == 0:
-            raise MagcalError(f"{self.path.name}: nothing was recorded (no sample arrived from {self.url})")
+        s = self.session
+        if s.n_recorded == 0:
+            if self.recording_failed:
+                raise MagcalError(f"{self._shown(s.error)}; nothing to open")
+            if s.n_samples:
+                raise MagcalError(f"{self.name}: none of the {s.n_samples} samples received was recorded")
+            raise MagcalError(f"{self.name}: nothing was recorded (no sample arrived from {self.url})")
         return self.path
 
 
@@ -586,6 +636,18 @@ class SourceMenu:
             return f"serial://{urllib.parse.quote(chosen.target)}?{urllib.parse.urlencode(query)}"
         p = bounded("Port", port, *PAGE_PORT, kind=int)
         return f"{chosen.kind}://127.0.0.1:{p}?{urllib.parse.urlencode(query)}"
+
+
+def shown_name(path, store) -> str:
+    """How the page names a recording: its path inside the session folder (``recordings/live-....csv``), else its
+    file name (where a file lives on the server is not the page's business)."""
+    path = Path(path)
+    if store is not None:
+        try:
+            return path.resolve().relative_to(Path(store.root).resolve()).as_posix()
+        except (ValueError, OSError):
+            pass
+    return path.name
 
 
 def recording_folder(store) -> Path:

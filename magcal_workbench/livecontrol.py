@@ -10,7 +10,7 @@ from magcal.core.errors import MagcalError
 
 from .controller import MESSAGE_LEN
 from .dataio import load_dataset
-from .live import LiveView, SourceMenu, default_recording_path, recording_folder
+from .live import LiveView, SourceMenu, default_recording_path, recording_folder, shown_name
 from .markup import safe_code, safe_text
 
 
@@ -64,6 +64,7 @@ class LiveControl:
                 redraw=wb.view.update_scene,
                 refresh=lambda: wb.panels.refresh_live(),
                 reference_nT=lambda: wb.ctrl.state.reference_nT,  # typed, or IGRF at the typed location
+                name=shown_name(path, wb.store),  # recordings/live-....csv: the page never sees the server's path
             )
         finally:
             with self._claim:
@@ -97,7 +98,7 @@ class LiveControl:
         wb = self.wb
         url = self.page_url()
         live = self.start(url)
-        wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.path.name)}")
+        wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.name)}")
 
     def do_live_pause(self, event):
         if self.running:
@@ -110,18 +111,24 @@ class LiveControl:
         self.wb.panels.refresh_live()
 
     def do_live_stop(self, event):
-        """Stop the live session and open its recording like any file (Calibrate and Model work on it)."""
+        """Stop the live session and open its recording like any file (Calibrate and Model work on it); say how
+        many samples it holds and where (inside the session folder), and why it stopped early if it did."""
         wb = self.wb
         if not self.running:
             raise MagcalError("no live session is running")
-        path = self.view.stop()
-        wb.panels.refresh_live()
+        live = self.view
+        try:
+            path = live.stop()
+        finally:
+            wb.panels.refresh_live()
+        summary = live.stop_summary()
+        wb.ctrl.say(summary)
 
         def job():
-            ds, notes = load_dataset(path, path.name)
+            ds, notes = load_dataset(path, live.name)
             wb.load(ds, path.read_bytes(), path.name, resume=False)
             wb.say_after_load(
-                f"opened the recording {safe_code(path.name)}: "
+                f"{summary}  \nopened the recording {safe_code(live.name)}: "
                 f"{safe_text(ds.describe(), MESSAGE_LEN)}"
                 + "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in notes)
             )

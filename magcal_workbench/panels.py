@@ -76,6 +76,14 @@ def status_markdown(ctrl) -> str:
     return f"{text}\n\n{warning}" if warning else text
 
 
+def alarm_markdown(ctrl, live) -> str:
+    """The failures the page shows until they are resolved, whatever message comes meanwhile: a failed autosave
+    (:attr:`Controller.save_problem`) and a live recording stopped for want of a disk
+    (:attr:`LiveView.recording_problem`); empty when all is well."""
+    problems = [ctrl.save_problem, None if live is None else live.recording_problem]
+    return "\n\n".join(f"⚠ {p}" for p in problems if p)
+
+
 def pct(v) -> str:
     """A share (0-1) as a percentage for the compact table: ``99.7 %``, ``100 %``, ``-``."""
     if v is None or not np.isfinite(v):
@@ -588,6 +596,9 @@ class Panels:
         self.gui = gui
         gui.configure_theme(control_width="large", dark_mode=False)
         self.title = gui.add_markdown("## magcal workbench")
+        #: What failed and stays shown until resolved (:func:`alarm_markdown`): a failed autosave, a recording
+        #: stopped by a full disk.
+        self.alarm = gui.add_markdown("", visible=False)
         self.status = gui.add_markdown("")
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
@@ -1010,9 +1021,17 @@ class Panels:
             gui, "Stop and open the recording", self.on.do_live_stop, engine=False, visible=False
         )
 
+    def show_alarm(self) -> None:
+        """Show what failed and is not resolved yet (:func:`alarm_markdown`), or hide the warning."""
+        text = alarm_markdown(self.ctrl(), self.live())
+        if text != self.alarm.content:
+            self.alarm.content = text
+        self.alarm.visible = bool(text)
+
     def refresh_live(self) -> None:
         """Show the live session's state (called by the live view's thread after each update)."""
         live = self.live()
+        self.show_alarm()
         running = live is not None and live.active
         if running:
             self.status.content = LIVE_STATUS
@@ -1128,6 +1147,7 @@ class Panels:
         kinds = set(kinds)
         everything = "all" in kinds
         live = self.live()
+        self.show_alarm()
         self.status.content = status_markdown(ctrl) if live is None or not live.active else LIVE_STATUS
         if everything or "message" in kinds:
             self.message.content = ctrl.message

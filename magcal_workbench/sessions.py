@@ -12,7 +12,7 @@ import sys
 
 from magcal.core.errors import MagcalError
 
-from .controller import MESSAGE_LEN, Controller
+from .controller import MESSAGE_LEN, Controller, unsaved_problem
 from .dataio import load_dataset
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import SessionFileError
@@ -40,9 +40,14 @@ class Sessions:
         every effects file of the command line remembered; autosaved once. The session's other effects files are
         not run: the message says so, and the Model tab offers to load them (the user's choice)."""
         store = self.store
-        sid, state, notes = None, None, []
+        sid, state, notes, unsaved = None, None, [], None
         if store is not None and content is not None:
-            sid = store.create(name, content)
+            try:
+                sid = store.create(name, content)
+            except (OSError, MagcalError) as exc:  # a full disk: the data open all the same, unsaved, and the page
+                unsaved = exc  # says so until other data are opened (Controller.save_problem)
+                print(f"magcal-workbench: the session of {name} cannot be saved: {exc}", file=sys.stderr)
+        if sid is not None:
             notes += [
                 f"the session folder is bounded to {store.max_bytes / 1e6:g} MB: deleted the oldest "
                 f"session {old} ({size / 1e6:.1f} MB)"
@@ -61,6 +66,8 @@ class Sessions:
             if path not in state.effects_files:
                 state.effects_files.append(path)
         ctrl = Controller(dataset, state, store, sid, worker=self.wb.worker)
+        if unsaved is not None:
+            ctrl.save_problem = unsaved_problem(unsaved)
         pending = ctrl.pending_effects_files()
         if pending:  # never run when a session opens: a session someone sends you would run their code
             notes.append(

@@ -1510,6 +1510,13 @@ class Recorder:
     skip), then ``fsync``. A recording cut at any moment reopens with :func:`magcal.read_csv` holding every
     sample of the last flush.
 
+    A flush that cannot write (a full disk, an I/O error) stops the recording: the file is cut back to the end of
+    the last flush (whole lines, every one of them counted in :attr:`n_written`), the samples not written are
+    counted in :attr:`n_lost`, :attr:`failure` says why (``the disk is full`` for ``ENOSPC``) and a
+    :class:`LiveError` with that text is raised, once; a later :meth:`write` raises it again, and :meth:`flush`
+    and :meth:`close` do not (a caller that closes the recording in a ``finally`` is not interrupted). A failure
+    of the flush that :meth:`close` makes is kept in :attr:`failure`, and raised when a ``with`` block is left.
+
     Parameters
     ----------
     path : str or os.PathLike
@@ -1527,6 +1534,11 @@ class Recorder:
         self.n_written = 0  # samples on disk (flushed)
         self.n_pending = 0
         self.n_refused = 0  # samples with a value NaN, infinite or beyond MAX_ABS_VALUE: never written
+        self.n_lost = 0  # samples received but not written: the recording stopped before (``failure``)
+        #: Why the recording stopped (a flush could not write; the file's name first), or None while it works.
+        self.failure: str | None = None
+        #: Whether it stopped because the disk is full (``ENOSPC``) or the user's disk quota is used up.
+        self.disk_full = False
         self._pending = []
         self._fd = None
         self._columns = None
@@ -1560,6 +1572,8 @@ class Recorder:
 
     def write(self, chunk: LiveChunk) -> None:
         """Add the chunk's samples; flushes to disk when ``flush_interval_s`` has passed since the last flush."""
+        if self.failure is not None:
+            raise LiveError(self.failure)
         if self._fd is None:
             raise LiveError(f"{self.path}: the recording is closed")
         chunk = self._usable(chunk) if len(chunk) else chunk
@@ -1618,46 +1632,85 @@ class Recorder:
     def _put(self, data):
         view = memoryview(data)
         while view:
-            try:
-                n = os.write(self._fd, view)
-            except OSError as exc:
-                raise LiveError(
-                    f"{self.path}: cannot write the recording ({exc.strerror or exc}); is the disk "
-                    "full? The samples flushed before are kept"
-                ) from None
+            n = os.write(self._fd, view)
             self._offset += n
             view = view[n:]
 
     def flush(self) -> int:
-        """Write the pending samples as whole lines and ``fsync``; returns the samples now on disk."""
-        if self._fd is None:
+        """Write the pending samples as whole lines and ``fsync``; returns the samples now on disk.
+
+        Raises
+        ------
+        LiveError
+            The samples could not be written (:attr:`failure`; the recording stops, the file keeps every sample
+            of the flushes before).
+        """
+        if self._fd is None or self.failure is not None:
             return self.n_written
         if self._pending:
-            self._write_page_confined(b"".join(self._pending))
-            self._pending = []
+            start = self._offset
             try:
+                self._write_page_confined(b"".join(self._pending))
                 os.fsync(self._fd)
             except OSError as exc:
-                raise LiveError(f"{self.path}: cannot flush the recording to disk ({exc.strerror or exc})") from None
+                self._fail(exc, start)
+            self._pending = []
             self.n_written += self.n_pending
             self.n_pending = 0
         self._last_flush = time.monotonic()
         return self.n_written
 
+    def _fail(self, exc: OSError, start: int):
+        """Stop the recording after a flush that could not write from byte ``start``: cut the file back there (no
+        part of a line left), count the samples not written, and raise :class:`LiveError` saying why."""
+        import errno
+
+        try:
+            os.ftruncate(self._fd, start)  # a full disk still lets a file shrink
+        except OSError:
+            pass
+        self._offset = start
+        self._pending = []
+        self.n_lost += self.n_pending
+        self.n_pending = 0
+        self.disk_full = exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+        if exc.errno == errno.ENOSPC:
+            why = "the disk is full"
+        elif self.disk_full:
+            why = "the disk quota is used up"
+        else:
+            why = f"cannot write the recording ({exc.strerror or type(exc).__name__})"
+        self.failure = (
+            f"{self.path}: {why}: the recording stopped with {self.n_written} samples on disk and the "
+            f"{self.n_lost} received since not written. "
+            + ("Free some space, then record again" if self.disk_full else "Check the disk, then record again")
+        )
+        raise LiveError(self.failure) from None
+
     def close(self) -> None:
-        """Flush and close the file."""
+        """Flush and close the file. Never raises: a failure of this last flush is kept in :attr:`failure` (the
+        recording is closed either way)."""
         if self._fd is not None:
             try:
                 self.flush()
+            except LiveError:
+                pass  # kept in self.failure
             finally:
-                os.close(self._fd)
-                self._fd = None
+                fd, self._fd = self._fd, None
+                try:
+                    os.close(fd)
+                except OSError as exc:  # a network file system reports a failed write at the latest here
+                    if self.failure is None:
+                        self.failure = f"{self.path}: cannot close the recording ({exc.strerror or exc})"
 
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, exc, tb):
+        failed = self.failure
         self.close()
+        if exc_type is None and failed is None and self.failure is not None:
+            raise LiveError(self.failure)  # the last flush failed: the block's caller must hear it
 
 
 def record(

@@ -15,7 +15,11 @@ Where the work runs (:class:`Pool`, chosen per diagnosis):
   written once into one shared-memory segment (:class:`SharedDataset`; nothing of them is pickled per task), each
   worker maps it read-only on its first task and keeps it, and BLAS runs one thread per worker (threadpoolctl), so
   the workers do not oversubscribe the cores. The segment is unlinked when the diagnosis ends, on an error and on
-  Ctrl-C too. A fit's notes travel back with its result (:class:`~magcal.fitting.fitter.FitResult` ``.notes``).
+  Ctrl-C too. Killed outright (SIGKILL), the diagnosis leaves nothing running: each worker ends with the process
+  that started its pool (:func:`magcal.core.leftovers.exit_with`), then the fork server and the resource tracker
+  end, and the tracker unlinks the segment; a segment left even so (the tracker killed too) is removed by the next
+  diagnosis, which says so (:func:`remove_stale_segments`). A fit's notes travel back with its result
+  (:class:`~magcal.fitting.fitter.FitResult` ``.notes``).
 - **Dask** (``scheduler``: an address, or a ``distributed.Client``): the dataset is scattered to the workers once;
   each task gets it by reference.
 
@@ -39,6 +43,7 @@ import itertools
 import os
 import pickle
 import queue
+import re
 import sys
 import threading
 import uuid
@@ -46,7 +51,7 @@ from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 
-from magcal.core import memory
+from magcal.core import leftovers, memory
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import Dataset
 
@@ -143,6 +148,8 @@ CHAIN, SHARED, FILLER = 0, 1, 2
 
 #: Prefix of the shared-memory segments' names (``/dev/shm/magcal_<pid>_<hex>`` on Linux).
 SEGMENT_PREFIX = "magcal_"
+#: A segment's whole name: the prefix, the number of the process that made it, 16 hex digits.
+SEGMENT_NAME = re.compile(re.escape(SEGMENT_PREFIX) + r"(?P<pid>[0-9]+)_[0-9a-f]+")
 
 
 def cores() -> int:
@@ -243,6 +250,13 @@ def shared_memory_free_bytes():
     except (OSError, AttributeError):
         return None
     return st.f_bavail * st.f_frsize
+
+
+def remove_stale_segments() -> str | None:
+    """Unlink the shared-memory segments of diagnoses whose process no longer runs (killed outright, their
+    resource tracker with them: nothing else would ever remove them); returns the line that says what was removed,
+    or None (:func:`magcal.core.leftovers.remove_stale`)."""
+    return leftovers.removed_text(leftovers.remove_stale(SHM_DIR, SEGMENT_NAME), "shared-memory segment", "diagnosis")
 
 
 class SharedMemoryFull(MagcalError):
@@ -409,10 +423,15 @@ _LIMITS = None
 _ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
 
-def _init_worker():
-    """A worker process's start: BLAS on one thread (the workers share the cores): the libraries loaded so far
-    (numpy's) limited by threadpoolctl, and those loaded later (scipy's own OpenBLAS) by the environment."""
+def _init_worker(owner_pid=None):
+    """A worker process's start: it ends when ``owner_pid`` (the process that started its pool) ends
+    (:func:`magcal.core.leftovers.exit_with`: a diagnosis killed outright leaves no worker, and then no fork
+    server nor resource tracker, behind); BLAS on one thread (the workers share the cores): the libraries loaded
+    so far (numpy's) limited by threadpoolctl, and those loaded later (scipy's own OpenBLAS) by the
+    environment."""
     global _LIMITS
+    if owner_pid is not None:
+        leftovers.exit_with(owner_pid)
     from threadpoolctl import threadpool_limits
 
     # a fork server started by Dask passes on its MALLOC_TRIM_THRESHOLD_; and a large record's temporaries (above
@@ -610,7 +629,12 @@ class _Processes:
         self.workers = int(workers)
         self.shared = SharedDataset(dataset)
         try:
-            self.executor = _Executor(max_workers=self.workers, mp_context=process_context(), initializer=_init_worker)
+            self.executor = _Executor(
+                max_workers=self.workers,
+                mp_context=process_context(),
+                initializer=_init_worker,
+                initargs=(os.getpid(),),  # each worker ends when this process does, however it ends
+            )
             for _ in range(self.workers):  # workers start now, while the score tests run (some later: _Executor)
                 self.executor.submit(_ready, *warm)
         except BaseException:
@@ -714,6 +738,9 @@ class Pool:
         self._remote = None
         #: What the pool says to the user, or None: fewer workers than asked for, for want of memory.
         self.note = None
+        #: What the pool removed as it started, or None: segments of diagnoses killed before they could unlink
+        #: them (:func:`remove_stale_segments`).
+        self.removed = remove_stale_segments() if dataset is not None else None
         if dataset is not None and self.backend != "dask":
             wanted = workers or _workers(cap=MAX_PROCESSES if self.backend == "processes" else MAX_THREADS)
             workers, self.note = workers_for_memory(dataset, wanted, self.backend)

@@ -783,8 +783,9 @@ def diagnose(
     with Pool(dataset, scheduler=scheduler, effects=in_play, warm=warm, workers=workers) as pool:
         if scheduler is not None and pool.backend != "dask":
             fit_notes.append(_notes.Note(_parallel.ELSEWHERE_NOTE, UserWarning, "diagnose"))
-        if pool.note:
-            fit_notes.append(_notes.Note(pool.note, UserWarning, "diagnose"))
+        for text in (pool.removed, pool.note):
+            if text:
+                fit_notes.append(_notes.Note(text, UserWarning, "diagnose"))
         cands, proj, _ = _score_round(dataset, kept, fit0, candidates, pool=pool)
         return _after_scores(
             dataset,

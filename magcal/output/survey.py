@@ -12,10 +12,12 @@ layout, units and checks are those of the whole file), corrects it block by bloc
 own ``part-NNNNN.parquet`` (or ``.csv``) in a temporary folder beside ``output_dir``: nothing but the partition's
 description goes to the task and its file name and row count come back, so no data pass through the client. The
 folder is renamed to ``output_dir`` when every partition is written (a Parquet dataset: ``pyarrow.dataset`` or
-``pandas.read_parquet`` read the folder as one table, in order); a bad row, a failed task or Ctrl-C leaves nothing
-under the final name. The record-only terms are decided once for every file before the tasks start, as ``magcal
-apply`` does (:func:`magcal.output.apply.record_choice`: a file of another length than the fitted record, its rows
-counted from a Parquet footer or a CSV's line ends, is another record without a row parsed in the client). On a
+``pandas.read_parquet`` read the folder as one table, in order); a bad row, a failed task or Ctrl-C leaves nothing under
+the final name. A correction killed outright cannot remove its folder; the next one writing in the same folder does,
+once the killed one's process no longer runs, and says so (:func:`remove_stale`; the local cluster's workers end with
+the program, as Dask's nannies watch it). The record-only terms are decided once for every file before the tasks start,
+as ``magcal apply`` does (:func:`magcal.output.apply.record_choice`: a file of another length than the fitted record,
+its rows counted from a Parquet footer or a CSV's line ends, is another record without a row parsed in the client). On a
 cluster the input files and the output folder must be on a file system every worker sees.
 
 Messages from a task name the file and the line (CSV: the file's own line numbers, as ``magcal apply`` gives them).
@@ -27,6 +29,7 @@ import io as _io
 import logging
 import multiprocessing
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -35,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calibration.calibration import Calibration
+from magcal.core import leftovers
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.memory import keep_large_blocks
 from magcal.data.dataset import DatasetError
@@ -89,6 +93,24 @@ CONNECT_TIMEOUT_S = 10.0
 LOCAL_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 #: Local worker processes allowed per CPU core: more only compete for the cores (and thousands exhaust the machine).
 WORKERS_PER_CORE = 4
+
+
+#: A work folder's name: ``.NAME.magcal-HOST-PID-XXXXXXXX.tmp`` beside the output ``NAME``, with six hex digits
+#: of the machine's name (:func:`magcal.core.leftovers.host_tag`) and the number of the process that made it, so
+#: that the next correction writing beside it removes it once that process no longer runs (:func:`remove_stale`).
+WORK_DIR_NAME = re.compile(r"\.(?P<name>.+)\.magcal-(?P<host>[0-9a-f]{6})-(?P<pid>[0-9]+)-[a-z0-9_]{8}\.tmp")
+
+
+def work_dir_prefix(target: str) -> str:
+    """The start of the name of the work folder of a correction into ``target`` (:data:`WORK_DIR_NAME`)."""
+    return f".{os.path.basename(target)}.magcal-{leftovers.host_tag()}-{os.getpid()}-"
+
+
+def remove_stale(directory) -> str | None:
+    """Remove the work folders in ``directory`` of corrections whose process no longer runs on this machine (one
+    killed outright keeps its partitions there for ever); returns the line that says what was removed, or None."""
+    gone = leftovers.remove_stale(directory, WORK_DIR_NAME, host=leftovers.host_tag())
+    return leftovers.removed_text(gone, "work folder", "parallel correction (magcal apply)")
 
 
 def max_workers() -> int:
@@ -529,8 +551,10 @@ def apply_partitioned(
         Survey files (CSV or Parquet).
     output_dir : str or os.PathLike
         A new or empty directory; ``part-NNNNN.parquet`` (or ``.csv``) are written, in input order, into a
-        temporary folder beside it (``.NAME.XXXXXXXX.tmp``) that takes its name once every partition is written;
-        on any error or interruption the temporary folder is removed and ``output_dir`` is left as it was.
+        temporary folder beside it (``.NAME.magcal-HOST-PID-XXXXXXXX.tmp``, :data:`WORK_DIR_NAME`) that takes its
+        name once every partition is written; on any error or interruption the temporary folder is removed and
+        ``output_dir`` is left as it was. A work folder there of a correction killed outright (its process no
+        longer runs on this machine) is removed first, with a warning naming it.
     fmt : {"parquet", "csv"}
     workers : int
         Worker processes of the local cluster, 1 to :func:`max_workers` (ignored with ``scheduler``).
@@ -583,7 +607,10 @@ def apply_partitioned(
     distributed = _distributed()
     progress = sys.stderr.isatty() if progress is None else bool(progress)
     target = os.path.abspath(output_dir)
-    work_dir = tempfile.mkdtemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=os.path.dirname(target))
+    removed = remove_stale(os.path.dirname(target))  # a killed correction's partitions, never to be published
+    if removed:
+        warnings.warn(removed, UserWarning, stacklevel=2)
+    work_dir = tempfile.mkdtemp(prefix=work_dir_prefix(target), suffix=".tmp", dir=os.path.dirname(target))
     cluster = None
     done = False
     t_start = time.perf_counter()
