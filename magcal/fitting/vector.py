@@ -66,6 +66,9 @@ from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, fir
 from magcal.model.platform_terms import available_terms
 from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
 
+#: Most rounds in which the effects may move their data-derived constants after a fit (a time offset's shift).
+MAX_REFINEMENTS = 3
+
 #: Fewest samples per sensor for a vector fit (12 base parameters plus platform terms, three equations each).
 MIN_SAMPLES = 20
 
@@ -803,7 +806,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     )
     rebased = not any(e.basis_uses_readings for e, _ in instances)
     sol = None
-    for rnd in range(3):
+    for rnd in range(MAX_REFINEMENTS + 2):
         sol = least_squares(
             prob.residuals,
             x,
@@ -822,7 +825,8 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
         settled = abs(new_f / sigma_f - 1) < 0.05 and abs(new_p / sigma_p - 1) < 0.05
         sigma_f, sigma_p = new_f, new_p
-        if not rebased:  # a basis of the readings minus the bias: once more at the fitted bias
+        refined = _refine(instances, sizes, x[12:]) if rnd < MAX_REFINEMENTS else False
+        if refined or not rebased:  # a basis of the readings minus the bias, or constants the fit moved: once more
             prob = _SensorProblem(y, b_body, f_ref, _raw_bases(instances, dataset, ctx, x[9:12], rows))
             rebased = True
             continue
@@ -892,6 +896,19 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         vector_residual_nT=e,
     )
     return fit, values, cov_block
+
+
+def _refine(instances, sizes, theta) -> bool:
+    """Let each effect move its data-derived constants to the fitted values (:meth:`~magcal.model.terms.Effect.refine`:
+    a time offset's shift, a hysteresis loop's width); True when one did (the fit is then repeated)."""
+    changed, k = False, 0
+    for (e, label), q in zip(instances, sizes):
+        try:
+            changed |= bool(e.refine({label: theta[k : k + q]}, None))
+        except (TypeError, AttributeError):  # an effect whose refinement needs the scalar fitter's context
+            pass
+        k += q
+    return changed
 
 
 def _terms_of(values) -> dict:

@@ -34,6 +34,7 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.fft
+from scipy.interpolate import CubicSpline
 from scipy.special import eval_legendre
 
 from magcal.core.errors import MagcalError
@@ -442,7 +443,7 @@ class EddyCurrents(CatalogueEffect):
         return np.full(9, 0.1)
 
     def raw_basis(self, z0, ctx: Context):
-        rate = 1e-3 * _reading_rate(self, ctx)
+        rate = 1e-3 * _platform_rate(self, ctx)
         basis = np.zeros((len(rate), 3, 9))
         for j in range(3):
             basis[:, j, 3 * j : 3 * j + 3] = rate
@@ -456,6 +457,39 @@ class EddyCurrents(CatalogueEffect):
         return m[0] * np.roll(np.asarray(self.pattern), 3 * (sensor or 0))
 
 
+#: The readings are fitted in time for the time offset's regressor only while the field turns less than this (rad)
+#: over the smoothing's window (at its 95th percentile): a cubic fit bends faster turns by more than a few nT.
+SMOOTH_TURN_RAD = 0.15
+
+
+def _platform_rate(effect, ctx):
+    """d y / d t (nT/s) of the context's sensor for the platform's rate terms (eddy currents, a time offset): the
+    smoothed derivative (:func:`time_derivative`) while the field turns slowly over its window, else the derivative
+    of a cubic spline through the readings (a fast turn that the smoothing would bend); cached per dataset."""
+
+    def compute():
+        y = np.asarray(ctx.reading_nT, dtype=float)
+        t = np.asarray(ctx.time_s, dtype=float)
+        if _unless_it_bends(y, t) is y and len(t) > 3 and np.all(np.diff(t) > 0):
+            return CubicSpline(t, y, axis=0)(t, 1)
+        return time_derivative(y, t)
+
+    return effect._cached(ctx.dataset, ("platform rate", ctx.sensor), compute)
+
+
+def _unless_it_bends(values, time_s):
+    """The readings fitted in time (:func:`smoothed_readings`) when the field turns slowly over the smoothing's
+    window (:data:`SMOOTH_TURN_RAD`), else the readings themselves: the fit would bend a fast turn."""
+    smooth = smoothed_readings(values, time_s)
+    if smooth is values:
+        return values
+    t = np.asarray(time_s, dtype=float)
+    step = float(np.median(np.diff(t)))
+    window = int(np.clip(round(REVERSAL_SMOOTHING_S / step), 7, 51)) * step
+    turn = np.linalg.norm(np.gradient(smooth, t, axis=0), axis=1) / np.maximum(np.linalg.norm(smooth, axis=1), 1e-9)
+    return smooth if float(np.percentile(turn, 95)) * window <= SMOOTH_TURN_RAD else values
+
+
 @register
 @dataclass
 class AttitudeTimeOffset(CatalogueEffect):
@@ -465,9 +499,16 @@ class AttitudeTimeOffset(CatalogueEffect):
 
     A logging path, a filter or a bus that delays one stream more than the other does this; a vehicle that turns at
     ``w`` rad/s then sees an error of ``w d |B|`` perpendicular to the field (80 ms at 30 deg/s on 50 uT: 2 uT).
-    The correction is first order, ``z = y + d dy/dt``: its error is ``(w d)^2 |B| / 2`` (0.1 nT at 2 deg/s and
-    80 ms, 44 nT at 30 deg/s). The total field cannot see it (a delayed field has the same magnitude), so it is
-    judged in vector mode only. It belongs to the logging path and carries to new data of the same vehicle.
+    The total field cannot see it (a delayed field has the same magnitude), so it is judged in vector mode only. It
+    belongs to the logging path and carries to new data of the same vehicle.
+
+    The correction is the reading moved in time, ``z(t) = y(t + d)``, linear in ``d`` about a shift ``s`` per
+    sensor (:attr:`shift_ms`, a data-derived constant): ``z = y + d (y(t + s) - y(t)) / s``, the readings
+    fitted in time (:func:`smoothed_readings`) while the field turns slowly over the smoothing's window, else the
+    readings themselves (the smoothing would bend a fast turn), interpolated by a cubic spline and continued past the record's ends
+    by it (the noise of the readings in the regressor would bias ``d`` towards 0 on a slow record); ``s = 0`` is the derivative, ``z = y + d dy/dt``, whose own error is ``(w d)^2 |B| / 2`` (0.1 nT at
+    2 deg/s and 80 ms, 44 nT at 30 deg/s). :meth:`refine` sets ``s`` to the fitted ``d`` and the fit is repeated, so
+    the correction is exact at the offset found.
     """
 
     name: ClassVar[str] = "attitude_time_offset"
@@ -484,15 +525,65 @@ class AttitudeTimeOffset(CatalogueEffect):
         "merge may not), or give the offset found here to the logger"
     )
 
+    shift_ms: list | None = None
+
     def param_names(self):
         return ["delay_ms"]
 
     def param_scale(self):
         return np.array([0.1])
 
+    def state(self):
+        return {"shift_ms": self.shift_ms}
+
+    def set_state(self, state):
+        shifts = state.get("shift_ms")
+        if shifts is None:
+            self.shift_ms = None
+            return
+        if not isinstance(shifts, list) or not all(
+            v is None or (isinstance(v, (int, float)) and np.isfinite(v) and abs(v) <= 1e5) for v in shifts
+        ):
+            raise MagcalError(f"{self.label}: shift_ms must be a list of delays in ms (or null), got {shifts!r}")
+        self.shift_ms = [None if v is None else float(v) for v in shifts]
+
+    def _shift(self, sensor) -> float:
+        shifts = self.shift_ms or []
+        value = shifts[sensor] if sensor < len(shifts) else None
+        return 0.0 if value is None else float(value)
+
     def raw_basis(self, z0, ctx: Context):
-        rate = _reading_rate(self, ctx)
-        return -1e-3 * rate[:, :, None]
+        shift = self._shift(ctx.sensor)
+        t = np.asarray(ctx.time_s, dtype=float)
+        if shift == 0.0 or not np.all(np.diff(t) > 0):  # the derivative (a time column that repeats: no spline)
+            rate = _platform_rate(self, ctx)
+            return -1e-3 * rate[:, :, None]
+
+        def moved():
+            y = _unless_it_bends(np.asarray(ctx.reading_nT, dtype=float), t)
+            later = CubicSpline(t, y, axis=0, extrapolate=True)(t + 1e-3 * shift)  # past the ends: by the spline
+            return -(later - y) / shift
+
+        return self._cached(ctx.dataset, ("moved", ctx.sensor, shift), moved)[:, :, None]
+
+    def refine(self, effect_values, context=None):
+        """Move each sensor's shift to its fitted delay (True when one moved by more than 0.2 ms and 1 %: the fit
+        is then repeated with the bases at the new shifts)."""
+        shifts = list(self.shift_ms or [])
+        changed = False
+        for label, values in effect_values.items():
+            name, _, number = label.partition(":")
+            if name != self.name:
+                continue
+            sensor = int(number) - 1 if number else 0
+            shifts += [None] * (sensor + 1 - len(shifts))
+            d = float(np.ravel(values)[0])
+            now = self._shift(sensor)
+            if np.isfinite(d) and abs(d - now) > max(0.2, 0.01 * abs(d)):
+                shifts[sensor], changed = d, True
+        if changed:
+            self.shift_ms = shifts
+        return changed
 
     def true_params(self, magnitude=None, sensor=0):
         magnitude = self.default_magnitude if magnitude is None else magnitude
