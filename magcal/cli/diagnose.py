@@ -33,6 +33,7 @@ from magcal.cli.calibrate import (
     add_noise_argument,
     checked_effect_names,
     checked_noise,
+    compass_report,
     named_error,
     read_input,
 )
@@ -162,6 +163,7 @@ def run(args) -> int:
     notes += [w for w in result.warnings if w not in notes]
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
     notes += [w for w in quality.warnings if w not in notes]
+    compasses = compass_report(ds, notes=notes, args=args)  # several compasses on one vehicle (issue 40, item 5)
     for note in notes:
         if args.json or note not in quality.warnings:  # the text output shows those in its Data quality section
             print(f"magcal diagnose: warning: {note}", file=sys.stderr)
@@ -169,6 +171,8 @@ def run(args) -> int:
         doc = diagnosis.to_dict()
         doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))  # every warning of the run
         doc["quality"] = quality.to_dict()
+        if compasses is not None:
+            doc["compass_consistency"] = compasses.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
@@ -177,4 +181,6 @@ def run(args) -> int:
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{shown.describe()}\n\n{diagnosis.table()}\n")
         sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
         sys.stdout.write("\n" + quality.section())
+        if compasses is not None:
+            sys.stdout.write("\n" + compasses.text())
     return 0
