@@ -25,7 +25,9 @@ ArduPilot (read with pymavlink's ``DFReader``)
     heading: ``ATT`` yaw is true heading only if it is right) as ``metadata['log_declination_deg']``.
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
-    ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
+    ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). The field PX4 computed
+    from it with the log's ``CAL_MAGn_*`` parameters (its device's, by ``CAL_MAGn_ID``) is kept as the channels
+    ``s1x_logged..`` (body frame), as for ArduPilot. Attitude: the
     ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times (both readers:
     NaN for a sample far from any attitude message, :data:`LOG_ATTITUDE_MAX_GAP_S`). Position:
     ``vehicle_gps_position`` or ``sensor_gps`` with a 3D fix (``fix_type`` >= 3) as ``lat``, ``lon``, ``alt_m``,
@@ -53,6 +55,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from magcal.core.errors import DataWarning, exception_text
 from magcal.core.notes import row_runs, say
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
+from magcal.geometry.orientations import FIRMWARE_ROTATIONS, euler_matrix
 
 #: File name endings read as flight-controller logs, and the reader of each.
 LOG_EXTENSIONS = (".bin", ".ulg")
@@ -739,7 +742,7 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
     battery = "BAT" if gathered["bat"] else "CURR"
     bat = np.asarray(gathered["bat"] or gathered["curr"], dtype=float).reshape(-1, 2)
     bat_t, amps = _drop_bad(source, battery, bat[:, 0], bat[:, 1], notes=notes)
-    if bat_t.size:
+    if bat_t.size > 1 and np.ptp(amps) > 0:  # a current that never changes is no channel (no current sensor)
         extra["current_A"] = _strictly_increasing(bat_t, amps, source, battery, notes)
     thr = np.asarray(gathered["thr"], dtype=float).reshape(-1, 2)
     thr_t, throttle = _drop_bad(source, "CTUN throttle", thr[:, 0], thr[:, 1], notes=notes)
@@ -834,8 +837,93 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    extra = {**(_ulog_current(ulog, source) or {}), **_ulog_position(ulog, source, metadata, notes)}
+    current = _ulog_current(ulog, source)
+    extra = {**(current or {}), **_ulog_position(ulog, source, metadata, notes)}
+    logged = _px4_logged_fields(ulog, chosen, series, current, source, notes)
+    if logged is not None:
+        series = [(t, np.column_stack([v, f])) for (t, v), f in zip(series, logged)]
+        metadata["log_logged_field"] = (
+            "s{k}x_logged..: the field PX4 computed with the log's CAL_MAGn_* (and board rotation) parameters"
+        )
     return _build(source, series, temperature, attitude, extra, metadata, notes)
+
+
+#: PX4's (and MAVLink's) sensor rotations that are not right angles (number -> roll, pitch, yaw in deg), beside
+#: :data:`magcal.geometry.orientations.FIRMWARE_ROTATIONS`; ``R = Rz(yaw) Ry(pitch) Rx(roll)`` as there.
+PX4_ODD_ROTATIONS = {
+    1: (0, 0, 45),
+    3: (0, 0, 135),
+    5: (0, 0, 225),
+    7: (0, 0, 315),
+    9: (180, 0, 45),
+    11: (180, 0, 135),
+    13: (180, 0, 225),
+    15: (180, 0, 315),
+    17: (90, 0, 45),
+    19: (90, 0, 135),
+    21: (270, 0, 45),
+    23: (270, 0, 135),
+    39: (0, 315, 0),
+    40: (90, 315, 0),
+}
+
+
+def _px4_rotation(number):
+    """The rotation matrix of a PX4 rotation number (``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``), or None if unknown."""
+    angles = FIRMWARE_ROTATIONS.get(int(number), PX4_ODD_ROTATIONS.get(int(number)))
+    return None if angles is None else euler_matrix(*angles)
+
+
+def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
+    """The field PX4 computed from each ``sensor_mag`` (nT, body frame) with the log's calibration parameters,
+    as ``calibration::Magnetometer::Correct`` does: ``R S (raw + power * COMP - OFF)`` with ``S`` the symmetric matrix
+    of ``CAL_MAGn_[XYZ]SCALE`` and ``CAL_MAGn_[XYZ]ODIAG``, ``R`` the rotation ``CAL_MAGn_ROT`` of an external
+    magnetometer or the board's ``SENS_BOARD_ROT`` of an internal one, turned by ``SENS_BOARD_[XYZ]_OFF``; the
+    power is the battery current in kA with ``CAL_MAG_COMP_TYP`` 2 or 3. The parameters are the log's initial
+    ones. None (the before/after comparison then uses the raw field) when a magnetometer has no ``CAL_MAGn_ID``
+    of its device, the log is older than the raw ``sensor_mag`` (no ``is_external`` field), or a rotation or a
+    throttle compensation cannot be reproduced (a note says which)."""
+    params = ulog.initial_parameters
+
+    def say_none(why):
+        say(notes, f"{source}: the field PX4 computed is not reconstructed: {why}", DataWarning, "read", stacklevel=4)
+
+    if not any(k.startswith("CAL_MAG") for k in params):
+        return None
+    level = euler_matrix(*(float(params.get(f"SENS_BOARD_{a}_OFF", 0.0)) for a in "XYZ"))
+    comp_type = int(params.get("CAL_MAG_COMP_TYP", 0))
+    out = []
+    for d, (t, raw) in zip(chosen, series):
+        data = d.data
+        if "device_id" not in data or "is_external" not in data or not len(data["device_id"]):
+            return None
+        device = int(data["device_id"][0])
+        index = next((n for n in range(MAX_SENSORS) if int(params.get(f"CAL_MAG{n}_ID", -1)) == device), None)
+        if index is None:
+            say_none(f"sensor_mag {d.multi_id} (device {device}) has no CAL_MAGn_ID")
+            return None
+        external = bool(data["is_external"][0])
+        number = params.get(f"CAL_MAG{index}_ROT", 0) if external else params.get("SENS_BOARD_ROT", 0)
+        rot = _px4_rotation(number)
+        if rot is None:
+            say_none(f"rotation {int(number)} of sensor_mag {d.multi_id} is not one magcal knows")
+            return None
+
+        def vec(name, default, index=index):
+            return np.array([float(params.get(f"CAL_MAG{index}_{a}{name}", default)) for a in "XYZ"])
+
+        diag, odiag = vec("SCALE", 1.0), vec("ODIAG", 0.0)
+        scale = np.array([[diag[0], odiag[0], odiag[1]], [odiag[0], diag[1], odiag[2]], [odiag[1], odiag[2], diag[2]]])
+        offset_nT = vec("OFF", 0.0) * NT_PER_GAUSS
+        comp_nT = vec("COMP", 0.0) * NT_PER_GAUSS
+        power = np.zeros(len(t))
+        if comp_type in (2, 3) and np.any(comp_nT) and current is not None:
+            power = np.interp(t, *current["current_A"]) * 1e-3  # kA, as PX4's VehicleMagnetometer passes it
+        elif np.any(comp_nT) and comp_type != 0:
+            say_none(f"CAL_MAG_COMP_TYP {comp_type} compensates throttle, which magcal does not read from PX4 logs")
+            return None
+        out.append((raw + power[:, None] * comp_nT[None] - offset_nT) @ (level @ rot @ scale).T)
+    return out
 
 
 def _ulog_position(ulog, source, metadata, notes=None):

@@ -315,7 +315,10 @@ class CompassConsistency:
     sensitivities : list of Sensitivity
         Per compass and state, with the attitude and the reference field (empty without).
     mountings : list of dict
-        Per compass, from a vector calibration: the right angle nearest its fitted mounting and the angle off it.
+        Per compass, from a vector calibration: the right angle nearest its fitted mounting, the angle off it (deg),
+        that rotation (``off_rotvec_body_deg``), the mounting's standard deviation (deg, the norm over the body axes)
+        and whether the fit determined it. A relative mounting is named as a cause only when both are determined
+        and it is :data:`MIN_SIGNIFICANCE` standard deviations from zero.
     notes : list of str
     """
 
@@ -388,7 +391,9 @@ class CompassConsistency:
                     lines.append("      no cause stands out (no term accounts for 10 % of the difference)")
         if self.mountings:
             text = "; ".join(
-                f"compass {m['sensor']} {m['angle_off_deg']:.2f} deg off {m['right_angle']}" for m in self.mountings
+                f"compass {m['sensor']} {m['angle_off_deg']:.2f} deg off {m['right_angle']}"
+                + ("" if m["determined"] else " (not determined by this record)")
+                for m in self.mountings
             )
             lines.append(f"  mountings the calibration found (what an orientation parameter cannot hold): {text}")
         for state in ("before", "after"):
@@ -976,12 +981,15 @@ def compass_consistency(
         for s, cal in enumerate(calibration.sensors):
             right, off = nearest_right_angle(cal.R)
             turn = Rotation.from_matrix(cal.R @ right.T).as_rotvec()
+            sd = (cal.summary or {}).get("mounting_sd_deg")
             mountings.append(
                 {
                     "sensor": s + 1,
                     "right_angle": describe_right_angle(right).split(":")[0],
                     "angle_off_deg": float(off),
                     "off_rotvec_body_deg": np.degrees(turn),
+                    "mounting_sd_deg": float(np.linalg.norm(sd)) if sd is not None else 0.0,
+                    "determined": bool((cal.summary or {}).get("determined", True)),
                 }
             )
         for p in pairs:  # the relative mounting off the right angles: what a firmware's orientation cannot hold
@@ -994,13 +1002,16 @@ def compass_consistency(
             size = float(np.sqrt(np.mean(np.sum(vec * vec, axis=1))))
             share = (size / p.rms_before_nT) ** 2 if p.rms_before_nT > 0 else 0.0
             med = float(np.median(angle_deg(bi, turn.apply(bi))))
+            sd = float(np.hypot(mountings[p.i]["mounting_sd_deg"], mountings[p.j]["mounting_sd_deg"]))
+            significance = float(np.linalg.norm(mount) / sd) if sd > 0 else float("inf")
+            determined = mountings[p.i]["determined"] and mountings[p.j]["determined"]
             p.causes_before.append(
                 Cause(
                     "mounting_fit",
                     share,
                     size,
-                    float("inf"),
-                    bool(share >= MIN_SHARE and np.linalg.norm(mount) > 0.1),
+                    significance if determined else 0.0,
+                    bool(determined and share >= MIN_SHARE and significance >= MIN_SIGNIFICANCE),
                     {
                         "mounting_rotvec_deg": mount,
                         "angle_deg": float(np.linalg.norm(mount)),
