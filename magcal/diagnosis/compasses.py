@@ -47,6 +47,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.signal
 from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration
@@ -83,6 +84,9 @@ MIN_TEMPERATURE_RANGE_C = 2.0
 N_BLOCKS = 10
 #: Fewest samples compared.
 MIN_SAMPLES = 20
+#: The regressions that name the causes take at most this many samples, evenly spread over the record (the
+#: figures the firmwares check use every sample).
+MAX_REGRESSION_SAMPLES = 20_000
 
 
 def angle_deg(a, b) -> np.ndarray:
@@ -347,8 +351,8 @@ class CompassConsistency:
     def text(self) -> str:
         """The consistency table, the causes and the firmware limits."""
         lines = [
-            f"Compass consistency ({self.n_sensors} compasses, {self.n_samples} samples; pair j-i: compass j "
-            "against compass i, the first one the primary the firmwares compare with):",
+            f"Compass consistency ({self.n_sensors} compasses, {self.n_samples} samples; pair i-j: compass j "
+            "against compass i; compass 1 is the primary the firmwares compare with):",
             f"  before: {self.before_source}",
             f"  after:  {self.after_source}",
             "  limits: ArduPilot Compass::consistent() (AP_Compass.cpp): 3-D angle <= "
@@ -409,7 +413,9 @@ class CompassConsistency:
                 parts.append(part)
             seen = [s.sensor + 1 for s in rows if s.sees]
             lines.append(
-                f"  {state}, each compass against the reference field: nT per {unit} of {self.channel}: "
+                f"  {state}, each compass against the reference field: nT per {unit}"
+                + ("" if self.channel == "throttle" else f" of {self.channel}")
+                + ": "
                 + "; ".join(parts)
                 + (
                     f" -> seen by compass{'' if len(seen) == 1 else 'es'} {', '.join(map(str, seen))}"
@@ -443,15 +449,11 @@ class CompassConsistency:
 
 # -- the firmware's figures --------------------------------------------------------------------------------------
 def _px4_filtered(angle, time_s) -> np.ndarray:
-    """The angle low-pass filtered as PX4 filters it (a first-order filter of :data:`PX4_FILTER_TIME_S`)."""
-    out = np.empty_like(angle)
+    """The angle low-pass filtered as PX4 filters it (a first-order filter of :data:`PX4_FILTER_TIME_S`, started
+    at the first angle)."""
     step = float(np.median(np.diff(time_s))) if time_s is not None and len(time_s) > 1 else 0.1
     a = float(np.exp(-max(step, 1e-6) / PX4_FILTER_TIME_S))
-    acc = angle[0]
-    for k, value in enumerate(angle):
-        acc = a * acc + (1.0 - a) * value
-        out[k] = acc
-    return out
+    return scipy.signal.lfilter([1.0 - a], [1.0, -a], angle, zi=[a * angle[0]])[0]
 
 
 def pair_figures(bi, bj, time_s=None, n_blocks=N_BLOCKS) -> PairFigures:
@@ -825,10 +827,21 @@ def explain_difference(bi, bj, channels=None, rate=None, labels=("i", "j")) -> t
 
 
 # -- per compass, against the reference field ----------------------------------------------------------------------
+def _spread_evenly(n) -> np.ndarray:
+    """Indices of at most :data:`MAX_REGRESSION_SAMPLES` of ``n`` samples, evenly spread."""
+    if n <= MAX_REGRESSION_SAMPLES:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, MAX_REGRESSION_SAMPLES).astype(int))
+
+
 def _sensitivities(fields, keep, rotation, ned, u, state, compensated=None) -> list:
     """Each compass's residual ``B_s - R(q)^T B_ned`` regressed on a constant, a linear function of the reference
     field (what a calibration of the field ``fields`` still lacks) and the channel ``u``: the field per unit of
-    ``u`` each compass sees."""
+    ``u`` each compass sees (on at most :data:`MAX_REGRESSION_SAMPLES` of the ``keep`` samples)."""
+    where = np.flatnonzero(keep)
+    some = _spread_evenly(len(where))
+    rotation, keep = rotation[some], np.zeros_like(keep)
+    keep[where[some]] = True
     body_ref = rotation.inv().apply(ned[keep])
     channel = {"u": (u[keep], "unit")}
     out = []
@@ -909,6 +922,8 @@ def compass_consistency(
     else:
         before = np.asarray(before, dtype=float)
         before_source = before_source or "given"
+        if before.shape != after.shape:
+            raise MagcalError(f"the fields before have shape {before.shape}; the record's are {after.shape}")
     keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool).copy()
     keep &= np.all(np.isfinite(after), axis=(0, 2)) & np.all(np.isfinite(before), axis=(0, 2))
     notes = []
@@ -954,7 +969,14 @@ def compass_consistency(
                 rate = None
                 if time_s is not None and len(time_s) >= 7 and np.all(np.diff(time_s) > 0):
                     rate = time_derivative(bi, time_s)
-                causes, resid = explain_difference(bi, bj, channels, rate, labels=(str(i + 1), str(j + 1)))
+                some = _spread_evenly(len(bi))
+                causes, resid = explain_difference(
+                    bi[some],
+                    bj[some],
+                    {k: (v[some], unit) for k, (v, unit) in channels.items()},
+                    None if rate is None else rate[some],
+                    labels=(str(i + 1), str(j + 1)),
+                )
                 d = bj - bi
                 out[state] = (
                     pair_figures(bi, bj, time_s),
