@@ -54,6 +54,7 @@ CARIBOU = ("timspi/mag-calib", "c155daa72a19b42452b58ffc7cfbd6be211fd16e")
 CKX = ("CK-Explorer/Magnetometer-and-Accelerometer-Calibration", "61ac7669f1cbba2e5ce77763a40ebc123d95ac60")
 WRONA = ("michaelwro/mag-cal-example", "226e2e608473b1912320518366d30cdd404c5796")
 PFC = ("PyFlightCoach/FlightData", "801c43a7b2243b690c2c775cd6eda7cf47f8cfb3")
+DKLA = ("dronekit/dronekit-la-testdata", "62408712e9af63311fa6760b4a6d29b3455e04af")
 
 #: The ADS payload's flight (2025-02-22, U. Michigan MXL): the logger's 5-min files that span the authors' flight
 #: window (``ADSvehicle/postFlightCali/data_ADSflight_times.csv``: unix 1740235659 to 1740241185).
@@ -184,6 +185,16 @@ SOURCES = (
         "LGPL-3.0",
         "the same aircraft's next log (2025-01-03), carried to the pilot's position: MAG 10 Hz for 99 s, yaw "
         "through 321 deg, roll -2..12, pitch -22..8 deg",
+    ),
+    Source(
+        "dk_log171.bin",
+        *DKLA,
+        "log171.bin",
+        "CC-BY-SA-3.0",
+        "ArduCopter 3.3-dev DataFlash log (2015-11, the CMAC field near Canberra) with three compasses (MAG, MAG2, "
+        "MAG3: an external HMC5883 at COMPASS_ORIENT 38, an internal LSM303D, an internal HMC5983 not used for yaw "
+        "and not calibrated), ATT, GPS, CURR (0.5-27 A) and CTUN throttle; 242 s: on the ground, then hovering "
+        "flight; no motor compensation (COMPASS_MOTCT 0)",
     ),
     Source(
         "cl_imu_gnss_data.csv",

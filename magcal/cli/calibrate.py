@@ -40,6 +40,7 @@ from magcal.checks.reference import (
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
 from magcal.data.attitude import attitude_present, attitude_source
+from magcal.diagnosis.compasses import compass_consistency
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.validation import validate_effects
@@ -331,6 +332,7 @@ def run_vector(args, ds, vref, notes) -> int:
             )
         except CalibrationError as exc:
             notes.append(f"held-out validation not done: {exc}")
+    compasses = compass_report(ds, vref, result, notes)  # several compasses on one vehicle (issue 40, item 5)
     for note in dict.fromkeys(notes):
         print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     if args.output:
@@ -340,6 +342,8 @@ def run_vector(args, ds, vref, notes) -> int:
         doc["calibration"] = result.calibration.to_dict()
         if validation is not None:
             doc["validation"] = validation.to_dict()
+        if compasses is not None:
+            doc["compass_consistency"] = compasses.to_dict()
         doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -347,9 +351,34 @@ def run_vector(args, ds, vref, notes) -> int:
         sys.stdout.write(result.text())
         if validation is not None:
             sys.stdout.write(validation.text())
+        if compasses is not None:
+            sys.stdout.write(compasses.text())
         if args.output:
             print(f"\nsaved the calibration to {args.output}")
     return 0
+
+
+def compass_report(ds, vref=None, fit=None, notes=None, args=None):
+    """The consistency of a record's compasses (:func:`magcal.diagnosis.compasses.compass_consistency`) for a record
+    with two or more sensors, an attitude and a reference field vector (``vref``, else the one ``args`` give);
+    None otherwise. ``fit`` is the vector fit whose calibration is "after" (default: the base vector fit, no
+    platform terms, so that a current one compass sees is left for the report to name). A failure becomes a note
+    (appended to ``notes``)."""
+    if ds.n_sensors < 2 or attitude_source(ds) is None:
+        return None
+    try:
+        if vref is None and args is not None:
+            vref = vector_reference_from_args(args, ds)
+        if vref is None:
+            return None
+        if fit is None:
+            robust = bool(getattr(args, "robust", False))
+            fit = fit_vector(ds, vref, terms=[], robust=robust, reference_total_nT=ds.ref_total_nT, warn=False)
+        return compass_consistency(ds, fit.calibration, reference=vref, mask=fit.fitted)
+    except (CalibrationError, MagcalError) as exc:
+        if notes is not None:
+            notes.append(f"compass consistency not reported: {exc}")
+        return None
 
 
 def run(args) -> int:

@@ -51,6 +51,7 @@ from magcal.cli.calibrate import (
     checked_effect_names,
     checked_noise,
     choose_mode,
+    compass_report,
     named_error,
     read_input,
     vector_effects,
@@ -297,6 +298,8 @@ def run_vector(args, ds, vref, notes) -> int:
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(diagnosis.notes)]
+    # several compasses on one vehicle (issue 40, item 5): their consistency after the diagnosed (base) vector fit
+    compasses = compass_report(ds, vref=vref, fit=diagnosis.result, notes=notes, args=args)
     notes += [w for w in quality.warnings if w not in notes]
     for note in dict.fromkeys(notes):
         if args.json or note not in quality.warnings:
@@ -305,6 +308,8 @@ def run_vector(args, ds, vref, notes) -> int:
         doc = diagnosis.to_dict()
         doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))
         doc["quality"] = quality.to_dict()
+        if compasses is not None:
+            doc["compass_consistency"] = compasses.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
@@ -312,5 +317,7 @@ def run_vector(args, ds, vref, notes) -> int:
         described = ds.describe(reference=f"vector ({vref.kind})")
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{described}\n\n{diagnosis.table()}\n")
         sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
+        if compasses is not None:
+            sys.stdout.write("\n" + compasses.text())
         sys.stdout.write("\n" + quality.section())
     return 0

@@ -7,8 +7,13 @@ ArduPilot (read with pymavlink's ``DFReader``)
     the motor offsets (``MOX..``) logged beside it. To calibrate, magcal needs the raw field: by default it undoes
     that correction with the logged offsets and the ``COMPASS_DIA*``, ``COMPASS_ODI*``, ``COMPASS_SCALE*``
     parameters (``PARM`` messages) in force at each sample (``undo_calibration=False`` keeps the logged field).
-    Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times. Motor current:
-    ``BAT`` ``Curr`` (A) as ``current_A``; throttle: ``CTUN`` ``ThO`` (0-1; ``ThrOut`` / 1000 before Copter 3.3)
+    Each compass's parameters are those of its device: ArduPilot logs the compasses in their priority order and
+    ``COMPASS_PRIOn_ID`` (4.1 and later) names the ``COMPASS_DEV_ID*`` whose parameters apply. The logged field
+    itself is kept beside the raw one as the channels ``s1x_logged, s1y_logged, s1z_logged`` (nT, body frame; ``s2..``
+    for the second compass, :func:`logged_field_columns`): what the flight controller's own consistency check and
+    heading saw. Temperature: the ``IMU`` message's ``T`` (degC, first IMU), interpolated to the compass times.
+    Motor current: ``BAT`` ``Curr`` (A), or in older logs ``CURR`` ``Curr`` (cA), as ``current_A``; throttle:
+    ``CTUN`` ``ThO`` (0-1; ``ThrOut`` / 1000 before Copter 3.3)
     as ``throttle`` when it moves (the channels of the vector fit's field-per-unit term). Attitude:
     ``ATT`` roll, pitch, yaw (deg), as the quaternion channel (body to north-east-down) and as extra columns
     ``att_roll_deg``, ``att_pitch_deg``, ``att_yaw_deg``. Position: the first ``GPS`` receiver's samples with a 3D
@@ -20,7 +25,9 @@ ArduPilot (read with pymavlink's ``DFReader``)
     heading: ``ATT`` yaw is true heading only if it is right) as ``metadata['log_declination_deg']``.
 PX4 (read with pyulog)
     ``sensor_mag`` (one instance per magnetometer) holds the raw field in gauss in the sensor's frame before the
-    ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). Attitude: the
+    ``CAL_MAGn_*`` calibration, with its ``temperature`` (degC; NaN when the part has none). The field PX4 computed
+    from it with the log's ``CAL_MAGn_*`` parameters (its device's, by ``CAL_MAGn_ID``) is kept as the channels
+    ``s1x_logged..`` (body frame), as for ArduPilot. Attitude: the
     ``vehicle_attitude`` quaternion ``q`` (body FRD to NED), interpolated to the magnetometer times (both readers:
     NaN for a sample far from any attitude message, :data:`LOG_ATTITUDE_MAX_GAP_S`). Position:
     ``vehicle_gps_position`` or ``sensor_gps`` with a 3D fix (``fix_type`` >= 3) as ``lat``, ``lon``, ``alt_m``,
@@ -48,6 +55,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from magcal.core.errors import DataWarning, exception_text
 from magcal.core.notes import row_runs, say
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
+from magcal.geometry.orientations import FIRMWARE_ROTATIONS, euler_matrix
 
 #: File name endings read as flight-controller logs, and the reader of each.
 LOG_EXTENSIONS = (".bin", ".ulg")
@@ -59,6 +67,14 @@ NT_PER_GAUSS = 1.0e5
 ARDUPILOT_SCALE_RANGE = (1.0 / 1.5, 1.5)
 
 MAX_SENSORS = 4
+
+
+def logged_field_columns(sensor) -> tuple:
+    """Names of the channels holding magnetometer ``sensor``'s (0-based) field as the flight controller computed
+    it with its calibration of the time (nT, body frame): ``s1x_logged, s1y_logged, s1z_logged`` for the first.
+    The readers keep them beside the raw readings, so that a calibration can be compared with the firmware's."""
+    return tuple(f"s{sensor + 1}{a}_logged" for a in "xyz")
+
 
 #: Time allowed to read a log: this many seconds per MB of file, and at least :data:`MIN_DEADLINE_S` (pymavlink
 #: reads about 1 MB/s of DataFlash; a log that takes far longer is damaged in a way that loops).
@@ -262,14 +278,24 @@ def _interp_attitude(t, t_src, rotations, source="log", notes=None):
 
 
 def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None, notes=None):
-    """The dataset from per-magnetometer (t, nT) series and optional (t, values) channels."""
+    """The dataset from per-magnetometer (t, nT) series and optional (t, values) channels.
+
+    A series whose values have six columns holds the raw field (the readings) and then the field the flight
+    controller computed with its calibration of the time, kept as the channels ``s{k}x_logged, s{k}y_logged,
+    s{k}z_logged`` (:data:`LOGGED_FIELD_COLUMNS`)."""
     t, values = pair_by_time(series, source, notes)
     if t.size == 0:
         raise DatasetError(f"{source}: no magnetometer samples left after pairing the magnetometers by time")
+    logged = {}
+    if all(v.ndim == 2 and v.shape[1] == 6 for v in values):
+        for k, v in enumerate(values):
+            logged.update({name: v[:, 3 + a] for a, name in enumerate(logged_field_columns(k))})
+        values = [v[:, :3] for v in values]
     kwargs = {}
     if temperature is not None:
         kwargs["temperature_C"] = _interp(t, *temperature)
     extras = {k: _interp(t, ts, v) for k, (ts, v) in (extra or {}).items()}
+    extras.update(logged)
     if attitude is not None:
         q = _interp_attitude(t, *attitude, source=source, notes=notes)
         kwargs["attitude_wxyz"] = q
@@ -287,6 +313,7 @@ def _alive(series, labels, source, notes=None):
     or it failed), the others left out with a warning."""
     alive = []
     for k, ((_, v), label) in enumerate(zip(series, labels)):
+        v = v[:, :3]  # the readings (a log's series may hold the logged field beside them)
         if v.shape[0] > 1 and np.all(v == v[0]):
             say(
                 notes,
@@ -335,9 +362,25 @@ def _compass_tag(index) -> str:
     return "" if index == 0 else str(index + 1)
 
 
+def _ardupilot_state_tag(params, instance) -> str:
+    """Parameter infix of the compass a ``MAG`` message's instance ``I`` names.
+
+    ArduPilot logs its compasses in the order of their priority (``Compass::Write_Compass_instance`` takes the
+    priority index), while ``COMPASS_OFS2_*``, ``COMPASS_DIA2_*``... belong to the second *detected* compass (its
+    ``COMPASS_DEV_ID2``). Since 4.1 ``COMPASS_PRIOn_ID`` says which device has priority n: the parameters are those
+    whose ``COMPASS_DEV_ID*`` is that device. Without those parameters (older logs) the two orders are one."""
+    wanted = params.get(f"COMPASS_PRIO{instance + 1}_ID")
+    if wanted:
+        for state in range(MAX_SENSORS):
+            if params.get(f"COMPASS_DEV_ID{_compass_tag(state)}") == wanted:
+                return _compass_tag(state)
+    return _compass_tag(instance)
+
+
 def _ardupilot_matrix(params, index):
-    """``SCALE * M`` of ArduPilot compass ``index`` from the parameter values (DIA zero means identity)."""
-    tag = _compass_tag(index)
+    """``SCALE * M`` of the ArduPilot compass logged as instance ``index`` from the parameter values (DIA zero means
+    identity; :func:`_ardupilot_state_tag` finds its parameters)."""
+    tag = _ardupilot_state_tag(params, index)
     dia = np.array([params.get(f"COMPASS_DIA{tag}_{a}", 1.0) for a in "XYZ"], dtype=float)
     odi = np.array([params.get(f"COMPASS_ODI{tag}_{a}", 0.0) for a in "XYZ"], dtype=float)
     if not np.any(dia):
@@ -354,7 +397,7 @@ _DF_FMT_TYPE = 0x80
 _DF_FMT_LENGTH = 89
 _DF_FMT_RE = re.compile(rb"\xa3\x95\x80")  # the sync bytes, then the type of FMT
 #: The message types magcal reads: a damaged format of one of them is refused, not skipped.
-_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "CTUN")
+_DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "CTUN", "BAT", "CURR")
 
 
 def _c_string(raw: bytes) -> str | None:
@@ -525,6 +568,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         "imu": [],  # (t, temperature degC) of the first IMU
         "att": [],  # (t, roll, pitch, yaw) deg
         "bat": [],  # (t, current A) of the first battery
+        "curr": [],  # (t, current A) of CURR, the battery message of logs before 2016 (read when there is no BAT)
         "gps": [],  # (t, lat deg, lon deg, alt m, GPS week, GPS ms of week) of the first receiver's 3D fixes
         "thr": [],  # (t, throttle 0-1) of CTUN
         "seen": set(),
@@ -535,7 +579,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
             while True:
                 if deadline is not None and time.monotonic() > deadline:
                     raise too_slow()
-                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT", "GPS", "CTUN"])
+                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT", "CURR", "GPS", "CTUN"])
                 if m is None:
                     break
                 _dataflash_message(m, gathered, undo_calibration)
@@ -552,7 +596,8 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
 
 
 def _dataflash_message(m, gathered, undo_calibration):
-    """Take one PARM, MAG, IMU, ATT, BAT or GPS message into ``gathered`` (the lists :func:`read_dataflash` fills)."""
+    """Take one PARM, MAG, IMU, ATT, BAT, CURR, CTUN or GPS message into ``gathered`` (the lists
+    :func:`read_dataflash` fills)."""
     kind = m.get_type()
     gathered["seen"].add(kind)
     if kind == "GPS":
@@ -574,12 +619,15 @@ def _dataflash_message(m, gathered, undo_calibration):
         if getattr(m, "Health", 1) == 0:
             gathered["unhealthy"][instance] = gathered["unhealthy"].get(instance, 0) + 1
             return
-        field_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
-        if undo_calibration:
+        logged_mG = np.array([m.MagX, m.MagY, m.MagZ], dtype=float)
+        if undo_calibration:  # the raw field, then the logged one (kept as channels: the firmware's calibration)
             ofs = np.array([getattr(m, f"Ofs{a}", 0.0) for a in "XYZ"], dtype=float)
-            mot = np.array([getattr(m, f"MO{a}", 0.0) for a in "XYZ"], dtype=float)
-            field_mG = np.linalg.solve(_ardupilot_matrix(gathered["params"], instance), field_mG - mot) - ofs
-        gathered["mags"].setdefault(instance, []).append((t, *(field_mG * NT_PER_MILLIGAUSS)))
+            mot = np.array([getattr(m, f"MO{a}", getattr(m, f"MOfs{a}", 0.0)) for a in "XYZ"], dtype=float)
+            raw_mG = np.linalg.solve(_ardupilot_matrix(gathered["params"], instance), logged_mG - mot) - ofs
+            row = (t, *(raw_mG * NT_PER_MILLIGAUSS), *(logged_mG * NT_PER_MILLIGAUSS))
+        else:
+            row = (t, *(logged_mG * NT_PER_MILLIGAUSS))
+        gathered["mags"].setdefault(instance, []).append(row)
     elif kind == "IMU":
         if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
             gathered["imu"].append((t, float(m.T)))
@@ -588,6 +636,9 @@ def _dataflash_message(m, gathered, undo_calibration):
     elif kind == "BAT":
         if int(getattr(m, "Inst", getattr(m, "Instance", 0)) or 0) == 0 and hasattr(m, "Curr"):
             gathered["bat"].append((t, float(m.Curr)))
+    elif kind == "CURR":
+        if hasattr(m, "Curr"):  # centiamperes: the firmware logged (int16_t)(battery.current_amps() * 100)
+            gathered["curr"].append((t, float(m.Curr) / 100.0))
     elif kind == "CTUN":
         if hasattr(m, "ThO"):  # 0..1 (Copter 3.3 and later, Plane)
             gathered["thr"].append((t, float(m.ThO)))
@@ -688,10 +739,11 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
-    bat = np.asarray(gathered["bat"], dtype=float).reshape(-1, 2)
-    bat_t, amps = _drop_bad(source, "BAT", bat[:, 0], bat[:, 1], notes=notes)
-    if bat_t.size:
-        extra["current_A"] = _strictly_increasing(bat_t, amps, source, "BAT", notes)
+    battery = "BAT" if gathered["bat"] else "CURR"
+    bat = np.asarray(gathered["bat"] or gathered["curr"], dtype=float).reshape(-1, 2)
+    bat_t, amps = _drop_bad(source, battery, bat[:, 0], bat[:, 1], notes=notes)
+    if bat_t.size > 1 and np.ptp(amps) > 0:  # a current that never changes is no channel (no current sensor)
+        extra["current_A"] = _strictly_increasing(bat_t, amps, source, battery, notes)
     thr = np.asarray(gathered["thr"], dtype=float).reshape(-1, 2)
     thr_t, throttle = _drop_bad(source, "CTUN throttle", thr[:, 0], thr[:, 1], notes=notes)
     if thr_t.size > 1 and np.ptp(throttle) > 0:  # a throttle that never moves is no channel (motors off)
@@ -701,6 +753,10 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
         "log_magnetometers": ", ".join(labels),
         "log_field": "raw (logged calibration undone)" if undo_calibration else "as logged (calibrated)",
     }
+    if undo_calibration:
+        metadata["log_logged_field"] = (
+            "s{k}x_logged..: the field the flight controller computed (COMPASS_OFS*, DIA*, ODI*, SCALE*, MOT*)"
+        )
     if "COMPASS_DEC" in gathered["params"]:  # the declination (rad) the vehicle turned magnetic into true heading with
         metadata["log_declination_deg"] = f"{np.degrees(gathered['params']['COMPASS_DEC']):.4f}"
         if "COMPASS_AUTODEC" in gathered["params"]:
@@ -781,8 +837,93 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    extra = {**(_ulog_current(ulog, source) or {}), **_ulog_position(ulog, source, metadata, notes)}
+    current = _ulog_current(ulog, source)
+    extra = {**(current or {}), **_ulog_position(ulog, source, metadata, notes)}
+    logged = _px4_logged_fields(ulog, chosen, series, current, source, notes)
+    if logged is not None:
+        series = [(t, np.column_stack([v, f])) for (t, v), f in zip(series, logged)]
+        metadata["log_logged_field"] = (
+            "s{k}x_logged..: the field PX4 computed with the log's CAL_MAGn_* (and board rotation) parameters"
+        )
     return _build(source, series, temperature, attitude, extra, metadata, notes)
+
+
+#: PX4's (and MAVLink's) sensor rotations that are not right angles (number -> roll, pitch, yaw in deg), beside
+#: :data:`magcal.geometry.orientations.FIRMWARE_ROTATIONS`; ``R = Rz(yaw) Ry(pitch) Rx(roll)`` as there.
+PX4_ODD_ROTATIONS = {
+    1: (0, 0, 45),
+    3: (0, 0, 135),
+    5: (0, 0, 225),
+    7: (0, 0, 315),
+    9: (180, 0, 45),
+    11: (180, 0, 135),
+    13: (180, 0, 225),
+    15: (180, 0, 315),
+    17: (90, 0, 45),
+    19: (90, 0, 135),
+    21: (270, 0, 45),
+    23: (270, 0, 135),
+    39: (0, 315, 0),
+    40: (90, 315, 0),
+}
+
+
+def _px4_rotation(number):
+    """The rotation matrix of a PX4 rotation number (``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``), or None if unknown."""
+    angles = FIRMWARE_ROTATIONS.get(int(number), PX4_ODD_ROTATIONS.get(int(number)))
+    return None if angles is None else euler_matrix(*angles)
+
+
+def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
+    """The field PX4 computed from each ``sensor_mag`` (nT, body frame) with the log's calibration parameters,
+    as ``calibration::Magnetometer::Correct`` does: ``R S (raw + power * COMP - OFF)`` with ``S`` the symmetric matrix
+    of ``CAL_MAGn_[XYZ]SCALE`` and ``CAL_MAGn_[XYZ]ODIAG``, ``R`` the rotation ``CAL_MAGn_ROT`` of an external
+    magnetometer or the board's ``SENS_BOARD_ROT`` of an internal one, turned by ``SENS_BOARD_[XYZ]_OFF``; the
+    power is the battery current in kA with ``CAL_MAG_COMP_TYP`` 2 or 3. The parameters are the log's initial
+    ones. None (the before/after comparison then uses the raw field) when a magnetometer has no ``CAL_MAGn_ID``
+    of its device, the log is older than the raw ``sensor_mag`` (no ``is_external`` field), or a rotation or a
+    throttle compensation cannot be reproduced (a note says which)."""
+    params = ulog.initial_parameters
+
+    def say_none(why):
+        say(notes, f"{source}: the field PX4 computed is not reconstructed: {why}", DataWarning, "read", stacklevel=4)
+
+    if not any(k.startswith("CAL_MAG") for k in params):
+        return None
+    level = euler_matrix(*(float(params.get(f"SENS_BOARD_{a}_OFF", 0.0)) for a in "XYZ"))
+    comp_type = int(params.get("CAL_MAG_COMP_TYP", 0))
+    out = []
+    for d, (t, raw) in zip(chosen, series):
+        data = d.data
+        if "device_id" not in data or "is_external" not in data or not len(data["device_id"]):
+            return None
+        device = int(data["device_id"][0])
+        index = next((n for n in range(MAX_SENSORS) if int(params.get(f"CAL_MAG{n}_ID", -1)) == device), None)
+        if index is None:
+            say_none(f"sensor_mag {d.multi_id} (device {device}) has no CAL_MAGn_ID")
+            return None
+        external = bool(data["is_external"][0])
+        number = params.get(f"CAL_MAG{index}_ROT", 0) if external else params.get("SENS_BOARD_ROT", 0)
+        rot = _px4_rotation(number)
+        if rot is None:
+            say_none(f"rotation {int(number)} of sensor_mag {d.multi_id} is not one magcal knows")
+            return None
+
+        def vec(name, default, index=index):
+            return np.array([float(params.get(f"CAL_MAG{index}_{a}{name}", default)) for a in "XYZ"])
+
+        diag, odiag = vec("SCALE", 1.0), vec("ODIAG", 0.0)
+        scale = np.array([[diag[0], odiag[0], odiag[1]], [odiag[0], diag[1], odiag[2]], [odiag[1], odiag[2], diag[2]]])
+        offset_nT = vec("OFF", 0.0) * NT_PER_GAUSS
+        comp_nT = vec("COMP", 0.0) * NT_PER_GAUSS
+        power = np.zeros(len(t))
+        if comp_type in (2, 3) and np.any(comp_nT) and current is not None:
+            power = np.interp(t, *current["current_A"]) * 1e-3  # kA, as PX4's VehicleMagnetometer passes it
+        elif np.any(comp_nT) and comp_type != 0:
+            say_none(f"CAL_MAG_COMP_TYP {comp_type} compensates throttle, which magcal does not read from PX4 logs")
+            return None
+        out.append((raw + power[:, None] * comp_nT[None] - offset_nT) @ (level @ rot @ scale).T)
+    return out
 
 
 def _ulog_position(ulog, source, metadata, notes=None):
