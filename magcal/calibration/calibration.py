@@ -24,6 +24,7 @@ from magcal.core.vectors import basis_times, row_norm
 from magcal.data.attitude import attitude_rows
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
+from magcal.model.effects import CURRENT_COLUMNS
 from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import (
     BASE_TERMS,
@@ -936,3 +937,73 @@ def write_json_atomic(path, document) -> None:
     with atomic_write(path, "w", newline=None) as fh:
         json.dump(document, fh, indent=2)
         fh.write("\n")
+
+
+def current_term(calibration):
+    """The field per unit of current (or throttle) a calibration holds, wherever it holds it.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Its ``platform.current_nT_per_unit`` (a vector fit's platform terms) and/or the catalogue effect
+        ``current_field`` in its model (values ``effect_values["current_field:S"]``, column the effect's
+        ``column``).
+
+    Returns
+    -------
+    k : numpy.ndarray, shape (n_sensors, 3), or None
+        ``k`` per sensor and axis, nT per unit of the column, in the sensor's own axes (``y += k u``); zero rows
+        for sensors without the term. None when no sensor has one.
+    columns : list of str or None
+        Per sensor the column the term follows (``current_A`` or ``throttle``), None where there is none.
+
+    Raises
+    ------
+    MagcalError
+        A term whose column is not recorded or not a known one, values that are not 3 finite numbers, or one sensor
+        holding two terms that follow different columns.
+    """
+    n = calibration.n_sensors
+    k = np.zeros((n, 3))
+    columns: list[str | None] = [None] * n
+
+    def add(sensor, values, column, where):
+        if column not in CURRENT_COLUMNS:
+            raise MagcalError(
+                f"{where}: the column of sensor {sensor + 1}'s current term is {column!r}, not one of "
+                f"{', '.join(CURRENT_COLUMNS)}; the calibration is damaged: recalibrate"
+            )
+        try:
+            v = np.asarray(values, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            v = np.full(3, np.nan)
+        if not np.all(np.isfinite(v)):
+            raise MagcalError(f"{where}: sensor {sensor + 1}'s current term is not 3 finite numbers: recalibrate")
+        if columns[sensor] not in (None, column):
+            raise MagcalError(
+                f"sensor {sensor + 1} holds a field per unit of {columns[sensor]} and another per unit of {column}; "
+                "no firmware holds two: recalibrate with one of them"
+            )
+        k[sensor] += v
+        columns[sensor] = column
+
+    platform = getattr(calibration, "platform", None)
+    values = getattr(platform, "current_nT_per_unit", None)
+    if values is not None:
+        rows = np.asarray(values, dtype=float)
+        if rows.shape != (n, 3):
+            raise MagcalError(f"platform_terms.current_nT_per_unit must be ({n}, 3); the calibration is damaged")
+        for s in range(n):
+            add(s, rows[s], platform.current_column, "platform_terms")
+    model = getattr(calibration, "model", None)
+    if model is not None:
+        for effect, s in model.instances():
+            if effect.name != "current_field":
+                continue
+            label = block_label(effect, s)
+            theta = (calibration.effect_values or {}).get(label)
+            if theta is None:
+                raise MagcalError(f"{label}: the calibration holds the effect but not its values: recalibrate")
+            for sensor in range(n) if s is None else (s,):
+                add(sensor, theta, getattr(effect, "column", None), label)
+    return (k if any(c is not None for c in columns) else None), columns

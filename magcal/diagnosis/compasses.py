@@ -50,7 +50,7 @@ import numpy as np
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from magcal.calibration.calibration import Calibration
+from magcal.calibration.calibration import Calibration, current_term
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import attitude_rows
@@ -1059,12 +1059,9 @@ def compass_consistency(
             u_all = np.asarray(dataset.extra[column], dtype=float)
             sensitivities += _sensitivities(before, use, rot_use, ned, u_all, "before")
             comp = None
-            plat = calibration.platform
-            if plat is not None and plat.current_nT_per_unit is not None and plat.current_column == column:
-                comp = [
-                    (cal.R @ cal.cinv) @ np.asarray(k, dtype=float)
-                    for cal, k in zip(calibration.sensors, plat.current_nT_per_unit)
-                ]
+            k_all, columns = current_term(calibration)
+            if k_all is not None and all(c in (None, column) for c in columns):
+                comp = [(cal.R @ cal.cinv) @ np.asarray(k, dtype=float) for cal, k in zip(calibration.sensors, k_all)]
             sensitivities += _sensitivities(after, use, rot_use, ned, u_all, "after", comp)
     return CompassConsistency(
         dataset.n_sensors,
