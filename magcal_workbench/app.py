@@ -35,6 +35,11 @@ A local process or a hostile page (issue 31): every request shows the secret tok
 (``--allow-host``); the page starts only live sources the server offers (:class:`magcal_workbench.live.SourceMenu`,
 ``--live-allow``), one at a time; the sessions' bound keeps the recordings; uploads are counted by the bytes
 received.
+
+Another server of this machine, a page's holder (issue 41): the token is in no cookie (every port of the host would
+receive it) -- the page keeps it in its tab and gives it to its own websocket (:mod:`magcal_workbench.guard`); the
+page runs an effects file only when the command line named it or the user confirms it in the terminal
+(:mod:`magcal_workbench.consent`); nothing the page downloads names a path of the server.
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ from magcal.model import plugins
 from . import scene as scn
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
+from .consent import EffectsFiles, Terminal
 from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .downloads import Downloads
@@ -92,7 +98,12 @@ class Workbench:
     resume : bool
         Reopen the saved session of the same data if there is one.
     effects_files : sequence of str, optional
-        The user's effect files already loaded (``--effects-file``); every session opened remembers them.
+        The user's effect files already loaded (``--effects-file``); every session opened remembers them, and the
+        page may load them again. Any other file the page asks for is confirmed in ``terminal`` first
+        (:class:`magcal_workbench.consent.EffectsFiles`).
+    terminal : magcal_workbench.consent.Terminal or None
+        Where the user confirms an effects file the page asks for that the command line did not name (the
+        workbench's terminal, :meth:`~magcal_workbench.consent.Terminal.of_stdin`); None refuses every such file.
     max_upload_mb : float
         Largest file the page may upload, MB (10^6 bytes); a larger one is refused with a message.
     max_points : int
@@ -131,6 +142,7 @@ class Workbench:
         token: str | None = "auto",
         allow_hosts=(),
         live_allow=(),
+        terminal: Terminal | None = None,
     ):
         #: The page's thread: every update a background thread makes goes through it.
         self.ui = UiQueue()
@@ -144,6 +156,8 @@ class Workbench:
         #: Whether the page may load effect files (it runs their code): only when served to this machine.
         self.local = is_loopback(host)
         self.effects_files = [os.path.abspath(p) for p in effects_files]
+        #: The effects files the page may load: the command line's, and those confirmed in the terminal.
+        self.effects_gate = EffectsFiles(self.effects_files, terminal)
         self.store = store
         self.worker = Worker(settle=self.ui.wait)
         self._last_progress = 0.0
@@ -244,6 +258,7 @@ class Workbench:
         return self.livectl.view
 
     def stop(self) -> None:
+        self.effects_gate.close()  # a question waiting in the terminal ends
         self.worker.wait(30)
         self.server.stop()
         self.ui.stop()
@@ -435,7 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="PATH",
-        help="a Python file defining your own effects (runs its code; repeat for several files); docs/user-effects.md",
+        help="a Python file defining your own effects (runs its code; repeat for several files); the page may load "
+        "these files again, any other only when you confirm it in this terminal; docs/user-effects.md",
     )
     return p
 
@@ -487,6 +503,7 @@ def main(argv=None) -> int:
             token=None if args.no_token else "auto",
             allow_hosts=args.allow_host,
             live_allow=args.live_allow,
+            terminal=Terminal.of_stdin(),
         )
         if lesson:
             wb.lessons.show_guide(lesson_obj)

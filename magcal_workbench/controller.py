@@ -753,16 +753,25 @@ class Controller:
         loaded = set(plugins.user_files())
         return [p for p in self.state.effects_files if p not in loaded]
 
-    def load_session_effects_files(self) -> list[str]:
+    def load_session_effects_files(self, permit: Callable[[str], object] | None = None) -> list[str]:
         """Load the effects files this session names (*runs the Python code in them*; the user asked), then
         restore the saved calibration if it needed their effects. Returns the effects loaded; a file that fails is
-        said in the message (the others load)."""
+        said in the message (the others load).
+
+        Parameters
+        ----------
+        permit : callable, optional
+            ``permit(path)`` raises :class:`MagcalError` for a file that may not run (the page's rule,
+            :meth:`magcal_workbench.consent.EffectsFiles.permit`); that file is skipped and said.
+        """
         names, problems = [], []
         pending = self.pending_effects_files()
         if not pending:
             raise MagcalError("this session names no effects file that is not loaded already")
         for path in pending:
             try:
+                if permit is not None:
+                    permit(path)
                 names += plugins.load_effects_file(path)
             except MagcalError as exc:
                 problems.append(str(exc))

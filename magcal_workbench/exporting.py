@@ -17,6 +17,10 @@ Raw data + mask             ``magcal export calibration.json --format mask --dat
 Export all (.zip)           ``magcal export calibration.json --format all --data DATA``, plus ``session.json``
 ==========================  ====================================================================================
 
+Nothing the page downloads holds a path of the server (issue 41): the zip's ``session.json`` names the data file by
+its name and leaves the effects files out (the README names them), and every reason or note is shown with
+absolute paths cut to the file's name.
+
 ``DATA`` is the data the session works on (the session folder's ``data.csv``). *Send to vehicle*
 (:mod:`magcal.output.vehicle_params`) is shown only while the chosen live source is a MAVLink one the server
 offers (:class:`magcal_workbench.live.SourceMenu`): the first click reads the vehicle's values and shows old -> new,
@@ -25,13 +29,15 @@ the second (*Confirm*) writes them, after saving the old values in the session f
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
 import threading
 import time
 import urllib.parse
-from pathlib import Path
+import zipfile
+from pathlib import Path, PurePath
 
 from magcal.core.errors import MagcalError
 from magcal.output import bundle
@@ -39,7 +45,7 @@ from magcal.output.vehicle_params import default_backup_path, send_parameters, v
 
 from .dataio import canonical_csv
 from .live import recording_folder
-from .markup import safe_code, safe_text
+from .markup import hide_paths, safe_code, safe_text
 
 #: The firmwares *Send to vehicle* offers.
 FIRMWARES = ("ardupilot", "px4")
@@ -47,8 +53,38 @@ FIRMWARES = ("ardupilot", "px4")
 PARAMETER_BUTTONS = {"ardupilot": "ArduPilot .parm", "px4": "PX4 .params", "c": "C header (.h)"}
 #: A preview older than this is shown again before anything is written, s.
 PREVIEW_LIFETIME_S = 300.0
-#: The session file's name in the zip.
+#: The session file's name in the zip (without the server's paths: :func:`session_for_download`).
 SESSION_FILE = "session.json"
+#: The zip's README (its absolute paths hidden: :func:`without_paths`).
+README = "README.txt"
+
+
+def session_for_download(state) -> tuple[bytes, list[str]]:
+    """The session's ``session.json`` as the page downloads it (Export all), and the names of the effects files the
+    session names: no path of the server in it -- the data file by its name only, the effects files left out
+    (the document stays one the workbench reads: :func:`magcal_workbench.sessionfile.read_session_document`)."""
+    doc = state.to_dict()
+    if doc.get("data_path"):
+        doc["data_path"] = PurePath(doc["data_path"]).name or None
+    names = [PurePath(p).name for p in doc.get("effects_files") or ()]
+    doc["effects_files"] = []
+    return (json.dumps(doc, indent=1) + "\n").encode("utf-8"), names
+
+
+def without_paths(content: bytes) -> bytes:
+    """The zip ``content`` (:func:`magcal.output.bundle.export_all`) with every absolute path in its README cut to
+    the file's name (:func:`magcal_workbench.markup.hide_paths`): a file the engine could not write says why, and
+    the reason may name where the data lie on the server."""
+    with zipfile.ZipFile(io.BytesIO(content)) as zf:
+        files = {name: zf.read(name) for name in zf.namelist()}
+    readme = files.get(README)
+    if readme is None:
+        return content
+    shown = hide_paths(readme.decode("utf-8")).encode("utf-8")
+    if shown == readme:
+        return content
+    files[README] = shown
+    return bundle.zip_bytes(files)
 
 
 def report_markdown(report, title: str) -> str:
@@ -190,7 +226,7 @@ class Exporting:
         self.wb.downloads.send(event, name, content)
         said = f"exported {safe_code(name)} ({len(content):,} bytes)"
         if notes:
-            said += "".join(f"  \n- {safe_text(n, 400)}" for n in notes)
+            said += "".join(f"  \n- {safe_text(hide_paths(n), 400)}" for n in notes)
         self._say(said)
 
     def _say(self, text):
@@ -238,16 +274,20 @@ class Exporting:
     def do_export_all(self, event):
         calibration, _ = self._calibration()
         ctrl = self.wb.ctrl
-        session = (json.dumps(ctrl.state.to_dict(), indent=1) + "\n").encode("utf-8")
+        session, effects_files = session_for_download(ctrl.state)
+        what = "the workbench session (mask, model, history)"
+        if effects_files:
+            what += f"; the effects files it names, not included: {', '.join(effects_files)}"
         with tempfile.TemporaryDirectory(prefix="magcal-page-export-") as folder:
             content, readme = bundle.export_all(
                 calibration,
                 dataset=ctrl.dataset,
                 data_path=self._data_file(folder),
                 kept=ctrl.state.kept,
-                extra_files={SESSION_FILE: (session, "the workbench session (mask, model, history)")},
+                extra_files={SESSION_FILE: (session, what)},
             )
-        refused = [line.strip() for line in readme if "not written" in line]
+        content = without_paths(content)
+        refused = [hide_paths(line.strip()) for line in readme if "not written" in line]
         self._send(event, bundle.BUNDLE_FILE, content, refused)
 
     # --- send to vehicle -------------------------------------------------------------------------------------

@@ -4,10 +4,20 @@ websocket handshake checks Origin and Host.
 **The token** (issue 31): a browser page is not the only thing that can open the websocket -- any process or user
 of this machine can, and send the right ``Origin``. So the workbench makes a secret at start
 (:func:`secrets.token_urlsafe`) and prints the page's address with it (``http://127.0.0.1:8080/?token=...``, as
-notebook servers do). Every HTTP request and every websocket handshake must show it, whatever the host served:
-in the URL's query (``?token=``) or in the cookie the first page load sets (``HttpOnly``, ``SameSite=Strict``;
-viser's page opens its websocket without the query, the browser sends the cookie). ``--no-token`` turns it off
-(with a warning). :class:`Gate` holds the token and the names the server answers to.
+notebook servers do). Every HTTP request and every websocket handshake must show it in the URL's query
+(``?token=``), whatever the host served. ``--no-token`` turns it off (with a warning). :class:`Gate` holds the
+token and the names the server answers to.
+
+**Only this page holds it** (issue 41): no cookie -- cookies belong to a host, not a port, so every other server of
+127.0.0.1 the browser visits would receive it. The page's first script (:data:`PAGE_SCRIPT`, put first in viser's
+page by :meth:`Gate.after`) takes the token from the address, keeps it in the tab's ``sessionStorage`` (which
+belongs to this origin: scheme, host *and port*), clears the address bar (``history.replaceState``: no token, and
+no viser parameter such as ``?websocket=`` from a link), and adds ``?token=`` to the address of the page's own
+websocket (:data:`magcal_workbench.viser_adapter.WEBSOCKET_TOKEN_JS`; never to another server's). A **reload**
+asks for the bare address: the refusal the server answers is a small page (:data:`RELOAD_SCRIPT`) that, for a
+reload or a back/forward visit of a top-level tab, opens the address again with the token the tab kept; a new tab
+at the bare address gets the refusal. Every answer forbids framing (``frame-ancestors 'none'``, so another page
+cannot show the workbench under its own clicks), sends no referrer and is not cached.
 
 **Beyond loopback** (``--host 0.0.0.0``) the Host header must be one of this machine's names or addresses
 (:func:`served_names`; ``--allow-host`` adds one, e.g. a proxy's name): a Host/Origin pair of any other name (DNS
@@ -23,15 +33,16 @@ an SSH tunnel (``localhost:9000`` forwarded to the served port) works.
 
 viser 1.1.1 has no public hook for the handshake: it passes its own ``process_request`` (the static-file server)
 to :func:`websockets.asyncio.server.serve` inside its server thread. :func:`guarded_viser_server` chains the
-check in front of it (:mod:`magcal_workbench.viser_adapter`) by wrapping ``serve`` *only while the viser server starts* (:class:`viser.ViserServer`
-returns once the port is bound), and refuses to start when the wrapper was not used -- so a viser that changes
-how it serves fails loudly instead of running unprotected (``tests/test_workbench_guard.py`` checks both).
+check in front of it (:mod:`magcal_workbench.viser_adapter`) by wrapping ``serve`` *only while the viser server
+starts* (:class:`viser.ViserServer` returns once the port is bound), and refuses to start when the wrapper was not
+used -- so a viser that changes how it serves fails loudly instead of running unprotected
+(``tests/test_workbench_guard.py`` checks both).
 """
 
 from __future__ import annotations
 
-import hashlib
 import hmac
+import html
 import ipaddress
 import socket
 from urllib.parse import parse_qs, urlsplit
@@ -157,6 +168,61 @@ NO_TOKEN = (
 )
 
 
+#: The key under which the page keeps its token in the tab's ``sessionStorage`` (per origin: per port).
+STORAGE_KEY = "magcal-workbench-token"
+
+#: The page's first script: the token from the address into the tab's storage, the address bar cleared, the token
+#: on the page's own websocket (:data:`magcal_workbench.viser_adapter.WEBSOCKET_TOKEN_JS`).
+PAGE_SCRIPT = (
+    """<script>
+(function () {
+  "use strict";
+  var token = new URLSearchParams(location.search).get("token");
+  try { if (token) sessionStorage.setItem("STORAGE_KEY", token); } catch (e) {}
+  history.replaceState(null, "", location.pathname);
+  if (!token) return;
+WEBSOCKET_TOKEN_JS
+})();
+</script>""".replace("STORAGE_KEY", STORAGE_KEY)
+    .replace("WEBSOCKET_TOKEN_JS", viser_adapter.WEBSOCKET_TOKEN_JS)
+    .encode()
+)
+
+#: The refusal page's script: a reload (or back/forward) of a top-level tab that kept the token opens the address
+#: again with it; an address with a token (a stale one) forgets it.
+RELOAD_SCRIPT = """<script>
+(function () {
+  "use strict";
+  try {
+    if (new URLSearchParams(location.search).has("token")) { sessionStorage.removeItem("STORAGE_KEY"); return; }
+    var nav = performance.getEntriesByType("navigation")[0];
+    var again = nav && (nav.type === "reload" || nav.type === "back_forward");
+    var token = sessionStorage.getItem("STORAGE_KEY");
+    if (token && again && window.top === window.self) {
+      location.replace(location.pathname + "?token=" + encodeURIComponent(token));
+    }
+  } catch (e) {}
+})();
+</script>""".replace("STORAGE_KEY", STORAGE_KEY)
+
+#: Headers of every HTTP answer: no framing by another page, no referrer, no cache.
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "frame-ancestors 'none'",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-store",
+}
+
+
+def refusal_page(why: str) -> bytes:
+    """The HTML a browser is shown for a request refused for want of the token: ``why`` and
+    :data:`RELOAD_SCRIPT`."""
+    return (
+        '<!doctype html><html><head><meta charset="utf-8"><title>magcal workbench</title></head><body>'
+        f"<p>{html.escape(why)}</p>{RELOAD_SCRIPT}</body></html>\n"
+    ).encode()
+
+
 class Gate:
     """Who may talk to the server: the token (None: no token asked, ``--no-token``) and, beyond loopback, the Host
     names it answers to.
@@ -166,7 +232,7 @@ class Gate:
     host : str
         The address served.
     token : str or None
-        The secret every request must show (query ``token=`` or the cookie :attr:`cookie_name`).
+        The secret every request must show in its query (``?token=``).
     allow_hosts : sequence of str
         Extra Host names accepted beyond loopback (``--allow-host``).
     """
@@ -175,9 +241,6 @@ class Gate:
         self.local = is_loopback(host)
         self.token = token
         self.allowed = None if self.local else served_names(host, allow_hosts)
-        # one cookie per token: two workbenches on one machine (cookies ignore the port) keep theirs apart
-        digest = hashlib.sha256((token or "").encode()).hexdigest()[:12]
-        self.cookie_name = f"magcal_workbench_{digest}"
 
     def _query_token(self, path: str) -> str | None:
         values = parse_qs(urlsplit(path or "").query).get("token")
@@ -191,21 +254,9 @@ class Gate:
         )
 
     def has_token(self, request) -> bool:
-        """Whether ``request`` shows the token (always True without one)."""
-        if self.token is None:
-            return True
-        if self._shows(self._query_token(request.path)):
-            return True
-        try:
-            raw = "; ".join(request.headers.get_all("Cookie"))
-        except AttributeError:  # headers without get_all (a plain mapping)
-            raw = request.headers.get("Cookie") or ""
-        # split by hand: other local apps' cookies (any characters) must not hide ours, as http.cookies would
-        for pair in raw.split(";"):
-            name, sep, value = pair.strip().partition("=")
-            if sep and name.strip() == self.cookie_name and self._shows(value.strip().strip('"')):
-                return True
-        return False
+        """Whether ``request`` shows the token in its query (always True without one). A cookie is no credential:
+        the browser would send it to every port of the host."""
+        return self.token is None or self._shows(self._query_token(request.path))
 
     def refusal(self, request) -> str | None:
         """Why ``request`` (websockets' request: ``.path``, ``.headers``) is refused, or None."""
@@ -214,10 +265,20 @@ class Gate:
             why = NO_TOKEN
         return why
 
-    def set_cookie(self, request, response) -> None:
-        """A page loaded with ``?token=`` gets the token as a cookie, so that its websocket shows it."""
-        if self.token is not None and self._shows(self._query_token(request.path)):
-            response.headers["Set-Cookie"] = f"{self.cookie_name}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+    def after(self, request, response) -> None:
+        """What every HTTP answer gets before it is sent: :data:`SECURITY_HEADERS`; viser's page, :data:`PAGE_SCRIPT`
+        first in its head; a request refused only for want of the token, :func:`refusal_page` (a reload opens the
+        page again with the token its tab kept)."""
+        for name, value in SECURITY_HEADERS.items():
+            response.headers[name] = value
+        if response.status_code == 200:
+            viser_adapter.add_to_page(response, PAGE_SCRIPT)
+        elif (
+            response.status_code == 403
+            and refusal(request.headers, self.local, self.allowed) is None  # the headers are sound: the token lacks
+            and (request.headers.get("Upgrade") or "").lower() != "websocket"
+        ):
+            viser_adapter.set_body(response, refusal_page(NO_TOKEN), "text/html; charset=utf-8")
 
 
 def guarded_viser_server(host: str, port: int, verbose: bool = False, gate: Gate | None = None):
@@ -226,4 +287,4 @@ def guarded_viser_server(host: str, port: int, verbose: bool = False, gate: Gate
     :class:`~magcal_workbench.viser_adapter.HandshakeHookMissing` when viser starts without the check).
     Without ``gate``, Host and Origin are checked and no token is asked."""
     gate = Gate(host, None) if gate is None else gate
-    return viser_adapter.start_server(host, port, gate.refusal, verbose, after=gate.set_cookie)
+    return viser_adapter.start_server(host, port, gate.refusal, verbose, after=gate.after)

@@ -471,8 +471,9 @@ def download_markdown(ctrl) -> str:
 #: Shown next to the control that loads an effects file.
 EFFECTS_FILE_WARNING = (
     "⚠ **Loading a file runs its Python code** on the machine serving this page, with your "
-    "permissions: load only files you wrote or trust. Its `@register` effects join the list "
-    "above, Diagnose and the calibration JSON (docs/user-effects.md)."
+    "permissions: load only files you wrote or trust. The page loads a file named with `--effects-file` when the "
+    "workbench started, or one you confirm in the terminal it runs in (it asks). Its `@register` effects join the "
+    "list above, Diagnose and the calibration JSON (docs/user-effects.md)."
 )
 
 

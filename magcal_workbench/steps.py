@@ -82,26 +82,37 @@ class Steps:
         self.ctrl.set_noise(value if value > 0 else None)
 
     def do_load_effects(self, event):
-        """Load the effects file typed in the Model tab (runs its code: only when served to this machine)."""
+        """Load the effects file typed in the Model tab (runs its code: only when served to this machine, and only
+        a file named on the command line or confirmed in the terminal, :class:`magcal_workbench.consent.EffectsFiles`)."""
         if not self.wb.local:
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
         path = self.wb.values.check(self.wb.panels.effects_path)
+        gate = self.wb.effects_gate  # only a file of the command line, or one confirmed in the terminal
+        why = gate.refusal(path)
+        if why is not None:
+            raise MagcalError(why)
         ctrl = self.ctrl
-        self._job("load effects file", lambda: ctrl.load_effects_file(path))
+        self._job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
 
     def do_load_session_effects(self, event):
         """Load the effects files the open session names (runs their code: the user asked; only when served to
-        this machine)."""
+        this machine, and each only if named on the command line or confirmed in the terminal)."""
         if not self.wb.local:
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
-        ctrl = self.ctrl
-        self._job("load the session's effects files", ctrl.load_session_effects_files)
+        ctrl, gate = self.ctrl, self.wb.effects_gate
+        refused = [gate.refusal(p) for p in ctrl.pending_effects_files()]
+        if refused and all(refused):  # none may load: said at once
+            raise MagcalError("; ".join(str(r) for r in refused))
+        self._job(
+            "load the session's effects files",
+            lambda: ctrl.load_session_effects_files(permit=lambda p: gate.permit(p, ctrl.say)),
+        )
 
     # --- outliers -----------------------------------------------------------------------------------------
     def do_threshold(self, event):

@@ -1,13 +1,21 @@
 """Every use of viser's internals, in one place.
 
-viser (1.1.1) offers no public hook for three things the workbench needs; each is reached here and nowhere else,
-and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they rely on (:func:`missing_internals`):
+viser (1.1.1) offers no public hook for the things the workbench needs below; each is reached here and nowhere
+else, and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they rely on
+(:func:`missing_internals`):
 
 * **the handshake check** (:func:`start_server`): viser serves its page and its websocket through
   ``websockets.asyncio.server.serve(process_request=viser_http_server)``; while the server starts, ``serve`` is
   wrapped so that ``check(request)`` (:meth:`magcal_workbench.guard.Gate.refusal`: Host, Origin and the page's
   token) runs before viser's own hook on every HTTP request and websocket upgrade, and ``after(request, response)``
-  may add headers to what viser answers (the token's cookie).
+  may change every HTTP answer, viser's or the refusal (:meth:`magcal_workbench.guard.Gate.after`: headers, the
+  page's script).
+* **a script in viser's page** (:func:`add_to_page`): viser serves one HTML file (gzip-compressed when the browser
+  accepts it); a ``<script>`` is put first in its ``<head>``, so it runs before viser's own code.
+* **the page's websocket address** (:data:`WEBSOCKET_TOKEN_JS`): viser's page derives it from its own address
+  without the query and hands it to a web worker (``worker.postMessage({type: "set_server", server})``), which
+  opens the websocket; the script wraps the page's ``Worker`` so that this one message's address carries
+  ``?token=`` -- only when it is the page's own server.
 * **an upload's declared size** (:func:`watch_upload_starts`): viser buffers an upload's parts in
   ``gui._current_file_upload_states``; a handler of ``FileTransferStartUpload`` registered on the websocket
   server sees the size the browser declares and drops the entry, so viser ignores the parts that follow.
@@ -19,10 +27,13 @@ and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they
 
 from __future__ import annotations
 
+import gzip
 import http
 import inspect
+import re
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
 #: The name of viser's ``process_request`` function (its static-file server) the check is chained before.
 VISER_HOOK = "viser_http_server"
@@ -44,8 +55,9 @@ def start_server(
     """A :class:`viser.ViserServer` whose websocket and HTTP handshakes pass ``check(request)`` first.
 
     ``check`` gets websockets' request (``.path`` with its query, ``.headers``) and returns None to let it through
-    or the reason (plain text) it is refused with 403. ``after(request, response)``, when given, sees viser's
-    answer to an HTTP request it let through (e.g. to add a ``Set-Cookie`` header to ``response.headers``).
+    or the reason (plain text) it is refused with 403. ``after(request, response)``, when given, sees every HTTP
+    answer before it is sent -- viser's to a request let through, and the 403 of one refused -- and may change
+    its headers and body (:func:`add_to_page`, :func:`set_body`); a websocket upgrade let through has none.
 
     Raises
     ------
@@ -62,8 +74,9 @@ def start_server(
         def process_request(connection, request):
             why = check(request)
             if why is not None:
-                return connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
-            response = viser_hook(connection, request)
+                response = connection.respond(http.HTTPStatus.FORBIDDEN, why + "\n")
+            else:
+                response = viser_hook(connection, request)
             if response is not None and after is not None:
                 after(request, response)
             return response
@@ -93,6 +106,61 @@ def start_server(
             "(see magcal_workbench/viser_adapter.py)"
         )
     return server
+
+
+#: JavaScript for viser's page, run before viser's own code with the token in ``token`` (a string): the websocket
+#: the page opens carries ``?token=`` -- added to the address the page hands its websocket worker, and only when
+#: that address is the page's own server (viser also takes an address from ``?websocket=``; another server never
+#: gets the token).
+WEBSOCKET_TOKEN_JS = """
+  var own = (location.protocol === "https:" ? "wss:" : "ws:") + "//" + location.host;
+  var carry = function (address) {
+    var url;
+    try { url = new URL(address); } catch (e) { return address; }
+    if (url.protocol + "//" + url.host !== own) return address;
+    url.searchParams.set("token", token);
+    return url.href;
+  };
+  var Base = window.Worker;
+  window.Worker = class extends Base {
+    postMessage(message, ...rest) {
+      if (message && message.type === "set_server" && typeof message.server === "string") {
+        message = Object.assign({}, message, {server: carry(message.server)});
+      }
+      return super.postMessage(message, ...rest);
+    }
+  };
+"""
+
+_HEAD = re.compile(rb"<head[^>]*>", re.IGNORECASE)
+_PAGES: dict = {}  # (viser's body, snippet) -> the body with the snippet (viser keeps its file's bytes)
+
+
+def set_body(response, body: bytes, content_type: str | None = None) -> None:
+    """Replace an HTTP ``response``'s body (and its length; its type when given)."""
+    response.body = body
+    for name, value in (("Content-Length", str(len(body))), ("Content-Type", content_type)):
+        if value is not None:
+            if name in response.headers:
+                del response.headers[name]
+            response.headers[name] = value
+
+
+def add_to_page(response, snippet: bytes) -> bool:
+    """Put ``snippet`` (HTML, e.g. a ``<script>``) first in the ``<head>`` of viser's page ``response`` (a 200 HTML
+    answer, gzip-compressed or not); other answers are left alone. Returns whether it was added."""
+    if response.status_code != 200 or "text/html" not in (response.headers.get("Content-Type") or ""):
+        return False
+    key = (bytes(response.body), snippet)
+    if key not in _PAGES:
+        zipped = (response.headers.get("Content-Encoding") or "").lower() == "gzip"
+        page = gzip.decompress(key[0]) if zipped else key[0]
+        head = _HEAD.search(page)
+        at = head.end() if head else 0
+        page = page[:at] + snippet + page[at:]
+        _PAGES[key] = gzip.compress(page, mtime=0) if zipped else page
+    set_body(response, _PAGES[key])
+    return True
 
 
 def widget_id(handle) -> str:
@@ -195,6 +263,20 @@ def missing_internals() -> list[str]:
     reg = getattr(_infra.WebsockServer, "register_handler", None)
     if reg is None or list(inspect.signature(reg).parameters)[:3] != ["self", "message_cls", "callback"]:
         problems.append("WebsockServer.register_handler(message_cls, callback) is gone")
+    client = Path(viser.__file__).parent / "client"
+    if not (client / "build" / "index.html").is_file():
+        problems.append("viser no longer serves its page from client/build/index.html")
+    sources = client / "src"
+    if sources.is_dir():  # the client's sources ship with viser 1.1.1: what WEBSOCKET_TOKEN_JS relies on
+        try:
+            ui = (sources / "WebsocketInterface.tsx").read_text(encoding="utf-8")
+            worker = (sources / "WebsocketClientWorker.ts").read_text(encoding="utf-8")
+        except OSError:
+            ui = worker = ""
+        if 'type: "set_server", server' not in ui or "new WebsocketClientWorker()" not in ui:
+            problems.append("viser's page no longer hands its websocket's address to a Worker (set_server)")
+        if 'data.type === "set_server"' not in worker or "new WebSocket(server" not in worker:
+            problems.append("viser's websocket worker no longer opens the address set_server gives")
     if "_websock_server" not in inspect.getsource(viser.ViserServer.__init__):
         problems.append("ViserServer no longer keeps _websock_server")
     for name in ("GuiDropdownHandle", "GuiSliderHandle", "GuiNumberHandle", "GuiTextHandle"):

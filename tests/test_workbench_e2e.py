@@ -252,7 +252,7 @@ def test_a_page_from_another_origin_cannot_open_the_websocket(browser, small_wor
 
 def test_the_page_opens_from_the_printed_url_only(browser, small_workbench):
     """Issue 31: the address without the token shows the refusal and connects nothing; the printed address (its
-    token then in the page's cookie) connects and shows the session."""
+    token then carried by the page's script to its websocket) connects and shows the session."""
     wb = small_workbench
     page = browser.new_page()
     response = page.goto(f"http://127.0.0.1:{wb.port}/", wait_until="load", timeout=30_000)

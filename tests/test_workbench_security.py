@@ -213,7 +213,7 @@ def test_a_user_effect_description_is_escaped(bench, tmp_path, clean_catalogue):
                 return np.broadcast_to(np.eye(3), (len(z0), 3, 3)).copy()
     ''')
     )
-    wb = bench(store=False)
+    wb = bench(store=False, effects_files=[str(path)])
     wb.panels.effects_path.value = str(path)
     wb.panels.btn_load_effects.value = True
     assert wb.worker.wait(60)

@@ -791,6 +791,14 @@ PUMP = "pump_interference"
 PUMP_SENSOR = 1  # 0-based: the pump is hidden in sensor 2
 
 
+class Yes:
+    """A terminal where the user confirms every effects file asked for (:class:`magcal_workbench.consent.Terminal`'s
+    ``ask``); tests/test_workbench_consent.py asks a real pseudo-terminal."""
+
+    def ask(self, question, timeout_s, cancel):
+        return "yes"
+
+
 @pytest.fixture(scope="module")
 def pump_data():
     """chi2017 time series (four sensors, 3 nT noise, 10 Hz) hiding a 4 nT pump field at 1.3 Hz in sensor 2 (made
@@ -859,7 +867,7 @@ def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_
     from magcal.model import plugins
     from magcal.model.terms import EFFECTS
 
-    wb = bench(pump_data)
+    wb = bench(pump_data, effects_files=[str(EXAMPLE)])  # the page loads a file of the command line (issue 41)
     assert PUMP not in wb.panels.effect_boxes
     assert "runs its Python code" in wb.panels.effects_warning.content and not wb.panels.btn_load_effects.disabled
     wb.panels.effects_path.value = str(EXAMPLE)
@@ -875,7 +883,7 @@ def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_
     wb.stop()
     plugins.unregister(PUMP)  # as in a new process: the effect is not loaded
     plugins._USER_FILES.clear()
-    again = bench(pump_data)
+    again = bench(pump_data, terminal=Yes())  # the user confirms the file in the terminal
     # reopening runs no code (issue 31): the page says the session names the file and offers to load it
     assert PUMP not in EFFECTS and again.ctrl.calibration is None
     assert "effects\\_example.py" in again.ctrl.message and "not loaded" in again.ctrl.message
@@ -921,6 +929,9 @@ def test_opening_a_session_runs_none_of_its_effects_files(bench, clean_catalogue
     _click(again, again.panels.btn_session_effects)
     assert not marker.exists() and "allowed only when" in again.ctrl.message
     again.local = True
+    _click(again, again.panels.btn_session_effects)  # neither named on the command line nor confirmed (issue 41)
+    assert not marker.exists() and "evil.py not loaded" in again.ctrl.message
+    again.effects_gate.terminal = Yes()
     _click(again, again.panels.btn_session_effects)
     assert marker.read_text() == "ran"
 
@@ -944,7 +955,7 @@ def test_an_error_in_the_user_code_is_a_clear_message(bench, clean_catalogue, tm
         "        return np.eye(3)[None] * dT[:, None, None]\n"
     )
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2, rate_hz=2.0).replace(temperature_C=None)
-    wb = bench(ds, store=False)
+    wb = bench(ds, store=False, effects_files=[str(path)])
     wb.panels.effects_path.value = str(path)
     _click(wb, wb.panels.btn_load_effects)
     wb.panels.effect_boxes["warm_offset"].value = True

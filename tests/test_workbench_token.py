@@ -1,9 +1,12 @@
 """The page's token (issue 31, item 1): a process of this machine that sends the page's Origin is still refused
-without the secret printed at start; with it (in the URL or in the cookie the page's first load sets) it is the
-page. Beyond loopback, Host must be one of this machine's names. Real servers on 127.0.0.1, port 0."""
+without the secret printed at start; with it (in the URL's query: the page's address, and the address the page's
+script gives its websocket) it is the page. No cookie carries it (issue 41, item 1). Beyond loopback, Host must be
+one of this machine's names. Real servers on 127.0.0.1, port 0."""
 
 from __future__ import annotations
 
+import gzip
+import hashlib
 import http.client
 import socket
 from types import SimpleNamespace
@@ -39,35 +42,45 @@ def test_a_local_process_with_the_right_origin_needs_the_token(bench):
     assert ws_handshake(wb.port, origin="http://evil.example", token=wb.token) == ("refused", 403)
 
 
-def test_the_page_needs_the_token_and_its_first_load_sets_the_cookie(bench):
+def test_the_page_needs_the_token_and_its_load_sets_no_cookie(bench):
+    """Issue 41, item 1: a cookie belongs to the host, not the port -- every other server of 127.0.0.1 the browser
+    visits would receive it. The page's answer sets none, and no cookie opens the page or the websocket."""
     wb = bench(store=False)
     status, cookie, body = _get(wb.port, "/")
     assert status == 403 and b"token" in body and cookie is None
+    assert guard.RELOAD_SCRIPT.encode() in body  # a reload of the bare address opens it again with the tab's token
     status, _, _ = _get(wb.port, "/?token=wrong")
     assert status == 403
-    status, cookie, body = _get(wb.port, f"/?token={wb.token}")
-    assert status == 200 and b"<html" in body.lower()
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
-    name_value = cookie.split(";", 1)[0]
-    assert name_value.endswith("=" + wb.token)
-    # what the page loads next and its websocket carry the cookie, not the query
-    assert _get(wb.port, "/index.html", {"Cookie": name_value})[0] == 200
-    assert _get(wb.port, "/index.html", {"Cookie": name_value[:-2] + "xx"})[0] == 403
-    assert ws_handshake(wb.port, cookie=name_value)[0] == "accepted"
-    assert ws_handshake(wb.port, cookie="other=1; " + name_value[:-1])[0] == "refused"
-    # another local app's cookie with odd characters (a notebook server's) does not hide ours
-    assert ws_handshake(wb.port, cookie='username-localhost-8888="2|1:0|10:x y"; ' + name_value)[0] == "accepted"
+    for encoding in ("identity", "gzip"):
+        conn = http.client.HTTPConnection("127.0.0.1", wb.port, timeout=10)
+        conn.request("GET", f"/?token={wb.token}", headers={"Accept-Encoding": encoding})
+        response = conn.getresponse()
+        raw = response.read()
+        page = gzip.decompress(raw) if encoding == "gzip" else raw
+        assert response.status == 200 and response.getheader("Set-Cookie") is None
+        assert int(response.getheader("Content-Length")) == len(raw)
+        # the page's own script comes first in its head: it keeps the token in the tab and clears the address
+        head = page.lower().index(b"<head>") + len(b"<head>")
+        assert page[head : head + len(guard.PAGE_SCRIPT)] == guard.PAGE_SCRIPT
+        assert wb.token.encode() not in page  # the page holds no secret; its address does
+        # no other page may frame it (clicks under another page's control), nothing sent as a referrer
+        assert response.getheader("Content-Security-Policy") == "frame-ancestors 'none'"
+        assert response.getheader("X-Frame-Options") == "DENY"
+        assert response.getheader("Referrer-Policy") == "no-referrer"
+    # the old cookie, or any other, is no credential
+    digest = hashlib.sha256(wb.token.encode()).hexdigest()[:12]
+    for cookie in (f"magcal_workbench_{digest}={wb.token}", f"token={wb.token}"):
+        assert _get(wb.port, "/index.html", {"Cookie": cookie})[0] == 403
+        assert ws_handshake(wb.port, cookie=cookie) == ("refused", 403)
+    assert ws_handshake(wb.port, token=wb.token)[0] == "accepted"
 
 
-def test_two_workbenches_keep_their_cookies_apart(bench):
+def test_two_workbenches_keep_their_tokens_apart(bench):
     a, b = bench(store=False), bench(store=False, name="b.csv")
     assert a.token != b.token and a.server is not b.server
-    cookie_a = _get(a.port, f"/?token={a.token}")[1].split(";", 1)[0]
-    cookie_b = _get(b.port, f"/?token={b.token}")[1].split(";", 1)[0]
-    assert cookie_a.split("=")[0] != cookie_b.split("=")[0]  # cookies ignore ports: one name per token
-    both = f"{cookie_a}; {cookie_b}"  # what the browser sends to either port
-    assert ws_handshake(a.port, cookie=both)[0] == "accepted" and ws_handshake(b.port, cookie=both)[0] == "accepted"
-    assert ws_handshake(a.port, cookie=cookie_b) == ("refused", 403)
+    assert ws_handshake(a.port, token=a.token)[0] == "accepted" and ws_handshake(b.port, token=b.token)[0] == "accepted"
+    assert ws_handshake(a.port, token=b.token) == ("refused", 403)
+    assert _get(b.port, f"/?token={a.token}")[0] == 403
 
 
 def test_no_token_asks_for_none_and_warns(bench):

@@ -1,0 +1,238 @@
+"""Effects files from the page (issue 41): the page runs an effects file only when the user named it on the command
+line (``--effects-file``) or confirmed it in the terminal the workbench runs in; anything else is refused with a
+message in the page, and its code never runs. The terminal is a real pseudo-terminal: the question is read from
+its other end and answered there, as a user would type.
+
+Each hostile file writes a marker file when its code runs: the marker's absence is the proof nothing ran."""
+
+from __future__ import annotations
+
+import os
+import pty
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("viser")
+
+from magcal_workbench.consent import EffectsFiles, Terminal
+
+EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+PUMP = "pump_interference"
+
+
+def _click(wb, button):
+    button.value = True  # what a click does: the callbacks run
+    time.sleep(0.05)
+    assert wb.worker.wait(120)
+
+
+def _marking(tmp_path, name="evil.py"):
+    """An effects file that writes ``marker`` when its code runs: ``(file, marker)``."""
+    marker = tmp_path / f"{name}.ran"
+    path = tmp_path / name
+    path.write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    return path, marker
+
+
+class PtyTerminal:
+    """A pseudo-terminal: the workbench's end (:class:`Terminal` on it) and the user's end (read the question,
+    type an answer)."""
+
+    def __init__(self):
+        self.master, self.slave = pty.openpty()
+        self.out = os.fdopen(os.dup(self.slave), "w", encoding="utf-8")
+        self.terminal = Terminal(self.slave, self.out)
+
+    def read_question(self, timeout_s=30.0) -> bytes:
+        got, end = b"", time.monotonic() + timeout_s
+        while b"within" not in got or not got.rstrip().endswith(b":"):
+            ready, _, _ = select.select([self.master], [], [], max(end - time.monotonic(), 0))
+            if not ready:
+                raise AssertionError(f"no question in the terminal within {timeout_s} s: {got!r}")
+            got += os.read(self.master, 4096)
+        return got
+
+    def type(self, text: str):
+        os.write(self.master, text.encode())
+
+    def drain(self):
+        """Read what the terminal shows so far (the echo of what was typed)."""
+        while select.select([self.master], [], [], 0.2)[0]:
+            os.read(self.master, 4096)
+
+    def silent(self, wait_s=0.5) -> bool:
+        """Whether nothing was written to the terminal within ``wait_s``."""
+        return not select.select([self.master], [], [], wait_s)[0]
+
+    def close(self):
+        self.out.close()
+        os.close(self.master)
+        os.close(self.slave)
+
+
+@pytest.fixture
+def tty():
+    t = PtyTerminal()
+    yield t
+    t.close()
+
+
+def test_the_page_loads_only_the_files_of_the_command_line(bench, clean_catalogue, tmp_path):
+    evil, marker = _marking(tmp_path)
+    wb = bench(store=False, effects_files=[str(EXAMPLE)])  # started without a terminal (a script, a service)
+    wb.panels.effects_path.value = str(evil)
+    _click(wb, wb.panels.btn_load_effects)
+    assert not marker.exists()
+    message = wb.ctrl.message
+    assert message.startswith("**Error:**") and "evil.py not loaded" in message and "--effects-file" in message
+    assert str(tmp_path) not in message  # where the file lives on the server is not repeated to the page
+    # a file of the command line loads (again: after the user edited it)
+    wb.panels.effects_path.value = str(EXAMPLE)
+    _click(wb, wb.panels.btn_load_effects)
+    assert PUMP in wb.panels.effect_boxes
+    # a path that leads to a named file through a symbolic link is that file; a link to another is not
+    link = tmp_path / "link.py"
+    link.symlink_to(evil)
+    wb.panels.effects_path.value = str(link)
+    _click(wb, wb.panels.btn_load_effects)
+    assert not marker.exists() and "link.py not loaded" in wb.ctrl.message
+
+
+def test_a_file_confirmed_in_the_terminal_loads_once_asked(bench, clean_catalogue, tmp_path, tty):
+    evil, marker = _marking(tmp_path, "my\x1b[2Jeffect.py")  # a name holding a terminal's escape sequence
+    wb = bench(store=False, terminal=tty.terminal)
+    # the user answers no: nothing runs
+    wb.panels.effects_path.value = str(evil)
+    wb.panels.btn_load_effects.value = True
+    question = tty.read_question()
+    assert b"\x1b" not in question  # the name is shown escaped: it cannot clear or rewrite the terminal
+    assert b"load the effects file" in question and b"my\\x1b[2Jeffect.py" in question
+    assert "type yes there" in wb.ctrl.message  # the page says where to answer
+    tty.type("no\n")
+    assert wb.worker.wait(30)
+    assert not marker.exists() and "not confirmed" in wb.ctrl.message and "answer was not yes" in wb.ctrl.message
+    # asked again, the user types yes: it runs
+    wb.panels.btn_load_effects.value = True
+    tty.read_question()
+    tty.type("yes\n")
+    assert wb.worker.wait(30)
+    assert marker.read_text() == "ran"
+    # confirmed once, the file loads again without a question
+    marker.unlink()
+    tty.drain()
+    _click(wb, wb.panels.btn_load_effects)
+    assert marker.read_text() == "ran" and tty.silent()
+
+
+def test_no_answer_in_time_refuses_and_a_yes_typed_before_the_question_does_not_count(
+    bench, clean_catalogue, tmp_path, tty
+):
+    evil, marker = _marking(tmp_path)
+    wb = bench(store=False, terminal=tty.terminal)
+    wb.effects_gate.timeout_s = 1.0
+    tty.type("yes\n")  # typed before anything asked
+    time.sleep(0.2)
+    wb.panels.effects_path.value = str(evil)
+    wb.panels.btn_load_effects.value = True
+    tty.read_question()
+    assert wb.worker.wait(30)
+    assert not marker.exists() and "no answer came" in wb.ctrl.message
+
+
+def test_a_sessions_effects_files_are_refused_unless_named_or_confirmed(bench, clean_catalogue, tmp_path, tty):
+    evil, marker = _marking(tmp_path)
+    wb = bench()
+    wb.ctrl.state.effects_files.append(str(evil))
+    wb.ctrl.autosave()
+    wb.stop()
+    # reopened by a workbench with no terminal: refused at once, with the reason
+    again = bench()
+    assert again.panels.btn_session_effects.visible
+    _click(again, again.panels.btn_session_effects)
+    assert not marker.exists() and "evil.py not loaded" in again.ctrl.message
+    again.stop()
+    # with a terminal: asked, confirmed, run
+    third = bench(terminal=tty.terminal)
+    third.panels.btn_session_effects.value = True
+    assert b"evil.py" in tty.read_question()
+    tty.type("y\n")
+    assert third.worker.wait(30)
+    assert marker.read_text() == "ran"
+
+
+def test_stopping_the_workbench_ends_a_question(bench, clean_catalogue, tmp_path, tty):
+    evil, marker = _marking(tmp_path)
+    wb = bench(store=False, terminal=tty.terminal)
+    wb.panels.effects_path.value = str(evil)
+    wb.panels.btn_load_effects.value = True
+    tty.read_question()
+    t0 = time.monotonic()
+    wb.stop()
+    assert time.monotonic() - t0 < 10 and not marker.exists()
+
+
+def test_the_terminal_is_the_foreground_standard_input_only():
+    """:meth:`Terminal.of_stdin`: a terminal in whose foreground the workbench runs; not a pipe, not a background
+    job (which the terminal would stop when it reads)."""
+    code = "from magcal_workbench.consent import Terminal; print('TERMINAL' if Terminal.of_stdin() else 'NONE')"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    piped = subprocess.run(
+        [sys.executable, "-c", code], stdin=subprocess.PIPE, capture_output=True, env=env, timeout=60
+    )
+    assert piped.stdout.strip() == b"NONE"
+
+    def under_pty(background: bool) -> bytes:
+        pid, fd = pty.fork()
+        if pid == 0:  # the child leads a session whose controlling terminal is the pty, in its foreground
+            if background:  # a job of that session in another process group: the shell's "&"
+                job = os.fork()
+                if job == 0:
+                    os.setpgid(0, 0)
+                    os.execve(sys.executable, [sys.executable, "-c", code], env)
+                os.waitpid(job, 0)
+                os._exit(0)
+            os.execve(sys.executable, [sys.executable, "-c", code], env)
+        out = b""
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            if select.select([fd], [], [], 1.0)[0]:
+                try:
+                    chunk = os.read(fd, 1024)
+                except OSError:
+                    break
+                if not chunk:
+                    break
+                out += chunk
+        os.waitpid(pid, 0)
+        os.close(fd)
+        return out
+
+    assert b"TERMINAL" in under_pty(background=False)
+    assert b"NONE" in under_pty(background=True)
+
+
+def test_an_empty_path_is_a_message():
+    from magcal.core.errors import MagcalError
+
+    with pytest.raises(MagcalError, match="type the path"):
+        EffectsFiles().permit("  ")
+
+
+def test_a_pipe_or_a_folder_is_refused_before_anything_opens_it(bench, clean_catalogue, tmp_path, tty):
+    """A FIFO named as an effects file would block the reader for ever (issue 41, item 9): the page refuses it, a
+    folder and a missing file at once, without asking the terminal."""
+    fifo = tmp_path / "pipe.py"
+    os.mkfifo(fifo)
+    folder = tmp_path / "folder.py"
+    folder.mkdir()
+    wb = bench(store=False, terminal=tty.terminal, effects_files=[str(fifo)])
+    for path, says in ((fifo, "not a regular file"), (folder, "not a regular file"), (tmp_path / "no.py", "no such")):
+        wb.panels.effects_path.value = str(path)
+        _click(wb, wb.panels.btn_load_effects)
+        assert says in wb.ctrl.message and path.name in wb.ctrl.message
+    assert tty.silent()
