@@ -195,3 +195,18 @@ def test_magcal_diagnose_api_takes_a_vector_fit_and_other_flights(truth):
     assert magcal.diagnose(one, warn=False, max_effects=1).explained_by == ["eddy_currents"]  # auto: vector mode
     with pytest.raises(MagcalError, match="mode"):
         magcal.diagnose(one, fit, mode="scalar", warn=False)
+
+
+def test_a_delay_is_named_alone_not_beside_the_eddy_matrix_that_holds_it():
+    """A common delay is the eddy matrix ``d I``: fitted together they leave a direction no data fix (the fit once
+    diverged to a mirrored matrix). The diagnosis tries the matrix in place of the delay, never beside it, and the
+    fit refuses the pair with a message."""
+    truth = vehicle_truth(seed=11)
+    hidden = [parse_hidden("attitude_time_offset=-24", 1)]
+    one, _ = simulate_vehicle(truth, seed=1, n=N, turns=20, attitude_noise_deg=0.1, perturbations=hidden)
+    d = diagnose_vector(one, resolve_vector_reference(one))
+    assert d.explained_by == ["attitude_time_offset"]
+    later = [c for c in d.candidates if c.round == 2 and c.effect == "eddy_currents"]
+    assert later and later[0].replaces == ["attitude_time_offset"] and not later[0].recommended
+    with pytest.raises(CalibrationError, match="special case of eddy_currents"):
+        fit_vector(one, resolve_vector_reference(one), effects=["attitude_time_offset", "eddy_currents"], warn=False)

@@ -172,6 +172,7 @@ class VectorCandidate:
     when_recording: str = ""
     holds: bool | None = None
     round: int = 1
+    replaces: list = field(default_factory=list)
 
     @property
     def supported(self) -> bool:
@@ -191,6 +192,7 @@ class VectorCandidate:
             "flights": [{"name": n, "before": b.to_dict(), "after": a.to_dict()} for n, b, a in self.flights],
             "record_only": self.record_only,
             "round": self.round,
+            "replaces": list(self.replaces),
             "holds": self.holds,
             "supported": self.supported,
             "recommended": self.recommended,
@@ -513,6 +515,11 @@ def _log_likelihood_terms(result: VectorFitResult) -> float:
     return float(out)
 
 
+def _same_sensors(a, b) -> bool:
+    """Whether two effect instances act on a common sensor."""
+    return a.sensor is None or b.sensor is None or a.sensor == b.sensor
+
+
 def _n_params(effect, model) -> int:
     """Parameters the effect adds to ``model`` (every instance of it), a searched constant (a step time) counting
     as one more per instance."""
@@ -544,7 +551,8 @@ def vector_candidates(dataset, model, names=None) -> list:
         sensors = [None] if dataset.n_sensors == 1 else [s for s in range(dataset.n_sensors) if probe.applies_to(s)]
         for s in sensors:
             e = cls(sensor=s)
-            if e.label not in have:
+            holders = [x for x in model.effects if x.name in getattr(cls, "nested_in", ())]
+            if e.label not in have and not any(s is None or x.applies_to(s) for x in holders):
                 out.append(e)
     return out
 
@@ -694,7 +702,7 @@ def diagnose_vector(
         for c, _ in supported[:top]:
             if c.holds and c is not best:
                 c.why = f"holds, but {best.label} explains more: see the next round"
-        chosen.append(best)
+        chosen = [c for c in chosen if c.label not in best.replaces] + [best]
         current = fits[best.label]
         if not validate:
             warnings_.append(
@@ -741,13 +749,19 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
     base_in = _scores(record, *record.residuals(current.calibration, "apply"), fitted, *weights)
     tried = []
     for e in cands:
+        # an effect of the model that the candidate holds as a special case (a common delay in an eddy matrix) is
+        # replaced by it: both together would leave a direction the data cannot fix
+        nested = [x for x in model.effects if e.name in getattr(x, "nested_in", ()) and _same_sensors(x, e)]
+        trial = model
+        for x in nested:
+            trial = trial.without(x.label)
         try:
-            fit = fit_vector(dataset, reference, effects=model.with_effect(e), warn=False, **options)
+            fit = fit_vector(dataset, reference, effects=trial.with_effect(e), warn=False, **options)
         except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
             notes.append(Note(f"{e.label}: the refit failed ({exc})", UserWarning, "vector diagnosis"))
             continue
         added = fit.calibration.model.effects[-1]
-        q = _n_params(added, fit.calibration.model)
+        q = _n_params(added, fit.calibration.model) - sum(_n_params(x, model) for x in nested)
         n_res = 3 * fit.n_samples * dataset.n_sensors
         dbic = _log_likelihood_terms(fit) - base_ll + q * np.log(max(n_res, 2))
         after = _scores(record, *record.residuals(fit.calibration, "apply"), fitted, *weights)
@@ -764,7 +778,10 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
             quote=quote,
             evidence="; ".join(p for p in (quote, signature) if p),
             when_recording=getattr(type(e), "when_recording", "") or _WHEN_RECORDING.get(e.name, ""),
+            replaces=[x.label for x in nested],
         )
+        if nested:
+            c.evidence = f"replaces {', '.join(c.replaces)}, which it holds; " + c.evidence
         tried.append((c, fit))
     tried.sort(key=lambda cf: cf[0].delta_bic)
     return tried

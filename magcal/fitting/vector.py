@@ -66,6 +66,10 @@ from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, fir
 from magcal.model.platform_terms import available_terms
 from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
 
+#: Most evaluations of one least-squares solve: a well-posed vector fit converges in a handful; one whose effects
+#: are nearly degenerate wanders along the degenerate direction instead (its covariance then says so).
+MAX_NFEV = 300
+
 #: Most rounds in which the effects may move their data-derived constants after a fit (a time offset's shift).
 MAX_REFINEMENTS = 3
 
@@ -578,6 +582,13 @@ def vector_model(dataset, effects=(), terms=None) -> Model:
         missing = e.missing_channels(dataset)
         if missing:
             raise CalibrationError(f"{e.label} needs {', '.join(missing)}; the data lack it")
+    for e in model.effects:
+        for x in model.effects:
+            if x.name in getattr(e, "nested_in", ()) and (e.sensor is None or x.sensor is None or e.sensor == x.sensor):
+                raise CalibrationError(
+                    f"{e.label} is a special case of {x.label} (it holds it): together they leave a direction the "
+                    "data cannot fix; fit one of them"
+                )
     return model
 
 
@@ -818,6 +829,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
             x_scale=scale,
             xtol=1e-12,
             ftol=1e-12,
+            max_nfev=MAX_NFEV,
         )
         x = sol.x
         total, perp, _ = prob.parts(x)

@@ -515,6 +515,7 @@ class AttitudeTimeOffset(CatalogueEffect):
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     modes: ClassVar[tuple] = ("vector",)
+    nested_in: ClassVar[tuple] = ("eddy_currents",)
     description: ClassVar[str] = "time offset between the magnetometer and the attitude, y(t) = y_true(t - d) [ms]"
     default_magnitude: ClassVar[float] = 80.0
     magnitude_unit: ClassVar[str] = "ms"

@@ -242,6 +242,9 @@ class Effect:
     #: field cannot see (a delay common to a sensor's three axes, a full eddy-current matrix) declares
     #: ``("vector",)``: the scalar diagnosis never proposes it and the scalar fit refuses it.
     modes: ClassVar[tuple] = ("scalar", "vector")
+    #: Effects that hold this one as a special case (a delay common to the axes is an eddy-current matrix ``d I``):
+    #: with one of them in the model on the same sensor this one adds nothing, and the diagnosis does not propose it.
+    nested_in: ClassVar[tuple] = ()
 
     sensor: int | None = None
 
