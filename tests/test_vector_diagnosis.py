@@ -210,3 +210,19 @@ def test_a_delay_is_named_alone_not_beside_the_eddy_matrix_that_holds_it():
     assert later and later[0].replaces == ["attitude_time_offset"] and not later[0].recommended
     with pytest.raises(CalibrationError, match="special case of eddy_currents"):
         fit_vector(one, resolve_vector_reference(one), effects=["attitude_time_offset", "eddy_currents"], warn=False)
+
+
+def test_a_long_record_is_judged_on_a_subsample_and_the_advice_fitted_on_all(truth, monkeypatch):
+    from magcal.diagnosis import vector as vector_diagnosis
+
+    monkeypatch.setattr(vector_diagnosis, "MAX_SAMPLES", 1000)
+    one = _flight(truth, 1, "current_field=25")
+    d = diagnose_vector(one, resolve_vector_reference(one))
+    assert d.validation["subsample"] == {"samples": 1000, "of": N}
+    assert d.explained_by == ["current_field"] and "every k-th sample (1000 of 3000)" in d.table()
+    final = d.fits["current_field"]
+    assert final.n_samples == N  # the advice, fitted on every sample
+    full = fit_vector(one, resolve_vector_reference(one), effects=["current_field"], warn=False)
+    assert np.allclose(
+        final.calibration.effect_values["current_field:1"], full.calibration.effect_values["current_field:1"]
+    )

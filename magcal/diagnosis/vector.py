@@ -81,6 +81,11 @@ MIN_LATER_SAMPLES = 60
 #: The supported candidates of a round judged held out (best delta-BIC first).
 JUDGE_TOP = 4
 
+#: A longer record's candidates are fitted and judged on every k-th sample, k the smallest that leaves at most this
+#: many (the rate and step bases are taken from the whole record, so the subsample's fits are exact); the advice
+#: is then fitted on every sample.
+MAX_SAMPLES = 8000
+
 
 @dataclass
 class Flight:
@@ -380,6 +385,11 @@ class VectorDiagnosis:
             )
         elif v.get("skipped"):
             lines.append(f"held-out judgement skipped: {v['skipped']}")
+        if v.get("subsample"):
+            lines.append(
+                f"candidates fitted and judged on every k-th sample ({v['subsample']['samples']} of "
+                f"{v['subsample']['of']}); the advice fitted on all"
+            )
         if self.effects:
             lines.append(f"model effects: {', '.join(self.effects)}")
         flights = bool(v.get("flights"))
@@ -665,9 +675,15 @@ def diagnose_vector(
     warnings_: list[str] = []
     later, validation = _later_split(fitted, validate)
     validation["flights"] = [f.name for f, _ in flights]
-    judge = _Judge(dataset, reference, record, later, flights, options, weights, validate)
     determined = all(s.determined for s in result.sensors)
     current = result
+    sub = _even_subsample(fitted, MAX_SAMPLES)
+    if sub.sum() < fitted.sum():  # a long record: the candidates are judged on every k-th sample, the advice fitted on all
+        validation["subsample"] = {"samples": int(sub.sum()), "of": int(fitted.sum())}
+        if determined:
+            current = fit_vector(dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options)
+    options = dict(options, mask=sub)
+    judge = _Judge(dataset, reference, record, later, flights, options, weights, validate)
     fits: dict = {}
     all_cands: list[VectorCandidate] = []
     chosen: list[VectorCandidate] = []
@@ -711,6 +727,9 @@ def diagnose_vector(
             )
     final = None
     if chosen:
+        if "subsample" in validation:
+            options = dict(options, mask=fitted)
+            current = fit_vector(dataset, reference, effects=current.calibration.model, warn=False, **options)
         final = _scores(record, *record.residuals(current.calibration, "apply"), fitted, *weights)
         fits["+".join(c.label for c in chosen)] = current
     err_f, total_f = record.residuals(current.calibration, "apply")
@@ -799,8 +818,9 @@ class _Judge:
         self._train_base: dict = {}
 
     def _train_fit(self, model):
-        train = self.record.usable & ~self.later
-        return fit_vector(self.dataset, self.reference, effects=model, mask=train, warn=False, **self.options)
+        options = dict(self.options)
+        train = self.record.usable & ~self.later & options.pop("mask", True)
+        return fit_vector(self.dataset, self.reference, effects=model, mask=train, warn=False, **options)
 
     def __call__(self, c, base_fit, cand_fit) -> None:
         gains = []
@@ -850,6 +870,21 @@ class _Judge:
                 + ", ".join(worse)
                 + (" (describes this record only)" if c.record_only else " (fits this record only)")
             )
+
+
+def _even_subsample(fitted, most) -> np.ndarray:
+    """Every k-th fitted sample, k the smallest that leaves at most ``most`` (all of them for a short record)."""
+    idx = np.flatnonzero(fitted)
+    if len(idx) <= most:
+        return np.asarray(fitted, dtype=bool).copy()
+    stride = int(np.ceil(len(idx) / most))
+    out = np.zeros(len(fitted), bool)
+    out[idx[::stride]] = True
+    return out
+
+
+def _model_of(result, dataset) -> Model:
+    return result.calibration.model.copy() if result.calibration.model is not None else Model(dataset.n_sensors)
 
 
 def _later_split(fitted, validate) -> tuple[np.ndarray | None, dict]:
