@@ -22,6 +22,14 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``vehicle-view.png`` - the vehicle view: the body by its attitude, the model and measured field in N, E, D, the
   residual exaggerated.
 
+``python assets/make_screenshots.py loop`` saves the loop on a vehicle (issue 40), on the lesson ``drone-current``:
+
+* ``vector-loop-diagnose.png`` - Diagnose on the vector model: the verdict against the world noise floor, the
+  candidates with their world RMS in-sample and on the later part, the advice;
+* ``vector-loop-evidence.png`` - the evidence plots at full size: the world residuals north, east, down and |B|
+  against the battery current, before Add;
+* ``vector-loop-after.png`` - after Add: the same plots flat, the world RMS per step falling to the floor.
+
 ``python assets/make_screenshots.py see`` saves where a model fails (issue 15):
 
 * ``see-scrubber.png`` - the two-effect lesson with its temperature term added, a time window after the bias step;
@@ -194,6 +202,43 @@ def vehicle() -> int:
     return 0
 
 
+def loop() -> int:
+    """The loop on a vehicle's screenshots (see the module docstring)."""
+    from playwright.sync_api import sync_playwright
+
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.dataio import load_dataset
+    from magcal_workbench.lessons import get_lesson
+
+    warnings.simplefilter("ignore")
+    ds, _ = load_dataset(get_lesson("drone-current").data_path)
+    wb = Workbench(ds, host="127.0.0.1", port=0, store=None)
+    try:
+        with sync_playwright() as p:
+            browser, page = _page(p, wb)
+            page.get_by_role("tab", name="Model").click()
+            page.get_by_role("button", name="Diagnose").click()
+            _wait_text(page, "document.body.innerText.includes('on the vector fit')")
+            time.sleep(2)
+            page.get_by_text("Verdict:").scroll_into_view_if_needed()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "vector-loop-diagnose.png"))
+            page.get_by_role("button", name="Full-size evidence").click()
+            page.wait_for_selector("img[alt='evidence plots']", timeout=120_000)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "vector-loop-evidence.png"))
+            page.get_by_role("button", name="Add the candidate and refit").click()
+            _wait_text(page, "document.body.innerText.includes('Vector model: current_field')")
+            page.get_by_text("World RMS per step").scroll_into_view_if_needed()
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "vector-loop-after.png"))
+            browser.close()
+    finally:
+        wb.stop()
+    print(f"wrote {', '.join(sorted(p.name for p in OUT.glob('vector-loop-*.png')))} in {OUT}")
+    return 0
+
+
 def _scroll_panel(page, dy: float) -> None:
     """Scroll the control panel (the mouse over it) by ``dy`` pixels."""
     page.mouse.move(1400, 600)
@@ -304,6 +349,8 @@ def main() -> int:
         return vehicle()
     if sys.argv[1:] == ["cockpit"]:
         return cockpit()
+    if sys.argv[1:] == ["loop"]:
+        return loop()
     if sys.argv[1:] == ["live"]:
         return live()
     if sys.argv[1:] == ["see"]:

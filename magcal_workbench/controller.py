@@ -814,9 +814,17 @@ class Controller:
             self._emit("model")
         return changed
 
-    def step_diagnose(self):
-        """Rank the candidate effects for the current fit (runs a base ML fit first if there is none)."""
+    def vector_loop(self) -> bool:
+        """Whether Diagnose and Add work on the vector model (:meth:`VectorModel.diagnose`, :meth:`VectorModel.add`):
+        the data have the attitude and a field vector (columns, or the location typed in the page)."""
+        return self.vector.available
 
+    def step_diagnose(self):
+        """Rank the candidate effects for the current fit (runs a base ML fit first if there is none); on a record
+        with attitude and a field vector, for the vector fit (:meth:`VectorModel.diagnose`)."""
+
+        if self.vector_loop():
+            return self.vector.diagnose()
         if self.fit_result is None:
             self.step_refine()
         self._report_progress("diagnosing", None)
@@ -833,8 +841,11 @@ class Controller:
         )
         return d
 
-    def step_add(self, label: str | None = None) -> StepRecord | None:
-        """Put a candidate (the top one by default) into the model and refit."""
+    def step_add(self, label: str | None = None):
+        """Put a candidate (the top one by default) into the model and refit; on a record with attitude and a field
+        vector, into the vector model (:meth:`VectorModel.add`)."""
+        if self.vector_loop():
+            return self.vector.add(label)
         if label is None:
             if self.diagnosis is None or not self.diagnosis.candidates:
                 raise MagcalError("diagnose first: there is no suggested effect to add")

@@ -11,6 +11,9 @@ from magcal.core.errors import MagcalError
 from .plots import evidence_figure, evidence_image
 from .timewindow import sample_times
 
+#: The Model tab's plotly figure's height over its width (four panels; more make it taller).
+PANELS_ASPECT = 3.0
+
 
 class Evidence:
     """The evidence plots of the current fit.
@@ -32,29 +35,42 @@ class Evidence:
 
     def title(self) -> str:
         ctrl = self.wb.ctrl
-        model = ", ".join(ctrl.state.effects) or "base terms only"
-        return f"{ctrl.dataset.source and os.path.basename(str(ctrl.dataset.source))}: model {model}"
+        vector = ctrl.vector_loop()
+        model = ", ".join(ctrl.vector.effects if vector else ctrl.state.effects) or "base terms only"
+        which = "vector model" if vector else "model"
+        return f"{ctrl.dataset.source and os.path.basename(str(ctrl.dataset.source))}: {which} {model}"
+
+    def candidate(self) -> str | None:
+        """The Candidate chosen in the Model tab (the vector model's plots put its channel on their axis)."""
+        value = self.wb.panels.candidate_choice.value
+        return None if value == "-" else value
 
     def draw(self) -> None:
         wb = self.wb
-        fig = evidence_figure(wb.ctrl, window_s=self.band(), before_rms_nT=wb.maps.before_rms_nT(wb.ctrl))
+        fig = evidence_figure(
+            wb.ctrl, window_s=self.band(), before_rms_nT=wb.maps.before_rms_nT(wb.ctrl), candidate=self.candidate()
+        )
         if fig is None:
             if self.plot is not None:
                 self.plot.visible = False
             return
         if wb.panels.evidence_overlay.visible:
             self.show_full(True)
+        # viser's client draws plotly at height = width * aspect (the docstring says width/height): a panel is as
+        # tall as a quarter of 3 widths, however many there are (the vector model's five)
+        rows = sum(1 for key in fig.layout.to_plotly_json() if key.startswith("yaxis"))
+        aspect = max(PANELS_ASPECT, 0.75 * rows)
         if self.plot is None:
             with wb.panels.evidence_holder:
-                # viser's client draws plotly at height = width * aspect (the docstring says width/height)
-                self.plot = wb.server.gui.add_plotly(fig, aspect=3.0)
+                self.plot = wb.server.gui.add_plotly(fig, aspect=aspect)
         else:
             self.plot.figure = fig
+            self.plot.aspect = aspect
             self.plot.visible = True
 
     def image(self, fmt: str) -> bytes:
         wb = self.wb
-        data = evidence_image(wb.ctrl, fmt, self.band(), self.title(), wb.maps.before_rms_nT(wb.ctrl))
+        data = evidence_image(wb.ctrl, fmt, self.band(), self.title(), wb.maps.before_rms_nT(wb.ctrl), self.candidate())
         if data is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         return data

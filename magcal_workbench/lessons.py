@@ -6,7 +6,8 @@ A lesson is a folder under ``assets/lessons/``::
                           "answer": {"effects": ["temperature_bias:2", ...], "explanation": "..."}}
                          a lesson of the vector model (issue 29) adds to its answer "mounting": the right angle
                          (firmware name) per sensor, "mounting_off_deg" and "mounting_tolerance_deg": solved by a
-                         vector fit that finds them
+                         vector fit that finds them; "model": "vector" judges the vector model's effects (the
+                         loop on a vehicle, issue 40) instead of the total-field model's
     <slug>/guide.md      what to look at (never names the answer)
     <slug>/data.csv      the data (made by ``assets/make_assets.py`` from the engine's simulator)
 
@@ -69,6 +70,8 @@ class Lesson:
         right angle per sensor, ``mounting_off_deg``, ``mounting_tolerance_deg``) — show only when the user asks."""
         ans = self._doc().get("answer", {})
         out = {"effects": list(ans.get("effects", [])), "explanation": ans.get("explanation", "")}
+        if ans.get("model") == "vector":
+            out["model"] = "vector"
         if ans.get("mounting"):
             out["mounting"] = list(ans["mounting"])
             out["mounting_off_deg"] = float(ans.get("mounting_off_deg", 0.0))
@@ -93,7 +96,8 @@ class Lesson:
             The model's effect labels.
         vector : dict, optional
             The vector fit's findings (:meth:`magcal_workbench.vectormodel.VectorModel.lesson_findings`):
-            ``mounting`` (right angle per sensor) and ``angle_off_deg``; None before a vector fit.
+            ``mounting`` (right angle per sensor), ``angle_off_deg`` and ``effects`` (the vector model's, which a
+            lesson whose answer says ``"model": "vector"`` judges instead of ``effects``); None before a vector fit.
 
         Returns
         -------
@@ -102,7 +106,11 @@ class Lesson:
             hidden), ``extra`` (model labels not in the answer), ``solved`` (all found, nothing extra) and a
             one-line ``message``.
         """
-        wanted = self.answer()["effects"]
+        answer = self.answer()
+        wanted = answer["effects"]
+        on_vector = answer.get("model") == "vector"
+        if on_vector:
+            effects = (vector or {}).get("effects", [])
         have = [e.strip() for e in effects]
         found, covered = [], set()
         for w in wanted:
@@ -121,7 +129,13 @@ class Lesson:
             else:
                 missing += 1
         solved = missing == 0 and not extra
-        if mounting == "no fit":
+        if on_vector and not vector:
+            solved = False
+            message = (
+                "Not yet: this lesson is judged on the vector model (Model tab: Diagnose and Add work on the vector "
+                "fit of these data), which has not been fitted yet."
+            )
+        elif mounting == "no fit":
             message = (
                 "Not yet: this lesson is judged on the vector fit (Calibrate tab, Run the vector fit), which has not "
                 "been run on these data."
@@ -136,7 +150,7 @@ class Lesson:
             message = (
                 "Solved: the vector fit found the mounting the vehicle was built with."
                 if mounting
-                else "Solved: your model holds exactly the hidden effect(s)."
+                else f"Solved: your {'vector ' if on_vector else ''}model holds exactly the hidden effect(s)."
             )
         elif missing == 0:
             message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."

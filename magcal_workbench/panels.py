@@ -26,7 +26,14 @@ from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import NOISE_RANGE_nT
 from .state import METHODS
 from .uploads import UPLOAD_UNITS
-from .vectorpanel import VectorPanel
+from .vectorpanel import (
+    VectorPanel,
+    vector_candidate_markdown,
+    vector_candidates_markdown,
+    vector_history_markdown,
+    vector_model_markdown,
+    vector_status_markdown,
+)
 
 METHOD_LABELS = {
     "ml": "ml: ellipsoid, align, maximum likelihood",
@@ -72,6 +79,9 @@ def status_markdown(ctrl) -> str:
         f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
         f"Model: {effects}"
     )
+    if ctrl.vector_loop():  # Diagnose and Add work on the vector model: its figures too
+        vector = vector_status_markdown(ctrl.vector)
+        text += f"  \n{vector}" if vector else "  \n_Vector model: not fitted yet (Diagnose fits it)_"
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
 
@@ -805,6 +815,7 @@ class Panels:
         self.candidate_evidence = gui.add_markdown("")
         self.candidate_choice.on_update(lambda e: self.handle(self._candidate_chosen, e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.on.do_add, color="green")
+        self.vector_panel.build_model(gui)  # the vector model's history plot and its Take out, for the vector loop
         self.rms_plot = gui.add_uplot(
             data=(
                 np.array([0.0, 1.0]),
@@ -1089,11 +1100,34 @@ class Panels:
                     lambda on, n=name: self.ctrl().set_effect(n, bool(on)),
                 )
 
+    def _candidate_labels(self) -> list:
+        """The current diagnosis's candidates (the vector diagnosis's for a record with attitude and a field
+        vector: those for the vector model as it is, the recommended one first)."""
+        ctrl = self.ctrl()
+        if ctrl.vector_loop():
+            return ctrl.vector.candidate_labels()
+        diagnosis = ctrl.diagnosis
+        cands = diagnosis.candidates if diagnosis is not None else []
+        return list(dict.fromkeys(candidate_label(c) for c in cands))
+
     def _candidate_options(self) -> tuple:
         """The Candidate choices the server offers: the current diagnosis's candidates and ``-``."""
-        diagnosis = self.ctrl().diagnosis
-        cands = diagnosis.candidates if diagnosis is not None else []
-        return tuple(dict.fromkeys(candidate_label(c) for c in cands)) + ("-",)
+        return tuple(self._candidate_labels()) + ("-",)
+
+    @staticmethod
+    def _history_markdown(ctrl) -> str:
+        """The step history; on a record whose loop works on the vector model, that model's fits first (world RMS
+        per N, E, D and |B|)."""
+        text = history_markdown(ctrl.state)
+        vector = vector_history_markdown(ctrl.state) if ctrl.vector_loop() else ""
+        return f"{vector}\n\n**Total-field fit:**\n\n{text}" if vector else text
+
+    @staticmethod
+    def _model_terms_markdown(ctrl) -> str:
+        text = model_terms_markdown(ctrl.model_terms())
+        if ctrl.vector_loop():
+            text = vector_model_markdown(ctrl.vector) + "\n\n_Total-field model (the boxes above):_ " + text
+        return text
 
     @staticmethod
     def _sensor_options(n):
@@ -1157,14 +1191,17 @@ class Panels:
             self.fit_view_to_data()
         if everything or kinds & {"result", "selection", "model"}:
             self.sensors_table.content = sensors_markdown(ctrl)
-            self.history.content = history_markdown(ctrl.state)
+            self.history.content = self._history_markdown(ctrl)
             data = rms_plot_data(ctrl)
             if len(data[0]):
                 self.rms_plot.data = data
             self.noise_info.content = noise_markdown(ctrl)
             self.quality.content = quality_markdown(ctrl.quality_with_fit())
             self.download_info.content = download_markdown(ctrl)
-            self.model_terms.content = model_terms_markdown(ctrl.model_terms())
+            self.model_terms.content = self._model_terms_markdown(ctrl)
+        if everything or kinds & {"vector", "settings"}:  # the vector model's fit, or the loop it is on, changed
+            self.history.content = self._history_markdown(ctrl)
+            self.model_terms.content = self._model_terms_markdown(ctrl)
         if everything or kinds & {"data", "effects"}:
             catalogue = ctrl.available_effects()
             self._add_effect_boxes(catalogue)
@@ -1200,9 +1237,16 @@ class Panels:
         if everything or kinds & {"model", "data", "result", "settings"}:
             self.reference_info.content = reference_markdown(ctrl)
         if everything or "diagnosis" in kinds or "data" in kinds:
-            self.candidates.content = candidates_markdown(ctrl.diagnosis)
-            cands = [candidate_label(c) for c in (ctrl.diagnosis.candidates if ctrl.diagnosis is not None else [])]
-            opts = tuple(dict.fromkeys(cands)) or ("-",)
+            if ctrl.vector_loop():  # the vector model's diagnosis, its counterpart
+                vd = ctrl.vector.diagnosis
+                self.candidates.content = (
+                    vector_candidates_markdown(vd)
+                    if vd is not None
+                    else "_Press Diagnose to rank the effects the vector fit (attitude and field vector) may miss._"
+                )
+            else:
+                self.candidates.content = candidates_markdown(ctrl.diagnosis)
+            opts = tuple(self._candidate_labels()) or ("-",)
             self.candidate_choice.options = opts
             self.candidate_choice.value = opts[0]
             self._show_candidate_evidence()
@@ -1258,11 +1302,17 @@ class Panels:
         self._show_candidate_evidence()
         if self.maps_choice() == "candidate's pattern":
             self.on.refresh_maps()
+        if self.ctrl().vector_loop():  # the evidence plots put the candidate's channel on their axis
+            self.on.draw_evidence()
 
     def _show_candidate_evidence(self) -> None:
-        self.candidate_evidence.content = candidate_evidence_markdown(
-            self.ctrl().diagnosis, self.candidate_choice.value
-        )
+        ctrl = self.ctrl()
+        if ctrl.vector_loop():
+            self.candidate_evidence.content = vector_candidate_markdown(
+                ctrl.vector.diagnosis, self.candidate_choice.value
+            )
+            return
+        self.candidate_evidence.content = candidate_evidence_markdown(ctrl.diagnosis, self.candidate_choice.value)
 
     def refresh_sessions(self) -> None:
         store = self.store

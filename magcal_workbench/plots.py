@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.checks.coverage import direction_map
+from magcal.diagnosis.vector import evidence_channel
 from magcal.geometry.shape import FieldShape
 
 SENSOR_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd")
@@ -41,7 +42,9 @@ def _evidence(diagnosis) -> dict:
     return ev if isinstance(ev, dict) else {}
 
 
-def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rms_nT=None) -> list[dict] | None:
+def evidence_panels(
+    ctrl, window_s=None, max_points: int = MAX_POINTS, before_rms_nT=None, candidate=None
+) -> list[dict] | None:
     """The evidence plots' data, one dict per panel, or None before any fit.
 
     Each panel: ``title``, ``x_label``, ``y_label`` (nT), ``traces`` (dicts with ``kind`` ``markers`` / ``line``
@@ -51,8 +54,11 @@ def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rm
     current bars. Before a diagnosis the time and temperature panels show the current residuals; after it, the
     diagnosis's own evidence (its residuals of the diagnosed fit, their running mean in time, power per degree per
     sensor, and the inter-sensor figures). Without a temperature channel its panel is left out (an empty panel
-    reads as a fault).
+    reads as a fault). On a record whose loop works on the vector model (``ctrl.vector_loop()``), the vector
+    model's panels instead (:func:`vector_evidence_panels`, against the channel of ``candidate``).
     """
+    if ctrl.vector_loop():
+        return vector_evidence_panels(ctrl.vector, window_s, max_points, candidate)
     if ctrl.residual_nT is None or ctrl.calibration is None:
         return None
     ds = ctrl.dataset
@@ -158,18 +164,117 @@ def evidence_panels(ctrl, window_s=None, max_points: int = MAX_POINTS, before_rm
     return panels
 
 
+#: The vector evidence's channels (keys of :attr:`magcal.diagnosis.vector.VectorDiagnosis.evidence`) in words.
+CHANNEL_WORDS = {"time_s": "time", "temperature_C": "temperature", "turn_rate_dps": "turn rate"}
+#: ... and their axis labels.
+CHANNEL_AXES = {"time_s": "time (s)", "temperature_C": "degC", "turn_rate_dps": "turn rate (deg/s)"}
+#: Bins of the running mean drawn through a residual against a channel.
+MEAN_BINS = 30
+
+
+def binned_mean(x, y, bins: int = MEAN_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of ``y`` in ``bins`` bins of ``x`` holding equal numbers of samples (finite pairs only): the line
+    drawn through a residual against a channel, so that a trend shows through the scatter."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size < 2 * bins:
+        return np.zeros(0), np.zeros(0)
+    order = np.argsort(x, kind="stable")
+    parts = np.array_split(order, bins)
+    return np.array([x[p].mean() for p in parts]), np.array([y[p].mean() for p in parts])
+
+
+def vector_evidence_panels(vm, window_s=None, max_points: int = MAX_POINTS, candidate=None) -> list[dict] | None:
+    """The vector model's evidence plots (:func:`evidence_panels`' panels), or None before a vector fit: the world
+    residuals north, east, down and the |B| residual of the kept samples (per sensor, with their mean in bins)
+    against the channel the candidate's effect follows (:func:`magcal.diagnosis.vector.evidence_channel`: the
+    current or throttle, the temperature, the turn rate, else time; without a candidate, the channel of the effect
+    added last), and the world RMS per component and |B| of the fit beside the fit before it, with the world noise
+    floor. The data are the engine's: the diagnosis's evidence (:attr:`magcal.diagnosis.vector.VectorDiagnosis.
+    evidence`), or before one the same of the current fit (:attr:`magcal_workbench.vectormodel.VectorModel.evidence`).
+    """
+    ev = vm.plot_evidence()
+    if ev is None:
+        return None
+    ctrl = vm.ctrl
+    ds = ctrl.dataset
+    label = candidate if candidate not in (None, "", "-") else (vm.effects[-1] if vm.effects else None)
+    key = evidence_channel(label, ev) if label else "time_s"
+    if key == "current":
+        x_all, words = np.asarray(ev["current"]["values"], float), str(ev["current"]["column"])
+        axis = "current_A (A)" if words == "current_A" else words
+    elif key == "time_s" and ev.get("time_s") is None:
+        x_all, words, axis = np.arange(ds.n_samples, dtype=float), "sample", "sample"
+    else:
+        x_all, words, axis = np.asarray(ev[key], float), CHANNEL_WORDS[key], CHANNEL_AXES[key]
+    world = np.asarray(ev["world_residual_nT"], float)
+    total = np.asarray(ev["total_residual_nT"], float)
+    rows = ctrl.kept & np.all(np.isfinite(world), axis=(0, 2)) & np.isfinite(x_all)
+    idx = _decimate(len(x_all), rows, max_points)
+    every = np.flatnonzero(rows)
+    panels = []
+    for comp, name in ((0, "north"), (1, "east"), (2, "down"), (None, "|B|")):
+        traces = []
+        for s in range(world.shape[0]):
+            y = world[s, :, comp] if comp is not None else total[s]
+            traces.append({"kind": "markers", "x": x_all[idx], "y": y[idx], "sensor": s, "name": f"sensor {s + 1}"})
+            mx, my = binned_mean(x_all[every], y[every])
+            if mx.size:
+                traces.append({"kind": "line", "x": mx, "y": my, "sensor": s, "name": f"s{s + 1} mean"})
+        panels.append(
+            {
+                "title": f"{name} residual vs {words}",
+                "x_label": axis,
+                "traces": traces,
+                "band": window_s if key == "time_s" else None,
+            }
+        )
+    labels = ["N", "E", "D", "|B|"]
+    row = vm.vector_row()
+    now = [*(row.world_rms_nT if row.world_rms_nT is not None else [np.nan] * 3), row.total_field_rms_nT]
+    traces = [{"kind": "bar", "x": labels, "y": np.array(now, dtype=float), "sensor": None, "name": "RMS"}]
+    history = ctrl.state.vector_history
+    if len(history) >= 2:
+        prev = history[-2]
+        traces.append(
+            {
+                "kind": "before",
+                "x": labels,
+                "y": np.array([*prev.world_rms_nT, prev.total_rms_nT], dtype=float),
+                "sensor": None,
+                "name": "before the last fit",
+            }
+        )
+    panels.append(
+        {
+            "title": "world RMS per component (vector fit)",
+            "x_label": "component",
+            "traces": traces,
+            "hline": vm.floor_nT,
+        }
+    )
+    for p in panels:
+        p.setdefault("y_label", "nT")
+        p.setdefault("hline", None)
+        p.setdefault("band", None)
+        p.setdefault("note", None)
+    return panels
+
+
 def _colour(trace, n_bars=0):
     if trace["sensor"] is not None:
         return SENSOR_COLOURS[trace["sensor"] % 4]
     return list(SENSOR_COLOURS[:n_bars]) if trace["kind"] == "bar" else "black"
 
 
-def evidence_figure(ctrl, window_s=None, before_rms_nT=None):
+def evidence_figure(ctrl, window_s=None, before_rms_nT=None, candidate=None):
     """The panels of :func:`evidence_panels` as one plotly figure (a column of panels), or None before any fit.
 
-    ``window_s``: ``(t0, t1)`` of the time scrubber's window (s), shaded on the time panel.
+    ``window_s``: ``(t0, t1)`` of the time scrubber's window (s), shaded on the time panel; ``candidate``: the
+    chosen candidate's label (the vector model's panels put its channel on their axis).
     """
-    panels = evidence_panels(ctrl, window_s, before_rms_nT=before_rms_nT)
+    panels = evidence_panels(ctrl, window_s, before_rms_nT=before_rms_nT, candidate=candidate)
     if panels is None:
         return None
     import plotly.graph_objects as go
@@ -282,9 +387,9 @@ def evidence_figure(ctrl, window_s=None, before_rms_nT=None):
     return fig
 
 
-def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rms_nT=None):
-    """The panels of :func:`evidence_panels` as a matplotlib figure (2 x 2 grid, full size), or None."""
-    panels = evidence_panels(ctrl, window_s, max_points=20_000, before_rms_nT=before_rms_nT)
+def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rms_nT=None, candidate=None):
+    """The panels of :func:`evidence_panels` as a matplotlib figure (2 columns, full size), or None."""
+    panels = evidence_panels(ctrl, window_s, max_points=20_000, before_rms_nT=before_rms_nT, candidate=candidate)
     if panels is None:
         return None
     from matplotlib.figure import Figure
@@ -329,7 +434,7 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rm
         if p["hline"]:  # room above the bars for the legend
             top = max([float(np.nanmax(np.asarray(t["y"], float))) for t in p["traces"]] + [p["hline"]])
             ax.set_ylim(0, 1.35 * top)
-        if p["title"].startswith("residual vs t") or p["hline"]:
+        if p["title"].startswith("residual vs t") or p["hline"] or any(t["kind"] == "before" for t in p["traces"]):
             ax.legend(loc="upper left" if p["hline"] else "best", fontsize=8, markerscale=3 if not p["hline"] else 1)
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
@@ -338,11 +443,13 @@ def evidence_matplotlib(ctrl, window_s=None, title: str | None = None, before_rm
     return fig
 
 
-def evidence_image(ctrl, fmt: str = "svg", window_s=None, title: str | None = None, before_rms_nT=None) -> bytes | None:
+def evidence_image(
+    ctrl, fmt: str = "svg", window_s=None, title: str | None = None, before_rms_nT=None, candidate=None
+) -> bytes | None:
     """The full-size evidence as an image file's bytes (``svg`` or ``png``), or None before any fit."""
     if fmt not in ("svg", "png"):
         raise ValueError(f"format {fmt!r}: svg or png")
-    fig = evidence_matplotlib(ctrl, window_s, title, before_rms_nT)
+    fig = evidence_matplotlib(ctrl, window_s, title, before_rms_nT, candidate)
     if fig is None:
         return None
     buf = io.BytesIO()

@@ -29,7 +29,10 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``location``        the place typed for IGRF ``{"lat_deg": -90 ... 90, "lon_deg": -180 ... 180, "alt_m": -10^4 ...
                     2 10^6, "date": text of at most 32 characters}``, or null
 ``vector_fit``      the last vector fit's settings ``{"kept": packed mask of N bits, "robust": true or false,
-                    "noise_nT": number 1e-6 ... 10^6 or null}`` (run again when the session reopens), or null
+                    "noise_nT": number 1e-6 ... 10^6 or null, "effects": list of effect labels}`` (run again when
+                    the session reopens), or null
+``vector_history``  list of the vector model's fits ``{"step", "world_rms_nT": [N, E, D], "total_rms_nT",
+                    "effects", "n_fitted", "changes", "elapsed_s"}`` (numbers finite or null, ``n_fitted`` 0 ... N)
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -47,7 +50,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 
 from .markup import clean_text
-from .state import METHODS, Selection, SessionState, StepRecord
+from .state import METHODS, Selection, SessionState, StepRecord, VectorStep
 
 FORMAT = "magcal-workbench-session"
 VERSION = 1
@@ -246,22 +249,45 @@ class _Reader:
             "date": self.text(f"{field}.date", doc["date"], max_len=DATE_CHARS),
         }
 
-    def vector_fit(self, field, value, n):
+    def vector_fit(self, field, value, n, n_sensors):
         """The last vector fit's settings, or None (:attr:`SessionState.vector_fit`)."""
         if value is None:
             return None
         doc = self.obj(field, value)
-        unknown = set(doc) - {"kept", "robust", "noise_nT"}
+        unknown = set(doc) - {"kept", "robust", "noise_nT", "effects"}
         if unknown:
             self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
         if "kept" not in doc:
             self.fail(f"{field}.kept", "is missing")
         self.mask(f"{field}.kept", doc["kept"], n)  # checked here, unpacked when the fit runs again
+        effects = self.labels(f"{field}.effects", doc.get("effects", []), n_sensors)
+        if len(set(effects)) != len(effects):
+            self.fail(f"{field}.effects", "names an effect twice")
         return {
             "kept": doc["kept"],
             "robust": self.boolean(f"{field}.robust", doc.get("robust", False)),
             "noise_nT": self.number(f"{field}.noise_nT", doc.get("noise_nT"), *NOISE_RANGE_nT, null=True),
+            "effects": effects,
         }
+
+    def vector_step(self, field, value, n_samples, n_sensors):
+        """One fit of the vector model's history (:class:`~magcal_workbench.state.VectorStep`)."""
+        doc = self.obj(field, value)
+        for key in ("step", "world_rms_nT"):
+            if key not in doc:
+                self.fail(f"{field}.{key}", "is missing")
+        world = self.listing(f"{field}.world_rms_nT", doc["world_rms_nT"], 3)
+        if len(world) != 3:
+            self.fail(f"{field}.world_rms_nT", f"holds {len(world)} numbers; three (north, east, down)")
+        return VectorStep(
+            step=self.text(f"{field}.step", doc["step"]),
+            world_rms_nT=[self.number(f"{field}.world_rms_nT[{k}]", v, 0.0, null=True) for k, v in enumerate(world)],
+            total_rms_nT=self.number(f"{field}.total_rms_nT", doc.get("total_rms_nT"), 0.0, null=True),
+            effects=self.labels(f"{field}.effects", doc.get("effects", []), n_sensors),
+            n_fitted=self.integer(f"{field}.n_fitted", doc.get("n_fitted", 0), 0, n_samples),
+            changes=self.text(f"{field}.changes", doc.get("changes", "")),
+            elapsed_s=self.number(f"{field}.elapsed_s", doc.get("elapsed_s", 0.0), 0.0),
+        )
 
     def selection(self, field, value, n):
         doc = self.obj(field, value)
@@ -338,7 +364,9 @@ def read_session_document(doc, where: str = "session.json"):
     history = r.listing("history", doc.get("history", []), MAX_HISTORY)
     st.history = [r.step(f"history[{i}]", h, n, n_sensors) for i, h in enumerate(history)]
     st.location = r.location("location", doc.get("location"))
-    st.vector_fit = r.vector_fit("vector_fit", doc.get("vector_fit"), n)
+    st.vector_fit = r.vector_fit("vector_fit", doc.get("vector_fit"), n, n_sensors)
+    vector_history = r.listing("vector_history", doc.get("vector_history", []), MAX_HISTORY)
+    st.vector_history = [r.vector_step(f"vector_history[{i}]", h, n, n_sensors) for i, h in enumerate(vector_history)]
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
     return st

@@ -235,6 +235,55 @@ class StepRecord:
         )
 
 
+@dataclass
+class VectorStep:
+    """One fit of the vector model (attitude-aided) as its history shows it.
+
+    Attributes
+    ----------
+    step : str
+        What ran (``"vector fit"``, ``"vector: add current_field"`` ...).
+    world_rms_nT : list of float
+        RMS of the world residual ``B_world - B_ref`` per component north, east, down (all sensors, the samples
+        fitted), nT.
+    total_rms_nT : float or None
+        RMS of ``|B| - F`` over the same samples, nT.
+    effects : list of str
+        The vector model's effects at that step.
+    n_fitted : int
+        Samples fitted.
+    changes : str
+        One line saying what changed.
+    elapsed_s : float
+        Wall time of the step, s.
+    """
+
+    step: str
+    world_rms_nT: list
+    total_rms_nT: float | None = None
+    effects: list = field(default_factory=list)
+    n_fitted: int = 0
+    changes: str = ""
+    elapsed_s: float = 0.0
+
+    @property
+    def world_nT(self) -> float:
+        """RMS over the three world components, nT (NaN when none is known)."""
+        w = np.array([np.nan if v is None else v for v in self.world_rms_nT], dtype=float)
+        return float(np.sqrt(np.mean(w**2))) if w.size else float("nan")
+
+    def to_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "world_rms_nT": [_num(v) for v in self.world_rms_nT],
+            "total_rms_nT": _num(self.total_rms_nT),
+            "effects": list(self.effects),
+            "n_fitted": int(self.n_fitted),
+            "changes": self.changes,
+            "elapsed_s": float(self.elapsed_s),
+        }
+
+
 def _num(v):
     if v is None:
         return None
@@ -287,9 +336,11 @@ class SessionState:
         ``date``: :class:`magcal_workbench.vectormodel.Location`); None when none was typed.
     vector_fit : dict or None
         The last vector fit's settings (``kept``: the samples it was asked to use, a packed mask; ``robust``;
-        ``noise_nT`` or None), so that a reopened session runs it again
-        (:meth:`magcal_workbench.vectormodel.VectorModel.restore`); None when none was run (or its reference
+        ``noise_nT`` or None; ``effects``: the vector model's effect labels), so that a reopened session runs it
+        again (:meth:`magcal_workbench.vectormodel.VectorModel.restore`); None when none was run (or its reference
         changed since).
+    vector_history : list of VectorStep
+        The vector model's fits, in order: their world RMS per component and |B| RMS.
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
@@ -311,7 +362,9 @@ class SessionState:
         self.answer_revealed = False
         self.noise_nT: float | None = None  # per-axis noise given by the user (nT); None = the data's or estimated
         self.location: dict | None = None  # the place and date typed for IGRF (vectormodel.Location.to_dict)
-        self.vector_fit: dict | None = None  # the last vector fit's settings: kept (packed mask), robust, noise_nT
+        self.vector_fit: dict | None = None  # the last vector fit's settings: kept (packed mask), robust, noise_nT,
+        # effects
+        self.vector_history: list[VectorStep] = []  # the vector model's fits (world N/E/D and |B| RMS)
         self.version = 0  # bumped on every change; the autosave and the views compare it
 
     @property
@@ -404,4 +457,5 @@ class SessionState:
                 "noise_nT": self.noise_nT,
                 "location": None if self.location is None else dict(self.location),
                 "vector_fit": None if self.vector_fit is None else dict(self.vector_fit),
+                "vector_history": [r.to_dict() for r in self.vector_history],
             }

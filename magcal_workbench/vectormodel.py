@@ -13,6 +13,7 @@ check that says when a total-field fit is undetermined (:func:`magcal.checks.cov
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -23,11 +24,13 @@ from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_rows, attitude_source
+from magcal.diagnosis.vector import diagnose_vector, vector_evidence
 from magcal.fitting.vector import fit_vector
+from magcal.model.terms import EFFECTS
 
-from .markup import clean_text, hide_paths, safe_text
+from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
-from .state import pack_mask, unpack_mask
+from .state import VectorStep, effect_name, pack_mask, unpack_mask
 
 #: The world components' names, in order.
 NED = ("N", "E", "D")
@@ -96,6 +99,22 @@ def check_location(lat_deg, lon_deg, alt_m, date) -> Location:
     when = parse_date(text)  # a MagcalError naming the date when it is none
     ned = igrf_ned_nT(lat, lon, alt / 1000.0, when)[0]  # a MagcalError outside the model's years
     return Location(lat, lon, alt, text, np.asarray(ned, dtype=float))
+
+
+def _changes(before, after) -> str:
+    """One line: the world RMS per N/E/D and |B| before -> after a vector fit (:class:`FitRow` each)."""
+
+    def world(row):
+        return "/".join(f"{v:.4g}" for v in row.world_rms_nT)
+
+    if after.world_rms_nT is None:
+        return ""
+    if before is None or before.world_rms_nT is None:
+        return f"world RMS N/E/D {world(after)} nT, |B| {after.total_field_rms_nT:.4g} nT"
+    return (
+        f"world RMS N/E/D {world(before)} -> {world(after)} nT, |B| {before.total_field_rms_nT:.4g} -> "
+        f"{after.total_field_rms_nT:.4g} nT"
+    )
 
 
 @dataclass
@@ -170,6 +189,17 @@ class VectorModel:
         Its corrected readings rotated to the world frame (every sample).
     reference_ned_nT : numpy.ndarray, shape (N, 3), or None
         The reference field vector of the last fit (nT, north-east-down).
+    effects : list of str
+        The vector model's effects beyond the base terms (labels, in the order added): the loop's Add puts the
+        diagnosis's candidates here (:meth:`add`); the total-field model's are the session's ``effects``.
+    diagnosis : magcal.diagnosis.vector.VectorDiagnosis or None
+        The last diagnosis of the vector fit (:meth:`diagnose`); None after a fit.
+    evidence : dict or None
+        The plot data of the last fit (:func:`magcal.diagnosis.vector.vector_evidence`: world and |B| residuals,
+        the channels), every sample.
+    floor_nT : float or None
+        The world components' noise floor (nT) the last diagnosis found (attitude error and sensor noise): a
+        property of the record, kept across refits.
     """
 
     def __init__(self, ctrl):
@@ -178,6 +208,12 @@ class VectorModel:
         self.world_nT: np.ndarray | None = None
         self.reference_ned_nT: np.ndarray | None = None
         self.reference_text = ""
+        saved_fit = getattr(ctrl.state, "vector_fit", None) or {}
+        self.effects: list[str] = list(saved_fit.get("effects", []))
+        self.diagnosis = None
+        self.evidence: dict | None = None
+        self.floor_nT: float | None = None
+        self._fit_key: tuple | None = None  # what the last fit was asked: kept mask, effects, robust, noise
         self.location: Location | None = None
         self.location_note = ""
         self._coverage_key = None
@@ -270,11 +306,12 @@ class VectorModel:
         ctrl.say("the location is forgotten: the file's reference is used again (or the field magnitude is fitted)")
 
     # --- the fit ---------------------------------------------------------------------------------------------
-    def fit(self, kept=None, robust=None, noise_nT=None, again=False):
-        """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector`, robust
-        loss and noise as the session says), its world components on every sample, and a message with its figures.
-        The session remembers its settings (:attr:`SessionState.vector_fit`), so that it runs again when the session
-        reopens (:meth:`restore`).
+    def fit(self, kept=None, robust=None, noise_nT=None, again=False, effects=None, step="vector fit"):
+        """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector` with the
+        vector model's effects, robust loss and noise as the session says), its world components on every sample,
+        and a message with its figures. The session remembers its settings (:attr:`SessionState.vector_fit`), so
+        that it runs again when the session reopens (:meth:`restore`), and the step joins the vector model's
+        history (:attr:`SessionState.vector_history`: world RMS per N, E, D and |B|).
 
         Parameters
         ----------
@@ -286,7 +323,12 @@ class VectorModel:
         noise_nT : float, optional
             The noise per axis (default: the session's, else estimated).
         again : bool
-            The message says the fit was run again from the saved session.
+            The message says the fit was run again from the saved session (and the history, saved too, gains no
+            step).
+        effects : sequence of str, optional
+            The vector model's effects (default: :attr:`effects`); they become :attr:`effects` when the fit succeeds.
+        step : str
+            The history's name of the step.
 
         Returns
         -------
@@ -306,13 +348,16 @@ class VectorModel:
         kept = np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
         robust = bool(ctrl.state.robust if robust is None else robust)
         noise_nT = ctrl.state.noise_nT if noise_nT is None else float(noise_nT)
+        effects = list(self.effects if effects is None else effects)
+        before = self.vector_row() if self.result is not None else None
         ctrl._report_progress("vector fit (attitude-aided)", None)
         try:
             ref = self.reference()
             if ref is None:  # missing() said there would be one
                 raise MagcalError("no reference field vector")
-            result = fit_vector(ds, ref, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
+            result = fit_vector(ds, ref, effects=effects, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
             world = result.calibration.world(ds, record_terms="apply")
+            evidence = vector_evidence(ds, ref, result.calibration)
         finally:
             ctrl.progress = None
             ctrl._emit("progress")
@@ -321,15 +366,39 @@ class VectorModel:
             self.world_nT = np.asarray(world, dtype=float)
             self.reference_ned_nT = np.asarray(ref.ned_nT, dtype=float)
             self.reference_text = ref.text
-            ctrl.state.vector_fit = {"kept": pack_mask(kept), "robust": robust, "noise_nT": noise_nT}
+            self.effects = effects
+            self.evidence = evidence
+            self.diagnosis = None  # it diagnosed the fit before this one
+            self._fit_key = self._key(kept, effects, robust, noise_nT)
+            ctrl.state.vector_fit = {
+                "kept": pack_mask(kept),
+                "robust": robust,
+                "noise_nT": noise_nT,
+                "effects": list(effects),
+            }
+            row = self.vector_row()
+            elapsed = time.perf_counter() - t0
+            if not again:
+                ctrl.state.vector_history.append(
+                    VectorStep(
+                        step=step,
+                        world_rms_nT=[float(v) for v in row.world_rms_nT],
+                        total_rms_nT=row.total_field_rms_nT,
+                        effects=list(effects),
+                        n_fitted=int(result.n_samples),
+                        changes=_changes(before, row),
+                        elapsed_s=elapsed,
+                    )
+                )
             ctrl.state.touch()
         ctrl.autosave()
         self._emit()
-        row = self.vector_row()
+        ctrl._emit("diagnosis")  # the old diagnosis no longer applies
         mount = "; ".join(row.mounting)
+        model = ", ".join(safe_code(e) for e in effects) or "base terms only"
         text = (
             ("the saved session's " if again else "")
-            + f"**vector fit (attitude-aided)** on {row.samples} ({time.perf_counter() - t0:.2f} s"
+            + f"**{safe_text(step)} (attitude-aided)** on {row.samples}, model {model} ({elapsed:.2f} s"
             + (", run again" if again else "")
             + "): "
             f"total-field RMS {row.total_field_rms_nT:.4g} nT, world RMS N/E/D "
@@ -340,12 +409,146 @@ class VectorModel:
         ctrl.say(text)
         return result
 
+    @staticmethod
+    def _key(kept, effects, robust, noise_nT) -> tuple:
+        return (pack_mask(kept), tuple(effects), bool(robust), noise_nT)
+
+    def is_current(self) -> bool:
+        """Whether the last fit is of the kept samples, robust loss and noise the session asks for now."""
+        ctrl = self.ctrl
+        if self.result is None:
+            return False
+        return self._fit_key == self._key(ctrl.kept, self.effects, ctrl.state.robust, ctrl.state.noise_nT)
+
+    # --- the loop: diagnose, add ------------------------------------------------------------------------------
+    def diagnose(self):
+        """Diagnose the vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): every catalogue effect the
+        vector fit can take refitted with the vector model, judged on the world N/E/D residuals and |B| on the
+        later part of the record, as ``magcal apply`` applies it. The fit runs first when there is none of the
+        kept samples and settings of now. Rejected samples are left out of the diagnosis (it runs on the kept
+        ones).
+
+        Returns
+        -------
+        magcal.diagnosis.vector.VectorDiagnosis
+
+        Raises
+        ------
+        MagcalError
+            No attitude or reference, too few samples (the engine's message).
+        """
+        if not self.is_current():
+            self.fit()
+        ctrl = self.ctrl
+        ds, ref = self.dataset, self.reference()
+        if ref is None:
+            raise MagcalError("the vector diagnosis needs the field vector: " + " and ".join(self.missing()))
+        kept = ctrl.kept
+        options = {"robust": bool(ctrl.state.robust), "noise_nT": ctrl.state.noise_nT}
+        ctrl._report_progress("diagnosing the vector fit", None)
+        try:
+            if kept.all():  # the fit on the page is the model diagnosed
+                d = diagnose_vector(ds, ref, self.result, progress=ctrl._report_progress, **options)
+            else:  # the rejected samples are left out of every refit too
+                sub_ref = dataclasses.replace(ref, ned_nT=np.asarray(ref.ned_nT)[kept])
+                d = diagnose_vector(
+                    ds.subset(kept), sub_ref, effects=self.effects, progress=ctrl._report_progress, **options
+                )
+        finally:
+            ctrl.progress = None
+            ctrl._emit("progress")
+        with ctrl.state.lock:
+            self.diagnosis = d
+            floor = d.noise.get("world_floor_nT")
+            self.floor_nT = float(floor) if floor is not None and np.isfinite(floor) else self.floor_nT
+        ctrl._emit("diagnosis")
+        ctrl._emit("vector")  # the history plot draws the floor found
+        best = d.explained_by[0] if d.explained_by else None
+        extra = f"; recommended {safe_code(best)}" if best else ""
+        ctrl.say(
+            f"**diagnose (vector fit)**: verdict {safe_code(d.verdict)}{extra} ({safe_text(d.where_text(), 120)})  \n"
+            f"{safe_text(d.summary, 1000)}"
+        )
+        return d
+
+    def candidate_labels(self) -> list[str]:
+        """What Add may put into the vector model from the last diagnosis: the candidates for the model as it is
+        (the first round's), the recommended one first, then by delta-BIC."""
+        d = self.diagnosis
+        if d is None:
+            return []
+        first = [c for c in d.candidates if c.round == 1]
+        first.sort(key=lambda c: (not c.recommended, c.delta_bic))
+        return list(dict.fromkeys(c.label for c in first))
+
+    def add(self, label: str | None = None):
+        """Put a candidate (the recommended one by default, else the best) into the vector model and refit
+        (:meth:`fit` with the effects).
+
+        Raises
+        ------
+        MagcalError
+            Nothing diagnosed yet, an effect the vector fit cannot take, one already in the model.
+        """
+        if label is None:
+            labels = self.candidate_labels()
+            if not labels:
+                raise MagcalError("diagnose first: there is no suggested effect to add")
+            label = labels[0]
+        label = self.ctrl._check_label(label)
+        cls = EFFECTS[effect_name(label)]
+        if "vector" not in getattr(cls, "modes", ("scalar", "vector")) or cls.stage != "raw":
+            raise MagcalError(
+                f"{label}: the vector fit cannot take this effect (it takes the raw-stage effects of the catalogue); "
+                "choose one of the diagnosis's candidates"
+            )
+        name = effect_name(label)
+        if label in self.effects or name in self.effects:
+            raise MagcalError(f"{label} is already in the vector model")
+        effects = [e for e in self.effects if ":" in label or effect_name(e) != name] + [label]
+        return self.fit(effects=effects, step=f"vector: add {label}")
+
+    def remove(self, label: str | None = None):
+        """Take an effect (the last added by default) out of the vector model and refit."""
+        if not self.effects:
+            raise MagcalError("the vector model holds no effect beyond the base terms")
+        label = self.effects[-1] if label is None else label
+        if label not in self.effects:
+            raise MagcalError(f"{clean_text(repr(label), 80)} is not in the vector model")
+        return self.fit(effects=[e for e in self.effects if e != label], step=f"vector: remove {label}")
+
+    def plot_evidence(self) -> dict | None:
+        """The evidence plots' data (every sample): the diagnosis's (:attr:`magcal.diagnosis.vector.VectorDiagnosis.
+        evidence`, of the fit on the page) when it covers every sample, else the current fit's (:attr:`evidence`);
+        None before a vector fit."""
+        d = self.diagnosis
+        if d is not None and np.shape(d.evidence.get("world_residual_nT"))[1:2] == (self.dataset.n_samples,):
+            return d.evidence
+        return self.evidence
+
+    def gain_rms_nT(self) -> float | None:
+        """The world residual RMS (nT) the vehicle view's automatic exaggeration is set by: the base model's (the
+        last history step without effects: the loop's start), so that an added effect shows as a shorter arrow;
+        the current fit's when there is none."""
+        for rec in reversed(self.ctrl.state.vector_history):
+            if not rec.effects and np.isfinite(rec.world_nT):
+                return rec.world_nT
+        row = self.vector_row() if self.result is not None else None
+        if row is None or row.world_rms_nT is None:
+            return None
+        return float(np.sqrt(np.mean(np.square(row.world_rms_nT))))
+
     def forget_fit(self) -> None:
-        """Drop the last vector fit (its reference changed); the session forgets it too."""
+        """Drop the last vector fit (its reference changed); the session forgets it too (the model's effects
+        stay)."""
         self.result = None
         self.world_nT = None
         self.reference_ned_nT = None
         self.reference_text = ""
+        self.diagnosis = None
+        self.evidence = None
+        self.floor_nT = None
+        self._fit_key = None
         self.ctrl.state.vector_fit = None
 
     def restore(self) -> str:
@@ -364,7 +567,8 @@ class VectorModel:
             )
         try:
             kept = unpack_mask(saved["kept"], self.dataset.n_samples)
-            self.fit(kept, saved.get("robust", False), saved.get("noise_nT"), again=True)
+            effects = list(saved.get("effects", []))
+            self.fit(kept, saved.get("robust", False), saved.get("noise_nT"), again=True, effects=effects)
         except (MagcalError, ValueError, KeyError, TypeError) as exc:
             with self.ctrl.state.lock:
                 self.ctrl.state.vector_fit = None
@@ -374,12 +578,14 @@ class VectorModel:
 
     def lesson_findings(self) -> dict | None:
         """What a lesson's check compares (:meth:`magcal_workbench.lessons.Lesson.check`): per sensor, the right
-        angle the vector fit found (its firmware name) and the angle off it (deg); None before a vector fit."""
+        angle the vector fit found (its firmware name) and the angle off it (deg), and the vector model's effects;
+        None before a vector fit."""
         if self.result is None:
             return None
         return {
             "mounting": [s.right_angle_text.split(" ")[0] for s in self.result.sensors],
             "angle_off_deg": [float(s.angle_off_deg) for s in self.result.sensors],
+            "effects": list(self.effects),
         }
 
     def _emit(self) -> None:

@@ -13,7 +13,11 @@ import datetime as _dt
 
 import numpy as np
 
-from .markup import safe_text
+from magcal.calibration.calibration import is_transferable
+from magcal.model.terms import EFFECTS
+
+from .controller import format_number
+from .markup import safe_code, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
 from .vectormodel import NED
 
@@ -50,6 +54,163 @@ def comparison_markdown(vm) -> str:
     for w in vector.warnings:
         text += f"\n- vector fit: {safe_text(w, 600)}"
     return text
+
+
+def _pair(before, after) -> str:
+    return f"{_num(before)}→{_num(after)}"
+
+
+def _num(v) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{v:.4g}"
+
+
+def vector_candidates_markdown(d) -> str:
+    """The vector diagnosis (:class:`magcal.diagnosis.vector.VectorDiagnosis`) as the Model tab shows it, the
+    counterpart of the total-field diagnosis's: verdict with the world and |B| figures against their noise, the
+    summary, how candidates were judged, and the candidates for the model as it is (the first round), each with
+    its world RMS in-sample and on the later part, without -> with it."""
+    floor = d.noise.get("world_floor_nT")
+    noise_f = np.sqrt(np.mean(np.square(d.noise.get("total_nT", [np.nan]))))
+    lines = [
+        f"**Verdict:** {safe_code(d.verdict, 40)} on the vector fit (world RMS {_nT(d.base.world_nT)}, noise floor "
+        f"{_nT(floor)}; |B| {_nT(d.base.total_nT)}, noise {_nT(noise_f)})",
+        f"_{safe_text(d.summary, 1500)}_",
+    ]
+    v = d.validation or {}
+    if v.get("n_later"):
+        lines.append(
+            f"\nHeld-out check: each candidate fitted on the first {100 * (1 - v['later_fraction']):.0f} % of the "
+            f"kept samples and applied to the last {v['n_later']} as `magcal apply` applies it; only candidates "
+            "whose gain holds there are recommended."
+        )
+    elif v.get("skipped"):
+        lines.append(f"\nHeld-out check not done: {safe_text(v['skipped'], 300)}")
+    for w in d.warnings:
+        lines.append(f"- warning: {safe_text(w, 1000)}")
+    first = [c for c in d.candidates if c.round == 1][:8]
+    if first:
+        lines += ["", "| effect | dBIC | world nT | later nT | advice |", "|---|---|---|---|---|"]
+        for c in first:
+            later = "-" if c.later is None else _num(c.later[1].world_nT)
+            lines.append(
+                f"| {safe_code(c.label, 80)} | {format_number(c.delta_bic)} | {_num(c.in_sample[1].world_nT)} | "
+                f"{later} | {advice_words(c)} |"
+            )
+        judged = next((c for c in first if c.later is not None), None)
+        without = f"{_nT(d.base.world_nT)} in-sample" + (
+            f", {_nT(judged.later[0].world_nT)} on the later part" if judged is not None else ""
+        )
+        lines.append(
+            "\n_world: RMS per north/east/down component with the effect; later: fitted on the earlier part, "
+            f"applied to the later; without any: {without}. Choose a candidate below for why._"
+        )
+    else:
+        lines.append("_No candidate: the catalogue has no effect the vector fit can take on these data._")
+    if d.final is not None and d.explained_by:
+        lines.append(
+            f"\nWith {', '.join(f'{safe_code(e, 80)}' for e in d.explained_by)}: world {_nT(d.base.world_nT)} → "
+            f"{_nT(d.final.world_nT)}, |B| {_nT(d.base.total_nT)} → {_nT(d.final.total_nT)}"
+        )
+    if d.left:
+        lines.append("\n**Structure left:** " + "; ".join(safe_text(s.text(), 300) for s in d.left[:3]))
+    return "\n".join(lines)
+
+
+def advice_words(c) -> str:
+    """A vector candidate's advice in a word or two for the table (:class:`magcal.diagnosis.vector.VectorCandidate`;
+    the whole reason is shown when it is chosen)."""
+    if c.recommended:
+        return "**recommended**"
+    if c.holds is False:
+        return "⚠ does not hold"
+    if c.holds:
+        return "holds"
+    return "not judged" if c.supported else "not supported"
+
+
+def vector_candidate_markdown(d, label: str) -> str:
+    """The evidence of the chosen candidate of a vector diagnosis, and why it is (not) recommended."""
+    if d is None:
+        return ""
+    c = next((c for c in d.candidates if c.label == label and c.round == 1), None)
+    if c is None:
+        return ""
+    text = f"**{safe_text(label)}** (dBIC {format_number(c.delta_bic)}): {safe_text(c.evidence or c.quote, 1000)}"
+    if c.recommended:
+        text += "  \n**Recommended**: it improves the later part of the record as `magcal apply` applies it."
+    elif c.why:
+        text += f"  \n{'⚠ ' if c.holds is False else ''}{safe_text(c.why, 400)}"
+    return text
+
+
+def vector_model_markdown(vm) -> str:
+    """The vector model's effects (what Diagnose and Add work on for these data), each marked instrument or
+    record-only."""
+    if not vm.effects:
+        return (
+            "**Vector model** (Diagnose and Add work on it): the base terms only (bias, matrix, mounting into the "
+            "body frame)."
+        )
+    rows = ["**Vector model** (Diagnose and Add work on it): the base terms and"]
+    for label in vm.effects:
+        cls = EFFECTS.get(label.partition(":")[0])
+        carried = True if cls is None else is_transferable(cls)
+        rows.append(
+            f"- {safe_code(label, 80)} **{'instrument' if carried else 'record-only'}**: "
+            + ("carried to new data" if carried else "this record only: dropped on new data")
+        )
+    return "\n".join(rows)
+
+
+def vector_status_markdown(vm) -> str:
+    """The status line of the vector model: its world RMS per N/E/D and |B| on the kept samples, and its
+    effects; empty before a vector fit."""
+    if vm.result is None:
+        return ""
+    row = vm.vector_row()
+    world = " / ".join(_num(v) for v in row.world_rms_nT) if row.world_rms_nT is not None else "-"
+    floor = f" (floor {_nT(vm.floor_nT)})" if vm.floor_nT else ""
+    effects = ", ".join(f"{safe_code(e, 80)}" for e in vm.effects) or "base terms only"
+    return (
+        f"**Vector model: world RMS N/E/D {world} nT**{floor}, |B| {_nT(row.total_field_rms_nT)}  \n"
+        f"Vector model: {effects}"
+    )
+
+
+def vector_history_markdown(state, last: int = 6) -> str:
+    """The vector model's last fits: world RMS per N, E, D and |B| (nT, the samples fitted), and what changed."""
+    steps = state.vector_history
+    if not steps:
+        return ""
+    rows = [
+        "**Vector model** (attitude-aided):",
+        "",
+        "| # | step | N nT | E nT | D nT | \\|B\\| nT | what changed |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    start = max(0, len(steps) - last)
+    for i, r in enumerate(steps[start:], start=start):
+        n, e, dn = (_num(v) for v in r.world_rms_nT)
+        rows.append(
+            f"| {i} | {safe_text(r.step, 120)} | {n} | {e} | {dn} | {_num(r.total_rms_nT)} | "
+            f"{safe_text(r.changes, 300)} |"
+        )
+    return "\n".join(rows)
+
+
+def vector_rms_plot_data(vm):
+    """``(step, N, E, D, |B|, floor)`` arrays (nT) for the vector model's history plot: the world RMS per component
+    and |B| of each fit, and the world noise floor the last diagnosis found (drawn across every step; NaN before
+    one)."""
+    steps = vm.ctrl.state.vector_history
+    x = np.arange(len(steps), dtype=float)
+    world = np.array([[np.nan if v is None else v for v in r.world_rms_nT] for r in steps], dtype=float).reshape(-1, 3)
+    total = np.array([np.nan if r.total_rms_nT is None else r.total_rms_nT for r in steps], dtype=float)
+    floor = np.full(len(steps), np.nan if not vm.floor_nT else float(vm.floor_nT))
+    out = [x, world[:, 0], world[:, 1], world[:, 2], total, floor]
+    if len(x) == 1:  # uPlot draws one point as nothing: two at the same step
+        out = [np.array([0.0, 0.0])] + [np.repeat(a, 2) for a in out[1:]]
+    return tuple(out)
 
 
 def availability_markdown(vm) -> str:
@@ -144,6 +305,36 @@ class VectorPanel:
             )
             self.table = gui.add_markdown("")
 
+    def build_model(self, gui) -> None:
+        """Model tab, under Add: the vector model's Take out, and its history plot (world RMS per N, E, D and |B|
+        per fit, with the world noise floor), shown instead of the total-field one when the loop works on the vector
+        model."""
+        p = self.p
+        self.btn_remove = p._button(
+            gui,
+            "Take the last effect out (vector model)",
+            p.on.do_remove_vector_effect,
+            visible=False,
+            hint="Refit the vector model without the effect added last",
+        )
+        self.rms_plot = gui.add_uplot(
+            data=tuple(np.array([0.0, 1.0]) if k == 0 else np.array([np.nan, np.nan]) for k in range(6)),
+            series=(
+                {"label": "step"},
+                {"label": "N nT", "stroke": "#1f77b4", "width": 2, "points": {"show": True, "size": 6}},
+                {"label": "E nT", "stroke": "#2ca02c", "width": 2, "points": {"show": True, "size": 6}},
+                {"label": "D nT", "stroke": "#9467bd", "width": 2, "points": {"show": True, "size": 6}},
+                {"label": "|B| nT", "stroke": "#ff7f0e", "width": 2, "points": {"show": True, "size": 6}},
+                {"label": "world floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
+            ),
+            scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
+            axes=({"label": "vector step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
+            padding=(14, 16, 0, 0),
+            title="World RMS per step (vector fit)",
+            aspect=1.4,
+            visible=False,
+        )
+
     def build_view(self, gui) -> None:
         """View tab: the vehicle view's toggle and its residual exaggeration."""
         p = self.p
@@ -182,6 +373,14 @@ class VectorPanel:
         if everything or kinds & {"data", "vector", "result", "selection", "settings"}:
             self.table.content = comparison_markdown(vm)
             self.table.visible = vm.available or vm.result is not None
+            loop = self.p.ctrl().vector_loop()
+            self.rms_plot.visible = loop
+            self.p.rms_plot.visible = not loop  # the total-field history plot: its counterpart
+            self.btn_remove.visible = loop and bool(vm.effects)
+            if loop:
+                data = vector_rms_plot_data(vm)
+                if len(data[0]):
+                    self.rms_plot.data = data
         if everything or "data" in kinds:
             loc = vm.location
             if loc is not None:  # show the session's place (the widgets' callbacks do nothing)

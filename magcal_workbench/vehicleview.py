@@ -215,6 +215,12 @@ class VehicleView:
             raise MagcalError("the vector fit needs " + " and ".join(missing))
         ctrl.run_job("vector fit", ctrl.step_vector)
 
+    def do_remove_vector_effect(self, event):
+        """Model tab: take the effect added last out of the vector model and refit, in the worker."""
+        self.wb.steps.check_readings()
+        ctrl = self.wb.ctrl
+        ctrl.run_job("take out of the vector model", lambda: ctrl.vector.remove())
+
     def do_use_location(self, event):
         """Calibrate tab: IGRF at the typed place and date becomes the reference (scalar and vector)."""
         p, check = self._panel, self.wb.values.check
@@ -278,19 +284,13 @@ class VehicleView:
         return 0 if current is None else int(current)
 
     def chosen_gain(self, field_nT: float) -> float:
-        """The exaggeration typed (View tab), else the automatic one from the vector fit's world residual."""
+        """The exaggeration typed (View tab), else the automatic one from the vector model's world residual: the
+        base model's (:meth:`VectorModel.gain_rms_nT`), so that the arrows shorten when an added effect explains
+        part of it."""
         typed = float(self._panel.vehicle_gain.value or 0.0)
         if typed > 0:
             return typed
-        vm = self.wb.ctrl.vector
-        resid = vm.world_residual_nT()
-        if resid is None:
-            return 1.0
-        kept = self.wb.ctrl.kept
-        part = resid[:, kept]
-        finite = np.isfinite(part)  # samples without attitude or reference have no residual
-        rms = float(np.sqrt(np.mean(part[finite] ** 2))) if finite.any() else float("nan")
-        return residual_gain(rms, field_nT)
+        return residual_gain(self.wb.ctrl.vector.gain_rms_nT(), field_nT)
 
     def redraw(self) -> None:
         """Draw the body, the fields and the residual at the current sample (nothing when hidden or without

@@ -597,6 +597,40 @@ _SIGNATURES = {
 }
 
 
+#: The channel of the evidence (:attr:`VectorDiagnosis.evidence`) each catalogue effect's residual follows: what its
+#: evidence plot puts on the horizontal axis (the others follow the time).
+EVIDENCE_CHANNELS = {
+    "current_field": "current",
+    "temperature_bias": "temperature_C",
+    "temperature_scale": "temperature_C",
+    "eddy_currents": "turn_rate_dps",
+    "attitude_time_offset": "turn_rate_dps",
+    "axis_timing_skew": "turn_rate_dps",
+}
+
+
+def evidence_channel(effect: str, evidence: dict | None = None) -> str:
+    """The key of the evidence's channel that the residual of ``effect`` (a catalogue name or label) follows:
+    ``current`` (the current or throttle column), ``temperature_C``, ``turn_rate_dps`` or ``time_s``. A user's
+    effect that needs the temperature follows it; ``time_s`` for the rest, and wherever ``evidence`` lacks the
+    channel."""
+    name = str(effect).partition(":")[0]
+    key = EVIDENCE_CHANNELS.get(name)
+    if key is None and "temperature" in getattr(EFFECTS.get(name), "channels", ()):
+        key = "temperature_C"
+    if key is None or (evidence is not None and evidence.get(key) is None):
+        return "time_s"
+    return key
+
+
+def vector_evidence(dataset, reference, calibration, reference_total_nT=None) -> dict:
+    """The plot data of :attr:`VectorDiagnosis.evidence` for any vector calibration of ``dataset`` (a refit's, or
+    the workbench's after an effect was added): the world and |B| residuals (record-only terms applied, NaN where a
+    sample has no attitude or reference) and the channels."""
+    record = _Record.of(dataset, reference, reference_total_nT)
+    return _evidence(record, *record.residuals(calibration, "apply"))
+
+
 # ---- the diagnosis ----------------------------------------------------------------------------------------------
 
 
