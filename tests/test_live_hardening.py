@@ -71,15 +71,15 @@ def cpu_per_line(template, line, budget_s=0.05, tries=3):
 
 
 # -- templates: linear time ------------------------------------------------------------------------------------------
-ATTACKS = [
+ATTACKS = [  # each took seconds to minutes (or for ever) before, at 1 to 4 KB
     pytest.param(SKIPS, lambda n: ("1 " * n)[:n], id="audit-skips"),
     pytest.param(README, lambda n: ("Magnetometer reading: [" + "1" * n)[:n], id="readme-digits"),
     pytest.param(README, lambda n: ("Magnetometer reading: [1, 2, " + "1" * n)[:n], id="readme-digits-last"),
-    pytest.param("{_}{x} {y} {z}Q", lambda n: ("- " * n)[:n], id="signs"),
-    pytest.param("{_}{x}" + " a" * 60 + "{y}{z}", lambda n: ("1" + " a" * n)[:n], id="long-segment"),
+    pytest.param("x={x} y={y} z={z}", lambda n: ("x=" + "1" * n)[:n], id="key-value-digits"),
+    pytest.param("{_}{x}{_}{y}{_}{z}{_}Q", lambda n: ("1 " * n)[:n], id="interleaved-skips"),
+    pytest.param("{_},{x},{_},{y},{_},{z}Q", lambda n: (",1" * n)[:n], id="comma-skips"),
+    pytest.param("mag ({x} {y} {z}) acc ({_} {_} {_})", lambda n: ("mag (1 2 3) acc (" + "1 " * n)[:n], id="docs"),
     pytest.param("{_}a" * 30 + "{x}{y}{z}", lambda n: "a" * n, id="thirty-skips"),
-    pytest.param("x={x} y={y} z={z}", lambda n: ("x=" + " " * n)[:n], id="spaces"),
-    pytest.param("{_}" + "{x} {y} {z} " + "{_}a " * 40 + "Q", lambda n: ("1 a " * n)[:n], id="segments"),
 ]
 
 
@@ -272,3 +272,28 @@ def test_record_ends_by_its_duration_while_lines_keep_coming(tmp_path):
         stats = record(source, tmp_path / "r.csv", duration_s=1.0)
     assert time.monotonic() - t0 < 10
     assert stats.n_samples == 1 and stats.n_bad > 0
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--seconds", "nan"], "--seconds must be a positive number of seconds, got nan"),
+        (["--seconds", "inf"], "--seconds must be a positive number of seconds, got inf"),
+        (["--seconds", "-1"], "--seconds must be a positive number of seconds, got -1.0"),
+        (["--flush", "nan"], "--flush must be a positive number of seconds, got nan"),
+        (["--samples", "0"], "--samples must be at least 1, got 0"),
+    ],
+)
+def test_magcal_record_refuses_a_duration_that_would_never_end(tmp_path, capsys, option, message):
+    """``--seconds nan`` recorded for ever (every comparison with nan is false); now one line, before the source
+    opens, and no file."""
+    from magcal.cli import main
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with time_limit(10):
+        rc = main(["record", f"udp://127.0.0.1:{port}", str(tmp_path / "r.csv"), *option])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "r.csv").exists()

@@ -7,7 +7,9 @@ a template (``template=...``)
     {z}]``, ``{t_ms}: mag {mx} {my} {mz} att {roll} {pitch} {yaw}``. Every other character is literal; whitespace
     is optional around every literal word or punctuation mark (``x = 1`` matches ``x={x}``); ``{_}`` skips a
     field (any text); ``{{`` and ``}}`` are literal braces. Numbers are read in any float syntax (``-12``,
-    ``1.5e3``, ``.5``, ``+2.``, ``nan``, ``inf``). The template describes the whole line (after a ``prefix``).
+    ``1.5e3``, ``.5``, ``+2.``, ``nan``, ``inf``), each as far as it goes. The template describes the whole line
+    (after a ``prefix``). A line is matched in time linear in its length whatever it holds (no backtracking:
+    :class:`LineTemplate`); a template holds at most :data:`MAX_TEMPLATE_CHARS` characters.
 a frame
     A leading ``|`` or ``$`` and a trailing ``*`` (or ``|``) are stripped; a trailing NMEA-like checksum ``*hh``
     (two hex digits: the XOR of the characters between the start mark and ``*``) is checked, and a line whose
@@ -152,7 +154,7 @@ class _Segment:
             self._regex[(k, held)] = re.compile((_GAP if self.anchored else "") + body + (_GAP + r"\Z" if held else ""))
         return self._regex[(k, held)]
 
-    def find(self, line: str, pos: int, k: int | None = None):
+    def find(self, line: str, pos: int, k: int | None = None) -> re.Match | None:
         """The match of the segment (held to the line's end if it is the last), or of its first ``k`` tokens (never
         held), at or after ``pos`` that ends first, or None.
 
@@ -167,7 +169,7 @@ class _Segment:
         best = regex.search(line, pos)
         if best is None or held:
             return best
-        m = best
+        m: re.Match | None = best
         while m is not None and m.start() + 1 < best.end():  # a later start could still end earlier
             m = regex.search(line, m.start() + 1)
             if m is not None and m.end() < best.end():

@@ -34,7 +34,9 @@ names :mod:`magcal.data.attitude` and :mod:`magcal.checks.reference` read (``rol
 :meth:`LiveSource.read` returns a :class:`LiveChunk` of whatever arrived within a timeout (possibly empty);
 iterating a source yields non-empty chunks until it ends or is closed. Lines or messages that cannot be read are
 counted in :attr:`LiveSource.stats` (with the last reason), never raised; lines that are not data (comments, a
-boot banner before the first sample) are counted as skipped. Every wait is bounded.
+boot banner before the first sample) are counted as skipped. Every wait is bounded, and so is every line's work
+(at most :data:`MAX_LINE_BYTES`, a template matched in linear time): a read returns by its timeout whatever
+arrives, the lines it did not reach waiting for the next, so ``magcal record --seconds S`` ends after S seconds.
 
 :class:`Recorder` appends the samples to a magcal CSV as they arrive: whole lines only, flushed to disk (``fsync``)
 at least every ``flush_interval_s``, so a recording cut by a crash or a kill reopens with
@@ -690,7 +692,7 @@ class _LineSource(LiveSource):
         self._buffer = b""
         self._line_no = 0
         self._overlong = None  # bytes of the over-long line being dropped, while it lasts
-        self._queue: collections.deque = collections.deque()  # lines received, not yet parsed
+        self._queue = collections.deque()  # lines received, not yet parsed (None: an over-long line's start)
         self._eof = False  # the stream has ended (what it held is still queued)
         self._seen_data = False  # a sample since the source opened or reconnected
         self._clock = _DeviceClock()
@@ -756,7 +758,7 @@ class _LineSource(LiveSource):
         return sample
 
     def _poll(self, deadline, max_samples):
-        samples: list = []
+        samples = []
         while not samples:
             if not self._queue:
                 if self._eof:
