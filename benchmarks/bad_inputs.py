@@ -214,6 +214,155 @@ def cases(d: Path):
     ]
 
 
+# -- issue 41: line templates against hostile lines ------------------------------------------------------------------
+#: How the templates matched before issue 41 (0312ad1): one pattern, ``{_}`` a lazy ``.*?``, numbers that give back
+#: digits, whitespace ``\s*`` between tokens (:func:`_old_matcher`); kept here to measure what a line cost then.
+_OLD_NUMBER = (
+    r"(?<![\d.])(?<![\d.][eE])(?<![\d.][eE][-+])[-+]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|(?i:nan|inf(?:inity)?))"
+    r"(?![\d.]|[eE][-+]?\d)"
+)
+#: Longest a line may run under the old patterns here before it is stopped (s).
+OLD_CAP_S = 5.0
+
+
+def _old_matcher(template):
+    """``match(line)`` as a live source ran it before issue 41: the whole pattern, and on failure the pattern of each
+    start of the template in turn (to say where the line departs)."""
+    import re
+    import string
+
+    parts = []
+    for literal, name, _, _ in string.Formatter().parse(template):
+        parts += [re.escape(w) for w in re.findall(r"\w+|\S", literal)]
+        if name is not None:
+            parts.append(".*?" if name.strip() in ("_", "-", "") else f"({_OLD_NUMBER})")
+    whole = re.compile(r"\s*" + r"\s*".join(parts) + r"\s*")
+    starts = [re.compile(r"\s*" + r"\s*".join(parts[:k])) for k in range(1, len(parts) + 1)]
+
+    def match(line):
+        if whole.fullmatch(line) is None:
+            for start in starts:
+                if start.match(line) is None:
+                    break
+            raise ValueError("template: the line departs from it")
+
+    return match
+
+
+def _seconds(fn, cap_s=None):
+    """CPU seconds of ``fn()`` (one call), or None when it ran past ``cap_s`` (stopped by an alarm)."""
+    import signal
+    import time
+
+    def expired(signum, frame):
+        raise TimeoutError
+
+    previous = signal.signal(signal.SIGALRM, expired)
+    if cap_s:
+        signal.setitimer(signal.ITIMER_REAL, cap_s)
+    t0 = time.thread_time()
+    try:
+        fn()
+    except TimeoutError:
+        return None
+    except ValueError:  # the line refused: what the live source counts as bad
+        pass
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    return time.thread_time() - t0
+
+
+def template_attacks():
+    """Rows ``(attack, line bytes, before s or None, after s)``: one line's match, the old pattern and ours."""
+    from magcal.data.lineformats import LineTemplate
+
+    skips = "{_}{_}{_}{x}{y}{z}Q"
+    readme = "Magnetometer reading: [{x}, {y}, {z}]"
+    docs = "mag ({x} {y} {z}) acc ({_} {_} {_})"
+    attacks = [
+        ("audit's skips, a 120-byte datagram of '1 1 1 ...'", skips, "1 " * 60),
+        ("audit's skips, the 600-byte datagram", skips, "1 " * 300),
+        ("audit's skips, 4 KB", skips, "1 " * 2048),
+        ("README template, 4000 digits", readme, "Magnetometer reading: [" + "1" * 4000),
+        ("docs' skips (mag ... acc ({_} {_} {_})), 4 KB", docs, "mag (1 2 3) acc (" + "1 " * 2035),
+        ("x={x} y={y} z={z}, 4000 digits", "x={x} y={y} z={z}", "x=" + "1" * 4000),
+    ]
+    rows = []
+    for name, template, line in attacks:
+        old = _old_matcher(template)
+        new = LineTemplate(template)
+        before = _seconds(lambda old=old, line=line: old(line), OLD_CAP_S)
+        after = min(_seconds(lambda new=new, line=line: new.match(line)) for _ in range(5))
+        rows.append((name, len(line), before, after))
+    return rows
+
+
+def record_attack(seconds=2.0):
+    """``magcal record tcp://... --template SKIPS --seconds S`` against a board that sends one good line, then the
+    audit's 600-byte lines without pause: ``(wall seconds, exit status, what it said)``."""
+    import socket
+    import threading
+    import time
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    stop = threading.Event()
+
+    def board():
+        server.settimeout(30)
+        try:
+            conn, _ = server.accept()
+        except OSError:
+            return
+        with conn:
+            conn.sendall(b"7 30000 2000 40000 Q\n")
+            while not stop.is_set():
+                try:
+                    conn.sendall(b"1 " * 300 + b"\n")
+                except OSError:
+                    return
+                time.sleep(0.005)
+
+    thread = threading.Thread(target=board, daemon=True)
+    thread.start()
+    with tempfile.TemporaryDirectory() as tmp:
+        argv = ["record", f"tcp://127.0.0.1:{port}", f"{tmp}/r.csv", "--template", "{_}{_}{_}{x}{y}{z}Q"]
+        err = _io.StringIO()
+        t0 = time.monotonic()
+        with contextlib.redirect_stderr(err):
+            code = main([str(a) for a in argv] + ["--seconds", str(seconds)])
+        wall = time.monotonic() - t0
+    stop.set()
+    server.close()
+    thread.join(5)
+    return wall, code, err.getvalue().strip().splitlines()[-1].replace(f"{tmp}/", "")
+
+
+def print_template_attacks(markdown=False):
+    rows = template_attacks()
+
+    def shown(s):
+        return f"> {OLD_CAP_S:g} s (stopped)" if s is None else f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s"
+
+    print(
+        f"\nissue 41: one hostile line through a line template (CPU time of its match; old pattern capped at {OLD_CAP_S:g} s)"
+    )
+    print(f"{'attack':52s} {'bytes':>6s} {'before':>20s} {'after':>10s}")
+    for name, n, before, after in rows:
+        print(f"{name:52s} {n:6d} {shown(before):>20s} {shown(after):>10s}")
+    wall, code, said = record_attack()
+    print(
+        f"magcal record --seconds 2 against a board sending the 600-byte lines: ended after {wall:.2f} s, exit {code}"
+    )
+    print(f"    {said}")
+    if markdown:
+        print("\n| attack | line bytes | before (old pattern) | after |\n|---|---|---|---|")
+        for name, n, before, after in rows:
+            print(f"| {name} | {n} | {shown(before)} | {shown(after)} |")
+    return code == 0 and wall < 10
+
+
 def main_():
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
@@ -235,7 +384,8 @@ def main_():
         for kind, name, cmd, verdict, message in rows:
             short = textwrap.shorten(message.split(": error: ")[-1].split(": warning: ")[-1], 150, placeholder="...")
             print(f"| {kind}: {name} | {cmd} | {verdict} | {short.replace('|', '/')} |")
-    return 1 if counts["accepted"] or counts["CRASH"] else 0
+    lines_ok = print_template_attacks("--markdown" in sys.argv)
+    return 1 if counts["accepted"] or counts["CRASH"] or not lines_ok else 0
 
 
 if __name__ == "__main__":

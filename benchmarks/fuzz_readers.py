@@ -1,6 +1,7 @@
 """The readers' fuzz suite (tests/test_fuzz_readers.py) with many more examples, and what every case gave.
 
-Run: ``python benchmarks/fuzz_readers.py [EXAMPLES_PER_TARGET] [WORKERS]`` (defaults 1000 and 2). It runs the suite
+Run: ``python benchmarks/fuzz_readers.py [EXAMPLES_PER_TARGET] [WORKERS] [SELECT]`` (defaults 1000, 2 and every
+reader; SELECT is pytest's ``-k`` expression, e.g. ``template`` for the line templates alone). It runs the suite
 under pytest (``MAGCAL_FUZZ_EXAMPLES``; pytest-xdist with WORKERS processes) and prints, per reader: inputs tried,
 results, one-line messages, tracebacks, hangs (a case still running after the time bound), the slowest case, and
 the totals. Exit status 1 if any case gave a traceback or hung (pytest's report of it is printed too).
@@ -32,8 +33,9 @@ def main() -> int:
             "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
         }
         argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_fuzz_readers.py"]
-        if workers > 1:
-            argv += ["-n", str(workers)]
+        argv += ["-n", str(workers)] if workers > 1 else ["-n", "0"]
+        if len(sys.argv) > 3:
+            argv += ["-k", sys.argv[3]]
         t0 = time.perf_counter()
         proc = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
         seconds = time.perf_counter() - t0

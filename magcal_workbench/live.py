@@ -589,11 +589,17 @@ class SourceMenu:
 
         def bounded(name, value, lo, hi, kind=float):
             try:
-                v = kind(value)
-            except (TypeError, ValueError):
+                v = None if isinstance(value, bool) else float(value)
+            except (TypeError, ValueError, OverflowError):
                 v = None
             if v is None or not (lo <= v <= hi):
                 raise MagcalError(f"{name}: {clean_text(repr(value), 40)} is outside {lo:g} ... {hi:g}")
+            if kind is int:  # a port or a count: a whole number, never truncated to one
+                if not v.is_integer():
+                    raise MagcalError(
+                        f"{name}: {clean_text(repr(value), 40)} is not a whole number; give {lo:g} ... {hi:g}"
+                    )
+                return int(v)
             return v
 
         if chosen.kind == "url":

@@ -19,10 +19,14 @@ cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
 
 from __future__ import annotations
 
+import contextlib
 import io as _stdio
 import json
 import os
+import re
+import signal
 import socket
+import string
 import struct
 import threading
 import time
@@ -41,6 +45,7 @@ from magcal.calibration.calibration import Calibration
 from magcal.core.errors import MagcalError
 from magcal.data import io
 from magcal.data.dataset import MAX_ABS_VALUE
+from magcal.data.lineformats import LineTemplate
 from magcal.data.live import LineParser, Recorder, _LineSource, open_source
 from magcal.data.logs import read_log
 
@@ -519,6 +524,235 @@ def test_live_lines(tmp_path):
     def check(cols, unit, blocks):
         path = tmp_path / f"rec{next(counter)}.csv"
         outcome("live lines", lambda: _live(cols, unit, blocks, path))
+
+    check()
+
+
+# -- live templates: any template the page allows, against any line, in linear time --------------------------------
+#: Longest one line may take to match (CPU s of the thread): lines of 4 KB take milliseconds; the old patterns took
+#: seconds to for ever.
+LINE_TIME_BOUND_S = float(os.environ.get("MAGCAL_FUZZ_LINE_BOUND_S", "0.5"))
+#: A line and a template drawn from the same characters: numbers, signs, spaces, the marks sketches print.
+_LINE_CHARS = "0123456789 ,;:=-+.eEinfa[]()|*$#Qxyz\t"
+_FIELDS = ["{t}", "{temp}", "{roll}", "{gx}", "{lat}"]
+_LITERAL = st.one_of(
+    st.text(alphabet=_LINE_CHARS.replace("\t", ""), max_size=4),
+    st.sampled_from(["{{", "}}", "mag", "acc", "x=", ": [", ", ", "] uT", "nan", "inf", "e", "1", "-", "  "]),
+)
+
+
+@st.composite
+def page_template(draw):
+    """A template the page lets through (:data:`magcal_workbench.live.TEMPLATE_CHARS` printable characters): x, y
+    and z among other fields, skips (several in a row too) and literals, in any order; one in ten with stray
+    braces, an unknown field or a format spec (refused)."""
+    from magcal_workbench.live import TEMPLATE_CHARS
+
+    fields = ["{x}", "{y}", "{z}"] + draw(st.lists(st.sampled_from(_FIELDS), unique=True, max_size=3))
+    parts = fields + draw(st.lists(st.one_of(st.just("{_}"), _LITERAL), max_size=20))
+    if draw(st.integers(0, 9)) == 0:  # now and then what the page may send that is no template: one clear line
+        parts.append(draw(st.text(alphabet="{}_xyzqt:!0 ", min_size=1, max_size=6)))
+    order = draw(st.permutations(parts))
+    text = "".join(order)[:TEMPLATE_CHARS]
+    return text if text.isprintable() else text.replace("\t", " ")
+
+
+@st.composite
+def template_line(draw, template):
+    """A line for ``template``: random text, the template filled in with numbers (then mutated), or a fragment
+    repeated up to 4 KB (the attacks: digits, ``1 1 1``, signs, the template's own marks)."""
+    kind = draw(st.sampled_from(["random", "filled", "filled", "repeated", "repeated"]))
+    try:
+        list(string.Formatter().parse(template))
+    except ValueError:  # no template: nothing to fill in
+        kind = "random"
+    if kind == "random":
+        return draw(st.text(alphabet=_LINE_CHARS, max_size=200))
+    if kind == "filled":
+        numbers = st.one_of(
+            st.sampled_from(["1", "-2.5", "3e4", ".5", "+2.", "nan", "-inf", "infinity"]),
+            st.floats(allow_nan=False).map(repr),
+            st.sampled_from(["1.2.3", "--1", "1e", "", "x"]),
+        )
+        out = []
+        for literal, name, _, _ in string.Formatter().parse(template):
+            out.append(literal)
+            if name is not None:  # a number between spaces (or not: two numbers then run together)
+                gap = st.sampled_from(["", " ", " ", "  ", "\t"])
+                value = draw(numbers) if name != "_" else draw(st.text(alphabet=_LINE_CHARS, max_size=6))
+                out.append(draw(gap) + value + draw(gap))
+        line = "".join(out)
+        for op, where, text in draw(
+            st.lists(st.tuples(st.sampled_from("idrr"), st.floats(0, 1), _LITERAL), max_size=2)
+        ):
+            k = int(where * len(line))
+            line = line[:k] + text + line[k:] if op == "i" else line[:k] + line[k + 1 :] if op == "d" else line
+        return line
+    fragment = draw(
+        st.one_of(
+            st.sampled_from(["1", "1 ", "- ", ",1", "1e", "1.", " ", "a", "x=1 ", "[1, ", "{", "nan "]),
+            st.text(alphabet=_LINE_CHARS, min_size=1, max_size=8),
+            st.just(template[: draw(st.integers(1, 12))] or "1"),
+        )
+    )
+    n = draw(st.sampled_from([64, 600, 4096]))
+    head = draw(st.sampled_from(["", "7 ", "mag ", "Magnetometer reading: ["]))
+    return (head + fragment * (n // len(fragment) + 1))[:n]
+
+
+_WORD = re.compile(r"\w+|\S")
+_NUM_CORE = re.compile(r"[-+]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|(?i:nan|inf(?:inity)?))")
+_NUM_BEFORE = re.compile(r"(?<![\d.])(?<![\d.][eE])(?<![\d.][eE][-+])")
+_NUM_AFTER = re.compile(r"(?![\d.]|[eE][-+]?\d)")
+
+
+def reference_accepts(template, line):
+    """Whether ``line`` fits ``template`` as the docs say (``docs/formats.md``), by brute force over every place each
+    token could take: literals exactly, whitespace optional around each, ``{_}`` any text, a field the longest
+    number starting there (not inside another, not followed by more of one). Slow and plainly right; short lines."""
+    tokens = []
+    for literal, name, _, _ in string.Formatter().parse(template):
+        tokens += [("lit", w) for w in _WORD.findall(literal)]
+        if name is not None:
+            tokens.append(("skip", None) if name.strip() in ("_", "-", "") else ("num", None))
+    n = len(line)
+    ws_end = list(range(n + 1))
+    for p in range(n - 1, -1, -1):
+        ws_end[p] = ws_end[p + 1] if line[p].isspace() else p
+    number_end = [None] * (n + 1)
+    for p in range(n):
+        if _NUM_BEFORE.match(line, p):
+            number_end[p] = next(
+                (q for q in range(n, p, -1) if _NUM_CORE.fullmatch(line, p, q) and _NUM_AFTER.match(line, q)), None
+            )
+
+    def spaces(places):
+        return {q for p in places for q in range(p, ws_end[p] + 1)}
+
+    places = spaces({0})
+    for kind, word in tokens:
+        if kind == "skip":
+            places = set(range(min(places), n + 1)) if places else set()
+        elif kind == "lit":
+            places = {p + len(word) for p in places if line.startswith(word, p)}
+        else:
+            places = {number_end[p] for p in places if number_end[p] is not None}
+        places = spaces(places)
+    return n in places
+
+
+@contextlib.contextmanager
+def _alarm(seconds, what):
+    """Stop a block that runs past ``seconds`` (a regular expression that backtracks holds the interpreter, so a
+    thread cannot bound it, but it checks for signals): the case then counts as a hang."""
+
+    def expired(signum, frame):
+        raise TimeoutError(f"{what}: still running after {seconds:g} s")
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def _template_case(template, lines):
+    """Open the page's template as a parser (or refuse it in one line); every line within
+    :data:`LINE_TIME_BOUND_S`, read or refused with its reason; a short line read exactly when the reference says it
+    fits, its fields numbers. Tallied per template refused and per line."""
+    tally = TALLIES.setdefault("live templates", Tally())
+    try:
+        parser = LineParser(template=template)
+    except MagcalError as exc:  # a repeated or unknown field, a stray brace: one line
+        tally.tried += 1
+        assert "\n" not in str(exc).strip() and str(exc).strip()
+        tally.messages += 1
+        tally.kinds["template refused"] += 1
+        return
+    for line in lines:
+        tally.tried += 1
+        t0 = time.thread_time()
+        try:
+            with _alarm(TIME_BOUND_S, "live templates"):
+                try:
+                    sample = parser.parse_sample(line)
+                    fields = parser.template.match(line.strip())
+                except ValueError as exc:
+                    sample, fields, reason = None, None, str(exc)
+                    assert reason.startswith(("template: ", "not a number: ")), reason
+                    assert "\n" not in reason
+        except TimeoutError:
+            tally.hangs += 1
+            tally.first_failure = tally.first_failure or f"hang: {template!r} on {line[:60]!r}... ({len(line)})"
+            raise AssertionError(tally.first_failure) from None
+        seconds = time.thread_time() - t0
+        tally.slowest_s = max(tally.slowest_s, seconds)
+        assert seconds < LINE_TIME_BOUND_S, f"{seconds:.3f} s for {template!r} on a line of {len(line)}"
+        if fields is not None:
+            assert [float(v) for v in fields] and sample is not None or line.lstrip().startswith("#")
+        if len(line) <= 64 and not line.strip().startswith("#") and line.strip():
+            assert (fields is not None) == reference_accepts(template, line.strip()), (template, line)
+        if sample is not None:
+            tally.results += 1
+        else:
+            tally.messages += 1
+            tally.kinds["line refused" if fields is None else "line skipped"] += 1
+
+
+def test_live_templates():
+    """Random templates the page allows against random, filled-in and repeated lines (issue 41)."""
+
+    @FUZZ
+    @given(st.data())
+    def check(data):
+        template = data.draw(page_template())
+        lines = data.draw(st.lists(template_line(template), min_size=1, max_size=4))
+        _template_case(template, lines)
+
+    check()
+
+
+def _cpu_per_line(template, line, budget_s=0.02, tries=3):
+    """CPU seconds of one match (the least of ``tries`` batches of at least ``budget_s``)."""
+    best = float("inf")
+    for _ in range(tries):
+        n, t0 = 0, time.thread_time()
+        while True:
+            with contextlib.suppress(ValueError):
+                template.match(line)
+            n += 1
+            spent = time.thread_time() - t0
+            if spent >= budget_s:
+                break
+        best = min(best, spent / n)
+    return best
+
+
+def test_live_template_time_is_linear_in_the_line():
+    """The worst case stays linear: four times the line (1 KB -> 4 KB of a repeated fragment) costs at most eight
+    times the CPU time (linear: four; the old patterns: sixteen times, or minutes with skips)."""
+
+    @settings(FUZZ, max_examples=max(20, N_EXAMPLES // 20))
+    @given(
+        page_template(),
+        st.one_of(
+            st.sampled_from(["1", "1 ", "- ", ",1", "1e", " ", "a"]), st.text(_LINE_CHARS, min_size=1, max_size=6)
+        ),
+    )
+    def check(text, fragment):
+        try:
+            template = LineTemplate(text)
+        except ValueError:
+            return
+        line = (fragment * (4096 // len(fragment) + 1))[:4096]
+        with _alarm(TIME_BOUND_S, "live templates"):
+            short, long = _cpu_per_line(template, line[:1024]), _cpu_per_line(template, line)
+        assert long <= 8 * short + 50e-6, f"{text!r} on {fragment!r}: {short * 1e3:.3f} -> {long * 1e3:.3f} ms"
 
     check()
 

@@ -225,6 +225,88 @@ def test_a_port_is_bounded(tmp_path, port):
         menu.url("UDP text lines on 127.0.0.1 (port below)", port=port)
 
 
+@pytest.mark.parametrize(
+    "label, options",
+    [
+        ("UDP text lines on 127.0.0.1 (port below)", {"port": 14551.5}),
+        ("TCP text lines from 127.0.0.1 (port below)", {"port": 5760.25}),
+        ("simulated chi2017", {"n_samples": 3000.5}),
+    ],
+)
+def test_a_port_or_a_count_with_a_fraction_is_refused_not_truncated(tmp_path, label, options):
+    """Issue 41: ``14551.5`` opened port 14551; it is refused with one line saying what to give."""
+    menu, _ = _menu(tmp_path)
+    with pytest.raises(magcal.MagcalError, match=r"is not a whole number; give \d+ \.\.\. \d+") as err:
+        menu.url(label, **options)
+    assert "\n" not in str(err.value)
+    assert menu.url(label, **{k: round(v) for k, v in options.items()})  # the whole number is taken as it is
+
+
+def test_the_start_button_refuses_a_port_with_a_fraction(bench):
+    from viser import GuiEvent
+
+    wb = bench()
+    p = wb.panels
+    p.live_source.value = "UDP text lines on 127.0.0.1 (port below)"
+    p.live_port._impl.value = 14551.5  # within the widget's range: only the server's check sees the fraction
+    wb.handle(wb.livectl.do_live_start, GuiEvent(None, None, p.btn_live_start))
+    assert "Port: 14551.5 is not a whole number" in wb.ctrl.message and not wb.livectl.running
+
+
+def test_hostile_lines_on_a_live_source_never_hold_up_the_page_s_server(bench):
+    """Issue 41: a UDP text source started from the page with the skips the page allows; any local process sends it
+    lines that the old patterns took seconds (600 bytes: minutes) to refuse. The server answers HTTP at once all
+    along, and the lines are counted as bad."""
+    import http.client
+    import socket
+    import threading
+
+    from viser import GuiEvent
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    wb = bench()
+    p = wb.panels
+    p.live_source.value = "UDP text lines on 127.0.0.1 (port below)"
+    p.live_port.value = port
+    p.live_template.value = "{_}{_}{_}{x}{y}{z}Q"
+    wb.handle(wb.livectl.do_live_start, GuiEvent(None, None, p.btn_live_start))
+    assert wb.livectl.running, wb.ctrl.message
+    stats = wb.live.session.source.stats
+    waits = []
+    done = threading.Event()
+
+    def ask():  # the page's server, asked every 50 ms while the lines arrive
+        while not done.is_set():
+            t0 = time.monotonic()
+            conn = http.client.HTTPConnection("127.0.0.1", wb.port, timeout=60)
+            try:
+                conn.request("GET", "/")
+                conn.getresponse().read()
+            finally:
+                conn.close()
+            waits.append(time.monotonic() - t0)
+            time.sleep(0.05)
+
+    asking = threading.Thread(target=ask, daemon=True)
+    asking.start()
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            tx.sendto(b"7 30000 2000 40000 Q\n", ("127.0.0.1", port))
+            for n in (200, 240, 200, 240):
+                time.sleep(0.2)
+                tx.sendto(b"1 " * (n // 2) + b"\n", ("127.0.0.1", port))
+        assert _wait(lambda: stats.n_bad >= 4, 60), stats.summary()
+        time.sleep(0.2)
+    finally:
+        done.set()
+        asking.join(70)
+        wb.live.stop()
+    assert stats.n_samples == 1 and stats.reasons["template"] == 4, stats.summary()
+    assert len(waits) >= 5 and max(waits) < 2.0, waits
+
+
 def test_a_serial_port_that_is_a_program_is_never_opened(tmp_path, monkeypatch):
     """pymavlink runs a "device" that looks like a program as a child process: a listed port that is a regular
     file is refused before pymavlink or pyserial see it."""

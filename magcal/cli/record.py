@@ -16,8 +16,10 @@ parameters of the same meaning (:func:`magcal.data.live.open_source`).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
+from magcal.core.errors import MagcalError
 from magcal.data.live import open_source, record
 
 
@@ -89,7 +91,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         "udp://127.0.0.1:14550?mavlink, sim://chi2017?rate=50",
     )
     parser.add_argument("output", help="the recording (a new file)")
-    parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    parser.add_argument("--seconds", type=float, default=None, help="stop after this long, whatever arrives")
     parser.add_argument("--samples", type=int, default=None, help="stop after this many samples")
     parser.add_argument("--flush", type=float, default=1.0, help="longest time between flushes to disk, s")
     parser.add_argument("--progress", action="store_true", help="print 'flushed N' after each flush")
@@ -101,6 +103,12 @@ def register(subparsers) -> argparse.ArgumentParser:
 def run(args) -> int:
     def progress(n):
         print(f"flushed {n}", flush=True)
+
+    for option, value in (("--seconds", args.seconds), ("--flush", args.flush)):  # nan would never end or flush
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise MagcalError(f"{option} must be a positive number of seconds, got {value}")
+    if args.samples is not None and args.samples < 1:
+        raise MagcalError(f"--samples must be at least 1, got {args.samples}")
 
     source = open_source(args.url, **source_options(args))
     try:

@@ -7,7 +7,9 @@ a template (``template=...``)
     {z}]``, ``{t_ms}: mag {mx} {my} {mz} att {roll} {pitch} {yaw}``. Every other character is literal; whitespace
     is optional around every literal word or punctuation mark (``x = 1`` matches ``x={x}``); ``{_}`` skips a
     field (any text); ``{{`` and ``}}`` are literal braces. Numbers are read in any float syntax (``-12``,
-    ``1.5e3``, ``.5``, ``+2.``, ``nan``, ``inf``). The template describes the whole line (after a ``prefix``).
+    ``1.5e3``, ``.5``, ``+2.``, ``nan``, ``inf``), each as far as it goes. The template describes the whole line
+    (after a ``prefix``). A line is matched in time linear in its length whatever it holds (no backtracking:
+    :class:`LineTemplate`); a template holds at most :data:`MAX_TEMPLATE_CHARS` characters.
 a frame
     A leading ``|`` or ``$`` and a trailing ``*`` (or ``|``) are stripped; a trailing NMEA-like checksum ``*hh``
     (two hex digits: the XOR of the characters between the start mark and ``*``) is checked, and a line whose
@@ -33,18 +35,20 @@ fit is a :class:`ValueError` whose text starts with the reason (``template: ...`
 
 from __future__ import annotations
 
-import functools
 import re
 import string
 
 #: A number in any float syntax Python reads (sign, decimals, exponent, ``nan``, ``inf``, ``infinity``), not
-#: starting inside another number and not followed by more of one.
+#: starting inside another number and not followed by more of one. Atomic, with possessive digits: the number at a
+#: place is read once, as far as it goes, and never tried again shorter (a shorter one would be followed by more of
+#: a number), so a line of 4000 digits costs about 4000 steps, not 4000^2.
 NUMBER = (
-    r"(?<![\d.])(?<![\d.][eE])(?<![\d.][eE][-+])[-+]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|(?i:nan|inf(?:inity)?))"
-    r"(?![\d.]|[eE][-+]?\d)"
+    r"(?<![\d.])(?<![\d.][eE])(?<![\d.][eE][-+])"
+    r"(?>[-+]?+(?:(?:\d++\.?+\d*+|\.\d++)(?:[eE][-+]?+\d++)?+|(?i:nan|infinity|inf))(?![\d.]|[eE][-+]?\d))"
 )
-#: What ``{_}`` matches: any text (the least that lets the rest of the line match).
-SKIP = r".*?"
+#: Longest template (characters). With the longest line a live source takes (``magcal.data.live.MAX_LINE_BYTES``)
+#: it bounds what one line may cost: the match is linear in the line's length times the template's tokens.
+MAX_TEMPLATE_CHARS = 1000
 
 #: Channel names of the columns a line may hold besides the magnetometer, time and temperature: name in a line or
 #: template -> the channel (the Dataset ``extra`` column it becomes).
@@ -124,15 +128,68 @@ def column_role(name: str):
 
 # -- templates -------------------------------------------------------------------------------------------------------
 _LITERAL_TOKEN = re.compile(r"\w+|\S")
+#: Whitespace between two tokens of a template: optional, possessive (a token never starts with whitespace).
+_GAP = r"\s*+"
+
+
+class _Segment:
+    """The tokens of a template between two skips (``{_}``), matched without backtracking.
+
+    Each token (a literal word, a number) matches at a given place in one way or not at all, and the whitespace
+    between them is possessive, so the segment's match from a given start is decided in one pass over what it
+    covers. ``anchored``: the segment starts the line (no skip before it), else it may start anywhere after the
+    text already matched; ``last``: it ends the line (no skip after it).
+    """
+
+    def __init__(self, tokens, anchored: bool, last: bool):
+        self.tokens = tokens  # (kind "lit" or "num", regex, description)
+        self.anchored = anchored
+        self.last = last
+        self._regex: dict[tuple[int, bool], re.Pattern] = {}
+
+    def _pattern(self, k: int, held: bool) -> re.Pattern:
+        """The first ``k`` tokens, held to the line's end or not."""
+        if (k, held) not in self._regex:
+            body = _GAP.join(t[1] for t in self.tokens[:k])
+            self._regex[(k, held)] = re.compile((_GAP if self.anchored else "") + body + (_GAP + r"\Z" if held else ""))
+        return self._regex[(k, held)]
+
+    def find(self, line: str, pos: int, k: int | None = None) -> re.Match | None:
+        """The match of the segment (held to the line's end if it is the last), or of its first ``k`` tokens (never
+        held), at or after ``pos`` that ends first, or None.
+
+        Anchored: only at ``pos``. Held to the line's end: the leftmost start (all end there). Otherwise the
+        earliest end, so that the rest of the template (which starts with a skip) has the most room; each start
+        is tried once, so the cost stays linear in the text scanned.
+        """
+        held = k is None and self.last
+        regex = self._pattern(len(self.tokens) if k is None else k, held)
+        if self.anchored:
+            return regex.match(line, pos)
+        best = regex.search(line, pos)
+        if best is None or held:
+            return best
+        m: re.Match | None = best
+        while m is not None and m.start() + 1 < best.end():  # a later start could still end earlier
+            m = regex.search(line, m.start() + 1)
+            if m is not None and m.end() < best.end():
+                best = m
+        return best
 
 
 class LineTemplate:
     """A line template such as ``x={x} y={y} z={z}`` (see the module docstring).
 
+    A line is matched in time linear in its length (times the template's tokens), whatever it holds: the numbers
+    are read possessively (:data:`NUMBER`), and a skip never backtracks into the text before it: the tokens
+    between two skips (a segment) are placed where they end first after the previous segment, which leaves the
+    rest of the template the most room, so a line matches exactly when it can (adjacent skips are one).
+
     Parameters
     ----------
     text : str
-        The template; fields in braces (``{x}``), ``{_}`` to skip, ``{{``/``}}`` for literal braces.
+        The template; fields in braces (``{x}``), ``{_}`` to skip, ``{{``/``}}`` for literal braces; at most
+        :data:`MAX_TEMPLATE_CHARS` characters.
 
     Attributes
     ----------
@@ -142,11 +199,17 @@ class LineTemplate:
     Raises
     ------
     ValueError
-        A malformed template (an unclosed brace, a format spec), an unknown or repeated field, or none at all.
+        A malformed template (an unclosed brace, a format spec), an unknown or repeated field, none at all, or a
+        template over :data:`MAX_TEMPLATE_CHARS` characters.
     """
 
     def __init__(self, text: str):
         self.text = str(text)
+        if len(self.text) > MAX_TEMPLATE_CHARS:
+            raise ValueError(
+                f"template {self.text[:40]!r}...: {len(self.text)} characters, at most {MAX_TEMPLATE_CHARS}; write "
+                "the line's start and end and {_} for the rest"
+            )
         try:
             parts = list(string.Formatter().parse(self.text))
         except ValueError as exc:  # "Single '}' encountered", "expected '}' before end of string"
@@ -163,7 +226,7 @@ class LineTemplate:
                 raise ValueError(f"template {self.text!r}: write fields as {{name}}, without ':' or '!' ({{{name}}})")
             role = column_role(name)  # raises for an unknown name
             if role[0] == "skip":
-                self._tokens.append(("skip", SKIP, "{_}"))
+                self._tokens.append(("skip", "", "{_}"))
                 continue
             if name in self.fields:
                 raise ValueError(f"template {self.text!r}: field {{{name}}} appears twice")
@@ -171,14 +234,18 @@ class LineTemplate:
             self._tokens.append(("num", f"({NUMBER})", f"a number for {{{name}}}"))
         if not self.fields:
             raise ValueError(f"template {self.text!r}: no field; write the readings as {{x}}, {{y}}, {{z}}")
-        self._regex = re.compile(self._pattern(len(self._tokens)) + r"\s*")
-
-    def _pattern(self, k):
-        return r"\s*" + r"\s*".join(t[1] for t in self._tokens[:k])
-
-    @functools.lru_cache(maxsize=64)  # noqa: B019 - a handful of templates live as long as their sources
-    def _prefix(self, k):
-        return re.compile(self._pattern(k))
+        runs: list[list] = [[]]
+        for token in self._tokens:
+            if token[0] == "skip":
+                runs.append([])
+            else:
+                runs[-1].append(token)
+        #: the runs of tokens between skips; an empty one between two skips is nothing
+        self._segments = [
+            _Segment(run, anchored=(i == 0), last=(i == len(runs) - 1))
+            for i, run in enumerate(runs)
+            if run or i in (0, len(runs) - 1)
+        ]
 
     def match(self, line: str) -> list[str]:
         """The text of each named field (in :attr:`fields` order).
@@ -188,23 +255,35 @@ class LineTemplate:
         ValueError
             ``template: ...`` saying where the line departs from the template.
         """
-        m = self._regex.fullmatch(line)
-        if m is not None:
-            return list(m.groups())
-        k = 0  # the longest start of the template the line matches
-        end = 0
-        for j in range(1, len(self._tokens) + 1):
-            p = self._prefix(j).match(line)
-            if p is None:
-                break
-            k, end = j, p.end()
-        if k == len(self._tokens):
-            rest = line[end:].strip()
-            raise ValueError(f"template: text after the template's end: {rest[:30]!r}")
-        want = self._tokens[k][2]
-        found = line[end:].lstrip()[:20]
-        found = repr(found) if found else "the line's end"
-        raise ValueError(f"template: expected {want} at character {end + 1}, found {found}")
+        found: list[str] = []
+        pos = 0
+        for seg in self._segments:
+            m = seg.find(line, pos)
+            if m is None:
+                raise ValueError(self._departure(line, seg, pos))
+            found += m.groups()
+            pos = m.end()
+        return found
+
+    def _departure(self, line, seg, pos):
+        """``template: ...``: where ``line`` departs from segment ``seg`` (which does not match from ``pos``)."""
+        n = len(seg.tokens)
+        if seg.last and n:  # the last segment may be there, with text after it
+            m = seg.find(line, pos, n)
+            if m is not None:
+                return f"template: text after the template's end: {line[m.end() :].strip()[:30]!r}"
+        lo, hi = 0, n - 1  # the longest start of the segment found in the line (bisection: a start of one is one)
+        while lo < hi:
+            k = (lo + hi + 1) // 2
+            if seg.find(line, pos, k) is not None:
+                lo = k
+            else:
+                hi = k - 1
+        m = seg.find(line, pos, lo) if lo else None
+        end = m.end() if m is not None else pos + len(line[pos:]) - len(line[pos:].lstrip())
+        rest = line[end:].lstrip()[:20]
+        shown = repr(rest) if rest else "the line's end"
+        return f"template: expected {seg.tokens[lo][2]} at character {end + 1}, found {shown}"
 
 
 # -- frames and checksums ----------------------------------------------------------------------------------------------

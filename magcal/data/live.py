@@ -34,7 +34,9 @@ names :mod:`magcal.data.attitude` and :mod:`magcal.checks.reference` read (``rol
 :meth:`LiveSource.read` returns a :class:`LiveChunk` of whatever arrived within a timeout (possibly empty);
 iterating a source yields non-empty chunks until it ends or is closed. Lines or messages that cannot be read are
 counted in :attr:`LiveSource.stats` (with the last reason), never raised; lines that are not data (comments, a
-boot banner before the first sample) are counted as skipped. Every wait is bounded.
+boot banner before the first sample) are counted as skipped. Every wait is bounded, and so is every line's work
+(at most :data:`MAX_LINE_BYTES`, a template matched in linear time): a read returns by its timeout whatever
+arrives, the lines it did not reach waiting for the next, so ``magcal record --seconds S`` ends after S seconds.
 
 :class:`Recorder` appends the samples to a magcal CSV as they arrive: whole lines only, flushed to disk (``fsync``)
 at least every ``flush_interval_s``, so a recording cut by a crash or a kill reopens with
@@ -666,13 +668,19 @@ class _ReopensPort:
 
 
 class _LineSource(LiveSource):
-    """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes``.
+    """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes`` (and set
+    ``_eof`` when the stream has ended).
 
     Lines that cannot be read before the first sample since the source opened (or reopened its port) are skipped
     as a boot banner or a cut first line (:meth:`SourceStats.skip`); after it, they are bad. When a line's time
     (a ``t`` column) jumps back by more than :data:`CLOCK_RESET_S`, or at all in the first sample after the port
     was reopened (the board restarted its clock), later samples are shifted to follow on from the last one by the
     time the host saw pass (:attr:`clock_resets` counts it).
+
+    Every line costs a bounded time (at most :data:`MAX_LINE_BYTES` bytes; a template matches in linear time,
+    :class:`magcal.data.lineformats.LineTemplate`), and a read returns by its deadline: the lines received but not
+    yet parsed then wait for the next read (or :meth:`drain`). A stream without line ends is one over-long line,
+    counted once however long it runs, and dropped up to its next line end.
     """
 
     def __init__(self, url, parser):
@@ -683,7 +691,9 @@ class _LineSource(LiveSource):
         self.channel_names = parser.channel_names
         self._buffer = b""
         self._line_no = 0
-        self._skip_partial = False
+        self._overlong = None  # bytes of the over-long line being dropped, while it lasts
+        self._queue = collections.deque()  # lines received, not yet parsed (None: an over-long line's start)
+        self._eof = False  # the stream has ended (what it held is still queued)
         self._seen_data = False  # a sample since the source opened or reconnected
         self._clock = _DeviceClock()
 
@@ -702,50 +712,100 @@ class _LineSource(LiveSource):
         raise NotImplementedError
 
     def _lines(self, data):
+        """The whole lines ``data`` completes (the rest is kept); an over-long line is counted once and dropped."""
+        if self._overlong is not None:  # inside an over-long line (counted): dropped up to its end
+            end = _LINE_END.search(data)
+            self._overlong += len(data) if end is None else end.start()
+            self.stats.last_bad = f"line {self._line_no}: {_overlong_reason(self._overlong, end is not None)}"
+            if end is None:
+                return []
+            self._overlong = None
+            data = data[end.end() :]
         self._buffer += data
-        *lines, self._buffer = re.split(rb"\r\n|\n|\r", self._buffer)
-        if len(self._buffer) > MAX_LINE_BYTES:
-            self._line_no += 1
-            self.stats.bad(f"line too long: over {MAX_LINE_BYTES} bytes without a line end", f"line {self._line_no}")
+        *lines, self._buffer = _LINE_END.split(self._buffer)
+        if len(self._buffer) > MAX_LINE_BYTES:  # counted by _take after the lines before it: None stands for it
+            self._overlong = len(self._buffer)
             self._buffer = b""
-            self._skip_partial = True
+            lines.append(None)
         return lines
+
+    def _take(self, raw):
+        """The sample of one received line, or None (the line counted as bad or skipped); ``raw`` None is the
+        start of an over-long line."""
+        self._line_no += 1
+        where = f"line {self._line_no}"
+        if raw is None:
+            self.stats.bad(_overlong_reason(self._overlong or MAX_LINE_BYTES, False), where)
+            return None
+        if len(raw) > MAX_LINE_BYTES:
+            self.stats.bad(f"line too long: {len(raw)} bytes, over {MAX_LINE_BYTES}", where)
+            return None
+        try:
+            sample = self.parser.parse_sample(raw.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            reason = "not text: bytes that are not UTF-8" if isinstance(exc, UnicodeDecodeError) else str(exc)
+            if self._seen_data:
+                self.stats.bad(reason, where)
+            else:  # a boot banner, or the first line cut by the opening
+                self.stats.skip(f"before the first sample: {reason}", where)
+            return None
+        if sample is None:
+            self.stats.skip(self.parser.last_skip or "not data", where)
+            return None
+        self._seen_data = True
+        if sample[0] is not None:
+            sample = (self._device_clock(sample[0]), *sample[1:])
+        return sample
 
     def _poll(self, deadline, max_samples):
         samples = []
-        while not samples and not self.ended:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+        while not samples:
+            if not self._queue:
+                if self._eof:
+                    self.ended = True
+                if self.ended:
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._queue.extend(self._lines(self._receive(min(remaining, 0.2))))
+            while self._queue and len(samples) < max_samples:
+                sample = self._take(self._queue.popleft())
+                if sample is not None:
+                    samples.append(sample)
+                if time.monotonic() >= deadline:  # the rest waits for the next read
+                    break
+            if len(samples) >= max_samples or time.monotonic() >= deadline:
                 break
-            data = self._receive(min(remaining, 0.2))
-            for raw in self._lines(data):
-                self._line_no += 1
-                if self._skip_partial:  # the rest of an over-long line
-                    self._skip_partial = False
-                    continue
-                if len(raw) > MAX_LINE_BYTES:
-                    self.stats.bad(f"line too long: {len(raw)} bytes, over {MAX_LINE_BYTES}", f"line {self._line_no}")
-                    continue
-                where = f"line {self._line_no}"
-                try:
-                    sample = self.parser.parse_sample(raw.decode("utf-8"))
-                except (UnicodeDecodeError, ValueError) as exc:
-                    reason = "not text: bytes that are not UTF-8" if isinstance(exc, UnicodeDecodeError) else str(exc)
-                    if self._seen_data:
-                        self.stats.bad(reason, where)
-                    else:  # a boot banner, or the first line cut by the opening
-                        self.stats.skip(f"before the first sample: {reason}", where)
-                    continue
-                if sample is None:
-                    self.stats.skip(self.parser.last_skip or "not data", where)
-                    continue
-                self._seen_data = True
-                if sample[0] is not None:
-                    sample = (self._device_clock(sample[0]), *sample[1:])
-                samples.append(sample)
-            if len(samples) >= max_samples:
-                break
+        if self._eof and not self._queue:
+            self.ended = True
         return samples
+
+    def _held(self):
+        """The lines received but not yet parsed (a read that reached its deadline), parsed now."""
+        samples = []
+        while self._queue:
+            sample = self._take(self._queue.popleft())
+            if sample is not None:
+                samples.append(sample)
+        return samples
+
+
+#: A line end in a byte stream: CR LF, LF or CR.
+_LINE_END = re.compile(rb"\r\n|\n|\r")
+
+
+def _overlong_reason(n_bytes, ended):
+    """Why an over-long line (``n_bytes`` so far, ``ended`` or not) is bad: one line, however long it runs."""
+    if ended:
+        return (
+            f"line too long: {n_bytes} bytes before its line end, over {MAX_LINE_BYTES}; dropped (a stream without "
+            "line ends: binary data such as MAVLink, or a wrong baud rate?)"
+        )
+    return (
+        f"line too long: no line end in {n_bytes} bytes (over {MAX_LINE_BYTES}); dropped up to the next line end "
+        "(a stream without line ends: binary data such as MAVLink, or a wrong baud rate?)"
+    )
 
 
 class SerialSource(_ReopensPort, _LineSource):
@@ -799,7 +859,7 @@ class SerialSource(_ReopensPort, _LineSource):
             self._line_no += 1
             self.stats.bad("cut line: the port was lost in the middle of it", f"line {self._line_no}")
             self._buffer = b""
-        self._skip_partial = False
+        self._overlong = None
 
     def _port_back(self):
         self._seen_data = False  # the board's banner comes first
@@ -865,7 +925,7 @@ class TcpLineSource(_LineSource):
         except OSError as exc:
             raise LiveError(f"{self.url}: the connection failed ({exc})") from None
         if not data:
-            self.ended = True
+            self._eof = True
             return b"\n" if self._buffer else b""
         return data
 
@@ -1425,7 +1485,8 @@ def open_source(url: str, **options) -> LiveSource:
         try:
             value = kind(params[name]) if name in params else default
         except (ValueError, OverflowError):
-            raise LiveError(f"{url}: {name}={params[name][:40]!r} is not a number") from None
+            what = "a whole number" if kind is int else "a number"  # 14551.5 is refused, never truncated
+            raise LiveError(f"{url}: {name}={params[name][:40]!r} is not {what}") from None
         if bounds is not None and value is not None and not bounds[0] <= value <= bounds[1]:
             raise LiveError(f"{url}: {name}={params[name][:40]!r}: give {bounds[0]:g} to {bounds[1]:g}")
         return value
