@@ -14,8 +14,9 @@ from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_source
 from magcal.data.inputs import as_dataset
 from magcal.data.io import read_csv
+from magcal.diagnosis import Diagnosis
 from magcal.diagnosis import diagnose as _diagnose
-from magcal.diagnosis.vector import Flight, diagnose_vector
+from magcal.diagnosis.vector import Flight, VectorDiagnosis, diagnose_vector
 from magcal.fitting import pipeline
 from magcal.fitting.validation import validate_effects
 from magcal.fitting.vector import VectorFitResult
@@ -168,6 +169,7 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
     reference = options.pop("reference", None)
     also = options.pop("also", ())
     vector = _vector_mode(dataset, result, mode, reference)
+    diagnosis: Diagnosis | VectorDiagnosis
     if vector is not None:
         flights = [_flight(f, i) for i, f in enumerate(also or (), 1)]
         vector_options = {k: v for k, v in options.items() if k in _VECTOR_OPTIONS}

@@ -8,9 +8,8 @@ through the panels' own widgets on a real server (loopback); one Chromium test d
 
 from __future__ import annotations
 
-import re
-
 import json
+import re
 import time
 
 import numpy as np

@@ -40,6 +40,7 @@ from __future__ import annotations
 import time as _time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -456,9 +457,9 @@ def _pair(before, after, fmt="{:.4g}") -> str:
 class _Record:
     """A record's attitude, field and the samples a vector fit can use."""
 
-    dataset: object
-    reference: object
-    rotation: object
+    dataset: Any
+    reference: Any
+    rotation: Any
     usable: np.ndarray
     f_ref: np.ndarray
 
@@ -475,7 +476,7 @@ class _Record:
         usable = have & np.all(np.isfinite(ned), axis=1) & np.isfinite(f_ref)
         return cls(dataset, reference, rotation, usable, f_ref)
 
-    def residuals(self, calibration, record_terms=None):
+    def residuals(self, calibration, record_terms=None) -> tuple[np.ndarray, np.ndarray]:
         """World residuals (n_sensors, N, 3) and total-field residuals (n_sensors, N), NaN where not usable."""
         body, _ = calibration.corrected_with_notes(self.dataset, record_terms)
         world = np.stack([self.rotation.apply(b) for b in body])
@@ -492,6 +493,12 @@ def _sigmas(result: VectorFitResult) -> tuple[np.ndarray, np.ndarray]:
         np.array([s.sigma_total_field_nT for s in result.sensors]),
         np.array([s.sigma_perpendicular_nT for s in result.sensors]),
     )
+
+
+def _score_of(record: _Record, calibration, record_terms, where, weights) -> Scores:
+    """:func:`_scores` of ``calibration`` applied to the record (``record_terms`` as :meth:`_Record.residuals`)."""
+    err, total = record.residuals(calibration, record_terms)
+    return _scores(record, err, total, where, weights[0], weights[1])
 
 
 def _scores(record: _Record, err, total, where, sigma_f, sigma_p) -> Scores:
@@ -712,10 +719,14 @@ def diagnose_vector(
     determined = all(s.determined for s in result.sensors)
     current = result
     sub = _even_subsample(fitted, MAX_SAMPLES)
-    if sub.sum() < fitted.sum():  # a long record: the candidates are judged on every k-th sample, the advice fitted on all
+    if (
+        sub.sum() < fitted.sum()
+    ):  # a long record: the candidates are judged on every k-th sample, the advice fitted on all
         validation["subsample"] = {"samples": int(sub.sum()), "of": int(fitted.sum())}
         if determined:
-            current = fit_vector(dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options)
+            current = fit_vector(
+                dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options
+            )
     options = dict(options, mask=sub)
     judge = _Judge(dataset, reference, record, later, flights, options, weights, validate)
     fits: dict = {}
@@ -764,7 +775,7 @@ def diagnose_vector(
         if "subsample" in validation:
             options = dict(options, mask=fitted)
             current = fit_vector(dataset, reference, effects=current.calibration.model, warn=False, **options)
-        final = _scores(record, *record.residuals(current.calibration, "apply"), fitted, *weights)
+        final = _score_of(record, current.calibration, "apply", fitted, weights)
         fits["+".join(c.label for c in chosen)] = current
     err_f, total_f = record.residuals(current.calibration, "apply")
     left = _left_structure(record, err_f, total_f, fitted)
@@ -799,7 +810,7 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
     """Every candidate refitted with ``model`` on the whole record: ``[(VectorCandidate, VectorFitResult)]``, lowest
     delta-BIC first."""
     base_ll = _log_likelihood_terms(current)
-    base_in = _scores(record, *record.residuals(current.calibration, "apply"), fitted, *weights)
+    base_in = _score_of(record, current.calibration, "apply", fitted, weights)
     tried = []
     for e in cands:
         # an effect of the model that the candidate holds as a special case (a common delay in an eddy matrix) is
@@ -813,11 +824,13 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
         except (CalibrationError, MagcalError, np.linalg.LinAlgError) as exc:
             notes.append(Note(f"{e.label}: the refit failed ({exc})", UserWarning, "vector diagnosis"))
             continue
-        added = fit.calibration.model.effects[-1]
-        q = _n_params(added, fit.calibration.model) - sum(_n_params(x, model) for x in nested)
+        fitted_model = fit.calibration.model
+        assert fitted_model is not None  # it holds the candidate
+        added = fitted_model.effects[-1]
+        q = _n_params(added, fitted_model) - sum(_n_params(x, model) for x in nested)
         n_res = 3 * fit.n_samples * dataset.n_sensors
         dbic = _log_likelihood_terms(fit) - base_ll + q * np.log(max(n_res, 2))
-        after = _scores(record, *record.residuals(fit.calibration, "apply"), fitted, *weights)
+        after = _score_of(record, fit.calibration, "apply", fitted, weights)
         quote, signature = _describe(added, fit.calibration)
         c = VectorCandidate(
             effect=e.name,
@@ -870,16 +883,16 @@ class _Judge:
                 c.why = f"held-out fit failed ({exc})"
                 return
             rec = self.record
-            before = _scores(rec, *rec.residuals(fb.calibration, "drop"), self.later, *self.weights)
-            after = _scores(rec, *rec.residuals(fc.calibration, "drop"), self.later, *self.weights)
+            before = _score_of(rec, fb.calibration, "drop", self.later, self.weights)
+            after = _score_of(rec, fc.calibration, "drop", self.later, self.weights)
             c.later = (before, after)
             gains.append(("the later part", before.weighted, after.weighted))
         if self.validate:
             for flight, rec in self.flights:
                 everywhere = np.ones(rec.dataset.n_samples, bool)
                 try:
-                    before = _scores(rec, *rec.residuals(base_fit.calibration, "drop"), everywhere, *self.weights)
-                    after = _scores(rec, *rec.residuals(cand_fit.calibration, "drop"), everywhere, *self.weights)
+                    before = _score_of(rec, base_fit.calibration, "drop", everywhere, self.weights)
+                    after = _score_of(rec, cand_fit.calibration, "drop", everywhere, self.weights)
                 except MagcalError as exc:
                     c.why = f"cannot be applied to {flight.name} ({exc})"
                     return

@@ -1033,7 +1033,9 @@ def true_calibration(truth) -> Calibration:
         for k, s in enumerate(truth.sensors):
             values[block_label(effects[-1], k)] = np.zeros(9) if s.eddy_ms is None else np.ravel(s.eddy_ms)
     if any(s.current_nT_per_unit is not None for s in truth.sensors):
-        effects.append(EFFECTS["current_field"](column="current_A"))
+        current = EFFECTS["current_field"]()
+        current.set_state({"column": "current_A"})
+        effects.append(current)
         for k, s in enumerate(truth.sensors):
             k_nT = s.current_nT_per_unit
             values[block_label(effects[-1], k)] = np.zeros(3) if k_nT is None else np.asarray(k_nT, dtype=float)
