@@ -226,3 +226,26 @@ def test_a_long_record_is_judged_on_a_subsample_and_the_advice_fitted_on_all(tru
     assert np.allclose(
         final.calibration.effect_values["current_field:1"], full.calibration.effect_values["current_field:1"]
     )
+
+
+def test_a_sensor_the_record_does_not_determine_is_not_judged_and_a_gain_within_chance_is_not_advised():
+    """Two compasses, the second's fit not determined (a field wandering by tens of uT, which no vector model fits):
+    the first's current field is still named, nothing is proposed on the second, and a warning says so."""
+    truth = vehicle_truth(seed=2, n_sensors=2)
+    hidden = [parse_hidden("current_field:1=25", 2)]
+    one, _ = simulate_vehicle(truth, seed=1, n=N, perturbations=hidden, log_current=True)
+    rng = np.random.default_rng(0)
+    garbled = one.readings_nT.copy()
+    garbled[1] += np.cumsum(rng.normal(0.0, 600.0, garbled[1].shape), axis=0)
+    one = one.replace(readings_nT=garbled)
+    d = diagnose_vector(one, resolve_vector_reference(one), max_effects=1)
+    assert d.explained_by == ["current_field:1"]
+    assert not [c for c in d.candidates if c.sensor == 1]
+    assert any("sensor(s) 2 is not determined" in w for w in d.warnings)
+    # per-sample gains that are chance: one large but correlated stretch does not count as many samples
+    from magcal.diagnosis.vector import Scores, significant_gain
+
+    wander = np.repeat(rng.normal(0.0, 1.0, 6), 100)  # six independent stretches of 100 correlated samples
+    before = Scores(0, 0, 0, 600, np.full(600, 2.0))
+    assert not significant_gain(before, Scores(0, 0, 0, 600, 2.0 - 0.3 - wander))
+    assert significant_gain(before, Scores(0, 0, 0, 600, 2.0 - 0.3 - 0.1 * rng.normal(size=600)))

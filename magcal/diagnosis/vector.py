@@ -19,8 +19,10 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    ``magcal apply`` applies it (record-only terms dropped, the level they keep folded into the bias), beside the base
    model fitted the same way; with other flights of the same vehicle (``also``), both calibrations of the whole
    record are applied to each of them. The score is the residual's weighted RMS (the total field over ``sigma_F``,
-   the perpendicular components over ``sigma_perp``, both from the base fit: 1 at the noise): a candidate is
-   recommended only if it lowers it by :data:`MIN_GAIN` or more on the later part, and on every other flight.
+   the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals: 1 at the
+   noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more, and by more than
+   :data:`GAIN_SE` standard errors of the per-sample gain (:func:`significant_gain`), on the later part and on every
+   other flight.
    An effect that describes the record (a bias step, an interference) but does not improve the later part or the
    other flights is reported in ``record_holds``, with what to do when recording.
 4. **Forward selection.** The best recommended candidate joins the model and the candidates are tried again, up
@@ -58,8 +60,11 @@ from magcal.model.terms import EFFECTS, Model, term_label
 #: A candidate is supported in-sample when its delta-BIC is below this (very strong evidence), as in scalar mode.
 DELTA_BIC_THRESHOLD = -10.0
 
-#: Least relative fall of the weighted held-out RMS for a candidate to be recommended.
+#: Least relative fall of the weighted held-out RMS for a candidate to be recommended ...
 MIN_GAIN = 0.01
+
+#: ... and the least mean gain per sample, in standard errors (:func:`significant_gain`).
+GAIN_SE = 2.0
 
 #: The later part of a record that the earlier part's fits are judged on.
 LATER_FRACTION = 0.3
@@ -114,6 +119,9 @@ class Scores:
     total_nT: float
     weighted: float
     n: int
+    #: Per scored sample, the squared weighted residual averaged over the sensors and components (its mean is
+    #: ``weighted ** 2``): what the significance of a gain is computed from.
+    per_sample: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {
@@ -495,14 +503,18 @@ def _sigmas(result: VectorFitResult) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def _score_of(record: _Record, calibration, record_terms, where, weights) -> Scores:
-    """:func:`_scores` of ``calibration`` applied to the record (``record_terms`` as :meth:`_Record.residuals`)."""
+def _score_of(record: _Record, calibration, record_terms, where, weights, sensors=None) -> Scores:
+    """:func:`_scores` of ``calibration`` applied to the record (``record_terms`` as :meth:`_Record.residuals`), on
+    ``sensors`` (0-based; default all)."""
     err, total = record.residuals(calibration, record_terms)
+    if sensors is not None:
+        k = list(sensors)
+        return _scores(record, err[k], total[k], where, weights[0][k], weights[1][k])
     return _scores(record, err, total, where, weights[0], weights[1])
 
 
 def _scores(record: _Record, err, total, where, sigma_f, sigma_p) -> Scores:
-    """World RMS per component, |B| RMS and the weighted RMS over the samples ``where`` (all sensors)."""
+    """World RMS per component, |B| RMS and the weighted RMS over the samples ``where`` (the sensors given)."""
     ned = np.asarray(record.reference.ned_nT, dtype=float)
     u = ned / np.linalg.norm(ned, axis=1, keepdims=True)
     sel = where & record.usable
@@ -518,7 +530,27 @@ def _scores(record: _Record, err, total, where, sigma_f, sigma_p) -> Scores:
         float(np.sqrt(np.mean(tf**2))),
         float(np.sqrt(np.mean(weighted) / 3.0)),
         n,
+        np.mean(weighted, axis=0) / 3.0,
     )
+
+
+def significant_gain(before: Scores, after: Scores) -> bool:
+    """Whether ``after`` improves on ``before`` (the same samples) by more than :data:`GAIN_SE` standard errors of
+    the mean per-sample gain, the standard error widened for the gains' correlation in time (an effective number of
+    samples ``n (1 - r) / (1 + r)``, ``r`` the lag-1 correlation): a real record's residuals wander, and a gain of a
+    few percent on them can be chance."""
+    if before.per_sample is None or after.per_sample is None or len(before.per_sample) != len(after.per_sample):
+        return True
+    d = before.per_sample - after.per_sample
+    n = len(d)
+    if n < 3:
+        return bool(d.mean() > 0)
+    dc = d - d.mean()
+    den = float(dc @ dc)
+    r = float(np.clip((dc[1:] @ dc[:-1]) / den, 0.0, 0.999)) if den > 0 else 0.0
+    n_eff = max(n * (1.0 - r) / (1.0 + r), 2.0)
+    se = float(np.std(d, ddof=1)) / np.sqrt(n_eff)
+    return bool(d.mean() > GAIN_SE * se)
 
 
 def _log_likelihood_terms(result: VectorFitResult) -> float:
@@ -530,6 +562,11 @@ def _log_likelihood_terms(result: VectorFitResult) -> float:
             np.log(max(s.rms_total_field_nT, 1e-9) ** 2) + 2.0 * np.log(max(s.rms_perpendicular_nT, 1e-9) ** 2)
         )
     return float(out)
+
+
+def _sensors_of(effect, judged) -> tuple:
+    """The sensors a candidate is scored on: its own, or every judged one for an effect of every sensor."""
+    return tuple(judged) if effect.sensor is None else (effect.sensor,)
 
 
 def _same_sensors(a, b) -> bool:
@@ -546,10 +583,10 @@ def _n_params(effect, model) -> int:
 # ---- candidates ------------------------------------------------------------------------------------------------
 
 
-def vector_candidates(dataset, model, names=None) -> list:
+def vector_candidates(dataset, model, names=None, sensors=None) -> list:
     """The effects a vector diagnosis tries on ``dataset`` beside ``model``: every registered effect the vector
     fit can take whose channels the record has, one instance per sensor (one for a one-sensor record), not
-    already in the model."""
+    already in the model; only on ``sensors`` (0-based) when given."""
     out = []
     have = {e.label for e in model.effects}
     names_in = {e.name for e in model.effects if e.sensor is None}
@@ -565,8 +602,8 @@ def vector_candidates(dataset, model, names=None) -> list:
         probe = cls()
         if probe.missing_channels(dataset):
             continue
-        sensors = [None] if dataset.n_sensors == 1 else [s for s in range(dataset.n_sensors) if probe.applies_to(s)]
-        for s in sensors:
+        on = [s for s in range(dataset.n_sensors) if probe.applies_to(s) and (sensors is None or s in sensors)]
+        for s in [None] if on == [0] and dataset.n_sensors == 1 else on:
             e = cls(sensor=s)
             holders = [x for x in model.effects if x.name in getattr(cls, "nested_in", ())]
             if e.label not in have and not any(s is None or x.applies_to(s) for x in holders):
@@ -716,7 +753,8 @@ def diagnose_vector(
     warnings_: list[str] = []
     later, validation = _later_split(fitted, validate)
     validation["flights"] = [f.name for f, _ in flights]
-    determined = all(s.determined for s in result.sensors)
+    judged = [k for k, s in enumerate(result.sensors) if s.determined]  # a sensor the record does not fix: not judged
+    determined = bool(judged)
     current = result
     sub = _even_subsample(fitted, MAX_SAMPLES)
     if (
@@ -728,7 +766,7 @@ def diagnose_vector(
                 dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options
             )
     options = dict(options, mask=sub)
-    judge = _Judge(dataset, reference, record, later, flights, options, weights, validate)
+    judge = _Judge(dataset, reference, record, later, flights, options, weights, validate, judged)
     fits: dict = {}
     all_cands: list[VectorCandidate] = []
     chosen: list[VectorCandidate] = []
@@ -737,13 +775,19 @@ def diagnose_vector(
             "the vector fit is not determined by this record (see its warnings): no effect can be judged; record "
             "banked turns and pitch changes over several minutes"
         )
+    elif len(judged) < dataset.n_sensors:
+        skipped = ", ".join(str(k + 1) for k in range(dataset.n_sensors) if k not in judged)
+        warnings_.append(
+            f"the vector fit of sensor(s) {skipped} is not determined by this record (see its warnings): no effect on "
+            "it is judged"
+        )
     for rnd in range(max_effects if determined else 0):
         model = current.calibration.model or Model(dataset.n_sensors)
-        cands = vector_candidates(dataset, model, candidates)
+        cands = vector_candidates(dataset, model, candidates, sensors=judged)
         if not cands:
             break
         report(f"round {rnd + 1}: refitting {len(cands)} candidates", 0.1 + 0.8 * rnd / max(max_effects, 1))
-        tried = _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes)
+        tried = _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes, judged)
         for c, fit in tried:
             c.round = rnd + 1
             fits[c.label] = fit
@@ -806,11 +850,11 @@ def diagnose_vector(
     )
 
 
-def _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes) -> list:
+def _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes, judged) -> list:
     """Every candidate refitted with ``model`` on the whole record: ``[(VectorCandidate, VectorFitResult)]``, lowest
     delta-BIC first."""
     base_ll = _log_likelihood_terms(current)
-    base_in = _score_of(record, current.calibration, "apply", fitted, weights)
+    base_in = {}
     tried = []
     for e in cands:
         # an effect of the model that the candidate holds as a special case (a common delay in an eddy matrix) is
@@ -830,7 +874,10 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
         q = _n_params(added, fitted_model) - sum(_n_params(x, model) for x in nested)
         n_res = 3 * fit.n_samples * dataset.n_sensors
         dbic = _log_likelihood_terms(fit) - base_ll + q * np.log(max(n_res, 2))
-        after = _score_of(record, fit.calibration, "apply", fitted, weights)
+        on = _sensors_of(e, judged)
+        if on not in base_in:
+            base_in[on] = _score_of(record, current.calibration, "apply", fitted, weights, on)
+        after = _score_of(record, fit.calibration, "apply", fitted, weights, on)
         quote, signature = _describe(added, fit.calibration)
         c = VectorCandidate(
             effect=e.name,
@@ -838,7 +885,7 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
             label=e.label,
             n_params=q,
             delta_bic=float(dbic),
-            in_sample=(base_in, after),
+            in_sample=(base_in[on], after),
             record_only=not getattr(e, "transferable", True),
             params={k: v for k, v in fit.calibration.effect_values.items() if k.split(":")[0] == e.name},
             quote=quote,
@@ -858,10 +905,10 @@ class _Judge:
     each candidate fitted there too; both applied to the later part, and the whole-record fits to each other
     flight, as ``magcal apply`` applies them (record-only terms dropped, the level they keep folded in)."""
 
-    def __init__(self, dataset, reference, record, later, flights, options, weights, validate):
+    def __init__(self, dataset, reference, record, later, flights, options, weights, validate, judged):
         self.dataset, self.reference, self.record = dataset, reference, record
         self.later, self.flights, self.options, self.weights = later, flights, options, weights
-        self.validate = validate
+        self.validate, self.judged = validate, judged
         self._train_base: dict = {}
 
     def _train_fit(self, model):
@@ -883,27 +930,31 @@ class _Judge:
                 c.why = f"held-out fit failed ({exc})"
                 return
             rec = self.record
-            before = _score_of(rec, fb.calibration, "drop", self.later, self.weights)
-            after = _score_of(rec, fc.calibration, "drop", self.later, self.weights)
+            on = _sensors_of(c, self.judged)
+            before = _score_of(rec, fb.calibration, "drop", self.later, self.weights, on)
+            after = _score_of(rec, fc.calibration, "drop", self.later, self.weights, on)
             c.later = (before, after)
-            gains.append(("the later part", before.weighted, after.weighted))
+            gains.append(("the later part", before, after))
         if self.validate:
             for flight, rec in self.flights:
                 everywhere = np.ones(rec.dataset.n_samples, bool)
                 try:
-                    before = _score_of(rec, base_fit.calibration, "drop", everywhere, self.weights)
-                    after = _score_of(rec, cand_fit.calibration, "drop", everywhere, self.weights)
+                    on = _sensors_of(c, self.judged)
+                    before = _score_of(rec, base_fit.calibration, "drop", everywhere, self.weights, on)
+                    after = _score_of(rec, cand_fit.calibration, "drop", everywhere, self.weights, on)
                 except MagcalError as exc:
                     c.why = f"cannot be applied to {flight.name} ({exc})"
                     return
                 c.flights.append((flight.name, before, after))
                 if not c.record_only:  # a record-only term describes this record: other flights have their own
-                    gains.append((flight.name, before.weighted, after.weighted))
+                    gains.append((flight.name, before, after))
         if not gains:
             c.holds = not c.record_only
             c.why = "" if c.holds else "describes this record only (dropped on new data)"
             return
-        worse = [name for name, b, a in gains if not a <= (1.0 - MIN_GAIN) * b]
+        worse = [
+            name for name, b, a in gains if not (a.weighted <= (1.0 - MIN_GAIN) * b.weighted and significant_gain(b, a))
+        ]
         c.holds = not worse
         raised = [name for name, b, a in c.flights if a.weighted > b.weighted]
         if c.record_only and raised and not worse:
