@@ -245,7 +245,8 @@ def test_a_sensor_the_record_does_not_determine_is_not_judged_and_a_gain_within_
     # per-sample gains that are chance: one large but correlated stretch does not count as many samples
     from magcal.diagnosis.vector import Scores, significant_gain
 
-    wander = np.repeat(rng.normal(0.0, 1.0, 6), 100)  # six independent stretches of 100 correlated samples
+    wander = np.repeat([1.5, -1.0, 1.2, -0.8, -1.3, 1.0], 100)  # six stretches of 100 correlated samples
     before = Scores(0, 0, 0, 600, np.full(600, 2.0))
-    assert not significant_gain(before, Scores(0, 0, 0, 600, 2.0 - 0.3 - wander))
-    assert significant_gain(before, Scores(0, 0, 0, 600, 2.0 - 0.3 - 0.1 * rng.normal(size=600)))
+    assert not significant_gain(before, Scores(0, 0, 0, 600, 2.0 - 0.1 - wander))  # lower on average, by chance
+    smooth = 0.3 * (1.0 + 5.0 * np.exp(-np.arange(600) / 50.0))  # better everywhere, by much more at the start
+    assert significant_gain(before, Scores(0, 0, 0, 600, 2.0 - smooth - 0.05 * rng.normal(size=600)))

@@ -20,9 +20,9 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    model fitted the same way; with other flights of the same vehicle (``also``), both calibrations of the whole
    record are applied to each of them. The score is the residual's weighted RMS (the total field over ``sigma_F``,
    the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals: 1 at the
-   noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more, and by more than
-   :data:`GAIN_SE` standard errors of the per-sample gain (:func:`significant_gain`), on the later part and on every
-   other flight.
+   noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more, and by more than chance
+   (the gains of ten stretches, a signed-rank test below :data:`GAIN_P`: :func:`significant_gain`), on the later
+   part and on every other flight.
    An effect that describes the record (a bias step, an interference) but does not improve the later part or the
    other flights is reported in ``record_holds``, with what to do when recording.
 4. **Forward selection.** The best recommended candidate joins the model and the candidates are tried again, up
@@ -63,8 +63,12 @@ DELTA_BIC_THRESHOLD = -10.0
 #: Least relative fall of the weighted held-out RMS for a candidate to be recommended ...
 MIN_GAIN = 0.01
 
-#: ... and the least mean gain per sample, in standard errors (:func:`significant_gain`).
-GAIN_SE = 2.0
+#: ... and by more than chance: the one-sided p-value of the gains of stretches of the held-out samples
+#: (:func:`significant_gain`).
+GAIN_P = 0.02
+
+#: The contiguous stretches the held-out gain is judged over.
+GAIN_BLOCKS = 10
 
 #: The later part of a record that the earlier part's fits are judged on.
 LATER_FRACTION = 0.3
@@ -534,23 +538,21 @@ def _scores(record: _Record, err, total, where, sigma_f, sigma_p) -> Scores:
     )
 
 
-def significant_gain(before: Scores, after: Scores) -> bool:
-    """Whether ``after`` improves on ``before`` (the same samples) by more than :data:`GAIN_SE` standard errors of
-    the mean per-sample gain, the standard error widened for the gains' correlation in time (an effective number of
-    samples ``n (1 - r) / (1 + r)``, ``r`` the lag-1 correlation): a real record's residuals wander, and a gain of a
-    few percent on them can be chance."""
+def significant_gain(before: Scores, after: Scores, blocks=GAIN_BLOCKS) -> bool:
+    """Whether ``after`` improves on ``before`` (the same samples, in time order) by more than chance: the mean
+    per-sample gains of ``blocks`` contiguous stretches, a one-sided Wilcoxon signed-rank test of them below
+    :data:`GAIN_P`. A real record's residuals wander, so neighbouring samples are not independent chances; a model
+    that is better improves nearly every stretch (by however much the stretch shows the effect), a gain by chance
+    only some."""
     if before.per_sample is None or after.per_sample is None or len(before.per_sample) != len(after.per_sample):
         return True
     d = before.per_sample - after.per_sample
-    n = len(d)
-    if n < 3:
+    if len(d) < 2 * blocks:
         return bool(d.mean() > 0)
-    dc = d - d.mean()
-    den = float(dc @ dc)
-    r = float(np.clip((dc[1:] @ dc[:-1]) / den, 0.0, 0.999)) if den > 0 else 0.0
-    n_eff = max(n * (1.0 - r) / (1.0 + r), 2.0)
-    se = float(np.std(d, ddof=1)) / np.sqrt(n_eff)
-    return bool(d.mean() > GAIN_SE * se)
+    means = np.array([part.mean() for part in np.array_split(d, blocks)])
+    if np.all(means == 0.0):
+        return False
+    return bool(d.mean() > 0 and stats.wilcoxon(means, alternative="greater").pvalue < GAIN_P)
 
 
 def _log_likelihood_terms(result: VectorFitResult) -> float:
