@@ -73,6 +73,16 @@ def register(subparsers):
         "file and on standard error)",
     )
     parser.add_argument(
+        "--no-custom-rotation",
+        dest="custom_rotation",
+        action="store_const",
+        const=False,
+        default=None,
+        help="a gravity calibration: write the right angle nearest each mounting (COMPASS_ORIENT, CAL_MAGn_ROT) "
+        "instead of the whole rotation as the firmware's custom rotation (ArduPilot CUSTOM_ROT1_*, PX4 "
+        "CAL_MAGn_ROLL/PITCH/YAW), for firmware without one; the rest is then refused unless --force",
+    )
+    parser.add_argument(
         "--data",
         default=None,
         metavar="DATA.csv",
@@ -100,7 +110,13 @@ def run(args) -> int:
     if args.data or args.mask:
         raise MagcalError(f"--data and --mask are for --format {' or '.join(DATA_FORMATS)}, not {args.format}")
     content, result = parameter_bytes(
-        calibration, args.format, sensors=args.sensor, slots=args.slot, force=args.force, source=args.calibration
+        calibration,
+        args.format,
+        sensors=args.sensor,
+        slots=args.slot,
+        force=args.force,
+        source=args.calibration,
+        custom_rotation=getattr(args, "custom_rotation", None),
     )
     for line in result.dropped:
         print(f"magcal export: warning: dropped {line}", file=sys.stderr)

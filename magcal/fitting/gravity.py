@@ -716,7 +716,7 @@ def fit_gravity(
                 mounting=mount,
                 cinv=cinv,
                 right_angle=right,
-                right_angle_text=describe_right_angle(right),
+                right_angle_text=describe_right_angle(right).replace("-> body", "-> board"),
                 angle_off_deg=off,
                 orientation_margin=margin,
                 field_nT=fields[s],

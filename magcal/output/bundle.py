@@ -67,13 +67,17 @@ def calibration_from_bytes(content: bytes, source: str = CALIBRATION_FILE) -> Ca
     return Calibration.from_dict(doc, source=source)
 
 
-def parameter_bytes(calibration, fmt, sensors=None, slots=None, force=False, source=CALIBRATION_FILE):
+def parameter_bytes(
+    calibration, fmt, sensors=None, slots=None, force=False, source=CALIBRATION_FILE, custom_rotation=None
+):
     """A firmware's parameter file (``fmt`` one of :data:`magcal.output.export.FORMATS`) as bytes, with its
     :class:`~magcal.output.export.Export` (dropped terms, notes, the parameters by name).
 
     ``source`` is the calibration's name written into the file's header (``magcal export`` gives the path it was
     given). Raises :class:`MagcalError` as :func:`magcal.output.export.export_calibration` does."""
-    result = export_calibration(calibration, fmt, sensors=sensors, slots=slots, force=force, source=source)
+    result = export_calibration(
+        calibration, fmt, sensors=sensors, slots=slots, force=force, source=source, custom_rotation=custom_rotation
+    )
     return result.text.encode("utf-8"), result
 
 

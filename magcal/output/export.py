@@ -28,6 +28,14 @@ longer a gauge: it is what the firmware cannot hold. PX4 rotates after its corre
 ArduPilot rotates the raw reading first and corrects in the body frame, ``B = (A S A^T) (A y + OFS)`` with
 ``OFS = -A b``. The C header holds the whole ``R C^-1``. Platform terms (eddy currents, field per ampere) are
 not written (listed as dropped).
+
+A gravity calibration (``mode: gravity``, :mod:`magcal.fitting.gravity`) knows each magnetometer's rotation into the
+accelerometer's frame, which is rarely a right angle (a part soldered 2 deg off). Where the firmware holds a custom
+rotation it is written whole, so nothing is dropped: the polar decomposition ``R C^-1 = Q S`` gives the rotation ``Q``
+as Euler angles (ArduPilot ``COMPASS_ORIENT`` 101 or 102 with ``CUSTOM_ROT_ENABLE`` and ``CUSTOM_ROT1_ROLL, _PITCH,
+_YAW``; PX4 ``CAL_MAGn_ROLL, _PITCH, _YAW``, which set ``CAL_MAGn_ROT`` to its custom value) and ``S`` as the
+matrix; ``custom_rotation=False`` writes the nearest right angle and refuses the rest as a vector calibration's.
+Its C header also holds the accelerometer's correction.
 """
 
 from __future__ import annotations
@@ -36,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
+from scipy.spatial.transform import Rotation
 
 from magcal.core.errors import MagcalError
 from magcal.geometry.orientations import (
@@ -67,6 +76,10 @@ MAX_SLOTS = {"ardupilot": 3, "px4": 4, "c": 4}
 
 #: A frame rotation below this angle (deg) counts as none (the upper-triangular gauge of a perfect sensor).
 ROTATION_TOLERANCE_DEG = 1e-6
+
+#: The firmwares' custom-rotation numbers: ArduPilot ``ROTATION_CUSTOM_1``, ``ROTATION_CUSTOM_2`` (with
+#: ``CUSTOM_ROT1_*``, ``CUSTOM_ROT2_*``); PX4's custom Euler angles (MAVLink ``MAV_SENSOR_ROTATION_CUSTOM``).
+CUSTOM_ROTATIONS = {"ardupilot": (101, 102), "px4": (100, 100, 100, 100)}
 
 
 @dataclass
@@ -104,6 +117,7 @@ class SensorExport:
     vector_error_nT: float
     right_angle: np.ndarray | None = None
     rotation_number: int | None = None
+    custom_euler_deg: tuple | None = None
 
     def firmware_corrected_nT(self, raw_nT) -> np.ndarray:
         """The firmware's corrected field ``S (y - b)`` (nT) for raw readings ``y`` (N, 3) in nT; with a right-angle
@@ -155,7 +169,7 @@ def symmetric_factor(cinv):
     return q, 0.5 * (s + s.T)
 
 
-def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
+def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotation=None):
     """Per sensor, the firmware's offset and symmetric matrix and the frame rotation left out.
 
     Parameters
@@ -168,6 +182,9 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
         ``i``, PX4 ``CAL_MAG{i-1}``.
     fmt : str
         The format (for the slot numbering and the number of slots).
+    custom_rotation : bool, optional
+        Write a mounting that is not a right angle as the firmware's custom rotation (default: for a gravity
+        calibration).
     """
     n = calibration.n_sensors
     sensors = list(range(1, n + 1)) if sensors is None else [int(s) for s in sensors]
@@ -196,9 +213,14 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c"):
     field_nT = float(calibration.reference_total_nT or 50_000.0)
     out = []
     kept = calibration.sensors_for_new_data()  # a record-only term's kept level (the bias after a step) folded in
-    for s, k in zip(sensors, slots):
+    mode = getattr(calibration, "mode", "scalar")
+    custom = mode == "gravity" if custom_rotation is None else bool(custom_rotation)
+    for n, (s, k) in enumerate(zip(sensors, slots)):
         cal = kept[s - 1]
-        if getattr(calibration, "mode", "scalar") == "vector":
+        if mode == "gravity" and custom and n < len(CUSTOM_ROTATIONS.get(fmt, ())):
+            out.append(_custom_export(cal, s, k, fmt, n))
+            continue
+        if mode in ("vector", "gravity"):
             out.append(_vector_export(cal, s, k, fmt, field_nT))
             continue
         q, sym = symmetric_factor(cal.cinv)
@@ -241,6 +263,32 @@ def _vector_export(cal, sensor, slot, fmt, field_nT) -> SensorExport:
     )
 
 
+def _custom_export(cal, sensor, slot, fmt, index) -> SensorExport:
+    """A gravity calibration's sensor with its whole rotation as the firmware's custom rotation: ``R C^-1 = Q S``
+    (polar), ``Q`` as Euler angles (``Rz(yaw) Ry(pitch) Rx(roll)``), ``S`` the matrix; a right angle is written as
+    its number."""
+    w = cal.R @ cal.cinv
+    q, sym = symmetric_factor(w)
+    right, off = nearest_right_angle(q)
+    number = firmware_rotation(right)
+    if off <= ROTATION_TOLERANCE_DEG and number is not None:
+        return SensorExport(sensor, slot, cal.bias_nT.copy(), sym, np.eye(3), 0.0, 0.0, 0.0, right, number)
+    yaw, pitch, roll = Rotation.from_matrix(q).as_euler("ZYX", degrees=True)
+    return SensorExport(
+        sensor=sensor,
+        slot=slot,
+        bias_nT=cal.bias_nT.copy(),
+        matrix=sym,
+        frame_rotation=np.eye(3),
+        gauge_angle_deg=0.0,
+        misalignment_angle_deg=0.0,
+        vector_error_nT=0.0,
+        right_angle=euler_matrix(roll, pitch, yaw),
+        rotation_number=CUSTOM_ROTATIONS[fmt][index],
+        custom_euler_deg=(float(roll), float(pitch), float(yaw)),
+    )
+
+
 def unsupported(calibration, exports) -> list[str]:
     """What magcal's model holds that no firmware parameter can carry, one line each (empty: nothing)."""
     lost = []
@@ -253,10 +301,10 @@ def unsupported(calibration, exports) -> list[str]:
                 if name == "current"
                 else f"platform term {name}: the firmware has no parameter for it (its correction is dropped)"
             )
-    if getattr(calibration, "mode", "scalar") == "vector":
+    if getattr(calibration, "mode", "scalar") in ("vector", "gravity"):
         field_nT = float(calibration.reference_total_nT or 50_000.0)
         for e in exports:
-            if e.right_angle is None:
+            if e.right_angle is None or e.custom_euler_deg is not None:
                 continue
             if e.rotation_number is None:
                 lost.append(f"sensor {e.sensor}: its right-angle mounting has no firmware rotation number")
@@ -283,7 +331,9 @@ def unsupported(calibration, exports) -> list[str]:
     return lost
 
 
-def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, source="calibration") -> Export:
+def export_calibration(
+    calibration, fmt, sensors=None, slots=None, force=False, source="calibration", custom_rotation=None
+) -> Export:
     """The parameters of ``calibration`` for a firmware, or a refusal naming what would be lost.
 
     Parameters
@@ -297,6 +347,8 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
         file's comments).
     source : str
         The calibration's file name, for the file header and messages.
+    custom_rotation : bool, optional
+        See :func:`sensor_exports`.
 
     Raises
     ------
@@ -305,7 +357,7 @@ def export_calibration(calibration, fmt, sensors=None, slots=None, force=False, 
     """
     if fmt not in FORMATS:
         raise MagcalError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
-    exports = sensor_exports(calibration, sensors, slots, fmt)
+    exports = sensor_exports(calibration, sensors, slots, fmt, custom_rotation)
     dropped = unsupported(calibration, exports)
     if dropped and not force:
         raise MagcalError(
@@ -352,6 +404,12 @@ def _fmt(value) -> str:
     return f"{float(value):.9g}"
 
 
+def _c_float(value) -> str:
+    """A C ``float`` literal: ``1.0f``, ``2.5e-05f`` (``1f`` is not C: a suffix needs a point or an exponent)."""
+    text = _fmt(value)
+    return f"{text if any(c in text for c in '.en') else text + '.0'}f"
+
+
 def _offset_and_matrix(offset, matrix, offset_name, diagonal_name, off_diagonal_name) -> dict:
     """Parameters of one compass: the offset per axis and the symmetric matrix's diagonal and off-diagonal
     (xy, xz, yz), each name a template whose ``{}`` is the axis letter (X, Y, Z; for the off-diagonal, X = xy,
@@ -382,6 +440,10 @@ def _ardupilot(exports, calibration, source, dropped, notes):
         params[f"COMPASS_SCALE{tag}"] = 1.0
         if e.rotation_number is not None:
             params[f"COMPASS_ORIENT{tag}"] = e.rotation_number
+        if e.custom_euler_deg is not None:  # ROTATION_CUSTOM_1 / _2: the whole rotation as Euler angles
+            params["CUSTOM_ROT_ENABLE"] = 1
+            k = CUSTOM_ROTATIONS["ardupilot"].index(e.rotation_number) + 1
+            params.update({f"CUSTOM_ROT{k}_{n}": v for n, v in zip(("ROLL", "PITCH", "YAW"), e.custom_euler_deg)})
     head = _header_lines(
         calibration,
         source,
@@ -405,6 +467,8 @@ def _px4(exports, calibration, source, dropped, notes):
         )
         if e.rotation_number is not None:
             params[pre + "ROT"] = e.rotation_number
+        if e.custom_euler_deg is not None:  # custom Euler angles (PX4 sets CAL_MAGn_ROT to its custom value)
+            params.update({pre + n: v for n, v in zip(("ROLL", "PITCH", "YAW"), e.custom_euler_deg)})
     head = _header_lines(
         calibration,
         source,
@@ -444,13 +508,13 @@ def _c_header(exports, calibration, source, dropped, notes):
     )
 
     def matrix(name, m):
-        rows = ",\n    ".join("{" + ", ".join(f"{_fmt(v)}f" for v in row) + "}" for row in m)
+        rows = ",\n    ".join("{" + ", ".join(_c_float(v) for v in row) + "}" for row in m)
         return [f"static const float {name}[3][3] = {{\n    {rows}\n}};"]
 
     for e in exports:
         tag = f"MAGCAL_S{e.sensor}"
         lines.append(f"/* magcal sensor {e.sensor} */")
-        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(f"{_fmt(v)}f" for v in e.bias_nT) + "};")
+        lines.append(f"static const float {tag}_BIAS_NT[3] = {{" + ", ".join(_c_float(v) for v in e.bias_nT) + "};")
         lines += matrix(f"{tag}_MATRIX", e.matrix)
         lines += matrix(f"{tag}_FRAME", e.frame_rotation)
         lines.append("")
@@ -459,6 +523,24 @@ def _c_header(exports, calibration, source, dropped, notes):
         for i in range(3):
             for j in range(3):
                 params[f"{tag}_MATRIX_{i}{j}"] = float(e.matrix[i, j])
+    accel = getattr(calibration, "accelerometer", None)
+    if accel is not None:  # a gravity calibration: the accelerometer's correction and the compass
+        lines += [
+            "/* the accelerometer (a gravity calibration): f_m_s2 = MAGCAL_ACCEL_MATRIX * (raw_m_s2 - "
+            "MAGCAL_ACCEL_BIAS_M_S2),",
+            " * up when still. Tilt-compensated heading of the board's x axis from f and the corrected field m:",
+            " * down = -f / |f|; east = down x m / |down x m|; north = east x down; heading = atan2(east.x, north.x) */",
+            "static const float MAGCAL_ACCEL_BIAS_M_S2[3] = {"
+            + ", ".join(_c_float(v) for v in accel.bias_m_s2)
+            + "};",
+        ]
+        lines += matrix("MAGCAL_ACCEL_MATRIX", accel.kinv)
+        lines.append("")
+        for k, axis in enumerate("xyz"):
+            params[f"MAGCAL_ACCEL_BIAS_M_S2_{axis}"] = float(accel.bias_m_s2[k])
+        for i in range(3):
+            for j in range(3):
+                params[f"MAGCAL_ACCEL_MATRIX_{i}{j}"] = float(accel.kinv[i, j])
     lines += ["#endif /* MAGCAL_CALIBRATION_H */", ""]
     return params, "\n".join(lines)
 
@@ -480,7 +562,10 @@ def apply_ardupilot(parameters, raw_mG, slot=1) -> np.ndarray:
     m = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
     raw = np.asarray(raw_mG, dtype=float)
     orient = p.get(f"COMPASS_ORIENT{tag}")
-    if orient is not None:
+    if orient is not None and int(orient) in CUSTOM_ROTATIONS["ardupilot"]:  # CUSTOM_ROT1_* or CUSTOM_ROT2_*
+        k = CUSTOM_ROTATIONS["ardupilot"].index(int(orient)) + 1
+        raw = raw @ euler_matrix(*(p[f"CUSTOM_ROT{k}_{n}"] for n in ("ROLL", "PITCH", "YAW"))).T
+    elif orient is not None:
         raw = raw @ euler_matrix(*FIRMWARE_ROTATIONS[int(orient)]).T
     return (scale * (raw + ofs)) @ m.T
 
@@ -495,6 +580,8 @@ def apply_px4(parameters, raw_G, slot=0, rotation=None) -> np.ndarray:
     d = np.array([p[f"{pre}{a}SCALE"] for a in "XYZ"])
     o = np.array([p[f"{pre}{a}ODIAG"] for a in "XYZ"])
     s = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+    if rotation is None and p.get(f"{pre}ROLL") is not None:  # custom Euler angles
+        rotation = euler_matrix(*(p[f"{pre}{n}"] for n in ("ROLL", "PITCH", "YAW")))
     if rotation is None and p.get(f"{pre}ROT") is not None and int(p[f"{pre}ROT"]) in FIRMWARE_ROTATIONS:
         rotation = euler_matrix(*FIRMWARE_ROTATIONS[int(p[f"{pre}ROT"])])
     rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
