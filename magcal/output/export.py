@@ -530,9 +530,7 @@ def _c_header(exports, calibration, source, dropped, notes):
             "MAGCAL_ACCEL_BIAS_M_S2),",
             " * up when still. Tilt-compensated heading of the board's x axis from f and the corrected field m:",
             " * down = -f / |f|; east = down x m / |down x m|; north = east x down; heading = atan2(east.x, north.x) */",
-            "static const float MAGCAL_ACCEL_BIAS_M_S2[3] = {"
-            + ", ".join(_c_float(v) for v in accel.bias_m_s2)
-            + "};",
+            "static const float MAGCAL_ACCEL_BIAS_M_S2[3] = {" + ", ".join(_c_float(v) for v in accel.bias_m_s2) + "};",
         ]
         lines += matrix("MAGCAL_ACCEL_MATRIX", accel.kinv)
         lines.append("")
