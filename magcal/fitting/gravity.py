@@ -373,6 +373,9 @@ class SensorGravityFit:
     sd_widening : float
         The standard deviations were widened by this for residuals correlated in time.
     determined : bool
+        False when the mounting's or the heading's standard deviation is beyond :data:`UNDETERMINED_MOUNTING_DEG`,
+        :data:`UNDETERMINED_HEADING_DEG`, or when the accelerometer was neither fitted nor said calibrated
+        (``accel_fit="none"``): its bias is then in the mounting, unseen by the covariance.
     """
 
     W: np.ndarray
@@ -599,11 +602,17 @@ def fit_gravity(
     still_rows = np.flatnonzero(still_mask[rows_keep])  # positions of the still samples among the kept ones
     a_still = accel.m_s2[still_mask]
     af = fit_accelerometer(a_still, fit=accel_fit, noise_m_s2=accel_noise_m_s2)
-    if not af.fitted and accel_fit != "none":
+    if not af.fitted:
         notes.append(
-            f"the accelerometer's still samples point over too few directions (spread {af.spread:.3f}, "
-            f"{ACCEL_SPREAD_MIN} needed) to fit its bias and scale: its readings are used as they are. Turn the board "
-            "onto each of its six faces (or through every attitude) to calibrate it too"
+            (
+                f"the accelerometer's still samples point over too few directions (spread {af.spread:.3f}, "
+                f"{ACCEL_SPREAD_MIN} needed) to fit its bias and scale: its readings are used as they are"
+                if accel_fit != "none"
+                else "the accelerometer is taken as it reads (--accel-fit none)"
+            )
+            + ". Its own bias (20-60 mg for an uncalibrated MEMS part: 1-3 deg of tilt) then goes into the mounting "
+            "and the heading, and the figures below do not include it. Turn the board onto each of its six faces "
+            "(or through every attitude) to calibrate it too, or give a calibrated accelerometer"
         )
     down = -_unit(af.correct(a_still))
     tilts = tilt_deg(af.correct(a_still))
@@ -698,11 +707,12 @@ def fit_gravity(
             head_sd = _heading_sd_deg(prob, x, cov, s, still_rows, pitch_ok)
         right, margin = starts[s][2], starts[s][3]
         off = float(np.degrees(Rotation.from_matrix(right.T @ mount).magnitude()))
-        determined = not (
-            (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
-            or (head_sd is not None and head_sd > UNDETERMINED_HEADING_DEG)
+        spread_out = (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG) or (
+            head_sd is not None and head_sd > UNDETERMINED_HEADING_DEG
         )
-        if not determined:
+        # an accelerometer neither fitted nor said to be calibrated (--accel-fit none): its bias is in the mounting
+        determined = not spread_out and (af.fitted or accel_fit == "none")
+        if spread_out:
             notes.append(
                 f"sensor {s + 1}: this record does not determine the mounting: its standard deviation is up to "
                 f"{float(np.max(mount_sd)) if mount_sd is not None else float('nan'):.2f} deg and the heading error "
