@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration
@@ -303,3 +305,29 @@ def test_an_accelerometer_left_uncalibrated_leaves_the_mounting_undetermined():
     assert max(fit.sensors[0].mounting_sd_deg) < 1.0 and fit.sensors[0].heading_sd_deg < 1.0
     assert not fit.accel.fitted and not fit.sensors[0].determined
     assert any("Its own bias" in w for w in fit.warnings)
+
+
+_CELL = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["", "nan", " ", "1e400", "-1e31", "abc", "0x10", "1,5"]),
+    st.integers(-(10**40), 10**40).map(str),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(_CELL, _CELL, _CELL), min_size=1, max_size=6), st.sampled_from([None, "g", "mg", "furlong"]))
+def test_accelerometer_cells_give_numbers_or_one_message(tmp_path, rows, units):
+    """Whatever the accelerometer columns hold: finite m/s^2 (or NaN rows), or one DatasetError line."""
+    lines = ["x,y,z,ax,ay,az"] + [
+        f"{30000 + k},{k},1," + ",".join('"' + c.replace('"', "") + '"' for c in row) for k, row in enumerate(rows)
+    ]
+    path = tmp_path / "fuzz.csv"
+    path.write_text("\n".join(lines) + "\n")
+    ds = read_csv(path, notes=[])
+    try:
+        acc = accelerometer(ds, units=units)
+    except DatasetError as exc:
+        assert "\n" not in str(exc)
+        return
+    present = acc.present
+    assert np.all(np.isfinite(acc.m_s2[present])) and np.all(np.isnan(acc.m_s2[~present]))
