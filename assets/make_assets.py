@@ -22,6 +22,10 @@ Outputs (committed):
   compass sees the battery current (the catalogue's ``current_field`` hidden by its own perturbation), with the
   attitude in ``qw..qz``, the field vector in ``ref_n, ref_e, ref_d``, the current in ``current_A`` and the board's
   temperature: the loop on a vehicle (issue 40), judged on the vector model's effects.
+* ``assets/lessons/tilted-compass/`` - a simulated board (:func:`magcal.data.board.simulate_board`): a magnetometer
+  beside an accelerometer, tumbled by hand with still moments, the magnetometer mounted ``ROLL_180_YAW_90`` and
+  2 deg off it; the total-field fit leaves the 2 deg, which the tilt compensation turns into heading; the gravity
+  fit finds the mounting, which is the answer (the lesson is judged on the gravity fit: ``"fit": "gravity"``).
 """
 
 from __future__ import annotations
@@ -527,12 +531,97 @@ def write_drone_lesson():
     (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
 
 
+#: The compass lesson (issue 42): a board whose magnetometer sits 2 deg off its accelerometer.
+COMPASS_SLUG = "tilted-compass"
+COMPASS_SEED = 4242
+COMPASS_TITLE = "The compass that points wrong when tilted"
+COMPASS_GUIDE = """
+A hiking compass (or a phone, or a cave-survey instrument) carries a MEMS magnetometer beside an accelerometer on
+one board. The accelerometer says which way is down; the compass's heading is the horizontal part of the field in
+the frame the accelerometer defines. Its owner tumbled it by hand, holding it still for a second or two at each of
+24 attitudes: `x, y, z` are the magnetometer (nT), `ax, ay, az` the accelerometer (g, up when still), `gx_dps..` the
+gyro. Level, the compass reads right; tilted, it points wrong.
+
+1. **Run the chosen method** (Calibrate tab): the total-field fit. Is |B| at the noise? Can a total-field fit say
+   how the magnetometer's axes sit against the accelerometer's?
+2. **Run the gravity fit (beside the accelerometer)** (Calibrate tab, *Gravity model*). Read the table: the
+   mounting it finds, the dip's spread of both fits, the heading difference between them. Why is the dip (the angle
+   between the field and gravity) the figure that sees what |B| cannot?
+3. Look at the two plots: the dip over time and against the tilt, and the compass rose. Where is the total-field
+   fit's heading wrong, and by how much? At this inclination, how much heading does a degree of tilt error cost?
+4. View tab: tick **Show the accelerometer's cloud and sphere**. Which samples measure gravity?
+5. **Check my model** once the gravity fit has run.
+"""
+COMPASS_EXPLANATION = (
+    "The magnetometer is mounted ROLL_180_YAW_90 against the accelerometer (its x along the board's y, y along x, z "
+    "up: a part whose axes the datasheet turns) and a further 2 deg off that right angle about a tilted axis, with a "
+    "board's hard iron (15 uT per axis) and soft iron (5 %); the accelerometer has a 0.03 g bias and 2 % gains. "
+    "A total-field fit calibrates |B| but cannot see a rotation, so with the right angle taken from the datasheet "
+    "its heading is off by the 2 deg times up to tan(I) + 1 at an inclination I of 64 deg: 2-3 deg, most when "
+    "tilted. The dip is the same at every attitude only if the magnetometer's axes are the accelerometer's: the "
+    "gravity fit finds the right angle and the 2 deg, and its heading sits at the sensors' noise (about 0.5 deg per "
+    "still sample)."
+)
+
+
+def write_gravity_lesson():
+    """The compass lesson (``tilted-compass``): data, guide, answer."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from magcal.data.board import SWAPPED_MOUNTING, simulate_board
+    from magcal.geometry.orientations import describe_right_angle, nearest_right_angle
+
+    ds, truth, _ = simulate_board(
+        n_poses=24, rate_hz=25.0, mounting=SWAPPED_MOUNTING, seed=COMPASS_SEED, inclination_deg=64.0
+    )
+    g = 9.80665
+    extra = dict(ds.extra)
+    for k in ("ax", "ay", "az"):
+        extra[k] = np.asarray(extra[k]) / g
+    data = ds.replace(extra=extra, metadata={"simulated": "true", "accel_units": "g"})
+    folder = HERE / "lessons" / COMPASS_SLUG
+    folder.mkdir(parents=True, exist_ok=True)
+    mio.write_csv(
+        folder / "data.csv",
+        data,
+        metadata={"lesson": COMPASS_SLUG, "accelerometer": "ax, ay, az in g (specific force: up when still)"},
+        float_format=FLOAT_FORMAT,
+    )
+    right, off = nearest_right_angle(truth.mounting)
+    (folder / "guide.md").write_text(COMPASS_GUIDE.strip() + "\n", encoding="utf-8")
+    doc = {
+        "title": COMPASS_TITLE,
+        "order": 8,
+        "data": "data.csv",
+        "guide": "guide.md",
+        "fit": "gravity",
+        "answer": {
+            "effects": [],
+            "mounting": [describe_right_angle(right).split(" ")[0]],
+            "mounting_off_deg": round(float(off), 3),
+            "mounting_tolerance_deg": 0.2,
+            "explanation": COMPASS_EXPLANATION,
+        },
+        "made_by": "assets/make_assets.py",
+        "seed": COMPASS_SEED,
+        "truth": {
+            "mag_bias_nT": np.round(truth.mag_bias_nT, 1).tolist(),
+            "mounting_rotvec_deg": np.round(Rotation.from_matrix(truth.mounting).as_rotvec(degrees=True), 3).tolist(),
+            "accel_bias_m_s2": np.round(truth.accel_bias_m_s2, 4).tolist(),
+            "inclination_deg": round(truth.inclination_deg, 3),
+        },
+    }
+    (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
 def main():
     write_demo()
     write_lessons()
     write_real_lesson()
     write_vehicle_lesson()
     write_drone_lesson()
+    write_gravity_lesson()
     print(f"wrote {HERE / 'demo.csv'} and {len(LESSONS)} lessons under {HERE / 'lessons'}")
     return 0
 

@@ -94,8 +94,12 @@ def simulated(seeds, n):
 #: The real logs' parts that ``benchmarks/real/vector_logs.py`` writes: (calibration part, later part, other flights).
 REAL = [
     ("copter", "copter_cal.csv", "copter_test0.csv", ["copter_test1.csv", "copter_test2.csv"]),
-    ("copter, reversed", "copter_reversed_cal.csv", "copter_reversed_test0.csv",
-     ["copter_reversed_test1.csv", "copter_reversed_test2.csv"]),  # fmt: skip
+    (
+        "copter, reversed",
+        "copter_reversed_cal.csv",
+        "copter_reversed_test0.csv",
+        ["copter_reversed_test1.csv", "copter_reversed_test2.csv"],
+    ),  # fmt: skip
     ("plane", "plane_cal.csv", "plane_test0.csv", []),
     ("plane, reversed", "plane_reversed_cal.csv", "plane_reversed_test0.csv", []),
 ]

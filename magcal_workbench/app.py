@@ -63,6 +63,7 @@ from .dataio import load_dataset
 from .downloads import Downloads
 from .evidence import Evidence
 from .exporting import Exporting
+from .gravitypage import GravityPage
 from .guard import Gate, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
 from .lessons import DEMO, LessonDesk, get_lesson
@@ -182,6 +183,8 @@ class Workbench:
         self.steps = Steps(self)
         #: The vehicle view and the vector model's page actions (issue 29).
         self.vehicle = VehicleView(self)
+        #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
+        self.gravity = GravityPage(self)
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         self.scene_view = scn.SceneView(self.server, max_points=max_points)
         self.panels = Panels(
@@ -199,6 +202,7 @@ class Workbench:
         )
         self.uploads.watch_sizes(self.panels.upload)
         self.exporting.attach(self.panels.export, self.panels.live_source)
+        self.gravity.attach(self.panels)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
         # pointer events go through the error handler like every widget's callback
         self.server.scene.on_click()(lambda event: self.handle(lambda e: self.view.on_click(e), event))
@@ -223,6 +227,7 @@ class Workbench:
             self.exporting,
             self.vehicle,
             self.cockpit,
+            self.gravity,
         )
         on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
         on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
@@ -324,6 +329,7 @@ class Workbench:
         elif kind == "inspect":
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
+        self.gravity.changed(kind)
         if kind in ("result", "data"):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":

@@ -78,11 +78,17 @@ class Lesson:
             out["mounting_tolerance_deg"] = float(ans.get("mounting_tolerance_deg", 0.5))
         return out
 
+    @property
+    def judged_on(self) -> str:
+        """The fit a lesson with a mounting is judged on: ``vector`` (default) or ``gravity`` (the lesson's
+        ``"fit"``)."""
+        return "gravity" if self._doc().get("fit") == "gravity" else "vector"
+
     def answer_markdown(self) -> str:
         ans = self.answer()
         terms = ", ".join(f"`{e}`" for e in ans["effects"]) or "no effect beyond the base terms"
         if ans.get("mounting"):
-            terms += "; the vector fit's mounting " + ", ".join(f"`{m}`" for m in ans["mounting"])
+            terms += f"; the {self.judged_on} fit's mounting " + ", ".join(f"`{m}`" for m in ans["mounting"])
             terms += f", {ans['mounting_off_deg']:g} deg off the right angle"
         return f"**Answer:** {terms}\n\n{ans['explanation']}"
 
@@ -129,6 +135,7 @@ class Lesson:
             else:
                 missing += 1
         solved = missing == 0 and not extra
+        fit = self.judged_on
         if on_vector and not vector:
             solved = False
             message = (
@@ -137,7 +144,7 @@ class Lesson:
             )
         elif mounting == "no fit":
             message = (
-                "Not yet: this lesson is judged on the vector fit (Calibrate tab, Run the vector fit), which has not "
+                f"Not yet: this lesson is judged on the {fit} fit (Calibrate tab, Run the {fit} fit), which has not "
                 "been run on these data."
                 + (f" Your model also holds terms not hidden here: {_labels(extra)}." if extra else "")
             )
@@ -145,10 +152,15 @@ class Lesson:
             message = (
                 "The vector fit ran, but the mounting it found is not the one hidden in the data: check the reference "
                 "field (where and when was the vehicle flown?) and the samples kept."
+                if fit == "vector"
+                else "The gravity fit ran, but the mounting it found is not the one hidden in the data: check the "
+                "samples kept (the still ones measure gravity)."
             )
         elif solved:
             message = (
-                "Solved: the vector fit found the mounting the vehicle was built with."
+                f"Solved: the {fit} fit found the mounting the "
+                + ("vehicle" if fit == "vector" else "board")
+                + " was built with."
                 if mounting
                 else f"Solved: your {'vector ' if on_vector else ''}model holds exactly the hidden effect(s)."
             )
@@ -267,7 +279,10 @@ class LessonDesk:
 
     def do_check_lesson(self, event):
         ctrl = self.wb.ctrl
-        result = self.current().check(ctrl.state.effects, ctrl.vector.lesson_findings())
+        lesson = self.current()
+        gravity = lesson.judged_on == "gravity"
+        found = self.wb.gravity.model.lesson_findings() if gravity else ctrl.vector.lesson_findings()
+        result = lesson.check(ctrl.state.effects, found)
         self.wb.panels.lesson_feedback.content = result["message"]
         self.wb.ctrl.say(result["message"])
 

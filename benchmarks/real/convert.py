@@ -465,7 +465,8 @@ def convert_cl_imu_gnss(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Pat
     """``cl_imu_gnss``: CaribouLabs logger, integer counts x an assumed 150 nT; ``temp`` = barometer temperature."""
     with open(raw_dir / "cl_imu_gnss_data.csv", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
-    col = {k: np.array([float(r[k]) for r in rows]) for k in ("magx", "magy", "magz", "imu_time", "baro_temp_c")}
+    names = ("magx", "magy", "magz", "imu_time", "baro_temp_c", "accx", "accy", "accz", "gyrox", "gyroy", "gyroz")
+    col = {k: np.array([float(r[k]) for r in rows]) for k in names}
     counts = np.c_[col["magx"], col["magy"], col["magz"]]
     t = (col["imu_time"] - col["imu_time"][0]) * CL_TICK_S
     meta = {
@@ -479,8 +480,12 @@ def convert_cl_imu_gnss(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Pat
         "rate_Hz": "~77 (stamps every 1.30e6 ticks; one gap of 27 rows)",
         "time": f"t = (imu_time - first) x {CL_TICK_S:g} s: the tick ASSUMED 10 ns (attitude vs gyro, see convert.py)",
         "temp": "barometer temperature (baro_temp_c), degC: 24.8 -> 25.8, rising with time (hand warmth)",
+        "accel_units": "m/s^2",
+        "accelerometer": "accx, accy, accz as ax, ay, az (m/s^2, |a| 9.79 at rest); gyrox.. as gx_rad_s.. (rad/s)",
     }
     columns = {"t": t, **_vector_columns(counts * CL_ASSUMED_LSB_NT), "temp": col["baro_temp_c"]}
+    columns.update({a: col[f"acc{a[1]}"] for a in ("ax", "ay", "az")})
+    columns.update({f"g{a}_rad_s": col[f"gyro{a}"] for a in "xyz"})
     return _write("cl_imu_gnss", columns, meta, out_dir)
 
 
@@ -527,8 +532,11 @@ def convert_ck_lsm9ds1(raw_dir: Path = RAW_DIR, out_dir: Path = OUT_DIR) -> Path
         "rate_Hz": "unknown (no time stamps)",
         "igrf_total_nT": "about 40000 (Malaysia, the author's UTC+8 commits; site not stated); the fitted field is "
         "~31 uT",
+        "accel_units": "g",
+        "accelerometer": "the file's ax, ay, az (g), the LSM9DS1's accelerometer on the same die",
     }
-    return _write("ck_lsm9ds1", _vector_columns(counts * LSM9DS1_4G_LSB_NT), meta, out_dir)
+    columns = {**_vector_columns(counts * LSM9DS1_4G_LSB_NT), "ax": a[:, 0], "ay": a[:, 1], "az": a[:, 2]}
+    return _write("ck_lsm9ds1", columns, meta, out_dir)
 
 
 #: Every recording: name -> converter.

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from magcal.calibration.accelerometer import AccelerometerCalibration
 from magcal.calibration.uncertainty import covariance_size, field_uncertainty
 from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
@@ -21,9 +22,11 @@ from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning, exce
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note, row_runs
 from magcal.core.vectors import basis_times, row_norm
+from magcal.data.accelerometer import accelerometer
 from magcal.data.attitude import attitude_rows
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
+from magcal.geometry.heading import dip_deg, tilt_deg, tilt_heading_deg
 from magcal.model.effects import CURRENT_COLUMNS
 from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import (
@@ -41,6 +44,11 @@ from magcal.model.terms import (
 
 FORMAT = "magcal-calibration"
 VERSION = 1
+
+#: The calibration modes (``mode`` in the file) and those whose sensors' ``R`` is a mounting into a physical frame
+#: (the vehicle's body, or the board's accelerometer) rather than a gauge.
+MODES = ("scalar", "vector", "gravity")
+MOUNTED_MODES = ("vector", "gravity")
 
 #: Effects that describe one recording, used only for an effect class that does not say
 #: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
@@ -244,10 +252,15 @@ class Calibration:
     mode : str
         ``"scalar"`` (a total-field fit: the corrected vectors are in the array frame, turned by a gauge) or
         ``"vector"`` (a fit with attitude and the field vector, :mod:`magcal.fitting.vector`: each sensor's ``R``
-        is its mounting into the vehicle's body frame, and :meth:`world` gives north-east-down components).
+        is its mounting into the vehicle's body frame, and :meth:`world` gives north-east-down components) or
+        ``"gravity"`` (a fit beside an accelerometer, :mod:`magcal.fitting.gravity`: each sensor's ``R`` is its
+        mounting into the accelerometer's frame, :attr:`accelerometer` the accelerometer's own calibration, and
+        :meth:`heading` gives the tilt-compensated heading).
     platform : PlatformTerms or None
         The platform's fields a vector fit found (eddy currents, a field per ampere or per unit of throttle),
         subtracted from the raw readings before the correction.
+    accelerometer : AccelerometerCalibration or None
+        A gravity calibration's accelerometer correction (``mode == "gravity"``).
     summary : dict
         Figures from the fit (``n_samples``, ``rms_nT``, ``tensor_rms_nT_per_m``, ...), saved with the file.
         Its ``record`` entry (also :attr:`record`) is the fingerprint of the record fitted
@@ -265,6 +278,7 @@ class Calibration:
     base_covariance: np.ndarray | None = None
     mode: str = "scalar"
     platform: PlatformTerms | None = None
+    accelerometer: AccelerometerCalibration | None = None
 
     @property
     def n_sensors(self) -> int:
@@ -559,7 +573,7 @@ class Calibration:
         -x, 4 at -y) into this calibration's frame: the identity for a total-field calibration (its frame is
         sensor 1's), sensor 1's mounting ``R`` for a vector calibration (its frame is the vehicle's body; the cross
         is taken to lie along sensor 1's axes, as in the seed's convention)."""
-        return self.sensors[0].R if self.mode == "vector" else np.eye(3)
+        return self.sensors[0].R if self.mode in MOUNTED_MODES else np.eye(3)
 
     def tensor(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> dict:
         """Gradient tensor components (eq. 1) in nT/m from corrected vectors, in the cross's own frame
@@ -568,7 +582,7 @@ class Calibration:
         if self.n_sensors != 4 or not self.baseline_m:
             raise MagcalError("the gradient tensor needs four sensors and a baseline (baseline_m)")
         vectors = self.correct(data, record_terms, t=t, temp=temp) if corrected is None else corrected
-        if self.mode == "vector":
+        if self.mode in MOUNTED_MODES:
             vectors = np.asarray(vectors) @ self.tensor_frame()  # body -> the cross's frame: v_cross = A^T v
         return conventions.tensor_components(vectors, self.baseline_m)
 
@@ -586,6 +600,44 @@ class Calibration:
         world = np.einsum("nij,njk,nlk->nil", r, g, r)
         world[~have] = np.nan
         return world
+
+    def heading(self, dataset, corrected=None, record_terms=None, accel_units=None) -> dict:
+        """The tilt-compensated compass of a gravity calibration: per sample, from the corrected field (in the
+        accelerometer's frame) and the corrected accelerometer (:mod:`magcal.geometry.heading`).
+
+        Parameters
+        ----------
+        dataset : Dataset
+            With accelerometer columns (:mod:`magcal.data.accelerometer`).
+        corrected : numpy.ndarray, shape (n_sensors, N, 3), optional
+            :meth:`correct`'s vectors, when already computed.
+        record_terms, accel_units
+            As in :meth:`correct`; the unit of unmarked ``ax, ay, az`` columns.
+
+        Returns
+        -------
+        dict
+            ``heading_deg`` (n_sensors, N): the magnetic heading of the board's x axis, [0, 360); ``dip_deg``
+            (n_sensors, N): the field's angle below the horizontal; ``tilt_deg`` (N,): the board's tilt. NaN on a
+            row without an accelerometer sample.
+        """
+        if self.mode != "gravity" or self.accelerometer is None:
+            raise MagcalError(
+                "a heading needs a gravity calibration (magcal calibrate --mode gravity, with accelerometer columns): "
+                "it holds the magnetometer's rotation into the accelerometer's frame"
+            )
+        accel = accelerometer(dataset, units=accel_units)
+        if accel is None:
+            raise MagcalError(
+                f"the data {dataset.source or ''} have no accelerometer columns (ax, ay, az): a heading needs them"
+            )
+        vectors = self.corrected_with_notes(dataset, record_terms)[0] if corrected is None else corrected
+        f = self.accelerometer.correct(accel.m_s2)
+        return {
+            "heading_deg": np.stack([tilt_heading_deg(f, v) for v in vectors]),
+            "dip_deg": np.stack([dip_deg(f, v) for v in vectors]),
+            "tilt_deg": tilt_deg(f),
+        }
 
     # --- JSON -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -636,6 +688,8 @@ class Calibration:
             doc["mode"] = self.mode
         if self.platform is not None and self.platform.names:
             doc["platform_terms"] = self.platform.to_dict()
+        if self.accelerometer is not None:
+            doc["accelerometer"] = self.accelerometer.to_dict()
         if self.base_covariance is not None:
             doc["base_covariance"] = {
                 "order": "per sensor: M = R Cinv row by row (9), then bias_nT (3); then each effect's parameters, "
@@ -721,10 +775,16 @@ class Calibration:
             "base_covariance",
             "mode",
             "platform_terms",
+            "accelerometer",
         }
         mode = doc.get("mode", "scalar")
-        if mode not in ("scalar", "vector"):
-            raise MagcalError(f"{source}: 'mode' must be 'scalar' or 'vector', got {mode!r}; the file is damaged")
+        if mode not in MODES:
+            raise MagcalError(f"{source}: 'mode' must be one of {', '.join(MODES)}, got {mode!r}; the file is damaged")
+        accel = None
+        if doc.get("accelerometer") is not None:
+            accel = AccelerometerCalibration.from_dict(doc["accelerometer"], source)
+        if mode == "gravity" and accel is None:
+            raise MagcalError(f"{source}: a gravity calibration needs its 'accelerometer' entry; recalibrate")
         platform = None
         if doc.get("platform_terms") is not None:
             platform = PlatformTerms.from_dict(doc["platform_terms"], len(sensors), source)
@@ -769,6 +829,7 @@ class Calibration:
             base_covariance=cov,
             mode=mode,
             platform=platform,
+            accelerometer=accel,
         )
 
     def save(self, path) -> None:

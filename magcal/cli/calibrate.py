@@ -37,8 +37,10 @@ from magcal.checks.reference import (
     reference_from_args,
     vector_reference_from_args,
 )
+from magcal.cli.gravity_mode import add_gravity_arguments, run_gravity
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
+from magcal.data.accelerometer import has_accelerometer
 from magcal.data.attitude import attitude_present, attitude_source
 from magcal.diagnosis.compasses import compass_consistency
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
@@ -96,11 +98,14 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--mode",
         default="auto",
-        choices=("auto", "scalar", "vector"),
+        choices=("auto", "scalar", "vector", "gravity"),
         help="scalar: the total-field fit; vector: the fit with attitude (qw..qz or roll_deg, pitch_deg, yaw_deg) "
         "and the field vector (ref_n, ref_e, ref_d, --reference-vector or --reference igrf), for platforms that "
-        "cannot tumble (docs/vector.md); auto (default): vector when both are present, else scalar",
+        "cannot tumble (docs/vector.md); gravity: beside an accelerometer (ax, ay, az), judged by the "
+        "tilt-compensated heading (docs/gravity.md); auto (default): vector when both are present, gravity when "
+        "the file has accelerometer columns and no attitude, else scalar",
     )
+    add_gravity_arguments(parser)
     parser.add_argument(
         "--attitude-noise-deg",
         type=float,
@@ -247,10 +252,17 @@ def _platform_terms(args):
 
 
 def choose_mode(args, ds, command="calibrate"):
-    """``("vector", reference)`` or ``("scalar", None)`` from ``--mode`` and what the data hold."""
+    """``("vector", reference)``, ``("gravity", None)`` or ``("scalar", None)`` from ``--mode`` and what the data hold."""
     mode = getattr(args, "mode", "auto") or "auto"
     if mode == "scalar":
         return "scalar", None
+    if mode == "gravity" or (mode == "auto" and has_accelerometer(ds) and attitude_source(ds) is None):
+        if not has_accelerometer(ds):
+            raise MagcalError(
+                f"{args.data}: --mode gravity needs the accelerometer beside the magnetometer: ax, ay, az columns "
+                "(g, mg or m/s^2; docs/gravity.md)"
+            )
+        return "gravity", None
     has_attitude = attitude_source(ds) is not None
     if mode == "vector" and not has_attitude:
         raise MagcalError(
@@ -390,6 +402,8 @@ def run(args) -> int:
     mode, vref = choose_mode(args, ds)
     if mode == "vector":
         return run_vector(args, ds, vref, notes)
+    if mode == "gravity":
+        return run_gravity(args, ds, notes)
     reference = reference_from_args(args, ds)
     notes += [note.text for note in reference.notes]
     ds = reference.apply(ds)

@@ -35,6 +35,7 @@ import numpy as np
 
 from magcal.core.errors import DataWarning, MagcalError, exception_text
 from magcal.core.notes import say
+from magcal.data.accelerometer import MAPPABLE_ACCEL_COLUMNS
 from magcal.data.dataset import (
     BAD_VALUE_TEXT,
     MAX_ABS_VALUE,
@@ -205,7 +206,7 @@ def parse_column_mapping(text):
 
 
 def _normalise_mapping(columns, where):
-    allowed = set(canonical_columns())
+    allowed = set(canonical_columns()) | set(MAPPABLE_ACCEL_COLUMNS)
     out = {}
     for key, value in dict(columns).items():
         k = str(key).strip()
@@ -214,7 +215,8 @@ def _normalise_mapping(columns, where):
         if k not in allowed:
             raise DatasetError(
                 f"{where}: {key!r} is not a magcal column; map onto one of "
-                f"s1x..s4z (or x,y,z), {', '.join(CHANNEL_COLUMNS)}, {', '.join(QUATERNION_COLUMNS)}, group"
+                f"s1x..s4z (or x,y,z), {', '.join(CHANNEL_COLUMNS)}, {', '.join(QUATERNION_COLUMNS)}, group, "
+                f"{', '.join(MAPPABLE_ACCEL_COLUMNS)} (the accelerometer)"
             )
         if k in out:
             raise DatasetError(f"{where}: column {k} is mapped twice")
@@ -361,6 +363,10 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
     quaternion = tuple(canonical[n] for n in QUATERNION_COLUMNS) if q else None
     used = set(canonical.values())
     extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
+    for name in MAPPABLE_ACCEL_COLUMNS:  # a file's accelerometer column mapped onto ax, ay, az: kept under that name
+        if name in canonical:
+            extra.pop(name, None)  # the file's own column of that name gives way to the mapped one
+            extra[name] = canonical[name]
     return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra)
 
 

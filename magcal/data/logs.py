@@ -631,6 +631,8 @@ def _dataflash_message(m, gathered, undo_calibration):
     elif kind == "IMU":
         if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "T"):
             gathered["imu"].append((t, float(m.T)))
+        if int(getattr(m, "I", 0) or 0) == 0 and hasattr(m, "AccX"):
+            gathered.setdefault("acc", []).append((t, *(float(getattr(m, k, np.nan)) for k in _DATAFLASH_IMU)))
     elif kind == "ATT":
         gathered["att"].append((t, float(m.Roll), float(m.Pitch), float(m.Yaw)))
     elif kind == "BAT":
@@ -644,6 +646,23 @@ def _dataflash_message(m, gathered, undo_calibration):
             gathered["thr"].append((t, float(m.ThO)))
         elif hasattr(m, "ThrOut"):  # 0..1000 (Copter before 3.3)
             gathered["thr"].append((t, float(m.ThrOut) / 1000.0))
+
+
+#: The first IMU's fields read beside the compass: the accelerometer (m/s^2) and the gyro (rad/s), body frame.
+_DATAFLASH_IMU = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
+#: The extra columns they become (:mod:`magcal.data.accelerometer`, :data:`magcal.data.attitude.GYRO_COLUMNS`).
+IMU_COLUMNS = ("ax", "ay", "az", "gx_rad_s", "gy_rad_s", "gz_rad_s")
+
+
+def _imu_channels(source, t, values, what, metadata, notes=None) -> dict:
+    """The accelerometer and gyro as extra channels ``{name: (t, values)}`` (:data:`IMU_COLUMNS`), bad samples
+    dropped with a count, ``metadata['accel_units']`` set; {} when there are none."""
+    t, values = _drop_bad(source, what, np.asarray(t, float), np.asarray(values, float), notes=notes)
+    if t.size < 2:
+        return {}
+    t, values = _strictly_increasing(t, values, source, what, notes)
+    metadata["accel_units"] = "m/s^2"
+    return {name: (t, values[:, k]) for k, name in enumerate(IMU_COLUMNS)}
 
 
 #: GPS time starts at 1980-01-06 (leap seconds do not matter to a date for IGRF).
@@ -739,6 +758,9 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
         attitude = (ta, Rotation.from_euler("ZYX", angles[:, ::-1], degrees=True))
         yaw = np.degrees(np.unwrap(np.radians(angles[:, 2])))
         extra = {"att_roll_deg": (ta, angles[:, 0]), "att_pitch_deg": (ta, angles[:, 1]), "att_yaw_deg": (ta, yaw)}
+    acc = np.asarray(gathered.get("acc", []), dtype=float).reshape(-1, 7)
+    imu_metadata: dict = {}
+    extra.update(_imu_channels(source, acc[:, 0], acc[:, 1:], "IMU accelerometer", imu_metadata, notes))
     battery = "BAT" if gathered["bat"] else "CURR"
     bat = np.asarray(gathered["bat"] or gathered["curr"], dtype=float).reshape(-1, 2)
     bat_t, amps = _drop_bad(source, battery, bat[:, 0], bat[:, 1], notes=notes)
@@ -757,6 +779,7 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
         metadata["log_logged_field"] = (
             "s{k}x_logged..: the field the flight controller computed (COMPASS_OFS*, DIA*, ODI*, SCALE*, MOT*)"
         )
+    metadata.update(imu_metadata)
     if "COMPASS_DEC" in gathered["params"]:  # the declination (rad) the vehicle turned magnetic into true heading with
         metadata["log_declination_deg"] = f"{np.degrees(gathered['params']['COMPASS_DEC']):.4f}"
         if "COMPASS_AUTODEC" in gathered["params"]:
@@ -839,6 +862,7 @@ def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
         metadata["log_device_ids"] = ", ".join(devices)
     current = _ulog_current(ulog, source)
     extra = {**(current or {}), **_ulog_position(ulog, source, metadata, notes)}
+    extra.update(_ulog_imu(ulog, source, metadata, notes))
     logged = _px4_logged_fields(ulog, chosen, series, current, source, notes)
     if logged is not None:
         series = [(t, np.column_stack([v, f])) for (t, v), f in zip(series, logged)]
@@ -924,6 +948,25 @@ def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
             return None
         out.append((raw + power[:, None] * comp_nT[None] - offset_nT) @ (level @ rot @ scale).T)
     return out
+
+
+def _ulog_imu(ulog, source, metadata, notes=None) -> dict:
+    """The accelerometer (m/s^2) and gyro (rad/s) of ``sensor_combined`` (body frame, the vehicle's calibration
+    applied) as extra channels (:data:`IMU_COLUMNS`); {} when the log has none."""
+    found = [d for d in ulog.data_list if d.name == "sensor_combined" and "accelerometer_m_s2[0]" in d.data]
+    if not found:
+        return {}
+    data = found[0].data
+    if "timestamp" not in data or "gyro_rad[0]" not in data:
+        return {}
+    t = np.asarray(data["timestamp"], dtype=np.int64)
+    if "accelerometer_timestamp_relative" in data:
+        rel = np.asarray(data["accelerometer_timestamp_relative"], dtype=np.int64)
+        t = np.where(rel != _RELATIVE_TIMESTAMP_INVALID, t + rel, t)
+    values = np.column_stack(
+        [data[f"accelerometer_m_s2[{k}]"] for k in range(3)] + [data[f"gyro_rad[{k}]"] for k in range(3)]
+    ).astype(float)
+    return _imu_channels(source, t * 1e-6, values, "sensor_combined accelerometer", metadata, notes)
 
 
 def _ulog_position(ulog, source, metadata, notes=None):
@@ -1050,4 +1093,5 @@ def _ulog_calibrated_field(ulog, source, notes=None):
         "log_field": f"calibrated by the vehicle ({topic}, body frame)",
     }
     position = _ulog_position(ulog, source, metadata, notes)
+    position.update(_ulog_imu(ulog, source, metadata, notes))
     return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), position, metadata, notes)

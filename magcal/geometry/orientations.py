@@ -126,3 +126,29 @@ def describe_right_angle(right_angle) -> str:
         axes.append(f"{a} -> body {'-' if m[j, k] < 0 else ''}{'xyz'[j]}")
     head = f"{rotation_name(number)} (rotation {number})" if number is not None else "no firmware rotation number"
     return f"{head}: sensor " + ", ".join(axes)
+
+
+def split_mounting(matrix):
+    """``W = R C^-1`` split by a QR decomposition: ``R`` a proper rotation (the mounting), ``C^-1`` upper
+    triangular with a positive diagonal (the seed's gauge).
+
+    Parameters
+    ----------
+    matrix : array_like, shape (3, 3)
+        ``W``, with a positive determinant.
+
+    Returns
+    -------
+    rotation, cinv : numpy.ndarray, shape (3, 3)
+
+    Raises
+    ------
+    ValueError
+        When ``det W <= 0`` (a mirrored axis: no rotation turns it into the frame).
+    """
+    w = np.asarray(matrix, dtype=float)
+    if not np.linalg.det(w) > 0:
+        raise ValueError("the matrix mirrors an axis (its determinant is not positive)")
+    q, u = np.linalg.qr(w)
+    d = np.sign(np.diag(u))
+    return q * d[None, :], d[:, None] * u

@@ -8,6 +8,9 @@
   when the survey has the attitude (``qw..qz`` or ``roll_deg, pitch_deg, yaw_deg``) also the world
   (north-east-down) components ``s{i}n_cal, s{i}e_cal, s{i}d_cal`` (and, for four sensors, the tensor in world
   coordinates ``Gnn, Gne, Gnd, Gee, Ged, Gdd`` = ``R G R^T``);
+* with a gravity calibration (``mode: gravity``, :mod:`magcal.fitting.gravity`) and the survey's accelerometer
+  (``ax, ay, az``): the tilt-compensated magnetic heading of the board's x axis ``s{i}_heading_deg`` ([0, 360)),
+  the dip ``s{i}_dip_deg`` and the board's tilt ``tilt_deg`` (:meth:`Calibration.heading`);
 * for four sensors with a baseline: the tensor components ``Gxx, Gxy, Gxz, Gyy, Gyz, Gzz`` of eq. (1) (Chi et al.
   2017) and ``Gyx`` (the second estimate of the xy component; ``Gxy - Gyx`` is a check), in nT/m, and the
   rotational invariants of the symmetric part ``G = (T + T^T)/2`` (Pedersen & Rasmussen 1990)::
@@ -37,6 +40,7 @@ from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.notes import runs, runs_text
+from magcal.data.accelerometer import ACCEL_COLUMNS, has_accelerometer
 from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import (
@@ -62,6 +66,8 @@ TENSOR_FORMAT = "%.3f"
 INVARIANT_FORMAT = "%.7g"
 #: Standard deviations (``--uncertainty``): 4 significant digits.
 SD_FORMAT = "%.4g"
+#: Headings, dips and tilts (deg) to a thousandth of a degree.
+HEADING_FORMAT = "%.3f"
 
 #: Tensor columns written for a four-sensor array (eq. 1), in order.
 TENSOR_COLUMNS = ("Gxx", "Gxy", "Gxz", "Gyy", "Gyz", "Gzz", "Gyx")
@@ -107,7 +113,27 @@ def gives_tensor(calibration) -> bool:
     return calibration.n_sensors == 4 and bool(calibration.baseline_m)
 
 
-def output_columns(n_sensors, tensor, uncertainty=False, world=False):
+def heading_columns(n_sensors) -> list[str]:
+    """The columns a gravity calibration adds (:meth:`Calibration.heading`): per sensor the heading and the dip,
+    then the board's tilt (deg)."""
+    return (
+        [f"s{i + 1}_heading_deg" for i in range(n_sensors)]
+        + [f"s{i + 1}_dip_deg" for i in range(n_sensors)]
+        + ["tilt_deg"]
+    )
+
+
+def writes_heading(calibration, dataset=None, layout=None) -> bool:
+    """True when ``apply`` writes the heading: a gravity calibration and a survey with accelerometer columns (a
+    dataset, or a CSV file's :class:`magcal.data.io.Layout`)."""
+    if getattr(calibration, "mode", "scalar") != "gravity":
+        return False
+    if layout is not None:
+        return any(all(n in layout.extra for n in names) for names, _ in ACCEL_COLUMNS)
+    return dataset is not None and has_accelerometer(dataset)
+
+
+def output_columns(n_sensors, tensor, uncertainty=False, world=False, heading=False):
     """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
     ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``; with ``world``: the north-east-down components
     ``s{i}n_cal ..`` and, for arrays, ``Gnn ..``)."""
@@ -123,6 +149,8 @@ def output_columns(n_sensors, tensor, uncertainty=False, world=False):
         names += [f"s{i + 1}_F_sd" for i in range(n_sensors)]
         if tensor:
             names += [f"{c}_sd" for c in TENSOR_COLUMNS]
+    if heading:
+        names += heading_columns(n_sensors)
     return names
 
 
@@ -149,7 +177,7 @@ def input_columns(where, dataset, names) -> dict:
     return cols
 
 
-def correct_block(calibration, dataset, record_terms=None, uncertainty=False, world=False):
+def correct_block(calibration, dataset, record_terms=None, uncertainty=False, world=False, heading=False):
     """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
     ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
     order of :func:`output_columns`.
@@ -186,6 +214,9 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
         parts.append(u["total_sd_nT"].T)
         if tensor:
             parts.append(np.column_stack([u["tensor_sd_nT_per_m"][c] for c in TENSOR_COLUMNS]))
+    if heading:  # a gravity calibration: the tilt-compensated compass
+        h = calibration.heading(dataset, vectors)
+        parts += [h["heading_deg"].T, h["dip_deg"].T, h["tilt_deg"][:, None]]
     return np.hstack(parts)
 
 
@@ -409,7 +440,8 @@ def apply_file(
             )
         tensor = gives_tensor(calibration)
         world = writes_world(calibration, layout=src.layout)
-        new_names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
+        heading = writes_heading(calibration, layout=src.layout)
+        new_names = output_columns(calibration.n_sensors, tensor, uncertainty, world, heading)
         clash = sorted(set(new_names) & set(src.header))
         if clash:
             raise MagcalError(
@@ -426,6 +458,7 @@ def apply_file(
                 if uncertainty
                 else []
             )
+            + ([HEADING_FORMAT] * (2 * calibration.n_sensors + 1) if heading else [])
         )
         meta = {}
         if calibration_name:
@@ -449,7 +482,7 @@ def apply_file(
                     if rows == 0:
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
-                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world)
+                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world, heading)
                     if world or terms:
                         gaps.add(chunk.dataset)
                     out.write(
@@ -475,9 +508,10 @@ def apply_file(
 
 def reads_extras(calibration) -> bool:
     """Whether correcting with ``calibration`` needs the columns a CSV reader keeps as extras (a vector
-    calibration's attitude as ``roll_deg, pitch_deg, yaw_deg``, its platform terms' ``current_A``, ``throttle``):
-    then the CSV readers read them too (``text_columns``), which they skip otherwise for speed."""
-    return getattr(calibration, "mode", "scalar") == "vector"
+    calibration's attitude as ``roll_deg, pitch_deg, yaw_deg``, its platform terms' ``current_A``, ``throttle``; a
+    gravity calibration's accelerometer ``ax, ay, az``): then the CSV readers read them too (``text_columns``), which
+    they skip otherwise for speed."""
+    return getattr(calibration, "mode", "scalar") in ("vector", "gravity")
 
 
 def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False):
@@ -653,14 +687,15 @@ def apply_columns(
             for ds in chunks:
                 if rows == 0:
                     world = writes_world(calibration, ds)
-                    names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
+                    heading = writes_heading(calibration, ds)
+                    names = output_columns(calibration.n_sensors, tensor, uncertainty, world, heading)
                     if ds.n_sensors != calibration.n_sensors:
                         raise MagcalError(
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                             f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument"
                         )
                     calibration.check(ds)
-                values = correct_block(calibration, ds, choice, uncertainty, world)
+                values = correct_block(calibration, ds, choice, uncertainty, world, heading)
                 if world or terms:
                     gaps.add(ds)
                 cols = input_columns(survey_path, ds, names)

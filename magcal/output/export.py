@@ -30,6 +30,11 @@ ArduPilot rotates the raw reading first and corrects in the body frame, ``B = (A
 rotation (``COMPASS_ORIENT`` 101/102 with ``CUST_ROTn_*``) turns the raw reading by the rotation ``U`` of
 ``R C^-1 = U S`` and nothing is left out (:mod:`magcal.output.compensation`).
 
+A gravity calibration (``mode: gravity``, :mod:`magcal.fitting.gravity`) knows each magnetometer's rotation into the
+accelerometer's frame, which is rarely a right angle (a part soldered 2 deg off): it is exported as a vector
+calibration's mounting (the custom rotation for ArduPilot's compasses 1 and 2; the nearest right angle, the rest
+refused unless forced, for PX4), and its C header also holds the accelerometer's correction.
+
 The field of the platform's current (a vector fit's current term, or the catalogue effect ``current_field``) is
 written as the firmwares' motor compensation, ArduPilot ``COMPASS_MOTCT`` and ``COMPASS_MOT*``, PX4
 ``CAL_MAG_COMP_TYP`` and ``CAL_MAGn_[XYZ]COMP``, and into the C header (:mod:`magcal.output.compensation` has the
@@ -244,7 +249,7 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotati
     kept = calibration.sensors_for_new_data()  # a record-only term's kept level (the bias after a step) folded in
     for s, k in zip(sensors, slots):
         cal = kept[s - 1]
-        if getattr(calibration, "mode", "scalar") == "vector":
+        if getattr(calibration, "mode", "scalar") in ("vector", "gravity"):
             e = _vector_export(cal, s, k, fmt, field_nT)
             if fmt == "ardupilot" and custom_rotation:
                 e = _ardupilot_custom_export(cal, e)
@@ -326,7 +331,7 @@ def unsupported(calibration, exports) -> list[str]:
         for e in calibration.model.effects:
             if e.name != CURRENT_EFFECT:
                 lost.append(f"effect {e.label}: the firmware has no parameter for it (its correction is dropped)")
-    if getattr(calibration, "mode", "scalar") == "vector":
+    if getattr(calibration, "mode", "scalar") in ("vector", "gravity"):
         field_nT = float(calibration.reference_total_nT or 50_000.0)
         for e in exports:
             if e.right_angle is None:
@@ -446,7 +451,7 @@ def _attach_current(calibration, exports, fmt, throttle_full_scale):
 
 def _mounting_notes(calibration, exports, fmt, custom_rotation) -> list[str]:
     """What to know about ArduPilot's custom rotations: how to load them, and a compass that has none."""
-    if fmt != "ardupilot" or getattr(calibration, "mode", "scalar") != "vector":
+    if fmt != "ardupilot" or getattr(calibration, "mode", "scalar") not in ("vector", "gravity"):
         return []
     notes = []
     for e in exports:
@@ -649,6 +654,22 @@ def _c_header(exports, calibration, source, dropped, notes):
         for i in range(3):
             for j in range(3):
                 params[f"{tag}_MATRIX_{i}{j}"] = float(e.matrix[i, j])
+    accel = getattr(calibration, "accelerometer", None)
+    if accel is not None:  # a gravity calibration: the accelerometer's correction and the compass
+        lines += [
+            "/* the accelerometer (a gravity calibration): f_m_s2 = MAGCAL_ACCEL_MATRIX * (raw_m_s2 - "
+            "MAGCAL_ACCEL_BIAS_M_S2),",
+            " * up when still. Tilt-compensated heading of the board's x axis from f and the corrected field m:",
+            " * down = -f / |f|; east = down x m / |down x m|; north = east x down; heading = atan2(east.x, north.x) */",
+            "static const float MAGCAL_ACCEL_BIAS_M_S2[3] = {" + ", ".join(_c_float(v) for v in accel.bias_m_s2) + "};",
+        ]
+        lines += matrix("MAGCAL_ACCEL_MATRIX", accel.kinv)
+        lines.append("")
+        for k, axis in enumerate("xyz"):
+            params[f"MAGCAL_ACCEL_BIAS_M_S2_{axis}"] = float(accel.bias_m_s2[k])
+        for i in range(3):
+            for j in range(3):
+                params[f"MAGCAL_ACCEL_MATRIX_{i}{j}"] = float(accel.kinv[i, j])
     lines += ["#endif /* MAGCAL_CALIBRATION_H */", ""]
     return params, "\n".join(lines)
 
