@@ -44,3 +44,22 @@ def test_without_times_the_timing_is_not_tested():
     ev = dip_evidence(ds, fit_gravity(ds, warn=False))
     assert "timing: not tested (no sample times)" in ev.skipped
     assert "dip residual (sensor 1)" in ev.text()
+
+
+def test_magcal_diagnose_gives_the_dip_evidence_of_a_board_with_an_accelerometer(tmp_path, capsys):
+    """A record with accelerometer columns and no attitude: the total-field diagnosis and, beside it, the dip's
+    residual of the gravity fit with the candidates that move it (issue 42 item 5)."""
+    import json
+
+    from magcal.cli import main
+    from magcal.data.board import simulate_board
+    from magcal.data.dataset import dataset_columns, dataset_metadata
+    from magcal.data.io import write_csv
+
+    ds, _, _ = simulate_board(seed=3)
+    write_csv(tmp_path / "board.csv", dataset_columns(ds), dataset_metadata(ds))
+    assert main(["diagnose", str(tmp_path / "board.csv")]) == 0
+    assert "dip residual (sensor 1)" in capsys.readouterr().out
+    assert main(["diagnose", str(tmp_path / "board.csv"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["dip_evidence"] and "verdict" in doc

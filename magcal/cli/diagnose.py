@@ -218,6 +218,7 @@ def run(args) -> int:
             "--also: other flights judge a vector calibration; this record is diagnosed in scalar mode (it lacks the "
             "attitude or the field vector, or --mode scalar was given)"
         )
+    dip = _dip_evidence(args, ds, notes) if mode == "gravity" else None
     ds, reference = _scalar_reference(args, ds)
     quality = assess(ds)  # data quality, read before the fit (issue 10)
     notes += calibration_input_checks(ds, reference)  # coverage and reference, as calibrate
@@ -245,6 +246,8 @@ def run(args) -> int:
         doc = diagnosis.to_dict()
         doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))  # every warning of the run
         doc["quality"] = quality.to_dict()
+        if dip is not None:
+            doc["dip_evidence"] = dip.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
@@ -252,8 +255,25 @@ def run(args) -> int:
         shown = ds if reference is None else ds.replace(reference_total_nT=reference)  # the field used
         sys.stdout.write(f"{title}\n{'=' * len(title)}\n{shown.describe()}\n\n{diagnosis.table()}\n")
         sys.stdout.write(f"Diagnosed in {diagnosis.where_text()}.\n")
+        if dip is not None:
+            sys.stdout.write("\n" + dip.text() + "\n")
         sys.stdout.write("\n" + quality.section())
     return 0
+
+
+def _dip_evidence(args, ds, notes):
+    """A record with an accelerometer and no attitude (issue 42): the gravity fit's dip residual as evidence
+    (:func:`magcal.diagnosis.gravity.dip_evidence`), beside the total-field diagnosis; None (with a note) when the
+    gravity fit cannot be made."""
+    from magcal.diagnosis.gravity import dip_evidence
+    from magcal.fitting.gravity import fit_gravity
+
+    try:
+        fit = fit_gravity(ds, warn=False, robust=bool(getattr(args, "robust", False)))
+        return dip_evidence(ds, fit)
+    except (CalibrationError, MagcalError) as exc:
+        notes.append(f"the dip's evidence (the gravity fit) not given: {exc}")
+        return None
 
 
 def _also_flights(args) -> list:
