@@ -13,6 +13,7 @@ import argparse
 import statistics
 import subprocess
 import sys
+import time
 
 
 def cumulative_ms(statement: str, modules: tuple[str, ...]) -> float:
@@ -60,6 +61,20 @@ def main(argv=None) -> int:
     print(f"\n{'wall time from a fresh interpreter':44s} {'median ms':>10s}")
     for name, statement in later.items():
         print(f"{name:44s} {statistics.median(wall_ms(statement) for _ in range(max(3, args.repeats // 3))):10.1f}")
+    # the whole command, process start included, against the same interpreter importing magcal (issue 43: at most
+    # 1.3x), alternating
+    runs = {"python -c 'import magcal'": [sys.executable, "-c", "import magcal"]}
+    runs["magcal --help"] = [sys.executable, "-c", "import sys; from magcal.cli import main; main(['--help'])"]
+    whole = {name: [] for name in runs}
+    for _ in range(args.repeats):
+        for name, command in runs.items():
+            t = time.perf_counter()
+            subprocess.run(command, capture_output=True, check=False)
+            whole[name].append((time.perf_counter() - t) * 1000)
+    base = statistics.median(whole["python -c 'import magcal'"])
+    print(f"\n{'a whole process':44s} {'median ms':>10s} {'x import':>8s}")
+    for name, values in whole.items():
+        print(f"{name:44s} {statistics.median(values):10.1f} {statistics.median(values) / base:8.2f}")
     return 0
 
 

@@ -110,13 +110,18 @@ def test_every_module_is_in_a_layer():
     assert not stray, f"modules outside the layers {LAYERS}: {stray}"
 
 
+#: Modules whose engine imports may wait until a function runs: the command line's entry point, so that ``magcal
+#: --help`` starts in about the time of ``import magcal`` (issue 43) and ``magcal COMMAND`` imports only that command.
+LAZY_MODULES = ("magcal.cli",)
+
+
 @pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_point_down_and_sit_at_the_top(module):
     problems = []
     for target, line, at_top in engine_imports(module):
         if layer_of(target) > layer_of(module):
             problems.append(f"line {line}: {target} is in a higher layer")
-        if not at_top:
+        if not at_top and module not in LAZY_MODULES:
             problems.append(f"line {line}: {target} imported inside a function")
     assert not problems, f"{module}: " + "; ".join(problems)
 

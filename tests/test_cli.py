@@ -214,9 +214,28 @@ def test_every_subcommand_takes_effects_files():
 
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert {m.__name__.rsplit(".", 1)[1] for m in SUBCOMMANDS} <= set(sub.choices)
+    assert set(SUBCOMMANDS) <= set(sub.choices)
     for name, p in sub.choices.items():
         assert any(a.dest == "effects_file" and "--effects-file" in a.option_strings for a in p._actions), name
+
+
+def test_the_command_line_imports_only_the_command_that_runs():
+    """``magcal --help`` lists every subcommand from its table without importing one; ``magcal COMMAND`` imports
+    that command's module (issue 43: the command line starts in about the time of ``import magcal``)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from magcal.cli import main\n"
+        "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        "print(sorted(m for m in sys.modules if m.startswith('magcal.cli.') or m == 'magcal.fitting.pipeline'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, timeout=120).stdout
+    assert "calibrate" in out and "record" in out
+    assert out.strip().splitlines()[-1] == "['magcal.cli.commands']"
+    out = subprocess.run([sys.executable, "-c", code, "effects"], capture_output=True, text=True, timeout=120).stdout
+    loaded = out.strip().splitlines()[-1]
+    assert "magcal.cli.effects" in loaded and "magcal.cli.calibrate" not in loaded
 
 
 def test_effects_lists_the_built_in_catalogue(capsys):

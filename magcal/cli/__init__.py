@@ -14,16 +14,20 @@ warning). An exception raised later inside a user's effect code is reported as i
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
-from magcal.cli import align, apply, calibrate, diagnose, effects, export, record, send, simulate
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
-from magcal.data.io import check_output_path
-from magcal.model import plugins
-from magcal.model.plugins import user_code_error
 
-#: Subcommand modules, in the order ``magcal --help`` lists them.
-SUBCOMMANDS = (simulate, calibrate, diagnose, align, apply, effects, export, send, record)
+#: The subcommands' names, in the order ``magcal --help`` lists them (their modules are ``magcal.cli.<name>``,
+#: imported only when the command runs: :data:`magcal.cli.commands.HELP`).
+SUBCOMMANDS = tuple(HELP)
+
+
+def subcommand_module(name):
+    """The module of subcommand ``name`` (``magcal.cli.<name>``), imported now."""
+    return importlib.import_module(f"magcal.cli.{name}")
 
 
 def add_effects_file_argument(parser) -> None:
@@ -44,6 +48,8 @@ def add_effects_file_argument(parser) -> None:
 
 def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
+    from magcal.model import plugins
+
     notes: list = []
     plugins.load_entry_points(notes=notes)
     for note in notes:
@@ -51,28 +57,44 @@ def load_plugins(args, command="magcal") -> None:
     plugins.load_effects_files(getattr(args, "effects_file", None))
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only=None) -> argparse.ArgumentParser:
+    """The ``magcal`` parser: every subcommand's full parser, or (``only``: a name) that one's and a one-line
+    entry for each other (what ``magcal --help`` lists), so that only the command that runs is imported."""
     parser = argparse.ArgumentParser(
         prog="magcal",
         description="Calibrate triaxial fluxgate magnetometers and the cross magnetic gradient tensor system.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in SUBCOMMANDS:
-        sub_parser = module.register(sub)
+    for name in SUBCOMMANDS:
+        if only is not None and name != only:
+            sub.add_parser(name, help=HELP[name], add_help=False)
+            continue
+        sub_parser = subcommand_module(name).register(sub)
         if sub_parser is not None and not any(a.dest == "effects_file" for a in sub_parser._actions):
             add_effects_file_argument(sub_parser)
     return parser
 
 
+def _command_in(argv) -> str:
+    """The subcommand ``argv`` names (its first word that is not an option), or "" for none."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in HELP else ""
+    return ""
+
+
 def main(argv=None) -> int:
 
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(only=_command_in(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
     try:
         if getattr(args, "output", None) and args.command != "apply":  # apply checks its own (file or folder)
+            from magcal.data.io import check_output_path
+
             check_output_path(args.output, "-o")  # before any work, not after a long fit
         load_plugins(args, f"magcal {args.command}")
         return int(args.func(args) or 0)
@@ -80,6 +102,8 @@ def main(argv=None) -> int:
         print(f"magcal {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug in a user's effect code: its file and line, not a traceback into magcal
+        from magcal.model.plugins import user_code_error
+
         message = user_code_error(exc)
         if message is None:
             raise

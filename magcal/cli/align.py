@@ -17,6 +17,7 @@ import warnings
 
 from magcal.checks.reference import add_reference_arguments, reference_from_args
 from magcal.cli.calibrate import add_input_arguments, named_error, read_input
+from magcal.cli.commands import HELP
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.fitting.platform import align
 from magcal.model.plugins import check_calibration_effects
@@ -28,7 +29,7 @@ def register(subparsers):
 
     parser = subparsers.add_parser(
         "align",
-        help="level-table alignment: each sensor's rotation into the carrier platform's frame (patent S5-S8)",
+        help=HELP["align"],
         description="Estimate every sensor's rotation into the platform frame from level-table records (group "
         "column x_up, y_up, z_up), after the intrinsic calibration from --cal (or one fitted to the "
         "same file). Saves a calibration whose frame is 'platform'.",

@@ -23,6 +23,7 @@ import os
 import sys
 import warnings
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import DatasetError
 from magcal.data.io import PARQUET_CODECS, check_output_path
@@ -35,7 +36,7 @@ def register(subparsers):
     """Add the ``apply`` subcommand."""
     parser = subparsers.add_parser(
         "apply",
-        help="correct a survey file with a calibration: corrected vectors, tensor and invariants",
+        help=HELP["apply"],
         description="Apply a calibration to a survey CSV, streaming (memory stays flat for any length), and write "
         "the input columns plus the corrected ones.",
     )

@@ -37,6 +37,7 @@ from magcal.checks.reference import (
     reference_from_args,
     vector_reference_from_args,
 )
+from magcal.cli.commands import HELP
 from magcal.cli.gravity_mode import add_gravity_arguments, run_gravity
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
@@ -54,7 +55,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``calibrate`` subcommand."""
     parser = subparsers.add_parser(
         "calibrate",
-        help="calibrate one to four sensors from readings taken while turning them in a uniform field",
+        help=HELP["calibrate"],
         description="Calibrate from a magcal CSV file: ellipsoid fit per sensor, Procrustes between sensors, then "
         "maximum likelihood. Prints a readable report, or one JSON object with --json.",
     )

@@ -56,12 +56,15 @@ from magcal.cli.calibrate import (
     read_input,
     vector_effects,
 )
+from magcal.cli.commands import HELP
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.data.attitude import attitude_source
 from magcal.diagnosis import diagnose, start_workers
 from magcal.diagnosis._parallel import cores
+from magcal.diagnosis.gravity import dip_evidence
 from magcal.diagnosis.vector import JUDGE_TOP, Flight, diagnose_vector
+from magcal.fitting.gravity import fit_gravity
 from magcal.fitting.pipeline import calibrate
 
 
@@ -69,7 +72,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``diagnose`` subcommand."""
     parser = subparsers.add_parser(
         "diagnose",
-        help="find structure the model leaves in the residuals and the physical effect that explains it",
+        help=HELP["diagnose"],
         description="Calibrate (base model plus --effects), test every catalogue effect whose channels the file "
         "has (score test, then refits of the best), and give a verdict: adequate, missing_effect or "
         "unexplained. See docs/effects.md for the effects.",
@@ -265,9 +268,6 @@ def _dip_evidence(args, ds, notes):
     """A record with an accelerometer and no attitude (issue 42): the gravity fit's dip residual as evidence
     (:func:`magcal.diagnosis.gravity.dip_evidence`), beside the total-field diagnosis; None (with a note) when the
     gravity fit cannot be made."""
-    from magcal.diagnosis.gravity import dip_evidence
-    from magcal.fitting.gravity import fit_gravity
-
     try:
         fit = fit_gravity(ds, warn=False, robust=bool(getattr(args, "robust", False)))
         return dip_evidence(ds, fit)

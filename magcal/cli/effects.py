@@ -21,6 +21,7 @@ import json
 import sys
 import textwrap
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.model.plugins import catalogue, describe_effect
 from magcal.model.terms import EFFECTS, unknown_effect_message
@@ -30,7 +31,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``effects`` subcommand."""
     parser = subparsers.add_parser(
         "effects",
-        help="list the effect catalogue: built-in terms and your own (--effects-file), with their parameters",
+        help=HELP["effects"],
         description="List the effects that calibrate --effects, diagnose and the workbench know: name, stage, "
         "channels, parameters and units, description and where each came from (built-in, a file "
         "given with --effects-file, or an installed package's entry point). See docs/effects.md and "

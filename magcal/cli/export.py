@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import sys
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.io import atomic_write, read_csv
 from magcal.model.plugins import check_calibration_effects
@@ -41,7 +42,7 @@ def register(subparsers):
 
     parser = subparsers.add_parser(
         "export",
-        help="write a calibration as ArduPilot or PX4 parameters, or a C header",
+        help=HELP["export"],
         description="Write a calibration as the parameters a flight controller loads: "
         + "; ".join(f"{k}: {v}" for k, v in {**FORMATS, **DATA_FORMATS}.items())
         + ". Conventions and formulas: docs/export.md.",

@@ -19,6 +19,7 @@ import argparse
 import math
 import sys
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.live import open_source, record
 
@@ -81,7 +82,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``record`` subcommand."""
     parser = subparsers.add_parser(
         "record",
-        help="record a live source (serial port, UDP/MAVLink, simulated) into a magcal CSV file",
+        help=HELP["record"],
         description="Record a live magnetometer source into a magcal CSV file (flushed to disk at least every "
         "--flush seconds).",
     )

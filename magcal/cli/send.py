@@ -17,6 +17,7 @@ import argparse
 import os
 import sys
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
@@ -40,7 +41,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``send`` subcommand."""
     parser = subparsers.add_parser(
         "send",
-        help="write a calibration's compass parameters to a vehicle (MAVLink PARAM_SET) and read them back",
+        help=HELP["send"],
         description="Write the compass parameters of a calibration (as magcal export writes them) or of a "
         "parameter file to a vehicle over MAVLink; the old values are read first, shown, and saved to a backup "
         "file; every value is read back. Conventions: docs/export.md.",

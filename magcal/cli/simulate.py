@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 
+from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data import io
 from magcal.data.simulation import PRESETS, simulate, simulate_timeseries
@@ -24,7 +25,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     presets = "; ".join(f"{name}: {p.description}" for name, p in PRESETS.items())
     parser = subparsers.add_parser(
         "simulate",
-        help="write simulated readings with known errors (a preset of a paper) to a CSV file",
+        help=HELP["simulate"],
         description=f"Simulate magnetometer readings with known errors and write them as magcal CSV. Presets: "
         f"{presets}.",
     )
