@@ -50,9 +50,15 @@ CASES = [
 ]
 
 
+#: The flights' conditions (``--attitude-noise-deg``, ``--turns``) and the hidden effects' sizes (``--scale``).
+CONDITIONS = {"attitude_noise_deg": 0.02, "turns": 3.0}
+
+
 def _flight(truth, seed, name, size, n, **options):
     hidden = [] if name is None else [EFFECTS[name]().perturbation(size, None, **options)]
-    ds, _ = simulate_vehicle(truth, seed=seed, n=n, perturbations=hidden, log_current=True, temperature=True)
+    ds, _ = simulate_vehicle(
+        truth, seed=seed, n=n, perturbations=hidden, log_current=True, temperature=True, **CONDITIONS
+    )
     return ds
 
 
@@ -61,13 +67,14 @@ def _world_rms(calibration, ds) -> float:
     return float(np.sqrt(np.nanmean((world - resolve_vector_reference(ds).ned_nT) ** 2)))
 
 
-def simulated(seeds, n):
+def simulated(seeds, n, scale=1.0):
     print(
         f"{'case':<12} {'seed':>4}  {'named':<22} {'ours':>7} {'base':>7} {'old default':>11} {'floor':>7} "
         f"{'ours/floor':>10} {'s':>5}"
     )
     worst = 0.0
     for label, name, size, next_options in CASES:
+        size = None if size is None else size * scale
         for seed in seeds:
             truth = vehicle_truth(seed=seed)
             one = _flight(truth, 1, name, size, n)
@@ -80,7 +87,7 @@ def simulated(seeds, n):
             base = fit_vector(one, ref, warn=False).calibration
             old = fit_vector(one, ref, terms=["eddy", "current"], warn=False).calibration
             clean = _flight(truth, 2, None, None, n)
-            floor = _world_rms(true_calibration(simulate_vehicle(truth, seed=2, n=n)[1]), clean)
+            floor = _world_rms(true_calibration(simulate_vehicle(truth, seed=2, n=n, **CONDITIONS)[1]), clean)
             ratio = _world_rms(ours, two) / floor
             worst = max(worst, ratio)
             named = ",".join(d.explained_by) or "-"
@@ -147,10 +154,15 @@ def main():
     parser.add_argument("--seeds", default="3,7", help="vehicle seeds (comma-separated)")
     parser.add_argument("--n", type=int, default=6000, help="samples per flight (10 Hz)")
     parser.add_argument("--real", action="store_true", help="also the public vehicle logs")
+    parser.add_argument("--attitude-noise-deg", type=float, default=0.02, help="attitude error (deg, 1 sigma)")
+    parser.add_argument("--turns", type=float, default=3.0, help="full yaw turns per flight (600 s at 10 Hz)")
+    parser.add_argument("--scale", type=float, default=1.0, help="the hidden effects' sizes times this")
     parser.add_argument("--real-only", action="store_true", help="only the public vehicle logs")
     args = parser.parse_args()
+    CONDITIONS.update(attitude_noise_deg=args.attitude_noise_deg, turns=args.turns)
     if not args.real_only:
-        simulated([int(s) for s in args.seeds.split(",")], args.n)
+        print(f"conditions: {CONDITIONS}, hidden sizes x {args.scale}")
+        simulated([int(s) for s in args.seeds.split(",")], args.n, args.scale)
     if args.real or args.real_only:
         real()
 
