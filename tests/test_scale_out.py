@@ -430,7 +430,7 @@ def test_workers_started_late_start_with_the_callers_script_hidden(record, monke
     monkeypatch.setattr(_parallel, "BACKEND", "processes")
     ds, _ = record
     with _parallel.Pool(ds, workers=3) as pool:
-        pids = {f.result() for f in [pool.remote_future(_nap, 0.5) for _ in range(6)]}
+        pids = {f.result() for f in [pool.remote_future(_nap, 0.8) for _ in range(12)]}  # room for a slow start
     assert len(seen) == 3 and len(pids) == 3  # every worker started and worked
     assert seen == [(False, "1")] * 3, seen  # the third starts from a task, outside the start-up loop
 
