@@ -18,10 +18,12 @@ from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning, exception_text
+from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note, row_runs
 from magcal.core.vectors import basis_times, row_norm
 from magcal.data.attitude import attitude_rows
+from magcal.data.dataset import MAX_ABS_VALUE
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
 from magcal.model.platform_terms import PlatformTerms
@@ -40,6 +42,17 @@ from magcal.model.terms import (
 
 FORMAT = "magcal-calibration"
 VERSION = 1
+
+#: Largest magnitude of any parameter a calibration file may hold (the bias, ``C^-1``, an effect's parameters and
+#: constants, a platform term; the baseline from its inverse up to it): the bound of every read value
+#: (:data:`magcal.data.dataset.MAX_ABS_VALUE`). Applied to readings within that bound, such parameters give finite
+#: results; beyond it a calibration (``C^-1 = 1e308 I``) made infinite corrected values and firmware parameters.
+MAX_PARAMETER = MAX_ABS_VALUE
+#: Largest magnitude of a covariance entry (a parameter's variance: :data:`MAX_PARAMETER` squared).
+MAX_COVARIANCE = MAX_PARAMETER**2
+#: Largest calibration file read (bytes): a calibration of four sensors with effects and its covariance is tens of
+#: kB; a file far larger is not one (and is refused before it is parsed).
+MAX_CALIBRATION_BYTES = 64 << 20
 
 #: Effects that describe one recording, used only for an effect class that does not say
 #: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
@@ -685,11 +698,15 @@ class Calibration:
         baseline = doc.get("baseline_m")
         if baseline is not None:
             try:
-                ok = float(baseline) > 0 and np.isfinite(float(baseline))
-            except (TypeError, ValueError):
+                ok = 1.0 / MAX_PARAMETER <= float(baseline) <= MAX_PARAMETER
+            except (TypeError, ValueError, OverflowError):
                 ok = False
             if not ok:
-                raise MagcalError(f"{source}: baseline_m {baseline!r} must be a positive number of metres")
+                raise MagcalError(
+                    f"{source}: baseline_m {str(baseline)[:40]!r} must be a positive number of metres, from "
+                    f"{1.0 / MAX_PARAMETER:g} to {MAX_PARAMETER:g}; the file is damaged, recalibrate"
+                )
+        _check_parameter_bounds(doc, source)
         derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
         sensors = [
             SensorCalibration(
@@ -785,15 +802,23 @@ class Calibration:
             Refuse a calibration made for a different number of sensors.
         """
         path = os.fspath(path)
+        reason = not_regular_reason(path)
+        if reason is not None and reason != "no such file" and not reason.startswith("cannot"):
+            raise MagcalError(f"{path}: is {reason}; give the calibration file (JSON) itself")
         try:
             with open(path, "rb") as fh:
-                raw = fh.read()
+                raw = fh.read(MAX_CALIBRATION_BYTES + 1)
         except FileNotFoundError:
             raise MagcalError(f"{path}: no such calibration file; check the path") from None
         except IsADirectoryError:
             raise MagcalError(f"{path}: is a directory, not a calibration file") from None
         except OSError as exc:
             raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+        if len(raw) > MAX_CALIBRATION_BYTES:
+            raise MagcalError(
+                f"{path}: more than {MAX_CALIBRATION_BYTES >> 20} MB, far larger than any calibration file; give "
+                "the file written by magcal calibrate or magcal align"
+            )
         try:
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
@@ -862,6 +887,60 @@ def _check_document_types(doc, source) -> None:
             )
 
 
+def _numbers(value, path=()):
+    """Every number in a JSON value (nested lists and objects), with its key path: ``(path, number)``."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield path, value
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            yield from _numbers(v, (*path, str(k)))
+    elif isinstance(value, list):
+        for k, v in enumerate(value):
+            yield from _numbers(v, (*path, k))
+
+
+def _path_text(path) -> str:
+    """``sensors[0].Cinv[1][1]`` for a key path: the document's own keys and (0-based) list positions."""
+    out = ""
+    for k in path:
+        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else k)
+    return out[:80]
+
+
+def _check_parameter_bounds(doc, source) -> None:
+    """Refuse a document holding a parameter beyond :data:`MAX_PARAMETER` (a covariance entry beyond
+    :data:`MAX_COVARIANCE`): every number that correcting, the uncertainty or an export computes with. Finite but
+    huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0."""
+    parts = [
+        (("sensors", i, key), e.get(key)) for i, e in enumerate(doc["sensors"]) for key in ("Cinv", "bias_nT", "R")
+    ]
+    for k, entry in enumerate(doc.get("effect_params") or []):
+        parts += [(("effect_params", k, key), entry.get(key)) for key in ("params", "state")]
+    if isinstance(doc.get("platform_terms"), dict):
+        parts += [
+            (("platform_terms", key), doc["platform_terms"].get(key)) for key in ("eddy_ms", "current_nT_per_unit")
+        ]
+    covariance = doc.get("base_covariance")
+    limits = [(parts, MAX_PARAMETER)]
+    if isinstance(covariance, dict):
+        limits.append(([(("base_covariance", "matrix"), covariance.get("matrix"))], MAX_COVARIANCE))
+    for found, limit in limits:
+        for head, value in found:
+            for path, number in _numbers(value, head):
+                try:
+                    beyond = not abs(float(number)) <= limit  # NaN, inf and values beyond the bound
+                except OverflowError:  # an integer too large for a float
+                    beyond = True
+                if beyond:
+                    raise MagcalError(
+                        f"{source}: {_path_text(path)} = {str(number)[:24]} is beyond +-{limit:g}, no calibration's "
+                        "value (it would correct readings to infinities): the file is damaged or was edited; "
+                        "recalibrate"
+                    )
+
+
 def _check_sensor_entry(source, i, s) -> None:
     """Refuse a damaged sensor entry of a calibration document, naming the sensor and the key."""
     where = f"{source}: sensor {i + 1}"
@@ -874,7 +953,7 @@ def _check_sensor_entry(source, i, s) -> None:
             raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
         try:
             a = np.array(s[key], dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
             raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
         if a.shape != shape or not np.all(np.isfinite(a)):
             raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
@@ -930,9 +1009,26 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
     return model, values
 
 
-def write_json_atomic(path, document) -> None:
-    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.data.io.atomic_write`)."""
+def document_text(document, what="calibration") -> str:
+    """``document`` as indented JSON text (with a final line end), refusing a value that is not a finite number:
+    JSON has none (Python would write ``NaN`` or ``Infinity``, which no JSON reader takes, magcal's included).
 
+    Raises
+    ------
+    MagcalError
+    """
+    try:
+        return json.dumps(document, indent=2, allow_nan=False) + "\n"
+    except ValueError:
+        where = next((_path_text(p) for p, v in _numbers(document) if not np.isfinite(v)), "a value")
+        raise MagcalError(
+            f"the {what} holds {where} that is not a finite number; it is not written (recalibrate)"
+        ) from None
+
+
+def write_json_atomic(path, document) -> None:
+    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.data.io.atomic_write`); a value
+    that is not a finite number is refused before anything is written (:func:`document_text`)."""
+    text = document_text(document)
     with atomic_write(path, "w", newline=None) as fh:
-        json.dump(document, fh, indent=2)
-        fh.write("\n")
+        fh.write(text)
