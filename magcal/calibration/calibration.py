@@ -692,6 +692,7 @@ class Calibration:
                 f"{source}: this calibration is for {len(entries)} sensor(s) but the data have {n_sensors}; use the "
                 "calibration made for this instrument"
             )
+        _check_parameter_bounds(doc, source)  # first: a huge value overflows the entries' own checks
         for i, entry in enumerate(entries):
             _check_sensor_entry(source, i, entry)
         _check_document_types(doc, source)
@@ -706,7 +707,6 @@ class Calibration:
                     f"{source}: baseline_m {str(baseline)[:40]!r} must be a positive number of metres, from "
                     f"{1.0 / MAX_PARAMETER:g} to {MAX_PARAMETER:g}; the file is damaged, recalibrate"
                 )
-        _check_parameter_bounds(doc, source)
         derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
         sensors = [
             SensorCalibration(
@@ -901,6 +901,14 @@ def _numbers(value, path=()):
             yield from _numbers(v, (*path, k))
 
 
+def _number_text(number) -> str:
+    """A number of a document as a message shows it: ``1e+308``; an integer beyond any float by its digits."""
+    try:
+        return f"{float(number):.6g}"
+    except OverflowError:
+        return f"an integer of {len(str(abs(number))):,} digits"
+
+
 def _path_text(path) -> str:
     """``sensors[0].Cinv[1][1]`` for a key path: the document's own keys and (0-based) list positions."""
     out = ""
@@ -909,15 +917,21 @@ def _path_text(path) -> str:
     return out[:80]
 
 
-def _check_parameter_bounds(doc, source) -> None:
+def _check_parameter_bounds(doc, source, then="the file is damaged or was edited; recalibrate") -> None:
     """Refuse a document holding a parameter beyond :data:`MAX_PARAMETER` (a covariance entry beyond
     :data:`MAX_COVARIANCE`): every number that correcting, the uncertainty or an export computes with. Finite but
     huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0."""
+    sensors = doc.get("sensors") if isinstance(doc.get("sensors"), list) else []
     parts = [
-        (("sensors", i, key), e.get(key)) for i, e in enumerate(doc["sensors"]) for key in ("Cinv", "bias_nT", "R")
+        (("sensors", i, key), e.get(key))
+        for i, e in enumerate(sensors)
+        if isinstance(e, dict)
+        for key in ("Cinv", "bias_nT", "R")
     ]
-    for k, entry in enumerate(doc.get("effect_params") or []):
-        parts += [(("effect_params", k, key), entry.get(key)) for key in ("params", "state")]
+    effects = doc.get("effect_params") if isinstance(doc.get("effect_params"), list) else []
+    for k, entry in enumerate(effects):
+        if isinstance(entry, dict):  # another type: the document's type check names it
+            parts += [(("effect_params", k, key), entry.get(key)) for key in ("params", "state")]
     if isinstance(doc.get("platform_terms"), dict):
         parts += [
             (("platform_terms", key), doc["platform_terms"].get(key)) for key in ("eddy_ms", "current_nT_per_unit")
@@ -935,9 +949,9 @@ def _check_parameter_bounds(doc, source) -> None:
                     beyond = True
                 if beyond:
                     raise MagcalError(
-                        f"{source}: {_path_text(path)} = {str(number)[:24]} is beyond +-{limit:g}, no calibration's "
-                        "value (it would correct readings to infinities): the file is damaged or was edited; "
-                        "recalibrate"
+                        f"{source}: {_path_text(path)} = {_number_text(number)} is beyond +-{limit:g}, no "
+                        "calibration's "
+                        f"value (it would correct readings to infinities): {then}"
                     )
 
 
@@ -1010,13 +1024,16 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
 
 
 def document_text(document, what="calibration") -> str:
-    """``document`` as indented JSON text (with a final line end), refusing a value that is not a finite number:
-    JSON has none (Python would write ``NaN`` or ``Infinity``, which no JSON reader takes, magcal's included).
+    """A calibration's ``document`` (:meth:`Calibration.to_dict`) as indented JSON text (with a final line end),
+    refusing what magcal would not read back: a parameter beyond :data:`MAX_PARAMETER`, or a value that is not a
+    finite number (JSON has none: Python would write ``NaN`` or ``Infinity``, which no JSON reader takes).
 
     Raises
     ------
     MagcalError
     """
+    if isinstance(document.get("sensors"), list):
+        _check_parameter_bounds(document, f"the {what}", "it is not written; recalibrate")
     try:
         return json.dumps(document, indent=2, allow_nan=False) + "\n"
     except ValueError:

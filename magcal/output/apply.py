@@ -36,6 +36,7 @@ from magcal.calibration.calibration import ATTITUDE_GAP_NOTE, Calibration, Recor
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.core.files import check_regular_file
 from magcal.core.notes import runs, runs_text
 from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
@@ -223,7 +224,7 @@ def refuse_non_finite(values, names, source, dataset=None, row_name=None) -> Non
     if bad.any():
         k, j = (int(i) for i in np.argwhere(bad)[0])
         raise MagcalError(
-            f"{source}: {row_name(k) if row_name else f'row {k + 1}'}: {names[j]} would be {values[k, j]!r}, not a finite number ({int(bad.sum())} such "
+            f"{source}: {row_name(k) if row_name else f'row {k + 1}'}: {names[j]} would be {float(values[k, j])!r}, not a finite number ({int(bad.sum())} such "
             "value(s) in this block); nothing is written. The calibration's values are too large for these "
             "readings, or a channel it needs (temperature, current...) is missing there: check both"
         )
@@ -401,8 +402,9 @@ def apply_file(
     t0 = time.perf_counter()
     check_output_path(output_path, "output")  # before any work: a folder, a missing folder
     if not os.path.isfile(survey_path):
-        what = "is a directory, not a survey file" if os.path.isdir(survey_path) else "no such file; check the path"
-        raise DatasetError(f"{os.fspath(survey_path)}: {what}")
+        if os.path.isdir(survey_path):
+            raise DatasetError(f"{os.fspath(survey_path)}: is a directory, not a survey file")
+        check_regular_file(survey_path, "file", DatasetError)  # missing, a FIFO, a device: named, never opened
 
     if compression is not None and not is_parquet(output_path):
         raise MagcalError(
