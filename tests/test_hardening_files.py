@@ -389,6 +389,10 @@ _HUGE_EDITS = {
         lambda d: d["base_covariance"]["matrix"][0].__setitem__(0, 1e100),
         "base_covariance.matrix[0][0] = 1e+100 is beyond +-1e+60",
     ),
+    "a reference field beyond any float": (
+        lambda d: d.update(reference_total_nT=10**400),
+        "'reference_total_nT' must be a number of nT from",
+    ),
     "an integer beyond any float": (
         lambda d: d["sensors"][0].update(bias_nT=[10**400, 0, 0]),
         "sensors[0].bias_nT[0] = an integer of 401 digits is beyond +-1e+30",

@@ -699,10 +699,10 @@ class Calibration:
         baseline = doc.get("baseline_m")
         if baseline is not None:
             try:
-                ok = 1.0 / MAX_PARAMETER <= float(baseline) <= MAX_PARAMETER
+                within = 1.0 / MAX_PARAMETER <= float(baseline) <= MAX_PARAMETER
             except (TypeError, ValueError, OverflowError):
-                ok = False
-            if not ok:
+                within = False
+            if not within:
                 raise MagcalError(
                     f"{source}: baseline_m {str(baseline)[:40]!r} must be a positive number of metres, from "
                     f"{1.0 / MAX_PARAMETER:g} to {MAX_PARAMETER:g}; the file is damaged, recalibrate"
@@ -867,10 +867,9 @@ def _check_document_types(doc, source) -> None:
                 for e in value
             )
         if key == "reference_total_nT":
-            return (
+            return (  # NaN and infinities fail the range; an integer beyond any float compares too
                 isinstance(value, (int, float))
                 and not isinstance(value, bool)
-                and np.isfinite(value)
                 and USABLE_TOTAL_nT[0] <= value <= USABLE_TOTAL_nT[1]
             )
         if key == "reference_fitted":
@@ -922,7 +921,7 @@ def _check_parameter_bounds(doc, source, then="the file is damaged or was edited
     :data:`MAX_COVARIANCE`): every number that correcting, the uncertainty or an export computes with. Finite but
     huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0."""
     sensors = doc.get("sensors") if isinstance(doc.get("sensors"), list) else []
-    parts = [
+    parts: list[tuple[tuple, object]] = [
         (("sensors", i, key), e.get(key))
         for i, e in enumerate(sensors)
         if isinstance(e, dict)

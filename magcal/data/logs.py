@@ -498,6 +498,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         raise DatasetError(
             f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
         ) from None
+    check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
     check_dataflash_formats(path, source)
     deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
 
@@ -571,7 +572,7 @@ def _check_dataflash_counts(log, source) -> int:
     """The messages of the kinds magcal keeps (pymavlink's index counts them before any is read), refused when
     they would not fit in the free memory (:func:`magcal.core.memory.available_bytes`)."""
     ids = getattr(log, "name_to_id", {}) or {}
-    counts = getattr(log, "counts", None)
+    counts = getattr(log, "counts", None) or {}
     try:
         kept = sum(int(counts[ids[name]]) for name in _DF_KEPT_TYPES if name in ids)
     except (TypeError, KeyError, IndexError):
@@ -768,6 +769,7 @@ def read_ulog(path, sensors=None, name=None, notes=None, timeout_s=None) -> Data
         from pyulog import ULog
     except ImportError:
         raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
+    check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
     deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
     check_ulog_definitions(path, source, deadline=deadline)
     try:
