@@ -15,7 +15,7 @@ The contract checked on every case (:func:`outcome`):
   ``SessionFileError`` are kinds of it) whose message is one line: any other exception is a *traceback*;
 * it ends within :data:`TIME_BOUND_S` (run in a thread; one still running then is a *hang*).
 
-``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 30 s on two
+``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 55 s on two
 cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
 """
 

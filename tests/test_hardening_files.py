@@ -389,6 +389,10 @@ _HUGE_EDITS = {
         lambda d: d["base_covariance"]["matrix"][0].__setitem__(0, 1e100),
         "base_covariance.matrix[0][0] = 1e+100 is beyond +-1e+60",
     ),
+    "a damaged key's line end": (
+        lambda d: d["effect_params"][0]["state"].update({"a\nb": 1e300}),
+        "effect_params[0].state.'a\\nb' = 1e+300 is beyond",
+    ),
     "a reference field beyond any float": (
         lambda d: d.update(reference_total_nT=10**400),
         "'reference_total_nT' must be a number of nT from",

@@ -912,8 +912,10 @@ def _path_text(path) -> str:
     """``sensors[0].Cinv[1][1]`` for a key path: the document's own keys and (0-based) list positions."""
     out = ""
     for k in path:
+        if not isinstance(k, int) and not (k.isprintable() and len(k) <= 40):
+            k = repr(k[:40])  # a key of a damaged file: quoted, line ends escaped
         out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else k)
-    return out[:80]
+    return out[:120]
 
 
 def _check_parameter_bounds(doc, source, then="the file is damaged or was edited; recalibrate") -> None:
