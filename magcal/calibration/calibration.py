@@ -921,7 +921,8 @@ def _path_text(path) -> str:
 def _check_parameter_bounds(doc, source, then="the file is damaged or was edited; recalibrate") -> None:
     """Refuse a document holding a parameter beyond :data:`MAX_PARAMETER` (a covariance entry beyond
     :data:`MAX_COVARIANCE`): every number that correcting, the uncertainty or an export computes with. Finite but
-    huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0."""
+    huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0. (NaN and
+    infinities are refused by each part's own check, naming them.)"""
     sensors = doc.get("sensors") if isinstance(doc.get("sensors"), list) else []
     parts: list[tuple[tuple, object]] = [
         (("sensors", i, key), e.get(key))
@@ -944,8 +945,8 @@ def _check_parameter_bounds(doc, source, then="the file is damaged or was edited
     for found, limit in limits:
         for head, value in found:
             for path, number in _numbers(value, head):
-                try:
-                    beyond = not abs(float(number)) <= limit  # NaN, inf and values beyond the bound
+                try:  # NaN and infinities are left to the checks of each part, which name them
+                    beyond = bool(np.isfinite(float(number))) and abs(float(number)) > limit
                 except OverflowError:  # an integer too large for a float
                     beyond = True
                 if beyond:
