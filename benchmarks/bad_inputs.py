@@ -1,14 +1,17 @@
 """Every bad input we could think of, through the real CLI: what each one got.
 
-Run: ``python benchmarks/bad_inputs.py`` (about 10 s). Prints one row per case: the command, the exit status and
-the first line of what magcal said. Verdicts:
+Run: ``python benchmarks/bad_inputs.py`` (about 20 s). Prints one row per case: the command, the verdict, the
+seconds it took and the first line of what magcal said. Verdicts:
 
-* ``refused``  - exit status 2 with a one-line message (no traceback);
+* ``refused``  - exit status 2 with a one-line message (no traceback) of at most 1000 characters;
 * ``warned``   - went on, with a warning printed (a problem magcal could work around);
 * ``accepted`` - exit 0 and nothing said: **silently accepted** (should not happen for a bad input);
+* ``LONG``     - refused, but with a message longer than 1000 characters;
+* ``HANG``     - still running after :data:`CASE_LIMIT_S` (a FIFO's reader is then let go);
 * ``CRASH``    - any other exception (a traceback): a bug.
 
-The script exits non-zero if any case was silently accepted or crashed.
+The script exits non-zero if any case was silently accepted, crashed, hung or said too much. The last rows are
+issue 41's bombs and bad values; ``benchmarks/README.md`` has the table before and after it.
 """
 
 from __future__ import annotations
@@ -16,9 +19,13 @@ from __future__ import annotations
 import contextlib
 import io as _io
 import json
+import os
+import struct
 import sys
 import tempfile
 import textwrap
+import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -31,8 +38,33 @@ from magcal.data import io
 from magcal.data import simulation as sim
 from magcal.fitting import platform as pf
 
+#: Longest a case may run (s) before it counts as a hang.
+CASE_LIMIT_S = 60.0
+#: Longest message a refusal may print (characters).
+MESSAGE_LIMIT = 1000
 
-def run_cli(argv):
+
+def run_cli(argv, folder=None):
+    """The verdict, the seconds and the first line of what ``magcal ARGV`` said, the command run in a thread: one
+    still running after :data:`CASE_LIMIT_S` is a hang (a reader blocked on a FIFO of ``folder`` is let go)."""
+    box = {}
+    thread = threading.Thread(target=lambda: box.update(result=_run_cli(argv)), daemon=True)
+    t0 = time.perf_counter()
+    thread.start()
+    thread.join(CASE_LIMIT_S)
+    hung = thread.is_alive()
+    while thread.is_alive():
+        for path in Path(folder).iterdir() if folder is not None else ():
+            if path.is_fifo():  # a reader blocked opening a FIFO is let go: it reads the FIFO's end
+                with contextlib.suppress(OSError):
+                    os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+        thread.join(1.0)
+    seconds = time.perf_counter() - t0
+    verdict, message = box["result"]
+    return ("HANG" if hung else verdict), seconds, message
+
+
+def _run_cli(argv):
     err, out = _io.StringIO(), _io.StringIO()
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out), warnings.catch_warnings():
@@ -40,11 +72,12 @@ def run_cli(argv):
             code = main([str(a) for a in argv])
     except SystemExit as exc:  # argparse usage errors
         code = exc.code
-    except Exception as exc:
+    except BaseException as exc:  # MemoryError included
         return "CRASH", f"{type(exc).__name__}: {exc}"
     text = err.getvalue().strip()
     if code == 2 and "error:" in text and "Traceback" not in text:
-        return "refused", next(line for line in text.splitlines() if "error:" in line)
+        line = next(line for line in text.splitlines() if "error:" in line)
+        return ("refused" if len(line) <= MESSAGE_LIMIT else "LONG"), line
     if code == 0 and "warning:" in text:
         first = next(line for line in text.splitlines() if "warning:" in line)
         return "warned", first
@@ -135,7 +168,6 @@ def make_files(d: Path):
     (d / "dir.csv").mkdir()
     (d / "outdir").mkdir()
     # issue 31: hostile logs, wide and endless lines, wrong types in a calibration file
-    import struct
 
     fmt = b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", 128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
     mag0 = b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", 65, 0, b"MAG", b"QBhhh", b"TimeUS,I,MagX,MagY,MagZ")
@@ -146,6 +178,54 @@ def make_files(d: Path):
         fh.write(b"s1x,s1y,s1z\n")
         fh.write(b"1" * (8 << 20))
     (d / "params_number.json").write_text(json.dumps({**doc, "effect_params": 5}))
+    make_issue41_files(d, doc)
+
+
+def _ulog_msg(kind, payload):
+    return struct.pack("<HB", len(payload), ord(kind)) + payload
+
+
+def nested_ulog(depth, before=b"", after=b""):
+    """Formats ``t0:t1[2] a;`` ... ``t{depth}:uint8_t x;`` and a subscription of t0: 2^depth fields in pyulog."""
+    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0)) + before
+    for k in range(depth):
+        out += _ulog_msg("F", f"t{k}:t{k + 1}[2] a;".encode())
+    out += _ulog_msg("F", f"t{depth}:uint8_t x;".encode()) + _ulog_msg("A", struct.pack("<BH", 0, 0) + b"t0")
+    return bytes(out + after)
+
+
+def make_issue41_files(d: Path, doc):
+    """Issue 41's bombs and bad values."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    (d / "nest22.ulg").write_bytes(nested_ulog(22))  # 4 million fields from 558 bytes
+    padding = _ulog_msg("I", b"\x0cchar[1] pad" + b"x" * 40_000) * 3
+    (d / "hidden.ulg").write_bytes(nested_ulog(22, before=b"\x20\x4e\xee", after=padding))
+    col = pa.array(np.full(1_000_000, 30_000.0))
+    table = pa.table({"s1x": col, "s1y": col, "s1z": col})
+    with pq.ParquetWriter(d / "rows1e8.parquet", table.schema, compression="zstd") as writer:
+        for _ in range(100):  # 1e8 constant rows
+            writer.write_table(table)
+    with open(d / "padding.csv", "w") as fh:
+        fh.write("s1x,s1y,s1z,note\n30000,1,2," + "a" * 100_000 + "\n")
+        fh.writelines(f"{30000 + k % 7},{k % 5},{k % 3},b\n" for k in range(200_000))
+    good = (d / "free.csv").read_text().splitlines()
+    hdr = next(i for i, line in enumerate(good) if not line.startswith("#"))
+    lines = list(good)
+    for k in range(1, 6):
+        lines[hdr + k] = "9" * 5000 + "," + lines[hdr + k].split(",", 1)[1]
+    (d / "longcells.csv").write_text("\n".join(lines) + "\n")
+    counts = sim.simulate(pf.platform_truth(), n_samples=200, noise_nT=3.0, seed=5)
+    counts = counts.replace(readings_nT=np.round(counts.readings_nT[:1] / 150.0), baseline_m=None)
+    io.write_csv(d / "counts.csv", counts, metadata={"units": "counts", "lsb_nT": "150"})
+    for name, lsb in (("lsb1e308.csv", "1e308"), ("lsb1e-300.csv", "1e-300")):
+        (d / name).write_text((d / "counts.csv").read_text().replace("lsb_nT: 150", f"lsb_nT: {lsb}"))
+    huge = json.loads(json.dumps(doc))
+    huge["sensors"] = [{**s, "Cinv": (np.eye(3) * 1e308).tolist()} for s in doc["sensors"]]
+    (d / "huge.json").write_text(json.dumps(huge))
+    for name in ("fifo_effects.py", "fifo.csv", "fifo.json"):
+        os.mkfifo(d / name)
 
 
 def cases(d: Path):
@@ -211,6 +291,25 @@ def cases(d: Path):
         ("apply", "-o an existing directory", ["apply", c, s, "-o", d / "outdir"]),
         ("apply", "missing input, existing output", ["apply", c, d / "absent.parquet", "-o", s]),
         ("apply", "--workers 10000", ["apply", c, s, "-o", d / "parts", "--workers", "10000"]),
+        # issue 41: bombs and bad values
+        ("log", "ULog formats nesting 22 deep (558 bytes)", ["calibrate", d / "nest22.ulg"]),
+        ("log", "the same behind a damaged stretch", ["calibrate", d / "hidden.ulg"]),
+        ("data file", "Parquet of 1e8 constant rows (1.3 MB)", ["calibrate", d / "rows1e8.parquet"]),
+        ("data file", "a 100 000-character cell above 200 000 short", ["calibrate", d / "padding.csv"]),
+        ("data file", "five 5000-character values", ["calibrate", d / "longcells.csv"]),
+        ("data file", "# lsb_nT: 1e308", ["calibrate", d / "lsb1e308.csv"]),
+        ("data file", "# lsb_nT: 1e-300", ["calibrate", d / "lsb1e-300.csv"]),
+        ("data file", "--lsb 1e-300", ["calibrate", d / "counts.csv", "--lsb", "1e-300"]),
+        ("data file", "a FIFO", ["calibrate", d / "fifo.csv"]),
+        (
+            "cal file",
+            "Cinv = 1e308 I, ArduPilot",
+            ["export", d / "huge.json", "--format", "ardupilot", "--sensor", "1"],
+        ),
+        ("cal file", "Cinv = 1e308 I, PX4", ["export", d / "huge.json", "--format", "px4"]),
+        ("cal file", "Cinv = 1e308 I, apply", ["apply", d / "huge.json", s, "-o", d / "huge_out.csv"]),
+        ("cal file", "a FIFO", ["apply", d / "fifo.json", s, "-o", o]),
+        ("effects", "a FIFO as --effects-file", ["calibrate", d / "free.csv", "--effects-file", d / "fifo_effects.py"]),
     ]
 
 
@@ -369,23 +468,23 @@ def main_():
         make_files(d)
         rows = []
         for kind, name, argv in cases(d):
-            verdict, message = run_cli(argv)
+            verdict, seconds, message = run_cli(argv, d)
             message = message.replace(str(d) + "/", "")
-            rows.append((kind, name, argv[0], verdict, message))
+            rows.append((kind, name, argv[0], verdict, seconds, message))
     width = 118
-    print(f"{'input':46s} {'command':9s} {'verdict':9s} message")
-    for kind, name, cmd, verdict, message in rows:
+    print(f"{'input':52s} {'command':9s} {'verdict':9s} {'s':>6s} message")
+    for kind, name, cmd, verdict, seconds, message in rows:
         short = textwrap.shorten(message.split(": error: ")[-1].split(": warning: ")[-1], width - 66, placeholder="...")
-        print(f"{kind + ': ' + name:46s} {cmd:9s} {verdict:9s} {short}")
-    counts = {v: sum(r[3] == v for r in rows) for v in ("refused", "warned", "accepted", "CRASH")}
+        print(f"{kind + ': ' + name:52s} {cmd:9s} {verdict:9s} {seconds:6.2f} {short}")
+    counts = {v: sum(r[3] == v for r in rows) for v in ("refused", "warned", "accepted", "LONG", "HANG", "CRASH")}
     print(f"\n{len(rows)} cases: " + ", ".join(f"{n} {v}" for v, n in counts.items()))
     if "--markdown" in sys.argv:
-        print("\n| input | command | result | message (shortened) |\n|---|---|---|---|")
-        for kind, name, cmd, verdict, message in rows:
+        print("\n| input | command | result | s | message (shortened) |\n|---|---|---|---|---|")
+        for kind, name, cmd, verdict, seconds, message in rows:
             short = textwrap.shorten(message.split(": error: ")[-1].split(": warning: ")[-1], 150, placeholder="...")
-            print(f"| {kind}: {name} | {cmd} | {verdict} | {short.replace('|', '/')} |")
+            print(f"| {kind}: {name} | {cmd} | {verdict} | {seconds:.2f} | {short.replace('|', '/')} |")
     lines_ok = print_template_attacks("--markdown" in sys.argv)
-    return 1 if counts["accepted"] or counts["CRASH"] or not lines_ok else 0
+    return 1 if any(counts[v] for v in ("accepted", "LONG", "HANG", "CRASH")) or not lines_ok else 0
 
 
 if __name__ == "__main__":

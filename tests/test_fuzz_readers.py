@@ -1,8 +1,10 @@
 """Fuzzing every reader: generated and mutated inputs give a result or a one-line error, within a time bound.
 
-The readers: CSV (whole-file and streaming), Parquet, ArduPilot DataFlash ``.bin``, PX4 ``.ulg``, the calibration
-JSON (loaded, then applied), the workbench's session document, the live sources' line parser (bytes in, chunks
-out, the recording read back) and live URLs. Each target takes a hypothesis-drawn case: valid files built here
+The readers: CSV (whole-file and streaming), Parquet (mutated, and built from its structure: row groups, declared
+rows against ``max_rows``, text widths), ArduPilot DataFlash ``.bin``, PX4 ``.ulg`` (mutated, and built from its
+grammar: formats nesting, wide, cyclic, subscribed many times), the calibration JSON (loaded, then applied; and
+every number replaced by extreme values, then every output written and checked finite), the workbench's session
+document, the live sources' line parser (bytes in, chunks out, the recording read back) and live URLs. Each target takes a hypothesis-drawn case: valid files built here
 with known content, then mutated (bytes flipped, inserted, deleted, truncated, format fields overwritten), or
 generated from the format's own grammar (headers, metadata lines, numbers from NaN to 1e308, JSON values of
 every type at every key).
@@ -13,7 +15,7 @@ The contract checked on every case (:func:`outcome`):
   ``SessionFileError`` are kinds of it) whose message is one line: any other exception is a *traceback*;
 * it ends within :data:`TIME_BOUND_S` (run in a thread; one still running then is a *hang*).
 
-``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 30 s on two
+``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 55 s on two
 cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
 """
 
@@ -381,6 +383,103 @@ def test_ulog(seeds, tmp_path):
     check()
 
 
+# -- ULog structure: formats, nesting, subscriptions drawn from the format's grammar ----------------------------------
+_ULOG_BASIC = ["uint8_t", "int16_t", "uint32_t", "uint64_t", "float", "double", "bool", "char"]
+
+
+def _ulog_message(kind, payload: bytes) -> bytes:
+    return struct.pack("<HB", len(payload) & 0xFFFF, ord(kind)) + payload[:0xFFFF]
+
+
+@st.composite
+def ulog_structure(draw):
+    """A ULog built from its grammar: formats of basic and nested fields (arrays up to and past pyulog's 65535,
+    chains and cycles of nesting, long names), subscriptions (``A``) of any of them, some data and damaged bytes."""
+    names = [f"m{k}" for k in range(draw(st.integers(1, 6)))] + ["sensor_mag", "vehicle_attitude"]
+    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0))
+    if draw(st.booleans()):
+        out += _ulog_message("B", bytes(16) + struct.pack("<QQQ", 0, 0, 0))
+    chain = draw(st.sampled_from([True, False]))  # each format nests the next: flattened sizes multiply
+    for k, name in enumerate(names):
+        fields = []
+        if chain and k + 1 < len(names):
+            size = draw(st.sampled_from([4096, 255, 8, 2, 0]))
+            fields.append(f"{names[k + 1]}{f'[{size}]' if size else ''} n{k};")
+        for _ in range(draw(st.integers(1 if k + 1 == len(names) else 0, 4))):
+            kind = draw(st.one_of(st.sampled_from(_ULOG_BASIC), st.sampled_from(names), st.text("abt_[]0", max_size=5)))
+            size = draw(st.sampled_from([0, 0, 0, 1, 2, 3, 8, 255, 4096, 9000, 65535, 70000]))
+            field_name = draw(
+                st.one_of(st.sampled_from(["x", "y", "z", "timestamp", "q"]), st.integers(1, 3000).map("n".__mul__))
+            )
+            fields.append(f"{kind}{f'[{size}]' if size else ''} {field_name};")
+        out += _ulog_message("F", f"{name}:{''.join(fields)}".encode())
+    if draw(st.booleans()):
+        out += draw(st.binary(max_size=64))  # a damaged stretch before the subscriptions
+    subscriptions = [names[0]] + draw(st.lists(st.sampled_from(names), max_size=11))
+    for k, name in enumerate(subscriptions):
+        out += _ulog_message("A", struct.pack("<BH", draw(st.integers(0, 3)), k) + name.encode())
+    for _ in range(draw(st.integers(0, 20))):
+        msg_id = draw(st.integers(0, max(len(subscriptions), 1)))
+        out += _ulog_message("D", struct.pack("<H", msg_id) + draw(st.binary(max_size=80)))
+    return bytes(out)
+
+
+def test_ulog_structure(tmp_path):
+    @FUZZ
+    @given(ulog_structure())
+    def check(data):
+        path = _write(tmp_path, "structure.ulg", data)
+        outcome("PX4 .ulg structure", lambda: read_log(path))
+
+    check()
+
+
+# -- Parquet structure: row groups, declared rows, text widths -------------------------------------------------------
+@st.composite
+def parquet_structure(draw):
+    """A Parquet file of a few row groups (constant or varied readings, a text column with one long cell among
+    short ones, nulls) and the ``max_rows`` it is read with."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    groups = draw(st.lists(st.integers(0, 4000), min_size=1, max_size=4))
+    width = draw(st.sampled_from([0, 1, 100, 5000, 40_000]))
+    tables = []
+    for g, n in enumerate(groups):
+        if draw(st.booleans()):
+            cols = {a: pa.array(np.full(n, 30_000.0 + g)) for a in ("s1x", "s1y", "s1z")}
+        else:
+            rng = np.random.default_rng(g)
+            cols = {a: pa.array(rng.normal(0, 30_000.0, n)) for a in ("s1x", "s1y", "s1z")}
+        text = ["b"] * n
+        if n and width:
+            text[draw(st.integers(0, n - 1))] = "a" * width
+        if draw(st.booleans()):
+            cols["note"] = pa.array([None if k % 7 == 3 else t for k, t in enumerate(text)], pa.string())
+        tables.append(pa.table(cols))
+    schema = tables[0].schema
+    buf = _stdio.BytesIO()
+    with pq.ParquetWriter(buf, schema, compression=draw(st.sampled_from(["none", "snappy", "zstd"]))) as writer:
+        for table in tables:
+            if table.schema.equals(schema):
+                writer.write_table(table, row_group_size=draw(st.sampled_from([1000, 1 << 20])))
+    return buf.getvalue(), draw(st.sampled_from([None, 0, 1, 500, 5000]))
+
+
+def test_parquet_structure(tmp_path):
+    @FUZZ
+    @given(parquet_structure())
+    def check(case):
+        data, max_rows = case
+        path = _write(tmp_path, "structure.parquet", data)
+        ds = outcome("Parquet structure", lambda: magcal.read_csv(path, max_rows=max_rows))
+        if ds is not None:  # what it read is within the limit and the rule
+            assert not max_rows or ds.n_samples <= max_rows
+            assert np.all(np.abs(ds.readings_nT) <= MAX_ABS_VALUE)
+
+    check()
+
+
 # -- calibration JSON ----------------------------------------------------------------------------------------------
 _json_value = st.recursive(
     st.one_of(
@@ -460,6 +559,74 @@ def _n_sensors(data):
         return 1 if len(json.loads(data)["sensors"]) == 1 else 4
     except Exception:  # not a document with sensors: any dataset will do
         return 4
+
+
+# -- calibration JSON values: every number at every place, then every output written ---------------------------------
+_extreme_number = st.one_of(
+    st.sampled_from([1e308, -1e308, 1e300, 1e61, 1e60, 1e31, 1e30, -1e30, 1e-30, 1e-300, 5e-324, 0.0, -0.0]),
+    st.sampled_from([10**400, -(10**400), 2**63, 10**30, 1, -1]),
+    st.floats(allow_nan=False, allow_infinity=False),
+)
+
+
+@st.composite
+def valued_document(draw, seeds):
+    """A seed calibration with one to three of its numbers (Cinv, bias, an effect's parameter or constant, the
+    covariance, the baseline...) replaced by extreme ones."""
+    doc = json.loads(json.dumps(draw(st.sampled_from(seeds))))
+    numbers = [p for p in _paths(doc) if p and _is_number(_at(doc, p))]
+    for path in draw(st.lists(st.sampled_from(numbers), min_size=1, max_size=3)):
+        _at(doc, path[:-1])[path[-1]] = draw(_extreme_number)
+    return json.dumps(doc).encode()
+
+
+def _at(doc, path):
+    for key in path:
+        doc = doc[key]
+    return doc
+
+
+def _is_number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+#: A value that is not a finite number as a writer would print it: ``nan``, ``inf``, ``-inf``, ``Infinity`` (JSON),
+#: ``inff`` (the C header's float suffix); not the words that hold the letters (``infinite``).
+_NOT_FINITE = re.compile(r"(?<![a-z])(nan|inf|infinity)f?(?![a-z])")
+
+
+def _every_output(path, survey, out):
+    """Load the calibration, correct the survey to a CSV and export every firmware format: what is written holds
+    no value that is not a finite number (a refusal is a message)."""
+    from magcal.output.apply import apply_file
+    from magcal.output.bundle import calibration_bytes
+    from magcal.output.export import FORMATS, export_calibration
+
+    cal = Calibration.load(path)
+    written = [calibration_bytes(cal)]
+    if cal.n_sensors == 1:  # the one-sensor seed's survey
+        apply_file(cal, survey, out, progress=False)
+        written.append(out.read_bytes())
+    for fmt in FORMATS:
+        try:
+            written.append(export_calibration(cal, fmt, force=True).text.encode())
+        except MagcalError:
+            continue
+    for content in written:
+        found = _NOT_FINITE.search(content.decode().lower())
+        assert found is None, content.decode()[max(found.start() - 200, 0) : found.end() + 50]
+
+
+def test_calibration_json_values(seeds, tmp_path):
+    survey = _write(tmp_path, "survey.csv", seeds["csv"][1])  # the one sensor the calibrations are made for
+
+    @FUZZ
+    @given(valued_document([seeds["calibration"][0]]))
+    def check(data):
+        path = _write(tmp_path, "values.json", data)
+        outcome("calibration values", lambda: _every_output(path, survey, tmp_path / "out.csv"))
+
+    check()
 
 
 # -- the workbench's session document -------------------------------------------------------------------------------

@@ -19,11 +19,13 @@ from magcal.checks.reference import USABLE_TOTAL_nT
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning, exception_text
+from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note, row_runs
 from magcal.core.vectors import basis_times, row_norm
 from magcal.data.accelerometer import accelerometer
 from magcal.data.attitude import attitude_rows
+from magcal.data.dataset import MAX_ABS_VALUE
 from magcal.data.inputs import as_dataset
 from magcal.data.io import atomic_write
 from magcal.geometry.heading import dip_deg, tilt_deg, tilt_heading_deg
@@ -49,6 +51,16 @@ VERSION = 1
 #: (the vehicle's body, or the board's accelerometer) rather than a gauge.
 MODES = ("scalar", "vector", "gravity")
 MOUNTED_MODES = ("vector", "gravity")
+#: Largest magnitude of any parameter a calibration file may hold (the bias, ``C^-1``, an effect's parameters and
+#: constants, a platform term; the baseline from its inverse up to it): the bound of every read value
+#: (:data:`magcal.data.dataset.MAX_ABS_VALUE`). Applied to readings within that bound, such parameters give finite
+#: results; beyond it a calibration (``C^-1 = 1e308 I``) made infinite corrected values and firmware parameters.
+MAX_PARAMETER = MAX_ABS_VALUE
+#: Largest magnitude of a covariance entry (a parameter's variance: :data:`MAX_PARAMETER` squared).
+MAX_COVARIANCE = MAX_PARAMETER**2
+#: Largest calibration file read (bytes): a calibration of four sensors with effects and its covariance is tens of
+#: kB; a file far larger is not one (and is refused before it is parsed).
+MAX_CALIBRATION_BYTES = 64 << 20
 
 #: Effects that describe one recording, used only for an effect class that does not say
 #: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
@@ -734,17 +746,21 @@ class Calibration:
                 f"{source}: this calibration is for {len(entries)} sensor(s) but the data have {n_sensors}; use the "
                 "calibration made for this instrument"
             )
+        _check_parameter_bounds(doc, source)  # first: a huge value overflows the entries' own checks
         for i, entry in enumerate(entries):
             _check_sensor_entry(source, i, entry)
         _check_document_types(doc, source)
         baseline = doc.get("baseline_m")
         if baseline is not None:
             try:
-                ok = float(baseline) > 0 and np.isfinite(float(baseline))
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise MagcalError(f"{source}: baseline_m {baseline!r} must be a positive number of metres")
+                within = 1.0 / MAX_PARAMETER <= float(baseline) <= MAX_PARAMETER
+            except (TypeError, ValueError, OverflowError):
+                within = False
+            if not within:
+                raise MagcalError(
+                    f"{source}: baseline_m {str(baseline)[:40]!r} must be a positive number of metres, from "
+                    f"{1.0 / MAX_PARAMETER:g} to {MAX_PARAMETER:g}; the file is damaged, recalibrate"
+                )
         derived = {"id", "Cinv", "bias_nT", "R", "scale", "axis_angles_deg"}  # recomputed by to_dict
         sensors = [
             SensorCalibration(
@@ -847,15 +863,23 @@ class Calibration:
             Refuse a calibration made for a different number of sensors.
         """
         path = os.fspath(path)
+        reason = not_regular_reason(path)
+        if reason is not None and reason != "no such file" and not reason.startswith("cannot"):
+            raise MagcalError(f"{path}: is {reason}; give the calibration file (JSON) itself")
         try:
             with open(path, "rb") as fh:
-                raw = fh.read()
+                raw = fh.read(MAX_CALIBRATION_BYTES + 1)
         except FileNotFoundError:
             raise MagcalError(f"{path}: no such calibration file; check the path") from None
         except IsADirectoryError:
             raise MagcalError(f"{path}: is a directory, not a calibration file") from None
         except OSError as exc:
             raise MagcalError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+        if len(raw) > MAX_CALIBRATION_BYTES:
+            raise MagcalError(
+                f"{path}: more than {MAX_CALIBRATION_BYTES >> 20} MB, far larger than any calibration file; give "
+                "the file written by magcal calibrate or magcal align"
+            )
         try:
             doc = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
@@ -904,10 +928,9 @@ def _check_document_types(doc, source) -> None:
                 for e in value
             )
         if key == "reference_total_nT":
-            return (
+            return (  # NaN and infinities fail the range; an integer beyond any float compares too
                 isinstance(value, (int, float))
                 and not isinstance(value, bool)
-                and np.isfinite(value)
                 and USABLE_TOTAL_nT[0] <= value <= USABLE_TOTAL_nT[1]
             )
         if key == "reference_fitted":
@@ -924,6 +947,77 @@ def _check_document_types(doc, source) -> None:
             )
 
 
+def _numbers(value, path=()):
+    """Every number in a JSON value (nested lists and objects), with its key path: ``(path, number)``."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield path, value
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            yield from _numbers(v, (*path, str(k)))
+    elif isinstance(value, list):
+        for k, v in enumerate(value):
+            yield from _numbers(v, (*path, k))
+
+
+def _number_text(number) -> str:
+    """A number of a document as a message shows it: ``1e+308``; an integer beyond any float by its digits."""
+    try:
+        return f"{float(number):.6g}"
+    except OverflowError:
+        return f"an integer of {len(str(abs(number))):,} digits"
+
+
+def _path_text(path) -> str:
+    """``sensors[0].Cinv[1][1]`` for a key path: the document's own keys and (0-based) list positions."""
+    out = ""
+    for k in path:
+        if not isinstance(k, int) and not (k.isprintable() and len(k) <= 40):
+            k = repr(k[:40])  # a key of a damaged file: quoted, line ends escaped
+        out += f"[{k}]" if isinstance(k, int) else (f".{k}" if out else k)
+    return out[:120]
+
+
+def _check_parameter_bounds(doc, source, then="the file is damaged or was edited; recalibrate") -> None:
+    """Refuse a document holding a parameter beyond :data:`MAX_PARAMETER` (a covariance entry beyond
+    :data:`MAX_COVARIANCE`): every number that correcting, the uncertainty or an export computes with. Finite but
+    huge values (``C^-1 = 1e308 I``) overflow to infinities there, written out with exit status 0. (NaN and
+    infinities are refused by each part's own check, naming them.)"""
+    sensors = doc.get("sensors") if isinstance(doc.get("sensors"), list) else []
+    parts: list[tuple[tuple, object]] = [
+        (("sensors", i, key), e.get(key))
+        for i, e in enumerate(sensors)
+        if isinstance(e, dict)
+        for key in ("Cinv", "bias_nT", "R")
+    ]
+    effects = doc.get("effect_params") if isinstance(doc.get("effect_params"), list) else []
+    for k, entry in enumerate(effects):
+        if isinstance(entry, dict):  # another type: the document's type check names it
+            parts += [(("effect_params", k, key), entry.get(key)) for key in ("params", "state")]
+    if isinstance(doc.get("platform_terms"), dict):
+        parts += [
+            (("platform_terms", key), doc["platform_terms"].get(key)) for key in ("eddy_ms", "current_nT_per_unit")
+        ]
+    covariance = doc.get("base_covariance")
+    limits = [(parts, MAX_PARAMETER)]
+    if isinstance(covariance, dict):
+        limits.append(([(("base_covariance", "matrix"), covariance.get("matrix"))], MAX_COVARIANCE))
+    for found, limit in limits:
+        for head, value in found:
+            for path, number in _numbers(value, head):
+                try:  # NaN and infinities are left to the checks of each part, which name them
+                    beyond = bool(np.isfinite(float(number))) and abs(float(number)) > limit
+                except OverflowError:  # an integer too large for a float
+                    beyond = True
+                if beyond:
+                    raise MagcalError(
+                        f"{source}: {_path_text(path)} = {_number_text(number)} is beyond +-{limit:g}, no "
+                        "calibration's "
+                        f"value (it would correct readings to infinities): {then}"
+                    )
+
+
 def _check_sensor_entry(source, i, s) -> None:
     """Refuse a damaged sensor entry of a calibration document, naming the sensor and the key."""
     where = f"{source}: sensor {i + 1}"
@@ -936,7 +1030,7 @@ def _check_sensor_entry(source, i, s) -> None:
             raise MagcalError(f"{where}: missing {key}; the file is damaged, recalibrate")
         try:
             a = np.array(s[key], dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond any float
             raise MagcalError(f"{where}: {key} is not numeric; the file is damaged, recalibrate") from None
         if a.shape != shape or not np.all(np.isfinite(a)):
             raise MagcalError(f"{where}: {key} must be {shape} finite numbers; the file is damaged, recalibrate")
@@ -992,12 +1086,32 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
     return model, values
 
 
-def write_json_atomic(path, document) -> None:
-    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.data.io.atomic_write`)."""
+def document_text(document, what="calibration") -> str:
+    """A calibration's ``document`` (:meth:`Calibration.to_dict`) as indented JSON text (with a final line end),
+    refusing what magcal would not read back: a parameter beyond :data:`MAX_PARAMETER`, or a value that is not a
+    finite number (JSON has none: Python would write ``NaN`` or ``Infinity``, which no JSON reader takes).
 
+    Raises
+    ------
+    MagcalError
+    """
+    if isinstance(document.get("sensors"), list):
+        _check_parameter_bounds(document, f"the {what}", "it is not written; recalibrate")
+    try:
+        return json.dumps(document, indent=2, allow_nan=False) + "\n"
+    except ValueError:
+        where = next((_path_text(p) for p, v in _numbers(document) if not np.isfinite(v)), "a value")
+        raise MagcalError(
+            f"the {what} holds {where} that is not a finite number; it is not written (recalibrate)"
+        ) from None
+
+
+def write_json_atomic(path, document) -> None:
+    """Write ``document`` as indented JSON to ``path`` atomically (:func:`magcal.data.io.atomic_write`); a value
+    that is not a finite number is refused before anything is written (:func:`document_text`)."""
+    text = document_text(document)
     with atomic_write(path, "w", newline=None) as fh:
-        json.dump(document, fh, indent=2)
-        fh.write("\n")
+        fh.write(text)
 
 
 def current_term(calibration):

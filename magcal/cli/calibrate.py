@@ -88,6 +88,28 @@ def add_input_arguments(parser) -> None:
         action="store_true",
         help="drop rows with missing or non-numeric values (with a warning) instead of refusing",
     )
+    add_max_rows_argument(parser)
+
+
+def add_max_rows_argument(parser) -> None:
+    """``--max-rows N``: the most rows a whole-file read takes (:func:`magcal.data.io.read_csv`'s ``max_rows``)."""
+    parser.add_argument(
+        "--max-rows",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"refuse a data file of more rows than N (0: no limit but the free memory); default "
+        f"{io.MAX_READ_ROWS:,} for Parquet, whose rows are counted from its footer before reading, and no limit for "
+        "CSV",
+    )
+
+
+def checked_max_rows(args):
+    """``--max-rows`` checked: None (the default) or a number of rows >= 0."""
+    value = getattr(args, "max_rows", None)
+    if value is not None and value < 0:
+        raise MagcalError(f"--max-rows must be a number of rows (0: no limit), got {value}")
+    return value
 
 
 def add_arguments(parser) -> None:
@@ -196,6 +218,7 @@ def read_input(args):
         drop_bad=args.drop_bad,
         lsb_nT=getattr(args, "lsb", None),
         notes=notes,
+        max_rows=checked_max_rows(args),
     )
     return ds, [note.text for note in notes]
 

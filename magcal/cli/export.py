@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import sys
 
+from magcal.cli.calibrate import add_max_rows_argument, checked_max_rows
 from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.io import atomic_write, read_csv
@@ -102,6 +103,7 @@ def register(subparsers):
         help="format mask/all: a CSV with a kept column (1 kept, 0 rejected), one row per sample, e.g. the "
         "workbench's raw_mask.csv; default every sample kept",
     )
+    add_max_rows_argument(parser)
     parser.set_defaults(func=run)
     return parser
 
@@ -154,7 +156,7 @@ def _run_data(args, calibration) -> int:
         raise MagcalError(f"--format {args.format} needs the data: --data DATA.csv")
     if not args.output:
         raise MagcalError(f"--format {args.format} writes a file: give -o FILE")
-    dataset = read_csv(args.data)
+    dataset = read_csv(args.data, max_rows=checked_max_rows(args))
     kept = mask_from_file(args.mask, dataset.n_samples) if args.mask else None
     if args.format == "mask":
         content, notes = raw_mask_bytes(calibration, dataset, kept, calibration_name=args.calibration)

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import DataWarning, MagcalError, exception_text
+from magcal.core.files import check_regular_file, not_regular_reason
+from magcal.core.memory import available_bytes
 from magcal.core.notes import say
 from magcal.data.accelerometer import MAPPABLE_ACCEL_COLUMNS
 from magcal.data.dataset import (
@@ -106,6 +108,30 @@ _MAYBE_BLANK = re.compile(b"\n[" + re.escape(SPACE_LEAD_BYTES) + b"]")
 COUNT_BLOCK_BYTES = 1 << 24
 
 
+#: Most characters of a value from a file that a message quotes (a cell, a column name, a metadata value), and most
+#: column names it lists: a message stays one readable line whatever the file holds (five 5000-character cells
+#: made one line of 25 000).
+MAX_QUOTED_CHARS = 40
+MAX_LISTED_NAMES = 12
+
+
+def shown(value, limit=MAX_QUOTED_CHARS) -> str:
+    """A value from a file as a message quotes it: ``repr`` of a text (of anything else), cut to ``limit``
+    characters with its length said (``'99999...' (5,000 characters)``)."""
+    text = value if isinstance(value, str) else repr(value)
+    if len(text) <= limit:
+        return repr(text) if isinstance(value, str) else text
+    return f"{text[:limit]!r}... ({len(text):,} characters)"
+
+
+def names_shown(names, limit=MAX_LISTED_NAMES) -> str:
+    """Column names as a message lists them: the first ``limit``, each cut (:func:`shown`'s length), and how many
+    more there are."""
+    names = list(names)
+    listed = ", ".join(n if len(n) <= MAX_QUOTED_CHARS else n[:MAX_QUOTED_CHARS] + "..." for n in names[:limit])
+    return listed + (f" ... ({len(names):,} columns)" if len(names) > limit else "")
+
+
 def canonical_columns(n_sensors=MAX_SENSORS):
     """All canonical column names for up to ``n_sensors`` sensors."""
     names = [f"s{i}{a}" for i in range(1, n_sensors + 1) for a in SENSOR_AXES]
@@ -117,19 +143,26 @@ def is_counts(units) -> bool:
     return units is not None and str(units).strip().lower() in COUNT_UNITS
 
 
+#: The LSBs (nT per count) magcal reads raw counts with: from a femtotesla per count to a tesla per count, six
+#: and four orders beyond any magnetometer's (a 24-bit fluxgate 0.01 nT, a MEMS part 100-1000 nT). An LSB outside
+#: (1e308, 1e-300) made the readings infinite or zero and the fit fail with a library's error.
+LSB_RANGE_nT = (1e-6, 1e9)
+
+
 def parse_lsb(value, where="--lsb"):
     """The LSB of raw counts in nT per count, from a number or its text.
 
     Raises
     ------
     DatasetError
-        Unless it is a positive finite number.
+        Unless it is a finite number within :data:`LSB_RANGE_nT`.
     """
     number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else _strict_float(str(value))
-    if number is None or not np.isfinite(number) or number <= 0:
+    lo, hi = LSB_RANGE_nT
+    if number is None or not lo <= number <= hi:  # NaN compares False: refused too
         raise DatasetError(
-            f"{where}: {value!r} must be a positive number of nT per count (e.g. 150 for 0.15 uT/LSB, "
-            "or 91.74 for a part giving 1090 LSB/G)"
+            f"{where}: {shown(value)} must be a positive number of nT per count, from {lo:g} to {hi:g} (e.g. 150 "
+            "for 0.15 uT/LSB, or 91.74 for a part giving 1090 LSB/G)"
         )
     return float(number)
 
@@ -162,7 +195,7 @@ def parse_units(units, where="--units", lsb_nT=None):
     factor = UNIT_FACTORS_nT.get(key.lower())
     if factor is None:
         raise DatasetError(
-            f"{where}: unknown unit {units!r}; use one of {', '.join(UNIT_NAMES)} (nT is the default), or counts "
+            f"{where}: unknown unit {shown(units)}; use one of {', '.join(UNIT_NAMES)} (nT is the default), or counts "
             "with --lsb for raw sensor counts"
         )
     return factor
@@ -290,7 +323,7 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
             continue
         if name in index:
             raise DatasetError(
-                f"{source}: line {header_line} (the header): column {name!r} appears twice (columns {index[name] + 1} "
+                f"{source}: line {header_line} (the header): column {shown(name)} appears twice (columns {index[name] + 1} "
                 f"and {j + 1}); rename one of them"
             )
         index[name] = j
@@ -301,8 +334,8 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
         for canon, file_name in mapping.items():
             if file_name not in index:
                 raise DatasetError(
-                    f"{source}: the column mapping names {file_name!r} (for {canon}) but the file has no such column; "
-                    f"its columns are: {', '.join(names)}"
+                    f"{source}: the column mapping names {shown(file_name)} (for {canon}) but the file has no such "
+                    f"column; its columns are: {names_shown(names)}"
                 )
             canonical[canon] = index[file_name]
             mapped_files.add(file_name)
@@ -328,14 +361,14 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
         m = re.match(r"^s(\d+)[xyz]$", name)
         if m and not 1 <= int(m.group(1)) <= MAX_SENSORS and name not in mapped_files:
             raise DatasetError(
-                f"{source}: column {name!r} names sensor {int(m.group(1))}; magcal handles sensors 1 to "
+                f"{source}: column {shown(name)} names sensor {int(m.group(1))}; magcal handles sensors 1 to "
                 f"{MAX_SENSORS} (s1x .. s{MAX_SENSORS}z). Rename or remove it"
             )
     sensors = []
     present = sorted({int(m.group(1)) for m in map(_SENSOR_RE.match, canonical) if m})
     if not present:
         raise DatasetError(
-            f"{source}: no magnetometer columns; the header is {', '.join(names) or '(empty)'}. Name the columns "
+            f"{source}: no magnetometer columns; the header is {names_shown(names) or '(empty)'}. Name the columns "
             "s1x,s1y,s1z (... s4x,s4y,s4z) or x,y,z, or map yours with --columns x=magX,y=magY,z=magZ"
         )
     if present[-1] > MAX_SENSORS:
@@ -353,7 +386,7 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
         if lacking:
             raise DatasetError(
                 f"{source}: sensor {i} lacks column(s) {', '.join(lacking)}; every sensor needs x, y and z "
-                f"(header: {', '.join(names)})"
+                f"(header: {names_shown(names)})"
             )
         sensors.append(tuple(canonical[n] for n in need))
     channels = {name: canonical[name] for name in CHANNEL_COLUMNS if name in canonical}
@@ -651,6 +684,9 @@ class CsvSource:
         try:
             if os.path.isdir(self.path):
                 raise DatasetError(f"{self.source}: is a directory, not a CSV file")
+            reason = not_regular_reason(self.path)
+            if reason is not None and reason != "no such file" and not reason.startswith("cannot"):
+                raise DatasetError(f"{self.source}: is {reason}; give the path of a regular CSV file")
             with open(self.path, "rb") as fh:
                 return fh.read(HEAD_PROBE_BYTES)
         except FileNotFoundError:
@@ -702,8 +738,8 @@ class CsvSource:
                         if key in self.metadata and self.metadata[key] != value:
                             _say(
                                 self._notes,
-                                f"{self.source}: line {self._lineno}: metadata {key!r} given twice; the last value "
-                                f"{value!r} is used",
+                                f"{self.source}: line {self._lineno}: metadata {shown(key)} given twice; the last "
+                                f"value {shown(value)} is used",
                                 stacklevel=3,
                             )
                         self.metadata[key] = value
@@ -738,7 +774,7 @@ class CsvSource:
             if number is None or bad_values(number) or number < 0 or (positive and number == 0):
                 need = "a positive number" if positive else "a number >= 0"
                 raise DatasetError(
-                    f"{self.source}: line {self._lineno}: metadata {key}: {value!r} must be {need}"
+                    f"{self.source}: line {self._lineno}: metadata {key}: {shown(value)} must be {need}"
                     + (" in nT" if key.endswith("_nT") else " in m" if key.endswith("_m") else "")
                 )
         elif key == "units":
@@ -910,7 +946,9 @@ class CsvSource:
             if rows is None:
                 rows = self._split(lines, numbers)
             for j in want:
-                text[j] = np.array([r[j].strip() for r in rows], dtype=str) if rows else np.array([], dtype=str)
+                text[j] = text_cells(
+                    [r[j].strip() for r in rows], self.source, layout.header[j], lambda k: f"line {numbers[k]}"
+                )
         ds = self._dataset(values, text, numbers)
         return Chunk(ds, lines, numbers)
 
@@ -963,14 +1001,14 @@ class CsvSource:
                     continue
                 if number is None:
                     cell = row[j].strip()
-                    bad = f"column {name}: " + (f"{cell[:40]!r} is not a number" if cell else "empty cell")
+                    bad = f"column {name}: " + (f"{shown(cell)} is not a number" if cell else "empty cell")
                     break
                 if not np.isfinite(number):
-                    bad = f"column {name}: {row[j].strip()!r} is not a finite number"
+                    bad = f"column {name}: {shown(row[j].strip())} is not a finite number"
                     break
                 if abs(number) > MAX_ABS_VALUE:
                     bad = (
-                        f"column {name}: {row[j].strip()[:40]!r} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
+                        f"column {name}: {shown(row[j].strip())} is beyond +-{MAX_ABS_VALUE:g}, no instrument's "
                         "reading in any unit (a corrupted value)"
                     )
                     break
@@ -981,14 +1019,14 @@ class CsvSource:
                 keep[k] = False
                 problems.append((int(line_no), bad))
         if problems:
-            shown = "; ".join(f"line {ln}, {msg}" for ln, msg in problems[:_MAX_SHOWN])
+            listed = "; ".join(f"line {ln}, {msg}" for ln, msg in problems[:_MAX_SHOWN])
             more = f" (and {len(problems) - _MAX_SHOWN} more)" if len(problems) > _MAX_SHOWN else ""
             if not drop_bad:
                 raise DatasetError(
-                    f"{self.source}: {len(problems)} row(s) with bad values: {shown}{more}. Fix or delete these rows, "
+                    f"{self.source}: {len(problems)} row(s) with bad values: {listed}{more}. Fix or delete these rows, "
                     "or drop them with --drop-bad (drop_bad=True)"
                 )
-            _say(self._notes, f"{self.source}: dropped {len(problems)} row(s) with bad values: {shown}{more}", 4)
+            _say(self._notes, f"{self.source}: dropped {len(problems)} row(s) with bad values: {listed}{more}", 4)
         return rows, values[keep], keep
 
     def _dataset(self, values, text, numbers):
@@ -1091,6 +1129,55 @@ class CsvSource:
         self.close()
 
 
+#: A text column (``group``, a column magcal does not use) is held as fixed-width text: every cell as wide as
+#: the longest. A file is refused when that would take more than :data:`TEXT_PADDING_FACTOR` times the text's own
+#: size and more than :data:`TEXT_FLOOR_BYTES`: one very long cell among short ones (a 2000-character cell above
+#: 100 000 one-character cells took 0.8 GB from a 1.2 MB CSV; a 1 MB cell above 200 000 would have taken 800 GB).
+TEXT_PADDING_FACTOR = 8
+TEXT_FLOOR_BYTES = 64 << 20
+
+
+def _text_padding_refused(source, where, column, width, rows, padded_bytes) -> DatasetError:
+    return DatasetError(
+        f"{source}: {where}, column {shown(column)}: a text cell of {width:,} characters among {rows:,} rows of "
+        f"mostly shorter ones would take {padded_bytes / 1e6:,.0f} MB as magcal holds text (every cell as wide as "
+        "the longest); shorten that cell, or leave the column out of the file"
+    )
+
+
+def text_cells(cells, source, column, row_name, lengths=None) -> np.ndarray:
+    """A column's text cells as a fixed-width ``str`` array, refusing one whose padding would be a bomb
+    (:data:`TEXT_PADDING_FACTOR`, :data:`TEXT_FLOOR_BYTES`) before it is made.
+
+    Parameters
+    ----------
+    cells : list of str or numpy.ndarray
+        The cells (an object array from pyarrow: None is written ``'None'``, as ``astype(str)`` does; a numeric
+        array is converted as it is).
+    source, column : str
+        The file and the column's name, for the message.
+    row_name : callable
+        The message's name of cell ``k`` (0-based): ``lambda k: f"line {numbers[k]}"``.
+    lengths : array_like of int, optional
+        The cells' lengths in characters, when the caller has them (pyarrow's ``utf8_length``).
+    """
+    if isinstance(cells, np.ndarray) and cells.dtype.kind not in "OUS":
+        return cells.astype(str)  # numbers: a few dozen characters each
+    n = len(cells)
+    if n == 0:
+        return np.array([], dtype=str)
+    if lengths is None:
+        lengths = np.fromiter((len(c) if isinstance(c, str) else len(str(c)) for c in cells), np.int64, count=n)
+    lengths = np.asarray(lengths, dtype=np.int64)
+    width = int(lengths.max())
+    padded = 4 * n * width  # numpy's str holds 4 bytes per character
+    if padded > TEXT_FLOOR_BYTES and padded > TEXT_PADDING_FACTOR * 4 * int(lengths.sum()):
+        raise _text_padding_refused(source, row_name(int(lengths.argmax())), column, width, n, padded)
+    if isinstance(cells, np.ndarray):
+        return cells.astype(str)
+    return np.array(cells, dtype=f"<U{max(width, 1)}")
+
+
 def _maybe_numeric(strings):
     """A float array if every entry is a plain number, else the strings."""
     if strings.size == 0:
@@ -1101,6 +1188,17 @@ def _maybe_numeric(strings):
     return np.asarray(values, dtype=float)
 
 
+def _check_joined_text(parts, source, column) -> None:
+    """Refuse joining text blocks whose joined array (as wide as the widest block) would be a padding bomb: more
+    than :data:`TEXT_PADDING_FACTOR` times the blocks and more than :data:`TEXT_FLOOR_BYTES` (a block of long
+    cells joined to many blocks of short ones)."""
+    rows = sum(len(p) for p in parts)
+    width = max(p.dtype.itemsize // 4 for p in parts)
+    padded = 4 * rows * width
+    if padded > TEXT_FLOOR_BYTES and padded > TEXT_PADDING_FACTOR * sum(p.nbytes for p in parts):
+        raise _text_padding_refused(source or "data", "the file", column, width, rows, padded)
+
+
 def concatenate(datasets):
     """Join datasets with the same layout along the sample axis (metadata of the first)."""
     first = datasets[0]
@@ -1109,6 +1207,8 @@ def concatenate(datasets):
 
     def cat(attr):
         arrays = [getattr(d, attr) for d in datasets]
+        if arrays[0] is not None and attr == "group":
+            _check_joined_text(arrays, first.source, "group")
         return None if arrays[0] is None else np.concatenate(arrays)
 
     extra = {}
@@ -1116,6 +1216,7 @@ def concatenate(datasets):
         parts = [d.extra[name] for d in datasets]
         if any(p.dtype.kind in "US" for p in parts):
             parts = [p.astype(str) for p in parts]
+            _check_joined_text(parts, first.source, name)
         extra[name] = np.concatenate(parts)
     return first.replace(
         readings_nT=np.concatenate([d.readings_nT for d in datasets], axis=1),
@@ -1201,6 +1302,7 @@ def read_csv(
     name=None,
     lsb_nT=None,
     notes=None,
+    max_rows=None,
 ):
     """Read a magcal CSV file into a :class:`~magcal.data.dataset.Dataset` (readings in nT).
 
@@ -1230,6 +1332,11 @@ def read_csv(
     notes : list, optional
         Where the reader's notes go (:class:`~magcal.core.notes.Note`: dropped rows, units that look wrong...): given,
         they are appended to it; None (default), each is raised as a :class:`DataWarning`.
+    max_rows : int, optional
+        Refuse a file of more data rows than this (0: no limit): a Parquet file's rows are counted from its footer
+        before any is read, and by default limited to :data:`MAX_READ_ROWS` (its size does not bound them); a
+        CSV's are counted as they are read, and not limited unless ``max_rows`` is given (its bytes bound them).
+        Either is refused when it would not fit in the free memory (:func:`check_read_rows`).
 
     Returns
     -------
@@ -1245,16 +1352,23 @@ def read_csv(
     if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.data.logs reads it, in nT
         return read_log(path, name=name, min_samples=min_samples, notes=notes)
     if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
-        return read_parquet(path, name=name, notes=notes)
+        return read_parquet(path, name=name, notes=notes, max_rows=max_rows)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     if not hasattr(path, "read") and not drop_bad:
         ds = _read_csv_arrow(path, columns, units, name, lsb_nT, notes)  # None: take the line-by-line reader
         if ds is not None:
+            if max_rows:
+                check_read_rows(ds.source, ds.n_samples, 0, max_rows)
             if ds.n_samples >= int(min_samples):
                 return ds
     with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=notes) as src:
-        parts = [chunk.dataset for chunk in src.chunks(chunk_rows, drop_bad=drop_bad)]
+        parts, rows = [], 0
+        for chunk in src.chunks(chunk_rows, drop_bad=drop_bad):
+            rows += chunk.dataset.n_samples
+            if max_rows and rows > int(max_rows):
+                check_read_rows(f"{src.source} (at line {int(chunk.line_numbers[-1]):,})", rows, 0, max_rows)
+            parts.append(chunk.dataset)
         if not parts:
             raise DatasetError(
                 f"{src.source}: no data rows after the header (line {src.header_line}); the file has no samples"
@@ -1285,6 +1399,19 @@ def _arrow_table(pa, pacsv, data, header, layout, numeric):
             quoted_strings_can_be_null=False,
         ),
     )
+
+
+def _arrow_text(column, source, name, row_name):
+    """A pyarrow column (array or chunked array) as :func:`text_cells` makes text: the lengths of a string column
+    measured by pyarrow, a null cell written ``'None'``."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    cells = np.asarray(column.to_numpy(zero_copy_only=False))
+    lengths = None
+    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        lengths = pc.fill_null(pc.utf8_length(column), 4).to_numpy(zero_copy_only=False)
+    return text_cells(cells, source, name, row_name, lengths)
 
 
 def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
@@ -1342,10 +1469,12 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     ]
     if any(pa.types.is_null(table.column(h).type) for h in extra_names):
         return None  # a column of nothing but nan (a live recording's channel never sent): the line reader reads it
-    text = {
-        j: np.asarray(table.column(header[j]).to_numpy(zero_copy_only=False)).astype(str)
-        for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values())
-    }
+    text = {}
+    for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
+        try:
+            text[j] = _arrow_text(table.column(header[j]), "whole file", header[j], lambda k: f"line {k}")
+        except DatasetError:
+            return None  # the line reader names the line
     build_notes = []
     with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=build_notes) as src:
         try:
@@ -1533,6 +1662,45 @@ def write_csv(path, data, metadata=None, float_format=None):
         write_rows(fh, columns, float_format)
 
 
+# -- reading a whole file --------------------------------------------------------------------------------------------
+#: Most rows a whole-file read of a Parquet file takes by default (``magcal calibrate``, ``diagnose``, ``align``,
+#: ``export --data``; ``--max-rows`` changes it): a calibration record is minutes to hours of samples, far below
+#: it (ten million is 28 hours at 100 Hz), and the row count of a Parquet file is not bounded by its size. A survey
+#: of any length is corrected streaming (``magcal apply``), without this bound.
+MAX_READ_ROWS = 10_000_000
+#: Bytes per numeric value of a row while a file is read whole: the value block read, the dataset built from each
+#: block and their concatenation, measured on the reader's peak (``benchmarks/bad_inputs.py`` measures it
+#: beside the bombs it refuses).
+READ_BYTES_PER_VALUE = 32
+
+
+def check_read_rows(source, rows, columns, max_rows=None) -> None:
+    """Refuse, before reading, a file of ``rows`` rows of ``columns`` numeric columns that a whole-file read cannot
+    take: more than ``max_rows`` (None or 0: no limit of rows), or more than the free memory
+    (:func:`magcal.core.memory.available_bytes`, at :data:`READ_BYTES_PER_VALUE` per value).
+
+    Raises
+    ------
+    DatasetError
+        Saying what the file holds, what the limit is and what to do.
+    """
+    rows = int(rows)
+    if max_rows and rows > int(max_rows):
+        raise DatasetError(
+            f"{source}: {rows:,} rows, more than the {int(max_rows):,} read at once (--max-rows); a calibration "
+            "needs minutes of samples, not this many: write the stretch you need to a file of its own, or pass "
+            "--max-rows N to read more (magcal apply corrects a file of any length, streaming)"
+        )
+    need = rows * max(int(columns), 1) * READ_BYTES_PER_VALUE
+    free = available_bytes()
+    if free is not None and need > free:
+        raise DatasetError(
+            f"{source}: {rows:,} rows would take about {need / 1e9:.3g} GB to read, more than the "
+            f"{free / 1e9:.3g} GB of memory free: read a part of them (write the stretch you need to a file of "
+            "its own), or use a machine with more memory (magcal apply corrects a file of any length, streaming)"
+        )
+
+
 # -- Parquet ----------------------------------------------------------------------------------------------------------
 #: File endings read and written as Parquet (case-insensitive).
 PARQUET_EXTENSIONS = (".parquet", ".pq")
@@ -1596,9 +1764,13 @@ class ParquetSource:
         _pyarrow(self.source)
         import pyarrow.parquet as pq
 
+        check_regular_file(path, "Parquet file", DatasetError, self.source)  # a FIFO would block
         try:
             # no pre-buffering and a bounded read buffer: memory stays flat (pre-buffered, a 3e6-row file took 3x)
             self.file = pq.ParquetFile(os.fspath(path), pre_buffer=False, buffer_size=1 << 20)
+            meta = self.file.metadata
+            #: The rows its row groups declare (the footer; what the reader decodes), read before any row is.
+            self.rows = sum(int(meta.row_group(k).num_rows) for k in range(meta.num_row_groups))
         except FileNotFoundError:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
@@ -1660,13 +1832,15 @@ class ParquetSource:
                 )
             text = {}
             for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
-                text[j] = np.asarray(batch.column(j).to_numpy(zero_copy_only=False)).astype(str)
+                text[j] = _arrow_text(
+                    batch.column(j), self.source, self.header[j], lambda k, first=row: f"row {first + k + 1}"
+                )
             numbers = np.arange(row + 1, row + n + 1)
             row += n
             yield self._csv._dataset(values, text, numbers)
 
 
-def read_parquet(path, name=None, chunk_rows=200_000, notes=None) -> Dataset:
+def read_parquet(path, name=None, chunk_rows=200_000, notes=None, max_rows=None) -> Dataset:
     """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
 
     The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
@@ -1674,9 +1848,23 @@ def read_parquet(path, name=None, chunk_rows=200_000, notes=None) -> Dataset:
     metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies
     (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column. ``notes`` as in
     :func:`read_csv`.
+
+    The rows are known from the file's footer before any is read, and refused beyond ``max_rows`` (None:
+    :data:`MAX_READ_ROWS`; 0: no limit) or beyond what the free memory holds (:func:`check_read_rows`): a small
+    file may hold any number of rows (1.3 MB held 1e8 constant rows, which took 9.6 GB). A file holding more rows
+    than its footer says is refused as damaged when the reader finds them.
     """
     src = ParquetSource(path, name, notes)
-    parts = list(src.chunks(chunk_rows))
+    check_read_rows(src.source, src.rows, len(src.header), MAX_READ_ROWS if max_rows is None else max_rows)
+    parts, rows = [], 0
+    for part in src.chunks(chunk_rows):
+        rows += part.n_samples
+        if rows > src.rows:
+            raise DatasetError(
+                f"{src.source}: the file holds more rows than its footer declares ({src.rows:,}); it is damaged: "
+                "write it again"
+            )
+        parts.append(part)
     if not parts:
         raise DatasetError(f"{src.source}: no rows; the file has no samples")
     ds = concatenate(parts)

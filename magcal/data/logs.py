@@ -42,6 +42,7 @@ own frame (PX4) or is already rotated to the body frame (ArduPilot).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import mmap
 import os
 import re
@@ -53,6 +54,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal.core.errors import DataWarning, exception_text
+from magcal.core.files import check_regular_file
+from magcal.core.memory import available_bytes
 from magcal.core.notes import row_runs, say
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 from magcal.geometry.orientations import FIRMWARE_ROTATIONS, euler_matrix
@@ -107,11 +110,12 @@ def read_log(
         Where the reader's notes go (:class:`~magcal.core.notes.Note`: magnetometers left out, samples dropped...):
         given, they are appended to it; None (default), each is raised as a :class:`DataWarning`.
     timeout_s : float, optional
-        DataFlash: give up (with a :class:`DatasetError`) after this many seconds; default
-        :data:`DEADLINE_S_PER_MB` per MB of file, at least :data:`MIN_DEADLINE_S`. Every format field the reader
-        steps by is checked first (a format shorter than its header, or not the size of its fields, is refused)
-        and every message must move it forward, so a damaged log ends with a message, never a hang. (pyulog reads
-        a ULog in one call that cannot be interrupted; tests/test_fuzz_readers.py shows it ends on damaged files.)
+        Give up (with a :class:`DatasetError`) after this many seconds; default :data:`DEADLINE_S_PER_MB` per MB
+        of file, at least :data:`MIN_DEADLINE_S`. DataFlash: every format field the reader steps by is checked
+        first (a format shorter than its header, or not the size of its fields, is refused) and every message must
+        move it forward, so a damaged log ends with a message, never a hang. ULog: the formats are checked first
+        (:func:`check_ulog_definitions`: nesting, fields), and pyulog's reader is stopped from inside at the
+        deadline or when its subscriptions' fields pass :data:`ULOG_MAX_SUBSCRIBED_FIELDS`.
 
     Values that are NaN, infinite or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` (the rule of every magcal
     reader) are dropped, each kind counted in one :class:`DataWarning`.
@@ -125,12 +129,11 @@ def read_log(
     path = os.fspath(path)
     if os.path.isdir(path):
         raise DatasetError(f"{source}: is a directory, not a log file")
-    if not os.path.exists(path):
-        raise DatasetError(f"{source}: no such file; check the path")
+    check_regular_file(path, "file", DatasetError, source)  # a FIFO would block, a device never end
     if timeout_s is None:
         timeout_s = max(MIN_DEADLINE_S, DEADLINE_S_PER_MB * os.path.getsize(path) / 1e6)
     if path.lower().endswith(".ulg"):
-        ds = read_ulog(path, sensors=sensors, name=source, notes=notes)
+        ds = read_ulog(path, sensors=sensors, name=source, notes=notes, timeout_s=timeout_s)
     elif path.lower().endswith(".bin"):
         ds = read_dataflash(
             path, sensors=sensors, name=source, undo_calibration=undo_calibration, timeout_s=timeout_s, notes=notes
@@ -398,6 +401,8 @@ _DF_FMT_LENGTH = 89
 _DF_FMT_RE = re.compile(rb"\xa3\x95\x80")  # the sync bytes, then the type of FMT
 #: The message types magcal reads: a damaged format of one of them is refused, not skipped.
 _DF_READ_TYPES = ("FMT", "PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "GPS", "CTUN", "BAT", "CURR")
+#: The message types the reader takes into its tables.
+_DF_KEPT_TYPES = ("PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT", "CURR", "GPS", "CTUN")
 
 
 def _c_string(raw: bytes) -> str | None:
@@ -536,6 +541,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         raise DatasetError(
             f'{source}: reading ArduPilot logs needs pymavlink: pip install "magcal[instruments]"'
         ) from None
+    check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
     check_dataflash_formats(path, source)
     deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
 
@@ -561,6 +567,12 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:  # a damaged or foreign file: any failure of the parser is the file's fault
         raise DatasetError(f"{source}: not a readable ArduPilot DataFlash log ({exception_text(exc)})") from None
+    try:
+        _check_dataflash_counts(log, source)
+    except BaseException:
+        with contextlib.suppress(Exception):
+            log.close()
+        raise
     gathered: dict = {
         "params": {},
         "bad_params": [],
@@ -579,7 +591,7 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
             while True:
                 if deadline is not None and time.monotonic() > deadline:
                     raise too_slow()
-                m = log.recv_match(type=["PARM", "MAG", "MAG2", "MAG3", "IMU", "ATT", "BAT", "CURR", "GPS", "CTUN"])
+                m = log.recv_match(type=list(_DF_KEPT_TYPES))
                 if m is None:
                     break
                 _dataflash_message(m, gathered, undo_calibration)
@@ -593,6 +605,31 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         with contextlib.suppress(Exception):
             log.close()
     return _dataflash_dataset(source, gathered, sensors, undo_calibration, notes)
+
+
+#: Bytes each message magcal keeps from a DataFlash log takes while it is read (a row of Python floats in a
+#: list, then its NumPy row): about 250, for messages of 30-90 bytes in the file.
+DATAFLASH_BYTES_PER_MESSAGE = 250
+
+
+def _check_dataflash_counts(log, source) -> int:
+    """The messages of the kinds magcal keeps (pymavlink's index counts them before any is read), refused when
+    they would not fit in the free memory (:func:`magcal.core.memory.available_bytes`)."""
+    ids = getattr(log, "name_to_id", {}) or {}
+    counts = getattr(log, "counts", None) or {}
+    try:
+        kept = sum(int(counts[ids[name]]) for name in _DF_KEPT_TYPES if name in ids)
+    except (TypeError, KeyError, IndexError):
+        return 0  # a reader without counts (the legacy indexer's dictionary): nothing to say before reading
+    need = kept * DATAFLASH_BYTES_PER_MESSAGE
+    free = available_bytes()
+    if free is not None and need > free:
+        raise DatasetError(
+            f"{source}: {kept:,} messages of the kinds magcal reads (MAG, IMU, ATT, GPS...) would take about "
+            f"{need / 1e9:.3g} GB, more than the {free / 1e9:.3g} GB of memory free: cut the log to the stretch you "
+            "need (e.g. with MAVExplorer or mavlogdump.py), or use a machine with more memory"
+        )
+    return kept
 
 
 def _dataflash_message(m, gathered, undo_calibration):
@@ -800,27 +837,30 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
 
 
 # -- PX4 ULog --------------------------------------------------------------------------------------------------------
-def read_ulog(path, sensors=None, name=None, notes=None) -> Dataset:
-    """Read a PX4 ``.ulg`` log (see the module docstring). Readings in nT, each magnetometer's own frame."""
+def read_ulog(path, sensors=None, name=None, notes=None, timeout_s=None) -> Dataset:
+    """Read a PX4 ``.ulg`` log (see the module docstring). Readings in nT, each magnetometer's own frame.
+
+    Its format definitions are checked first (:func:`check_ulog_definitions`); pyulog's reading stops with a
+    :class:`DatasetError` after ``timeout_s`` seconds (default: no limit) or when the messages it subscribes to
+    would flatten into more than :data:`ULOG_MAX_SUBSCRIBED_FIELDS` fields (:func:`_guarded_ulog`)."""
     source = str(name or path)
     try:
         from pyulog import ULog
     except ImportError:
         raise DatasetError(f'{source}: reading PX4 logs needs pyulog: pip install "magcal[instruments]"') from None
+    check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
+    deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
+    check_ulog_definitions(path, source, deadline=deadline)
     try:
         with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):  # pyulog prints its warnings
-            ulog = ULog(
-                path,
-                [
-                    "sensor_mag",
-                    "vehicle_attitude",
-                    "vehicle_magnetometer",
-                    "sensor_combined",
-                    "battery_status",
-                    "vehicle_gps_position",
-                    "sensor_gps",
-                ],
-            )
+            ulog = _guarded_ulog(ULog)(path, _ULOG_TOPICS, deadline=deadline)
+    except _Stuck as exc:
+        if exc.args[0] == "slow":
+            raise DatasetError(
+                f"{source}: reading stopped after {float(timeout_s or 0):g} s, far longer than a log of this size "
+                "takes: the log is damaged; record or download it again"
+            ) from None
+        raise DatasetError(f"{source}: {exc.args[1]}") from None
     except Exception as exc:  # a damaged or foreign file
         raise DatasetError(f"{source}: not a readable PX4 ULog file ({exception_text(exc)})") from None
     mags = sorted((d for d in ulog.data_list if d.name == "sensor_mag"), key=lambda d: d.multi_id)
@@ -967,6 +1007,233 @@ def _ulog_imu(ulog, source, metadata, notes=None) -> dict:
         [data[f"accelerometer_m_s2[{k}]"] for k in range(3)] + [data[f"gyro_rad[{k}]"] for k in range(3)]
     ).astype(float)
     return _imu_channels(source, t * 1e-6, values, "sensor_combined accelerometer", metadata, notes)
+
+
+#: The ULog topics magcal reads (pyulog keeps the data of these only).
+_ULOG_TOPICS = [
+    "sensor_mag",
+    "vehicle_attitude",
+    "vehicle_magnetometer",
+    "sensor_combined",
+    "battery_status",
+    "vehicle_gps_position",
+    "sensor_gps",
+]
+
+#: A ULog format may nest other formats (``esc_status`` holds ``esc_report esc[8]``), which pyulog flattens into
+#: one field per basic value, each with its own Python object and name: ``t0:t1[2] a;`` ... ``tN:...`` makes 2^N
+#: fields from a few hundred bytes (554 bytes took 24 s and 3 GB). PX4's messages nest two levels deep and flatten
+#: into a few hundred fields at most (``satellite_info``, ``ulog_stream``); these bounds are far beyond them.
+ULOG_MAX_NESTING = 8
+#: Most fields one message may flatten into (pyulog: about 3 us and 500 bytes each).
+ULOG_MAX_FIELDS = 10_000
+#: Most characters of one message's flattened field names (``esc[7].esc_rpm``...).
+ULOG_MAX_NAME_CHARS = 1_000_000
+#: Most fields all the subscriptions of a log (its ``A`` messages, each flattened anew) may flatten into; a
+#: real log's hundred-odd topics flatten into some thousands.
+ULOG_MAX_SUBSCRIBED_FIELDS = 500_000
+
+_ULOG_MAGIC = b"ULog\x01\x12\x35"
+_ULOG_DEFINITIONS_END = {ord("A"), ord("L"), ord("C")}  # the first of these begins the data section
+_ULOG_DEFINITION_TYPES = {ord(c) for c in "FIMPQB"}  # the messages pyulog reads in the definitions section
+
+
+def ulog_format_sizes(formats) -> dict:
+    """What each ULog format flattens into, computed from the definitions alone (nothing is expanded).
+
+    Parameters
+    ----------
+    formats : dict of str to list of (type, array_size, name)
+        Each format's fields as pyulog parses them (``ULog.MessageFormat.fields``: ``array_size`` 0 for a
+        single value).
+
+    Returns
+    -------
+    dict of str to (int, int, int) or str
+        Per format: ``(fields, name_chars, depth)`` -- the flattened fields, an upper bound of their names'
+        characters, and the nesting depth (1: basic fields only); or the text of a problem: a format that nests
+        itself (a cycle), or nesting deeper than :data:`ULOG_MAX_NESTING`. A field of a type that is neither basic
+        nor defined counts for nothing (pyulog drops such a subscription as damaged).
+    """
+    from pyulog import ULog
+
+    basic = ULog._UNPACK_TYPES
+    sizes: dict = {}
+
+    def size(name, chain):
+        if name in sizes:
+            return sizes[name]
+        if name in chain:
+            return f"format {name} nests itself ({' -> '.join(chain[chain.index(name) :] + (name,))})"
+        if len(chain) >= ULOG_MAX_NESTING:
+            return f"formats nest more than {ULOG_MAX_NESTING} levels deep ({' -> '.join(chain[:4])} ...)"
+        fields = chars = 0
+        depth = 1
+        for type_name, array_size, field_name in formats[name]:
+            count = max(int(array_size), 1)
+            index_chars = len(str(count)) + 3 if array_size else 1  # "[12]." or "."
+            if type_name in basic:
+                fields += count
+                chars += count * (len(field_name) + index_chars)
+            elif type_name in formats:
+                inner = size(type_name, (*chain, name))
+                if isinstance(inner, str):
+                    sizes[name] = inner
+                    return inner
+                inner_fields, inner_chars, inner_depth = inner
+                fields += count * inner_fields
+                chars += count * (inner_fields * (len(field_name) + index_chars) + inner_chars)
+                depth = max(depth, inner_depth + 1)
+        sizes[name] = (fields, chars, depth)
+        return sizes[name]
+
+    for name in formats:
+        size(name, ())
+    return sizes
+
+
+def ulog_format_problem(name, found) -> str | None:
+    """What is wrong with format ``name`` of sizes ``found`` (:func:`ulog_format_sizes`), or None."""
+    if isinstance(found, str):
+        return found
+    fields, chars, _ = found
+    if fields > ULOG_MAX_FIELDS:
+        return f"format {name} flattens into {fields:,} fields, more than the {ULOG_MAX_FIELDS:,} magcal reads"
+    if chars > ULOG_MAX_NAME_CHARS:
+        return (
+            f"format {name}'s flattened field names take {chars:,} characters, more than the "
+            f"{ULOG_MAX_NAME_CHARS:,} magcal reads"
+        )
+    return None
+
+
+def _damaged_formats(problem) -> str:
+    return (
+        f"{problem}: no PX4 message is like this, and reading it would take time and memory without bound; the log "
+        "is damaged or was crafted"
+    )
+
+
+def check_ulog_definitions(path, source=None, deadline=None) -> int:
+    """Check the format definitions of a ULog file before pyulog reads it; returns how many formats there are.
+
+    The definitions section (after the 16-byte header, up to the first subscription or logged string) is walked
+    message by message (a 3-byte header: size, type); each format message (``F``) is parsed with pyulog's own
+    parser, and every format's flattened size is computed without expanding it (:func:`ulog_format_sizes`). A
+    format that nests itself, nests deeper than :data:`ULOG_MAX_NESTING`, or flattens into more than
+    :data:`ULOG_MAX_FIELDS` fields (or :data:`ULOG_MAX_NAME_CHARS` characters of names) is refused. A file that
+    does not begin with the ULog header is left to pyulog (which says so); a damaged stretch ends the walk (pyulog
+    skips it byte by byte; what it finds after it is bounded inside it: :func:`_guarded_ulog`).
+
+    Raises
+    ------
+    DatasetError
+        Naming the format and the byte offset of its definition.
+    """
+    from pyulog import ULog
+
+    source = str(source or path)
+    formats, offsets = {}, {}
+    with open(path, "rb") as fh:
+        if fh.read(16)[:7] != _ULOG_MAGIC:
+            return 0
+        offset = 16
+        for count in itertools.count():
+            if deadline is not None and count % 4096 == 0 and time.monotonic() > deadline:
+                raise DatasetError(f"{source}: reading its definitions took too long: the log is damaged")
+            head = fh.read(3)
+            if len(head) < 3:
+                break
+            size, kind = struct.unpack("<HB", head)
+            if kind in _ULOG_DEFINITIONS_END:
+                break
+            if kind not in _ULOG_DEFINITION_TYPES and (kind == 0 or size == 0 or size > 10_000):
+                break  # damaged here (pyulog's own test): pyulog steps over it byte by byte
+            body = fh.read(size)
+            if len(body) < size:
+                break
+            if kind == ord("F"):
+                try:  # pyulog decodes ignoring bad bytes (its disable_str_exceptions, on by default)
+                    fmt = ULog.MessageFormat(body.decode("utf-8", "ignore").encode("utf-8"), None)
+                except (IndexError, ValueError, KeyError, OverflowError, UnicodeDecodeError):
+                    pass  # pyulog skips a format it cannot parse the same way
+                else:
+                    formats[fmt.name] = fmt.fields
+                    offsets[fmt.name] = offset
+            offset += 3 + size
+    sizes = ulog_format_sizes(formats)
+    for name in formats:
+        problem = ulog_format_problem(name, sizes[name])
+        if problem:
+            raise DatasetError(f"{source}: byte {offsets[name]}: {_damaged_formats(problem)}")
+    return len(formats)
+
+
+_GUARDED_ULOG: dict = {}
+
+
+def _guarded_ulog(ULog):
+    """pyulog's ``ULog`` with guards inside its reading: every subscription (``A`` message, flattened anew each
+    time) is sized from the formats first (:func:`ulog_format_sizes`) and refused beyond the per-message bounds
+    or once all subscriptions together pass :data:`ULOG_MAX_SUBSCRIBED_FIELDS`; and the ``deadline`` (a
+    ``time.monotonic`` value) is checked at data messages and at every damaged byte pyulog steps over. Either
+    raises :class:`_Stuck` out of pyulog (whose own error handling catches only its parsing errors)."""
+    if "class" in _GUARDED_ULOG:
+        return _GUARDED_ULOG["class"]
+
+    class GuardedULog(ULog):
+        def __init__(self, *args, deadline=None, **kwargs):
+            self._deadline = deadline
+            self._ticks = 0
+            self._fields_subscribed = 0
+            self._sizes = None
+            owner = self
+
+            class AddLogged(ULog._MessageAddLogged):
+                def __init__(self, data, header, message_formats):
+                    owner._admit(data, message_formats)
+                    super().__init__(data, header, message_formats)
+
+            class MessageData(ULog._MessageData):
+                def initialize(self, data, header, subscriptions, ulog_object):
+                    owner._tick()
+                    return super().initialize(data, header, subscriptions, ulog_object)
+
+            self._MessageAddLogged = AddLogged  # pyulog makes these through self: the guarded ones are used
+            self._MessageData = MessageData
+            super().__init__(*args, **kwargs)
+
+        def _tick(self):
+            self._ticks += 1
+            if self._deadline is not None and self._ticks % 1024 == 0 and time.monotonic() > self._deadline:
+                raise _Stuck("slow")
+
+        def _check_packet_corruption(self, header):
+            self._tick()  # a damaged stretch is stepped over byte by byte, each step reading up to 64 kB
+            return super()._check_packet_corruption(header)
+
+        def _admit(self, data, message_formats):
+            if self._sizes is None:
+                self._sizes = ulog_format_sizes({k: f.fields for k, f in message_formats.items()})
+            name = ULog.parse_string(data[3:])
+            found = self._sizes.get(name)
+            if found is None:
+                return  # not a format: pyulog refuses the subscription itself (a KeyError it catches)
+            problem = ulog_format_problem(name, found)
+            if problem:
+                raise _Stuck("bomb", _damaged_formats(problem))
+            self._fields_subscribed += found[0]
+            if self._fields_subscribed > ULOG_MAX_SUBSCRIBED_FIELDS:
+                raise _Stuck(
+                    "bomb",
+                    _damaged_formats(
+                        f"its subscriptions flatten into more than {ULOG_MAX_SUBSCRIBED_FIELDS:,} fields "
+                        f"(the last one, {name!r}: {found[0]:,})"
+                    ),
+                )
+
+    _GUARDED_ULOG["class"] = GuardedULog
+    return GuardedULog
 
 
 def _ulog_position(ulog, source, metadata, notes=None):

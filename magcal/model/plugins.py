@@ -46,6 +46,7 @@ import traceback
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import say
 from magcal.data.dataset import CHANNELS, Dataset
@@ -492,10 +493,15 @@ def load_effects_file(path) -> list[str]:
         clash with a built-in or another source, a missing ``param_names``...). The catalogue is then unchanged.
     """
     path = os.path.abspath(os.fspath(path))
-    if not os.path.exists(path):
+    reason = not_regular_reason(path)
+    if reason == "no such file":
         raise UserEffectError(f"{path}: no such effects file; check the path given to --effects-file")
-    if os.path.isdir(path):
-        raise UserEffectError(f"{path}: is a directory; give the Python file that defines your effect")
+    if reason is not None:  # a directory; a FIFO or a device would block or never end the import
+        raise UserEffectError(
+            f"{path}: is {reason}; give the Python file that defines your effect"
+            if not reason.startswith("cannot")
+            else f"{path}: the effects file {reason}; check the path and its permissions"
+        )
     if not path.endswith(".py"):
         raise UserEffectError(f"{path}: an effects file must be a Python file ending in .py ({DOC})")
     module_name = _module_name(path)
@@ -707,6 +713,8 @@ def unregister(name: str) -> None:
 
 def calibration_effect_names(path) -> list[str]:
     """The effect names a calibration JSON file uses (``[]`` if it cannot be read: its loader then says why)."""
+    if not_regular_reason(path) is not None:
+        return []  # a FIFO would block here: the loader refuses it with its message
     try:
         with open(os.fspath(path), "rb") as fh:
             doc = json.loads(fh.read().decode("utf-8"))

@@ -39,6 +39,7 @@ from magcal.calibration.calibration import ATTITUDE_GAP_NOTE, Calibration, Recor
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
+from magcal.core.files import check_regular_file
 from magcal.core.notes import runs, runs_text
 from magcal.data.accelerometer import ACCEL_COLUMNS, has_accelerometer
 from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
@@ -220,6 +221,46 @@ def correct_block(calibration, dataset, record_terms=None, uncertainty=False, wo
     return np.hstack(parts)
 
 
+def refuse_non_finite(values, names, source, dataset=None, row_name=None) -> None:
+    """Refuse output values that are not finite numbers: nothing non-finite is ever written.
+
+    A NaN on a row without attitude (``dataset``'s attitude channel NaN there) is the documented gap of the world
+    columns (and of every corrected column when an acting effect needs the attitude, :class:`AttitudeGaps`), and
+    is kept; any other NaN or infinity (a calibration whose values overflow on these readings, a channel an
+    effect needs holding NaN) is refused, naming the first row and column.
+
+    Parameters
+    ----------
+    values : numpy.ndarray, shape (N, k)
+    names : sequence of str
+        The ``k`` column names.
+    source : str
+        The file, for the message.
+    dataset : Dataset, optional
+        The block the values were computed from (its attitude says which rows may hold NaN).
+    row_name : callable, optional
+        How the message names the block's row ``k`` (0-based): ``"line 12"``; default ``"row {k + 1}"``.
+
+    Raises
+    ------
+    MagcalError
+    """
+    values = np.asarray(values, dtype=float)
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return
+    have = attitude_present(dataset) if dataset is not None else None
+    if have is not None:
+        bad &= ~(np.isnan(values) & ~np.asarray(have, dtype=bool)[:, None])
+    if bad.any():
+        k, j = (int(i) for i in np.argwhere(bad)[0])
+        raise MagcalError(
+            f"{source}: {row_name(k) if row_name else f'row {k + 1}'}: {names[j]} would be {float(values[k, j])!r}, not a finite number ({int(bad.sum())} such "
+            "value(s) in this block); nothing is written. The calibration's values are too large for these "
+            "readings, or a channel it needs (temperature, current...) is missing there: check both"
+        )
+
+
 class AttitudeGaps:
     """The survey's rows without attitude, counted block by block as :func:`apply_file` corrects them: their world
     (north-east-down) columns are NaN, their body-frame columns are written as on every row; one note counts them.
@@ -392,8 +433,9 @@ def apply_file(
     t0 = time.perf_counter()
     check_output_path(output_path, "output")  # before any work: a folder, a missing folder
     if not os.path.isfile(survey_path):
-        what = "is a directory, not a survey file" if os.path.isdir(survey_path) else "no such file; check the path"
-        raise DatasetError(f"{os.fspath(survey_path)}: {what}")
+        if os.path.isdir(survey_path):
+            raise DatasetError(f"{os.fspath(survey_path)}: is a directory, not a survey file")
+        check_regular_file(survey_path, "file", DatasetError)  # missing, a FIFO, a device: named, never opened
 
     if compression is not None and not is_parquet(output_path):
         raise MagcalError(
@@ -483,6 +525,9 @@ def apply_file(
                         calibration.check(chunk.dataset)
                         check_units(chunk.dataset, src.units, src.source, stacklevel=2)
                     values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world, heading)
+                    refuse_non_finite(
+                        values, new_names, survey_path, chunk.dataset, lambda k, c=chunk: f"line {c.line_numbers[k]}"
+                    )
                     if world or terms:
                         gaps.add(chunk.dataset)
                     out.write(
@@ -696,6 +741,7 @@ def apply_columns(
                         )
                     calibration.check(ds)
                 values = correct_block(calibration, ds, choice, uncertainty, world, heading)
+                refuse_non_finite(values, names, survey_path, ds, lambda k, first=rows: f"row {first + k + 1}")
                 if world or terms:
                     gaps.add(ds)
                 cols = input_columns(survey_path, ds, names)

@@ -32,11 +32,11 @@ import zipfile
 
 import numpy as np
 
-from magcal.calibration.calibration import Calibration
+from magcal.calibration.calibration import Calibration, document_text
 from magcal.core.errors import MagcalError
 from magcal.data import io as mio
 from magcal.data.logs import is_log
-from magcal.output.apply import apply_file, record_terms_for_file
+from magcal.output.apply import apply_file, record_terms_for_file, refuse_non_finite
 from magcal.output.export import export_calibration
 
 #: The calibration's file name in a bundle and in the parameter files' headers.
@@ -55,7 +55,7 @@ ZIP_DATE_TIME = (1980, 1, 1, 0, 0, 0)
 
 def calibration_bytes(calibration) -> bytes:
     """The calibration's JSON file, byte for byte what :meth:`Calibration.save` writes."""
-    return (json.dumps(calibration.to_dict(), indent=2) + "\n").encode("utf-8")
+    return document_text(calibration.to_dict()).encode("utf-8")
 
 
 def calibration_from_bytes(content: bytes, source: str = CALIBRATION_FILE) -> Calibration:
@@ -170,6 +170,10 @@ def raw_mask_bytes(calibration, dataset, kept=None, calibration_name=CALIBRATION
         if note:
             notes.append(note)
     residual = calibration.total_field_residuals(dataset, record_terms=record_terms)
+    names = [f"s{s + 1}_residual_nT" for s in range(dataset.n_sensors)]
+    refuse_non_finite(
+        np.asarray(residual, dtype=float).T, names, dataset.source or "data", dataset, lambda k: f"sample {k + 1}"
+    )
     columns = dict(mio.dataset_columns(dataset))
     for name in ["kept"] + [f"s{s + 1}_residual_nT" for s in range(dataset.n_sensors)]:
         columns.pop(name, None)  # a file that is itself a raw_mask.csv: its old mask and residuals are replaced

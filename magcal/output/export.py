@@ -415,6 +415,7 @@ def export_calibration(
     notes += current.notes + _mounting_notes(calibration, exports, fmt, custom_rotation)
     builder = {"ardupilot": _ardupilot, "px4": _px4, "c": _c_header}[fmt]
     parameters, text = builder(exports, calibration, source, dropped, notes)
+    _check_storable(parameters, exports, fmt, source)
     if fmt == "ardupilot":
         for e in exports:
             length = float(np.linalg.norm(e.bias_nT)) / NT_PER_MILLIGAUSS
@@ -474,6 +475,25 @@ def _mounting_notes(calibration, exports, fmt, custom_rotation) -> list[str]:
                 "sensor to --slot 1 or 2 to write its whole mounting"
             )
     return notes
+
+
+#: Largest magnitude the firmwares' parameters (ArduPilot ``AP_Float``, PX4 ``REAL32``) and the C header's
+#: ``float`` can hold.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _check_storable(parameters, exports, fmt, source) -> None:
+    """Refuse an export holding a value that is not a finite 32-bit float (NaN, infinite, or beyond
+    :data:`FLOAT32_MAX`): the firmware or the compiler would take it for something else, so nothing is written."""
+    values = list(parameters.items())
+    if fmt == "c":  # the header also holds each sensor's frame rotation
+        values += [(f"MAGCAL_S{e.sensor}_FRAME", v) for e in exports for v in np.ravel(e.frame_rotation)]
+    for name, value in values:
+        if not abs(float(value)) <= FLOAT32_MAX:
+            raise MagcalError(
+                f"{source}: {name} would be {float(value):g}, which no {fmt} parameter can hold (a finite 32-bit "
+                "float): the calibration's values are too large; recalibrate"
+            )
 
 
 def _header_lines(calibration, source, dropped, notes, formula):

@@ -69,6 +69,7 @@ from magcal.output.apply import (
     output_columns,
     reads_extras,
     record_choice,
+    refuse_non_finite,
     writes_world,
 )
 
@@ -453,6 +454,8 @@ def correct_partition(
                 world = writes_world(calibration, ds)
                 names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
             values = correct_block(calibration, ds, record_choice, uncertainty, world)
+            where = f"{part.path} (the partition from row {part.first_line})"
+            refuse_non_finite(values, names, where, ds, lambda k, n=rows: f"its row {n + k + 1}")
             if world or terms:
                 gaps.add(ds)
             cols = input_columns(part.path, ds, names)
