@@ -52,6 +52,7 @@ import time
 from types import SimpleNamespace
 
 from magcal.core.errors import MagcalError
+from magcal.core.files import check_regular_file
 from magcal.model import plugins
 
 from . import scene as scn
@@ -481,7 +482,9 @@ def main(argv=None) -> int:
         else:
             path = args.file or DEMO
         try:
-            content = open(path, "rb").read()
+            check_regular_file(path, "data file")  # a FIFO would block the start, a device never end
+            with open(path, "rb") as fh:
+                content = fh.read()
         except OSError as exc:
             raise MagcalError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
         dataset, notes = load_dataset(path)

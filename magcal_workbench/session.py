@@ -34,6 +34,7 @@ import weakref
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from magcal.core.files import not_regular_reason
 from magcal.data.io import atomic_write
 
 from .sessionfile import MAX_BYTES as MAX_READ
@@ -226,6 +227,9 @@ class SessionStore:
         """
         path = self.folder(sid) / SESSION_FILE
         where = f"{sid}/{SESSION_FILE}"  # messages reach the page: no absolute path
+        why = not_regular_reason(path)  # a FIFO would block the reader, a device never end
+        if why is not None and path.exists():
+            raise SessionFileError(where, "(the file itself)", f"not a regular file ({why})")
         with open(path, "rb") as fh:
             data = fh.read(MAX_READ + 1)
         state = read_session_bytes(data, where)

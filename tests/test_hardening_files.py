@@ -548,3 +548,23 @@ def test_a_calibration_or_survey_that_is_a_fifo_is_refused_at_once(calibrations,
     if os.path.exists("/dev/zero"):  # a device, named like a log: it never ends
         (tmp_path / "zero.ulg").symlink_to("/dev/zero")
         refused(finishes(lambda: read_log(tmp_path / "zero.ulg"), 5), DatasetError, "is a character device")
+
+
+def test_the_workbench_refuses_a_fifo_as_its_data_or_a_session_file(tmp_path, capsys):
+    """A FIFO given as the workbench's data file, or standing in a session's folder as its session.json, would block
+    the reader for ever: both are refused with one line."""
+    from magcal_workbench.session import SessionStore
+    from magcal_workbench.sessionfile import SessionFileError
+
+    fifo = tmp_path / "data.csv"
+    os.mkfifo(fifo)
+    from magcal_workbench.app import main as workbench_main
+
+    assert workbench_main([str(fifo), "--port", "0", "--no-session"]) == 2  # at once, not blocked
+    assert "FIFO" in capsys.readouterr().err
+    store = SessionStore(tmp_path / "sessions")
+    folder = tmp_path / "sessions" / "s-20261127-000000-abcdef"
+    folder.mkdir(parents=True)
+    os.mkfifo(folder / "session.json")
+    with pytest.raises(SessionFileError, match="not a regular file"):
+        store.load(folder.name)
