@@ -17,22 +17,11 @@ from magcal.diagnosis._fitted import _vector_rms_per_sensor
 from magcal.diagnosis.scores import Candidate
 from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box
 from magcal.model.effects import step_scan
+from magcal.model.terms import EffectTexts
 
-#: One-line signature of each effect, for the evidence column.
-SIGNATURES = {
-    "temperature_bias": "residual follows (T - T0) x field direction (degree 1)",
-    "temperature_scale": "residual follows (T - T0) x direction degrees 0 and 2",
-    "bias_drift": "slow trend in time times field direction",
-    "bias_step": "step in the residual pattern",
-    "nonlinearity_quadratic": "direction pattern of degree 3",
-    "nonlinearity_cubic": "direction pattern of degree 4",
-    "axis_timing_skew": "residual ~ rate of change of the axes; flips with the rotation direction",
-    "sensor_timing_skew": "inter-sensor differences ~ dt dB/dt",
-    "hysteresis": "residual flips sign with each axis's direction of change",
-    "reference_drift": "common to all sensors, independent of direction, slow in time",
-    "site_gradient": "inter-sensor differences follow the attitude (world-fixed gradient)",
-    "current_field": "residual follows the current (or throttle) column x field direction (degree 1)",
-}
+#: One-line signature of each effect, for the evidence column: what each registered effect says of itself
+#: (:attr:`magcal.model.terms.Effect.signature`).
+SIGNATURES = EffectTexts("signature")
 
 
 def _evidence_line(c: Candidate, extra: str = "") -> str:

@@ -52,10 +52,9 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
-from magcal.diagnosis.verdict import WHEN_RECORDING as _WHEN_RECORDING
 from magcal.fitting.vector import VectorFitResult, fit_vector
 from magcal.model.effects import CURRENT_COLUMNS, current_column
-from magcal.model.terms import EFFECTS, Model, term_label
+from magcal.model.terms import EFFECTS, EffectTexts, Model, term_label
 
 #: A candidate is supported in-sample when its delta-BIC is below this (very strong evidence), as in scalar mode.
 DELTA_BIC_THRESHOLD = -10.0
@@ -623,36 +622,13 @@ def _describe(effect, calibration) -> tuple[str, str]:
         q = e.quote(values, calibration.reference_total_nT, es)
         size = ", ".join(f"{n} {v:.3g}" for n, v in zip(e.param_names(), np.ravel(values)))
         quotes.append(q or size)
-    signature = getattr(type(effect), "signature", "") or _SIGNATURES.get(effect.name, "")
+    signature = getattr(type(effect), "vector_signature", "")
     return "; ".join(quotes), signature
-
-
-#: How each catalogue effect shows in a vector calibration's residuals (effects that say it themselves, with a
-#: ``signature`` attribute, take precedence).
-_SIGNATURES = {
-    "current_field": "world residual follows the current (or throttle) column",
-    "temperature_bias": "world residual follows the temperature",
-    "temperature_scale": "world residual follows the temperature times the field",
-    "bias_drift": "slow trend in time of the body-frame residual",
-    "bias_step": "step in the body-frame residual",
-    "nonlinearity_quadratic": "residual follows the square of each axis's reading",
-    "nonlinearity_cubic": "residual follows the cube of each axis's reading",
-    "axis_timing_skew": "residual follows each axis's rate of change, differently per axis",
-    "hysteresis": "residual flips sign with each axis's direction of change",
-    "periodic_interference": "a sinusoid in the residual",
-}
 
 
 #: The channel of the evidence (:attr:`VectorDiagnosis.evidence`) each catalogue effect's residual follows: what its
 #: evidence plot puts on the horizontal axis (the others follow the time).
-EVIDENCE_CHANNELS = {
-    "current_field": "current",
-    "temperature_bias": "temperature_C",
-    "temperature_scale": "temperature_C",
-    "eddy_currents": "turn_rate_dps",
-    "attitude_time_offset": "turn_rate_dps",
-    "axis_timing_skew": "turn_rate_dps",
-}
+EVIDENCE_CHANNELS = EffectTexts("evidence_channel")
 
 
 def evidence_channel(effect: str, evidence: dict | None = None) -> str:
@@ -662,8 +638,8 @@ def evidence_channel(effect: str, evidence: dict | None = None) -> str:
     channel."""
     name = str(effect).partition(":")[0]
     key = EVIDENCE_CHANNELS.get(name)
-    if key is None and "temperature" in getattr(EFFECTS.get(name), "channels", ()):
-        key = "temperature_C"
+    if key == "time_s" and "temperature" in getattr(EFFECTS.get(name), "channels", ()):
+        key = "temperature_C"  # a user's effect that needs the temperature follows it
     if key is None or (evidence is not None and evidence.get(key) is None):
         return "time_s"
     return key
@@ -892,7 +868,7 @@ def _refit_round(dataset, reference, record, current, model, cands, fitted, weig
             params={k: v for k, v in fit.calibration.effect_values.items() if k.split(":")[0] == e.name},
             quote=quote,
             evidence="; ".join(p for p in (quote, signature) if p),
-            when_recording=getattr(type(e), "when_recording", "") or _WHEN_RECORDING.get(e.name, ""),
+            when_recording=getattr(type(e), "when_recording", ""),
             replaces=[x.label for x in nested],
         )
         if nested:

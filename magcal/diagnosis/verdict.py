@@ -60,7 +60,7 @@ from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, coverage
-from magcal.model.terms import EFFECTS
+from magcal.model.terms import EFFECTS, EffectTexts
 
 #: Verdicts of :func:`diagnose`.
 VERDICTS = ("adequate", "missing_effect", "unexplained")
@@ -1162,22 +1162,10 @@ def _after_scores(
     )
 
 
-#: What to do about a record-only finding when recording (by catalogue name); the fallback is for a term that
-#: describes the record but does not carry to later data.
-WHEN_RECORDING = {
-    "bias_drift": "let the sensor and electronics reach a steady temperature before recording, record the "
-    "temperature, and keep the rotation short (or repeat it at the start and end to measure the drift)",
-    "bias_step": "find what changed at that time (a shock, a cable, a power or load change, a magnetised tool "
-    "near the sensor) and record again without it; a sensor permed by a shock keeps its new bias: calibrate "
-    "after it",
-    "reference_drift": "the field at the sensor changed during the record (time of day, a vehicle or iron moving "
-    "nearby, height): record where and when the field is quiet, in less time, or give the field's variation "
-    "(a base-station ref_total column or --reference)",
-    "periodic_interference": "a periodic source near the sensor (a motor, PWM, mains, a blinking load) was on: "
-    "switch it off or move away from it while recording",
-    "site_gradient": "the field is not uniform over the path of the array: turn it in place, away from iron, or "
-    "record its attitude and position",
-}
+#: What to do about a record-only finding when recording, by catalogue name (what each effect says of itself,
+#: :attr:`magcal.model.terms.Effect.when_recording`); the fallback is for a term that describes the record but does
+#: not carry to later data.
+WHEN_RECORDING = EffectTexts("when_recording")
 WHEN_RECORDING_OTHER = (
     "it describes this record but does not carry to its later part: repeat the recording with what it depends on "
     "(temperature, rotation speed) varied independently of time, so that it can be told from a drift"

@@ -289,6 +289,9 @@ class TemperatureBias(_TemperatureReferenced):
     """Bias that changes with temperature: ``y += beta (T - T0)``, ``beta`` per axis in nT/K."""
 
     name: ClassVar[str] = "temperature_bias"
+    signature: ClassVar[str] = "residual follows (T - T0) x field direction (degree 1)"
+    vector_signature: ClassVar[str] = "world residual follows the temperature"
+    evidence_channel: ClassVar[str] = "temperature_C"
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("temperature",)
@@ -312,6 +315,9 @@ class TemperatureScale(_TemperatureReferenced):
     """Scale factors that change with temperature: ``y_j += alpha_j (T - T0) (C B)_j``, ``alpha`` in ppm/K."""
 
     name: ClassVar[str] = "temperature_scale"
+    signature: ClassVar[str] = "residual follows (T - T0) x direction degrees 0 and 2"
+    vector_signature: ClassVar[str] = "world residual follows the temperature times the field"
+    evidence_channel: ClassVar[str] = "temperature_C"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("temperature",)
     description: ClassVar[str] = "scale factors changing with temperature, y_j += alpha_j (T - T0) (CB)_j [ppm/K]"
@@ -363,6 +369,9 @@ class CurrentField(CatalogueEffect):
     ``CAL_MAGn_[XYZ]COMP`` hold. The column is chosen when the term is configured and saved with it."""
 
     name: ClassVar[str] = "current_field"
+    signature: ClassVar[str] = "residual follows the current (or throttle) column x field direction (degree 1)"
+    vector_signature: ClassVar[str] = "world residual follows the current (or throttle) column"
+    evidence_channel: ClassVar[str] = "current"
     basis_uses_readings: ClassVar[bool] = False  # a function of the current column only
     stage: ClassVar[str] = "raw"
     description: ClassVar[str] = (
@@ -423,6 +432,8 @@ class EddyCurrents(CatalogueEffect):
     """
 
     name: ClassVar[str] = "eddy_currents"
+    vector_signature: ClassVar[str] = "residual follows the rate of change of the field (turns), differently per axis"
+    evidence_channel: ClassVar[str] = "turn_rate_dps"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     modes: ClassVar[tuple] = ("vector",)
@@ -430,7 +441,7 @@ class EddyCurrents(CatalogueEffect):
     default_magnitude: ClassVar[float] = 10.0
     magnitude_unit: ClassVar[str] = "ms"
     pattern: ClassVar[tuple] = (1.0, -0.6, 0.3, 0.4, 0.8, -0.5, -0.2, 0.5, 0.9)
-    signature: ClassVar[str] = "residual follows the rate of change of the field (turns), differently per axis"
+    signature: ClassVar[str] = "invisible in the total field (vector mode only)"
     when_recording: ClassVar[str] = (
         "eddy currents follow how fast the platform turns: fly the calibration pattern at the turn rates of the "
         "survey, keep the sensor away from large conducting plates (a boom, a tail stinger)"
@@ -512,6 +523,8 @@ class AttitudeTimeOffset(CatalogueEffect):
     """
 
     name: ClassVar[str] = "attitude_time_offset"
+    vector_signature: ClassVar[str] = "world residual perpendicular to the field, proportional to the turn rate"
+    evidence_channel: ClassVar[str] = "turn_rate_dps"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     modes: ClassVar[tuple] = ("vector",)
@@ -520,7 +533,7 @@ class AttitudeTimeOffset(CatalogueEffect):
     default_magnitude: ClassVar[float] = 80.0
     magnitude_unit: ClassVar[str] = "ms"
     pattern: ClassVar[tuple] = (1.0,)
-    signature: ClassVar[str] = "world residual perpendicular to the field, proportional to the turn rate"
+    signature: ClassVar[str] = "invisible in the total field (vector mode only)"
     when_recording: ClassVar[str] = (
         "stamp the magnetometer and the attitude on one clock (the autopilot's log does; a companion computer's "
         "merge may not), or give the offset found here to the logger"
@@ -606,6 +619,11 @@ class BiasDrift(CatalogueEffect):
     """Bias drifting linearly in time: ``y += gamma (t - t0)``, ``gamma`` per axis in nT/h."""
 
     name: ClassVar[str] = "bias_drift"
+    signature: ClassVar[str] = "slow trend in time times field direction"
+    vector_signature: ClassVar[str] = "slow trend in time of the body-frame residual"
+    when_recording: ClassVar[str] = (
+        "let the sensor and electronics reach a steady temperature before recording, record the temperature, and keep the rotation short (or repeat it at the start and end to measure the drift)"
+    )
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
@@ -847,6 +865,11 @@ class BiasStep(CatalogueEffect):
     """
 
     name: ClassVar[str] = "bias_step"
+    signature: ClassVar[str] = "step in the residual pattern"
+    vector_signature: ClassVar[str] = "step in the body-frame residual"
+    when_recording: ClassVar[str] = (
+        "find what changed at that time (a shock, a cable, a power or load change, a magnetised tool near the sensor) and record again without it; a sensor permed by a shock keeps its new bias: calibrate after it"
+    )
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
@@ -1063,6 +1086,8 @@ class NonlinearityQuadratic(_PowerNonlinearity):
     magnitude ``F``."""
 
     name: ClassVar[str] = "nonlinearity_quadratic"
+    signature: ClassVar[str] = "direction pattern of degree 3"
+    vector_signature: ClassVar[str] = "residual follows the square of each axis's reading"
     description: ClassVar[str] = "quadratic nonlinearity, y_j += q_j (B_j / |B|)^2 [nT at the data's field |B|]"
     default_magnitude: ClassVar[float] = 20.0
     order: ClassVar[int] = 2
@@ -1080,6 +1105,8 @@ class NonlinearityCubic(_PowerNonlinearity):
     """
 
     name: ClassVar[str] = "nonlinearity_cubic"
+    signature: ClassVar[str] = "direction pattern of degree 4"
+    vector_signature: ClassVar[str] = "residual follows the cube of each axis's reading"
     description: ClassVar[str] = "cubic nonlinearity, y_j += c_j (B_j / |B|)^3 [nT at the data's field |B|]"
     default_magnitude: ClassVar[float] = 25.0
     order: ClassVar[int] = 3
@@ -1107,6 +1134,9 @@ class AxisTimingSkew(CatalogueEffect):
     """
 
     name: ClassVar[str] = "axis_timing_skew"
+    signature: ClassVar[str] = "residual ~ rate of change of the axes; flips with the rotation direction"
+    vector_signature: ClassVar[str] = "residual follows each axis's rate of change, differently per axis"
+    evidence_channel: ClassVar[str] = "turn_rate_dps"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     description: ClassVar[str] = "x and y axes sampled late relative to z, y_j(t) = B_j(t - tau_j) [ms]"
@@ -1145,6 +1175,7 @@ class SensorTimingSkew(CatalogueEffect):
     """
 
     name: ClassVar[str] = "sensor_timing_skew"
+    signature: ClassVar[str] = "inter-sensor differences ~ dt dB/dt"
     stage: ClassVar[str] = "vector"
     channels: ClassVar[tuple] = ("time",)
     min_sensors: ClassVar[int] = 2
@@ -1191,6 +1222,8 @@ class Hysteresis(CatalogueEffect):
     """
 
     name: ClassVar[str] = "hysteresis"
+    signature: ClassVar[str] = "residual flips sign with each axis's direction of change"
+    vector_signature: ClassVar[str] = "residual flips sign with each axis's direction of change"
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
     description: ClassVar[str] = "hysteresis, each axis lags by h_j behind the direction of change [nT]"
@@ -1459,6 +1492,13 @@ class PeriodicInterference(CatalogueEffect):
     """
 
     name: ClassVar[str] = "periodic_interference"
+    signature: ClassVar[str] = (
+        "a sinusoid in time at a frequency the residual's spectrum shows (a motor, PWM, mains), along the field direction"
+    )
+    vector_signature: ClassVar[str] = "a sinusoid in the residual"
+    when_recording: ClassVar[str] = (
+        "a periodic source near the sensor (a motor, PWM, mains, a blinking load) was on: switch it off or move away from it while recording"
+    )
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "raw"
     channels: ClassVar[tuple] = ("time",)
@@ -1656,6 +1696,10 @@ class ReferenceDrift(CatalogueEffect):
     ``F(t) = F0 + sum_k c_k P_k(tau)``, Legendre polynomials of the time scaled to [-1, 1], mean removed."""
 
     name: ClassVar[str] = "reference_drift"
+    signature: ClassVar[str] = "common to all sensors, independent of direction, slow in time"
+    when_recording: ClassVar[str] = (
+        "the field at the sensor changed during the record (time of day, a vehicle or iron moving nearby, height): record where and when the field is quiet, in less time, or give the field's variation (a base-station ref_total column or --reference)"
+    )
     basis_uses_readings: ClassVar[bool] = False  # a function of the channels only
     stage: ClassVar[str] = "reference"
     channels: ClassVar[tuple] = ("time",)
@@ -1737,6 +1781,10 @@ class SiteGradient(CatalogueEffect):
     """
 
     name: ClassVar[str] = "site_gradient"
+    signature: ClassVar[str] = "inter-sensor differences follow the attitude (world-fixed gradient)"
+    when_recording: ClassVar[str] = (
+        "the field is not uniform over the path of the array: turn it in place, away from iron, or record its attitude and position"
+    )
     stage: ClassVar[str] = "vector"
     channels: ClassVar[tuple] = ("attitude",)
     per_sensor: ClassVar[bool] = False

@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -40,6 +41,27 @@ BASE_TERMS = ("bias", "scale", "non_orthogonality", "misalignment")
 #: The catalogue of candidate effects by name. :mod:`magcal.model.effects` registers the built-in terms when
 #: ``magcal`` is imported; :func:`register` adds more (a user's own effect).
 EFFECTS: dict[str, type[Effect]] = {}
+
+
+class EffectTexts(Mapping):
+    """A read-only view of one text every registered effect says of itself (:data:`EFFECTS`), by name: what the
+    diagnosis's tables read (``EffectTexts("signature")``), kept on the effect so that a new effect is one class.
+    Effects that leave the text empty are not in it."""
+
+    def __init__(self, attribute: str):
+        self.attribute = attribute
+
+    def _texts(self) -> dict:
+        return {name: text for name, cls in EFFECTS.items() if (text := getattr(cls, self.attribute, ""))}
+
+    def __getitem__(self, name):
+        return self._texts()[name]
+
+    def __iter__(self):
+        return iter(self._texts())
+
+    def __len__(self):
+        return len(self._texts())
 
 
 def register(cls=None, *, replace: bool = False):
@@ -245,6 +267,15 @@ class Effect:
     #: Effects that hold this one as a special case (a delay common to the axes is an eddy-current matrix ``d I``):
     #: with one of them in the model on the same sensor this one adds nothing, and the diagnosis does not propose it.
     nested_in: ClassVar[tuple] = ()
+    #: How the term shows in the total-field residual, one line (the scalar diagnosis's evidence column).
+    signature: ClassVar[str] = ""
+    #: How it shows in a vector calibration's world residuals (:mod:`magcal.diagnosis.vector`).
+    vector_signature: ClassVar[str] = ""
+    #: What a record-only term (``transferable`` False) asks of the next recording, in words.
+    when_recording: ClassVar[str] = ""
+    #: The channel a vector calibration's residuals are plotted against when judging the term: ``current`` (the
+    #: current or throttle column), ``temperature_C``, ``turn_rate_dps`` or ``time_s``.
+    evidence_channel: ClassVar[str] = "time_s"
 
     sensor: int | None = None
 
