@@ -38,6 +38,7 @@ from magcal.checks.reference import (
     vector_reference_from_args,
 )
 from magcal.cli.commands import HELP
+from magcal.cli.fit_report import report_fit
 from magcal.cli.gravity_mode import add_gravity_arguments, run_gravity
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
@@ -369,29 +370,8 @@ def run_vector(args, ds, vref, notes) -> int:
         except CalibrationError as exc:
             notes.append(f"held-out validation not done: {exc}")
     compasses = compass_report(ds, vref, result, notes)  # several compasses on one vehicle (issue 40, item 5)
-    for note in dict.fromkeys(notes):
-        print(f"magcal calibrate: warning: {note}", file=sys.stderr)
-    if args.output:
-        result.calibration.save(args.output)
-    if args.json:
-        doc = result.to_dict()
-        doc["calibration"] = result.calibration.to_dict()
-        if validation is not None:
-            doc["validation"] = validation.to_dict()
-        if compasses is not None:
-            doc["compass_consistency"] = compasses.to_dict()
-        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
-        json.dump(doc, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        sys.stdout.write(result.text())
-        if validation is not None:
-            sys.stdout.write(validation.text())
-        if compasses is not None:
-            sys.stdout.write(compasses.text())
-        if args.output:
-            print(f"\nsaved the calibration to {args.output}")
-    return 0
+    sections = {"compass_consistency": compasses} if compasses is not None else {}
+    return report_fit(args, result, validation, notes, sections)
 
 
 def compass_report(ds, vref=None, fit=None, notes=None, args=None):

@@ -14,15 +14,14 @@ Example::
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 
 import numpy as np
 
 from magcal.checks.reference import vector_reference_from_args
+from magcal.cli.fit_report import report_fit
 from magcal.core.errors import CalibrationError, MagcalError
-from magcal.core.jsonable import jsonable
 from magcal.data.accelerometer import parse_accel_units
 from magcal.fitting.gravity import fit_gravity, validate_gravity
 
@@ -113,22 +112,4 @@ def run_gravity(args, ds, notes) -> int:
             validation = validate_gravity(ds, **options)
         except (CalibrationError, MagcalError) as exc:
             notes.append(f"held-out validation not done: {exc}")
-    for note in dict.fromkeys(notes):
-        print(f"magcal calibrate: warning: {note}", file=sys.stderr)
-    if args.output:
-        result.calibration.save(args.output)
-    if args.json:
-        doc = result.to_dict()
-        doc["calibration"] = result.calibration.to_dict()
-        if validation is not None:
-            doc["validation"] = validation.to_dict()
-        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
-        json.dump(jsonable(doc), sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        sys.stdout.write(result.text())
-        if validation is not None:
-            sys.stdout.write(validation.text())
-        if args.output:
-            print(f"\nsaved the calibration to {args.output}")
-    return 0
+    return report_fit(args, result, validation, notes)

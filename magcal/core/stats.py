@@ -129,3 +129,18 @@ def moving_mean(values, window: int) -> np.ndarray:
     lo = np.clip(i - window // 2, 0, n)
     hi = np.clip(i + (window - 1) // 2 + 1, 0, n)
     return (sums[..., hi] - sums[..., lo]) / (hi - lo)
+
+
+def lag1_correlation(*streams) -> float:
+    """The largest lag-1 correlation, clipped to [0, 0.9999], of residual sequences in record order: each stream an
+    (N,) or (N, k) array, a column one sequence (0 for a sequence too short or constant). A fit's standard deviations
+    are widened by ``sqrt((1 + r) / (1 - r))`` for it: correlated residuals hold fewer independent samples."""
+    best = 0.0
+    for stream in streams:
+        a = np.asarray(stream, dtype=float).reshape(len(stream), -1)
+        a = a - a.mean(axis=0)
+        den = np.sum(a * a, axis=0)
+        ok = den > 0
+        if a.shape[0] > 2 and ok.any():
+            best = max(best, float(np.max(np.sum(a[1:] * a[:-1], axis=0)[ok] / den[ok])))
+    return float(np.clip(best, 0.0, 0.9999))

@@ -51,7 +51,7 @@ from magcal.calibration.accelerometer import AccelerometerCalibration
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note
-from magcal.core.stats import robust_sigma
+from magcal.core.stats import lag1_correlation, robust_sigma
 from magcal.data.accelerometer import (
     MIN_STILL,
     STANDARD_GRAVITY_M_S2,
@@ -69,7 +69,13 @@ from magcal.geometry.heading import (
     tilt_deg,
     tilt_heading_deg,
 )
-from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, firmware_rotation, split_mounting
+from magcal.geometry.orientations import (
+    RIGHT_ANGLES,
+    describe_right_angle,
+    firmware_rotation,
+    mounting_sd_deg,
+    split_mounting,
+)
 from magcal.geometry.sphere import sphere_centre
 
 #: The heading a cave-survey instrument reaches (deg): what the report says is needed for.
@@ -320,29 +326,6 @@ class _Problem:
 
 def _skew(v) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _lag1(values) -> float:
-    """Lag-1 correlation (clipped to [0, 0.9999]) of a residual sequence in record order."""
-    v = np.asarray(values, float) - np.mean(values)
-    den = float(v @ v)
-    if v.size < 3 or den <= 0:
-        return 0.0
-    return float(np.clip((v[1:] @ v[:-1]) / den, 0.0, 0.9999))
-
-
-def _mounting_sd_deg(w, cov_w) -> np.ndarray:
-    """Standard deviations (deg) of the mounting's small rotations about the board's axes, from the covariance of
-    ``W`` (9 x 9, row by row), through the QR split (:func:`split_mounting`) by finite differences."""
-    r0, _ = split_mounting(w)
-    jac = np.empty((3, 9))
-    h = 1e-7 * max(float(np.abs(w).max()), 1e-12)
-    for k in range(9):
-        dw = np.zeros(9)
-        dw[k] = h
-        r1, _ = split_mounting(w + dw.reshape(3, 3))
-        jac[:, k] = Rotation.from_matrix(r1 @ r0.T).as_rotvec() / h
-    return np.degrees(np.sqrt(np.clip(np.diag(jac @ cov_w @ jac.T), 0.0, None)))
 
 
 @dataclass
@@ -674,7 +657,7 @@ def fit_gravity(
             kinv, np.asarray(ba, float).copy(), float(np.sqrt(np.mean(r_a**2))), float(sigma_a), True, af.spread
         )
     z = prob.residuals(x, sigma_a, sigma_f, sigma_d)
-    lag1 = max(_lag1(r) for r in r_d)
+    lag1 = max(lag1_correlation(r) for r in r_d)
     widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(z))))
     cov = None
     try:
@@ -700,7 +683,7 @@ def fit_gravity(
             ) from None
         block = None if cov is None else prob.sensor_covariance(cov, s, x)
         blocks.append(block)
-        mount_sd = None if block is None else _mounting_sd_deg(w, block[:9, :9])
+        mount_sd = None if block is None else mounting_sd_deg(w, block[:9, :9])
         bias_sd = None if block is None else np.sqrt(np.clip(np.diag(block)[9:], 0.0, None))
         head_sd = None
         if cov is not None and pitch_ok.any():

@@ -59,10 +59,17 @@ from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.checks.reference import VectorReference
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs
-from magcal.core.stats import robust_sigma
+from magcal.core.stats import lag1_correlation, robust_sigma
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
-from magcal.geometry.orientations import RIGHT_ANGLES, describe_right_angle, firmware_rotation, nearest_right_angle
+from magcal.geometry.orientations import (
+    RIGHT_ANGLES,
+    describe_right_angle,
+    firmware_rotation,
+    mounting_sd_deg,
+    nearest_right_angle,
+    split_mounting,
+)
 from magcal.model.platform_terms import available_terms
 from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
 
@@ -411,16 +418,15 @@ def _perpendicular_basis(u):
 
 
 def _split_w(W, sensor):
-    """``W = R C^-1``: ``R`` a proper rotation, ``C^-1`` upper triangular with a positive diagonal."""
-    if np.linalg.det(W) <= 0:
+    """``W = R C^-1`` split (:func:`magcal.geometry.orientations.split_mounting`), a mirrored axis refused."""
+    try:
+        return split_mounting(W)
+    except ValueError:
         raise CalibrationError(
             f"sensor {sensor + 1}: the fitted matrix mirrors an axis (its determinant is negative): one axis's sign "
             "is reversed against the others (a left-handed sensor); flip it with --columns (e.g. z=-magZ is not "
             "supported: negate the column) and calibrate again"
-        )
-    q, u = np.linalg.qr(W)
-    d = np.sign(np.diag(u))
-    return q * d[None, :], d[:, None] * u
+        ) from None
 
 
 def _orientation_search(y, b_body):
@@ -465,21 +471,6 @@ def _linear_lstsq(y, b_body, bases, keep):
     a = coef[:9].reshape(3, 3)
     resid = y - np.einsum("njk,k->nj", design, coef)
     return np.linalg.inv(a), coef[9:12], coef[12:], resid
-
-
-def _mounting_sd_deg(W, cov_w):
-    """Standard deviations (deg) of the mounting's small rotations about the body axes, from the covariance of
-    ``W`` (9 x 9, row by row), through the QR split by finite differences."""
-    r0, _ = _split_w(W, 0)
-    g = np.empty((3, 9))
-    h = 1e-7 * max(np.abs(W).max(), 1e-12)
-    for k in range(9):
-        dw = np.zeros(9)
-        dw[k] = h
-        r1, _ = _split_w(W + dw.reshape(3, 3), 0)
-        g[:, k] = Rotation.from_matrix(r1 @ r0.T).as_rotvec() / h
-    cov = g @ cov_w @ g.T
-    return np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
 class _SensorProblem:
@@ -856,11 +847,11 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     try:
         jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
         s2 = float(z @ z) / max(len(z) - len(x), 1)
-        lag1 = _lag1_correlation(total, e)
+        lag1 = lag1_correlation(total, e)
         widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(total))))
         cov = s2 * jtj_inv * widening**2
         bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
-        mount_sd = _mounting_sd_deg(W, cov[:9, :9])
+        mount_sd = mounting_sd_deg(W, cov[:9, :9])
         cov_block = (cov, labels)
     except np.linalg.LinAlgError:
         bias_sd = mount_sd = None
@@ -994,21 +985,6 @@ def _declination_notes(dataset, ned) -> list:
         f"{diff:+.1f} deg off true north, which turns the world components by as much and which no calibration of "
         "the sensor removes; set COMPASS_DEC right (or COMPASS_AUTODEC 1) and record again"
     ]
-
-
-def _lag1_correlation(*streams) -> float:
-    """The largest lag-1 correlation (clipped to [0, 0.9999]) of residual sequences in record order (each stream an
-    (N,) or (N, k) array: a column is one sequence; the body-frame vector residual's components follow a wandering
-    attitude error, the total-field residual the sensor's own noise)."""
-    best = 0.0
-    for stream in streams:
-        a = np.asarray(stream, dtype=float).reshape(len(stream), -1)
-        a = a - a.mean(axis=0)
-        den = np.sum(a * a, axis=0)
-        ok = den > 0
-        if a.shape[0] > 2 and ok.any():
-            best = max(best, float(np.max(np.sum(a[1:] * a[:-1], axis=0)[ok] / den[ok])))
-    return float(np.clip(best, 0.0, 0.9999))
 
 
 def _tilt_range_deg(rotation: Rotation) -> float:

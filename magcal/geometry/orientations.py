@@ -152,3 +152,27 @@ def split_mounting(matrix):
     q, u = np.linalg.qr(w)
     d = np.sign(np.diag(u))
     return q * d[None, :], d[:, None] * u
+
+
+def mounting_sd_deg(matrix, covariance) -> np.ndarray:
+    """Standard deviations (deg) of the mounting's small rotations about the frame's x, y, z axes, from the
+    covariance of ``W = R C^-1`` (9 x 9, row by row), carried through the QR split (:func:`split_mounting`) by
+    finite differences.
+
+    Parameters
+    ----------
+    matrix : array_like, shape (3, 3)
+        ``W``.
+    covariance : array_like, shape (9, 9)
+        Its covariance, row by row.
+    """
+    w = np.asarray(matrix, dtype=float)
+    r0, _ = split_mounting(w)
+    jac = np.empty((3, 9))
+    h = 1e-7 * max(float(np.abs(w).max()), 1e-12)
+    for k in range(9):
+        dw = np.zeros(9)
+        dw[k] = h
+        r1, _ = split_mounting(w + dw.reshape(3, 3))
+        jac[:, k] = Rotation.from_matrix(r1 @ r0.T).as_rotvec() / h
+    return np.degrees(np.sqrt(np.clip(np.diag(jac @ np.asarray(covariance, dtype=float) @ jac.T), 0.0, None)))
