@@ -11,7 +11,7 @@ seconds it took and the first line of what magcal said. Verdicts:
 * ``CRASH``    - any other exception (a traceback): a bug.
 
 The script exits non-zero if any case was silently accepted, crashed, hung or said too much. The last rows are
-issue 41's bombs and bad values; ``benchmarks/README.md`` has the table before and after it.
+issue 41's bombs and bad values; ``benchmarks/notes/bad_inputs.md`` has the table before and after it.
 """
 
 from __future__ import annotations

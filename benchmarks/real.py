@@ -677,7 +677,7 @@ def _f(v, fmt="{:.4g}"):
 
 
 def markdown(records) -> str:
-    """The tables of benchmarks/README.md: one line per recording, one per loop step."""
+    """The tables of benchmarks/notes/real.md: one line per recording, one per loop step."""
     lines = [
         "| recording | N | rate (Hz) | field (uT) | noise (nT, method) | still scatter (nT) | quantization floor "
         "(nT) | independent ellipsoid in / blocks / later | data quality (notable) |",

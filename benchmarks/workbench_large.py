@@ -19,7 +19,8 @@ Steps (each a separate process, as a user would run them):
    connected, counts the bytes the fit's redraw sends;
 6. the server's peak memory (``VmHWM``) at the end.
 
-Prints one table; the figures and the command go to ``benchmarks/README.md`` (section "Workbench: a million rows").
+Prints one table; the figures and the command go to ``benchmarks/notes/workbench_large.md`` (the headline in
+``benchmarks/README.md``).
 """
 
 from __future__ import annotations

@@ -1888,7 +1888,8 @@ PARQUET_CODECS = ("none", "snappy", "zstd", "lz4", "gzip", "brotli")
 
 #: The float columns' codec by default: snappy, Parquet's usual one. Readings and corrected vectors are float64
 #: with noise in their last digits, so it shrinks a corrected survey by only about 11 %; ``"none"`` writes faster
-#: (benchmarks/README.md), ``"zstd"`` smaller. The other columns (text, integers) are always snappy-compressed.
+#: (benchmarks/notes/apply_throughput.md), ``"zstd"`` smaller. The other columns (text, integers) are always
+#: snappy-compressed.
 PARQUET_FLOAT_CODEC = "snappy"
 
 

@@ -73,9 +73,9 @@ BACKEND = None
 #: Readings (sensors x samples) from which a diagnosis's fits run in worker processes when there is more than one
 #: core. Below it the processes' start (the fork server importing numpy, scipy and magcal once per program: about
 #: 1.2 s of one core on the 2-core development machine) costs more than the threads lose. Measured there with two
-#: workers (2026-11-25, a fresh program each, the fork server cold; benchmarks/README.md): 4 x 5e4 samples serial
-#: 3.1 s, threads 3.0 s, processes 3.4 s; 4 x 1e5 serial 5.6 s, threads 5.3-6.3 s, processes 5.2-5.4 s (4.3 s once
-#: the fork server runs); 4 x 2e5 threads 10.2-12.2 s, processes 9.0-9.7 s. (With ``spawn``, which imported
+#: workers (2026-11-25, a fresh program each, the fork server cold; benchmarks/notes/scaling.md): 4 x 5e4 samples
+#: serial 3.1 s, threads 3.0 s, processes 3.4 s; 4 x 1e5 serial 5.6 s, threads 5.3-6.3 s, processes 5.2-5.4 s (4.3 s
+#: once the fork server runs); 4 x 2e5 threads 10.2-12.2 s, processes 9.0-9.7 s. (With ``spawn``, which imported
 #: magcal in every worker of every pool, the crossing lay near 1e6 readings.) More cores only widen the processes'
 #: lead: threads stop paying beyond a few cores, processes do not.
 PROCESS_MIN_READINGS = 400_000
@@ -83,7 +83,7 @@ PROCESS_MIN_READINGS = 400_000
 #: From this many workers on, the fits run in processes from :data:`PROCESS_MIN_READINGS_MANY` readings instead:
 #: threads stop paying beyond about four (the interpreter's lock), while the processes' start is paid once per
 #: program. Measured on a 16-core Intel Xeon (2026-11-26, ``benchmarks/scaling.py --parts diagnosis``, one program
-#: per size; benchmarks/README.md): threads / processes with 4 workers 0.68 / 0.56 s at 4 x 12 500 samples,
+#: per size; benchmarks/notes/scaling.md): threads / processes with 4 workers 0.68 / 0.56 s at 4 x 12 500 samples,
 #: 1.08 / 0.75 s at 4 x 25 000, 1.52 / 1.04 s at 4 x 5e4; with 16, 0.80 / 0.59, 1.14 / 0.68, 1.93 / 0.77 s; with
 #: 2 workers threads still won below 4 x 1e5 (4 x 5e4: 2.15 / 2.75 s).
 MANY_WORKERS = 4

@@ -1213,7 +1213,7 @@ def _confounded(dataset, c) -> str:
     temperature follows time (:data:`magcal.checks.quality.TEMP_TIME_CORR_WARN`) fits a drift as well, and applied
     to new data it carries the record's slope to temperatures the record never had (on a real bench recording
     whose temperature rose with time, r = 0.999, a temperature bias advised on the first half tripled the error on
-    the second; benchmarks/README.md, "Real recordings II")."""
+    the second; benchmarks/notes/real.md, "Real recordings II")."""
     cls = EFFECTS.get(c.effect)
     if cls is None or "temperature" not in getattr(cls, "channels", ()):
         return ""

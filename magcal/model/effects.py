@@ -956,7 +956,7 @@ class BiasStep(CatalogueEffect):
     def kept_raw_level(self, values):
         """The bias *after* the step is kept for new data: the sensor stays permed (issue 28: measured on six real
         recordings, fitted on the first half and applied to the second, the level after the step transfers best;
-        the level before it raised the held-out error up to 4.7x; benchmarks/README.md, "kept level")."""
+        the level before it raised the held-out error up to 4.7x; benchmarks/notes/real.md, "kept level")."""
         return np.asarray(values, dtype=float).reshape(3)
 
     def raw_basis(self, z0, ctx: Context):
