@@ -18,6 +18,8 @@ import itertools
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from magcal.geometry.procrustes import rotation_angle_deg
+
 #: The firmwares' rotation enumeration (ArduPilot ``enum Rotation``, MAVLink ``MAV_SENSOR_ORIENTATION``, PX4's
 #: ``CAL_MAGn_ROT``), the entries that are right angles: number -> (roll, pitch, yaw) in degrees. Numbers that
 #: repeat a matrix (26 = 14, 27 = 10) are listed; :func:`firmware_rotation` returns the first.
@@ -77,12 +79,6 @@ def right_angle_rotations() -> np.ndarray:
 
 
 RIGHT_ANGLES = right_angle_rotations()
-
-
-def rotation_angle_deg(rotation) -> float:
-    """Angle (deg) of a rotation matrix."""
-    cos = (np.trace(np.asarray(rotation, dtype=float)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def nearest_right_angle(rotation):

@@ -56,6 +56,7 @@ from magcal.geometry.orientations import (
     nearest_right_angle,
     rotation_name,
 )
+from magcal.geometry.procrustes import rotation_angle_deg
 from magcal.output.compensation import (
     CURRENT_EFFECT,
     ARDUPILOT_MOT_RANGE_mG,
@@ -170,12 +171,6 @@ class Export:
     dropped: list = field(default_factory=list)
     notes: list = field(default_factory=list)
     current_column: str | None = None
-
-
-def rotation_angle_deg(rotation) -> float:
-    """Angle (deg) of a rotation matrix."""
-    cos = (np.trace(np.asarray(rotation, dtype=float)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def symmetric_factor(cinv):
