@@ -73,7 +73,7 @@ def simulated(inclination, seed, **options) -> dict:
     same = {k: v for k, v in options.items() if k in ("max_tilt_deg",)}  # held out over the tilts calibrated
     later, _, rec = simulate_board(truth=truth, seed=seed + 1000, n_poses=40, **same)
     t0 = time.perf_counter()
-    fit = fit_gravity(ds, warn=False)
+    fit = fit_gravity(ds)
     wall = time.perf_counter() - t0
     sep = separate_calibration(ds, right_angle=fit.sensors[0].right_angle)
     out = {"wall_s": wall}
@@ -173,7 +173,7 @@ def table_real() -> None:
     for name, ds in _real_datasets():
         found = True
         try:
-            fit = fit_gravity(ds, warn=False)
+            fit = fit_gravity(ds)
             val = validate_gravity(ds)
         except (MagcalError, CalibrationError) as exc:
             print(f"| {name} | refused: {str(exc)[:90]} | | | | | |")

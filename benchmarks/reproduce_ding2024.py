@@ -186,7 +186,7 @@ def part2(repeats):
                 t_start = time.perf_counter()
                 cal = search.search_calibrate(
                     ds, "ipso", seed=0, progress=lambda it, best: stamps.append((time.perf_counter(), best))
-                )
+                ).calibration
                 return cal, t_start
 
             t_ipso, (cal, t_start) = _best_time(run_ipso, repeats)

@@ -96,11 +96,11 @@ def bench_refit(n, repeat, seed=1):
         fit_module.fit = engine_fit
 
         from magcal.fitting import pipeline
-        from magcal.fitting.fitter import resolve_reference
+        from magcal.fitting.fitter import fit_reference
 
         def two_step():
             kept = ds.subset(ctrl.kept)
-            ref, kind = resolve_reference(kept)
+            ref, kind = fit_reference(kept)
             fits, inl = pipeline.ellipsoid_step(kept, "algebraic", ref, kind)
             return pipeline.two_step_calibration(kept, fits, pipeline.procrustes_step(kept, fits, inl), kind)
 
@@ -153,11 +153,11 @@ def bench_solvers(n, repeat, seed=3):
     from scipy.optimize import least_squares
 
     from magcal.fitting import pipeline
-    from magcal.fitting.fitter import Problem, _levenberg_marquardt, crude_initial_calibration, resolve_reference
+    from magcal.fitting.fitter import Problem, _levenberg_marquardt, crude_initial_calibration, fit_reference
     from magcal.model.terms import Model
 
     ds = magcal.simulate_timeseries("chi2017", n_samples=n, seed=seed)
-    ref, kind = resolve_reference(ds)
+    ref, kind = fit_reference(ds)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fits, inl = pipeline.ellipsoid_step(ds, "algebraic", ref, kind)

@@ -499,7 +499,7 @@ class Controller:
         # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
         ds = self.fit_dataset()
         # an effect that needs the attitude leaves NaN on samples without one; the fit's own note says so
-        fields, _ = cal.corrected_with_notes(ds, record_terms="apply")
+        fields = cal.correct(ds, record_terms="apply", warn=False)
         return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
 
     def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
@@ -598,7 +598,7 @@ class Controller:
         old, rms0, tb = self._before()
         ds = self.fit_dataset()
         kept_ds = ds.subset(self.kept)
-        ref, kind = fitter.resolve_reference(kept_ds, self.reference_arg)
+        ref, kind = fitter.fit_reference(kept_ds, self.reference_arg)
         fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
         cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
         notes = [w for f in fits for w in f.warnings]
@@ -633,13 +633,14 @@ class Controller:
         old, rms0, tb = self._before()
         init = self.calibration
         ds = self.fit_dataset()
-        result = fitter.fit_with_notes(
+        result = fitter.fit(
             ds,
             self._model(),
             init=init,
             loss="soft_l1" if self.state.robust else "linear",
             mask=self.kept,
             reference_total_nT=self.reference_arg,
+            warn=False,
         )
         notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result

@@ -71,7 +71,7 @@ class GravityModel:
         t0 = time.perf_counter()
         ctrl._report_progress("gravity fit (beside the accelerometer)", None)
         try:
-            result = fit_gravity(ds, mask=kept, robust=bool(ctrl.state.robust), warn=False)
+            result = fit_gravity(ds, mask=kept, robust=bool(ctrl.state.robust))
             try:
                 sep = separate_calibration(ds, right_angle=result.sensors[0].right_angle, mask=kept)
             except (CalibrationError, MagcalError):

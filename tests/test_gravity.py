@@ -162,7 +162,7 @@ def _angle_deg(r):
 )
 def test_gravity_fit_recovers_the_mounting_and_the_heading(mounting, inclination, given):
     ds, truth, _ = simulate_board(seed=4, mounting=mounting, inclination_deg=inclination)
-    fit = fit_gravity(ds, inclination_deg=inclination if given else None, warn=False)
+    fit = fit_gravity(ds, inclination_deg=inclination if given else None)
     s = fit.sensors[0]
     assert np.allclose(s.right_angle, SWAPPED_MOUNTING if mounting is not None else np.eye(3))
     truth_w = truth.mounting @ np.linalg.inv(truth.mag_matrix)
@@ -185,7 +185,7 @@ def test_gravity_fit_recovers_the_mounting_and_the_heading(mounting, inclination
 
 def test_gravity_fit_says_when_the_board_only_tilts():
     ds, _, _ = simulate_board(seed=5, max_tilt_deg=3.0, n_poses=25)
-    fit = fit_gravity(ds, warn=False)
+    fit = fit_gravity(ds)
     assert not fit.sensors[0].determined
     assert any("does not determine the mounting" in w for w in fit.warnings)
 
@@ -194,7 +194,7 @@ def test_gravity_fit_refuses_a_record_without_accelerometer():
     ds, _, _ = simulate_board(seed=1, n_poses=8)
     bare = ds.replace(extra={})
     with pytest.raises(MagcalError, match="no accelerometer columns"):
-        fit_gravity(bare, warn=False)
+        fit_gravity(bare)
 
 
 def test_held_out_check_sees_what_the_separate_calibrations_leave():
@@ -208,7 +208,7 @@ def test_held_out_check_sees_what_the_separate_calibrations_leave():
 
 def test_the_budget_names_what_half_a_degree_needs():
     ds, _, _ = simulate_board(seed=7, n_poses=12, accel_noise_g=0.01)
-    fit = fit_gravity(ds, warn=False)
+    fit = fit_gravity(ds)
     b = fit.budget
     assert b["noise_per_sample_deg"] > 0.5 and b["samples_to_average"] > 1
     assert any("average" in line for line in b["lines"])
@@ -217,7 +217,7 @@ def test_the_budget_names_what_half_a_degree_needs():
 # -- the calibration file ------------------------------------------------------------------------------------------
 def test_gravity_calibration_round_trip(tmp_path):
     ds, _, _ = simulate_board(seed=8, n_poses=20)
-    cal = fit_gravity(ds, warn=False).calibration
+    cal = fit_gravity(ds).calibration
     path = tmp_path / "cal.json"
     cal.save(path)
     back = Calibration.load(path)
@@ -238,7 +238,7 @@ def test_gravity_calibration_round_trip(tmp_path):
 )
 def test_damaged_gravity_calibration_is_refused(tmp_path, change, message):
     ds, _, _ = simulate_board(seed=8, n_poses=20)
-    doc = fit_gravity(ds, warn=False).calibration.to_dict()
+    doc = fit_gravity(ds).calibration.to_dict()
     change(doc)
     with pytest.raises(MagcalError, match=message):
         Calibration.from_dict(json.loads(json.dumps(doc)), source="cal.json")
@@ -301,7 +301,7 @@ def test_an_accelerometer_left_uncalibrated_leaves_the_mounting_undetermined():
     # not fitted and goes into the mounting, where the covariance cannot see it (it claims 0.5 deg of heading; the
     # same board held out over the same tilts is 1.5 deg off, the true calibration 0.5 deg)
     ds, _, _ = simulate_board(seed=5, max_tilt_deg=8.0, n_poses=25)
-    fit = fit_gravity(ds, warn=False)
+    fit = fit_gravity(ds)
     assert max(fit.sensors[0].mounting_sd_deg) < 1.0 and fit.sensors[0].heading_sd_deg < 1.0
     assert not fit.accel.fitted and not fit.sensors[0].determined
     assert any("Its own bias" in w for w in fit.warnings)

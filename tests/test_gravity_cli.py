@@ -97,7 +97,7 @@ def test_export_writes_the_rotation_as_the_firmware_custom_rotation():
     """ArduPilot holds the whole rotation into the accelerometer's frame as its custom rotation (COMPASS_ORIENT 101,
     CUST_ROT1_*); PX4 holds only the right angles: the remainder is refused unless forced."""
     ds, _, _ = simulate_board(seed=11, n_poses=30, mounting=SWAPPED_MOUNTING)
-    cal = fit_gravity(ds, warn=False).calibration
+    cal = fit_gravity(ds).calibration
     result = export_calibration(cal, "ardupilot")
     assert result.dropped == []  # nothing the firmware cannot hold
     p = result.parameters
@@ -115,7 +115,7 @@ def test_export_writes_the_rotation_as_the_firmware_custom_rotation():
 
 def test_export_without_custom_rotation_refuses_the_remainder():
     ds, _, _ = simulate_board(seed=11, n_poses=30, mounting=SWAPPED_MOUNTING)
-    cal = fit_gravity(ds, warn=False).calibration
+    cal = fit_gravity(ds).calibration
     with pytest.raises(Exception, match="cannot be stored"):
         export_calibration(cal, "ardupilot", custom_rotation=False)
     forced = export_calibration(cal, "ardupilot", custom_rotation=False, force=True)

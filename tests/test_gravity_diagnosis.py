@@ -12,13 +12,13 @@ from magcal.fitting.gravity import fit_gravity
 
 def _evidence(**options):
     ds, _, _ = simulate_board(seed=3, **options)
-    return dip_evidence(ds, fit_gravity(ds, warn=False))
+    return dip_evidence(ds, fit_gravity(ds))
 
 
 @pytest.mark.parametrize("seed", [3, 8])
 def test_nothing_hidden_nothing_claimed(seed):
     ds, _, _ = simulate_board(seed=seed)
-    ev = dip_evidence(ds, fit_gravity(ds, warn=False))
+    ev = dip_evidence(ds, fit_gravity(ds))
     assert ev.supported == []
     assert any(s.startswith("temperature: not tested") for s in ev.skipped)
 
@@ -41,7 +41,7 @@ def test_a_timing_offset_between_the_sensors_moves_the_dip_while_turning(delay_s
 def test_without_times_the_timing_is_not_tested():
     ds, _, _ = simulate_board(seed=3, n_poses=15)
     ds = ds.replace(time_s=None)
-    ev = dip_evidence(ds, fit_gravity(ds, warn=False))
+    ev = dip_evidence(ds, fit_gravity(ds))
     assert "timing: not tested (no sample times)" in ev.skipped
     assert "dip residual (sensor 1)" in ev.text()
 

@@ -60,8 +60,8 @@ def test_two_splits_give_identical_data_and_identical_calibrations(two_splits, n
     da = magcal.simulate(a, n_samples=150, noise_nT=noise_nT, noise_kind="uniform", seed=8)
     db = magcal.simulate(b, n_samples=150, noise_nT=noise_nT, noise_kind="uniform", seed=8)
     assert np.allclose(da.readings_nT, db.readings_nT, rtol=0, atol=1e-8)  # nT: identical up to rounding
-    ca = search.search_calibrate(da, "ipso", seed=4, **FAST)
-    cb = search.search_calibrate(db, "ipso", seed=4, **FAST)
+    ca = search.search_calibrate(da, "ipso", seed=4, **FAST).calibration
+    cb = search.search_calibrate(db, "ipso", seed=4, **FAST).calibration
     assert np.allclose(ca.sensors[0].cinv, cb.sensors[0].cinv, rtol=0, atol=1e-9)
     assert np.allclose(ca.sensors[0].bias_nT, cb.sensors[0].bias_nT, rtol=0, atol=1e-5)
     # and what both calibrations report is the same 9 identifiable numbers as both truths
@@ -85,7 +85,9 @@ def test_a_rotated_matrix_gives_the_same_calibration():
         ArrayTruth([rotated], total_nT=51_500.0),
     ]
     cals = [
-        search.search_calibrate(magcal.simulate(t, n_samples=80, noise_nT=0.0, seed=k), "de", seed=1, **FAST)
+        search.search_calibrate(
+            magcal.simulate(t, n_samples=80, noise_nT=0.0, seed=k), "de", seed=1, **FAST
+        ).calibration
         for k, t in enumerate(truths)
     ]
     assert np.allclose(cals[0].sensors[0].cinv, cals[1].sensors[0].cinv, rtol=0, atol=1e-9)

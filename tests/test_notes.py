@@ -121,7 +121,7 @@ def test_a_note_made_on_a_pool_thread_reaches_the_diagnosis(monkeypatch):
     """Every refit of a candidate runs on the diagnosis's pool; each says (here, by a wrapper of the fit) which
     thread it ran on. The notes come back with their fits, so the diagnosis holds every one of them."""
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 2)
-    real = scores.fit_with_notes
+    real = scores.fit
     threads = []
 
     def noting_fit(*args, **kwargs):
@@ -131,7 +131,7 @@ def test_a_note_made_on_a_pool_thread_reaches_the_diagnosis(monkeypatch):
         fitted.notes.append(Note(f"refit on {name}, {len(threads)}", ConvergenceWarning, "test"))
         return fitted
 
-    monkeypatch.setattr(scores, "fit_with_notes", noting_fit)
+    monkeypatch.setattr(scores, "fit", noting_fit)
     truth = chi2017_truth(1)
     drift = magcal.EFFECTS["bias_drift"]
     ds = simulate_timeseries(
@@ -157,14 +157,14 @@ def test_the_command_line_prints_the_notes(tmp_path, records, capsys, monkeypatc
     assert main(["diagnose", str(path), "--no-validate"]) == 0
     assert "magcal diagnose: warning: sensor 1: weak coverage" in capsys.readouterr().err
     # a note that is no data concern (a fit that did not converge) is printed once, from the result's notes
-    real = pipeline.fit_with_notes
+    real = pipeline.fit
 
     def stopped_fit(*args, **kwargs):
         fitted = real(*args, **kwargs)
         fitted.notes.append(Note("the fit did not converge (test)", ConvergenceWarning, "fit"))
         return fitted
 
-    monkeypatch.setattr(pipeline, "fit_with_notes", stopped_fit)
+    monkeypatch.setattr(pipeline, "fit", stopped_fit)
     full = tmp_path / "full.csv"
     io.write_csv(full, records["full"])
     assert main(["calibrate", str(full)]) == 0

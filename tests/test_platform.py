@@ -158,8 +158,12 @@ def test_mislabelled_group_is_reported(truth):
     ds = pf.simulate_level_table(truth, n_per_group=60, noise_nT=SIGMA, seed=14)
     wrong = ds.group.astype("<U8")
     wrong[wrong == "y_up"] = "y_down"
-    with pytest.warns(DataWarning, match="check the group labels"):
-        pf.align(ds.replace(group=wrong), true_calibration(truth))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a step of the engine says it in its result, never as a warning
+        _, res = pf.align(ds.replace(group=wrong), true_calibration(truth))
+    said = [n for n in res.notes if n.is_a(DataWarning)]
+    assert said and all("check the group labels" in n.text for n in said)
+    assert any("check the group labels" in r for r in res.remarks)  # and the report says it too
 
 
 @pytest.mark.parametrize(

@@ -20,7 +20,7 @@ from two_effects import two_hidden
 
 from magcal.core.errors import ConvergenceWarning
 from magcal.diagnosis import _parallel, diagnose
-from magcal.fitting.fitter import fit_with_notes
+from magcal.fitting.fitter import fit
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="shared memory is seen in /dev/shm on Linux")
 
@@ -102,7 +102,7 @@ def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, m
         assert not pool.remote(operator.attrgetter("readings_nT.flags.writeable"))
         limits = pool.remote(_blas_threads)
         heap_kept = pool.remote(_heap_kept)
-        fitted = pool.remote(fit_with_notes, None, None, "linear", None, None, None, 1)
+        fitted = pool.remote(fit, None, None, "linear", None, None, None, 1, None, None, False)
 
     for a, b in zip(shared, (ds.readings_nT, ds.temperature_C, ds.time_s)):
         np.testing.assert_array_equal(a, b)

@@ -193,7 +193,7 @@ def test_objective_matches_eq17_for_a_population():
 
 def test_search_calibrate_returns_a_calibration(small_problem):
     truth, ds, rms_min, u_min, b_min = small_problem
-    cal = search.search_calibrate(ds, "ipso", seed=2, **FAST)
+    cal = search.search_calibrate(ds, "ipso", seed=2, **FAST).calibration
     assert isinstance(cal, magcal.calibration.calibration.Calibration)
     assert cal.reference_total_nT == truth.total_nT and not cal.reference_fitted
     rms = np.sqrt(np.mean((cal.total_field(ds)[0] - truth.total_nT) ** 2))
@@ -203,7 +203,7 @@ def test_search_calibrate_returns_a_calibration(small_problem):
 
 def test_search_calibrate_without_reference_uses_unit_determinant(small_problem):
     truth, ds, *_ = small_problem
-    cal = search.search_calibrate(ds.replace(reference_total_nT=None), "de", seed=0, **FAST)
+    cal = search.search_calibrate(ds.replace(reference_total_nT=None), "de", seed=0, **FAST).calibration
     assert cal.reference_fitted
     assert np.linalg.det(cal.sensors[0].cinv) == pytest.approx(1.0, rel=1e-12)
     m = truth.sensors[0].total_matrix
@@ -218,8 +218,8 @@ def test_mask_leaves_samples_out(small_problem):
     bad = ds.replace(readings_nT=spoiled)
     mask = np.ones(ds.n_samples, bool)
     mask[:10] = False
-    a = search.search_calibrate(bad, "pso", seed=1, mask=mask, **FAST)
-    b = search.search_calibrate(ds.subset(mask), "pso", seed=1, **FAST)
+    a = search.search_calibrate(bad, "pso", seed=1, mask=mask, **FAST).calibration
+    b = search.search_calibrate(ds.subset(mask), "pso", seed=1, **FAST).calibration
     assert np.array_equal(a.sensors[0].cinv, b.sensors[0].cinv)
     assert np.array_equal(a.sensors[0].bias_nT, b.sensors[0].bias_nT)
 
@@ -227,7 +227,9 @@ def test_mask_leaves_samples_out(small_problem):
 def test_per_sample_reference_column_is_used(small_problem):
     truth, ds, *_ = small_problem
     ref = np.full(ds.n_samples, truth.total_nT)
-    cal = search.search_calibrate(ds.replace(ref_total_nT=ref, reference_total_nT=None), "ipso", seed=0, **FAST)
+    cal = search.search_calibrate(
+        ds.replace(ref_total_nT=ref, reference_total_nT=None), "ipso", seed=0, **FAST
+    ).calibration
     assert cal.reference_total_nT is None and not cal.reference_fitted
     rms = np.sqrt(np.mean((cal.total_field(ds)[0] - ref) ** 2))
     assert rms < 1.0
@@ -246,7 +248,7 @@ def test_rotation_about_one_axis_is_refused():
 def test_array_sensors_are_searched_then_aligned():
     truth = magcal.data.simulation.chi2017_truth()
     ds = magcal.simulate(truth, n_samples=120, seed=4)
-    cal = search.search_calibrate(ds, "ipso", seed=0, **FAST)
+    cal = search.search_calibrate(ds, "ipso", seed=0, **FAST).calibration
     for fitted, s in zip(cal.sensors, truth.sensors):
         angle = np.degrees(np.arccos(np.clip(0.5 * (np.trace(fitted.R @ s.R.T) - 1), -1, 1)))
         assert angle < 0.05
@@ -282,7 +284,7 @@ def test_single_sensor_file_from_another_simulator(tmp_path, method):
     m, offset = _write_independent_file(path, seed=21, n=150, noise_nT=1.5, total_nT=47_000.0)
     ds = read_csv(path)
     assert ds.n_sensors == 1 and ds.reference_total_nT == 47_000.0
-    cal = search.search_calibrate(ds, method, seed=0, **FAST)
+    cal = search.search_calibrate(ds, method, seed=0, **FAST).calibration
     cinv0 = conventions.cinv_from_quadric(np.linalg.inv(m @ m.T))
     rms_min, *_ = _least_squares_minimum(ds.readings_nT[0], 47_000.0, cinv0, offset)
     rms = float(np.sqrt(np.mean((cal.total_field(ds)[0] - 47_000.0) ** 2)))

@@ -200,7 +200,7 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
     n = ctrl.dataset.n_samples
     entered, release = threading.Event(), threading.Event()
     fitted_masks = []
-    original = fit_module.fit_with_notes  # the controller's refine step calls it
+    original = fit_module.fit  # the controller's refine step calls it
 
     def slow_fit(*args, **kwargs):
         fitted_masks.append(np.array(kwargs["mask"], bool))
@@ -209,7 +209,7 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
             assert release.wait(WAIT_S)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(fit_module, "fit_with_notes", slow_fit)
+    monkeypatch.setattr(fit_module, "fit", slow_fit)
     rows = len(ctrl.state.history)
     wb.handle(wb.steps.do_refine, None)
     assert entered.wait(WAIT_S)

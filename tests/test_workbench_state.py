@@ -701,9 +701,9 @@ def test_a_fit_that_does_not_converge_says_so(bench, monkeypatch):
     import importlib
 
     fitter = importlib.import_module("magcal.fitting.fitter")
-    real = fitter.fit_with_notes
+    real = fitter.fit
     # the pipeline's maximum-likelihood step calls the fitter by the name it imported
-    monkeypatch.setattr("magcal.fitting.pipeline.fit_with_notes", lambda *a, **kw: real(*a, **{**kw, "max_nfev": 2}))
+    monkeypatch.setattr("magcal.fitting.pipeline.fit", lambda *a, **kw: real(*a, **{**kw, "max_nfev": 2}))
     wb = bench()
     _click(wb, wb.panels.btn_run)
     status = wb.panels.status.content

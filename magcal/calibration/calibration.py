@@ -66,7 +66,7 @@ MAX_CALIBRATION_BYTES = 64 << 20
 #: (:attr:`magcal.model.terms.Effect.transferable` is the authority).
 RECORD_ONLY_FALLBACK = frozenset({"bias_drift", "bias_step", "reference_drift", "site_gradient"})
 
-#: The ``where`` of :meth:`Calibration.corrected_with_notes`'s note on samples an effect cannot correct for want of
+#: The ``where`` of :meth:`Calibration.correction_notes`'s note on samples an effect cannot correct for want of
 #: an attitude (``magcal apply`` counts those rows over the whole survey instead, :class:`magcal.output.apply.AttitudeGaps`).
 ATTITUDE_GAP_NOTE = "correct: no attitude"
 
@@ -450,7 +450,7 @@ class Calibration:
         one = isinstance(data, np.ndarray | list | tuple) and np.ndim(data) == 2
         return as_dataset(data, t=t, temp=temp), one
 
-    def correct(self, data, record_terms=None, *, t=None, temp=None) -> np.ndarray:
+    def correct(self, data, record_terms=None, *, t=None, temp=None, warn=True) -> np.ndarray:
         """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame.
 
         Parameters
@@ -466,6 +466,10 @@ class Calibration:
             Sample times in s, for array input (time-dependent effects need them).
         temp : array_like, shape (N,) or float, optional
             Temperature in degC, for array input (temperature effects need it).
+        warn : bool
+            Raise what the correction has to say (:meth:`correction_notes`: record-only terms dropped, samples an
+            effect cannot correct) as Python warnings, the default (``Calibration`` is a public name); the
+            engine's steps pass False and ask :meth:`correction_notes` when they hand the notes on.
 
         Examples
         --------
@@ -476,22 +480,28 @@ class Calibration:
         (200, 3)
         """
         dataset, one = self._as_dataset(data, t, temp)
-        vectors, notes = self.corrected_with_notes(dataset, record_terms)
-        _notes.warn(notes)
-        return vectors[0] if one else vectors
-
-    def corrected_with_notes(self, dataset, record_terms=None):
-        """``(vectors, notes)``: :meth:`correct`'s vectors (n_sensors, N, 3), nT, and its note (record-only terms
-        dropped or applied unproven: :class:`~magcal.core.notes.Note`, RecordTermWarning) in a list, not raised:
-        for the engine's steps, which pass notes back as values."""
         self.check(dataset)
         model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        if warn:
+            _notes.warn(notes + self._gap_notes(model, dataset))
         dataset = self._without_platform(dataset)
         vectors = corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        return vectors[0] if one else vectors
+
+    def correction_notes(self, dataset, record_terms=None) -> list:
+        """What :meth:`correct` has to say of ``dataset`` (:class:`~magcal.core.notes.Note` list, never raised): the
+        record-only terms dropped or applied unproven (RecordTermWarning), and the samples an effect that needs
+        each sample's attitude cannot correct (DataWarning, ``where`` :data:`ATTITUDE_GAP_NOTE`)."""
+        model, _, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        return notes + self._gap_notes(model, dataset)
+
+    @staticmethod
+    def _gap_notes(model, dataset) -> list:
+        """The note on the samples of ``dataset`` that ``model``'s effects needing an attitude cannot correct."""
         missing = None if model is None else rows_without_attitude(model, dataset)
         if missing is not None and missing.any():  # the term has no value there: NaN, said once
             labels = ", ".join(attitude_effects(model))
-            notes = notes + [
+            return [
                 Note(
                     f"{int(missing.sum())} of {missing.size} samples have no attitude ({row_runs(missing)}): {labels} "
                     "cannot be applied to them and their corrected vectors are NaN; drop the term "
@@ -500,7 +510,7 @@ class Calibration:
                     ATTITUDE_GAP_NOTE,
                 )
             ]
-        return vectors, notes
+        return []
 
     def attitude_terms(self, record_terms=None, dataset=None) -> list[str]:
         """Labels of the effects acting under ``record_terms`` (:meth:`record_decision` on ``dataset``) that need
@@ -643,7 +653,7 @@ class Calibration:
             raise MagcalError(
                 f"the data {dataset.source or ''} have no accelerometer columns (ax, ay, az): a heading needs them"
             )
-        vectors = self.corrected_with_notes(dataset, record_terms)[0] if corrected is None else corrected
+        vectors = self.correct(dataset, record_terms, warn=False) if corrected is None else corrected
         f = self.accelerometer.correct(accel.m_s2)
         return {
             "heading_deg": np.stack([tilt_heading_deg(f, v) for v in vectors]),

@@ -15,19 +15,18 @@ and a rotation about one axis (readings on one circle) does not determine a full
   level, in nT; ``K_full`` is the same figure for the same number of samples spread evenly over the sphere.
 
 :func:`check_coverage` refuses (``DatasetError``) a rotation about one axis or no rotation for a full model, and
-warns (:class:`~magcal.core.errors.CoverageWarning`) when the expected extrapolation error is more than
+notes (a :class:`~magcal.core.errors.CoverageWarning` note in its result) when the expected extrapolation error is more than
 ``factor_warn`` times the full-coverage value or the covered fraction is small.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magcal.checks.reference import resolve_reference_with_notes
-from magcal.core import notes as _notes
+from magcal.checks.reference import resolve_reference
 from magcal.core.errors import CoverageWarning
 from magcal.core.notes import Note
 from magcal.data.dataset import Dataset, DatasetError
@@ -42,7 +41,8 @@ UNEVEN_FACTOR_WARN = 0.5
 
 @dataclass
 class Coverage:
-    """Coverage figures per sensor (arrays of length n_sensors)."""
+    """Coverage figures per sensor (arrays of length n_sensors), and what :func:`check_coverage` says of them
+    (``notes``: a :class:`~magcal.core.notes.Note` list, empty from :func:`coverage`)."""
 
     fraction: np.ndarray
     largest_gap_deg: np.ndarray
@@ -52,6 +52,7 @@ class Coverage:
     cap_deg: float
     n_samples: int
     noise_nT: float | None = None
+    notes: list = field(default_factory=list, compare=False)
 
     @property
     def extrapolation_nT(self):
@@ -141,28 +142,7 @@ def check_coverage(
     planarity_min=0.02,
     source=None,
 ):
-    """Coverage figures, refusing data that cannot determine a full model and warning when coverage is poor.
-
-    :func:`check_coverage_with_notes`, its note raised as a :class:`~magcal.core.errors.CoverageWarning`.
-    """
-    cov, notes = check_coverage_with_notes(
-        data, full_model, cap_deg, noise_nT, factor_warn, fraction_warn, planarity_min, source
-    )
-    _notes.warn(notes)
-    return cov
-
-
-def check_coverage_with_notes(
-    data,
-    full_model=True,
-    cap_deg=30.0,
-    noise_nT=None,
-    factor_warn=3.0,
-    fraction_warn=0.5,
-    planarity_min=0.02,
-    source=None,
-):
-    """Coverage figures, refusing data that cannot determine a full model; a note when coverage is poor.
+    """Coverage figures, refusing data that cannot determine a full model; a note in them when coverage is poor.
 
     Parameters
     ----------
@@ -178,9 +158,9 @@ def check_coverage_with_notes(
 
     Returns
     -------
-    cov : Coverage
-    notes : list of Note
-        A :class:`~magcal.core.errors.CoverageWarning` note when the coverage is poor, else empty.
+    Coverage
+        Its ``notes``: a :class:`~magcal.core.errors.CoverageWarning` note when the coverage is poor, else empty
+        (never raised here: the public functions and the command line say it).
 
     Raises
     ------
@@ -231,8 +211,8 @@ def check_coverage_with_notes(
             f"{100 * cov.fraction[worst]:.0f}% of the sphere within {cap_deg:g} deg of a sample, largest gap "
             f"{cov.largest_gap_deg[worst]:.0f} deg; {err}. Record attitudes that fill the gaps"
         )
-        return cov, [Note(text, CoverageWarning, "coverage")]
-    return cov, []
+        cov.notes = [Note(text, CoverageWarning, "coverage")]
+    return cov
 
 
 def calibration_input_checks(dataset, reference_nT=None):
@@ -244,9 +224,9 @@ def calibration_input_checks(dataset, reference_nT=None):
 
     notes = []
     if reference_nT is not None:
-        notes += resolve_reference_with_notes(dataset, str(reference_nT)).notes
+        notes += resolve_reference(dataset, str(reference_nT)).notes
     if dataset.n_samples >= FULL_MODEL_PARAMS + 1:
-        notes += check_coverage_with_notes(dataset, full_model=False)[1]
+        notes += check_coverage(dataset, full_model=False).notes
     return [note.text for note in notes]
 
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.core.notes import Note
 from magcal.data.dataset import Dataset
@@ -53,8 +52,7 @@ class Reference:
         ``number``, ``igrf``, ``column``, ``metadata`` or ``fitted``.
     notes : list of Note
         What the checks found (:mod:`magcal.core.notes`): a value outside the Earth's range, readings far from it.
-        :func:`resolve_reference` raises them as :class:`~magcal.core.errors.DataWarning`;
-        :func:`resolve_reference_with_notes` leaves them here.
+        :func:`resolve_reference` leaves them here; the public functions and the command line say them.
     """
 
     value_nT: float | np.ndarray | None
@@ -228,18 +226,8 @@ def _check_plausible(value, what) -> list:
 
 
 def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
-    """The reference total field and a sentence saying where it came from: the one place that decides it.
-
-    :func:`resolve_reference_with_notes`, its checks' notes raised as :class:`~magcal.core.errors.DataWarning`.
-    """
-    ref = resolve_reference_with_notes(dataset, reference, lat, lon, alt_km, date, check)
-    _notes.warn(ref.notes)
-    return ref
-
-
-def resolve_reference_with_notes(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
-    """The reference total field and a sentence saying where it came from; what the checks found is in its
-    ``notes``, never raised.
+    """The reference total field and a sentence saying where it came from: the one place that decides it. What the
+    checks found is in its ``notes`` (:class:`~magcal.core.errors.DataWarning` notes), never raised here.
 
     Parameters
     ----------
@@ -390,9 +378,9 @@ def add_reference_arguments(parser) -> None:
 
 
 def reference_from_args(args, dataset=None) -> Reference:
-    """:func:`resolve_reference_with_notes` from the options of :func:`add_reference_arguments` (the command line
+    """:func:`resolve_reference` from the options of :func:`add_reference_arguments` (the command line
     prints its ``notes``)."""
-    return resolve_reference_with_notes(
+    return resolve_reference(
         dataset, reference=args.reference, lat=args.lat, lon=args.lon, alt_km=args.alt_km, date=args.date
     )
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import sys
-import warnings
 
 from magcal.checks.reference import add_reference_arguments, reference_from_args
 from magcal.cli.calibrate import add_input_arguments, named_error, read_input
@@ -61,24 +60,22 @@ def run(args) -> int:
     if args.noise is not None and not args.noise > 0:
         raise MagcalError(f"--noise must be a positive number of nT, got {args.noise}")
     ds, notes = read_input(args)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        calibration = None
-        ref_value, ref_text = None, None
-        if args.cal:
-            check_calibration_effects(args.cal)  # a user's effect in the file needs --effects-file
-            calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
-        else:
-            ref = reference_from_args(args, ds)
-            notes += [note.text for note in ref.notes]
-            ref_text = ref.text
-            ds = ref.apply(ds)
-            ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None
-        try:
-            new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value, source=args.data)
-        except CalibrationError as exc:
-            raise MagcalError(named_error(args.data, exc)) from None
-    notes += [str(w.message) for w in caught]
+    calibration = None
+    ref_value, ref_text = None, None
+    if args.cal:
+        check_calibration_effects(args.cal)  # a user's effect in the file needs --effects-file
+        calibration = load_calibration(args.cal, n_sensors=ds.n_sensors)
+    else:
+        ref = reference_from_args(args, ds)
+        notes += [note.text for note in ref.notes]
+        ref_text = ref.text
+        ds = ref.apply(ds)
+        ref_value = ref.value_nT if ref.known and not hasattr(ref.value_nT, "__len__") else None
+    try:
+        new, result = align(ds, calibration, noise_nT=args.noise, reference_total_nT=ref_value, source=args.data)
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    notes += [note.text for note in result.notes]
     for note in dict.fromkeys(notes):
         print(f"magcal align: warning: {note}", file=sys.stderr)
     if args.output:

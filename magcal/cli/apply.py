@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import sys
-import warnings
 
 from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
@@ -143,41 +142,39 @@ def run(args) -> int:
     check_output_path(args.output, "-o", directory=parallel)
     check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        if parallel:
-            summary = apply_partitioned(
-                calibration,
-                args.data,
-                args.output,
-                fmt=args.format,
-                workers=args.workers or 2,
-                scheduler=args.scheduler,
-                partition_rows=args.partition_rows,
-                columns=args.columns,
-                units=args.units,
-                drop_bad=args.drop_bad,
-                record_terms=args.record_terms,
-                progress=False if args.no_progress else None,
-                uncertainty=args.uncertainty,
-                compression=args.compression,
-            )
-        else:
-            summary = apply_file(
-                calibration,
-                args.data[0],
-                args.output,
-                columns=args.columns,
-                units=args.units,
-                drop_bad=args.drop_bad,
-                chunk_rows=args.chunk_rows,
-                progress=False if args.no_progress else None,
-                calibration_name=args.calibration,
-                record_terms=args.record_terms,
-                uncertainty=args.uncertainty,
-                compression=args.compression,
-            )
-    for note in dict.fromkeys(str(w.message) for w in caught):
+    if parallel:
+        summary = apply_partitioned(
+            calibration,
+            args.data,
+            args.output,
+            fmt=args.format,
+            workers=args.workers or 2,
+            scheduler=args.scheduler,
+            partition_rows=args.partition_rows,
+            columns=args.columns,
+            units=args.units,
+            drop_bad=args.drop_bad,
+            record_terms=args.record_terms,
+            progress=False if args.no_progress else None,
+            uncertainty=args.uncertainty,
+            compression=args.compression,
+        )
+    else:
+        summary = apply_file(
+            calibration,
+            args.data[0],
+            args.output,
+            columns=args.columns,
+            units=args.units,
+            drop_bad=args.drop_bad,
+            chunk_rows=args.chunk_rows,
+            progress=False if args.no_progress else None,
+            calibration_name=args.calibration,
+            record_terms=args.record_terms,
+            uncertainty=args.uncertainty,
+            compression=args.compression,
+        )
+    for note in dict.fromkeys(note.text for note in summary.notes):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())
     return 0

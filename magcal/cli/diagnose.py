@@ -269,7 +269,7 @@ def _dip_evidence(args, ds, notes):
     (:func:`magcal.diagnosis.gravity.dip_evidence`), beside the total-field diagnosis; None (with a note) when the
     gravity fit cannot be made."""
     try:
-        fit = fit_gravity(ds, warn=False, robust=bool(getattr(args, "robust", False)))
+        fit = fit_gravity(ds, robust=bool(getattr(args, "robust", False)))
         return dip_evidence(ds, fit)
     except (CalibrationError, MagcalError) as exc:
         notes.append(f"the dip's evidence (the gravity fit) not given: {exc}")

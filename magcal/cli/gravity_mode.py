@@ -102,7 +102,7 @@ def run_gravity(args, ds, notes) -> int:
         file=sys.stderr,
     )
     try:
-        result = fit_gravity(ds, inclination_source=source, warn=False, **options)
+        result = fit_gravity(ds, inclination_source=source, **options)
     except CalibrationError as exc:
         raise MagcalError(f"{args.data}: {exc}") from None
     result.calibration.fitted_on(ds)

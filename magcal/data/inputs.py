@@ -4,10 +4,12 @@
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 
 from magcal.data.dataset import Dataset, DatasetError
-from magcal.data.io import read_csv
+from magcal.data.io import CsvSource, check_units, columns_block, shown, text_cells
 
 
 def _is_dataframe(data) -> bool:
@@ -87,8 +89,11 @@ def _check_times(time_s) -> None:
 
 
 def _from_dataframe(frame) -> Dataset:
-    """Read a DataFrame whose columns are those of the data CSV (``s1x`` ..., ``x,y,z``, ``t``, ``temp`` ...)."""
-    import io as _io
+    """Read a DataFrame whose columns are those of the data CSV (``s1x`` ..., ``x,y,z``, ``t``, ``temp`` ...): its
+    ``attrs`` and column names go to the CSV reader as a head with no rows (the layout, units and metadata checks
+    are the file's, with the same messages), its columns straight to the reader's dataset builder
+    (:func:`magcal.data.io.columns_block`); a message names the frame's row by its index label and the column."""
+    import io as _stdio
 
     if frame.shape[0] == 0:
         raise DatasetError("DataFrame: it has no rows; one row per sample is needed")
@@ -104,29 +109,34 @@ def _from_dataframe(frame) -> Dataset:
     labels = frame.index
     if any(name is not None for name in frame.index.names):
         frame = frame.reset_index()  # a named index (e.g. "t") is a column like the others
-    frame = frame.rename(columns=str)
-    text = "".join(lines) + frame.to_csv(index=False, lineterminator="\n")
-    try:
-        return read_csv(_io.StringIO(text), name="DataFrame")
-    except DatasetError as exc:
-        raise DatasetError(_frame_message(str(exc), labels, first_line=len(lines) + 2)) from None
+    names = [str(c) for c in frame.columns]
+    header = _stdio.StringIO()
+    csv.writer(header, lineterminator="\n").writerow(names)
+    src = CsvSource(_stdio.StringIO("".join(lines) + header.getvalue()), name="DataFrame")
+    src._row_label = lambda number: f"row {labels[number - 1]!r}"
+    src._sort_what = "rows"
 
+    def numeric(j, name):
+        cells = frame.iloc[:, j]
+        try:
+            return np.asarray(cells, dtype=float)
+        except (TypeError, ValueError):
+            for k, cell in enumerate(cells):
+                try:
+                    float(cell)
+                except (TypeError, ValueError):
+                    raise DatasetError(
+                        f"DataFrame: {src._where(k + 1)}, column {name}: {shown(str(cell))} is not a number; "
+                        "readings, time and channels must be numeric"
+                    ) from None
+            raise
 
-def _frame_message(message: str, index, first_line: int) -> str:
-    """A reader's message about the CSV text of a DataFrame, with its line numbers turned into the frame's rows."""
-    import re
+    def text(j, name):
+        return text_cells(frame.iloc[:, j].astype(str).tolist(), "DataFrame", name, lambda k: src._where(k + 1))
 
-    def row(match):
-        k = int(match.group(1)) - first_line
-        if not 0 <= k < len(index):
-            return match.group(0)  # the header or a metadata line
-        return f"row {index[k]!r}"
-
-    message, n = re.subn(r"\bline\s(\d+)", row, message)
-    message = message.replace("drop them with --drop-bad (drop_bad=True)", "drop them with frame.dropna()")
-    if n:
-        message = message.replace(" row(s) in this block", " row(s)").replace("Sort the file", "Sort the rows")
-    return message
+    ds = columns_block(src, numeric, text, np.arange(1, frame.shape[0] + 1), block="")
+    check_units(ds, src.units, src.source, stacklevel=4, lsb_nT=src.lsb_nT)  # as read_csv: said at the user's call
+    return ds
 
 
 def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:

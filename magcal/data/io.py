@@ -29,6 +29,7 @@ import re
 import secrets
 import stat
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -643,6 +644,17 @@ class CsvSource:
 
     #: What the numbers given to :meth:`_dataset` count in its messages: the file's lines (a Parquet file: rows).
     _row_word = "line"
+    #: How a message names row number ``n`` (1-based) when not ``"{_row_word} {n}"``: a DataFrame's index label.
+    _row_label: Callable[[int], str] | None = None
+    #: What a message tells the user to sort (a DataFrame's rows rather than the file).
+    _sort_what = "file"
+
+    def _where(self, number, word=None) -> str:
+        """The message's name of the row numbered ``number``: ``line 12`` (CSV), ``row 12`` (Parquet), or the
+        label :attr:`_row_label` gives (a DataFrame's index)."""
+        if self._row_label is not None:
+            return self._row_label(int(number))
+        return f"{word or self._row_word} {number}"
 
     def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None, notes=None):
         self._notes = notes
@@ -1046,11 +1058,11 @@ class CsvSource:
             partial = np.isnan(q).any(axis=1) & ~np.isnan(q).all(axis=1)  # the readers refuse these; data in code
             if partial.any():
                 k = int(np.argmax(partial))
-                raise DatasetError(f"{self.source}: {self._row_word} {numbers[k]}, {_partial_quaternion(q[k])}")
+                raise DatasetError(f"{self.source}: {self._where(numbers[k])}, {_partial_quaternion(q[k])}")
             zero = norm < 1e-12
             if zero.any():
                 raise DatasetError(
-                    f"{self.source}: {self._row_word} {numbers[np.argmax(zero)]}: the attitude quaternion qw,qx,qy,qz "
+                    f"{self.source}: {self._where(numbers[np.argmax(zero)])}: the attitude quaternion qw,qx,qy,qz "
                     "is zero; give a unit quaternion (array frame to world frame), or leave all four cells empty "
                     "for a sample without attitude"
                 )
@@ -1059,7 +1071,7 @@ class CsvSource:
                 worst = int(np.nanargmax(error))
                 _say(
                     self._notes,
-                    f"{self.source}: attitude quaternions are not unit length ({self._row_word} {numbers[worst]}: "
+                    f"{self.source}: attitude quaternions are not unit length ({self._where(numbers[worst])}: "
                     f"|q| = {norm[worst]:.4g}); they are normalised",
                     stacklevel=4,
                 )
@@ -1110,9 +1122,10 @@ class CsvSource:
             p = k - offset
             kind = "repeats" if t[k] == prev_t[p] else "goes back from"
             raise DatasetError(
-                f"{self.source}: line {numbers[k]}, column t: time {t[k]:.9g} s {kind} {prev_t[p]:.9g} s on line "
-                f"{prev_lines[p]}; time stamps must increase strictly ({bad.size} such row(s) in this block). Sort the "
-                "file by time, remove duplicated rows, or rename the t column if it is not a time stamp"
+                f"{self.source}: {self._where(numbers[k], 'line')}, column t: time {t[k]:.9g} s {kind} "
+                f"{prev_t[p]:.9g} s on {self._where(prev_lines[p], 'line')}; time stamps must increase strictly "
+                f"({bad.size} such row(s) in this block). Sort the {self._sort_what} by time, remove duplicated rows, "
+                "or rename the t column if it is not a time stamp"
             )
         self._last_time = float(t[-1])
         self._last_time_line = int(numbers[-1])
@@ -1802,42 +1815,68 @@ class ParquetSource:
     def chunks(self, chunk_rows=200_000, row_groups=None, first_row=1):
         """Datasets of at most ``chunk_rows`` samples (readings in nT), of every row group or of ``row_groups``
         (whose first row is the file's row ``first_row``, 1-based, for messages)."""
-        layout = self.layout
-        quaternion = layout.quaternion_positions
         row = int(first_row) - 1
         for batch in self._batches(int(chunk_rows), row_groups):
             n = batch.num_rows
-            values = np.empty((n, len(layout.numeric)))
-            for m, (j, name) in enumerate(layout.numeric):
+
+            def numeric(j, name, batch=batch):
                 try:
                     # a null cell (a float column's missing value) reads as NaN
-                    col = np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
+                    return np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
                 except (TypeError, ValueError):
                     raise DatasetError(
                         f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
                         "readings, time and channels must be numeric"
                     ) from None
-                values[:, m] = col
-            bad = bad_numeric_cells(values, quaternion)  # NaN in all four quaternion cells: no attitude, kept
-            if bad.any():
-                k, m = (int(i) for i in np.argwhere(bad)[0])
-                partial = _partial_quaternion(values[k, quaternion]) if m in quaternion else None
-                if partial is not None and np.isnan(values[k, m]):
-                    what = partial
-                else:
-                    what = f"column {layout.numeric[m][1]}: {float(values[k, m])!r} is {BAD_VALUE_TEXT}"
-                raise DatasetError(
-                    f"{self.source}: row {row + k + 1}, {what} ({int(bad[:, m].sum())} such row(s) in this "
-                    "block); fix or delete these rows"
-                )
-            text = {}
-            for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
-                text[j] = _arrow_text(
-                    batch.column(j), self.source, self.header[j], lambda k, first=row: f"row {first + k + 1}"
-                )
+
+            def text(j, name, batch=batch, first=row):
+                return _arrow_text(batch.column(j), self.source, name, lambda k: f"row {first + k + 1}")
+
             numbers = np.arange(row + 1, row + n + 1)
             row += n
-            yield self._csv._dataset(values, text, numbers)
+            yield columns_block(self._csv, numeric, text, numbers)
+
+
+def columns_block(src: CsvSource, numeric, text, numbers, block=" in this block") -> Dataset:
+    """A dataset from a table's columns, through the CSV reader's layout, checks and messages: a Parquet file's
+    record batch (:class:`ParquetSource`) or a DataFrame (:func:`magcal.data.inputs.as_dataset`).
+
+    Parameters
+    ----------
+    src : CsvSource
+        The reader of the table's head (its metadata and column names as a CSV head with no rows): its layout,
+        units and metadata.
+    numeric : callable
+        ``numeric(j, name)``: the ``j``-th column (named ``name``) as floats, NaN for a missing cell; raises the
+        table's own message for a column that is not numbers.
+    text : callable
+        ``text(j, name)``: the ``j``-th column as text (:func:`text_cells`).
+    numbers : numpy.ndarray of int
+        The rows' numbers (1-based) for messages (:meth:`CsvSource._where` names them).
+    block : str
+        How the message counts the bad rows' scope (``" in this block"``; ``""`` for a whole table).
+    """
+    layout = src.layout
+    quaternion = layout.quaternion_positions
+    values = np.empty((len(numbers), len(layout.numeric)))
+    for m, (j, name) in enumerate(layout.numeric):
+        values[:, m] = numeric(j, name)
+    bad = bad_numeric_cells(values, quaternion)  # NaN in all four quaternion cells: no attitude, kept
+    if bad.any():
+        k, m = (int(i) for i in np.argwhere(bad)[0])
+        partial = _partial_quaternion(values[k, quaternion]) if m in quaternion else None
+        if partial is not None and np.isnan(values[k, m]):
+            what = partial
+        else:
+            what = f"column {layout.numeric[m][1]}: {float(values[k, m])!r} is {BAD_VALUE_TEXT}"
+        raise DatasetError(
+            f"{src.source}: {src._where(numbers[k], 'row')}, {what} ({int(bad[:, m].sum())} such row(s){block}); "
+            "fix or delete these rows"
+        )
+    cells = {}
+    for j in ([layout.group] if layout.group is not None else []) + list(layout.extra.values()):
+        cells[j] = text(j, src.header[j])
+    return src._dataset(values, cells, numbers)
 
 
 def read_parquet(path, name=None, chunk_rows=200_000, notes=None, max_rows=None) -> Dataset:

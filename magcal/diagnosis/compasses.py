@@ -914,7 +914,7 @@ def compass_consistency(
         raise MagcalError(
             f"{dataset.source or 'data'}: the consistency of compasses needs two or more; the record has one"
         )
-    after, _ = calibration.corrected_with_notes(dataset)
+    after = calibration.correct(dataset, warn=False)
     after = np.asarray(after, dtype=float)
     if before is None:
         before, what = before_fields(dataset, calibration)

@@ -29,7 +29,7 @@ from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
-from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit_with_notes
+from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit
 from magcal.model.effects import readings_facts, seed_readings_facts
 from magcal.model.terms import EFFECTS, Model, block_label, term_label
 
@@ -652,13 +652,14 @@ def refit_task(dataset, model, init, mask, reference_total_nT, facts=()):
     kept = dataset.masked(mask)  # held while the fit runs: the fit's samples are these very arrays
     for s, key, value in facts:
         seed_readings_facts(kept.readings_nT[s], [(key, value)])
-    return fit_with_notes(
+    return fit(
         dataset,
         model,
         init=init,
         mask=mask,
         reference_total_nT=reference_total_nT,
         cost_tolerance=COMPARISON_COST_TOLERANCE,
+        warn=False,
     )
 
 

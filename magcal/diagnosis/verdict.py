@@ -59,7 +59,7 @@ from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
-from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, coverage
+from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, direction_spread
 from magcal.model.terms import EFFECTS, EffectTexts
 
 #: Verdicts of :func:`diagnose`.
@@ -502,7 +502,7 @@ def _undetermined(fit, directions) -> str | None:
 
     reasons = []
     for s, u in enumerate(directions):
-        spread = coverage(u).thinnest_spread
+        spread = direction_spread(u).thinnest_spread
         if spread < WEAK_DIRECTION_SPREAD:
             reasons.append(f"sensor {s + 1}: weak coverage (thinnest direction spread {spread:.3f}, full sphere 0.33)")
     field_nT = fit.calibration.reference_total_nT
@@ -525,7 +525,7 @@ def _units_question(fit, directions) -> str | None:
     lo, hi = EARTH_FIELD_RANGE_nT
     if fit.reference_kind != "fitted" or not field_nT or lo <= field_nT <= hi:
         return None
-    if any(coverage(u).thinnest_spread < WEAK_DIRECTION_SPREAD for u in directions):
+    if any(direction_spread(u).thinnest_spread < WEAK_DIRECTION_SPREAD for u in directions):
         return None
     factor = next((f for f in UNIT_FACTORS if lo <= f * field_nT <= hi), None)
     hint = f"x{factor:g} gives {factor * field_nT / 1000:.3g} uT; " if factor is not None else ""

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration, corrected_fields, expected_total_field
 from magcal.calibration.uncertainty import base_covariance
-from magcal.checks.reference import resolve_reference as _resolve
+from magcal.checks.reference import resolve_reference
 from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, ConvergenceWarning, DataWarning
@@ -65,10 +65,10 @@ _CINV_SCALE = 2e-5
 _ROT_SCALE = 2e-5
 
 
-def resolve_reference(dataset, reference_total_nT=None):
+def fit_reference(dataset, reference_total_nT=None):
     """``(value or None, kind)`` of the reference a fit uses (:meth:`magcal.checks.reference.Reference.for_fit` of
     :func:`magcal.checks.reference.resolve_reference`, without its user-facing checks)."""
-    return _resolve(dataset, reference_total_nT, check=False).for_fit()
+    return resolve_reference(dataset, reference_total_nT, check=False).for_fit()
 
 
 def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
@@ -77,7 +77,7 @@ def crude_initial_calibration(dataset, reference_total_nT=None) -> Calibration:
     Good enough for Levenberg-Marquardt from typical fluxgate errors (a few percent); the two-step
     ellipsoid + Procrustes start of :func:`magcal.fitting.pipeline.calibrate` is better and should normally be used.
     """
-    ref, kind = resolve_reference(dataset, reference_total_nT)
+    ref, kind = fit_reference(dataset, reference_total_nT)
     sensors, centred = [], []
     for y in dataset.readings_nT:
         design = np.column_stack([2 * y, np.ones(len(y))])
@@ -131,7 +131,7 @@ class Problem:
         self.n_sensors = ns = dataset.n_sensors
         self.n_samples = n = dataset.n_samples
         self.ctxs = contexts(dataset, init.baseline_m if init.baseline_m is not None else dataset.baseline_m)
-        ref, self.reference_kind = resolve_reference(dataset, reference_total_nT)
+        ref, self.reference_kind = fit_reference(dataset, reference_total_nT)
         if self.reference_kind == "fitted" and init.reference_total_nT:
             ref = float(init.reference_total_nT)
         self.coupled = ns > 1 and "misalignment" in model.base
@@ -892,7 +892,7 @@ class FitResult:
         The solver's reason for stopping, in words.
     notes : list of Note
         What the fit says besides its figures (:mod:`magcal.core.notes`): a :class:`~magcal.core.errors.ConvergenceWarning`
-        note when it did not converge. :func:`fit` raises them as warnings; :func:`fit_with_notes` leaves them here.
+        note when it did not converge. :func:`fit` raises them as warnings unless ``warn=False``.
     """
 
     calibration: Calibration
@@ -961,6 +961,7 @@ def fit(
     max_nfev=200,
     cost_tolerance=None,
     max_steps=None,
+    warn=True,
 ) -> FitResult:
     """Maximum-likelihood fit of a model, started from a calibration.
 
@@ -998,6 +999,9 @@ def fit(
         distance from the start (Le Cam), for one pass over the data; :func:`magcal.fitting.validation.validate` fits
         its training samples so. Where the data barely fix some directions the start can be far from the
         training samples' minimum along them; the cost then does not fall as predicted and the fit converges.
+    warn : bool
+        Raise the result's ``notes`` as Python warnings (the default: ``magcal.fit`` is a public name); the
+        engine's steps pass False and hand the notes on in their own results (they may run on threads).
 
     Returns
     -------
@@ -1006,7 +1010,7 @@ def fit(
     Warns
     -----
     ConvergenceWarning
-        When the fit did not converge (its ``notes`` hold the same; :func:`fit_with_notes` does not warn).
+        When the fit did not converge and ``warn`` (its ``notes`` hold the same).
 
     Notes
     -----
@@ -1014,36 +1018,6 @@ def fit(
     them from the converged fit (:meth:`magcal.model.terms.Effect.refine` with a :class:`RefineContext`) and the
     model is fitted once more; the refined constants are kept only if that lowers the residual sum of squares.
     """
-    result = fit_with_notes(
-        dataset,
-        model,
-        init=init,
-        loss=loss,
-        f_scale_nT=f_scale_nT,
-        mask=mask,
-        reference_total_nT=reference_total_nT,
-        max_nfev=max_nfev,
-        cost_tolerance=cost_tolerance,
-        max_steps=max_steps,
-    )
-    _notes.warn(result.notes)
-    return result
-
-
-def fit_with_notes(
-    dataset,
-    model: Model | None = None,
-    init: Calibration | None = None,
-    loss="linear",
-    f_scale_nT=None,
-    mask=None,
-    reference_total_nT=None,
-    max_nfev=200,
-    cost_tolerance=None,
-    max_steps=None,
-) -> FitResult:
-    """:func:`fit`, its notes (a fit that did not converge) left in :attr:`FitResult.notes`, never raised as
-    warnings: the engine's steps call this one (they may run on threads; the API raises the notes)."""
     # the caller's model (and its effect objects, whose data-derived constants a fit sets) stays untouched
     model = model.copy() if model is not None else Model.base_model(dataset.n_sensors)
     if model.n_sensors != dataset.n_sensors:
@@ -1092,7 +1066,10 @@ def fit_with_notes(
                 e.set_state(state)
     if gap_note is not None:
         result.notes.insert(0, gap_note)
-    return _note_if_not_converged(result)
+    result = _note_if_not_converged(result)
+    if warn:
+        _notes.warn(result.notes)
+    return result
 
 
 def leave_out_rows_without_attitude(dataset, model, mask, what="the fit"):
@@ -1241,7 +1218,7 @@ def _fit_once(
     init = init or crude_initial_calibration(kept, reference_total_nT)
 
     if configure and model.effects:  # data-derived constants of the effects, from the starting residuals
-        ref0, kind0 = resolve_reference(kept, reference_total_nT)
+        ref0, kind0 = fit_reference(kept, reference_total_nT)
         start_fields = corrected_fields(kept, init.sensors)
         if kind0 == "fitted":
             expected0 = init.reference_total_nT or float(np.mean(row_norm(start_fields)))

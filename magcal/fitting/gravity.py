@@ -39,7 +39,6 @@ heading), and how many still samples and which tilts would bring it there.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -517,7 +516,6 @@ def fit_gravity(
     still=None,
     robust=False,
     mag_model="auto",
-    warn=True,
 ) -> GravityFitResult:
     """The joint maximum-likelihood fit of the magnetometers and the accelerometer (see the module docstring).
 
@@ -549,8 +547,12 @@ def fit_gravity(
         ``full``: each magnetometer's matrix, bias and rotation; ``rotation``: its rotation into the accelerometer's
         frame only, the matrix and bias taken from its ellipsoid (or, when the readings determine none, a sphere
         through them: a flight log's band of attitudes); ``auto``: ``full`` where the ellipsoid is determined.
-    warn : bool
-        Raise the notes as :class:`DataWarning` (the command line passes False and prints them).
+
+    Returns
+    -------
+    GravityFitResult
+        Its ``warnings`` (the texts, saved with the fit) and ``notes`` (the same as :class:`DataWarning` notes)
+        say what the user must hear; never raised here: the command line and the workbench print them.
 
     Raises
     ------
@@ -779,9 +781,6 @@ def fit_gravity(
         accel_unit=accel.unit,
     )
     cal.summary = {"gravity_fit": result.to_dict()}
-    if warn:
-        for w in result.warnings:
-            warnings.warn(w, DataWarning, stacklevel=2)
     return result
 
 
@@ -1058,7 +1057,7 @@ def validate_gravity(dataset, n_blocks=10, **options) -> GravityValidation:
     if accel is None:
         raise MagcalError(f"{dataset.source or 'data'}: no accelerometer columns")
     still = find_still(dataset, accel)
-    fit = fit_gravity(dataset, mask=train, warn=False, **options)
+    fit = fit_gravity(dataset, mask=train, **options)
     try:
         sep = separate_calibration(
             dataset,

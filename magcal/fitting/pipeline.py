@@ -38,7 +38,7 @@ from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
 from magcal.data.dataset import Dataset
 from magcal.fitting import search
-from magcal.fitting.fitter import FitResult, fit_with_notes, leave_out_rows_without_attitude, resolve_reference
+from magcal.fitting.fitter import FitResult, fit, fit_reference, leave_out_rows_without_attitude
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from magcal.geometry.procrustes import procrustes_rotation
 from magcal.model.terms import Effect, Model
@@ -286,7 +286,7 @@ def ellipsoid_step(
     reference_total_nT : float or None
         Field magnitude (nT); None when it is fitted or comes from a per-sample column.
     reference_kind : str
-        ``given``, ``column`` or ``fitted`` (see :func:`magcal.fitting.fitter.resolve_reference`).
+        ``given``, ``column`` or ``fitted`` (see :func:`magcal.fitting.fitter.fit_reference`).
     robust : bool
         Refit once without samples beyond :data:`ROBUST_START_SIGMA` robust standard deviations.
     max_samples : int, optional
@@ -394,7 +394,7 @@ def _search(dataset, method, seed, progress, mask, reference_total_nT):
     def callback(iteration, best_rms_nT):
         progress(f"{method}: iteration {iteration}, best RMS {best_rms_nT:.4g} nT", min(iteration / total, 1.0))
 
-    return search.search_calibrate_with_notes(
+    return search.search_calibrate(
         dataset,
         method,
         seed=seed,
@@ -585,7 +585,7 @@ def _checked_arguments(dataset, method, effects, mask):
 def _resolve_reference_step(dataset, mask, reference_total_nT, progress) -> _Run:
     """The samples used and the reference they are fitted to (given, a per-sample column, or fitted)."""
     kept = dataset.masked(mask)
-    ref_value, ref_kind = resolve_reference(kept, reference_total_nT)
+    ref_value, ref_kind = fit_reference(kept, reference_total_nT)
     return _Run(
         dataset=dataset,
         mask=mask,
@@ -612,8 +612,9 @@ def _search_steps(run: _Run, method, seed, reference_total_nT) -> None:
     them unrotated."""
     run.report(f"{method}: global search", 0.0)
     t0 = time.perf_counter()
-    calibration, notes = _search(run.dataset, method, seed, run.progress and run.report, run.mask, reference_total_nT)
-    run.take(notes)
+    found = _search(run.dataset, method, seed, run.progress and run.report, run.mask, reference_total_nT)
+    run.take(found.notes)
+    calibration = found.calibration
     if calibration.n_sensors > 1 and all(np.allclose(c.R, np.eye(3)) for c in calibration.sensors[1:]):
         run.add_step(method, f"global search ({method}) of C^-1 and b per sensor", calibration, t0)
         t0 = time.perf_counter()
@@ -658,13 +659,14 @@ def _ml_step(run: _Run, model, robust, reference_total_nT) -> None:
 
     run.report("step 3: maximum-likelihood refinement", 0.5)
     t0 = time.perf_counter()
-    run.fit = fit_with_notes(
+    run.fit = fit(
         run.dataset,
         model,
         init=run.calibration,
         loss="soft_l1" if robust else "linear",
         mask=run.mask,
         reference_total_nT=reference_total_nT,
+        warn=False,
     )
     run.take(run.fit.notes)
     terms = ", ".join(list(model.base) + model.effect_labels)

@@ -49,7 +49,6 @@ from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, corrected_fields
 from magcal.core import conventions
-from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.core.notes import Note
 from magcal.data import simulation as sim
@@ -207,6 +206,12 @@ class PlatformAlignment:
         The per-axis noise used for the covariance (the residual estimate unless given).
     intrinsic_included : bool
         True if the intrinsic calibration's uncertainty is propagated into the covariances.
+    remarks : list of str
+        What the report says besides its figures (samples not used, the intrinsic calibration's origin, a vertical
+        component that changes sign); saved as ``notes`` in the calibration file.
+    notes : list of Note
+        What the user must hear (:mod:`magcal.core.notes`): group labels that look wrong and, from :func:`align`,
+        the notes of the scalar calibration it fitted first. Never raised here: ``magcal align`` prints them.
     """
 
     R: np.ndarray
@@ -220,6 +225,7 @@ class PlatformAlignment:
     counts: list
     noise_nT: float
     intrinsic_included: bool = False
+    remarks: list = field(default_factory=list)
     notes: list = field(default_factory=list)
 
     @property
@@ -246,7 +252,7 @@ class PlatformAlignment:
                 }
                 for i in range(self.R.shape[0])
             ],
-            "notes": list(self.notes),
+            "notes": list(self.remarks),
         }
 
     def text(self) -> str:
@@ -265,8 +271,8 @@ class PlatformAlignment:
             res = "/".join(f"{r:.2f}" for r in self.residual_rms_nT[i])
             axes = "/".join("-" if not np.isfinite(a) else f"{a:.3f}" for a in self.axis_angles_deg[i])
             lines.append(f"  {i + 1}     {ang}   {res:18s}  {axes}")
-        for note in self.notes:
-            lines.append(f"note: {note}")
+        for remark in self.remarks:
+            lines.append(f"note: {remark}")
         return "\n".join(lines)
 
 
@@ -307,24 +313,8 @@ def _plane_normal(v):
 
 
 def estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="data", fixed_signs=None):
-    """Each sensor's rotation into the platform frame from level-table groups (:func:`_estimate_alignment`); a
-    :class:`~magcal.core.errors.DataWarning` when the group labels look wrong."""
-    result = _estimate_alignment(vectors_nT, group, noise_nT, prior_R, source, fixed_signs)
-    _notes.warn(_label_notes(result, source))
-    return result
-
-
-def _label_notes(result, source) -> list:
-    """The notes (:class:`~magcal.core.notes.Note`, DataWarning) a user must hear of an alignment's: group labels
-    that look wrong."""
-    return [
-        Note(f"{source}: {note}", DataWarning, "align") for note in result.notes if "check the group labels" in note
-    ]
-
-
-def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="data", fixed_signs=None):
-    """Each sensor's rotation into the platform frame from level-table groups; never warns (its ``notes`` say
-    what it found).
+    """Each sensor's rotation into the platform frame from level-table groups; never warns (its ``remarks`` say
+    what it found, its ``notes`` what a user must hear: group labels that look wrong).
 
     Parameters
     ----------
@@ -358,10 +348,10 @@ def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="
     masks = [labels == g for g in present]
     counts = [int(m.sum()) for m in masks]
     axes_up = np.array([GROUP_AXES[g] for g in present])
-    notes = []
+    remarks, notes = [], []
     other, other_n = np.unique(labels[~np.isin(labels, present)], return_counts=True)
     if other.size:
-        notes.append(
+        remarks.append(
             "samples not used by the alignment: "
             + ", ".join(f"{lab or '(empty)'} ({n})" for lab, n in zip(other[:8], other_n[:8]))
         )
@@ -439,11 +429,13 @@ def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="
         axang.append(pair_angles)
         u = sol.x[3:]
         if len(u) > 1 and np.ptp(np.sign(u)) > 0 and np.min(np.abs(u)) > 10 * sigma / np.sqrt(min(counts)):
-            notes.append(
+            remark = (
                 f"sensor {s + 1}: the vertical field component changes sign between groups "
                 f"({', '.join(f'{g} {x:+.0f} nT' for g, x in zip(present, u))}); check the group labels "
                 "(an axis labelled _up that pointed down) before trusting the result"
             )
+            remarks.append(remark)
+            notes.append(Note(f"{source}: {remark}", DataWarning, "align"))
     result = PlatformAlignment(
         R=np.array(R_out),
         angles_rad=np.array(ang),
@@ -455,6 +447,7 @@ def _estimate_alignment(vectors_nT, group, noise_nT=None, prior_R=None, source="
         groups=list(present),
         counts=counts,
         noise_nT=float(np.mean(sigma_used)),
+        remarks=remarks,
         notes=notes,
     )
     return result
@@ -533,16 +526,6 @@ def sensor_frame_vectors(calibration, dataset) -> np.ndarray:
 
 
 def align(dataset, calibration=None, noise_nT=None, intrinsic_cov=None, reference_total_nT=None, source=None):
-    """Level-table alignment of a dataset (:func:`align_with_notes`), its notes raised as warnings (weak coverage
-    of the scalar calibration fitted first, group labels that look wrong); returns ``(calibration, alignment)``."""
-    new, result, notes = align_with_notes(dataset, calibration, noise_nT, intrinsic_cov, reference_total_nT, source)
-    _notes.warn(notes)
-    return new, result
-
-
-def align_with_notes(
-    dataset, calibration=None, noise_nT=None, intrinsic_cov=None, reference_total_nT=None, source=None
-):
     """Level-table alignment of a dataset: a new calibration whose ``R`` take each sensor into the platform frame.
 
     Parameters
@@ -567,8 +550,8 @@ def align_with_notes(
     calibration : Calibration
         A copy with ``R`` replaced, ``frame = "platform"`` and ``platform_alignment`` figures in its summary.
     alignment : PlatformAlignment
-    notes : list of Note
-        What the user must hear (:mod:`magcal.core.notes`), never raised here.
+        Its ``notes``: what the user must hear (:mod:`magcal.core.notes`: weak coverage of the scalar calibration
+        fitted first, group labels that look wrong), never raised here.
     """
 
     source = source or dataset.source or "data"
@@ -590,11 +573,11 @@ def align_with_notes(
     prior = None
     if calibration.frame == "platform":
         prior = np.array([c.R for c in calibration.sensors])
-    result = _estimate_alignment(vectors, dataset.group, noise_nT=noise, prior_R=prior, source=source)
-    notes += _label_notes(result, source)
+    result = estimate_alignment(vectors, dataset.group, noise_nT=noise, prior_R=prior, source=source)
+    result.notes = notes + result.notes
     if intrinsic_cov is not None:
         _propagate_intrinsic(result, calibration, dataset, np.asarray(intrinsic_cov, float), noise, prior, source)
-    result.notes.append(intrinsic_note)
+    result.remarks.append(intrinsic_note)
     sensors = []
     for c, R in zip(calibration.sensors, result.R):
         sensors.append(dataclasses.replace(c, R=R, summary=dict(c.summary)))
@@ -610,7 +593,7 @@ def align_with_notes(
         frame="platform",
         summary=summary,
     )
-    return new, result, notes
+    return new, result
 
 
 def _propagate_intrinsic(result, calibration, dataset, intrinsic_cov, noise, prior, source, h=None):
@@ -629,7 +612,7 @@ def _propagate_intrinsic(result, calibration, dataset, intrinsic_cov, noise, pri
             sensors[s] = dataclasses.replace(c, cinv=conventions.params_to_cinv(p[:6]), bias_nT=p[6:])
             cal_k = dataclasses.replace(calibration, sensors=sensors)
             v = sensor_frame_vectors(cal_k, dataset)[s : s + 1]
-            r = _estimate_alignment(
+            r = estimate_alignment(
                 v, dataset.group, noise_nT=noise, prior_R=None if prior is None else prior[s : s + 1], source=source
             )
             D[:, k] = rotation_error_vector_rad(r.R[0], base_R[s])[0] / steps[k]

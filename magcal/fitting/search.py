@@ -59,11 +59,10 @@ from scipy.optimize import differential_evolution
 from scipy.stats import qmc
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
-from magcal.checks.coverage import check_coverage_with_notes
+from magcal.checks.coverage import check_coverage
 from magcal.core import conventions
-from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
-from magcal.fitting.fitter import resolve_reference
+from magcal.fitting.fitter import fit_reference
 from magcal.geometry.procrustes import procrustes_rotation
 
 #: Method names this module implements.
@@ -511,6 +510,24 @@ def search(
 # ----------------------------------------------------------------------------------------------------------------
 
 
+@dataclass
+class SearchCalibration:
+    """What :func:`search_calibrate` found: the calibration and what its checks said.
+
+    Attributes
+    ----------
+    calibration : magcal.calibration.calibration.Calibration
+        ``summary`` holds ``method``, ``seed``, ``n_samples``, ``rms_nT`` (per sensor), ``n_evaluations``,
+        ``n_iterations`` and ``search_wall_s``; each sensor's ``summary`` its own figures.
+    notes : list of Note
+        What the checks found (poor coverage: a :class:`~magcal.core.errors.CoverageWarning` note), never raised
+        here: :func:`magcal.calibrate` (``method="pso"`` ...) and the command line say them.
+    """
+
+    calibration: Calibration
+    notes: list = field(default_factory=list)
+
+
 def search_calibrate(
     dataset,
     method="ipso",
@@ -523,28 +540,7 @@ def search_calibrate(
     tol=1e-10,
     patience=None,
     bounds=None,
-):
-    """:func:`search_calibrate_with_notes`'s calibration, its notes (poor coverage) raised as warnings."""
-    calibration, notes = search_calibrate_with_notes(
-        dataset, method, seed, progress, mask, reference_total_nT, max_iter, pop_size, tol, patience, bounds
-    )
-    _notes.warn(notes)
-    return calibration
-
-
-def search_calibrate_with_notes(
-    dataset,
-    method="ipso",
-    seed=None,
-    progress=None,
-    mask=None,
-    reference_total_nT=None,
-    max_iter=None,
-    pop_size=None,
-    tol=1e-10,
-    patience=None,
-    bounds=None,
-):
+) -> SearchCalibration:
     """Scalar calibration of every sensor by global search (eq. 17), then Procrustes alignment for arrays.
 
     Each sensor's ``C^-1`` (upper triangular) and offset are searched against the reference total field; for two
@@ -581,11 +577,8 @@ def search_calibrate_with_notes(
 
     Returns
     -------
-    calibration : magcal.calibration.calibration.Calibration
-        ``summary`` holds ``method``, ``seed``, ``n_samples``, ``rms_nT`` (per sensor), ``n_evaluations``,
-        ``n_iterations`` and ``search_wall_s``; each sensor's ``summary`` its own figures.
-    notes : list of Note
-        What the checks found (poor coverage: a :class:`~magcal.core.errors.CoverageWarning` note).
+    SearchCalibration
+        ``.calibration`` and ``.notes``.
     """
 
     if method not in METHODS:
@@ -596,8 +589,8 @@ def search_calibrate_with_notes(
         if mask.shape[0] != ds.n_samples:
             raise MagcalError(f"the mask has {mask.shape[0]} entries but the data have {ds.n_samples} samples")
         ds = ds.subset(mask)
-    _, notes = check_coverage_with_notes(ds, full_model=True)  # refuses rotation about one axis; notes poor coverage
-    ref, kind = resolve_reference(ds, reference_total_nT)
+    notes = check_coverage(ds, full_model=True).notes  # refuses rotation about one axis; notes poor coverage
+    ref, kind = fit_reference(ds, reference_total_nT)
     if kind == "column":
         target = ds.ref_total_nT
     elif kind == "given":
@@ -662,4 +655,4 @@ def search_calibrate_with_notes(
         baseline_m=ds.baseline_m,
         summary=summary,
     )
-    return calibration, notes
+    return SearchCalibration(calibration, notes)

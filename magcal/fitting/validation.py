@@ -38,7 +38,7 @@ from magcal.calibration.calibration import is_transferable
 from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError
 from magcal.core.vectors import unit_rows
-from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit_with_notes
+from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit
 from magcal.fitting.pipeline import _build_model, calibrate
 from magcal.model.terms import Model
 
@@ -353,7 +353,7 @@ def validate(
     if init is not None:
         built = _build_model(dataset, specs)
         full = Model(built.n_sensors, base=tuple(base) if base is not None else built.base, effects=built.effects)
-        fitted = fit_with_notes(
+        fitted = fit(
             dataset,
             full,
             init=init,
@@ -362,6 +362,7 @@ def validate(
             reference_total_nT=reference_total_nT,
             cost_tolerance=COMPARISON_COST_TOLERANCE,
             max_steps=1,
+            warn=False,
         )
     else:
         result = calibrate(

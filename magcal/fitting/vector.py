@@ -48,7 +48,6 @@ mounting continuously; the result says which right angle it was and how far off 
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +56,7 @@ from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.checks.reference import VectorReference
+from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs
 from magcal.core.stats import lag1_correlation, robust_sigma
@@ -750,8 +750,7 @@ def fit_vector(
     )
     cal.summary = {"vector_fit": result.to_dict()}
     if warn:
-        for w in notes:
-            warnings.warn(w, DataWarning, stacklevel=2)
+        _notes.warn(result.notes)
     return result
 
 
@@ -1097,7 +1096,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
     # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
     for model in models:
         cal = fit_vector(dataset, reference, effects=model, mask=train, warn=False, **options).calibration
-        world = np.stack([rotation.apply(b) for b in cal.corrected_with_notes(dataset)[0]])
+        world = np.stack([rotation.apply(b) for b in cal.correct(dataset, warn=False)])
         err = world - ned[None]
         total = np.linalg.norm(world, axis=2) - f_ref[None]
 

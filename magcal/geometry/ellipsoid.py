@@ -72,7 +72,7 @@ SKY_CELLS = 32
 
 
 @dataclass
-class Coverage:
+class DirectionSpread:
     """How well the samples cover the sphere of field directions (in the corrected sensor frame).
 
     Attributes
@@ -115,8 +115,8 @@ class EllipsoidFit:
         RMS of ``|C^-1 (y - b)| - field_nT`` over the fitted samples, nT.
     n_samples : int
         Number of samples used.
-    coverage : Coverage
-        Direction coverage of the samples.
+    coverage : DirectionSpread
+        How the samples' directions spread over the sphere.
     warnings : list of str
         Non-fatal concerns (weak coverage).
     """
@@ -129,7 +129,7 @@ class EllipsoidFit:
     A: np.ndarray
     rms_nT: float
     n_samples: int
-    coverage: Coverage
+    coverage: DirectionSpread
     warnings: list = field(default_factory=list)
 
     def correct(self, readings_nT) -> np.ndarray:
@@ -310,8 +310,9 @@ def _fibonacci_sphere(n):
     return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
 
 
-def coverage(vectors) -> Coverage:
-    """Direction coverage of a set of field vectors (any frame close to orthonormal).
+def direction_spread(vectors) -> DirectionSpread:
+    """How a set of field vectors' directions spread over the sphere (any frame close to orthonormal); the
+    record-level coverage check with its extrapolation error is :func:`magcal.checks.coverage.check_coverage`.
 
     Parameters
     ----------
@@ -325,7 +326,7 @@ def coverage(vectors) -> Coverage:
     cells = _fibonacci_sphere(SKY_CELLS)
     step = max(1, int(np.ceil(u.shape[0] / SKY_MAX_SAMPLES)))  # the cells a million directions visit are those
     visited = np.unique(np.argmax(u[::step] @ cells.T, axis=1))  # of an even subsample of them
-    return Coverage(spread_eigenvalues=np.clip(spread, 0.0, None), sky_fraction=visited.size / SKY_CELLS)
+    return DirectionSpread(spread_eigenvalues=np.clip(spread, 0.0, None), sky_fraction=visited.size / SKY_CELLS)
 
 
 def _covariance(points, mean=None):
@@ -403,7 +404,7 @@ def segment_drift(readings_nT, bias_nT, cinv, n_segments=CAUSE_SEGMENTS):
     centres, radii, used, sq, count = [], [], [], 0.0, 0
     for k, idx in enumerate(np.array_split(np.arange(y.shape[0]), n_segments)):
         z = z_all[idx]
-        if z.shape[0] < MIN_SAMPLES or coverage(z).thinnest_spread < WEAK_DIRECTION_SPREAD:
+        if z.shape[0] < MIN_SAMPLES or direction_spread(z).thinnest_spread < WEAK_DIRECTION_SPREAD:
             continue
         fit = _sphere_fit(z)
         if fit is None:
@@ -634,7 +635,7 @@ def fit_ellipsoid(
             + (f" {cause}" if cause else "")
             + checks
         )
-    cov = coverage(corrected)
+    cov = direction_spread(corrected)
     warnings = []
     if strict and cov.thinnest_spread < MIN_DIRECTION_SPREAD:
         raise CalibrationError(

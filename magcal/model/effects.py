@@ -43,7 +43,7 @@ from magcal.core.stats import savgol, savgol_derivative
 from magcal.core.vectors import row_norm
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
 from magcal.model.perturbations import catalogue_perturbation
-from magcal.model.terms import EFFECTS, Context, Effect, SingleAxisBasis, register, term_label
+from magcal.model.terms import Context, Effect, SingleAxisBasis, register, term_label
 
 #: Multipliers of each effect's ``default_magnitude`` for a 1 500-sample record at 10 Hz with sigma = 3 nT
 #: (:func:`magcal.data.simulation.simulate_timeseries`): barely detectable (score statistic of order 100-200, the RMS
@@ -1818,8 +1818,3 @@ class SiteGradient(CatalogueEffect):
         magnitude = self.default_magnitude if magnitude is None else magnitude
         m = np.atleast_1d(np.asarray(magnitude, dtype=float))
         return m.copy() if m.size == 5 else m[0] * np.asarray(self.pattern)
-
-
-def catalogue() -> list:
-    """The registered effect classes, in registration order."""
-    return list(EFFECTS.values())

@@ -31,16 +31,15 @@ import io as _io
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.calibration.calibration import ATTITUDE_GAP_NOTE, Calibration, RecordHasher
+from magcal.calibration.calibration import Calibration, RecordHasher
 from magcal.core import conventions
-from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.files import check_regular_file
-from magcal.core.notes import runs, runs_text
+from magcal.core.notes import Note, runs, runs_text
 from magcal.data.accelerometer import ACCEL_COLUMNS, has_accelerometer
 from magcal.data.attitude import EULER_COLUMNS, attitude_present, attitude_source
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
@@ -178,19 +177,18 @@ def input_columns(where, dataset, names) -> dict:
     return cols
 
 
-def correct_block(calibration, dataset, record_terms=None, uncertainty=False, world=False, heading=False):
+def correct_block(calibration, dataset, record_terms, uncertainty=False, world=False, heading=False):
     """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
     ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
     order of :func:`output_columns`.
 
-    ``record_terms`` as in :meth:`magcal.calibration.calibration.Calibration.correct`; :func:`apply_file` decides it once for
-    the whole file and passes ``'apply'`` or ``'drop'``. ``world``: also the north-east-down components (a vector
+    ``record_terms``: ``'apply'`` or ``'drop'``, decided once for the whole file (:func:`record_choice`, which
+    says why). ``world``: also the north-east-down components (a vector
     calibration and the block's attitude, :meth:`Calibration.world`). A sample without attitude gets NaN
     corrected vectors where an acting effect needs it (``site_gradient``), unsaid here: the callers count such
     rows over the survey (:class:`AttitudeGaps`) and say it once.
     """
-    vectors, notes = calibration.corrected_with_notes(dataset, record_terms)
-    _notes.warn([n for n in notes if n.where != ATTITUDE_GAP_NOTE], stacklevel=3)
+    vectors = calibration.correct(dataset, record_terms, warn=False)
     n = dataset.n_samples
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
     tensor = gives_tensor(calibration)
@@ -319,13 +317,15 @@ def attitude_gap_text(missing, rows, n_sensors, tensor=False, terms=(), where=No
 
 @dataclass
 class ApplySummary:
-    """What :func:`apply_file` did."""
+    """What :func:`apply_file` did, and what it has to say (``notes``: :class:`~magcal.core.notes.Note` list, never
+    raised here: the record-only terms' decision, the reader's findings, the rows without attitude)."""
 
     rows: int
     columns_added: list
     seconds: float
     output: str
     frame: str
+    notes: list = field(default_factory=list)
 
     @property
     def rows_per_s(self) -> float:
@@ -370,17 +370,6 @@ def _hashed(datasets, stop_after=None) -> dict:
     return hasher.fingerprint()
 
 
-def record_terms_for_file(
-    calibration, survey_path, record_terms=None, columns=None, units=None, drop_bad=False, chunk_rows=20_000
-):
-    """Decide once for a whole file whether the calibration's record-only terms act on it: :func:`record_choice`.
-
-    Returns ``(choice, note)``: ``choice`` is ``'apply'`` or ``'drop'`` for every block, ``note`` the
-    :class:`~magcal.core.errors.RecordTermWarning` message (None when nothing needs saying).
-    """
-    return record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
-
-
 def apply_file(
     calibration,
     survey_path,
@@ -397,23 +386,29 @@ def apply_file(
 ):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
+    A CSV in and out keeps the input's lines as they are and adds the corrected columns; Parquet input or output
+    and flight-controller logs write the survey's columns as magcal reads them (readings in nT; a log's time,
+    temperature and attitude) plus the corrected ones, to Parquet (``.parquet``: one row group per block, the
+    metadata in the schema) or CSV. Memory stays flat either way (a log is read whole).
+
     Parameters
     ----------
     calibration : Calibration or str or os.PathLike
         The calibration or its JSON file.
     survey_path, output_path : str or os.PathLike
-        Input CSV (docs/formats.md) and output CSV; the output is written atomically.
+        Input (CSV, docs/formats.md; Parquet; a flight-controller log) and output (CSV or ``.parquet``); the
+        output is written atomically.
     columns, units, drop_bad
-        As in :func:`magcal.data.io.read_csv`.
+        As in :func:`magcal.data.io.read_csv` (a CSV input's).
     chunk_rows : int
         Lines per block; memory use is proportional to it, not to the file.
     progress : bool, optional
-        Show a tqdm progress bar; default: when stderr is a terminal.
+        Show a tqdm progress bar (CSV to CSV); default: when stderr is a terminal.
     record_terms : {None, 'apply', 'drop'}
         The calibration's record-only terms (bias drift, bias step...: they describe the recording it was fitted
         on). ``None`` (default): applied when the file is that record (same fingerprint), dropped with one
-        :class:`~magcal.core.errors.RecordTermWarning` otherwise. ``'apply'`` forces them (you assert it is the same
-        record, or have a reference for it); ``'drop'`` leaves them out.
+        :class:`~magcal.core.errors.RecordTermWarning` note otherwise. ``'apply'`` forces them (you assert it is the
+        same record, or have a reference for it); ``'drop'`` leaves them out.
     uncertainty : bool
         Also write the calibration's standard deviations of every new column (:func:`output_columns`), from its
         parameter covariance (:mod:`magcal.calibration.uncertainty`).
@@ -424,6 +419,8 @@ def apply_file(
     Returns
     -------
     ApplySummary
+        Its ``notes`` (never raised here; ``magcal apply`` prints them): the record-only terms dropped, what the
+        reader found in the data, the rows without attitude.
 
     Raises
     ------
@@ -436,27 +433,12 @@ def apply_file(
         if os.path.isdir(survey_path):
             raise DatasetError(f"{os.fspath(survey_path)}: is a directory, not a survey file")
         check_regular_file(survey_path, "file", DatasetError)  # missing, a FIFO, a device: named, never opened
-
     if compression is not None and not is_parquet(output_path):
         raise MagcalError(
             f"{os.fspath(output_path)}: a compression ({compression!r}) is for Parquet output; name "
             "the output .parquet or leave the compression out"
         )
-    if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
-        return apply_columns(
-            calibration,
-            survey_path,
-            output_path,
-            columns,
-            units,
-            drop_bad,
-            chunk_rows,
-            calibration_name,
-            record_terms,
-            t0,
-            uncertainty,
-            compression,
-        )
+    compression = check_parquet_codec(compression)  # a bad name before any work
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     if not hasattr(calibration, "correct"):
@@ -465,25 +447,56 @@ def apply_file(
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
     if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
-    progress = sys.stderr.isatty() if progress is None else bool(progress)
-    record_choice, record_note = record_terms_for_file(
-        calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows
-    )
-    if record_note:
-        import warnings
+    choice, record_note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
+    notes = [Note(record_note, RecordTermWarning, "apply")] if record_note else []
+    run = _ApplyRun(calibration, survey_path, output_path, choice, calibration_name, uncertainty, notes)
+    if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
+        _apply_columns(run, columns, units, drop_bad, chunk_rows, compression)
+    else:
+        _apply_csv(run, columns, units, drop_bad, chunk_rows, sys.stderr.isatty() if progress is None else progress)
+    gap_note = run.gaps.note(calibration.n_sensors, gives_tensor(calibration), run.terms)
+    if gap_note:
+        notes.append(Note(f"{survey_path}: {gap_note}", DataWarning, "apply"))
+    return ApplySummary(run.rows, run.names, time.perf_counter() - t0, output_path, calibration.frame, notes)
 
-        warnings.warn(record_note, RecordTermWarning, stacklevel=2)
-    with CsvSource(survey_path, columns=columns, units=units) as src:
+
+@dataclass
+class _ApplyRun:
+    """What the two writers of :func:`apply_file` share: the calibration, the paths, the record-only terms'
+    choice, the notes said so far, and what they count (rows written, the output's new columns, rows without
+    attitude)."""
+
+    calibration: Calibration
+    survey_path: str
+    output_path: str
+    choice: str
+    calibration_name: str | None
+    uncertainty: bool
+    notes: list
+    rows: int = 0
+    names: list = field(default_factory=list)
+    gaps: AttitudeGaps = field(default_factory=lambda: AttitudeGaps())
+
+    @property
+    def terms(self) -> list:
+        """The acting effects that need each row's attitude (:meth:`Calibration.attitude_terms`)."""
+        return self.calibration.attitude_terms(self.choice)
+
+
+def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -> None:
+    """:func:`apply_file` from a CSV to a CSV: the input's lines as they are, plus the corrected columns."""
+    calibration, survey_path = run.calibration, run.survey_path
+    with CsvSource(survey_path, columns=columns, units=units, notes=run.notes) as src:
         if src.layout.n_sensors != calibration.n_sensors:
             raise MagcalError(
                 f"{survey_path}: the survey has {src.layout.n_sensors} sensor(s) but the calibration"
-                f"{' ' + calibration_name if calibration_name else ''} is for {calibration.n_sensors} sensor(s); use the "
-                "calibration made for this instrument"
+                f"{' ' + run.calibration_name if run.calibration_name else ''} is for {calibration.n_sensors} "
+                "sensor(s); use the calibration made for this instrument"
             )
         tensor = gives_tensor(calibration)
         world = writes_world(calibration, layout=src.layout)
         heading = writes_heading(calibration, layout=src.layout)
-        new_names = output_columns(calibration.n_sensors, tensor, uncertainty, world, heading)
+        new_names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading)
         clash = sorted(set(new_names) & set(src.header))
         if clash:
             raise MagcalError(
@@ -497,22 +510,20 @@ def apply_file(
             + ([TENSOR_FORMAT] * len(WORLD_TENSOR_COLUMNS) if world and tensor else [])
             + (
                 [SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
-                if uncertainty
+                if run.uncertainty
                 else []
             )
             + ([HEADING_FORMAT] * (2 * calibration.n_sensors + 1) if heading else [])
         )
         meta = {}
-        if calibration_name:
-            meta["magcal_calibration"] = calibration_name
+        if run.calibration_name:
+            meta["magcal_calibration"] = run.calibration_name
         meta["magcal_frame"] = calibration.frame
         meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
-        bar = _progress_bar(os.path.getsize(survey_path), progress)
-        rows = 0
-        gaps = AttitudeGaps()
-        terms = calibration.attitude_terms(record_choice)
+        bar = _progress_bar(os.path.getsize(survey_path), bool(progress))
+        terms = run.terms
         try:
-            with atomic_write(output_path) as out:
+            with atomic_write(run.output_path) as out:
                 for line in src.metadata_lines:
                     out.write(line + "\n")
                 out.write(metadata_text(meta))
@@ -521,34 +532,29 @@ def apply_file(
                 out.write(header.getvalue())
                 last_pos = src._file.tell()
                 for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=reads_extras(calibration)):
-                    if rows == 0:
+                    if run.rows == 0:
                         calibration.check(chunk.dataset)
-                        check_units(chunk.dataset, src.units, src.source, stacklevel=2)
-                    values = correct_block(calibration, chunk.dataset, record_choice, uncertainty, world, heading)
+                        check_units(chunk.dataset, src.units, src.source, notes=run.notes)
+                    values = correct_block(calibration, chunk.dataset, run.choice, run.uncertainty, world, heading)
                     refuse_non_finite(
                         values, new_names, survey_path, chunk.dataset, lambda k, c=chunk: f"line {c.line_numbers[k]}"
                     )
                     if world or terms:
-                        gaps.add(chunk.dataset)
+                        run.gaps.add(chunk.dataset)
                     out.write(
                         "".join(f"{line},{fmt % tuple(row)}\n" for line, row in zip(chunk.lines, values.tolist()))
                     )
-                    rows += chunk.dataset.n_samples
+                    run.rows += chunk.dataset.n_samples
                     if bar is not None:
                         pos = src._file.tell()
                         bar.update(pos - last_pos)
                         last_pos = pos
-                if rows == 0:
+                if run.rows == 0:
                     raise DatasetError(f"{survey_path}: no data rows after the header; nothing to correct")
         finally:
             if bar is not None:
                 bar.close()
-    gap_note = gaps.note(calibration.n_sensors, tensor, terms)
-    if gap_note:
-        import warnings
-
-        warnings.warn(f"{survey_path}: {gap_note}", DataWarning, stacklevel=2)
-    return ApplySummary(rows, new_names, time.perf_counter() - t0, output_path, calibration.frame)
+    run.names = new_names
 
 
 def reads_extras(calibration) -> bool:
@@ -559,19 +565,20 @@ def reads_extras(calibration) -> bool:
     return getattr(calibration, "mode", "scalar") in ("vector", "gravity")
 
 
-def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False):
+def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False, notes=None):
     """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
     metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.data.io.CsvSource`; a Parquet file by its
     record batches; a flight-controller log (:mod:`magcal.data.logs`) is read whole, as one block (its reader decodes
     every message anyway). ``columns`` and ``units`` apply to a CSV only, as does ``extras``: also read the columns
-    a CSV keeps as extra channels (:func:`reads_extras`)."""
+    a CSV keeps as extra channels (:func:`reads_extras`). ``notes``: the list the readers append what they find to
+    (as :func:`magcal.data.io.read_csv`'s)."""
 
     path = os.fspath(survey_path)
     if is_log(path):
-        dataset = read_log(path)
+        dataset = read_log(path, notes=notes)
         return dataset_metadata(dataset), iter([dataset])
     if not is_parquet(path):
-        src = CsvSource(path, columns=columns, units=units)
+        src = CsvSource(path, columns=columns, units=units, notes=notes)
 
         def csv_chunks():
             with src:
@@ -579,7 +586,7 @@ def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_r
                     yield chunk.dataset
 
         return dict(src.metadata), csv_chunks()
-    src = ParquetSource(path)
+    src = ParquetSource(path, notes=notes)
     return dict(src.metadata), src.chunks(chunk_rows)
 
 
@@ -669,81 +676,51 @@ def survey_fingerprint(survey_path, record_samples, columns=None, units=None, dr
     path = os.fspath(survey_path)
     if not is_log(path) and not is_parquet(path):
         return file_fingerprint(path, columns, units, drop_bad, chunk_rows, record_samples if counted else None)
-    return _hashed(survey_chunks(path, columns, units, drop_bad, chunk_rows)[1], record_samples if counted else None)
+    unsaid: list = []  # the reader's notes: the correcting pass says the data's problems
+    chunks = survey_chunks(path, columns, units, drop_bad, chunk_rows, notes=unsaid)[1]
+    return _hashed(chunks, record_samples if counted else None)
 
 
-def apply_columns(
-    calibration,
-    survey_path,
-    output_path,
-    columns=None,
-    units=None,
-    drop_bad=False,
-    chunk_rows=20_000,
-    calibration_name=None,
-    record_terms=None,
-    t0=None,
-    uncertainty=False,
-    compression=None,
-):
+def _apply_columns(run: _ApplyRun, columns, units, drop_bad, chunk_rows, compression) -> None:
     """:func:`apply_file` for Parquet input or output and for flight-controller logs: the survey's columns as magcal
     writes them (readings in nT; a log's time, temperature and attitude) plus the corrected ones, chunk by chunk
-    (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV.
+    (memory stays flat), to Parquet (``.parquet``: one row group per chunk, the metadata in the schema) or CSV."""
+    import contextlib
 
-    Returns
-    -------
-    ApplySummary
-    """
-    import warnings
-
-    t0 = time.perf_counter() if t0 is None else t0
-    compression = check_parquet_codec(compression)  # a bad name before any work
-    if not hasattr(calibration, "correct"):
-        calibration_name = calibration_name or os.fspath(calibration)
-        calibration = load_calibration(calibration)
-    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
-    check_output_path(output_path, "output")
-    if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
-        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
-    choice, note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
-    if note:
-        warnings.warn(note, RecordTermWarning, stacklevel=3)
-    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=reads_extras(calibration))
+    calibration, survey_path, output_path = run.calibration, run.survey_path, run.output_path
+    extras = reads_extras(calibration)
+    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=extras, notes=run.notes)
     tensor = gives_tensor(calibration)
-    names = output_columns(calibration.n_sensors, tensor, uncertainty)
+    names = output_columns(calibration.n_sensors, tensor, run.uncertainty)
     meta = {
         **meta,
         "units": "nT",
         "magcal_frame": calibration.frame,
         "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else ""),
     }
-    if calibration_name:
-        meta["magcal_calibration"] = calibration_name
-    rows = 0
-    gaps = AttitudeGaps()
-    terms = calibration.attitude_terms(choice)
+    if run.calibration_name:
+        meta["magcal_calibration"] = run.calibration_name
+    terms = run.terms
     to_parquet = is_parquet(output_path)
     tmp = f"{output_path}.tmp-{os.getpid()}"
     writer = behind = None
-    import contextlib
-
     try:
         with contextlib.nullcontext() if to_parquet else open(tmp, "w", encoding="utf-8", newline="") as fh:
             for ds in chunks:
-                if rows == 0:
+                if run.rows == 0:
                     world = writes_world(calibration, ds)
                     heading = writes_heading(calibration, ds)
-                    names = output_columns(calibration.n_sensors, tensor, uncertainty, world, heading)
+                    names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading)
                     if ds.n_sensors != calibration.n_sensors:
                         raise MagcalError(
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                             f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument"
                         )
                     calibration.check(ds)
-                values = correct_block(calibration, ds, choice, uncertainty, world, heading)
-                refuse_non_finite(values, names, survey_path, ds, lambda k, first=rows: f"row {first + k + 1}")
+                values = correct_block(calibration, ds, run.choice, run.uncertainty, world, heading)
+                refuse_non_finite(values, names, survey_path, ds, lambda k, first=run.rows: f"row {first + k + 1}")
                 if world or terms:
-                    gaps.add(ds)
+                    run.gaps.add(ds)
                 cols = input_columns(survey_path, ds, names)
                 cols.update({name: values[:, k] for k, name in enumerate(names)})
                 if to_parquet:
@@ -753,18 +730,21 @@ def apply_columns(
                     if writer is None:
                         writer = pq.ParquetWriter(tmp, table.schema, **parquet_write_options(table, compression))
                         behind = _WriteBehind()
+                    assert behind is not None  # made with the writer
                     behind.put(lambda table=table, writer=writer: writer.write_table(table))
                 else:
-                    if rows == 0:
+                    assert fh is not None  # a CSV output's temporary file
+                    if run.rows == 0:
                         fh.write(metadata_text(meta) + ",".join(cols) + "\n")
                     write_rows(fh, cols)
-                rows += ds.n_samples
+                run.rows += ds.n_samples
             if writer is not None:
                 behind, done = None, behind
+                assert done is not None  # made with the writer
                 done.close()  # every block written (or the first error raised)
                 writer.close()
                 writer = None
-        if rows == 0:
+        if run.rows == 0:
             raise DatasetError(f"{survey_path}: no data rows; nothing to correct")
         os.replace(tmp, output_path)
     finally:
@@ -774,10 +754,7 @@ def apply_columns(
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
-    gap_note = gaps.note(calibration.n_sensors, tensor, terms)
-    if gap_note:
-        warnings.warn(f"{survey_path}: {gap_note}", DataWarning, stacklevel=3)
-    return ApplySummary(rows, names, time.perf_counter() - t0, output_path, calibration.frame)
+    run.names = names
 
 
 class _WriteBehind:

@@ -34,9 +34,9 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration, document_text
 from magcal.core.errors import MagcalError
+from magcal.core.notes import texts
 from magcal.data import io as mio
-from magcal.data.logs import is_log
-from magcal.output.apply import apply_file, record_terms_for_file, refuse_non_finite
+from magcal.output.apply import apply_file, refuse_non_finite
 from magcal.output.export import export_calibration
 
 #: The calibration's file name in a bundle and in the parameter files' headers.
@@ -82,20 +82,15 @@ def corrected_bytes(calibration, data_path, kind="csv", calibration_name=CALIBRA
     """The data file ``data_path`` corrected by the calibration: byte for byte what ``magcal apply
     CALIBRATION DATA -o corrected.csv`` (or ``.parquet``) writes when ``CALIBRATION`` is ``calibration_name``.
 
-    Returns ``(content, notes)``: ``notes`` holds the record-only terms' decision (dropped on another record),
-    as text, when there is one.
+    Returns ``(content, notes)``: ``notes`` holds what ``magcal apply`` says (:attr:`ApplySummary.notes`), as
+    text: the record-only terms' decision (dropped on another record), the reader's findings, the rows without
+    attitude.
     """
     if kind not in CORRECTED_FILES:
         raise MagcalError(f"corrected data: kind {kind!r}: use one of {', '.join(CORRECTED_FILES)}")
-    notes = []
-    if record_terms is None and not mio.is_parquet(data_path) and not is_log(data_path):
-        # decided here once so that the note comes back as a value (apply_file would warn it)
-        record_terms, note = record_terms_for_file(calibration, data_path)
-        if note:
-            notes.append(note)
     with tempfile.TemporaryDirectory(prefix="magcal-export-") as folder:
         out = os.path.join(folder, CORRECTED_FILES[kind])
-        apply_file(
+        summary = apply_file(
             calibration,
             data_path,
             out,
@@ -104,7 +99,7 @@ def corrected_bytes(calibration, data_path, kind="csv", calibration_name=CALIBRA
             record_terms=record_terms,
         )
         with open(out, "rb") as fh:
-            return fh.read(), notes
+            return fh.read(), texts(summary.notes)
 
 
 def mask_from_file(path, n_samples: int) -> np.ndarray:

@@ -33,7 +33,7 @@ import re
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +41,7 @@ from magcal.calibration.calibration import Calibration
 from magcal.core import leftovers
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.memory import keep_large_blocks
+from magcal.core.notes import Note
 from magcal.data.dataset import DatasetError
 from magcal.data.io import (
     HEAD_PROBE_BYTES,
@@ -498,7 +499,9 @@ def correct_partition(
 
 @dataclass
 class PartitionedSummary:
-    """What :func:`apply_partitioned` did."""
+    """What :func:`apply_partitioned` did, and what it has to say (``notes``: :class:`~magcal.core.notes.Note` list,
+    never raised here: the record-only terms' decisions, a killed run's leftovers removed, rows without
+    attitude)."""
 
     rows: int
     files: list
@@ -510,6 +513,7 @@ class PartitionedSummary:
     #: Worker threads the partitions were sized to, and the partitions.
     workers: int = 1
     partitions: int = 0
+    notes: list = field(default_factory=list)
 
     @property
     def rows_per_s(self) -> float:
@@ -557,7 +561,7 @@ def apply_partitioned(
         temporary folder beside it (``.NAME.magcal-HOST-PID-XXXXXXXX.tmp``, :data:`WORK_DIR_NAME`) that takes its
         name once every partition is written; on any error or interruption the temporary folder is removed and
         ``output_dir`` is left as it was. A work folder there of a correction killed outright (its process no
-        longer runs on this machine) is removed first, with a warning naming it.
+        longer runs on this machine) is removed first, with a note naming it.
     fmt : {"parquet", "csv"}
     workers : int
         Worker processes of the local cluster, 1 to :func:`max_workers` (ignored with ``scheduler``).
@@ -576,7 +580,6 @@ def apply_partitioned(
     PartitionedSummary
     """
     import sys
-    import warnings
 
     t0 = time.perf_counter()
     if fmt not in ("parquet", "csv"):
@@ -599,11 +602,11 @@ def apply_partitioned(
             )
     if not hasattr(calibration, "correct"):
         calibration = load_calibration(calibration)
-    choices = {}
+    choices, notes = {}, []
     for path in dict.fromkeys(map(os.fspath, inputs)):  # decided once per file, before any task
         choices[path], note = record_choice(calibration, path, record_terms, columns, units, drop_bad)
         if note:
-            warnings.warn(note, RecordTermWarning, stacklevel=2)
+            notes.append(Note(note, RecordTermWarning, "apply"))
     doc = calibration.to_dict()
     # a user's effects live in this process's catalogue only: each task loads their files (the same paths)
     effects_files = tuple(plugins.user_files()) if not all(map(plugins.is_builtin, doc.get("effects") or [])) else ()
@@ -612,7 +615,7 @@ def apply_partitioned(
     target = os.path.abspath(output_dir)
     removed = remove_stale(os.path.dirname(target))  # a killed correction's partitions, never to be published
     if removed:
-        warnings.warn(removed, UserWarning, stacklevel=2)
+        notes.append(Note(removed, UserWarning, "apply"))
     work_dir = tempfile.mkdtemp(prefix=work_dir_prefix(target), suffix=".tmp", dir=os.path.dirname(target))
     cluster = None
     done = False
@@ -697,11 +700,8 @@ def apply_partitioned(
     if missing:
         tensor = gives_tensor(calibration)
         terms = list(dict.fromkeys(t for c in choices.values() for t in calibration.attitude_terms(c)))
-        warnings.warn(
-            attitude_gap_text(missing, sum(r[1] for r in results), calibration.n_sensors, tensor, terms),
-            DataWarning,
-            stacklevel=2,
-        )
+        text = attitude_gap_text(missing, sum(r[1] for r in results), calibration.n_sensors, tensor, terms)
+        notes.append(Note(text, DataWarning, "apply"))
     return PartitionedSummary(
         sum(r[1] for r in results),
         files,
@@ -711,6 +711,7 @@ def apply_partitioned(
         start_s=start_s,
         workers=threads,
         partitions=len(parts),
+        notes=notes,
     )
 
 
