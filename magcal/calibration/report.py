@@ -66,6 +66,8 @@ def _fmt(v, digits=3):
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+# long: one report read top to bottom (title, steps, floors, validation, per sensor), each section a few lines
+# appended to one list; split, the sections would pass the same dozen figures of the result around
 def text_report(result, source: str | None = None) -> str:
     """A readable report of a :class:`~magcal.fitting.pipeline.CalibrationResult`.
 

@@ -264,6 +264,8 @@ class QualityReport:
 
 
 # -- timing --------------------------------------------------------------------------------------------------------
+# long: one pass over the time stamps: rate, jitter, batches, gaps, repeated and backward stamps share the
+# intervals and their usual value, and each finding is a few lines of its text and values
 def timing_findings(time_s) -> list:
     """Sample rate and jitter, gaps, and repeated or backward time stamps.
 

@@ -661,112 +661,144 @@ def explain_difference(bi, bj, channels=None, rate=None, labels=("i", "j")) -> t
     """
     d = bj - bi
     fit = regress_terms(bi, d, channels, rate)
-    theta, cov, share, blocks = fit["theta"], fit["cov"], fit["share"], fit["blocks"]
+    causes = _separable_causes(fit, bi, labels) if fit["separable"] else _constant_causes(fit, channels)
+    causes += _channel_causes(fit, bi, d, channels, labels)
+    causes += _timing_causes(fit, labels)
+    total = _rms(d)
+    for c in causes:  # named when its share and its own size both count, and it is significant
+        own = (c.rms_nT / total) ** 2 if total > 0 else 0.0
+        c.named = min(c.share, own) >= MIN_SHARE and c.significance >= MIN_SIGNIFICANCE
+    causes.sort(key=lambda c: -c.share)
+    return causes, _rms(fit["resid"])
+
+
+def _rms(vec) -> float:
+    """RMS length of the rows of ``vec`` (N, 3), nT."""
+    return float(np.sqrt(np.mean(np.sum(vec * vec, axis=1))))
+
+
+def _part(fit, name) -> np.ndarray:
+    """The part (N, 3, nT) of the difference that term ``name`` of :func:`regress_terms`' ``fit`` explains."""
+    return np.einsum("njk,k->nj", fit["blocks"][name], fit["theta"][name])
+
+
+def _separable_causes(fit, bi, labels) -> list:
+    """(:func:`explain_difference`, where the directions flown separate them.) The mounting, scale and offset
+    between compass i's fields ``bi`` (N, 3, nT) and compass j's."""
+    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
     li, lj = labels
     causes = []
+    omega = theta["rotation"]
+    rotvec = np.degrees(omega)
+    stretch = np.array(
+        [
+            [theta["stretch"][0], theta["stretch"][3], theta["stretch"][4]],
+            [theta["stretch"][3], theta["stretch"][1], theta["stretch"][5]],
+            [theta["stretch"][4], theta["stretch"][5], theta["stretch"][2]],
+        ]
+    )
+    eig = np.linalg.eigvalsh(stretch)
+    med_angle = float(np.median(angle_deg(bi, Rotation.from_rotvec(omega).apply(bi))))
+    causes.append(
+        Cause(
+            "mounting",
+            share["rotation"],
+            _rms(_part(fit, "rotation")),
+            _significance(omega, cov["rotation"]),
+            False,
+            {
+                "mounting_rotvec_deg": -rotvec,
+                "field_rotvec_deg": rotvec,
+                "angle_deg": float(np.linalg.norm(rotvec)),
+                "median_field_angle_deg": med_angle,
+            },
+            f"mounting: compass {lj} is turned {_rotation_text(-rotvec)} relative to compass {li} (its field, "
+            f"read in the body frame, turned back as much: a constant {med_angle:.2f} deg between the fields for "
+            "the directions flown)",
+        )
+    )
+    causes.append(
+        Cause(
+            "scale",
+            share["stretch"],
+            _rms(_part(fit, "stretch")),
+            _significance(theta["stretch"], cov["stretch"]),
+            False,
+            {"stretch_percent": (100 * eig).tolist()},
+            f"scale: their scales differ by up to {100 * float(np.max(np.abs(eig))):.2f} % along some direction "
+            "(soft iron near one, or a scale calibration)",
+        )
+    )
+    offset = theta["offset"]
+    causes.append(
+        Cause(
+            "offset",
+            share["offset"],
+            float(np.linalg.norm(offset)),
+            _significance(offset, cov["offset"]),
+            False,
+            {"offset_nT": offset},
+            f"offset: a constant ({offset[0]:.0f}, {offset[1]:.0f}, {offset[2]:.0f}) nT "
+            f"(|{np.linalg.norm(offset):.0f}| nT: hard iron near one compass, or offsets one calibration left)",
+        )
+    )
+    return causes
 
-    def rms(vec):
-        return float(np.sqrt(np.mean(np.sum(vec * vec, axis=1))))
 
-    def part(name):
-        return np.einsum("njk,k->nj", blocks[name], theta[name])
+def _constant_causes(fit, channels) -> list:
+    """(:func:`explain_difference`, where the directions flown do not separate them.) The constant difference (its
+    angle and |B|, at zero current too) and the part that changes with the field's direction."""
+    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    causes = []
+    d0 = theta["constant"]
+    mean_b = fit["mean_base"]
+    ang0 = float(angle_deg(mean_b[None], (mean_b + d0)[None])[0])
+    dtot0 = float(np.linalg.norm(mean_b + d0) - np.linalg.norm(mean_b))
+    values = {"offset_nT": d0, "angle_deg": ang0, "total_diff_nT": dtot0}
+    text = (
+        f"constant: ({d0[0]:.0f}, {d0[1]:.0f}, {d0[2]:.0f}) nT, {ang0:.2f} deg and {dtot0:+.0f} nT of |B| at the "
+        "mean field"
+    )
+    zero = [name for name in channels or {} if name in CURRENT_COLUMNS]
+    if zero:  # a current has a natural zero: the difference with the motors off
+        name = zero[0]
+        d_off = d0 - theta[name] * float(np.mean(channels[name][0]))
+        ang_off = float(angle_deg(mean_b[None], (mean_b + d_off)[None])[0])
+        values.update(zero_current_offset_nT=d_off, zero_current_angle_deg=ang_off)
+        text += f" ({ang_off:.2f} deg at zero {name})"
+    causes.append(
+        Cause(
+            "constant",
+            share["constant"],
+            float(np.linalg.norm(d0)),
+            _significance(d0, cov["constant"]),
+            False,
+            values,
+            text + ": a mounting off by that angle, or an offset (hard iron); the directions flown cannot tell "
+            "them apart",
+        )
+    )
+    causes.append(
+        Cause(
+            "direction",
+            share["direction"],
+            _rms(_part(fit, "direction")),
+            _significance(theta["direction"], cov["direction"]),
+            False,
+            {},
+            "direction: a part that changes with the field's direction (a scale, soft-iron or mounting difference "
+            "the directions flown do not separate)",
+        )
+    )
+    return causes
 
-    if fit["separable"]:
-        omega = theta["rotation"]
-        rotvec = np.degrees(omega)
-        stretch = np.array(
-            [
-                [theta["stretch"][0], theta["stretch"][3], theta["stretch"][4]],
-                [theta["stretch"][3], theta["stretch"][1], theta["stretch"][5]],
-                [theta["stretch"][4], theta["stretch"][5], theta["stretch"][2]],
-            ]
-        )
-        eig = np.linalg.eigvalsh(stretch)
-        med_angle = float(np.median(angle_deg(bi, Rotation.from_rotvec(omega).apply(bi))))
-        causes.append(
-            Cause(
-                "mounting",
-                share["rotation"],
-                rms(part("rotation")),
-                _significance(omega, cov["rotation"]),
-                False,
-                {
-                    "mounting_rotvec_deg": -rotvec,
-                    "field_rotvec_deg": rotvec,
-                    "angle_deg": float(np.linalg.norm(rotvec)),
-                    "median_field_angle_deg": med_angle,
-                },
-                f"mounting: compass {lj} is turned {_rotation_text(-rotvec)} relative to compass {li} (its field, "
-                f"read in the body frame, turned back as much: a constant {med_angle:.2f} deg between the fields for "
-                "the directions flown)",
-            )
-        )
-        causes.append(
-            Cause(
-                "scale",
-                share["stretch"],
-                rms(part("stretch")),
-                _significance(theta["stretch"], cov["stretch"]),
-                False,
-                {"stretch_percent": (100 * eig).tolist()},
-                f"scale: their scales differ by up to {100 * float(np.max(np.abs(eig))):.2f} % along some direction "
-                "(soft iron near one, or a scale calibration)",
-            )
-        )
-        offset = theta["offset"]
-        causes.append(
-            Cause(
-                "offset",
-                share["offset"],
-                float(np.linalg.norm(offset)),
-                _significance(offset, cov["offset"]),
-                False,
-                {"offset_nT": offset},
-                f"offset: a constant ({offset[0]:.0f}, {offset[1]:.0f}, {offset[2]:.0f}) nT "
-                f"(|{np.linalg.norm(offset):.0f}| nT: hard iron near one compass, or offsets one calibration left)",
-            )
-        )
-    else:
-        d0 = theta["constant"]
-        mean_b = fit["mean_base"]
-        ang0 = float(angle_deg(mean_b[None], (mean_b + d0)[None])[0])
-        dtot0 = float(np.linalg.norm(mean_b + d0) - np.linalg.norm(mean_b))
-        values = {"offset_nT": d0, "angle_deg": ang0, "total_diff_nT": dtot0}
-        text = (
-            f"constant: ({d0[0]:.0f}, {d0[1]:.0f}, {d0[2]:.0f}) nT, {ang0:.2f} deg and {dtot0:+.0f} nT of |B| at the "
-            "mean field"
-        )
-        zero = [name for name in channels or {} if name in CURRENT_COLUMNS]
-        if zero:  # a current has a natural zero: the difference with the motors off
-            name = zero[0]
-            d_off = d0 - theta[name] * float(np.mean(channels[name][0]))
-            ang_off = float(angle_deg(mean_b[None], (mean_b + d_off)[None])[0])
-            values.update(zero_current_offset_nT=d_off, zero_current_angle_deg=ang_off)
-            text += f" ({ang_off:.2f} deg at zero {name})"
-        causes.append(
-            Cause(
-                "constant",
-                share["constant"],
-                float(np.linalg.norm(d0)),
-                _significance(d0, cov["constant"]),
-                False,
-                values,
-                text + ": a mounting off by that angle, or an offset (hard iron); the directions flown cannot tell "
-                "them apart",
-            )
-        )
-        causes.append(
-            Cause(
-                "direction",
-                share["direction"],
-                rms(part("direction")),
-                _significance(theta["direction"], cov["direction"]),
-                False,
-                {},
-                "direction: a part that changes with the field's direction (a scale, soft-iron or mounting difference "
-                "the directions flown do not separate)",
-            )
-        )
+
+def _channel_causes(fit, bi, d, channels, labels) -> list:
+    """(:func:`explain_difference`.) Per channel (current, throttle, temperature) the part of the difference ``d``
+    (N, 3, nT) that follows it: per unit, as an angle and as |B|, over the record's range."""
+    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    li, lj = labels
+    causes = []
     bhat = bi / np.linalg.norm(bi, axis=1)[:, None]
     mean_field = float(np.mean(np.linalg.norm(bi, axis=1)))
     for name, (u, unit) in (channels or {}).items():
@@ -783,7 +815,7 @@ def explain_difference(bi, bj, channels=None, rate=None, labels=("i", "j")) -> t
             Cause(
                 kind,
                 share[name],
-                rms(part(name)),
+                _rms(_part(fit, name)),
                 _significance(kvec, cov[name]),
                 False,
                 {
@@ -802,14 +834,23 @@ def explain_difference(bi, bj, channels=None, rate=None, labels=("i", "j")) -> t
                 f"{deg_per * span:.2f} deg",
             )
         )
-    if "timing" in blocks:
+    return causes
+
+
+def _timing_causes(fit, labels) -> list:
+    """(:func:`explain_difference`.) A delay between the two compasses: the part of the difference that follows the
+    field's rate (when it was regressed)."""
+    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    li, lj = labels
+    causes = []
+    if "timing" in fit["blocks"]:
         tau = float(theta["timing"][0])
         sd = float(np.sqrt(max(float(cov["timing"][0, 0]), 0.0)))
         causes.append(
             Cause(
                 "timing",
                 share["timing"],
-                rms(part("timing")),
+                _rms(_part(fit, "timing")),
                 abs(tau) / max(sd, 1e-12),
                 False,
                 {"delay_ms": 1e3 * tau, "sd_ms": 1e3 * sd},
@@ -818,12 +859,7 @@ def explain_difference(bi, bj, channels=None, rate=None, labels=("i", "j")) -> t
                 "one)",
             )
         )
-    total = rms(d)
-    for c in causes:  # named when its share and its own size both count, and it is significant
-        own = (c.rms_nT / total) ** 2 if total > 0 else 0.0
-        c.named = min(c.share, own) >= MIN_SHARE and c.significance >= MIN_SIGNIFICANCE
-    causes.sort(key=lambda c: -c.share)
-    return causes, rms(fit["resid"])
+    return causes
 
 
 # -- per compass, against the reference field ----------------------------------------------------------------------
@@ -876,6 +912,67 @@ def before_fields(dataset: Dataset, calibration: Calibration | None = None) -> t
             "raw readings in the right-angle orientation nearest each fitted mounting (no calibration)",
         )
     return np.array(dataset.readings_nT, dtype=float), "raw readings (no calibration)"
+
+
+def _mountings(calibration) -> list:
+    """(:func:`compass_consistency`.) Per compass of a vector calibration its mounting: the nearest right angle, the
+    angle off it (deg) and that turn (rotation vector, body frame, deg), its standard deviation (deg), whether the
+    record determines it."""
+    mountings = []
+    for s, cal in enumerate(calibration.sensors):
+        right, off = nearest_right_angle(cal.R)
+        turn = Rotation.from_matrix(cal.R @ right.T).as_rotvec()
+        sd = (cal.summary or {}).get("mounting_sd_deg")
+        mountings.append(
+            {
+                "sensor": s + 1,
+                "right_angle": describe_right_angle(right).split(":")[0],
+                "angle_off_deg": float(off),
+                "off_rotvec_body_deg": np.degrees(turn),
+                "mounting_sd_deg": float(np.linalg.norm(sd)) if sd is not None else 0.0,
+                "determined": bool((cal.summary or {}).get("determined", True)),
+            }
+        )
+    return mountings
+
+
+def _add_mounting_causes(pairs, mountings, before, idx) -> None:
+    """(:func:`compass_consistency`.) To each pair's causes before, the relative mounting of its compasses off the
+    right angles (``mountings``: :func:`_mountings`; ``before``: the fields before, nT; ``idx``: the samples
+    compared), re-ranked."""
+    for p in pairs:  # the relative mounting off the right angles: what a firmware's orientation cannot hold
+        di = Rotation.from_rotvec(np.radians(mountings[p.i]["off_rotvec_body_deg"]))
+        dj = Rotation.from_rotvec(np.radians(mountings[p.j]["off_rotvec_body_deg"]))
+        mount = np.degrees((dj * di.inv()).as_rotvec())  # compass j's mounting relative to compass i's, body
+        turn = dj.inv() * di  # what that does to compass j's field against compass i's
+        bi = before[p.i][idx]
+        vec = turn.apply(bi) - bi
+        size = float(np.sqrt(np.mean(np.sum(vec * vec, axis=1))))
+        share = (size / p.rms_before_nT) ** 2 if p.rms_before_nT > 0 else 0.0
+        med = float(np.median(angle_deg(bi, turn.apply(bi))))
+        sd = float(np.hypot(mountings[p.i]["mounting_sd_deg"], mountings[p.j]["mounting_sd_deg"]))
+        significance = float(np.linalg.norm(mount) / sd) if sd > 0 else float("inf")
+        determined = mountings[p.i]["determined"] and mountings[p.j]["determined"]
+        p.causes_before.append(
+            Cause(
+                "mounting_fit",
+                share,
+                size,
+                significance if determined else 0.0,
+                bool(determined and share >= MIN_SHARE and significance >= MIN_SIGNIFICANCE),
+                {
+                    "mounting_rotvec_deg": mount,
+                    "angle_deg": float(np.linalg.norm(mount)),
+                    "median_field_angle_deg": med,
+                },
+                f"mounting (the calibration's): compass {p.j + 1} sits {mountings[p.j]['angle_off_deg']:.2f} deg "
+                f"off its right angle and compass {p.i + 1} {mountings[p.i]['angle_off_deg']:.2f} deg; compass "
+                f"{p.j + 1} is turned {_rotation_text(mount)} relative to compass {p.i + 1}, which no right-angle "
+                f"orientation holds ({med:.2f} deg between the fields for the directions flown); the calibration's "
+                "mounting turns it out",
+            )
+        )
+        p.causes_before.sort(key=lambda c: -c.share)
 
 
 def compass_consistency(
@@ -998,55 +1095,9 @@ def compass_consistency(
                     out["after"][3],
                 )
             )
-    mountings = []
-    if calibration.mode == "vector":
-        for s, cal in enumerate(calibration.sensors):
-            right, off = nearest_right_angle(cal.R)
-            turn = Rotation.from_matrix(cal.R @ right.T).as_rotvec()
-            sd = (cal.summary or {}).get("mounting_sd_deg")
-            mountings.append(
-                {
-                    "sensor": s + 1,
-                    "right_angle": describe_right_angle(right).split(":")[0],
-                    "angle_off_deg": float(off),
-                    "off_rotvec_body_deg": np.degrees(turn),
-                    "mounting_sd_deg": float(np.linalg.norm(sd)) if sd is not None else 0.0,
-                    "determined": bool((cal.summary or {}).get("determined", True)),
-                }
-            )
-        for p in pairs:  # the relative mounting off the right angles: what a firmware's orientation cannot hold
-            di = Rotation.from_rotvec(np.radians(mountings[p.i]["off_rotvec_body_deg"]))
-            dj = Rotation.from_rotvec(np.radians(mountings[p.j]["off_rotvec_body_deg"]))
-            mount = np.degrees((dj * di.inv()).as_rotvec())  # compass j's mounting relative to compass i's, body
-            turn = dj.inv() * di  # what that does to compass j's field against compass i's
-            bi = before[p.i][idx]
-            vec = turn.apply(bi) - bi
-            size = float(np.sqrt(np.mean(np.sum(vec * vec, axis=1))))
-            share = (size / p.rms_before_nT) ** 2 if p.rms_before_nT > 0 else 0.0
-            med = float(np.median(angle_deg(bi, turn.apply(bi))))
-            sd = float(np.hypot(mountings[p.i]["mounting_sd_deg"], mountings[p.j]["mounting_sd_deg"]))
-            significance = float(np.linalg.norm(mount) / sd) if sd > 0 else float("inf")
-            determined = mountings[p.i]["determined"] and mountings[p.j]["determined"]
-            p.causes_before.append(
-                Cause(
-                    "mounting_fit",
-                    share,
-                    size,
-                    significance if determined else 0.0,
-                    bool(determined and share >= MIN_SHARE and significance >= MIN_SIGNIFICANCE),
-                    {
-                        "mounting_rotvec_deg": mount,
-                        "angle_deg": float(np.linalg.norm(mount)),
-                        "median_field_angle_deg": med,
-                    },
-                    f"mounting (the calibration's): compass {p.j + 1} sits {mountings[p.j]['angle_off_deg']:.2f} deg "
-                    f"off its right angle and compass {p.i + 1} {mountings[p.i]['angle_off_deg']:.2f} deg; compass "
-                    f"{p.j + 1} is turned {_rotation_text(mount)} relative to compass {p.i + 1}, which no right-angle "
-                    f"orientation holds ({med:.2f} deg between the fields for the directions flown); the calibration's "
-                    "mounting turns it out",
-                )
-            )
-            p.causes_before.sort(key=lambda c: -c.share)
+    mountings = _mountings(calibration) if calibration.mode == "vector" else []
+    if mountings:
+        _add_mounting_causes(pairs, mountings, before, idx)
     sensitivities = []
     rows = attitude_rows(dataset)
     ned = getattr(reference, "ned_nT", reference)

@@ -674,6 +674,11 @@ def diagnose_vector(
 ) -> VectorDiagnosis:
     """Diagnose a vector calibration: structure left, ranked candidate effects judged held out, verdict.
 
+    The stages of :func:`magcal.diagnosis.verdict.diagnose`, over one :class:`VectorContext`: the base model's
+    figures (:func:`_vector_base`), then rounds (:func:`_vector_round`) that list the candidates, refit each,
+    judge the supported ones held out and take the best; then the chosen model on every sample, what is left and
+    the verdict (:func:`_vector_explain`).
+
     Parameters
     ----------
     dataset : Dataset
@@ -720,117 +725,224 @@ def diagnose_vector(
     report("fitting the vector model", 0.0)
     if result is None:
         result = fit_vector(dataset, reference, effects=list(effects or ()), warn=False, **options)
+    ctx = _vector_base(dataset, reference, result, also, options, validate)
+    for rnd in range(max_effects if ctx.judged else 0):
+        if not _vector_round(ctx, rnd, candidates, top, report, 0.1 + 0.8 * rnd / max(max_effects, 1)):
+            break
+    return _vector_explain(ctx, t0)
+
+
+@dataclass
+class VectorContext:
+    """What the stages of :func:`diagnose_vector` share, filled in as they run.
+
+    Attributes
+    ----------
+    dataset : Dataset
+    reference : VectorReference
+    result : VectorFitResult
+        The fit diagnosed.
+    record : _Record
+        The record's attitude, field and usable samples.
+    flights : list of (Flight, _Record)
+        The other flights (``also``).
+    fitted : numpy.ndarray of bool
+        The samples the diagnosed fit used.
+    err, total : numpy.ndarray
+        The diagnosed fit's world residuals (n_sensors, N, 3) and total-field residuals (n_sensors, N), nT.
+    noise : dict
+        :func:`_white_noise` of the residuals.
+    weights : tuple of numpy.ndarray
+        Per sensor the total-field and perpendicular noises the scores are weighted with, nT.
+    base : Scores
+        The diagnosed model's figures on its fitted samples.
+    validation : dict
+        :attr:`VectorDiagnosis.validation`.
+    judged : list of int
+        The sensors the record determines (0-based): only their effects are judged.
+    options : dict
+        The refits' options for :func:`magcal.fitting.vector.fit_vector` (``mask``: the samples they use).
+    validate : bool
+    judge : _Judge
+        The held-out judgement.
+    current : VectorFitResult
+        The fit with the chosen effects (on the subsample for a long record).
+    fits : dict
+        Refits by candidate label.
+    all_cands, chosen : list of VectorCandidate
+        Every candidate refitted, and those taken, in order.
+    warnings : list of str
+    notes : list of Note
+    """
+
+    dataset: Any
+    reference: Any
+    result: VectorFitResult
+    record: _Record
+    flights: list
+    fitted: np.ndarray
+    err: np.ndarray
+    total: np.ndarray
+    noise: dict
+    weights: tuple
+    base: Scores
+    validation: dict
+    judged: list
+    options: dict
+    validate: bool
+    judge: Any
+    current: VectorFitResult
+    fits: dict = field(default_factory=dict)
+    all_cands: list = field(default_factory=list)
+    chosen: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+
+
+def _vector_base(dataset, reference, result, also, options, validate) -> VectorContext:
+    """Stage 1, score the base model: its residuals, white noise and figures; the later part held out, the
+    sensors the record determines, the subsample a long record's candidates are judged on."""
+    options = dict(options)
     notes = [Note(w, UserWarning, "vector fit") for w in result.warnings]
-    record = _Record.of(dataset, reference, reference_total_nT)
+    record = _Record.of(dataset, reference, options["reference_total_nT"])
     flights = [(f, _Record.of(f.dataset, f.reference)) for f in also]
     fitted = np.asarray(result.fitted, dtype=bool)
     err, total = record.residuals(result.calibration, "apply")
-    noise = _white_noise(record, err, total, fitted, noise_nT, attitude_noise_deg)
+    noise = _white_noise(record, err, total, fitted, options["noise_nT"], options["attitude_noise_deg"])
     weights = (np.asarray(noise["total_nT"]), np.asarray(noise["perpendicular_nT"]))
     base = _scores(record, err, total, fitted, *weights)
-    warnings_: list[str] = []
     later, validation = _later_split(fitted, validate)
     validation["flights"] = [f.name for f, _ in flights]
     judged = [k for k, s in enumerate(result.sensors) if s.determined]  # a sensor the record does not fix: not judged
-    determined = bool(judged)
     current = result
     sub = _even_subsample(fitted, MAX_SAMPLES)
-    if (
-        sub.sum() < fitted.sum()
-    ):  # a long record: the candidates are judged on every k-th sample, the advice fitted on all
+    if sub.sum() < fitted.sum():  # a long record: the candidates are judged on every k-th sample, the advice on all
         validation["subsample"] = {"samples": int(sub.sum()), "of": int(fitted.sum())}
-        if determined:
+        if judged:
             current = fit_vector(
                 dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options
             )
-    options = dict(options, mask=sub)
+    options["mask"] = sub
     judge = _Judge(dataset, reference, record, later, flights, options, weights, validate, judged)
-    fits: dict = {}
-    all_cands: list[VectorCandidate] = []
-    chosen: list[VectorCandidate] = []
-    if not determined:
-        warnings_.append(
+    ctx = VectorContext(
+        dataset=dataset,
+        reference=reference,
+        result=result,
+        record=record,
+        flights=flights,
+        fitted=fitted,
+        err=err,
+        total=total,
+        noise=noise,
+        weights=weights,
+        base=base,
+        validation=validation,
+        judged=judged,
+        options=options,
+        validate=validate,
+        judge=judge,
+        current=current,
+        notes=notes,
+    )
+    if not judged:
+        ctx.warnings.append(
             "the vector fit is not determined by this record (see its warnings): no effect can be judged; record "
             "banked turns and pitch changes over several minutes"
         )
     elif len(judged) < dataset.n_sensors:
         skipped = ", ".join(str(k + 1) for k in range(dataset.n_sensors) if k not in judged)
-        warnings_.append(
+        ctx.warnings.append(
             f"the vector fit of sensor(s) {skipped} is not determined by this record (see its warnings): no effect on "
             "it is judged"
         )
-    for rnd in range(max_effects if determined else 0):
-        model = current.calibration.model or Model(dataset.n_sensors)
-        cands = vector_candidates(dataset, model, candidates, sensors=judged)
-        if not cands:
-            break
-        report(f"round {rnd + 1}: refitting {len(cands)} candidates", 0.1 + 0.8 * rnd / max(max_effects, 1))
-        tried = _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes, judged)
-        for c, fit in tried:
-            c.round = rnd + 1
-            fits[c.label] = fit
-        supported = [(c, fit) for c, fit in tried if c.supported]
-        for c, _ in tried:
-            if not c.supported:
-                c.why = "not supported in-sample (delta-BIC above -10)"
-        for c, _ in supported[top:]:
-            c.why = f"supported, not judged (only the best {top} are)"
-        for c, fit in supported[:top]:
-            judge(c, current, fit)
-        all_cands.extend(c for c, _ in tried)
-        best = next((c for c, _ in supported[:top] if c.holds), None)
-        if best is None:
-            break
-        best.recommended = True
-        for c, _ in supported[:top]:
-            if c.holds and c is not best:
-                c.why = f"holds, but {best.label} explains more: see the next round"
-        chosen = [c for c in chosen if c.label not in best.replaces] + [best]
-        current = fits[best.label]
-        if not validate:
-            warnings_.append(
-                f"{best.label}: recommended on its in-sample gain alone (held-out judgement off): check it on "
-                "another flight"
-            )
+    return ctx
+
+
+def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool:
+    """One round of the forward selection: the candidates beside the current model (score), each refitted on the
+    whole record (refit, :func:`_refit_round`), the ``top`` supported ones judged held out (validate, :class:`_Judge`),
+    the best that holds taken (judge). Returns whether one was taken (the next round may look further)."""
+    dataset = ctx.dataset
+    model = ctx.current.calibration.model or Model(dataset.n_sensors)
+    cands = vector_candidates(dataset, model, names, sensors=ctx.judged)
+    if not cands:
+        return False
+    report(f"round {rnd + 1}: refitting {len(cands)} candidates", fraction)
+    tried = _refit_round(ctx, model, cands)
+    for c, fit in tried:
+        c.round = rnd + 1
+        ctx.fits[c.label] = fit
+    supported = [(c, fit) for c, fit in tried if c.supported]
+    for c, _ in tried:
+        if not c.supported:
+            c.why = "not supported in-sample (delta-BIC above -10)"
+    for c, _ in supported[top:]:
+        c.why = f"supported, not judged (only the best {top} are)"
+    for c, fit in supported[:top]:
+        ctx.judge(c, ctx.current, fit)
+    ctx.all_cands.extend(c for c, _ in tried)
+    best = next((c for c, _ in supported[:top] if c.holds), None)
+    if best is None:
+        return False
+    best.recommended = True
+    for c, _ in supported[:top]:
+        if c.holds and c is not best:
+            c.why = f"holds, but {best.label} explains more: see the next round"
+    ctx.chosen = [c for c in ctx.chosen if c.label not in best.replaces] + [best]
+    ctx.current = ctx.fits[best.label]
+    if not ctx.validate:
+        ctx.warnings.append(
+            f"{best.label}: recommended on its in-sample gain alone (held-out judgement off): check it on "
+            "another flight"
+        )
+    return True
+
+
+def _vector_explain(ctx: VectorContext, t0) -> VectorDiagnosis:
+    """The last stages: the chosen model refitted on every sample (a long record's rounds used a subsample), the
+    structure left, the verdict (:func:`_verdict`) and the :class:`VectorDiagnosis`."""
+    record, fitted, current, chosen = ctx.record, ctx.fitted, ctx.current, ctx.chosen
     final = None
     if chosen:
-        if "subsample" in validation:
-            options = dict(options, mask=fitted)
-            current = fit_vector(dataset, reference, effects=current.calibration.model, warn=False, **options)
-        final = _score_of(record, current.calibration, "apply", fitted, weights)
-        fits["+".join(c.label for c in chosen)] = current
+        if "subsample" in ctx.validation:
+            options = dict(ctx.options, mask=fitted)
+            current = fit_vector(ctx.dataset, ctx.reference, effects=current.calibration.model, warn=False, **options)
+        final = _score_of(record, current.calibration, "apply", fitted, ctx.weights)
+        ctx.fits["+".join(c.label for c in chosen)] = current
     err_f, total_f = record.residuals(current.calibration, "apply")
     left = _left_structure(record, err_f, total_f, fitted)
-    last = max((c.round for c in all_cands), default=0)
+    last = max((c.round for c in ctx.all_cands), default=0)
     record_holds = [
-        c for c in all_cands if c.round == last and c.supported and c.record_only and not c.recommended and c.later
+        c for c in ctx.all_cands if c.round == last and c.supported and c.record_only and not c.recommended and c.later
     ]
-    verdict, summary = _verdict(base, final, chosen, left, determined, record_holds, all_cands)
+    verdict, summary = _verdict(ctx.base, final, chosen, left, bool(ctx.judged), record_holds, ctx.all_cands)
     return VectorDiagnosis(
         verdict=verdict,
         summary=summary,
-        effects=list(result.terms),
-        reference_text=reference.text,
-        base=base,
-        noise=noise,
-        candidates=all_cands,
+        effects=list(ctx.result.terms),
+        reference_text=ctx.reference.text,
+        base=ctx.base,
+        noise=ctx.noise,
+        candidates=ctx.all_cands,
         explained_by=[c.label for c in chosen],
         record_holds=list(dict.fromkeys(c.label for c in record_holds)),
         final=final,
         left=left,
-        warnings=warnings_,
-        notes=notes,
-        validation=validation,
-        evidence=_evidence(record, err, total),
-        result=result,
-        fits=fits,
+        warnings=ctx.warnings,
+        notes=ctx.notes,
+        validation=ctx.validation,
+        evidence=_evidence(record, ctx.err, ctx.total),
+        result=ctx.result,
+        fits=ctx.fits,
         elapsed_s=_time.perf_counter() - t0,
     )
 
 
-def _refit_round(dataset, reference, record, current, model, cands, fitted, weights, options, notes, judged) -> list:
-    """Every candidate refitted with ``model`` on the whole record: ``[(VectorCandidate, VectorFitResult)]``, lowest
-    delta-BIC first."""
+def _refit_round(ctx: VectorContext, model, cands) -> list:
+    """Every candidate refitted with ``model`` (the current fit's) on the whole record (``ctx.options``' samples):
+    ``[(VectorCandidate, VectorFitResult)]``, lowest delta-BIC first; a failed refit leaves a note."""
+    dataset, reference, record, current = ctx.dataset, ctx.reference, ctx.record, ctx.current
+    fitted, weights, options, notes, judged = ctx.fitted, ctx.weights, ctx.options, ctx.notes, ctx.judged
     base_ll = _log_likelihood_terms(current)
     base_in = {}
     tried = []

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import threading
 import time as _time
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -720,6 +722,11 @@ def diagnose(
 ) -> Diagnosis:
     """Diagnose a calibration model on a dataset: structure left, ranked candidate effects, verdict.
 
+    The diagnosis runs in named stages over one :class:`DiagnosisContext`: :func:`_score` (the score tests, and
+    the base fit's own analyses handed to the pool), :func:`_refit` (the best candidates refitted),
+    :func:`_validate` (their held-out judgement), :func:`_judge` (the forward selection and the verdict) and
+    :func:`_explain` (summary, warnings, evidence: the :class:`Diagnosis`).
+
     Parameters
     ----------
     dataset : Dataset
@@ -764,16 +771,7 @@ def diagnose(
         if progress is not None:
             progress(msg, frac)
 
-    fit0 = _fit_of(result)
-    fit_notes = []  # what the diagnosis's own fits say (a given result's notes are its caller's)
-    if fit0 is None:
-        report("fitting the model", 0.0)
-        if model is not None:
-            res = calibrate(dataset, effects=list(model.effects), base_terms=model.base)
-        else:
-            res = calibrate(dataset, effects=list(effects or ()))
-        fit0 = res.fit
-        fit_notes += res.notes
+    fit0, fit_notes = _model_fit(dataset, result, model, effects, report)
     kept = _kept(dataset, fit0)
     directions, fields = _sensor_directions(kept, fit0)
 
@@ -786,380 +784,567 @@ def diagnose(
         for text in (pool.removed, pool.note):
             if text:
                 fit_notes.append(_notes.Note(text, UserWarning, "diagnose"))
-        cands, proj, _ = _score_round(dataset, kept, fit0, candidates, pool=pool)
-        return _after_scores(
-            dataset,
-            kept,
-            fit0,
-            cands,
-            proj,
-            directions,
-            fields,
-            pool,
-            report,
-            top=top,
-            candidates=candidates,
-            max_effects=max_effects,
-            validate=validate,
-            noise_nT=noise_nT,
+        ctx = DiagnosisContext(
+            dataset=dataset,
+            kept=kept,
+            fit0=fit0,
+            directions=directions,
+            fields=fields,
+            pool=pool,
+            report=report,
+            options=DiagnosisOptions(top, candidates, max_effects, validate, noise_nT),
             t_start=t_start,
             fit_notes=fit_notes,
         )
+        _score(ctx)
+        _refit(ctx)
+        _validate(ctx)
+        _judge(ctx)
+        return _explain(ctx)
 
 
-def _after_scores(
-    dataset,
-    kept,
-    fit0,
-    cands,
-    proj,
-    directions,
-    fields,
-    pool,
-    report,
-    top,
-    candidates,
-    max_effects,
-    validate,
-    noise_nT,
-    t_start,
-    fit_notes,
-) -> Diagnosis:
-    """:func:`diagnose` from the first round's score tests on: refits, held-out judgement, forward selection and
-    evidence, each piece handed to ``pool`` as soon as what it needs is ready. ``fit_notes``: the notes of the
-    fits made so far; those of the refits and held-out fits are added (each fit returns its own, on whichever
-    thread it ran)."""
-    ns, n = kept.n_sensors, kept.n_samples
-    coupled = fit0.vector_residuals_nT is not None
-    ordered = is_smooth_sequence(kept)
-    r0 = fit0.residuals_nT[:, fit0.mask]
-    # what depends on the base fit alone is worked out while the refits run
-    sh_futures = [
+def _model_fit(dataset, result, model, effects, report) -> tuple:
+    """The fit to diagnose (``result``'s, or the model fitted here) and the notes of the fit made here (a given
+    result's notes are its caller's)."""
+    fit0 = _fit_of(result)
+    fit_notes: list = []
+    if fit0 is None:
+        report("fitting the model", 0.0)
+        if model is not None:
+            res = calibrate(dataset, effects=list(model.effects), base_terms=model.base)
+        else:
+            res = calibrate(dataset, effects=list(effects or ()))
+        fit0 = res.fit
+        fit_notes += res.notes
+    return fit0, fit_notes
+
+
+# ---- the stages of the diagnosis ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DiagnosisOptions:
+    """The choices of :func:`diagnose` the stages read (its parameters of the same names)."""
+
+    top: int
+    candidates: object
+    max_effects: int
+    validate: bool
+    noise_nT: float | None
+
+
+@dataclass
+class DiagnosisContext:
+    """What the stages of :func:`diagnose` share, filled in as they run (score -> refit -> validate -> judge ->
+    explain). Each stage reads what the ones before it set and sets its own part; work handed to the pool is
+    held as futures until a stage needs it.
+
+    Attributes
+    ----------
+    dataset : Dataset
+        The whole record (the pool shares it).
+    kept : Dataset
+        The samples the diagnosed fit used.
+    fit0 : FitResult
+        The fit diagnosed.
+    directions, fields : list of numpy.ndarray
+        Per sensor the field directions (unit vectors) and magnitudes (nT) of the kept samples.
+    pool : Pool
+        Where the independent fits run (:mod:`magcal.diagnosis._parallel`).
+    report : callable
+        ``report(message, fraction)``, the progress.
+    options : DiagnosisOptions
+    t_start : float
+        :func:`time.perf_counter` when the diagnosis began, s.
+    fit_notes : list of Note
+        What the diagnosis's own fits said, in order.
+    ordered : bool
+        Whether the kept samples are a smooth sequence in time (:func:`magcal.checks.noise.is_smooth_sequence`).
+    coupled : bool
+        Whether the model has inter-sensor consistency residuals.
+    r0 : numpy.ndarray
+        The diagnosed fit's total-field residuals on its kept samples, (n_sensors, N) nT.
+    cands, proj
+        The candidates (best first, re-ranked by each stage) and the first score round's projector.
+    futures : dict
+        The base fit's analyses handed to the pool by :func:`_score`: ``sh`` (per sensor), ``structure``,
+        ``undetermined``, ``evidence`` (time, temperature, spectrum, sensors).
+    fits : dict
+        Refits by candidate label.
+    early : _HeldOut or None
+        The held-out judgement started beside the first refits.
+    ahead : dict
+        The first forward-selection round's work started at a refit (label -> (structure, scores) futures).
+    pending : dict
+        Held-out fits handed to the pool beside the first refits (label -> futures per scheme).
+    sh_stats : list of dict
+        Per sensor the spherical-harmonic analysis of ``r0``.
+    held_out : _HeldOut or None
+        The held-out judgement used (None: not validated).
+    skipped : str or None
+        Why the held-out judgement was skipped.
+    validation_notes : list of str
+        Warnings of the held-out judgement and of the base checks.
+    undetermined, units : str or None
+        :func:`_undetermined` and :func:`_units_question` of the base fit.
+    noise0, structure0, stats0
+        Noise, significant structure and test statistics of the diagnosed fit's residuals.
+    explained, chosen : list
+        Labels and candidates the forward selection took, in order.
+    current : FitResult
+        The fit with ``chosen`` added (``fit0`` when none).
+    current_noise, remaining, stats_final
+        Noise, structure and statistics of ``current``'s residuals.
+    noise_final : NoiseEstimate
+        The noise the verdict is stated against.
+    verdict, summary : str
+        Set by :func:`_judge`; :func:`_explain` adds to the summary.
+    """
+
+    dataset: Any
+    kept: Any
+    fit0: Any
+    directions: list
+    fields: list
+    pool: Any
+    report: Callable
+    options: DiagnosisOptions
+    t_start: float
+    fit_notes: list
+    ordered: bool = False
+    coupled: bool = False
+    r0: Any = None
+    cands: list = field(default_factory=list)
+    proj: Any = None
+    futures: dict = field(default_factory=dict)
+    fits: dict = field(default_factory=dict)
+    early: Any = None
+    ahead: dict = field(default_factory=dict)
+    pending: dict = field(default_factory=dict)
+    sh_stats: list = field(default_factory=list)
+    held_out: Any = None
+    skipped: str | None = None
+    validation_notes: list = field(default_factory=list)
+    undetermined: str | None = None
+    units: str | None = None
+    noise0: Any = None
+    structure0: list = field(default_factory=list)
+    stats0: list = field(default_factory=list)
+    explained: list = field(default_factory=list)
+    chosen: list = field(default_factory=list)
+    current: Any = None
+    current_noise: Any = None
+    remaining: list = field(default_factory=list)
+    stats_final: list = field(default_factory=list)
+    noise_final: Any = None
+    verdict: str = ""
+    summary: str = ""
+
+
+def _noise_and_structure(ctx, kept, fit, directions=None) -> tuple:
+    """Noise, significant structure and test statistics of ``fit``'s residuals on its kept samples ``kept``
+    (``directions``: its sensors' field directions, computed when not given)."""
+    if directions is None:
+        directions, _ = _sensor_directions(kept, fit)
+    noise = estimate_noise(
+        kept, fit.residuals_nT[:, fit.mask], fit.n_params, ctx.ordered, noise_nT=ctx.options.noise_nT
+    )
+    return (noise,) + tuple(_structure_tests(kept, fit, noise, ctx.ordered, directions))
+
+
+def _next_round(ctx, c, scores) -> tuple:
+    """The forward selection's round if it takes ``c``, handed to the pool: (structure, score tests) futures;
+    ``scores``: whether that round will look for a further effect (else None for them)."""
+    kept_c = _kept(ctx.dataset, c.fit)
+    structure = ctx.pool.submit(lambda: _noise_and_structure(ctx, kept_c, c.fit), SHARED)
+    if not scores:
+        return structure, None
+    return structure, ctx.pool.submit(
+        lambda: _score_round(ctx.dataset, kept_c, c.fit, ctx.options.candidates, previous=c, pool=ctx.pool), SHARED
+    )
+
+
+def _score(ctx: DiagnosisContext) -> None:
+    """Stage 1, score: the first round's score tests (:func:`~magcal.diagnosis.scores._score_round`); what depends
+    on the base fit alone (its noise and structure, spherical harmonics, whether it is determined, the evidence) is
+    handed to the pool to be worked out while the refits run."""
+    kept, fit0, pool, directions = ctx.kept, ctx.fit0, ctx.pool, ctx.directions
+    ctx.cands, ctx.proj, _ = _score_round(ctx.dataset, kept, fit0, ctx.options.candidates, pool=pool)
+    ctx.coupled = fit0.vector_residuals_nT is not None
+    ctx.ordered = ordered = is_smooth_sequence(kept)
+    ctx.r0 = r0 = fit0.residuals_nT[:, fit0.mask]
+    ctx.futures["sh"] = [
         pool.submit(lambda s=s: sh_analysis(directions[s], r0[s], max_samples=SH_MAX_SAMPLES), SHARED)
-        for s in range(ns)
+        for s in range(kept.n_sensors)
     ]
-
-    def noise_and_structure(kept_c=None, current=None):  # the base fit's (the same name serves later rounds)
-        noise = estimate_noise(kept, r0, fit0.n_params, ordered, noise_nT=noise_nT)
-        return (noise,) + tuple(_structure_tests(kept, fit0, noise, ordered, directions))
-
-    structure_future = pool.submit(noise_and_structure, SHARED)
-    undetermined_future = pool.submit(lambda: _undetermined(fit0, directions), FILLER)
-    evidence_futures = [
+    ctx.futures["structure"] = pool.submit(lambda: _noise_and_structure(ctx, kept, fit0, directions), SHARED)
+    ctx.futures["undetermined"] = pool.submit(lambda: _undetermined(fit0, directions), FILLER)
+    ctx.futures["evidence"] = [
         pool.submit(call, FILLER)
         for call in (
             lambda: _time_evidence(kept, r0, ordered),
             lambda: _temperature_evidence(kept, r0, directions),
             lambda: [spectrum(row, kept.time_s) for row in r0] if ordered else None,
-            lambda: _sensor_evidence(kept, fit0, r0, fields),
+            lambda: _sensor_evidence(kept, fit0, r0, ctx.fields),
         )
     ]
-    fits: dict = {}
-    report("refitting the best candidates", 0.4)
-    # the base model's held-out fits need fit0 alone: when a candidate is predicted to be supported, they are made
-    # beside the refits, and a supported candidate's own the moment its refit returns; else only if a refit is
-    # supported
-    early = None
+
+
+def _early_held_out(ctx: DiagnosisContext):
+    """The held-out judgement started beside the first refits when a candidate is predicted to be supported (the
+    base model's held-out fits need the base fit alone), or None."""
     if (
-        validate
-        and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in cands)
-        and _validation.split_problem(kept) is None
+        ctx.options.validate
+        and any(c.predicted_delta_bic < DELTA_BIC_THRESHOLD for c in ctx.cands)
+        and _validation.split_problem(ctx.kept) is None
     ):
         try:
-            early = _HeldOut(kept, fit0, pool)
+            return _HeldOut(ctx.kept, ctx.fit0, ctx.pool)
         except MagcalError:
-            early = None
+            return None
+    return None
 
-    def structure_of(kept_c, current):  # noise and structure of the residuals of a chosen candidate's fit
-        dirs_c, _ = _sensor_directions(kept_c, current)
-        noise = estimate_noise(
-            kept_c, current.residuals_nT[:, current.mask], current.n_params, ordered, noise_nT=noise_nT
-        )
-        return (noise,) + tuple(_structure_tests(kept_c, current, noise, ordered, dirs_c))
 
-    def next_round(c, scores=max_effects >= 2):  # the forward selection's round if it takes c: (structure, score
-        # tests) futures; ``scores``: whether that round will look for a further effect
-        kept_c = _kept(dataset, c.fit)
-        structure = pool.submit(lambda: structure_of(kept_c, c.fit), SHARED)
-        if not scores:
-            return structure, None
-        return structure, pool.submit(
-            lambda: _score_round(dataset, kept_c, c.fit, candidates, previous=c, pool=pool), SHARED
-        )
+def _refit(ctx: DiagnosisContext) -> None:
+    """Stage 2, refit: the ``top`` best distinct candidates refitted (:func:`~magcal.diagnosis.scores._confirm`),
+    each candidate's evidence line written.
 
-    # with cores to spare, the next round of the candidate predicted best is started as soon as its refit supports
-    # it (the in-sample best, known once every refit has returned, is nearly always that one)
-    ahead: dict = {}
-    predicted_best = _predicted_best(cands) if max_effects > 0 else None
-
+    Beside the refits run the base model's held-out fits and, for a candidate predicted to be supported, its own
+    (:class:`_BesideRefits`); with cores to spare the next round of the candidate predicted best starts as soon as
+    its refit supports it (the in-sample best, known once every refit has returned, is nearly always that one)."""
+    pool, fit0, opts = ctx.pool, ctx.fit0, ctx.options
+    ctx.report("refitting the best candidates", 0.4)
+    early = ctx.early = _early_held_out(ctx)
+    predicted_best = _predicted_best(ctx.cands) if opts.max_effects > 0 else None
     beside = _BesideRefits(pool, early, fit0)
 
     def after_refit(c):
         if c is predicted_best and pool.concurrent and _refit_supports(c):
-            ahead[c.label] = next_round(c)
+            ctx.ahead[c.label] = _next_round(ctx, c, opts.max_effects >= 2)
         beside.after(c)
 
-    cands = _confirm(
-        dataset,
+    ctx.cands = _confirm(
+        ctx.dataset,
         fit0,
-        cands,
-        top,
-        coupled,
-        fits,
+        ctx.cands,
+        opts.top,
+        ctx.coupled,
+        ctx.fits,
         alongside=[] if early is None else [lambda s=s: early.prepare(fit0, s) for s in _validation.SCHEMES],
         pool=pool,
         after_refit=after_refit,
         beside_refit=beside.beside,
     )
-    pending = beside.settle(cands)
-    sh_stats = [future.result() for future in sh_futures]
-    for c in cands:
-        _add_fit_notes(fit_notes, c.fit)
-    for c in cands:
+    ctx.pending = beside.settle(ctx.cands)
+    ctx.sh_stats = [future.result() for future in ctx.futures["sh"]]
+    for c in ctx.cands:
+        _add_fit_notes(ctx.fit_notes, c.fit)
+    for c in ctx.cands:
         note = c.evidence  # e.g. a failed refit
-        c.evidence = _evidence_line(c, _effect_extra(c, kept, fit0, directions, sh_stats))
+        c.evidence = _evidence_line(c, _effect_extra(c, ctx.kept, fit0, ctx.directions, ctx.sh_stats))
         if note:
             c.evidence += "; " + note
 
-    # held-out judgement of the supported refits
-    validation_notes = []
-    skipped = None if validate else "not asked for (validate=False, --no-validate)"
-    if validate and any(c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD for c in cands):
+
+def _validate(ctx: DiagnosisContext) -> None:
+    """Stage 3, validate: the held-out judgement of the supported refits (:func:`_judge_round`, which re-ranks the
+    candidates), then the checks of the base fit itself: whether the data determine it (:func:`_undetermined`),
+    its units (:func:`_units_question`), and a refit that moves the fitted field (:func:`_changes_the_field`)."""
+    opts, kept, fit0 = ctx.options, ctx.kept, ctx.fit0
+    skipped = None if opts.validate else "not asked for (validate=False, --no-validate)"
+    if opts.validate and any(c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD for c in ctx.cands):
         skipped = _validation.split_problem(kept)
     held_out = None
-    if validate and skipped is None:
-        report("held-out validation of the supported candidates", 0.5)
+    if opts.validate and skipped is None:
+        ctx.report("held-out validation of the supported candidates", 0.5)
         try:
-            held_out = early if early is not None else _HeldOut(kept, fit0, pool)
+            held_out = ctx.early if ctx.early is not None else _HeldOut(kept, fit0, ctx.pool)
         except MagcalError as exc:
             skipped = str(exc)
-    if skipped and validate:
-        validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
+    if skipped and opts.validate:
+        ctx.validation_notes.append(f"held-out validation skipped: {skipped}; the candidates are judged in-sample only")
+    ctx.held_out, ctx.skipped = held_out, skipped
 
-    # the first round of the forward selection below (the structure of the chosen fit's residuals, the next score
+    # the first round of the forward selection (the structure of the chosen fit's residuals, the next score
     # tests), started at the in-sample best's refit while the held-out fits run: used only if the judgement keeps
-    # that candidate first (they are then what the loop would compute, from the same inputs), else computed anew
-    guess = _in_sample_best(cands) if max_effects > 0 else None
-    if guess is not None and guess.label not in ahead:
-        ahead[guess.label] = next_round(guess)
-    cands = _judge_round(
-        held_out, fit0, cands, validation_notes, pool, pending if held_out is early else None, fit_notes
-    )
-    undetermined = undetermined_future.result()
-    units = _units_question(fit0, directions)
-    if units:
-        validation_notes.append(units)
-    if undetermined:
-        validation_notes.append(
-            f"the base calibration is not determined by these data ({undetermined}): no effect "
+    # that candidate first (they are then what the selection would compute, from the same inputs), else computed
+    # anew
+    guess = _in_sample_best(ctx.cands) if opts.max_effects > 0 else None
+    if guess is not None and guess.label not in ctx.ahead:
+        ctx.ahead[guess.label] = _next_round(ctx, guess, opts.max_effects >= 2)
+    pending = ctx.pending if held_out is ctx.early else None
+    ctx.cands = _judge_round(held_out, fit0, ctx.cands, ctx.validation_notes, ctx.pool, pending, ctx.fit_notes)
+    _check_base(ctx)
+
+
+def _check_base(ctx: DiagnosisContext) -> None:
+    """(Part of :func:`_validate`.) The base fit's own checks; a candidate whose refit moves the fitted field is
+    not recommended."""
+    ctx.undetermined = ctx.futures["undetermined"].result()
+    ctx.units = _units_question(ctx.fit0, ctx.directions)
+    if ctx.units:
+        ctx.validation_notes.append(ctx.units)
+    if ctx.undetermined:
+        ctx.validation_notes.append(
+            f"the base calibration is not determined by these data ({ctx.undetermined}): no effect "
             "is recommended until the record covers more directions"
         )
-    for c in cands:
-        changed = _changes_the_field(fit0, c)
+    for c in ctx.cands:
+        changed = _changes_the_field(ctx.fit0, c)
         if changed and c.holds is not False:
             c.holds = False
             c.evidence += "; " + changed
-            validation_notes.append(changed)
+            ctx.validation_notes.append(changed)
 
+
+def _judge(ctx: DiagnosisContext) -> None:
+    """Stage 4, judge: the forward selection (:func:`_select`) and the verdict with its summary
+    (:func:`_verdict`)."""
     # noise and structure of the model as given
-    noise0, structure0, stats0 = structure_future.result()
+    ctx.noise0, ctx.structure0, ctx.stats0 = ctx.futures["structure"].result()
+    _select(ctx)
+    _verdict(ctx)
 
-    # greedy forward selection while the best candidate is supported
-    explained, chosen, current, current_noise = [], [], fit0, noise0
-    remaining, stats_final = structure0, stats0
-    round_cands = cands
-    round_ahead: dict = {}  # the next iteration's work started at its candidate's refit (below), by label
+
+def _select(ctx: DiagnosisContext) -> None:
+    """Greedy forward selection while the best candidate is recommendable: each round takes the best, then scores,
+    refits and judges held out the candidates beside it (:func:`_further_round`). Sets ``explained``, ``chosen``,
+    ``current`` and the noise and structure of ``current``'s residuals."""
+    max_effects = ctx.options.max_effects
+    ctx.current, ctx.current_noise = ctx.fit0, ctx.noise0
+    ctx.remaining, ctx.stats_final = ctx.structure0, ctx.stats0
+    round_cands, ahead = ctx.cands, ctx.ahead
     for step in range(max_effects):
         supported = [
-            c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not undetermined
+            c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not ctx.undetermined
         ]
         if not supported:
             break
         best = supported[0]
-        nxt = best.fit
-        if nxt is None:
+        if best.fit is None:
             break
-        explained.append(best.label)
-        chosen.append(best)
-        current = nxt
-        kept_c = _kept(dataset, current)
+        ctx.explained.append(best.label)
+        ctx.chosen.append(best)
+        ctx.current = best.fit
+        kept_c = _kept(ctx.dataset, ctx.current)
         # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once
         # the in-sample best is known, a later one's at the refit of the previous round's candidate
-        ahead_structure, ahead_scores = (ahead if step == 0 else round_ahead).get(best.label, (None, None))
+        ahead_structure, ahead_scores = ahead.get(best.label, (None, None))
         if ahead_structure is not None:
             structure_c = ahead_structure
-        else:
-            structure_c = pool.submit(lambda k=kept_c, c=current: structure_of(k, c), SHARED)  # beside the scores
+        else:  # beside the scores
+            structure_c = ctx.pool.submit(lambda k=kept_c, c=ctx.current: _noise_and_structure(ctx, k, c), SHARED)
         if step + 1 >= max_effects:
-            current_noise, remaining, stats_final = structure_c.result()
+            ctx.current_noise, ctx.remaining, ctx.stats_final = structure_c.result()
             break
-        report("looking for a further effect", 0.6 + 0.2 * step)
-        if ahead_scores is not None:
-            more, _, _ = ahead_scores.result()
-        else:
-            more, _, _ = _score_round(dataset, kept_c, current, candidates, previous=best, pool=pool)
-        more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
-        if not more:
-            current_noise, remaining, stats_final = structure_c.result()
+        further = _further_round(ctx, step, best, kept_c, ahead_scores, structure_c)
+        if further is None:
             break
-        # as in the first round, with cores to spare: the held-out fits of the candidate and of this round's base
-        # model run beside its refit, and the next round's work starts when the refit supports it (the structure
-        # of the chosen fit's residuals, still running, is not waited for until then)
-        round_beside = _BesideRefits(pool, held_out, current)
-        round_ahead = {}
+        round_cands, ahead = further
 
-        def after(c, handed=round_ahead, scores=step + 2 < max_effects, beside=round_beside):
-            if pool.concurrent and _refit_supports(c):
-                handed[c.label] = next_round(c, scores)
-            beside.after(c)
 
-        base_ahead = (
-            [lambda s=s, base=current: held_out.prepare(base, s) for s in _validation.SCHEMES]
-            if held_out is not None and pool.concurrent
-            else []
-        )
-        more = _confirm(
-            dataset,
-            current,
-            more,
-            1,
-            coupled,
-            fits,
-            base_ahead,
-            pool=pool,
-            after_refit=after,
-            beside_refit=round_beside.beside,
-        )
-        for c in more:
-            _add_fit_notes(fit_notes, c.fit)
-        pending = round_beside.settle(more)
-        current_noise, remaining, stats_final = structure_c.result()
-        round_cands = _judge_round(held_out, current, more, validation_notes, pool, pending, fit_notes=fit_notes)
+def _further_round(ctx: DiagnosisContext, step, best, kept_c, ahead_scores, structure_c):
+    """One round of :func:`_select` after it took ``best`` (its fit ``ctx.current`` on the samples ``kept_c``):
+    score tests for a further effect, refits and held-out judgement of the supported ones. Returns the round's
+    candidates re-ranked and the next round's work started ahead (by label), or None when no candidate is
+    predicted to be supported. Sets the noise and structure of ``current``'s residuals (``structure_c``)."""
+    pool, held_out, current = ctx.pool, ctx.held_out, ctx.current
+    ctx.report("looking for a further effect", 0.6 + 0.2 * step)
+    if ahead_scores is not None:
+        more, _, _ = ahead_scores.result()
+    else:
+        more, _, _ = _score_round(ctx.dataset, kept_c, current, ctx.options.candidates, previous=best, pool=pool)
+    more = [c for c in more if c.predicted_delta_bic < DELTA_BIC_THRESHOLD]
+    if not more:
+        ctx.current_noise, ctx.remaining, ctx.stats_final = structure_c.result()
+        return None
+    # as in the first round, with cores to spare: the held-out fits of the candidate and of this round's base
+    # model run beside its refit, and the next round's work starts when the refit supports it (the structure
+    # of the chosen fit's residuals, still running, is not waited for until then)
+    round_beside = _BesideRefits(pool, held_out, current)
+    round_ahead: dict = {}
+    scores = step + 2 < ctx.options.max_effects
 
-    # verdict
-    supported0 = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
-    noise_final = current_noise if explained else noise0
-    if not structure0 and not supported0:
-        verdict = "adequate"
-        summary = (
+    def after(c):
+        if pool.concurrent and _refit_supports(c):
+            round_ahead[c.label] = _next_round(ctx, c, scores)
+        round_beside.after(c)
+
+    base_ahead = (
+        [lambda s=s, base=current: held_out.prepare(base, s) for s in _validation.SCHEMES]
+        if held_out is not None and pool.concurrent
+        else []
+    )
+    more = _confirm(
+        ctx.dataset,
+        current,
+        more,
+        1,
+        ctx.coupled,
+        ctx.fits,
+        base_ahead,
+        pool=pool,
+        after_refit=after,
+        beside_refit=round_beside.beside,
+    )
+    for c in more:
+        _add_fit_notes(ctx.fit_notes, c.fit)
+    pending = round_beside.settle(more)
+    ctx.current_noise, ctx.remaining, ctx.stats_final = structure_c.result()
+    judged = _judge_round(held_out, current, more, ctx.validation_notes, pool, pending, fit_notes=ctx.fit_notes)
+    return judged, round_ahead
+
+
+def _verdict(ctx: DiagnosisContext) -> None:
+    """(Part of :func:`_judge`.) The verdict, its summary and the noise it is stated against."""
+    fit0, noise0, explained = ctx.fit0, ctx.noise0, ctx.explained
+    supported0 = [c for c in ctx.cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
+    ctx.noise_final = ctx.current_noise if explained else noise0
+    if not ctx.structure0 and not supported0:
+        ctx.verdict = "adequate"
+        ctx.summary = (
             f"no significant structure: the residuals ({fit0.rms_nT:.3g} nT RMS) look like noise of "
             f"{noise0.sigma_nT:.3g} nT"
         )
-    elif explained and not remaining:
-        verdict = "missing_effect"
-        rms_after = current.rms_nT
-        summary = (
-            f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
-            "the total-field RMS from "
-            f"{fit0.rms_nT:.3g} to {rms_after:.3g} nT (noise {noise_final.sigma_nT:.3g} nT)"
-        )
-        if coupled:
-            summary += (
-                f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to {_vector_rms(current):.3g} nT"
-            )
-        summary += _held_out_words(chosen)
+    elif explained and not ctx.remaining:
+        ctx.verdict = "missing_effect"
+        ctx.summary = _missing_summary(ctx)
     else:
-        verdict = "unexplained"
-        what = _describe(remaining if explained else structure0) or "residual structure the score tests flag"
-        tried = ""
-        if cands:
-            b = cands[0]
-            tried = (
-                (
-                    f"; the best catalogue term ({b.label}) only takes the RMS from {fit0.rms_nT:.3g} to "
-                    f"{b.rms_after_nT:.3g} nT"
-                )
-                if b.refitted
-                else ""
-            )
-        summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
-        meaning = _unexplained_meaning(remaining if explained else structure0)
-        if meaning:
-            summary += f". {meaning}"
-        if undetermined:
-            summary = (
-                f"the base calibration is not determined by these data ({undetermined}), so no effect can "
-                f"be judged; {summary}"
-            )
-        if explained:
-            summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(chosen)
-    if units:
-        summary = f"{units.split('. ')[0]}; {summary}"
-    # what describes this record vs what improves the calibration for new data (issue 28); a temperature term on a
-    # record whose temperature follows time is never advice, judged held out or not (the later stretch follows the
-    # same clock)
+        ctx.verdict = "unexplained"
+        ctx.summary = _unexplained_summary(ctx)
+    if ctx.units:
+        ctx.summary = f"{ctx.units.split('. ')[0]}; {ctx.summary}"
+
+
+def _missing_summary(ctx: DiagnosisContext) -> str:
+    """The summary of a ``missing_effect`` verdict."""
+    explained, fit0 = ctx.explained, ctx.fit0
+    summary = (
+        f"missing {' and '.join(explained)}: adding {'them' if len(explained) > 1 else 'it'} brings "
+        "the total-field RMS from "
+        f"{fit0.rms_nT:.3g} to {ctx.current.rms_nT:.3g} nT (noise {ctx.noise_final.sigma_nT:.3g} nT)"
+    )
+    if ctx.coupled:
+        summary += (
+            f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to {_vector_rms(ctx.current):.3g} nT"
+        )
+    return summary + _held_out_words(ctx.chosen)
+
+
+def _unexplained_summary(ctx: DiagnosisContext) -> str:
+    """The summary of an ``unexplained`` verdict: what is left, the best term tried, what the pattern means."""
+    explained, left = ctx.explained, ctx.remaining if ctx.explained else ctx.structure0
+    what = _describe(left) or "residual structure the score tests flag"
+    tried = ""
+    if ctx.cands and ctx.cands[0].refitted:
+        b = ctx.cands[0]
+        tried = (
+            f"; the best catalogue term ({b.label}) only takes the RMS from {ctx.fit0.rms_nT:.3g} to "
+            f"{b.rms_after_nT:.3g} nT"
+        )
+    summary = f"significant structure that no catalogue term brings down to the noise: {what}{tried}"
+    meaning = _unexplained_meaning(left)
+    if meaning:
+        summary += f". {meaning}"
+    if ctx.undetermined:
+        summary = (
+            f"the base calibration is not determined by these data ({ctx.undetermined}), so no effect can "
+            f"be judged; {summary}"
+        )
+    if explained:
+        summary += f"; {' and '.join(explained)} help(s)" + _held_out_words(ctx.chosen)
+    return summary
+
+
+def _explain(ctx: DiagnosisContext) -> Diagnosis:
+    """Stage 5, explain: what this record holds against what is advice for a calibration (issue 28), the
+    warnings, the evidence, and the :class:`Diagnosis`."""
+    chosen, fit0, kept = ctx.chosen, ctx.fit0, ctx.kept
+    # a temperature term on a record whose temperature follows time is never advice, judged held out or not (the
+    # later stretch follows the same clock)
     for c in chosen:
         c.confounded = c.confounded or _confounded(kept, c)
     holds_here = [c for c in chosen if c.record_only or c.transfers is False or c.confounded]
-    record_holds = [c.label for c in holds_here]
+    summary = ctx.summary
     if holds_here:
         summary += "; " + _record_holds_words(holds_here, chosen)
     explained = [c.label for c in chosen if _advised(c)]
-    partial = []
-    if verdict != "missing_effect":
+    partial: list = []
+    if ctx.verdict != "missing_effect":
         partial, explained = explained, []
-    warnings_ = _warnings_for(cands, proj, kept, fit0, noise0, structure0)
+    if chosen:
+        ctx.fits["+".join(c.label for c in chosen)] = ctx.current
+    n_sensors = kept.n_sensors
+    return Diagnosis(
+        verdict=ctx.verdict,
+        summary=summary,
+        effects=fit0.model.effect_labels,
+        rms_nT=float(fit0.rms_nT),
+        rms_per_sensor_nT=np.asarray(fit0.rms_per_sensor_nT),
+        noise=ctx.noise_final,
+        floor_nT=_floor(ctx.noise_final.sigma_nT, kept.n_samples, fit0.n_params / n_sensors),
+        candidates=ctx.cands,
+        explained_by=explained,
+        partially_explained_by=partial,
+        warnings=_diagnosis_warnings(ctx, explained, partial),
+        structure=ctx.structure0,
+        remaining=ctx.remaining,
+        evidence=_evidence_of(ctx),
+        result=fit0,
+        fits=ctx.fits,
+        elapsed_s=_time.perf_counter() - ctx.t_start,
+        ran_on={"where": ctx.pool.backend, "workers": int(ctx.pool.workers)},
+        rms_final_nT=float(ctx.current.rms_nT),
+        validation=_validation_summary(ctx.held_out, ctx.skipped, chosen),
+        notes=_notes.unique(ctx.fit_notes),
+        record_holds=[c.label for c in holds_here],
+        record_details=[_record_detail(c) for c in holds_here],
+    )
+
+
+def _diagnosis_warnings(ctx: DiagnosisContext, explained, partial) -> list:
+    """(Part of :func:`_explain`.) The diagnosis's warnings: confounded candidates and missing channels
+    (:func:`_warnings_for`), a partial explanation, glitches set aside, the held-out judgement's notes, more than
+    one effect needed."""
+    out = _warnings_for(ctx.cands, ctx.proj, ctx.kept, ctx.fit0, ctx.noise0, ctx.structure0)
     if partial:
-        warnings_.append(
+        out.append(
             f"{', '.join(partial)} reduce(s) the residuals significantly but do(es) not bring them to "
             "the noise: not the (whole) explanation"
         )
-    glitches = [(s + 1, st["glitches"]) for s, st in enumerate(stats_final) if st.get("glitches")]
+    glitches = [(s + 1, st["glitches"]) for s, st in enumerate(ctx.stats_final) if st.get("glitches")]
     if glitches:
-        warnings_.append(
+        out.append(
             "isolated samples beyond 5 sigma set aside from the structure tests (glitches or sharp "
             "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches)
         )
-    warnings_ += validation_notes
-    if len(explained) > 1 and verdict == "missing_effect":
-        warnings_.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
-    if chosen:
-        fits["+".join(c.label for c in chosen)] = current
+    out += ctx.validation_notes
+    if len(explained) > 1 and ctx.verdict == "missing_effect":
+        out.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
+    return out
 
-    floor = _floor(noise_final.sigma_nT, n, fit0.n_params / ns)
-    time_ev, temperature_ev, spectra, sensors_ev = [future.result() for future in evidence_futures]
-    evidence = {
+
+def _evidence_of(ctx: DiagnosisContext) -> dict:
+    """(Part of :func:`_explain`.) :attr:`Diagnosis.evidence`: the plot data and statistics."""
+    noise0 = ctx.noise0
+    time_ev, temperature_ev, spectra, sensors_ev = [future.result() for future in ctx.futures["evidence"]]
+    return {
         "time": time_ev,
         "temperature": temperature_ev,
-        "direction": {"u": directions, "y": r0, "per_sensor": [dict(sh) for sh in sh_stats]},
+        "direction": {"u": ctx.directions, "y": ctx.r0, "per_sensor": [dict(sh) for sh in ctx.sh_stats]},
         "spectrum": spectra,
         "sensors": sensors_ev,
         "noise": {
             "sigma_nT": noise0.sigma_nT,
             "per_sensor_nT": noise0.per_sensor_nT,
             "source": noise0.source,
-            "final_sigma_nT": noise_final.sigma_nT,
+            "final_sigma_nT": ctx.noise_final.sigma_nT,
             "static_noise_nT": noise0.static_noise_nT,
             "static_scatter_nT": noise0.static_scatter_nT,
             "note": noise0.note,
         },
-        "tests": stats0,
+        "tests": ctx.stats0,
     }
-    return Diagnosis(
-        verdict=verdict,
-        summary=summary,
-        effects=fit0.model.effect_labels,
-        rms_nT=float(fit0.rms_nT),
-        rms_per_sensor_nT=np.asarray(fit0.rms_per_sensor_nT),
-        noise=noise_final,
-        floor_nT=floor,
-        candidates=cands,
-        explained_by=explained,
-        partially_explained_by=partial,
-        warnings=warnings_,
-        structure=structure0,
-        remaining=remaining,
-        evidence=evidence,
-        result=fit0,
-        fits=fits,
-        elapsed_s=_time.perf_counter() - t_start,
-        ran_on={"where": pool.backend, "workers": int(pool.workers)},
-        rms_final_nT=float(current.rms_nT),
-        validation=_validation_summary(held_out, skipped, chosen),
-        notes=_notes.unique(fit_notes),
-        record_holds=record_holds,
-        record_details=[_record_detail(c) for c in holds_here],
-    )
 
 
 #: What to do about a record-only finding when recording, by catalogue name (what each effect says of itself,

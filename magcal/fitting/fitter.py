@@ -1198,6 +1198,8 @@ class RefineContext:
         return self._cost_of_residuals(self.problem._residuals_from_fields(fields, self.x))
 
 
+# long: one run of the solver and the FitResult's figures (noise, covariance, outliers, AIC/BIC) from the same
+# residuals; left whole while another change reworks how notes travel through the fitter (issue 43)
 def _fit_once(
     dataset,
     model,

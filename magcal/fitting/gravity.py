@@ -503,6 +503,8 @@ class GravityFitResult:
         return "\n".join(lines) + "\n"
 
 
+# long: the joint fit's steps in order (accelerometer, still samples, start, three reweighted rounds, figures)
+# share the problem and its arrays; each step is commented where it begins
 def fit_gravity(
     dataset: Dataset,
     inclination_deg=None,

@@ -533,6 +533,8 @@ class PartitionedSummary:
         )
 
 
+# long: every argument checked before any work, then the Dask run inside one try/finally that owns the
+# temporary folder, its clean-up and the publication of the result
 def apply_partitioned(
     calibration,
     inputs,
