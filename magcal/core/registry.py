@@ -19,7 +19,7 @@ import inspect
 import re
 import threading
 from collections.abc import Callable, Iterator, Mapping
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from magcal.core.errors import MagcalError
 from magcal.core.notes import say
@@ -154,9 +154,9 @@ class Registry(Mapping, Generic[T]):
                 text = entry_point_text(ep)
                 before = dict(self._items)
                 try:
-                    obj = ep.load()
+                    obj: Any = ep.load()
                     if isinstance(obj, self.kind):
-                        if getattr(obj, "name", None) not in self._items or self._items[obj.name] is not obj:
+                        if self._items.get(obj.name) is not obj:
                             self.register(obj, origin=f"entry point {text}")
                     elif not inspect.ismodule(obj):
                         raise MagcalError(f"it names {obj!r}, neither a {self.kind.__name__} nor a module")
