@@ -156,8 +156,9 @@ class Registry(Mapping, Generic[T]):
                 try:
                     obj: Any = ep.load()
                     if isinstance(obj, self.kind):
-                        if self._items.get(obj.name) is not obj:
-                            self.register(obj, origin=f"entry point {text}")
+                        piece: Any = obj
+                        if self._items.get(piece.name) is not piece:
+                            self.register(piece, origin=f"entry point {text}")
                     elif not inspect.ismodule(obj):
                         raise MagcalError(f"it names {obj!r}, neither a {self.kind.__name__} nor a module")
                     new = [n for n in self._items if n not in before or self._items[n] is not before[n]]
