@@ -75,7 +75,7 @@ from magcal.data.live.source import (
     concatenate_chunks,
 )
 from magcal.data.live.parser import LineParser
-from magcal.data.live.lines import MAX_LINE_BYTES, _LineSource
+from magcal.data.live.lines import MAX_LINE_BYTES, LineSource, _LineSource
 from magcal.data.live.registry import (
     LIVE_SOURCES,
     SourceKind,
@@ -133,6 +133,7 @@ __all__ = [
     "SIM_SPEED_RANGE",
     "TIMEOUT_RANGE_S",
     "LineParser",
+    "LineSource",
     "LiveChunk",
     "LiveError",
     "LiveSession",

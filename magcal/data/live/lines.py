@@ -1,6 +1,7 @@
-"""A source of text lines from a byte stream (:class:`_LineSource`): lines cut at their ends and bounded in length,
-parsed by a :class:`~magcal.data.live.parser.LineParser`, a boot banner skipped, a device's clock followed. The
-serial and network sources are made of it."""
+"""A source of text lines from a byte stream (:class:`LineSource`, also importable by its old name ``_LineSource``):
+lines cut at their ends and bounded in length, parsed by a :class:`~magcal.data.live.parser.LineParser`, a boot
+banner skipped, a device's clock followed. The serial and network sources are made of it, and so may a source
+written outside magcal (CONTRIBUTING.md)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from magcal.data.live.source import LiveSource, _DeviceClock
 MAX_LINE_BYTES = 4096
 
 
-class _LineSource(LiveSource):
+class LineSource(LiveSource):
     """A source of text lines from a byte stream; subclasses implement ``_receive(timeout_s) -> bytes`` (and set
     ``_eof`` when the stream has ended).
 
@@ -154,3 +155,7 @@ def _overlong_reason(n_bytes, ended):
         f"line too long: no line end in {n_bytes} bytes (over {MAX_LINE_BYTES}); dropped up to the next line end "
         "(a stream without line ends: binary data such as MAVLink, or a wrong baud rate?)"
     )
+
+
+#: The name the tests and older code import.
+_LineSource = LineSource

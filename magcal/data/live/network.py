@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import socket
 
-from magcal.data.live.lines import _LineSource
+from magcal.data.live.lines import LineSource
 from magcal.data.live.mavlink import MAVLINK_OPTIONS, MavlinkSource, attitude_max_dt, mavlink_address, raw_lsb
 from magcal.data.live.registry import LINE_OPTIONS, SourceKind, SourceURL, register_source
 from magcal.data.live.source import RECONNECT_DEFAULT_S, RECONNECT_RANGE_S, LiveError
@@ -15,7 +15,7 @@ from magcal.data.live.source import RECONNECT_DEFAULT_S, RECONNECT_RANGE_S, Live
 TIMEOUT_RANGE_S = (0.01, 60.0)
 
 
-class UdpLineSource(_LineSource):
+class UdpLineSource(LineSource):
     """Text lines in UDP datagrams received on ``host:port``."""
 
     def __init__(self, url, host, port, parser):
@@ -37,7 +37,7 @@ class UdpLineSource(_LineSource):
         self._sock.close()
 
 
-class TcpLineSource(_LineSource):
+class TcpLineSource(LineSource):
     """Text lines from a TCP server at ``host:port`` (magcal connects to it)."""
 
     def __init__(self, url, host, port, parser, connect_timeout_s=5.0):

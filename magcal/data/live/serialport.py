@@ -4,7 +4,7 @@ ports found on this machine. Registered as the live source ``serial``."""
 
 from __future__ import annotations
 
-from magcal.data.live.lines import _LineSource
+from magcal.data.live.lines import LineSource
 from magcal.data.live.mavlink import MAVLINK_OPTIONS, MavlinkSource, attitude_max_dt, raw_lsb
 from magcal.data.live.registry import LINE_OPTIONS, SourceKind, SourceURL, register_source
 from magcal.data.live.source import RECONNECT_DEFAULT_S, RECONNECT_RANGE_S, LiveError, _ReopensPort
@@ -13,7 +13,7 @@ from magcal.data.live.source import RECONNECT_DEFAULT_S, RECONNECT_RANGE_S, Live
 BAUD_RANGE = (50, 10_000_000)
 
 
-class SerialSource(_ReopensPort, _LineSource):
+class SerialSource(_ReopensPort, LineSource):
     """Text lines from a serial port (pyserial), reopened when it disappears.
 
     When the port fails (a board reset, a USB re-enumeration, a cable pulled), the source closes it and tries to
