@@ -80,8 +80,11 @@ class Registry(Mapping, Generic[T]):
         return self._origins.get(name, "")
 
     # -- registering -------------------------------------------------------------------------------------------
-    def register(self, piece: T, replace: bool = False, origin: str | None = None) -> T:
+    def register(self, piece: T, replace: bool = False, origin: str | None = None, depth: int = 1) -> T:
         """Add ``piece`` under its ``name``; returns it (so that it can be used as ``X = REGISTRY.register(...)``).
+
+        ``origin`` says where it came from; by default the module ``depth`` calls up from here (a module of magcal:
+        ``"built-in"``); a function that registers for its caller passes ``depth=2``.
 
         Raises
         ------
@@ -107,7 +110,7 @@ class Registry(Mapping, Generic[T]):
                 self._check(piece, self)
             self._items[name] = piece
             if origin is None:
-                module = _caller_module()
+                module = _caller_module(depth)
                 origin = "built-in" if module == "magcal" or module.startswith("magcal.") else module
             self._origins[name] = origin
         return piece
@@ -183,9 +186,9 @@ def entry_point_text(ep) -> str:
     return f"{ep.name} = {ep.value}" + (f" ({dist_name})" if dist_name else "")
 
 
-def _caller_module() -> str:
-    """The module that called :meth:`Registry.register` (outside this one)."""
+def _caller_module(depth: int) -> str:
+    """The module of the function ``depth`` calls up from the caller of this function (1: the caller's caller)."""
     frame = inspect.currentframe()
-    while frame is not None and frame.f_globals.get("__name__") == __name__:
-        frame = frame.f_back
+    for _ in range(depth + 1):
+        frame = frame.f_back if frame is not None else None
     return frame.f_globals.get("__name__", "") if frame is not None else ""

@@ -138,7 +138,7 @@ EXPORT_FORMATS: Registry[ExportFormat] = Registry("export format", ENTRY_POINT_G
 
 def register_format(fmt: ExportFormat, replace: bool = False) -> ExportFormat:
     """Add an export format to :data:`EXPORT_FORMATS` (returns it)."""
-    return EXPORT_FORMATS.register(fmt, replace=replace)
+    return EXPORT_FORMATS.register(fmt, replace=replace, depth=2)
 
 
 def get_format(name: str) -> ExportFormat:

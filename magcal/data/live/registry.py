@@ -91,7 +91,7 @@ LIVE_SOURCES: Registry[SourceKind] = Registry("live source", ENTRY_POINT_GROUP, 
 
 def register_source(kind: SourceKind, replace: bool = False) -> SourceKind:
     """Add a live source to :data:`LIVE_SOURCES` (returns it)."""
-    return LIVE_SOURCES.register(kind, replace=replace)
+    return LIVE_SOURCES.register(kind, replace=replace, depth=2)
 
 
 def load_entry_points(force: bool = False, notes=None) -> list[str]:
