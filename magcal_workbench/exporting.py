@@ -12,6 +12,7 @@ calibration.json            (the file itself)
 ArduPilot .parm             ``magcal export calibration.json --format ardupilot -o compass.parm``
 PX4 .params                 ``magcal export calibration.json --format px4 -o mag.params``
 C header                    ``magcal export calibration.json --format c -o magcal_calibration.h``
+(a format's button)         ``magcal export calibration.json --format NAME``: every registered format
 Corrected CSV / Parquet     ``magcal apply calibration.json DATA -o corrected.csv`` (``.parquet``)
 Raw data + mask             ``magcal export calibration.json --format mask --data DATA --mask raw_mask.csv``
 Export all (.zip)           ``magcal export calibration.json --format all --data DATA``, plus ``session.json``
@@ -37,10 +38,11 @@ import threading
 import time
 import urllib.parse
 import zipfile
+from functools import partial
 from pathlib import Path, PurePath
 
 from magcal.core.errors import MagcalError
-from magcal.output import bundle
+from magcal.output import bundle, formats
 from magcal.output.vehicle_params import default_backup_path, send_parameters, values_to_send
 
 from .dataio import canonical_csv
@@ -49,8 +51,6 @@ from .markup import hide_paths, safe_code, safe_text
 
 #: The firmwares *Send to vehicle* offers.
 FIRMWARES = ("ardupilot", "px4")
-#: The parameter-file buttons: format -> label.
-PARAMETER_BUTTONS = {"ardupilot": "ArduPilot .parm", "px4": "PX4 .params", "c": "C header (.h)"}
 #: A preview older than this is shown again before anything is written, s.
 PREVIEW_LIFETIME_S = 300.0
 #: The session file's name in the zip (without the server's paths: :func:`session_for_download`).
@@ -124,8 +124,9 @@ class ExportSection:
             "in the file)",
         )
         self.buttons = {"calibration": button(gui, "calibration.json", on.do_export_calibration, engine=False)}
-        for fmt, label in PARAMETER_BUTTONS.items():
-            self.buttons[fmt] = button(gui, label, getattr(on, f"do_export_{fmt}"), engine=False)
+        formats.load_entry_points()  # one button per registered format (:mod:`magcal.output.formats`)
+        for fmt, spec in formats.EXPORT_FORMATS.items():
+            self.buttons[fmt] = button(gui, spec.button, partial(on.do_export_format, fmt=fmt), engine=False)
         self.buttons["csv"] = button(gui, "Corrected CSV (magcal apply)", on.do_export_csv, engine=False)
         self.buttons["parquet"] = button(gui, "Corrected Parquet", on.do_export_parquet, engine=False)
         self.buttons["mask"] = button(gui, "Raw data + fit mask (CSV)", on.do_export_mask, engine=False)
@@ -238,20 +239,21 @@ class Exporting:
         _, content = self._calibration()
         self._send(event, bundle.CALIBRATION_FILE, content)
 
-    def _export_parameters(self, event, fmt):
+    def do_export_format(self, event, fmt):
+        """The file of the export format ``fmt`` (:data:`magcal.output.formats.EXPORT_FORMATS`)."""
         calibration, _ = self._calibration()
         force = bool(self.section.force.value) if self.section is not None else False
         content, result = bundle.parameter_bytes(calibration, fmt, force=force)
-        self._send(event, bundle.PARAMETER_FILES[fmt], content, [f"dropped: {d}" for d in result.dropped])
+        self._send(event, formats.get_format(fmt).file_name, content, [f"dropped: {d}" for d in result.dropped])
 
     def do_export_ardupilot(self, event):
-        self._export_parameters(event, "ardupilot")
+        self.do_export_format(event, "ardupilot")
 
     def do_export_px4(self, event):
-        self._export_parameters(event, "px4")
+        self.do_export_format(event, "px4")
 
     def do_export_c(self, event):
-        self._export_parameters(event, "c")
+        self.do_export_format(event, "c")
 
     def _export_corrected(self, event, kind):
         calibration, _ = self._calibration()

@@ -17,7 +17,7 @@ import argparse
 import importlib
 import sys
 
-from magcal.cli.commands import HELP
+from magcal.cli.commands import HELP, installed_commands, installed_help, load_command
 from magcal.core.errors import MagcalError
 
 #: The subcommands' names, in the order ``magcal --help`` lists them (their modules are ``magcal.cli.<name>``,
@@ -72,6 +72,21 @@ def build_parser(only=None) -> argparse.ArgumentParser:
         sub_parser = subcommand_module(name).register(sub)
         if sub_parser is not None and not any(a.dest == "effects_file" for a in sub_parser._actions):
             add_effects_file_argument(sub_parser)
+    if only in HELP:  # one of magcal's own runs: no installed command is looked up
+        return parser
+    warnings: list[str] = []
+    for name, ep in installed_commands(warnings).items():  # magcal.commands entry points (magcal.cli.commands)
+        if only is not None and name != only:
+            sub.add_parser(name, help=installed_help(ep), add_help=False)
+            continue
+        try:
+            sub_parser = load_command(name, ep).register(sub)
+        except ValueError as exc:
+            raise MagcalError(str(exc)) from None
+        if sub_parser is not None and not any(a.dest == "effects_file" for a in sub_parser._actions):
+            add_effects_file_argument(sub_parser)
+    for text in warnings:
+        print(f"magcal: warning: {text}", file=sys.stderr)
     return parser
 
 
@@ -79,14 +94,18 @@ def _command_in(argv) -> str:
     """The subcommand ``argv`` names (its first word that is not an option), or "" for none."""
     for word in argv:
         if not word.startswith("-"):
-            return word if word in HELP else ""
+            return word
     return ""
 
 
 def main(argv=None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(only=_command_in(argv))
+    try:
+        parser = build_parser(only=_command_in(argv))
+    except MagcalError as exc:  # an installed command that cannot be loaded
+        print(f"magcal: error: {exc}", file=sys.stderr)
+        return 2
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -28,7 +28,7 @@ from magcal.data.io import atomic_write, read_csv
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
 from magcal.output.bundle import export_all, mask_from_file, parameter_bytes, raw_mask_bytes
-from magcal.output.export import FORMATS
+from magcal.output.formats import EXPORT_FORMATS, load_entry_points
 
 #: Formats that need the data (--data): the raw readings with the fit's mask, and every file in a zip.
 DATA_FORMATS = {
@@ -39,17 +39,22 @@ DATA_FORMATS = {
 
 
 def register(subparsers):
-    """Add the ``export`` subcommand."""
-
+    """Add the ``export`` subcommand: its ``--format`` choices are the registered formats
+    (:data:`magcal.output.formats.EXPORT_FORMATS`, installed packages' included) and :data:`DATA_FORMATS`."""
+    notes: list = []
+    load_entry_points(notes=notes)
+    for note in notes:
+        print(f"magcal export: warning: {note.text}", file=sys.stderr)
+    formats = {name: spec.description for name, spec in EXPORT_FORMATS.items()}
     parser = subparsers.add_parser(
         "export",
         help=HELP["export"],
         description="Write a calibration as the parameters a flight controller loads: "
-        + "; ".join(f"{k}: {v}" for k, v in {**FORMATS, **DATA_FORMATS}.items())
+        + "; ".join(f"{k}: {v}" for k, v in {**formats, **DATA_FORMATS}.items())
         + ". Conventions and formulas: docs/export.md.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("--format", required=True, choices=tuple(FORMATS) + tuple(DATA_FORMATS), help="what to write")
+    parser.add_argument("--format", required=True, choices=tuple(formats) + tuple(DATA_FORMATS), help="what to write")
     parser.add_argument(
         "-o", "--output", default=None, metavar="FILE", help="output file (written atomically); default standard output"
     )

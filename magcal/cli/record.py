@@ -21,7 +21,7 @@ import sys
 
 from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
-from magcal.data.live import open_source, record
+from magcal.data.live import LIVE_SOURCES, load_entry_points, open_source, record
 
 
 def add_source_arguments(parser) -> None:
@@ -79,12 +79,18 @@ def source_options(args) -> dict:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``record`` subcommand."""
+    """Add the ``record`` subcommand; its description lists the registered live sources
+    (:data:`magcal.data.live.LIVE_SOURCES`, installed packages' included)."""
+    notes: list = []
+    load_entry_points(notes=notes)
+    for note in notes:
+        print(f"magcal record: warning: {note.text}", file=sys.stderr)
+    sources = "; ".join(f"{' or '.join(k.forms)}: {k.description}" for k in LIVE_SOURCES.values())
     parser = subparsers.add_parser(
         "record",
         help=HELP["record"],
         description="Record a live magnetometer source into a magcal CSV file (flushed to disk at least every "
-        "--flush seconds).",
+        f"--flush seconds). Sources: {sources}.",
     )
     parser.add_argument(
         "url",

@@ -9,6 +9,7 @@ file                   what                                                     
 ``compass.parm``       ArduPilot parameters (:mod:`magcal.output.export`)          ``magcal export --format ardupilot``
 ``mag.params``         PX4 / QGroundControl parameters                             ``magcal export --format px4``
 ``magcal_calibration.h``  the C header                                             ``magcal export --format c``
+(a format's file)      each format a package added (:mod:`magcal.output.formats`)  ``magcal export --format NAME``
 ``corrected.csv``      the data corrected (:func:`magcal.output.apply.apply_file`)  ``magcal apply``
 ``corrected.parquet``  the same as Parquet                                         ``magcal apply -o X.parquet``
 ``raw_mask.csv``       the raw readings, the fit's ``kept`` mask and residuals     ``magcal export --format mask``
@@ -38,11 +39,12 @@ from magcal.core.notes import texts
 from magcal.data import io as mio
 from magcal.output.apply import apply_file, refuse_non_finite
 from magcal.output.export import export_calibration
+from magcal.output.formats import EXPORT_FORMATS, FILE_NAMES
 
 #: The calibration's file name in a bundle and in the parameter files' headers.
 CALIBRATION_FILE = "calibration.json"
-#: File name of each firmware format's parameters.
-PARAMETER_FILES = {"ardupilot": "compass.parm", "px4": "mag.params", "c": "magcal_calibration.h"}
+#: File name of each export format's file (a view of :data:`magcal.output.formats.EXPORT_FORMATS`).
+PARAMETER_FILES = FILE_NAMES
 #: File name of the corrected data, per kind.
 CORRECTED_FILES = {"csv": "corrected.csv", "parquet": "corrected.parquet"}
 #: File name of the raw readings with the fit's mask.
@@ -68,7 +70,7 @@ def calibration_from_bytes(content: bytes, source: str = CALIBRATION_FILE) -> Ca
 
 
 def parameter_bytes(calibration, fmt, sensors=None, slots=None, force=False, source=CALIBRATION_FILE, **options):
-    """A firmware's parameter file (``fmt`` one of :data:`magcal.output.export.FORMATS`) as bytes, with its
+    """A format's file (``fmt`` one of :data:`magcal.output.formats.EXPORT_FORMATS`) as bytes, with its
     :class:`~magcal.output.export.Export` (dropped terms, notes, the parameters by name).
 
     ``source`` is the calibration's name written into the file's header (``magcal export`` gives the path it was
@@ -256,18 +258,13 @@ def export_all(
         "magcal calibrate ... -o calibration.json",
         lambda: (calibration_bytes(calibration), []),
     )
-    for fmt, name in PARAMETER_FILES.items():
+    for fmt, spec in EXPORT_FORMATS.items():
 
         def params(fmt=fmt):
             content, result = parameter_bytes(calibration, fmt, source=calibration_name)
             return content, result.notes
 
-        attempt(
-            name,
-            {"ardupilot": "ArduPilot parameters", "px4": "PX4 parameters", "c": "C header"}[fmt],
-            f"magcal export {calibration_name} --format {fmt}",
-            params,
-        )
+        attempt(spec.file_name, spec.title, f"magcal export {calibration_name} --format {fmt}", params)
     if data_path is not None:
         kinds = ("csv", "parquet") if parquet else ("csv",)
         for kind in kinds:

@@ -43,7 +43,8 @@ formulas); eddy currents and the other effects are not written (listed as droppe
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -67,16 +68,11 @@ from magcal.output.compensation import (
     custom_rotation_parameters,
     px4_compensation_parameters,
 )
+from magcal.output.formats import DESCRIPTIONS, Export, ExportFormat, get_format, register_format
 
-#: Export formats and what each writes.
-FORMATS = {
-    "ardupilot": "ArduPilot parameter file (NAME,VALUE lines: COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*, "
-    "COMPASS_SCALE*; with a vector calibration COMPASS_ORIENT* and CUST_ROT*; with a current term COMPASS_MOTCT, "
-    "COMPASS_MOT*)",
-    "px4": "PX4/QGroundControl parameter file (CAL_MAGn_[XYZ]OFF, [XYZ]SCALE, [XYZ]ODIAG; CAL_MAGn_ROT; with a "
-    "current term CAL_MAG_COMP_TYP, CAL_MAGn_[XYZ]COMP)",
-    "c": "C header with the correction matrix, offset and formula per sensor",
-}
+#: Export formats and what each writes: a view of :data:`magcal.output.formats.EXPORT_FORMATS` (the built-ins are
+#: registered at the end of this module).
+FORMATS = DESCRIPTIONS
 
 #: nT per unit of the firmwares' magnetometer parameters (ArduPilot milligauss, PX4 gauss).
 NT_PER_MILLIGAUSS = 100.0
@@ -85,9 +81,6 @@ NT_PER_GAUSS = 1.0e5
 #: Length of the offsets (milligauss) above which ArduPilot's arming check may refuse them: the smaller of the
 #: defaults of COMPASS_OFFS_MAX seen across versions (1250 and 1800 mG).
 ARDUPILOT_OFFSETS_MAX_mG = 1250.0
-
-#: Compass slots each firmware calibrates (ArduPilot COMPASS, COMPASS2, COMPASS3; PX4 CAL_MAG0..3).
-MAX_SLOTS = {"ardupilot": 3, "px4": 4, "c": 4}
 
 #: A frame rotation below this angle (deg) counts as none (the upper-triangular gauge of a perfect sensor).
 ROTATION_TOLERANCE_DEG = 1e-6
@@ -160,17 +153,47 @@ class SensorExport:
         return out if self.rotation is None else out @ self.rotation.T
 
 
-@dataclass
-class Export:
-    """An export: the text to write, the parameters by name, and what could not be carried."""
+@dataclass(frozen=True, eq=False)
+class FirmwareFormat(ExportFormat):
+    """A format that holds an offset and a symmetric matrix per compass (ArduPilot, PX4, the C header).
 
-    format: str
-    text: str
-    parameters: dict
-    sensors: list
-    dropped: list = field(default_factory=list)
-    notes: list = field(default_factory=list)
-    current_column: str | None = None
+    Attributes
+    ----------
+    first_slot : int
+        The firmware's first compass number (ArduPilot 1, PX4 0).
+    n_slots : int
+        How many compasses it calibrates.
+    slots_text : str
+        Its compass numbers as a refusal says them.
+    whole_matrix : bool
+        It holds the whole ``R C^-1`` (and the frame rotation): the C header.
+    custom_rotations : bool
+        It can hold a mounting off the right angles as a custom rotation (ArduPilot's ``COMPASS_ORIENT`` 101/102).
+    build : callable
+        ``build(exports, calibration, source, dropped, notes) -> (parameters, text)``.
+    checks : callable
+        ``checks(exports, parameters) -> list of str``: what the firmware may refuse when it loads the values.
+    """
+
+    first_slot: int = 1
+    n_slots: int = 4
+    slots_text: str = "slots 1 to 4"
+    whole_matrix: bool = False
+    custom_rotations: bool = False
+    build: Callable = None  # type: ignore[assignment]
+    checks: Callable = lambda exports, parameters: []
+
+    def write(self, calibration, sensors=None, slots=None, force=False, source="calibration", **options) -> Export:
+        """The firmware's parameters of ``calibration`` (:func:`export_calibration`)."""
+        return _firmware_export(self, calibration, sensors, slots, force, source, **options)
+
+
+def firmware_format(fmt) -> FirmwareFormat:
+    """The firmware format ``fmt`` (a name or the format itself)."""
+    spec = fmt if isinstance(fmt, FirmwareFormat) else get_format(fmt)
+    if not isinstance(spec, FirmwareFormat):
+        raise MagcalError(f"--format {spec.name!r} is not a firmware's offset-and-matrix format")
+    return spec
 
 
 def symmetric_factor(cinv):
@@ -209,35 +232,30 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotati
     slots : sequence of int, optional
         Firmware compass numbers for them (ArduPilot 1-3, PX4 0-3); default sensor ``i`` -> ArduPilot compass
         ``i``, PX4 ``CAL_MAG{i-1}``.
-    fmt : str
-        The format (for the slot numbering and the number of slots).
+    fmt : str or FirmwareFormat
+        The firmware format (its slot numbering, its number of slots, whether it holds the whole matrix).
     custom_rotation : bool
         ArduPilot, vector calibration: a mounting off the right angles of compass 1 or 2 as a custom rotation
         (:func:`magcal.output.compensation.custom_rotation_number`); False keeps the nearest right angle.
     """
+    spec = firmware_format(fmt)
     n = calibration.n_sensors
     sensors = list(range(1, n + 1)) if sensors is None else [int(s) for s in sensors]
     for s in sensors:
         if not 1 <= s <= n:
             raise MagcalError(f"--sensor {s}: the calibration has sensor(s) 1 to {n}")
-    first = 0 if fmt == "px4" else 1
+    first = spec.first_slot
     if slots is None:
         slots = [s - 1 + first for s in sensors]
     slots = [int(k) for k in slots]
     if len(slots) != len(sensors):
         raise MagcalError("give one --slot per exported sensor")
-    last = first + MAX_SLOTS[fmt] - 1
+    last = first + spec.n_slots - 1
     for s, k in zip(sensors, slots):
         if not first <= k <= last:
-            where = (
-                "ArduPilot calibrates compasses 1 to 3 (COMPASS_, COMPASS2_, COMPASS3_)"
-                if fmt == "ardupilot"
-                else "PX4 has CAL_MAG0 to CAL_MAG3"
-                if fmt == "px4"
-                else "slots 1 to 4"
-            )
             raise MagcalError(
-                f"sensor {s} would go to slot {k}, but {where}; export it alone with --sensor {s} --slot {first}"
+                f"sensor {s} would go to slot {k}, but {spec.slots_text}; export it alone with --sensor {s} "
+                f"--slot {first}"
             )
     field_nT = float(calibration.reference_total_nT or 50_000.0)
     out = []
@@ -245,8 +263,8 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotati
     for s, k in zip(sensors, slots):
         cal = kept[s - 1]
         if getattr(calibration, "mode", "scalar") in ("vector", "gravity"):
-            e = _vector_export(cal, s, k, fmt, field_nT)
-            if fmt == "ardupilot" and custom_rotation:
+            e = _vector_export(cal, s, k, spec, field_nT)
+            if spec.custom_rotations and custom_rotation:
                 e = _ardupilot_custom_export(cal, e)
             out.append(e)
             continue
@@ -268,10 +286,10 @@ def sensor_exports(calibration, sensors=None, slots=None, fmt="c", custom_rotati
     return out
 
 
-def _vector_export(cal, sensor, slot, fmt, field_nT) -> SensorExport:
+def _vector_export(cal, sensor, slot, spec, field_nT) -> SensorExport:
     """A vector calibration's sensor: its right-angle mounting as the firmware's orientation, the rest split."""
     w = cal.R @ cal.cinv
-    if fmt == "c":  # the header holds the whole matrix
+    if spec.whole_matrix:  # the header holds the whole matrix
         return SensorExport(sensor, slot, cal.bias_nT.copy(), w, np.eye(3), 0.0, 0.0, 0.0)
     right, _ = nearest_right_angle(cal.R)
     q, sym = symmetric_factor(right.T @ w)
@@ -363,12 +381,14 @@ def export_calibration(
     throttle_full_scale=None,
     custom_rotation=True,
 ) -> Export:
-    """The parameters of ``calibration`` for a firmware, or a refusal naming what would be lost.
+    """The parameters of ``calibration`` in the export format ``fmt`` (:data:`magcal.output.formats.EXPORT_FORMATS`:
+    the built-ins ``ardupilot``, ``px4``, ``c``, and any a package added), or a refusal naming what would be lost.
 
     Parameters
     ----------
     calibration : Calibration
-    fmt : {'ardupilot', 'px4', 'c'}
+    fmt : str
+        The format's name.
     sensors, slots : sequence of int, optional
         See :func:`sensor_exports`.
     force : bool
@@ -388,9 +408,32 @@ def export_calibration(
     MagcalError
         Unknown format, bad sensor or slot, or (without ``force``) anything the firmware cannot hold.
     """
-    if fmt not in FORMATS:
-        raise MagcalError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
-    exports = sensor_exports(calibration, sensors, slots, fmt, custom_rotation=custom_rotation)
+    return get_format(fmt).write(
+        calibration,
+        sensors=sensors,
+        slots=slots,
+        force=force,
+        source=source,
+        throttle_full_scale=throttle_full_scale,
+        custom_rotation=custom_rotation,
+    )
+
+
+def _firmware_export(
+    spec,
+    calibration,
+    sensors=None,
+    slots=None,
+    force=False,
+    source="calibration",
+    throttle_full_scale=None,
+    custom_rotation=True,
+    **options,
+) -> Export:
+    """A firmware format's export (:meth:`FirmwareFormat.write`): the offsets and symmetric matrices, what is
+    dropped, the notes, the file."""
+    fmt = spec.name
+    exports = sensor_exports(calibration, sensors, slots, spec, custom_rotation=custom_rotation)
     current = _attach_current(calibration, exports, fmt, throttle_full_scale)
     dropped = unsupported(calibration, exports) + current.dropped
     if dropped and not force:
@@ -407,27 +450,33 @@ def export_calibration(
                 f"upper-triangular frame is turned from the firmware's by {e.gauge_angle_deg:.4g} deg "
                 "(a gauge: total-field data do not fix it); the field magnitude is the same"
             )
-    notes += current.notes + _mounting_notes(calibration, exports, fmt, custom_rotation)
-    builder = {"ardupilot": _ardupilot, "px4": _px4, "c": _c_header}[fmt]
-    parameters, text = builder(exports, calibration, source, dropped, notes)
-    _check_storable(parameters, exports, fmt, source)
-    if fmt == "ardupilot":
-        for e in exports:
-            length = float(np.linalg.norm(e.bias_nT)) / NT_PER_MILLIGAUSS
-            if length > ARDUPILOT_OFFSETS_MAX_mG:
-                notes.append(
-                    f"compass {e.slot}: the offsets are {length:.0f} mG long; ArduPilot's arming check "
-                    "refuses offsets longer than COMPASS_OFFS_MAX (1250 or 1800 mG by default): move the "
-                    "compass away from the interference, or check the units"
-                )
-        mot = {n: v for n, v in parameters.items() if n.startswith("COMPASS_MOT") and n != "COMPASS_MOTCT"}
-        beyond = [n for n, v in mot.items() if abs(v) > ARDUPILOT_MOT_RANGE_mG]
-        if beyond:
-            notes.append(
-                f"{', '.join(beyond)} beyond ArduPilot's documented range of -{ARDUPILOT_MOT_RANGE_mG:.0f} to "
-                f"{ARDUPILOT_MOT_RANGE_mG:.0f} mG per unit: check the units of the current or throttle column"
-            )
+    notes += current.notes + _mounting_notes(calibration, exports, spec, custom_rotation)
+    parameters, text = spec.build(exports, calibration, source, dropped, notes)
+    _check_storable(parameters, exports, spec, source)
+    notes += spec.checks(exports, parameters)
     return Export(fmt, text, parameters, exports, dropped, notes, current.column)
+
+
+def _ardupilot_checks(exports, parameters) -> list[str]:
+    """What ArduPilot may refuse at arming, or read as a unit error: long offsets, motor compensation beyond its
+    documented range."""
+    notes = []
+    for e in exports:
+        length = float(np.linalg.norm(e.bias_nT)) / NT_PER_MILLIGAUSS
+        if length > ARDUPILOT_OFFSETS_MAX_mG:
+            notes.append(
+                f"compass {e.slot}: the offsets are {length:.0f} mG long; ArduPilot's arming check "
+                "refuses offsets longer than COMPASS_OFFS_MAX (1250 or 1800 mG by default): move the "
+                "compass away from the interference, or check the units"
+            )
+    mot = {n: v for n, v in parameters.items() if n.startswith("COMPASS_MOT") and n != "COMPASS_MOTCT"}
+    beyond = [n for n, v in mot.items() if abs(v) > ARDUPILOT_MOT_RANGE_mG]
+    if beyond:
+        notes.append(
+            f"{', '.join(beyond)} beyond ArduPilot's documented range of -{ARDUPILOT_MOT_RANGE_mG:.0f} to "
+            f"{ARDUPILOT_MOT_RANGE_mG:.0f} mG per unit: check the units of the current or throttle column"
+        )
+    return notes
 
 
 # --- the current's field and the mounting (magcal.output.compensation) -----------------------------------------
@@ -445,9 +494,9 @@ def _attach_current(calibration, exports, fmt, throttle_full_scale):
     return current
 
 
-def _mounting_notes(calibration, exports, fmt, custom_rotation) -> list[str]:
+def _mounting_notes(calibration, exports, spec, custom_rotation) -> list[str]:
     """What to know about ArduPilot's custom rotations: how to load them, and a compass that has none."""
-    if fmt != "ardupilot" or getattr(calibration, "mode", "scalar") not in ("vector", "gravity"):
+    if not spec.custom_rotations or getattr(calibration, "mode", "scalar") not in ("vector", "gravity"):
         return []
     notes = []
     for e in exports:
@@ -477,16 +526,16 @@ def _mounting_notes(calibration, exports, fmt, custom_rotation) -> list[str]:
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-def _check_storable(parameters, exports, fmt, source) -> None:
+def _check_storable(parameters, exports, spec, source) -> None:
     """Refuse an export holding a value that is not a finite 32-bit float (NaN, infinite, or beyond
     :data:`FLOAT32_MAX`): the firmware or the compiler would take it for something else, so nothing is written."""
     values = list(parameters.items())
-    if fmt == "c":  # the header also holds each sensor's frame rotation
+    if spec.whole_matrix:  # the header also holds each sensor's frame rotation
         values += [(f"MAGCAL_S{e.sensor}_FRAME", v) for e in exports for v in np.ravel(e.frame_rotation)]
     for name, value in values:
         if not abs(float(value)) <= FLOAT32_MAX:
             raise MagcalError(
-                f"{source}: {name} would be {float(value):g}, which no {fmt} parameter can hold (a finite 32-bit "
+                f"{source}: {name} would be {float(value):g}, which no {spec.name} parameter can hold (a finite 32-bit "
                 "float): the calibration's values are too large; recalibrate"
             )
 
@@ -687,6 +736,60 @@ def _c_header(exports, calibration, source, dropped, notes):
                 params[f"MAGCAL_ACCEL_MATRIX_{i}{j}"] = float(accel.kinv[i, j])
     lines += ["#endif /* MAGCAL_CALIBRATION_H */", ""]
     return params, "\n".join(lines)
+
+
+# --- the built-in formats ----------------------------------------------------------------------------------------
+
+ARDUPILOT = register_format(
+    FirmwareFormat(
+        name="ardupilot",
+        title="ArduPilot parameters",
+        description="ArduPilot parameter file (NAME,VALUE lines: COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*, "
+        "COMPASS_SCALE*; with a vector calibration COMPASS_ORIENT* and CUST_ROT*; with a current term COMPASS_MOTCT, "
+        "COMPASS_MOT*)",
+        file_name="compass.parm",
+        button="ArduPilot .parm",
+        refuses="candidate effects, rotations between sensors and a mounting beyond its custom rotations (unless "
+        "forced); compasses 1 to 3",
+        first_slot=1,
+        n_slots=3,
+        slots_text="ArduPilot calibrates compasses 1 to 3 (COMPASS_, COMPASS2_, COMPASS3_)",
+        custom_rotations=True,
+        build=_ardupilot,
+        checks=_ardupilot_checks,
+    )
+)
+PX4 = register_format(
+    FirmwareFormat(
+        name="px4",
+        title="PX4 parameters",
+        description="PX4/QGroundControl parameter file (CAL_MAGn_[XYZ]OFF, [XYZ]SCALE, [XYZ]ODIAG; CAL_MAGn_ROT; with "
+        "a current term CAL_MAG_COMP_TYP, CAL_MAGn_[XYZ]COMP)",
+        file_name="mag.params",
+        button="PX4 .params",
+        refuses="candidate effects, rotations between sensors and a mounting off the right angles (unless forced); "
+        "CAL_MAG0 to CAL_MAG3",
+        first_slot=0,
+        n_slots=4,
+        slots_text="PX4 has CAL_MAG0 to CAL_MAG3",
+        build=_px4,
+    )
+)
+C_HEADER = register_format(
+    FirmwareFormat(
+        name="c",
+        title="C header",
+        description="C header with the correction matrix, offset and formula per sensor",
+        file_name="magcal_calibration.h",
+        button="C header (.h)",
+        refuses="candidate effects and rotations between sensors (unless forced); values beyond a 32-bit float",
+        first_slot=1,
+        n_slots=4,
+        slots_text="slots 1 to 4",
+        whole_matrix=True,
+        build=_c_header,
+    )
+)
 
 
 def apply_ardupilot(parameters, raw_mG, slot=1, motor=None) -> np.ndarray:

@@ -1,0 +1,329 @@
+"""CONTRIBUTING.md's recipes, each walked through from a temporary file: a toy effect, a toy export format, a toy
+live source and a toy command, added the way the recipe says and then used through the command line.
+
+The effect comes from a file given with ``--effects-file``; the export format, the live source and the command
+from a temporary *installed distribution* (a folder on ``PYTHONPATH`` with a ``.dist-info`` holding
+``entry_points.txt``), which is how a package outside magcal adds them: the entry-point groups
+``magcal.export_formats``, ``magcal.live_sources`` and ``magcal.commands``. The commands run in a fresh process,
+as a user runs them. Each toy's output is checked against what it must be (the calibration's own numbers, the
+synthetic lines' values), not against a recorded copy. The workbench *panel* recipe is not walked here: the
+workbench's tests drive panels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import magcal
+from magcal.calibration.calibration import Calibration
+from magcal.data.io import read_csv
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def install_distribution(site: pathlib.Path, modules: dict, entry_points: dict, summary: str) -> pathlib.Path:
+    """A distribution ``magcal-toys`` installed into the folder ``site``: its modules (``name -> source``) and a
+    ``.dist-info`` declaring ``entry_points`` (``group -> {name: value}``)."""
+    site.mkdir(parents=True, exist_ok=True)
+    for name, source in modules.items():
+        (site / f"{name}.py").write_text(textwrap.dedent(source), encoding="utf-8")
+    info = site / "magcal_toys-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(
+        f"Metadata-Version: 2.1\nName: magcal-toys\nVersion: 0.1\nSummary: {summary}\n", encoding="utf-8"
+    )
+    lines = []
+    for group, points in entry_points.items():
+        lines.append(f"[{group}]")
+        lines += [f"{name} = {value}" for name, value in points.items()]
+        lines.append("")
+    (info / "entry_points.txt").write_text("\n".join(lines), encoding="utf-8")
+    return site
+
+
+def magcal_cli(args, site=None, code=None, timeout=180):
+    """Run ``magcal ARGS`` (or ``python -c CODE ARGS``) in a fresh process that sees the distribution in ``site``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(p) for p in (site, ROOT) if p] + [env.get("PYTHONPATH", "")])
+    command = [sys.executable, "-m", "magcal"] if code is None else [sys.executable, "-c", code]
+    return subprocess.run(
+        command + [str(a) for a in args], capture_output=True, text=True, timeout=timeout, env=env, cwd=site or ROOT
+    )
+
+
+@pytest.fixture(scope="module")
+def calibration_file(tmp_path_factory):
+    """A calibration of the chi2017 array (four sensors), saved as JSON."""
+    path = tmp_path_factory.mktemp("recipes") / "cal.json"
+    magcal.calibrate(magcal.simulate("chi2017", seed=1)).calibration.save(path)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# an effect (CONTRIBUTING: "an effect"; a user's own in their file, docs/user-effects.md)
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_EFFECT = '''
+    """A toy effect: a bias that grows linearly with time, y += r (t / 60 s), r per axis in nT/min."""
+
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    import numpy as np
+
+    from magcal.model import Context, Effect, register
+
+    DIRECTION = np.array([0.6, -0.48, 0.64])
+
+
+    @register
+    @dataclass
+    class ToyRamp(Effect):
+        """A bias growing with time: ``y += r t / 60``, ``r`` per axis in nT/min."""
+
+        name: ClassVar[str] = "toy_ramp"
+        stage: ClassVar[str] = "raw"
+        channels: ClassVar[tuple] = ("time",)
+        per_sensor: ClassVar[bool] = True
+        description: ClassVar[str] = "a bias growing linearly with time [nT/min per axis]"
+        transferable: ClassVar[bool] = False
+
+        def param_names(self):
+            return [f"r_{a}_nT_per_min" for a in "xyz"]
+
+        def param_scale(self):
+            return np.ones(3)
+
+        def raw_basis(self, z0, ctx: Context):
+            basis = np.zeros((len(ctx.time_s), 3, 3))
+            for axis in range(3):
+                basis[:, axis, axis] = ctx.time_s / 60.0
+            return basis
+
+        def perturbation(self, magnitude=None, sensor=None):
+            rate = 20.0 if magnitude is None else float(magnitude)
+
+            def perturb(readings, context, rng):
+                readings = np.array(readings, dtype=float)
+                for s in range(readings.shape[0]) if sensor is None else [sensor]:
+                    readings[s] += rate * (context["time_s"] / 60.0)[:, None] * DIRECTION
+                return readings
+
+            perturb.description = f"toy_ramp {rate} nT/min"
+            perturb.effect, perturb.sensor, perturb.magnitude = self.name, sensor, rate
+            return perturb
+'''
+
+
+def test_recipe_effect_from_a_file_is_listed_and_its_fit_finds_the_hidden_ramp(tmp_path, clean_catalogue):
+    from magcal.model import plugins
+    from magcal.model.terms import EFFECTS
+
+    path = tmp_path / "toy_effects.py"
+    path.write_text(textwrap.dedent(TOY_EFFECT), encoding="utf-8")
+    listed = magcal_cli(["effects", "--effects-file", path])
+    assert listed.returncode == 0, listed.stderr
+    assert "toy_ramp" in listed.stdout and "file" in listed.stdout
+
+    assert plugins.load_effects_file(path) == ["toy_ramp"]
+    rate = 20.0  # nT/min along DIRECTION, hidden in sensor 2
+    ds = magcal.simulate_timeseries(
+        "chi2017", n_samples=3000, seed=3, perturbations=[EFFECTS["toy_ramp"]().perturbation(rate, 1)]
+    )
+    result = magcal.calibrate(ds, effects=["toy_ramp:2"])
+    params = {p["term"]: p["params"] for p in result.fit.effect_params}["toy_ramp:2"]
+    found = np.array([params[f"r_{a}_nT_per_min"] for a in "xyz"])
+    np.testing.assert_allclose(found, rate * np.array([0.6, -0.48, 0.64]), atol=1.5)
+    assert result.fit.rms_nT < 1.02 * ds.noise_nT
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# an export format (CONTRIBUTING: "an export format")
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_FORMAT = '''
+    """A toy export format: each sensor's bias (nT) as JSON."""
+
+    import json
+
+    from magcal.core.errors import MagcalError
+    from magcal.output.formats import Export, ExportFormat
+
+
+    def write(calibration, sensors=None, slots=None, force=False, source="calibration", **options):
+        if calibration.model is not None and calibration.model.effects and not force:
+            raise MagcalError(f"{source}: toy-json holds biases only; pass --force to leave the effects out")
+        chosen = sensors or range(1, calibration.n_sensors + 1)
+        biases = {f"s{s}": [float(v) for v in calibration.sensors[s - 1].bias_nT] for s in chosen}
+        return Export("toy-json", json.dumps(biases) + "\\n", {}, list(chosen))
+
+
+    TOY = ExportFormat(
+        name="toy-json",
+        title="toy JSON biases",
+        description="each sensor's bias in nT as one JSON object",
+        file_name="biases.json",
+        button="Biases (JSON)",
+        refuses="candidate effects (unless forced)",
+        writer=write,
+    )
+'''
+
+
+def test_recipe_export_format_from_an_installed_package(tmp_path, calibration_file):
+    site = install_distribution(
+        tmp_path / "site",
+        {"toy_format": TOY_FORMAT},
+        {"magcal.export_formats": {"toy-json": "toy_format:TOY"}},
+        "toy export format",
+    )
+    help_text = magcal_cli(["export", "--help"], site).stdout
+    assert "toy-json" in help_text and "ardupilot" in help_text
+
+    out = magcal_cli(["export", calibration_file, "--format", "toy-json"], site)
+    assert out.returncode == 0, out.stderr
+    calibration = Calibration.load(calibration_file)
+    written = json.loads(out.stdout)
+    assert sorted(written) == [f"s{s}" for s in range(1, calibration.n_sensors + 1)]
+    for s, sensor in enumerate(calibration.sensors, start=1):
+        np.testing.assert_allclose(written[f"s{s}"], sensor.bias_nT, rtol=1e-12)
+
+    # the bundle lists the registry: the toy's file is in the zip, with its title in the README
+    data = tmp_path / "data.csv"
+    magcal_cli(["simulate", "--preset", "chi2017", "--seed", "1", "-o", data], site)
+    zipped = magcal_cli(["export", calibration_file, "--format", "all", "--data", data, "-o", tmp_path / "a.zip"], site)
+    assert zipped.returncode == 0, zipped.stderr
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "a.zip") as zf:
+        assert json.loads(zf.read("biases.json")) == written
+        assert "biases.json: toy JSON biases" in zf.read("README.txt").decode()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a live source (CONTRIBUTING: "a live source")
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_SOURCE = '''
+    """A toy live source: ``toy://?n=N`` sends N synthetic text lines ``t,x,y,z`` from a pseudo-file in memory."""
+
+    import io
+
+    from magcal.data.live import LineSource, SourceKind, register_source
+
+
+    def line(k):
+        return f"{0.02 * k:.2f},{1000.0 + k},{-2000.0 + 2 * k},{40000.0 - 3 * k}\\n"
+
+
+    class ToySource(LineSource):
+        def __init__(self, url, parser, n):
+            super().__init__(url, parser)
+            self._file = io.BytesIO("".join(line(k) for k in range(n)).encode())
+
+        def _receive(self, timeout_s):
+            data = self._file.read(64)  # a few lines at a time, as a port delivers them
+            if not data:
+                self._eof = True
+            return data
+
+
+    def open_toy(url):
+        url.params.setdefault("columns", "t,x,y,z")
+        return ToySource(url.url, url.line_parser(), url.number("n", 10, int, (1, 100000)))
+
+
+    TOY = register_source(
+        SourceKind(
+            name="toy",
+            schemes=("toy",),
+            description="synthetic lines from memory",
+            forms=("toy://",),
+            example="toy://?n=10",
+            options=("n", "columns"),
+            opener=open_toy,
+        )
+    )
+'''
+
+
+def test_recipe_live_source_from_an_installed_package_records_its_lines(tmp_path):
+    site = install_distribution(
+        tmp_path / "site",
+        {"toy_source": TOY_SOURCE},
+        {"magcal.live_sources": {"toy": "toy_source"}},  # a module that registers its source
+        "toy live source",
+    )
+    assert "toy://" in magcal_cli(["record", "--help"], site).stdout
+    out = magcal_cli(["record", "toy://?n=120", tmp_path / "rec.csv", "--seconds", "20"], site)
+    assert out.returncode == 0, out.stderr
+    ds = read_csv(tmp_path / "rec.csv")
+    k = np.arange(120)
+    np.testing.assert_allclose(ds.time_s, 0.02 * k, atol=1e-9)
+    np.testing.assert_allclose(ds.readings_nT[0], np.c_[1000.0 + k, -2000.0 + 2 * k, 40000.0 - 3 * k], rtol=1e-9)
+    # without the package the scheme is unknown, and the message lists the built-in forms
+    refused = magcal_cli(["record", "toy://?n=5", tmp_path / "no.csv", "--seconds", "1"])
+    assert refused.returncode == 2 and "unknown source" in refused.stderr and "sim://PRESET" in refused.stderr
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a command (CONTRIBUTING: "a command"; from outside magcal: the entry-point group magcal.commands)
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_COMMAND = '''
+    """``magcal toy-biases CAL.json``: print each sensor's bias length (nT)."""
+
+    import numpy as np
+
+
+    def register(subparsers):
+        parser = subparsers.add_parser("toy-biases", help="print each sensor's bias length")
+        parser.add_argument("calibration")
+        parser.set_defaults(func=run)
+        return parser
+
+
+    def run(args):
+        from magcal.calibration.calibration import Calibration
+
+        cal = Calibration.load(args.calibration)
+        for s, sensor in enumerate(cal.sensors, start=1):
+            print(f"s{s} {float(np.linalg.norm(sensor.bias_nT)):.6f}")
+        return 0
+'''
+
+
+def test_recipe_command_from_an_installed_package(tmp_path, calibration_file):
+    site = install_distribution(
+        tmp_path / "site",
+        {"toy_command": TOY_COMMAND},
+        {"magcal.commands": {"toy-biases": "toy_command"}},
+        "print bias lengths",
+    )
+    code = (
+        "import sys; from magcal.cli import main\n"
+        "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        "print('toy_command' in sys.modules)"
+    )
+    listed = magcal_cli(["--help"], site, code=code)
+    assert "toy-biases" in listed.stdout and "print bias lengths (magcal-toys)" in listed.stdout
+    assert listed.stdout.strip().splitlines()[-1] == "False"  # listed without importing it
+
+    out = magcal_cli(["toy-biases", calibration_file], site)
+    assert out.returncode == 0, out.stderr
+    calibration = Calibration.load(calibration_file)
+    expected = [f"s{s} {np.linalg.norm(c.bias_nT):.6f}" for s, c in enumerate(calibration.sensors, start=1)]
+    assert out.stdout.split("\n")[: len(expected)] == expected
+    # a built-in command never looks the entry points up, and a broken one is one clear line
+    (site / "toy_command.py").write_text("raise RuntimeError('broken on purpose')\n", encoding="utf-8")
+    broken = magcal_cli(["toy-biases", calibration_file], site)
+    assert broken.returncode == 2 and "cannot be imported" in broken.stderr and "Traceback" not in broken.stderr
+    assert magcal_cli(["effects"], site).returncode == 0
