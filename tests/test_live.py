@@ -393,6 +393,25 @@ def test_live_session_records_what_viewers_see(tmp_path):
     assert np.array_equal(recorded.readings_nT, ds.readings_nT)
 
 
+def test_a_failing_viewer_is_a_note_and_the_recording_goes_on(tmp_path):
+    """A listener that raises on every chunk neither stops the session nor reaches Python's warnings: the session
+    keeps a bounded list of notes (issue 43: no warnings.warn inside the engine)."""
+
+    def broken(chunk):
+        raise ValueError("the viewer is gone")
+
+    kept = []
+    session = LiveSession("sim://chi2017?rate=200&speed=10", None, listeners=[broken, lambda c: kept.append(len(c))])
+    end = time.monotonic() + 30
+    while session.n_samples < 300 and time.monotonic() < end:
+        time.sleep(0.05)
+    session.stop()
+    assert session.error is None and session.n_samples >= 300
+    assert sum(kept) == session.n_samples  # the viewer after the broken one saw every sample
+    assert 1 <= len(session.notes) <= 20
+    assert all("live listener failed: the viewer is gone" == n.text for n in session.notes)
+
+
 def test_serial_over_long_line_is_counted_and_skipped():
     master, slave = os.openpty()
     try:

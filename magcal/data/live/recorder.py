@@ -8,11 +8,11 @@ import datetime as _dt
 import os
 import threading
 import time
-import warnings
 
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.core.notes import Note
 from magcal.data.dataset import SENSOR_AXES, Dataset, bad_values
 from magcal.data.io import format_column, metadata_text
 from magcal.data.live.registry import open_source
@@ -306,6 +306,13 @@ class LiveSession:
         Longest time between flushes to disk (s).
     listeners : sequence of callable, optional
         Subscribed before the first sample (see :meth:`subscribe`).
+
+    Attributes
+    ----------
+    error : str or None
+        Why the session ended early (the source failed), or None.
+    notes : list of Note
+        What went wrong without ending it: a listener (a viewer) that raised, at most 20 of them.
     """
 
     def __init__(self, url_or_source, path=None, flush_interval_s=1.0, listeners=()):
@@ -318,6 +325,7 @@ class LiveSession:
         self._paused = threading.Event()
         self._stop = threading.Event()
         self.error = None
+        self.notes: list[Note] = []  # what went wrong without ending the session (a viewer's failure)
         self._thread = threading.Thread(target=self._run, name="magcal-live", daemon=True)
         self._thread.start()
 
@@ -336,8 +344,10 @@ class LiveSession:
                     for listener in list(self._listeners):
                         try:
                             listener(chunk)
-                        except Exception as exc:  # a viewer's failure must not stop the recording
-                            warnings.warn(f"live listener failed: {exc}", RuntimeWarning, stacklevel=1)
+                        except Exception as exc:  # a viewer's failure must not stop the recording: kept as a note
+                            with self._lock:
+                                if len(self.notes) < 20:  # a listener failing on every chunk says it once or so
+                                    self.notes.append(Note(f"live listener failed: {exc}", RuntimeWarning, "live"))
                 if self.source.ended and not len(chunk):
                     break
             if not self._paused.is_set():
