@@ -306,11 +306,10 @@ def test_normal_equations_return_the_total_field_part(n_sensors, effects, refere
 def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
     """A slow temperature change of scale moves the raw change point; the refine pass finds the true step."""
     from magcal.data.simulation import simulate_timeseries
-    from magcal.model import effects as fx
 
     hidden = [
-        fx.EFFECTS["temperature_scale"]().perturbation(30.0, None),
-        fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3),
+        EFFECTS_BY_NAME["temperature_scale"]().perturbation(30.0, None),
+        EFFECTS_BY_NAME["bias_step"](sensor=3).perturbation(10.0, 3),
     ]
     ds = simulate_timeseries(chi2017_truth(), n_samples=1500, noise_nT=3.0, seed=seed, perturbations=hidden)
     true_time = ds.time_s[0] + 0.6 * (ds.time_s[-1] - ds.time_s[0])
@@ -327,10 +326,9 @@ def test_bias_step_time_is_rescanned_without_the_other_effects(seed):
 def test_fit_leaves_the_callers_model_unchanged(effect):
     """One Model reused on two records: the first calibration must not move when the second is fitted."""
     from magcal.data.simulation import simulate_timeseries
-    from magcal.model import effects as fx
 
     truth = chi2017_truth(1)
-    hidden = [fx.EFFECTS[effect]().perturbation(20.0, None)]
+    hidden = [EFFECTS_BY_NAME[effect]().perturbation(20.0, None)]
     first = simulate_timeseries(truth, n_samples=800, noise_nT=3.0, seed=11, perturbations=hidden)
     second = simulate_timeseries(
         truth, n_samples=800, noise_nT=3.0, seed=12, perturbations=hidden, temperature_C=(35.0, 6.0)
@@ -346,9 +344,8 @@ def test_fit_leaves_the_callers_model_unchanged(effect):
 
 
 def test_with_effect_copies_the_added_effect():
-    from magcal.model.terms import EFFECTS
 
-    effect = EFFECTS["temperature_bias"]()
+    effect = EFFECTS_BY_NAME["temperature_bias"]()
     m1 = Model.base_model(1).with_effect(effect)
     assert m1.effects[0] is not effect
 
@@ -484,14 +481,13 @@ def test_bias_step_refinement_from_shifted_fields_equals_whole_evaluations(spec)
     whole evaluations."""
     from magcal.data.simulation import simulate_timeseries
     from magcal.fitting.fitter import RefineContext
-    from magcal.model import effects as fx
 
     ds = simulate_timeseries(
         chi2017_truth(),
         n_samples=900,
         noise_nT=3.0,
         seed=2,
-        perturbations=[fx.EFFECTS["bias_step"](sensor=3).perturbation(10.0, 3)],
+        perturbations=[EFFECTS_BY_NAME["bias_step"](sensor=3).perturbation(10.0, 3)],
     )
     result = fit(ds, Model.from_names([spec], 4), init=fit(ds).calibration)
     step = result.model.effects[0]

@@ -594,6 +594,11 @@ def test_the_fork_server_started_early_runs_blas_on_one_thread(tmp_path):
         "_parallel.BACKEND = 'processes'\n"
         "ds = simulate_timeseries(chi2017_truth(1), n_samples=500, noise_nT=3.0, seed=2)\n"
         "assert start_workers(ds, 2)\n"
+        "import time\n"
+        "pid, end = forkserver._forkserver._forkserver_pid, time.monotonic() + 30\n"
+        # the server is forked, then exec'd: before the exec its /proc environ is this program's first one
+        "while b'forkserver' not in open(f'/proc/{pid}/cmdline', 'rb').read() and time.monotonic() < end:\n"
+        "    time.sleep(0.01)\n"
         "env = open(f'/proc/{forkserver._forkserver._forkserver_pid}/environ', 'rb').read().split(b'\\0')\n"
         "print(sorted(v.decode() for v in env if v.startswith((b'BLIS_NUM', b'OPENBLAS_NUM'))))\n"
         "print(os.environ.get('BLIS_NUM_THREADS'), os.environ.get('OPENBLAS_NUM_THREADS'))\n"

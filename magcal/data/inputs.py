@@ -121,15 +121,19 @@ def _from_dataframe(frame) -> Dataset:
         try:
             return np.asarray(cells, dtype=float)
         except (TypeError, ValueError):
+            out = np.empty(len(cells))
             for k, cell in enumerate(cells):
+                if isinstance(cell, str) and not cell.strip():
+                    out[k] = np.nan  # a blank cell is a missing value, as in the data CSV
+                    continue
                 try:
-                    float(cell)
+                    out[k] = float(cell)
                 except (TypeError, ValueError):
                     raise DatasetError(
                         f"DataFrame: {src._where(k + 1)}, column {name}: {shown(str(cell))} is not a number; "
                         "readings, time and channels must be numeric"
                     ) from None
-            raise
+            return out
 
     def text(j, name):
         return text_cells(frame.iloc[:, j].astype(str).tolist(), "DataFrame", name, lambda k: src._where(k + 1))
