@@ -211,17 +211,16 @@ def checked_noise(args):
 def read_input(args):
     """Read the data file named by :func:`add_input_arguments` options; returns ``(dataset, warning texts)``."""
 
-    notes = []
     ds = io.read_csv(
         args.data,
         columns=args.columns,
         units=args.units,
         drop_bad=args.drop_bad,
         lsb_nT=getattr(args, "lsb", None),
-        notes=notes,
         max_rows=checked_max_rows(args),
+        warn=False,
     )
-    return ds, [note.text for note in notes]
+    return ds, [note.text for note in ds.notes]
 
 
 def named_error(path, exc) -> str:
