@@ -33,8 +33,8 @@ from __future__ import annotations
 import io
 import json
 import os
-import tempfile
 import sys
+import tempfile
 import threading
 import time
 import urllib.parse

@@ -451,7 +451,6 @@ def test_units_check_looks_past_a_hard_iron_offset(units, factor, warned):
     """Issue 10: an offset larger than the field (MEMS on a platform) is not a unit error, and uT is still caught."""
     import warnings
 
-    from magcal.core.errors import DataWarning
     from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=200, seed=2)

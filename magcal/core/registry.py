@@ -39,6 +39,7 @@ class Loaded(list):
         #: What the loader has to say, in order (:class:`~magcal.core.notes.Note`).
         self.notes: list[Note] = list(notes)
 
+
 #: What a piece's name may look like: it is typed on the command line (``--format NAME``, ``magcal NAME``).
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
 
@@ -186,7 +187,9 @@ class Registry(Mapping, Generic[T]):
                         self._items.pop(n)
                         self._origins.pop(n, None)
                     self._items.update(before)
-                    added.notes.append(Note(f"skipped the {self.what} entry point {text}: {exc}", UserWarning, "plugins"))
+                    added.notes.append(
+                        Note(f"skipped the {self.what} entry point {text}: {exc}", UserWarning, "plugins")
+                    )
             return added
 
 

@@ -35,10 +35,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, exception_text
 from magcal.core.files import check_regular_file, not_regular_reason
 from magcal.core.memory import available_bytes
-from magcal.core import notes as _notes
 from magcal.core.notes import Note
 from magcal.data.accelerometer import MAPPABLE_ACCEL_COLUMNS
 from magcal.data.dataset import (
@@ -321,7 +321,7 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
     with the notes it has (a bare ``x`` column kept as unused)."""
     notes: list[Note] = []
     names = list(header)
-    index = {}
+    index: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
             continue

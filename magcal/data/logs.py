@@ -53,10 +53,10 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, exception_text
 from magcal.core.files import check_regular_file
 from magcal.core.memory import available_bytes
-from magcal.core import notes as _notes
 from magcal.core.notes import Note, row_runs
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 from magcal.geometry.orientations import FIRMWARE_ROTATIONS, euler_matrix
@@ -91,9 +91,7 @@ def is_log(path) -> bool:
     return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(LOG_EXTENSIONS)
 
 
-def read_log(
-    path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None, warn=True
-) -> Dataset:
+def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None, warn=True) -> Dataset:
     """Read an ArduPilot ``.bin`` or PX4 ``.ulg`` log into a :class:`Dataset` (readings in nT).
 
     Parameters
@@ -183,13 +181,17 @@ def _drop_bad(source, what, t, *arrays, keep=(), notes):
         a = np.asarray(a, dtype=float)
         bad |= bad_values(a, axis=tuple(range(1, a.ndim))) if a.ndim > 1 else bad_values(a)
     if bad.any():
-        notes.append(_note(f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
-            "(a damaged log); they are dropped"))
+        notes.append(
+            _note(
+                f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
+                "(a damaged log); they are dropped"
+            )
+        )
     good = ~bad
     return (np.asarray(t)[good], *(np.asarray(a)[good] for a in arrays + tuple(keep)))
 
 
-def pair_by_time(series, source, notes):
+def _pair_by_time(series, source, notes):
     """Pair the samples of several magnetometers by time.
 
     Parameters
@@ -224,8 +226,12 @@ def pair_by_time(series, source, notes):
         keep &= np.abs(t[nearest] - t0) <= 0.5 * step
         picks.append(nearest)
     if not keep.all():
-        notes.append(_note(f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
-            "of every other one within half a sample interval; they are dropped"))
+        notes.append(
+            _note(
+                f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
+                "of every other one within half a sample interval; they are dropped"
+            )
+        )
     values = [v0[keep]] + [v[p[keep]] for (_, v), p in zip(series[1:], picks)]
     return t0[keep], values
 
@@ -262,9 +268,13 @@ def _interp_attitude(t, t_src, rotations, source="log", *, notes):
     missing = ~spanned & (nearest > LOG_ATTITUDE_HOLD_S + 1e-6)  # 1 us: the logs' resolution
     if missing.any():
         q[missing] = np.nan
-        notes.append(_note(f"{source}: {int(missing.sum())} of {t.size} magnetometer samples ({row_runs(missing)}) lie more than "
-            f"{LOG_ATTITUDE_HOLD_S:g} s from any attitude message, before the first, after the last or in a gap of "
-            f"more than {LOG_ATTITUDE_MAX_GAP_S:g} s: they have no attitude (NaN; the vector fit leaves them out)"))
+        notes.append(
+            _note(
+                f"{source}: {int(missing.sum())} of {t.size} magnetometer samples ({row_runs(missing)}) lie more than "
+                f"{LOG_ATTITUDE_HOLD_S:g} s from any attitude message, before the first, after the last or in a gap of "
+                f"more than {LOG_ATTITUDE_MAX_GAP_S:g} s: they have no attitude (NaN; the vector fit leaves them out)"
+            )
+        )
     return q
 
 
@@ -274,7 +284,7 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
     A series whose values have six columns holds the raw field (the readings) and then the field the flight
     controller computed with its calibration of the time, kept as the channels ``s{k}x_logged, s{k}y_logged,
     s{k}z_logged`` (:data:`LOGGED_FIELD_COLUMNS`)."""
-    t, values = pair_by_time(series, source, notes)
+    t, values = _pair_by_time(series, source, notes)
     if t.size == 0:
         raise DatasetError(f"{source}: no magnetometer samples left after pairing the magnetometers by time")
     logged = {}
@@ -306,8 +316,12 @@ def _alive(series, labels, source, notes):
     for k, ((_, v), label) in enumerate(zip(series, labels)):
         v = v[:, :3]  # the readings (a log's series may hold the logged field beside them)
         if v.shape[0] > 1 and np.all(v == v[0]):
-            notes.append(_note(f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
-                f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out"))
+            notes.append(
+                _note(
+                    f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
+                    f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out"
+                )
+            )
             continue
         alive.append(k)
     if not alive:
@@ -322,7 +336,11 @@ def _select(instances, sensors, source, what, notes):
     """The instances chosen by ``sensors`` (0-based positions), at most :data:`MAX_SENSORS`."""
     if sensors is None:
         if len(instances) > MAX_SENSORS:
-            notes.append(_note(f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)"))
+            notes.append(
+                _note(
+                    f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)"
+                )
+            )
         return instances[:MAX_SENSORS]
     chosen = []
     for k in sensors:
@@ -729,10 +747,16 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes):
     """The dataset from the gathered messages (readings in nT), bad values dropped with a count."""
     mags = gathered["mags"]
     if gathered["bad_params"]:
-        notes.append(_note(f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
-            f"({', '.join(dict.fromkeys(gathered['bad_params']))})"))
+        notes.append(
+            _note(
+                f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
+                f"({', '.join(dict.fromkeys(gathered['bad_params']))})"
+            )
+        )
     for k, count in sorted(gathered["unhealthy"].items()):
-        notes.append(_note(f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out"))
+        notes.append(
+            _note(f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out")
+        )
     if not mags:
         raise DatasetError(
             f"{source}: no MAG messages (compass data); the log holds "
@@ -1321,9 +1345,13 @@ def _ulog_calibrated_field(ulog, source, notes):
     t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic, notes)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])
     t_s, xyz = t_s[changed], xyz[changed]  # sensor_combined repeats the last magnetometer sample between updates
-    notes.append(_note(f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
-        f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
-        "its parameters do not replace them"))
+    notes.append(
+        _note(
+            f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
+            f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
+            "its parameters do not replace them"
+        )
+    )
     metadata = {
         "log_format": "PX4 ULog",
         "log_magnetometers": topic,

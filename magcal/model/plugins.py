@@ -45,10 +45,10 @@ import traceback
 
 import numpy as np
 
+from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError
 from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
-from magcal.core import notes as _notes
 from magcal.core.notes import Note
 from magcal.core.registry import Loaded
 from magcal.data.dataset import CHANNELS, Dataset
