@@ -169,3 +169,22 @@ def test_the_readers_return_their_notes_and_warn_only_when_asked(tmp_path):
         loud = magcal.read_csv(path)
     assert [(str(w.message), w.category) for w in caught] == said and loud.notes == quiet.notes
     assert caught[0].filename == __file__  # the warning points at the user's call
+
+
+def test_a_calibrations_remarks_are_report_lines_never_raised():
+    """CalibrationResult.remarks: the report's "Warnings" lines (the JSON's ``"warnings"``), information that is
+    never raised; what is raised is ``notes``."""
+    import warnings
+
+    from magcal.calibration.report import text_report
+
+    ds = magcal.simulate("chi2017", seed=2)
+    ds.noise_nT = None  # the floors then use an estimate, which the report says
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a remark is never a Python warning
+        result = magcal.calibrate(ds, reference_total_nT=50000)
+    assert any(r.startswith("noise not given: the floors use sigma = ") for r in result.remarks), result.remarks
+    assert result.notes == [] and result.warnings is result.remarks
+    assert result.calibration.summary["warnings"] == result.remarks
+    report = text_report(result)
+    assert report.split("Warnings:\n")[1].splitlines()[: len(result.remarks)] == [f"  - {r}" for r in result.remarks]
