@@ -111,6 +111,7 @@ TAKES_NOTES = {
     "data/logs:_ulog_position": _LOGS_READ,
     "data/logs:_ulog_attitude": _LOGS_READ,
     "data/logs:_ulog_calibrated_field": _LOGS_READ,
+    "data/logs:_ulog_current": _LOGS_READ,
     "diagnosis/verdict:_judge_round": "a private round of one diagnosis: its list is returned in Diagnosis.notes",
     "diagnosis/verdict:_add_fit_notes": "a private round of one diagnosis: its list is returned in Diagnosis.notes",
     "fitting/vector:_fit_sensor": "one sensor of one vector fit: its list is returned in VectorFitResult.warnings",

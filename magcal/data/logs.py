@@ -900,7 +900,7 @@ def _ulog_dataset(path, sensors, source, timeout_s, notes) -> Dataset:
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    current = _ulog_current(ulog, source)
+    current = _ulog_current(ulog, source, notes)
     extra = {**(current or {}), **_ulog_position(ulog, source, metadata, notes)}
     extra.update(_ulog_imu(ulog, source, metadata, notes))
     logged = _px4_logged_fields(ulog, chosen, series, current, source, notes)
@@ -1270,7 +1270,7 @@ def _ulog_position(ulog, source, metadata, notes):
     return out
 
 
-def _ulog_current(ulog, source):
+def _ulog_current(ulog, source, notes):
     """``{"current_A": (t, A)}`` from the first ``battery_status`` (``current_a``), or None."""
     bats = sorted((d for d in ulog.data_list if d.name == "battery_status"), key=lambda d: d.multi_id)
     if not bats or "current_a" not in bats[0].data or "timestamp" not in bats[0].data:
@@ -1281,7 +1281,7 @@ def _ulog_current(ulog, source):
     good = ~bad_values(amps) & ~bad_values(t) & (amps >= 0)  # PX4 writes -1 when the current is not measured
     if good.sum() < 2:
         return None
-    return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status")}
+    return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status", notes)}
 
 
 def _require_fields(data, names, source, what):
