@@ -155,11 +155,11 @@ def _real_datasets():
     for name in REAL_CSV:
         path = REAL / f"{name}.csv"
         if path.exists():
-            yield name, read_csv(path, notes=[])
+            yield name, read_csv(path, warn=False)
     for name in REAL_LOGS:
         path = REAL / "raw" / name
         if path.exists():
-            yield name, read_log(path, notes=[])
+            yield name, read_log(path, warn=False)
 
 
 def table_real() -> None:

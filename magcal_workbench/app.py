@@ -465,9 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    skipped: list = []  # a broken installed effect package is reported, skipped
-    plugins.load_entry_points(notes=skipped)
-    for note in skipped:
+    # a broken installed effect package is reported, skipped
+    for note in plugins.load_entry_points(warn=False).notes:
         print(f"magcal-workbench: {note.text}", file=sys.stderr)
     try:
         plugins.load_effects_files(args.effects_file)

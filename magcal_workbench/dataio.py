@@ -17,9 +17,9 @@ def load_dataset(source, name: str | None = None, **options):
     name ``name`` when given; ``options`` (``columns``, ``units``, ``lsb_nT``) go to :func:`magcal.data.io.read_csv`.
     Returns the dataset and the reader's warnings as text (a clear :class:`MagcalError` on problems)."""
     options = {k: v for k, v in options.items() if v is not None}
-    notes: list = []  # the reader's notes as values (this may run on the workbench's worker thread)
-    ds = mio.read_csv(source, name=name, notes=notes, **options)
-    return ds, [note.text for note in notes]
+    # the reader's notes as values, not warnings (this may run on the workbench's worker thread)
+    ds = mio.read_csv(source, name=name, warn=False, **options)
+    return ds, [note.text for note in ds.notes]
 
 
 def read_bytes_dataset(name: str, content: bytes, **options):

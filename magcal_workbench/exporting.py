@@ -33,6 +33,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import sys
 import tempfile
 import threading
 import time
@@ -124,7 +125,8 @@ class ExportSection:
             "in the file)",
         )
         self.buttons = {"calibration": button(gui, "calibration.json", on.do_export_calibration, engine=False)}
-        formats.load_entry_points()  # one button per registered format (:mod:`magcal.output.formats`)
+        for note in formats.load_entry_points().notes:  # one button per registered format (magcal.output.formats)
+            print(f"magcal-workbench: {note.text}", file=sys.stderr)
         for fmt, spec in formats.EXPORT_FORMATS.items():
             self.buttons[fmt] = button(gui, spec.button, partial(on.do_export_format, fmt=fmt), engine=False)
         self.buttons["csv"] = button(gui, "Corrected CSV (magcal apply)", on.do_export_csv, engine=False)

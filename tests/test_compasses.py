@@ -247,7 +247,7 @@ def test_an_old_log_keeps_both_compasses_their_logged_field_and_the_current(old_
     from magcal.data.logs import read_log
 
     path, tr, current, body_nT, raws = old_log
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert ds.n_sensors == 2
     assert np.allclose(ds.extra["current_A"], current, atol=0.006)  # CURR's centiamperes
     # the raw field of compass 1 has its motor compensation (MOfs*) undone: it follows the current again
@@ -308,7 +308,7 @@ def test_each_logged_compass_takes_the_parameters_of_its_device(tmp_path):
             messages.append(("MAG", (us + 100 * instance, instance, *logged.astype(int), 0, 0, 0, 0, 0, 0, 1, 0)))
     path = tmp_path / "prio.bin"
     write_dataflash(path, NEW_FORMATS, messages)
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     for instance, dev in enumerate((dev_b, dev_a)):
         assert np.max(np.abs(ds.readings_nT[instance] - 100 * raws[dev])) < 0.6 * 100 / 0.9
 
@@ -359,7 +359,7 @@ def test_px4_logged_field_is_rebuilt_from_each_devices_parameters(tmp_path):
             "P", struct.pack("<B", len(key)) + key + struct.pack("<i" if kind == "int32_t" else "<f", value)
         )
     path.write_bytes(blob[:head] + pmsgs + blob[head:])
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert ds.n_sensors == 2
     logged = before_fields(ds)[0]
     for k in range(2):
@@ -383,7 +383,7 @@ def test_a_battery_monitor_without_a_current_sensor_gives_no_current_channel(tmp
         messages.append(("MAG", (us, 0, *np.round(body_mG[k]).astype(int), 0, 0, 0, 0, 0, 0, 1, 0)))
     path = tmp_path / "volts_only.bin"
     write_dataflash(path, formats, messages)
-    assert "current_A" not in read_log(path, notes=[]).extra
+    assert "current_A" not in read_log(path, warn=False).extra
 
 
 def test_a_delay_between_two_compasses_is_named_in_ms():

@@ -83,9 +83,10 @@ def test_accelerometer_units(tmp_path, factor, meta, names, unit, source):
 
 def test_accelerometer_unit_that_the_magnitude_contradicts_is_noted(tmp_path):
     g = Rotation.random(40, random_state=1).apply([0.0, 0.0, 1.0])
-    notes = []
-    acc = accelerometer(read_csv(_board_csv(tmp_path, g, meta={"accel_units": "m/s^2"})), notes=notes)
-    assert acc.unit == "m/s^2" and "looks like g" in notes[0]
+    acc = accelerometer(read_csv(_board_csv(tmp_path, g, meta={"accel_units": "m/s^2"})))
+    assert acc.unit == "m/s^2" and "looks like g" in acc.notes[0]
+    right = accelerometer(read_csv(_board_csv(tmp_path, g, meta={"accel_units": "g"})))
+    assert right.unit == "g" and right.notes == ()
 
 
 @pytest.mark.parametrize(
@@ -281,7 +282,7 @@ def test_logs_bring_the_accelerometer(tmp_path):
         out += _df_message(65, "QBhhhhhhhhhBI", (t, 0, *np.round(body[i]).astype(int), 0, 0, 0, 0, 0, 0, 1, 0))
     path = tmp_path / "board.bin"
     path.write_bytes(bytes(out))
-    ds = read_csv(path, notes=[])
+    ds = read_csv(path, warn=False)
     a = accelerometer(ds)
     assert a.unit == "m/s^2" and a.unit_source == "file"
     assert np.allclose(a.m_s2, acc, atol=1e-5)  # the first IMU's accelerometer at the compass's times (float32)
@@ -323,7 +324,7 @@ def test_accelerometer_cells_give_numbers_or_one_message(tmp_path, rows, units):
     ]
     path = tmp_path / "fuzz.csv"
     path.write_text("\n".join(lines) + "\n")
-    ds = read_csv(path, notes=[])
+    ds = read_csv(path, warn=False)
     try:
         acc = accelerometer(ds, units=units)
     except DatasetError as exc:

@@ -117,7 +117,7 @@ def _old_log(path):
 def test_old_dataflash_gps_timed_by_the_board_clock_and_dated(tmp_path):
     path = tmp_path / "copter_2015.bin"
     t, _, lat, lon, alt, throttle, _, _ = _old_log(path)
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert ds.metadata["date"] == DATE
     fixed = (t >= t[20]) & (t <= t[-2])  # before the first fix and after the last the reader holds the nearest fix
     assert np.max(np.abs(ds.extra["lat"][fixed] - lat[fixed])) < 1e-5  # deg: within a metre
@@ -130,7 +130,7 @@ def test_old_dataflash_gps_timed_by_the_board_clock_and_dated(tmp_path):
 def test_igrf_along_a_logged_track_on_the_record_s_date_calibrates_the_vector(tmp_path):
     path = tmp_path / "copter_2015.bin"
     t, att, lat, lon, alt, _, ned, bias = _old_log(path)
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     ref = resolve_vector_reference(ds, reference="igrf")
     assert ref.kind == "igrf-track" and DATE in ref.text
     fixed = t >= t[20]
@@ -166,7 +166,7 @@ def test_new_dataflash_first_receiver_3d_fixes_only(tmp_path):
         messages.append(("GPS", (us + 300, 1, 3, gms, GPS_WEEK, 12, 80, la + 10_000_000, lo, 0, 0, 0, 0, 0, 1)))
     path = tmp_path / "plane.bin"
     _write_dataflash(path, NEW_FORMATS, messages)
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert ds.metadata["date"] == DATE
     # the second receiver (1 deg north) is not mixed in; no-fix samples (status 2) are left out
     assert np.max(np.abs(ds.extra["lat"][1:] - lat[1:])) < 1e-5  # (sample 0 has no fix: it holds the first)
@@ -229,7 +229,7 @@ def test_ulog_vehicle_gps_position(tmp_path):
             ("vehicle_gps_position", gps_fields, gps),
         ],
     )
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert ds.metadata["date"] == DATE
     assert np.max(np.abs(ds.extra["lat"] - lat)) < 1e-5 and np.max(np.abs(ds.extra["alt_m"] - alt)) < 0.01
 
@@ -261,7 +261,7 @@ def test_a_wrong_declination_setting_is_named(tmp_path, wrong_by_deg):
         messages.append(("GPS", gps))
     path = tmp_path / "declination.bin"
     _write_dataflash(path, NEW_FORMATS, messages)
-    ds = read_log(path, notes=[])
+    ds = read_log(path, warn=False)
     assert float(ds.metadata["log_declination_deg"]) == pytest.approx(setting, abs=1e-3)
     fit = fit_vector(ds, resolve_vector_reference(ds, reference="igrf"), terms=[], warn=False)
     named = [w for w in fit.warnings if "COMPASS_DEC" in w]

@@ -134,9 +134,10 @@ def test_an_entry_point_format_joins_and_a_broken_or_clashing_one_is_skipped(mon
     monkeypatch.setattr(
         importlib.metadata, "entry_points", lambda group=None: points if group == formats.ENTRY_POINT_GROUP else []
     )
-    notes: list = []
     try:
-        assert formats.load_entry_points(force=True, notes=notes) == ["toy"]
+        loaded = formats.load_entry_points(force=True)
+        notes = loaded.notes
+        assert loaded == ["toy"]
         assert list(formats.EXPORT_FORMATS) == ["ardupilot", "px4", "c", "toy"]
         assert formats.EXPORT_FORMATS["px4"].file_name == "mag.params"  # the clash changed nothing
         assert "entry point toy = toy_fmt:TOY" in formats.EXPORT_FORMATS.origin("toy")

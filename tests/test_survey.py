@@ -371,3 +371,27 @@ def test_two_partitions_read_every_line_end_as_the_whole_file_or_refuse_alike(tm
     with pytest.raises(mio.DatasetError) as whole:
         magcal.read_csv(path)
     assert got == str(whole.value) and re.search(refusal, got), got
+
+
+def test_a_partitions_reader_notes_come_back_in_the_summary(surveys, tmp_path):
+    """A task's reader notes (a bad row dropped with ``drop_bad``) come back in the summary's notes, naming the
+    file's line: a worker's warnings would go nowhere the user looks (issue 43 item 4)."""
+    from magcal.core.errors import DataWarning
+    from magcal.output.survey import apply_partitioned
+
+    d, cal, a, _ = surveys
+    lines = a.read_text().splitlines(keepends=True)
+    header = next(k for k, line in enumerate(lines) if not line.startswith("#"))
+    bad = header + 1 + 321  # a data row in the third partition of 150
+    cells = lines[bad].split(",")
+    cells[0] = "nan"
+    lines[bad] = ",".join(cells)
+    path = tmp_path / "one_bad.csv"
+    path.write_text("".join(lines))
+    summary = apply_partitioned(
+        cal, [path], tmp_path / "parts", workers=1, partition_rows=150, drop_bad=True, progress=False
+    )
+    dropped = [n for n in summary.notes if "dropped" in n.text]
+    assert summary.rows == 499 and len(dropped) == 1 and dropped[0].category is DataWarning
+    first = lines[header].split(",")[0]  # the column made nan
+    assert f"{path}: dropped 1 row(s) with bad values: line {bad + 1}, column {first}: 'nan'" in dropped[0].text

@@ -371,7 +371,7 @@ def test_each_partition_of_a_parallel_apply_counts_its_rows_without_attitude(tmp
     parts = survey.partitions([tmp_path / "two.parquet"], partition_rows=150)
     assert len(parts) == 2
     done = [survey.correct_partition(cal.to_dict(), p, str(tmp_path), "parquet", "apply") for p in parts]
-    assert [d[1:] for d in done] == [(150, 20), (150, 10)]
+    assert [d[1:] for d in done] == [(150, 20, ()), (150, 10, ())]  # rows, rows without attitude, reader's notes
     world = np.concatenate([pd.read_parquet(d[0])[["s1n_cal", "s1e_cal", "s1d_cal"]].to_numpy() for d in done])
     assert np.isnan(world[gap]).all() and np.allclose(world[~gap], cal.world(two)[0][~gap], atol=1e-6)
     # the whole parallel apply on a local cluster: one warning for the survey

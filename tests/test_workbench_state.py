@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import magcal
+from magcal.core.registry import Loaded
 from magcal.data import io as mio
 from magcal.data.simulation import chi2017_truth
 from magcal_workbench import scene as scn
@@ -984,7 +985,7 @@ def test_command_line_effects_files(tmp_path, capsys, clean_catalogue, monkeypat
     args = build_parser().parse_args(["--effects-file", "a.py", "--effects-file", "b.py"])
     assert args.effects_file == ["a.py", "b.py"]
     calls = []
-    monkeypatch.setattr(plugins, "load_entry_points", lambda *a, **kw: calls.append(1) or [])
+    monkeypatch.setattr(plugins, "load_entry_points", lambda *a, **kw: calls.append(1) or Loaded())
     missing = tmp_path / "missing.py"
     assert main(["--no-session", "--effects-file", str(missing)]) == 2
     err = capsys.readouterr().err

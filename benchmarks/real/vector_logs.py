@@ -146,8 +146,8 @@ def read_part(part: Part, raw_dir: Path = RAW_DIR, undo_calibration=True):
     path = raw_dir / part.raw
     if not path.exists():
         raise SystemExit(f"{path}: missing; run benchmarks/real/fetch.py first (see this script's docstring)")
-    notes = []
-    ds = read_log(path, name=part.raw, notes=notes, undo_calibration=undo_calibration)
+    ds = read_log(path, name=part.raw, undo_calibration=undo_calibration, warn=False)
+    notes = ds.notes
     t = ds.time_s
     lo, hi = t[0] + part.start * (t[-1] - t[0]), t[0] + part.stop * (t[-1] - t[0])
     keep = (t >= lo) & (t < hi) if part.stop < 1.0 else (t >= lo)

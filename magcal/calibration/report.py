@@ -202,7 +202,7 @@ def text_report(result, source: str | None = None) -> str:
         idx = np.flatnonzero(result.outliers)
         shown = ", ".join(str(i + 1) for i in idx[:20]) + (" ..." if idx.size > 20 else "")
         out.append(f"Distrusted samples ({idx.size}, 1-based data rows): {shown}")
-    if result.warnings:
+    if result.remarks:
         out.append("Warnings:")
-        out += [f"  - {w}" for w in result.warnings]
+        out += [f"  - {w}" for w in result.remarks]
     return "\n".join(out).rstrip() + "\n"

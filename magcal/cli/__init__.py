@@ -50,9 +50,7 @@ def load_plugins(args, command="magcal") -> None:
     """Load the entry-point effects (once; failures printed as warnings) and the ``--effects-file`` files."""
     from magcal.model import plugins
 
-    notes: list = []
-    plugins.load_entry_points(notes=notes)
-    for note in notes:
+    for note in plugins.load_entry_points(warn=False).notes:
         print(f"{command}: warning: {note.text}", file=sys.stderr)
     plugins.load_effects_files(getattr(args, "effects_file", None))
 

@@ -211,17 +211,16 @@ def checked_noise(args):
 def read_input(args):
     """Read the data file named by :func:`add_input_arguments` options; returns ``(dataset, warning texts)``."""
 
-    notes = []
     ds = io.read_csv(
         args.data,
         columns=args.columns,
         units=args.units,
         drop_bad=args.drop_bad,
         lsb_nT=getattr(args, "lsb", None),
-        notes=notes,
         max_rows=checked_max_rows(args),
+        warn=False,
     )
-    return ds, [note.text for note in notes]
+    return ds, [note.text for note in ds.notes]
 
 
 def named_error(path, exc) -> str:
@@ -432,7 +431,7 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    notes += [note.text for note in result.notes if note.text not in result.warnings]
+    notes += [note.text for note in result.notes if note.text not in result.remarks]
     if names and args.method == "ml" and getattr(args, "validate", True):
         notes += _attach_validation(result, ds)
     result.calibration.fitted_on(ds)  # record-only terms then act on this record only (magcal apply)
@@ -440,7 +439,7 @@ def run(args) -> int:
     notes += quality.warnings
     # each warning once: the text report lists the calibration's own warnings and the data-quality warnings, so
     # leave those to it
-    in_report = set(result.warnings) | set(quality.warnings)
+    in_report = set(result.remarks) | set(quality.warnings)
     printed = set()
     for note in dict.fromkeys(notes):
         if args.json or note not in in_report:
@@ -453,11 +452,11 @@ def run(args) -> int:
         if getattr(result, "validation", None) is not None:
             doc["validation"] = result.validation.to_dict()
         # every warning of the run, not only the calibration's own: reading, reference, coverage, fit
-        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.warnings)))
+        doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.remarks)))
         doc["quality"] = quality.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
-        for note in result.warnings:
+        for note in result.remarks:
             if note not in printed:
                 print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     else:

@@ -239,7 +239,7 @@ def run(args) -> int:
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(result.notes + diagnosis.notes)]  # what the fits said, as values
-    notes += [w for w in result.warnings if w not in notes]
+    notes += [w for w in result.remarks if w not in notes]
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
     notes += [w for w in quality.warnings if w not in notes]
     for note in notes:

@@ -41,9 +41,7 @@ DATA_FORMATS = {
 def register(subparsers):
     """Add the ``export`` subcommand: its ``--format`` choices are the registered formats
     (:data:`magcal.output.formats.EXPORT_FORMATS`, installed packages' included) and :data:`DATA_FORMATS`."""
-    notes: list = []
-    load_entry_points(notes=notes)
-    for note in notes:
+    for note in load_entry_points().notes:
         print(f"magcal export: warning: {note.text}", file=sys.stderr)
     formats = {name: spec.description for name, spec in EXPORT_FORMATS.items()}
     parser = subparsers.add_parser(

@@ -81,9 +81,7 @@ def source_options(args) -> dict:
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the ``record`` subcommand; its description lists the registered live sources
     (:data:`magcal.data.live.LIVE_SOURCES`, installed packages' included)."""
-    notes: list = []
-    load_entry_points(notes=notes)
-    for note in notes:
+    for note in load_entry_points().notes:
         print(f"magcal record: warning: {note.text}", file=sys.stderr)
     sources = "; ".join(f"{' or '.join(k.forms)}: {k.description}" for k in LIVE_SOURCES.values())
     parser = subparsers.add_parser(

@@ -5,7 +5,9 @@ coverage, a fit that stopped early, record-only terms dropped -- returns it as a
 ``notes`` field: :attr:`magcal.fitting.pipeline.CalibrationResult.notes`, :attr:`magcal.fitting.fitter.FitResult.notes`,
 :attr:`magcal.diagnosis.Diagnosis.notes`...) or as a second return value. Notes are raised as Python warnings only at
 the boundary a user calls (:func:`magcal.calibrate`, :func:`magcal.diagnose`, :func:`magcal.read_csv`,
-:meth:`magcal.Calibration.correct`...), with :func:`warn`, and the command line prints them.
+:func:`magcal.read_log`, :meth:`magcal.Calibration.correct`...: their ``warn=True``), with :func:`warn`, and the
+command line prints them. The readers' notes are their dataset's :attr:`~magcal.data.dataset.Dataset.notes` (a
+streaming reader's, :attr:`magcal.data.io.CsvSource.notes`); no step takes a list to fill.
 
 Why not warnings all the way: :func:`warnings.catch_warnings` swaps process-wide state, so a step run on a thread
 (the diagnosis's pool, the noise prefetch, the workbench's worker and live refits) could lose a note or hand it to
@@ -78,17 +80,6 @@ def warn(notes: Iterable[Note], stacklevel: int = 2) -> None:
     """
     for note in notes:
         warnings.warn(note.text, note.category, stacklevel=stacklevel + 1)
-
-
-def say(notes, text: str, category=DataWarning, where: str = "", stacklevel: int = 2) -> None:
-    """A note of a step that a user may also call directly (a reader): appended to ``notes`` (a list: an engine
-    step or the workbench, which may run on a thread) as a :class:`Note`, or raised as a warning of ``category``
-    when ``notes`` is None (a user's call). ``stacklevel`` as in :func:`warnings.warn`, from the caller of
-    :func:`say`."""
-    if notes is None:
-        warnings.warn(text, category, stacklevel=stacklevel + 1)
-    else:
-        notes.append(Note(text, category, where))
 
 
 def runs(missing, first_row: int = 1) -> list[tuple[int, int]]:

@@ -22,9 +22,23 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import Any, Generic, TypeVar
 
 from magcal.core.errors import MagcalError
-from magcal.core.notes import say
+from magcal.core.notes import Note
 
 T = TypeVar("T")
+
+
+class Loaded(list):
+    """The names an entry-point loader added (a ``list`` of str), with :attr:`notes`: what it has to say, a
+    :class:`~magcal.core.notes.Note` (``UserWarning``) for each entry point skipped (it failed to import or to
+    register) or for entry points that could not be listed. Returned by :meth:`Registry.load_entry_points` and
+    :func:`magcal.model.plugins.load_entry_points`; the command line prints the notes, the workbench shows them.
+    """
+
+    def __init__(self, names=(), notes=()):
+        super().__init__(names)
+        #: What the loader has to say, in order (:class:`~magcal.core.notes.Note`).
+        self.notes: list[Note] = list(notes)
+
 
 #: What a piece's name may look like: it is typed on the command line (``--format NAME``, ``magcal NAME``).
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
@@ -124,7 +138,7 @@ class Registry(Mapping, Generic[T]):
             self._origins.pop(name, None)
 
     # -- installed packages --------------------------------------------------------------------------------------
-    def load_entry_points(self, force: bool = False, notes=None) -> list[str]:
+    def load_entry_points(self, force: bool = False) -> Loaded:
         """Add the pieces installed packages declare in :attr:`group` (once; later calls return ``[]`` unless
         ``force``).
 
@@ -134,25 +148,23 @@ class Registry(Mapping, Generic[T]):
         ----------
         force : bool
             Load again even if already loaded.
-        notes : list, optional
-            Where a skipped entry point's message goes (:class:`~magcal.core.notes.Note`, UserWarning); None:
-            raised as a warning.
 
         Returns
         -------
-        list of str
-            The names added.
+        Loaded
+            The names added (a list of str), and in its ``notes`` a ``UserWarning`` note for each entry point
+            skipped (never raised here).
         """
         with self._lock:
             if self._loaded and not force:
-                return []
+                return Loaded()
             self._loaded = True
             try:
                 found = list(importlib.metadata.entry_points(group=self.group))
             except Exception as exc:  # a broken installation must not stop magcal
-                say(notes, f"could not list the {self.group!r} entry points ({exc}); none loaded", UserWarning)
-                return []
-            added: list[str] = []
+                text = f"could not list the {self.group!r} entry points ({exc}); none loaded"
+                return Loaded((), [Note(text, UserWarning)])
+            added = Loaded()
             for ep in found:
                 text = entry_point_text(ep)
                 before = dict(self._items)
@@ -175,7 +187,9 @@ class Registry(Mapping, Generic[T]):
                         self._items.pop(n)
                         self._origins.pop(n, None)
                     self._items.update(before)
-                    say(notes, f"skipped the {self.what} entry point {text}: {exc}", UserWarning, "plugins")
+                    added.notes.append(
+                        Note(f"skipped the {self.what} entry point {text}: {exc}", UserWarning, "plugins")
+                    )
             return added
 
 

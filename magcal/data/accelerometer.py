@@ -89,12 +89,15 @@ class Accelerometer:
         ``g``, ``mg`` or ``m/s^2``.
     unit_source : str
         ``column name``, ``file`` (the ``# accel_units:`` line), ``given`` or ``magnitude`` (inferred).
+    notes : tuple of str
+        What the reader has to say (a given unit the magnitude contradicts); the gravity fit passes it on.
     """
 
     m_s2: np.ndarray
     columns: tuple
     unit: str
     unit_source: str
+    notes: tuple = ()
 
     @property
     def present(self) -> np.ndarray:
@@ -161,7 +164,7 @@ def _column_numbers(values, name, source) -> np.ndarray:
     return out
 
 
-def accelerometer(dataset: Dataset, units=None, notes=None) -> Accelerometer | None:
+def accelerometer(dataset: Dataset, units=None) -> Accelerometer | None:
     """The dataset's accelerometer in m/s^2, or None when it has no accelerometer columns.
 
     Parameters
@@ -170,8 +173,6 @@ def accelerometer(dataset: Dataset, units=None, notes=None) -> Accelerometer | N
     units : str, optional
         The unit of ``ax, ay, az`` (``g``, ``mg``, ``m/s^2``); default the file's ``# accel_units:`` line, else the
         one the magnitude implies. Columns whose name carries a unit keep it.
-    notes : list, optional
-        Where a note goes (a given unit the magnitude contradicts).
 
     Raises
     ------
@@ -213,12 +214,13 @@ def accelerometer(dataset: Dataset, units=None, notes=None) -> Accelerometer | N
             "'# accel_units: g' line (g, mg or m/s^2) or --accel-units, and check that the columns are the "
             "accelerometer's"
         )
-    if source != "magnitude" and guessed is not None and guessed != unit and notes is not None:
+    notes = []
+    if source != "magnitude" and guessed is not None and guessed != unit:
         notes.append(
             f"{where}: the accelerometer is said to read in {unit}, but its median magnitude {median:.4g} looks like "
             f"{guessed}: check '# accel_units:' (or --accel-units)"
         )
-    return Accelerometer(a * ACCEL_UNIT_FACTORS[unit], tuple(names), unit, source)
+    return Accelerometer(a * ACCEL_UNIT_FACTORS[unit], tuple(names), unit, source, tuple(notes))
 
 
 @dataclass

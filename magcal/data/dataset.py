@@ -114,6 +114,10 @@ class Dataset:
         Columns magcal does not use, kept so that ``apply`` can write them back.
     source : str, optional
         Where the data came from (a file path), used in messages.
+    notes : tuple of Note
+        What the reader that made the dataset had to say (:class:`~magcal.core.notes.Note`: rows dropped, units
+        that look wrong, magnetometers left out...), set by the reader; raised as warnings only by the public
+        readers (:func:`magcal.read_csv`, :func:`magcal.read_log`), printed by the command line. Not compared.
     """
 
     readings_nT: np.ndarray
@@ -128,6 +132,7 @@ class Dataset:
     metadata: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
     source: str | None = None
+    notes: tuple = field(default=(), compare=False, repr=False)
 
     def __post_init__(self):
         r = _frozen(self.readings_nT)

@@ -8,6 +8,9 @@ import csv
 
 import numpy as np
 
+from magcal.core import notes as _notes
+from magcal.core.errors import DataWarning
+from magcal.core.notes import Note
 from magcal.data.dataset import Dataset, DatasetError
 from magcal.data.io import CsvSource, check_units, columns_block, shown, text_cells
 
@@ -139,11 +142,12 @@ def _from_dataframe(frame) -> Dataset:
         return text_cells(frame.iloc[:, j].astype(str).tolist(), "DataFrame", name, lambda k: src._where(k + 1))
 
     ds = columns_block(src, numeric, text, np.arange(1, frame.shape[0] + 1), block="")
-    check_units(ds, src.units, src.source, stacklevel=4, lsb_nT=src.lsb_nT)  # as read_csv: said at the user's call
+    unit_text = check_units(ds, src.units, src.source, lsb_nT=src.lsb_nT)
+    ds.notes = tuple(src.notes) + ((Note(unit_text, DataWarning, "read"),) if unit_text else ())
     return ds
 
 
-def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:
+def as_dataset(data, *, reference_total_nT=None, t=None, temp=None, warn=True) -> Dataset:
     """What the user holds, as a :class:`Dataset`.
 
     Parameters
@@ -161,6 +165,9 @@ def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:
         Sample times in s, strictly increasing (needed by time-dependent effects such as ``bias_drift``).
     temp : array_like, shape (N,) or float, optional
         Temperature in degC (needed by ``temperature_bias`` and the other temperature effects).
+    warn : bool
+        For a DataFrame: raise what its reading has to say (units that look wrong, quaternions normalised...) as
+        :class:`~magcal.core.errors.DataWarning` warnings, the default; False leaves it in the dataset's ``notes``.
 
     Returns
     -------
@@ -188,6 +195,8 @@ def as_dataset(data, *, reference_total_nT=None, t=None, temp=None) -> Dataset:
         ds = data
     elif _is_dataframe(data):
         ds = _from_dataframe(data)
+        if warn:
+            _notes.warn(ds.notes)
     else:
         ds = Dataset(readings_nT=_readings_from_array(data))
     changes: dict = {}

@@ -9,7 +9,8 @@ array frame to world frame; all four empty or ``nan``: a sample without attitude
 
 The reader tells the truth about the file: every problem is a :class:`~magcal.data.dataset.DatasetError` naming the
 file, the 1-based line number of the file and the column, and saying what to do; problems it can work around
-(dropped rows, suspicious units) are :class:`~magcal.core.errors.DataWarning` warnings. It never lets another exception
+(dropped rows, suspicious units) are :class:`~magcal.core.errors.DataWarning` notes in the dataset's ``notes``,
+raised as warnings by :func:`read_csv` (the public reader) unless ``warn=False``. It never lets another exception
 through for bad input.
 
 Records are one line each: quoted fields (``"a,b"``) are understood, quoted line breaks are not. Lines end in LF
@@ -34,10 +35,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, exception_text
 from magcal.core.files import check_regular_file, not_regular_reason
 from magcal.core.memory import available_bytes
-from magcal.core.notes import say
+from magcal.core.notes import Note
 from magcal.data.accelerometer import MAPPABLE_ACCEL_COLUMNS
 from magcal.data.dataset import (
     BAD_VALUE_TEXT,
@@ -202,10 +204,9 @@ def parse_units(units, where="--units", lsb_nT=None):
     return factor
 
 
-def _say(notes, text, stacklevel=2):
-    """A reader's note: appended to ``notes`` (a list) or, when None, raised as a :class:`DataWarning`
-    (:func:`magcal.core.notes.say`)."""
-    say(notes, text, DataWarning, "read", stacklevel + 1)
+def _note(text) -> Note:
+    """A reader's note (a :class:`DataWarning` at the boundary), said by the step ``read``."""
+    return Note(text, DataWarning, "read")
 
 
 def parse_column_mapping(text):
@@ -315,10 +316,12 @@ def bad_numeric_cells(values, quaternion_positions=()):
     return bad
 
 
-def _find_layout(header, columns, source, header_line=1, notes=None):
-    """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name."""
+def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[Note]]:
+    """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name; returned
+    with the notes it has (a bare ``x`` column kept as unused)."""
+    notes: list[Note] = []
     names = list(header)
-    index = {}
+    index: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
             continue
@@ -347,11 +350,11 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
         if key in SENSOR_AXES:
             key = f"s1{key}"
             if any(_SENSOR_RE.match(n) for n in names):  # s1x... and bare x: keep x as an extra column
-                _say(
-                    notes,
-                    f"{source}: the file has both s1x-style columns and a bare {name!r} column; {name!r} is kept "
-                    "as an unused column",
-                    stacklevel=4,
+                notes.append(
+                    _note(
+                        f"{source}: the file has both s1x-style columns and a bare {name!r} column; {name!r} is "
+                        "kept as an unused column"
+                    )
                 )
                 continue
         if key in canonical:
@@ -401,7 +404,7 @@ def _find_layout(header, columns, source, header_line=1, notes=None):
         if name in canonical:
             extra.pop(name, None)  # the file's own column of that name gives way to the mapped one
             extra[name] = canonical[name]
-    return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra)
+    return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra), notes
 
 
 def _partial_quaternion(q):
@@ -636,10 +639,9 @@ class CsvSource:
     lsb_nT : float or str, optional
         nT per count for readings in raw counts; overrides the file's ``# lsb_nT:`` line. Refused unless the
         readings are in counts. The LSB used is kept as the metadata ``lsb_nT`` of the datasets.
-    notes : list, optional
-        Where the reader's notes go (:class:`~magcal.core.notes.Note`); None: raised as :class:`DataWarning`.
 
-    Use as a context manager, or call :meth:`close`.
+    Use as a context manager, or call :meth:`close`. What it has to say (a metadata line given twice, units given
+    over the file's, rows dropped, quaternions normalised) is in :attr:`notes` as it reads.
     """
 
     #: What the numbers given to :meth:`_dataset` count in its messages: the file's lines (a Parquet file: rows).
@@ -656,8 +658,9 @@ class CsvSource:
             return self._row_label(int(number))
         return f"{word or self._row_word} {number}"
 
-    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None, notes=None):
-        self._notes = notes
+    def __init__(self, path, columns=None, units=None, name=None, lsb_nT=None):
+        #: What the reader has said so far (:class:`~magcal.core.notes.Note`, :class:`DataWarning`), in order.
+        self.notes: list[Note] = []
         self.metadata = {}
         self.metadata_lines = []
         self._file = None
@@ -682,7 +685,8 @@ class CsvSource:
                     ) from None
                 self._file = _FileLines(fh, self.source, owned=True)
             self._read_head()
-            self.layout = _find_layout(self.header, columns, self.source, self.header_line, self._notes)
+            self.layout, said = _find_layout(self.header, columns, self.source, self.header_line)
+            self.notes += said
             self._resolve_units(units, lsb_nT)
         except BaseException:
             self.close()
@@ -748,11 +752,11 @@ class CsvSource:
                     key, value = key.strip(), value.strip()
                     if key:
                         if key in self.metadata and self.metadata[key] != value:
-                            _say(
-                                self._notes,
-                                f"{self.source}: line {self._lineno}: metadata {shown(key)} given twice; the last "
-                                f"value {shown(value)} is used",
-                                stacklevel=3,
+                            self.notes.append(
+                                _note(
+                                    f"{self.source}: line {self._lineno}: metadata {shown(key)} given twice; the "
+                                    f"last value {shown(value)} is used"
+                                )
                             )
                         self.metadata[key] = value
                         self._check_metadata(key, value)
@@ -813,7 +817,7 @@ class CsvSource:
                     f"({origin}); add --units counts if the readings are counts, or leave out --lsb"
                 )
             if file_lsb is not None and parse_lsb(file_lsb) != lsb:
-                _say(self._notes, f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'", 3)
+                self.notes.append(_note(f"{self.source}: --lsb {lsb_nT} overrides the file's 'lsb_nT: {file_lsb}'"))
         elif counts and file_lsb is not None:
             lsb = parse_lsb(file_lsb)
         if given:
@@ -826,7 +830,9 @@ class CsvSource:
         if given and file_units is not None:
             same = is_counts(file_units) == counts and (counts or parse_units(file_units) == self.unit_factor)
             if not same:
-                _say(self._notes, f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'", 3)
+                self.notes.append(
+                    _note(f"{self.source}: --units {self.units} overrides the file's 'units: {file_units}'")
+                )
         self.lsb_nT = lsb if counts else None
         if self.lsb_nT is not None:
             self.metadata["lsb_nT"] = repr(self.lsb_nT) if lsb_nT is not None else file_lsb
@@ -1038,7 +1044,7 @@ class CsvSource:
                     f"{self.source}: {len(problems)} row(s) with bad values: {listed}{more}. Fix or delete these rows, "
                     "or drop them with --drop-bad (drop_bad=True)"
                 )
-            _say(self._notes, f"{self.source}: dropped {len(problems)} row(s) with bad values: {listed}{more}", 4)
+            self.notes.append(_note(f"{self.source}: dropped {len(problems)} row(s) with bad values: {listed}{more}"))
         return rows, values[keep], keep
 
     def _dataset(self, values, text, numbers):
@@ -1069,11 +1075,11 @@ class CsvSource:
             error = np.abs(norm - 1.0)
             if np.any(error > 1e-3):
                 worst = int(np.nanargmax(error))
-                _say(
-                    self._notes,
-                    f"{self.source}: attitude quaternions are not unit length ({self._where(numbers[worst])}: "
-                    f"|q| = {norm[worst]:.4g}); they are normalised",
-                    stacklevel=4,
+                self.notes.append(
+                    _note(
+                        f"{self.source}: attitude quaternions are not unit length ({self._where(numbers[worst])}: "
+                        f"|q| = {norm[worst]:.4g}); they are normalised"
+                    )
                 )
             off = error > 1e-9  # False where NaN: a sample without attitude stays NaN
             if off.any():
@@ -1242,14 +1248,14 @@ def concatenate(datasets):
     )
 
 
-def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None, notes=None):
-    """Warn (:class:`DataWarning`) when the readings' magnitudes look like another unit (or another LSB).
+def check_units(dataset, units="nT", source=None, lsb_nT=None) -> str | None:
+    """What to tell the user when the readings' magnitudes look like another unit (or another LSB), or None.
 
     The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
     usually means a wrong ``units`` line, or for raw counts a wrong LSB. The magnitude is taken about the readings'
     fitted centre (:func:`magcal.checks.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
     error. ``lsb_nT`` (nT per count) defaults to the dataset's metadata ``lsb_nT`` for ``units="counts"``.
-    Returns the warning text, or ``None``. With ``notes`` (a list) the note is appended to it instead of raised.
+    Returns the text (the readers put it in their dataset's ``notes`` as a :class:`DataWarning` note), or ``None``.
     """
 
     r = dataset.readings_nT
@@ -1281,8 +1287,14 @@ def check_units(dataset, units="nT", source=None, stacklevel=3, lsb_nT=None, not
         f"{source or dataset.source or 'dataset'}: the field the readings imply (median magnitude about their "
         f"centre) is {value}, outside the Earth's field range of 20-70 uT; {hint}"
     )
-    _say(notes, msg, stacklevel=stacklevel)
     return msg
+
+
+def _with_notes(ds, notes, units, source, lsb_nT):
+    """``ds`` with its reader's ``notes`` (and :func:`check_units`' note, if any) as its :attr:`Dataset.notes`."""
+    unit_text = check_units(ds, units, source, lsb_nT=lsb_nT)
+    ds.notes = tuple(notes) + ((_note(unit_text),) if unit_text else ())
+    return ds
 
 
 def require_samples(dataset, n_params, what="this model"):
@@ -1314,8 +1326,8 @@ def read_csv(
     chunk_rows=200_000,
     name=None,
     lsb_nT=None,
-    notes=None,
     max_rows=None,
+    warn=True,
 ):
     """Read a magcal CSV file into a :class:`~magcal.data.dataset.Dataset` (readings in nT).
 
@@ -1342,19 +1354,21 @@ def read_csv(
     lsb_nT : float or str, optional
         nT per count for ``counts``; overrides the file's ``# lsb_nT:`` line (kept as metadata ``lsb_nT``). An error
         unless the readings are in counts.
-    notes : list, optional
-        Where the reader's notes go (:class:`~magcal.core.notes.Note`: dropped rows, units that look wrong...): given,
-        they are appended to it; None (default), each is raised as a :class:`DataWarning`.
     max_rows : int, optional
         Refuse a file of more data rows than this (0: no limit): a Parquet file's rows are counted from its footer
         before any is read, and by default limited to :data:`MAX_READ_ROWS` (its size does not bound them); a
         CSV's are counted as they are read, and not limited unless ``max_rows`` is given (its bytes bound them).
         Either is refused when it would not fit in the free memory (:func:`check_read_rows`).
+    warn : bool
+        Raise the reader's notes (dropped rows, units that look wrong...) as :class:`DataWarning` warnings, the
+        default; False leaves them in the dataset's ``notes`` only (what the command line, the workbench and the
+        engine's own reads do).
 
     Returns
     -------
     Dataset
-        ``source`` is the path (or ``name``), ``metadata`` holds every ``# key: value`` line as text.
+        ``source`` is the path (or ``name``), ``metadata`` holds every ``# key: value`` line as text, ``notes``
+        what the reader had to say (:class:`~magcal.core.notes.Note`).
 
     Raises
     ------
@@ -1362,20 +1376,28 @@ def read_csv(
         For any problem with the file, naming the file, line (1-based) and column, and what to do.
     """
 
+    ds = _read_any(path, columns, units, drop_bad, min_samples, chunk_rows, name, lsb_nT, max_rows)
+    if warn:
+        _notes.warn(ds.notes)
+    return ds
+
+
+def _read_any(path, columns, units, drop_bad, min_samples, chunk_rows, name, lsb_nT, max_rows):
+    """:func:`read_csv` but the warnings: the dataset with its reader's notes."""
     if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.data.logs reads it, in nT
-        return read_log(path, name=name, min_samples=min_samples, notes=notes)
+        return read_log(path, name=name, min_samples=min_samples, warn=False)
     if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
-        return read_parquet(path, name=name, notes=notes, max_rows=max_rows)
+        return read_parquet(path, name=name, max_rows=max_rows)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
     if not hasattr(path, "read") and not drop_bad:
-        ds = _read_csv_arrow(path, columns, units, name, lsb_nT, notes)  # None: take the line-by-line reader
+        ds = _read_csv_arrow(path, columns, units, name, lsb_nT)  # None: take the line-by-line reader
         if ds is not None:
             if max_rows:
                 check_read_rows(ds.source, ds.n_samples, 0, max_rows)
             if ds.n_samples >= int(min_samples):
                 return ds
-    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=notes) as src:
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
         parts, rows = [], 0
         for chunk in src.chunks(chunk_rows, drop_bad=drop_bad):
             rows += chunk.dataset.n_samples
@@ -1393,8 +1415,7 @@ def read_csv(
                 f"{src.source}: {ds.n_samples} sample(s){dropped}, fewer than the {int(min_samples)} needed; "
                 "record more attitudes"
             )
-        check_units(ds, src.units, src.source, stacklevel=3, lsb_nT=src.lsb_nT, notes=notes)
-    return ds
+        return _with_notes(ds, src.notes, src.units, src.source, src.lsb_nT)
 
 
 def _arrow_table(pa, pacsv, data, header, layout, numeric):
@@ -1427,7 +1448,7 @@ def _arrow_text(column, source, name, row_name):
     return text_cells(cells, source, name, row_name, lengths)
 
 
-def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
+def _read_csv_arrow(path, columns, units, name, lsb_nT):
     """The whole file read by pyarrow's CSV reader when it is clean, else None (the caller then reads it line by
     line, which finds and names every problem).
 
@@ -1435,17 +1456,17 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
     are the same; the data lines go to pyarrow with the numeric columns typed float64, and the values to the same
     dataset builder as a CSV block. Anything unusual -- pyarrow missing, a field it cannot convert, a quoted or
     short line, a non-finite value, a problem the builder would report (it names lines, which blank lines would
-    shift here) -- returns None. ``notes`` as in :func:`read_csv`.
+    shift here) -- returns None. The dataset's ``notes`` as in :func:`read_csv`.
     """
     try:
         import pyarrow as pa
         import pyarrow.csv as pacsv
     except ImportError:
         return None
-    head_notes = []  # the head's notes: any sends the file to the line-by-line reader, which says them
-    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=head_notes) as src:
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
         header_line = src.header_line
         layout, header = src.layout, list(src.header)
+        head_notes = src.notes  # any sends the file to the line-by-line reader, which says them
     if head_notes or len(set(header)) != len(header) or any(not h for h in header):
         return None
     try:
@@ -1488,17 +1509,15 @@ def _read_csv_arrow(path, columns, units, name, lsb_nT, notes=None):
             text[j] = _arrow_text(table.column(header[j]), "whole file", header[j], lambda k: f"line {k}")
         except DatasetError:
             return None  # the line reader names the line
-    build_notes = []
-    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=build_notes) as src:
+    with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
         try:
             ds = src._dataset(values, text, np.arange(header_line + 1, header_line + 1 + n))
         except DatasetError:
             return None
-        units_used, lsb_used, source = src.units, src.lsb_nT, src.source
+        units_used, lsb_used, source, build_notes = src.units, src.lsb_nT, src.source, src.notes
     if build_notes:
         return None  # e.g. quaternions normalised: the line-by-line reader says it with the right line numbers
-    check_units(ds, units_used, source, stacklevel=4, lsb_nT=lsb_used, notes=notes)
-    return ds
+    return _with_notes(ds, (), units_used, source, lsb_used)
 
 
 # -- writing --------------------------------------------------------------------------------------------------------
@@ -1772,7 +1791,7 @@ class ParquetSource:
     row (1-based) and the column.
     """
 
-    def __init__(self, path, name=None, notes=None):
+    def __init__(self, path, name=None):
         self.source = str(name or os.fspath(path))
         _pyarrow(self.source)
         import pyarrow.parquet as pq
@@ -1793,7 +1812,9 @@ class ParquetSource:
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
 
-        self._csv = CsvSource(_stdio.StringIO(head), name=self.source, notes=notes)  # notes as in CsvSource
+        self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
+        #: What the reader has said so far (:attr:`CsvSource.notes`).
+        self.notes = self._csv.notes
         self._csv._row_word = "row"
         self.layout = self._csv.layout
 
@@ -1879,21 +1900,21 @@ def columns_block(src: CsvSource, numeric, text, numbers, block=" in this block"
     return src._dataset(values, cells, numbers)
 
 
-def read_parquet(path, name=None, chunk_rows=200_000, notes=None, max_rows=None) -> Dataset:
+def read_parquet(path, name=None, chunk_rows=200_000, max_rows=None) -> Dataset:
     """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
 
     The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
     kept as extra channels); the CSV's ``# key: value`` lines are the JSON object under the schema's key-value
     metadata key ``magcal`` (units, baseline, noise...). Every check of the CSV reader applies
-    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column. ``notes`` as in
-    :func:`read_csv`.
+    (:class:`ParquetSource`), and messages name the file, the row (1-based) and the column. The dataset's ``notes``
+    as in :func:`read_csv` (never raised here: :func:`read_csv` raises them).
 
     The rows are known from the file's footer before any is read, and refused beyond ``max_rows`` (None:
     :data:`MAX_READ_ROWS`; 0: no limit) or beyond what the free memory holds (:func:`check_read_rows`): a small
     file may hold any number of rows (1.3 MB held 1e8 constant rows, which took 9.6 GB). A file holding more rows
     than its footer says is refused as damaged when the reader finds them.
     """
-    src = ParquetSource(path, name, notes)
+    src = ParquetSource(path, name)
     check_read_rows(src.source, src.rows, len(src.header), MAX_READ_ROWS if max_rows is None else max_rows)
     parts, rows = [], 0
     for part in src.chunks(chunk_rows):
@@ -1907,8 +1928,7 @@ def read_parquet(path, name=None, chunk_rows=200_000, notes=None, max_rows=None)
     if not parts:
         raise DatasetError(f"{src.source}: no rows; the file has no samples")
     ds = concatenate(parts)
-    check_units(ds, src._csv.units, src.source, stacklevel=3, lsb_nT=src._csv.lsb_nT, notes=notes)
-    return ds
+    return _with_notes(ds, src.notes, src._csv.units, src.source, src._csv.lsb_nT)
 
 
 def parquet_table(columns, metadata=None):

@@ -53,10 +53,11 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, exception_text
 from magcal.core.files import check_regular_file
 from magcal.core.memory import available_bytes
-from magcal.core.notes import row_runs, say
+from magcal.core.notes import Note, row_runs
 from magcal.data.dataset import BAD_VALUE_TEXT, Dataset, DatasetError, bad_values
 from magcal.geometry.orientations import FIRMWARE_ROTATIONS, euler_matrix
 
@@ -90,9 +91,7 @@ def is_log(path) -> bool:
     return isinstance(path, (str, os.PathLike)) and os.fspath(path).lower().endswith(LOG_EXTENSIONS)
 
 
-def read_log(
-    path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None, notes=None
-) -> Dataset:
+def read_log(path, sensors=None, name=None, undo_calibration=True, min_samples=1, timeout_s=None, warn=True) -> Dataset:
     """Read an ArduPilot ``.bin`` or PX4 ``.ulg`` log into a :class:`Dataset` (readings in nT).
 
     Parameters
@@ -106,9 +105,6 @@ def read_log(
         ArduPilot only: undo the logged calibration to recover the raw field (default), or keep the logged one.
     min_samples : int
         Fewest samples accepted.
-    notes : list, optional
-        Where the reader's notes go (:class:`~magcal.core.notes.Note`: magnetometers left out, samples dropped...):
-        given, they are appended to it; None (default), each is raised as a :class:`DataWarning`.
     timeout_s : float, optional
         Give up (with a :class:`DatasetError`) after this many seconds; default :data:`DEADLINE_S_PER_MB` per MB
         of file, at least :data:`MIN_DEADLINE_S`. DataFlash: every format field the reader steps by is checked
@@ -116,6 +112,15 @@ def read_log(
         move it forward, so a damaged log ends with a message, never a hang. ULog: the formats are checked first
         (:func:`check_ulog_definitions`: nesting, fields), and pyulog's reader is stopped from inside at the
         deadline or when its subscriptions' fields pass :data:`ULOG_MAX_SUBSCRIBED_FIELDS`.
+    warn : bool
+        Raise the reader's notes (magnetometers left out, samples dropped...) as :class:`DataWarning` warnings, the
+        default; False leaves them in the dataset's ``notes`` only (what the command line, the workbench and the
+        engine's own reads do).
+
+    Returns
+    -------
+    Dataset
+        Its ``notes``: what the reader had to say (:class:`~magcal.core.notes.Note`).
 
     Values that are NaN, infinite or beyond :data:`magcal.data.dataset.MAX_ABS_VALUE` (the rule of every magcal
     reader) are dropped, each kind counted in one :class:`DataWarning`.
@@ -133,11 +138,9 @@ def read_log(
     if timeout_s is None:
         timeout_s = max(MIN_DEADLINE_S, DEADLINE_S_PER_MB * os.path.getsize(path) / 1e6)
     if path.lower().endswith(".ulg"):
-        ds = read_ulog(path, sensors=sensors, name=source, notes=notes, timeout_s=timeout_s)
+        ds = read_ulog(path, sensors=sensors, name=source, timeout_s=timeout_s)
     elif path.lower().endswith(".bin"):
-        ds = read_dataflash(
-            path, sensors=sensors, name=source, undo_calibration=undo_calibration, timeout_s=timeout_s, notes=notes
-        )
+        ds = read_dataflash(path, sensors=sensors, name=source, undo_calibration=undo_calibration, timeout_s=timeout_s)
     else:
         raise DatasetError(f"{source}: not a flight-controller log (expected {', '.join(LOG_EXTENSIONS)})")
     if ds.n_samples < int(min_samples):
@@ -145,11 +148,18 @@ def read_log(
             f"{source}: {ds.n_samples} magnetometer sample(s), fewer than the {int(min_samples)} "
             "needed; record more attitudes"
         )
+    if warn:
+        _notes.warn(ds.notes)
     return ds
 
 
+def _note(text) -> Note:
+    """A reader's note (a :class:`DataWarning` at the boundary), said by the step ``read``."""
+    return Note(text, DataWarning, "read")
+
+
 # -- pairing several magnetometers and interpolating channels ------------------------------------------------------
-def _strictly_increasing(t, values, source, what, notes=None):
+def _strictly_increasing(t, values, source, what, notes):
     """Sort by time and drop repeated time stamps (with a warning): the dataset's times must increase strictly."""
     if t.size == 0:
         return t, values
@@ -158,17 +168,11 @@ def _strictly_increasing(t, values, source, what, notes=None):
     values = values[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     if not keep.all():
-        say(
-            notes,
-            f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped",
-            DataWarning,
-            "read",
-            stacklevel=3,
-        )
+        notes.append(_note(f"{source}: {what}: {int((~keep).sum())} sample(s) repeat a time stamp and are dropped"))
     return t[keep], values[keep]
 
 
-def _drop_bad(source, what, t, *arrays, keep=(), notes=None):
+def _drop_bad(source, what, t, *arrays, keep=(), notes):
     """Rows of ``t`` and ``arrays`` (same length) whose values all pass the one rule of read values
     (:func:`magcal.data.dataset.bad_values`); the others dropped with one :class:`DataWarning` counting them.
     The arrays of ``keep`` are not checked, only cut to the same rows (returned after the others)."""
@@ -177,19 +181,17 @@ def _drop_bad(source, what, t, *arrays, keep=(), notes=None):
         a = np.asarray(a, dtype=float)
         bad |= bad_values(a, axis=tuple(range(1, a.ndim))) if a.ndim > 1 else bad_values(a)
     if bad.any():
-        say(
-            notes,
-            f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
-            "(a damaged log); they are dropped",
-            DataWarning,
-            "read",
-            stacklevel=3,
+        notes.append(
+            _note(
+                f"{source}: {what}: {int(bad.sum())} of {bad.size} sample(s) hold values {BAD_VALUE_TEXT} "
+                "(a damaged log); they are dropped"
+            )
         )
     good = ~bad
     return (np.asarray(t)[good], *(np.asarray(a)[good] for a in arrays + tuple(keep)))
 
 
-def pair_by_time(series, source, notes=None):
+def _pair_by_time(series, source, notes):
     """Pair the samples of several magnetometers by time.
 
     Parameters
@@ -224,13 +226,11 @@ def pair_by_time(series, source, notes=None):
         keep &= np.abs(t[nearest] - t0) <= 0.5 * step
         picks.append(nearest)
     if not keep.all():
-        say(
-            notes,
-            f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
-            "of every other one within half a sample interval; they are dropped",
-            DataWarning,
-            "read",
-            stacklevel=3,
+        notes.append(
+            _note(
+                f"{source}: {int((~keep).sum())} of {t0.size} samples of the first magnetometer have no sample "
+                "of every other one within half a sample interval; they are dropped"
+            )
         )
     values = [v0[keep]] + [v[p[keep]] for (_, v), p in zip(series[1:], picks)]
     return t0[keep], values
@@ -250,7 +250,7 @@ LOG_ATTITUDE_MAX_GAP_S = 1.0
 LOG_ATTITUDE_HOLD_S = 0.2
 
 
-def _interp_attitude(t, t_src, rotations, source="log", notes=None):
+def _interp_attitude(t, t_src, rotations, source="log", *, notes):
     """Attitude quaternions (N, 4) ``w, x, y, z`` at times ``t`` by spherical interpolation between the messages
     around each sample; NaN for a sample farther than :data:`LOG_ATTITUDE_HOLD_S` from every message unless the two
     around it are at most :data:`LOG_ATTITUDE_MAX_GAP_S` apart (a note counts them)."""
@@ -268,25 +268,23 @@ def _interp_attitude(t, t_src, rotations, source="log", notes=None):
     missing = ~spanned & (nearest > LOG_ATTITUDE_HOLD_S + 1e-6)  # 1 us: the logs' resolution
     if missing.any():
         q[missing] = np.nan
-        say(
-            notes,
-            f"{source}: {int(missing.sum())} of {t.size} magnetometer samples ({row_runs(missing)}) lie more than "
-            f"{LOG_ATTITUDE_HOLD_S:g} s from any attitude message, before the first, after the last or in a gap of "
-            f"more than {LOG_ATTITUDE_MAX_GAP_S:g} s: they have no attitude (NaN; the vector fit leaves them out)",
-            DataWarning,
-            "read",
-            stacklevel=4,
+        notes.append(
+            _note(
+                f"{source}: {int(missing.sum())} of {t.size} magnetometer samples ({row_runs(missing)}) lie more than "
+                f"{LOG_ATTITUDE_HOLD_S:g} s from any attitude message, before the first, after the last or in a gap of "
+                f"more than {LOG_ATTITUDE_MAX_GAP_S:g} s: they have no attitude (NaN; the vector fit leaves them out)"
+            )
         )
     return q
 
 
-def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None, notes=None):
+def _build(source, series, temperature=None, attitude=None, extra=None, metadata=None, *, notes):
     """The dataset from per-magnetometer (t, nT) series and optional (t, values) channels.
 
     A series whose values have six columns holds the raw field (the readings) and then the field the flight
     controller computed with its calibration of the time, kept as the channels ``s{k}x_logged, s{k}y_logged,
     s{k}z_logged`` (:data:`LOGGED_FIELD_COLUMNS`)."""
-    t, values = pair_by_time(series, source, notes)
+    t, values = _pair_by_time(series, source, notes)
     if t.size == 0:
         raise DatasetError(f"{source}: no magnetometer samples left after pairing the magnetometers by time")
     logged = {}
@@ -311,20 +309,18 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
     )
 
 
-def _alive(series, labels, source, notes=None):
+def _alive(series, labels, source, notes):
     """Indices of the magnetometers to keep: those whose samples are not all one vector (zero: no compass fitted,
     or it failed), the others left out with a warning."""
     alive = []
     for k, ((_, v), label) in enumerate(zip(series, labels)):
         v = v[:, :3]  # the readings (a log's series may hold the logged field beside them)
         if v.shape[0] > 1 and np.all(v == v[0]):
-            say(
-                notes,
-                f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
-                f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out",
-                DataWarning,
-                "read",
-                stacklevel=3,
+            notes.append(
+                _note(
+                    f"{source}: {label} reads the same vector ({', '.join(f'{x:g}' for x in v[0])}) nT on all "
+                    f"{v.shape[0]} samples (zero: no compass fitted, or it failed); it is left out"
+                )
             )
             continue
         alive.append(k)
@@ -336,16 +332,14 @@ def _alive(series, labels, source, notes=None):
     return alive
 
 
-def _select(instances, sensors, source, what, notes=None):
+def _select(instances, sensors, source, what, notes):
     """The instances chosen by ``sensors`` (0-based positions), at most :data:`MAX_SENSORS`."""
     if sensors is None:
         if len(instances) > MAX_SENSORS:
-            say(
-                notes,
-                f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)",
-                DataWarning,
-                "read",
-                stacklevel=3,
+            notes.append(
+                _note(
+                    f"{source}: {len(instances)} magnetometers; the first {MAX_SENSORS} are read (choose with sensors=)"
+                )
             )
         return instances[:MAX_SENSORS]
     chosen = []
@@ -527,12 +521,13 @@ def _guarded_reader(DFReader):
     return _GUARDED["class"]
 
 
-def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout_s=None, notes=None) -> Dataset:
+def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout_s=None) -> Dataset:
     """Read an ArduPilot DataFlash ``.bin`` log (see the module docstring). Readings in nT, body frame.
 
     Its format messages are checked first (:func:`check_dataflash_formats`); reading stops with a
     :class:`DatasetError` after ``timeout_s`` seconds (default: no limit). Values NaN, infinite or beyond
-    :data:`magcal.data.dataset.MAX_ABS_VALUE` are dropped with a count.
+    :data:`magcal.data.dataset.MAX_ABS_VALUE` are dropped with a count. What the reader has to say is the dataset's
+    ``notes`` (never raised here: :func:`read_log` raises them).
     """
     source = str(name or path)
     try:
@@ -604,7 +599,10 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
     finally:
         with contextlib.suppress(Exception):
             log.close()
-    return _dataflash_dataset(source, gathered, sensors, undo_calibration, notes)
+    notes: list[Note] = []
+    ds = _dataflash_dataset(source, gathered, sensors, undo_calibration, notes)
+    ds.notes = tuple(notes)
+    return ds
 
 
 #: Bytes each message magcal keeps from a DataFlash log takes while it is read (a row of Python floats in a
@@ -691,7 +689,7 @@ _DATAFLASH_IMU = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
 IMU_COLUMNS = ("ax", "ay", "az", "gx_rad_s", "gy_rad_s", "gz_rad_s")
 
 
-def _imu_channels(source, t, values, what, metadata, notes=None) -> dict:
+def _imu_channels(source, t, values, what, metadata, notes) -> dict:
     """The accelerometer and gyro as extra channels ``{name: (t, values)}`` (:data:`IMU_COLUMNS`), bad samples
     dropped with a count, ``metadata['accel_units']`` set; {} when there are none."""
     t, values = _drop_bad(source, what, np.asarray(t, float), np.asarray(values, float), notes=notes)
@@ -735,7 +733,7 @@ def gps_week_date(week, ms_of_week) -> str | None:
     return str(day)
 
 
-def _position(source, t, lat, lon, alt_m, what, notes=None):
+def _position(source, t, lat, lon, alt_m, what, notes):
     """``{"lat": (t, deg), "lon": ..., "alt_m": ...}`` of fixes, bad or impossible values dropped; {} if none."""
     t, lat, lon, alt_m = _drop_bad(source, what, np.asarray(t, float), lat, lon, alt_m, notes=notes)
     ok = (np.abs(lat) <= 90) & (np.abs(lon) <= 360) & (np.abs(alt_m) < 100_000)
@@ -745,25 +743,19 @@ def _position(source, t, lat, lon, alt_m, what, notes=None):
     return {"lat": (t, both[:, 0]), "lon": (t, both[:, 1]), "alt_m": (t, both[:, 2])}
 
 
-def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
+def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes):
     """The dataset from the gathered messages (readings in nT), bad values dropped with a count."""
     mags = gathered["mags"]
     if gathered["bad_params"]:
-        say(
-            notes,
-            f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
-            f"({', '.join(dict.fromkeys(gathered['bad_params']))})",
-            DataWarning,
-            "read",
-            stacklevel=3,
+        notes.append(
+            _note(
+                f"{source}: {len(gathered['bad_params'])} parameter value(s) {BAD_VALUE_TEXT} are ignored "
+                f"({', '.join(dict.fromkeys(gathered['bad_params']))})"
+            )
         )
     for k, count in sorted(gathered["unhealthy"].items()):
-        say(
-            notes,
-            f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out",
-            DataWarning,
-            "read",
-            stacklevel=3,
+        notes.append(
+            _note(f"{source}: compass {k + 1}: {count} sample(s) the firmware marked unhealthy (Health 0) are left out")
         )
     if not mags:
         raise DatasetError(
@@ -830,20 +822,28 @@ def _dataflash_dataset(source, gathered, sensors, undo_calibration, notes=None):
             metadata["date"] = date
         if "lat" in extra:
             metadata["position"] = "GPS 3D fixes (lat, lon deg; alt_m above mean sea level)"
-    ds = _build(source, series, temperature, attitude, extra, metadata, notes)
+    ds = _build(source, series, temperature, attitude, extra, metadata, notes=notes)
     if "att_yaw_deg" in ds.extra:
         ds.extra["att_yaw_deg"] = (ds.extra["att_yaw_deg"] + 180.0) % 360.0 - 180.0
     return ds
 
 
 # -- PX4 ULog --------------------------------------------------------------------------------------------------------
-def read_ulog(path, sensors=None, name=None, notes=None, timeout_s=None) -> Dataset:
+def read_ulog(path, sensors=None, name=None, timeout_s=None) -> Dataset:
     """Read a PX4 ``.ulg`` log (see the module docstring). Readings in nT, each magnetometer's own frame.
 
     Its format definitions are checked first (:func:`check_ulog_definitions`); pyulog's reading stops with a
     :class:`DatasetError` after ``timeout_s`` seconds (default: no limit) or when the messages it subscribes to
-    would flatten into more than :data:`ULOG_MAX_SUBSCRIBED_FIELDS` fields (:func:`_guarded_ulog`)."""
-    source = str(name or path)
+    would flatten into more than :data:`ULOG_MAX_SUBSCRIBED_FIELDS` fields (:func:`_guarded_ulog`). What the reader
+    has to say is the dataset's ``notes`` (never raised here: :func:`read_log` raises them)."""
+    notes: list[Note] = []
+    ds = _ulog_dataset(path, sensors, str(name or path), timeout_s, notes)
+    ds.notes = tuple(notes)
+    return ds
+
+
+def _ulog_dataset(path, sensors, source, timeout_s, notes) -> Dataset:
+    """:func:`read_ulog`'s dataset, its notes appended to ``notes`` (the read's own list)."""
     try:
         from pyulog import ULog
     except ImportError:
@@ -900,7 +900,7 @@ def read_ulog(path, sensors=None, name=None, notes=None, timeout_s=None) -> Data
     }
     if devices:
         metadata["log_device_ids"] = ", ".join(devices)
-    current = _ulog_current(ulog, source)
+    current = _ulog_current(ulog, source, notes)
     extra = {**(current or {}), **_ulog_position(ulog, source, metadata, notes)}
     extra.update(_ulog_imu(ulog, source, metadata, notes))
     logged = _px4_logged_fields(ulog, chosen, series, current, source, notes)
@@ -909,7 +909,7 @@ def read_ulog(path, sensors=None, name=None, notes=None, timeout_s=None) -> Data
         metadata["log_logged_field"] = (
             "s{k}x_logged..: the field PX4 computed with the log's CAL_MAGn_* (and board rotation) parameters"
         )
-    return _build(source, series, temperature, attitude, extra, metadata, notes)
+    return _build(source, series, temperature, attitude, extra, metadata, notes=notes)
 
 
 #: PX4's (and MAVLink's) sensor rotations that are not right angles (number -> roll, pitch, yaw in deg), beside
@@ -938,7 +938,7 @@ def _px4_rotation(number):
     return None if angles is None else euler_matrix(*angles)
 
 
-def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
+def _px4_logged_fields(ulog, chosen, series, current, source, notes):
     """The field PX4 computed from each ``sensor_mag`` (nT, body frame) with the log's calibration parameters,
     as ``calibration::Magnetometer::Correct`` does: ``R S (raw + power * COMP - OFF)`` with ``S`` the symmetric matrix
     of ``CAL_MAGn_[XYZ]SCALE`` and ``CAL_MAGn_[XYZ]ODIAG``, ``R`` the rotation ``CAL_MAGn_ROT`` of an external
@@ -950,7 +950,7 @@ def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
     params = ulog.initial_parameters
 
     def say_none(why):
-        say(notes, f"{source}: the field PX4 computed is not reconstructed: {why}", DataWarning, "read", stacklevel=4)
+        notes.append(_note(f"{source}: the field PX4 computed is not reconstructed: {why}"))
 
     if not any(k.startswith("CAL_MAG") for k in params):
         return None
@@ -990,7 +990,7 @@ def _px4_logged_fields(ulog, chosen, series, current, source, notes=None):
     return out
 
 
-def _ulog_imu(ulog, source, metadata, notes=None) -> dict:
+def _ulog_imu(ulog, source, metadata, notes) -> dict:
     """The accelerometer (m/s^2) and gyro (rad/s) of ``sensor_combined`` (body frame, the vehicle's calibration
     applied) as extra channels (:data:`IMU_COLUMNS`); {} when the log has none."""
     found = [d for d in ulog.data_list if d.name == "sensor_combined" and "accelerometer_m_s2[0]" in d.data]
@@ -1236,7 +1236,7 @@ def _guarded_ulog(ULog):
     return GuardedULog
 
 
-def _ulog_position(ulog, source, metadata, notes=None):
+def _ulog_position(ulog, source, metadata, notes):
     """``lat, lon, alt_m`` channels from the first ``vehicle_gps_position`` / ``sensor_gps`` with a 3D fix (and the
     UTC date into ``metadata['date']``); {} when the log has none."""
     for topic in ("vehicle_gps_position", "sensor_gps"):
@@ -1270,7 +1270,7 @@ def _ulog_position(ulog, source, metadata, notes=None):
     return out
 
 
-def _ulog_current(ulog, source):
+def _ulog_current(ulog, source, notes):
     """``{"current_A": (t, A)}`` from the first ``battery_status`` (``current_a``), or None."""
     bats = sorted((d for d in ulog.data_list if d.name == "battery_status"), key=lambda d: d.multi_id)
     if not bats or "current_a" not in bats[0].data or "timestamp" not in bats[0].data:
@@ -1281,7 +1281,7 @@ def _ulog_current(ulog, source):
     good = ~bad_values(amps) & ~bad_values(t) & (amps >= 0)  # PX4 writes -1 when the current is not measured
     if good.sum() < 2:
         return None
-    return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status")}
+    return {"current_A": _strictly_increasing(t[good], amps[good], source, "battery_status", notes)}
 
 
 def _require_fields(data, names, source, what):
@@ -1294,7 +1294,7 @@ def _require_fields(data, names, source, what):
         )
 
 
-def _ulog_attitude(ulog, source, notes=None):
+def _ulog_attitude(ulog, source, notes):
     """``(t, Rotation)`` of the ``vehicle_attitude`` quaternions (body FRD to NED), or None."""
     att = [d for d in ulog.data_list if d.name == "vehicle_attitude"]
     if not att:
@@ -1315,7 +1315,7 @@ def _ulog_attitude(ulog, source, notes=None):
 _RELATIVE_TIMESTAMP_INVALID = 2_147_483_647
 
 
-def _ulog_calibrated_field(ulog, source, notes=None):
+def _ulog_calibrated_field(ulog, source, notes):
     """A ULog without ``sensor_mag``: the field the vehicle computed with its calibration, from
     ``vehicle_magnetometer`` or (older PX4) ``sensor_combined.magnetometer_ga``, in gauss, body frame."""
     for topic in ("vehicle_magnetometer", "sensor_combined"):
@@ -1345,14 +1345,12 @@ def _ulog_calibrated_field(ulog, source, notes=None):
     t_s, xyz = _strictly_increasing(t[first] * 1e-6, xyz[first], source, topic, notes)
     changed = np.concatenate([[True], np.any(np.diff(xyz, axis=0) != 0, axis=1)])
     t_s, xyz = t_s[changed], xyz[changed]  # sensor_combined repeats the last magnetometer sample between updates
-    say(
-        notes,
-        f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
-        f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
-        "its parameters do not replace them",
-        DataWarning,
-        "read",
-        stacklevel=2,
+    notes.append(
+        _note(
+            f"{source}: no raw sensor_mag in this log; read the field the vehicle had already calibrated with "
+            f"its CAL_MAG parameters ({topic}). A calibration of it corrects what those parameters left, and "
+            "its parameters do not replace them"
+        )
     )
     metadata = {
         "log_format": "PX4 ULog",
@@ -1361,4 +1359,4 @@ def _ulog_calibrated_field(ulog, source, notes=None):
     }
     position = _ulog_position(ulog, source, metadata, notes)
     position.update(_ulog_imu(ulog, source, metadata, notes))
-    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), position, metadata, notes)
+    return _build(source, [(t_s, xyz)], None, _ulog_attitude(ulog, source, notes), position, metadata, notes=notes)

@@ -563,9 +563,8 @@ def fit_gravity(
     """
     start = time.perf_counter()
     notes: list[str] = []
-    reader_notes: list = []
-    accel = accelerometer(dataset, units=accel_units, notes=reader_notes)
-    notes += [str(n) for n in reader_notes]
+    accel = accelerometer(dataset, units=accel_units)
+    notes += list(accel.notes) if accel is not None else []
     where = dataset.source or "data"
     if accel is None:
         raise MagcalError(

@@ -116,8 +116,11 @@ class CalibrationResult:
         The maximum-likelihood fit (``method="ml"``), else None.
     steps : list of StepSummary
         ``raw`` first, then every step run, in order.
-    warnings : list of str
-        Non-fatal concerns (weak coverage, estimated noise, outliers...), as the report lists them.
+    remarks : list of str
+        The report's lines: what the steps found worth a line under "Warnings" in the report and in the JSON
+        document's ``"warnings"`` (weak coverage, the noise the floors use, samples distrusted as outliers, samples
+        without attitude...), in the order found. Information for the report, never raised as Python warnings:
+        what a user must hear is in ``notes`` (a coverage concern is in both). :attr:`warnings` is the same list.
     method : str
     reference_kind : str
         ``given`` (argument or file metadata), ``column`` (per-sample ``ref_total``) or ``fitted``.
@@ -166,7 +169,7 @@ class CalibrationResult:
         (:func:`magcal.fitting.validation.validate_effects`), when asked for.
     notes : list of Note
         What the steps said that a user must hear (:mod:`magcal.core.notes`): weak coverage
-        (:class:`~magcal.core.errors.CoverageWarning`), a fit that did not converge
+        (:class:`~magcal.core.errors.CoverageWarning`, also a remark), a fit that did not converge
         (:class:`~magcal.core.errors.ConvergenceWarning`). :func:`magcal.calibrate` raises them as warnings; this
         function never does.
     """
@@ -174,7 +177,7 @@ class CalibrationResult:
     calibration: Calibration
     fit: FitResult | None
     steps: list
-    warnings: list
+    remarks: list
     method: str
     reference_kind: str
     reference_total_nT: float | None
@@ -198,6 +201,12 @@ class CalibrationResult:
     noise: NoiseEstimate | None = None
     validation: Any = None  # magcal.fitting.validation.EffectsValidation (that module imports this one)
     notes: list = field(default_factory=list)
+
+    @property
+    def warnings(self) -> list:
+        """:attr:`remarks`, under the name the report's section, the JSON document's key and the other results'
+        ``warnings`` use: report lines, never raised (the same list)."""
+        return self.remarks
 
     @property
     def n_sensors(self) -> int:
@@ -422,11 +431,11 @@ class _Run:
         ``given``, ``column`` or ``fitted``.
     progress : callable or None
         ``progress(message, fraction_or_None)``.
-    notes : list of str
-        Non-fatal concerns, in the order found (the result's ``warnings``).
+    remarks : list of str
+        The report's lines, in the order found (the result's ``remarks``).
     raised : list of Note
         Notes for the user that are not data concerns (a fit that did not converge), in the order found; with the
-        coverage concerns they become the result's ``notes``.
+        coverage concerns among the remarks they become the result's ``notes``.
     steps_timed : list of tuple
         ``(name, description, calibration, wall_s)`` of every step run.
     ellipsoids : list of EllipsoidFit
@@ -445,7 +454,7 @@ class _Run:
     ref_value: float | None
     ref_kind: str
     progress: Callable | None = None
-    notes: list = field(default_factory=list)
+    remarks: list = field(default_factory=list)
     raised: list = field(default_factory=list)
     steps_timed: list = field(default_factory=list)
     ellipsoids: list = field(default_factory=list)
@@ -458,18 +467,18 @@ class _Run:
             self.progress(message, fraction)
 
     def take(self, notes):
-        """A step's notes (:class:`~magcal.core.notes.Note`): data concerns join the result's ``warnings``, any
+        """A step's notes (:class:`~magcal.core.notes.Note`): data concerns join the result's ``remarks``, any
         other note its ``notes``."""
         for note in notes:
             if note.is_a(DataWarning):
-                self.notes.append(note.text)
+                self.remarks.append(note.text)
             else:
                 self.raised.append(note)
 
     def result_notes(self) -> list:
         """The result's ``notes``: the steps' other notes, then each coverage concern as a
         :class:`~magcal.core.errors.CoverageWarning`."""
-        coverage = [Note(n, CoverageWarning, "calibrate") for n in self.notes if "coverage" in n]
+        coverage = [Note(n, CoverageWarning, "calibrate") for n in self.remarks if "coverage" in n]
         return _notes.unique(self.raised + coverage)
 
     def add_step(self, name, description, calibration, t0):
@@ -515,7 +524,7 @@ def calibrate(
         ``progress(message, fraction_or_None)`` called as the steps run.
     mask : array_like of bool, shape (N,), optional
         Samples to use (True = use). With an effect that needs each sample's attitude (``site_gradient``), the
-        samples without one are left out of every step, with a note in ``warnings``.
+        samples without one are left out of every step, with a line in ``remarks``.
     ellipsoid_method : {"algebraic", "li-griffiths"}
         Estimator of step 1.
     base_terms : sequence of str, optional
@@ -527,7 +536,7 @@ def calibrate(
     Returns
     -------
     CalibrationResult
-        What the steps had to say is in its ``notes`` (and ``warnings``), never raised as a warning here: the
+        What the steps had to say is in its ``notes`` (and its report lines in ``remarks``), never raised as a warning here: the
         steps may run on threads (:mod:`magcal.core.notes`); :func:`magcal.calibrate` raises them.
 
     Raises
@@ -643,7 +652,7 @@ def _start_steps(run: _Run, ellipsoid_method, robust, start_only=False) -> None:
         max_samples=START_MAX_SAMPLES if start_only else None,
     )
     for f in run.ellipsoids:
-        run.notes.extend(f.warnings)
+        run.remarks.extend(f.warnings)
     step1 = two_step_calibration(kept, run.ellipsoids, [np.eye(3)] * len(run.ellipsoids), run.ref_kind)
     run.add_step("ellipsoid", f"C^-1 and b per sensor ({ellipsoid_method} ellipsoid fit, eqs. 8-13)", step1, t0)
     if kept.n_sensors > 1:
@@ -683,7 +692,7 @@ def _robust_pass(run: _Run, robust) -> np.ndarray:
     elif robust:
         outliers[np.flatnonzero(run.mask)[~run.inliers]] = True
     if outliers.any():
-        run.notes.append(
+        run.remarks.append(
             f"{int(outliers.sum())} sample(s) distrusted as outliers"
             + (
                 " and down-weighted by the robust loss; the figures leave them out"
@@ -744,9 +753,9 @@ def _noise_and_floors(run: _Run, model, final: StepSummary, noise_nT=None):
         residuals = run.calibration.total_field_residuals(kept, record_terms="apply")
     noise = estimate_noise(samples, residuals, int(round(n_params * dataset.n_sensors)), noise_nT=noise_nT)
     if noise.source != "given":
-        run.notes.append(f"noise not given: the floors use sigma = {noise.text()}")
+        run.remarks.append(f"noise not given: the floors use sigma = {noise.text()}")
     if noise.source == "residuals":
-        run.notes.append(noise.note)
+        run.remarks.append(noise.note)
     tf_floor = conventions.total_field_floor_nT(noise.sigma_nT, kept.n_samples, n_params)
     t_floor = None
     if _has_tensor(dataset):
@@ -765,7 +774,7 @@ def _summary(run: _Run, steps, model, method, robust, outliers, t_start, noise_n
         calibration=calibration,
         fit=run.fit,
         steps=steps,
-        warnings=run.notes,
+        remarks=run.remarks,
         method=method,
         reference_kind=run.ref_kind,
         reference_total_nT=calibration.reference_total_nT,
@@ -832,7 +841,7 @@ def _store_summary(result: CalibrationResult) -> None:
             "tensor_floor_nT_per_m": result.tensor_floor_nT_per_m,
             "n_outliers": int(np.sum(result.outliers)) if result.outliers is not None else 0,
             "steps": [s.to_dict() for s in result.steps],
-            "warnings": list(result.warnings),
+            "warnings": list(result.remarks),
         }
     )
     if result.fit is not None:

@@ -45,10 +45,12 @@ import traceback
 
 import numpy as np
 
+from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError
 from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
-from magcal.core.notes import say
+from magcal.core.notes import Note
+from magcal.core.registry import Loaded
 from magcal.data.dataset import CHANNELS, Dataset
 from magcal.model import perturbations
 from magcal.model.terms import BASE_TERMS, EFFECTS, Effect, contexts
@@ -580,7 +582,8 @@ def load_for_worker(names, files=()) -> None:
     ------
     UserEffectError
         A file that is not on this machine's file system (a cluster's workers must see it, as they see the
-        surveys), or that fails to load (:func:`load_effects_file`).
+        surveys), or that fails to load (:func:`load_effects_file`); an effect still unknown after an installed
+        package's entry point was skipped (the message says why it was).
     """
     import socket
 
@@ -597,7 +600,13 @@ def load_for_worker(names, files=()) -> None:
             load_effects_file(path)
             _WORKER_FILES[path] = key
     if any(name not in EFFECTS for name in names or ()):
-        load_entry_points()
+        loaded = load_entry_points(warn=False)
+        missing = [name for name in names or () if name not in EFFECTS]
+        if missing and loaded.notes:  # a worker's warnings go nowhere the user looks: say why in the error
+            raise UserEffectError(
+                f"effect(s) {', '.join(missing)} unknown on the worker on {socket.gethostname()}: "
+                + "; ".join(note.text for note in loaded.notes)
+            )
 
 
 def _entry_point_text(ep) -> str:
@@ -607,7 +616,7 @@ def _entry_point_text(ep) -> str:
     return f"{ep.name} = {ep.value}" + (f" ({dist_name})" if dist_name else "")
 
 
-def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, notes=None) -> list[str]:
+def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, warn: bool = True) -> Loaded:
     """Load the effects that installed packages declare in the entry-point group ``magcal.effects``.
 
     Each entry point names an Effect subclass or a module whose ``@register`` classes join the catalogue.
@@ -619,14 +628,15 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, notes
         The entry-point group.
     force : bool
         Load again even if already loaded.
-    notes : list, optional
-        Where the skipped entry points' messages go (:class:`~magcal.core.notes.Note`, UserWarning); None
-        (default): raised as warnings.
+    warn : bool
+        Raise the notes of the entry points skipped as ``UserWarning`` warnings, the default; False leaves them in
+        the result's ``notes`` (what the command line, the workbench and a worker do).
 
     Returns
     -------
-    list of str
-        Names of the effects added.
+    magcal.core.registry.Loaded
+        Names of the effects added (a list of str), and in its ``notes`` a ``UserWarning`` note for each entry
+        point skipped.
 
     Warns
     -----
@@ -634,23 +644,28 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, notes
         For each entry point that fails to import or whose effect fails :func:`validate_effect`: it is skipped
         with a message naming it and its package; the others load.
     """
+    loaded = _load_entry_points(group, force)
+    if warn:
+        _notes.warn(loaded.notes)
+    return loaded
+
+
+def _load_entry_points(group: str, force: bool) -> Loaded:
+    """:func:`load_entry_points` but the warnings."""
     global _ENTRY_POINTS_LOADED
     with _LOCK:
         if _ENTRY_POINTS_LOADED and not force:
-            return []
+            return Loaded()
         _ENTRY_POINTS_LOADED = True
         try:
             found = importlib.metadata.entry_points(group=group)
         except Exception as exc:  # a broken installation must not stop magcal
-            say(
-                notes,
+            text = (
                 f"could not list the {group!r} entry points ({type(exc).__name__}: {exc}); "
-                "installed effect packages are not loaded",
-                UserWarning,
-                "plugins",
+                "installed effect packages are not loaded"
             )
-            return []
-        names = []
+            return Loaded((), [Note(text, UserWarning, "plugins")])
+        names = Loaded()
         for ep in found:
             text = _entry_point_text(ep)
             before = dict(EFFECTS)
@@ -684,7 +699,7 @@ def load_entry_points(group: str = ENTRY_POINT_GROUP, force: bool = False, notes
                 names += _admit(classes, before, f"entry point {text}", "entry point", text)
             except Exception as exc:
                 _restore(before)
-                say(notes, f"skipped the effect entry point {text}: {exc}", UserWarning, "plugins")
+                names.notes.append(Note(f"skipped the effect entry point {text}: {exc}", UserWarning, "plugins"))
         return names
 
 

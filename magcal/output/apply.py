@@ -354,8 +354,8 @@ def file_fingerprint(survey_path, columns=None, units=None, drop_bad=False, chun
     ``stop_after``: stop reading once the file has more samples than this (it cannot be that record); the
     fingerprint then covers the samples read.
     """
-    unsaid: list = []  # the reader's notes: the correcting pass says the data's problems
-    with CsvSource(os.fspath(survey_path), columns=columns, units=units, notes=unsaid) as src:
+    # the reader's notes are left unsaid: the correcting pass says the data's problems
+    with CsvSource(os.fspath(survey_path), columns=columns, units=units) as src:
         return _hashed((c.dataset for c in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=False)), stop_after)
 
 
@@ -486,7 +486,7 @@ class _ApplyRun:
 def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -> None:
     """:func:`apply_file` from a CSV to a CSV: the input's lines as they are, plus the corrected columns."""
     calibration, survey_path = run.calibration, run.survey_path
-    with CsvSource(survey_path, columns=columns, units=units, notes=run.notes) as src:
+    with CsvSource(survey_path, columns=columns, units=units) as src:
         if src.layout.n_sensors != calibration.n_sensors:
             raise MagcalError(
                 f"{survey_path}: the survey has {src.layout.n_sensors} sensor(s) but the calibration"
@@ -534,7 +534,10 @@ def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -
                 for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=reads_extras(calibration)):
                     if run.rows == 0:
                         calibration.check(chunk.dataset)
-                        check_units(chunk.dataset, src.units, src.source, notes=run.notes)
+                        _moved(src.notes, run.notes)  # in the order said: the head's and this block's first
+                        unit_text = check_units(chunk.dataset, src.units, src.source)
+                        if unit_text:
+                            run.notes.append(Note(unit_text, DataWarning, "read"))
                     values = correct_block(calibration, chunk.dataset, run.choice, run.uncertainty, world, heading)
                     refuse_non_finite(
                         values, new_names, survey_path, chunk.dataset, lambda k, c=chunk: f"line {c.line_numbers[k]}"
@@ -549,12 +552,19 @@ def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -
                         pos = src._file.tell()
                         bar.update(pos - last_pos)
                         last_pos = pos
+                _moved(src.notes, run.notes)
                 if run.rows == 0:
                     raise DatasetError(f"{survey_path}: no data rows after the header; nothing to correct")
         finally:
             if bar is not None:
                 bar.close()
     run.names = new_names
+
+
+def _moved(said: list, notes: list) -> None:
+    """Move what a streaming reader has ``said`` so far (its ``notes``) to the end of ``notes``, in order."""
+    notes.extend(said)
+    said.clear()
 
 
 def reads_extras(calibration) -> bool:
@@ -565,29 +575,29 @@ def reads_extras(calibration) -> bool:
     return getattr(calibration, "mode", "scalar") in ("vector", "gravity")
 
 
-def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False, notes=None):
-    """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), and its ``# key: value``
-    metadata: ``(metadata, iterator)``. A CSV is streamed by :class:`magcal.data.io.CsvSource`; a Parquet file by its
+def survey_chunks(survey_path, columns=None, units=None, drop_bad=False, chunk_rows=20_000, extras=False):
+    """The survey as datasets of at most ``chunk_rows`` samples (readings in nT), its ``# key: value``
+    metadata and its reader's notes: ``(metadata, iterator, notes)``, ``notes`` a list of
+    :class:`~magcal.core.notes.Note` that fills as the iterator reads (:attr:`magcal.data.io.CsvSource.notes`). A CSV is streamed by :class:`magcal.data.io.CsvSource`; a Parquet file by its
     record batches; a flight-controller log (:mod:`magcal.data.logs`) is read whole, as one block (its reader decodes
     every message anyway). ``columns`` and ``units`` apply to a CSV only, as does ``extras``: also read the columns
-    a CSV keeps as extra channels (:func:`reads_extras`). ``notes``: the list the readers append what they find to
-    (as :func:`magcal.data.io.read_csv`'s)."""
+    a CSV keeps as extra channels (:func:`reads_extras`)."""
 
     path = os.fspath(survey_path)
     if is_log(path):
-        dataset = read_log(path, notes=notes)
-        return dataset_metadata(dataset), iter([dataset])
+        dataset = read_log(path, warn=False)
+        return dataset_metadata(dataset), iter([dataset]), list(dataset.notes)
     if not is_parquet(path):
-        src = CsvSource(path, columns=columns, units=units, notes=notes)
+        src = CsvSource(path, columns=columns, units=units)
 
         def csv_chunks():
             with src:
                 for chunk in src.chunks(chunk_rows, drop_bad=drop_bad, text_columns=extras):
                     yield chunk.dataset
 
-        return dict(src.metadata), csv_chunks()
-    src = ParquetSource(path, notes=notes)
-    return dict(src.metadata), src.chunks(chunk_rows)
+        return dict(src.metadata), csv_chunks(), src.notes
+    parquet = ParquetSource(path)
+    return dict(parquet.metadata), parquet.chunks(chunk_rows), parquet.notes
 
 
 def _parquet_rows(path) -> int | None:
@@ -621,7 +631,7 @@ def survey_rows(survey_path, columns=None, units=None, drop_bad=False) -> int | 
         return _parquet_rows(path)
     if drop_bad:
         return None
-    with CsvSource(path, columns=columns, units=units, notes=[]) as src:  # the correcting pass says its notes
+    with CsvSource(path, columns=columns, units=units) as src:  # its notes unsaid: the correcting pass says them
         return src.count_rows()
 
 
@@ -676,8 +686,7 @@ def survey_fingerprint(survey_path, record_samples, columns=None, units=None, dr
     path = os.fspath(survey_path)
     if not is_log(path) and not is_parquet(path):
         return file_fingerprint(path, columns, units, drop_bad, chunk_rows, record_samples if counted else None)
-    unsaid: list = []  # the reader's notes: the correcting pass says the data's problems
-    chunks = survey_chunks(path, columns, units, drop_bad, chunk_rows, notes=unsaid)[1]
+    chunks = survey_chunks(path, columns, units, drop_bad, chunk_rows)[1]  # notes unsaid: the correcting pass says them
     return _hashed(chunks, record_samples if counted else None)
 
 
@@ -689,7 +698,7 @@ def _apply_columns(run: _ApplyRun, columns, units, drop_bad, chunk_rows, compres
 
     calibration, survey_path, output_path = run.calibration, run.survey_path, run.output_path
     extras = reads_extras(calibration)
-    meta, chunks = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=extras, notes=run.notes)
+    meta, chunks, said = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=extras)
     tensor = gives_tensor(calibration)
     names = output_columns(calibration.n_sensors, tensor, run.uncertainty)
     meta = {
@@ -738,6 +747,7 @@ def _apply_columns(run: _ApplyRun, columns, units, drop_bad, chunk_rows, compres
                         fh.write(metadata_text(meta) + ",".join(cols) + "\n")
                     write_rows(fh, cols)
                 run.rows += ds.n_samples
+            _moved(said, run.notes)
             if writer is not None:
                 behind, done = None, behind
                 assert done is not None  # made with the writer

@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from magcal.core.errors import MagcalError
-from magcal.core.registry import Registry
+from magcal.core.registry import Loaded, Registry
 
 #: The entry-point group installed packages declare their export formats in.
 ENTRY_POINT_GROUP = "magcal.export_formats"
@@ -147,10 +147,10 @@ def get_format(name: str) -> ExportFormat:
     return EXPORT_FORMATS.lookup(name, "--format")
 
 
-def load_entry_points(force: bool = False, notes=None) -> list[str]:
+def load_entry_points(force: bool = False) -> Loaded:
     """Add the formats installed packages declare in ``magcal.export_formats`` (once): see
-    :meth:`magcal.core.registry.Registry.load_entry_points`."""
-    return EXPORT_FORMATS.load_entry_points(force=force, notes=notes)
+    :meth:`magcal.core.registry.Registry.load_entry_points` (the names added, and the skipped ones' ``notes``)."""
+    return EXPORT_FORMATS.load_entry_points(force=force)
 
 
 class _Descriptions(Mapping):

@@ -39,6 +39,7 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration
 from magcal.core import leftovers
+from magcal.core import notes as _notes
 from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning
 from magcal.core.memory import keep_large_blocks
 from magcal.core.notes import Note
@@ -352,8 +353,9 @@ def _cut_csv(path, scan: _CsvScan, partition_rows: int, out: list) -> None:
 
 
 def _parquet_part(part: Partition, chunk_rows=BLOCK_ROWS):
-    """The file's metadata and the partition's rows as datasets of at most ``chunk_rows`` samples, read from the
-    row groups its rows lie in (the rows before its start in its first group are read and skipped)."""
+    """The file's metadata, the partition's rows as datasets of at most ``chunk_rows`` samples, read from the
+    row groups its rows lie in (the rows before its start in its first group are read and skipped), and the
+    reader's notes (:attr:`magcal.data.io.ParquetSource.notes`, filled as the rows are read)."""
     src = ParquetSource(part.path)
     meta = src.file.metadata
     edges = np.cumsum([0] + [meta.row_group(g).num_rows for g in range(meta.num_row_groups)])
@@ -372,12 +374,13 @@ def _parquet_part(part: Partition, chunk_rows=BLOCK_ROWS):
             if row >= part.stop:
                 return
 
-    return dict(src.metadata), chunks()
+    return dict(src.metadata), chunks(), src.notes
 
 
 def _csv_part(part: Partition, columns=None, units=None, drop_bad=False, extras=False):
-    """The file's metadata and the partition's rows (a CSV's range of lines) as datasets, read with its head
-    (``extras``: its extra channels too, :func:`magcal.output.apply.reads_extras`)."""
+    """The file's metadata, the partition's rows (a CSV's range of lines) as datasets, read with its head
+    (``extras``: its extra channels too, :func:`magcal.output.apply.reads_extras`), and the reader's notes (rows
+    dropped...)."""
     head, _ = _csv_head(part.path)
     with open(part.path, "rb") as fh:
         fh.seek(part.start)
@@ -389,7 +392,7 @@ def _csv_part(part: Partition, columns=None, units=None, drop_bad=False, extras=
         meta = dict(src.metadata)
     if not parts:
         raise DatasetError(f"{name}: no data rows")
-    return meta, iter(parts)
+    return meta, iter(parts), src.notes
 
 
 def _source_column(name: str, rows: int, fmt: str):
@@ -415,20 +418,21 @@ def correct_partition(
     uncertainty=False,
     compression=None,
     effects_files=(),
-) -> tuple[str, int, int]:
+) -> tuple[str, int, int, tuple]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task): read from the
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
     each). ``effects_files``: the user's effect files the calibration's effects come from, loaded in this process
-    first (:func:`magcal.model.plugins.load_for_worker`). Returns the file written, its rows, and how many of them
-    had no attitude (their world columns NaN)."""
+    first (:func:`magcal.model.plugins.load_for_worker`). Returns the file written, its rows, how many of them
+    had no attitude (their world columns NaN), and its reader's notes (:class:`~magcal.core.notes.Note`: rows
+    dropped...; a task's warnings would go nowhere the user looks)."""
 
     keep_large_blocks()  # Dask's MALLOC_TRIM_THRESHOLD_ made every block a fresh mmap
     plugins.load_for_worker(calibration_doc.get("effects") or [], effects_files)  # a user's effects, loaded here
     calibration = Calibration.from_dict(calibration_doc)
     if part.kind == "parquet":
-        meta, chunks = _parquet_part(part)
+        meta, chunks, said = _parquet_part(part)
     else:
-        meta, chunks = _csv_part(part, columns, units, drop_bad, extras=reads_extras(calibration))
+        meta, chunks, said = _csv_part(part, columns, units, drop_bad, extras=reads_extras(calibration))
     tensor = gives_tensor(calibration)
     meta = {
         **meta,
@@ -494,7 +498,7 @@ def correct_partition(
             writer.close()
         if os.path.exists(tmp):
             os.remove(tmp)
-    return out, rows, gaps.missing
+    return out, rows, gaps.missing, tuple(said)
 
 
 @dataclass
@@ -698,6 +702,7 @@ def apply_partitioned(
         if not done:  # a bad row, a failed task, Ctrl-C: no partial output under the final name
             shutil.rmtree(work_dir, ignore_errors=True)
     files = sorted(os.path.join(output_dir, os.path.basename(r[0])) for r in results)
+    notes += _notes.unique(n for r in sorted(results, key=lambda r: r[0]) for n in r[3])  # the readers', in file order
     missing = sum(r[2] for r in results)
     if missing:
         tensor = gives_tensor(calibration)

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from magcal.core.errors import MagcalError
-from magcal.core.registry import Registry
+from magcal.core.registry import Loaded, Registry
 from magcal.data.live.parser import LineParser
 from magcal.data.live.source import LiveError, LiveSource
 
@@ -94,10 +94,10 @@ def register_source(kind: SourceKind, replace: bool = False) -> SourceKind:
     return LIVE_SOURCES.register(kind, replace=replace, depth=2)
 
 
-def load_entry_points(force: bool = False, notes=None) -> list[str]:
+def load_entry_points(force: bool = False) -> Loaded:
     """Add the sources installed packages declare in ``magcal.live_sources`` (once): see
-    :meth:`magcal.core.registry.Registry.load_entry_points`."""
-    return LIVE_SOURCES.load_entry_points(force=force, notes=notes)
+    :meth:`magcal.core.registry.Registry.load_entry_points` (the names added, and the skipped ones' ``notes``)."""
+    return LIVE_SOURCES.load_entry_points(force=force)
 
 
 def schemes() -> tuple[str, ...]:
