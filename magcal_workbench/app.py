@@ -56,6 +56,7 @@ from magcal.core.files import check_regular_file
 from magcal.model import plugins
 
 from . import scene as scn
+from . import timing
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
 from .consent import EffectsFiles, Terminal
@@ -324,9 +325,11 @@ class Workbench:
                 self.panels.set_progress(*ctrl.progress)
             return
         if kind in ("result", "view", "data"):
-            self.view.update_scene()
+            with timing.span("scene"):
+                self.view.update_scene()
         elif kind == "selection":
-            self.view.recolor()
+            with timing.span("scene"):
+                self.view.recolor()
         elif kind == "inspect":
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
@@ -334,8 +337,10 @@ class Workbench:
         if kind in ("result", "data"):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
-            self.view.refresh_maps()
-        self.panels.refresh((kind,))
+            with timing.span("maps"):
+                self.view.refresh_maps()
+        with timing.span("panels" if kind == "message" else "plots"):  # the texts, the cockpit's plotly figures
+            self.panels.refresh((kind,))
 
     def _busy_changed(self, busy: bool, name) -> None:
         self.panels.set_busy(busy, name)
@@ -460,11 +465,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="a Python file defining your own effects (runs its code; repeat for several files); the page may load "
         "these files again, any other only when you confirm it in this terminal; docs/user-effects.md",
     )
+    p.add_argument(
+        "--timing",
+        action="store_true",
+        help="log the server's named spans (fit, held-out, scene, plots, ...) to standard error, one line each "
+        "(benchmarks/page_latency.py reads them)",
+    )
     return p
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.timing:
+        timing.enable()
     skipped: list = []  # a broken installed effect package is reported, skipped
     plugins.load_entry_points(notes=skipped)
     for note in skipped:

@@ -37,6 +37,29 @@ def _decimate(n: int, kept: np.ndarray, max_points: int = MAX_POINTS) -> np.ndar
     return idx
 
 
+def envelope_indices(values, max_points: int = MAX_POINTS) -> np.ndarray:
+    """Sorted sample indices that draw ``values`` (rows of one time axis, shape ``(k, n)``) in at most
+    ``max_points`` points while keeping its extremes: the record is cut into ``max_points // 2`` even stretches of
+    time, and each gives the sample that lies highest and the one that lies lowest, over every row, measured from
+    the row's own median (a spike of one sensor is kept, whatever the others do). All samples up to
+    ``max_points``; the first and last samples always. Non-finite values count as neither extreme.
+    """
+    v = np.atleast_2d(np.asarray(values, float))
+    n = v.shape[1]
+    if n <= max_points:
+        return np.arange(n)
+    med = np.nanmedian(v, axis=1, keepdims=True) if np.isfinite(v).any() else np.zeros((v.shape[0], 1))
+    dev = v - med
+    hi = np.where(np.isfinite(dev), dev, -np.inf).max(axis=0)
+    lo = np.where(np.isfinite(dev), dev, np.inf).min(axis=0)
+    n_buckets = max(1, (max_points - 2) // 2)
+    edges = np.linspace(0, n, n_buckets + 1).astype(np.int64)
+    starts = edges[:-1]
+    hi_idx = starts + np.array([np.argmax(hi[a:b]) for a, b in zip(edges[:-1], edges[1:])], np.int64)
+    lo_idx = starts + np.array([np.argmin(lo[a:b]) for a, b in zip(edges[:-1], edges[1:])], np.int64)
+    return np.unique(np.concatenate([[0, n - 1], hi_idx, lo_idx]))
+
+
 def _evidence(diagnosis) -> dict:
     ev = getattr(diagnosis, "evidence", None) if diagnosis is not None else None
     return ev if isinstance(ev, dict) else {}
@@ -548,8 +571,8 @@ def excluded_bands(time_s, kept, min_samples: int = MIN_BAND_SAMPLES, max_bands:
 
 
 def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
-    """The |B| plot's data, decimated to at most ``max_points`` samples (an even stride through time; every
-    sample still counts in the fit and the table).
+    """The |B| plot's data, decimated to at most ``max_points`` samples (a min/max envelope that keeps each
+    stretch's extremes, :func:`envelope_indices`; every sample still counts in the fit and the table).
 
     Returns
     -------
@@ -559,12 +582,19 @@ def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
         ``bands`` (the excluded stretches, :func:`excluded_bands`, over every sample).
     """
     n = record.n_samples
-    idx = _decimate(n, np.ones(n, bool), max_points)
     t = np.asarray(record.time_s, float)
-    raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, idx], axis=2)
-    corr = None
-    if record.corrected_nT is not None:
-        corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, idx], axis=2)
+    if n <= max_points:
+        idx = np.arange(n)
+        raw = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
+        corr = None if record.corrected_nT is None else np.linalg.norm(np.asarray(record.corrected_nT, float), axis=2)
+    else:  # a min/max envelope: every stretch's highest and lowest sample, of any sensor, is drawn (issue 44)
+        raw_all = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
+        corr_all = None
+        if record.corrected_nT is not None:
+            corr_all = np.linalg.norm(np.asarray(record.corrected_nT, float), axis=2)
+        idx = envelope_indices(raw_all if corr_all is None else np.vstack([raw_all, corr_all]), max_points)
+        raw = raw_all[:, idx]
+        corr = None if corr_all is None else corr_all[:, idx]
     return {
         "t": t[idx],
         "raw": raw,

@@ -503,6 +503,8 @@ class SceneView:
         self._static: dict = {}  # name -> handle (meshes, frames, labels)
         self._shape_key: tuple | None = None
         self.last_limit_nT = 1.0
+        #: Point positions sent to the page so far (a cloud's unchanged positions are not sent again).
+        self.n_points_sent = 0
 
     def update(self, model: SceneModel) -> None:
         """Redraw. Clouds whose point count is unchanged are updated in place (positions and colours)."""
@@ -540,9 +542,15 @@ class SceneView:
                 colors = residual_colors(resid, limit, kept)
                 handle = self._clouds.get(name)
                 if handle is not None and len(handle.points) == len(pts):
-                    handle.points = pts.astype(np.float32)
-                    handle.colors = colors
+                    # only what changed is sent: a refit leaves the raw clouds where they are (issue 44)
+                    pts32 = pts.astype(np.float32)
+                    if not np.array_equal(handle.points, pts32):
+                        handle.points = pts32
+                        self.n_points_sent += len(pts32)
+                    if not np.array_equal(handle.colors, colors):
+                        handle.colors = colors
                 else:
+                    self.n_points_sent += len(pts)
                     if handle is not None:
                         handle.remove()
                     self._clouds[name] = scene.add_point_cloud(
