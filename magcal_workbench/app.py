@@ -326,7 +326,9 @@ class Workbench:
             return
         if kind in ("result", "view", "data"):
             with timing.span("scene"):
-                self.view.update_scene()
+                if kind != "view":  # the gains first: a gain that changes redraws the scene (its callback) once
+                    self.panels.fit_view_to_data()
+                self.view.update_scene()  # nothing is sent again when the gains' redraw has drawn it
         elif kind == "selection":
             with timing.span("scene"):
                 self.view.recolor()
