@@ -138,19 +138,26 @@ PAINT_HOOK = """() => { window.__magcalPainted = false;
 
 
 def open_page(browser, server: Server) -> tuple:
+    """Open the page as soon as the address is printed; seconds from the launch to the first picture (the raw
+    clouds painted: the workbench's scene, or a large file's preview, which the status line announces) and to
+    the page with the Total-field RMS (the workbench built)."""
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(server.url, wait_until="domcontentloaded")
-    page.wait_for_function("() => document.body && /Total-field RMS/.test(document.body.innerText)", timeout=600_000)
-    t_rms = time.perf_counter() - server.t0
     page.wait_for_function("() => !document.body.innerText.includes('Connecting')", timeout=600_000)
     # the scene's clouds: viser draws points once the scene messages have arrived; two frames after that
     page.wait_for_function(
-        "() => document.querySelectorAll('canvas').length > 0 && document.body.innerText.includes('raw')",
+        "() => document.querySelectorAll('canvas').length > 0 && "
+        "/\\braw\\b|a preview of/.test(document.body.innerText)",
         timeout=600_000,
+        polling=20,
     )
     page.evaluate(PAINT_HOOK)
-    page.wait_for_function(FIRST_PICTURE_JS, timeout=600_000)
+    page.wait_for_function(FIRST_PICTURE_JS, timeout=600_000, polling=20)
     t_pic = time.perf_counter() - server.t0
+    page.wait_for_function(
+        "() => document.body && /Total-field RMS/.test(document.body.innerText)", timeout=600_000, polling=20
+    )
+    t_rms = time.perf_counter() - server.t0
     return page, t_rms, t_pic
 
 

@@ -31,6 +31,8 @@ from viser.transforms import SO3
 
 from magcal.core import conventions
 
+from .defaults import MAX_POINTS
+
 #: Horizontal distance between a raw cloud's centre and its corrected cloud's centre is twice this (scene units).
 PAIR_OFFSET = 1.5
 #: Spacing of the sensor groups in the all-sensors view (a 2 x 2 grid for three or four sensors).
@@ -38,8 +40,6 @@ GROUP_DX = 2 * PAIR_OFFSET + 2.9
 GROUP_DZ = 2.9
 #: Length of the cross's baseline in scene units (its proportions are real).
 CROSS_SPAN = 2.0
-#: Most points drawn per cloud (one sensor's raw or corrected readings); larger data are drawn decimated.
-MAX_POINTS = 20_000
 #: Share of a decimated cloud given to the samples with the largest |residual| (outliers stay visible).
 OUTLIER_SHARE = 0.1
 

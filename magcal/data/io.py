@@ -1390,9 +1390,7 @@ PREVIEW_MIN_BYTES = 8_000_000
 PREVIEW_BLOCK_BYTES = 2048
 
 
-def read_csv_preview(
-    path, max_rows=20_000, columns=None, units=None, name=None, lsb_nT=None, min_bytes=PREVIEW_MIN_BYTES
-):
+def read_csv_preview(path, max_rows=20_000, columns=None, units=None, name=None, lsb_nT=None, min_bytes=None):
     """A quick look at a large CSV: at most ``max_rows`` data lines spread evenly through the file, read without
     reading the rest (an interactive program draws them while :func:`read_csv` reads the whole file).
 
@@ -1409,8 +1407,8 @@ def read_csv_preview(
         Most data lines read.
     columns, units, name, lsb_nT
         As in :func:`read_csv`.
-    min_bytes : int
-        Smaller files give None: reading them whole costs about as much.
+    min_bytes : int, optional
+        Smaller files give None: reading them whole costs about as much (default :data:`PREVIEW_MIN_BYTES`).
 
     Returns
     -------
@@ -1423,7 +1421,7 @@ def read_csv_preview(
         return None
     try:
         size = os.path.getsize(path)
-        if size < int(min_bytes):
+        if size < int(PREVIEW_MIN_BYTES if min_bytes is None else min_bytes):
             return None
         notes: list = []
         with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT, notes=notes) as src:
