@@ -15,6 +15,7 @@ compact table (% of samples within +-1/2/5 % of the reference, coverage of the s
 
 from __future__ import annotations
 
+import hashlib
 import io
 from dataclasses import dataclass
 
@@ -681,6 +682,22 @@ def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS, max_samp
             m = direction_map(np.asarray(record.raw_nT[s])[kept], cells)
         out.append(float(m.fraction))
     return out
+
+
+def record_key(record: FieldRecord, *extra) -> str:
+    """A digest of everything the cockpit's figures read from ``record`` (and of ``extra``, e.g. the range being
+    chosen): equal keys, equal figures, so a figure whose data did not change is not rebuilt (issue 44)."""
+    h = hashlib.blake2b(digest_size=16)
+    arrays = (record.time_s, record.raw_nT, record.corrected_nT, record.reference_nT, record.kept, record.fast)
+    for a in arrays:
+        if a is None:
+            h.update(b"none")
+            continue
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.data)
+    h.update(repr(extra).encode())
+    return h.hexdigest()
 
 
 def table_figures(record: FieldRecord) -> dict:

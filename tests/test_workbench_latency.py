@@ -132,6 +132,23 @@ def test_a_refit_sends_the_corrected_clouds_not_the_raw_ones_again(bench):
         assert np.array_equal(sv._clouds[k].points, pts)
 
 
+def test_no_figure_is_rebuilt_when_its_data_did_not_change(bench):
+    wb = bench(store=False)
+    cockpit, p = wb.cockpit, wb.panels
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    built, field, hist = cockpit.n_built, p.field_plot.figure, p.histogram_plot.figure
+    wb.ui.run(lambda: cockpit.draw(force=True))  # nothing changed: nothing built, nothing sent
+    assert cockpit.n_built == built and p.field_plot.figure is field and p.histogram_plot.figure is hist
+    wb.ctrl.select(np.arange(10), "reject", what="ten samples")  # the kept mask changed: every figure follows
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    assert cockpit.n_built == built + 3 and p.field_plot.figure is not field
+    assert cockpit.n_draws >= 3
+    built = cockpit.n_built
+    p.histogram_unit.value = "%" if p.histogram_unit.value == "nT" else "nT"  # only the histogram's input
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    assert cockpit.n_built == built + 1 and p.histogram_plot.figure is not hist
+
+
 def test_the_envelope_keeps_every_extreme_and_its_size_bound():
     rng = np.random.default_rng(4)
     n = 200_000
