@@ -169,11 +169,13 @@ def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
         print(f"  launch: {out}", file=sys.stderr)
         if not clicks:
             return out
+        # Diagnose before Exclude range: the engine's diagnosis of a fit with an excluded stretch took 79 s at
+        # 4 x 1e5 (1.8 s without; notes/page_latency.md), which would hide the page's own times
         steps = (
             ("Run", "Calibrate", "Run the chosen method", "calibrate (ML)"),
-            ("Exclude range", "Calibrate", "Exclude range", "refine (ML)"),
             ("Diagnose", "Model", "Diagnose", "diagnose"),
             ("Add-and-refit", "Model", "Add the candidate and refit", "add "),
+            ("Exclude range", "Calibrate", "Exclude range", "refine (ML)"),
         )
         for label, tab, button, prefix in steps:
             _wait_idle(page)
