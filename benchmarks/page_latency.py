@@ -158,6 +158,10 @@ def open_page(browser, server: Server) -> tuple:
         "() => document.body && /Total-field RMS/.test(document.body.innerText)", timeout=600_000, polling=20
     )
     t_rms = time.perf_counter() - server.t0
+    # the launcher's status line ("loading FILE...") goes once the workbench is built: the clicks start then
+    page.wait_for_function(
+        "() => !/loading [^\\n]*\\.\\.\\./.test(document.body.innerText)", timeout=600_000, polling=50
+    )
     return page, t_rms, t_pic
 
 
