@@ -2,6 +2,10 @@
 
 The engine installs without the browser app's packages (``pip install -e .``); the workbench needs the
 ``workbench`` extra. Without it the user gets one line saying what to install instead of an ImportError traceback.
+
+Start fast (issue 44): the page is served and its address printed (:func:`magcal_workbench.startup.begin`) before
+the app's heavy parts are imported; a large CSV's preview is drawn while the rest is read
+(:mod:`magcal_workbench.preview`); :func:`magcal_workbench.app.main` then builds the workbench on that server.
 """
 
 from __future__ import annotations
