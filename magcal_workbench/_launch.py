@@ -2,11 +2,15 @@
 
 The engine installs without the browser app's packages (``pip install -e .``); the workbench needs the
 ``workbench`` extra. Without it the user gets one line saying what to install instead of an ImportError traceback.
+
+Start fast (issue 44): the page is served and its address printed (:func:`magcal_workbench.startup.begin`) before
+the app's heavy parts are imported; a large CSV's preview is drawn while the rest is read
+(:mod:`magcal_workbench.preview`); :func:`magcal_workbench.app.main` then builds the workbench on that server.
 """
 
 from __future__ import annotations
 
-import importlib
+import importlib.util
 import sys
 
 #: Packages of the ``workbench`` extra (pyproject.toml), by the name they are imported under.
@@ -16,12 +20,15 @@ MISSING_EXTRA = 'magcal-workbench needs the workbench extra: pip install -e ".[w
 
 
 def missing_packages() -> list[str]:
-    """The packages of the workbench extra that cannot be imported."""
+    """The packages of the workbench extra that cannot be imported (found without importing them: plotly and
+    matplotlib alone take a second, and the page's address is printed before they are needed)."""
     missing = []
     for name in WORKBENCH_PACKAGES:
         try:
-            importlib.import_module(name)
-        except ImportError:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):  # a package made unimportable (sys.modules[name] = None)
+            found = False
+        if not found:
             missing.append(name)
     return missing
 
@@ -32,9 +39,16 @@ def main(argv=None) -> int:
     if missing:
         print(f"{MISSING_EXTRA} (not installed: {', '.join(missing)})", file=sys.stderr)
         return 1
-    from .app import main as app_main
+    from . import startup
 
-    return app_main(argv)
+    # the page served and its address printed first, then a large file's preview drawn (issue 44)
+    early = startup.begin(argv)
+    if early is not None:
+        early.show_preview()
+    with startup.timing.span("import"):
+        from .app import main as app_main
+
+    return app_main(argv) if early is None else app_main(argv, early=early)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,6 @@ page runs an effects file only when the command line named it or the user confir
 
 from __future__ import annotations
 
-import argparse
 import os
 import secrets
 import sys
@@ -56,11 +55,13 @@ from magcal.core.files import check_regular_file
 from magcal.model import plugins
 
 from . import scene as scn
+from . import timing
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
 from .consent import EffectsFiles, Terminal
 from .controller import Controller, error_markdown
 from .dataio import load_dataset
+from .defaults import DEFAULT_MAX_UPLOAD_MB
 from .downloads import Downloads
 from .evidence import Evidence
 from .exporting import Exporting
@@ -72,12 +73,13 @@ from .livecontrol import LiveControl
 from .maps import SphereMaps
 from .markup import clean_text, error_text
 from .panels import Panels
-from .session import MAX_STORE_BYTES, SessionStore
+from .session import SessionStore
 from .sessions import Sessions
+from .startup import NO_TOKEN_WARNING, Early, build_parser, host_warning
 from .steps import Steps
 from .timewindow import TimeWindow
 from .uiqueue import UiQueue
-from .uploads import DEFAULT_MAX_UPLOAD_MB, Uploads
+from .uploads import Uploads
 from .vehicleview import VehicleView
 from .view import SceneControl
 
@@ -103,6 +105,11 @@ class Workbench:
         The user's effect files already loaded (``--effects-file``); every session opened remembers them, and the
         page may load them again. Any other file the page asks for is confirmed in ``terminal`` first
         (:class:`magcal_workbench.consent.EffectsFiles`).
+    server : viser.ViserServer or None
+        A server already started with ``token``'s gate (the launcher's, :class:`magcal_workbench.startup.Early`);
+        None starts one on ``host``/``port``.
+    scene_view : magcal_workbench.scene.SceneView or None
+        The scene already drawn on ``server`` (the launcher's preview), redrawn in place; None makes one.
     terminal : magcal_workbench.consent.Terminal or None
         Where the user confirms an effects file the page asks for that the command line did not name (the
         workbench's terminal, :meth:`~magcal_workbench.consent.Terminal.of_stdin`); None refuses every such file.
@@ -145,6 +152,8 @@ class Workbench:
         allow_hosts=(),
         live_allow=(),
         terminal: Terminal | None = None,
+        server=None,
+        scene_view: scn.SceneView | None = None,
     ):
         #: The page's thread: every update a background thread makes goes through it.
         self.ui = UiQueue()
@@ -154,7 +163,10 @@ class Workbench:
         self.token = secrets.token_urlsafe(32) if token == "auto" else token
         self.host = host
         # refuses requests without the token, other pages' websockets, and (beyond loopback) foreign Host names
-        self.server = guarded_viser_server(host, port, verbose, Gate(host, self.token, allow_hosts))
+        if server is None:
+            self.server = guarded_viser_server(host, port, verbose, Gate(host, self.token, allow_hosts))
+        else:  # started by the launcher before the engine was imported, with this token (magcal_workbench.startup)
+            self.server = server
         #: Whether the page may load effect files (it runs their code): only when served to this machine.
         self.local = is_loopback(host)
         self.effects_files = [os.path.abspath(p) for p in effects_files]
@@ -187,7 +199,8 @@ class Workbench:
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
         self.gravity = GravityPage(self)
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
-        self.scene_view = scn.SceneView(self.server, max_points=max_points)
+        # the launcher's preview is redrawn in place (magcal_workbench.preview)
+        self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)
         self.panels = Panels(
             Widgets(self.server.gui, self.values),
             handle=self.handle,
@@ -324,9 +337,13 @@ class Workbench:
                 self.panels.set_progress(*ctrl.progress)
             return
         if kind in ("result", "view", "data"):
-            self.view.update_scene()
+            with timing.span("scene"):
+                if kind != "view":  # the gains first: a gain that changes redraws the scene (its callback) once
+                    self.panels.fit_view_to_data()
+                self.view.update_scene()  # nothing is sent again when the gains' redraw has drawn it
         elif kind == "selection":
-            self.view.recolor()
+            with timing.span("scene"):
+                self.view.recolor()
         elif kind == "inspect":
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
@@ -334,8 +351,10 @@ class Workbench:
         if kind in ("result", "data"):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
-            self.view.refresh_maps()
-        self.panels.refresh((kind,))
+            with timing.span("maps"):
+                self.view.refresh_maps()
+        with timing.span("panels" if kind == "message" else "plots"):  # the texts, the cockpit's plotly figures
+            self.panels.refresh((kind,))
 
     def _busy_changed(self, busy: bool, name) -> None:
         self.panels.set_busy(busy, name)
@@ -365,106 +384,35 @@ class Workbench:
 # ------------------------------------------------------------------------------------------------------------
 # command line
 # ------------------------------------------------------------------------------------------------------------
-def host_warning(host: str) -> str | None:
-    """The warning printed when the workbench is served beyond this machine (None for loopback)."""
-    if is_loopback(host):
-        return None
-    return (
-        f"WARNING: serving on {host}: anyone who can reach this address can see and change the session "
-        "(data, model, files). Use the default 127.0.0.1 unless you mean to share it."
+def _workbench(args, early: Early | None, dataset, store, content, path, lesson) -> Workbench:
+    """The :class:`Workbench` the command line asks for (on the launcher's server when ``early`` is given)."""
+    return Workbench(
+        dataset,
+        args.host,
+        args.port,
+        store,
+        content,
+        os.path.basename(str(path)),
+        resume=not args.fresh,
+        lesson=lesson,
+        effects_files=args.effects_file,
+        max_upload_mb=args.max_upload_mb,
+        max_points=args.max_points,
+        token=early.token if early is not None else (None if args.no_token else "auto"),
+        allow_hosts=args.allow_host,
+        live_allow=args.live_allow,
+        terminal=Terminal.of_stdin(),
+        server=None if early is None else early.server,
+        scene_view=None if early is None else early.scene_view,
     )
 
 
-NO_TOKEN_WARNING = (
-    "WARNING: --no-token: the page asks for no token; any program or user that can reach the port can see and "
-    "change the session and start live sources"
-)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="magcal-workbench", description="Calibrate magnetometers in the browser: fit, diagnose, add effects."
-    )
-    p.add_argument("file", nargs="?", help="data CSV (default: the bundled demo)")
-    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1, this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
-    p.add_argument(
-        "--no-token",
-        action="store_true",
-        help="do not ask for the secret token in the page's address (any process or user that can reach the "
-        "port can then use the workbench; a warning is printed)",
-    )
-    p.add_argument(
-        "--allow-host",
-        action="append",
-        default=[],
-        metavar="NAME",
-        help="beyond 127.0.0.1: a further name the page may be reached by (e.g. a proxy's); this machine's own "
-        "names and addresses are always accepted",
-    )
-    p.add_argument("--session-dir", default=None, help="where sessions are saved (default ~/.magcal/sessions)")
-    p.add_argument("--no-session", action="store_true", help="do not save or reopen sessions")
-    p.add_argument("--fresh", action="store_true", help="ignore a saved session of the same file")
-    p.add_argument("--lesson", default=None, help="open a lesson by name (see assets/lessons)")
-    p.add_argument(
-        "--max-upload-mb",
-        type=float,
-        default=DEFAULT_MAX_UPLOAD_MB,
-        metavar="MB",
-        help=f"largest file the page may upload, MB (default {DEFAULT_MAX_UPLOAD_MB:g})",
-    )
-    p.add_argument(
-        "--max-sessions-mb",
-        type=float,
-        default=MAX_STORE_BYTES / 1e6,
-        metavar="MB",
-        help="bound of the session folder, MB: the oldest sessions are deleted to stay within it "
-        f"(default {MAX_STORE_BYTES / 1e6:g})",
-    )
-    p.add_argument(
-        "--max-points",
-        type=int,
-        default=scn.MAX_POINTS,
-        metavar="N",
-        help=f"most points drawn per sensor's cloud; larger files are shown decimated, fitted whole "
-        f"(default {scn.MAX_POINTS})",
-    )
-    p.add_argument(
-        "--live",
-        default=None,
-        metavar="SOURCE",
-        help="calibrate live from an instrument: serial:///dev/ttyUSB0?baud=115200&columns=x,y,z, "
-        "udp://127.0.0.1:14550?mavlink, tcp://HOST:PORT, sim://chi2017?rate=50 (docs/export.md)",
-    )
-    p.add_argument(
-        "--live-allow",
-        action="append",
-        default=[],
-        metavar="SOURCE",
-        help="a live source the page may start besides the ones it is offered (simulated presets, serial ports "
-        "found, UDP/TCP on 127.0.0.1, the session folder's recordings), e.g. udp://0.0.0.0:14550?mavlink; repeat "
-        "for several",
-    )
-    p.add_argument(
-        "--record",
-        default=None,
-        metavar="PATH",
-        help="with --live: the CSV recording (a new file; default live-DATE-TIME.csv in the session "
-        "folder's recordings, or here with --no-session)",
-    )
-    p.add_argument(
-        "--effects-file",
-        action="append",
-        default=[],
-        metavar="PATH",
-        help="a Python file defining your own effects (runs its code; repeat for several files); the page may load "
-        "these files again, any other only when you confirm it in this terminal; docs/user-effects.md",
-    )
-    return p
-
-
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv=None, early: Early | None = None) -> int:
+    """Start the workbench from the command line ``argv``. ``early``: the launcher's server, already serving the
+    page with its address printed (:func:`magcal_workbench.startup.begin`); the workbench is built on it."""
+    args = early.args if early is not None else build_parser().parse_args(argv)
+    if args.timing:
+        timing.enable()
     # a broken installed effect package is reported, skipped
     for note in plugins.load_entry_points(warn=False).notes:
         print(f"magcal-workbench: {note.text}", file=sys.stderr)
@@ -486,33 +434,19 @@ def main(argv=None) -> int:
                 content = fh.read()
         except OSError as exc:
             raise MagcalError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-        dataset, notes = load_dataset(path)
+        with timing.span("read"):
+            dataset, notes = load_dataset(path)
         for n in notes:
             print(f"magcal-workbench: {n}", file=sys.stderr)
         warning = host_warning(args.host)
-        if warning:
+        if warning and early is None:  # the launcher said it before the address
             print(f"magcal-workbench: {warning}", file=sys.stderr)
-        if args.no_token:
+        if args.no_token and early is None:
             print(f"magcal-workbench: {NO_TOKEN_WARNING}", file=sys.stderr)
         if not args.max_upload_mb > 0 or args.max_points < 1:
             raise MagcalError("--max-upload-mb and --max-points must be positive")
-        wb = Workbench(
-            dataset,
-            args.host,
-            args.port,
-            store,
-            content,
-            os.path.basename(str(path)),
-            resume=not args.fresh,
-            lesson=lesson,
-            effects_files=args.effects_file,
-            max_upload_mb=args.max_upload_mb,
-            max_points=args.max_points,
-            token=None if args.no_token else "auto",
-            allow_hosts=args.allow_host,
-            live_allow=args.live_allow,
-            terminal=Terminal.of_stdin(),
-        )
+        with timing.span("build"):
+            wb = _workbench(args, early, dataset, store, content, path, lesson)
         if lesson:
             wb.lessons.show_guide(lesson_obj)
         if args.live:
@@ -522,8 +456,13 @@ def main(argv=None) -> int:
             raise MagcalError("--record goes with --live SOURCE")
     except MagcalError as exc:
         print(f"magcal-workbench: {exc}", file=sys.stderr)
+        if early is not None:
+            early.stop()
         return 2
-    print(f"magcal-workbench: open {wb.url} in a browser (Ctrl-C stops)", flush=True)
+    if early is None:
+        print(f"magcal-workbench: open {wb.url} in a browser (Ctrl-C stops)", flush=True)
+    else:
+        early.done()
     try:
         while True:
             time.sleep(3600)

@@ -22,7 +22,7 @@ from magcal.core.errors import MagcalError
 
 from . import motion
 from .panels import summary_markdown
-from .plots import FieldRecord, histogram_figure, magnitude_figure, table_figures
+from .plots import FieldRecord, histogram_figure, magnitude_figure, record_key, table_figures
 from .timewindow import sample_times
 
 #: Shortest time between two redraws of the table and plots while samples stream in, s.
@@ -97,6 +97,12 @@ class Cockpit:
         self._last_live_draw = 0.0
         #: How many samples the plots show data of (the tests watch it grow with the stream).
         self.n_plotted = 0
+        #: The key (:func:`magcal_workbench.plots.record_key`) each figure was last built from, by name: a figure
+        #: whose data did not change is not rebuilt nor sent again (issue 44).
+        self._keys: dict[str, str] = {}
+        self._table: dict = {}
+        #: Figures built (the tests read it): the table's figures, |B| against time, the histogram.
+        self.n_built = 0
         #: Redraws made (the tests and benchmarks read it).
         self.n_draws = 0
 
@@ -127,7 +133,12 @@ class Cockpit:
             return
         self._last_live_draw = now
         p = wb.panels
-        figures = table_figures(record)
+        key = record_key(record)
+        if self._keys.get("table") != key:
+            self._table = table_figures(record)
+            self._keys["table"] = key
+            self.n_built += 1
+        figures = self._table
         if live is not None:
             fit = live.fit
             cal = None if fit is None else fit.calibration
@@ -143,9 +154,16 @@ class Cockpit:
                 b.disabled = False
         sensors = [] if cal is None else [(c.cinv, c.bias_nT) for c in cal.sensors]
         p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor)
-        p.field_plot.figure = magnitude_figure(record, self.pending_s(record) if live is None else None)
+        pending = self.pending_s(record) if live is None else None
+        if self._keys.get("field") != (field_key := f"{key} {pending}"):
+            p.field_plot.figure = magnitude_figure(record, pending)
+            self._keys["field"] = field_key
+            self.n_built += 1
         unit = p.histogram_unit.value if p.histogram_unit.value in ("nT", "%") else "nT"  # checked when it moves
-        p.histogram_plot.figure = histogram_figure(record, unit)
+        if self._keys.get("histogram") != (histogram_key := f"{key} {unit}"):
+            p.histogram_plot.figure = histogram_figure(record, unit)
+            self._keys["histogram"] = histogram_key
+            self.n_built += 1
         fast = record.fast
         p.btn_exclude_fast.visible = live is None and fast is not None and bool(fast.any())
         if live is None:

@@ -39,8 +39,10 @@ from magcal.geometry.procrustes import rotation_angle_deg
 from magcal.model import plugins
 from magcal.model.terms import EFFECTS, Model, unknown_effect_message
 
+from . import timing
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
+from .pending import PENDING
 from .session import SessionStore
 from .sessionfile import LABEL
 from .state import METHODS, SessionState, StepRecord
@@ -126,6 +128,8 @@ class Controller:
         self._job_pin = threading.local()  # the mask and model of the job running in this thread
         #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
         self.vector = VectorModel(self)
+        #: ``id`` of the history records whose held-out check runs in the background (shown ``pending...``).
+        self.held_out_pending: set[int] = set()
         # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
         # that the first Diagnose does not wait for them
         start_workers(dataset, effects=tuple(EFFECTS.values()))
@@ -401,19 +405,21 @@ class Controller:
             return f"noise {given:.3g} nT per axis ({where})"
         return "noise not known yet: fit first (it is estimated from the fit's residuals) or give it"
 
-    def _held_out_rms(self, fit) -> tuple[float | None, str | None]:
+    def _held_out_rms(self, fit, kept=None, report: bool = True) -> tuple[float | None, str | None]:
         """Total-field RMS (nT) on held-out samples of the current model (:func:`magcal.fitting.validation.validate`,
         ``blocks`` scheme: fitted on alternating blocks of time, warm-started from ``fit``, scored on the blocks
         between); ``(None, why)`` when the record cannot be split, ``(None, None)`` without a maximum-likelihood
-        fit."""
+        fit. ``kept`` is the fit's mask (default: the kept samples now); ``report`` shows the progress (not from
+        the background, where a job after it shows its own)."""
 
         if fit is None or getattr(fit, "model", None) is None:
             return None, None
-        kept = self.fit_dataset().subset(self.kept)
+        kept = self.fit_dataset().subset(self.kept if kept is None else kept)
         problem = validation.split_problem(kept)
         if problem:
             return None, f"held-out validation not done: {problem}"
-        self._report_progress("held-out validation (blocks)", None)
+        if report:
+            self._report_progress("held-out validation (blocks)", None)
         try:
             v = validation.validate(  # its fit's notes stay in v.fit_notes: the fit itself has said them
                 kept,
@@ -429,8 +435,9 @@ class Controller:
             )
             return None, f"held-out validation failed: {why}"
         finally:
-            self.progress = None
-            self._emit("progress")
+            if report:
+                self.progress = None
+                self._emit("progress")
         return float(v.held_out_rms_nT), None
 
     def model_terms(self) -> list[dict]:
@@ -550,25 +557,46 @@ class Controller:
             fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
         )
         self.state.record(rec, cal.to_dict())
-        self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
-        self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
-        held_out, held_note = self._held_out_rms(fit)
-        if held_note:
-            notes = list(notes) + [held_note]
-        if held_out is not None:
-            with self.state.lock:
-                rec.held_out_rms_nT = held_out
-                self.state.touch()
-            self._emit("model")  # the history table and the RMS plot gain the held-out figure
-        self.autosave()
         text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
-        if held_out is not None:
-            text += f"; held-out RMS {fmt_nT(held_out)} (blocks)"
-        if fit is not None and not fit.success:
-            text += " - **the fit did not converge** (see above)"
-        if notes:
-            text += "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(notes))
-        self.say(text)
+        conv = " - **the fit did not converge** (see above)" if fit is not None and not fit.success else ""
+        tail = "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(notes))
+        has_held_out = fit is not None and getattr(fit, "model", None) is not None
+        background = has_held_out and self.worker.in_job()
+        generation = self.worker.pending.next_generation()  # an older fit's slow parts are stale now
+        if background:  # the result first: the held-out check follows, marked pending until then
+            self.held_out_pending.add(id(rec))
+            self.say(text + f"; held-out RMS {PENDING}" + conv + tail)
+        with timing.span("publish"):
+            self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
+            self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
+        kept = self.kept.copy()
+
+        def slow(still_current: Callable[[], bool] = lambda: True) -> None:
+            with timing.span("heldout"):
+                held_out, held_note = self._held_out_rms(fit, kept, report=not background)
+            if not still_current():  # a newer fit came first: this figure is dropped unseen
+                self.held_out_pending.discard(id(rec))
+                return
+            all_notes = list(notes) + ([held_note] if held_note else [])
+            with self.state.lock:
+                if held_out is not None:
+                    rec.held_out_rms_nT = held_out
+                    self.state.touch()
+                self.held_out_pending.discard(id(rec))
+            self._emit("model")  # the history table and the RMS plot gain the held-out figure (or lose "pending")
+            with timing.span("autosave"):
+                self.autosave()
+            final = text + (f"; held-out RMS {fmt_nT(held_out)} (blocks)" if held_out is not None else "") + conv
+            final += "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(all_notes))
+            self.say(final)
+
+        if background:
+            self.worker.pending.start(generation, "heldout", slow)
+        elif has_held_out:
+            slow()
+        else:
+            self.autosave()
+            self.say(text + conv + tail)
         return rec
 
     #: Fewest kept samples a fit is run on (the base model of one sensor has 9 parameters).
@@ -633,15 +661,16 @@ class Controller:
         old, rms0, tb = self._before()
         init = self.calibration
         ds = self.fit_dataset()
-        result = fitter.fit(
-            ds,
-            self._model(),
-            init=init,
-            loss="soft_l1" if self.state.robust else "linear",
-            mask=self.kept,
-            reference_total_nT=self.reference_arg,
-            warn=False,
-        )
+        with timing.span("fit"):
+            result = fitter.fit(
+                ds,
+                self._model(),
+                init=init,
+                loss="soft_l1" if self.state.robust else "linear",
+                mask=self.kept,
+                reference_total_nT=self.reference_arg,
+                warn=False,
+            )
         notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result
         self.diagnosis = None
@@ -656,17 +685,18 @@ class Controller:
         old, rms0, tb = self._before()
         self._report_progress(f"{method}: starting", 0.0)
         effects = list(self.state.effects) if method == "ml" else []
-        result = pipeline.calibrate(  # never warns: its concerns are in result.warnings, its notes in result.notes
-            self.fit_dataset(),
-            method=method,
-            effects=effects,
-            robust=self.state.robust,
-            reference_total_nT=self.reference_arg,
-            seed=0,
-            progress=self._report_progress,
-            mask=self.kept,
-            noise_nT=self.state.noise_nT,
-        )
+        with timing.span("fit"):
+            result = pipeline.calibrate(  # never warns: its concerns are in result.warnings, its notes in result.notes
+                self.fit_dataset(),
+                method=method,
+                effects=effects,
+                robust=self.state.robust,
+                reference_total_nT=self.reference_arg,
+                seed=0,
+                progress=self._report_progress,
+                mask=self.kept,
+                noise_nT=self.state.noise_nT,
+            )
         self.fit_result = result.fit
         self.diagnosis = None
         self._set_calibration(result.calibration, None if result.fit is None else result.fit.residuals_all_nT)
@@ -829,7 +859,10 @@ class Controller:
         if self.fit_result is None:
             self.step_refine()
         self._report_progress("diagnosing", None)
-        d = diagnose(self.fit_dataset(), self.fit_result, progress=self._report_progress, noise_nT=self.state.noise_nT)
+        with timing.span("diagnose"):
+            d = diagnose(
+                self.fit_dataset(), self.fit_result, progress=self._report_progress, noise_nT=self.state.noise_nT
+            )
         self.diagnosis = d
         self.progress = None
         self._emit("progress")

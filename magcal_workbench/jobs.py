@@ -12,6 +12,8 @@ import threading
 import traceback
 from collections.abc import Callable
 
+from .pending import Pending
+
 
 class Worker:
     """Runs at most one job at a time in a background thread."""
@@ -26,6 +28,8 @@ class Worker:
         self._listeners: list[Callable[[bool, str | None], None]] = []
         self._idle = threading.Event()
         self._idle.set()
+        #: The slow parts of the jobs' steps, run after their results are shown (:mod:`.pending`).
+        self.pending = Pending()
 
     @property
     def busy(self) -> bool:
@@ -78,8 +82,9 @@ class Worker:
             self._finish(name)
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block until idle (and, with ``settle``, the updates the job handed on have run); False on timeout."""
-        idle = self._idle.wait(timeout)
+        """Block until idle and the jobs' slow parts (:attr:`pending`) have ended (and, with ``settle``, the
+        updates they handed on have run); False on timeout."""
+        idle = self._idle.wait(timeout) and self.pending.wait(timeout)
         if idle and self._settle is not None:
             self._settle()
         return idle

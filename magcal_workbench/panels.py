@@ -23,6 +23,7 @@ from .lessons import lesson_slugs, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .pending import PENDING
 from .sessionfile import NOISE_RANGE_nT
 from .state import METHODS
 from .uploads import UPLOAD_UNITS
@@ -217,17 +218,18 @@ def sensors_markdown(ctrl) -> str:
     return text
 
 
-def history_markdown(state, last: int = 6) -> str:
+def history_markdown(state, last: int = 6, pending=frozenset()) -> str:
     """The last steps: in-sample RMS of the kept samples and, after a maximum-likelihood fit, the held-out RMS
     (the model fitted on alternating blocks of time, scored on the blocks between: :func:`magcal.fitting.validation.
-    validate`)."""
+    validate`); ``pending`` holds the ``id`` of the records whose held-out check still runs (shown
+    ``pending...``)."""
     if not state.history:
         return "_No step yet._"
     rows = ["| # | step | RMS nT | held-out nT | what changed |", "|---|---|---|---|---|"]
     start = max(0, len(state.history) - last)
     for i, r in enumerate(state.history[start:], start=start):
         flag = " (did not converge)" if convergence_markdown(r) else ""
-        held = fmt(getattr(r, "held_out_rms_nT", None))
+        held = PENDING if id(r) in pending else fmt(getattr(r, "held_out_rms_nT", None))
         rows.append(
             f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {held} | {safe_text(r.changes, 400)} |"
         )
@@ -1118,7 +1120,7 @@ class Panels:
     def _history_markdown(ctrl) -> str:
         """The step history; on a record whose loop works on the vector model, that model's fits first (world RMS
         per N, E, D and |B|)."""
-        text = history_markdown(ctrl.state)
+        text = history_markdown(ctrl.state, pending=ctrl.held_out_pending)
         vector = vector_history_markdown(ctrl.state) if ctrl.vector_loop() else ""
         return f"{vector}\n\n**Total-field fit:**\n\n{text}" if vector else text
 

@@ -15,6 +15,7 @@ compact table (% of samples within +-1/2/5 % of the reference, coverage of the s
 
 from __future__ import annotations
 
+import hashlib
 import io
 from dataclasses import dataclass
 
@@ -35,6 +36,29 @@ def _decimate(n: int, kept: np.ndarray, max_points: int = MAX_POINTS) -> np.ndar
     if idx.size > max_points:
         idx = idx[np.linspace(0, idx.size - 1, max_points).astype(int)]
     return idx
+
+
+def envelope_indices(values, max_points: int = MAX_POINTS) -> np.ndarray:
+    """Sorted sample indices that draw ``values`` (rows of one time axis, shape ``(k, n)``) in at most
+    ``max_points`` points while keeping its extremes: the record is cut into ``max_points // 2`` even stretches of
+    time, and each gives the sample that lies highest and the one that lies lowest, over every row, measured from
+    the row's own median (a spike of one sensor is kept, whatever the others do). All samples up to
+    ``max_points``; the first and last samples always. Non-finite values count as neither extreme.
+    """
+    v = np.atleast_2d(np.asarray(values, float))
+    n = v.shape[1]
+    if n <= max_points:
+        return np.arange(n)
+    med = np.nanmedian(v, axis=1, keepdims=True) if np.isfinite(v).any() else np.zeros((v.shape[0], 1))
+    dev = v - med
+    hi = np.where(np.isfinite(dev), dev, -np.inf).max(axis=0)
+    lo = np.where(np.isfinite(dev), dev, np.inf).min(axis=0)
+    n_buckets = max(1, (max_points - 2) // 2)
+    edges = np.linspace(0, n, n_buckets + 1).astype(np.int64)
+    starts = edges[:-1]
+    hi_idx = starts + np.array([np.argmax(hi[a:b]) for a, b in zip(edges[:-1], edges[1:])], np.int64)
+    lo_idx = starts + np.array([np.argmin(lo[a:b]) for a, b in zip(edges[:-1], edges[1:])], np.int64)
+    return np.unique(np.concatenate([[0, n - 1], hi_idx, lo_idx]))
 
 
 def _evidence(diagnosis) -> dict:
@@ -548,8 +572,8 @@ def excluded_bands(time_s, kept, min_samples: int = MIN_BAND_SAMPLES, max_bands:
 
 
 def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
-    """The |B| plot's data, decimated to at most ``max_points`` samples (an even stride through time; every
-    sample still counts in the fit and the table).
+    """The |B| plot's data, decimated to at most ``max_points`` samples (a min/max envelope that keeps each
+    stretch's extremes, :func:`envelope_indices`; every sample still counts in the fit and the table).
 
     Returns
     -------
@@ -559,12 +583,19 @@ def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
         ``bands`` (the excluded stretches, :func:`excluded_bands`, over every sample).
     """
     n = record.n_samples
-    idx = _decimate(n, np.ones(n, bool), max_points)
     t = np.asarray(record.time_s, float)
-    raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, idx], axis=2)
-    corr = None
-    if record.corrected_nT is not None:
-        corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, idx], axis=2)
+    if n <= max_points:
+        idx = np.arange(n)
+        raw = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
+        corr = None if record.corrected_nT is None else np.linalg.norm(np.asarray(record.corrected_nT, float), axis=2)
+    else:  # a min/max envelope: every stretch's highest and lowest sample, of any sensor, is drawn (issue 44)
+        raw_all = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
+        corr_all = None
+        if record.corrected_nT is not None:
+            corr_all = np.linalg.norm(np.asarray(record.corrected_nT, float), axis=2)
+        idx = envelope_indices(raw_all if corr_all is None else np.vstack([raw_all, corr_all]), max_points)
+        raw = raw_all[:, idx]
+        corr = None if corr_all is None else corr_all[:, idx]
     return {
         "t": t[idx],
         "raw": raw,
@@ -651,6 +682,22 @@ def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS, max_samp
             m = direction_map(np.asarray(record.raw_nT[s])[kept], cells)
         out.append(float(m.fraction))
     return out
+
+
+def record_key(record: FieldRecord, *extra) -> str:
+    """A digest of everything the cockpit's figures read from ``record`` (and of ``extra``, e.g. the range being
+    chosen): equal keys, equal figures, so a figure whose data did not change is not rebuilt (issue 44)."""
+    h = hashlib.blake2b(digest_size=16)
+    arrays = (record.time_s, record.raw_nT, record.corrected_nT, record.reference_nT, record.kept, record.fast)
+    for a in arrays:
+        if a is None:
+            h.update(b"none")
+            continue
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.data)
+    h.update(repr(extra).encode())
+    return h.hexdigest()
 
 
 def table_figures(record: FieldRecord) -> dict:

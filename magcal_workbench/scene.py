@@ -31,6 +31,8 @@ from viser.transforms import SO3
 
 from magcal.core import conventions
 
+from .defaults import MAX_POINTS
+
 #: Horizontal distance between a raw cloud's centre and its corrected cloud's centre is twice this (scene units).
 PAIR_OFFSET = 1.5
 #: Spacing of the sensor groups in the all-sensors view (a 2 x 2 grid for three or four sensors).
@@ -38,8 +40,6 @@ GROUP_DX = 2 * PAIR_OFFSET + 2.9
 GROUP_DZ = 2.9
 #: Length of the cross's baseline in scene units (its proportions are real).
 CROSS_SPAN = 2.0
-#: Most points drawn per cloud (one sensor's raw or corrected readings); larger data are drawn decimated.
-MAX_POINTS = 20_000
 #: Share of a decimated cloud given to the samples with the largest |residual| (outliers stay visible).
 OUTLIER_SHARE = 0.1
 
@@ -503,6 +503,8 @@ class SceneView:
         self._static: dict = {}  # name -> handle (meshes, frames, labels)
         self._shape_key: tuple | None = None
         self.last_limit_nT = 1.0
+        #: Point positions sent to the page so far (a cloud's unchanged positions are not sent again).
+        self.n_points_sent = 0
 
     def update(self, model: SceneModel) -> None:
         """Redraw. Clouds whose point count is unchanged are updated in place (positions and colours)."""
@@ -540,9 +542,15 @@ class SceneView:
                 colors = residual_colors(resid, limit, kept)
                 handle = self._clouds.get(name)
                 if handle is not None and len(handle.points) == len(pts):
-                    handle.points = pts.astype(np.float32)
-                    handle.colors = colors
+                    # only what changed is sent: a refit leaves the raw clouds where they are (issue 44)
+                    pts32 = pts.astype(np.float32)
+                    if not np.array_equal(handle.points, pts32):
+                        handle.points = pts32
+                        self.n_points_sent += len(pts32)
+                    if not np.array_equal(handle.colors, colors):
+                        handle.colors = colors
                 else:
+                    self.n_points_sent += len(pts)
                     if handle is not None:
                         handle.remove()
                     self._clouds[name] = scene.add_point_cloud(

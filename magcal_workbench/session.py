@@ -37,6 +37,7 @@ from pathlib import Path
 from magcal.core.files import not_regular_reason
 from magcal.data.io import atomic_write
 
+from .defaults import MAX_STORE_BYTES
 from .sessionfile import MAX_BYTES as MAX_READ
 from .sessionfile import SessionError, SessionFileError, read_session_bytes
 from .state import SessionState
@@ -49,8 +50,6 @@ SESSION_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,119}$")
 DAMAGED = ".damaged-"
 #: The folder of live recordings inside the session folder: not a session, never pruned.
 RECORDINGS = "recordings"
-#: Default bound of the session folder, bytes (``--max-sessions-mb``).
-MAX_STORE_BYTES = 2_000_000_000
 
 
 def check_session_name(sid) -> str:

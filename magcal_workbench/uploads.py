@@ -16,8 +16,6 @@ from .controller import MESSAGE_LEN
 from .dataio import canonical_csv, page_words, read_bytes_dataset
 from .markup import clean_text, safe_code, safe_text
 
-#: Default upload limit, MB (``--max-upload-mb``).
-DEFAULT_MAX_UPLOAD_MB = 100.0
 #: Longest uploaded file name kept, characters (the rest is cut; a file system allows 255 bytes).
 MAX_NAME_CHARS = 120
 #: The Units choices of an upload (the first keeps the file's own ``# units:`` line).

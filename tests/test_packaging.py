@@ -227,9 +227,10 @@ def test_with_the_extra_the_launcher_starts_the_app():
 
 
 def test_the_launcher_hands_its_arguments_to_the_app(monkeypatch):
-    from magcal_workbench import _launch, app
+    from magcal_workbench import _launch, app, startup
 
     seen = []
-    monkeypatch.setattr(app, "main", lambda argv=None: seen.append(argv) or 7)
+    monkeypatch.setattr(app, "main", lambda argv=None, early=None: seen.append((argv, early)) or 7)
+    monkeypatch.setattr(startup, "begin", lambda argv=None: None)  # no server started early: the app is handed argv
     assert _launch.main(["--port", "9"]) == 7
-    assert seen == [["--port", "9"]]
+    assert seen == [(["--port", "9"], None)]

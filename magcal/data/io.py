@@ -1418,6 +1418,92 @@ def _read_any(path, columns, units, drop_bad, min_samples, chunk_rows, name, lsb
         return _with_notes(ds, src.notes, src.units, src.source, src.lsb_nT)
 
 
+#: Smallest CSV (bytes) worth a preview (:func:`read_csv_preview`): a smaller file is read whole about as fast.
+PREVIEW_MIN_BYTES = 8_000_000
+#: Bytes read at each offset of a preview (a longer line is read on).
+PREVIEW_BLOCK_BYTES = 2048
+
+
+def read_csv_preview(path, max_rows=20_000, columns=None, units=None, name=None, lsb_nT=None, min_bytes=None):
+    """A quick look at a large CSV: at most ``max_rows`` data lines spread evenly through the file, read without
+    reading the rest (an interactive program draws them while :func:`read_csv` reads the whole file).
+
+    The head (metadata, header) is the file's own; the lines are found by seeking to evenly spaced byte offsets
+    and taking the first whole line after each, so the preview spans the whole recording in order, every
+    ``~size / max_rows`` bytes. It is a picture, not data to fit: anything that :func:`read_csv` would warn about
+    or refuse makes it None (the whole read then says so, naming the line).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV file (a flight-controller log, a Parquet file or a file object gives None).
+    max_rows : int
+        Most data lines read.
+    columns, units, name, lsb_nT
+        As in :func:`read_csv`.
+    min_bytes : int, optional
+        Smaller files give None: reading them whole costs about as much (default :data:`PREVIEW_MIN_BYTES`).
+
+    Returns
+    -------
+    Dataset or None
+        Readings in nT of the sampled lines (``source`` names the file), or None when no preview is taken.
+    """
+    import io as _io
+
+    if hasattr(path, "read") or is_log(path) or is_parquet(path) or int(max_rows) < 1:
+        return None
+    try:
+        size = os.path.getsize(path)
+        if size < int(PREVIEW_MIN_BYTES if min_bytes is None else min_bytes):
+            return None
+        with CsvSource(path, columns=columns, units=units, name=name, lsb_nT=lsb_nT) as src:
+            header_line = src.header_line
+            head_notes = list(src.notes)
+        with open(os.fspath(path), "rb") as fh:
+            head = b"".join(fh.readline() for _ in range(header_line))
+            start = len(head)
+            step = max((size - start) // int(max_rows), 1)
+            lines, last_end = [], start
+            for pos in range(start, size, step):
+                # the first line that starts at or after pos: from the byte before it, past its newline
+                fh.seek(pos - 1)
+                block = fh.read(PREVIEW_BLOCK_BYTES)
+                cut = block.find(b"\n")
+                if cut < 0:
+                    return None  # a line longer than the block: the whole read names it
+                line_start = pos + cut
+                if line_start < last_end or line_start >= size:
+                    continue  # the line taken last (a line longer than the step), or the end of the file
+                block = block[cut + 1 :]
+                end = block.find(b"\n")
+                if end < 0 and line_start + len(block) < size:  # the line goes on past the block
+                    fh.seek(line_start)
+                    block = fh.read(MAX_LINE_BYTES)
+                    end = block.find(b"\n")
+                    if end < 0 and line_start + len(block) < size:
+                        return None
+                if end < 0:
+                    end = len(block)  # the file's last line, without a newline
+                line = block[:end].rstrip(b"\r")
+                if line.strip():
+                    lines.append(line + b"\n")
+                last_end = line_start + end + 1
+        if not lines:
+            return None
+        ds = read_csv(
+            _io.BytesIO(head + b"".join(lines[: int(max_rows)])),
+            columns=columns,
+            units=units,
+            name=name if name is not None else os.fspath(path),
+            lsb_nT=lsb_nT,
+            warn=False,
+        )
+    except (OSError, MagcalError):
+        return None
+    return None if head_notes or ds.notes else ds
+
+
 def _arrow_table(pa, pacsv, data, header, layout, numeric):
     """The data lines ``data`` (a pyarrow buffer) read by pyarrow's CSV reader: the ``numeric`` columns as float64,
     the group and unused columns as text."""

@@ -1,0 +1,66 @@
+"""The first picture of a large file (issue 44, start fast): its preview's raw clouds, drawn while the whole file
+is read.
+
+:func:`magcal.data.io.read_csv_preview` reads a few thousand lines spread through the file; they are drawn as the
+raw clouds the workbench will draw (the same :class:`~magcal_workbench.scene.SceneView`, which the
+:class:`~magcal_workbench.app.Workbench` takes over and redraws in place), and the camera of a page that opens
+meanwhile frames them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magcal.data import io as mio
+
+from . import scene as scn
+
+
+def preview_model(dataset) -> scn.SceneModel:
+    """The scene of ``dataset`` before any fit: its raw clouds scaled by their median |B| (what the workbench's
+    scene shows of data without a reference field), every sample kept, no corrected cloud."""
+    field_nT = float(np.median(np.linalg.norm(dataset.readings_nT, axis=2)))
+    if dataset.reference_total_nT:
+        field_nT = float(dataset.reference_total_nT)
+    views = [
+        scn.SensorView(sensor=s, raw_nT=dataset.readings_nT[s], corrected_nT=None, residual_nT=None)
+        for s in range(dataset.n_sensors)
+    ]
+    return scn.SceneModel(
+        sensors=views,
+        n_sensors=dataset.n_sensors,
+        field_nT=field_nT,
+        kept=np.ones(dataset.n_samples, bool),
+        baseline_m=dataset.baseline_m,
+        show_corrected=False,
+    )
+
+
+def draw_preview(server, path, max_points: int = scn.MAX_POINTS):
+    """Draw the preview of the CSV ``path`` on ``server``'s scene.
+
+    Parameters
+    ----------
+    server : viser.ViserServer
+    path : str
+        The data file (a CSV below :data:`magcal.data.io.PREVIEW_MIN_BYTES` gets no preview: it is read whole
+        about as fast).
+    max_points : int
+        Most samples previewed (the workbench's ``--max-points``).
+
+    Returns
+    -------
+    tuple of (magcal_workbench.scene.SceneView, int) or None
+        The scene drawn and the number of samples in it; None when no preview was taken.
+    """
+    ds = mio.read_csv_preview(path, max_rows=max_points)
+    if ds is None:
+        return None
+    view = scn.SceneView(server, max_points=max_points)
+    view.update(preview_model(ds))
+    n_groups = ds.n_sensors
+    position, look_at = scn.camera_pose(n_groups, cross=n_groups > 1)
+    server.initial_camera.position = tuple(float(v) for v in position)
+    server.initial_camera.look_at = tuple(float(v) for v in look_at)
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+    return view, ds.n_samples

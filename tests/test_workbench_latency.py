@@ -1,0 +1,184 @@
+"""The workbench answers at once (issue 44), driven through the page's handles on a real (browserless) viser
+server: the fit's result is on the page before its held-out check, which shows ``pending...`` until it comes; a
+newer fit makes an older fit's held-out check stale (dropped unseen); a refit sends the corrected clouds, not the
+raw ones again; the |B| plot's envelope keeps every stretch's extremes; ``--timing`` logs named spans.
+
+No timed assertion here: the times are in ``benchmarks/page_latency.py``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from magcal_workbench import timing
+from magcal_workbench.pending import PENDING, Pending
+from magcal_workbench.plots import envelope_indices
+
+
+def _press(wb, button):
+    """A click, without waiting for the slow parts: returns once the job (the fit itself) has ended and the page
+    has shown what it handed on."""
+    button.value = True
+    deadline = time.monotonic() + 120
+    time.sleep(0.05)
+    while wb.worker.busy:
+        assert time.monotonic() < deadline, "the job did not end"
+        time.sleep(0.01)
+    wb.ui.wait()
+
+
+@pytest.fixture
+def gated_validation(monkeypatch):
+    """The held-out check waits until the test opens its gate (one gate per call, in call order)."""
+    from magcal.fitting import validation
+
+    real = validation.validate
+    gates: list[threading.Event] = []
+    calls: list[int] = []
+
+    def gated(*args, **kwargs):
+        gate = threading.Event()
+        gates.append(gate)
+        calls.append(len(gates))
+        assert gate.wait(120), "the test never opened the gate"
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(validation, "validate", gated)
+
+    def wait_for_calls(n):
+        deadline = time.monotonic() + 60
+        while len(gates) < n:
+            assert time.monotonic() < deadline, "the held-out check never started"
+            time.sleep(0.01)
+        return gates
+
+    return wait_for_calls
+
+
+def test_the_result_is_shown_before_the_held_out_check_which_is_pending_until_it_comes(bench, gated_validation):
+    wb = bench(store=False)
+    _press(wb, wb.panels.btn_run)
+    gates = gated_validation(1)  # the held-out check runs, and waits
+    rec = wb.ctrl.state.history[-1]
+    assert rec.step == "calibrate (ML)" and rec.held_out_rms_nT is None
+    # the result is on the page: the status's RMS, the message line, the history row marked pending
+    assert f"Total-field RMS: {rec.rms_nT:.4g} nT" in wb.panels.status.content
+    assert wb.ctrl.message.startswith("**calibrate (ML)**: RMS") and f"held-out RMS {PENDING}" in wb.ctrl.message
+    assert PENDING in wb.panels.history.content
+    assert not wb.worker.busy and wb.worker.pending.busy()  # the next click may start: the buttons are enabled
+    assert not wb.panels.btn_run.disabled
+    gates[0].set()
+    assert wb.worker.wait(120)  # waits for the slow parts too
+    assert rec.held_out_rms_nT is not None and rec.held_out_rms_nT > 0
+    assert PENDING not in wb.ctrl.message and f"held-out RMS {rec.held_out_rms_nT:.4g} nT" in wb.ctrl.message
+    assert PENDING not in wb.panels.history.content
+    assert f"| {rec.held_out_rms_nT:.4g} |" in wb.panels.history.content
+
+
+def test_a_newer_fit_makes_the_older_held_out_check_stale(bench, gated_validation):
+    wb = bench(store=False)
+    _press(wb, wb.panels.btn_run)
+    gates = gated_validation(1)
+    first = wb.ctrl.state.history[-1]
+    _press(wb, wb.panels.btn_refine)  # a new click while the first fit's check still runs
+    second = wb.ctrl.state.history[-1]
+    assert second is not first and second.step == "refine (ML)"
+    gates = gated_validation(2)
+    gates[0].set()  # the stale check ends first: nothing of it is published
+    deadline = time.monotonic() + 60
+    while wb.worker.pending.n_stale < 1:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    wb.ui.wait()
+    assert first.held_out_rms_nT is None
+    assert wb.ctrl.message.startswith("**refine (ML)**") and PENDING in wb.ctrl.message
+    gates[1].set()
+    assert wb.worker.wait(120)
+    assert first.held_out_rms_nT is None and second.held_out_rms_nT is not None
+    assert wb.ctrl.message.startswith("**refine (ML)**") and PENDING not in wb.ctrl.message
+
+
+def test_pending_parts_of_an_old_generation_do_not_run():
+    p = Pending()
+    ran: list[str] = []
+    old = p.next_generation()
+    p.next_generation()
+    p.start(old, "old", lambda current: ran.append("old"))
+    assert p.wait(10)
+    assert ran == [] and p.n_stale == 1 and not p.busy()
+    p.start(p.generation, "new", lambda current: ran.append("new") if current() else None)
+    assert p.wait(10) and ran == ["new"] and p.n_stale == 1
+
+
+def test_a_refit_sends_the_corrected_clouds_not_the_raw_ones_again(bench):
+    wb = bench(store=False)
+    wb.panels.btn_run.value = True
+    assert wb.worker.wait(120)
+    sv = wb.scene_view
+    raw = {k: np.array(h.points) for k, h in sv._clouds.items() if "raw" in k}
+    corrected = {k: len(h.points) for k, h in sv._clouds.items() if "raw" not in k}
+    assert raw and corrected
+    before = sv.n_points_sent
+    wb.ctrl.select(np.arange(10), "reject", what="ten samples")  # the fit changes a little
+    wb.panels.btn_refine.value = True
+    assert wb.worker.wait(120)
+    sent = sv.n_points_sent - before
+    assert 0 < sent <= sum(corrected.values())  # the corrected clouds moved; the raw ones were not sent again
+    for k, pts in raw.items():
+        assert np.array_equal(sv._clouds[k].points, pts)
+
+
+def test_no_figure_is_rebuilt_when_its_data_did_not_change(bench):
+    wb = bench(store=False)
+    cockpit, p = wb.cockpit, wb.panels
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    built, field, hist = cockpit.n_built, p.field_plot.figure, p.histogram_plot.figure
+    wb.ui.run(lambda: cockpit.draw(force=True))  # nothing changed: nothing built, nothing sent
+    assert cockpit.n_built == built and p.field_plot.figure is field and p.histogram_plot.figure is hist
+    wb.ctrl.select(np.arange(10), "reject", what="ten samples")  # the kept mask changed: every figure follows
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    assert cockpit.n_built == built + 3 and p.field_plot.figure is not field
+    assert cockpit.n_draws >= 3
+    built = cockpit.n_built
+    p.histogram_unit.value = "%" if p.histogram_unit.value == "nT" else "nT"  # only the histogram's input
+    wb.ui.run(lambda: cockpit.draw(force=True))
+    assert cockpit.n_built == built + 1 and p.histogram_plot.figure is not hist
+
+
+def test_the_envelope_keeps_every_extreme_and_its_size_bound():
+    rng = np.random.default_rng(4)
+    n = 200_000
+    values = 50_000 + rng.normal(scale=2.0, size=(3, n))
+    spikes = {(1, 12_345): 400.0, (2, 150_001): -300.0, (0, 199_998): 250.0}
+    for (row, i), v in spikes.items():
+        values[row, i] += v
+    idx = envelope_indices(values, 1500)
+    assert len(idx) <= 1500 and np.all(np.diff(idx) > 0) and idx[0] == 0 and idx[-1] == n - 1
+    for _, i in spikes:
+        assert i in idx  # each spike, up or down, in any row, is drawn
+    # the plot spans the record's whole range: its highest and lowest values are drawn
+    assert values[:, idx].max() == values.max() and values[:, idx].min() == values.min()
+    # a stride would have missed the spikes
+    stride = np.linspace(0, n - 1, 1500).astype(int)
+    assert not all(i in stride for _, i in spikes)
+    assert np.array_equal(envelope_indices(values[:, :1000], 1500), np.arange(1000))  # small: every sample
+
+
+def test_timing_spans_are_logged_only_when_asked(capsys):
+    timing.enable(False)
+    with timing.span("fit"):
+        pass
+    assert "magcal-timing" not in capsys.readouterr().err
+    timing.enable(True)
+    try:
+        with timing.span("fit"):
+            time.sleep(0.01)
+    finally:
+        timing.enable(False)
+    line = capsys.readouterr().err.strip()
+    name, start, seconds = line.split()[1:]
+    assert line.startswith("magcal-timing: fit ") and name == "fit" and float(seconds) >= 0.009
