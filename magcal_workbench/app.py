@@ -63,6 +63,7 @@ from .controller import Controller, error_markdown
 from .dataio import load_dataset
 from .defaults import DEFAULT_MAX_UPLOAD_MB
 from .downloads import Downloads
+from .events import Change
 from .evidence import Evidence
 from .exporting import Exporting
 from .gravitypage import GravityPage
@@ -301,7 +302,7 @@ class Workbench:
 
     def redraw(self) -> None:
         self.view.update_scene()
-        self.panels.refresh(("all", "data"))
+        self.panels.refresh(("all", Change.DATA))
 
     def say_after_load(self, text: str) -> None:
         """Say ``text`` (markdown, escaped) and keep what opening the session had to say."""
@@ -327,33 +328,33 @@ class Workbench:
 
         ctrl.on_change(changed)
 
-    def _changed(self, ctrl: Controller, kind: str) -> None:
+    def _changed(self, ctrl: Controller, kind: Change) -> None:
         if ctrl is not self.ctrl:
             return  # an old session still finishing
-        if kind == "progress":
+        if kind == Change.PROGRESS:
             now = time.perf_counter()
             if ctrl.progress is not None and (ctrl.progress[1] is not None or now - self._last_progress > 0.1):
                 self._last_progress = now  # a search reports thousands of iterations: show ten a second
                 self.panels.set_progress(*ctrl.progress)
             return
-        if kind in ("result", "view", "data"):
+        if kind in (Change.RESULT, Change.DATA):
             with timing.span("scene"):
-                if kind != "view":  # the gains first: a gain that changes redraws the scene (its callback) once
-                    self.panels.fit_view_to_data()
+                # the gains first: a gain that changes redraws the scene (its callback) once
+                self.panels.fit_view_to_data()
                 self.view.update_scene()  # nothing is sent again when the gains' redraw has drawn it
-        elif kind == "selection":
+        elif kind == Change.SELECTION:
             with timing.span("scene"):
                 self.view.recolor()
-        elif kind == "inspect":
+        elif kind == Change.INSPECT:
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
         self.gravity.changed(kind)
-        if kind in ("result", "data"):
+        if kind in (Change.RESULT, Change.DATA):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
-        if kind in ("result", "data", "diagnosis") and self.maps.choice != "none":
+        if kind in (Change.RESULT, Change.DATA, Change.DIAGNOSIS) and self.maps.choice != "none":
             with timing.span("maps"):
                 self.view.refresh_maps()
-        with timing.span("panels" if kind == "message" else "plots"):  # the texts, the cockpit's plotly figures
+        with timing.span("panels" if kind == Change.MESSAGE else "plots"):  # the texts, the cockpit's plotly figures
             self.panels.refresh((kind,))
 
     def _busy_changed(self, busy: bool, name) -> None:

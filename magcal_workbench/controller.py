@@ -40,6 +40,7 @@ from magcal.model import plugins
 from magcal.model.terms import EFFECTS, Model, unknown_effect_message
 
 from . import timing
+from .events import Change
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
 from .pending import PENDING
@@ -123,7 +124,7 @@ class Controller:
         self.save_problem: str | None = None
         self._saved_at: str | None = None  # when the session was last saved, HH:MM:SS
         self.progress: tuple[str, float | None] | None = None
-        self._listeners: list[Callable[[str], None]] = []
+        self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
         self._job_pin = threading.local()  # the mask and model of the job running in this thread
         #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
@@ -155,13 +156,13 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     # notification
     # ------------------------------------------------------------------------------------------------------
-    def on_change(self, func: Callable[[str], None]) -> None:
-        """``func(kind)`` after a change; kind is ``result``, ``selection``, ``model``, ``diagnosis``,
-        ``inspect``, ``progress``, ``message``, ``view``, ``effects`` (the catalogue grew), ``vector`` (the vector
-        fit or its reference changed) or ``saved`` (an autosave failed, or succeeded again: :attr:`save_problem`)."""
+    def on_change(self, func: Callable[[Change], None]) -> None:
+        """``func(kind)`` after a change; kind is a :class:`magcal_workbench.events.Change` (``saved``: an autosave
+        failed, or succeeded again, :attr:`save_problem`)."""
         self._listeners.append(func)
 
-    def _emit(self, kind: str) -> None:
+    def _emit(self, kind: Change) -> None:
+        kind = Change(kind)  # a kind no handler knows is refused here, where it is sent (ValueError)
         for func in list(self._listeners):
             try:
                 func(kind)
@@ -172,7 +173,7 @@ class Controller:
         """Show ``text`` (markdown) as the page's message; untrusted parts must already be escaped
         (:func:`magcal_workbench.markup.safe_text`)."""
         self.message = text
-        self._emit("message")
+        self._emit(Change.MESSAGE)
 
     #: Session settings :meth:`configure` changes (attributes of :class:`SessionState`).
     SETTINGS = ("method", "reference_nT", "fit_reference", "robust", "sensor")
@@ -188,7 +189,7 @@ class Controller:
             setattr(self.state, key, value)
         self.state.touch()
         self.autosave()
-        self._emit("settings")
+        self._emit(Change.SETTINGS)
 
     def _check_settings(self, settings: dict) -> None:
         """Refuse a setting the page could not have sent (a value comes from a browser: check it)."""
@@ -390,7 +391,7 @@ class Controller:
             self._quality = None  # the still-stretch test uses the noise
             self._estimate_noise(self.fit_result)
         self.autosave()
-        self._emit("result")
+        self._emit(Change.RESULT)
         floor = self.floor_nT()
         what = f"noise given: {fmt_nT(value)} per axis" if value else "noise estimated again"
         self.say(f"{what}; {self.noise_text()}; total-field floor {fmt_nT(floor)}")
@@ -437,7 +438,7 @@ class Controller:
         finally:
             if report:
                 self.progress = None
-                self._emit("progress")
+                self._emit(Change.PROGRESS)
         return float(v.held_out_rms_nT), None
 
     def model_terms(self) -> list[dict]:
@@ -495,12 +496,12 @@ class Controller:
 
     def _job_failed(self, exc: BaseException) -> None:
         self.progress = None
-        self._emit("progress")
+        self._emit(Change.PROGRESS)
         self.say(error_markdown(exc))
 
     def _report_progress(self, message: str, fraction=None) -> None:
         self.progress = (message, fraction)
-        self._emit("progress")
+        self._emit(Change.PROGRESS)
 
     def _residuals_of(self, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
         # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
@@ -567,8 +568,8 @@ class Controller:
             self.held_out_pending.add(id(rec))
             self.say(text + f"; held-out RMS {PENDING}" + conv + tail)
         with timing.span("publish"):
-            self._emit("result")  # the refit is shown first: the held-out check below is a second, slower stage
-            self._emit("diagnosis")  # a new fit: the old diagnosis no longer applies (or was just cleared)
+            self._emit(Change.RESULT)  # the refit is shown first: the held-out check below is a second, slower stage
+            self._emit(Change.DIAGNOSIS)  # a new fit: the old diagnosis no longer applies (or was just cleared)
         kept = self.kept.copy()
 
         def slow(still_current: Callable[[], bool] = lambda: True) -> None:
@@ -583,7 +584,7 @@ class Controller:
                     rec.held_out_rms_nT = held_out
                     self.state.touch()
                 self.held_out_pending.discard(id(rec))
-            self._emit("model")  # the history table and the RMS plot gain the held-out figure (or lose "pending")
+            self._emit(Change.MODEL)  # the history table and the RMS plot gain the held-out figure (or lose "pending")
             with timing.span("autosave"):
                 self.autosave()
             final = text + (f"; held-out RMS {fmt_nT(held_out)} (blocks)" if held_out is not None else "") + conv
@@ -701,7 +702,7 @@ class Controller:
         self.diagnosis = None
         self._set_calibration(result.calibration, None if result.fit is None else result.fit.residuals_all_nT)
         self.progress = None
-        self._emit("progress")
+        self._emit(Change.PROGRESS)
         name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
         return self._record(name, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
 
@@ -773,7 +774,7 @@ class Controller:
                 self.state.effects_files.append(full)
             self.state.touch()
         self.autosave()
-        self._emit("effects")
+        self._emit(Change.EFFECTS)
         listed = ", ".join(safe_code(n) for n in names)
         self.say(f"loaded {listed} from {safe_code(full)}; tick it in the Model tab or let Diagnose rank it")
         return names
@@ -814,8 +815,8 @@ class Controller:
                 restored = "; the saved calibration is restored"
             except Exception as exc:  # still not restorable: the session goes on without it
                 restored = f"; the saved calibration could not be restored ({safe_text(str(exc), 300)})"
-        self._emit("effects")
-        self._emit("result")
+        self._emit(Change.EFFECTS)
+        self._emit(Change.RESULT)
         text = f"loaded {', '.join(safe_code(n) for n in names) or 'no effect'} from the session's effects files"
         text += restored + "".join(f"  \n**Note:** {safe_text(p, MESSAGE_LEN)}" for p in problems)
         self.say(text)
@@ -842,7 +843,7 @@ class Controller:
         changed = self.state.add_effect(name) if on else self.state.remove_effect(name)
         if changed:
             self.autosave()
-            self._emit("model")
+            self._emit(Change.MODEL)
         return changed
 
     def vector_loop(self) -> bool:
@@ -865,8 +866,8 @@ class Controller:
             )
         self.diagnosis = d
         self.progress = None
-        self._emit("progress")
-        self._emit("diagnosis")
+        self._emit(Change.PROGRESS)
+        self._emit(Change.DIAGNOSIS)
         top = d.candidates[0] if getattr(d, "candidates", None) else None
         extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
         self.say(
@@ -887,7 +888,7 @@ class Controller:
         label = self._check_label(label)
         if not self.state.add_effect(label):
             raise MagcalError(f"{label} is already in the model")
-        self._emit("model")
+        self._emit(Change.MODEL)
         return self.step_refine(label=f"add {label}")
 
     # ------------------------------------------------------------------------------------------------------
@@ -937,12 +938,12 @@ class Controller:
     def _selection_changed(self, text: str) -> None:
         self.state.touch()
         self.autosave()
-        self._emit("selection")
+        self._emit(Change.SELECTION)
         self.say(f"{text}; {self.state.selection.n_rejected} of {self.dataset.n_samples} rejected")
 
     def inspect(self, index: int | None) -> None:
         self.inspected = None if index is None else int(index)
-        self._emit("inspect")
+        self._emit(Change.INSPECT)
 
     # ------------------------------------------------------------------------------------------------------
     # files
@@ -993,13 +994,13 @@ class Controller:
             if problem != self.save_problem:
                 self.save_problem = problem
                 print(f"magcal-workbench: autosave of session {self.session_id} failed: {exc}", file=sys.stderr)
-                self._emit("saved")
+                self._emit(Change.SAVED)
             return
         self._saved_at = time.strftime("%H:%M:%S")
         if self.save_problem is not None:
             self.save_problem = None
             print(f"magcal-workbench: session {self.session_id} saved again", file=sys.stderr)
-            self._emit("saved")
+            self._emit(Change.SAVED)
 
 
 def is_disk_full(exc: BaseException) -> bool:

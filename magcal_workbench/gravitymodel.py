@@ -19,6 +19,7 @@ from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data.accelerometer import accelerometer, has_accelerometer
 from magcal.fitting.gravity import HEADING_MAX_PITCH_DEG, fit_gravity, separate_calibration
 
+from .events import Change
 from .markup import safe_text
 
 #: Sectors of the compass rose (deg each).
@@ -80,13 +81,13 @@ class GravityModel:
             heading_sep = sep.heading(ds) if sep is not None else None
         finally:
             ctrl.progress = None
-            ctrl._emit("progress")
+            ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.result, self.separate = result, sep
             self.heading, self.heading_separate = heading, heading_sep
             self.still = result.still.mask & kept
             self.accel_m_s2 = result.calibration.accelerometer.correct(accelerometer(ds).m_s2)
-        ctrl._emit("gravity")
+        ctrl._emit(Change.GRAVITY)
         s = result.sensors[0]
         text = (
             f"**gravity fit (beside the accelerometer)** ({time.perf_counter() - t0:.2f} s): mounting "

@@ -18,6 +18,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from .events import Change
 from .gravitymodel import GravityModel, accel_cloud, dip_series, rose, table_markdown
 from .scene import GROUP_DZ, sphere_mesh
 
@@ -170,11 +171,11 @@ class GravityPage:
         self.draw_cloud()
 
     # --- following the data --------------------------------------------------------------------------------
-    def changed(self, kind: str) -> None:
+    def changed(self, kind: Change) -> None:
         """The controller's event (on the page's thread): a new record forgets the fit; a fit redraws."""
-        if kind == "data":
+        if kind == Change.DATA:
             self.model.forget()
-        if kind in ("data", "gravity", "selection"):
+        if kind in (Change.DATA, Change.GRAVITY, Change.SELECTION):
             self.refresh()
             self.draw_cloud()
 

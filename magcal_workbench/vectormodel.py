@@ -28,6 +28,7 @@ from magcal.diagnosis.vector import diagnose_vector, vector_evidence
 from magcal.fitting.vector import fit_vector
 from magcal.model.terms import EFFECTS
 
+from .events import Change
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
 from .state import VectorStep, effect_name, pack_mask, unpack_mask
@@ -360,7 +361,7 @@ class VectorModel:
             evidence = vector_evidence(ds, ref, result.calibration)
         finally:
             ctrl.progress = None
-            ctrl._emit("progress")
+            ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.result = result
             self.world_nT = np.asarray(world, dtype=float)
@@ -393,7 +394,7 @@ class VectorModel:
             ctrl.state.touch()
         ctrl.autosave()
         self._emit()
-        ctrl._emit("diagnosis")  # the old diagnosis no longer applies
+        ctrl._emit(Change.DIAGNOSIS)  # the old diagnosis no longer applies
         mount = "; ".join(row.mounting)
         model = ", ".join(safe_code(e) for e in effects) or "base terms only"
         text = (
@@ -456,13 +457,13 @@ class VectorModel:
                 )
         finally:
             ctrl.progress = None
-            ctrl._emit("progress")
+            ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.diagnosis = d
             floor = d.noise.get("world_floor_nT")
             self.floor_nT = float(floor) if floor is not None and np.isfinite(floor) else self.floor_nT
-        ctrl._emit("diagnosis")
-        ctrl._emit("vector")  # the history plot draws the floor found
+        ctrl._emit(Change.DIAGNOSIS)
+        ctrl._emit(Change.VECTOR)  # the history plot draws the floor found
         best = d.explained_by[0] if d.explained_by else None
         extra = f"; recommended {safe_code(best)}" if best else ""
         ctrl.say(
@@ -589,7 +590,7 @@ class VectorModel:
         }
 
     def _emit(self) -> None:
-        self.ctrl._emit("vector")
+        self.ctrl._emit(Change.VECTOR)
 
     # --- what the page shows ---------------------------------------------------------------------------------
     def world_residual_nT(self) -> np.ndarray | None:

@@ -23,6 +23,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import wxyz_rotation
 
+from .events import Change
 from .timewindow import sample_times
 
 #: Rotation NED -> scene (z up): north -> +x, east -> -y, down -> -z (180 deg about north; a proper rotation).
@@ -271,9 +272,9 @@ class VehicleView:
             client.camera.look_at = tuple(look)
 
     # --- drawing ----------------------------------------------------------------------------------------------
-    def changed(self, kind: str) -> None:
+    def changed(self, kind: Change) -> None:
         """The controller changed (``result``, ``data``, ``vector``, ``settings``...): redraw when shown."""
-        if self.enabled and kind in ("result", "data", "vector", "settings", "view"):
+        if self.enabled and kind in (Change.RESULT, Change.DATA, Change.VECTOR, Change.SETTINGS):
             self.redraw()
             self._panel.refresh_vehicle()
 

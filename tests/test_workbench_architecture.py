@@ -126,3 +126,38 @@ def test_background_threads_do_not_touch_the_panels(name):
     """Their updates go through the page's one thread (magcal_workbench.uiqueue)."""
     text = MODULES[name].read_text(encoding="utf-8")
     assert ".refresh_live(" not in text and ".set_busy(" not in text and ".set_progress(" not in text
+
+
+#: How many times the workbench's parts reach through the whole workbench (``wb.`` or ``self.wb.``) rather than a
+#: narrow interface handed to them (issue 43 item 5). A ratchet: lower it when a part is given what it needs; it
+#: may not grow. 235 on 2026-11-29 (about 190 when the issue was filed).
+WB_REACHES_AT_MOST = 235
+
+
+def _wb_reaches() -> dict[str, int]:
+    counts = {}
+    for path in sorted(PACKAGE.glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        n = sum(
+            1
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute)
+            and (
+                (isinstance(node.value, ast.Name) and node.value.id == "wb")
+                or (isinstance(node.value, ast.Attribute) and node.value.attr == "wb")
+            )
+        )
+        if n:
+            counts[path.name] = n
+    return counts
+
+
+def test_the_parts_reach_through_the_workbench_no_more_than_before():
+    counts = _wb_reaches()
+    total = sum(counts.values())
+    worst = sorted(counts.items(), key=lambda kv: -kv[1])[:5]
+    assert total <= WB_REACHES_AT_MOST, (
+        f"{total} reaches through the workbench (wb.X), at most {WB_REACHES_AT_MOST}: hand the part what it needs "
+        f"instead (most: {worst})"
+    )
+    assert counts, "the count found no reach at all: the reader is broken"
