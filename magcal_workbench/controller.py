@@ -44,6 +44,7 @@ from .events import Change
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
 from .pending import PENDING
+from .scene import record_field_nT
 from .session import SessionStore
 from .sessionfile import LABEL
 from .state import METHODS, SessionState, StepRecord
@@ -233,11 +234,7 @@ class Controller:
             return float(self.calibration.reference_total_nT)
         if self.state.reference_nT:
             return float(self.state.reference_nT)
-        if self.dataset.reference_total_nT:
-            return float(self.dataset.reference_total_nT)
-        if self.dataset.ref_total_nT is not None:
-            return float(np.median(self.dataset.ref_total_nT))
-        return float(np.median(np.linalg.norm(self.dataset.readings_nT, axis=2)))
+        return record_field_nT(self.dataset)
 
     def fit_dataset(self):
         """The dataset the engine sees: without its reference when the user asks to fit the magnitude."""

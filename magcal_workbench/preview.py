@@ -17,11 +17,9 @@ from . import scene as scn
 
 
 def preview_model(dataset) -> scn.SceneModel:
-    """The scene of ``dataset`` before any fit: its raw clouds scaled by their median |B| (what the workbench's
-    scene shows of data without a reference field), every sample kept, no corrected cloud."""
-    field_nT = float(np.median(np.linalg.norm(dataset.readings_nT, axis=2)))
-    if dataset.reference_total_nT:
-        field_nT = float(dataset.reference_total_nT)
+    """The scene of ``dataset`` before any fit: its raw clouds scaled by the record's field (what the workbench's
+    scene shows before a fit), every sample kept, no corrected cloud."""
+    field_nT = scn.record_field_nT(dataset)
     views = [
         scn.SensorView(sensor=s, raw_nT=dataset.readings_nT[s], corrected_nT=None, residual_nT=None)
         for s in range(dataset.n_sensors)

@@ -64,6 +64,16 @@ _CMAP_RGB = np.array([[33, 102, 172], [103, 169, 207], [235, 235, 235], [239, 13
 
 
 # --- colours ------------------------------------------------------------------------------------------------
+def record_field_nT(dataset) -> float:
+    """The field a record's scene is scaled by before any calibration or user's reference (nT): the file's
+    reference total field, else the median of its reference channel, else the median |raw| of every sensor."""
+    if dataset.reference_total_nT:
+        return float(dataset.reference_total_nT)
+    if dataset.ref_total_nT is not None:
+        return float(np.median(dataset.ref_total_nT))
+    return float(np.median(np.linalg.norm(dataset.readings_nT, axis=2)))
+
+
 def residual_colors(residual_nT, limit_nT, kept=None) -> np.ndarray:
     """RGB uint8 (N, 3) for residuals on a diverging map clipped at +-``limit_nT``; rejected samples magenta.
 

@@ -20,6 +20,7 @@ import sys
 from . import timing
 from .defaults import DEFAULT_MAX_UPLOAD_MB, MAX_POINTS, MAX_STORE_BYTES
 from .guard import Gate, guarded_viser_server, is_loopback, page_url
+from .markup import safe_code
 
 
 def host_warning(host: str) -> str | None:
@@ -147,10 +148,11 @@ class Early:
         self.scene_view = None
 
     def data_name(self) -> str:
-        """What the status line calls the data: the file's base name, the lesson, or the demo."""
+        """What the status line calls the data (markdown): the file's base name or the lesson's, escaped as code
+        (a file name is untrusted text), or the demo."""
         if self.args.lesson:
-            return f"the lesson {self.args.lesson}"
-        return os.path.basename(self.args.file) if self.args.file else "the demo"
+            return f"the lesson {safe_code(self.args.lesson)}"
+        return safe_code(os.path.basename(self.args.file)) if self.args.file else "the demo"
 
     @property
     def url(self) -> str:
@@ -184,6 +186,9 @@ class Early:
 
 
 def _regular_file(path: str) -> bool:
+    """Whether ``path`` is a readable regular file: a yes/no before the address is printed, without importing
+    magcal (``magcal.core.files.check_regular_file``, which words the refusal, costs the engine's import, ~0.3 s);
+    :func:`magcal_workbench.app.main` reports a no with that message."""
     try:
         return stat.S_ISREG(os.stat(path).st_mode) and os.access(path, os.R_OK)
     except OSError:

@@ -60,7 +60,7 @@ def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_s
     wb = None
     try:
         assert early.token and early.url.endswith(f"?token={early.token}")
-        assert "loading big.csv..." in early._status.content
+        assert "loading `big.csv`..." in early._status.content
         early.show_preview()
         view = early.scene_view
         assert view is not None and "a preview of 200 samples" in early._status.content
@@ -101,3 +101,15 @@ def test_no_preview_for_a_small_file_and_a_failed_start_stops_the_early_server(t
 def test_a_file_that_cannot_be_read_gets_no_early_server(tmp_path):
     assert startup.begin([str(tmp_path / "missing.csv"), "--port", "0"]) is None  # app.main says why
     assert startup.begin([str(_csv(tmp_path)), "--port", "0", "--max-points", "0"]) is None
+
+
+def test_the_loading_line_shows_a_file_name_as_text_not_markup(tmp_path):
+    """A file name is untrusted text: the status line quotes it as code (no markup, no HTML, no backtick that
+    would end the span)."""
+    hostile = tmp_path / "<img src=x onerror=alert(1)>`*b*`[l](javascript:x).csv"
+    hostile.write_bytes(_csv(tmp_path).read_bytes())
+    early = startup.begin([str(hostile), "--port", "0", "--no-session"])
+    try:
+        assert early._status.content == "**loading `<img src=x onerror=alert(1)>'*b*'[l](javascript:x).csv`...**"
+    finally:
+        early.stop()
