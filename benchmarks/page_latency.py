@@ -7,7 +7,8 @@ headless Chromium (software WebGL) driven by playwright, on simulated four-senso
 For each record size it times, from the click (or the launch) to what the page shows:
 
 * launch -> address printed, launch -> page with the Total-field RMS, launch -> first picture (the scene's
-  points drawn: the page has received the point clouds and painted two frames since);
+  points drawn: the page has received the point clouds and painted two frames since), launch -> whole page (the
+  workbench built, the Calibrate tab's two plotly figures drawn, and the first picture);
 * Run -> the new ``calibrate (ML)`` message line; Exclude range -> the refit's line; Diagnose -> the verdict's
   line; Add (the top candidate) -> the refit's line; and, for each, until the slow parts (held-out RMS) are shown.
 
@@ -155,10 +156,16 @@ RMS_SEEN_JS = """(() => {
 })();"""
 
 
+#: The Calibrate tab's figures (|B| against time, the error histogram) drawn by plotly: each has its axes' layer.
+PLOTS_DRAWN_JS = """() => [...document.querySelectorAll('.js-plotly-plot')].filter(
+  p => p.querySelector('.main-svg .cartesianlayer .xy')).length >= 2"""
+
+
 def open_page(browser, server: Server) -> tuple:
-    """Open the page as soon as the address is printed; seconds from the launch to the first picture (the raw
-    clouds painted: the workbench's scene, or a large file's preview, which the status line announces) and to
-    the page with the Total-field RMS (the workbench built)."""
+    """Open the page as soon as the address is printed; seconds from the launch to the page with the
+    Total-field RMS (the status line, sent before the tabs are built), to the first picture (the raw clouds
+    painted: the workbench's scene, or a large file's preview, which the status line announces) and to the whole
+    page (the workbench built, the Calibrate tab's figures drawn, the clouds painted)."""
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.add_init_script(RMS_SEEN_JS)
     page.goto(server.url, wait_until="domcontentloaded")
@@ -184,7 +191,10 @@ def open_page(browser, server: Server) -> tuple:
     page.wait_for_function(
         "() => !/loading [^\\n]*\\.\\.\\./.test(document.body.innerText)", timeout=600_000, polling=50
     )
-    return page, t_rms, t_pic
+    # the whole page: built (the line above gone), the Calibrate tab's two figures drawn, the clouds painted
+    page.wait_for_function(PLOTS_DRAWN_JS, timeout=600_000, polling=20)
+    t_whole = max(time.perf_counter() - server.t0, t_pic)
+    return page, t_rms, t_pic, t_whole
 
 
 def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
@@ -192,7 +202,7 @@ def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
     out: dict[str, float] = {"address printed": server.t_url}
     page = None
     try:
-        page, out["first page with the RMS"], out["first picture"] = open_page(browser, server)
+        page, out["first page with the RMS"], out["first picture"], out["whole page"] = open_page(browser, server)
         print(f"  launch: {out}", file=sys.stderr)
         if not clicks:
             return out

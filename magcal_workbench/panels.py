@@ -612,7 +612,8 @@ class Panels:
         #: What failed and stays shown until resolved (:func:`alarm_markdown`): a failed autosave, a recording
         #: stopped by a full disk.
         self.alarm = gui.add_markdown("", visible=False)
-        self.status = gui.add_markdown("")
+        # the status (Total-field RMS, floor, model) first: the page shows it while the tabs are built (issue 44)
+        self.status = gui.add_markdown(status_markdown(ctrl()))
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)

@@ -114,6 +114,25 @@ def test_pending_parts_of_an_old_generation_do_not_run():
     assert p.wait(10) and ran == ["new"] and p.n_stale == 1
 
 
+def test_the_status_with_the_rms_is_on_the_page_before_the_tabs_are_built(bench, monkeypatch):
+    """The launch shows the Total-field RMS first (issue 44): the status line is sent with its text when it is
+    made, before the tabs' widgets, the scene and the figures, which follow."""
+    from magcal_workbench import panels as pn
+
+    seen = []
+    real = pn.Panels._build_calibrate
+
+    def spy(self, gui):
+        seen.append(self.status.content)  # what the page has been sent when the first tab is built
+        return real(self, gui)
+
+    monkeypatch.setattr(pn.Panels, "_build_calibrate", spy)
+    wb = bench(store=False)
+    assert len(seen) == 1
+    assert seen[0] == pn.status_markdown(wb.ctrl)
+    assert "Total-field RMS" in seen[0] and "Rejected: 0 of 300 samples" in seen[0]
+
+
 def test_a_refit_sends_the_corrected_clouds_not_the_raw_ones_again(bench):
     wb = bench(store=False)
     wb.panels.btn_run.value = True
