@@ -301,6 +301,7 @@ class Workbench:
         self.vehicle.redraw()
 
     def redraw(self) -> None:
+        self.panels.fit_view_to_data()  # the gains first: the scene is then drawn once, at them
         self.view.update_scene()
         self.panels.refresh(("all", Change.DATA))
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from magcal.core import conventions
 
+from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
 from .lessons import lesson_slugs, list_lessons
@@ -511,40 +512,28 @@ def rms_plot_data(ctrl):
     return x, y, f, held
 
 
-#: Largest default gains of the View tab (those of data near a clean sensor in the Earth's field).
-DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX = 10.0, 1000.0
-#: Drawn radial deviation the default gains aim for: the raw ellipsoid's typical one, and the residual RMS...
-DRAWN_DISTORTION, DRAWN_RESIDUAL = 0.15, 0.05
-#: ...and the raw cloud's largest one (its 99th percentile), so that it stays within its place in the scene.
-DRAWN_DISTORTION_MAX = 0.3
+#: Largest default residual gain of the View tab (that of a fit near a clean sensor's noise).
+RESIDUAL_GAIN_MAX = 1000.0
+#: Drawn radial deviation the default residual gain aims for: the residual RMS.
+DRAWN_RESIDUAL = 0.05
 
 
 def view_gains(ctrl) -> tuple[float, float]:
-    """Default (distortion, residual) gains of the View tab for these data: the raw cloud's typical departure from
-    the field's sphere drawn at about :data:`DRAWN_DISTORTION` of the radius, the residual RMS at about
-    :data:`DRAWN_RESIDUAL`, neither above the defaults for clean data (:data:`DISTORTION_GAIN_MAX`,
-    :data:`RESIDUAL_GAIN_MAX`). A MEMS part with a hard-iron offset of the field's size, or residuals of hundreds
-    of nT, would otherwise be drawn far outside the screen."""
+    """Default (distortion, residual) gains of the View tab for these data: the distortion gain of the kept
+    samples' raw clouds (:func:`magcal_workbench.scene.distortion_gain`), the residual RMS drawn at about
+    :data:`DRAWN_RESIDUAL` of the radius, not above :data:`RESIDUAL_GAIN_MAX`. Residuals of hundreds of nT would
+    otherwise be drawn far outside the screen."""
     F = float(ctrl.field_nT)
     if not (np.isfinite(F) and F > 0):  # an all-zero file: nothing to scale by
-        return DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX
-    k = ctrl.kept
-    raw = np.linalg.norm(ctrl.dataset.readings_nT[:, k], axis=2) / F
-    depart = np.abs(raw - 1.0)
-    typical, largest = (float(np.median(depart)), float(np.percentile(depart, 99))) if raw.size else (0.0, 0.0)
-    # below 1 the raw cloud is drawn closer to the sphere than it is (a hard iron above the field)
-    distortion = (
-        DISTORTION_GAIN_MAX
-        if typical <= 0
-        else float(np.clip(min(DRAWN_DISTORTION / typical, DRAWN_DISTORTION_MAX / largest), 0.1, DISTORTION_GAIN_MAX))
-    )
+        return scn.DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX
+    distortion = scn.distortion_gain(ctrl.dataset.readings_nT[:, ctrl.kept], F)
     rms = ctrl.residual_rms_nT()
     residual = (
         RESIDUAL_GAIN_MAX
         if not np.isfinite(rms) or rms <= 0
         else float(np.clip(DRAWN_RESIDUAL * F / rms, 1.0, RESIDUAL_GAIN_MAX))
     )
-    return float(round(distortion, 1) if distortion < 1 else round(distortion)), float(round(residual))
+    return distortion, float(round(residual))
 
 
 #: The Units choices of an upload (the first keeps the file's own ``# units:`` line).

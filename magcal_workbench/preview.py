@@ -1,5 +1,5 @@
-"""The first picture of a large file (issue 44, start fast): its preview's raw clouds, drawn while the whole file
-is read.
+"""The first picture of a file (issue 44, start fast): its preview's raw clouds, drawn while the engine is
+imported and the whole file read.
 
 :func:`magcal.data.io.read_csv_preview` reads a few thousand lines spread through the file; they are drawn as the
 raw clouds the workbench will draw (the same :class:`~magcal_workbench.scene.SceneView`, which the
@@ -31,6 +31,10 @@ def preview_model(dataset) -> scn.SceneModel:
         kept=np.ones(dataset.n_samples, bool),
         baseline_m=dataset.baseline_m,
         show_corrected=False,
+        # the gain the workbench will choose: a preview of the whole record is then its scene, sent once
+        distortion_gain=scn.distortion_gain(dataset.readings_nT, field_nT)
+        if np.isfinite(field_nT) and field_nT > 0
+        else scn.DISTORTION_GAIN_MAX,
     )
 
 
@@ -41,8 +45,9 @@ def draw_preview(server, path, max_points: int = scn.MAX_POINTS):
     ----------
     server : viser.ViserServer
     path : str
-        The data file (a CSV below :data:`magcal.data.io.PREVIEW_MIN_BYTES` gets no preview: it is read whole
-        about as fast).
+        The data file. Every CSV is previewed, a small one too: the preview needs only the reader and the scene,
+        so its picture comes before the engine's other parts are imported (about a second); a file of at most
+        ``max_points`` lines is previewed whole, and the workbench then sends none of its points again.
     max_points : int
         Most samples previewed (the workbench's ``--max-points``).
 
@@ -51,7 +56,7 @@ def draw_preview(server, path, max_points: int = scn.MAX_POINTS):
     tuple of (magcal_workbench.scene.SceneView, int) or None
         The scene drawn and the number of samples in it; None when no preview was taken.
     """
-    ds = mio.read_csv_preview(path, max_rows=max_points)
+    ds = mio.read_csv_preview(path, max_rows=max_points, min_bytes=0)  # any size: see ``path`` above
     if ds is None:
         return None
     view = scn.SceneView(server, max_points=max_points)

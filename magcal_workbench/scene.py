@@ -156,6 +156,47 @@ def residual_radius_points(corrected_scaled, residual_nT, field_nT, gain: float)
     return u * (1.0 + gain * r / float(field_nT))[:, None]
 
 
+#: Largest default distortion gain of the View tab (that of data near a clean sensor in the Earth's field).
+DISTORTION_GAIN_MAX = 10.0
+#: Drawn radial departure the default distortion gain aims for: the raw cloud's typical one...
+DRAWN_DISTORTION = 0.15
+#: ...and its largest one (the 99th percentile), so that the cloud stays within its place in the scene.
+DRAWN_DISTORTION_MAX = 0.3
+
+
+def distortion_gain(readings_nT, field_nT: float) -> float:
+    """The default distortion gain for raw clouds: their typical departure from the field's sphere drawn at about
+    :data:`DRAWN_DISTORTION` of the radius (the largest at most :data:`DRAWN_DISTORTION_MAX`), not above
+    :data:`DISTORTION_GAIN_MAX` for clean data.
+
+    The View tab's default (:func:`magcal_workbench.panels.view_gains`, over the kept samples) and the launch's
+    preview (:mod:`magcal_workbench.preview`) both draw with it, so a preview of the whole record is the scene the
+    workbench then shows. A MEMS part with a hard-iron offset of the field's size would otherwise be drawn far
+    outside the screen; below 1 the cloud is drawn closer to the sphere than it is.
+
+    Parameters
+    ----------
+    readings_nT : array_like, shape (..., 3)
+        Raw readings, nT.
+    field_nT : float
+        The field the clouds are scaled by, nT (positive).
+
+    Returns
+    -------
+    float
+        The gain, rounded to 0.1 below 1 and to a whole number above.
+    """
+    depart = np.abs(np.linalg.norm(np.asarray(readings_nT, dtype=float), axis=-1) / float(field_nT) - 1.0).ravel()
+    depart = depart[np.isfinite(depart)]
+    typical, largest = (float(np.median(depart)), float(np.percentile(depart, 99))) if depart.size else (0.0, 0.0)
+    gain = (
+        DISTORTION_GAIN_MAX
+        if typical <= 0
+        else float(np.clip(min(DRAWN_DISTORTION / typical, DRAWN_DISTORTION_MAX / largest), 0.1, DISTORTION_GAIN_MAX))
+    )
+    return float(round(gain, 1) if gain < 1 else round(gain))
+
+
 def ellipsoid_mesh(cinv, bias_nT, field_nT, gain: float = 1.0, subdivisions: int = 3):
     """Vertices and faces of the fitted ellipsoid in scaled raw space: ``(b + C F u)/F`` over an icosphere.
 

@@ -3,7 +3,7 @@ printed, saying ``loading FILE...``, before the engine's heavy parts are importe
 
 ``magcal-workbench`` (:mod:`magcal_workbench._launch`) calls :func:`begin` first: it imports only viser and the
 handshake guard, starts the server with the token the page's address will carry, and prints that address. A
-large CSV is then previewed (:meth:`Early.show_preview`: a few thousand lines spread through the file,
+CSV is then previewed (:meth:`Early.show_preview`: a few thousand lines spread through the file,
 :func:`magcal.data.io.read_csv_preview`, drawn as the raw clouds) while the rest is read; the
 :class:`~magcal_workbench.app.Workbench` is then built on the same server (:func:`magcal_workbench.app.main` with
 ``early``), draws its scene over the preview, and the status line goes.
@@ -164,8 +164,7 @@ class Early:
         self._status.content = text
 
     def show_preview(self) -> None:
-        """Draw a large CSV's preview as the raw clouds (:mod:`magcal_workbench.preview`); nothing for a small
-        file, a lesson, the demo or a file the preview cannot read (the whole read reports its problems)."""
+        """Draw a CSV's preview as the raw clouds (:mod:`magcal_workbench.preview`); nothing for a lesson, the demo or a file the preview cannot read (the whole read reports its problems)."""
         if not self.args.file or self.args.lesson:
             return
         from .preview import draw_preview  # the engine's reader and the scene: imported after the address

@@ -527,3 +527,29 @@ def test_autosaves_from_many_threads_leave_the_newest_state(tmp_path, racy):
     fresh = SessionState(4000, 1)  # a new state of the same session (start afresh) is saved from version 0
     store.save(sid, fresh)
     assert store.load(sid).selection.n_rejected == 0
+
+
+@pytest.mark.parametrize(
+    ("departure", "gain"),
+    [
+        (0.0, 10.0),  # on the sphere: the largest default
+        (0.001, 10.0),  # a clean sensor: capped at the default
+        (0.03, 5.0),  # 0.15 / 0.03
+        (0.5, 0.3),  # a hard iron half the field: drawn closer to the sphere than it is, 0.15 / 0.5
+        (2.0, 0.1),  # far beyond the field: the floor
+    ],
+)
+def test_the_distortion_gain_draws_the_typical_departure_at_a_set_share_of_the_radius(departure, gain):
+    """scene.distortion_gain (the View tab's default and the launch preview's): raw readings on a sphere of radius
+    F (1 + d) depart by d from the field's sphere; the gain draws that at 0.15 of the radius, within 0.1-10."""
+    from magcal_workbench import scene as scn
+
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(2, 500, 3))
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    F = 50_000.0
+    assert scn.distortion_gain(F * (1 + departure) * u, F) == pytest.approx(gain)
+    # a few wild samples move neither the typical departure nor, below a 99th percentile, the gain
+    wild = (F * (1 + departure) * u).copy()
+    wild[0, :3] *= 3.0
+    assert scn.distortion_gain(wild, F) == pytest.approx(gain)

@@ -1,5 +1,5 @@
 """The launcher starts fast (issue 44): the page is served and its address printed before the engine's heavy
-parts are imported; a large CSV's preview is drawn as the raw clouds before the whole file is read, and the
+parts are imported; a CSV's preview is drawn as the raw clouds before the whole file is read, and the
 workbench then takes over the same server, token and scene.
 
 No timed assertion here: the times are in ``benchmarks/page_latency.py``.
@@ -53,8 +53,7 @@ def test_the_page_is_served_before_the_engine_and_the_page_s_parts_are_imported(
     assert "HEAVY [] STATUS 200" in done.stdout, done.stdout
 
 
-def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_scene(tmp_path, monkeypatch):
-    monkeypatch.setattr(mio, "PREVIEW_MIN_BYTES", 0)  # a small file previewed as a large one is
+def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_scene(tmp_path):
     path = _csv(tmp_path)
     early = startup.begin([str(path), "--port", "0", "--no-session", "--max-points", "200"])
     wb = None
@@ -86,7 +85,32 @@ def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_s
             early.stop()
 
 
-def test_no_preview_for_a_small_file_and_a_failed_start_stops_the_early_server(tmp_path, capsys):
+def test_a_small_file_is_previewed_whole_and_its_raw_clouds_are_not_sent_again(tmp_path):
+    """A file within ``--max-points`` is previewed whole, before the engine's other parts are imported: the
+    workbench's scene then holds the same raw clouds and sends none of their points again."""
+    path = _csv(tmp_path, n=300)
+    early = startup.begin([str(path), "--port", "0", "--no-session"])
+    wb = None
+    try:
+        early.show_preview()
+        view = early.scene_view
+        assert view is not None and "a preview of 300 samples" in early._status.content
+        raw = {name: np.array(h.points) for name, h in view._clouds.items() if name.endswith("/raw")}
+        assert len(raw) == 4 and all(len(p) == 300 for p in raw.values())
+        sent = view.n_points_sent
+        wb = app.Workbench(mio.read_csv(path), store=None, token=early.token, server=early.server, scene_view=view)
+        early.done()
+        for name, points in raw.items():  # the same clouds, at the same gains
+            np.testing.assert_allclose(np.asarray(view._clouds[name].points), points)
+        assert view.n_points_sent == sent  # nothing sent again (a refit's corrected clouds are new, not these)
+    finally:
+        if wb is not None:
+            wb.stop()
+        else:
+            early.stop()
+
+
+def test_no_preview_for_a_lesson_and_a_failed_start_stops_the_early_server(tmp_path, capsys):
     path = _csv(tmp_path)
     early = startup.begin([str(path), "--port", "0", "--no-session", "--lesson", "no-such-lesson"])
     early.show_preview()
