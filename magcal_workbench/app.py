@@ -48,7 +48,6 @@ import os
 import secrets
 import sys
 import time
-from types import SimpleNamespace
 
 from magcal.core.errors import MagcalError
 from magcal.core.files import check_regular_file
@@ -56,6 +55,7 @@ from magcal.model import plugins
 
 from . import scene as scn
 from . import timing
+from .actions import Actions
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
 from .consent import EffectsFiles, Terminal
@@ -202,10 +202,12 @@ class Workbench:
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         # the launcher's preview is redrawn in place (magcal_workbench.preview)
         self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)
+        #: Every handler the page's widgets call, by name (``on.do_refine``).
+        self.actions = self._actions()
         self.panels = Panels(
             Widgets(self.server.gui, self.values),
             handle=self.handle,
-            on=self._actions(),
+            on=self.actions,
             ctrl=lambda: self.ctrl,
             live=lambda: self.live,
             busy=lambda: self.worker.busy,
@@ -229,9 +231,14 @@ class Workbench:
         self._attach(self.ctrl)
         self.redraw()
 
-    def _actions(self) -> SimpleNamespace:
-        """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``)."""
-        parts = (
+    def _actions(self) -> Actions:
+        """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``): the handlers each part
+        marks with :func:`~magcal_workbench.actions.action`; two parts offering one name stop the start."""
+        return Actions(self.parts())
+
+    def parts(self) -> tuple:
+        """The parts whose :func:`~magcal_workbench.actions.action` handlers the page's widgets call."""
+        return (
             self.steps,
             self.uploads,
             self.downloads,
@@ -243,23 +250,7 @@ class Workbench:
             self.vehicle,
             self.cockpit,
             self.gravity,
-        )
-        on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
-        on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
-        v = self.view
-        return SimpleNamespace(
-            **on,
-            set_sensor=v.set_sensor,
-            view_changed=v.view_changed,
-            surface_changed=v.surface_changed,
-            window_changed=v.window_changed,
-            refresh_maps=v.refresh_maps,
-            legend_html=v.legend_html,
-            draw_evidence=self.evidence.draw,
-            refresh_export=self.exporting.refresh,
-            vehicle_text=self.vehicle.describe,
-            draw_cockpit=self.cockpit.draw,
-            range_changed=self.cockpit.range_changed,
+            self.view,
         )
 
     # ------------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ import os
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .plots import evidence_figure, evidence_image
 from .timewindow import sample_times
 
@@ -45,6 +46,7 @@ class Evidence:
         value = self.wb.panels.candidate_choice.value
         return None if value == "-" else value
 
+    @action(name="draw_evidence")
     def draw(self) -> None:
         wb = self.wb
         fig = evidence_figure(
@@ -94,11 +96,14 @@ class Evidence:
         overlay.visible = True
         panels.btn_full_evidence.label = "Back to the scene"
 
+    @action
     def do_full_evidence(self, event):
         self.show_full(not self.wb.panels.evidence_overlay.visible)
 
+    @action
     def do_download_evidence_png(self, event):
         self.wb.downloads.send(event, "evidence.png", self.image("png"))
 
+    @action
     def do_download_evidence_svg(self, event):
         self.wb.downloads.send(event, "evidence.svg", self.image("svg"))

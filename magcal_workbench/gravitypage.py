@@ -18,6 +18,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .events import Change
 from .gravitymodel import GravityModel, accel_cloud, dip_series, rose, table_markdown
 from .scene import GROUP_DZ, sphere_mesh
@@ -136,7 +137,7 @@ class GravityPage:
             self.btn_fit = panels._button(
                 gui,
                 "Run the gravity fit (beside the accelerometer)",
-                self.do_gravity_fit,
+                panels.on.do_gravity_fit,
                 color="teal",
                 hint="magcal's fit_gravity: the magnetometer's matrix, bias and rotation into the accelerometer's "
                 "frame with the accelerometer's bias and scale, so that the dip (the angle between the field and "
@@ -153,10 +154,11 @@ class GravityPage:
                 "samples (they measure gravity), grey the others",
             )
             self.cloud_info = gui.add_markdown("")
-        self.cloud_box.on_update(lambda e: self.wb.handle(self.do_accel_cloud, e))
+        self.cloud_box.on_update(lambda e: panels.handle(panels.on.do_accel_cloud, e))
         self.refresh()
 
     # --- page actions --------------------------------------------------------------------------------------
+    @action
     def do_gravity_fit(self, event):
         """Calibrate tab: the gravity fit beside the total-field fit, in the worker."""
         self.wb.steps.check_readings()
@@ -165,6 +167,7 @@ class GravityPage:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
         self.wb.ctrl.run_job("gravity fit", gm.fit)
 
+    @action
     def do_accel_cloud(self, event):
         """View tab: show or hide the accelerometer's cloud and sphere."""
         self.cloud_on = bool(self.cloud_box.value)

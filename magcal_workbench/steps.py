@@ -12,6 +12,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .markup import safe_text
 
 
@@ -50,26 +51,32 @@ class Steps:
                 )
 
     # --- engine steps -------------------------------------------------------------------------------------
+    @action
     def do_ellipsoid(self, event):
         self.check_readings()
         self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
 
+    @action
     def do_align(self, event):
         self.check_readings()
         self._job("align sensors", self.ctrl.step_align)
 
+    @action
     def do_refine(self, event):
         self.check_readings()
         self._job("refine", self.ctrl.step_refine)
 
+    @action
     def do_calibrate(self, event):
         self.check_readings()
         self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
 
+    @action
     def do_diagnose(self, event):
         self.check_readings()
         self._job("diagnose", self.ctrl.step_diagnose)
 
+    @action
     def do_add(self, event):
         self.check_readings()
         choice = self.wb.values.check(self.wb.panels.candidate_choice)
@@ -77,10 +84,12 @@ class Steps:
         ctrl = self.ctrl
         self._job("add effect", lambda: ctrl.step_add(label))
 
+    @action
     def do_apply_noise(self, event) -> None:
         value = float(self.wb.values.check(self.wb.panels.noise_input))
         self.ctrl.set_noise(value if value > 0 else None)
 
+    @action
     def do_load_effects(self, event):
         """Load the effects file typed in the Model tab (runs its code: only when served to this machine, and only
         a file named on the command line or confirmed in the terminal, :class:`magcal_workbench.consent.EffectsFiles`)."""
@@ -97,6 +106,7 @@ class Steps:
         ctrl = self.ctrl
         self._job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
 
+    @action
     def do_load_session_effects(self, event):
         """Load the effects files the open session names (runs their code: the user asked; only when served to
         this machine, and each only if named on the command line or confirmed in the terminal)."""
@@ -115,18 +125,22 @@ class Steps:
         )
 
     # --- outliers -----------------------------------------------------------------------------------------
+    @action
     def do_threshold(self, event):
         self.ctrl.reject_threshold(float(self.wb.values.check(self.wb.panels.k_sigma)))
         self.maybe_refit()
 
+    @action
     def do_undo(self, event):
         self.ctrl.undo()
         self.maybe_refit()
 
+    @action
     def do_redo(self, event):
         self.ctrl.redo()
         self.maybe_refit()
 
+    @action
     def do_reset(self, event):
         self.ctrl.reset_selection()
         self.maybe_refit()

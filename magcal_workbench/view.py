@@ -15,6 +15,7 @@ from magcal.data.attitude import attitude_quaternions
 
 from . import motion
 from . import scene as scn
+from .actions import action
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .timewindow import sample_times
@@ -131,6 +132,7 @@ class SceneControl:
         if wb.ctrl.inspected is not None:
             wb.scene_view.mark_inspected(wb.ctrl.inspected)
 
+    @action
     def legend_html(self) -> str:
         wb = self.wb
         live = self._live()
@@ -197,6 +199,7 @@ class SceneControl:
         return n
 
     # --- the View tab -------------------------------------------------------------------------------------
+    @action
     def set_sensor(self, choice: str) -> None:
         """Show one sensor (``"sensor 2"``) or all of them (the panels' sensor choice)."""
         wb = self.wb
@@ -207,10 +210,12 @@ class SceneControl:
         wb.maps.draw()
         self.reset_cameras()
 
+    @action
     def view_changed(self, event):
         self.update_scene()
         self.wb.panels.legend.content = self.legend_html()
 
+    @action
     def refresh_maps(self) -> None:
         """Recompute and redraw the sphere surfaces for the current choice; an engine refusal becomes the note."""
         wb = self.wb
@@ -222,11 +227,13 @@ class SceneControl:
         wb.panels.maps_info.content = safe_text(wb.maps.describe(), 600)
         wb.panels.legend.content = self.legend_html()
 
+    @action
     def surface_changed(self, event):
         self.wb.maps.choice = self.wb.values.check(self.wb.panels.surface_choice)
         self.refresh_maps()
 
     # --- the time scrubber --------------------------------------------------------------------------------
+    @action
     def window_changed(self, event):
         """A Time window widget moved: take its values (checked) into the window, which redraws."""
         p, check = self.wb.panels, self.wb.values.check
@@ -248,6 +255,7 @@ class SceneControl:
             self._last_evidence_t = now
             wb.evidence.draw()
 
+    @action
     def do_play(self, event):
         """Replay the recording: the window's start advances at the Play speed until the end or Pause."""
         wb = self.wb
@@ -262,10 +270,12 @@ class SceneControl:
         wb.window.play(float(np.nanmax(times) - np.nanmin(times)), advance=advance)
         wb.panels.window_info.content = safe_text(wb.window.describe(times))
 
+    @action
     def do_pause_play(self, event):
         self.wb.window.pause()
         self.window_moved()
 
+    @action
     def do_show_all(self, event):
         self.wb.window.pause()
         self.wb.panels.window_on.value = False  # its callback shows every sample
