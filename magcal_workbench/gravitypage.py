@@ -165,7 +165,7 @@ class GravityPage:
         gm = self.model
         if not gm.available:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
-        self.wb.ctrl.run_job("gravity fit", gm.fit)
+        self.wb.ctrl.run_step("gravity fit", lambda inputs: gm.fit(kept=inputs.kept))
 
     @action
     def do_accel_cloud(self, event):

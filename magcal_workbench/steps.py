@@ -33,8 +33,9 @@ class Steps:
     def ctrl(self):
         return self.wb.ctrl
 
-    def _job(self, name, func) -> bool:
-        return self.ctrl.run_job(name, func)
+    def _step(self, name, step) -> bool:
+        """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""
+        return self.ctrl.run_step(name, step)
 
     def check_readings(self) -> None:
         """Refuse an engine step on a sensor whose kept readings are all one vector (a zero-filled file, a
@@ -54,27 +55,27 @@ class Steps:
     @action
     def do_ellipsoid(self, event):
         self.check_readings()
-        self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
+        self._step("fit ellipsoid", self.ctrl.step_ellipsoid)
 
     @action
     def do_align(self, event):
         self.check_readings()
-        self._job("align sensors", self.ctrl.step_align)
+        self._step("align sensors", self.ctrl.step_align)
 
     @action
     def do_refine(self, event):
         self.check_readings()
-        self._job("refine", self.ctrl.step_refine)
+        self._step("refine", self.ctrl.step_refine)
 
     @action
     def do_calibrate(self, event):
         self.check_readings()
-        self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
+        self._step(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
 
     @action
     def do_diagnose(self, event):
         self.check_readings()
-        self._job("diagnose", self.ctrl.step_diagnose)
+        self._step("diagnose", self.ctrl.step_diagnose)
 
     @action
     def do_add(self, event):
@@ -82,7 +83,7 @@ class Steps:
         choice = self.wb.values.check(self.wb.panels.candidate_choice)
         label = None if choice == "-" else choice
         ctrl = self.ctrl
-        self._job("add effect", lambda: ctrl.step_add(label))
+        self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs))
 
     @action
     def do_apply_noise(self, event) -> None:
@@ -104,7 +105,7 @@ class Steps:
         if why is not None:
             raise MagcalError(why)
         ctrl = self.ctrl
-        self._job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
+        ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
 
     @action
     def do_load_session_effects(self, event):
@@ -119,7 +120,7 @@ class Steps:
         refused = [gate.refusal(p) for p in ctrl.pending_effects_files()]
         if refused and all(refused):  # none may load: said at once
             raise MagcalError("; ".join(str(r) for r in refused))
-        self._job(
+        ctrl.run_job(
             "load the session's effects files",
             lambda: ctrl.load_session_effects_files(permit=lambda p: gate.permit(p, ctrl.say)),
         )
@@ -163,7 +164,7 @@ class Steps:
         if busy:
             ctrl.say(f"{ctrl.message}; the refit follows when {safe_text(worker.current or 'the running step')} ends")
             return
-        if not ctrl.submit_job("refit", ctrl.step_refine):
+        if not ctrl.submit_step("refit", ctrl.step_refine):
             with self._pending_lock:  # a job started in between: the refit follows it
                 self.refit_pending = True
             if not worker.busy:  # ... unless it has already ended
@@ -185,5 +186,5 @@ class Steps:
             ctrl = self.ctrl
             if ctrl.calibration is None or not self.wb.panels.auto_refit.value:
                 return
-            if not ctrl.submit_job("refit", ctrl.step_refine):
+            if not ctrl.submit_step("refit", ctrl.step_refine):
                 self.refit_pending = True  # another job started first: its end starts the refit

@@ -216,14 +216,14 @@ class VehicleView:
         missing = ctrl.vector.missing()
         if missing:
             raise MagcalError("the vector fit needs " + " and ".join(missing))
-        ctrl.run_job("vector fit", ctrl.step_vector)
+        ctrl.run_step("vector fit", ctrl.step_vector)
 
     @action
     def do_remove_vector_effect(self, event):
         """Model tab: take the effect added last out of the vector model and refit, in the worker."""
         self.wb.steps.check_readings()
         ctrl = self.wb.ctrl
-        ctrl.run_job("take out of the vector model", lambda: ctrl.vector.remove())
+        ctrl.run_step("take out of the vector model", lambda inputs: ctrl.vector.remove(kept=inputs.kept))
 
     @action
     def do_use_location(self, event):
