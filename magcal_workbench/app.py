@@ -134,6 +134,9 @@ class Workbench:
     view: SceneControl
     ctrl: Controller
     panels: Panels
+    scene_view: scn.SceneView
+    steps: Steps
+    vehicle: VehicleView
 
     def __init__(
         self,
@@ -193,7 +196,20 @@ class Workbench:
         self.evidence = Evidence(self)
         #: The compact table, |B| against time with its region editor, the error histogram.
         self.cockpit = Cockpit(self)
-        self.view = SceneControl(self)
+        self.view = SceneControl(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            scene_view=lambda: self.scene_view,
+            live=lambda: self.live,
+            steps=lambda: self.steps,
+            vehicle=lambda: self.vehicle,
+            maps=self.maps,
+            window=self.window,
+            values=self.values,
+            ui=self.ui,
+            server=self.server,
+            evidence=self.evidence,
+        )
         self.steps = Steps(self)
         #: The vehicle view and the vector model's page actions (issue 29).
         self.vehicle = VehicleView(self)
