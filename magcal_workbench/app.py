@@ -193,7 +193,14 @@ class Workbench:
         self.exporting = Exporting(self)
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
-        self.evidence = Evidence(self)
+        self.evidence = Evidence(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            window=self.window,
+            maps=self.maps,
+            downloads=self.downloads,
+            server=self.server,
+        )
         #: The compact table, |B| against time with its region editor, the error histogram.
         self.cockpit = Cockpit(self)
         self.view = SceneControl(
@@ -210,11 +217,18 @@ class Workbench:
             server=self.server,
             evidence=self.evidence,
         )
-        self.steps = Steps(self)
+        self.steps = Steps(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            values=self.values,
+            worker=self.worker,
+            local=self.local,
+            effects_gate=self.effects_gate,
+        )
         #: The vehicle view and the vector model's page actions (issue 29).
         self.vehicle = VehicleView(self)
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
-        self.gravity = GravityPage(self)
+        self.gravity = GravityPage(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         # the launcher's preview is redrawn in place (magcal_workbench.preview)
         self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)

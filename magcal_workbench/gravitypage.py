@@ -107,12 +107,16 @@ class GravityPage:
 
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
-        Gives ``ctrl`` (the opened data), ``server`` (the scene), ``steps`` (the readings check) and ``handle``.
+    ctrl, steps : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.steps.Steps` (their check of the readings), handed instead of the workbench
+        (issue 43 item 5).
+    server : viser.ViserServer
+        The scene the accelerometer's cloud is drawn in.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, steps, server):
+        self._ctrl, self._steps, self.server = ctrl, steps, server
         self._models: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.cloud_on = False
         self.nodes: dict = {}
@@ -120,7 +124,7 @@ class GravityPage:
     @property
     def model(self) -> GravityModel:
         """The gravity model of the opened data (one per controller)."""
-        ctrl = self.wb.ctrl
+        ctrl = self._ctrl()
         model = self._models.get(ctrl)
         if model is None:
             model = self._models[ctrl] = GravityModel(ctrl)
@@ -161,11 +165,11 @@ class GravityPage:
     @action
     def do_gravity_fit(self, event):
         """Calibrate tab: the gravity fit beside the total-field fit, in the worker."""
-        self.wb.steps.check_readings()
+        self._steps().check_readings()
         gm = self.model
         if not gm.available:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
-        self.wb.ctrl.run_step("gravity fit", lambda inputs: gm.fit(kept=inputs.kept))
+        self._ctrl().run_step("gravity fit", lambda inputs: gm.fit(kept=inputs.kept))
 
     @action
     def do_accel_cloud(self, event):
@@ -200,7 +204,7 @@ class GravityPage:
         """Draw (or remove) the accelerometer's cloud and sphere."""
         if not hasattr(self, "cloud_info"):
             return
-        scene = self.wb.server.scene
+        scene = self.server.scene
         data = accel_cloud(self.model) if self.cloud_on else None
         if data is None:
             for handle in self.nodes.values():

@@ -19,19 +19,36 @@ from .markup import safe_text
 class Steps:
     """The Calibrate, Model and Outliers tabs' actions.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.panels.Panels` (made after this part).
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
+    worker : magcal_workbench.jobs.Worker
+        The one worker (a refit follows the running job).
+    local : bool
+        Whether the page is served to this machine only (an effects file may load only then).
+    effects_gate : magcal_workbench.consent.EffectsFiles
+        Which effects files the page may load.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, values, worker, local: bool, effects_gate):
+        self._ctrl, self._panels = ctrl, panels
+        self.values, self.worker, self.local, self.effects_gate = values, worker, local, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
 
     @property
     def ctrl(self):
-        return self.wb.ctrl
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
 
     def _step(self, name, step) -> bool:
         """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""
@@ -80,27 +97,27 @@ class Steps:
     @action
     def do_add(self, event):
         self.check_readings()
-        choice = self.wb.values.check(self.wb.panels.candidate_choice)
+        choice = self.values.check(self.panels.candidate_choice)
         label = None if choice == "-" else choice
         ctrl = self.ctrl
         self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs))
 
     @action
     def do_apply_noise(self, event) -> None:
-        value = float(self.wb.values.check(self.wb.panels.noise_input))
+        value = float(self.values.check(self.panels.noise_input))
         self.ctrl.set_noise(value if value > 0 else None)
 
     @action
     def do_load_effects(self, event):
         """Load the effects file typed in the Model tab (runs its code: only when served to this machine, and only
         a file named on the command line or confirmed in the terminal, :class:`magcal_workbench.consent.EffectsFiles`)."""
-        if not self.wb.local:
+        if not self.local:
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
-        path = self.wb.values.check(self.wb.panels.effects_path)
-        gate = self.wb.effects_gate  # only a file of the command line, or one confirmed in the terminal
+        path = self.values.check(self.panels.effects_path)
+        gate = self.effects_gate  # only a file of the command line, or one confirmed in the terminal
         why = gate.refusal(path)
         if why is not None:
             raise MagcalError(why)
@@ -111,12 +128,12 @@ class Steps:
     def do_load_session_effects(self, event):
         """Load the effects files the open session names (runs their code: the user asked; only when served to
         this machine, and each only if named on the command line or confirmed in the terminal)."""
-        if not self.wb.local:
+        if not self.local:
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
-        ctrl, gate = self.ctrl, self.wb.effects_gate
+        ctrl, gate = self.ctrl, self.effects_gate
         refused = [gate.refusal(p) for p in ctrl.pending_effects_files()]
         if refused and all(refused):  # none may load: said at once
             raise MagcalError("; ".join(str(r) for r in refused))
@@ -128,7 +145,7 @@ class Steps:
     # --- outliers -----------------------------------------------------------------------------------------
     @action
     def do_threshold(self, event):
-        self.ctrl.reject_threshold(float(self.wb.values.check(self.wb.panels.k_sigma)))
+        self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
         self.maybe_refit()
 
     @action
@@ -154,8 +171,8 @@ class Steps:
     def maybe_refit(self):
         """Refit after a change of the selection when Refit after each change is on and there is a fit; while a
         job runs, the refit follows it."""
-        ctrl, worker = self.ctrl, self.wb.worker
-        if not (self.wb.panels.auto_refit.value and ctrl.calibration is not None):
+        ctrl, worker = self.ctrl, self.worker
+        if not (self.panels.auto_refit.value and ctrl.calibration is not None):
             return
         with self._pending_lock:
             busy = worker.busy or self.refit_pending
@@ -178,13 +195,13 @@ class Steps:
 
     def run_pending_refit(self) -> None:
         """The refit asked for while a job ran (a rejection during a fit), now that the job has ended."""
-        self.wb.worker.wait()
+        self.worker.wait()
         with self._pending_lock:
             if not self.refit_pending:
                 return
             self.refit_pending = False
             ctrl = self.ctrl
-            if ctrl.calibration is None or not self.wb.panels.auto_refit.value:
+            if ctrl.calibration is None or not self.panels.auto_refit.value:
                 return
             if not ctrl.submit_step("refit", ctrl.step_refine):
                 self.refit_pending = True  # another job started first: its end starts the refit
