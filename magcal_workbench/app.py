@@ -48,6 +48,7 @@ import os
 import secrets
 import sys
 import time
+from typing import cast
 
 from magcal.core.errors import MagcalError
 from magcal.core.files import check_regular_file
@@ -73,6 +74,7 @@ from .lessons import DEMO, LessonDesk, get_lesson
 from .livecontrol import LiveControl
 from .maps import SphereMaps
 from .markup import clean_text, error_text
+from .panelkit import PANELS, PanelContext
 from .panels import Panels
 from .session import SessionStore
 from .sessions import Sessions
@@ -228,7 +230,11 @@ class Workbench:
         #: The vehicle view and the vector model's page actions (issue 29).
         self.vehicle = VehicleView(self)
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
-        self.gravity = GravityPage(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
+        #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
+        #: (issue 42), then those a module or an installed package registered.
+        context = PanelContext(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
+        self.added = {name: kind.make(context) for name, kind in PANELS.items()}
+        self.gravity = cast(GravityPage, self.added["gravity"])
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         # the launcher's preview is redrawn in place (magcal_workbench.preview)
         self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)
@@ -249,7 +255,8 @@ class Workbench:
         )
         self.uploads.watch_sizes(self.panels.upload)
         self.exporting.attach(self.panels.export, self.panels.live_source)
-        self.gravity.attach(self.panels)
+        for panel in self.added.values():
+            panel.attach(self.panels)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
         # pointer events go through the error handler like every widget's callback
         self.server.scene.on_click()(lambda event: self.handle(lambda e: self.view.on_click(e), event))
@@ -279,8 +286,8 @@ class Workbench:
             self.exporting,
             self.vehicle,
             self.cockpit,
-            self.gravity,
             self.view,
+            *self.added.values(),
         )
 
     # ------------------------------------------------------------------------------------------------------
@@ -369,7 +376,10 @@ class Workbench:
         elif kind == Change.INSPECT:
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
-        self.gravity.changed(kind)
+        for panel in self.added.values():
+            follow = getattr(panel, "changed", None)  # optional for an added panel
+            if follow is not None:
+                follow(kind)
         if kind in (Change.RESULT, Change.DATA):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in (Change.RESULT, Change.DATA, Change.DIAGNOSIS) and self.maps.choice != "none":
@@ -437,6 +447,8 @@ def main(argv=None, early: Early | None = None) -> int:
         timing.enable()
     # a broken installed effect package is reported, skipped
     for note in plugins.load_entry_points(warn=False).notes:
+        print(f"magcal-workbench: {note.text}", file=sys.stderr)
+    for note in PANELS.load_entry_points().notes:  # another package's panels (magcal_workbench.panelkit)
         print(f"magcal-workbench: {note.text}", file=sys.stderr)
     try:
         plugins.load_effects_files(args.effects_file)

@@ -138,10 +138,10 @@ class GravityPage:
         gui = panels.gui
         with panels.section("Calibrate", "Gravity model (beside an accelerometer)", expand=True):
             self.info = gui.add_markdown("")
-            self.btn_fit = panels._button(
-                gui,
+            self.btn_fit = panels.button(
                 "Run the gravity fit (beside the accelerometer)",
                 panels.on.do_gravity_fit,
+                engine=True,
                 color="teal",
                 hint="magcal's fit_gravity: the magnetometer's matrix, bias and rotation into the accelerometer's "
                 "frame with the accelerometer's bias and scale, so that the dip (the angle between the field and "
