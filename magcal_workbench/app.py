@@ -224,7 +224,7 @@ class Workbench:
             panels=lambda: self.panels,
             values=self.values,
             worker=self.worker,
-            local=self.local,
+            local=lambda: self.local,
             effects_gate=self.effects_gate,
         )
         #: The vehicle view and the vector model's page actions (issue 29).

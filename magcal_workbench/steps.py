@@ -30,15 +30,16 @@ class Steps:
         What each input widget may send (checked before it is read).
     worker : magcal_workbench.jobs.Worker
         The one worker (a refit follows the running job).
-    local : bool
-        Whether the page is served to this machine only (an effects file may load only then).
+    local : callable
+        ``local()``: whether the page is served to this machine only (an effects file may load only then; asked
+        at each load, as the workbench's :attr:`~magcal_workbench.app.Workbench.local` may change).
     effects_gate : magcal_workbench.consent.EffectsFiles
         Which effects files the page may load.
     """
 
-    def __init__(self, *, ctrl, panels, values, worker, local: bool, effects_gate):
-        self._ctrl, self._panels = ctrl, panels
-        self.values, self.worker, self.local, self.effects_gate = values, worker, local, effects_gate
+    def __init__(self, *, ctrl, panels, values, worker, local, effects_gate):
+        self._ctrl, self._panels, self._local = ctrl, panels, local
+        self.values, self.worker, self.effects_gate = values, worker, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
 
@@ -111,7 +112,7 @@ class Steps:
     def do_load_effects(self, event):
         """Load the effects file typed in the Model tab (runs its code: only when served to this machine, and only
         a file named on the command line or confirmed in the terminal, :class:`magcal_workbench.consent.EffectsFiles`)."""
-        if not self.local:
+        if not self._local():
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
@@ -128,7 +129,7 @@ class Steps:
     def do_load_session_effects(self, event):
         """Load the effects files the open session names (runs their code: the user asked; only when served to
         this machine, and each only if named on the command line or confirmed in the terminal)."""
-        if not self.local:
+        if not self._local():
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
