@@ -48,7 +48,7 @@ import os
 import secrets
 import sys
 import time
-from types import SimpleNamespace
+from typing import cast
 
 from magcal.core.errors import MagcalError
 from magcal.core.files import check_regular_file
@@ -56,6 +56,7 @@ from magcal.model import plugins
 
 from . import scene as scn
 from . import timing
+from .actions import Actions
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
 from .consent import EffectsFiles, Terminal
@@ -73,6 +74,7 @@ from .lessons import DEMO, LessonDesk, get_lesson
 from .livecontrol import LiveControl
 from .maps import SphereMaps
 from .markup import clean_text, error_text
+from .panelkit import PANELS, PanelContext
 from .panels import Panels
 from .session import SessionStore
 from .sessions import Sessions
@@ -134,6 +136,9 @@ class Workbench:
     view: SceneControl
     ctrl: Controller
     panels: Panels
+    scene_view: scn.SceneView
+    steps: Steps
+    vehicle: VehicleView
 
     def __init__(
         self,
@@ -190,22 +195,55 @@ class Workbench:
         self.exporting = Exporting(self)
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
-        self.evidence = Evidence(self)
+        self.evidence = Evidence(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            window=self.window,
+            maps=self.maps,
+            downloads=self.downloads,
+            server=self.server,
+        )
         #: The compact table, |B| against time with its region editor, the error histogram.
         self.cockpit = Cockpit(self)
-        self.view = SceneControl(self)
-        self.steps = Steps(self)
+        self.view = SceneControl(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            scene_view=lambda: self.scene_view,
+            live=lambda: self.live,
+            steps=lambda: self.steps,
+            vehicle=lambda: self.vehicle,
+            maps=self.maps,
+            window=self.window,
+            values=self.values,
+            ui=self.ui,
+            server=self.server,
+            evidence=self.evidence,
+        )
+        self.steps = Steps(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            values=self.values,
+            worker=self.worker,
+            local=lambda: self.local,
+            effects_gate=self.effects_gate,
+        )
         #: The vehicle view and the vector model's page actions (issue 29).
         self.vehicle = VehicleView(self)
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
-        self.gravity = GravityPage(self)
+        #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
+        #: (issue 42), then those a module or an installed package registered.
+        context = PanelContext(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
+        self.added = {name: kind.make(context) for name, kind in PANELS.items()}
+        self.gravity = cast(GravityPage, self.added["gravity"])
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         # the launcher's preview is redrawn in place (magcal_workbench.preview)
         self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)
+        #: Every handler the page's widgets call, by name (``on.do_refine``).
+        self.actions = self._actions()
         self.panels = Panels(
             Widgets(self.server.gui, self.values),
             handle=self.handle,
-            on=self._actions(),
+            on=self.actions,
             ctrl=lambda: self.ctrl,
             live=lambda: self.live,
             busy=lambda: self.worker.busy,
@@ -217,7 +255,8 @@ class Workbench:
         )
         self.uploads.watch_sizes(self.panels.upload)
         self.exporting.attach(self.panels.export, self.panels.live_source)
-        self.gravity.attach(self.panels)
+        for panel in self.added.values():
+            panel.attach(self.panels)
         self.worker.on_busy_change(lambda busy, job: self.ui.post(lambda: self._busy_changed(busy, job)))
         # pointer events go through the error handler like every widget's callback
         self.server.scene.on_click()(lambda event: self.handle(lambda e: self.view.on_click(e), event))
@@ -229,9 +268,14 @@ class Workbench:
         self._attach(self.ctrl)
         self.redraw()
 
-    def _actions(self) -> SimpleNamespace:
-        """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``)."""
-        parts = (
+    def _actions(self) -> Actions:
+        """What the panels' widgets call (:class:`~magcal_workbench.panels.Panels`' ``on``): the handlers each part
+        marks with :func:`~magcal_workbench.actions.action`; two parts offering one name stop the start."""
+        return Actions(self.parts())
+
+    def parts(self) -> tuple:
+        """The parts whose :func:`~magcal_workbench.actions.action` handlers the page's widgets call."""
+        return (
             self.steps,
             self.uploads,
             self.downloads,
@@ -242,24 +286,8 @@ class Workbench:
             self.exporting,
             self.vehicle,
             self.cockpit,
-            self.gravity,
-        )
-        on = {name: getattr(part, name) for part in parts for name in dir(part) if name.startswith("do_")}
-        on.update({name: getattr(self.view, name) for name in dir(self.view) if name.startswith("do_")})
-        v = self.view
-        return SimpleNamespace(
-            **on,
-            set_sensor=v.set_sensor,
-            view_changed=v.view_changed,
-            surface_changed=v.surface_changed,
-            window_changed=v.window_changed,
-            refresh_maps=v.refresh_maps,
-            legend_html=v.legend_html,
-            draw_evidence=self.evidence.draw,
-            refresh_export=self.exporting.refresh,
-            vehicle_text=self.vehicle.describe,
-            draw_cockpit=self.cockpit.draw,
-            range_changed=self.cockpit.range_changed,
+            self.view,
+            *self.added.values(),
         )
 
     # ------------------------------------------------------------------------------------------------------
@@ -349,7 +377,10 @@ class Workbench:
         elif kind == Change.INSPECT:
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
-        self.gravity.changed(kind)
+        for panel in self.added.values():
+            follow = getattr(panel, "changed", None)  # optional for an added panel
+            if follow is not None:
+                follow(kind)
         if kind in (Change.RESULT, Change.DATA):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in (Change.RESULT, Change.DATA, Change.DIAGNOSIS) and self.maps.choice != "none":
@@ -417,6 +448,8 @@ def main(argv=None, early: Early | None = None) -> int:
         timing.enable()
     # a broken installed effect package is reported, skipped
     for note in plugins.load_entry_points(warn=False).notes:
+        print(f"magcal-workbench: {note.text}", file=sys.stderr)
+    for note in PANELS.load_entry_points().notes:  # another package's panels (magcal_workbench.panelkit)
         print(f"magcal-workbench: {note.text}", file=sys.stderr)
     try:
         plugins.load_effects_files(args.effects_file)

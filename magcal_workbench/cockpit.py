@@ -21,6 +21,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 
 from . import motion
+from .actions import action
 from .panels import summary_markdown
 from .plots import FieldRecord, histogram_figure, magnitude_figure, record_key, table_figures
 from .timewindow import sample_times
@@ -120,6 +121,7 @@ class Cockpit:
         return range_bounds_s(record.time_s, p.range_from.value, p.range_to.value)
 
     # --- drawing ----------------------------------------------------------------------------------------------
+    @action(name="draw_cockpit")
     def draw(self, force: bool = False) -> None:
         """Redraw the table and the plots (on the page's thread); while a live session runs, at most once per
         :data:`LIVE_INTERVAL_S` unless ``force``."""
@@ -182,6 +184,7 @@ class Cockpit:
         self.n_draws += 1
 
     # --- the region editor ------------------------------------------------------------------------------------
+    @action
     def range_changed(self, event) -> None:
         """A range slider or the histogram's unit moved: check the values, redraw."""
         p, check = self.wb.panels, self.wb.values.check
@@ -207,12 +210,15 @@ class Cockpit:
         wb.steps.maybe_refit()
         return n
 
+    @action
     def do_exclude_range(self, event) -> None:
         self._select_range("reject")
 
+    @action
     def do_include_range(self, event) -> None:
         self._select_range("restore")
 
+    @action
     def do_exclude_fast(self, event) -> None:
         """Exclude the samples taken while turning fast (:func:`magcal_workbench.motion.fast_turning`)."""
         wb = self.wb

@@ -47,7 +47,7 @@ from .pending import PENDING
 from .scene import record_field_nT
 from .session import SessionStore
 from .sessionfile import LABEL
-from .state import METHODS, SessionState, StepRecord
+from .state import METHODS, JobInputs, SessionState, StepRecord
 from .vectormodel import VectorModel
 
 #: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
@@ -117,7 +117,7 @@ class Controller:
         self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
         self.noise: Any = None  # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
         self._quality = None  # QualityReport of the data (magcal.checks.quality.assess), made when first asked
-        self.diagnosis = None
+        self.diagnosis: Any = None  # Diagnosis of the last fit (magcal.diagnose), if any
         self.inspected: int | None = None
         self.message = ""
         #: Why the last autosave failed (markdown, escaped), or None: the page shows it, whatever other message
@@ -127,7 +127,6 @@ class Controller:
         self.progress: tuple[str, float | None] | None = None
         self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
-        self._job_pin = threading.local()  # the mask and model of the job running in this thread
         #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
         self.vector = VectorModel(self)
         #: ``id`` of the history records whose held-out check runs in the background (shown ``pending...``).
@@ -222,10 +221,10 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     @property
     def kept(self) -> np.ndarray:
-        """The kept mask; inside a job, the one the job started with (:meth:`submit_job`), so that a rejection
-        made meanwhile neither changes what the job fits nor what its history row says it fitted."""
-        pinned = getattr(self._job_pin, "kept", None)
-        return pinned.copy() if pinned is not None else self.state.kept
+        """The kept mask of this moment (a copy). A job reads the mask it started with from its
+        :class:`~magcal_workbench.state.JobInputs` (:meth:`run_step`), never this: a rejection made meanwhile
+        neither changes what the job fits nor what its history row says it fitted."""
+        return self.state.kept
 
     @property
     def field_nT(self) -> float:
@@ -246,20 +245,22 @@ class Controller:
     def reference_arg(self):
         return None if self.state.fit_reference else self.state.reference_nT
 
-    def floor_nT(self) -> float | None:
-        """Total-field floor for the kept samples: ``sigma sqrt(1 - p/N)`` with the known or estimated noise."""
+    def floor_nT(self, kept: np.ndarray | None = None) -> float | None:
+        """Total-field floor for the kept samples (``kept``, default: those of now): ``sigma sqrt(1 - p/N)`` with
+        the known or estimated noise."""
         if not self.noise_nT:
             return None
-        n = int(self.kept.sum())
+        n = int((self.kept if kept is None else kept).sum())
         p = 9
         if self.calibration is not None and self.calibration.model is not None:
             p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances()) / self.dataset.n_sensors
         return conventions.total_field_floor_nT(self.noise_nT, max(n, 1), p)
 
-    def residual_rms_nT(self) -> float:
+    def residual_rms_nT(self, kept: np.ndarray | None = None) -> float:
+        """The current fit's total-field RMS (nT) on the kept samples (``kept``, default: those of now)."""
         if self.residual_nT is None:
             return float("nan")
-        return _rms(self.residual_nT[:, self.kept])
+        return _rms(self.residual_nT[:, self.kept if kept is None else kept])
 
     def rms_per_sensor_nT(self) -> np.ndarray:
         if self.residual_nT is None:
@@ -270,12 +271,13 @@ class Controller:
         """``|y| - F`` of the raw readings (n_sensors, N): the starting point of the history."""
         return np.linalg.norm(self.dataset.readings_nT, axis=2) - self.field_nT
 
-    def tensor_rms(self) -> dict | None:
-        """Tensor component RMS (nT/m) over the kept samples, before (raw) and after, with the floor."""
+    def tensor_rms(self, kept: np.ndarray | None = None) -> dict | None:
+        """Tensor component RMS (nT/m) over the kept samples (``kept``, default: those of now), before (raw) and
+        after, with the floor."""
         ds = self.dataset
         if ds.n_sensors != 4 or not ds.baseline_m:
             return None
-        k = self.kept
+        k = self.kept if kept is None else kept
         before = conventions.tensor_components(ds.readings_nT[:, k], ds.baseline_m)
         out = {"before": {c: _rms(v) for c, v in before.items()}, "after": None, "floor": None}
         if self.corrected_nT is not None:
@@ -338,14 +340,14 @@ class Controller:
             p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances())
         return p
 
-    def _estimate_noise(self, fit=None) -> None:
+    def _estimate_noise(self, fit=None, kept: np.ndarray | None = None) -> None:
         """The noise behind the floors, from the current fit's kept residuals (:func:`magcal.checks.noise.estimate_noise`:
         the given one, else differences in time order or still stretches, never below the quantization floor)."""
 
         if self.residual_nT is None:
             self.noise, self.noise_nT = None, self.noise_given_nT
             return
-        k = self.kept
+        k = self.kept if kept is None else kept
         try:
             self.noise = estimate_noise(
                 self.fit_dataset().subset(k),
@@ -462,34 +464,34 @@ class Controller:
         return [] if self.calibration is None else self.calibration.record_terms()
 
     # ------------------------------------------------------------------------------------------------------
-    # engine steps (synchronous; the page runs them through run_job)
+    # engine steps (synchronous; the page runs them through run_step, which hands each its JobInputs)
     # ------------------------------------------------------------------------------------------------------
-    def run_job(self, name: str, job: Callable[[], None]) -> bool:
+    def run_job(self, name: str, job: Callable[[], object]) -> bool:
         """Run an action in the worker; False (and a message) if another one is running."""
         started = self.submit_job(name, job)
         if not started:
             self.say(f"Busy: {safe_text(self.worker.current)} is still running; wait for it to finish.")
         return started
 
-    def submit_job(self, name: str, job: Callable[[], None]) -> bool:
-        """Start ``job`` in the worker with the kept mask and the model's effects of this moment pinned for its
-        thread (:attr:`kept`, :meth:`_model`); False, silently, if another job runs."""
-        with self.state.lock:
-            kept, effects = self.state.kept, list(self.state.effects)
+    def submit_job(self, name: str, job: Callable[[], object]) -> bool:
+        """Start ``job`` in the worker; False, silently, if another job runs."""
+        return self.worker.submit(name, job, on_error=self._job_failed)
 
-        def pinned():
-            self._job_pin.kept, self._job_pin.effects = kept, effects
-            try:
-                return job()
-            finally:
-                self._job_pin.kept = self._job_pin.effects = None
+    def job_inputs(self) -> JobInputs:
+        """The kept mask and the model's effects of this moment, fixed (:meth:`SessionState.job_inputs`)."""
+        return self.state.job_inputs()
 
-        return self.worker.submit(name, pinned, on_error=self._job_failed)
+    def run_step(self, name: str, step: Callable[..., object]) -> bool:
+        """Run ``step(inputs=...)`` in the worker with the :class:`~magcal_workbench.state.JobInputs` of this moment
+        (the kept mask and the model's effects as the user left them when the step was asked for); False (and a
+        message) if another job runs."""
+        inputs = self.job_inputs()
+        return self.run_job(name, lambda: step(inputs=inputs))
 
-    def _job_effects(self) -> list:
-        """The model's effects of the running job (as it built its model), else the state's."""
-        pinned = getattr(self._job_pin, "effects", None)
-        return list(pinned) if pinned is not None else list(self.state.effects)
+    def submit_step(self, name: str, step: Callable[..., object]) -> bool:
+        """:meth:`run_step`, False silently if another job runs (the refit that follows a rejection)."""
+        inputs = self.job_inputs()
+        return self.submit_job(name, lambda: step(inputs=inputs))
 
     def _job_failed(self, exc: BaseException) -> None:
         self.progress = None
@@ -516,7 +518,13 @@ class Controller:
         self.residual_nT = res if residual_nT is None else np.asarray(residual_nT, float)
 
     def _changes(
-        self, old: Calibration | None, new: Calibration, rms_before: float, rms_after: float, tensor_before=None
+        self,
+        old: Calibration | None,
+        new: Calibration,
+        rms_before: float,
+        rms_after: float,
+        tensor_before=None,
+        kept: np.ndarray | None = None,
     ) -> str:
         """One line: RMS before -> after, and how much each parameter group moved."""
         parts = [f"RMS {format_number(rms_before)} -> {format_number(rms_after)} nT"]
@@ -529,7 +537,7 @@ class Controller:
             if new.n_sensors > 1:  # one sensor's rotation is the identity: nothing to say
                 moved += f", R up to {format_number(dr * 3600, 3)} arcsec"
             parts.append(moved)
-        t = self.tensor_rms()
+        t = self.tensor_rms(kept)
         if t is not None and t["after"] is not None:
             worst = max(t["after"].values())
             prev = max(tensor_before.values()) if tensor_before else max(t["before"].values())
@@ -537,20 +545,30 @@ class Controller:
         return "; ".join(parts)
 
     def _record(
-        self, step: str, old: Calibration | None, rms_before: float, t0: float, tensor_before=None, fit=None, notes=()
+        self,
+        step: str,
+        inputs: JobInputs,
+        old: Calibration | None,
+        rms_before: float,
+        t0: float,
+        tensor_before=None,
+        fit=None,
+        notes=(),
     ) -> StepRecord:
-        rms_after = self.residual_rms_nT()
-        self._estimate_noise(fit)
+        """The history's row of a step that fitted ``inputs`` (its kept mask and model), and the message."""
+        kept = inputs.kept
+        rms_after = self.residual_rms_nT(kept)
+        self._estimate_noise(fit, kept)
         cal = self.calibration
         assert cal is not None  # every step leaves a calibration
         outcome = None if fit is None else fit.summary()
         rec = StepRecord(
             step=step,
             rms_nT=rms_after,
-            floor_nT=self.floor_nT(),
-            effects=self._job_effects(),
-            n_kept=int(self.kept.sum()),
-            changes=self._changes(old, cal, rms_before, rms_after, tensor_before),
+            floor_nT=self.floor_nT(kept),
+            effects=list(inputs.effects),
+            n_kept=int(kept.sum()),
+            changes=self._changes(old, cal, rms_before, rms_after, tensor_before, kept),
             elapsed_s=time.perf_counter() - t0,
             fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
         )
@@ -567,7 +585,6 @@ class Controller:
         with timing.span("publish"):
             self._emit(Change.RESULT)  # the refit is shown first: the held-out check below is a second, slower stage
             self._emit(Change.DIAGNOSIS)  # a new fit: the old diagnosis no longer applies (or was just cleared)
-        kept = self.kept.copy()
 
         def slow(still_current: Callable[[], bool] = lambda: True) -> None:
             with timing.span("heldout"):
@@ -600,30 +617,32 @@ class Controller:
     #: Fewest kept samples a fit is run on (the base model of one sensor has 9 parameters).
     MIN_KEPT = 20
 
-    def _check_kept(self) -> None:
-        n = int(self.kept.sum())
+    def _check_kept(self, kept: np.ndarray) -> None:
+        n = int(kept.sum())
         if n < self.MIN_KEPT:
             raise MagcalError(
                 f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
                 "rejection or restore samples (Outliers tab)"
             )
 
-    def _before(self):
-        self._check_kept()
-        rms = self.residual_rms_nT()
+    def _before(self, inputs: JobInputs):
+        self._check_kept(inputs.kept)
+        rms = self.residual_rms_nT(inputs.kept)
         if not np.isfinite(rms):
-            rms = _rms(self.raw_residual_nT()[:, self.kept])
-        t = self.tensor_rms()
+            rms = _rms(self.raw_residual_nT()[:, inputs.kept])
+        t = self.tensor_rms(inputs.kept)
         tb = (t["after"] or t["before"]) if t else None
         return self.calibration, rms, tb
 
-    def step_ellipsoid(self) -> StepRecord:
-        """Step 1: an ellipsoid per sensor (kept samples); the rotations between sensors are reset."""
+    def step_ellipsoid(self, *, inputs: JobInputs | None = None) -> StepRecord:
+        """Step 1: an ellipsoid per sensor (kept samples: ``inputs``', default those of now); the rotations between
+        sensors are reset."""
 
+        inputs = self.job_inputs() if inputs is None else inputs
         t0 = time.perf_counter()
-        old, rms0, tb = self._before()
+        old, rms0, tb = self._before(inputs)
         ds = self.fit_dataset()
-        kept_ds = ds.subset(self.kept)
+        kept_ds = ds.subset(inputs.kept)
         ref, kind = fitter.fit_reference(kept_ds, self.reference_arg)
         fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
         cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
@@ -631,41 +650,38 @@ class Controller:
         self.fit_result = None
         self.diagnosis = None
         self._set_calibration(cal)
-        return self._record("fit ellipsoid", old, rms0, t0, tb, notes=notes)
+        return self._record("fit ellipsoid", inputs, old, rms0, t0, tb, notes=notes)
 
-    def step_align(self) -> StepRecord:
-        """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b."""
+    def step_align(self, *, inputs: JobInputs | None = None) -> StepRecord:
+        """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b (kept
+        samples: ``inputs``', default those of now)."""
+        inputs = self.job_inputs() if inputs is None else inputs
 
         if self.dataset.n_sensors < 2:
             raise MagcalError("aligning needs at least two sensors; this file has one")
         if self.calibration is None:
             raise MagcalError("fit the ellipsoids first (step 1): alignment works on corrected vectors")
-        old, rms0, tb = self._before()
+        old, rms0, tb = self._before(inputs)
         t0 = time.perf_counter()
-        self._set_calibration(align_sensors(self.dataset.subset(self.kept), self.calibration))
-        return self._record("align sensors", old, rms0, t0, tb)
+        self._set_calibration(align_sensors(self.dataset.subset(inputs.kept), self.calibration))
+        return self._record("align sensors", inputs, old, rms0, t0, tb)
 
-    def _model(self):
+    def step_refine(self, label: str = "refine (ML)", *, inputs: JobInputs | None = None) -> StepRecord:
+        """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples (both ``inputs``',
+        default those of now)."""
 
-        effects = list(self.state.effects)
-        if getattr(self._job_pin, "kept", None) is not None:
-            self._job_pin.effects = effects  # the model this job fits (step_add has just added one)
-        return Model.from_names(effects, self.dataset.n_sensors)
-
-    def step_refine(self, label: str = "refine (ML)") -> StepRecord:
-        """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples."""
-
+        inputs = self.job_inputs() if inputs is None else inputs
         t0 = time.perf_counter()
-        old, rms0, tb = self._before()
+        old, rms0, tb = self._before(inputs)
         init = self.calibration
         ds = self.fit_dataset()
         with timing.span("fit"):
             result = fitter.fit(
                 ds,
-                self._model(),
+                Model.from_names(list(inputs.effects), self.dataset.n_sensors),
                 init=init,
                 loss="soft_l1" if self.state.robust else "linear",
-                mask=self.kept,
+                mask=inputs.kept,
                 reference_total_nT=self.reference_arg,
                 warn=False,
             )
@@ -673,16 +689,18 @@ class Controller:
         self.fit_result = result
         self.diagnosis = None
         self._set_calibration(result.calibration, result.residuals_all_nT)
-        return self._record(label, old, rms0, t0, tb, fit=result, notes=notes)
+        return self._record(label, inputs, old, rms0, t0, tb, fit=result, notes=notes)
 
-    def step_calibrate(self, method: str | None = None) -> StepRecord:
-        """The whole pipeline with the chosen method (ML, the two seed steps, or a global search)."""
+    def step_calibrate(self, method: str | None = None, *, inputs: JobInputs | None = None) -> StepRecord:
+        """The whole pipeline with the chosen method (ML, the two seed steps, or a global search), on the kept
+        samples with the model's effects (both ``inputs``', default those of now)."""
 
+        inputs = self.job_inputs() if inputs is None else inputs
         method = method or self.state.method
         t0 = time.perf_counter()
-        old, rms0, tb = self._before()
+        old, rms0, tb = self._before(inputs)
         self._report_progress(f"{method}: starting", 0.0)
-        effects = list(self.state.effects) if method == "ml" else []
+        effects = list(inputs.effects) if method == "ml" else []
         with timing.span("fit"):
             result = pipeline.calibrate(  # never warns: its concerns are in result.warnings, its notes in result.notes
                 self.fit_dataset(),
@@ -692,7 +710,7 @@ class Controller:
                 reference_total_nT=self.reference_arg,
                 seed=0,
                 progress=self._report_progress,
-                mask=self.kept,
+                mask=inputs.kept,
                 noise_nT=self.state.noise_nT,
             )
         self.fit_result = result.fit
@@ -701,12 +719,13 @@ class Controller:
         self.progress = None
         self._emit(Change.PROGRESS)
         name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
-        return self._record(name, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
+        return self._record(name, inputs, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
 
-    def step_vector(self):
+    def step_vector(self, *, inputs: JobInputs | None = None):
         """The attitude-aided vector fit beside the total-field fit (:meth:`VectorModel.fit`, the engine's
-        :func:`magcal.fitting.vector.fit_vector`); the total-field calibration is left as it is."""
-        return self.vector.fit()
+        :func:`magcal.fitting.vector.fit_vector`) on the kept samples (``inputs``', default those of now); the
+        total-field calibration is left as it is."""
+        return self.vector.fit(kept=None if inputs is None else inputs.kept)
 
     # ------------------------------------------------------------------------------------------------------
     # the loop: model, diagnose, add
@@ -848,14 +867,14 @@ class Controller:
         the data have the attitude and a field vector (columns, or the location typed in the page)."""
         return self.vector.available
 
-    def step_diagnose(self):
-        """Rank the candidate effects for the current fit (runs a base ML fit first if there is none); on a record
-        with attitude and a field vector, for the vector fit (:meth:`VectorModel.diagnose`)."""
+    def step_diagnose(self, *, inputs: JobInputs | None = None):
+        """Rank the candidate effects for the current fit (runs a base ML fit of ``inputs`` first if there is none);
+        on a record with attitude and a field vector, for the vector fit (:meth:`VectorModel.diagnose`)."""
 
         if self.vector_loop():
-            return self.vector.diagnose()
+            return self.vector.diagnose(kept=None if inputs is None else inputs.kept)
         if self.fit_result is None:
-            self.step_refine()
+            self.step_refine(inputs=inputs)
         self._report_progress("diagnosing", None)
         with timing.span("diagnose"):
             d = diagnose(
@@ -873,11 +892,13 @@ class Controller:
         )
         return d
 
-    def step_add(self, label: str | None = None):
-        """Put a candidate (the top one by default) into the model and refit; on a record with attitude and a field
-        vector, into the vector model (:meth:`VectorModel.add`)."""
+    def step_add(self, label: str | None = None, *, inputs: JobInputs | None = None):
+        """Put a candidate (the top one by default) into the model and refit (the kept samples and the model of
+        ``inputs``, default those of now, with the candidate); on a record with attitude and a field vector, into
+        the vector model (:meth:`VectorModel.add`)."""
         if self.vector_loop():
-            return self.vector.add(label)
+            return self.vector.add(label, kept=None if inputs is None else inputs.kept)
+        inputs = self.job_inputs() if inputs is None else inputs
         if label is None:
             if self.diagnosis is None or not self.diagnosis.candidates:
                 raise MagcalError("diagnose first: there is no suggested effect to add")
@@ -886,7 +907,7 @@ class Controller:
         if not self.state.add_effect(label):
             raise MagcalError(f"{label} is already in the model")
         self._emit(Change.MODEL)
-        return self.step_refine(label=f"add {label}")
+        return self.step_refine(label=f"add {label}", inputs=inputs.with_effect(label))
 
     # ------------------------------------------------------------------------------------------------------
     # outlier rejection

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from .actions import action
+
 
 class Downloads:
     """Sends files to the browser that asked; the last one is kept (:attr:`last`) for tests and scripts.
@@ -25,8 +27,10 @@ class Downloads:
         if client is not None:
             client.send_file_download(filename, content)
 
+    @action
     def do_download_calibration(self, event):
         self.send(event, "calibration.json", self._ctrl().calibration_json())
 
+    @action
     def do_download_corrected(self, event):
         self.send(event, "corrected.csv", self._ctrl().corrected_csv())

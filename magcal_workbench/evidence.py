@@ -8,6 +8,7 @@ import os
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .plots import evidence_figure, evidence_image
 from .timewindow import sample_times
 
@@ -18,23 +19,43 @@ PANELS_ASPECT = 3.0
 class Evidence:
     """The evidence plots of the current fit.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.panels.Panels` (made after this part).
+    window : magcal_workbench.timewindow.TimeWindow
+        The time scrubber's window (its band is shaded on the plots).
+    maps : magcal_workbench.maps.SphereMaps
+        The RMS before the last fit.
+    downloads : magcal_workbench.downloads.Downloads
+        Sends the PNG and SVG.
+    server : viser.ViserServer
+        Where the plotly figure is added.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, window, maps, downloads, server):
+        self._ctrl, self._panels = ctrl, panels
+        self.window, self.maps, self.downloads, self.server = window, maps, downloads, server
         #: The Model tab's plotly handle (made at the first fit).
         self.plot = None
 
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
     def band(self):
         """The time window's bounds (s) shaded on the plots, or None when the window is off."""
-        wb = self.wb
-        return wb.window.bounds_s(sample_times(wb.ctrl.dataset)) if wb.window.enabled else None
+        return self.window.bounds_s(sample_times(self.ctrl.dataset)) if self.window.enabled else None
 
     def title(self) -> str:
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         vector = ctrl.vector_loop()
         model = ", ".join(ctrl.vector.effects if vector else ctrl.state.effects) or "base terms only"
         which = "vector model" if vector else "model"
@@ -42,35 +63,39 @@ class Evidence:
 
     def candidate(self) -> str | None:
         """The Candidate chosen in the Model tab (the vector model's plots put its channel on their axis)."""
-        value = self.wb.panels.candidate_choice.value
+        value = self.panels.candidate_choice.value
         return None if value == "-" else value
 
+    @action(name="draw_evidence")
     def draw(self) -> None:
-        wb = self.wb
         fig = evidence_figure(
-            wb.ctrl, window_s=self.band(), before_rms_nT=wb.maps.before_rms_nT(wb.ctrl), candidate=self.candidate()
+            self.ctrl,
+            window_s=self.band(),
+            before_rms_nT=self.maps.before_rms_nT(self.ctrl),
+            candidate=self.candidate(),
         )
         if fig is None:
             if self.plot is not None:
                 self.plot.visible = False
             return
-        if wb.panels.evidence_overlay.visible:
+        if self.panels.evidence_overlay.visible:
             self.show_full(True)
         # viser's client draws plotly at height = width * aspect (the docstring says width/height): a panel is as
         # tall as a quarter of 3 widths, however many there are (the vector model's five)
         rows = sum(1 for key in fig.layout.to_plotly_json() if key.startswith("yaxis"))
         aspect = max(PANELS_ASPECT, 0.75 * rows)
         if self.plot is None:
-            with wb.panels.evidence_holder:
-                self.plot = wb.server.gui.add_plotly(fig, aspect=aspect)
+            with self.panels.evidence_holder:
+                self.plot = self.server.gui.add_plotly(fig, aspect=aspect)
         else:
             self.plot.figure = fig
             self.plot.aspect = aspect
             self.plot.visible = True
 
     def image(self, fmt: str) -> bytes:
-        wb = self.wb
-        data = evidence_image(wb.ctrl, fmt, self.band(), self.title(), wb.maps.before_rms_nT(wb.ctrl), self.candidate())
+        data = evidence_image(
+            self.ctrl, fmt, self.band(), self.title(), self.maps.before_rms_nT(self.ctrl), self.candidate()
+        )
         if data is None:
             raise MagcalError("fit first: the evidence plots show the residuals of a fit")
         return data
@@ -78,7 +103,7 @@ class Evidence:
     def show_full(self, on: bool) -> None:
         """Show (or hide) the evidence plots over the canvas, left of the panel: a PNG drawn by the engine's
         numbers (:func:`magcal_workbench.plots.evidence_image`), the same data as the Model tab's plots."""
-        panels = self.wb.panels
+        panels = self.panels
         overlay = panels.evidence_overlay
         if not on:
             overlay.visible = False
@@ -94,11 +119,14 @@ class Evidence:
         overlay.visible = True
         panels.btn_full_evidence.label = "Back to the scene"
 
+    @action
     def do_full_evidence(self, event):
-        self.show_full(not self.wb.panels.evidence_overlay.visible)
+        self.show_full(not self.panels.evidence_overlay.visible)
 
+    @action
     def do_download_evidence_png(self, event):
-        self.wb.downloads.send(event, "evidence.png", self.image("png"))
+        self.downloads.send(event, "evidence.png", self.image("png"))
 
+    @action
     def do_download_evidence_svg(self, event):
-        self.wb.downloads.send(event, "evidence.svg", self.image("svg"))
+        self.downloads.send(event, "evidence.svg", self.image("svg"))

@@ -46,6 +46,7 @@ from magcal.core.errors import MagcalError
 from magcal.output import bundle, formats
 from magcal.output.vehicle_params import default_backup_path, send_parameters, values_to_send
 
+from .actions import action
 from .dataio import canonical_csv
 from .live import recording_folder
 from .markup import hide_paths, safe_code, safe_text
@@ -182,6 +183,7 @@ class Exporting:
         live_source.on_update(lambda event: self.wb.handle(lambda e: self.refresh(), event))
         self.refresh()
 
+    @action(name="refresh_export")
     def refresh(self) -> None:
         if self.section is None:
             return
@@ -237,10 +239,12 @@ class Exporting:
             self.section.info.content = text
         self.wb.ctrl.say(text)
 
+    @action
     def do_export_calibration(self, event):
         _, content = self._calibration()
         self._send(event, bundle.CALIBRATION_FILE, content)
 
+    @action
     def do_export_format(self, event, fmt):
         """The file of the export format ``fmt`` (:data:`magcal.output.formats.EXPORT_FORMATS`)."""
         calibration, _ = self._calibration()
@@ -248,33 +252,28 @@ class Exporting:
         content, result = bundle.parameter_bytes(calibration, fmt, force=force)
         self._send(event, formats.get_format(fmt).file_name, content, [f"dropped: {d}" for d in result.dropped])
 
-    def do_export_ardupilot(self, event):
-        self.do_export_format(event, "ardupilot")
-
-    def do_export_px4(self, event):
-        self.do_export_format(event, "px4")
-
-    def do_export_c(self, event):
-        self.do_export_format(event, "c")
-
     def _export_corrected(self, event, kind):
         calibration, _ = self._calibration()
         with tempfile.TemporaryDirectory(prefix="magcal-page-export-") as folder:
             content, notes = bundle.corrected_bytes(calibration, self._data_file(folder), kind)
         self._send(event, bundle.CORRECTED_FILES[kind], content, notes)
 
+    @action
     def do_export_csv(self, event):
         self._export_corrected(event, "csv")
 
+    @action
     def do_export_parquet(self, event):
         self._export_corrected(event, "parquet")
 
+    @action
     def do_export_mask(self, event):
         calibration, _ = self._calibration()
         ctrl = self.wb.ctrl
         content, notes = bundle.raw_mask_bytes(calibration, ctrl.dataset, ctrl.state.kept)
         self._send(event, bundle.MASK_FILE, content, notes)
 
+    @action
     def do_export_all(self, event):
         calibration, _ = self._calibration()
         ctrl = self.wb.ctrl
@@ -317,6 +316,7 @@ class Exporting:
             return Path(wb.store.folder(sid))
         return recording_folder(wb.store)
 
+    @action
     def do_send_preview(self, event):
         """First click: read the vehicle's current values (nothing is written) and show old -> new."""
         url, firmware, values = self._target()
@@ -332,11 +332,13 @@ class Exporting:
 
         wb.ctrl.run_job("read the vehicle's parameters", job)
 
+    @action
     def do_send_cancel(self, event):
         with self._lock:
             self._pending = None
         self._show_send("_Nothing was written._")
 
+    @action
     def do_send_confirm(self, event):
         """Second click: write what was previewed, if nothing changed since, and show the read-back."""
         url, firmware, values = self._target()

@@ -18,6 +18,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .events import Change
 from .gravitymodel import GravityModel, accel_cloud, dip_series, rose, table_markdown
 from .scene import GROUP_DZ, sphere_mesh
@@ -106,12 +107,16 @@ class GravityPage:
 
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
-        Gives ``ctrl`` (the opened data), ``server`` (the scene), ``steps`` (the readings check) and ``handle``.
+    ctrl, steps : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.steps.Steps` (their check of the readings), handed instead of the workbench
+        (issue 43 item 5).
+    server : viser.ViserServer
+        The scene the accelerometer's cloud is drawn in.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, steps, server):
+        self._ctrl, self._steps, self.server = ctrl, steps, server
         self._models: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.cloud_on = False
         self.nodes: dict = {}
@@ -119,7 +124,7 @@ class GravityPage:
     @property
     def model(self) -> GravityModel:
         """The gravity model of the opened data (one per controller)."""
-        ctrl = self.wb.ctrl
+        ctrl = self._ctrl()
         model = self._models.get(ctrl)
         if model is None:
             model = self._models[ctrl] = GravityModel(ctrl)
@@ -133,10 +138,10 @@ class GravityPage:
         gui = panels.gui
         with panels.section("Calibrate", "Gravity model (beside an accelerometer)", expand=True):
             self.info = gui.add_markdown("")
-            self.btn_fit = panels._button(
-                gui,
+            self.btn_fit = panels.button(
                 "Run the gravity fit (beside the accelerometer)",
-                self.do_gravity_fit,
+                panels.on.do_gravity_fit,
+                engine=True,
                 color="teal",
                 hint="magcal's fit_gravity: the magnetometer's matrix, bias and rotation into the accelerometer's "
                 "frame with the accelerometer's bias and scale, so that the dip (the angle between the field and "
@@ -153,18 +158,20 @@ class GravityPage:
                 "samples (they measure gravity), grey the others",
             )
             self.cloud_info = gui.add_markdown("")
-        self.cloud_box.on_update(lambda e: self.wb.handle(self.do_accel_cloud, e))
+        self.cloud_box.on_update(lambda e: panels.handle(panels.on.do_accel_cloud, e))
         self.refresh()
 
     # --- page actions --------------------------------------------------------------------------------------
+    @action
     def do_gravity_fit(self, event):
         """Calibrate tab: the gravity fit beside the total-field fit, in the worker."""
-        self.wb.steps.check_readings()
+        self._steps().check_readings()
         gm = self.model
         if not gm.available:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
-        self.wb.ctrl.run_job("gravity fit", gm.fit)
+        self._ctrl().run_step("gravity fit", lambda inputs: gm.fit(kept=inputs.kept))
 
+    @action
     def do_accel_cloud(self, event):
         """View tab: show or hide the accelerometer's cloud and sphere."""
         self.cloud_on = bool(self.cloud_box.value)
@@ -197,7 +204,7 @@ class GravityPage:
         """Draw (or remove) the accelerometer's cloud and sphere."""
         if not hasattr(self, "cloud_info"):
             return
-        scene = self.wb.server.scene
+        scene = self.server.scene
         data = accel_cloud(self.model) if self.cloud_on else None
         if data is None:
             for handle in self.nodes.values():

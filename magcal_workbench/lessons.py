@@ -22,6 +22,7 @@ from pathlib import Path
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .dataio import load_dataset
 from .markup import clean_text, safe_text
 
@@ -251,6 +252,7 @@ class LessonDesk:
     def show_guide(self, lesson: Lesson) -> None:
         self.wb.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
 
+    @action
     def do_open_lesson(self, event):
         wb = self.wb
         slug = wb.values.check(wb.panels.lesson_choice)
@@ -277,6 +279,7 @@ class LessonDesk:
             raise MagcalError("open a lesson first (Lessons tab)")
         return lesson_or_error(state.lesson)
 
+    @action
     def do_check_lesson(self, event):
         ctrl = self.wb.ctrl
         lesson = self.current()
@@ -286,6 +289,7 @@ class LessonDesk:
         self.wb.panels.lesson_feedback.content = result["message"]
         self.wb.ctrl.say(result["message"])
 
+    @action
     def do_show_answer(self, event):
         lesson = self.current()
         ctrl = self.wb.ctrl

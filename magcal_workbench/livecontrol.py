@@ -8,6 +8,7 @@ import threading
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .controller import MESSAGE_LEN
 from .dataio import load_dataset
 from .live import LiveView, SourceMenu, default_recording_path, recording_folder, shown_name
@@ -89,27 +90,32 @@ class LiveControl:
             template=check(p.live_template),
         )
 
+    @action
     def do_live_list(self, event):
         """List the sources again (a serial port plugged in, a new recording)."""
         p = self.wb.panels
         p.live_source.options = self.menu.labels()
 
+    @action
     def do_live_start(self, event):
         wb = self.wb
         url = self.page_url()
         live = self.start(url)
         wb.ctrl.say(f"live from {safe_code(url)}: recording to {safe_code(live.name)}")
 
+    @action
     def do_live_pause(self, event):
         if self.running:
             self.view.pause()
         self.wb.panels.refresh_live()
 
+    @action
     def do_live_resume(self, event):
         if self.running:
             self.view.resume()
         self.wb.panels.refresh_live()
 
+    @action
     def do_live_stop(self, event):
         """Stop the live session and open its recording like any file (Calibrate and Model work on it); say how
         many samples it holds and where (inside the session folder), and why it stopped early if it did."""

@@ -659,6 +659,12 @@ class Panels:
         self.values.shown_by(handle, shown)
         return handle
 
+    def button(self, label: str, handler, engine: bool = False, **kw):
+        """A button in the section being built (an added panel's, :mod:`magcal_workbench.panelkit`): a click calls
+        ``handler(event)`` through the workbench's error handling; ``engine``: disabled while a job runs (a button
+        that starts an engine step); ``kw`` go to viser's ``add_button`` (``color``, ``hint``, ``visible``)."""
+        return self._button(self.gui, label, handler, engine=engine, **kw)
+
     def _button(self, gui, label, handler, engine=True, **kw):
         b = gui.add_button(label, **kw)
         b.on_click(lambda event: self.handle(handler, event))

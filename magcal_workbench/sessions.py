@@ -12,6 +12,7 @@ import sys
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .controller import MESSAGE_LEN, Controller, unsaved_problem
 from .dataio import load_dataset
 from .markup import clean_text, hide_paths, safe_code, safe_text
@@ -112,6 +113,7 @@ class Sessions:
             raise MagcalError("no saved session chosen")
         return sid
 
+    @action
     def do_reopen(self, event):
         sid = self._chosen()
         path = self.store.data_path(sid)  # refuses a name outside the session folder
@@ -131,6 +133,7 @@ class Sessions:
 
         wb.ctrl.run_job("reopen session", job)
 
+    @action
     def do_delete_session(self, event):
         """Delete the chosen saved session's folder (not the one open now)."""
         sid = self._chosen()
@@ -142,6 +145,7 @@ class Sessions:
         self.wb.panels.refresh_sessions()
         ctrl.say(f"deleted session {safe_code(sid)} ({freed / 1e6:.1f} MB)")
 
+    @action
     def do_fresh(self, event):
         wb, ctrl = self.wb, self.wb.ctrl
 

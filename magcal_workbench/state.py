@@ -296,6 +296,47 @@ def effect_name(label: str) -> str:
     return label.partition(":")[0]
 
 
+def with_effect(effects, label: str) -> list[str]:
+    """``effects`` with ``label`` added as :meth:`SessionState.add_effect` adds it (unchanged if it, or the same
+    effect for all sensors, is in already; an all-sensor label replaces the per-sensor ones of its effect)."""
+    label = label.strip()
+    effects = list(effects)
+    name = effect_name(label)
+    if label in effects or name in effects:
+        return effects
+    if ":" not in label:
+        effects = [e for e in effects if effect_name(e) != name]
+    return effects + [label]
+
+
+@dataclass(frozen=True)
+class JobInputs:
+    """What an engine step works on, fixed when the step is asked for (:meth:`SessionState.job_inputs`) and handed
+    to it as an argument: a rejection or a ticked effect made while the step runs in the worker changes neither
+    what it fits nor what its history row says it fitted (no thread-local or other hidden state).
+
+    Parameters
+    ----------
+    kept : numpy.ndarray of bool, shape (N,)
+        The samples the step fits (copied, read-only).
+    effects : sequence of str
+        The model's effect labels beyond the base terms (a tuple).
+    """
+
+    kept: np.ndarray
+    effects: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        kept = np.array(self.kept, dtype=bool)  # its own copy: the state's mask goes on changing
+        kept.setflags(write=False)
+        object.__setattr__(self, "kept", kept)
+        object.__setattr__(self, "effects", tuple(self.effects))
+
+    def with_effect(self, label: str) -> JobInputs:
+        """The same samples, with ``label`` added to the model (:func:`with_effect`)."""
+        return JobInputs(self.kept, tuple(with_effect(self.effects, label)))
+
+
 class SessionState:
     """All user-facing state of one workbench session.
 
@@ -384,16 +425,18 @@ class SessionState:
     # --- model ----------------------------------------------------------------------------------------------
     def add_effect(self, label: str) -> bool:
         """Add an effect label; returns False if it (or the same effect for all sensors) is already in."""
-        label = label.strip()
         with self._lock:
-            name = effect_name(label)
-            if label in self.effects or name in self.effects:
+            effects = with_effect(self.effects, label)  # an all-sensor term replaces per-sensor ones of its effect
+            if effects == self.effects:
                 return False
-            if ":" not in label:  # the all-sensor term replaces per-sensor ones of the same effect
-                self.effects = [e for e in self.effects if effect_name(e) != name]
-            self.effects.append(label)
+            self.effects = effects
             self.touch()
             return True
+
+    def job_inputs(self) -> JobInputs:
+        """The kept mask and the model's effects of this moment, fixed for a step (:class:`JobInputs`)."""
+        with self._lock:
+            return JobInputs(self._selection.kept, tuple(self.effects))
 
     def remove_effect(self, name: str) -> bool:
         """Remove every label of an effect (``name``) or one exact label; returns True if any went."""

@@ -12,28 +12,48 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 
+from .actions import action
 from .markup import safe_text
 
 
 class Steps:
     """The Calibrate, Model and Outliers tabs' actions.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.panels.Panels` (made after this part).
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
+    worker : magcal_workbench.jobs.Worker
+        The one worker (a refit follows the running job).
+    local : callable
+        ``local()``: whether the page is served to this machine only (an effects file may load only then; asked
+        at each load, as the workbench's :attr:`~magcal_workbench.app.Workbench.local` may change).
+    effects_gate : magcal_workbench.consent.EffectsFiles
+        Which effects files the page may load.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, values, worker, local, effects_gate):
+        self._ctrl, self._panels, self._local = ctrl, panels, local
+        self.values, self.worker, self.effects_gate = values, worker, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
 
     @property
     def ctrl(self):
-        return self.wb.ctrl
+        return self._ctrl()
 
-    def _job(self, name, func) -> bool:
-        return self.ctrl.run_job(name, func)
+    @property
+    def panels(self):
+        return self._panels()
+
+    def _step(self, name, step) -> bool:
+        """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""
+        return self.ctrl.run_step(name, step)
 
     def check_readings(self) -> None:
         """Refuse an engine step on a sensor whose kept readings are all one vector (a zero-filled file, a
@@ -50,83 +70,96 @@ class Steps:
                 )
 
     # --- engine steps -------------------------------------------------------------------------------------
+    @action
     def do_ellipsoid(self, event):
         self.check_readings()
-        self._job("fit ellipsoid", self.ctrl.step_ellipsoid)
+        self._step("fit ellipsoid", self.ctrl.step_ellipsoid)
 
+    @action
     def do_align(self, event):
         self.check_readings()
-        self._job("align sensors", self.ctrl.step_align)
+        self._step("align sensors", self.ctrl.step_align)
 
+    @action
     def do_refine(self, event):
         self.check_readings()
-        self._job("refine", self.ctrl.step_refine)
+        self._step("refine", self.ctrl.step_refine)
 
+    @action
     def do_calibrate(self, event):
         self.check_readings()
-        self._job(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
+        self._step(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
 
+    @action
     def do_diagnose(self, event):
         self.check_readings()
-        self._job("diagnose", self.ctrl.step_diagnose)
+        self._step("diagnose", self.ctrl.step_diagnose)
 
+    @action
     def do_add(self, event):
         self.check_readings()
-        choice = self.wb.values.check(self.wb.panels.candidate_choice)
+        choice = self.values.check(self.panels.candidate_choice)
         label = None if choice == "-" else choice
         ctrl = self.ctrl
-        self._job("add effect", lambda: ctrl.step_add(label))
+        self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs))
 
+    @action
     def do_apply_noise(self, event) -> None:
-        value = float(self.wb.values.check(self.wb.panels.noise_input))
+        value = float(self.values.check(self.panels.noise_input))
         self.ctrl.set_noise(value if value > 0 else None)
 
+    @action
     def do_load_effects(self, event):
         """Load the effects file typed in the Model tab (runs its code: only when served to this machine, and only
         a file named on the command line or confirmed in the terminal, :class:`magcal_workbench.consent.EffectsFiles`)."""
-        if not self.wb.local:
+        if not self._local():
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
-        path = self.wb.values.check(self.wb.panels.effects_path)
-        gate = self.wb.effects_gate  # only a file of the command line, or one confirmed in the terminal
+        path = self.values.check(self.panels.effects_path)
+        gate = self.effects_gate  # only a file of the command line, or one confirmed in the terminal
         why = gate.refusal(path)
         if why is not None:
             raise MagcalError(why)
         ctrl = self.ctrl
-        self._job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
+        ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
 
+    @action
     def do_load_session_effects(self, event):
         """Load the effects files the open session names (runs their code: the user asked; only when served to
         this machine, and each only if named on the command line or confirmed in the terminal)."""
-        if not self.wb.local:
+        if not self._local():
             raise MagcalError(
                 "loading an effects file runs its Python code on the server; it is allowed only when "
                 "the workbench serves this machine (127.0.0.1). Start it with --effects-file instead"
             )
-        ctrl, gate = self.ctrl, self.wb.effects_gate
+        ctrl, gate = self.ctrl, self.effects_gate
         refused = [gate.refusal(p) for p in ctrl.pending_effects_files()]
         if refused and all(refused):  # none may load: said at once
             raise MagcalError("; ".join(str(r) for r in refused))
-        self._job(
+        ctrl.run_job(
             "load the session's effects files",
             lambda: ctrl.load_session_effects_files(permit=lambda p: gate.permit(p, ctrl.say)),
         )
 
     # --- outliers -----------------------------------------------------------------------------------------
+    @action
     def do_threshold(self, event):
-        self.ctrl.reject_threshold(float(self.wb.values.check(self.wb.panels.k_sigma)))
+        self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
         self.maybe_refit()
 
+    @action
     def do_undo(self, event):
         self.ctrl.undo()
         self.maybe_refit()
 
+    @action
     def do_redo(self, event):
         self.ctrl.redo()
         self.maybe_refit()
 
+    @action
     def do_reset(self, event):
         self.ctrl.reset_selection()
         self.maybe_refit()
@@ -139,8 +172,8 @@ class Steps:
     def maybe_refit(self):
         """Refit after a change of the selection when Refit after each change is on and there is a fit; while a
         job runs, the refit follows it."""
-        ctrl, worker = self.ctrl, self.wb.worker
-        if not (self.wb.panels.auto_refit.value and ctrl.calibration is not None):
+        ctrl, worker = self.ctrl, self.worker
+        if not (self.panels.auto_refit.value and ctrl.calibration is not None):
             return
         with self._pending_lock:
             busy = worker.busy or self.refit_pending
@@ -149,7 +182,7 @@ class Steps:
         if busy:
             ctrl.say(f"{ctrl.message}; the refit follows when {safe_text(worker.current or 'the running step')} ends")
             return
-        if not ctrl.submit_job("refit", ctrl.step_refine):
+        if not ctrl.submit_step("refit", ctrl.step_refine):
             with self._pending_lock:  # a job started in between: the refit follows it
                 self.refit_pending = True
             if not worker.busy:  # ... unless it has already ended
@@ -163,13 +196,13 @@ class Steps:
 
     def run_pending_refit(self) -> None:
         """The refit asked for while a job ran (a rejection during a fit), now that the job has ended."""
-        self.wb.worker.wait()
+        self.worker.wait()
         with self._pending_lock:
             if not self.refit_pending:
                 return
             self.refit_pending = False
             ctrl = self.ctrl
-            if ctrl.calibration is None or not self.wb.panels.auto_refit.value:
+            if ctrl.calibration is None or not self.panels.auto_refit.value:
                 return
-            if not ctrl.submit_job("refit", ctrl.step_refine):
+            if not ctrl.submit_step("refit", ctrl.step_refine):
                 self.refit_pending = True  # another job started first: its end starts the refit

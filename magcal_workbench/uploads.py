@@ -12,6 +12,7 @@ from magcal.core.errors import MagcalError
 from magcal.data.logs import is_log
 
 from . import viser_adapter
+from .actions import action
 from .controller import MESSAGE_LEN
 from .dataio import canonical_csv, page_words, read_bytes_dataset
 from .markup import clean_text, safe_code, safe_text
@@ -109,6 +110,7 @@ class Uploads:
         self.start_handler = viser_adapter.watch_upload_starts(wb.server, upload_handle, refuse)
         self.part_handler = viser_adapter.watch_upload_parts(wb.server, upload_handle, arrived)
 
+    @action
     def do_upload(self, event):
         up = self.wb.panels.upload.value
         name, content = clean_upload_name(up.name), up.content
@@ -123,6 +125,7 @@ class Uploads:
         self.last = (name, content)
         self.open(name, content)
 
+    @action
     def do_reread(self, event):
         """Read the last upload again with the Files tab's Columns, Units and LSB (no new upload needed)."""
         if self.last is None:

@@ -350,7 +350,7 @@ class VectorModel:
         robust = bool(ctrl.state.robust if robust is None else robust)
         noise_nT = ctrl.state.noise_nT if noise_nT is None else float(noise_nT)
         effects = list(self.effects if effects is None else effects)
-        before = self.vector_row() if self.result is not None else None
+        before = self.vector_row(kept) if self.result is not None else None
         ctrl._report_progress("vector fit (attitude-aided)", None)
         try:
             ref = self.reference()
@@ -377,7 +377,7 @@ class VectorModel:
                 "noise_nT": noise_nT,
                 "effects": list(effects),
             }
-            row = self.vector_row()
+            row = self.vector_row(kept)
             elapsed = time.perf_counter() - t0
             if not again:
                 ctrl.state.vector_history.append(
@@ -414,20 +414,22 @@ class VectorModel:
     def _key(kept, effects, robust, noise_nT) -> tuple:
         return (pack_mask(kept), tuple(effects), bool(robust), noise_nT)
 
-    def is_current(self) -> bool:
-        """Whether the last fit is of the kept samples, robust loss and noise the session asks for now."""
+    def is_current(self, kept: np.ndarray | None = None) -> bool:
+        """Whether the last fit is of the kept samples (``kept``, default: those of now), robust loss and noise the
+        session asks for now."""
         ctrl = self.ctrl
         if self.result is None:
             return False
-        return self._fit_key == self._key(ctrl.kept, self.effects, ctrl.state.robust, ctrl.state.noise_nT)
+        kept = ctrl.kept if kept is None else kept
+        return self._fit_key == self._key(kept, self.effects, ctrl.state.robust, ctrl.state.noise_nT)
 
     # --- the loop: diagnose, add ------------------------------------------------------------------------------
-    def diagnose(self):
+    def diagnose(self, kept: np.ndarray | None = None):
         """Diagnose the vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): every catalogue effect the
         vector fit can take refitted with the vector model, judged on the world N/E/D residuals and |B| on the
         later part of the record, as ``magcal apply`` applies it. The fit runs first when there is none of the
-        kept samples and settings of now. Rejected samples are left out of the diagnosis (it runs on the kept
-        ones).
+        kept samples (``kept``, default: those of now) and settings of now. Rejected samples are left out of the
+        diagnosis (it runs on the kept ones).
 
         Returns
         -------
@@ -438,13 +440,13 @@ class VectorModel:
         MagcalError
             No attitude or reference, too few samples (the engine's message).
         """
-        if not self.is_current():
-            self.fit()
         ctrl = self.ctrl
+        kept = ctrl.kept if kept is None else kept
+        if not self.is_current(kept):
+            self.fit(kept)
         ds, ref = self.dataset, self.reference()
         if ref is None:
             raise MagcalError("the vector diagnosis needs the field vector: " + " and ".join(self.missing()))
-        kept = ctrl.kept
         options = {"robust": bool(ctrl.state.robust), "noise_nT": ctrl.state.noise_nT}
         ctrl._report_progress("diagnosing the vector fit", None)
         try:
@@ -482,9 +484,9 @@ class VectorModel:
         first.sort(key=lambda c: (not c.recommended, c.delta_bic))
         return list(dict.fromkeys(c.label for c in first))
 
-    def add(self, label: str | None = None):
+    def add(self, label: str | None = None, kept: np.ndarray | None = None):
         """Put a candidate (the recommended one by default, else the best) into the vector model and refit
-        (:meth:`fit` with the effects).
+        (:meth:`fit` with the effects, on ``kept``: default the kept samples of now).
 
         Raises
         ------
@@ -507,16 +509,17 @@ class VectorModel:
         if label in self.effects or name in self.effects:
             raise MagcalError(f"{label} is already in the vector model")
         effects = [e for e in self.effects if ":" in label or effect_name(e) != name] + [label]
-        return self.fit(effects=effects, step=f"vector: add {label}")
+        return self.fit(kept, effects=effects, step=f"vector: add {label}")
 
-    def remove(self, label: str | None = None):
-        """Take an effect (the last added by default) out of the vector model and refit."""
+    def remove(self, label: str | None = None, kept: np.ndarray | None = None):
+        """Take an effect (the last added by default) out of the vector model and refit (on ``kept``: default the
+        kept samples of now)."""
         if not self.effects:
             raise MagcalError("the vector model holds no effect beyond the base terms")
         label = self.effects[-1] if label is None else label
         if label not in self.effects:
             raise MagcalError(f"{clean_text(repr(label), 80)} is not in the vector model")
-        return self.fit(effects=[e for e in self.effects if e != label], step=f"vector: remove {label}")
+        return self.fit(kept, effects=[e for e in self.effects if e != label], step=f"vector: remove {label}")
 
     def plot_evidence(self) -> dict | None:
         """The evidence plots' data (every sample): the diagnosis's (:attr:`magcal.diagnosis.vector.VectorDiagnosis.
@@ -599,13 +602,13 @@ class VectorModel:
             return None
         return self.world_nT - self.reference_ned_nT[None]
 
-    def vector_row(self) -> FitRow:
-        """The vector fit's column of the comparison (kept samples)."""
+    def vector_row(self, kept: np.ndarray | None = None) -> FitRow:
+        """The vector fit's column of the comparison (kept samples: ``kept``, default those of now)."""
         row = FitRow("vector (attitude-aided)")
         res, resid = self.result, self.world_residual_nT()
         if res is None or resid is None or self.world_nT is None or self.reference_ned_nT is None:
             return row
-        kept = self.ctrl.kept
+        kept = self.ctrl.kept if kept is None else kept
         ref_total = np.linalg.norm(self.reference_ned_nT, axis=1)
         total = np.linalg.norm(self.world_nT, axis=2) - ref_total[None]
         row.total_field_rms_nT = float(_rms(total[:, kept]))

@@ -23,6 +23,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import wxyz_rotation
 
+from .actions import action
 from .events import Change
 from .timewindow import sample_times
 
@@ -207,6 +208,7 @@ class VehicleView:
         return self.wb.panels.vector_panel
 
     # --- page actions --------------------------------------------------------------------------------------
+    @action
     def do_vector_fit(self, event):
         """Calibrate tab: the vector fit (attitude-aided) beside the total-field fit, in the worker."""
         self.wb.steps.check_readings()
@@ -214,22 +216,26 @@ class VehicleView:
         missing = ctrl.vector.missing()
         if missing:
             raise MagcalError("the vector fit needs " + " and ".join(missing))
-        ctrl.run_job("vector fit", ctrl.step_vector)
+        ctrl.run_step("vector fit", ctrl.step_vector)
 
+    @action
     def do_remove_vector_effect(self, event):
         """Model tab: take the effect added last out of the vector model and refit, in the worker."""
         self.wb.steps.check_readings()
         ctrl = self.wb.ctrl
-        ctrl.run_job("take out of the vector model", lambda: ctrl.vector.remove())
+        ctrl.run_step("take out of the vector model", lambda inputs: ctrl.vector.remove(kept=inputs.kept))
 
+    @action
     def do_use_location(self, event):
         """Calibrate tab: IGRF at the typed place and date becomes the reference (scalar and vector)."""
         p, check = self._panel, self.wb.values.check
         self.wb.ctrl.vector.set_location(check(p.lat), check(p.lon), check(p.alt), check(p.date))
 
+    @action
     def do_forget_location(self, event):
         self.wb.ctrl.vector.clear_location()
 
+    @action
     def do_vehicle_view(self, event):
         """View tab: show or hide the vehicle view; showing it turns the time window on (the scrubber moves the
         body) and points the cameras at it."""
@@ -245,6 +251,7 @@ class VehicleView:
             self.wb.view.reset_cameras()
         self._panel.refresh_vehicle()
 
+    @action
     def do_vehicle_options(self, event):
         """The residual exaggeration changed (0: automatic)."""
         self.wb.values.check(self._panel.vehicle_gain)
@@ -452,6 +459,7 @@ class VehicleView:
             self.nodes.clear()
             self._static_drawn = False
 
+    @action(name="vehicle_text")
     def describe(self) -> str:
         """The View tab's line about the vehicle view (markdown, escaped)."""
         vm = self.wb.ctrl.vector

@@ -15,6 +15,7 @@ from magcal.data.attitude import attitude_quaternions
 
 from . import motion
 from . import scene as scn
+from .actions import action
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .timewindow import sample_times
@@ -58,26 +59,67 @@ def ring_directions(dataset, corrected_nT, current: int | None):
 class SceneControl:
     """The scene, the camera, pointer events and the View tab's actions.
 
+    Handed what it uses, no more (issue 43 item 5): the parts made before it as they are, those made after it or
+    replaced when other data open as getters (called when used).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels, scene_view, live, steps, vehicle : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller`, the
+        :class:`~magcal_workbench.panels.Panels`, the :class:`~magcal_workbench.scene.SceneView`, the live view
+        (:class:`~magcal_workbench.live.LiveView` or None), the :class:`~magcal_workbench.steps.Steps` (the refit
+        after a box rejection) and the :class:`~magcal_workbench.vehicleview.VehicleView`.
+    maps : magcal_workbench.maps.SphereMaps
+        The sphere surfaces.
+    window : magcal_workbench.timewindow.TimeWindow
+        The time scrubber's window.
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
+    ui : magcal_workbench.uiqueue.UiQueue
+        The page's thread (playback hands its moves to it).
+    server : viser.ViserServer
+        Its connected clients' cameras.
+    evidence : magcal_workbench.evidence.Evidence
+        The evidence plots (their band follows the scrubber).
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, scene_view, live, steps, vehicle, maps, window, values, ui, server, evidence):
+        self._ctrl, self._panels, self._scene_view = ctrl, panels, scene_view
+        self._live_view, self._steps, self._vehicle = live, steps, vehicle
+        self.maps, self.window, self.values, self.ui, self.server = maps, window, values, ui, server
+        self.evidence = evidence
         self._lock = threading.RLock()
         self._last_evidence_t = 0.0
 
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
+    @property
+    def scene_view(self):
+        return self._scene_view()
+
+    @property
+    def steps(self):
+        return self._steps()
+
+    @property
+    def vehicle(self):
+        return self._vehicle()
+
     def _live(self):
-        live = self.wb.live
+        live = self._live_view()
         return live if live is not None and live.active else None
 
     # --- the scene ----------------------------------------------------------------------------------------
     def scene_model(self) -> scn.SceneModel:
-        wb = self.wb
         live = self._live()
         if live is not None:  # a live session owns the scene until it stops
-            model = live.scene_model(wb.panels.view_options())
+            model = live.scene_model(self.panels.view_options())
             if model is not None:
                 ds = live.dataset()  # it may have grown since the model was made: take the model's samples
                 n = len(model.kept)
@@ -86,7 +128,7 @@ class SceneControl:
                 return dataclasses.replace(
                     model, fast=None if fast is None else fast[:n], ring=ring_directions(ds, corrected, n - 1)
                 )
-        ctrl = wb.ctrl
+        ctrl = self.ctrl
         ds = ctrl.dataset
         shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
         cal = ctrl.calibration
@@ -103,7 +145,7 @@ class SceneControl:
             for s in shown
         ]
         times = sample_times(ds)
-        current = wb.window.current(times)
+        current = self.window.current(times)
         return scn.SceneModel(
             sensors=views,
             n_sensors=ds.n_sensors,
@@ -113,46 +155,45 @@ class SceneControl:
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
             inspected=ctrl.inspected,
-            window=wb.window.mask(times),
+            window=self.window.mask(times),
             current=current,
             fast=motion.fast_turning(ds),
             ring=None if current is None else ring_directions(ds, views[0].corrected_nT if views else None, current),
-            **wb.panels.view_options(),
+            **self.panels.view_options(),
         )
 
     def update_scene(self) -> None:
         with self._lock:
-            self.wb.scene_view.update(self.scene_model())
+            self.scene_view.update(self.scene_model())
 
     def recolor(self) -> None:
         """The selection changed: recolour the points (and keep the inspected sample marked)."""
-        wb = self.wb
-        wb.scene_view.recolor(self.scene_model())
-        if wb.ctrl.inspected is not None:
-            wb.scene_view.mark_inspected(wb.ctrl.inspected)
+        self.scene_view.recolor(self.scene_model())
+        if self.ctrl.inspected is not None:
+            self.scene_view.mark_inspected(self.ctrl.inspected)
 
+    @action
     def legend_html(self) -> str:
-        wb = self.wb
         live = self._live()
-        fitted = (live.fit is not None) if live is not None else wb.ctrl.calibration is not None
+        fitted = (live.fit is not None) if live is not None else self.ctrl.calibration is not None
         title = "total-field residual" if fitted else "raw |y| - F"
-        html = scn.legend_html(wb.scene_view.last_limit_nT, title)
-        if wb.maps.patterns and live is None:
+        html = scn.legend_html(self.scene_view.last_limit_nT, title)
+        if self.maps.patterns and live is None:
             html += scn.legend_html(
-                wb.maps.limit_nT, f"sphere surface: {wb.maps.choice}; grey: not visited", swatches=False
+                self.maps.limit_nT, f"sphere surface: {self.maps.choice}; grey: not visited", swatches=False
             )
         return html
 
     # --- cameras ------------------------------------------------------------------------------------------
     def reset_cameras(self) -> None:
-        for client in self.wb.server.get_clients().values():
+        for client in self.server.get_clients().values():
             self.place_camera(client)
 
     def place_camera(self, client) -> None:
-        if self.wb.vehicle.enabled:  # the vehicle view is shown: its camera (a browser that joins sees it too)
-            self.wb.vehicle.place_camera(client)
+        if self.vehicle.enabled:  # the vehicle view is shown: its camera (a browser that joins sees it too)
+            self.vehicle.place_camera(client)
             return
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         live = self._live()
         ds = live.dataset() if live is not None and live.dataset() is not None else ctrl.dataset
         n_sensors = ds.n_sensors if live is not None else ctrl.dataset.n_sensors
@@ -172,12 +213,12 @@ class SceneControl:
     def on_click(self, event) -> None:
         if self._live() is not None:
             return  # the points of a stream are not the opened data's samples
-        sv = self.wb.scene_view
+        sv = self.scene_view
         d = sv.displayed
         if d.positions.shape[0] == 0:
             return
         i, _ = scn.nearest_to_ray(d.positions, event.ray_origin, event.ray_direction, max_distance=4 * sv.point_size)
-        self.wb.ctrl.inspect(None if i is None else int(d.samples[i]))
+        self.ctrl.inspect(None if i is None else int(d.samples[i]))
 
     def on_rect_select(self, event) -> None:
         cam = event.client.camera
@@ -185,52 +226,54 @@ class SceneControl:
 
     def select_in_rect(self, wxyz, position, fov, aspect, screen_min, screen_max) -> int:
         """Reject (or restore, by the panel's mode) the samples whose shown points fall in a screen box."""
-        wb = self.wb
         if self._live() is not None:
             raise MagcalError("stop the live session first: rejecting works on the recording once it is opened")
-        samples = wb.scene_view.samples_in_rect(wxyz, position, fov, aspect, screen_min, screen_max)
+        samples = self.scene_view.samples_in_rect(wxyz, position, fov, aspect, screen_min, screen_max)
         if samples.size == 0:
-            wb.ctrl.say("the box holds no point")
+            self.ctrl.say("the box holds no point")
             return 0
-        n = wb.ctrl.select(samples, wb.values.check(wb.panels.box_mode))
-        wb.steps.maybe_refit()
+        n = self.ctrl.select(samples, self.values.check(self.panels.box_mode))
+        self.steps.maybe_refit()
         return n
 
     # --- the View tab -------------------------------------------------------------------------------------
+    @action
     def set_sensor(self, choice: str) -> None:
         """Show one sensor (``"sensor 2"``) or all of them (the panels' sensor choice)."""
-        wb = self.wb
-        if choice not in wb.values.allowed(wb.panels.sensor_choice):
+        if choice not in self.values.allowed(self.panels.sensor_choice):
             raise MagcalError(f"no sensor choice {clean_text(repr(choice), 40)}; refused")
-        wb.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
+        self.ctrl.configure(sensor=None if choice == ALL_SENSORS else int(choice.split()[-1]) - 1)
         self.update_scene()
-        wb.maps.draw()
+        self.maps.draw()
         self.reset_cameras()
 
+    @action
     def view_changed(self, event):
         self.update_scene()
-        self.wb.panels.legend.content = self.legend_html()
+        self.panels.legend.content = self.legend_html()
 
+    @action
     def refresh_maps(self) -> None:
         """Recompute and redraw the sphere surfaces for the current choice; an engine refusal becomes the note."""
-        wb = self.wb
         try:
-            wb.maps.refresh()
+            self.maps.refresh()
         except MagcalError as exc:
-            wb.maps.patterns, wb.maps.note = [], str(exc)
-            wb.maps.clear()
-        wb.panels.maps_info.content = safe_text(wb.maps.describe(), 600)
-        wb.panels.legend.content = self.legend_html()
+            self.maps.patterns, self.maps.note = [], str(exc)
+            self.maps.clear()
+        self.panels.maps_info.content = safe_text(self.maps.describe(), 600)
+        self.panels.legend.content = self.legend_html()
 
+    @action
     def surface_changed(self, event):
-        self.wb.maps.choice = self.wb.values.check(self.wb.panels.surface_choice)
+        self.maps.choice = self.values.check(self.panels.surface_choice)
         self.refresh_maps()
 
     # --- the time scrubber --------------------------------------------------------------------------------
+    @action
     def window_changed(self, event):
         """A Time window widget moved: take its values (checked) into the window, which redraws."""
-        p, check = self.wb.panels, self.wb.values.check
-        self.wb.window.set(
+        p, check = self.panels, self.values.check
+        self.window.set(
             enabled=bool(check(p.window_on)),
             start_pct=float(check(p.window_start)),
             width_pct=float(check(p.window_width)),
@@ -238,34 +281,35 @@ class SceneControl:
         )
 
     def window_moved(self) -> None:
-        wb = self.wb
         self.update_scene()
-        wb.vehicle.redraw()  # the vehicle view follows the scrubber's current sample
-        times = sample_times(wb.ctrl.dataset)
-        wb.panels.window_info.content = safe_text(wb.window.describe(times))
+        self.vehicle.redraw()  # the vehicle view follows the scrubber's current sample
+        times = sample_times(self.ctrl.dataset)
+        self.panels.window_info.content = safe_text(self.window.describe(times))
         now = time.monotonic()
-        if not wb.window.playing or now - self._last_evidence_t > 1.0:  # the plots' band: at most once a second
+        if not self.window.playing or now - self._last_evidence_t > 1.0:  # the plots' band: at most once a second
             self._last_evidence_t = now
-            wb.evidence.draw()
+            self.evidence.draw()
 
+    @action
     def do_play(self, event):
         """Replay the recording: the window's start advances at the Play speed until the end or Pause."""
-        wb = self.wb
-        times = sample_times(wb.ctrl.dataset)
-        if not wb.panels.window_on.value:
-            wb.panels.window_on.value = True  # its callback turns the window on
-        slider = wb.panels.window_start
+        times = sample_times(self.ctrl.dataset)
+        if not self.panels.window_on.value:
+            self.panels.window_on.value = True  # its callback turns the window on
+        slider = self.panels.window_start
 
         def advance(pct):  # the playback's thread hands the move to the page's thread (and waits for it)
-            wb.ui.run(lambda: setattr(slider, "value", round(pct, 1)))
+            self.ui.run(lambda: setattr(slider, "value", round(pct, 1)))
 
-        wb.window.play(float(np.nanmax(times) - np.nanmin(times)), advance=advance)
-        wb.panels.window_info.content = safe_text(wb.window.describe(times))
+        self.window.play(float(np.nanmax(times) - np.nanmin(times)), advance=advance)
+        self.panels.window_info.content = safe_text(self.window.describe(times))
 
+    @action
     def do_pause_play(self, event):
-        self.wb.window.pause()
+        self.window.pause()
         self.window_moved()
 
+    @action
     def do_show_all(self, event):
-        self.wb.window.pause()
-        self.wb.panels.window_on.value = False  # its callback shows every sample
+        self.window.pause()
+        self.panels.window_on.value = False  # its callback shows every sample

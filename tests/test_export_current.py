@@ -366,7 +366,7 @@ def test_the_page_exports_what_the_command_line_writes(flights, bench, tmp_path,
     cal, two = flights["current_A"]
     wb = bench(ds=two, name="flight.csv")
     wb.ctrl.calibration = cal  # a vector calibration with its current term
-    wb.handle(wb.exporting.do_export_ardupilot, None)
+    wb.handle(wb.exporting.do_export_format, None, "ardupilot")
     name, content = wb.downloads.last
     assert name == "compass.parm" and b"COMPASS_MOTCT,2" in content
     (tmp_path / "cli").mkdir()

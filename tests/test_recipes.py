@@ -1,13 +1,14 @@
 """CONTRIBUTING.md's recipes, each walked through from a temporary file: a toy effect, a toy export format, a toy
-live source and a toy command, added the way the recipe says and then used through the command line.
+live source and a toy command, added the way the recipe says and then used through the command line, and a toy
+workbench panel, built in a headless workbench and driven.
 
 The effect comes from a file given with ``--effects-file``; the export format, the live source and the command
 from a temporary *installed distribution* (a folder on ``PYTHONPATH`` with a ``.dist-info`` holding
 ``entry_points.txt``), which is how a package outside magcal adds them: the entry-point groups
 ``magcal.export_formats``, ``magcal.live_sources`` and ``magcal.commands``. The commands run in a fresh process,
 as a user runs them. Each toy's output is checked against what it must be (the calibration's own numbers, the
-synthetic lines' values), not against a recorded copy. The workbench *panel* recipe is not walked here: the
-workbench's tests drive panels.
+synthetic lines' values), not against a recorded copy. The panel comes from an installed distribution too (the
+entry-point group ``magcal_workbench.panels``), loaded in this process as ``magcal-workbench`` loads it at start.
 """
 
 from __future__ import annotations
@@ -327,3 +328,83 @@ def test_recipe_command_from_an_installed_package(tmp_path, calibration_file):
     broken = magcal_cli(["toy-biases", calibration_file], site)
     assert broken.returncode == 2 and "cannot be imported" in broken.stderr and "Traceback" not in broken.stderr
     assert magcal_cli(["effects"], site).returncode == 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a workbench panel (CONTRIBUTING: "a workbench panel")
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_PANEL = '''
+    """A toy workbench panel: a section of the Outliers tab that says how many samples are kept, with a button that
+    rejects the first ten."""
+
+    from magcal_workbench.actions import action
+    from magcal_workbench.events import Change
+    from magcal_workbench.panelkit import PanelKind, register_panel
+
+
+    class KeptCount:
+        def __init__(self, context):
+            self.ctrl = context.ctrl  # a getter: the open data's controller
+            self.text = self.button = None
+
+        def attach(self, panels):
+            with panels.section("Outliers", "Toy: kept samples"):
+                self.text = panels.gui.add_markdown("")
+                self.button = panels.button("Reject the first ten", panels.on.do_toy_reject_first)
+            self.show()
+
+        def show(self):
+            ctrl = self.ctrl()
+            self.text.content = f"{int(ctrl.kept.sum())} of {ctrl.dataset.n_samples} kept"
+
+        def changed(self, kind):
+            if kind in (Change.SELECTION, Change.DATA):
+                self.show()
+
+        @action
+        def do_toy_reject_first(self, event):
+            self.ctrl().select(range(10), what="the first ten")
+
+
+    TOY = register_panel(PanelKind("toy-kept", "how many samples are kept", KeptCount))
+'''
+
+
+def test_recipe_panel_from_an_installed_package_is_built_and_its_button_works(tmp_path, monkeypatch):
+    pytest.importorskip("viser")
+    from viser import GuiEvent
+
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.panelkit import PANELS
+
+    site = install_distribution(
+        tmp_path / "site",
+        {"toy_panel": TOY_PANEL},
+        {"magcal_workbench.panels": {"toy-kept": "toy_panel:TOY"}},
+        "toy panel",
+    )
+    monkeypatch.syspath_prepend(str(site))
+    try:
+        loaded = PANELS.load_entry_points(force=True)  # what magcal-workbench does when it starts
+        assert list(loaded) == ["toy-kept"] and not loaded.notes
+        assert PANELS.origin("toy-kept").startswith("entry point toy-kept = toy_panel:TOY")
+        assert list(PANELS) == ["gravity", "toy-kept"]  # the built-in one first
+        n = 120
+        wb = Workbench(magcal.simulate_timeseries("chi2017", n_samples=n, seed=5, rate_hz=2.0), port=0, store=None)
+        try:
+            panel = wb.added["toy-kept"]
+            assert panel.text.content == f"{n} of {n} kept"  # built, and shown the open data
+            assert wb.actions.owner("do_toy_reject_first") == "KeptCount"
+            panel.button._impl.value = True  # a click, as a browser's arrives: the callbacks run
+            for callback in list(panel.button._impl.update_cb):
+                callback(GuiEvent(None, None, panel.button))
+            assert wb.ctrl.state.selection.rejected_indices.tolist() == list(range(10))
+            assert panel.text.content == f"{n - 10} of {n} kept"  # the panel follows the controller's events
+            wb.ctrl.undo()
+            assert panel.text.content == f"{n} of {n} kept"
+        finally:
+            wb.stop()
+    finally:
+        PANELS.unregister("toy-kept")
+        sys.modules.pop("toy_panel", None)

@@ -152,7 +152,7 @@ def test_refusals_are_readme_lines_and_messages_not_crashes(bench):
     wb = bench()  # the four-sensor cross: no single-compass firmware file holds it
     wb.steps.do_calibrate(None)
     assert wb.worker.wait(120) and wb.ctrl.calibration is not None
-    wb.handle(wb.exporting.do_export_ardupilot, None)
+    wb.handle(wb.exporting.do_export_format, None, "ardupilot")
     assert "sensor 4 would go to slot 4" in wb.ctrl.message
     wb.handle(wb.exporting.do_export_all, None)
     name, content = wb.downloads.last
@@ -182,7 +182,7 @@ def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path)
     _as_browser(panels.live_port, port)
 
     (tmp_path / "cli").mkdir()
-    wb.handle(wb.exporting.do_export_ardupilot, None)
+    wb.handle(wb.exporting.do_export_format, None, "ardupilot")
     params = parse_parameter_file(wb.downloads.last[1].decode())
     with FakeAutopilot({n: -7.5 for n in params}, port) as fake:
         wb.handle(wb.exporting.do_send_preview, None)

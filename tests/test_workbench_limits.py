@@ -233,6 +233,65 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
     assert ctrl.state.selection.n_rejected == 37
 
 
+def test_a_job_fits_the_model_it_started_with_when_an_effect_is_ticked_meanwhile(bench, monkeypatch):
+    fit_module = importlib.import_module("magcal.fitting.fitter")
+    wb = bench()
+    ctrl = wb.ctrl
+    ctrl.worker.run_now("ellipsoid", ctrl.step_ellipsoid)
+    entered, release = threading.Event(), threading.Event()
+    fitted_models = []
+    original = fit_module.fit
+
+    def slow_fit(ds, model, *args, **kwargs):
+        fitted_models.append([e.name for e, _ in model.instances()])
+        if len(fitted_models) == 1:
+            entered.set()
+            assert release.wait(WAIT_S)
+        return original(ds, model, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "fit", slow_fit)
+    rows = len(ctrl.state.history)
+    wb.handle(wb.steps.do_refine, None)
+    assert entered.wait(WAIT_S)
+    assert ctrl.set_effect("temperature_bias", True)  # another page ticks an effect while the fit runs
+    release.set()
+    assert wb.worker.wait(WAIT_S)
+    row = ctrl.state.history[rows]
+    assert fitted_models[0] == [] and row.effects == []  # the model of the moment Refine was clicked
+    assert ctrl.state.effects == ["temperature_bias"]  # the tick stands, for the next step
+    assert ctrl.calibration is not None and ctrl.calibration.model is not None
+    assert [e.name for e, _ in ctrl.calibration.model.instances()] == []
+
+
+def test_job_inputs_are_a_fixed_copy_and_add_an_effect_as_the_state_does():
+    from magcal_workbench.state import JobInputs
+
+    st = SessionState(10, 2)
+    st.effects = ["temperature_bias:1", "bias_drift"]
+    inputs = st.job_inputs()
+    st.selection.reject([3, 4])
+    st.add_effect("nonlinearity_cubic")
+    assert inputs.kept.all() and inputs.effects == ("temperature_bias:1", "bias_drift")
+    with pytest.raises(ValueError):
+        inputs.kept[0] = False  # read-only: nothing downstream changes what the job fits
+    for label in ("temperature_bias", "bias_drift", "temperature_bias:2", "bias_drift:1"):
+        again = SessionState(10, 2)
+        again.effects = list(inputs.effects)
+        again.add_effect(label)
+        assert list(inputs.with_effect(label).effects) == again.effects
+    assert JobInputs(np.ones(3, bool)).effects == ()
+
+
+def test_no_thread_local_state_in_the_workbench():
+    import pathlib
+
+    import magcal_workbench
+
+    for path in sorted(pathlib.Path(magcal_workbench.__file__).parent.glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        assert "threading.local" not in text and "from threading import local" not in text, path.name
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # limits
 # ---------------------------------------------------------------------------------------------------------------

@@ -376,10 +376,10 @@ def test_second_click_while_a_fit_runs_starts_nothing(bench):
     calls = []
     real = wb.ctrl.step_calibrate
 
-    def slow():
+    def slow(**kw):  # the step's JobInputs (the kept mask and model of the click)
         gate.wait(30)
         calls.append("fit")
-        return real()
+        return real(**kw)
 
     wb.ctrl.step_calibrate = slow
     wb.panels.btn_run.value = True

@@ -1,0 +1,89 @@
+"""The workbench's added panels: a section of controls in a tab, written in one file (issue 43 item 8).
+
+A panel is a class whose instance has
+
+* ``attach(panels)``: makes its widgets, each inside a section of a tab (``with panels.section("Files",
+  "My panel"): ...``), its buttons with :meth:`Panels.button(label, panels.on.NAME)
+  <magcal_workbench.panels.Panels.button>` and its inputs through ``panels.w`` (their values checked);
+* its handlers, methods marked :func:`@action <magcal_workbench.actions.action>`, which the widgets call by name
+  (``panels.on.NAME``; a name another part already offers stops the workbench at start);
+* optionally ``changed(kind)``: the controller's events (:class:`magcal_workbench.events.Change`), on the page's
+  thread, to follow the data, the fit and the selection.
+
+It is made by its :class:`PanelKind`'s ``make(context)`` from a :class:`PanelContext` (what a panel is handed: the
+open data's controller, the steps, the server; never the whole workbench) and registered in :data:`PANELS`, the
+one list of them: magcal's own (the gravity model's page) below, another package's through the entry-point group
+``magcal_workbench.panels`` (loaded when the workbench starts), or a module that calls :func:`register_panel`
+before a :class:`~magcal_workbench.app.Workbench` is made. Each panel is built in the order registered, after the
+built-in tabs; the physics stays in the engine (a panel calls the controller, which calls it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from magcal.core.registry import Registry
+
+from .gravitypage import GravityPage
+
+
+@dataclass(frozen=True)
+class PanelContext:
+    """What a panel is handed (a narrow interface, not the workbench).
+
+    Parameters
+    ----------
+    ctrl : callable
+        ``ctrl()``: the open data's :class:`~magcal_workbench.controller.Controller` (another one when other data
+        open: call it each time).
+    steps : callable
+        ``steps()``: the :class:`~magcal_workbench.steps.Steps` (``check_readings``, ``maybe_refit``).
+    server : viser.ViserServer
+        The server (its scene, for a panel that draws in 3-D).
+    """
+
+    ctrl: Callable[[], Any]
+    steps: Callable[[], Any]
+    server: Any
+
+
+@dataclass(frozen=True)
+class PanelKind:
+    """A panel the workbench builds.
+
+    Parameters
+    ----------
+    name : str
+        Its name (lower-case letters, digits, ``_`` or ``-``).
+    description : str
+        One line: what it shows and does.
+    make : callable
+        ``make(context: PanelContext)``: the panel (``attach(panels)``, its ``@action`` handlers, optionally
+        ``changed(kind)``).
+    """
+
+    name: str
+    description: str
+    make: Callable[[PanelContext], Any]
+
+
+#: Every panel the workbench builds, in order: magcal's own, then those registered by a module or an installed
+#: package (entry-point group ``magcal_workbench.panels``).
+PANELS: Registry[PanelKind] = Registry("workbench panel", "magcal_workbench.panels", PanelKind)
+
+
+def register_panel(kind: PanelKind, replace: bool = False) -> PanelKind:
+    """Add ``kind`` to :data:`PANELS` (returns it); a name already registered is refused unless ``replace``."""
+    return PANELS.register(kind, replace=replace, depth=2)
+
+
+PANELS.register(
+    PanelKind(
+        name="gravity",
+        description="the gravity model: a compass beside an accelerometer, its fit, plots and cloud (issue 42)",
+        make=lambda c: GravityPage(ctrl=c.ctrl, steps=c.steps, server=c.server),
+    ),
+    origin="built-in",
+)
