@@ -206,8 +206,8 @@ class Cockpit:
             return 0
         t0, t1 = range_bounds_s(times, p.range_from.value, p.range_to.value)
         what = f"time range {t0:.4g}-{t1:.4g} s"
-        n = ctrl.select(idx, mode, what=f"{'exclude' if mode == 'reject' else 'include'} {what}")
-        wb.steps.maybe_refit()
+        with wb.steps.changing_selection():
+            n = ctrl.select(idx, mode, what=f"{'exclude' if mode == 'reject' else 'include'} {what}")
         return n
 
     @action
@@ -227,5 +227,5 @@ class Cockpit:
         fast = motion.fast_turning(wb.ctrl.dataset)
         if fast is None or not fast.any():
             raise MagcalError("no sample was taken while turning fast (or the data have no gyro or attitude)")
-        wb.ctrl.select(np.flatnonzero(fast), "reject", what=f"exclude {int(fast.sum())} fast-turning samples")
-        wb.steps.maybe_refit()
+        with wb.steps.changing_selection():
+            wb.ctrl.select(np.flatnonzero(fast), "reject", what=f"exclude {int(fast.sum())} fast-turning samples")

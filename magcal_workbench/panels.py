@@ -12,6 +12,7 @@ through :mod:`workbench.markup` before it joins markdown.
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -616,6 +617,10 @@ class Panels:
         tabs = gui.add_tab_group()
         self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
         self._engine_buttons: list = []
+        #: A change of the selection leaves the cockpit's figures to the refit that follows (:meth:`figures_held`),
+        #: and whether some were left.
+        self._figures_held = False
+        self._figures_stale = False
         self._bindings: list = []  # (widget, the state's value as the widget shows it)
         self._live_shown = False  # the tabs describe a live session's stream
         #: The tabs by name (:meth:`section` adds to them).
@@ -1166,6 +1171,8 @@ class Panels:
             self.progress.value = 0.0
             self.progress.animated = True
             self.progress_text.content = f"Running: {safe_text(name)}..."
+        else:  # a refit that failed, or never came, leaves no figure stale (figures_held)
+            self._catch_up_figures()
 
     def set_progress(self, message: str, fraction) -> None:
         self.progress_text.content = safe_text(message)
@@ -1262,7 +1269,34 @@ class Panels:
         self.vector_panel.refresh(kinds)
         if live is not None and live.active:
             self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
+        elif kinds == {"selection"} and self._figures_held:
+            self._figures_stale = True  # the refit that follows draws them (issue 44)
         elif everything or kinds & {"result", "selection", "data", "settings", "model"}:
+            self._figures_stale = False
+            self.on.draw_cockpit()
+
+    @contextmanager
+    def figures_held(self, held: bool = True):
+        """Within: a change of the selection leaves the cockpit's figures (the table, |B| against time, the
+        histogram) to the refit that follows it, which redraws them with its result (issue 44: at 4 x 1e5 samples
+        the figures take about as long as the refit). The scene's colours and the texts follow at once.
+
+        Figures left are drawn when the next job ends (:meth:`set_busy`), whatever its outcome, or at once if the
+        block fails, so they never stay stale.
+        """
+        self._figures_held = held
+        try:
+            yield
+        except BaseException:
+            self._figures_held = False
+            self._catch_up_figures()
+            raise
+        finally:
+            self._figures_held = False
+
+    def _catch_up_figures(self) -> None:
+        if self._figures_stale:
+            self._figures_stale = False
             self.on.draw_cockpit()
 
     def show_live_texts(self, live) -> None:

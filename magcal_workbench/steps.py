@@ -7,6 +7,7 @@ rejection made while a job runs is refitted after it (:meth:`Steps.maybe_refit`)
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -146,34 +147,46 @@ class Steps:
     # --- outliers -----------------------------------------------------------------------------------------
     @action
     def do_threshold(self, event):
-        self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
-        self.maybe_refit()
+        with self.changing_selection():
+            self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
 
     @action
     def do_undo(self, event):
-        self.ctrl.undo()
-        self.maybe_refit()
+        with self.changing_selection():
+            self.ctrl.undo()
 
     @action
     def do_redo(self, event):
-        self.ctrl.redo()
-        self.maybe_refit()
+        with self.changing_selection():
+            self.ctrl.redo()
 
     @action
     def do_reset(self, event):
-        self.ctrl.reset_selection()
-        self.maybe_refit()
+        with self.changing_selection():
+            self.ctrl.reset_selection()
 
     # --- the refit after a rejection ----------------------------------------------------------------------
     def forget_pending(self) -> None:
         """New data: a refit asked for on the old data is dropped."""
         self.refit_pending = False
 
+    def refit_follows(self) -> bool:
+        """Whether a change of the selection is followed by a refit (:meth:`maybe_refit`)."""
+        return bool(self.panels.auto_refit.value and self.ctrl.calibration is not None)
+
+    @contextmanager
+    def changing_selection(self):
+        """A change of the selection, then the refit that follows it (:meth:`maybe_refit`). The cockpit's
+        figures wait for the refit's result instead of being drawn twice (:meth:`Panels.figures_held`)."""
+        with self.panels.figures_held(self.refit_follows()):
+            yield
+        self.maybe_refit()
+
     def maybe_refit(self):
         """Refit after a change of the selection when Refit after each change is on and there is a fit; while a
         job runs, the refit follows it."""
         ctrl, worker = self.ctrl, self.worker
-        if not (self.panels.auto_refit.value and ctrl.calibration is not None):
+        if not self.refit_follows():
             return
         with self._pending_lock:
             busy = worker.busy or self.refit_pending

@@ -232,8 +232,8 @@ class SceneControl:
         if samples.size == 0:
             self.ctrl.say("the box holds no point")
             return 0
-        n = self.ctrl.select(samples, self.values.check(self.panels.box_mode))
-        self.steps.maybe_refit()
+        with self.steps.changing_selection():
+            n = self.ctrl.select(samples, self.values.check(self.panels.box_mode))
         return n
 
     # --- the View tab -------------------------------------------------------------------------------------

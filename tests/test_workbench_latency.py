@@ -201,3 +201,48 @@ def test_timing_spans_are_logged_only_when_asked(capsys):
     line = capsys.readouterr().err.strip()
     name, start, seconds = line.split()[1:]
     assert line.startswith("magcal-timing: fit ") and name == "fit" and float(seconds) >= 0.009
+
+
+def _excluded_in_figures(wb) -> bool:
+    """Whether the cockpit's last |B| figure was drawn from the record with its kept mask as it is now."""
+    from magcal_workbench.cockpit import controller_record
+    from magcal_workbench.plots import record_key
+
+    return wb.cockpit._keys.get("field", "").startswith(record_key(controller_record(wb.ctrl)))
+
+
+@pytest.mark.parametrize("refit_fails", [False, True])
+def test_a_selection_a_refit_follows_draws_the_figures_once_with_the_refit(bench, monkeypatch, refit_fails):
+    """Exclude range with Refit after each change on: the figures wait for the refit's result (one draw, not one
+    for the selection and one for the result); a refit that fails still leaves them showing the exclusion."""
+    wb = bench(store=False)
+    _press(wb, wb.panels.btn_run)
+    assert wb.worker.wait(120) and wb.panels.auto_refit.value
+    if refit_fails:
+
+        def broken(*args, **kwargs):
+            raise RuntimeError("the refit broke")
+
+        monkeypatch.setattr(wb.ctrl, "step_refine", broken)
+    steps = len(wb.ctrl.state.history)
+    wb.panels.range_from.value, wb.panels.range_to.value = 20.0, 30.0
+    built = wb.cockpit.n_built  # after the sliders' own redraw (the shaded range)
+    _press(wb, wb.panels.btn_exclude_range)
+    assert wb.worker.wait(120)
+    wb.ui.wait()
+    assert wb.ctrl.state.selection.n_rejected > 0
+    assert len(wb.ctrl.state.history) == steps + (0 if refit_fails else 1)
+    # built once (the table, |B| against time, the histogram): with the refit's result, or when the failed job ended
+    assert wb.cockpit.n_built == built + 3
+    assert _excluded_in_figures(wb)
+
+
+def test_a_selection_no_refit_follows_draws_the_figures_at_once(bench):
+    wb = bench(store=False)
+    _press(wb, wb.panels.btn_run)
+    assert wb.worker.wait(120)
+    wb.panels.auto_refit.value = False
+    built = wb.cockpit.n_built
+    _press(wb, wb.panels.btn_exclude_range)
+    assert wb.ctrl.state.selection.n_rejected > 0 and not wb.worker.busy
+    assert wb.cockpit.n_built == built + 3 and _excluded_in_figures(wb)
