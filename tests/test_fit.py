@@ -554,3 +554,43 @@ def test_one_step_from_afar_goes_on_to_the_minimum(n_sensors):
     assert limited.status in (1, 2, 3) and limited.nfev > 2
     sigma2 = full.rss / (full.n_residuals - full.n_params)
     assert abs(limited.rss - full.rss) <= 1e-3 * sigma2
+
+
+@pytest.mark.parametrize("hidden, effect", [("temperature_bias", "temperature_bias"), ("bias_drift", "bias_drift")])
+def test_a_warm_refit_after_add_or_exclude_reaches_the_cold_minimum(hidden, effect):
+    """The workbench's Add (the model grown by one term, warm from the base calibration) and Exclude range (a tenth
+    of the record left out, warm from the grown fit) land on the minimum a cold fit of the same model and samples
+    (the two seed steps, then ML) reaches: the same residual sum of squares, every parameter within 0.01 of its
+    standard error; and the added term takes up the hidden one (RMS at the noise floor). 4 x 6000 samples: large
+    enough for the fits to run BLAS on one thread (ONE_BLAS_THREAD_READINGS)."""
+    from scipy.spatial.transform import Rotation
+
+    from magcal.data.simulation import simulate_timeseries
+    from magcal.fitting import fitter, pipeline
+
+    n, noise = 6000, 2.0
+    assert 4 * n * 0.9 >= fitter.ONE_BLAS_THREAD_READINGS
+    perturbation = EFFECTS_BY_NAME[hidden]().perturbation(40.0, None)
+    ds = simulate_timeseries(chi2017_truth(), n_samples=n, noise_nT=noise, seed=21, perturbations=[perturbation])
+    model = Model.from_names([effect], 4)
+    kept = np.ones(n, bool)
+    kept[int(0.4 * n) : int(0.5 * n)] = False
+    base = fit(ds)
+    floor = conventions.total_field_floor_nT(noise, n, 9 + 3 + 3 / 4)
+    assert base.rms_nT > 1.1 * floor  # the hidden term shows without its effect
+    warm_add = fit(ds, model, init=base.calibration)
+    warm_exclude = fit(ds, model, init=warm_add.calibration, mask=kept)
+    for warm, mask in ((warm_add, None), (warm_exclude, kept)):
+        cold = pipeline.calibrate(ds, effects=[effect], mask=mask).fit
+        assert warm.success and cold.success
+        assert warm.rss == pytest.approx(cold.rss, rel=1e-9)
+        assert warm.rms_nT < 1.03 * floor
+        problem = warm.problem
+        rotation = np.zeros(warm.x.size, bool)
+        rotation[[i for i, name in enumerate(warm.param_names) if "_rotation_" in name]] = True
+        # C^-1, biases and the effect's parameters are absolute; the rotations are relative to each fit's start
+        assert np.max(np.abs(warm.x - cold.x)[~rotation] / warm.std[~rotation]) < 1e-2
+        pairs = zip(warm.calibration.sensors, cold.calibration.sensors)
+        angles_rad = [Rotation.from_matrix(a.R @ b.R.T).magnitude() for a, b in pairs]  # accurate when small
+        assert max(angles_rad) < 1e-2 * warm.std[rotation].min()
+        assert problem.n_samples == int((mask if mask is not None else np.ones(n, bool)).sum())

@@ -51,7 +51,7 @@ from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 
-from magcal.core import leftovers, memory
+from magcal.core import blas, leftovers, memory
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import Dataset
 
@@ -543,14 +543,9 @@ def start_workers(dataset=None, workers=None, scheduler=None, effects=(), readin
     return True
 
 
-_BLAS_LOCK = threading.Lock()
-_BLAS_USERS = 0
-_BLAS_LIMITER = None
-
-
-@contextlib.contextmanager
 def one_blas_thread(active=True):
-    """BLAS (and OpenMP) on one thread in this process while the block runs, when ``active``.
+    """BLAS (and OpenMP) on one thread in this process while the block runs, when ``active``
+    (:func:`magcal.core.blas.one_blas_thread`: one limit for the whole process, shared with the fits).
 
     A diagnosis's pool runs its fits side by side, on its threads or in worker processes that already run one BLAS
     thread each (:func:`_init_worker`); the calling process's own BLAS calls (the pool's threads, the score tests'
@@ -561,29 +556,8 @@ def one_blas_thread(active=True):
     samples on two threads 3.55 s with OpenBLAS's default threads, 1.98 s with one; 4 x 1e5 on two worker processes
     4.14 s against 3.64 s (the calling process's processor time 3.49 s against 1.87 s); on one core 6.03 s (using
     both cores) against 5.13 s.
-
-    The limit is the process's (threadpoolctl's limits are not per thread): set by the first diagnosis that enters,
-    put back by the last that leaves, so that two diagnoses at once (two sessions of the workbench) never leave it
-    changed.
     """
-    global _BLAS_USERS, _BLAS_LIMITER
-    if not active:
-        yield
-        return
-    with _BLAS_LOCK:
-        if _BLAS_USERS == 0:
-            from threadpoolctl import threadpool_limits
-
-            _BLAS_LIMITER = threadpool_limits(limits=1)
-        _BLAS_USERS += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS_USERS -= 1
-            if _BLAS_USERS == 0 and _BLAS_LIMITER is not None:
-                _BLAS_LIMITER.restore_original_limits()
-                _BLAS_LIMITER = None
+    return blas.one_blas_thread(active)
 
 
 _ENV_LOCK = threading.Lock()

@@ -31,6 +31,7 @@ from magcal.calibration.uncertainty import base_covariance
 from magcal.checks.reference import resolve_reference
 from magcal.core import conventions
 from magcal.core import notes as _notes
+from magcal.core.blas import one_blas_thread
 from magcal.core.errors import CalibrationError, ConvergenceWarning, DataWarning
 from magcal.core.notes import Note, row_runs
 from magcal.core.stats import robust_sigma
@@ -59,6 +60,14 @@ WARMUP_SAMPLES = 100_000
 #: After the warm-up, finish with one Gauss-Newton step over every sample when it lowers the cost as predicted
 #: (:func:`_fit_once`; False: iterate until the next step's predicted gain is below the tolerance, one more pass).
 ONE_STEP_AFTER_WARMUP = True
+
+#: Readings (kept samples times sensors) from which :func:`fit` runs BLAS on one thread
+#: (:func:`magcal.core.blas.one_blas_thread`): its normal equations are ``(k, m) @ (m, k)`` products of a few dozen
+#: columns, which OpenBLAS splits over the cores, and its threads spin while one waits for a core that anything
+#: else keeps busy (the workbench's browser drawing beside a refit). 2-core machine, load 5-8, 4 x 1e5 samples: a
+#: refit with one effect 8.9 s on the default two threads, 0.32 s on one; the base calibration 1.93 against 0.53 s
+#: (``benchmarks/refit_latency.py``). Below this the products are too small for OpenBLAS to split.
+ONE_BLAS_THREAD_READINGS = 20_000
 
 #: Typical change of each base parameter that moves the readings by about 1 nT in a 50 uT field.
 _CINV_SCALE = 2e-5
@@ -1028,42 +1037,44 @@ def fit(
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
     mask, gap_note = leave_out_rows_without_attitude(dataset, model, mask)
-    result = _fit_once(
-        dataset,
-        model,
-        init,
-        loss,
-        f_scale_nT,
-        mask,
-        reference_total_nT,
-        max_nfev,
-        cost_tolerance=cost_tolerance,
-        max_steps=max_steps,
-    )
-    # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
-    # more fit; the refined shape is kept only if it fits better
-    saved = [e.state() for e in model.effects]
-    context = RefineContext(result.problem, result.x)
-    if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
-        second = _fit_once(
+    # the normal equations' tall, thin products on one BLAS thread: see ONE_BLAS_THREAD_READINGS
+    with one_blas_thread(int(mask.sum()) * dataset.n_sensors >= ONE_BLAS_THREAD_READINGS):
+        result = _fit_once(
             dataset,
             model,
-            result.calibration,
+            init,
             loss,
             f_scale_nT,
             mask,
             reference_total_nT,
             max_nfev,
-            configure=False,
             cost_tolerance=cost_tolerance,
             max_steps=max_steps,
         )
-        if second.rss < result.rss:
-            second.nfev += result.nfev
-            result = second
-        else:
-            for e, state in zip(model.effects, saved):
-                e.set_state(state)
+        # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
+        # more fit; the refined shape is kept only if it fits better
+        saved = [e.state() for e in model.effects]
+        context = RefineContext(result.problem, result.x)
+        if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
+            second = _fit_once(
+                dataset,
+                model,
+                result.calibration,
+                loss,
+                f_scale_nT,
+                mask,
+                reference_total_nT,
+                max_nfev,
+                configure=False,
+                cost_tolerance=cost_tolerance,
+                max_steps=max_steps,
+            )
+            if second.rss < result.rss:
+                second.nfev += result.nfev
+                result = second
+            else:
+                for e, state in zip(model.effects, saved):
+                    e.set_state(state)
     if gap_note is not None:
         result.notes.insert(0, gap_note)
     result = _note_if_not_converged(result)
