@@ -228,7 +228,15 @@ class Workbench:
             effects_gate=self.effects_gate,
         )
         #: The vehicle view and the vector model's page actions (issue 29).
-        self.vehicle = VehicleView(self)
+        self.vehicle = VehicleView(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            steps=self.steps,
+            view=self.view,
+            values=self.values,
+            window=self.window,
+            server=self.server,
+        )
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
         #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
         #: (issue 42), then those a module or an installed package registered.
