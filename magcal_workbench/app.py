@@ -192,7 +192,16 @@ class Workbench:
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
         self.livectl = LiveControl(self, live_allow)
-        self.exporting = Exporting(self)
+        self.exporting = Exporting(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            handle=self.handle,
+            livectl=self.livectl,
+            downloads=self.downloads,
+            values=self.values,
+            store=self.store,
+            ui=self.ui,
+        )
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(

@@ -207,7 +207,7 @@ class VehicleView:
         The residual arrows' exaggeration in use.
     """
 
-    def __init__(self, *, ctrl, panels, steps, view, values, window, server):
+    def __init__(self, *, ctrl, panels, steps, view, values, window, server) -> None:
         self._ctrl, self._panels = ctrl, panels
         self.steps, self.view, self.values, self.window, self.server = steps, view, values, window, server
         self.enabled = False
