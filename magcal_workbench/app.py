@@ -191,7 +191,20 @@ class Workbench:
         self.uploads = Uploads(self, int(max_upload_mb * 1e6))
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(self)
-        self.livectl = LiveControl(self, live_allow)
+        self.livectl = LiveControl(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            scene_control=lambda: self.view,
+            scene_view=lambda: self.scene_view,
+            values=self.values,
+            local=self.local,
+            store=self.store,
+            server=self.server,
+            ui=self.ui,
+            load=self.load,
+            say_after_load=self.say_after_load,
+            live_allow=live_allow,
+        )
         self.exporting = Exporting(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,
