@@ -139,6 +139,7 @@ class Workbench:
     scene_view: scn.SceneView
     steps: Steps
     vehicle: VehicleView
+    gravity: GravityPage
 
     def __init__(
         self,
@@ -190,7 +191,15 @@ class Workbench:
         self.sessions = Sessions(self)
         self.uploads = Uploads(self, int(max_upload_mb * 1e6))
         self.downloads = Downloads(lambda: self.ctrl)
-        self.lessons = LessonDesk(self)
+        self.lessons = LessonDesk(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            gravity=lambda: self.gravity,
+            values=self.values,
+            ui=self.ui,
+            load=self.load,
+            say_after_load=self.say_after_load,
+        )
         self.livectl = LiveControl(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,
