@@ -189,7 +189,17 @@ class Workbench:
             self.server, ctrl=lambda: self.ctrl, candidate=lambda: self.panels.candidate_choice.value
         )
         self.sessions = Sessions(self)
-        self.uploads = Uploads(self, int(max_upload_mb * 1e6))
+        self.uploads = Uploads(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            values=self.values,
+            server=self.server,
+            ui=self.ui,
+            notify=self.notify,
+            load=self.load,
+            say_after_load=self.say_after_load,
+            max_upload_bytes=int(max_upload_mb * 1e6),
+        )
         self.downloads = Downloads(lambda: self.ctrl)
         self.lessons = LessonDesk(
             ctrl=lambda: self.ctrl,
