@@ -188,7 +188,16 @@ class Workbench:
         self.maps = SphereMaps(
             self.server, ctrl=lambda: self.ctrl, candidate=lambda: self.panels.candidate_choice.value
         )
-        self.sessions = Sessions(self)
+        self.sessions = Sessions(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            store=self.store,
+            effects_files=self.effects_files,
+            worker=self.worker,
+            values=self.values,
+            load=self.load,
+            say_after_load=self.say_after_load,
+        )
         self.uploads = Uploads(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,
