@@ -139,6 +139,7 @@ class Workbench:
     scene_view: scn.SceneView
     steps: Steps
     vehicle: VehicleView
+    gravity: GravityPage
 
     def __init__(
         self,
@@ -187,12 +188,61 @@ class Workbench:
         self.maps = SphereMaps(
             self.server, ctrl=lambda: self.ctrl, candidate=lambda: self.panels.candidate_choice.value
         )
-        self.sessions = Sessions(self)
-        self.uploads = Uploads(self, int(max_upload_mb * 1e6))
+        self.sessions = Sessions(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            store=self.store,
+            effects_files=self.effects_files,
+            worker=self.worker,
+            values=self.values,
+            load=self.load,
+            say_after_load=self.say_after_load,
+        )
+        self.uploads = Uploads(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            values=self.values,
+            server=self.server,
+            ui=self.ui,
+            notify=self.notify,
+            load=self.load,
+            say_after_load=self.say_after_load,
+            max_upload_bytes=int(max_upload_mb * 1e6),
+        )
         self.downloads = Downloads(lambda: self.ctrl)
-        self.lessons = LessonDesk(self)
-        self.livectl = LiveControl(self, live_allow)
-        self.exporting = Exporting(self)
+        self.lessons = LessonDesk(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            gravity=lambda: self.gravity,
+            values=self.values,
+            ui=self.ui,
+            load=self.load,
+            say_after_load=self.say_after_load,
+        )
+        self.livectl = LiveControl(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            scene_control=lambda: self.view,
+            scene_view=lambda: self.scene_view,
+            values=self.values,
+            local=self.local,
+            store=self.store,
+            server=self.server,
+            ui=self.ui,
+            load=self.load,
+            say_after_load=self.say_after_load,
+            live_allow=live_allow,
+        )
+        self.exporting = Exporting(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            handle=self.handle,
+            livectl=self.livectl,
+            downloads=self.downloads,
+            values=self.values,
+            store=self.store,
+            ui=self.ui,
+        )
         if store is not None:  # the size bound never deletes the recording being written
             store.in_use = lambda: [p for p in (self.livectl.recording_in_use,) if p is not None]
         self.evidence = Evidence(
@@ -228,7 +278,15 @@ class Workbench:
             effects_gate=self.effects_gate,
         )
         #: The vehicle view and the vector model's page actions (issue 29).
-        self.vehicle = VehicleView(self)
+        self.vehicle = VehicleView(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            steps=self.steps,
+            view=self.view,
+            values=self.values,
+            window=self.window,
+            server=self.server,
+        )
         #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
         #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
         #: (issue 42), then those a module or an installed package registered.

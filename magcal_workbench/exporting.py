@@ -164,23 +164,50 @@ class ExportSection:
 class Exporting:
     """The Export section's actions (``do_*``, found by :meth:`magcal_workbench.app.Workbench._actions`).
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.panels.Panels` (made after this part).
+    handle : callable
+        ``handle(func, event)``: runs a widget's callback through the page's error handler
+        (:meth:`magcal_workbench.app.Workbench.handle`).
+    livectl : magcal_workbench.livecontrol.LiveControl
+        The live session's control: the sources offered, whether one runs, the chosen source's URL.
+    downloads : magcal_workbench.downloads.Downloads
+        Sends the exported files.
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
+    store : magcal_workbench.session.SessionStore or None
+        The sessions' folder (the vehicle's values are backed up in the session's folder), None without one.
+    ui : magcal_workbench.uiqueue.UiQueue
+        The page's thread: a job's result is shown through it.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, handle, livectl, downloads, values, store, ui) -> None:
+        self._ctrl, self._panels = ctrl, panels
+        self.handle, self.livectl, self.downloads, self.values = handle, livectl, downloads, values
+        self.store, self.ui = store, ui
         self.section: ExportSection | None = None
         #: The previewed send: url, firmware, values, and when (the Confirm click writes only these).
         self._pending: dict | None = None
         self._lock = threading.Lock()
 
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
     # --- wiring --------------------------------------------------------------------------------------------
     def attach(self, section: ExportSection, live_source) -> None:
         """Keep ``section`` in step: with the live source's choice (``live_source``, a dropdown) and the data."""
         self.section = section
-        live_source.on_update(lambda event: self.wb.handle(lambda e: self.refresh(), event))
+        live_source.on_update(lambda event: self.handle(lambda e: self.refresh(), event))
         self.refresh()
 
     @action(name="refresh_export")
@@ -189,17 +216,17 @@ class Exporting:
             return
         with self._lock:
             pending = self._pending is not None
-        self.section.refresh(self.wb.ctrl.calibration is not None, self.mavlink_chosen(), pending)
+        self.section.refresh(self.ctrl.calibration is not None, self.mavlink_chosen(), pending)
 
     def mavlink_chosen(self) -> bool:
         """Whether the Live source the page shows is a MAVLink source the server offers."""
         try:
-            label = self.wb.panels.live_source.value
+            label = self.panels.live_source.value
         except AttributeError:  # the panels are being made
             return False
         if not isinstance(label, str) or not ("MAVLink" in label or label.startswith("allowed:")):
             return False  # decided without listing the sources (serial ports, recordings) on every refresh
-        chosen = next((s for s in self.wb.livectl.menu.offered() if s.label == label), None)
+        chosen = next((s for s in self.livectl.menu.offered() if s.label == label), None)
         if chosen is None:
             return False
         if chosen.kind == "url":  # a source the command line allowed: MAVLink when its URL says so
@@ -210,7 +237,7 @@ class Exporting:
     # --- the files ---------------------------------------------------------------------------------------------
     def _calibration(self):
         """The calibration as its downloaded JSON holds it, and that JSON's bytes."""
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         if ctrl.calibration is None:
             raise MagcalError("nothing to export yet: run a fit first")
         content = bundle.calibration_bytes(ctrl.calibration)
@@ -218,7 +245,7 @@ class Exporting:
 
     def _data_file(self, folder):
         """The data file the session works on (what ``magcal apply`` reads), or magcal's CSV of the data."""
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         path = ctrl.state.data_path
         if path and os.path.isfile(path):
             return path
@@ -228,7 +255,7 @@ class Exporting:
         return out
 
     def _send(self, event, name, content, notes=()):
-        self.wb.downloads.send(event, name, content)
+        self.downloads.send(event, name, content)
         said = f"exported {safe_code(name)} ({len(content):,} bytes)"
         if notes:
             said += "".join(f"  \n- {safe_text(hide_paths(n), 400)}" for n in notes)
@@ -237,7 +264,7 @@ class Exporting:
     def _say(self, text):
         if self.section is not None:
             self.section.info.content = text
-        self.wb.ctrl.say(text)
+        self.ctrl.say(text)
 
     @action
     def do_export_calibration(self, event):
@@ -269,14 +296,14 @@ class Exporting:
     @action
     def do_export_mask(self, event):
         calibration, _ = self._calibration()
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         content, notes = bundle.raw_mask_bytes(calibration, ctrl.dataset, ctrl.state.kept)
         self._send(event, bundle.MASK_FILE, content, notes)
 
     @action
     def do_export_all(self, event):
         calibration, _ = self._calibration()
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         session, effects_files = session_for_download(ctrl.state)
         what = "the workbench session (mask, model, history)"
         if effects_files:
@@ -298,39 +325,36 @@ class Exporting:
         """``(url, firmware, values)`` the page would send now: the chosen MAVLink source (built on the server
         from the offered list, :meth:`magcal_workbench.livecontrol.LiveControl.page_url`), the checked firmware,
         and the parameters ``magcal export`` writes for it."""
-        wb = self.wb
         if not self.mavlink_chosen():
             raise MagcalError("choose a MAVLink live source (Files tab, Live source) to send to a vehicle")
-        if wb.livectl.running:
+        if self.livectl.running:
             raise MagcalError("stop the live session first: it holds the vehicle's connection")
-        url = wb.livectl.page_url()
-        firmware = wb.values.check(self.section.firmware)
+        url = self.livectl.page_url()
+        firmware = self.values.check(self.section.firmware)
         calibration, _ = self._calibration()
         content, _ = bundle.parameter_bytes(calibration, firmware, force=bool(self.section.force.value))
         return url, firmware, values_to_send(content.decode("utf-8"), firmware)
 
     def _backup_folder(self) -> Path:
-        wb = self.wb
-        sid = wb.ctrl.session_id
-        if wb.store is not None and sid:
-            return Path(wb.store.folder(sid))
-        return recording_folder(wb.store)
+        sid = self.ctrl.session_id
+        if self.store is not None and sid:
+            return Path(self.store.folder(sid))
+        return recording_folder(self.store)
 
     @action
     def do_send_preview(self, event):
         """First click: read the vehicle's current values (nothing is written) and show old -> new."""
         url, firmware, values = self._target()
-        wb = self.wb
 
         def job():
             report = send_parameters(url, values, firmware, confirm=lambda r: False)
             with self._lock:
                 self._pending = {"url": url, "firmware": firmware, "values": values, "at": time.monotonic()}
             text = report_markdown(report, f"Read from the vehicle: {len(values)} parameter(s) to write")
-            wb.ui.post(lambda: self._show_send(text))
-            wb.ctrl.say("read the vehicle's values: check old -> new (Files tab), then press Confirm to write them")
+            self.ui.post(lambda: self._show_send(text))
+            self.ctrl.say("read the vehicle's values: check old -> new (Files tab), then press Confirm to write them")
 
-        wb.ctrl.run_job("read the vehicle's parameters", job)
+        self.ctrl.run_job("read the vehicle's parameters", job)
 
     @action
     def do_send_cancel(self, event):
@@ -354,7 +378,6 @@ class Exporting:
                 "the source, the firmware or the calibration changed since the vehicle was read (or it was "
                 "long ago): press Send to vehicle again to see old -> new"
             )
-        wb = self.wb
         backup = default_backup_path(self._backup_folder(), firmware)
         os.makedirs(os.path.dirname(backup), exist_ok=True, mode=0o700)
 
@@ -365,13 +388,13 @@ class Exporting:
                 if report.ok
                 else f"NOT all written: {len(report.failed)} parameter(s) failed"
             )
-            wb.ui.post(lambda: self._show_send(report_markdown(report, title)))
-            wb.ctrl.say(
+            self.ui.post(lambda: self._show_send(report_markdown(report, title)))
+            self.ctrl.say(
                 f"sent {len(values)} parameter(s) to the vehicle: "
                 + ("every value read back equal" if report.ok else f"{len(report.failed)} FAILED (Files tab)")
             )
 
-        wb.ctrl.run_job("send to the vehicle", job)
+        self.ctrl.run_job("send to the vehicle", job)
 
     def _show_send(self, text: str) -> None:
         if self.section is not None:

@@ -241,59 +241,81 @@ def lesson_slugs() -> tuple:
 class LessonDesk:
     """The Lessons tab's actions: open a lesson, check the model against its answer, show the answer.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels, gravity : callable
+        Getters, made or replaced after this part: the open data's
+        :class:`~magcal_workbench.controller.Controller`, the :class:`~magcal_workbench.panels.Panels` and the
+        :class:`~magcal_workbench.gravitypage.GravityPage` (a gravity lesson is judged on its model).
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (the lesson chosen is checked before it is read).
+    ui : magcal_workbench.uiqueue.UiQueue
+        The page's thread: the opened lesson's guide is shown through it.
+    load : callable
+        ``load(dataset, content, name, resume=True, lesson=slug)``: opens the lesson's data
+        (:meth:`magcal_workbench.app.Workbench.load`).
+    say_after_load : callable
+        ``say_after_load(text)``: says the lesson opened (:meth:`magcal_workbench.app.Workbench.say_after_load`).
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, gravity, values, ui, load, say_after_load) -> None:
+        self._ctrl, self._panels, self._gravity = ctrl, panels, gravity
+        self.values, self.ui, self.load, self.say_after_load = values, ui, load, say_after_load
+
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
 
     def show_guide(self, lesson: Lesson) -> None:
-        self.wb.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
+        self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
 
     @action
     def do_open_lesson(self, event):
-        wb = self.wb
-        slug = wb.values.check(wb.panels.lesson_choice)
+        slug = self.values.check(self.panels.lesson_choice)
         lesson = lesson_or_error(slug)
 
         def job():
             ds, _ = load_dataset(lesson.data_path, f"lesson {slug}")
             content = lesson.data_path.read_bytes()
-            wb.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
-            revealed = wb.ctrl.state.answer_revealed
+            self.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
+            revealed = self.ctrl.state.answer_revealed
 
             def show():
                 self.show_guide(lesson)
-                wb.panels.lesson_feedback.content = lesson.answer_markdown() if revealed else ""
+                self.panels.lesson_feedback.content = lesson.answer_markdown() if revealed else ""
 
-            wb.ui.post(show)
-            wb.say_after_load(f"lesson **{lesson.title}** opened")
+            self.ui.post(show)
+            self.say_after_load(f"lesson **{lesson.title}** opened")
 
-        wb.ctrl.run_job("open lesson", job)
+        self.ctrl.run_job("open lesson", job)
 
     def current(self) -> Lesson:
-        state = self.wb.ctrl.state
+        state = self.ctrl.state
         if not state.lesson:
             raise MagcalError("open a lesson first (Lessons tab)")
         return lesson_or_error(state.lesson)
 
     @action
     def do_check_lesson(self, event):
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         lesson = self.current()
         gravity = lesson.judged_on == "gravity"
-        found = self.wb.gravity.model.lesson_findings() if gravity else ctrl.vector.lesson_findings()
+        found = self._gravity().model.lesson_findings() if gravity else ctrl.vector.lesson_findings()
         result = lesson.check(ctrl.state.effects, found)
-        self.wb.panels.lesson_feedback.content = result["message"]
-        self.wb.ctrl.say(result["message"])
+        self.panels.lesson_feedback.content = result["message"]
+        self.ctrl.say(result["message"])
 
     @action
     def do_show_answer(self, event):
         lesson = self.current()
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         ctrl.state.answer_revealed = True
         ctrl.state.touch()
         ctrl.autosave()
-        self.wb.panels.lesson_feedback.content = lesson.answer_markdown()
+        self.panels.lesson_feedback.content = lesson.answer_markdown()

@@ -23,18 +23,40 @@ from .state import SessionState
 class Sessions:
     """Opens data as a session of the store (or unsaved without one) and acts on the saved sessions.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
-        The workbench whose data the actions replace (:meth:`Workbench.load`).
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` (made by this part) and the
+        :class:`~magcal_workbench.panels.Panels` (made after it).
+    store : magcal_workbench.session.SessionStore or None
+        The sessions' folder, None without one (the data open unsaved).
+    effects_files : list of str
+        The command line's effects files, remembered in every session opened.
+    worker : magcal_workbench.jobs.Worker
+        The one worker, handed to each controller made.
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (the session chosen is checked before it is read).
+    load : callable
+        ``load(dataset, content, name, resume=..., lesson=...)``: replaces the data
+        (:meth:`magcal_workbench.app.Workbench.load`).
+    say_after_load : callable
+        ``say_after_load(text)``: says the session reopened (:meth:`magcal_workbench.app.Workbench.say_after_load`).
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, store, effects_files, worker, values, load, say_after_load) -> None:
+        self._ctrl, self._panels = ctrl, panels
+        self.store, self.effects_files, self.worker, self.values = store, effects_files, worker, values
+        self.load, self.say_after_load = load, say_after_load
 
     @property
-    def store(self):
-        return self.wb.store
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
 
     def make_controller(self, dataset, content, name, resume, lesson) -> Controller:
         """A controller for ``dataset``: its saved session when ``resume`` and one exists, else a fresh state;
@@ -63,10 +85,10 @@ class Sessions:
                 state = SessionState(dataset.n_samples, dataset.n_sensors, str(store.data_path(sid)), lesson)
         if state is None:
             state = SessionState(dataset.n_samples, dataset.n_sensors, dataset.source, lesson)
-        for path in self.wb.effects_files:
+        for path in self.effects_files:
             if path not in state.effects_files:
                 state.effects_files.append(path)
-        ctrl = Controller(dataset, state, store, sid, worker=self.wb.worker)
+        ctrl = Controller(dataset, state, store, sid, worker=self.worker)
         if unsaved is not None:
             ctrl.save_problem = unsaved_problem(unsaved)
         pending = ctrl.pending_effects_files()
@@ -108,7 +130,7 @@ class Sessions:
 
     # --- the Files tab's actions --------------------------------------------------------------------------
     def _chosen(self) -> str:
-        sid = self.wb.values.check(self.wb.panels.session_choice)
+        sid = self.values.check(self.panels.session_choice)
         if self.store is None or sid in ("-", None):
             raise MagcalError("no saved session chosen")
         return sid
@@ -117,7 +139,6 @@ class Sessions:
     def do_reopen(self, event):
         sid = self._chosen()
         path = self.store.data_path(sid)  # refuses a name outside the session folder
-        wb = self.wb
 
         def job():
             if not path.is_file():
@@ -128,26 +149,26 @@ class Sessions:
                 lesson = None  # opening it says what is wrong and moves it aside
             ds, _ = load_dataset(path, f"{sid}/{path.name}")  # messages name the session, not the server's path
             content = path.read_bytes()
-            wb.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=lesson)
-            wb.say_after_load(f"reopened session {safe_code(sid)}")
+            self.load(ds, content, sid.rsplit("-", 1)[0] + ".csv", resume=True, lesson=lesson)
+            self.say_after_load(f"reopened session {safe_code(sid)}")
 
-        wb.ctrl.run_job("reopen session", job)
+        self.ctrl.run_job("reopen session", job)
 
     @action
     def do_delete_session(self, event):
         """Delete the chosen saved session's folder (not the one open now)."""
         sid = self._chosen()
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         if sid == ctrl.session_id:
             raise MagcalError(f"session {sid} is the one open; open other data first, or use Start this data afresh")
         freed = self.store.size_bytes(sid)
         self.store.delete(sid)
-        self.wb.panels.refresh_sessions()
+        self.panels.refresh_sessions()
         ctrl.say(f"deleted session {safe_code(sid)} ({freed / 1e6:.1f} MB)")
 
     @action
     def do_fresh(self, event):
-        wb, ctrl = self.wb, self.wb.ctrl
+        ctrl = self.ctrl
 
         def job():
             content = None
@@ -155,7 +176,7 @@ class Sessions:
                 content = self.store.data_path(ctrl.session_id).read_bytes()
                 self.store.delete(ctrl.session_id)
             name = (ctrl.session_id.rsplit("-", 1)[0] + ".csv") if ctrl.session_id else "data.csv"
-            wb.load(ctrl.dataset, content, name, resume=False, lesson=ctrl.state.lesson)
-            wb.ctrl.say("started afresh: every sample kept, base model, no fit")
+            self.load(ctrl.dataset, content, name, resume=False, lesson=ctrl.state.lesson)
+            self.ctrl.say("started afresh: every sample kept, base model, no fit")
 
         ctrl.run_job("start afresh", job)

@@ -40,15 +40,35 @@ def clean_upload_name(name) -> str:
 class Uploads:
     """Reads what the page uploads into the workbench (:meth:`Workbench.load`).
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
+        :class:`~magcal_workbench.panels.Panels` (made after this part).
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (the reading options are checked before they are read).
+    server : viser.ViserServer
+        Whose uploads are watched as they arrive.
+    ui : magcal_workbench.uiqueue.UiQueue
+        The page's thread: what a job or viser's event loop shows goes through it.
+    notify : callable
+        ``notify(client_id, text)``: a toast in that browser (:meth:`magcal_workbench.app.Workbench.notify`).
+    load : callable
+        ``load(dataset, content, name)``: opens the data read (:meth:`magcal_workbench.app.Workbench.load`).
+    say_after_load : callable
+        ``say_after_load(text)``: says what reading it found (:meth:`magcal_workbench.app.Workbench.say_after_load`).
     max_upload_bytes : int
         Largest upload accepted, bytes.
     """
 
-    def __init__(self, wb, max_upload_bytes: int):
-        self.wb = wb
+    def __init__(
+        self, *, ctrl, panels, values, server, ui, notify, load, say_after_load, max_upload_bytes: int
+    ) -> None:
+        self._ctrl, self._panels = ctrl, panels
+        self.values, self.server, self.ui, self.notify = values, server, ui, notify
+        self.load, self.say_after_load = load, say_after_load
         self.max_upload_bytes = int(max_upload_bytes)
         #: ``(name, content)`` of the last upload (Re-read reads it again with other options).
         self.last: tuple[str, bytes] | None = None
@@ -59,6 +79,14 @@ class Uploads:
         self._received: dict[str, int] = {}  # bytes received so far per upload in flight
         self._received_lock = threading.Lock()
 
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
     def too_large(self, name: str, size_bytes: int) -> str | None:
         """Why an upload of ``size_bytes`` is refused, or None."""
         if size_bytes <= self.max_upload_bytes:
@@ -66,20 +94,17 @@ class Uploads:
         return f"{name}: {size_bytes / 1e6:.1f} MB is more than the upload limit of {self.max_upload_bytes / 1e6:g} MB"
 
     def _tell(self, client_id, text: str) -> None:
-        wb = self.wb
-
         def tell():
-            wb.ctrl.say(f"**Error:** {safe_text(text)}")
-            wb.notify(client_id, text)
+            self.ctrl.say(f"**Error:** {safe_text(text)}")
+            self.notify(client_id, text)
 
-        wb.ui.post(tell)  # off viser's event loop
+        self.ui.post(tell)  # off viser's event loop
 
     def watch_sizes(self, upload_handle) -> None:
         """Refuse an upload over the limit when it starts (the browser declares its size,
         :func:`magcal_workbench.viser_adapter.watch_upload_starts`) and as its parts arrive (the bytes received
         counted before viser buffers each part, :func:`magcal_workbench.viser_adapter.watch_upload_parts`): the
         uploads in flight together hold at most twice the limit. :meth:`do_upload` checks the size again."""
-        wb = self.wb
 
         def refuse(filename, size_bytes, client_id) -> bool:
             why = self.too_large(clean_upload_name(filename), size_bytes)
@@ -90,7 +115,7 @@ class Uploads:
 
         def arrived(transfer_uuid, n_bytes, client_id) -> bool:
             with self._received_lock:
-                for old in [t for t in self._received if not viser_adapter.upload_in_flight(wb.server, t)]:
+                for old in [t for t in self._received if not viser_adapter.upload_in_flight(self.server, t)]:
                     del self._received[old]  # finished or dropped
                 got = self._received.get(transfer_uuid, 0) + int(n_bytes)
                 in_flight = sum(self._received.values()) + int(n_bytes)
@@ -107,12 +132,12 @@ class Uploads:
                 )
             return over
 
-        self.start_handler = viser_adapter.watch_upload_starts(wb.server, upload_handle, refuse)
-        self.part_handler = viser_adapter.watch_upload_parts(wb.server, upload_handle, arrived)
+        self.start_handler = viser_adapter.watch_upload_starts(self.server, upload_handle, refuse)
+        self.part_handler = viser_adapter.watch_upload_parts(self.server, upload_handle, arrived)
 
     @action
     def do_upload(self, event):
-        up = self.wb.panels.upload.value
+        up = self.panels.upload.value
         name, content = clean_upload_name(up.name), up.content
         if not content:
             raise MagcalError(f"{name}: the file is empty")
@@ -134,7 +159,7 @@ class Uploads:
 
     def read_options(self) -> dict:
         """The Files tab's reading options, checked (``columns``, ``units``, ``lsb_nT`` for the engine's reader)."""
-        p, check = self.wb.panels, self.wb.values.check
+        p, check = self.panels, self.values.check
         columns = check(p.upload_columns).strip() or None
         units = check(p.upload_units)
         lsb = float(check(p.upload_lsb))
@@ -149,23 +174,22 @@ class Uploads:
         mapping, units or a log reader as magcal's own CSV."""
         options = self.read_options()
         mapped = is_log(name) or any(v is not None for v in options.values())
-        wb = self.wb
 
         def job():
             header = content[:4096].decode("utf-8", "replace").splitlines()
             found = next((line for line in header if line.strip() and not line.startswith("#")), "")
             info = "" if is_log(name) else f"Columns in {safe_code(name)}: {safe_text(found, 400)}"
-            wb.ui.post(lambda: setattr(wb.panels.upload_info, "content", info))
+            self.ui.post(lambda: setattr(self.panels.upload_info, "content", info))
             try:
                 ds, notes = read_bytes_dataset(name, content, **options)
             except MagcalError as exc:
                 raise MagcalError(page_words(str(exc))) from None
-            wb.load(
+            self.load(
                 ds, canonical_csv(ds) if mapped else content, name if not mapped else os.path.splitext(name)[0] + ".csv"
             )
-            wb.say_after_load(
+            self.say_after_load(
                 f"opened {safe_code(name)}: {safe_text(ds.describe(), MESSAGE_LEN)}"
                 + "".join(f"  \n- {safe_text(page_words(n), MESSAGE_LEN)}" for n in notes)
             )
 
-        wb.ctrl.run_job("open file", job)
+        self.ctrl.run_job("open file", job)

@@ -178,11 +178,24 @@ def euler_deg(attitude_wxyz) -> tuple[float, float, float]:
 class VehicleView:
     """Draws the vehicle view and runs the vector model's page actions (the vector fit, the typed location).
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
-        Gives the scene, the controller (:attr:`~magcal_workbench.controller.Controller.vector`), the time window
-        and the panels' widgets (read through the checked page values).
+    ctrl, panels : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller` (its
+        :attr:`~magcal_workbench.controller.Controller.vector`) and the :class:`~magcal_workbench.panels.Panels`
+        (made after this part).
+    steps : magcal_workbench.steps.Steps
+        Checks the readings before a fit.
+    view : magcal_workbench.view.SceneControl
+        Resets the cameras when the view is hidden.
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
+    window : magcal_workbench.timewindow.TimeWindow
+        The time scrubber's window: its current sample is drawn, its samples make the residual trail.
+    server : viser.ViserServer
+        Where the view is drawn (its scene) and whose clients' cameras are placed.
 
     Attributes
     ----------
@@ -194,8 +207,9 @@ class VehicleView:
         The residual arrows' exaggeration in use.
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, steps, view, values, window, server) -> None:
+        self._ctrl, self._panels = ctrl, panels
+        self.steps, self.view, self.values, self.window, self.server = steps, view, values, window, server
         self.enabled = False
         self.nodes: dict = {}
         self.gain = 1.0
@@ -204,15 +218,23 @@ class VehicleView:
         self._static_drawn = False
 
     @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
+    @property
     def _panel(self):
-        return self.wb.panels.vector_panel
+        return self.panels.vector_panel
 
     # --- page actions --------------------------------------------------------------------------------------
     @action
     def do_vector_fit(self, event):
         """Calibrate tab: the vector fit (attitude-aided) beside the total-field fit, in the worker."""
-        self.wb.steps.check_readings()
-        ctrl = self.wb.ctrl
+        self.steps.check_readings()
+        ctrl = self.ctrl
         missing = ctrl.vector.missing()
         if missing:
             raise MagcalError("the vector fit needs " + " and ".join(missing))
@@ -221,19 +243,19 @@ class VehicleView:
     @action
     def do_remove_vector_effect(self, event):
         """Model tab: take the effect added last out of the vector model and refit, in the worker."""
-        self.wb.steps.check_readings()
-        ctrl = self.wb.ctrl
+        self.steps.check_readings()
+        ctrl = self.ctrl
         ctrl.run_step("take out of the vector model", lambda inputs: ctrl.vector.remove(kept=inputs.kept))
 
     @action
     def do_use_location(self, event):
         """Calibrate tab: IGRF at the typed place and date becomes the reference (scalar and vector)."""
-        p, check = self._panel, self.wb.values.check
-        self.wb.ctrl.vector.set_location(check(p.lat), check(p.lon), check(p.alt), check(p.date))
+        p, check = self._panel, self.values.check
+        self.ctrl.vector.set_location(check(p.lat), check(p.lon), check(p.alt), check(p.date))
 
     @action
     def do_forget_location(self, event):
-        self.wb.ctrl.vector.clear_location()
+        self.ctrl.vector.clear_location()
 
     @action
     def do_vehicle_view(self, event):
@@ -242,19 +264,19 @@ class VehicleView:
         on = bool(self._panel.vehicle_on.value)
         self.enabled = on
         if on:
-            if not self.wb.panels.window_on.value:
-                self.wb.panels.window_on.value = True  # its callback turns the window on and redraws (this too)
+            if not self.panels.window_on.value:
+                self.panels.window_on.value = True  # its callback turns the window on and redraws (this too)
             self.redraw()
             self.place_cameras()
         else:
             self.clear()
-            self.wb.view.reset_cameras()
+            self.view.reset_cameras()
         self._panel.refresh_vehicle()
 
     @action
     def do_vehicle_options(self, event):
         """The residual exaggeration changed (0: automatic)."""
-        self.wb.values.check(self._panel.vehicle_gain)
+        self.values.check(self._panel.vehicle_gain)
         self.redraw()
         self._panel.refresh_vehicle()
 
@@ -268,7 +290,7 @@ class VehicleView:
         return VEHICLE_ORIGIN + np.array([-3.6, 3.6, 1.6]), look
 
     def place_cameras(self) -> None:
-        for client in self.wb.server.get_clients().values():
+        for client in self.server.get_clients().values():
             self.place_camera(client)
 
     def place_camera(self, client) -> None:
@@ -287,8 +309,8 @@ class VehicleView:
 
     def current_sample(self) -> int:
         """The time scrubber's current sample (the window's last), else the first."""
-        ds = self.wb.ctrl.dataset
-        current = self.wb.window.current(sample_times(ds))
+        ds = self.ctrl.dataset
+        current = self.window.current(sample_times(ds))
         return 0 if current is None else int(current)
 
     def chosen_gain(self, field_nT: float) -> float:
@@ -298,14 +320,14 @@ class VehicleView:
         typed = float(self._panel.vehicle_gain.value or 0.0)
         if typed > 0:
             return typed
-        return residual_gain(self.wb.ctrl.vector.gain_rms_nT(), field_nT)
+        return residual_gain(self.ctrl.vector.gain_rms_nT(), field_nT)
 
     def redraw(self) -> None:
         """Draw the body, the fields and the residual at the current sample (nothing when hidden or without
         attitude)."""
         if not self.enabled:
             return
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         sensor = ctrl.state.sensor or 0
         vectors = ctrl.vector.current_vectors(self.current_sample(), sensor)
         with self._lock:
@@ -318,8 +340,8 @@ class VehicleView:
             self.gain = self.chosen_gain(field_nT)
             arrows = field_arrows(model, vectors["measured_ned_nT"], field_nT, self.gain)
             self.shown = {**vectors, "arrows": arrows, "field_nT": field_nT, "gain": self.gain, "sensor": sensor}
-            scene = self.wb.server.scene
-            with self.wb.server.atomic():
+            scene = self.server.scene
+            with self.server.atomic():
                 self._draw_static(scene)
                 body = self.nodes["/vehicle/body"]
                 body.wxyz = tuple(np.asarray(vectors["attitude_wxyz"], float))
@@ -349,11 +371,11 @@ class VehicleView:
     def _draw_trail(self, scene, field_nT) -> None:
         """The time window's residuals as red points around the model's tip (at most :data:`TRAIL_POINTS`)."""
         self._remove("/vehicle/residual_trail")
-        ctrl = self.wb.ctrl
+        ctrl = self.ctrl
         vm = ctrl.vector
         if vm.world_nT is None or vm.reference_ned_nT is None:
             return
-        window = self.wb.window.mask(sample_times(ctrl.dataset))
+        window = self.window.mask(sample_times(ctrl.dataset))
         idx = np.flatnonzero(window) if window is not None else np.arange(ctrl.dataset.n_samples)
         if idx.size == 0:
             return
@@ -373,7 +395,7 @@ class VehicleView:
         )
 
     def _labels(self, scene, vectors, arrows, field_nT) -> None:
-        ds = self.wb.ctrl.dataset
+        ds = self.ctrl.dataset
         i = vectors["sample"]
         roll, pitch, yaw = euler_deg(vectors["attitude_wxyz"])
         t = sample_times(ds)[i]
@@ -455,14 +477,14 @@ class VehicleView:
         """Remove every node of the view (hidden, or other data opened)."""
         with self._lock:
             if "/vehicle" in self.nodes:
-                self.wb.server.scene.remove_by_name("/vehicle")  # the frame's children go with it
+                self.server.scene.remove_by_name("/vehicle")  # the frame's children go with it
             self.nodes.clear()
             self._static_drawn = False
 
     @action(name="vehicle_text")
     def describe(self) -> str:
         """The View tab's line about the vehicle view (markdown, escaped)."""
-        vm = self.wb.ctrl.vector
+        vm = self.ctrl.vector
         if vm.attitude_kind() is None:
             return "_The vehicle view needs the attitude (`qw..qz` or `roll_deg, pitch_deg, yaw_deg` columns)._"
         if not self.enabled:

@@ -137,3 +137,19 @@ def test_the_compass_lesson_in_the_page(browser, bench, tmp_path):
     page.screenshot(path=str(shot3), timeout=120_000)
     assert shot.stat().st_size > 10_000 and shot2.stat().st_size > 10_000 and shot3.stat().st_size > 10_000
     page.close()
+
+
+def test_the_page_judges_the_compass_lesson_on_the_gravity_fit(bench):
+    """The Lessons tab opens the lesson's data, and Check reads the gravity page's fit (issue 43 item 5: the lessons
+    desk is handed the gravity page, not the workbench)."""
+    wb = bench(store=False)
+    wb.panels.lesson_choice.value = "tilted-compass"
+    wb.lessons.do_open_lesson(None)
+    assert wb.worker.wait(60) and wb.ctrl.state.lesson == "tilted-compass"
+    wb.lessons.do_check_lesson(None)
+    assert "has not been run" in wb.panels.lesson_feedback.content
+    wb.gravity.do_gravity_fit(None)
+    assert wb.worker.wait(120) and _wait(lambda: wb.gravity.model.result is not None)
+    wb.lessons.do_check_lesson(None)
+    assert wb.panels.lesson_feedback.content.startswith("Solved: the gravity fit found the mounting")
+    assert wb.ctrl.message.startswith("Solved")
