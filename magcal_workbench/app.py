@@ -377,10 +377,18 @@ class Workbench:
         self._attach(self.ctrl)
         self.ui.run(self._redraw_all)
 
+    def _added_follow(self, kind: Change) -> None:
+        """Tell the added panels (:data:`magcal_workbench.panelkit.PANELS`) what changed."""
+        for panel in self.added.values():
+            follow = getattr(panel, "changed", None)  # optional for an added panel
+            if follow is not None:
+                follow(kind)
+
     def _redraw_all(self) -> None:
         self.scene_view.clear()
         self.vehicle.clear()
         self.redraw()
+        self._added_follow(Change.DATA)  # other data opened: the gravity page forgets the old data's fit
         self.maps.fit_changed(self.ctrl)
         self.view.refresh_maps()
         self.view.reset_cameras()
@@ -435,10 +443,7 @@ class Workbench:
         elif kind == Change.INSPECT:
             self.scene_view.mark_inspected(ctrl.inspected)
         self.vehicle.changed(kind)
-        for panel in self.added.values():
-            follow = getattr(panel, "changed", None)  # optional for an added panel
-            if follow is not None:
-                follow(kind)
+        self._added_follow(kind)
         if kind in (Change.RESULT, Change.DATA):
             self.maps.fit_changed(ctrl)  # before the panels: the evidence plots show the RMS before the last fit
         if kind in (Change.RESULT, Change.DATA, Change.DIAGNOSIS) and self.maps.choice != "none":

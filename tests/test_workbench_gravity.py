@@ -143,9 +143,12 @@ def test_the_page_judges_the_compass_lesson_on_the_gravity_fit(bench):
     """The Lessons tab opens the lesson's data, and Check reads the gravity page's fit (issue 43 item 5: the lessons
     desk is handed the gravity page, not the workbench)."""
     wb = bench(store=False)
+    assert not wb.gravity.btn_fit.visible  # the opening data have no accelerometer
     wb.panels.lesson_choice.value = "tilted-compass"
     wb.lessons.do_open_lesson(None)
     assert wb.worker.wait(60) and wb.ctrl.state.lesson == "tilted-compass"
+    wb.ui.wait()
+    assert wb.gravity.btn_fit.visible  # the page follows the lesson's data (it kept the old data's state before)
     wb.lessons.do_check_lesson(None)
     assert "has not been run" in wb.panels.lesson_feedback.content
     wb.gravity.do_gravity_fit(None)
