@@ -254,7 +254,13 @@ class Workbench:
             server=self.server,
         )
         #: The compact table, |B| against time with its region editor, the error histogram.
-        self.cockpit = Cockpit(self)
+        self.cockpit = Cockpit(
+            ctrl=lambda: self.ctrl,
+            panels=lambda: self.panels,
+            live=lambda: self.live,
+            steps=lambda: self.steps,
+            values=self.values,
+        )
         self.view = SceneControl(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,

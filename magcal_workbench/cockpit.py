@@ -88,13 +88,21 @@ def live_record(live) -> FieldRecord | None:
 class Cockpit:
     """The compact table and the Calibrate tab's plots.
 
+    Handed what it uses (issue 43 item 5).
+
     Parameters
     ----------
-    wb : magcal_workbench.app.Workbench
+    ctrl, panels, live, steps : callable
+        Getters: the open data's :class:`~magcal_workbench.controller.Controller`, the
+        :class:`~magcal_workbench.panels.Panels`, the live session (:class:`~magcal_workbench.live.LiveView` or
+        None) and the :class:`~magcal_workbench.steps.Steps` (a selection's refit), made or replaced after this part.
+    values : magcal_workbench.checks.PageValues
+        What each input widget may send (checked before it is read).
     """
 
-    def __init__(self, wb):
-        self.wb = wb
+    def __init__(self, *, ctrl, panels, live, steps, values) -> None:
+        self._ctrl, self._panels, self._live_view, self._steps = ctrl, panels, live, steps
+        self.values = values
         self._last_live_draw = 0.0
         #: How many samples the plots show data of (the tests watch it grow with the stream).
         self.n_plotted = 0
@@ -107,17 +115,25 @@ class Cockpit:
         #: Redraws made (the tests and benchmarks read it).
         self.n_draws = 0
 
+    @property
+    def ctrl(self):
+        return self._ctrl()
+
+    @property
+    def panels(self):
+        return self._panels()
+
     def _live(self):
-        live = self.wb.live
+        live = self._live_view()
         return live if live is not None and live.active else None
 
     def record(self) -> FieldRecord | None:
         live = self._live()
-        return live_record(live) if live is not None else controller_record(self.wb.ctrl)
+        return live_record(live) if live is not None else controller_record(self.ctrl)
 
     def pending_s(self, record: FieldRecord):
         """The range the sliders choose, ``(t0, t1)`` s (shaded on the plot)."""
-        p = self.wb.panels
+        p = self.panels
         return range_bounds_s(record.time_s, p.range_from.value, p.range_to.value)
 
     # --- drawing ----------------------------------------------------------------------------------------------
@@ -125,7 +141,6 @@ class Cockpit:
     def draw(self, force: bool = False) -> None:
         """Redraw the table and the plots (on the page's thread); while a live session runs, at most once per
         :data:`LIVE_INTERVAL_S` unless ``force``."""
-        wb = self.wb
         live = self._live()
         now = time.monotonic()
         if live is not None and not force and now - self._last_live_draw < LIVE_INTERVAL_S:
@@ -134,7 +149,7 @@ class Cockpit:
         if record is None or record.n_samples == 0:
             return
         self._last_live_draw = now
-        p = wb.panels
+        p = self.panels
         key = record_key(record)
         if self._keys.get("table") != key:
             self._table = table_figures(record)
@@ -147,7 +162,7 @@ class Cockpit:
             rms, floor = (None, None) if fit is None else (fit.rms_nT, fit.floor_nT)
             sensor = 0
         else:
-            ctrl = wb.ctrl
+            ctrl = self.ctrl
             cal = ctrl.calibration
             rms = ctrl.residual_rms_nT() if cal is not None else None
             floor = ctrl.floor_nT()
@@ -187,18 +202,17 @@ class Cockpit:
     @action
     def range_changed(self, event) -> None:
         """A range slider or the histogram's unit moved: check the values, redraw."""
-        p, check = self.wb.panels, self.wb.values.check
+        p, check = self.panels, self.values.check
         check(p.range_from)
         check(p.range_to)
         check(p.histogram_unit)
         self.draw(force=True)
 
     def _select_range(self, mode: str) -> int:
-        wb = self.wb
         if self._live() is not None:
             raise MagcalError("stop the live session first: excluding works on the recording once it is opened")
-        p, check = wb.panels, wb.values.check
-        ctrl = wb.ctrl
+        p, check = self.panels, self.values.check
+        ctrl = self.ctrl
         times = sample_times(ctrl.dataset)
         idx = samples_in_range(times, check(p.range_from), check(p.range_to))
         if idx.size == 0:
@@ -206,7 +220,7 @@ class Cockpit:
             return 0
         t0, t1 = range_bounds_s(times, p.range_from.value, p.range_to.value)
         what = f"time range {t0:.4g}-{t1:.4g} s"
-        with wb.steps.changing_selection():
+        with self._steps().changing_selection():
             n = ctrl.select(idx, mode, what=f"{'exclude' if mode == 'reject' else 'include'} {what}")
         return n
 
@@ -221,11 +235,10 @@ class Cockpit:
     @action
     def do_exclude_fast(self, event) -> None:
         """Exclude the samples taken while turning fast (:func:`magcal_workbench.motion.fast_turning`)."""
-        wb = self.wb
         if self._live() is not None:
             raise MagcalError("stop the live session first: excluding works on the recording once it is opened")
-        fast = motion.fast_turning(wb.ctrl.dataset)
+        fast = motion.fast_turning(self.ctrl.dataset)
         if fast is None or not fast.any():
             raise MagcalError("no sample was taken while turning fast (or the data have no gyro or attitude)")
-        with wb.steps.changing_selection():
-            wb.ctrl.select(np.flatnonzero(fast), "reject", what=f"exclude {int(fast.sum())} fast-turning samples")
+        with self._steps().changing_selection():
+            self.ctrl.select(np.flatnonzero(fast), "reject", what=f"exclude {int(fast.sum())} fast-turning samples")
