@@ -157,8 +157,7 @@ def _lomb_scargle_terms(t, r, df_hz, n_freq):
     """``sum r exp(i w t)`` and ``sum exp(2 i w t)`` (complex, shape (n_freq,)) at ``w = 2 pi k df_hz``,
     ``k = 1..n_freq``; ``t`` starts at 0. On a grid (:func:`stamp_grid`) whose span is a whole number of periods of
     ``df_hz`` these are discrete Fourier transforms of the zero-filled grid (one FFT each, ``O(M log M)`` for ``M``
-    grid points); otherwise a recurrence over the frequencies (``O(N n_freq)``)."""
-    n = t.size
+    grid points); otherwise :func:`_direct_terms` (``O(N n_freq)``)."""
     k = np.arange(1, int(n_freq) + 1)
     m = stamp_grid(t)
     cells = 0 if m is None else int(m[-1])
@@ -175,11 +174,19 @@ def _lomb_scargle_terms(t, r, df_hz, n_freq):
         yz = np.conj(scipy.fft.fft(grid_r))[(k * p) % cells]
         z2 = np.conj(scipy.fft.fft(grid_1))[(2 * k * p) % cells]
         return yz, z2
+    return _direct_terms(t, r, df_hz, k.size)
+
+
+def _direct_terms(t, r, df_hz, n_freq):
+    """:func:`_lomb_scargle_terms` for any stamps, by recurrence over the frequencies: ``exp(i 2 pi k df t)`` is
+    the ``k``-th power of ``exp(i 2 pi df t)``, a few products of length ``N`` per frequency (``O(N n_freq)``: for 9e4
+    samples and half as many frequencies, 4e9 complex products, 145 s on the 2-core development machine under load
+    4, against 0.014 s for :func:`_lomb_scargle_terms`' two FFTs of the same stamps on their grid)."""
     step = np.exp(2j * np.pi * df_hz * t)
-    z = np.ones(n, dtype=complex)
-    yz = np.empty(k.size, dtype=complex)
-    z2 = np.empty(k.size, dtype=complex)
-    for i in range(k.size):
+    z = np.ones(t.size, dtype=complex)
+    yz = np.empty(int(n_freq), dtype=complex)
+    z2 = np.empty(int(n_freq), dtype=complex)
+    for i in range(int(n_freq)):
         z *= step
         if i % 64 == 63:  # renormalise now and then: the recurrence's rounding grows the modulus slowly
             z /= np.abs(z)
@@ -195,7 +202,7 @@ def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
     a uniform frequency grid without ``N`` sines and cosines per frequency (scipy's takes seconds on a record of
     10 000 samples). Stamps on a regular grid with holes (:func:`stamp_grid`: a regular record with a time range
     excluded) whose span is a whole number of periods of ``df_hz`` (the spectrum's grid ``k / T``) take two FFTs of
-    the zero-filled grid: 0.02 s for 9e4 samples where the direct sums took 10 s. Other stamps take a recurrence:
+    the zero-filled grid: 0.014 s for 9e4 samples where the direct sums took 145 s. Other stamps take a recurrence:
     ``exp(i 2 pi k df t)`` is the ``k``-th power of ``exp(i 2 pi df t)``, so each frequency costs a few products of
     length ``N`` (``O(N n_freq)``).
 
@@ -262,8 +269,9 @@ def spectrum(r, time_s=None):
 
     Regular stamps (or none: then frequencies are in cycles per sample) give the FFT periodogram. Irregular
     stamps (:func:`irregular_stamps`: gaps, host arrival times in batches) give the Lomb-Scargle periodogram
-    (:func:`scipy.signal.lombscargle`) at the stamps as they are, on a grid of frequencies ``k / T`` (``T`` the
-    duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for the FFT,
+    (:func:`scipy.signal.lombscargle`'s values, :func:`lomb_scargle_grid`: by FFT when the stamps are a regular grid
+    with holes, as a time range excluded leaves them) at the stamps as they are, on a grid of frequencies ``k / T``
+    (``T`` the duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for the FFT,
     so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular samples
     puts the peak at the wrong frequency (the median interval is not the sampling interval).
 
