@@ -271,9 +271,9 @@ def spectrum(r, time_s=None):
     stamps (:func:`irregular_stamps`: gaps, host arrival times in batches) give the Lomb-Scargle periodogram
     (:func:`scipy.signal.lombscargle`'s values, :func:`lomb_scargle_grid`: by FFT when the stamps are a regular grid
     with holes, as a time range excluded leaves them) at the stamps as they are, on a grid of frequencies ``k / T``
-    (``T`` the duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for the FFT,
-    so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular samples
-    puts the peak at the wrong frequency (the median interval is not the sampling interval).
+    (``T`` the duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for
+    the FFT, so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular
+    samples puts the peak at the wrong frequency (the median interval is not the sampling interval).
 
     Returns
     -------
