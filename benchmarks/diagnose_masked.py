@@ -7,15 +7,16 @@ What the workbench's Exclude range does, in the engine: the samples from 40 % to
 defaults) are rejected and the model is fitted on the rest (``pipeline.calibrate(..., mask=kept)``); Diagnose then
 calls :func:`magcal.diagnosis.diagnose` on that fit. The kept stamps have a hole, so the diagnosis's spectra are
 Lomb-Scargle periodograms (:func:`magcal.diagnosis.statistics.spectrum`). Before the fix these were direct sums over
-every sample and frequency (``N x N/2`` complex products per spectrum, eight spectra per diagnosis): 79-95 s at
-4 x 1e5 against 2-3 s without the hole. Stamps on a regular grid with holes now take two FFTs of the zero-filled
-grid (:func:`magcal.diagnosis.statistics.stamp_grid`).
+every sample and frequency (``N x N/2`` complex products per spectrum, eight spectra per diagnosis): 68-95 s at
+4 x 1e5 against 2-8 s without the hole. They now come from FFTs of the samples placed on a grid
+(:func:`magcal.diagnosis.statistics.lomb_scargle_grid`): two of the record's own grid here.
 
 Prints one markdown row per record size and case: the diagnosis's wall time (min and median of ``--repeat``), its
-verdict and top candidate, and how many direct Lomb-Scargle sums it computed (calls, and samples x frequencies in
-all: the work the bug did). ``--before`` adds the masked case with the grid path turned off (the behaviour before the
-fix; minutes at 4 x 1e5). ``--workbench`` adds the page's own path, headless (no browser): the workbench on the
-record, Run, Exclude range, then the Diagnose button timed to the end of its job.
+verdict and top candidate, and the spectra's work: grid transforms (calls, points in all) and direct products
+(samples x frequencies in all: the work the bug did). ``--before`` adds the masked case with the direct sums put
+back (:func:`direct_terms`, the code before the fix; minutes at 4 x 1e5). ``--workbench`` adds the page's own
+path, headless (no browser): the workbench on the record, Run, (Exclude range,) then the Diagnose button timed to
+the end of its job, with the engine's ``diagnose`` span inside it.
 """
 
 from __future__ import annotations
@@ -47,26 +48,55 @@ def simulate(n: int, folder: Path) -> Path:
     return path
 
 
-class DirectSums:
-    """Counts the direct Lomb-Scargle sums (``statistics._direct_terms``) while installed."""
+def direct_terms(t, r, df_hz, n_freq):
+    """The Lomb-Scargle sums as magcal computed them before the fix (for ``--before``): a recurrence over the
+    frequencies, ``N`` products per frequency."""
+    step = np.exp(2j * np.pi * df_hz * t)
+    z = np.ones(t.size, dtype=complex)
+    yz = np.empty(int(n_freq), dtype=complex)
+    z2 = np.empty(int(n_freq), dtype=complex)
+    for i in range(int(n_freq)):
+        z *= step
+        if i % 64 == 63:
+            z /= np.abs(z)
+        yz[i] = r @ z
+        z2[i] = np.sum(z * z)
+    return yz, z2
 
-    def __init__(self):
+
+class SpectrumWork:
+    """Counts the spectra's work while installed: grid transforms (``statistics._grid_sums``: calls, points) and,
+    with ``direct``, the direct sums put back in place of the transforms (samples x frequencies)."""
+
+    def __init__(self, direct: bool = False):
         from magcal.diagnosis import statistics as st
 
-        self.st, self.original = st, st._direct_terms
-        self.calls, self.products = 0, 0
+        self.st, self.direct = st, direct
+        self.saved = st._grid_sums, st._lomb_scargle_terms
+        self.transforms, self.points, self.products = 0, 0, 0
 
     def __enter__(self):
-        def counted(t, r, df_hz, n_freq):
-            self.calls += 1
-            self.products += int(t.size) * int(n_freq)
-            return self.original(t, r, df_hz, n_freq)
+        grid_sums = self.saved[0]
 
-        self.st._direct_terms = counted
+        def counted_sums(index, weights, cells):
+            self.transforms += 1
+            self.points += int(cells)
+            return grid_sums(index, weights, cells)
+
+        def counted_direct(t, r, df_hz, n_freq):
+            self.products += int(t.size) * int(n_freq)
+            return direct_terms(t, r, df_hz, n_freq)
+
+        self.st._grid_sums = counted_sums
+        if self.direct:
+            self.st._lomb_scargle_terms = counted_direct
         return self
 
     def __exit__(self, *exc):
-        self.st._direct_terms = self.original
+        self.st._grid_sums, self.st._lomb_scargle_terms = self.saved
+
+    def text(self) -> str:
+        return f"{self.transforms}, {self.points:.3g} | {self.products:.3g}"
 
 
 def kept_mask(n: int) -> np.ndarray:
@@ -75,27 +105,21 @@ def kept_mask(n: int) -> np.ndarray:
     return keep
 
 
-def engine_case(ds, mask, repeat: int, grid: bool = True) -> dict:
-    """Fit with ``mask`` (None: every sample), then time ``diagnose`` ``repeat`` times."""
+def engine_case(ds, mask, repeat: int, direct: bool = False) -> dict:
+    """Fit with ``mask`` (None: every sample), then time ``diagnose`` ``repeat`` times (with ``direct``, the
+    spectra's direct sums of before the fix)."""
     from magcal.diagnosis import diagnose
-    from magcal.diagnosis import statistics as st
     from magcal.fitting import pipeline
 
     fit = pipeline.calibrate(ds, method="ml", mask=mask, seed=0).fit
-    saved = st.GRID_MAX_FILL
-    if not grid:
-        st.GRID_MAX_FILL = 0  # no grid accepted: every irregular spectrum by its direct sums, as before the fix
-    times, counts = [], None
-    try:
-        for _ in range(repeat):
-            with DirectSums() as counts:
-                t0 = time.perf_counter()
-                d = diagnose(ds, fit)
-                times.append(time.perf_counter() - t0)
-    finally:
-        st.GRID_MAX_FILL = saved
+    times = []
+    for _ in range(repeat):
+        with SpectrumWork(direct) as work:
+            t0 = time.perf_counter()
+            d = diagnose(ds, fit)
+            times.append(time.perf_counter() - t0)
     top = d.candidates[0].label if d.candidates else "-"
-    return {"times": times, "verdict": d.verdict, "top": top, "calls": counts.calls, "products": counts.products}
+    return {"times": times, "verdict": d.verdict, "top": top, "work": work.text()}
 
 
 def workbench_case(ds, repeat: int, exclude: bool = True) -> dict:
@@ -118,7 +142,7 @@ def workbench_case(ds, repeat: int, exclude: bool = True) -> dict:
             assert wb.worker.wait(600), "Exclude range did not finish"
         kept = int(wb.ctrl.kept.sum())
         times = []
-        with DirectSums() as counts:
+        with SpectrumWork() as work:
             for _ in range(repeat):
                 t0 = time.perf_counter()
                 wb.panels.btn_diagnose.value = True
@@ -136,8 +160,7 @@ def workbench_case(ds, repeat: int, exclude: bool = True) -> dict:
         "times": times,
         "verdict": verdict,
         "top": top,
-        "calls": counts.calls,
-        "products": counts.products,
+        "work": work.text(),
         "kept": kept,
     }
 
@@ -158,9 +181,9 @@ def main(argv=None) -> int:
     print()
     print(
         "| record | case | diagnose min s | median s | of which diagnose() s | verdict | top candidate | "
-        "direct sums (calls, N x freq) |"
+        "transforms (calls, points) | direct products |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.data) if args.data else Path(tmp)
         for n in args.n:
@@ -170,7 +193,7 @@ def main(argv=None) -> int:
             cases = [("every sample", lambda: engine_case(ds, None, args.repeat))]
             cases.append((f"{RANGE[0]:.0%}-{RANGE[1]:.0%} excluded", lambda: engine_case(ds, mask, args.repeat)))
             if args.before:
-                cases.append(("excluded, direct sums (before)", lambda: engine_case(ds, mask, 1, grid=False)))
+                cases.append(("excluded, direct sums (before)", lambda: engine_case(ds, mask, 1, direct=True)))
             if args.workbench:
                 cases.append(("workbench: Run, Diagnose", lambda: workbench_case(ds, args.repeat, exclude=False)))
                 cases.append(("workbench: Run, Exclude range, Diagnose", lambda: workbench_case(ds, args.repeat)))
@@ -180,7 +203,7 @@ def main(argv=None) -> int:
                 inner = f"{statistics.median(r['engine']):.2f}" if r.get("engine") else "-"
                 print(
                     f"| {ds.n_sensors} x {ds.n_samples} | {name} | {min(t):.2f} | {statistics.median(t):.2f} | {inner} | "
-                    f"{r['verdict']} | `{r['top']}` | {r['calls']}, {r['products']:.3g} |",
+                    f"{r['verdict']} | `{r['top']}` | {r['work']} |",
                     flush=True,
                 )
     print()

@@ -2,9 +2,9 @@
 
 An excluded stretch leaves the kept stamps a regular grid with a hole. The spectrum then needs the Lomb-Scargle
 periodogram, whose direct sums cost ``N x N/2`` products (minutes at 4 x 1e5 samples, against seconds for the
-same diagnosis without the hole). These tests check that such stamps take the FFT of their grid (the same values
-as scipy's periodogram), that the direct sums are not computed at all in a masked diagnosis, and that the
-diagnosis of a masked record still finds the effect hidden in it.
+same diagnosis without the hole). These tests check that such stamps take two FFTs of their grid (the same values
+as scipy's periodogram), that other irregular stamps take a few FFTs of a grid no larger than a few points per
+frequency, and that the diagnosis of a masked record still finds the effect hidden in it.
 """
 
 import numpy as np
@@ -33,17 +33,29 @@ def _excluded(n, start=0.4, stop=0.55):
 
 
 @pytest.fixture
-def direct_sums(monkeypatch):
-    """Counts the direct (``O(N n_freq)``) Lomb-Scargle sums: a list of ``(samples, frequencies)`` per call."""
-    calls = []
-    direct = st._direct_terms
+def transforms(monkeypatch):
+    """Records the grid transforms of the Lomb-Scargle sums (``statistics._grid_sums``): their sizes, in order; and
+    the periodograms asked for (``lomb_scargle_grid``): their samples and frequencies."""
+    seen = {"cells": [], "spectra": []}
+    grid_sums, periodogram = st._grid_sums, st.lomb_scargle_grid
 
-    def counted(t, r, df_hz, n_freq):
-        calls.append((t.size, int(n_freq)))
-        return direct(t, r, df_hz, n_freq)
+    def counted_sums(index, weights, cells):
+        seen["cells"].append(int(cells))
+        return grid_sums(index, weights, cells)
 
-    monkeypatch.setattr(st, "_direct_terms", counted)
-    return calls
+    def counted_periodogram(time_s, r, df_hz, n_freq):
+        seen["spectra"].append((len(time_s), int(n_freq)))
+        return periodogram(time_s, r, df_hz, n_freq)
+
+    monkeypatch.setattr(st, "_grid_sums", counted_sums)
+    monkeypatch.setattr(st, "lomb_scargle_grid", counted_periodogram)
+    return seen
+
+
+def _scipys(t, r):
+    """The spectrum's frequencies (``k / T``) and scipy's periodogram there."""
+    freq = np.arange(1, t.size // 2 + 1) / (t.max() - t.min())
+    return freq, lombscargle(t - t.min(), r, 2 * np.pi * freq)
 
 
 def test_stamp_grid_finds_the_grid_of_a_record_with_holes():
@@ -52,16 +64,17 @@ def test_stamp_grid_finds_the_grid_of_a_record_with_holes():
     keep[::7] = False  # single samples left out as well (rejected outliers)
     m = st.stamp_grid(t[keep])
     np.testing.assert_array_equal(m, np.flatnonzero(keep) - np.flatnonzero(keep)[0])
-    # a stamp written with a few digits (0.01 s stamps rounded to 1e-6 s) is still on its grid
-    assert st.stamp_grid(np.round(t[keep], 6)) is not None
+    # stamps written in whole milliseconds at 75 Hz (intervals of 13 and 14 ms) are on their grid of 1/75 s
+    ms = np.round(np.arange(6000) / 75.0, 3)
+    np.testing.assert_array_equal(st.stamp_grid(ms[_excluded(ms.size)]), np.flatnonzero(_excluded(ms.size)))
     rng = np.random.default_rng(0)
-    assert st.stamp_grid(t + rng.uniform(-0.002, 0.002, t.size)) is None  # jitter of a fifth of the step
+    assert st.stamp_grid(t + rng.uniform(-0.004, 0.004, t.size)) is None  # jitter of 0.4 of the step
     assert st.stamp_grid(t[::-1]) is None  # not increasing
     assert st.stamp_grid(np.r_[t[:10], t[-1] + 1e3]) is None  # ten samples on a grid of 1e5 points
 
 
 @pytest.mark.parametrize("holes", ["range", "range and outliers"])
-def test_lomb_scargle_on_a_grid_with_holes_is_scipys_without_the_direct_sums(holes, direct_sums):
+def test_lomb_scargle_on_a_grid_with_holes_is_two_ffts_of_the_grid(holes, transforms):
     rng = np.random.default_rng(3)
     t = 0.1 * np.arange(6000)
     keep = _excluded(t.size)
@@ -70,34 +83,43 @@ def test_lomb_scargle_on_a_grid_with_holes_is_scipys_without_the_direct_sums(hol
     t = t[keep]
     r = 5.0 * np.sin(2 * np.pi * 0.37 * t + 0.2) + rng.normal(0, 3.0, t.size)
     r -= r.mean()
-    freq = np.arange(1, t.size // 2 + 1) / (t[-1] - t[0])  # the spectrum's grid: k / T
-    expected = lombscargle(t, r, 2 * np.pi * freq)
+    freq, expected = _scipys(t, r)
     got = st.lomb_scargle_grid(t, r, freq[0], freq.size)
-    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9 * expected.max())
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12 * expected.max())
+    assert transforms["cells"] == [5999, 5999]  # the record's own grid, once for r and once for the weights
     # the order of the samples does not matter
     order = rng.permutation(t.size)
     np.testing.assert_allclose(st.lomb_scargle_grid(t[order], r[order], freq[0], freq.size), got, rtol=1e-9)
-    assert direct_sums == []
     spec = st.spectrum(r, t)
     assert spec["method"] == "lomb-scargle" and abs(spec["peak_hz"] - 0.37) <= freq[0]
-    assert direct_sums == []
 
 
-def test_jittered_stamps_keep_the_direct_sums(direct_sums):
+@pytest.mark.parametrize("stamps", ["whole milliseconds, a range excluded", "random", "batched"])
+def test_lomb_scargle_of_other_stamps_is_scipys_from_a_few_ffts(stamps, transforms):
     rng = np.random.default_rng(4)
-    t = np.sort(rng.uniform(0, 40, 700))
-    r = np.sin(2 * np.pi * 0.8 * t) + rng.normal(0, 1, t.size)
+    if stamps == "random":
+        t = np.cumsum(rng.exponential(1 / 50.0, 4000))
+    elif stamps == "batched":  # host arrival times: bursts of 4 samples 2 ms apart
+        t = np.sort(np.concatenate([0.05 * np.arange(1000) + 0.002 * j for j in range(4)]))
+    else:
+        t = np.round(np.arange(4000) / 75.0, 3)[_excluded(4000)]
+    r = np.sin(2 * np.pi * 1.3 * t) + rng.normal(0, 1, t.size)
     r -= r.mean()
-    freq = np.arange(1, 351) / (t[-1] - t[0])
-    np.testing.assert_allclose(
-        st.lomb_scargle_grid(t, r, freq[0], freq.size), lombscargle(t, r, 2 * np.pi * freq), rtol=1e-9, atol=1e-9
-    )
-    assert direct_sums == [(700, 350)]
+    freq, expected = _scipys(t, r)
+    got = st.lomb_scargle_grid(t, r, freq[0], freq.size)
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-12 * expected.max())
+    # a few transforms, each of the stamps' own grid (at most GRID_MAX_FILL points per stamp: the batches' 2 ms) or
+    # of GRID_PER_FREQUENCY points per frequency, where the direct sums were N x n_freq products
+    assert 2 <= len(transforms["cells"]) <= 2 * 20
+    largest = max(st.GRID_MAX_FILL * t.size, 1.25 * st.GRID_PER_FREQUENCY * freq.size)
+    assert max(transforms["cells"]) <= largest
+    if stamps != "random":  # on their own grid: fewer terms
+        assert len(transforms["cells"]) <= 2 * 12
 
 
-def test_masked_diagnosis_finds_the_hidden_interference_without_the_direct_sums(direct_sums):
+def test_masked_diagnosis_finds_the_hidden_interference_from_two_ffts_per_spectrum(transforms):
     """Periodic interference (outside the catalogue) at 0.23 Hz on sensor 3, a time range excluded: the
-    spectrum of the kept samples still names the period, and computes no direct sum."""
+    spectrum of the kept samples still names the period, each from two FFTs of the record's grid."""
     ds = simulate_timeseries(
         chi2017_truth(4),
         n_samples=N,
@@ -113,11 +135,14 @@ def test_masked_diagnosis_finds_the_hidden_interference_without_the_direct_sums(
     assert d.explained_by == []
     periodic = [s for s in d.structure if s.kind == "periodic"]
     assert any(abs(float(s.text.split(" at ")[1].split()[0]) - 0.23) < 0.1 for s in periodic), d.structure
-    assert direct_sums == []  # every spectrum of the kept samples came from their grid
+    # every spectrum of the kept samples (per sensor, for the structure and for the evidence) from their grid
+    kept = int(keep.sum())
+    assert len(transforms["spectra"]) >= 4 and all(n == kept for n, _ in transforms["spectra"])
+    assert transforms["cells"] == [N - 1] * (2 * len(transforms["spectra"]))
 
 
 @pytest.mark.parametrize("name, sensor", [("temperature_bias", 2), ("sensor_timing_skew", None)])
-def test_masked_diagnosis_ranks_the_hidden_effect_first_as_without_the_mask(name, sensor, direct_sums):
+def test_masked_diagnosis_ranks_the_hidden_effect_first_as_without_the_mask(name, sensor, transforms):
     magnitude = EFFECTS[name].default_magnitude * 3.0
     spec = name if sensor is None else f"{name}:{sensor + 1}"
     pert = perturbations.parse_hidden(f"{spec}={magnitude}", 4)
@@ -132,4 +157,4 @@ def test_masked_diagnosis_ranks_the_hidden_effect_first_as_without_the_mask(name
             assert best.sensor == sensor
         assert best.refitted and best.delta_bic < -10
     assert masked.explained_by == whole.explained_by
-    assert direct_sums == []
+    assert len(transforms["cells"]) == 2 * len(transforms["spectra"])  # the whole record's spectra: no transform
