@@ -227,8 +227,9 @@ def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
     largest), computed for a uniform frequency grid from FFTs of the samples placed on a grid
     (:func:`_lomb_scargle_terms`), not from sums over every sample and frequency (``N x n_freq`` products: for 9e4
     samples and half as many frequencies, 145 s on the 2-core development machine under load 4; scipy's own takes
-    seconds for 1e4 samples). For 9e4 samples: 0.013 s on their regular grid with a range excluded, 0.3 s for stamps
-    rounded to whole milliseconds with a range excluded, 0.4-0.7 s for random stamps.
+    seconds for 1e4 samples). For 9e4 samples (same machine, load 3-5): 0.013-0.04 s on their regular grid with a
+    range excluded, 0.27-0.3 s for stamps rounded to whole milliseconds with a range excluded, 0.4-1.2 s for 1e5
+    random stamps.
 
     Parameters
     ----------
@@ -294,8 +295,8 @@ def spectrum(r, time_s=None):
 
     Regular stamps (or none: then frequencies are in cycles per sample) give the FFT periodogram. Irregular
     stamps (:func:`irregular_stamps`: gaps, host arrival times in batches) give the Lomb-Scargle periodogram
-    (:func:`scipy.signal.lombscargle`'s values, :func:`lomb_scargle_grid`: by FFT when the stamps are a regular grid
-    with holes, as a time range excluded leaves them) at the stamps as they are, on a grid of frequencies ``k / T``
+    (:func:`scipy.signal.lombscargle`'s values, from FFTs: :func:`lomb_scargle_grid`; a time range excluded from a
+    regular record leaves such stamps) at the stamps as they are, on a grid of frequencies ``k / T``
     (``T`` the duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for
     the FFT, so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular
     samples puts the peak at the wrong frequency (the median interval is not the sampling interval).
