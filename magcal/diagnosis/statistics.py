@@ -121,7 +121,7 @@ GRID_MAX_FILL = 64
 GRID_PER_FREQUENCY = 8
 
 #: The expansion in a stamp's distance from its grid point stops when its next term is below this (relative to the
-#: sums' scale): the values agree with the direct sums to about 1e-13 of the largest power.
+#: sums' scale): the values agree with scipy's direct sums to about 1e-13 of the largest power.
 EXPANSION_TOLERANCE = 1e-10
 
 
@@ -179,8 +179,8 @@ def _lomb_scargle_terms(t, r, df_hz, n_freq):
     whole number of periods (the spectrum's ``k / T``), else :data:`GRID_PER_FREQUENCY` points per frequency. With
     ``m_j`` a stamp's grid point and ``d_j`` its distance from it (s), ``exp(i w t_j) = exp(2 pi i k m_j / L)
     sum_p (i w d_j)^p / p!``: term ``p`` is the transform of ``r d^p`` at index ``k mod L``. Terms are added until
-    the next is below :data:`EXPANSION_TOLERANCE`: one for stamps on their grid (an excluded range), about 11 for
-    stamps rounded to whole milliseconds, 17 for random stamps.
+    the next is below :data:`EXPANSION_TOLERANCE`: one or two for stamps on their grid (an excluded range; the second
+    for the stamps' rounding in long records), about 8 for stamps rounded to whole milliseconds, 13 for random ones.
     """
     k = np.arange(1, int(n_freq) + 1)
     m = stamp_grid(t)
