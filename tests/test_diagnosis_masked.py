@@ -158,3 +158,9 @@ def test_masked_diagnosis_ranks_the_hidden_effect_first_as_without_the_mask(name
         assert best.refitted and best.delta_bic < -10
     assert masked.explained_by == whole.explained_by
     assert len(transforms["cells"]) == 2 * len(transforms["spectra"])  # the whole record's spectra: no transform
+
+
+def test_lomb_scargle_of_a_missing_stamp_is_no_value():
+    t = np.r_[0.1 * np.arange(100), np.nan]
+    power = st.lomb_scargle_grid(t, np.ones(t.size), 0.1, 50)
+    assert power.shape == (50,) and np.all(np.isnan(power))

@@ -255,6 +255,8 @@ def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
     n = t.size
     if n == 0 or int(n_freq) < 1:
         return np.zeros(max(int(n_freq), 0))
+    if not np.all(np.isfinite(t)):  # no grid holds a missing stamp: no value, as the sums over it would give
+        return np.full(int(n_freq), np.nan)
     t = t - t[0]
     yz, z2 = _lomb_scargle_terms(t, r, float(df_hz), int(n_freq))
     rot = np.exp(-0.5j * np.angle(z2))
