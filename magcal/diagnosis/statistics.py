@@ -106,13 +106,130 @@ def irregular_stamps(time_s) -> bool:
     return bool(np.max(np.abs(t - (intercept + slope * i))) > IRREGULAR_DEVIATION * slope)
 
 
+#: Stamps lie on a regular grid with holes (:func:`stamp_grid`) when each is within this fraction of the grid's step
+#: of its grid point (stamps written with a few digits: 75 Hz in whole milliseconds are within 0.04). The
+#: Lomb-Scargle sums are then transforms of that grid; how far a stamp is from its point is corrected exactly
+#: (:func:`_lomb_scargle_terms`), so this decides only which grid is used, not the values.
+GRID_TOLERANCE = 0.25
+
+#: Most grid points per sample :func:`stamp_grid` accepts (a few samples kept from a long record take the finer grid
+#: of the frequencies instead of a grid mostly empty).
+GRID_MAX_FILL = 64
+
+#: Points per frequency of the grid that any other stamps are placed on (:func:`_lomb_scargle_terms`): the phase a
+#: stamp's distance from its grid point adds is then at most ``pi / 4`` at twice the highest frequency.
+GRID_PER_FREQUENCY = 8
+
+#: The expansion in a stamp's distance from its grid point stops when its next term is below this (relative to the
+#: sums' scale): the values agree with scipy's direct sums to about 1e-13 of the largest power.
+EXPANSION_TOLERANCE = 1e-10
+
+
+def stamp_grid(time_s):
+    """Grid indices of stamps that lie on a regular grid with holes (a regular record with samples left out: an
+    excluded time range, rejected outliers), or None.
+
+    The step is the record's duration over the whole number of typical intervals it spans (the mean of the intervals
+    shorter than 1.5 times the median, else the shortest), so the first and last stamps are grid points exactly;
+    every other stamp must be within :data:`GRID_TOLERANCE` of a step of its grid point, one stamp per point, and
+    the grid may hold at most :data:`GRID_MAX_FILL` points per stamp.
+
+    Parameters
+    ----------
+    time_s : array_like, shape (N,)
+        Sample times, s, increasing.
+
+    Returns
+    -------
+    numpy.ndarray of int64, shape (N,), or None
+        ``m`` with ``time_s ~= time_s[0] + m * (time_s[-1] - time_s[0]) / m[-1]``, ``m[0] = 0``; None when the
+        stamps are not increasing, fewer than 3, or not on such a grid (jitter, batches of host arrival times).
+    """
+    t = np.asarray(time_s, dtype=float)
+    if t.size < 3:
+        return None
+    dt = np.diff(t)
+    if not np.all(dt > 0):
+        return None
+    duration = float(t[-1] - t[0])
+    typical = dt[dt < 1.5 * float(np.median(dt))]
+    for interval in (float(typical.mean()) if typical.size else float(dt.min()), float(dt.min())):
+        cells = round(duration / interval)
+        if cells < 1 or cells > GRID_MAX_FILL * t.size:
+            continue
+        step = duration / cells
+        m = np.rint((t - t[0]) / step).astype(np.int64)
+        if np.max(np.abs((t - t[0]) - m * step)) <= GRID_TOLERANCE * step and np.all(np.diff(m) > 0):
+            return m
+    return None
+
+
+def _grid_sums(index, weights, cells):
+    """``sum_j weights_j exp(+2 pi i q index_j / cells)`` for ``q = 0..cells-1``: the weights added on a grid of
+    ``cells`` points (several on one point add up) and transformed (one FFT, ``O(cells log cells)``)."""
+    return np.conj(scipy.fft.fft(np.bincount(index, weights=weights, minlength=cells)))
+
+
+def _lomb_scargle_terms(t, r, df_hz, n_freq):
+    """``sum r exp(i w t)`` and ``sum exp(2 i w t)`` (complex, shape (n_freq,)) at ``w = 2 pi k df_hz``,
+    ``k = 1..n_freq``, for increasing ``t`` starting at 0, from transforms of a grid (no sum over every sample and
+    frequency).
+
+    The grid has ``L`` points per period ``1 / df_hz``: the stamps' own grid (:func:`stamp_grid`) when it spans a
+    whole number of periods (the spectrum's ``k / T``), else :data:`GRID_PER_FREQUENCY` points per frequency. With
+    ``m_j`` a stamp's grid point and ``d_j`` its distance from it (s), ``exp(i w t_j) = exp(2 pi i k m_j / L)
+    sum_p (i w d_j)^p / p!``: term ``p`` is the transform of ``r d^p`` at index ``k mod L``. Terms are added until
+    the next is below :data:`EXPANSION_TOLERANCE`: one or two for stamps on their grid (an excluded range; the second
+    for the stamps' rounding in long records), about 8 for stamps rounded to whole milliseconds, 13 for random ones.
+    """
+    k = np.arange(1, int(n_freq) + 1)
+    m = stamp_grid(t)
+    periods = round(float(t[-1]) * df_hz) if t.size else 0
+    on_grid = (
+        m is not None
+        and periods >= 1
+        and abs(float(t[-1]) * df_hz - periods) <= 1e-9 * periods
+        and int(m[-1]) % periods == 0
+    )
+    if on_grid and m is not None:
+        cells = int(m[-1]) // periods
+        step = 1.0 / (df_hz * cells)
+    else:
+        cells = scipy.fft.next_fast_len(GRID_PER_FREQUENCY * k.size)
+        step = 1.0 / (df_hz * cells)
+        m = np.rint(t / step).astype(np.int64)
+    d = t - m * step  # s, at most half a step
+    index = m % cells
+    w = 2.0 * np.pi * df_hz * k
+    largest = 2.0 * float(w[-1]) * float(np.max(np.abs(d)))  # the largest |2 w d|: the expansion's argument
+    yz = np.zeros(k.size, dtype=complex)
+    z2 = np.zeros(k.size, dtype=complex)
+    weights_r, weights_1 = np.array(r, dtype=float), np.ones(t.size)
+    factor_r, factor_2 = np.ones(k.size, dtype=complex), np.ones(k.size, dtype=complex)
+    p, bound = 0, 1.0
+    while True:
+        yz += factor_r * _grid_sums(index, weights_r, cells)[k % cells]
+        z2 += factor_2 * _grid_sums(index, weights_1, cells)[(2 * k) % cells]
+        p += 1
+        bound *= largest / p  # largest^p / p!
+        if bound <= EXPANSION_TOLERANCE:
+            return yz, z2
+        factor_r = factor_r * (1j * w) / p
+        factor_2 = factor_2 * (2j * w) / p
+        weights_r = weights_r * d
+        weights_1 = weights_1 * d
+
+
 def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
     """Lomb-Scargle periodogram of ``r`` at the frequencies ``df_hz, 2 df_hz, ... n_freq df_hz``.
 
-    The classical (unnormalised) periodogram of :func:`scipy.signal.lombscargle` (same values), computed for
-    a uniform frequency grid by recurrence: ``exp(i 2 pi k df t)`` is the ``k``-th power of
-    ``exp(i 2 pi df t)``, so each frequency costs a few products of length ``N`` instead of ``N`` sines and
-    cosines (scipy's takes seconds on a record of 10 000 samples).
+    The classical (unnormalised) periodogram of :func:`scipy.signal.lombscargle` (same values to about 1e-13 of the
+    largest), computed for a uniform frequency grid from FFTs of the samples placed on a grid
+    (:func:`_lomb_scargle_terms`), not from sums over every sample and frequency (``N x n_freq`` products: for 9e4
+    samples and half as many frequencies, 145 s on the 2-core development machine under load 4; scipy's own takes
+    seconds for 1e4 samples). For 9e4 samples (same machine, load 3-5): 0.013-0.04 s on their regular grid with a
+    range excluded, 0.27-0.3 s for stamps rounded to whole milliseconds with a range excluded, 0.4-1.2 s for 1e5
+    random stamps.
 
     Parameters
     ----------
@@ -132,25 +249,21 @@ def lomb_scargle_grid(time_s, r, df_hz, n_freq) -> np.ndarray:
         with ``tan 2 w tau = sum sin 2wt / sum cos 2wt``, nT^2.
     """
     t = np.asarray(time_s, dtype=float)
-    t = t - t.min()
     r = np.asarray(r, dtype=float)
+    order = np.argsort(t, kind="stable")  # the sums do not depend on the order; the grid is found in time order
+    t, r = t[order], r[order]
     n = t.size
-    step = np.exp(2j * np.pi * df_hz * t)
-    z = np.ones(n, dtype=complex)
-    out = np.empty(int(n_freq))
-    for k in range(int(n_freq)):
-        z *= step
-        if k % 64 == 63:  # renormalise now and then: the recurrence's rounding grows the modulus slowly
-            z /= np.abs(z)
-        yz = r @ z  # sum r cos wt + i sum r sin wt
-        z2 = np.sum(z * z)  # sum cos 2wt + i sum sin 2wt
-        two_tau = np.angle(z2)
-        rot = np.exp(-0.5j * two_tau)
-        yc, ys = (yz * rot).real, (yz * rot).imag
-        cc = 0.5 * n + 0.5 * abs(z2)
-        ss = n - cc
-        out[k] = 0.5 * (yc * yc / max(cc, 1e-300) + ys * ys / max(ss, 1e-300))
-    return out
+    if n == 0 or int(n_freq) < 1:
+        return np.zeros(max(int(n_freq), 0))
+    if not np.all(np.isfinite(t)):  # no grid holds a missing stamp: no value, as the sums over it would give
+        return np.full(int(n_freq), np.nan)
+    t = t - t[0]
+    yz, z2 = _lomb_scargle_terms(t, r, float(df_hz), int(n_freq))
+    rot = np.exp(-0.5j * np.angle(z2))
+    yc, ys = (yz * rot).real, (yz * rot).imag
+    cc = 0.5 * n + 0.5 * np.abs(z2)
+    ss = n - cc
+    return 0.5 * (yc * yc / np.maximum(cc, 1e-300) + ys * ys / np.maximum(ss, 1e-300))
 
 
 def fft_periodogram(r, fs: float = 1.0):
@@ -184,10 +297,11 @@ def spectrum(r, time_s=None):
 
     Regular stamps (or none: then frequencies are in cycles per sample) give the FFT periodogram. Irregular
     stamps (:func:`irregular_stamps`: gaps, host arrival times in batches) give the Lomb-Scargle periodogram
-    (:func:`scipy.signal.lombscargle`) at the stamps as they are, on a grid of frequencies ``k / T`` (``T`` the
-    duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for the FFT,
-    so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular samples
-    puts the peak at the wrong frequency (the median interval is not the sampling interval).
+    (:func:`scipy.signal.lombscargle`'s values, from FFTs: :func:`lomb_scargle_grid`; a time range excluded from a
+    regular record leaves such stamps) at the stamps as they are, on a grid of frequencies ``k / T``
+    (``T`` the duration) up to the mean Nyquist frequency ``N / (2 T)``: one independent frequency per bin, as for
+    the FFT, so the g-test and the peak's share of the variance mean the same. A uniform periodogram of irregular
+    samples puts the peak at the wrong frequency (the median interval is not the sampling interval).
 
     Returns
     -------
