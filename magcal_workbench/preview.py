@@ -15,6 +15,10 @@ from magcal.data import io as mio
 
 from . import scene as scn
 
+#: Most lines a preview reads: a record of up to this many samples is previewed whole (and its raw clouds are
+#: then not sent again); a larger one is drawn from this many lines spread through it until the whole is read.
+PREVIEW_ROWS = 10_000
+
 
 def preview_model(dataset) -> scn.SceneModel:
     """The scene of ``dataset`` before any fit: its raw clouds scaled by the record's field (what the workbench's
@@ -47,16 +51,17 @@ def draw_preview(server, path, max_points: int = scn.MAX_POINTS):
     path : str
         The data file. Every CSV is previewed, a small one too: the preview needs only the reader and the scene,
         so its picture comes before the engine's other parts are imported (about a second); a file of at most
-        ``max_points`` lines is previewed whole, and the workbench then sends none of its points again.
+        :data:`PREVIEW_ROWS` (and ``max_points``) lines is previewed whole, and the workbench then sends none of its points again.
     max_points : int
-        Most samples previewed (the workbench's ``--max-points``).
+        The workbench's ``--max-points``: at most this many (and :data:`PREVIEW_ROWS`) samples previewed.
 
     Returns
     -------
     tuple of (magcal_workbench.scene.SceneView, int) or None
         The scene drawn and the number of samples in it; None when no preview was taken.
     """
-    ds = mio.read_csv_preview(path, max_rows=max_points, min_bytes=0)  # any size: see ``path`` above
+    # any size (see ``path`` above), at most PREVIEW_ROWS lines: the browser paints fewer points sooner
+    ds = mio.read_csv_preview(path, max_rows=min(max_points, PREVIEW_ROWS), min_bytes=0)
     if ds is None:
         return None
     view = scn.SceneView(server, max_points=max_points)

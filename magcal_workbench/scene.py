@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
-import trimesh
 from viser.transforms import SO3
 
 from magcal.core import conventions
@@ -203,14 +202,22 @@ def ellipsoid_mesh(cinv, bias_nT, field_nT, gain: float = 1.0, subdivisions: int
     ``C = (C^-1)^-1`` maps the reference sphere back onto the raw readings; the result is exaggerated with
     :func:`exaggerate_radial` so it lies on the equally exaggerated raw cloud.
     """
-    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    sphere = _icosphere(subdivisions)
     c = np.linalg.inv(np.asarray(cinv, dtype=float))
     v = (np.asarray(bias_nT, float) / field_nT)[None, :] + np.asarray(sphere.vertices) @ c.T
     return exaggerate_radial(v, gain), np.asarray(sphere.faces, dtype=np.int32)
 
 
+def _icosphere(subdivisions: int):
+    """The unit icosphere (trimesh's), imported when first drawn: the launch's preview draws no mesh and comes
+    first (trimesh's import costs about 0.3 s; issue 44)."""
+    import trimesh
+
+    return trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+
+
 def sphere_mesh(subdivisions: int = 2):
-    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    s = _icosphere(subdivisions)
     return np.asarray(s.vertices), np.asarray(s.faces, dtype=np.int32)
 
 
