@@ -23,6 +23,7 @@ from magcal.core.errors import MagcalError
 from . import motion
 from .actions import action
 from .panels import summary_markdown
+from .parts import PagePart
 from .plots import FieldRecord, histogram_figure, magnitude_figure, record_key, table_figures
 from .timewindow import sample_times
 
@@ -85,7 +86,7 @@ def live_record(live) -> FieldRecord | None:
     )
 
 
-class Cockpit:
+class Cockpit(PagePart):
     """The compact table and the Calibrate tab's plots.
 
     Handed what it uses (issue 43 item 5).
@@ -114,14 +115,6 @@ class Cockpit:
         self.n_built = 0
         #: Redraws made (the tests and benchmarks read it).
         self.n_draws = 0
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def _live(self):
         live = self._live_view()

@@ -9,6 +9,7 @@ import os
 from magcal.core.errors import MagcalError
 
 from .actions import action
+from .parts import PagePart
 from .plots import evidence_figure, evidence_image
 from .timewindow import sample_times
 
@@ -16,7 +17,7 @@ from .timewindow import sample_times
 PANELS_ASPECT = 3.0
 
 
-class Evidence:
+class Evidence(PagePart):
     """The evidence plots of the current fit.
 
     Handed what it uses (issue 43 item 5).
@@ -41,14 +42,6 @@ class Evidence:
         self.window, self.maps, self.downloads, self.server = window, maps, downloads, server
         #: The Model tab's plotly handle (made at the first fit).
         self.plot = None
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def band(self):
         """The time window's bounds (s) shaded on the plots, or None when the window is off."""

@@ -50,6 +50,7 @@ from .actions import action
 from .dataio import canonical_csv
 from .live import recording_folder
 from .markup import hide_paths, safe_code, safe_text
+from .parts import PagePart
 
 #: The firmwares *Send to vehicle* offers.
 FIRMWARES = ("ardupilot", "px4")
@@ -161,7 +162,7 @@ class ExportSection:
         self.btn_confirm.visible = self.btn_cancel.visible = mavlink and pending
 
 
-class Exporting:
+class Exporting(PagePart):
     """The Export section's actions (``do_*``, found by :meth:`magcal_workbench.app.Workbench._actions`).
 
     Handed what it uses (issue 43 item 5).
@@ -194,14 +195,6 @@ class Exporting:
         #: The previewed send: url, firmware, values, and when (the Confirm click writes only these).
         self._pending: dict | None = None
         self._lock = threading.Lock()
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     # --- wiring --------------------------------------------------------------------------------------------
     def attach(self, section: ExportSection, live_source) -> None:

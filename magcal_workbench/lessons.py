@@ -25,6 +25,7 @@ from magcal.core.errors import MagcalError
 from .actions import action
 from .dataio import load_dataset
 from .markup import clean_text, safe_text
+from .parts import PagePart
 
 
 def _assets_folder() -> Path:
@@ -238,7 +239,7 @@ def lesson_slugs() -> tuple:
     return tuple(lesson.slug for lesson in list_lessons()) or ("-",)
 
 
-class LessonDesk:
+class LessonDesk(PagePart):
     """The Lessons tab's actions: open a lesson, check the model against its answer, show the answer.
 
     Handed what it uses (issue 43 item 5).
@@ -263,14 +264,6 @@ class LessonDesk:
     def __init__(self, *, ctrl, panels, gravity, values, ui, load, say_after_load) -> None:
         self._ctrl, self._panels, self._gravity = ctrl, panels, gravity
         self.values, self.ui, self.load, self.say_after_load = values, ui, load, say_after_load
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def show_guide(self, lesson: Lesson) -> None:
         self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"

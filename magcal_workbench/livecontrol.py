@@ -13,9 +13,10 @@ from .controller import MESSAGE_LEN
 from .dataio import load_dataset
 from .live import LiveView, SourceMenu, default_recording_path, recording_folder, shown_name
 from .markup import safe_code, safe_text
+from .parts import PagePart
 
 
-class LiveControl:
+class LiveControl(PagePart):
     """Starts and stops the live session; :attr:`view` is the session while one is open or after it stopped.
 
     Handed what it uses (issue 43 item 5).
@@ -71,14 +72,6 @@ class LiveControl:
         self.view: LiveView | None = None
         self._claim = threading.Lock()
         self._starting = False
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     @property
     def running(self) -> bool:

@@ -16,11 +16,12 @@ from .actions import action
 from .controller import MESSAGE_LEN, Controller, unsaved_problem
 from .dataio import load_dataset
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .parts import PagePart
 from .sessionfile import SessionFileError
 from .state import SessionState
 
 
-class Sessions:
+class Sessions(PagePart):
     """Opens data as a session of the store (or unsaved without one) and acts on the saved sessions.
 
     Handed what it uses (issue 43 item 5).
@@ -49,14 +50,6 @@ class Sessions:
         self._ctrl, self._panels = ctrl, panels
         self.store, self.effects_files, self.worker, self.values = store, effects_files, worker, values
         self.load, self.say_after_load = load, say_after_load
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def make_controller(self, dataset, content, name, resume, lesson) -> Controller:
         """A controller for ``dataset``: its saved session when ``resume`` and one exists, else a fresh state;

@@ -15,9 +15,10 @@ from magcal.core.errors import MagcalError
 
 from .actions import action
 from .markup import safe_text
+from .parts import PagePart
 
 
-class Steps:
+class Steps(PagePart):
     """The Calibrate, Model and Outliers tabs' actions.
 
     Handed what it uses (issue 43 item 5).
@@ -43,14 +44,6 @@ class Steps:
         self.values, self.worker, self.effects_gate = values, worker, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def _step(self, name, step) -> bool:
         """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""

@@ -16,6 +16,7 @@ from .actions import action
 from .controller import MESSAGE_LEN
 from .dataio import canonical_csv, page_words, read_bytes_dataset
 from .markup import clean_text, safe_code, safe_text
+from .parts import PagePart
 
 #: Longest uploaded file name kept, characters (the rest is cut; a file system allows 255 bytes).
 MAX_NAME_CHARS = 120
@@ -37,7 +38,7 @@ def clean_upload_name(name) -> str:
     return base
 
 
-class Uploads:
+class Uploads(PagePart):
     """Reads what the page uploads into the workbench (:meth:`Workbench.load`).
 
     Handed what it uses (issue 43 item 5).
@@ -78,14 +79,6 @@ class Uploads:
         self.part_handler = None
         self._received: dict[str, int] = {}  # bytes received so far per upload in flight
         self._received_lock = threading.Lock()
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     def too_large(self, name: str, size_bytes: int) -> str | None:
         """Why an upload of ``size_bytes`` is refused, or None."""

@@ -25,6 +25,7 @@ from magcal.data.attitude import wxyz_rotation
 
 from .actions import action
 from .events import Change
+from .parts import PagePart
 from .timewindow import sample_times
 
 #: Rotation NED -> scene (z up): north -> +x, east -> -y, down -> -z (180 deg about north; a proper rotation).
@@ -175,7 +176,7 @@ def euler_deg(attitude_wxyz) -> tuple[float, float, float]:
 
 
 # --- drawing and actions --------------------------------------------------------------------------------------
-class VehicleView:
+class VehicleView(PagePart):
     """Draws the vehicle view and runs the vector model's page actions (the vector fit, the typed location).
 
     Handed what it uses (issue 43 item 5).
@@ -216,14 +217,6 @@ class VehicleView:
         self.shown: dict | None = None  # what the last redraw drew: sample, vectors, arrows (for tests and text)
         self._lock = threading.RLock()
         self._static_drawn = False
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     @property
     def _panel(self):

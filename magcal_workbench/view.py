@@ -18,6 +18,7 @@ from . import scene as scn
 from .actions import action
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
+from .parts import PagePart
 from .timewindow import sample_times
 
 #: Without attitude, the tilt ring is sought in the directions of the latest samples: at most this many ...
@@ -56,7 +57,7 @@ def ring_directions(dataset, corrected_nT, current: int | None):
     return motion.ring_from_directions(np.asarray(corrected_nT)[recent])
 
 
-class SceneControl:
+class SceneControl(PagePart):
     """The scene, the camera, pointer events and the View tab's actions.
 
     Handed what it uses, no more (issue 43 item 5): the parts made before it as they are, those made after it or
@@ -90,14 +91,6 @@ class SceneControl:
         self.evidence = evidence
         self._lock = threading.RLock()
         self._last_evidence_t = 0.0
-
-    @property
-    def ctrl(self):
-        return self._ctrl()
-
-    @property
-    def panels(self):
-        return self._panels()
 
     @property
     def scene_view(self):
