@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,20 +31,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from page_latency import simulate  # the same simulated records (this folder is on the path when run)
 
 #: The Exclude range sliders' defaults, as shares of the record.
 RANGE = (0.40, 0.50)
-
-
-def simulate(n: int, folder: Path) -> Path:
-    path = folder / f"sim{n}.csv"
-    if not path.exists():
-        subprocess.run(
-            [sys.executable, "-m", "magcal", "simulate", "--timeseries", "--n", str(n), "--seed", "3", "-o", str(path)],
-            check=True,
-            capture_output=True,
-        )
-    return path
 
 
 def direct_terms(t, r, df_hz, n_freq):
