@@ -36,9 +36,7 @@ def preview_model(dataset) -> scn.SceneModel:
         baseline_m=dataset.baseline_m,
         show_corrected=False,
         # the gain the workbench will choose: a preview of the whole record is then its scene, sent once
-        distortion_gain=scn.distortion_gain(dataset.readings_nT, field_nT)
-        if np.isfinite(field_nT) and field_nT > 0
-        else scn.DISTORTION_GAIN_MAX,
+        distortion_gain=scn.distortion_gain(dataset.readings_nT, field_nT),
     )
 
 

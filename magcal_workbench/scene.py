@@ -178,13 +178,16 @@ def distortion_gain(readings_nT, field_nT: float) -> float:
     readings_nT : array_like, shape (..., 3)
         Raw readings, nT.
     field_nT : float
-        The field the clouds are scaled by, nT (positive).
+        The field the clouds are scaled by, nT.
 
     Returns
     -------
     float
-        The gain, rounded to 0.1 below 1 and to a whole number above.
+        The gain, rounded to 0.1 below 1 and to a whole number above; :data:`DISTORTION_GAIN_MAX` when there is no
+        field to scale by (an all-zero file).
     """
+    if not (np.isfinite(field_nT) and field_nT > 0):
+        return DISTORTION_GAIN_MAX
     depart = np.abs(np.linalg.norm(np.asarray(readings_nT, dtype=float), axis=-1) / float(field_nT) - 1.0).ravel()
     depart = depart[np.isfinite(depart)]
     typical, largest = (float(np.median(depart)), float(np.percentile(depart, 99))) if depart.size else (0.0, 0.0)

@@ -612,3 +612,11 @@ def test_the_distortion_gain_draws_the_typical_departure_at_a_set_share_of_the_r
     wild = (F * (1 + departure) * u).copy()
     wild[0, :3] *= 3.0
     assert scn.distortion_gain(wild, F) == pytest.approx(gain)
+
+
+@pytest.mark.parametrize("field_nT", [0.0, float("nan")])
+def test_the_distortion_gain_without_a_field_to_scale_by_is_the_default(field_nT):
+    """An all-zero file has no field: the preview and the View tab then draw at the largest default gain."""
+    from magcal_workbench import scene as scn
+
+    assert scn.distortion_gain(np.zeros((4, 10, 3)), field_nT) == scn.DISTORTION_GAIN_MAX
