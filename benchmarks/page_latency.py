@@ -9,6 +9,9 @@ For each record size it times, from the click (or the launch) to what the page s
 * launch -> address printed, launch -> page with the Total-field RMS, launch -> first picture (the scene's
   points drawn: the page has received the point clouds and painted two frames since), launch -> whole page (the
   workbench built, the Calibrate tab's two plotly figures drawn, and the first picture);
+* launch -> the page's first line (the launcher sends "loading FILE..." when it prints the address: the time the
+  page shows it is the browser's own start), and the megabytes the page received before the RMS (as playwright
+  hands them on, to within its polling);
 * Run -> the new ``calibrate (ML)`` message line; Exclude range -> the refit's line; Diagnose -> the verdict's
   line; Add (the top candidate) -> the refit's line; and, for each, until the slow parts (held-out RMS) are shown.
 
@@ -150,6 +153,12 @@ RMS_SEEN_JS = """(() => {
       observer.disconnect();
     }
   };
+  const first = () => {  // the page's first line from the server (the launcher's "loading ..."): its own start
+    if (!window.__magcalFirstLine && document.body && /loading|Total-field RMS/.test(document.body.textContent)) {
+      window.__magcalFirstLine = performance.timeOrigin + performance.now();
+    }
+  };
+  new MutationObserver(first).observe(document, {childList: true, subtree: true, characterData: true});
   const observer = new MutationObserver(look);
   const start = () => observer.observe(document.documentElement, {childList: true, subtree: true, characterData: true});
   if (document.documentElement) start(); else document.addEventListener('readystatechange', start, {once: true});
@@ -168,6 +177,11 @@ def open_page(browser, server: Server) -> tuple:
     page (the workbench built, the Calibrate tab's figures drawn, the clouds painted)."""
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.add_init_script(RMS_SEEN_JS)
+    frames: list[tuple[float, int]] = []  # (arrival since the launch, bytes) of the server's websocket messages
+    page.on(
+        "websocket",
+        lambda ws: ws.on("framereceived", lambda data: frames.append((time.perf_counter() - server.t0, len(data)))),
+    )
     page.goto(server.url, wait_until="domcontentloaded")
     page.wait_for_function("() => !document.body.innerText.includes('Connecting')", timeout=600_000)
     # the scene's clouds: viser draws points once the scene messages have arrived; two frames after that
@@ -187,6 +201,12 @@ def open_page(browser, server: Server) -> tuple:
     # the RMS may have been shown before the picture was painted)
     seen_ms = page.evaluate("window.__magcalRmsSeen")
     t_rms = seen_ms / 1000 - server.epoch0 if seen_ms else time.perf_counter() - server.t0
+    first_ms = page.evaluate("window.__magcalFirstLine")
+    timeline = {
+        # the browser's own start: the launcher sends this line at the address, the page shows it this late
+        "page's first line": first_ms / 1000 - server.epoch0 if first_ms else float("nan"),
+        "MB received before the RMS": sum(n for t, n in frames if t <= t_rms) / 1e6,
+    }
     # the launcher's status line ("loading FILE...") goes once the workbench is built: the clicks start then
     page.wait_for_function(
         "() => !/loading [^\\n]*\\.\\.\\./.test(document.body.innerText)", timeout=600_000, polling=50
@@ -194,7 +214,7 @@ def open_page(browser, server: Server) -> tuple:
     # the whole page: built (the line above gone), the Calibrate tab's two figures drawn, the clouds painted
     page.wait_for_function(PLOTS_DRAWN_JS, timeout=600_000, polling=20)
     t_whole = max(time.perf_counter() - server.t0, t_pic)
-    return page, t_rms, t_pic, t_whole
+    return page, t_rms, t_pic, t_whole, timeline
 
 
 def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
@@ -202,7 +222,10 @@ def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
     out: dict[str, float] = {"address printed": server.t_url}
     page = None
     try:
-        page, out["first page with the RMS"], out["first picture"], out["whole page"] = open_page(browser, server)
+        page, out["first page with the RMS"], out["first picture"], out["whole page"], timeline = open_page(
+            browser, server
+        )
+        out.update(timeline)
         print(f"  launch: {out}", file=sys.stderr)
         if not clicks:
             return out

@@ -23,8 +23,11 @@ def _write(path, n, newline="\n", bad_row=None):
     return path
 
 
+@pytest.mark.parametrize("by_offsets", [False, True])
 @pytest.mark.parametrize("newline", ["\n", "\r\n"])
-def test_the_preview_is_an_even_ordered_sample_of_the_file_s_own_rows(tmp_path, newline):
+def test_the_preview_is_an_even_ordered_sample_of_the_file_s_own_rows(tmp_path, monkeypatch, newline, by_offsets):
+    if by_offsets:  # the file is read as a large one: by seeking to evenly spaced offsets
+        monkeypatch.setattr(mio, "PREVIEW_WHOLE_BYTES", 0)
     path = _write(tmp_path / "big.csv", 20_000, newline)
     full = mio.read_csv(path)
     ds = mio.read_csv_preview(path, max_rows=500, min_bytes=0)
@@ -55,3 +58,16 @@ def test_a_preview_asking_for_more_rows_than_the_file_has_reads_every_row_once(t
     ds = mio.read_csv_preview(path, max_rows=10_000, min_bytes=0)
     assert ds is not None and ds.n_samples == 300
     np.testing.assert_allclose(ds.readings_nT, mio.read_csv(path).readings_nT)
+
+
+@pytest.mark.parametrize("n_rows", [1_000, 1_001, 3_000])
+def test_a_file_of_about_max_rows_lines_of_unequal_lengths_gives_exactly_max_rows_of_them(tmp_path, n_rows):
+    """A record of at most ``max_rows`` lines is previewed whole however long its lines are (the workbench then
+    sends none of its points again); a longer one gives exactly ``max_rows`` rows, evenly spaced by index."""
+    path = _write(tmp_path / "few.csv", n_rows)  # times 0.0 ... 99.9 then 100.0 ...: lines of unequal lengths
+    ds = mio.read_csv_preview(path, max_rows=1_000, min_bytes=0)
+    assert ds is not None and ds.n_samples == 1_000
+    rows = np.rint(ds.time_s / 0.1).astype(int)
+    expected = np.linspace(0, n_rows - 1, 1_000).round().astype(int)
+    np.testing.assert_array_equal(rows, expected)  # the first and last rows, the rest evenly between
+    np.testing.assert_allclose(ds.readings_nT[0], mio.read_csv(path).readings_nT[0][expected])

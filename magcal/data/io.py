@@ -1422,15 +1422,20 @@ def _read_any(path, columns, units, drop_bad, min_samples, chunk_rows, name, lsb
 PREVIEW_MIN_BYTES = 8_000_000
 #: Bytes read at each offset of a preview (a longer line is read on).
 PREVIEW_BLOCK_BYTES = 2048
+#: Data up to this size (bytes) are previewed from all their lines (read at once: a few milliseconds), every
+#: ``n / max_rows``-th line, so that a record of at most ``max_rows`` lines is previewed whole; a larger file by
+#: seeking to evenly spaced offsets, whose lines (of unequal lengths) are spread about as evenly.
+PREVIEW_WHOLE_BYTES = 16_000_000
 
 
 def read_csv_preview(path, max_rows=20_000, columns=None, units=None, name=None, lsb_nT=None, min_bytes=None):
     """A quick look at a large CSV: at most ``max_rows`` data lines spread evenly through the file, read without
     reading the rest (an interactive program draws them while :func:`read_csv` reads the whole file).
 
-    The head (metadata, header) is the file's own; the lines are found by seeking to evenly spaced byte offsets
-    and taking the first whole line after each, so the preview spans the whole recording in order, every
-    ``~size / max_rows`` bytes. It is a picture, not data to fit: anything that :func:`read_csv` would warn about
+    The head (metadata, header) is the file's own. Data of at most :data:`PREVIEW_WHOLE_BYTES` are read at once
+    and every ``n / max_rows``-th of their ``n`` lines is taken (all of them when ``n <= max_rows``); in a larger
+    file the lines are found by seeking to evenly spaced byte offsets and taking the first whole line after each.
+    Either way the preview spans the whole recording in order. It is a picture, not data to fit: anything that :func:`read_csv` would warn about
     or refuse makes it None (the whole read then says so, naming the line).
 
     Parameters
@@ -1463,32 +1468,10 @@ def read_csv_preview(path, max_rows=20_000, columns=None, units=None, name=None,
         with open(os.fspath(path), "rb") as fh:
             head = b"".join(fh.readline() for _ in range(header_line))
             start = len(head)
-            step = max((size - start) // int(max_rows), 1)
-            lines, last_end = [], start
-            for pos in range(start, size, step):
-                # the first line that starts at or after pos: from the byte before it, past its newline
-                fh.seek(pos - 1)
-                block = fh.read(PREVIEW_BLOCK_BYTES)
-                cut = block.find(b"\n")
-                if cut < 0:
-                    return None  # a line longer than the block: the whole read names it
-                line_start = pos + cut
-                if line_start < last_end or line_start >= size:
-                    continue  # the line taken last (a line longer than the step), or the end of the file
-                block = block[cut + 1 :]
-                end = block.find(b"\n")
-                if end < 0 and line_start + len(block) < size:  # the line goes on past the block
-                    fh.seek(line_start)
-                    block = fh.read(MAX_LINE_BYTES)
-                    end = block.find(b"\n")
-                    if end < 0 and line_start + len(block) < size:
-                        return None
-                if end < 0:
-                    end = len(block)  # the file's last line, without a newline
-                line = block[:end].rstrip(b"\r")
-                if line.strip():
-                    lines.append(line + b"\n")
-                last_end = line_start + end + 1
+            if size - start <= PREVIEW_WHOLE_BYTES:
+                lines = _every_kth_line(fh.read(), int(max_rows))
+            else:
+                lines = _lines_at_offsets(fh, start, size, int(max_rows))
         if not lines:
             return None
         ds = read_csv(
@@ -1502,6 +1485,48 @@ def read_csv_preview(path, max_rows=20_000, columns=None, units=None, name=None,
     except (OSError, MagcalError):
         return None
     return None if head_notes or ds.notes else ds
+
+
+def _every_kth_line(data: bytes, max_rows: int) -> list:
+    """The non-blank lines of ``data``, at most ``max_rows`` of them evenly spaced by index (first and last kept),
+    each ending in a newline."""
+    lines = [line.rstrip(b"\r") + b"\n" for line in data.split(b"\n") if line.strip()]
+    if len(lines) <= max_rows:
+        return lines
+    return [lines[i] for i in np.linspace(0, len(lines) - 1, max_rows).round().astype(int)]
+
+
+def _lines_at_offsets(fh, start: int, size: int, max_rows: int) -> list | None:
+    """About ``max_rows`` lines of the open file ``fh`` (``size`` bytes, data from byte ``start``): the first
+    whole line after each of evenly spaced offsets, each ending in a newline; None where a line is longer than
+    :data:`MAX_LINE_BYTES` (the whole read names it)."""
+    step = max((size - start) // max_rows, 1)
+    lines, last_end = [], start
+    for pos in range(start, size, step):
+        # the first line that starts at or after pos: from the byte before it, past its newline
+        fh.seek(pos - 1)
+        block = fh.read(PREVIEW_BLOCK_BYTES)
+        cut = block.find(b"\n")
+        if cut < 0:
+            return None  # a line longer than the block: the whole read names it
+        line_start = pos + cut
+        if line_start < last_end or line_start >= size:
+            continue  # the line taken last (a line longer than the step), or the end of the file
+        block = block[cut + 1 :]
+        end = block.find(b"\n")
+        if end < 0 and line_start + len(block) < size:  # the line goes on past the block
+            fh.seek(line_start)
+            block = fh.read(MAX_LINE_BYTES)
+            end = block.find(b"\n")
+            if end < 0 and line_start + len(block) < size:
+                return None
+        if end < 0:
+            end = len(block)  # the file's last line, without a newline
+        line = block[:end].rstrip(b"\r")
+        if line.strip():
+            lines.append(line + b"\n")
+        last_end = line_start + end + 1
+    return lines
 
 
 def _arrow_table(pa, pacsv, data, header, layout, numeric):
