@@ -22,7 +22,8 @@ PREVIEW_ROWS = 10_000
 
 def preview_model(dataset) -> scn.SceneModel:
     """The scene of ``dataset`` before any fit: its raw clouds scaled by the record's field (what the workbench's
-    scene shows before a fit), every sample kept, no corrected cloud."""
+    scene shows before a fit), every sample kept, no corrected cloud, and nothing beside the clouds (the labels and
+    the cross follow with the workbench: the page paints bare clouds sooner)."""
     field_nT = scn.record_field_nT(dataset)
     views = [
         scn.SensorView(sensor=s, raw_nT=dataset.readings_nT[s], corrected_nT=None, residual_nT=None)
@@ -37,6 +38,7 @@ def preview_model(dataset) -> scn.SceneModel:
         show_corrected=False,
         # the gain the workbench will choose: a preview of the whole record is then its scene, sent once
         distortion_gain=scn.distortion_gain(dataset.readings_nT, field_nT),
+        decorations=False,
     )
 
 

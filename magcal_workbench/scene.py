@@ -447,6 +447,9 @@ class SceneModel:
     current: int | None = None  # the window's last sample: each sensor's current direction, marked
     fast: np.ndarray | None = None  # (N,) bool: samples taken while turning fast (magcal_workbench.motion), marked
     ring: np.ndarray | None = None  # (M, 3) unit directions (array frame): the tilt ring, on each corrected sphere
+    #: The labels, meshes and the cross beside the clouds. A launch's preview draws the clouds alone: each of these
+    #: costs the page a shader or an HTML overlay before its first frame (issue 44: 0.6 s of a 1e6 first picture).
+    decorations: bool = True
 
 
 @dataclass
@@ -533,6 +536,22 @@ def layout(model: SceneModel):
     return list(iter_layout(model))
 
 
+def _call_key(factory):
+    """What a :func:`functools.partial` of a ``scene.add_*`` draws, comparable with ``==`` (arrays by dtype, shape
+    and bytes); None for any other factory (a lambda: always drawn again)."""
+    if not isinstance(factory, partial):
+        return None
+
+    def norm(v):
+        if isinstance(v, np.ndarray):
+            return ("array", v.dtype.str, v.shape, v.tobytes())
+        if isinstance(v, (tuple, list)):
+            return tuple(norm(x) for x in v)
+        return v
+
+    return (factory.func, norm(factory.args), tuple(sorted((k, norm(v)) for k, v in factory.keywords.items())))
+
+
 class SceneView:
     """Owns the viser scene nodes and redraws them from a :class:`SceneModel`.
 
@@ -562,6 +581,7 @@ class SceneView:
         self.displayed = Displayed(np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int))
         self._clouds: dict = {}  # name -> handle
         self._static: dict = {}  # name -> handle (meshes, frames, labels)
+        self._static_keys: dict = {}  # name -> the call that drew it (:func:`_call_key`), None if not comparable
         self._shape_key: tuple | None = None
         self.last_limit_nT = 1.0
         #: Point positions sent to the page so far (a cloud's unchanged positions are not sent again).
@@ -595,6 +615,7 @@ class SceneView:
                     scene.remove_by_name(name)
                 self._clouds.clear()
                 self._static.clear()
+                self._static_keys.clear()
                 self._shape_key = key
             views = {sv.sensor: sv for sv in model.sensors}
             for name, s, _kind, pts in clouds:
@@ -626,7 +647,8 @@ class SceneView:
                 positions.append(pts)
                 samples.append(idx[: len(pts)])
                 sensors.append(np.full(len(pts), s))
-            self._draw_static(model)
+            if model.decorations:
+                self._draw_static(model)
             self._draw_motion(model, clouds)
             if positions:
                 self.displayed = Displayed(np.concatenate(positions), np.concatenate(samples), np.concatenate(sensors))
@@ -686,6 +708,7 @@ class SceneView:
                 self.server.scene.remove_by_name(name)
         self._clouds.clear()
         self._static.clear()
+        self._static_keys.clear()
         self._shape_key = None
         self._full_model = None
         self.shown_samples = np.zeros(0, int)
@@ -750,11 +773,16 @@ class SceneView:
     # --- helpers ----------------------------------------------------------------------------------------------
     def _put(self, name, factory):
         """Replace the static node ``name`` by ``factory()`` (a :func:`functools.partial` of a ``scene.add_*``:
-        its arguments are bound when it is made, not when the loop has moved on)."""
+        its arguments are bound when it is made, not when the loop has moved on). A node drawn by the same call
+        with equal arguments stays: a refit does not make the page rebuild its labels and lines (issue 44)."""
+        key = _call_key(factory)
+        if key is not None and name in self._static and self._static_keys.get(name) == key:
+            return
         old = self._static.pop(name, None)
         if old is not None:
             old.remove()
         self._static[name] = factory()
+        self._static_keys[name] = key
 
     def _draw_static(self, model: SceneModel) -> None:
         scene = self.server.scene

@@ -151,6 +151,21 @@ def test_a_refit_sends_the_corrected_clouds_not_the_raw_ones_again(bench):
         assert np.array_equal(sv._clouds[k].points, pts)
 
 
+def test_a_refit_leaves_the_unchanged_labels_and_lines_and_redraws_the_changed_axes(bench):
+    wb = bench(store=False)
+    wb.panels.btn_run.value = True
+    assert wb.worker.wait(120)
+    sv = wb.scene_view
+    drawn = dict(sv._static)
+    assert {"/data/s1/raw_label", "/data/s1/corr_label", "/cross/label", "/cross/s1/axes"} <= set(drawn)
+    wb.ctrl.select(np.arange(10), "reject", what="ten samples")  # the fit, so each sensor's axes, change a little
+    wb.panels.btn_refine.value = True
+    assert wb.worker.wait(120)
+    for name in ("/data/s1/raw_label", "/data/s1/corr_label", "/cross/label", "/cross/arms"):
+        assert sv._static[name] is drawn[name]  # the same node: nothing sent to the page
+    assert sv._static["/cross/s1/axes"] is not drawn["/cross/s1/axes"]  # the calibrated axes moved: redrawn
+
+
 def test_no_figure_is_rebuilt_when_its_data_did_not_change(bench):
     wb = bench(store=False)
     cockpit, p = wb.cockpit, wb.panels

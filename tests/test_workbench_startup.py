@@ -66,6 +66,7 @@ def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_s
         raw = {name: h for name, h in view._clouds.items() if name.endswith("/raw")}
         assert len(raw) == 4 and all(len(h.points) == 200 for h in raw.values())  # one raw cloud per sensor
         assert not any(name.endswith("/corrected") for name in view._clouds)  # nothing fitted yet
+        assert view._static == {}  # the clouds alone: the labels and the cross come with the workbench
         before = {name: np.array(h.points) for name, h in raw.items()}
 
         ds = mio.read_csv(path)
@@ -76,6 +77,7 @@ def test_a_preview_is_drawn_then_the_workbench_takes_over_its_server_token_and_s
         # the workbench drew its own scene over the preview: every sample's raw cloud, at the fitted gains
         assert len(view.shown_samples) <= 200 and view.shown_samples[-1] == ds.n_samples - 1  # the whole record
         assert set(before) <= set(view._clouds)
+        assert {"/data/s1/raw_label", "/cross/label", "/cross/arms"} <= set(view._static)
         after = {n: np.asarray(view._clouds[n].points) for n in before}
         assert any(before[n].shape != after[n].shape or not np.allclose(before[n], after[n]) for n in before)
     finally:
