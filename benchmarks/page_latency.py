@@ -123,11 +123,15 @@ def _wait_new_line(page, before: list[str], prefix: str, timeout_s: float = 240)
 
 
 def _wait_idle(page, timeout_s: float = 240) -> float:
-    """Seconds until the page shows no job running (the progress text gone) and no part pending."""
+    """Seconds until the page is at rest: it shows no job running (the progress text gone) and no part pending,
+    and it has painted two frames since (what it was sent is drawn: the next click does not wait for the last
+    one's figures)."""
     t0 = time.perf_counter()
     page.wait_for_function(
         "() => !/Running: |pending\\.\\.\\./.test(document.body.innerText)", timeout=timeout_s * 1000, polling=50
     )
+    page.evaluate(PAINT_HOOK)
+    page.wait_for_function("() => !!window.__magcalPainted", timeout=timeout_s * 1000, polling=20)
     return time.perf_counter() - t0
 
 
