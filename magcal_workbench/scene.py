@@ -536,6 +536,22 @@ def layout(model: SceneModel):
     return list(iter_layout(model))
 
 
+#: The ambient light in place of the environment map (:func:`light_for_data`).
+AMBIENT_INTENSITY = 2.0
+
+
+def light_for_data(server) -> None:
+    """Light ``server``'s scene as a plot, not a photograph: viser's default lights without shadows and no
+    environment map. The clouds are flat-shaded and the meshes are translucent guides, so neither needs them.
+    They cost a lot where the page renders WebGL in software: viser redraws the scene every second, and the
+    shadow map and image-based lighting took a page at rest from about 0.2 to 1.1 of the machine's two cores.
+    That time was missing from every fit (issue 44)."""
+    server.scene.configure_default_lights(True, cast_shadow=False)
+    server.scene.configure_environment_map(hdri=None)
+    # the environment map's light, evenly from everywhere: the meshes keep their colours
+    server.scene.add_light_ambient("/light/ambient", intensity=AMBIENT_INTENSITY)
+
+
 def _call_key(factory):
     """What a :func:`functools.partial` of a ``scene.add_*`` draws, comparable with ``==`` (arrays by dtype, shape
     and bytes); None for any other factory (a lambda: always drawn again)."""
@@ -574,6 +590,7 @@ class SceneView:
 
     def __init__(self, server, point_size: float = 0.022, max_points: int = MAX_POINTS):
         self.server = server
+        light_for_data(server)
         self.point_size = point_size
         self.max_points = int(max_points)
         self.shown_samples = np.zeros(0, int)

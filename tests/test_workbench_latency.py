@@ -261,3 +261,25 @@ def test_a_selection_no_refit_follows_draws_the_figures_at_once(bench):
     _press(wb, wb.panels.btn_exclude_range)
     assert wb.ctrl.state.selection.n_rejected > 0 and not wb.worker.busy
     assert wb.cockpit.n_built == built + 3 and _excluded_in_figures(wb)
+
+
+def test_the_scene_is_lit_as_a_plot_without_shadows_or_an_environment_map():
+    """viser redraws the scene every second; in a software renderer the shadow map and the environment map's
+    lighting made a page at rest take about a core (issue 44). The scene has neither, and an ambient light in
+    their place."""
+    from magcal_workbench import scene as scn
+
+    calls = []
+
+    class Scene:
+        def __getattr__(self, name):
+            return lambda *args, **kwargs: calls.append((name, args, kwargs))
+
+    class Server:
+        scene = Scene()
+
+    scn.SceneView(Server())
+    by_name = {name: (args, kwargs) for name, args, kwargs in calls}
+    assert by_name["configure_default_lights"][1]["cast_shadow"] is False
+    assert by_name["configure_environment_map"][1]["hdri"] is None
+    assert by_name["add_light_ambient"][1]["intensity"] > 0
