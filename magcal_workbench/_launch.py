@@ -47,8 +47,6 @@ def main(argv=None) -> int:
         early.show_preview()
     with startup.timing.span("import"):
         from .app import main as app_main
-    if early is not None:
-        early.let_page_paint()  # a page that has just connected paints the preview before the read takes the cores
 
     return app_main(argv) if early is None else app_main(argv, early=early)
 

@@ -9,8 +9,6 @@ meanwhile frames them.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from magcal.data import io as mio
@@ -42,17 +40,6 @@ def preview_model(dataset) -> scn.SceneModel:
         distortion_gain=scn.distortion_gain(dataset.readings_nT, field_nT),
         decorations=False,
     )
-
-
-def preview_is_partial(path, n_drawn: int, max_points: int = scn.MAX_POINTS) -> bool:
-    """Whether a preview of ``n_drawn`` samples of the CSV ``path`` (:func:`draw_preview`) may leave samples out:
-    the file's data are larger than one read of :data:`magcal.data.io.PREVIEW_WHOLE_BYTES`, or the preview holds
-    as many lines as it may (a file of exactly that many is taken for a larger one)."""
-    try:
-        size = os.path.getsize(path)
-    except OSError:
-        return True
-    return size > mio.PREVIEW_WHOLE_BYTES or n_drawn >= min(max_points, PREVIEW_ROWS)
 
 
 def draw_preview(server, path, max_points: int = scn.MAX_POINTS):

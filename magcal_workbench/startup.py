@@ -16,7 +16,6 @@ import os
 import secrets
 import stat
 import sys
-import time
 
 from . import timing
 from .defaults import DEFAULT_MAX_UPLOAD_MB, MAX_POINTS, MAX_STORE_BYTES
@@ -128,13 +127,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-#: Seconds a page that connects while a large file loads is given to paint its preview before the whole file's
-#: read and the first fit take the machine's cores (:meth:`Early.let_page_paint`). On a 2-core machine with a
-#: software renderer the page paints its preview about a second after it connects, twice as long when the read
-#: runs beside it (issue 44: 4 x 1e6, first picture 2.86 -> 2.25 s, median of 6 launches).
-PAINT_GRACE_S = 0.8
-
-
 class Early:
     """The server started before the workbench exists: its token, its address, the ``loading`` status line and
     the preview's scene.
@@ -154,15 +146,6 @@ class Early:
         self._status = self.server.gui.add_markdown(f"**loading {self.data_name()}...**")
         #: The scene drawn from the preview (:class:`magcal_workbench.scene.SceneView`), None until one is drawn.
         self.scene_view = None
-        #: Whether the preview is a part of the file (its data were larger than the preview read): the whole read
-        #: and the fit then take seconds, the page shows the preview meanwhile.
-        self.preview_is_partial = False
-        self._connected_at: list[float] = []  # time.monotonic() of the first page's connection
-        self.server.on_client_connect(self._on_connect)
-
-    def _on_connect(self, client) -> None:
-        if not self._connected_at:
-            self._connected_at.append(time.monotonic())
 
     def data_name(self) -> str:
         """What the status line calls the data (markdown): the file's base name or the lesson's, escaped as code
@@ -184,34 +167,13 @@ class Early:
         """Draw a CSV's preview as the raw clouds (:mod:`magcal_workbench.preview`); nothing for a lesson, the demo or a file the preview cannot read (the whole read reports its problems)."""
         if not self.args.file or self.args.lesson:
             return
-        from .preview import draw_preview, preview_is_partial  # the reader and the scene: after the address
+        from .preview import draw_preview  # the engine's reader and the scene: imported after the address
 
         with timing.span("preview"):
             view = draw_preview(self.server, self.args.file, self.args.max_points)
         if view is not None:
             self.scene_view, n = view
-            self.preview_is_partial = preview_is_partial(self.args.file, n, self.args.max_points)
             self.say(f"**loading {self.data_name()}...** (a preview of {n:,} samples drawn)")
-
-    def let_page_paint(self, grace_s: float | None = None) -> float:
-        """Before a large file's whole read: a page that connected less than ``grace_s`` (default
-        :data:`PAINT_GRACE_S`) ago gets the rest of that time to paint the preview, the server idle. Nothing is waited for with no page (one opened later finds the
-        work under way), a page connected earlier, or a small file (previewed whole: its result comes next and
-        must not wait).
-
-        Returns
-        -------
-        float
-            Seconds waited.
-        """
-        if self.scene_view is None or not self.preview_is_partial or not self._connected_at:
-            return 0.0
-        wait = self._connected_at[0] + (PAINT_GRACE_S if grace_s is None else grace_s) - time.monotonic()
-        if wait <= 0:
-            return 0.0
-        with timing.span("paint grace"):
-            time.sleep(wait)
-        return wait
 
     def done(self) -> None:
         """The workbench is built: the status line goes."""

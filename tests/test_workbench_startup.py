@@ -139,30 +139,3 @@ def test_the_loading_line_shows_a_file_name_as_text_not_markup(tmp_path):
         assert early._status.content == "**loading `<img src=x onerror=alert(1)>'*b*'[l](javascript:x).csv`...**"
     finally:
         early.stop()
-
-
-@pytest.mark.parametrize(
-    ("n_samples", "max_points", "page", "waits"),
-    [
-        (600, 200, "just connected", True),  # a part of the file previewed: the page paints before the read
-        (300, None, "just connected", False),  # previewed whole: its result comes next and does not wait
-        (600, 200, None, False),  # no page yet: one opened later finds the work under way
-        (600, 200, "connected long ago", False),  # its preview has been painted
-    ],
-)
-def test_a_page_that_has_just_connected_paints_a_large_file_s_preview_before_the_read(
-    tmp_path, n_samples, max_points, page, waits
-):
-    extra = [] if max_points is None else ["--max-points", str(max_points)]
-    early = startup.begin([str(_csv(tmp_path, n=n_samples)), "--port", "0", "--no-session", *extra])
-    try:
-        early.show_preview()
-        assert early.scene_view is not None and early.preview_is_partial == (max_points is not None)
-        if page is not None:
-            early._on_connect(object())  # what viser calls when a page connects
-            if page == "connected long ago":
-                early._connected_at[0] -= 10.0
-        waited = early.let_page_paint(grace_s=0.3)
-        assert (0.0 < waited <= 0.3) if waits else waited == 0.0
-    finally:
-        early.stop()
