@@ -109,7 +109,9 @@ class Server:
 
 
 def _lines(page) -> list[str]:
-    return re.findall(STEP_LINE, page.inner_text("body"))
+    """The step lines the page shows, whole (the page's own check compares whole lines: ``re.findall`` would give
+    only the step's name, and a line shown before the click would then count as new)."""
+    return [m.group(0) for m in re.finditer(STEP_LINE, page.inner_text("body"))]
 
 
 def _wait_new_line(page, before: list[str], prefix: str, timeout_s: float = 240) -> float:
