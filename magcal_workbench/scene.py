@@ -828,6 +828,7 @@ class SceneView:
                         # drawn at the origin by the page
                         old.vertices = v.astype(np.float32)
                         old.position = tuple(centre - [PAIR_OFFSET, 0, 0])
+                        self._static_keys[f"/data/{tag}/ellipsoid"] = None  # no longer what its call drew
                     else:
                         self._put(
                             f"/data/{tag}/ellipsoid",
