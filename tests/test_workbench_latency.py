@@ -283,3 +283,27 @@ def test_the_scene_is_lit_as_a_plot_without_shadows_or_an_environment_map():
     assert by_name["configure_default_lights"][1]["cast_shadow"] is False
     assert by_name["configure_environment_map"][1]["hdri"] is None
     assert by_name["add_light_ambient"][1]["intensity"] > 0
+
+
+def test_a_pattern_surface_is_matte_and_keeps_its_colours_without_an_environment_map():
+    """A mesh with vertex colours alone reaches the page with glTF's default material, which is fully metallic:
+    with the scene lit as a plot (no environment map) it was drawn black. The surfaces carry a matte material."""
+    import json
+    import struct
+
+    import trimesh
+
+    from magcal_workbench.maps import surface_visuals
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    rgba = np.tile(np.array([200, 40, 40, 255], np.uint8), (len(mesh.vertices), 1))
+    rgba[::3] = (40, 40, 200, 255)
+    mesh.visual = surface_visuals(mesh, rgba)
+    glb = mesh.export(file_type="glb")  # what viser's add_mesh_trimesh sends
+    n_json = struct.unpack("<I", glb[12:16])[0]
+    gltf = json.loads(glb[20 : 20 + n_json])
+    (primitive,) = gltf["meshes"][0]["primitives"]
+    assert "COLOR_0" in primitive["attributes"]  # the pattern's colours, one per vertex
+    pbr = gltf["materials"][primitive["material"]]["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 0.0
+    np.testing.assert_array_equal(np.asarray(mesh.visual.vertex_attributes["color"]), rgba)
