@@ -48,15 +48,14 @@ def pattern_colours(pattern, limit_nT: float | None = None) -> np.ndarray:
     return colours
 
 
-def surface_visuals(mesh, rgba):
-    """The look of a surface (trimesh visuals): its vertex colours ``rgba`` (V, 4) uint8 on a matte, non-metallic
-    material. A mesh with vertex colours alone reaches the page with glTF's default material, which is fully
+def surface_visuals(rgba):
+    """The look of a surface (trimesh visuals, for ``mesh.visual``): its vertex colours ``rgba`` (V, 4) uint8 on a
+    matte, non-metallic material. A mesh with vertex colours alone reaches the page with glTF's default material, which is fully
     metallic: with no environment map (:func:`magcal_workbench.scene.light_for_data`) it would be drawn black."""
     import trimesh
 
     material = trimesh.visual.material.PBRMaterial(metallicFactor=0.0, roughnessFactor=1.0)
     visuals = trimesh.visual.TextureVisuals(material=material)
-    visuals.mesh = mesh
     visuals.vertex_attributes["color"] = np.asarray(rgba, np.uint8)
     return visuals
 
@@ -168,7 +167,7 @@ class SphereMaps:
                 centre = scn.group_offset(k, len(shown)) + [scn.PAIR_OFFSET, 0, 0]
                 mesh = trimesh.Trimesh(SURFACE_RADIUS * verts, faces, process=False)
                 rgba = np.column_stack([pattern_colours(p, limit), np.full(len(verts), 255, np.uint8)])
-                mesh.visual = surface_visuals(mesh, rgba)
+                mesh.visual = surface_visuals(rgba)
                 name = f"/maps/s{s + 1}/surface"
                 self._nodes[name] = scene.add_mesh_trimesh(name, mesh, position=tuple(centre))
 

@@ -298,7 +298,7 @@ def test_a_pattern_surface_is_matte_and_keeps_its_colours_without_an_environment
     mesh = trimesh.creation.icosphere(subdivisions=1)
     rgba = np.tile(np.array([200, 40, 40, 255], np.uint8), (len(mesh.vertices), 1))
     rgba[::3] = (40, 40, 200, 255)
-    mesh.visual = surface_visuals(mesh, rgba)
+    mesh.visual = surface_visuals(rgba)
     glb = mesh.export(file_type="glb")  # what viser's add_mesh_trimesh sends
     n_json = struct.unpack("<I", glb[12:16])[0]
     gltf = json.loads(glb[20 : 20 + n_json])
