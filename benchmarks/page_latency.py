@@ -13,6 +13,8 @@ For each record size it times, from the click (or the launch) to what the page s
 * launch -> the page's first line (the launcher sends "loading FILE..." when it prints the address: the time the
   page shows it is the browser's own start), and the megabytes the page received before the RMS (as playwright
   hands them on, to within its polling);
+* the page at rest after the clicks: the cores the browser uses (viser redraws the scene once a second; with
+  software WebGL that costs CPU beside every fit) and the server's;
 * Run -> the new ``calibrate (ML)`` message line; Exclude range -> the refit's line; Diagnose -> the verdict's
   line; Add (the top candidate) -> the refit's line; and, for each, until the slow parts (held-out RMS) are shown.
 
@@ -240,6 +242,48 @@ def open_page(browser, server: Server) -> tuple:
     return page, t_rms, t_pic, t_whole, timeline
 
 
+#: Seconds the page at rest is watched after the clicks (after a settling second).
+REST_S = 5.0
+
+
+def _cpu_seconds(pids) -> float:
+    """User plus system CPU seconds used so far by the processes ``pids`` (Linux ``/proc``; gone ones count 0)."""
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])
+        except (OSError, IndexError, ValueError):
+            pass
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def _chromium_pids() -> list[int]:
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as fh:
+                    if b"chromium" in fh.read():
+                        pids.append(int(entry))
+            except OSError:
+                pass
+    return pids
+
+
+def cores_at_rest(server_pid: int, seconds: float = REST_S) -> tuple[float, float]:
+    """Cores used by the browser (every Chromium process: its renderer, and the GPU process that runs WebGL in
+    software) and by the server while the only page open sits at rest, over the same ``seconds``: viser redraws
+    the scene once a second (issue 44)."""
+    time.sleep(1.0)
+    browser = _chromium_pids()
+    before = _cpu_seconds(browser), _cpu_seconds([server_pid])
+    time.sleep(seconds)
+    after = _cpu_seconds(browser), _cpu_seconds([server_pid])
+    return (after[0] - before[0]) / seconds, (after[1] - before[1]) / seconds
+
+
 def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
     server = Server(path)
     out: dict[str, float] = {"address printed": server.t_url}
@@ -273,6 +317,8 @@ def one_launch(browser, path: Path, clicks: bool) -> dict[str, float]:
             time.sleep(0.3)  # the last spans' lines reach us
             for name, sec in server.spans_since(t).items():
                 out[f"{label} server {name}"] = sec
+        _wait_idle(page)
+        out["page at rest: browser CPU, cores"], out["page at rest: server CPU, cores"] = cores_at_rest(server.proc.pid)
     except Exception as exc:  # a step that never answered: the row says so, the other launches go on
         print(f"  failed: {type(exc).__name__}: {str(exc)[:200]}", file=sys.stderr)
     finally:

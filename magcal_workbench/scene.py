@@ -543,9 +543,9 @@ AMBIENT_INTENSITY = 2.0
 def light_for_data(server) -> None:
     """Light ``server``'s scene as a plot, not a photograph: viser's default lights without shadows and no
     environment map. The clouds are flat-shaded and the meshes are translucent guides, so neither needs them.
-    They cost a lot where the page renders WebGL in software: viser redraws the scene every second, and the
-    shadow map and image-based lighting took a page at rest from about 0.2 to 1.1 of the machine's two cores.
-    That time was missing from every fit (issue 44)."""
+    They cost a lot where the page renders WebGL in software: viser redraws the scene every second, and with
+    them the page at rest after a session's clicks took 0.77 of a 2-core machine's cores, 0.42 without
+    (``benchmarks/page_latency.py``, 4 x 1e4). That time was missing from every fit (issue 44)."""
     server.scene.configure_default_lights(True, cast_shadow=False)
     server.scene.configure_environment_map(hdri=None)
     # the environment map's light, evenly from everywhere: the meshes keep their colours
