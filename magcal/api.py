@@ -2,7 +2,7 @@
 
 ``magcal.calibrate`` and ``magcal.diagnose`` take a :class:`~magcal.data.dataset.Dataset`, a plain array of raw readings
 in nT (``(N, 3)`` for one sensor, ``(n_sensors, N, 3)`` for an array) or a pandas DataFrame with the columns of
-the data CSV, turn it into a dataset with :func:`magcal.data.dataset.as_dataset`, and call the engine's
+the data CSV, turn it into a dataset with :func:`magcal.data.inputs.as_dataset`, and call the engine's
 :func:`magcal.fitting.pipeline.calibrate` and :func:`magcal.diagnosis.diagnose`, which keep taking datasets only.
 """
 
@@ -44,7 +44,7 @@ def calibrate(
     ----------
     data : Dataset, array_like or pandas.DataFrame
         Raw readings in nT: a :class:`~magcal.data.dataset.Dataset`, an array of shape ``(N, 3)`` (one sensor) or
-        ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns (see :func:`magcal.data.dataset.as_dataset`).
+        ``(n_sensors, N, 3)``, or a DataFrame with the data CSV's columns (see :func:`magcal.data.inputs.as_dataset`).
     method : {"ml", "ellipsoid", "pso", "ipso", "de"}
         ``ml`` (default): ellipsoid -> Procrustes -> maximum likelihood; ``ellipsoid``: the seed's two steps only.
     effects : sequence of str or Effect

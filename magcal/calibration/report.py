@@ -26,7 +26,7 @@ def calibration_json(result) -> dict:
     ``baseline_m``, ``n_samples``, ``effects``, ``rms_nT``, ``tensor_rms_nT_per_m`` (arrays), ``sensors`` with
     ``id``, ``Cinv``, ``bias_nT``, ``R``, ``scale``, ``axis_angles_deg``, ``rms_before_nT``, ``rms_nT``.
 
-    It is :meth:`Calibration.to_dict` of ``result.calibration``, whose summary :func:`magcal.fitting.pipeline.calibrate`
+    It is :meth:`magcal.calibration.calibration.Calibration.to_dict` of ``result.calibration``, whose summary :func:`magcal.fitting.pipeline.calibrate`
     filled, so it equals the saved file.
     """
     return result.calibration.to_dict()

@@ -334,7 +334,7 @@ def _column_reference(column, where, check=True):
 def _compare_with_data(dataset, ref) -> list:
     """A note (in a list) when the field the readings imply is far from the reference (wrong units or wrong reference).
 
-    The readings' magnitude is the fitted one (:func:`magcal.checks.coverage.field_magnitude_nT`: about the fitted
+    The readings' magnitude is the fitted one (:func:`magcal.geometry.shape.field_magnitude_nT`: about the fitted
     centre, through the fitted shape), so neither a hard-iron offset nor unequal axis gains are mistaken for a
     wrong reference.
     """

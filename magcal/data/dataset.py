@@ -236,7 +236,7 @@ class Dataset:
 
     def to_dataframe(self):
         """The data as a pandas DataFrame with the data CSV's columns (readings in nT) and the metadata in
-        ``attrs``; :func:`as_dataset` reads it back."""
+        ``attrs``; :func:`magcal.data.inputs.as_dataset` reads it back."""
         import pandas as pd
 
         frame = pd.DataFrame({k: np.asarray(v) for k, v in dataset_columns(self).items()})

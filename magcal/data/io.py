@@ -640,6 +640,8 @@ class CsvSource:
         nT per count for readings in raw counts; overrides the file's ``# lsb_nT:`` line. Refused unless the
         readings are in counts. The LSB used is kept as the metadata ``lsb_nT`` of the datasets.
 
+    Notes
+    -----
     Use as a context manager, or call :meth:`close`. What it has to say (a metadata line given twice, units given
     over the file's, rows dropped, quaternions normalised) is in :attr:`notes` as it reads.
     """
@@ -1253,7 +1255,7 @@ def check_units(dataset, units="nT", source=None, lsb_nT=None) -> str | None:
 
     The Earth's field is 20-70 uT; a median field magnitude far outside that range (after conversion to nT)
     usually means a wrong ``units`` line, or for raw counts a wrong LSB. The magnitude is taken about the readings'
-    fitted centre (:func:`magcal.checks.coverage.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
+    fitted centre (:func:`magcal.geometry.shape.field_magnitude_nT`), so a hard-iron offset does not masquerade as a unit
     error. ``lsb_nT`` (nT per count) defaults to the dataset's metadata ``lsb_nT`` for ``units="counts"``.
     Returns the text (the readers put it in their dataset's ``notes`` as a :class:`DataWarning` note), or ``None``.
     """

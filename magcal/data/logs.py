@@ -283,7 +283,7 @@ def _build(source, series, temperature=None, attitude=None, extra=None, metadata
 
     A series whose values have six columns holds the raw field (the readings) and then the field the flight
     controller computed with its calibration of the time, kept as the channels ``s{k}x_logged, s{k}y_logged,
-    s{k}z_logged`` (:data:`LOGGED_FIELD_COLUMNS`)."""
+    s{k}z_logged`` (:func:`logged_field_columns`)."""
     t, values = _pair_by_time(series, source, notes)
     if t.size == 0:
         raise DatasetError(f"{source}: no magnetometer samples left after pairing the magnetometers by time")

@@ -365,7 +365,7 @@ def simulate_timeseries(
     with_reference=True,
     with_attitude=True,
 ) -> Dataset:
-    """Time-series simulation along :func:`smooth_trajectory`, with time and temperature channels.
+    """Time-series simulation along :func:`magcal.data.simulation.smooth_trajectory`, with time and temperature channels.
 
     Parameters
     ----------

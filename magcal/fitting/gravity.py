@@ -856,8 +856,7 @@ def heading_budget(fits, accel: AccelFit, inclination_deg, n_still, tilt_range, 
     """What a heading of :data:`HEADING_GOAL_DEG` needs, from the fit's figures.
 
     The heading error of one sample is the sensors' noise (the tilt error across gravity times ``tan I``, the
-    magnetometer's east noise over the horizontal field) and the calibration's own error (:attr:`SensorGravityFit.
-    heading_sd_deg`), which falls as ``1 / sqrt(still samples)``. Returns the figures and the lines the report prints.
+    magnetometer's east noise over the horizontal field) and the calibration's own error (:attr:`SensorGravityFit.heading_sd_deg`), which falls as ``1 / sqrt(still samples)``. Returns the figures and the lines the report prints.
     """
     s = fits[0]
     field_nT = max(s.field_nT, 1e-9)
@@ -907,8 +906,8 @@ def heading_budget(fits, accel: AccelFit, inclination_deg, n_still, tilt_range, 
 def separate_calibration(
     dataset, right_angle=None, mask=None, still=None, accel_fit="auto", reference_total_nT=None, accel_units=None
 ) -> Calibration:
-    """What a user gets without the dip: the magnetometer's total-field fit (:func:`magcal.fitting.pipeline.
-    calibrate`, its upper-triangular frame) turned by the right angle between the two parts (taken as known, e.g.
+    """What a user gets without the dip: the magnetometer's total-field fit (:func:`magcal.fitting.pipeline.calibrate`,
+    its upper-triangular frame) turned by the right angle between the two parts (taken as known, e.g.
     from the data sheets), beside the accelerometer's own fit. Its heading error is the misalignment the total
     field cannot see.
 

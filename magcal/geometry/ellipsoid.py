@@ -298,7 +298,7 @@ def _quadric_to_ellipsoid(v, label):
     return centre, a1
 
 
-#: Most directions the sky fraction of :func:`coverage` is counted from (an even subsample of longer records).
+#: Most directions the sky fraction of :func:`magcal.checks.coverage.coverage` is counted from (an even subsample of longer records).
 SKY_MAX_SAMPLES = 50_000
 
 

@@ -21,7 +21,7 @@ def fibonacci_sphere(n):
 def sphere_centre(points_nT):
     """Centre (nT) of the best sphere through the points (linear least squares); zeros if it is not determined.
 
-    The fallback of :func:`field_shape` when no ellipsoid is determined. The fitted
+    The fallback of :func:`magcal.geometry.shape.field_shape` when no ellipsoid is determined. The fitted
     centre is used when it is small (under half the radius: any fit will do) or when the readings determine it:
     they spread over a good part of the sphere (RMS distance from their mean at least half the radius) and lie on
     it (radial residual under 15 % of the radius). MEMS parts on a platform often carry a hard-iron offset larger

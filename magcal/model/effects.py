@@ -21,9 +21,9 @@ Notation: for sensor ``s``, ``z0 = y - b`` is the raw reading minus the bias (nT
 ``C B``), ``T`` the temperature (degC), ``t`` the time (s). The signatures in the total-field residual and the
 confounders of every effect are in ``docs/effects.md``.
 
-A ``magnitude`` given to :meth:`perturbation` is either one number, the largest parameter value (the
+A ``magnitude`` given to :meth:`CatalogueEffect.perturbation` is either one number, the largest parameter value (the
 parameters follow a fixed pattern over the axes, different for each sensor), or the full parameter vector of
-one sensor; :meth:`true_params` returns the parameter vector the perturbation corresponds to, where the fitted
+one sensor; :meth:`CatalogueEffect.true_params` returns the parameter vector the perturbation corresponds to, where the fitted
 model can represent it exactly (``None`` otherwise).
 """
 

@@ -7,7 +7,7 @@ import numpy as np
 
 #: Field magnitude (nT) nonlinearity coefficients are quoted at when the data's own is not known (an effect never
 #: configured, a calibration saved before the field was recorded with it): ``q`` nT is then the deviation of an
-#: axis reading ``50 000 nT``. Otherwise they are quoted at the data's field (:func:`data_field_magnitude_nT`).
+#: axis reading ``50 000 nT``. Otherwise they are quoted at the data's field (:func:`magcal.model.effects.data_field_magnitude_nT`).
 NONLINEARITY_REFERENCE_NT = 50_000.0
 
 

@@ -2,19 +2,19 @@
 ``magcal apply`` and the workbench's Export section, so that the page's download and the command line's file are
 the same bytes (``docs/export.md``).
 
-=====================  ==========================================================  ===================================
-file                   what                                                        command line
-=====================  ==========================================================  ===================================
-``calibration.json``   the calibration (:meth:`Calibration.save`)                  ``magcal calibrate ... -o``
-``compass.parm``       ArduPilot parameters (:mod:`magcal.output.export`)          ``magcal export --format ardupilot``
-``mag.params``         PX4 / QGroundControl parameters                             ``magcal export --format px4``
-``magcal_calibration.h``  the C header                                             ``magcal export --format c``
-(a format's file)      each format a package added (:mod:`magcal.output.formats`)  ``magcal export --format NAME``
-``corrected.csv``      the data corrected (:func:`magcal.output.apply.apply_file`)  ``magcal apply``
-``corrected.parquet``  the same as Parquet                                         ``magcal apply -o X.parquet``
-``raw_mask.csv``       the raw readings, the fit's ``kept`` mask and residuals     ``magcal export --format mask``
-``magcal_export.zip``  all of them with a ``README.txt``                           ``magcal export --format all``
-=====================  ==========================================================  ===================================
+========================  ===========================================================  ====================================
+file                      what                                                         command line
+========================  ===========================================================  ====================================
+``calibration.json``      the calibration (:meth:`Calibration.save`)                   ``magcal calibrate ... -o``
+``compass.parm``          ArduPilot parameters (:mod:`magcal.output.export`)           ``magcal export --format ardupilot``
+``mag.params``            PX4 / QGroundControl parameters                              ``magcal export --format px4``
+``magcal_calibration.h``  the C header                                                 ``magcal export --format c``
+(a format's file)         each format a package added (:mod:`magcal.output.formats`)   ``magcal export --format NAME``
+``corrected.csv``         the data corrected (:func:`magcal.output.apply.apply_file`)  ``magcal apply``
+``corrected.parquet``     the same as Parquet                                          ``magcal apply -o X.parquet``
+``raw_mask.csv``          the raw readings, the fit's ``kept`` mask and residuals      ``magcal export --format mask``
+``magcal_export.zip``     all of them with a ``README.txt``                            ``magcal export --format all``
+========================  ===========================================================  ====================================
 
 Nothing here writes to the user's files: each function returns bytes (temporary files, for the writers that need
 a path, are made and removed in a private folder). What could not be written (a firmware that cannot hold the
@@ -84,7 +84,7 @@ def corrected_bytes(calibration, data_path, kind="csv", calibration_name=CALIBRA
     """The data file ``data_path`` corrected by the calibration: byte for byte what ``magcal apply
     CALIBRATION DATA -o corrected.csv`` (or ``.parquet``) writes when ``CALIBRATION`` is ``calibration_name``.
 
-    Returns ``(content, notes)``: ``notes`` holds what ``magcal apply`` says (:attr:`ApplySummary.notes`), as
+    Returns ``(content, notes)``: ``notes`` holds what ``magcal apply`` says (:attr:`magcal.output.apply.ApplySummary.notes`), as
     text: the record-only terms' decision (dropped on another record), the reader's findings, the rows without
     attitude.
     """

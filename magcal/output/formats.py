@@ -1,4 +1,5 @@
-"""The export formats: one :class:`ExportFormat` per format, registered by name in :data:`EXPORT_FORMATS`.
+"""The export formats: one :class:`ExportFormat` per format, registered by name in
+:data:`magcal.output.formats.EXPORT_FORMATS`.
 
 A format says what it is -- its name (``magcal export --format NAME``), a title and a description of what it
 writes, the file's name in a bundle and the page's download, the label of the workbench's button, when it refuses

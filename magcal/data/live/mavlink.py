@@ -77,6 +77,8 @@ class MavlinkSource(_ReopensPort, LiveSource):
     connect_timeout_s : float
         Longest wait for a TCP connection to be accepted (s), when opening and at each try to reconnect.
 
+    Notes
+    -----
     Times are the vehicle's (``time_boot_ms``, ``time_usec``); when they jump back by more than 1 s (a reboot),
     or at all in the first message after the serial port was reopened, later samples are shifted to follow on by the
     time the host saw pass (:attr:`clock_resets` counts it), so a recording goes on.
