@@ -73,14 +73,14 @@ from .jobs import Worker
 from .lessons import DEMO, LessonDesk, get_lesson
 from .livecontrol import LiveControl
 from .maps import SphereMaps
-from .markup import clean_text, error_text
+from .markup import clean_text, error_text, safe_text
 from .panelkit import PANELS, PanelContext
 from .panels import Panels
 from .session import SessionStore
 from .sessions import Sessions
 from .startup import NO_TOKEN_WARNING, Early, build_parser, host_warning
 from .steps import Steps
-from .timewindow import TimeWindow
+from .timewindow import TimeWindow, sample_times
 from .uiqueue import UiQueue
 from .uploads import Uploads
 from .vehicleview import VehicleView
@@ -378,7 +378,7 @@ class Workbench:
     def load(self, dataset, content: bytes | None, name: str, resume: bool = True, lesson: str | None = None):
         """Replace the data (upload, lesson, reopened session); the scene and panels follow."""
         self.steps.forget_pending()  # a refit asked for on the old data
-        self.window.pause()  # the window's percentages carry over to the new data; playback does not
+        self.window.pause()  # no playback over the data being replaced
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         self._attach(self.ctrl)
         self.ui.run(self._redraw_all)
@@ -390,7 +390,25 @@ class Workbench:
             if follow is not None:
                 follow(kind)
 
+    def _forget_view_state(self) -> None:
+        """The views' state that belonged to the data open before starts anew (the one place that resets it):
+        the time window is off and at the start (its percentages would pick another stretch of other data, and its
+        text described the old record) and the vehicle view is off (the new data may have no attitude, and the
+        cameras looked at the old body). Each widget's callback then agrees with the state set here."""
+        self.window.pause()
+        self.window.enabled, self.window.start_pct = False, 0.0
+        self.vehicle.enabled = False
+        for widget, value in (
+            (self.panels.vector_panel.vehicle_on, False),
+            (self.panels.window_on, False),
+            (self.panels.window_start, 0.0),
+        ):
+            if widget.value != value:
+                widget.value = value
+        self.panels.window_info.content = safe_text(self.window.describe(sample_times(self.ctrl.dataset)))
+
     def _redraw_all(self) -> None:
+        self._forget_view_state()
         self.scene_view.clear()
         self.vehicle.clear()
         self.redraw()
