@@ -21,6 +21,7 @@ from magcal.core import conventions
 from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
+from .guide import guide_markdown, next_step
 from .lessons import lesson_slugs, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
@@ -604,6 +605,11 @@ class Panels:
         self.alarm = gui.add_markdown("", visible=False)
         # the status (Total-field RMS, floor, model) first: the page shows it while the tabs are built (issue 44)
         self.status = gui.add_markdown(status_markdown(ctrl()))
+        #: What the data are, the fits they allow and the loop's next step (:mod:`magcal_workbench.guide`), with
+        #: that step as a button.
+        self.guide = gui.add_markdown("")
+        self._engine_buttons: list = []
+        self.btn_next = self._button(gui, "1. Run the calibration", self._do_next_step, color="green")
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
@@ -616,7 +622,6 @@ class Panels:
         self.evidence_overlay = gui.add_html("", visible=False)
         tabs = gui.add_tab_group()
         self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
-        self._engine_buttons: list = []
         #: A change of the selection leaves the cockpit's figures to the refit that follows (:meth:`figures_held`),
         #: and whether some were left.
         self._figures_held = False
@@ -639,6 +644,30 @@ class Panels:
             with tab:
                 build(gui)
         self.tabs = tabs
+
+    def _do_next_step(self, event) -> None:
+        """The guide's button: the step :func:`~magcal_workbench.guide.next_step` names, through the same handler
+        as that step's own button (Add: the advised candidate chosen first)."""
+        step = next_step(self.ctrl())
+        if step.key == "add" and step.effect in self.candidate_choice.options:
+            self.candidate_choice.value = step.effect
+        handler = {
+            "run": self.on.do_calibrate,
+            "vector": self.on.do_vector_fit,
+            "diagnose": self.on.do_diagnose,
+            "add": self.on.do_add,
+        }.get(step.key)
+        if handler is not None:
+            handler(event)
+
+    def show_guide(self) -> None:
+        """The guide's text and its button, for the session as it is now."""
+        ctrl = self.ctrl()
+        self.guide.content = guide_markdown(ctrl)
+        step = next_step(ctrl)
+        self.btn_next.visible = step.key != "none"
+        if step.label:
+            self.btn_next.label = step.label
 
     def section(self, tab: str, title: str, expand: bool = False):
         """A new collapsible section at the end of the tab ``tab`` (``"Files"``, ...): its widgets are made inside
@@ -1189,6 +1218,7 @@ class Panels:
         live = self.live()
         self.show_alarm()
         self.status.content = status_markdown(ctrl) if live is None or not live.active else LIVE_STATUS
+        self.show_guide()
         if everything or "message" in kinds:
             self.message.content = ctrl.message
         self.legend.content = self.on.legend_html()

@@ -1,0 +1,132 @@
+"""The first screen's guide: what the data are, which fits they allow, and the next step of the loop as one button.
+
+The loop is the same for every record: fit the model, diagnose where it fails, add what the diagnosis advises,
+until the residuals reach the noise floor. :func:`next_step` reads where the open session stands (a fit or not, a
+diagnosis or not, its advice) and names the step that comes next; the page shows it as a button under the status
+line (:class:`magcal_workbench.panels.Panels`), whose click runs the same handler as the step's own button in its
+tab. On a record with attitude and a field vector the loop is the vector fit's, as Diagnose and Add are.
+Only reading: the steps, the verdicts and the advice are the engine's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.data.accelerometer import has_accelerometer
+
+from .markup import hide_paths, safe_code
+
+
+@dataclass(frozen=True)
+class NextStep:
+    """The loop's next step.
+
+    Attributes
+    ----------
+    key : str
+        ``run`` (the total-field fit), ``vector`` (the vector fit), ``diagnose``, ``add`` (the advice), or ``none``
+        (nothing to press: at the floor, or nothing that holds to add).
+    label : str
+        The button's text (empty for ``none``).
+    why : str
+        One line saying why this step comes next (markdown).
+    effect : str or None
+        For ``add``: the candidate the advice names first.
+    """
+
+    key: str
+    label: str
+    why: str
+    effect: str | None = None
+
+
+def data_markdown(ctrl) -> str:
+    """What the open data are and which fits they allow (one or two lines of markdown)."""
+    ds = ctrl.dataset
+    t = ds.time_s
+    span = f" over {float(np.nanmax(t) - np.nanmin(t)):.0f} s" if t is not None and ds.n_samples > 1 else ""
+    sensors = "1 sensor" if ds.n_sensors == 1 else f"{ds.n_sensors} sensors"
+    vm = ctrl.vector
+    channels = []
+    kind = vm.attitude_kind()
+    if kind is not None:
+        channels.append(f"attitude ({kind})")
+    if has_accelerometer(ds):
+        channels.append("an accelerometer")
+    if ds.temperature_C is not None:
+        channels.append("temperature")
+    held = f", with {', '.join(channels)}" if channels else ""
+    fits = ["the total-field fit"]
+    if ctrl.vector_loop():
+        fits.insert(0, "the vector fit (attitude and the field vector: world components, the mounting)")
+    elif kind is not None:
+        fits.append("the vector fit once a field vector is given (Calibrate tab: a location, or ref_n/e/d columns)")
+    if has_accelerometer(ds):
+        fits.append("the gravity fit (heading; Calibrate tab)")
+    return (
+        f"**Data:** {_source(ctrl)}: {sensors}, {ds.n_samples} samples{span}{held}.  \n"
+        f"**Fits it allows:** {'; '.join(fits)}."
+    )
+
+
+def _source(ctrl) -> str:
+    """Where the data came from, as the page may show it (no folder of the server)."""
+    if ctrl.state.lesson:
+        return f"lesson {safe_code(ctrl.state.lesson)}"
+    if ctrl.dataset.source:
+        return safe_code(hide_paths(str(ctrl.dataset.source)), 80)
+    return "simulated data"
+
+
+def _advice(diagnosis, model) -> tuple[str | None, str]:
+    """The first advised label not yet in ``model``, and the verdict's word (``adequate``, ...)."""
+    if diagnosis is None:
+        return None, ""
+    verdict = str(getattr(diagnosis, "verdict", ""))
+    advised = [label for label in getattr(diagnosis, "explained_by", None) or [] if label not in model]
+    return (advised[0] if advised else None), verdict
+
+
+def next_step(ctrl) -> NextStep:
+    """The loop's next step for the open session (see the module's docstring)."""
+    if ctrl.vector_loop():
+        vm = ctrl.vector
+        if vm.result is None:
+            return NextStep(
+                "vector", "1. Run the vector fit", "The record has attitude and a field vector: fit them together."
+            )
+        diagnosis, model = vm.diagnosis, list(vm.effects)
+    else:
+        if not np.isfinite(ctrl.residual_rms_nT()):
+            return NextStep("run", "1. Run the calibration", "Fit the base model: bias, scale, non-orthogonality.")
+        diagnosis, model = ctrl.diagnosis, list(ctrl.state.effects)
+    if diagnosis is None:
+        return NextStep(
+            "diagnose",
+            "2. Diagnose: where does the model fail?",
+            "Compare the model with the measurements: which physical effect is missing, judged on held-out data.",
+        )
+    effect, verdict = _advice(diagnosis, model)
+    if effect is not None:
+        return NextStep(
+            "add",
+            f"3. Add {effect} and refit",
+            f"The diagnosis advises {safe_code(effect)}: it holds on data the fit did not see.",
+            effect,
+        )
+    if verdict == "adequate":
+        why = "The residuals are at the noise floor: the model is adequate. Export it (Files tab)."
+    else:
+        why = (
+            f"Verdict {safe_code(verdict or 'none')}: nothing advised holds on held-out data. The Model tab's "
+            "evidence shows what is left."
+        )
+    return NextStep("none", "", why)
+
+
+def guide_markdown(ctrl) -> str:
+    """The guide's text: the data, the fits they allow, and the next step's reason."""
+    step = next_step(ctrl)
+    return f"{data_markdown(ctrl)}  \n**Next:** {step.why}"

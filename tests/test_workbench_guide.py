@@ -1,0 +1,60 @@
+"""The first screen's guide: it says what the data are and which fits they allow, and its one button walks the
+loop (fit, diagnose, add the advice) to the floor, on the total-field model and on the vector model alike."""
+
+import time
+
+import pytest
+
+from magcal_workbench.dataio import load_dataset
+from magcal_workbench.guide import next_step
+from magcal_workbench.lessons import get_lesson
+
+
+def _click(wb, button):
+    button.value = True  # what a click does: the callbacks run
+    time.sleep(0.05)
+    assert wb.worker.wait(180)
+
+
+def _lesson(slug):
+    ds, notes = load_dataset(get_lesson(slug).data_path)
+    return ds
+
+
+@pytest.mark.parametrize(
+    ("slug", "first", "words"),
+    [
+        ("warm-sensor", "run", ["4 sensors", "temperature", "the total-field fit"]),
+        ("drone-current", "vector", ["attitude", "the vector fit (attitude and the field vector"]),
+        ("tilted-compass", "run", ["an accelerometer", "the gravity fit"]),
+    ],
+)
+def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first, words):
+    wb = bench(ds=_lesson(slug))
+    text = wb.panels.guide.content
+    for word in words:
+        assert word in text, (word, text)
+    assert next_step(wb.ctrl).key == first and wb.panels.btn_next.visible
+    assert wb.panels.btn_next.label.startswith("1. Run the")
+
+
+@pytest.mark.parametrize(
+    ("slug", "effect"), [("warm-sensor", "temperature_bias:2"), ("drone-current", "current_field")]
+)
+def test_the_guides_button_walks_the_loop_to_the_floor(bench, slug, effect):
+    """Each click runs the step the guide names; the hidden effect is added from the advice, and the loop ends with
+    nothing left to press and the lesson solved."""
+    wb = bench(ds=_lesson(slug))
+    wb.ctrl.state.lesson = slug
+    keys = []
+    for _ in range(6):
+        step = next_step(wb.ctrl)
+        if step.key == "none":
+            break
+        keys.append(step.key)
+        assert wb.panels.btn_next.label == step.label
+        _click(wb, wb.panels.btn_next)
+    model = wb.ctrl.vector.effects if wb.ctrl.vector_loop() else wb.ctrl.state.effects
+    assert effect in model
+    assert keys[:3] == [keys[0], "diagnose", "add"] and keys[-1] == "diagnose"
+    assert not wb.panels.btn_next.visible and "adequate" in wb.panels.guide.content
