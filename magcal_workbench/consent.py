@@ -293,10 +293,10 @@ class EffectsFiles:
         if self._allows(key):
             return source
         name = os.path.basename(source.path)
-        if self.terminal is None:  # confirmed before with another content: there is no terminal to ask again
+        if self.terminal is None:  # the file read is not the one named (a link moved): no terminal to ask
             raise NotConfirmed(
-                f"{shown_name(name)} not loaded: its content changed since it was confirmed, and this workbench "
-                "has no terminal to ask again. Start it with --effects-file PATH"
+                f"{shown_name(name)} not loaded: the file read is not one the workbench was started with, and this "
+                "workbench has no terminal to ask. Start it with --effects-file PATH"
             )
         with self._lock:
             if self._allows(key):  # confirmed while this one waited
