@@ -203,6 +203,10 @@ def port_values() -> list[tuple[str, str, str]]:
     return rows
 
 
+def _slashed(counts) -> str:
+    return " / ".join(str(c) for c in counts)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--loads", type=int, default=200, help="loads of the flipping link per row")
@@ -214,14 +218,14 @@ def main() -> int:
         old = race(args.loads, answer, ours=False)
         new = race(args.loads, answer, ours=True)
         bad += new[0]
-        print(f"{label:34s} {'%d / %d / %d' % old:>16s} {'%d / %d / %d' % new:>16s}")
+        print(f"{label:34s} {_slashed(old):>16s} {_slashed(new):>16s}")
     print("\none file named 100 ways by a session (questions / runs of its code)")
     print(f"{'answer':34s} {'old':>16s} {'ours':>16s}")
     for answer in ("no", "yes"):
         old = hundred_ways(answer, ours=False)
         new = hundred_ways(answer, ours=True)
         bad += new[0] > 1 or new[1] > (answer == "yes")
-        print(f"{answer:34s} {'%d / %d' % old:>16s} {'%d / %d' % new:>16s}")
+        print(f"{answer:34s} {_slashed(old):>16s} {_slashed(new):>16s}")
     print("\nbad values for the Port box (live source, Send to vehicle)")
     rows = port_values()
     for value, old, ours in rows:
