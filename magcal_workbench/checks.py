@@ -124,7 +124,7 @@ class PageValues:
         if "value" not in updates:
             return None
         value = updates["value"]
-        kind, rule = self._rules.get(id(handle), (None, None))
+        kind, rule = self._rules.get(id(handle), ("", None))
         if kind == "number":
             why = number_problem(value, *rule)
         elif kind == "text":

@@ -15,6 +15,8 @@ import socket
 import time
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("viser")
 
@@ -148,3 +150,32 @@ def test_other_widgets_and_properties_are_screened_too(bench, widget, updates, s
     assert message.uuid == ""
     assert wb.ui.wait(10)
     assert says in wb.ctrl.message and "refused" in wb.ctrl.message
+
+
+_VALUES = st.one_of(
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=5),
+    st.none(),
+    st.lists(st.integers(), max_size=2),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(value=_VALUES, lo=st.integers(-100, 100), width=st.integers(0, 1000), integral=st.booleans())
+def test_a_number_the_check_accepts_is_kept_exactly_by_viser_s_cast(value, lo, width, integral):
+    """:func:`number_problem` accepts exactly the values that viser's cast to the widget's type (``int`` for a
+    whole-number widget, ``float`` else) keeps unchanged and that lie in the range; the rest get a message."""
+    from magcal_workbench.checks import number_problem
+
+    hi = lo + width
+    why = number_problem(value, lo, hi, integral)
+    kind = int if integral else float
+    try:
+        kept = kind(value) == value and not isinstance(value, (bool, str, list)) and lo <= value <= hi
+    except (TypeError, ValueError, OverflowError):
+        kept = False
+    assert (why is None) == kept, (value, why)
+    if why is not None:
+        assert "\n" not in why and len(why) < 200
