@@ -324,7 +324,7 @@ class EffectsFiles:
         """Ask the terminal about ``source`` (its name escaped and marked, its digest), telling the page."""
         assert self.terminal is not None
         name = os.path.basename(source.path)
-        mark = lookalike_note(source.path)
+        mark = lookalike_note(source.path if source.real == source.path else f"{source.path} {source.real}")
         changed = any(source.real == r for r, _ in self._confirmed | self._refused)
         if say is not None:
             say(
