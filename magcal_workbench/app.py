@@ -55,7 +55,7 @@ from magcal.core.files import check_regular_file
 from magcal.model import plugins
 
 from . import scene as scn
-from . import timing
+from . import timing, viser_adapter
 from .actions import Actions
 from .checks import PageValues, Widgets
 from .cockpit import Cockpit
@@ -318,6 +318,8 @@ class Workbench:
             live_sources=self.livectl.menu.labels,
         )
         self.uploads.watch_sizes(self.panels.upload)
+        #: Every change a browser sends to a widget is screened before viser casts it (PageValues.screen).
+        self.update_screen = viser_adapter.watch_updates(self.server, self._screen)
         self.exporting.attach(self.panels.export, self.panels.live_source)
         for panel in self.added.values():
             panel.attach(self.panels)
@@ -480,6 +482,26 @@ class Workbench:
         self.panels.set_busy(busy, name)
         if not busy:
             self.steps.job_ended()
+
+    def _screen(self, handle, updates: dict, client_id) -> bool:
+        """Whether a browser's change of ``handle`` is refused before viser applies it
+        (:meth:`magcal_workbench.checks.PageValues.screen`): then it is said in the page and in that browser's
+        toast, and the widget shows the server's value again. Runs on viser's event loop: never raises."""
+        try:
+            why = self.values.screen(handle, updates)
+        except Exception as exc:  # a value the check itself cannot read: refused
+            why = f"{clean_text(getattr(handle, 'label', 'value'), 60)}: unreadable value ({type(exc).__name__})"
+        if why is None:
+            return False
+        text = f"{why}; refused (nothing was read or saved)"
+
+        def tell():
+            self.ctrl.say(f"**Error:** {safe_text(text)}")
+            self.notify(client_id, text)
+            viser_adapter.show_value(handle)
+
+        self.ui.post(tell)  # off viser's event loop
+        return True
 
     # ------------------------------------------------------------------------------------------------------
     def handle(self, func, event, *args):

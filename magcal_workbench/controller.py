@@ -40,6 +40,7 @@ from magcal.model import plugins
 from magcal.model.terms import EFFECTS, Model, unknown_effect_message
 
 from . import timing
+from .consent import full_path
 from .events import Change
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
@@ -766,8 +767,10 @@ class Controller:
 
         Parameters
         ----------
-        path : str or os.PathLike
-            The ``.py`` file (``~`` is expanded; a relative path is taken from the current directory).
+        path : str, os.PathLike or magcal.model.plugins.EffectsSource
+            The ``.py`` file (``~`` is expanded; a relative path is taken from the current directory), or the file
+            read already (what the page's consent was given to, :meth:`magcal_workbench.consent.EffectsFiles.permit`):
+            exactly its bytes run.
 
         Returns
         -------
@@ -779,12 +782,9 @@ class Controller:
         MagcalError
             A clear message naming the file and line (:class:`magcal.model.plugins.UserEffectError`).
         """
-
-        text = os.fspath(path).strip() if isinstance(path, (str, os.PathLike)) else ""
-        if not text:
-            raise MagcalError("type the path of a Python file (.py) that defines your effect")
-        full = os.path.abspath(os.path.expanduser(text))
-        names = plugins.load_effects_file(full)
+        source = path if isinstance(path, plugins.EffectsSource) else plugins.read_effects_file(full_path(path))
+        names = plugins.load_effects_file(source)
+        full = source.path
         with self._lock:
             if full not in self.state.effects_files:
                 self.state.effects_files.append(full)
@@ -796,33 +796,46 @@ class Controller:
         return names
 
     def pending_effects_files(self) -> list[str]:
-        """The effects files this session names that are not loaded in this process: never run when the session
-        opens (a session someone sends you would run their code), only by :meth:`load_session_effects_files`."""
-        loaded = set(plugins.user_files())
-        return [p for p in self.state.effects_files if p not in loaded]
+        """The effects files this session names that are not loaded in this process (a path that leads to a loaded
+        file, through ``..`` or a symbolic link, is loaded): never run when the session opens (a session someone
+        sends you would run their code), only by :meth:`load_session_effects_files`."""
+        loaded = {os.path.realpath(p) for p in plugins.user_files()}
+        return [p for p in self.state.effects_files if os.path.realpath(p) not in loaded]
 
-    def load_session_effects_files(self, permit: Callable[[str], object] | None = None) -> list[str]:
-        """Load the effects files this session names (*runs the Python code in them*; the user asked), then
-        restore the saved calibration if it needed their effects. Returns the effects loaded; a file that fails is
-        said in the message (the others load).
+    def load_session_effects_files(self, permit: Callable[[list[str]], dict] | None = None) -> list[str]:
+        """Load the effects files this session names (*runs the Python code in them*; the user asked), each file
+        once however many paths name it, then restore the saved calibration if it needed their effects. Returns
+        the effects loaded; a file that fails is said in the message (the others load).
 
         Parameters
         ----------
         permit : callable, optional
-            ``permit(path)`` raises :class:`MagcalError` for a file that may not run (the page's rule,
-            :meth:`magcal_workbench.consent.EffectsFiles.permit`); that file is skipped and said.
+            ``permit(paths)`` -> ``{path: EffectsSource or MagcalError}``: what each path may run, read once, or why
+            not (the page's rule, :meth:`magcal_workbench.consent.EffectsFiles.permit_all`); default: every file
+            read (:func:`magcal.model.plugins.read_effects_file`).
         """
         names, problems = [], []
         pending = self.pending_effects_files()
         if not pending:
             raise MagcalError("this session names no effects file that is not loaded already")
+        sources = permit(pending) if permit is not None else {p: _read_or_error(p) for p in pending}
+        done: set = set()
+        repeats = 0
         for path in pending:
+            got = sources.get(path) or MagcalError(f"{path}: not permitted")
+            if isinstance(got, MagcalError):
+                problems.append(str(got))
+                continue
+            if (got.real, got.sha256) in done:
+                repeats += 1  # the same file, named again another way: it runs once
+                continue
+            done.add((got.real, got.sha256))
             try:
-                if permit is not None:
-                    permit(path)
-                names += plugins.load_effects_file(path)
+                names += plugins.load_effects_file(got)
             except MagcalError as exc:
                 problems.append(str(exc))
+        if repeats:
+            problems.append(f"{repeats} more path(s) of the session name a file loaded from another: it ran once")
         restored = ""
         if self.state.calibration and self.calibration is None and names:
             try:
@@ -1055,6 +1068,14 @@ def autosave_problem(exc: BaseException, saved_at: str | None) -> str:
         head = f"**Autosave failed** ({safe_text(why, 300)})."
         todo = "your next change tries again"
     return f"{head} The session's changes {since} are not saved; {todo}."
+
+
+def _read_or_error(path) -> plugins.EffectsSource | MagcalError:
+    """The effects file ``path`` read once (:func:`magcal.model.plugins.read_effects_file`), or why it cannot be."""
+    try:
+        return plugins.read_effects_file(full_path(path))
+    except MagcalError as exc:
+        return exc
 
 
 def error_markdown(exc: BaseException) -> str:

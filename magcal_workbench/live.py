@@ -42,6 +42,7 @@ from magcal.data.simulation import PRESETS
 from magcal.geometry.shape import FieldShape
 
 from . import scene as scn
+from .checks import number_problem
 from .markup import clean_text, hide_paths, safe_code, safe_text
 
 #: Shortest time between two scene updates while samples arrive, s.
@@ -588,19 +589,10 @@ class SourceMenu:
             )
 
         def bounded(name, value, lo, hi, kind=float):
-            try:
-                v = None if isinstance(value, bool) else float(value)
-            except (TypeError, ValueError, OverflowError):
-                v = None
-            if v is None or not (lo <= v <= hi):
-                raise MagcalError(f"{name}: {clean_text(repr(value), 40)} is outside {lo:g} ... {hi:g}")
-            if kind is int:  # a port or a count: a whole number, never truncated to one
-                if not v.is_integer():
-                    raise MagcalError(
-                        f"{name}: {clean_text(repr(value), 40)} is not a whole number; give {lo:g} ... {hi:g}"
-                    )
-                return int(v)
-            return v
+            why = number_problem(value, lo, hi, integral=kind is int)  # a port or a count: never truncated
+            if why is not None:
+                raise MagcalError(f"{name}: {why}")
+            return int(value) if kind is int else float(value)
 
         if chosen.kind == "url":
             return chosen.target

@@ -117,7 +117,8 @@ class Steps(PagePart):
         if why is not None:
             raise MagcalError(why)
         ctrl = self.ctrl
-        ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say)))
+        status = ctrl._report_progress  # the page's status line says while the terminal waits for the answer
+        ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say, status)))
 
     @action
     def do_load_session_effects(self, event):
@@ -134,7 +135,9 @@ class Steps(PagePart):
             raise MagcalError("; ".join(str(r) for r in refused))
         ctrl.run_job(
             "load the session's effects files",
-            lambda: ctrl.load_session_effects_files(permit=lambda p: gate.permit(p, ctrl.say)),
+            lambda: ctrl.load_session_effects_files(
+                permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl._report_progress)
+            ),
         )
 
     # --- outliers -----------------------------------------------------------------------------------------

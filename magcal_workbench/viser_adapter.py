@@ -22,6 +22,11 @@ else, and ``tests/test_workbench_viser_adapter.py`` fails when viser changes wha
 * **an upload's bytes as they arrive** (:func:`watch_upload_parts`): a handler of ``FileTransferPart`` put
   *before* viser's own sees each part's size before viser buffers it, and drops the upload (the same entry) once
   the bytes received pass the bound, whatever size was declared.
+* **a widget's value before viser casts it** (:func:`watch_updates`): a handler of ``GuiUpdateMessage`` put
+  *before* viser's own finds the widget (``gui._gui_input_handle_from_uuid``) and may refuse the update; a refused
+  message's ``uuid`` is blanked, so viser's handler finds no widget and drops it (viser casts the value with the
+  widget's type first: ``int(nan)`` would raise in its event loop, ``int(14551.5)`` truncate). :func:`show_value`
+  sends a widget's value to the browsers again (viser's setter sends nothing when the value did not change).
 * **a widget's kind and id** (:func:`widget_kind`, :func:`widget_id`).
 """
 
@@ -214,6 +219,41 @@ def watch_upload_parts(server, upload_handle, arrived: Callable[[str, int, objec
     return part
 
 
+def watch_updates(server, refuse: Callable[[object, dict, object], bool]):
+    """Call ``refuse(handle, updates, client_id)`` for every change a browser sends to an input widget of the
+    server's GUI (``updates``: ``{property: value}`` as sent), *before* viser casts and applies it; when it returns
+    True the change is dropped (viser never sees it). Returns the handler registered, or None where this viser
+    keeps no such state (the callbacks' checks then stand alone)."""
+    from viser import _messages
+
+    gui = server.gui
+    handles = getattr(gui, "_gui_input_handle_from_uuid", None)
+    handlers = getattr(server._websock_server, "_incoming_handlers", None)
+    if not isinstance(handles, dict) or not isinstance(handlers, dict):
+        return None
+
+    def update(client_id, message) -> None:
+        handle = handles.get(message.uuid)
+        if handle is None:
+            return  # viser ignores it too
+        updates = message.updates if isinstance(message.updates, dict) else {"updates": message.updates}
+        if refuse(handle, updates, client_id):
+            message.uuid = ""  # viser's handler finds no widget of that id: the change is dropped
+
+    handlers.setdefault(_messages.GuiUpdateMessage, []).insert(0, update)  # before viser's own
+    return update
+
+
+def show_value(handle) -> None:
+    """Send ``handle``'s value to every browser again (after a refused change, the one who sent it shows the
+    server's value, not what it typed)."""
+    from viser import _messages
+
+    handle._impl.gui_api._websock_interface.queue_message(
+        _messages.GuiUpdateMessage(handle._impl.uuid, {"value": handle.value})
+    )
+
+
 def upload_in_flight(server, transfer_uuid: str) -> bool:
     """Whether viser still buffers the upload ``transfer_uuid`` (not finished, not dropped)."""
     return transfer_uuid in getattr(server.gui, "_current_file_upload_states", {})
@@ -277,6 +317,12 @@ def missing_internals() -> list[str]:
             problems.append("viser's page no longer hands its websocket's address to a Worker (set_server)")
         if 'data.type === "set_server"' not in worker or "new WebSocket(server" not in worker:
             problems.append("viser's websocket worker no longer opens the address set_server gives")
+    update = getattr(_messages, "GuiUpdateMessage", None)
+    fields = set(getattr(update, "__dataclass_fields__", {}) or {})
+    if update is None or not {"uuid", "updates"} <= fields:
+        problems.append(f"viser._messages.GuiUpdateMessage lacks {sorted({'uuid', 'updates'} - fields)}")
+    if "_gui_input_handle_from_uuid" not in inspect.getsource(GuiApi._handle_gui_updates):
+        problems.append("GuiApi no longer finds a widget by _gui_input_handle_from_uuid")
     if "_websock_server" not in inspect.getsource(viser.ViserServer.__init__):
         problems.append("ViserServer no longer keeps _websock_server")
     for name in ("GuiDropdownHandle", "GuiSliderHandle", "GuiNumberHandle", "GuiTextHandle"):

@@ -30,8 +30,10 @@ the line and what to do, never a traceback; on any error the catalogue is left a
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import importlib
+import importlib.abc
 import importlib.metadata
 import importlib.util
 import inspect
@@ -39,9 +41,11 @@ import json
 import linecache
 import os
 import re
+import stat
 import sys
 import threading
 import traceback
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -467,32 +471,74 @@ def _admit(classes, before, source_key, kind, where, path=None) -> list[str]:
     return names
 
 
-def load_effects_file(path) -> list[str]:
-    """Load a user's effect file: the Effect classes it decorates with ``@register`` join the catalogue.
+#: Largest effects file read, bytes: a Python file that defines a few effects is a few kilobytes.
+MAX_EFFECTS_FILE_BYTES = 16 * 1024 * 1024
 
-    **The file is Python code and runs with the rights of the process** (it is imported, as ``python FILE.py``
-    would run it): load only a file the user chose and trusts, never one named by a data file, a calibration or a
-    session document.
 
-    The file is imported as a module of its own (a unique name derived from its path, so two files may share a
-    stem); loading the same file again replaces its effects (after an edit).
+@dataclass(frozen=True)
+class EffectsSource:
+    """An effects file as read once: the code :func:`load_effects_file` runs is exactly ``code``, whatever the path
+    names afterwards (an edit, a symbolic link moved).
+
+    Attributes
+    ----------
+    path : str
+        The absolute path given (``~`` not expanded), the name the file's effects and messages carry.
+    real : str
+        The file that was read: ``path`` with its symbolic links resolved once, then opened without following any
+        link (:func:`read_effects_file`).
+    code : bytes
+        The file's content as read.
+    sha256 : str
+        The SHA-256 digest of ``code`` (hexadecimal): what a consent given to this file is bound to.
+    """
+
+    path: str
+    real: str
+    code: bytes
+    sha256: str
+
+
+def _open_without_links(real: str) -> int:
+    """A descriptor of the file at ``real`` (an absolute path without symbolic links), opened one component at a
+    time from ``/`` with ``O_NOFOLLOW``: a component that became a symbolic link since ``real`` was resolved is
+    an :class:`OSError` (``ELOOP`` or ``ENOTDIR``), never followed. The last component is opened non-blocking (a
+    FIFO put there does not block). Where the system lacks ``openat`` (Windows), the path is opened as it is."""
+    nofollow = getattr(os, "O_NOFOLLOW", 0)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0) | nofollow
+    if not nofollow or os.open not in os.supports_dir_fd:
+        return os.open(real, flags | getattr(os, "O_BINARY", 0))
+    walk = getattr(os, "O_PATH", os.O_RDONLY) | os.O_DIRECTORY | nofollow | getattr(os, "O_CLOEXEC", 0)
+    *folders, name = real.split(os.sep)[1:]
+    at = os.open(os.sep, walk)
+    try:
+        for folder in folders:
+            inner = os.open(folder, walk, dir_fd=at)
+            os.close(at)
+            at = inner
+        return os.open(name, flags, dir_fd=at)
+    finally:
+        os.close(at)
+
+
+def read_effects_file(path) -> EffectsSource:
+    """Read an effects file once: its content, where it was read, and the content's digest.
+
+    The path's symbolic links are resolved once (:func:`os.path.realpath`) and that file is opened without
+    following any further link; whether it is a regular file and how large is checked on the descriptor opened,
+    and the bytes read there are what :func:`load_effects_file` runs. A link moved between two reads therefore
+    never puts another file's code in place of the one checked.
 
     Parameters
     ----------
     path : str or os.PathLike
-        A Python file.
-
-    Returns
-    -------
-    list of str
-        The names of the effects it registered, in the file's order.
+        A Python file (``.py``).
 
     Raises
     ------
     UserEffectError
-        The file is missing or not Python; it has a syntax error, fails to import something or raises while it
-        runs (the line and what to do); it registers no effect; an effect fails :func:`validate_effect` (a name
-        clash with a built-in or another source, a missing ``param_names``...). The catalogue is then unchanged.
+        Missing, no regular file (a folder, a FIFO, a device), not ``.py``, larger than
+        :data:`MAX_EFFECTS_FILE_BYTES`, unreadable, or a path whose links changed while it was opened.
     """
     path = os.path.abspath(os.fspath(path))
     reason = not_regular_reason(path)
@@ -506,20 +552,96 @@ def load_effects_file(path) -> list[str]:
         )
     if not path.endswith(".py"):
         raise UserEffectError(f"{path}: an effects file must be a Python file ending in .py ({DOC})")
+    real = os.path.realpath(path)
+    try:
+        fd = _open_without_links(real)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENOTDIR, errno.ENOENT):
+            raise UserEffectError(
+                f"{path}: the file or a folder on its path was replaced while it was opened (a symbolic link "
+                "moved); nothing was run. Load it again once the file stays in place"
+            ) from None
+        raise UserEffectError(f"{path}: the effects file cannot be read ({exc.strerror or exc})") from None
+    with os.fdopen(fd, "rb") as fh:
+        mode = os.fstat(fh.fileno())
+        if not stat.S_ISREG(mode.st_mode):
+            raise UserEffectError(f"{path}: is not a regular file any more; give the Python file of your effect")
+        if mode.st_size > MAX_EFFECTS_FILE_BYTES:
+            raise UserEffectError(
+                f"{path}: {mode.st_size / 1e6:.1f} MB is no effects file (at most "
+                f"{MAX_EFFECTS_FILE_BYTES / 1e6:.0f} MB); give the Python file that defines your effect"
+            )
+        code = fh.read(MAX_EFFECTS_FILE_BYTES + 1)
+    if len(code) > MAX_EFFECTS_FILE_BYTES:
+        raise UserEffectError(f"{path}: grew past {MAX_EFFECTS_FILE_BYTES / 1e6:.0f} MB while it was read")
+    return EffectsSource(path, real, code, hashlib.sha256(code).hexdigest())
+
+
+class _SourceLoader(importlib.abc.Loader):
+    """Runs an :class:`EffectsSource`'s bytes as a module (never the path again), and gives tracebacks and
+    :mod:`inspect` those bytes' lines."""
+
+    def __init__(self, source: EffectsSource):
+        self.source = source
+
+    def create_module(self, spec):
+        return None  # the default module
+
+    def exec_module(self, module) -> None:
+        code = compile(self.source.code, self.source.path, "exec", dont_inherit=True)
+        text = importlib.util.decode_source(self.source.code)
+        lines = text.splitlines(keepends=True)
+        # the lines that run, under the file's name (no modification time: linecache never reads the disk again)
+        linecache.cache[self.source.path] = (len(text), None, lines, self.source.path)
+        exec(code, module.__dict__)
+
+    def get_source(self, fullname) -> str:
+        return importlib.util.decode_source(self.source.code)
+
+
+def load_effects_file(path) -> list[str]:
+    """Load a user's effect file: the Effect classes it decorates with ``@register`` join the catalogue.
+
+    **The file is Python code and runs with the rights of the process** (it runs as ``python FILE.py`` would):
+    load only a file the user chose and trusts, never one named by a data file, a calibration or a session
+    document.
+
+    The file is read once (:func:`read_effects_file`) and exactly the bytes read run, as a module of its own (a
+    unique name derived from its path, so two files may share a stem); loading the same file again replaces its
+    effects (after an edit).
+
+    Parameters
+    ----------
+    path : str, os.PathLike or EffectsSource
+        A Python file, or one read already (:func:`read_effects_file`: what a consent was given to).
+
+    Returns
+    -------
+    list of str
+        The names of the effects it registered, in the file's order.
+
+    Raises
+    ------
+    UserEffectError
+        The file is missing or not Python; it has a syntax error, fails to import something or raises while it
+        runs (the line and what to do); it registers no effect; an effect fails :func:`validate_effect` (a name
+        clash with a built-in or another source, a missing ``param_names``...). The catalogue is then unchanged.
+    """
+    source = path if isinstance(path, EffectsSource) else read_effects_file(path)
+    path = source.path
     module_name = _module_name(path)
     with _LOCK:
         before = dict(EFFECTS)
         for name in [n for n, src in _SOURCES.items() if src == path]:
             EFFECTS.pop(name, None)  # loaded again: the file registers its effects anew (put back on any error)
-        spec = importlib.util.spec_from_file_location(module_name, path)
-        if spec is None or spec.loader is None:
-            raise UserEffectError(f"{path}: cannot be imported as a Python file")
+        spec = importlib.util.spec_from_loader(module_name, _SourceLoader(source), origin=path)
+        assert spec is not None
+        spec.has_location = True  # the module's __file__ is the path (inspect finds its classes' lines)
         module = importlib.util.module_from_spec(spec)
         old_module = sys.modules.get(module_name)
         sys.modules[module_name] = module  # dataclasses and pickling look the module up by name
-        linecache.checkcache(path)
         try:
-            spec.loader.exec_module(module)
+            spec.loader.exec_module(module)  # type: ignore[union-attr]
         except (Exception, SystemExit) as exc:  # SystemExit: a script's sys.exit() or argparse run on import
             _restore(before)
             _put_back(module_name, old_module)
