@@ -58,3 +58,38 @@ def test_the_guides_button_walks_the_loop_to_the_floor(bench, slug, effect):
     assert effect in model
     assert keys[:3] == [keys[0], "diagnose", "add"] and keys[-1] == "diagnose"
     assert not wb.panels.btn_next.visible and "adequate" in wb.panels.guide.content
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_newcomer_follows_the_guide_on_the_demo_in_chromium(browser, bench, tmp_path):
+    """In Chromium, on the bundled demo: the first screen says what the data are and shows one button; pressing
+    it, and each button it turns into, runs the loop (fit, diagnose, add the advice, diagnose) until the guide says
+    the model is adequate. The screenshots are kept for a person to look at."""
+    from magcal.data import io as mio
+    from magcal_workbench.lessons import DEMO
+
+    wb = bench(ds=mio.read_csv(DEMO))
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(wb.url, wait_until="domcontentloaded")
+    page.wait_for_function("() => document.body && document.body.innerText.includes('Fits it allows')", timeout=90_000)
+    text = page.inner_text("body")
+    assert "4 sensors, 1500 samples" in text and "Next:" in text
+    page.screenshot(path=str(tmp_path / "guide-first.png"))
+    pressed = []
+    for _ in range(6):
+        step = next_step(wb.ctrl)
+        if step.key == "none":
+            break
+        pressed.append(step.key)
+        page.get_by_role("button", name=step.label).click()
+        page.wait_for_function(
+            "(label) => ![...document.querySelectorAll('button')].some(b => b.innerText.trim() === label)",
+            arg=step.label,
+            timeout=180_000,
+        )
+        assert wb.worker.wait(180)
+    assert pressed[:3] == ["run", "diagnose", "add"] and pressed[-1] == "diagnose"
+    page.wait_for_function("() => document.body.innerText.includes('the model is adequate')", timeout=60_000)
+    assert wb.ctrl.state.effects  # the advice was added
+    page.screenshot(path=str(tmp_path / "guide-solved.png"))
