@@ -905,12 +905,37 @@ class Controller:
         )
         return d
 
-    def step_add(self, label: str | None = None, *, inputs: JobInputs | None = None):
+    def advice(self) -> list[str]:
+        """What the current diagnosis advises (its ``explained_by``: judged on held-out data) that the model does
+        not hold yet; the vector model's on a record with attitude and a field vector. Empty before a diagnosis."""
+        if self.vector_loop():
+            diagnosis, model = self.vector.diagnosis, self.vector.effects
+        else:
+            diagnosis, model = self.diagnosis, self.state.effects
+        advised = getattr(diagnosis, "explained_by", None) or []
+        return [label for label in advised if label not in model]
+
+    def candidate_holds(self, label: str) -> bool:
+        """Whether the current diagnosis found that the candidate ``label``'s gain holds on data the fit did not
+        see (or advises it); False for a candidate it did not judge or judged not to hold."""
+        if label in self.advice():
+            return True
+        if self.vector_loop():
+            diagnosis = self.vector.diagnosis
+            labels = lambda c: c.label
+        else:
+            diagnosis, labels = self.diagnosis, candidate_label
+        candidates = getattr(diagnosis, "candidates", None) or []
+        return any(labels(c) == label and getattr(c, "holds", None) is True for c in candidates)
+
+    def step_add(self, label: str | None = None, *, inputs: JobInputs | None = None, note: str = ""):
         """Put a candidate (the top one by default) into the model and refit (the kept samples and the model of
         ``inputs``, default those of now, with the candidate); on a record with attitude and a field vector, into
-        the vector model (:meth:`VectorModel.add`)."""
+        the vector model (:meth:`VectorModel.add`). ``note`` is appended to the history's step."""
         if self.vector_loop():
-            return self.vector.add(label, kept=None if inputs is None else inputs.kept)
+            if label is None:
+                return self.vector.add(None, kept=None if inputs is None else inputs.kept)
+            return self.vector.add_all([label], kept=None if inputs is None else inputs.kept, note=note)
         inputs = self.job_inputs() if inputs is None else inputs
         if label is None:
             if self.diagnosis is None or not self.diagnosis.candidates:
@@ -920,7 +945,22 @@ class Controller:
         if not self.state.add_effect(label):
             raise MagcalError(f"{label} is already in the model")
         self._emit(Change.MODEL)
-        return self.step_refine(label=f"add {label}", inputs=inputs.with_effect(label))
+        return self.step_refine(label=f"add {label}{note}", inputs=inputs.with_effect(label))
+
+    def step_add_advice(self, *, inputs: JobInputs | None = None):
+        """Put everything the diagnosis advises (:meth:`advice`) into the model and refit once."""
+        labels = self.advice()
+        if not labels:
+            raise MagcalError("nothing is advised: diagnose first, or the diagnosis advises nothing that holds")
+        if self.vector_loop():
+            return self.vector.add_all(labels, kept=None if inputs is None else inputs.kept)
+        inputs = self.job_inputs() if inputs is None else inputs
+        for label in labels:
+            label = self._check_label(label)
+            self.state.add_effect(label)
+            inputs = inputs.with_effect(label)
+        self._emit(Change.MODEL)
+        return self.step_refine(label=f"add {', '.join(labels)}", inputs=inputs)
 
     # ------------------------------------------------------------------------------------------------------
     # outlier rejection

@@ -32,14 +32,14 @@ class NextStep:
         The button's text (empty for ``none``).
     why : str
         One line saying why this step comes next (markdown).
-    effect : str or None
-        For ``add``: the candidate the advice names first.
+    effects : tuple of str
+        For ``add``: the effects the advice names (all are added, with one refit).
     """
 
     key: str
     label: str
     why: str
-    effect: str | None = None
+    effects: tuple = ()
 
 
 def data_markdown(ctrl) -> str:
@@ -80,13 +80,12 @@ def _source(ctrl) -> str:
     return "simulated data"
 
 
-def _advice(diagnosis, model) -> tuple[str | None, str]:
-    """The first advised label not yet in ``model``, and the verdict's word (``adequate``, ...)."""
+def _advice(diagnosis, model) -> tuple[list, str]:
+    """The advised labels not yet in ``model``, and the verdict's word (``adequate``, ...)."""
     if diagnosis is None:
-        return None, ""
+        return [], ""
     verdict = str(getattr(diagnosis, "verdict", ""))
-    advised = [label for label in getattr(diagnosis, "explained_by", None) or [] if label not in model]
-    return (advised[0] if advised else None), verdict
+    return [label for label in getattr(diagnosis, "explained_by", None) or [] if label not in model], verdict
 
 
 def next_step(ctrl) -> NextStep:
@@ -95,26 +94,30 @@ def next_step(ctrl) -> NextStep:
         vm = ctrl.vector
         if vm.result is None:
             return NextStep(
-                "vector", "1. Run the vector fit", "The record has attitude and a field vector: fit them together."
+                "vector",
+                "Step 1: fit with the attitude and the field vector",
+                "The record has attitude and a field vector: fit them together.",
             )
         diagnosis, model = vm.diagnosis, list(vm.effects)
     else:
         if not np.isfinite(ctrl.residual_rms_nT()):
-            return NextStep("run", "1. Run the calibration", "Fit the base model: bias, scale, non-orthogonality.")
+            return NextStep("run", "Step 1: fit the model", "Fit the base model: bias, scale, non-orthogonality.")
         diagnosis, model = ctrl.diagnosis, list(ctrl.state.effects)
     if diagnosis is None:
         return NextStep(
             "diagnose",
-            "2. Diagnose: where does the model fail?",
+            "Step 2: find where the model fails",
             "Compare the model with the measurements: which physical effect is missing, judged on held-out data.",
         )
-    effect, verdict = _advice(diagnosis, model)
-    if effect is not None:
+    advised, verdict = _advice(diagnosis, model)
+    if advised:
+        names = ", ".join(advised)
         return NextStep(
             "add",
-            f"3. Add {effect} and refit",
-            f"The diagnosis advises {safe_code(effect)}: it holds on data the fit did not see.",
-            effect,
+            f"Step 3: add the advice ({names}) and refit",
+            f"The diagnosis advises {', '.join(safe_code(a) for a in advised)}: "
+            f"{'it holds' if len(advised) == 1 else 'they hold'} on data the fit did not see.",
+            tuple(advised),
         )
     if verdict == "adequate":
         why = "The residuals are at the noise floor: the model is adequate. Export it (Files tab)."

@@ -609,7 +609,7 @@ class Panels:
         #: that step as a button.
         self.guide = gui.add_markdown("")
         self._engine_buttons: list = []
-        self.btn_next = self._button(gui, "1. Run the calibration", self._do_next_step, color="green")
+        self.btn_next = self._button(gui, "Step 1: fit the model", self._do_next_step, color="green")
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
@@ -647,15 +647,13 @@ class Panels:
 
     def _do_next_step(self, event) -> None:
         """The guide's button: the step :func:`~magcal_workbench.guide.next_step` names, through the same handler
-        as that step's own button (Add: the advised candidate chosen first)."""
+        as that step's own button (Add: *Add the advice*, everything the diagnosis advises)."""
         step = next_step(self.ctrl())
-        if step.key == "add" and step.effect in self.candidate_choice.options:
-            self.candidate_choice.value = step.effect
         handler = {
             "run": self.on.do_calibrate,
             "vector": self.on.do_vector_fit,
             "diagnose": self.on.do_diagnose,
-            "add": self.on.do_add,
+            "add": self.on.do_add_advice,
         }.get(step.key)
         if handler is not None:
             handler(event)
@@ -847,6 +845,8 @@ class Panels:
         self.candidate_evidence = gui.add_markdown("")
         self.candidate_choice.on_update(lambda e: self.handle(self._candidate_chosen, e))
         self.btn_add = self._button(gui, "Add the candidate and refit", self.on.do_add, color="green")
+        #: Everything the diagnosis advises, in one refit (shown when it advises something the model lacks).
+        self.btn_add_advice = self._button(gui, "Add the advice and refit", self.on.do_add_advice, visible=False)
         self.vector_panel.build_model(gui)  # the vector model's history plot and its Take out, for the vector loop
         self.rms_plot = gui.add_uplot(
             data=(
@@ -1282,8 +1282,14 @@ class Panels:
             else:
                 self.candidates.content = candidates_markdown(ctrl.diagnosis)
             opts = tuple(self._candidate_labels()) or ("-",)
+            advised = ctrl.advice()
             self.candidate_choice.options = opts
-            self.candidate_choice.value = opts[0]
+            # an advised candidate is chosen first; Add asks before it adds one the diagnosis does not advise
+            self.candidate_choice.value = next((o for o in opts if o in advised), opts[0])
+            self.btn_add_advice.visible = bool(advised)
+            self.btn_add_advice.label = (
+                f"Add the advice ({', '.join(advised)}) and refit" if advised else "Add the advice"
+            )
             self._show_candidate_evidence()
             self.on.draw_evidence()
         if everything or "inspect" in kinds or "selection" in kinds:

@@ -44,6 +44,8 @@ class Steps(PagePart):
         self.values, self.worker, self.effects_gate = values, worker, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
+        #: A candidate the diagnosis does not advise that Add was pressed for once: the next press adds it.
+        self.unadvised_asked: str | None = None
 
     def _step(self, name, step) -> bool:
         """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""
@@ -93,9 +95,27 @@ class Steps(PagePart):
     def do_add(self, event):
         self.check_readings()
         choice = self.values.check(self.panels.candidate_choice)
-        label = None if choice == "-" else choice
         ctrl = self.ctrl
-        self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs))
+        offered = self.panels._candidate_labels()
+        label = offered[0] if choice == "-" and offered else (None if choice == "-" else choice)
+        note = ""
+        if label is not None and not ctrl.candidate_holds(label):
+            if self.unadvised_asked != label:
+                self.unadvised_asked = label
+                raise MagcalError(
+                    f"{label} does not hold: the diagnosis did not find that its gain holds on data the fit did not "
+                    "see (or could not judge it). Press Add again to add it anyway; the history will mark it"
+                )
+            note = " (does not hold)"
+        self.unadvised_asked = None
+        self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs, note=note))
+
+    @action
+    def do_add_advice(self, event):
+        """Add everything the diagnosis advises and refit once."""
+        self.check_readings()
+        ctrl = self.ctrl
+        self._step("add the advice", lambda inputs: ctrl.step_add_advice(inputs=inputs))
 
     @action
     def do_apply_noise(self, event) -> None:

@@ -498,18 +498,25 @@ class VectorModel:
             if not labels:
                 raise MagcalError("diagnose first: there is no suggested effect to add")
             label = labels[0]
-        label = self.ctrl._check_label(label)
-        cls = EFFECTS[effect_name(label)]
-        if "vector" not in getattr(cls, "modes", ("scalar", "vector")) or cls.stage != "raw":
-            raise MagcalError(
-                f"{label}: the vector fit cannot take this effect (it takes the raw-stage effects of the catalogue); "
-                "choose one of the diagnosis's candidates"
-            )
-        name = effect_name(label)
-        if label in self.effects or name in self.effects:
-            raise MagcalError(f"{label} is already in the vector model")
-        effects = [e for e in self.effects if ":" in label or effect_name(e) != name] + [label]
-        return self.fit(kept, effects=effects, step=f"vector: add {label}")
+        return self.add_all([label], kept)
+
+    def add_all(self, labels, kept: np.ndarray | None = None, note: str = ""):
+        """Put ``labels`` into the vector model and refit once (:meth:`fit`); ``note`` is appended to the history's
+        step (e.g. that the effect was not advised)."""
+        effects = list(self.effects)
+        for label in labels:
+            label = self.ctrl._check_label(label)
+            cls = EFFECTS[effect_name(label)]
+            if "vector" not in getattr(cls, "modes", ("scalar", "vector")) or cls.stage != "raw":
+                raise MagcalError(
+                    f"{label}: the vector fit cannot take this effect (it takes the raw-stage effects of the "
+                    "catalogue); choose one of the diagnosis's candidates"
+                )
+            name = effect_name(label)
+            if label in effects or name in effects:
+                raise MagcalError(f"{label} is already in the vector model")
+            effects = [e for e in effects if ":" in label or effect_name(e) != name] + [label]
+        return self.fit(kept, effects=effects, step=f"vector: add {', '.join(labels)}{note}")
 
     def remove(self, label: str | None = None, kept: np.ndarray | None = None):
         """Take an effect (the last added by default) out of the vector model and refit (on ``kept``: default the

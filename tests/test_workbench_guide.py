@@ -35,7 +35,7 @@ def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first,
     for word in words:
         assert word in text, (word, text)
     assert next_step(wb.ctrl).key == first and wb.panels.btn_next.visible
-    assert wb.panels.btn_next.label.startswith("1. Run the")
+    assert wb.panels.btn_next.label.startswith("Step 1: fit")
 
 
 @pytest.mark.parametrize(
@@ -93,3 +93,35 @@ def test_a_newcomer_follows_the_guide_on_the_demo_in_chromium(browser, bench, tm
     page.wait_for_function("() => document.body.innerText.includes('the model is adequate')", timeout=60_000)
     assert wb.ctrl.state.effects  # the advice was added
     page.screenshot(path=str(tmp_path / "guide-solved.png"))
+
+
+def test_add_asks_before_a_candidate_that_does_not_hold_and_the_history_marks_it(bench):
+    """On a record with nothing hidden, a candidate the diagnosis does not find holding is added only at the
+    second press, with a message in between, and its step in the history says so."""
+    import magcal
+
+    wb = bench(ds=magcal.simulate_timeseries("chi2017", n_samples=400, seed=3, rate_hz=2.0))
+    wb.ctrl.step_refine()
+    wb.ctrl.step_diagnose()
+    p = wb.panels
+    weak = [label for label in p._candidate_labels() if not wb.ctrl.candidate_holds(label)]
+    assert weak, "the diagnosis of a record with nothing hidden should offer a candidate that does not hold"
+    assert not p.btn_add_advice.visible and wb.ctrl.advice() == []
+    p.candidate_choice.value = weak[0]
+    _click(wb, p.btn_add)
+    assert wb.ctrl.state.effects == [] and "does not hold" in wb.ctrl.message
+    _click(wb, p.btn_add)
+    assert wb.ctrl.state.effects == [weak[0]]
+    assert "(does not hold)" in p.history.content
+
+
+def test_add_the_advice_adds_all_of_it_in_one_refit(bench):
+    wb = bench(ds=_lesson("warm-sensor"))
+    wb.ctrl.step_refine()
+    wb.ctrl.step_diagnose()
+    advice = wb.ctrl.advice()
+    assert advice and wb.panels.btn_add_advice.visible and all(a in wb.panels.btn_add_advice.label for a in advice)
+    steps = len(wb.ctrl.state.history)
+    _click(wb, wb.panels.btn_add_advice)
+    assert wb.ctrl.state.effects == advice and len(wb.ctrl.state.history) == steps + 1
+    assert wb.ctrl.advice() == [] and not wb.panels.btn_add_advice.visible
