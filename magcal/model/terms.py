@@ -213,6 +213,109 @@ class SingleAxisBasis(np.ndarray):
         return SingleAxisBasis(self.axis_values.T, self.axes)
 
 
+def span_text(lower: float, upper: float) -> str:
+    """``">= 0"``, ``"<= 5"``, ``"in [-250, 250]"`` or ``"any number"``: one parameter's bounds in words."""
+    if np.isinf(lower) and np.isinf(upper):
+        return "any number"
+    if np.isinf(upper):
+        return f">= {lower:g}"
+    if np.isinf(lower):
+        return f"<= {upper:g}"
+    return f"in [{lower:g}, {upper:g}]"
+
+
+#: A fitted parameter within this fraction of its :meth:`Effect.param_scale` (the size that moves the readings by
+#: about 1 nT) of a bound sits on it (:func:`outside_domain`): the fit was held there.
+ON_BOUND_FRACTION = 1e-3
+
+
+@dataclass(frozen=True)
+class Domain:
+    """The physical domain of an effect's parameters: a lower and an upper bound per parameter (in the
+    parameters' units; ``-inf``/``inf`` where physics sets none) and why, in words.
+
+    Attributes
+    ----------
+    lower, upper : numpy.ndarray, shape (q,)
+        Bounds of each parameter, in :meth:`Effect.param_names` order and units.
+    why : str
+        The physics that sets them, for messages and ``docs/effects.md`` ("a loop half-width: the output lags the
+        field, it cannot lead it"); empty for an unbounded domain.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    why: str = ""
+
+    def __post_init__(self):
+        lower = np.asarray(self.lower, dtype=float).reshape(-1)
+        upper = np.broadcast_to(np.asarray(self.upper, dtype=float), lower.shape).copy()
+        if np.any(lower > upper):
+            raise MagcalError(f"a domain's lower bounds {lower.tolist()} exceed its upper bounds {upper.tolist()}")
+        object.__setattr__(self, "lower", lower)
+        object.__setattr__(self, "upper", upper)
+
+    @classmethod
+    def free(cls, q: int) -> Domain:
+        """``q`` unbounded parameters."""
+        return cls(np.full(q, -np.inf), np.full(q, np.inf))
+
+    @classmethod
+    def symmetric(cls, q: int, limit: float, why: str) -> Domain:
+        """``q`` parameters each within ``[-limit, limit]``."""
+        return cls(np.full(q, -float(limit)), np.full(q, float(limit)), why)
+
+    @property
+    def bounded(self) -> bool:
+        """True when some parameter has a finite bound."""
+        return bool(np.any(np.isfinite(self.lower)) or np.any(np.isfinite(self.upper)))
+
+    def text(self, names) -> str:
+        """The domain in words, one ``name span`` per parameter, equal spans gathered: ``"h_x_nT, h_y_nT, h_z_nT
+        >= 0"``."""
+        groups: dict = {}
+        for name, lo, hi in zip(names, self.lower, self.upper):
+            groups.setdefault(span_text(lo, hi), []).append(name)
+        return "; ".join(f"{', '.join(n)} {span}" for span, n in groups.items())
+
+
+def outside_domain(effect: Effect, values, label: str | None = None) -> str:
+    """Why one instance's fitted ``values`` are not physical here, or ``""``: the parameters that sit on (or
+    past) a bound of the effect's :meth:`~Effect.domain` (within :data:`ON_BOUND_FRACTION` of their
+    :meth:`~Effect.param_scale`), the fit was held there because the data pull them out of the domain. A
+    candidate effect so fitted describes something else the record holds (the diagnoses never recommend it).
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect (its data-derived constants set: the domain may depend on them).
+    values : array_like, shape (q,)
+        Its fitted parameters, in :meth:`~Effect.param_names` order.
+    label : str, optional
+        The block's label (``name:S``) the text names; default the effect's.
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    names = effect.param_names()
+    lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in effect.param_bounds())
+    if not (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper))) or v.size != len(names):
+        return ""
+    tol = ON_BOUND_FRACTION * np.abs(np.broadcast_to(np.asarray(effect.param_scale(), dtype=float), v.shape))
+    held: dict = {}  # (bound, span) -> names held there
+    for name, value, lo, hi, t in zip(names, v, lower, upper, tol):
+        if not np.isfinite(value):
+            held.setdefault(("not a finite number", ""), []).append(name)
+        elif value <= lo + t or value >= hi - t:
+            bound = lo if value <= lo + t else hi
+            held.setdefault((f"held at the bound {bound:g}", span_text(lo, hi)), []).append(name)
+    if not held:
+        return ""
+    parts = [
+        f"{', '.join(n)} {where}" + (f" (the domain is {span})" if span else "") for (where, span), n in held.items()
+    ]
+    why = effect.domain().why
+    return f"{label or effect.label}: " + "; ".join(parts) + (f": {why}" if why else "")
+
+
 @dataclass
 class Effect:
     """A named candidate term of the model.
@@ -288,18 +391,27 @@ class Effect:
         """Typical magnitude of each parameter that changes the readings by ~1 nT (for conditioning)."""
         return np.ones(len(self.param_names()))
 
-    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of each parameter, where physics sets them (a loop width is not negative).
+    def domain(self) -> Domain:
+        """The physical domain of one instance's parameters: their bounds and why (:class:`Domain`).
 
-        The fitter (:func:`magcal.fitting.fitter.fit`) keeps every parameter within them, and :meth:`check_params` refuses
-        values outside them. The default is unbounded (``-inf``, ``inf``).
+        The one declaration of what the parameters may be: the fitters keep every parameter within it
+        (:func:`magcal.fitting.fitter.fit`, :func:`magcal.fitting.vector.fit_vector`), :meth:`check_params` refuses a
+        value outside it (a calibration file), and the diagnoses mark a candidate whose fitted value sits on one of
+        its bounds as not physical here (:func:`outside_domain`). It may depend on the data-derived constants
+        (:meth:`configure`, saved by :meth:`state`), so that a calibration read back has the domain it was fitted in.
+        The default is unbounded.
         """
-        q = len(self.param_names())
-        return np.full(q, -np.inf), np.full(q, np.inf)
+        return Domain.free(len(self.param_names()))
+
+    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of each parameter: :meth:`domain`'s (an effect written before domains may
+        override this instead; :meth:`domain` is then unbounded and every consumer reads the bounds here)."""
+        d = self.domain()
+        return d.lower, d.upper
 
     def check_params(self, values, where: str = "") -> np.ndarray:
         """``values`` (one instance's parameters) as floats, or a clear :class:`MagcalError` if a value is not a
-        finite number or lies outside :meth:`param_bounds`.
+        finite number or lies outside :meth:`domain` (its bounds, :meth:`param_bounds`).
 
         Parameters
         ----------
@@ -321,15 +433,14 @@ class Effect:
                 f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters ({', '.join(names)})"
             )
         lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in self.param_bounds())
+        why = self.domain().why
         for name, value, lo, hi in zip(names, v, lower, upper):
             if not np.isfinite(value):
                 raise MagcalError(f"{head}{self.label}: {name} = {value} is not a finite number")
             if value < lo or value > hi:
-                span = f">= {lo:g}" if np.isinf(hi) else f"<= {hi:g}" if np.isinf(lo) else f"in [{lo:g}, {hi:g}]"
-                note = getattr(self, "bounds_note", "")
                 raise MagcalError(
-                    f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
-                    + (f" ({note})" if note else "")
+                    f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span_text(lo, hi)}"
+                    + (f" ({why})" if why else "")
                 )
         return v
 
@@ -560,6 +671,18 @@ VECTOR_STAGES = ("raw", "vector")
 def block_label(effect, sensor) -> str:
     """Key of one effect instance's parameters: ``name`` (shared) or ``name:S`` (S 1-based)."""
     return term_label(effect.name, sensor)
+
+
+def fitted_outside_domain(model, effect_values, name: str | None = None) -> str:
+    """Why a fit's effects are not physical here, or ``""``: :func:`outside_domain` of every block of ``model``
+    in ``effect_values`` (``{block label: values}``, a calibration's), or only of the effect ``name``'s."""
+    reasons = []
+    for e, s in model.instances():
+        label = block_label(e, s)
+        values = effect_values.get(label)
+        if values is not None and (name is None or e.name == name):
+            reasons.append(outside_domain(e, values, label))
+    return "; ".join(r for r in reasons if r)
 
 
 def contexts(dataset, baseline_m=None):
