@@ -496,7 +496,7 @@ class _Record:
 
     def residuals(self, calibration, record_terms=None) -> tuple[np.ndarray, np.ndarray]:
         """World residuals (n_sensors, N, 3) and total-field residuals (n_sensors, N), NaN where not usable."""
-        body = calibration.correct(self.dataset, record_terms, warn=False)
+        body = calibration.correct(self.dataset, record_terms, warn=False, force=True)
         world = np.stack([self.rotation.apply(b) for b in body])
         err = world - np.asarray(self.reference.ned_nT, dtype=float)[None]
         total = np.linalg.norm(world, axis=2) - self.f_ref[None]

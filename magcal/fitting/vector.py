@@ -1141,7 +1141,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
     # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
     for model in models:
         cal = fit_vector(dataset, reference, effects=model, mask=train, warn=False, **options).calibration
-        world = np.stack([rotation.apply(b) for b in cal.correct(dataset, warn=False)])
+        world = np.stack([rotation.apply(b) for b in cal.correct(dataset, warn=False, force=True)])
         err = world - ned[None]
         total = np.linalg.norm(world, axis=2) - f_ref[None]
 
