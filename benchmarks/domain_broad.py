@@ -103,7 +103,7 @@ def main() -> None:
             old = fit_one(ds, reference, name, free=True)
             new = fit_one(ds, reference, name, free=False)
             label = next(iter(new.calibration.effect_values))
-            held = fitted_outside_domain(new.calibration.model, new.calibration.effect_values)
+            held = fitted_outside_domain(new.calibration.model, new.calibration.effect_values, pulls=new.bound_pull_z)
             print(
                 f"{rec:>3}  {name:<24} {values_text(name, old.calibration.effect_values[label], field_nT):<34} "
                 f"{round_trip(old.calibration, ds)[:8]:<8} "

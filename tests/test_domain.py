@@ -20,14 +20,14 @@ from magcal.cli import main
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import dataset_columns, dataset_metadata
 from magcal.data.io import write_csv
-from magcal.data.simulation import simulate_timeseries
+from magcal.data.simulation import chi2017_truth, simulate_timeseries
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
 from magcal.diagnosis.vector import diagnose_vector
 from magcal.fitting.fitter import fit
 from magcal.fitting.vector import fit_vector
 from magcal.model.effects import NONLINEARITY_LIMIT_PPM, smoothed_readings, time_derivative
 from magcal.model.plugins import load_effects_file
-from magcal.model.terms import EFFECTS, Domain, Model, fitted_outside_domain, outside_domain
+from magcal.model.terms import BOUND_PULL_Z, EFFECTS, Domain, Model, fitted_outside_domain, outside_domain
 
 USER_EFFECTS = Path(__file__).resolve().parent / "user_effects_example.py"
 
@@ -164,6 +164,31 @@ def test_a_total_field_fit_and_its_diagnosis_hold_the_hysteresis_of_a_leading_fi
     assert not any(label.startswith("hysteresis") for label in d.explained_by)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_an_axis_without_hysteresis_sits_on_the_bound_by_noise_and_is_not_called_unphysical(seed):
+    """A loop on x only: y and z sit at 0 (noise pulls them below on about half the records) and the effect is
+    physical; only a pull of more than BOUND_PULL_Z standard deviations past the bound is not."""
+    ds = simulate_timeseries(
+        chi2017_truth(1),
+        n_samples=800,
+        noise_nT=3.0,
+        seed=seed,
+        perturbations=[EFFECTS["hysteresis"]().perturbation([6.0, 0.0, 0.0])],
+    )
+    f = fit(ds, Model.from_names(["hysteresis"], 1), warn=False)
+    (label,) = f.calibration.effect_values
+    values = f.calibration.effect_values[label]
+    assert values[0] > 3.0 and np.all(values >= 0)
+    pulls = f.bound_pull_z.get(label, np.zeros(3))
+    assert np.all(pulls[values == 0.0] < BOUND_PULL_Z)
+    assert not fitted_outside_domain(f.calibration.model, f.calibration.effect_values, pulls=f.bound_pull_z)
+    assert not any("held it on the bound" in n.text for n in f.notes)
+    leading = _leading(ds, 15.0)  # the same record leading by 15 nT: pulled far past the bound, and said
+    g = fit(leading, Model.from_names(["hysteresis"], 1), warn=False)
+    assert fitted_outside_domain(g.calibration.model, g.calibration.effect_values, pulls=g.bound_pull_z)
+    assert any("held it on the bound" in n.text for n in g.notes)
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # calibrate -> save -> load -> apply over the catalogue
 # ---------------------------------------------------------------------------------------------------------------
@@ -174,12 +199,17 @@ SCALAR_ONLY = sorted(n for n, cls in EFFECTS.items() if n not in VECTOR and "sca
 
 def _round_trip(tmp_path, csv, name, extra=(), fit_options=()):
     """``magcal calibrate`` with the effect, ``Calibration.load`` and ``magcal apply``: the parameters written, as
-    read back."""
+    read back. A sensor the fit marked not determined (a record pushed far past the domain may leave the base terms
+    undetermined) is refused by apply for that reason alone, and applied with ``--force``."""
     cal = tmp_path / f"{name}.json"
     assert main(["calibrate", csv, "--effects", name, "-o", str(cal), *extra, *fit_options]) == 0
     loaded = Calibration.load(cal)
     out = tmp_path / f"{name}_cal.csv"
-    assert main(["apply", str(cal), csv, "-o", str(out), "--no-progress", *extra]) == 0
+    apply = ["apply", str(cal), csv, "-o", str(out), "--no-progress", *extra]
+    if loaded.undetermined():
+        assert main(apply) != 0  # refused as not determined, not as not physical
+        apply.append("--force")
+    assert main(apply) == 0
     import pandas as pd
 
     frame = pd.read_csv(out, comment="#")

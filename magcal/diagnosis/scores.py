@@ -766,7 +766,11 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
         c.params = {p["term"]: p["params"] for p in f1.effect_params if p["effect"] == c.effect}
         c.fit = f1
         model = f1.calibration.model
-        c.not_physical = "" if model is None else fitted_outside_domain(model, f1.calibration.effect_values, c.effect)
+        c.not_physical = (
+            ""
+            if model is None
+            else fitted_outside_domain(model, f1.calibration.effect_values, c.effect, f1.bound_pull_z)
+        )
         if c.not_physical:
             c.evidence = (c.evidence + "; " if c.evidence else "") + f"not physical here ({c.not_physical})"
         if after_refit is not None:

@@ -991,7 +991,7 @@ def _refit_round(ctx: VectorContext, model, cands) -> list:
             evidence="; ".join(p for p in (quote, signature) if p),
             when_recording=getattr(type(e), "when_recording", ""),
             replaces=[x.label for x in nested],
-            not_physical=fitted_outside_domain(fitted_model, fit.calibration.effect_values, e.name),
+            not_physical=fitted_outside_domain(fitted_model, fit.calibration.effect_values, e.name, fit.bound_pull_z),
         )
         if nested:
             c.evidence = f"replaces {', '.join(c.replaces)}, which it holds; " + c.evidence

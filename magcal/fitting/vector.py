@@ -71,7 +71,16 @@ from magcal.geometry.orientations import (
     split_mounting,
 )
 from magcal.model.platform_terms import available_terms
-from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
+from magcal.model.terms import (
+    EFFECTS,
+    Effect,
+    Model,
+    block_label,
+    bound_pulls,
+    contexts,
+    fitted_outside_domain,
+    held_note_text,
+)
 
 #: Most evaluations of one least-squares solve: a well-posed vector fit converges in a handful; one whose effects
 #: are nearly degenerate wanders along the degenerate direction instead (its covariance then says so).
@@ -145,6 +154,9 @@ class SensorVectorFit:
     determined : bool
         False when the bias's or the mounting's standard deviation is beyond :data:`UNDETERMINED_BIAS_FRACTION` of
         the field or :data:`UNDETERMINED_MOUNTING_DEG`: the record does not fix the calibration (a note says so).
+    bound_pull_z : dict
+        Per effect block (label) of this sensor, how far the data pull each parameter past its nearer bound, in its
+        (widened) standard deviations (:func:`magcal.model.terms.bound_pulls`); empty when none sits on a bound.
     total_residual_nT : numpy.ndarray, shape (n_fitted,)
         The total-field residual ``|B| - F`` of every fitted sample (:attr:`VectorFitResult.fitted`), nT.
     vector_residual_nT : numpy.ndarray, shape (n_fitted, 3)
@@ -174,6 +186,7 @@ class SensorVectorFit:
     residual_lag1_correlation: float = 0.0
     sd_widening: float = 1.0
     determined: bool = True
+    bound_pull_z: dict = field(default_factory=dict, repr=False)
     total_residual_nT: np.ndarray | None = field(default=None, repr=False)
     vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
@@ -322,6 +335,11 @@ class VectorFitResult:
     wall_s: float = 0.0
     fitted: np.ndarray | None = None
     gaps: SampleGaps | None = None
+
+    @property
+    def bound_pull_z(self) -> dict:
+        """Every sensor's :attr:`SensorVectorFit.bound_pull_z`, by effect block label."""
+        return {label: z for s in self.sensors for label, z in s.bound_pull_z.items()}
 
     @property
     def notes(self) -> list[Note]:
@@ -720,6 +738,10 @@ def fit_vector(
         fits.append(fit)
         effect_values.update(values)
         blocks.append(cov)
+    pulls = {label: z for f in fits for label, z in f.bound_pull_z.items()}
+    held = fitted_outside_domain(model, effect_values, pulls=pulls) if model.effects else ""
+    if held:
+        notes.append(held_note_text(held))
     sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
     tilt = _tilt_range_deg(rotation[rows])
     if tilt < 5:
@@ -831,6 +853,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     bias_sd: np.ndarray | None
     mount_sd: np.ndarray | None
     cov_block = None
+    pulls: dict = {}
     try:
         jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
         s2 = float(z @ z) / max(len(z) - len(x), 1)
@@ -840,6 +863,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
         mount_sd = mounting_sd_deg(W, cov[:9, :9])
         cov_block = (cov, labels)
+        pulls = _pulls(prob, x, (sigma_f, sigma_p), _bounds(instances), jtj_inv, cov, labels, sizes)
     except np.linalg.LinAlgError:
         bias_sd = mount_sd = None
         lag1, widening = 0.0, 1.0
@@ -882,6 +906,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         residual_lag1_correlation=float(lag1),
         sd_widening=float(widening),
         determined=determined,
+        bound_pull_z=pulls,
         total_residual_nT=total,
         vector_residual_nT=e,
     )
@@ -931,6 +956,21 @@ def _solve_within(prob, x, sigmas, bounds, scale, robust):
     if held.any():
         sol.x, sol.jac = x, prob.jacobian(x, *sigmas)
     return x, sol
+
+
+def _pulls(prob, x, sigmas, bounds, jtj_inv, cov, labels, sizes) -> dict:
+    """Per effect block, how far the data pull each parameter past its nearer bound (standard deviations,
+    :func:`magcal.model.terms.bound_pulls`); empty when no parameter sits on a bound."""
+    lower, upper = bounds
+    if not np.any((x <= lower) | (x >= upper)):
+        return {}
+    gradient = prob.jacobian(x, *sigmas).T @ prob.residuals(x, *sigmas)
+    z = bound_pulls(x, lower, upper, gradient, jtj_inv, np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    out, k = {}, 12
+    for label, q in zip(labels, sizes):
+        out[label] = z[k : k + q]
+        k += q
+    return out
 
 
 def _bounds(instances) -> tuple[np.ndarray, np.ndarray]:

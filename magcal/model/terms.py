@@ -228,6 +228,11 @@ def span_text(lower: float, upper: float) -> str:
 #: about 1 nT) of a bound sits on it (:func:`outside_domain`): the fit was held there.
 ON_BOUND_FRACTION = 1e-3
 
+#: A parameter held on a bound is not physical here when the data pull it past the bound by more than this many of
+#: its standard deviations (:func:`bound_pulls`); an effect absent on one axis sits on a bound too, pulled past it by
+#: noise alone (within about 1 standard deviation, on half the records).
+BOUND_PULL_Z = 3.0
+
 
 @dataclass(frozen=True)
 class Domain:
@@ -279,11 +284,12 @@ class Domain:
         return "; ".join(f"{', '.join(n)} {span}" for span, n in groups.items())
 
 
-def outside_domain(effect: Effect, values, label: str | None = None) -> str:
+def outside_domain(effect: Effect, values, label: str | None = None, pull_z=None) -> str:
     """Why one instance's fitted ``values`` are not physical here, or ``""``: the parameters that sit on (or
     past) a bound of the effect's :meth:`~Effect.domain` (within :data:`ON_BOUND_FRACTION` of their
-    :meth:`~Effect.param_scale`), the fit was held there because the data pull them out of the domain. A
-    candidate effect so fitted describes something else the record holds (the diagnoses never recommend it).
+    :meth:`~Effect.param_scale`) because the data pull them out of the domain (by more than :data:`BOUND_PULL_Z`
+    standard deviations, when ``pull_z`` says). A candidate effect so fitted describes something else the record
+    holds (the diagnoses never recommend it).
 
     Parameters
     ----------
@@ -293,25 +299,32 @@ def outside_domain(effect: Effect, values, label: str | None = None) -> str:
         Its fitted parameters, in :meth:`~Effect.param_names` order.
     label : str, optional
         The block's label (``name:S``) the text names; default the effect's.
+    pull_z : array_like, shape (q,), optional
+        How far the data pull each parameter past the bound it sits on, in its standard deviations (:func:`bound_pulls`;
+        NaN where unknown). Without it every parameter on a bound counts.
     """
     v = np.asarray(values, dtype=float).reshape(-1)
+    pulls = np.full(v.shape, np.nan) if pull_z is None else np.broadcast_to(np.asarray(pull_z, dtype=float), v.shape)
     names = effect.param_names()
     lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in effect.param_bounds())
     if not (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper))) or v.size != len(names):
         return ""
     tol = ON_BOUND_FRACTION * np.abs(np.broadcast_to(np.asarray(effect.param_scale(), dtype=float), v.shape))
-    held: dict = {}  # (bound, span) -> names held there
-    for name, value, lo, hi, t in zip(names, v, lower, upper, tol):
+    held: dict = {}  # (where, span) -> [(name, pull)] held there
+    for name, value, lo, hi, t, z in zip(names, v, lower, upper, tol, pulls):
         if not np.isfinite(value):
-            held.setdefault(("not a finite number", ""), []).append(name)
-        elif value <= lo + t or value >= hi - t:
+            held.setdefault(("is not a finite number", ""), []).append((name, np.nan))
+        elif (value <= lo + t or value >= hi - t) and not z < BOUND_PULL_Z:
             bound = lo if value <= lo + t else hi
-            held.setdefault((f"held at the bound {bound:g}", span_text(lo, hi)), []).append(name)
+            held.setdefault((f"held at the bound {bound:g}", span_text(lo, hi)), []).append((name, z))
     if not held:
         return ""
-    parts = [
-        f"{', '.join(n)} {where}" + (f" (the domain is {span})" if span else "") for (where, span), n in held.items()
-    ]
+    parts = []
+    for (where, span), found in held.items():
+        z = [p for _, p in found if np.isfinite(p)]
+        said = [f"pulled {', '.join(f'{p:.0f}' for p in z)} standard deviations past it"] if z else []
+        said += [f"the domain is {span}"] if span else []
+        parts.append(f"{', '.join(n for n, _ in found)} {where}" + (f" ({'; '.join(said)})" if said else ""))
     why = effect.domain().why
     return f"{label or effect.label}: " + "; ".join(parts) + (f": {why}" if why else "")
 
@@ -673,16 +686,52 @@ def block_label(effect, sensor) -> str:
     return term_label(effect.name, sensor)
 
 
-def fitted_outside_domain(model, effect_values, name: str | None = None) -> str:
+def fitted_outside_domain(model, effect_values, name: str | None = None, pulls=None) -> str:
     """Why a fit's effects are not physical here, or ``""``: :func:`outside_domain` of every block of ``model``
-    in ``effect_values`` (``{block label: values}``, a calibration's), or only of the effect ``name``'s."""
+    in ``effect_values`` (``{block label: values}``, a calibration's), or only of the effect ``name``'s;
+    ``pulls``: the fit's ``{block label: pull_z}`` (:func:`bound_pulls`)."""
     reasons = []
     for e, s in model.instances():
         label = block_label(e, s)
         values = effect_values.get(label)
         if values is not None and (name is None or e.name == name):
-            reasons.append(outside_domain(e, values, label))
+            reasons.append(outside_domain(e, values, label, (pulls or {}).get(label)))
     return "; ".join(r for r in reasons if r)
+
+
+def bound_pulls(x, lower, upper, gradient, jtj_inv, sd) -> np.ndarray:
+    """How far the data pull each parameter past its nearer bound, in its standard deviations: the unbounded
+    Gauss-Newton step from the fitted ``x``, ``-(J^T J)^-1 J^T r``, in the outward direction of that bound, over the
+    parameter's standard deviation; NaN for a parameter without a finite bound or standard deviation
+    (:func:`outside_domain` reads it for the parameters that sit on a bound).
+
+    Parameters
+    ----------
+    x, lower, upper : numpy.ndarray, shape (p,)
+        The fitted parameters and their bounds.
+    gradient : numpy.ndarray, shape (p,)
+        ``J^T r`` at ``x`` (the residuals in the units ``jtj_inv`` was made with).
+    jtj_inv : numpy.ndarray, shape (p, p)
+        ``(J^T J)^-1`` (a pseudo-inverse where singular).
+    sd : numpy.ndarray, shape (p,)
+        The parameters' standard deviations (widened as the fit widens them).
+    """
+    x, lower, upper = (np.asarray(v, dtype=float) for v in (x, lower, upper))
+    step = -(np.asarray(jtj_inv, dtype=float) @ np.asarray(gradient, dtype=float))
+    outward = np.where(np.abs(x - lower) <= np.abs(upper - x), -step, step)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = outward / np.asarray(sd, dtype=float)
+    z[~(np.isfinite(lower) | np.isfinite(upper)) | ~np.isfinite(z)] = np.nan
+    return z
+
+
+def held_note_text(held: str) -> str:
+    """The fit's note on effects held on a bound of their domain (``held``: :func:`fitted_outside_domain`)."""
+    return (
+        f"{held}. The fit held it on the bound of its physical domain: this record does not show the effect as the "
+        "model has it (something else pulls the parameter out of its domain); the calibration is the one without it "
+        "along that parameter: leave it out of the effects"
+    )
 
 
 def contexts(dataset, baseline_m=None):
