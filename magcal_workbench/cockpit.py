@@ -73,7 +73,7 @@ def live_record(live) -> FieldRecord | None:
     corrected = None
     F = float(np.median(np.linalg.norm(ds.readings_nT, axis=2)))
     if fit is not None:
-        corrected = fit.calibration.correct(ds, record_terms="apply")
+        corrected = fit.calibration.correct(ds, record_terms="apply", force=True)
         if fit.calibration.reference_total_nT:
             F = float(fit.calibration.reference_total_nT)
     return FieldRecord(

@@ -507,7 +507,7 @@ class Controller:
         # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
         ds = self.fit_dataset()
         # an effect that needs the attitude leaves NaN on samples without one; the fit's own note says so
-        fields = cal.correct(ds, record_terms="apply", warn=False)
+        fields = cal.correct(ds, record_terms="apply", warn=False, force=True)
         return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
 
     def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:

@@ -90,6 +90,12 @@ def without_paths(content: bytes) -> bytes:
     return bundle.zip_bytes(files)
 
 
+def _refusal(note: str) -> bool:
+    """Whether an export's note says a sensor not determined was left out or forced
+    (:func:`magcal.output.export.determined_sensors`)."""
+    return note.startswith(("not exported:", "exported although not determined"))
+
+
 def report_markdown(report, title: str) -> str:
     """A send report (:class:`magcal.output.vehicle_params.SendReport`) as a markdown table."""
     rows = ["| parameter | old | new | read back | status |", "|---|---|---|---|---|"]
@@ -124,7 +130,8 @@ class ExportSection:
             "Force (leave out what the firmware cannot hold)",
             False,
             hint="As --force: effects and rotations between sensors the firmware cannot store are left out (listed "
-            "in the file)",
+            "in the file), and a sensor whose calibration is not determined by its record is exported, corrected "
+            "and sent anyway (without it such a sensor is left out and named)",
         )
         self.buttons = {"calibration": button(gui, "calibration.json", on.do_export_calibration, engine=False)}
         for note in formats.load_entry_points().notes:  # one button per registered format (magcal.output.formats)
@@ -268,14 +275,18 @@ class Exporting(PagePart):
     def do_export_format(self, event, fmt):
         """The file of the export format ``fmt`` (:data:`magcal.output.formats.EXPORT_FORMATS`)."""
         calibration, _ = self._calibration()
-        force = bool(self.section.force.value) if self.section is not None else False
-        content, result = bundle.parameter_bytes(calibration, fmt, force=force)
-        self._send(event, formats.get_format(fmt).file_name, content, [f"dropped: {d}" for d in result.dropped])
+        content, result = bundle.parameter_bytes(calibration, fmt, force=self._forced())
+        said = [n for n in result.notes if _refusal(n)] + [f"dropped: {d}" for d in result.dropped]
+        self._send(event, formats.get_format(fmt).file_name, content, said)
+
+    def _forced(self) -> bool:
+        """The Force box: what the firmware cannot hold left out, sensors not determined applied anyway."""
+        return bool(self.section.force.value) if self.section is not None else False
 
     def _export_corrected(self, event, kind):
         calibration, _ = self._calibration()
         with tempfile.TemporaryDirectory(prefix="magcal-page-export-") as folder:
-            content, notes = bundle.corrected_bytes(calibration, self._data_file(folder), kind)
+            content, notes = bundle.corrected_bytes(calibration, self._data_file(folder), kind, force=self._forced())
         self._send(event, bundle.CORRECTED_FILES[kind], content, notes)
 
     @action
@@ -315,9 +326,10 @@ class Exporting(PagePart):
 
     # --- send to vehicle -------------------------------------------------------------------------------------
     def _target(self):
-        """``(url, firmware, values)`` the page would send now: the chosen MAVLink source (built on the server
-        from the offered list, :meth:`magcal_workbench.livecontrol.LiveControl.page_url`), the checked firmware,
-        and the parameters ``magcal export`` writes for it."""
+        """``(url, firmware, values, refused)`` the page would send now: the chosen MAVLink source (built on the
+        server from the offered list, :meth:`magcal_workbench.livecontrol.LiveControl.page_url`), the checked
+        firmware, the parameters ``magcal export`` writes for it, and what it says of the sensors not determined
+        (left out, or sent with Force)."""
         if not self.mavlink_chosen():
             raise MagcalError("choose a MAVLink live source (Files tab, Live source) to send to a vehicle")
         if self.livectl.running:
@@ -325,8 +337,9 @@ class Exporting(PagePart):
         url = self.livectl.page_url()
         firmware = self.values.check(self.section.firmware)
         calibration, _ = self._calibration()
-        content, _ = bundle.parameter_bytes(calibration, firmware, force=bool(self.section.force.value))
-        return url, firmware, values_to_send(content.decode("utf-8"), firmware)
+        content, result = bundle.parameter_bytes(calibration, firmware, force=self._forced())
+        refused = [n for n in result.notes if _refusal(n)]
+        return url, firmware, values_to_send(content.decode("utf-8"), firmware), refused
 
     def _backup_folder(self) -> Path:
         sid = self.ctrl.session_id
@@ -337,13 +350,14 @@ class Exporting(PagePart):
     @action
     def do_send_preview(self, event):
         """First click: read the vehicle's current values (nothing is written) and show old -> new."""
-        url, firmware, values = self._target()
+        url, firmware, values, refused = self._target()
 
         def job():
             report = send_parameters(url, values, firmware, confirm=lambda r: False)
             with self._lock:
                 self._pending = {"url": url, "firmware": firmware, "values": values, "at": time.monotonic()}
             text = report_markdown(report, f"Read from the vehicle: {len(values)} parameter(s) to write")
+            text += "".join(f"\n\n**{safe_text(hide_paths(n), 400)}**" for n in refused)
             self.ui.post(lambda: self._show_send(text))
             self.ctrl.say("read the vehicle's values: check old -> new (Files tab), then press Confirm to write them")
 
@@ -358,7 +372,7 @@ class Exporting(PagePart):
     @action
     def do_send_confirm(self, event):
         """Second click: write what was previewed, if nothing changed since, and show the read-back."""
-        url, firmware, values = self._target()
+        url, firmware, values, _ = self._target()
         with self._lock:
             pending, self._pending = self._pending, None
         if (

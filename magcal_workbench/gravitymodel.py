@@ -77,8 +77,8 @@ class GravityModel:
                 sep = separate_calibration(ds, right_angle=result.sensors[0].right_angle, mask=kept)
             except (CalibrationError, MagcalError):
                 sep = None
-            heading = result.calibration.heading(ds)
-            heading_sep = sep.heading(ds) if sep is not None else None
+            heading = result.calibration.heading(ds, force=True)
+            heading_sep = sep.heading(ds, force=True) if sep is not None else None
         finally:
             ctrl.progress = None
             ctrl._emit(Change.PROGRESS)

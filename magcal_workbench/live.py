@@ -295,7 +295,7 @@ class LiveView:
         F = float(np.median(np.linalg.norm(ds.readings_nT, axis=2)))
         if fit is not None:
             # the fit is of this recording (grown since): any record-only terms apply, silently
-            corrected = fit.calibration.correct(ds, record_terms="apply")
+            corrected = fit.calibration.correct(ds, record_terms="apply", force=True)
             residual = fit.calibration.total_field_residuals(ds, corrected=corrected, record_terms="apply")
             if fit.calibration.reference_total_nT:
                 F = float(fit.calibration.reference_total_nT)

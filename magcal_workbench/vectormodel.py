@@ -357,7 +357,7 @@ class VectorModel:
             if ref is None:  # missing() said there would be one
                 raise MagcalError("no reference field vector")
             result = fit_vector(ds, ref, effects=effects, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
-            world = result.calibration.world(ds, record_terms="apply")
+            world = result.calibration.world(ds, record_terms="apply", force=True)
             evidence = vector_evidence(ds, ref, result.calibration)
         finally:
             ctrl.progress = None

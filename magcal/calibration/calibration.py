@@ -70,6 +70,9 @@ RECORD_ONLY_FALLBACK = frozenset({"bias_drift", "bias_step", "reference_drift", 
 #: an attitude (``magcal apply`` counts those rows over the whole survey instead, :class:`magcal.output.apply.AttitudeGaps`).
 ATTITUDE_GAP_NOTE = "correct: no attitude"
 
+#: The ``where`` of :meth:`Calibration.refusal_note`: sensors whose calibration is not determined, refused or forced.
+UNDETERMINED_NOTE = "apply: not determined"
+
 #: Choices of ``record_terms`` (:meth:`Calibration.correct`): ``None`` decides from the record fingerprint.
 RECORD_TERM_CHOICES = ("apply", "drop")
 
@@ -172,6 +175,30 @@ class SensorCalibration:
         self.cinv = np.asarray(self.cinv, dtype=float).reshape(3, 3)
         self.bias_nT = np.asarray(self.bias_nT, dtype=float).reshape(3)
         self.R = np.asarray(self.R, dtype=float).reshape(3, 3)
+
+    @property
+    def determined(self) -> bool:
+        """False when the fit marked this sensor's calibration not determined by its record (``summary["determined"]``
+        of a vector or gravity fit: the bias's, the mounting's or the heading's standard deviation beyond its limit);
+        True otherwise (a total-field fit refuses what it cannot determine instead)."""
+        return not (isinstance(self.summary, dict) and self.summary.get("determined") is False)
+
+    def undetermined_why(self) -> str:
+        """Why the record did not determine this sensor's calibration, from the standard deviations its fit saved
+        (``""`` when :attr:`determined`)."""
+        if self.determined:
+            return ""
+        figures = []
+        bias_sd = self.summary.get("bias_sd_nT")
+        if bias_sd:
+            figures.append(f"the bias's standard deviation is up to {float(np.max(bias_sd)):.0f} nT")
+        mount_sd = self.summary.get("mounting_sd_deg")
+        if mount_sd:
+            figures.append(f"the mounting's {float(np.max(mount_sd)):.2f} deg")
+        heading_sd = self.summary.get("heading_sd_deg")
+        if heading_sd is not None:
+            figures.append(f"the heading's {float(heading_sd):.2f} deg")
+        return "the record it was fitted on does not determine it" + (f" ({', '.join(figures)})" if figures else "")
 
 
 def corrected_fields(dataset, sensors, model=None, effect_values=None, ctxs=None):
@@ -443,6 +470,29 @@ class Calibration:
         return sensors
 
     # --- applying it --------------------------------------------------------------------------------------
+    def undetermined(self) -> dict[int, str]:
+        """The sensors (0-based) whose calibration the fit marked not determined by its record, and why
+        (:meth:`SensorCalibration.undetermined_why`): :meth:`correct` and ``magcal apply`` refuse them unless
+        forced."""
+        return {s: c.undetermined_why() for s, c in enumerate(self.sensors) if not c.determined}
+
+    def refusal_note(self, force=False) -> Note | None:
+        """What applying this calibration does with its undetermined sensors (:meth:`undetermined`), or None when
+        every sensor is determined: refused (their corrected values are left out) or, with ``force``, applied
+        anyway. A :class:`~magcal.core.errors.DataWarning` note, ``where`` :data:`UNDETERMINED_NOTE`."""
+        refused = self.undetermined()
+        if not refused:
+            return None
+        said = "; ".join(f"sensor {s + 1}: {why}" for s, why in refused.items())
+        if force:
+            text = f"applied although not determined (forced): {said}; do not trust its corrected values"
+        else:
+            text = (
+                f"not applied: {said}. Its corrected values are left out; recalibrate it on a record that determines "
+                "it (docs/vector.md), or force it (--force, force=True) knowing they may be far off"
+            )
+        return Note(text, DataWarning, UNDETERMINED_NOTE)
+
     @staticmethod
     def _as_dataset(data, t=None, temp=None):
         """``data`` as a :class:`~magcal.data.dataset.Dataset` (what :func:`magcal.calibrate` takes), and whether
@@ -450,7 +500,7 @@ class Calibration:
         one = isinstance(data, np.ndarray | list | tuple) and np.ndim(data) == 2
         return as_dataset(data, t=t, temp=temp), one
 
-    def correct(self, data, record_terms=None, *, t=None, temp=None, warn=True) -> np.ndarray:
+    def correct(self, data, record_terms=None, *, t=None, temp=None, warn=True, force=False) -> np.ndarray:
         """Corrected field vectors (n_sensors, N, 3) in nT, in the array frame.
 
         Parameters
@@ -468,8 +518,13 @@ class Calibration:
             Temperature in degC, for array input (temperature effects need it).
         warn : bool
             Raise what the correction has to say (:meth:`correction_notes`: record-only terms dropped, samples an
-            effect cannot correct) as Python warnings, the default (``Calibration`` is a public name); the
-            engine's steps pass False and ask :meth:`correction_notes` when they hand the notes on.
+            effect cannot correct, sensors refused) as Python warnings, the default (``Calibration`` is a public
+            name); the engine's steps pass False and ask :meth:`correction_notes` when they hand the notes on.
+        force : bool
+            Correct a sensor whose calibration the fit marked not determined by its record (:meth:`undetermined`)
+            too. By default such a sensor is refused: its corrected vectors are NaN, and the note
+            (:meth:`refusal_note`) names it and says why. The engine's own steps that judge a fit on its record
+            pass True.
 
         Examples
         --------
@@ -482,18 +537,24 @@ class Calibration:
         dataset, one = self._as_dataset(data, t, temp)
         self.check(dataset)
         model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        refusal = self.refusal_note(force)
         if warn:
-            _notes.warn(notes + self._gap_notes(model, dataset))
+            _notes.warn(notes + self._gap_notes(model, dataset) + ([refusal] if refusal else []))
         dataset = self._without_platform(dataset)
         vectors = corrected_fields(dataset, sensors, model, self.effect_values, contexts(dataset, self.baseline_m))
+        if not force:
+            for s in self.undetermined():
+                vectors[s] = np.nan
         return vectors[0] if one else vectors
 
-    def correction_notes(self, dataset, record_terms=None) -> list:
+    def correction_notes(self, dataset, record_terms=None, force=False) -> list:
         """What :meth:`correct` has to say of ``dataset`` (:class:`~magcal.core.notes.Note` list, never raised): the
         record-only terms dropped or applied unproven (RecordTermWarning), and the samples an effect that needs
-        each sample's attitude cannot correct (DataWarning, ``where`` :data:`ATTITUDE_GAP_NOTE`)."""
+        each sample's attitude cannot correct (DataWarning, ``where`` :data:`ATTITUDE_GAP_NOTE`), the sensors refused
+        or forced (:meth:`refusal_note`)."""
         model, _, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
-        return notes + self._gap_notes(model, dataset)
+        refusal = self.refusal_note(force)
+        return notes + self._gap_notes(model, dataset) + ([refusal] if refusal else [])
 
     @staticmethod
     def _gap_notes(model, dataset) -> list:
@@ -526,12 +587,12 @@ class Calibration:
             return dataset
         return dataset.replace(readings_nT=dataset.readings_nT - self.platform.offsets_nT(dataset))
 
-    def world(self, data, corrected=None, record_terms=None, *, t=None, temp=None) -> np.ndarray:
+    def world(self, data, corrected=None, record_terms=None, *, t=None, temp=None, force=False) -> np.ndarray:
         """Corrected field vectors in the world (north-east-down) frame, (n_sensors, N, 3) in nT.
 
         Needs a vector calibration (``mode == "vector"``: body-frame vectors) and the data's attitude
         (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED): ``B_ned = R(q) B_body`` (``data``,
-        ``record_terms``, ``t``, ``temp`` as in :meth:`correct`). A sample without attitude (NaN angles:
+        ``record_terms``, ``t``, ``temp``, ``force`` as in :meth:`correct`). A sample without attitude (NaN angles:
         :func:`magcal.data.attitude.attitude_rows`) gets NaN world components; its body-frame vector
         (:meth:`correct`) is still known.
         """
@@ -548,7 +609,7 @@ class Calibration:
                 "world components need it"
             )
         rotation, have = found
-        body = self.correct(dataset, record_terms) if corrected is None else corrected
+        body = self.correct(dataset, record_terms, force=force) if corrected is None else corrected
         world = np.stack([rotation.apply(b) for b in body])
         world[:, ~have] = np.nan
         return world
@@ -623,7 +684,7 @@ class Calibration:
         world[~have] = np.nan
         return world
 
-    def heading(self, dataset, corrected=None, record_terms=None, accel_units=None) -> dict:
+    def heading(self, dataset, corrected=None, record_terms=None, accel_units=None, force=False) -> dict:
         """The tilt-compensated compass of a gravity calibration: per sample, from the corrected field (in the
         accelerometer's frame) and the corrected accelerometer (:mod:`magcal.geometry.heading`).
 
@@ -633,8 +694,8 @@ class Calibration:
             With accelerometer columns (:mod:`magcal.data.accelerometer`).
         corrected : numpy.ndarray, shape (n_sensors, N, 3), optional
             :meth:`correct`'s vectors, when already computed.
-        record_terms, accel_units
-            As in :meth:`correct`; the unit of unmarked ``ax, ay, az`` columns.
+        record_terms, accel_units, force
+            As in :meth:`correct`; the unit of unmarked ``ax, ay, az`` columns; as in :meth:`correct`.
 
         Returns
         -------
@@ -653,7 +714,7 @@ class Calibration:
             raise MagcalError(
                 f"the data {dataset.source or ''} have no accelerometer columns (ax, ay, az): a heading needs them"
             )
-        vectors = self.correct(dataset, record_terms, warn=False) if corrected is None else corrected
+        vectors = self.correct(dataset, record_terms, warn=False, force=force) if corrected is None else corrected
         f = self.accelerometer.correct(accel.m_s2)
         return {
             "heading_deg": np.stack([tilt_heading_deg(f, v) for v in vectors]),

@@ -143,7 +143,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
     y = np.asarray(dataset.readings_nT, float)
     n = y.shape[1]
     if corrected_nT is None:
-        corrected_nT = calibration.correct(dataset, record_terms)
+        corrected_nT = calibration.correct(dataset, record_terms, force=True)
     # the effects acting on these data, and where each one's parameters sit in the covariance (a covariance of
     # theta alone, from a file made before the effects' errors were kept, carries none of them)
     acting = calibration._model_for(dataset, record_terms, VECTOR_STAGES, warn=False) if calibration.model else None

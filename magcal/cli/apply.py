@@ -13,6 +13,10 @@ Example::
 A calibration with record-only terms (bias drift, bias step, reference drift, site gradient) applies them only to
 the record it was fitted on; on any other file they are dropped, with one warning naming them.
 
+A sensor whose calibration the fit marked not determined by its record (a vector or gravity fit's "NOT DETERMINED")
+is refused: its columns are left out, a warning names it and why, and the other sensors are corrected; ``--force``
+applies it too and the output's header says so (``magcal_forced``).
+
 Writes every input line plus ``s{i}x_cal, s{i}y_cal, s{i}z_cal`` (nT) and, for a four-sensor array, the tensor
 ``Gxx .. Gzz, Gyx`` (nT/m) and its invariants ``I0, I1, I2`` (see docs/formats.md).
 """
@@ -122,6 +126,12 @@ def register(subparsers):
         "'apply' forces them (the same record, or you have a reference for it); 'drop' leaves "
         "them out",
     )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="also apply the sensors whose calibration the fit marked not determined by its record (by default "
+        "their columns are left out, with a warning naming them and why); the output's header says it was forced",
+    )
     parser.set_defaults(func=run)
     return parser
 
@@ -158,6 +168,7 @@ def run(args) -> int:
             progress=False if args.no_progress else None,
             uncertainty=args.uncertainty,
             compression=args.compression,
+            force=args.force,
         )
     else:
         summary = apply_file(
@@ -173,6 +184,7 @@ def run(args) -> int:
             record_terms=args.record_terms,
             uncertainty=args.uncertainty,
             compression=args.compression,
+            force=args.force,
         )
     for note in dict.fromkeys(note.text for note in summary.notes):
         print(f"magcal apply: warning: {note}", file=sys.stderr)

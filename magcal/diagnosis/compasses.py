@@ -1011,7 +1011,7 @@ def compass_consistency(
         raise MagcalError(
             f"{dataset.source or 'data'}: the consistency of compasses needs two or more; the record has one"
         )
-    after = calibration.correct(dataset, warn=False)
+    after = calibration.correct(dataset, warn=False, force=True)
     after = np.asarray(after, dtype=float)
     if before is None:
         before, what = before_fields(dataset, calibration)

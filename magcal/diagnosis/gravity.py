@@ -194,7 +194,7 @@ def dip_evidence(dataset: Dataset, fit, sensor=0, accel_units=None) -> DipEviden
     if accel is None:
         raise ValueError("the dataset has no accelerometer columns")
     f = cal.accelerometer.correct(accel.m_s2)
-    m = cal.correct(dataset)[sensor]
+    m = cal.correct(dataset, force=True)[sensor]
     dip = dip_deg(f, m)
     still = fit.still.mask & (fit.fitted if fit.fitted is not None else True) & np.isfinite(dip)
     rows = np.flatnonzero(still)

@@ -122,7 +122,7 @@ def direction_pattern(
 
 def corrected_directions(dataset, calibration) -> np.ndarray:
     """Unit directions of the corrected field, array frame, (n_sensors, N, 3)."""
-    b = calibration.correct(dataset, warn=False)  # record-only terms on their own record: nothing to say
+    b = calibration.correct(dataset, warn=False, force=True)  # record-only terms on their own record: nothing to say
     norm = row_norm(b)[..., None]
     return b / np.where(norm > 0, norm, 1.0)
 

@@ -31,7 +31,7 @@ from magcal.diagnosis._fitted import _reference_override, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit
 from magcal.model.effects import readings_facts, seed_readings_facts
-from magcal.model.terms import EFFECTS, Model, block_label, term_label
+from magcal.model.terms import EFFECTS, Model, block_label, fitted_outside_domain, term_label
 
 
 def _extra_dof(cls) -> int:
@@ -107,6 +107,10 @@ class Candidate:
     record_only : bool
         The term describes the recording, not the instrument (:attr:`magcal.model.terms.Effect.transferable`
         False: drifts, steps, interference, a changing or non-uniform field): ``magcal apply`` drops it on new data.
+    not_physical : str
+        Why the refitted effect is not physical here (a parameter held at a bound of its domain,
+        :func:`magcal.model.terms.outside_domain`: a negative loop width, a nonlinearity of 1e5 ppm), or ``""``.
+        Such a candidate is never recommendable: the record holds something else.
     """
 
     effect: str
@@ -131,6 +135,7 @@ class Candidate:
     transfers: bool | None = None
     confounded: str = ""
     record_only: bool = False
+    not_physical: str = ""
     instances: list = field(default_factory=list, repr=False)
     columns: np.ndarray | None = field(default=None, repr=False)
     fit: object = field(default=None, repr=False)
@@ -161,12 +166,14 @@ class Candidate:
             "confounded": self.confounded or None,
             "record_only": self.record_only,
             "converged": self.converged,
+            "not_physical": self.not_physical or None,
         }
 
     @property
     def recommendable(self) -> bool:
-        """Refitted (and converged), and not refuted on held-out data (holds, or was not validated)."""
-        return self.refitted and self.converged and self.holds is not False
+        """Refitted (and converged) with physical parameters, and not refuted on held-out data (holds, or was not
+        validated)."""
+        return self.refitted and self.converged and not self.not_physical and self.holds is not False
 
 
 #: A refit whose RMS (of every residual it minimises) exceeds the base model's by more than this factor did not
@@ -758,6 +765,14 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
             )
         c.params = {p["term"]: p["params"] for p in f1.effect_params if p["effect"] == c.effect}
         c.fit = f1
+        model = f1.calibration.model
+        c.not_physical = (
+            ""
+            if model is None
+            else fitted_outside_domain(model, f1.calibration.effect_values, c.effect, f1.bound_pull_z)
+        )
+        if c.not_physical:
+            c.evidence = (c.evidence + "; " if c.evidence else "") + f"not physical here ({c.not_physical})"
         if after_refit is not None:
             after_refit(c)
         return f1

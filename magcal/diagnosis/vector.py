@@ -54,7 +54,7 @@ from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
 from magcal.fitting.vector import VectorFitResult, fit_vector
 from magcal.model.effects import CURRENT_COLUMNS, current_column
-from magcal.model.terms import EFFECTS, EffectTexts, Model, term_label
+from magcal.model.terms import EFFECTS, EffectTexts, Model, fitted_outside_domain, term_label
 
 #: A candidate is supported in-sample when its delta-BIC is below this (very strong evidence), as in scalar mode.
 DELTA_BIC_THRESHOLD = -10.0
@@ -170,6 +170,10 @@ class VectorCandidate:
         One line.
     when_recording : str
         What to do about it when recording (effects that describe the record only).
+    not_physical : str
+        Why the fitted effect is not physical here (a parameter held at a bound of its domain,
+        :func:`magcal.model.terms.outside_domain`: a negative loop width, a nonlinearity of 1e5 ppm), or ``""``.
+        Such a candidate is not supported, never judged and never recommended: the record holds something else.
     """
 
     effect: str
@@ -190,10 +194,12 @@ class VectorCandidate:
     holds: bool | None = None
     round: int = 1
     replaces: list = field(default_factory=list)
+    not_physical: str = ""
 
     @property
     def supported(self) -> bool:
-        return bool(self.delta_bic < DELTA_BIC_THRESHOLD)
+        """Lowers the BIC by more than :data:`DELTA_BIC_THRESHOLD` with physical parameters."""
+        return bool(self.delta_bic < DELTA_BIC_THRESHOLD) and not self.not_physical
 
     def to_dict(self) -> dict:
         return {
@@ -212,6 +218,7 @@ class VectorCandidate:
             "replaces": list(self.replaces),
             "holds": self.holds,
             "supported": self.supported,
+            "not_physical": self.not_physical or None,
             "recommended": self.recommended,
             "why": self.why,
             "params": {k: np.asarray(v, dtype=float).tolist() for k, v in self.params.items()},
@@ -489,7 +496,7 @@ class _Record:
 
     def residuals(self, calibration, record_terms=None) -> tuple[np.ndarray, np.ndarray]:
         """World residuals (n_sensors, N, 3) and total-field residuals (n_sensors, N), NaN where not usable."""
-        body = calibration.correct(self.dataset, record_terms, warn=False)
+        body = calibration.correct(self.dataset, record_terms, warn=False, force=True)
         world = np.stack([self.rotation.apply(b) for b in body])
         err = world - np.asarray(self.reference.ned_nT, dtype=float)[None]
         total = np.linalg.norm(world, axis=2) - self.f_ref[None]
@@ -874,7 +881,9 @@ def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool
         ctx.fits[c.label] = fit
     supported = [(c, fit) for c, fit in tried if c.supported]
     for c, _ in tried:
-        if not c.supported:
+        if c.not_physical:
+            c.why = f"not physical here ({c.not_physical})"
+        elif not c.supported:
             c.why = "not supported in-sample (delta-BIC above -10)"
     for c, _ in supported[top:]:
         c.why = f"supported, not judged (only the best {top} are)"
@@ -982,6 +991,7 @@ def _refit_round(ctx: VectorContext, model, cands) -> list:
             evidence="; ".join(p for p in (quote, signature) if p),
             when_recording=getattr(type(e), "when_recording", ""),
             replaces=[x.label for x in nested],
+            not_physical=fitted_outside_domain(fitted_model, fit.calibration.effect_values, e.name, fit.bound_pull_z),
         )
         if nested:
             c.evidence = f"replaces {', '.join(c.replaces)}, which it holds; " + c.evidence

@@ -570,7 +570,13 @@ def _attempt(call):
 
 def _to_validate(c) -> bool:
     """Whether a candidate's held-out fits are wanted: refitted, supported in-sample, not yet judged."""
-    return c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None
+    return (
+        c.refitted
+        and c.delta_bic < DELTA_BIC_THRESHOLD
+        and c.fit is not None
+        and c.holds is None
+        and not c.not_physical
+    )
 
 
 def _held_out_fits(pool, held_out, base_fit, c, priority=CHAIN, skip=()) -> dict:
@@ -638,8 +644,9 @@ def _cancel(futures) -> None:
 
 
 def _refit_supports(c) -> bool:
-    """Whether the candidate's refit converged and supports it in-sample: the forward selection may take it next."""
-    return c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None
+    """Whether the candidate's refit converged and supports it in-sample with physical parameters: the forward
+    selection may take it next."""
+    return c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and not c.not_physical
 
 
 def _predicted_best(cands):
@@ -650,7 +657,7 @@ def _predicted_best(cands):
 def _in_sample_best(cands):
     """The refitted, converged candidate with the lowest delta-BIC below the threshold, or None: the one the
     forward selection takes first unless the held-out judgement refutes it or ranks another above it."""
-    supported = [c for c in cands if c.refitted and c.converged and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit]
+    supported = [c for c in cands if _refit_supports(c) and c.refitted]
     return min(supported, key=lambda c: c.delta_bic) if supported else None
 
 

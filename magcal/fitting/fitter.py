@@ -40,7 +40,10 @@ from magcal.model.terms import (
     Model,
     attitude_effects,
     block_label,
+    bound_pulls,
     contexts,
+    fitted_outside_domain,
+    held_note_text,
     rows_without_attitude,
     without_attitude_note,
 )
@@ -901,7 +904,11 @@ class FitResult:
         The solver's reason for stopping, in words.
     notes : list of Note
         What the fit says besides its figures (:mod:`magcal.core.notes`): a :class:`~magcal.core.errors.ConvergenceWarning`
-        note when it did not converge. :func:`fit` raises them as warnings unless ``warn=False``.
+        note when it did not converge, a :class:`~magcal.core.errors.DataWarning` one when an effect was held on a bound
+        of its physical domain. :func:`fit` raises them as warnings unless ``warn=False``.
+    bound_pull_z : dict
+        Per effect block (label), how far the data pull each parameter past its nearer bound, in standard deviations
+        (:func:`magcal.model.terms.bound_pulls`); empty when no parameter sits on a bound.
     """
 
     calibration: Calibration
@@ -929,6 +936,7 @@ class FitResult:
     status: int = 1
     problem: Problem | None = field(default=None, repr=False)
     notes: list = field(default_factory=list)
+    bound_pull_z: dict = field(default_factory=dict)
 
     @property
     def success(self) -> bool:
@@ -1078,6 +1086,14 @@ def fit(
     if gap_note is not None:
         result.notes.insert(0, gap_note)
     result = _note_if_not_converged(result)
+    fitted = result.calibration.model
+    held = (
+        fitted_outside_domain(fitted, result.calibration.effect_values, pulls=result.bound_pull_z)
+        if fitted is not None
+        else ""
+    )
+    if held:
+        result.notes.append(Note(held_note_text(held), DataWarning, "fit"))
     if warn:
         _notes.warn(result.notes)
     return result
@@ -1106,6 +1122,17 @@ def leave_out_rows_without_attitude(dataset, model, mask, what="the fit"):
             "it, or give the attitude (qw, qx, qy, qz)"
         )
     return keep, Note(without_attitude_note(missing, mask, labels, what), DataWarning, "fit")
+
+
+def _bound_pulls(problem, model, x, cov) -> dict:
+    """Per effect block, how far the data pull each parameter past its nearer bound (standard deviations,
+    :func:`magcal.model.terms.bound_pulls`); empty when no parameter sits on a bound (the usual case: no extra pass)."""
+    lower, upper = problem.lower, problem.upper
+    if not np.any((x <= lower) | (x >= upper)):
+        return {}
+    _, jtj, jtr = problem.normal_equations(x)
+    z = bound_pulls(x, lower, upper, jtr, np.linalg.pinv(jtj), np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    return {block_label(e, s): z[problem.blocks[block_label(e, s)]] for e, s in model.instances()}
 
 
 def _note_if_not_converged(result: FitResult) -> FitResult:
@@ -1370,6 +1397,7 @@ def _fit_once(
         message=message,
         status=int(status),
         problem=problem,
+        bound_pull_z=_bound_pulls(problem, model, x, cov),
     )
 
     calibration.base_covariance = base_covariance(result)  # the error bars the calibration carries to apply

@@ -968,7 +968,7 @@ def heading_figures(calibration, dataset, rows, true_heading_deg=None, other=Non
     """Per sensor, on the samples ``rows`` (bool, N; those whose x axis is steep are left out of the headings):
     the dip's mean and spread (deg), the RMS heading error against ``true_heading_deg`` (deg, when known) and the
     RMS heading difference from another calibration ``other`` (deg)."""
-    h = calibration.heading(dataset, accel_units=accel_units)
+    h = calibration.heading(dataset, accel_units=accel_units, force=True)
     rows = np.asarray(rows, bool)
     level = heading_rows(calibration, dataset, rows, accel_units)
 
@@ -981,7 +981,7 @@ def heading_figures(calibration, dataset, rows, true_heading_deg=None, other=Non
             rms(angle_difference_deg(hd[level], np.asarray(true_heading_deg)[level])) for hd in h["heading_deg"]
         ]
     if other is not None:
-        h2 = other.heading(dataset, accel_units=accel_units)
+        h2 = other.heading(dataset, accel_units=accel_units, force=True)
         out["heading_difference_rms_deg"] = [
             rms(angle_difference_deg(a[level], b[level])) for a, b in zip(h["heading_deg"], h2["heading_deg"])
         ]

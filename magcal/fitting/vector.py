@@ -71,7 +71,16 @@ from magcal.geometry.orientations import (
     split_mounting,
 )
 from magcal.model.platform_terms import available_terms
-from magcal.model.terms import EFFECTS, Effect, Model, block_label, contexts
+from magcal.model.terms import (
+    EFFECTS,
+    Effect,
+    Model,
+    block_label,
+    bound_pulls,
+    contexts,
+    fitted_outside_domain,
+    held_note_text,
+)
 
 #: Most evaluations of one least-squares solve: a well-posed vector fit converges in a handful; one whose effects
 #: are nearly degenerate wanders along the degenerate direction instead (its covariance then says so).
@@ -145,6 +154,9 @@ class SensorVectorFit:
     determined : bool
         False when the bias's or the mounting's standard deviation is beyond :data:`UNDETERMINED_BIAS_FRACTION` of
         the field or :data:`UNDETERMINED_MOUNTING_DEG`: the record does not fix the calibration (a note says so).
+    bound_pull_z : dict
+        Per effect block (label) of this sensor, how far the data pull each parameter past its nearer bound, in its
+        (widened) standard deviations (:func:`magcal.model.terms.bound_pulls`); empty when none sits on a bound.
     total_residual_nT : numpy.ndarray, shape (n_fitted,)
         The total-field residual ``|B| - F`` of every fitted sample (:attr:`VectorFitResult.fitted`), nT.
     vector_residual_nT : numpy.ndarray, shape (n_fitted, 3)
@@ -174,6 +186,7 @@ class SensorVectorFit:
     residual_lag1_correlation: float = 0.0
     sd_widening: float = 1.0
     determined: bool = True
+    bound_pull_z: dict = field(default_factory=dict, repr=False)
     total_residual_nT: np.ndarray | None = field(default=None, repr=False)
     vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
@@ -322,6 +335,11 @@ class VectorFitResult:
     wall_s: float = 0.0
     fitted: np.ndarray | None = None
     gaps: SampleGaps | None = None
+
+    @property
+    def bound_pull_z(self) -> dict:
+        """Every sensor's :attr:`SensorVectorFit.bound_pull_z`, by effect block label."""
+        return {label: z for s in self.sensors for label, z in s.bound_pull_z.items()}
 
     @property
     def notes(self) -> list[Note]:
@@ -720,6 +738,10 @@ def fit_vector(
         fits.append(fit)
         effect_values.update(values)
         blocks.append(cov)
+    pulls = {label: z for f in fits for label, z in f.bound_pull_z.items()}
+    held = fitted_outside_domain(model, effect_values, pulls=pulls) if model.effects else ""
+    if held:
+        notes.append(held_note_text(held))
     sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
     tilt = _tilt_range_deg(rotation[rows])
     if tilt < 5:
@@ -808,20 +830,8 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     rebased = not any(e.basis_uses_readings for e, _ in instances)
     sol = None
     for rnd in range(MAX_REFINEMENTS + 2):
-        sol = least_squares(
-            prob.residuals,
-            x,
-            jac=prob.jacobian,
-            args=(sigma_f, sigma_p),
-            method="trf" if robust else "lm",
-            loss="soft_l1" if robust else "linear",
-            f_scale=3.0,
-            x_scale=scale,
-            xtol=1e-12,
-            ftol=1e-12,
-            max_nfev=MAX_NFEV,
-        )
-        x = sol.x
+        # within the effects' domains (a loop width >= 0...), taken after a refinement moved their constants
+        x, sol = _solve_within(prob, x, (sigma_f, sigma_p), _bounds(instances), scale, robust)
         total, perp, _ = prob.parts(x)
         new_f = sigma_f if noise_nT is not None else max(robust_sigma(total), 1e-3)
         new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
@@ -843,6 +853,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     bias_sd: np.ndarray | None
     mount_sd: np.ndarray | None
     cov_block = None
+    pulls: dict = {}
     try:
         jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
         s2 = float(z @ z) / max(len(z) - len(x), 1)
@@ -852,6 +863,7 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
         mount_sd = mounting_sd_deg(W, cov[:9, :9])
         cov_block = (cov, labels)
+        pulls = _pulls(prob, x, (sigma_f, sigma_p), _bounds(instances), jtj_inv, cov, labels, sizes)
     except np.linalg.LinAlgError:
         bias_sd = mount_sd = None
         lag1, widening = 0.0, 1.0
@@ -894,10 +906,83 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         residual_lag1_correlation=float(lag1),
         sd_widening=float(widening),
         determined=determined,
+        bound_pull_z=pulls,
         total_residual_nT=total,
         vector_residual_nT=e,
     )
     return fit, values, cov_block
+
+
+def _solve_within(prob, x, sigmas, bounds, scale, robust):
+    """``(x, solution)``: the weighted least squares of one sensor with every parameter within ``bounds``.
+
+    An active set around :func:`scipy.optimize.least_squares` (Levenberg-Marquardt, or the trust region of a robust
+    loss): the unbounded minimum first; a parameter that it leaves outside its domain is held at the bound it
+    crossed and the others refitted, until none is outside. The solution's ``jac`` is the whole Jacobian at ``x``
+    (the held parameters' columns too, for the covariance). A bounded trust-region fit would do the same at 50-100x
+    the cost on a record of 2000 samples.
+    """
+    lower, upper = bounds
+    x = np.clip(np.asarray(x, dtype=float), lower, upper)
+    held = np.zeros(x.size, bool)
+    sol = None
+    for _ in range(x.size + 1):
+        free = ~held
+
+        def full(v, free=free, start=x):
+            out = start.copy()
+            out[free] = v
+            return out
+
+        sol = least_squares(
+            lambda v, free=free: prob.residuals(full(v, free), *sigmas),
+            x[free],
+            jac=lambda v, free=free: prob.jacobian(full(v, free), *sigmas)[:, free],
+            method="trf" if robust else "lm",
+            loss="soft_l1" if robust else "linear",
+            f_scale=3.0,
+            x_scale=scale[free],
+            xtol=1e-12,
+            ftol=1e-12,
+            max_nfev=MAX_NFEV,
+        )
+        x = full(sol.x)
+        out = free & ((x < lower) | (x > upper))
+        if not out.any():
+            break
+        held |= out
+        x = np.clip(x, lower, upper)
+    assert sol is not None
+    if held.any():
+        sol.x, sol.jac = x, prob.jacobian(x, *sigmas)
+    return x, sol
+
+
+def _pulls(prob, x, sigmas, bounds, jtj_inv, cov, labels, sizes) -> dict:
+    """Per effect block, how far the data pull each parameter past its nearer bound (standard deviations,
+    :func:`magcal.model.terms.bound_pulls`); empty when no parameter sits on a bound."""
+    lower, upper = bounds
+    if not np.any((x <= lower) | (x >= upper)):
+        return {}
+    gradient = prob.jacobian(x, *sigmas).T @ prob.residuals(x, *sigmas)
+    z = bound_pulls(x, lower, upper, gradient, jtj_inv, np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    out, k = {}, 12
+    for label, q in zip(labels, sizes):
+        out[label] = z[k : k + q]
+        k += q
+    return out
+
+
+def _bounds(instances) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of one sensor's parameters ``(W, b, theta)``: the base terms free, each effect within its physical
+    domain (:meth:`magcal.model.terms.Effect.domain`)."""
+    lower, upper = [np.full(12, -np.inf)], [np.full(12, np.inf)]
+    for e, _ in instances:
+        lo, hi = e.param_bounds()
+        q = len(e.param_names())
+        lower.append(np.broadcast_to(np.asarray(lo, dtype=float), (q,)))
+        upper.append(np.broadcast_to(np.asarray(hi, dtype=float), (q,)))
+    return np.concatenate(lower), np.concatenate(upper)
 
 
 def _refine(instances, sizes, theta) -> bool:
@@ -1096,7 +1181,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
     # one fit per model on the training blocks (their notes are not the held-out check's: left in each result)
     for model in models:
         cal = fit_vector(dataset, reference, effects=model, mask=train, warn=False, **options).calibration
-        world = np.stack([rotation.apply(b) for b in cal.correct(dataset, warn=False)])
+        world = np.stack([rotation.apply(b) for b in cal.correct(dataset, warn=False, force=True)])
         err = world - ned[None]
         total = np.linalg.norm(world, axis=2) - f_ref[None]
 

@@ -6,6 +6,6 @@ Importing any module of this package fills the catalogue (:mod:`magcal.model.eff
 """
 
 from magcal.model import effects  # noqa: F401  (registers the built-in catalogue)
-from magcal.model.terms import BASE_TERMS, EFFECTS, Context, Effect, Model, parse_effect, register, term_label
+from magcal.model.terms import BASE_TERMS, EFFECTS, Context, Domain, Effect, Model, parse_effect, register, term_label
 
-__all__ = ["EFFECTS", "BASE_TERMS", "Context", "Effect", "Model", "parse_effect", "register", "term_label"]
+__all__ = ["EFFECTS", "BASE_TERMS", "Context", "Domain", "Effect", "Model", "parse_effect", "register", "term_label"]

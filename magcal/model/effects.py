@@ -41,9 +41,10 @@ from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
 from magcal.core.stats import savgol, savgol_derivative
 from magcal.core.vectors import row_norm
+from magcal.data.attitude import turn_rate_dps
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
 from magcal.model.perturbations import catalogue_perturbation
-from magcal.model.terms import Context, Effect, SingleAxisBasis, register, term_label
+from magcal.model.terms import Context, Domain, Effect, SingleAxisBasis, register, term_label
 
 #: Multipliers of each effect's ``default_magnitude`` for a 1 500-sample record at 10 Hz with sigma = 3 nT
 #: (:func:`magcal.data.simulation.simulate_timeseries`): barely detectable (score statistic of order 100-200, the RMS
@@ -64,6 +65,18 @@ DETECTION_LEVELS = {
 }
 
 _AXES = "xyz"
+
+#: The largest transfer nonlinearity a magnetometer has (ppm of its field, either sign): a fluxgate's is tens to
+#: hundreds of ppm, a MEMS or AMR sensor's up to a few thousand; beyond this the fit has found something else.
+NONLINEARITY_LIMIT_PPM = 5000.0
+
+#: The largest change of a scale factor with temperature (ppm/K, either sign): a fluxgate's is tens of ppm/K, an AMR
+#: or Hall sensor's up to a few thousand (0.3 %/K uncompensated).
+TEMPERATURE_SCALE_LIMIT_PPM_PER_K = 10000.0
+
+#: A time offset shows in a record only while the field turns less than this (rad) over it: beyond, the readings
+#: pair with attitudes of another part of the turn and the offset found is an alias (:func:`record_delay_limit_ms`).
+DELAY_TURN_LIMIT_RAD = 1.0
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -327,6 +340,15 @@ class TemperatureScale(_TemperatureReferenced):
     def param_names(self):
         return [f"alpha_{a}_ppm_per_K" for a in _AXES]
 
+    def domain(self):
+        """``|alpha| <= TEMPERATURE_SCALE_LIMIT_PPM_PER_K`` on every axis."""
+        return Domain.symmetric(
+            3,
+            TEMPERATURE_SCALE_LIMIT_PPM_PER_K,
+            "a scale factor's change with temperature: tens of ppm/K for a fluxgate, a few thousand for an AMR or "
+            "Hall sensor",
+        )
+
     def param_scale(self):
         return np.full(3, 6.0)
 
@@ -501,6 +523,34 @@ def _unless_it_bends(values, time_s):
     return smooth if float(np.percentile(turn, 95)) * window <= SMOOTH_TURN_RAD else values
 
 
+def record_delay_limit_ms(dataset) -> float | None:
+    """The largest time offset (ms) a record can show: the time its field takes to turn by
+    :data:`DELAY_TURN_LIMIT_RAD` at the record's 95th-percentile turn rate (:func:`magcal.data.attitude.turn_rate_dps`:
+    the gyro, else the attitude; else the turn of the readings), and no more than half the record. None without a
+    time column.
+
+    A delay beyond it pairs each reading with the attitude of another part of the turn: the fit may still lower the
+    residuals with it, but the offset it finds is an alias, not the logging path's.
+    """
+    t = getattr(dataset, "time_s", None)
+    if t is None or len(t) < 3:
+        return None
+    t = np.asarray(t, dtype=float)
+    span_s = float(np.nanmax(t) - np.nanmin(t))
+    if not np.isfinite(span_s) or span_s <= 0:
+        return None
+    rate_dps = turn_rate_dps(dataset)
+    if rate_dps is None:
+        y = np.asarray(dataset.readings_nT[0], dtype=float)
+        rate_dps = np.degrees(row_norm(time_derivative(y, t)) / np.maximum(row_norm(y), 1e-9))
+    rate_dps = np.asarray(rate_dps, dtype=float)
+    rate_dps = rate_dps[np.isfinite(rate_dps)]
+    turn_s = np.inf
+    if rate_dps.size and float(np.percentile(rate_dps, 95)) > 0:
+        turn_s = DELAY_TURN_LIMIT_RAD / np.radians(float(np.percentile(rate_dps, 95)))
+    return float(1e3 * min(turn_s, 0.5 * span_s))
+
+
 @register
 @dataclass
 class AttitudeTimeOffset(CatalogueEffect):
@@ -540,6 +590,9 @@ class AttitudeTimeOffset(CatalogueEffect):
     )
 
     shift_ms: list | None = None
+    #: The largest offset the fitted record can show (ms, either sign; :func:`record_delay_limit_ms`), set by
+    #: :meth:`configure`; None: unbounded.
+    max_delay_ms: float | None = None
 
     def param_names(self):
         return ["delay_ms"]
@@ -547,10 +600,27 @@ class AttitudeTimeOffset(CatalogueEffect):
     def param_scale(self):
         return np.array([0.1])
 
+    def domain(self):
+        """``|d| <= max_delay_ms``: within what the record can show."""
+        if self.max_delay_ms is None:
+            return Domain.free(1)
+        return Domain.symmetric(
+            1,
+            self.max_delay_ms,
+            f"an offset the record can show: its field turns less than {DELAY_TURN_LIMIT_RAD:g} rad over it, "
+            "and it is shorter than half the record",
+        )
+
+    def configure(self, dataset, residuals_nT=None):
+        self.max_delay_ms = record_delay_limit_ms(dataset)
+
     def state(self):
-        return {"shift_ms": self.shift_ms}
+        return {"shift_ms": self.shift_ms, "max_delay_ms": self.max_delay_ms}
 
     def set_state(self, state):
+        self.max_delay_ms = _state_number(
+            self, state, "max_delay_ms", positive=True, what="of ms: the largest offset the record can show"
+        )
         shifts = state.get("shift_ms")
         if shifts is None:
             self.shift_ms = None
@@ -1002,6 +1072,16 @@ class _PowerNonlinearity(CatalogueEffect):
     def param_scale(self):
         return np.full(3, self.scale_nT)
 
+    def domain(self):
+        """``|k| <= NONLINEARITY_LIMIT_PPM`` of the field the parameters are quoted at (:attr:`quoted_at_nT`)."""
+        limit = 1e-6 * NONLINEARITY_LIMIT_PPM * self.quoted_at_nT
+        return Domain.symmetric(
+            3,
+            limit,
+            f"{NONLINEARITY_LIMIT_PPM:g} ppm of the {_field_text(self.quoted_at_nT)} field: a fluxgate's "
+            "nonlinearity is tens to hundreds of ppm, a MEMS sensor's up to a few thousand",
+        )
+
     @property
     def quoted_at_nT(self) -> float:
         """The field magnitude (nT) the parameters are quoted at: the data's, or 50 uT if unknown."""
@@ -1231,10 +1311,8 @@ class Hysteresis(CatalogueEffect):
     magnitude_unit: ClassVar[str] = "nT"
     #: Loop half-widths are widths: every axis hides a non-negative one.
     pattern: ClassVar[tuple] = (1.0, 0.7, 0.5)
-    #: Why :meth:`param_bounds` holds ``h >= 0``, for the message refusing a negative width.
-    bounds_note: ClassVar[str] = (
-        "a hysteresis loop half-width in nT: the output lags the field by it, it cannot lead it"
-    )
+    #: Why :meth:`domain` holds ``h >= 0``, for the messages refusing a negative width.
+    domain_why: ClassVar[str] = "a hysteresis loop half-width in nT: the output lags the field by it, it cannot lead it"
 
     #: Per sensor, the play half-widths (nT) that shape the basis (0: a plain sign).
     shape_half_width_nT: list | None = None
@@ -1264,7 +1342,7 @@ class Hysteresis(CatalogueEffect):
             if values.size != 3 or not np.all(np.isfinite(values)) or np.any(values < 0):
                 raise MagcalError(
                     f"{self.label}: shape_half_width_nT of sensor {s + 1} is {w!r}; it must be three "
-                    f"numbers >= 0 ({self.bounds_note})"
+                    f"numbers >= 0 ({self.domain_why})"
                 )
             out.append(values.tolist())
         return out
@@ -1272,9 +1350,9 @@ class Hysteresis(CatalogueEffect):
     def param_names(self):
         return [f"h_{a}_nT" for a in _AXES]
 
-    def param_bounds(self):
+    def domain(self):
         """``h >= 0`` on every axis: a loop half-width is not negative."""
-        return np.zeros(3), np.full(3, np.inf)
+        return Domain(np.zeros(3), np.full(3, np.inf), self.domain_why)
 
     def quote(self, values, field_nT=None, sensor=None):
         """The loop half-widths in ppm of the data's field."""

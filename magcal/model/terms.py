@@ -213,6 +213,122 @@ class SingleAxisBasis(np.ndarray):
         return SingleAxisBasis(self.axis_values.T, self.axes)
 
 
+def span_text(lower: float, upper: float) -> str:
+    """``">= 0"``, ``"<= 5"``, ``"in [-250, 250]"`` or ``"any number"``: one parameter's bounds in words."""
+    if np.isinf(lower) and np.isinf(upper):
+        return "any number"
+    if np.isinf(upper):
+        return f">= {lower:g}"
+    if np.isinf(lower):
+        return f"<= {upper:g}"
+    return f"in [{lower:g}, {upper:g}]"
+
+
+#: A fitted parameter within this fraction of its :meth:`Effect.param_scale` (the size that moves the readings by
+#: about 1 nT) of a bound sits on it (:func:`outside_domain`): the fit was held there.
+ON_BOUND_FRACTION = 1e-3
+
+#: A parameter held on a bound is not physical here when the data pull it past the bound by more than this many of
+#: its standard deviations (:func:`bound_pulls`); an effect absent on one axis sits on a bound too, pulled past it by
+#: noise alone (within about 1 standard deviation, on half the records).
+BOUND_PULL_Z = 3.0
+
+
+@dataclass(frozen=True)
+class Domain:
+    """The physical domain of an effect's parameters: a lower and an upper bound per parameter (in the
+    parameters' units; ``-inf``/``inf`` where physics sets none) and why, in words.
+
+    Attributes
+    ----------
+    lower, upper : numpy.ndarray, shape (q,)
+        Bounds of each parameter, in :meth:`Effect.param_names` order and units.
+    why : str
+        The physics that sets them, for messages and ``docs/effects.md`` ("a loop half-width: the output lags the
+        field, it cannot lead it"); empty for an unbounded domain.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    why: str = ""
+
+    def __post_init__(self):
+        lower = np.asarray(self.lower, dtype=float).reshape(-1)
+        upper = np.broadcast_to(np.asarray(self.upper, dtype=float), lower.shape).copy()
+        if np.any(lower > upper):
+            raise MagcalError(f"a domain's lower bounds {lower.tolist()} exceed its upper bounds {upper.tolist()}")
+        object.__setattr__(self, "lower", lower)
+        object.__setattr__(self, "upper", upper)
+
+    @classmethod
+    def free(cls, q: int) -> Domain:
+        """``q`` unbounded parameters."""
+        return cls(np.full(q, -np.inf), np.full(q, np.inf))
+
+    @classmethod
+    def symmetric(cls, q: int, limit: float, why: str) -> Domain:
+        """``q`` parameters each within ``[-limit, limit]``."""
+        return cls(np.full(q, -float(limit)), np.full(q, float(limit)), why)
+
+    @property
+    def bounded(self) -> bool:
+        """True when some parameter has a finite bound."""
+        return bool(np.any(np.isfinite(self.lower)) or np.any(np.isfinite(self.upper)))
+
+    def text(self, names) -> str:
+        """The domain in words, one ``name span`` per parameter, equal spans gathered: ``"h_x_nT, h_y_nT, h_z_nT
+        >= 0"``."""
+        groups: dict = {}
+        for name, lo, hi in zip(names, self.lower, self.upper):
+            groups.setdefault(span_text(lo, hi), []).append(name)
+        return "; ".join(f"{', '.join(n)} {span}" for span, n in groups.items())
+
+
+def outside_domain(effect: Effect, values, label: str | None = None, pull_z=None) -> str:
+    """Why one instance's fitted ``values`` are not physical here, or ``""``: the parameters that sit on (or
+    past) a bound of the effect's :meth:`~Effect.domain` (within :data:`ON_BOUND_FRACTION` of their
+    :meth:`~Effect.param_scale`) because the data pull them out of the domain (by more than :data:`BOUND_PULL_Z`
+    standard deviations, when ``pull_z`` says). A candidate effect so fitted describes something else the record
+    holds (the diagnoses never recommend it).
+
+    Parameters
+    ----------
+    effect : Effect
+        The effect (its data-derived constants set: the domain may depend on them).
+    values : array_like, shape (q,)
+        Its fitted parameters, in :meth:`~Effect.param_names` order.
+    label : str, optional
+        The block's label (``name:S``) the text names; default the effect's.
+    pull_z : array_like, shape (q,), optional
+        How far the data pull each parameter past the bound it sits on, in its standard deviations (:func:`bound_pulls`;
+        NaN where unknown). Without it every parameter on a bound counts.
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    pulls = np.full(v.shape, np.nan) if pull_z is None else np.broadcast_to(np.asarray(pull_z, dtype=float), v.shape)
+    names = effect.param_names()
+    lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in effect.param_bounds())
+    if not (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper))) or v.size != len(names):
+        return ""
+    tol = ON_BOUND_FRACTION * np.abs(np.broadcast_to(np.asarray(effect.param_scale(), dtype=float), v.shape))
+    held: dict = {}  # (where, span) -> [(name, pull)] held there
+    for name, value, lo, hi, t, z in zip(names, v, lower, upper, tol, pulls):
+        if not np.isfinite(value):
+            held.setdefault(("is not a finite number", ""), []).append((name, np.nan))
+        elif (value <= lo + t or value >= hi - t) and not z < BOUND_PULL_Z:
+            bound = lo if value <= lo + t else hi
+            held.setdefault((f"held at the bound {bound:g}", span_text(lo, hi)), []).append((name, z))
+    if not held:
+        return ""
+    parts = []
+    for (where, span), found in held.items():
+        z = [p for _, p in found if np.isfinite(p)]
+        said = [f"pulled {', '.join(f'{p:.0f}' for p in z)} standard deviations past it"] if z else []
+        said += [f"the domain is {span}"] if span else []
+        parts.append(f"{', '.join(n for n, _ in found)} {where}" + (f" ({'; '.join(said)})" if said else ""))
+    why = effect.domain().why
+    return f"{label or effect.label}: " + "; ".join(parts) + (f": {why}" if why else "")
+
+
 @dataclass
 class Effect:
     """A named candidate term of the model.
@@ -288,18 +404,27 @@ class Effect:
         """Typical magnitude of each parameter that changes the readings by ~1 nT (for conditioning)."""
         return np.ones(len(self.param_names()))
 
-    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of each parameter, where physics sets them (a loop width is not negative).
+    def domain(self) -> Domain:
+        """The physical domain of one instance's parameters: their bounds and why (:class:`Domain`).
 
-        The fitter (:func:`magcal.fitting.fitter.fit`) keeps every parameter within them, and :meth:`check_params` refuses
-        values outside them. The default is unbounded (``-inf``, ``inf``).
+        The one declaration of what the parameters may be: the fitters keep every parameter within it
+        (:func:`magcal.fitting.fitter.fit`, :func:`magcal.fitting.vector.fit_vector`), :meth:`check_params` refuses a
+        value outside it (a calibration file), and the diagnoses mark a candidate whose fitted value sits on one of
+        its bounds as not physical here (:func:`outside_domain`). It may depend on the data-derived constants
+        (:meth:`configure`, saved by :meth:`state`), so that a calibration read back has the domain it was fitted in.
+        The default is unbounded.
         """
-        q = len(self.param_names())
-        return np.full(q, -np.inf), np.full(q, np.inf)
+        return Domain.free(len(self.param_names()))
+
+    def param_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of each parameter: :meth:`domain`'s (an effect written before domains may
+        override this instead; :meth:`domain` is then unbounded and every consumer reads the bounds here)."""
+        d = self.domain()
+        return d.lower, d.upper
 
     def check_params(self, values, where: str = "") -> np.ndarray:
         """``values`` (one instance's parameters) as floats, or a clear :class:`MagcalError` if a value is not a
-        finite number or lies outside :meth:`param_bounds`.
+        finite number or lies outside :meth:`domain` (its bounds, :meth:`param_bounds`).
 
         Parameters
         ----------
@@ -321,15 +446,14 @@ class Effect:
                 f"{head}{self.label}: {v.size} parameter values for {len(names)} parameters ({', '.join(names)})"
             )
         lower, upper = (np.broadcast_to(np.asarray(b, dtype=float), v.shape) for b in self.param_bounds())
+        why = self.domain().why
         for name, value, lo, hi in zip(names, v, lower, upper):
             if not np.isfinite(value):
                 raise MagcalError(f"{head}{self.label}: {name} = {value} is not a finite number")
             if value < lo or value > hi:
-                span = f">= {lo:g}" if np.isinf(hi) else f"<= {hi:g}" if np.isinf(lo) else f"in [{lo:g}, {hi:g}]"
-                note = getattr(self, "bounds_note", "")
                 raise MagcalError(
-                    f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span}"
-                    + (f" ({note})" if note else "")
+                    f"{head}{self.label}: {name} = {value:g} is not physical; it must be {span_text(lo, hi)}"
+                    + (f" ({why})" if why else "")
                 )
         return v
 
@@ -560,6 +684,54 @@ VECTOR_STAGES = ("raw", "vector")
 def block_label(effect, sensor) -> str:
     """Key of one effect instance's parameters: ``name`` (shared) or ``name:S`` (S 1-based)."""
     return term_label(effect.name, sensor)
+
+
+def fitted_outside_domain(model, effect_values, name: str | None = None, pulls=None) -> str:
+    """Why a fit's effects are not physical here, or ``""``: :func:`outside_domain` of every block of ``model``
+    in ``effect_values`` (``{block label: values}``, a calibration's), or only of the effect ``name``'s;
+    ``pulls``: the fit's ``{block label: pull_z}`` (:func:`bound_pulls`)."""
+    reasons = []
+    for e, s in model.instances():
+        label = block_label(e, s)
+        values = effect_values.get(label)
+        if values is not None and (name is None or e.name == name):
+            reasons.append(outside_domain(e, values, label, (pulls or {}).get(label)))
+    return "; ".join(r for r in reasons if r)
+
+
+def bound_pulls(x, lower, upper, gradient, jtj_inv, sd) -> np.ndarray:
+    """How far the data pull each parameter past its nearer bound, in its standard deviations: the unbounded
+    Gauss-Newton step from the fitted ``x``, ``-(J^T J)^-1 J^T r``, in the outward direction of that bound, over the
+    parameter's standard deviation; NaN for a parameter without a finite bound or standard deviation
+    (:func:`outside_domain` reads it for the parameters that sit on a bound).
+
+    Parameters
+    ----------
+    x, lower, upper : numpy.ndarray, shape (p,)
+        The fitted parameters and their bounds.
+    gradient : numpy.ndarray, shape (p,)
+        ``J^T r`` at ``x`` (the residuals in the units ``jtj_inv`` was made with).
+    jtj_inv : numpy.ndarray, shape (p, p)
+        ``(J^T J)^-1`` (a pseudo-inverse where singular).
+    sd : numpy.ndarray, shape (p,)
+        The parameters' standard deviations (widened as the fit widens them).
+    """
+    x, lower, upper = (np.asarray(v, dtype=float) for v in (x, lower, upper))
+    step = -(np.asarray(jtj_inv, dtype=float) @ np.asarray(gradient, dtype=float))
+    outward = np.where(np.abs(x - lower) <= np.abs(upper - x), -step, step)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = outward / np.asarray(sd, dtype=float)
+    z[~(np.isfinite(lower) | np.isfinite(upper)) | ~np.isfinite(z)] = np.nan
+    return z
+
+
+def held_note_text(held: str) -> str:
+    """The fit's note on effects held on a bound of their domain (``held``: :func:`fitted_outside_domain`)."""
+    return (
+        f"{held}. The fit held it on the bound of its physical domain: this record does not show the effect as the "
+        "model has it (something else pulls the parameter out of its domain); the calibration is the one without it "
+        "along that parameter: leave it out of the effects"
+    )
 
 
 def contexts(dataset, baseline_m=None):

@@ -77,6 +77,51 @@ WORLD_TENSOR_COLUMNS = ("Gnn", "Gne", "Gnd", "Gee", "Ged", "Gdd")
 _WORLD_TENSOR_INDEX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
+@dataclass(frozen=True)
+class Refusal:
+    """The sensors an application of a calibration leaves out: those the fit marked not determined by its record
+    (:meth:`magcal.calibration.calibration.Calibration.undetermined`), unless forced.
+
+    Attributes
+    ----------
+    refused : tuple of int
+        The 0-based sensors whose corrected columns are left out (empty when forced or all determined).
+    note : Note or None
+        What was refused or forced, and why (:meth:`~magcal.calibration.calibration.Calibration.refusal_note`).
+    forced : bool
+        Undetermined sensors applied anyway.
+    """
+
+    refused: tuple = ()
+    note: Note | None = None
+    forced: bool = False
+
+    @classmethod
+    def of(cls, calibration, force=False, where="the calibration") -> Refusal:
+        """The refusal for applying ``calibration`` (``force``: apply its undetermined sensors too).
+
+        Raises
+        ------
+        MagcalError
+            Every sensor is undetermined and ``force`` is false: nothing would be applied.
+        """
+        undetermined = calibration.undetermined()
+        if undetermined and not force and len(undetermined) == calibration.n_sensors:
+            said = "; ".join(f"sensor {s + 1}: {why}" for s, why in undetermined.items())
+            raise MagcalError(
+                f"{where}: not applied: {said}. Recalibrate on a record that determines it (docs/vector.md), or "
+                "force it (--force) knowing its corrected values may be far off"
+            )
+        note = calibration.refusal_note(force)
+        return cls(() if force else tuple(sorted(undetermined)), note, bool(force and undetermined))
+
+    def metadata(self) -> dict:
+        """The output header's line on it: ``magcal_refused`` or ``magcal_forced`` (none when all are determined)."""
+        if self.note is None:
+            return {}
+        return {"magcal_forced" if self.forced else "magcal_refused": self.note.text}
+
+
 def load_calibration(path, n_sensors=None):
     """Load a calibration file with every check a user needs (:meth:`magcal.calibration.calibration.Calibration.load`).
 
@@ -133,25 +178,42 @@ def writes_heading(calibration, dataset=None, layout=None) -> bool:
     return dataset is not None and has_accelerometer(dataset)
 
 
-def output_columns(n_sensors, tensor, uncertainty=False, world=False, heading=False):
+def output_columns(n_sensors, tensor, uncertainty=False, world=False, heading=False, refused=()):
     """Names of the columns ``apply`` appends (with ``uncertainty``: the calibration's standard deviations,
     ``s{i}x_cal_sd ..``, ``s{i}_F_sd`` for ``|B|``, ``G.._sd``; with ``world``: the north-east-down components
-    ``s{i}n_cal ..`` and, for arrays, ``Gnn ..``)."""
-    names = [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "xyz"]
+    ``s{i}n_cal ..`` and, for arrays, ``Gnn ..``). The sensors ``refused`` (0-based, :class:`Refusal`) have none,
+    and with one refused no tensor is written (it needs every sensor)."""
+    sensors = [i for i in range(n_sensors) if i not in set(refused)]
+    tensor = tensor and not refused
+    names = [f"s{i + 1}{a}_cal" for i in sensors for a in "xyz"]
     if tensor:
         names += list(TENSOR_COLUMNS) + list(INVARIANT_COLUMNS)
     if world:
-        names += [f"s{i + 1}{a}_cal" for i in range(n_sensors) for a in "ned"]
+        names += [f"s{i + 1}{a}_cal" for i in sensors for a in "ned"]
         if tensor:
             names += list(WORLD_TENSOR_COLUMNS)
     if uncertainty:
-        names += [f"s{i + 1}{a}_cal_sd" for i in range(n_sensors) for a in "xyz"]
-        names += [f"s{i + 1}_F_sd" for i in range(n_sensors)]
+        names += [f"s{i + 1}{a}_cal_sd" for i in sensors for a in "xyz"]
+        names += [f"s{i + 1}_F_sd" for i in sensors]
         if tensor:
             names += [f"{c}_sd" for c in TENSOR_COLUMNS]
     if heading:
-        names += heading_columns(n_sensors)
+        names += [n for n in heading_columns(n_sensors) if not n.startswith(tuple(f"s{i + 1}_" for i in refused))]
     return names
+
+
+def column_format(name: str) -> str:
+    """The printf format of one output column (:func:`output_columns`) in a CSV: vectors and tensors to 1 pT (per
+    m), invariants to 7 digits, standard deviations to 4, angles to a thousandth of a degree."""
+    if name.endswith("_sd"):
+        return SD_FORMAT
+    if name in INVARIANT_COLUMNS:
+        return INVARIANT_FORMAT
+    if name in TENSOR_COLUMNS or name in WORLD_TENSOR_COLUMNS:
+        return TENSOR_FORMAT
+    if name.endswith("_deg"):
+        return HEADING_FORMAT
+    return VECTOR_FORMAT
 
 
 def writes_world(calibration, dataset=None, layout=None) -> bool:
@@ -177,7 +239,7 @@ def input_columns(where, dataset, names) -> dict:
     return cols
 
 
-def correct_block(calibration, dataset, record_terms, uncertainty=False, world=False, heading=False):
+def correct_block(calibration, dataset, record_terms, uncertainty=False, world=False, heading=False, refused=()):
     """New column values (N, k) for one block: corrected vectors, and the tensor and invariants for arrays; with
     ``uncertainty`` also the calibration's standard deviations of each (:meth:`Calibration.uncertainty`), in the
     order of :func:`output_columns`.
@@ -186,12 +248,13 @@ def correct_block(calibration, dataset, record_terms, uncertainty=False, world=F
     says why). ``world``: also the north-east-down components (a vector
     calibration and the block's attitude, :meth:`Calibration.world`). A sample without attitude gets NaN
     corrected vectors where an acting effect needs it (``site_gradient``), unsaid here: the callers count such
-    rows over the survey (:class:`AttitudeGaps`) and say it once.
+    rows over the survey (:class:`AttitudeGaps`) and say it once. ``refused``: the sensors left out
+    (:class:`Refusal`, :func:`output_columns`); every other sensor is corrected, forced or not.
     """
-    vectors = calibration.correct(dataset, record_terms, warn=False)
+    vectors = calibration.correct(dataset, record_terms, warn=False, force=True)
     n = dataset.n_samples
     parts = [vectors.transpose(1, 0, 2).reshape(n, -1)]
-    tensor = gives_tensor(calibration)
+    tensor = gives_tensor(calibration) and not refused
     if tensor:
         comps = calibration.tensor(dataset, vectors)  # in the cross's own frame (a vector calibration's too)
         parts.append(np.column_stack([comps[c] for c in TENSOR_COLUMNS]))
@@ -216,7 +279,12 @@ def correct_block(calibration, dataset, record_terms, uncertainty=False, world=F
     if heading:  # a gravity calibration: the tilt-compensated compass
         h = calibration.heading(dataset, vectors)
         parts += [h["heading_deg"].T, h["dip_deg"].T, h["tilt_deg"][:, None]]
-    return np.hstack(parts)
+    values = np.hstack(parts)
+    if not refused:
+        return values
+    every = output_columns(calibration.n_sensors, tensor, uncertainty, world, heading)
+    kept = set(output_columns(calibration.n_sensors, tensor, uncertainty, world, heading, refused))
+    return values[:, [k for k, name in enumerate(every) if name in kept]]
 
 
 def refuse_non_finite(values, names, source, dataset=None, row_name=None) -> None:
@@ -383,6 +451,7 @@ def apply_file(
     record_terms=None,
     uncertainty=False,
     compression=None,
+    force=False,
 ):
     """Correct a survey file with a calibration, streaming, writing the input plus the corrected columns.
 
@@ -415,17 +484,22 @@ def apply_file(
     compression : str, optional
         Codec of the float columns of a Parquet output (:data:`magcal.data.io.PARQUET_CODECS`; default snappy,
         :data:`magcal.data.io.PARQUET_FLOAT_CODEC`).
+    force : bool
+        Apply the sensors whose calibration the fit marked not determined by its record too. By default they are
+        refused (:class:`Refusal`): their columns are left out, a note names them and why, and so does the output's
+        header (``magcal_refused``; ``magcal_forced`` when forced); the other sensors are corrected.
 
     Returns
     -------
     ApplySummary
-        Its ``notes`` (never raised here; ``magcal apply`` prints them): the record-only terms dropped, what the
-        reader found in the data, the rows without attitude.
+        Its ``notes`` (never raised here; ``magcal apply`` prints them): the sensors refused or forced, the
+        record-only terms dropped, what the reader found in the data, the rows without attitude.
 
     Raises
     ------
     MagcalError
-        Bad calibration file, a calibration for another number of sensors, missing channels, bad data.
+        Bad calibration file, a calibration for another number of sensors, missing channels, bad data; every
+        sensor not determined (without ``force``).
     """
     t0 = time.perf_counter()
     check_output_path(output_path, "output")  # before any work: a folder, a missing folder
@@ -447,9 +521,11 @@ def apply_file(
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
     if os.path.exists(output_path) and os.path.exists(survey_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    refusal = Refusal.of(calibration, force, calibration_name or "the calibration")
     choice, record_note = record_choice(calibration, survey_path, record_terms, columns, units, drop_bad, chunk_rows)
-    notes = [Note(record_note, RecordTermWarning, "apply")] if record_note else []
-    run = _ApplyRun(calibration, survey_path, output_path, choice, calibration_name, uncertainty, notes)
+    notes = [refusal.note] if refusal.note else []
+    notes += [Note(record_note, RecordTermWarning, "apply")] if record_note else []
+    run = _ApplyRun(calibration, survey_path, output_path, choice, calibration_name, uncertainty, notes, refusal)
     if is_log(survey_path) or is_parquet(survey_path) or is_parquet(output_path):
         _apply_columns(run, columns, units, drop_bad, chunk_rows, compression)
     else:
@@ -473,6 +549,7 @@ class _ApplyRun:
     calibration_name: str | None
     uncertainty: bool
     notes: list
+    refusal: Refusal = field(default_factory=Refusal)
     rows: int = 0
     names: list = field(default_factory=list)
     gaps: AttitudeGaps = field(default_factory=lambda: AttitudeGaps())
@@ -496,30 +573,23 @@ def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -
         tensor = gives_tensor(calibration)
         world = writes_world(calibration, layout=src.layout)
         heading = writes_heading(calibration, layout=src.layout)
-        new_names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading)
+        refused = run.refusal.refused
+        new_names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading, refused)
         clash = sorted(set(new_names) & set(src.header))
         if clash:
             raise MagcalError(
                 f"{survey_path}: the file already has column(s) {', '.join(clash)} (is it an apply output?); rename "
                 "them or correct the raw survey"
             )
-        fmt = ",".join(
-            [VECTOR_FORMAT] * (3 * calibration.n_sensors)
-            + ([TENSOR_FORMAT] * len(TENSOR_COLUMNS) + [INVARIANT_FORMAT] * len(INVARIANT_COLUMNS) if tensor else [])
-            + ([VECTOR_FORMAT] * (3 * calibration.n_sensors) if world else [])
-            + ([TENSOR_FORMAT] * len(WORLD_TENSOR_COLUMNS) if world and tensor else [])
-            + (
-                [SD_FORMAT] * (4 * calibration.n_sensors + (len(TENSOR_COLUMNS) if tensor else 0))
-                if run.uncertainty
-                else []
-            )
-            + ([HEADING_FORMAT] * (2 * calibration.n_sensors + 1) if heading else [])
-        )
+        fmt = ",".join(column_format(name) for name in new_names)
         meta = {}
         if run.calibration_name:
             meta["magcal_calibration"] = run.calibration_name
+        meta.update(run.refusal.metadata())
         meta["magcal_frame"] = calibration.frame
-        meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (", G* in nT/m" if tensor else "")
+        meta["magcal_columns"] = "readings converted to nT; *_cal in nT" + (
+            ", G* in nT/m" if tensor and not refused else ""
+        )
         bar = _progress_bar(os.path.getsize(survey_path), bool(progress))
         terms = run.terms
         try:
@@ -538,7 +608,9 @@ def _apply_csv(run: _ApplyRun, columns, units, drop_bad, chunk_rows, progress) -
                         unit_text = check_units(chunk.dataset, src.units, src.source)
                         if unit_text:
                             run.notes.append(Note(unit_text, DataWarning, "read"))
-                    values = correct_block(calibration, chunk.dataset, run.choice, run.uncertainty, world, heading)
+                    values = correct_block(
+                        calibration, chunk.dataset, run.choice, run.uncertainty, world, heading, refused
+                    )
                     refuse_non_finite(
                         values, new_names, survey_path, chunk.dataset, lambda k, c=chunk: f"line {c.line_numbers[k]}"
                     )
@@ -700,12 +772,14 @@ def _apply_columns(run: _ApplyRun, columns, units, drop_bad, chunk_rows, compres
     extras = reads_extras(calibration)
     meta, chunks, said = survey_chunks(survey_path, columns, units, drop_bad, chunk_rows, extras=extras)
     tensor = gives_tensor(calibration)
-    names = output_columns(calibration.n_sensors, tensor, run.uncertainty)
+    refused = run.refusal.refused
+    names = output_columns(calibration.n_sensors, tensor, run.uncertainty, refused=refused)
     meta = {
         **meta,
         "units": "nT",
         "magcal_frame": calibration.frame,
-        "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor else ""),
+        "magcal_columns": "readings in nT; *_cal in nT" + (", G* in nT/m" if tensor and not refused else ""),
+        **run.refusal.metadata(),
     }
     if run.calibration_name:
         meta["magcal_calibration"] = run.calibration_name
@@ -719,14 +793,14 @@ def _apply_columns(run: _ApplyRun, columns, units, drop_bad, chunk_rows, compres
                 if run.rows == 0:
                     world = writes_world(calibration, ds)
                     heading = writes_heading(calibration, ds)
-                    names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading)
+                    names = output_columns(calibration.n_sensors, tensor, run.uncertainty, world, heading, refused)
                     if ds.n_sensors != calibration.n_sensors:
                         raise MagcalError(
                             f"{survey_path}: the survey has {ds.n_sensors} sensor(s) but the calibration is for "
                             f"{calibration.n_sensors} sensor(s); use the calibration made for this instrument"
                         )
                     calibration.check(ds)
-                values = correct_block(calibration, ds, run.choice, run.uncertainty, world, heading)
+                values = correct_block(calibration, ds, run.choice, run.uncertainty, world, heading, refused)
                 refuse_non_finite(values, names, survey_path, ds, lambda k, first=run.rows: f"row {first + k + 1}")
                 if world or terms:
                     run.gaps.add(ds)

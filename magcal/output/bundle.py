@@ -80,13 +80,16 @@ def parameter_bytes(calibration, fmt, sensors=None, slots=None, force=False, sou
     return result.text.encode("utf-8"), result
 
 
-def corrected_bytes(calibration, data_path, kind="csv", calibration_name=CALIBRATION_FILE, record_terms=None):
+def corrected_bytes(
+    calibration, data_path, kind="csv", calibration_name=CALIBRATION_FILE, record_terms=None, force=False
+):
     """The data file ``data_path`` corrected by the calibration: byte for byte what ``magcal apply
     CALIBRATION DATA -o corrected.csv`` (or ``.parquet``) writes when ``CALIBRATION`` is ``calibration_name``.
 
-    Returns ``(content, notes)``: ``notes`` holds what ``magcal apply`` says (:attr:`magcal.output.apply.ApplySummary.notes`), as
-    text: the record-only terms' decision (dropped on another record), the reader's findings, the rows without
-    attitude.
+    Returns ``(content, notes)``: ``notes`` holds what ``magcal apply`` says
+    (:attr:`magcal.output.apply.ApplySummary.notes`), as text: the sensors refused as not determined (or forced,
+    ``force``: :class:`magcal.output.apply.Refusal`), the record-only terms' decision (dropped on another record),
+    the reader's findings, the rows without attitude.
     """
     if kind not in CORRECTED_FILES:
         raise MagcalError(f"corrected data: kind {kind!r}: use one of {', '.join(CORRECTED_FILES)}")
@@ -99,6 +102,7 @@ def corrected_bytes(calibration, data_path, kind="csv", calibration_name=CALIBRA
             progress=False,
             calibration_name=calibration_name,
             record_terms=record_terms,
+            force=force,
         )
         with open(out, "rb") as fh:
             return fh.read(), texts(summary.notes)

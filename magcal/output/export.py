@@ -393,7 +393,9 @@ def export_calibration(
         See :func:`sensor_exports`.
     force : bool
         Export even when effects or misalignments are dropped (they are listed in ``Export.dropped`` and in the
-        file's comments).
+        file's comments), and the sensors whose calibration the fit marked not determined by its record. Without
+        it such a sensor is left out when ``sensors`` is not given (the others are exported) and refused when it is
+        named; ``Export.notes`` says which and why (:func:`determined_sensors`).
     source : str
         The calibration's file name, for the file header and messages.
     throttle_full_scale : float, optional
@@ -406,9 +408,11 @@ def export_calibration(
     Raises
     ------
     MagcalError
-        Unknown format, bad sensor or slot, or (without ``force``) anything the firmware cannot hold.
+        Unknown format, bad sensor or slot, or (without ``force``) anything the firmware cannot hold or a sensor
+        not determined.
     """
-    return get_format(fmt).write(
+    sensors, slots, said = determined_sensors(calibration, sensors, slots, force, source)
+    result = get_format(fmt).write(
         calibration,
         sensors=sensors,
         slots=slots,
@@ -417,6 +421,35 @@ def export_calibration(
         throttle_full_scale=throttle_full_scale,
         custom_rotation=custom_rotation,
     )
+    if said:
+        result.notes = [said] + list(result.notes)
+    return result
+
+
+def determined_sensors(calibration, sensors=None, slots=None, force=False, source="calibration"):
+    """``(sensors, slots, note)``: the sensors (1-based) an export writes, without those whose calibration the fit
+    marked not determined by its record (:meth:`magcal.calibration.calibration.Calibration.undetermined`) unless
+    ``force``, their slots, and what was left out or forced and why (``""`` when nothing was).
+
+    Raises
+    ------
+    MagcalError
+        A sensor named in ``sensors`` is not determined, or none is left (without ``force``).
+    """
+    undetermined = calibration.undetermined()
+    chosen = list(range(1, calibration.n_sensors + 1)) if sensors is None else [int(s) for s in sensors]
+    bad = [s for s in chosen if s - 1 in undetermined]
+    if not bad:
+        return sensors, slots, ""
+    said = "; ".join(f"sensor {s}: {undetermined[s - 1]}" for s in bad)
+    if force:
+        return sensors, slots, f"exported although not determined (forced): {said}"
+    advice = "recalibrate on a record that determines it (docs/vector.md), or pass --force"
+    if sensors is not None or len(bad) == len(chosen):
+        raise MagcalError(f"{source}: not exported: {said}; {advice}")
+    kept = [k for k, s in enumerate(chosen) if s not in bad]
+    slots = None if slots is None else [list(slots)[k] for k in kept]
+    return [chosen[k] for k in kept], slots, f"not exported: {said}; {advice}"
 
 
 def _firmware_export(

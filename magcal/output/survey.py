@@ -62,6 +62,7 @@ from magcal.data.io import (
 from magcal.model import plugins
 from magcal.output.apply import (
     AttitudeGaps,
+    Refusal,
     _WriteBehind,
     attitude_gap_text,
     correct_block,
@@ -418,11 +419,13 @@ def correct_partition(
     uncertainty=False,
     compression=None,
     effects_files=(),
+    force=False,
 ) -> tuple[str, int, int, tuple]:
     """Correct one partition and write it as ``part-NNNNN.<fmt>`` in ``output_dir`` (a Dask task): read from the
     file by the task itself, corrected and written :data:`BLOCK_ROWS` rows at a time (a Parquet row group
     each). ``effects_files``: the user's effect files the calibration's effects come from, loaded in this process
-    first (:func:`magcal.model.plugins.load_for_worker`). Returns the file written, its rows, how many of them
+    first (:func:`magcal.model.plugins.load_for_worker`). ``force``: apply the sensors not determined too
+    (:class:`magcal.output.apply.Refusal`; by default their columns are left out). Returns the file written, its rows, how many of them
     had no attitude (their world columns NaN), and its reader's notes (:class:`~magcal.core.notes.Note`: rows
     dropped...; a task's warnings would go nowhere the user looks)."""
 
@@ -434,8 +437,10 @@ def correct_partition(
     else:
         meta, chunks, said = _csv_part(part, columns, units, drop_bad, extras=reads_extras(calibration))
     tensor = gives_tensor(calibration)
+    refusal = Refusal.of(calibration, force)
     meta = {
         **meta,
+        **refusal.metadata(),
         "units": "nT",
         "magcal_frame": calibration.frame,
         "magcal_partition": str(part.index),
@@ -457,8 +462,8 @@ def correct_partition(
                     )
                 calibration.check(ds)
                 world = writes_world(calibration, ds)
-                names = output_columns(calibration.n_sensors, tensor, uncertainty, world)
-            values = correct_block(calibration, ds, record_choice, uncertainty, world)
+                names = output_columns(calibration.n_sensors, tensor, uncertainty, world, refused=refusal.refused)
+            values = correct_block(calibration, ds, record_choice, uncertainty, world, refused=refusal.refused)
             where = f"{part.path} (the partition from row {part.first_line})"
             refuse_non_finite(values, names, where, ds, lambda k, n=rows: f"its row {n + k + 1}")
             if world or terms:
@@ -554,6 +559,7 @@ def apply_partitioned(
     progress=None,
     uncertainty=False,
     compression=None,
+    force=False,
 ) -> PartitionedSummary:
     """Correct survey files in parallel on a Dask cluster into a directory of partitions.
 
@@ -576,8 +582,9 @@ def apply_partitioned(
     partition_rows : int, optional
         Rows per partition; by default :data:`TASKS_PER_WORKER` partitions per worker thread of the cluster
         (:func:`partition_rows_for`), whatever the files' row groups.
-    columns, units, drop_bad, record_terms, uncertainty, compression
-        As in :func:`magcal.output.apply.apply_file`.
+    columns, units, drop_bad, record_terms, uncertainty, compression, force
+        As in :func:`magcal.output.apply.apply_file` (``force``: the sensors not determined are applied too; by
+        default their columns are left out of every partition, with a note and a line in each partition's header).
     progress : bool, optional
         A progress bar (tqdm) over the partitions; default when stderr is a terminal.
 
@@ -608,7 +615,8 @@ def apply_partitioned(
             )
     if not hasattr(calibration, "correct"):
         calibration = load_calibration(calibration)
-    choices, notes = {}, []
+    refusal = Refusal.of(calibration, force)  # every sensor undetermined: refused before any work
+    choices, notes = {}, [refusal.note] if refusal.note else []
     for path in dict.fromkeys(map(os.fspath, inputs)):  # decided once per file, before any task
         choices[path], note = record_choice(calibration, path, record_terms, columns, units, drop_bad)
         if note:
@@ -669,6 +677,7 @@ def apply_partitioned(
                     uncertainty,
                     compression,
                     effects_files,
+                    force,
                     pure=False,
                 )
                 for p in parts
