@@ -27,6 +27,7 @@ from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .pending import PENDING
+from .plots import log_axis_scales
 from .sessionfile import NOISE_RANGE_nT
 from .state import METHODS
 from .uploads import UPLOAD_UNITS
@@ -1230,6 +1231,7 @@ class Panels:
             data = rms_plot_data(ctrl)
             if len(data[0]):
                 self.rms_plot.data = data
+                self.rms_plot.scales = log_axis_scales(data)
             self.noise_info.content = noise_markdown(ctrl)
             self.quality.content = quality_markdown(ctrl.quality_with_fit())
             self.download_info.content = download_markdown(ctrl)

@@ -848,3 +848,19 @@ def format_rms(value: float, unit: str) -> str:
     if not np.isfinite(value):
         return "-"
     return f"{value:.3g} {unit}" if unit == "nT" else f"{value:.2g} %"
+
+
+#: Room left above and below the data on a log axis (a factor): the points never sit on the frame.
+LOG_AXIS_MARGIN = 1.25
+
+
+def log_axis_scales(data) -> dict:
+    """uPlot scales for a history plot (x the step, y on a log axis) whose y axis spans the data, not the decades
+    around them: ``data`` as the plot takes it, ``(x, y1, y2, ...)``. uPlot's own range for a log axis snaps to
+    whole decades, so figures of 700-1300 nT were drawn on an axis to 10 000."""
+    values = np.concatenate([np.asarray(y, float).ravel() for y in data[1:]]) if len(data) > 1 else np.array([])
+    values = values[np.isfinite(values) & (values > 0)]
+    y: dict = {"distr": 3, "log": 10}
+    if values.size:
+        y["range"] = [float(values.min()) / LOG_AXIS_MARGIN, float(values.max()) * LOG_AXIS_MARGIN]
+    return {"x": {"time": False}, "y": y}

@@ -18,6 +18,7 @@ from magcal.model.terms import EFFECTS
 
 from .controller import format_number
 from .markup import safe_code, safe_text
+from .plots import log_axis_scales
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
 from .vectormodel import NED
 
@@ -381,6 +382,7 @@ class VectorPanel:
                 data = vector_rms_plot_data(vm)
                 if len(data[0]):
                     self.rms_plot.data = data
+                    self.rms_plot.scales = log_axis_scales(data)
         if everything or "data" in kinds:
             loc = vm.location
             if loc is not None:  # show the session's place (the widgets' callbacks do nothing)

@@ -3,6 +3,7 @@ loop (fit, diagnose, add the advice) to the floor, on the total-field model and 
 
 import time
 
+import numpy as np
 import pytest
 
 from magcal_workbench.dataio import load_dataset
@@ -125,3 +126,16 @@ def test_add_the_advice_adds_all_of_it_in_one_refit(bench):
     _click(wb, wb.panels.btn_add_advice)
     assert wb.ctrl.state.effects == advice and len(wb.ctrl.state.history) == steps + 1
     assert wb.ctrl.advice() == [] and not wb.panels.btn_add_advice.visible
+
+
+@pytest.mark.parametrize(
+    ("series", "lo", "hi"),
+    [([[700.0, 1300.0], [800.0, 900.0]], 700.0, 1300.0), ([[3.0, np.nan], [2.9, 2.9]], 2.9, 3.0)],
+)
+def test_a_history_plots_log_axis_spans_its_data_not_the_decades(series, lo, hi):
+    from magcal_workbench.plots import LOG_AXIS_MARGIN, log_axis_scales
+
+    data = (np.arange(2.0), *[np.array(s) for s in series])
+    y = log_axis_scales(data)["y"]
+    assert y["distr"] == 3 and y["range"] == pytest.approx([lo / LOG_AXIS_MARGIN, hi * LOG_AXIS_MARGIN])
+    assert "range" not in log_axis_scales((np.arange(2.0), np.array([np.nan, np.nan])))["y"]
