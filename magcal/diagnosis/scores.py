@@ -711,6 +711,34 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
+#: A candidate whose score test predicts a delta-BIC below this is predicted to be supported (the diagnosis's
+#: threshold of very strong evidence, :data:`magcal.diagnosis.verdict.DELTA_BIC_THRESHOLD`).
+PREDICTED_SUPPORT_DELTA_BIC = -10.0
+
+
+def search_order(cands, top) -> list:
+    """The ``top`` distinct effects to refit, from candidates ranked by their predicted delta-BIC.
+
+    Instrument terms that carry to new data (a nonlinearity, a temperature coefficient, a timing skew, hysteresis)
+    come before record-only ones (a drift, a step, the reference's change) among those predicted to be supported:
+    a record-only term often ranks first (it takes whatever changes in time, the noise's wander included), and an
+    instrument term that would hold, ranked below three of them, was never refitted. The best record-only term
+    keeps one place when ``top`` is 2 or more; the places left follow the ranking.
+    """
+    distinct, seen = [], set()
+    for c in cands:
+        if c.effect not in seen:
+            seen.add(c.effect)
+            distinct.append(c)
+    supported = [c for c in distinct if c.predicted_delta_bic < PREDICTED_SUPPORT_DELTA_BIC]
+    instrument = [c for c in supported if not c.record_only]
+    record = [c for c in supported if c.record_only]
+    chosen = instrument[: top - 1 if record and top >= 2 else top]
+    taken = {id(c) for c in chosen}
+    chosen += [c for c in distinct if id(c) not in taken][: max(top - len(chosen), 0)]
+    return chosen
+
+
 def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, after_refit=None, beside_refit=None):
     """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
     :meth:`_Projector.start`); re-rank.
@@ -722,14 +750,7 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
     called with ``pool`` for each candidate to refit (its start set) before the refits are handed over, may hand
     the pool work that needs the candidate but not its refit, to run beside it (below the refits' priority).
     """
-    chosen, seen = [], set()
-    for c in cands:
-        if c.effect in seen:
-            continue
-        seen.add(c.effect)
-        chosen.append(c)
-        if len(chosen) >= top:
-            break
+    chosen = search_order(cands, top)
     for c in chosen:
         if c.projector is not None and c.projector.g.problem is not None:
             try:
