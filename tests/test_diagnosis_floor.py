@@ -65,6 +65,7 @@ def test_a_real_cubic_nonlinearity_at_one_percent_noise_is_still_found():
     assert d.explained_by == ["nonlinearity_cubic"]
     best = d.candidates[0]
     assert best.holds and best.rms_after_nT == pytest.approx(sigma, rel=0.03)
+    assert "basis from the denoised readings" in best.evidence
     fitted = best.params["nonlinearity_cubic"]["c_x_nT"]
     assert fitted == pytest.approx(true_k * NonlinearityCubic.pattern[0], rel=0.25)
 

@@ -51,7 +51,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import comb
+from scipy.special import comb, erf
 
 from magcal.checks.quality import quantization_step, stale_mask, static_scatter_nT, static_stretches, static_window
 from magcal.core.errors import MagcalError
@@ -287,8 +287,6 @@ def interpolated_mask(readings_nT, steps_nT=None) -> np.ndarray:
 
 def erf_share(z):
     """Share of a Gaussian within ``z`` standard deviations of its mean (``erf(z / sqrt 2)``)."""
-    from scipy.special import erf
-
     return erf(np.asarray(z, dtype=float) / np.sqrt(2.0))
 
 
