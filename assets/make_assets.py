@@ -269,10 +269,10 @@ REAL_EXPLANATION = (
     "Taken from the denoised readings, it gains nothing (score LM 10 on 3 parameters); the quadratic term gains "
     "under 1 % on held-out blocks. bias_drift takes the held-out blocks from about 1052 to 1029 nT: a slow wander "
     "of the offsets during this record (the x axis wanders in the still minute too), a record-only term that says "
-    "nothing about the next recording (the later stretch does not improve). The floor counts the noise's slow "
-    "part (the stream was filtered: 762 nT from the differences, 881 nT with the still stretches' slower noise); "
-    "what remains, about 1.1x the floor, is a small degree-3 direction pattern and the filter's correlation in "
-    "time, which no catalogue term that holds on held-out data removes."
+    "nothing about the next recording (the later stretch does not improve). What remains, about 1.27x the floor "
+    "of 762 nT (the still stretches' field magnitude shows no slower noise), is a small degree-3 direction pattern "
+    "and a correlation in time that grows with the turn rate, which no catalogue term that holds on held-out data "
+    "removes."
 )
 REAL_GUIDE = """
 Every other lesson is simulated: the answer was put in by the simulator. This one is a **real recording**: a
@@ -302,11 +302,10 @@ Open the file (or `magcal calibrate data.csv`) and read the **Data quality** par
 ## 2. The base fit
 
 Calibrate with the base model (bias, scale, non-orthogonality). The total-field RMS falls from 212 uT to about
-986 nT. The floor is 881 nT, not the 762 nT of the second differences: the logger filtered the stream, so its
-noise is correlated from one sample to the next and the differences see only part of it; the still stretches'
-variance over the time the board takes to turn through a radian (about half a second here) adds the slower part,
-441 nT. The fit is 1.12x that floor. The report's held-out validation fits alternating blocks of time and scores
-the blocks between: about 1052 nT there.
+986 nT, 1.29x the floor of 762 nT. The noise's text says where the floor comes from: the second differences in the
+still stretches; their field magnitude, over the time the board takes to turn through a radian, shows no slower
+noise to add (the x axis's wander is across the field there). The report's held-out validation fits alternating
+blocks of time and scores the blocks between: about 1052 nT there.
 
 ## 3. Diagnose, and judge on held-out data
 
@@ -325,10 +324,9 @@ recommended only if the error falls on samples its fit did not see.
 
 ## 4. What remains
 
-After the drift the RMS is about 967 nT, 1.1x the floor, and the verdict still reads `unexplained`.
+After the drift the RMS is about 967 nT, 1.27x the floor, and the verdict still reads `unexplained`.
 "Unexplained" does not mean "wrong": it means the residual still has structure (here a small degree-3 pattern over
-the field direction and the filter's correlation in time) and no catalogue term that holds on held-out data
-removes it. Look at the terms ranked below the line: some lower the in-sample RMS and raise the held-out one.
+the field direction and a correlation in time) and no catalogue term that holds on held-out data removes it. Look at the terms ranked below the line: some lower the in-sample RMS and raise the held-out one.
 Adding them would fit this recording's noise, not the sensor.
 
 Two more things to look at: the residual against time in the still minute at the start (the noise and the

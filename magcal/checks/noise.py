@@ -393,29 +393,32 @@ def _still_figures(dataset, steps_nT=None):
 WINDOW_MIN_DOF = 30
 
 
-def _window_variance(y, stretches, fresh, m) -> tuple:
-    """Variance (nT^2, pooled over the axes) of the real samples of ``y`` (N, 3) in the still ``stretches`` about
-    the mean of each window of ``m`` of them, and its degrees of freedom."""
+def _window_variance(magnitude, stretches, fresh, m) -> tuple:
+    """Variance (nT^2) of the real samples of ``magnitude`` (N,) in the still ``stretches`` about the mean of each
+    window of ``m`` of them, and its degrees of freedom."""
     total, dof = 0.0, 0
     for a, b in stretches:
-        x = y[a:b][fresh[a:b]]
+        x = magnitude[a:b][fresh[a:b]]
         k = len(x) // m
         if k < 1:
             continue
-        windows = x[: k * m].reshape(k, m, 3)
+        windows = x[: k * m].reshape(k, m)
         total += float(np.sum((windows - windows.mean(axis=1, keepdims=True)) ** 2))
-        dof += k * (m - 1) * 3
+        dof += k * (m - 1)
     return (total / dof if dof else float("nan")), dof
 
 
 def low_frequency_noise_nT(y, stretches, fresh, white_nT, scale_samples) -> float:
     """The slow part of one sensor's noise (nT per axis) its still stretches show, up to ``scale_samples``.
 
-    The variance of the still readings about their mean over windows of ``scale_samples`` real samples is all the
-    noise a residual sees over that time (white, flicker, an offset that wanders, a filter's correlation); less
-    the white noise of the second differences ``white_nT^2``, what is left is the slow part (the Allan variance's
-    companion at that scale). Counted when clearly above its standard error (three times ``white_nT^2 sqrt(2 /
-    dof)``), else 0; NaN when the stretches are too short to measure it.
+    The variance of the still readings' field magnitude (through the readings' ellipsoid,
+    :func:`magcal.geometry.shape.field_shape`: what a total-field residual sees) about its mean over windows of
+    ``scale_samples`` real samples is all the noise a residual sees over that time (white, flicker, an offset that
+    wanders, a filter's correlation); less the white noise of the second differences ``white_nT^2``, what is left
+    is the slow part (the Allan variance's companion at that scale). The magnitude, not the axes, so that a slow
+    turn of a sensor that was not quite still (it stays on the ellipsoid) does not pass for noise. Counted when
+    clearly above its standard error (three times ``white_nT^2 sqrt(2 / dof)``), else 0; NaN when the stretches are
+    too short to measure it.
 
     Parameters
     ----------
@@ -433,7 +436,8 @@ def low_frequency_noise_nT(y, stretches, fresh, white_nT, scale_samples) -> floa
     if not scale_samples or not np.isfinite(white_nT):
         return float("nan")
     m = int(max(round(scale_samples), 3))
-    variance, dof = _window_variance(y, stretches, fresh, m)
+    shape = field_shape(y)
+    variance, dof = _window_variance(row_norm((y - shape.centre_nT) @ shape.cinv.T), stretches, fresh, m)
     if dof < WINDOW_MIN_DOF or not np.isfinite(variance):
         return float("nan")
     excess = variance - white_nT**2
