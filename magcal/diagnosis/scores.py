@@ -723,17 +723,21 @@ def search_order(cands, top) -> list:
     come before record-only ones (a drift, a step, the reference's change) among those predicted to be supported:
     a record-only term often ranks first (it takes whatever changes in time, the noise's wander included), and an
     instrument term that would hold, ranked below three of them, was never refitted. The best record-only term
-    keeps one place when ``top`` is 2 or more; the places left follow the ranking.
+    keeps one place; the places left follow the ranking. A single place (``top`` 1: the forward selection's later
+    rounds) goes to the best predicted, whatever it is: a record-only term left after an instrument term is taken
+    has nothing else to take its place.
     """
     distinct, seen = [], set()
     for c in cands:
         if c.effect not in seen:
             seen.add(c.effect)
             distinct.append(c)
+    if top < 2:
+        return distinct[:top]
     supported = [c for c in distinct if c.predicted_delta_bic < PREDICTED_SUPPORT_DELTA_BIC]
     instrument = [c for c in supported if not c.record_only]
     record = [c for c in supported if c.record_only]
-    chosen = instrument[: top - 1 if record and top >= 2 else top]
+    chosen = instrument[: top - 1 if record else top]
     taken = {id(c) for c in chosen}
     chosen += [c for c in distinct if id(c) not in taken][: max(top - len(chosen), 0)]
     return chosen

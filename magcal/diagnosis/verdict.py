@@ -1293,8 +1293,7 @@ def _explain(ctx: DiagnosisContext) -> Diagnosis:
     summary = ctx.summary
     if holds_here:
         summary += "; " + _record_holds_words(holds_here, chosen)
-    # the advice: instrument terms (they carry to new data) before record-only ones
-    explained = [c.label for c in sorted(chosen, key=lambda c: c.record_only) if _advised(c)]
+    explained = [c.label for c in chosen if _advised(c)]
     partial: list = []
     if ctx.verdict != "missing_effect":
         partial, explained = explained, []
