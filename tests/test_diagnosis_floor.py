@@ -193,3 +193,17 @@ def test_a_nonlinearity_keeps_its_denoising_shape_with_the_calibration():
     assert copy.ellipsoid_cinv == state["ellipsoid_cinv"]
     with pytest.raises(MagcalError, match="ellipsoid_cinv of sensor 1 must be a 3x3 matrix"):
         copy.set_state({**state, "ellipsoid_cinv": [[1.0, 2.0]]})
+
+
+@pytest.mark.parametrize(("declared_fraction", "verdict"), [(0.95, "adequate"), (0.80, "unexplained")])
+def test_a_small_excess_over_the_floor_reads_adequate_at_the_floor(declared_fraction, verdict):
+    """Nothing hidden, the noise declared a little low: an excess of 5 % over the floor and nothing else reads
+    "adequate, at the noise floor within 5 %"; 25 % stays unexplained (more than the floor is known to)."""
+    sigma = 3.0
+    ds = simulate_timeseries(chi2017_truth(1), n_samples=3000, noise_nT=sigma, seed=7).replace(noise_nT=None)
+    d = diagnose(ds, noise_nT=declared_fraction * sigma)
+    assert d.verdict == verdict, d.summary
+    assert [s.kind for s in d.structure] == ["excess"]
+    if verdict == "adequate":
+        assert "at the noise floor within 5 %" in d.summary and "(given)" in d.summary
+        assert d.explained_by == [] and d.partially_explained_by == []
