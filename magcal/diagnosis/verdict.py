@@ -3,7 +3,8 @@
 :func:`diagnose` fits (or takes) a model, runs the score tests (:mod:`.scores`), confirms the best candidates
 by refitting, adds supported effects one after the other while the structure tests (:mod:`.structure`) still
 find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`: ``adequate`` (no significant
-structure left), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
+structure left, or only an excess over the floor of at most :data:`AT_FLOOR_FRACTION`: "at the noise floor within
+x %"), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
 (significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
 below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates are confounded.
 
