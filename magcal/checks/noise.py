@@ -670,12 +670,12 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
             "no smooth time order, no still stretch and no declared noise: the noise is taken from the "
             "residual RMS, so only structure (not size) can reveal a misfit; give it (--noise NT)"
         )
-    low = None
+    slow = None
     if source in ("static", "differences") and np.any(np.nan_to_num(facts.low_nT) > 0):
-        low = np.nan_to_num(facts.low_nT)
-        per = np.sqrt(per**2 + low**2)
+        slow = np.nan_to_num(facts.low_nT)
+        per = np.sqrt(per**2 + slow**2)
         note = (note + "; " if note else "") + (
-            f"low-frequency noise of {_values(low)} nT (the still stretches' variance within "
+            f"low-frequency noise of {_values(slow)} nT (the still stretches' variance within "
             f"{facts.low_scale_s:.3g} s, the time the record takes to turn through a radian, less the white noise) "
             "added in quadrature"
         )
@@ -696,7 +696,7 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
         scatter,
         q_floor,
         static,
-        low,
-        facts.low_scale_s if low is not None else None,
+        slow,
+        facts.low_scale_s if slow is not None else None,
         dict(facts.left_out),
     )
