@@ -719,27 +719,27 @@ PREDICTED_SUPPORT_DELTA_BIC = -10.0
 def search_order(cands, top) -> list:
     """The ``top`` distinct effects to refit, from candidates ranked by their predicted delta-BIC.
 
-    Instrument terms that carry to new data (a nonlinearity, a temperature coefficient, a timing skew, hysteresis)
-    come before record-only ones (a drift, a step, the reference's change) among those predicted to be supported:
-    a record-only term often ranks first (it takes whatever changes in time, the noise's wander included), and an
-    instrument term that would hold, ranked below three of them, was never refitted. The best record-only term
-    keeps one place; the places left follow the ranking. A single place (``top`` 1: the forward selection's later
-    rounds) goes to the best predicted, whatever it is: a record-only term left after an instrument term is taken
-    has nothing else to take its place.
+    The ranking, except that the best instrument term predicted to be supported (a nonlinearity, a temperature
+    coefficient, a timing skew, hysteresis: a term that carries to new data) always has a place, the last one if
+    the ranking leaves it out: record-only terms (a drift, a step, the reference's change) take whatever changes in
+    time, the noise's wander included, and often rank first; an instrument term that would hold, ranked below
+    three of them, was never refitted at the default ``top``. Giving every instrument term precedence instead let
+    temperature terms that follow time take a strong drift's place. A single place (``top`` 1: the forward
+    selection's later rounds) goes to the best predicted, whatever it is.
     """
     distinct, seen = [], set()
     for c in cands:
         if c.effect not in seen:
             seen.add(c.effect)
             distinct.append(c)
+    chosen = distinct[:top]
     if top < 2:
-        return distinct[:top]
-    supported = [c for c in distinct if c.predicted_delta_bic < PREDICTED_SUPPORT_DELTA_BIC]
-    instrument = [c for c in supported if not c.record_only]
-    record = [c for c in supported if c.record_only]
-    chosen = instrument[: top - 1 if record else top]
-    taken = {id(c) for c in chosen}
-    chosen += [c for c in distinct if id(c) not in taken][: max(top - len(chosen), 0)]
+        return chosen
+    instrument = next(
+        (c for c in distinct if not c.record_only and c.predicted_delta_bic < PREDICTED_SUPPORT_DELTA_BIC), None
+    )
+    if instrument is not None and all(c is not instrument for c in chosen):
+        chosen[-1] = instrument
     return chosen
 
 
