@@ -370,6 +370,8 @@ def run_transfer(ds, max_rounds=3) -> dict:
                 "verdict": diag.verdict,
                 "next": nxt,
                 "record_holds": list(getattr(diag, "record_holds", []) or []),
+                "floor_nT": float(diag.floor_nT),
+                "noise": diag.noise.text(),
             }
         )
         if nxt is None or nxt in effects:
@@ -380,8 +382,45 @@ def run_transfer(ds, max_rounds=3) -> dict:
     changes = [(r["effects"][-1], r["held_out_rms_nT"] / p["held_out_rms_nT"] - 1) for p, r in zip(rows, rows[1:])]
     out["changes"] = changes
     out["never_rises_1pct"] = all(c <= 0.01 for _, c in changes)
-    out["falls_2pct_or_adequate"] = bool(rows[0]["verdict"] == "adequate" or rows[-1]["held_out_rms_nT"] <= 0.98 * base)
+    out["ends_at_floor"] = rows[-1]["verdict"] == "adequate"
+    out["falls_2pct_or_adequate"] = bool(
+        rows[0]["verdict"] == "adequate" or out["ends_at_floor"] or rows[-1]["held_out_rms_nT"] <= 0.98 * base
+    )
     return out
+
+
+def _advice_words(tr) -> str:
+    """``+effect held-out (change %); ...`` of one transfer test, or ``none``."""
+    return (
+        "; ".join(
+            f"+{row['effects'][-1]} {row['held_out_rms_nT']:.4g} ({100 * c:+.1f} %)"
+            for row, (_, c) in zip(tr["rows"][1:], tr["changes"])
+        )
+        or "none"
+    )
+
+
+def before_after_markdown(records, before) -> str:
+    """The transfer test's advice before (``before``: the records of an earlier run's JSON) and now, per recording:
+    the second half's error with the base calibration and with the advice followed, the last verdict and floor."""
+    old = {r["name"]: r.get("transfer") for r in before}
+    lines = [
+        "| recording | base held-out | before: advice (held-out), last verdict | now: advice (held-out), last verdict "
+        "[floor] | never +1 % | -2 % or at the floor |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        tr, was = r.get("transfer"), old.get(r["name"])
+        if not tr or "refused" in tr:
+            continue
+        last = tr["rows"][-1]
+        was_words = "-" if not was or "refused" in was else f"{_advice_words(was)}, {was['rows'][-1]['verdict']}"
+        lines.append(
+            f"| {r['name']} | {tr['rows'][0]['held_out_rms_nT']:.4g} | {was_words} | {_advice_words(tr)}, "
+            f"{last['verdict']} [{last['floor_nT']:.4g}] | {'yes' if tr['never_rises_1pct'] else 'NO'} | "
+            f"{'yes' if tr['falls_2pct_or_adequate'] else 'no'} |"
+        )
+    return "\n".join(lines)
 
 
 #: Record-only terms whose kept level for new data is measured by :func:`kept_level_study`.
@@ -436,13 +475,7 @@ def transfer_markdown(records) -> str:
             lines.append(f"| {r['name']} | - | refused: {tr['refused'][:120]} | | | | |")
             continue
         rows = tr["rows"]
-        advice = (
-            "; ".join(
-                f"+{row['effects'][-1]} {row['held_out_rms_nT']:.4g} ({100 * c:+.1f} %)"
-                for row, (_, c) in zip(rows[1:], tr["changes"])
-            )
-            or "none"
-        )
+        advice = _advice_words(tr)
         holds = ", ".join(sorted({h for row in rows for h in row["record_holds"]})) or "-"
         lines.append(
             f"| {r['name']} | {tr['n_first']} / {tr['n_second']} | {rows[0]['verdict']}, "
@@ -828,6 +861,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--transfer-only", action="store_true", help="only the transfer test (first half -> second)")
     parser.add_argument(
+        "--before",
+        type=Path,
+        default=None,
+        help="an earlier run's real_transfer.json: print its advice beside this run's (before_after_markdown)",
+    )
+    parser.add_argument(
         "--kept",
         action="store_true",
         help="also measure which level a record-only term should leave for new data (kept_level_study)",
@@ -898,6 +937,9 @@ def main(argv=None) -> int:
             print(f"| {path.stem} | {k['base']:.4g} | " + " | ".join(cells) + " |", flush=True)
     print()
     print(transfer_markdown(records))
+    if args.before is not None:
+        print()
+        print(before_after_markdown(records, json.loads(args.before.read_text(encoding="utf-8"))))
     done = [r["transfer"] for r in records if r.get("transfer") and "rows" in r["transfer"]]
     if done:
         print(

@@ -33,10 +33,21 @@ def test_the_lesson_file_names_catalogue_terms_and_the_guide_hides_nothing_it_ca
 
 
 @pytest.mark.parametrize("scheme", ["blocks", "later"])
-def test_the_answer_holds_on_held_out_data_and_the_quadratic_does_not(scheme):
-    """The guide's claim: the cubic term's gain holds on unseen samples (about 5 %), the quadratic's does not."""
+def test_no_nonlinearity_holds_on_held_out_data(scheme):
+    """The guide's claim: with its basis taken from the denoised readings, the cubic nonlinearity gains under 1 % on
+    unseen samples (a cubic of the noisy readings gained 5 % by compressing the noise), the quadratic too on the
+    held-out blocks."""
     ds = magcal.read_csv(FOLDER / "data.csv")
     cubic = compare(ds, [], "nonlinearity_cubic", scheme=scheme)
-    assert cubic.holds and cubic.with_effect.held_out_rms_nT < 0.97 * cubic.base.held_out_rms_nT
-    quadratic = compare(ds, [], "nonlinearity_quadratic", scheme=scheme, base=cubic.base)
-    assert not quadratic.holds
+    assert not cubic.holds and cubic.with_effect.held_out_rms_nT > 0.99 * cubic.base.held_out_rms_nT
+    if scheme == "blocks":  # on the later stretch alone it gains 1.5 %: not on the blocks, so not advised
+        quadratic = compare(ds, [], "nonlinearity_quadratic", scheme=scheme, base=cubic.base)
+        assert not quadratic.holds
+
+
+def test_the_answer_holds_on_held_out_blocks():
+    """The answer, a drift of this record, holds on the held-out blocks."""
+    ds = magcal.read_csv(FOLDER / "data.csv")
+    doc = json.loads((FOLDER / "lesson.json").read_text(encoding="utf-8"))
+    for effect in doc["answer"]["effects"]:
+        assert compare(ds, [], effect, scheme="blocks").holds

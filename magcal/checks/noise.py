@@ -15,8 +15,11 @@ deviation for Gaussian noise, and insensitive to the few gross outliers that rea
     the noise is estimated from the differences of the residuals in time order (``var(d^k r) = C(2k, k) sigma^2``
     for white noise), with gross jumps clipped: the smaller of the 2nd- and 3rd-order estimates (a slow misfit
     leaks least into the higher order, content near the sampling rate least into the lower one). Samples that
-    repeat the previous reading exactly (stale: the host polled faster than the part converts) are dropped
-    before differencing: their differences are zero and would bias the estimate low.
+    are not real conversions are dropped before differencing (:func:`fresh_samples`): those that repeat the
+    previous reading exactly (stale: the host polled faster than the part converts) and those that lie on the
+    straight line between their neighbours (a logger that upsampled the stream by interpolation,
+    :func:`interpolated_mask`); their differences are zero and would bias the estimate low (a stream upsampled
+    3x by a repeat and a midpoint gives 42 nT where the noise is 741 nT).
 ``static``
     The record has still stretches (:func:`magcal.checks.quality.static_stretches`) holding at least
     :data:`MIN_STATIC_SAMPLES` samples: the second differences of the readings in them, stale samples dropped.
@@ -30,6 +33,14 @@ deviation for Gaussian noise, and insensitive to the few gross outliers that rea
     No smooth order, no still stretch, nothing declared: the residual RMS itself (then a misfit cannot be told
     from noise by its size, only by its structure).
 
+Low-frequency noise
+    The differences measure the noise at the sampling rate only. A sensor whose output also wanders slowly
+    (flicker noise, an offset that wanders) or whose stream was filtered (correlated noise) leaves more in the
+    residuals of any model; the still stretches measure it: their variance about the mean of windows as long as
+    the record takes to turn through a radian (the time scale over which a missing effect and the noise compete),
+    less the white noise, is added to the estimate in quadrature (:func:`low_frequency_noise_nT`,
+    :attr:`NoiseEstimate.low_frequency_nT`, its scale :attr:`NoiseEstimate.low_frequency_scale_s`).
+
 Every estimate reports the still stretches' figures and the quantization floor beside it
 (:attr:`NoiseEstimate.static_noise_nT`, :attr:`NoiseEstimate.static_scatter_nT`,
 :attr:`NoiseEstimate.quantization_floor_nT`), so a reader can check one against the other.
@@ -37,16 +48,17 @@ Every estimate reports the still stretches' figures and the quantization floor b
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import comb
+from scipy.special import comb, erf
 
 from magcal.checks.quality import quantization_step, stale_mask, static_scatter_nT, static_stretches, static_window
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
+from magcal.geometry.shape import field_shape
 
 #: Sources of :class:`NoiseEstimate`, in the order they are tried.
 NOISE_SOURCES = ("given", "differences", "static", "quantization", "residuals")
@@ -93,6 +105,16 @@ class NoiseEstimate:
     quantization_floor_nT : numpy.ndarray or None, shape (n_sensors,)
         ``q / sqrt(12)`` per sensor (nT, root mean square over the axes' steps q); None if the readings show no
         step.
+    low_frequency_nT : numpy.ndarray or None, shape (n_sensors,)
+        The slow part of the noise (nT per axis) the still stretches show over :attr:`low_frequency_scale_s`
+        (:func:`low_frequency_noise_nT`), included in ``per_sensor_nT`` in quadrature; None when no still stretch
+        measures it.
+    low_frequency_scale_s : float or None
+        The time scale (s) of ``low_frequency_nT``: the time the record takes to turn through a radian, at most
+        half the longest still stretch.
+    left_out : dict
+        Samples left out of the differences because they are not real conversions, by kind (``repeated``,
+        ``interpolated``): the most over the sensors.
     """
 
     sigma_nT: float
@@ -103,11 +125,16 @@ class NoiseEstimate:
     static_scatter_nT: np.ndarray | None = None
     quantization_floor_nT: np.ndarray | None = None
     static_noise_nT: np.ndarray | None = None
+    low_frequency_nT: np.ndarray | None = None
+    low_frequency_scale_s: float | None = None
+    left_out: dict = field(default_factory=dict)
 
     def text(self) -> str:
         """``"3.02 nT (given)"``, ``"709 nT (estimated from the differences ...; still stretches scatter ...)"``."""
-        words = _SOURCE_WORDS.get(self.source, self.source)
-        out = f"{self.sigma_nT:.3g} nT per axis ({words}"
+        out = f"{self.sigma_nT:.3g} nT per axis ({self.floor_words()}"
+        left = [f"{n} {kind}" for kind, n in self.left_out.items() if n]
+        if left:
+            out += "; " + " and ".join(left) + " samples left out as not real conversions"
         if self.static_noise_nT is not None and self.source != "static":
             out += "; still stretches' differences " + _values(self.static_noise_nT) + " nT"
         if self.static_scatter_nT is not None:
@@ -115,6 +142,17 @@ class NoiseEstimate:
         if self.quantization_floor_nT is not None and self.source != "quantization":
             out += f"; quantization floor {np.max(self.quantization_floor_nT):.3g} nT"
         return out + ")"
+
+    def floor_words(self) -> str:
+        """Where the noise the floor is built on came from, in a few words: ``"estimated from the differences of the
+        residuals in time order"``, with the low-frequency part when one was added."""
+        words = _SOURCE_WORDS.get(self.source, self.source)
+        if self.low_frequency_nT is not None and np.any(np.nan_to_num(self.low_frequency_nT) > 0):
+            words += (
+                f", with low-frequency noise of {_values(self.low_frequency_nT)} nT from the still stretches over "
+                f"{self.low_frequency_scale_s:.3g} s"
+            )
+        return words
 
     def to_dict(self) -> dict:
         """JSON-ready figures: ``noise_nT``, ``per_sensor_nT``, ``source``, ``note``, ``static_scatter_nT``,
@@ -131,6 +169,9 @@ class NoiseEstimate:
             "static_noise_nT": _list(self.static_noise_nT),
             "static_scatter_nT": _list(self.static_scatter_nT),
             "quantization_floor_nT": _list(self.quantization_floor_nT),
+            "low_frequency_nT": _list(self.low_frequency_nT),
+            "low_frequency_scale_s": self.low_frequency_scale_s,
+            "left_out": {kind: int(n) for kind, n in self.left_out.items()},
         }
 
 
@@ -202,14 +243,68 @@ def _values(v) -> str:
     return ", ".join("-" if not np.isfinite(x) else f"{x:.3g}" for x in np.asarray(v, float))
 
 
-def fresh_samples(readings_nT) -> np.ndarray:
-    """True for the samples that do not repeat the previous reading exactly (all three axes), shape (N,).
+#: Least share of the fresh samples that must lie on the line between their neighbours, and the factor over the
+#: share white noise would put there by chance, for :func:`interpolated_mask` to call them interpolated.
+INTERPOLATED_MIN_FRACTION = 0.02
+INTERPOLATED_CHANCE_FACTOR = 3.0
 
-    A stale sample (the host polled faster than the part converts) is the previous reading counted twice: its
-    difference with it is zero, which biases a difference estimate of the noise low.
+
+def interpolated_mask(readings_nT, steps_nT=None) -> np.ndarray:
+    """True where a sample lies on the straight line between its neighbours (all three axes), shape (N,): the
+    midpoints a logger inserts when it upsamples a stream by linear interpolation.
+
+    Among the samples that do not repeat the previous one (:func:`magcal.checks.quality.stale_mask`), a sample is
+    on the line when its second difference is within one quantization step of zero on every axis (``steps_nT``,
+    the axes' steps, :func:`quantization_steps_nT`; a millionth of the field's spread without one: an
+    interpolated value rounded to the logger's resolution). White noise puts some real samples there by chance;
+    the samples are called interpolated only when they are at least :data:`INTERPOLATED_MIN_FRACTION` of the
+    record and :data:`INTERPOLATED_CHANCE_FACTOR` times the share the second differences' own spread gives by
+    chance (all False otherwise).
     """
+    y = np.asarray(readings_nT, dtype=float)
+    out = np.zeros(len(y), dtype=bool)
+    index = np.flatnonzero(~stale_mask(y))
+    if index.size < 20:
+        return out
+    x = y[index]
+    steps = quantization_steps_nT(x) if steps_nT is None else steps_nT
+    spread = float(np.sqrt(np.sum(np.var(x, axis=0))))
+    tol = np.array([q if q else 1e-6 * spread for q in steps], dtype=float)
+    d2 = np.abs(x[:-2] - 2.0 * x[1:-1] + x[2:])
+    on_line = np.all(d2 <= tol + 1e-9 * max(spread, 1.0), axis=1)
+    signed = x[:-2] - 2.0 * x[1:-1] + x[2:]
+    # their spread; over the samples off the line when most are on it (the median deviation is then 0)
+    spread_of = signed[~on_line] if on_line.mean() > 0.5 and (~on_line).sum() >= 10 else signed
+    sigma = np.array([robust_sigma(d) for d in spread_of.T])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        chance = float(np.prod(np.where(sigma > 0, erf_share(tol / np.maximum(sigma, 1e-300)), 1.0)))
+    count = int(on_line.sum())
+    if count < max(10, INTERPOLATED_MIN_FRACTION * len(x)) or count < INTERPOLATED_CHANCE_FACTOR * chance * len(x):
+        return out
+    out[index[1:-1][on_line]] = True
+    return out
 
-    return ~stale_mask(readings_nT)
+
+def erf_share(z):
+    """Share of a Gaussian within ``z`` standard deviations of its mean (``erf(z / sqrt 2)``)."""
+    return erf(np.asarray(z, dtype=float) / np.sqrt(2.0))
+
+
+def fresh_samples(readings_nT, steps_nT=None) -> np.ndarray:
+    """True for the samples that are real conversions, shape (N,): not an exact repeat of the previous reading
+    (all three axes) and not on the straight line between its neighbours (:func:`interpolated_mask`).
+
+    A stale sample (the host polled faster than the part converts) is the previous reading counted twice, an
+    interpolated one the mean of its neighbours: their differences are zero, which biases a difference estimate of
+    the noise low.
+    """
+    return ~(stale_mask(readings_nT) | interpolated_mask(readings_nT, steps_nT))
+
+
+def _left_out(readings_nT, fresh) -> dict:
+    """How many samples :func:`fresh_samples` left out, by kind (``repeated``, ``interpolated``)."""
+    stale = stale_mask(readings_nT)
+    return {"repeated": int(stale.sum()), "interpolated": int((~fresh & ~stale).sum())}
 
 
 def quantization_steps_nT(readings_nT) -> list:
@@ -231,7 +326,7 @@ def quantization_floor_nT(readings_nT, steps_nT=None) -> float | None:
     return float(np.sqrt(np.mean(np.square(steps)) / 12.0))
 
 
-def still_noise_nT(dataset, steps_nT=None):
+def still_noise_nT(dataset, steps_nT=None, low_frequency=False):
     """Noise of each sensor measured in its still stretches (:func:`magcal.checks.quality.static_stretches`).
 
     Parameters
@@ -239,39 +334,133 @@ def still_noise_nT(dataset, steps_nT=None):
     dataset : magcal.data.dataset.Dataset
     steps_nT : list, optional
         Per sensor, the axes' quantization steps (:func:`quantization_steps_nT`) when the caller has them.
+    low_frequency : bool
+        Also return, per sensor, the low-frequency noise (nT, NaN without a measure,
+        :func:`low_frequency_noise_nT`) and its longest time scale (s, or None), as two more values.
 
     Returns
     -------
     differences_nT, scatter_nT, samples : numpy.ndarray, shape (n_sensors,)
         Per-axis noise (nT, root mean square over the axes) from the second differences of the readings in the
-        stretches, stale samples dropped and gross jumps clipped (NaN without 10 differences); their scatter
-        about a straight line per stretch (:func:`magcal.checks.quality.static_scatter_nT`, NaN without a stretch); and
-        the number of samples in the stretches.
+        stretches, samples that are not real conversions dropped (:func:`fresh_samples`) and gross jumps clipped
+        (NaN without 10 differences); their scatter about a straight line per stretch
+        (:func:`magcal.checks.quality.static_scatter_nT`, NaN without a stretch); and the number of samples in the
+        stretches.
     """
+    figures = _still_figures(dataset, steps_nT)
+    return figures if low_frequency else figures[:3]
 
-    interval = None
-    if dataset.time_s is not None and dataset.n_samples > 1:
-        dt = np.diff(np.asarray(dataset.time_s, float))
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        interval = float(np.median(dt)) if dt.size else None
+
+def _interval_s(dataset) -> float | None:
+    """The median sampling interval (s) of the dataset, or None without time stamps."""
+    if dataset.time_s is None or dataset.n_samples < 2:
+        return None
+    dt = np.diff(np.asarray(dataset.time_s, float))
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    return float(np.median(dt)) if dt.size else None
+
+
+def _still_figures(dataset, steps_nT=None):
+    """:func:`still_noise_nT`'s figures and, per sensor, the low-frequency noise (nT, NaN without a measure) and
+    its time scale (s, or None): :func:`low_frequency_noise_nT` of the still stretches."""
+
+    interval = _interval_s(dataset)
     ns = dataset.n_sensors
     diff_nT, scatter_nT, samples = np.full(ns, np.nan), np.full(ns, np.nan), np.zeros(ns, int)
+    low_nT, scales = np.full(ns, np.nan), []
     for s in range(ns):
         y = np.asarray(dataset.readings_nT[s], float)
-        stretches = static_stretches(
-            y, window=static_window(len(y), interval), steps_nT=None if steps_nT is None else steps_nT[s]
-        )
+        steps = None if steps_nT is None else steps_nT[s]
+        stretches = static_stretches(y, window=static_window(len(y), interval), steps_nT=steps)
         scatter = static_scatter_nT(y, stretches)
         if scatter is not None:
             scatter_nT[s] = float(np.sqrt(np.mean(np.square(scatter))))
-        fresh = fresh_samples(y)
+        fresh = fresh_samples(y, steps)
         d2 = [np.diff(y[a:b][fresh[a:b]], n=2, axis=0) for a, b in stretches]
         d2 = np.concatenate([d for d in d2 if len(d)], axis=0) if any(len(d) for d in d2) else np.empty((0, 3))
         samples[s] = sum(b - a for a, b in stretches)
+        scale = None
         if len(d2) >= 10:
             variances = [_clipped_mean_square(d2[:, k]) / comb(4, 2) for k in range(3)]
             diff_nT[s] = float(np.sqrt(np.mean(variances)))
-    return diff_nT, scatter_nT, samples
+            scale = _turn_scale_samples(y, fresh, stretches)
+            low_nT[s] = low_frequency_noise_nT(y, stretches, fresh, diff_nT[s], scale)
+        scales.append(None if scale is None else scale * (interval or 1.0))
+    return diff_nT, scatter_nT, samples, low_nT, max((x for x in scales if x is not None), default=None)
+
+
+#: Fewest degrees of freedom (over the stretches and axes) the variance within windows is taken from.
+WINDOW_MIN_DOF = 30
+
+
+def _window_variance(magnitude, stretches, fresh, m) -> tuple:
+    """Variance (nT^2) of the real samples of ``magnitude`` (N,) in the still ``stretches`` about the mean of each
+    window of ``m`` of them, and its degrees of freedom."""
+    total, dof = 0.0, 0
+    for a, b in stretches:
+        x = magnitude[a:b][fresh[a:b]]
+        k = len(x) // m
+        if k < 1:
+            continue
+        windows = x[: k * m].reshape(k, m)
+        total += float(np.sum((windows - windows.mean(axis=1, keepdims=True)) ** 2))
+        dof += k * (m - 1)
+    return (total / dof if dof else float("nan")), dof
+
+
+def low_frequency_noise_nT(y, stretches, fresh, white_nT, scale_samples) -> float:
+    """The slow part of one sensor's noise (nT per axis) its still stretches show, up to ``scale_samples``.
+
+    The variance of the still readings' field magnitude (through the readings' ellipsoid,
+    :func:`magcal.geometry.shape.field_shape`: what a total-field residual sees) about its mean over windows of
+    ``scale_samples`` real samples is all the noise a residual sees over that time (white, flicker, an offset that
+    wanders, a filter's correlation); less the white noise of the second differences ``white_nT^2``, what is left
+    is the slow part (the Allan variance's companion at that scale). The magnitude, not the axes, so that a slow
+    turn of a sensor that was not quite still (it stays on the ellipsoid) does not pass for noise. Counted when
+    clearly above its standard error (three times ``white_nT^2 sqrt(2 / dof)``), else 0; NaN when the stretches are
+    too short to measure it.
+
+    Parameters
+    ----------
+    y : numpy.ndarray, shape (N, 3)
+        One sensor's readings, nT.
+    stretches : list of tuple
+        Still stretches ``(start, stop)``.
+    fresh : numpy.ndarray of bool, shape (N,)
+        The real samples (:func:`fresh_samples`).
+    white_nT : float
+        The white noise per axis (nT) from the second differences.
+    scale_samples : float or None
+        The window, in samples (:func:`_turn_scale_samples`).
+    """
+    if not scale_samples or not np.isfinite(white_nT):
+        return float("nan")
+    m = int(max(round(scale_samples), 3))
+    shape = field_shape(y)
+    variance, dof = _window_variance(row_norm((y - shape.centre_nT) @ shape.cinv.T), stretches, fresh, m)
+    if dof < WINDOW_MIN_DOF or not np.isfinite(variance):
+        return float("nan")
+    excess = variance - white_nT**2
+    return float(np.sqrt(excess)) if excess > 3.0 * white_nT**2 * np.sqrt(2.0 / dof) else 0.0
+
+
+def _turn_scale_samples(y, fresh, stretches) -> float | None:
+    """The samples the record takes to turn its field direction through one radian while it moves (the median
+    angle between consecutive real samples outside the still stretches, about the readings' centre), at most half
+    the longest still stretch; None when it cannot be told."""
+    longest = max((b - a for a, b in stretches), default=0)
+    if longest < 4:
+        return None
+    moving = fresh.copy()
+    for a, b in stretches:
+        moving[a:b] = False
+    x = y[moving]
+    if len(x) < 10:
+        return 0.5 * longest
+    u = x - field_shape(x).centre_nT
+    u /= np.maximum(row_norm(u), 1e-300)[:, None]
+    step = float(np.median(np.arccos(np.clip(np.sum(u[1:] * u[:-1], axis=1), -1.0, 1.0))))
+    return float(min(1.0 / step if step > 0 else np.inf, 0.5 * longest))
 
 
 #: Below this :func:`smoothing_ratio` the readings are taken as smoothed or filtered (white noise gives 1).
@@ -309,16 +498,33 @@ def _difference_sigma(r, fresh):
 _READINGS_FACTS = ReadingsCache(4)
 
 
-def _readings_facts(dataset):
-    """``(still_nT, scatter_nT, still_samples, quantization floors, fresh-sample masks)`` of the dataset's readings,
-    computed once per record (:data:`_READINGS_FACTS`)."""
+@dataclass
+class _Facts:
+    """What :func:`estimate_noise` learns from a record's readings alone (per sensor)."""
+
+    still_nT: np.ndarray
+    scatter_nT: np.ndarray
+    still_samples: np.ndarray
+    floors: list
+    fresh: list
+    low_nT: np.ndarray
+    low_scale_s: float | None
+    left_out: dict
+
+
+def _readings_facts(dataset) -> _Facts:
+    """The still stretches' figures, quantization floors, real-sample masks and low-frequency noise of the
+    dataset's readings (:class:`_Facts`), computed once per record (:data:`_READINGS_FACTS`)."""
     readings, time_s = dataset.readings_nT, dataset.time_s
 
     def compute():
         steps = [quantization_steps_nT(y) for y in readings]
-        still_nT, scatter_nT, still_samples = still_noise_nT(dataset, steps)
+        still_nT, scatter_nT, still_samples, low_nT, scale_s = still_noise_nT(dataset, steps, low_frequency=True)
         floors = [quantization_floor_nT(y, q) for y, q in zip(readings, steps)]
-        return time_s, (still_nT, scatter_nT, still_samples, floors, [fresh_samples(y) for y in readings])
+        fresh = [fresh_samples(y, q) for y, q in zip(readings, steps)]
+        counts = [_left_out(y, f) for y, f in zip(readings, fresh)]
+        left = {kind: max(c[kind] for c in counts) for kind in ("repeated", "interpolated")}
+        return time_s, _Facts(still_nT, scatter_nT, still_samples, floors, fresh, low_nT, scale_s, left)
 
     def same_time(value):
         cached = value[0]
@@ -385,7 +591,14 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
 
     r = np.asarray(residuals_nT, dtype=float)
     ns = r.shape[0]
-    still_nT, scatter_nT, still_samples, floors, fresh = _readings_facts(dataset)
+    facts = _readings_facts(dataset)
+    still_nT, scatter_nT, still_samples, floors, fresh = (
+        facts.still_nT,
+        facts.scatter_nT,
+        facts.still_samples,
+        facts.floors,
+        facts.fresh,
+    )
     static = None if np.all(np.isnan(still_nT)) else still_nT
     scatter = None if np.all(np.isnan(scatter_nT)) else scatter_nT
     q_floor = None if all(f is None for f in floors) else np.array([f or 0.0 for f in floors])
@@ -439,9 +652,15 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
             per.append(sig)
             counts.append(m)
         per, source = np.array(per), "differences"
-        stale = dataset.n_samples - min(counts)
-        if stale > 0:
-            note = f"{stale} stale sample(s) (exact repeats of the previous reading) left out of the differences"
+        if facts.left_out["repeated"]:
+            note = f"{facts.left_out['repeated']} stale sample(s) (exact repeats of the previous reading)"
+        if facts.left_out["interpolated"]:
+            note += (" and " if note else "") + (
+                f"{facts.left_out['interpolated']} interpolated sample(s) (on the line between their neighbours: an "
+                "upsampled stream)"
+            )
+        if note:
+            note += " left out of the differences"
         rel_error = _difference_variance_error(min(counts), min(DIFFERENCE_ORDERS))
     else:
         n = np.isfinite(r).sum(axis=1)
@@ -451,6 +670,15 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
             "no smooth time order, no still stretch and no declared noise: the noise is taken from the "
             "residual RMS, so only structure (not size) can reveal a misfit; give it (--noise NT)"
         )
+    slow = None
+    if source in ("static", "differences") and np.any(np.nan_to_num(facts.low_nT) > 0):
+        slow = np.nan_to_num(facts.low_nT)
+        per = np.sqrt(per**2 + slow**2)
+        note = (note + "; " if note else "") + (
+            f"low-frequency noise of {_values(slow)} nT (the still stretches' variance within "
+            f"{facts.low_scale_s:.3g} s, the time the record takes to turn through a radian, less the white noise) "
+            "added in quadrature"
+        )
     if q_floor is not None and np.any(per < q_floor):
         low = per < q_floor
         per = np.where(low, q_floor, per)
@@ -459,4 +687,16 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
         note = (note + "; " if note else "") + (
             f"the estimate fell below the quantization floor q/sqrt(12) ({np.max(q_floor):.3g} nT) and is held at it"
         )
-    return NoiseEstimate(float(np.sqrt(np.mean(per**2))), per, source, rel_error, note, scatter, q_floor, static)
+    return NoiseEstimate(
+        float(np.sqrt(np.mean(per**2))),
+        per,
+        source,
+        rel_error,
+        note,
+        scatter,
+        q_floor,
+        static,
+        slow,
+        facts.low_scale_s if slow is not None else None,
+        dict(facts.left_out),
+    )

@@ -13,14 +13,17 @@
    second effect the same way;
 4. warns when candidates are **confounded** (canonical correlation of their projected Jacobians, temperature
    following time, cubic nonlinearity versus cross-field coupling...);
-5. gives a **verdict**: ``adequate`` (no significant structure left), ``missing_effect`` (catalogue terms bring the
+5. gives a **verdict**: ``adequate`` (no significant structure left, or the RMS at most 10 % over the floor and
+   nothing else), ``missing_effect`` (catalogue terms bring the
    residuals down to the noise) or ``unexplained`` (significant structure no catalogue term removes, described).
 
 Noise
     The verdict needs the noise level independently of the model's misfit. Along a smooth trajectory a missing
     effect changes slowly from sample to sample while the noise does not, so the noise is estimated from the
     second differences of the residuals in time order (``var(d2 r) = 6 sigma^2`` for white noise), with gross
-    jumps clipped. When the samples are not in a smooth order (random attitudes), the dataset's declared
+    jumps clipped, over the samples that are real conversions (repeats and interpolated samples left out), with
+    the slow part of the noise the still stretches show added (:mod:`magcal.checks.noise`). When the samples are
+    not in a smooth order (random attitudes), the dataset's declared
     ``noise_nT`` is used, and failing that the residual RMS itself (then a misfit cannot be told from noise by
     its size, only by its structure; a warning says so).
 

@@ -30,7 +30,14 @@ def _evidence_line(c: Candidate, extra: str = "") -> str:
     if extra:
         parts.append(extra)
     parts.append(SIGNATURES.get(c.effect, ""))
+    if c.instances and getattr(c.instances[0], "ellipsoid_cinv", None) is not None:
+        parts.append(DENOISED_WORDS)
     return "; ".join(p for p in parts if p)
+
+
+#: What the evidence line says of a term whose basis is evaluated on the denoised readings
+#: (:class:`magcal.model.effects._PowerNonlinearity`): its gain is not the noise's.
+DENOISED_WORDS = "basis from the denoised readings (the noise along the field is not fitted)"
 
 
 def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:

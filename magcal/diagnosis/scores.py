@@ -718,6 +718,38 @@ def _delta_bic(fit0, fit1, extra_dof, coupled):
     return float(m_eff * np.log(fit1.rss / fit0.rss) + dk * np.log(m_eff))
 
 
+#: A candidate whose score test predicts a delta-BIC below this is predicted to be supported (the diagnosis's
+#: threshold of very strong evidence, :data:`magcal.diagnosis.verdict.DELTA_BIC_THRESHOLD`).
+PREDICTED_SUPPORT_DELTA_BIC = -10.0
+
+
+def search_order(cands, top) -> list:
+    """The ``top`` distinct effects to refit, from candidates ranked by their predicted delta-BIC.
+
+    The ranking, except that the best instrument term predicted to be supported (a nonlinearity, a temperature
+    coefficient, a timing skew, hysteresis: a term that carries to new data) always has a place, the last one if
+    the ranking leaves it out: record-only terms (a drift, a step, the reference's change) take whatever changes in
+    time, the noise's wander included, and often rank first; an instrument term that would hold, ranked below
+    three of them, was never refitted at the default ``top``. Giving every instrument term precedence instead let
+    temperature terms that follow time take a strong drift's place. A single place (``top`` 1: the forward
+    selection's later rounds) goes to the best predicted, whatever it is.
+    """
+    distinct, seen = [], set()
+    for c in cands:
+        if c.effect not in seen:
+            seen.add(c.effect)
+            distinct.append(c)
+    chosen = distinct[:top]
+    if top < 2:
+        return chosen
+    instrument = next(
+        (c for c in distinct if not c.record_only and c.predicted_delta_bic < PREDICTED_SUPPORT_DELTA_BIC), None
+    )
+    if instrument is not None and all(c is not instrument for c in chosen):
+        chosen[-1] = instrument
+    return chosen
+
+
 def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, after_refit=None, beside_refit=None):
     """Refit the best variant of the ``top`` best distinct effects (from the start their score test predicts,
     :meth:`_Projector.start`); re-rank.
@@ -729,14 +761,7 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
     called with ``pool`` for each candidate to refit (its start set) before the refits are handed over, may hand
     the pool work that needs the candidate but not its refit, to run beside it (below the refits' priority).
     """
-    chosen, seen = [], set()
-    for c in cands:
-        if c.effect in seen:
-            continue
-        seen.add(c.effect)
-        chosen.append(c)
-        if len(chosen) >= top:
-            break
+    chosen = search_order(cands, top)
     for c in chosen:
         if c.projector is not None and c.projector.g.problem is not None:
             try:

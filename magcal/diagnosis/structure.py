@@ -226,7 +226,9 @@ def _consistency_tests(s, v, glitch, noise, ordered, alpha, st) -> list:
     v[glitch] = 0.0
     comps = min(v.shape[1], 2)
     vr = float(np.sum(v**2) / (keep.sum() * comps))
-    ratio_v = vr / noise.per_sensor_nT.mean() ** 2
+    # against the RMS of the sensors' noise: a consistency residual is the deviation from the mean of the sensors'
+    # fields, whose variance is the mean of their variances (the mean sigma understates it for unequal sensors)
+    ratio_v = vr / float(np.mean(np.square(noise.per_sensor_nT)))
     zv = (ratio_v - 1.0) / np.sqrt(1.0 / n + noise.relative_variance_error**2)
     st.update(vector_rms_nT=float(np.sqrt(vr)), vector_variance_ratio=ratio_v)
     if noise.source != "residuals" and zv > stats.norm.isf(alpha) and ratio_v > 1 + 2 * STRUCTURE_MIN_FRACTION:

@@ -3,7 +3,8 @@
 :func:`diagnose` fits (or takes) a model, runs the score tests (:mod:`.scores`), confirms the best candidates
 by refitting, adds supported effects one after the other while the structure tests (:mod:`.structure`) still
 find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`: ``adequate`` (no significant
-structure left), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
+structure left, or only an excess over the floor of at most :data:`AT_FLOOR_FRACTION`: "at the noise floor within
+x %"), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
 (significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
 below :data:`DELTA_BIC_THRESHOLD`. :func:`_warnings_for` says when candidates are confounded.
 
@@ -48,6 +49,7 @@ from magcal.diagnosis.evidence import (
     _time_evidence,
 )
 from magcal.diagnosis.scores import (
+    PREDICTED_SUPPORT_DELTA_BIC,
     Candidate,
     _confirm,
     _num,
@@ -68,7 +70,12 @@ from magcal.model.terms import EFFECTS, EffectTexts
 VERDICTS = ("adequate", "missing_effect", "unexplained")
 
 #: A candidate (or a refit) is supported when its delta-BIC is below this.
-DELTA_BIC_THRESHOLD = -10.0
+DELTA_BIC_THRESHOLD = PREDICTED_SUPPORT_DELTA_BIC
+
+#: A fit whose only structure left is an excess of the RMS over the noise floor of at most this fraction is
+#: ``adequate``, "at the floor within x %": the floor itself is known to about that (white and low-frequency noise,
+#: filtering, a stream's resolution), and no catalogue term would be advice for so little.
+AT_FLOOR_FRACTION = 0.10
 
 
 @dataclass
@@ -1207,20 +1214,39 @@ def _verdict(ctx: DiagnosisContext) -> None:
     fit0, noise0, explained = ctx.fit0, ctx.noise0, ctx.explained
     supported0 = [c for c in ctx.cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
     ctx.noise_final = ctx.current_noise if explained else noise0
+    at_floor = _within_floor(ctx.remaining if explained else ctx.structure0)
     if not ctx.structure0 and not supported0:
         ctx.verdict = "adequate"
         ctx.summary = (
             f"no significant structure: the residuals ({fit0.rms_nT:.3g} nT RMS) look like noise of "
-            f"{noise0.sigma_nT:.3g} nT"
+            f"{noise0.sigma_nT:.3g} nT ({noise0.floor_words()})"
         )
-    elif explained and not ctx.remaining:
+    elif explained and (not ctx.remaining or at_floor is not None):
         ctx.verdict = "missing_effect"
         ctx.summary = _missing_summary(ctx)
+        if at_floor is not None:
+            ctx.summary += f" (at the noise floor within {100 * at_floor:.0f} %)"
+    elif not explained and at_floor is not None and not ctx.undetermined:
+        ctx.verdict = "adequate"
+        ctx.summary = (
+            f"at the noise floor within {100 * at_floor:.0f} %: the residuals ({fit0.rms_nT:.3g} nT RMS) exceed the "
+            f"floor of noise {noise0.sigma_nT:.3g} nT ({noise0.floor_words()}) by no more, with no structure in "
+            "time or over the field direction, and no catalogue term that holds on held-out data brings them lower"
+        )
     else:
         ctx.verdict = "unexplained"
         ctx.summary = _unexplained_summary(ctx)
     if ctx.units:
         ctx.summary = f"{ctx.units.split('. ')[0]}; {ctx.summary}"
+
+
+def _within_floor(structures) -> float | None:
+    """The largest excess of the RMS over the floor (a fraction) when every structure left is such an excess of
+    at most :data:`AT_FLOOR_FRACTION`, else None."""
+    if not structures or any(st.kind != "excess" for st in structures):
+        return None
+    excess = max(float(np.sqrt(st.size)) - 1.0 for st in structures)
+    return excess if excess <= AT_FLOOR_FRACTION else None
 
 
 def _missing_summary(ctx: DiagnosisContext) -> str:

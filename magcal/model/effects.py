@@ -42,6 +42,7 @@ from magcal.core.readings_cache import ReadingsCache
 from magcal.core.stats import savgol, savgol_derivative
 from magcal.core.vectors import row_norm
 from magcal.data.attitude import turn_rate_dps
+from magcal.geometry.shape import field_shape
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
 from magcal.model.perturbations import catalogue_perturbation
 from magcal.model.terms import Context, Domain, Effect, SingleAxisBasis, register, term_label
@@ -1054,6 +1055,16 @@ class _PowerNonlinearity(CatalogueEffect):
     data-derived constant (:attr:`field_magnitude_nT`, saved with the calibration) set by :meth:`configure`;
     without it (an effect never configured, a calibration file written before) ``F`` is 50 uT
     (:data:`NONLINEARITY_REFERENCE_NT`).
+
+    The basis is evaluated on the *denoised* reading, not the noisy sample: ``z0`` scaled along its own direction
+    onto the readings' ellipsoid, ``z0 F / |M z0|`` (``M`` the ellipsoid's correction scaled to ``F``,
+    :attr:`ellipsoid_cinv`, from :func:`magcal.geometry.shape.field_shape` in :meth:`configure`), i.e. the reading
+    the fitted model predicts from the sample's field direction. A power of the noisy reading correlates with the
+    reading's own noise along the field (``d(z^3)/dz = 3 z^2``), so a fit of it compresses the noise where an axis
+    is large: at noise of ~1 % of the field it lowers the RMS, on held-out samples too, with no nonlinearity at
+    all. The denoised reading keeps only the noise across the field, which the total field does not see to first
+    order. An effect without :attr:`ellipsoid_cinv` (a calibration file written before it was kept) uses the
+    readings themselves.
     """
 
     stage: ClassVar[str] = "raw"
@@ -1065,6 +1076,10 @@ class _PowerNonlinearity(CatalogueEffect):
 
     #: The field magnitude (nT) the parameters are quoted at; None: 50 uT.
     field_magnitude_nT: float | None = None
+    #: Per sensor, the 3x3 matrix ``M`` (dimensionless, nested lists, or None) with ``|M z0| = F`` on the
+    #: readings' ellipsoid: the basis is a power of ``z0 / |M z0|`` (the denoised reading over ``F``). None: the
+    #: noisy reading ``z0 / F``.
+    ellipsoid_cinv: list | None = None
 
     def param_names(self):
         return [f"{self.symbol}_{a}_nT" for a in _AXES]
@@ -1092,18 +1107,32 @@ class _PowerNonlinearity(CatalogueEffect):
         return f"nT at {(field_nT or self.quoted_at_nT) / 1000.0:.3g} uT"
 
     def configure(self, dataset, residuals_nT=None):
-        self.field_magnitude_nT = data_field_magnitude_nT(dataset)
+        self.field_magnitude_nT = field = data_field_magnitude_nT(dataset)
+        self.ellipsoid_cinv = [
+            _READINGS_CACHE.get(y, ("denoising shape", field), lambda y=y: _denoising_cinv(y, field))
+            for y in np.asarray(dataset.readings_nT, dtype=float)
+        ]
 
     def state(self):
-        return {"field_magnitude_nT": self.field_magnitude_nT}
+        return {"field_magnitude_nT": self.field_magnitude_nT, "ellipsoid_cinv": self.ellipsoid_cinv}
 
     def set_state(self, state):
         self.field_magnitude_nT = _state_number(
             self, state, "field_magnitude_nT", positive=True, what="of nT: the field the parameters are quoted at"
         )
+        self.ellipsoid_cinv = _state_matrices(self, state, "ellipsoid_cinv")
+
+    def _denoised_over_field(self, z0, sensor):
+        """``z0 / |M z0|`` (the denoised reading over ``F``, class docstring) or ``z0 / F`` without ``M``."""
+        shapes = self.ellipsoid_cinv
+        m = shapes[sensor] if shapes is not None and sensor < len(shapes) else None
+        if m is None:
+            return z0 / self.quoted_at_nT
+        norm = row_norm(z0 @ np.asarray(m, dtype=float).T)
+        return z0 / np.maximum(norm, 1e-300)[:, None]
 
     def raw_basis(self, z0, ctx: Context):
-        u = z0 / self.quoted_at_nT
+        u = self._denoised_over_field(np.asarray(z0, dtype=float), ctx.sensor)
         power = u.copy()
         for _ in range(self.order - 1):  # repeated products: numpy's general power is ~10x slower for a cube
             power *= u
@@ -1131,6 +1160,39 @@ class _PowerNonlinearity(CatalogueEffect):
             f"an axis reading the whole field of the data, {_field_text(field)}, is off by {_axes_text(k)} nT = "
             f"{_axes_text(1e6 * k / field, '{:.0f}')} ppm{note}"
         )
+
+
+def _denoising_cinv(readings_nT, field_nT) -> list:
+    """``M`` of :class:`_PowerNonlinearity` for one sensor's readings (N, 3): the correction of their ellipsoid
+    (:func:`magcal.geometry.shape.field_shape`; a sphere when no ellipsoid is determined) scaled so that
+    ``|M (y - b)| = field_nT`` on it, as nested lists (dimensionless)."""
+    shape = field_shape(readings_nT)
+    if not (np.isfinite(shape.field_nT) and shape.field_nT > 0):
+        return np.eye(3).tolist()
+    return (np.asarray(shape.cinv, dtype=float) * (field_nT / shape.field_nT)).tolist()
+
+
+def _state_matrices(effect, state, key):
+    """``state[key]``: per sensor a 3x3 matrix of finite numbers (nested lists) or None; None when absent; else
+    a clear error naming the term and the key."""
+    value = state.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, (list, tuple)):
+        raise MagcalError(f"{effect.label}: {key} must be a list (one 3x3 matrix per sensor, or null), got {value!r}")
+    out = []
+    for s, m in enumerate(value):
+        if m is None:
+            out.append(None)
+            continue
+        try:
+            matrix = np.asarray(m, dtype=float)
+        except (TypeError, ValueError):
+            matrix = np.full(1, np.nan)
+        if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
+            raise MagcalError(f"{effect.label}: {key} of sensor {s + 1} must be a 3x3 matrix of numbers, got {m!r}")
+        out.append(matrix.tolist())
+    return out
 
 
 def data_field_magnitude_nT(dataset) -> float:
