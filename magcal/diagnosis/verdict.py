@@ -569,8 +569,20 @@ def _attempt(call):
 
 
 def _to_validate(c) -> bool:
-    """Whether a candidate's held-out fits are wanted: refitted, supported in-sample, not yet judged."""
-    return c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None
+    """Whether a candidate's held-out fits are wanted: refitted, supported in-sample, not yet judged, and a term
+    that can predict a held-out block (:func:`_in_sample_only`)."""
+    return (
+        c.refitted and c.delta_bic < DELTA_BIC_THRESHOLD and c.fit is not None and c.holds is None
+        and not _in_sample_only(c)
+    )
+
+
+def _in_sample_only(c) -> bool:
+    """A term that follows the record within seconds (``Effect.held_out_blocks`` False: a series with knots every
+    few seconds) has nothing to say inside a held-out block of 10 s or more: it is judged in-sample by its
+    delta-BIC, and ranks with the candidates that hold on held-out data."""
+    cls = EFFECTS.get(c.effect)
+    return cls is not None and not getattr(cls, "held_out_blocks", True) and c.refitted and c.converged
 
 
 def _held_out_fits(pool, held_out, base_fit, c, priority=CHAIN, skip=()) -> dict:
@@ -690,8 +702,8 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes
                     warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
                 if warning:
                     notes.append(warning)
-    held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
-    rest = sorted([c for c in cands if c.refitted and not c.holds], key=lambda c: c.delta_bic)
+    held = sorted([c for c in cands if c.refitted and (c.holds or _in_sample_only(c))], key=lambda c: c.delta_bic)
+    rest = sorted([c for c in cands if c.refitted and not (c.holds or _in_sample_only(c))], key=lambda c: c.delta_bic)
     return held + rest + [c for c in cands if not c.refitted]
 
 
