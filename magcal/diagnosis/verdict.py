@@ -57,6 +57,7 @@ from magcal.diagnosis.scores import (
     gram_task,
     refit_task,
 )
+from magcal.diagnosis.jitter import jitter_estimates, jitter_words
 from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
@@ -103,6 +104,10 @@ class Diagnosis:
         interference, a changing or non-uniform field: :attr:`magcal.model.terms.Effect.transferable` False)
         and terms that describe the record but do not improve it on its later part. The summary says what to do
         about each when recording.
+    variance_terms : list of dict
+        Variance terms estimated from the residuals' variance (:mod:`magcal.diagnosis.jitter`): per sensor 2-4 of an
+        array with time stamps, ``sensor_jitter`` with ``jitter_rms_ms`` and ``significant`` (named in the summary
+        and the warnings when significant).
     record_details : list of dict
         Per ``record_holds`` entry: ``label``, ``record_only``, ``describes_record``, ``improves_new_data``, the
         later stretch's RMS before and after (nT), ``kept_for_new_data`` (what the calibration keeps when the
@@ -160,6 +165,7 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     record_holds: list = field(default_factory=list)
     record_details: list = field(default_factory=list)
+    variance_terms: list = field(default_factory=list)
 
     @property
     def noise_nT(self) -> float:
@@ -193,6 +199,7 @@ class Diagnosis:
             "validation": jsonable(self.validation),
             "record_holds": list(self.record_holds),
             "record_details": jsonable(self.record_details),
+            "variance_terms": jsonable(self.variance_terms),
         }
 
     def where_text(self) -> str:
@@ -1287,6 +1294,10 @@ def _explain(ctx: DiagnosisContext) -> Diagnosis:
     if chosen:
         ctx.fits["+".join(c.label for c in chosen)] = ctx.current
     n_sensors = kept.n_sensors
+    variance_terms = jitter_estimates(_kept(ctx.dataset, ctx.current), ctx.current)
+    jitters = [jitter_words(v) for v in variance_terms if v["significant"]]
+    if jitters:
+        summary += "; " + "; ".join(jitters)
     return Diagnosis(
         verdict=ctx.verdict,
         summary=summary,
@@ -1311,6 +1322,7 @@ def _explain(ctx: DiagnosisContext) -> Diagnosis:
         notes=_notes.unique(ctx.fit_notes),
         record_holds=[c.label for c in holds_here],
         record_details=[_record_detail(c) for c in holds_here],
+        variance_terms=variance_terms,
     )
 
 
