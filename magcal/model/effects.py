@@ -1834,6 +1834,14 @@ WANDER_MAX_KNOTS = 60
 WANDER_SAMPLES_PER_KNOT = 20
 #: Knots of an effect not yet configured (what the catalogue lists; a fit sets them from the record).
 WANDER_DEFAULT_KNOTS = 7
+#: The field direction turns by at least this much (deg, median) between two knots: a series of knots closer than
+#: the sensor turns follows any direction pattern times a slow function of time (a temperature bias on a slow turn),
+#: so the knots are spread to this turn at least. What tells a field change from an offset wander, and both from
+#: the direction patterns of the other terms, is the directions the sensor sweeps between two knots.
+WANDER_TURN_PER_KNOT_DEG = 120.0
+#: Lag (s) over which the turn rate of the field direction is measured (longer than the noise's sample-to-sample
+#: wobble of the direction).
+TURN_RATE_LAG_S = 0.5
 
 
 def wander_knots(time_s, spacing_s=WANDER_KNOT_SPACING_S, max_knots=WANDER_MAX_KNOTS) -> np.ndarray:
@@ -1859,6 +1867,32 @@ def hat_columns(time_s, knots_s, degree=1) -> np.ndarray:
     return BSpline.design_matrix(t, full, int(degree)).toarray()
 
 
+def median_turn_rate_dps(readings_nT, time_s) -> float:
+    """The median rate (deg/s) at which the direction of the readings (about their mean) turns, measured over
+    :data:`TURN_RATE_LAG_S`; NaN without two distinct times."""
+    y = np.asarray(readings_nT, dtype=float)
+    t = np.asarray(time_s, dtype=float)
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    if not step > 0:
+        return float("nan")
+    lag = int(np.clip(round(TURN_RATE_LAG_S / step), 1, max(len(t) - 1, 1)))
+    u = y - y.mean(axis=0)
+    u /= np.maximum(row_norm(u), 1e-12)[:, None]
+    angle = np.degrees(np.arccos(np.clip(np.sum(u[lag:] * u[:-lag], axis=1), -1.0, 1.0)))
+    dt = t[lag:] - t[:-lag]
+    ok = dt > 0
+    return float(np.median(angle[ok] / dt[ok])) if np.any(ok) else float("nan")
+
+
+def series_spacing_s(dataset, spacing_s=WANDER_KNOT_SPACING_S) -> float:
+    """The knot spacing (s) of a series on this record: ``spacing_s``, or the time the field direction takes to turn
+    by :data:`WANDER_TURN_PER_KNOT_DEG` at its median rate when that is longer (sensor 1's readings)."""
+    rate = median_turn_rate_dps(dataset.readings_nT[0], dataset.time_s)
+    if not np.isfinite(rate) or rate <= 0:
+        return float(spacing_s)
+    return float(max(spacing_s, WANDER_TURN_PER_KNOT_DEG / rate))
+
+
 @dataclass
 class _KnotSeries(CatalogueEffect):
     """Shared by the terms that follow a quantity through the record as a B-spline series ``sum_k c_k h_k(t)``
@@ -1866,6 +1900,9 @@ class _KnotSeries(CatalogueEffect):
     (default, hat functions) or 3 (cubic B-splines). The hats are the default: each coefficient acts on two knot
     intervals only, so an offset series stays local; a cubic series' wider, overlapping columns let an offset
     run away along a short arc of directions (on a slow turn, tens of uT on a record with none).
+
+    The knots are :attr:`knot_spacing_s` apart, or further where the sensor turns slowly: the field direction turns
+    by :data:`WANDER_TURN_PER_KNOT_DEG` between two knots at least (:func:`series_spacing_s`).
 
     The B-splines sum to 1, so a constant is the base model's (the bias, the field ``F0``): the first one is dropped
     and every other column has its mean over the fitted record removed (kept as ``offsets``), so that the series
@@ -1892,7 +1929,8 @@ class _KnotSeries(CatalogueEffect):
         return knots - 2 + int(self.degree)
 
     def configure(self, dataset, residuals_nT=None):
-        self.knots_s = wander_knots(dataset.time_s, self.knot_spacing_s, self.max_knots).tolist()
+        spacing = series_spacing_s(dataset, self.knot_spacing_s)
+        self.knots_s = wander_knots(dataset.time_s, spacing, self.max_knots).tolist()
         self.offsets = hat_columns(dataset.time_s, self.knots_s, self.degree)[:, 1:].mean(axis=0).tolist()
 
     def state(self):
@@ -1974,7 +2012,7 @@ class FieldChange(_KnotSeries):
     )
     stage: ClassVar[str] = "reference"
     per_sensor: ClassVar[bool] = False
-    description: ClassVar[str] = "the total field changing within seconds, F(t) = F0 + g(t), splines, knots every few s [nT]"
+    description: ClassVar[str] = "the total field changing within seconds, F(t) = F0 + g(t), hats every few s [nT]"
     default_magnitude: ClassVar[float] = 20.0
     magnitude_unit: ClassVar[str] = "nT"
     kept_for_new_data: ClassVar[str] = "the field's mean over the fitted record"
@@ -2015,7 +2053,7 @@ class OffsetWander(_KnotSeries):
     stage: ClassVar[str] = "raw"
     #: The vector calibration has its own drift terms; its diagnosis does not test this one.
     modes: ClassVar[tuple] = ("scalar",)
-    description: ClassVar[str] = "the instrument's offset wandering within seconds, y += b(t), splines, knots every few s [nT]"
+    description: ClassVar[str] = "the instrument's offset wandering within seconds, y += b(t), hats every few s [nT]"
     default_magnitude: ClassVar[float] = 20.0
     magnitude_unit: ClassVar[str] = "nT"
     kept_for_new_data: ClassVar[str] = "the bias at the fitted record's mean (the wander's mean over the record)"

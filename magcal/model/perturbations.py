@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.ndimage import gaussian_filter1d
 
 from magcal.core.errors import MagcalError
 from magcal.model.operators import NONLINEARITY_REFERENCE_NT, gradient_matrix, play_operator
@@ -333,14 +334,19 @@ def _periodic_interference(
     return readings
 
 
+#: Time scale (s) of the simulator's wander: a random walk smoothed by a Gaussian of this width.
+WANDER_SMOOTHING_S = 5.0
+
+
 def _wander(time_s, index=0) -> np.ndarray:
-    """A smooth wander of peak 1 over the record: three sines of periods 20-60 s whose phases follow ``index`` (an
-    axis or a sensor), so that each wanders its own way."""
-    t = np.asarray(time_s, dtype=float) - float(time_s[0])
-    w = sum(
-        a * np.sin(2 * np.pi * t / period + 1.7 * index + k)
-        for k, (a, period) in enumerate(((1.0, 60.0), (0.6, 33.0), (0.35, 20.0)))
-    )
+    """A smooth wander of peak 1 over the record, as a hand-held path or a part warming up gives: a random walk
+    (its own for each ``index``, an axis or a sensor; the same for every simulation) smoothed over
+    :data:`WANDER_SMOOTHING_S`, mean removed. Not periodic, so that no spectral line stands for it."""
+    t = np.asarray(time_s, dtype=float)
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    walk = np.cumsum(np.random.default_rng(1000 + int(index)).normal(size=len(t)))
+    w = gaussian_filter1d(walk, WANDER_SMOOTHING_S / max(step, 1e-9), mode="nearest")
+    w -= w.mean()
     return w / max(float(np.max(np.abs(w))), 1e-12)
 
 
