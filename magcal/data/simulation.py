@@ -394,7 +394,7 @@ def simulate_timeseries(
     truth, n_samples, noise_nT, noise_kind = _resolve(truth, n_samples, noise_nT, noise_kind)
     rng = np.random.default_rng(seed)
     t = np.arange(n_samples) / float(rate_hz)
-    rates = (0.31, 0.11, 0.23) * rng.uniform(0.85, 1.15, size=3) * float(turn_rate)
+    rates = np.array((0.31, 0.11, 0.23)) * rng.uniform(0.85, 1.15, size=3) * float(turn_rate)
     att = Rotation.from_euler("ZYX", rng.uniform(-np.pi, np.pi, 3)) * smooth_trajectory(t + rng.uniform(0, 50), rates)
     duration = max(t[-1], 1e-9)
     mean, half = temperature_C
