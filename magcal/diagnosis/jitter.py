@@ -11,8 +11,8 @@ with the turn rate squared,
 takes the perpendicular part of each sensor's corrected field minus sensor 1's, removes a constant delay (the
 catalogue's ``sensor_timing_skew``, whose difference ``dt dB/dt`` has a mean), and fits ``a`` and ``tau^2`` by
 weighted least squares (weights ``1 / E^2``: a squared Gaussian residual's spread is its mean). The diagnosis
-names the catalogue's ``sensor_jitter`` with ``tau`` in ms when ``tau^2`` is significant and the jitter is a
-visible part of the fastest quartile's residual (:data:`JITTER_MIN_Z`, :data:`JITTER_MIN_SHARE`).
+names the catalogue's ``sensor_jitter`` with ``tau`` in ms when ``tau^2`` is significant (a likelihood ratio) and
+the jitter is a visible part of the fastest quartile's residual (:data:`JITTER_MIN_Z`, :data:`JITTER_MIN_SHARE`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ from magcal.core.vectors import row_norm, unit_rows
 from magcal.diagnosis._fitted import _model_fields
 from magcal.model.effects import time_derivative
 
-#: Fewest standard errors of ``tau^2`` above zero for a jitter to be named.
+#: Least likelihood-ratio statistic (the square root of the ratio, standard normal without a jitter) of ``tau^2``
+#: for a jitter to be named.
 JITTER_MIN_Z = 6.0
 #: ...and the least share of the fastest turn-rate quartile's residual variance the jitter must make.
 JITTER_MIN_SHARE = 0.1
@@ -56,6 +57,12 @@ def _weighted_line(x, y, iterations=4):
     return a, c, se
 
 
+def _exponential_loglik(y, mean) -> float:
+    """Log-likelihood of squared residuals ``y`` exponential about ``mean`` (the weighted fit's model)."""
+    mean = np.maximum(mean, 1e-12)
+    return float(-np.sum(np.log(mean) + y / mean))
+
+
 def _by_quartile(rate, values):
     """Edges of the turn-rate quartiles and the RMS of ``values`` (per-sample vectors' lengths) in each."""
     edges = np.quantile(rate, [0.0, 0.25, 0.5, 0.75, 1.0])
@@ -76,7 +83,8 @@ def jitter_estimate(field_ref_nT, field_nT, time_s) -> dict | None:
     Returns
     -------
     dict or None
-        ``jitter_rms_ms`` (tau), ``jitter_se_ms``, ``z`` (tau^2 over its standard error), ``delay_ms`` (the constant
+        ``jitter_rms_ms`` (tau), ``jitter_se_ms``, ``z`` (the square root of the likelihood ratio of ``tau^2``
+        against none, ``|e|^2`` exponential about its mean: standard normal without a jitter), ``delay_ms`` (the constant
         delay removed first), ``noise_nT`` (``sqrt(a / 2)``, per perpendicular component), the turn-rate quartiles
         (``rate_quartiles_dps``, edges) and the inter-sensor residual's RMS in each (``rms_by_rate_quartile_nT``),
         ``share_fastest`` (the jitter's share of the fastest quartile's residual variance) and ``significant``;
@@ -101,7 +109,10 @@ def jitter_estimate(field_ref_nT, field_nT, time_s) -> dict | None:
     jitter_var = c * float(np.mean(x[fastest])) if np.any(fastest) else 0.0
     share = jitter_var / max(jitter_var + a, 1e-12)
     tau_ms = 1e3 * np.sqrt(c)
-    z = c / se if se > 0 and np.isfinite(se) else 0.0
+    # significance: the likelihood ratio of tau^2 against none, |e|^2 being exponential about its mean (two
+    # Gaussian components across the field); sqrt of the ratio is standard normal without a jitter
+    ratio = 2.0 * (_exponential_loglik(y, a + c * x) - _exponential_loglik(y, np.full_like(y, np.mean(y))))
+    z = float(np.sqrt(max(ratio, 0.0)))
     return {
         "jitter_rms_ms": float(tau_ms),
         "jitter_se_ms": float(1e3 * se / (2.0 * np.sqrt(c))) if c > 0 and np.isfinite(se) else float("inf"),
