@@ -13,7 +13,9 @@ with the gain over the base model (percent of the RMS) and the delta-BIC of each
 (``m ln(RSS/m) + k ln m``, the diagnosis's criterion; the term is supported below -10), the floor (the noise from the
 residuals' second differences, :func:`magcal.checks.noise.estimate_noise`), and, for the two-sensor board (ads_rm3100
 and ads_icm20948 read on one payload), the sampling jitter of the ICM-20948 against the RM3100 under the base model
-and under ``offset_wander`` (:func:`magcal.diagnosis.jitter.jitter_estimates`). It also prints what the data-quality
+and under ``offset_wander`` (:func:`magcal.diagnosis.jitter.jitter_estimates`), and how samples revisiting one field
+direction (within 5 deg) drift apart with the time between the visits under each model (:func:`revisit_drift`).
+It also prints what the data-quality
 check before the fit says of a part in another field (:func:`magcal.checks.quality.other_field_finding`).
 
 Usage::
@@ -37,6 +39,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -44,6 +47,7 @@ from magcal.checks.noise import estimate_noise
 from magcal.checks.quality import other_field_finding
 from magcal.data import io
 from magcal.data.dataset import Dataset
+from magcal.diagnosis._fitted import _sensor_directions
 from magcal.diagnosis.jitter import jitter_estimates
 from magcal.fitting.pipeline import calibrate
 
@@ -79,10 +83,30 @@ def bic(fit) -> float:
     return float(m * np.log(np.sum(r**2) / m) + fit.n_params * np.log(m))
 
 
+def revisit_drift(fit, ds, max_angle_deg=5.0, most=200_000) -> list:
+    """Samples revisiting one field direction (within ``max_angle_deg``, sensor 1's corrected field): the RMS (nT)
+    of their total-field residuals' difference by quartile of the time between the two visits, and the quartiles'
+    upper edges (s). A field or an offset that changes in time makes revisits drift apart with the time between."""
+    kept = ds.masked(fit.mask)
+    directions, _ = _sensor_directions(kept, fit)
+    u, r, t = directions[0], fit.residuals_nT[0, fit.mask], kept.time_s
+    chord = 2.0 * np.sin(np.radians(max_angle_deg) / 2.0)
+    pairs = cKDTree(u).query_pairs(chord, output_type="ndarray")
+    if len(pairs) > most:
+        pairs = pairs[np.random.default_rng(0).choice(len(pairs), most, replace=False)]
+    gap = np.abs(t[pairs[:, 1]] - t[pairs[:, 0]])
+    far = gap > 1.0  # not the same pass
+    gap, diff = gap[far], (r[pairs[:, 1]] - r[pairs[:, 0]])[far]
+    edges = np.quantile(gap, [0.25, 0.5, 0.75, 1.0])
+    which = np.searchsorted(edges, gap, side="left")
+    return [(float(edges[q]), float(np.sqrt(np.mean(diff[which == q] ** 2)))) for q in range(4)]
+
+
 def study_half(ds) -> dict:
     base = calibrate(ds).fit
     noise = estimate_noise(ds.masked(base.mask), base.residuals_nT[:, base.mask], base.n_params)
     row = {"n": ds.n_samples, "duration_s": float(ds.time_s[-1] - ds.time_s[0]), "base": base.rms_nT}
+    row["revisits_base"] = revisit_drift(base, ds)
     row["floor"] = float(noise.sigma_nT)
     b0 = bic(base)
     fits = {}
@@ -92,6 +116,8 @@ def study_half(ds) -> dict:
         row[term] = fit.rms_nT
         row[f"{term}_dbic"] = bic(fit) - b0
         row[f"{term}_k"] = fit.n_params - base.n_params
+    for term in ("field_change", "offset_wander"):
+        row[f"revisits_{term}"] = revisit_drift(fits[term], ds)
     wander = fits["offset_wander"]
     effect = wander.model.effects[0]
     row["wander_quote"] = "; ".join(
@@ -135,6 +161,10 @@ def main(argv=None) -> int:
                 + " |"
             )
             print(f"    field_change: {row['field_quote']}; offset_wander: {row['wander_quote']}")
+            for key in ("base", "field_change", "offset_wander"):
+                drift = ", ".join(f"{v:.0f}" for _, v in row[f"revisits_{key}"])
+                tops = ", ".join(f"{e:.0f}" for e, _ in row[f"revisits_{key}"])
+                print(f"    revisits within 5 deg ({key}): residual difference {drift} nT at time apart up to {tops} s")
             for key in ("jitter_base", "jitter_wander"):
                 if key in row:
                     j = row[key]
