@@ -21,6 +21,9 @@ each changes what its figures mean. :func:`assess` measures them and says, for e
 ``temperature``    range (degC) and its correlation with time
 ``field``          after a fit: a fitted field magnitude outside the Earth's 20-70 uT (:func:`field_magnitude_finding`)
 ``turn_rate``      after a fit: the residual RMS by turn-rate quartile (:func:`turn_rate_finding`)
+``other_field``    a part at the start or the end of the record whose total field differs from the rest's (another
+                   run, a still phase in another field): its rows, time span and shift (:func:`other_field_finding`;
+                   ``--exclude-part`` leaves it out)
 =================  =========================================================================================
 
 Each :class:`Finding` has a severity (``info`` or ``warning``), a flag ``notable`` (shown in the text report) and
@@ -34,9 +37,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magcal.core.errors import CalibrationError
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import row_norm
-from magcal.geometry.ellipsoid import field_noise_nT
+from magcal.geometry.ellipsoid import field_noise_nT, fit_ellipsoid
 from magcal.geometry.shape import field_shape
 
 #: An interval longer than this many median intervals is a gap.
@@ -1126,7 +1130,7 @@ def assess(dataset, noise_nT=None) -> QualityReport:
     -------
     QualityReport
         Findings in order: timing (``sample_rate``, ``gaps``, ``time_order``) if there are time stamps, then per
-        sensor ``static``, ``stale``, ``quantization``, ``clipping``, then ``temperature``.
+        sensor ``static``, ``stale``, ``quantization``, ``clipping``, then ``temperature`` and ``other_field``.
     """
     noise = noise_nT if noise_nT is not None else dataset.noise_nT
     noise = None if noise is None or not noise > 0 else float(noise)
@@ -1161,4 +1165,150 @@ def assess(dataset, noise_nT=None) -> QualityReport:
             keep[a:b] = False
         report.add(clipping_finding(y, sensor, keep))
     report.add(temperature_finding(dataset.temperature_C, dataset.time_s))
+    report.add(other_field_finding(dataset))
     return report
+
+
+# -- a part of the record in another field ----------------------------------------------------------------------
+
+#: A part at the start or the end of a record is in another field when its total field differs from the rest's by at
+#: least this many robust spreads of the rest's total-field residual...
+PART_MIN_SIGMAS = 5.0
+#: ...and by at least this fraction of the field (a record's own misfit is larger than its noise).
+PART_MIN_FRACTION = 0.005
+#: Fewest samples of a part, and the largest share of the record it may hold (a longer one is the record's field).
+PART_MIN_SAMPLES = 5
+PART_MAX_SHARE = 0.3
+#: Fewest samples of a record the check looks at.
+PART_MIN_RECORD = 60
+#: Most samples (evenly taken) of the ellipsoid fits of the check.
+PART_FIT_SAMPLES = 20_000
+
+
+def _total_field_residual(readings_nT, keep) -> np.ndarray | None:
+    """``|C^-1 (y - b)| - F`` (nT) of every sample under the ellipsoid fitted to the samples ``keep`` (None when no
+    ellipsoid fits)."""
+    try:
+        fit = fit_ellipsoid(readings_nT, mask=keep, strict=False, max_samples=PART_FIT_SAMPLES)
+    except CalibrationError:  # no ellipsoid (degenerate readings): the other checks say why
+        return None
+    return row_norm((readings_nT - fit.bias_nT) @ fit.cinv.T) - fit.field_nT
+
+
+def _level_change(r, from_end) -> tuple[int, float]:
+    """The part at the start (or the end) whose mean differs most from the rest's (the change point of one shift:
+    the largest ``k (N - k) / N (mean_part - mean_rest)^2``): its length and the shift (part minus rest, nT)."""
+    x = r[::-1] if from_end else r
+    n = len(x)
+    k = np.arange(PART_MIN_SAMPLES, int(PART_MAX_SHARE * n) + 1)
+    if k.size == 0:
+        return 0, 0.0
+    c = np.cumsum(x)
+    part = c[k - 1] / k
+    rest = (c[-1] - c[k - 1]) / (n - k)
+    score = k * (n - k) / n * (part - rest) ** 2
+    best = int(np.argmax(score))
+    return int(k[best]), float(part[best] - rest[best])
+
+
+def other_field_parts(readings_nT) -> list:
+    """Parts at the start or the end of a record whose total field differs from the rest's: another run left at the
+    start of a file, a still phase at the end in a weaker field.
+
+    Each sensor's readings are fitted with an ellipsoid and the total-field residual (the mean over the sensors) is
+    scanned for one level change from each end; a part is flagged when its level differs from the rest's by
+    :data:`PART_MIN_SIGMAS` robust spreads and :data:`PART_MIN_FRACTION` of the field, judged again with the
+    ellipsoid fitted without it (the ellipsoid fitted to everything bends towards the part).
+
+    Parameters
+    ----------
+    readings_nT : numpy.ndarray, shape (n_sensors, N, 3)
+
+    Returns
+    -------
+    list of dict
+        ``start`` and ``stop`` (0-based sample indices, stop exclusive), ``shift_nT`` (the part's total field minus
+        the rest's), ``spread_nT`` (the rest's robust spread), ``field_nT``.
+    """
+    y = np.asarray(readings_nT, dtype=float)
+    n = y.shape[1]
+    if n < PART_MIN_RECORD:
+        return []
+    keep = np.ones(n, dtype=bool)
+    parts = []
+    for from_end in (False, True):
+        r = _mean_residual(y, np.ones(n, dtype=bool))
+        if r is None:
+            return []
+        k, _ = _level_change(r, from_end)
+        if k == 0:
+            continue
+        part = np.zeros(n, dtype=bool)
+        if from_end:
+            part[n - k :] = True
+        else:
+            part[:k] = True
+        r = _mean_residual(y, keep & ~part)  # judged with the ellipsoid of the rest
+        if r is None:
+            continue
+        k, shift = _level_change(r, from_end)  # the boundary again, now that the rest's ellipsoid is clean
+        part[:] = False
+        if from_end:
+            part[n - k :] = True
+        else:
+            part[:k] = True
+        spread = float(robust_sigma(r[keep & ~part]))
+        field_nT = float(np.median(row_norm(y[0] - y[0].mean(axis=0))))
+        if abs(shift) >= PART_MIN_SIGMAS * spread and abs(shift) >= PART_MIN_FRACTION * field_nT:
+            keep &= ~part
+            start, stop = (n - k, n) if from_end else (0, k)
+            parts.append({"start": start, "stop": stop, "shift_nT": shift, "spread_nT": spread, "field_nT": field_nT})
+    return parts
+
+
+def _mean_residual(y, keep):
+    residuals = [_total_field_residual(y[s], keep) for s in range(y.shape[0])]
+    if any(r is None for r in residuals):
+        return None
+    return np.mean(residuals, axis=0)
+
+
+def other_field_finding(dataset) -> Finding | None:
+    """A warning naming the parts at the start or the end of the record in another field (:func:`other_field_parts`):
+    their rows (counted from 1), time span and shift; None when there is none. ``values["parts"]`` holds each part's
+    0-based ``start`` and ``stop`` sample (what :func:`without_other_field_parts` and ``--exclude-part`` drop)."""
+    parts = other_field_parts(dataset.readings_nT)
+    if not parts:
+        return None
+    t = dataset.time_s
+    texts = []
+    for p in parts:
+        where = "first" if p["start"] == 0 else "last"
+        span = f", {t[p['stop'] - 1] - t[p['start']]:.3g} s from t = {t[p['start']]:.6g} s" if t is not None else ""
+        texts.append(
+            f"rows {p['start'] + 1}-{p['stop']} (the {where} {p['stop'] - p['start']} samples{span}) read a total "
+            f"field {p['shift_nT'] / 1000.0:+.3g} uT from the rest's ({abs(p['shift_nT']) / max(p['spread_nT'], 1e-9):.0f}x "
+            "its spread)"
+        )
+    return Finding(
+        "other_field",
+        "warning",
+        "a part of the record is in another field: " + "; ".join(texts),
+        "another run left in the file, or a still phase where the field differs, is fitted as if in this field: it "
+        "bends the calibration and reads as a drift or a step in the diagnosis; leave it out "
+        "(--exclude-part, or magcal.checks.quality.without_other_field_parts)",
+        notable=True,
+        values={"parts": parts},
+    )
+
+
+def without_other_field_parts(dataset, finding=None):
+    """The dataset without the parts :func:`other_field_finding` flags (``finding``, or found here), and the
+    finding (None, and the dataset itself, when there is none)."""
+    finding = other_field_finding(dataset) if finding is None else finding
+    if finding is None:
+        return dataset, None
+    keep = np.ones(dataset.n_samples, dtype=bool)
+    for p in finding.values["parts"]:
+        keep[int(p["start"]) : int(p["stop"])] = False
+    return dataset.subset(keep), finding

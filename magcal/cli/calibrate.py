@@ -30,7 +30,7 @@ import sys
 
 from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.coverage import calibration_input_checks
-from magcal.checks.quality import assess, field_magnitude_finding
+from magcal.checks.quality import assess, field_magnitude_finding, without_other_field_parts
 from magcal.checks.reference import (
     add_reference_arguments,
     add_vector_reference_arguments,
@@ -90,6 +90,12 @@ def add_input_arguments(parser) -> None:
         help="drop rows with missing or non-numeric values (with a warning) instead of refusing",
     )
     add_max_rows_argument(parser)
+    parser.add_argument(
+        "--exclude-part",
+        action="store_true",
+        help="leave out the part at the start or the end of the record that the data-quality check finds in another "
+        "field (another run left in the file, a still phase where the field differs: the finding other_field)",
+    )
 
 
 def add_max_rows_argument(parser) -> None:
@@ -220,7 +226,15 @@ def read_input(args):
         max_rows=checked_max_rows(args),
         warn=False,
     )
-    return ds, [note.text for note in ds.notes]
+    notes = [note.text for note in ds.notes]
+    if getattr(args, "exclude_part", False):
+        ds, finding = without_other_field_parts(ds)
+        notes.append(
+            f"--exclude-part: left out {finding.summary.partition(': ')[2]}"
+            if finding is not None
+            else "--exclude-part: no part of the record is in another field; every sample is kept"
+        )
+    return ds, notes
 
 
 def named_error(path, exc) -> str:

@@ -364,6 +364,7 @@ def simulate_timeseries(
     perturbations=(),
     with_reference=True,
     with_attitude=True,
+    turn_rate=1.0,
 ) -> Dataset:
     """Time-series simulation along :func:`magcal.data.simulation.smooth_trajectory`, with time and temperature channels.
 
@@ -386,11 +387,14 @@ def simulate_timeseries(
         ``fields_nT`` (true field in each sensor's ideal frame), ``time_s``, ``temperature_C``, ``attitudes``
         (a Rotation), ``truth``, ``positions_m`` and ``extra`` (a dict a perturbation may fill with columns the
         dataset then holds, e.g. a motor current). Applied in order, before the noise.
+    turn_rate : float
+        Multiplier of the trajectory's turn rates: 1 turns at about 17 deg/s, 5 at about 90 deg/s (a hand-held
+        tumble, which sweeps many directions within a few seconds).
     """
     truth, n_samples, noise_nT, noise_kind = _resolve(truth, n_samples, noise_nT, noise_kind)
     rng = np.random.default_rng(seed)
     t = np.arange(n_samples) / float(rate_hz)
-    rates = (0.31, 0.11, 0.23) * rng.uniform(0.85, 1.15, size=3)
+    rates = np.array((0.31, 0.11, 0.23)) * rng.uniform(0.85, 1.15, size=3) * float(turn_rate)
     att = Rotation.from_euler("ZYX", rng.uniform(-np.pi, np.pi, 3)) * smooth_trajectory(t + rng.uniform(0, 50), rates)
     duration = max(t[-1], 1e-9)
     mean, half = temperature_C

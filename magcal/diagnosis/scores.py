@@ -207,6 +207,8 @@ def _candidate_effects(dataset, model, names=None):
             continue
         if "scalar" not in getattr(cls, "modes", ("scalar",)):
             continue  # invisible in the total field (magcal.diagnosis.vector judges it)
+        if getattr(cls, "variance_term", False):
+            continue  # seen in the residuals' variance (magcal.diagnosis.jitter estimates it)
         probe = cls()
         if probe.missing_channels(dataset):
             continue

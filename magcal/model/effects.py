@@ -34,7 +34,7 @@ from typing import ClassVar
 
 import numpy as np
 import scipy.fft
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import BSpline, CubicSpline
 from scipy.special import eval_legendre
 
 from magcal.core.errors import MagcalError
@@ -1958,3 +1958,312 @@ class SiteGradient(CatalogueEffect):
         magnitude = self.default_magnitude if magnitude is None else magnitude
         m = np.atleast_1d(np.asarray(magnitude, dtype=float))
         return m.copy() if m.size == 5 else m[0] * np.asarray(self.pattern)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a field or an offset that wanders during the record; sampling jitter between sensors
+# ----------------------------------------------------------------------------------------------------------------
+
+#: Spacing (s) of the hat functions (knots) of :class:`FieldChange` and :class:`OffsetWander`: a field along a
+#: hand-held path or a wandering offset changes over a few seconds (on the real records a series every 2-5 s fits
+#: what a record-long polynomial cannot).
+WANDER_KNOT_SPACING_S = 3.0
+#: Most knots of one series; a longer record gets a wider spacing (a raw-stage basis holds 3 columns per knot).
+WANDER_MAX_KNOTS = 60
+#: Fewest samples per knot interval: a short or sparse record gets a wider spacing.
+WANDER_SAMPLES_PER_KNOT = 20
+#: Knots of an effect not yet configured (what the catalogue lists; a fit sets them from the record).
+WANDER_DEFAULT_KNOTS = 7
+#: The field direction turns by at least this much (deg, median) between two knots: a series of knots closer than
+#: the sensor turns follows any direction pattern times a slow function of time (a temperature bias on a slow turn),
+#: so the knots are spread to this turn at least. What tells a field change from an offset wander, and both from
+#: the direction patterns of the other terms, is the directions the sensor sweeps between two knots.
+WANDER_TURN_PER_KNOT_DEG = 120.0
+#: Lag (s) over which the turn rate of the field direction is measured (longer than the noise's sample-to-sample
+#: wobble of the direction).
+TURN_RATE_LAG_S = 0.5
+
+
+def wander_knots(time_s, spacing_s=WANDER_KNOT_SPACING_S, max_knots=WANDER_MAX_KNOTS) -> np.ndarray:
+    """Knot times (s) of a B-spline series over a record: evenly spaced from its first to its last sample,
+    about ``spacing_s`` apart, at most ``max_knots`` and at least :data:`WANDER_SAMPLES_PER_KNOT` samples per
+    interval (at least 3 knots)."""
+    t = np.asarray(time_s, dtype=float)
+    t0, t1 = float(np.min(t)), float(np.max(t))
+    span = max(t1 - t0, 1e-9)
+    intervals = int(np.ceil(span / max(float(spacing_s), 1e-9)))
+    intervals = min(intervals, int(max_knots) - 1, max(len(t) // WANDER_SAMPLES_PER_KNOT, 2))
+    return np.linspace(t0, t0 + span, max(intervals, 2) + 1)
+
+
+def hat_columns(time_s, knots_s, degree=1) -> np.ndarray:
+    """(N, K - 1 + degree) B-spline basis of ``degree`` on the K knots (the ends repeated): for ``degree`` 1 the
+    piecewise-linear hat functions, column ``k`` 1 at knot ``k`` and 0 at its neighbours; for 3 the cubic
+    B-splines, which follow a smooth wander without the hats' corners at every knot. The columns sum to 1 and stay
+    flat beyond the first and last knot."""
+    k = np.asarray(knots_s, dtype=float)
+    t = np.clip(np.asarray(time_s, dtype=float), k[0], k[-1])
+    full = np.concatenate([np.full(degree, k[0]), k, np.full(degree, k[-1])])
+    return BSpline.design_matrix(t, full, int(degree)).toarray()
+
+
+def median_turn_rate_dps(readings_nT, time_s) -> float:
+    """The median rate (deg/s) at which the direction of the readings (about their mean) turns, measured over
+    :data:`TURN_RATE_LAG_S`; NaN without two distinct times."""
+    y = np.asarray(readings_nT, dtype=float)
+    t = np.asarray(time_s, dtype=float)
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    if not step > 0:
+        return float("nan")
+    lag = int(np.clip(round(TURN_RATE_LAG_S / step), 1, max(len(t) - 1, 1)))
+    u = y - y.mean(axis=0)
+    u /= np.maximum(row_norm(u), 1e-12)[:, None]
+    angle = np.degrees(np.arccos(np.clip(np.sum(u[lag:] * u[:-lag], axis=1), -1.0, 1.0)))
+    dt = t[lag:] - t[:-lag]
+    ok = dt > 0
+    return float(np.median(angle[ok] / dt[ok])) if np.any(ok) else float("nan")
+
+
+def series_spacing_s(dataset, spacing_s=WANDER_KNOT_SPACING_S) -> float:
+    """The knot spacing (s) of a series on this record: ``spacing_s``, or the time the field direction takes to turn
+    by :data:`WANDER_TURN_PER_KNOT_DEG` at its median rate when that is longer (sensor 1's readings)."""
+    rate = median_turn_rate_dps(dataset.readings_nT[0], dataset.time_s)
+    if not np.isfinite(rate) or rate <= 0:
+        return float(spacing_s)
+    return float(max(spacing_s, WANDER_TURN_PER_KNOT_DEG / rate))
+
+
+@dataclass
+class _KnotSeries(CatalogueEffect):
+    """Shared by the terms that follow a quantity through the record as a B-spline series ``sum_k c_k h_k(t)``
+    with knots about :data:`WANDER_KNOT_SPACING_S` apart (:func:`wander_knots`, :func:`hat_columns`): ``degree`` 1
+    (default, hat functions) or 3 (cubic B-splines). The hats are the default: each coefficient acts on two knot
+    intervals only, so an offset series stays local; a cubic series' wider, overlapping columns let an offset
+    run away along a short arc of directions (on a slow turn, tens of uT on a record with none).
+
+    The knots are :attr:`knot_spacing_s` apart, or further where the sensor turns slowly: the field direction turns
+    by :data:`WANDER_TURN_PER_KNOT_DEG` between two knots at least (:func:`series_spacing_s`).
+
+    The B-splines sum to 1, so a constant is the base model's (the bias, the field ``F0``): the first one is dropped
+    and every other column has its mean over the fitted record removed (kept as ``offsets``), so that the series
+    has zero mean on the record and the base terms are referred to the record's mean level. A parameter is then
+    the series' coefficient near its knot relative to the first (nT; for hats its value at the knot).
+    """
+
+    basis_uses_readings: ClassVar[bool] = False  # a function of the time only
+    channels: ClassVar[tuple] = ("time",)
+    transferable: ClassVar[bool] = False
+    #: A held-out block of 10 s holds knots the fit has no samples for: judged in-sample (its delta-BIC).
+    held_out_blocks: ClassVar[bool] = False
+
+    knot_spacing_s: float = WANDER_KNOT_SPACING_S
+    max_knots: int = WANDER_MAX_KNOTS
+    degree: int = 1
+    knots_s: list | None = None
+    offsets: list | None = None
+
+    @property
+    def n_columns(self) -> int:
+        """Columns of the series after the first: knots - 2 + degree."""
+        knots = WANDER_DEFAULT_KNOTS if self.knots_s is None else len(self.knots_s)
+        return knots - 2 + int(self.degree)
+
+    def configure(self, dataset, residuals_nT=None):
+        spacing = series_spacing_s(dataset, self.knot_spacing_s)
+        self.knots_s = wander_knots(dataset.time_s, spacing, self.max_knots).tolist()
+        self.offsets = hat_columns(dataset.time_s, self.knots_s, self.degree)[:, 1:].mean(axis=0).tolist()
+
+    def state(self):
+        return {
+            "knots_s": self.knots_s,
+            "offsets": self.offsets,
+            "knot_spacing_s": self.knot_spacing_s,
+            "max_knots": self.max_knots,
+            "degree": self.degree,
+        }
+
+    def set_state(self, state):
+        degree = state.get("degree", 1)
+        if degree not in (1, 2, 3):
+            raise MagcalError(f"{self.label}: degree must be 1 (hats), 2 or 3 (cubic B-splines), got {degree!r}")
+        self.degree = int(degree)
+        knots, offsets = state.get("knots_s"), state.get("offsets")
+        if knots is not None:
+            values = _state_times(self, {"knots_s": knots}, "knots_s") or []
+            if len(values) < 3 or None in values or np.any(np.diff(np.asarray(values, dtype=float)) <= 0):
+                raise MagcalError(
+                    f"{self.label}: knots_s must be at least 3 increasing times in s (the series' knots), got {knots!r}"
+                )
+            knots = values
+        self.knots_s = knots
+        if offsets is not None:
+            if not isinstance(offsets, (list, tuple)) or len(offsets) != self.n_columns:
+                raise MagcalError(f"{self.label}: offsets must be {self.n_columns} numbers (one per column)")
+            offsets = [_state_number(self, {"offsets": v}, "offsets") for v in offsets]
+        spacing = _state_number(self, state, "knot_spacing_s", positive=True, what="the knot spacing in s")
+        most = _state_number(self, state, "max_knots", minimum=3, what="the most knots of the series")
+        self.offsets = offsets
+        self.knot_spacing_s = WANDER_KNOT_SPACING_S if spacing is None else spacing
+        self.max_knots = WANDER_MAX_KNOTS if most is None else int(most)
+
+    def _series(self, time_s) -> np.ndarray:
+        """(N, :attr:`n_columns`) the zero-mean columns after the first (the class docstring)."""
+        t = np.asarray(time_s, dtype=float)
+        knots = self.knots_s
+        if knots is None:  # not configured: the default count of knots over these samples
+            knots = np.linspace(float(t.min()), float(t.max()) + 1e-9, WANDER_DEFAULT_KNOTS).tolist()
+        h = hat_columns(t, knots, self.degree)[:, 1:]
+        return h - (np.asarray(self.offsets) if self.offsets is not None else h.mean(axis=0))
+
+    def _series_cached(self, ctx):
+        key = ("series", self.degree, tuple(self.knots_s or ()), tuple(self.offsets or ()))
+        return self._cached(ctx.dataset, key, lambda: self._series(ctx.time_s))
+
+    def _values_over_knots(self, values) -> np.ndarray:
+        """A fitted series' values (nT) at its knots, zero mean over them: for a quote."""
+        t = np.asarray(self.knots_s if self.knots_s is not None else np.linspace(0.0, 1.0, WANDER_DEFAULT_KNOTS))
+        g = hat_columns(t, t, self.degree)[:, 1:] @ np.asarray(values, dtype=float)
+        return g - g.mean()
+
+    def true_params(self, magnitude=None, sensor=0):
+        return None  # the simulator's wander is smooth sines, not a spline series
+
+
+@register
+@dataclass
+class FieldChange(_KnotSeries):
+    """The total field changes during the record faster than a drift: ``F(t) = F0 + g(t)``, ``g`` a hat-function
+    series with knots every few seconds (:class:`_KnotSeries`), shared by all sensors.
+
+    A sensor carried along a path through a non-uniform field (a hand-held tumble that wanders, a vehicle nearby)
+    or a field that changes in time sees every direction scaled alike: samples revisiting the same direction
+    differ by the same amount whatever that direction, and sensors of an array see the same change. Record-only.
+
+    Parameters ``g{k}_nT``: the field at knot ``k`` relative to the first knot, nT; physical range a few nT (a
+    quiet site) to a few uT (a path near iron), signed.
+    """
+
+    name: ClassVar[str] = "field_change"
+    signature: ClassVar[str] = (
+        "common to all sensors and all directions, changing within seconds (same-direction revisits differ alike)"
+    )
+    when_recording: ClassVar[str] = (
+        "the field at the sensor changed within seconds during the record (moved along a path through a non-uniform field, iron moving nearby): turn the sensor in place about its own centre, away from iron and moving objects"
+    )
+    stage: ClassVar[str] = "reference"
+    per_sensor: ClassVar[bool] = False
+    description: ClassVar[str] = "the total field changing within seconds, F(t) = F0 + g(t), hats every few s [nT]"
+    default_magnitude: ClassVar[float] = 20.0
+    magnitude_unit: ClassVar[str] = "nT"
+    kept_for_new_data: ClassVar[str] = "the field's mean over the fitted record"
+
+    def param_names(self):
+        return [f"g{k}_nT" for k in range(1, self.n_columns + 1)]
+
+    def reference_basis(self, ctx: Context):
+        return self._series_cached(ctx)
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        g = self._values_over_knots(np.ravel(values))
+        return f"the field moves over {float(np.ptp(g)):.3g} nT peak to peak (RMS over the knots {float(np.std(g)):.3g} nT)"
+
+
+@register
+@dataclass
+class OffsetWander(_KnotSeries):
+    """The instrument's offset wanders during the record: ``y += b(t)``, ``b`` per axis a B-spline series with
+    knots every few seconds (:class:`_HatSeries`).
+
+    An offset of the sensor itself (a warm-up, a supply, a part magnetised and relaxing): in the total field it
+    shows as ``u . C^-1 b(t)``, so samples revisiting the same direction differ by an amount that depends on
+    the direction, and each sensor of an array wanders on its own. It belongs to the instrument, but a wander
+    cannot be extrapolated to another record: record-only (the calibration keeps the record's mean offset).
+
+    Parameters ``b{k}_{x,y,z}_nT``: the offset at knot ``k`` relative to the first knot, nT per axis; physical
+    range a few nT (a settled fluxgate) to a few uT (a MEMS part warming up), signed.
+    """
+
+    name: ClassVar[str] = "offset_wander"
+    signature: ClassVar[str] = (
+        "u . b(t): a field-direction pattern of degree 1 changing within seconds, its own on each sensor"
+    )
+    when_recording: ClassVar[str] = (
+        "the sensor's own offset wandered within seconds (warm-up, supply, a part relaxing after a field): let it settle powered before recording, keep the supply and the temperature steady, record shorter"
+    )
+    stage: ClassVar[str] = "raw"
+    #: The vector calibration has its own drift terms; its diagnosis does not test this one.
+    modes: ClassVar[tuple] = ("scalar",)
+    description: ClassVar[str] = "the instrument's offset wandering within seconds, y += b(t), hats every few s [nT]"
+    default_magnitude: ClassVar[float] = 20.0
+    magnitude_unit: ClassVar[str] = "nT"
+    kept_for_new_data: ClassVar[str] = "the bias at the fitted record's mean (the wander's mean over the record)"
+
+    def param_names(self):
+        return [f"b{k}_{a}_nT" for a in _AXES for k in range(1, self.n_columns + 1)]
+
+    def raw_basis(self, z0, ctx: Context):
+        h = self._series_cached(ctx)
+        q = h.shape[1]
+        return SingleAxisBasis(np.concatenate([h, h, h], axis=1), np.repeat(np.arange(3), q))
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        b = np.array([self._values_over_knots(v) for v in np.asarray(values, dtype=float).reshape(3, -1)])
+        return f"the offset moves over {_axes_text(np.ptp(b, axis=1))} nT peak to peak per axis"
+
+
+@register
+@dataclass
+class SensorJitter(CatalogueEffect):
+    """Sensors of an array sampled with a random time error against sensor 1: ``B_i(t - dt)``, ``dt`` random with
+    RMS ``tau`` (the jitter of two buses read by one host).
+
+    A variance term: the inter-sensor residual's variance grows as ``sigma^2 + (tau |dB/dt|)^2``, so the diagnosis
+    estimates ``tau`` (ms) from that variance against the turn rate (:func:`magcal.diagnosis.jitter.jitter_estimates`)
+    rather than proposing it by a score test. Its mean is second order, ``B + (tau^2 / 2) d^2B/dt^2``: that is
+    the basis of the term, with the parameter ``tau^2`` in ms^2, when it is fitted.
+
+    Parameter ``jitter_variance_ms2`` = ``tau^2``, ``>= 0``; physical range 0 to about 100 ms^2 (0-10 ms RMS: a
+    jitter beyond the sampling interval would be a skipped sample).
+    """
+
+    name: ClassVar[str] = "sensor_jitter"
+    signature: ClassVar[str] = "inter-sensor residual variance grows with the turn rate squared"
+    stage: ClassVar[str] = "vector"
+    channels: ClassVar[tuple] = ("time",)
+    min_sensors: ClassVar[int] = 2
+    variance_term: ClassVar[bool] = True
+    evidence_channel: ClassVar[str] = "turn_rate_dps"
+    description: ClassVar[str] = "random sampling-time error of sensors 2-4 against sensor 1, RMS tau [ms^2 = tau^2]"
+    default_magnitude: ClassVar[float] = 2.0
+    magnitude_unit: ClassVar[str] = "ms"
+    pattern: ClassVar[tuple] = (0.0, 1.0, 0.7, 0.5)
+    bounds_note: ClassVar[str] = "a variance: the square of the jitter's RMS in ms"
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.sensor == 0:
+            raise MagcalError("sensor_jitter: sensor 1 is the time reference; name sensor 2, 3 or 4")
+
+    def applies_to(self, sensor):
+        return sensor > 0 and (self.sensor is None or self.sensor == sensor)
+
+    def param_names(self):
+        return ["jitter_variance_ms2"]
+
+    def param_scale(self):
+        return np.array([10.0])
+
+    def param_bounds(self):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def vector_basis(self, field_nT, ctx: Context):
+        acceleration = time_derivative(time_derivative(field_nT, ctx.time_s), ctx.time_s)
+        return 0.5e-6 * acceleration[:, :, None]
+
+    def true_params(self, magnitude=None, sensor=1):
+        magnitude = self.default_magnitude if magnitude is None else magnitude
+        tau = float(np.ravel(magnitude)[0]) * self.pattern[sensor % 4]
+        return np.array([tau**2])
+
+    def quote(self, values, field_nT=None, sensor=None) -> str:
+        return f"a sampling jitter of {np.sqrt(max(float(np.ravel(values)[0]), 0.0)):.3g} ms RMS"

@@ -13,7 +13,7 @@ override :meth:`magcal.model.terms.Effect.perturbation` itself). A registered fu
 ``f(effect, readings, context, magnitude, sensor, **options)`` and returns the new readings (n_sensors, N, 3) in
 nT; ``context`` is the dict :func:`~magcal.data.simulation.simulate_timeseries` passes (``fields_nT``, ``time_s``,
 ``temperature_C``, ``attitudes``, ``truth``, ``positions_m``, ``extra``: columns a perturbation adds to the
-dataset, such as the ``current_A`` of ``current_field``).
+dataset, such as the ``current_A`` of ``current_field``; ``rng``, the simulation's random generator).
 
 :func:`periodic_interference` builds the perturbation of the ``periodic_interference`` effect with its frequency and
 direction spelled out; :data:`EXTRA_PERTURBATIONS` lists perturbations *outside* the catalogue for ``magcal
@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.ndimage import gaussian_filter1d
 
 from magcal.core.errors import MagcalError
 from magcal.model.operators import NONLINEARITY_REFERENCE_NT, gradient_matrix, play_operator
@@ -96,6 +97,7 @@ def catalogue_perturbation(effect, magnitude=None, sensor=None, **options):
         # the quote of the magnitude may depend on the simulated field (nonlinearity: nT at |B|)
         unit = effect.quote_unit(float(context["truth"].total_nT)) if "truth" in context else effect.magnitude_unit
         perturb.description = f"{effect.name} {magnitude} {unit} ({where})"
+        context["rng"] = rng  # the simulation's generator, for a perturbation with a random part (a jitter)
         return function(effect, np.array(readings, dtype=float), context, magnitude, sensor, **options)
 
     perturb.description = f"{effect.name} {magnitude} {effect.magnitude_unit} ({where})"
@@ -329,6 +331,63 @@ def _periodic_interference(
     wave = amplitude * (np.sin(phase) + harmonic_fraction * np.sin(2 * phase))
     for s in _sensor_list(sensor, readings.shape[0]):
         readings[s] += wave[:, None] * d
+    return readings
+
+
+#: Time scale (s) of the simulator's wander: a random walk smoothed by a Gaussian of this width.
+WANDER_SMOOTHING_S = 5.0
+
+
+def _wander(time_s, index=0) -> np.ndarray:
+    """A smooth wander of peak 1 over the record, as a hand-held path or a part warming up gives: a random walk
+    (its own for each ``index``, an axis or a sensor; the same for every simulation) smoothed over
+    :data:`WANDER_SMOOTHING_S`, mean removed. Not periodic, so that no spectral line stands for it."""
+    t = np.asarray(time_s, dtype=float)
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    walk = np.cumsum(np.random.default_rng(1000 + int(index)).normal(size=len(t)))
+    w = gaussian_filter1d(walk, WANDER_SMOOTHING_S / max(step, 1e-9), mode="nearest")
+    w -= w.mean()
+    return w / max(float(np.max(np.abs(w))), 1e-12)
+
+
+@hides("field_change")
+def _field_change(effect, readings, context, magnitude, sensor, **options):
+    """The field magnitude wanders by ``magnitude`` nT (peak) within seconds, as along a hand-held path through a
+    non-uniform field: every sensor's field vector scales by ``(F + g(t)) / F`` (direction unchanged)."""
+    g = float(np.ravel(magnitude)[0]) * _wander(context["time_s"])
+    total = context["truth"].total_nT
+    for s in range(readings.shape[0]):
+        readings[s] += _linear_outputs(context, s) * (g / total)[:, None]
+    return readings
+
+
+@hides("offset_wander")
+def _offset_wander(effect, readings, context, magnitude, sensor, **options):
+    """Each sensor's offset wanders on its own within seconds: ``y_j += m_j w_j(t)`` with ``m`` the magnitude (nT
+    peak) over the axes in the effect's pattern and ``w_j`` a smooth wander of its own per axis and sensor."""
+    t = context["time_s"]
+    m = np.ravel(np.asarray(magnitude, dtype=float))
+    for s in _sensor_list(sensor, readings.shape[0]):
+        peak = m if m.size == 3 else m[0] * np.roll(np.asarray(effect.pattern, dtype=float), s)
+        for j in range(3):
+            readings[s][:, j] += peak[j] * _wander(t, 3 * s + j + 1)
+    return readings
+
+
+@hides("sensor_jitter")
+def _sensor_jitter(effect, readings, context, magnitude, sensor, **options):
+    """Sensors 2-4 sampled at ``t + dt`` with ``dt`` random (normal, RMS ``tau`` ms) at every sample: each reading
+    is the signal at its own instant (a spline through the clean readings), sensor 1 on time."""
+    if sensor == 0:
+        raise MagcalError("sensor_jitter: sensor 1 is the time reference; give sensor 2, 3 or 4 a jitter")
+    t = np.asarray(context["time_s"], dtype=float)
+    rng = context.get("rng") or np.random.default_rng(0)
+    for s in _sensor_list(sensor, readings.shape[0], skip_first=True):
+        tau_ms = float(np.ravel(magnitude)[0]) * (effect.pattern[s % 4] if sensor is None else 1.0)
+        if tau_ms < 0:
+            raise MagcalError(f"sensor_jitter: the jitter is an RMS time in ms, >= 0; got {tau_ms}")
+        spline = CubicSpline(t, readings[s], axis=0)
+        readings[s] = spline(t - 1e-3 * rng.normal(0.0, tau_ms, size=t.size))
     return readings
 
 

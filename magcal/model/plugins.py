@@ -313,6 +313,7 @@ def _dry_run(cls, where, q):
             cls(sensor=max(0, getattr(cls, "min_sensors", 1) - 1))  # e.g. sensor 1 may be a time reference
         effect.configure(ds, np.zeros((ds.n_sensors, n)))
         state = effect.state()
+        q = len(effect.param_names())  # a count that follows the record (knots every few seconds) is set by configure
     try:
         text = json.dumps(jsonable(state if state is not None else {}), allow_nan=False)
     except (TypeError, ValueError) as exc:

@@ -392,6 +392,12 @@ class Effect:
     #: The channel a vector calibration's residuals are plotted against when judging the term: ``current`` (the
     #: current or throttle column), ``temperature_C``, ``turn_rate_dps`` or ``time_s``.
     evidence_channel: ClassVar[str] = "time_s"
+    #: A variance term: what it does shows in the residuals' variance rather than their mean (a random sampling
+    #: jitter), so the score tests do not propose it; the diagnosis estimates it from the variance instead.
+    variance_term: ClassVar[bool] = False
+    #: The term can predict a block of 10 s or more held out of its fit (False for a series with knots every few
+    #: seconds, which has no samples there): the diagnosis judges it on held-out blocks only then, else in-sample.
+    held_out_blocks: ClassVar[bool] = True
 
     sensor: int | None = None
 
