@@ -52,7 +52,7 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
-from magcal.fitting.vector import VectorFitResult, attitude_error_deg, fit_vector
+from magcal.fitting.vector import VectorFitResult, attitude_error_deg, fit_vector, position_basis, positions_m
 from magcal.model.effects import CURRENT_COLUMNS, current_column
 from magcal.model.terms import EFFECTS, EffectTexts, Model, term_label
 
@@ -269,6 +269,8 @@ _FOLLOWS_HINTS = {
     "temperature": "a temperature effect beyond a bias and a scale (delayed, per axis)",
     "time": "a drift or a changing field (the daily variation, a base station would show it), or a wandering "
     "attitude error",
+    "position": "a magnet or steel near the path (the field differs from place to place): not the instrument's, "
+    "record away from it",
 }
 
 
@@ -281,7 +283,8 @@ class LeftStructure:
     sensor : int
         0-based.
     follows : str
-        The channel: ``turn rate``, ``heading``, ``tilt``, ``current_A``/``throttle``, ``temperature``, ``time``.
+        The channel: ``turn rate``, ``heading``, ``tilt``, ``current_A``/``throttle``, ``temperature``, ``time``,
+        ``position`` (the record's ``pos_n_m, pos_e_m, pos_d_m``).
     residual : str
         Which residual: ``north``, ``east``, ``down`` or ``|B|``.
     explained_nT : float
@@ -1331,6 +1334,9 @@ def _channels(record: _Record) -> dict:
         t = np.asarray(ds.time_s, dtype=float)
         x = (t - t.mean()) / max(float(np.ptp(t)), 1e-9)
         out["time"] = np.column_stack([x, x**2])
+    pos = positions_m(ds)
+    if pos is not None and np.all(np.isfinite(pos[record.usable])) and np.ptp(pos[record.usable], axis=0).max() > 0:
+        out["position"] = position_basis(np.where(record.usable[:, None], pos, pos[record.usable].mean(axis=0)))
     return out
 
 

@@ -1000,11 +1000,14 @@ def positions_m(dataset) -> np.ndarray | None:
     return np.column_stack([np.asarray(extra[c], dtype=float) for c in POSITION_COLUMNS_M])
 
 
-def _position_basis(p) -> np.ndarray:
-    """A smooth function of a position (N, 3): its components, their squares and products (9 columns)."""
+def position_basis(p) -> np.ndarray:
+    """A smooth function of a position (N, 3): the polynomials of its components up to degree 3 (19 columns; a
+    magnet's field, falling as the cube of the distance, needs the third)."""
     p = (p - p.mean(axis=0)) / np.maximum(p.std(axis=0), 1e-9)
-    i, j = np.triu_indices(3)
-    return np.column_stack([p, p[:, i] * p[:, j]])
+    cols = [p[:, i] for i in range(3)]
+    cols += [p[:, i] * p[:, j] for i in range(3) for j in range(i, 3)]
+    cols += [p[:, i] * p[:, j] * p[:, k] for i in range(3) for j in range(i, 3) for k in range(j, 3)]
+    return np.column_stack(cols)
 
 
 @dataclass
@@ -1014,9 +1017,10 @@ class UndeterminedCause:
     Attributes
     ----------
     kind : str
-        ``misfit`` (the total-field residual follows time or position: the field itself changes; no attitude error
-        moves ``|B|``), ``attitude`` (only the components across the field follow time: a wandering attitude
-        error) or ``geometry`` (neither: the attitudes span too few directions).
+        ``geometry`` (the attitudes span too few directions: tilt below :data:`LOW_TILT_DEG`), ``misfit`` (the
+        attitudes span enough and the total-field residual follows time or position: the field itself changes; no
+        attitude error moves ``|B|``), ``attitude`` (only the components across the field follow time: a wandering
+        attitude error) or ``noise`` (none of these).
     follows : str
         ``time``, ``position`` or ``""``.
     share : float
@@ -1048,10 +1052,12 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
     """Tell the geometry from a misfit when a record does not determine a vector fit.
 
     An attitude error turns the field and leaves ``|B|`` alone; a magnet or steel near the path, a field that
-    changes or a hard iron that moves change ``|B|`` itself. So a total-field residual that follows time or position
-    (a smooth function of it explains :data:`FOLLOWS_SHARE` of its variance, and it is :data:`FOLLOWS_EXCESS` times
-    its white noise) is a misfit, whatever the attitudes; residuals across the field that follow time with ``|B|``
-    at its noise are a wandering attitude error; neither, the attitudes' coverage.
+    changes or a hard iron that moves change ``|B|`` itself. So when the attitudes span enough directions (tilt
+    :data:`LOW_TILT_DEG` or more), a total-field residual that follows time or position (a smooth function of it
+    explains :data:`FOLLOWS_SHARE` of its variance, and it is :data:`FOLLOWS_EXCESS` times its white noise) is a
+    misfit; residuals across the field that follow time with ``|B|`` at its noise are a wandering attitude error.
+    With little tilt the fit bends an attitude error into ``|B|`` as well (the vertical scale and the bias trade),
+    and the geometry comes first.
 
     Parameters
     ----------
@@ -1074,21 +1080,31 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
     rms = float(np.sqrt(np.mean(total**2)))
     shares = {"time": explained_share(total, basis)}
     if position_m is not None and np.all(np.isfinite(position_m)) and np.ptp(position_m, axis=0).max() > 0:
-        shares["position"] = explained_share(total, _position_basis(np.asarray(position_m, dtype=float)))
+        shares["position"] = explained_share(total, position_basis(np.asarray(position_m, dtype=float)))
     follows = max(shares, key=lambda k: shares[k])
     lag1 = lag1_correlation(total)
     perp_share = explained_share(perpendicular_nT, basis)
-    low = tilt_deg < LOW_TILT_DEG
+    field_follows = shares[follows] >= FOLLOWS_SHARE and rms >= FOLLOWS_EXCESS * max(white, 1e-9)
     geometry = (
         f"the attitudes span few directions (tilt at most {tilt_deg:.0f} deg): the vertical axis's scale and the "
         "bias trade against each other; record banked turns and pitch changes (+-20 deg or more) over several minutes"
     )
-    if shares[follows] >= FOLLOWS_SHARE and rms >= FOLLOWS_EXCESS * max(white, 1e-9):
-        kind, share = "misfit", shares[follows]
+    share = shares[follows]
+    if tilt_deg < LOW_TILT_DEG:  # the fit bends an attitude error into |B| too: the two cannot be told apart
+        kind = "geometry"
+        text = geometry
+        if field_follows or perp_share >= FOLLOWS_SHARE:
+            text += (
+                f"; the residual follows the {follows if field_follows else 'time'}: a wandering attitude error (then "
+                "a better attitude, an INS) or a field that changes, which this geometry cannot tell apart"
+            )
+        follows = follows if field_follows else ""
+    elif field_follows:
+        kind = "misfit"
         text = (
             f"the total-field residual follows the {follows} ({100 * share:.0f} % of its variance, lag-1 r = "
-            f"{lag1:.2f}; {rms:.3g} nT RMS against {white:.3g} nT of noise): a misfit, not the attitudes (no "
-            "attitude error changes |B|): "
+            f"{lag1:.2f}; {rms:.3g} nT RMS against {white:.3g} nT of noise): a misfit, not the attitudes (they span "
+            f"{tilt_deg:.0f} deg of tilt, and no attitude error changes |B|): "
             + (
                 "a magnet or steel near the path (the field differs from place to place)"
                 if follows == "position"
@@ -1104,10 +1120,11 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
             "with a better attitude (an INS)"
         )
     else:
-        kind, follows, share = "geometry", "", shares[follows]
-        text = geometry
-    if low and kind != "geometry":
-        text += "; besides, " + geometry
+        kind, follows = "noise", ""
+        text = (
+            f"the residuals are large (|B| {rms:.3g} nT RMS) and follow neither time nor position: spikes or a noisy "
+            "attitude (try --robust), or the attitude's frame or the field vector are not the ones the record holds"
+        )
     return UndeterminedCause(kind, follows, float(share), float(lag1), rms, white, float(tilt_deg), text)
 
 
