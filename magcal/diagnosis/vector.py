@@ -19,10 +19,12 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    ``magcal apply`` applies it (record-only terms dropped, the level they keep folded into the bias), beside the base
    model fitted the same way; with other flights of the same vehicle (``also``), both calibrations of the whole
    record are applied to each of them. The score is the residual's weighted RMS (the total field over ``sigma_F``,
-   the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals: 1 at the
-   noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more, and by more than chance
-   (the gains of ten stretches, a signed-rank test below :data:`GAIN_P`: :func:`significant_gain`), on the later
-   part and on every other flight.
+   the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals, each other
+   flight's its own: 1 at the noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more,
+   and by more than chance (the gains of ten stretches, a signed-rank test below :data:`GAIN_P`:
+   :func:`significant_gain`), on the later part and on every other flight, and raises no world component nor
+   ``|B|`` there beyond its noise (:func:`raised_components`). Without a later part (a record too short or too
+   slow: :func:`judging_needs`) and without another flight long enough, nothing is recommended.
    An effect that describes the record (a bias step, an interference) but does not improve the later part or the
    other flights is reported in ``record_holds``, with what to do when recording.
 4. **Forward selection.** The best recommended candidate joins the model and the candidates are tried again, up
@@ -33,8 +35,11 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    catalogue still says what it follows.
 
 The verdict: ``missing_effect`` (effects recommended), ``adequate`` (nothing recommended and the residuals at
-their noise: weighted RMS within :data:`ADEQUATE_RATIO` of 1 after the white noise of the record's own differences)
-or ``unexplained`` (structure that no candidate removes, or a base fit that the record does not determine).
+their noise: weighted RMS within :data:`ADEQUATE_RATIO` of 1 after the white noise of the record's own differences,
+and the same on every other flight at its own noise), ``unexplained`` (structure that no candidate removes, a
+residual or another flight far above its noise, or a base fit that the record does not determine: why, the geometry
+or a misfit, from :func:`magcal.fitting.vector.undetermined_cause`) or ``not_judged`` (no held-out judgement could be
+made: the summary says what would let it judge).
 """
 
 from __future__ import annotations
