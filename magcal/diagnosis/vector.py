@@ -164,7 +164,7 @@ class Scores:
         return [f"{c}" + ("" if one else f" of sensor {s + 1}") for s in self.sensors for c in COMPONENTS]
 
     def to_dict(self) -> dict:
-        out = {
+        out: dict[str, Any] = {
             "world_rms_nT": self.world_nT,
             "total_rms_nT": self.total_nT,
             "weighted_rms": self.weighted,
@@ -1147,7 +1147,9 @@ class _Judge:
         return before, after
 
     def __call__(self, c, base_fit, cand_fit) -> None:
-        gains, checked = [], []  # parts judged on their gain and components; parts judged on their components only
+        # the parts judged on their gain and their components, and those judged on their components only
+        gains: list[tuple[str, Scores, Scores]] = []
+        checked: list[tuple[str, Scores, Scores]] = []
         if self.validate and self.later is not None:
             found = self._later_part(c, base_fit, cand_fit)
             if isinstance(found, str):
@@ -1171,8 +1173,8 @@ class _Judge:
             c.holds = None
             c.why = "not judged: " + (self.not_judged or "no held-out part and no other flight")
             return
-        reasons = [r for r in (_part_verdict(*part) for part in gains) if r]
-        reasons += [r for r in (_part_verdict(*part, gain=False) for part in checked) if r]
+        reasons = [r for r in (_part_verdict(name, b, a) for name, b, a in gains) if r]
+        reasons += [r for r in (_part_verdict(name, b, a, gain=False) for name, b, a in checked) if r]
         c.holds = not reasons
         if reasons:
             c.why = "; ".join(reasons) + (" (describes this record only)" if c.record_only else "")
@@ -1468,7 +1470,8 @@ def _advice_parts(base, now, chosen) -> list[str]:
 def _flight_off_text(name, sc: Scores, base: Scores) -> str:
     """The words for another flight where the diagnosed calibration leaves more than that flight's noise."""
     return (
-        f"the calibration does not carry to {name}: it leaves {sc.weighted:.3g}x that flight's noise there (world "
+        f"the diagnosed calibration (the base, without advice) does not carry to {name}: it leaves {sc.weighted:.3g}x "
+        f"that flight's noise there (world "
         f"components {sc.world_nT:.4g} nT, |B| {sc.total_nT:.4g} nT; {base.world_nT:.4g} and {base.total_nT:.4g} nT "
         "on this record): something differs between the records (a hard iron that moved, another field or attitude "
         "source, an effect this record does not show)"

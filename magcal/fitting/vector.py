@@ -1121,9 +1121,11 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
         )
     else:
         kind, follows = "noise", ""
+        perp_rms = float(np.sqrt(np.mean(np.sum(np.square(perpendicular_nT), axis=1) / 2.0)))
         text = (
-            f"the residuals are large (|B| {rms:.3g} nT RMS) and follow neither time nor position: spikes or a noisy "
-            "attitude (try --robust), or the attitude's frame or the field vector are not the ones the record holds"
+            f"the residuals (across the field {perp_rms:.3g} nT RMS, |B| {rms:.3g} nT) follow neither time nor "
+            "position: spikes or a noisy attitude (try --robust), or the attitude's frame or the field vector are not "
+            "the ones the record holds"
         )
     return UndeterminedCause(kind, follows, float(share), float(lag1), rms, white, float(tilt_deg), text)
 
