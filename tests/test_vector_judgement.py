@@ -10,6 +10,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from magcal.checks.reference import resolve_vector_reference
 from magcal.cli import main
@@ -117,6 +119,25 @@ def test_a_candidate_that_lowers_the_total_but_raises_one_component_is_not_advis
         assert raised == [] and verdict == ""
     if down_after - 1.0 > MAX_COMPONENT_RISE:
         assert raised_down
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    scales=st.lists(st.floats(0.05, 3.0), min_size=4, max_size=4),
+    sigma=st.floats(1.0, 300.0),
+    seed=st.integers(0, 2**16),
+)
+def test_no_component_rises_past_the_bound_unnoticed(scales, sigma, seed):
+    """Whatever the noise: a component whose RMS rises by more than MAX_COMPONENT_RISE is always named."""
+    rng = np.random.default_rng(seed)
+    n = 200
+    white = rng.normal(0.0, 1.0, (n, 4))
+    before = _scored(100.0 * white[:, :3], 3.0 * white[:, 3], sigma_f=sigma, sigma_p=sigma)
+    after = _scored(100.0 * white[:, :3] * scales[:3], 3.0 * white[:, 3] * scales[3], sigma_f=sigma, sigma_p=sigma)
+    named = {label for label, _, _ in raised_components(before, after)}
+    for label, b, a in zip(before.component_labels(), before.components_nT.ravel(), after.components_nT.ravel()):
+        if a > (1.0 + MAX_COMPONENT_RISE) * b:
+            assert label in named
 
 
 @pytest.mark.parametrize("world_after", [129.0, 140.0])

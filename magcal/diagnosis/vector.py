@@ -100,8 +100,8 @@ MIN_COMPONENT_RISE = 0.02
 #: not advised, whatever it does to the others.
 MAX_COMPONENT_RISE = 0.10
 
-#: ... nor does a rise whose added part, ``sqrt(after^2 - before^2)``, is within this fraction of the component's
-#: white noise (a component at its noise that moves by a hair is not raised).
+#: ... and a rise within that bound whose added part, ``sqrt(after^2 - before^2)``, is within this fraction of the
+#: component's white noise is no rise (a component at its noise that moves by a hair).
 NOISE_ALLOWANCE = 0.3
 
 #: A compass logged slower than this (Hz) is named as the reason a record is too short to judge.
@@ -614,8 +614,10 @@ def raised_components(before: Scores, after: Scores, blocks=GAIN_BLOCKS) -> list
     labels = before.component_labels()
     noise = np.zeros(before.components_nT.size) if before.component_noise_nT is None else before.component_noise_nT
     for j, (b, a, sigma) in enumerate(zip(before.components_nT.ravel(), after.components_nT.ravel(), np.ravel(noise))):
-        if not (np.isfinite(a) and np.isfinite(b)) or a * a - b * b <= (NOISE_ALLOWANCE * sigma) ** 2:
+        if not (np.isfinite(a) and np.isfinite(b)) or a <= b:
             continue
+        if a <= (1.0 + MAX_COMPONENT_RISE) * b and a * a - b * b <= (NOISE_ALLOWANCE * sigma) ** 2:
+            continue  # a hair on a component at its noise
         d = after.per_component[:, j] - before.per_component[:, j]
         means = np.array([part.mean() for part in np.array_split(d, min(blocks, len(d)))])
         se = float(np.std(means, ddof=1) / np.sqrt(len(means))) if len(means) > 1 else float("inf")
