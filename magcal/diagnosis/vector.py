@@ -443,9 +443,7 @@ class VectorDiagnosis:
                 + (f"; other flights: {', '.join(v['flights'])}" if v.get("flights") else "")
             )
         elif v.get("skipped"):
-            lines.append(
-                f"not judged: {v['skipped']}" + (f"; what would let it judge: {v['needs']}" if v.get("needs") else "")
-            )
+            lines.append(f"not judged: {v['skipped']}")
         for name, sc in (v.get("flights_base") or {}).items():
             lines.append(
                 f"the diagnosed calibration on {name}: world components {sc['world_rms_nT']:.4g} nT, |B| "
@@ -1173,7 +1171,9 @@ class _Judge:
                 (checked if c.record_only else gains).append((flight.name, before, after))
         if not gains:
             c.holds = None
-            c.why = "not judged: " + (self.not_judged or "no held-out part and no other flight")
+            c.why = "not judged (no held-out part" + (
+                ": see the verdict)" if self.not_judged else " and no other flight)"
+            )
             return
         reasons = [r for r in (_part_verdict(name, b, a) for name, b, a in gains) if r]
         reasons += [r for r in (_part_verdict(name, b, a, gain=False) for name, b, a in checked) if r]
@@ -1259,8 +1259,8 @@ def judging_needs(dataset, fitted) -> str:
     idx = np.flatnonzero(fitted)
     more = max(MIN_JUDGED_SAMPLES - len(idx), 0)
     text = (
-        f"{len(idx)} samples fitted; a held-out judgement needs {MIN_JUDGED_SAMPLES} (the last "
-        f"{100 * LATER_FRACTION:.0f} % held out, at least {MIN_LATER_SAMPLES} there): {more} more"
+        f"a held-out judgement needs {MIN_JUDGED_SAMPLES} fitted samples (the last {100 * LATER_FRACTION:.0f} % held "
+        f"out, at least {MIN_LATER_SAMPLES} there): {more} more"
     )
     t = None if dataset is None or dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[idx]
     duration = float(np.ptp(t)) if t is not None and len(t) > 1 else 0.0
