@@ -21,6 +21,8 @@ The records (each one that is present; the raw logs and the mirror's files are o
   F3A aircraft's logs 3 and 4 (each the other's next flight);
 * PX4's ``sample_px4_events.ulg`` (pyulog's test log in ``/work/.mirror/PX4+pyulog``): sensor_mag at 1 Hz;
 * MagNav.jl's ``test_data_traj.mat`` (a 100-s simulated trajectory at 1 Hz, IGRF along it);
+* the same at 1 Hz: ``px4_sample``, flight 218 and BROAD's trial 02 (its first 70 s) with one sample a second, as a
+  compass logged by PX4's default profile would leave them;
 * BROAD motion-capture trials ``data/broad_NN.csv`` (``broad.py``): the lab field of the header line as
   ``--reference-vector``; the next flight is the next trial of the same group (undisturbed, tapped, magnet near the
   path, magnet attached, office); every ``--every``-th sample (default 4: 18 Hz).
@@ -29,6 +31,7 @@ Usage::
 
     python benchmarks/real/advice_table.py                    # every record present (about 20 minutes)
     python benchmarks/real/advice_table.py --only broad_28 px4
+    PYTHONPATH=/path/to/an/older/checkout python benchmarks/real/advice_table.py   # the same table, older code
 """
 
 from __future__ import annotations
@@ -216,6 +219,21 @@ def _broad_records(every, only):
     return out
 
 
+def _at_1hz(rec: Record, seconds=None) -> Record:
+    """The record as a compass logged at 1 Hz (PX4's default for sensor_mag) would leave it: one sample a second,
+    the first ``seconds`` only when given."""
+    t = np.asarray(rec.dataset.time_s, dtype=float)
+    keep = np.flatnonzero(np.diff(np.floor(t - t[0]), prepend=-1.0) > 0)
+    if seconds is not None:
+        keep = keep[t[keep] - t[0] < seconds]
+    ds = rec.dataset.subset(keep)
+    ref = resolve_vector_reference(ds, vector=",".join(f"{v:.1f}" for v in np.asarray(rec.reference.ned_nT)[0]))
+    if not np.allclose(np.ptp(np.asarray(rec.reference.ned_nT), axis=0), 0.0):
+        ref = resolve_vector_reference(ds, "igrf")
+    name = rec.name.split(" (")[0]
+    return Record(f"{name} at 1 Hz" + (f", first {seconds:.0f} s" if seconds else ""), ds, ref)
+
+
 def records(only, every, tmp) -> list:
     """Every record present (``only``: names starting with one of these)."""
 
@@ -242,6 +260,8 @@ def records(only, every, tmp) -> list:
         out += [r for r in (_magnav_traj(tmp),) if r is not None]
     if not only or any(o.startswith("broad") for o in only):
         out += _broad_records(every, [o for o in only if o.startswith("broad")])
+    slow = [r for r in out if r.name.startswith(("px4_sample", "ap_erle_218", "broad_02"))]
+    out += [_at_1hz(r, 70.0 if r.name.startswith("broad") else None) for r in slow]  # a compass logged at 1 Hz
     return out
 
 
