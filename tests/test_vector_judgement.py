@@ -190,7 +190,7 @@ def test_a_tumbled_record_past_a_magnet_is_not_determined_for_the_misfit_not_the
     cause = fit.sensors[0].undetermined_cause
     assert not fit.sensors[0].determined and cause is not None
     assert cause.kind == "misfit" and cause.follows == ("position" if positions else "time")
-    assert cause.share > 0.5 and cause.lag1 > 0.9 and cause.tilt_deg > 90
+    assert cause.share > 0.5 and cause.lag1 > 0.9 and cause.spread_deg > 20  # tumbled: not the geometry
     note = next(w for w in fit.warnings if "does not determine" in w)
     assert "misfit, not the attitudes" in note and "magnet or steel near the path" in note
     assert "better attitude" not in note and "banked turns" not in note

@@ -85,8 +85,11 @@ FOLLOWS_SHARE = 0.5
 #: differences in time): a misfit, not the sensor's noise.
 FOLLOWS_EXCESS = 3.0
 
-#: Below this tilt (deg) the attitudes of a record span too few directions to fix the vertical axis (the geometry).
-LOW_TILT_DEG = 30.0
+#: Below this spread (deg) of the field's direction in the body frame about its least-covered axis
+#: (:func:`direction_spread_deg`) the attitudes span too few directions to fix the calibration (the geometry): a level
+#: vehicle turning in yaw with +-20 deg of tilt gives about 6 deg, a tumbled record about 35, a translation without
+#: rotation under 1.
+LOW_SPREAD_DEG = 10.0
 
 #: The columns of a position in the lab or along the path (m, north-east-down): a field that follows them is a
 #: magnet or steel near the path.
@@ -1017,7 +1020,7 @@ class UndeterminedCause:
     Attributes
     ----------
     kind : str
-        ``geometry`` (the attitudes span too few directions: tilt below :data:`LOW_TILT_DEG`), ``misfit`` (the
+        ``geometry`` (the attitudes span too few directions: a spread below :data:`LOW_SPREAD_DEG`), ``misfit`` (the
         attitudes span enough and the total-field residual follows time or position: the field itself changes; no
         attitude error moves ``|B|``), ``attitude`` (only the components across the field follow time: a wandering
         attitude error) or ``noise`` (none of these).
@@ -1029,8 +1032,9 @@ class UndeterminedCause:
         Lag-1 correlation of the total-field residual in record order.
     total_rms_nT, total_white_nT : float
         RMS of the total-field residual, and its white noise (from its differences), nT.
-    tilt_deg : float
-        Largest tilt of the record, deg.
+    spread_deg : float
+        The spread of the field's direction in the body frame about its least-covered axis, deg
+        (:func:`direction_spread_deg`).
     text : str
         The reason and what to do, in words.
     """
@@ -1041,19 +1045,39 @@ class UndeterminedCause:
     lag1: float
     total_rms_nT: float
     total_white_nT: float
-    tilt_deg: float
+    spread_deg: float
     text: str
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None, tilt_deg=90.0) -> UndeterminedCause:
+def direction_spread_deg(field_body_nT) -> float:
+    """How widely a record turned the field in the body frame: the RMS angle (deg) of its direction about the
+    least-covered axis, ``asin(sqrt(lambda_min))`` of the covariance of the unit directions.
+
+    Examples
+    --------
+    >>> u = Rotation.random(2000, random_state=0).apply([0.0, 0.0, 1.0])  # tumbled: every direction
+    >>> 30 < direction_spread_deg(u) < 40
+    True
+    >>> round(direction_spread_deg(np.tile([0.4, 0.0, 0.9], (50, 1))), 3)  # never turned
+    0.0
+    """
+    u = np.asarray(field_body_nT, dtype=float)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    lam = float(np.clip(np.linalg.eigvalsh(np.cov(u.T))[0], 0.0, 1.0))
+    return float(np.degrees(np.arcsin(np.sqrt(lam))))
+
+
+def undetermined_cause(
+    total_nT, perpendicular_nT, time_s=None, position_m=None, spread_deg=35.0, tilt_deg=None
+) -> UndeterminedCause:
     """Tell the geometry from a misfit when a record does not determine a vector fit.
 
     An attitude error turns the field and leaves ``|B|`` alone; a magnet or steel near the path, a field that
     changes or a hard iron that moves change ``|B|`` itself. So when the attitudes span enough directions (tilt
-    :data:`LOW_TILT_DEG` or more), a total-field residual that follows time or position (a smooth function of it
+    :data:`LOW_SPREAD_DEG` or more of spread), a total-field residual that follows time or position (a smooth function of it
     explains :data:`FOLLOWS_SHARE` of its variance, and it is :data:`FOLLOWS_EXCESS` times its white noise) is a
     misfit; residuals across the field that follow time with ``|B|`` at its noise are a wandering attitude error.
     With little tilt the fit bends an attitude error into ``|B|`` as well (the vertical scale and the bias trade),
@@ -1069,8 +1093,10 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
         Sample times (s); the sample index without them.
     position_m : array_like, shape (N, 3), optional
         Positions (m).
-    tilt_deg : float
-        Largest tilt of the record (deg).
+    spread_deg : float
+        The spread of the field's direction in the body frame (deg, :func:`direction_spread_deg`).
+    tilt_deg : float, optional
+        Largest tilt of the record (deg), named in the advice for a vehicle.
     """
     total = np.asarray(total_nT, dtype=float)
     n = len(total)
@@ -1086,11 +1112,14 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
     perp_share = explained_share(perpendicular_nT, basis)
     field_follows = shares[follows] >= FOLLOWS_SHARE and rms >= FOLLOWS_EXCESS * max(white, 1e-9)
     geometry = (
-        f"the attitudes span few directions (tilt at most {tilt_deg:.0f} deg): the vertical axis's scale and the "
-        "bias trade against each other; record banked turns and pitch changes (+-20 deg or more) over several minutes"
+        f"the attitudes span few directions (the field turned {spread_deg:.1f} deg about its least-covered axis in "
+        "the body"
+        + (f", tilt at most {tilt_deg:.0f} deg" if tilt_deg is not None else "")
+        + "): the scale and the bias along it trade against each other; turn the sensor about more axes (a vehicle: "
+        "banked turns and pitch changes of +-20 deg or more over several minutes)"
     )
     share = shares[follows]
-    if tilt_deg < LOW_TILT_DEG:  # the fit bends an attitude error into |B| too: the two cannot be told apart
+    if spread_deg < LOW_SPREAD_DEG:  # the fit bends an attitude error into |B| too: the two cannot be told apart
         kind = "geometry"
         text = geometry
         if field_follows or perp_share >= FOLLOWS_SHARE:
@@ -1103,8 +1132,8 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
         kind = "misfit"
         text = (
             f"the total-field residual follows the {follows} ({100 * share:.0f} % of its variance, lag-1 r = "
-            f"{lag1:.2f}; {rms:.3g} nT RMS against {white:.3g} nT of noise): a misfit, not the attitudes (they span "
-            f"{tilt_deg:.0f} deg of tilt, and no attitude error changes |B|): "
+            f"{lag1:.2f}; {rms:.3g} nT RMS against {white:.3g} nT of noise): a misfit, not the attitudes (they turned "
+            f"the field {spread_deg:.0f} deg about its least-covered axis, and no attitude error changes |B|): "
             + (
                 "a magnet or steel near the path (the field differs from place to place)"
                 if follows == "position"
@@ -1127,7 +1156,7 @@ def undetermined_cause(total_nT, perpendicular_nT, time_s=None, position_m=None,
             "position: spikes or a noisy attitude (try --robust), or the attitude's frame or the field vector are not "
             "the ones the record holds"
         )
-    return UndeterminedCause(kind, follows, float(share), float(lag1), rms, white, float(tilt_deg), text)
+    return UndeterminedCause(kind, follows, float(share), float(lag1), rms, white, float(spread_deg), text)
 
 
 def _undetermined_note(s, fit, dataset, rows, b_body, tilt_deg) -> str:
@@ -1139,7 +1168,12 @@ def _undetermined_note(s, fit, dataset, rows, b_body, tilt_deg) -> str:
     time_s = None if dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[rows]
     pos = positions_m(dataset)
     cause = undetermined_cause(
-        fit.total_residual_nT, perp, time_s, None if pos is None else pos[rows], tilt_deg=tilt_deg
+        fit.total_residual_nT,
+        perp,
+        time_s,
+        None if pos is None else pos[rows],
+        spread_deg=direction_spread_deg(b_body),
+        tilt_deg=tilt_deg,
     )
     fit.undetermined_cause = cause
     field_nT = float(np.median(np.linalg.norm(b_body, axis=1)))
