@@ -65,7 +65,7 @@ MAX_RISE = 0.10
 #: BROAD's groups of trials (the next flight of a trial is the next trial of its group).
 BROAD_GROUPS = ((1, 23), (24, 27), (28, 31), (32, 36), (37, 39))
 
-COMPONENTS = ("N", "E", "D", "|B|")
+COMPONENTS = ("N", "E", "D", "\\|B\\|")  # |B| escaped: the table is markdown
 
 
 @dataclass
