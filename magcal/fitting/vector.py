@@ -1096,7 +1096,7 @@ def undetermined_cause(
     spread_deg : float
         The spread of the field's direction in the body frame (deg, :func:`direction_spread_deg`).
     tilt_deg : float, optional
-        Largest tilt of the record (deg), named in the advice for a vehicle.
+        Largest tilt of the record (deg), named in the advice when under 60 deg (a vehicle that stays near level).
     """
     total = np.asarray(total_nT, dtype=float)
     n = len(total)
@@ -1114,7 +1114,7 @@ def undetermined_cause(
     geometry = (
         f"the attitudes span few directions (the field turned {spread_deg:.1f} deg about its least-covered axis in "
         "the body"
-        + (f", tilt at most {tilt_deg:.0f} deg" if tilt_deg is not None else "")
+        + (f", tilt at most {tilt_deg:.0f} deg" if tilt_deg is not None and tilt_deg < 60.0 else "")
         + "): the scale and the bias along it trade against each other; turn the sensor about more axes (a vehicle: "
         "banked turns and pitch changes of +-20 deg or more over several minutes)"
     )
