@@ -152,7 +152,8 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
     Returns
     -------
     Diagnosis
-        ``.verdict`` (``adequate``, ``missing_effect`` or ``unexplained``), ``.summary``, ``.candidates`` best
+        ``.verdict`` (``adequate``, ``missing_effect`` or ``unexplained``; in vector mode also ``not_judged``: no
+        held-out judgement could be made, nothing advised), ``.summary``, ``.candidates`` best
         first (each with its held-out RMS and ``holds``), ``.explained_by`` (effect labels to pass to
         :func:`calibrate` as ``effects=``: only effects whose gain holds on held-out data).
 

@@ -24,7 +24,10 @@ Vector mode (issue 40). A record with the attitude and the field vector (``ref_n
 ``--reference-vector``, ``--reference igrf`` at ``--lat/--lon`` or along ``lat, lon, alt_m``) is diagnosed on the
 vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): the candidates are judged on the world north/east/down
 residuals and ``|B|``, fitted on the earlier part and applied to the later part (and to every ``--also`` flight of
-the same vehicle) as ``magcal apply`` applies them. ``--mode scalar|vector`` forces one (``auto``, the default,
+the same vehicle, each weighed at its own noise) as ``magcal apply`` applies them; an effect that raises one world
+component or ``|B|`` there beyond its noise is not advised, and a record too short or too slow to hold out a later
+part (without a long enough ``--also`` flight) gets the verdict ``not_judged`` with what would let it judge (samples,
+minutes, the compass's logging rate). ``--mode scalar|vector`` forces one (``auto``, the default,
 takes the vector fit when the record has both); ``--json`` then prints the vector diagnosis's document (``mode``:
 ``vector``).
 """
@@ -131,7 +134,8 @@ def add_arguments(parser) -> None:
         action="store_false",
         help="skip the held-out validation of the supported candidates (by default each is fitted on "
         "alternating blocks in time and on the first part of the record, and recommended only "
-        "if its gain holds on the samples held out)",
+        "if its gain holds on the samples held out; in vector mode nothing is recommended without it: verdict "
+        "not_judged)",
     )
 
     parser.add_argument(

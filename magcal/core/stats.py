@@ -144,3 +144,51 @@ def lag1_correlation(*streams) -> float:
         if a.shape[0] > 2 and ok.any():
             best = max(best, float(np.max(np.sum(a[1:] * a[:-1], axis=0)[ok] / den[ok])))
     return float(np.clip(best, 0.0, 0.9999))
+
+
+def explained_share(values, regressors) -> float:
+    """The share of the variance of ``values`` that a least-squares fit of ``regressors`` (plus a constant)
+    explains: R^2 in [0, 1] (0 for fewer samples than columns, or a constant series).
+
+    Parameters
+    ----------
+    values : array_like, shape (N,) or (N, k)
+        The series (any unit); the columns of a 2-D array are explained together (their variances summed).
+    regressors : array_like, shape (N, m)
+        What they may follow (a smooth basis of time, positions...).
+    """
+    y = np.asarray(values, dtype=float).reshape(len(values), -1)
+    X = np.column_stack([np.ones(len(y)), np.asarray(regressors, dtype=float).reshape(len(y), -1)])
+    y = y - y.mean(axis=0)
+    tss = float(np.sum(y * y))
+    if len(y) <= X.shape[1] or tss <= 0:
+        return 0.0
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    fit = X @ coef
+    return float(np.clip(np.sum(fit * fit) / tss, 0.0, 1.0))
+
+
+def smooth_in_time(time_s, n_terms=None) -> np.ndarray:
+    """A smooth basis of time: the cosines ``cos(pi k x)``, ``k = 1..K``, of the time scaled to ``x`` in [0, 1]
+    (N, K); ``K = min(20, N // 10)`` by default (at least 1). A white series keeps about ``K / N`` of its variance
+    on it, one that wanders over the record most of it (:func:`explained_share`).
+
+    Parameters
+    ----------
+    time_s : array_like, shape (N,)
+        Sample times (s) or indices, in record order.
+    n_terms : int, optional
+        ``K``.
+
+    Examples
+    --------
+    >>> t = np.linspace(0.0, 60.0, 600)
+    >>> round(explained_share(np.sin(t / 10.0), smooth_in_time(t)), 3)
+    1.0
+    >>> explained_share(np.random.default_rng(0).normal(size=600), smooth_in_time(t)) < 0.1
+    True
+    """
+    t = np.asarray(time_s, dtype=float)
+    k = int(n_terms) if n_terms is not None else max(1, min(20, len(t) // 10))
+    x = (t - t.min()) / max(float(np.ptp(t)), 1e-12)
+    return np.cos(np.pi * np.outer(x, np.arange(1, k + 1)))

@@ -19,10 +19,12 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    ``magcal apply`` applies it (record-only terms dropped, the level they keep folded into the bias), beside the base
    model fitted the same way; with other flights of the same vehicle (``also``), both calibrations of the whole
    record are applied to each of them. The score is the residual's weighted RMS (the total field over ``sigma_F``,
-   the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals: 1 at the
-   noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more, and by more than chance
-   (the gains of ten stretches, a signed-rank test below :data:`GAIN_P`: :func:`significant_gain`), on the later
-   part and on every other flight.
+   the perpendicular components over ``sigma_perp``, the white noise of the diagnosed fit's residuals, each other
+   flight's its own: 1 at the noise): a candidate is recommended only if it lowers it by :data:`MIN_GAIN` or more,
+   and by more than chance (the gains of ten stretches, a signed-rank test below :data:`GAIN_P`:
+   :func:`significant_gain`), on the later part and on every other flight, and raises no world component nor
+   ``|B|`` there beyond its noise (:func:`raised_components`). Without a later part (a record too short or too
+   slow: :func:`judging_needs`) and without another flight long enough, nothing is recommended.
    An effect that describes the record (a bias step, an interference) but does not improve the later part or the
    other flights is reported in ``record_holds``, with what to do when recording.
 4. **Forward selection.** The best recommended candidate joins the model and the candidates are tried again, up
@@ -33,8 +35,11 @@ eddy currents of turns, a time offset between the attitude and the magnetometer,
    catalogue still says what it follows.
 
 The verdict: ``missing_effect`` (effects recommended), ``adequate`` (nothing recommended and the residuals at
-their noise: weighted RMS within :data:`ADEQUATE_RATIO` of 1 after the white noise of the record's own differences)
-or ``unexplained`` (structure that no candidate removes, or a base fit that the record does not determine).
+their noise: weighted RMS within :data:`ADEQUATE_RATIO` of 1 after the white noise of the record's own differences,
+and the same on every other flight at its own noise), ``unexplained`` (structure that no candidate removes, a
+residual or another flight far above its noise, or a base fit that the record does not determine: why, the geometry
+or a misfit, from :func:`magcal.fitting.vector.undetermined_cause`) or ``not_judged`` (no held-out judgement could be
+made: the summary says what would let it judge).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
-from magcal.fitting.vector import VectorFitResult, fit_vector
+from magcal.fitting.vector import VectorFitResult, attitude_error_deg, fit_vector, position_basis, positions_m
 from magcal.model.effects import CURRENT_COLUMNS, current_column
 from magcal.model.terms import EFFECTS, EffectTexts, Model, fitted_outside_domain, term_label
 
@@ -81,8 +86,26 @@ STRUCTURE_MIN_SHARE = 0.05
 #: ... and its F-test's p-value is below this.
 STRUCTURE_P = 1e-6
 
-#: Verdicts (the same as the scalar diagnosis's).
-VERDICTS = ("adequate", "missing_effect", "unexplained")
+#: Verdicts: the scalar diagnosis's, and ``not_judged`` (no held-out judgement could be made: nothing advised).
+VERDICTS = ("adequate", "missing_effect", "unexplained", "not_judged")
+
+#: The world components each sensor's residual is judged on, and ``|B|``.
+COMPONENTS = ("north", "east", "down", "|B|")
+
+#: A component of a held-out part may rise within its noise (twice the standard error of its RMS over
+#: :data:`GAIN_BLOCKS` stretches), at least by this share ...
+MIN_COMPONENT_RISE = 0.02
+
+#: ... and never by more than this: an advice that raises one world component of the next part or flight by more is
+#: not advised, whatever it does to the others.
+MAX_COMPONENT_RISE = 0.10
+
+#: ... and a rise within that bound whose added part, ``sqrt(after^2 - before^2)``, is within this fraction of the
+#: component's white noise is no rise (a component at its noise that moves by a hair).
+NOISE_ALLOWANCE = 0.3
+
+#: A compass logged slower than this (Hz) is named as the reason a record is too short to judge.
+SLOW_RATE_HZ = 5.0
 
 #: Fewest fitted samples in the later part (and in the earlier one) for the held-out judgement.
 MIN_LATER_SAMPLES = 60
@@ -125,14 +148,34 @@ class Scores:
     #: Per scored sample, the squared weighted residual averaged over the sensors and components (its mean is
     #: ``weighted ** 2``): what the significance of a gain is computed from.
     per_sample: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: Per scored sensor, the RMS of the north, east, down and |B| residuals (n_sensors, 4), nT (:data:`COMPONENTS`).
+    components_nT: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: Their squared residuals per sample (n, n_sensors * 4), nT^2: what a component's noise is computed from.
+    per_component: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: The scored sensors (0-based), in the order of ``components_nT``.
+    sensors: tuple = field(default=(), repr=False, compare=False)
+    #: The white noise of each component (n_sensors, 4), nT: a world component's ``sqrt((2 sigma_perp^2 +
+    #: sigma_F^2) / 3)``, |B|'s ``sigma_F``.
+    component_noise_nT: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def component_labels(self) -> list[str]:
+        """``north of sensor 2``... in the order of ``components_nT.ravel()``."""
+        one = len(self.sensors) == 1
+        return [f"{c}" + ("" if one else f" of sensor {s + 1}") for s in self.sensors for c in COMPONENTS]
 
     def to_dict(self) -> dict:
-        return {
+        out: dict[str, Any] = {
             "world_rms_nT": self.world_nT,
             "total_rms_nT": self.total_nT,
             "weighted_rms": self.weighted,
             "n": self.n,
         }
+        if self.components_nT is not None:
+            out["components_nT"] = {
+                f"sensor {s + 1}": dict(zip(COMPONENTS, map(float, row)))
+                for s, row in zip(self.sensors, self.components_nT)
+            }
+        return out
 
 
 @dataclass
@@ -238,6 +281,8 @@ _FOLLOWS_HINTS = {
     "temperature": "a temperature effect beyond a bias and a scale (delayed, per axis)",
     "time": "a drift or a changing field (the daily variation, a base station would show it), or a wandering "
     "attitude error",
+    "position": "a magnet or steel near the path (the field differs from place to place): not the instrument's, "
+    "record away from it",
 }
 
 
@@ -250,7 +295,8 @@ class LeftStructure:
     sensor : int
         0-based.
     follows : str
-        The channel: ``turn rate``, ``heading``, ``tilt``, ``current_A``/``throttle``, ``temperature``, ``time``.
+        The channel: ``turn rate``, ``heading``, ``tilt``, ``current_A``/``throttle``, ``temperature``, ``time``,
+        ``position`` (the record's ``pos_n_m, pos_e_m, pos_d_m``).
     residual : str
         Which residual: ``north``, ``east``, ``down`` or ``|B|``.
     explained_nT : float
@@ -391,8 +437,9 @@ class VectorDiagnosis:
             "mode: vector (the fit with attitude and the field vector); candidates judged on the world "
             "north/east/down residuals and |B|, each at its own noise",
             f"reference field vector: {self.reference_text}",
-            f"world components RMS {self.base.world_nT:.4g} nT (noise floor {floor:.3g} nT: attitude error "
-            f"{self.noise.get('attitude_deg', float('nan')):.3g} deg), |B| RMS {self.base.total_nT:.4g} nT (noise "
+            f"world components RMS {self.base.world_nT:.4g} nT (white noise floor {floor:.3g} nT; attitude error "
+            f"{self.noise.get('attitude_deg', float('nan')):.3g} deg as the vector fit estimates it, white part "
+            f"{self.noise.get('white_attitude_deg', float('nan')):.3g} deg), |B| RMS {self.base.total_nT:.4g} nT (noise "
             f"{float(np.sqrt(np.mean(np.square(self.noise.get('total_nT', [np.nan]))))):.3g} nT); normalized RMS "
             f"{self.base.weighted:.3g} (1 is the noise)",
         ]
@@ -403,7 +450,12 @@ class VectorDiagnosis:
                 + (f"; other flights: {', '.join(v['flights'])}" if v.get("flights") else "")
             )
         elif v.get("skipped"):
-            lines.append(f"held-out judgement skipped: {v['skipped']}")
+            lines.append(f"not judged: {v['skipped']}")
+        for name, sc in (v.get("flights_base") or {}).items():
+            lines.append(
+                f"the diagnosed calibration on {name}: world components {sc['world_rms_nT']:.4g} nT, |B| "
+                f"{sc['total_rms_nT']:.4g} nT, normalized {sc['weighted_rms']:.3g} at that flight's own noise"
+            )
         if v.get("subsample"):
             lines.append(
                 f"candidates fitted and judged on every k-th sample ({v['subsample']['samples']} of "
@@ -519,29 +571,66 @@ def _score_of(record: _Record, calibration, record_terms, where, weights, sensor
     err, total = record.residuals(calibration, record_terms)
     if sensors is not None:
         k = list(sensors)
-        return _scores(record, err[k], total[k], where, weights[0][k], weights[1][k])
+        return _scores(record, err[k], total[k], where, weights[0][k], weights[1][k], tuple(k))
     return _scores(record, err, total, where, weights[0], weights[1])
 
 
-def _scores(record: _Record, err, total, where, sigma_f, sigma_p) -> Scores:
-    """World RMS per component, |B| RMS and the weighted RMS over the samples ``where`` (the sensors given)."""
+def _scores(record: _Record, err, total, where, sigma_f, sigma_p, sensors=None) -> Scores:
+    """World RMS per component, |B| RMS and the weighted RMS over the samples ``where`` (the sensors given, 0-based:
+    default all), and each sensor's north, east, down and |B| RMS."""
     ned = np.asarray(record.reference.ned_nT, dtype=float)
     u = ned / np.linalg.norm(ned, axis=1, keepdims=True)
     sel = where & record.usable
     n = int(sel.sum())
+    sensors = tuple(range(err.shape[0])) if sensors is None else tuple(sensors)
     if n == 0:
-        return Scores(float("nan"), float("nan"), float("nan"), 0)
+        return Scores(float("nan"), float("nan"), float("nan"), 0, sensors=sensors)
     e, tf = err[:, sel], total[:, sel]
     along = np.einsum("snj,nj->sn", e, u[sel])
     perp2 = np.sum(e**2, axis=2) - along**2
     weighted = (tf / sigma_f[:, None]) ** 2 + np.clip(perp2, 0.0, None) / sigma_p[:, None] ** 2
+    squares = np.concatenate([e**2, tf[:, :, None] ** 2], axis=2)  # (sensors, n, 4)
     return Scores(
         float(np.sqrt(np.mean(e**2))),
         float(np.sqrt(np.mean(tf**2))),
         float(np.sqrt(np.mean(weighted) / 3.0)),
         n,
         np.mean(weighted, axis=0) / 3.0,
+        np.sqrt(np.mean(squares, axis=1)),
+        squares.transpose(1, 0, 2).reshape(n, -1),
+        sensors,
+        np.column_stack([np.repeat(np.sqrt((2 * sigma_p**2 + sigma_f**2) / 3.0)[:, None], 3, axis=1), sigma_f]),
     )
+
+
+def raised_components(before: Scores, after: Scores, blocks=GAIN_BLOCKS) -> list[tuple[str, float, float]]:
+    """The components (north, east, down, |B| of each sensor) whose RMS ``after`` exceeds ``before`` (the same
+    samples, in time order) by more than their noise allows: ``(label, before_nT, after_nT)``.
+
+    A component's RMS may rise by twice its standard error (from the change of its mean square over ``blocks``
+    contiguous stretches: neighbouring samples are not independent chances), at least :data:`MIN_COMPONENT_RISE`
+    and at most :data:`MAX_COMPONENT_RISE` of it, or by an added part within :data:`NOISE_ALLOWANCE` of its white
+    noise; the total may fall while one component rises, and an advice that raises one is not advised."""
+    if before.components_nT is None or after.components_nT is None or before.per_component is None:
+        return []
+    if after.per_component is None or before.per_component.shape != after.per_component.shape:
+        return []
+    out = []
+    labels = before.component_labels()
+    noise = np.zeros(before.components_nT.size) if before.component_noise_nT is None else before.component_noise_nT
+    for j, (b, a, sigma) in enumerate(zip(before.components_nT.ravel(), after.components_nT.ravel(), np.ravel(noise))):
+        if not (np.isfinite(a) and np.isfinite(b)) or a <= b:
+            continue
+        if a <= (1.0 + MAX_COMPONENT_RISE) * b and a * a - b * b <= (NOISE_ALLOWANCE * sigma) ** 2:
+            continue  # a hair on a component at its noise
+        d = after.per_component[:, j] - before.per_component[:, j]
+        means = np.array([part.mean() for part in np.array_split(d, min(blocks, len(d)))])
+        se = float(np.std(means, ddof=1) / np.sqrt(len(means))) if len(means) > 1 else float("inf")
+        rise = 2.0 * 0.5 * se / max(b * b, 1e-300)  # twice the standard error of the RMS's relative change
+        allowed = float(np.clip(rise, MIN_COMPONENT_RISE, MAX_COMPONENT_RISE))
+        if a > (1.0 + allowed) * b:
+            out.append((labels[j], float(b), float(a)))
+    return out
 
 
 def significant_gain(before: Scores, after: Scores, blocks=GAIN_BLOCKS) -> bool:
@@ -780,6 +869,8 @@ class VectorContext:
         Every candidate refitted, and those taken, in order.
     warnings : list of str
     notes : list of Note
+    flight_base : list of (str, Scores)
+        The diagnosed calibration on each other flight, at that flight's own noise.
     """
 
     dataset: Any
@@ -804,6 +895,14 @@ class VectorContext:
     chosen: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    flight_base: list = field(default_factory=list)
+
+    @property
+    def judging(self) -> bool:
+        """Whether a held-out judgement can be made: a later part, or another flight long enough."""
+        return bool(self.validate) and (
+            self.judge.later is not None or any(sc.n >= MIN_LATER_SAMPLES for _, sc in self.flight_base)
+        )
 
 
 def _vector_base(dataset, reference, result, also, options, validate) -> VectorContext:
@@ -812,14 +911,18 @@ def _vector_base(dataset, reference, result, also, options, validate) -> VectorC
     options = dict(options)
     notes = [Note(w, UserWarning, "vector fit") for w in result.warnings]
     record = _Record.of(dataset, reference, options["reference_total_nT"])
-    flights = [(f, _Record.of(f.dataset, f.reference)) for f in also]
     fitted = np.asarray(result.fitted, dtype=bool)
     err, total = record.residuals(result.calibration, "apply")
     noise = _white_noise(record, err, total, fitted, options["noise_nT"], options["attitude_noise_deg"])
+    # the attitude error: the vector fit's own estimate, the one magcal calibrate reports
+    noise["attitude_deg"] = float(np.sqrt(np.mean([s.attitude_noise_deg**2 for s in result.sensors])))
     weights = (np.asarray(noise["total_nT"]), np.asarray(noise["perpendicular_nT"]))
     base = _scores(record, err, total, fitted, *weights)
-    later, validation = _later_split(fitted, validate)
-    validation["flights"] = [f.name for f, _ in flights]
+    flights = [_flight_at_its_noise(f, result, options) for f in also]
+    later, validation = _later_split(fitted, validate, dataset)
+    validation["flights"] = [f.name for f, _, _ in flights]
+    flight_base = [(f.name, _flight_base(rec, result, w)) for f, rec, w in flights]
+    validation["flights_base"] = {name: sc.to_dict() for name, sc in flight_base}
     judged = [k for k, s in enumerate(result.sensors) if s.determined]  # a sensor the record does not fix: not judged
     current = result
     sub = _even_subsample(fitted, MAX_SAMPLES)
@@ -830,7 +933,9 @@ def _vector_base(dataset, reference, result, also, options, validate) -> VectorC
                 dataset, reference, effects=_model_of(result, dataset), mask=sub, warn=False, **options
             )
     options["mask"] = sub
-    judge = _Judge(dataset, reference, record, later, flights, options, weights, validate, judged)
+    judge = _Judge(
+        dataset, reference, record, later, flights, options, weights, validate, judged, validation.get("needs", "")
+    )
     ctx = VectorContext(
         dataset=dataset,
         reference=reference,
@@ -850,11 +955,12 @@ def _vector_base(dataset, reference, result, also, options, validate) -> VectorC
         judge=judge,
         current=current,
         notes=notes,
+        flight_base=flight_base,
     )
     if not judged:
         ctx.warnings.append(
-            "the vector fit is not determined by this record (see its warnings): no effect can be judged; record "
-            "banked turns and pitch changes over several minutes"
+            "the vector fit is not determined by this record (see its warnings): no effect can be judged; "
+            + _undetermined_text(result)
         )
     elif len(judged) < dataset.n_sensors:
         skipped = ", ".join(str(k + 1) for k in range(dataset.n_sensors) if k not in judged)
@@ -863,6 +969,27 @@ def _vector_base(dataset, reference, result, also, options, validate) -> VectorC
             "it is judged"
         )
     return ctx
+
+
+def _flight_at_its_noise(flight, result, options) -> tuple:
+    """``(Flight, _Record, weights)``: another flight and the noises its scores are weighed with, its own (the white
+    noise of the base calibration's residuals there), so that each flight is judged at its noise."""
+    rec = _Record.of(flight.dataset, flight.reference)
+    err, total = rec.residuals(result.calibration, "drop")
+    noise = _white_noise(rec, err, total, rec.usable, options["noise_nT"], options["attitude_noise_deg"])
+    return flight, rec, (np.asarray(noise["total_nT"]), np.asarray(noise["perpendicular_nT"]))
+
+
+def _flight_base(rec, result, weights) -> Scores:
+    """The diagnosed calibration's figures on another flight, at that flight's noise."""
+    return _score_of(rec, result.calibration, "drop", np.ones(rec.dataset.n_samples, bool), weights)
+
+
+def _undetermined_text(result) -> str:
+    """Why the record does not determine the fit, per sensor (the fit's :class:`UndeterminedCause`), in words."""
+    causes = [(k, s.undetermined_cause) for k, s in enumerate(result.sensors) if not s.determined]
+    texts = [f"sensor {k + 1}: {c.text}" if len(result.sensors) > 1 else c.text for k, c in causes if c is not None]
+    return "; ".join(texts) or "record banked turns and pitch changes (+-20 deg or more) over several minutes"
 
 
 def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool:
@@ -899,11 +1026,6 @@ def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool
             c.why = f"holds, but {best.label} explains more: see the next round"
     ctx.chosen = [c for c in ctx.chosen if c.label not in best.replaces] + [best]
     ctx.current = ctx.fits[best.label]
-    if not ctx.validate:
-        ctx.warnings.append(
-            f"{best.label}: recommended on its in-sample gain alone (held-out judgement off): check it on "
-            "another flight"
-        )
     return True
 
 
@@ -924,7 +1046,7 @@ def _vector_explain(ctx: VectorContext, t0) -> VectorDiagnosis:
     record_holds = [
         c for c in ctx.all_cands if c.round == last and c.supported and c.record_only and not c.recommended and c.later
     ]
-    verdict, summary = _verdict(ctx.base, final, chosen, left, bool(ctx.judged), record_holds, ctx.all_cands)
+    verdict, summary = _verdict(ctx, final, left, record_holds)
     return VectorDiagnosis(
         verdict=verdict,
         summary=summary,
@@ -1003,12 +1125,14 @@ def _refit_round(ctx: VectorContext, model, cands) -> list:
 class _Judge:
     """The held-out judgement of a round's candidates: the base model fitted once on the earlier part (per base),
     each candidate fitted there too; both applied to the later part, and the whole-record fits to each other
-    flight, as ``magcal apply`` applies them (record-only terms dropped, the level they keep folded in)."""
+    flight (weighed at that flight's own noise), as ``magcal apply`` applies them (record-only terms dropped, the
+    level they keep folded in). ``flights``: ``(Flight, _Record, weights)``; ``not_judged``: why there is no
+    held-out part, in words (the candidates are then not advised)."""
 
-    def __init__(self, dataset, reference, record, later, flights, options, weights, validate, judged):
+    def __init__(self, dataset, reference, record, later, flights, options, weights, validate, judged, not_judged=""):
         self.dataset, self.reference, self.record = dataset, reference, record
         self.later, self.flights, self.options, self.weights = later, flights, options, weights
-        self.validate, self.judged = validate, judged
+        self.validate, self.judged, self.not_judged = validate, judged, not_judged
         self._train_base: dict = {}
 
     def _train_fit(self, model):
@@ -1016,58 +1140,85 @@ class _Judge:
         train = self.record.usable & ~self.later & options.pop("mask", True)
         return fit_vector(self.dataset, self.reference, effects=model, mask=train, warn=False, **options)
 
+    def _later_part(self, c, base_fit, cand_fit):
+        """``(before, after)`` on the later part, or a string: why the held-out fit failed."""
+        base_model = base_fit.calibration.model or Model(self.dataset.n_sensors)
+        key = tuple(base_model.effect_labels)
+        try:
+            if key not in self._train_base:
+                self._train_base[key] = self._train_fit(base_model)
+            fb = self._train_base[key]
+            fc = self._train_fit(cand_fit.calibration.model)
+        except (CalibrationError, MagcalError) as exc:
+            return f"held-out fit failed ({exc})"
+        on = _sensors_of(c, self.judged)
+        before = _score_of(self.record, fb.calibration, "drop", self.later, self.weights, on)
+        after = _score_of(self.record, fc.calibration, "drop", self.later, self.weights, on)
+        return before, after
+
     def __call__(self, c, base_fit, cand_fit) -> None:
-        gains = []
+        # the parts judged on their gain and their components, and those judged on their components only
+        gains: list[tuple[str, Scores, Scores]] = []
+        checked: list[tuple[str, Scores, Scores]] = []
         if self.validate and self.later is not None:
-            base_model = base_fit.calibration.model or Model(self.dataset.n_sensors)
-            key = tuple(base_model.effect_labels)
-            try:
-                if key not in self._train_base:
-                    self._train_base[key] = self._train_fit(base_model)
-                fb = self._train_base[key]
-                fc = self._train_fit(cand_fit.calibration.model)
-            except (CalibrationError, MagcalError) as exc:
-                c.why = f"held-out fit failed ({exc})"
+            found = self._later_part(c, base_fit, cand_fit)
+            if isinstance(found, str):
+                c.why = found
                 return
-            rec = self.record
-            on = _sensors_of(c, self.judged)
-            before = _score_of(rec, fb.calibration, "drop", self.later, self.weights, on)
-            after = _score_of(rec, fc.calibration, "drop", self.later, self.weights, on)
-            c.later = (before, after)
-            gains.append(("the later part", before, after))
-        if self.validate:
-            for flight, rec in self.flights:
-                everywhere = np.ones(rec.dataset.n_samples, bool)
-                try:
-                    on = _sensors_of(c, self.judged)
-                    before = _score_of(rec, base_fit.calibration, "drop", everywhere, self.weights, on)
-                    after = _score_of(rec, cand_fit.calibration, "drop", everywhere, self.weights, on)
-                except MagcalError as exc:
-                    c.why = f"cannot be applied to {flight.name} ({exc})"
-                    return
-                c.flights.append((flight.name, before, after))
-                if not c.record_only:  # a record-only term describes this record: other flights have their own
-                    gains.append((flight.name, before, after))
+            c.later = found
+            gains.append(("the later part", *found))
+        for flight, rec, weights in self.flights if self.validate else ():
+            everywhere = np.ones(rec.dataset.n_samples, bool)
+            try:
+                on = _sensors_of(c, self.judged)
+                before = _score_of(rec, base_fit.calibration, "drop", everywhere, weights, on)
+                after = _score_of(rec, cand_fit.calibration, "drop", everywhere, weights, on)
+            except MagcalError as exc:
+                c.why = f"cannot be applied to {flight.name} ({exc})"
+                return
+            c.flights.append((flight.name, before, after))
+            if before.n >= MIN_LATER_SAMPLES:  # a record-only term describes this record: others have their own
+                (checked if c.record_only else gains).append((flight.name, before, after))
         if not gains:
-            c.holds = not c.record_only
-            c.why = "" if c.holds else "describes this record only (dropped on new data)"
+            c.holds = None
+            c.why = "not judged (no held-out part" + (
+                ": see the verdict)" if self.not_judged else " and no other flight)"
+            )
             return
-        worse = [
-            name for name, b, a in gains if not (a.weighted <= (1.0 - MIN_GAIN) * b.weighted and significant_gain(b, a))
-        ]
-        c.holds = not worse
-        raised = [name for name, b, a in c.flights if a.weighted > b.weighted]
-        if c.record_only and raised and not worse:
-            c.why = (
-                f"describes this record; applied to {', '.join(raised)} (dropped, the level it keeps folded in) it "
-                "raises the error there: calibrate those flights without it"
+        reasons = [r for r in (_part_verdict(name, b, a) for name, b, a in gains) if r]
+        reasons += [r for r in (_part_verdict(name, b, a, gain=False) for name, b, a in checked) if r]
+        c.holds = not reasons
+        if reasons:
+            c.why = "; ".join(reasons) + (" (describes this record only)" if c.record_only else "")
+
+
+def _part_verdict(name, before: Scores, after: Scores, gain=True) -> str:
+    """Why a candidate's calibration does not hold on a held-out part or flight (``""`` when it does): it raises
+    a component beyond its noise (:func:`raised_components`), or (with ``gain``) it does not lower the residual
+    weighed at its noise by :data:`MIN_GAIN`, or not by more than chance (:func:`significant_gain`). The words
+    follow the numbers: a lower world RMS is said when it is lower."""
+    raised = raised_components(before, after)
+    if raised:
+        return (
+            f"raises on {name} "
+            + ", ".join(f"the {label} residual {b:.4g} -> {a:.4g} nT" for label, b, a in raised[:3])
+            + " (more than its noise allows)"
+        )
+    if not gain:
+        return ""
+    pair = (
+        f"world {before.world_nT:.4g} -> {after.world_nT:.4g} nT, |B| {before.total_nT:.4g} -> {after.total_nT:.4g} nT"
+    )
+    if not after.weighted <= (1.0 - MIN_GAIN) * before.weighted:
+        if after.world_nT < before.world_nT:
+            return (
+                f"lowers {name}'s world components but not its residual weighed at its noise ({pair}; normalized "
+                f"{before.weighted:.3g} -> {after.weighted:.3g})"
             )
-        if worse:
-            c.why = (
-                "does not improve "
-                + ", ".join(worse)
-                + (" (describes this record only)" if c.record_only else " (fits this record only)")
-            )
+        return f"does not improve {name} ({pair})"
+    if not significant_gain(before, after):
+        return f"its gain on {name} ({pair}) is within chance: not on most stretches of it"
+    return ""
 
 
 def _even_subsample(fitted, most) -> np.ndarray:
@@ -1085,20 +1236,65 @@ def _model_of(result, dataset) -> Model:
     return result.calibration.model.copy() if result.calibration.model is not None else Model(dataset.n_sensors)
 
 
-def _later_split(fitted, validate) -> tuple[np.ndarray | None, dict]:
-    """The later part's mask (the last :data:`LATER_FRACTION` of the fitted samples) and the validation's facts."""
+def _later_split(fitted, validate, dataset=None) -> tuple[np.ndarray | None, dict]:
+    """The later part's mask (the last :data:`LATER_FRACTION` of the fitted samples) and the validation's facts
+    (``skipped`` and ``needs``, in words, when there is none: :func:`judging_needs`)."""
     idx = np.flatnonzero(fitted)
     n_later = int(round(LATER_FRACTION * len(idx)))
     if not validate:
-        return None, {"skipped": "held-out judgement off (--no-validate)", "later_fraction": LATER_FRACTION}
+        return None, {
+            "skipped": "held-out judgement off (--no-validate)",
+            "needs": "the held-out judgement (drop --no-validate)",
+            "later_fraction": LATER_FRACTION,
+        }
     if n_later < MIN_LATER_SAMPLES or len(idx) - n_later < MIN_LATER_SAMPLES:
         return None, {
             "skipped": f"too few samples to hold out a later part ({len(idx)} fitted)",
+            "needs": judging_needs(dataset, fitted),
             "later_fraction": LATER_FRACTION,
         }
     later = np.zeros_like(fitted)
     later[idx[-n_later:]] = True
     return later, {"later_fraction": LATER_FRACTION, "n_later": n_later}
+
+
+#: The fewest fitted samples with a later part held out: :data:`MIN_LATER_SAMPLES` in the smaller of the two parts.
+MIN_JUDGED_SAMPLES = int(np.ceil(MIN_LATER_SAMPLES / min(LATER_FRACTION, 1.0 - LATER_FRACTION)))
+
+
+def judging_needs(dataset, fitted) -> str:
+    """What would let a record too short to judge be judged, in words: the samples (and minutes at its rate) more,
+    and for a compass logged slowly (below :data:`SLOW_RATE_HZ`) the rate to log it at and how its firmware sets it
+    (:func:`faster_logging`)."""
+    idx = np.flatnonzero(fitted)
+    more = max(MIN_JUDGED_SAMPLES - len(idx), 0)
+    text = (
+        f"a held-out judgement needs {MIN_JUDGED_SAMPLES} fitted samples (the last {100 * LATER_FRACTION:.0f} % held "
+        f"out, at least {MIN_LATER_SAMPLES} there): {more} more"
+    )
+    t = None if dataset is None or dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[idx]
+    duration = float(np.ptp(t)) if t is not None and len(t) > 1 else 0.0
+    rate = (len(idx) - 1) / duration if duration > 0 else float("nan")
+    if np.isfinite(rate):
+        text += f", {more / rate / 60.0:.1f} minutes more at this record's {rate:.2g} Hz"
+        if rate < SLOW_RATE_HZ:
+            text += f"; the compass is logged at {rate:.2g} Hz: {faster_logging(dataset)}"
+    return text + "; or another flight of the same vehicle (--also)"
+
+
+def faster_logging(dataset) -> str:
+    """How to log a compass faster on the firmware that wrote ``dataset`` (its ``log_format`` metadata)."""
+    meta = getattr(dataset, "metadata", None) or {}
+    fmt, mags = str(meta.get("log_format", "")), str(meta.get("log_magnetometers", ""))
+    if "PX4" in fmt and "sensor_mag" in mags:
+        return (
+            "PX4's default logging profile keeps sensor_mag at 1 Hz; add the sensor-comparison profile to "
+            "SDLOG_PROFILE (bit 6, +64: sensor_mag at 10 Hz) or list 'sensor_mag 50' (every 50 ms) in "
+            "etc/logging/logger_topics.txt on the SD card"
+        )
+    if "PX4" in fmt:
+        return "log the compass at 10 Hz or more (PX4: sensor_mag through SDLOG_PROFILE's sensor comparison, bit 6)"
+    return "log the compass at 10 Hz or more (the logger's rate for the magnetometer)"
 
 
 def _white_noise(record, err, total, fitted, noise_nT=None, attitude_noise_deg=None) -> dict:
@@ -1128,7 +1324,7 @@ def _white_noise(record, err, total, fitted, noise_nT=None, attitude_noise_deg=N
     return {
         "total_nT": out_f,
         "perpendicular_nT": out_p,
-        "attitude_deg": float(np.degrees(np.sqrt(max(perp_white**2 - sens**2, 0.0)) / field_nT)),
+        "white_attitude_deg": attitude_error_deg(perp_white, sens, field_nT),
         "world_floor_nT": float(np.sqrt((2 * perp_white**2 + sens**2) / 3.0)),
     }
 
@@ -1157,6 +1353,9 @@ def _channels(record: _Record) -> dict:
         t = np.asarray(ds.time_s, dtype=float)
         x = (t - t.mean()) / max(float(np.ptp(t)), 1e-9)
         out["time"] = np.column_stack([x, x**2])
+    pos = positions_m(ds)
+    if pos is not None and np.all(np.isfinite(pos[record.usable])) and np.ptp(pos[record.usable], axis=0).max() > 0:
+        out["position"] = position_basis(np.where(record.usable[:, None], pos, pos[record.usable].mean(axis=0)))
     return out
 
 
@@ -1196,59 +1395,99 @@ def _left_structure(record, err, total, fitted) -> list:
     return list(best.values())[:6]
 
 
-def _verdict(base, final, chosen, left, determined, record_holds, cands) -> tuple[str, str]:
-    """The verdict and its summary in words."""
-    if not determined:
+def _verdict(ctx: VectorContext, final, left, record_holds) -> tuple[str, str]:
+    """The verdict and its summary in words: the words follow the numbers (every flight at its own noise)."""
+    base, chosen, cands = ctx.base, ctx.chosen, ctx.all_cands
+    if not ctx.judged:
         return "unexplained", (
-            "the vector fit is not determined by this record, so no effect can be judged: record banked turns and "
-            "pitch changes (+-20 deg or more) over several minutes, with a better attitude"
+            "the vector fit is not determined by this record, so no effect can be judged: "
+            + _undetermined_text(ctx.result)
         )
+    in_sample = (
+        f"in-sample the base model leaves world components {base.world_nT:.4g} nT, |B| {base.total_nT:.4g} nT "
+        f"(normalized RMS {base.weighted:.3g}; 1 is the noise)"
+    )
+    supported = [c for c in cands if c.supported]
+    if not ctx.judging:
+        v = ctx.validation
+        parts = [f"not judged: {v.get('skipped', 'no held-out part')}; what would let it judge: {v.get('needs', '')}"]
+        parts.append(in_sample)
+        if supported:
+            parts.append(
+                "supported in-sample, not advised until judged held out: " + ", ".join(c.label for c in supported[:4])
+            )
+        return "not_judged", ". ".join(parts)
     now = final if final is not None else base
     at_noise = bool(np.isfinite(now.weighted) and now.weighted <= ADEQUATE_RATIO)
+    off = [(n, sc) for n, sc in ctx.flight_base if sc.n >= MIN_LATER_SAMPLES and not sc.weighted <= ADEQUATE_RATIO]
     parts = []
     if chosen:
-        best = chosen[0]
-        held = ""
-        if best.later is not None:
-            held = f", on the later part {best.later[0].world_nT:.4g} -> {best.later[1].world_nT:.4g} nT"
-        for name, b, a in best.flights:
-            held += f", on {name} {b.world_nT:.4g} -> {a.world_nT:.4g} nT"
-        parts.append(
-            f"the model misses {', '.join(c.label for c in chosen)} ({best.quote}): world components "
-            f"{base.world_nT:.4g} -> {now.world_nT:.4g} nT in-sample{held}; add it (magcal calibrate --mode vector "
-            f"--effects {','.join(c.label for c in chosen)})"
-        )
-        for c in chosen:
-            if c.record_only:
-                parts.append(
-                    f"{c.label} describes this record only: magcal apply drops it on other data and keeps "
-                    f"{getattr(EFFECTS.get(c.effect), 'kept_for_new_data', None) or 'the base terms'}"
-                    + (f"; {c.when_recording}" if c.when_recording else "")
-                )
+        parts += _advice_parts(base, now, chosen)
         if not at_noise and left:
             parts.append("structure is still left: " + "; ".join(s.text() for s in left[:3]))
         verdict = "missing_effect"
-    elif at_noise or not left:
+    elif at_noise and not off:
         verdict = "adequate"
         parts.append(
             f"the base model leaves only noise: world components {base.world_nT:.4g} nT, |B| {base.total_nT:.4g} nT "
             f"(normalized RMS {base.weighted:.3g}; 1 is the noise)"
+            + "".join(f"; on {n} {sc.world_nT:.4g} nT (normalized {sc.weighted:.3g})" for n, sc in ctx.flight_base)
         )
     else:
         verdict = "unexplained"
-        supported = [c for c in cands if c.supported]
-        parts.append(
-            "significant structure that no candidate removes on data the fit did not see: "
-            + "; ".join(s.text() for s in left[:4])
-        )
+        if left:
+            parts.append(
+                "significant structure that no candidate removes on data the fit did not see: "
+                + "; ".join(s.text() for s in left[:4])
+            )
+        elif not at_noise:
+            parts.append(
+                f"the residual is {base.weighted:.3g}x its noise (world components {base.world_nT:.4g} nT, |B| "
+                f"{base.total_nT:.4g} nT) and follows none of the channels tried"
+            )
         if supported:
             parts.append(
                 "supported in-sample but not carried: " + ", ".join(f"{c.label} ({c.why})" for c in supported[:3])
             )
+    parts += [_flight_off_text(name, sc, base) for name, sc in off]
     for c in record_holds[:2]:
         if c.when_recording:
             parts.append(f"{c.label} describes this record only: {c.when_recording}")
     return verdict, ". ".join(parts)
+
+
+def _advice_parts(base, now, chosen) -> list[str]:
+    """The summary's advice: what is added, its figures in-sample and held out, what magcal apply keeps."""
+    best = chosen[0]
+    held = ""
+    if best.later is not None:
+        held = f", on the later part {best.later[0].world_nT:.4g} -> {best.later[1].world_nT:.4g} nT"
+    for name, b, a in best.flights:
+        held += f", on {name} {b.world_nT:.4g} -> {a.world_nT:.4g} nT"
+    parts = [
+        f"the model misses {', '.join(c.label for c in chosen)} ({best.quote}): world components "
+        f"{base.world_nT:.4g} -> {now.world_nT:.4g} nT in-sample{held}; add it (magcal calibrate --mode vector "
+        f"--effects {','.join(c.label for c in chosen)})"
+    ]
+    for c in chosen:
+        if c.record_only:
+            parts.append(
+                f"{c.label} describes this record only: magcal apply drops it on other data and keeps "
+                f"{getattr(EFFECTS.get(c.effect), 'kept_for_new_data', None) or 'the base terms'}"
+                + (f"; {c.when_recording}" if c.when_recording else "")
+            )
+    return parts
+
+
+def _flight_off_text(name, sc: Scores, base: Scores) -> str:
+    """The words for another flight where the diagnosed calibration leaves more than that flight's noise."""
+    return (
+        f"the diagnosed calibration (the base, without advice) does not carry to {name}: it leaves {sc.weighted:.3g}x "
+        f"that flight's noise there (world "
+        f"components {sc.world_nT:.4g} nT, |B| {sc.total_nT:.4g} nT; {base.world_nT:.4g} and {base.total_nT:.4g} nT "
+        "on this record): something differs between the records (a hard iron that moved, another field or attitude "
+        "source, an effect this record does not show)"
+    )
 
 
 def _evidence(record, err, total) -> dict:

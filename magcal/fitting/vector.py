@@ -59,7 +59,7 @@ from magcal.checks.reference import VectorReference
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs
-from magcal.core.stats import lag1_correlation, robust_sigma
+from magcal.core.stats import explained_share, lag1_correlation, robust_sigma, smooth_in_time
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.geometry.orientations import (
@@ -85,6 +85,24 @@ from magcal.model.terms import (
 #: Most evaluations of one least-squares solve: a well-posed vector fit converges in a handful; one whose effects
 #: are nearly degenerate wanders along the degenerate direction instead (its covariance then says so).
 MAX_NFEV = 300
+
+#: A residual "follows" time or position when a smooth function of it explains at least this share of its variance
+#: (:func:`undetermined_cause`).
+FOLLOWS_SHARE = 0.5
+
+#: ... and, for the total-field residual, when its RMS is at least this many times its white noise (the noise of its
+#: differences in time): a misfit, not the sensor's noise.
+FOLLOWS_EXCESS = 3.0
+
+#: Below this spread (deg) of the field's direction in the body frame about its least-covered axis
+#: (:func:`direction_spread_deg`) the attitudes span too few directions to fix the calibration (the geometry): a level
+#: vehicle turning in yaw with +-20 deg of tilt gives about 6 deg, a tumbled record about 35, a translation without
+#: rotation under 1.
+LOW_SPREAD_DEG = 10.0
+
+#: The columns of a position in the lab or along the path (m, north-east-down): a field that follows them is a
+#: magnet or steel near the path.
+POSITION_COLUMNS_M = ("pos_n_m", "pos_e_m", "pos_d_m")
 
 #: Most rounds in which the effects may move their data-derived constants after a fit (a time offset's shift).
 MAX_REFINEMENTS = 3
@@ -157,6 +175,8 @@ class SensorVectorFit:
     bound_pull_z : dict
         Per effect block (label) of this sensor, how far the data pull each parameter past its nearer bound, in its
         (widened) standard deviations (:func:`magcal.model.terms.bound_pulls`); empty when none sits on a bound.
+    undetermined_cause : UndeterminedCause or None
+        Why not (:func:`undetermined_cause`: the geometry or a misfit); None when determined.
     total_residual_nT : numpy.ndarray, shape (n_fitted,)
         The total-field residual ``|B| - F`` of every fitted sample (:attr:`VectorFitResult.fitted`), nT.
     vector_residual_nT : numpy.ndarray, shape (n_fitted, 3)
@@ -187,6 +207,7 @@ class SensorVectorFit:
     sd_widening: float = 1.0
     determined: bool = True
     bound_pull_z: dict = field(default_factory=dict, repr=False)
+    undetermined_cause: UndeterminedCause | None = None
     total_residual_nT: np.ndarray | None = field(default=None, repr=False)
     vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
@@ -212,6 +233,7 @@ class SensorVectorFit:
             "residual_lag1_correlation": self.residual_lag1_correlation,
             "sd_widening": self.sd_widening,
             "determined": self.determined,
+            "undetermined_cause": None if self.undetermined_cause is None else self.undetermined_cause.to_dict(),
         }
 
 
@@ -742,8 +764,11 @@ def fit_vector(
     held = fitted_outside_domain(model, effect_values, pulls=pulls) if model.effects else ""
     if held:
         notes.append(held_note_text(held))
-    sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
     tilt = _tilt_range_deg(rotation[rows])
+    for s, fit in enumerate(fits):
+        if not fit.determined:
+            notes.append(_undetermined_note(s, fit, dataset, rows, b_body, tilt))
+    sensors = [SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits]
     if tilt < 5:
         notes.append(
             f"the body tilted at most {tilt:.1f} deg: the vertical axis's scale and the bias along it rest on few "
@@ -871,16 +896,14 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         (bias_sd is not None and float(np.max(bias_sd)) > UNDETERMINED_BIAS_FRACTION * field_nT)
         or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
     )
-    notes.extend(_sensor_notes(s, determined, bias_sd, mount_sd, field_nT, widening, lag1, n_out, robust, R, right))
+    notes.extend(_sensor_notes(s, n_out, robust, R, right))
     values, k = {}, 0
     for label, q in zip(labels, sizes):
         values[label] = theta[k : k + q].copy()
         k += q
     nearest, off = nearest_right_angle(R)
     att_noise = (
-        float(attitude_noise_deg)
-        if attitude_noise_deg is not None
-        else float(np.degrees(np.sqrt(max(sigma_p**2 - sigma_f**2, 0.0)) / field_nT))
+        float(attitude_noise_deg) if attitude_noise_deg is not None else attitude_error_deg(sigma_p, sigma_f, field_nT)
     )
     fit = SensorVectorFit(
         W=W,
@@ -1009,24 +1032,10 @@ def _terms_of(values) -> dict:
     return terms
 
 
-def _sensor_notes(s, determined, bias_sd, mount_sd, field_nT, widening, lag1, n_out, robust, R, right) -> list:
-    """What one sensor's fit has to say: not determined, samples far out, a mounting off the right angles."""
+def _sensor_notes(s, n_out, robust, R, right) -> list:
+    """What one sensor's fit has to say: samples far out, a mounting off the right angles (not determined:
+    :func:`_undetermined_note`)."""
     notes = []
-    if not determined:
-        assert bias_sd is not None and mount_sd is not None  # both come from the same covariance
-        notes.append(
-            f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
-            f"to {float(np.max(bias_sd)):.0f} nT ({100 * float(np.max(bias_sd)) / field_nT:.1f} % of the "
-            f"field) and the mounting's {float(np.max(mount_sd)):.2f} deg"
-            + (
-                f" (widened {widening:.1f}x: the residuals are correlated in time, r = {lag1:.2f})"
-                if widening > 1.05
-                else ""
-            )
-            + "; with little tilt the vertical axis's scale and the bias trade against each other, and a "
-            "wandering attitude error does not average out. Do not apply it: record banked turns and pitch "
-            "changes (+-20 deg or more) over several minutes, with a better attitude (an INS)"
-        )
     if n_out:
         notes.append(
             f"sensor {s + 1}: {n_out} sample(s) lie beyond 5 standard deviations of the residuals"
@@ -1045,6 +1054,226 @@ def _sensor_notes(s, determined, bias_sd, mount_sd, field_nT, widening, lag1, n_
             "(body x forward, y right, z down; world north-east-down) and the reference"
         )
     return notes
+
+
+def attitude_error_deg(sigma_perpendicular_nT, sigma_total_nT, field_nT) -> float:
+    """The attitude error (deg, 1 sigma per axis) that a residual across the field implies beside the sensor's own
+    noise: ``sqrt(sigma_perp^2 - sigma_F^2) / |B|`` (0 when the residual across the field is no larger than the
+    sensor's). The one estimate of ``magcal calibrate`` (:attr:`SensorVectorFit.attitude_noise_deg`) and of
+    ``magcal diagnose``.
+
+    Parameters
+    ----------
+    sigma_perpendicular_nT : float
+        Noise of each component of the residual perpendicular to the field, nT.
+    sigma_total_nT : float
+        Noise of the total-field residual (the sensor's own), nT.
+    field_nT : float
+        The field's magnitude, nT.
+
+    Examples
+    --------
+    >>> round(attitude_error_deg(np.hypot(np.radians(0.1) * 50_000.0, 3.0), 3.0, 50_000.0), 4)
+    0.1
+    """
+    excess = max(float(sigma_perpendicular_nT) ** 2 - float(sigma_total_nT) ** 2, 0.0)
+    return float(np.degrees(np.sqrt(excess) / float(field_nT)))
+
+
+def positions_m(dataset) -> np.ndarray | None:
+    """The record's positions (N, 3), m, from its :data:`POSITION_COLUMNS_M` (None without them)."""
+    extra = getattr(dataset, "extra", None) or {}
+    if not all(c in extra for c in POSITION_COLUMNS_M):
+        return None
+    return np.column_stack([np.asarray(extra[c], dtype=float) for c in POSITION_COLUMNS_M])
+
+
+def position_basis(p) -> np.ndarray:
+    """A smooth function of a position (N, 3): the polynomials of its components up to degree 3 (19 columns; a
+    magnet's field, falling as the cube of the distance, needs the third)."""
+    p = (p - p.mean(axis=0)) / np.maximum(p.std(axis=0), 1e-9)
+    cols = [p[:, i] for i in range(3)]
+    cols += [p[:, i] * p[:, j] for i in range(3) for j in range(i, 3)]
+    cols += [p[:, i] * p[:, j] * p[:, k] for i in range(3) for j in range(i, 3) for k in range(j, 3)]
+    return np.column_stack(cols)
+
+
+@dataclass
+class UndeterminedCause:
+    """Why a record does not determine a vector fit: the geometry, or a misfit (:func:`undetermined_cause`).
+
+    Attributes
+    ----------
+    kind : str
+        ``geometry`` (the attitudes span too few directions: a spread below :data:`LOW_SPREAD_DEG`), ``misfit`` (the
+        attitudes span enough and the total-field residual follows time or position: the field itself changes; no
+        attitude error moves ``|B|``), ``attitude`` (only the components across the field follow time: a wandering
+        attitude error) or ``noise`` (none of these).
+    follows : str
+        ``time``, ``position`` or ``""``.
+    share : float
+        The share of the residual's variance the smooth function of ``follows`` explains.
+    lag1 : float
+        Lag-1 correlation of the total-field residual in record order.
+    total_rms_nT, total_white_nT : float
+        RMS of the total-field residual, and its white noise (from its differences), nT.
+    spread_deg : float
+        The spread of the field's direction in the body frame about its least-covered axis, deg
+        (:func:`direction_spread_deg`).
+    text : str
+        The reason and what to do, in words.
+    """
+
+    kind: str
+    follows: str
+    share: float
+    lag1: float
+    total_rms_nT: float
+    total_white_nT: float
+    spread_deg: float
+    text: str
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def direction_spread_deg(field_body_nT) -> float:
+    """How widely a record turned the field in the body frame: the RMS angle (deg) of its direction about the
+    least-covered axis, ``asin(sqrt(lambda_min))`` of the covariance of the unit directions.
+
+    Examples
+    --------
+    >>> u = Rotation.random(2000, random_state=0).apply([0.0, 0.0, 1.0])  # tumbled: every direction
+    >>> 30 < direction_spread_deg(u) < 40
+    True
+    >>> round(direction_spread_deg(np.tile([0.4, 0.0, 0.9], (50, 1))), 3)  # never turned
+    0.0
+    """
+    u = np.asarray(field_body_nT, dtype=float)
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    lam = float(np.clip(np.linalg.eigvalsh(np.cov(u.T))[0], 0.0, 1.0))
+    return float(np.degrees(np.arcsin(np.sqrt(lam))))
+
+
+def undetermined_cause(
+    total_nT, perpendicular_nT, time_s=None, position_m=None, spread_deg=35.0, tilt_deg=None
+) -> UndeterminedCause:
+    """Tell the geometry from a misfit when a record does not determine a vector fit.
+
+    An attitude error turns the field and leaves ``|B|`` alone; a magnet or steel near the path, a field that
+    changes or a hard iron that moves change ``|B|`` itself. So when the attitudes span enough directions (tilt
+    :data:`LOW_SPREAD_DEG` or more of spread), a total-field residual that follows time or position (a smooth function of it
+    explains :data:`FOLLOWS_SHARE` of its variance, and it is :data:`FOLLOWS_EXCESS` times its white noise) is a
+    misfit; residuals across the field that follow time with ``|B|`` at its noise are a wandering attitude error.
+    With little tilt the fit bends an attitude error into ``|B|`` as well (the vertical scale and the bias trade),
+    and the geometry comes first.
+
+    Parameters
+    ----------
+    total_nT : array_like, shape (N,)
+        The total-field residual, nT, in record order.
+    perpendicular_nT : array_like, shape (N, k)
+        The residual's components across the field, nT.
+    time_s : array_like, shape (N,), optional
+        Sample times (s); the sample index without them.
+    position_m : array_like, shape (N, 3), optional
+        Positions (m).
+    spread_deg : float
+        The spread of the field's direction in the body frame (deg, :func:`direction_spread_deg`).
+    tilt_deg : float, optional
+        Largest tilt of the record (deg), named in the advice when under 60 deg (a vehicle that stays near level).
+    """
+    total = np.asarray(total_nT, dtype=float)
+    n = len(total)
+    t = np.arange(n, dtype=float) if time_s is None else np.asarray(time_s, dtype=float)
+    basis = smooth_in_time(t)
+    white = float(robust_sigma(np.diff(total)) / np.sqrt(2.0)) if n > 3 else float(np.std(total))
+    rms = float(np.sqrt(np.mean(total**2)))
+    shares = {"time": explained_share(total, basis)}
+    if position_m is not None and np.all(np.isfinite(position_m)) and np.ptp(position_m, axis=0).max() > 0:
+        shares["position"] = explained_share(total, position_basis(np.asarray(position_m, dtype=float)))
+    follows = max(shares, key=lambda k: shares[k])
+    lag1 = lag1_correlation(total)
+    perp_share = explained_share(perpendicular_nT, basis)
+    field_follows = shares[follows] >= FOLLOWS_SHARE and rms >= FOLLOWS_EXCESS * max(white, 1e-9)
+    geometry = (
+        f"the attitudes span few directions (the field turned {spread_deg:.1f} deg about its least-covered axis in "
+        "the body"
+        + (f", tilt at most {tilt_deg:.0f} deg" if tilt_deg is not None and tilt_deg < 60.0 else "")
+        + "): the scale and the bias along it trade against each other; turn the sensor about more axes (a vehicle: "
+        "banked turns and pitch changes of +-20 deg or more over several minutes)"
+    )
+    share = shares[follows]
+    if spread_deg < LOW_SPREAD_DEG:  # the fit bends an attitude error into |B| too: the two cannot be told apart
+        kind = "geometry"
+        text = geometry
+        if field_follows or perp_share >= FOLLOWS_SHARE:
+            text += (
+                f"; the residual follows the {follows if field_follows else 'time'}: a wandering attitude error (then "
+                "a better attitude, an INS) or a field that changes, which this geometry cannot tell apart"
+            )
+        follows = follows if field_follows else ""
+    elif field_follows:
+        kind = "misfit"
+        text = (
+            f"the total-field residual follows the {follows} ({100 * share:.0f} % of its variance, lag-1 r = "
+            f"{lag1:.2f}; {rms:.3g} nT RMS against {white:.3g} nT of noise): a misfit, not the attitudes (they turned "
+            f"the field {spread_deg:.0f} deg about its least-covered axis, and no attitude error changes |B|): "
+            + (
+                "a magnet or steel near the path (the field differs from place to place)"
+                if follows == "position"
+                else "a magnet or steel near the path, a field that changes in time, or a hard iron that moves"
+            )
+            + "; record away from it, with the sensor's own magnets fixed"
+        )
+    elif perp_share >= FOLLOWS_SHARE:
+        kind, follows, share = "attitude", "time", perp_share
+        text = (
+            f"the residual across the field follows time ({100 * perp_share:.0f} % of its variance) while |B| stays "
+            f"near its noise ({rms:.3g} nT RMS): a wandering attitude error that does not average out; record longer, "
+            "with a better attitude (an INS)"
+        )
+    else:
+        kind, follows = "noise", ""
+        perp_rms = float(np.sqrt(np.mean(np.sum(np.square(perpendicular_nT), axis=1) / 2.0)))
+        text = (
+            f"the residuals (across the field {perp_rms:.3g} nT RMS, |B| {rms:.3g} nT) follow neither time nor "
+            "position: spikes or a noisy attitude (try --robust), or the attitude's frame or the field vector are not "
+            "the ones the record holds"
+        )
+    return UndeterminedCause(kind, follows, float(share), float(lag1), rms, white, float(spread_deg), text)
+
+
+def _undetermined_note(s, fit, dataset, rows, b_body, tilt_deg) -> str:
+    """The note of a sensor the record does not determine: its standard deviations and why
+    (:func:`undetermined_cause`, also kept as :attr:`SensorVectorFit.undetermined_cause`)."""
+    u = b_body / np.linalg.norm(b_body, axis=1, keepdims=True)
+    e = np.asarray(fit.vector_residual_nT, dtype=float)
+    perp = e - np.sum(e * u, axis=1)[:, None] * u
+    time_s = None if dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[rows]
+    pos = positions_m(dataset)
+    cause = undetermined_cause(
+        fit.total_residual_nT,
+        perp,
+        time_s,
+        None if pos is None else pos[rows],
+        spread_deg=direction_spread_deg(b_body),
+        tilt_deg=tilt_deg,
+    )
+    fit.undetermined_cause = cause
+    field_nT = float(np.median(np.linalg.norm(b_body, axis=1)))
+    bias_sd, mount_sd = float(np.max(fit.bias_sd_nT)), float(np.max(fit.mounting_sd_deg))
+    return (
+        f"sensor {s + 1}: this record does not determine the calibration: the bias's standard deviation is up "
+        f"to {bias_sd:.0f} nT ({100 * bias_sd / field_nT:.1f} % of the field) and the mounting's {mount_sd:.2f} deg"
+        + (
+            f" (widened {fit.sd_widening:.1f}x: the residuals are correlated in time, r = "
+            f"{fit.residual_lag1_correlation:.2f})"
+            if fit.sd_widening > 1.05
+            else ""
+        )
+        + f"; {cause.text}. Do not apply it"
+    )
 
 
 def _declination_notes(dataset, ned) -> list:
