@@ -413,7 +413,9 @@ class VectorReference:
         Where it came from, for reports.
     kind : str
         ``vector`` (one given vector), ``igrf`` (IGRF at one place), ``igrf-track`` (IGRF along the ``lat, lon,
-        alt_m`` columns) or ``column`` (the ``ref_n, ref_e, ref_d`` columns).
+        alt_m`` columns), ``column`` (the ``ref_n, ref_e, ref_d`` columns), ``fitted`` (to be fitted with the
+        calibration; ``ned_nT`` its start or NaN) or ``lab`` (a field a vector fit found:
+        :mod:`magcal.fitting.labfield`).
     """
 
     ned_nT: np.ndarray
@@ -504,8 +506,10 @@ def resolve_vector_reference(
         Supplies ``ref_n, ref_e, ref_d`` (nT) or ``lat, lon, alt_m`` columns (in ``extra``).
     reference : str, optional
         ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else along the dataset's ``lat, lon,
-        alt_m`` columns. Anything else (a number, ``column``, ``fit``) is a scalar reference and leaves the vector
-        to the columns.
+        alt_m`` columns. ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
+        reference of kind ``fitted``: its ``ned_nT`` is the vector given with ``vector``, else the ``ref_n, ref_e,
+        ref_d`` columns' median, else NaN; :mod:`magcal.fitting.labfield`). Anything else (a number, ``column``,
+        ``fit``) is a scalar reference and leaves the vector to the columns.
     lat, lon, alt_km, date
         Place (deg, deg, km above the ellipsoid) and date for IGRF; without ``date``, the record's
         ``metadata['date']`` (:func:`record_date`), else today.
@@ -521,6 +525,8 @@ def resolve_vector_reference(
     where = dataset.source or "data"
     extra = dataset.extra
     date = record_date(dataset, date)
+    if reference is not None and str(reference).strip().lower() == "fitted":
+        return _fitted_vector_reference(dataset, vector)
     if vector is not None:
         v = parse_reference_vector(vector)
         return VectorReference(
@@ -595,6 +601,28 @@ def resolve_vector_reference(
         )
         return VectorReference(ned, text, "column")
     return None
+
+
+def _fitted_vector_reference(dataset, vector=None) -> VectorReference:
+    """The reference of kind ``fitted``: a constant field fitted with the calibration; a vector given (``vector``,
+    else the median of the ``ref_n, ref_e, ref_d`` columns) is its start, and its declination the one kept when the
+    record's attitudes cannot tell it from the mounting's yaw."""
+    n = dataset.n_samples
+    start = None
+    if vector is not None:
+        start = parse_reference_vector(vector)
+    elif all(c in dataset.extra for c in VECTOR_COLUMNS):
+        rows = np.column_stack([np.asarray(dataset.extra[c], dtype=float) for c in VECTOR_COLUMNS])
+        rows = rows[np.all(np.isfinite(rows), axis=1)]
+        start = np.median(rows, axis=0) if len(rows) else None
+    text = "the field is fitted with the calibration (a constant field of unknown vector)"
+    if start is None:
+        return VectorReference(np.full((n, 3), np.nan), text, "fitted")
+    return VectorReference(
+        np.tile(start, (n, 1)),
+        text + f", starting from N {start[0]:.1f}, E {start[1]:.1f}, D {start[2]:.1f} nT",
+        "fitted",
+    )
 
 
 def add_vector_reference_arguments(parser) -> None:
