@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import io as _io
+import json
 import warnings  # only to silence ppigrf's own noise
 from dataclasses import dataclass, field
 
@@ -361,10 +362,11 @@ def add_reference_arguments(parser) -> None:
     parser.add_argument(
         "--reference",
         default=None,
-        metavar="NT|igrf|column|fit",
+        metavar="NT|igrf|column|fit|fitted",
         help="reference total field: a number in nT, 'igrf' (with --lat, --lon, --alt-km, --date), "
         "'column' (the file's ref_total) or 'fit'; default: the file's ref_total column or "
-        "reference_total_nT line, else fitted",
+        "reference_total_nT line, else fitted. With the attitude (vector mode), 'fitted' fits the lab's field "
+        "vector with the calibration (a constant field nobody measured: motion capture, a turntable, a coil)",
     )
     parser.add_argument("--lat", type=float, default=None, help="geodetic latitude in degrees (for --reference igrf)")
     parser.add_argument("--lon", type=float, default=None, help="longitude in degrees east (for --reference igrf)")
@@ -462,7 +464,11 @@ def igrf_ned_nT(lat, lon, alt_km, date=None) -> np.ndarray:
 
 
 def parse_reference_vector(text) -> np.ndarray:
-    """``N,E,D`` (nT) from ``--reference-vector`` text or a sequence of three numbers."""
+    """``N,E,D`` (nT) from ``--reference-vector`` text or a sequence of three numbers; or the path of a saved
+    calibration holding the lab's field fitted with it (``lab_field``: :mod:`magcal.fitting.labfield`), for the next
+    record of the same lab."""
+    if isinstance(text, str) and text.strip().lower().endswith(".json"):
+        return lab_field_of(text.strip())
     try:
         parts = [float(v) for v in (str(text).replace(" ", "").split(",") if isinstance(text, str) else text)]
     except (TypeError, ValueError):
@@ -474,6 +480,25 @@ def parse_reference_vector(text) -> np.ndarray:
         )
     _check_plausible(float(np.linalg.norm(v)), "--reference-vector")
     return v
+
+
+def lab_field_of(path) -> np.ndarray:
+    """The lab's field (north, east, down, nT) a saved calibration holds (``lab_field.ned_nT``), refused with one
+    message when the file has none."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError) as exc:
+        raise MagcalError(f"--reference-vector {path}: cannot read it as a calibration file ({exc})") from None
+    found = doc.get("lab_field") if isinstance(doc, dict) else None
+    ned = np.asarray(found.get("ned_nT", []) if isinstance(found, dict) else [], dtype=float)
+    if ned.shape != (3,) or not np.all(np.isfinite(ned)):
+        raise MagcalError(
+            f"--reference-vector {path}: the calibration holds no lab field (it was not fitted with --reference "
+            "fitted); give N,E,D in nT"
+        )
+    _check_plausible(float(np.linalg.norm(ned)), f"--reference-vector {path}")
+    return ned
 
 
 def record_date(dataset, date=None):
@@ -630,10 +655,10 @@ def add_vector_reference_arguments(parser) -> None:
     parser.add_argument(
         "--reference-vector",
         default=None,
-        metavar="N,E,D",
-        help="the Earth's field vector in nT (north, east, down) for a vector calibration; otherwise the file's "
-        "ref_n, ref_e, ref_d columns, or IGRF with --reference igrf (at --lat/--lon or along lat, lon, alt_m "
-        "columns)",
+        metavar="N,E,D|CAL.json",
+        help="the Earth's field vector in nT (north, east, down) for a vector calibration, or a calibration file "
+        "holding the lab's field fitted with it (--reference fitted); otherwise the file's ref_n, ref_e, ref_d "
+        "columns, or IGRF with --reference igrf (at --lat/--lon or along lat, lon, alt_m columns)",
     )
 
 
