@@ -184,6 +184,10 @@ def run(args) -> int:
             f"the lab's field fitted with this calibration: N {n:.1f}, E {e:.1f}, D {d:.1f} nT: the world columns of a "
             f"record of the same lab are that field plus what changed; `magcal diagnose NEW.csv --reference-vector "
             f"{args.calibration}` judges them against it"
-            + ("; its gradient along the calibration's path is that record's and is not applied" if "gradient_nT_per_m" in lab else "")
+            + (
+                "; its gradient along the calibration's path is that record's and is not applied"
+                if "gradient_nT_per_m" in lab
+                else ""
+            )
         )
     return 0

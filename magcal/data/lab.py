@@ -4,9 +4,9 @@ The sensor (:func:`magcal.data.vehicle.vehicle_truth`: scale, non-orthogonality,
 off a right angle) is carried along a path at a walking pace and turned, either through every direction
 (``motion="tumble"``) or about the vertical only (``"yaw"``, a turntable); the optical attitude carries an error,
 and the positions (``pos_n_m, pos_e_m, pos_d_m``, m, north-east-down) are recorded. The field is the lab's constant
-``B_w`` plus, optionally, a magnet near the path (a point dipole)::
+``B_w`` plus, optionally, a uniform gradient ``G`` and a magnet near the path (a point dipole)::
 
-    y = C R_m^T Q_t^T (B_w + B_dip(p_t)) + b + n,     B_dip(p) = 100 (3 (m . r) r / |r|^5 - m / |r|^3)  nT
+    y = C R_m^T Q_t^T (B_w + G p_t + B_dip(p_t)) + b + n,     B_dip(p) = 100 (3 (m . r) r / |r|^5 - m / |r|^3)  nT
 
 with ``r = p - p_dip`` in m and the moment ``m`` in A m^2 (``mu0 / 4 pi = 1e-7 T m / A`` is 100 nT m^3 per A m^2).
 The dataset holds no field vector: the lab's is what a calibration with ``reference="fitted"`` finds.
@@ -51,6 +51,7 @@ def simulate_lab(
     dipole=None,
     seed=0,
     tilt_deg=3.0,
+    gradient_ned_nT_per_m=None,
 ):
     """A lab record: readings, optical attitude, positions; no field vector.
 
@@ -74,6 +75,8 @@ def simulate_lab(
     seed : int
     tilt_deg : float
         With ``motion="yaw"``: the tilts' amplitude (deg) about north and east.
+    gradient_ned_nT_per_m : array_like, shape (3, 3), optional
+        A uniform gradient of the field (nT/m, symmetric and traceless): ``B_w + G p`` at the position ``p``.
 
     Returns
     -------
@@ -108,6 +111,8 @@ def simulate_lab(
     world = np.tile(truth.field_ned_nT, (n, 1))
     if dipole is not None:
         world = world + dipole_field_nT(positions, *dipole)
+    if gradient_ned_nT_per_m is not None:
+        world = world + positions @ np.asarray(gradient_ned_nT_per_m, dtype=float).T
     readings = []
     for s in truth.sensors:
         b_body = true_att.inv().apply(world)

@@ -15,7 +15,7 @@ Two things no record of a sensor alone fixes, each a *gauge* the fit has to set 
   a record turned about the vertical only leaves the declination against the mounting's yaw. Found from the Fisher
   information of the field's direction with every calibration parameter profiled out (its Schur complement); a
   direction whose standard deviation exceeds :data:`UNDETERMINED_DIRECTION_DEG`, or the declination of a record
-  that tilted less than :data:`YAW_ONLY_TILT_DEG`, is fixed (the declination at the one given, else 0) and the
+  whose turns moved the vertical by less than :data:`YAW_ONLY_TILT_DEG`, is fixed (the declination at the one given, else 0) and the
   report says so.
 
 A field that is not uniform (a magnet, steel, a computer near the path). With positions (``pos_n_m, pos_e_m,
@@ -46,9 +46,10 @@ POSITION_NED_COLUMNS = ("pos_n_m", "pos_e_m", "pos_d_m")
 #: determined by the record's attitudes: it is fixed, and the report says so.
 UNDETERMINED_DIRECTION_DEG = 2.0
 
-#: A record whose body tilted less than this (deg) from level turned about the vertical only: the field's
+#: A record whose turns move the vertical by less than this (deg) turned about the vertical only: the field's
 #: declination is then a gauge (the mounting's yaw takes it), whatever the information says (with so little tilt
-#: its standard deviation from the covariance is not to be trusted: the fit is far from linear along it).
+#: its standard deviation from the covariance is not to be trusted: the fit is far from linear along it). A record
+#: whose attitudes all lie within this of their mean barely turned: nothing is fitted.
 YAW_ONLY_TILT_DEG = 15.0
 
 #: Mean Earth radius (m), for positions given as latitude and longitude (a flat patch about their mean).
@@ -80,6 +81,21 @@ def positions_ned_m(dataset) -> np.ndarray | None:
         east = np.radians(lon - lon0) * EARTH_RADIUS_M * np.cos(np.radians(lat0))
         return np.column_stack([north, east, -(alt - alt0)])
     return None
+
+
+def turn_span_deg(rotation) -> tuple[float, float]:
+    """How far a record's attitudes turned, and how far those turns moved the vertical (deg).
+
+    Each attitude's turn from the mean attitude, ``T_t = Q_t Q_mean^T``, is a rotation in the world frame; a record
+    turned about the vertical only (a turntable, a level hand) leaves the vertical where it is (``T_t e_down =
+    e_down``), whatever the sensor's own tilt. Returns the largest turn and the largest angle between ``T_t e_down``
+    and ``e_down``.
+    """
+    turns = rotation * rotation.mean().inv()
+    down = turns.apply(np.array([0.0, 0.0, 1.0]))
+    return float(np.degrees(np.max(turns.magnitude()))), float(
+        np.degrees(np.max(np.arccos(np.clip(down[:, 2], -1.0, 1.0))))
+    )
 
 
 def direction(declination_deg, inclination_deg) -> np.ndarray:
@@ -340,8 +356,8 @@ class LabField:
         }
         if self.gradient_nT_per_m is not None:
             doc["gradient_nT_per_m"] = self.gradient_nT_per_m.tolist()
-            doc["gradient_sd_nT_per_m"] = None if self.gradient_sd_nT_per_m is None else (
-                self.gradient_sd_nT_per_m.tolist()
+            doc["gradient_sd_nT_per_m"] = (
+                None if self.gradient_sd_nT_per_m is None else (self.gradient_sd_nT_per_m.tolist())
             )
             doc["origin_m"] = None if self.origin_m is None else self.origin_m.tolist()
             doc["gradient_carried"] = False  # the record's, not the instrument's: apply never uses it

@@ -62,6 +62,7 @@ from magcal.core.notes import Note, row_runs
 from magcal.core.stats import lag1_correlation, robust_sigma
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
+from magcal.fitting import labfield
 from magcal.geometry.orientations import (
     RIGHT_ANGLES,
     describe_right_angle,
@@ -70,7 +71,6 @@ from magcal.geometry.orientations import (
     nearest_right_angle,
     split_mounting,
 )
-from magcal.fitting import labfield
 from magcal.geometry.shape import field_magnitude_nT
 from magcal.model.operators import GRADIENT_BASIS
 from magcal.model.platform_terms import available_terms
@@ -1204,6 +1204,14 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
         origin = np.mean(positions[rows], axis=0)
         offsets = positions[rows] - origin
     total, total_given = _field_total(dataset, options.get("reference_total_nT"), rows)
+    turned, _ = labfield.turn_span_deg(rotation[rows])
+    if fitted and turned < labfield.YAW_ONLY_TILT_DEG:
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: the record barely turned (its attitudes lie within {turned:.1f} deg of "
+            "their mean): neither the calibration nor the field can be fitted from it; turn the sensor through many "
+            "directions (a record that only moves the sensor can be judged against a field fitted on another "
+            "record of the lab: --reference-vector CAL.json)"
+        )
     if fitted:
         start = given[rows[0]] if np.all(np.isfinite(given[rows[0]])) else None
         start = _field_start(dataset.readings_nT[0][rows], rotation[rows]) if start is None else start
@@ -1312,11 +1320,11 @@ class _FieldState:
             )
 
     def gauge(self, problems, xs, sigmas, rotation):
-        """Which directions of the field the attitudes determine: a record that tilted less than
-        :data:`labfield.YAW_ONLY_TILT_DEG` turned about the vertical only (its declination is the mounting's yaw);
-        otherwise the Fisher information's weak directions with the calibration profiled out. A weak one is fixed
+        """Which directions of the field the attitudes determine: a record whose turns moved the vertical by less
+        than :data:`labfield.YAW_ONLY_TILT_DEG` turned about the vertical only (its declination is the
+        mounting's yaw; :func:`labfield.turn_span_deg`); otherwise the Fisher information's weak directions with the calibration profiled out. A weak one is fixed
         and named."""
-        tilt = _tilt_range_deg(rotation)
+        _, tilt = labfield.turn_span_deg(rotation)
         if tilt < labfield.YAW_ONLY_TILT_DEG:
             self._fix_declination(tilt)
             return
@@ -1362,7 +1370,8 @@ class _FieldState:
         dec = setup.declination_deg if self.given_start else 0.0
         setup.declination_deg, setup.free = dec, np.array([[0.0], [1.0]])
         self._note(
-            f"the record turned about the vertical only (tilts up to {tilt:.1f} deg): its attitudes cannot tell "
+            f"the record turned about the vertical only (its turns moved the vertical by {tilt:.1f} deg at most): its "
+            "attitudes cannot tell "
             "the field's declination from the mounting's yaw (a rotation of the one is absorbed by the other); "
             f"the declination is fixed at {dec:.2f} deg "
             + ("(the one given)" if self.given_start else "(world north is then the field's horizontal direction)")
@@ -1405,8 +1414,11 @@ class _FieldState:
         setup = self.setup
         k = setup.n_direction
         ned = np.atleast_2d(setup.field_at(np.zeros(setup.n_params)))
-        ned = ned.mean(axis=0) if setup.offsets_m is None else ned.mean(axis=0) - setup.offsets_m.mean(axis=0) @ (
-            np.tensordot(setup.gradient0, GRADIENT_BASIS, axes=1).T
+        ned = (
+            ned.mean(axis=0)
+            if setup.offsets_m is None
+            else ned.mean(axis=0)
+            - setup.offsets_m.mean(axis=0) @ (np.tensordot(setup.gradient0, GRADIENT_BASIS, axes=1).T)
         )
         total = float(np.linalg.norm(ned))
         unit = ned / total
