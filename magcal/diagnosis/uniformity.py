@@ -23,7 +23,7 @@ from magcal.data.attitude import attitude_rows
 from magcal.fitting.labfield import positions_ned_m
 
 #: Share of the total-field residual's variance that the residual at the same place, on another pass, must explain
-#: to name a field that is not uniform.
+#: to name a field that is not uniform (and the part that follows the place must exceed the residual's noise).
 POSITION_SHARE = 0.25
 
 #: Samples within this distance (m) are at the same place; those closer in time than :data:`APART_S` (s) are the
@@ -183,7 +183,7 @@ def field_uniformity(dataset, total_nT, fitted, sigma_total_nT) -> Uniformity:
     part = np.linalg.norm(by_place[seen] - values[seen].mean(axis=0), axis=1) / np.sqrt(values.shape[1])
     rms, peak = float(np.sqrt(np.mean(part**2))), float(np.max(part))
     where = p[seen][int(np.argmax(part))]
-    uniform = not (share >= POSITION_SHARE and share >= share_att + OVER_ATTITUDE and rms > 2 * sigma_total_nT)
+    uniform = not (share >= POSITION_SHARE and share >= share_att + OVER_ATTITUDE and rms > sigma_total_nT)
     text = UNIFORM_TEXT
     if not uniform:
         text = (

@@ -303,6 +303,9 @@ class LabField:
         parameters (Gnn, Gne, Gnd, Gee, Ged).
     origin_m : numpy.ndarray, shape (3,), or None
         ``p0``: where ``ned_nT`` holds when the gradient is fitted.
+    determined : bool
+        False when the record does not determine the field (a sensor's fit not determined, a direction's standard
+        deviation beyond :data:`UNDETERMINED_DIRECTION_DEG`, ``|B|`` outside the Earth's range): a note says so.
     """
 
     ned_nT: np.ndarray
@@ -319,6 +322,7 @@ class LabField:
     gradient_nT_per_m: np.ndarray | None = None
     gradient_sd_nT_per_m: np.ndarray | None = None
     origin_m: np.ndarray | None = None
+    determined: bool = True
 
     def text(self) -> str:
         """One line: the field, its uncertainty and its gauges."""
@@ -332,6 +336,8 @@ class LabField:
             + ("" if self.declination_fixed else f" +- {self.declination_sd_deg:.2f}")
             + f" deg, inclination {self.inclination_deg:.2f} +- {self.inclination_sd_deg:.2f} deg)"
         )
+        if not self.determined:
+            line += " NOT DETERMINED by this record (see the note)"
         if self.gradient_nT_per_m is not None:
             g = self.gradient_nT_per_m
             line += (
@@ -353,6 +359,7 @@ class LabField:
             "inclination_deg": self.inclination_deg,
             "inclination_sd_deg": self.inclination_sd_deg,
             "gauges": list(self.gauges),
+            "determined": self.determined,
         }
         if self.gradient_nT_per_m is not None:
             doc["gradient_nT_per_m"] = self.gradient_nT_per_m.tolist()

@@ -55,7 +55,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
-from magcal.checks.reference import VectorReference, resolve_vector_reference
+from magcal.checks.reference import PLAUSIBLE_TOTAL_nT, VectorReference, resolve_vector_reference
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs
@@ -1231,6 +1231,7 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
             break
     result = fit_vector(dataset, _field_reference(dataset, state.setup, rows), mask=usable, warn=False, **options)
     lab = state.lab_field(origin if gradient else None)
+    lab.determined = _field_determined(result, lab, state)
     result.field = lab
     result.reference = VectorReference(
         _field_reference(dataset, state.setup, rows).ned_nT, lab.text(), "lab" if fitted else reference.kind
@@ -1238,6 +1239,26 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
     result.warnings = list(dict.fromkeys(state.notes + result.warnings))
     result.calibration.summary = {"vector_fit": result.to_dict(), "lab_field": lab.to_dict()}
     return result
+
+
+def _field_determined(result, lab, state) -> bool:
+    """Whether the record determines the field: every sensor's fit determined, the direction's standard deviations
+    within :data:`labfield.UNDETERMINED_DIRECTION_DEG`, ``|B|`` within the Earth's range; a note otherwise."""
+    lo, hi = PLAUSIBLE_TOTAL_nT
+    why = []
+    if not all(s.determined for s in result.sensors):
+        why.append("the calibration itself is not determined (see its note)")
+    worst = max(lab.declination_sd_deg, lab.inclination_sd_deg)
+    if worst > labfield.UNDETERMINED_DIRECTION_DEG:
+        why.append(f"the field's direction has a standard deviation of {worst:.1f} deg")
+    if state.setup.base_ned_nT is None and not lo <= lab.total_nT <= hi:
+        why.append(f"|B| came out {lab.total_nT:.0f} nT, outside the Earth's {lo:.0f}-{hi:.0f} nT")
+    if why:
+        state.notes.append(
+            "this record does not determine the lab's field: " + "; ".join(why) + ". Do not take it as the lab's "
+            "reference: turn the sensor through every direction (+-90 deg about two axes and full turns) in one place"
+        )
+    return not why
 
 
 def _field_total(dataset, reference_total_nT, rows) -> tuple[float, bool]:
