@@ -97,7 +97,7 @@ def real_rotations(trials):
         line = (
             f"{k} | {f.ned_nT[0]:.0f}, {f.ned_nT[1]:.0f}, {f.ned_nT[2]:.0f} +- {f.sd_nT[0]:.0f}, {f.sd_nT[1]:.0f}, "
             f"{f.sd_nT[2]:.0f} | {est[0]:.0f}, {est[1]:.0f}, {est[2]:.0f} | {f.declination_deg:.2f} / "
-            f"{f.inclination_deg:.2f}"
+            f"{f.inclination_deg:.2f}" + ("" if f.determined else " NOT DETERMINED")
         )
         if nxt is not None:
             old = fit_vector(ds, given(ds, est), warn=False)
@@ -125,8 +125,9 @@ def real_uniformity(trials, base="01"):
         u = field_uniformity(ds, total, np.ones(ds.n_samples, bool), sigma)
         rms = float(np.sqrt(np.nanmean(total**2)))
         try:
-            own = fit_vector(ds, "fitted", warn=False).field.ned_nT
-            own_text = f"{own[0]:.0f}, {own[1]:.0f}, {own[2]:.0f}"
+            own_field = fit_vector(ds, "fitted", warn=False).field
+            own = own_field.ned_nT
+            own_text = f"{own[0]:.0f}, {own[1]:.0f}, {own[2]:.0f}" + ("" if own_field.determined else " NOT DETERMINED")
         except Exception as exc:  # a translation barely turns: refused, said
             own_text = f"not fitted ({str(exc).split(':')[1].strip()[:40]})"
         print(

@@ -319,7 +319,10 @@ def run_vector(args, ds, vref, notes) -> int:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(diagnosis.notes)]
     # several compasses on one vehicle (issue 40, item 5): their consistency after the diagnosed (base) vector fit
-    compasses = compass_report(ds, vref=diagnosis.result.reference, fit=diagnosis.result, notes=notes, args=args)
+    fitted = diagnosis.result
+    compasses = compass_report(
+        ds, vref=vref if fitted is None else fitted.reference, fit=fitted, notes=notes, args=args
+    )
     notes += [w for w in quality.warnings if w not in notes]
     for note in dict.fromkeys(notes):
         if args.json or note not in quality.warnings:

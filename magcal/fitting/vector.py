@@ -1182,9 +1182,9 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
     fitted = reference.kind == "fitted"
     given = np.asarray(reference.ned_nT, dtype=float)
     usable = (np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, bool)) & have_attitude
-    offsets = None
+    offsets = origin = None
+    positions = labfield.positions_ned_m(dataset) if gradient else None
     if gradient:
-        positions = labfield.positions_ned_m(dataset)
         if positions is None:
             raise CalibrationError(
                 f"{dataset.source or 'data'}: a gradient of the field along the path needs the positions: pos_n_m, "
@@ -1200,7 +1200,7 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
             + (" and a position" if gradient else "")
             + f"; a vector fit with the field needs at least {MIN_SAMPLES}"
         )
-    if gradient:
+    if positions is not None:
         origin = np.mean(positions[rows], axis=0)
         offsets = positions[rows] - origin
     total, total_given = _field_total(dataset, options.get("reference_total_nT"), rows)
@@ -1230,7 +1230,7 @@ def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitRes
         if moved < 0.01:
             break
     result = fit_vector(dataset, _field_reference(dataset, state.setup, rows), mask=usable, warn=False, **options)
-    lab = state.lab_field(origin if gradient else None)
+    lab = state.lab_field(origin)
     lab.determined = _field_determined(result, lab, state)
     result.field = lab
     result.reference = VectorReference(
