@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from magcal.checks.reference import resolve_vector_reference
+from magcal.cli import main
+from magcal.data.io import write_csv
 from magcal.data.lab import lab_truth, simulate_lab
 from magcal.diagnosis.uniformity import field_uniformity
 from magcal.diagnosis.vector import diagnose_vector
@@ -111,3 +113,13 @@ def test_positions_from_latitude_and_longitude():
     assert np.allclose(
         p - p.mean(axis=0), np.column_stack([north, east, down]) - np.mean([north, east, down], axis=1), atol=2e-3
     )
+
+
+def test_magcal_diagnose_with_the_field_fitted_names_the_magnet(tmp_path, capsys):
+    truth = lab_truth(seed=18)
+    ds, _ = simulate_lab(truth, n=N, seed=18, dipole=MAGNET)
+    write_csv(tmp_path / "magnet.csv", ds)
+    assert main(["diagnose", str(tmp_path / "magnet.csv"), "--reference", "fitted", "--no-validate"]) == 0
+    captured = capsys.readouterr()
+    assert NAMED in captured.out + captured.err
+    assert "the lab's field fitted with the calibration" in captured.out
