@@ -50,6 +50,9 @@ WALKING_PERIODS_S = (1.0, 10.0)
 WALKING_FACTOR = 3.0
 WALKING_MIN_NT = 10.0
 
+#: The finding's text when the field looks uniform (nothing to say).
+UNIFORM_TEXT = ""
+
 
 @dataclass
 class Uniformity:
@@ -125,9 +128,6 @@ def _share(pred, values) -> float:
     centred = values - values.mean(axis=0)
     den = float(np.sum(centred**2))
     return max(0.0, 1.0 - float(np.sum((values - pred) ** 2)) / den) if den > 0 else 0.0
-
-
-UNIFORM_TEXT = ""
 
 
 def field_uniformity(dataset, total_nT, fitted, sigma_total_nT) -> Uniformity:

@@ -374,6 +374,18 @@ class LabField:
 def solve(problems, xs, sigmas, rotation, setup: FieldSetup, robust=False, max_nfev=200):
     """The joint least-squares solve of the sensors' parameters and the field's.
 
+    Parameters
+    ----------
+    problems, xs, sigmas : list
+        Per sensor: its weighted problem, its parameters ``(W, b, theta)`` at the start, its noises
+        ``(sigma_total, sigma_perpendicular)`` in nT.
+    rotation : scipy.spatial.transform.Rotation
+        The fitted samples' attitudes (body -> NED).
+    setup : FieldSetup
+        What of the field is fitted, about which point.
+    robust : bool
+        Soft-L1 loss, as the vector fit's ``robust``.
+
     Returns
     -------
     x : numpy.ndarray
@@ -382,6 +394,8 @@ def solve(problems, xs, sigmas, rotation, setup: FieldSetup, robust=False, max_n
         ``s2 (J^T J)^-1`` widened for residuals correlated in time (None when singular).
     jacobian : numpy.ndarray
         The weighted Jacobian at the solution.
+    s2, widening : float
+        The residual variance per weighted residual and the widening for the lag-1 correlation of the residuals.
     """
     prob = FieldProblem(problems, [len(x) for x in xs], sigmas, rotation, setup)
     x0 = np.concatenate(list(xs) + [np.zeros(setup.n_params)])
@@ -390,9 +404,9 @@ def solve(problems, xs, sigmas, rotation, setup: FieldSetup, robust=False, max_n
         + [np.full(setup.n_direction, 1e-3), np.full(setup.n_params - setup.n_direction, 10.0)]
     )
     sol = least_squares(
-        lambda v: prob.residuals(v),
+        prob.residuals,
         x0,
-        jac=lambda v: prob.jacobian(v),
+        jac=prob.jacobian,
         method="trf" if robust else "lm",
         loss="soft_l1" if robust else "linear",
         f_scale=3.0,
@@ -404,8 +418,8 @@ def solve(problems, xs, sigmas, rotation, setup: FieldSetup, robust=False, max_n
     jac = prob.jacobian(sol.x)
     z = prob.residuals(sol.x)
     n = len(rotation)
-    streams = [z[s * 3 * n : s * 3 * n + n] for s in range(len(problems))]
-    widening = float(np.sqrt(min((1.0 + lag1_correlation(*streams)) / (1.0 - lag1_correlation(*streams)), n)))
+    lag1 = lag1_correlation(*[z[s * 3 * n : s * 3 * n + n] for s in range(len(problems))])  # total-field parts
+    widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), n)))
     s2 = float(z @ z) / max(len(z) - len(sol.x), 1)
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac) * widening**2
