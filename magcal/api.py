@@ -145,8 +145,9 @@ def diagnose(data, result=None, *, reference_total_nT=None, t=None, temp=None, w
         independent fits, default every one; ``scheduler``: a Dask scheduler's address or client to run them on).
         Vector mode (a record with the attitude and the field vector, :func:`magcal.diagnosis.vector.diagnose_vector`):
         ``mode`` (``"auto"``: vector when the record has both and no total-field result is given; ``"scalar"``;
-        ``"vector"``), ``reference`` (the field vector: ``[N, E, D]`` nT, a VectorReference, or ``"igrf"`` along
-        the ``lat, lon, alt_m`` columns; default the ``ref_n, ref_e, ref_d`` columns), ``also`` (other flights of
+        ``"vector"``), ``reference`` (the field vector: ``[N, E, D]`` nT, a VectorReference, ``"igrf"`` along
+        the ``lat, lon, alt_m`` columns, or ``"fitted"``: a lab's constant field fitted with the calibration,
+        :mod:`magcal.fitting.labfield`; default the ``ref_n, ref_e, ref_d`` columns), ``also`` (other flights of
         the same vehicle: datasets with those columns, ``(data, reference)`` pairs or Flights), ``attitude_noise_deg``.
 
     Returns

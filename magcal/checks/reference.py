@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import io as _io
+import json
 import warnings  # only to silence ppigrf's own noise
 from dataclasses import dataclass, field
 
@@ -361,10 +362,11 @@ def add_reference_arguments(parser) -> None:
     parser.add_argument(
         "--reference",
         default=None,
-        metavar="NT|igrf|column|fit",
+        metavar="NT|igrf|column|fit|fitted",
         help="reference total field: a number in nT, 'igrf' (with --lat, --lon, --alt-km, --date), "
         "'column' (the file's ref_total) or 'fit'; default: the file's ref_total column or "
-        "reference_total_nT line, else fitted",
+        "reference_total_nT line, else fitted. With the attitude (vector mode), 'fitted' fits the lab's field "
+        "vector with the calibration (a constant field nobody measured: motion capture, a turntable, a coil)",
     )
     parser.add_argument("--lat", type=float, default=None, help="geodetic latitude in degrees (for --reference igrf)")
     parser.add_argument("--lon", type=float, default=None, help="longitude in degrees east (for --reference igrf)")
@@ -413,7 +415,9 @@ class VectorReference:
         Where it came from, for reports.
     kind : str
         ``vector`` (one given vector), ``igrf`` (IGRF at one place), ``igrf-track`` (IGRF along the ``lat, lon,
-        alt_m`` columns) or ``column`` (the ``ref_n, ref_e, ref_d`` columns).
+        alt_m`` columns), ``column`` (the ``ref_n, ref_e, ref_d`` columns), ``fitted`` (to be fitted with the
+        calibration; ``ned_nT`` its start or NaN) or ``lab`` (a field a vector fit found:
+        :mod:`magcal.fitting.labfield`).
     """
 
     ned_nT: np.ndarray
@@ -460,7 +464,11 @@ def igrf_ned_nT(lat, lon, alt_km, date=None) -> np.ndarray:
 
 
 def parse_reference_vector(text) -> np.ndarray:
-    """``N,E,D`` (nT) from ``--reference-vector`` text or a sequence of three numbers."""
+    """``N,E,D`` (nT) from ``--reference-vector`` text or a sequence of three numbers; or the path of a saved
+    calibration holding the lab's field fitted with it (``lab_field``: :mod:`magcal.fitting.labfield`), for the next
+    record of the same lab."""
+    if isinstance(text, str) and text.strip().lower().endswith(".json"):
+        return lab_field_of(text.strip())
     try:
         parts = [float(v) for v in (str(text).replace(" ", "").split(",") if isinstance(text, str) else text)]
     except (TypeError, ValueError):
@@ -472,6 +480,25 @@ def parse_reference_vector(text) -> np.ndarray:
         )
     _check_plausible(float(np.linalg.norm(v)), "--reference-vector")
     return v
+
+
+def lab_field_of(path) -> np.ndarray:
+    """The lab's field (north, east, down, nT) a saved calibration holds (``lab_field.ned_nT``), refused with one
+    message when the file has none."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, ValueError) as exc:
+        raise MagcalError(f"--reference-vector {path}: cannot read it as a calibration file ({exc})") from None
+    found = doc.get("lab_field") if isinstance(doc, dict) else None
+    ned = np.asarray(found.get("ned_nT", []) if isinstance(found, dict) else [], dtype=float)
+    if ned.shape != (3,) or not np.all(np.isfinite(ned)):
+        raise MagcalError(
+            f"--reference-vector {path}: the calibration holds no lab field (it was not fitted with --reference "
+            "fitted); give N,E,D in nT"
+        )
+    _check_plausible(float(np.linalg.norm(ned)), f"--reference-vector {path}")
+    return ned
 
 
 def record_date(dataset, date=None):
@@ -504,8 +531,10 @@ def resolve_vector_reference(
         Supplies ``ref_n, ref_e, ref_d`` (nT) or ``lat, lon, alt_m`` columns (in ``extra``).
     reference : str, optional
         ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else along the dataset's ``lat, lon,
-        alt_m`` columns. Anything else (a number, ``column``, ``fit``) is a scalar reference and leaves the vector
-        to the columns.
+        alt_m`` columns. ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
+        reference of kind ``fitted``: its ``ned_nT`` is the vector given with ``vector``, else the ``ref_n, ref_e,
+        ref_d`` columns' median, else NaN; :mod:`magcal.fitting.labfield`). Anything else (a number, ``column``,
+        ``fit``) is a scalar reference and leaves the vector to the columns.
     lat, lon, alt_km, date
         Place (deg, deg, km above the ellipsoid) and date for IGRF; without ``date``, the record's
         ``metadata['date']`` (:func:`record_date`), else today.
@@ -521,6 +550,8 @@ def resolve_vector_reference(
     where = dataset.source or "data"
     extra = dataset.extra
     date = record_date(dataset, date)
+    if reference is not None and str(reference).strip().lower() == "fitted":
+        return _fitted_vector_reference(dataset, vector)
     if vector is not None:
         v = parse_reference_vector(vector)
         return VectorReference(
@@ -597,15 +628,37 @@ def resolve_vector_reference(
     return None
 
 
+def _fitted_vector_reference(dataset, vector=None) -> VectorReference:
+    """The reference of kind ``fitted``: a constant field fitted with the calibration; a vector given (``vector``,
+    else the median of the ``ref_n, ref_e, ref_d`` columns) is its start, and its declination the one kept when the
+    record's attitudes cannot tell it from the mounting's yaw."""
+    n = dataset.n_samples
+    start = None
+    if vector is not None:
+        start = parse_reference_vector(vector)
+    elif all(c in dataset.extra for c in VECTOR_COLUMNS):
+        rows = np.column_stack([np.asarray(dataset.extra[c], dtype=float) for c in VECTOR_COLUMNS])
+        rows = rows[np.all(np.isfinite(rows), axis=1)]
+        start = np.median(rows, axis=0) if len(rows) else None
+    text = "the field is fitted with the calibration (a constant field of unknown vector)"
+    if start is None:
+        return VectorReference(np.full((n, 3), np.nan), text, "fitted")
+    return VectorReference(
+        np.tile(start, (n, 1)),
+        text + f", starting from N {start[0]:.1f}, E {start[1]:.1f}, D {start[2]:.1f} nT",
+        "fitted",
+    )
+
+
 def add_vector_reference_arguments(parser) -> None:
     """``--reference-vector N,E,D`` (nT), beside :func:`add_reference_arguments`."""
     parser.add_argument(
         "--reference-vector",
         default=None,
-        metavar="N,E,D",
-        help="the Earth's field vector in nT (north, east, down) for a vector calibration; otherwise the file's "
-        "ref_n, ref_e, ref_d columns, or IGRF with --reference igrf (at --lat/--lon or along lat, lon, alt_m "
-        "columns)",
+        metavar="N,E,D|CAL.json",
+        help="the Earth's field vector in nT (north, east, down) for a vector calibration, or a calibration file "
+        "holding the lab's field fitted with it (--reference fitted); otherwise the file's ref_n, ref_e, ref_d "
+        "columns, or IGRF with --reference igrf (at --lat/--lon or along lat, lon, alt_m columns)",
     )
 
 

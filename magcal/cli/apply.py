@@ -189,4 +189,17 @@ def run(args) -> int:
     for note in dict.fromkeys(note.text for note in summary.notes):
         print(f"magcal apply: warning: {note}", file=sys.stderr)
     print(summary.text())
+    lab = (calibration.summary or {}).get("lab_field")
+    if isinstance(lab, dict) and lab.get("ned_nT") is not None:
+        n, e, d = lab["ned_nT"]
+        print(
+            f"the lab's field fitted with this calibration: N {n:.1f}, E {e:.1f}, D {d:.1f} nT: the world columns of a "
+            f"record of the same lab are that field plus what changed; `magcal diagnose NEW.csv --reference-vector "
+            f"{args.calibration}` judges them against it"
+            + (
+                "; its gradient along the calibration's path is that record's and is not applied"
+                if "gradient_nT_per_m" in lab
+                else ""
+            )
+        )
     return 0

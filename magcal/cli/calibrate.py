@@ -144,6 +144,13 @@ def add_arguments(parser) -> None:
         help="vector mode: the attitude's error per axis (deg, 1 sigma); estimated from the residuals if not given",
     )
     parser.add_argument(
+        "--field-gradient",
+        action="store_true",
+        help="vector mode: also fit a gradient of the field along the path, B(p) = B0 + G (p - p0), from the "
+        "positions (pos_n_m, pos_e_m, pos_d_m in m north-east-down, or lat, lon, alt_m): a magnet or steel near the "
+        "path; record-only, never carried by apply (docs/vector.md)",
+    )
+    parser.add_argument(
         "--platform-terms",
         default="none",
         metavar="LIST",
@@ -364,9 +371,11 @@ def run_vector(args, ds, vref, notes) -> int:
             reference_total_nT=ds.ref_total_nT,
             robust=args.robust,
             warn=False,  # its notes are result.warnings, printed below
+            field_gradient=bool(getattr(args, "field_gradient", False)),
         )
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
+    vref = result.reference  # a field fitted with the calibration is the one the checks below use
     result.calibration.fitted_on(ds)
     validation = None
     if result.terms and getattr(args, "validate", True):

@@ -202,13 +202,13 @@ def run(args) -> int:
     if getattr(args, "workers", None) is not None and not 1 <= args.workers <= 4 * cores():
         raise MagcalError(f"--workers {args.workers}: give 1 to {4 * cores()} (this machine has {cores()} cores)")
     ref_text = getattr(args, "reference", None)
-    if ref_text is not None and str(ref_text).strip().lower() not in ("igrf", "column", "fit"):
+    if ref_text is not None and str(ref_text).strip().lower() not in ("igrf", "column", "fit", "fitted"):
         try:
             if not float(ref_text) > 0:
                 raise ValueError
         except (TypeError, ValueError):
             raise MagcalError(
-                f"--reference must be a positive field in nT, or igrf, column or fit; got {ref_text}"
+                f"--reference must be a positive field in nT, or igrf, column, fit or fitted; got {ref_text}"
             ) from None
 
     checked_noise(args)
@@ -323,7 +323,10 @@ def run_vector(args, ds, vref, notes) -> int:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(diagnosis.notes)]
     # several compasses on one vehicle (issue 40, item 5): their consistency after the diagnosed (base) vector fit
-    compasses = compass_report(ds, vref=vref, fit=diagnosis.result, notes=notes, args=args)
+    fitted = diagnosis.result
+    compasses = compass_report(
+        ds, vref=vref if fitted is None else fitted.reference, fit=fitted, notes=notes, args=args
+    )
     notes += [w for w in quality.warnings if w not in notes]
     for note in dict.fromkeys(notes):
         if args.json or note not in quality.warnings:

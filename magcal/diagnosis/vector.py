@@ -57,6 +57,7 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
+from magcal.diagnosis.uniformity import field_uniformity
 from magcal.fitting.vector import VectorFitResult, attitude_error_deg, fit_vector, position_basis, positions_m
 from magcal.model.effects import CURRENT_COLUMNS, current_column
 from magcal.model.terms import EFFECTS, EffectTexts, Model, fitted_outside_domain, term_label
@@ -821,11 +822,25 @@ def diagnose_vector(
     report("fitting the vector model", 0.0)
     if result is None:
         result = fit_vector(dataset, reference, effects=list(effects or ()), warn=False, **options)
+    if reference.kind == "fitted":
+        reference = result.reference  # the field the fit found: the candidates are judged at it
     ctx = _vector_base(dataset, reference, result, also, options, validate)
     for rnd in range(max_effects if ctx.judged else 0):
         if not _vector_round(ctx, rnd, candidates, top, report, 0.1 + 0.8 * rnd / max(max_effects, 1)):
             break
-    return _vector_explain(ctx, t0)
+    diagnosis = _vector_explain(ctx, t0)
+    _uniformity_finding(ctx, diagnosis)
+    return diagnosis
+
+
+def _uniformity_finding(ctx: VectorContext, diagnosis: VectorDiagnosis) -> None:
+    """Add the finding "the field is not uniform where you recorded" to the diagnosis's warnings when the base fit's
+    total-field residual follows position (or, without positions, time at a walking pace):
+    :func:`magcal.diagnosis.uniformity.field_uniformity`."""
+    sigma_f = float(np.median(np.atleast_1d(ctx.weights[0])))
+    found = field_uniformity(ctx.dataset, ctx.total, ctx.fitted, sigma_f)
+    if not found.uniform:
+        diagnosis.warnings.append(found.text)
 
 
 @dataclass

@@ -55,13 +55,14 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
-from magcal.checks.reference import VectorReference
+from magcal.checks.reference import PLAUSIBLE_TOTAL_nT, VectorReference, resolve_vector_reference
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note, row_runs
 from magcal.core.stats import explained_share, lag1_correlation, robust_sigma, smooth_in_time
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
+from magcal.fitting import labfield
 from magcal.geometry.orientations import (
     RIGHT_ANGLES,
     describe_right_angle,
@@ -70,6 +71,8 @@ from magcal.geometry.orientations import (
     nearest_right_angle,
     split_mounting,
 )
+from magcal.geometry.shape import field_magnitude_nT
+from magcal.model.operators import GRADIENT_BASIS
 from magcal.model.platform_terms import available_terms
 from magcal.model.terms import (
     EFFECTS,
@@ -346,6 +349,9 @@ class VectorFitResult:
         and a reference field vector).
     gaps : SampleGaps or None
         The chosen samples left out for lack of an attitude or a reference (their count is also a note).
+    field : LabField or None
+        The field fitted with the calibration (``reference="fitted"``) or its gradient along the path
+        (``field_gradient``): :class:`magcal.fitting.labfield.LabField`.
     """
 
     calibration: Calibration
@@ -357,6 +363,7 @@ class VectorFitResult:
     wall_s: float = 0.0
     fitted: np.ndarray | None = None
     gaps: SampleGaps | None = None
+    field: labfield.LabField | None = None
 
     @property
     def bound_pull_z(self) -> dict:
@@ -384,6 +391,8 @@ class VectorFitResult:
             f"  reference: {self.reference.text}",
             f"  effects: {', '.join(self.terms) or 'none (the base model: bias, C^-1, mounting)'}",
         ]
+        if self.field is not None:
+            lines += [f"  what the record cannot separate: {g}" for g in self.field.gauges]
         for i, s in enumerate(self.sensors):
             lines += [
                 f"  sensor {i + 1}:",
@@ -420,6 +429,7 @@ class VectorFitResult:
             "rms_total_field_nT": self.rms_total_field_nT,
             "sensors": [s.summary() for s in self.sensors],
             "warnings": list(self.warnings),
+            "field": None if self.field is None else self.field.to_dict(),
         }
 
 
@@ -650,6 +660,7 @@ def fit_vector(
     robust=False,
     mask=None,
     warn=True,
+    field_gradient=False,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -657,8 +668,12 @@ def fit_vector(
     ----------
     dataset : Dataset
         Readings (nT) and attitude (quaternions or ``roll_deg, pitch_deg, yaw_deg``, body -> NED).
-    reference : VectorReference
-        The Earth's field vector per sample (nT, NED).
+    reference : VectorReference or str
+        The Earth's field vector per sample (nT, NED); or ``"fitted"`` (a reference of kind ``fitted``, from
+        :func:`magcal.checks.reference.resolve_vector_reference`): the field is a constant of unknown vector, fitted
+        with the calibration (:mod:`magcal.fitting.labfield`: its uncertainty and the gauges the record leaves in
+        :attr:`VectorFitResult.field`; a given vector in such a reference is the start and its declination the one
+        kept when the attitudes cannot tell the declination from the mounting's yaw).
     effects : sequence of str or Effect, or Model, optional
         Catalogue effects fitted beside the base terms (``current_field``, ``eddy_currents``,
         ``attitude_time_offset``, ``temperature_bias:2``, ...; :func:`vector_model`). Default: none, the base
@@ -687,6 +702,10 @@ def fit_vector(
         Raise the fit's notes (:attr:`VectorFitResult.warnings`: weak tilt, samples set aside...) as
         :class:`~magcal.core.errors.DataWarning` (the default, for a user's call); False leaves them in the result
         only, for the engine's own steps and the command line, which pass notes back as values.
+    field_gradient : bool
+        Also fit a gradient of the field along the path, ``B(p) = B0 + G (p - p0)`` (5 parameters, nT/m), from the
+        positions (``pos_n_m, pos_e_m, pos_d_m`` or ``lat, lon, alt_m``): a magnet or steel near the path. It is the
+        record's (:attr:`VectorFitResult.field`), never carried by apply.
 
     Raises
     ------
@@ -696,13 +715,23 @@ def fit_vector(
         cannot take (:func:`vector_model`).
     """
     start = time.perf_counter()
-    found = attitude_rows(dataset)
-    if found is None:
-        raise CalibrationError(
-            f"{dataset.source or 'data'}: a vector calibration needs the attitude: qw, qx, qy, qz or roll_deg, "
-            "pitch_deg, yaw_deg columns (or a flight log with ATT / vehicle_attitude)"
-        )
-    rotation, have_attitude = found
+    if isinstance(reference, str):
+        reference = _named_reference(dataset, reference)
+    if reference.kind == "fitted" or field_gradient:
+        options = {
+            "effects": effects,
+            "terms": terms,
+            "attitude_noise_deg": attitude_noise_deg,
+            "noise_nT": noise_nT,
+            "reference_total_nT": reference_total_nT,
+            "robust": robust,
+        }
+        result = _fit_with_field(dataset, reference, field_gradient, mask, options)
+        result.wall_s = time.perf_counter() - start
+        if warn:
+            _notes.warn(result.notes)
+        return result
+    rotation, have_attitude = _attitude_of(dataset)
     ned = np.asarray(reference.ned_nT, dtype=float)
     if ned.shape != (dataset.n_samples, 3):
         raise CalibrationError(f"the reference vector has shape {ned.shape}, expected ({dataset.n_samples}, 3)")
@@ -799,6 +828,27 @@ def fit_vector(
     if warn:
         _notes.warn(result.notes)
     return result
+
+
+def _attitude_of(dataset):
+    """``(rotation, have_attitude)`` of a dataset (:func:`magcal.data.attitude.attitude_rows`), refused without."""
+    found = attitude_rows(dataset)
+    if found is None:
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: a vector calibration needs the attitude: qw, qx, qy, qz or roll_deg, "
+            "pitch_deg, yaw_deg columns (or a flight log with ATT / vehicle_attitude)"
+        )
+    return found
+
+
+def _named_reference(dataset, name) -> VectorReference:
+    """A reference named by text (``"fitted"``, ``"igrf"``) for the dataset, refused when it gives none."""
+    found = resolve_vector_reference(dataset, reference=name)
+    if found is None:
+        raise CalibrationError(
+            f"reference {name!r}: no field vector; use 'fitted', 'igrf' or the ref_n, ref_e, ref_d columns"
+        )
+    return found
 
 
 def _base_start(y, b_body):
@@ -1427,3 +1477,308 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
             }
         )
     return VectorValidation(n_blocks, rows)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the field fitted with the calibration (magcal.fitting.labfield)
+# ----------------------------------------------------------------------------------------------------------------
+
+#: Directions tried for the start of a fitted field (a Fibonacci sphere) and the samples they are tried on.
+FIELD_START_DIRECTIONS = 400
+FIELD_START_SAMPLES = 600
+
+
+def _fit_with_field(dataset, reference, gradient, mask, options) -> VectorFitResult:
+    """:func:`fit_vector` with the field fitted (a reference of kind ``fitted``) or with a gradient of it along the
+    path: rounds of a vector fit at the field so far and a joint solve of every sensor's parameters with the field's
+    (:func:`magcal.fitting.labfield.solve`), then the vector fit at the field found."""
+    rotation, have_attitude = _attitude_of(dataset)
+    fitted = reference.kind == "fitted"
+    given = np.asarray(reference.ned_nT, dtype=float)
+    usable = (np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, bool)) & have_attitude
+    offsets = origin = None
+    positions = labfield.positions_ned_m(dataset) if gradient else None
+    if gradient:
+        if positions is None:
+            raise CalibrationError(
+                f"{dataset.source or 'data'}: a gradient of the field along the path needs the positions: pos_n_m, "
+                "pos_e_m, pos_d_m columns (m, north-east-down) or lat, lon, alt_m"
+            )
+        usable &= np.all(np.isfinite(positions), axis=1)
+    if not fitted:
+        usable &= np.all(np.isfinite(given), axis=1)
+    rows = np.flatnonzero(usable)
+    if len(rows) < MIN_SAMPLES:
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: {len(rows)} samples have an attitude"
+            + (" and a position" if gradient else "")
+            + f"; a vector fit with the field needs at least {MIN_SAMPLES}"
+        )
+    if positions is not None:
+        origin = np.mean(positions[rows], axis=0)
+        offsets = positions[rows] - origin
+    total, total_given = _field_total(dataset, options.get("reference_total_nT"), rows)
+    turned, _ = labfield.turn_span_deg(rotation[rows])
+    if fitted and turned < labfield.YAW_ONLY_TILT_DEG:
+        raise CalibrationError(
+            f"{dataset.source or 'data'}: the record barely turned (its attitudes lie within {turned:.1f} deg of "
+            "their mean): neither the calibration nor the field can be fitted from it; turn the sensor through many "
+            "directions (a record that only moves the sensor can be judged against a field fitted on another "
+            "record of the lab: --reference-vector CAL.json)"
+        )
+    if fitted:
+        start = given[rows[0]] if np.all(np.isfinite(given[rows[0]])) else None
+        start = _field_start(dataset.readings_nT[0][rows], rotation[rows]) if start is None else start
+        total = total if total_given else field_magnitude_nT(dataset.readings_nT[0][rows])
+        dec, inc = labfield.angles_deg(start)
+        setup = labfield.FieldSetup(total, dec, inc, np.eye(2), offsets_m=offsets)
+    else:
+        setup = labfield.FieldSetup(total, 0.0, 0.0, np.zeros((2, 0)), base_ned_nT=given[rows], offsets_m=offsets)
+    state = _FieldState(setup, total_given, given_start=fitted and np.all(np.isfinite(given[rows[0]])))
+    for rnd in range(labfield.MAX_ROUNDS):
+        result = fit_vector(dataset, _field_reference(dataset, state.setup, rows), mask=usable, warn=False, **options)
+        problems, xs, sigmas = _problems_of(result, dataset, rows, state.setup)
+        if rnd == 0 and fitted:
+            state.gauge(problems, xs, sigmas, rotation[rows])
+        moved = state.solve(problems, xs, sigmas, rotation[rows], options.get("robust", False))
+        if moved < 0.01:
+            break
+    result = fit_vector(dataset, _field_reference(dataset, state.setup, rows), mask=usable, warn=False, **options)
+    lab = state.lab_field(origin)
+    lab.determined = _field_determined(result, lab, state)
+    result.field = lab
+    result.reference = VectorReference(
+        _field_reference(dataset, state.setup, rows).ned_nT, lab.text(), "lab" if fitted else reference.kind
+    )
+    result.warnings = list(dict.fromkeys(state.notes + result.warnings))
+    result.calibration.summary = {"vector_fit": result.to_dict(), "lab_field": lab.to_dict()}
+    return result
+
+
+def _field_determined(result, lab, state) -> bool:
+    """Whether the record determines the field: every sensor's fit determined, the direction's standard deviations
+    within :data:`labfield.UNDETERMINED_DIRECTION_DEG`, ``|B|`` within the Earth's range; a note otherwise."""
+    lo, hi = PLAUSIBLE_TOTAL_nT
+    why = []
+    if not all(s.determined for s in result.sensors):
+        why.append("the calibration itself is not determined (see its note)")
+    worst = max(lab.declination_sd_deg, lab.inclination_sd_deg)
+    if worst > labfield.UNDETERMINED_DIRECTION_DEG:
+        why.append(f"the field's direction has a standard deviation of {worst:.1f} deg")
+    if state.setup.base_ned_nT is None and not lo <= lab.total_nT <= hi:
+        why.append(f"|B| came out {lab.total_nT:.0f} nT, outside the Earth's {lo:.0f}-{hi:.0f} nT")
+    if why:
+        state.notes.append(
+            "this record does not determine the lab's field: " + "; ".join(why) + ". Do not take it as the lab's "
+            "reference: turn the sensor through every direction (+-90 deg about two axes and full turns) in one place"
+        )
+    return not why
+
+
+def _field_total(dataset, reference_total_nT, rows) -> tuple[float, bool]:
+    """``(|B_w|, given)``: the total field given (the argument, the ``ref_total`` column's median, the file's
+    ``reference_total_nT``), else ``(nan, False)``."""
+    for value in (reference_total_nT, dataset.ref_total_nT, dataset.reference_total_nT):
+        if value is not None:
+            v = np.atleast_1d(np.asarray(value, dtype=float))
+            v = v[rows] if v.size == dataset.n_samples else v
+            if np.all(np.isfinite(v)):
+                return float(np.median(v)), True
+    return float("nan"), False
+
+
+def _field_start(y, rotation) -> np.ndarray:
+    """A start for the field's direction: of :data:`FIELD_START_DIRECTIONS` directions, the one whose linear fit
+    ``y = A Q^T d + b`` (a proper ``A``: no mirrored axis) leaves the least residual on up to
+    :data:`FIELD_START_SAMPLES` samples."""
+    pick = np.unique(np.linspace(0, len(y) - 1, min(len(y), FIELD_START_SAMPLES)).astype(int))
+    y, rotation = y[pick], rotation[pick]
+    k = np.arange(FIELD_START_DIRECTIONS) + 0.5
+    z = 1.0 - 2.0 * k / FIELD_START_DIRECTIONS
+    phi = np.pi * (1.0 + 5**0.5) * k
+    dirs = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+    inv = rotation.inv()
+    best, best_rms = dirs[0], np.inf
+    for d in dirs:
+        design = np.column_stack([inv.apply(np.tile(d, (len(y), 1))), np.ones(len(y))])
+        coef, *_ = np.linalg.lstsq(design, y, rcond=None)  # y_j = a_j . B_body + b_j, every axis j at once
+        rms = float(np.sqrt(np.mean((y - design @ coef) ** 2)))
+        if np.linalg.det(coef[:3].T) > 0 and rms < best_rms:
+            best, best_rms = d, rms
+    return best
+
+
+def _field_reference(dataset, setup, rows) -> VectorReference:
+    """The field so far at every sample (NaN where it is not fitted) as a given reference."""
+    ned = np.full((dataset.n_samples, 3), np.nan)
+    params = np.zeros(setup.n_params)
+    ned[rows] = np.broadcast_to(setup.field_at(params), (len(rows), 3))
+    if setup.offsets_m is None and setup.base_ned_nT is None:
+        ned[:] = setup.field_at(params)  # a uniform field: every sample's
+    return VectorReference(ned, "the field fitted so far", "lab")
+
+
+def _problems_of(result, dataset, rows, setup):
+    """Every sensor's weighted problem at the vector fit ``result`` (its parameters ``x`` and noises)."""
+    rotation, _ = _attitude_of(dataset)
+    world = np.broadcast_to(setup.field_at(np.zeros(setup.n_params)), (len(rows), 3))
+    b_body = body_reference_nT(rotation[rows], world)
+    f_ref = np.linalg.norm(world, axis=1)
+    model = result.calibration.model
+    ctxs = contexts(dataset)
+    problems, xs, sigmas = [], [], []
+    for s, fit in enumerate(result.sensors):
+        instances = _instances_of(model, s) if model is not None else []
+        basis = _raw_bases(instances, dataset, ctxs[s], fit.bias_nT, rows)
+        problems.append(_SensorProblem(dataset.readings_nT[s][rows], b_body, f_ref, basis))
+        theta = [np.asarray(result.calibration.effect_values[label], dtype=float) for _, label in instances]
+        xs.append(np.concatenate([fit.W.ravel(), fit.bias_nT] + theta))
+        sigmas.append((fit.sigma_total_field_nT, fit.sigma_perpendicular_nT))
+    return problems, xs, sigmas
+
+
+class _FieldState:
+    """The field between the rounds of :func:`_fit_with_field`: its setup, covariance and gauge notes."""
+
+    def __init__(self, setup, total_given, given_start):
+        self.setup, self.total_given, self.given_start = setup, total_given, given_start
+        self.cov_field = np.zeros((setup.n_params, setup.n_params))
+        self.var_log_gain = 0.0
+        self.notes: list[str] = []
+        self.gauges: list[str] = []
+        self.declination_fixed = False
+        if not total_given:
+            self.gauges.append(
+                "|B| cannot be told from the sensor's overall gain by attitudes alone: it rests on det C^-1 = 1 for "
+                "sensor 1 (the sensor's nominal gain, as a total-field fit without a reference), so a gain error of "
+                "1 % moves it by 1 %; a total field given (a ref_total column, the file's reference_total_nT) fixes it"
+            )
+
+    def gauge(self, problems, xs, sigmas, rotation):
+        """Which directions of the field the attitudes determine: a record whose turns moved the vertical by less
+        than :data:`labfield.YAW_ONLY_TILT_DEG` turned about the vertical only (its declination is the
+        mounting's yaw; :func:`labfield.turn_span_deg`); otherwise the Fisher information's weak directions with the calibration profiled out. A weak one is fixed
+        and named."""
+        _, tilt = labfield.turn_span_deg(rotation)
+        if tilt < labfield.YAW_ONLY_TILT_DEG:
+            self._fix_declination(tilt)
+            return
+        setup = self.setup
+        inc = np.radians(setup.inclination_deg)
+        probe = labfield.FieldSetup(
+            setup.total_nT,
+            setup.declination_deg,
+            setup.inclination_deg,
+            np.diag([1.0 / max(np.cos(inc), 1e-6), 1.0]),
+            offsets_m=setup.offsets_m,
+        )
+        prob = labfield.FieldProblem(problems, [len(x) for x in xs], sigmas, rotation, probe)
+        jac = prob.jacobian(np.concatenate(list(xs) + [np.zeros(probe.n_params)]))
+        first = sum(len(x) for x in xs)
+        sd, vecs = labfield.weak_directions(jac, [first, first + 1])
+        weak = sd > labfield.UNDETERMINED_DIRECTION_DEG
+        if not weak.any():
+            return
+        if weak.all():
+            setup.free = np.zeros((2, 0))
+            self._note(
+                f"the record's attitudes do not determine the field's direction (standard deviations "
+                f"{sd[0]:.1f} and {sd[1]:.1f} deg): it is kept at the "
+                + ("vector given" if self.given_start else "start found from the readings")
+                + "; turn the sensor about several axes"
+            )
+            return
+        if abs(vecs[0, int(np.argmax(sd))]) > 0.9:  # the weak direction is a rotation about the vertical
+            self._fix_declination(tilt)
+            return
+        setup.free = probe.free @ vecs[:, int(np.argmin(sd))][:, None]
+        self._note(
+            "the record turned about one axis only: its attitudes cannot tell the field's rotation about that axis "
+            f"from the mounting (standard deviation {float(np.max(sd)):.1f} deg); that part of the field's direction "
+            "is kept at its start and the mounting takes the rest; turn the sensor about several axes"
+        )
+
+    def _fix_declination(self, tilt):
+        """The declination as a gauge: kept at the one given, else 0, and said."""
+        setup = self.setup
+        self.declination_fixed = True
+        dec = setup.declination_deg if self.given_start else 0.0
+        setup.declination_deg, setup.free = dec, np.array([[0.0], [1.0]])
+        self._note(
+            f"the record turned about the vertical only (its turns moved the vertical by {tilt:.1f} deg at most): its "
+            "attitudes cannot tell "
+            "the field's declination from the mounting's yaw (a rotation of the one is absorbed by the other); "
+            f"the declination is fixed at {dec:.2f} deg "
+            + ("(the one given)" if self.given_start else "(world north is then the field's horizontal direction)")
+            + " and the mounting's yaw takes the rest; with so little tilt the inclination and |B| also rest on the "
+            "vertical axis's scale and bias, which the record barely separates: tilt the sensor (+-30 deg about two "
+            "axes) to fit them"
+        )
+
+    def _note(self, text):
+        self.gauges.append(text)
+        self.notes.append(text)
+
+    def solve(self, problems, xs, sigmas, rotation, robust) -> float:
+        """One joint solve; moves the setup to the field found and returns how far its direction moved (deg)."""
+        setup = self.setup
+        x, cov, _, _, _ = labfield.solve(problems, xs, sigmas, rotation, setup, robust=robust)
+        k = setup.n_direction
+        params = x[-setup.n_params :] if setup.n_params else np.zeros(0)
+        before = setup.field_at(np.zeros(setup.n_params))
+        step = np.degrees(setup.free @ params[:k]) if k else np.zeros(2)
+        setup.declination_deg += float(step[0])
+        setup.inclination_deg += float(step[1])
+        if setup.offsets_m is not None:
+            setup.gradient0 = setup.gradient0 + params[k:]
+        if cov is not None:
+            self.cov_field = cov[-setup.n_params :, -setup.n_params :] if setup.n_params else self.cov_field
+            if not self.total_given and setup.base_ned_nT is None:
+                g = np.linalg.inv(x[:9].reshape(3, 3)).T.ravel()  # d ln det W / dW
+                self.var_log_gain = float(g @ cov[:9, :9] @ g) / 9.0
+        if not self.total_given and setup.base_ned_nT is None:
+            gain = float(np.linalg.det(x[:9].reshape(3, 3))) ** (-1.0 / 3.0)  # det C^-1 = 1 for sensor 1
+            setup.total_nT *= gain
+            setup.gradient0 = setup.gradient0 * gain
+        after = setup.field_at(np.zeros(setup.n_params))
+        a, b = np.atleast_2d(before)[0], np.atleast_2d(after)[0]
+        return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+    def lab_field(self, origin) -> labfield.LabField:
+        """The field found, with its standard deviations and gauges."""
+        setup = self.setup
+        k = setup.n_direction
+        ned = np.atleast_2d(setup.field_at(np.zeros(setup.n_params)))
+        ned = (
+            ned.mean(axis=0)
+            if setup.offsets_m is None
+            else ned.mean(axis=0)
+            - setup.offsets_m.mean(axis=0) @ (np.tensordot(setup.gradient0, GRADIENT_BASIS, axes=1).T)
+        )
+        total = float(np.linalg.norm(ned))
+        unit = ned / total
+        cov_dir = setup.free @ self.cov_field[:k, :k] @ setup.free.T if k else np.zeros((2, 2))
+        jac = total * labfield._direction_derivatives(setup.declination_deg, setup.inclination_deg)
+        total_sd = total * np.sqrt(self.var_log_gain) if not self.total_given else 0.0
+        cov_ned = jac @ cov_dir @ jac.T + np.outer(unit, unit) * total_sd**2
+        dec, inc = labfield.angles_deg(ned)
+        grad = grad_sd = None
+        if setup.offsets_m is not None:
+            grad = np.tensordot(setup.gradient0, GRADIENT_BASIS, axes=1)
+            grad_sd = np.sqrt(np.clip(np.diag(self.cov_field)[k:], 0.0, None))
+        return labfield.LabField(
+            ned_nT=ned,
+            sd_nT=np.sqrt(np.clip(np.diag(cov_ned), 0.0, None)),
+            declination_deg=dec,
+            inclination_deg=inc,
+            declination_sd_deg=0.0 if self.declination_fixed else float(np.degrees(np.sqrt(max(cov_dir[0, 0], 0)))),
+            inclination_sd_deg=float(np.degrees(np.sqrt(max(cov_dir[1, 1], 0.0)))),
+            total_nT=total,
+            total_sd_nT=float(total_sd),
+            total_source="given" if self.total_given else "gain",
+            gauges=list(self.gauges),
+            declination_fixed=self.declination_fixed,
+            gradient_nT_per_m=grad,
+            gradient_sd_nT_per_m=grad_sd,
+            origin_m=origin,
+        )
