@@ -115,7 +115,7 @@ def read(path, fast: bool):
     try:
         before = peak_mb()
         t0 = time.perf_counter()
-        ds = logs.read_log(path, warn=False)
+        ds = logs.read_log(path, warn=False, timeout_s=1e6)  # pymavlink's hour, not refused
         return ds, time.perf_counter() - t0, max(peak_mb() - before, 0.0)
     finally:
         logs._gather_fast = saved

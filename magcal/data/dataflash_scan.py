@@ -168,15 +168,20 @@ def formats(data) -> dict | None:
 
 
 def _walk(nxt: np.ndarray) -> np.ndarray:
-    """The candidates visited from the first: each followed by ``nxt`` of it, until past the last."""
+    """The candidates visited from the first: each followed by ``nxt`` of it, until past the last. Runs of
+    candidates each followed by the next are taken whole; only the jumps (past a candidate inside a message, or a
+    damaged stretch) are followed one by one."""
+    n = len(nxt)
+    jumps = np.flatnonzero(nxt != np.arange(1, n + 1))
     follow = nxt.tolist()
-    n = len(follow)
-    visited = []
+    runs = []
     i = 0
     while i < n:
-        visited.append(i)
-        i = follow[i]
-    return np.asarray(visited, dtype=np.int64)
+        at = int(np.searchsorted(jumps, i))
+        last = int(jumps[at]) if at < len(jumps) else n - 1  # the run from i ends at its first jump
+        runs.append(np.arange(i, last + 1))
+        i = follow[last]
+    return np.concatenate(runs) if runs else np.zeros(0, dtype=np.int64)
 
 
 def scan(path_or_bytes) -> Scan | None:
