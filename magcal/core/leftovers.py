@@ -241,7 +241,7 @@ def run_dir() -> str:
     import multiprocessing.util
 
     with _RUN_DIR_LOCK:
-        config = multiprocessing.process.current_process()._config
+        config = multiprocessing.process.current_process()._config  # type: ignore[attr-defined]
         folder = config.get("tempdir")
         if folder is None:
             folder = tempfile.mkdtemp(prefix=f"magcal-{host_tag()}-{os.getpid()}-", dir=_run_dir_base())

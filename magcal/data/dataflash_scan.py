@@ -192,7 +192,7 @@ def scan(path_or_bytes) -> Scan | None:
         data = np.frombuffer(path_or_bytes, dtype=np.uint8)
     else:
         data = np.fromfile(path_or_bytes, dtype=np.uint8)
-    found = formats(memoryview(data))
+    found = formats(data.data)
     if not found or FMT_TYPE not in found or any(_payload_bytes(f) != f.length - 3 for f in found.values()):
         return None  # pymavlink reads a message whose fields do not fill its length otherwise (from inside it)
     lengths = np.zeros(256, dtype=np.int64)

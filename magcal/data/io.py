@@ -1656,12 +1656,11 @@ def _dictionary_text(array, source, name, row_name, budget=None) -> np.ndarray:
         lengths = np.concatenate([[4], lengths])
     width = _check_text(lengths[where], source, name, row_name, budget)
     measured = cells is None
-    if measured:
-        cells = np.asarray(entries.to_numpy(zero_copy_only=False), dtype=object)
+    made = np.asarray(entries.to_numpy(zero_copy_only=False), dtype=object) if cells is None else cells
     if len(real) < len(used):
-        cells = np.concatenate([np.array([None], dtype=object), cells])
+        made = np.concatenate([np.array([None], dtype=object), made])
     # text as wide as its longest cell; other values as numpy writes them (bytes decoded: narrower than measured)
-    return (cells.astype(f"<U{max(width, 1)}") if measured else cells.astype(str))[where]
+    return (made.astype(f"<U{max(width, 1)}") if measured else made.astype(str))[where]
 
 
 def _read_csv_arrow(path, columns, units, name, lsb_nT):

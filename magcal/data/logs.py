@@ -672,14 +672,15 @@ def _gather_fast(path, source, undo_calibration) -> dict | None:
     """What :func:`_gather_pymavlink` gathers, read with NumPy (:mod:`magcal.data.dataflash_scan`): the compass,
     attitude and IMU messages as columns, the few others one by one through :func:`_dataflash_message`; None where
     the scan could differ from pymavlink (it then reads the log). On a synthetic log of 1.2 million MAG messages
-    (42 MB): 1.4 s against 96 s (``benchmarks/dataflash_read.py``)."""
+    (47 MB): 3.4-6.1 s against 233 s on the loaded 2-core machine (``benchmarks/dataflash_read.py``)."""
     found = dataflash_scan.scan(path)
     if found is None:
         return None
     rows = {name: found.of(name) for name in _DF_KEPT_TYPES}
     _check_kept_messages(sum(len(r) for r in rows.values()), source)
-    cols = {name: found.columns(name, r) for name, r in rows.items() if len(r)}
-    if any(c is None for c in cols.values()) or ("ATT" in cols and not {"Roll", "Pitch", "Yaw"} <= set(cols["ATT"])):
+    decoded = {name: found.columns(name, r) for name, r in rows.items() if len(r)}
+    cols: dict[str, dict] = {name: c for name, c in decoded.items() if c is not None}
+    if len(cols) < len(decoded) or ("ATT" in cols and not {"Roll", "Pitch", "Yaw"} <= set(cols["ATT"])):
         return None  # a field not decoded here, an ATT without its angles (pymavlink's reader says so)
     gathered = _new_gathered()
     gathered["seen"] = set(cols)
@@ -688,7 +689,7 @@ def _gather_fast(path, source, undo_calibration) -> dict | None:
         return None  # compasses 2 and 3 in both MAG and MAGn messages: their rows would interleave
     epochs = {n: np.searchsorted(rows["PARM"], r) for n, r in mags}  # the parameters read before each message
     wanted = set(np.unique(np.concatenate([e for e in epochs.values()] or [np.zeros(0, int)])).tolist())
-    params_at = {0: {}} if 0 in wanted else {}
+    params_at: dict[int, dict] = {0: {}} if 0 in wanted else {}
     for name in ("PARM", "GPS", "BAT", "CURR", "CTUN"):
         if name in cols:
             names = list(cols[name])
