@@ -83,8 +83,6 @@ MAX_UNDO = 200
 #: 100 MB read. A session within its bounds (:data:`~magcal_workbench.state.MAX_HISTORY_ROWS` steps of each history,
 #: some twenty values each; masks are one text each) holds some tens of thousands.
 MAX_VALUES = 1_000_000
-#: A JSON text in a file: its contents, escapes included, are not counted as values.
-_JSON_TEXT = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
 #: Reference field range accepted, nT (well beyond any geomagnetic or laboratory field).
 REFERENCE_RANGE_nT = (1.0, 1e7)
 #: Range of a noise level the user gives (``noise_nT``: per-axis standard deviation), nT.
@@ -417,14 +415,9 @@ def read_session_document(doc, where: str = "session.json"):
 
 
 def json_values(data: bytes) -> int:
-    """About how many JSON values ``data`` holds (its commas, brackets and braces outside its texts): a bound on
-    the objects decoding it makes, counted in C (a text's commas counted only where the plain count is over
-    :data:`MAX_VALUES`)."""
-    count = data.count(b",") + data.count(b"[") + data.count(b"{")
-    if count <= MAX_VALUES:
-        return count
-    bare = _JSON_TEXT.sub(b'""', data)
-    return bare.count(b",") + bare.count(b"[") + bare.count(b"{")
+    """At most how many JSON values ``data`` holds: its commas, brackets and braces (those inside texts too: the
+    workbench's texts hold few), counted in C, in time linear in the bytes, before anything is decoded."""
+    return data.count(b",") + data.count(b"[") + data.count(b"{")
 
 
 def read_session_bytes(data: bytes, where: str = "session.json"):
