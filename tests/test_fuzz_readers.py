@@ -15,8 +15,9 @@ The contract checked on every case (:func:`outcome`):
   ``SessionFileError`` are kinds of it) whose message is one line: any other exception is a *traceback*;
 * it ends within :data:`TIME_BOUND_S` (run in a thread; one still running then is a *hang*).
 
-``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 55 s on two
-cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
+``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600, a tenth of it for the Parquet dictionary and
+session-rows targets: the file runs in about two minutes on two cores); ``benchmarks/fuzz_readers.py`` runs many more
+and prints the counts.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@ per message.
 
 A DataFlash log is a stream of messages ``A3 95 TYPE payload``, each type's length, field types and column names
 given by an FMT message (type 128). pymavlink's ``DFReader`` walks it message by message, making a Python object of
-each (some 50 us a message: 99 s for a 21.6 MB log of 1.2 million MAG messages). Here the walk is pymavlink's own,
+each (233 s for a log of 1.2 million MAG messages on the 2-core development machine,
+``benchmarks/dataflash_read.py``). Here the walk is pymavlink's own,
 done on arrays: every place the two sync bytes and a known type meet is a candidate; from the file's first
 candidate, each message is followed by the first candidate at or after its end (pymavlink skips bytes one by one
 until it finds one, so a damaged stretch is passed over the same way), and the walk ends at a message cut by the
