@@ -11,7 +11,7 @@ seconds it took and the first line of what magcal said. Verdicts:
 * ``CRASH``    - any other exception (a traceback): a bug.
 
 The script exits non-zero if any case was silently accepted, crashed, hung or said too much. The last rows are
-issue 41's bombs and bad values; ``benchmarks/notes/bad_inputs.md`` has the table before and after it.
+issue 41's bombs and bad values, then issue 51's Parquet dictionary bombs; ``benchmarks/notes/bad_inputs.md`` has the table before and after it.
 """
 
 from __future__ import annotations
@@ -221,6 +221,11 @@ def make_issue41_files(d: Path, doc):
     io.write_csv(d / "counts.csv", counts, metadata={"units": "counts", "lsb_nT": "150"})
     for name, lsb in (("lsb1e308.csv", "1e308"), ("lsb1e-300.csv", "1e-300")):
         (d / name).write_text((d / "counts.csv").read_text().replace("lsb_nT: 150", f"lsb_nT: {lsb}"))
+    big = pa.array(["x" * 100_000_000])  # a Parquet text column's dictionary: one 100 MB value for every row
+    for rows in (30, 8):
+        cols = {a: pa.array(np.full(rows, 30_000.0 + k)) for k, a in enumerate(("s1x", "s1y", "s1z"))}
+        note = pa.DictionaryArray.from_arrays(pa.array(np.zeros(rows, np.int32)), big)
+        pq.write_table(pa.table({**cols, "note": note}), d / f"dict{rows}.parquet", compression="zstd")
     huge = json.loads(json.dumps(doc))
     huge["sensors"] = [{**s, "Cinv": (np.eye(3) * 1e308).tolist()} for s in doc["sensors"]]
     (d / "huge.json").write_text(json.dumps(huge))
@@ -310,6 +315,10 @@ def cases(d: Path):
         ("cal file", "Cinv = 1e308 I, apply", ["apply", d / "huge.json", s, "-o", d / "huge_out.csv"]),
         ("cal file", "a FIFO", ["apply", d / "fifo.json", s, "-o", o]),
         ("effects", "a FIFO as --effects-file", ["calibrate", d / "free.csv", "--effects-file", d / "fifo_effects.py"]),
+        # issue 51: text cells bounded before they are made
+        ("data file", "Parquet dictionary: 30 rows of one 100 MB value (5 kB)", ["calibrate", d / "dict30.parquet"]),
+        ("data file", "the same, 8 rows", ["calibrate", d / "dict8.parquet"]),
+        ("apply", "the same, corrected", ["apply", c, d / "dict30.parquet", "-o", d / "dict_out.parquet"]),
     ]
 
 

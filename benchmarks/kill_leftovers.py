@@ -4,7 +4,9 @@ each killed while its worker processes run, then watched for a while.
 Run: ``python benchmarks/kill_leftovers.py [--repeats 3] [--watch 10]`` (Linux: processes are found in /proc by the
 killed command's session, segments in /dev/shm; about 15 s a repeat). Prints, per command and repeat: the processes
 it had started and their resident memory at the kill, the seconds from the kill until none of them ran any more
-(``never`` within ``--watch`` s) and until its shared-memory segment was gone, and what the next run removed.
+(``never`` within ``--watch`` s) and until its shared-memory segment was gone, what stayed in its temporary folder
+(each command gets one of its own, ``TMPDIR``: multiprocessing's ``pymp-*``, magcal's run folder, Dask's scratch
+space), and what the next run removed.
 ``PYTHONPATH=OLD_TREE python benchmarks/kill_leftovers.py`` measures another tree's magcal (the commands inherit
 the path). Before issue 41
 the diagnosis's fork server, workers (about 240 MB each at 4 x 1e5 samples) and resource tracker stayed for ever,
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -83,8 +86,22 @@ def clean(sid: int, pid: int) -> None:
 
 
 def killed(argv, ready, watch_s: float) -> dict:
-    """Start ``argv`` in a session of its own, SIGKILL it once ``ready(pid)``, and watch what stays."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    """Start ``argv`` in a session of its own (and a temporary folder of its own, ``TMPDIR``), SIGKILL it once
+    ``ready(pid, tmp)``, and watch what stays."""
+    tmp = Path(tempfile.mkdtemp(prefix="kill-"))  # short: the fork server's socket path must fit
+    try:
+        got = _killed(argv, lambda sid: ready(sid, tmp), watch_s, tmp)
+        end = time.monotonic() + watch_s
+        while time.monotonic() < end and any(tmp.iterdir()):
+            time.sleep(0.05)
+        got["tmp_left"] = sorted(p.name for p in tmp.iterdir())
+        return got
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _killed(argv, ready, watch_s: float, tmp: Path) -> dict:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p), "TMPDIR": str(tmp)}
     proc = subprocess.Popen(argv, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     sid = proc.pid
     try:
@@ -137,22 +154,32 @@ def main() -> int:
         mio.write_csv(d / "four.csv", ds)
         magcal.calibrate(ds.subset(np.arange(1500))).calibration.save(d / "cal.json")
         py = [sys.executable, "-m", "magcal"]
+        mio.write_csv(d / "five_mb.csv", magcal.simulate_timeseries("chi2017", n_samples=15_000, seed=7, rate_hz=10.0))
         print(f"{'command':<28} {'run':>3} {'processes':>9} {'MB':>7} {'all ended s':>11} {'segment gone s':>14}")
-        for k in range(args.repeats):
-            got = killed(
-                py + ["diagnose", str(d / "four.csv"), "--workers", "4"],
-                lambda sid: segments(sid) and len(session(sid)) >= 7,
-                args.watch,
-            )
-            print(
-                f"{'diagnose --workers 4':<28} {k + 1:>3} {got.get('processes', '-'):>9} {got.get('mb', 0):>7.0f} "
-                f"{fmt(got.get('gone_s')):>11} {fmt(got.get('shm_s')):>14}   still running after "
-                f"{args.watch:g} s: {got.get('left', '-')}"
-            )
+        for argv, label, ready in (
+            (
+                ["four.csv", "--workers", "4"],
+                "diagnose --workers 4",
+                lambda sid, tmp: segments(sid) and len(session(sid)) >= 7,
+            ),
+            # 5 MB: the fork server starts while the file is read; the fits then stay on threads
+            (
+                ["five_mb.csv", "--workers", "2"],
+                "diagnose --workers 2",
+                lambda sid, tmp: any(tmp.iterdir()) and len(session(sid)) >= 3,
+            ),
+        ):
+            for k in range(args.repeats):
+                got = killed(py + ["diagnose", str(d / argv[0]), *argv[1:]], ready, args.watch)
+                print(
+                    f"{label:<28} {k + 1:>3} {got.get('processes', '-'):>9} {got.get('mb', 0):>7.0f} "
+                    f"{fmt(got.get('gone_s')):>11} {fmt(got.get('shm_s')):>14}   still running after "
+                    f"{args.watch:g} s: {got.get('left', '-')}; left in TMPDIR: {got.get('tmp_left') or 'nothing'}"
+                )
         for k in range(args.repeats):
             out = d / f"parts{k}"
 
-            def started(sid, out=out):
+            def started(sid, tmp, out=out):
                 return any(any(p.iterdir()) for p in d.glob(f".{out.name}.*.tmp") if p.is_dir())
 
             got = killed(
@@ -165,7 +192,8 @@ def main() -> int:
             left = sorted(p.name for p in d.glob(f".{out.name}.*.tmp"))
             print(
                 f"{'apply --workers 2 (Dask)':<28} {k + 1:>3} {got.get('processes', '-'):>9} {got.get('mb', 0):>7.0f} "
-                f"{fmt(got.get('gone_s')):>11} {'-':>14}   work folder left: {len(left)}"
+                f"{fmt(got.get('gone_s')):>11} {'-':>14}   work folder left: {len(left)}; left in TMPDIR: "
+                f"{got.get('tmp_left') or 'nothing'}"
             )
         err = subprocess.run(
             py

@@ -1058,9 +1058,12 @@ class Controller:
         never shows the server's paths. Listeners hear ``saved`` when the problem comes or goes."""
         if self.store is None or self.session_id is None:
             return
+        for note in self.state.notes:  # the oldest steps dropped (MAX_HISTORY_ROWS): said once, here
+            print(f"magcal-workbench: session {self.session_id}: {note}", file=sys.stderr)
+        self.state.notes = []
         try:
             self.store.save(self.session_id, self.state)
-        except (OSError, MagcalError) as exc:
+        except (OSError, MagcalError, MemoryError) as exc:
             problem = autosave_problem(exc, self._saved_at)
             if problem != self.save_problem:
                 self.save_problem = problem

@@ -83,6 +83,17 @@ def write_bytes_atomic(path, data: bytes) -> None:
         fh.write(data)
 
 
+def write_json_atomic(path, doc) -> None:
+    """Write ``doc`` as JSON (indented by one space) to ``path`` atomically, encoded piece by piece into the file:
+    never the whole text in memory at once (:func:`write_bytes_atomic`'s folder and rights)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    with atomic_write(path, "w", encoding="utf-8") as fh:
+        for piece in json.JSONEncoder(indent=1).iterencode(doc):
+            fh.write(piece)
+        fh.write("\n")
+
+
 def session_id(name: str, content: bytes) -> str:
     """Folder name of a session: a safe form of the file's name plus 10 hex digits of its SHA-1."""
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(name).stem)[:40].lstrip(".-") or "data"
@@ -196,12 +207,11 @@ class SessionStore:
         doc["saved_at"] = time.strftime("%Y-%m-%d %H:%M:%S")
         if extra:
             doc.update(extra)
-        data = (json.dumps(doc, indent=1) + "\n").encode("utf-8")
         with self._save_lock:  # one writer at a time; an older document never replaces a newer one
             written = self._saved_versions.setdefault(state, {})
             if version < written.get(sid, -1):
                 return path
-            write_bytes_atomic(path, data)
+            write_json_atomic(path, doc)  # streamed: the document's rows are bounded, its text never held whole
             written[sid] = version
         return path
 
@@ -273,16 +283,16 @@ class SessionStore:
                 with open(path, "rb") as fh:
                     data = fh.read(MAX_READ + 1)
                 state = read_session_bytes(data, str(path))
-                saved_at = json.loads(data).get("saved_at", "")
+                saved_at = state.saved_at
                 mtime = path.stat().st_mtime
                 size = self.size_bytes(folder.name)
-            except (OSError, SessionError):
+            except (OSError, SessionError, MemoryError, RecursionError):  # not listed; opening it says why
                 continue
             hist = state.history
             out.append(
                 {
                     "id": folder.name,
-                    "saved_at": saved_at if isinstance(saved_at, str) else "",
+                    "saved_at": saved_at,
                     "lesson": state.lesson,
                     "n_samples": state.n_samples,
                     "effects": list(state.effects),

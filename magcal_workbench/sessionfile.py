@@ -1,5 +1,8 @@
 """The one reader of ``session.json``: every field checked for type and range before a session is reopened.
 
+A file is read in bounded memory: at most :data:`MAX_BYTES`, and at most :data:`MAX_VALUES` JSON values counted
+before it is decoded (:func:`json_values`); the rows over a history's bound are dropped unread, with a note.
+
 A session file is written by the workbench, but it sits on disk where a crash, a full disk, a hand edit or a
 copied folder can damage it, and its text reaches the page. :func:`read_session_document` turns a decoded JSON
 document into a :class:`~magcal_workbench.state.SessionState` or raises :class:`SessionFileError` -- one line naming the
@@ -15,7 +18,9 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``version``         1
 ``n_samples``       whole number 1 ... 10^8; ``n_sensors`` whole number 1 ... 4
 ``data_path``       text or null; ``lesson`` a lesson's slug or null
-``selection``       ``{"n_samples": N, "kept": packed mask of N bits, "undo"/"redo": [[mask, text], ...]}``
+``selection``       ``{"n_samples": N, "kept": packed mask of N bits, "undo"/"redo": [[mask, text], ...]}`` (the
+                    most recent undo and redo masks within ``MAX_MASK_SAMPLES`` read, the older dropped with a
+                    note)
 ``effects``         list of effect labels ``NAME`` or ``NAME:S`` (S = 1 ... n_sensors), no repeats
 ``effects_files``   list of absolute paths of ``.py`` files (the user's effects; never run on opening, offered)
 ``method``          one of :data:`~magcal_workbench.state.METHODS`
@@ -25,14 +30,16 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``sensor``          whole number 0 ... n_sensors - 1, or null
 ``history``         list of steps ``{"step", "rms_nT", "floor_nT", "effects", "n_kept", "changes", "elapsed_s",
                     "fit", "held_out_rms_nT"}`` (numbers finite, ``n_kept`` 0 ... N; ``held_out_rms_nT`` null
-                    when the step ran no held-out validation)
+                    when the step ran no held-out validation); the last ``MAX_HISTORY_ROWS`` (1000) are read,
+                    the older dropped with a note (``SessionState.notes``)
 ``location``        the place typed for IGRF ``{"lat_deg": -90 ... 90, "lon_deg": -180 ... 180, "alt_m": -10^4 ...
                     2 10^6, "date": text of at most 32 characters}``, or null
 ``vector_fit``      the last vector fit's settings ``{"kept": packed mask of N bits, "robust": true or false,
                     "noise_nT": number 1e-6 ... 10^6 or null, "effects": list of effect labels}`` (run again when
                     the session reopens), or null
 ``vector_history``  list of the vector model's fits ``{"step", "world_rms_nT": [N, E, D], "total_rms_nT",
-                    "effects", "n_fitted", "changes", "elapsed_s"}`` (numbers finite or null, ``n_fitted`` 0 ... N)
+                    "effects", "n_fitted", "changes", "elapsed_s"}`` (numbers finite or null, ``n_fitted`` 0 ... N;
+                    the last 1000 read, as ``history``)
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -50,7 +57,16 @@ import numpy as np
 from magcal.core.errors import MagcalError
 
 from .markup import clean_text
-from .state import METHODS, Selection, SessionState, StepRecord, VectorStep
+from .state import (
+    MAX_HISTORY_ROWS,
+    METHODS,
+    Selection,
+    SessionState,
+    StepRecord,
+    VectorStep,
+    saved_masks,
+    trimmed,
+)
 
 FORMAT = "magcal-workbench-session"
 VERSION = 1
@@ -62,6 +78,11 @@ MAX_SENSORS = 4
 MAX_TEXT = 10_000
 MAX_HISTORY = 100_000
 MAX_UNDO = 200
+#: Most JSON values (numbers, texts, lists, objects) a session file may hold, counted before it is decoded: each
+#: is a Python object once decoded (about 60 bytes), so that a file within :data:`MAX_BYTES` stays within about
+#: 100 MB read. A session within its bounds (:data:`~magcal_workbench.state.MAX_HISTORY_ROWS` steps of each history,
+#: some twenty values each; masks are one text each) holds some tens of thousands.
+MAX_VALUES = 1_000_000
 #: Reference field range accepted, nT (well beyond any geomagnetic or laboratory field).
 REFERENCE_RANGE_nT = (1.0, 1e7)
 #: Range of a noise level the user gives (``noise_nT``: per-axis standard deviation), nT.
@@ -123,6 +144,16 @@ class _Reader:
 
     def __init__(self, where: str):
         self.where = where
+        #: What reading dropped (rows and masks over the bounds), to say once the session is open.
+        self.notes: list[str] = []
+
+    def rows(self, field, value, read_row):
+        """The rows of a history list, read by ``read_row(field, row)``: the last
+        :data:`~magcal_workbench.state.MAX_HISTORY_ROWS` (the older ones dropped, unread, with a note)."""
+        rows = list(self.listing(field, value, MAX_HISTORY))
+        first = len(rows) - MAX_HISTORY_ROWS
+        self.notes += filter(None, [trimmed(rows, field.replace("_", " "))])
+        return [read_row(f"{field}[{max(first, 0) + i}]", row) for i, row in enumerate(rows)]
 
     def fail(self, field: str, problem: str):
         raise SessionFileError(self.where, field, problem)
@@ -298,7 +329,16 @@ class _Reader:
         for which in ("undo", "redo"):
             stack = []
             entries = self.listing(f"{field}.{which}", doc.get(which, []), MAX_UNDO)
+            keep = saved_masks(n)
+            if len(entries) > keep:  # the most recent within the masks' bound (MAX_MASK_SAMPLES)
+                self.notes.append(
+                    f"{which} keeps its last {keep} selection(s) of {n:,} samples: the oldest "
+                    f"{len(entries) - keep} were dropped"
+                )
+            first = len(entries) - keep
             for i, entry in enumerate(entries):
+                if i < first:
+                    continue
                 f = f"{field}.{which}[{i}]"
                 if type(entry) is not list or len(entry) != 2:
                     self.wrong(f, entry, "a pair [mask, description]")
@@ -361,21 +401,37 @@ def read_session_document(doc, where: str = "session.json"):
     st.noise_nT = r.number("noise_nT", doc.get("noise_nT"), *NOISE_RANGE_nT, null=True)
     sensor = doc.get("sensor")
     st.sensor = None if sensor is None else r.integer("sensor", sensor, 0, n_sensors - 1)
-    history = r.listing("history", doc.get("history", []), MAX_HISTORY)
-    st.history = [r.step(f"history[{i}]", h, n, n_sensors) for i, h in enumerate(history)]
+    st.history = r.rows("history", doc.get("history", []), lambda f, h: r.step(f, h, n, n_sensors))
     st.location = r.location("location", doc.get("location"))
     st.vector_fit = r.vector_fit("vector_fit", doc.get("vector_fit"), n, n_sensors)
-    vector_history = r.listing("vector_history", doc.get("vector_history", []), MAX_HISTORY)
-    st.vector_history = [r.vector_step(f"vector_history[{i}]", h, n, n_sensors) for i, h in enumerate(vector_history)]
+    rows = r.rows("vector_history", doc.get("vector_history", []), lambda f, h: r.vector_step(f, h, n, n_sensors))
+    st.vector_history = rows
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
+    st.notes = list(r.notes)
+    saved_at = doc.get("saved_at")
+    st.saved_at = clean_text(saved_at, 40) if isinstance(saved_at, str) else ""
     return st
+
+
+def json_values(data: bytes) -> int:
+    """At most how many JSON values ``data`` holds: its commas, brackets and braces (those inside texts too: the
+    workbench's texts hold few), counted in C, in time linear in the bytes, before anything is decoded."""
+    return data.count(b",") + data.count(b"[") + data.count(b"{")
 
 
 def read_session_bytes(data: bytes, where: str = "session.json"):
     """:func:`read_session_document` of a file's bytes; undecodable bytes are a :class:`SessionFileError`."""
     if len(data) > MAX_BYTES:
         raise SessionFileError(where, "(file)", f"is {len(data)} bytes; at most {MAX_BYTES}")
+    values = json_values(data)
+    if values > MAX_VALUES:
+        raise SessionFileError(
+            where,
+            "(file)",
+            f"holds about {values:,} values, more than the {MAX_VALUES:,} a session is read with (it keeps the last "
+            f"{MAX_HISTORY_ROWS:,} steps of each history)",
+        )
     try:
         doc = json.loads(data.decode("utf-8"))
     except UnicodeDecodeError as exc:

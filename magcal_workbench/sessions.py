@@ -74,6 +74,11 @@ class Sessions(PagePart):
                 if note:
                     notes.append(note)
                     sid = store.create(name, content)  # the data's copy went with the damaged folder
+                if state is not None and state.notes:  # rows over the bounds dropped as it was read
+                    for said in state.notes:
+                        print(f"magcal-workbench: session {sid}: {clean_text(said, MESSAGE_LEN)}", file=sys.stderr)
+                    notes += state.notes
+                    state.notes = []
             if state is None:
                 state = SessionState(dataset.n_samples, dataset.n_sensors, str(store.data_path(sid)), lesson)
         if state is None:
@@ -107,15 +112,21 @@ class Sessions(PagePart):
         try:
             return store.load(sid, expect=(dataset.n_samples, dataset.n_sensors)), None
         except SessionFileError as exc:
-            try:
-                moved = f"moved aside to {store.set_aside(sid).name}"
-            except OSError as err:
-                moved = f"could not be moved aside ({err.strerror or err})"
-            note = f"the saved session {sid} is damaged ({exc}); {moved}; starting afresh"
+            note = f"the saved session {sid} is damaged ({exc}); {self._set_aside(sid)}; starting afresh"
+        except (MemoryError, RecursionError) as exc:  # beyond what this machine holds: set aside all the same
+            why = type(exc).__name__
+            note = f"the saved session {sid} could not be opened ({why}); {self._set_aside(sid)}; starting afresh"
         except OSError as exc:
             note = f"the saved session {sid} could not be read ({exc.strerror or exc}); starting afresh"
         print(f"magcal-workbench: {clean_text(note, MESSAGE_LEN)}", file=sys.stderr)
         return None, hide_paths(note)
+
+    def _set_aside(self, sid) -> str:
+        """Move a session that cannot be opened aside (:meth:`SessionStore.set_aside`); says where, or why not."""
+        try:
+            return f"moved aside to {self.store.set_aside(sid).name}"
+        except OSError as err:
+            return f"could not be moved aside ({err.strerror or err})"
 
     def session_ids(self) -> tuple:
         """The Saved session choices the server offers: the folder's sessions and ``-``."""

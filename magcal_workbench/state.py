@@ -24,6 +24,15 @@ import numpy as np
 
 #: Largest number of mask snapshots kept for undo.
 UNDO_DEPTH = 200
+#: Most mask snapshots a session file holds of each of undo and redo.
+SAVED_UNDO = 50
+#: Most samples of all the masks a session file holds together (the kept samples, the vector fit's, undo and redo;
+#: a mask is a bit a sample in the file, a byte a sample once read): 4e8, 50 MB in the file and 400 MB read. Undo
+#: and redo keep their most recent masks within it (a record of 10^8 samples: one of each).
+MAX_MASK_SAMPLES = 400_000_000
+#: Most steps a session keeps of each history (the fits and the vector fits): the oldest go first, and the page
+#: says so. A step is a click; a thousand is far beyond a calibration's, and a session file stays small.
+MAX_HISTORY_ROWS = 1000
 
 #: Methods the workbench offers, in the order shown (names as :func:`magcal.fitting.pipeline.calibrate` takes them).
 METHODS = ("ml", "ellipsoid", "pso", "ipso", "de")
@@ -155,8 +164,8 @@ class Selection:
             return {
                 "n_samples": self.n_samples,
                 "kept": pack_mask(self._kept),
-                "undo": [[pack_mask(m), w] for m, w in self._undo[-50:]],
-                "redo": [[pack_mask(m), w] for m, w in self._redo[-50:]],
+                "undo": [[pack_mask(m), w] for m, w in self._undo[-saved_masks(self.n_samples) :]],
+                "redo": [[pack_mask(m), w] for m, w in self._redo[-saved_masks(self.n_samples) :]],
             }
 
     @classmethod
@@ -167,6 +176,24 @@ class Selection:
         sel._undo = [(unpack_mask(m, n_samples), w) for m, w in doc.get("undo", [])]
         sel._redo = [(unpack_mask(m, n_samples), w) for m, w in doc.get("redo", [])]
         return sel
+
+
+def saved_masks(n_samples: int) -> int:
+    """How many masks of undo, and of redo, a session of ``n_samples`` samples saves: :data:`SAVED_UNDO`, fewer
+    where the masks would hold more than :data:`MAX_MASK_SAMPLES` samples together (the kept and the vector fit's
+    masks first)."""
+    room = MAX_MASK_SAMPLES // max(int(n_samples), 1) - 2
+    return int(min(SAVED_UNDO, max(room // 2, 0)))
+
+
+def trimmed(rows: list, what: str) -> str | None:
+    """Drop the oldest of ``rows`` (in place) beyond :data:`MAX_HISTORY_ROWS`; returns the note that says so, or
+    None."""
+    over = len(rows) - MAX_HISTORY_ROWS
+    if over <= 0:
+        return None
+    del rows[:over]
+    return f"the {what} keeps its last {MAX_HISTORY_ROWS:,} steps: the oldest {over:,} were dropped"
 
 
 @dataclass
@@ -407,6 +434,10 @@ class SessionState:
         # effects
         self.vector_history: list[VectorStep] = []  # the vector model's fits (world N/E/D and |B| RMS)
         self.version = 0  # bumped on every change; the autosave and the views compare it
+        #: What bounding the session changed, to say once (the oldest steps dropped: :data:`MAX_HISTORY_ROWS`).
+        self.notes: list[str] = []
+        #: When the session file read was saved (its ``saved_at``; empty for a new session).
+        self.saved_at = ""
 
     @property
     def lock(self) -> threading.RLock:
@@ -456,9 +487,21 @@ class SessionState:
         """Append a step to the history (and keep the calibration it produced)."""
         with self._lock:
             self.history.append(record)
+            self._note(trimmed(self.history, "history"))
             if calibration is not None:
                 self.calibration = calibration
             self.touch()
+
+    def record_vector(self, step: VectorStep) -> None:
+        """Append a vector fit to :attr:`vector_history` (its oldest dropped beyond :data:`MAX_HISTORY_ROWS`)."""
+        with self._lock:
+            self.vector_history.append(step)
+            self._note(trimmed(self.vector_history, "vector history"))
+            self.touch()
+
+    def _note(self, text: str | None) -> None:
+        if text and not any(n.split(":")[0] == text.split(":")[0] for n in self.notes):  # said once per history
+            self.notes.append(text)
 
     def rms_series(self):
         """(step index, RMS nT, floor nT or NaN) arrays for the history plot."""

@@ -380,7 +380,7 @@ class VectorModel:
             row = self.vector_row(kept)
             elapsed = time.perf_counter() - t0
             if not again:
-                ctrl.state.vector_history.append(
+                ctrl.state.record_vector(
                     VectorStep(
                         step=step,
                         world_rms_nT=[float(v) for v in row.world_rms_nT],

@@ -26,7 +26,7 @@ from magcal.diagnosis.vector import diagnose_vector
 from magcal.fitting.fitter import fit
 from magcal.fitting.vector import fit_vector
 from magcal.model.effects import NONLINEARITY_LIMIT_PPM, smoothed_readings, time_derivative
-from magcal.model.plugins import load_effects_file
+from magcal.model.plugins import load_effects_file, unregister
 from magcal.model.terms import BOUND_PULL_Z, EFFECTS, Domain, Model, fitted_outside_domain, outside_domain
 
 USER_EFFECTS = Path(__file__).resolve().parent / "user_effects_example.py"
@@ -76,6 +76,8 @@ def user_effect():
     """The user's own effect of tests/user_effects_example.py, registered for this module's tests."""
     names = load_effects_file(USER_EFFECTS)
     yield names[0]
+    for name in names:  # no other module's tests see it (the diagnosis tries every registered effect)
+        unregister(name)
 
 
 def _vehicle(n=600, seed=1):

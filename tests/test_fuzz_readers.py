@@ -1,10 +1,10 @@
 """Fuzzing every reader: generated and mutated inputs give a result or a one-line error, within a time bound.
 
 The readers: CSV (whole-file and streaming), Parquet (mutated, and built from its structure: row groups, declared
-rows against ``max_rows``, text widths), ArduPilot DataFlash ``.bin``, PX4 ``.ulg`` (mutated, and built from its
+rows against ``max_rows``, text widths; and text columns as dictionaries of entries up to beyond the longest cell), ArduPilot DataFlash ``.bin``, PX4 ``.ulg`` (mutated, and built from its
 grammar: formats nesting, wide, cyclic, subscribed many times), the calibration JSON (loaded, then applied; and
 every number replaced by extreme values, then every output written and checked finite), the workbench's session
-document, the live sources' line parser (bytes in, chunks out, the recording read back) and live URLs. Each target takes a hypothesis-drawn case: valid files built here
+document (mutated, and built around its bounds: history rows, undo masks, values), the live sources' line parser (bytes in, chunks out, the recording read back) and live URLs. Each target takes a hypothesis-drawn case: valid files built here
 with known content, then mutated (bytes flipped, inserted, deleted, truncated, format fields overwritten), or
 generated from the format's own grammar (headers, metadata lines, numbers from NaN to 1e308, JSON values of
 every type at every key).
@@ -15,8 +15,9 @@ The contract checked on every case (:func:`outcome`):
   ``SessionFileError`` are kinds of it) whose message is one line: any other exception is a *traceback*;
 * it ends within :data:`TIME_BOUND_S` (run in a thread; one still running then is a *hang*).
 
-``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600: the file runs in about 55 s on two
-cores); ``benchmarks/fuzz_readers.py`` runs many more and prints the counts.
+``MAGCAL_FUZZ_EXAMPLES`` sets the examples per target (default 600, a tenth of it for the Parquet dictionary and
+session-rows targets: the file runs in about two minutes on two cores); ``benchmarks/fuzz_readers.py`` runs many more
+and prints the counts.
 """
 
 from __future__ import annotations
@@ -480,6 +481,59 @@ def test_parquet_structure(tmp_path):
     check()
 
 
+@st.composite
+def parquet_dictionary(draw):
+    """A Parquet file whose text columns are dictionaries: entries of drawn lengths (a few beyond the longest
+    cell read, :data:`magcal.data.io.MAX_TEXT_CELL_CHARS`) for any number of rows, nulls among them, in a kept
+    column, the groups or a reading column (numbers written as text), written as dictionaries or plain."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    n = draw(st.integers(0, 3000))
+    lengths = draw(
+        st.lists(st.sampled_from([0, 1, 30, 5000, io.MAX_TEXT_CELL_CHARS, 2_500_000]), min_size=1, max_size=4)
+    )
+    if max(lengths) > 100_000:  # a few rows of the long entries: the writer decodes a column it cannot keep whole
+        n = min(n, 40)
+    entries = pa.array(["x" * k for k in lengths])
+    rng = np.random.default_rng(draw(st.integers(0, 99)))
+    index = rng.integers(0, len(lengths), n).astype(np.int32)
+    nulls = rng.random(n) < draw(st.sampled_from([0.0, 0.1, 1.0]))
+    text = pa.DictionaryArray.from_arrays(pa.array(index, mask=nulls), entries)
+    cols = {a: pa.array(rng.normal(0, 30_000.0, n)) for a in ("s1x", "s1y", "s1z")}
+    where = draw(st.sampled_from(["note", "group", "s1x"]))
+    if where == "s1x":  # readings spelled as text, one long entry among them
+        text = pa.DictionaryArray.from_arrays(pa.array(index), pa.array([f"{30_000 + k}" for k in lengths]))
+    cols[where] = text
+    buf = _stdio.BytesIO()
+    pq.write_table(
+        pa.table(cols),
+        buf,
+        use_dictionary=draw(st.booleans()),
+        compression=draw(st.sampled_from(["none", "zstd"])),
+        row_group_size=draw(st.sampled_from([700, 1 << 20])),
+    )
+    return buf.getvalue()
+
+
+#: Examples of the costlier targets (files of megabytes, documents of thousands of rows): a tenth.
+FEW = settings(FUZZ, max_examples=max(N_EXAMPLES // 10, 10))
+
+
+def test_parquet_dictionary(tmp_path):
+    @FEW
+    @given(parquet_dictionary())
+    def check(data):
+        path = _write(tmp_path, "dictionary.parquet", data)
+        ds = outcome("Parquet dictionary", lambda: magcal.read_csv(path))
+        if ds is not None:  # no cell beyond the bound was made
+            for values in [*ds.extra.values(), *([ds.group] if ds.group is not None else [])]:
+                if values.dtype.kind == "U":
+                    assert values.dtype.itemsize // 4 <= io.MAX_TEXT_CELL_CHARS
+
+    check()
+
+
 # -- calibration JSON ----------------------------------------------------------------------------------------------
 _json_value = st.recursive(
     st.one_of(
@@ -639,6 +693,47 @@ def test_session_document(seeds):
     @given(st.one_of(mutated_document(seeds["session"]), mutated(raw)))
     def check(data):
         outcome("session document", lambda: read_session_bytes(data))
+
+    check()
+
+
+@st.composite
+def session_rows(draw):
+    """A session document with histories around their bound, undo masks around theirs, and (sometimes) a list of
+    many values: the file's bytes and the rows it holds."""
+    from magcal_workbench.state import MAX_HISTORY_ROWS, SessionState, StepRecord, VectorStep
+
+    n = draw(st.sampled_from([8, 300]))
+    st_ = SessionState(n, 1)
+    for k in range(draw(st.sampled_from([0, 40, 120]))):
+        st_.selection.reject([k % n])
+    doc = st_.to_dict()
+    counts = {key: draw(st.sampled_from([0, 3, MAX_HISTORY_ROWS, MAX_HISTORY_ROWS + 1, 2500])) for key in ("h", "v")}
+    step = StepRecord("fit", 3.0, 2.0, [], 1, "x" * draw(st.sampled_from([0, 50])), 0.1).to_dict()
+    vector = VectorStep("vector fit", [1.0, 2.0, None], 4.0, [], 1, "", 0.2).to_dict()
+    doc["history"] = [dict(step, step=f"fit {k}") for k in range(counts["h"])]
+    doc["vector_history"] = [dict(vector, step=f"vector {k}") for k in range(counts["v"])]
+    if draw(st.booleans()):  # values beyond the count a session is read with, in a field the reader ignores
+        doc["padding"] = [0] * draw(st.sampled_from([10, 1_100_000]))
+    return json.dumps(doc, indent=draw(st.sampled_from([None, 1]))).encode(), counts
+
+
+def test_session_rows():
+    from magcal_workbench.sessionfile import read_session_bytes
+    from magcal_workbench.state import MAX_HISTORY_ROWS
+
+    @FEW
+    @given(session_rows())
+    def check(case):
+        data, counts = case
+        state = outcome("session rows", lambda: read_session_bytes(data))
+        if state is not None:  # the newest rows within the bound, and a note for each history cut
+            assert len(state.history) == min(counts["h"], MAX_HISTORY_ROWS)
+            assert len(state.vector_history) == min(counts["v"], MAX_HISTORY_ROWS)
+            if counts["h"]:
+                assert state.history[-1].step == f"fit {counts['h'] - 1}"
+            cut = sum(c > MAX_HISTORY_ROWS for c in counts.values())
+            assert sum("steps: the oldest" in note for note in state.notes) == cut
 
     check()
 

@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,6 +88,18 @@ def _ended_pid() -> int:
     return child.pid
 
 
+@pytest.fixture
+def env_tmp():
+    """The commands' environment with a temporary folder of the test's own (``TMPDIR``, in /tmp: short enough
+    for the fork server's socket): what a killed command leaves there (``pymp-*``, a run folder, Dask's scratch
+    space) is its own."""
+    tmp = Path(tempfile.mkdtemp(prefix="kill-"))
+    try:
+        yield {**ENV, "TMPDIR": str(tmp)}, tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def _segments(pid: int) -> list[str]:
     return sorted(n for n in os.listdir("/dev/shm") if n.startswith(f"magcal_{pid}_"))
 
@@ -131,10 +146,11 @@ def test_a_worker_whose_owner_has_already_ended_exits_at_once():
 
 
 # -- magcal diagnose killed ----------------------------------------------------------------------------------------
-def test_a_killed_diagnosis_leaves_no_process_and_no_shared_memory(tmp_path):
+def test_a_killed_diagnosis_leaves_no_process_and_no_shared_memory(tmp_path, env_tmp):
     """SIGKILL of ``magcal diagnose --workers 4`` while its fits run in worker processes: within a few seconds no
     worker, no fork server, no resource tracker runs, and its segment is gone from /dev/shm."""
     path = tmp_path / "four.csv"
+    env, tmp = env_tmp
     # 4 x 12 500 readings: with 4 workers the fits go to worker processes (PROCESS_MIN_READINGS_MANY)
     mio.write_csv(path, magcal.simulate_timeseries("chi2017", n_samples=12_500, seed=7, rate_hz=10.0))
     proc = subprocess.Popen(
@@ -142,7 +158,7 @@ def test_a_killed_diagnosis_leaves_no_process_and_no_shared_memory(tmp_path):
         start_new_session=True,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
-        env=ENV,
+        env=env,
     )
     sid = proc.pid
     try:
@@ -154,6 +170,7 @@ def test_a_killed_diagnosis_leaves_no_process_and_no_shared_memory(tmp_path):
         proc.wait(10)
         assert _wait(lambda: not _session(sid), 15), f"still running after the kill: {_session(sid)}"
         assert _wait(lambda: not _segments(sid), 5), f"left in /dev/shm: {segments}"
+        assert _wait(lambda: not list(tmp.iterdir()), 5), f"left in TMPDIR: {list(tmp.iterdir())}"
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -163,6 +180,38 @@ def test_a_killed_diagnosis_leaves_no_process_and_no_shared_memory(tmp_path):
             os.unlink(os.path.join("/dev/shm", name))
         if proc.stderr is not None:
             proc.stderr.close()
+
+
+def test_a_killed_diagnosis_with_only_its_fork_server_started_leaves_no_temporary_folder(tmp_path, env_tmp):
+    """SIGKILL of ``magcal diagnose --workers 2`` while it reads a file large enough for its fork server to start
+    early: the fork server ends, and with it the run folder that held its socket (where multiprocessing would
+    have left ``pymp-*`` for ever)."""
+    path = tmp_path / "big.csv"
+    env, tmp = env_tmp
+    # 5 MB: the file's size says more than 400 000 readings, so the fork server starts while it is read
+    mio.write_csv(path, magcal.simulate_timeseries("chi2017", n_samples=15_000, seed=7, rate_hz=10.0))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magcal", "diagnose", str(path), "--workers", "2"],
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    sid = proc.pid
+    try:
+        started = _wait(lambda: list(tmp.iterdir()) and len(_session(sid)) >= 3 or proc.poll() is not None, 120)
+        assert started and proc.poll() is None, "the diagnosis ended before its fork server was seen"
+        (run,) = tmp.iterdir()
+        assert leftovers.RUN_DIR_NAME.fullmatch(run.name) and str(sid) in run.name
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        assert _wait(lambda: not _session(sid), 15), f"still running after the kill: {_session(sid)}"
+        assert _wait(lambda: not list(tmp.iterdir()), 5), f"left in TMPDIR: {list(tmp.iterdir())}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        _kill_session(sid)
 
 
 def test_the_next_diagnosis_removes_a_killed_ones_segment_and_says_so(tmp_path, capsys, monkeypatch):
@@ -176,10 +225,19 @@ def test_the_next_diagnosis_removes_a_killed_ones_segment_and_says_so(tmp_path, 
     shm = tmp_path / "shm"
     shm.mkdir()
     monkeypatch.setattr(_parallel, "SHM_DIR", str(shm))
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
     dead = _ended_pid()
+    # a run folder of a process killed with its fork server, and one of a process still running
+    stale_run = tmp / f"magcal-{leftovers.host_tag()}-{dead}-abcdefgh"
     stale = shm / f"magcal_{dead}_{'ab' * 8}"
     alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
     running = shm / f"magcal_{alive.pid}_{'cd' * 8}"
+    running_run = tmp / f"magcal-{leftovers.host_tag()}-{alive.pid}-abcdefgh"
+    for folder in (stale_run, running_run):
+        folder.mkdir()
+        (folder / "listener-abcdefgh").write_bytes(b"")
     other = shm / f"magcal_{dead}_notours"
     try:
         for name in (stale, running, other):
@@ -189,6 +247,8 @@ def test_the_next_diagnosis_removes_a_killed_ones_segment_and_says_so(tmp_path, 
         assert main(["diagnose", str(path), "--workers", "1", "--no-validate"]) == 0
         err = capsys.readouterr().err
         assert not stale.exists() and running.exists() and other.exists()
+        assert not stale_run.exists() and running_run.exists()
+        assert f"1 temporary folder, 0 MB (process {dead}, no longer running): {stale_run}" in err, err
         said = re.search(
             r"removed what a killed diagnosis left behind: 1 shared-memory segment, 0\.3 MB \(process "
             rf"{dead}, no longer running\): {re.escape(str(stale))}",
@@ -204,7 +264,7 @@ def test_the_next_diagnosis_removes_a_killed_ones_segment_and_says_so(tmp_path, 
 
 
 # -- magcal apply on Dask killed -----------------------------------------------------------------------------------
-def test_a_killed_parallel_apply_leaves_no_process_and_the_next_removes_its_work_folder(tmp_path, capsys):
+def test_a_killed_parallel_apply_leaves_no_process_and_the_next_removes_its_work_folder(tmp_path, capsys, env_tmp):
     """SIGKILL of a Dask ``magcal apply`` while it writes partitions: no process of it runs after a few seconds;
     its hidden work folder stays (nothing is left to remove it) until the next apply into that folder removes it
     and says so. Folders of a running process or of another machine are not touched."""
@@ -218,13 +278,14 @@ def test_a_killed_parallel_apply_leaves_no_process_and_the_next_removes_its_work
     mio.write_csv(data, ds)
     magcal.calibrate(ds.subset(np.arange(1500))).calibration.save(cal)
     out = tmp_path / "parts"
+    env, tmp = env_tmp
     proc = subprocess.Popen(
         [sys.executable, "-m", "magcal", "apply", str(cal), str(data), "-o", str(out), "--workers", "2"]
         + ["--partition-rows", "200", "--no-progress"],
         start_new_session=True,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        env=ENV,
+        env=env,
     )
     sid = proc.pid
 
@@ -238,6 +299,8 @@ def test_a_killed_parallel_apply_leaves_no_process_and_the_next_removes_its_work
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
         assert _wait(lambda: not _session(sid), 15), f"still running after the kill: {_session(sid)}"
+        # no pymp-* (the fork server's socket), no run folder, no Dask scratch space
+        assert _wait(lambda: not list(tmp.iterdir()), 5), f"left in TMPDIR: {list(tmp.iterdir())}"
         (killed,) = work_dirs()
         assert str(sid) in killed.name and not out.exists()
         # beside it: a folder of a process still running and one of another machine, both to be kept

@@ -356,3 +356,74 @@ def test_apply_corrects_a_log_as_the_calibration_corrects_its_dataset(ardupilot_
         for k, a in enumerate("xyz"):
             np.testing.assert_allclose(body[:, header.index(f"s{s + 1}{a}_cal")], expected[s, :, k], atol=1e-6)
     np.testing.assert_allclose(got.readings_nT, ds.readings_nT, atol=1e-6)
+
+
+# -- the NumPy scan gives what pymavlink's reader gives -----------------------------------------------------------
+def _gathered_equal(fast, slow):
+    """Every list the two DataFlash readers gather, equal to the bit."""
+    assert fast is not None
+    assert sorted(fast["mags"]) == sorted(slow["mags"])
+    for k in slow["mags"]:
+        np.testing.assert_array_equal(np.asarray(fast["mags"][k]), np.asarray(slow["mags"][k], dtype=float))
+    for key in ("params", "bad_params", "seen", "unhealthy"):
+        assert fast[key] == slow[key], key
+    for key in ("imu", "att", "bat", "curr", "gps", "thr", "acc"):
+        a, b = np.asarray(fast.get(key, []), dtype=float), np.asarray(slow.get(key, []), dtype=float)
+        assert a.size == b.size, key
+        np.testing.assert_array_equal(a.reshape(b.shape) if a.size else a, b if a.size else a)
+
+
+def _damaged_flight(path):
+    """The two-compass flight with what a real log holds besides: samples marked unhealthy, a parameter changed in
+    flight (the matrix undone changes with it), a damaged stretch (bytes that begin like a message), a message
+    of a type no FMT defines, and a last message cut by the file's end."""
+    messages, *_ = ardupilot_case(n=300, compasses=2)
+    edited = []
+    for k, (name, values) in enumerate(messages):
+        if name == "MAG" and k % 37 == 0:
+            values = (*values[:-2], 0, values[-1])  # Health 0
+        edited.append((name, values))
+        if k == 600:
+            edited.append(("PARM", (0, b"COMPASS_DIA_X", 1.05)))
+    write_dataflash(path, edited)
+    data = bytearray(path.read_bytes())
+    cut = data.index(b"\xa3\x95\x43", len(data) // 2)  # an ATT message half-way
+    data[cut:cut] = b"\xa3\x95\x41\x00\x01" + b"\xa3\x95\x99" + bytes(range(40))  # a cut MAG, an unknown type
+    path.write_bytes(bytes(data[:-7]))
+
+
+@pytest.mark.parametrize("case", ["clean", "damaged"])
+@pytest.mark.parametrize("undo", [True, False])
+def test_the_numpy_dataflash_scan_gives_what_pymavlink_gives(tmp_path, case, undo):
+    from magcal.data import logs
+
+    path = tmp_path / "flight.bin"
+    if case == "clean":
+        messages, *_ = ardupilot_case(n=200, compasses=2)
+        write_dataflash(path, messages)
+    else:
+        _damaged_flight(path)
+    fast = logs._gather_fast(path, "f", undo)
+    slow = logs._gather_pymavlink(path, "f", undo, None)
+    _gathered_equal(fast, slow)
+    if case == "damaged":
+        assert sum(slow["unhealthy"].values()) > 0 and slow["params"]["COMPASS_DIA_X"] == pytest.approx(1.05)
+
+
+def test_a_log_the_scan_cannot_follow_is_read_by_pymavlink(tmp_path, monkeypatch):
+    """A type defined twice with different formats: the scan declines and pymavlink's reader reads the log."""
+    from magcal.data import dataflash_scan, logs
+
+    messages, *_ = ardupilot_case(n=100, compasses=1)
+    write_dataflash(tmp_path / "f.bin", messages)
+    data = (tmp_path / "f.bin").read_bytes()
+    fmt = _df_message(128, "BBnNZ", (66, 3 + 8 + 1 + 4, b"IMU", b"QBf", b"TimeUS,I,T"))
+    redefined = _df_message(128, "BBnNZ", (66, 3 + 8 + 1 + 4, b"IMU", b"QBI", b"TimeUS,I,T"))
+    assert fmt in data
+    (tmp_path / "g.bin").write_bytes(data + redefined)
+    assert dataflash_scan.scan(tmp_path / "g.bin") is None
+    calls = []
+    real = logs._gather_pymavlink
+    monkeypatch.setattr(logs, "_gather_pymavlink", lambda *a: calls.append(a) or real(*a))
+    assert read_log(tmp_path / "g.bin").n_samples == 100 and len(calls) == 1
+    assert read_log(tmp_path / "f.bin").n_samples == 100 and len(calls) == 1  # the scan read this one

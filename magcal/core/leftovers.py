@@ -15,16 +15,25 @@ A program killed outright (SIGKILL, the out-of-memory killer, a closed container
   when the resource tracker was killed too), a survey correction's hidden work folder beside its output. Their
   names hold the process number of the run that made them; :func:`remove_stale` removes those whose process no
   longer runs, and :func:`removed_text` says what was removed, for the next run's output.
+* the temporary folder of :mod:`multiprocessing` (``/tmp/pymp-XXXXXXXX``, which holds the fork server's socket):
+  the process that made it removes it at its exit, which a killed one never reaches. :func:`run_dir` gives
+  :mod:`multiprocessing` a folder of magcal's instead (``magcal-HOST-PID-XXXXXXXX`` in the temporary folder),
+  which the fork server removes as it ends (it ends once the process that started it and its workers have: the
+  folder's path reaches it in :data:`RUN_DIR_ENV` as it starts), and which the next run removes where the fork
+  server was killed too (:func:`remove_stale_run_dirs`).
 """
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import os
 import re
 import select
 import shutil
 import socket
+import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -201,3 +210,89 @@ def removed_text(leftovers, what: str, by: str) -> str | None:
         f"{_megabytes(sum(x.nbytes for x in leftovers))} (process{'es' if len(pids) > 1 else ''} "
         f"{', '.join(map(str, pids))}, no longer running): {', '.join(x.path for x in leftovers)}"
     )
+
+
+#: The name of a run's temporary folder (:func:`run_dir`) in the temporary folder (``tempfile.gettempdir()``):
+#: ``magcal-HOST-PID-XXXXXXXX``, with six hex digits of the machine's name (:func:`host_tag`) and the number
+#: of the process that made it.
+RUN_DIR_NAME = re.compile(r"magcal-(?P<host>[0-9a-f]{6})-(?P<pid>[0-9]+)-[a-z0-9_]{8}")
+#: The longest path of a Unix socket that every platform takes (Linux 107 bytes, macOS 103), less the
+#: ``/listener-XXXXXXXX`` :mod:`multiprocessing` adds: a run folder further down (a long ``TMPDIR``) is made in
+#: ``/tmp`` instead, where the fork server's socket can be bound.
+RUN_DIR_MAX_PATH = 103 - len("/listener-XXXXXXXX")
+#: The environment variable that names a run's temporary folder to the fork server as it starts: the server
+#: removes that folder as it ends (:func:`_removed_by_the_fork_server`).
+RUN_DIR_ENV = "MAGCAL_RUN_DIR"
+
+_RUN_DIR_LOCK = threading.Lock()
+
+
+def run_dir() -> str:
+    """This process's temporary folder for :mod:`multiprocessing` (its fork server's socket, Dask's scratch space),
+    made once per process: ``magcal-HOST-PID-XXXXXXXX`` (:data:`RUN_DIR_NAME`) in the temporary folder.
+
+    :mod:`multiprocessing` would make ``pymp-XXXXXXXX`` there and remove it at this process's exit, which a process
+    killed outright never reaches. This folder is removed at a normal exit too; after a kill, by the fork server
+    as it ends (the folder is named to it in :data:`RUN_DIR_ENV` while it starts: :func:`fork_server_environment`)
+    or, where that was killed too, by the next run (:func:`remove_stale_run_dirs`). A process whose
+    :mod:`multiprocessing` already has a folder (made before magcal was asked) keeps it.
+    """
+    import multiprocessing.process
+    import multiprocessing.util
+
+    with _RUN_DIR_LOCK:
+        config = multiprocessing.process.current_process()._config  # type: ignore[attr-defined]
+        folder = config.get("tempdir")
+        if folder is None:
+            folder = tempfile.mkdtemp(prefix=f"magcal-{host_tag()}-{os.getpid()}-", dir=_run_dir_base())
+            # as multiprocessing does for its own: removed after every other finaliser at exit
+            multiprocessing.util.Finalize(
+                None, shutil.rmtree, args=(folder,), kwargs={"ignore_errors": True}, exitpriority=-100
+            )
+            config["tempdir"] = folder
+        return folder
+
+
+def _run_dir_bases() -> list[str]:
+    """Where run folders are made: the temporary folder, and ``/tmp`` where that is too deep for a socket."""
+    base = tempfile.gettempdir()
+    deepest = len(os.path.join(base, f"magcal-{host_tag()}-{os.getpid()}-XXXXXXXX"))
+    if deepest > RUN_DIR_MAX_PATH and os.path.isdir("/tmp") and os.path.realpath(base) != "/tmp":
+        return ["/tmp", base]
+    return [base]
+
+
+def _run_dir_base() -> str:
+    return _run_dir_bases()[0]
+
+
+def fork_server_environment() -> dict[str, str]:
+    """The environment variables a fork server started now needs so that it removes :func:`run_dir` as it ends
+    (:data:`RUN_DIR_ENV`); the fork server must preload this module."""
+    return {RUN_DIR_ENV: run_dir()}
+
+
+def remove_stale_run_dirs() -> list[Leftover]:
+    """Remove the run folders (:func:`run_dir`) of processes that no longer run on this machine, in the temporary
+    folder (and ``/tmp``, where run folders go when that is too deep); returns what was removed
+    (:func:`remove_stale`)."""
+    out = []
+    for base in _run_dir_bases():
+        out += remove_stale(base, RUN_DIR_NAME, host=host_tag())
+    return out
+
+
+def _removed_by_the_fork_server() -> None:
+    """In a fork server started with :data:`RUN_DIR_ENV` (it imports this module as it starts): remove that run
+    folder as the server ends, which it does once the process that started it and all its workers have ended, a
+    killed one too. Only a fork server (``python -c`` running :mod:`multiprocessing.forkserver`) takes the
+    variable: another program started meanwhile and importing magcal leaves it."""
+    folder = os.environ.get(RUN_DIR_ENV)
+    if not folder or sys.argv[:1] != ["-c"] or "multiprocessing.forkserver" not in sys.modules:
+        return
+    os.environ.pop(RUN_DIR_ENV, None)  # the workers forked from here do not take it on
+    if RUN_DIR_NAME.fullmatch(os.path.basename(folder)):
+        atexit.register(shutil.rmtree, folder, True)
+
+
+_removed_by_the_fork_server()

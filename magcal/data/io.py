@@ -1166,9 +1166,68 @@ def _text_padding_refused(source, where, column, width, rows, padded_bytes) -> D
     )
 
 
-def text_cells(cells, source, column, row_name, lengths=None) -> np.ndarray:
-    """A column's text cells as a fixed-width ``str`` array, refusing one whose padding would be a bomb
-    (:data:`TEXT_PADDING_FACTOR`, :data:`TEXT_FLOOR_BYTES`) before it is made.
+#: The longest text cell a reader takes, characters: a CSV's line is at most :data:`MAX_LINE_BYTES`, and a cell
+#: of another table (a Parquet dictionary holds one value, of any length, for any number of rows) is held to the
+#: same.
+MAX_TEXT_CELL_CHARS = MAX_LINE_BYTES
+#: The text a reader may hold where the free memory cannot be read (not Linux), bytes.
+TEXT_BUDGET_BYTES = 4 << 30
+
+
+class TextBudget:
+    """The bytes of text cells a reader may still make, as numpy holds them (4 bytes a character, every cell of a
+    block as wide as its longest): half the memory free when it is made (:func:`magcal.core.memory.available_bytes`;
+    :data:`TEXT_BUDGET_BYTES` where that cannot be read), or ``nbytes``. A whole-file reader spends one budget on
+    all its blocks; a streaming reader's blocks each get one of their own."""
+
+    def __init__(self, nbytes=None):
+        if nbytes is None:
+            free = available_bytes()
+            nbytes = TEXT_BUDGET_BYTES if free is None else free // 2
+        #: Bytes left.
+        self.left = int(nbytes)
+
+    def take(self, nbytes, source, column, rows) -> None:
+        """Spend ``nbytes`` on ``rows`` cells of ``column``, or refuse them (before they are made).
+
+        Raises
+        ------
+        DatasetError
+            Naming the file, the column and the room left.
+        """
+        if nbytes > self.left:
+            raise DatasetError(
+                f"{source}: column {shown(column)}: its text ({rows:,} cells) would take {nbytes / 1e6:,.0f} MB as "
+                f"magcal holds text (4 bytes a character, every cell as wide as the longest), more than the "
+                f"{max(self.left, 0) / 1e6:,.0f} MB left for text (half the memory free); leave the column out of "
+                "the file, or shorten its cells"
+            )
+        self.left -= int(nbytes)
+
+
+def _check_text(lengths, source, column, row_name, budget) -> int:
+    """The width of text cells of ``lengths`` characters, refused before they are made when a cell is longer than
+    :data:`MAX_TEXT_CELL_CHARS`, when their padding is a bomb (:data:`TEXT_PADDING_FACTOR`) or when they do not
+    fit ``budget`` (:class:`TextBudget`)."""
+    n = len(lengths)
+    longest = int(lengths.argmax())
+    width = int(lengths[longest])
+    if width > MAX_TEXT_CELL_CHARS:
+        raise DatasetError(
+            f"{source}: {row_name(longest)}, column {shown(column)}: a text cell of {width:,} characters, more than "
+            f"the {MAX_TEXT_CELL_CHARS:,} magcal reads in one cell; shorten it, or leave the column out of the file"
+        )
+    padded = 4 * n * width  # numpy's str holds 4 bytes per character
+    if padded > TEXT_FLOOR_BYTES and padded > TEXT_PADDING_FACTOR * 4 * int(lengths.sum()):
+        raise _text_padding_refused(source, row_name(longest), column, width, n, padded)
+    (budget if budget is not None else TextBudget()).take(padded, source, column, n)
+    return width
+
+
+def text_cells(cells, source, column, row_name, lengths=None, budget=None) -> np.ndarray:
+    """A column's text cells as a fixed-width ``str`` array, refusing before it is made one with a cell longer
+    than :data:`MAX_TEXT_CELL_CHARS`, one whose padding would be a bomb (:data:`TEXT_PADDING_FACTOR`,
+    :data:`TEXT_FLOOR_BYTES`) and one over ``budget``.
 
     Parameters
     ----------
@@ -1181,6 +1240,8 @@ def text_cells(cells, source, column, row_name, lengths=None) -> np.ndarray:
         The message's name of cell ``k`` (0-based): ``lambda k: f"line {numbers[k]}"``.
     lengths : array_like of int, optional
         The cells' lengths in characters, when the caller has them (pyarrow's ``utf8_length``).
+    budget : TextBudget, optional
+        What the reader may still spend on text (default: half the memory free now).
     """
     if isinstance(cells, np.ndarray) and cells.dtype.kind not in "OUS":
         return cells.astype(str)  # numbers: a few dozen characters each
@@ -1189,11 +1250,7 @@ def text_cells(cells, source, column, row_name, lengths=None) -> np.ndarray:
         return np.array([], dtype=str)
     if lengths is None:
         lengths = np.fromiter((len(c) if isinstance(c, str) else len(str(c)) for c in cells), np.int64, count=n)
-    lengths = np.asarray(lengths, dtype=np.int64)
-    width = int(lengths.max())
-    padded = 4 * n * width  # numpy's str holds 4 bytes per character
-    if padded > TEXT_FLOOR_BYTES and padded > TEXT_PADDING_FACTOR * 4 * int(lengths.sum()):
-        raise _text_padding_refused(source, row_name(int(lengths.argmax())), column, width, n, padded)
+    width = _check_text(np.asarray(lengths, dtype=np.int64), source, column, row_name, budget)
     if isinstance(cells, np.ndarray):
         return cells.astype(str)
     return np.array(cells, dtype=f"<U{max(width, 1)}")
@@ -1548,17 +1605,64 @@ def _arrow_table(pa, pacsv, data, header, layout, numeric):
     )
 
 
-def _arrow_text(column, source, name, row_name):
-    """A pyarrow column (array or chunked array) as :func:`text_cells` makes text: the lengths of a string column
-    measured by pyarrow, a null cell written ``'None'``."""
+def _arrow_lengths(array):
+    """The characters of each cell of a pyarrow array as :func:`text_cells` writes it (a null: ``'None'``, 4), or
+    None where pyarrow cannot measure them (not text)."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
+    if pa.types.is_string(array.type) or pa.types.is_large_string(array.type):
+        return pc.fill_null(pc.utf8_length(array), 4).to_numpy(zero_copy_only=False)
+    return None
+
+
+def _arrow_text(column, source, name, row_name, budget=None):
+    """A pyarrow column (array or chunked array) as :func:`text_cells` makes text: the lengths of a string column
+    measured by pyarrow, a null cell written ``'None'``; a dictionary column (:class:`ParquetSource` reads text so)
+    measured and checked from its dictionary before a cell is made (:func:`_dictionary_text`)."""
+    import pyarrow as pa
+
+    if pa.types.is_dictionary(column.type):
+        chunks = column.chunks if isinstance(column, pa.ChunkedArray) else [column]
+        parts, offset = [], 0
+        for chunk in chunks:
+            parts.append(_dictionary_text(chunk, source, name, lambda k, o=offset: row_name(o + k), budget))
+            offset += len(chunk)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.array([], dtype=str)
     cells = np.asarray(column.to_numpy(zero_copy_only=False))
-    lengths = None
-    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
-        lengths = pc.fill_null(pc.utf8_length(column), 4).to_numpy(zero_copy_only=False)
-    return text_cells(cells, source, name, row_name, lengths)
+    return text_cells(cells, source, name, row_name, _arrow_lengths(column), budget)
+
+
+def _dictionary_text(array, source, name, row_name, budget=None) -> np.ndarray:
+    """A pyarrow ``DictionaryArray``'s cells as :func:`text_cells` makes them from the same cells decoded, without
+    decoding them: each cell's length is its dictionary entry's, so a dictionary of one long value repeated over
+    many rows (a Parquet bomb: 30 rows of one 100 MB value in 5.6 kB) is refused before any cell is made; the
+    entries the cells use are made text once, then indexed."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    n = len(array)
+    if n == 0:
+        return np.array([], dtype=str)
+    index = pc.fill_null(array.indices, -1).to_numpy(zero_copy_only=False).astype(np.int64)
+    used, where = np.unique(index, return_inverse=True)
+    real = used[used >= 0]
+    entries = array.dictionary.take(pa.array(real, type=pa.int64()))
+    lengths = _arrow_lengths(entries)  # measured in pyarrow: no cell made yet
+    cells = None
+    if lengths is None:  # not text (bytes, numbers): measured as written
+        cells = np.asarray(entries.to_numpy(zero_copy_only=False), dtype=object)
+        lengths = np.fromiter((len(str(c)) for c in cells), np.int64, count=len(cells))
+    lengths = np.asarray(lengths, dtype=np.int64)
+    if len(real) < len(used):  # a null cell: 'None', as astype(str) writes it
+        lengths = np.concatenate([[4], lengths])
+    width = _check_text(lengths[where], source, name, row_name, budget)
+    measured = cells is None
+    made = np.asarray(entries.to_numpy(zero_copy_only=False), dtype=object) if cells is None else cells
+    if len(real) < len(used):
+        made = np.concatenate([np.array([None], dtype=object), made])
+    # text as wide as its longest cell; other values as numpy writes them (bytes decoded: narrower than measured)
+    return (made.astype(f"<U{max(width, 1)}") if measured else made.astype(str))[where]
 
 
 def _read_csv_arrow(path, columns, units, name, lsb_nT):
@@ -1895,6 +1999,63 @@ def _one_line(exc) -> str:
     return exception_text(exc)
 
 
+#: The most bytes one text column of one row group of a Parquet file may take once its pages are decompressed
+#: (the footer says it before a page is read): a text page or dictionary may hold one value, which the reader holds
+#: whole, and a compressed page of one value repeated decompresses to any size. (A column of numbers is read page
+#: by page, its rows bounded by the footer's count.)
+MAX_PARQUET_CHUNK_BYTES = 1 << 30
+
+
+def _is_text_type(kind) -> bool:
+    import pyarrow as pa
+
+    return any(
+        test(kind)
+        for test in (pa.types.is_string, pa.types.is_large_string, pa.types.is_binary, pa.types.is_large_binary)
+    )
+
+
+def _check_parquet_columns(source, schema, meta) -> None:
+    """Refuse, from the footer and before any page is read, a Parquet file with a nested column (lists, structs,
+    maps: magcal reads flat columns of numbers or text) or a text column chunk larger decompressed than
+    :data:`MAX_PARQUET_CHUNK_BYTES` or half the memory free, naming the column, the row group and the limit."""
+    import pyarrow as pa
+
+    for f in schema:
+        if pa.types.is_nested(f.type):
+            raise DatasetError(
+                f"{source}: column {shown(f.name)} holds {f.type} values; magcal reads flat columns of numbers or "
+                "text: leave it out of the file"
+            )
+    free = available_bytes()
+    limit = MAX_PARQUET_CHUNK_BYTES if free is None else min(MAX_PARQUET_CHUNK_BYTES, free // 2)
+    text = [c for c, f in enumerate(schema) if _is_text_type(f.type)]
+    for g in range(meta.num_row_groups if text else 0):
+        group = meta.row_group(g)
+        sizes = [group.column(c).total_uncompressed_size if c in text else 0 for c in range(group.num_columns)]
+        if sizes and max(sizes) > limit:
+            c = int(np.argmax(sizes))
+            raise DatasetError(
+                f"{source}: column {shown(group.column(c).path_in_schema)}, row group {g + 1}: "
+                f"{sizes[c] / 1e6:,.0f} MB once decompressed, more than the {limit / 1e6:,.0f} MB magcal reads of "
+                "a text column at a time (the smaller of 1 GiB and half the memory free); write the file with smaller "
+                "row groups, or leave the column out"
+            )
+
+
+def _arrow_floats(column) -> np.ndarray:
+    """A pyarrow column as floats, NaN for a null cell; a dictionary column (text read by :class:`ParquetSource`)
+    converted entry by entry, its cells then indexed (never decoded cell by cell)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if not pa.types.is_dictionary(column.type):
+        return np.asarray(column.to_numpy(zero_copy_only=False), dtype=float)
+    entries = np.append(np.asarray(column.dictionary.to_numpy(zero_copy_only=False), dtype=float), np.nan)
+    index = pc.fill_null(column.indices, -1).to_numpy(zero_copy_only=False).astype(np.int64)
+    return entries[index]
+
+
 class ParquetSource:
     """A Parquet file read by record batches through the CSV reader's own layout, units and checks.
 
@@ -1904,15 +2065,23 @@ class ParquetSource:
     row (1-based) and the column.
     """
 
-    def __init__(self, path, name=None):
+    def __init__(self, path, name=None, text_budget=None):
         self.source = str(name or os.fspath(path))
         _pyarrow(self.source)
         import pyarrow.parquet as pq
 
         check_regular_file(path, "Parquet file", DatasetError, self.source)  # a FIFO would block
+        #: What the text cells read may take (:class:`TextBudget`): None, each block its own.
+        self.text_budget = text_budget
         try:
+            schema = pq.read_schema(os.fspath(path))
+            # text columns are read as their dictionary and indices (:func:`_dictionary_text`): a cell is made
+            # only once the lengths of all of them are known to fit
+            text = [f.name for f in schema if _is_text_type(f.type)]
             # no pre-buffering and a bounded read buffer: memory stays flat (pre-buffered, a 3e6-row file took 3x)
-            self.file = pq.ParquetFile(os.fspath(path), pre_buffer=False, buffer_size=1 << 20)
+            self.file = pq.ParquetFile(
+                os.fspath(path), pre_buffer=False, buffer_size=1 << 20, read_dictionary=text or None
+            )
             meta = self.file.metadata
             #: The rows its row groups declare (the footer; what the reader decodes), read before any row is.
             self.rows = sum(int(meta.row_group(k).num_rows) for k in range(meta.num_row_groups))
@@ -1920,6 +2089,7 @@ class ParquetSource:
             raise DatasetError(f"{self.source}: no such file; check the path") from None
         except Exception as exc:  # pyarrow's own errors: a damaged or non-Parquet file
             raise DatasetError(f"{self.source}: not a readable Parquet file ({_one_line(exc)})") from None
+        _check_parquet_columns(self.source, schema, meta)  # the file's own types (text, not dictionaries)
         self.metadata = parquet_metadata(self.file.schema_arrow, self.source)
         self.header = list(self.file.schema_arrow.names)
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
@@ -1956,7 +2126,7 @@ class ParquetSource:
             def numeric(j, name, batch=batch):
                 try:
                     # a null cell (a float column's missing value) reads as NaN
-                    return np.asarray(batch.column(j).to_numpy(zero_copy_only=False), dtype=float)
+                    return _arrow_floats(batch.column(j))
                 except (TypeError, ValueError):
                     raise DatasetError(
                         f"{self.source}: column {name}: not numbers ({batch.schema.field(j).type}); "
@@ -1964,7 +2134,8 @@ class ParquetSource:
                     ) from None
 
             def text(j, name, batch=batch, first=row):
-                return _arrow_text(batch.column(j), self.source, name, lambda k: f"row {first + k + 1}")
+                rows = lambda k: f"row {first + k + 1}"
+                return _arrow_text(batch.column(j), self.source, name, rows, self.text_budget)
 
             numbers = np.arange(row + 1, row + n + 1)
             row += n
@@ -2027,7 +2198,7 @@ def read_parquet(path, name=None, chunk_rows=200_000, max_rows=None) -> Dataset:
     file may hold any number of rows (1.3 MB held 1e8 constant rows, which took 9.6 GB). A file holding more rows
     than its footer says is refused as damaged when the reader finds them.
     """
-    src = ParquetSource(path, name)
+    src = ParquetSource(path, name, text_budget=TextBudget())  # one budget for all the file's text
     check_read_rows(src.source, src.rows, len(src.header), MAX_READ_ROWS if max_rows is None else max_rows)
     parts, rows = [], 0
     for part in src.chunks(chunk_rows):

@@ -254,9 +254,14 @@ def shared_memory_free_bytes():
 
 def remove_stale_segments() -> str | None:
     """Unlink the shared-memory segments of diagnoses whose process no longer runs (killed outright, their
-    resource tracker with them: nothing else would ever remove them); returns the line that says what was removed,
-    or None (:func:`magcal.core.leftovers.remove_stale`)."""
-    return leftovers.removed_text(leftovers.remove_stale(SHM_DIR, SEGMENT_NAME), "shared-memory segment", "diagnosis")
+    resource tracker with them: nothing else would ever remove them), and the run folders of processes of magcal
+    killed with their fork server (:func:`magcal.core.leftovers.remove_stale_run_dirs`); returns the line that says
+    what was removed, or None (:func:`magcal.core.leftovers.remove_stale`)."""
+    segments = leftovers.removed_text(
+        leftovers.remove_stale(SHM_DIR, SEGMENT_NAME), "shared-memory segment", "diagnosis"
+    )
+    folders = leftovers.removed_text(leftovers.remove_stale_run_dirs(), "temporary folder", "run of magcal")
+    return "; ".join(x for x in (segments, folders) if x) or None
 
 
 class SharedMemoryFull(MagcalError):
@@ -487,8 +492,15 @@ def _main_left_alone():
 
 
 #: Modules the fork server imports once, before it forks the workers (:func:`process_context`): those of the
-#: workers' tasks and what their start needs.
-WORKER_MODULES = ("threadpoolctl", "scipy.linalg", "magcal.diagnosis.scores", "magcal.diagnosis.verdict")
+#: workers' tasks and what their start needs; :mod:`magcal.core.leftovers` first, which has the server remove the
+#: run folder as it ends.
+WORKER_MODULES = (
+    "magcal.core.leftovers",
+    "threadpoolctl",
+    "scipy.linalg",
+    "magcal.diagnosis.scores",
+    "magcal.diagnosis.verdict",
+)
 
 
 def process_context():
@@ -533,10 +545,23 @@ def start_workers(dataset=None, workers=None, scheduler=None, effects=(), readin
     """
     if backend_for(dataset, workers, scheduler, effects, readings) != "processes":
         return False
+    return start_fork_server()
+
+
+def start_fork_server(preload=WORKER_MODULES) -> bool:
+    """Start this program's fork server (:func:`process_context`) with ``preload`` imported in it, unless it runs
+    already; returns whether it runs (False: the platform has none).
+
+    The server removes the run folder (:func:`magcal.core.leftovers.run_dir`) as it ends, when ``preload`` starts
+    with :mod:`magcal.core.leftovers`. A Dask local cluster started afterwards with the ``forkserver`` method
+    forks its workers from it too (``magcal apply``).
+    """
     if process_context().get_start_method() != "forkserver":
         return False
+    import multiprocessing
     from multiprocessing import forkserver
 
+    multiprocessing.get_context("forkserver").set_forkserver_preload(list(preload))
     # the server would otherwise import the caller's script (see there), and start BLAS's threads for every core
     with _main_left_alone(), _one_thread_environment():
         forkserver.ensure_running()  # a few milliseconds: the server imports its modules in its own process
@@ -566,10 +591,12 @@ _ENV_LOCK = threading.Lock()
 @contextlib.contextmanager
 def _one_thread_environment():
     """While the worker processes (and the fork server) start: BLAS and OpenMP told to use one thread, so that the
-    libraries they load start that way; this process's own setting is put back after."""
+    libraries they load start that way, and the fork server told the run folder it removes as it ends
+    (:func:`magcal.core.leftovers.fork_server_environment`); this process's own settings are put back after."""
     with _ENV_LOCK:
-        saved = {name: os.environ.get(name) for name in _ONE_THREAD}
-        os.environ.update({name: "1" for name in _ONE_THREAD})
+        told = {name: "1" for name in _ONE_THREAD} | leftovers.fork_server_environment()
+        saved = {name: os.environ.get(name) for name in told}
+        os.environ.update(told)
         try:
             yield
         finally:

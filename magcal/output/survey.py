@@ -59,6 +59,7 @@ from magcal.data.io import (
     parse_column_mapping,
     write_csv,
 )
+from magcal.diagnosis import _parallel
 from magcal.model import plugins
 from magcal.output.apply import (
     AttitudeGaps,
@@ -95,6 +96,11 @@ CONNECT_TIMEOUT_S = 10.0
 #: apply in a program 3.2-3.6 s either way, every later one 1.95-2.25 s forked against 3.35-3.8 s spawned (the
 #: cluster's start 0.5-0.8 s against 0.9-1.2 s, its close 0.03-0.08 s against 0.3-0.45 s).
 LOCAL_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+#: Modules the local cluster's fork server imports before it forks the workers (:func:`apply_partitioned`):
+#: :mod:`magcal.core.leftovers` first, which has the server remove the run folder (the server's socket, the
+#: workers' scratch space) as it ends, also after a kill (:func:`magcal.core.leftovers.run_dir`); then what the
+#: workers and their tasks import.
+FORK_SERVER_MODULES = ("magcal.core.leftovers", "distributed", "pyarrow.parquet", "magcal.output.survey")
 #: Local worker processes allowed per CPU core: more only compete for the cores (and thousands exhaust the machine).
 WORKERS_PER_CORE = 4
 
@@ -112,9 +118,13 @@ def work_dir_prefix(target: str) -> str:
 
 def remove_stale(directory) -> str | None:
     """Remove the work folders in ``directory`` of corrections whose process no longer runs on this machine (one
-    killed outright keeps its partitions there for ever); returns the line that says what was removed, or None."""
+    killed outright keeps its partitions there for ever), and the run folders of processes of magcal killed with
+    their fork server (:func:`magcal.core.leftovers.remove_stale_run_dirs`); returns the line that says what was
+    removed, or None."""
     gone = leftovers.remove_stale(directory, WORK_DIR_NAME, host=leftovers.host_tag())
-    return leftovers.removed_text(gone, "work folder", "parallel correction (magcal apply)")
+    work = leftovers.removed_text(gone, "work folder", "parallel correction (magcal apply)")
+    runs = leftovers.removed_text(leftovers.remove_stale_run_dirs(), "temporary folder", "run of magcal")
+    return "; ".join(x for x in (work, runs) if x) or None
 
 
 def max_workers() -> int:
@@ -647,7 +657,11 @@ def apply_partitioned(
         else:
             import dask
 
-            with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD}):
+            if LOCAL_START_METHOD == "forkserver":  # one that removes the run folder as it ends, a kill too
+                _parallel.start_fork_server(FORK_SERVER_MODULES)
+            # the scheduler's and the workers' scratch space in the run folder, which goes with the fork server
+            scratch = {"temporary-directory": leftovers.run_dir()}
+            with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD, **scratch}):
                 cluster = distributed.LocalCluster(
                     n_workers=int(workers),
                     threads_per_worker=1,
