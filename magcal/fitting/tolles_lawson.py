@@ -34,7 +34,7 @@ from magcal.model.tolles_lawson import (
     term_labels,
 )
 
-__all__ = ["TLCompensation", "fit_tolles_lawson", "sample_rate_from_times"]
+__all__ = ["TLCompensation", "fit_tolles_lawson", "sample_rate_from_times", "solve_ridge"]
 
 
 def sample_rate_from_times(time_s) -> float:
@@ -224,8 +224,9 @@ class TLCompensation:
         return cls.from_dict(json.loads(text))
 
 
-def _solve(design, target, ridge: float) -> np.ndarray:
-    """Least squares ``design c = target``, with ``ridge`` added to the normal matrix's diagonal."""
+def solve_ridge(design, target, ridge: float = 0.0) -> np.ndarray:
+    """Least squares ``design c = target`` (design (n, q), target (n,)), with ``ridge`` added to the normal
+    matrix's diagonal (``(D^T D + ridge I) c = D^T t``, solved as an augmented least squares)."""
     if ridge < 0 or not np.isfinite(ridge):
         raise MagcalError(f"the ridge must be a number >= 0, got {ridge!r}")
     if ridge > 0:
@@ -299,7 +300,7 @@ def fit_tolles_lawson(
         kept &= np.asarray(mask, dtype=bool)
     if kept.sum() <= design.shape[1]:
         raise MagcalError(f"only {int(kept.sum())} samples are kept for {design.shape[1]} terms: widen the mask")
-    coefficients = _solve(design_bp[kept], y_bp[kept], float(ridge))
+    coefficients = solve_ridge(design_bp[kept], y_bp[kept], float(ridge))
     return TLCompensation(
         terms=terms,
         coefficients=coefficients,
