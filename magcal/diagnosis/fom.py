@@ -185,7 +185,7 @@ def find_maneuvers(
             leg = _leg_maneuvers(channels[:, start:stop], named, rate, min_amplitude_deg, min_duration_s)
             rad = np.radians(heading_s[start:stop])
             h = float(np.degrees(np.arctan2(np.sin(rad).mean(), np.cos(rad).mean())) % 360.0)
-            found += [Maneuver(h, KINDS[k], start + a, start + b) for a, b, k in leg]
+            found += [Maneuver(h, KINDS[k], int(start + a), int(start + b)) for a, b, k in leg]
     return found
 
 
