@@ -9,6 +9,8 @@ import subprocess
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from magcal.core.errors import MagcalError
 from magcal.data.compensation_flight import simulate_compensation_flight
@@ -181,3 +183,39 @@ def test_magnav_test_data(tmp_path):
     assert np.std(bandpass(ours.compensated_nT, rate)[20:-20]) <= theirs_bp
     same_ridge = fit_tolles_lawson(flux, data.mag_1_uc, sample_rate_hz=rate, ridge=1e-3)
     assert np.std(same_ridge.compensated_nT - data.mag_1_c) < 0.1  # MagNav's own test of its compensation
+
+
+@settings(max_examples=25, deadline=None)
+@given(factor=st.floats(0.2, 5.0), seed=st.integers(0, 1000))
+def test_design_scales_with_the_field(factor, seed):
+    """The direction cosines do not change with the field's size; the induced and eddy columns grow with it."""
+    flux = np.random.default_rng(seed).normal(0, 30_000, (20, 3))
+    base, scaled = design_matrix(flux), design_matrix(factor * flux)
+    np.testing.assert_allclose(scaled[:, :3], base[:, :3], atol=1e-12)
+    np.testing.assert_allclose(scaled[:, 3:], factor * base[:, 3:], rtol=1e-9, atol=1e-12)
+
+
+def test_fit_on_the_maneuvers_only(flights, fitted):
+    first, second = flights
+    mask = np.zeros(first.time_s.size, dtype=bool)
+    for m in first.truth.maneuvers:
+        mask[m.start : m.stop] = True
+    masked = fit_tolles_lawson(first.flux_nT, first.scalar_nT, sample_rate_hz=RATE, mask=mask)
+    found = second.truth.maneuvers
+    ours = figure_of_merit(masked.compensate(second.scalar_nT, second.flux_nT), found, RATE).fom_nT
+    assert ours <= 1.2 * figure_of_merit(second.truth.compensated_nT(second.scalar_nT), found, RATE).fom_nT
+    assert masked.residual_bp_nT.size == mask.sum()
+
+
+def test_fom_report_is_json(flights, fitted):
+    first, _ = flights
+    report = fom_report(first.scalar_nT, fitted.compensated_nT, RATE, flux_nT=first.flux_nT)
+    document = json.loads(json.dumps(report.to_dict()))
+    assert len(document["after"]["rows"]) == 12
+    assert document["fom_before_nT"] == pytest.approx(sum(r["p2p_nT"] for r in document["before"]["rows"]))
+    assert "fluxgate" in report.text()
+
+
+def test_maneuvers_need_attitude_or_fluxgate():
+    with pytest.raises(MagcalError, match="give the attitude"):
+        find_maneuvers(RATE)
