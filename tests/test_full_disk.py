@@ -143,7 +143,7 @@ def test_a_failed_autosave_stays_shown_until_an_autosave_succeeds(bench, tmp_pat
 
     wb = bench()
     ctrl, saved = wb.ctrl, tmp_path / "sessions" / wb.ctrl.session_id / "session.json"
-    monkeypatch.setattr(wsession, "write_bytes_atomic", _no_space)
+    monkeypatch.setattr(wsession, "write_json_atomic", _no_space)  # the autosave streams its document
     ctrl.select([1, 2, 3])  # a change: its autosave fails, then the change says what it did
     assert "Autosave failed: the disk is full" in _page(wb)
     ctrl.select([4])  # another change, another message: the warning is still shown

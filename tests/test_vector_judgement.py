@@ -27,7 +27,8 @@ from magcal.diagnosis.vector import (
     diagnose_vector,
     raised_components,
 )
-from magcal.fitting.vector import POSITION_COLUMNS_M, fit_vector
+from magcal.fitting.labfield import POSITION_NED_COLUMNS
+from magcal.fitting.vector import fit_vector
 from magcal.model.perturbations import parse_hidden
 
 FIELD_NED = np.array([21_000.0, 1_200.0, 44_000.0])
@@ -185,7 +186,7 @@ def test_a_tumbled_record_past_a_magnet_is_not_determined_for_the_misfit_not_the
     )
     if positions:
         p = _path(ds.time_s)
-        ds = ds.replace(extra={**ds.extra, **dict(zip(POSITION_COLUMNS_M, p.T))})
+        ds = ds.replace(extra={**ds.extra, **dict(zip(POSITION_NED_COLUMNS, p.T))})
     fit = fit_vector(ds, resolve_vector_reference(ds), warn=False)
     cause = fit.sensors[0].undetermined_cause
     assert not fit.sensors[0].determined and cause is not None

@@ -539,7 +539,10 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
         ) from None
     check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
     check_dataflash_formats(path, source)
+    started = time.monotonic()
     gathered = _gather_fast(path, source, undo_calibration)  # NumPy, where it gives what pymavlink would
+    if gathered is not None and timeout_s is not None and time.monotonic() - started > float(timeout_s):
+        raise _too_slow(source, timeout_s)
     if gathered is None:
         gathered = _gather_pymavlink(path, source, undo_calibration, timeout_s)
     notes: list[Note] = []
@@ -565,6 +568,14 @@ def _new_gathered() -> dict:
     }
 
 
+def _too_slow(source, timeout_s) -> DatasetError:
+    """The message of a DataFlash read past its deadline."""
+    return DatasetError(
+        f"{source}: reading stopped after {float(timeout_s):g} s, far longer than a log of this size takes: "
+        "the log is damaged; record or download it again"
+    )
+
+
 def _gather_pymavlink(path, source, undo_calibration, timeout_s) -> dict:
     """The messages magcal keeps, read one by one by pymavlink's ``DFReader`` (:func:`read_dataflash`)."""
     from pymavlink import DFReader
@@ -572,10 +583,7 @@ def _gather_pymavlink(path, source, undo_calibration, timeout_s) -> dict:
     deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
 
     def too_slow():
-        return DatasetError(
-            f"{source}: reading stopped after {float(timeout_s):g} s, far longer than a log of this size takes: "
-            "the log is damaged; record or download it again"
-        )
+        return _too_slow(source, timeout_s)
 
     def progress(_percent):
         if deadline is not None and time.monotonic() > deadline:

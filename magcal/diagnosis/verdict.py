@@ -735,9 +735,15 @@ def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes
     rest = sorted(
         [c for c in cands if c.refitted and not c.holds and not _in_sample_only(c)], key=lambda c: c.delta_bic
     )
-    # a series judged in-sample leads only when it clearly explains more than the best term that holds
-    lead = [c for c in series if not held or c.delta_bic < SERIES_LEAD * held[0].delta_bic]
-    return lead + held + [c for c in series if c not in lead] + rest + [c for c in cands if not c.refitted]
+    # a series judged in-sample leads only when it clearly explains more than the best term that holds (or, when
+    # none was found to hold, e.g. a record too short to hold samples out, than the best of the others)
+    top = (held or rest)[:1]
+    lead = [c for c in series if not top or c.delta_bic < SERIES_LEAD * top[0].delta_bic]
+    trailing = [c for c in series if c not in lead]
+    unrefitted = [c for c in cands if not c.refitted]
+    if held:
+        return lead + held + trailing + rest + unrefitted
+    return lead + sorted(rest + trailing, key=lambda c: c.delta_bic) + unrefitted
 
 
 def _add_fit_notes(fit_notes, outcome) -> None:

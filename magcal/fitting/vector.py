@@ -103,10 +103,6 @@ FOLLOWS_EXCESS = 3.0
 #: rotation under 1.
 LOW_SPREAD_DEG = 10.0
 
-#: The columns of a position in the lab or along the path (m, north-east-down): a field that follows them is a
-#: magnet or steel near the path.
-POSITION_COLUMNS_M = ("pos_n_m", "pos_e_m", "pos_d_m")
-
 #: Most rounds in which the effects may move their data-derived constants after a fit (a time offset's shift).
 MAX_REFINEMENTS = 3
 
@@ -1131,11 +1127,9 @@ def attitude_error_deg(sigma_perpendicular_nT, sigma_total_nT, field_nT) -> floa
 
 
 def positions_m(dataset) -> np.ndarray | None:
-    """The record's positions (N, 3), m, from its :data:`POSITION_COLUMNS_M` (None without them)."""
-    extra = getattr(dataset, "extra", None) or {}
-    if not all(c in extra for c in POSITION_COLUMNS_M):
-        return None
-    return np.column_stack([np.asarray(extra[c], dtype=float) for c in POSITION_COLUMNS_M])
+    """The record's positions (N, 3), m, north-east-down (:func:`magcal.fitting.labfield.positions_ned_m`: the
+    ``pos_n_m..`` columns, else latitude, longitude and height), or None without them."""
+    return labfield.positions_ned_m(dataset)
 
 
 def position_basis(p) -> np.ndarray:
