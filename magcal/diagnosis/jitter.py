@@ -3,7 +3,7 @@
 Two sensors read by one host at slightly different, random instants see the field at different moments: sensor
 ``s`` reads ``B(t - dt)`` with ``dt`` random, RMS ``tau``. Their difference is then ``dt dB/dt``, across the field
 (a turning field keeps its magnitude), with mean zero: no term of the mean model holds it, but its variance grows
-with the turn rate squared,
+with the turn rate squared::
 
     E |d_perp|^2 = a + tau^2 |dB/dt|^2,
 
