@@ -121,6 +121,11 @@ def next_step(ctrl) -> NextStep:
         )
     if verdict == "adequate":
         why = "The residuals are at the noise floor: the model is adequate. Export it (Files tab)."
+    elif verdict == "not_judged":
+        why = (
+            "Verdict `not_judged`: the record cannot hold samples out to judge a candidate on, so nothing is advised. "
+            "The Model tab says what would let it judge (a longer record, a faster log, another flight)."
+        )
     else:
         why = (
             f"Verdict {safe_code(verdict or 'none')}: nothing advised holds on held-out data. The Model tab's "

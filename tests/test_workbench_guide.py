@@ -139,3 +139,16 @@ def test_a_history_plots_log_axis_spans_its_data_not_the_decades(series, lo, hi)
     y = log_axis_scales(data)["y"]
     assert y["distr"] == 3 and y["range"] == pytest.approx([lo / LOG_AXIS_MARGIN, hi * LOG_AXIS_MARGIN])
     assert "range" not in log_axis_scales((np.arange(2.0), np.array([np.nan, np.nan])))["y"]
+
+
+def test_a_verdict_that_could_not_judge_advises_nothing_and_says_why():
+    """The guide reads the diagnosis's verdict: ``not_judged`` offers no button to press and says why."""
+    from types import SimpleNamespace
+
+    from magcal_workbench.guide import next_step as step_of
+
+    diagnosis = SimpleNamespace(verdict="not_judged", explained_by=[])
+    vm = SimpleNamespace(result=object(), diagnosis=diagnosis, effects=[])
+    ctrl = SimpleNamespace(vector_loop=lambda: True, vector=vm)
+    step = step_of(ctrl)
+    assert step.key == "none" and "not_judged" in step.why and "longer record" in step.why
