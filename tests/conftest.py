@@ -83,32 +83,41 @@ def bench(tmp_path, request):
         wb.stop()
 
 
+def page_socket(port, origin=None, token=None, host="127.0.0.1", cookie=None, timeout_s=10.0):
+    """An async context: the websocket a browser's page opens to a workbench on ``port`` (the ``websockets``
+    package): ``token`` in the URL's query, ``cookie`` (``name=value``) in a Cookie header, ``origin`` (default the
+    page's own; ``""`` for none) in the Origin header, viser's subprotocol, no size limit (the first message
+    carries plotly.js)."""
+    import socket
+
+    import viser
+    from websockets.asyncio.client import connect
+
+    origin = f"http://{host}:{port}" if origin is None else origin
+    query = f"/?token={token}" if token is not None else ""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=timeout_s)
+    return connect(
+        f"ws://{host}:{port}{query}",
+        sock=sock,
+        origin=origin or None,
+        open_timeout=timeout_s,
+        additional_headers={"Cookie": cookie} if cookie else None,
+        subprotocols=[f"viser-v{viser.__version__}"],
+        max_size=None,
+    )
+
+
 def ws_handshake(port, origin=None, token=None, host="127.0.0.1", cookie=None, timeout_s=10.0):
     """A local process's websocket client (the ``websockets`` package) against a workbench on ``port``: what it
     gets, ``("accepted", first message bytes)`` or ``("refused", HTTP status)``. ``token`` goes in the URL's query,
     ``cookie`` (``name=value``) in a Cookie header, ``origin`` (default the page's own) in the Origin header."""
     import asyncio
-    import socket
 
-    import viser
-    from websockets.asyncio.client import connect
     from websockets.exceptions import InvalidStatus
 
-    origin = f"http://{host}:{port}" if origin is None else origin
-    query = f"/?token={token}" if token is not None else ""
-
     async def go():
-        sock = socket.create_connection(("127.0.0.1", port), timeout=timeout_s)
         try:
-            async with connect(
-                f"ws://{host}:{port}{query}",
-                sock=sock,
-                origin=origin or None,
-                open_timeout=timeout_s,
-                additional_headers={"Cookie": cookie} if cookie else None,
-                subprotocols=[f"viser-v{viser.__version__}"],
-                max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
-            ) as ws:
+            async with page_socket(port, origin, token, host, cookie, timeout_s) as ws:
                 return "accepted", await asyncio.wait_for(ws.recv(), timeout_s)
         except InvalidStatus as exc:
             return "refused", exc.response.status_code

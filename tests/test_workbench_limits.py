@@ -21,6 +21,8 @@ from magcal.data import io as mio
 
 pytest.importorskip("viser")
 
+from conftest import page_socket
+
 from magcal_workbench.session import SessionStore
 from magcal_workbench.state import Selection, SessionState
 from magcal_workbench.uploads import clean_upload_name
@@ -320,13 +322,10 @@ def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_
     the upload is dropped as soon as the bytes received pass the 0.2 MB limit; viser never holds more than the
     limit of it, the parts that follow are ignored, nothing is opened."""
     import asyncio
-    import socket
     import time
 
     import msgspec
-    import viser
     from viser import _messages
-    from websockets.asyncio.client import connect
 
     wb = bench(store=False, max_upload_mb=0.2)
     before = wb.ctrl.dataset
@@ -346,15 +345,7 @@ def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_
         return msgspec.msgpack.encode(message.as_serializable_dict())
 
     async def go():
-        sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
-        async with connect(
-            f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
-            sock=sock,
-            origin=f"http://127.0.0.1:{wb.port}",
-            open_timeout=10,
-            subprotocols=[f"viser-v{viser.__version__}"],
-            max_size=None,  # the first message carries plotly.js (the page draws plots from the start)
-        ) as ws:
+        async with page_socket(wb.port, token=wb.token) as ws:
             await ws.send(encode(_messages.FileTransferStartUpload(uuid, "t1", "a.csv", "text/csv", n_parts, 1000)))
             for i in range(n_parts):
                 await ws.send(encode(_messages.FileTransferPart(uuid, "t1", i, part)))

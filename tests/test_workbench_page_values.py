@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 import time
 
 import pytest
+from conftest import page_socket
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -27,22 +27,12 @@ def _send(wb, uuid, values, wait_for) -> list[str]:
     """Send ``{"value": v}`` for each of ``values`` to the widget ``uuid`` as a browser's websocket does, and return
     the page's message after each (``wait_for(message)`` says the answer came)."""
     import msgspec
-    import viser
     from viser import _messages
-    from websockets.asyncio.client import connect
 
     said = []
 
     async def go():
-        sock = socket.create_connection(("127.0.0.1", wb.port), timeout=10)
-        async with connect(
-            f"ws://127.0.0.1:{wb.port}/?token={wb.token}",
-            sock=sock,
-            origin=f"http://127.0.0.1:{wb.port}",
-            open_timeout=10,
-            subprotocols=[f"viser-v{viser.__version__}"],
-            max_size=None,
-        ) as ws:
+        async with page_socket(wb.port, token=wb.token) as ws:
             for value in values:
                 wb.ctrl.say("-")
                 message = _messages.GuiUpdateMessage(uuid, {"value": value})
