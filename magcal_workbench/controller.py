@@ -905,14 +905,28 @@ class Controller:
         )
         return d
 
+    def loop_diagnosis(self):
+        """The diagnosis Diagnose and Add work from: the vector model's on a record with attitude and a field vector
+        (:meth:`vector_loop`), else the total-field model's; None before one."""
+        return self.vector.diagnosis if self.vector_loop() else self.diagnosis
+
+    def loop_effects(self) -> list[str]:
+        """The effects of the model the loop works on (the vector model's, or the total-field model's)."""
+        return list(self.vector.effects if self.vector_loop() else self.state.effects)
+
+    def candidate_labels(self) -> list[str]:
+        """What Add may put into the model from the current diagnosis (:meth:`loop_diagnosis`): its candidates'
+        labels (for the vector model: those for the model as it is, the recommended one first)."""
+        if self.vector_loop():
+            return self.vector.candidate_labels()
+        cands = self.diagnosis.candidates if self.diagnosis is not None else []
+        return list(dict.fromkeys(candidate_label(c) for c in cands))
+
     def advice(self) -> list[str]:
         """What the current diagnosis advises (its ``explained_by``: judged on held-out data) that the model does
         not hold yet; the vector model's on a record with attitude and a field vector. Empty before a diagnosis."""
-        if self.vector_loop():
-            diagnosis, model = self.vector.diagnosis, self.vector.effects
-        else:
-            diagnosis, model = self.diagnosis, self.state.effects
-        advised = getattr(diagnosis, "explained_by", None) or []
+        advised = getattr(self.loop_diagnosis(), "explained_by", None) or []
+        model = self.loop_effects()
         return [label for label in advised if label not in model]
 
     def candidate_holds(self, label: str) -> bool:
@@ -920,12 +934,8 @@ class Controller:
         see (or advises it); False for a candidate it did not judge or judged not to hold."""
         if label in self.advice():
             return True
-        if self.vector_loop():
-            diagnosis = self.vector.diagnosis
-            labels = lambda c: c.label
-        else:
-            diagnosis, labels = self.diagnosis, candidate_label
-        candidates = getattr(diagnosis, "candidates", None) or []
+        labels = (lambda c: c.label) if self.vector_loop() else candidate_label
+        candidates = getattr(self.loop_diagnosis(), "candidates", None) or []
         return any(labels(c) == label and getattr(c, "holds", None) is True for c in candidates)
 
     def step_add(self, label: str | None = None, *, inputs: JobInputs | None = None, note: str = ""):

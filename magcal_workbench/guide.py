@@ -80,14 +80,6 @@ def _source(ctrl) -> str:
     return "simulated data"
 
 
-def _advice(diagnosis, model) -> tuple[list, str]:
-    """The advised labels not yet in ``model``, and the verdict's word (``adequate``, ...)."""
-    if diagnosis is None:
-        return [], ""
-    verdict = str(getattr(diagnosis, "verdict", ""))
-    return [label for label in getattr(diagnosis, "explained_by", None) or [] if label not in model], verdict
-
-
 def next_step(ctrl) -> NextStep:
     """The loop's next step for the open session (see the module's docstring)."""
     if ctrl.vector_loop():
@@ -98,18 +90,16 @@ def next_step(ctrl) -> NextStep:
                 "Step 1: fit with the attitude and the field vector",
                 "The record has attitude and a field vector: fit them together.",
             )
-        diagnosis, model = vm.diagnosis, list(vm.effects)
-    else:
-        if not np.isfinite(ctrl.residual_rms_nT()):
-            return NextStep("run", "Step 1: fit the model", "Fit the base model: bias, scale, non-orthogonality.")
-        diagnosis, model = ctrl.diagnosis, list(ctrl.state.effects)
+    elif not np.isfinite(ctrl.residual_rms_nT()):
+        return NextStep("run", "Step 1: fit the model", "Fit the base model: bias, scale, non-orthogonality.")
+    diagnosis = ctrl.loop_diagnosis()
     if diagnosis is None:
         return NextStep(
             "diagnose",
             "Step 2: find where the model fails",
             "Compare the model with the measurements: which physical effect is missing, judged on held-out data.",
         )
-    advised, verdict = _advice(diagnosis, model)
+    advised, verdict = ctrl.advice(), str(getattr(diagnosis, "verdict", ""))
     if advised:
         names = ", ".join(advised)
         return NextStep(

@@ -1134,14 +1134,8 @@ class Panels:
                 )
 
     def _candidate_labels(self) -> list:
-        """The current diagnosis's candidates (the vector diagnosis's for a record with attitude and a field
-        vector: those for the vector model as it is, the recommended one first)."""
-        ctrl = self.ctrl()
-        if ctrl.vector_loop():
-            return ctrl.vector.candidate_labels()
-        diagnosis = ctrl.diagnosis
-        cands = diagnosis.candidates if diagnosis is not None else []
-        return list(dict.fromkeys(candidate_label(c) for c in cands))
+        """The current diagnosis's candidates (:meth:`Controller.candidate_labels`)."""
+        return self.ctrl().candidate_labels()
 
     def _candidate_options(self) -> tuple:
         """The Candidate choices the server offers: the current diagnosis's candidates and ``-``."""

@@ -96,7 +96,7 @@ class Steps(PagePart):
         self.check_readings()
         choice = self.values.check(self.panels.candidate_choice)
         ctrl = self.ctrl
-        offered = self.panels._candidate_labels()
+        offered = ctrl.candidate_labels()
         label = offered[0] if choice == "-" and offered else (None if choice == "-" else choice)
         note = ""
         if label is not None and not ctrl.candidate_holds(label):

@@ -149,6 +149,6 @@ def test_a_verdict_that_could_not_judge_advises_nothing_and_says_why():
 
     diagnosis = SimpleNamespace(verdict="not_judged", explained_by=[])
     vm = SimpleNamespace(result=object(), diagnosis=diagnosis, effects=[])
-    ctrl = SimpleNamespace(vector_loop=lambda: True, vector=vm)
+    ctrl = SimpleNamespace(vector_loop=lambda: True, vector=vm, loop_diagnosis=lambda: diagnosis, advice=lambda: [])
     step = step_of(ctrl)
     assert step.key == "none" and "not_judged" in step.why and "longer record" in step.why
