@@ -76,12 +76,11 @@ _LOGS_READ = (
 _READS = "reads the notes it is given (to print, raise, move or keep); fills no list of its caller's"
 TAKES_NOTES = {
     # the boundary: the command line prints the notes it is given
-    "cli/calibrate:run_vector": "the command line: collects the texts it prints",
+    "cli/calibrate:run_fit": "the command line: collects the texts it prints",
     "cli/calibrate:compass_report": "the command line: collects the texts it prints",
-    "cli/diagnose:_dip_evidence": "the command line: collects the texts it prints",
+    "cli/diagnose:run_mode": "the command line: collects the texts it prints",
     "cli/diagnose:run_vector": "the command line: collects the texts it prints",
     "cli/fit_report:report_fit": "the command line: prints the texts it is given",
-    "cli/gravity_mode:run_gravity": "the command line: collects the texts it prints",
     # the one place notes become warnings, and its helpers
     "core/notes:unique": _READS,
     "core/notes:texts": _READS,

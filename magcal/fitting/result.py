@@ -9,7 +9,7 @@ derive from it, so that the command line, :func:`magcal.calibrate` and the workb
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:
     from magcal.calibration.calibration import Calibration
@@ -45,12 +45,16 @@ class ModeResult:
     warnings : list of str
         The texts of :attr:`notes`, in order: one meaning for every mode. (The total-field report's wider list of
         lines, which also says what is only information, is its ``remarks``.)
+    validation : object or None
+        The fit judged on held-out samples when asked for (:meth:`magcal.modes.FitMode.validate`, an object with
+        ``text()`` and ``to_dict()``), else None.
     """
 
     mode: ClassVar[str] = ""
     calibration: Calibration
     notes: list[Note]
     warnings = _NoteTexts()
+    validation: Any = None
 
     def text(self) -> str:
         """The readable report of the fit (ends with a newline)."""
