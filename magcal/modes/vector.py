@@ -108,8 +108,9 @@ class VectorMode(FitMode):
         field_gradient=False,
     ) -> VectorFitResult:
         """:func:`magcal.fitting.vector.fit_vector` against :func:`field_vector` ``(dataset, reference)`` (its
-        other arguments as there; never warns: the notes are the result's); without ``mask`` the calibration knows
-        the record it was fitted on."""
+        other arguments as there, ``reference_total_nT`` by default the record's ``ref_total`` column, as
+        ``magcal calibrate`` passes it; never warns: the notes are the result's); without ``mask`` the calibration
+        knows the record it was fitted on."""
         vref = field_vector(dataset, reference)
         if vref is None:
             raise MagcalError(f"the vector fit {NEEDS_FIELD_VECTOR}")
@@ -120,7 +121,7 @@ class VectorMode(FitMode):
             terms=terms,
             attitude_noise_deg=attitude_noise_deg,
             noise_nT=noise_nT,
-            reference_total_nT=reference_total_nT,
+            reference_total_nT=dataset.ref_total_nT if reference_total_nT is None else reference_total_nT,
             robust=robust,
             mask=mask,
             warn=False,
@@ -144,7 +145,7 @@ class VectorMode(FitMode):
             effects=result.terms,
             attitude_noise_deg=attitude_noise_deg,
             noise_nT=noise_nT,
-            reference_total_nT=reference_total_nT,
+            reference_total_nT=dataset.ref_total_nT if reference_total_nT is None else reference_total_nT,
             robust=robust,
         )
 
