@@ -2,7 +2,7 @@
 
 :func:`diagnose` fits (or takes) a model, runs the score tests (:mod:`.scores`), confirms the best candidates
 by refitting, adds supported effects one after the other while the structure tests (:mod:`.structure`) still
-find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`: ``adequate`` (no significant
+find something, and gives a :class:`Diagnosis` with one of the :data:`~magcal.diagnosis.base.VERDICTS`: ``adequate`` (no significant
 structure left, or only an excess over the floor of at most :data:`AT_FLOOR_FRACTION`: "at the noise floor within
 x %"), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
 (significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
@@ -41,6 +41,7 @@ from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
+from magcal.diagnosis.base import DiagnosisBase, progress_reporter
 from magcal.diagnosis.evidence import (
     _effect_extra,
     _evidence_line,
@@ -51,7 +52,6 @@ from magcal.diagnosis.evidence import (
 from magcal.diagnosis.jitter import jitter_estimates, jitter_words
 from magcal.diagnosis.scores import (
     PREDICTED_SUPPORT_DELTA_BIC,
-    Candidate,
     _confirm,
     _num,
     _score_round,
@@ -60,15 +60,13 @@ from magcal.diagnosis.scores import (
     gram_task,
     refit_task,
 )
+from magcal.diagnosis.selection import forward_selection
 from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, direction_spread
 from magcal.model.terms import EFFECTS, EffectTexts
-
-#: Verdicts of :func:`diagnose`.
-VERDICTS = ("adequate", "missing_effect", "unexplained")
 
 #: A candidate (or a refit) is supported when its delta-BIC is below this.
 DELTA_BIC_THRESHOLD = PREDICTED_SUPPORT_DELTA_BIC
@@ -80,7 +78,7 @@ AT_FLOOR_FRACTION = 0.10
 
 
 @dataclass
-class Diagnosis:
+class Diagnosis(DiagnosisBase):
     """What :func:`diagnose` found.
 
     Attributes
@@ -174,35 +172,19 @@ class Diagnosis:
     record_details: list = field(default_factory=list)
     variance_terms: list = field(default_factory=list)
 
-    @property
-    def noise_nT(self) -> float:
-        return self.noise.sigma_nT
-
-    @property
-    def best(self) -> Candidate | None:
-        return self.candidates[0] if self.candidates else None
-
-    def to_dict(self) -> dict:
-        """The JSON document of ``magcal diagnose --json`` (issue 4), best candidate first."""
+    def _own_dict(self) -> dict:
+        """The keys of ``magcal diagnose --json`` beside the shared ones (:meth:`DiagnosisBase.to_dict`)."""
         return {
             "effects": list(self.effects),
             "rms_nT": _num(self.rms_nT),
             "noise_nT": _num(self.noise.sigma_nT),
-            "verdict": self.verdict,
-            "warnings": list(self.warnings),
-            "candidates": [c.to_dict() for c in self.candidates],
-            "summary": self.summary,
             "noise_source": self.noise.source,
             "floor_nT": _num(self.floor_nT),
             "rms_per_sensor_nT": [float(v) for v in self.rms_per_sensor_nT],
-            "explained_by": list(self.explained_by),
             "partially_explained_by": list(self.partially_explained_by),
             "rms_after_nT": _num(self.rms_final_nT),
             "structure": [s.to_dict() for s in self.structure],
-            "remaining_structure": [s.to_dict() for s in self.remaining],
-            "elapsed_s": round(float(self.elapsed_s), 3),
             "ran_on": dict(self.ran_on),
-            "noise": self.noise.to_dict(),
             "validation": jsonable(self.validation),
             "record_holds": list(self.record_holds),
             "record_details": jsonable(self.record_details),
@@ -220,12 +202,8 @@ class Diagnosis:
             on = "one core" if workers <= 1 else f"{workers} threads"
         return f"{float(self.elapsed_s):.1f} s on {on}"
 
-    def plot_data(self) -> dict:
-        """:attr:`evidence` with arrays turned into lists (JSON-ready), for the workbench."""
-        return jsonable(self.evidence)
-
-    def table(self, limit=12) -> str:
-        """A readable ranked table of the candidates."""
+    def text(self, limit=12) -> str:
+        """The verdict, the summary and a readable ranked table of the candidates."""
         lines = [
             f"verdict: {self.verdict}",
             f"  {self.summary}",
@@ -817,11 +795,7 @@ def diagnose(
         Its ``notes`` hold what its fits said; never raised as warnings here (:func:`magcal.diagnose` does).
     """
     t_start = _time.perf_counter()
-
-    def report(msg, frac):
-        if progress is not None:
-            progress(msg, frac)
-
+    report = progress_reporter(progress)
     fit0, fit_notes = _model_fit(dataset, result, model, effects, report)
     kept = _kept(dataset, fit0)
     directions, fields = _sensor_directions(kept, fit0)
@@ -1158,40 +1132,43 @@ def _judge(ctx: DiagnosisContext) -> None:
 
 
 def _select(ctx: DiagnosisContext) -> None:
-    """Greedy forward selection while the best candidate is recommendable: each round takes the best, then scores,
-    refits and judges held out the candidates beside it (:func:`_further_round`). Sets ``explained``, ``chosen``,
-    ``current`` and the noise and structure of ``current``'s residuals."""
-    max_effects = ctx.options.max_effects
+    """Greedy forward selection (:func:`magcal.diagnosis.selection.forward_selection`) while the best candidate is
+    recommendable: each round takes the best, then scores, refits and judges held out the candidates beside it
+    (:func:`_further_round`). Sets ``explained``, ``chosen``, ``current`` and the noise and structure of
+    ``current``'s residuals."""
     ctx.current, ctx.current_noise = ctx.fit0, ctx.noise0
     ctx.remaining, ctx.stats_final = ctx.structure0, ctx.stats0
-    round_cands, ahead = ctx.cands, ctx.ahead
-    for step in range(max_effects):
-        supported = [
-            c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not ctx.undetermined
-        ]
-        if not supported:
-            break
-        best = supported[0]
-        if best.fit is None:
-            break
+    # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once the
+    # in-sample best is known, a later one's at the refit of the previous round's candidate
+    state: dict = {"ahead": ctx.ahead}
+
+    def eligible(c) -> bool:
+        return c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not ctx.undetermined
+
+    def pick(cands):
+        best = next((c for c in cands if eligible(c)), None)
+        return best if best is not None and best.fit is not None else None
+
+    def take(step, best, cands) -> None:
         ctx.explained.append(best.label)
         ctx.chosen.append(best)
         ctx.current = best.fit
-        kept_c = _kept(ctx.dataset, ctx.current)
-        # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once
-        # the in-sample best is known, a later one's at the refit of the previous round's candidate
-        ahead_structure, ahead_scores = ahead.get(best.label, (None, None))
-        if ahead_structure is not None:
-            structure_c = ahead_structure
-        else:  # beside the scores
-            structure_c = ctx.pool.submit(lambda k=kept_c, c=ctx.current: _noise_and_structure(ctx, k, c), SHARED)
-        if step + 1 >= max_effects:
-            ctx.current_noise, ctx.remaining, ctx.stats_final = structure_c.result()
-            break
-        further = _further_round(ctx, step, best, kept_c, ahead_scores, structure_c)
-        if further is None:
-            break
-        round_cands, ahead = further
+        state["kept"] = kept_c = _kept(ctx.dataset, ctx.current)
+        structure, state["scores"] = state["ahead"].get(best.label, (None, None))
+        if structure is None:  # beside the scores
+            structure = ctx.pool.submit(lambda k=kept_c, c=ctx.current: _noise_and_structure(ctx, k, c), SHARED)
+        state["structure"] = structure
+
+    def further(step, best):
+        found = _further_round(ctx, step, best, state["kept"], state["scores"], state["structure"])
+        if found is None:
+            return None
+        cands, state["ahead"] = found
+        return cands
+
+    forward_selection(lambda: ctx.cands, pick, take, further, ctx.options.max_effects)
+    if "structure" in state:  # the noise and structure of the last fit taken
+        ctx.current_noise, ctx.remaining, ctx.stats_final = state["structure"].result()
 
 
 def _further_round(ctx: DiagnosisContext, step, best, kept_c, ahead_scores, structure_c):
