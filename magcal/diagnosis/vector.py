@@ -466,6 +466,29 @@ class VectorDiagnosis(DiagnosisBase):
 
     def text(self, limit=12) -> str:
         """The header, the verdict and a ranked table of the candidates, round by round."""
+        lines = self._header_lines() + self._round_lines(limit)
+        lines.append(
+            "  world: RMS per north/east/down component (nT), without -> with the effect; norm.: |B| over its noise "
+            "and the components across the field over theirs, RMS (1 is the noise); later: fitted on the earlier "
+            "part, applied to the later"
+        )
+        if self.final is not None and self.explained_by:
+            lines.append(
+                f"with {', '.join(self.explained_by)}: world components {self.base.world_nT:.4g} -> "
+                f"{self.final.world_nT:.4g} nT, |B| {self.base.total_nT:.4g} -> {self.final.total_nT:.4g} nT"
+            )
+        if self.remaining:
+            lines.append("")
+            lines.append("structure left in the residuals:")
+            lines.extend(f"  {s.text()}" for s in self.remaining)
+        if self.warnings:
+            lines.append("")
+            lines.extend(f"warning: {w}" for w in self.warnings)
+        return "\n".join(lines)
+
+    def _header_lines(self) -> list[str]:
+        """(Part of :meth:`text`.) The verdict, the summary, the base model's figures against the noise, how the
+        candidates were judged and the model's effects."""
         v = self.validation
         noise = self.noise
         lines = [
@@ -500,15 +523,20 @@ class VectorDiagnosis(DiagnosisBase):
             )
         if self.effects:
             lines.append(f"model effects: {', '.join(self.effects)}")
-        flights = bool(v.get("flights"))
+        return lines
+
+    def _round_lines(self, limit) -> list[str]:
+        """(Part of :meth:`text`.) The candidates' table, round by round: the first round's best ``limit``, a later
+        round's supported ones (else its best three)."""
+        flights = bool(self.validation.get("flights"))
         head = (
             f"{'rank':>4}  {'effect':<24} {'dBIC':>10} {'world in-sample':>17} {'world later':>17} {'norm. later':>13}"
         )
         if flights:
             head += f" {'norm. flights':>16}"
-        rounds = sorted({c.round for c in self.candidates})
+        lines: list[str] = []
         added: list[str] = []
-        for r in rounds:
+        for r in sorted({c.round for c in self.candidates}):
             cands = [c for c in self.candidates if c.round == r]
             lines.append("")
             lines.append(
@@ -519,38 +547,27 @@ class VectorDiagnosis(DiagnosisBase):
             lines.append(head + "  advice")
             shown = cands[:limit] if r == 1 else [c for c in cands if c.supported][:limit] or cands[:3]
             for i, c in enumerate(shown, 1):
-                later = "-" if c.later is None else _pair(c.later[0].world_nT, c.later[1].world_nT)
-                nlater = "-" if c.later is None else _pair(c.later[0].weighted, c.later[1].weighted, "{:.3g}")
-                row = (
-                    f"{i:>4}  {c.label:<24} {c.delta_bic:>10.1f} "
-                    f"{_pair(c.in_sample[0].world_nT, c.in_sample[1].world_nT):>17} {later:>17} {nlater:>13}"
-                )
-                if flights:
-                    fl = "; ".join(_pair(b.weighted, a.weighted, "{:.3g}") for _, b, a in c.flights) or "-"
-                    row += f" {fl:>16}"
-                advice = ("RECOMMENDED" + (f"; {c.why}" if c.why else "")) if c.recommended else c.why
-                lines.append(row + f"  {advice}")
+                lines.append(_candidate_row(i, c, flights))
                 if c.evidence and (c.supported or i <= 3):
                     lines.append(f"{'':>6}{c.evidence}")
             added += [c.label for c in cands if c.recommended]
-        lines.append(
-            "  world: RMS per north/east/down component (nT), without -> with the effect; norm.: |B| over its noise "
-            "and the components across the field over theirs, RMS (1 is the noise); later: fitted on the earlier "
-            "part, applied to the later"
-        )
-        if self.final is not None and self.explained_by:
-            lines.append(
-                f"with {', '.join(self.explained_by)}: world components {self.base.world_nT:.4g} -> "
-                f"{self.final.world_nT:.4g} nT, |B| {self.base.total_nT:.4g} -> {self.final.total_nT:.4g} nT"
-            )
-        if self.remaining:
-            lines.append("")
-            lines.append("structure left in the residuals:")
-            lines.extend(f"  {s.text()}" for s in self.remaining)
-        if self.warnings:
-            lines.append("")
-            lines.extend(f"warning: {w}" for w in self.warnings)
-        return "\n".join(lines)
+        return lines
+
+
+def _candidate_row(rank, c, flights) -> str:
+    """A candidate's row of :meth:`VectorDiagnosis.text`: world RMS in-sample and later, normalized later (and on
+    the other ``flights``), the advice."""
+    later = "-" if c.later is None else _pair(c.later[0].world_nT, c.later[1].world_nT)
+    nlater = "-" if c.later is None else _pair(c.later[0].weighted, c.later[1].weighted, "{:.3g}")
+    row = (
+        f"{rank:>4}  {c.label:<24} {c.delta_bic:>10.1f} "
+        f"{_pair(c.in_sample[0].world_nT, c.in_sample[1].world_nT):>17} {later:>17} {nlater:>13}"
+    )
+    if flights:
+        fl = "; ".join(_pair(b.weighted, a.weighted, "{:.3g}") for _, b, a in c.flights) or "-"
+        row += f" {fl:>16}"
+    advice = ("RECOMMENDED" + (f"; {c.why}" if c.why else "")) if c.recommended else c.why
+    return row + f"  {advice}"
 
 
 def _pair(before, after, fmt="{:.4g}") -> str:

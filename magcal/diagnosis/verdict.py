@@ -262,6 +262,18 @@ def _pair(before, after) -> str:
 
 
 def _warnings_for(cands, proj, kept, fit, noise, significant):
+    """The diagnosis's warnings on its noise (:func:`_noise_warnings`), on candidates the data cannot tell apart
+    (:func:`_confounded_warnings`) and on the channels a candidate needs but some samples lack
+    (:func:`_channel_warnings`)."""
+    top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
+    return (
+        _noise_warnings(kept, fit, noise) + _confounded_warnings(cands, proj, kept, top) + _channel_warnings(kept, fit)
+    )
+
+
+def _noise_warnings(kept, fit, noise) -> list[str]:
+    """(Part of :func:`_warnings_for`.) A noise that stands in for an estimate, or a given noise that differs from
+    the noise seen in the data by more than 20 %."""
     out = []
     if noise.source == "residuals":
         out.append(noise.note)
@@ -273,7 +285,14 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
                 f"the given noise {noise.sigma_nT:.3g} nT ({noise.note}) differs from the noise seen in the "
                 f"data: {seen.text()}"
             )
-    top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
+    return out
+
+
+def _confounded_warnings(cands, proj, kept, top) -> list[str]:
+    """(Part of :func:`_warnings_for`.) Candidates the data can hardly tell apart: the best and another with a
+    canonical correlation above 0.9 and a close delta-BIC, temperature terms and drifts on a record whose
+    temperature follows time, and the pairs of effects known to leave the same pattern."""
+    out = []
     if proj is not None and len(top) >= 1:
         best = top[0]
         for other in cands[1:8]:
@@ -309,6 +328,13 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
             "axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
             "speed to separate them (a delay scales with speed, hysteresis does not)"
         )
+    return out
+
+
+def _channel_warnings(kept, fit) -> list[str]:
+    """(Part of :func:`_warnings_for`.) The effects that need the attitude and were not tested: samples without
+    it, or an array without attitude columns."""
+    out = []
     present = attitude_present(kept) if kept.attitude_wxyz is not None else None
     if present is not None and not present.all():
         needing = [
@@ -673,41 +699,59 @@ def _in_sample_best(cands):
 
 
 def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes=None):
-    """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
-    data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
-    predictions. ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
+    """Validate the supported refitted candidates of a round (:func:`_held_out_round`); re-rank them
+    (:func:`_ranked`). ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
     scheme, :func:`_held_out_fits`). ``fit_notes``: a list the held-out fits' notes are added to, in the
     candidates' order (whichever thread made them)."""
     if held_out is not None:
         todo = [c for c in cands if _to_validate(c)]
         if todo:
-            # every held-out fit of the round side by side on the machine's cores (numpy releases the interpreter
-            # in its loops): the base model's per scheme, shared by every candidate, and each candidate's per
-            # scheme (those handed over when its refit returned already under way); then the comparisons, in
-            # the candidates' order
-            pending = dict(pending or {})
-            bases = [
-                pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
-                for scheme in _validation.SCHEMES
-            ]
-            for c in todo:
-                if c.label not in pending:
-                    pending[c.label] = _held_out_fits(pool, held_out, base_fit, c)
-            for future in bases:
-                _add_fit_notes(fit_notes, future.result())
-            for c in todo:
-                fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
-                for f in fitted.values():
-                    _add_fit_notes(fit_notes, f)
-                failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
-                try:
-                    if failed is not None:
-                        raise failed
-                    warning = held_out.judge(base_fit, c, fitted)
-                except _FAILURES as exc:
-                    warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
-                if warning:
-                    notes.append(warning)
+            warnings, said = _held_out_round(held_out, base_fit, todo, pool, pending)
+            notes.extend(warnings)
+            if fit_notes is not None:
+                fit_notes.extend(said)
+    return _ranked(cands)
+
+
+def _held_out_round(held_out, base_fit, todo, pool, pending) -> tuple[list, list]:
+    """(Part of :func:`_judge_round`.) The held-out judgement of the candidates ``todo``: each one's ``holds``.
+    Returns the warnings (a gain that does not hold, a held-out fit that failed) and what the held-out fits said
+    (their notes, in the candidates' order)."""
+    warnings: list = []
+    said: list = []
+    # every held-out fit of the round side by side on the machine's cores (numpy releases the interpreter in its
+    # loops): the base model's per scheme, shared by every candidate, and each candidate's per scheme (those
+    # handed over when its refit returned already under way); then the comparisons, in the candidates' order
+    pending = dict(pending or {})
+    bases = [
+        pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
+        for scheme in _validation.SCHEMES
+    ]
+    for c in todo:
+        if c.label not in pending:
+            pending[c.label] = _held_out_fits(pool, held_out, base_fit, c)
+    for future in bases:
+        _add_fit_notes(said, future.result())
+    for c in todo:
+        fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
+        for f in fitted.values():
+            _add_fit_notes(said, f)
+        failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
+        try:
+            if failed is not None:
+                raise failed
+            warning = held_out.judge(base_fit, c, fitted)
+        except _FAILURES as exc:
+            warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
+        if warning:
+            warnings.append(warning)
+    return warnings, said
+
+
+def _ranked(cands) -> list:
+    """(Part of :func:`_judge_round`.) The candidates re-ranked: the refitted ones that hold on held-out data by
+    delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the predictions; a
+    series judged in-sample only leads when it clearly explains more (:data:`SERIES_LEAD`)."""
     held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
     series = sorted([c for c in cands if c.refitted and not c.holds and _in_sample_only(c)], key=lambda c: c.delta_bic)
     rest = sorted(
