@@ -2,8 +2,8 @@
 look again, up to ``max_effects``.
 
 A round's candidates come judged: refitted, and each supported one fitted on part of the record and scored on the
-rest (the total-field diagnosis's :class:`magcal.diagnosis.verdict._HeldOut`, the vector diagnosis's
-:class:`magcal.diagnosis.vector._Judge`), so that ``holds`` says whether its gain holds on data the fit did not see.
+rest by the diagnosis's :class:`HeldOutJudge` (the total-field diagnosis's :class:`magcal.diagnosis.verdict._HeldOut`,
+the vector diagnosis's :class:`magcal.diagnosis.vector._Judge`), so that ``holds`` says whether its gain holds on data the fit did not see.
 :func:`forward_selection` takes the best of them that holds (:func:`first_that_holds`), lets the diagnosis add it to
 its model, and asks for the next round beside the model with it; it stops when none holds, when a round finds no
 candidate worth judging, or after ``max_effects``.
@@ -12,7 +12,20 @@ candidate worth judging, or after ``max_effects``.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, Protocol
+
+
+class HeldOutJudge(Protocol):
+    """The held-out judgement of a diagnosis's candidates: the total-field diagnosis's
+    (:class:`magcal.diagnosis.verdict._HeldOut`: blocks of the record and its later stretch) and the vector
+    diagnosis's (:class:`magcal.diagnosis.vector._Judge`: the later part and other flights, each component at its
+    noise)."""
+
+    def judge(self, base_fit: Any, c: Any, fitted: Any = None) -> str | None:
+        """Judge candidate ``c`` against the round's base model ``base_fit`` (``fitted``: the candidate's fits,
+        when already made): set its ``holds`` (True, False, or None when it could not be judged) and its held-out
+        figures. Returns a warning for the diagnosis's list when its gain does not hold, or None."""
+        ...
 
 
 def first_that_holds(cands: Iterable, eligible: Callable[[Any], bool] = bool, in_sample_ok: bool = False) -> Any:

@@ -1088,7 +1088,7 @@ def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> list
     for c, _ in supported[top:]:
         c.why = f"supported, not judged (only the best {top} are)"
     for c, fit in supported[:top]:
-        ctx.judge(c, ctx.current, fit)
+        ctx.judge.judge(ctx.current, c, fit)
     ctx.all_cands.extend(c for c, _ in tried)
     return [c for c, _ in supported[:top]]
 
@@ -1232,7 +1232,10 @@ class _Judge:
         after = _score_of(self.record, fc.calibration, "drop", self.later, self.weights, on)
         return before, after
 
-    def __call__(self, c, base_fit, cand_fit) -> None:
+    def judge(self, base_fit, c, cand_fit) -> None:
+        """Judge the candidate ``c`` (its fit on the whole record ``cand_fit``) against the round's base model
+        ``base_fit`` on the later part and the other flights (:class:`magcal.diagnosis.selection.HeldOutJudge`):
+        sets its ``holds``, its figures there and, when it does not hold, ``why``."""
         # the parts judged on their gain and their components, and those judged on their components only
         gains: list[tuple[str, Scores, Scores]] = []
         checked: list[tuple[str, Scores, Scores]] = []

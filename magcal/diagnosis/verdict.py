@@ -359,7 +359,8 @@ def _channel_warnings(kept, fit) -> list[str]:
 
 
 class _HeldOut:
-    """Held-out judgement of refitted candidates (:mod:`magcal.fitting.validation`) on the samples a fit used.
+    """Held-out judgement of refitted candidates (:mod:`magcal.fitting.validation`) on the samples a fit used (a
+    :class:`magcal.diagnosis.selection.HeldOutJudge`).
 
     The base model of each round is validated once per scheme and reused for every candidate of that round,
     warm-started from the round's full-record fit. A candidate's held-out fits start where its refit starts, from
