@@ -462,7 +462,7 @@ class VectorModel:
             ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.diagnosis = d
-            floor = d.noise.get("world_floor_nT")
+            floor = d.noise.world_floor_nT
             self.floor_nT = float(floor) if floor is not None and np.isfinite(floor) else self.floor_nT
         ctrl._emit(Change.DIAGNOSIS)
         ctrl._emit(Change.VECTOR)  # the history plot draws the floor found

@@ -70,8 +70,8 @@ def vector_candidates_markdown(d) -> str:
     counterpart of the total-field diagnosis's: verdict with the world and |B| figures against their noise, the
     summary, how candidates were judged, and the candidates for the model as it is (the first round), each with
     its world RMS in-sample and on the later part, without -> with it."""
-    floor = d.noise.get("world_floor_nT")
-    noise_f = np.sqrt(np.mean(np.square(d.noise.get("total_nT", [np.nan]))))
+    floor = d.noise.world_floor_nT
+    noise_f = d.noise.sigma_nT
     lines = [
         f"**Verdict:** {safe_code(d.verdict, 40)} on the vector fit (world RMS {_nT(d.base.world_nT)}, noise floor "
         f"{_nT(floor)}; |B| {_nT(d.base.total_nT)}, noise {_nT(noise_f)})",
@@ -112,8 +112,8 @@ def vector_candidates_markdown(d) -> str:
             f"\nWith {', '.join(f'{safe_code(e, 80)}' for e in d.explained_by)}: world {_nT(d.base.world_nT)} → "
             f"{_nT(d.final.world_nT)}, |B| {_nT(d.base.total_nT)} → {_nT(d.final.total_nT)}"
         )
-    if d.left:
-        lines.append("\n**Structure left:** " + "; ".join(safe_text(s.text(), 300) for s in d.left[:3]))
+    if d.remaining:
+        lines.append("\n**Structure left:** " + "; ".join(safe_text(s.text(), 300) for s in d.remaining[:3]))
     return "\n".join(lines)
 
 

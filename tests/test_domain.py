@@ -149,7 +149,7 @@ def test_a_vector_fit_of_a_leading_field_holds_the_hysteresis_at_zero_and_the_di
     assert "h_x_nT" in c.not_physical and "cannot lead" in c.not_physical
     assert not c.supported and not c.recommended and "not physical here" in c.why
     assert "hysteresis" not in d.explained_by and "hysteresis" not in d.summary.split("describes")[0]
-    assert c.to_dict()["not_physical"] == c.not_physical and "not physical here" in d.table()
+    assert c.to_dict()["not_physical"] == c.not_physical and "not physical here" in d.text()
 
 
 def test_a_total_field_fit_and_its_diagnosis_hold_the_hysteresis_of_a_leading_field_at_zero():

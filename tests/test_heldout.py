@@ -189,7 +189,7 @@ def test_a_hidden_effect_is_found_with_a_held_out_gain(hidden):
     assert {"held_out_rms_before_nT", "held_out_rms_after_nT", "later_rms_before_nT", "later_rms_after_nT"} <= set(
         doc["candidates"][0]
     )
-    assert "held-out" in d.table() and "later" in d.table()
+    assert "held-out" in d.text() and "later" in d.text()
 
 
 def test_record_only_terms_are_dropped_on_later_data_as_apply_drops_them():
@@ -331,7 +331,7 @@ def test_a_diverged_refit_reads_did_not_converge(monkeypatch):
     c = next(c for c in d.candidates if c.effect == "temperature_bias")
     assert c.refitted and not c.converged and not c.recommendable
     assert "temperature_bias" not in d.explained_by + d.partially_explained_by
-    row = next(line for line in d.table().splitlines() if "temperature_bias" in line and "did not converge" in line)
+    row = next(line for line in d.text().splitlines() if "temperature_bias" in line and "did not converge" in line)
     assert "e+" not in row.split("did not converge")[0]
     assert d.to_dict()["candidates"][d.candidates.index(c)]["converged"] is False
 

@@ -122,7 +122,7 @@ def test_structure_outside_the_catalogue_is_named_by_what_it_follows(truth):
     odd = one.replace(readings_nT=one.readings_nT + extra)
     d = diagnose_vector(odd, resolve_vector_reference(odd), max_effects=1)
     assert d.verdict == "unexplained"
-    assert any(s.follows == "heading" for s in d.left)
+    assert any(s.follows == "heading" for s in d.remaining)
     assert "heading" in d.summary
 
 
@@ -219,7 +219,7 @@ def test_a_long_record_is_judged_on_a_subsample_and_the_advice_fitted_on_all(tru
     one = _flight(truth, 1, "current_field=25")
     d = diagnose_vector(one, resolve_vector_reference(one))
     assert d.validation["subsample"] == {"samples": 1000, "of": N}
-    assert d.explained_by == ["current_field"] and "every k-th sample (1000 of 3000)" in d.table()
+    assert d.explained_by == ["current_field"] and "every k-th sample (1000 of 3000)" in d.text()
     final = d.fits["current_field"]
     assert final.n_samples == N  # the advice, fitted on every sample
     full = fit_vector(one, resolve_vector_reference(one), effects=["current_field"], warn=False)

@@ -66,7 +66,7 @@ def test_a_record_that_cannot_be_judged_gets_no_advice_and_says_what_would_judge
     assert all("not judged" in c.why for c in d.candidates if c.supported)
     for words in needs:
         assert words in d.summary, (words, d.summary)
-    assert "not judged" in d.table()
+    assert "not judged" in d.text()
     if n == 150:  # the same vehicle, long enough: judged and advised
         long_ds, _ = simulate_vehicle(truth, seed=1, n=1500, perturbations=hidden, log_current=True)
         judged = _diagnose(long_ds, max_effects=1)
@@ -240,7 +240,7 @@ def test_another_flight_with_a_different_calibration_error_is_not_adequate(moved
         assert d.verdict != "adequate" and "does not carry to two" in d.summary
     else:
         assert d.verdict == "adequate" and base_two["weighted_rms"] < 1.25
-    assert "on two: world components" in d.table()
+    assert "on two: world components" in d.text()
 
 
 # ---- one attitude error -----------------------------------------------------------------------------------------

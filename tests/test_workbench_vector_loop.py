@@ -249,7 +249,7 @@ def test_the_drone_lesson_is_solved_by_the_loop_on_the_vector_model():
     assert not not_yet["solved"] and not_yet["missing"] == 1
     ctrl.step_add()
     floor = ctrl.vector.floor_nT  # the world noise floor the diagnosis found (attitude error and sensor noise)
-    assert floor == pytest.approx(d.noise["world_floor_nT"])
+    assert floor == pytest.approx(d.noise.world_floor_nT)
     assert ctrl.state.vector_history[-1].world_nT < 1.1 * floor < ctrl.state.vector_history[0].world_nT / 5
     assert lesson.check(ctrl.state.effects, ctrl.vector.lesson_findings())["solved"]
     assert ctrl.step_diagnose().verdict == "adequate"

@@ -66,10 +66,9 @@ def _fmt(v, digits=3):
     return "-" if v is None else f"{v:.{digits}f}"
 
 
-# long: one report read top to bottom (title, steps, floors, validation, per sensor), each section a few lines
-# appended to one list; split, the sections would pass the same dozen figures of the result around
 def text_report(result, source: str | None = None) -> str:
-    """A readable report of a :class:`~magcal.fitting.pipeline.CalibrationResult`.
+    """A readable report of a :class:`~magcal.fitting.pipeline.CalibrationResult`, read top to bottom: the header,
+    the steps, the noise floors, each sensor, the tensor, the fit, the distrusted samples and the warnings.
 
     Parameters
     ----------
@@ -77,14 +76,25 @@ def text_report(result, source: str | None = None) -> str:
     source : str, optional
         Name of the data (file path) for the header.
     """
+    out = _header_lines(result, source)
+    out += _step_lines(result)
+    out += _floor_lines(result)
+    for s in range(result.calibration.n_sensors):
+        out += _sensor_lines(result, s)
+    out += _tensor_lines(result)
+    out += _fit_lines(result)
+    out += _closing_lines(result)
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _header_lines(result, source) -> list[str]:
+    """The report's title, the sensors, samples and reference field, the baseline and the method."""
     cal = result.calibration
-    ns = cal.n_sensors
-    out = []
     title = f"magcal calibration{(' of ' + source) if source else ''}"
-    out += [title, "=" * len(title)]
+    out = [title, "=" * len(title)]
     ref_text = _REFERENCE_WORDS.get(result.reference_kind, result.reference_kind)
     ref_value = f"{result.reference_total_nT:.2f} nT, " if result.reference_total_nT is not None else ""
-    out.append(f"{ns} sensor(s), {result.n_samples} samples; reference field: {ref_value}{ref_text}")
+    out.append(f"{cal.n_sensors} sensor(s), {result.n_samples} samples; reference field: {ref_value}{ref_text}")
     if cal.baseline_m:
         out.append(f"baseline d = {cal.baseline_m:g} m")
     method = {
@@ -98,11 +108,13 @@ def text_report(result, source: str | None = None) -> str:
         extras.append("effects: " + ", ".join(result.effects))
     out.append(f"method: {method}{'; ' + '; '.join(extras) if extras else ''}; {result.wall_s * 1e3:.0f} ms")
     out.append("")
+    return out
 
-    # steps
-    out.append(
-        "Steps (total-field RMS per sensor, nT; sensor disagreement RMS |B_s - B_1|, nT; worst tensor RMS, nT/m)"
-    )
+
+def _step_lines(result) -> list[str]:
+    """The steps' table: total-field RMS per sensor, the sensors' disagreement, the worst tensor RMS, the time."""
+    ns = result.calibration.n_sensors
+    out = ["Steps (total-field RMS per sensor, nT; sensor disagreement RMS |B_s - B_1|, nT; worst tensor RMS, nT/m)"]
     header = f"  {'step':<11}" + "".join(f"{'s' + str(s + 1):>10}" for s in range(ns))
     if ns > 1:
         header += f"{'disagree':>10}"
@@ -117,8 +129,12 @@ def text_report(result, source: str | None = None) -> str:
             line += f"{max(step.tensor_rms_nT_per_m.values()):>10.2f}"
         out.append(line + (f"   {step.wall_s * 1e3:.0f} ms" if step.name != "raw" else ""))
     out.append("")
+    return out
 
-    # floors
+
+def _floor_lines(result) -> list[str]:
+    """The noise, the total-field floor against the RMS after calibration, and the held-out validation."""
+    out = []
     noise = result.noise
     if noise is not None:
         out.append(f"Noise sigma = {noise.text()}")
@@ -140,64 +156,84 @@ def text_report(result, source: str | None = None) -> str:
         out.append("")
         out += validation.text().rstrip("\n").split("\n")
     out.append("")
+    return out
 
-    # per sensor
-    for s, sc in enumerate(cal.sensors):
-        scale, angles = conventions.gauge_free(sc.cinv)
+
+def _sensor_lines(result, s) -> list[str]:
+    """Sensor ``s`` (0-based): its RMS before and after, ``C^-1``, ``b``, ``R``, the gauge-free scale and axis
+    angles, the misalignment and the coverage."""
+    cal = result.calibration
+    sc = cal.sensors[s]
+    scale, angles = conventions.gauge_free(sc.cinv)
+    out = [
+        f"Sensor {s + 1}: total-field RMS {result.rms_before_per_sensor_nT[s]:.2f} nT before -> "
+        f"{result.rms_after_per_sensor_nT[s]:.3f} nT after"
+    ]
+    out.append("  C^-1 =")
+    out += _matrix_lines(sc.cinv, "    ")
+    out.append("  b = [" + "  ".join(f"{v:+.3f}" for v in sc.bias_nT) + "] nT")
+    out.append("  R =" + ("  (identity: sensor 1 defines the array frame)" if s == 0 and cal.n_sensors > 1 else ""))
+    out += _matrix_lines(sc.R, "    ")
+    out.append("  scale (gauge-free) = [" + "  ".join(f"{v:.6f}" for v in scale) + "]")
+    out.append("  axis angles x-y, x-z, y-z = [" + "  ".join(f"{v:.4f}" for v in angles) + "] deg")
+    if s > 0:
+        alpha, beta, gamma = conventions.misalignment_angles(sc.R.T)
+        out.append(f"  misalignment alpha, beta, gamma = [{alpha:+.5f}  {beta:+.5f}  {gamma:+.5f}] rad")
+    if result.ellipsoids:
+        cov = result.ellipsoids[s].coverage
         out.append(
-            f"Sensor {s + 1}: total-field RMS {result.rms_before_per_sensor_nT[s]:.2f} nT before -> "
-            f"{result.rms_after_per_sensor_nT[s]:.3f} nT after"
+            f"  coverage: {100 * cov.sky_fraction:.0f}% of the sky visited, thinnest direction spread "
+            f"{cov.thinnest_spread:.3f} (full sphere 0.333)"
         )
-        out.append("  C^-1 =")
-        out += _matrix_lines(sc.cinv, "    ")
-        out.append("  b = [" + "  ".join(f"{v:+.3f}" for v in sc.bias_nT) + "] nT")
-        out.append("  R =" + ("  (identity: sensor 1 defines the array frame)" if s == 0 and ns > 1 else ""))
-        out += _matrix_lines(sc.R, "    ")
-        out.append("  scale (gauge-free) = [" + "  ".join(f"{v:.6f}" for v in scale) + "]")
-        out.append("  axis angles x-y, x-z, y-z = [" + "  ".join(f"{v:.4f}" for v in angles) + "] deg")
-        if s > 0:
-            alpha, beta, gamma = conventions.misalignment_angles(sc.R.T)
-            out.append(f"  misalignment alpha, beta, gamma = [{alpha:+.5f}  {beta:+.5f}  {gamma:+.5f}] rad")
-        if result.ellipsoids:
-            cov = result.ellipsoids[s].coverage
-            out.append(
-                f"  coverage: {100 * cov.sky_fraction:.0f}% of the sky visited, thinnest direction spread "
-                f"{cov.thinnest_spread:.3f} (full sphere 0.333)"
-            )
-        out.append("")
+    out.append("")
+    return out
 
-    # tensor
-    if result.tensor_rms_nT_per_m is not None:
-        out.append("Tensor RMS in the uniform calibration field (true tensor zero), nT/m")
-        out.append(f"  {'':<6}{'before':>12}{'after':>10}{'floor':>10}")
-        for k in conventions.TENSOR_COMPONENTS:
-            out.append(
-                f"  {k:<6}{result.tensor_rms_before_nT_per_m[k]:>12.1f}{result.tensor_rms_nT_per_m[k]:>10.2f}"
-                f"{result.tensor_floor_nT_per_m[k]:>10.2f}"
-            )
-        out.append("  floor: sqrt(2) sigma/d per sensor pair, 2 sigma/d for Gzz")
-        out.append("")
 
-    if result.fit is not None:
-        f = result.fit
+def _tensor_lines(result) -> list[str]:
+    """The tensor's RMS per component before and after, against its floor (an array with a baseline)."""
+    if result.tensor_rms_nT_per_m is None:
+        return []
+    out = ["Tensor RMS in the uniform calibration field (true tensor zero), nT/m"]
+    out.append(f"  {'':<6}{'before':>12}{'after':>10}{'floor':>10}")
+    for k in conventions.TENSOR_COMPONENTS:
         out.append(
-            f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}; "
-            + (
-                f"converged ({f.message}, {f.nfev} evaluations)"
-                if f.success
-                else f"DID NOT CONVERGE ({f.message}, {f.nfev} evaluations): the figures above are not a minimum; "
-                "look at the data (outliers, coverage, units) or refit"
-            )
+            f"  {k:<6}{result.tensor_rms_before_nT_per_m[k]:>12.1f}{result.tensor_rms_nT_per_m[k]:>10.2f}"
+            f"{result.tensor_floor_nT_per_m[k]:>10.2f}"
         )
-        for e in f.effect_params:
-            params = ", ".join(f"{k} = {v:.4g} +- {e['std'][k]:.2g}" for k, v in e["params"].items())
-            where = "" if e["sensor"] is None or ":" in e["term"] else f" (sensor {e['sensor']})"
-            out.append(f"  {e['term']}{where}: {params}")
-            quote = _effect_quote(f.model, e, getattr(result, "field_magnitude_nT", None))
-            if quote:
-                out.append(f"    {quote}")
-            out.append(f"    {effect_scope(e['effect'])}")
-        out.append("")
+    out.append("  floor: sqrt(2) sigma/d per sensor pair, 2 sigma/d for Gzz")
+    out.append("")
+    return out
+
+
+def _fit_lines(result) -> list[str]:
+    """The fit: parameters, AIC and BIC, whether it converged, and each effect's parameters in words."""
+    f = result.fit
+    if f is None:
+        return []
+    out = [
+        f"Fit: {f.n_params} parameters, AIC {f.aic:.1f}, BIC {f.bic:.1f}; "
+        + (
+            f"converged ({f.message}, {f.nfev} evaluations)"
+            if f.success
+            else f"DID NOT CONVERGE ({f.message}, {f.nfev} evaluations): the figures above are not a minimum; "
+            "look at the data (outliers, coverage, units) or refit"
+        )
+    ]
+    for e in f.effect_params:
+        params = ", ".join(f"{k} = {v:.4g} +- {e['std'][k]:.2g}" for k, v in e["params"].items())
+        where = "" if e["sensor"] is None or ":" in e["term"] else f" (sensor {e['sensor']})"
+        out.append(f"  {e['term']}{where}: {params}")
+        quote = _effect_quote(f.model, e, getattr(result, "field_magnitude_nT", None))
+        if quote:
+            out.append(f"    {quote}")
+        out.append(f"    {effect_scope(e['effect'])}")
+    out.append("")
+    return out
+
+
+def _closing_lines(result) -> list[str]:
+    """The distrusted samples (1-based rows) and the warnings."""
+    out = []
     if result.outliers is not None and result.outliers.any():
         idx = np.flatnonzero(result.outliers)
         shown = ", ".join(str(i + 1) for i in idx[:20]) + (" ..." if idx.size > 20 else "")
@@ -205,4 +241,4 @@ def text_report(result, source: str | None = None) -> str:
     if result.remarks:
         out.append("Warnings:")
         out += [f"  - {w}" for w in result.remarks]
-    return "\n".join(out).rstrip() + "\n"
+    return out

@@ -319,8 +319,27 @@ def bad_numeric_cells(values, quaternion_positions=()):
 def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[Note]]:
     """Build the :class:`Layout` from the header names and the optional mapping canonical -> file name; returned
     with the notes it has (a bare ``x`` column kept as unused)."""
-    notes: list[Note] = []
     names = list(header)
+    index = _header_index(names, source, header_line)
+    canonical, mapped_files = _mapped_columns(columns, index, names, source)
+    notes = _named_columns(names, canonical, mapped_files, source)
+    sensors = _sensor_columns(names, canonical, source)
+    channels = {name: canonical[name] for name in CHANNEL_COLUMNS if name in canonical}
+    q = [name for name in QUATERNION_COLUMNS if name in canonical]
+    if q and len(q) != 4:
+        raise DatasetError(f"{source}: attitude needs all four columns qw,qx,qy,qz; found only {', '.join(q)}")
+    quaternion = tuple(canonical[n] for n in QUATERNION_COLUMNS) if q else None
+    used = set(canonical.values())
+    extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
+    for name in MAPPABLE_ACCEL_COLUMNS:  # a file's accelerometer column mapped onto ax, ay, az: kept under that name
+        if name in canonical:
+            extra.pop(name, None)  # the file's own column of that name gives way to the mapped one
+            extra[name] = canonical[name]
+    return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra), notes
+
+
+def _header_index(names, source, header_line) -> dict[str, int]:
+    """(Part of :func:`_find_layout`.) Each named column's index (0-based); a name that appears twice is an error."""
     index: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
@@ -331,18 +350,33 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
                 f"and {j + 1}); rename one of them"
             )
         index[name] = j
-    canonical = {}  # canonical name -> file index
-    mapped_files = set()
-    if columns:
-        mapping = _normalise_mapping(columns, "column mapping")
-        for canon, file_name in mapping.items():
-            if file_name not in index:
-                raise DatasetError(
-                    f"{source}: the column mapping names {shown(file_name)} (for {canon}) but the file has no such "
-                    f"column; its columns are: {names_shown(names)}"
-                )
-            canonical[canon] = index[file_name]
-            mapped_files.add(file_name)
+    return index
+
+
+def _mapped_columns(columns, index, names, source) -> tuple[dict[str, int], set]:
+    """(Part of :func:`_find_layout`.) The mapping ``columns`` (canonical -> file name) as canonical name -> file
+    index, and the file names it maps; a file name the header lacks is an error."""
+    canonical: dict[str, int] = {}
+    mapped_files: set = set()
+    if not columns:
+        return canonical, mapped_files
+    for canon, file_name in _normalise_mapping(columns, "column mapping").items():
+        if file_name not in index:
+            raise DatasetError(
+                f"{source}: the column mapping names {shown(file_name)} (for {canon}) but the file has no such "
+                f"column; its columns are: {names_shown(names)}"
+            )
+        canonical[canon] = index[file_name]
+        mapped_files.add(file_name)
+    return canonical, mapped_files
+
+
+def _named_columns(names, canonical, mapped_files, source) -> list[Note]:
+    """(Part of :func:`_find_layout`.) Add to ``canonical`` the file's columns named as magcal names them (a bare
+    ``x, y, z`` as sensor 1's, unless the file has ``s1x``-style columns too: then it is kept unused, with a note,
+    returned); a sensor number beyond :data:`MAX_SENSORS` is an error."""
+    notes: list[Note] = []
+    known = set(canonical_columns())
     for j, name in enumerate(names):
         if name in mapped_files:
             continue
@@ -359,7 +393,7 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
                 continue
         if key in canonical:
             continue  # a mapped column took this role; the file's own column is kept as an extra
-        if key in set(canonical_columns()):
+        if key in known:
             canonical[key] = j
     for name in names:
         m = re.match(r"^s(\d+)[xyz]$", name)
@@ -368,7 +402,12 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
                 f"{source}: column {shown(name)} names sensor {int(m.group(1))}; magcal handles sensors 1 to "
                 f"{MAX_SENSORS} (s1x .. s{MAX_SENSORS}z). Rename or remove it"
             )
-    sensors = []
+    return notes
+
+
+def _sensor_columns(names, canonical, source) -> list[tuple]:
+    """(Part of :func:`_find_layout`.) Per sensor the indices of its x, y, z columns; sensors numbered 1, 2, ...
+    without a gap, each with all three axes (else an error that says which)."""
     present = sorted({int(m.group(1)) for m in map(_SENSOR_RE.match, canonical) if m})
     if not present:
         raise DatasetError(
@@ -384,6 +423,7 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
             f"{', '.join(map(str, missing))}; sensors are numbered by position (1 +x, 2 +y, 3 -x, 4 -y), so add the "
             "missing sensor's columns or map yours onto s1.. with --columns"
         )
+    sensors = []
     for i in present:
         need = [f"s{i}{a}" for a in SENSOR_AXES]
         lacking = [n for n in need if n not in canonical]
@@ -393,18 +433,7 @@ def _find_layout(header, columns, source, header_line=1) -> tuple[Layout, list[N
                 f"(header: {names_shown(names)})"
             )
         sensors.append(tuple(canonical[n] for n in need))
-    channels = {name: canonical[name] for name in CHANNEL_COLUMNS if name in canonical}
-    q = [name for name in QUATERNION_COLUMNS if name in canonical]
-    if q and len(q) != 4:
-        raise DatasetError(f"{source}: attitude needs all four columns qw,qx,qy,qz; found only {', '.join(q)}")
-    quaternion = tuple(canonical[n] for n in QUATERNION_COLUMNS) if q else None
-    used = set(canonical.values())
-    extra = {names[j] or f"column_{j + 1}": j for j in range(len(names)) if j not in used}
-    for name in MAPPABLE_ACCEL_COLUMNS:  # a file's accelerometer column mapped onto ax, ay, az: kept under that name
-        if name in canonical:
-            extra.pop(name, None)  # the file's own column of that name gives way to the mapped one
-            extra[name] = canonical[name]
-    return Layout(names, sensors, channels, quaternion, canonical.get("group"), extra), notes
+    return sensors
 
 
 def _partial_quaternion(q):

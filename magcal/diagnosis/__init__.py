@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from magcal.checks.noise import NoiseEstimate, estimate_noise, is_smooth_sequence
 from magcal.diagnosis._parallel import start_workers
+from magcal.diagnosis.base import VERDICTS, DiagnosisBase
 from magcal.diagnosis.evidence import SIGNATURES
 from magcal.diagnosis.maps import (
     DirectionPattern,
@@ -66,13 +67,14 @@ from magcal.diagnosis.statistics import (
     spectrum,
 )
 from magcal.diagnosis.structure import GLITCH_MAX_FRACTION, GLITCH_SIGMA, STRUCTURE_MIN_FRACTION, STRUCTURE_P, Structure
-from magcal.diagnosis.verdict import DELTA_BIC_THRESHOLD, VERDICTS, Diagnosis, diagnose
+from magcal.diagnosis.verdict import DELTA_BIC_THRESHOLD, Diagnosis, diagnose
 
 __all__ = [
     # the diagnosis
     "diagnose",
     "start_workers",
     "Diagnosis",
+    "DiagnosisBase",
     "Candidate",
     "Structure",
     "VERDICTS",

@@ -44,7 +44,7 @@ calibration say how far each compass sits off the right angle its firmware orien
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import scipy.signal
@@ -198,15 +198,7 @@ class Cause:
     text: str
 
     def to_dict(self) -> dict:
-        return {
-            "kind": self.kind,
-            "share": self.share,
-            "rms_nT": self.rms_nT,
-            "significance": self.significance,
-            "named": self.named,
-            "values": jsonable(self.values),
-            "text": self.text,
-        }
+        return {**asdict(self), "values": jsonable(self.values)}
 
 
 @dataclass
@@ -685,7 +677,7 @@ def _part(fit, name) -> np.ndarray:
 def _separable_causes(fit, bi, labels) -> list:
     """(:func:`explain_difference`, where the directions flown separate them.) The mounting, scale and offset
     between compass i's fields ``bi`` (N, 3, nT) and compass j's."""
-    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    theta = fit["theta"]
     li, lj = labels
     causes = []
     omega = theta["rotation"]
@@ -700,12 +692,10 @@ def _separable_causes(fit, bi, labels) -> list:
     eig = np.linalg.eigvalsh(stretch)
     med_angle = float(np.median(angle_deg(bi, Rotation.from_rotvec(omega).apply(bi))))
     causes.append(
-        Cause(
+        _block_cause(
+            fit,
             "mounting",
-            share["rotation"],
-            _rms(_part(fit, "rotation")),
-            _significance(omega, cov["rotation"]),
-            False,
+            "rotation",
             {
                 "mounting_rotvec_deg": -rotvec,
                 "field_rotvec_deg": rotvec,
@@ -718,12 +708,10 @@ def _separable_causes(fit, bi, labels) -> list:
         )
     )
     causes.append(
-        Cause(
+        _block_cause(
+            fit,
             "scale",
-            share["stretch"],
-            _rms(_part(fit, "stretch")),
-            _significance(theta["stretch"], cov["stretch"]),
-            False,
+            "stretch",
             {"stretch_percent": (100 * eig).tolist()},
             f"scale: their scales differ by up to {100 * float(np.max(np.abs(eig))):.2f} % along some direction "
             "(soft iron near one, or a scale calibration)",
@@ -731,24 +719,33 @@ def _separable_causes(fit, bi, labels) -> list:
     )
     offset = theta["offset"]
     causes.append(
-        Cause(
+        _block_cause(
+            fit,
             "offset",
-            share["offset"],
-            float(np.linalg.norm(offset)),
-            _significance(offset, cov["offset"]),
-            False,
+            "offset",
             {"offset_nT": offset},
             f"offset: a constant ({offset[0]:.0f}, {offset[1]:.0f}, {offset[2]:.0f}) nT "
             f"(|{np.linalg.norm(offset):.0f}| nT: hard iron near one compass, or offsets one calibration left)",
+            size_nT=float(np.linalg.norm(offset)),
         )
     )
     return causes
 
 
+def _block_cause(fit, kind, block, values, text, size_nT=None) -> Cause:
+    """A cause of the kind ``kind`` from the term ``block`` of the difference's regression ``fit``: the share of
+    the difference it accounts for, its size (``size_nT``, default the RMS of its part, nT), the significance of
+    its estimate, its values and words; named or not by :func:`explain_difference`."""
+    size = _rms(_part(fit, block)) if size_nT is None else size_nT
+    return Cause(
+        kind, fit["share"][block], size, _significance(fit["theta"][block], fit["cov"][block]), False, values, text
+    )
+
+
 def _constant_causes(fit, channels) -> list:
     """(:func:`explain_difference`, where the directions flown do not separate them.) The constant difference (its
     angle and |B|, at zero current too) and the part that changes with the field's direction."""
-    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    theta = fit["theta"]
     causes = []
     d0 = theta["constant"]
     mean_b = fit["mean_base"]
@@ -767,24 +764,21 @@ def _constant_causes(fit, channels) -> list:
         values.update(zero_current_offset_nT=d_off, zero_current_angle_deg=ang_off)
         text += f" ({ang_off:.2f} deg at zero {name})"
     causes.append(
-        Cause(
+        _block_cause(
+            fit,
             "constant",
-            share["constant"],
-            float(np.linalg.norm(d0)),
-            _significance(d0, cov["constant"]),
-            False,
+            "constant",
             values,
             text + ": a mounting off by that angle, or an offset (hard iron); the directions flown cannot tell "
             "them apart",
+            size_nT=float(np.linalg.norm(d0)),
         )
     )
     causes.append(
-        Cause(
+        _block_cause(
+            fit,
             "direction",
-            share["direction"],
-            _rms(_part(fit, "direction")),
-            _significance(theta["direction"], cov["direction"]),
-            False,
+            "direction",
             {},
             "direction: a part that changes with the field's direction (a scale, soft-iron or mounting difference "
             "the directions flown do not separate)",
@@ -796,7 +790,7 @@ def _constant_causes(fit, channels) -> list:
 def _channel_causes(fit, bi, d, channels, labels) -> list:
     """(:func:`explain_difference`.) Per channel (current, throttle, temperature) the part of the difference ``d``
     (N, 3, nT) that follows it: per unit, as an angle and as |B|, over the record's range."""
-    theta, cov, share = fit["theta"], fit["cov"], fit["share"]
+    theta = fit["theta"]
     li, lj = labels
     causes = []
     bhat = bi / np.linalg.norm(bi, axis=1)[:, None]
@@ -812,12 +806,10 @@ def _channel_causes(fit, bi, d, channels, labels) -> list:
         kind = "temperature" if name == "temperature_C" else name
         what = {"current_A": "the current (current_A)", "throttle": "the throttle", "temperature_C": "the temperature"}
         causes.append(
-            Cause(
+            _block_cause(
+                fit,
                 kind,
-                share[name],
-                _rms(_part(fit, name)),
-                _significance(kvec, cov[name]),
-                False,
+                name,
                 {
                     "column": name,
                     "per_unit_nT": kvec,
@@ -1011,24 +1003,58 @@ def compass_consistency(
         raise MagcalError(
             f"{dataset.source or 'data'}: the consistency of compasses needs two or more; the record has one"
         )
-    after = calibration.correct(dataset, warn=False, force=True)
-    after = np.asarray(after, dtype=float)
+    after, before, before_source = _fields_compared(dataset, calibration, before, before_source)
+    keep, column, temp = _samples_compared(dataset, after, before, mask)
+    n = int(keep.sum())
+    idx = np.flatnonzero(keep)
+    time_s = None if dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[idx]
+    channels, notes = _channels_compared(dataset, column, temp, idx, time_s)
+    pairs = [
+        _pair_consistency(i, j, before, after, idx, time_s, channels)
+        for i in range(dataset.n_sensors)
+        for j in range(i + 1, dataset.n_sensors)
+    ]
+    mountings = _mountings(calibration) if calibration.mode == "vector" else []
+    if mountings:
+        _add_mounting_causes(pairs, mountings, before, idx)
+    sensitivities = []
+    if column is not None and column in channels:
+        sensitivities = _current_sensitivities(dataset, calibration, reference, column, keep, before, after)
+    return CompassConsistency(
+        dataset.n_sensors,
+        n,
+        before_source,
+        after_source,
+        column if column in channels else None,
+        pairs,
+        sensitivities,
+        mountings,
+        notes,
+    )
+
+
+def _fields_compared(dataset, calibration, before, before_source) -> tuple:
+    """(Part of :func:`compass_consistency`.) The fields after ``calibration`` and before it (given, or
+    :func:`before_fields`), (n_sensors, N, 3) nT each, and what the fields before are."""
+    after = np.asarray(calibration.correct(dataset, warn=False, force=True), dtype=float)
     if before is None:
         before, what = before_fields(dataset, calibration)
-        before_source = before_source or what
-    else:
-        before = np.asarray(before, dtype=float)
-        before_source = before_source or "given"
-        if before.shape != after.shape:
-            raise MagcalError(f"the fields before have shape {before.shape}; the record's are {after.shape}")
+        return after, before, before_source or what
+    before = np.asarray(before, dtype=float)
+    if before.shape != after.shape:
+        raise MagcalError(f"the fields before have shape {before.shape}; the record's are {after.shape}")
+    return after, before, before_source or "given"
+
+
+def _samples_compared(dataset, after, before, mask) -> tuple:
+    """(Part of :func:`compass_consistency`.) The samples compared (``mask``, where every field and the current
+    are finite, and the temperature when it changes by more than :data:`MIN_TEMPERATURE_RANGE_C`), the current's
+    column (or None) and the temperature (degC, None when it is not compared)."""
     keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, dtype=bool).copy()
     keep &= np.all(np.isfinite(after), axis=(0, 2)) & np.all(np.isfinite(before), axis=(0, 2))
-    notes = []
     column = current_column(dataset)
-    channels = {}
     if column is not None:
-        u = np.asarray(dataset.extra[column], dtype=float)
-        keep &= np.isfinite(u)
+        keep &= np.isfinite(np.asarray(dataset.extra[column], dtype=float))
     temp = None if dataset.temperature_C is None else np.asarray(dataset.temperature_C, dtype=float)
     if temp is not None:
         known = keep & np.isfinite(temp)
@@ -1042,12 +1068,20 @@ def compass_consistency(
             f"{dataset.source or 'data'}: only {n} samples have every compass's field (and the channels compared); "
             f"the consistency of compasses needs at least {MIN_SAMPLES}"
         )
-    idx = np.flatnonzero(keep)
-    time_s = None if dataset.time_s is None else np.asarray(dataset.time_s, dtype=float)[idx]
+    return keep, column, temp
+
+
+def _channels_compared(dataset, column, temp, idx, time_s) -> tuple[dict, list]:
+    """(Part of :func:`compass_consistency`.) The channels a difference is regressed on at the samples ``idx``
+    (name -> (values, unit)): the current when it changes, the temperature; and the notes on what they cannot
+    tell."""
+    channels: dict = {}
+    notes: list = []
     if column is not None:
-        channels[column] = (u[idx], CURRENT_COLUMNS[column])
-        if np.ptp(u[idx]) <= 0:
-            channels.pop(column)
+        u = np.asarray(dataset.extra[column], dtype=float)[idx]
+        if np.ptp(u) > 0:
+            channels[column] = (u, CURRENT_COLUMNS[column])
+        else:
             notes.append(f"{column} does not change over the samples compared: its field cannot be told from an offset")
     if temp is not None:
         channels["temperature_C"] = (temp[idx], "degC")
@@ -1057,71 +1091,50 @@ def compass_consistency(
                 notes.append(
                     f"the temperature follows time (r = {r:.2f}): a term following it could as well be a drift"
                 )
-    pairs = []
-    for i in range(dataset.n_sensors):
-        for j in range(i + 1, dataset.n_sensors):
-            out = {}
-            for state, fields in (("before", before), ("after", after)):
-                bi, bj = fields[i][idx], fields[j][idx]
-                rate = None
-                if time_s is not None and len(time_s) >= 7 and np.all(np.diff(time_s) > 0):
-                    rate = time_derivative(bi, time_s)
-                some = _spread_evenly(len(bi))
-                causes, resid = explain_difference(
-                    bi[some],
-                    bj[some],
-                    {k: (v[some], unit) for k, (v, unit) in channels.items()},
-                    None if rate is None else rate[some],
-                    labels=(str(i + 1), str(j + 1)),
-                )
-                d = bj - bi
-                out[state] = (
-                    pair_figures(bi, bj, time_s),
-                    causes,
-                    float(np.sqrt(np.mean(np.sum(d * d, axis=1)))),
-                    resid,
-                )
-            pairs.append(
-                PairConsistency(
-                    i,
-                    j,
-                    out["before"][0],
-                    out["after"][0],
-                    out["before"][1],
-                    out["after"][1],
-                    out["before"][2],
-                    out["after"][2],
-                    out["before"][3],
-                    out["after"][3],
-                )
-            )
-    mountings = _mountings(calibration) if calibration.mode == "vector" else []
-    if mountings:
-        _add_mounting_causes(pairs, mountings, before, idx)
-    sensitivities = []
+    return channels, notes
+
+
+def _pair_consistency(i, j, before, after, idx, time_s, channels) -> PairConsistency:
+    """(Part of :func:`compass_consistency`.) Compasses ``i`` and ``j`` (0-based) compared at the samples ``idx``,
+    before and after: their figures, the causes of their difference, its RMS (nT) and what the causes leave."""
+    out = {}
+    for state, fields in (("before", before), ("after", after)):
+        bi, bj = fields[i][idx], fields[j][idx]
+        rate = None
+        if time_s is not None and len(time_s) >= 7 and np.all(np.diff(time_s) > 0):
+            rate = time_derivative(bi, time_s)
+        some = _spread_evenly(len(bi))
+        causes, resid = explain_difference(
+            bi[some],
+            bj[some],
+            {k: (v[some], unit) for k, (v, unit) in channels.items()},
+            None if rate is None else rate[some],
+            labels=(str(i + 1), str(j + 1)),
+        )
+        d = bj - bi
+        out[state] = (pair_figures(bi, bj, time_s), causes, float(np.sqrt(np.mean(np.sum(d * d, axis=1)))), resid)
+    (fig_b, causes_b, rms_b, resid_b), (fig_a, causes_a, rms_a, resid_a) = out["before"], out["after"]
+    return PairConsistency(i, j, fig_b, fig_a, causes_b, causes_a, rms_b, rms_a, resid_b, resid_a)
+
+
+def _current_sensitivities(dataset, calibration, reference, column, keep, before, after) -> list:
+    """(Part of :func:`compass_consistency`.) Each compass's own sensitivity to the current before and after (the
+    calibration's current term taken out), with the attitude and the Earth's field ``reference``; empty without
+    them or with fewer than :data:`MIN_SAMPLES` samples that have both."""
     rows = attitude_rows(dataset)
     ned = getattr(reference, "ned_nT", reference)
-    if column is not None and column in channels and rows is not None and ned is not None:
-        rotation, have = rows
-        ned = np.asarray(ned, dtype=float)
-        use = keep & have & np.all(np.isfinite(ned), axis=1)
-        if use.sum() >= MIN_SAMPLES:
-            rot_use = rotation[np.flatnonzero(use)]
-            u_all = np.asarray(dataset.extra[column], dtype=float)
-            sensitivities += _sensitivities(before, use, rot_use, ned, u_all, "before")
-            comp = None
-            k_all, columns = current_term(calibration)
-            if k_all is not None and all(c in (None, column) for c in columns):
-                comp = [(cal.R @ cal.cinv) @ np.asarray(k, dtype=float) for cal, k in zip(calibration.sensors, k_all)]
-            sensitivities += _sensitivities(after, use, rot_use, ned, u_all, "after", comp)
-    return CompassConsistency(
-        dataset.n_sensors,
-        n,
-        before_source,
-        after_source,
-        column if column in channels else None,
-        pairs,
-        sensitivities,
-        mountings,
-        notes,
-    )
+    if rows is None or ned is None:
+        return []
+    rotation, have = rows
+    ned = np.asarray(ned, dtype=float)
+    use = keep & have & np.all(np.isfinite(ned), axis=1)
+    if use.sum() < MIN_SAMPLES:
+        return []
+    rot_use = rotation[np.flatnonzero(use)]
+    u_all = np.asarray(dataset.extra[column], dtype=float)
+    out = _sensitivities(before, use, rot_use, ned, u_all, "before")
+    comp = None
+    k_all, columns = current_term(calibration)
+    if k_all is not None and all(c in (None, column) for c in columns):
+        comp = [(cal.R @ cal.cinv) @ np.asarray(k, dtype=float) for cal, k in zip(calibration.sensors, k_all)]
+    return out + _sensitivities(after, use, rot_use, ned, u_all, "after", comp)

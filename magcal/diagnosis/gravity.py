@@ -19,19 +19,22 @@ or an effect the model lacks. Three move the dip in ways one can test for:
 
 Each is a least-squares regression of the residual on its regressors against a constant, with an F-test, the
 fraction of the residual's variance it explains and its coefficient. A residual correlated in time (a slow drift)
-makes the p-values optimistic: read them with the explained fraction. :func:`dip_evidence` gives them ranked; the
-verdict of a scalar or vector calibration is :mod:`magcal.diagnosis.verdict`'s, this module stands beside it.
+makes the p-values optimistic: read them with the explained fraction. :func:`dip_evidence` gives them ranked, as a
+diagnosis (:class:`magcal.diagnosis.base.DiagnosisBase`) whose verdict is ``not_judged``: no candidate is judged on
+held-out data, so none is advised; the verdict of a scalar or vector calibration is :mod:`magcal.diagnosis.verdict`'s,
+this module stands beside it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import stats
 
 from magcal.data.accelerometer import STANDARD_GRAVITY_M_S2, accelerometer, find_still
 from magcal.data.dataset import Dataset
+from magcal.diagnosis.base import DiagnosisBase
 from magcal.geometry.heading import dip_deg
 
 #: Candidates, in the order they are tried.
@@ -83,21 +86,14 @@ class DipCandidate:
         )
 
     def to_dict(self) -> dict:
-        return {
-            "name": self.name,
-            "n": self.n,
-            "f_statistic": self.f_statistic,
-            "p_value": self.p_value,
-            "explained": self.explained,
-            "estimate": self.estimate,
-            "unit": self.unit,
-            "supported": self.supported,
-        }
+        return asdict(self)
 
 
 @dataclass
-class DipEvidence:
-    """The dip's residual after a gravity calibration and the candidates that move it.
+class DipEvidence(DiagnosisBase):
+    """The dip's residual after a gravity calibration and the candidates that move it: a diagnosis
+    (:class:`magcal.diagnosis.base.DiagnosisBase`) that judges nothing held out, so its verdict is ``not_judged``
+    and it advises nothing (``explained_by`` empty); the supported candidates are named in the summary.
 
     Attributes
     ----------
@@ -109,6 +105,8 @@ class DipEvidence:
         Ranked: supported first, then by p-value.
     skipped : list of str
         Candidates the data cannot test, with why.
+    sensor : int
+        Which magnetometer (0-based).
     """
 
     residual_deg: np.ndarray
@@ -118,24 +116,55 @@ class DipEvidence:
     skipped: list = field(default_factory=list)
     sensor: int = 0
 
+    #: No held-out judgement, no noise figure, no structure test and no fits of its own.
+    verdict = "not_judged"
+    explained_by: list = field(default_factory=list, init=False, repr=False)
+    remaining: list = field(default_factory=list, init=False, repr=False)
+    notes: list = field(default_factory=list, init=False, repr=False)
+    noise = None
+    elapsed_s = 0.0
+
     @property
     def supported(self) -> list:
         return [c for c in self.candidates if c.supported]
 
-    def text(self) -> str:
+    @property
+    def summary(self) -> str:  # type: ignore[override]
+        """The dip's residual and the candidates supported in-sample (not advised: none is judged held out)."""
+        named = ", ".join(c.name for c in self.supported)
+        found = (
+            f"supported in-sample, not advised until judged held out: {named}"
+            if named
+            else "no candidate explains a significant part of it"
+        )
+        return (
+            f"dip residual {self.sd_deg:.3f} deg RMS over {self.rows.size} still samples; {found} (the dip's candidates "
+            "are tested in-sample only)"
+        )
+
+    @property
+    def warnings(self) -> list:  # type: ignore[override]
+        """The candidates the data cannot test, with why."""
+        return list(self.skipped)
+
+    @property
+    def evidence(self) -> dict:  # type: ignore[override]
+        """Plot data: the dip's residual (deg) at the still samples' rows."""
+        return {"rows": self.rows, "residual_deg": self.residual_deg}
+
+    def text(self, limit: int = 12) -> str:
         lines = [
             f"dip residual (sensor {self.sensor + 1}): {self.sd_deg:.3f} deg RMS over {self.rows.size} still samples"
         ]
-        lines += [f"  {c.text()}" for c in self.candidates]
+        lines += [f"  {c.text()}" for c in self.candidates[:limit]]
         lines += [f"  {s}" for s in self.skipped]
         return "\n".join(lines) + "\n"
 
-    def to_dict(self) -> dict:
+    def _own_dict(self) -> dict:
         return {
             "sensor": self.sensor + 1,
             "sd_deg": self.sd_deg,
             "n": int(self.rows.size),
-            "candidates": [c.to_dict() for c in self.candidates],
             "skipped": list(self.skipped),
         }
 

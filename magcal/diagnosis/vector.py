@@ -57,6 +57,8 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
 from magcal.data.attitude import attitude_rows, turn_rate_dps
+from magcal.diagnosis.base import DiagnosisBase, progress_reporter
+from magcal.diagnosis.selection import first_that_holds, forward_selection
 from magcal.diagnosis.uniformity import field_uniformity
 from magcal.fitting.vector import VectorFitResult, attitude_error_deg, fit_vector, position_basis, positions_m
 from magcal.model.effects import CURRENT_COLUMNS, current_column
@@ -86,9 +88,6 @@ STRUCTURE_MIN_SHARE = 0.05
 
 #: ... and its F-test's p-value is below this.
 STRUCTURE_P = 1e-6
-
-#: Verdicts: the scalar diagnosis's, and ``not_judged`` (no held-out judgement could be made: nothing advised).
-VERDICTS = ("adequate", "missing_effect", "unexplained", "not_judged")
 
 #: The world components each sensor's residual is judged on, and ``|B|``.
 COMPONENTS = ("north", "east", "down", "|B|")
@@ -335,13 +334,69 @@ class LeftStructure:
 
 
 @dataclass
-class VectorDiagnosis:
-    """What :func:`diagnose_vector` found.
+class VectorNoise:
+    """The white noise of a vector fit's residuals (their differences in time), per sensor: what no model removes,
+    and what the normalized RMS divides by (:func:`_white_noise`).
+
+    Attributes
+    ----------
+    total_nT : list of float
+        Per sensor the total field's.
+    perpendicular_nT : list of float
+        Per sensor the components' across the field.
+    white_attitude_deg : float
+        The attitude error the perpendicular white noise implies, deg.
+    world_floor_nT : float
+        The world components' floor ``sqrt((2 sigma_perp^2 + sigma_F^2) / 3)``, nT.
+    attitude_deg : float
+        The attitude error as the vector fit estimates it, deg (NaN until set).
+    """
+
+    total_nT: list
+    perpendicular_nT: list
+    white_attitude_deg: float
+    world_floor_nT: float
+    attitude_deg: float = float("nan")
+
+    #: Where the noise came from (:class:`magcal.diagnosis.base.NoiseLevel`).
+    source = "differences"
+
+    @property
+    def sigma_nT(self) -> float:
+        """The total field's white noise over the sensors (RMS), nT."""
+        return float(np.sqrt(np.mean(np.square(self.total_nT))))
+
+    @property
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per sensor the total-field and perpendicular noises the scores are weighed with, nT."""
+        return np.asarray(self.total_nT), np.asarray(self.perpendicular_nT)
+
+    def text(self) -> str:
+        """``"world floor 3.1 nT, |B| 2.0 nT (white, from the differences in time)"``."""
+        return (
+            f"world floor {self.world_floor_nT:.3g} nT, |B| {self.sigma_nT:.3g} nT (white, from the residuals' "
+            "differences in time)"
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "total_nT": [float(v) for v in self.total_nT],
+            "perpendicular_nT": [float(v) for v in self.perpendicular_nT],
+            "white_attitude_deg": float(self.white_attitude_deg),
+            "world_floor_nT": float(self.world_floor_nT),
+            "attitude_deg": float(self.attitude_deg),
+        }
+
+
+@dataclass
+class VectorDiagnosis(DiagnosisBase):
+    """What :func:`diagnose_vector` found (the names every diagnosis answers to:
+    :class:`magcal.diagnosis.base.DiagnosisBase`).
 
     Attributes
     ----------
     verdict : str
-        ``adequate``, ``missing_effect`` or ``unexplained``.
+        One of :data:`magcal.diagnosis.base.VERDICTS`.
     summary : str
     effects : list of str
         Effects already in the diagnosed model.
@@ -349,9 +404,8 @@ class VectorDiagnosis:
         Where the field vector came from.
     base : Scores
         The diagnosed model's figures on its fitted samples.
-    noise : dict
-        ``total_nT`` and ``perpendicular_nT``: the white noise of the residuals (their differences in time), per
-        sensor; ``weighted``: the weighted RMS that noise alone gives; ``attitude_deg``: the attitude error it implies.
+    noise : VectorNoise
+        The white noise of the residuals (their differences in time), per sensor, and the attitude error.
     candidates : list of VectorCandidate
         Best (lowest delta-BIC) first, every round's.
     explained_by : list of str
@@ -360,7 +414,7 @@ class VectorDiagnosis:
         Effects that describe this record only (the summary says what to do when recording).
     final : Scores or None
         The figures with ``explained_by`` added.
-    left : list of LeftStructure
+    remaining : list of LeftStructure
         Structure left in the final residuals, named by what it follows.
     warnings : list of str
     notes : list of Note
@@ -382,12 +436,12 @@ class VectorDiagnosis:
     effects: list
     reference_text: str
     base: Scores
-    noise: dict
+    noise: VectorNoise
     candidates: list
     explained_by: list
     record_holds: list
     final: Scores | None
-    left: list
+    remaining: list
     warnings: list
     notes: list
     validation: dict
@@ -397,51 +451,56 @@ class VectorDiagnosis:
     elapsed_s: float = 0.0
     mode: str = "vector"
 
-    @property
-    def best(self) -> VectorCandidate | None:
-        return self.candidates[0] if self.candidates else None
-
-    def where_text(self) -> str:
-        return f"{self.elapsed_s:.1f} s"
-
-    def plot_data(self) -> dict:
-        return jsonable(self.evidence)
-
-    def to_dict(self) -> dict:
+    def _own_dict(self) -> dict:
+        """The keys of ``magcal diagnose --mode vector --json`` beside the shared ones."""
         return {
-            "mode": "vector",
-            "verdict": self.verdict,
-            "summary": self.summary,
             "effects": list(self.effects),
             "reference": self.reference_text,
             "rms_world_nT": self.base.world_nT,
             "rms_total_field_nT": self.base.total_nT,
             "weighted_rms": self.base.weighted,
-            "noise": jsonable(self.noise),
-            "candidates": [c.to_dict() for c in self.candidates],
-            "explained_by": list(self.explained_by),
             "record_holds": list(self.record_holds),
             "after": None if self.final is None else self.final.to_dict(),
-            "remaining_structure": [s.to_dict() for s in self.left],
-            "warnings": list(self.warnings),
             "validation": jsonable(self.validation),
-            "elapsed_s": round(float(self.elapsed_s), 3),
         }
 
-    def table(self, limit=12) -> str:
+    def text(self, limit=12) -> str:
         """The header, the verdict and a ranked table of the candidates, round by round."""
+        lines = self._header_lines() + self._round_lines(limit)
+        lines.append(
+            "  world: RMS per north/east/down component (nT), without -> with the effect; norm.: |B| over its noise "
+            "and the components across the field over theirs, RMS (1 is the noise); later: fitted on the earlier "
+            "part, applied to the later"
+        )
+        if self.final is not None and self.explained_by:
+            lines.append(
+                f"with {', '.join(self.explained_by)}: world components {self.base.world_nT:.4g} -> "
+                f"{self.final.world_nT:.4g} nT, |B| {self.base.total_nT:.4g} -> {self.final.total_nT:.4g} nT"
+            )
+        if self.remaining:
+            lines.append("")
+            lines.append("structure left in the residuals:")
+            lines.extend(f"  {s.text()}" for s in self.remaining)
+        if self.warnings:
+            lines.append("")
+            lines.extend(f"warning: {w}" for w in self.warnings)
+        return "\n".join(lines)
+
+    def _header_lines(self) -> list[str]:
+        """(Part of :meth:`text`.) The verdict, the summary, the base model's figures against the noise, how the
+        candidates were judged and the model's effects."""
         v = self.validation
-        floor = self.noise.get("world_floor_nT", float("nan"))
+        noise = self.noise
         lines = [
             f"verdict: {self.verdict}",
             f"  {self.summary}",
             "mode: vector (the fit with attitude and the field vector); candidates judged on the world "
             "north/east/down residuals and |B|, each at its own noise",
             f"reference field vector: {self.reference_text}",
-            f"world components RMS {self.base.world_nT:.4g} nT (white noise floor {floor:.3g} nT; attitude error "
-            f"{self.noise.get('attitude_deg', float('nan')):.3g} deg as the vector fit estimates it, white part "
-            f"{self.noise.get('white_attitude_deg', float('nan')):.3g} deg), |B| RMS {self.base.total_nT:.4g} nT (noise "
-            f"{float(np.sqrt(np.mean(np.square(self.noise.get('total_nT', [np.nan]))))):.3g} nT); normalized RMS "
+            f"world components RMS {self.base.world_nT:.4g} nT (white noise floor {noise.world_floor_nT:.3g} nT; "
+            f"attitude error {noise.attitude_deg:.3g} deg as the vector fit estimates it, white part "
+            f"{noise.white_attitude_deg:.3g} deg), |B| RMS {self.base.total_nT:.4g} nT (noise "
+            f"{noise.sigma_nT:.3g} nT); normalized RMS "
             f"{self.base.weighted:.3g} (1 is the noise)",
         ]
         if v.get("n_later"):
@@ -464,15 +523,20 @@ class VectorDiagnosis:
             )
         if self.effects:
             lines.append(f"model effects: {', '.join(self.effects)}")
-        flights = bool(v.get("flights"))
+        return lines
+
+    def _round_lines(self, limit) -> list[str]:
+        """(Part of :meth:`text`.) The candidates' table, round by round: the first round's best ``limit``, a later
+        round's supported ones (else its best three)."""
+        flights = bool(self.validation.get("flights"))
         head = (
             f"{'rank':>4}  {'effect':<24} {'dBIC':>10} {'world in-sample':>17} {'world later':>17} {'norm. later':>13}"
         )
         if flights:
             head += f" {'norm. flights':>16}"
-        rounds = sorted({c.round for c in self.candidates})
+        lines: list[str] = []
         added: list[str] = []
-        for r in rounds:
+        for r in sorted({c.round for c in self.candidates}):
             cands = [c for c in self.candidates if c.round == r]
             lines.append("")
             lines.append(
@@ -483,38 +547,27 @@ class VectorDiagnosis:
             lines.append(head + "  advice")
             shown = cands[:limit] if r == 1 else [c for c in cands if c.supported][:limit] or cands[:3]
             for i, c in enumerate(shown, 1):
-                later = "-" if c.later is None else _pair(c.later[0].world_nT, c.later[1].world_nT)
-                nlater = "-" if c.later is None else _pair(c.later[0].weighted, c.later[1].weighted, "{:.3g}")
-                row = (
-                    f"{i:>4}  {c.label:<24} {c.delta_bic:>10.1f} "
-                    f"{_pair(c.in_sample[0].world_nT, c.in_sample[1].world_nT):>17} {later:>17} {nlater:>13}"
-                )
-                if flights:
-                    fl = "; ".join(_pair(b.weighted, a.weighted, "{:.3g}") for _, b, a in c.flights) or "-"
-                    row += f" {fl:>16}"
-                advice = ("RECOMMENDED" + (f"; {c.why}" if c.why else "")) if c.recommended else c.why
-                lines.append(row + f"  {advice}")
+                lines.append(_candidate_row(i, c, flights))
                 if c.evidence and (c.supported or i <= 3):
                     lines.append(f"{'':>6}{c.evidence}")
             added += [c.label for c in cands if c.recommended]
-        lines.append(
-            "  world: RMS per north/east/down component (nT), without -> with the effect; norm.: |B| over its noise "
-            "and the components across the field over theirs, RMS (1 is the noise); later: fitted on the earlier "
-            "part, applied to the later"
-        )
-        if self.final is not None and self.explained_by:
-            lines.append(
-                f"with {', '.join(self.explained_by)}: world components {self.base.world_nT:.4g} -> "
-                f"{self.final.world_nT:.4g} nT, |B| {self.base.total_nT:.4g} -> {self.final.total_nT:.4g} nT"
-            )
-        if self.left:
-            lines.append("")
-            lines.append("structure left in the residuals:")
-            lines.extend(f"  {s.text()}" for s in self.left)
-        if self.warnings:
-            lines.append("")
-            lines.extend(f"warning: {w}" for w in self.warnings)
-        return "\n".join(lines)
+        return lines
+
+
+def _candidate_row(rank, c, flights) -> str:
+    """A candidate's row of :meth:`VectorDiagnosis.text`: world RMS in-sample and later, normalized later (and on
+    the other ``flights``), the advice."""
+    later = "-" if c.later is None else _pair(c.later[0].world_nT, c.later[1].world_nT)
+    nlater = "-" if c.later is None else _pair(c.later[0].weighted, c.later[1].weighted, "{:.3g}")
+    row = (
+        f"{rank:>4}  {c.label:<24} {c.delta_bic:>10.1f} "
+        f"{_pair(c.in_sample[0].world_nT, c.in_sample[1].world_nT):>17} {later:>17} {nlater:>13}"
+    )
+    if flights:
+        fl = "; ".join(_pair(b.weighted, a.weighted, "{:.3g}") for _, b, a in c.flights) or "-"
+        row += f" {fl:>16}"
+    advice = ("RECOMMENDED" + (f"; {c.why}" if c.why else "")) if c.recommended else c.why
+    return row + f"  {advice}"
 
 
 def _pair(before, after, fmt="{:.4g}") -> str:
@@ -808,11 +861,7 @@ def diagnose_vector(
     VectorDiagnosis
     """
     t0 = _time.perf_counter()
-
-    def report(msg, frac):
-        if progress is not None:
-            progress(msg, frac)
-
+    report = progress_reporter(progress)
     options = {
         "attitude_noise_deg": attitude_noise_deg,
         "noise_nT": noise_nT,
@@ -825,9 +874,17 @@ def diagnose_vector(
     if reference.kind == "fitted":
         reference = result.reference  # the field the fit found: the candidates are judged at it
     ctx = _vector_base(dataset, reference, result, also, options, validate)
-    for rnd in range(max_effects if ctx.judged else 0):
-        if not _vector_round(ctx, rnd, candidates, top, report, 0.1 + 0.8 * rnd / max(max_effects, 1)):
-            break
+
+    def judged_round(rnd):
+        return _vector_round(ctx, rnd, candidates, top, report, 0.1 + 0.8 * rnd / max(max_effects, 1))
+
+    forward_selection(
+        lambda: judged_round(0),
+        first_that_holds,
+        lambda step, best, judged: _take(ctx, best, judged),
+        lambda step, best: judged_round(step + 1),
+        max_effects if ctx.judged else 0,
+    )
     diagnosis = _vector_explain(ctx, t0)
     _uniformity_finding(ctx, diagnosis)
     return diagnosis
@@ -861,7 +918,7 @@ class VectorContext:
         The samples the diagnosed fit used.
     err, total : numpy.ndarray
         The diagnosed fit's world residuals (n_sensors, N, 3) and total-field residuals (n_sensors, N), nT.
-    noise : dict
+    noise : VectorNoise
         :func:`_white_noise` of the residuals.
     weights : tuple of numpy.ndarray
         Per sensor the total-field and perpendicular noises the scores are weighted with, nT.
@@ -896,7 +953,7 @@ class VectorContext:
     fitted: np.ndarray
     err: np.ndarray
     total: np.ndarray
-    noise: dict
+    noise: VectorNoise
     weights: tuple
     base: Scores
     validation: dict
@@ -930,8 +987,8 @@ def _vector_base(dataset, reference, result, also, options, validate) -> VectorC
     err, total = record.residuals(result.calibration, "apply")
     noise = _white_noise(record, err, total, fitted, options["noise_nT"], options["attitude_noise_deg"])
     # the attitude error: the vector fit's own estimate, the one magcal calibrate reports
-    noise["attitude_deg"] = float(np.sqrt(np.mean([s.attitude_noise_deg**2 for s in result.sensors])))
-    weights = (np.asarray(noise["total_nT"]), np.asarray(noise["perpendicular_nT"]))
+    noise.attitude_deg = float(np.sqrt(np.mean([s.attitude_noise_deg**2 for s in result.sensors])))
+    weights = noise.weights
     base = _scores(record, err, total, fitted, *weights)
     flights = [_flight_at_its_noise(f, result, options) for f in also]
     later, validation = _later_split(fitted, validate, dataset)
@@ -992,7 +1049,7 @@ def _flight_at_its_noise(flight, result, options) -> tuple:
     rec = _Record.of(flight.dataset, flight.reference)
     err, total = rec.residuals(result.calibration, "drop")
     noise = _white_noise(rec, err, total, rec.usable, options["noise_nT"], options["attitude_noise_deg"])
-    return flight, rec, (np.asarray(noise["total_nT"]), np.asarray(noise["perpendicular_nT"]))
+    return flight, rec, noise.weights
 
 
 def _flight_base(rec, result, weights) -> Scores:
@@ -1007,15 +1064,16 @@ def _undetermined_text(result) -> str:
     return "; ".join(texts) or "record banked turns and pitch changes (+-20 deg or more) over several minutes"
 
 
-def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool:
-    """One round of the forward selection: the candidates beside the current model (score), each refitted on the
-    whole record (refit, :func:`_refit_round`), the ``top`` supported ones judged held out (validate, :class:`_Judge`),
-    the best that holds taken (judge). Returns whether one was taken (the next round may look further)."""
+def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> list | None:
+    """One round of the forward selection (:func:`magcal.diagnosis.selection.forward_selection`): the candidates
+    beside the current model (score), each refitted on the whole record (refit, :func:`_refit_round`), the ``top``
+    supported ones judged held out (validate, :class:`_Judge`). Returns those judged, best delta-BIC first (the
+    selection takes the first that holds: :func:`_take`), or None when there is no candidate."""
     dataset = ctx.dataset
     model = ctx.current.calibration.model or Model(dataset.n_sensors)
     cands = vector_candidates(dataset, model, names, sensors=ctx.judged)
     if not cands:
-        return False
+        return None
     report(f"round {rnd + 1}: refitting {len(cands)} candidates", fraction)
     tried = _refit_round(ctx, model, cands)
     for c, fit in tried:
@@ -1030,18 +1088,21 @@ def _vector_round(ctx: VectorContext, rnd, names, top, report, fraction) -> bool
     for c, _ in supported[top:]:
         c.why = f"supported, not judged (only the best {top} are)"
     for c, fit in supported[:top]:
-        ctx.judge(c, ctx.current, fit)
+        ctx.judge.judge(ctx.current, c, fit)
     ctx.all_cands.extend(c for c, _ in tried)
-    best = next((c for c, _ in supported[:top] if c.holds), None)
-    if best is None:
-        return False
+    return [c for c, _ in supported[:top]]
+
+
+def _take(ctx: VectorContext, best, judged) -> None:
+    """The forward selection takes ``best``, the first of the round's ``judged`` candidates that holds: it is
+    recommended, the others that hold wait for the next round, and the model takes it (in place of the effects
+    it holds as special cases)."""
     best.recommended = True
-    for c, _ in supported[:top]:
+    for c in judged:
         if c.holds and c is not best:
             c.why = f"holds, but {best.label} explains more: see the next round"
     ctx.chosen = [c for c in ctx.chosen if c.label not in best.replaces] + [best]
     ctx.current = ctx.fits[best.label]
-    return True
 
 
 def _vector_explain(ctx: VectorContext, t0) -> VectorDiagnosis:
@@ -1073,7 +1134,7 @@ def _vector_explain(ctx: VectorContext, t0) -> VectorDiagnosis:
         explained_by=[c.label for c in chosen],
         record_holds=list(dict.fromkeys(c.label for c in record_holds)),
         final=final,
-        left=left,
+        remaining=left,
         warnings=ctx.warnings,
         notes=ctx.notes,
         validation=ctx.validation,
@@ -1171,7 +1232,10 @@ class _Judge:
         after = _score_of(self.record, fc.calibration, "drop", self.later, self.weights, on)
         return before, after
 
-    def __call__(self, c, base_fit, cand_fit) -> None:
+    def judge(self, base_fit, c, cand_fit) -> None:
+        """Judge the candidate ``c`` (its fit on the whole record ``cand_fit``) against the round's base model
+        ``base_fit`` on the later part and the other flights (:class:`magcal.diagnosis.selection.HeldOutJudge`):
+        sets its ``holds``, its figures there and, when it does not hold, ``why``."""
         # the parts judged on their gain and their components, and those judged on their components only
         gains: list[tuple[str, Scores, Scores]] = []
         checked: list[tuple[str, Scores, Scores]] = []
@@ -1312,7 +1376,7 @@ def faster_logging(dataset) -> str:
     return "log the compass at 10 Hz or more (the logger's rate for the magnetometer)"
 
 
-def _white_noise(record, err, total, fitted, noise_nT=None, attitude_noise_deg=None) -> dict:
+def _white_noise(record, err, total, fitted, noise_nT=None, attitude_noise_deg=None) -> VectorNoise:
     """The white part of the residuals per sensor, from their first differences in time (``var(d r) = 2
     sigma^2``): what no model removes, and the noises the normalized RMS divides by (given ones take precedence:
     ``noise_nT`` for the total field, ``attitude_noise_deg`` for the perpendicular components)."""
@@ -1336,12 +1400,12 @@ def _white_noise(record, err, total, fitted, noise_nT=None, attitude_noise_deg=N
         out_p.append(max(float(sp), 1e-3))
     perp_white = float(np.sqrt(np.mean(np.square(out_p))))
     sens = float(np.sqrt(np.mean(np.square(out_f))))
-    return {
-        "total_nT": out_f,
-        "perpendicular_nT": out_p,
-        "white_attitude_deg": attitude_error_deg(perp_white, sens, field_nT),
-        "world_floor_nT": float(np.sqrt((2 * perp_white**2 + sens**2) / 3.0)),
-    }
+    return VectorNoise(
+        total_nT=out_f,
+        perpendicular_nT=out_p,
+        white_attitude_deg=attitude_error_deg(perp_white, sens, field_nT),
+        world_floor_nT=float(np.sqrt((2 * perp_white**2 + sens**2) / 3.0)),
+    )
 
 
 # ---- what is left -----------------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 :func:`diagnose` fits (or takes) a model, runs the score tests (:mod:`.scores`), confirms the best candidates
 by refitting, adds supported effects one after the other while the structure tests (:mod:`.structure`) still
-find something, and gives a :class:`Diagnosis` with one of the :data:`VERDICTS`: ``adequate`` (no significant
+find something, and gives a :class:`Diagnosis` with one of the :data:`~magcal.diagnosis.base.VERDICTS`: ``adequate`` (no significant
 structure left, or only an excess over the floor of at most :data:`AT_FLOOR_FRACTION`: "at the noise floor within
 x %"), ``missing_effect`` (catalogue terms bring the residuals down to the noise) or ``unexplained``
 (significant structure no catalogue term removes, described). A candidate is supported when its delta-BIC is
@@ -41,6 +41,7 @@ from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
 from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
+from magcal.diagnosis.base import DiagnosisBase, progress_reporter
 from magcal.diagnosis.evidence import (
     _effect_extra,
     _evidence_line,
@@ -51,7 +52,6 @@ from magcal.diagnosis.evidence import (
 from magcal.diagnosis.jitter import jitter_estimates, jitter_words
 from magcal.diagnosis.scores import (
     PREDICTED_SUPPORT_DELTA_BIC,
-    Candidate,
     _confirm,
     _num,
     _score_round,
@@ -60,15 +60,13 @@ from magcal.diagnosis.scores import (
     gram_task,
     refit_task,
 )
+from magcal.diagnosis.selection import forward_selection
 from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, direction_spread
 from magcal.model.terms import EFFECTS, EffectTexts
-
-#: Verdicts of :func:`diagnose`.
-VERDICTS = ("adequate", "missing_effect", "unexplained")
 
 #: A candidate (or a refit) is supported when its delta-BIC is below this.
 DELTA_BIC_THRESHOLD = PREDICTED_SUPPORT_DELTA_BIC
@@ -80,7 +78,7 @@ AT_FLOOR_FRACTION = 0.10
 
 
 @dataclass
-class Diagnosis:
+class Diagnosis(DiagnosisBase):
     """What :func:`diagnose` found.
 
     Attributes
@@ -174,35 +172,19 @@ class Diagnosis:
     record_details: list = field(default_factory=list)
     variance_terms: list = field(default_factory=list)
 
-    @property
-    def noise_nT(self) -> float:
-        return self.noise.sigma_nT
-
-    @property
-    def best(self) -> Candidate | None:
-        return self.candidates[0] if self.candidates else None
-
-    def to_dict(self) -> dict:
-        """The JSON document of ``magcal diagnose --json`` (issue 4), best candidate first."""
+    def _own_dict(self) -> dict:
+        """The keys of ``magcal diagnose --json`` beside the shared ones (:meth:`DiagnosisBase.to_dict`)."""
         return {
             "effects": list(self.effects),
             "rms_nT": _num(self.rms_nT),
             "noise_nT": _num(self.noise.sigma_nT),
-            "verdict": self.verdict,
-            "warnings": list(self.warnings),
-            "candidates": [c.to_dict() for c in self.candidates],
-            "summary": self.summary,
             "noise_source": self.noise.source,
             "floor_nT": _num(self.floor_nT),
             "rms_per_sensor_nT": [float(v) for v in self.rms_per_sensor_nT],
-            "explained_by": list(self.explained_by),
             "partially_explained_by": list(self.partially_explained_by),
             "rms_after_nT": _num(self.rms_final_nT),
             "structure": [s.to_dict() for s in self.structure],
-            "remaining_structure": [s.to_dict() for s in self.remaining],
-            "elapsed_s": round(float(self.elapsed_s), 3),
             "ran_on": dict(self.ran_on),
-            "noise": self.noise.to_dict(),
             "validation": jsonable(self.validation),
             "record_holds": list(self.record_holds),
             "record_details": jsonable(self.record_details),
@@ -220,12 +202,8 @@ class Diagnosis:
             on = "one core" if workers <= 1 else f"{workers} threads"
         return f"{float(self.elapsed_s):.1f} s on {on}"
 
-    def plot_data(self) -> dict:
-        """:attr:`evidence` with arrays turned into lists (JSON-ready), for the workbench."""
-        return jsonable(self.evidence)
-
-    def table(self, limit=12) -> str:
-        """A readable ranked table of the candidates."""
+    def text(self, limit=12) -> str:
+        """The verdict, the summary and a readable ranked table of the candidates."""
         lines = [
             f"verdict: {self.verdict}",
             f"  {self.summary}",
@@ -284,6 +262,18 @@ def _pair(before, after) -> str:
 
 
 def _warnings_for(cands, proj, kept, fit, noise, significant):
+    """The diagnosis's warnings on its noise (:func:`_noise_warnings`), on candidates the data cannot tell apart
+    (:func:`_confounded_warnings`) and on the channels a candidate needs but some samples lack
+    (:func:`_channel_warnings`)."""
+    top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
+    return (
+        _noise_warnings(kept, fit, noise) + _confounded_warnings(cands, proj, kept, top) + _channel_warnings(kept, fit)
+    )
+
+
+def _noise_warnings(kept, fit, noise) -> list[str]:
+    """(Part of :func:`_warnings_for`.) A noise that stands in for an estimate, or a given noise that differs from
+    the noise seen in the data by more than 20 %."""
     out = []
     if noise.source == "residuals":
         out.append(noise.note)
@@ -295,7 +285,14 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
                 f"the given noise {noise.sigma_nT:.3g} nT ({noise.note}) differs from the noise seen in the "
                 f"data: {seen.text()}"
             )
-    top = [c for c in cands if c.delta_bic < DELTA_BIC_THRESHOLD][:4]
+    return out
+
+
+def _confounded_warnings(cands, proj, kept, top) -> list[str]:
+    """(Part of :func:`_warnings_for`.) Candidates the data can hardly tell apart: the best and another with a
+    canonical correlation above 0.9 and a close delta-BIC, temperature terms and drifts on a record whose
+    temperature follows time, and the pairs of effects known to leave the same pattern."""
+    out = []
     if proj is not None and len(top) >= 1:
         best = top[0]
         for other in cands[1:8]:
@@ -331,6 +328,13 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
             "axis_timing_skew and hysteresis both depend on the direction of rotation; vary the rotation "
             "speed to separate them (a delay scales with speed, hysteresis does not)"
         )
+    return out
+
+
+def _channel_warnings(kept, fit) -> list[str]:
+    """(Part of :func:`_warnings_for`.) The effects that need the attitude and were not tested: samples without
+    it, or an array without attitude columns."""
+    out = []
     present = attitude_present(kept) if kept.attitude_wxyz is not None else None
     if present is not None and not present.all():
         needing = [
@@ -355,7 +359,8 @@ def _warnings_for(cands, proj, kept, fit, noise, significant):
 
 
 class _HeldOut:
-    """Held-out judgement of refitted candidates (:mod:`magcal.fitting.validation`) on the samples a fit used.
+    """Held-out judgement of refitted candidates (:mod:`magcal.fitting.validation`) on the samples a fit used (a
+    :class:`magcal.diagnosis.selection.HeldOutJudge`).
 
     The base model of each round is validated once per scheme and reused for every candidate of that round,
     warm-started from the round's full-record fit. A candidate's held-out fits start where its refit starts, from
@@ -695,41 +700,59 @@ def _in_sample_best(cands):
 
 
 def _judge_round(held_out, base_fit, cands, notes, pool, pending=None, fit_notes=None):
-    """Validate the supported refitted candidates of a round; re-rank: the refitted ones that hold on held-out
-    data by delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the
-    predictions. ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
+    """Validate the supported refitted candidates of a round (:func:`_held_out_round`); re-rank them
+    (:func:`_ranked`). ``pending``: the held-out fits already handed to ``pool`` (by candidate label, futures per
     scheme, :func:`_held_out_fits`). ``fit_notes``: a list the held-out fits' notes are added to, in the
     candidates' order (whichever thread made them)."""
     if held_out is not None:
         todo = [c for c in cands if _to_validate(c)]
         if todo:
-            # every held-out fit of the round side by side on the machine's cores (numpy releases the interpreter
-            # in its loops): the base model's per scheme, shared by every candidate, and each candidate's per
-            # scheme (those handed over when its refit returned already under way); then the comparisons, in
-            # the candidates' order
-            pending = dict(pending or {})
-            bases = [
-                pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
-                for scheme in _validation.SCHEMES
-            ]
-            for c in todo:
-                if c.label not in pending:
-                    pending[c.label] = _held_out_fits(pool, held_out, base_fit, c)
-            for future in bases:
-                _add_fit_notes(fit_notes, future.result())
-            for c in todo:
-                fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
-                for f in fitted.values():
-                    _add_fit_notes(fit_notes, f)
-                failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
-                try:
-                    if failed is not None:
-                        raise failed
-                    warning = held_out.judge(base_fit, c, fitted)
-                except _FAILURES as exc:
-                    warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
-                if warning:
-                    notes.append(warning)
+            warnings, said = _held_out_round(held_out, base_fit, todo, pool, pending)
+            notes.extend(warnings)
+            if fit_notes is not None:
+                fit_notes.extend(said)
+    return _ranked(cands)
+
+
+def _held_out_round(held_out, base_fit, todo, pool, pending) -> tuple[list, list]:
+    """(Part of :func:`_judge_round`.) The held-out judgement of the candidates ``todo``: each one's ``holds``.
+    Returns the warnings (a gain that does not hold, a held-out fit that failed) and what the held-out fits said
+    (their notes, in the candidates' order)."""
+    warnings: list = []
+    said: list = []
+    # every held-out fit of the round side by side on the machine's cores (numpy releases the interpreter in its
+    # loops): the base model's per scheme, shared by every candidate, and each candidate's per scheme (those
+    # handed over when its refit returned already under way); then the comparisons, in the candidates' order
+    pending = dict(pending or {})
+    bases = [
+        pool.submit(lambda scheme=scheme: _attempt(lambda: held_out.base(base_fit, scheme)), SHARED)
+        for scheme in _validation.SCHEMES
+    ]
+    for c in todo:
+        if c.label not in pending:
+            pending[c.label] = _held_out_fits(pool, held_out, base_fit, c)
+    for future in bases:
+        _add_fit_notes(said, future.result())
+    for c in todo:
+        fitted = {scheme: future.result() for scheme, future in pending[c.label].items()}
+        for f in fitted.values():
+            _add_fit_notes(said, f)
+        failed = next((f for f in fitted.values() if isinstance(f, Exception)), None)
+        try:
+            if failed is not None:
+                raise failed
+            warning = held_out.judge(base_fit, c, fitted)
+        except _FAILURES as exc:
+            warning = f"held-out validation of {c.label} failed ({exc}); judged in-sample only"
+        if warning:
+            warnings.append(warning)
+    return warnings, said
+
+
+def _ranked(cands) -> list:
+    """(Part of :func:`_judge_round`.) The candidates re-ranked: the refitted ones that hold on held-out data by
+    delta-BIC, then the other refitted ones (not validated, or not holding) by delta-BIC, then the predictions; a
+    series judged in-sample only leads when it clearly explains more (:data:`SERIES_LEAD`)."""
     held = sorted([c for c in cands if c.refitted and c.holds], key=lambda c: c.delta_bic)
     series = sorted([c for c in cands if c.refitted and not c.holds and _in_sample_only(c)], key=lambda c: c.delta_bic)
     rest = sorted(
@@ -817,11 +840,7 @@ def diagnose(
         Its ``notes`` hold what its fits said; never raised as warnings here (:func:`magcal.diagnose` does).
     """
     t_start = _time.perf_counter()
-
-    def report(msg, frac):
-        if progress is not None:
-            progress(msg, frac)
-
+    report = progress_reporter(progress)
     fit0, fit_notes = _model_fit(dataset, result, model, effects, report)
     kept = _kept(dataset, fit0)
     directions, fields = _sensor_directions(kept, fit0)
@@ -1158,40 +1177,43 @@ def _judge(ctx: DiagnosisContext) -> None:
 
 
 def _select(ctx: DiagnosisContext) -> None:
-    """Greedy forward selection while the best candidate is recommendable: each round takes the best, then scores,
-    refits and judges held out the candidates beside it (:func:`_further_round`). Sets ``explained``, ``chosen``,
-    ``current`` and the noise and structure of ``current``'s residuals."""
-    max_effects = ctx.options.max_effects
+    """Greedy forward selection (:func:`magcal.diagnosis.selection.forward_selection`) while the best candidate is
+    recommendable: each round takes the best, then scores, refits and judges held out the candidates beside it
+    (:func:`_further_round`). Sets ``explained``, ``chosen``, ``current`` and the noise and structure of
+    ``current``'s residuals."""
     ctx.current, ctx.current_noise = ctx.fit0, ctx.noise0
     ctx.remaining, ctx.stats_final = ctx.structure0, ctx.stats0
-    round_cands, ahead = ctx.cands, ctx.ahead
-    for step in range(max_effects):
-        supported = [
-            c for c in round_cands if c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not ctx.undetermined
-        ]
-        if not supported:
-            break
-        best = supported[0]
-        if best.fit is None:
-            break
+    # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once the
+    # in-sample best is known, a later one's at the refit of the previous round's candidate
+    state: dict = {"ahead": ctx.ahead}
+
+    def eligible(c) -> bool:
+        return c.recommendable and c.delta_bic < DELTA_BIC_THRESHOLD and not ctx.undetermined
+
+    def pick(cands):
+        best = next((c for c in cands if eligible(c)), None)
+        return best if best is not None and best.fit is not None else None
+
+    def take(step, best, cands) -> None:
         ctx.explained.append(best.label)
         ctx.chosen.append(best)
         ctx.current = best.fit
-        kept_c = _kept(ctx.dataset, ctx.current)
-        # this round's work, started ahead: the first round's at the refit of the candidate predicted best or once
-        # the in-sample best is known, a later one's at the refit of the previous round's candidate
-        ahead_structure, ahead_scores = ahead.get(best.label, (None, None))
-        if ahead_structure is not None:
-            structure_c = ahead_structure
-        else:  # beside the scores
-            structure_c = ctx.pool.submit(lambda k=kept_c, c=ctx.current: _noise_and_structure(ctx, k, c), SHARED)
-        if step + 1 >= max_effects:
-            ctx.current_noise, ctx.remaining, ctx.stats_final = structure_c.result()
-            break
-        further = _further_round(ctx, step, best, kept_c, ahead_scores, structure_c)
-        if further is None:
-            break
-        round_cands, ahead = further
+        state["kept"] = kept_c = _kept(ctx.dataset, ctx.current)
+        structure, state["scores"] = state["ahead"].get(best.label, (None, None))
+        if structure is None:  # beside the scores
+            structure = ctx.pool.submit(lambda k=kept_c, c=ctx.current: _noise_and_structure(ctx, k, c), SHARED)
+        state["structure"] = structure
+
+    def further(step, best):
+        found = _further_round(ctx, step, best, state["kept"], state["scores"], state["structure"])
+        if found is None:
+            return None
+        cands, state["ahead"] = found
+        return cands
+
+    forward_selection(lambda: ctx.cands, pick, take, further, ctx.options.max_effects)
+    if "structure" in state:  # the noise and structure of the last fit taken
+        ctx.current_noise, ctx.remaining, ctx.stats_final = state["structure"].result()
 
 
 def _further_round(ctx: DiagnosisContext, step, best, kept_c, ahead_scores, structure_c):
