@@ -32,6 +32,7 @@ from magcal.data.dataset import DatasetError
 from magcal.data.io import PARQUET_CODECS, check_output_path
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import apply_file, load_calibration
+from magcal.output.compensated_line import apply_compensation_file, is_compensation_file
 from magcal.output.survey import TASKS_PER_WORKER, WORKERS_PER_CORE, apply_partitioned, check_workers
 
 
@@ -150,6 +151,8 @@ def run(args) -> int:
         if os.path.isdir(path):
             raise DatasetError(f"{path}: is a directory, not a survey file")
     check_output_path(args.output, "-o", directory=parallel)
+    if is_compensation_file(args.calibration):
+        return _run_compensation(args, parallel)
     check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
     if parallel:
@@ -202,4 +205,30 @@ def run(args) -> int:
                 else ""
             )
         )
+    return 0
+
+
+def _run_compensation(args, parallel) -> int:
+    """``magcal apply`` of a compensation (``kind: "compensation"``): each line gets ``<scalar>_comp``."""
+    if parallel:
+        raise MagcalError(
+            f"{args.calibration}: a compensation is applied to one line at a time (its eddy terms need each "
+            "sample's neighbours); give one file and no --workers/--scheduler"
+        )
+    if args.uncertainty or args.record_terms or args.force:
+        raise MagcalError(
+            "--uncertainty, --record-terms and --force are for a magnetometer's calibration, not a compensation"
+        )
+    summary = apply_compensation_file(
+        args.calibration,
+        args.data[0],
+        args.output,
+        columns=args.columns,
+        units=args.units,
+        drop_bad=args.drop_bad,
+        compression=args.compression,
+    )
+    for note in dict.fromkeys(summary.notes):
+        print(f"magcal apply: warning: {note}", file=sys.stderr)
+    print(summary.text())
     return 0

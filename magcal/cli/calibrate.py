@@ -38,6 +38,7 @@ from magcal.checks.reference import (
     vector_reference_from_args,
 )
 from magcal.cli.commands import HELP
+from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation, wants_compensation
 from magcal.cli.fit_report import report_fit
 from magcal.cli.gravity_mode import add_gravity_arguments, run_gravity
 from magcal.core.errors import CalibrationError, MagcalError
@@ -128,14 +129,18 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--mode",
         default="auto",
-        choices=("auto", "scalar", "vector", "gravity"),
+        choices=("auto", "scalar", "vector", "gravity", "compensation"),
         help="scalar: the total-field fit; vector: the fit with attitude (qw..qz or roll_deg, pitch_deg, yaw_deg) "
         "and the field vector (ref_n, ref_e, ref_d, --reference-vector or --reference igrf), for platforms that "
         "cannot tumble (docs/vector.md); gravity: beside an accelerometer (ax, ay, az), judged by the "
         "tilt-compensated heading (docs/gravity.md); auto (default): vector when both are present, gravity when "
-        "the file has accelerometer columns and no attitude, else scalar",
+        "the file has accelerometer columns and no attitude, else scalar; compensation: a scalar magnetometer "
+        "(scalar_nT, mag_1_uc or --scalar NAME) beside a fluxgate (x, y, z) on a platform, Tolles-Lawson and the "
+        "terms beyond it (--effects current,time_offset,heading,temperature,fluxgate_calibration; "
+        "docs/compensation.md), taken by auto when the file has such a column",
     )
     add_gravity_arguments(parser)
+    add_compensation_arguments(parser)
     parser.add_argument(
         "--attitude-noise-deg",
         type=float,
@@ -421,6 +426,8 @@ def compass_report(ds, vref=None, fit=None, notes=None, args=None):
 
 def run(args) -> int:
 
+    if wants_compensation(args):
+        return run_compensation(args, read_input)
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     _platform_terms(args)

@@ -60,6 +60,7 @@ from magcal.cli.calibrate import (
     vector_effects,
 )
 from magcal.cli.commands import HELP
+from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation_diagnosis, wants_compensation
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.data.attitude import attitude_source
@@ -103,11 +104,14 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--mode",
         default="auto",
-        choices=("auto", "scalar", "vector"),
+        choices=("auto", "scalar", "vector", "compensation"),
         help="scalar: the total-field fit; vector: the fit with attitude and the field vector (ref_n, ref_e, ref_d, "
         "--reference-vector or --reference igrf), judged on the world components; auto (default): vector when the "
-        "record has both (docs/vector.md)",
+        "record has both (docs/vector.md); compensation: a scalar magnetometer beside a fluxgate, the terms beyond "
+        "Tolles-Lawson judged on held-out maneuvers or --also (docs/compensation.md), taken by auto when the file "
+        "has a scalar column (scalar_nT, mag_1_uc or --scalar NAME)",
     )
+    add_compensation_arguments(parser, figure=False)
     parser.add_argument(
         "--also",
         action="append",
@@ -213,6 +217,8 @@ def run(args) -> int:
 
     checked_noise(args)
     checked_attitude_noise(args)
+    if wants_compensation(args):
+        return run_compensation_diagnosis(args, read_input)
     names = checked_effect_names(args)
     if getattr(args, "mode", "auto") != "vector":
         _start_workers_while_reading(args)
