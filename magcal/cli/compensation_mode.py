@@ -17,11 +17,14 @@ Example::
 
 from __future__ import annotations
 
+import copy
+import json
 import sys
 
 from magcal.cli.fit_report import report_fit
 from magcal.core.errors import MagcalError
-from magcal.data.io import CsvSource, is_parquet
+from magcal.core.jsonable import jsonable
+from magcal.data.io import CsvSource, is_parquet, parse_column_mapping
 from magcal.diagnosis.compensation import compensation_result, diagnose_compensation, validate_compensation
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
@@ -30,6 +33,7 @@ from magcal.fitting.compensation import (
     compensation_record,
 )
 from magcal.model.tolles_lawson import DEFAULT_TERMS, check_terms
+from magcal.output.compensation_figure import write_compensation_figure
 
 
 def add_compensation_arguments(parser, figure: bool = True) -> None:
@@ -84,7 +88,8 @@ def _column_names(path, columns, units) -> list:
             import pyarrow.parquet as pq
 
             return list(pq.read_schema(path).names)
-        with CsvSource(path, columns=columns, units=units) as src:
+        mapping = parse_column_mapping(columns) if isinstance(columns, str) else columns
+        with CsvSource(path, columns=mapping, units=units) as src:
             return list(src.header)
     except (MagcalError, OSError, ValueError, ImportError):
         return []
@@ -117,8 +122,6 @@ def _record(args, read_input, path=None):
 
 
 def _with_data(args, path):
-    import copy
-
     other = copy.copy(args)
     other.data = path
     return other
@@ -141,8 +144,6 @@ def run_compensation(args, read_input) -> int:
     if effects and getattr(args, "validate", True):
         validation = validate_compensation(record, effects, **options)
     if getattr(args, "figure", None):
-        from magcal.output.compensation_figure import write_compensation_figure
-
         write_compensation_figure(result, args.figure)
         print(f"magcal calibrate: drew the compensation to {args.figure}", file=sys.stderr)
     return report_fit(args, result, validation, notes)
@@ -150,10 +151,6 @@ def run_compensation(args, read_input) -> int:
 
 def run_compensation_diagnosis(args, read_input) -> int:
     """``magcal diagnose`` in compensation mode (``--also``: other flights judge the candidates)."""
-    import json
-
-    from magcal.core.jsonable import jsonable
-
     effects = compensation_effects(args)
     options = compensation_options(args)
     record, notes = _record(args, read_input)

@@ -25,6 +25,7 @@ from magcal.cli.calibrate import add_max_rows_argument, checked_max_rows
 from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.io import atomic_write, read_csv
+from magcal.fitting.compensation import Compensation
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
 from magcal.output.bundle import export_all, mask_from_file, parameter_bytes, raw_mask_bytes
@@ -189,8 +190,6 @@ def _run_data(args, calibration) -> int:
 
 def _run_compensation(args) -> int:
     """``--format magnav-tl`` of a compensation file."""
-    from magcal.fitting.compensation import Compensation
-
     if args.format not in COMPENSATION_FORMATS:
         raise MagcalError(
             f"{args.calibration} is a compensation: export it with --format {' or '.join(COMPENSATION_FORMATS)}"

@@ -36,11 +36,12 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.core.stats import robust_sigma
-from magcal.diagnosis.fom import figure_of_merit, find_maneuvers
+from magcal.diagnosis.fom import figure_of_merit, find_maneuvers, fom_report
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     Compensation,
     CompensationRecord,
+    CompensationResult,
     check_effects,
     fit_compensation,
 )
@@ -502,9 +503,6 @@ def compensation_result(record: CompensationRecord, effects=(), *, source: str =
     """Fit a compensation (:func:`magcal.fitting.compensation.fit_compensation` with ``options``) and judge it by
     the FOM in the record's maneuvers: a :class:`magcal.fitting.compensation.CompensationResult` with its
     :class:`magcal.diagnosis.fom.FOMReport` (None, with a note, when no maneuver is found)."""
-    from magcal.diagnosis.fom import fom_report
-    from magcal.fitting.compensation import CompensationResult
-
     comp = fit_compensation(record, effects, **options)
     notes = []
     fom = None

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
+from magcal.calibration.calibration import write_json_atomic
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import EULER_COLUMNS, attitude
@@ -431,8 +432,6 @@ class Compensation:
 
     def save(self, path) -> None:
         """Write the document (JSON) atomically."""
-        from magcal.calibration.calibration import write_json_atomic
-
         write_json_atomic(path, self.to_dict())
 
     @classmethod
