@@ -257,7 +257,7 @@ def run_loop(ds, max_steps, masks, residuals=None) -> tuple[list, list]:
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            result = magcal.calibrate(ds, effects=list(effects))
+            result = magcal.calibrate(ds, effects=list(effects), mode="total_field")
             diag = magcal.diagnose(ds, result)
         magcal_warnings += [f"{type(w.message).__name__}: {w.message}" for w in caught]
         if residuals is not None and result.fit is not None:
@@ -268,7 +268,7 @@ def run_loop(ds, max_steps, masks, residuals=None) -> tuple[list, list]:
                 v = np.asarray(result.calibration.correct(ds)[0], float)
             residuals.append((list(effects), r, v / np.linalg.norm(v, axis=1, keepdims=True)))
         if step == 0:
-            magcal_warnings += [f"calibrate: {w}" for w in result.warnings]
+            magcal_warnings += [f"calibrate: {w}" for w in result.remarks]
         nxt, cand = recommended(diag)
         row = {
             "step": step,
@@ -359,7 +359,7 @@ def run_transfer(ds, max_rounds=3) -> dict:
     for _ in range(max_rounds + 1):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = magcal.calibrate(first, effects=list(effects))
+            result = magcal.calibrate(first, effects=list(effects), mode="total_field")
             diag = magcal.diagnose(first, result)
         nxt, _ = recommended(diag)
         rows.append(
@@ -438,13 +438,13 @@ def kept_level_study(ds) -> dict:
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = magcal.calibrate(first).calibration
+        base = magcal.calibrate(first, mode="total_field").calibration
         out["base"] = _rms(base.total_field_residuals(second, base.correct(second, "drop"), "drop"))
         for term in KEPT_TERMS:
             if first.time_s is None:
                 continue
             try:
-                cal = magcal.calibrate(first, effects=[term]).calibration
+                cal = magcal.calibrate(first, effects=[term], mode="total_field").calibration
             except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
                 out[term] = {"failed": str(exc)[:80]}
                 continue

@@ -703,7 +703,7 @@ class Controller:
         self._report_progress(f"{method}: starting", 0.0)
         effects = list(inputs.effects) if method == "ml" else []
         with timing.span("fit"):
-            result = pipeline.calibrate(  # never warns: its concerns are in result.warnings, its notes in result.notes
+            result = pipeline.calibrate(  # never warns: its report lines are result.remarks, its notes result.notes
                 self.fit_dataset(),
                 method=method,
                 effects=effects,
@@ -720,7 +720,7 @@ class Controller:
         self.progress = None
         self._emit(Change.PROGRESS)
         name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
-        return self._record(name, inputs, old, rms0, t0, tb, fit=result.fit, notes=list(result.warnings))
+        return self._record(name, inputs, old, rms0, t0, tb, fit=result.fit, notes=list(result.remarks))
 
     def step_vector(self, *, inputs: JobInputs | None = None):
         """The attitude-aided vector fit beside the total-field fit (:meth:`VectorModel.fit`, the engine's

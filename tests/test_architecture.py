@@ -16,7 +16,20 @@ import pytest
 ENGINE = pathlib.Path(__file__).resolve().parents[1] / "magcal"
 
 #: The layers, lowest first; ``magcal`` is the package's own ``__init__`` (the public API).
-LAYERS = ("core", "geometry", "data", "checks", "model", "calibration", "fitting", "diagnosis", "output", "api", "cli")
+LAYERS = (
+    "core",
+    "geometry",
+    "data",
+    "checks",
+    "model",
+    "calibration",
+    "fitting",
+    "diagnosis",
+    "modes",
+    "output",
+    "api",
+    "cli",
+)
 
 #: Third-party packages that belong to an extra, imported where they are used (never at a module's top).
 OPTIONAL = (

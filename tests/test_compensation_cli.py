@@ -125,3 +125,18 @@ def test_a_compensation_term_needs_its_column(tmp_path, capsys):
     assert "current_A or throttle" in capsys.readouterr().err
     assert main(["calibrate", str(tmp_path / "box.csv"), "--effects", "bogus"]) == 2
     assert "not a compensation term" in capsys.readouterr().err
+
+
+def test_the_api_takes_the_compensation_mode_as_the_command_line_does(flights):
+    import magcal
+    from magcal.data import io
+
+    folder, first, *_ = flights
+    ds = io.read_csv(folder / "box.csv", warn=False)
+    result = magcal.calibrate(ds, effects=["current"], validate=True, warn=False)
+    assert result.mode == "compensation" and result.calibration.effects == ("current",)
+    assert result.fom_nT < 1.2 * result.fom.before.fom_nT / 100
+    assert result.validation is not None and result.validation.fom_effects_nT < result.validation.fom_tl_nT
+    found = magcal.diagnose(ds, result, warn=False)
+    assert found.mode == "compensation" and found.effects == ["current"]
+    assert "current" not in [c.name for c in found.candidates]

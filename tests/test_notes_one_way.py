@@ -76,12 +76,11 @@ _LOGS_READ = (
 _READS = "reads the notes it is given (to print, raise, move or keep); fills no list of its caller's"
 TAKES_NOTES = {
     # the boundary: the command line prints the notes it is given
-    "cli/calibrate:run_vector": "the command line: collects the texts it prints",
+    "cli/calibrate:run_fit": "the command line: collects the texts it prints",
     "cli/calibrate:compass_report": "the command line: collects the texts it prints",
-    "cli/diagnose:_dip_evidence": "the command line: collects the texts it prints",
+    "cli/diagnose:run_mode": "the command line: collects the texts it prints",
     "cli/diagnose:run_vector": "the command line: collects the texts it prints",
     "cli/fit_report:report_fit": "the command line: prints the texts it is given",
-    "cli/gravity_mode:run_gravity": "the command line: collects the texts it prints",
     # the one place notes become warnings, and its helpers
     "core/notes:unique": _READS,
     "core/notes:texts": _READS,
@@ -185,7 +184,7 @@ def test_a_calibrations_remarks_are_report_lines_never_raised():
         warnings.simplefilter("error")  # a remark is never a Python warning
         result = magcal.calibrate(ds, reference_total_nT=50000)
     assert any(r.startswith("noise not given: the floors use sigma = ") for r in result.remarks), result.remarks
-    assert result.notes == [] and result.warnings is result.remarks
+    assert result.notes == [] and result.warnings == []  # the raised notes' texts: none here
     assert result.calibration.summary["warnings"] == result.remarks
     report = text_report(result)
     assert report.split("Warnings:\n")[1].splitlines()[: len(result.remarks)] == [f"  - {r}" for r in result.remarks]

@@ -159,7 +159,7 @@ def test_robust_loss_with_gross_outliers():
     rms_in = np.sqrt(np.mean(robust.fit.residuals_nT[:, inliers] ** 2, axis=1))
     assert np.all(np.abs(rms_in / floor - 1) < 0.12), rms_in / floor
     assert np.array_equal(robust.outliers, ~inliers)  # reports exactly the corrupted samples
-    assert any("distrusted" in w for w in robust.warnings)
+    assert any("distrusted" in w for w in robust.remarks)
     e_c, e_b, e_r = _param_errors(
         robust.calibration,
         [s.Cinv for s in truth.sensors],

@@ -115,7 +115,7 @@ def study(segments, cal_line, test_lines, terms=None):
             "n": cal.n_samples,
             "vector": vec.to_dict(),
             "scalar_rms_nT": float(scalar.rms_nT),
-            "scalar_warnings": list(scalar.warnings) + [str(w.message) for w in caught],
+            "scalar_warnings": list(scalar.remarks) + [str(w.message) for w in caught],
             "tilt_deg": [float(np.ptp(cal.extra["roll_deg"])), float(np.ptp(cal.extra["pitch_deg"]))],
         },
         "tests": {},

@@ -40,17 +40,16 @@ from magcal.checks.reference import (
 from magcal.cli.commands import HELP
 from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation, wants_compensation
 from magcal.cli.fit_report import report_fit
-from magcal.cli.gravity_mode import add_gravity_arguments, run_gravity
+from magcal.cli.gravity_mode import add_gravity_arguments, gravity_options
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
-from magcal.data.accelerometer import has_accelerometer
 from magcal.data.attitude import attitude_present, attitude_source
 from magcal.diagnosis.compasses import compass_consistency
-from magcal.fitting.pipeline import METHODS, SEARCH_METHODS, calibrate
+from magcal.fitting.pipeline import METHODS, SEARCH_METHODS
 from magcal.fitting.search import DEFAULTS
-from magcal.fitting.validation import validate_effects
-from magcal.fitting.vector import PLATFORM_EFFECTS, fit_vector, validate_vector, vector_model
+from magcal.fitting.vector import PLATFORM_EFFECTS, fit_vector, vector_model
 from magcal.model.terms import check_effect_names
+from magcal.modes import FIT_MODES, GRAVITY, TOTAL_FIELD, VECTOR, load_entry_points, mode_choice, mode_names
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -126,19 +125,7 @@ def add_arguments(parser) -> None:
     add_input_arguments(parser)
     add_reference_arguments(parser)
     add_vector_reference_arguments(parser)
-    parser.add_argument(
-        "--mode",
-        default="auto",
-        choices=("auto", "scalar", "vector", "gravity", "compensation"),
-        help="scalar: the total-field fit; vector: the fit with attitude (qw..qz or roll_deg, pitch_deg, yaw_deg) "
-        "and the field vector (ref_n, ref_e, ref_d, --reference-vector or --reference igrf), for platforms that "
-        "cannot tumble (docs/vector.md); gravity: beside an accelerometer (ax, ay, az), judged by the "
-        "tilt-compensated heading (docs/gravity.md); auto (default): vector when both are present, gravity when "
-        "the file has accelerometer columns and no attitude, else scalar; compensation: a scalar magnetometer "
-        "(scalar_nT, mag_1_uc or --scalar NAME) beside a fluxgate (x, y, z) on a platform, Tolles-Lawson and the "
-        "terms beyond it (--effects current,time_offset,heading,temperature,fluxgate_calibration; "
-        "docs/compensation.md), taken by auto when the file has such a column",
-    )
+    add_mode_argument(parser, "calibrate")
     add_gravity_arguments(parser)
     add_compensation_arguments(parser)
     parser.add_argument(
@@ -201,6 +188,25 @@ def add_arguments(parser) -> None:
         "of the model with the effects (fitted on alternating blocks in time, scored on the blocks between)",
     )
     add_noise_argument(parser)
+
+
+def add_mode_argument(parser, command) -> None:
+    """``--mode NAME``: the fit mode, one of :func:`magcal.modes.mode_names` (installed packages' modes included,
+    loaded here; a failing one is a warning)."""
+    for note in load_entry_points().notes:
+        print(f"magcal {command}: warning: {note.text}", file=sys.stderr)
+    ranked = [FIT_MODES[name] for name in mode_names() if name in FIT_MODES]
+    parser.add_argument(
+        "--mode",
+        default="auto",
+        choices=mode_names(),
+        help="the fit: "
+        + "; ".join(f"{m.name}: the {m.title}, {m.needs()}" for m in ranked)
+        + "; scalar: total_field (docs/vector.md, docs/gravity.md); auto (default): the first of these the record "
+        "holds what it needs for (vector when some rows have an attitude and the field vector is known: ref_n, "
+        "ref_e, ref_d, --reference-vector or --reference igrf; gravity when the file has accelerometer columns "
+        "and no attitude; else the total-field fit)",
+    )
 
 
 def add_noise_argument(parser) -> None:
@@ -302,43 +308,20 @@ def _platform_terms(args):
 
 
 def choose_mode(args, ds, command="calibrate"):
-    """``("vector", reference)``, ``("gravity", None)`` or ``("scalar", None)`` from ``--mode`` and what the data hold."""
-    mode = getattr(args, "mode", "auto") or "auto"
-    if mode == "scalar":
-        return "scalar", None
-    if mode == "gravity" or (mode == "auto" and has_accelerometer(ds) and attitude_source(ds) is None):
-        if not has_accelerometer(ds):
-            raise MagcalError(
-                f"{args.data}: --mode gravity needs the accelerometer beside the magnetometer: ax, ay, az columns "
-                "(g, mg or m/s^2; docs/gravity.md)"
-            )
-        return "gravity", None
-    has_attitude = attitude_source(ds) is not None
-    if mode == "vector" and not has_attitude:
-        raise MagcalError(
-            f"{args.data}: --mode vector needs the attitude: qw, qx, qy, qz or roll_deg, pitch_deg, yaw_deg columns "
-            "(body -> north-east-down; docs/formats.md)"
-        )
-    if not has_attitude:
-        return "scalar", None
+    """``(mode, field vector)``: the fit mode for the record from ``--mode`` and what the data hold
+    (:func:`magcal.modes.mode_choice`, its notes printed), and the field vector the options give (None unless the
+    record has an attitude and ``--mode`` could be the vector fit; the vector fit's reference)."""
+    name = getattr(args, "mode", "auto") or "auto"
     present = attitude_present(ds)
-    if mode == "auto" and present is not None and not present.any():  # e.g. a recording no ATTITUDE reached
-        print(
-            f"magcal {command}: {args.data}: the attitude columns are empty on every row (no sample has an attitude): "
-            "the total-field fit",
-            file=sys.stderr,
-        )
-        return "scalar", None
-    vref = vector_reference_from_args(args, ds)
-    if vref is None:
-        if mode == "vector":
-            raise MagcalError(
-                f"{args.data}: --mode vector needs the Earth's field vector: ref_n, ref_e, ref_d columns (nT), "
-                "--reference-vector N,E,D, or --reference igrf with --lat/--lon (or lat, lon, alt_m columns) and "
-                "--date"
-            )
-        return "scalar", None
-    return "vector", vref
+    may_be_vector = name == VECTOR.name or (name == "auto" and present is not None and present.any())
+    vref = vector_reference_from_args(args, ds) if may_be_vector and attitude_source(ds) is not None else None
+    try:
+        mode, said = mode_choice(ds, name, option="--mode", reference=vref)
+    except MagcalError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    for note in said:
+        print(f"magcal {command}: {args.data}: {note.text}", file=sys.stderr)
+    return mode, vref if mode is VECTOR else None
 
 
 def checked_attitude_noise(args):
@@ -361,43 +344,55 @@ def vector_effects(args, ds) -> list:
     return names
 
 
-def run_vector(args, ds, vref, notes) -> int:
-    """``magcal calibrate`` in vector mode (:func:`magcal.fitting.vector.fit_vector`)."""
-    att = checked_attitude_noise(args)
-    effects = vector_effects(args, ds)
-    print(f"magcal calibrate: vector mode; reference: {vref.text}", file=sys.stderr)
-    try:
-        result = fit_vector(
-            ds,
-            vref,
-            effects=effects,
-            attitude_noise_deg=att,
-            noise_nT=checked_noise(args),
-            reference_total_nT=ds.ref_total_nT,
-            robust=args.robust,
-            warn=False,  # its notes are result.warnings, printed below
-            field_gradient=bool(getattr(args, "field_gradient", False)),
+def vector_options(args, ds, vref) -> tuple[str, dict]:
+    """What ``magcal calibrate`` says of a vector fit and its options (:meth:`magcal.modes.vector.VectorMode.fit`)
+    from the parsed options."""
+    options = {
+        "reference": vref,
+        "effects": vector_effects(args, ds),
+        "attitude_noise_deg": checked_attitude_noise(args),
+        "noise_nT": checked_noise(args),
+        "reference_total_nT": ds.ref_total_nT,
+        "robust": args.robust,
+        "field_gradient": bool(getattr(args, "field_gradient", False)),
+    }
+    return f"vector mode; reference: {vref.text}", options
+
+
+def mode_options(args, mode, method="fit") -> tuple[str, dict]:
+    """What ``magcal calibrate`` says of a fit of an installed mode and its options: those of ``--effects``,
+    ``--robust`` and ``--noise`` that the mode's ``method`` takes (:meth:`magcal.modes.FitMode.accepts`)."""
+    known = mode.accepts(method)
+    given = {"effects": checked_effect_names(args), "robust": args.robust, "noise_nT": checked_noise(args)}
+    options = {k: v for k, v in given.items() if known is None or k in known}
+    left = [k for k, v in given.items() if v and k not in options]
+    if left:
+        raise MagcalError(
+            f"--mode {mode.name}: the {mode.label} takes no "
+            + ", ".join({"effects": "--effects", "robust": "--robust", "noise_nT": "--noise"}[k] for k in left)
         )
+    return f"{mode.name} mode ({mode.title})", options
+
+
+def run_fit(args, ds, mode, notes, header, options) -> int:
+    """``magcal calibrate`` in a mode other than the total-field fit: the mode's fit, its held-out judgement and
+    the report (:func:`magcal.cli.fit_report.report_fit`); a vector fit adds its compasses' consistency."""
+    print(f"magcal calibrate: {header}", file=sys.stderr)
+    try:
+        result = mode.fit(ds, **options)
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
-    vref = result.reference  # a field fitted with the calibration is the one the checks below use
-    result.calibration.fitted_on(ds)
     validation = None
-    if result.terms and getattr(args, "validate", True):
+    if getattr(args, "validate", True):
         try:
-            validation = validate_vector(
-                ds,
-                vref,
-                effects=result.terms,
-                attitude_noise_deg=att,
-                noise_nT=checked_noise(args),
-                reference_total_nT=ds.ref_total_nT,
-                robust=args.robust,
-            )
-        except CalibrationError as exc:
+            validation = mode.validate(ds, result, **options)
+        except (CalibrationError, MagcalError) as exc:
             notes.append(f"held-out validation not done: {exc}")
-    compasses = compass_report(ds, vref, result, notes)  # several compasses on one vehicle (issue 40, item 5)
-    sections = {"compass_consistency": compasses} if compasses is not None else {}
+    sections = {}
+    if mode is VECTOR:  # several compasses on one vehicle: the field the fit used is the one they are judged on
+        compasses = compass_report(ds, result.reference, result, notes)
+        if compasses is not None:
+            sections["compass_consistency"] = compasses
     return report_fit(args, result, validation, notes, sections)
 
 
@@ -426,25 +421,29 @@ def compass_report(ds, vref=None, fit=None, notes=None, args=None):
 
 def run(args) -> int:
 
-    if wants_compensation(args):
+    if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
         return run_compensation(args, read_input)
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     _platform_terms(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds)
-    if mode == "vector":
-        return run_vector(args, ds, vref, notes)
-    if mode == "gravity":
-        return run_gravity(args, ds, notes)
+    if mode is not TOTAL_FIELD:
+        if mode is VECTOR:
+            header, options = vector_options(args, ds, vref)
+        elif mode is GRAVITY:
+            header, options = gravity_options(args, ds)
+        else:
+            header, options = mode_options(args, mode)
+        return run_fit(args, ds, mode, notes, header, options)
     reference = reference_from_args(args, ds)
     notes += [note.text for note in reference.notes]
     ds = reference.apply(ds)
     if reference.kind == "fitted":
         ds = ds.replace(ref_total_nT=None)
     print(f"magcal calibrate: reference: {reference.text}", file=sys.stderr)
-    quality = assess(ds)  # data quality, read before the fit (issue 10)
-    coverage_notes = calibration_input_checks(ds)  # coverage (issue 6)
+    quality = assess(ds)  # data quality, read before the fit
+    coverage_notes = calibration_input_checks(ds)  # coverage
     if coverage_notes and attitude_source(ds) is not None:
         coverage_notes.append(
             "the total-field fit is undetermined along the directions this record lacks (a platform that turns in "
@@ -455,7 +454,7 @@ def run(args) -> int:
     notes += coverage_notes
     bar, progress = _search_progress_bar(args.method, ds.n_sensors)
     try:
-        result = calibrate(ds, **calibrate_options(args), progress=progress)
+        result = TOTAL_FIELD.fit(ds, **calibrate_options(args), progress=progress)
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     finally:
@@ -464,7 +463,6 @@ def run(args) -> int:
     notes += [note.text for note in result.notes if note.text not in result.remarks]
     if names and args.method == "ml" and getattr(args, "validate", True):
         notes += _attach_validation(result, ds)
-    result.calibration.fitted_on(ds)  # record-only terms then act on this record only (magcal apply)
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
     notes += quality.warnings
     # each warning once: the text report lists the calibration's own warnings and the data-quality warnings, so
@@ -498,11 +496,12 @@ def run(args) -> int:
 
 
 def _attach_validation(result, ds) -> list:
-    """Held-out RMS of the base model and of the model with the effects (:func:`magcal.fitting.validation.validate_effects`),
-    set as ``result.validation`` for the report and the JSON; returns warnings (a record too short to split)."""
+    """Held-out RMS of the base model and of the model with the effects (:meth:`TOTAL_FIELD.validate
+    <magcal.modes.total_field.TotalFieldMode.validate>`), set as ``result.validation`` for the report and the JSON;
+    returns warnings (a record too short to split)."""
 
     try:
-        result.validation = validate_effects(ds, result)
+        result.validation = TOTAL_FIELD.validate(ds, result)
     except (CalibrationError, MagcalError) as exc:
         result.validation = None
         return [f"held-out validation not done: {exc}"]

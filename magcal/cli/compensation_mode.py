@@ -25,7 +25,6 @@ from magcal.cli.fit_report import report_fit
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.io import CsvSource, is_parquet, parse_column_mapping
-from magcal.diagnosis.compensation import compensation_result, diagnose_compensation, validate_compensation
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
@@ -33,6 +32,7 @@ from magcal.fitting.compensation import (
     compensation_record,
 )
 from magcal.model.tolles_lawson import DEFAULT_TERMS, check_terms
+from magcal.modes.compensation import COMPENSATION
 from magcal.output.compensation_figure import write_compensation_figure
 
 
@@ -137,12 +137,13 @@ def run_compensation(args, read_input) -> int:
         f"{record.sample_rate_hz:g} Hz; terms beyond TL: {', '.join(effects) or 'none'}",
         file=sys.stderr,
     )
-    result = compensation_result(record, effects, source=args.data, **options)
+    result = COMPENSATION.fit(record, effects=effects, **options)
+    result.source = args.data
     notes += [note.text for note in result.notes]
     result.notes = []
     validation = None
     if effects and getattr(args, "validate", True):
-        validation = validate_compensation(record, effects, **options)
+        validation = COMPENSATION.validate(record, result, effects=effects, **options)
     if getattr(args, "figure", None):
         write_compensation_figure(result, args.figure)
         print(f"magcal calibrate: drew the compensation to {args.figure}", file=sys.stderr)
@@ -161,7 +162,7 @@ def run_compensation_diagnosis(args, read_input) -> int:
     if others:
         also, more = _record(args, read_input, others[0])
         notes += more
-    diagnosis = diagnose_compensation(record, effects, also=also, **options)
+    diagnosis = COMPENSATION.diagnose(record, effects=effects, also=also, **options)
     for note in dict.fromkeys(notes + [n.text for n in diagnosis.notes]):
         print(f"magcal diagnose: warning: {note}", file=sys.stderr)
     if getattr(args, "json", False):

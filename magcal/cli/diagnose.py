@@ -20,16 +20,18 @@ fit did not see; ``--no-validate`` skips it), ``quality`` (every finding of
 :func:`magcal.checks.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
 quality" section with the notable findings.
 
-Vector mode (issue 40). A record with the attitude and the field vector (``ref_n, ref_e, ref_d`` columns,
+Vector mode. A record with the attitude and the field vector (``ref_n, ref_e, ref_d`` columns,
 ``--reference-vector``, ``--reference igrf`` at ``--lat/--lon`` or along ``lat, lon, alt_m``) is diagnosed on the
 vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): the candidates are judged on the world north/east/down
 residuals and ``|B|``, fitted on the earlier part and applied to the later part (and to every ``--also`` flight of
 the same vehicle, each weighed at its own noise) as ``magcal apply`` applies them; an effect that raises one world
 component or ``|B|`` there beyond its noise is not advised, and a record too short or too slow to hold out a later
 part (without a long enough ``--also`` flight) gets the verdict ``not_judged`` with what would let it judge (samples,
-minutes, the compass's logging rate). ``--mode scalar|vector`` forces one (``auto``, the default,
-takes the vector fit when the record has both); ``--json`` then prints the vector diagnosis's document (``mode``:
-``vector``).
+minutes, the compass's logging rate). ``--mode NAME`` forces a fit mode (:mod:`magcal.modes`; ``auto``, the
+default, chooses as ``magcal calibrate`` does: the vector fit when the record has both); ``--json`` then prints the
+vector diagnosis's document (``mode``: ``vector``). A record with an accelerometer and no attitude (the gravity
+mode) is diagnosed on the total-field fit, with the gravity fit's dip residual as evidence beside it
+(``dip_evidence``).
 """
 
 from __future__ import annotations
@@ -49,12 +51,14 @@ from magcal.checks.reference import (
 )
 from magcal.cli.calibrate import (
     add_input_arguments,
+    add_mode_argument,
     add_noise_argument,
     checked_attitude_noise,
     checked_effect_names,
     checked_noise,
     choose_mode,
     compass_report,
+    mode_options,
     named_error,
     read_input,
     vector_effects,
@@ -64,12 +68,10 @@ from magcal.cli.compensation_mode import add_compensation_arguments, run_compens
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.data.attitude import attitude_source
-from magcal.diagnosis import diagnose, start_workers
+from magcal.diagnosis import start_workers
 from magcal.diagnosis._parallel import cores
-from magcal.diagnosis.gravity import dip_evidence
-from magcal.diagnosis.vector import JUDGE_TOP, Flight, diagnose_vector
-from magcal.fitting.gravity import fit_gravity
-from magcal.fitting.pipeline import calibrate
+from magcal.diagnosis.vector import JUDGE_TOP, Flight
+from magcal.modes import GRAVITY, TOTAL_FIELD, VECTOR
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -101,16 +103,7 @@ def add_arguments(parser) -> None:
     )
     add_reference_arguments(parser)
     add_vector_reference_arguments(parser)
-    parser.add_argument(
-        "--mode",
-        default="auto",
-        choices=("auto", "scalar", "vector", "compensation"),
-        help="scalar: the total-field fit; vector: the fit with attitude and the field vector (ref_n, ref_e, ref_d, "
-        "--reference-vector or --reference igrf), judged on the world components; auto (default): vector when the "
-        "record has both (docs/vector.md); compensation: a scalar magnetometer beside a fluxgate, the terms beyond "
-        "Tolles-Lawson judged on held-out maneuvers or --also (docs/compensation.md), taken by auto when the file "
-        "has a scalar column (scalar_nT, mag_1_uc or --scalar NAME)",
-    )
+    add_mode_argument(parser, "diagnose")
     add_compensation_arguments(parser, figure=False)
     parser.add_argument(
         "--also",
@@ -217,27 +210,32 @@ def run(args) -> int:
 
     checked_noise(args)
     checked_attitude_noise(args)
-    if wants_compensation(args):
+    if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
         return run_compensation_diagnosis(args, read_input)
     names = checked_effect_names(args)
     if getattr(args, "mode", "auto") != "vector":
         _start_workers_while_reading(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds, "diagnose")
-    if mode == "vector":
+    if mode is VECTOR:
         return run_vector(args, ds, vref, notes)
     if getattr(args, "also", None):
         raise MagcalError(
             "--also: other flights judge a vector calibration; this record is diagnosed in scalar mode (it lacks the "
             "attitude or the field vector, or --mode scalar was given)"
         )
-    dip = _dip_evidence(args, ds, notes) if mode == "gravity" else None
+    if mode is not TOTAL_FIELD and mode is not GRAVITY:
+        return run_mode(args, ds, mode, notes)
     ds, reference = _scalar_reference(args, ds)
-    quality = assess(ds)  # data quality, read before the fit (issue 10)
+    quality = assess(ds)  # data quality, read before the fit
     notes += calibration_input_checks(ds, reference)  # coverage and reference, as calibrate
+    # the gravity mode's diagnosis is the total-field one, with the gravity fit's dip residual beside it
+    extra = {"robust": bool(args.robust)} if mode is GRAVITY else {}
     try:
-        result = calibrate(ds, effects=names, robust=args.robust, reference_total_nT=reference, noise_nT=args.noise)
-        diagnosis = diagnose(
+        result = TOTAL_FIELD.fit(
+            ds, effects=names, robust=args.robust, reference_total_nT=reference, noise_nT=args.noise
+        )
+        diagnosis = mode.diagnose(
             ds,
             result,
             top=args.top,
@@ -245,9 +243,11 @@ def run(args) -> int:
             noise_nT=args.noise,
             workers=getattr(args, "workers", None),
             scheduler=getattr(args, "scheduler", None),
+            **extra,
         )
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
+    dip = getattr(diagnosis, "dip_evidence", None)
     notes += [note.text for note in unique(result.notes + diagnosis.notes)]  # what the fits said, as values
     notes += [w for w in result.remarks if w not in notes]
     quality.add(field_magnitude_finding(result.reference_total_nT, result.reference_kind))
@@ -259,8 +259,6 @@ def run(args) -> int:
         doc = diagnosis.to_dict()
         doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))  # every warning of the run
         doc["quality"] = quality.to_dict()
-        if dip is not None:
-            doc["dip_evidence"] = dip.to_dict()
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
@@ -274,16 +272,32 @@ def run(args) -> int:
     return 0
 
 
-def _dip_evidence(args, ds, notes):
-    """A record with an accelerometer and no attitude (issue 42): the gravity fit's dip residual as evidence
-    (:func:`magcal.diagnosis.gravity.dip_evidence`), beside the total-field diagnosis; None (with a note) when the
-    gravity fit cannot be made."""
+def run_mode(args, ds, mode, notes) -> int:
+    """``magcal diagnose`` in an installed package's fit mode: its diagnosis (:meth:`magcal.modes.FitMode.diagnose`,
+    with those of ``--effects``, ``--robust``, ``--noise``, ``--top`` and ``--no-validate`` it takes) as a table, or
+    its document with ``--json``."""
+    _, options = mode_options(args, mode, "diagnose")
+    known = mode.accepts("diagnose")
+    options.update({k: v for k, v in (("top", args.top), ("validate", args.validate)) if known is None or k in known})
+    print(f"magcal diagnose: {mode.name} mode ({mode.title})", file=sys.stderr)
     try:
-        fit = fit_gravity(ds, robust=bool(getattr(args, "robust", False)))
-        return dip_evidence(ds, fit)
-    except (CalibrationError, MagcalError) as exc:
-        notes.append(f"the dip's evidence (the gravity fit) not given: {exc}")
-        return None
+        diagnosis = mode.diagnose(ds, **options)
+    except CalibrationError as exc:
+        raise MagcalError(named_error(args.data, exc)) from None
+    except NotImplementedError as exc:
+        raise MagcalError(f"--mode {mode.name}: {exc}") from None
+    notes += [note.text for note in unique(diagnosis.notes)]
+    for note in dict.fromkeys(notes):
+        print(f"magcal diagnose: warning: {note}", file=sys.stderr)
+    if args.json:
+        doc = diagnosis.to_dict()
+        doc["warnings"] = list(dict.fromkeys(notes + list(doc.get("warnings", []))))
+        json.dump(doc, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        title = f"magcal diagnosis of {args.data}"
+        sys.stdout.write(f"{title}\n{'=' * len(title)}\n{ds.describe()}\n\n{diagnosis.table()}\n")
+    return 0
 
 
 def _also_flights(args) -> list:
@@ -313,9 +327,9 @@ def run_vector(args, ds, vref, notes) -> int:
     quality = assess(ds)
     print(f"magcal diagnose: vector mode; reference: {vref.text}", file=sys.stderr)
     try:
-        diagnosis = diagnose_vector(
+        diagnosis = VECTOR.diagnose(
             ds,
-            vref,
+            reference=vref,
             effects=effects,
             also=flights,
             attitude_noise_deg=args.attitude_noise_deg,
@@ -328,7 +342,7 @@ def run_vector(args, ds, vref, notes) -> int:
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(diagnosis.notes)]
-    # several compasses on one vehicle (issue 40, item 5): their consistency after the diagnosed (base) vector fit
+    # several compasses on one vehicle: their consistency after the diagnosed (base) vector fit
     fitted = diagnosis.result
     compasses = compass_report(
         ds, vref=vref if fitted is None else fitted.reference, fit=fitted, notes=notes, args=args

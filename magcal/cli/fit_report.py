@@ -1,5 +1,5 @@
-"""What ``magcal calibrate`` prints of a fit that is not the total-field pipeline's (vector, gravity): one place for
-its warnings, the saved calibration and the report or JSON document."""
+"""What ``magcal calibrate`` prints of a fit in a mode other than the total-field fit (vector, gravity, an installed
+package's: :mod:`magcal.modes`): one place for its warnings, the saved calibration and the report or JSON document."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from magcal.core.jsonable import jsonable
 
 
 def report_fit(args, result, validation, notes, sections=None) -> int:
-    """What ``magcal calibrate`` prints of a vector or gravity fit: its notes as warnings, the calibration saved
+    """What ``magcal calibrate`` prints of a fit (a :class:`~magcal.fitting.result.ModeResult`): its notes as warnings, the calibration saved
     (``-o``), and the result's report or JSON document with its held-out ``validation`` and any ``sections`` (name
     -> an object with ``text()`` and ``to_dict()``)."""
     sections = sections or {}

@@ -1,4 +1,4 @@
-"""``magcal calibrate --mode gravity``: a magnetometer beside an accelerometer (issue 42, docs/gravity.md).
+"""``magcal calibrate --mode gravity``: a magnetometer beside an accelerometer (docs/gravity.md).
 
 Example::
 
@@ -7,23 +7,20 @@ Example::
     magcal calibrate board.csv --reference igrf --lat 45.1 --lon 7.6 --date 2025-06-01   # ... from IGRF there
     magcal apply cal.json later.csv -o out.csv                         # + s1_heading_deg, s1_dip_deg, tilt_deg
 
-``--mode auto`` (the default) takes it when the file has accelerometer columns and no full attitude
-(:func:`magcal.cli.calibrate.choose_mode`). The options are added to ``magcal calibrate`` by
-:func:`add_gravity_arguments`; :func:`run_gravity` is its gravity branch.
+``--mode auto`` (the default) takes it when the file has accelerometer columns and no attitude
+(:func:`magcal.modes.choose_mode`). The options are added to ``magcal calibrate`` by :func:`add_gravity_arguments`;
+:func:`gravity_options` turns them into the fit mode's (:class:`magcal.modes.gravity.GravityMode`).
 """
 
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
 from magcal.checks.reference import vector_reference_from_args
-from magcal.cli.fit_report import report_fit
-from magcal.core.errors import CalibrationError, MagcalError
+from magcal.core.errors import MagcalError
 from magcal.data.accelerometer import parse_accel_units
-from magcal.fitting.gravity import fit_gravity, validate_gravity
 
 
 def add_gravity_arguments(parser) -> None:
@@ -77,8 +74,9 @@ def gravity_reference(args, ds) -> tuple[float | None, str, float | None]:
     return inclination, vref.text, total if total is not None else float(np.linalg.norm(ned))
 
 
-def run_gravity(args, ds, notes) -> int:
-    """``magcal calibrate`` in gravity mode (:func:`magcal.fitting.gravity.fit_gravity`)."""
+def gravity_options(args, ds) -> tuple[str, dict]:
+    """What ``magcal calibrate`` says of a gravity fit and its options
+    (:meth:`magcal.modes.gravity.GravityMode.fit`) from the parsed options."""
     if getattr(args, "effects", None):
         raise MagcalError("--effects: the gravity fit takes no catalogue effects (yet); leave --effects out")
     units = getattr(args, "accel_units", None)
@@ -90,26 +88,14 @@ def run_gravity(args, ds, notes) -> int:
         raise MagcalError(f"--noise must be a positive noise per axis in nT, got {noise}")
     options = {
         "inclination_deg": inclination,
+        "inclination_source": source,
         "reference_total_nT": total,
         "noise_nT": noise,
         "accel_fit": getattr(args, "accel_fit", "auto"),
         "accel_units": units,
         "robust": bool(getattr(args, "robust", False)),
     }
-    print(
-        "magcal calibrate: gravity mode (magnetometer beside an accelerometer); inclination: "
-        + (f"{inclination:.3f} deg ({source})" if inclination is not None else "fitted from the dip"),
-        file=sys.stderr,
+    header = "gravity mode (magnetometer beside an accelerometer); inclination: " + (
+        f"{inclination:.3f} deg ({source})" if inclination is not None else "fitted from the dip"
     )
-    try:
-        result = fit_gravity(ds, inclination_source=source, **options)
-    except CalibrationError as exc:
-        raise MagcalError(f"{args.data}: {exc}") from None
-    result.calibration.fitted_on(ds)
-    validation = None
-    if getattr(args, "validate", True):
-        try:
-            validation = validate_gravity(ds, **options)
-        except (CalibrationError, MagcalError) as exc:
-            notes.append(f"held-out validation not done: {exc}")
-    return report_fit(args, result, validation, notes)
+    return header, options

@@ -51,6 +51,7 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import EULER_COLUMNS, attitude
 from magcal.data.dataset import Dataset
+from magcal.fitting.result import ModeResult
 from magcal.fitting.tolles_lawson import TLCompensation, sample_rate_from_times, solve_ridge
 from magcal.model.effects import current_column
 from magcal.model.tolles_lawson import (
@@ -632,7 +633,7 @@ def fit_compensation(
 
 
 @dataclass
-class CompensationResult:
+class CompensationResult(ModeResult):
     """A compensation fit with its report: the compensation mode's result.
 
     Attributes
@@ -651,6 +652,7 @@ class CompensationResult:
     notes: list = field(default_factory=list)
     source: str = ""
     extra_text: str = ""
+    validation: object = None
 
     mode = "compensation"
 

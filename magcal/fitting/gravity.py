@@ -61,6 +61,7 @@ from magcal.data.accelerometer import (
 )
 from magcal.data.dataset import Dataset
 from magcal.fitting.pipeline import calibrate
+from magcal.fitting.result import ModeResult
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, fit_ellipsoid
 from magcal.geometry.heading import (
     angle_difference_deg,
@@ -399,7 +400,7 @@ class SensorGravityFit:
 
 
 @dataclass
-class GravityFitResult:
+class GravityFitResult(ModeResult):
     """Outcome of :func:`fit_gravity`.
 
     Attributes
@@ -420,6 +421,8 @@ class GravityFitResult:
     fitted : numpy.ndarray of bool, shape (N,)
         The samples in the total-field residual (the still ones are ``still.mask``).
     """
+
+    mode = "gravity"  # the fit mode (magcal.modes) that makes it
 
     calibration: Calibration
     sensors: list

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from magcal.calibration.calibration import Calibration, SensorCalibration, expected_total_field
+from magcal.calibration.report import calibration_json, text_report
 from magcal.checks.noise import NoiseEstimate, estimate_noise, prefetch_readings_facts
 from magcal.core import conventions
 from magcal.core import notes as _notes
@@ -39,6 +40,7 @@ from magcal.core.vectors import row_norm
 from magcal.data.dataset import Dataset
 from magcal.fitting import search
 from magcal.fitting.fitter import FitResult, fit, fit_reference, leave_out_rows_without_attitude
+from magcal.fitting.result import ModeResult
 from magcal.geometry.ellipsoid import START_MAX_SAMPLES, fit_ellipsoid
 from magcal.geometry.procrustes import procrustes_rotation
 from magcal.model.terms import Effect, Model
@@ -104,8 +106,9 @@ class StepSummary:
 
 
 @dataclass
-class CalibrationResult:
-    """Outcome of :func:`calibrate`.
+class CalibrationResult(ModeResult):
+    """Outcome of :func:`calibrate`: the total-field fit mode's result (:class:`~magcal.fitting.result.ModeResult`,
+    ``mode = "total_field"``).
 
     Attributes
     ----------
@@ -120,7 +123,7 @@ class CalibrationResult:
         The report's lines: what the steps found worth a line under "Warnings" in the report and in the JSON
         document's ``"warnings"`` (weak coverage, the noise the floors use, samples distrusted as outliers, samples
         without attitude...), in the order found. Information for the report, never raised as Python warnings:
-        what a user must hear is in ``notes`` (a coverage concern is in both). :attr:`warnings` is the same list.
+        what a user must hear is in ``notes`` (a coverage concern is in both), and their texts in ``warnings``.
     method : str
     reference_kind : str
         ``given`` (argument or file metadata), ``column`` (per-sample ``ref_total``) or ``fitted``.
@@ -202,11 +205,19 @@ class CalibrationResult:
     validation: Any = None  # magcal.fitting.validation.EffectsValidation (that module imports this one)
     notes: list = field(default_factory=list)
 
-    @property
-    def warnings(self) -> list:
-        """:attr:`remarks`, under the name the report's section, the JSON document's key and the other results'
-        ``warnings`` use: report lines, never raised (the same list)."""
-        return self.remarks
+    mode = "total_field"
+
+    def text(self, source: str | None = None) -> str:
+        """The readable report (:func:`magcal.calibration.report.text_report`; ``source``: the data's name)."""
+        return text_report(self, source=source)
+
+    def to_dict(self) -> dict:
+        """The calibration's document (the saved file's, :func:`magcal.calibration.report.calibration_json`) with
+        ``"mode"`` and, when made, the held-out ``"validation"``."""
+        doc = {"mode": self.mode, **calibration_json(self)}
+        if self.validation is not None:
+            doc["validation"] = self.validation.to_dict()
+        return doc
 
     @property
     def n_sensors(self) -> int:

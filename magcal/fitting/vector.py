@@ -63,6 +63,7 @@ from magcal.core.stats import explained_share, lag1_correlation, robust_sigma, s
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.fitting import labfield
+from magcal.fitting.result import ModeResult
 from magcal.geometry.orientations import (
     RIGHT_ANGLES,
     describe_right_angle,
@@ -323,7 +324,7 @@ class SampleGaps:
 
 
 @dataclass
-class VectorFitResult:
+class VectorFitResult(ModeResult):
     """Outcome of :func:`fit_vector`.
 
     Attributes
@@ -349,6 +350,8 @@ class VectorFitResult:
         The field fitted with the calibration (``reference="fitted"``) or its gradient along the path
         (``field_gradient``): :class:`magcal.fitting.labfield.LabField`.
     """
+
+    mode = "vector"  # the fit mode (magcal.modes) that makes it
 
     calibration: Calibration
     sensors: list
