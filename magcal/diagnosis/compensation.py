@@ -371,104 +371,100 @@ def diagnose_compensation(
     effects = list(check_effects(effects))
     pool = [c for c in check_effects(candidates if candidates is not None else CANDIDATES) if c not in effects]
     maneuvers = _maneuvers(record) if maneuvers is None else list(maneuvers)
+    judge = _Judge(record, also, maneuvers, options)
     base = fit_compensation(record, effects, **options)
-    notes: list[Note] = []
-    judge_on = also if also is not None else record
-    also_maneuvers = _maneuvers(also) if also is not None else None
-    judged_maneuvers = also_maneuvers if also is not None else maneuvers
-    sigma = noise_sigma_nT(base.compensate(judge_on))
-    floor = (
-        noise_floor_fom(sigma, judged_maneuvers, judge_on.n_samples, judge_on.sample_rate_hz)
-        if judged_maneuvers
-        else float("nan")
-    )
-    scheme = "flight" if also is not None else "maneuvers"
-    validation = {"scheme": scheme, "folds": FOLDS, "n_maneuvers": len(judged_maneuvers or [])}
-    if (also is None and len(maneuvers) < FOLDS) or (also is not None and not also_maneuvers):
-        where = "the other flight" if also is not None else "the record"
-        summary = (
-            f"not judged: {where} holds {len(judged_maneuvers or [])} maneuvers, too few to hold any out; fly a full "
-            "box (4 headings, a roll, a pitch and a yaw on each) or give another flight (--also)"
-        )
+    judge.set_floor(base)
+    if not judge.can_judge():
         cands = [CompensationCandidate(name, judged=False, reason="nothing to judge on") for name in pool]
-        validation["scheme"] = "none"
         return CompensationDiagnosis(
-            "not_judged",
-            summary,
-            effects,
-            cands,
-            [],
-            float("nan"),
-            None,
-            floor,
-            sigma,
-            validation,
-            [],
-            notes,
-            base,
-            _time.perf_counter() - started,
-        )
-
-    def score(names):
-        return held_out_fom(record, names, maneuvers, also=also, also_maneuvers=also_maneuvers, folds=FOLDS, **options)
-
+            "not_judged", judge.not_judged_summary(), effects, cands, [], float("nan"), None, judge.floor,
+            judge.sigma, judge.validation("none"), [], [], base, _time.perf_counter() - started,
+        )  # fmt: skip
+    judged = [
+        CompensationCandidate(name, judged=False, reason=reason) for name in pool if (reason := judge.unusable(name))
+    ]
+    open_names = [n for n in pool if not judge.unusable(n)]
     current = list(effects)
-    current_fom = score(current)
-    base_fom = current_fom
-    explained: list[str] = []
-    judged: list[CompensationCandidate] = []
-    for name in pool:
-        reason = _unusable(name, record) or (_unusable(name, also) if also is not None else "")
-        if reason:
-            judged.append(CompensationCandidate(name, judged=False, reason=reason))
-    open_names = [n for n in pool if not any(c.name == n and not c.judged for c in judged)]
+    base_fom = current_fom = judge.score(current)
     for round_ in range(1, MAX_EFFECTS + 1):
-        trials = []
-        for name in open_names:
-            fom = score(current + [name])
-            fit = fit_compensation(record, current + [name], **options)
-            trials.append(
-                CompensationCandidate(
-                    name, round_, True, current_fom, fom, False, _evidence(name, fit, record, options)
-                )
-            )
-        trials.sort(key=lambda c: c.fom_after_nT)
-        best = trials[0] if trials else None
-        if best is not None and best.gain >= MIN_GAIN:
-            best.recommended = True
-            explained.append(best.name)
-            current.append(best.name)
-            current_fom = best.fom_after_nT
-            open_names.remove(best.name)
-            sigma = noise_sigma_nT(fit_compensation(record, current, **options).compensate(judge_on))
-            floor = noise_floor_fom(sigma, judged_maneuvers, judge_on.n_samples, judge_on.sample_rate_hz)
+        trials = sorted((judge.trial(current, name, current_fom, round_) for name in open_names), key=_after)
         judged.extend(trials)
-        at_floor = current_fom <= ADEQUATE_RATIO * floor
-        if best is None or not best.recommended or not open_names or at_floor:
+        if not trials or trials[0].gain < MIN_GAIN:
             break
-    verdict, summary = _verdict(explained, base_fom, current_fom, floor, scheme, effects)
+        best = trials[0]
+        best.recommended = True
+        current.append(best.name)
+        current_fom = best.fom_after_nT
+        open_names.remove(best.name)
+        judge.set_floor(fit_compensation(record, current, **options))
+        if not open_names or current_fom <= ADEQUATE_RATIO * judge.floor:
+            break
+    explained = current[len(effects) :]
+    verdict, summary = _verdict(explained, base_fom, current_fom, judge.floor, judge.scheme, effects)
     warnings = []
-    if explained and current_fom > ADEQUATE_RATIO * floor:
+    if explained and current_fom > ADEQUATE_RATIO * judge.floor:
         warnings.append(
-            f"with {', '.join(explained)} the held-out FOM is {current_fom:.3f} nT, still {current_fom / floor:.1f}x "
-            "what the scalar's noise leaves: the platform has more than the candidates follow"
+            f"with {', '.join(explained)} the held-out FOM is {current_fom:.3f} nT, still "
+            f"{current_fom / judge.floor:.1f}x what the scalar's noise leaves: the platform has more than the "
+            "candidates follow"
         )
     return CompensationDiagnosis(
-        verdict,
-        summary,
-        effects,
-        judged,
-        explained,
-        base_fom,
-        current_fom if explained else None,
-        floor,
-        sigma,
-        validation,
-        warnings,
-        notes,
-        base,
-        _time.perf_counter() - started,
-    )
+        verdict, summary, effects, judged, explained, base_fom, current_fom if explained else None, judge.floor,
+        judge.sigma, judge.validation(judge.scheme), warnings, [], base, _time.perf_counter() - started,
+    )  # fmt: skip
+
+
+def _after(candidate: CompensationCandidate) -> float:
+    return candidate.fom_after_nT
+
+
+class _Judge:
+    """What the rounds of :func:`diagnose_compensation` share: the record, the other flight, the maneuvers, the
+    floor."""
+
+    def __init__(self, record, also, maneuvers, options):
+        self.record, self.also, self.maneuvers, self.options = record, also, maneuvers, options
+        self.also_maneuvers = _maneuvers(also) if also is not None else None
+        self.judge_on = also if also is not None else record
+        self.judged_maneuvers = self.also_maneuvers if also is not None else maneuvers
+        self.scheme = "flight" if also is not None else "maneuvers"
+        self.sigma, self.floor = float("nan"), float("nan")
+
+    def set_floor(self, comp: Compensation) -> None:
+        """The noise and the floor from a fit's compensation of the flight judged on."""
+        self.sigma = noise_sigma_nT(comp.compensate(self.judge_on))
+        if self.judged_maneuvers:
+            on = self.judge_on
+            self.floor = noise_floor_fom(self.sigma, self.judged_maneuvers, on.n_samples, on.sample_rate_hz)
+
+    def can_judge(self) -> bool:
+        if self.also is not None:
+            return bool(self.also_maneuvers)
+        return len(self.maneuvers) >= FOLDS
+
+    def not_judged_summary(self) -> str:
+        where = "the other flight" if self.also is not None else "the record"
+        return (
+            f"not judged: {where} holds {len(self.judged_maneuvers or [])} maneuvers, too few to hold any out; fly "
+            "a full box (4 headings, a roll, a pitch and a yaw on each) or give another flight (--also)"
+        )
+
+    def validation(self, scheme: str) -> dict:
+        return {"scheme": scheme, "folds": FOLDS, "n_maneuvers": len(self.judged_maneuvers or [])}
+
+    def unusable(self, name: str) -> str:
+        return _unusable(name, self.record) or (_unusable(name, self.also) if self.also is not None else "")
+
+    def score(self, names) -> float:
+        return held_out_fom(
+            self.record, names, self.maneuvers, also=self.also, also_maneuvers=self.also_maneuvers, **self.options
+        )
+
+    def trial(self, current, name, current_fom, round_) -> CompensationCandidate:
+        fom = self.score(current + [name])
+        fit = fit_compensation(self.record, current + [name], **self.options)
+        evidence = _evidence(name, fit, self.record, self.options)
+        return CompensationCandidate(name, round_, True, current_fom, fom, False, evidence)
 
 
 def _verdict(explained, base_fom, final_fom, floor, scheme, effects) -> tuple[str, str]:
