@@ -63,3 +63,13 @@ def test_a_record_of_one_heading_is_not_judged():
     assert found.verdict == "not_judged" and found.explained_by == []
     assert "--also" in found.summary
     assert found.validation["n_maneuvers"] < FOLDS
+
+
+def test_a_temperature_the_platform_does_not_follow_is_judged_and_not_recommended():
+    flight = simulate_compensation_flight(1)
+    record = record_of(flight)
+    record.temperature_C = 20.0 + 5.0 * np.sin(2 * np.pi * flight.time_s / 300.0)
+    found = diagnose_compensation(record, candidates=["temperature"])
+    (candidate,) = found.candidates
+    assert candidate.judged and not candidate.recommended and "per degC" in candidate.evidence
+    assert found.verdict == "adequate"

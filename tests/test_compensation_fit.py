@@ -156,3 +156,17 @@ def test_result_reports_the_fom_table():
     assert doc["improvement_ratio"] > 100
     text = result.text()
     assert "condition number" in text and "improvement ratio" in text and "eddy_zz" in text
+
+
+def test_record_takes_a_throttle_and_the_temperature():
+    flight = simulate_compensation_flight(1)
+    ds = Dataset(
+        flight.flux_nT[None],
+        time_s=flight.time_s,
+        temperature_C=20 + 0.01 * flight.time_s,
+        extra={"scalar_nT": flight.scalar_nT, "throttle": np.linspace(0.2, 0.8, flight.time_s.size)},
+        source="box.csv",
+    )
+    record = compensation_record(ds)
+    assert record.current_column == "throttle" and record.temperature_C[-1] > record.temperature_C[0]
+    assert record.attitude_deg is None  # the maneuvers are then found from the fluxgate
