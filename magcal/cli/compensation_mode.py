@@ -28,6 +28,7 @@ from magcal.data.io import CsvSource, is_parquet, parse_column_mapping
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
+    CompensationResult,
     check_effects,
     compensation_record,
 )
@@ -138,7 +139,8 @@ def run_compensation(args, read_input) -> int:
         file=sys.stderr,
     )
     result = COMPENSATION.fit(record, effects=effects, **options)
-    result.source = args.data
+    if isinstance(result, CompensationResult):
+        result.source = args.data
     notes += [note.text for note in result.notes]
     result.notes = []
     validation = None

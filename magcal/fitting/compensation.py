@@ -42,6 +42,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import optimize
@@ -646,9 +647,9 @@ class CompensationResult(ModeResult):
     source : str
     """
 
-    calibration: Compensation
-    record: CompensationRecord = field(repr=False, default=None)
-    fom: object = None
+    calibration: Compensation  # type: ignore[assignment]  # a compensation, not a magnetometer's calibration
+    record: CompensationRecord | None = field(repr=False, default=None)
+    fom: Any = None
     notes: list = field(default_factory=list)
     source: str = ""
     extra_text: str = ""
