@@ -140,3 +140,16 @@ def test_the_api_takes_the_compensation_mode_as_the_command_line_does(flights):
     found = magcal.diagnose(ds, result, warn=False)
     assert found.mode == "compensation" and found.effects == ["current"]
     assert "current" not in [c.name for c in found.candidates]
+
+
+def test_several_lines_go_into_a_folder(flights, tmp_path, capsys):
+    folder, first, second, box, line = flights
+    comp = tmp_path / "comp.json"
+    assert main(["calibrate", str(box), "-o", str(comp), "--effects", "current", "--no-validate"]) == 0
+    out = tmp_path / "compensated"
+    assert main(["apply", str(comp), str(box), str(line), "-o", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["box_comp.parquet", "line_comp.parquet"]
+    assert pd.read_parquet(out / "line_comp.parquet")["scalar_nT_comp"].size == second.time_s.size
+    capsys.readouterr()
+    assert main(["apply", str(comp), str(line), "-o", str(tmp_path / "o.csv"), "--workers", "2"]) == 2
+    assert "line by line" in capsys.readouterr().err

@@ -209,26 +209,35 @@ def run(args) -> int:
 
 
 def _run_compensation(args, parallel) -> int:
-    """``magcal apply`` of a compensation (``kind: "compensation"``): each line gets ``<scalar>_comp``."""
-    if parallel:
+    """``magcal apply`` of a compensation (``kind: "compensation"``): each line gets ``<scalar>_comp``; several
+    lines go into the folder ``-o``, each as ``<name>_comp`` in ``--format``."""
+    if args.workers is not None or args.scheduler is not None:
         raise MagcalError(
-            f"{args.calibration}: a compensation is applied to one line at a time (its eddy terms need each "
-            "sample's neighbours); give one file and no --workers/--scheduler"
+            f"{args.calibration}: a compensation is applied line by line (its eddy terms need each sample's "
+            "neighbours), not on Dask partitions: leave out --workers/--scheduler (several lines go into the folder -o)"
         )
     if args.uncertainty or args.record_terms or args.force:
         raise MagcalError(
             "--uncertainty, --record-terms and --force are for a magnetometer's calibration, not a compensation"
         )
-    summary = apply_compensation_file(
-        args.calibration,
-        args.data[0],
-        args.output,
-        columns=args.columns,
-        units=args.units,
-        drop_bad=args.drop_bad,
-        compression=args.compression,
-    )
-    for note in dict.fromkeys(summary.notes):
-        print(f"magcal apply: warning: {note}", file=sys.stderr)
-    print(summary.text())
+    targets = [args.output]
+    if parallel:
+        os.makedirs(args.output, exist_ok=True)
+        stems = [os.path.splitext(os.path.basename(path))[0] for path in args.data]
+        if len(set(stems)) < len(stems):
+            raise MagcalError("the lines' file names must differ (their outputs share the folder -o)")
+        targets = [os.path.join(args.output, f"{stem}_comp.{args.format}") for stem in stems]
+    for path, target in zip(args.data, targets):
+        summary = apply_compensation_file(
+            args.calibration,
+            path,
+            target,
+            columns=args.columns,
+            units=args.units,
+            drop_bad=args.drop_bad,
+            compression=args.compression if target.endswith(".parquet") else None,
+        )
+        for note in dict.fromkeys(summary.notes):
+            print(f"magcal apply: warning: {path}: {note}", file=sys.stderr)
+        print(summary.text())
     return 0
