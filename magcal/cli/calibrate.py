@@ -203,7 +203,8 @@ def add_mode_argument(parser, command) -> None:
         help="the fit: "
         + "; ".join(f"{m.name}: the {m.title}, {m.needs()}" for m in ranked)
         + "; scalar: total_field (docs/vector.md, docs/gravity.md); auto (default): the first of these the record "
-        "holds what it needs for (vector when some rows have an attitude and the field vector is known: ref_n, "
+        "holds what it needs for (compensation when the file has a scalar magnetometer's column beside the "
+        "fluxgate, docs/compensation.md; vector when some rows have an attitude and the field vector is known: ref_n, "
         "ref_e, ref_d, --reference-vector or --reference igrf; gravity when the file has accelerometer columns "
         "and no attitude; else the total-field fit)",
     )
