@@ -153,3 +153,30 @@ def test_several_lines_go_into_a_folder(flights, tmp_path, capsys):
     capsys.readouterr()
     assert main(["apply", str(comp), str(line), "-o", str(tmp_path / "o.csv"), "--workers", "2"]) == 2
     assert "line by line" in capsys.readouterr().err
+
+
+def test_magnav_test_data_through_the_command_line(tmp_path, capsys):
+    """MagNav.jl's own TL test data (fluxgate A, Mag 1) as a CSV with MagNav's names: the command line's
+    compensation reproduces their compensated Mag 1 (their ridge) and is below it in the band (ridge 0)."""
+    from test_tolles_lawson import _magnav_tl_data
+
+    from magcal.model.tolles_lawson import bandpass
+
+    data = _magnav_tl_data(tmp_path)
+    rate = float(data.fs)
+    n = data.mag_1_uc.size
+    frame = {"t": np.arange(n) / rate, "flux_a_x": data.flux_a_x, "flux_a_y": data.flux_a_y}
+    frame |= {"flux_a_z": data.flux_a_z, "mag_1_uc": data.mag_1_uc}
+    pd.DataFrame(frame).to_csv(tmp_path / "tl.csv", index=False)
+    mapping = ["--columns", "x=flux_a_x,y=flux_a_y,z=flux_a_z"]
+    for ridge in ("0", "0.001"):
+        comp = tmp_path / f"comp{ridge}.json"
+        assert main(["calibrate", str(tmp_path / "tl.csv"), *mapping, "--ridge", ridge, "-o", str(comp)]) == 0
+        out = tmp_path / f"out{ridge}.csv"
+        assert main(["apply", str(comp), str(tmp_path / "tl.csv"), *mapping, "-o", str(out)]) == 0
+        ours = pd.read_csv(out, comment="#")["mag_1_uc_comp"].to_numpy()
+        if ridge == "0":
+            assert np.std(bandpass(ours, rate)[20:-20]) <= np.std(bandpass(data.mag_1_c, rate)[20:-20])
+        else:
+            assert np.std(ours - data.mag_1_c) < 0.1  # MagNav's own test of its compensation
+    capsys.readouterr()
