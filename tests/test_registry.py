@@ -104,7 +104,7 @@ def test_every_built_in_export_format_is_listed_by_the_cli_the_bundle_and_the_pa
     parser = build_parser(only="export")
     sub = next(a for a in parser._actions if a.dest == "command").choices["export"]
     choices = next(a for a in sub._actions if a.dest == "format").choices
-    assert tuple(choices) == ("ardupilot", "px4", "c", "mask", "all")
+    assert tuple(choices) == ("ardupilot", "px4", "c", "mask", "all", "magnav-tl")  # magnav-tl: a compensation's
     assert dict(bundle.PARAMETER_FILES) == {
         "ardupilot": "compass.parm",
         "px4": "mag.params",

@@ -38,6 +38,7 @@ from magcal.checks.reference import (
     vector_reference_from_args,
 )
 from magcal.cli.commands import HELP
+from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation, wants_compensation
 from magcal.cli.fit_report import report_fit
 from magcal.cli.gravity_mode import add_gravity_arguments, gravity_options
 from magcal.core.errors import CalibrationError, MagcalError
@@ -126,6 +127,7 @@ def add_arguments(parser) -> None:
     add_vector_reference_arguments(parser)
     add_mode_argument(parser, "calibrate")
     add_gravity_arguments(parser)
+    add_compensation_arguments(parser)
     parser.add_argument(
         "--attitude-noise-deg",
         type=float,
@@ -201,7 +203,8 @@ def add_mode_argument(parser, command) -> None:
         help="the fit: "
         + "; ".join(f"{m.name}: the {m.title}, {m.needs()}" for m in ranked)
         + "; scalar: total_field (docs/vector.md, docs/gravity.md); auto (default): the first of these the record "
-        "holds what it needs for (vector when some rows have an attitude and the field vector is known: ref_n, "
+        "holds what it needs for (compensation when the file has a scalar magnetometer's column beside the "
+        "fluxgate, docs/compensation.md; vector when some rows have an attitude and the field vector is known: ref_n, "
         "ref_e, ref_d, --reference-vector or --reference igrf; gravity when the file has accelerometer columns "
         "and no attitude; else the total-field fit)",
     )
@@ -419,6 +422,8 @@ def compass_report(ds, vref=None, fit=None, notes=None, args=None):
 
 def run(args) -> int:
 
+    if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
+        return run_compensation(args, read_input)
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     _platform_terms(args)

@@ -64,6 +64,7 @@ from magcal.cli.calibrate import (
     vector_effects,
 )
 from magcal.cli.commands import HELP
+from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation_diagnosis, wants_compensation
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.data.attitude import attitude_source
@@ -103,6 +104,7 @@ def add_arguments(parser) -> None:
     add_reference_arguments(parser)
     add_vector_reference_arguments(parser)
     add_mode_argument(parser, "diagnose")
+    add_compensation_arguments(parser, figure=False)
     parser.add_argument(
         "--also",
         action="append",
@@ -208,6 +210,8 @@ def run(args) -> int:
 
     checked_noise(args)
     checked_attitude_noise(args)
+    if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
+        return run_compensation_diagnosis(args, read_input)
     names = checked_effect_names(args)
     if getattr(args, "mode", "auto") != "vector":
         _start_workers_while_reading(args)

@@ -25,10 +25,13 @@ from magcal.cli.calibrate import add_max_rows_argument, checked_max_rows
 from magcal.cli.commands import HELP
 from magcal.core.errors import MagcalError
 from magcal.data.io import atomic_write, read_csv
+from magcal.fitting.compensation import Compensation
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import load_calibration
 from magcal.output.bundle import export_all, mask_from_file, parameter_bytes, raw_mask_bytes
+from magcal.output.compensated_line import is_compensation_file
 from magcal.output.formats import EXPORT_FORMATS, load_entry_points
+from magcal.output.magnav_tl import COMPENSATION_FORMATS, magnav_tl_text
 
 #: Formats that need the data (--data): the raw readings with the fit's mask, and every file in a zip.
 DATA_FORMATS = {
@@ -52,7 +55,12 @@ def register(subparsers):
         + ". Conventions and formulas: docs/export.md.",
     )
     parser.add_argument("calibration", metavar="CAL.json", help="calibration file (magcal calibrate / align)")
-    parser.add_argument("--format", required=True, choices=tuple(formats) + tuple(DATA_FORMATS), help="what to write")
+    parser.add_argument(
+        "--format",
+        required=True,
+        choices=tuple(formats) + tuple(DATA_FORMATS) + tuple(COMPENSATION_FORMATS),
+        help="what to write (magnav-tl: a compensation's TL-18 vector in MagNav.jl's term order, docs/compensation.md)",
+    )
     parser.add_argument(
         "-o", "--output", default=None, metavar="FILE", help="output file (written atomically); default standard output"
     )
@@ -115,6 +123,8 @@ def run(args) -> int:
 
     if args.slot and not args.sensor:
         raise MagcalError("--slot needs --sensor (one --slot per --sensor)")
+    if is_compensation_file(args.calibration) or args.format in COMPENSATION_FORMATS:
+        return _run_compensation(args)
     check_calibration_effects(args.calibration)
     calibration = load_calibration(args.calibration)
     if args.format in DATA_FORMATS:
@@ -175,4 +185,25 @@ def _run_data(args, calibration) -> int:
     with atomic_write(args.output, "wb") as fh:
         fh.write(content)
     print(f"magcal export: {said[0]} to {args.output}", file=sys.stderr)
+    return 0
+
+
+def _run_compensation(args) -> int:
+    """``--format magnav-tl`` of a compensation file."""
+    if args.format not in COMPENSATION_FORMATS:
+        raise MagcalError(
+            f"{args.calibration} is a compensation: export it with --format {' or '.join(COMPENSATION_FORMATS)}"
+        )
+    if not is_compensation_file(args.calibration):
+        raise MagcalError(
+            f"--format {args.format} writes a compensation (magcal calibrate --mode compensation -o comp.json); "
+            f"{args.calibration} is not one"
+        )
+    text = magnav_tl_text(Compensation.load(args.calibration), force=args.force)
+    if args.output:
+        with atomic_write(args.output) as fh:
+            fh.write(text)
+        print(f"magcal export: wrote MagNav.jl's TL_coef (18 values) to {args.output}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
     return 0

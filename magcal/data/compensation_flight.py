@@ -11,7 +11,7 @@ Physics, in the body frame (nT), written from the fields themselves, not from th
     B_e(t)   = R(t)^T B_ned                      (R: body -> NED, aerospace ZYX roll, pitch, yaw)
     B_p(t)   = p + A B_e + E dB_e/dt + k I(t)     (p nT, A dimensionless, E s, k nT/A)
     scalar   = |B_e + B_p| + background(t) + noise
-    fluxgate = B_e(t - lag) + noise
+    fluxgate = W B_e(t - lag) + b + noise        (W, b: the fluxgate's own scale, non-orthogonality and bias)
 
 with ``background`` a slow drift (diurnal, below the band-pass). The truth's :meth:`CompensationTruth.tl18` is
 the platform in Tolles-Lawson's linear terms (first order in ``B_p / |B_e|``), in MagNav.jl's order and scaling.
@@ -219,6 +219,8 @@ def simulate_compensation_flight(
     fluxgate_noise_nT: float = 0.2,
     drift_nT: float = 3.0,
     fluxgate_lag_s: float = 0.0,
+    fluxgate_matrix=None,
+    fluxgate_bias_nT=None,
 ) -> CompensationFlight:
     """Simulate a compensation flight with known platform fields.
 
@@ -249,6 +251,10 @@ def simulate_compensation_flight(
         The slow background's amplitude (nT): a diurnal-like drift over the flight.
     fluxgate_lag_s : float
         The fluxgate's lag behind the scalar (s), hidden from the Tolles-Lawson terms.
+    fluxgate_matrix : array_like, shape (3, 3), optional
+        ``W``: the fluxgate's scale and non-orthogonality (the identity by default): it reads ``W B_e + b``.
+    fluxgate_bias_nT : array_like, shape (3,), optional
+        ``b``: the fluxgate's bias (nT, zeros by default).
 
     Returns
     -------
@@ -282,6 +288,10 @@ def simulate_compensation_flight(
     noise = rng.normal(0.0, scalar_noise_nT, n)
     scalar = earth_total + platform_scalar + background + noise
     lagged = np.column_stack([np.interp(t_fine[keep] - fluxgate_lag_s, t_fine, earth_fine[:, j]) for j in range(3)])
+    if fluxgate_matrix is not None:
+        lagged = lagged @ np.asarray(fluxgate_matrix, dtype=float).T
+    if fluxgate_bias_nT is not None:
+        lagged = lagged + np.asarray(fluxgate_bias_nT, dtype=float)
     flux = lagged + rng.normal(0.0, fluxgate_noise_nT, (n, 3))
     maneuvers = [
         FlownManeuver(m.heading_deg, m.kind, -(-m.start // _OVERSAMPLE), -(-m.stop // _OVERSAMPLE))

@@ -3,11 +3,13 @@
 
 ``total_field`` (alias ``scalar``, :mod:`.total_field`) fits any record turned in a uniform field; ``vector``
 (:mod:`.vector`) a record with the attitude and the field vector; ``gravity`` (:mod:`.gravity`) a magnetometer
-beside an accelerometer. :func:`choose_mode` picks one for a record (``"auto"``: the applicable one of highest
+beside an accelerometer; ``compensation`` (:mod:`.compensation`) a scalar magnetometer beside a fluxgate on a
+platform (Tolles-Lawson and beyond). :func:`choose_mode` picks one for a record (``"auto"``: the applicable one of highest
 priority) for the command line and :func:`magcal.calibrate` alike.
 """
 
 from magcal.modes.base import FIT_MODES, FitMode, choose_mode, fit_mode, load_entry_points, mode_choice, mode_names
+from magcal.modes.compensation import COMPENSATION
 from magcal.modes.gravity import GRAVITY, GravityDiagnosis
 from magcal.modes.total_field import TOTAL_FIELD
 from magcal.modes.vector import VECTOR
@@ -23,5 +25,6 @@ __all__ = [
     "TOTAL_FIELD",
     "VECTOR",
     "GRAVITY",
+    "COMPENSATION",
     "GravityDiagnosis",
 ]

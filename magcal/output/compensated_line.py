@@ -1,0 +1,152 @@
+"""A compensation applied to survey lines: the scalar magnetometer minus the platform's field, as ``<scalar>_comp``.
+
+``magcal apply comp.json LINE.csv -o out.csv`` with a compensation document (``kind: "compensation"``,
+:class:`magcal.fitting.compensation.Compensation`) reads the line whole (its eddy and offset terms need each
+sample's neighbours), takes the fluxgate (x, y, z), the scalar column the compensation was fitted on and, when the
+compensation has those terms, the current or throttle and the temperature, and writes the line with one more column:
+``<scalar>_comp`` (nT), the compensated scalar. A CSV line is written back as it was read (every input line, the
+new column appended) when no row was dropped; otherwise, and for Parquet, the columns as magcal reads them (readings
+in nT) plus the new one, to CSV or Parquet by the output's name.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+from magcal.data.dataset import dataset_columns, dataset_metadata
+from magcal.data.io import (
+    atomic_write,
+    check_output_path,
+    is_parquet,
+    metadata_text,
+    parquet_table,
+    parquet_write_options,
+    read_csv,
+    write_rows,
+)
+from magcal.fitting.compensation import Compensation, compensation_record, is_compensation_document
+
+#: The compensated scalar to 1 pT.
+COMPENSATED_FORMAT = "%.3f"
+
+__all__ = ["CompensationSummary", "apply_compensation_file", "compensated_column", "is_compensation_file"]
+
+
+def is_compensation_file(path) -> bool:
+    """Whether ``path`` is a JSON compensation document (``kind: "compensation"``); False for anything else,
+    including a file that cannot be read (the calibration reader then says why)."""
+    try:
+        with open(os.fspath(path), encoding="utf-8") as fh:
+            head = fh.read(1 << 20)
+        return is_compensation_document(json.loads(head))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+
+
+def compensated_column(compensation: Compensation) -> str:
+    """The new column's name: ``<scalar>_comp``."""
+    return f"{compensation.scalar_column}_comp"
+
+
+@dataclass
+class CompensationSummary:
+    """What :func:`apply_compensation_file` wrote."""
+
+    rows: int
+    column: str
+    output_path: str
+    notes: list = field(default_factory=list)
+
+    def text(self) -> str:
+        return f"wrote {self.rows} rows to {self.output_path} with {self.column} (nT)"
+
+
+def apply_compensation_file(
+    compensation, survey_path, output_path, columns=None, units=None, drop_bad=False, compression=None
+) -> CompensationSummary:
+    """Compensate a survey line and write it with ``<scalar>_comp``.
+
+    Parameters
+    ----------
+    compensation : Compensation or str or os.PathLike
+        The compensation or its JSON file.
+    survey_path, output_path : str or os.PathLike
+        The line (CSV or Parquet, docs/formats.md; its fluxgate as x, y, z or mapped with ``columns``) and the
+        output (``.parquet`` for Parquet), written atomically.
+    columns, units, drop_bad
+        As in :func:`magcal.data.io.read_csv`.
+    compression : str, optional
+        The float columns' codec of a Parquet output.
+
+    Returns
+    -------
+    CompensationSummary
+
+    Raises
+    ------
+    MagcalError
+        The line lacks the scalar column, the current the compensation follows, or its rate differs.
+    """
+    check_output_path(output_path, "output")
+    if not isinstance(compensation, Compensation):
+        compensation = Compensation.load(compensation)
+    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
+    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
+        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    dataset = read_csv(survey_path, columns=columns, units=units, drop_bad=drop_bad, warn=False)
+    name = compensated_column(compensation)
+    if name in dataset.extra:
+        raise MagcalError(f"{survey_path}: the line already has a column {name} (is it an apply output?)")
+    record = compensation_record(dataset, compensation.scalar_column)
+    values = compensation.compensate(record)
+    notes = [note.text for note in dataset.notes]
+    kept_lines = not is_parquet(survey_path) and not is_parquet(output_path)
+    if kept_lines and not _append_to_lines(survey_path, output_path, name, values):
+        kept_lines = False
+    if not kept_lines:
+        columns_out = dict(dataset_columns(dataset))
+        columns_out[name] = values
+        meta = dataset_metadata(dataset) | {"magcal_columns": f"readings in nT; {name} the compensated scalar, nT"}
+        if is_parquet(output_path):
+            import pyarrow.parquet as pq
+
+            table = parquet_table(columns_out, meta)
+            with atomic_write(output_path, mode="wb", encoding=None, newline=None) as fh:
+                pq.write_table(table, fh, **parquet_write_options(table, compression))
+        else:
+            with atomic_write(output_path) as out:
+                out.write(metadata_text(meta))
+                csv.writer(out, lineterminator="\n").writerow(list(columns_out))
+                write_rows(out, columns_out)
+    return CompensationSummary(int(values.size), name, output_path, notes)
+
+
+def _append_to_lines(survey_path: str, output_path: str, name: str, values) -> bool:
+    """Write the CSV's lines as they are with ``name`` appended; False (nothing written) when its data lines are
+    not one per value (rows dropped on reading)."""
+    with open(survey_path, encoding="utf-8", newline="") as fh:
+        lines = fh.read().splitlines()
+    heads = [k for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
+    if not heads:
+        return False
+    header, data = heads[0], [k for k in heads[1:]]
+    if len(data) != len(values):
+        return False
+    header_text = _io.StringIO()
+    csv.writer(header_text, lineterminator="").writerow([name])
+    texts = [COMPENSATED_FORMAT % v for v in np.asarray(values, float)]
+    out_lines = list(lines)
+    out_lines[header] = lines[header] + "," + header_text.getvalue()
+    for k, text in zip(data, texts):
+        out_lines[k] = lines[k] + "," + text
+    with atomic_write(output_path) as out:
+        out.write("# magcal_columns: " + f"{name} the compensated scalar, nT\n")
+        out.write("\n".join(out_lines) + "\n")
+    return True
