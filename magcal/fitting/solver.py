@@ -97,6 +97,7 @@ def reweighted_fit(
     rounds: int = 3,
     most_rounds: int | None = None,
     again: Callable | None = None,
+    tolerance: float = SETTLED,
 ) -> Reweighted:
     """Solve, re-estimate the noises from the residuals, and solve again until they settle.
 
@@ -118,6 +119,8 @@ def reweighted_fit(
     again : callable, optional
         ``again(round, x) -> bool``, after each solve and the noises' update: True asks for one more solve whatever
         the noises did (a model whose data-derived constants moved).
+    tolerance : float
+        The noises have settled when each moved by less than this fraction (0: every round is run).
     """
     sigmas = estimate_sigmas(groups, parts(x)) if sigmas is None else list(sigmas)
     most = rounds if most_rounds is None else most_rounds
@@ -125,7 +128,7 @@ def reweighted_fit(
     for done in range(1, most + 1):
         x, solution = solve(x, sigmas)
         new = estimate_sigmas(groups, parts(x), sigmas)
-        settled = all(abs(a / b - 1.0) < SETTLED for a, b in zip(new, sigmas))
+        settled = all(abs(a / b - 1.0) < tolerance for a, b in zip(new, sigmas))
         sigmas = new
         if again is not None and again(done - 1, x):
             continue
