@@ -53,6 +53,7 @@ from magcal.core.notes import Note
 from magcal.data.accelerometer import (
     MIN_STILL,
     STANDARD_GRAVITY_M_S2,
+    Accelerometer,
     StillSamples,
     accelerometer,
     direction_spread,
@@ -72,7 +73,7 @@ from magcal.fitting.solver import (
     weighted_least_squares,
 )
 from magcal.fitting.truth import true_calibration as true_calibration
-from magcal.fitting.validation import held_out_blocks
+from magcal.fitting.validation import BlockValidation, held_out_blocks
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, fit_ellipsoid
 from magcal.geometry.heading import (
     angle_difference_deg,
@@ -369,19 +370,17 @@ class SensorGravityFit(SensorMounting):
     sd_widening: float = 1.0
     determined: bool = True
 
-    def summary(self) -> dict:
-        return {
-            **self.mounting_summary(),
-            "rms_total_field_nT": self.rms_total_field_nT,
-            "sigma_total_field_nT": self.sigma_total_field_nT,
-            "dip_sd_deg": self.dip_sd_deg,
-            "sigma_dip_deg": self.sigma_dip_deg,
-            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
-            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
-            "heading_sd_deg": self.heading_sd_deg,
-            "sd_widening": self.sd_widening,
-            "determined": self.determined,
-        }
+    SUMMARY_FIELDS = (
+        "rms_total_field_nT",
+        "sigma_total_field_nT",
+        "dip_sd_deg",
+        "sigma_dip_deg",
+        "mounting_sd_deg",
+        "bias_sd_nT",
+        "heading_sd_deg",
+        "sd_widening",
+        "determined",
+    )
 
 
 @dataclass
@@ -573,7 +572,7 @@ def fit_gravity(
     inc_deg = float(np.degrees(inc))
     if inclination_deg is not None:
         notes.extend(_dip_note(r_d, inc, inclination_source))
-    tilts = tilt_deg(af.correct(rec.a_still))
+    tilts = tilt_deg(rec.af.correct(rec.a_still))  # by the accelerometer's own fit, before the joint one
     tilt_range = (float(np.min(tilts)), float(np.max(tilts)))
     if tilt_range[1] < 60.0:
         notes.append(
@@ -616,7 +615,7 @@ class _StillRecord:
     """The samples of a gravity fit: those kept (``keep``, bool N), the still ones among them (``still_rows``: their
     positions among the kept), their specific force (``a_still``, m/s^2) and the accelerometer's own fit."""
 
-    accel: object
+    accel: Accelerometer
     keep: np.ndarray
     still: StillSamples
     still_rows: np.ndarray
@@ -996,28 +995,22 @@ def heading_figures(calibration, dataset, rows, true_heading_deg=None, other=Non
 
 
 @dataclass
-class GravityValidation:
+class GravityValidation(BlockValidation):
     """Held-out figures of the gravity fit beside the separate calibrations (:func:`validate_gravity`).
 
     Attributes
     ----------
-    n_blocks : int
-        Blocks in time (:func:`magcal.fitting.validation.held_out_blocks`): the fits use the odd-numbered ones (the
-        first and the last among them), the figures ``held_*`` come from the others.
+    n_blocks, train
+        As :class:`magcal.fitting.validation.BlockValidation`.
     rows : list of dict
         Per calibration (``name``: ``gravity`` or ``separate``): on the still samples of the fitted blocks (``in_``)
         and of the others (``held_``), sensor 1: the dip's spread (deg), ``|B|`` RMS against the fit's ``F`` (nT).
     heading_difference_deg : float
         RMS over the held-out still samples of the heading difference between the two (deg): the heading error
         the separate calibrations leave, if the gravity fit is right (NaN when the record has no total-field fit).
-    train : numpy.ndarray of bool, shape (N,)
-        The samples of the fitted blocks.
     """
 
-    n_blocks: int
-    rows: list
     heading_difference_deg: float
-    train: np.ndarray | None = field(default=None, repr=False)
 
     def text(self) -> str:
         lines = [
@@ -1039,11 +1032,7 @@ class GravityValidation:
         return "\n".join(lines) + "\n"
 
     def to_dict(self) -> dict:
-        return {
-            "n_blocks": self.n_blocks,
-            "rows": [dict(r) for r in self.rows],
-            "heading_difference_deg": self.heading_difference_deg,
-        }
+        return {**super().to_dict(), "heading_difference_deg": self.heading_difference_deg}
 
 
 def validate_gravity(dataset, n_blocks=None, **options) -> GravityValidation:
@@ -1102,6 +1091,6 @@ def validate_gravity(dataset, n_blocks=None, **options) -> GravityValidation:
             }
         )
     if sep is None:
-        return GravityValidation(n_blocks, rows, float("nan"), train)
+        return GravityValidation(n_blocks, rows, float("nan"), train=train)
     diff = heading_figures(fit.calibration, dataset, still.mask & test, other=sep, accel_units=units)
-    return GravityValidation(n_blocks, rows, diff["heading_difference_rms_deg"][0], train)
+    return GravityValidation(n_blocks, rows, diff["heading_difference_rms_deg"][0], train=train)

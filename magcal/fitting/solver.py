@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -83,7 +84,7 @@ class Reweighted:
     """Outcome of :func:`reweighted_fit`: the parameters, the last solver's solution, the noises, the rounds run."""
 
     x: np.ndarray
-    solution: object
+    solution: Any
     sigmas: list
     rounds: int
 
@@ -272,15 +273,27 @@ class SensorMounting:
     angle_off_deg: float
     orientation_margin: float
 
-    def mounting_summary(self) -> dict:
-        """The mounting's JSON-ready figures (the first entries of a sensor's summary)."""
-        return {
+    #: The attributes a sensor's :meth:`summary` holds after the mounting's figures, in order.
+    SUMMARY_FIELDS: ClassVar[tuple[str, ...]] = ()
+
+    def summary(self) -> dict:
+        """JSON-ready figures for the calibration file's sensor entry: the mounting's, then :attr:`SUMMARY_FIELDS`
+        (arrays as lists, a cause as its dictionary)."""
+        out = {
             "mounting_right_angle": self.right_angle_text,
             "mounting_rotation_number": firmware_rotation(self.right_angle),
             "mounting_angle_off_deg": self.angle_off_deg,
             "mounting_rotvec_deg": np.degrees(Rotation.from_matrix(self.mounting).as_rotvec()).tolist(),
             "orientation_margin": self.orientation_margin,
         }
+        for name in self.SUMMARY_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, np.ndarray):
+                value = value.tolist()
+            elif hasattr(value, "to_dict"):
+                value = value.to_dict()
+            out[name] = value
+        return out
 
 
 def mounting_fields(W, bias_nT, right_angle, margin: float, sensor: int, frame="body", off_nearest=True) -> dict:

@@ -194,6 +194,29 @@ def held_out_blocks(dataset, n_blocks: int | None = None) -> tuple[np.ndarray, n
 
 
 @dataclass
+class BlockValidation:
+    """Held-out figures of a mode's fits on :func:`held_out_blocks` (the vector and the gravity fits' checks).
+
+    Attributes
+    ----------
+    n_blocks : int
+        Blocks in time: the fits use the odd-numbered ones (the first and the last among them), the figures
+        ``held_*`` come from the others.
+    rows : list of dict
+        Per fit, its figures on the fitted blocks (``in_*``) and on the others (``held_*``).
+    train : numpy.ndarray of bool, shape (N,), or None
+        The samples of the fitted blocks.
+    """
+
+    n_blocks: int
+    rows: list
+    train: np.ndarray | None = field(default=None, repr=False, kw_only=True)
+
+    def to_dict(self) -> dict:
+        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
+
+
+@dataclass
 class ValidationResult:
     """A model fitted on training samples and scored on held-out samples.
 

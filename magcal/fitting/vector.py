@@ -73,7 +73,7 @@ from magcal.fitting.solver import (
     weighted_least_squares,
 )
 from magcal.fitting.truth import true_calibration as true_calibration
-from magcal.fitting.validation import held_out_blocks
+from magcal.fitting.validation import BlockValidation, held_out_blocks
 from magcal.geometry.orientations import (
     RIGHT_ANGLES,
     describe_right_angle,
@@ -200,25 +200,22 @@ class SensorVectorFit(SensorMounting):
     total_residual_nT: np.ndarray | None = field(default=None, repr=False)
     vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
-    def summary(self) -> dict:
-        """JSON-ready figures for the calibration file's sensor entry."""
-        return {
-            **self.mounting_summary(),
-            "rms_vector_nT": self.rms_vector_nT,
-            "rms_perpendicular_nT": self.rms_perpendicular_nT,
-            "rms_total_field_nT": self.rms_total_field_nT,
-            "sigma_perpendicular_nT": self.sigma_perpendicular_nT,
-            "sigma_total_field_nT": self.sigma_total_field_nT,
-            "attitude_noise_deg": self.attitude_noise_deg,
-            "attitude_noise_source": self.attitude_noise_source,
-            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
-            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
-            "n_outliers": self.n_outliers,
-            "residual_lag1_correlation": self.residual_lag1_correlation,
-            "sd_widening": self.sd_widening,
-            "determined": self.determined,
-            "undetermined_cause": None if self.undetermined_cause is None else self.undetermined_cause.to_dict(),
-        }
+    SUMMARY_FIELDS = (
+        "rms_vector_nT",
+        "rms_perpendicular_nT",
+        "rms_total_field_nT",
+        "sigma_perpendicular_nT",
+        "sigma_total_field_nT",
+        "attitude_noise_deg",
+        "attitude_noise_source",
+        "bias_sd_nT",
+        "mounting_sd_deg",
+        "n_outliers",
+        "residual_lag1_correlation",
+        "sd_widening",
+        "determined",
+        "undetermined_cause",
+    )
 
 
 @dataclass
@@ -620,16 +617,16 @@ def _raw_bases(instances, dataset, ctx, bias_nT, rows) -> np.ndarray | None:
 
 def fit_vector(
     dataset: Dataset,
-    reference: VectorReference,
+    reference: VectorReference | str,
     effects=None,
     terms=None,
-    attitude_noise_deg=None,
-    noise_nT=None,
+    attitude_noise_deg: float | None = None,
+    noise_nT: float | None = None,
     reference_total_nT=None,
-    robust=False,
+    robust: bool = False,
     mask=None,
-    warn=True,
-    field_gradient=False,
+    warn: bool = True,
+    field_gradient: bool = False,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -1307,22 +1304,18 @@ def _tilt_range_deg(rotation: Rotation) -> float:
 
 
 @dataclass
-class VectorValidation:
+class VectorValidation(BlockValidation):
     """Held-out figures of vector fits with and without effects (:func:`validate_vector`).
 
     Attributes
     ----------
-    n_blocks : int
-        Blocks in time (:func:`magcal.fitting.validation.held_out_blocks`): the fits use the odd-numbered ones (the
-        first and the last among them), the figures ``held_*`` come from the others.
     rows : list of dict
         Per model (``terms``: the effects fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
         components against the reference, RMS per component) and ``in_total_nT`` / ``held_total_nT`` (|B| against
         the reference total field), all sensors together.
+    n_blocks, train
+        As :class:`magcal.fitting.validation.BlockValidation`.
     """
-
-    n_blocks: int
-    rows: list
 
     def text(self) -> str:
         lines = [
@@ -1336,9 +1329,6 @@ class VectorValidation:
                 f"|B| {r['in_total_nT']:.2f} in / {r['held_total_nT']:.2f} held out"
             )
         return "\n".join(lines) + "\n"
-
-    def to_dict(self) -> dict:
-        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
 
 
 def validate_vector(dataset, reference, terms=None, n_blocks=None, effects=None, **options) -> VectorValidation:
@@ -1400,7 +1390,7 @@ def validate_vector(dataset, reference, terms=None, n_blocks=None, effects=None,
                 "held_total_nT": rms(total, test),
             }
         )
-    return VectorValidation(n_blocks, rows)
+    return VectorValidation(n_blocks, rows, train=train)
 
 
 # ----------------------------------------------------------------------------------------------------------------
