@@ -114,7 +114,8 @@ def reweighted_fit(
     sigmas : sequence of float, optional
         The noises of the first solve; default estimated from the residuals at ``x``.
     rounds : int
-        Most solves when nothing asks for another (:data:`SETTLED` noises stop earlier).
+        Solves in all after which the loop stops once ``again`` no longer asks for another (noises settled within
+        ``tolerance`` stop it sooner).
     most_rounds : int, optional
         Most solves in all, ``again`` included; default ``rounds``.
     again : callable, optional
