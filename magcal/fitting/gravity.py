@@ -548,7 +548,8 @@ def fit_gravity(
     rec = _still_record(dataset, mask, still, accel_units, accel_fit, accel_noise_m_s2)
     notes = rec.notes
     inc_given = None if inclination_deg is None else float(np.radians(inclination_deg))
-    prob, x, starts = _joint_start(dataset, rec, reference_total_nT, mag_model, inc_given, notes)
+    prob, x, starts, start_notes = _joint_start(dataset, rec, reference_total_nT, mag_model, inc_given)
+    notes += start_notes
     fit = _joint_solve(prob, x, rec.af, noise_nT, accel_noise_m_s2, robust)
     x, (sigma_a, sigma_f, sigma_d) = fit.x, _sigma_blocks(fit.sigmas, dataset.n_sensors)
     r_a, r_f, r_d = prob.parts(x)
@@ -568,7 +569,8 @@ def fit_gravity(
         if af.fitted:
             af.bias_sd_m_s2 = np.sqrt(np.clip(np.diag(cov.matrix)[6:9], 0.0, None))
     residuals = (r_f, r_d, sigma_f, sigma_d)
-    fits, blocks = _sensor_fits(prob, x, cov, rec, af, starts, residuals, accel_fit, notes)
+    fits, blocks, sensor_notes = _sensor_fits(prob, x, cov, rec, af, starts, residuals, accel_fit)
+    notes += sensor_notes
     inc_deg = float(np.degrees(inc))
     if inclination_deg is not None:
         notes.extend(_dip_note(r_d, inc, inclination_source))
@@ -622,7 +624,6 @@ class _StillRecord:
     a_still: np.ndarray
     af: AccelFit
     notes: list
-    where: str
 
 
 def _still_record(dataset, mask, still, accel_units, accel_fit, accel_noise_m_s2) -> _StillRecord:
@@ -664,12 +665,14 @@ def _still_record(dataset, mask, still, accel_units, accel_fit, accel_noise_m_s2
             "and the heading, and the figures below do not include it. Turn the board onto each of its six faces "
             "(or through every attitude) to calibrate it too, or give a calibrated accelerometer"
         )
-    return _StillRecord(accel, keep, still, still_rows, a_still, af, notes, where)
+    return _StillRecord(accel, keep, still, still_rows, a_still, af, notes)
 
 
-def _joint_start(dataset, rec: _StillRecord, reference_total_nT, mag_model, inc_given, notes):
-    """``(problem, x, starts)``: each magnetometer's ellipsoid and the right angle the dip chooses
-    (:func:`dip_start`), the joint problem and its start; ``starts[s] = (right angle, margin)``."""
+def _joint_start(dataset, rec: _StillRecord, reference_total_nT, mag_model, inc_given):
+    """``(problem, x, starts, notes)``: each magnetometer's ellipsoid and the right angle the dip chooses
+    (:func:`dip_start`), the joint problem and its start; ``starts[s] = (right angle, margin)``; the notes of a
+    magnetometer whose rotation only is fitted."""
+    notes = []
     down = -_unit(rec.af.correct(rec.a_still))
     ys, fields, ws, bs, incs, starts, fixed = [], [], [], [], [], [], []
     for s in range(dataset.n_sensors):
@@ -698,7 +701,7 @@ def _joint_start(dataset, rec: _StillRecord, reference_total_nT, mag_model, inc_
         inc_given,
         fixed,
     )
-    return prob, prob.pack(af.kinv, af.bias_m_s2, ws, bs, float(np.mean(incs))), starts
+    return prob, prob.pack(af.kinv, af.bias_m_s2, ws, bs, float(np.mean(incs))), starts, notes
 
 
 #: Re-weighting rounds of the joint fit (:func:`magcal.fitting.solver.reweighted_fit`).
@@ -729,11 +732,11 @@ def _sigma_blocks(sigmas, ns):
     return sigmas[0], list(sigmas[1 : 1 + ns]), list(sigmas[1 + ns :])
 
 
-def _sensor_fits(
-    prob: _Problem, x, cov: Covariance, rec: _StillRecord, af: AccelFit, starts, residuals, accel_fit, notes
-):
-    """``(fits, covariance blocks)``: each magnetometer's :class:`SensorGravityFit` and its 12 x 12 covariance of
-    ``W`` and bias (None without a covariance); notes of a mounting not determined or a right angle not clear."""
+def _sensor_fits(prob: _Problem, x, cov: Covariance, rec: _StillRecord, af: AccelFit, starts, residuals, accel_fit):
+    """``(fits, covariance blocks, notes)``: each magnetometer's :class:`SensorGravityFit` and its 12 x 12
+    covariance of ``W`` and bias (None without a covariance); notes of a mounting not determined or a right angle
+    not clear."""
+    notes = []
     r_f, r_d, sigma_f, sigma_d = residuals
     _, _, ws, bs, _ = prob.unpack(x)
     pitch_ok = np.abs(_unit(af.correct(rec.a_still))[:, 0]) <= np.sin(np.radians(HEADING_MAX_PITCH_DEG))
@@ -779,7 +782,7 @@ def _sensor_fits(
                 determined=not spread_out and (af.fitted or accel_fit == "none"),
             )
         )
-    return fits, blocks
+    return fits, blocks, notes
 
 
 def _dip_note(r_d, inc, inclination_source) -> list:
