@@ -115,7 +115,7 @@ def platform_table():
         cal_flight, tr = simulate_vehicle(truth, seed=seed, n=N)
         other, _ = simulate_vehicle(truth, seed=seed + 100, n=N)
         ref = resolve_vector_reference(cal_flight)
-        with_terms = fit_vector(cal_flight, ref)
+        with_terms = fit_vector(cal_flight, ref, terms=["eddy", "current"])
         without = fit_vector(cal_flight, ref, terms=[])
         s, t = with_terms.sensors[0], tr.sensors[0]
         rows.append(

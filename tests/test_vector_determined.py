@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from magcal.checks.reference import resolve_vector_reference
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
-from magcal.fitting.vector import UNDETERMINED_BIAS_FRACTION, _split_w, fit_vector
+from magcal.fitting.solver import split_fitted
+from magcal.fitting.vector import UNDETERMINED_BIAS_FRACTION, fit_vector
 
 #: A compass with a large hard iron (the aircraft's: the firmware's offsets were 60-70 uT).
 BIAS_nT = np.array([47_900.0, -35_600.0, -39_400.0])
@@ -32,7 +33,7 @@ def _flight(seed, **options):
 
 def _errors(fit, truth):
     s = fit.sensors[0]
-    r_true, _ = _split_w(truth.sensors[0].mounting @ np.linalg.inv(truth.sensors[0].matrix), 0)
+    r_true, _ = split_fitted(truth.sensors[0].mounting @ np.linalg.inv(truth.sensors[0].matrix), 0)
     mount_err = np.degrees(Rotation.from_matrix(s.mounting @ r_true.T).as_rotvec())
     return np.abs(s.bias_nT - truth.sensors[0].bias_nT), np.abs(mount_err)
 

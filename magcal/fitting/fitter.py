@@ -36,6 +36,7 @@ from magcal.core.errors import CalibrationError, ConvergenceWarning, DataWarning
 from magcal.core.notes import Note, row_runs
 from magcal.core.stats import robust_sigma
 from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
+from magcal.fitting.solver import ROBUST_SCALE, NoiseGroup, beyond, normal_covariance, reweighted_fit
 from magcal.model.terms import (
     Model,
     attitude_effects,
@@ -1045,38 +1046,16 @@ def fit(
     if mask.shape != (n_all,):
         raise CalibrationError(f"mask has shape {mask.shape}, expected ({n_all},)")
     mask, gap_note = leave_out_rows_without_attitude(dataset, model, mask)
+    options = _Options(loss, f_scale_nT, reference_total_nT, max_nfev, cost_tolerance, max_steps)
     # the normal equations' tall, thin products on one BLAS thread: see ONE_BLAS_THREAD_READINGS
     with one_blas_thread(int(mask.sum()) * dataset.n_sensors >= ONE_BLAS_THREAD_READINGS):
-        result = _fit_once(
-            dataset,
-            model,
-            init,
-            loss,
-            f_scale_nT,
-            mask,
-            reference_total_nT,
-            max_nfev,
-            cost_tolerance=cost_tolerance,
-            max_steps=max_steps,
-        )
+        result = _fit_once(dataset, model, init, mask, options)
         # effects whose basis has a data-derived shape (the hysteresis loop width) refine it from the fit, then one
         # more fit; the refined shape is kept only if it fits better
         saved = [e.state() for e in model.effects]
         context = RefineContext(result.problem, result.x)
         if any([e.refine(result.calibration.effect_values, context) for e in model.effects]):
-            second = _fit_once(
-                dataset,
-                model,
-                result.calibration,
-                loss,
-                f_scale_nT,
-                mask,
-                reference_total_nT,
-                max_nfev,
-                configure=False,
-                cost_tolerance=cost_tolerance,
-                max_steps=max_steps,
-            )
+            second = _fit_once(dataset, model, result.calibration, mask, options, configure=False)
             if second.rss < result.rss:
                 second.nfev += result.nfev
                 result = second
@@ -1236,138 +1215,148 @@ class RefineContext:
         return self._cost_of_residuals(self.problem._residuals_from_fields(fields, self.x))
 
 
-# long: one run of the solver and the FitResult's figures (noise, covariance, outliers, AIC/BIC) from the same
-# residuals; left whole while another change reworks how notes travel through the fitter (issue 43)
-def _fit_once(
-    dataset,
-    model,
-    init,
-    loss,
-    f_scale_nT,
-    mask,
-    reference_total_nT,
-    max_nfev,
-    configure=True,
-    cost_tolerance=None,
-    max_steps=None,
-) -> FitResult:
+@dataclass(frozen=True)
+class _Options:
+    """The solver's options of one :func:`fit` (its arguments of the same names)."""
+
+    loss: str
+    f_scale_nT: float | None
+    reference_total_nT: float | None
+    max_nfev: int
+    cost_tolerance: float | None
+    max_steps: int | None
+
+
+def _fit_once(dataset, model, init, mask, options: _Options, configure=True) -> FitResult:
     """One fit of :func:`fit` (arguments checked there); ``configure=False`` keeps the effects' data-derived
     constants as they are (the pass after :meth:`~magcal.model.terms.Effect.refine`)."""
-    n_all = dataset.n_samples
     kept = dataset.masked(mask)  # the same samples, the same dataset: its readings' facts are computed once
-    init = init or crude_initial_calibration(kept, reference_total_nT)
-
-    if configure and model.effects:  # data-derived constants of the effects, from the starting residuals
-        ref0, kind0 = fit_reference(kept, reference_total_nT)
-        start_fields = corrected_fields(kept, init.sensors)
-        if kind0 == "fitted":
-            expected0 = init.reference_total_nT or float(np.mean(row_norm(start_fields)))
-        else:
-            expected0 = expected_total_field(kept, ref0)
-        base_resid = row_norm(start_fields) - expected0
-        for e in model.effects:
-            e.configure(kept, base_resid)
-
-    problem = Problem(kept, model, init, reference_total_nT)
-    if loss not in LOSSES:
-        raise CalibrationError(f"unknown loss {loss!r}; choose one of {', '.join(LOSSES)}")
+    init = init or crude_initial_calibration(kept, options.reference_total_nT)
+    if configure and model.effects:
+        _configure_effects(kept, model, init, options.reference_total_nT)
+    problem = Problem(kept, model, init, options.reference_total_nT)
+    if options.loss not in LOSSES:
+        raise CalibrationError(f"unknown loss {options.loss!r}; choose one of {', '.join(LOSSES)}")
     ftol = 1e-10
-    if cost_tolerance is not None:  # in noise variances: relative to the cost, 2 tol / (m - p)
-        ftol = max(ftol, 2.0 * float(cost_tolerance) / max(problem.n_residuals - problem.x0.size, 1))
-    if loss == "linear":
-        x0, nfev0 = problem.x0, 0
-        readings = problem.n_samples * problem.n_sensors
-        if not model.effects and readings > 2 * WARMUP_SAMPLES and max_steps is None:
-            # converge on an even subsample first (same parametrisation: the same model and start), so that the
-            # passes over every sample start next to their minimum
-            every = int(np.ceil(readings / WARMUP_SAMPLES))
-            warm = _levenberg_marquardt(
-                Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init, reference_total_nT),
-                problem.x0,
-                max_nfev=max_nfev,
-            )
-            if warm.status > 0:
-                x0, nfev0 = warm.x, warm.nfev
-        # next to the minimum (warmed up, or one step asked for) the first step is the Gauss-Newton one
-        near = nfev0 > 0 or max_steps is not None
-        # warmed up (an exact Jacobian: base terms), the start lies within a few standard errors of the minimum
-        # (sqrt(N / WARMUP_SAMPLES) of them at most), so one Gauss-Newton step lands on it to second order in
-        # that distance: when the cost falls as the quadratic model predicts, the fit stops there, with the
-        # residuals of that point and J^T J of the start (one pass over the record with derivatives, one
-        # without, where a second pass with derivatives only confirmed that the next step is negligible)
-        one_step = ONE_STEP_AFTER_WARMUP and nfev0 > 0 and max_steps is None and problem.exact_jacobian
+    if options.cost_tolerance is not None:  # in noise variances: relative to the cost, 2 tol / (m - p)
+        ftol = max(ftol, 2.0 * float(options.cost_tolerance) / max(problem.n_residuals - problem.x0.size, 1))
+    if options.loss == "linear":
+        sol = _solve_linear(problem, kept, model, init, options, ftol)
+    else:
+        sol = _solve_robust(problem, options, ftol)
+    return _fit_result(dataset, model, problem, mask, sol)
+
+
+def _configure_effects(kept, model, init, reference_total_nT) -> None:
+    """The effects' data-derived constants, from the total-field residuals of the start."""
+    ref0, kind0 = fit_reference(kept, reference_total_nT)
+    start_fields = corrected_fields(kept, init.sensors)
+    if kind0 == "fitted":
+        expected0 = init.reference_total_nT or float(np.mean(row_norm(start_fields)))
+    else:
+        expected0 = expected_total_field(kept, ref0)
+    base_resid = row_norm(start_fields) - expected0
+    for e in model.effects:
+        e.configure(kept, base_resid)
+
+
+def _solve_linear(problem, kept, model, init, options: _Options, ftol) -> _Solution:
+    """The least squares of the plain loss: warmed up on an even subsample of a large record, then on every
+    sample (one Gauss-Newton step when the warm-up lands next to the minimum)."""
+    x0, nfev0 = problem.x0, 0
+    readings = problem.n_samples * problem.n_sensors
+    if not model.effects and readings > 2 * WARMUP_SAMPLES and options.max_steps is None:
+        # converge on an even subsample first (same parametrisation: the same model and start), so that the
+        # passes over every sample start next to their minimum
+        every = int(np.ceil(readings / WARMUP_SAMPLES))
+        warm = _levenberg_marquardt(
+            Problem(kept.subset(np.arange(0, kept.n_samples, every)), model, init, options.reference_total_nT),
+            problem.x0,
+            max_nfev=options.max_nfev,
+        )
+        if warm.status > 0:
+            x0, nfev0 = warm.x, warm.nfev
+    # next to the minimum (warmed up, or one step asked for) the first step is the Gauss-Newton one
+    near = nfev0 > 0 or options.max_steps is not None
+    # warmed up (an exact Jacobian: base terms), the start lies within a few standard errors of the minimum
+    # (sqrt(N / WARMUP_SAMPLES) of them at most), so one Gauss-Newton step lands on it to second order in
+    # that distance: when the cost falls as the quadratic model predicts, the fit stops there, with the
+    # residuals of that point and J^T J of the start (one pass over the record with derivatives, one
+    # without, where a second pass with derivatives only confirmed that the next step is negligible)
+    one_step = ONE_STEP_AFTER_WARMUP and nfev0 > 0 and options.max_steps is None and problem.exact_jacobian
+    sol = _levenberg_marquardt(
+        problem,
+        x0,
+        max_nfev=options.max_nfev,
+        ftol=ftol,
+        max_steps=1 if one_step else options.max_steps,
+        damping=1e-9 if near else 1e-3,
+    )
+    if one_step and sol.status == 4:
+        sol.status = 2
+        sol.message = (
+            "converged: from the minimum of an even subsample, one Gauss-Newton step lowered the cost as the "
+            "quadratic model predicted, to the tolerance"
+        )
+    sol.nfev += nfev0
+    return sol
+
+
+#: Rounds of a robust fit whose scale follows the residuals (:func:`magcal.fitting.solver.reweighted_fit`).
+ROBUST_ROUNDS = 4
+
+
+def _solve_robust(problem, options: _Options, ftol) -> _Solution:
+    """The least squares of a robust loss. Without a given scale, the scale follows the residuals as the fit
+    converges (:data:`magcal.fitting.solver.ROBUST_SCALE` robust standard deviations of the total field, re-estimated
+    each round), so that gross outliers stop pulling on it."""
+    rows = problem.total_field_rows
+    nfev = 0
+
+    def solve(x, sigmas):
+        nonlocal nfev
+        scale = options.f_scale_nT if options.f_scale_nT is not None else ROBUST_SCALE * sigmas[0]
         sol = _levenberg_marquardt(
             problem,
-            x0,
-            max_nfev=max_nfev,
+            x,
+            loss=options.loss,
+            f_scale=scale,
+            max_nfev=options.max_nfev,
             ftol=ftol,
-            max_steps=1 if one_step else max_steps,
-            damping=1e-9 if near else 1e-3,
+            max_steps=options.max_steps,
         )
-        if one_step and sol.status == 4:
-            sol.status = 2
-            sol.message = (
-                "converged: from the minimum of an even subsample, one Gauss-Newton step lowered the cost as the "
-                "quadratic model predicted, to the tolerance"
-            )
-        x, nfev, r, jtj = sol.x, sol.nfev + nfev0, sol.r, sol.jtj
-    else:
-        # A robust loss without a given scale: its scale follows the residuals (3 robust sigma) as the fit
-        # converges, so that gross outliers stop pulling on it.
-        rounds = 1 if f_scale_nT is not None else 4
-        x, nfev = problem.x0, 0
-        for _ in range(rounds):
-            scale = (
-                f_scale_nT
-                if f_scale_nT is not None
-                else 3.0 * robust_sigma(problem.residuals(x)[problem.total_field_rows], floor=1e-9)
-            )
-            sol = _levenberg_marquardt(
-                problem, x, loss=loss, f_scale=scale, max_nfev=max_nfev, ftol=ftol, max_steps=max_steps
-            )
-            x, nfev = sol.x, nfev + sol.nfev
-        r, jtj, _ = problem.normal_equations(x)
-    message, status = sol.message, sol.status
+        nfev += sol.nfev
+        return sol.x, sol
+
+    rounds = 1 if options.f_scale_nT is not None else ROBUST_ROUNDS
+    found = reweighted_fit(
+        solve, lambda x: [problem.residuals(x)[rows]], [NoiseGroup(1e-9)], problem.x0, rounds=rounds, tolerance=0.0
+    )
+    sol = found.solution
+    sol.r, sol.jtj, _ = problem.normal_equations(found.x)
+    sol.nfev = nfev
+    return sol
+
+
+def _fit_result(dataset, model, problem, mask, sol: _Solution) -> FitResult:
+    """The :class:`FitResult` of a solution: noise, covariance, outliers, AIC/BIC from the same residuals."""
+    x, r, jtj = sol.x, sol.r, sol.jtj
     ns, n = problem.n_sensors, problem.n_samples
     tf = r[problem.total_field_rows].reshape(ns, n)
     p = x.size
     rss = float(r @ r)
-    rss_tf = float(np.sum(tf**2))
     # independent residuals: the consistency rows of one sample sum to zero over the sensors
     m = ns * n + (2 * (ns - 1) * n if problem.coupled else 0)
-    dof_tf = max(ns * n - p, 1)
-    noise = float(np.sqrt(rss_tf / dof_tf))
-    s2 = rss / max(m - p, 1)
-    try:
-        cov = s2 * np.linalg.pinv(jtj)
-    except np.linalg.LinAlgError:
-        cov = np.full((p, p), np.nan)
+    cov = normal_covariance(jtj, rss / max(m - p, 1))
+    cov = np.full((p, p), np.nan) if cov is None else cov
 
     calibration = problem.calibration(x)
     if mask.all() and not model.effects:  # the fitted rows are every sample's residual already
         resid_all = tf.copy()
     else:
         resid_all = calibration.total_field_residuals(dataset)
-    resid = np.where(mask[None, :], resid_all, np.nan)
-    sigma_robust = robust_sigma(tf, floor=1e-9)
-    outliers = np.zeros(n_all, bool)
-    outliers[np.flatnonzero(mask)] = np.any(np.abs(tf) > 5.0 * max(sigma_robust, 1e-9), axis=0)
-    vec = r[ns * n :].reshape(ns, n, 2) if problem.coupled else None
-
-    std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    effect_params = []
-    for e, s in model.instances():
-        sl = problem.blocks[block_label(e, s)]
-        names = e.param_names()
-        effect_params.append(
-            {
-                "effect": e.name,
-                "sensor": None if s is None else s + 1,
-                "term": e.label,
-                "params": dict(zip(names, x[sl].tolist())),
-                "std": dict(zip(names, std[sl].tolist())),
-            }
-        )
+    outliers = np.zeros(dataset.n_samples, bool)
+    outliers[np.flatnonzero(mask)] = beyond(tf, robust_sigma(tf, floor=1e-9), axis=0)
     rms_per_sensor = np.sqrt(np.mean(tf**2, axis=1))
     calibration.summary = {"n_samples": int(mask.sum()), "rms_nT": float(np.sqrt(np.mean(tf**2)))}
     for s, cal in enumerate(calibration.sensors):
@@ -1378,12 +1367,12 @@ def _fit_once(
         param_names=problem.param_names,
         x=x,
         covariance=cov,
-        residuals_nT=resid,
+        residuals_nT=np.where(mask[None, :], resid_all, np.nan),
         residuals_all_nT=resid_all,
-        vector_residuals_nT=vec,
+        vector_residuals_nT=r[ns * n :].reshape(ns, n, 2) if problem.coupled else None,
         rms_nT=float(np.sqrt(np.mean(tf**2))),
         rms_per_sensor_nT=rms_per_sensor,
-        noise_nT=noise,
+        noise_nT=float(np.sqrt(float(np.sum(tf**2)) / max(ns * n - p, 1))),
         rss=rss,
         n_residuals=m,
         n_params=p,
@@ -1391,14 +1380,32 @@ def _fit_once(
         bic=m * np.log(rss / m) + p * np.log(m),
         outliers=outliers,
         mask=mask,
-        effect_params=effect_params,
+        effect_params=_effect_params(problem, model, x, cov),
         reference_kind=problem.reference_kind,
-        nfev=int(nfev),
-        message=message,
-        status=int(status),
+        nfev=int(sol.nfev),
+        message=sol.message,
+        status=int(sol.status),
         problem=problem,
         bound_pull_z=_bound_pulls(problem, model, x, cov),
     )
-
     calibration.base_covariance = base_covariance(result)  # the error bars the calibration carries to apply
     return result
+
+
+def _effect_params(problem, model, x, cov) -> list:
+    """``{effect, sensor (1-based or None), term, params, std}`` of every effect instance."""
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = []
+    for e, s in model.instances():
+        sl = problem.blocks[block_label(e, s)]
+        names = e.param_names()
+        out.append(
+            {
+                "effect": e.name,
+                "sensor": None if s is None else s + 1,
+                "term": e.label,
+                "params": dict(zip(names, x[sl].tolist())),
+                "std": dict(zip(names, std[sl].tolist())),
+            }
+        )
+    return out

@@ -50,10 +50,10 @@ from magcal.calibration.accelerometer import AccelerometerCalibration
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.core.errors import CalibrationError, DataWarning, MagcalError
 from magcal.core.notes import Note
-from magcal.core.stats import lag1_correlation, robust_sigma
 from magcal.data.accelerometer import (
     MIN_STILL,
     STANDARD_GRAVITY_M_S2,
+    Accelerometer,
     StillSamples,
     accelerometer,
     direction_spread,
@@ -62,6 +62,19 @@ from magcal.data.accelerometer import (
 from magcal.data.dataset import Dataset
 from magcal.fitting.pipeline import calibrate
 from magcal.fitting.result import ModeResult
+from magcal.fitting.solver import (
+    Covariance,
+    NoiseGroup,
+    Reweighted,
+    SensorMounting,
+    correlated_covariance,
+    estimate_sigmas,
+    mounting_fields,
+    reweighted_fit,
+    weighted_least_squares,
+)
+from magcal.fitting.truth import true_calibration as true_calibration
+from magcal.fitting.validation import BlockValidation, held_out_blocks
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, fit_ellipsoid
 from magcal.geometry.heading import (
     angle_difference_deg,
@@ -69,13 +82,7 @@ from magcal.geometry.heading import (
     tilt_deg,
     tilt_heading_deg,
 )
-from magcal.geometry.orientations import (
-    RIGHT_ANGLES,
-    describe_right_angle,
-    firmware_rotation,
-    mounting_sd_deg,
-    split_mounting,
-)
+from magcal.geometry.orientations import RIGHT_ANGLES, mounting_sd_deg
 from magcal.geometry.sphere import sphere_centre
 
 #: The heading a cave-survey instrument reaches (deg): what the report says is needed for.
@@ -173,7 +180,7 @@ def fit_accelerometer(accel_m_s2, gravity_m_s2=STANDARD_GRAVITY_M_S2, fit="auto"
     spread = direction_spread(a)
     if fit == "none" or (fit == "auto" and spread < ACCEL_SPREAD_MIN) or len(a) < 12:
         left = np.linalg.norm(a, axis=1) - gravity_m_s2
-        sigma = noise_m_s2 if noise_m_s2 is not None else max(robust_sigma(left), 1e-5)
+        sigma = NoiseGroup(1e-5, noise_m_s2).sigma(left)
         return AccelFit(np.eye(3), np.zeros(3), float(np.sqrt(np.mean(left**2))), float(sigma), False, spread)
     try:
         start = fit_ellipsoid(a, reference_total_nT=gravity_m_s2, strict=False, label="accelerometer")
@@ -187,13 +194,9 @@ def fit_accelerometer(accel_m_s2, gravity_m_s2=STANDARD_GRAVITY_M_S2, fit="auto"
 
     sol = least_squares(resid, x0, method="lm", x_scale=np.r_[np.full(6, 1e-3), np.full(3, 1e-2)])
     r = resid(sol.x)
-    sigma = noise_m_s2 if noise_m_s2 is not None else max(robust_sigma(r), 1e-5)
-    bias_sd = None
-    try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * float(r @ r) / max(len(r) - 9, 1)
-        bias_sd = np.sqrt(np.clip(np.diag(cov)[6:], 0.0, None))
-    except np.linalg.LinAlgError:
-        pass
+    sigma = NoiseGroup(1e-5, noise_m_s2).sigma(r)
+    cov = correlated_covariance(sol.jac, r, 9, (), len(r)).matrix  # white residuals: no stream widens it
+    bias_sd = None if cov is None else np.sqrt(np.clip(np.diag(cov)[6:], 0.0, None))
     return AccelFit(
         _upper(sol.x[:6]), sol.x[6:].copy(), float(np.sqrt(np.mean(r**2))), float(sigma), True, spread, bias_sd
     )
@@ -329,19 +332,15 @@ def _skew(v) -> np.ndarray:
 
 
 @dataclass
-class SensorGravityFit:
+class SensorGravityFit(SensorMounting):
     """One magnetometer's part of the joint fit.
 
     Attributes
     ----------
-    W : numpy.ndarray, shape (3, 3)
-        ``R C^-1``: raw reading minus bias -> the accelerometer's frame.
-    bias_nT : numpy.ndarray, shape (3,)
-    mounting, cinv : numpy.ndarray, shape (3, 3)
-        ``W`` split: the rotation into the accelerometer's frame and the upper-triangular ``C^-1``.
-    right_angle : numpy.ndarray, shape (3, 3)
-        The right angle the dip chose first; ``right_angle_text`` its firmware name; ``angle_off_deg`` the
-        mounting's angle off it; ``orientation_margin`` the second-best right angle's dip spread over the best's.
+    W, bias_nT, mounting, cinv, right_angle, right_angle_text, angle_off_deg, orientation_margin
+        As :class:`magcal.fitting.solver.SensorMounting`: ``W = R C^-1`` maps the raw reading minus bias into the
+        accelerometer's frame; the right angle is the one the dip chose first, ``angle_off_deg`` the mounting's
+        angle off it, ``orientation_margin`` the second-best right angle's dip spread over the best's.
     field_nT : float
         The total field ``F`` the fit maps to (the reference, or the ellipsoid's magnitude).
     rms_total_field_nT, sigma_total_field_nT : float
@@ -361,14 +360,6 @@ class SensorGravityFit:
         (``accel_fit="none"``): its bias is then in the mounting, unseen by the covariance.
     """
 
-    W: np.ndarray
-    bias_nT: np.ndarray
-    mounting: np.ndarray
-    cinv: np.ndarray
-    right_angle: np.ndarray
-    right_angle_text: str
-    angle_off_deg: float
-    orientation_margin: float
     field_nT: float
     rms_total_field_nT: float
     sigma_total_field_nT: float
@@ -380,23 +371,17 @@ class SensorGravityFit:
     sd_widening: float = 1.0
     determined: bool = True
 
-    def summary(self) -> dict:
-        return {
-            "mounting_right_angle": self.right_angle_text,
-            "mounting_rotation_number": firmware_rotation(self.right_angle),
-            "mounting_angle_off_deg": self.angle_off_deg,
-            "mounting_rotvec_deg": np.degrees(Rotation.from_matrix(self.mounting).as_rotvec()).tolist(),
-            "orientation_margin": self.orientation_margin,
-            "rms_total_field_nT": self.rms_total_field_nT,
-            "sigma_total_field_nT": self.sigma_total_field_nT,
-            "dip_sd_deg": self.dip_sd_deg,
-            "sigma_dip_deg": self.sigma_dip_deg,
-            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
-            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
-            "heading_sd_deg": self.heading_sd_deg,
-            "sd_widening": self.sd_widening,
-            "determined": self.determined,
-        }
+    SUMMARY_FIELDS = (
+        "rms_total_field_nT",
+        "sigma_total_field_nT",
+        "dip_sd_deg",
+        "sigma_dip_deg",
+        "mounting_sd_deg",
+        "bias_sd_nT",
+        "heading_sd_deg",
+        "sd_widening",
+        "determined",
+    )
 
 
 @dataclass
@@ -506,8 +491,6 @@ class GravityFitResult(ModeResult):
         return "\n".join(lines) + "\n"
 
 
-# long: the joint fit's steps in order (accelerometer, still samples, start, three reweighted rounds, figures)
-# share the problem and its arrays; each step is commented where it begins
 def fit_gravity(
     dataset: Dataset,
     inclination_deg=None,
@@ -565,202 +548,46 @@ def fit_gravity(
         No accelerometer columns, too few still samples, a magnetometer without an ellipsoid.
     """
     start = time.perf_counter()
-    notes: list[str] = []
-    accel = accelerometer(dataset, units=accel_units)
-    notes += list(accel.notes) if accel is not None else []
-    where = dataset.source or "data"
-    if accel is None:
-        raise MagcalError(
-            f"{where}: no accelerometer columns (ax, ay, az; docs/gravity.md): a gravity calibration needs the "
-            "accelerometer beside the magnetometer"
-        )
-    n = dataset.n_samples
-    keep = np.ones(n, bool) if mask is None else np.asarray(mask, bool).copy()
-    keep &= np.all(np.isfinite(dataset.readings_nT), axis=(0, 2))
-    if still is None:
-        still = find_still(dataset, accel, mask=keep)
-    notes += list(still.notes)
-    still_mask = still.mask & keep & accel.present
-    if still_mask.sum() < MIN_STILL:
-        raise MagcalError(
-            f"{where}: only {int(still_mask.sum())} samples measure gravity (the accelerometer near g and steady); a "
-            f"gravity calibration needs at least {MIN_STILL}, at many attitudes: hold the board still for a second "
-            "or two at each"
-        )
-    rows_keep = np.flatnonzero(keep)
-    still_rows = np.flatnonzero(still_mask[rows_keep])  # positions of the still samples among the kept ones
-    a_still = accel.m_s2[still_mask]
-    af = fit_accelerometer(a_still, fit=accel_fit, noise_m_s2=accel_noise_m_s2)
-    if not af.fitted:
-        notes.append(
-            (
-                f"the accelerometer's still samples point over too few directions (spread {af.spread:.3f}, "
-                f"{ACCEL_SPREAD_MIN} needed) to fit its bias and scale: its readings are used as they are"
-                if accel_fit != "none"
-                else "the accelerometer is taken as it reads (--accel-fit none)"
-            )
-            + ". Its own bias (20-60 mg for an uncalibrated MEMS part: 1-3 deg of tilt) then goes into the mounting "
-            "and the heading, and the figures below do not include it. Turn the board onto each of its six faces "
-            "(or through every attitude) to calibrate it too, or give a calibrated accelerometer"
-        )
-    down = -_unit(af.correct(a_still))
-    tilts = tilt_deg(af.correct(a_still))
-    ys, fields, starts, fixed = [], [], [], []
-    for s in range(dataset.n_sensors):
-        y = dataset.readings_nT[s][keep]
-        cinv, bias, field_nT, why = _magnetometer_start(y, reference_total_nT, mag_model, s)
-        if why:
-            notes.append(why)
-        ys.append(y)
-        fields.append(field_nT)
-        m_dirs = _unit((y[still_rows] - bias) @ cinv.T)
-        right, rot, inc0, margin = dip_start(
-            m_dirs, down, None if inclination_deg is None else np.radians(inclination_deg)
-        )
-        starts.append((rot @ cinv, bias, right, margin, inc0))
-        fixed.append(None if not why else (rot @ cinv, bias))
+    rec = _still_record(dataset, mask, still, accel_units, accel_fit, accel_noise_m_s2)
+    notes = rec.notes
     inc_given = None if inclination_deg is None else float(np.radians(inclination_deg))
-    prob = _Problem(
-        ys, a_still, still_rows, fields, STANDARD_GRAVITY_M_S2, af.fitted, (af.kinv, af.bias_m_s2), inc_given, fixed
-    )
-    x = prob.pack(
-        af.kinv,
-        af.bias_m_s2,
-        [s[0] for s in starts],
-        [s[1] for s in starts],
-        float(np.mean([s[4] for s in starts])),
-    )
+    prob, x, starts, start_notes = _joint_start(dataset, rec, reference_total_nT, mag_model, inc_given)
+    notes += start_notes
+    fit = _joint_solve(prob, x, rec.af, noise_nT, accel_noise_m_s2, robust)
+    x, (sigma_a, sigma_f, sigma_d) = fit.x, _sigma_blocks(fit.sigmas, dataset.n_sensors)
     r_a, r_f, r_d = prob.parts(x)
-    sigma_a = accel_noise_m_s2 if accel_noise_m_s2 is not None else af.sigma_m_s2
-    sigma_f = [noise_nT if noise_nT is not None else max(robust_sigma(r), 1e-3) for r in r_f]
-    sigma_d = [max(robust_sigma(r), 1e-6) for r in r_d]
-    sol = None
-    for rnd in range(3):
-        sol = least_squares(
-            prob.residuals,
-            x,
-            args=(sigma_a, sigma_f, sigma_d),
-            method="trf" if robust else "lm",
-            loss="soft_l1" if robust else "linear",
-            f_scale=3.0,
-            x_scale=prob.scale(),
-            xtol=1e-12,
-            ftol=1e-12,
-        )
-        x = sol.x
-        r_a, r_f, r_d = prob.parts(x)
-        new_a = sigma_a if (accel_noise_m_s2 is not None or r_a is None) else max(robust_sigma(r_a), 1e-5)
-        new_f = [noise_nT if noise_nT is not None else max(robust_sigma(r), 1e-3) for r in r_f]
-        new_d = [max(robust_sigma(r), 1e-6) for r in r_d]
-        ratios = [new_a / sigma_a] + [a / b for a, b in zip(new_f + new_d, sigma_f + sigma_d)]
-        sigma_a, sigma_f, sigma_d = new_a, new_f, new_d
-        if rnd == 2 or max(abs(r - 1.0) for r in ratios) < 0.05:
-            break
-    assert sol is not None
-    kinv, ba, ws, bs, inc = prob.unpack(x)
+    kinv, ba, _, _, inc = prob.unpack(x)
+    af = rec.af
     if af.fitted:
         af = AccelFit(
             kinv, np.asarray(ba, float).copy(), float(np.sqrt(np.mean(r_a**2))), float(sigma_a), True, af.spread
         )
     z = prob.residuals(x, sigma_a, sigma_f, sigma_d)
-    lag1 = max(lag1_correlation(r) for r in r_d)
-    widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(z))))
-    cov = None
-    try:
-        s2 = float(z @ z) / max(len(z) - len(x), 1)
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2 * widening**2
-    except np.linalg.LinAlgError:
+    cov = correlated_covariance(fit.solution.jac, z, len(x), r_d, len(z))
+    if cov.matrix is None:
         notes.append("the fit's covariance is singular: the record does not determine every parameter")
     inc_sd = None
-    if cov is not None and inc_given is None:
-        inc_sd = float(np.degrees(np.sqrt(max(cov[-1, -1], 0.0))))
+    if cov.matrix is not None and inc_given is None:
+        inc_sd = float(np.degrees(np.sqrt(max(cov.matrix[-1, -1], 0.0))))
         if af.fitted:
-            af.bias_sd_m_s2 = np.sqrt(np.clip(np.diag(cov)[6:9], 0.0, None))
-    fits, sensor_cals, blocks = [], [], []
-    pitch_ok = np.abs(_unit(af.correct(a_still))[:, 0]) <= np.sin(np.radians(HEADING_MAX_PITCH_DEG))
-    for s in range(dataset.n_sensors):
-        w, b = ws[s], np.asarray(bs[s], float).copy()
-        try:
-            mount, cinv = split_mounting(w)
-        except ValueError:
-            raise MagcalError(
-                f"{where}: sensor {s + 1}: the fitted matrix mirrors an axis: one of the magnetometer's axes has the "
-                "opposite sign to the others (a left-handed sensor); negate that column and calibrate again"
-            ) from None
-        block = None if cov is None else prob.sensor_covariance(cov, s, x)
-        blocks.append(block)
-        mount_sd = None if block is None else mounting_sd_deg(w, block[:9, :9])
-        bias_sd = None if block is None else np.sqrt(np.clip(np.diag(block)[9:], 0.0, None))
-        head_sd = None
-        if cov is not None and pitch_ok.any():
-            head_sd = _heading_sd_deg(prob, x, cov, s, still_rows, pitch_ok)
-        right, margin = starts[s][2], starts[s][3]
-        off = float(np.degrees(Rotation.from_matrix(right.T @ mount).magnitude()))
-        spread_out = (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG) or (
-            head_sd is not None and head_sd > UNDETERMINED_HEADING_DEG
-        )
-        # an accelerometer neither fitted nor said to be calibrated (--accel-fit none): its bias is in the mounting
-        determined = not spread_out and (af.fitted or accel_fit == "none")
-        if spread_out:
-            notes.append(
-                f"sensor {s + 1}: this record does not determine the mounting: its standard deviation is up to "
-                f"{float(np.max(mount_sd)) if mount_sd is not None else float('nan'):.2f} deg and the heading error "
-                f"the calibration leaves {head_sd if head_sd is not None else float('nan'):.2f} deg. Turn the board "
-                "through more attitudes (on its sides and upside down) and hold it still at each"
-            )
-        fits.append(
-            SensorGravityFit(
-                W=w,
-                bias_nT=b,
-                mounting=mount,
-                cinv=cinv,
-                right_angle=right,
-                right_angle_text=describe_right_angle(right).replace("-> body", "-> board"),
-                angle_off_deg=off,
-                orientation_margin=margin,
-                field_nT=fields[s],
-                rms_total_field_nT=float(np.sqrt(np.mean(r_f[s] ** 2))),
-                sigma_total_field_nT=float(sigma_f[s]),
-                dip_sd_deg=float(np.degrees(np.std(r_d[s]))),
-                sigma_dip_deg=float(np.degrees(sigma_d[s])),
-                mounting_sd_deg=mount_sd,
-                bias_sd_nT=bias_sd,
-                heading_sd_deg=head_sd,
-                sd_widening=widening,
-                determined=determined,
-            )
-        )
-        sensor_cals.append(SensorCalibration(cinv, b, mount, summary=fits[-1].summary()))
-        if margin < 1.5:
-            notes.append(
-                f"sensor {s + 1}: the right angle between the magnetometer's axes and the accelerometer's is not clear "
-                f"(the second best spreads the dip only {margin:.2f}x as much): check that both sensors are on one "
-                "board and that the still samples span many attitudes"
-            )
+            af.bias_sd_m_s2 = np.sqrt(np.clip(np.diag(cov.matrix)[6:9], 0.0, None))
+    residuals = (r_f, r_d, sigma_f, sigma_d)
+    fits, blocks, sensor_notes = _sensor_fits(prob, x, cov, rec, af, starts, residuals, accel_fit)
+    notes += sensor_notes
     inc_deg = float(np.degrees(inc))
     if inclination_deg is not None:
-        measured = float(np.median(np.concatenate([np.degrees(r + inc) for r in r_d])))
-        if abs(measured - inc_deg) > 3.0:
-            notes.append(
-                f"the dip the data measure ({measured:.1f} deg) is {measured - inc_deg:+.1f} deg off the inclination "
-                f"given ({inc_deg:.1f} deg, {inclination_source})"
-                + (
-                    ": its sign is reversed: does the accelerometer read gravity (down) instead of the specific force "
-                    "(up when still)? Negate its columns"
-                    if measured * inc_deg < 0
-                    else ": a local anomaly (steel, a building) or the wrong place; leave the inclination to the fit"
-                )
-            )
+        notes.extend(_dip_note(r_d, inc, inclination_source))
+    tilts = tilt_deg(rec.af.correct(rec.a_still))  # by the accelerometer's own fit, before the joint one
     tilt_range = (float(np.min(tilts)), float(np.max(tilts)))
     if tilt_range[1] < 60.0:
         notes.append(
             f"the board tilted at most {tilt_range[1]:.0f} deg while still: the mounting about its vertical axis and "
             "the magnetometer's vertical scale rest on few attitudes; turn it onto its sides and upside down"
         )
-    budget = heading_budget(fits, af, inc_deg, still.n, tilt_range, sigma_d)
+    budget = heading_budget(fits, af, inc_deg, rec.still.n, tilt_range, sigma_d)
     cal = Calibration(
-        sensors=sensor_cals,
-        reference_total_nT=float(np.median(fields)),
+        sensors=[SensorCalibration(f.cinv, f.bias_nT, f.mounting, summary=f.summary()) for f in fits],
+        reference_total_nT=float(np.median(prob.fields)),
         reference_fitted=reference_total_nT is None,
         baseline_m=dataset.baseline_m,
         frame="accelerometer",
@@ -775,17 +602,209 @@ def fit_gravity(
         inclination_deg=inc_deg,
         inclination_source="fitted" if inclination_deg is None else inclination_source,
         inclination_sd_deg=inc_sd,
-        still=still,
+        still=rec.still,
         tilt_range_deg=tilt_range,
         budget=budget,
         warnings=list(dict.fromkeys(notes)),
-        n_samples=int(keep.sum()),
+        n_samples=int(rec.keep.sum()),
         wall_s=time.perf_counter() - start,
-        fitted=keep,
-        accel_unit=accel.unit,
+        fitted=rec.keep,
+        accel_unit=rec.accel.unit,
     )
     cal.summary = {"gravity_fit": result.to_dict()}
     return result
+
+
+@dataclass
+class _StillRecord:
+    """The samples of a gravity fit: those kept (``keep``, bool N), the still ones among them (``still_rows``: their
+    positions among the kept), their specific force (``a_still``, m/s^2) and the accelerometer's own fit."""
+
+    accel: Accelerometer
+    keep: np.ndarray
+    still: StillSamples
+    still_rows: np.ndarray
+    a_still: np.ndarray
+    af: AccelFit
+    notes: list
+
+
+def _still_record(dataset, mask, still, accel_units, accel_fit, accel_noise_m_s2) -> _StillRecord:
+    """The accelerometer, the kept and the still samples, and the accelerometer's own fit (:func:`fit_gravity`'s
+    first step); refused without accelerometer columns or with too few still samples."""
+    notes: list[str] = []
+    accel = accelerometer(dataset, units=accel_units)
+    where = dataset.source or "data"
+    if accel is None:
+        raise MagcalError(
+            f"{where}: no accelerometer columns (ax, ay, az; docs/gravity.md): a gravity calibration needs the "
+            "accelerometer beside the magnetometer"
+        )
+    notes += list(accel.notes)
+    keep = np.ones(dataset.n_samples, bool) if mask is None else np.asarray(mask, bool).copy()
+    keep &= np.all(np.isfinite(dataset.readings_nT), axis=(0, 2))
+    if still is None:
+        still = find_still(dataset, accel, mask=keep)
+    notes += list(still.notes)
+    still_mask = still.mask & keep & accel.present
+    if still_mask.sum() < MIN_STILL:
+        raise MagcalError(
+            f"{where}: only {int(still_mask.sum())} samples measure gravity (the accelerometer near g and steady); a "
+            f"gravity calibration needs at least {MIN_STILL}, at many attitudes: hold the board still for a second "
+            "or two at each"
+        )
+    still_rows = np.flatnonzero(still_mask[np.flatnonzero(keep)])  # positions of the still samples among the kept
+    a_still = accel.m_s2[still_mask]
+    af = fit_accelerometer(a_still, fit=accel_fit, noise_m_s2=accel_noise_m_s2)
+    if not af.fitted:
+        notes.append(
+            (
+                f"the accelerometer's still samples point over too few directions (spread {af.spread:.3f}, "
+                f"{ACCEL_SPREAD_MIN} needed) to fit its bias and scale: its readings are used as they are"
+                if accel_fit != "none"
+                else "the accelerometer is taken as it reads (--accel-fit none)"
+            )
+            + ". Its own bias (20-60 mg for an uncalibrated MEMS part: 1-3 deg of tilt) then goes into the mounting "
+            "and the heading, and the figures below do not include it. Turn the board onto each of its six faces "
+            "(or through every attitude) to calibrate it too, or give a calibrated accelerometer"
+        )
+    return _StillRecord(accel, keep, still, still_rows, a_still, af, notes)
+
+
+def _joint_start(dataset, rec: _StillRecord, reference_total_nT, mag_model, inc_given):
+    """``(problem, x, starts, notes)``: each magnetometer's ellipsoid and the right angle the dip chooses
+    (:func:`dip_start`), the joint problem and its start; ``starts[s] = (right angle, margin)``; the notes of a
+    magnetometer whose rotation only is fitted."""
+    notes = []
+    down = -_unit(rec.af.correct(rec.a_still))
+    ys, fields, ws, bs, incs, starts, fixed = [], [], [], [], [], [], []
+    for s in range(dataset.n_sensors):
+        y = dataset.readings_nT[s][rec.keep]
+        cinv, bias, field_nT, why = _magnetometer_start(y, reference_total_nT, mag_model, s)
+        if why:
+            notes.append(why)
+        m_dirs = _unit((y[rec.still_rows] - bias) @ cinv.T)
+        right, rot, inc0, margin = dip_start(m_dirs, down, inc_given)
+        ys.append(y)
+        fields.append(field_nT)
+        ws.append(rot @ cinv)
+        bs.append(bias)
+        incs.append(inc0)
+        starts.append((right, margin))
+        fixed.append(None if not why else (rot @ cinv, bias))
+    af = rec.af
+    prob = _Problem(
+        ys,
+        rec.a_still,
+        rec.still_rows,
+        fields,
+        STANDARD_GRAVITY_M_S2,
+        af.fitted,
+        (af.kinv, af.bias_m_s2),
+        inc_given,
+        fixed,
+    )
+    return prob, prob.pack(af.kinv, af.bias_m_s2, ws, bs, float(np.mean(incs))), starts, notes
+
+
+#: Re-weighting rounds of the joint fit (:func:`magcal.fitting.solver.reweighted_fit`).
+REWEIGHT_ROUNDS = 3
+
+
+def _joint_solve(prob: _Problem, x, af: AccelFit, noise_nT, accel_noise_m_s2, robust) -> Reweighted:
+    """The joint maximum likelihood, its noises re-estimated between rounds: the accelerometer's magnitude, then per
+    magnetometer its total field and its dip (:class:`magcal.fitting.solver.NoiseGroup`)."""
+    ns = prob.ns
+    groups = [NoiseGroup(1e-5, accel_noise_m_s2)] + [NoiseGroup(1e-3, noise_nT)] * ns + [NoiseGroup(1e-6)] * ns
+
+    def parts(xv):
+        r_a, r_f, r_d = prob.parts(xv)
+        return [r_a, *r_f, *r_d]
+
+    def solve(xv, sigmas):
+        sol = weighted_least_squares(prob.residuals, xv, prob.scale(), robust, args=tuple(_sigma_blocks(sigmas, ns)))
+        return sol.x, sol
+
+    first = estimate_sigmas(groups, parts(x))
+    first[0] = accel_noise_m_s2 if accel_noise_m_s2 is not None else af.sigma_m_s2
+    return reweighted_fit(solve, parts, groups, x, first, rounds=REWEIGHT_ROUNDS)
+
+
+def _sigma_blocks(sigmas, ns):
+    """``(sigma_a, sigma_f, sigma_d)`` of the flat list of :func:`_joint_solve`'s noises."""
+    return sigmas[0], list(sigmas[1 : 1 + ns]), list(sigmas[1 + ns :])
+
+
+def _sensor_fits(prob: _Problem, x, cov: Covariance, rec: _StillRecord, af: AccelFit, starts, residuals, accel_fit):
+    """``(fits, covariance blocks, notes)``: each magnetometer's :class:`SensorGravityFit` and its 12 x 12
+    covariance of ``W`` and bias (None without a covariance); notes of a mounting not determined or a right angle
+    not clear."""
+    notes = []
+    r_f, r_d, sigma_f, sigma_d = residuals
+    _, _, ws, bs, _ = prob.unpack(x)
+    pitch_ok = np.abs(_unit(af.correct(rec.a_still))[:, 0]) <= np.sin(np.radians(HEADING_MAX_PITCH_DEG))
+    fits, blocks = [], []
+    for s, (right, margin) in enumerate(starts):
+        w = ws[s]
+        block = None if cov.matrix is None else prob.sensor_covariance(cov.matrix, s, x)
+        blocks.append(block)
+        mount_sd = None if block is None else mounting_sd_deg(w, block[:9, :9])
+        head_sd = None
+        if cov.matrix is not None and pitch_ok.any():
+            head_sd = _heading_sd_deg(prob, x, cov.matrix, s, rec.still_rows, pitch_ok)
+        spread_out = (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG) or (
+            head_sd is not None and head_sd > UNDETERMINED_HEADING_DEG
+        )
+        if spread_out:
+            notes.append(
+                f"sensor {s + 1}: this record does not determine the mounting: its standard deviation is up to "
+                f"{float(np.max(mount_sd)) if mount_sd is not None else float('nan'):.2f} deg and the heading error "
+                f"the calibration leaves {head_sd if head_sd is not None else float('nan'):.2f} deg. Turn the board "
+                "through more attitudes (on its sides and upside down) and hold it still at each"
+            )
+        if margin < 1.5:
+            notes.append(
+                f"sensor {s + 1}: the right angle between the magnetometer's axes and the accelerometer's is not clear "
+                f"(the second best spreads the dip only {margin:.2f}x as much): check that both sensors are on one "
+                "board and that the still samples span many attitudes"
+            )
+        fits.append(
+            SensorGravityFit(
+                **mounting_fields(w, np.asarray(bs[s], float).copy(), right, margin, s, "board", off_nearest=False),
+                field_nT=prob.fields[s],
+                rms_total_field_nT=float(np.sqrt(np.mean(r_f[s] ** 2))),
+                sigma_total_field_nT=float(sigma_f[s]),
+                dip_sd_deg=float(np.degrees(np.std(r_d[s]))),
+                sigma_dip_deg=float(np.degrees(sigma_d[s])),
+                mounting_sd_deg=mount_sd,
+                bias_sd_nT=None if block is None else np.sqrt(np.clip(np.diag(block)[9:], 0.0, None)),
+                heading_sd_deg=head_sd,
+                sd_widening=cov.widening,
+                # an accelerometer neither fitted nor said to be calibrated (--accel-fit none): its bias is in the
+                # mounting
+                determined=not spread_out and (af.fitted or accel_fit == "none"),
+            )
+        )
+    return fits, blocks, notes
+
+
+def _dip_note(r_d, inc, inclination_source) -> list:
+    """A note when the dip the data measure is more than 3 deg off the inclination given (its sign reversed: the
+    accelerometer reads gravity; else a local anomaly or the wrong place)."""
+    inc_deg = float(np.degrees(inc))
+    measured = float(np.median(np.concatenate([np.degrees(r + inc) for r in r_d])))
+    if abs(measured - inc_deg) <= 3.0:
+        return []
+    return [
+        f"the dip the data measure ({measured:.1f} deg) is {measured - inc_deg:+.1f} deg off the inclination "
+        f"given ({inc_deg:.1f} deg, {inclination_source})"
+        + (
+            ": its sign is reversed: does the accelerometer read gravity (down) instead of the specific force "
+            "(up when still)? Negate its columns"
+            if measured * inc_deg < 0
+            else ": a local anomaly (steel, a building) or the wrong place; leave the inclination to the fit"
+        )
+    ]
 
 
 def _magnetometer_start(y, reference_total_nT, mag_model, s):
@@ -942,19 +961,6 @@ def separate_calibration(
     )
 
 
-def true_calibration(truth) -> Calibration:
-    """The calibration a simulated board's truth (:class:`magcal.data.board.BoardTruth`) implies."""
-    w = truth.mounting @ np.linalg.inv(truth.mag_matrix)
-    mount, cinv = split_mounting(w)
-    return Calibration(
-        sensors=[SensorCalibration(cinv, truth.mag_bias_nT, mount)],
-        reference_total_nT=float(np.linalg.norm(truth.field_ned_nT)),
-        frame="accelerometer",
-        mode="gravity",
-        accelerometer=AccelerometerCalibration(np.linalg.inv(truth.accel_matrix), truth.accel_bias_m_s2),
-    )
-
-
 def heading_rows(calibration, dataset, rows, accel_units=None) -> np.ndarray:
     """The rows (bool, N) among ``rows`` whose board x axis is within :data:`HEADING_MAX_PITCH_DEG` of the
     horizontal by ``calibration``'s accelerometer (where a heading of the x axis means something)."""
@@ -995,12 +1001,13 @@ def heading_figures(calibration, dataset, rows, true_heading_deg=None, other=Non
 
 
 @dataclass
-class GravityValidation:
+class GravityValidation(BlockValidation):
     """Held-out figures of the gravity fit beside the separate calibrations (:func:`validate_gravity`).
 
     Attributes
     ----------
-    n_blocks : int
+    n_blocks, train
+        As :class:`magcal.fitting.validation.BlockValidation`.
     rows : list of dict
         Per calibration (``name``: ``gravity`` or ``separate``): on the still samples of the fitted blocks (``in_``)
         and of the others (``held_``), sensor 1: the dip's spread (deg), ``|B|`` RMS against the fit's ``F`` (nT).
@@ -1009,14 +1016,12 @@ class GravityValidation:
         the separate calibrations leave, if the gravity fit is right (NaN when the record has no total-field fit).
     """
 
-    n_blocks: int
-    rows: list
     heading_difference_deg: float
 
     def text(self) -> str:
         lines = [
-            f"  held-out check (fitted on the even of {self.n_blocks} blocks in time, scored on the still samples of "
-            "the odd ones; sensor 1):"
+            f"  held-out check (fitted on the 1st, 3rd, ... of {self.n_blocks} blocks in time, scored on the still "
+            "samples of the others; sensor 1):"
         ]
         for r in self.rows:
             lines.append(
@@ -1033,29 +1038,29 @@ class GravityValidation:
         return "\n".join(lines) + "\n"
 
     def to_dict(self) -> dict:
-        return {
-            "n_blocks": self.n_blocks,
-            "rows": [dict(r) for r in self.rows],
-            "heading_difference_deg": self.heading_difference_deg,
-        }
+        return {**super().to_dict(), "heading_difference_deg": self.heading_difference_deg}
 
 
-def validate_gravity(dataset, n_blocks=10, **options) -> GravityValidation:
+def validate_gravity(dataset, n_blocks=None, **options) -> GravityValidation:
     """Fit on alternate blocks in time and score on the blocks between: the gravity fit and, beside it, the separate
     calibrations (:func:`separate_calibration`, with the right angle the gravity fit found).
 
     Parameters
     ----------
     dataset : Dataset
-    n_blocks : int
-        Blocks in time (at least 4).
+    n_blocks : int, optional
+        Blocks in time, odd, at least 3 (:func:`magcal.fitting.validation.held_out_blocks`: by default blocks of at
+        least :data:`magcal.fitting.validation.MIN_BLOCK_S`).
     **options
         Passed to :func:`fit_gravity` (``inclination_deg``, ``noise_nT``, ``accel_fit``, ``accel_units``,
         ``reference_total_nT``, ``robust``).
+
+    Raises
+    ------
+    CalibrationError
+        A record too short to split (:func:`magcal.fitting.validation.split_problem`).
     """
-    n = dataset.n_samples
-    n_blocks = max(4, int(n_blocks))
-    train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
+    train, test, n_blocks = held_out_blocks(dataset, n_blocks)
     accel = accelerometer(dataset, units=options.get("accel_units"))
     if accel is None:
         raise MagcalError(f"{dataset.source or 'data'}: no accelerometer columns")
@@ -1080,7 +1085,7 @@ def validate_gravity(dataset, n_blocks=10, **options) -> GravityValidation:
         total = cal.total_field(dataset)
         total = total if total.ndim == 2 else total[None]
         f_in = heading_figures(cal, dataset, still.mask & train, accel_units=units)
-        f_out = heading_figures(cal, dataset, still.mask & ~train, accel_units=units)
+        f_out = heading_figures(cal, dataset, still.mask & test, accel_units=units)
         field_nT = float(cal.reference_total_nT or np.median(total[0]))
         rows.append(
             {
@@ -1088,10 +1093,10 @@ def validate_gravity(dataset, n_blocks=10, **options) -> GravityValidation:
                 "in_dip_sd_deg": f_in["dip_sd_deg"][0],
                 "held_dip_sd_deg": f_out["dip_sd_deg"][0],
                 "in_total_nT": float(np.sqrt(np.mean((total[0][train] - field_nT) ** 2))),
-                "held_total_nT": float(np.sqrt(np.mean((total[0][~train] - field_nT) ** 2))),
+                "held_total_nT": float(np.sqrt(np.mean((total[0][test] - field_nT) ** 2))),
             }
         )
     if sep is None:
-        return GravityValidation(n_blocks, rows, float("nan"))
-    diff = heading_figures(fit.calibration, dataset, still.mask & ~train, other=sep, accel_units=units)
-    return GravityValidation(n_blocks, rows, diff["heading_difference_rms_deg"][0])
+        return GravityValidation(n_blocks, rows, float("nan"), train=train)
+    diff = heading_figures(fit.calibration, dataset, still.mask & test, other=sep, accel_units=units)
+    return GravityValidation(n_blocks, rows, diff["heading_difference_rms_deg"][0], train=train)

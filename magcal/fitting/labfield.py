@@ -34,9 +34,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from magcal.core.stats import lag1_correlation
+from magcal.fitting.solver import correlated_covariance, weighted_least_squares
 from magcal.model.operators import GRADIENT_BASIS
 
 #: Position columns in the world frame: north, east, down (m) from any origin in the lab.
@@ -403,26 +402,10 @@ def solve(problems, xs, sigmas, rotation, setup: FieldSetup, robust=False, max_n
         [np.concatenate([np.full(9, 1e-3), np.full(3, 10.0), np.ones(len(x) - 12)]) for x in xs]
         + [np.full(setup.n_direction, 1e-3), np.full(setup.n_params - setup.n_direction, 10.0)]
     )
-    sol = least_squares(
-        prob.residuals,
-        x0,
-        jac=prob.jacobian,
-        method="trf" if robust else "lm",
-        loss="soft_l1" if robust else "linear",
-        f_scale=3.0,
-        x_scale=scale,
-        xtol=1e-12,
-        ftol=1e-12,
-        max_nfev=max_nfev,
-    )
+    sol = weighted_least_squares(prob.residuals, x0, scale, robust, jac=prob.jacobian, max_nfev=max_nfev)
     jac = prob.jacobian(sol.x)
     z = prob.residuals(sol.x)
     n = len(rotation)
-    lag1 = lag1_correlation(*[z[s * 3 * n : s * 3 * n + n] for s in range(len(problems))])  # total-field parts
-    widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), n)))
-    s2 = float(z @ z) / max(len(z) - len(sol.x), 1)
-    try:
-        cov = s2 * np.linalg.inv(jac.T @ jac) * widening**2
-    except np.linalg.LinAlgError:
-        cov = None
-    return sol.x, cov, jac, s2, widening
+    total_parts = [z[s * 3 * n : s * 3 * n + n] for s in range(len(problems))]
+    cov = correlated_covariance(jac, z, len(sol.x), total_parts, n)
+    return sol.x, cov.matrix, jac, cov.s2, cov.widening

@@ -36,7 +36,7 @@ import numpy as np
 
 from magcal.calibration.calibration import is_transferable
 from magcal.core import notes as _notes
-from magcal.core.errors import MagcalError
+from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.vectors import unit_rows
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit
 from magcal.fitting.pipeline import _build_model, calibrate
@@ -171,6 +171,49 @@ def holdout_masks(dataset, scheme: str = "blocks", n_blocks: int | None = None, 
             f"samples in this record of {n}; give a longer record"
         )
     return train, test
+
+
+def held_out_blocks(dataset, n_blocks: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(train, test, n_blocks)``: the ``blocks`` split of :func:`holdout_masks` for a fit's held-out check (the vector and the
+    gravity fits' as the total-field fit's): blocks of equal duration in time order, the first and the last
+    training, each at least :data:`MIN_BLOCK_S` long by default.
+
+    Raises
+    ------
+    CalibrationError
+        A record too short to split (:func:`split_problem`), the message naming it and why.
+    MagcalError
+        An even or too small ``n_blocks`` (:func:`holdout_masks`).
+    """
+    problem = split_problem(dataset)
+    if problem is not None:
+        raise CalibrationError(f"{dataset.source or 'data'}: {problem}")
+    n_blocks = default_n_blocks(dataset) if n_blocks is None else n_blocks
+    train, test = holdout_masks(dataset, "blocks", n_blocks)
+    return train, test, n_blocks
+
+
+@dataclass
+class BlockValidation:
+    """Held-out figures of a mode's fits on :func:`held_out_blocks` (the vector and the gravity fits' checks).
+
+    Attributes
+    ----------
+    n_blocks : int
+        Blocks in time: the fits use the odd-numbered ones (the first and the last among them), the figures
+        ``held_*`` come from the others.
+    rows : list of dict
+        Per fit, its figures on the fitted blocks (``in_*``) and on the others (``held_*``).
+    train : numpy.ndarray of bool, shape (N,), or None
+        The samples of the fitted blocks.
+    """
+
+    n_blocks: int
+    rows: list
+    train: np.ndarray | None = field(default=None, repr=False, kw_only=True)
+
+    def to_dict(self) -> dict:
+        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
 
 
 @dataclass

@@ -51,7 +51,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
@@ -64,19 +63,28 @@ from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.fitting import labfield
 from magcal.fitting.result import ModeResult
+from magcal.fitting.solver import (
+    OUTLIER_SIGMAS,
+    NoiseGroup,
+    SensorMounting,
+    beyond,
+    correlated_covariance,
+    mounting_fields,
+    reweighted_fit,
+    weighted_least_squares,
+)
+from magcal.fitting.truth import true_calibration as true_calibration
+from magcal.fitting.validation import BlockValidation, held_out_blocks
 from magcal.geometry.orientations import (
     RIGHT_ANGLES,
     describe_right_angle,
-    firmware_rotation,
     mounting_sd_deg,
     nearest_right_angle,
-    split_mounting,
 )
 from magcal.geometry.shape import field_magnitude_nT
 from magcal.model.operators import GRADIENT_BASIS
 from magcal.model.platform_terms import available_terms
 from magcal.model.terms import (
-    EFFECTS,
     Effect,
     Model,
     block_label,
@@ -123,27 +131,17 @@ DECLINATION_TOLERANCE_DEG = 1.0
 
 
 @dataclass
-class SensorVectorFit:
+class SensorVectorFit(SensorMounting):
     """One sensor's vector fit.
 
     Attributes
     ----------
-    W : numpy.ndarray, shape (3, 3)
-        ``R C^-1``: raw reading minus bias and platform terms -> body frame.
-    bias_nT : numpy.ndarray, shape (3,)
-        Bias (hard iron), nT; ``bias_sd_nT`` its standard deviation from the fit's covariance.
-    mounting : numpy.ndarray, shape (3, 3)
-        ``R``, the rotation of the sensor's corrected axes into the body frame.
-    cinv : numpy.ndarray, shape (3, 3)
-        Upper-triangular ``C^-1``.
-    right_angle : numpy.ndarray, shape (3, 3)
-        The best of the 24 right-angle orientations (tried first).
-    right_angle_text : str
-        Its firmware name and axis mapping.
-    angle_off_deg : float
-        Angle between the fitted mounting and that right angle, deg.
-    orientation_margin : float
-        RMS of the second-best right angle over the best one's (large: the choice was clear).
+    W, bias_nT, mounting, cinv, right_angle, right_angle_text, angle_off_deg, orientation_margin
+        As :class:`magcal.fitting.solver.SensorMounting`: ``W = R C^-1`` maps the raw reading minus bias and
+        platform terms into the body frame; ``angle_off_deg`` is the angle from the right angle nearest the fitted
+        mounting, ``orientation_margin`` the RMS of the second-best right angle over the best one's.
+    bias_sd_nT : numpy.ndarray, shape (3,)
+        The bias's standard deviation from the fit's covariance, nT.
     terms : dict
         Fitted effects acting on this sensor, by catalogue name: their parameters (e.g. ``current_field``: the
         field per unit of current in nT, ``eddy_currents``: ``E`` row by row in ms).
@@ -183,14 +181,6 @@ class SensorVectorFit:
         The body-frame vector residual ``B - R(q)^T B_ned`` of every fitted sample, nT.
     """
 
-    W: np.ndarray
-    bias_nT: np.ndarray
-    mounting: np.ndarray
-    cinv: np.ndarray
-    right_angle: np.ndarray
-    right_angle_text: str
-    angle_off_deg: float
-    orientation_margin: float
     terms: dict
     rms_vector_nT: float
     rms_perpendicular_nT: float
@@ -211,30 +201,22 @@ class SensorVectorFit:
     total_residual_nT: np.ndarray | None = field(default=None, repr=False)
     vector_residual_nT: np.ndarray | None = field(default=None, repr=False)
 
-    def summary(self) -> dict:
-        """JSON-ready figures for the calibration file's sensor entry."""
-        number = firmware_rotation(self.right_angle)
-        return {
-            "mounting_right_angle": self.right_angle_text,
-            "mounting_rotation_number": number,
-            "mounting_angle_off_deg": self.angle_off_deg,
-            "mounting_rotvec_deg": np.degrees(Rotation.from_matrix(self.mounting).as_rotvec()).tolist(),
-            "orientation_margin": self.orientation_margin,
-            "rms_vector_nT": self.rms_vector_nT,
-            "rms_perpendicular_nT": self.rms_perpendicular_nT,
-            "rms_total_field_nT": self.rms_total_field_nT,
-            "sigma_perpendicular_nT": self.sigma_perpendicular_nT,
-            "sigma_total_field_nT": self.sigma_total_field_nT,
-            "attitude_noise_deg": self.attitude_noise_deg,
-            "attitude_noise_source": self.attitude_noise_source,
-            "bias_sd_nT": None if self.bias_sd_nT is None else np.asarray(self.bias_sd_nT).tolist(),
-            "mounting_sd_deg": None if self.mounting_sd_deg is None else np.asarray(self.mounting_sd_deg).tolist(),
-            "n_outliers": self.n_outliers,
-            "residual_lag1_correlation": self.residual_lag1_correlation,
-            "sd_widening": self.sd_widening,
-            "determined": self.determined,
-            "undetermined_cause": None if self.undetermined_cause is None else self.undetermined_cause.to_dict(),
-        }
+    SUMMARY_FIELDS = (
+        "rms_vector_nT",
+        "rms_perpendicular_nT",
+        "rms_total_field_nT",
+        "sigma_perpendicular_nT",
+        "sigma_total_field_nT",
+        "attitude_noise_deg",
+        "attitude_noise_source",
+        "bias_sd_nT",
+        "mounting_sd_deg",
+        "n_outliers",
+        "residual_lag1_correlation",
+        "sd_widening",
+        "determined",
+        "undetermined_cause",
+    )
 
 
 @dataclass
@@ -466,18 +448,6 @@ def _perpendicular_basis(u):
     return p1, np.cross(u, p1)
 
 
-def _split_w(W, sensor):
-    """``W = R C^-1`` split (:func:`magcal.geometry.orientations.split_mounting`), a mirrored axis refused."""
-    try:
-        return split_mounting(W)
-    except ValueError:
-        raise CalibrationError(
-            f"sensor {sensor + 1}: the fitted matrix mirrors an axis (its determinant is negative): one axis's sign "
-            "is reversed against the others (a left-handed sensor); flip it with --columns (e.g. z=-magZ is not "
-            "supported: negate the column) and calibrate again"
-        ) from None
-
-
 def _orientation_search(y, b_body):
     """Each of the 24 right angles ``A``: least squares of ``y = g A^T B_body + c`` (gain ``g``, offset ``c``).
 
@@ -500,7 +470,7 @@ def _linear_start(y, b_body, bases, robust=False):
     W, b, theta, resid = _linear_lstsq(y, b_body, bases, np.ones(len(y), bool))
     if robust:
         size = np.linalg.norm(resid, axis=1)
-        keep = size <= np.median(size) + 5 * robust_sigma(size)
+        keep = size <= np.median(size) + OUTLIER_SIGMAS * robust_sigma(size)
         if keep.sum() >= len(y) // 2:
             W, b, theta, _ = _linear_lstsq(y, b_body, bases, keep)
     return W, b, theta
@@ -650,16 +620,16 @@ def _raw_bases(instances, dataset, ctx, bias_nT, rows) -> np.ndarray | None:
 
 def fit_vector(
     dataset: Dataset,
-    reference: VectorReference,
+    reference: VectorReference | str,
     effects=None,
     terms=None,
-    attitude_noise_deg=None,
-    noise_nT=None,
+    attitude_noise_deg: float | None = None,
+    noise_nT: float | None = None,
     reference_total_nT=None,
-    robust=False,
+    robust: bool = False,
     mask=None,
-    warn=True,
-    field_gradient=False,
+    warn: bool = True,
+    field_gradient: bool = False,
 ) -> VectorFitResult:
     """Vector calibration of every sensor into the body frame from attitude and the field vector.
 
@@ -891,78 +861,65 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
     W0, b0, theta0 = _linear_start(y, b_body, basis, robust) if basis is not None else (W_start, b_start, np.zeros(0))
     prob = _SensorProblem(y, b_body, f_ref, basis)
     x = np.concatenate([W0.ravel(), b0, theta0])
-    total, perp, _ = prob.parts(x)
     field_nT = float(np.median(f_ref))
-    sigma_f = noise_nT if noise_nT is not None else max(robust_sigma(total), 1e-3)
-    if attitude_noise_deg is not None:
-        sigma_p = float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
-    else:
-        sigma_p = max(robust_sigma(perp.ravel()), 1e-3)
+    total_group = NoiseGroup(1e-3, noise_nT)
+    sigma_f = total_group.sigma(prob.parts(x)[0])
+    given_p = (
+        None if attitude_noise_deg is None else float(np.hypot(np.radians(attitude_noise_deg) * field_nT, sigma_f))
+    )
+    groups = [total_group, NoiseGroup(1e-3, given_p)]  # the total field; each component across the field
     scale = np.concatenate(
         [np.full(9, 1e-3), np.full(3, 10.0)] + [np.asarray(e.param_scale(), dtype=float) for e, _ in instances]
     )
     rebased = not any(e.basis_uses_readings for e, _ in instances)
-    sol = None
-    for rnd in range(MAX_REFINEMENTS + 2):
+
+    def parts(xv):
+        total, perp, _ = prob.parts(xv)
+        return [total, perp.ravel()]
+
+    def solve(xv, sigmas):
         # within the effects' domains (a loop width >= 0...), taken after a refinement moved their constants
-        x, sol = _solve_within(prob, x, (sigma_f, sigma_p), _bounds(instances), scale, robust)
-        total, perp, _ = prob.parts(x)
-        new_f = sigma_f if noise_nT is not None else max(robust_sigma(total), 1e-3)
-        new_p = sigma_p if attitude_noise_deg is not None else max(robust_sigma(perp.ravel()), 1e-3)
-        settled = abs(new_f / sigma_f - 1) < 0.05 and abs(new_p / sigma_p - 1) < 0.05
-        sigma_f, sigma_p = new_f, new_p
-        refined = _refine(instances, sizes, x[12:]) if rnd < MAX_REFINEMENTS else False
-        if refined or not rebased:  # a basis of the readings minus the bias, or constants the fit moved: once more
-            prob = _SensorProblem(y, b_body, f_ref, _raw_bases(instances, dataset, ctx, x[9:12], rows))
-            rebased = True
-            continue
-        if settled or rnd >= 1:
-            break
-    assert sol is not None
+        return _solve_within(prob, xv, tuple(sigmas), _bounds(instances), scale, robust)
+
+    def again(rnd, xv):
+        # a basis of the readings minus the bias, or constants the fit moved: once more
+        nonlocal prob, rebased
+        refined = _refine(instances, sizes, xv[12:]) if rnd < MAX_REFINEMENTS else False
+        if not (refined or not rebased):
+            return False
+        prob = _SensorProblem(y, b_body, f_ref, _raw_bases(instances, dataset, ctx, xv[9:12], rows))
+        rebased = True
+        return True
+
+    start_sigmas = [sigma_f, groups[1].sigma(parts(x)[1])]
+    fit = reweighted_fit(solve, parts, groups, x, start_sigmas, rounds=2, most_rounds=MAX_REFINEMENTS + 2, again=again)
+    x, sol, (sigma_f, sigma_p) = fit.x, fit.solution, fit.sigmas
     total, perp, e = prob.parts(x)
     W, b, theta = prob.unpack(x)
-    R, cinv = _split_w(W, s)
-    z = prob.residuals(x, sigma_f, sigma_p)
-    n_out = int(np.count_nonzero((np.abs(total) > 5 * sigma_f) | np.any(np.abs(perp) > 5 * sigma_p, axis=1)))
-    bias_sd: np.ndarray | None
-    mount_sd: np.ndarray | None
-    cov_block = None
+    mounted = mounting_fields(W, b, right, margin, s)
+    cov = correlated_covariance(sol.jac, prob.residuals(x, sigma_f, sigma_p), len(x), (total, e), len(total))
+    n_out = int(np.count_nonzero(beyond(total, sigma_f) | beyond(perp, sigma_p)))
+    bias_sd = mount_sd = cov_block = None
     pulls: dict = {}
-    try:
-        jtj_inv = np.linalg.inv(sol.jac.T @ sol.jac)
-        s2 = float(z @ z) / max(len(z) - len(x), 1)
-        lag1 = lag1_correlation(total, e)
-        widening = float(np.sqrt(min((1.0 + lag1) / (1.0 - lag1), len(total))))
-        cov = s2 * jtj_inv * widening**2
-        bias_sd = np.sqrt(np.clip(np.diag(cov)[9:12], 0.0, None))
-        mount_sd = mounting_sd_deg(W, cov[:9, :9])
-        cov_block = (cov, labels)
-        pulls = _pulls(prob, x, (sigma_f, sigma_p), _bounds(instances), jtj_inv, cov, labels, sizes)
-    except np.linalg.LinAlgError:
-        bias_sd = mount_sd = None
-        lag1, widening = 0.0, 1.0
+    if cov.matrix is not None:
+        bias_sd = np.sqrt(np.clip(np.diag(cov.matrix)[9:12], 0.0, None))
+        mount_sd = mounting_sd_deg(W, cov.matrix[:9, :9])
+        cov_block = (cov.matrix, labels)
+        pulls = _pulls(prob, x, (sigma_f, sigma_p), _bounds(instances), cov.jtj_inv, cov.matrix, labels, sizes)
     determined = not (
         (bias_sd is not None and float(np.max(bias_sd)) > UNDETERMINED_BIAS_FRACTION * field_nT)
         or (mount_sd is not None and float(np.max(mount_sd)) > UNDETERMINED_MOUNTING_DEG)
     )
-    notes.extend(_sensor_notes(s, n_out, robust, R, right))
+    notes.extend(_sensor_notes(s, n_out, robust, mounted["mounting"], right))
     values, k = {}, 0
     for label, q in zip(labels, sizes):
         values[label] = theta[k : k + q].copy()
         k += q
-    nearest, off = nearest_right_angle(R)
     att_noise = (
         float(attitude_noise_deg) if attitude_noise_deg is not None else attitude_error_deg(sigma_p, sigma_f, field_nT)
     )
     fit = SensorVectorFit(
-        W=W,
-        bias_nT=b,
-        mounting=R,
-        cinv=cinv,
-        right_angle=right,
-        right_angle_text=describe_right_angle(right),
-        angle_off_deg=off,
-        orientation_margin=margin,
+        **mounted,
         terms=_terms_of(values),
         rms_vector_nT=float(np.sqrt(np.mean(e**2))),
         rms_perpendicular_nT=float(np.sqrt(np.mean(perp**2))),
@@ -975,8 +932,8 @@ def _fit_sensor(s, dataset, model, ctx, rows, b_body, f_ref, start, noise_nT, at
         bias_sd_nT=bias_sd,
         mounting_sd_deg=mount_sd,
         n_outliers=n_out,
-        residual_lag1_correlation=float(lag1),
-        sd_widening=float(widening),
+        residual_lag1_correlation=float(cov.lag1),
+        sd_widening=float(cov.widening),
         determined=determined,
         bound_pull_z=pulls,
         total_residual_nT=total,
@@ -1006,16 +963,12 @@ def _solve_within(prob, x, sigmas, bounds, scale, robust):
             out[free] = v
             return out
 
-        sol = least_squares(
+        sol = weighted_least_squares(
             lambda v, free=free: prob.residuals(full(v, free), *sigmas),
             x[free],
+            scale[free],
+            robust,
             jac=lambda v, free=free: prob.jacobian(full(v, free), *sigmas)[:, free],
-            method="trf" if robust else "lm",
-            loss="soft_l1" if robust else "linear",
-            f_scale=3.0,
-            x_scale=scale[free],
-            xtol=1e-12,
-            ftol=1e-12,
             max_nfev=MAX_NFEV,
         )
         x = full(sol.x)
@@ -1353,58 +1306,23 @@ def _tilt_range_deg(rotation: Rotation) -> float:
     return float(np.degrees(np.max(np.arccos(np.clip(z[:, 2], -1.0, 1.0)))))
 
 
-def true_calibration(truth) -> Calibration:
-    """The calibration a simulated vehicle's truth (:class:`magcal.data.vehicle.VehicleTruth`) implies: what
-    the fit is compared with. Its eddy currents and current field are the effects ``eddy_currents`` and
-    ``current_field`` (on ``current_A``); effects hidden by perturbations are not in it (compare on the same flight
-    simulated without them, whose noise is the same)."""
-    sensors = []
-    for s in truth.sensors:
-        R, cinv = _split_w(s.mounting @ np.linalg.inv(s.matrix), 0)
-        sensors.append(SensorCalibration(cinv, s.bias_nT, R))
-    n = len(truth.sensors)
-    effects, values = [], {}
-    if any(s.eddy_ms is not None for s in truth.sensors):
-        effects.append(EFFECTS["eddy_currents"]())
-        for k, s in enumerate(truth.sensors):
-            values[block_label(effects[-1], k)] = np.zeros(9) if s.eddy_ms is None else np.ravel(s.eddy_ms)
-    if any(s.current_nT_per_unit is not None for s in truth.sensors):
-        current = EFFECTS["current_field"]()
-        current.set_state({"column": "current_A"})
-        effects.append(current)
-        for k, s in enumerate(truth.sensors):
-            k_nT = s.current_nT_per_unit
-            values[block_label(effects[-1], k)] = np.zeros(3) if k_nT is None else np.asarray(k_nT, dtype=float)
-    return Calibration(
-        sensors=sensors,
-        reference_total_nT=float(np.linalg.norm(truth.field_ned_nT)),
-        frame="body",
-        mode="vector",
-        model=Model(n, effects=effects) if effects else None,
-        effect_values=values,
-    )
-
-
 @dataclass
-class VectorValidation:
+class VectorValidation(BlockValidation):
     """Held-out figures of vector fits with and without effects (:func:`validate_vector`).
 
     Attributes
     ----------
-    n_blocks : int
-        Blocks in time: the fits use the even ones, the figures ``held_*`` come from the odd ones.
     rows : list of dict
         Per model (``terms``: the effects fitted): ``in_vector_nT`` / ``held_vector_nT`` (world
         components against the reference, RMS per component) and ``in_total_nT`` / ``held_total_nT`` (|B| against
         the reference total field), all sensors together.
+    n_blocks, train
+        As :class:`magcal.fitting.validation.BlockValidation`.
     """
-
-    n_blocks: int
-    rows: list
 
     def text(self) -> str:
         lines = [
-            f"  held-out check (fitted on the even of {self.n_blocks} blocks in time, scored on the odd ones; "
+            f"  held-out check (fitted on the 1st, 3rd, ... of {self.n_blocks} blocks in time, scored on the others; "
             "world components and |B| against the reference, RMS in nT):"
         ]
         for r in self.rows:
@@ -1415,11 +1333,8 @@ class VectorValidation:
             )
         return "\n".join(lines) + "\n"
 
-    def to_dict(self) -> dict:
-        return {"n_blocks": self.n_blocks, "rows": [dict(r) for r in self.rows]}
 
-
-def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, **options) -> VectorValidation:
+def validate_vector(dataset, reference, terms=None, n_blocks=None, effects=None, **options) -> VectorValidation:
     """Fit on alternate blocks in time and score on the blocks between: the base vector model and the model with
     the platform terms (each term alone too when there are several), so that a term that only fits this record
     shows (its held-out figures do not fall).
@@ -1433,14 +1348,19 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
     effects : sequence of str, optional
         Effect labels (``current_field``, ``eddy_currents:2``...). With neither: every platform effect the data
         support.
-    n_blocks : int
-        Blocks in time (at least 4).
+    n_blocks : int, optional
+        Blocks in time, odd, at least 3 (:func:`magcal.fitting.validation.held_out_blocks`: by default blocks of at
+        least :data:`magcal.fitting.validation.MIN_BLOCK_S`).
     **options
         Passed to :func:`fit_vector` (``attitude_noise_deg``, ``noise_nT``, ``reference_total_nT``, ``robust``).
+
+    Raises
+    ------
+    CalibrationError
+        A record too short to split (:func:`magcal.fitting.validation.split_problem`).
     """
     n = dataset.n_samples
-    n_blocks = max(4, int(n_blocks))
-    train = (np.floor(np.arange(n) * n_blocks / n).astype(int) % 2) == 0
+    train, test, n_blocks = held_out_blocks(dataset, n_blocks)
     if effects is None and terms is None:
         terms = available_terms(dataset)
     terms = list(effects or ()) + [PLATFORM_EFFECTS.get(t, t) for t in terms or ()]
@@ -1468,12 +1388,12 @@ def validate_vector(dataset, reference, terms=None, n_blocks=10, effects=None, *
             {
                 "terms": list(model),
                 "in_vector_nT": rms(err, train),
-                "held_vector_nT": rms(err, ~train),
+                "held_vector_nT": rms(err, test),
                 "in_total_nT": rms(total, train),
-                "held_total_nT": rms(total, ~train),
+                "held_total_nT": rms(total, test),
             }
         )
-    return VectorValidation(n_blocks, rows)
+    return VectorValidation(n_blocks, rows, train=train)
 
 
 # ----------------------------------------------------------------------------------------------------------------
