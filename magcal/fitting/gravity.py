@@ -39,7 +39,7 @@ heading), and how many still samples and which tilts would bring it there.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -61,7 +61,7 @@ from magcal.data.accelerometer import (
 )
 from magcal.data.dataset import Dataset
 from magcal.fitting.pipeline import calibrate
-from magcal.fitting.result import ModeResult
+from magcal.fitting.result import SampleFitResult
 from magcal.fitting.solver import (
     Covariance,
     NoiseGroup,
@@ -385,7 +385,7 @@ class SensorGravityFit(SensorMounting):
 
 
 @dataclass
-class GravityFitResult(ModeResult):
+class GravityFitResult(SampleFitResult):
     """Outcome of :func:`fit_gravity`.
 
     Attributes
@@ -418,10 +418,6 @@ class GravityFitResult(ModeResult):
     still: StillSamples
     tilt_range_deg: tuple
     budget: dict
-    warnings: list = field(default_factory=list)
-    n_samples: int = 0
-    wall_s: float = 0.0
-    fitted: np.ndarray | None = None
     accel_unit: str = "m/s^2"
 
     @property

@@ -9,9 +9,12 @@ derive from it, so that the command line, :func:`magcal.calibrate` and the workb
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from magcal.calibration.calibration import Calibration
     from magcal.core.notes import Note
 
@@ -63,3 +66,25 @@ class ModeResult:
     def to_dict(self) -> dict:
         """The fit as a JSON-ready document, with ``"mode"``."""
         raise NotImplementedError(f"{type(self).__name__} has no JSON document")
+
+
+@dataclass(kw_only=True)
+class SampleFitResult(ModeResult):
+    """A mode result that keeps what it said and which samples it fitted: the vector and gravity fits' results.
+
+    Attributes
+    ----------
+    warnings : list of str
+        What the fit said (its :attr:`notes` are made from these).
+    n_samples : int
+        The samples fitted.
+    wall_s : float
+        The fit's wall-clock time in s.
+    fitted : numpy.ndarray of bool, shape (N,), or None
+        One entry per sample of the dataset: True where the sample was fitted.
+    """
+
+    warnings: list = field(default_factory=list)  # type: ignore[assignment]
+    n_samples: int = 0
+    wall_s: float = 0.0
+    fitted: np.ndarray | None = None

@@ -62,7 +62,7 @@ from magcal.core.stats import explained_share, lag1_correlation, robust_sigma, s
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import Dataset
 from magcal.fitting import labfield
-from magcal.fitting.result import ModeResult
+from magcal.fitting.result import SampleFitResult
 from magcal.fitting.solver import (
     OUTLIER_SIGMAS,
     NoiseGroup,
@@ -306,7 +306,7 @@ class SampleGaps:
 
 
 @dataclass
-class VectorFitResult(ModeResult):
+class VectorFitResult(SampleFitResult):
     """Outcome of :func:`fit_vector`.
 
     Attributes
@@ -339,10 +339,6 @@ class VectorFitResult(ModeResult):
     sensors: list
     reference: VectorReference
     terms: list
-    warnings: list = field(default_factory=list)
-    n_samples: int = 0
-    wall_s: float = 0.0
-    fitted: np.ndarray | None = None
     gaps: SampleGaps | None = None
     field: labfield.LabField | None = None
 
