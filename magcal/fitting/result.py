@@ -30,7 +30,7 @@ class _NoteTexts:
 
 
 class ModeResult:
-    """The outcome of a fit mode (:class:`magcal.modes.FitMode`): what every mode's result has.
+    """The outcome of a fit mode (:class:`magcal.modes.base.FitMode`): what every mode's result has.
 
     Attributes
     ----------
@@ -46,7 +46,7 @@ class ModeResult:
         The texts of :attr:`notes`, in order: one meaning for every mode. (The total-field report's wider list of
         lines, which also says what is only information, is its ``remarks``.)
     validation : object or None
-        The fit judged on held-out samples when asked for (:meth:`magcal.modes.FitMode.validate`, an object with
+        The fit judged on held-out samples when asked for (:meth:`magcal.modes.base.FitMode.validate`, an object with
         ``text()`` and ``to_dict()``), else None.
     """
 

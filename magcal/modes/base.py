@@ -104,7 +104,7 @@ class FitMode:
         return tuple(p.name for p in params[records:] if p.kind is not inspect.Parameter.VAR_POSITIONAL)
 
     def taken(self, options: dict, method: str = "fit") -> dict:
-        """``options`` checked against what :meth:`fit` (or ``method``) takes: a :class:`MagcalError` naming an
+        """``options`` checked against what :meth:`fit` (or ``method``) takes: a :class:`~magcal.core.errors.MagcalError` naming an
         option this mode does not take, and those it does."""
         known = self.accepts(method)
         if known is None:
@@ -161,7 +161,7 @@ def _ranked() -> list:
 
 
 def fit_mode(name: str, option: str = "mode") -> FitMode:
-    """The mode called ``name`` (or an alias of it), or a :class:`MagcalError` naming those there are (``option``:
+    """The mode called ``name`` (or an alias of it), or a :class:`~magcal.core.errors.MagcalError` naming those there are (``option``:
     how the user gave the name, ``mode`` or ``--mode``)."""
     found = FIT_MODES.get(ALIASES.get(name, name)) if isinstance(name, str) else None
     if found is None:
