@@ -52,9 +52,13 @@ class ModeResult:
 
     mode: ClassVar[str] = ""
     calibration: Calibration
-    notes: list[Note]
     warnings = _NoteTexts()
     validation: Any = None
+
+    if TYPE_CHECKING:  # a stored list in one result, made from the stored warnings in another
+
+        @property
+        def notes(self) -> list[Note]: ...
 
     def text(self) -> str:
         """The readable report of the fit (ends with a newline)."""

@@ -141,4 +141,5 @@ class GravityMode(FitMode):
 
 
 #: The gravity fit mode.
-GRAVITY = FIT_MODES.register(GravityMode())
+GRAVITY = GravityMode()
+FIT_MODES.register(GRAVITY)
