@@ -64,7 +64,6 @@ _PUBLIC = {
     "Diagnosis": "magcal.diagnosis",
     "fit_vector": "magcal.fitting.vector",
     "VectorFitResult": "magcal.fitting.vector",
-    "GravityFitResult": "magcal.fitting.gravity",
     "resolve_vector_reference": "magcal.checks.reference",
     "simulate_vehicle": "magcal.data.vehicle",
     "fit": "magcal.fitting.fitter",
