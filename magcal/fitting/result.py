@@ -43,7 +43,7 @@ class ModeResult:
         What the fit said that a user must hear (:mod:`magcal.core.notes`): raised as Python warnings by the public
         functions (:func:`magcal.calibrate` unless ``warn=False``), printed by the command line.
     warnings : list of str
-        The texts of :attr:`notes`, in order: one meaning for every mode. (The total-field report's wider list of
+        The texts of ``notes``, in order: one meaning for every mode. (The total-field report's wider list of
         lines, which also says what is only information, is its ``remarks``.)
     validation : object or None
         The fit judged on held-out samples when asked for (:meth:`magcal.modes.base.FitMode.validate`, an object with
