@@ -3,7 +3,8 @@
 The public API, in the order data flows::
 
     ds = magcal.read_csv("data.csv")            # or an (N, 3) array, a DataFrame, magcal.simulate("chi2017")
-    result = magcal.calibrate(ds)               # ellipsoid -> Procrustes -> maximum likelihood
+    result = magcal.calibrate(ds)               # the fit the record holds what it needs for (magcal.choose_mode):
+                                                # ellipsoid -> Procrustes -> maximum likelihood on readings alone
     d = magcal.diagnose(ds, result)             # ranked candidate effects with their evidence, a verdict
     result = magcal.calibrate(ds, effects=d.explained_by)   # add the effect the diagnosis names
     result.calibration.correct(new_ds)          # corrected vectors (n_sensors, N, 3), nT, array frame
@@ -53,6 +54,10 @@ _PUBLIC = {
     # calibrate, diagnose, apply
     "calibrate": "magcal.api",
     "diagnose": "magcal.api",
+    "ModeResult": "magcal.fitting.result",
+    "FitMode": "magcal.modes",
+    "FIT_MODES": "magcal.modes",
+    "choose_mode": "magcal.modes",
     "CalibrationResult": "magcal.fitting.pipeline",
     "Calibration": "magcal.calibration.calibration",
     "SensorCalibration": "magcal.calibration.calibration",

@@ -3,9 +3,9 @@
 ``magcal.calibrate`` and ``magcal.diagnose`` take a :class:`~magcal.data.dataset.Dataset`, a plain array of raw readings
 in nT (``(N, 3)`` for one sensor, ``(n_sensors, N, 3)`` for an array) or a pandas DataFrame with the columns of
 the data CSV, turn it into a dataset with :func:`magcal.data.inputs.as_dataset`, choose the fit mode as ``magcal
-calibrate`` does (:func:`magcal.modes.choose_mode`: the vector fit for a record with the attitude and the field
+calibrate`` does (:func:`magcal.modes.base.choose_mode`: the vector fit for a record with the attitude and the field
 vector, the gravity fit beside an accelerometer, else the total-field fit) and call that mode's
-:meth:`~magcal.modes.FitMode.fit` or :meth:`~magcal.modes.FitMode.diagnose`, which keep taking datasets only.
+:meth:`~magcal.modes.base.FitMode.fit` or :meth:`~magcal.modes.base.FitMode.diagnose`, which keep taking datasets only.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def calibrate(
         Known total field in nT; otherwise the data's ``ref_total`` column or metadata, else fitted.
     mode : str
         The fit mode (:mod:`magcal.modes`, ``magcal calibrate --mode``): ``"auto"`` (default) chooses as the command
-        line does (:func:`magcal.modes.choose_mode`: ``"vector"`` when some rows have an attitude and the field
+        line does (:func:`magcal.modes.base.choose_mode`: ``"vector"`` when some rows have an attitude and the field
         vector is known, ``"gravity"`` beside an accelerometer without attitude, else ``"total_field"``); or a
         registered mode's name (``"scalar"`` is ``"total_field"``). A mode the record cannot have is refused with
         what it needs.
@@ -68,7 +68,7 @@ def calibrate(
         Noise per axis in nT, if known: used for the floors instead of the data's ``noise_nT`` or any estimate
         (the total-field fit's ``noise_source`` then reads ``given``).
     validate : bool
-        Also judge the fit on held-out samples (:meth:`magcal.modes.FitMode.validate`; for the total-field fit the
+        Also judge the fit on held-out samples (:meth:`magcal.modes.base.FitMode.validate`; for the total-field fit the
         base model and the model with ``effects`` fitted on alternating blocks in time and scored on the blocks
         between, :func:`magcal.fitting.validation.validate_effects`, method ``ml`` only): ``result.validation``.
     warn : bool
@@ -138,7 +138,7 @@ def calibrate(
 
 def _mode_options(mode: FitMode, given: dict, options: dict, method: str = "fit") -> dict:
     """The keyword arguments for ``mode``'s ``method``: ``options``, and each of ``given`` (``name -> (value,
-    default)``) that the mode takes or that was given other than its default (which :meth:`FitMode.taken` then
+    default)``) that the mode takes or that was given other than its default (which :meth:`~magcal.modes.base.FitMode.taken` then
     refuses, naming what the mode takes)."""
     known = mode.accepts(method)
     passed = dict(options)
@@ -192,7 +192,7 @@ def diagnose(
         is not given, a refit that did not converge) as Python warnings, the default; False leaves them in
         ``.notes`` only.
     **options
-        Passed on to the mode's diagnosis (:meth:`magcal.modes.FitMode.diagnose`). Total-field and gravity
+        Passed on to the mode's diagnosis (:meth:`magcal.modes.base.FitMode.diagnose`). Total-field and gravity
         (:func:`magcal.diagnosis.diagnose`): ``effects``, ``model``, ``top``, ``candidates``, ``max_effects``,
         ``progress``, ``validate`` (judge the candidates on held-out samples, default True), ``noise_nT`` (the noise
         per axis in nT, if known, used instead of any estimate), ``workers`` (cores for the independent fits,
@@ -234,7 +234,7 @@ def diagnose(
 
 
 def _result_mode(result, mode: str) -> FitMode:
-    """The mode a fit's ``result`` is diagnosed in: its own (a result that is not a :class:`ModeResult`, such as
+    """The mode a fit's ``result`` is diagnosed in: its own (a result that is not a :class:`~magcal.fitting.result.ModeResult`, such as
     :func:`magcal.fit`'s, is a total-field fit's); ``mode`` other than ``"auto"`` must name it."""
     own = fit_mode(getattr(result, "mode", "") if isinstance(result, ModeResult) else "total_field")
     if mode != "auto" and fit_mode(mode) is not own:

@@ -270,7 +270,9 @@ class LiveView:
     def _refit(self, ds) -> None:
         try:
             # weak coverage early on is the point of the live view: its notes stay in result.notes, unsaid
-            result = magcal.calibrate(ds, method="ml", warn=False, reference_total_nT=self._reference_nT())
+            result = magcal.calibrate(
+                ds, method="ml", mode="total_field", warn=False, reference_total_nT=self._reference_nT()
+            )
             self.fit = LiveFit(result, ds.n_samples)
             self.fit_error = None
             self.verdict = live_sufficient(self.maps, self.fit.rms_nT, self.fit.floor_nT)

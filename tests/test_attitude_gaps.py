@@ -266,7 +266,7 @@ def test_calibrate_correct_and_apply_leave_rows_without_attitude_out_and_say_it_
     clean, gappy, gap, truth = site
     res = calibrate(gappy, effects=["site_gradient"])
     n_gap = int(gap.sum())
-    said = [w for w in res.warnings if "no attitude" in w]
+    said = [w for w in res.remarks if "no attitude" in w]
     assert len(said) == 1 and said[0].startswith(f"{n_gap} of 1200 samples have no attitude (rows 1-100, 109")
     assert "left out of the calibration: site_gradient needs each sample's attitude" in said[0]
     assert np.array_equal(res.fit.mask, ~gap)

@@ -1,11 +1,12 @@
 """CONTRIBUTING.md's recipes, each walked through from a temporary file: a toy effect, a toy export format, a toy
-live source and a toy command, added the way the recipe says and then used through the command line, and a toy
-workbench panel, built in a headless workbench and driven.
+live source, a toy fit mode and a toy command, added the way the recipe says and then used through the command line
+(the fit mode also through :func:`magcal.calibrate`), and a toy workbench panel, built in a headless workbench and
+driven.
 
-The effect comes from a file given with ``--effects-file``; the export format, the live source and the command
-from a temporary *installed distribution* (a folder on ``PYTHONPATH`` with a ``.dist-info`` holding
+The effect comes from a file given with ``--effects-file``; the export format, the live source, the fit mode and the
+command from a temporary *installed distribution* (a folder on ``PYTHONPATH`` with a ``.dist-info`` holding
 ``entry_points.txt``), which is how a package outside magcal adds them: the entry-point groups
-``magcal.export_formats``, ``magcal.live_sources`` and ``magcal.commands``. The commands run in a fresh process,
+``magcal.export_formats``, ``magcal.live_sources``, ``magcal.fit_modes`` and ``magcal.commands``. The commands run in a fresh process,
 as a user runs them. Each toy's output is checked against what it must be (the calibration's own numbers, the
 synthetic lines' values), not against a recorded copy. The panel comes from an installed distribution too (the
 entry-point group ``magcal_workbench.panels``), loaded in this process as ``magcal-workbench`` loads it at start.
@@ -328,6 +329,109 @@ def test_recipe_command_from_an_installed_package(tmp_path, calibration_file):
     broken = magcal_cli(["toy-biases", calibration_file], site)
     assert broken.returncode == 2 and "cannot be imported" in broken.stderr and "Traceback" not in broken.stderr
     assert magcal_cli(["effects"], site).returncode == 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a fit mode (CONTRIBUTING: "a fit mode")
+# ----------------------------------------------------------------------------------------------------------------
+
+TOY_MODE = '''
+    """A toy fit mode: each sensor's bias alone, the centre of the sphere its readings lie on (linear least squares
+    on |y|^2 = 2 y . b + (F^2 - |b|^2))."""
+
+    import numpy as np
+
+    from magcal.calibration.calibration import Calibration, SensorCalibration
+    from magcal.core.errors import CalibrationError
+    from magcal.fitting.result import ModeResult
+    from magcal.modes import FIT_MODES, FitMode
+
+
+    class CentreResult(ModeResult):
+        mode = "toy"
+
+        def __init__(self, calibration, field_nT):
+            self.calibration = calibration
+            self.field_nT = field_nT
+            self.notes = []
+
+        def text(self):
+            lines = [f"toy fit: the field {self.field_nT:.1f} nT"]
+            lines += [f"  s{k + 1} bias {np.round(s.bias_nT, 1).tolist()} nT" for k, s in enumerate(self.calibration.sensors)]
+            return "\\n".join(lines) + "\\n"
+
+        def to_dict(self):
+            return {
+                "mode": self.mode,
+                "field_nT": self.field_nT,
+                "bias_nT": [s.bias_nT.tolist() for s in self.calibration.sensors],
+            }
+
+
+    class CentreMode(FitMode):
+        name = "toy"
+        title = "bias-only fit (the centre of the sphere)"
+        priority = -10  # auto never takes it: the total-field fit (0) is always applicable
+
+        def needs(self):
+            return "needs at least 4 samples per sensor, turned through many directions"
+
+        def applicable(self, dataset, **options):
+            return None if dataset.n_samples >= 4 else f"needs at least 4 samples (the record has {dataset.n_samples})"
+
+        def fit(self, dataset):
+            sensors, fields = [], []
+            for y in np.asarray(dataset.readings_nT, float):
+                design = np.c_[2 * y, np.ones(len(y))]
+                solution, *_ = np.linalg.lstsq(design, np.sum(y**2, axis=1), rcond=None)
+                bias = solution[:3]
+                if not solution[3] + bias @ bias > 0:
+                    raise CalibrationError("the readings do not lie on a sphere")
+                sensors.append(SensorCalibration(np.eye(3), bias))
+                fields.append(float(np.sqrt(solution[3] + bias @ bias)))
+            field = float(np.mean(fields))
+            return CentreResult(Calibration(sensors, reference_total_nT=field), field)
+
+
+    TOY = FIT_MODES.register(CentreMode())
+'''
+
+
+def test_recipe_fit_mode_from_an_installed_package(tmp_path):
+    site = install_distribution(
+        tmp_path / "site", {"toy_mode": TOY_MODE}, {"magcal.fit_modes": {"toy": "toy_mode:TOY"}}, "toy fit mode"
+    )
+    rng = np.random.default_rng(5)
+    bias = np.array([1200.0, -800.0, 300.0])  # nT, the truth
+    directions = rng.normal(size=(400, 3))
+    readings = 50_000.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True) + bias
+    magcal.data.io.write_csv(tmp_path / "d.csv", magcal.as_dataset(readings + rng.normal(0, 3.0, readings.shape)))
+
+    help_text = magcal_cli(["calibrate", "--help"], site).stdout
+    assert "toy: the bias-only fit (the centre of the sphere), needs at least 4 samples" in " ".join(help_text.split())
+    out = magcal_cli(["calibrate", tmp_path / "d.csv", "--mode", "toy", "-o", tmp_path / "cal.json", "--json"], site)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert doc["mode"] == "toy" and "toy mode (bias-only fit" in out.stderr
+    np.testing.assert_allclose(doc["bias_nT"][0], bias, atol=1.0)  # noise 3 nT over 400 samples
+    np.testing.assert_allclose(Calibration.load(tmp_path / "cal.json").sensors[0].bias_nT, doc["bias_nT"][0])
+
+    # the API takes the same mode by name and gives the same calibration; auto keeps the total-field fit
+    code = (
+        "import json, sys, magcal\n"
+        "ds = magcal.read_csv(sys.argv[1])\n"
+        "print(json.dumps([magcal.calibrate(ds, mode='toy').to_dict(), magcal.calibrate(ds, warn=False).mode]))"
+    )
+    api = magcal_cli([tmp_path / "d.csv"], site, code=code)
+    assert api.returncode == 0, api.stderr
+    toy, auto = json.loads(api.stdout)
+    assert toy["mode"] == "toy" and toy["bias_nT"] == doc["bias_nT"] and toy["field_nT"] == doc["field_nT"]
+    assert auto == "total_field"
+
+    # a mode the record cannot have says why, on the command line as in the API
+    magcal.data.io.write_csv(tmp_path / "short.csv", magcal.as_dataset(readings[:3]))
+    short = magcal_cli(["calibrate", tmp_path / "short.csv", "--mode", "toy"], site)
+    assert short.returncode == 2 and "--mode toy needs at least 4 samples (the record has 3)" in short.stderr
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -191,7 +191,7 @@ def add_arguments(parser) -> None:
 
 
 def add_mode_argument(parser, command) -> None:
-    """``--mode NAME``: the fit mode, one of :func:`magcal.modes.mode_names` (installed packages' modes included,
+    """``--mode NAME``: the fit mode, one of :func:`magcal.modes.base.mode_names` (installed packages' modes included,
     loaded here; a failing one is a warning)."""
     for note in load_entry_points().notes:
         print(f"magcal {command}: warning: {note.text}", file=sys.stderr)
@@ -310,7 +310,7 @@ def _platform_terms(args):
 
 def choose_mode(args, ds, command="calibrate"):
     """``(mode, field vector)``: the fit mode for the record from ``--mode`` and what the data hold
-    (:func:`magcal.modes.mode_choice`, its notes printed), and the field vector the options give (None unless the
+    (:func:`magcal.modes.base.mode_choice`, its notes printed), and the field vector the options give (None unless the
     record has an attitude and ``--mode`` could be the vector fit; the vector fit's reference)."""
     name = getattr(args, "mode", "auto") or "auto"
     present = attitude_present(ds)
@@ -362,7 +362,7 @@ def vector_options(args, ds, vref) -> tuple[str, dict]:
 
 def mode_options(args, mode, method="fit") -> tuple[str, dict]:
     """What ``magcal calibrate`` says of a fit of an installed mode and its options: those of ``--effects``,
-    ``--robust`` and ``--noise`` that the mode's ``method`` takes (:meth:`magcal.modes.FitMode.accepts`)."""
+    ``--robust`` and ``--noise`` that the mode's ``method`` takes (:meth:`magcal.modes.base.FitMode.accepts`)."""
     known = mode.accepts(method)
     given = {"effects": checked_effect_names(args), "robust": args.robust, "noise_nT": checked_noise(args)}
     options = {k: v for k, v in given.items() if known is None or k in known}

@@ -273,7 +273,7 @@ def run(args) -> int:
 
 
 def run_mode(args, ds, mode, notes) -> int:
-    """``magcal diagnose`` in an installed package's fit mode: its diagnosis (:meth:`magcal.modes.FitMode.diagnose`,
+    """``magcal diagnose`` in an installed package's fit mode: its diagnosis (:meth:`magcal.modes.base.FitMode.diagnose`,
     with those of ``--effects``, ``--robust``, ``--noise``, ``--top`` and ``--no-validate`` it takes) as a table, or
     its document with ``--json``."""
     _, options = mode_options(args, mode, "diagnose")

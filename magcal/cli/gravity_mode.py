@@ -8,7 +8,7 @@ Example::
     magcal apply cal.json later.csv -o out.csv                         # + s1_heading_deg, s1_dip_deg, tilt_deg
 
 ``--mode auto`` (the default) takes it when the file has accelerometer columns and no attitude
-(:func:`magcal.modes.choose_mode`). The options are added to ``magcal calibrate`` by :func:`add_gravity_arguments`;
+(:func:`magcal.modes.base.choose_mode`). The options are added to ``magcal calibrate`` by :func:`add_gravity_arguments`;
 :func:`gravity_options` turns them into the fit mode's (:class:`magcal.modes.gravity.GravityMode`).
 """
 

@@ -33,7 +33,7 @@ class _NoteTexts:
 
 
 class ModeResult:
-    """The outcome of a fit mode (:class:`magcal.modes.FitMode`): what every mode's result has.
+    """The outcome of a fit mode (:class:`magcal.modes.base.FitMode`): what every mode's result has.
 
     Attributes
     ----------
@@ -46,18 +46,22 @@ class ModeResult:
         What the fit said that a user must hear (:mod:`magcal.core.notes`): raised as Python warnings by the public
         functions (:func:`magcal.calibrate` unless ``warn=False``), printed by the command line.
     warnings : list of str
-        The texts of :attr:`notes`, in order: one meaning for every mode. (The total-field report's wider list of
+        The texts of ``notes``, in order: one meaning for every mode. (The total-field report's wider list of
         lines, which also says what is only information, is its ``remarks``.)
     validation : object or None
-        The fit judged on held-out samples when asked for (:meth:`magcal.modes.FitMode.validate`, an object with
+        The fit judged on held-out samples when asked for (:meth:`magcal.modes.base.FitMode.validate`, an object with
         ``text()`` and ``to_dict()``), else None.
     """
 
     mode: ClassVar[str] = ""
     calibration: Calibration
-    notes: list[Note]
     warnings = _NoteTexts()
     validation: Any = None
+
+    if TYPE_CHECKING:  # a stored list in one result, made from the stored warnings in another
+
+        @property
+        def notes(self) -> list[Note]: ...
 
     def text(self) -> str:
         """The readable report of the fit (ends with a newline)."""

@@ -1,11 +1,12 @@
-"""The fit modes: one object per way of fitting a calibration to a record (:class:`FitMode`), by name in
-:data:`FIT_MODES` (:mod:`magcal.modes.base`).
+"""The fit modes: one object per way of fitting a calibration to a record
+(:class:`~magcal.modes.base.FitMode`), by name in :data:`~magcal.modes.base.FIT_MODES` (:mod:`magcal.modes.base`).
 
-``total_field`` (alias ``scalar``, :mod:`.total_field`) fits any record turned in a uniform field; ``vector``
-(:mod:`.vector`) a record with the attitude and the field vector; ``gravity`` (:mod:`.gravity`) a magnetometer
-beside an accelerometer; ``compensation`` (:mod:`.compensation`) a scalar magnetometer beside a fluxgate on a
-platform (Tolles-Lawson and beyond). :func:`choose_mode` picks one for a record (``"auto"``: the applicable one of highest
-priority) for the command line and :func:`magcal.calibrate` alike.
+``total_field`` (alias ``scalar``, :mod:`magcal.modes.total_field`) fits any record turned in a uniform field;
+``vector`` (:mod:`magcal.modes.vector`) a record with the attitude and the field vector; ``gravity``
+(:mod:`magcal.modes.gravity`) a magnetometer beside an accelerometer; ``compensation``
+(:mod:`magcal.modes.compensation`) a scalar magnetometer beside a fluxgate on a platform (Tolles-Lawson and beyond).
+:func:`~magcal.modes.base.choose_mode` picks one for a record (``"auto"``: the applicable one of highest priority)
+for the command line and :func:`magcal.calibrate` alike.
 """
 
 from magcal.modes.base import FIT_MODES, FitMode, choose_mode, fit_mode, load_entry_points, mode_choice, mode_names

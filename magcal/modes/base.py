@@ -17,7 +17,7 @@ some with ``FIT_MODES.register``); :func:`choose_mode` loads them, once, on firs
 from __future__ import annotations
 
 import inspect
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from magcal.core.errors import MagcalError
 from magcal.core.notes import Note
@@ -79,7 +79,7 @@ class FitMode:
         meant for this one (a sentence), or None to say nothing (the default)."""
         return None
 
-    def fit(self, dataset: Dataset, **options) -> ModeResult:
+    def fit(self, dataset: Dataset, *args: Any, **options: Any) -> ModeResult:
         """Fit the record; ``options`` are the mode's keyword arguments (``effects=``, ``robust=``, ``noise_nT=``,
         ``reference=``...). Raises :class:`~magcal.core.errors.CalibrationError` for a record it cannot fit."""
         raise NotImplementedError(f"fit mode {self.name!r} cannot fit")
@@ -104,7 +104,7 @@ class FitMode:
         return tuple(p.name for p in params[records:] if p.kind is not inspect.Parameter.VAR_POSITIONAL)
 
     def taken(self, options: dict, method: str = "fit") -> dict:
-        """``options`` checked against what :meth:`fit` (or ``method``) takes: a :class:`MagcalError` naming an
+        """``options`` checked against what :meth:`fit` (or ``method``) takes: a :class:`~magcal.core.errors.MagcalError` naming an
         option this mode does not take, and those it does."""
         known = self.accepts(method)
         if known is None:
@@ -161,7 +161,7 @@ def _ranked() -> list:
 
 
 def fit_mode(name: str, option: str = "mode") -> FitMode:
-    """The mode called ``name`` (or an alias of it), or a :class:`MagcalError` naming those there are (``option``:
+    """The mode called ``name`` (or an alias of it), or a :class:`~magcal.core.errors.MagcalError` naming those there are (``option``:
     how the user gave the name, ``mode`` or ``--mode``)."""
     found = FIT_MODES.get(ALIASES.get(name, name)) if isinstance(name, str) else None
     if found is None:
@@ -183,11 +183,11 @@ def mode_choice(dataset: Dataset, mode: str = "auto", *, option: str = "mode", *
     """
     notes = list(load_entry_points().notes)
     if mode != "auto":
-        chosen = fit_mode(mode, option)
-        reason = chosen.applicable(dataset, **options)
+        named = fit_mode(mode, option)
+        reason = named.applicable(dataset, **options)
         if reason is not None:
-            raise MagcalError(f"{_named(chosen, option)} {reason}")
-        return chosen, notes
+            raise MagcalError(f"{_named(named, option)} {reason}")
+        return named, notes
     ranked = [FIT_MODES[name] for name in _ranked()]
     chosen = next((m for m in ranked if m.chosen_by_auto(dataset, **options)), None)
     if chosen is None:

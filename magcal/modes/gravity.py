@@ -129,7 +129,7 @@ class GravityMode(FitMode):
         ``result`` when it is a total-field fit's), and the dip's evidence of the gravity fit (``result`` when it is
         one, else fitted here with ``robust``)."""
         scalar = None if isinstance(result, GravityFitResult) else result
-        diagnosis = TOTAL_FIELD.diagnose(dataset, scalar, **options)
+        diagnosis = TOTAL_FIELD.diagnose(dataset, scalar, **TOTAL_FIELD.taken(options, "diagnose"))
         found = GravityDiagnosis(**{f.name: getattr(diagnosis, f.name) for f in fields(diagnosis)})
         try:
             fit = result if isinstance(result, GravityFitResult) else fit_gravity(dataset, robust=robust)
@@ -141,4 +141,5 @@ class GravityMode(FitMode):
 
 
 #: The gravity fit mode.
-GRAVITY = FIT_MODES.register(GravityMode())
+GRAVITY = GravityMode()
+FIT_MODES.register(GRAVITY)

@@ -99,4 +99,5 @@ class TotalFieldMode(FitMode):
 
 
 #: The total-field fit mode.
-TOTAL_FIELD = FIT_MODES.register(TotalFieldMode())
+TOTAL_FIELD = TotalFieldMode()
+FIT_MODES.register(TOTAL_FIELD)

@@ -163,4 +163,5 @@ class VectorMode(FitMode):
 
 
 #: The vector fit mode.
-VECTOR = FIT_MODES.register(VectorMode())
+VECTOR = VectorMode()
+FIT_MODES.register(VECTOR)
