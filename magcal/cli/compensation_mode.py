@@ -142,7 +142,7 @@ def run_compensation(args, read_input) -> int:
     if isinstance(result, CompensationResult):
         result.source = args.data
     notes += [note.text for note in result.notes]
-    result.notes = []
+    result.notes.clear()  # printed with the run's own notes above
     validation = None
     if effects and getattr(args, "validate", True):
         validation = COMPENSATION.validate(record, result, effects=effects, **options)

@@ -88,7 +88,7 @@ class SampleFitResult(ModeResult):
         One entry per sample of the dataset: True where the sample was fitted.
     """
 
-    warnings: list = field(default_factory=list)  # type: ignore[assignment]
+    warnings: list = field(default_factory=list)
     n_samples: int = 0
     wall_s: float = 0.0
     fitted: np.ndarray | None = None
