@@ -53,6 +53,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # the shared 2-core machine:
 
 import argparse
 import csv
+import inspect
 import json
 import sys
 import time
@@ -61,7 +62,10 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's magcal, not an installed one
+
 import magcal
+from magcal.checks.noise import estimate_noise
 from magcal.checks.quality import assess, field_magnitude_finding
 from magcal.core.errors import MagcalError
 from magcal.fitting import validation
@@ -188,6 +192,20 @@ def check_independent_fit(seed: int = 0) -> None:
         raise AssertionError("the independent ellipsoid fit fails on simulated data: " + "; ".join(problems))
 
 
+def _scalar_mode(function) -> dict:
+    """``mode="scalar"`` where the engine takes a fit mode (a record with an accelerometer would otherwise be
+    fitted with gravity): this benchmark judges the total-field calibration."""
+    return {"mode": "scalar"} if "mode" in inspect.signature(function).parameters else {}
+
+
+def _calibrate(ds, **options):
+    return magcal.calibrate(ds, **options, **_scalar_mode(magcal.calibrate))
+
+
+def _diagnose(ds, result, **options):
+    return magcal.diagnose(ds, result, **options, **_scalar_mode(magcal.diagnose))
+
+
 # ---- the user's loop ------------------------------------------------------------------------------------------
 
 
@@ -257,8 +275,8 @@ def run_loop(ds, max_steps, masks, residuals=None) -> tuple[list, list]:
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            result = magcal.calibrate(ds, effects=list(effects))
-            diag = magcal.diagnose(ds, result)
+            result = _calibrate(ds, effects=list(effects))
+            diag = _diagnose(ds, result)
         magcal_warnings += [f"{type(w.message).__name__}: {w.message}" for w in caught]
         if residuals is not None and result.fit is not None:
             r = np.array(result.fit.residuals_nT[0], float)
@@ -350,6 +368,54 @@ def applied_error(calibration, later) -> float:
         return _rms(saved.total_field_residuals(later, vectors))
 
 
+def second_on_itself(second, effects, holds) -> dict:
+    """What the second half allows: the last calibration's model fitted on the second half itself (in-sample RMS,
+    nT: no calibration fitted on the first half does better there, but for the in-sample optimism of p/N), the
+    same with the first record-only term the first half holds (the second half's own change, which nothing
+    carries), and the second half's noise (the residuals' differences, :func:`magcal.checks.noise.estimate_noise`).
+    A calibration whose held-out error is near the first figure carries as well as any fitted there: what lies
+    above the floor is then the second half's own, not advice that was missed."""
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            fit = _calibrate(second, effects=list(effects)).fit
+            out["same_model_nT"] = float(fit.rms_nT)
+            noise = estimate_noise(second.masked(fit.mask), fit.residuals_nT[:, fit.mask], fit.n_params)
+            out["floor_nT"] = float(noise.sigma_nT)
+            record = [h for h in holds if h.partition(":")[0] not in effects][:1]
+            if record:
+                out["record_term"] = record[0]
+                out["with_record_term_nT"] = float(_calibrate(second, effects=list(effects) + record).fit.rms_nT)
+        except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
+            out["failed"] = f"{type(exc).__name__}: {exc}"
+    return out
+
+
+def second_half_markdown(records) -> str:
+    """Per recording: the second half's error with the advice followed on the first, against what the second half
+    allows (:func:`second_on_itself`)."""
+    lines = [
+        "| recording | held-out (advice followed) | second half on itself: same model | + record term | floor | "
+        "held-out / same model |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        tr = r.get("transfer")
+        if not tr or "refused" in tr or "second_on_itself" not in tr:
+            continue
+        own, held = tr["second_on_itself"], tr["rows"][-1]["held_out_rms_nT"]
+        same = own.get("same_model_nT")
+        extra = f"{own['with_record_term_nT']:.4g} ({own['record_term']})" if "with_record_term_nT" in own else "-"
+        ratio = f"{held / same:.2f}" if same else "-"
+        lines.append(
+            f"| {r['name']} | {held:.4g} | {same:.4g} | {extra} | {own.get('floor_nT', float('nan')):.4g} | {ratio} |"
+            if same
+            else f"| {r['name']} | {held:.4g} | - | - | - | - |"
+        )
+    return "\n".join(lines)
+
+
 def run_transfer(ds, max_rounds=3) -> dict:
     """Follow the advice on the first half (add the first of ``explained_by``, else of ``partially_explained_by``;
     refit; diagnose again) and apply each calibration to the second half. One row per calibration: the effects,
@@ -359,8 +425,8 @@ def run_transfer(ds, max_rounds=3) -> dict:
     for _ in range(max_rounds + 1):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = magcal.calibrate(first, effects=list(effects))
-            diag = magcal.diagnose(first, result)
+            result = _calibrate(first, effects=list(effects))
+            diag = _diagnose(first, result)
         nxt, _ = recommended(diag)
         rows.append(
             {
@@ -378,6 +444,7 @@ def run_transfer(ds, max_rounds=3) -> dict:
             break
         effects.append(nxt)
     out = {"n_first": first.n_samples, "n_second": second.n_samples, "rows": rows}
+    out["second_on_itself"] = second_on_itself(second, rows[-1]["effects"], rows[-1]["record_holds"])
     base = rows[0]["held_out_rms_nT"]
     changes = [(r["effects"][-1], r["held_out_rms_nT"] / p["held_out_rms_nT"] - 1) for p, r in zip(rows, rows[1:])]
     out["changes"] = changes
@@ -438,13 +505,13 @@ def kept_level_study(ds) -> dict:
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = magcal.calibrate(first).calibration
+        base = _calibrate(first).calibration
         out["base"] = _rms(base.total_field_residuals(second, base.correct(second, "drop"), "drop"))
         for term in KEPT_TERMS:
             if first.time_s is None:
                 continue
             try:
-                cal = magcal.calibrate(first, effects=[term]).calibration
+                cal = _calibrate(first, effects=[term]).calibration
             except (MagcalError, ValueError, np.linalg.LinAlgError) as exc:
                 out[term] = {"failed": str(exc)[:80]}
                 continue
@@ -937,6 +1004,8 @@ def main(argv=None) -> int:
             print(f"| {path.stem} | {k['base']:.4g} | " + " | ".join(cells) + " |", flush=True)
     print()
     print(transfer_markdown(records))
+    print()
+    print(second_half_markdown(records))
     if args.before is not None:
         print()
         print(before_after_markdown(records, json.loads(args.before.read_text(encoding="utf-8"))))

@@ -60,7 +60,7 @@ from magcal.diagnosis.scores import (
     gram_task,
     refit_task,
 )
-from magcal.diagnosis.statistics import SH_MAX_SAMPLES, sh_analysis, spectrum
+from magcal.diagnosis.statistics import SH_MAX_SAMPLES, SHAPE_JUDGED_MIN_EIGEN, resolves_degree, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
@@ -1474,6 +1474,9 @@ def _confounded(dataset, c) -> str:
     to new data it carries the record's slope to temperatures the record never had (on a real bench recording
     whose temperature rose with time, r = 0.999, a temperature bias advised on the first half tripled the error on
     the second; benchmarks/notes/real.md, "Real recordings II")."""
+    unresolved = _shape_unresolved(dataset, c)
+    if unresolved:
+        return unresolved
     cls = EFFECTS.get(c.effect)
     if cls is None or "temperature" not in getattr(cls, "channels", ()):
         return ""
@@ -1490,6 +1493,29 @@ def _confounded(dataset, c) -> str:
         f"the temperature follows time on this record (correlation {r:+.3f}), so a temperature term cannot be told "
         "from a drift, and a calibration would carry its slope to temperatures the record never had; record with "
         "the temperature changing on its own (warm and cool the sensor while turning it) to judge it"
+    )
+
+
+def _shape_unresolved(dataset, c) -> str:
+    """Why a record-only term's gain for new data cannot be judged on ``dataset``, or "": its directions do not
+    resolve the spherical-harmonic degree 2, the calibration's own pattern over the direction (the ellipsoid's
+    shape), to :data:`~magcal.diagnosis.statistics.SHAPE_JUDGED_MIN_EIGEN`. A series in time fitted with the base terms then moves that shape along the path, and the later
+    stretch, on the same few directions, cannot show whether the calibration kept is better in the others (on a
+    real record a reference drift judged so raised the next half's error by 17 %; benchmarks/notes/real.md)."""
+    if not c.record_only or c.fit is None:
+        return ""
+    try:
+        directions, _ = _sensor_directions(dataset, c.fit)
+    except (MagcalError, ValueError, np.linalg.LinAlgError):
+        return ""
+    unresolved = [s + 1 for s, u in enumerate(directions) if not resolves_degree(u, 2, SHAPE_JUDGED_MIN_EIGEN)]
+    if not unresolved:
+        return ""
+    return (
+        f"the directions of sensor {', '.join(map(str, unresolved))} do not fix the calibration's shape "
+        "(spherical-harmonic degree 2) well, so whether the calibration kept for new data is better with this "
+        "record-only term fitted beside it cannot be judged here (the later stretch visits the same few "
+        "directions); turn the sensor through more directions to judge it"
     )
 
 
@@ -1541,6 +1567,8 @@ def _record_holds_words(holds_here, chosen) -> str:
                 f"; fitted with the base terms it improves the calibration kept for new data ({_kept_words(c)}; "
                 f"later stretch {c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT)"
             )
+        elif c.later_before_nT is not None and c.confounded:
+            text += f" (later stretch {c.later_before_nT:.4g} -> {c.later_after_nT:.4g} nT: not a judgement here)"
         elif c.later_before_nT is not None:
             text += (
                 f"; it does not improve the calibration for new data (later stretch {c.later_before_nT:.4g} -> "
