@@ -20,6 +20,7 @@ from magcal.diagnosis.structure import _consistency_tests
 from magcal.fitting.pipeline import calibrate
 from magcal.model import perturbations
 from magcal.model.effects import NonlinearityCubic
+from magcal.model.terms import EFFECTS
 
 FIELD_NT = chi2017_truth(1).total_nT  # 50 uT
 RATE_HZ = 10.0
@@ -243,3 +244,65 @@ def test_a_record_only_term_is_not_advised_where_the_directions_do_not_fix_the_s
     else:
         assert words in d.summary
         assert not set(d.explained_by + d.partially_explained_by) & set(held)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_an_instrument_term_beside_a_wandering_offset_is_advised_and_the_rest_is_at_the_floor(seed):
+    """A real cubic nonlinearity (200 nT, inside its domain) and an offset that wanders (30 nT per axis) on a
+    hand-held tumble, noise 10 nT: the cubic is advised, the wander is what the record holds (not advice), and with
+    both the residual is at the floor (the offset series takes no part of the instrument's pattern)."""
+    hidden = [
+        perturbations.parse_hidden("nonlinearity_cubic=200", 1),
+        EFFECTS["offset_wander"]().perturbation(30.0, None),
+    ]
+    ds = simulate_timeseries(
+        chi2017_truth(1),
+        n_samples=3000,
+        noise_nT=10.0,
+        seed=seed,
+        perturbations=hidden,
+        turn_rate=5.0,
+        with_reference=False,
+        with_attitude=False,
+    ).replace(noise_nT=None)
+    d = diagnose(ds, workers=1)
+    assert d.verdict == "missing_effect", d.summary
+    assert d.explained_by == ["nonlinearity_cubic"]
+    assert "offset_wander" in {label.partition(":")[0] for label in d.record_holds}
+    assert "at the noise floor within" in d.summary
+    assert d.rms_final_nT < 1.1 * d.noise.sigma_nT
+
+
+def _magnet_pass(peak_nT, centre=0.6, width=0.06):
+    """A perturbation: a magnet beside part of the path, a world-frame field of ``peak_nT`` at its closest (a
+    Gaussian in time about ``centre`` of the record, ``width`` of it wide), seen in the sensor's axes."""
+
+    def apply(readings, context, rng):
+        t = context["time_s"]
+        x = (t - t[0]) / (t[-1] - t[0])
+        bump = np.exp(-0.5 * ((x - centre) / width) ** 2)
+        local = context["attitudes"].inv().apply(np.array([0.6, -0.3, 0.74]) * peak_nT) * bump[:, None]
+        return readings + local[None]
+
+    return apply
+
+
+@pytest.mark.parametrize("peak_nT", [3000.0, 6000.0])
+def test_a_magnet_beside_part_of_the_path_is_not_taken_for_a_nonlinearity(peak_nT):
+    """A hand-held tumble that passes a magnet (3-6 uT at its closest, over a tenth of the record), noise 200 nT: the
+    record holds a field that changes, and no nonlinearity is advised, although the cubic's score is supported on
+    this seed (a field of part of the record is no instrument term)."""
+    ds = simulate_timeseries(
+        chi2017_truth(1),
+        n_samples=3000,
+        noise_nT=200.0,
+        seed=4,
+        perturbations=[_magnet_pass(peak_nT)],
+        turn_rate=5.0,
+        with_reference=False,
+        with_attitude=False,
+    ).replace(noise_nT=None)
+    d = diagnose(ds, workers=1)
+    advised = d.explained_by + d.partially_explained_by
+    assert not [label for label in advised if label.startswith("nonlinearity")], d.summary
+    assert "field_change" in {label.partition(":")[0] for label in d.record_holds}, d.summary

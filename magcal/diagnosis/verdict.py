@@ -1252,6 +1252,10 @@ def _verdict(ctx: DiagnosisContext) -> None:
     supported0 = [c for c in ctx.cands if c.delta_bic < DELTA_BIC_THRESHOLD and c.holds is not False]
     ctx.noise_final = ctx.current_noise if explained else noise0
     at_floor = _within_floor(ctx.remaining if explained else ctx.structure0)
+    small_left = ""
+    if at_floor is None and explained:
+        at_floor = _rms_at_floor(ctx)
+        small_left = _describe(ctx.remaining) if at_floor is not None else ""
     if not ctx.structure0 and not supported0:
         ctx.verdict = "adequate"
         ctx.summary = (
@@ -1263,6 +1267,8 @@ def _verdict(ctx: DiagnosisContext) -> None:
         ctx.summary = _missing_summary(ctx)
         if at_floor is not None:
             ctx.summary += f" (at the noise floor within {100 * at_floor:.0f} %)"
+        if small_left:
+            ctx.summary += f"; what structure is left is smaller than the noise ({small_left})"
     elif not explained and at_floor is not None and not ctx.undetermined:
         ctx.verdict = "adequate"
         ctx.summary = (
@@ -1284,6 +1290,22 @@ def _within_floor(structures) -> float | None:
         return None
     excess = max(float(np.sqrt(st.size)) - 1.0 for st in structures)
     return excess if excess <= AT_FLOOR_FRACTION else None
+
+
+def _rms_at_floor(ctx: DiagnosisContext) -> float | None:
+    """After the chosen terms: the largest excess of a sensor's RMS over its floor (a fraction) when it is at most
+    :data:`AT_FLOOR_FRACTION` on every sensor, else None; None also when the floor is the residual itself (no
+    independent estimate). Structure the tests still find is then smaller than the noise: on a long record they find
+    a few percent of the variance (the HMC5883L record's first half with its offset series: 151 nT against a floor
+    of 153 nT, a direction pattern of 34 nT and a Durbin-Watson of 1.88 left), which no term would be advice for."""
+    noise = ctx.current_noise
+    if noise is None or noise.source == "residuals" or not ctx.stats_final:
+        return None
+    ratios = [st.get("variance_ratio") for st in ctx.stats_final]
+    if any(r is None or not np.isfinite(r) for r in ratios):
+        return None
+    excess = max(float(np.sqrt(max(r, 0.0))) - 1.0 for r in ratios)
+    return max(excess, 0.0) if excess <= AT_FLOOR_FRACTION else None
 
 
 def _missing_summary(ctx: DiagnosisContext) -> str:
