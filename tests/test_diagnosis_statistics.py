@@ -132,3 +132,64 @@ def test_evidence_says_a_withheld_degree_is_not_measured():
         Rotation.random(2000, random_state=6).apply([0, 0, 1.0]), np.random.default_rng(6).normal(0, 30.0, 2000)
     )
     assert _effect_extra(c, None, None, None, [full]).startswith("direction degree 4: ")
+
+
+def _tumbled_directions(n, rate_hz, turn_dps, seed):
+    """Field directions (N, 3) of a sensor turned at ``turn_dps`` about an axis that itself wanders."""
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / rate_hz
+    axis = rng.normal(size=3)
+    rot = Rotation.identity()
+    out = np.empty((n, 3))
+    for i in range(n):
+        axis = axis / np.linalg.norm(axis) + 0.05 * rng.normal(size=3)
+        rot = Rotation.from_rotvec(np.radians(turn_dps) * dt * axis / np.linalg.norm(axis)) * rot
+        out[i] = rot.apply([0.0, 0.0, 1.0])
+    return out
+
+
+@pytest.mark.parametrize("truth", ["none", "field", "offset", "static_pattern"])
+def test_revisits_tell_a_changing_field_from_a_wandering_offset(truth):
+    """Same-direction revisits: a field change (the same in every direction) reads ``field``, an offset wander
+    (``u . b(t)``) reads ``offset``, noise alone and a static direction pattern (a misfit, a nonlinearity: the same at
+    every visit, however large) read ``none``."""
+    n, rate = 3000, 10.0
+    t = np.arange(n) / rate
+    u = _tumbled_directions(n, rate, 60.0, seed=1)
+    rng = np.random.default_rng(2)
+    sigma = 3.0
+    r = sigma * rng.normal(size=n)
+    if truth == "field":
+        r += 20.0 * np.sin(2 * np.pi * t / 90.0) + 10.0 * np.sin(2 * np.pi * t / 40.0)
+    elif truth == "offset":
+        b = 30.0 * np.column_stack([np.sin(2 * np.pi * t / 37.0), np.cos(2 * np.pi * t / 23.0), np.sin(t / 9.0)])
+        r += np.sum(u * b, axis=1)
+    elif truth == "static_pattern":
+        r += 200.0 * (u[:, 0] ** 4 + u[:, 1] ** 4 + u[:, 2] ** 4 - 0.6)
+    knots = np.linspace(t[0], t[-1], 61)
+    hats = np.clip(1.0 - np.abs(t[:, None] - knots[None, :]) / (knots[1] - knots[0]), 0.0, None)[:, 1:]
+    found = st.revisit_forms(u, r, t, hats)
+    assert found is not None
+    assert found.form == {"static_pattern": "none"}.get(truth, truth), found.text()
+    if truth == "none":  # white noise: the visits differ by sqrt(2) sigma at any time apart
+        assert np.allclose(found.gap_rms_nT, np.sqrt(2) * sigma, rtol=0.15)
+    assert "same-direction revisits" in found.text()
+
+
+def test_revisits_need_enough_revisited_samples():
+    """Too few samples for the series: no verdict rather than one fitted to noise."""
+    t = np.arange(40) / 10.0
+    u = _tumbled_directions(40, 10.0, 60.0, seed=3)
+    hats = np.column_stack([np.sin(t * k) for k in range(1, 9)])
+    assert st.revisit_forms(u, np.zeros(40), t, hats) is None
+
+
+@pytest.mark.parametrize(("spread_deg", "resolved"), [(90.0, True), (8.0, False)])
+def test_the_calibration_shape_is_judged_only_where_the_directions_fix_it(spread_deg, resolved):
+    """Degree 2 (the ellipsoid's shape) to :data:`SHAPE_JUDGED_MIN_EIGEN`: a full sphere fixes it, a band of
+    directions within a few degrees of one great circle does not."""
+    rng = np.random.default_rng(4)
+    lon = rng.uniform(-np.pi, np.pi, 4000)
+    lat = np.arcsin(np.sin(np.radians(spread_deg)) * rng.uniform(-1.0, 1.0, 4000))
+    u = np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    assert st.resolves_degree(u, 2, st.SHAPE_JUDGED_MIN_EIGEN) is resolved

@@ -25,6 +25,11 @@ SIGMA = 3.0
 #: A hand-held tumble (about 90 deg/s): many directions within one knot interval, which is what tells an offset
 #: that wanders (a pattern over the direction) from a field that changes (the same for every direction).
 TUMBLE = 5.0
+#: What the revisits say of each form (:class:`magcal.diagnosis.statistics.RevisitForms`).
+REVISIT_WORDS = {
+    "field_change": "a field that changes, not an offset",
+    "offset_wander": "an offset that wanders, not the field",
+}
 DRIFTS = {"bias_drift", "bias_step", "reference_drift", "field_change", "offset_wander", "periodic_interference"}
 
 
@@ -64,6 +69,12 @@ def test_a_changing_field_and_a_wandering_offset_are_named_and_told_apart(hidden
     assert best[hidden].delta_bic < best[other].delta_bic - 100 if other in best else True
     assert d.rms_final_nT < 1.1 * SIGMA < d.rms_nT
     assert hidden in d.summary
+    # the same-direction revisits, in the evidence of both series, tell the one hidden
+    lines = [c.evidence for c in d.candidates if c.effect in ("field_change", "offset_wander")]
+    assert lines and all(REVISIT_WORDS[hidden] in line for line in lines), lines
+    assert all(REVISIT_WORDS[other] not in line for line in lines)
+    wander = [c.evidence for c in d.candidates if c.effect == "offset_wander"]
+    assert all("its fitted size is not determined" in line for line in wander)
 
 
 @pytest.mark.parametrize("tau_ms", [1.0, 3.0])

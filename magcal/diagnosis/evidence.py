@@ -15,8 +15,8 @@ from magcal.core import conventions
 from magcal.core.stats import moving_mean
 from magcal.diagnosis._fitted import _vector_rms_per_sensor
 from magcal.diagnosis.scores import Candidate
-from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box
-from magcal.model.effects import step_scan
+from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box, revisit_forms
+from magcal.model.effects import hat_columns, series_spacing_s, step_scan, wander_knots
 from magcal.model.terms import EffectTexts
 
 #: One-line signature of each effect, for the evidence column: what each registered effect says of itself
@@ -36,8 +36,46 @@ def _evidence_line(c: Candidate, extra: str = "") -> str:
 
 
 #: What the evidence line says of a term whose basis is evaluated on the denoised readings
-#: (:class:`magcal.model.effects._PowerNonlinearity`): its gain is not the noise's.
-DENOISED_WORDS = "basis from the denoised readings (the noise along the field is not fitted)"
+#: (:class:`magcal.model.effects._PowerNonlinearity`): its gain is not the noise's. On simulated tumbled records of
+#: noise alone (0.5-2 % of the field) its delta-BIC is its parameter penalty, +19 to +25, where a power of the noisy
+#: reading reached -26 to -72 (``benchmarks/real_denoised.py``): a gain compared with a noise-only simulation of the
+#: record would be compared with nothing.
+DENOISED_WORDS = (
+    "basis from the denoised readings (the noise along the field is not fitted: on a record of noise alone the term "
+    "gains nothing, so no noise-only comparison is needed)"
+)
+
+
+#: The terms of a change within seconds: their evidence line says what same-direction revisits tell of the change
+#: (:func:`revisit_words`).
+CHANGE_EFFECTS = ("field_change", "offset_wander")
+
+#: Why an offset series' fitted size is not a measurement (:class:`magcal.model.effects.OffsetWander`).
+OFFSET_SIZE_WORDS = (
+    "its fitted size is not determined: between two knots the field direction sweeps a short arc, and on it an "
+    "offset trades against the arc's curvature (a record without any wander fits hundreds of nT of it), so the "
+    "series says that the residual changes within seconds and follows the direction, not by how much the offset "
+    "moved"
+)
+
+
+def revisit_words(kept, fit, directions) -> str:
+    """What samples revisiting one field direction say of a change in time, or "": each sensor's residuals of
+    ``fit`` against hat functions at the series' knots (:func:`~magcal.diagnosis.statistics.revisit_forms`)."""
+    if kept.time_s is None or fit is None:
+        return ""
+    t = np.asarray(kept.time_s, dtype=float)
+    try:
+        columns = hat_columns(t, wander_knots(t, series_spacing_s(kept)))[:, 1:]
+    except ValueError:
+        return ""
+    r = np.asarray(fit.residuals_nT, dtype=float)[:, fit.mask]
+    parts = []
+    for s, u in enumerate(directions):
+        found = revisit_forms(u, r[s], t, columns) if r.shape[1] == len(t) else None
+        if found is not None:
+            parts.append((f"sensor {s + 1}: " if len(directions) > 1 else "") + found.text())
+    return "; ".join(parts)
 
 
 def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
@@ -62,6 +100,11 @@ def _effect_extra(c: Candidate, kept, fit, directions, sh_stats) -> str:
                 f"{top}), so its size is not measured"
             )
         return f"direction degree {degree}: {max(rms):.2g} nT"
+    if c.effect in CHANGE_EFFECTS:
+        words = [revisit_words(kept, fit, directions)]
+        if c.effect == "offset_wander":
+            words.append(OFFSET_SIZE_WORDS)
+        return "; ".join(w for w in words if w)
     if (
         c.effect in ("temperature_bias", "temperature_scale", "bias_drift", "reference_drift")
         and kept.temperature_C is not None

@@ -2208,7 +2208,11 @@ class OffsetWander(_KnotSeries):
 
     def quote(self, values, field_nT=None, sensor=None) -> str:
         b = np.array([self._values_over_knots(v) for v in np.asarray(values, dtype=float).reshape(3, -1)])
-        return f"the offset moves over {_axes_text(np.ptp(b, axis=1))} nT peak to peak per axis"
+        return (
+            f"the offset moves over {_axes_text(np.ptp(b, axis=1))} nT peak to peak per axis (a size the total field "
+            "does not determine: between two knots an offset trades against the curvature of the short arc of "
+            "directions swept)"
+        )
 
 
 @register
