@@ -16,6 +16,7 @@ import numpy as np
 
 from magcal.data.accelerometer import has_accelerometer
 
+from .lessons import get_lesson
 from .markup import hide_paths, safe_code
 
 
@@ -124,7 +125,20 @@ def next_step(ctrl) -> NextStep:
     return NextStep("none", "", why)
 
 
+def lesson_markdown(ctrl) -> str:
+    """An open lesson's title and text, first on the page (the Lessons tab holds them too, with its checks);
+    empty without a lesson."""
+    slug = getattr(ctrl.state, "lesson", None)
+    if not slug:
+        return ""
+    try:
+        lesson = get_lesson(slug)
+    except KeyError:
+        return ""
+    return f"### Lesson: {lesson.title}\n\n{lesson.guide().strip()}\n\n---\n\n"
+
+
 def guide_markdown(ctrl) -> str:
-    """The guide's text: the data, the fits they allow, and the next step's reason."""
+    """The guide's text: an open lesson's text, the data, the fits they allow, and the next step's reason."""
     step = next_step(ctrl)
-    return f"{data_markdown(ctrl)}  \n**Next:** {step.why}"
+    return f"{lesson_markdown(ctrl)}{data_markdown(ctrl)}  \n**Next:** {step.why}"

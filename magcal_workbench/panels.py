@@ -22,7 +22,7 @@ from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
 from .guide import guide_markdown, next_step
-from .lessons import lesson_slugs, list_lessons
+from .lessons import lesson_titles, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
@@ -1100,8 +1100,7 @@ class Panels:
             b.disabled = running or self.busy()
 
     def _build_lessons(self, gui):
-        lessons = list_lessons()
-        opts = lesson_slugs()
+        opts = lesson_titles()
         gui.add_markdown(
             "Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
             "is missing, and check. The answer stays hidden until you ask."
@@ -1109,9 +1108,9 @@ class Panels:
         self.lesson_choice = self.w.dropdown(
             "Lesson",
             opts,
-            allowed=lesson_slugs,
+            allowed=lesson_titles,
             initial_value=opts[0],
-            hint="; ".join(f"{l.slug}: {l.title}" for l in lessons),
+            hint="; ".join(f"{l.title} (--lesson {l.slug})" for l in list_lessons()),
         )
         self.btn_lesson = self._button(gui, "Open the lesson", self.on.do_open_lesson)
         self.lesson_guide = gui.add_markdown("")

@@ -152,3 +152,23 @@ def test_a_verdict_that_could_not_judge_advises_nothing_and_says_why():
     ctrl = SimpleNamespace(vector_loop=lambda: True, vector=vm, loop_diagnosis=lambda: diagnosis, advice=lambda: [])
     step = step_of(ctrl)
     assert step.key == "none" and "not_judged" in step.why and "longer record" in step.why
+
+
+@pytest.mark.parametrize("slug", ["drone-current", "tilted-compass"])
+def test_a_lesson_opens_on_its_text_and_the_list_shows_titles(bench, slug):
+    """The Lessons tab lists the lessons by title; opening one puts its title and text first on the page, above
+    the data and the next step, without the answer."""
+    from magcal_workbench.lessons import list_lessons
+
+    wb = bench(store=False)
+    lesson = get_lesson(slug)
+    titles = tuple(wb.panels.lesson_choice.options)
+    assert titles == tuple(l.title for l in list_lessons()) and slug not in titles
+    wb.panels.lesson_choice.value = lesson.title
+    _click(wb, wb.panels.btn_lesson)
+    wb.ui.wait()
+    text = wb.panels.guide.content
+    assert wb.ctrl.state.lesson == slug
+    assert text.startswith(f"### Lesson: {lesson.title}") and lesson.guide().split("\n")[0] in text
+    assert text.index("**Data:**") > text.index(lesson.guide().strip()[-20:])
+    assert all(e.partition(":")[0] not in text for e in lesson.answer()["effects"])
