@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magcal.checks.reference import VECTOR_COLUMNS
 from magcal.data.accelerometer import has_accelerometer
 
 from .lessons import get_lesson
@@ -123,6 +124,25 @@ def next_step(ctrl) -> NextStep:
             "evidence shows what is left."
         )
     return NextStep("none", "", why)
+
+
+def vector_reference_markdown(ctrl) -> str:
+    """What the vector fit uses as the field, where it comes from (markdown); empty when the record has no vector
+    loop. The total-field fit's reference (a magnitude) is said after it, by the Calibrate tab."""
+    if not ctrl.vector_loop():
+        return ""
+    vm, ds = ctrl.vector, ctrl.dataset
+    if vm.location is not None:
+        where = "IGRF at the location typed below"
+    elif any(c in ds.extra for c in VECTOR_COLUMNS):
+        where = "the file's `ref_n, ref_e, ref_d` columns, per sample"
+    else:
+        where = "IGRF along the file's `lat, lon, alt_m` columns"
+    ref = vm.reference()
+    size = ""
+    if ref is not None:
+        size = f" (|B| median {float(np.median(np.linalg.norm(np.asarray(ref.ned_nT, float), axis=1))):.6g} nT)"
+    return f"_Reference used by the vector fit:_ the field vector from {where}{size}"
 
 
 def lesson_markdown(ctrl) -> str:

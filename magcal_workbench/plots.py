@@ -521,6 +521,9 @@ class FieldRecord:
     fast : numpy.ndarray of bool or None, shape (N,)
         Samples taken while turning fast (:func:`magcal_workbench.motion.fast_turning`), None without gyro or
         attitude.
+    raw_reference_nT : numpy.ndarray or None, shape (N,)
+        What the raw readings are judged against (:func:`raw_reference_nT`): the raw data's own figure, the same
+        before and after a fit; None: ``reference_nT``.
     """
 
     time_s: np.ndarray
@@ -529,6 +532,7 @@ class FieldRecord:
     reference_nT: np.ndarray
     kept: np.ndarray
     fast: np.ndarray | None = None
+    raw_reference_nT: np.ndarray | None = None
 
     @property
     def n_samples(self) -> int:
@@ -700,20 +704,35 @@ def record_key(record: FieldRecord, *extra) -> str:
     return h.hexdigest()
 
 
+def raw_reference_nT(dataset, typed_nT=None) -> np.ndarray:
+    """The total field the raw readings are judged against, per sample (nT): the file's ``ref_total`` column,
+    else the reference typed in the page (``typed_nT``), else the file's ``# reference_total_nT``, else the median
+    |raw| of every sensor. No fit enters it: the raw row of the table and the history's first step are the raw
+    data's figure, whatever the fits find."""
+    if dataset.ref_total_nT is not None:
+        return np.asarray(dataset.ref_total_nT, dtype=float)
+    if typed_nT:
+        return np.full(dataset.n_samples, float(typed_nT))
+    if dataset.reference_total_nT:
+        return np.full(dataset.n_samples, float(dataset.reference_total_nT))
+    return np.full(dataset.n_samples, float(np.median(np.linalg.norm(dataset.readings_nT, axis=2))))
+
+
 def table_figures(record: FieldRecord) -> dict:
     """The compact table's data-derived figures: ``within_raw`` / ``within_corrected`` (:func:`within_fractions`
     of the kept samples, every sensor pooled; the latter None before a fit), ``rms_raw_nT`` (RMS of
     ``|raw| - reference``), ``coverage`` (per sensor, :func:`coverage_fraction`), ``n_kept``, ``n_samples``."""
     kept = np.asarray(record.kept, bool)
     ref = np.asarray(record.reference_nT, float)[kept]
+    raw_ref = ref if record.raw_reference_nT is None else np.asarray(record.raw_reference_nT, float)[kept]
     raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, kept], axis=2)
-    err = (raw - ref).ravel()
+    err = (raw - raw_ref).ravel()
     err = err[np.isfinite(err)]
     corr = None
     if record.corrected_nT is not None:
         corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, kept], axis=2)
     return {
-        "within_raw": within_fractions(raw, ref),
+        "within_raw": within_fractions(raw, raw_ref),
         "within_corrected": None if corr is None else within_fractions(corr, ref),
         "rms_raw_nT": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
         "coverage": coverage_fraction(record) if kept.any() else [float("nan")] * record.n_sensors,
