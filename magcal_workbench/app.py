@@ -458,7 +458,7 @@ class Workbench:
                 self._last_progress = now  # a search reports thousands of iterations: show ten a second
                 self.panels.set_progress(*ctrl.progress)
             return
-        if kind in (Change.RESULT, Change.DATA, Change.VECTOR):  # vector: the scene draws the vector fit's correction
+        if kind in (Change.RESULT, Change.DATA, Change.VECTOR, Change.GRAVITY):  # the scene draws each fit's correction
             with timing.span("scene"):
                 # the gains first: a gain that changes redraws the scene (its callback) once
                 self.panels.fit_view_to_data()

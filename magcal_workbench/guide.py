@@ -4,7 +4,9 @@ The loop is the same for every record: fit the model, diagnose where it fails, a
 until the residuals reach the noise floor. :func:`next_step` reads where the open session stands (a fit or not, a
 diagnosis or not, its advice) and names the step that comes next; the page shows it as a button under the status
 line (:class:`magcal_workbench.panels.Panels`), whose click runs the same handler as the step's own button in its
-tab. On a record with attitude and a field vector the loop is the vector fit's, as Diagnose and Add are.
+tab. On a record with attitude and a field vector the loop is the vector fit's, as Diagnose and Add are; on a board
+with an accelerometer (and no field vector) the first step is the gravity fit, the total-field loop one choice
+away.
 Only reading: the steps, the verdicts and the advice are the engine's.
 """
 
@@ -17,6 +19,7 @@ import numpy as np
 from magcal.checks.reference import VECTOR_COLUMNS
 from magcal.data.accelerometer import has_accelerometer
 
+from .gravitymodel import model_of
 from .lessons import get_lesson
 from .markup import hide_paths, safe_code
 
@@ -28,8 +31,9 @@ class NextStep:
     Attributes
     ----------
     key : str
-        ``run`` (the total-field fit), ``vector`` (the vector fit), ``diagnose``, ``add`` (the advice), or ``none``
-        (nothing to press: at the floor, or nothing that holds to add).
+        ``run`` (the total-field fit), ``vector`` (the vector fit), ``gravity`` (the gravity fit, beside an
+        accelerometer), ``diagnose``, ``add`` (the advice), or ``none`` (nothing to press: at the floor, or nothing
+        that holds to add).
     label : str
         The button's text (empty for ``none``).
     why : str
@@ -82,8 +86,32 @@ def _source(ctrl) -> str:
     return "simulated data"
 
 
+def gravity_mode(ctrl) -> bool:
+    """Whether the record's first fit is the gravity fit: a magnetometer beside an accelerometer, and no attitude
+    with a field vector (whose vector fit comes first)."""
+    return not ctrl.vector_loop() and has_accelerometer(ctrl.dataset)
+
+
 def next_step(ctrl) -> NextStep:
     """The loop's next step for the open session (see the module's docstring)."""
+    if gravity_mode(ctrl):
+        gm = model_of(ctrl)
+        if gm is None or gm.result is None:
+            return NextStep(
+                "gravity",
+                "Step 1: fit with the accelerometer (the gravity fit)",
+                "The board carries an accelerometer: fit the compass against gravity (its mounting, the dip, the "
+                "tilt-compensated heading). The total-field fit stays one choice away (Calibrate tab).",
+            )
+        if not np.isfinite(ctrl.residual_rms_nT()):
+            lesson = " Then the Lessons tab: Check my model." if getattr(ctrl.state, "lesson", None) else ""
+            return NextStep(
+                "none",
+                "",
+                "The gravity fit ran: its table, the dip and the compass rose are in the Calibrate tab (Gravity "
+                f"model).{lesson} The total-field loop (fit, diagnose, add) stays one choice away: Calibrate tab, "
+                "Run the chosen method.",
+            )
     if ctrl.vector_loop():
         vm = ctrl.vector
         if vm.result is None:

@@ -16,6 +16,8 @@ from magcal.data.attitude import attitude_quaternions
 from . import motion
 from . import scene as scn
 from .actions import action
+from .gravitymodel import model_of
+from .guide import gravity_mode
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .parts import PagePart
@@ -180,6 +182,9 @@ class SceneControl(PagePart):
         ctrl = self.ctrl
         vm = ctrl.vector
         result, world, ned = vm.result, vm.world_nT, vm.reference_ned_nT
+        gm = model_of(ctrl)
+        if gravity_mode(ctrl) and gm is not None and gm.result is not None:
+            return self._gravity_drawn(gm.result)
         if not ctrl.vector_loop() or result is None or world is None or ned is None:
             return FitDrawn(
                 ctrl.calibration, ctrl.corrected_nT, ctrl.residual_nT, ctrl.field_nT, ctrl.floor_nT(), "total-field"
@@ -193,6 +198,19 @@ class SceneControl(PagePart):
             drawn = FitDrawn(cal, corrected, residual, float(np.median(ref_total)), None, "vector")
             self._vector_drawn = (result, drawn)
         return dataclasses.replace(drawn, floor_nT=vm.floor_nT)
+
+    def _gravity_drawn(self, result) -> FitDrawn:
+        """The gravity fit's correction: the magnetometer corrected into the accelerometer's frame, its |B|
+        residual against the field the fit found (made once per fit)."""
+        key, drawn = self._vector_drawn
+        if key is not result:
+            cal = result.calibration
+            corrected = np.asarray(cal.correct(self.ctrl.dataset, record_terms="apply", warn=False, force=True), float)
+            field = float(cal.reference_total_nT or np.median(np.linalg.norm(corrected, axis=2)))
+            residual = np.linalg.norm(corrected, axis=2) - field
+            drawn = FitDrawn(cal, corrected, residual, field, self.ctrl.floor_nT(), "gravity")
+            self._vector_drawn = (result, drawn)
+        return drawn
 
     def update_scene(self) -> None:
         with self._lock:
@@ -208,9 +226,15 @@ class SceneControl(PagePart):
     def legend_html(self) -> str:
         live = self._live()
         fitted = (live.fit is not None) if live is not None else self.ctrl.calibration is not None
-        vector = live is None and self.fit_drawn().by == "vector"
-        fitted = fitted or vector
-        title = "|B| residual of the vector fit" if vector else "total-field residual" if fitted else "raw |y| - F"
+        by = self.fit_drawn().by if live is None else "total-field"
+        fitted = fitted or by != "total-field"
+        title = (
+            f"|B| residual of the {by} fit"
+            if by != "total-field"
+            else "total-field residual"
+            if fitted
+            else "raw |y| - F"
+        )
         html = scn.legend_html(self.scene_view.last_limit_nT, title)
         if self.maps.patterns and live is None:
             html += scn.legend_html(

@@ -117,3 +117,19 @@ def test_the_scene_draws_what_the_vector_fit_corrected(bench):
     assert np.median(np.abs(np.linalg.norm(sv.raw_nT, axis=1) / model.field_nT - 1.0)) > 0.01
     assert "/data/s1/corrected" in wb.scene_view._clouds
     assert "vector fit" in wb.view.legend_html()
+
+
+def test_a_board_with_an_accelerometer_fits_gravity_first_and_the_scene_draws_it(bench):
+    """The tilted compass: the first step is the gravity fit; after it the scene's corrected cloud is the gravity
+    fit's (on the sphere), the guide names the total-field loop as one choice away, and nothing more to press."""
+    wb = bench(ds=_lesson("tilted-compass"), store=False)
+    assert next_step(wb.ctrl).key == "gravity"
+    _press(wb)
+    assert wb.gravity.model.result is not None and wb.ctrl.calibration is None
+    step = next_step(wb.ctrl)
+    assert step.key == "none" and "one choice away" in step.why and not wb.panels.btn_next.visible
+    model = wb.view.scene_model()
+    (sv,) = model.sensors
+    assert model.corrected_by == "gravity" and "/data/s1/corrected" in wb.scene_view._clouds
+    radius = np.linalg.norm(sv.corrected_nT, axis=1) / model.field_nT
+    assert np.median(np.abs(radius - 1.0)) < 0.01

@@ -27,7 +27,7 @@ def _lesson(slug):
     [
         ("warm-sensor", "run", ["4 sensors", "temperature", "the total-field fit"]),
         ("drone-current", "vector", ["attitude", "the vector fit (attitude and the field vector"]),
-        ("tilted-compass", "run", ["an accelerometer", "the gravity fit"]),
+        ("tilted-compass", "gravity", ["an accelerometer", "the gravity fit"]),
     ],
 )
 def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first, words):
