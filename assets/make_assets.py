@@ -411,6 +411,7 @@ def write_vehicle_lesson():
         data,
         metadata={
             "lesson": VEHICLE_SLUG,
+            "vehicle": "aeroplane",
             "attitude": "roll_deg, pitch_deg, yaw_deg: aerospace ZYX, body (x forward, y right, z down) -> NED",
             "site": f"{site['lat_deg']} N, {site['lon_deg']} E, {site['alt_m']:g} m, {site['date']}",
         },
@@ -513,6 +514,7 @@ def write_drone_lesson():
         ds.replace(metadata={"simulated": "true"}),
         metadata={
             "lesson": DRONE_SLUG,
+            "vehicle": "quadcopter",
             "attitude": "qw, qx, qy, qz: body (x forward, y right, z down) -> NED",
             "reference": "ref_n, ref_e, ref_d: the field vector (IGRF) where it flew, nT",
         },

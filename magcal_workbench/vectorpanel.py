@@ -349,7 +349,7 @@ class VectorPanel:
                 "their difference; the time window's Play flies it through the record",
             )
             self.vehicle_gain = p.w.number(
-                "Residual arrows x",
+                "Residual arrows x (0: auto)",
                 0.0,
                 min=0.0,
                 max=1e7,
