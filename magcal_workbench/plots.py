@@ -817,10 +817,11 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
 def histogram_figure(record: FieldRecord, unit: str = "nT"):
     """The error histograms before and after calibration overlaid (plotly), each on its own horizontal axis in
     its colour (raw: bottom, corrected: top), since the raw error spans hundreds of nT and the corrected one a
-    few; each with its RMS in the legend."""
+    few; each axis's title says its RMS (no legend: in the panel's narrow plot it would lie over an axis)."""
     import plotly.graph_objects as go
 
     h = error_histogram(record, unit)
+    rms = {k: "" if h[k] is None else f" (RMS {format_rms(h[k]['rms'], unit)})" for k in ("before", "after")}
     fig = go.Figure()
     axes = {"before": "x", "after": "x2"}
     for key, colour, label in (("before", RAW_COLOUR, "raw"), ("after", CORRECTED_COLOUR, "corrected")):
@@ -842,17 +843,24 @@ def histogram_figure(record: FieldRecord, unit: str = "nT"):
     fig.update_layout(
         barmode="overlay",
         height=280,
-        margin={"l": 50, "r": 10, "t": 75, "b": 40},
+        margin={"l": 50, "r": 10, "t": 75, "b": 45},
         title={"text": f"error |B| - reference ({unit})", "font": {"size": 13}, "y": 0.98},
-        xaxis={"title": {"text": f"raw, {unit}", "font": {"color": RAW_COLOUR}}, "tickfont": {"color": RAW_COLOUR}},
+        xaxis={
+            "title": {"text": f"raw, {unit}{rms['before']}", "font": {"color": RAW_COLOUR}},
+            "tickfont": {"color": RAW_COLOUR},
+        },
         yaxis={"title": {"text": "samples"}},
-        legend={"orientation": "h", "y": -0.32, "font": {"size": 10}},
+        showlegend=False,
         template="plotly_white",
     )
     if h["after"] is not None:
         fig.update_layout(
             xaxis2={
-                "title": {"text": f"corrected, {unit}", "font": {"color": CORRECTED_COLOUR}, "standoff": 2},
+                "title": {
+                    "text": f"corrected, {unit}{rms['after']}",
+                    "font": {"color": CORRECTED_COLOUR},
+                    "standoff": 2,
+                },
                 "tickfont": {"color": CORRECTED_COLOUR},
                 "overlaying": "x",
                 "side": "top",
