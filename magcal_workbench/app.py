@@ -332,6 +332,7 @@ class Workbench:
         self.server.on_client_connect(lambda client: self.handle(lambda _: self.view.place_camera(client), None))
         self.server.scene.set_up_direction("+z")
         self._attach(self.ctrl)
+        self._forget_view_state()  # the first record's time-window text, as every record opened later has it
         self.redraw()
 
     def _actions(self) -> Actions:

@@ -151,6 +151,12 @@ def next_step(ctrl) -> NextStep:
             f"Verdict {safe_code(verdict or 'none')}: nothing advised holds on held-out data. The Model tab's "
             "evidence shows what is left."
         )
+    vector = getattr(ctrl, "vector", None)
+    if not ctrl.vector_loop() and vector is not None and vector.attitude_kind() is not None:
+        why += (
+            " The record has attitude: type where and when it was recorded (Calibrate tab, the vector model's "
+            "location and date) and the vector fit comes first, with the world components and the mounting."
+        )
     return NextStep("none", "", why)
 
 
