@@ -180,8 +180,8 @@ def vector_reference_markdown(ctrl) -> str:
 
 
 def lesson_markdown(ctrl) -> str:
-    """An open lesson's title and text, first on the page (the Lessons tab holds them too, with its checks);
-    empty without a lesson."""
+    """An open lesson's title and text, on the first screen under the guide's button (the Lessons tab holds them
+    too, with its checks); empty without a lesson."""
     slug = getattr(ctrl.state, "lesson", None)
     if not slug:
         return ""
@@ -189,10 +189,10 @@ def lesson_markdown(ctrl) -> str:
         lesson = get_lesson(slug)
     except KeyError:
         return ""
-    return f"### Lesson: {lesson.title}\n\n{lesson.guide().strip()}\n\n---\n\n"
+    return f"### Lesson: {lesson.title}\n\n{lesson.guide().strip()}"
 
 
 def guide_markdown(ctrl) -> str:
-    """The guide's text: an open lesson's text, the data, the fits they allow, and the next step's reason."""
+    """The guide's text: the data, the fits they allow, and the next step's reason."""
     step = next_step(ctrl)
-    return f"{lesson_markdown(ctrl)}{data_markdown(ctrl)}  \n**Next:** {step.why}"
+    return f"{data_markdown(ctrl)}  \n**Next:** {step.why}"

@@ -22,7 +22,7 @@ from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
 from .floors import floor_markdown
-from .guide import guide_markdown, next_step, vector_reference_markdown
+from .guide import guide_markdown, lesson_markdown, next_step, vector_reference_markdown
 from .lessons import lesson_titles, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
@@ -89,7 +89,7 @@ def status_markdown(ctrl) -> str:
         vector = vector_status_markdown(ctrl.vector) or "_Vector model: not fitted yet (the Step 1 button fits it)_"
         text = (
             f"{vector}  \nRejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
-            f"Total-field fit (Calibrate tab, one choice away): RMS {rms_text}; model {effects}"
+            f"Total-field RMS: {rms_text} (the total-field fit, one choice away: Calibrate tab); model {effects}"
         )
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
@@ -546,16 +546,17 @@ RESIDUAL_GAIN_MAX = 1000.0
 DRAWN_RESIDUAL = 0.05
 
 
-def view_gains(ctrl) -> tuple[float, float]:
+def view_gains(ctrl, drawn_rms_nT: float | None = None) -> tuple[float, float]:
     """Default (distortion, residual) gains of the View tab for these data: the distortion gain of the kept
     samples' raw clouds (:func:`magcal_workbench.scene.distortion_gain`), the residual RMS drawn at about
     :data:`DRAWN_RESIDUAL` of the radius, not above :data:`RESIDUAL_GAIN_MAX`. Residuals of hundreds of nT would
-    otherwise be drawn far outside the screen."""
+    otherwise be drawn far outside the screen. ``drawn_rms_nT``: the RMS of the residual the scene draws (the
+    vector or gravity fit's, :meth:`magcal_workbench.view.SceneControl.fit_drawn`), default the total-field fit's."""
     F = float(ctrl.field_nT)
     if not (np.isfinite(F) and F > 0):  # an all-zero file: nothing to scale by
         return scn.DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX
     distortion = scn.distortion_gain(ctrl.dataset.readings_nT[:, ctrl.kept], F)
-    rms = ctrl.residual_rms_nT()
+    rms = ctrl.residual_rms_nT() if drawn_rms_nT is None else float(drawn_rms_nT)
     residual = (
         RESIDUAL_GAIN_MAX
         if not np.isfinite(rms) or rms <= 0
@@ -636,6 +637,8 @@ class Panels:
         self.guide = gui.add_markdown("")
         self._engine_buttons: list = []
         self.btn_next = self._button(gui, "Step 1: fit the model", self._do_next_step, color="green")
+        #: An open lesson's title and text, under the guide's button (:func:`~magcal_workbench.guide.lesson_markdown`).
+        self.lesson_intro = gui.add_markdown("")
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
@@ -689,6 +692,7 @@ class Panels:
         """The guide's text and its button, for the session as it is now."""
         ctrl = self.ctrl()
         self.guide.content = guide_markdown(ctrl)
+        self.lesson_intro.content = lesson_markdown(ctrl)
         step = next_step(ctrl)
         self.btn_next.visible = step.key != "none"
         if step.label:
@@ -1204,7 +1208,7 @@ class Panels:
 
     def fit_view_to_data(self) -> None:
         """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
-        distortion, residual = view_gains(self.ctrl())
+        distortion, residual = view_gains(self.ctrl(), self.on.drawn_residual_rms())
         for handle, value in ((self.distortion_gain, distortion), (self.residual_gain, residual)):
             if handle.value == self._auto_gains.get(id(handle)) and handle.value != value:
                 self._auto_gains[id(handle)] = value

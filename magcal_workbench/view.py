@@ -199,6 +199,18 @@ class SceneControl(PagePart):
             self._vector_drawn = (result, drawn)
         return dataclasses.replace(drawn, floor_nT=vm.floor_nT)
 
+    @action
+    def drawn_residual_rms(self) -> float:
+        """RMS (nT) of the kept samples' |B| residual of the fit the scene draws (NaN before a fit): the View tab's
+        residual gain is set from it (:func:`magcal_workbench.panels.view_gains`)."""
+        residual = self.fit_drawn().residual_nT
+        if residual is None:
+            return float("nan")
+        kept = np.asarray(self.ctrl.kept, bool)
+        values = np.asarray(residual, float)[:, kept]
+        values = values[np.isfinite(values)]
+        return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
     def _gravity_drawn(self, result) -> FitDrawn:
         """The gravity fit's correction: the magnetometer corrected into the accelerometer's frame, its |B|
         residual against the field the fit found (made once per fit)."""

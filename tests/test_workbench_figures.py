@@ -117,6 +117,9 @@ def test_the_scene_draws_what_the_vector_fit_corrected(bench):
     assert np.median(np.abs(np.linalg.norm(sv.raw_nT, axis=1) / model.field_nT - 1.0)) > 0.01
     assert "/data/s1/corrected" in wb.scene_view._clouds
     assert "vector fit" in wb.view.legend_html()
+    # the residual gain follows the drawn fit's residual: the cloud stays about its sphere, not across the canvas
+    drawn = model.residual_gain * np.asarray(sv.residual_nT) / model.field_nT
+    assert 0.02 < np.sqrt(np.mean(drawn**2)) < 0.3
 
 
 def test_a_board_with_an_accelerometer_fits_gravity_first_and_the_scene_draws_it(bench):
@@ -133,3 +136,5 @@ def test_a_board_with_an_accelerometer_fits_gravity_first_and_the_scene_draws_it
     assert model.corrected_by == "gravity" and "/data/s1/corrected" in wb.scene_view._clouds
     radius = np.linalg.norm(sv.corrected_nT, axis=1) / model.field_nT
     assert np.median(np.abs(radius - 1.0)) < 0.01
+    drawn = model.residual_gain * np.asarray(sv.residual_nT) / model.field_nT
+    assert 0.02 < np.sqrt(np.mean(drawn**2)) < 0.3

@@ -156,8 +156,8 @@ def test_a_verdict_that_could_not_judge_advises_nothing_and_says_why():
 
 @pytest.mark.parametrize("slug", ["drone-current", "tilted-compass"])
 def test_a_lesson_opens_on_its_text_and_the_list_shows_titles(bench, slug):
-    """The Lessons tab lists the lessons by title; opening one puts its title and text first on the page, above
-    the data and the next step, without the answer."""
+    """The Lessons tab lists the lessons by title; opening one puts its title and text on the first screen, under
+    the data and the next step's button, without the answer."""
     from magcal_workbench.lessons import list_lessons
 
     wb = bench(store=False)
@@ -167,8 +167,10 @@ def test_a_lesson_opens_on_its_text_and_the_list_shows_titles(bench, slug):
     wb.panels.lesson_choice.value = lesson.title
     _click(wb, wb.panels.btn_lesson)
     wb.ui.wait()
-    text = wb.panels.guide.content
-    assert wb.ctrl.state.lesson == slug
-    assert text.startswith(f"### Lesson: {lesson.title}") and lesson.guide().split("\n")[0] in text
-    assert text.index("**Data:**") > text.index(lesson.guide().strip()[-20:])
+    text = wb.panels.lesson_intro.content
+    assert wb.ctrl.state.lesson == slug and f"lesson `{slug}`" in wb.panels.guide.content
+    assert text.startswith(f"### Lesson: {lesson.title}") and lesson.guide().strip() in text
     assert all(e.partition(":")[0] not in text for e in lesson.answer()["effects"])
+    wb.lessons.load(_lesson("warm-sensor"), None, "other.csv")  # other data: the lesson's text goes
+    wb.ui.wait()
+    assert wb.panels.lesson_intro.content == ""
