@@ -470,7 +470,7 @@ field's north, east and down components.
 3. **Add the candidate and refit**. How far do the world components fall in the history plot, and how close do
    they come to the floor? What is left: only the attitude's error, or more?
 4. **View** tab: tick **Show the vehicle view** and play the time window. The red arrow is the world residual
-   (its exaggeration is set by the model before Add): does it still follow the throttle?
+   (its exaggeration is set by the model before Add): does it still follow the battery current (`current_A`)?
 5. **Check my model** (Lessons tab).
 """
 DRONE_EXPLANATION = (
