@@ -196,14 +196,14 @@ def vehicle() -> int:
         wb.ctrl.step_vector()
         with sync_playwright() as p:
             browser, page = _page(p, wb)
-            page.get_by_text("Vector model (attitude-aided)").scroll_into_view_if_needed()
+            page.get_by_text("Vector model (attitude-aided)").first.scroll_into_view_if_needed()
             time.sleep(1)
             page.screenshot(path=str(OUT / "vector-table.png"))
             page.get_by_role("tab", name="View").click()
             wb.panels.window_width.value = 2.0
             wb.panels.window_start.value = 55.0
             wb.panels.vector_panel.vehicle_on.value = True
-            page.get_by_text("Show the vehicle view", exact=True).scroll_into_view_if_needed()
+            page.locator("label", has_text="Show the vehicle view").scroll_into_view_if_needed()
             time.sleep(4)
             page.screenshot(path=str(OUT / "vehicle-view.png"))
             browser.close()
