@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class FitDrawn:
     nT) and their |B| residual (n_sensors, N, nT), the field the clouds are scaled by and the floor the colours
     are judged against (nT), and which fit (``total-field`` or ``vector``); arrays None before a fit."""
 
-    calibration: object
+    calibration: Any  # magcal.calibration.calibration.Calibration or None
     corrected_nT: np.ndarray | None
     residual_nT: np.ndarray | None
     field_nT: float

@@ -1161,7 +1161,8 @@ def _saved_params(effect, params: dict, source, term) -> list:
     """An effect's saved parameters in :meth:`~magcal.model.terms.Effect.param_names` order; a file saved under
     the effect's former names (``former_param_names``, e.g. ``k_x_nT_per_unit`` of a current in amperes) is read
     too."""
-    for names in (effect.param_names(), getattr(effect, "former_param_names", lambda: [])()):
+    former: list = getattr(effect, "former_param_names", lambda: [])()
+    for names in (effect.param_names(), former):
         if names and all(n in params for n in names):
             return [params[n] for n in names]
     raise MagcalError(
