@@ -138,3 +138,24 @@ def test_a_board_with_an_accelerometer_fits_gravity_first_and_the_scene_draws_it
     assert np.median(np.abs(radius - 1.0)) < 0.01
     drawn = model.residual_gain * np.asarray(sv.residual_nT) / model.field_nT
     assert 0.02 < np.sqrt(np.mean(drawn**2)) < 0.3
+
+
+def test_a_total_field_records_noise_floor_reads_the_same_in_every_tab(bench):
+    """Real data whose noise the page estimates (no noise declared): after the fit and the diagnosis, the header,
+    the table, the Quality tab and the verdict show one floor, and the Quality tab says where it comes from."""
+    wb = bench(ds=_lesson("real-qmc5883l"), store=False)
+    assert wb.ctrl.noise_given_nT is None
+    _press(wb)  # the total-field fit
+    _press(wb)  # the diagnosis
+    p = wb.panels
+    found = {}
+    for name, widget, pattern in (
+        ("header", p.status, r"\(floor ([\d.]+) nT\)"),
+        ("table", p.summary, r"noise floor ([\d.]+) nT"),
+        ("quality", p.noise_info, r"Total-field floor of the current fit: ([\d.]+) nT"),
+        ("diagnose", p.candidates, r"floor ([\d.]+) nT\)"),
+    ):
+        m = re.search(pattern, widget.content)
+        found[name] = float(m.group(1)) if m else None
+    assert None not in found.values() and len(set(found.values())) == 1, found
+    assert "estimated from" in p.noise_info.content
