@@ -160,6 +160,20 @@ def next_step(ctrl) -> NextStep:
     return NextStep("none", "", why)
 
 
+def gravity_status_markdown(ctrl) -> str:
+    """The gravity fit's line for the status, where it is the record's first fit and has run (markdown; engine
+    words): the mounting it found and the dip's spread; empty otherwise."""
+    gm = model_of(ctrl)
+    if not gravity_mode(ctrl) or gm is None or gm.result is None:
+        return ""
+    s = gm.result.sensors[0]
+    mounting = safe_code(s.right_angle_text.split(":")[0], 80)
+    return (
+        f"**Gravity fit: dip spread {s.dip_sd_deg:.3g} deg**, mounting {mounting} {s.angle_off_deg:.2f} deg off it, "
+        f"inclination {gm.result.inclination_deg:.2f} deg"
+    )
+
+
 def vector_reference_markdown(ctrl) -> str:
     """What the vector fit uses as the field, where it comes from (markdown); empty when the record has no vector
     loop. The total-field fit's reference (a magnitude) is said after it, by the Calibrate tab."""

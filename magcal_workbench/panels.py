@@ -22,7 +22,7 @@ from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
 from .floors import floor_markdown
-from .guide import guide_markdown, lesson_markdown, next_step, vector_reference_markdown
+from .guide import gravity_status_markdown, guide_markdown, lesson_markdown, next_step, vector_reference_markdown
 from .lessons import lesson_titles, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
@@ -91,6 +91,8 @@ def status_markdown(ctrl) -> str:
             f"{vector}  \nRejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
             f"Total-field RMS: {rms_text} (the total-field fit, one choice away: Calibrate tab); model {effects}"
         )
+    gravity = gravity_status_markdown(ctrl)  # a board with an accelerometer: its first fit's figures first
+    text = f"{gravity}  \n{text}" if gravity else text
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
 

@@ -131,6 +131,8 @@ def test_a_board_with_an_accelerometer_fits_gravity_first_and_the_scene_draws_it
     assert wb.gravity.model.result is not None and wb.ctrl.calibration is None
     step = next_step(wb.ctrl)
     assert step.key == "none" and "one choice away" in step.why and not wb.panels.btn_next.visible
+    s = wb.gravity.model.result.sensors[0]
+    assert wb.panels.status.content.startswith(f"**Gravity fit: dip spread {s.dip_sd_deg:.3g} deg**")
     model = wb.view.scene_model()
     (sv,) = model.sensors
     assert model.corrected_by == "gravity" and "/data/s1/corrected" in wb.scene_view._clouds
