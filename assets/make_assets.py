@@ -550,11 +550,11 @@ the frame the accelerometer defines. Its owner tumbled it by hand, holding it st
 24 attitudes: `x, y, z` are the magnetometer (nT), `ax, ay, az` the accelerometer (g, up when still), `gx_dps..` the
 gyro. Level, the compass reads right; tilted, it points wrong.
 
-1. **Run the chosen method** (Calibrate tab): the total-field fit. Is |B| at the noise? Can a total-field fit say
+1. **Run the gravity fit (beside the accelerometer)**: the first screen's *Step 1* button (or the Calibrate tab,
+   *Gravity model*). Read the table: the mounting it finds, the dip's spread of both fits, the heading difference
+   between them. Why is the dip (the angle between the field and gravity) the figure that sees what |B| cannot?
+2. **Run the chosen method** (Calibrate tab): the total-field fit. Is |B| at the noise? Can a total-field fit say
    how the magnetometer's axes sit against the accelerometer's?
-2. **Run the gravity fit (beside the accelerometer)** (Calibrate tab, *Gravity model*). Read the table: the
-   mounting it finds, the dip's spread of both fits, the heading difference between them. Why is the dip (the angle
-   between the field and gravity) the figure that sees what |B| cannot?
 3. Look at the two plots: the dip over time and against the tilt, and the compass rose. Where is the total-field
    fit's heading wrong, and by how much? At this inclination, how much heading does a degree of tilt error cost?
 4. View tab: tick **Show the accelerometer's cloud and sphere**. Which samples measure gravity?
