@@ -92,26 +92,36 @@ def gravity_mode(ctrl) -> bool:
     return not ctrl.vector_loop() and has_accelerometer(ctrl.dataset)
 
 
+def _gravity_step(ctrl) -> NextStep | None:
+    """On a board with an accelerometer: the gravity fit first, then nothing to press until the total-field fit
+    runs (its loop one choice away); None elsewhere, or once the total-field fit has run."""
+    if not gravity_mode(ctrl):
+        return None
+    gm = model_of(ctrl)
+    if gm is None or gm.result is None:
+        return NextStep(
+            "gravity",
+            "Step 1: fit with the accelerometer (the gravity fit)",
+            "The board carries an accelerometer: fit the compass against gravity (its mounting, the dip, the "
+            "tilt-compensated heading). The total-field fit stays one choice away (Calibrate tab).",
+        )
+    if np.isfinite(ctrl.residual_rms_nT()):
+        return None
+    lesson = " Then the Lessons tab: Check my model." if getattr(ctrl.state, "lesson", None) else ""
+    return NextStep(
+        "none",
+        "",
+        "The gravity fit ran: its table, the dip and the compass rose are in the Calibrate tab (Gravity "
+        f"model).{lesson} The total-field loop (fit, diagnose, add) stays one choice away: Calibrate tab, "
+        "Run the chosen method.",
+    )
+
+
 def next_step(ctrl) -> NextStep:
     """The loop's next step for the open session (see the module's docstring)."""
-    if gravity_mode(ctrl):
-        gm = model_of(ctrl)
-        if gm is None or gm.result is None:
-            return NextStep(
-                "gravity",
-                "Step 1: fit with the accelerometer (the gravity fit)",
-                "The board carries an accelerometer: fit the compass against gravity (its mounting, the dip, the "
-                "tilt-compensated heading). The total-field fit stays one choice away (Calibrate tab).",
-            )
-        if not np.isfinite(ctrl.residual_rms_nT()):
-            lesson = " Then the Lessons tab: Check my model." if getattr(ctrl.state, "lesson", None) else ""
-            return NextStep(
-                "none",
-                "",
-                "The gravity fit ran: its table, the dip and the compass rose are in the Calibrate tab (Gravity "
-                f"model).{lesson} The total-field loop (fit, diagnose, add) stays one choice away: Calibrate tab, "
-                "Run the chosen method.",
-            )
+    gravity = _gravity_step(ctrl)
+    if gravity is not None:
+        return gravity
     if ctrl.vector_loop():
         vm = ctrl.vector
         if vm.result is None:

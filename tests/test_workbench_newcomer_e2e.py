@@ -152,6 +152,8 @@ def test_each_record_opens_clean_and_its_guide_leads_to_the_end(chain, kind):
     assert "Fits it allows" in text and "Next:" in text
     pressed = _follow_the_guide(chain)
     assert pressed, "the first screen offers a step"
+    # the scene draws what the step's fit corrected (never an empty place beside the raw cloud)
+    assert any(name.endswith("/corrected") for name in wb.scene_view._clouds)
     end = next_step(wb.ctrl).why
     if kind == "demo":
         _wait_text(page, "the model is adequate")
