@@ -884,10 +884,16 @@ LOG_AXIS_MARGIN = 1.25
 def log_axis_scales(data) -> dict:
     """uPlot scales for a history plot (x the step, y on a log axis) whose y axis spans the data, not the decades
     around them: ``data`` as the plot takes it, ``(x, y1, y2, ...)``. uPlot's own range for a log axis snaps to
-    whole decades, so figures of 700-1300 nT were drawn on an axis to 10 000."""
+    whole decades, so figures of 700-1300 nT were drawn on an axis to 10 000. The x axis holds every step with half
+    a step either side: a history of one step is a point in the middle, not on the frame's edge."""
     values = np.concatenate([np.asarray(y, float).ravel() for y in data[1:]]) if len(data) > 1 else np.array([])
     values = values[np.isfinite(values) & (values > 0)]
     y: dict = {"distr": 3, "log": 10}
     if values.size:
         y["range"] = [float(values.min()) / LOG_AXIS_MARGIN, float(values.max()) * LOG_AXIS_MARGIN]
-    return {"x": {"time": False}, "y": y}
+    x: dict = {"time": False}
+    steps = np.asarray(data[0], float) if len(data) else np.array([])
+    steps = steps[np.isfinite(steps)]
+    if steps.size:
+        x["range"] = [float(steps.min()) - 0.5, float(steps.max()) + 0.5]
+    return {"x": x, "y": y}

@@ -138,6 +138,7 @@ def test_a_history_plots_log_axis_spans_its_data_not_the_decades(series, lo, hi)
     data = (np.arange(2.0), *[np.array(s) for s in series])
     y = log_axis_scales(data)["y"]
     assert y["distr"] == 3 and y["range"] == pytest.approx([lo / LOG_AXIS_MARGIN, hi * LOG_AXIS_MARGIN])
+    assert log_axis_scales(data)["x"]["range"] == [-0.5, 1.5]  # every step inside the frame
     assert "range" not in log_axis_scales((np.arange(2.0), np.array([np.nan, np.nan])))["y"]
 
 
