@@ -69,7 +69,9 @@ def data_markdown(ctrl) -> str:
         fits.insert(0, "the vector fit (attitude and the field vector: world components, the mounting)")
     elif kind is not None:
         fits.append("the vector fit once a field vector is given (Calibrate tab: a location, or ref_n/e/d columns)")
-    if has_accelerometer(ds):
+    if gravity_mode(ctrl):  # the first step: first in the list
+        fits.insert(0, "the gravity fit (the mounting against the accelerometer, the heading)")
+    elif has_accelerometer(ds):
         fits.append("the gravity fit (heading; Calibrate tab)")
     return (
         f"**Data:** {_source(ctrl)}: {sensors}, {ds.n_samples} samples{span}{held}.  \n"

@@ -36,6 +36,8 @@ def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first,
     for word in words:
         assert word in text, (word, text)
     assert next_step(wb.ctrl).key == first and wb.panels.btn_next.visible
+    listed = text.split("**Fits it allows:** ")[1]  # the first fit listed is the one Step 1 runs
+    assert listed.startswith({"run": "the total-field", "vector": "the vector", "gravity": "the gravity"}[first])
     assert wb.panels.btn_next.label.startswith("Step 1: fit")
 
 
