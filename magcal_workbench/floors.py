@@ -13,7 +13,7 @@ engine's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,15 +51,23 @@ class VectorNoise:
         Which of the record's vector diagnoses found it (1 for the first).
     of : int
         How many vector diagnoses the record has had.
+    given_nT : float or None
+        The noise per axis the user gave (the diagnosis then used it, and the figure follows it as given).
     """
 
     world_floor_nT: float
     total_noise_nT: float
     diagnosis: int
     of: int
+    given_nT: float | None = None
 
     def source(self) -> str:
         """Where the figure comes from, in words."""
+        if self.given_nT is not None:
+            return (
+                f"the noise given, {self.given_nT:.4g} nT per axis, and the attitude error across the field the "
+                f"vector diagnosis estimated; |B| noise {self.total_noise_nT:.4g} nT"
+            )
         which = (
             "the vector diagnosis"
             if self.of == 1
@@ -71,18 +79,21 @@ class VectorNoise:
         )
 
 
-def lowest(held: VectorNoise | None, noise: dict) -> VectorNoise | None:
+def lowest(held: VectorNoise | None, noise: dict, given_nT: float | None = None) -> VectorNoise | None:
     """The record's vector noise after one more diagnosis whose ``noise`` (the engine's dict: ``world_floor_nT``,
     ``total_nT`` per sensor) is ``noise``: the lower of the held one and the new one (see the module's
-    docstring)."""
+    docstring). With a noise given (``given_nT``, nT per axis, which the diagnosis used) the new figure is taken as
+    it is, and an estimate held from before the noise was given (or another given one) is dropped."""
     floor = noise.get("world_floor_nT")
     total = float(np.sqrt(np.mean(np.square(noise.get("total_nT", [np.nan])))))
     count = 1 if held is None else held.of + 1
+    if held is not None and held.given_nT != given_nT:  # the noise was given, changed or taken back: start anew
+        held, count = None, 1
     if floor is None or not np.isfinite(floor):
-        return None if held is None else VectorNoise(held.world_floor_nT, held.total_noise_nT, held.diagnosis, count)
-    if held is not None and held.world_floor_nT <= float(floor):
-        return VectorNoise(held.world_floor_nT, held.total_noise_nT, held.diagnosis, count)
-    return VectorNoise(float(floor), total, count, count)
+        return None if held is None else replace(held, of=count)
+    if given_nT is None and held is not None and held.world_floor_nT <= float(floor):
+        return replace(held, of=count)
+    return VectorNoise(float(floor), total, count, count, given_nT)
 
 
 def mode_floor(ctrl) -> Floor:

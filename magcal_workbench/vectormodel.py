@@ -466,7 +466,8 @@ class VectorModel:
             ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.diagnosis = d
-            self.noise = lowest_noise(self.noise, d.noise)  # one floor per record: it does not rise with the model
+            # one floor per record: it does not rise with the model (a noise given is taken as it is)
+            self.noise = lowest_noise(self.noise, d.noise, options["noise_nT"] or None)
             self.floor_nT = None if self.noise is None else self.noise.world_floor_nT
         ctrl._emit(Change.DIAGNOSIS)
         ctrl._emit(Change.VECTOR)  # the history plot draws the floor found

@@ -74,6 +74,10 @@ def test_the_held_floor_is_the_lowest_estimate_and_counts_the_diagnoses():
     assert (first.world_floor_nT, second.world_floor_nT, third.world_floor_nT) == (15.0, 12.0, 12.0)
     assert third.total_noise_nT == 3.0 and (third.diagnosis, third.of) == (2, 3)
     assert "diagnosis 2 of 3" in third.source() and "the vector diagnosis" in first.source()
+    given = lowest(third, {"world_floor_nT": 20.0, "total_nT": [9.0]}, given_nT=9.0)  # a noise given: as it is
+    assert given.world_floor_nT == 20.0 and "the noise given, 9 nT per axis" in given.source()
+    again = lowest(given, {"world_floor_nT": 14.0, "total_nT": [3.5]})  # taken back: estimated anew
+    assert (again.world_floor_nT, again.given_nT, again.of) == (14.0, None, 1)
 
 
 @pytest.mark.parametrize("given", [True, False])
