@@ -411,6 +411,7 @@ def write_vehicle_lesson():
         data,
         metadata={
             "lesson": VEHICLE_SLUG,
+            "vehicle": "aeroplane",
             "attitude": "roll_deg, pitch_deg, yaw_deg: aerospace ZYX, body (x forward, y right, z down) -> NED",
             "site": f"{site['lat_deg']} N, {site['lon_deg']} E, {site['alt_m']:g} m, {site['date']}",
         },
@@ -469,7 +470,7 @@ field's north, east and down components.
 3. **Add the candidate and refit**. How far do the world components fall in the history plot, and how close do
    they come to the floor? What is left: only the attitude's error, or more?
 4. **View** tab: tick **Show the vehicle view** and play the time window. The red arrow is the world residual
-   (its exaggeration is set by the model before Add): does it still follow the throttle?
+   (its exaggeration is set by the model before Add): does it still follow the battery current (`current_A`)?
 5. **Check my model** (Lessons tab).
 """
 DRONE_EXPLANATION = (
@@ -513,6 +514,7 @@ def write_drone_lesson():
         ds.replace(metadata={"simulated": "true"}),
         metadata={
             "lesson": DRONE_SLUG,
+            "vehicle": "quadcopter",
             "attitude": "qw, qx, qy, qz: body (x forward, y right, z down) -> NED",
             "reference": "ref_n, ref_e, ref_d: the field vector (IGRF) where it flew, nT",
         },
@@ -548,11 +550,11 @@ the frame the accelerometer defines. Its owner tumbled it by hand, holding it st
 24 attitudes: `x, y, z` are the magnetometer (nT), `ax, ay, az` the accelerometer (g, up when still), `gx_dps..` the
 gyro. Level, the compass reads right; tilted, it points wrong.
 
-1. **Run the chosen method** (Calibrate tab): the total-field fit. Is |B| at the noise? Can a total-field fit say
+1. **Run the gravity fit (beside the accelerometer)**: the first screen's *Step 1* button (or the Calibrate tab,
+   *Gravity model*). Read the table: the mounting it finds, the dip's spread of both fits, the heading difference
+   between them. Why is the dip (the angle between the field and gravity) the figure that sees what |B| cannot?
+2. **Run the chosen method** (Calibrate tab): the total-field fit. Is |B| at the noise? Can a total-field fit say
    how the magnetometer's axes sit against the accelerometer's?
-2. **Run the gravity fit (beside the accelerometer)** (Calibrate tab, *Gravity model*). Read the table: the
-   mounting it finds, the dip's spread of both fits, the heading difference between them. Why is the dip (the angle
-   between the field and gravity) the figure that sees what |B| cannot?
 3. Look at the two plots: the dip over time and against the tilt, and the compass rose. Where is the total-field
    fit's heading wrong, and by how much? At this inclination, how much heading does a degree of tilt error cost?
 4. View tab: tick **Show the accelerometer's cloud and sphere**. Which samples measure gravity?

@@ -38,6 +38,17 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``see-evidence.png`` - after Add: the evidence plots at full size over the canvas, with each sensor's RMS before
   the last fit.
 
+``python assets/make_screenshots.py newcomer`` saves the first screens a newcomer meets:
+
+* ``guide-first.png`` - the demo as it opens: what the data are, the fits they allow, and Step 1 as a button;
+* ``guide-lesson.png`` - the drone lesson as it opens: its text first, then the data and Step 1 (the vector fit);
+* ``guide-vehicle.png`` - after the vector fit: the vehicle view, a quadcopter by its attitude, the fields in
+  N, E, D (the body's axes grey, no colour shared with a field);
+* ``guide-vector-scene.png`` - the same record's scene: the raw cloud and the cloud the vector fit corrected, the
+  Quality tab's one noise floor with its source;
+* ``guide-gravity.png`` - the accelerometer board after its first step, the gravity fit: the corrected cloud, the
+  guide pointing to the total-field loop one choice away.
+
 ``python assets/make_screenshots.py cockpit`` saves the cockpit (issue 32):
 
 * ``cockpit-calibrate.png`` - the demo after a fit: the compact table (RMS against the floor, % within +-1/2/5 %,
@@ -71,7 +82,7 @@ def _page(p, wb):
     browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
     page = browser.new_page(viewport={"width": 1600, "height": 1000})
     page.goto(wb.url)
-    _wait_text(page, "document.body.innerText.includes('Total-field RMS')")
+    _wait_text(page, "document.body.innerText.includes('Fits it allows')")
     time.sleep(2)
     for close in page.locator(".mantine-Notification-closeButton").all():
         close.click()
@@ -185,14 +196,14 @@ def vehicle() -> int:
         wb.ctrl.step_vector()
         with sync_playwright() as p:
             browser, page = _page(p, wb)
-            page.get_by_text("Vector model (attitude-aided)").scroll_into_view_if_needed()
+            page.get_by_text("Vector model (attitude-aided)").first.scroll_into_view_if_needed()
             time.sleep(1)
             page.screenshot(path=str(OUT / "vector-table.png"))
             page.get_by_role("tab", name="View").click()
             wb.panels.window_width.value = 2.0
             wb.panels.window_start.value = 55.0
             wb.panels.vector_panel.vehicle_on.value = True
-            page.get_by_text("Show the vehicle view", exact=True).scroll_into_view_if_needed()
+            page.locator("label", has_text="Show the vehicle view").scroll_into_view_if_needed()
             time.sleep(4)
             page.screenshot(path=str(OUT / "vehicle-view.png"))
             browser.close()
@@ -344,7 +355,74 @@ def cockpit() -> int:
     return 0
 
 
+def newcomer() -> int:
+    """The first screens a newcomer meets (see the module docstring)."""
+    from playwright.sync_api import sync_playwright
+
+    from magcal.data import io as mio
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.dataio import load_dataset
+    from magcal_workbench.lessons import DEMO, get_lesson
+
+    warnings.simplefilter("ignore")
+    OUT.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as p:
+        wb = Workbench(mio.read_csv(DEMO), host="127.0.0.1", port=0, store=None, name="demo.csv")
+        try:
+            browser, page = _page(p, wb)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "guide-first.png"))
+            browser.close()
+        finally:
+            wb.stop()
+        lesson = get_lesson("drone-current")
+        ds, _ = load_dataset(lesson.data_path)
+        wb = Workbench(ds, host="127.0.0.1", port=0, store=None, lesson="drone-current")
+        try:
+            wb.lessons.show_guide(lesson)
+            browser, page = _page(p, wb)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "guide-lesson.png"))
+            page.get_by_role("button", name="Step 1: fit with the attitude and the field vector").click()
+            _wait_text(page, "document.body.innerText.includes('Step 2')")
+            wb.worker.wait(120)
+            page.get_by_role("tab", name="View").click()
+            wb.panels.window_width.value = 2.0
+            wb.panels.window_start.value = 40.0
+            wb.panels.vector_panel.vehicle_on.value = True
+            time.sleep(4)
+            page.locator("label", has_text="Show the vehicle view").scroll_into_view_if_needed()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "guide-vehicle.png"))
+            wb.panels.vector_panel.vehicle_on.value = False
+            wb.panels.window_on.value = False
+            wb.view.reset_cameras()
+            time.sleep(4)
+            page.get_by_role("tab", name="Quality").click()
+            time.sleep(1)
+            page.screenshot(path=str(OUT / "guide-vector-scene.png"))
+            browser.close()
+        finally:
+            wb.stop()
+        ds, _ = load_dataset(get_lesson("tilted-compass").data_path)
+        wb = Workbench(ds, host="127.0.0.1", port=0, store=None, lesson="tilted-compass")
+        try:
+            browser, page = _page(p, wb)
+            page.get_by_role("button", name="Step 1: fit with the accelerometer (the gravity fit)").click()
+            _wait_text(page, "document.body.innerText.includes('The gravity fit ran')")
+            wb.worker.wait(120)
+            time.sleep(4)
+            page.screenshot(path=str(OUT / "guide-gravity.png"))
+            browser.close()
+        finally:
+            wb.stop()
+    print(f"wrote {', '.join(sorted(p.name for p in OUT.glob('guide-*.png')))} in {OUT}")
+    return 0
+
+
 def main() -> int:
+    if sys.argv[1:] == ["newcomer"]:
+        return newcomer()
     if sys.argv[1:] == ["vehicle"]:
         return vehicle()
     if sys.argv[1:] == ["cockpit"]:

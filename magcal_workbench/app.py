@@ -332,6 +332,7 @@ class Workbench:
         self.server.on_client_connect(lambda client: self.handle(lambda _: self.view.place_camera(client), None))
         self.server.scene.set_up_direction("+z")
         self._attach(self.ctrl)
+        self._forget_view_state()  # the first record's time-window text, as every record opened later has it
         self.redraw()
 
     def _actions(self) -> Actions:
@@ -458,7 +459,7 @@ class Workbench:
                 self._last_progress = now  # a search reports thousands of iterations: show ten a second
                 self.panels.set_progress(*ctrl.progress)
             return
-        if kind in (Change.RESULT, Change.DATA):
+        if kind in (Change.RESULT, Change.DATA, Change.VECTOR, Change.GRAVITY):  # the scene draws each fit's correction
             with timing.span("scene"):
                 # the gains first: a gain that changes redraws the scene (its callback) once
                 self.panels.fit_view_to_data()

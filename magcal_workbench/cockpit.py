@@ -22,9 +22,10 @@ from magcal.core.errors import MagcalError
 
 from . import motion
 from .actions import action
+from .floors import mode_floor
 from .panels import summary_markdown
 from .parts import PagePart
-from .plots import FieldRecord, histogram_figure, magnitude_figure, record_key, table_figures
+from .plots import FieldRecord, histogram_figure, magnitude_figure, raw_reference_nT, record_key, table_figures
 from .timewindow import sample_times
 
 #: Shortest time between two redraws of the table and plots while samples stream in, s.
@@ -60,6 +61,7 @@ def controller_record(ctrl) -> FieldRecord:
         reference_nT=reference,
         kept=ctrl.state.kept,
         fast=motion.fast_turning(ds),
+        raw_reference_nT=raw_reference_nT(ds, ctrl.state.reference_nT),
     )
 
 
@@ -153,17 +155,20 @@ class Cockpit(PagePart):
             fit = live.fit
             cal = None if fit is None else fit.calibration
             rms, floor = (None, None) if fit is None else (fit.rms_nT, fit.floor_nT)
+            floor_what = ""
             sensor = 0
         else:
             ctrl = self.ctrl
             cal = ctrl.calibration
             rms = ctrl.residual_rms_nT() if cal is not None else None
-            floor = ctrl.floor_nT()
+            floor, floor_what = ctrl.floor_nT(), ""
+            if ctrl.vector_loop():  # the record's one floor, as the header and the Model tab show it
+                floor, floor_what = mode_floor(ctrl).value_nT, "world components"
             sensor = ctrl.state.sensor or 0
             for b in (p.btn_exclude_range, p.btn_include_range, p.btn_exclude_fast):
                 b.disabled = False
         sensors = [] if cal is None else [(c.cinv, c.bias_nT) for c in cal.sensors]
-        p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor)
+        p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor, floor_what)
         pending = self.pending_s(record) if live is None else None
         if self._keys.get("field") != (field_key := f"{key} {pending}"):
             p.field_plot.figure = magnitude_figure(record, pending)

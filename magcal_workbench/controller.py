@@ -45,6 +45,7 @@ from .events import Change
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
 from .pending import PENDING
+from .plots import raw_reference_nT
 from .scene import record_field_nT
 from .session import SessionStore
 from .sessionfile import LABEL
@@ -269,8 +270,11 @@ class Controller:
         return np.array([_rms(r[self.kept]) for r in self.residual_nT])
 
     def raw_residual_nT(self) -> np.ndarray:
-        """``|y| - F`` of the raw readings (n_sensors, N): the starting point of the history."""
-        return np.linalg.norm(self.dataset.readings_nT, axis=2) - self.field_nT
+        """``|y| - F`` of the raw readings (n_sensors, N): the starting point of the history; ``F`` the raw data's
+        own reference (:func:`magcal_workbench.plots.raw_reference_nT`, no fit in it), as the table's raw row."""
+        return np.linalg.norm(self.dataset.readings_nT, axis=2) - raw_reference_nT(
+            self.dataset, self.state.reference_nT
+        )
 
     def tensor_rms(self, kept: np.ndarray | None = None) -> dict | None:
         """Tensor component RMS (nT/m) over the kept samples (``kept``, default: those of now), before (raw) and

@@ -107,7 +107,8 @@ class Evidence(PagePart):
             '<div style="position:fixed;left:0;top:0;width:calc(100vw - 27em);height:100vh;'
             'background:white;z-index:50;overflow:auto;padding:0.5em;box-sizing:border-box">'
             f'<img alt="evidence plots" src="data:image/png;base64,{data}" '
-            'style="width:100%;height:auto;display:block"></div>'
+            'style="display:block;margin:0 auto;max-width:100%;max-height:calc(100vh - 1em);width:auto;height:auto">'
+            "</div>"
         )
         overlay.visible = True
         panels.btn_full_evidence.label = "Back to the scene"

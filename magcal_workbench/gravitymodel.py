@@ -12,6 +12,7 @@ The functions that build these are pure and tested without a browser.
 from __future__ import annotations
 
 import time
+import weakref
 
 import numpy as np
 
@@ -24,6 +25,15 @@ from .markup import safe_text
 
 #: Sectors of the compass rose (deg each).
 ROSE_SECTOR_DEG = 30.0
+
+
+#: The gravity model of each open controller (weakly: it goes with its data).
+_MODELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def model_of(ctrl) -> GravityModel | None:
+    """The gravity model of ``ctrl``'s data, None before the page made one."""
+    return _MODELS.get(ctrl)
 
 
 class GravityModel:
@@ -40,6 +50,7 @@ class GravityModel:
 
     def __init__(self, ctrl):
         self.ctrl = ctrl
+        _MODELS[ctrl] = self  # the guide and the scene read it (model_of)
         self.result = None
         self.separate = None
         self.heading: dict | None = None

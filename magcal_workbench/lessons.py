@@ -226,17 +226,22 @@ def get_lesson(slug: str, root=None) -> Lesson:
     raise KeyError(f"no lesson {slug!r}")
 
 
-def lesson_or_error(slug) -> Lesson:
-    """:func:`get_lesson`, or a :class:`MagcalError` the page can show."""
-    try:
-        return get_lesson(slug)
-    except KeyError:
-        raise MagcalError(f"no lesson {clean_text(repr(slug), 80)}; choose one in the Lessons tab") from None
+def lesson_or_error(choice) -> Lesson:
+    """The lesson of a slug or a title (what the Lessons tab lists), or a :class:`MagcalError` the page can show."""
+    for lesson in list_lessons():
+        if choice in (lesson.slug, lesson.title):
+            return lesson
+    raise MagcalError(f"no lesson {clean_text(repr(choice), 80)}; choose one in the Lessons tab")
 
 
 def lesson_slugs() -> tuple:
-    """The Lesson choices the server offers (``-`` when there is none)."""
+    """The lessons' slugs (``-`` when there is none): what ``--lesson`` takes."""
     return tuple(lesson.slug for lesson in list_lessons()) or ("-",)
+
+
+def lesson_titles() -> tuple:
+    """The Lesson choices the page offers: the lessons' titles, in their order (``-`` when there is none)."""
+    return tuple(lesson.title for lesson in list_lessons()) or ("-",)
 
 
 class LessonDesk(PagePart):
@@ -270,8 +275,8 @@ class LessonDesk(PagePart):
 
     @action
     def do_open_lesson(self, event):
-        slug = self.values.check(self.panels.lesson_choice)
-        lesson = lesson_or_error(slug)
+        lesson = lesson_or_error(self.values.check(self.panels.lesson_choice))
+        slug = lesson.slug
 
         def job():
             ds, _ = load_dataset(lesson.data_path, f"lesson {slug}")

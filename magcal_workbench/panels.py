@@ -21,8 +21,9 @@ from magcal.core import conventions
 from . import scene as scn
 from .controller import candidate_label, format_number
 from .exporting import ExportSection
-from .guide import guide_markdown, next_step
-from .lessons import lesson_slugs, list_lessons
+from .floors import floor_markdown
+from .guide import gravity_status_markdown, guide_markdown, lesson_markdown, next_step, vector_reference_markdown
+from .lessons import lesson_titles, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
@@ -84,9 +85,14 @@ def status_markdown(ctrl) -> str:
         f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
         f"Model: {effects}"
     )
-    if ctrl.vector_loop():  # Diagnose and Add work on the vector model: its figures too
-        vector = vector_status_markdown(ctrl.vector)
-        text += f"  \n{vector}" if vector else "  \n_Vector model: not fitted yet (Diagnose fits it)_"
+    if ctrl.vector_loop():  # Diagnose and Add work on the vector model: its figures first, the total field after
+        vector = vector_status_markdown(ctrl.vector) or "_Vector model: not fitted yet (the Step 1 button fits it)_"
+        text = (
+            f"{vector}  \nRejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
+            f"Total-field RMS: {rms_text} (the total-field fit, one choice away: Calibrate tab); model {effects}"
+        )
+    gravity = gravity_status_markdown(ctrl)  # a board with an accelerometer: its first fit's figures first
+    text = f"{gravity}  \n{text}" if gravity else text
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
     return f"{text}\n\n{warning}" if warning else text
 
@@ -106,7 +112,9 @@ def pct(v) -> str:
     return "100 %" if v >= 1.0 else f"{100.0 * v:.3g} %"
 
 
-def summary_markdown(figures: dict, rms_nT=None, floor_nT=None, sensors=(), sensor: int = 0) -> str:
+def summary_markdown(
+    figures: dict, rms_nT=None, floor_nT=None, sensors=(), sensor: int = 0, floor_what: str = ""
+) -> str:
     """The compact table the panel opens with: what matters now.
 
     Parameters
@@ -119,6 +127,9 @@ def summary_markdown(figures: dict, rms_nT=None, floor_nT=None, sensors=(), sens
         The calibration's correction matrix ``C^-1`` (3 x 3) and bias (nT) per sensor; empty before a fit.
     sensor : int
         Which sensor's matrix and bias are shown (0-based; the View tab's choice).
+    floor_what : str
+        What ``floor_nT`` is the floor of when it is not the total-field fit's (``world components``: the vector
+        mode's, :func:`magcal_workbench.floors.mode_floor`); the corrected row is then not divided by it.
 
     The first table: the RMS of ``|B| - reference`` raw and corrected, against the floor (and their ratio), and the
     share of samples within +-1, +-2 and +-5 % of the reference; the second: the chosen sensor's ``C^-1`` with its
@@ -131,11 +142,17 @@ def summary_markdown(figures: dict, rms_nT=None, floor_nT=None, sensors=(), sens
     rows.append(f"| raw | {fmt(figures['rms_raw_nT'], digits=4)} | " + " | ".join(pct(wr[b]) for b in bands) + " |")
     if wc is not None:
         ratio = f" ({rms_nT / floor_nT:.2f}× floor)" if rms_nT and floor_nT and np.isfinite(rms_nT) else ""
+        ratio = "" if floor_what else ratio
         rows.append(
             f"| **corrected** | **{fmt(rms_nT, digits=4)}**{ratio} | " + " | ".join(pct(wc[b]) for b in bands) + " |"
         )
     kept = f"{figures['n_kept']} of {figures['n_samples']} samples kept"
-    text = f"**Now**: {kept}; noise floor {fmt(floor_nT, 'nT', 3)}\n\n" + "\n".join(rows)
+    floor = (
+        f"noise floor ({floor_what}) {fmt(floor_nT, 'nT', 4)}"
+        if floor_what
+        else f"noise floor {fmt(floor_nT, 'nT', 3)}"
+    )
+    text = f"**Now**: {kept}; {floor}\n\n" + "\n".join(rows)
     if sensors:
         s = min(max(int(sensor), 0), len(sensors) - 1)
         cinv, bias = np.asarray(sensors[s][0], float), np.asarray(sensors[s][1], float)
@@ -438,7 +455,14 @@ def quality_markdown(report) -> str:
 
 
 def reference_markdown(ctrl) -> str:
-    """The reference field the fits use, and where it comes from (the box above shows 0 for "not typed")."""
+    """The reference field the fits use, and where it comes from (the box above shows 0 for "not typed"): the
+    vector fit's field vector first where the loop works on it, then the total-field fit's."""
+    vector = vector_reference_markdown(ctrl)
+    total = _total_reference_markdown(ctrl)
+    return f"{vector}  \n{total.replace('_Reference used:_', '_Total-field fit:_')}" if vector else total
+
+
+def _total_reference_markdown(ctrl) -> str:
     ds, state, cal = ctrl.dataset, ctrl.state, ctrl.calibration
     fitted = (
         f"; the last fit found {fmt(cal.reference_total_nT, 'nT', 6)}"
@@ -460,7 +484,10 @@ def reference_markdown(ctrl) -> str:
 
 
 def noise_markdown(ctrl) -> str:
-    """The noise behind the floors, the method that gave it, and the floor it sets."""
+    """The noise behind the floors, the method that gave it, and the floor it sets; where the loop works on the
+    vector fit, its floor (:func:`magcal_workbench.floors.floor_markdown`), the one every place shows."""
+    if ctrl.vector_loop():
+        return floor_markdown(ctrl)
     floor = ctrl.floor_nT()
     text = (
         f"**Noise:** {safe_text(ctrl.noise_text(), 800)}  \nTotal-field floor of the current fit: {fmt(floor, 'nT', 3)}"
@@ -521,16 +548,17 @@ RESIDUAL_GAIN_MAX = 1000.0
 DRAWN_RESIDUAL = 0.05
 
 
-def view_gains(ctrl) -> tuple[float, float]:
+def view_gains(ctrl, drawn_rms_nT: float | None = None) -> tuple[float, float]:
     """Default (distortion, residual) gains of the View tab for these data: the distortion gain of the kept
     samples' raw clouds (:func:`magcal_workbench.scene.distortion_gain`), the residual RMS drawn at about
     :data:`DRAWN_RESIDUAL` of the radius, not above :data:`RESIDUAL_GAIN_MAX`. Residuals of hundreds of nT would
-    otherwise be drawn far outside the screen."""
+    otherwise be drawn far outside the screen. ``drawn_rms_nT``: the RMS of the residual the scene draws (the
+    vector or gravity fit's, :meth:`magcal_workbench.view.SceneControl.fit_drawn`), default the total-field fit's."""
     F = float(ctrl.field_nT)
     if not (np.isfinite(F) and F > 0):  # an all-zero file: nothing to scale by
         return scn.DISTORTION_GAIN_MAX, RESIDUAL_GAIN_MAX
     distortion = scn.distortion_gain(ctrl.dataset.readings_nT[:, ctrl.kept], F)
-    rms = ctrl.residual_rms_nT()
+    rms = ctrl.residual_rms_nT() if drawn_rms_nT is None else float(drawn_rms_nT)
     residual = (
         RESIDUAL_GAIN_MAX
         if not np.isfinite(rms) or rms <= 0
@@ -611,6 +639,8 @@ class Panels:
         self.guide = gui.add_markdown("")
         self._engine_buttons: list = []
         self.btn_next = self._button(gui, "Step 1: fit the model", self._do_next_step, color="green")
+        #: An open lesson's title and text, under the guide's button (:func:`~magcal_workbench.guide.lesson_markdown`).
+        self.lesson_intro = gui.add_markdown("")
         #: The compact table of what matters now (RMS against the floor, % within, the matrix, coverage).
         self.summary = gui.add_markdown("")
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=True)
@@ -653,6 +683,7 @@ class Panels:
         handler = {
             "run": self.on.do_calibrate,
             "vector": self.on.do_vector_fit,
+            "gravity": self.on.do_gravity_fit,
             "diagnose": self.on.do_diagnose,
             "add": self.on.do_add_advice,
         }.get(step.key)
@@ -663,6 +694,7 @@ class Panels:
         """The guide's text and its button, for the session as it is now."""
         ctrl = self.ctrl()
         self.guide.content = guide_markdown(ctrl)
+        self.lesson_intro.content = lesson_markdown(ctrl)
         step = next_step(ctrl)
         self.btn_next.visible = step.key != "none"
         if step.label:
@@ -1100,8 +1132,7 @@ class Panels:
             b.disabled = running or self.busy()
 
     def _build_lessons(self, gui):
-        lessons = list_lessons()
-        opts = lesson_slugs()
+        opts = lesson_titles()
         gui.add_markdown(
             "Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
             "is missing, and check. The answer stays hidden until you ask."
@@ -1109,9 +1140,9 @@ class Panels:
         self.lesson_choice = self.w.dropdown(
             "Lesson",
             opts,
-            allowed=lesson_slugs,
+            allowed=lesson_titles,
             initial_value=opts[0],
-            hint="; ".join(f"{l.slug}: {l.title}" for l in lessons),
+            hint="; ".join(f"{l.title} (--lesson {l.slug})" for l in list_lessons()),
         )
         self.btn_lesson = self._button(gui, "Open the lesson", self.on.do_open_lesson)
         self.lesson_guide = gui.add_markdown("")
@@ -1179,7 +1210,7 @@ class Panels:
 
     def fit_view_to_data(self) -> None:
         """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
-        distortion, residual = view_gains(self.ctrl())
+        distortion, residual = view_gains(self.ctrl(), self.on.drawn_residual_rms())
         for handle, value in ((self.distortion_gain, distortion), (self.residual_gain, residual)):
             if handle.value == self._auto_gains.get(id(handle)) and handle.value != value:
                 self._auto_gains[id(handle)] = value
@@ -1230,6 +1261,8 @@ class Panels:
             self.quality.content = quality_markdown(ctrl.quality_with_fit())
             self.download_info.content = download_markdown(ctrl)
             self.model_terms.content = self._model_terms_markdown(ctrl)
+        if ctrl.vector_loop() and kinds & {"vector", "diagnosis"}:  # the vector mode's floor, as everywhere
+            self.noise_info.content = noise_markdown(ctrl)
         if everything or kinds & {"vector", "settings"}:  # the vector model's fit, or the loop it is on, changed
             self.history.content = self._history_markdown(ctrl)
             self.model_terms.content = self._model_terms_markdown(ctrl)
@@ -1271,7 +1304,7 @@ class Panels:
             if ctrl.vector_loop():  # the vector model's diagnosis, its counterpart
                 vd = ctrl.vector.diagnosis
                 self.candidates.content = (
-                    vector_candidates_markdown(vd)
+                    vector_candidates_markdown(vd, ctrl.vector.noise)
                     if vd is not None
                     else "_Press Diagnose to rank the effects the vector fit (attitude and field vector) may miss._"
                 )
@@ -1303,8 +1336,8 @@ class Panels:
             self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
         elif kinds == {"selection"} and self._figures_held:
             self._figures_stale = True  # the refit that follows draws them (issue 44)
-        elif everything or kinds & {"result", "selection", "data", "settings", "model"}:
-            self._figures_stale = False
+        elif everything or kinds & {"result", "selection", "data", "settings", "model", "vector"}:
+            self._figures_stale = False  # (vector: the table shows the vector mode's floor; unchanged figures stay)
             self.on.draw_cockpit()
 
     @contextmanager

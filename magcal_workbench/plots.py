@@ -521,6 +521,9 @@ class FieldRecord:
     fast : numpy.ndarray of bool or None, shape (N,)
         Samples taken while turning fast (:func:`magcal_workbench.motion.fast_turning`), None without gyro or
         attitude.
+    raw_reference_nT : numpy.ndarray or None, shape (N,)
+        What the raw readings are judged against (:func:`raw_reference_nT`): the raw data's own figure, the same
+        before and after a fit; None: ``reference_nT``.
     """
 
     time_s: np.ndarray
@@ -529,6 +532,7 @@ class FieldRecord:
     reference_nT: np.ndarray
     kept: np.ndarray
     fast: np.ndarray | None = None
+    raw_reference_nT: np.ndarray | None = None
 
     @property
     def n_samples(self) -> int:
@@ -700,20 +704,35 @@ def record_key(record: FieldRecord, *extra) -> str:
     return h.hexdigest()
 
 
+def raw_reference_nT(dataset, typed_nT=None) -> np.ndarray:
+    """The total field the raw readings are judged against, per sample (nT): the file's ``ref_total`` column,
+    else the reference typed in the page (``typed_nT``), else the file's ``# reference_total_nT``, else the median
+    |raw| of every sensor. No fit enters it: the raw row of the table and the history's first step are the raw
+    data's figure, whatever the fits find."""
+    if dataset.ref_total_nT is not None:
+        return np.asarray(dataset.ref_total_nT, dtype=float)
+    if typed_nT:
+        return np.full(dataset.n_samples, float(typed_nT))
+    if dataset.reference_total_nT:
+        return np.full(dataset.n_samples, float(dataset.reference_total_nT))
+    return np.full(dataset.n_samples, float(np.median(np.linalg.norm(dataset.readings_nT, axis=2))))
+
+
 def table_figures(record: FieldRecord) -> dict:
     """The compact table's data-derived figures: ``within_raw`` / ``within_corrected`` (:func:`within_fractions`
     of the kept samples, every sensor pooled; the latter None before a fit), ``rms_raw_nT`` (RMS of
     ``|raw| - reference``), ``coverage`` (per sensor, :func:`coverage_fraction`), ``n_kept``, ``n_samples``."""
     kept = np.asarray(record.kept, bool)
     ref = np.asarray(record.reference_nT, float)[kept]
+    raw_ref = ref if record.raw_reference_nT is None else np.asarray(record.raw_reference_nT, float)[kept]
     raw = np.linalg.norm(np.asarray(record.raw_nT, float)[:, kept], axis=2)
-    err = (raw - ref).ravel()
+    err = (raw - raw_ref).ravel()
     err = err[np.isfinite(err)]
     corr = None
     if record.corrected_nT is not None:
         corr = np.linalg.norm(np.asarray(record.corrected_nT, float)[:, kept], axis=2)
     return {
-        "within_raw": within_fractions(raw, ref),
+        "within_raw": within_fractions(raw, raw_ref),
         "within_corrected": None if corr is None else within_fractions(corr, ref),
         "rms_raw_nT": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
         "coverage": coverage_fraction(record) if kept.any() else [float("nan")] * record.n_sensors,
@@ -798,10 +817,11 @@ def magnitude_figure(record: FieldRecord, pending_s=None, max_points: int = MAX_
 def histogram_figure(record: FieldRecord, unit: str = "nT"):
     """The error histograms before and after calibration overlaid (plotly), each on its own horizontal axis in
     its colour (raw: bottom, corrected: top), since the raw error spans hundreds of nT and the corrected one a
-    few; each with its RMS in the legend."""
+    few; each axis's title says its RMS (no legend: in the panel's narrow plot it would lie over an axis)."""
     import plotly.graph_objects as go
 
     h = error_histogram(record, unit)
+    rms = {k: "" if h[k] is None else f" (RMS {format_rms(h[k]['rms'], unit)})" for k in ("before", "after")}
     fig = go.Figure()
     axes = {"before": "x", "after": "x2"}
     for key, colour, label in (("before", RAW_COLOUR, "raw"), ("after", CORRECTED_COLOUR, "corrected")):
@@ -823,17 +843,24 @@ def histogram_figure(record: FieldRecord, unit: str = "nT"):
     fig.update_layout(
         barmode="overlay",
         height=280,
-        margin={"l": 50, "r": 10, "t": 75, "b": 40},
+        margin={"l": 50, "r": 10, "t": 75, "b": 45},
         title={"text": f"error |B| - reference ({unit})", "font": {"size": 13}, "y": 0.98},
-        xaxis={"title": {"text": f"raw, {unit}", "font": {"color": RAW_COLOUR}}, "tickfont": {"color": RAW_COLOUR}},
+        xaxis={
+            "title": {"text": f"raw, {unit}{rms['before']}", "font": {"color": RAW_COLOUR}},
+            "tickfont": {"color": RAW_COLOUR},
+        },
         yaxis={"title": {"text": "samples"}},
-        legend={"orientation": "h", "y": -0.32, "font": {"size": 10}},
+        showlegend=False,
         template="plotly_white",
     )
     if h["after"] is not None:
         fig.update_layout(
             xaxis2={
-                "title": {"text": f"corrected, {unit}", "font": {"color": CORRECTED_COLOUR}, "standoff": 2},
+                "title": {
+                    "text": f"corrected, {unit}{rms['after']}",
+                    "font": {"color": CORRECTED_COLOUR},
+                    "standoff": 2,
+                },
                 "tickfont": {"color": CORRECTED_COLOUR},
                 "overlaying": "x",
                 "side": "top",
@@ -857,10 +884,16 @@ LOG_AXIS_MARGIN = 1.25
 def log_axis_scales(data) -> dict:
     """uPlot scales for a history plot (x the step, y on a log axis) whose y axis spans the data, not the decades
     around them: ``data`` as the plot takes it, ``(x, y1, y2, ...)``. uPlot's own range for a log axis snaps to
-    whole decades, so figures of 700-1300 nT were drawn on an axis to 10 000."""
+    whole decades, so figures of 700-1300 nT were drawn on an axis to 10 000. The x axis holds every step with half
+    a step either side: a history of one step is a point in the middle, not on the frame's edge."""
     values = np.concatenate([np.asarray(y, float).ravel() for y in data[1:]]) if len(data) > 1 else np.array([])
     values = values[np.isfinite(values) & (values > 0)]
     y: dict = {"distr": 3, "log": 10}
     if values.size:
         y["range"] = [float(values.min()) / LOG_AXIS_MARGIN, float(values.max()) * LOG_AXIS_MARGIN]
-    return {"x": {"time": False}, "y": y}
+    x: dict = {"time": False}
+    steps = np.asarray(data[0], float) if len(data) else np.array([])
+    steps = steps[np.isfinite(steps)]
+    if steps.size:
+        x["range"] = [float(steps.min()) - 0.5, float(steps.max()) + 0.5]
+    return {"x": x, "y": y}

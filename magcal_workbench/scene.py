@@ -450,6 +450,8 @@ class SceneModel:
     #: The labels, meshes and the cross beside the clouds. A launch's preview draws the clouds alone: each of these
     #: costs the page a shader or an HTML overlay before its first frame (issue 44: 0.6 s of a 1e6 first picture).
     decorations: bool = True
+    #: Which fit corrected the right-hand clouds (``total-field``, ``vector`` or ``gravity``): their labels say it.
+    corrected_by: str = "total-field"
 
 
 @dataclass
@@ -867,7 +869,8 @@ class SceneView:
                     partial(
                         scene.add_label,
                         f"/data/{tag}/corr_label",
-                        f"S{sv.sensor + 1} corrected",
+                        f"S{sv.sensor + 1} corrected"
+                        + (f" ({model.corrected_by} fit)" if model.corrected_by != "total-field" else ""),
                         position=centre + [PAIR_OFFSET, 0, 1.2],
                         anchor="bottom-center",
                     ),

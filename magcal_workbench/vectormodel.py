@@ -29,6 +29,8 @@ from magcal.fitting.vector import fit_vector
 from magcal.model.terms import EFFECTS
 
 from .events import Change
+from .floors import VectorNoise
+from .floors import lowest as lowest_noise
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
 from .state import VectorStep, effect_name, pack_mask, unpack_mask
@@ -214,6 +216,8 @@ class VectorModel:
         self.diagnosis = None
         self.evidence: dict | None = None
         self.floor_nT: float | None = None
+        #: The record's vector noise (:class:`magcal_workbench.floors.VectorNoise`): the lowest the diagnoses found.
+        self.noise: VectorNoise | None = None
         self._fit_key: tuple | None = None  # what the last fit was asked: kept mask, effects, robust, noise
         self.location: Location | None = None
         self.location_note = ""
@@ -462,8 +466,9 @@ class VectorModel:
             ctrl._emit(Change.PROGRESS)
         with ctrl.state.lock:
             self.diagnosis = d
-            floor = d.noise.world_floor_nT
-            self.floor_nT = float(floor) if floor is not None and np.isfinite(floor) else self.floor_nT
+            # one floor per record: it does not rise with the model (a noise given is taken as it is)
+            self.noise = lowest_noise(self.noise, d.noise, options["noise_nT"] or None)
+            self.floor_nT = None if self.noise is None else self.noise.world_floor_nT
         ctrl._emit(Change.DIAGNOSIS)
         ctrl._emit(Change.VECTOR)  # the history plot draws the floor found
         best = d.explained_by[0] if d.explained_by else None
@@ -559,6 +564,7 @@ class VectorModel:
         self.diagnosis = None
         self.evidence = None
         self.floor_nT = None
+        self.noise = None
         self._fit_key = None
         self.ctrl.state.vector_fit = None
 

@@ -65,13 +65,15 @@ def _num(v) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{v:.4g}"
 
 
-def vector_candidates_markdown(d) -> str:
+def vector_candidates_markdown(d, held=None) -> str:
     """The vector diagnosis (:class:`magcal.diagnosis.vector.VectorDiagnosis`) as the Model tab shows it, the
     counterpart of the total-field diagnosis's: verdict with the world and |B| figures against their noise, the
     summary, how candidates were judged, and the candidates for the model as it is (the first round), each with
     its world RMS in-sample and on the later part, without -> with it."""
     floor = d.noise.world_floor_nT
     noise_f = d.noise.sigma_nT
+    if held is not None:  # the record's floor (magcal_workbench.floors), the figure every place shows
+        floor, noise_f = held.world_floor_nT, held.total_noise_nT
     lines = [
         f"**Verdict:** {safe_code(d.verdict, 40)} on the vector fit (world RMS {_nT(d.base.world_nT)}, noise floor "
         f"{_nT(floor)}; |B| {_nT(d.base.total_nT)}, noise {_nT(noise_f)})",
@@ -347,7 +349,7 @@ class VectorPanel:
                 "their difference; the time window's Play flies it through the record",
             )
             self.vehicle_gain = p.w.number(
-                "Residual arrows x",
+                "Residual arrows x (0: auto)",
                 0.0,
                 min=0.0,
                 max=1e7,

@@ -3,7 +3,8 @@ world coordinates, and the residual vectors.
 
 Drawn in a frame of its own (``/vehicle``), below the sphere views, in north-east-down coordinates: the frame's
 rotation to the scene (z up) is 180 deg about north, so every child node is placed in NED and the world axes are
-labelled N, E, D. The body (a small aircraft: x forward, y right, z down) is turned by the sample's attitude
+labelled N, E, D. The body (drawn by the record's vehicle kind, :func:`vehicle_kind`: a quadcopter, an aircraft, a
+ground vehicle or a plain block; x forward, y right, z down) is turned by the sample's attitude
 (body -> NED); the model field is the reference vector (IGRF or the file's ``ref_n, ref_e, ref_d``), the measured
 field is the vector fit's corrected reading rotated to the world, ``R(q) B_body``; both are drawn at the same
 scale (``|B|`` = :data:`ARROW_LENGTH` scene units), and their difference from the model's tip, exaggerated by a
@@ -50,6 +51,11 @@ TRAIL_RGB = (240, 150, 150)
 AXIS_RGB = (110, 110, 110)
 BODY_RGB = (200, 200, 210)
 NOSE_RGB = (230, 120, 20)
+#: The body's own axes (x forward, y right, z down): dark grey, so that no field's colour (green, blue, red)
+#: is also a body line.
+BODY_AXIS_RGB = (60, 60, 70)
+#: Length of the body's axes (scene units).
+BODY_AXIS_LENGTH = 0.8
 
 
 # --- geometry (pure) ------------------------------------------------------------------------------------------
@@ -146,9 +152,31 @@ def residual_trail(model_ned_nT, measured_ned_nT, field_nT, gain, length=ARROW_L
     return (model + gain * (measured - model)) * scale
 
 
-def vehicle_mesh(length=1.3):
-    """A small aircraft in the body frame (x forward, y right, z down): ``(hull, nose)``, each ``(vertices,
-    faces)``; the nose marks the front. Made of boxes with trimesh."""
+#: The vehicle kinds the view draws, and the words of a file's ``# vehicle:`` line (or a log's firmware) that name
+#: each; a record that names none is drawn as a plain body with its nose (``body``).
+VEHICLE_WORDS = {
+    "multirotor": ("quad", "copter", "multirotor", "multicopter", "hexa", "octo", "drone", "rotor"),
+    "aeroplane": ("plane", "aircraft", "wing", "glider", "airplane"),
+    "ground": ("rover", "car", "boat", "ship", "ground", "vehicle on wheels", "truck"),
+}
+
+
+def vehicle_kind(dataset) -> str:
+    """The record's vehicle kind for the drawing: ``multirotor``, ``aeroplane``, ``ground`` or ``body`` (not
+    named), from the file's ``# vehicle:`` line, else the firmware a log names (ArduCopter, ArduPlane, Rover)."""
+    meta = getattr(dataset, "metadata", None) or {}
+    words = " ".join(str(meta.get(k, "")) for k in ("vehicle", "log_vehicle", "log_firmware")).lower()
+    for kind, names in VEHICLE_WORDS.items():
+        if any(n in words for n in names):
+            return kind
+    return "body"
+
+
+def vehicle_mesh(length=1.3, kind="aeroplane"):
+    """The vehicle in the body frame (x forward, y right, z down): ``(hull, nose)``, each ``(vertices, faces)``;
+    the nose marks the front. ``kind`` (:func:`vehicle_kind`): ``aeroplane`` (fuselage, wings, tail),
+    ``multirotor`` (a centre plate, two arms in an X and a rotor disc at each end), ``ground`` (a low hull and four
+    wheels) or ``body`` (a plain block). Made with trimesh."""
     import trimesh
 
     def box(extents, centre):
@@ -156,16 +184,43 @@ def vehicle_mesh(length=1.3):
         m.apply_translation(centre)
         return m
 
+    def disc(radius, height, centre, axis=(0.0, 0.0, 1.0)):
+        m = trimesh.creation.cylinder(radius=radius, height=height, sections=24)
+        if axis != (0.0, 0.0, 1.0):  # a wheel: its axis along y
+            m.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1.0, 0.0, 0.0]))
+        m.apply_translation(centre)
+        return m
+
     s = length
-    hull = trimesh.util.concatenate(
-        [
+    if kind == "multirotor":
+        arm = 0.5 * s  # centre to rotor
+        parts = [box((0.36 * s, 0.26 * s, 0.1 * s), (0.0, 0.0, 0.0))]
+        for angle in (45.0, 135.0):  # the two arms of the X (front-right/back-left, front-left/back-right)
+            a = trimesh.creation.box(extents=(2.0 * arm, 0.05 * s, 0.04 * s))
+            a.apply_transform(trimesh.transformations.rotation_matrix(np.radians(angle), [0.0, 0.0, 1.0]))
+            parts.append(a)
+        for angle in (45.0, 135.0, 225.0, 315.0):  # a rotor disc above each arm's end (up is -z)
+            c = (arm * np.cos(np.radians(angle)), arm * np.sin(np.radians(angle)), -0.06 * s)
+            parts.append(disc(0.2 * s, 0.012 * s, c))
+        nose = box((0.14 * s, 0.12 * s, 0.1 * s), (0.25 * s, 0.0, 0.0))
+    elif kind == "ground":
+        parts = [box((s, 0.5 * s, 0.18 * s), (0.0, 0.0, 0.0))]
+        for x in (0.32 * s, -0.32 * s):
+            for y in (0.28 * s, -0.28 * s):
+                parts.append(disc(0.12 * s, 0.06 * s, (x, y, 0.1 * s), axis=(0.0, 1.0, 0.0)))
+        nose = box((0.12 * s, 0.3 * s, 0.12 * s), (0.55 * s, 0.0, -0.02 * s))
+    elif kind == "aeroplane":
+        parts = [
             box((s, 0.16 * s, 0.14 * s), (0.0, 0.0, 0.0)),  # fuselage
             box((0.28 * s, 1.1 * s, 0.025 * s), (0.05 * s, 0.0, 0.0)),  # wings
             box((0.14 * s, 0.45 * s, 0.02 * s), (-0.42 * s, 0.0, 0.0)),  # tailplane
             box((0.16 * s, 0.02 * s, 0.22 * s), (-0.42 * s, 0.0, -0.16 * s)),  # fin, up (-z)
         ]
-    )
-    nose = box((0.18 * s, 0.17 * s, 0.15 * s), (0.55 * s, 0.0, 0.0))
+        nose = box((0.18 * s, 0.17 * s, 0.15 * s), (0.55 * s, 0.0, 0.0))
+    else:
+        parts = [box((0.8 * s, 0.45 * s, 0.12 * s), (0.0, 0.0, 0.0))]
+        nose = box((0.16 * s, 0.2 * s, 0.13 * s), (0.46 * s, 0.0, 0.0))
+    hull = trimesh.util.concatenate(parts)
     return (np.asarray(hull.vertices), np.asarray(hull.faces)), (np.asarray(nose.vertices), np.asarray(nose.faces))
 
 
@@ -306,11 +361,15 @@ class VehicleView(PagePart):
         current = self.window.current(sample_times(ds))
         return 0 if current is None else int(current)
 
+    def _typed_gain(self) -> float:
+        """The exaggeration typed in the View tab (0: automatic)."""
+        return float(self._panel.vehicle_gain.value or 0.0)
+
     def chosen_gain(self, field_nT: float) -> float:
         """The exaggeration typed (View tab), else the automatic one from the vector model's world residual: the
         base model's (:meth:`VectorModel.gain_rms_nT`), so that the arrows shorten when an added effect explains
         part of it."""
-        typed = float(self._panel.vehicle_gain.value or 0.0)
+        typed = self._typed_gain()
         if typed > 0:
             return typed
         return residual_gain(self.ctrl.vector.gain_rms_nT(), field_nT)
@@ -429,7 +488,7 @@ class VehicleView(PagePart):
         """The frame, the world axes and their labels, the ground grid and the body mesh (once)."""
         if self._static_drawn and "/vehicle" in self.nodes:
             return
-        hull, nose = vehicle_mesh()
+        hull, nose = vehicle_mesh(kind=vehicle_kind(self.ctrl.dataset))
         self.nodes["/vehicle"] = scene.add_frame(
             "/vehicle", wxyz=NED_FRAME_WXYZ, position=tuple(VEHICLE_ORIGIN), show_axes=False
         )
@@ -450,8 +509,10 @@ class VehicleView(PagePart):
             section_color=(190, 190, 190),
             shadow_opacity=0.0,
         )
-        self.nodes["/vehicle/body"] = scene.add_frame(
-            "/vehicle/body", show_axes=True, axes_length=0.7, axes_radius=0.015
+        self.nodes["/vehicle/body"] = scene.add_frame("/vehicle/body", show_axes=False)
+        body_axes = np.array([[np.zeros(3), BODY_AXIS_LENGTH * e] for e in np.eye(3)], np.float32)
+        self.nodes["/vehicle/body/axes"] = scene.add_arrows(
+            "/vehicle/body/axes", body_axes, BODY_AXIS_RGB, shaft_radius=0.01, head_radius=0.035, head_length=0.09
         )
         self.nodes["/vehicle/body/hull"] = scene.add_mesh_simple(
             "/vehicle/body/hull", hull[0].astype(np.float32), hull[1], color=BODY_RGB, flat_shading=True
@@ -493,7 +554,9 @@ class VehicleView(PagePart):
         text = (
             f"Sample {s['sample']} (the time window's last; **Play** flies the record). Green: the model field; "
             f"blue: the measured field, corrected and rotated to the world; red: their difference x{s['gain']:g} "
-            f"from the model's tip. |B| = {s['field_nT']:.0f} nT is drawn {ARROW_LENGTH:g} units."
+            f"{'(typed)' if self._typed_gain() else '(automatic: Residual arrows x is 0)'} from the model's tip; "
+            f"dark grey: the {vehicle_kind(self.ctrl.dataset)}'s axes (x forward, y right, z down). "
+            f"|B| = {s['field_nT']:.0f} nT is drawn {ARROW_LENGTH:g} units."
         )
         if s["measured_ned_nT"] is None:
             text += " Run the vector fit (Calibrate tab) to draw the measured field."

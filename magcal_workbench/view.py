@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -16,6 +17,8 @@ from magcal.data.attitude import attitude_quaternions
 from . import motion
 from . import scene as scn
 from .actions import action
+from .gravitymodel import model_of
+from .guide import gravity_mode
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .parts import PagePart
@@ -57,6 +60,20 @@ def ring_directions(dataset, corrected_nT, current: int | None):
     return motion.ring_from_directions(np.asarray(corrected_nT)[recent])
 
 
+@dataclasses.dataclass(frozen=True)
+class FitDrawn:
+    """What the scene draws of a fit: its calibration (the ellipsoid), the corrected readings (n_sensors, N, 3,
+    nT) and their |B| residual (n_sensors, N, nT), the field the clouds are scaled by and the floor the colours
+    are judged against (nT), and which fit (``total-field`` or ``vector``); arrays None before a fit."""
+
+    calibration: Any  # magcal.calibration.calibration.Calibration or None
+    corrected_nT: np.ndarray | None
+    residual_nT: np.ndarray | None
+    field_nT: float
+    floor_nT: float | None
+    by: str
+
+
 class SceneControl(PagePart):
     """The scene, the camera, pointer events and the View tab's actions.
 
@@ -90,6 +107,8 @@ class SceneControl(PagePart):
         self.maps, self.window, self.values, self.ui, self.server = maps, window, values, ui, server
         self.evidence = evidence
         self._lock = threading.RLock()
+        #: The vector fit's corrected readings and |B| residuals, made once per fit (:meth:`fit_drawn`).
+        self._vector_drawn: tuple = (None, None)
         self._last_evidence_t = 0.0
 
     @property
@@ -124,13 +143,14 @@ class SceneControl(PagePart):
         ctrl = self.ctrl
         ds = ctrl.dataset
         shown = range(ds.n_sensors) if ctrl.state.sensor is None else [ctrl.state.sensor]
-        cal = ctrl.calibration
+        drawn = self.fit_drawn()
+        cal, corrected, residual = drawn.calibration, drawn.corrected_nT, drawn.residual_nT
         views = [
             scn.SensorView(
                 sensor=s,
                 raw_nT=ds.readings_nT[s],
-                corrected_nT=None if ctrl.corrected_nT is None else ctrl.corrected_nT[s],
-                residual_nT=(ctrl.raw_residual_nT()[s] if ctrl.residual_nT is None else ctrl.residual_nT[s]),
+                corrected_nT=None if corrected is None else corrected[s],
+                residual_nT=(ctrl.raw_residual_nT()[s] if residual is None else residual[s]),
                 cinv=None if cal is None else cal.sensors[s].cinv,
                 bias_nT=None if cal is None else cal.sensors[s].bias_nT,
                 R=None if cal is None else cal.sensors[s].R,
@@ -142,9 +162,10 @@ class SceneControl(PagePart):
         return scn.SceneModel(
             sensors=views,
             n_sensors=ds.n_sensors,
-            field_nT=ctrl.field_nT,
+            field_nT=drawn.field_nT,
             kept=ctrl.state.kept,  # live, even in a job
-            floor_nT=ctrl.floor_nT(),
+            floor_nT=drawn.floor_nT,
+            corrected_by=drawn.by,
             baseline_m=ds.baseline_m,
             all_calibrations=[] if cal is None else [(c.cinv, c.R) for c in cal.sensors],
             inspected=ctrl.inspected,
@@ -154,6 +175,55 @@ class SceneControl(PagePart):
             ring=None if current is None else ring_directions(ds, views[0].corrected_nT if views else None, current),
             **self.panels.view_options(),
         )
+
+    def fit_drawn(self) -> FitDrawn:
+        """The fit the scene draws: where the loop works on the vector fit and it has run, the vector fit's
+        correction (its readings corrected in the body frame, |B| residual against the field vector); else the
+        total-field fit's (none before a fit)."""
+        ctrl = self.ctrl
+        vm = ctrl.vector
+        result, world, ned = vm.result, vm.world_nT, vm.reference_ned_nT
+        gm = model_of(ctrl)
+        if gravity_mode(ctrl) and gm is not None and gm.result is not None:
+            return self._gravity_drawn(gm.result)
+        if not ctrl.vector_loop() or result is None or world is None or ned is None:
+            return FitDrawn(
+                ctrl.calibration, ctrl.corrected_nT, ctrl.residual_nT, ctrl.field_nT, ctrl.floor_nT(), "total-field"
+            )
+        key, drawn = self._vector_drawn
+        if key is not result:
+            cal = result.calibration
+            corrected = np.asarray(cal.correct(ctrl.dataset, record_terms="apply", warn=False, force=True), float)
+            ref_total = np.linalg.norm(ned, axis=1)
+            residual = np.linalg.norm(world, axis=2) - ref_total[None]
+            drawn = FitDrawn(cal, corrected, residual, float(np.median(ref_total)), None, "vector")
+            self._vector_drawn = (result, drawn)
+        return dataclasses.replace(drawn, floor_nT=vm.floor_nT)
+
+    @action
+    def drawn_residual_rms(self) -> float:
+        """RMS (nT) of the kept samples' |B| residual of the fit the scene draws (NaN before a fit): the View tab's
+        residual gain is set from it (:func:`magcal_workbench.panels.view_gains`)."""
+        residual = self.fit_drawn().residual_nT
+        if residual is None:
+            return float("nan")
+        kept = np.asarray(self.ctrl.kept, bool)
+        values = np.asarray(residual, float)[:, kept]
+        values = values[np.isfinite(values)]
+        return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+    def _gravity_drawn(self, result) -> FitDrawn:
+        """The gravity fit's correction: the magnetometer corrected into the accelerometer's frame, its |B|
+        residual against the field the fit found (made once per fit)."""
+        key, drawn = self._vector_drawn
+        if key is not result:
+            cal = result.calibration
+            corrected = np.asarray(cal.correct(self.ctrl.dataset, record_terms="apply", warn=False, force=True), float)
+            field = float(cal.reference_total_nT or np.median(np.linalg.norm(corrected, axis=2)))
+            residual = np.linalg.norm(corrected, axis=2) - field
+            drawn = FitDrawn(cal, corrected, residual, field, self.ctrl.floor_nT(), "gravity")
+            self._vector_drawn = (result, drawn)
+        return drawn
 
     def update_scene(self) -> None:
         with self._lock:
@@ -169,7 +239,15 @@ class SceneControl(PagePart):
     def legend_html(self) -> str:
         live = self._live()
         fitted = (live.fit is not None) if live is not None else self.ctrl.calibration is not None
-        title = "total-field residual" if fitted else "raw |y| - F"
+        by = self.fit_drawn().by if live is None else "total-field"
+        fitted = fitted or by != "total-field"
+        title = (
+            f"|B| residual of the {by} fit"
+            if by != "total-field"
+            else "total-field residual"
+            if fitted
+            else "raw |y| - F"
+        )
         html = scn.legend_html(self.scene_view.last_limit_nT, title)
         if self.maps.patterns and live is None:
             html += scn.legend_html(

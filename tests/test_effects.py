@@ -26,7 +26,7 @@ ISSUE_EFFECTS = (
     "reference_drift",
     "site_gradient",
 )
-UNITS = ("_nT", "_ms", "_ms2", "_ppm_per_K", "_nT_per_K", "_nT_per_h", "_nT_per_m", "_nT_per_unit")
+UNITS = ("_nT", "_ms", "_ms2", "_ppm_per_K", "_nT_per_K", "_nT_per_h", "_nT_per_m", "_nT_per_unit", "_nT_per_A")
 
 
 def _pair(name, magnitude=None, n_sensors=1, seed=4, n=600, sensor=None):

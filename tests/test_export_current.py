@@ -409,3 +409,19 @@ int main(void) {{
         subprocess.run([str(exe)], capture_output=True, text=True, check=True, timeout=30).stdout.split("\n")[:n]
     )
     assert np.max(np.abs(out - cal.correct(two)[0][:n])) < 1.0  # float32 parameters
+
+
+@pytest.mark.parametrize(("column", "unit"), [("current_A", "A"), ("throttle", "unit")])
+def test_the_current_terms_parameters_are_named_in_the_columns_unit_and_old_names_still_read(flights, column, unit):
+    """A current in amperes gives ``k_x_nT_per_A``; a file saved with the former ``k_x_nT_per_unit`` names reads
+    back to the same correction."""
+    cal, two = flights[column]
+    doc = cal.to_dict()
+    entries = [e for e in doc["effect_params"] if e["effect"] == "current_field"]
+    assert len(entries) == 2
+    names = {n for e in entries for n in e["params"]}
+    assert names == {f"k_{a}_nT_per_{unit}" for a in "xyz"}
+    for e in entries:  # as a calibration of an earlier version saved them
+        e["params"] = {n.replace("_per_A", "_per_unit"): v for n, v in e["params"].items()}
+    old = Calibration.from_dict(doc)
+    assert np.allclose(old.correct(two), cal.correct(two), atol=1e-9)

@@ -144,7 +144,7 @@ def test_the_page_judges_the_compass_lesson_on_the_gravity_fit(bench):
     desk is handed the gravity page, not the workbench)."""
     wb = bench(store=False)
     assert not wb.gravity.btn_fit.visible  # the opening data have no accelerometer
-    wb.panels.lesson_choice.value = "tilted-compass"
+    wb.panels.lesson_choice.value = get_lesson("tilted-compass").title
     wb.lessons.do_open_lesson(None)
     assert wb.worker.wait(60) and wb.ctrl.state.lesson == "tilted-compass"
     wb.ui.wait()

@@ -27,7 +27,7 @@ def _lesson(slug):
     [
         ("warm-sensor", "run", ["4 sensors", "temperature", "the total-field fit"]),
         ("drone-current", "vector", ["attitude", "the vector fit (attitude and the field vector"]),
-        ("tilted-compass", "run", ["an accelerometer", "the gravity fit"]),
+        ("tilted-compass", "gravity", ["an accelerometer", "the gravity fit"]),
     ],
 )
 def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first, words):
@@ -36,6 +36,8 @@ def test_the_guide_says_what_the_data_are_and_the_first_step(bench, slug, first,
     for word in words:
         assert word in text, (word, text)
     assert next_step(wb.ctrl).key == first and wb.panels.btn_next.visible
+    listed = text.split("**Fits it allows:** ")[1]  # the first fit listed is the one Step 1 runs
+    assert listed.startswith({"run": "the total-field", "vector": "the vector", "gravity": "the gravity"}[first])
     assert wb.panels.btn_next.label.startswith("Step 1: fit")
 
 
@@ -138,6 +140,7 @@ def test_a_history_plots_log_axis_spans_its_data_not_the_decades(series, lo, hi)
     data = (np.arange(2.0), *[np.array(s) for s in series])
     y = log_axis_scales(data)["y"]
     assert y["distr"] == 3 and y["range"] == pytest.approx([lo / LOG_AXIS_MARGIN, hi * LOG_AXIS_MARGIN])
+    assert log_axis_scales(data)["x"]["range"] == [-0.5, 1.5]  # every step inside the frame
     assert "range" not in log_axis_scales((np.arange(2.0), np.array([np.nan, np.nan])))["y"]
 
 
@@ -152,3 +155,25 @@ def test_a_verdict_that_could_not_judge_advises_nothing_and_says_why():
     ctrl = SimpleNamespace(vector_loop=lambda: True, vector=vm, loop_diagnosis=lambda: diagnosis, advice=lambda: [])
     step = step_of(ctrl)
     assert step.key == "none" and "not_judged" in step.why and "longer record" in step.why
+
+
+@pytest.mark.parametrize("slug", ["drone-current", "tilted-compass"])
+def test_a_lesson_opens_on_its_text_and_the_list_shows_titles(bench, slug):
+    """The Lessons tab lists the lessons by title; opening one puts its title and text on the first screen, under
+    the data and the next step's button, without the answer."""
+    from magcal_workbench.lessons import list_lessons
+
+    wb = bench(store=False)
+    lesson = get_lesson(slug)
+    titles = tuple(wb.panels.lesson_choice.options)
+    assert titles == tuple(l.title for l in list_lessons()) and slug not in titles
+    wb.panels.lesson_choice.value = lesson.title
+    _click(wb, wb.panels.btn_lesson)
+    wb.ui.wait()
+    text = wb.panels.lesson_intro.content
+    assert wb.ctrl.state.lesson == slug and f"lesson `{slug}`" in wb.panels.guide.content
+    assert text.startswith(f"### Lesson: {lesson.title}") and lesson.guide().strip() in text
+    assert all(e.partition(":")[0] not in text for e in lesson.answer()["effects"])
+    wb.lessons.load(_lesson("warm-sensor"), None, "other.csv")  # other data: the lesson's text goes
+    wb.ui.wait()
+    assert wb.panels.lesson_intro.content == ""

@@ -539,7 +539,7 @@ def test_upload_replaces_the_data(bench, tmp_path):
 def test_lesson_answer_stays_hidden_until_asked(bench):
     wb = bench()
     lesson = list_lessons()[0]
-    wb.panels.lesson_choice.value = lesson.slug
+    wb.panels.lesson_choice.value = lesson.title  # the list shows titles
     _click(wb, wb.panels.btn_lesson)
     assert wb.ctrl.state.lesson == lesson.slug
     assert lesson.title in wb.panels.lesson_guide.content

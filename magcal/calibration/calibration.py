@@ -1148,13 +1148,27 @@ def _effects_from_dict(doc, n_sensors, source="calibration"):
                 )
             label = block_label(effect, None if sensor is None or not effect.per_sensor else sensor - 1)
             # a non-physical value (a negative hysteresis width...) is refused with the file and parameter named
-            values[label] = effect.check_params([entry["params"][n] for n in effect.param_names()], source)
+            values[label] = effect.check_params(_saved_params(effect, entry["params"], source, term), source)
         missing = [block_label(e, s) for e, s in model.instances() if block_label(e, s) not in values]
         if missing:  # every block the model applies needs its parameters (a KeyError when correcting, otherwise)
             raise MagcalError(
                 f"{source}: no parameters for the effect block(s) {', '.join(missing)}; the file is damaged, recalibrate"
             )
     return model, values
+
+
+def _saved_params(effect, params: dict, source, term) -> list:
+    """An effect's saved parameters in :meth:`~magcal.model.terms.Effect.param_names` order; a file saved under
+    the effect's former names (``former_param_names``, e.g. ``k_x_nT_per_unit`` of a current in amperes) is read
+    too."""
+    former: list = getattr(effect, "former_param_names", lambda: [])()
+    for names in (effect.param_names(), former):
+        if names and all(n in params for n in names):
+            return [params[n] for n in names]
+    raise MagcalError(
+        f"{source}: effect {term}: its parameters should be named {', '.join(effect.param_names())}, the file has "
+        f"{', '.join(map(str, params)) or 'none'}; the file is damaged, recalibrate"
+    )
 
 
 def document_text(document, what="calibration") -> str:

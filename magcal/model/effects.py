@@ -430,6 +430,13 @@ class CurrentField(CatalogueEffect):
         self.column = column
 
     def param_names(self):
+        """``k_x_nT_per_A`` ... for a ``current_A`` column, ``k_x_nT_per_unit`` for ``throttle`` (or before the
+        column is chosen)."""
+        unit = "A" if self.column == "current_A" else "unit"
+        return [f"k_{a}_nT_per_{unit}" for a in _AXES]
+
+    def former_param_names(self):
+        """The names calibrations saved before the current's unit was in them (read, never written)."""
         return [f"k_{a}_nT_per_unit" for a in _AXES]
 
     def param_scale(self):
