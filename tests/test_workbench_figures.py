@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from magcal.diagnosis.vector import VectorNoise
 from magcal_workbench.dataio import load_dataset
 from magcal_workbench.floors import lowest, mode_floor
 from magcal_workbench.guide import next_step
@@ -67,16 +68,21 @@ def test_one_records_noise_floor_reads_the_same_in_every_tab_through_the_loop(be
     assert mode_floor(wb.ctrl).value_nT == pytest.approx(seen[-1], rel=1e-3)
 
 
+def _noise(world_floor_nT, total_nT):
+    """A vector diagnosis's noise as the engine gives it (one sensor)."""
+    return VectorNoise([total_nT], [total_nT], 0.0, world_floor_nT)
+
+
 def test_the_held_floor_is_the_lowest_estimate_and_counts_the_diagnoses():
-    first = lowest(None, {"world_floor_nT": 15.0, "total_nT": [7.0]})
-    second = lowest(first, {"world_floor_nT": 12.0, "total_nT": [3.0]})
-    third = lowest(second, {"world_floor_nT": 13.0, "total_nT": [4.0]})
+    first = lowest(None, _noise(15.0, 7.0))
+    second = lowest(first, _noise(12.0, 3.0))
+    third = lowest(second, _noise(13.0, 4.0))
     assert (first.world_floor_nT, second.world_floor_nT, third.world_floor_nT) == (15.0, 12.0, 12.0)
     assert third.total_noise_nT == 3.0 and (third.diagnosis, third.of) == (2, 3)
     assert "diagnosis 2 of 3" in third.source() and "the vector diagnosis" in first.source()
-    given = lowest(third, {"world_floor_nT": 20.0, "total_nT": [9.0]}, given_nT=9.0)  # a noise given: as it is
+    given = lowest(third, _noise(20.0, 9.0), given_nT=9.0)  # a noise given: as it is
     assert given.world_floor_nT == 20.0 and "the noise given, 9 nT per axis" in given.source()
-    again = lowest(given, {"world_floor_nT": 14.0, "total_nT": [3.5]})  # taken back: estimated anew
+    again = lowest(given, _noise(14.0, 3.5))  # taken back: estimated anew
     assert (again.world_floor_nT, again.given_nT, again.of) == (14.0, None, 1)
 
 
