@@ -137,7 +137,7 @@ class Steps(PagePart):
         if why is not None:
             raise MagcalError(why)
         ctrl = self.ctrl
-        status = ctrl._report_progress  # the page's status line says while the terminal waits for the answer
+        status = ctrl.report_progress  # the page's status line says while the terminal waits for the answer
         ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say, status)))
 
     @action
@@ -156,7 +156,7 @@ class Steps(PagePart):
         ctrl.run_job(
             "load the session's effects files",
             lambda: ctrl.load_session_effects_files(
-                permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl._report_progress)
+                permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl.report_progress)
             ),
         )
 
