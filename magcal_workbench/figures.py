@@ -40,3 +40,9 @@ def rms(a) -> float:
 def candidate_label(candidate) -> str:
     """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or its dict)."""
     return candidate["label"] if isinstance(candidate, dict) else candidate.label
+
+
+def fmt(v, unit="", digits=4) -> str:
+    """A number for the page (:func:`format_number`) with its unit, or ``-``."""
+    text = format_number(v, digits)
+    return text if text == "-" else f"{text}{(' ' + unit) if unit else ''}"

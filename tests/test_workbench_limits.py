@@ -213,7 +213,7 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
 
     monkeypatch.setattr(fit_module, "fit", slow_fit)
     rows = len(ctrl.state.history)
-    wb.handle(wb.steps.do_refine, None)
+    wb.handle(wb.actions.do_refine, None)
     assert entered.wait(WAIT_S)
     rejected = np.arange(10, 47)
     ctrl.select(rejected)  # another page rejects 37 samples while the fit runs
@@ -253,7 +253,7 @@ def test_a_job_fits_the_model_it_started_with_when_an_effect_is_ticked_meanwhile
 
     monkeypatch.setattr(fit_module, "fit", slow_fit)
     rows = len(ctrl.state.history)
-    wb.handle(wb.steps.do_refine, None)
+    wb.handle(wb.actions.do_refine, None)
     assert entered.wait(WAIT_S)
     assert ctrl.set_effect("temperature_bias", True)  # another page ticks an effect while the fit runs
     release.set()

@@ -180,3 +180,15 @@ def test_a_session_saved_before_the_gravity_fit_was_kept_still_opens():
     _same_calibration(ctrl.calibration, first.calibration)
     assert ctrl.gravity.result is None and ctrl.gravity.save() is None
     assert int(ctrl.kept.sum()) == ds.n_samples - 10
+
+
+def test_the_panels_texts_follow_the_active_sessions_mode():
+    from magcal_workbench.looptext import LOOP_TEXTS, loop_text
+
+    plain = Controller(magcal.simulate_timeseries("chi2017", n_samples=200, seed=1))
+    vehicle = Controller(_vehicle_record())
+    assert loop_text(plain) is LOOP_TEXTS["total_field"] and not loop_text(plain).evidence_per_candidate
+    assert loop_text(vehicle) is LOOP_TEXTS["vector"] and loop_text(vehicle).evidence_per_candidate
+    assert "vector fit" in loop_text(vehicle).candidates(vehicle)  # before a diagnosis: what to press
+    assert "Not fitted" not in loop_text(plain).status(plain) and loop_text(plain).status(plain) == ""
+    assert "Vector model: not fitted yet" in loop_text(vehicle).status(vehicle)
