@@ -53,7 +53,6 @@ class GravitySession(ModelSession):
 
     def __init__(self, ctrl):
         super().__init__(ctrl)
-        self.effects: list[str] = []
         self.result = None
         self.separate = None
         self.heading: dict | None = None
@@ -108,7 +107,9 @@ class GravitySession(ModelSession):
             self.result, self.separate = result, sep
             self.heading, self.heading_separate = heading, heading_sep
             self.still = result.still.mask & kept
-            self.accel_m_s2 = result.calibration.accelerometer.correct(accelerometer(ds).m_s2)
+            accel_cal, accel = result.calibration.accelerometer, accelerometer(ds)
+            assert accel_cal is not None and accel is not None  # a gravity fit is of the accelerometer's readings
+            self.accel_m_s2 = accel_cal.correct(accel.m_s2)
             self.diagnosis = None
             ctrl.state.gravity_fit = {"kept": pack_mask(kept), "robust": robust}
             if not again:

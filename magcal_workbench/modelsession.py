@@ -61,6 +61,16 @@ class ModelSession:
     def __init__(self, ctrl):
         self.ctrl = ctrl
         self.diagnosis: Any = None
+        self._effects: list[str] = []
+
+    @property
+    def effects(self) -> list[str]:
+        """The model's effect labels beyond the base terms, in the order added."""
+        return list(self._effects)
+
+    @effects.setter
+    def effects(self, labels) -> None:
+        self._effects = list(labels)
 
     # --- what the data offer -------------------------------------------------------------------------------
     @property
@@ -76,9 +86,6 @@ class ModelSession:
     def available(self) -> bool:
         """Whether the data hold what this mode needs (:meth:`missing` is empty)."""
         return not self.missing()
-
-    #: The model's effect labels beyond the base terms, in the order added (a mode's session sets or computes it).
-    effects: list[str]
 
     # --- the model -----------------------------------------------------------------------------------------
     @property

@@ -466,7 +466,7 @@ class Panels:
         self.legend = gui.add_html("")
         #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
         self.evidence_overlay = gui.add_html("", visible=False)
-        tabs = gui.add_tab_group()
+        tab_group = gui.add_tab_group()
         self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
         #: A change of the selection leaves the cockpit's figures to the refit that follows (:meth:`figures_held`),
         #: and whether some were left.
@@ -488,11 +488,11 @@ class Panels:
             ("Files", self._build_files),
             ("Lessons", self._build_lessons),
         ):
-            tab = tabs.add_tab(name, icon=None)
+            tab = tab_group.add_tab(name, icon=None)
             self.tab_by_name[name] = tab
             with tab:
                 build(gui)
-        self.tabs = tabs
+        self.tabs = tab_group
 
     def _built_in(self, name: str, gui) -> None:
         """Build the panel ``name`` of the recipe here, in the tab being built (its ``build(panels, gui)``); a

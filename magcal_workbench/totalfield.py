@@ -82,7 +82,14 @@ class TotalFieldSession(ModelSession):
 
     @property
     def effects(self) -> list[str]:
+        """The session's effects (the session file's ``effects``; the Model tab's boxes)."""
         return list(self.ctrl.state.effects)
+
+    @effects.setter
+    def effects(self, labels) -> None:
+        with self.ctrl.state.lock:
+            self.ctrl.state.effects = list(labels)
+            self.ctrl.state.touch()
 
     def history(self) -> list[StepRecord]:
         return list(self.ctrl.state.history)

@@ -223,7 +223,7 @@ class VectorSession(ModelSession):
         self.reference_ned_nT: np.ndarray | None = None
         self.reference_text = ""
         saved_fit = getattr(ctrl.state, "vector_fit", None) or {}
-        self.effects: list[str] = list(saved_fit.get("effects", []))
+        self.effects = list(saved_fit.get("effects", []))
         self.evidence: dict | None = None
         self.floor_nT: float | None = None
         self._fit_key: tuple | None = None  # what the last fit was asked: kept mask, effects, robust, noise
@@ -401,6 +401,7 @@ class VectorSession(ModelSession):
                 "effects": list(effects),
             }
             row = self.vector_row(kept)
+            assert row.world_rms_nT is not None  # a vector fit gives the world components
             elapsed = time.perf_counter() - t0
             if not again:
                 ctrl.state.record_vector(
