@@ -11,7 +11,8 @@ A panel is a class whose instance has
   thread, to follow the data, the fit and the selection.
 
 A built-in tab made as a panel (:class:`~magcal_workbench.calibratetab.CalibrateTab`,
-:class:`~magcal_workbench.modeltab.ModelTab`, :class:`~magcal_workbench.qualitytab.QualityTab`) fills its own tab
+:class:`~magcal_workbench.modeltab.ModelTab`, :class:`~magcal_workbench.qualitytab.QualityTab`,
+:class:`~magcal_workbench.outlierstab.OutliersTab`) fills its own tab
 instead: ``build(panels, gui)``, called by :class:`~magcal_workbench.panels.Panels` at the tab's place (or, when the
 panels were not handed it, by its ``attach`` inside ``with panels.tab("Quality"): ...``); it joins
 ``panels.tab_panels`` and is refreshed with the other tabs (``refresh(kinds)``, :meth:`Panels.refresh
@@ -37,6 +38,7 @@ from magcal.core.registry import Registry
 from .calibratetab import CalibrateTab
 from .gravitypage import GravityPage
 from .modeltab import ModelTab
+from .outlierstab import OutliersTab
 from .qualitytab import QualityTab
 
 
@@ -111,6 +113,14 @@ PANELS.register(
         name="quality",
         description="the Quality tab: the data's quality findings and the noise behind the floors",
         make=lambda c: QualityTab(ctrl=c.ctrl),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="outliers",
+        description="the Outliers tab: the box selection's mode, the threshold, undo, redo, reset, the inspected sample",
+        make=lambda c: OutliersTab(ctrl=c.ctrl, steps=c.steps),
     ),
     origin="built-in",
 )

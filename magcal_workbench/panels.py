@@ -483,7 +483,7 @@ class Panels:
             ("Calibrate", lambda gui: self._built_in("calibrate", gui)),  # magcal_workbench.calibratetab
             ("Model", lambda gui: self._built_in("model", gui)),  # magcal_workbench.modeltab
             ("Quality", lambda gui: self._built_in("quality", gui)),  # magcal_workbench.qualitytab
-            ("Outliers", self._build_outliers),
+            ("Outliers", lambda gui: self._built_in("outliers", gui)),  # magcal_workbench.outlierstab
             ("View", self._build_view),
             ("Files", self._build_files),
             ("Lessons", self._build_lessons),
@@ -573,23 +573,6 @@ class Panels:
         if engine:
             self._engine_buttons.append(b)
         return b
-
-    def _build_outliers(self, gui):
-        gui.add_markdown(
-            "**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
-            "**click** a point to inspect its sample. Rejected points turn magenta."
-        )
-        self.box_mode = self.w.dropdown("Box selection", ("reject", "restore"), initial_value="reject")
-        self.k_sigma = self.w.slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
-        self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.on.do_threshold, engine=False)
-        self.auto_refit = gui.add_checkbox(
-            "Refit after each change", True, hint="Refit (ML) on the kept samples after every rejection"
-        )
-        with gui.add_folder("History", expand_by_default=True):
-            self.btn_undo = self._button(gui, "Undo", self.on.do_undo, engine=False)
-            self.btn_redo = self._button(gui, "Redo", self.on.do_redo, engine=False)
-            self.btn_reset = self._button(gui, "Reset (keep all)", self.on.do_reset, engine=False)
-        self.inspect = gui.add_markdown(inspect_markdown(None))
 
     def _build_view(self, gui):
         options = self._sensor_options(self.ctrl().dataset.n_sensors)
@@ -860,9 +843,6 @@ class Panels:
             self._refresh_data(ctrl)
         if _asks(kinds, Change.MODEL, Change.DATA, Change.EFFECTS):
             self.show_state()
-        if _asks(kinds, Change.INSPECT, Change.SELECTION):
-            info = ctrl.sample_info(ctrl.inspected) if ctrl.inspected is not None else None
-            self.inspect.content = inspect_markdown(info)
         self._refresh_buttons(ctrl)
         self.vector_panel.refresh(kinds)
         self._refresh_figures(kinds, live)
@@ -876,8 +856,6 @@ class Panels:
 
     def _refresh_buttons(self, ctrl) -> None:
         """The buttons that depend on the selection's history, the calibration and the sensors."""
-        self.btn_undo.disabled = not ctrl.state.selection.can_undo
-        self.btn_redo.disabled = not ctrl.state.selection.can_redo
         has_cal = ctrl.calibration is not None
         self.btn_dl_cal.disabled = not has_cal
         self.btn_dl_csv.disabled = not has_cal

@@ -1,7 +1,7 @@
-"""The page's steps beside the tabs' own: the check of the readings before an engine step, rejecting outliers
-(threshold, undo, redo, reset) and the refit that follows a rejection, and loading a user's effects file. The fits,
-Diagnose and Add are the Calibrate and Model tabs' (:mod:`magcal_workbench.calibratetab`,
-:mod:`magcal_workbench.modeltab`).
+"""The page's steps beside the tabs' own: the check of the readings before an engine step, the refit that follows a
+change of the selection (:meth:`Steps.changing_selection`), and loading a user's effects file. The fits, Diagnose,
+Add and the outliers' buttons are the Calibrate, Model and Outliers tabs' (:mod:`magcal_workbench.calibratetab`,
+:mod:`magcal_workbench.modeltab`, :mod:`magcal_workbench.outlierstab`).
 
 Each step runs in the worker (:class:`magcal_workbench.jobs.Worker`) with the kept mask it started with; a
 rejection made while a job runs is refitted after it (:meth:`Steps.maybe_refit`)."""
@@ -21,7 +21,8 @@ from .parts import PagePart
 
 
 class Steps(PagePart):
-    """The Outliers tab's actions, the effects files' loading, and the check of the readings.
+    """The refit that follows a change of the selection, the effects files' loading, and the check of the
+    readings.
 
     Handed what it uses (issue 43 item 5).
 
@@ -98,27 +99,6 @@ class Steps(PagePart):
                 permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl.report_progress)
             ),
         )
-
-    # --- outliers -----------------------------------------------------------------------------------------
-    @action
-    def do_threshold(self, event):
-        with self.changing_selection():
-            self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
-
-    @action
-    def do_undo(self, event):
-        with self.changing_selection():
-            self.ctrl.undo()
-
-    @action
-    def do_redo(self, event):
-        with self.changing_selection():
-            self.ctrl.redo()
-
-    @action
-    def do_reset(self, event):
-        with self.changing_selection():
-            self.ctrl.reset_selection()
 
     # --- the refit after a rejection ----------------------------------------------------------------------
     def forget_pending(self) -> None:

@@ -124,7 +124,7 @@ def test_numbers_out_of_range_are_refused(bench, widget, value, says):
     assert says in wb.ctrl.message or widget == "k_sigma"  # the slider without a callback: refused when read
     if widget == "k_sigma":
         wb.panels.k_sigma._impl.value = value
-        wb.handle(wb.steps.do_threshold, None)
+        wb.handle(wb.actions.do_threshold, None)
         assert says in wb.ctrl.message and wb.ctrl.state.selection.n_rejected == 0
     lo, hi = wb.values.range(handle)
     assert np.isfinite(handle.value) and lo <= handle.value <= (hi if hi is not None else np.inf)
