@@ -316,6 +316,7 @@ class Workbench:
             store=self.store,
             local=self.local,
             live_sources=self.livectl.menu.labels,
+            tabs=self.added,  # the built-in tabs made as panels are built at their place
         )
         self.uploads.watch_sizes(self.panels.upload)
         #: Every change a browser sends to a widget is screened before viser casts it (PageValues.screen).

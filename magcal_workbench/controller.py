@@ -1,9 +1,12 @@
 """The workbench's actions: every button calls one method here, which calls the engine and updates the state.
 
-The controller holds the loaded :class:`~magcal.Dataset`, the :class:`~magcal_workbench.state.SessionState`, the last
-calibration and its per-sample residuals, and the last diagnosis. It never draws: views subscribe with
-:meth:`Controller.on_change` and redraw. Engine work runs through one :class:`~magcal_workbench.jobs.Worker`, so a second
-click while a fit runs starts nothing.
+The controller holds the loaded :class:`~magcal.Dataset`, the :class:`~magcal_workbench.state.SessionState` (the
+selection, the settings), the jobs and the autosave, and one model session per fit mode
+(:mod:`magcal_workbench.modelsession`: :attr:`Controller.total_field`, :attr:`Controller.vector`,
+:attr:`Controller.gravity`); Diagnose and Add go to the active one (:attr:`Controller.model_session`). It never draws:
+views subscribe with :meth:`Controller.on_change` and redraw; the controller and its model sessions tell them what
+changed through :meth:`Controller.emit`. Engine work runs through one :class:`~magcal_workbench.jobs.Worker`, so a
+second click while a fit runs starts nothing.
 
 All physics is the engine's (:mod:`magcal.fitting.pipeline`, :mod:`magcal.fitting.fitter`, :mod:`magcal.diagnosis`,
 :mod:`magcal.calibration.calibration`); this module only chooses what to run, on which samples, and reports what changed.
@@ -21,7 +24,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -29,56 +32,31 @@ from magcal.calibration.calibration import Calibration, is_transferable
 from magcal.checks import quality
 from magcal.checks.noise import estimate_noise
 from magcal.core import conventions
-from magcal.core.errors import ConvergenceWarning, MagcalError
+from magcal.core.errors import MagcalError
 from magcal.core.stats import robust_sigma
 from magcal.data import io as mio
-from magcal.diagnosis import diagnose, start_workers
-from magcal.fitting import fitter, pipeline, validation
-from magcal.fitting.pipeline import align_sensors
-from magcal.geometry.procrustes import rotation_angle_deg
+from magcal.diagnosis import start_workers
 from magcal.model import plugins
-from magcal.model.terms import EFFECTS, Model, unknown_effect_message
+from magcal.model.terms import EFFECTS, unknown_effect_message
 
-from . import timing
 from .consent import full_path
 from .events import Change
+from .figures import MESSAGE_LEN, candidate_label, fmt_nT, format_number
+from .figures import rms as _rms
+from .gravitymodel import GravitySession
 from .jobs import Worker
 from .markup import clean_text, error_text, safe_code, safe_text
-from .pending import PENDING
+from .modelsession import ModelSession, session_kinds
 from .plots import raw_reference_nT
 from .scene import record_field_nT
 from .session import SessionStore
 from .sessionfile import LABEL
 from .state import METHODS, JobInputs, SessionState, StepRecord
-from .vectormodel import VectorModel
+from .totalfield import TotalFieldSession
+from .vectormodel import VectorSession
 
-#: Longest untrusted text (an exception's message, a warning) shown in the page, characters.
-MESSAGE_LEN = 1000
-
-
-def format_number(v, digits: int = 4) -> str:
-    """``v`` to ``digits`` significant digits, written out in full from 10^4 to 10^7 (``24010``, not
-    ``2.401e+04``: raw readings of a MEMS part are tens of thousands of nT); ``"-"`` for None or not finite."""
-    if v is None:
-        return "-"
-    v = float(v)
-    if not np.isfinite(v):
-        return "-"
-    if 10.0**digits <= abs(v) < 1e7:
-        return f"{v:.0f}"
-    return f"{v:.{digits}g}"
-
-
-def fmt_nT(v) -> str:
-    """``"12.3 nT"`` (four significant digits, see :func:`format_number`) or ``"-"``."""
-    text = format_number(v)
-    return text if text == "-" else f"{text} nT"
-
-
-def _rms(a) -> float:
-    a = np.asarray(a, dtype=float)
-    a = a[np.isfinite(a)]
-    return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
+#: What other modules import from here (the page's numbers are :mod:`magcal_workbench.figures`').
+__all__ = ["MESSAGE_LEN", "Controller", "candidate_label", "error_markdown", "fmt_nT", "format_number"]
 
 
 class Controller:
@@ -110,16 +88,11 @@ class Controller:
         self.store = store
         self.session_id = session_id
         self.worker = worker or Worker()
-        self.calibration: Calibration | None = None
-        self.fit_result: Any = None  # FitResult of the last ML step, if any
-        self.corrected_nT: np.ndarray | None = None  # (n_sensors, N, 3) array frame, every sample
-        self.residual_nT: np.ndarray | None = None  # (n_sensors, N) total-field residual, every sample
         #: Per-axis noise (nT) behind the floors: the user's (:attr:`SessionState.noise_nT`), the file's, else
         #: estimated after each fit (:attr:`noise` says how).
         self.noise_nT: float | None = self.state.noise_nT or dataset.noise_nT
         self.noise: Any = None  # NoiseEstimate of the last fit (magcal.checks.noise.estimate_noise)
         self._quality = None  # QualityReport of the data (magcal.checks.quality.assess), made when first asked
-        self.diagnosis: Any = None  # Diagnosis of the last fit (magcal.diagnose), if any
         self.inspected: int | None = None
         self.message = ""
         #: Why the last autosave failed (markdown, escaped), or None: the page shows it, whatever other message
@@ -129,10 +102,14 @@ class Controller:
         self.progress: tuple[str, float | None] | None = None
         self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
-        #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
-        self.vector = VectorModel(self)
-        #: ``id`` of the history records whose held-out check runs in the background (shown ``pending...``).
-        self.held_out_pending: set[int] = set()
+        #: One model session per fit mode (:data:`magcal_workbench.modelsession.MODEL_SESSIONS`), by mode name.
+        self.model_sessions: dict[str, ModelSession] = {name: cls(self) for name, cls in session_kinds()}
+        #: The total-field model: the fit every record allows (:mod:`.totalfield`).
+        self.total_field = cast(TotalFieldSession, self.model_sessions["total_field"])
+        #: The attitude-aided vector model: its fit, reference and location (:mod:`.vectormodel`).
+        self.vector = cast(VectorSession, self.model_sessions["vector"])
+        #: The gravity model: a compass beside an accelerometer (:mod:`.gravitymodel`).
+        self.gravity = cast(GravitySession, self.model_sessions["gravity"])
         # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
         # that the first Diagnose does not wait for them
         start_workers(dataset, effects=tuple(EFFECTS.values()))
@@ -143,17 +120,53 @@ class Controller:
                     "raw readings", _rms(raw[:, self.kept]), None, [], int(self.kept.sum()), "no correction: |y| - F"
                 )
             )
-        if self.state.calibration:
-            try:
-                self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
-                self._estimate_noise()
-            except Exception as exc:  # a damaged or foreign calibration document: the session goes on without it
-                why = exc if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {exc}"
-                self.message = f"the saved calibration could not be restored ({safe_text(why, 500)}); run a fit"
-        if self.state.vector_fit:  # the saved session's vector fit, run again (its message, or why it could not)
+        for session in self.model_sessions.values():  # the saved session's fits (their messages, or why not)
             kept_message = self.message
-            note = self.vector.restore()
-            self.message = "  \n".join(m for m in (kept_message, note or self.message) if m)
+            note = session.restore()
+            said = self.message if self.message != kept_message else ""
+            self.message = "  \n".join(m for m in (kept_message, note or said) if m)
+
+    # ------------------------------------------------------------------------------------------------------
+    # the model sessions
+    # ------------------------------------------------------------------------------------------------------
+    @property
+    def model_session(self) -> ModelSession:
+        """The model Diagnose and Add work on: the vector model on a record with attitude and a field vector
+        (columns, or the location typed in the page), else the total-field model."""
+        return self.vector if self.vector.available else self.total_field
+
+    def vector_loop(self) -> bool:
+        """Whether the active model session (:attr:`model_session`) is the vector model."""
+        return self.model_session is self.vector
+
+    # the total-field model's fit, read by the views (its session holds it)
+    calibration = property(
+        lambda self: self.total_field.calibration,
+        lambda self, cal: setattr(self.total_field, "calibration", cal),
+        doc="The total-field model's calibration (:attr:`TotalFieldSession.calibration`), or None.",
+    )
+    fit_result = property(
+        lambda self: self.total_field.fit_result,
+        lambda self, fit: setattr(self.total_field, "fit_result", fit),
+        doc="The total-field model's last maximum-likelihood fit, or None.",
+    )
+    corrected_nT = property(
+        lambda self: self.total_field.corrected_nT,
+        doc="Every sample corrected by the total-field calibration, (n_sensors, N, 3) nT, or None.",
+    )
+    residual_nT = property(
+        lambda self: self.total_field.residual_nT,
+        doc="The total-field residual of every sample, (n_sensors, N) nT, or None.",
+    )
+    diagnosis = property(
+        lambda self: self.total_field.diagnosis,
+        lambda self, d: setattr(self.total_field, "diagnosis", d),
+        doc="The total-field model's last diagnosis (:func:`magcal.diagnosis.diagnose`), or None.",
+    )
+    held_out_pending = property(
+        lambda self: self.total_field.held_out_pending,
+        doc="``id`` of the history rows whose held-out check runs in the background (shown ``pending...``).",
+    )
 
     # ------------------------------------------------------------------------------------------------------
     # notification
@@ -163,7 +176,9 @@ class Controller:
         failed, or succeeded again, :attr:`save_problem`)."""
         self._listeners.append(func)
 
-    def _emit(self, kind: Change) -> None:
+    def emit(self, kind: Change) -> None:
+        """Tell the listeners (:meth:`on_change`) that ``kind`` changed; the model sessions send their changes
+        here too."""
         kind = Change(kind)  # a kind no handler knows is refused here, where it is sent (ValueError)
         for func in list(self._listeners):
             try:
@@ -175,7 +190,7 @@ class Controller:
         """Show ``text`` (markdown) as the page's message; untrusted parts must already be escaped
         (:func:`magcal_workbench.markup.safe_text`)."""
         self.message = text
-        self._emit(Change.MESSAGE)
+        self.emit(Change.MESSAGE)
 
     #: Session settings :meth:`configure` changes (attributes of :class:`SessionState`).
     SETTINGS = ("method", "reference_nT", "fit_reference", "robust", "sensor")
@@ -191,7 +206,7 @@ class Controller:
             setattr(self.state, key, value)
         self.state.touch()
         self.autosave()
-        self._emit(Change.SETTINGS)
+        self.emit(Change.SETTINGS)
 
     def _check_settings(self, settings: dict) -> None:
         """Refuse a setting the page could not have sent (a value comes from a browser: check it)."""
@@ -345,7 +360,7 @@ class Controller:
             p += sum(len(e.param_names()) for e, _ in self.calibration.model.instances())
         return p
 
-    def _estimate_noise(self, fit=None, kept: np.ndarray | None = None) -> None:
+    def update_noise(self, fit=None, kept: np.ndarray | None = None) -> None:
         """The noise behind the floors, from the current fit's kept residuals (:func:`magcal.checks.noise.estimate_noise`:
         the given one, else differences in time order or still stretches, never below the quantization floor)."""
 
@@ -393,9 +408,9 @@ class Controller:
             self.state.noise_nT = value
             self.state.touch()
             self._quality = None  # the still-stretch test uses the noise
-            self._estimate_noise(self.fit_result)
+            self.update_noise(self.fit_result)
         self.autosave()
-        self._emit(Change.RESULT)
+        self.emit(Change.RESULT)
         floor = self.floor_nT()
         what = f"noise given: {fmt_nT(value)} per axis" if value else "noise estimated again"
         self.say(f"{what}; {self.noise_text()}; total-field floor {fmt_nT(floor)}")
@@ -409,41 +424,6 @@ class Controller:
             where = "given in the workbench" if self.state.noise_nT else "declared in the file (noise_nT)"
             return f"noise {given:.3g} nT per axis ({where})"
         return "noise not known yet: fit first (it is estimated from the fit's residuals) or give it"
-
-    def _held_out_rms(self, fit, kept=None, report: bool = True) -> tuple[float | None, str | None]:
-        """Total-field RMS (nT) on held-out samples of the current model (:func:`magcal.fitting.validation.validate`,
-        ``blocks`` scheme: fitted on alternating blocks of time, warm-started from ``fit``, scored on the blocks
-        between); ``(None, why)`` when the record cannot be split, ``(None, None)`` without a maximum-likelihood
-        fit. ``kept`` is the fit's mask (default: the kept samples now); ``report`` shows the progress (not from
-        the background, where a job after it shows its own)."""
-
-        if fit is None or getattr(fit, "model", None) is None:
-            return None, None
-        kept = self.fit_dataset().subset(self.kept if kept is None else kept)
-        problem = validation.split_problem(kept)
-        if problem:
-            return None, f"held-out validation not done: {problem}"
-        if report:
-            self._report_progress("held-out validation (blocks)", None)
-        try:
-            v = validation.validate(  # its fit's notes stay in v.fit_notes: the fit itself has said them
-                kept,
-                model=fit.model,
-                scheme="blocks",
-                init=fit.calibration,
-                robust=self.state.robust,
-                reference_total_nT=self.reference_arg,
-            )
-        except Exception as exc:  # the fit stands and is recorded; its held-out figure is missing, and says why
-            why = plugins.user_code_error(exc) or (
-                error_text(exc) if isinstance(exc, MagcalError) else f"{type(exc).__name__}: {error_text(exc)}"
-            )
-            return None, f"held-out validation failed: {why}"
-        finally:
-            if report:
-                self.progress = None
-                self._emit(Change.PROGRESS)
-        return float(v.held_out_rms_nT), None
 
     def model_terms(self) -> list[dict]:
         """The model's effects, each ``{"label", "name", "transferable" (bool), "description"}``: an instrument
@@ -499,238 +479,47 @@ class Controller:
         return self.submit_job(name, lambda: step(inputs=inputs))
 
     def _job_failed(self, exc: BaseException) -> None:
-        self.progress = None
-        self._emit(Change.PROGRESS)
+        self.end_progress()
         self.say(error_markdown(exc))
 
-    def _report_progress(self, message: str, fraction=None) -> None:
+    def report_progress(self, message: str, fraction=None) -> None:
+        """Show a long step's progress: ``message`` and the fraction done (0 ... 1, None: not known)."""
         self.progress = (message, fraction)
-        self._emit(Change.PROGRESS)
+        self.emit(Change.PROGRESS)
 
-    def _residuals_of(self, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
-        # the workbench corrects the very record it fitted: its record-only terms (drift, steps...) hold here
-        ds = self.fit_dataset()
-        # an effect that needs the attitude leaves NaN on samples without one; the fit's own note says so
-        fields = cal.correct(ds, record_terms="apply", warn=False, force=True)
-        return cal.total_field_residuals(ds, fields, record_terms="apply"), fields
+    def end_progress(self) -> None:
+        """The long step ended: its progress is no longer shown."""
+        self.progress = None
+        self.emit(Change.PROGRESS)
 
-    def _set_calibration(self, cal: Calibration, residual_nT=None) -> None:
-        if cal.record is None:  # the downloaded JSON names the record its record-only terms describe
-            cal.fitted_on(self.dataset)
-        res, fields = self._residuals_of(cal)
-        self.calibration = cal
-        self.corrected_nT = fields
-        self.residual_nT = res if residual_nT is None else np.asarray(residual_nT, float)
-
-    def _changes(
-        self,
-        old: Calibration | None,
-        new: Calibration,
-        rms_before: float,
-        rms_after: float,
-        tensor_before=None,
-        kept: np.ndarray | None = None,
-    ) -> str:
-        """One line: RMS before -> after, and how much each parameter group moved."""
-        parts = [f"RMS {format_number(rms_before)} -> {format_number(rms_after)} nT"]
-        if old is not None and old.n_sensors == new.n_sensors:
-            db = max(float(np.max(np.abs(a.bias_nT - b.bias_nT))) for a, b in zip(old.sensors, new.sensors))
-            dc = max(float(np.max(np.abs(a.cinv - b.cinv))) for a, b in zip(old.sensors, new.sensors))
-
-            dr = max(rotation_angle_deg(b.R @ a.R.T) for a, b in zip(old.sensors, new.sensors))
-            moved = f"bias moved up to {format_number(db, 3)} nT, C^-1 up to {format_number(dc * 1e6, 3)} ppm"
-            if new.n_sensors > 1:  # one sensor's rotation is the identity: nothing to say
-                moved += f", R up to {format_number(dr * 3600, 3)} arcsec"
-            parts.append(moved)
-        t = self.tensor_rms(kept)
-        if t is not None and t["after"] is not None:
-            worst = max(t["after"].values())
-            prev = max(tensor_before.values()) if tensor_before else max(t["before"].values())
-            parts.append(f"worst tensor RMS {prev:.4g} -> {worst:.4g} nT/m")
-        return "; ".join(parts)
-
-    def _record(
-        self,
-        step: str,
-        inputs: JobInputs,
-        old: Calibration | None,
-        rms_before: float,
-        t0: float,
-        tensor_before=None,
-        fit=None,
-        notes=(),
-    ) -> StepRecord:
-        """The history's row of a step that fitted ``inputs`` (its kept mask and model), and the message."""
-        kept = inputs.kept
-        rms_after = self.residual_rms_nT(kept)
-        self._estimate_noise(fit, kept)
-        cal = self.calibration
-        assert cal is not None  # every step leaves a calibration
-        outcome = None if fit is None else fit.summary()
-        rec = StepRecord(
-            step=step,
-            rms_nT=rms_after,
-            floor_nT=self.floor_nT(kept),
-            effects=list(inputs.effects),
-            n_kept=int(kept.sum()),
-            changes=self._changes(old, cal, rms_before, rms_after, tensor_before, kept),
-            elapsed_s=time.perf_counter() - t0,
-            fit=None if outcome is None else {k: outcome[k] for k in StepRecord.FIT_KEYS},
-        )
-        self.state.record(rec, cal.to_dict())
-        text = f"**{safe_text(step)}**: {safe_text(rec.changes, MESSAGE_LEN)} ({rec.elapsed_s:.2f} s)"
-        conv = " - **the fit did not converge** (see above)" if fit is not None and not fit.success else ""
-        tail = "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(notes))
-        has_held_out = fit is not None and getattr(fit, "model", None) is not None
-        background = has_held_out and self.worker.in_job()
-        generation = self.worker.pending.next_generation()  # an older fit's slow parts are stale now
-        if background:  # the result first: the held-out check follows, marked pending until then
-            self.held_out_pending.add(id(rec))
-            self.say(text + f"; held-out RMS {PENDING}" + conv + tail)
-        with timing.span("publish"):
-            self._emit(Change.RESULT)  # the refit is shown first: the held-out check below is a second, slower stage
-            self._emit(Change.DIAGNOSIS)  # a new fit: the old diagnosis no longer applies (or was just cleared)
-
-        def slow(still_current: Callable[[], bool] = lambda: True) -> None:
-            with timing.span("heldout"):
-                held_out, held_note = self._held_out_rms(fit, kept, report=not background)
-            if not still_current():  # a newer fit came first: this figure is dropped unseen
-                self.held_out_pending.discard(id(rec))
-                return
-            all_notes = list(notes) + ([held_note] if held_note else [])
-            with self.state.lock:
-                if held_out is not None:
-                    rec.held_out_rms_nT = held_out
-                    self.state.touch()
-                self.held_out_pending.discard(id(rec))
-            self._emit(Change.MODEL)  # the history table and the RMS plot gain the held-out figure (or lose "pending")
-            with timing.span("autosave"):
-                self.autosave()
-            final = text + (f"; held-out RMS {fmt_nT(held_out)} (blocks)" if held_out is not None else "") + conv
-            final += "".join(f"  \n- {safe_text(n, MESSAGE_LEN)}" for n in dict.fromkeys(all_notes))
-            self.say(final)
-
-        if background:
-            self.worker.pending.start(generation, "heldout", slow)
-        elif has_held_out:
-            slow()
-        else:
-            self.autosave()
-            self.say(text + conv + tail)
-        return rec
-
-    #: Fewest kept samples a fit is run on (the base model of one sensor has 9 parameters).
-    MIN_KEPT = 20
-
-    def _check_kept(self, kept: np.ndarray) -> None:
-        n = int(kept.sum())
-        if n < self.MIN_KEPT:
-            raise MagcalError(
-                f"only {n} sample(s) are kept; a fit needs at least {self.MIN_KEPT}. Undo the last "
-                "rejection or restore samples (Outliers tab)"
-            )
-
-    def _before(self, inputs: JobInputs):
-        self._check_kept(inputs.kept)
-        rms = self.residual_rms_nT(inputs.kept)
-        if not np.isfinite(rms):
-            rms = _rms(self.raw_residual_nT()[:, inputs.kept])
-        t = self.tensor_rms(inputs.kept)
-        tb = (t["after"] or t["before"]) if t else None
-        return self.calibration, rms, tb
-
+    # ------------------------------------------------------------------------------------------------------
+    # engine steps (synchronous; the page runs them through run_step, which hands each its JobInputs)
+    # ------------------------------------------------------------------------------------------------------
     def step_ellipsoid(self, *, inputs: JobInputs | None = None) -> StepRecord:
-        """Step 1: an ellipsoid per sensor (kept samples: ``inputs``', default those of now); the rotations between
-        sensors are reset."""
-
-        inputs = self.job_inputs() if inputs is None else inputs
-        t0 = time.perf_counter()
-        old, rms0, tb = self._before(inputs)
-        ds = self.fit_dataset()
-        kept_ds = ds.subset(inputs.kept)
-        ref, kind = fitter.fit_reference(kept_ds, self.reference_arg)
-        fits, _ = pipeline.ellipsoid_step(kept_ds, "algebraic", ref, kind)
-        cal = pipeline.two_step_calibration(kept_ds, fits, [np.eye(3)] * len(fits), kind)
-        notes = [w for f in fits for w in f.warnings]
-        self.fit_result = None
-        self.diagnosis = None
-        self._set_calibration(cal)
-        return self._record("fit ellipsoid", inputs, old, rms0, t0, tb, notes=notes)
+        """Step 1 of the total-field model (:meth:`TotalFieldSession.ellipsoid`)."""
+        return self.total_field.ellipsoid(inputs=inputs)
 
     def step_align(self, *, inputs: JobInputs | None = None) -> StepRecord:
-        """Step 2: Procrustes rotations of sensors 2-4 into sensor 1's frame, from the current C^-1 and b (kept
-        samples: ``inputs``', default those of now)."""
-        inputs = self.job_inputs() if inputs is None else inputs
-
-        if self.dataset.n_sensors < 2:
-            raise MagcalError("aligning needs at least two sensors; this file has one")
-        if self.calibration is None:
-            raise MagcalError("fit the ellipsoids first (step 1): alignment works on corrected vectors")
-        old, rms0, tb = self._before(inputs)
-        t0 = time.perf_counter()
-        self._set_calibration(align_sensors(self.dataset.subset(inputs.kept), self.calibration))
-        return self._record("align sensors", inputs, old, rms0, t0, tb)
+        """Step 2 of the total-field model (:meth:`TotalFieldSession.align`)."""
+        return self.total_field.align(inputs=inputs)
 
     def step_refine(self, label: str = "refine (ML)", *, inputs: JobInputs | None = None) -> StepRecord:
-        """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples (both ``inputs``',
-        default those of now)."""
-
-        inputs = self.job_inputs() if inputs is None else inputs
-        t0 = time.perf_counter()
-        old, rms0, tb = self._before(inputs)
-        init = self.calibration
-        ds = self.fit_dataset()
-        with timing.span("fit"):
-            result = fitter.fit(
-                ds,
-                Model.from_names(list(inputs.effects), self.dataset.n_sensors),
-                init=init,
-                loss="soft_l1" if self.state.robust else "linear",
-                mask=inputs.kept,
-                reference_total_nT=self.reference_arg,
-                warn=False,
-            )
-        notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
-        self.fit_result = result
-        self.diagnosis = None
-        self._set_calibration(result.calibration, result.residuals_all_nT)
-        return self._record(label, inputs, old, rms0, t0, tb, fit=result, notes=notes)
+        """Step 3 of the total-field model (:meth:`TotalFieldSession.refine`)."""
+        return self.total_field.refine(label, inputs=inputs)
 
     def step_calibrate(self, method: str | None = None, *, inputs: JobInputs | None = None) -> StepRecord:
-        """The whole pipeline with the chosen method (ML, the two seed steps, or a global search), on the kept
-        samples with the model's effects (both ``inputs``', default those of now)."""
+        """The total-field model's whole pipeline with the chosen method (:meth:`TotalFieldSession.fit`)."""
+        return self.total_field.fit(method, inputs=inputs)
 
-        inputs = self.job_inputs() if inputs is None else inputs
-        method = method or self.state.method
-        t0 = time.perf_counter()
-        old, rms0, tb = self._before(inputs)
-        self._report_progress(f"{method}: starting", 0.0)
-        effects = list(inputs.effects) if method == "ml" else []
-        with timing.span("fit"):
-            result = pipeline.calibrate(  # never warns: its report lines are result.remarks, its notes result.notes
-                self.fit_dataset(),
-                method=method,
-                effects=effects,
-                robust=self.state.robust,
-                reference_total_nT=self.reference_arg,
-                seed=0,
-                progress=self._report_progress,
-                mask=inputs.kept,
-                noise_nT=self.state.noise_nT,
-            )
-        self.fit_result = result.fit
-        self.diagnosis = None
-        self._set_calibration(result.calibration, None if result.fit is None else result.fit.residuals_all_nT)
-        self.progress = None
-        self._emit(Change.PROGRESS)
-        name = {"ml": "calibrate (ML)", "ellipsoid": "two steps (seed)"}.get(method, f"global search ({method})")
-        return self._record(name, inputs, old, rms0, t0, tb, fit=result.fit, notes=list(result.remarks))
+    def step_gravity(self, *, inputs: JobInputs | None = None):
+        """The gravity fit beside the total-field fit (:meth:`GravitySession.fit`)."""
+        return self.gravity.fit(inputs=inputs)
 
     def step_vector(self, *, inputs: JobInputs | None = None):
         """The attitude-aided vector fit beside the total-field fit (:meth:`VectorModel.fit`, the engine's
         :func:`magcal.fitting.vector.fit_vector`) on the kept samples (``inputs``', default those of now); the
         total-field calibration is left as it is."""
-        return self.vector.fit(kept=None if inputs is None else inputs.kept)
+        return self.vector.fit(inputs=inputs)
 
     # ------------------------------------------------------------------------------------------------------
     # the loop: model, diagnose, add
@@ -794,7 +583,7 @@ class Controller:
                 self.state.effects_files.append(full)
             self.state.touch()
         self.autosave()
-        self._emit(Change.EFFECTS)
+        self.emit(Change.EFFECTS)
         listed = ", ".join(safe_code(n) for n in names)
         self.say(f"loaded {listed} from {safe_code(full)}; tick it in the Model tab or let Diagnose rank it")
         return names
@@ -843,19 +632,19 @@ class Controller:
         restored = ""
         if self.state.calibration and self.calibration is None and names:
             try:
-                self._set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
-                self._estimate_noise()
+                self.total_field.set_calibration(Calibration.from_dict(self.state.calibration, "saved session"))
+                self.update_noise()
                 restored = "; the saved calibration is restored"
             except Exception as exc:  # still not restorable: the session goes on without it
                 restored = f"; the saved calibration could not be restored ({safe_text(str(exc), 300)})"
-        self._emit(Change.EFFECTS)
-        self._emit(Change.RESULT)
+        self.emit(Change.EFFECTS)
+        self.emit(Change.RESULT)
         text = f"loaded {', '.join(safe_code(n) for n in names) or 'no effect'} from the session's effects files"
         text += restored + "".join(f"  \n**Note:** {safe_text(p, MESSAGE_LEN)}" for p in problems)
         self.say(text)
         return names
 
-    def _check_label(self, label) -> str:
+    def check_label(self, label) -> str:
         """``label`` (``NAME`` or ``NAME:S``) if it names a loaded effect and an existing sensor, else a clear
         :class:`MagcalError` (a label may come from a browser)."""
 
@@ -872,109 +661,55 @@ class Controller:
 
     def set_effect(self, name: str, on: bool) -> bool:
         if on:
-            name = self._check_label(name)
+            name = self.check_label(name)
         changed = self.state.add_effect(name) if on else self.state.remove_effect(name)
         if changed:
             self.autosave()
-            self._emit(Change.MODEL)
+            self.emit(Change.MODEL)
         return changed
 
-    def vector_loop(self) -> bool:
-        """Whether Diagnose and Add work on the vector model (:meth:`VectorModel.diagnose`, :meth:`VectorModel.add`):
-        the data have the attitude and a field vector (columns, or the location typed in the page)."""
-        return self.vector.available
-
     def step_diagnose(self, *, inputs: JobInputs | None = None):
-        """Rank the candidate effects for the current fit (runs a base ML fit of ``inputs`` first if there is none);
-        on a record with attitude and a field vector, for the vector fit (:meth:`VectorModel.diagnose`)."""
-
-        if self.vector_loop():
-            return self.vector.diagnose(kept=None if inputs is None else inputs.kept)
-        if self.fit_result is None:
-            self.step_refine(inputs=inputs)
-        self._report_progress("diagnosing", None)
-        with timing.span("diagnose"):
-            d = diagnose(
-                self.fit_dataset(), self.fit_result, progress=self._report_progress, noise_nT=self.state.noise_nT
-            )
-        self.diagnosis = d
-        self.progress = None
-        self._emit(Change.PROGRESS)
-        self._emit(Change.DIAGNOSIS)
-        top = d.candidates[0] if getattr(d, "candidates", None) else None
-        extra = f"; top candidate {safe_code(candidate_label(top))}" if top is not None else ""
-        self.say(
-            f"**diagnose**: verdict {safe_code(d.verdict)}{extra} ({safe_text(d.where_text(), 120)})  \n"
-            f"{safe_text(d.summary, MESSAGE_LEN)}"
-        )
-        return d
+        """Rank the candidate effects for the active model's fit (:attr:`model_session`'s ``diagnose``; its fit of
+        ``inputs`` runs first when there is none)."""
+        return self.model_session.diagnose(inputs=inputs)
 
     def loop_diagnosis(self):
-        """The diagnosis Diagnose and Add work from: the vector model's on a record with attitude and a field vector
-        (:meth:`vector_loop`), else the total-field model's; None before one."""
-        return self.vector.diagnosis if self.vector_loop() else self.diagnosis
+        """The diagnosis Diagnose and Add work from (the active model's); None before one."""
+        return self.model_session.diagnosis
 
     def loop_effects(self) -> list[str]:
-        """The effects of the model the loop works on (the vector model's, or the total-field model's)."""
-        return list(self.vector.effects if self.vector_loop() else self.state.effects)
+        """The effects of the model the loop works on."""
+        return list(self.model_session.effects)
 
     def candidate_labels(self) -> list[str]:
-        """What Add may put into the model from the current diagnosis (:meth:`loop_diagnosis`): its candidates'
-        labels (for the vector model: those for the model as it is, the recommended one first)."""
-        if self.vector_loop():
-            return self.vector.candidate_labels()
-        cands = self.diagnosis.candidates if self.diagnosis is not None else []
-        return list(dict.fromkeys(candidate_label(c) for c in cands))
+        """What Add may put into the active model from its diagnosis, the first to add first."""
+        return self.model_session.candidate_labels()
 
     def advice(self) -> list[str]:
-        """What the current diagnosis advises (its ``explained_by``: judged on held-out data) that the model does
-        not hold yet; the vector model's on a record with attitude and a field vector. Empty before a diagnosis."""
-        advised = getattr(self.loop_diagnosis(), "explained_by", None) or []
-        model = self.loop_effects()
-        return [label for label in advised if label not in model]
+        """What the active model's diagnosis advises (judged on held-out data) that the model does not hold yet;
+        empty before a diagnosis."""
+        return self.model_session.advice()
 
     def candidate_holds(self, label: str) -> bool:
-        """Whether the current diagnosis found that the candidate ``label``'s gain holds on data the fit did not
-        see (or advises it); False for a candidate it did not judge or judged not to hold."""
-        if label in self.advice():
-            return True
-        labels = (lambda c: c.label) if self.vector_loop() else candidate_label
-        candidates = getattr(self.loop_diagnosis(), "candidates", None) or []
-        return any(labels(c) == label and getattr(c, "holds", None) is True for c in candidates)
+        """Whether the active model's diagnosis found that the candidate ``label``'s gain holds on data the fit did
+        not see (or advises it)."""
+        return self.model_session.candidate_holds(label)
 
     def step_add(self, label: str | None = None, *, inputs: JobInputs | None = None, note: str = ""):
-        """Put a candidate (the top one by default) into the model and refit (the kept samples and the model of
-        ``inputs``, default those of now, with the candidate); on a record with attitude and a field vector, into
-        the vector model (:meth:`VectorModel.add`). ``note`` is appended to the history's step."""
-        if self.vector_loop():
-            if label is None:
-                return self.vector.add(None, kept=None if inputs is None else inputs.kept)
-            return self.vector.add_all([label], kept=None if inputs is None else inputs.kept, note=note)
-        inputs = self.job_inputs() if inputs is None else inputs
-        if label is None:
-            if self.diagnosis is None or not self.diagnosis.candidates:
-                raise MagcalError("diagnose first: there is no suggested effect to add")
-            label = candidate_label(self.diagnosis.candidates[0])
-        label = self._check_label(label)
-        if not self.state.add_effect(label):
-            raise MagcalError(f"{label} is already in the model")
-        self._emit(Change.MODEL)
-        return self.step_refine(label=f"add {label}{note}", inputs=inputs.with_effect(label))
+        """Put a candidate (the top one by default) into the active model and refit (the kept samples and the model
+        of ``inputs``, default those of now, with the candidate); ``note`` is appended to the history's step."""
+        return self.model_session.add(label, inputs=inputs, note=note)
 
     def step_add_advice(self, *, inputs: JobInputs | None = None):
-        """Put everything the diagnosis advises (:meth:`advice`) into the model and refit once."""
+        """Put everything the active model's diagnosis advises (:meth:`advice`) into it and refit once."""
         labels = self.advice()
         if not labels:
             raise MagcalError("nothing is advised: diagnose first, or the diagnosis advises nothing that holds")
-        if self.vector_loop():
-            return self.vector.add_all(labels, kept=None if inputs is None else inputs.kept)
-        inputs = self.job_inputs() if inputs is None else inputs
-        for label in labels:
-            label = self._check_label(label)
-            self.state.add_effect(label)
-            inputs = inputs.with_effect(label)
-        self._emit(Change.MODEL)
-        return self.step_refine(label=f"add {', '.join(labels)}", inputs=inputs)
+        return self.model_session.add_all(labels, inputs=inputs)
+
+    def step_remove(self, label: str | None = None, *, inputs: JobInputs | None = None):
+        """Take an effect (the last added by default) out of the active model and refit."""
+        return self.model_session.remove(label, inputs=inputs)
 
     # ------------------------------------------------------------------------------------------------------
     # outlier rejection
@@ -1023,12 +758,12 @@ class Controller:
     def _selection_changed(self, text: str) -> None:
         self.state.touch()
         self.autosave()
-        self._emit(Change.SELECTION)
+        self.emit(Change.SELECTION)
         self.say(f"{text}; {self.state.selection.n_rejected} of {self.dataset.n_samples} rejected")
 
     def inspect(self, index: int | None) -> None:
         self.inspected = None if index is None else int(index)
-        self._emit(Change.INSPECT)
+        self.emit(Change.INSPECT)
 
     # ------------------------------------------------------------------------------------------------------
     # files
@@ -1082,13 +817,13 @@ class Controller:
             if problem != self.save_problem:
                 self.save_problem = problem
                 print(f"magcal-workbench: autosave of session {self.session_id} failed: {exc}", file=sys.stderr)
-                self._emit(Change.SAVED)
+                self.emit(Change.SAVED)
             return
         self._saved_at = time.strftime("%H:%M:%S")
         if self.save_problem is not None:
             self.save_problem = None
             print(f"magcal-workbench: session {self.session_id} saved again", file=sys.stderr)
-            self._emit(Change.SAVED)
+            self.emit(Change.SAVED)
 
 
 def is_disk_full(exc: BaseException) -> bool:
@@ -1147,8 +882,3 @@ def error_markdown(exc: BaseException) -> str:
         return f"**Error in your effect's code:** {safe_text(user, MESSAGE_LEN)}"
     traceback.print_exception(exc)
     return f"**Unexpected error:** {safe_text(f'{type(exc).__name__}: {error_text(exc)}', MESSAGE_LEN)}"
-
-
-def candidate_label(candidate) -> str:
-    """``effect`` or ``effect:S`` (S 1-based) for a diagnosis candidate (object or its dict)."""
-    return candidate["label"] if isinstance(candidate, dict) else candidate.label

@@ -1,8 +1,10 @@
 """What changed, as the controller tells the page: one enum, so that a kind the page handles is one that is sent.
 
-The controller (:class:`magcal_workbench.controller.Controller`) calls its listeners with a :class:`Change`
-(``Controller._emit``: an unknown kind is refused there, not lost); the workbench routes it to the scene, the panels,
-the vehicle view and the gravity page (``Workbench._changed``), each of which redraws only for the kinds it names.
+The controller (:class:`magcal_workbench.controller.Controller`) calls its listeners with a :class:`Change` through
+:meth:`Controller.emit <magcal_workbench.controller.Controller.emit>`, the one way a change is sent (the model sessions
+send theirs through it too; an unknown kind is refused there, not lost); the workbench routes it to the scene, the
+panels, the vehicle view and the added panels (``Workbench._changed``), each of which redraws only for the kinds it
+names.
 A :class:`~enum.StrEnum`: a member equals its text, so ``"result" in kinds`` still holds.
 ``tests/test_workbench_events.py`` checks that every kind sent is a member, every member is sent, and every kind a
 handler names is a member.

@@ -1,7 +1,7 @@
 """The gravity model of the opened data (issue 42): the engine's gravity fit beside the separate calibrations, and
 what the page shows of them (no physics here: every heading, dip and tilt comes from the engine's calibration).
 
-:class:`GravityModel` runs :func:`magcal.fitting.gravity.fit_gravity` on the kept samples (and
+:class:`GravitySession` runs :func:`magcal.fitting.gravity.fit_gravity` on the kept samples (and
 :func:`magcal.fitting.gravity.separate_calibration`: the total-field fit with the accelerometer's own, what a user
 has without the dip), keeps both calibrations' headings, dips and tilts per sample
 (:meth:`magcal.calibration.calibration.Calibration.heading`), and gives the page its table, the dip over time and
@@ -12,7 +12,6 @@ The functions that build these are pure and tested without a browser.
 from __future__ import annotations
 
 import time
-import weakref
 
 import numpy as np
 
@@ -22,22 +21,28 @@ from magcal.fitting.gravity import HEADING_MAX_PITCH_DEG, fit_gravity, separate_
 
 from .events import Change
 from .markup import safe_text
+from .modelsession import ModelSession, register_session
+from .state import JobInputs, pack_mask, unpack_mask
 
 #: Sectors of the compass rose (deg each).
 ROSE_SECTOR_DEG = 30.0
 
-
-#: The gravity model of each open controller (weakly: it goes with its data).
-_MODELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def model_of(ctrl) -> GravityModel | None:
-    """The gravity model of ``ctrl``'s data, None before the page made one."""
-    return _MODELS.get(ctrl)
+#: Largest record (samples x sensors) whose saved gravity fit is run again when its session opens (about a second
+#: on a shared two-core machine, as the vector fit's :data:`magcal_workbench.vectormodel.RESTORE_MAX_SAMPLES`); a
+#: larger one keeps its settings and the page says to press the button.
+RESTORE_MAX_SAMPLES = 30_000
 
 
-class GravityModel:
-    """The gravity fit of one controller's data.
+def model_of(ctrl) -> GravitySession | None:
+    """The gravity session of ``ctrl``'s data (the controller's ``gravity``), None for a controller without one."""
+    return getattr(ctrl, "gravity", None)
+
+
+@register_session
+class GravitySession(ModelSession):
+    """The gravity fit of one controller's data (the model session of the fit mode ``"gravity"``): what it fitted
+    is kept in the session file (``gravity_fit``: the samples and the robust loss) and run again when the session
+    reopens (:meth:`restore`).
 
     Attributes
     ----------
@@ -48,28 +53,34 @@ class GravityModel:
         :meth:`Calibration.heading` of each on every sample.
     """
 
+    mode = "gravity"
+    title = "gravity model"
+
     def __init__(self, ctrl):
-        self.ctrl = ctrl
-        _MODELS[ctrl] = self  # the guide and the scene read it (model_of)
+        super().__init__(ctrl)
         self.result = None
         self.separate = None
         self.heading: dict | None = None
         self.heading_separate: dict | None = None
         self.still: np.ndarray | None = None
         self.accel_m_s2: np.ndarray | None = None
+        self._history: list[dict] = []
+
+    def missing(self) -> list[str]:
+        """The accelerometer's columns (``ax, ay, az``) when the data lack them."""
+        return (
+            [] if has_accelerometer(self.dataset) else ["the accelerometer beside the magnetometer: ax, ay, az columns"]
+        )
 
     @property
-    def dataset(self):
-        return self.ctrl.dataset
+    def calibration(self):
+        """The gravity fit's calibration (magnetometer and accelerometer), or None."""
+        return None if self.result is None else self.result.calibration
 
-    @property
-    def available(self) -> bool:
-        """Whether the data have accelerometer columns (``ax, ay, az``)."""
-        return has_accelerometer(self.dataset)
-
-    def fit(self, kept=None):
-        """The gravity fit on the kept samples (the session's robust loss), the separate calibrations beside it,
-        and a message with the figures.
+    def fit(self, kept=None, *, inputs: JobInputs | None = None, robust=None, again: bool = False):
+        """The gravity fit on the kept samples (``kept``, else ``inputs``', else those of now; the session's robust
+        loss unless ``robust`` is given), the separate calibrations beside it, and a message with the figures; the
+        session file keeps what it fitted (``gravity_fit``). ``again``: the saved session's fit run again.
 
         Raises
         ------
@@ -79,11 +90,14 @@ class GravityModel:
         if not self.available:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
         ctrl, ds = self.ctrl, self.dataset
+        if kept is None and inputs is not None:
+            kept = inputs.kept
         kept = np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
+        robust = bool(ctrl.state.robust if robust is None else robust)
         t0 = time.perf_counter()
-        ctrl._report_progress("gravity fit (beside the accelerometer)", None)
+        ctrl.report_progress("gravity fit (beside the accelerometer)", None)
         try:
-            result = fit_gravity(ds, mask=kept, robust=bool(ctrl.state.robust))
+            result = fit_gravity(ds, mask=kept, robust=robust)
             try:
                 sep = separate_calibration(ds, right_angle=result.sensors[0].right_angle, mask=kept)
             except (CalibrationError, MagcalError):
@@ -91,17 +105,34 @@ class GravityModel:
             heading = result.calibration.heading(ds, force=True)
             heading_sep = sep.heading(ds, force=True) if sep is not None else None
         finally:
-            ctrl.progress = None
-            ctrl._emit(Change.PROGRESS)
+            ctrl.end_progress()
+        elapsed = time.perf_counter() - t0
+        s = result.sensors[0]
         with ctrl.state.lock:
             self.result, self.separate = result, sep
             self.heading, self.heading_separate = heading, heading_sep
             self.still = result.still.mask & kept
-            self.accel_m_s2 = result.calibration.accelerometer.correct(accelerometer(ds).m_s2)
-        ctrl._emit(Change.GRAVITY)
-        s = result.sensors[0]
+            accel_cal, accel = result.calibration.accelerometer, accelerometer(ds)
+            assert accel_cal is not None and accel is not None  # a gravity fit is of the accelerometer's readings
+            self.accel_m_s2 = accel_cal.correct(accel.m_s2)
+            self.diagnosis = None
+            ctrl.state.gravity_fit = {"kept": pack_mask(kept), "robust": robust}
+            if not again:
+                self._history.append(
+                    {
+                        "step": "gravity fit",
+                        "dip_sd_deg": float(s.dip_sd_deg),
+                        "angle_off_deg": float(s.angle_off_deg),
+                        "n_fitted": int(kept.sum()),
+                        "elapsed_s": elapsed,
+                    }
+                )
+            ctrl.state.touch()
+        ctrl.autosave()
+        ctrl.emit(Change.GRAVITY)
         text = (
-            f"**gravity fit (beside the accelerometer)** ({time.perf_counter() - t0:.2f} s): mounting "
+            ("the saved session's " if again else "")
+            + f"**gravity fit (beside the accelerometer)** ({elapsed:.2f} s): mounting "
             f"{safe_text(s.right_angle_text.split(':')[0], 200)}, {s.angle_off_deg:.3f} deg off it; dip spread "
             f"{s.dip_sd_deg:.3f} deg; inclination {result.inclination_deg:.2f} deg"
         )
@@ -110,8 +141,42 @@ class GravityModel:
         return result
 
     def forget(self) -> None:
+        """Drop the gravity fit (the session forgets it too)."""
+        super().forget()
         self.result = self.separate = self.heading = self.heading_separate = None
         self.still = self.accel_m_s2 = None
+        self.ctrl.state.gravity_fit = None
+
+    def history(self) -> list[dict]:
+        """The gravity fits of this page (``step``, ``dip_sd_deg``, ``angle_off_deg``, ``n_fitted``,
+        ``elapsed_s``), oldest first."""
+        return list(self._history)
+
+    def save(self) -> dict | None:
+        """What the session file keeps of the last gravity fit (``gravity_fit``: ``kept``, a packed mask, and
+        ``robust``), or None."""
+        return self.ctrl.state.gravity_fit
+
+    def restore(self) -> str:
+        """Run the saved session's gravity fit again (its samples and robust loss); a note for the page when it
+        could not (the session goes on without it)."""
+        saved = self.ctrl.state.gravity_fit
+        if not saved:
+            return ""
+        size = self.dataset.n_samples * self.dataset.n_sensors
+        if size > RESTORE_MAX_SAMPLES:  # not on every opening: the settings stay, the button runs it
+            return (
+                f"the saved session ran the gravity fit; on {size:,} sensor samples it is not run again on opening "
+                "(seconds): press Run the gravity fit (Calibrate tab) to see it"
+            )
+        try:
+            self.fit(unpack_mask(saved["kept"], self.dataset.n_samples), robust=saved.get("robust", False), again=True)
+        except (MagcalError, ValueError, KeyError, TypeError) as exc:
+            with self.ctrl.state.lock:
+                self.ctrl.state.gravity_fit = None
+                self.ctrl.state.touch()
+            return f"the saved gravity fit could not be run again ({safe_text(str(exc), 300)}); run it again"
+        return ""
 
     def lesson_findings(self) -> dict | None:
         """Per sensor, the right angle the gravity fit found and the angle off it (deg); None before a fit (what
@@ -144,7 +209,11 @@ def _wrap(d):
     return (np.asarray(d, float) + 180.0) % 360.0 - 180.0
 
 
-def table_markdown(gm: GravityModel) -> str:
+#: The gravity model's former name.
+GravityModel = GravitySession
+
+
+def table_markdown(gm: GravitySession) -> str:
     """The gravity fit beside the total-field fit: mounting, dip spread, heading, what 0.5 deg needs."""
     if not gm.available:
         return (
@@ -185,7 +254,7 @@ def table_markdown(gm: GravityModel) -> str:
     return text
 
 
-def dip_series(gm: GravityModel) -> dict | None:
+def dip_series(gm: GravitySession) -> dict | None:
     """The dip (deg) of both fits on the still samples against time (or sample number) and against the tilt,
     with the inclination; None before a fit."""
     if gm.result is None or gm.still is None or gm.heading is None:
@@ -205,7 +274,7 @@ def dip_series(gm: GravityModel) -> dict | None:
     return out
 
 
-def rose(gm: GravityModel, sector_deg: float = ROSE_SECTOR_DEG) -> dict | None:
+def rose(gm: GravitySession, sector_deg: float = ROSE_SECTOR_DEG) -> dict | None:
     """The compass rose: per sector of the gravity fit's heading, the RMS heading error the total-field fit leaves
     (its heading minus the gravity fit's, still samples with the x axis near horizontal); None without both."""
     if gm.result is None or gm.heading_separate is None or gm.heading is None:
@@ -223,7 +292,7 @@ def rose(gm: GravityModel, sector_deg: float = ROSE_SECTOR_DEG) -> dict | None:
     return {"centre_deg": np.array(centres), "rms_deg": np.array(rms), "n": np.array(counts)}
 
 
-def accel_cloud(gm: GravityModel, max_points: int = 3000) -> dict | None:
+def accel_cloud(gm: GravitySession, max_points: int = 3000) -> dict | None:
     """The accelerometer's corrected directions (unit vectors, its own frame) and whether each is a still sample;
     None before a fit. Every ``k``-th sample when there are more than ``max_points``."""
     if gm.result is None or gm.accel_m_s2 is None or gm.still is None:

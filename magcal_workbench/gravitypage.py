@@ -12,15 +12,13 @@ app like every part's. The figures are built by pure functions the tests call.
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
 from magcal.core.errors import MagcalError
 
 from .actions import action
 from .events import Change
-from .gravitymodel import GravityModel, accel_cloud, dip_series, rose, table_markdown
+from .gravitymodel import GravitySession, accel_cloud, dip_series, rose, table_markdown
 from .scene import GROUP_DZ, sphere_mesh
 
 #: Colours of the page's gravity figures.
@@ -117,18 +115,14 @@ class GravityPage:
 
     def __init__(self, *, ctrl, steps, server):
         self._ctrl, self._steps, self.server = ctrl, steps, server
-        self._models: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.cloud_on = False
         self.nodes: dict = {}
 
     @property
-    def model(self) -> GravityModel:
-        """The gravity model of the opened data (one per controller)."""
-        ctrl = self._ctrl()
-        model = self._models.get(ctrl)
-        if model is None:
-            model = self._models[ctrl] = GravityModel(ctrl)
-        return model
+    def model(self) -> GravitySession:
+        """The gravity model of the opened data (the controller's :attr:`~magcal_workbench.controller.Controller.
+        gravity` session: saved and restored with the session)."""
+        return self._ctrl().gravity
 
     # --- construction --------------------------------------------------------------------------------------
     def attach(self, panels) -> None:
@@ -169,7 +163,7 @@ class GravityPage:
         gm = self.model
         if not gm.available:
             raise MagcalError("the gravity fit needs the accelerometer beside the magnetometer: ax, ay, az columns")
-        self._ctrl().run_step("gravity fit", lambda inputs: gm.fit(kept=inputs.kept))
+        self._ctrl().run_step("gravity fit", lambda inputs: gm.fit(inputs=inputs))
 
     @action
     def do_accel_cloud(self, event):
@@ -179,9 +173,7 @@ class GravityPage:
 
     # --- following the data --------------------------------------------------------------------------------
     def changed(self, kind: Change) -> None:
-        """The controller's event (on the page's thread): a new record forgets the fit; a fit redraws."""
-        if kind == Change.DATA:
-            self.model.forget()
+        """The controller's event (on the page's thread): a new record (its own gravity model) or a fit redraws."""
         if kind in (Change.DATA, Change.GRAVITY, Change.SELECTION):
             self.refresh()
             self.draw_cloud()

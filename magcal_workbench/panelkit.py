@@ -10,10 +10,19 @@ A panel is a class whose instance has
 * optionally ``changed(kind)``: the controller's events (:class:`magcal_workbench.events.Change`), on the page's
   thread, to follow the data, the fit and the selection.
 
+A built-in tab made as a panel (:class:`~magcal_workbench.calibratetab.CalibrateTab`,
+:class:`~magcal_workbench.modeltab.ModelTab`, :class:`~magcal_workbench.qualitytab.QualityTab`,
+:class:`~magcal_workbench.outlierstab.OutliersTab`) fills its own tab
+instead: ``build(panels, gui)``, called by :class:`~magcal_workbench.panels.Panels` at the tab's place (or, when the
+panels were not handed it, by its ``attach`` inside ``with panels.tab("Quality"): ...``); it joins
+``panels.tab_panels`` and is refreshed with the other tabs (``refresh(kinds)``, :meth:`Panels.refresh
+<magcal_workbench.panels.Panels.refresh>`); its widgets stay reachable as the panels' attributes
+(``panels.btn_run``).
+
 It is made by its :class:`PanelKind`'s ``make(context)`` from a :class:`PanelContext` (what a panel is handed: the
 open data's controller, the steps, the server; never the whole workbench) and registered in :data:`PANELS`, the
-one list of them: magcal's own (the gravity model's page) below, another package's through the entry-point group
-``magcal_workbench.panels`` (loaded when the workbench starts), or a module that calls :func:`register_panel`
+one list of them: magcal's own (the built-in tabs made as panels, then the gravity model's page) below, another
+package's through the entry-point group ``magcal_workbench.panels`` (loaded when the workbench starts), or a module that calls :func:`register_panel`
 before a :class:`~magcal_workbench.app.Workbench` is made. Each panel is built in the order registered, after the
 built-in tabs; the physics stays in the engine (a panel calls the controller, which calls it).
 """
@@ -26,7 +35,11 @@ from typing import Any
 
 from magcal.core.registry import Registry
 
+from .calibratetab import CalibrateTab
 from .gravitypage import GravityPage
+from .modeltab import ModelTab
+from .outlierstab import OutliersTab
+from .qualitytab import QualityTab
 
 
 @dataclass(frozen=True)
@@ -79,6 +92,38 @@ def register_panel(kind: PanelKind, replace: bool = False) -> PanelKind:
     return PANELS.register(kind, replace=replace, depth=2)
 
 
+PANELS.register(
+    PanelKind(
+        name="calibrate",
+        description="the Calibrate tab: Run, |B| against time, the error histogram, the settings, the seed's steps",
+        make=lambda c: CalibrateTab(ctrl=c.ctrl, steps=c.steps),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="model",
+        description="the Model tab: the effects, Diagnose and Add on the active model session, RMS per step, evidence",
+        make=lambda c: ModelTab(ctrl=c.ctrl, steps=c.steps),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="quality",
+        description="the Quality tab: the data's quality findings and the noise behind the floors",
+        make=lambda c: QualityTab(ctrl=c.ctrl),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="outliers",
+        description="the Outliers tab: the box selection's mode, the threshold, undo, redo, reset, the inspected sample",
+        make=lambda c: OutliersTab(ctrl=c.ctrl, steps=c.steps),
+    ),
+    origin="built-in",
+)
 PANELS.register(
     PanelKind(
         name="gravity",

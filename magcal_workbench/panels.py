@@ -2,7 +2,7 @@
 
 Every GUI element lives on ``server.gui`` so all connected browsers share one state. Each widget's callback is
 wired where the widget is made: buttons call the :class:`~magcal_workbench.app.Workbench` (which calls the controller);
-a setting's widget is *bound* to the session state (:meth:`Panels._bind`), and its callback does nothing when the
+a setting's widget is *bound* to the session state (:meth:`Panels.bind`), and its callback does nothing when the
 widget already shows what the state holds, so :meth:`Panels.refresh` writes the state back into the widgets
 without re-running anything. Text shown is built by small pure functions (``*_markdown``) that the tests call
 directly. Text the workbench did not write (file names and contents, session fields, a user's effects) goes
@@ -11,7 +11,6 @@ through :mod:`workbench.markup` before it joins markdown.
 
 from __future__ import annotations
 
-import threading
 from contextlib import contextmanager
 
 import numpy as np
@@ -19,27 +18,49 @@ import numpy as np
 from magcal.core import conventions
 
 from . import scene as scn
-from .controller import candidate_label, format_number
+from .events import Change
 from .exporting import ExportSection
-from .floors import floor_markdown
+from .figures import fmt
 from .guide import gravity_status_markdown, guide_markdown, lesson_markdown, next_step, vector_reference_markdown
 from .lessons import lesson_titles, list_lessons
 from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
+from .looptext import (  # the loop's texts; the names stay importable from here
+    HELD_OUT_NOTE,
+    TRANSFER_WORDS,
+    StatusFigures,
+    candidate_evidence_markdown,
+    candidates_markdown,
+    convergence_markdown,
+    held_out_pair,
+    history_markdown,
+    holds_words,
+    loop_text,
+    model_terms_markdown,
+)
 from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
-from .pending import PENDING
-from .plots import log_axis_scales
-from .sessionfile import NOISE_RANGE_nT
-from .state import METHODS
+from .qualitytab import noise_markdown, quality_markdown
 from .uploads import UPLOAD_UNITS
-from .vectorpanel import (
-    VectorPanel,
-    vector_candidate_markdown,
-    vector_candidates_markdown,
-    vector_history_markdown,
-    vector_model_markdown,
-    vector_status_markdown,
-)
+from .vectorpanel import VectorPanel
+
+#: The loop's texts moved to :mod:`magcal_workbench.looptext`, importable from here as before.
+__all__ = [
+    "HELD_OUT_NOTE",
+    "TRANSFER_WORDS",
+    "Panels",
+    "candidate_evidence_markdown",
+    "candidates_markdown",
+    "convergence_markdown",
+    "fmt",
+    "held_out_pair",
+    "history_markdown",
+    "holds_words",
+    "model_terms_markdown",
+    "noise_markdown",
+    "quality_markdown",
+    "status_markdown",
+    "summary_markdown",
+]
 
 METHOD_LABELS = {
     "ml": "ml: ellipsoid, align, maximum likelihood",
@@ -52,24 +73,6 @@ ALL_SENSORS = "all sensors"
 
 
 # --- text builders ------------------------------------------------------------------------------------------
-def fmt(v, unit="", digits=4) -> str:
-    """A number for the page (:func:`magcal_workbench.controller.format_number`) with its unit, or ``-``."""
-    text = format_number(v, digits)
-    return text if text == "-" else f"{text}{(' ' + unit) if unit else ''}"
-
-
-def convergence_markdown(record) -> str:
-    """A warning when a step's fit stopped before converging (the engine's ``FitResult.success``); else ``""``."""
-    fit = getattr(record, "fit", None)
-    if not fit or fit.get("success", True):
-        return ""
-    return (
-        f"⚠ **Warning: the fit did not converge** ({fit.get('message') or 'no reason given'}, "
-        f"{fit.get('nfev', '?')} evaluations): its figures are not a minimum. Press *3. Refine* to continue "
-        "from where it stopped, or check the data (outliers, attitude coverage, units, reference field)."
-    )
-
-
 def status_markdown(ctrl) -> str:
     """The always-visible summary: RMS, floor, rejected count, model, and a warning if the fit did not converge."""
     rms = ctrl.residual_rms_nT()
@@ -80,17 +83,13 @@ def status_markdown(ctrl) -> str:
         rms_text = "no kept samples"
     else:
         rms_text = fmt(rms, "nT") if np.isfinite(rms) else "not fitted yet"
-    text = (
-        f"**Total-field RMS: {rms_text}** (floor {fmt(floor, 'nT', 3)})  \n"
-        f"Rejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
-        f"Model: {effects}"
+    figures = StatusFigures(
+        rms=rms_text,
+        floor=fmt(floor, "nT", 3),
+        rejected=f"Rejected: {sel.n_rejected} of {sel.n_samples} samples",
+        model=effects,
     )
-    if ctrl.vector_loop():  # Diagnose and Add work on the vector model: its figures first, the total field after
-        vector = vector_status_markdown(ctrl.vector) or "_Vector model: not fitted yet (the Step 1 button fits it)_"
-        text = (
-            f"{vector}  \nRejected: {sel.n_rejected} of {sel.n_samples} samples  \n"
-            f"Total-field RMS: {rms_text} (the total-field fit, one choice away: Calibrate tab); model {effects}"
-        )
+    text = loop_text(ctrl).status(ctrl, figures)  # the model Diagnose and Add work on, its figures first
     gravity = gravity_status_markdown(ctrl)  # a board with an accelerometer: its first fit's figures first
     text = f"{gravity}  \n{text}" if gravity else text
     warning = convergence_markdown(ctrl.state.history[-1] if ctrl.state.history else None)
@@ -239,118 +238,6 @@ def sensors_markdown(ctrl) -> str:
     return text
 
 
-def history_markdown(state, last: int = 6, pending=frozenset()) -> str:
-    """The last steps: in-sample RMS of the kept samples and, after a maximum-likelihood fit, the held-out RMS
-    (the model fitted on alternating blocks of time, scored on the blocks between: :func:`magcal.fitting.validation.
-    validate`); ``pending`` holds the ``id`` of the records whose held-out check still runs (shown
-    ``pending...``)."""
-    if not state.history:
-        return "_No step yet._"
-    rows = ["| # | step | RMS nT | held-out nT | what changed |", "|---|---|---|---|---|"]
-    start = max(0, len(state.history) - last)
-    for i, r in enumerate(state.history[start:], start=start):
-        flag = " (did not converge)" if convergence_markdown(r) else ""
-        held = PENDING if id(r) in pending else fmt(getattr(r, "held_out_rms_nT", None))
-        rows.append(
-            f"| {i} | {safe_text(r.step, 120)} | {fmt(r.rms_nT)}{flag} | {held} | {safe_text(r.changes, 400)} |"
-        )
-    return "\n".join(rows)
-
-
-#: Under the step history: what its held-out column means.
-HELD_OUT_NOTE = (
-    "_held-out: the same model fitted on alternating blocks of time and scored on the blocks between; "
-    "an added effect is real when it lowers this too._"
-)
-
-
-def candidates_markdown(diagnosis) -> str:
-    if diagnosis is None:
-        return "_Press Diagnose to rank the effects the data may hide in the current fit's residuals._"
-    d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
-    lines = [
-        f"**Verdict:** {safe_code(d.get('verdict'))}  (RMS {fmt(d.get('rms_nT'), 'nT')}, "
-        f"noise {fmt(d.get('noise_nT'), 'nT', 3)}, floor {fmt(d.get('floor_nT'), 'nT', 3)})"
-    ]
-    if d.get("summary"):
-        lines.append(f"_{safe_text(d['summary'], 1000)}_")
-    validation = d.get("validation") or {}
-    blocks = (validation.get("schemes") or {}).get("blocks") if validation.get("validated") else None
-    if blocks:
-        base = fmt(blocks.get("base_held_out_rms_nT"), "nT")
-        lines.append(
-            f"\nHeld-out check: each candidate refitted on alternating blocks of time and scored on the "
-            f"{blocks.get('n_test')} samples between (base model {base}); only candidates whose gain holds "
-            "there are recommended."
-        )
-    elif validation.get("skipped"):
-        lines.append(f"\nHeld-out check not done: {safe_text(validation['skipped'], 300)}")
-    for w in d.get("warnings", []) or []:
-        lines.append(f"- warning: {safe_text(w, 1000)}")
-    cands = d.get("candidates", []) or []
-    if cands:
-        lines += ["", "| # | effect | dBIC | RMS after nT | held-out nT | holds? |", "|---|---|---|---|---|---|"]
-        for i, c in enumerate(cands[:8]):
-            mark = "" if c.get("refitted", True) else "*"
-            lines.append(
-                f"| {i + 1} | {safe_code(candidate_label(c))} | {fmt(c.get('delta_bic'), digits=4)}{mark} | "
-                f"{fmt(c.get('rms_after_nT'))}{mark} | {held_out_pair(c)} | {holds_words(c)} |"
-            )
-        if any(not c.get("refitted", True) for c in cands[:8]):
-            lines.append("\n\\* predicted by the score test, not refitted")
-        if any(c.get("holds") is False for c in cands[:8]):
-            lines.append(
-                "\n⚠ A candidate that **does not hold on held-out data** lowers the error only on the "
-                "samples it was fitted to: it describes something of this record (or its noise), not the "
-                "instrument. You may still add it to see."
-            )
-    else:
-        lines.append("_No candidate explains the residual._")
-    return "\n".join(lines)
-
-
-def held_out_pair(candidate: dict) -> str:
-    """``"12.1 -> 10.4"``: the held-out RMS (nT) without and with a candidate (``blocks`` scheme), or ``-``."""
-    before, after = candidate.get("held_out_rms_before_nT"), candidate.get("held_out_rms_after_nT")
-    if before is None or after is None:
-        return "-"
-    return f"{fmt(before)}→{fmt(after)}"
-
-
-def holds_words(candidate: dict) -> str:
-    """Whether a candidate's in-sample gain holds on held-out data (:attr:`magcal.diagnosis.Candidate.holds`), in
-    words for the table; when the blocks' figure falls but the gain still does not hold, the later stretch's RMS
-    rose (quoted, nT)."""
-    holds = candidate.get("holds")
-    if holds is None:
-        return "-"
-    if holds:
-        return "holds"
-    before, after = candidate.get("held_out_rms_before_nT"), candidate.get("held_out_rms_after_nT")
-    later_before, later_after = candidate.get("later_rms_before_nT"), candidate.get("later_rms_after_nT")
-    blocks_fall = before is not None and after is not None and after < before
-    if blocks_fall and later_before is not None and later_after is not None and later_after > later_before:
-        return f"⚠ **does not hold**: later {fmt(later_before)}→{fmt(later_after)}"
-    return "⚠ **does not hold**"
-
-
-def candidate_evidence_markdown(diagnosis, label: str) -> str:
-    """The evidence of the chosen candidate, with a warning when its gain does not hold on held-out data."""
-    if diagnosis is None:
-        return ""
-    for c in diagnosis.candidates:
-        if candidate_label(c) == label:
-            refit = "refitted" if getattr(c, "refitted", False) else "predicted by the score test"
-            text = f"**{safe_text(label)}** ({refit}): {safe_text(getattr(c, 'evidence', ''), 1000)}"
-            if getattr(c, "holds", None) is False:
-                text = (
-                    "⚠ **This candidate does not hold on held-out data**: its gain is on the fitted samples "
-                    "only. Adding it is allowed, but it will not carry.  \n" + text
-                )
-            return text
-    return ""
-
-
 def inspect_markdown(info: dict | None) -> str:
     if info is None:
         return "_Click a point to inspect its sample._"
@@ -405,55 +292,6 @@ def sessions_markdown(sessions, max_bytes=None, last: int = 10) -> str:
     return "\n".join(rows) + f"\n\n{len(sessions)} session(s), {total / 1e6:.1f} MB{bound}{more}"
 
 
-#: What a term's :attr:`magcal.model.terms.Effect.transferable` means, one line each.
-TRANSFER_WORDS = {
-    True: "Instrument term: a property of the sensor, carried to new data by the calibration",
-    False: "Record-only term: describes this recording (a drift, a step, the site's field); fitted so the "
-    "instrument terms stay unbiased, applied to this record only, never carried to new data",
-}
-
-
-def model_terms_markdown(terms) -> str:
-    """The model's effects marked instrument (carried to new data) or record-only (this record only)."""
-    if not terms:
-        return "_The model has the base terms only (bias, scale, non-orthogonality, misalignment): all instrument._"
-    rows = ["**In the model**"]
-    for t in terms:
-        kind = "instrument" if t["transferable"] else "record-only"
-        why = (
-            "carried to new data"
-            if t["transferable"]
-            else "this record only: not carried to new data without an external reference"
-        )
-        rows.append(f"- {safe_code(t['label'], 80)} **{kind}**: {why}")
-    return "\n".join(rows)
-
-
-def quality_markdown(report) -> str:
-    """The data-quality findings (:func:`magcal.checks.quality.assess`), warnings first and marked, each with what it does
-    to the fit; the findings with nothing to say are listed in one line at the end."""
-    if report is None:
-        return "_No quality report._"
-    findings = list(report.findings)
-    shown = [f for f in findings if f.severity == "warning" or f.notable or f.kind == "sample_rate"]
-    shown.sort(key=lambda f: f.severity != "warning")
-    lines = []
-    for f in shown:
-        where = f"sensor {f.sensor}: " if f.sensor is not None else ""
-        head = f"{where}{f.summary}"
-        if f.severity == "warning":
-            lines.append(f"- ⚠ **Warning: {safe_text(head, 600)}**  \n  → {safe_text(f.effect, 600)}")
-        else:
-            lines.append(f"- {safe_text(head, 600)}  \n  → _{safe_text(f.effect, 600)}_")
-    quiet = [f for f in findings if f not in shown]
-    if quiet:
-        seen = sorted({f.kind.replace("_", " ") for f in quiet})
-        lines.append(f"\nChecked, nothing to say: {safe_text(', '.join(seen), 300)}.")
-    n_warn = sum(f.severity == "warning" for f in findings)
-    head = f"**Data quality**: {n_warn} warning(s)" if n_warn else "**Data quality**: no warning"
-    return head + "\n\n" + "\n".join(lines)
-
-
 def reference_markdown(ctrl) -> str:
     """The reference field the fits use, and where it comes from (the box above shows 0 for "not typed"): the
     vector fit's field vector first where the loop works on it, then the total-field fit's."""
@@ -481,21 +319,6 @@ def _total_reference_markdown(ctrl) -> str:
     if ds.reference_total_nT:
         return f"_Reference used:_ {fmt(ds.reference_total_nT, 'nT', 6)} from the file (`# reference_total_nT`)"
     return f"_Reference used:_ none given, so the field magnitude is fitted{fitted}"
-
-
-def noise_markdown(ctrl) -> str:
-    """The noise behind the floors, the method that gave it, and the floor it sets; where the loop works on the
-    vector fit, its floor (:func:`magcal_workbench.floors.floor_markdown`), the one every place shows."""
-    if ctrl.vector_loop():
-        return floor_markdown(ctrl)
-    floor = ctrl.floor_nT()
-    text = (
-        f"**Noise:** {safe_text(ctrl.noise_text(), 800)}  \nTotal-field floor of the current fit: {fmt(floor, 'nT', 3)}"
-    )
-    noise = ctrl.noise
-    if noise is not None and noise.note:
-        text += f"  \n_{safe_text(noise.note, 600)}_"
-    return text
 
 
 def download_markdown(ctrl) -> str:
@@ -608,10 +431,26 @@ class Panels:
         Whether the page is served to this machine only (loading an effects file is allowed).
     live_sources : callable
         The live sources the server offers (labels of :meth:`magcal_workbench.live.SourceMenu.labels`).
+    tabs : dict, optional
+        The panels of the recipe (:data:`magcal_workbench.panelkit.PANELS`, made) by name: those that fill a
+        built-in tab (``build(panels, gui)``: the Calibrate tab's run and settings, the Model tab's Diagnose and
+        Add, the Quality tab) are built at their place in it, with their handlers beside their widgets.
     """
 
     def __init__(
-        self, widgets, handle, on, ctrl, live, busy, maps_choice, session_ids, store, local: bool, live_sources
+        self,
+        widgets,
+        handle,
+        on,
+        ctrl,
+        live,
+        busy,
+        maps_choice,
+        session_ids,
+        store,
+        local: bool,
+        live_sources,
+        tabs: dict | None = None,
     ):
         self.w = widgets
         self.values = widgets.values
@@ -625,6 +464,7 @@ class Panels:
         self.store = store
         self.local = local
         self.live_sources = live_sources
+        self._tab_parts = dict(tabs or {})
         gui = widgets.gui
         self.gui = gui
         gui.configure_theme(control_width="large", dark_mode=False)
@@ -651,7 +491,7 @@ class Panels:
         self.legend = gui.add_html("")
         #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
         self.evidence_overlay = gui.add_html("", visible=False)
-        tabs = gui.add_tab_group()
+        tab_group = gui.add_tab_group()
         self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
         #: A change of the selection leaves the cockpit's figures to the refit that follows (:meth:`figures_held`),
         #: and whether some were left.
@@ -659,22 +499,32 @@ class Panels:
         self._figures_stale = False
         self._bindings: list = []  # (widget, the state's value as the widget shows it)
         self._live_shown = False  # the tabs describe a live session's stream
+        #: The built-in tabs made as panels of the panel recipe (:mod:`magcal_workbench.panelkit`), which fill their
+        #: tab when attached (:meth:`tab`) and are refreshed with the others.
+        self.tab_panels: list = []
         #: The tabs by name (:meth:`section` adds to them).
         self.tab_by_name: dict = {}
         for name, build in (
-            ("Calibrate", self._build_calibrate),
-            ("Model", self._build_model),
-            ("Quality", self._build_quality),
-            ("Outliers", self._build_outliers),
+            ("Calibrate", lambda gui: self._built_in("calibrate", gui)),  # magcal_workbench.calibratetab
+            ("Model", lambda gui: self._built_in("model", gui)),  # magcal_workbench.modeltab
+            ("Quality", lambda gui: self._built_in("quality", gui)),  # magcal_workbench.qualitytab
+            ("Outliers", lambda gui: self._built_in("outliers", gui)),  # magcal_workbench.outlierstab
             ("View", self._build_view),
             ("Files", self._build_files),
             ("Lessons", self._build_lessons),
         ):
-            tab = tabs.add_tab(name, icon=None)
+            tab = tab_group.add_tab(name, icon=None)
             self.tab_by_name[name] = tab
             with tab:
                 build(gui)
-        self.tabs = tabs
+        self.tabs = tab_group
+
+    def _built_in(self, name: str, gui) -> None:
+        """Build the panel ``name`` of the recipe here, in the tab being built (its ``build(panels, gui)``); a
+        panel not handed to the panels builds itself into its tab when attached."""
+        part = self._tab_parts.get(name)
+        if part is not None:
+            part.build(self, gui)
 
     def _do_next_step(self, event) -> None:
         """The guide's button: the step :func:`~magcal_workbench.guide.next_step` names, through the same handler
@@ -700,6 +550,20 @@ class Panels:
         if step.label:
             self.btn_next.label = step.label
 
+    def tab(self, name: str):
+        """The tab ``name`` (``"Quality"``, ...) to build into: ``with panels.tab("Quality"): ...`` (a built-in
+        tab made as a panel of the recipe, :mod:`magcal_workbench.panelkit`)."""
+        return self.tab_by_name[name]
+
+    def __getattr__(self, name: str):
+        """A widget of a built-in tab made as a panel (``panels.noise_input``), as when the panels made it."""
+        if name.startswith("__") or name == "tab_panels":
+            raise AttributeError(name)
+        for tab in self.__dict__.get("tab_panels", ()):
+            if name in vars(tab):
+                return vars(tab)[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
     def section(self, tab: str, title: str, expand: bool = False):
         """A new collapsible section at the end of the tab ``tab`` (``"Files"``, ...): its widgets are made inside
         ``with panels.section("Files", "Export"): ...``; input widgets through :attr:`w` (checked values)."""
@@ -707,7 +571,7 @@ class Panels:
             return self.gui.add_folder(title, expand_by_default=expand)
 
     # --- construction --------------------------------------------------------------------------------------
-    def _bind(self, handle, shown, apply):
+    def bind(self, handle, shown, apply):
         """Wire a setting's widget to the session state, where the widget is made.
 
         ``shown()`` is the state's value as the widget shows it; ``apply(value)`` puts the value the user chose
@@ -737,226 +601,9 @@ class Panels:
             self._engine_buttons.append(b)
         return b
 
-    def _build_calibrate(self, gui):
-        """Run, the plots (|B| against time with its region editor, the error histogram), the settings, and the
-        long texts folded away (data, per-sensor figures, step history)."""
-        import plotly.graph_objects as go
-
-        state, configure = (lambda: self.ctrl().state), (lambda **kw: self.ctrl().configure(**kw))
-        self.btn_run = self._button(gui, "Run the chosen method", self.on.do_calibrate, color="blue")
-        with gui.add_folder("|B| against time", expand_by_default=True):
-            # viser's client draws plotly at height = width * aspect
-            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
-            self.range_from = self.w.slider(
-                "From % of the record",
-                min=0.0,
-                max=100.0,
-                step=0.1,
-                initial_value=40.0,
-                hint="Start of the time range to exclude or include (shaded blue on the plot)",
-            )
-            self.range_to = self.w.slider(
-                "To % of the record",
-                min=0.0,
-                max=100.0,
-                step=0.1,
-                initial_value=50.0,
-                hint="End of the time range to exclude or include",
-            )
-            for h in (self.range_from, self.range_to):
-                h.on_update(lambda e: self.handle(self.on.range_changed, e))
-            self.btn_exclude_range = self._button(
-                gui,
-                "Exclude range",
-                self.on.do_exclude_range,
-                engine=False,
-                hint="Leave the samples in the range out of the fit (undo in the Outliers tab); the fit reruns",
-            )
-            self.btn_include_range = self._button(
-                gui,
-                "Include range",
-                self.on.do_include_range,
-                engine=False,
-                hint="Put the range's excluded samples back into the fit; the fit reruns",
-            )
-            self.btn_exclude_fast = self._button(
-                gui,
-                "Exclude the fast-turning samples",
-                self.on.do_exclude_fast,
-                engine=False,
-                visible=False,
-                hint="Leave out the samples taken while turning fast (marked red); the fit reruns",
-            )
-            self.range_info = gui.add_markdown("")
-        with gui.add_folder("Error histogram", expand_by_default=True):
-            self.histogram_unit = self.w.dropdown(
-                "Error in", ("nT", "%"), initial_value="nT", hint="|B| - reference in nT or in % of the reference"
-            )
-            self.histogram_unit.on_update(lambda e: self.handle(self.on.range_changed, e))
-            self.histogram_plot = gui.add_plotly(go.Figure(), aspect=0.68)
-        with gui.add_folder("Settings", expand_by_default=True):
-            self.method = self._bind(
-                self.w.dropdown(
-                    "Method", tuple(METHODS), initial_value="ml", hint="; ".join(METHOD_LABELS[m] for m in METHODS)
-                ),
-                lambda: state().method,
-                lambda v: configure(method=v),
-            )
-            self.reference = self._bind(
-                self.w.number(
-                    "Reference field nT",
-                    0.0,
-                    min=0.0,
-                    step=1.0,
-                    hint="Total field in nT; 0 = the file's reference (or fitted if none)",
-                ),
-                lambda: float(state().reference_nT or 0.0),
-                lambda v: configure(reference_nT=float(v) if v and float(v) > 0 else None),
-            )
-            self.fit_reference = self._bind(
-                gui.add_checkbox(
-                    "Fit the field magnitude",
-                    False,
-                    hint="Ignore any reference and fit |B| (det C^-1 = 1 for sensor 1)",
-                ),
-                lambda: bool(state().fit_reference),
-                lambda v: configure(fit_reference=bool(v)),
-            )
-            self.reference_info = gui.add_markdown("")
-            self.vector_panel.build_location(gui)
-            self.robust = self._bind(
-                gui.add_checkbox("Robust loss (soft L1)", False, hint="Down-weight gross outliers in the ML step"),
-                lambda: bool(state().robust),
-                lambda v: configure(robust=bool(v)),
-            )
-        with gui.add_folder("Step by step", expand_by_default=False):
-            self.btn_ellipsoid = self._button(gui, "1. Fit ellipsoid (per sensor)", self.on.do_ellipsoid)
-            self.btn_align = self._button(gui, "2. Align sensors (Procrustes)", self.on.do_align)
-            self.btn_refine = self._button(gui, "3. Refine (maximum likelihood)", self.on.do_refine)
-        with gui.add_folder("Data", expand_by_default=False):
-            self.data_info = gui.add_markdown("")
-        with gui.add_folder("Per sensor", expand_by_default=False):
-            self.sensors_table = gui.add_markdown("")
-        self.vector_panel.build_calibrate(gui)
-        with gui.add_folder("Step history", expand_by_default=False):
-            self.history = gui.add_markdown("")
-            self.history_note = gui.add_markdown(HELD_OUT_NOTE)
-
-    def _build_model(self, gui):
-        gui.add_markdown(
-            "Effects beyond bias, scale, non-orthogonality and misalignment. "
-            "Greyed ones need a channel the data lack (hover for the reason)."
-        )
-        self.effect_boxes = {}
-        self._boxes_lock = threading.Lock()
-        self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
-        self._add_effect_boxes(self.ctrl().available_effects())
-        self.model_terms = gui.add_markdown(model_terms_markdown(self.ctrl().model_terms()))
-        with gui.add_folder("Your own effects", expand_by_default=False):
-            self.user_effects = gui.add_markdown(user_effects_markdown(self.ctrl().available_effects()))
-            self.effects_path = self.w.text(
-                "Effects file (.py)", "", hint="Path of a Python file on the machine serving this page"
-            )
-            self.btn_load_effects = self._button(gui, "Load effects file", self.on.do_load_effects)
-            self.effects_warning = gui.add_markdown(
-                EFFECTS_FILE_WARNING
-                if self.local
-                else "_Loading an effects file is off: the page is served beyond this machine. Start the workbench "
-                "with `--effects-file PATH` instead._"
-            )
-            self.btn_load_effects.disabled = not self.local
-            self.effects_path.disabled = not self.local
-            #: The effects files the open session names, not loaded (never run when a session opens).
-            self.session_effects = gui.add_markdown("", visible=False)
-            self.btn_session_effects = self._button(
-                gui, "Load the session's effects files", self.on.do_load_session_effects, visible=False
-            )
-        self.btn_refit = self._button(gui, "Refit with this model", self.on.do_refine)
-        self.btn_diagnose = self._button(gui, "Diagnose", self.on.do_diagnose, color="violet")
-        self.candidates = gui.add_markdown("")
-        self.candidate_choice = self.w.dropdown("Candidate", ("-",), allowed=self._candidate_options, initial_value="-")
-        self.candidate_evidence = gui.add_markdown("")
-        self.candidate_choice.on_update(lambda e: self.handle(self._candidate_chosen, e))
-        self.btn_add = self._button(gui, "Add the candidate and refit", self.on.do_add, color="green")
-        #: Everything the diagnosis advises, in one refit (shown when it advises something the model lacks).
-        self.btn_add_advice = self._button(gui, "Add the advice and refit", self.on.do_add_advice, visible=False)
-        self.vector_panel.build_model(gui)  # the vector model's history plot and its Take out, for the vector loop
-        self.rms_plot = gui.add_uplot(
-            data=(
-                np.array([0.0, 1.0]),
-                np.array([np.nan, np.nan]),
-                np.array([np.nan, np.nan]),
-                np.array([np.nan, np.nan]),
-            ),
-            series=(
-                {"label": "step"},
-                {"label": "RMS nT", "stroke": "#1f77b4", "width": 2, "points": {"show": True, "size": 6}},
-                {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
-                {
-                    "label": "held-out RMS nT",
-                    "stroke": "#ff7f0e",
-                    "width": 2,
-                    "spanGaps": True,
-                    "points": {"show": True, "size": 6},
-                },
-            ),
-            scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
-            axes=({"label": "step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),
-            padding=(14, 16, 0, 0),
-            title="Total-field RMS per step",
-            aspect=1.4,
-        )
-        self.btn_full_evidence = self._button(
-            gui,
-            "Full-size evidence",
-            self.on.do_full_evidence,
-            engine=False,
-            hint="The evidence plots over the scene, full size (press again to go back); the same data as below",
-        )
-        self.btn_evidence_png = self._button(
-            gui, "Download evidence PNG", self.on.do_download_evidence_png, engine=False
-        )
-        self.btn_evidence_svg = self._button(
-            gui, "Download evidence SVG", self.on.do_download_evidence_svg, engine=False
-        )
-        self.evidence_holder = gui.add_folder("Evidence", expand_by_default=True)
-        self.evidence_plot = None
-
-    def _build_quality(self, gui):
-        """Data quality read before fitting, and the noise behind the floors (given or estimated)."""
-        self.noise_info = gui.add_markdown("")
-        self.noise_input = self.w.number(
-            "Noise nT per axis",
-            0.0,
-            min=0.0,
-            max=NOISE_RANGE_nT[1],
-            step=0.1,
-            hint="The sensor's noise per axis (standard deviation, nT) if you know it; 0 = estimate it from the "
-            "data (differences in time, still stretches, never below the quantization floor)",
-        )
-        self.btn_noise = self._button(gui, "Use this noise for the floors", self.on.do_apply_noise, engine=False)
-        self.quality = gui.add_markdown("")
-
-    def _build_outliers(self, gui):
-        gui.add_markdown(
-            "**Shift-drag** a box in the scene to reject (or restore) the samples inside it; "
-            "**click** a point to inspect its sample. Rejected points turn magenta."
-        )
-        self.box_mode = self.w.dropdown("Box selection", ("reject", "restore"), initial_value="reject")
-        self.k_sigma = self.w.slider("Threshold k (x sigma)", min=2.0, max=10.0, step=0.5, initial_value=4.0)
-        self.btn_threshold = self._button(gui, "Reject beyond k sigma", self.on.do_threshold, engine=False)
-        self.auto_refit = gui.add_checkbox(
-            "Refit after each change", True, hint="Refit (ML) on the kept samples after every rejection"
-        )
-        with gui.add_folder("History", expand_by_default=True):
-            self.btn_undo = self._button(gui, "Undo", self.on.do_undo, engine=False)
-            self.btn_redo = self._button(gui, "Redo", self.on.do_redo, engine=False)
-            self.btn_reset = self._button(gui, "Reset (keep all)", self.on.do_reset, engine=False)
-        self.inspect = gui.add_markdown(inspect_markdown(None))
-
     def _build_view(self, gui):
         options = self._sensor_options(self.ctrl().dataset.n_sensors)
-        self.sensor_choice = self._bind(
+        self.sensor_choice = self.bind(
             self.w.dropdown(
                 "Sensor",
                 options,
@@ -1150,43 +797,6 @@ class Panels:
         self.btn_answer = self._button(gui, "Show the answer", self.on.do_show_answer, engine=False)
         self.lesson_feedback = gui.add_markdown("")
 
-    def _add_effect_boxes(self, entries) -> None:
-        """A checkbox for every catalogue effect that has none yet (a user's effects loaded later join the end)."""
-        with self._boxes_lock, self.effects_folder:  # two refreshes at once must not add a box twice
-            for entry in entries:
-                name = entry["name"]
-                if name in self.effect_boxes:
-                    continue
-                self.effect_boxes[name] = self._bind(
-                    # spaces, not underscores: the narrow label column wraps a long name at its words
-                    self.gui.add_checkbox(clean_text(name.replace("_", " "), 64), False, hint=effect_hint(entry)),
-                    lambda n=name: self.ctrl().state.has_effect(n),
-                    lambda on, n=name: self.ctrl().set_effect(n, bool(on)),
-                )
-
-    def _candidate_labels(self) -> list:
-        """The current diagnosis's candidates (:meth:`Controller.candidate_labels`)."""
-        return self.ctrl().candidate_labels()
-
-    def _candidate_options(self) -> tuple:
-        """The Candidate choices the server offers: the current diagnosis's candidates and ``-``."""
-        return tuple(self._candidate_labels()) + ("-",)
-
-    @staticmethod
-    def _history_markdown(ctrl) -> str:
-        """The step history; on a record whose loop works on the vector model, that model's fits first (world RMS
-        per N, E, D and |B|)."""
-        text = history_markdown(ctrl.state, pending=ctrl.held_out_pending)
-        vector = vector_history_markdown(ctrl.state) if ctrl.vector_loop() else ""
-        return f"{vector}\n\n**Total-field fit:**\n\n{text}" if vector else text
-
-    @staticmethod
-    def _model_terms_markdown(ctrl) -> str:
-        text = model_terms_markdown(ctrl.model_terms())
-        if ctrl.vector_loop():
-            text = vector_model_markdown(ctrl.vector) + "\n\n_Total-field model (the boxes above):_ " + text
-        return text
-
     @staticmethod
     def _sensor_options(n):
         return tuple([ALL_SENSORS] + [f"sensor {i + 1}" for i in range(n)]) if n > 1 else ("sensor 1",)
@@ -1238,105 +848,52 @@ class Panels:
             self.progress.animated = True
 
     def refresh(self, kinds=("all",)) -> None:
+        """Show what changed (``kinds``: :class:`~magcal_workbench.events.Change` members, or ``"all"``); the
+        texts of the model loop are the active model session's (:func:`magcal_workbench.looptext.loop_text`)."""
         ctrl = self.ctrl()
         kinds = set(kinds)
-        everything = "all" in kinds
         live = self.live()
         self.show_alarm()
         self.status.content = status_markdown(ctrl) if live is None or not live.active else LIVE_STATUS
         self.show_guide()
-        if everything or "message" in kinds:
+        if _asks(kinds, Change.MESSAGE):
             self.message.content = ctrl.message
         self.legend.content = self.on.legend_html()
-        if everything or kinds & {"result", "data"}:
+        if _asks(kinds, Change.RESULT, Change.DATA):
             self.fit_view_to_data()
-        if everything or kinds & {"result", "selection", "model"}:
-            self.sensors_table.content = sensors_markdown(ctrl)
-            self.history.content = self._history_markdown(ctrl)
-            data = rms_plot_data(ctrl)
-            if len(data[0]):
-                self.rms_plot.data = data
-                self.rms_plot.scales = log_axis_scales(data)
-            self.noise_info.content = noise_markdown(ctrl)
-            self.quality.content = quality_markdown(ctrl.quality_with_fit())
+        for tab in self.tab_panels:  # the built-in tabs made as panels: their texts, the loop's (the catalogue's
+            tab.refresh(kinds)  # boxes before the state is shown in them)
+        if _asks(kinds, Change.RESULT, Change.SELECTION, Change.MODEL):
             self.download_info.content = download_markdown(ctrl)
-            self.model_terms.content = self._model_terms_markdown(ctrl)
-        if ctrl.vector_loop() and kinds & {"vector", "diagnosis"}:  # the vector mode's floor, as everywhere
-            self.noise_info.content = noise_markdown(ctrl)
-        if everything or kinds & {"vector", "settings"}:  # the vector model's fit, or the loop it is on, changed
-            self.history.content = self._history_markdown(ctrl)
-            self.model_terms.content = self._model_terms_markdown(ctrl)
-        if everything or kinds & {"data", "effects"}:
-            catalogue = ctrl.available_effects()
-            self._add_effect_boxes(catalogue)
-            self.user_effects.content = user_effects_markdown(catalogue)
-            pending = ctrl.pending_effects_files()
-            self.session_effects.visible = self.btn_session_effects.visible = bool(pending)
-            self.btn_session_effects.disabled = not self.local
-            self.session_effects.content = (
-                "This session names effects files that were **not** run: "
-                + ", ".join(safe_code(p) for p in pending)
-                + ". An effects file is Python code that runs with your rights: load them only if you trust them."
-                if pending
-                else ""
-            )
-            entries = {e["name"]: e for e in catalogue}
-            for name, box in self.effect_boxes.items():
-                e = entries.get(name)
-                if e is not None:
-                    box.disabled = bool(e["missing"])
-                    box.hint = effect_hint(e)
-                else:  # no longer in the catalogue
-                    box.disabled = True
-                    box.hint = "Not loaded: load the file that defines it (Your own effects)"
-        if everything or "data" in kinds:
-            self.data_info.content = data_markdown(ctrl)
-            self.noise_input.value = float(ctrl.state.noise_nT or 0.0)
-            # the state's choice first: new options then never fall back to a stale one (which would apply it)
-            self.sensor_choice.value = self._sensor_shown()
-            self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
-            self.refresh_sessions()
-        if everything or kinds & {"model", "data", "effects"}:
+        if _asks(kinds, Change.DATA):
+            self._refresh_data(ctrl)
+        if _asks(kinds, Change.MODEL, Change.DATA, Change.EFFECTS):
             self.show_state()
-        if everything or kinds & {"model", "data", "result", "settings"}:
-            self.reference_info.content = reference_markdown(ctrl)
-        if everything or "diagnosis" in kinds or "data" in kinds:
-            if ctrl.vector_loop():  # the vector model's diagnosis, its counterpart
-                vd = ctrl.vector.diagnosis
-                self.candidates.content = (
-                    vector_candidates_markdown(vd, ctrl.vector.noise)
-                    if vd is not None
-                    else "_Press Diagnose to rank the effects the vector fit (attitude and field vector) may miss._"
-                )
-            else:
-                self.candidates.content = candidates_markdown(ctrl.diagnosis)
-            opts = tuple(self._candidate_labels()) or ("-",)
-            advised = ctrl.advice()
-            self.candidate_choice.options = opts
-            # an advised candidate is chosen first; Add asks before it adds one the diagnosis does not advise
-            self.candidate_choice.value = next((o for o in opts if o in advised), opts[0])
-            self.btn_add_advice.visible = bool(advised)
-            self.btn_add_advice.label = (
-                f"Add the advice ({', '.join(advised)}) and refit" if advised else "Add the advice"
-            )
-            self._show_candidate_evidence()
-            self.on.draw_evidence()
-        if everything or "inspect" in kinds or "selection" in kinds:
-            info = ctrl.sample_info(ctrl.inspected) if ctrl.inspected is not None else None
-            self.inspect.content = inspect_markdown(info)
-        self.btn_undo.disabled = not ctrl.state.selection.can_undo
-        self.btn_redo.disabled = not ctrl.state.selection.can_redo
+        self._refresh_buttons(ctrl)
+        self.vector_panel.refresh(kinds)
+        self._refresh_figures(kinds, live)
+
+    def _refresh_data(self, ctrl) -> None:
+        """What describes the open data (other data opened)."""
+        # the state's choice first: new options then never fall back to a stale one (which would apply it)
+        self.sensor_choice.value = self._sensor_shown()
+        self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
+        self.refresh_sessions()
+
+    def _refresh_buttons(self, ctrl) -> None:
+        """The buttons that depend on the selection's history, the calibration and the sensors."""
         has_cal = ctrl.calibration is not None
         self.btn_dl_cal.disabled = not has_cal
         self.btn_dl_csv.disabled = not has_cal
-        self.btn_align.visible = ctrl.dataset.n_sensors > 1
         self.on.refresh_export()
-        self.vector_panel.refresh(kinds)
+
+    def _refresh_figures(self, kinds: set, live) -> None:
+        """The cockpit's figures (left to the refit that follows a change of the selection, :meth:`figures_held`)."""
         if live is not None and live.active:
             self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
-        elif kinds == {"selection"} and self._figures_held:
+        elif kinds == {Change.SELECTION} and self._figures_held:
             self._figures_stale = True  # the refit that follows draws them (issue 44)
-        elif everything or kinds & {"result", "selection", "data", "settings", "model", "vector"}:
+        elif _asks(kinds, Change.RESULT, Change.SELECTION, Change.DATA, Change.SETTINGS, Change.MODEL, Change.VECTOR):
             self._figures_stale = False  # (vector: the table shows the vector mode's floor; unchanged figures stay)
             self.on.draw_cockpit()
 
@@ -1395,22 +952,6 @@ class Panels:
         for handle, shown in self._bindings:
             handle.value = shown()
 
-    def _candidate_chosen(self, event) -> None:
-        self._show_candidate_evidence()
-        if self.maps_choice() == "candidate's pattern":
-            self.on.refresh_maps()
-        if self.ctrl().vector_loop():  # the evidence plots put the candidate's channel on their axis
-            self.on.draw_evidence()
-
-    def _show_candidate_evidence(self) -> None:
-        ctrl = self.ctrl()
-        if ctrl.vector_loop():
-            self.candidate_evidence.content = vector_candidate_markdown(
-                ctrl.vector.diagnosis, self.candidate_choice.value
-            )
-            return
-        self.candidate_evidence.content = candidate_evidence_markdown(ctrl.diagnosis, self.candidate_choice.value)
-
     def refresh_sessions(self) -> None:
         store = self.store
         if store is None:
@@ -1426,3 +967,8 @@ class Panels:
         opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
         self.session_choice.options = opts
         self.session_choice.value = opts[0]
+
+
+def _asks(kinds: set, *wanted: Change) -> bool:
+    """Whether a refresh of ``kinds`` covers one of ``wanted`` (``"all"`` covers every kind)."""
+    return "all" in kinds or any(kind in kinds for kind in wanted)

@@ -40,6 +40,9 @@ The fields (all written by :meth:`SessionState.to_dict`):
 ``vector_history``  list of the vector model's fits ``{"step", "world_rms_nT": [N, E, D], "total_rms_nT",
                     "effects", "n_fitted", "changes", "elapsed_s"}`` (numbers finite or null, ``n_fitted`` 0 ... N;
                     the last 1000 read, as ``history``)
+``gravity_fit``     the last gravity fit's settings ``{"kept": packed mask of N bits, "robust": true or false}`` (run
+                    again when the session reopens), or null; absent in a session saved before the gravity fit was
+                    kept (read as null)
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
 """
@@ -301,6 +304,19 @@ class _Reader:
             "effects": effects,
         }
 
+    def gravity_fit(self, field, value, n):
+        """The last gravity fit's settings, or None (:attr:`SessionState.gravity_fit`)."""
+        if value is None:
+            return None
+        doc = self.obj(field, value)
+        unknown = set(doc) - {"kept", "robust"}
+        if unknown:
+            self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
+        if "kept" not in doc:
+            self.fail(f"{field}.kept", "is missing")
+        self.mask(f"{field}.kept", doc["kept"], n)  # checked here, unpacked when the fit runs again
+        return {"kept": doc["kept"], "robust": self.boolean(f"{field}.robust", doc.get("robust", False))}
+
     def vector_step(self, field, value, n_samples, n_sensors):
         """One fit of the vector model's history (:class:`~magcal_workbench.state.VectorStep`)."""
         doc = self.obj(field, value)
@@ -406,6 +422,7 @@ def read_session_document(doc, where: str = "session.json"):
     st.vector_fit = r.vector_fit("vector_fit", doc.get("vector_fit"), n, n_sensors)
     rows = r.rows("vector_history", doc.get("vector_history", []), lambda f, h: r.vector_step(f, h, n, n_sensors))
     st.vector_history = rows
+    st.gravity_fit = r.gravity_fit("gravity_fit", doc.get("gravity_fit"), n)
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
     st.notes = list(r.notes)

@@ -409,6 +409,9 @@ class SessionState:
         changed since).
     vector_history : list of VectorStep
         The vector model's fits, in order: their world RMS per component and |B| RMS.
+    gravity_fit : dict or None
+        The last gravity fit's settings (``kept``: a packed mask; ``robust``), so that a reopened session runs it
+        again (:meth:`magcal_workbench.gravitymodel.GravitySession.restore`); None when none was run.
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
@@ -433,6 +436,7 @@ class SessionState:
         self.vector_fit: dict | None = None  # the last vector fit's settings: kept (packed mask), robust, noise_nT,
         # effects
         self.vector_history: list[VectorStep] = []  # the vector model's fits (world N/E/D and |B| RMS)
+        self.gravity_fit: dict | None = None  # the last gravity fit's settings: kept (packed mask), robust
         self.version = 0  # bumped on every change; the autosave and the views compare it
         #: What bounding the session changed, to say once (the oldest steps dropped: :data:`MAX_HISTORY_ROWS`).
         self.notes: list[str] = []
@@ -544,4 +548,5 @@ class SessionState:
                 "location": None if self.location is None else dict(self.location),
                 "vector_fit": None if self.vector_fit is None else dict(self.vector_fit),
                 "vector_history": [r.to_dict() for r in self.vector_history],
+                "gravity_fit": None if self.gravity_fit is None else dict(self.gravity_fit),
             }

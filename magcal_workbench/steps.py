@@ -1,5 +1,7 @@
-"""The engine's steps as the page starts them: fit, align, refine, calibrate, diagnose, add a candidate, reject
-outliers (threshold, undo, redo, reset) and the refit that follows a rejection, and loading a user's effects file.
+"""The page's steps beside the tabs' own: the check of the readings before an engine step, the refit that follows a
+change of the selection (:meth:`Steps.changing_selection`), and loading a user's effects file. The fits, Diagnose,
+Add and the outliers' buttons are the Calibrate, Model and Outliers tabs' (:mod:`magcal_workbench.calibratetab`,
+:mod:`magcal_workbench.modeltab`, :mod:`magcal_workbench.outlierstab`).
 
 Each step runs in the worker (:class:`magcal_workbench.jobs.Worker`) with the kept mask it started with; a
 rejection made while a job runs is refitted after it (:meth:`Steps.maybe_refit`)."""
@@ -19,7 +21,8 @@ from .parts import PagePart
 
 
 class Steps(PagePart):
-    """The Calibrate, Model and Outliers tabs' actions.
+    """The refit that follows a change of the selection, the effects files' loading, and the check of the
+    readings.
 
     Handed what it uses (issue 43 item 5).
 
@@ -44,12 +47,6 @@ class Steps(PagePart):
         self.values, self.worker, self.effects_gate = values, worker, effects_gate
         self.refit_pending = False
         self._pending_lock = threading.Lock()
-        #: A candidate the diagnosis does not advise that Add was pressed for once: the next press adds it.
-        self.unadvised_asked: str | None = None
-
-    def _step(self, name, step) -> bool:
-        """Run the controller's ``step(inputs=...)`` in the worker on the kept samples and model of now."""
-        return self.ctrl.run_step(name, step)
 
     def check_readings(self) -> None:
         """Refuse an engine step on a sensor whose kept readings are all one vector (a zero-filled file, a
@@ -64,63 +61,6 @@ class Steps(PagePart):
                     "nT, so the data hold no field measurement to fit or diagnose (a zero-filled file or a "
                     "disconnected sensor?); check the sensor's output"
                 )
-
-    # --- engine steps -------------------------------------------------------------------------------------
-    @action
-    def do_ellipsoid(self, event):
-        self.check_readings()
-        self._step("fit ellipsoid", self.ctrl.step_ellipsoid)
-
-    @action
-    def do_align(self, event):
-        self.check_readings()
-        self._step("align sensors", self.ctrl.step_align)
-
-    @action
-    def do_refine(self, event):
-        self.check_readings()
-        self._step("refine", self.ctrl.step_refine)
-
-    @action
-    def do_calibrate(self, event):
-        self.check_readings()
-        self._step(f"calibrate ({self.ctrl.state.method})", self.ctrl.step_calibrate)
-
-    @action
-    def do_diagnose(self, event):
-        self.check_readings()
-        self._step("diagnose", self.ctrl.step_diagnose)
-
-    @action
-    def do_add(self, event):
-        self.check_readings()
-        choice = self.values.check(self.panels.candidate_choice)
-        ctrl = self.ctrl
-        offered = ctrl.candidate_labels()
-        label = offered[0] if choice == "-" and offered else (None if choice == "-" else choice)
-        note = ""
-        if label is not None and not ctrl.candidate_holds(label):
-            if self.unadvised_asked != label:
-                self.unadvised_asked = label
-                raise MagcalError(
-                    f"{label} does not hold: the diagnosis did not find that its gain holds on data the fit did not "
-                    "see (or could not judge it). Press Add again to add it anyway; the history will mark it"
-                )
-            note = " (does not hold)"
-        self.unadvised_asked = None
-        self._step("add effect", lambda inputs: ctrl.step_add(label, inputs=inputs, note=note))
-
-    @action
-    def do_add_advice(self, event):
-        """Add everything the diagnosis advises and refit once."""
-        self.check_readings()
-        ctrl = self.ctrl
-        self._step("add the advice", lambda inputs: ctrl.step_add_advice(inputs=inputs))
-
-    @action
-    def do_apply_noise(self, event) -> None:
-        value = float(self.values.check(self.panels.noise_input))
-        self.ctrl.set_noise(value if value > 0 else None)
 
     @action
     def do_load_effects(self, event):
@@ -137,7 +77,7 @@ class Steps(PagePart):
         if why is not None:
             raise MagcalError(why)
         ctrl = self.ctrl
-        status = ctrl._report_progress  # the page's status line says while the terminal waits for the answer
+        status = ctrl.report_progress  # the page's status line says while the terminal waits for the answer
         ctrl.run_job("load effects file", lambda: ctrl.load_effects_file(gate.permit(path, ctrl.say, status)))
 
     @action
@@ -156,30 +96,9 @@ class Steps(PagePart):
         ctrl.run_job(
             "load the session's effects files",
             lambda: ctrl.load_session_effects_files(
-                permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl._report_progress)
+                permit=lambda paths: gate.permit_all(paths, ctrl.say, ctrl.report_progress)
             ),
         )
-
-    # --- outliers -----------------------------------------------------------------------------------------
-    @action
-    def do_threshold(self, event):
-        with self.changing_selection():
-            self.ctrl.reject_threshold(float(self.values.check(self.panels.k_sigma)))
-
-    @action
-    def do_undo(self, event):
-        with self.changing_selection():
-            self.ctrl.undo()
-
-    @action
-    def do_redo(self, event):
-        with self.changing_selection():
-            self.ctrl.redo()
-
-    @action
-    def do_reset(self, event):
-        with self.changing_selection():
-            self.ctrl.reset_selection()
 
     # --- the refit after a rejection ----------------------------------------------------------------------
     def forget_pending(self) -> None:

@@ -32,8 +32,9 @@ from .events import Change
 from .floors import VectorNoise
 from .floors import lowest as lowest_noise
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .modelsession import ModelSession, register_session
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
-from .state import VectorStep, effect_name, pack_mask, unpack_mask
+from .state import JobInputs, VectorStep, effect_name, pack_mask, unpack_mask
 
 #: The world components' names, in order.
 NED = ("N", "E", "D")
@@ -161,6 +162,13 @@ class FitRow:
 RESTORE_MAX_SAMPLES = 30_000
 
 
+def _kept(ctrl, kept, inputs: JobInputs | None) -> np.ndarray:
+    """The samples a step fits: ``kept`` when given, else those of ``inputs``, else the kept samples of now."""
+    if kept is None and inputs is not None:
+        kept = inputs.kept
+    return np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
+
+
 def fitted_samples_text(result) -> str:
     """The samples a vector fit used, in words, naming those left out for lack of an attitude or a reference
     (:class:`magcal.fitting.vector.SampleGaps`)."""
@@ -175,8 +183,10 @@ def fitted_samples_text(result) -> str:
     return f"{result.n_samples} of {gaps.n_chosen} kept samples ({' and '.join(why)} left out)"
 
 
-class VectorModel:
-    """The vector model of one controller's data: reference, fit, and what the page shows of it.
+@register_session
+class VectorSession(ModelSession):
+    """The vector model of one controller's data: reference, fit, and what the page shows of it (the model session
+    of the fit mode ``"vector"``).
 
     Parameters
     ----------
@@ -205,15 +215,17 @@ class VectorModel:
         property of the record, kept across refits.
     """
 
+    mode = "vector"
+    title = "vector model"
+
     def __init__(self, ctrl):
-        self.ctrl = ctrl
+        super().__init__(ctrl)
         self.result = None
         self.world_nT: np.ndarray | None = None
         self.reference_ned_nT: np.ndarray | None = None
         self.reference_text = ""
         saved_fit = getattr(ctrl.state, "vector_fit", None) or {}
-        self.effects: list[str] = list(saved_fit.get("effects", []))
-        self.diagnosis = None
+        self.effects = list(saved_fit.get("effects", []))
         self.evidence: dict | None = None
         self.floor_nT: float | None = None
         #: The record's vector noise (:class:`magcal_workbench.floors.VectorNoise`): the lowest the diagnoses found.
@@ -291,7 +303,7 @@ class VectorModel:
             ctrl.state.location = loc.to_dict()
             ctrl.state.touch()
         ctrl.configure(reference_nT=round(loc.total_nT, 1), fit_reference=False)  # autosaves, refreshes the page
-        self._emit()
+        self._changed()
         ctrl.say(
             f"**reference from the location**: {safe_text(loc.text())}; the total-field fits use |B| = "
             f"{loc.total_nT:.1f} nT, the vector fit the vector. Run a fit to use it."
@@ -307,11 +319,21 @@ class VectorModel:
             ctrl.state.location = None
             ctrl.state.touch()
         ctrl.configure(reference_nT=None)
-        self._emit()
+        self._changed()
         ctrl.say("the location is forgotten: the file's reference is used again (or the field magnitude is fitted)")
 
     # --- the fit ---------------------------------------------------------------------------------------------
-    def fit(self, kept=None, robust=None, noise_nT=None, again=False, effects=None, step="vector fit"):
+    def fit(
+        self,
+        kept=None,
+        robust=None,
+        noise_nT=None,
+        again=False,
+        effects=None,
+        step="vector fit",
+        *,
+        inputs: JobInputs | None = None,
+    ):
         """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector` with the
         vector model's effects, robust loss and noise as the session says), its world components on every sample,
         and a message with its figures. The session remembers its settings (:attr:`SessionState.vector_fit`), so
@@ -334,6 +356,8 @@ class VectorModel:
             The vector model's effects (default: :attr:`effects`); they become :attr:`effects` when the fit succeeds.
         step : str
             The history's name of the step.
+        inputs : JobInputs, optional
+            The step's inputs: their kept mask is ``kept``.
 
         Returns
         -------
@@ -350,12 +374,12 @@ class VectorModel:
         t0 = time.perf_counter()
         ctrl = self.ctrl
         ds = self.dataset
-        kept = np.asarray(ctrl.kept if kept is None else kept, dtype=bool)
+        kept = _kept(ctrl, kept, inputs)
         robust = bool(ctrl.state.robust if robust is None else robust)
         noise_nT = ctrl.state.noise_nT if noise_nT is None else float(noise_nT)
         effects = list(self.effects if effects is None else effects)
         before = self.vector_row(kept) if self.result is not None else None
-        ctrl._report_progress("vector fit (attitude-aided)", None)
+        ctrl.report_progress("vector fit (attitude-aided)", None)
         try:
             ref = self.reference()
             if ref is None:  # missing() said there would be one
@@ -364,8 +388,7 @@ class VectorModel:
             world = result.calibration.world(ds, record_terms="apply", force=True)
             evidence = vector_evidence(ds, ref, result.calibration)
         finally:
-            ctrl.progress = None
-            ctrl._emit(Change.PROGRESS)
+            ctrl.end_progress()
         with ctrl.state.lock:
             self.result = result
             self.world_nT = np.asarray(world, dtype=float)
@@ -382,6 +405,7 @@ class VectorModel:
                 "effects": list(effects),
             }
             row = self.vector_row(kept)
+            assert row.world_rms_nT is not None  # a vector fit gives the world components
             elapsed = time.perf_counter() - t0
             if not again:
                 ctrl.state.record_vector(
@@ -397,8 +421,8 @@ class VectorModel:
                 )
             ctrl.state.touch()
         ctrl.autosave()
-        self._emit()
-        ctrl._emit(Change.DIAGNOSIS)  # the old diagnosis no longer applies
+        self._changed()
+        ctrl.emit(Change.DIAGNOSIS)  # the old diagnosis no longer applies
         mount = "; ".join(row.mounting)
         model = ", ".join(safe_code(e) for e in effects) or "base terms only"
         text = (
@@ -428,7 +452,7 @@ class VectorModel:
         return self._fit_key == self._key(kept, self.effects, ctrl.state.robust, ctrl.state.noise_nT)
 
     # --- the loop: diagnose, add ------------------------------------------------------------------------------
-    def diagnose(self, kept: np.ndarray | None = None):
+    def diagnose(self, kept: np.ndarray | None = None, *, inputs: JobInputs | None = None):
         """Diagnose the vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): every catalogue effect the
         vector fit can take refitted with the vector model, judged on the world N/E/D residuals and |B| on the
         later part of the record, as ``magcal apply`` applies it. The fit runs first when there is none of the
@@ -445,32 +469,31 @@ class VectorModel:
             No attitude or reference, too few samples (the engine's message).
         """
         ctrl = self.ctrl
-        kept = ctrl.kept if kept is None else kept
+        kept = _kept(ctrl, kept, inputs)
         if not self.is_current(kept):
             self.fit(kept)
         ds, ref = self.dataset, self.reference()
         if ref is None:
             raise MagcalError("the vector diagnosis needs the field vector: " + " and ".join(self.missing()))
         options = {"robust": bool(ctrl.state.robust), "noise_nT": ctrl.state.noise_nT}
-        ctrl._report_progress("diagnosing the vector fit", None)
+        ctrl.report_progress("diagnosing the vector fit", None)
         try:
             if kept.all():  # the fit on the page is the model diagnosed
-                d = diagnose_vector(ds, ref, self.result, progress=ctrl._report_progress, **options)
+                d = diagnose_vector(ds, ref, self.result, progress=ctrl.report_progress, **options)
             else:  # the rejected samples are left out of every refit too
                 sub_ref = dataclasses.replace(ref, ned_nT=np.asarray(ref.ned_nT)[kept])
                 d = diagnose_vector(
-                    ds.subset(kept), sub_ref, effects=self.effects, progress=ctrl._report_progress, **options
+                    ds.subset(kept), sub_ref, effects=self.effects, progress=ctrl.report_progress, **options
                 )
         finally:
-            ctrl.progress = None
-            ctrl._emit(Change.PROGRESS)
+            ctrl.end_progress()
         with ctrl.state.lock:
             self.diagnosis = d
             # one floor per record: it does not rise with the model (a noise given is taken as it is)
             self.noise = lowest_noise(self.noise, d.noise, options["noise_nT"] or None)
             self.floor_nT = None if self.noise is None else self.noise.world_floor_nT
-        ctrl._emit(Change.DIAGNOSIS)
-        ctrl._emit(Change.VECTOR)  # the history plot draws the floor found
+        ctrl.emit(Change.DIAGNOSIS)
+        ctrl.emit(Change.VECTOR)  # the history plot draws the floor found
         best = d.explained_by[0] if d.explained_by else None
         extra = f"; recommended {safe_code(best)}" if best else ""
         ctrl.say(
@@ -489,7 +512,9 @@ class VectorModel:
         first.sort(key=lambda c: (not c.recommended, c.delta_bic))
         return list(dict.fromkeys(c.label for c in first))
 
-    def add(self, label: str | None = None, kept: np.ndarray | None = None):
+    def add(
+        self, label: str | None = None, kept: np.ndarray | None = None, *, inputs: JobInputs | None = None, note=""
+    ):
         """Put a candidate (the recommended one by default, else the best) into the vector model and refit
         (:meth:`fit` with the effects, on ``kept``: default the kept samples of now).
 
@@ -498,19 +523,18 @@ class VectorModel:
         MagcalError
             Nothing diagnosed yet, an effect the vector fit cannot take, one already in the model.
         """
-        if label is None:
-            labels = self.candidate_labels()
-            if not labels:
-                raise MagcalError("diagnose first: there is no suggested effect to add")
-            label = labels[0]
-        return self.add_all([label], kept)
+        return super().add(label, inputs=self._inputs_of(kept, inputs), note=note)
 
-    def add_all(self, labels, kept: np.ndarray | None = None, note: str = ""):
+    def _inputs_of(self, kept, inputs: JobInputs | None) -> JobInputs | None:
+        return inputs if kept is None else JobInputs(np.asarray(kept, dtype=bool), tuple(self.effects))
+
+    def add_all(self, labels, kept: np.ndarray | None = None, note: str = "", *, inputs: JobInputs | None = None):
         """Put ``labels`` into the vector model and refit once (:meth:`fit`); ``note`` is appended to the history's
         step (e.g. that the effect was not advised)."""
+        kept = _kept(self.ctrl, kept, inputs)
         effects = list(self.effects)
         for label in labels:
-            label = self.ctrl._check_label(label)
+            label = self.ctrl.check_label(label)
             cls = EFFECTS[effect_name(label)]
             if "vector" not in getattr(cls, "modes", ("scalar", "vector")) or cls.stage != "raw":
                 raise MagcalError(
@@ -523,15 +547,32 @@ class VectorModel:
             effects = [e for e in effects if ":" in label or effect_name(e) != name] + [label]
         return self.fit(kept, effects=effects, step=f"vector: add {', '.join(labels)}{note}")
 
-    def remove(self, label: str | None = None, kept: np.ndarray | None = None):
+    def remove(self, label: str | None = None, kept: np.ndarray | None = None, *, inputs: JobInputs | None = None):
         """Take an effect (the last added by default) out of the vector model and refit (on ``kept``: default the
         kept samples of now)."""
-        if not self.effects:
-            raise MagcalError("the vector model holds no effect beyond the base terms")
-        label = self.effects[-1] if label is None else label
-        if label not in self.effects:
-            raise MagcalError(f"{clean_text(repr(label), 80)} is not in the vector model")
+        return super().remove(label, inputs=self._inputs_of(kept, inputs))
+
+    def _refit_without(self, label: str, inputs: JobInputs | None):
+        kept = None if inputs is None else inputs.kept
         return self.fit(kept, effects=[e for e in self.effects if e != label], step=f"vector: remove {label}")
+
+    def history(self) -> list[VectorStep]:
+        """The vector model's fits (the session file's ``vector_history``)."""
+        return list(self.ctrl.state.vector_history)
+
+    def save(self) -> dict | None:
+        """The last vector fit's settings (the session file's ``vector_fit``: its samples, robust loss, noise and
+        effects), or None."""
+        return self.ctrl.state.vector_fit
+
+    @property
+    def calibration(self):
+        """The last vector fit's calibration, or None."""
+        return None if self.result is None else self.result.calibration
+
+    def forget(self) -> None:
+        """Drop the last vector fit (:meth:`forget_fit`)."""
+        self.forget_fit()
 
     def plot_evidence(self) -> dict | None:
         """The evidence plots' data (every sample): the diagnosis's (:attr:`magcal.diagnosis.vector.VectorDiagnosis.
@@ -605,8 +646,8 @@ class VectorModel:
             "effects": list(self.effects),
         }
 
-    def _emit(self) -> None:
-        self.ctrl._emit(Change.VECTOR)
+    def _changed(self) -> None:
+        self.ctrl.emit(Change.VECTOR)
 
     # --- what the page shows ---------------------------------------------------------------------------------
     def world_residual_nT(self) -> np.ndarray | None:
@@ -688,3 +729,7 @@ class VectorModel:
             measured = self.world_nT[min(sensor, self.world_nT.shape[0] - 1), i]
             out["measured_ned_nT"] = measured if np.all(np.isfinite(measured)) else None
         return out
+
+
+#: The vector model's former name (tests and lessons call it so).
+VectorModel = VectorSession

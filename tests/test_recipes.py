@@ -493,7 +493,14 @@ def test_recipe_panel_from_an_installed_package_is_built_and_its_button_works(tm
         loaded = PANELS.load_entry_points(force=True)  # what magcal-workbench does when it starts
         assert list(loaded) == ["toy-kept"] and not loaded.notes
         assert PANELS.origin("toy-kept").startswith("entry point toy-kept = toy_panel:TOY")
-        assert list(PANELS) == ["gravity", "toy-kept"]  # the built-in one first
+        assert list(PANELS) == [
+            "calibrate",
+            "model",
+            "quality",
+            "outliers",
+            "gravity",
+            "toy-kept",
+        ]  # the built-in ones first
         n = 120
         wb = Workbench(magcal.simulate_timeseries("chi2017", n_samples=n, seed=5, rate_hz=2.0), port=0, store=None)
         try:

@@ -79,7 +79,8 @@ def test_every_widgets_handler_is_registered_and_every_handler_has_a_widget(benc
     assert not dead, f"registered handlers no widget calls: {dead}"
     # the panels were handed these very handlers: a widget's call reaches its part's method
     assert wb.panels.on is wb.actions
-    assert wb.actions.do_refine == wb.steps.do_refine
+    assert wb.actions.owner("do_refine") == "CalibrateTab" and wb.actions.do_refine == wb.added["calibrate"].do_refine
+    assert wb.actions.owner("do_add") == "ModelTab" and wb.actions.owner("do_apply_noise") == "QualityTab"
     assert wb.actions.owner("draw_cockpit") == "Cockpit" and wb.actions.draw_cockpit == wb.cockpit.draw
 
 

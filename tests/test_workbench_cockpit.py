@@ -296,7 +296,7 @@ def test_excluding_a_time_range_refits_and_including_it_restores(bench):
     assert wb.ctrl.state.selection.n_rejected == 0 and int(wb.ctrl.fit_result.mask.sum()) == kept0
     assert np.allclose(wb.ctrl.calibration.sensors[0].bias_nT, cal0["sensors"][0]["bias_nT"], atol=1e-3)
     # one undo step each, so undo gives the exclusion back
-    wb.steps.do_undo(None)
+    wb.actions.do_undo(None)
     _refit_done(wb)
     assert wb.ctrl.state.selection.n_rejected == idx.size
 

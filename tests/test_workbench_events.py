@@ -30,11 +30,11 @@ def _trees():
 
 
 def _sent() -> list[tuple[str, int, ast.expr]]:
-    """Every ``_emit(...)`` call's argument, with its file and line."""
+    """Every ``emit(...)`` call's argument, with its file and line."""
     out = []
     for path, tree in _trees():
         for node in ast.walk(tree):
-            if isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None)) == "_emit":
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None)) == "emit":
                 for arg in node.args:
                     out.append((path.name, node.lineno, arg))
     return out
@@ -69,7 +69,7 @@ def _member(arg: ast.expr) -> str | None:
 
 def test_every_kind_sent_is_a_member():
     bad = [(f, line, ast.unparse(arg)) for f, line, arg in _sent() if _member(arg) is None]
-    assert not bad, f"_emit with something other than Change.X: {bad}"
+    assert not bad, f"emit with something other than Change.X: {bad}"
 
 
 def test_every_member_is_sent():
@@ -103,9 +103,21 @@ def test_an_unknown_kind_is_refused_where_it_is_sent():
     ctrl = Controller(simulate_timeseries(chi2017_truth(1), n_samples=200, noise_nT=3.0, seed=1))
     seen = []
     ctrl.on_change(seen.append)
-    ctrl._emit(Change.MODEL)
-    ctrl._emit("selection")  # its text is the member
+    ctrl.emit(Change.MODEL)
+    ctrl.emit("selection")  # its text is the member
     assert seen == [Change.MODEL, Change.SELECTION] and all(isinstance(k, Change) for k in seen)
     with pytest.raises(ValueError):
-        ctrl._emit("view")
+        ctrl.emit("view")
     assert len(seen) == 2
+
+
+def test_changes_are_sent_only_through_the_controllers_public_emit():
+    """No module calls a private ``_emit`` (the model sessions and the panels send through ``Controller.emit``)."""
+    private = [
+        (path.name, node.lineno)
+        for path, tree in _trees()
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None)) == "_emit"
+    ]
+    assert private == []
+    assert any(f == "totalfield.py" for f, _, _ in _sent()) and any(f == "gravitymodel.py" for f, _, _ in _sent())

@@ -150,7 +150,7 @@ def _as_browser(handle, value):
 
 def test_refusals_are_readme_lines_and_messages_not_crashes(bench):
     wb = bench()  # the four-sensor cross: no single-compass firmware file holds it
-    wb.steps.do_calibrate(None)
+    wb.actions.do_calibrate(None)
     assert wb.worker.wait(120) and wb.ctrl.calibration is not None
     wb.handle(wb.exporting.do_export_format, None, "ardupilot")
     assert "sensor 4 would go to slot 4" in wb.ctrl.message
@@ -171,7 +171,7 @@ def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path)
 
     ds = magcal.simulate("ding2024", seed=3)
     wb = bench(ds=ds, name="one.csv")
-    wb.steps.do_calibrate(None)
+    wb.actions.do_calibrate(None)
     assert wb.worker.wait(120)
     section, panels = wb.panels.export, wb.panels
     assert not section.btn_send.visible  # the default source is simulated

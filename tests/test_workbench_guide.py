@@ -107,7 +107,7 @@ def test_add_asks_before_a_candidate_that_does_not_hold_and_the_history_marks_it
     wb.ctrl.step_refine()
     wb.ctrl.step_diagnose()
     p = wb.panels
-    weak = [label for label in p._candidate_labels() if not wb.ctrl.candidate_holds(label)]
+    weak = [label for label in wb.ctrl.candidate_labels() if not wb.ctrl.candidate_holds(label)]
     assert weak, "the diagnosis of a record with nothing hidden should offer a candidate that does not hold"
     assert not p.btn_add_advice.visible and wb.ctrl.advice() == []
     p.candidate_choice.value = weak[0]

@@ -118,15 +118,16 @@ def test_the_status_with_the_rms_is_on_the_page_before_the_tabs_are_built(bench,
     """The launch shows the Total-field RMS first (issue 44): the status line is sent with its text when it is
     made, before the tabs' widgets, the scene and the figures, which follow."""
     from magcal_workbench import panels as pn
+    from magcal_workbench.calibratetab import CalibrateTab
 
     seen = []
-    real = pn.Panels._build_calibrate
+    real = CalibrateTab.build
 
-    def spy(self, gui):
-        seen.append(self.status.content)  # what the page has been sent when the first tab is built
-        return real(self, gui)
+    def spy(self, panels, gui):
+        seen.append(panels.status.content)  # what the page has been sent when the first tab is built
+        return real(self, panels, gui)
 
-    monkeypatch.setattr(pn.Panels, "_build_calibrate", spy)
+    monkeypatch.setattr(CalibrateTab, "build", spy)
     wb = bench(store=False)
     assert len(seen) == 1
     assert seen[0] == pn.status_markdown(wb.ctrl)

@@ -124,7 +124,7 @@ def test_numbers_out_of_range_are_refused(bench, widget, value, says):
     assert says in wb.ctrl.message or widget == "k_sigma"  # the slider without a callback: refused when read
     if widget == "k_sigma":
         wb.panels.k_sigma._impl.value = value
-        wb.handle(wb.steps.do_threshold, None)
+        wb.handle(wb.actions.do_threshold, None)
         assert says in wb.ctrl.message and wb.ctrl.state.selection.n_rejected == 0
     lo, hi = wb.values.range(handle)
     assert np.isfinite(handle.value) and lo <= handle.value <= (hi if hi is not None else np.inf)
@@ -213,7 +213,7 @@ def test_a_jobs_history_row_matches_what_it_fitted_and_the_refit_follows(bench, 
 
     monkeypatch.setattr(fit_module, "fit", slow_fit)
     rows = len(ctrl.state.history)
-    wb.handle(wb.steps.do_refine, None)
+    wb.handle(wb.actions.do_refine, None)
     assert entered.wait(WAIT_S)
     rejected = np.arange(10, 47)
     ctrl.select(rejected)  # another page rejects 37 samples while the fit runs
@@ -253,7 +253,7 @@ def test_a_job_fits_the_model_it_started_with_when_an_effect_is_ticked_meanwhile
 
     monkeypatch.setattr(fit_module, "fit", slow_fit)
     rows = len(ctrl.state.history)
-    wb.handle(wb.steps.do_refine, None)
+    wb.handle(wb.actions.do_refine, None)
     assert entered.wait(WAIT_S)
     assert ctrl.set_effect("temperature_bias", True)  # another page ticks an effect while the fit runs
     release.set()

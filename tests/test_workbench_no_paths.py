@@ -53,7 +53,7 @@ def _downloads(wb) -> dict:
 @pytest.mark.parametrize("store", [True, False])
 def test_no_download_names_a_folder_of_the_server(bench, tmp_path, store):
     wb = bench(store=store, effects_files=[str(EXAMPLE)])  # the session names the user's effects file
-    wb.steps.do_calibrate(None)
+    wb.actions.do_calibrate(None)
     assert wb.worker.wait(120) and wb.ctrl.calibration is not None
     assert wb.ctrl.state.effects_files == [str(EXAMPLE.resolve())]  # the session itself keeps the full path
     files = _downloads(wb)
@@ -72,7 +72,7 @@ def test_a_reason_naming_the_data_file_is_shown_by_its_name(bench, tmp_path, mon
     """The engine's reasons name the file they could not read (its full path, as the command line needs): in the
     zip's README and the page's message only the file's name remains."""
     wb = bench()
-    wb.steps.do_calibrate(None)
+    wb.actions.do_calibrate(None)
     assert wb.worker.wait(120)
 
     def unreadable(calibration, data_path, kind, *args, **kw):

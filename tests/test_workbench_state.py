@@ -385,7 +385,7 @@ def test_second_click_while_a_fit_runs_starts_nothing(bench):
     wb.panels.btn_run.value = True
     time.sleep(0.05)
     assert wb.worker.busy and all(b.disabled for b in wb.panels._engine_buttons)
-    wb.steps.do_calibrate(None)  # a second click (a disabled button's callback cannot fire; call it directly)
+    wb.actions.do_calibrate(None)  # a second click (a disabled button's callback cannot fire; call it directly)
     assert "Busy" in wb.ctrl.message
     gate.set()
     assert wb.worker.wait(60)
@@ -650,7 +650,7 @@ def test_single_sensor_data(bench):
     assert 0.8 * sigma < wb.ctrl.residual_rms_nT() < 1.2 * sigma
     assert wb.scene_view.displayed.positions.shape[0] == 2 * 300
     assert wb.ctrl.tensor_rms() is None and "| Gzz |" not in wb.panels.sensors_table.content
-    wb.steps.do_align(None)
+    wb.actions.do_align(None)
     assert wb.worker.wait(30) and "at least two sensors" in wb.ctrl.message
 
 
