@@ -183,12 +183,15 @@ def test_a_session_saved_before_the_gravity_fit_was_kept_still_opens():
 
 
 def test_the_panels_texts_follow_the_active_sessions_mode():
-    from magcal_workbench.looptext import LOOP_TEXTS, loop_text
+    from magcal_workbench.looptext import LOOP_TEXTS, StatusFigures, loop_text
 
     plain = Controller(magcal.simulate_timeseries("chi2017", n_samples=200, seed=1))
     vehicle = Controller(_vehicle_record())
     assert loop_text(plain) is LOOP_TEXTS["total_field"] and not loop_text(plain).evidence_per_candidate
     assert loop_text(vehicle) is LOOP_TEXTS["vector"] and loop_text(vehicle).evidence_per_candidate
     assert "vector fit" in loop_text(vehicle).candidates(vehicle)  # before a diagnosis: what to press
-    assert "Not fitted" not in loop_text(plain).status(plain) and loop_text(plain).status(plain) == ""
-    assert "Vector model: not fitted yet" in loop_text(vehicle).status(vehicle)
+    figures = StatusFigures(rms="12.5 nT", floor="3 nT", rejected="Rejected: 0 of 200 samples", model="base terms only")
+    plain_text, vehicle_text = loop_text(plain).status(plain, figures), loop_text(vehicle).status(vehicle, figures)
+    assert plain_text.startswith("**Total-field RMS: 12.5 nT** (floor 3 nT)") and "Vector" not in plain_text
+    # the vector model's figures first, the total-field fit's after it
+    assert vehicle_text.index("Vector model: not fitted yet") < vehicle_text.index("Total-field RMS: 12.5 nT")
