@@ -67,8 +67,7 @@ def test_truth_compensation_leaves_the_earth_field():
 def test_tensor_fom_on_a_second_flight_near_the_true_compensation(seed, platform, reference):
     first = simulate_cross_flight(seed, platform=platform)
     second = simulate_cross_flight(seed + 100, platform=platform)
-    # the absolute reference: the attitude and the Earth field vector with its diurnal drift (a base station)
-    fit = fit_cross_compensation(first, reference=reference, field_ned_nT=first.truth.field_ned_series_nT)
+    fit = fit_cross_compensation(first, reference=reference, field_ned_nT=first.truth.field_ned_nT)
     report = _judged(fit, second)
     after, floor = report.after.fom_nT_per_m, report.reference.fom_nT_per_m
     assert after <= 1.2 * floor
@@ -76,25 +75,31 @@ def test_tensor_fom_on_a_second_flight_near_the_true_compensation(seed, platform
     for name, value in report.after.component_fom_nT_per_m.items():
         assert value <= 1.2 * report.reference.component_fom_nT_per_m[name], name
     assert report.improvement_ratio > 5
-    if reference == "attitude":  # each sensor is an absolute, compensated vector magnetometer
-        for ours, true, before in zip(report.sensors_after, report.sensors_reference, report.sensors_before):
-            assert ours.fom_nT <= 1.2 * true.fom_nT
-            assert ours.fom_nT < before.fom_nT / 5
+    for ours, true, before in zip(report.sensors_after, report.sensors_reference, report.sensors_before):
+        assert ours.fom_nT <= 1.2 * true.fom_nT
+        assert ours.fom_nT < before.fom_nT / 5
 
 
+@pytest.mark.parametrize("magnitude_passes", [0, 2])
 @pytest.mark.parametrize("platform", ["aircraft", "drone"])
-def test_platform_terms_recovered_after_the_sensor_calibration(platform):
+def test_platform_terms_recovered_after_the_sensor_calibration(platform, magnitude_passes):
     flight = simulate_cross_flight(2, platform=platform, drift_nT=0.0)
     truth = flight.truth
     calibration = Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], 50_000.0)
-    fit = fit_cross_compensation(flight, reference="attitude", field_ned_nT=truth.field_ned_nT, calibration=calibration)
+    fit = fit_cross_compensation(
+        flight,
+        reference="attitude",
+        field_ned_nT=truth.field_ned_nT,
+        calibration=calibration,
+        magnitude_passes=magnitude_passes,
+    )
     assert fit.precalibrated
     # within the noise's reach: 1 % of the largest induced term, 5 % of the largest eddy term; the offset carries
-    # the induced term's error times the field (1e-5 x 50 000 nT)
+    # the induced term's error times the field (1e-5 x 50 000 nT), and the magnitude passes' ridge-held part
     for k, sensor in enumerate(fit.sensors):
         assert np.allclose(sensor.matrix - np.eye(3), truth.induced[k], atol=1e-5)
         assert np.allclose(sensor.eddy_s, truth.eddy_s[k], atol=1e-5)
-        assert np.allclose(sensor.offset_nT, truth.permanent_nT[k], atol=0.5)
+        assert np.allclose(sensor.offset_nT, truth.permanent_nT[k], atol=1.0)
     assert np.abs(truth.induced).max() > 5e-4 and np.abs(truth.eddy_s).max() > 1e-4
 
 
@@ -116,15 +121,35 @@ def test_a_survey_lines_gradient_is_kept(reference):
     assert error < np.sqrt(np.mean((before - earth) ** 2)) / 10
 
 
-@pytest.mark.parametrize(("attitude_noise_deg", "seed"), [(0.0, 7), (0.1, 8)])
-def test_tensor_compensation_stands_an_attitude_error_and_a_constant_field(attitude_noise_deg, seed):
-    """The attitude's error and the diurnal drift missing from a constant (IGRF) reference are common to the four
-    sensors: they bend each fit alike and leave the tensor."""
+@pytest.mark.parametrize("magnitude_passes", [0, 2])
+@pytest.mark.parametrize(("attitude_noise_deg", "seed"), [(0.02, 7), (0.1, 8)])
+def test_an_attitude_error_and_a_drift_are_common_to_the_four(attitude_noise_deg, seed, magnitude_passes):
+    """The attitude's error and the diurnal drift a constant (IGRF) reference lacks bend each sensor's fit alike:
+    the tensor does not see them; each sensor's total field does, until the magnitude passes take them out."""
     first = simulate_cross_flight(seed, attitude_noise_deg=attitude_noise_deg, drift_nT=5.0)
     second = simulate_cross_flight(seed + 1, attitude_noise_deg=attitude_noise_deg, drift_nT=5.0)
-    fit = fit_cross_compensation(first, reference="attitude", field_ned_nT=first.truth.field_ned_nT)
+    fit = fit_cross_compensation(
+        first, reference="attitude", field_ned_nT=first.truth.field_ned_nT, magnitude_passes=magnitude_passes
+    )
     report = _judged(fit, second)
     assert report.after.fom_nT_per_m <= 1.2 * report.reference.fom_nT_per_m
+    worst = max(ours.fom_nT / true.fom_nT for ours, true in zip(report.sensors_after, report.sensors_reference))
+    if magnitude_passes:
+        assert worst <= 1.2
+    else:
+        assert worst > 2
+
+
+def test_a_base_station_record_serves_as_the_reference():
+    flight = simulate_cross_flight(3, drift_nT=5.0)
+    fit = fit_cross_compensation(
+        flight, reference="attitude", field_ned_nT=flight.truth.field_ned_series_nT, magnitude_passes=0
+    )
+    report = _judged(fit, simulate_cross_flight(4, drift_nT=5.0))
+    for ours, true in zip(report.sensors_after, report.sensors_reference):
+        assert ours.fom_nT <= 1.2 * true.fom_nT
+    with pytest.raises(MagcalError, match="one such row per sample"):
+        fit_cross_compensation(flight, reference="attitude", field_ned_nT=flight.truth.field_ned_series_nT[:-1])
 
 
 def test_dataset_json_and_text():

@@ -13,11 +13,11 @@ eddy currents into ``E'_i`` (s, per nT/s of the field's rate). All are linear, s
 sensor against a reference field ``B`` (body frame) and its rate:
 
 * ``reference="attitude"``: the Earth field's direction from the attitude, ``B = R(q)^T B_ned``, with the Earth
-  field vector given (an IGRF value): the sensor's calibration and its platform field are fitted jointly, and each
-  compensated sensor is an absolute vector magnetometer in the body frame;
+  field vector given (an IGRF value, or one per sample with a base station's diurnal record): the sensor's
+  calibration and its platform field are fitted jointly, in the body frame;
 * ``reference="mean"``: the array's own mean field, without attitude: each sensor is balanced against the mean of
-  the four (calibrated first when a calibration is given). The field common to all four (the mean platform field)
-  stays, the gradients between them go: the tensor is compensated; the sensors' own totals keep the common part.
+  the four (calibrated first when a calibration is given). The gradients between the four go; the field common to
+  all four stays, in the frame of their mean.
 
 The fit is the anchors' (MagNav.jl, the Tolles-Lawson fit of :mod:`magcal.fitting.tolles_lawson`): the reference's
 three components and their rates (the design), and each sensor's three axes (the targets), band-passed alike
@@ -25,6 +25,16 @@ three components and their rates (the design), and each sensor's three axes (the
 offset is the unfiltered residual's mean. The band-pass removes the diurnal drift and any slow error of the
 reference; the box's maneuvers turn the field about every body axis at four headings, so the band-passed design
 determines all of ``W_i`` and ``E'_i``.
+
+What the reference gets wrong is common to the four sensors, and the tensor does not see it: an attitude's error
+(a regressor with noise biases each fit towards zero alike: errors in variables), a diurnal drift the reference
+lacks (a uniform field that turns with the platform), the mean's own calibration. Each sensor's total field does.
+So the magnitude passes (``magnitude_passes``, two by default) fit the compensated four's mean field as its own
+fluxgate and scalar: a Tolles-Lawson fit of its magnitude (band-passed, so the Earth field's size need not be
+known) on its own direction cosines, without the two diagonal terms a constant ``|B|`` cannot fix
+(:data:`MAGNITUDE_TERMS`), and the vector field that fit holds (:func:`magnitude_pass`) is taken out of every
+sensor. The second pass takes what the first's linearisation left (a percent's distortion leaves ``(0.01 B)^2 /
+2 B``, 2.5 nT at 50 000 nT). Then each sensor's total field is at its noise floor whatever the reference.
 
 A line is compensated (:meth:`CrossCompensation.compensate`) by inverting each sensor's model: first ``B_i = W_i^-1
 (y_i - o_i)``, the rate from the four's mean, then ``B_i = W_i^-1 (y_i - o_i - E'_i dB/dt)``. The compensated tensor
@@ -51,17 +61,28 @@ from magcal.model.tolles_lawson import (
     bandpass,
     bandpass_columns,
     conditioning,
+    design_matrix,
     per_sample_difference,
+    term_labels,
 )
 
 __all__ = [
+    "MAGNITUDE_RIDGE",
+    "MAGNITUDE_TERMS",
     "REFERENCES",
     "CrossArrays",
     "CrossCompensation",
     "SensorCompensation",
     "cross_arrays",
     "fit_cross_compensation",
+    "magnitude_pass",
 ]
+
+#: The Tolles-Lawson terms of a magnitude pass (the induced and eddy diagonals' last terms left out: their gauges).
+MAGNITUDE_TERMS = ("permanent", "induced5", "eddy8")
+
+#: A magnitude pass's ridge (:func:`magnitude_pass`).
+MAGNITUDE_RIDGE = 1e-5
 
 #: The reference fields a fit can take (``auto``: the attitude when there is one and an Earth field vector).
 REFERENCES = ("auto", "attitude", "mean")
@@ -346,6 +367,7 @@ def fit_cross_compensation(
     trim: int = 20,
     ridge: float = 0.0,
     mask=None,
+    magnitude_passes: int = 2,
 ) -> CrossCompensation:
     """Fit the cross's compensation on a compensation flight.
 
@@ -382,6 +404,11 @@ def fit_cross_compensation(
         Added to the band-passed normal matrix's diagonal (0: plain least squares).
     mask : array_like of bool, shape (N,), optional
         Samples the fit uses (after the band-pass over the whole flight), e.g. the maneuvers.
+    magnitude_passes : int
+        Tolles-Lawson fits on the compensated four's mean field, its magnitude against its own direction cosines,
+        each taken out of every sensor as a vector field (0: none). They correct what the reference leaves in the
+        field common to the four: an attitude's error (its errors-in-variables bias of each fit), a diurnal drift
+        the reference lacks, and, for ``reference="mean"``, the mean sensor's own calibration, to first order.
 
     Returns
     -------
@@ -406,13 +433,7 @@ def fit_cross_compensation(
         residual = y_bp[kept] - design_bp[kept] @ coefficients
         offset = np.mean(y[kept] - design[kept] @ coefficients, axis=0)
         sensors.append(SensorCompensation(coefficients[:3].T, coefficients[3:].T, offset, residual.std(axis=0), cond))
-    notes = []
-    if reference == "mean":
-        notes.append(
-            "balanced against the four sensors' mean field: the tensor is compensated, the field common to the "
-            "four (the mean platform field) is not"
-        )
-    return CrossCompensation(
+    result = CrossCompensation(
         sensors=sensors,
         reference=reference,
         sample_rate_hz=rate,
@@ -420,5 +441,83 @@ def fit_cross_compensation(
         passband_hz=(float(passband_hz[0]), float(passband_hz[1])),
         trim=int(trim),
         precalibrated=calibration is not None,
-        notes=notes,
+    )
+    for _ in range(int(magnitude_passes)):
+        common = result.compensate(vectors, sample_rate_hz=rate).mean(axis=0)
+        field = magnitude_pass(common, rate, passband_hz=passband_hz, kept=kept)
+        result.sensors = [_with_platform_residual(sensor, *field) for sensor in result.sensors]
+    if reference == "mean":
+        result.notes.append(
+            "balanced against the four sensors' mean field"
+            + (
+                "; the field common to the four fitted from their mean's magnitude (Tolles-Lawson, to first order)"
+                if magnitude_passes
+                else ": the tensor is compensated, the field common to the four (the mean platform field) is not"
+            )
+        )
+    return result
+
+
+def magnitude_pass(
+    field_nT, sample_rate_hz: float, *, passband_hz=DEFAULT_PASSBAND_HZ, kept=None, ridge: float = MAGNITUDE_RIDGE
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The platform field left in a compensated vector (N, 3), from its magnitude: a Tolles-Lawson fit of ``|B|``
+    on its own direction cosines (:data:`MAGNITUDE_TERMS`), band-passed, returned as a vector field.
+
+    Parameters
+    ----------
+    field_nT : array_like, shape (N, 3)
+        The compensated field (nT), evenly sampled.
+    sample_rate_hz : float
+    passband_hz : (float, float)
+    kept : array_like of bool, shape (N,), optional
+        The samples fitted (all by default).
+    ridge : float
+        Tikhonov weight on the coefficients with the band-passed columns scaled to unit RMS, per sample: it holds
+        the combinations the magnitude barely sees (a permanent field along the field moves ``|B|`` only to second
+        order in the maneuvers' angles) and leaves the others.
+
+    Returns
+    -------
+    permanent_nT : numpy.ndarray, shape (3,)
+        ``p`` (nT).
+    induced : numpy.ndarray, shape (3, 3)
+        The symmetric ``A`` (dimensionless), its trace removed.
+    eddy_s : numpy.ndarray, shape (3, 3)
+        ``E`` (s), its trace removed: ``u . (p + A B + E dB/dt)`` is the fitted signature (a constant ``|B|``
+        leaves the two traces undetermined: ``u . B = |B|``, ``u . dB = d|B|``).
+    """
+    b = np.asarray(field_nT, dtype=float)
+    magnitude = np.linalg.norm(b, axis=1)
+    design_bp = bandpass_columns(design_matrix(b, MAGNITUDE_TERMS, scale_nT=1.0), sample_rate_hz, passband_hz)
+    target_bp = bandpass(magnitude, sample_rate_hz, passband_hz)
+    kept = np.ones(b.shape[0], dtype=bool) if kept is None else np.asarray(kept, dtype=bool)
+    rms = np.sqrt(np.mean(design_bp[kept] ** 2, axis=0))
+    rms = np.where(rms > 0, rms, 1.0)
+    scaled = solve_ridge(design_bp[kept] / rms, target_bp[kept], float(ridge) * int(kept.sum()))
+    values = dict(zip(term_labels(MAGNITUDE_TERMS), scaled / rms))
+    permanent = np.array([values[f"permanent_{a}"] for a in "xyz"])
+    induced = np.zeros((3, 3))
+    eddy = np.zeros((3, 3))
+    for i, a in enumerate("xyz"):
+        for j, c in enumerate("xyz"):
+            eddy[i, j] = values.get(f"eddy_{a}{c}", 0.0) / sample_rate_hz  # per nT per sample -> per nT/s
+            if j >= i:  # the column u_x B_y holds A_xy + A_yx
+                induced[i, j] = induced[j, i] = values.get(f"induced_{a}{c}", 0.0) / (1.0 if i == j else 2.0)
+    induced -= np.trace(induced) / 3.0 * np.eye(3)
+    eddy -= np.trace(eddy) / 3.0 * np.eye(3)
+    return permanent, induced, eddy
+
+
+def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy) -> SensorCompensation:
+    """The sensor's model with a further vector field ``p + A B + E dB/dt`` (:func:`magnitude_pass`) taken out:
+    with ``B' = (I - A) B - p - E dB/dt``, ``y = W (I - A)^-1 B' + o + W (I - A)^-1 p + (E' + W (I - A)^-1 E)
+    dB/dt`` (the rates of ``B`` and ``B'`` equal to first order)."""
+    matrix = sensor.matrix @ np.linalg.inv(np.eye(3) - induced)
+    return SensorCompensation(
+        matrix=matrix,
+        eddy_s=sensor.eddy_s + matrix @ eddy,
+        offset_nT=sensor.offset_nT + matrix @ permanent,
+        residual_std_nT=sensor.residual_std_nT,
+        conditioning=sensor.conditioning,
     )
