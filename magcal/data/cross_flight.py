@@ -237,8 +237,9 @@ def simulate_cross_flight(
     platform : CrossPlatform or str, optional
         The platform's sources, or a name of :data:`CROSS_PLATFORMS` (default ``"aircraft"``).
     sensors : list of SensorErrors, optional
-        The four sensors' calibration errors (default the seed's Table 1, :func:`~magcal.data.simulation.
-        chi2017_truth`); their hard and soft iron are ignored (the platform's sources are given by ``platform``).
+        The four sensors' calibration errors (default the seed's Table 1,
+        :func:`~magcal.data.simulation.chi2017_truth`); their hard and soft iron are ignored (the platform's sources
+        are given by ``platform``).
     baseline_m : float
         The cross's baseline (m): sensors 1 and 3 (2 and 4) are this far apart.
     sample_rate_hz : float

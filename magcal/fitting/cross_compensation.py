@@ -32,7 +32,7 @@ lacks (a uniform field that turns with the platform), the mean's own calibration
 So the magnitude passes (``magnitude_passes``, two by default) fit the compensated four's mean field as its own
 fluxgate and scalar: a Tolles-Lawson fit of its magnitude (band-passed, so the Earth field's size need not be
 known) on its own direction cosines, without the two diagonal terms a constant ``|B|`` cannot fix
-(:data:`MAGNITUDE_TERMS`), and the vector field that fit holds (:func:`magnitude_pass`) is taken out of every
+(:data:`MAGNITUDE_TERMS`) and with a small ridge on what it sees only to second order, and the vector field that fit holds (:func:`magnitude_pass`) is taken out of every
 sensor. The second pass takes what the first's linearisation left (a percent's distortion leaves ``(0.01 B)^2 /
 2 B``, 2.5 nT at 50 000 nT). Then each sensor's total field is at its noise floor whatever the reference.
 
@@ -216,6 +216,8 @@ class CrossCompensation:
     precalibrated : bool
         True when the fit was made on vectors a calibration had corrected (the same calibration must then be
         applied to a line before :meth:`compensate`; it is not stored here).
+    magnitude_passes : int
+        The magnitude passes made (already folded into each sensor's model).
     notes : list of str
     """
 
@@ -226,6 +228,7 @@ class CrossCompensation:
     passband_hz: tuple[float, float] = DEFAULT_PASSBAND_HZ
     trim: int = 20
     precalibrated: bool = False
+    magnitude_passes: int = 0
     notes: list[str] = field(default_factory=list)
 
     def compensate(self, data, *, sample_rate_hz=None, time_s=None) -> np.ndarray:
@@ -268,6 +271,7 @@ class CrossCompensation:
                 "passband_hz": list(self.passband_hz),
                 "trim": self.trim,
                 "precalibrated": self.precalibrated,
+                "magnitude_passes": self.magnitude_passes,
                 "sensors": [s.to_dict() for s in self.sensors],
                 "notes": list(self.notes),
             }
@@ -291,6 +295,7 @@ class CrossCompensation:
             passband_hz=(float(d["passband_hz"][0]), float(d["passband_hz"][1])),
             trim=int(d["trim"]),
             precalibrated=bool(d.get("precalibrated", False)),
+            magnitude_passes=int(d.get("magnitude_passes", 0)),
             notes=list(d.get("notes", [])),
         )
 
@@ -441,6 +446,7 @@ def fit_cross_compensation(
         passband_hz=(float(passband_hz[0]), float(passband_hz[1])),
         trim=int(trim),
         precalibrated=calibration is not None,
+        magnitude_passes=int(magnitude_passes),
     )
     for _ in range(int(magnitude_passes)):
         common = result.compensate(vectors, sample_rate_hz=rate).mean(axis=0)
