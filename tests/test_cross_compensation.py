@@ -85,7 +85,7 @@ def test_tensor_fom_on_a_second_flight_near_the_true_compensation(seed, platform
 def test_platform_terms_recovered_after_the_sensor_calibration(platform, magnitude_passes):
     flight = simulate_cross_flight(2, platform=platform, drift_nT=0.0)
     truth = flight.truth
-    calibration = Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in truth.sensors], 50_000.0)
+    calibration = _true_calibration(flight)
     fit = fit_cross_compensation(
         flight,
         reference="attitude",
@@ -103,13 +103,18 @@ def test_platform_terms_recovered_after_the_sensor_calibration(platform, magnitu
     assert np.abs(truth.induced).max() > 5e-4 and np.abs(truth.eddy_s).max() > 1e-4
 
 
-@pytest.mark.parametrize("reference", ["attitude", "mean"])
-def test_a_survey_lines_gradient_is_kept(reference):
+def _true_calibration(flight):
+    return Calibration([SensorCalibration(s.Cinv, s.bias_nT, s.R) for s in flight.truth.sensors], 50_000.0)
+
+
+@pytest.mark.parametrize(("reference", "calibrated"), [("attitude", False), ("mean", False), ("mean", True)])
+def test_a_survey_lines_gradient_is_kept(reference, calibrated):
     box = simulate_cross_flight(4)
     line = simulate_cross_flight(5, gradient_ned_nT_per_m=GRADIENT)
-    fit = fit_cross_compensation(box, reference=reference, field_ned_nT=box.truth.field_ned_nT)
+    calibration = _true_calibration(box) if calibrated else None
+    fit = fit_cross_compensation(box, reference=reference, field_ned_nT=box.truth.field_ned_nT, calibration=calibration)
     earth = conventions.tensor_matrix(conventions.tensor_components(line.truth.earth_body_nT, line.baseline_m))
-    ours = conventions.tensor_matrix(fit.tensor(line))
+    ours = conventions.tensor_matrix(fit.tensor(line, calibration=calibration))
     true = conventions.tensor_matrix(
         conventions.tensor_components(line.truth.compensated_nT(line.readings_nT), line.baseline_m)
     )
@@ -193,6 +198,8 @@ def test_tensor_fom_of_a_known_signal():
         (lambda f: fit_cross_compensation(f.readings_nT, sample_rate_hz=10.0, reference="attitude"), "attitude"),
         (lambda f: fit_cross_compensation(f, reference="attitude"), "Earth field vector"),
         (lambda f: fit_cross_compensation(f, reference="north"), "unknown reference"),
+        (lambda f: fit_cross_compensation(f, calibration=_true_calibration(f)).compensate(f), "same calibration"),
+        (lambda f: fit_cross_compensation(f).compensate(f, calibration=_true_calibration(f)), "give no calibration"),
         (lambda f: fit_cross_compensation(f, mask=np.zeros(f.time_s.size, bool)), "widen the mask"),
         (
             lambda f: fit_cross_compensation(

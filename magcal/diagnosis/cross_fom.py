@@ -90,16 +90,21 @@ def _checked_vectors(vectors_nT, what: str) -> np.ndarray:
     return v
 
 
+def _bandpassed_tensor(vectors, baseline_m, sample_rate_hz, passband_hz) -> np.ndarray:
+    """The seven components of eq. (1), band-passed, (N, 7) nT/m in :data:`~magcal.core.conventions.TENSOR_COMPONENTS`
+    order."""
+    components = conventions.tensor_components(vectors, baseline_m)
+    g = np.column_stack([components[name] for name in conventions.TENSOR_COMPONENTS])
+    return bandpass(g, sample_rate_hz, passband_hz)
+
+
 def tensor_fom(
     vectors_nT, baseline_m: float, maneuvers, sample_rate_hz: float, passband_hz=DEFAULT_PASSBAND_HZ
 ) -> TensorFOMTable:
     """The tensor FOM table of four sensors' vectors (4, N, 3) in one frame (nT), baseline ``d`` (m)."""
     if not maneuvers:
         raise MagcalError("no maneuvers: the record has no roll, pitch or yaw stretch to judge the compensation on")
-    vectors = _checked_vectors(vectors_nT, "the vectors")
-    components = conventions.tensor_components(vectors, baseline_m)
-    g = np.column_stack([components[name] for name in conventions.TENSOR_COMPONENTS])
-    g_bp = bandpass(g, sample_rate_hz, passband_hz)
+    g_bp = _bandpassed_tensor(_checked_vectors(vectors_nT, "the vectors"), baseline_m, sample_rate_hz, passband_hz)
     p2p = np.array([np.ptp(g_bp[m.start : m.stop], axis=0) for m in maneuvers])
     return TensorFOMTable(list(maneuvers), p2p)
 
@@ -108,12 +113,6 @@ def sensor_fom(vectors_nT, maneuvers, sample_rate_hz: float, passband_hz=DEFAULT
     """The scalar FOM (:func:`magcal.diagnosis.fom.figure_of_merit`) of each sensor's total field ``|B_i|``."""
     vectors = _checked_vectors(vectors_nT, "the vectors")
     return [figure_of_merit(np.linalg.norm(v, axis=1), maneuvers, sample_rate_hz, passband_hz) for v in vectors]
-
-
-def _tensor_series(vectors, baseline_m, sample_rate_hz, passband_hz, keep) -> np.ndarray:
-    components = conventions.tensor_components(vectors, baseline_m)
-    g = np.column_stack([components[name] for name in conventions.TENSOR_COMPONENTS])
-    return bandpass(g, sample_rate_hz, passband_hz)[keep]
 
 
 @dataclass
@@ -221,8 +220,8 @@ def cross_fom_report(
     keep = np.zeros(before.shape[1], dtype=bool)
     for m in maneuvers:
         keep[m.start : m.stop] = True
-    g_before = _tensor_series(before, baseline_m, sample_rate_hz, passband_hz, keep)
-    g_after = _tensor_series(after, baseline_m, sample_rate_hz, passband_hz, keep)
+    g_before = _bandpassed_tensor(before, baseline_m, sample_rate_hz, passband_hz)[keep]
+    g_after = _bandpassed_tensor(after, baseline_m, sample_rate_hz, passband_hz)[keep]
     return CrossFOMReport(
         before=tensor_fom(before, baseline_m, maneuvers, sample_rate_hz, passband_hz),
         after=tensor_fom(after, baseline_m, maneuvers, sample_rate_hz, passband_hz),

@@ -214,8 +214,8 @@ class CrossCompensation:
     passband_hz : (float, float)
     trim : int
     precalibrated : bool
-        True when the fit was made on vectors a calibration had corrected (the same calibration must then be
-        applied to a line before :meth:`compensate`; it is not stored here).
+        True when the fit was made on vectors a calibration had corrected (:meth:`compensate` then takes the same
+        calibration; it is not stored here).
     magnitude_passes : int
         The magnitude passes made (already folded into each sensor's model).
     notes : list of str
@@ -231,20 +231,35 @@ class CrossCompensation:
     magnitude_passes: int = 0
     notes: list[str] = field(default_factory=list)
 
-    def compensate(self, data, *, sample_rate_hz=None, time_s=None) -> np.ndarray:
+    def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None) -> np.ndarray:
         """The compensated vectors (4, N, 3) of a line (nT, body frame for an ``attitude`` fit, the four's mean
         frame for a ``mean`` fit).
 
         Parameters
         ----------
         data : Dataset, CrossFlight or array_like, shape (4, N, 3)
-            The line's readings, as the fit's were (raw, or corrected by the same calibration).
+            The line's raw readings (nT).
         sample_rate_hz, time_s : optional
             The line's rate (else the data's, else the fit's): the eddy term needs the field's rate in nT/s.
+        calibration : magcal.calibration.calibration.Calibration, optional
+            The calibration the fit was made after (:attr:`precalibrated`), applied to the readings first.
         """
         arrays = cross_arrays(data, sample_rate_hz=sample_rate_hz, time_s=time_s)
         rate = arrays.sample_rate_hz or self.sample_rate_hz
-        y = arrays.readings_nT
+        if self.precalibrated and calibration is None:
+            raise MagcalError(
+                "this compensation was fitted on calibrated vectors: give the same calibration (calibration=...)"
+            )
+        if calibration is not None and not self.precalibrated:
+            raise MagcalError("this compensation was fitted on raw readings: give no calibration")
+        y = arrays.readings_nT if calibration is None else np.asarray(calibration.correct(arrays.readings_nT))
+        return self.inverted(y, rate)
+
+    def inverted(self, vectors_nT, sample_rate_hz: float) -> np.ndarray:
+        """Each sensor's model inverted on vectors (4, N, 3) as the fit saw them (raw, or calibrated when
+        :attr:`precalibrated`), nT: ``W^-1 (y - o - E' dB/dt)``, the rate (nT/s at ``sample_rate_hz``) from the
+        four's mean after a first ``W^-1 (y - o)``."""
+        y, rate = np.asarray(vectors_nT, dtype=float), float(sample_rate_hz)
         inverses = [np.linalg.inv(s.matrix) for s in self.sensors]
         first = np.stack([(y[i] - s.offset_nT) @ inverses[i].T for i, s in enumerate(self.sensors)])
         field_rate = per_sample_difference(first.mean(axis=0)) * rate
@@ -252,13 +267,13 @@ class CrossCompensation:
             [(y[i] - s.offset_nT - field_rate @ s.eddy_s.T) @ inverses[i].T for i, s in enumerate(self.sensors)]
         )
 
-    def tensor(self, data, *, sample_rate_hz=None, time_s=None) -> dict:
-        """The compensated gradient tensor's components (eq. 1, nT/m) of a line (``data`` as in :meth:`compensate`)."""
+    def tensor(self, data, *, sample_rate_hz=None, time_s=None, calibration=None) -> dict:
+        """The compensated gradient tensor's components (eq. 1, nT/m) of a line (the arguments as in
+        :meth:`compensate`)."""
         if not self.baseline_m:
             raise MagcalError("the tensor needs the cross's baseline: fit with baseline_m (m)")
-        return conventions.tensor_components(
-            self.compensate(data, sample_rate_hz=sample_rate_hz, time_s=time_s), self.baseline_m
-        )
+        compensated = self.compensate(data, sample_rate_hz=sample_rate_hz, time_s=time_s, calibration=calibration)
+        return conventions.tensor_components(compensated, self.baseline_m)
 
     def to_dict(self) -> dict:
         """A JSON-ready document of the compensation (:meth:`from_dict` reads it back)."""
@@ -392,8 +407,8 @@ def fit_cross_compensation(
         does not see it.
     calibration : magcal.calibration.calibration.Calibration, optional
         A calibration of the four sensors (the seed's, from turning the cross in a uniform field) applied to the
-        readings before the fit; then the fitted matrices are ``I + A_i`` (the induced field alone) and a line must
-        be corrected by the same calibration before :meth:`CrossCompensation.compensate`.
+        readings before the fit; then the fitted matrices are ``I + A_i`` (the induced field alone), and
+        :meth:`CrossCompensation.compensate` takes the same calibration.
     sample_rate_hz : float, optional
         Samples per second (else from ``time_s`` or the data).
     time_s : array_like, shape (N,), optional
@@ -449,7 +464,7 @@ def fit_cross_compensation(
         magnitude_passes=int(magnitude_passes),
     )
     for _ in range(int(magnitude_passes)):
-        common = result.compensate(vectors, sample_rate_hz=rate).mean(axis=0)
+        common = result.inverted(vectors, rate).mean(axis=0)
         field = magnitude_pass(common, rate, passband_hz=passband_hz, kept=kept)
         result.sensors = [_with_platform_residual(sensor, *field) for sensor in result.sensors]
     if reference == "mean":
