@@ -157,6 +157,44 @@ def test_a_base_station_record_serves_as_the_reference():
         fit_cross_compensation(flight, reference="attitude", field_ned_nT=flight.truth.field_ned_series_nT[:-1])
 
 
+@pytest.mark.parametrize("reference", ["attitude", "mean"])
+def test_a_battery_current_is_fitted_when_given(reference):
+    """A current's field is not a Tolles-Lawson term: hidden, it stays in the tensor; given, each sensor's field
+    per ampere is fitted and the line compensated with its own current."""
+    first = simulate_cross_flight(11, platform="drone_current")
+    second = simulate_cross_flight(12, platform="drone_current")
+    field = first.truth.field_ned_nT
+    hidden = _judged(fit_cross_compensation(first, reference=reference, field_ned_nT=field), second)
+    assert hidden.after.fom_nT_per_m > 5 * hidden.reference.fom_nT_per_m
+    fit = fit_cross_compensation(first, reference=reference, field_ned_nT=field, current_A=first.current_A)
+    report = cross_fom_report(
+        second.truth.calibrated_nT(second.readings_nT),
+        fit.compensate(second, current_A=second.current_A),
+        second.baseline_m,
+        second.sample_rate_hz,
+        reference_nT=second.truth.compensated_nT(second.readings_nT),
+        maneuvers=second.truth.maneuvers,
+    )
+    assert report.after.fom_nT_per_m <= 1.2 * report.reference.fom_nT_per_m
+    for ours, true in zip(report.sensors_after, report.sensors_reference):
+        assert ours.fom_nT <= 1.2 * true.fom_nT
+    again = CrossCompensation.from_json(fit.to_json())
+    assert again.current and np.allclose(
+        again.compensate(second, current_A=second.current_A), fit.compensate(second, current_A=second.current_A)
+    )
+    if reference == "attitude":
+        calibrated = fit_cross_compensation(
+            first,
+            reference="attitude",
+            field_ned_nT=field,
+            current_A=first.current_A,
+            calibration=_true_calibration(first),
+            magnitude_passes=0,
+        )
+        for k, sensor in enumerate(calibrated.sensors):
+            assert np.allclose(sensor.current_nT_per_A, first.truth.current_nT_per_A[k], atol=0.05)
+
+
 def test_dataset_json_and_text():
     flight = simulate_cross_flight(6)
     from_flight = fit_cross_compensation(flight, reference="attitude", field_ned_nT=flight.truth.field_ned_nT)
@@ -198,6 +236,8 @@ def test_tensor_fom_of_a_known_signal():
         (lambda f: fit_cross_compensation(f.readings_nT, sample_rate_hz=10.0, reference="attitude"), "attitude"),
         (lambda f: fit_cross_compensation(f, reference="attitude"), "Earth field vector"),
         (lambda f: fit_cross_compensation(f, reference="north"), "unknown reference"),
+        (lambda f: fit_cross_compensation(f, current_A=f.current_A).compensate(f), "current_A"),
+        (lambda f: fit_cross_compensation(f, current_A=np.ones(5)), "one ampere value each"),
         (lambda f: fit_cross_compensation(f, calibration=_true_calibration(f)).compensate(f), "same calibration"),
         (lambda f: fit_cross_compensation(f).compensate(f, calibration=_true_calibration(f)), "give no calibration"),
         (lambda f: fit_cross_compensation(f, mask=np.zeros(f.time_s.size, bool)), "widen the mask"),
@@ -214,6 +254,6 @@ def test_tensor_fom_of_a_known_signal():
     ],
 )
 def test_bad_input_is_named(call, message):
-    flight = simulate_cross_flight(0)
+    flight = simulate_cross_flight(0, platform="drone_current")
     with pytest.raises(MagcalError, match=message):
         call(flight)

@@ -11,12 +11,14 @@ platform's sources sit at different distances from it:
 * induced: a soft-iron part at ``r_a`` whose moment follows the Earth field, ``K_a B_e`` (``K_a`` in A m^2 per
   nT): at sensor ``i`` the field ``A_i B_e`` with ``A_i = D(r_i - r_a) K_a`` (dimensionless);
 * eddy: a conducting part at ``r_e`` whose moment follows the body-frame field's rate, ``K_e dB_e/dt`` (``K_e``
-  in A m^2 per nT/s): at sensor ``i`` the field ``E_i dB_e/dt`` with ``E_i = D(r_i - r_e) K_e`` (s).
+  in A m^2 per nT/s): at sensor ``i`` the field ``E_i dB_e/dt`` with ``E_i = D(r_i - r_e) K_e`` (s);
+* optionally, a current loop at ``r_c`` whose moment follows the platform's current ``I(t)`` (the box's switched
+  loads): at sensor ``i`` the field ``k_i I`` (nT/A), which the Tolles-Lawson terms do not hold.
 
 ``D(r)`` is the point dipole's field per moment (nT per A m^2). Per sensor, in its own frame (nT)::
 
     B_e(t)   = R(t)^T (B_ned + drift(t)) + G_body(t) r_i     (R: body -> NED; G: an optional uniform gradient)
-    y_i(t)   = C_i M_i (B_e + p_i + A_i B_e + E_i dB_e/dt) + b_i + n_i
+    y_i(t)   = C_i M_i (B_e + p_i + A_i B_e + E_i dB_e/dt + k_i I) + b_i + n_i
 
 with ``C_i = S C_NO`` and ``M_i`` the misalignment of :mod:`magcal.core.conventions`, and ``drift`` a slow
 uniform field change (diurnal: the tensor does not see it). The truth (:class:`CrossTruth`) keeps every part: the
@@ -25,7 +27,7 @@ Earth field at each sensor, the platform field per sensor, the calibration, and 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import make_interp_spline
@@ -34,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from magcal.core import conventions
 from magcal.data.attitude import euler_to_wxyz
 from magcal.data.compensation_flight import (
+    CompensationPlatform,
     DEFAULT_FIELD_NED_nT,
     FlownManeuver,
     _body_field,
@@ -79,6 +82,10 @@ class CrossPlatform:
     eddy_Am2_per_nT_per_s : numpy.ndarray, shape (3, 3)
         ``K_e``: the conducting part's moment per body-frame field rate (A m^2 per nT/s).
     eddy_at_m : numpy.ndarray, shape (3,)
+    current_Am2_per_A : numpy.ndarray, shape (3,), or None
+        A current loop's moment per ampere (A m^2 per A: its area and orientation) of the platform's current
+        (a battery's or a motor's), hidden from the Tolles-Lawson terms; none by default.
+    current_at_m : numpy.ndarray, shape (3,)
     """
 
     permanent_Am2: np.ndarray = field(default_factory=lambda: np.array([1.2, -0.7, 1.6]))
@@ -91,6 +98,8 @@ class CrossPlatform:
         default_factory=lambda: np.array([[2.5e-6, -4e-7, 6e-7], [3e-7, 1.8e-6, -5e-7], [-4e-7, 7e-7, 3e-6]])
     )
     eddy_at_m: np.ndarray = field(default_factory=lambda: np.array([0.9, 0.8, 0.4]))
+    current_Am2_per_A: np.ndarray | None = None
+    current_at_m: np.ndarray = field(default_factory=lambda: np.array([0.2, -0.6, 0.3]))
 
     def sensor_fields(self, positions_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each sensor's platform terms at ``positions_m`` (n, 3): ``p`` (n, 3) nT, ``A`` (n, 3, 3)
@@ -101,9 +110,16 @@ class CrossPlatform:
         e = np.array([dipole_matrix(r - self.eddy_at_m) @ self.eddy_Am2_per_nT_per_s for r in pos])
         return p, a, e
 
+    def current_fields(self, positions_m) -> np.ndarray:
+        """Each sensor's field per ampere of the platform's current (n, 3), nT/A (zeros without a current loop)."""
+        pos = np.asarray(positions_m, dtype=float)
+        if self.current_Am2_per_A is None:
+            return np.zeros_like(pos)
+        return np.array([dipole_matrix(r - self.current_at_m) @ self.current_Am2_per_A for r in pos])
 
-#: Named platforms: an aircraft's tail stinger (sources 1-2 m away) and a drone (a battery and motors closer, but
-#: smaller).
+
+#: Named platforms: an aircraft's tail stinger (sources 1-2 m away), a drone (a battery and motors closer, but
+#: smaller) and the drone with its battery's current.
 CROSS_PLATFORMS: dict[str, CrossPlatform] = {
     "aircraft": CrossPlatform(),
     "drone": CrossPlatform(
@@ -115,6 +131,12 @@ CROSS_PLATFORMS: dict[str, CrossPlatform] = {
         eddy_at_m=np.array([0.6, -0.1, 0.5]),
     ),
 }
+#: The drone with its battery's current in a loop 0.4-0.8 m from the sensors (a few nT per ampere).
+CROSS_PLATFORMS["drone_current"] = replace(
+    CROSS_PLATFORMS["drone"],
+    current_Am2_per_A=np.array([0.002, -0.0012, 0.003]),
+    current_at_m=np.array([0.2, -0.6, 0.3]),
+)
 
 
 @dataclass
@@ -134,6 +156,8 @@ class CrossTruth:
         ``A_i`` (dimensionless).
     eddy_s : numpy.ndarray, shape (4, 3, 3)
         ``E_i`` (s).
+    current_nT_per_A : numpy.ndarray, shape (4, 3)
+        Each sensor's field per ampere of the platform's current (nT/A, body frame; zeros without one).
     earth_body_nT : numpy.ndarray, shape (4, N, 3)
         The Earth field (with the drift and any gradient) at each sensor, body frame: what a perfect
         compensation returns, noise aside.
@@ -153,6 +177,7 @@ class CrossTruth:
     permanent_nT: np.ndarray
     induced: np.ndarray
     eddy_s: np.ndarray
+    current_nT_per_A: np.ndarray
     earth_body_nT: np.ndarray
     platform_body_nT: np.ndarray
     field_ned_nT: np.ndarray
@@ -186,6 +211,8 @@ class CrossFlight:
         Roll, pitch, yaw as recorded (aerospace ZYX, deg; with the attitude noise).
     baseline_m : float
     truth : CrossTruth
+    current_A : numpy.ndarray, shape (N,)
+        The platform's current (A): base load and switched loads, zero without a current loop.
     """
 
     time_s: np.ndarray
@@ -194,6 +221,7 @@ class CrossFlight:
     attitude_deg: np.ndarray
     baseline_m: float
     truth: CrossTruth
+    current_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def dataset(self) -> Dataset:
         """The flight as a :class:`~magcal.data.dataset.Dataset`: the readings, the times, the recorded attitude
@@ -271,7 +299,11 @@ def simulate_cross_flight(
     sensors = list(sensors) if sensors is not None else chi2017_truth(4).sensors
     if len(sensors) != 4:
         raise ValueError(f"the cross has four sensors, got {len(sensors)}")
-    box_flight = simulate_compensation_flight(seed, sample_rate_hz=sample_rate_hz, field_ned_nT=field_ned_nT, **box)
+    # the box's schedule, and its current series when the platform carries a current loop
+    with_current = None if platform.current_Am2_per_A is None else CompensationPlatform(current_nT_per_A=np.ones(3))
+    box_flight = simulate_compensation_flight(
+        seed, sample_rate_hz=sample_rate_hz, field_ned_nT=field_ned_nT, platform=with_current, **box
+    )
     t, attitude = box_flight.time_s, box_flight.attitude_deg
     rng = np.random.default_rng([seed, 4])
     field_ned = np.asarray(field_ned_nT, dtype=float)
@@ -282,12 +314,14 @@ def simulate_cross_flight(
     drift = drift_nT * np.sin(2 * np.pi * t / (2.5 * t[-1]) + rng.uniform(0, 2 * np.pi))
     centre_ned = field_ned[None, :] + np.outer(drift, drift_dir / np.linalg.norm(drift_dir))
     centre = _body_field(attitude, centre_ned)
-    world_offsets = Rotation.from_euler("ZYX", attitude[:, ::-1], degrees=True)
-    earth = np.stack([_body_field(attitude, centre_ned + world_offsets.apply(r) @ gradient.T) for r in positions])
+    body_to_ned = Rotation.from_euler("ZYX", attitude[:, ::-1], degrees=True)  # the sensors' offsets turn with it
+    earth = np.stack([_body_field(attitude, centre_ned + body_to_ned.apply(r) @ gradient.T) for r in positions])
     rate = _rate_nT_per_s(t, centre)
 
     p, a, e = platform.sensor_fields(positions)
-    platform_field = np.stack([p[i] + centre @ a[i].T + rate @ e[i].T for i in range(4)])
+    k = platform.current_fields(positions)
+    current = box_flight.current_A
+    platform_field = np.stack([p[i] + centre @ a[i].T + rate @ e[i].T + np.outer(current, k[i]) for i in range(4)])
     readings = np.empty_like(earth)
     for i, s in enumerate(sensors):
         readings[i] = (earth[i] + platform_field[i]) @ (s.C @ s.M).T + s.bias_nT
@@ -301,6 +335,7 @@ def simulate_cross_flight(
         permanent_nT=p,
         induced=a,
         eddy_s=e,
+        current_nT_per_A=k,
         earth_body_nT=earth,
         platform_body_nT=platform_field,
         field_ned_nT=field_ned,
@@ -308,4 +343,4 @@ def simulate_cross_flight(
         gradient_ned_nT_per_m=gradient,
         maneuvers=box_flight.truth.maneuvers,
     )
-    return CrossFlight(t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth)
+    return CrossFlight(t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth, current)

@@ -167,6 +167,8 @@ class SensorCompensation:
         Each axis's band-passed residual's standard deviation over the fitted samples (nT).
     conditioning : Conditioning
         Of the band-passed design (the reference's components and rates).
+    current_nT_per_A : numpy.ndarray, shape (3,)
+        ``k``: the reading per ampere of the platform's current (nT/A; zeros when the fit had no current).
     """
 
     matrix: np.ndarray
@@ -174,6 +176,7 @@ class SensorCompensation:
     offset_nT: np.ndarray
     residual_std_nT: np.ndarray
     conditioning: Conditioning | None = None
+    current_nT_per_A: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def to_dict(self) -> dict:
         return jsonable(
@@ -183,6 +186,7 @@ class SensorCompensation:
                 "offset_nT": self.offset_nT,
                 "residual_std_nT": self.residual_std_nT,
                 "conditioning": None if self.conditioning is None else self.conditioning.to_dict(),
+                "current_nT_per_A": self.current_nT_per_A,
             }
         )
 
@@ -195,6 +199,7 @@ class SensorCompensation:
             offset_nT=np.asarray(d["offset_nT"], dtype=float).reshape(3),
             residual_std_nT=np.asarray(d.get("residual_std_nT", [np.nan] * 3), dtype=float),
             conditioning=Conditioning.from_dict(cond) if cond else None,
+            current_nT_per_A=np.asarray(d.get("current_nT_per_A", [0.0] * 3), dtype=float).reshape(3),
         )
 
 
@@ -218,6 +223,8 @@ class CrossCompensation:
         calibration; it is not stored here).
     magnitude_passes : int
         The magnitude passes made (already folded into each sensor's model).
+    current : bool
+        True when the fit had the platform's current (a line then needs its current too).
     notes : list of str
     """
 
@@ -229,9 +236,10 @@ class CrossCompensation:
     trim: int = 20
     precalibrated: bool = False
     magnitude_passes: int = 0
+    current: bool = False
     notes: list[str] = field(default_factory=list)
 
-    def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None) -> np.ndarray:
+    def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None, current_A=None) -> np.ndarray:
         """The compensated vectors (4, N, 3) of a line (nT, body frame for an ``attitude`` fit, the four's mean
         frame for a ``mean`` fit).
 
@@ -243,6 +251,8 @@ class CrossCompensation:
             The line's rate (else the data's, else the fit's): the eddy term needs the field's rate in nT/s.
         calibration : magcal.calibration.calibration.Calibration, optional
             The calibration the fit was made after (:attr:`precalibrated`), applied to the readings first.
+        current_A : array_like, shape (N,), optional
+            The platform's current along the line (A), needed when the fit had one (:attr:`current`).
         """
         arrays = cross_arrays(data, sample_rate_hz=sample_rate_hz, time_s=time_s)
         rate = arrays.sample_rate_hz or self.sample_rate_hz
@@ -253,6 +263,11 @@ class CrossCompensation:
         if calibration is not None and not self.precalibrated:
             raise MagcalError("this compensation was fitted on raw readings: give no calibration")
         y = arrays.readings_nT if calibration is None else np.asarray(calibration.correct(arrays.readings_nT))
+        if self.current and current_A is None:
+            raise MagcalError("this compensation was fitted with the platform's current: give the line's (current_A)")
+        if current_A is not None:
+            current = _checked_current(current_A, y.shape[1])
+            y = y - np.stack([np.outer(current, s.current_nT_per_A) for s in self.sensors])
         return self.inverted(y, rate)
 
     def inverted(self, vectors_nT, sample_rate_hz: float) -> np.ndarray:
@@ -267,12 +282,14 @@ class CrossCompensation:
             [(y[i] - s.offset_nT - field_rate @ s.eddy_s.T) @ inverses[i].T for i, s in enumerate(self.sensors)]
         )
 
-    def tensor(self, data, *, sample_rate_hz=None, time_s=None, calibration=None) -> dict:
+    def tensor(self, data, *, sample_rate_hz=None, time_s=None, calibration=None, current_A=None) -> dict:
         """The compensated gradient tensor's components (eq. 1, nT/m) of a line (the arguments as in
         :meth:`compensate`)."""
         if not self.baseline_m:
             raise MagcalError("the tensor needs the cross's baseline: fit with baseline_m (m)")
-        compensated = self.compensate(data, sample_rate_hz=sample_rate_hz, time_s=time_s, calibration=calibration)
+        compensated = self.compensate(
+            data, sample_rate_hz=sample_rate_hz, time_s=time_s, calibration=calibration, current_A=current_A
+        )
         return conventions.tensor_components(compensated, self.baseline_m)
 
     def to_dict(self) -> dict:
@@ -287,6 +304,7 @@ class CrossCompensation:
                 "trim": self.trim,
                 "precalibrated": self.precalibrated,
                 "magnitude_passes": self.magnitude_passes,
+                "current": self.current,
                 "sensors": [s.to_dict() for s in self.sensors],
                 "notes": list(self.notes),
             }
@@ -311,6 +329,7 @@ class CrossCompensation:
             trim=int(d["trim"]),
             precalibrated=bool(d.get("precalibrated", False)),
             magnitude_passes=int(d.get("magnitude_passes", 0)),
+            current=bool(d.get("current", False)),
             notes=list(d.get("notes", [])),
         )
 
@@ -358,6 +377,21 @@ def _reference_field(arrays: CrossArrays, vectors, reference: str, field_ned_nT)
     return reference, arrays.attitude.inv().apply(ned)
 
 
+def _checked_current(current_A, n: int) -> np.ndarray:
+    current = np.asarray(current_A, dtype=float)
+    if current.shape != (n,):
+        raise MagcalError(
+            f"the current has shape {current.shape}; the readings have {n} samples: one ampere value each"
+        )
+    bad = ~np.isfinite(current)
+    if bad.any():
+        raise MagcalError(
+            f"the current has {int(bad.sum())} missing or non-finite value(s) (first at row {int(np.argmax(bad))}): "
+            "fill or cut them before the compensation"
+        )
+    return current
+
+
 def _kept(n: int, trim: int, mask, q: int) -> np.ndarray:
     if n <= 2 * trim + q:
         raise MagcalError(f"{n} samples are too few for the cross's compensation after trimming {trim} at each end")
@@ -388,6 +422,7 @@ def fit_cross_compensation(
     ridge: float = 0.0,
     mask=None,
     magnitude_passes: int = 2,
+    current_A=None,
 ) -> CrossCompensation:
     """Fit the cross's compensation on a compensation flight.
 
@@ -429,6 +464,9 @@ def fit_cross_compensation(
         each taken out of every sensor as a vector field (0: none). They correct what the reference leaves in the
         field common to the four: an attitude's error (its errors-in-variables bias of each fit), a diurnal drift
         the reference lacks, and, for ``reference="mean"``, the mean sensor's own calibration, to first order.
+    current_A : array_like, shape (N,), optional
+        The platform's current (A), a battery's or a motor's: each sensor's field per ampere is fitted with the
+        other terms (Tolles-Lawson has no such term), and a line is compensated with its own current.
 
     Returns
     -------
@@ -442,7 +480,10 @@ def fit_cross_compensation(
     rate = float(arrays.sample_rate_hz)
     vectors = arrays.readings_nT if calibration is None else np.asarray(calibration.correct(arrays.readings_nT))
     reference, b_ref = _reference_field(arrays, vectors, reference, field_ned_nT)
-    design = np.column_stack([b_ref, per_sample_difference(b_ref) * rate])
+    columns = [b_ref, per_sample_difference(b_ref) * rate]
+    if current_A is not None:
+        columns.append(_checked_current(current_A, b_ref.shape[0])[:, None])
+    design = np.column_stack(columns)
     kept = _kept(design.shape[0], int(trim), mask, design.shape[1])
     design_bp = bandpass_columns(design, rate, passband_hz)
     cond = conditioning(design_bp[kept])
@@ -452,7 +493,9 @@ def fit_cross_compensation(
         coefficients = np.column_stack([solve_ridge(design_bp[kept], y_bp[kept, k], float(ridge)) for k in range(3)])
         residual = y_bp[kept] - design_bp[kept] @ coefficients
         offset = np.mean(y[kept] - design[kept] @ coefficients, axis=0)
-        sensors.append(SensorCompensation(coefficients[:3].T, coefficients[3:].T, offset, residual.std(axis=0), cond))
+        current = coefficients[6] if current_A is not None else np.zeros(3)
+        matrix, eddy = coefficients[:3].T, coefficients[3:6].T
+        sensors.append(SensorCompensation(matrix, eddy, offset, residual.std(axis=0), cond, current))
     result = CrossCompensation(
         sensors=sensors,
         reference=reference,
@@ -462,10 +505,15 @@ def fit_cross_compensation(
         trim=int(trim),
         precalibrated=calibration is not None,
         magnitude_passes=int(magnitude_passes),
+        current=current_A is not None,
     )
+    current = design[:, 6] if current_A is not None else np.zeros(design.shape[0])
     for _ in range(int(magnitude_passes)):
-        common = result.inverted(vectors, rate).mean(axis=0)
-        field = magnitude_pass(common, rate, passband_hz=passband_hz, kept=kept)
+        without_current = vectors - np.stack([np.outer(current, s.current_nT_per_A) for s in result.sensors])
+        common = result.inverted(without_current, rate).mean(axis=0)
+        field = magnitude_pass(
+            common, rate, passband_hz=passband_hz, kept=kept, current_A=None if current_A is None else current
+        )
         result.sensors = [_with_platform_residual(sensor, *field) for sensor in result.sensors]
     if reference == "mean":
         result.notes.append(
@@ -480,8 +528,14 @@ def fit_cross_compensation(
 
 
 def magnitude_pass(
-    field_nT, sample_rate_hz: float, *, passband_hz=DEFAULT_PASSBAND_HZ, kept=None, ridge: float = MAGNITUDE_RIDGE
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    field_nT,
+    sample_rate_hz: float,
+    *,
+    passband_hz=DEFAULT_PASSBAND_HZ,
+    kept=None,
+    ridge: float = MAGNITUDE_RIDGE,
+    current_A=None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The platform field left in a compensated vector (N, 3), from its magnitude: a Tolles-Lawson fit of ``|B|``
     on its own direction cosines (:data:`MAGNITUDE_TERMS`), band-passed, returned as a vector field.
 
@@ -497,6 +551,8 @@ def magnitude_pass(
         Tikhonov weight on the coefficients with the band-passed columns scaled to unit RMS, per sample: it holds
         the combinations the magnitude barely sees (a permanent field along the field moves ``|B|`` only to second
         order in the maneuvers' angles) and leaves the others.
+    current_A : array_like, shape (N,), optional
+        The platform's current (A): a field per ampere ``k`` is fitted too (columns ``u_j I``).
 
     Returns
     -------
@@ -507,16 +563,21 @@ def magnitude_pass(
     eddy_s : numpy.ndarray, shape (3, 3)
         ``E`` (s), its trace removed: ``u . (p + A B + E dB/dt)`` is the fitted signature (a constant ``|B|``
         leaves the two traces undetermined: ``u . B = |B|``, ``u . dB = d|B|``).
+    current_nT_per_A : numpy.ndarray, shape (3,)
+        ``k`` (nT/A; zeros without a current).
     """
     b = np.asarray(field_nT, dtype=float)
     magnitude = np.linalg.norm(b, axis=1)
-    design_bp = bandpass_columns(design_matrix(b, MAGNITUDE_TERMS, scale_nT=1.0), sample_rate_hz, passband_hz)
+    design = design_matrix(b, MAGNITUDE_TERMS, scale_nT=1.0)
+    if current_A is not None:
+        design = np.column_stack([design, b / magnitude[:, None] * np.asarray(current_A, dtype=float)[:, None]])
+    design_bp = bandpass_columns(design, sample_rate_hz, passband_hz)
     target_bp = bandpass(magnitude, sample_rate_hz, passband_hz)
     kept = np.ones(b.shape[0], dtype=bool) if kept is None else np.asarray(kept, dtype=bool)
     rms = np.sqrt(np.mean(design_bp[kept] ** 2, axis=0))
     rms = np.where(rms > 0, rms, 1.0)
     scaled = solve_ridge(design_bp[kept] / rms, target_bp[kept], float(ridge) * int(kept.sum()))
-    values = dict(zip(term_labels(MAGNITUDE_TERMS), scaled / rms))
+    values = dict(zip(term_labels(MAGNITUDE_TERMS) + ["current_x", "current_y", "current_z"], scaled / rms))
     permanent = np.array([values[f"permanent_{a}"] for a in "xyz"])
     induced = np.zeros((3, 3))
     eddy = np.zeros((3, 3))
@@ -527,13 +588,14 @@ def magnitude_pass(
                 induced[i, j] = induced[j, i] = values.get(f"induced_{a}{c}", 0.0) / (1.0 if i == j else 2.0)
     induced -= np.trace(induced) / 3.0 * np.eye(3)
     eddy -= np.trace(eddy) / 3.0 * np.eye(3)
-    return permanent, induced, eddy
+    current = np.array([values.get(f"current_{a}", 0.0) for a in "xyz"])
+    return permanent, induced, eddy, current
 
 
-def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy) -> SensorCompensation:
-    """The sensor's model with a further vector field ``p + A B + E dB/dt`` (:func:`magnitude_pass`) taken out:
-    with ``B' = (I - A) B - p - E dB/dt``, ``y = W (I - A)^-1 B' + o + W (I - A)^-1 p + (E' + W (I - A)^-1 E)
-    dB/dt`` (the rates of ``B`` and ``B'`` equal to first order)."""
+def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy, current) -> SensorCompensation:
+    """The sensor's model with a further vector field ``p + A B + E dB/dt + k I`` (:func:`magnitude_pass`) taken
+    out: with ``B' = (I - A) B - p - E dB/dt - k I``, ``y = W (I - A)^-1 B' + o + W (I - A)^-1 p + (E' + W (I -
+    A)^-1 E) dB/dt + (k' + W (I - A)^-1 k) I`` (the rates of ``B`` and ``B'`` equal to first order)."""
     matrix = sensor.matrix @ np.linalg.inv(np.eye(3) - induced)
     return SensorCompensation(
         matrix=matrix,
@@ -541,4 +603,5 @@ def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy
         offset_nT=sensor.offset_nT + matrix @ permanent,
         residual_std_nT=sensor.residual_std_nT,
         conditioning=sensor.conditioning,
+        current_nT_per_A=sensor.current_nT_per_A + matrix @ current,
     )
