@@ -36,7 +36,12 @@ known) on its own direction cosines, without the two diagonal terms a constant `
 sensor. The second pass takes what the first's linearisation left (a percent's distortion leaves ``(0.01 B)^2 /
 2 B``, 2.5 nT at 50 000 nT). Then each sensor's total field is at its noise floor whatever the reference.
 
-A line is compensated (:meth:`CrossCompensation.compensate`) by inverting each sensor's model: first ``B_i = W_i^-1
+A platform current (a battery's, a motor's) is a field per ampere the Tolles-Lawson terms do not hold: given its
+series (``current_A``), each sensor's field per ampere ``k_i`` (nT/A) is one more column of its fit, and the
+magnitude passes fit the four's common one.
+
+A line is compensated (:meth:`CrossCompensation.compensate`) by taking out the current's field when there is one and
+inverting each sensor's model: first ``B_i = W_i^-1
 (y_i - o_i)``, the rate from the four's mean, then ``B_i = W_i^-1 (y_i - o_i - E'_i dB/dt)``. The compensated tensor
 is the tensor of the compensated sensors (eq. 1, :func:`magcal.core.conventions.tensor_components`).
 """
