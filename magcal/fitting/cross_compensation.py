@@ -344,7 +344,8 @@ class CrossCompensation:
 
     def text(self) -> str:
         """Per sensor: the matrix's departure from the identity (ppm), the eddy terms' largest (ms), the offset (nT),
-        the band-passed residual (nT) and the design's conditioning."""
+        the band-passed residual (nT); the current's field per ampere, the design's conditioning, the magnitude
+        passes."""
         where = "the attitude's Earth field" if self.reference == "attitude" else "the four sensors' mean field"
         lines = [f"cross compensation against {where}, {self.sample_rate_hz:g} Hz, band {self.passband_hz} Hz"]
         lines.append(f"{'sensor':>6} {'|W-I| max ppm':>14} {'|E| max ms':>11} {'offset nT':>26} {'residual nT':>20}")
@@ -354,9 +355,15 @@ class CrossCompensation:
             off = " ".join(f"{v:8.1f}" for v in s.offset_nT)
             res = " ".join(f"{v:6.3f}" for v in s.residual_std_nT)
             lines.append(f"{k:>6} {w:14.0f} {e:11.3f} {off:>26} {res:>20}")
+        if self.current:
+            lines.append(
+                "field per ampere of the current (nT/A): "
+                + "; ".join(" ".join(f"{v:.3f}" for v in s.current_nT_per_A) for s in self.sensors)
+            )
         cond = [s.conditioning.condition_number_scaled for s in self.sensors if s.conditioning is not None]
         if cond:
             lines.append(f"condition number of the band-passed design (columns scaled) {max(cond):.3g}")
+        lines.append(f"magnitude passes: {self.magnitude_passes}")
         return "\n".join(lines + self.notes)
 
 
