@@ -128,7 +128,7 @@ class Controller:
         self.progress: tuple[str, float | None] | None = None
         self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
-        #: The attitude-aided vector model (issue 29): its fit, reference and location (:mod:`.vectormodel`).
+        #: The attitude-aided vector model: its fit, reference and location (:mod:`.vectormodel`).
         self.vector = VectorModel(self)
         #: ``id`` of the history records whose held-out check runs in the background (shown ``pending...``).
         self.held_out_pending: set[int] = set()

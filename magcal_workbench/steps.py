@@ -21,7 +21,7 @@ from .parts import PagePart
 class Steps(PagePart):
     """The Calibrate, Model and Outliers tabs' actions.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

@@ -111,7 +111,7 @@ def test_every_module_is_in_a_layer():
 
 
 #: Modules whose engine imports may wait until a function runs: the command line's entry point, so that ``magcal
-#: --help`` starts in about the time of ``import magcal`` (issue 43) and ``magcal COMMAND`` imports only that command.
+#: --help`` starts in about the time of ``import magcal`` and ``magcal COMMAND`` imports only that command.
 LAZY_MODULES = ("magcal.cli",)
 
 

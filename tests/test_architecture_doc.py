@@ -1,5 +1,5 @@
 """docs/architecture.md lists every module of the engine and of the workbench, one table row each, and nothing that
-no longer exists (issue 43 item 8): a module added without its line, or removed with its line left, fails here."""
+no longer exists: a module added without its line, or removed with its line left, fails here."""
 
 from __future__ import annotations
 

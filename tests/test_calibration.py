@@ -245,7 +245,7 @@ def test_an_unknown_effect_names_the_file_and_the_option(drifting, tmp_path):
 
 @pytest.mark.parametrize("n_sensors", [1, 4])
 def test_correct_and_tensor_take_what_calibrate_takes(n_sensors):
-    """Arrays in, arrays out (issue 27): an array of readings (and t=, temp=) is accepted like a dataset; one
+    """Arrays in, arrays out: an array of readings (and t=, temp=) is accepted like a dataset; one
     sensor's (N, 3) array gives (N, 3) corrected vectors and (N,) total field."""
     import magcal
 

@@ -187,7 +187,7 @@ def test_a_coverage_warning_is_shown_once(tmp_path, capsys, method):
 
 @pytest.mark.parametrize("command", ["calibrate", "diagnose"])
 def test_json_carries_every_warning_of_the_run(tmp_path, capsys, command):
-    """Issue 10: the coverage warning (raised before the fit) is in --json, not only on stderr."""
+    """The coverage warning (raised before the fit) is in --json, not only on stderr."""
     from magcal.data.simulation import simulate
 
     ds = simulate("chi2017", n_samples=400, seed=3)
@@ -221,7 +221,7 @@ def test_every_subcommand_takes_effects_files():
 
 def test_the_command_line_imports_only_the_command_that_runs():
     """``magcal --help`` lists every subcommand from its table without importing one; ``magcal COMMAND`` imports
-    that command's module (issue 43: the command line starts in about the time of ``import magcal``)."""
+    that command's module (the command line starts in about the time of ``import magcal``)."""
     import subprocess
     import sys
 
@@ -252,7 +252,7 @@ def test_effects_lists_the_built_in_catalogue(capsys):
     assert [p["unit"] for p in entry["params"]] == ["nT"] * 3
 
 
-# -- data quality and raw counts (issue 10) --------------------------------------------------------------------------
+# -- data quality and raw counts --------------------------------------------------------------------------
 def _write_counts(path, lsb_nT, seed=3, n=300):
     """Integer counts of ``lsb_nT`` for the chi2017 array, no units line; returns the dataset in nT."""
     from magcal.data.simulation import simulate
@@ -354,7 +354,7 @@ def test_diagnose_reports_data_quality(tmp_path, capsys):
 
 
 def test_diagnose_shows_the_reference_given_in_its_header(tmp_path, capsys):
-    """Issue 28: `magcal diagnose FILE --reference 52000` says 52000 nT in its header, not "unknown (fitted)"."""
+    """`magcal diagnose FILE --reference 52000` says 52000 nT in its header, not "unknown (fitted)"."""
     from magcal.data.simulation import simulate_timeseries
 
     ds = simulate_timeseries("chi2017", n_samples=600, seed=2).replace(reference_total_nT=None)

@@ -1,4 +1,4 @@
-"""Functions of the engine stay short enough to read (issue 43, item 3): none longer than :data:`MAX_LINES` lines
+"""Functions of the engine stay short enough to read (item 3): none longer than :data:`MAX_LINES` lines
 of body (its docstring left out) unless a comment ``# long: <why>`` says why, directly above its ``def`` (or its
 first decorator) or on the first line of its body. Their cyclomatic complexity is held by ruff (C901,
 ``max-complexity`` in ruff.toml), which ``ruff check .`` runs in .ci/run."""

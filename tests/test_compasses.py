@@ -1,4 +1,4 @@
-"""Several compasses on one vehicle (issue 40, item 5): magcal.diagnosis.compasses against simulated truth, and the
+"""Several compasses on one vehicle (item 5): magcal.diagnosis.compasses against simulated truth, and the
 flight-log readers that bring the compasses in (each one's logged calibration undone, its logged field kept).
 
 Every case sets its truth: a simulated vehicle (magcal.data.vehicle) whose second compass sees a motor current

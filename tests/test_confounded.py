@@ -1,4 +1,4 @@
-"""A temperature term is not advised for new data when the record's temperature follows time (issue 28).
+"""A temperature term is not advised for new data when the record's temperature follows time.
 
 On such a record a temperature term fits a drift as well as a temperature effect, and a calibration carries its
 slope to temperatures the record never had: on a real bench recording (cl_imu_gnss, temperature r = 0.999 with

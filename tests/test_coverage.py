@@ -49,7 +49,7 @@ def test_sphere_centre_finds_the_offset():
 
 @pytest.mark.parametrize("offset_fraction", [0.0, 0.8, 1.5, 3.0])
 def test_a_hard_iron_offset_larger_than_the_field_keeps_the_fitted_centre(offset_fraction):
-    """Issue 10: MEMS parts carry offsets above the field; the whole sphere must still read as covered."""
+    """MEMS parts carry offsets above the field; the whole sphere must still read as covered."""
     rng = np.random.default_rng(5)
     u = Rotation.random(600, random_state=rng).apply([0.0, 0.0, 1.0])
     soft = np.array([[1.1, 0.05, 0.0], [0.05, 0.92, 0.03], [0.0, 0.03, 1.0]])  # MEMS-like soft iron
@@ -174,7 +174,7 @@ def _mems_readings(n, field_nT, gains, offset_fields, rng, noise_nT=300.0, tilt_
 
 
 def test_a_hard_iron_far_beyond_the_field_with_unequal_gains_is_full_coverage():
-    """Issue 10 (qmc_filtered): gains differing 2.2x put the readings 16 % off any sphere; the quick sphere was then
+    """qmc_filtered: gains differing 2.2x put the readings 16 % off any sphere; the quick sphere was then
     rejected and the origin used (hard iron 6x the field): '12 % of the sphere, gap 167 deg'. The ellipsoid fit is
     the centre and the shape: the whole sphere reads as covered and the magnitude is the field."""
     rng = np.random.default_rng(21)

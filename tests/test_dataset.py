@@ -46,7 +46,7 @@ def test_a_read_only_array_is_not_copied_and_a_subset_is_read_only():
 
 
 def test_an_array_changed_in_place_after_a_calibration_is_calibrated_afresh():
-    """Issue 27: readings quantized to 40 nT are calibrated; the same array is then filled in place with the
+    """Readings quantized to 40 nT are calibrated; the same array is then filled in place with the
     continuous readings and calibrated again. The second floor must be the continuous record's (~3 nT), not the
     first record's quantization floor kept by a cache keyed on the array's memory."""
     quantized, continuous = _quantized_and_continuous()

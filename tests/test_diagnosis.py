@@ -1,4 +1,4 @@
-"""Diagnosis: residual statistics, score tests, and the hidden-effect tests of issue 4.
+"""Diagnosis: residual statistics, score tests, and the hidden-effect tests (one hidden effect each, named).
 
 Hidden-effect tests hide one catalogue effect (or one outside it) in simulated data whose truth is known and
 check that the diagnosis ranks it first, reads ``missing_effect``, that adding it brings the total-field RMS to
@@ -73,7 +73,7 @@ def _check_found(d, name, sensor, level, sigma=SIGMA):
     assert best.refitted and best.delta_bic < -10
     if EFFECTS[name].transferable:  # an instrument term: advice for the calibration
         assert d.explained_by == [best.label] and d.record_holds == []
-    else:  # record-only (issue 28): named as what the record holds; advised only if the calibration it leaves
+    else:  # record-only: named as what the record holds; advised only if the calibration it leaves
         # for new data is better (the later stretch, scored as magcal apply scores it)
         assert d.record_holds == [best.label] and best.record_only
         assert d.explained_by == ([best.label] if best.transfers else [])
@@ -410,7 +410,7 @@ def test_four_sensor_diagnosis_is_fast():
     d = diagnose(ds)
     elapsed = time.perf_counter() - start
     assert d.verdict == "missing_effect"
-    assert elapsed < 10.0, elapsed  # issue 4: well under 10 s (typically 1-2 s including the base fit)
+    assert elapsed < 10.0, elapsed  # well under 10 s (typically 1-2 s including the base fit)
 
 
 # ------------------------------------------------------------------------------------------------------------

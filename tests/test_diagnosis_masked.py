@@ -1,4 +1,4 @@
-"""The diagnosis of a record with a time range excluded (issue 44: Diagnose after the workbench's Exclude range).
+"""The diagnosis of a record with a time range excluded (Diagnose after the workbench's Exclude range).
 
 An excluded stretch leaves the kept stamps a regular grid with a hole. The spectrum then needs the Lomb-Scargle
 periodogram, whose direct sums cost ``N x N/2`` products (minutes at 4 x 1e5 samples, against seconds for the

@@ -23,7 +23,7 @@ def _batched_times(n, mean_interval_s, rng):
 @pytest.mark.parametrize("stamps", ["batched", "poisson"])
 @pytest.mark.parametrize("freq_hz", [0.095, 1.3])
 def test_spectrum_on_irregular_stamps_finds_the_frequency(stamps, freq_hz):
-    """Issue 10 item 4 (sf_fullsphere): the study found 0.095 Hz by Lomb-Scargle where magcal said 0.334 Hz."""
+    """sf_fullsphere: the study found 0.095 Hz by Lomb-Scargle where magcal said 0.334 Hz."""
     rng = np.random.default_rng(int(freq_hz * 1000))
     n = 6000
     if stamps == "batched":
@@ -75,7 +75,7 @@ def _degree4(u):
 
 
 def test_ring_coverage_withholds_the_degrees_it_cannot_resolve():
-    """Issue 10 item 3 (mxl_test1): SH RMS per degree of 1.5-5.5 uT for a 300 nT residual on three great circles."""
+    """mxl_test1: SH RMS per degree of 1.5-5.5 uT for a 300 nT residual on three great circles."""
     rng = np.random.default_rng(3)
     u = _three_great_circles(1500)
     u = Rotation.from_rotvec([0.1, -0.2, 0.05]).apply(u)

@@ -1,4 +1,4 @@
-"""Every registered effect describes itself (issue 43 item 1): what the diagnosis, the report, the workbench and the
+"""Every registered effect describes itself: what the diagnosis, the report, the workbench and the
 docs read of an effect lives on the effect, and a built-in effect that lacks a part fails here."""
 
 from __future__ import annotations

@@ -461,7 +461,7 @@ def test_a_calibration_file_with_a_negative_record_length_is_refused(tmp_path):
 
 @pytest.mark.parametrize("name", ["nonlinearity_quadratic", "nonlinearity_cubic"])
 def test_the_report_quotes_a_nonlinearity_at_the_data_field_not_at_50_uT(name):
-    """Issue 10: the cubic term was quoted "at 50 uT" for a field of 8.9 uT."""
+    """The cubic term was quoted "at 50 uT" for a field of 8.9 uT."""
     from magcal import calibrate
     from magcal.calibration.report import text_report
 

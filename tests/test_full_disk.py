@@ -1,4 +1,4 @@
-"""No silent data loss on a full disk (issue 41, item 6): a recording that cannot be written stops with every
+"""No silent data loss on a full disk (item 6): a recording that cannot be written stops with every
 sample of its last flush on disk, says "the disk is full" and counts what was lost, with no traceback; the
 workbench shows a failed autosave or recording until it is resolved (not a message the next one overwrites),
 never with the server's paths, and Stop says how many samples were recorded and where.

@@ -967,7 +967,7 @@ def _template_case(template, lines):
 
 
 def test_live_templates():
-    """Random templates the page allows against random, filled-in and repeated lines (issue 41)."""
+    """Random templates the page allows against random, filled-in and repeated lines."""
 
     @FUZZ
     @given(st.data())

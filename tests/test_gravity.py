@@ -1,4 +1,4 @@
-"""The compass beside an accelerometer (issue 42): heading geometry, accelerometer columns and still samples, the
+"""The compass beside an accelerometer: heading geometry, accelerometer columns and still samples, the
 joint gravity fit against the simulated board's truth, held out, and the calibration file."""
 
 from __future__ import annotations

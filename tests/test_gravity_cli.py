@@ -1,5 +1,5 @@
 """``magcal calibrate --mode gravity``, ``magcal apply`` writing the heading, ``magcal export`` writing the mounting as
-the firmware's custom rotation and the C header with both calibrations (issue 42), on the simulated board."""
+the firmware's custom rotation and the C header with both calibrations, on the simulated board."""
 
 from __future__ import annotations
 

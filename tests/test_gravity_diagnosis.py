@@ -1,4 +1,4 @@
-"""The dip's residual as evidence after a gravity calibration (issue 42): the candidates that move it are found when
+"""The dip's residual as evidence after a gravity calibration: the candidates that move it are found when
 the simulated board hides them, and none is claimed when it hides nothing."""
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def test_without_times_the_timing_is_not_tested():
 
 def test_magcal_diagnose_gives_the_dip_evidence_of_a_board_with_an_accelerometer(tmp_path, capsys):
     """A record with accelerometer columns and no attitude: the total-field diagnosis and, beside it, the dip's
-    residual of the gravity fit with the candidates that move it (issue 42 item 5)."""
+    residual of the gravity fit with the candidates that move it."""
     import json
 
     from magcal.cli import main

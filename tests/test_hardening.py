@@ -1,4 +1,4 @@
-"""Hardening (issue 31, the engine's side): readers that end, one rule for bad values, bounds, messages instead of
+"""Hardening (the engine's side): readers that end, one rule for bad values, bounds, messages instead of
 tracebacks, outputs checked before the work and never left half-written.
 
 Each test builds its hostile input itself (a crafted log, a NaN time stamp, a URL...) and checks the exact outcome:

@@ -1,4 +1,4 @@
-"""Hardening II (issue 41), the files' side: bombs refused before they allocate, bad values never written.
+"""Hardening II, the files' side: bombs refused before they allocate, bad values never written.
 
 Each test crafts its hostile input itself, small: a ULog whose formats nest (``t0:t1[2] a;`` ... flattening into 2^N
 fields inside pyulog), a Parquet file whose footer declares millions of constant rows, a CSV cell whose padding

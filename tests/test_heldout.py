@@ -1,4 +1,4 @@
-"""Issue 10, items 3-5: the noise floor honest, record-only terms never carried silently, and the diagnose-add-refit
+"""The noise floor honest, record-only terms never carried silently, and the diagnose-add-refit
 loop judged on held-out data (simulated truth throughout)."""
 
 import json
@@ -296,7 +296,7 @@ def test_a_calibration_saved_by_the_cli_never_carries_a_record_only_term_silentl
     assert "record-only" not in capsys.readouterr().err  # its own record: applied silently
 
 
-# --- issue 28: messages that match the data -------------------------------------------------------------------------
+# --- messages that match the data -------------------------------------------------------------------------
 def test_a_field_outside_the_earths_range_with_good_coverage_is_a_units_question():
     """Readings scaled by 2 (a logger's LSB off by two): the fitted field is twice the Earth's; the directions cover
     the sphere, so the diagnosis asks about the units and still finds the hidden temperature bias."""
@@ -351,7 +351,7 @@ def test_two_cycles_per_record_or_fewer_is_a_trend_not_a_period(cycles, trend):
 def test_a_bias_step_is_found_where_the_readings_jump_not_inside_a_still_head():
     """A record whose first 30 s are still, with a bias step (80 nT, across the field) at the moment the turning
     starts: the total field cannot place the step inside the still head, and the readings do not jump there; the
-    step is placed where they do (before issue 28: 11.9 s, 18 s early)."""
+    step is placed where they do (a placement inside the ramp was 11.9 s, 18 s early)."""
     truth = chi2017_truth(1)
     ds = simulate_timeseries(truth, n_samples=1500, noise_nT=SIGMA, seed=4)
     y = ds.readings_nT.copy()
@@ -367,7 +367,7 @@ def test_a_bias_step_is_found_where_the_readings_jump_not_inside_a_still_head():
 
 def test_hysteresis_reversals_come_from_the_fitted_field_not_the_noise():
     """A 4 nT loop at 3 nT noise sampled at 100 Hz: the noise no longer turns the play operator back and forth, so
-    the term brings the residuals to the floor and is advised (before issue 28: 1.04x the floor, unexplained)."""
+    the term brings the residuals to the floor and is advised (without it: 1.04x the floor, unexplained)."""
     ds = simulate_timeseries(
         chi2017_truth(1),
         n_samples=10_000,

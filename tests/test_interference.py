@@ -45,7 +45,7 @@ def test_diagnose_finds_the_interference_and_adding_it_reaches_the_floor(frequen
     """Before the term existed this read `unexplained` (a periodic component no catalogue term removed)."""
     d = diagnose(_hum(8.0, frequency_hz, sensor, n_sensors))
     label = "periodic_interference" if sensor is None else f"periodic_interference:{sensor + 1}"
-    assert d.verdict == "missing_effect" and d.record_holds == [label], d.summary  # record-only (issue 28)
+    assert d.verdict == "missing_effect" and d.record_holds == [label], d.summary  # record-only
     assert "switch it off or move away from it while recording" in d.summary
     best = d.candidates[0]
     assert best.label == label and best.refitted and best.delta_bic < -100 and best.holds

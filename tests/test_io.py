@@ -448,7 +448,7 @@ def test_structured_fuzz_gives_a_dataset_or_a_clean_error(tmp_path, header, rows
 
 @pytest.mark.parametrize("units, factor, warned", [("nT", 1.0, False), ("nT", 1e-3, True)])
 def test_units_check_looks_past_a_hard_iron_offset(units, factor, warned):
-    """Issue 10: an offset larger than the field (MEMS on a platform) is not a unit error, and uT is still caught."""
+    """An offset larger than the field (MEMS on a platform) is not a unit error, and uT is still caught."""
     import warnings
 
     from magcal.data.simulation import simulate

@@ -1,4 +1,4 @@
-"""Nothing left after a kill (issue 41, item 5): a ``magcal diagnose --workers N`` or a Dask ``magcal apply`` killed
+"""Nothing left after a kill (item 5): a ``magcal diagnose --workers N`` or a Dask ``magcal apply`` killed
 with SIGKILL leaves no process running, and what it could not remove (a shared-memory segment, a hidden work
 folder) is removed by the next run, which names it.
 

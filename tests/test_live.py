@@ -395,7 +395,7 @@ def test_live_session_records_what_viewers_see(tmp_path):
 
 def test_a_failing_viewer_is_a_note_and_the_recording_goes_on(tmp_path):
     """A listener that raises on every chunk neither stops the session nor reaches Python's warnings: the session
-    keeps a bounded list of notes (issue 43: no warnings.warn inside the engine)."""
+    keeps a bounded list of notes (no warnings.warn inside the engine)."""
 
     def broken(chunk):
         raise ValueError("the viewer is gone")

@@ -1,4 +1,4 @@
-"""Live text sources under hostile input (issue 41): line templates that match in linear time, reads that end by
+"""Live text sources under hostile input: line templates that match in linear time, reads that end by
 their deadline, a stream without line ends counted as the one over-long line it is, and ``magcal record
 --seconds`` that ends whatever arrives.
 

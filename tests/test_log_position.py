@@ -1,4 +1,4 @@
-"""Flight logs carry the position, the date and the throttle a vector calibration needs (issue 29, found on real logs).
+"""Flight logs carry the position, the date and the throttle a vector calibration needs (found on real logs).
 
 Real ArduPilot logs of 2014-2015 (erlerobot/logs) showed three gaps, reproduced here on logs written with known truth:
 

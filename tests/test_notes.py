@@ -1,4 +1,4 @@
-"""Notes are values (issue 27, item 3): every step returns what it has to say, and only the API and the command line
+"""Notes are values (item 3): every step returns what it has to say, and only the API and the command line
 raise or print it, so jobs running at once on threads each get exactly their own notes.
 
 The records: one sensor turned through a cap of directions only (the field within a cone about its x axis), so the

@@ -1,4 +1,4 @@
-"""Notes travel one way (issue 43, item 4): a step of the engine returns what it has to say in its result's
+"""Notes travel one way (item 4): a step of the engine returns what it has to say in its result's
 ``notes``; only :mod:`magcal.core.notes` turns notes into Python warnings, called by the public functions and the
 command line. The engine's source holds no ``warnings.warn`` elsewhere and no ``*_with_notes`` twin.
 """
@@ -66,7 +66,7 @@ def test_no_with_notes_twins():
     assert twins == {}, f"one function per step, its notes in its result: {twins}"
 
 
-#: The engine's functions that take notes as a parameter, each with why (issue 43 item 4: a step returns its notes
+#: The engine's functions that take notes as a parameter, each with why (a step returns its notes
 #: in its result; none takes a list to fill for its caller, nor warns when none is given). Keyed
 #: ``module:function`` (module relative to magcal/, without ``.py``).
 _LOGS_READ = (

@@ -1,4 +1,4 @@
-"""Parquet in and out (issue 13): the data CSV's columns and metadata in Parquet, DataFrames, apply to Parquet."""
+"""Parquet in and out: the data CSV's columns and metadata in Parquet, DataFrames, apply to Parquet."""
 
 from __future__ import annotations
 

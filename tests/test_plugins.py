@@ -1,4 +1,4 @@
-"""The user's own effect (issue 10, item 7): a file or an entry point adds an Effect that then works like a built-in
+"""The user's own effect (item 7): a file or an entry point adds an Effect that then works like a built-in
 one in calibrate, diagnose, apply, the JSON and the command line; broken files give one clear message."""
 
 import importlib.metadata

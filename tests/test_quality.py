@@ -290,7 +290,7 @@ def _batched_stamps(n, rate_Hz, batch, host_period_s, rng):
 
 
 def test_batched_stamps_are_named_with_the_mean_rate():
-    """Issue 10 item 2 (sf_fullsphere): 'sample rate 304 Hz, jitter 57 %, 2744 gaps' for 77 Hz arriving in batches."""
+    """sf_fullsphere: 'sample rate 304 Hz, jitter 57 %, 2744 gaps' for 77 Hz arriving in batches."""
     ds = timeseries(n=3000, seed=8)
     rng = np.random.default_rng(8)
     t = _batched_stamps(ds.n_samples, 77.0, 4, 4 / 77.0, rng)
@@ -319,7 +319,7 @@ def test_regular_stamps_with_a_few_gaps_are_not_batches():
 
 @pytest.mark.parametrize("coarse, shift_every, forward", [(5, 8, True), (5, 40, True), (5, 8, False), (4, 15, False)])
 def test_quantization_step_on_a_grid_that_shifts(coarse, shift_every, forward):
-    """Issue 10 item 3 (QMC5883L z): integer counts on a 5-count grid that jumps by 2-3 counts every ~8 levels
+    """QMC5883L z: integer counts on a 5-count grid that jumps by 2-3 counts every ~8 levels
     (mean spacing 5.3 counts). The common step is 1 count, but the readings carry a 5-count quantization.
     ``forward``: the jumps add to the spacing (5 -> 7, 8, as in the QMC); else the grid's origin moves with
     the value, which also puts levels 2-3 counts apart."""

@@ -1,4 +1,4 @@
-"""magcal.data.io.read_csv_preview: a large CSV's quick look, lines spread through the file (issue 44)."""
+"""magcal.data.io.read_csv_preview: a large CSV's quick look, lines spread through the file."""
 
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ def test_a_value_the_caller_refuses_is_computed_again():
 
 
 def test_a_writable_array_is_never_kept():
-    """Its values may change in place (issue 27: a stale noise floor came from such an array): computed each time."""
+    """Its values may change in place (a stale noise floor came from such an array): computed each time."""
     cache, calls = ReadingsCache(4), []
     y = np.zeros((5, 3))
     compute = lambda: calls.append(1) or float(y.sum())

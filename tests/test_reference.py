@@ -83,7 +83,7 @@ def test_reference_far_from_the_readings_warns(ds):
 
 
 def test_a_hard_iron_offset_is_not_a_reference_mismatch(ds):
-    """Issue 10: the comparison uses the field the readings imply (about their centre), not the raw magnitude."""
+    """The comparison uses the field the readings imply (about their centre), not the raw magnitude."""
     shifted = ds.replace(readings_nT=ds.readings_nT + np.array([70_000.0, -40_000.0, 20_000.0]))
     assert ref.resolve_reference(shifted, "50000").notes == []
     assert _said(ref.resolve_reference(shifted, "20000"), "differs from the reference")
@@ -146,7 +146,7 @@ def test_cli_arguments_round_trip(ds):
 
 
 def test_reference_check_goes_through_the_fitted_shape():
-    """Issue 10: with a hard iron 6x the field and gains differing 2.2x (QMC5883L) the field the readings imply is
+    """With a hard iron 6x the field and gains differing 2.2x (QMC5883L) the field the readings imply is
     the fitted one; the raw magnitude (or a sphere about the origin) read '+166 % above IGRF'."""
     from scipy.spatial.transform import Rotation
 

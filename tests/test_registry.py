@@ -1,4 +1,4 @@
-"""One registry rule (issue 27): a name in the catalogue is never replaced by accident, and every effect -- built-in,
+"""One registry rule: a name in the catalogue is never replaced by accident, and every effect -- built-in,
 from a file or from an entry point -- passes the same checks (magcal.model.plugins.validate_effect)."""
 
 from __future__ import annotations

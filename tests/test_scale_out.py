@@ -1,4 +1,4 @@
-"""The diagnosis on every core (issue 30): its independent fits in worker processes sharing the readings through one
+"""The diagnosis on every core: its independent fits in worker processes sharing the readings through one
 shared-memory segment, or on a Dask cluster, give the same candidates, scores and verdict as one after the other;
 the segment is gone after a run, after a worker's error and after a worker's crash."""
 

@@ -1,4 +1,4 @@
-"""Survey correction with Dask (issue 13): partitions corrected in parallel give the single-process numbers."""
+"""Survey correction with Dask: partitions corrected in parallel give the single-process numbers."""
 
 from __future__ import annotations
 
@@ -375,7 +375,7 @@ def test_two_partitions_read_every_line_end_as_the_whole_file_or_refuse_alike(tm
 
 def test_a_partitions_reader_notes_come_back_in_the_summary(surveys, tmp_path):
     """A task's reader notes (a bad row dropped with ``drop_bad``) come back in the summary's notes, naming the
-    file's line: a worker's warnings would go nowhere the user looks (issue 43 item 4)."""
+    file's line: a worker's warnings would go nowhere the user looks."""
     from magcal.core.errors import DataWarning
     from magcal.output.survey import apply_partitioned
 

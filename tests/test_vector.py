@@ -1,4 +1,4 @@
-"""Vector calibration with attitude (issue 29): frames, the reference vector, the fit against a simulated vehicle's
+"""Vector calibration with attitude: frames, the reference vector, the fit against a simulated vehicle's
 truth, the calibration file, apply's world components and the firmware export."""
 
 from __future__ import annotations

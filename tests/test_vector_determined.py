@@ -1,4 +1,4 @@
-"""The vector fit says when a record does not determine the calibration (issue 29, found on real logs).
+"""The vector fit says when a record does not determine the calibration (found on real logs).
 
 On a real ArduPilot log of a model aircraft carried level (benchmarks/real/vector_logs.py: roll and pitch within
 +-15 deg, an EKF attitude 3-5 deg off), the vector fit returned biases of 100-170 uT with standard deviations of

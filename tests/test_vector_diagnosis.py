@@ -1,4 +1,4 @@
-"""The loop on a vehicle (issue 40): the vector diagnosis names the effect hidden in a simulated flight, and the
+"""The loop on a vehicle: the vector diagnosis names the effect hidden in a simulated flight, and the
 calibration with it carries to the vehicle's next flight as well as the true calibration does."""
 
 from __future__ import annotations

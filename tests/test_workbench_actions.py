@@ -1,4 +1,4 @@
-"""The page's handlers are registered where they are written (issue 43 item 5): each is marked ``@action`` in its
+"""The page's handlers are registered where they are written: each is marked ``@action`` in its
 part, the workbench gathers them by name (no ``dir()`` scan), two parts offering one name stop the start, every
 ``on.NAME`` a widget calls is registered and every registered handler is called by some widget.
 

@@ -129,7 +129,7 @@ def test_background_threads_do_not_touch_the_panels(name):
 
 
 #: How many times the workbench's parts reach through the whole workbench (``wb.`` or ``self.wb.``) rather than a
-#: narrow interface handed to them (issue 43 item 5). A ratchet: lower it when a part is given what it needs; it
+#: narrow interface handed to them. A ratchet: lower it when a part is given what it needs; it
 #: may not grow. 235 on 2026-11-29 (about 190 when the issue was filed); 132 after the scene control (view.py 63 -> 0),
 #: the steps, the evidence plots and the gravity page were handed what they use; then 108 (the vehicle view),
 #: 85 (the export section), 61 (the live control), 45 (the lessons desk),

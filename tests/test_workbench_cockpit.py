@@ -1,4 +1,4 @@
-"""The cockpit (issue 32): the compact table, |B| against time with its region editor, the error histogram, the
+"""The cockpit: the compact table, |B| against time with its region editor, the error histogram, the
 tilt ring and the motion marks, the layout (no cross for one sensor, the camera framing the canvas left of the
 panel), and a live session's tabs.
 

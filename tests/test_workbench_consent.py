@@ -1,4 +1,4 @@
-"""Effects files from the page (issue 41): the page runs an effects file only when the user named it on the command
+"""Effects files from the page: the page runs an effects file only when the user named it on the command
 line (``--effects-file``) or confirmed it in the terminal the workbench runs in; anything else is refused with a
 message in the page, and its code never runs. The terminal is a real pseudo-terminal: the question is read from
 its other end and answered there, as a user would type.
@@ -239,7 +239,7 @@ def test_an_empty_path_is_a_message():
 
 
 def test_a_pipe_or_a_folder_is_refused_before_anything_opens_it(bench, clean_catalogue, tmp_path, tty):
-    """A FIFO named as an effects file would block the reader for ever (issue 41, item 9): the page refuses it, a
+    """A FIFO named as an effects file would block the reader for ever (item 9): the page refuses it, a
     folder and a missing file at once, without asking the terminal."""
     fifo = tmp_path / "pipe.py"
     os.mkfifo(fifo)

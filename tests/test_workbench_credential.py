@@ -1,4 +1,4 @@
-"""The page's credential in a real browser (issue 41, items 1 and 10): nothing the browser sends to another server of
+"""The page's credential in a real browser (items 1 and 10): nothing the browser sends to another server of
 this machine lets that server open the workbench's websocket or fetch its page; the address bar loses the token
 after the first load, and a reload still connects.
 

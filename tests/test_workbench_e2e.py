@@ -2,7 +2,7 @@
 
 The test starts the workbench itself on 127.0.0.1 (port 0), opens the page, waits for the connection, runs a
 fit from a click and checks the shown RMS changes, shift-drags a box over the scene and checks the rejected
-count changes, and keeps a screenshot under ``test-artifacts/``. Issue 14: a CSV whose header or file name holds
+count changes, and keeps a screenshot under ``test-artifacts/``. A CSV whose header or file name holds
 ``<script>``, ``<img onerror>`` or ``<svg onload>`` is uploaded through the page and runs nothing (window flags stay
 unset, no such element appears), and a page served from another origin cannot open the workbench's websocket.
 Scenes are kept small (software WebGL is slow) and every wait is bounded. Without chromium or playwright the tests
@@ -184,7 +184,7 @@ def small_workbench(tmp_path):
 
 @pytest.mark.parametrize("where", ["header", "file name"])
 def test_a_hostile_csv_header_or_file_name_runs_nothing(browser, small_workbench, where):
-    """Issue 14: a CSV someone sent you must not run their script in your page, whether the reader echoes its
+    """A CSV someone sent you must not run their script in your page, whether the reader echoes its
     header in an error or the page shows its name."""
     page = _open(browser, small_workbench)
     assert _no_flag(page)
@@ -207,7 +207,7 @@ def test_a_hostile_csv_header_or_file_name_runs_nothing(browser, small_workbench
 
 
 def test_a_page_from_another_origin_cannot_open_the_websocket(browser, small_workbench):
-    """Issue 14: a web page the user visits (here served from another port of this machine) tries to open the
+    """A web page the user visits (here served from another port of this machine) tries to open the
     workbench's websocket: the browser sends the page's Origin, the handshake is refused, no message arrives."""
     import http.server
     import threading
@@ -251,7 +251,7 @@ def test_a_page_from_another_origin_cannot_open_the_websocket(browser, small_wor
 
 
 def test_the_page_opens_from_the_printed_url_only(browser, small_workbench):
-    """Issue 31: the address without the token shows the refusal and connects nothing; the printed address (its
+    """The address without the token shows the refusal and connects nothing; the printed address (its
     token then carried by the page's script to its websocket) connects and shows the session."""
     wb = small_workbench
     page = browser.new_page()

@@ -1,4 +1,4 @@
-"""The controller's events are one enum (issue 43 item 5): every kind sent is a member, every member is sent, every
+"""The controller's events are one enum: every kind sent is a member, every member is sent, every
 kind a handler names is a member, and a kind nobody knows is refused where it is sent.
 
 Read from the workbench's source with :mod:`ast`, so a handler of a kind that is never sent (the dead ``"view"``

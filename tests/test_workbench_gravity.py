@@ -1,4 +1,4 @@
-"""The gravity model in the workbench (issue 42): the gravity fit beside the total-field fit on the opened data, its
+"""The gravity model in the workbench: the gravity fit beside the total-field fit on the opened data, its
 table, the dip over time and against the tilt, the compass rose, the accelerometer's cloud, and the lesson "the
 compass that points wrong when tilted" judged on the gravity fit; one Chromium test drives the page."""
 
@@ -140,7 +140,7 @@ def test_the_compass_lesson_in_the_page(browser, bench, tmp_path):
 
 
 def test_the_page_judges_the_compass_lesson_on_the_gravity_fit(bench):
-    """The Lessons tab opens the lesson's data, and Check reads the gravity page's fit (issue 43 item 5: the lessons
+    """The Lessons tab opens the lesson's data, and Check reads the gravity page's fit (the lessons
     desk is handed the gravity page, not the workbench)."""
     wb = bench(store=False)
     assert not wb.gravity.btn_fit.visible  # the opening data have no accelerometer

@@ -1,4 +1,4 @@
-"""Only the workbench's own page may connect (issue 14, item 2): the websocket handshake checks Origin and Host.
+"""Only the workbench's own page may connect (item 2): the websocket handshake checks Origin and Host.
 
 A raw websocket client (the ``websockets`` package, as a hostile page's browser would send it) speaks to a real
 server: from another origin, without an origin, or through a rebound host name it is refused with HTTP 403 before

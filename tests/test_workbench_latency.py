@@ -1,4 +1,4 @@
-"""The workbench answers at once (issue 44), driven through the page's handles on a real (browserless) viser
+"""The workbench answers at once, driven through the page's handles on a real (browserless) viser
 server: the fit's result is on the page before its held-out check, which shows ``pending...`` until it comes; a
 newer fit makes an older fit's held-out check stale (dropped unseen); a refit sends the corrected clouds, not the
 raw ones again; the |B| plot's envelope keeps every stretch's extremes; ``--timing`` logs named spans.
@@ -115,7 +115,7 @@ def test_pending_parts_of_an_old_generation_do_not_run():
 
 
 def test_the_status_with_the_rms_is_on_the_page_before_the_tabs_are_built(bench, monkeypatch):
-    """The launch shows the Total-field RMS first (issue 44): the status line is sent with its text when it is
+    """The launch shows the Total-field RMS first: the status line is sent with its text when it is
     made, before the tabs' widgets, the scene and the figures, which follow."""
     from magcal_workbench import panels as pn
 
@@ -265,7 +265,7 @@ def test_a_selection_no_refit_follows_draws_the_figures_at_once(bench):
 
 def test_the_scene_is_lit_as_a_plot_without_shadows_or_an_environment_map():
     """viser redraws the scene every second; in a software renderer the shadow map and the environment map's
-    lighting made a page at rest take about a core (issue 44). The scene has neither, and an ambient light in
+    lighting made a page at rest take about a core. The scene has neither, and an ambient light in
     their place."""
     from magcal_workbench import scene as scn
 

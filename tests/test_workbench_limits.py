@@ -1,4 +1,4 @@
-"""The workbench against a careless user, a hostile client and large files (issue 14, items 2, 4, 5 and 6).
+"""The workbench against a careless user, a hostile client and large files (4, 5 and 6).
 
 Values a browser sends are checked against what the server offers; state changes from many threads all count;
 a job's history row says what it fitted even when the selection changes meanwhile, and the refit asked for
@@ -318,7 +318,7 @@ def test_an_upload_over_the_limit_is_dropped_when_it_starts(bench):
 
 
 def test_an_upload_that_sends_more_than_it_declared_is_dropped_as_it_passes_the_limit(bench):
-    """Issue 31: a crafted client (a local websocket client with the token) declares 1 KB and sends 64 KB parts:
+    """A crafted client (a local websocket client with the token) declares 1 KB and sends 64 KB parts:
     the upload is dropped as soon as the bytes received pass the 0.2 MB limit; viser never holds more than the
     limit of it, the parts that follow are ignored, nothing is opened."""
     import asyncio
@@ -394,7 +394,7 @@ def test_sessions_are_listed_with_sizes_deletable_and_bounded(bench, tmp_path):
 
 
 def test_the_sessions_bound_keeps_the_live_recording_and_stop_opens_it(bench, tmp_path, capsys):
-    """Issue 31: a live stream, then an upload past --max-sessions-mb: the older sessions go (and the terminal
+    """A live stream, then an upload past --max-sessions-mb: the older sessions go (and the terminal
     says which), the recordings folder and the recording being written stay, and Stop opens the recording."""
     import time
 

@@ -1,4 +1,4 @@
-"""The workbench's live view (issue 11): a simulated instrument streamed into a real server and a real page.
+"""The workbench's live view: a simulated instrument streamed into a real server and a real page.
 
 The source plays a lesson recording (a temperature effect hidden in it) faster than real time, so that Stop,
 Diagnose and Add-and-refit have something to find. Every wait is bounded; only loopback addresses are used.
@@ -99,7 +99,7 @@ def test_live_view_grows_fits_records_every_sample_and_opens_the_recording(bench
 
 
 def test_four_quick_starts_while_a_slow_source_opens_leave_one_recording(bench, monkeypatch):
-    """Issue 31: Start pressed four times while the source takes half a second to open: one live session, one
+    """Start pressed four times while the source takes half a second to open: one live session, one
     recording, which Stop ends; the other presses say a session is running and leave no file."""
     import threading
 
@@ -234,7 +234,7 @@ def test_a_port_is_bounded(tmp_path, port):
     ],
 )
 def test_a_port_or_a_count_with_a_fraction_is_refused_not_truncated(tmp_path, label, options):
-    """Issue 41: ``14551.5`` opened port 14551; it is refused with one line saying what to give."""
+    """``14551.5`` opened port 14551; it is refused with one line saying what to give."""
     menu, _ = _menu(tmp_path)
     with pytest.raises(magcal.MagcalError, match=r"is not a whole number; give \d+ \.\.\. \d+") as err:
         menu.url(label, **options)
@@ -254,7 +254,7 @@ def test_the_start_button_refuses_a_port_with_a_fraction(bench):
 
 
 def test_hostile_lines_on_a_live_source_never_hold_up_the_page_s_server(bench):
-    """Issue 41: a UDP text source started from the page with the skips the page allows; any local process sends it
+    """A UDP text source started from the page with the skips the page allows; any local process sends it
     lines that the old patterns took seconds (600 bytes: minutes) to refuse. The server answers HTTP at once all
     along, and the lines are counted as bad."""
     import http.client

@@ -1,4 +1,4 @@
-"""Residual maps on the sphere in the workbench (issue 15): the residual pattern, a candidate's, the last change.
+"""Residual maps on the sphere in the workbench: the residual pattern, a candidate's, the last change.
 
 The bent-response lesson hides a quadratic nonlinearity in sensor 3: its residual surface is the strongest, the
 surface of the true candidate matches it, and after Add-and-refit the change surface holds what was taken away.

@@ -1,4 +1,4 @@
-"""Nothing the page downloads names a place on the server (issue 41, item 10): every file of *Export all* (its
+"""Nothing the page downloads names a place on the server (item 10): every file of *Export all* (its
 ``session.json`` included), every other download and every message that goes with them are searched for the data's
 folder, the effects file's folder and the working directory. Real workbenches on loopback (no browser)."""
 

@@ -1,5 +1,5 @@
-"""The workbench shows what issue 10 adds to the engine, driven through the page's handles on a real (browserless)
-viser server, on simulated data whose truth the tests set:
+"""The workbench shows the data-quality findings, noise floors and structure the engine reads from real records,
+driven through the page's handles on a real (browserless) viser server, on simulated data whose truth the tests set:
 
 - the Quality tab lists :func:`magcal.checks.quality.assess` findings, warnings marked, each with what it does to the fit;
 - the noise behind the floors says how it was found, and a noise the user gives sets the floor and is saved with

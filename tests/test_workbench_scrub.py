@@ -1,4 +1,4 @@
-"""The time scrubber and the layout (issue 15): a window of the recording drawn on the sphere, replayed.
+"""The time scrubber and the layout: a window of the recording drawn on the sphere, replayed.
 
 Driven through the panels' own widgets on a real server (their callbacks are the page's), and in Chromium through
 the page.

@@ -1,4 +1,4 @@
-"""Untrusted text and files in the workbench (issue 14, items 1 and 3).
+"""Untrusted text and files in the workbench (items 1 and 3).
 
 viser renders markdown with raw HTML: every text the workbench did not write (uploaded file names and contents,
 session fields, a user's effects) must reach the page escaped and cut to a sane length. A damaged session file
@@ -176,7 +176,7 @@ def test_a_3_megabyte_header_is_cut(bench):
     assert len(header) > 890_000
     message = _upload(wb, "wide.csv", (header + "\n" + ",".join("1" * 1000) + "\n").encode())
     assert "wide.csv" in message and len(message) < 3000 and (ELLIPSIS in message or "..." in message)
-    assert "<c0>" in _no_markup(message)  # the columns quoted, each cut short (issue 41: at most 40 characters)
+    assert "<c0>" in _no_markup(message)  # the columns quoted, each cut short (at most 40 characters)
 
 
 def test_session_fields_reach_the_page_escaped(bench, tmp_path):

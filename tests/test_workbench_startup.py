@@ -1,4 +1,4 @@
-"""The launcher starts fast (issue 44): the page is served and its address printed before the engine's heavy
+"""The launcher starts fast: the page is served and its address printed before the engine's heavy
 parts are imported; a CSV's preview is drawn as the raw clouds before the whole file is read, and the
 workbench then takes over the same server, token and scene.
 

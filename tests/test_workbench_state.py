@@ -785,7 +785,7 @@ def _csv_bytes(tmp_path, wb):
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# the user's own effects (issue 10, item 7): loaded from a file, in the Model tab, Diagnose and the session
+# the user's own effects (item 7): loaded from a file, in the Model tab, Diagnose and the session
 # ---------------------------------------------------------------------------------------------------------------
 EXAMPLE = Path(__file__).with_name("user_effects_example.py")
 PUMP = "pump_interference"
@@ -868,7 +868,7 @@ def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_
     from magcal.model import plugins
     from magcal.model.terms import EFFECTS
 
-    wb = bench(pump_data, effects_files=[str(EXAMPLE)])  # the page loads a file of the command line (issue 41)
+    wb = bench(pump_data, effects_files=[str(EXAMPLE)])  # the page loads a file of the command line
     assert PUMP not in wb.panels.effect_boxes
     assert "runs its Python code" in wb.panels.effects_warning.content and not wb.panels.btn_load_effects.disabled
     wb.panels.effects_path.value = str(EXAMPLE)
@@ -885,7 +885,7 @@ def test_the_session_loads_its_effects_files_again(bench, clean_catalogue, pump_
     plugins.unregister(PUMP)  # as in a new process: the effect is not loaded
     plugins._USER_FILES.clear()
     again = bench(pump_data, terminal=Yes())  # the user confirms the file in the terminal
-    # reopening runs no code (issue 31): the page says the session names the file and offers to load it
+    # reopening runs no code: the page says the session names the file and offers to load it
     assert PUMP not in EFFECTS and again.ctrl.calibration is None
     assert "effects\\_example.py" in again.ctrl.message and "not loaded" in again.ctrl.message
     assert again.panels.btn_session_effects.visible and "runs with your rights" in again.panels.session_effects.content
@@ -909,7 +909,7 @@ def test_a_missing_effects_file_does_not_stop_the_session(bench, clean_catalogue
 
 
 def test_opening_a_session_runs_none_of_its_effects_files(bench, clean_catalogue, tmp_path):
-    """Issue 31: a session (one someone sent you) whose effects file would write a marker: opening it, reopening it
+    """A session (one someone sent you) whose effects file would write a marker: opening it, reopening it
     from the Files tab, writes nothing; the marker appears only when the user presses Load."""
     marker = tmp_path / "marker"
     evil = tmp_path / "evil.py"
@@ -930,7 +930,7 @@ def test_opening_a_session_runs_none_of_its_effects_files(bench, clean_catalogue
     _click(again, again.panels.btn_session_effects)
     assert not marker.exists() and "allowed only when" in again.ctrl.message
     again.local = True
-    _click(again, again.panels.btn_session_effects)  # neither named on the command line nor confirmed (issue 41)
+    _click(again, again.panels.btn_session_effects)  # neither named on the command line nor confirmed
     assert not marker.exists() and "evil.py not loaded" in again.ctrl.message
     again.effects_gate.terminal = Yes()
     _click(again, again.panels.btn_session_effects)

@@ -1,6 +1,6 @@
-"""The page's token (issue 31, item 1): a process of this machine that sends the page's Origin is still refused
+"""The page's token (item 1): a process of this machine that sends the page's Origin is still refused
 without the secret printed at start; with it (in the URL's query: the page's address, and the address the page's
-script gives its websocket) it is the page. No cookie carries it (issue 41, item 1). Beyond loopback, Host must be
+script gives its websocket) it is the page. No cookie carries it (item 1). Beyond loopback, Host must be
 one of this machine's names. Real servers on 127.0.0.1, port 0."""
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def test_a_local_process_with_the_right_origin_needs_the_token(bench):
 
 
 def test_the_page_needs_the_token_and_its_load_sets_no_cookie(bench):
-    """Issue 41, item 1: a cookie belongs to the host, not the port -- every other server of 127.0.0.1 the browser
+    """A cookie belongs to the host, not the port -- every other server of 127.0.0.1 the browser
     visits would receive it. The page's answer sets none, and no cookie opens the page or the websocket."""
     wb = bench(store=False)
     status, cookie, body = _get(wb.port, "/")

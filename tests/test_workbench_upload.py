@@ -1,4 +1,4 @@
-"""Opening files in the page (issue 11): column mapping, units and LSB for the upload, flight-controller logs.
+"""Opening files in the page: column mapping, units and LSB for the upload, flight-controller logs.
 
 A file with the user's own column names is refused with the columns it holds and what to set; after setting
 Columns (and Units) and re-reading the same upload -- no new upload -- it opens and fits to the simulated floor.

@@ -1,4 +1,4 @@
-"""The vector model in the workbench (issue 29 items 8-9, issue 32 item 3): the attitude-aided fit beside the
+"""The vector model in the workbench: the attitude-aided fit beside the
 total-field fit, the reference from a location typed in the page, the vehicle view's geometry and nodes, and the
 lesson judged on the vector fit.
 
@@ -464,7 +464,7 @@ def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
 
 
 def test_a_live_session_fits_with_the_location_s_reference(bench, tmp_path):
-    """Issue 32 item 3: the location typed in the page gives the live fits their reference field."""
+    """The location typed in the page gives the live fits their reference field."""
     wb = bench()
     wb.ctrl.vector.set_location(45.0, 7.6, 300.0, "2024-06-01")
     wanted = wb.ctrl.state.reference_nT

@@ -1,4 +1,4 @@
-"""The loop on a vehicle in the workbench (issue 40 item 7): Diagnose and Add on the vector model of a record with
+"""The loop on a vehicle in the workbench: Diagnose and Add on the vector model of a record with
 attitude and a field vector, the RMS history in world components, the evidence plots against the candidate's
 channel, the vehicle view's residual after Add, and the lesson of a drone whose compass sees its battery current.
 

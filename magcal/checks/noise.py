@@ -616,7 +616,7 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
     smoothed = [x for x in smoothing if np.isfinite(x) and x < SMOOTHED_RATIO]
     if smoothed:
         # smoothed or filtered readings: their differences are correlated, so neither the differences nor a still
-        # stretch measure the sensor's noise; no floor is claimed (issue 28)
+        # stretch measure the sensor's noise; no floor is claimed
         n = np.isfinite(r).sum(axis=1)
         per = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n - n_params / ns, 1))
         note = (

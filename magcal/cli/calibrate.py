@@ -391,7 +391,7 @@ def run_vector(args, ds, vref, notes) -> int:
             )
         except CalibrationError as exc:
             notes.append(f"held-out validation not done: {exc}")
-    compasses = compass_report(ds, vref, result, notes)  # several compasses on one vehicle (issue 40, item 5)
+    compasses = compass_report(ds, vref, result, notes)  # several compasses on one vehicle
     sections = {"compass_consistency": compasses} if compasses is not None else {}
     return report_fit(args, result, validation, notes, sections)
 
@@ -436,8 +436,8 @@ def run(args) -> int:
     if reference.kind == "fitted":
         ds = ds.replace(ref_total_nT=None)
     print(f"magcal calibrate: reference: {reference.text}", file=sys.stderr)
-    quality = assess(ds)  # data quality, read before the fit (issue 10)
-    coverage_notes = calibration_input_checks(ds)  # coverage (issue 6)
+    quality = assess(ds)  # data quality, read before the fit
+    coverage_notes = calibration_input_checks(ds)  # coverage
     if coverage_notes and attitude_source(ds) is not None:
         coverage_notes.append(
             "the total-field fit is undetermined along the directions this record lacks (a platform that turns in "

@@ -20,7 +20,7 @@ fit did not see; ``--no-validate`` skips it), ``quality`` (every finding of
 :func:`magcal.checks.quality.assess`; its warnings are also in ``warnings``) and more. The table is followed by a "Data
 quality" section with the notable findings.
 
-Vector mode (issue 40). A record with the attitude and the field vector (``ref_n, ref_e, ref_d`` columns,
+Vector mode. A record with the attitude and the field vector (``ref_n, ref_e, ref_d`` columns,
 ``--reference-vector``, ``--reference igrf`` at ``--lat/--lon`` or along ``lat, lon, alt_m``) is diagnosed on the
 vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): the candidates are judged on the world north/east/down
 residuals and ``|B|``, fitted on the earlier part and applied to the later part (and to every ``--also`` flight of
@@ -227,7 +227,7 @@ def run(args) -> int:
         )
     dip = _dip_evidence(args, ds, notes) if mode == "gravity" else None
     ds, reference = _scalar_reference(args, ds)
-    quality = assess(ds)  # data quality, read before the fit (issue 10)
+    quality = assess(ds)  # data quality, read before the fit
     notes += calibration_input_checks(ds, reference)  # coverage and reference, as calibrate
     try:
         result = calibrate(ds, effects=names, robust=args.robust, reference_total_nT=reference, noise_nT=args.noise)
@@ -269,7 +269,7 @@ def run(args) -> int:
 
 
 def _dip_evidence(args, ds, notes):
-    """A record with an accelerometer and no attitude (issue 42): the gravity fit's dip residual as evidence
+    """A record with an accelerometer and no attitude: the gravity fit's dip residual as evidence
     (:func:`magcal.diagnosis.gravity.dip_evidence`), beside the total-field diagnosis; None (with a note) when the
     gravity fit cannot be made."""
     try:
@@ -322,7 +322,7 @@ def run_vector(args, ds, vref, notes) -> int:
     except CalibrationError as exc:
         raise MagcalError(named_error(args.data, exc)) from None
     notes += [note.text for note in unique(diagnosis.notes)]
-    # several compasses on one vehicle (issue 40, item 5): their consistency after the diagnosed (base) vector fit
+    # several compasses on one vehicle: their consistency after the diagnosed (base) vector fit
     fitted = diagnosis.result
     compasses = compass_report(
         ds, vref=vref if fitted is None else fitted.reference, fit=fitted, notes=notes, args=args

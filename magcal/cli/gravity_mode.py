@@ -1,4 +1,4 @@
-"""``magcal calibrate --mode gravity``: a magnetometer beside an accelerometer (issue 42, docs/gravity.md).
+"""``magcal calibrate --mode gravity``: a magnetometer beside an accelerometer (docs/gravity.md).
 
 Example::
 

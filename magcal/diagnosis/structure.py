@@ -66,7 +66,7 @@ class Structure:
         }
 
 
-#: A spectral line at this many cycles per record or fewer is a trend, not a period (issue 28).
+#: A spectral line at this many cycles per record or fewer is a trend, not a period.
 MIN_PERIOD_CYCLES = 2.0
 
 

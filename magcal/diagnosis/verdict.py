@@ -183,7 +183,7 @@ class Diagnosis:
         return self.candidates[0] if self.candidates else None
 
     def to_dict(self) -> dict:
-        """The JSON document of ``magcal diagnose --json`` (issue 4), best candidate first."""
+        """The JSON document of ``magcal diagnose --json``, best candidate first."""
         return {
             "effects": list(self.effects),
             "rms_nT": _num(self.rms_nT),
@@ -1327,7 +1327,7 @@ def _unexplained_summary(ctx: DiagnosisContext) -> str:
 
 
 def _explain(ctx: DiagnosisContext) -> Diagnosis:
-    """Stage 5, explain: what this record holds against what is advice for a calibration (issue 28), the
+    """Stage 5, explain: what this record holds against what is advice for a calibration, the
     warnings, the evidence, and the :class:`Diagnosis`."""
     chosen, fit0, kept = ctx.chosen, ctx.fit0, ctx.kept
     # a temperature term on a record whose temperature follows time is never advice, judged held out or not (the

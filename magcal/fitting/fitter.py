@@ -1237,7 +1237,7 @@ class RefineContext:
 
 
 # long: one run of the solver and the FitResult's figures (noise, covariance, outliers, AIC/BIC) from the same
-# residuals; left whole while another change reworks how notes travel through the fitter (issue 43)
+# residuals
 def _fit_once(
     dataset,
     model,

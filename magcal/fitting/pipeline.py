@@ -821,7 +821,7 @@ def _base_correct(calibration, dataset):
 
 
 def _store_summary(result: CalibrationResult) -> None:
-    """Write the figures into the calibration's summaries, so the saved JSON carries them (issue 2, item 9)."""
+    """Write the figures into the calibration's summaries, so the saved JSON carries them."""
     cal = result.calibration
     cal.summary = dict(cal.summary or {})
     cal.summary.update(

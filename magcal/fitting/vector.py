@@ -1,4 +1,4 @@
-"""Vector calibration with attitude: platforms that turn in yaw but cannot tumble (issue 29).
+"""Vector calibration with attitude: platforms that turn in yaw but cannot tumble.
 
 A vehicle, an aircraft or a ship sees the Earth's field over a cone of directions, not a sphere: a total-field fit
 is not determined there. With the body's attitude ``q`` (body -> north-east-down, :mod:`magcal.data.attitude`)

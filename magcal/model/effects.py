@@ -111,7 +111,7 @@ def smoothed_readings(values, time_s, span_s=REVERSAL_SMOOTHING_S):
 
     The hysteresis term takes its reversals (the play operator's turning points) from this fitted field, not
     from the noisy readings: at 100 Hz the noise of a few nT turns the play operator of a few-nT loop back and
-    forth while an axis changes slowly (issue 28).
+    forth while an axis changes slowly.
     """
     values = np.asarray(values, dtype=float)
     if time_s is None or len(time_s) < 7:
@@ -902,7 +902,7 @@ def _at_the_jump(cost, lo, hi, readings_nT):
     """The step's first sample ``k`` in ``[lo, hi]`` from the profile ``cost[k]`` (nT^2) of a step before sample
     ``k``: its minimum, unless that falls inside a still stretch where the readings do not jump -- a step there
     would show as a jump of the readings, so it cannot be -- and then the edge of the still stretch (the first
-    sample where the readings jump, before or after it) with the lower cost (issue 28: a step was placed inside a
+    sample where the readings jump, before or after it) with the lower cost (a step was placed inside a
     still head, seconds before the visible jump)."""
     window = cost[lo : hi + 1]
     k = lo + int(np.argmin(window))
@@ -1025,7 +1025,7 @@ class BiasStep(CatalogueEffect):
         return f"a step of {_axes_text(values)} nT{where}"
 
     def kept_raw_level(self, values):
-        """The bias *after* the step is kept for new data: the sensor stays permed (issue 28: measured on six real
+        """The bias *after* the step is kept for new data: the sensor stays permed (measured on six real
         recordings, fitted on the first half and applied to the second, the level after the step transfers best;
         the level before it raised the held-out error up to 4.7x; benchmarks/notes/real.md, "kept level")."""
         return np.asarray(values, dtype=float).reshape(3)
