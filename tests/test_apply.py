@@ -467,7 +467,7 @@ def test_a_csv_survey_of_another_length_is_another_record_without_a_parse(
         warnings.simplefilter("always")
         choice, note = ap.record_choice(cal, survey)  # magcal apply's decision, every path
     assert not caught  # a value, said by the caller; the reader's notes are the correcting pass's
-    dropped, _ = cal.record_decision(None, None, ap.VECTOR_STAGES, fingerprint=whole)
+    dropped, _ = cal.record_decision(None, None, ap.CORRECTION_STAGES, fingerprint=whole)
     assert choice == ("drop" if dropped else "apply")  # the decision of the whole file's hash
     if same:
         assert (choice, note) == ("apply", None) and sum(hashed) == rows

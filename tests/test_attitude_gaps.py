@@ -253,9 +253,9 @@ def test_without_attitude_the_site_gradient_predicts_nothing_rather_than_a_wrong
     clean, gappy, gap, truth = site
     effect = EFFECTS["site_gradient"]()
     for ctx_clean, ctx in zip(contexts(clean, clean.baseline_m), contexts(gappy, gappy.baseline_m)):
-        basis = effect.vector_basis(None, ctx)
+        basis = effect.array_basis(None, ctx)
         assert np.isnan(basis[gap]).all()
-        assert np.array_equal(basis[~gap], effect.vector_basis(None, ctx_clean)[~gap])
+        assert np.array_equal(basis[~gap], effect.array_basis(None, ctx_clean)[~gap])
         assert np.array_equal(ctx.attitude_present, ~gap)
 
 

@@ -40,7 +40,7 @@ N = 1500
 
 LEVELS = fx.DETECTION_LEVELS  # barely detectable, moderate, strong (x default magnitude)
 SINGLE = [n for n in LEVELS if EFFECTS[n].min_sensors == 1]
-VECTOR = ("sensor_timing_skew",)  # invisible in the total field: judged on the consistency residuals
+CONSISTENCY_ONLY = ("sensor_timing_skew",)  # invisible in the total field: judged on the consistency residuals
 #: The catalogue without its periodic interference term: hidden interference is then an effect outside it.
 OUTSIDE = [n for n in EFFECTS if n != "periodic_interference"]
 
@@ -52,8 +52,8 @@ def _hidden(name, level, n_sensors=1, sensor=None, seed=1, n=N):
     return simulate_timeseries(chi2017_truth(n_sensors), n_samples=n, noise_nT=SIGMA, seed=seed, perturbations=[pert])
 
 
-def _vector_rms(fit):
-    v = fit.vector_residuals_nT
+def _consistency_rms(fit):
+    v = fit.consistency_residuals_nT
     return np.sqrt(np.sum(v**2, axis=(1, 2)) / (2 * v.shape[1]))
 
 
@@ -84,8 +84,8 @@ def _check_found(d, name, sensor, level, sigma=SIGMA):
     affected = list(range(ns)) if sensor is None else [sensor]
     if name == "sensor_timing_skew" and sensor is None:
         affected = list(range(1, ns))
-    after = _vector_rms(refit)[affected] if name in VECTOR else refit.rms_per_sensor_nT[affected]
-    before = _vector_rms(d.result)[affected] if name in VECTOR else d.rms_per_sensor_nT[affected]
+    after = _consistency_rms(refit)[affected] if name in CONSISTENCY_ONLY else refit.rms_per_sensor_nT[affected]
+    before = _consistency_rms(d.result)[affected] if name in CONSISTENCY_ONLY else d.rms_per_sensor_nT[affected]
     assert np.all(after <= 1.1 * floor), (after, floor)  # adding it: within 10 % of the floor
     assert refit.rms_nT <= 1.1 * floor
     if level == 0:
@@ -473,7 +473,7 @@ def test_held_out_file_with_a_hidden_effect(tmp_path, case):
     affected = list(range(n_sensors)) if sensor is None else [sensor]
     if effect == "sensor_timing_skew":
         affected = [s for s in affected if s > 0]
-    before = _vector_rms(d.result)[affected] if effect in VECTOR else d.rms_per_sensor_nT[affected]
+    before = _consistency_rms(d.result)[affected] if effect in CONSISTENCY_ONLY else d.rms_per_sensor_nT[affected]
     assert np.all((before > 1.2 * floor) & (before < 3.0 * floor)), before / floor
     _check_found(d, effect, sensor, 1, sigma=heldout_sim.NOISE_NT)
 

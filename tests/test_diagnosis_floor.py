@@ -155,7 +155,7 @@ def test_the_inter_sensor_test_compares_with_the_rms_of_the_sensors_noise():
     noise = NoiseEstimate(np.sqrt(5.0), np.array([1.0, 3.0]), "static", 0.01)
     st: dict = {}
     found = _consistency_tests(0, v, np.zeros(n, bool), noise, False, 1e-4, st)
-    assert found == [] and st["vector_variance_ratio"] == pytest.approx(1.0, abs=0.05)
+    assert found == [] and st["consistency_variance_ratio"] == pytest.approx(1.0, abs=0.05)
 
 
 def _candidate(effect, predicted, record_only):

@@ -80,8 +80,8 @@ def test_declarations_are_consistent(name):
     if cls.stage == "raw":
         basis = effect.raw_basis(pert.readings_nT[-1], ctx)
         assert basis.shape == (pert.n_samples, 3, q)
-    elif cls.stage == "vector":
-        basis = effect.vector_basis(pert.readings_nT[-1], ctx)
+    elif cls.stage == "array":
+        basis = effect.array_basis(pert.readings_nT[-1], ctx)
         assert basis.shape == (pert.n_samples, 3, q)
     else:
         basis = effect.reference_basis(ctx)
@@ -125,7 +125,7 @@ def test_raw_basis_undoes_the_physical_perturbation(name, sensor):
 
 
 @pytest.mark.parametrize("name", ["sensor_timing_skew", "site_gradient"])
-def test_vector_basis_undoes_the_physical_perturbation(name):
+def test_array_basis_undoes_the_physical_perturbation(name):
     truth, clean, pert, effect = _pair(name, n_sensors=4, magnitude=None)
     effect.configure(pert, None)
     ctxs = contexts(pert, pert.baseline_m)
@@ -137,7 +137,7 @@ def test_vector_basis_undoes_the_physical_perturbation(name):
             assert np.allclose(b, b_clean)
             continue
         theta = effect.true_params(None, s)
-        corrected = b + effect.vector_basis(b, ctxs[s]) @ theta
+        corrected = b + effect.array_basis(b, ctxs[s]) @ theta
         size = np.sqrt(np.mean((b - b_clean) ** 2))
         error = _rms_error(corrected - b_clean, b_clean)
         assert size > 0.5 and error < 0.02 * size, (s, size, error)

@@ -420,7 +420,7 @@ def test_derivative_projection_is_the_dense_derivative_on_a_direction(n_sensors)
         np.testing.assert_allclose(d.project(w[rows], rows=rows), d.project(w)[rows], rtol=1e-14, atol=0)
 
 
-@pytest.mark.parametrize("name", [n for n, cls in EFFECTS_BY_NAME.items() if cls.stage in ("raw", "vector")])
+@pytest.mark.parametrize("name", [n for n, cls in EFFECTS_BY_NAME.items() if cls.stage in ("raw", "array")])
 def test_projection_of_a_single_axis_basis_is_the_general_contraction(monkeypatch, name):
     """Bases whose parameters each move one axis (most raw-stage terms) are projected by products; every
     catalogue term's projection equals the general contraction's, and the shortcut is taken where it applies."""

@@ -334,11 +334,15 @@ BROKEN = {
     "bad_name": (HEADER + GOOD_CLASS.format(name="Pump-2", stage="raw"), ["cannot be typed", "lower-case"]),
     "bad_stage": (
         HEADER + GOOD_CLASS.format(name="offset", stage="field"),
-        ["stage 'field' is not one of raw, vector, reference"],
+        ["stage 'field' is not one of raw, array, reference"],
     ),
     "wrong_basis_method": (
+        HEADER + GOOD_CLASS.format(name="offset", stage="array"),
+        ["stage is 'array' but the class does not define array_basis()"],
+    ),
+    "wrong_basis_method_former_stage_name": (
         HEADER + GOOD_CLASS.format(name="offset", stage="vector"),
-        ["stage is 'vector' but the class does not define vector_basis()"],
+        ["stage is 'array' but the class does not define array_basis()"],
     ),
     "not_registered": (
         HEADER.replace("import Effect, register", "import Effect")
@@ -540,7 +544,11 @@ def test_entry_points_are_loaded_once_and_a_broken_one_is_skipped(monkeypatch, t
     assert code == 0 and f"{NAME}  (entry point pump = pump_effects_pkg:PumpInterference (pump-effects))" in out
 
 
-def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
+@pytest.mark.parametrize(
+    "stage, method",
+    [("array", "array_basis"), ("vector", "vector_basis")],  # the array stage's former names are read as it
+)
+def test_array_and_reference_stage_effects_load_and_fit(tmp_path, stage, method):
     path = write(
         tmp_path,
         "stages.py",
@@ -549,14 +557,14 @@ def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
     @register
     @dataclass
     class Lever(Effect):
-        """A field along the array's z axis growing with time (a vector-stage term)."""
+        """A field along the array's z axis growing with time (an array-stage term)."""
         name: ClassVar[str] = "lever_field"
-        stage: ClassVar[str] = "vector"
+        stage: ClassVar[str] = "STAGE"
         channels: ClassVar[tuple] = ("time",)
         per_sensor: ClassVar[bool] = False
         def param_names(self):
             return ["kz_nT_per_h"]
-        def vector_basis(self, field_nT, ctx):
+        def METHOD(self, field_nT, ctx):
             basis = np.zeros((len(field_nT), 3, 1))
             basis[:, 2, 0] = (ctx.time_s - ctx.time_s.mean()) / 3600.0
             return basis
@@ -575,7 +583,9 @@ def test_vector_and_reference_stage_effects_load_and_fit(tmp_path):
             return ((ctx.time_s - ctx.time_s.mean()) / 3600.0)[:, None]
     ''',
     )
+    path.write_text(path.read_text().replace('"STAGE"', f'"{stage}"').replace("METHOD", method))
     assert plugins.load_effects_file(path) == ["lever_field", "field_ramp"]
+    assert EFFECTS["lever_field"].stage == "array"
     ds = magcal.simulate_timeseries("chi2017", n_samples=300, seed=2)
     result = magcal.calibrate(ds, effects=["lever_field", "field_ramp"])
     assert result.fit.rms_nT < 1.05 * ds.noise_nT

@@ -112,7 +112,7 @@ def test_a_calibration_without_covariance_refuses_error_bars(fitted, tmp_path):
 
 @pytest.fixture(scope="module")
 def fitted_with_effects():
-    """Four sensors along a time series with a temperature bias (raw stage) and a sensor timing skew (vector
+    """Four sensors along a time series with a temperature bias (raw stage) and a sensor timing skew (array
     stage) hidden and fitted; new data from the same instrument."""
     from magcal.data.simulation import chi2017_truth, simulate_timeseries
     from magcal.model import perturbations

@@ -56,8 +56,8 @@ from scipy.special import comb, erf
 from magcal.checks.quality import quantization_step, stale_mask, static_scatter_nT, static_stretches, static_window
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
+from magcal.core.rows import row_norm
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import row_norm
 from magcal.geometry.shape import field_shape
 
 #: Sources of :class:`NoiseEstimate`, in the order they are tried.

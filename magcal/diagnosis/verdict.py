@@ -39,7 +39,7 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import row_runs
 from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
-from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
+from magcal.diagnosis._fitted import _consistency_rms, _fit_of, _floor, _kept, _reference_override, _sensor_directions
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
 from magcal.diagnosis.evidence import (
     _effect_extra,
@@ -1021,7 +1021,7 @@ def _score(ctx: DiagnosisContext) -> None:
     handed to the pool to be worked out while the refits run."""
     kept, fit0, pool, directions = ctx.kept, ctx.fit0, ctx.pool, ctx.directions
     ctx.cands, ctx.proj, _ = _score_round(ctx.dataset, kept, fit0, ctx.options.candidates, pool=pool)
-    ctx.coupled = fit0.vector_residuals_nT is not None
+    ctx.coupled = fit0.consistency_residuals_nT is not None
     ctx.ordered = ordered = is_smooth_sequence(kept)
     ctx.r0 = r0 = fit0.residuals_nT[:, fit0.mask]
     ctx.futures["sh"] = [
@@ -1295,9 +1295,7 @@ def _missing_summary(ctx: DiagnosisContext) -> str:
         f"{fit0.rms_nT:.3g} to {ctx.current.rms_nT:.3g} nT (noise {ctx.noise_final.sigma_nT:.3g} nT)"
     )
     if ctx.coupled:
-        summary += (
-            f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to {_vector_rms(ctx.current):.3g} nT"
-        )
+        summary += f" and the inter-sensor consistency RMS from {_consistency_rms(fit0):.3g} to {_consistency_rms(ctx.current):.3g} nT"
     return summary + _held_out_words(ctx.chosen)
 
 

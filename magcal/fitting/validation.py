@@ -37,7 +37,7 @@ import numpy as np
 from magcal.calibration.calibration import is_transferable
 from magcal.core import notes as _notes
 from magcal.core.errors import MagcalError
-from magcal.core.vectors import unit_rows
+from magcal.core.rows import unit_rows
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit
 from magcal.fitting.pipeline import _build_model, calibrate
 from magcal.model.terms import Model

@@ -612,7 +612,7 @@ def vector_model(dataset, effects=(), terms=None) -> Model:
         if e.stage != "raw":
             raise CalibrationError(
                 f"{e.label}: a vector fit takes effects that act on a sensor's raw reading; this one acts on the "
-                f"{'array frame' if e.stage == 'vector' else 'reference total field'}: fit it in scalar mode"
+                f"{'array frame' if e.stage == 'array' else 'reference total field'}: fit it in scalar mode"
             )
         if not e.per_sensor and dataset.n_sensors > 1:
             raise CalibrationError(f"{e.label}: shared by the sensors of an array; a vector fit fits each sensor alone")

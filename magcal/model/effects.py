@@ -4,7 +4,7 @@ Every effect here is an :class:`magcal.model.terms.Effect` registered in :data:`
 Each one says
 
 * what it adds to the readings (its *basis*, the Jacobian of the correction with respect to its parameters, in
-  the stage of :mod:`magcal.model.terms`: ``raw`` acts on one sensor's raw reading in its own axes, ``vector`` on the
+  the stage of :mod:`magcal.model.terms`: ``raw`` acts on one sensor's raw reading in its own axes, ``array`` on the
   corrected vector in the array frame, ``reference`` on the expected total field);
 * its parameters, with units chosen so that the numbers read naturally (nT/K, ppm/K, nT/h, ms, nT/m...), and
   :meth:`~magcal.model.terms.Effect.param_scale`, the size of each parameter that moves the readings by about 1 nT;
@@ -39,8 +39,8 @@ from scipy.special import eval_legendre
 
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
+from magcal.core.rows import row_norm
 from magcal.core.stats import savgol, savgol_derivative
-from magcal.core.vectors import row_norm
 from magcal.data.attitude import turn_rate_dps
 from magcal.geometry.shape import field_shape
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
@@ -1318,7 +1318,7 @@ class SensorTimingSkew(CatalogueEffect):
 
     name: ClassVar[str] = "sensor_timing_skew"
     signature: ClassVar[str] = "inter-sensor differences ~ dt dB/dt"
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("time",)
     min_sensors: ClassVar[int] = 2
     description: ClassVar[str] = "sensors 2-4 sampled late relative to sensor 1, B_i(t - dt_i) [ms]"
@@ -1340,7 +1340,7 @@ class SensorTimingSkew(CatalogueEffect):
     def param_scale(self):
         return np.array([0.1])
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         rate = time_derivative(field_nT, ctx.time_s)
         return 1e-3 * rate[:, :, None]
 
@@ -1925,7 +1925,7 @@ class SiteGradient(CatalogueEffect):
     when_recording: ClassVar[str] = (
         "the field is not uniform over the path of the array: turn it in place, away from iron, or record its attitude and position"
     )
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("attitude",)
     per_sensor: ClassVar[bool] = False
     min_sensors: ClassVar[int] = 2
@@ -1942,7 +1942,7 @@ class SiteGradient(CatalogueEffect):
     def param_scale(self):
         return np.full(5, 4.0)
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         def compute():
             att = ctx.attitude
             world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
@@ -2228,7 +2228,7 @@ class SensorJitter(CatalogueEffect):
 
     name: ClassVar[str] = "sensor_jitter"
     signature: ClassVar[str] = "inter-sensor residual variance grows with the turn rate squared"
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("time",)
     min_sensors: ClassVar[int] = 2
     variance_term: ClassVar[bool] = True
@@ -2256,7 +2256,7 @@ class SensorJitter(CatalogueEffect):
     def param_bounds(self):
         return np.zeros(1), np.full(1, np.inf)
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         acceleration = time_derivative(time_derivative(field_nT, ctx.time_s), ctx.time_s)
         return 0.5e-6 * acceleration[:, :, None]
 

@@ -1,4 +1,4 @@
-"""Row-wise vector operations (magcal.core.vectors) against numpy's general forms."""
+"""Row-wise vector operations (magcal.core.rows) against numpy's general forms."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
+from magcal.core.rows import basis_times, cross_rows, row_norm, unit_rows
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 

@@ -1,4 +1,4 @@
-"""Operations on arrays of 3-vectors (field vectors in nT, directions), shaped ``(..., 3)``.
+"""Row-wise operations on arrays of 3-vectors (field vectors in nT, directions), shaped ``(..., 3)``.
 
 numpy's general forms reduce over a length-3 last axis slowly (``np.linalg.norm(v, axis=-1)`` is about four
 times slower than adding the three squared components); the fitter and the checks call these on every sample.
