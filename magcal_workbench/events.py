@@ -4,7 +4,7 @@ The controller (:class:`magcal_workbench.controller.Controller`) calls its liste
 (``Controller._emit``: an unknown kind is refused there, not lost); the workbench routes it to the scene, the panels,
 the vehicle view and the gravity page (``Workbench._changed``), each of which redraws only for the kinds it names.
 A :class:`~enum.StrEnum`: a member equals its text, so ``"result" in kinds`` still holds.
-``tests/test_workbench_events.py`` checks that every kind sent is a member, every member is sent, and every kind a
+``tests/workbench/test_workbench_events.py`` checks that every kind sent is a member, every member is sent, and every kind a
 handler names is a member.
 """
 

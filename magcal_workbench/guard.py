@@ -36,7 +36,7 @@ to :func:`websockets.asyncio.server.serve` inside its server thread. :func:`guar
 check in front of it (:mod:`magcal_workbench.viser_adapter`) by wrapping ``serve`` *only while the viser server
 starts* (:class:`viser.ViserServer` returns once the port is bound), and refuses to start when the wrapper was not
 used -- so a viser that changes how it serves fails loudly instead of running unprotected
-(``tests/test_workbench_guard.py`` checks both).
+(``tests/workbench/test_workbench_guard.py`` checks both).
 """
 
 from __future__ import annotations

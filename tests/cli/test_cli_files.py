@@ -6,13 +6,13 @@ import sys
 
 import numpy as np
 import pytest
-from test_io import BAD_FILES
 
 from magcal.calibration.calibration import Calibration, SensorCalibration
 from magcal.cli import main
 from magcal.data import io
 from magcal.data import simulation as sim
 from magcal.fitting import platform as pf
+from tests.data.test_io import BAD_FILES
 
 
 @pytest.fixture(scope="module")

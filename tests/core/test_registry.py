@@ -80,7 +80,7 @@ def test_an_effects_file_may_not_take_a_built_in_name(clean_catalogue, tmp_path)
 def test_an_effects_file_loaded_again_replaces_its_own_effects(clean_catalogue):
     from pathlib import Path
 
-    example = Path(__file__).with_name("user_effects_example.py")
+    example = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
     first = plugins.load_effects_file(example)
     classes = {n: EFFECTS[n] for n in first}
     again = plugins.load_effects_file(example)

@@ -410,7 +410,7 @@ def test_the_workbench_opens_a_file_with_quaternion_gaps_and_runs_the_vector_fit
 def test_the_vector_fit_button_on_a_recording_with_quaternion_gaps_in_the_page(browser, bench, tmp_path):
     """In Chromium: the vector fit button on a file whose quaternions have gaps gives the fit and says how many
     samples it left out."""
-    from test_workbench_e2e import _dismiss_toasts, _open
+    from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     ds, gap = _gappy_vehicle()
     wb = bench(ds=ds, max_points=300)
@@ -469,12 +469,11 @@ def test_a_recording_no_attitude_reached_gets_the_total_field_fit_unless_vector_
 def test_a_log_s_samples_far_from_any_attitude_message_have_none(tmp_path, kind):
     """Before the first attitude message, after the last and in a long gap the attitude was held or interpolated
     across whatever the vehicle did meanwhile; now those samples have none (NaN), a note says which, and short gaps
-    are still interpolated. Known truth: the logs of tests/test_logs.py (one attitude per magnetometer sample)."""
+    are still interpolated. Known truth: the logs of tests/data/test_logs.py (one attitude per magnetometer sample)."""
     pytest.importorskip("pymavlink")
     pytest.importorskip("pyulog")
-    from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
-
     from magcal.data.logs import LOG_ATTITUDE_HOLD_S, read_log
+    from tests.data.test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
 
     # samples every 20 ms (DataFlash) or 10 ms... the attitude messages of samples `drop` are left out
     if kind == "dataflash":

@@ -5,7 +5,6 @@ import re
 import warnings
 from io import BytesIO, StringIO
 
-import line_ends
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -15,6 +14,7 @@ from magcal.core.errors import DataWarning
 from magcal.data import io
 from magcal.data.dataset import Dataset, DatasetError
 from magcal.data.simulation import simulate, simulate_timeseries
+from tests.helpers import line_ends
 
 
 def write(tmp_path, content, name="d.csv"):

@@ -200,7 +200,7 @@ def mutated(seeds):
 @pytest.fixture(scope="module")
 def seeds(tmp_path_factory):
     """Valid files of each kind, built here with known content."""
-    from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
+    from tests.data.test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
 
     d = tmp_path_factory.mktemp("fuzz_seeds")
     ds = magcal.simulate_timeseries("chi2017", n_samples=60, seed=1, rate_hz=10.0)

@@ -18,13 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_logs import (  # the writers of known-truth logs (tests/ is on the path, as for every test module)
-    MAG_FIELDS,
-    ardupilot_case,
-    px4_case,
-    write_dataflash,
-    write_ulog,
-)
 
 import magcal
 from magcal.calibration.calibration import Calibration
@@ -45,6 +38,13 @@ from magcal.data.live import (
 )
 from magcal.data.logs import read_log
 from magcal.fitting import platform as pf
+from tests.data.test_logs import (  # the writers of known-truth logs (the tests are one package)
+    MAG_FIELDS,
+    ardupilot_case,
+    px4_case,
+    write_dataflash,
+    write_ulog,
+)
 
 pytest.importorskip("pymavlink")
 pytest.importorskip("pyulog")
@@ -591,7 +591,7 @@ def test_every_effects_file_help_says_it_runs_code(command, capsys):
 
 
 def test_the_user_effects_page_says_it_runs_code():
-    page = (Path(__file__).parent.parent / "docs" / "user-effects.md").read_text()
+    page = (Path(__file__).resolve().parents[2] / "docs" / "user-effects.md").read_text()
     head = page[: page.index("## 1.")]
     assert "**An effects file is Python code, and it runs with your rights.**" in head
     assert "never one that came with" in head

@@ -18,7 +18,6 @@ import warnings
 
 import numpy as np
 import pytest
-from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
 
 import magcal
 from magcal.calibration.calibration import Calibration, SensorCalibration
@@ -26,6 +25,7 @@ from magcal.core.errors import MagcalError
 from magcal.data import io, logs
 from magcal.data.dataset import DatasetError
 from magcal.data.logs import read_log
+from tests.data.test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
 
 pytest.importorskip("pymavlink")
 pytest.importorskip("pyulog")

@@ -27,7 +27,7 @@ from magcal.data.live import LineParser, LiveError, LiveSession, open_source
 pytest.importorskip("serial")
 pytest.importorskip("pymavlink")
 
-from test_live import collect, free_udp_port
+from tests.data.test_live import collect, free_udp_port
 
 SKETCH_COLUMNS = "t_ms,ax,ay,az,gx,gy,gz,mx,my,mz,roll,pitch,yaw"
 
@@ -671,7 +671,7 @@ def test_mavlink_samples_held_for_their_attitude_are_drained_not_lost():
 )
 def test_the_examples_of_docs_formats_read_as_documented(line, options):
     """The table of docs/formats.md's live section, line by line (each reads 21.5, -3.2, 40.1 uT)."""
-    text = open(os.path.join(os.path.dirname(__file__), "..", "docs", "formats.md"), encoding="utf-8").read()
+    text = open(os.path.join(os.path.dirname(__file__), "..", "..", "docs", "formats.md"), encoding="utf-8").read()
     assert line.replace("|", "\\|") in text
     _, readings, _, _ = LineParser(units="uT", **options).parse_sample(line)
     assert np.allclose(readings, [[21_500, -3_200, 40_100]])

@@ -27,7 +27,7 @@ import magcal
 from magcal.data.lineformats import MAX_TEMPLATE_CHARS, LineTemplate
 from magcal.data.live import MAX_LINE_BYTES, LineParser, LiveError, LiveSession, _LineSource, record
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 #: The audit's template (skips the page allows) and the README's.
 SKIPS = "{_}{_}{_}{x}{y}{z}Q"

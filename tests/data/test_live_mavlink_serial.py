@@ -23,7 +23,8 @@ pytest.importorskip("serial")
 pytest.importorskip("pymavlink")
 
 from pymavlink.dialects.v20 import common as mavlink2
-from test_live_formats import BoardPort, wait_for
+
+from tests.data.test_lineformats import BoardPort, wait_for
 
 
 class Autopilot:

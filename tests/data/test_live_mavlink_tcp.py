@@ -19,8 +19,8 @@ from magcal.data.live import LiveError, LiveSession, open_source
 
 pytest.importorskip("pymavlink")
 
-from test_live_formats import wait_for
-from test_live_mavlink_serial import Autopilot, check_two_boots
+from tests.data.test_lineformats import wait_for
+from tests.data.test_live_mavlink_serial import Autopilot, check_two_boots
 
 
 class AutopilotServer:

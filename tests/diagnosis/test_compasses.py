@@ -315,10 +315,9 @@ def test_each_logged_compass_takes_the_parameters_of_its_device(tmp_path):
 
 # -- PX4 logs: each magnetometer's field as PX4 computed it, from the log's CAL_MAGn_* parameters ----------------
 def test_px4_logged_field_is_rebuilt_from_each_devices_parameters(tmp_path):
-    from test_logs import ATT_FIELDS, MAG_FIELDS, _ulog_msg, write_ulog
-
     from magcal.data.logs import read_log
     from magcal.geometry.orientations import euler_matrix
+    from tests.data.test_logs import ATT_FIELDS, MAG_FIELDS, _ulog_msg, write_ulog
 
     n = 300
     att = Rotation.random(n, random_state=9)

@@ -5,9 +5,9 @@ import time
 
 import numpy as np
 import pytest
-from two_effects import two_hidden
 
 from magcal.diagnosis import _parallel, diagnose
+from tests.helpers.two_effects import two_hidden
 
 
 @pytest.mark.parametrize("workers", [None, 1, 3])

@@ -16,11 +16,11 @@ import warnings
 
 import numpy as np
 import pytest
-from two_effects import two_hidden
 
 from magcal.core.errors import ConvergenceWarning
 from magcal.diagnosis import _parallel, diagnose
 from magcal.fitting.fitter import fit
+from tests.helpers.two_effects import two_hidden
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="shared memory is seen in /dev/shm on Linux")
 
@@ -92,7 +92,7 @@ def test_fits_in_worker_processes_give_the_serial_diagnosis(record, serial, monk
 def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, monkeypatch):
     """The dataset a worker maps is the caller's to the bit (read-only); a fit made there comes back with its notes
     (a fit stopped after one evaluation says it did not converge), as the diagnosis gathers them
-    (tests/test_notes.py: notes are values that travel with their fits)."""
+    (tests/core/test_notes.py: notes are values that travel with their fits)."""
     ds, _ = record
     monkeypatch.setattr(_parallel, "PARALLEL_FITS", 1)
     monkeypatch.setattr(_parallel, "BACKEND", "processes")
@@ -107,7 +107,7 @@ def test_a_worker_process_shares_the_readings_and_returns_a_fits_notes(record, m
     for a, b in zip(shared, (ds.readings_nT, ds.temperature_C, ds.time_s)):
         np.testing.assert_array_equal(a, b)
     assert limits and set(limits) == {1}  # BLAS on one thread in the worker, numpy's and scipy's alike
-    assert heap_kept  # the allocator's thresholds raised (tests/test_memory.py), whatever Dask left in the env
+    assert heap_kept  # the allocator's thresholds raised (tests/core/test_memory.py), whatever Dask left in the env
     assert fitted.problem is None and fitted.notes and fitted.notes[0].is_a(ConvergenceWarning)
     assert _segments() == []
 

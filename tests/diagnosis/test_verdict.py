@@ -4,14 +4,13 @@ Hidden-effect tests hide one catalogue effect (or one outside it) in simulated d
 check that the diagnosis ranks it first, reads ``missing_effect``, that adding it brings the total-field RMS to
 within 10 % of the noise floor and that leaving it out leaves the RMS clearly above it. Clean data must read
 ``adequate``. The same is checked on held-out CSV files written by an independent simulator
-(``tests/heldout_sim.py``) and read back with :func:`magcal.data.io.read_csv`.
+(``tests/helpers/heldout_sim.py``) and read back with :func:`magcal.data.io.read_csv`.
 """
 
 import json
 import time
 import warnings
 
-import heldout_sim
 import numpy as np
 import pytest
 
@@ -34,6 +33,7 @@ from magcal.diagnosis import (
 from magcal.fitting.pipeline import calibrate
 from magcal.model import perturbations, plugins
 from magcal.model.terms import EFFECTS, Effect, register
+from tests.helpers import heldout_sim
 
 SIGMA = 3.0
 N = 1500

@@ -262,7 +262,7 @@ def test_heading_needs_accelerometer_columns():
 # -- flight logs -------------------------------------------------------------------------------------------------
 def test_logs_bring_the_accelerometer(tmp_path):
     pytest.importorskip("pymavlink")
-    from test_logs import _df_message
+    from tests.data.test_logs import _df_message
 
     formats = {
         "MAG": (65, "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),

@@ -354,7 +354,7 @@ def test_magnav_reader_and_study_on_a_synthetic_file(tmp_path):
     import importlib.util
     import pathlib
 
-    script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "real" / "magnav_vector.py"
+    script = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "real" / "magnav_vector.py"
     spec = importlib.util.spec_from_file_location("magnav_vector", script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -492,7 +492,7 @@ def _test_logs_module():
     import importlib.util
     import pathlib
 
-    path = pathlib.Path(__file__).resolve().parent / "test_logs.py"
+    path = pathlib.Path(__file__).resolve().parents[1] / "data" / "test_logs.py"
     spec = importlib.util.spec_from_file_location("magcal_test_logs", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -290,7 +290,7 @@ def test_apply_of_a_parquet_survey_has_the_same_nan_world_rows(tmp_path):
     gap = _gap(300, ((10, 20), (63, 70)))  # the second run across the first blocks' edge (64 rows each)
     gappy = _without_attitude(
         two, gap, "euler"
-    )  # angles are extras to the readers (tests/test_attitude_gaps.py: qw..qz)
+    )  # angles are extras to the readers (tests/data/test_attitude_gaps.py: qw..qz)
     mio.write_parquet(tmp_path / "two.parquet", dataset_columns(gappy), dataset_metadata(gappy))
     summary = apply_file(cal, tmp_path / "two.parquet", tmp_path / "out.parquet", chunk_rows=64)
     said = [n.text for n in summary.notes if n.is_a(DataWarning) and "no attitude" in n.text]

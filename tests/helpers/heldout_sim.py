@@ -172,7 +172,7 @@ def write_csv(path, sim, attitude=True):
     lines.append(f"# reference_total_nT: {sim['reference_total_nT']:.3f}")
     lines.append("# units: nT")
     lines.append(f"# noise_nT: {sim['noise_nT']}")
-    lines.append("# site: held-out simulator of tests/heldout_sim.py")
+    lines.append("# site: held-out simulator of tests/helpers/heldout_sim.py")
     header = ["t"] + [f"s{s + 1}{a}" for s in range(ns) for a in "xyz"] + ["temp"]
     if attitude:
         header += ["qw", "qx", "qy", "qz"]

@@ -13,7 +13,7 @@ belongs to this recording (the pump's phase on another day is unknown), so it is
 to new data.
 
 Load it with ``magcal calibrate data.csv --effects-file user_effects_example.py --effects pump_interference``
-(see ``docs/user-effects.md``). The tests in ``tests/test_plugins.py`` use this file.
+(see ``docs/user-effects.md``). The tests in ``tests/model/test_plugins.py`` use this file.
 """
 
 from __future__ import annotations

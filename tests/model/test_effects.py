@@ -308,7 +308,7 @@ def test_sensor_timing_skew_has_no_parameters_for_the_reference_sensor():
 
 
 def test_periodic_interference_hides_a_sinusoid_of_the_given_peak():
-    """Its perturbation (the catalogue effect since it learnt the term; tests/test_interference.py fits it)."""
+    """Its perturbation (the catalogue effect since it learnt the term; tests/model/test_effects_interference.py fits it)."""
     assert "periodic_interference" in EFFECTS and not EFFECTS["periodic_interference"].transferable
     truth = chi2017_truth(1)
     clean = simulate_timeseries(truth, n_samples=300, noise_nT=0.0, seed=1)

@@ -16,7 +16,7 @@ from magcal.model.perturbations import perturbation_function
 from magcal.model.terms import EFFECTS, Effect, register
 
 BUILT_IN = sorted(name for name, cls in EFFECTS.items() if cls.__module__ == "magcal.model.effects")
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "effects.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "effects.md"
 #: A parameter name ends in its unit (``_nT``, ``_ms``, ``_nT_per_K``...), or is a dimensionless ratio.
 UNIT = re.compile(r"_(nT|ms|ms2|K|ppm|h|unit|nT_per_K|ppm_per_K|nT_per_h|nT_per_m|nT_per_unit|deg)$|^[A-Za-z]\w*_nT")
 

@@ -20,7 +20,7 @@ from magcal.data import io
 from magcal.model import plugins
 from magcal.model.terms import EFFECTS
 
-EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 NAME = "pump_interference"
 HIDDEN_SENSOR = 1  # 0-based: sensor 2
 AMPLITUDE_NT = 4.0

@@ -29,7 +29,7 @@ from magcal.model.effects import NONLINEARITY_LIMIT_PPM, smoothed_readings, time
 from magcal.model.plugins import load_effects_file, unregister
 from magcal.model.terms import BOUND_PULL_Z, EFFECTS, Domain, Model, fitted_outside_domain, outside_domain
 
-USER_EFFECTS = Path(__file__).resolve().parent / "user_effects_example.py"
+USER_EFFECTS = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 
 #: Loop half-width (nT) of the hysteresis the tests hide with the wrong sign: the output leads the field.
 LEADING_nT = 40.0
@@ -73,7 +73,7 @@ PUSHES = {
 
 @pytest.fixture(scope="module")
 def user_effect():
-    """The user's own effect of tests/user_effects_example.py, registered for this module's tests."""
+    """The user's own effect of tests/helpers/user_effects_example.py, registered for this module's tests."""
     names = load_effects_file(USER_EFFECTS)
     yield names[0]
     for name in names:  # no other module's tests see it (the diagnosis tries every registered effect)

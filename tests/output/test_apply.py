@@ -5,7 +5,6 @@ import re
 import tracemalloc
 import warnings
 
-import line_ends
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -21,6 +20,7 @@ from magcal.fitting import platform as pf
 from magcal.fitting.fitter import fit
 from magcal.model.terms import EFFECTS, Model
 from magcal.output import apply as ap
+from tests.helpers import line_ends
 
 
 def exact_calibration(truth, frame="platform"):

@@ -6,13 +6,13 @@ import re
 import time
 import warnings
 
-import line_ends
 import numpy as np
 import pytest
 
 import magcal
 from magcal.data import io as mio
 from magcal.output.apply import apply_file
+from tests.helpers import line_ends
 
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")

@@ -1,5 +1,5 @@
 """Send to vehicle (magcal.output.vehicle_params, magcal send) against a fake autopilot on loopback
-(tests/fake_autopilot.py): every value read back equals what ``magcal export`` writes; a vehicle that drops or
+(tests/helpers/fake_autopilot.py): every value read back equals what ``magcal export`` writes; a vehicle that drops or
 alters a value is reported as failed; the old values are backed up before anything is written."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from magcal.output.vehicle_params import mavlink_device, send_parameters, values
 
 pytest.importorskip("pymavlink")
 
-from fake_autopilot import FakeAutopilot, free_udp_port
+from tests.helpers.fake_autopilot import FakeAutopilot, free_udp_port
 
 #: Bound on one send (the fake answers within milliseconds; a failure retries with these short waits).
 SEND_BOUND_S = 30.0

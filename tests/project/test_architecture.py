@@ -13,7 +13,7 @@ import pathlib
 
 import pytest
 
-ENGINE = pathlib.Path(__file__).resolve().parents[1] / "magcal"
+ENGINE = pathlib.Path(__file__).resolve().parents[2] / "magcal"
 
 #: The layers, lowest first; ``magcal`` is the package's own ``__init__`` (the public API).
 LAYERS = ("core", "geometry", "data", "checks", "model", "calibration", "fitting", "diagnosis", "output", "api", "cli")

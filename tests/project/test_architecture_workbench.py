@@ -9,7 +9,7 @@ import re
 
 import pytest
 
-PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "magcal_workbench"
+PACKAGE = pathlib.Path(__file__).resolve().parents[2] / "magcal_workbench"
 MODULES = {p.stem: p for p in sorted(PACKAGE.glob("*.py")) if p.stem != "__init__"}
 
 

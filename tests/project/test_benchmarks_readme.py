@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 README = BENCHMARKS / "README.md"
 NOTES = BENCHMARKS / "notes"
 SCRIPTS = sorted(p.name for p in BENCHMARKS.glob("*.py"))

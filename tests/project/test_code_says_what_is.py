@@ -10,7 +10,7 @@ import re
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 #: "issue 40", "Issue 43 item 5", "issues 31, 41", "issue #12".
 ISSUE_NUMBER = re.compile(r"\b[Ii]ssues? ?#?\d+")

@@ -11,7 +11,7 @@ import textwrap
 
 import pytest
 
-ENGINE = pathlib.Path(__file__).resolve().parents[1] / "magcal"
+ENGINE = pathlib.Path(__file__).resolve().parents[2] / "magcal"
 
 #: Most lines of a function's body, its docstring left out.
 MAX_LINES = 120

@@ -9,7 +9,7 @@ import pytest
 
 import magcal
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def _from_python_block():

@@ -10,7 +10,7 @@ import magcal
 from magcal.fitting.validation import compare
 from magcal.model.terms import EFFECTS
 
-FOLDER = Path(__file__).resolve().parent.parent / "assets" / "lessons" / "real-qmc5883l"
+FOLDER = Path(__file__).resolve().parents[2] / "assets" / "lessons" / "real-qmc5883l"
 
 
 def test_the_data_are_small_and_carry_source_and_licence():

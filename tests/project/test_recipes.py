@@ -27,7 +27,7 @@ import magcal
 from magcal.calibration.calibration import Calibration
 from magcal.data.io import read_csv
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def install_distribution(site: pathlib.Path, modules: dict, entry_points: dict, summary: str) -> pathlib.Path:

@@ -4,7 +4,7 @@ panel), and a live session's tabs.
 
 The plot-data functions are tested headless against known truth: a sensor simulated here with a known soft iron,
 hard iron and noise, whose true correction is applied independently of magcal. The browser tests (marked ``e2e``)
-start the workbench on 127.0.0.1 themselves and drive the page in headless Chromium (see tests/test_workbench_e2e.py).
+start the workbench on 127.0.0.1 themselves and drive the page in headless Chromium (see tests/workbench/test_workbench_e2e.py).
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import re
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_workbench_live import _wait
 
 import magcal
 from magcal.data.attitude import attitude_quaternions, turn_rate_dps
@@ -22,6 +21,7 @@ from magcal.data.dataset import Dataset
 from magcal_workbench import motion, plots, viser_adapter
 from magcal_workbench.cockpit import controller_record, range_bounds_s, samples_in_range
 from magcal_workbench.panels import summary_markdown
+from tests.workbench.test_workbench_live import _wait
 
 F_nT = 50_000.0
 NOISE_nT = 3.0
@@ -362,7 +362,7 @@ def _plot_data(page, title):
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_in_the_page_excluding_a_time_range_changes_the_fit_and_including_restores(browser, bench):
-    from test_workbench_e2e import _open
+    from tests.workbench.test_workbench_e2e import _open
 
     wb = bench()
     page = _open(browser, wb)
@@ -390,7 +390,7 @@ def test_in_the_page_excluding_a_time_range_changes_the_fit_and_including_restor
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_in_the_page_a_single_sensor_recording_has_no_cross(browser, bench):
-    from test_workbench_e2e import _open
+    from tests.workbench.test_workbench_e2e import _open
 
     wb = bench(ds=_single_sensor())
     page = _open(browser, wb)  # the scene's labels are drawn in WebGL: the nodes the server sends are the test
@@ -410,7 +410,7 @@ def test_in_the_page_a_single_sensor_recording_has_no_cross(browser, bench):
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_a_live_session_fills_the_tabs_and_the_plots_follow_the_stream(browser, bench):
-    from test_workbench_e2e import _open
+    from tests.workbench.test_workbench_e2e import _open
 
     wb = bench()
     page = _open(browser, wb)

@@ -21,7 +21,7 @@ pytest.importorskip("viser")
 
 from magcal_workbench.consent import EffectsFiles, Terminal
 
-EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 PUMP = "pump_interference"
 
 

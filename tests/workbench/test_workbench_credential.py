@@ -25,7 +25,7 @@ from magcal.data import io as mio
 pytest.importorskip("viser")
 pytest.importorskip("websockets")
 
-from conftest import ws_handshake
+from tests.conftest import ws_handshake
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -20,7 +20,7 @@ import pytest
 import magcal
 from magcal.data import io as mio
 
-ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

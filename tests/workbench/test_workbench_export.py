@@ -2,7 +2,7 @@
 line writes from the downloaded calibration.json (``magcal export``, ``magcal apply``), in a real headless Chromium
 (the download captured from the page's link); refusals become lines of the zip's README; *Send to vehicle* shows
 only for a MAVLink source, reads old -> new first, writes on Confirm, and every value read back equals what
-``magcal export`` writes (a fake autopilot on loopback, tests/fake_autopilot.py). Every wait is bounded."""
+``magcal export`` writes (a fake autopilot on loopback, tests/helpers/fake_autopilot.py). Every wait is bounded."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_workbench_live import _wait
 
 import magcal
 from magcal.cli import main
 from magcal.data import io as mio
 from magcal.output.export import parse_parameter_file
+from tests.workbench.test_workbench_live import _wait
 
-ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 #: Files of the single-sensor export and the button that downloads each.
 BUTTONS = {
     "calibration.json": "calibration.json",
@@ -167,7 +167,7 @@ def test_refusals_are_readme_lines_and_messages_not_crashes(bench):
 
 def test_send_to_vehicle_shows_for_mavlink_previews_then_writes(bench, tmp_path):
     pytest.importorskip("pymavlink")
-    from fake_autopilot import FakeAutopilot, free_udp_port
+    from tests.helpers.fake_autopilot import FakeAutopilot, free_udp_port
 
     ds = magcal.simulate("ding2024", seed=3)
     wb = bench(ds=ds, name="one.csv")
@@ -216,7 +216,7 @@ def test_send_to_vehicle_in_the_page(browser, bench, tmp_path):
     Confirm (written): the page's read-back table says every value equal, and the fake vehicle holds what
     ``magcal export`` writes."""
     pytest.importorskip("pymavlink")
-    from fake_autopilot import FakeAutopilot, free_udp_port
+    from tests.helpers.fake_autopilot import FakeAutopilot, free_udp_port
 
     wb = bench(magcal.simulate("ding2024", seed=3), name="one.csv")
     port = free_udp_port()

@@ -104,7 +104,7 @@ def test_the_page_hides_the_gravity_section_without_an_accelerometer(bench):
 def test_the_compass_lesson_in_the_page(browser, bench, tmp_path):
     """In Chromium: open the compass lesson's data, run the gravity fit from the page, read the mounting and the
     heading the total-field fit leaves, and show the accelerometer's cloud."""
-    from test_workbench_e2e import _dismiss_toasts, _open
+    from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     ds, _ = load_dataset(get_lesson("tilted-compass").data_path)
     wb = bench(ds=ds, max_points=300)  # software WebGL: a small scene keeps the page responsive

@@ -21,11 +21,10 @@ from magcal.data import io as mio
 
 pytest.importorskip("viser")
 
-from conftest import page_socket
-
 from magcal_workbench.session import SessionStore
 from magcal_workbench.state import Selection, SessionState
 from magcal_workbench.uploads import clean_upload_name
+from tests.conftest import page_socket
 
 WAIT_S = 60
 BENCH_SAMPLES = 200  # the bench fixture (tests/conftest.py) opens this many samples by default

@@ -17,7 +17,7 @@ from magcal.checks.coverage import direction_map, live_sufficient
 from magcal.data.simulation import PRESETS
 from magcal.geometry.sphere import fibonacci_sphere
 
-LESSON = Path(__file__).resolve().parent.parent / "assets" / "lessons" / "warm-sensor" / "data.csv"
+LESSON = Path(__file__).resolve().parents[2] / "assets" / "lessons" / "warm-sensor" / "data.csv"
 
 
 def _wait(condition, timeout_s=60.0, step_s=0.1):
@@ -362,7 +362,7 @@ def test_the_start_button_refuses_what_the_page_was_not_offered(bench, tmp_path)
 @pytest.mark.slow
 def test_live_in_the_page_grows_records_stops_diagnoses_and_adds(browser, bench, tmp_path):
     """Start from the Files tab, watch the counts and the fit change on the page, stop, diagnose, add."""
-    from test_workbench_e2e import _dismiss_toasts, _open
+    from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     wb = bench(store=True)
     page = _open(browser, wb)

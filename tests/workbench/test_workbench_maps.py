@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_workbench_e2e import _open
 
 from magcal.diagnosis import pattern_correlation
+from tests.workbench.test_workbench_e2e import _open
 
 
 @pytest.fixture

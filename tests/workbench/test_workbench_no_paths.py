@@ -18,7 +18,7 @@ from magcal.core.errors import MagcalError
 from magcal.output import bundle
 from magcal_workbench.sessionfile import read_session_document
 
-EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 BENCH_SAMPLES = 200
 
 

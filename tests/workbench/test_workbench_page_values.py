@@ -14,9 +14,10 @@ import math
 import time
 
 import pytest
-from conftest import page_socket
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from tests.conftest import page_socket
 
 pytest.importorskip("viser")
 

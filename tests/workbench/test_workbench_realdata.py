@@ -273,7 +273,7 @@ def test_a_fitted_field_outside_the_earths_range_joins_the_quality_list(bench):
 # ---------------------------------------------------------------------------------------------------------------
 # the user's own effect (a record-only one) in the Model tab and Diagnose
 # ---------------------------------------------------------------------------------------------------------------
-EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 PUMP = "pump_interference"  # declared transferable = False in the example file
 
 
@@ -281,7 +281,7 @@ def test_a_user_effect_is_marked_by_its_own_transferable_flag(bench, clean_catal
     from magcal.model import plugins
 
     plugins.load_effects_file(EXAMPLE)
-    pump = EFFECTS[PUMP]().perturbation(4.0, 1)  # 4 nT at 1.3 Hz in sensor 2, as tests/test_plugins.py hides it
+    pump = EFFECTS[PUMP]().perturbation(4.0, 1)  # 4 nT at 1.3 Hz in sensor 2, as tests/model/test_plugins.py hides it
     data = magcal.simulate_timeseries("chi2017", n_samples=600, seed=3, perturbations=[pump])
     wb = bench(data, store=False)
     assert "record-only" in wb.panels.effect_boxes[PUMP].hint.lower()

@@ -10,7 +10,8 @@ import time
 
 import numpy as np
 import pytest
-from test_workbench_e2e import _open
+
+from tests.workbench.test_workbench_e2e import _open
 
 BENCH_SAMPLES = 300  # 2 Hz: 150 s
 

@@ -787,14 +787,14 @@ def _csv_bytes(tmp_path, wb):
 # ---------------------------------------------------------------------------------------------------------------
 # the user's own effects (item 7): loaded from a file, in the Model tab, Diagnose and the session
 # ---------------------------------------------------------------------------------------------------------------
-EXAMPLE = Path(__file__).with_name("user_effects_example.py")
+EXAMPLE = Path(__file__).resolve().parents[1] / "helpers" / "user_effects_example.py"
 PUMP = "pump_interference"
 PUMP_SENSOR = 1  # 0-based: the pump is hidden in sensor 2
 
 
 class Yes:
     """A terminal where the user confirms every effects file asked for (:class:`magcal_workbench.consent.Terminal`'s
-    ``ask``); tests/test_workbench_consent.py asks a real pseudo-terminal."""
+    ``ask``); tests/workbench/test_workbench_consent.py asks a real pseudo-terminal."""
 
     def ask(self, question, timeout_s, cancel):
         return "yes"
@@ -803,7 +803,7 @@ class Yes:
 @pytest.fixture(scope="module")
 def pump_data():
     """chi2017 time series (four sensors, 3 nT noise, 10 Hz) hiding a 4 nT pump field at 1.3 Hz in sensor 2 (made
-    with the example file's own perturbation, as tests/test_plugins.py does)."""
+    with the example file's own perturbation, as tests/model/test_plugins.py does)."""
     from magcal.model import plugins
     from magcal.model.terms import EFFECTS
 

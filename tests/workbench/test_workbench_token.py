@@ -16,11 +16,11 @@ import pytest
 pytest.importorskip("viser")
 pytest.importorskip("websockets")
 
-from conftest import ws_handshake
 from websockets.datastructures import Headers
 
 from magcal_workbench import guard
 from magcal_workbench.app import NO_TOKEN_WARNING, build_parser
+from tests.conftest import ws_handshake
 
 
 def _get(port, path, headers=None):

@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 import pytest
-from test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
-from test_workbench_e2e import _open, _upload_in_page
 
 import magcal
 from magcal.data import io as mio
+from tests.data.test_logs import ardupilot_case, px4_case, write_dataflash, write_ulog
+from tests.workbench.test_workbench_e2e import _open, _upload_in_page
 
 TRUTH_NOISE_nT = 3.0
 

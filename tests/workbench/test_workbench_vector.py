@@ -424,9 +424,8 @@ def test_the_page_location_inputs_are_checked_and_set_the_reference(bench):
 def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
     """In Chromium: open the lesson's data, type the place and date, run the vector fit from the page, read the
     mounting it names, and show the vehicle view."""
-    from test_workbench_e2e import _dismiss_toasts, _open
-
     from magcal_workbench.dataio import load_dataset
+    from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
     wb = bench(ds=ds, max_points=300)  # software WebGL: a small scene keeps the page responsive

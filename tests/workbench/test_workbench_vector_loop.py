@@ -262,9 +262,8 @@ def test_the_drone_lesson_is_solved_by_the_loop_on_the_vector_model():
 def test_the_drone_lesson_in_the_page(browser, bench, tmp_path):
     """In Chromium: open the lesson's data, press Diagnose and Add in the Model tab, read the verdict, the candidate
     and the world figures the page shows, and take a screenshot."""
-    from test_workbench_e2e import _dismiss_toasts, _open
-
     from magcal_workbench.dataio import load_dataset
+    from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     ds, _ = load_dataset(get_lesson("drone-current").data_path)
     wb = bench(ds=ds, max_points=300)  # software WebGL: a small scene keeps the page responsive
