@@ -39,7 +39,7 @@ from magcal.data import io as mio
 from magcal.data import simulation as sim
 from magcal.fitting import platform as pf
 from magcal.fitting.fitter import fit
-from magcal.model.terms import EFFECTS, VECTOR_STAGES, Model
+from magcal.model.terms import CORRECTION_STAGES, EFFECTS, Model
 from magcal.output import apply as ap
 
 
@@ -48,7 +48,7 @@ def old_record_choice(calibration, path):
     hasher = RecordHasher()
     for ds in ap.survey_chunks(path)[1]:
         hasher.update(ds)
-    dropped, note = calibration.record_decision(None, None, VECTOR_STAGES, fingerprint=hasher.fingerprint())
+    dropped, note = calibration.record_decision(None, None, CORRECTION_STAGES, fingerprint=hasher.fingerprint())
     return ("drop" if dropped else "apply"), note
 
 

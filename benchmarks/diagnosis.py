@@ -91,7 +91,7 @@ def part1(seeds):
                 if name == "sensor_timing_skew":  # invisible in the total field: the consistency residual
 
                     def vec(f):
-                        v = f.vector_residuals_nT
+                        v = f.consistency_residuals_nT
                         return float(np.sqrt(np.sum(v**2) / (2 * v.shape[0] * v.shape[1])))
 
                     rms0.append(vec(base.fit))

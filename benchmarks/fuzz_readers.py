@@ -1,4 +1,4 @@
-"""The readers' fuzz suite (tests/test_fuzz_readers.py) with many more examples, and what every case gave.
+"""The readers' fuzz suite (tests/data/test_io_fuzz.py) with many more examples, and what every case gave.
 
 Run: ``python benchmarks/fuzz_readers.py [EXAMPLES_PER_TARGET] [WORKERS] [SELECT]`` (defaults 1000, 2 and every
 reader; SELECT is pytest's ``-k`` expression, e.g. ``template`` for the line templates alone). It runs the suite
@@ -32,7 +32,7 @@ def main() -> int:
             "MAGCAL_FUZZ_REPORT": report,
             "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
         }
-        argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_fuzz_readers.py"]
+        argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/data/test_io_fuzz.py"]
         argv += ["-n", str(workers)] if workers > 1 else ["-n", "0"]
         if len(sys.argv) > 3:
             argv += ["-k", sys.argv[3]]

@@ -3,7 +3,7 @@
 The engine installs without the browser app's packages (``pip install -e .``); the workbench needs the
 ``workbench`` extra. Without it the user gets one line saying what to install instead of an ImportError traceback.
 
-Start fast (issue 44): the page is served and its address printed (:func:`magcal_workbench.startup.begin`) before
+Start fast: the page is served and its address printed (:func:`magcal_workbench.startup.begin`) before
 the app's heavy parts are imported; a CSV's preview is drawn while the rest is imported and read
 (:mod:`magcal_workbench.preview`); :func:`magcal_workbench.app.main` then builds the workbench on that server.
 """
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
         return 1
     from . import startup
 
-    # the page served and its address printed first, then the file's preview drawn (issue 44)
+    # the page served and its address printed first, then the file's preview drawn
     early = startup.begin(argv)
     if early is not None:
         early.show_preview()

@@ -1,4 +1,4 @@
-"""What the page's widgets call, registered where each handler is written (issue 43 item 5).
+"""What the page's widgets call, registered where each handler is written.
 
 A part of the workbench (:class:`~magcal_workbench.steps.Steps`, :class:`~magcal_workbench.uploads.Uploads`, a
 panel of :mod:`magcal_workbench.panelkit` ...) marks each method a widget calls with :func:`action`; the workbench

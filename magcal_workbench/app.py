@@ -23,20 +23,20 @@ packages' entry points and every ``--effects-file`` -- or later from the Model t
 files, and when it reopens the page offers to load them again (opening a session never runs code). A damaged
 session file is moved aside and the data open afresh.
 
-Hostile pages and careless input (issue 14): only the app's own page may open its websocket
+Hostile pages and careless input: only the app's own page may open its websocket
 (:mod:`magcal_workbench.guard`); every value a browser sends is checked against what the server offers before it
 is read or saved (:class:`magcal_workbench.checks.PageValues`); every callback, pointer events included, goes
 through :meth:`Workbench.handle`; a job fits the mask it started with and a rejection made meanwhile is refitted
 after it; uploads are bounded (``--max-upload-mb``), the session folder too (``--max-sessions-mb``), and a large
 file is drawn decimated (``--max-points``) and fitted whole.
 
-A local process or a hostile page (issue 31): every request shows the secret token of the printed address
+A local process or a hostile page: every request shows the secret token of the printed address
 (:class:`magcal_workbench.guard.Gate`; ``--no-token`` warns), beyond loopback Host must name this machine
 (``--allow-host``); the page starts only live sources the server offers (:class:`magcal_workbench.live.SourceMenu`,
 ``--live-allow``), one at a time; the sessions' bound keeps the recordings; uploads are counted by the bytes
 received.
 
-Another server of this machine, a page's holder (issue 41): the token is in no cookie (every port of the host would
+Another server of this machine, a page's holder: the token is in no cookie (every port of the host would
 receive it) -- the page keeps it in its tab and gives it to its own websocket (:mod:`magcal_workbench.guard`); the
 page runs an effects file only when the command line named it or the user confirms it in the terminal
 (:mod:`magcal_workbench.consent`); nothing the page downloads names a path of the server.
@@ -283,7 +283,7 @@ class Workbench:
             local=lambda: self.local,
             effects_gate=self.effects_gate,
         )
-        #: The vehicle view and the vector model's page actions (issue 29).
+        #: The vehicle view and the vector model's page actions.
         self.vehicle = VehicleView(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,
@@ -293,9 +293,9 @@ class Workbench:
             window=self.window,
             server=self.server,
         )
-        #: The gravity model (issue 42): a compass beside an accelerometer, its fit, plots and cloud.
+        #: The gravity model: a compass beside an accelerometer, its fit, plots and cloud.
         #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
-        #: (issue 42), then those a module or an installed package registered.
+        #:, then those a module or an installed package registered.
         context = PanelContext(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
         self.added = {name: kind.make(context) for name, kind in PANELS.items()}
         self.gravity = cast(GravityPage, self.added["gravity"])

@@ -1,5 +1,5 @@
 """The cockpit: the compact table the panel opens with, |B| against time with its region editor, and the error
-histogram, for the open data or, while one runs, the live session (issue 32).
+histogram, for the open data or, while one runs, the live session.
 
 The figures are :mod:`magcal_workbench.plots`' (pure functions of a :class:`~magcal_workbench.plots.FieldRecord`);
 this module builds the record, places the figures, and runs the region editor's actions. Excluding or including a
@@ -91,7 +91,7 @@ def live_record(live) -> FieldRecord | None:
 class Cockpit(PagePart):
     """The compact table and the Calibrate tab's plots.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------
@@ -110,7 +110,7 @@ class Cockpit(PagePart):
         #: How many samples the plots show data of (the tests watch it grow with the stream).
         self.n_plotted = 0
         #: The key (:func:`magcal_workbench.plots.record_key`) each figure was last built from, by name: a figure
-        #: whose data did not change is not rebuilt nor sent again (issue 44).
+        #: whose data did not change is not rebuilt nor sent again.
         self._keys: dict[str, str] = {}
         self._table: dict = {}
         #: Figures built (the tests read it): the table's figures, |B| against time, the histogram.

@@ -1,5 +1,5 @@
 """The workbench's default bounds, in a module that imports nothing: the launcher's command line
-(:mod:`magcal_workbench.startup`) reads them before the heavy parts are imported (issue 44)."""
+(:mod:`magcal_workbench.startup`) reads them before the heavy parts are imported."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ send theirs through it too; an unknown kind is refused there, not lost); the wor
 panels, the vehicle view and the added panels (``Workbench._changed``), each of which redraws only for the kinds it
 names.
 A :class:`~enum.StrEnum`: a member equals its text, so ``"result" in kinds`` still holds.
-``tests/test_workbench_events.py`` checks that every kind sent is a member, every member is sent, and every kind a
+``tests/workbench/test_workbench_events.py`` checks that every kind sent is a member, every member is sent, and every kind a
 handler names is a member.
 """
 

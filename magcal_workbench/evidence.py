@@ -20,7 +20,7 @@ PANELS_ASPECT = 3.0
 class Evidence(PagePart):
     """The evidence plots of the current fit.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

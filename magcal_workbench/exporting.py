@@ -18,7 +18,7 @@ Raw data + mask             ``magcal export calibration.json --format mask --dat
 Export all (.zip)           ``magcal export calibration.json --format all --data DATA``, plus ``session.json``
 ==========================  ====================================================================================
 
-Nothing the page downloads holds a path of the server (issue 41): the zip's ``session.json`` names the data file by
+Nothing the page downloads holds a path of the server: the zip's ``session.json`` names the data file by
 its name and leaves the effects files out (the README names them), and every reason or note is shown with
 absolute paths cut to the file's name.
 
@@ -172,7 +172,7 @@ class ExportSection:
 class Exporting(PagePart):
     """The Export section's actions (``do_*``, found by :meth:`magcal_workbench.app.Workbench._actions`).
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""The gravity model of the opened data (issue 42): the engine's gravity fit beside the separate calibrations, and
+"""The gravity model of the opened data: the engine's gravity fit beside the separate calibrations, and
 what the page shows of them (no physics here: every heading, dip and tilt comes from the engine's calibration).
 
 :class:`GravitySession` runs :func:`magcal.fitting.gravity.fit_gravity` on the kept samples (and

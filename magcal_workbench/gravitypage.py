@@ -1,4 +1,4 @@
-"""The gravity model in the page (issue 42): a compass beside an accelerometer, calibrated against gravity and
+"""The gravity model in the page: a compass beside an accelerometer, calibrated against gravity and
 judged by heading.
 
 Calibrate tab, section *Gravity model (beside an accelerometer)*: **Run the gravity fit**, the table of the gravity
@@ -108,7 +108,7 @@ class GravityPage:
     ctrl, steps : callable
         Getters: the open data's :class:`~magcal_workbench.controller.Controller` and the
         :class:`~magcal_workbench.steps.Steps` (their check of the readings), handed instead of the workbench
-        (issue 43 item 5).
+       .
     server : viser.ViserServer
         The scene the accelerometer's cloud is drawn in.
     """

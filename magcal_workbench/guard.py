@@ -1,14 +1,14 @@
 """Only the workbench's own page may talk to the workbench: every request shows the page's token, and the
 websocket handshake checks Origin and Host.
 
-**The token** (issue 31): a browser page is not the only thing that can open the websocket -- any process or user
+**The token**: a browser page is not the only thing that can open the websocket -- any process or user
 of this machine can, and send the right ``Origin``. So the workbench makes a secret at start
 (:func:`secrets.token_urlsafe`) and prints the page's address with it (``http://127.0.0.1:8080/?token=...``, as
 notebook servers do). Every HTTP request and every websocket handshake must show it in the URL's query
 (``?token=``), whatever the host served. ``--no-token`` turns it off (with a warning). :class:`Gate` holds the
 token and the names the server answers to.
 
-**Only this page holds it** (issue 41): no cookie -- cookies belong to a host, not a port, so every other server of
+**Only this page holds it**: no cookie -- cookies belong to a host, not a port, so every other server of
 127.0.0.1 the browser visits would receive it. The page's first script (:data:`PAGE_SCRIPT`, put first in viser's
 page by :meth:`Gate.after`) takes the token from the address, keeps it in the tab's ``sessionStorage`` (which
 belongs to this origin: scheme, host *and port*), clears the address bar (``history.replaceState``: no token, and
@@ -36,7 +36,7 @@ to :func:`websockets.asyncio.server.serve` inside its server thread. :func:`guar
 check in front of it (:mod:`magcal_workbench.viser_adapter`) by wrapping ``serve`` *only while the viser server
 starts* (:class:`viser.ViserServer` returns once the port is bound), and refuses to start when the wrapper was not
 used -- so a viser that changes how it serves fails loudly instead of running unprotected
-(``tests/test_workbench_guard.py`` checks both).
+(``tests/workbench/test_workbench_guard.py`` checks both).
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ A lesson is a folder under ``assets/lessons/``::
 
     <slug>/lesson.json   {"title", "order", "data": "data.csv", "guide": "guide.md",
                           "answer": {"effects": ["temperature_bias:2", ...], "explanation": "..."}}
-                         a lesson of the vector model (issue 29) adds to its answer "mounting": the right angle
+                         a lesson of the vector model adds to its answer "mounting": the right angle
                          (firmware name) per sensor, "mounting_off_deg" and "mounting_tolerance_deg": solved by a
                          vector fit that finds them; "model": "vector" judges the vector model's effects (the
-                         loop on a vehicle, issue 40) instead of the total-field model's
+                         loop on a vehicle) instead of the total-field model's
     <slug>/guide.md      what to look at (never names the answer)
     <slug>/data.csv      the data (made by ``assets/make_assets.py`` from the engine's simulator)
 
@@ -247,7 +247,7 @@ def lesson_titles() -> tuple:
 class LessonDesk(PagePart):
     """The Lessons tab's actions: open a lesson, check the model against its answer, show the answer.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

@@ -19,7 +19,7 @@ from .parts import PagePart
 class LiveControl(PagePart):
     """Starts and stops the live session; :attr:`view` is the session while one is open or after it stopped.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

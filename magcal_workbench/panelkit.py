@@ -1,4 +1,4 @@
-"""The workbench's added panels: a section of controls in a tab, written in one file (issue 43 item 8).
+"""The workbench's added panels: a section of controls in a tab, written in one file.
 
 A panel is a class whose instance has
 
@@ -127,7 +127,7 @@ PANELS.register(
 PANELS.register(
     PanelKind(
         name="gravity",
-        description="the gravity model: a compass beside an accelerometer, its fit, plots and cloud (issue 42)",
+        description="the gravity model: a compass beside an accelerometer, its fit, plots and cloud",
         make=lambda c: GravityPage(ctrl=c.ctrl, steps=c.steps, server=c.server),
     ),
     origin="built-in",

@@ -472,7 +472,7 @@ class Panels:
         #: What failed and stays shown until resolved (:func:`alarm_markdown`): a failed autosave, a recording
         #: stopped by a full disk.
         self.alarm = gui.add_markdown("", visible=False)
-        # the status (Total-field RMS, floor, model) first: the page shows it while the tabs are built (issue 44)
+        # the status (Total-field RMS, floor, model) first: the page shows it while the tabs are built
         self.status = gui.add_markdown(status_markdown(ctrl()))
         #: What the data are, the fits they allow and the loop's next step (:mod:`magcal_workbench.guide`), with
         #: that step as a button.
@@ -492,7 +492,7 @@ class Panels:
         #: The full-size evidence: an image over the canvas left of this panel (Model tab's Full-size evidence).
         self.evidence_overlay = gui.add_html("", visible=False)
         tab_group = gui.add_tab_group()
-        self.vector_panel = VectorPanel(self)  # the vector model's widgets (issue 29), built into the tabs below
+        self.vector_panel = VectorPanel(self)  # the vector model's widgets, built into the tabs below
         #: A change of the selection leaves the cockpit's figures to the refit that follows (:meth:`figures_held`),
         #: and whether some were left.
         self._figures_held = False
@@ -892,7 +892,7 @@ class Panels:
         if live is not None and live.active:
             self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
         elif kinds == {Change.SELECTION} and self._figures_held:
-            self._figures_stale = True  # the refit that follows draws them (issue 44)
+            self._figures_stale = True  # the refit that follows draws them
         elif _asks(kinds, Change.RESULT, Change.SELECTION, Change.DATA, Change.SETTINGS, Change.MODEL, Change.VECTOR):
             self._figures_stale = False  # (vector: the table shows the vector mode's floor; unchanged figures stay)
             self.on.draw_cockpit()
@@ -900,7 +900,7 @@ class Panels:
     @contextmanager
     def figures_held(self, held: bool = True):
         """Within: a change of the selection leaves the cockpit's figures (the table, |B| against time, the
-        histogram) to the refit that follows it, which redraws them with its result (issue 44: at 4 x 1e5 samples
+        histogram) to the refit that follows it, which redraws them with its result (at 4 x 1e5 samples
         the figures take about as long as the refit). The scene's colours and the texts follow at once.
 
         Figures left are drawn when the next job ends (:meth:`set_busy`), whatever its outcome, or at once if the

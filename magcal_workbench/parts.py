@@ -1,4 +1,4 @@
-"""A part of the page handed what it uses (issue 43 item 5).
+"""A part of the page handed what it uses.
 
 The workbench's parts (the steps, the scene control, the cockpit, the exports, the live control...) are not handed
 the :class:`~magcal_workbench.app.Workbench`: each takes what it uses as arguments. The open data's

@@ -1,4 +1,4 @@
-"""The slow parts of a step, run after its result is on the page (issue 44).
+"""The slow parts of a step, run after its result is on the page.
 
 A fit's result (its RMS, the corrected clouds, the message line) is shown as soon as it exists; what takes longer
 -- the held-out check, the autosave that records it -- follows in a background thread, and the page marks it

@@ -6,7 +6,7 @@ Only plotting: the numbers come from the controller's residuals and the engine's
 once; :func:`evidence_figure` draws them with plotly (the panel, interactive) and :func:`evidence_image` with
 matplotlib (the full-size view, and PNG/SVG files for teaching), so both show the same data.
 
-The cockpit's plots (issue 32) follow: the total field |B| against time (raw and corrected, with the reference,
+The cockpit's plots follow: the total field |B| against time (raw and corrected, with the reference,
 the excluded samples greyed and the excluded stretches shaded, the range being chosen and the samples taken while
 turning fast marked), the error histogram (|B| - reference, before and after calibration) and the figures of the
 compact table (% of samples within +-1/2/5 % of the reference, coverage of the sphere). Their data come from
@@ -592,7 +592,7 @@ def magnitude_series(record: FieldRecord, max_points: int = MAX_POINTS) -> dict:
         idx = np.arange(n)
         raw = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
         corr = None if record.corrected_nT is None else np.linalg.norm(np.asarray(record.corrected_nT, float), axis=2)
-    else:  # a min/max envelope: every stretch's highest and lowest sample, of any sensor, is drawn (issue 44)
+    else:  # a min/max envelope: every stretch's highest and lowest sample, of any sensor, is drawn
         raw_all = np.linalg.norm(np.asarray(record.raw_nT, float), axis=2)
         corr_all = None
         if record.corrected_nT is not None:
@@ -690,7 +690,7 @@ def coverage_fraction(record: FieldRecord, cells: int = COVERAGE_CELLS, max_samp
 
 def record_key(record: FieldRecord, *extra) -> str:
     """A digest of everything the cockpit's figures read from ``record`` (and of ``extra``, e.g. the range being
-    chosen): equal keys, equal figures, so a figure whose data did not change is not rebuilt (issue 44)."""
+    chosen): equal keys, equal figures, so a figure whose data did not change is not rebuilt."""
     h = hashlib.blake2b(digest_size=16)
     arrays = (record.time_s, record.raw_nT, record.corrected_nT, record.reference_nT, record.kept, record.fast)
     for a in arrays:

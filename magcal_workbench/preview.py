@@ -1,4 +1,4 @@
-"""The first picture of a file (issue 44, start fast): its preview's raw clouds, drawn while the engine is
+"""The first picture of a file (start fast): its preview's raw clouds, drawn while the engine is
 imported and the whole file read.
 
 :func:`magcal.data.io.read_csv_preview` reads a few thousand lines spread through the file; they are drawn as the

@@ -213,7 +213,7 @@ def ellipsoid_mesh(cinv, bias_nT, field_nT, gain: float = 1.0, subdivisions: int
 
 def _icosphere(subdivisions: int):
     """The unit icosphere (trimesh's), imported when first drawn: the launch's preview draws no mesh and comes
-    first (trimesh's import costs about 0.3 s; issue 44)."""
+    first (trimesh's import costs about 0.3 s)."""
     import trimesh
 
     return trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
@@ -448,7 +448,7 @@ class SceneModel:
     fast: np.ndarray | None = None  # (N,) bool: samples taken while turning fast (magcal_workbench.motion), marked
     ring: np.ndarray | None = None  # (M, 3) unit directions (array frame): the tilt ring, on each corrected sphere
     #: The labels, meshes and the cross beside the clouds. A launch's preview draws the clouds alone: each of these
-    #: costs the page a shader or an HTML overlay before its first frame (issue 44: 0.6 s of a 1e6 first picture).
+    #: costs the page a shader or an HTML overlay before its first frame (0.6 s of a 1e6 first picture).
     decorations: bool = True
     #: Which fit corrected the right-hand clouds (``total-field``, ``vector`` or ``gravity``): their labels say it.
     corrected_by: str = "total-field"
@@ -547,7 +547,7 @@ def light_for_data(server) -> None:
     environment map. The clouds are flat-shaded and the meshes are translucent guides, so neither needs them.
     They cost a lot where the page renders WebGL in software: viser redraws the scene every second, and with
     them the page at rest after a session's clicks took 0.77 of a 2-core machine's cores, 0.42 without
-    (``benchmarks/page_latency.py``, 4 x 1e4). That time was missing from every fit (issue 44)."""
+    (``benchmarks/page_latency.py``, 4 x 1e4). That time was missing from every fit."""
     server.scene.configure_default_lights(True, cast_shadow=False)
     server.scene.configure_environment_map(hdri=None)
     # the environment map's light, evenly from everywhere: the meshes keep their colours
@@ -643,7 +643,7 @@ class SceneView:
                 colors = residual_colors(resid, limit, kept)
                 handle = self._clouds.get(name)
                 if handle is not None and len(handle.points) == len(pts):
-                    # only what changed is sent: a refit leaves the raw clouds where they are (issue 44)
+                    # only what changed is sent: a refit leaves the raw clouds where they are
                     pts32 = pts.astype(np.float32)
                     if not np.array_equal(handle.points, pts32):
                         handle.points = pts32
@@ -793,7 +793,7 @@ class SceneView:
     def _put(self, name, factory):
         """Replace the static node ``name`` by ``factory()`` (a :func:`functools.partial` of a ``scene.add_*``:
         its arguments are bound when it is made, not when the loop has moved on). A node drawn by the same call
-        with equal arguments stays: a refit does not make the page rebuild its labels and lines (issue 44)."""
+        with equal arguments stays: a refit does not make the page rebuild its labels and lines."""
         key = _call_key(factory)
         if key is not None and name in self._static and self._static_keys.get(name) == key:
             return

@@ -24,7 +24,7 @@ from .state import SessionState
 class Sessions(PagePart):
     """Opens data as a session of the store (or unsaved without one) and acts on the saved sessions.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

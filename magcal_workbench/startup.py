@@ -1,4 +1,4 @@
-"""The launcher's first second (issue 44, start fast): the command line read, the page served and its address
+"""The launcher's first second (start fast): the command line read, the page served and its address
 printed, saying ``loading FILE...``, before the engine's heavy parts are imported and the data read.
 
 ``magcal-workbench`` (:mod:`magcal_workbench._launch`) calls :func:`begin` first: it imports only viser and the

@@ -24,7 +24,7 @@ class Steps(PagePart):
     """The refit that follows a change of the selection, the effects files' loading, and the check of the
     readings.
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

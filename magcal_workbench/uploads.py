@@ -41,7 +41,7 @@ def clean_upload_name(name) -> str:
 class Uploads(PagePart):
     """Reads what the page uploads into the workbench (:meth:`Workbench.load`).
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

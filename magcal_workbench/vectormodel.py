@@ -1,5 +1,5 @@
-"""The vector model in the workbench (issue 29): the attitude-aided fit beside the total-field fit, and the
-reference from a location typed in the page (issue 32).
+"""The vector model in the workbench: the attitude-aided fit beside the total-field fit, and the
+reference from a location typed in the page.
 
 A record with attitude (``qw, qx, qy, qz`` or ``roll_deg, pitch_deg, yaw_deg``) and a field vector (``ref_n, ref_e,
 ref_d`` columns, IGRF along ``lat, lon, alt_m`` columns, or IGRF at the place and date typed in the Calibrate tab)

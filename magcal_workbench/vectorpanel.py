@@ -1,4 +1,4 @@
-"""The vector model's widgets (issue 29, issue 32 item 3): the reference from a location (Calibrate tab), the
+"""The vector model's widgets: the reference from a location (Calibrate tab), the
 vector fit beside the total-field fit with their comparison table (Calibrate tab), and the vehicle view's toggle
 (View tab).
 

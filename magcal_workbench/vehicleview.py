@@ -1,4 +1,4 @@
-"""The vehicle view (issue 29): the body and its attitude through the record, the measured and the model field in
+"""The vehicle view: the body and its attitude through the record, the measured and the model field in
 world coordinates, and the residual vectors.
 
 Drawn in a frame of its own (``/vehicle``), below the sphere views, in north-east-down coordinates: the frame's
@@ -234,7 +234,7 @@ def euler_deg(attitude_wxyz) -> tuple[float, float, float]:
 class VehicleView(PagePart):
     """Draws the vehicle view and runs the vector model's page actions (the vector fit, the typed location).
 
-    Handed what it uses (issue 43 item 5).
+    Handed what it uses.
 
     Parameters
     ----------

@@ -77,7 +77,7 @@ class FitDrawn:
 class SceneControl(PagePart):
     """The scene, the camera, pointer events and the View tab's actions.
 
-    Handed what it uses, no more (issue 43 item 5): the parts made before it as they are, those made after it or
+    Handed what it uses, no more: the parts made before it as they are, those made after it or
     replaced when other data open as getters (called when used).
 
     Parameters

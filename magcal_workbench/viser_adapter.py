@@ -1,7 +1,7 @@
 """Every use of viser's internals, in one place.
 
 viser (1.1.1) offers no public hook for the things the workbench needs below; each is reached here and nowhere
-else, and ``tests/test_workbench_viser_adapter.py`` fails when viser changes what they rely on
+else, and ``tests/workbench/test_workbench_viser_adapter.py`` fails when viser changes what they rely on
 (:func:`missing_internals`):
 
 * **the handshake check** (:func:`start_server`): viser serves its page and its websocket through

@@ -1,8 +1,8 @@
 """Shared pytest configuration for magcal's tests.
 
-The helper modules beside the tests are not test modules: importing ``user_effects_example.py`` registers its effect
-for every later test (the diagnosis tests every registered effect), so neither collection nor ``--doctest-modules``
-may import them.
+The tests are one package, a folder per package of magcal (``tests/README.md``); the modules in ``tests/helpers/``
+are not test modules: importing ``user_effects_example.py`` registers its effect for every later test (the diagnosis
+tests every registered effect), so neither collection nor ``--doctest-modules`` may import them.
 """
 
 import importlib.metadata
@@ -20,7 +20,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking"]
 
-collect_ignore = ["user_effects_example.py", "heldout_sim.py"]
+collect_ignore = ["helpers"]
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""The accelerometer's own calibration, kept in a gravity calibration beside the magnetometers' (issue 42).
+"""The accelerometer's own calibration, kept in a gravity calibration beside the magnetometers'.
 
 A still accelerometer reads ``a = K f + b_a + n`` (``f`` the specific force, ``+g`` up); its correction is
 ``f = K^-1 (a - b_a)`` with ``K^-1`` upper triangular (the seed's gauge: the accelerometer's own axes define the

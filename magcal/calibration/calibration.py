@@ -22,7 +22,7 @@ from magcal.core.errors import DataWarning, MagcalError, RecordTermWarning, exce
 from magcal.core.files import not_regular_reason
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note, row_runs
-from magcal.core.vectors import basis_times, row_norm
+from magcal.core.rows import basis_times, row_norm
 from magcal.data.accelerometer import accelerometer
 from magcal.data.attitude import attitude_rows
 from magcal.data.dataset import MAX_ABS_VALUE
@@ -33,8 +33,8 @@ from magcal.model.effects import CURRENT_COLUMNS
 from magcal.model.platform_terms import PlatformTerms
 from magcal.model.terms import (
     BASE_TERMS,
+    CORRECTION_STAGES,
     EFFECTS,
-    VECTOR_STAGES,
     Model,
     attitude_effects,
     block_label,
@@ -234,8 +234,8 @@ def corrected_fields(dataset, sensors, model=None, effect_values=None, ctxs=None
     for s in range(len(sensors)):
         b = out[s].copy()
         for e, es in instances:
-            if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
-                out[s] = out[s] + basis_times(e.vector_basis(b, ctxs[s]), effect_values[block_label(e, es)])
+            if e.stage == "array" and (es == s or (es is None and e.applies_to(s))):
+                out[s] = out[s] + basis_times(e.array_basis(b, ctxs[s]), effect_values[block_label(e, es)])
     return out
 
 
@@ -380,7 +380,7 @@ class Calibration:
             ``'apply'``: the user asserts these data are the fitted record (or has an external reference).
             ``'drop'``: never apply them.
         stages : sequence of str, optional
-            Consider only terms of these stages (``VECTOR_STAGES`` for corrected vectors).
+            Consider only terms of these stages (``CORRECTION_STAGES`` for corrected vectors).
         fingerprint : dict, optional
             The data's fingerprint, when the caller streamed it (:class:`RecordHasher`).
 
@@ -536,7 +536,7 @@ class Calibration:
         """
         dataset, one = self._as_dataset(data, t, temp)
         self.check(dataset)
-        model, sensors, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        model, sensors, notes = self._acting(dataset, record_terms, CORRECTION_STAGES)
         refusal = self.refusal_note(force)
         if warn:
             _notes.warn(notes + self._gap_notes(model, dataset) + ([refusal] if refusal else []))
@@ -552,7 +552,7 @@ class Calibration:
         record-only terms dropped or applied unproven (RecordTermWarning), and the samples an effect that needs
         each sample's attitude cannot correct (DataWarning, ``where`` :data:`ATTITUDE_GAP_NOTE`), the sensors refused
         or forced (:meth:`refusal_note`)."""
-        model, _, notes = self._acting(dataset, record_terms, VECTOR_STAGES)
+        model, _, notes = self._acting(dataset, record_terms, CORRECTION_STAGES)
         refusal = self.refusal_note(force)
         return notes + self._gap_notes(model, dataset) + ([refusal] if refusal else [])
 
@@ -578,7 +578,7 @@ class Calibration:
         each sample's attitude (``site_gradient``): a sample without one gets NaN corrected vectors."""
         if self.model is None:
             return []
-        dropped, _ = self.record_decision(dataset, record_terms, VECTOR_STAGES)
+        dropped, _ = self.record_decision(dataset, record_terms, CORRECTION_STAGES)
         return [label for label in attitude_effects(self.model) if label not in set(dropped)]
 
     def _without_platform(self, dataset):

@@ -22,7 +22,7 @@ _REFERENCE_WORDS = {
 
 
 def calibration_json(result) -> dict:
-    """The JSON object of issue 2, item 9 (and more): ``format``, ``version``, ``reference_total_nT``,
+    """The JSON object of ``magcal calibrate --json``: ``format``, ``version``, ``reference_total_nT``,
     ``baseline_m``, ``n_samples``, ``effects``, ``rms_nT``, ``tensor_rms_nT_per_m`` (arrays), ``sensors`` with
     ``id``, ``Cinv``, ``bias_nT``, ``R``, ``scale``, ``axis_angles_deg``, ``rms_before_nT``, ``rms_nT``.
 

@@ -13,7 +13,7 @@ keeps it (:attr:`magcal.calibration.calibration.Calibration.base_covariance`, sa
 With effect terms in the model the covariance is the joint one of ``theta`` and the effects' parameters (in the
 order of the model's instances, :func:`effect_layout`), so their errors and their correlation with the base terms
 are carried too: a raw-stage effect moves the corrected field by ``-M basis dp`` and shifts ``z`` in ``dM z``, a
-vector-stage effect by ``basis dp``; reference-stage effects change only the expected field, not the corrected
+array-stage effect by ``basis dp``; reference-stage effects change only the expected field, not the corrected
 one. A record-only effect that ``correct`` drops on other data drops out of its error bars too. Not included: the
 noise of the sample itself (these are the calibration's error bars, common to every survey it corrects).
 """
@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from magcal.core import conventions
-from magcal.core.vectors import basis_times, unit_rows
-from magcal.model.terms import VECTOR_STAGES, block_label, contexts
+from magcal.core.rows import basis_times, unit_rows
+from magcal.model.terms import CORRECTION_STAGES, block_label, contexts
 
 #: Numbers per sensor in ``theta``: ``M`` row by row (9), then the bias (3).
 THETA_PER_SENSOR = 12
@@ -146,7 +146,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
         corrected_nT = calibration.correct(dataset, record_terms, force=True)
     # the effects acting on these data, and where each one's parameters sit in the covariance (a covariance of
     # theta alone, from a file made before the effects' errors were kept, carries none of them)
-    acting = calibration._model_for(dataset, record_terms, VECTOR_STAGES, warn=False) if calibration.model else None
+    acting = calibration._model_for(dataset, record_terms, CORRECTION_STAGES, warn=False) if calibration.model else None
     acting_labels = {label for label, *_ in effect_layout(acting)}
     rows_of, at = {}, THETA_PER_SENSOR * ns
     for label, _e, _es, q in effect_layout(calibration.model):
@@ -156,7 +156,7 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
     effects = [
         (label, e, es)
         for label, e, es, _ in effect_layout(calibration.model)
-        if joint and label in acting_labels and e.stage in ("raw", "vector")
+        if joint and label in acting_labels and e.stage in ("raw", "array")
     ]
     ctxs = contexts(dataset, calibration.baseline_m) if effects else []
     values = calibration.effect_values or {}
@@ -181,8 +181,8 @@ def field_uncertainty(calibration, dataset, corrected_nT=None, record_terms=None
             part -= np.einsum("kj,njq,qr->nkr", M, basis, L[rows_of[label]], optimize=True)
         b_rot = z @ M.T
         for label, e in mine:
-            if e.stage == "vector":  # dB = basis dp
-                part += np.einsum("nkq,qr->nkr", e.vector_basis(b_rot, ctxs[s]), L[rows_of[label]], optimize=True)
+            if e.stage == "array":  # dB = basis dp
+                part += np.einsum("nkq,qr->nkr", e.array_basis(b_rot, ctxs[s]), L[rows_of[label]], optimize=True)
     vector_sd = np.sqrt(np.sum(H * H, axis=2)).reshape(n, ns, 3).transpose(1, 0, 2)
     unit = unit_rows(corrected_nT)
     total = np.einsum("snk,nskr->snr", unit, H.reshape(n, ns, 3, -1))

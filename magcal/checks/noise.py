@@ -56,8 +56,8 @@ from scipy.special import comb, erf
 from magcal.checks.quality import quantization_step, stale_mask, static_scatter_nT, static_stretches, static_window
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
+from magcal.core.rows import row_norm
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import row_norm
 from magcal.geometry.shape import field_shape
 
 #: Sources of :class:`NoiseEstimate`, in the order they are tried.
@@ -616,7 +616,7 @@ def estimate_noise(dataset, residuals_nT, n_params=9, ordered=None, noise_nT=Non
     smoothed = [x for x in smoothing if np.isfinite(x) and x < SMOOTHED_RATIO]
     if smoothed:
         # smoothed or filtered readings: their differences are correlated, so neither the differences nor a still
-        # stretch measure the sensor's noise; no floor is claimed (issue 28)
+        # stretch measure the sensor's noise; no floor is claimed
         n = np.isfinite(r).sum(axis=1)
         per = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n - n_params / ns, 1))
         note = (

@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import CalibrationError
+from magcal.core.rows import row_norm
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import row_norm
 from magcal.geometry.ellipsoid import field_noise_nT, fit_ellipsoid
 from magcal.geometry.shape import field_shape
 

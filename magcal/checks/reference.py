@@ -388,7 +388,7 @@ def reference_from_args(args, dataset=None) -> Reference:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# the reference field *vector* (north, east, down) for a vector calibration (issue 29)
+# the reference field *vector* (north, east, down) for a vector calibration
 # ----------------------------------------------------------------------------------------------------------------
 
 #: Per-sample reference field components (nT, north-east-down).

@@ -1,7 +1,7 @@
 """The subcommands of ``magcal``, in the order ``magcal --help`` lists them, with their one-line help.
 
 The table is all the command line reads to list them: ``magcal --help`` imports no subcommand, and ``magcal
-COMMAND ...`` imports only ``magcal.cli.COMMAND`` (issue 43: the command line starts in about the time of
+COMMAND ...`` imports only ``magcal.cli.COMMAND`` (the command line starts in about the time of
 ``import magcal``). A new command is a module ``magcal/cli/NAME.py`` with ``register(subparsers)`` and ``run(args)``
 and a line here; its parser takes its help from this table (``help=HELP["NAME"]``).
 

@@ -1,4 +1,4 @@
-"""The accelerometer beside a magnetometer: its columns, their unit, and the samples that measure gravity (issue 42).
+"""The accelerometer beside a magnetometer: its columns, their unit, and the samples that measure gravity.
 
 A board that carries a magnetometer usually carries an accelerometer (phones, flight controllers, cave-survey
 instruments, tilt-compensated compasses). At rest it measures the specific force, gravity's reaction: ``+g`` along

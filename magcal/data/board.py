@@ -1,4 +1,4 @@
-"""A simulated board: a magnetometer beside an accelerometer, tumbled by hand with still moments (issue 42).
+"""A simulated board: a magnetometer beside an accelerometer, tumbled by hand with still moments.
 
 A hand turns the board from one attitude to the next (smooth turns of about a second, with the hand's own
 acceleration) and holds it still for a second or two at each: a phone, a flight controller or a cave-survey

@@ -1,4 +1,4 @@
-"""A simulated vehicle: a platform that turns in yaw but barely tilts, with attitude from an INS (issue 29).
+"""A simulated vehicle: a platform that turns in yaw but barely tilts, with attitude from an INS.
 
 The vehicle flies full yaw turns with roll and pitch oscillating within a few degrees (a car, a ship, an aircraft's
 compensation pattern); its magnetometers are bolted on with their axes permuted and a little off the right angle,

@@ -11,7 +11,7 @@ import numpy as np
 from magcal.calibration.calibration import corrected_fields
 from magcal.core import conventions
 from magcal.core.errors import MagcalError
-from magcal.core.vectors import unit_rows
+from magcal.core.rows import unit_rows
 from magcal.model.terms import contexts
 
 
@@ -51,8 +51,8 @@ def _sensor_directions(kept, fit):
     return out, b
 
 
-def _vector_rms(fit):
-    v = fit.vector_residuals_nT
+def _consistency_rms(fit):
+    v = fit.consistency_residuals_nT
     if v is None:
         return None
     ns, n = v.shape[:2]
@@ -60,8 +60,8 @@ def _vector_rms(fit):
     return float(np.sqrt(np.sum(v**2) / (ns * n * min(comps, 2))))
 
 
-def _vector_rms_per_sensor(fit):
-    v = fit.vector_residuals_nT
+def _consistency_rms_per_sensor(fit):
+    v = fit.consistency_residuals_nT
     if v is None:
         return None
     comps = min(v.shape[2], 2)

@@ -615,7 +615,7 @@ class _Executor(ProcessPoolExecutor):
     start later, when a task of the diagnosis finds every worker busy (seen with 16 workers: a worker had finished
     its first task before the last was asked for). Those late starts need the same care as the first: a script
     without a ``__main__`` guard was otherwise run again in them. The executor starts each worker in its
-    ``_spawn_process`` (CPython 3.9 and later); tests/test_scale_out.py checks every start.
+    ``_spawn_process`` (CPython 3.9 and later); tests/diagnosis/test_parallel_scale_out.py checks every start.
     """
 
     def _spawn_process(self):

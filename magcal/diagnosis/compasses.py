@@ -1,5 +1,5 @@
 """Several compasses on one vehicle: how far apart their corrected fields are, against what the flight
-controllers' "inconsistent compasses" checks tolerate, and what makes them differ (issue 40, item 5).
+controllers' "inconsistent compasses" checks tolerate, and what makes them differ.
 
 A vehicle with two or three compasses (ArduPilot ``MAG``/``MAG2``/``MAG3``, PX4 ``sensor_mag`` instances; read as
 sensors 1, 2, 3 of one :class:`~magcal.data.dataset.Dataset`) has each compass calibrated into the body frame

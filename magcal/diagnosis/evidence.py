@@ -13,7 +13,7 @@ from scipy import stats
 
 from magcal.core import conventions
 from magcal.core.stats import moving_mean
-from magcal.diagnosis._fitted import _vector_rms_per_sensor
+from magcal.diagnosis._fitted import _consistency_rms_per_sensor
 from magcal.diagnosis.scores import Candidate
 from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box, revisit_forms
 from magcal.model.effects import hat_columns, series_spacing_s, step_scan, wander_knots
@@ -178,9 +178,9 @@ def _sensor_evidence(kept, fit, r, fields):
         "difference_rms_nT": np.sqrt(np.mean(diffs**2, axis=1)),
         "correlation": np.corrcoef(r),
     }
-    vr = _vector_rms_per_sensor(fit)
+    vr = _consistency_rms_per_sensor(fit)
     if vr is not None:
-        ev["vector_rms_nT"] = vr
+        ev["consistency_rms_nT"] = vr
     if ns == 4 and fit.calibration.baseline_m:
         g = conventions.tensor_components(fields, fit.calibration.baseline_m)
         tensor = conventions.tensor_matrix(g)

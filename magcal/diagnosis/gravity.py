@@ -1,4 +1,4 @@
-"""The dip's residual as evidence, and the effects that move it (issue 42): a gravity calibration's diagnosis.
+"""The dip's residual as evidence, and the effects that move it: a gravity calibration's diagnosis.
 
 After a gravity fit (:mod:`magcal.fitting.gravity`) the dip ``asin(m . d / |m|)`` should be the inclination at every
 still sample; what is left is the sensors' noise (and the hand's acceleration on samples that were not quite still),

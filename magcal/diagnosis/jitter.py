@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.core.vectors import row_norm, unit_rows
+from magcal.core.rows import row_norm, unit_rows
 from magcal.diagnosis._fitted import _model_fields
 from magcal.model.effects import time_derivative
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magcal.core.vectors import row_norm
+from magcal.core.rows import row_norm
 from magcal.diagnosis.scores import _refit
 from magcal.diagnosis.statistics import SH_DEGREE, SH_MAX_SAMPLES, real_sph_harm, sh_resolved_degrees
 

@@ -27,7 +27,7 @@ from magcal.core.errors import CalibrationError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
-from magcal.diagnosis._fitted import _reference_override, _vector_rms
+from magcal.diagnosis._fitted import _consistency_rms, _reference_override
 from magcal.diagnosis._parallel import CHAIN, SHARED, in_parallel
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, Problem, fit
 from magcal.model.effects import readings_facts, seed_readings_facts
@@ -75,7 +75,7 @@ class Candidate:
         From the refit when ``refitted``, else the predicted one.
     rms_after_nT : float
         Total-field RMS with the effect added (refit, or first-order prediction).
-    vector_rms_after_nT : float or None
+    consistency_rms_after_nT : float or None
         Consistency residual RMS per component with the effect added (coupled arrays).
     refitted : bool
     evidence : str
@@ -122,7 +122,7 @@ class Candidate:
     predicted_delta_bic: float
     delta_bic: float
     rms_after_nT: float
-    vector_rms_after_nT: float | None = None
+    consistency_rms_after_nT: float | None = None
     refitted: bool = False
     evidence: str = ""
     params: dict = field(default_factory=dict)
@@ -155,7 +155,7 @@ class Candidate:
             "lm": _num(self.lm),
             "p_value": _num(self.p_value),
             "n_params": self.n_params,
-            "vector_rms_after_nT": _num(self.vector_rms_after_nT),
+            "consistency_rms_after_nT": _num(self.consistency_rms_after_nT),
             "params": self.params,
             "held_out_rms_before_nT": _num(self.held_out_before_nT),
             "held_out_rms_after_nT": _num(self.held_out_after_nT),
@@ -464,7 +464,7 @@ class _Projector:
             "p": p,
             "dbic": float(dbic),
             "rms_tf": rms_tf,
-            "rss_vec": float(max(rss_v, 0.0)),
+            "rss_consistency": float(max(rss_v, 0.0)),
             "reduction": reduction,
         }
 
@@ -596,7 +596,7 @@ def _score_from_grams(kept, fit, groups, grams):
     base_cols = np.setdiff1d(all_cols, cand_cols)
     proj = _Projector(grams, base_cols)
     ns, n = kept.n_sensors, kept.n_samples
-    coupled = fit.vector_residuals_nT is not None
+    coupled = fit.consistency_residuals_nT is not None
     m_eff = effective_residual_count(ns, n, coupled)
     rss0 = grams.rr_all
     dof0 = m_eff - len(base_cols)
@@ -628,9 +628,9 @@ def _score_from_grams(kept, fit, groups, grams):
             if sc is None:
                 continue
             label = term_label(name, sensor)
-            vec_after = None
+            consistency_after = None
             if coupled:
-                vec_after = float(np.sqrt(sc["rss_vec"] / (ns * n * 2)))
+                consistency_after = float(np.sqrt(sc["rss_consistency"] / (ns * n * 2)))
             c = Candidate(
                 effect=name,
                 sensor=sensor,
@@ -641,7 +641,7 @@ def _score_from_grams(kept, fit, groups, grams):
                 predicted_delta_bic=sc["dbic"],
                 delta_bic=sc["dbic"],
                 rms_after_nT=sc["rms_tf"],
-                vector_rms_after_nT=vec_after,
+                consistency_rms_after_nT=consistency_after,
                 instances=inst,
                 columns=cols,
                 projector=proj,
@@ -780,7 +780,7 @@ def _confirm(dataset, fit, cands, top, coupled, fits, alongside=(), pool=None, a
         extra = _extra_dof(EFFECTS[c.effect]) * len(c.instances)
         c.delta_bic = _delta_bic(fit, f1, extra, coupled)
         c.rms_after_nT = float(f1.rms_nT)
-        c.vector_rms_after_nT = _vector_rms(f1)
+        c.consistency_rms_after_nT = _consistency_rms(f1)
         c.refitted = True
         # a term added to the model cannot raise the RMS at the minimum: a refit above the base model's RMS (or not
         # finite) stopped far from it, and its figures say nothing about the term

@@ -66,7 +66,7 @@ class Structure:
         }
 
 
-#: A spectral line at this many cycles per record or fewer is a trend, not a period (issue 28).
+#: A spectral line at this many cycles per record or fewer is a trend, not a period.
 MIN_PERIOD_CYCLES = 2.0
 
 
@@ -81,7 +81,7 @@ def _structure_tests(kept, fit, noise: NoiseEstimate, ordered, directions, n_tes
     ns, n = r_all.shape
     alpha = STRUCTURE_P / max(ns, 1) / n_tests_factor
     found, per = [], []
-    vec = fit.vector_residuals_nT
+    vec = fit.consistency_residuals_nT
     for s in range(ns):
         r = r_all[s].copy()
         st: dict = {}
@@ -230,7 +230,7 @@ def _consistency_tests(s, v, glitch, noise, ordered, alpha, st) -> list:
     # fields, whose variance is the mean of their variances (the mean sigma understates it for unequal sensors)
     ratio_v = vr / float(np.mean(np.square(noise.per_sensor_nT)))
     zv = (ratio_v - 1.0) / np.sqrt(1.0 / n + noise.relative_variance_error**2)
-    st.update(vector_rms_nT=float(np.sqrt(vr)), vector_variance_ratio=ratio_v)
+    st.update(consistency_rms_nT=float(np.sqrt(vr)), consistency_variance_ratio=ratio_v)
     if noise.source != "residuals" and zv > stats.norm.isf(alpha) and ratio_v > 1 + 2 * STRUCTURE_MIN_FRACTION:
         found.append(
             Structure(

@@ -39,7 +39,7 @@ from magcal.core.jsonable import jsonable
 from magcal.core.notes import row_runs
 from magcal.data.attitude import attitude_present
 from magcal.diagnosis import _parallel
-from magcal.diagnosis._fitted import _fit_of, _floor, _kept, _reference_override, _sensor_directions, _vector_rms
+from magcal.diagnosis._fitted import _consistency_rms, _fit_of, _floor, _kept, _reference_override, _sensor_directions
 from magcal.diagnosis._parallel import CHAIN, FILLER, SHARED, Pool
 from magcal.diagnosis.base import DiagnosisBase, progress_reporter
 from magcal.diagnosis.evidence import (
@@ -1040,7 +1040,7 @@ def _score(ctx: DiagnosisContext) -> None:
     handed to the pool to be worked out while the refits run."""
     kept, fit0, pool, directions = ctx.kept, ctx.fit0, ctx.pool, ctx.directions
     ctx.cands, ctx.proj, _ = _score_round(ctx.dataset, kept, fit0, ctx.options.candidates, pool=pool)
-    ctx.coupled = fit0.vector_residuals_nT is not None
+    ctx.coupled = fit0.consistency_residuals_nT is not None
     ctx.ordered = ordered = is_smooth_sequence(kept)
     ctx.r0 = r0 = fit0.residuals_nT[:, fit0.mask]
     ctx.futures["sh"] = [
@@ -1339,9 +1339,7 @@ def _missing_summary(ctx: DiagnosisContext) -> str:
         f"{fit0.rms_nT:.3g} to {ctx.current.rms_nT:.3g} nT (noise {ctx.noise_final.sigma_nT:.3g} nT)"
     )
     if ctx.coupled:
-        summary += (
-            f" and the inter-sensor consistency RMS from {_vector_rms(fit0):.3g} to {_vector_rms(ctx.current):.3g} nT"
-        )
+        summary += f" and the inter-sensor consistency RMS from {_consistency_rms(fit0):.3g} to {_consistency_rms(ctx.current):.3g} nT"
     return summary + _held_out_words(ctx.chosen)
 
 
@@ -1371,7 +1369,7 @@ def _unexplained_summary(ctx: DiagnosisContext) -> str:
 
 
 def _explain(ctx: DiagnosisContext) -> Diagnosis:
-    """Stage 5, explain: what this record holds against what is advice for a calibration (issue 28), the
+    """Stage 5, explain: what this record holds against what is advice for a calibration, the
     warnings, the evidence, and the :class:`Diagnosis`."""
     chosen, fit0, kept = ctx.chosen, ctx.fit0, ctx.kept
     # a temperature term on a record whose temperature follows time is never advice, judged held out or not (the

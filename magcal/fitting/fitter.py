@@ -34,8 +34,8 @@ from magcal.core import notes as _notes
 from magcal.core.blas import one_blas_thread
 from magcal.core.errors import CalibrationError, ConvergenceWarning, DataWarning
 from magcal.core.notes import Note, row_runs
+from magcal.core.rows import basis_times, cross_rows, row_norm, unit_rows
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import basis_times, cross_rows, row_norm, unit_rows
 from magcal.fitting.solver import ROBUST_SCALE, NoiseGroup, beyond, normal_covariance, reweighted_fit
 from magcal.model.terms import (
     Model,
@@ -313,7 +313,7 @@ class Problem:
 
         The chain rule through each term's basis: entries of C^-1 act through ``R e_i z_j``, the bias through
         ``-R C^-1``, the rotation through ``[e_a]x B``, raw-stage effects through ``-R C^-1 basis`` and
-        vector-stage effects through their basis. The bases' own dependence on ``z0`` and ``B`` is second order
+        array-stage effects through their basis. The bases' own dependence on ``z0`` and ``B`` is second order
         and left out. The derivatives are kept as these factors: the residuals need only their projections on
         a direction per sample (:meth:`_Derivative.project`), an (N, k) matrix, never the (N, 3, k) array.
         """
@@ -348,16 +348,16 @@ class Problem:
                 else:
                     base.append((kind, k, None, None))
             b = b_rot  # the terms below make new arrays: b_rot itself is kept for the derivatives
-            vector = []
+            array = []
             for e, es in instances:
-                if e.stage == "vector" and (es == s or (es is None and e.applies_to(s))):
-                    basis = e.vector_basis(b_rot, ctx)
+                if e.stage == "array" and (es == s or (es is None and e.applies_to(s))):
+                    basis = e.array_basis(b_rot, ctx)
                     theta = values[block_label(e, es)]
                     if np.any(theta):
                         b = b + basis_times(basis, theta)
-                    vector.append((self.blocks[block_label(e, es)], basis))
+                    array.append((self.blocks[block_label(e, es)], basis))
             fields[s] = b
-            derivs.append(_Derivative(start, base, z, cal.R, rc, b_rot, raw, vector))
+            derivs.append(_Derivative(start, base, z, cal.R, rc, b_rot, raw, array))
         return fields, derivs
 
     def _total_field_jacobian(self, x, fields, derivs) -> np.ndarray:
@@ -580,12 +580,12 @@ class _Derivative:
     for a direction per sample (N, k) and :meth:`dense` the whole (N, 3, k) array (tests, small problems).
     """
 
-    def __init__(self, start, base, z, rot, rc, b_rot, raw, vector):
+    def __init__(self, start, base, z, rot, rc, b_rot, raw, array):
         self._base, self._z, self._rot, self._rc, self._b_rot = base, z, rot, rc, b_rot
-        self._raw, self._vector = raw, vector
+        self._raw, self._array = raw, array
         self._zt = self._bt = self._one_axis = None
         cols = [start + i for i in range(len(base))]
-        for sl, _ in raw + vector:
+        for sl, _ in raw + array:
             cols.extend(range(sl.start, sl.stop))
         self.cols = np.asarray(cols, dtype=int)
 
@@ -605,7 +605,7 @@ class _Derivative:
             self._zt, self._bt = np.ascontiguousarray(self._z.T), np.ascontiguousarray(self._b_rot.T)
             self._one_axis = (
                 [self._single_axis(b) for _, b in self._raw],
-                [self._single_axis(b) for _, b in self._vector],
+                [self._single_axis(b) for _, b in self._array],
             )
         rows = slice(None) if rows is None else rows
         zt, bt = self._zt[:, rows], self._bt[:, rows]
@@ -625,7 +625,7 @@ class _Derivative:
                 np.multiply(bt[i], wt[j], out=out[:, col])
                 out[:, col] -= bt[j] * wt[i]
         col = len(self._base)
-        raw_axes, vector_axes = self._one_axis
+        raw_axes, array_axes = self._one_axis
         for (sl, basis), single in zip(self._raw, raw_axes):
             wrc = self._rc.T @ wt if wrc is None else wrc
             q = sl.stop - sl.start
@@ -635,7 +635,7 @@ class _Derivative:
             else:
                 np.multiply(-wrc[single[0]], single[1][:, rows], out=part.T)
             col += q
-        for (sl, basis), single in zip(self._vector, vector_axes):
+        for (sl, basis), single in zip(self._array, array_axes):
             q = sl.stop - sl.start
             part = out[:, col : col + q]
             if single is None:
@@ -871,7 +871,7 @@ class FitResult:
         Total-field residuals of every sample; NaN for samples left out of the fit.
     residuals_all_nT : numpy.ndarray, shape (n_sensors, N)
         Total-field residuals of every sample, rejected ones included (for display).
-    vector_residuals_nT : numpy.ndarray, shape (n_sensors, N, 2) or None
+    consistency_residuals_nT : numpy.ndarray, shape (n_sensors, N, 2) or None
         Inter-sensor consistency residuals of the kept samples (arrays with misalignment): the two components
         of ``B_s - mean_s B_s`` perpendicular to the field, scaled to one axis's noise.
     rms_nT : float
@@ -919,7 +919,7 @@ class FitResult:
     covariance: np.ndarray
     residuals_nT: np.ndarray
     residuals_all_nT: np.ndarray
-    vector_residuals_nT: np.ndarray | None
+    consistency_residuals_nT: np.ndarray | None
     rms_nT: float
     rms_per_sensor_nT: np.ndarray
     noise_nT: float
@@ -1369,7 +1369,7 @@ def _fit_result(dataset, model, problem, mask, sol: _Solution) -> FitResult:
         covariance=cov,
         residuals_nT=np.where(mask[None, :], resid_all, np.nan),
         residuals_all_nT=resid_all,
-        vector_residuals_nT=r[ns * n :].reshape(ns, n, 2) if problem.coupled else None,
+        consistency_residuals_nT=r[ns * n :].reshape(ns, n, 2) if problem.coupled else None,
         rms_nT=float(np.sqrt(np.mean(tf**2))),
         rms_per_sensor_nT=rms_per_sensor,
         noise_nT=float(np.sqrt(float(np.sum(tf**2)) / max(ns * n - p, 1))),

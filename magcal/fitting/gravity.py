@@ -1,4 +1,4 @@
-"""Gravity calibration: a magnetometer beside an accelerometer, calibrated together and judged by heading (issue 42).
+"""Gravity calibration: a magnetometer beside an accelerometer, calibrated together and judged by heading.
 
 Most magnetometers sit on a board beside an accelerometer, and their users want one figure: the tilt-compensated
 heading (:mod:`magcal.geometry.heading`). It needs more than the magnetometer's ellipsoid: the magnetometer's axes

@@ -35,8 +35,8 @@ from magcal.core import conventions
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, CoverageWarning, DataWarning
 from magcal.core.notes import Note
+from magcal.core.rows import row_norm
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import row_norm
 from magcal.data.dataset import Dataset
 from magcal.fitting import search
 from magcal.fitting.fitter import FitResult, fit, fit_reference, leave_out_rows_without_attitude
@@ -832,7 +832,7 @@ def _base_correct(calibration, dataset):
 
 
 def _store_summary(result: CalibrationResult) -> None:
-    """Write the figures into the calibration's summaries, so the saved JSON carries them (issue 2, item 9)."""
+    """Write the figures into the calibration's summaries, so the saved JSON carries them."""
     cal = result.calibration
     cal.summary = dict(cal.summary or {})
     cal.summary.update(

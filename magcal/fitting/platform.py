@@ -511,7 +511,7 @@ def intrinsic_covariance(readings_nT, cinv, bias_nT, noise_nT, total_nT=None):
 def sensor_frame_vectors(calibration, dataset) -> np.ndarray:
     """Each sensor's intrinsically corrected vectors (n_sensors, N, 3) in its own frame (``R`` set to identity).
 
-    Raw-stage effects of the calibration's model are applied; vector-stage effects (which act in the array frame)
+    Raw-stage effects of the calibration's model are applied; array-stage effects (which act in the array frame)
     are left out.
     """
 

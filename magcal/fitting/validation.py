@@ -14,7 +14,7 @@ other:
     :attr:`magcal.model.terms.Effect.transferable` False) are *interpolated* there, which is honest.
 ``scheme="later"``
     The fit uses the first part of the record, the score its last stretch (``test_fraction``): what a
-    calibration does for later data, scored exactly as ``magcal apply`` uses it on another record (issue 28):
+    calibration does for later data, scored exactly as ``magcal apply`` uses it on another record:
     the record-only terms are fitted with the base terms (so that they do not bias them) and *dropped* on the
     later stretch (:meth:`magcal.calibration.calibration.Calibration.correct` with ``record_terms="drop"``), and
     nothing is refitted or re-levelled there. A record-only term is therefore judged on later data by what it
@@ -37,7 +37,7 @@ import numpy as np
 from magcal.calibration.calibration import is_transferable
 from magcal.core import notes as _notes
 from magcal.core.errors import CalibrationError, MagcalError
-from magcal.core.vectors import unit_rows
+from magcal.core.rows import unit_rows
 from magcal.fitting.fitter import COMPARISON_COST_TOLERANCE, fit
 from magcal.fitting.pipeline import _build_model, calibrate
 from magcal.model.terms import Model
@@ -634,7 +634,7 @@ def transfers(later: Comparison, record_only: bool = False) -> bool:
     (:attr:`Comparison.does_not_rise`). A record-only term is dropped there, so what it described is gone: it
     transfers only when the calibration it leaves is measurably better, a fall by :data:`MIN_RELATIVE_GAIN` and
     beyond :data:`LATER_TOLERANCE_SE` standard errors (:attr:`Comparison.holds` and :attr:`Comparison.improves`;
-    on the real recordings of issue 28 a fall of 0.7 % on the later stretch became a rise of 2 % on new data)."""
+    on real recordings a fall of 0.7 % on the later stretch became a rise of 2 % on new data)."""
     return bool(later.holds and later.improves) if record_only else bool(later.does_not_rise)
 
 

@@ -1,4 +1,4 @@
-"""Vector calibration with attitude: platforms that turn in yaw but cannot tumble (issue 29).
+"""Vector calibration with attitude: platforms that turn in yaw but cannot tumble.
 
 A vehicle, an aircraft or a ship sees the Earth's field over a cone of directions, not a sphere: a total-field fit
 is not determined there. With the body's attitude ``q`` (body -> north-east-down, :mod:`magcal.data.attitude`)
@@ -581,7 +581,7 @@ def vector_model(dataset, effects=(), terms=None) -> Model:
         if e.stage != "raw":
             raise CalibrationError(
                 f"{e.label}: a vector fit takes effects that act on a sensor's raw reading; this one acts on the "
-                f"{'array frame' if e.stage == 'vector' else 'reference total field'}: fit it in scalar mode"
+                f"{'array frame' if e.stage == 'array' else 'reference total field'}: fit it in scalar mode"
             )
         if not e.per_sensor and dataset.n_sensors > 1:
             raise CalibrationError(f"{e.label}: shared by the sensors of an array; a vector fit fits each sensor alone")

@@ -47,8 +47,8 @@ import scipy.linalg
 
 from magcal.core import conventions
 from magcal.core.errors import CalibrationError
+from magcal.core.rows import row_norm, unit_rows
 from magcal.core.stats import robust_sigma
-from magcal.core.vectors import row_norm, unit_rows
 from magcal.geometry.sphere import direction_cover, sphere_centre
 
 #: Fewest samples accepted: 9 parameters plus one degree of freedom to measure a residual.

@@ -1,4 +1,4 @@
-"""The tilt-compensated compass: heading, dip and tilt from an accelerometer and a magnetometer (issue 42).
+"""The tilt-compensated compass: heading, dip and tilt from an accelerometer and a magnetometer.
 
 Frames. The board's (the accelerometer's) axes: ``x`` forward, ``y`` right, ``z`` down when level. A still
 accelerometer reads the specific force, ``+g`` up, so down is ``d = -a / |a|``. With ``m`` the field in the same

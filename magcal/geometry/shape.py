@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.core.errors import CalibrationError
-from magcal.core.vectors import row_norm
+from magcal.core.rows import row_norm
 from magcal.geometry.ellipsoid import MIN_SAMPLES, fit_ellipsoid
 from magcal.geometry.sphere import fibonacci_sphere, sphere_centre
 

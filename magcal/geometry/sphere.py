@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magcal.core.vectors import row_norm
+from magcal.core.rows import row_norm
 
 
 def fibonacci_sphere(n):

@@ -4,7 +4,7 @@ Every effect here is an :class:`magcal.model.terms.Effect` registered in :data:`
 Each one says
 
 * what it adds to the readings (its *basis*, the Jacobian of the correction with respect to its parameters, in
-  the stage of :mod:`magcal.model.terms`: ``raw`` acts on one sensor's raw reading in its own axes, ``vector`` on the
+  the stage of :mod:`magcal.model.terms`: ``raw`` acts on one sensor's raw reading in its own axes, ``array`` on the
   corrected vector in the array frame, ``reference`` on the expected total field);
 * its parameters, with units chosen so that the numbers read naturally (nT/K, ppm/K, nT/h, ms, nT/m...), and
   :meth:`~magcal.model.terms.Effect.param_scale`, the size of each parameter that moves the readings by about 1 nT;
@@ -39,8 +39,8 @@ from scipy.special import eval_legendre
 
 from magcal.core.errors import MagcalError
 from magcal.core.readings_cache import ReadingsCache
+from magcal.core.rows import row_norm
 from magcal.core.stats import savgol, savgol_derivative
-from magcal.core.vectors import row_norm
 from magcal.data.attitude import turn_rate_dps
 from magcal.geometry.shape import field_shape
 from magcal.model.operators import GRADIENT_BASIS, NONLINEARITY_REFERENCE_NT, play_operator
@@ -111,7 +111,7 @@ def smoothed_readings(values, time_s, span_s=REVERSAL_SMOOTHING_S):
 
     The hysteresis term takes its reversals (the play operator's turning points) from this fitted field, not
     from the noisy readings: at 100 Hz the noise of a few nT turns the play operator of a few-nT loop back and
-    forth while an axis changes slowly (issue 28).
+    forth while an axis changes slowly.
     """
     values = np.asarray(values, dtype=float)
     if time_s is None or len(time_s) < 7:
@@ -909,7 +909,7 @@ def _at_the_jump(cost, lo, hi, readings_nT):
     """The step's first sample ``k`` in ``[lo, hi]`` from the profile ``cost[k]`` (nT^2) of a step before sample
     ``k``: its minimum, unless that falls inside a still stretch where the readings do not jump -- a step there
     would show as a jump of the readings, so it cannot be -- and then the edge of the still stretch (the first
-    sample where the readings jump, before or after it) with the lower cost (issue 28: a step was placed inside a
+    sample where the readings jump, before or after it) with the lower cost (a step was placed inside a
     still head, seconds before the visible jump)."""
     window = cost[lo : hi + 1]
     k = lo + int(np.argmin(window))
@@ -1032,7 +1032,7 @@ class BiasStep(CatalogueEffect):
         return f"a step of {_axes_text(values)} nT{where}"
 
     def kept_raw_level(self, values):
-        """The bias *after* the step is kept for new data: the sensor stays permed (issue 28: measured on six real
+        """The bias *after* the step is kept for new data: the sensor stays permed (measured on six real
         recordings, fitted on the first half and applied to the second, the level after the step transfers best;
         the level before it raised the held-out error up to 4.7x; benchmarks/notes/real.md, "kept level")."""
         return np.asarray(values, dtype=float).reshape(3)
@@ -1325,7 +1325,7 @@ class SensorTimingSkew(CatalogueEffect):
 
     name: ClassVar[str] = "sensor_timing_skew"
     signature: ClassVar[str] = "inter-sensor differences ~ dt dB/dt"
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("time",)
     min_sensors: ClassVar[int] = 2
     description: ClassVar[str] = "sensors 2-4 sampled late relative to sensor 1, B_i(t - dt_i) [ms]"
@@ -1347,7 +1347,7 @@ class SensorTimingSkew(CatalogueEffect):
     def param_scale(self):
         return np.array([0.1])
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         rate = time_derivative(field_nT, ctx.time_s)
         return 1e-3 * rate[:, :, None]
 
@@ -1932,7 +1932,7 @@ class SiteGradient(CatalogueEffect):
     when_recording: ClassVar[str] = (
         "the field is not uniform over the path of the array: turn it in place, away from iron, or record its attitude and position"
     )
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("attitude",)
     per_sensor: ClassVar[bool] = False
     min_sensors: ClassVar[int] = 2
@@ -1949,7 +1949,7 @@ class SiteGradient(CatalogueEffect):
     def param_scale(self):
         return np.full(5, 4.0)
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         def compute():
             att = ctx.attitude
             world_offset = att.apply(np.asarray(ctx.position_m, dtype=float))  # (N, 3) m
@@ -2239,7 +2239,7 @@ class SensorJitter(CatalogueEffect):
 
     name: ClassVar[str] = "sensor_jitter"
     signature: ClassVar[str] = "inter-sensor residual variance grows with the turn rate squared"
-    stage: ClassVar[str] = "vector"
+    stage: ClassVar[str] = "array"
     channels: ClassVar[tuple] = ("time",)
     min_sensors: ClassVar[int] = 2
     variance_term: ClassVar[bool] = True
@@ -2267,7 +2267,7 @@ class SensorJitter(CatalogueEffect):
     def param_bounds(self):
         return np.zeros(1), np.full(1, np.inf)
 
-    def vector_basis(self, field_nT, ctx: Context):
+    def array_basis(self, field_nT, ctx: Context):
         acceleration = time_derivative(time_derivative(field_nT, ctx.time_s), ctx.time_s)
         return 0.5e-6 * acceleration[:, :, None]
 

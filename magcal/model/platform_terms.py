@@ -1,4 +1,4 @@
-"""Fields of the platform a vector calibration fits beside the soft and hard iron (issue 29).
+"""Fields of the platform a vector calibration fits beside the soft and hard iron.
 
 Every term adds to a sensor's raw reading, in the sensor's own axes (nT), and is linear in its parameters, as the
 catalogue effects of the ``raw`` stage are (:mod:`magcal.model.terms`): the corrected body-frame field is

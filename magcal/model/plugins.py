@@ -21,7 +21,7 @@ the effect loaded again), ``apply``, ``simulate --hidden NAME`` when it has a pe
 
 Every effect class is checked before it joins (:func:`validate_effect`): a name that is new (a built-in, a base
 term or another source's effect of that name is refused) and usable on the command line, a stage of ``raw``,
-``vector`` or ``reference`` with that stage's basis implemented, known channels, parameter names, scales of the
+``array`` or ``reference`` with that stage's basis implemented, known channels, parameter names, scales of the
 same length, a state that survives JSON, and a dry run of ``configure`` and the basis on a small synthetic
 four-sensor record (its shapes and finiteness). Errors in the user's file -- a syntax error, a failed import, an
 exception while it runs, a class that fails the checks -- become one :class:`UserEffectError` naming the file,
@@ -63,7 +63,7 @@ from magcal.model.terms import BASE_TERMS, EFFECTS, Effect, contexts
 ENTRY_POINT_GROUP = "magcal.effects"
 
 #: The stages an effect may act in, and the basis method each one needs (see :mod:`magcal.model.terms`).
-STAGE_METHODS = {"raw": "raw_basis", "vector": "vector_basis", "reference": "reference_basis"}
+STAGE_METHODS = {"raw": "raw_basis", "array": "array_basis", "reference": "reference_basis"}
 
 #: What an effect name may look like: it is typed on the command line as ``NAME`` or ``NAME:S``.
 NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
@@ -219,7 +219,7 @@ def validate_effect(cls, source_key=None, path=None) -> str:
     stage = getattr(cls, "stage", None)
     if stage not in STAGE_METHODS:
         raise UserEffectError(
-            f"{where}: stage {stage!r} is not one of raw, vector, reference; set stage to where "
+            f"{where}: stage {stage!r} is not one of raw, array, reference; set stage to where "
             f"the term acts (docs/architecture.md, {DOC})"
         )
     method = STAGE_METHODS[stage]
@@ -328,8 +328,8 @@ def _dry_run(cls, where, q):
         with _user_code(where, f"in a dry run of {STAGE_METHODS[stage]} on a synthetic 240-sample record"):
             if stage == "raw":
                 basis = effect.raw_basis(ds.readings_nT[ctx.sensor] - 0.0, ctx)
-            elif stage == "vector":
-                basis = effect.vector_basis(ds.readings_nT[ctx.sensor], ctx)
+            elif stage == "array":
+                basis = effect.array_basis(ds.readings_nT[ctx.sensor], ctx)
             else:
                 basis = effect.reference_basis(ctx)
         expected = (n, q) if stage == "reference" else (n, 3, q)

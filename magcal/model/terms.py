@@ -9,7 +9,7 @@ How a term acts is fixed by its ``stage`` (see ``docs/architecture.md``). For se
     z0  = y - b                                    base: bias
     z   = z0 - sum raw_basis(z0, ctx) @ theta      stage "raw"        (sensor frame, nT)
     B   = R C^-1 z                                 base: scale, non_orthogonality, misalignment
-    B  += sum vector_basis(B, ctx) @ theta         stage "vector"     (array frame, nT)
+    B  += sum array_basis(B, ctx) @ theta          stage "array"      (array frame, nT)
     F   = F0 + sum reference_basis(ctx) @ theta    stage "reference"  (nT)
 
 Every candidate term is linear in its parameters; the basis it returns is its Jacobian with respect to them
@@ -341,7 +341,7 @@ class Effect:
     ----------
     name : str
         Catalogue name, used identically by the API, the CLI, JSON and the workbench.
-    stage : {'raw', 'vector', 'reference'}
+    stage : {'raw', 'array', 'reference'}
         Where the term acts (see the module docstring).
     channels : tuple of str
         Dataset channels required (keys of :data:`magcal.data.dataset.CHANNELS`).
@@ -400,6 +400,15 @@ class Effect:
     held_out_blocks: ClassVar[bool] = True
 
     sensor: int | None = None
+
+    def __init_subclass__(cls, **kwargs):
+        """Read an effect class written with the array stage's former names: ``stage = "vector"`` is stage
+        ``"array"`` and a ``vector_basis`` method is its :meth:`array_basis` (``docs/user-effects.md``)."""
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("stage") == "vector":
+            cls.stage = "array"
+        if "vector_basis" in cls.__dict__ and "array_basis" not in cls.__dict__:
+            cls.array_basis = cls.__dict__["vector_basis"]
 
     # --- declared by subclasses -------------------------------------------------------------------------------
     def param_names(self) -> list[str]:
@@ -493,8 +502,8 @@ class Effect:
         parameters each move one axis may be returned as a :class:`SingleAxisBasis` (the fitter is faster on it)."""
         raise NotImplementedError
 
-    def vector_basis(self, field_nT, ctx: Context) -> np.ndarray:
-        """Stage 'vector': basis (N, 3, q); the array-frame field becomes ``B + basis @ theta``."""
+    def array_basis(self, field_nT, ctx: Context) -> np.ndarray:
+        """Stage 'array': basis (N, 3, q); the array-frame field becomes ``B + basis @ theta``."""
         raise NotImplementedError
 
     def reference_basis(self, ctx: Context) -> np.ndarray:
@@ -684,7 +693,7 @@ def check_effect_names(specs, where: str = "", option: str = "--effects-file FIL
 
 
 #: Stages whose terms change the corrected vectors (``reference`` terms change only the expected total field).
-VECTOR_STAGES = ("raw", "vector")
+CORRECTION_STAGES = ("raw", "array")
 
 
 def block_label(effect, sensor) -> str:

@@ -58,7 +58,7 @@ from magcal.data.io import (
     write_rows,
 )
 from magcal.data.logs import is_log, read_log
-from magcal.model.terms import VECTOR_STAGES
+from magcal.model.terms import CORRECTION_STAGES
 
 #: Output formats: corrected vectors and tensor components to 1 pT / 1 pT/m; invariants to 7 significant digits.
 VECTOR_FORMAT = "%.3f"
@@ -735,14 +735,14 @@ def record_choice(
     and another length is refused by the correcting pass, with the same message.
     """
 
-    if not calibration.record_terms(VECTOR_STAGES):
+    if not calibration.record_terms(CORRECTION_STAGES):
         return "apply", None
     fingerprint = None
     record = calibration.record
     if record_terms is None and record:
         fingerprint = survey_fingerprint(survey_path, record.get("n_samples"), columns, units, drop_bad, chunk_rows)
     dropped, note = calibration.record_decision(
-        None, record_terms, VECTOR_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
+        None, record_terms, CORRECTION_STAGES, fingerprint=fingerprint if fingerprint is not None else {}
     )
     return ("drop" if dropped else "apply"), note
 
