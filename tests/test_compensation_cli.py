@@ -101,8 +101,12 @@ def test_diagnose_names_the_current(flights, capsys):
 def test_magnav_columns_with_a_mapping(tmp_path, capsys):
     flight = simulate_compensation_flight(3)
     path = _write(flight, tmp_path / "magnav.parquet", "mag_1_uc", ("flux_a_x", "flux_a_y", "flux_a_z"))
-    assert main(["calibrate", str(path), "--json"]) == 2  # the fluxgate is not x, y, z
-    capsys.readouterr()
+    assert main(["calibrate", str(path), "--json"]) == 0  # the fluxgate found by name (flux_a_x ...)
+    assert json.loads(capsys.readouterr().out)["calibration"]["fluxgate_columns"] == [
+        "flux_a_x",
+        "flux_a_y",
+        "flux_a_z",
+    ]
     csv = _write(flight, tmp_path / "magnav.csv", "mag_1_uc", ("flux_a_x", "flux_a_y", "flux_a_z"))
     assert main(["calibrate", str(csv), "--columns", "x=flux_a_x,y=flux_a_y,z=flux_a_z", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)

@@ -21,6 +21,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import dataset_columns, dataset_metadata
+from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import (
     atomic_write,
     check_output_path,
@@ -28,6 +29,7 @@ from magcal.data.io import (
     metadata_text,
     parquet_table,
     parquet_write_options,
+    parse_column_mapping,
     read_csv,
     write_rows,
 )
@@ -100,11 +102,17 @@ def apply_compensation_file(
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
     if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
-    dataset = read_csv(survey_path, columns=columns, units=units, drop_bad=drop_bad, warn=False)
+    dataset = read_csv(
+        survey_path,
+        columns=line_mapping(compensation, survey_path, columns),
+        units=units,
+        drop_bad=drop_bad,
+        warn=False,
+    )
     name = compensated_column(compensation)
     if name in dataset.extra:
         raise MagcalError(f"{survey_path}: the line already has a column {name} (is it an apply output?)")
-    record = compensation_record(dataset, compensation.scalar_column)
+    record = line_record(compensation, dataset)
     values = compensation.compensate(record)
     notes = [note.text for note in dataset.notes]
     kept_lines = not is_parquet(survey_path) and not is_parquet(output_path)
@@ -126,6 +134,23 @@ def apply_compensation_file(
                 csv.writer(out, lineterminator="\n").writerow(list(columns_out))
                 write_rows(out, columns_out)
     return CompensationSummary(int(values.size), name, output_path, notes)
+
+
+def line_mapping(compensation: Compensation, path, columns=None) -> dict | None:
+    """The column mapping a line is read with: the user's, plus the fluxgate the compensation was fitted on (or the
+    first the line names) and MagNav.jl's time ``tt`` (:func:`magcal.data.flight_columns.flight_mapping`)."""
+    given = parse_column_mapping(columns) if isinstance(columns, str) else dict(columns or {})
+    mapping = flight_mapping(header_names(path), given, preferred=compensation.fluxgate_columns)
+    return mapping or None
+
+
+def line_record(compensation: Compensation, dataset):
+    """A line's :class:`~magcal.fitting.compensation.CompensationRecord`, with the compensation's scalar and current
+    columns."""
+    current = compensation.current_column if "current" in compensation.effects else None
+    if current not in dataset.extra:
+        current = None  # the compensation says which column the line lacks
+    return compensation_record(dataset, compensation.scalar_column, current)
 
 
 def _append_to_lines(survey_path: str, output_path: str, name: str, values) -> bool:
