@@ -211,7 +211,8 @@ def run(args) -> int:
 
 def _run_compensation(args, parallel) -> int:
     """``magcal apply`` of a compensation (``kind: "compensation"``): each line gets ``<scalar>_comp``; several
-    lines go into the folder ``-o``, each as ``<name>_comp`` in ``--format``."""
+    lines go into the folder ``-o``, each as ``<name>_comp`` in ``--format``; with ``--workers``/``--scheduler``,
+    Dask partitions each read with a margin of samples (:mod:`magcal.output.compensated_survey`) into ``-o``."""
     if args.uncertainty or args.record_terms or args.force:
         raise MagcalError(
             "--uncertainty, --record-terms and --force are for a magnetometer's calibration, not a compensation"

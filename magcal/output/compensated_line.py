@@ -6,7 +6,8 @@ sample's neighbours), takes the fluxgate (x, y, z), the scalar column the compen
 compensation has those terms, the current or throttle and the temperature, and writes the line with one more column:
 ``<scalar>_comp`` (nT), the compensated scalar. A CSV line is written back as it was read (every input line, the
 new column appended) when no row was dropped; otherwise, and for Parquet, the columns as magcal reads them (readings
-in nT) plus the new one, to CSV or Parquet by the output's name.
+in nT) plus the new one, to CSV or Parquet by the output's name. The line's fluxgate and time are found by name as
+the flight's were (:func:`line_mapping`); on Dask partitions: :mod:`magcal.output.compensated_survey`.
 """
 
 from __future__ import annotations
@@ -38,7 +39,14 @@ from magcal.fitting.compensation import Compensation, compensation_record, is_co
 #: The compensated scalar to 1 pT.
 COMPENSATED_FORMAT = "%.3f"
 
-__all__ = ["CompensationSummary", "apply_compensation_file", "compensated_column", "is_compensation_file"]
+__all__ = [
+    "CompensationSummary",
+    "apply_compensation_file",
+    "compensated_column",
+    "is_compensation_file",
+    "line_mapping",
+    "line_record",
+]
 
 
 def is_compensation_file(path) -> bool:

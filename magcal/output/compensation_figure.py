@@ -67,6 +67,7 @@ def write_compensation_figure(result, path) -> str:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.transforms import Bbox
 
     if result.fom is None or result.record is None:
         raise MagcalError("--figure: the compensation has no FOM table to draw (no maneuvers found)")
@@ -112,7 +113,7 @@ def write_compensation_figure(result, path) -> str:
     header, rows = _table_rows(fom)
     widths = [0.13] + [0.87 / (len(header) - 1)] * (len(header) - 1)
     table = table_ax.table(
-        cellText=rows, colLabels=header, colWidths=widths, bbox=[0.0, 0.0, 1.0, 0.92], cellLoc="center"
+        cellText=rows, colLabels=header, colWidths=widths, bbox=Bbox.from_bounds(0.0, 0.0, 1.0, 0.92), cellLoc="center"
     )
     table.auto_set_font_size(False)
     table.set_fontsize(8.5)
