@@ -18,8 +18,10 @@ Run: ``python benchmarks/compensation.py`` (a few seconds).
    induced5, eddy8) and a ridge; last, 8 more pairs of flights with the maneuvers found from the fluxgate alone.
 3. The hidden-term flights (:mod:`magcal.diagnosis.compensation`): flights A (seed 1) and B (seed 2) with one term
    TL lacks each (none; a current's field of 2 nT/A; the fluxgate 100 ms behind the scalar; a fluxgate off by 5 %
-   in scale, 1.7 deg of non-orthogonality and 1-2 uT of bias): the diagnosis of A on held-out maneuvers, what it
-   names, and the FOM on B of TL alone, of TL with the terms named, and of the true compensation.
+   in scale, 1.7 deg of non-orthogonality and 1-2 uT of bias; a permanent field drifting by 0.3-0.5 nT per degC as
+   the platform warms 12 degC), every flight's temperature recorded (it warms whether or not the platform's field
+   follows it): the diagnosis of A on held-out maneuvers, what it names, and the FOM on B of TL alone, of TL with
+   the terms named, and of the true compensation.
 """
 
 from __future__ import annotations
@@ -192,6 +194,7 @@ HIDDEN = {
         "fluxgate_matrix": np.array([[1.05, 0.0, 0.0], [0.03, 0.95, 0.0], [-0.03, 0.03, 1.025]]),
         "fluxgate_bias_nT": np.array([1000.0, -1500.0, 700.0]),
     },
+    "temperature 0.3-0.5 nT/degC": {"platform": CompensationPlatform(temperature_nT_per_C=np.array([-0.4, 0.3, -0.5]))},
 }
 
 
@@ -203,6 +206,7 @@ def _record(flight):
         attitude_deg=flight.attitude_deg,
         current=flight.current_A,
         current_column="current_A",
+        temperature_C=flight.temperature_C,
     )
 
 
@@ -232,6 +236,9 @@ def hidden_section():
 
 
 if __name__ == "__main__":
-    magnav_section()
-    simulated_section()
+    import sys
+
+    if "--hidden" not in sys.argv:  # --hidden: the hidden-term table alone
+        magnav_section()
+        simulated_section()
     hidden_section()

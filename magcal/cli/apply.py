@@ -33,6 +33,7 @@ from magcal.data.io import PARQUET_CODECS, check_output_path
 from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import apply_file, load_calibration
 from magcal.output.compensated_line import apply_compensation_file, is_compensation_file
+from magcal.output.compensated_survey import apply_compensation_partitioned
 from magcal.output.survey import TASKS_PER_WORKER, WORKERS_PER_CORE, apply_partitioned, check_workers
 
 
@@ -210,16 +211,28 @@ def run(args) -> int:
 
 def _run_compensation(args, parallel) -> int:
     """``magcal apply`` of a compensation (``kind: "compensation"``): each line gets ``<scalar>_comp``; several
-    lines go into the folder ``-o``, each as ``<name>_comp`` in ``--format``."""
-    if args.workers is not None or args.scheduler is not None:
-        raise MagcalError(
-            f"{args.calibration}: a compensation is applied line by line (its eddy terms need each sample's "
-            "neighbours), not on Dask partitions: leave out --workers/--scheduler (several lines go into the folder -o)"
-        )
+    lines go into the folder ``-o``, each as ``<name>_comp`` in ``--format``; with ``--workers``/``--scheduler``,
+    Dask partitions each read with a margin of samples (:mod:`magcal.output.compensated_survey`) into ``-o``."""
     if args.uncertainty or args.record_terms or args.force:
         raise MagcalError(
             "--uncertainty, --record-terms and --force are for a magnetometer's calibration, not a compensation"
         )
+    if args.workers is not None or args.scheduler is not None:  # partitions read with a margin of samples
+        summary = apply_compensation_partitioned(
+            args.calibration,
+            args.data,
+            args.output,
+            fmt=args.format,
+            workers=args.workers or 2,
+            scheduler=args.scheduler,
+            partition_rows=args.partition_rows,
+            columns=args.columns,
+            units=args.units,
+            drop_bad=args.drop_bad,
+            compression=args.compression,
+        )
+        print(summary.text())
+        return 0
     targets = [args.output]
     if parallel:
         os.makedirs(args.output, exist_ok=True)

@@ -4,7 +4,8 @@
 Example::
 
     magcal calibrate box.csv --mode compensation -o comp.json --figure fom.png   # scalar_nT beside x, y, z
-    magcal calibrate box.csv --scalar mag_1_uc --columns x=flux_a_x,y=flux_a_y,z=flux_a_z
+    magcal calibrate Flt1002.csv                                 # MagNav.jl's names: mag_1_uc, flux_a_*, tt
+    magcal calibrate Flt1002.csv --scalar mag_4_uc --fluxgate flux_d --current cur_strb
     magcal diagnose box.csv --mode compensation                  # candidates judged on held-out maneuvers
     magcal diagnose box.csv --mode compensation --also box2.csv  # ... or on a second flight
     magcal calibrate box.csv --mode compensation --effects current,time_offset -o comp.json
@@ -12,7 +13,9 @@ Example::
     magcal export comp.json --format magnav-tl -o tl.json        # TL_coef in MagNav.jl's order
 
 ``--mode auto`` (the default) takes it when the record has a scalar magnetometer's column
-(:data:`magcal.fitting.compensation.SCALAR_COLUMNS`, or ``--scalar NAME``) beside the fluxgate's x, y, z.
+(:data:`magcal.fitting.compensation.SCALAR_COLUMNS`, or ``--scalar NAME``) beside the fluxgate's x, y, z. The
+fluxgate, the time, the attitude and a current are found by name too, MagNav.jl's included
+(:mod:`magcal.data.flight_columns`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ import sys
 from magcal.cli.fit_report import report_fit
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
-from magcal.data.io import CsvSource, is_parquet, parse_column_mapping
+from magcal.data.flight_columns import flight_mapping, header_names
+from magcal.data.io import parse_column_mapping
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
@@ -44,7 +48,21 @@ def add_compensation_arguments(parser, figure: bool = True) -> None:
         default=None,
         metavar="NAME",
         help="compensation mode: the scalar magnetometer's column (default the first of scalar_nT, scalar, "
-        "mag_1_uc ... the file has); the fluxgate is x, y, z (map it with --columns)",
+        "mag_1_uc ... the file has)",
+    )
+    parser.add_argument(
+        "--fluxgate",
+        default=None,
+        metavar="NAME",
+        help="compensation mode: the fluxgate, by its columns' prefix (flux_b for flux_b_x, flux_b_y, flux_b_z); "
+        "default x, y, z, else the first fluxgate the file names (flux_a_x ..., flux_x ..., fluxgate_x ...)",
+    )
+    parser.add_argument(
+        "--current",
+        default=None,
+        metavar="NAME",
+        help="compensation mode: the current's column for the current term (default current_A, throttle, else "
+        "MagNav.jl's cur_outpwr, cur_strb, cur_com_1 ... the first the file has)",
     )
     parser.add_argument(
         "--tl-terms",
@@ -77,23 +95,9 @@ def wants_compensation(args) -> bool:
         return True
     if mode != "auto":
         return False
-    names = _column_names(args.data, args.columns, args.units)
+    names = header_names(args.data)
     scalar = getattr(args, "scalar", None)
     return (scalar in names) if scalar is not None else any(name in names for name in SCALAR_COLUMNS)
-
-
-def _column_names(path, columns, units) -> list:
-    """The columns a CSV or Parquet file holds by name ([] when it cannot be read: the reader says why later)."""
-    try:
-        if is_parquet(path):
-            import pyarrow.parquet as pq
-
-            return list(pq.read_schema(path).names)
-        mapping = parse_column_mapping(columns) if isinstance(columns, str) else columns
-        with CsvSource(path, columns=mapping, units=units) as src:
-            return list(src.header)
-    except (MagcalError, OSError, ValueError, ImportError):
-        return []
 
 
 def compensation_options(args) -> dict:
@@ -114,9 +118,17 @@ def compensation_effects(args) -> tuple:
 def _record(args, read_input, path=None):
     if path is not None:
         args = _with_data(args, path)
+    given = parse_column_mapping(args.columns) if isinstance(args.columns, str) else dict(args.columns or {})
+    try:
+        mapping = flight_mapping(header_names(args.data), given, getattr(args, "fluxgate", None))
+    except MagcalError as exc:
+        raise MagcalError(f"{args.data}: {exc}") from None
+    found = tuple(mapping[k] for k in ("s1x", "s1y", "s1z")) if "s1x" in mapping and "s1x" not in given else None
+    args = copy.copy(args)
+    args.columns = mapping or None
     ds, notes = read_input(args)
     try:
-        return compensation_record(ds, getattr(args, "scalar", None)), notes
+        return compensation_record(ds, getattr(args, "scalar", None), getattr(args, "current", None), found), notes
     except MagcalError as exc:
         text = str(exc)
         raise MagcalError(text if text.startswith(f"{args.data}") else f"{args.data}: {text}") from None
@@ -134,8 +146,10 @@ def run_compensation(args, read_input) -> int:
     options = compensation_options(args)
     record, notes = _record(args, read_input)
     print(
-        f"magcal calibrate: compensation mode; scalar {record.scalar_column!r} beside the fluxgate (x, y, z), "
-        f"{record.sample_rate_hz:g} Hz; terms beyond TL: {', '.join(effects) or 'none'}",
+        f"magcal calibrate: compensation mode; scalar {record.scalar_column!r} beside the fluxgate "
+        f"({', '.join(record.fluxgate_columns or ('x', 'y', 'z'))}), {record.sample_rate_hz:g} Hz"
+        + (f", current {record.current_column!r}" if record.current_column else "")
+        + f"; terms beyond TL: {', '.join(effects) or 'none'}",
         file=sys.stderr,
     )
     result = COMPENSATION.fit(record, effects=effects, **options)

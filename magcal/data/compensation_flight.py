@@ -3,13 +3,15 @@
 Four headings (0, 90, 180, 270 deg by default); on each, after a straight stretch, rolls of +-10 deg, pitches of
 +-5 deg and yaws of +-5 deg, a few cycles each, with straight stretches between, and a banked turn to the next
 heading. A platform carries a permanent field, an induced field and eddy currents (and, hidden from the
-Tolles-Lawson model if asked, a field per ampere of a current and a fluxgate that lags the scalar). It records a
-scalar magnetometer and a fluxgate's vector in the body frame.
+Tolles-Lawson model if asked, a field per ampere of a current, a permanent field that drifts with the temperature
+and a fluxgate that lags the scalar). It records a scalar magnetometer, a fluxgate's vector in the body frame and
+the platform's temperature (it warms through the flight).
 
 Physics, in the body frame (nT), written from the fields themselves, not from the Tolles-Lawson design::
 
     B_e(t)   = R(t)^T B_ned                      (R: body -> NED, aerospace ZYX roll, pitch, yaw)
-    B_p(t)   = p + A B_e + E dB_e/dt + k I(t)     (p nT, A dimensionless, E s, k nT/A)
+    B_p(t)   = p + A B_e + E dB_e/dt + k I(t) + q (T(t) - T_ref)
+                                                  (p nT, A dimensionless, E s, k nT/A, q nT/degC)
     scalar   = |B_e + B_p| + background(t) + noise
     fluxgate = W B_e(t - lag) + b + noise        (W, b: the fluxgate's own scale, non-orthogonality and bias)
 
@@ -49,6 +51,10 @@ class CompensationPlatform:
         ``E``: the eddy field per body-field rate (nT per nT/s = s).
     current_nT_per_A : numpy.ndarray, shape (3,), or None
         ``k``: a field per ampere of the ``current_A`` series, hidden from the Tolles-Lawson terms.
+    temperature_nT_per_C : numpy.ndarray, shape (3,), or None
+        ``q``: the permanent field's drift per degC of the platform's temperature away from
+        :data:`REFERENCE_TEMPERATURE_C` (magnetised steel loses magnetisation as it warms), hidden from the
+        Tolles-Lawson terms.
     """
 
     permanent_nT: np.ndarray = field(default_factory=lambda: np.array([60.0, -35.0, 80.0]))
@@ -59,6 +65,11 @@ class CompensationPlatform:
         default_factory=lambda: np.array([[2e-4, -5e-5, 8e-5], [3e-5, 1.5e-4, -6e-5], [-4e-5, 7e-5, 2.5e-4]])
     )
     current_nT_per_A: np.ndarray | None = None
+    temperature_nT_per_C: np.ndarray | None = None
+
+
+#: The temperature the platform's permanent field ``p`` is at (degC).
+REFERENCE_TEMPERATURE_C = 20.0
 
 
 @dataclass(frozen=True)
@@ -129,6 +140,8 @@ class CompensationFlight:
         Roll, pitch, yaw (aerospace ZYX, deg).
     current_A : numpy.ndarray, shape (N,)
         The platform's current (A), zero without a current field.
+    temperature_C : numpy.ndarray, shape (N,)
+        The platform's temperature (degC): it warms by ``warming_C`` through the flight, with a slow swing.
     truth : CompensationTruth
     """
 
@@ -138,6 +151,7 @@ class CompensationFlight:
     flux_nT: np.ndarray
     attitude_deg: np.ndarray
     current_A: np.ndarray
+    temperature_C: np.ndarray
     truth: CompensationTruth
 
 
@@ -202,6 +216,16 @@ def _current(n, rate_hz, rng):
     return np.convolve(current, np.ones(width) / width, mode="same")
 
 
+def _temperature(time_s, warming_C: float, seed: int) -> np.ndarray:
+    """The platform's temperature (degC): from 15 degC it warms by ``warming_C`` over the flight (an engine's and
+    the avionics' heat), with a swing of a quarter of that over a few minutes; its own random stream, so the
+    flight's other draws do not depend on it."""
+    rng = np.random.default_rng([int(seed), 7])
+    frac = time_s / max(float(time_s[-1]), 1.0)
+    swing = 0.25 * warming_C * np.sin(2 * np.pi * time_s / rng.uniform(240.0, 360.0) + rng.uniform(0, 2 * np.pi))
+    return 15.0 + warming_C * (1.0 - np.exp(-3.0 * frac)) / (1.0 - np.exp(-3.0)) + swing
+
+
 def simulate_compensation_flight(
     seed: int = 0,
     *,
@@ -221,6 +245,7 @@ def simulate_compensation_flight(
     fluxgate_lag_s: float = 0.0,
     fluxgate_matrix=None,
     fluxgate_bias_nT=None,
+    warming_C: float = 12.0,
 ) -> CompensationFlight:
     """Simulate a compensation flight with known platform fields.
 
@@ -255,6 +280,9 @@ def simulate_compensation_flight(
         ``W``: the fluxgate's scale and non-orthogonality (the identity by default): it reads ``W B_e + b``.
     fluxgate_bias_nT : array_like, shape (3,), optional
         ``b``: the fluxgate's bias (nT, zeros by default).
+    warming_C : float
+        How much the platform warms through the flight (degC); its temperature is recorded whether or not the
+        platform's field follows it (``platform.temperature_nT_per_C``).
 
     Returns
     -------
@@ -282,6 +310,10 @@ def simulate_compensation_flight(
     if platform.current_nT_per_A is not None:
         current = _current(n, sample_rate_hz, rng)
         platform_field = platform_field + current[:, None] * np.asarray(platform.current_nT_per_A)[None, :]
+    temperature = _temperature(t, warming_C, seed)
+    if platform.temperature_nT_per_C is not None:
+        warmer = (temperature - REFERENCE_TEMPERATURE_C)[:, None]
+        platform_field = platform_field + warmer * np.asarray(platform.temperature_nT_per_C, dtype=float)[None, :]
     earth_total = np.linalg.norm(earth, axis=1)
     platform_scalar = np.linalg.norm(earth + platform_field, axis=1) - earth_total
     background = drift_nT * np.sin(2 * np.pi * t / (2.5 * t[-1]) + rng.uniform(0, 2 * np.pi))
@@ -308,4 +340,4 @@ def simulate_compensation_flight(
     )
     attitude = attitude_fine[keep].copy()
     attitude[:, 2] = np.mod(attitude[:, 2], 360.0)
-    return CompensationFlight(t, float(sample_rate_hz), scalar, flux, attitude, current, truth)
+    return CompensationFlight(t, float(sample_rate_hz), scalar, flux, attitude, current, temperature, truth)

@@ -1474,10 +1474,10 @@ def _read_any(path, columns, units, drop_bad, min_samples, chunk_rows, name, lsb
     """:func:`read_csv` but the warnings: the dataset with its reader's notes."""
     if is_log(path):  # a flight-controller log (.bin, .ulg): magcal.data.logs reads it, in nT
         return read_log(path, name=name, min_samples=min_samples, warn=False)
-    if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
-        return read_parquet(path, name=name, max_rows=max_rows)
     if isinstance(columns, str):
         columns = parse_column_mapping(columns)
+    if is_parquet(path):  # the same columns and metadata, in Parquet (pyarrow)
+        return read_parquet(path, name=name, max_rows=max_rows, columns=columns)
     if not hasattr(path, "read") and not drop_bad:
         ds = _read_csv_arrow(path, columns, units, name, lsb_nT)  # None: take the line-by-line reader
         if ds is not None:
@@ -2094,7 +2094,7 @@ class ParquetSource:
     row (1-based) and the column.
     """
 
-    def __init__(self, path, name=None, text_budget=None):
+    def __init__(self, path, name=None, text_budget=None, columns=None):
         self.source = str(name or os.fspath(path))
         _pyarrow(self.source)
         import pyarrow.parquet as pq
@@ -2124,7 +2124,7 @@ class ParquetSource:
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
 
-        self._csv = CsvSource(_stdio.StringIO(head), name=self.source)
+        self._csv = CsvSource(_stdio.StringIO(head), columns=columns, name=self.source)
         #: What the reader has said so far (:attr:`CsvSource.notes`).
         self.notes = self._csv.notes
         self._csv._row_word = "row"
@@ -2213,7 +2213,7 @@ def columns_block(src: CsvSource, numeric, text, numbers, block=" in this block"
     return src._dataset(values, cells, numbers)
 
 
-def read_parquet(path, name=None, chunk_rows=200_000, max_rows=None) -> Dataset:
+def read_parquet(path, name=None, chunk_rows=200_000, max_rows=None, columns=None) -> Dataset:
     """Read a Parquet file with the data CSV's columns (docs/formats.md) into a :class:`Dataset`.
 
     The columns are those of the CSV (``s1x`` ..., ``t``, ``temp``, ``ref_total``, ``qw..qz``, ``group``, others
@@ -2225,9 +2225,10 @@ def read_parquet(path, name=None, chunk_rows=200_000, max_rows=None) -> Dataset:
     The rows are known from the file's footer before any is read, and refused beyond ``max_rows`` (None:
     :data:`MAX_READ_ROWS`; 0: no limit) or beyond what the free memory holds (:func:`check_read_rows`): a small
     file may hold any number of rows (1.3 MB held 1e8 constant rows, which took 9.6 GB). A file holding more rows
-    than its footer says is refused as damaged when the reader finds them.
+    than its footer says is refused as damaged when the reader finds them. ``columns``: a mapping (magcal name ->
+    the file's column) as :func:`read_csv`'s, for a file whose columns are not named as magcal names them.
     """
-    src = ParquetSource(path, name, text_budget=TextBudget())  # one budget for all the file's text
+    src = ParquetSource(path, name, text_budget=TextBudget(), columns=columns)  # one text budget for the file
     check_read_rows(src.source, src.rows, len(src.header), MAX_READ_ROWS if max_rows is None else max_rows)
     parts, rows = [], 0
     for part in src.chunks(chunk_rows):

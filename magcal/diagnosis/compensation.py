@@ -307,7 +307,7 @@ def _evidence(name: str, comp: Compensation, record: CompensationRecord, options
     values = dict(zip(labels, comp.extra_coefficients))
     if name == "current":
         k = [values[f"current_{a}"] for a in "xyz"]
-        unit = "A" if record.current_column == "current_A" else "unit of throttle"
+        unit = "unit of throttle" if record.current_column == "throttle" else "A"
         return f"a field of ({k[0]:+.3g}, {k[1]:+.3g}, {k[2]:+.3g}) nT per {unit} in the fluxgate's axes"
     if name == "time_offset":
         late = "late" if comp.time_offset_s >= 0 else "early"

@@ -50,11 +50,11 @@ from scipy import optimize
 from magcal.calibration.calibration import write_json_atomic
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
-from magcal.data.attitude import EULER_COLUMNS, attitude
+from magcal.data.attitude import attitude
 from magcal.data.dataset import Dataset
+from magcal.data.flight_columns import ATTITUDE_COLUMNS, CURRENT_COLUMNS, TEMPERATURE_COLUMNS
 from magcal.fitting.result import ModeResult
 from magcal.fitting.tolles_lawson import TLCompensation, sample_rate_from_times, solve_ridge
-from magcal.model.effects import current_column
 from magcal.model.tolles_lawson import (
     DEFAULT_PASSBAND_HZ,
     DEFAULT_TERMS,
@@ -155,6 +155,9 @@ class CompensationRecord:
     current_column : str or None
     temperature_C : numpy.ndarray or None
     source : str
+    fluxgate_columns : tuple of 3 str or None
+        The file's fluxgate columns when they were found by name (``flux_a_x`` ...), kept in the compensation so
+        that its lines are read with the same fluxgate.
     """
 
     scalar_nT: np.ndarray
@@ -167,16 +170,25 @@ class CompensationRecord:
     current_column: str | None = None
     temperature_C: np.ndarray | None = None
     source: str = "the record"
+    fluxgate_columns: tuple | None = None
 
     @property
     def n_samples(self) -> int:
         return int(self.scalar_nT.size)
 
 
+def _numeric(dataset: Dataset, name: str) -> bool:
+    value = dataset.extra.get(name)
+    return value is not None and np.asarray(value).dtype.kind in "fiu"
+
+
 def _attitude_deg(dataset: Dataset) -> np.ndarray | None:
-    if all(c in dataset.extra for c in EULER_COLUMNS):
-        values = np.column_stack([np.asarray(dataset.extra[c], float) for c in EULER_COLUMNS])
-        return values if np.isfinite(values).all() else None
+    """Roll, pitch, yaw (deg): the first complete triple of :data:`magcal.data.flight_columns.ATTITUDE_COLUMNS`
+    (magcal's, MagNav.jl's INS attitude ...), else from the quaternion; None when neither is there whole."""
+    for names in ATTITUDE_COLUMNS:
+        if all(_numeric(dataset, c) for c in names):
+            values = np.column_stack([np.asarray(dataset.extra[c], float) for c in names])
+            return values if np.isfinite(values).all() else None
     rotation = attitude(dataset) if dataset.attitude_wxyz is not None else None
     if rotation is None:
         return None
@@ -202,15 +214,47 @@ def _record_rate(dataset: Dataset, where: str) -> float:
     return rate
 
 
-def compensation_record(dataset: Dataset, scalar: str | None = None) -> CompensationRecord:
+def _current_column(dataset: Dataset, current: str | None, where: str) -> str | None:
+    """The current's column: ``current`` when given (an error naming the columns when absent), else the first of
+    :data:`magcal.data.flight_columns.CURRENT_COLUMNS` the dataset holds as numbers."""
+    if current is not None:
+        if not _numeric(dataset, current):
+            numeric = [k for k in dataset.extra if _numeric(dataset, k)]
+            raise MagcalError(
+                f"{where}: no column {current!r} of numbers for the current (--current); its other columns: "
+                + (", ".join(numeric) or "none")
+            )
+        return current
+    return next((name for name in CURRENT_COLUMNS if _numeric(dataset, name)), None)
+
+
+def _temperature_C(dataset: Dataset) -> np.ndarray | None:
+    if dataset.temperature_C is not None:
+        return np.asarray(dataset.temperature_C, float)
+    name = next((n for n in TEMPERATURE_COLUMNS if _numeric(dataset, n)), None)
+    return None if name is None else np.asarray(dataset.extra[name], float)
+
+
+def compensation_record(
+    dataset: Dataset, scalar: str | None = None, current: str | None = None, fluxgate_columns=None
+) -> CompensationRecord:
     """The :class:`CompensationRecord` of a dataset: sensor 1's readings as the fluxgate, the scalar column
-    (:func:`find_scalar_column`), the rate from the times (or a ``# sample_rate_hz:`` line), the attitude, current
-    or throttle and temperature when present.
+    (:func:`find_scalar_column`), the rate from the times (or a ``# sample_rate_hz:`` line), the attitude, a
+    current or throttle and the temperature when present (found by name, MagNav.jl's too:
+    :mod:`magcal.data.flight_columns`).
+
+    Parameters
+    ----------
+    dataset : Dataset
+    scalar, current : str, optional
+        The scalar's and the current's columns (found by name when not given).
+    fluxgate_columns : sequence of 3 str, optional
+        The file's columns the fluxgate was read from, when they were found by name (kept in the compensation).
 
     Raises
     ------
     MagcalError
-        No scalar column, non-finite values (the row named), uneven times.
+        No scalar column, non-finite values (the row named), uneven times, a named current column absent.
     """
     where = dataset.source or "the record"
     name = find_scalar_column(dataset, scalar)
@@ -230,8 +274,8 @@ def compensation_record(dataset: Dataset, scalar: str | None = None) -> Compensa
         )
     flux = np.asarray(dataset.readings_nT[0], float)
     rate = _record_rate(dataset, where)
-    column = current_column(dataset)
-    temperature = dataset.temperature_C
+    column = _current_column(dataset, current, where)
+    temperature = _temperature_C(dataset)
     return CompensationRecord(
         scalar_nT=y,
         flux_nT=flux,
@@ -241,8 +285,9 @@ def compensation_record(dataset: Dataset, scalar: str | None = None) -> Compensa
         attitude_deg=_attitude_deg(dataset),
         current=None if column is None else np.asarray(dataset.extra[column], float),
         current_column=column,
-        temperature_C=None if temperature is None else np.asarray(temperature, float),
+        temperature_C=temperature,
         source=where,
+        fluxgate_columns=None if fluxgate_columns is None else tuple(map(str, fluxgate_columns)),
     )
 
 
@@ -311,6 +356,8 @@ class Compensation:
     current_column : str or None
     temperature_ref_C : float
     sample_rate_hz : float
+    fluxgate_columns : tuple of 3 str or None
+        The flight file's fluxgate columns when found by name (``flux_b_x`` ...): a line is read with the same.
     """
 
     tl: TLCompensation
@@ -324,6 +371,7 @@ class Compensation:
     current_column: str | None = None
     temperature_ref_C: float = 0.0
     fitted: dict = field(default_factory=dict)
+    fluxgate_columns: tuple | None = None
 
     mode = "compensation"
 
@@ -394,6 +442,7 @@ class Compensation:
                 "time_offset_s": self.time_offset_s,
                 "current_column": self.current_column,
                 "temperature_ref_C": self.temperature_ref_C,
+                "fluxgate_columns": None if self.fluxgate_columns is None else list(self.fluxgate_columns),
                 "fitted": self.fitted,
             }
         )
@@ -428,6 +477,7 @@ class Compensation:
                 current_column=doc.get("current_column"),
                 temperature_ref_C=float(doc.get("temperature_ref_C", 0.0)),
                 fitted=dict(doc.get("fitted") or {}),
+                fluxgate_columns=_fluxgate_columns(doc.get("fluxgate_columns")),
             )
         except (KeyError, TypeError, ValueError, MagcalError) as exc:
             raise MagcalError(f"{source}: a damaged compensation document ({exc}); fit it again") from None
@@ -448,6 +498,15 @@ class Compensation:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise MagcalError(f"{path}: not a JSON compensation file ({exc})") from None
         return cls.from_dict(doc, path)
+
+
+def _fluxgate_columns(value) -> tuple | None:
+    if value is None:
+        return None
+    names = tuple(map(str, value))
+    if len(names) != 3:
+        raise MagcalError("'fluxgate_columns' must name 3 columns")
+    return names
 
 
 def _tl_only(terms) -> bool:
@@ -496,6 +555,7 @@ class _Setup:
             scalar_column=self.record.scalar_column,
             current_column=self.record.current_column,
             temperature_ref_C=self.temperature_ref_C,
+            fluxgate_columns=self.record.fluxgate_columns,
         )
 
     def solve(self, comp: Compensation) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

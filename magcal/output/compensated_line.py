@@ -6,7 +6,8 @@ sample's neighbours), takes the fluxgate (x, y, z), the scalar column the compen
 compensation has those terms, the current or throttle and the temperature, and writes the line with one more column:
 ``<scalar>_comp`` (nT), the compensated scalar. A CSV line is written back as it was read (every input line, the
 new column appended) when no row was dropped; otherwise, and for Parquet, the columns as magcal reads them (readings
-in nT) plus the new one, to CSV or Parquet by the output's name.
+in nT) plus the new one, to CSV or Parquet by the output's name. The line's fluxgate and time are found by name as
+the flight's were (:func:`line_mapping`); on Dask partitions: :mod:`magcal.output.compensated_survey`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import dataset_columns, dataset_metadata
+from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import (
     atomic_write,
     check_output_path,
@@ -28,6 +30,7 @@ from magcal.data.io import (
     metadata_text,
     parquet_table,
     parquet_write_options,
+    parse_column_mapping,
     read_csv,
     write_rows,
 )
@@ -36,7 +39,14 @@ from magcal.fitting.compensation import Compensation, compensation_record, is_co
 #: The compensated scalar to 1 pT.
 COMPENSATED_FORMAT = "%.3f"
 
-__all__ = ["CompensationSummary", "apply_compensation_file", "compensated_column", "is_compensation_file"]
+__all__ = [
+    "CompensationSummary",
+    "apply_compensation_file",
+    "compensated_column",
+    "is_compensation_file",
+    "line_mapping",
+    "line_record",
+]
 
 
 def is_compensation_file(path) -> bool:
@@ -100,11 +110,17 @@ def apply_compensation_file(
     survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
     if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
         raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
-    dataset = read_csv(survey_path, columns=columns, units=units, drop_bad=drop_bad, warn=False)
+    dataset = read_csv(
+        survey_path,
+        columns=line_mapping(compensation, survey_path, columns),
+        units=units,
+        drop_bad=drop_bad,
+        warn=False,
+    )
     name = compensated_column(compensation)
     if name in dataset.extra:
         raise MagcalError(f"{survey_path}: the line already has a column {name} (is it an apply output?)")
-    record = compensation_record(dataset, compensation.scalar_column)
+    record = line_record(compensation, dataset)
     values = compensation.compensate(record)
     notes = [note.text for note in dataset.notes]
     kept_lines = not is_parquet(survey_path) and not is_parquet(output_path)
@@ -126,6 +142,23 @@ def apply_compensation_file(
                 csv.writer(out, lineterminator="\n").writerow(list(columns_out))
                 write_rows(out, columns_out)
     return CompensationSummary(int(values.size), name, output_path, notes)
+
+
+def line_mapping(compensation: Compensation, path, columns=None) -> dict | None:
+    """The column mapping a line is read with: the user's, plus the fluxgate the compensation was fitted on (or the
+    first the line names) and MagNav.jl's time ``tt`` (:func:`magcal.data.flight_columns.flight_mapping`)."""
+    given = parse_column_mapping(columns) if isinstance(columns, str) else dict(columns or {})
+    mapping = flight_mapping(header_names(path), given, preferred=compensation.fluxgate_columns)
+    return mapping or None
+
+
+def line_record(compensation: Compensation, dataset):
+    """A line's :class:`~magcal.fitting.compensation.CompensationRecord`, with the compensation's scalar and current
+    columns."""
+    current = compensation.current_column if "current" in compensation.effects else None
+    if current not in dataset.extra:
+        current = None  # the compensation says which column the line lacks
+    return compensation_record(dataset, compensation.scalar_column, current)
 
 
 def _append_to_lines(survey_path: str, output_path: str, name: str, values) -> bool:

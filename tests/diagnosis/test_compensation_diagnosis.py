@@ -1,6 +1,7 @@
 """The compensation's diagnosis on simulated compensation flights with one hidden term each: it names the term the
-platform has (nothing for a clean flight), judged on held-out maneuvers or on a second flight, and the advice
-compensates a second flight to within 1.2x of the true compensation."""
+platform has (nothing for a clean flight, whose temperature changes as every flight's does), judged on held-out
+maneuvers or on a second flight, and the advice compensates a second flight to within 1.2x of the true
+compensation."""
 
 from __future__ import annotations
 
@@ -10,13 +11,14 @@ import pytest
 from magcal.data.compensation_flight import CompensationPlatform, simulate_compensation_flight
 from magcal.diagnosis.compensation import FOLDS, diagnose_compensation
 from magcal.fitting.compensation import fit_compensation
-from tests.fitting.test_compensation_fit import MISCALIBRATED, record_of, second_flight_fom
+from tests.fitting.test_compensation_fit import MISCALIBRATED, WARMING, record_of, second_flight_fom
 
 HIDDEN = [
     ("none", {}, []),
     ("current", {"platform": CompensationPlatform(current_nT_per_A=np.array([1.5, -1.0, 0.8]))}, ["current"]),
     ("fluxgate 100 ms late", {"fluxgate_lag_s": 0.1}, ["time_offset"]),
     ("fluxgate miscalibrated", MISCALIBRATED, ["fluxgate_calibration"]),
+    ("temperature", WARMING, ["temperature"]),
 ]
 
 
@@ -50,7 +52,7 @@ def test_a_second_flight_judges_the_candidates():
 def test_without_a_current_column_the_current_is_not_judged():
     flight = simulate_compensation_flight(1)
     record = record_of(flight)
-    record.current, record.current_column = None, None
+    record.current, record.current_column, record.temperature_C = None, None, None
     found = diagnose_compensation(record, candidates=["current", "temperature"])
     assert {c.name: c.judged for c in found.candidates} == {"current": False, "temperature": False}
     assert "no current_A or throttle" in found.text()

@@ -28,6 +28,8 @@ MISCALIBRATED = {
     "fluxgate_matrix": np.array([[1.05, 0.0, 0.0], [0.03, 0.95, 0.0], [-0.03, 0.03, 1.025]]),
     "fluxgate_bias_nT": np.array([1000.0, -1500.0, 700.0]),
 }
+#: A permanent field that drifts by 0.3-0.5 nT per degC as the platform warms (12 degC through the flight).
+WARMING = {"platform": CompensationPlatform(temperature_nT_per_C=np.array([-0.4, 0.3, -0.5]))}
 
 
 def record_of(flight) -> CompensationRecord:
@@ -38,6 +40,7 @@ def record_of(flight) -> CompensationRecord:
         attitude_deg=flight.attitude_deg,
         current=flight.current_A,
         current_column="current_A",
+        temperature_C=flight.temperature_C,
     )
 
 
@@ -92,6 +95,7 @@ HIDDEN = [
     ("current", {"platform": CompensationPlatform(current_nT_per_A=np.array([1.5, -1.0, 0.8]))}, ("current",)),
     ("fluxgate 100 ms late", {"fluxgate_lag_s": 0.1}, ("time_offset",)),
     ("fluxgate miscalibrated", MISCALIBRATED, ("fluxgate_calibration",)),
+    ("temperature", WARMING, ("temperature",)),
 ]
 
 

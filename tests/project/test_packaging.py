@@ -92,19 +92,20 @@ def _module_level_imports(folder):
 
 def test_the_engine_needs_only_the_core_dependencies():
     """``pip install -e .`` must be enough for magcal itself (the API, the command line): every package it imports
-    is core, except the ``instruments`` extra's (serial ports, MAVLink, flight logs) and the ``survey`` extra's
-    (Parquet, DataFrames), which are imported only inside the functions that need them, each with a message naming
-    the extra."""
+    is core, except the ``instruments`` extra's (serial ports, MAVLink, flight logs), the ``survey`` extra's
+    (Parquet, DataFrames) and the ``figures`` extra's (matplotlib), which are imported only inside the functions
+    that need them, each with a message naming the extra."""
     project = _project()
     core = _requirement_names(project["dependencies"])
     optional = set()
-    for extra in ("instruments", "survey"):
+    for extra in ("instruments", "survey", "figures"):
         optional |= _requirement_names(project["optional-dependencies"][extra])
     imported = _third_party_imports(["magcal"])
     assert not imported - core - optional, f"magcal imports undeclared packages: {sorted(imported - core - optional)}"
     assert not _module_level_imports("magcal") & optional, "an optional package is imported at module level"
     texts = " ".join(p.read_text(encoding="utf-8") for p in (ROOT / "magcal").rglob("*.py"))
-    assert 'pip install "magcal-workbench[instruments]"' in texts and 'pip install "magcal-workbench[survey]"' in texts
+    for extra in ("instruments", "survey", "figures"):
+        assert f'pip install "magcal-workbench[{extra}]"' in texts, extra
 
 
 def test_import_magcal_needs_no_optional_package():
