@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.core.files import not_regular_reason
 from magcal.data.dataset import dataset_columns, dataset_metadata
 from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import (
@@ -49,13 +50,19 @@ __all__ = [
 ]
 
 
+#: The largest file :func:`is_compensation_file` reads to tell (a compensation document is a few kB).
+COMPENSATION_FILE_MAX_BYTES = 16 << 20
+
+
 def is_compensation_file(path) -> bool:
     """Whether ``path`` is a JSON compensation document (``kind: "compensation"``); False for anything else,
-    including a file that cannot be read (the calibration reader then says why)."""
+    including a file that is not a regular one (a FIFO would block the read), is larger than
+    :data:`COMPENSATION_FILE_MAX_BYTES` or cannot be read (the calibration reader then says why)."""
     try:
+        if not_regular_reason(path) is not None or os.path.getsize(path) > COMPENSATION_FILE_MAX_BYTES:
+            return False
         with open(os.fspath(path), encoding="utf-8") as fh:
-            head = fh.read(1 << 20)
-        return is_compensation_document(json.loads(head))
+            return is_compensation_document(json.load(fh))
     except (OSError, UnicodeDecodeError, ValueError):
         return False
 
