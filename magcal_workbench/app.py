@@ -10,7 +10,8 @@ browser workbench; it prints the page's address with its token (``http://127.0.0
 * the :class:`~magcal_workbench.panels.Panels`, whose input widgets are registered with what they may send
   (:mod:`~magcal_workbench.checks`), and the actions they call: :class:`~magcal_workbench.steps.Steps`,
   :class:`~magcal_workbench.uploads.Uploads`, :class:`~magcal_workbench.downloads.Downloads`,
-  :class:`~magcal_workbench.lessons.LessonDesk`, :class:`~magcal_workbench.livecontrol.LiveControl`,
+  :class:`~magcal_workbench.livecontrol.LiveControl`, the panels of :mod:`~magcal_workbench.panelkit` (the tabs
+  built as panels, the gravity page),
   :class:`~magcal_workbench.evidence.Evidence`, :class:`~magcal_workbench.cockpit.Cockpit` (the compact table,
   |B| against time with its region editor, the error histogram) and :class:`~magcal_workbench.view.SceneControl`
   (scene, camera, pointer events, View tab);
@@ -70,7 +71,8 @@ from .exporting import Exporting
 from .gravitypage import GravityPage
 from .guard import Gate, guarded_viser_server, is_loopback, page_url
 from .jobs import Worker
-from .lessons import DEMO, LessonDesk, get_lesson
+from .lessons import DEMO, get_lesson
+from .lessonstab import LessonsTab
 from .livecontrol import LiveControl
 from .maps import SphereMaps
 from .markup import clean_text, error_text, safe_text
@@ -210,15 +212,6 @@ class Workbench:
             max_upload_bytes=int(max_upload_mb * 1e6),
         )
         self.downloads = Downloads(lambda: self.ctrl)
-        self.lessons = LessonDesk(
-            ctrl=lambda: self.ctrl,
-            panels=lambda: self.panels,
-            gravity=lambda: self.gravity,
-            values=self.values,
-            ui=self.ui,
-            load=self.load,
-            say_after_load=self.say_after_load,
-        )
         self.livectl = LiveControl(
             ctrl=lambda: self.ctrl,
             panels=lambda: self.panels,
@@ -296,9 +289,19 @@ class Workbench:
         #: The gravity model: a compass beside an accelerometer, its fit, plots and cloud.
         #: The added panels (:data:`magcal_workbench.panelkit.PANELS`, in order): the gravity model's page
         #:, then those a module or an installed package registered.
-        context = PanelContext(ctrl=lambda: self.ctrl, steps=lambda: self.steps, server=self.server)
+        context = PanelContext(
+            ctrl=lambda: self.ctrl,
+            steps=lambda: self.steps,
+            server=self.server,
+            ui=self.ui,
+            load=self.load,
+            say_after_load=self.say_after_load,
+            panel=lambda name: self.added[name],
+        )
         self.added = {name: kind.make(context) for name, kind in PANELS.items()}
         self.gravity = cast(GravityPage, self.added["gravity"])
+        #: The Lessons tab (open a lesson, check the model, show the answer).
+        self.lessons = cast(LessonsTab, self.added["lessons"])
         self.ctrl = self.sessions.make_controller(dataset, content, name, resume, lesson)
         # the launcher's preview is redrawn in place (magcal_workbench.preview)
         self.scene_view = scene_view if scene_view is not None else scn.SceneView(self.server, max_points=max_points)
@@ -348,7 +351,6 @@ class Workbench:
             self.uploads,
             self.downloads,
             self.sessions,
-            self.lessons,
             self.livectl,
             self.evidence,
             self.exporting,

@@ -22,10 +22,7 @@ from pathlib import Path
 
 from magcal.core.errors import MagcalError
 
-from .actions import action
-from .dataio import load_dataset
 from .markup import clean_text, safe_text
-from .parts import PagePart
 
 
 def _assets_folder() -> Path:
@@ -242,78 +239,3 @@ def lesson_slugs() -> tuple:
 def lesson_titles() -> tuple:
     """The Lesson choices the page offers: the lessons' titles, in their order (``-`` when there is none)."""
     return tuple(lesson.title for lesson in list_lessons()) or ("-",)
-
-
-class LessonDesk(PagePart):
-    """The Lessons tab's actions: open a lesson, check the model against its answer, show the answer.
-
-    Handed what it uses.
-
-    Parameters
-    ----------
-    ctrl, panels, gravity : callable
-        Getters, made or replaced after this part: the open data's
-        :class:`~magcal_workbench.controller.Controller`, the :class:`~magcal_workbench.panels.Panels` and the
-        :class:`~magcal_workbench.gravitypage.GravityPage` (a gravity lesson is judged on its model).
-    values : magcal_workbench.checks.PageValues
-        What each input widget may send (the lesson chosen is checked before it is read).
-    ui : magcal_workbench.uiqueue.UiQueue
-        The page's thread: the opened lesson's guide is shown through it.
-    load : callable
-        ``load(dataset, content, name, resume=True, lesson=slug)``: opens the lesson's data
-        (:meth:`magcal_workbench.app.Workbench.load`).
-    say_after_load : callable
-        ``say_after_load(text)``: says the lesson opened (:meth:`magcal_workbench.app.Workbench.say_after_load`).
-    """
-
-    def __init__(self, *, ctrl, panels, gravity, values, ui, load, say_after_load) -> None:
-        self._ctrl, self._panels, self._gravity = ctrl, panels, gravity
-        self.values, self.ui, self.load, self.say_after_load = values, ui, load, say_after_load
-
-    def show_guide(self, lesson: Lesson) -> None:
-        self.panels.lesson_guide.content = f"### {lesson.title}\n\n{lesson.guide()}"
-
-    @action
-    def do_open_lesson(self, event):
-        lesson = lesson_or_error(self.values.check(self.panels.lesson_choice))
-        slug = lesson.slug
-
-        def job():
-            ds, _ = load_dataset(lesson.data_path, f"lesson {slug}")
-            content = lesson.data_path.read_bytes()
-            self.load(ds, content, f"lesson-{slug}.csv", resume=True, lesson=slug)
-            revealed = self.ctrl.state.answer_revealed
-
-            def show():
-                self.show_guide(lesson)
-                self.panels.lesson_feedback.content = lesson.answer_markdown() if revealed else ""
-
-            self.ui.post(show)
-            self.say_after_load(f"lesson **{lesson.title}** opened")
-
-        self.ctrl.run_job("open lesson", job)
-
-    def current(self) -> Lesson:
-        state = self.ctrl.state
-        if not state.lesson:
-            raise MagcalError("open a lesson first (Lessons tab)")
-        return lesson_or_error(state.lesson)
-
-    @action
-    def do_check_lesson(self, event):
-        ctrl = self.ctrl
-        lesson = self.current()
-        gravity = lesson.judged_on == "gravity"
-        found = self._gravity().model.lesson_findings() if gravity else ctrl.vector.lesson_findings()
-        result = lesson.check(ctrl.state.effects, found)
-        self.panels.lesson_feedback.content = result["message"]
-        self.ctrl.say(result["message"])
-
-    @action
-    def do_show_answer(self, event):
-        lesson = self.current()
-        ctrl = self.ctrl
-        ctrl.state.answer_revealed = True
-        ctrl.state.touch()
-        ctrl.autosave()
-        self.panels.lesson_feedback.content = lesson.answer_markdown()

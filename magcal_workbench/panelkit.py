@@ -12,7 +12,8 @@ A panel is a class whose instance has
 
 A built-in tab made as a panel (:class:`~magcal_workbench.calibratetab.CalibrateTab`,
 :class:`~magcal_workbench.modeltab.ModelTab`, :class:`~magcal_workbench.qualitytab.QualityTab`,
-:class:`~magcal_workbench.outlierstab.OutliersTab`) fills its own tab
+:class:`~magcal_workbench.outlierstab.OutliersTab`, :class:`~magcal_workbench.viewtab.ViewTab`,
+:class:`~magcal_workbench.filestab.FilesTab`, :class:`~magcal_workbench.lessonstab.LessonsTab`) fills its own tab
 instead: ``build(panels, gui)``, called by :class:`~magcal_workbench.panels.Panels` at the tab's place (or, when the
 panels were not handed it, by its ``attach`` inside ``with panels.tab("Quality"): ...``); it joins
 ``panels.tab_panels`` and is refreshed with the other tabs (``refresh(kinds)``, :meth:`Panels.refresh
@@ -36,10 +37,13 @@ from typing import Any
 from magcal.core.registry import Registry
 
 from .calibratetab import CalibrateTab
+from .filestab import FilesTab
 from .gravitypage import GravityPage
+from .lessonstab import LessonsTab
 from .modeltab import ModelTab
 from .outlierstab import OutliersTab
 from .qualitytab import QualityTab
+from .viewtab import ViewTab
 
 
 @dataclass(frozen=True)
@@ -55,11 +59,25 @@ class PanelContext:
         ``steps()``: the :class:`~magcal_workbench.steps.Steps` (``check_readings``, ``maybe_refit``).
     server : viser.ViserServer
         The server (its scene, for a panel that draws in 3-D).
+    ui : magcal_workbench.uiqueue.UiQueue or None
+        The page's thread (a job's result shown through ``ui.post``).
+    load : callable or None
+        ``load(dataset, content, name, resume=True, lesson=None)``: opens other data
+        (:meth:`magcal_workbench.app.Workbench.load`).
+    say_after_load : callable or None
+        ``say_after_load(text)``: says what was opened, keeping what opening it had to say.
+    panel : callable or None
+        ``panel(name)``: another panel of :data:`PANELS`, made (the Lessons tab judges a gravity lesson on the
+        gravity page's model).
     """
 
     ctrl: Callable[[], Any]
     steps: Callable[[], Any]
     server: Any
+    ui: Any = None
+    load: Callable[..., Any] | None = None
+    say_after_load: Callable[[str], Any] | None = None
+    panel: Callable[[str], Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -121,6 +139,36 @@ PANELS.register(
         name="outliers",
         description="the Outliers tab: the box selection's mode, the threshold, undo, redo, reset, the inspected sample",
         make=lambda c: OutliersTab(ctrl=c.ctrl, steps=c.steps),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="view",
+        description="the View tab: the sensor shown, the scene's gains and clouds, the sphere surface, the time window",
+        make=lambda c: ViewTab(ctrl=c.ctrl),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="files",
+        description="the Files tab: open a file, the downloads, the export, the saved sessions, the live source",
+        make=lambda c: FilesTab(ctrl=c.ctrl),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="lessons",
+        description="the Lessons tab: open a lesson, check the model against its answer, show the answer",
+        make=lambda c: LessonsTab(
+            ctrl=c.ctrl,
+            gravity=lambda: c.panel("gravity") if c.panel is not None else None,
+            ui=c.ui,
+            load=c.load,
+            say_after_load=c.say_after_load,
+        ),
     ),
     origin="built-in",
 )

@@ -1,7 +1,9 @@
-"""The control panel: tabs for calibration steps, the model loop, outliers, the view, files and lessons.
+"""The control panel: the status, the guide, the compact table, and the tab group whose tabs (Calibrate, Model,
+Quality, Outliers, View, Files, Lessons) are panels of the panel recipe (:mod:`magcal_workbench.panelkit`), built
+here at their place and refreshed with the page.
 
 Every GUI element lives on ``server.gui`` so all connected browsers share one state. Each widget's callback is
-wired where the widget is made: buttons call the :class:`~magcal_workbench.app.Workbench` (which calls the controller);
+wired where the widget is made: buttons call their handler by name (``on.NAME``, :mod:`magcal_workbench.actions`);
 a setting's widget is *bound* to the session state (:meth:`Panels.bind`), and its callback does nothing when the
 widget already shows what the state holds, so :meth:`Panels.refresh` writes the state back into the widgets
 without re-running anything. Text shown is built by small pure functions (``*_markdown``) that the tests call
@@ -19,11 +21,8 @@ from magcal.core import conventions
 
 from . import scene as scn
 from .events import Change
-from .exporting import ExportSection
 from .figures import fmt
 from .guide import gravity_status_markdown, guide_markdown, lesson_markdown, next_step, vector_reference_markdown
-from .lessons import lesson_titles, list_lessons
-from .live import BAUDS, LINE_UNITS, PAGE_PORT, PAGE_RATE_HZ, PAGE_SAMPLES, PAGE_SPEED, TEMPLATE_CHARS
 from .looptext import (  # the loop's texts; the names stay importable from here
     HELD_OUT_NOTE,
     TRANSFER_WORDS,
@@ -37,10 +36,8 @@ from .looptext import (  # the loop's texts; the names stay importable from here
     loop_text,
     model_terms_markdown,
 )
-from .maps import SURFACE_CHOICES
 from .markup import clean_text, hide_paths, safe_code, safe_text
 from .qualitytab import noise_markdown, quality_markdown
-from .uploads import UPLOAD_UNITS
 from .vectorpanel import VectorPanel
 
 #: The loop's texts moved to :mod:`magcal_workbench.looptext`, importable from here as before.
@@ -509,9 +506,9 @@ class Panels:
             ("Model", lambda gui: self._built_in("model", gui)),  # magcal_workbench.modeltab
             ("Quality", lambda gui: self._built_in("quality", gui)),  # magcal_workbench.qualitytab
             ("Outliers", lambda gui: self._built_in("outliers", gui)),  # magcal_workbench.outlierstab
-            ("View", self._build_view),
-            ("Files", self._build_files),
-            ("Lessons", self._build_lessons),
+            ("View", lambda gui: self._built_in("view", gui)),  # magcal_workbench.viewtab
+            ("Files", lambda gui: self._built_in("files", gui)),  # magcal_workbench.filestab
+            ("Lessons", lambda gui: self._built_in("lessons", gui)),  # magcal_workbench.lessonstab
         ):
             tab = tab_group.add_tab(name, icon=None)
             self.tab_by_name[name] = tab
@@ -601,150 +598,6 @@ class Panels:
             self._engine_buttons.append(b)
         return b
 
-    def _build_view(self, gui):
-        options = self._sensor_options(self.ctrl().dataset.n_sensors)
-        self.sensor_choice = self.bind(
-            self.w.dropdown(
-                "Sensor",
-                options,
-                allowed=lambda: self._sensor_options(self.ctrl().dataset.n_sensors),
-                initial_value=options[0],
-            ),
-            self._sensor_shown,
-            self.on.set_sensor,
-        )
-        self.distortion_gain = self.w.slider("Raw distortion x", min=0.1, max=50.0, step=0.1, initial_value=10.0)
-        self.residual_gain = self.w.slider(
-            "Residual x (radius 1 + x r/F)", min=0.0, max=5000.0, step=1.0, initial_value=1000.0
-        )
-        self.axes_gain = self.w.slider("Misalignment x (cross axes)", min=1.0, max=100.0, step=1.0, initial_value=20.0)
-        self.show_raw = gui.add_checkbox("Raw cloud", True)
-        self.show_ellipsoid = gui.add_checkbox("Fitted ellipsoid", True)
-        self.show_corrected = gui.add_checkbox("Corrected cloud", True)
-        #: The gains last set to suit the data (:func:`view_gains`); a gain the user moved is left alone.
-        self._auto_gains = {id(self.distortion_gain): 10.0, id(self.residual_gain): 1000.0}
-        for h in (
-            self.distortion_gain,
-            self.residual_gain,
-            self.axes_gain,
-            self.show_raw,
-            self.show_ellipsoid,
-            self.show_corrected,
-        ):
-            h.on_update(lambda e: self.handle(self.on.view_changed, e))
-        self.surface_choice = self.w.dropdown(
-            "Sphere surface",
-            SURFACE_CHOICES,
-            initial_value=SURFACE_CHOICES[0],
-            hint="A smooth surface inside each corrected cloud, coloured by a direction pattern (nT): the residual's, "
-            "the chosen candidate's (what adding it would explain), or what the last fit took away",
-        )
-        self.surface_choice.on_update(lambda e: self.handle(self.on.surface_changed, e))
-        self.maps_info = gui.add_markdown("")
-        with gui.add_folder("Time window", expand_by_default=True):
-            self._build_time(gui)
-        self.vector_panel.build_view(gui)
-
-    def _build_time(self, gui):
-        """The time scrubber (:mod:`workbench.timewindow`): a window of the recording on the sphere, replayed."""
-        self.window_on = gui.add_checkbox(
-            "Show a time window", False, hint="Draw only the samples in the window; the evidence plots shade it"
-        )
-        self.window_start = self.w.slider("Window start %", min=0.0, max=100.0, step=0.1, initial_value=0.0)
-        self.window_width = self.w.slider("Window width %", min=0.5, max=100.0, step=0.5, initial_value=10.0)
-        self.play_speed = self.w.slider(
-            "Play speed x", min=1.0, max=100.0, step=1.0, initial_value=10.0, hint="Multiple of real time"
-        )
-        self.btn_play = self._button(gui, "Play", self.on.do_play, engine=False)
-        self.btn_pause = self._button(gui, "Pause", self.on.do_pause_play, engine=False)
-        self.btn_show_all = self._button(gui, "Show all", self.on.do_show_all, engine=False)
-        self.window_info = gui.add_markdown("")
-        for h in (self.window_on, self.window_start, self.window_width, self.play_speed):
-            h.on_update(lambda e: self.handle(self.on.window_changed, e))
-
-    def _build_files(self, gui):
-        self.upload = gui.add_upload_button(
-            "Open a file (CSV, .bin, .ulg)", mime_type=".csv,.txt,.bin,.ulg,text/csv,text/plain"
-        )
-        self.upload.on_upload(lambda e: self.handle(self.on.do_upload, e))
-        self.upload_columns = self.w.text(
-            "Columns",
-            "",
-            hint="Your column names mapped onto magcal's, as the command line's --columns: "
-            "x=magX,y=magY,z=magZ,t=time,temp=T (empty: the file's own names)",
-        )
-        self.upload_units = self.w.dropdown(
-            "Units",
-            UPLOAD_UNITS,
-            initial_value=UPLOAD_UNITS[0],
-            hint="Unit of the readings; 'from the file' reads its '# units:' line (nT without one)",
-        )
-        self.upload_lsb = self.w.number(
-            "LSB nT/count",
-            0.0,
-            min=0.0,
-            max=1e9,
-            step=0.001,
-            hint="nT per count for raw counts (0: the file's '# lsb_nT:' line)",
-        )
-        self.btn_reread = self._button(gui, "Re-read the last upload with these", self.on.do_reread)
-        self.upload_info = gui.add_markdown("")
-        self.btn_dl_cal = self._button(gui, "Download calibration JSON", self.on.do_download_calibration, engine=False)
-        self.btn_dl_csv = self._button(gui, "Download corrected CSV", self.on.do_download_corrected, engine=False)
-        self.download_info = gui.add_markdown("")
-        with gui.add_folder("Export", expand_by_default=True):  # magcal_workbench.exporting
-            self.export = ExportSection(gui, self.w, self._button, self.on)
-        gui.add_markdown("**Sessions** (saved automatically after every change)")
-        self.session_info = gui.add_markdown("")
-        self.session_choice = self.w.dropdown("Saved session", ("-",), allowed=self.session_ids, initial_value="-")
-        self.btn_reopen = self._button(gui, "Reopen the session", self.on.do_reopen)
-        self.btn_fresh = self._button(gui, "Start this data afresh", self.on.do_fresh)
-        self.btn_delete_session = self._button(gui, "Delete the chosen session", self.on.do_delete_session)
-        self._build_live(gui)
-
-    def _build_live(self, gui):
-        """The live source: one of the sources the server offers and its bounded options, Start, Pause/Resume,
-        Stop (:mod:`magcal_workbench.live`, :class:`~magcal_workbench.live.SourceMenu`)."""
-
-        gui.add_markdown(
-            "**Live from the instrument**: every sample is recorded to a CSV as it arrives; Stop "
-            "opens the recording here. Other sources start from the command line (--live SOURCE)."
-        )
-        offered = self.live_sources()
-        first = next((o for o in offered if o == "simulated chi2017"), offered[0])
-        self.live_source = self.w.dropdown(
-            "Live source",
-            offered,
-            allowed=self.live_sources,
-            initial_value=first,
-            hint="a simulated preset, a serial port found on this machine, UDP/TCP on 127.0.0.1, a recording "
-            "of the session folder played again, or a source the command line allowed (--live-allow)",
-        )
-        self.live_rate = self.w.number("Rate (Hz)", 50.0, min=PAGE_RATE_HZ[0], max=PAGE_RATE_HZ[1], step=1.0)
-        self.live_samples = self.w.number(
-            "Samples (simulated)", 3000, min=PAGE_SAMPLES[0], max=PAGE_SAMPLES[1], step=100
-        )
-        self.live_speed = self.w.number("Speed (x real time)", 1.0, min=PAGE_SPEED[0], max=PAGE_SPEED[1], step=0.1)
-        self.live_port = self.w.number("Port (UDP/TCP)", 14550, min=PAGE_PORT[0], max=PAGE_PORT[1], step=1)
-        self.live_baud = self.w.dropdown("Baud (serial)", BAUDS, initial_value=BAUDS[0])
-        self.live_columns = self.w.text(
-            "Columns (text lines)", "x,y,z", max_chars=200, hint="e.g. x,y,z or t,s1x,s1y,s1z,s2x,s2y,s2z"
-        )
-        self.live_template = self.w.text(
-            "Template (text lines)",
-            "",
-            max_chars=TEMPLATE_CHARS,
-            hint="e.g. x={x} y={y} z={z} or Magnetometer reading: [{x}, {y}, {z}]; blank: the columns",
-        )
-        self.live_units = self.w.dropdown("Units (text lines)", LINE_UNITS, initial_value=LINE_UNITS[0])
-        self.btn_live_list = self._button(gui, "List the sources again", self.on.do_live_list, engine=False)
-        self.btn_live_start = self._button(gui, "Start live", self.on.do_live_start, engine=False)
-        self.btn_live_pause = self._button(gui, "Pause", self.on.do_live_pause, engine=False, visible=False)
-        self.btn_live_resume = self._button(gui, "Resume", self.on.do_live_resume, engine=False, visible=False)
-        self.btn_live_stop = self._button(
-            gui, "Stop and open the recording", self.on.do_live_stop, engine=False, visible=False
-        )
-
     def show_alarm(self) -> None:
         """Show what failed and is not resolved yet (:func:`alarm_markdown`), or hide the warning."""
         text = alarm_markdown(self.ctrl(), self.live())
@@ -770,61 +623,11 @@ class Panels:
         elif self._live_shown:  # stopped: the tabs describe the open data again
             self._live_shown = False
             self.refresh(("all",))
-        paused = running and live.session.paused
-        self.btn_live_start.disabled = running
-        self.btn_live_pause.visible = running and not paused
-        self.btn_live_resume.visible = running and paused
-        self.btn_live_stop.visible = running
+        files = self._tab_parts.get("files")
+        if files is not None:
+            files.show_live(live)
         for b in self._engine_buttons:  # the engine steps act on the opened data, not on the stream
             b.disabled = running or self.busy()
-
-    def _build_lessons(self, gui):
-        opts = lesson_titles()
-        gui.add_markdown(
-            "Each lesson hides a physical effect in its data. Fit, diagnose, add what you think "
-            "is missing, and check. The answer stays hidden until you ask."
-        )
-        self.lesson_choice = self.w.dropdown(
-            "Lesson",
-            opts,
-            allowed=lesson_titles,
-            initial_value=opts[0],
-            hint="; ".join(f"{l.title} (--lesson {l.slug})" for l in list_lessons()),
-        )
-        self.btn_lesson = self._button(gui, "Open the lesson", self.on.do_open_lesson)
-        self.lesson_guide = gui.add_markdown("")
-        self.btn_check = self._button(gui, "Check my model", self.on.do_check_lesson, engine=False)
-        self.btn_answer = self._button(gui, "Show the answer", self.on.do_show_answer, engine=False)
-        self.lesson_feedback = gui.add_markdown("")
-
-    @staticmethod
-    def _sensor_options(n):
-        return tuple([ALL_SENSORS] + [f"sensor {i + 1}" for i in range(n)]) if n > 1 else ("sensor 1",)
-
-    def _sensor_shown(self) -> str:
-        """The sensor choice the state holds, as the dropdown shows it."""
-        ctrl = self.ctrl()
-        s = ctrl.state.sensor
-        return self._sensor_options(ctrl.dataset.n_sensors)[0] if s is None else f"sensor {s + 1}"
-
-    def view_options(self) -> dict:
-        """The View tab's settings, as :class:`~magcal_workbench.scene.SceneModel` fields."""
-        return {
-            "distortion_gain": float(self.distortion_gain.value),
-            "residual_gain": float(self.residual_gain.value),
-            "axes_gain": float(self.axes_gain.value),
-            "show_raw": bool(self.show_raw.value),
-            "show_corrected": bool(self.show_corrected.value),
-            "show_ellipsoid": bool(self.show_ellipsoid.value),
-        }
-
-    def fit_view_to_data(self) -> None:
-        """Set the View tab's gains to suit the data and fit (:func:`view_gains`), unless the user moved them."""
-        distortion, residual = view_gains(self.ctrl(), self.on.drawn_residual_rms())
-        for handle, value in ((self.distortion_gain, distortion), (self.residual_gain, residual)):
-            if handle.value == self._auto_gains.get(id(handle)) and handle.value != value:
-                self._auto_gains[id(handle)] = value
-                handle.value = value  # its callback redraws the scene
 
     # --- refresh -------------------------------------------------------------------------------------------
     def set_busy(self, busy: bool, name: str | None) -> None:
@@ -859,33 +662,12 @@ class Panels:
         if _asks(kinds, Change.MESSAGE):
             self.message.content = ctrl.message
         self.legend.content = self.on.legend_html()
-        if _asks(kinds, Change.RESULT, Change.DATA):
-            self.fit_view_to_data()
         for tab in self.tab_panels:  # the built-in tabs made as panels: their texts, the loop's (the catalogue's
             tab.refresh(kinds)  # boxes before the state is shown in them)
-        if _asks(kinds, Change.RESULT, Change.SELECTION, Change.MODEL):
-            self.download_info.content = download_markdown(ctrl)
-        if _asks(kinds, Change.DATA):
-            self._refresh_data(ctrl)
         if _asks(kinds, Change.MODEL, Change.DATA, Change.EFFECTS):
             self.show_state()
-        self._refresh_buttons(ctrl)
         self.vector_panel.refresh(kinds)
         self._refresh_figures(kinds, live)
-
-    def _refresh_data(self, ctrl) -> None:
-        """What describes the open data (other data opened)."""
-        # the state's choice first: new options then never fall back to a stale one (which would apply it)
-        self.sensor_choice.value = self._sensor_shown()
-        self.sensor_choice.options = self._sensor_options(ctrl.dataset.n_sensors)
-        self.refresh_sessions()
-
-    def _refresh_buttons(self, ctrl) -> None:
-        """The buttons that depend on the selection's history, the calibration and the sensors."""
-        has_cal = ctrl.calibration is not None
-        self.btn_dl_cal.disabled = not has_cal
-        self.btn_dl_csv.disabled = not has_cal
-        self.on.refresh_export()
 
     def _refresh_figures(self, kinds: set, live) -> None:
         """The cockpit's figures (left to the refit that follows a change of the selection, :meth:`figures_held`)."""
@@ -952,21 +734,18 @@ class Panels:
         for handle, shown in self._bindings:
             handle.value = shown()
 
+    # --- what other parts ask of the tabs built as panels --------------------------------------------------
+    def view_options(self) -> dict:
+        """The View tab's settings (:meth:`magcal_workbench.viewtab.ViewTab.view_options`)."""
+        return self._tab_parts["view"].view_options()
+
+    def fit_view_to_data(self) -> None:
+        """Set the View tab's gains to suit the data and fit (:meth:`magcal_workbench.viewtab.ViewTab.fit_view_to_data`)."""
+        self._tab_parts["view"].fit_view_to_data()
+
     def refresh_sessions(self) -> None:
-        store = self.store
-        if store is None:
-            self.session_info.content = "_Autosave is off._"
-            return
-        sessions = store.list()
-        self.session_info.content = (
-            f"This session: {safe_code(self.ctrl().session_id)} in {safe_code(store.root)}"
-            if self.ctrl().session_id
-            else "_This session is not saved._"
-        )
-        self.session_info.content += "\n\n" + sessions_markdown(sessions, store.max_bytes)
-        opts = tuple(s["id"] for s in sessions[:30]) or ("-",)
-        self.session_choice.options = opts
-        self.session_choice.value = opts[0]
+        """The Files tab's saved sessions (:meth:`magcal_workbench.filestab.FilesTab.refresh_sessions`)."""
+        self._tab_parts["files"].refresh_sessions()
 
 
 def _asks(kinds: set, *wanted: Change) -> bool:

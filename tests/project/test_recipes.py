@@ -498,6 +498,9 @@ def test_recipe_panel_from_an_installed_package_is_built_and_its_button_works(tm
             "model",
             "quality",
             "outliers",
+            "view",
+            "files",
+            "lessons",
             "gravity",
             "toy-kept",
         ]  # the built-in ones first
