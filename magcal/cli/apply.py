@@ -218,7 +218,7 @@ def _run_compensation(args, parallel) -> int:
             "--uncertainty, --record-terms and --force are for a magnetometer's calibration, not a compensation"
         )
     if args.workers is not None or args.scheduler is not None:  # partitions read with a margin of samples
-        summary = apply_compensation_partitioned(
+        partitioned = apply_compensation_partitioned(
             args.calibration,
             args.data,
             args.output,
@@ -231,7 +231,7 @@ def _run_compensation(args, parallel) -> int:
             drop_bad=args.drop_bad,
             compression=args.compression,
         )
-        print(summary.text())
+        print(partitioned.text())
         return 0
     targets = [args.output]
     if parallel:
