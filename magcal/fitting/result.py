@@ -79,7 +79,7 @@ class SampleFitResult(ModeResult):
     Attributes
     ----------
     warnings : list of str
-        What the fit said (its :attr:`notes` are made from these).
+        What the fit said (its ``notes`` are made from these).
     n_samples : int
         The samples fitted.
     wall_s : float
