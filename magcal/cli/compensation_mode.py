@@ -33,7 +33,7 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import parse_column_mapping
-from magcal.diagnosis.cross_compensation import check_cross_effects, cross_record
+from magcal.diagnosis.cross_compensation import CrossCompensationResult, check_cross_effects, cross_record
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
@@ -245,7 +245,8 @@ def run_cross_compensation(args, ds, notes) -> int:
     )
     ridge = float(getattr(args, "ridge", 0.0) or 0.0)
     result = CROSS_COMPENSATION.fit(record, reference=ned, effects=effects, ridge=ridge)
-    result.source = args.data
+    if isinstance(result, CrossCompensationResult):
+        result.source = args.data
     notes = list(notes) + [note.text for note in result.notes]
     result.notes.clear()  # printed with the run's own notes
     validation = None

@@ -211,7 +211,7 @@ class CrossCompensationResult(ModeResult):
     mode = "cross_compensation"
 
     @property
-    def warnings(self) -> list[str]:  # type: ignore[override]
+    def warnings(self) -> list[str]:
         return [note.text for note in self.notes]
 
     def text(self) -> str:
