@@ -35,16 +35,22 @@ def flights(tmp_path_factory):
 
 
 @pytest.mark.parametrize(
-    ("reference", "attitude", "mode"),
-    [(True, "euler", "auto"), (True, "quaternion", "cross_compensation"), (False, "euler", "cross_compensation")],
+    ("columns", "attitude", "mode", "given", "reference"),
+    [
+        (True, "euler", "auto", False, "attitude"),  # the field vector's columns ref_n, ref_e, ref_d
+        (True, "quaternion", "cross_compensation", False, "attitude"),
+        (False, "euler", "cross_compensation", True, "attitude"),  # --reference-vector N,E,D
+        (False, "euler", "cross_compensation", False, "mean"),  # none: the four's mean field
+    ],
 )
-def test_calibrate_reports_the_tensor_fom(flights, tmp_path, capsys, reference, attitude, mode):
+def test_calibrate_reports_the_tensor_fom(flights, tmp_path, capsys, columns, attitude, mode, given, reference):
     box = flights["drone"][0]
-    path = write_cross_flight(box, tmp_path / "box.csv", reference=reference, attitude=attitude)
-    assert main(["calibrate", str(path), "--mode", mode, "--json"]) == 0
+    path = write_cross_flight(box, tmp_path / "box.csv", reference=columns, attitude=attitude)
+    vector = ["--reference-vector", ",".join(f"{v:.3f}" for v in box.truth.field_ned_nT)] if given else []
+    assert main(["calibrate", str(path), "--mode", mode, "--json", *vector]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["mode"] == "cross_compensation" and doc["calibration"]["kind"] == "cross_compensation"
-    assert doc["calibration"]["reference"] == ("attitude" if reference else "mean")
+    assert doc["calibration"]["reference"] == reference
     fom = doc["tensor_fom_nT_per_m"]
     assert len(fom["per_maneuver"]) == 12 and len(doc["fom_nT"]) == 4
     assert fom["after"] < fom["before"] / 50 and doc["improvement_ratio"] > 50
