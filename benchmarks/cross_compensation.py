@@ -23,9 +23,8 @@ import time
 import numpy as np
 
 from magcal.data.cross_flight import simulate_cross_flight
-from magcal.diagnosis.cross_fom import cross_fom_report
 from magcal.diagnosis.cross_compensation import cross_compensation_result, cross_record, diagnose_cross_compensation
-from magcal.diagnosis.cross_fom import tensor_fom
+from magcal.diagnosis.cross_fom import cross_fom_report, tensor_fom
 from magcal.fitting.cross_compensation import fit_cross_compensation
 
 CASES = [
@@ -126,9 +125,10 @@ def diagnosis():
             fit = cross_compensation_result(records[0], d.explained_by, field_ned_nT=ned).calibration
             ours = fit.compensate(b.readings_nT, sample_rate_hz=10.0, current_A=b.current_A if fit.current else None)
             true = b.truth.compensated_nT(b.readings_nT)
-            ratio = tensor_fom(ours, 0.5, b.truth.maneuvers, 10.0).fom_nT_per_m / tensor_fom(
-                true, 0.5, b.truth.maneuvers, 10.0
-            ).fom_nT_per_m
+            ratio = (
+                tensor_fom(ours, 0.5, b.truth.maneuvers, 10.0).fom_nT_per_m
+                / tensor_fom(true, 0.5, b.truth.maneuvers, 10.0).fom_nT_per_m
+            )
             final = d.fom_final_nT_per_m if d.fom_final_nT_per_m is not None else d.fom_held_out_nT_per_m
             print(
                 f"| {platform} | {seed} | {d.verdict} | {', '.join(d.explained_by) or '-'} | "
