@@ -9,7 +9,7 @@ after the compensated one.
 
 The diagnosis follows the scalar compensation's (:mod:`magcal.diagnosis.compensation`): the maneuvers dealt into
 :data:`~magcal.diagnosis.compensation.FOLDS` folds, each fold's maneuvers (with a guard of
-:data:`~magcal.diagnosis.compensation.GUARD_S`) left out of the fit and the compensated tensor's band-passed
+``GUARD_S``, 2 s) left out of the fit and the compensated tensor's band-passed
 peak-to-peak taken in them (the held-out tensor FOM, nT/m), or the fit on the whole record judged on ``also``'s
 maneuvers; candidates taken by :func:`magcal.diagnosis.selection.forward_selection` when they lower it by
 :data:`~magcal.diagnosis.compensation.MIN_GAIN`. The floor is the tensor FOM the sensors' white noise alone leaves
@@ -72,7 +72,7 @@ CURRENT_COLUMNS = ("current_A", "current", "throttle")
 
 
 def check_cross_effects(names) -> tuple:
-    """``names`` checked against :data:`CROSS_EFFECTS` (a :class:`MagcalError` naming the known ones)."""
+    """``names`` checked against :data:`CROSS_EFFECTS` (a :class:`~magcal.core.errors.MagcalError` naming the known ones)."""
     names = tuple(dict.fromkeys(str(n) for n in (names or ())))
     unknown = [n for n in names if n not in CROSS_EFFECTS]
     if unknown:

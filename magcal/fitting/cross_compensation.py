@@ -366,7 +366,7 @@ class CrossCompensation:
 
     @classmethod
     def load(cls, path) -> CrossCompensation:
-        """The compensation a JSON file written by :meth:`save` holds (a :class:`MagcalError` naming the file
+        """The compensation a JSON file written by :meth:`save` holds (a :class:`~magcal.core.errors.MagcalError` naming the file
         otherwise)."""
         try:
             with open(path, encoding="utf-8") as fh:

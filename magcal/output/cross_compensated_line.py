@@ -8,7 +8,7 @@ term's rate) and, when the compensation has the current term, the current's colu
 the line's columns as magcal reads them (readings in nT) plus ``s{i}x_comp, s{i}y_comp, s{i}z_comp`` (nT, the
 platform's body frame, or the four's mean frame for a ``mean`` reference) and the tensor of the compensated sensors
 under the names a calibrated cross's apply writes (:data:`magcal.output.apply.TENSOR_COLUMNS`, nT/m, and the
-invariants :data:`magcal.output.apply.INVARIANT_COLUMNS`), to CSV or Parquet by the output's name.
+invariants ``I0, I1, I2``), to CSV or Parquet by the output's name.
 """
 
 from __future__ import annotations
