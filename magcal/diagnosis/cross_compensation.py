@@ -462,6 +462,20 @@ def _verdict(explained, base, final, floor, scheme, effects) -> tuple[str, str]:
     )
 
 
+def _not_judged(other, effects, pool, maneuvers, floor, sigma, base, started) -> CrossCompensationDiagnosis:
+    """The diagnosis of a record (or another flight, ``other``) with too few maneuvers to hold any out."""
+    cands = [CrossCandidate(name, judged=False, reason="nothing to judge on") for name in pool]
+    summary = (
+        f"not judged: {'the other flight' if other else 'the record'} holds {len(maneuvers)} maneuvers, too few "
+        "to hold any out; fly a full box or give another flight (--also)"
+    )
+    validation = {"scheme": "none", "folds": FOLDS, "n_maneuvers": len(maneuvers)}
+    return CrossCompensationDiagnosis(
+        "not_judged", summary, effects, cands, [], float("nan"), None, floor, sigma, validation, [], [], base,
+        _time.perf_counter() - started,
+    )  # fmt: skip
+
+
 def _unusable(name: str, record: CrossRecord) -> str:
     if name == "current":
         if record.current_A is None:
@@ -513,16 +527,7 @@ def diagnose_cross_compensation(
     validation = {"scheme": scheme, "folds": FOLDS, "n_maneuvers": len(judged_maneuvers)}
     enough = bool(judged_maneuvers) if also is not None else len(maneuvers) >= FOLDS
     if not enough:
-        cands = [CrossCandidate(name, judged=False, reason="nothing to judge on") for name in pool]
-        summary = (
-            f"not judged: {'the other flight' if also is not None else 'the record'} holds {len(judged_maneuvers)} "
-            "maneuvers, too few to hold any out; fly a full box or give another flight (--also)"
-        )
-        validation["scheme"] = "none"
-        return CrossCompensationDiagnosis(
-            "not_judged", summary, effects, cands, [], float("nan"), None, floor, sigma, validation, [], [], base,
-            _time.perf_counter() - started,
-        )  # fmt: skip
+        return _not_judged(also is not None, effects, pool, judged_maneuvers, floor, sigma, base, started)
 
     def score(names) -> float:
         return held_out_tensor_fom(record, names, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)
