@@ -34,6 +34,7 @@ from magcal.model.plugins import check_calibration_effects
 from magcal.output.apply import apply_file, load_calibration
 from magcal.output.compensated_line import apply_compensation_file, is_compensation_file
 from magcal.output.compensated_survey import apply_compensation_partitioned
+from magcal.output.cross_compensated_line import apply_cross_compensation_file, is_cross_compensation_file
 from magcal.output.survey import TASKS_PER_WORKER, WORKERS_PER_CORE, apply_partitioned, check_workers
 
 
@@ -154,6 +155,8 @@ def run(args) -> int:
     check_output_path(args.output, "-o", directory=parallel)
     if is_compensation_file(args.calibration):
         return _run_compensation(args, parallel)
+    if is_cross_compensation_file(args.calibration):
+        return _run_cross_compensation(args, parallel)
     check_calibration_effects(args.calibration)  # a user's effect in the file needs --effects-file
     calibration = load_calibration(args.calibration)
     if parallel:
@@ -242,6 +245,38 @@ def _run_compensation(args, parallel) -> int:
         targets = [os.path.join(args.output, f"{stem}_comp.{args.format}") for stem in stems]
     for path, target in zip(args.data, targets):
         summary = apply_compensation_file(
+            args.calibration,
+            path,
+            target,
+            columns=args.columns,
+            units=args.units,
+            drop_bad=args.drop_bad,
+            compression=args.compression if target.endswith(".parquet") else None,
+        )
+        for note in dict.fromkeys(summary.notes):
+            print(f"magcal apply: warning: {path}: {note}", file=sys.stderr)
+        print(summary.text())
+    return 0
+
+
+def _run_cross_compensation(args, parallel) -> int:
+    """``magcal apply`` of the cross's compensation (``kind: "cross_compensation"``): each line gets its sensors'
+    compensated vectors and the compensated tensor; several lines go into the folder ``-o``, each as
+    ``<name>_comp`` in ``--format``."""
+    if args.uncertainty or args.record_terms or args.force or args.workers is not None or args.scheduler is not None:
+        raise MagcalError(
+            "--uncertainty, --record-terms, --force, --workers and --scheduler are for a magnetometer's calibration, "
+            "not the cross's compensation"
+        )
+    targets = [args.output]
+    if parallel:
+        os.makedirs(args.output, exist_ok=True)
+        stems = [os.path.splitext(os.path.basename(path))[0] for path in args.data]
+        if len(set(stems)) < len(stems):
+            raise MagcalError("the lines' file names must differ (their outputs share the folder -o)")
+        targets = [os.path.join(args.output, f"{stem}_comp.{args.format}") for stem in stems]
+    for path, target in zip(args.data, targets):
+        summary = apply_cross_compensation_file(
             args.calibration,
             path,
             target,

@@ -38,7 +38,13 @@ from magcal.checks.reference import (
     vector_reference_from_args,
 )
 from magcal.cli.commands import HELP
-from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation, wants_compensation
+from magcal.cli.compensation_mode import (
+    add_compensation_arguments,
+    run_compensation,
+    run_cross_compensation,
+    wants_compensation,
+    wants_cross_compensation,
+)
 from magcal.cli.fit_report import report_fit
 from magcal.cli.gravity_mode import add_gravity_arguments, gravity_options
 from magcal.core.errors import CalibrationError, MagcalError
@@ -49,7 +55,16 @@ from magcal.fitting.pipeline import METHODS, SEARCH_METHODS
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.vector import PLATFORM_EFFECTS, fit_vector, vector_model
 from magcal.model.terms import check_effect_names
-from magcal.modes import FIT_MODES, GRAVITY, TOTAL_FIELD, VECTOR, load_entry_points, mode_choice, mode_names
+from magcal.modes import (
+    CROSS_COMPENSATION,
+    FIT_MODES,
+    GRAVITY,
+    TOTAL_FIELD,
+    VECTOR,
+    load_entry_points,
+    mode_choice,
+    mode_names,
+)
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -424,11 +439,16 @@ def run(args) -> int:
 
     if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
         return run_compensation(args, read_input)
+    if wants_cross_compensation(args):  # its --effects are its own terms too
+        ds, notes = read_input(args)
+        return run_cross_compensation(args, ds, notes)
     names = checked_effect_names(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     _platform_terms(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds)
+    if mode is CROSS_COMPENSATION:
+        return run_cross_compensation(args, ds, notes)
     if mode is not TOTAL_FIELD:
         if mode is VECTOR:
             header, options = vector_options(args, ds, vref)

@@ -11,6 +11,9 @@ Example::
     magcal calibrate box.csv --mode compensation --effects current,time_offset -o comp.json
     magcal apply comp.json line.csv -o line_comp.csv             # + <scalar>_comp
     magcal export comp.json --format magnav-tl -o tl.json        # TL_coef in MagNav.jl's order
+    magcal calibrate cross_box.csv --mode cross_compensation --reference igrf -o cross.json  # the four-sensor cross
+    magcal diagnose cross_box.csv --mode cross_compensation      # the current the per-sensor TL misses
+    magcal apply cross.json cross_line.csv -o cross_line_comp.csv    # + s1x_comp ..., Gxx ... of the compensated
 
 ``--mode auto`` (the default) takes it when the record has a scalar magnetometer's column
 (:data:`magcal.fitting.compensation.SCALAR_COLUMNS`, or ``--scalar NAME``) beside the fluxgate's x, y, z. The
@@ -24,11 +27,13 @@ import copy
 import json
 import sys
 
+from magcal.checks.reference import vector_reference_from_args
 from magcal.cli.fit_report import report_fit
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import parse_column_mapping
+from magcal.diagnosis.cross_compensation import CrossCompensationResult, check_cross_effects, cross_record
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
@@ -38,6 +43,7 @@ from magcal.fitting.compensation import (
 )
 from magcal.model.tolles_lawson import DEFAULT_TERMS, check_terms
 from magcal.modes.compensation import COMPENSATION
+from magcal.modes.cross_compensation import CROSS_COMPENSATION, field_vector
 from magcal.output.compensation_figure import write_compensation_figure
 
 
@@ -191,3 +197,83 @@ def run_compensation_diagnosis(args, read_input) -> int:
 
 #: The terms ``--effects`` takes in compensation mode, for the help texts.
 EFFECT_NAMES = tuple(COMPENSATION_EFFECTS)
+
+
+def wants_cross_compensation(args) -> bool:
+    """Whether ``--mode cross_compensation`` was given (``auto`` reaches it after reading the record:
+    :func:`magcal.modes.base.mode_choice`)."""
+    return (getattr(args, "mode", "auto") or "auto") == CROSS_COMPENSATION.name
+
+
+def cross_effects(args) -> tuple:
+    """``--effects`` as the cross compensation's terms (:data:`magcal.diagnosis.cross_compensation.CROSS_EFFECTS`)."""
+    names = [n.strip() for item in (getattr(args, "effects", None) or []) for n in str(item).split(",") if n.strip()]
+    return check_cross_effects(names)
+
+
+def _cross_setup(args, ds):
+    """The record and the field vector of a cross compensation flight: ``--reference igrf``, ``--reference-vector``
+    or the ``ref_n, ref_e, ref_d`` columns (None: the four's mean field)."""
+    reason = CROSS_COMPENSATION.applicable(ds)
+    if reason is not None:
+        raise MagcalError(f"{args.data}: --mode {CROSS_COMPENSATION.name} {reason}")
+    try:
+        record = cross_record(ds, getattr(args, "current", None))
+        vref = vector_reference_from_args(args, ds) if record.attitude_deg is not None else None
+    except MagcalError as exc:
+        text = str(exc)
+        raise MagcalError(text if text.startswith(f"{args.data}") else f"{args.data}: {text}") from None
+    record.source = args.data
+    return record, vref
+
+
+def _reference_words(vref, ned) -> str:
+    return "the four sensors' mean field" if ned is None else f"the attitude's Earth field ({vref.text})"
+
+
+def run_cross_compensation(args, ds, notes) -> int:
+    """``magcal calibrate`` in cross compensation mode: the fit, its tensor FOM report, ``-o`` the JSON document."""
+    effects = cross_effects(args)
+    record, vref = _cross_setup(args, ds)
+    ned = field_vector(vref, record.n_samples)
+    print(
+        f"magcal calibrate: cross compensation mode; four sensors, {record.sample_rate_hz:g} Hz, baseline "
+        f"{record.baseline_m:g} m, against {_reference_words(vref, ned)}"
+        + (f", current {record.current_column!r}" if record.current_column and "current" in effects else "")
+        + f"; terms beyond TL: {', '.join(effects) or 'none'}",
+        file=sys.stderr,
+    )
+    ridge = float(getattr(args, "ridge", 0.0) or 0.0)
+    result = CROSS_COMPENSATION.fit(record, reference=ned, effects=effects, ridge=ridge)
+    if isinstance(result, CrossCompensationResult):
+        result.source = args.data
+    notes = list(notes) + [note.text for note in result.notes]
+    result.notes.clear()  # printed with the run's own notes
+    validation = None
+    if effects and getattr(args, "validate", True):
+        validation = CROSS_COMPENSATION.validate(record, result, reference=ned, effects=effects)
+    return report_fit(args, result, validation, notes)
+
+
+def run_cross_compensation_diagnosis(args, ds, notes, read_input) -> int:
+    """``magcal diagnose`` in cross compensation mode (``--also``: another flight judges the candidates)."""
+    effects = cross_effects(args)
+    record, vref = _cross_setup(args, ds)
+    others = list(getattr(args, "also", None) or [])
+    if len(others) > 1:
+        raise MagcalError("--also: the cross compensation's diagnosis judges on one other flight; give one")
+    also = None
+    if others:
+        other_ds, more = read_input(_with_data(args, others[0]))
+        notes = list(notes) + list(more)
+        also, _ = _cross_setup(_with_data(args, others[0]), other_ds)
+    ned = field_vector(vref, record.n_samples)
+    diagnosis = CROSS_COMPENSATION.diagnose(record, reference=ned, effects=effects, also=also)
+    for note in dict.fromkeys(list(notes) + [n.text for n in diagnosis.notes]):
+        print(f"magcal diagnose: warning: {note}", file=sys.stderr)
+    if getattr(args, "json", False):
+        json.dump(jsonable(diagnosis.to_dict()), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        sys.stdout.write(diagnosis.text())
+    return 0

@@ -64,14 +64,20 @@ from magcal.cli.calibrate import (
     vector_effects,
 )
 from magcal.cli.commands import HELP
-from magcal.cli.compensation_mode import add_compensation_arguments, run_compensation_diagnosis, wants_compensation
+from magcal.cli.compensation_mode import (
+    add_compensation_arguments,
+    run_compensation_diagnosis,
+    run_cross_compensation_diagnosis,
+    wants_compensation,
+    wants_cross_compensation,
+)
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.core.notes import unique
 from magcal.data.attitude import attitude_source
 from magcal.diagnosis import start_workers
 from magcal.diagnosis._parallel import cores
 from magcal.diagnosis.vector import JUDGE_TOP, Flight
-from magcal.modes import GRAVITY, TOTAL_FIELD, VECTOR
+from magcal.modes import CROSS_COMPENSATION, GRAVITY, TOTAL_FIELD, VECTOR
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -212,11 +218,16 @@ def run(args) -> int:
     checked_attitude_noise(args)
     if wants_compensation(args):  # its --effects are its own terms, not the catalogue's: before their check
         return run_compensation_diagnosis(args, read_input)
+    if wants_cross_compensation(args):  # its --effects are its own terms too
+        ds, notes = read_input(args)
+        return run_cross_compensation_diagnosis(args, ds, notes, read_input)
     names = checked_effect_names(args)
     if getattr(args, "mode", "auto") != "vector":
         _start_workers_while_reading(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds, "diagnose")
+    if mode is CROSS_COMPENSATION:
+        return run_cross_compensation_diagnosis(args, ds, notes, read_input)
     if mode is VECTOR:
         return run_vector(args, ds, vref, notes)
     if getattr(args, "also", None):

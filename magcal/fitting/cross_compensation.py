@@ -72,6 +72,7 @@ from magcal.model.tolles_lawson import (
 )
 
 __all__ = [
+    "KIND",
     "MAGNITUDE_RIDGE",
     "MAGNITUDE_TERMS",
     "REFERENCES",
@@ -80,6 +81,7 @@ __all__ = [
     "SensorCompensation",
     "cross_arrays",
     "fit_cross_compensation",
+    "is_cross_compensation_document",
     "magnitude_pass",
 ]
 
@@ -88,6 +90,15 @@ MAGNITUDE_TERMS = ("permanent", "induced5", "eddy8")
 
 #: A magnitude pass's ridge (:func:`magnitude_pass`).
 MAGNITUDE_RIDGE = 1e-5
+
+#: The ``kind`` of the cross compensation's JSON document.
+KIND = "cross_compensation"
+
+
+def is_cross_compensation_document(doc) -> bool:
+    """Whether a parsed JSON document is the cross's compensation (``kind: "cross_compensation"``)."""
+    return isinstance(doc, dict) and doc.get("kind") == KIND
+
 
 #: The reference fields a fit can take (``auto``: the attitude when there is one and an Earth field vector).
 REFERENCES = ("auto", "attitude", "mean")
@@ -230,6 +241,8 @@ class CrossCompensation:
         The magnitude passes made (already folded into each sensor's model).
     current : bool
         True when the fit had the platform's current (a line then needs its current too).
+    current_column : str or None
+        The record's column the current was read from (a line's is looked up by the same name).
     notes : list of str
     """
 
@@ -242,6 +255,7 @@ class CrossCompensation:
     precalibrated: bool = False
     magnitude_passes: int = 0
     current: bool = False
+    current_column: str | None = None
     notes: list[str] = field(default_factory=list)
 
     def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None, current_A=None) -> np.ndarray:
@@ -310,6 +324,7 @@ class CrossCompensation:
                 "precalibrated": self.precalibrated,
                 "magnitude_passes": self.magnitude_passes,
                 "current": self.current,
+                "current_column": self.current_column,
                 "sensors": [s.to_dict() for s in self.sensors],
                 "notes": list(self.notes),
             }
@@ -335,12 +350,33 @@ class CrossCompensation:
             precalibrated=bool(d.get("precalibrated", False)),
             magnitude_passes=int(d.get("magnitude_passes", 0)),
             current=bool(d.get("current", False)),
+            current_column=d.get("current_column"),
             notes=list(d.get("notes", [])),
         )
 
     @classmethod
     def from_json(cls, text: str) -> CrossCompensation:
         return cls.from_dict(json.loads(text))
+
+    def save(self, path) -> None:
+        """Write the JSON document (:meth:`to_dict`) to ``path``."""
+        with open(path, "w", encoding="utf-8") as fh:
+            json.dump(self.to_dict(), fh, indent=2)
+            fh.write("\n")
+
+    @classmethod
+    def load(cls, path) -> CrossCompensation:
+        """The compensation a JSON file written by :meth:`save` holds (a :class:`~magcal.core.errors.MagcalError` naming the file
+        otherwise)."""
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = json.load(fh)
+        except (OSError, ValueError) as exc:
+            raise MagcalError(f"{path}: cannot read the cross compensation: {exc}") from None
+        try:
+            return cls.from_dict(doc)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MagcalError(f"{path}: not a complete cross compensation document ({exc})") from None
 
     def text(self) -> str:
         """Per sensor: the matrix's departure from the identity (ppm), the eddy terms' largest (ms), the offset (nT),

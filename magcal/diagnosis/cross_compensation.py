@@ -1,0 +1,582 @@
+"""The cross's compensation fitted on a record and judged: its report with the tensor FOM before and after, and its
+diagnosis (which platform term beyond Tolles-Lawson the array sees), on held-out maneuvers or a second flight.
+
+:func:`cross_record` takes what :func:`magcal.fitting.cross_compensation.fit_cross_compensation` needs from a
+:class:`~magcal.data.dataset.Dataset` of four sensors (the readings, the time, the attitude, the baseline and a
+platform current's column). :func:`cross_compensation_result` fits and judges it by the tensor FOM
+(:mod:`magcal.diagnosis.cross_fom`) in the maneuvers found from the attitude: before is the raw readings' tensor,
+after the compensated one.
+
+The diagnosis follows the scalar compensation's (:mod:`magcal.diagnosis.compensation`): the maneuvers dealt into
+:data:`~magcal.diagnosis.compensation.FOLDS` folds, each fold's maneuvers (with a guard of
+``GUARD_S``, 2 s) left out of the fit and the compensated tensor's band-passed
+peak-to-peak taken in them (the held-out tensor FOM, nT/m), or the fit on the whole record judged on ``also``'s
+maneuvers; candidates taken by :func:`magcal.diagnosis.selection.forward_selection` when they lower it by
+:data:`~magcal.diagnosis.compensation.MIN_GAIN`. The floor is the tensor FOM the sensors' white noise alone leaves
+(its sigma from the compensated vectors' second differences). The verdicts are the scalar compensation's.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from magcal.core.errors import MagcalError
+from magcal.core.jsonable import jsonable
+from magcal.core.notes import Note
+from magcal.data.attitude import attitude as dataset_attitude
+from magcal.data.dataset import Dataset
+from magcal.diagnosis.compensation import (
+    ADEQUATE_RATIO,
+    FOLDS,
+    GUARD_S,
+    MAX_EFFECTS,
+    MIN_GAIN,
+    _fold_masks,
+    noise_sigma_nT,
+)
+from magcal.diagnosis.cross_fom import CrossFOMReport, cross_fom_report, tensor_fom
+from magcal.diagnosis.fom import find_maneuvers
+from magcal.diagnosis.selection import forward_selection
+from magcal.fitting.cross_compensation import CrossCompensation, fit_cross_compensation
+from magcal.fitting.result import ModeResult
+from magcal.fitting.tolles_lawson import sample_rate_from_times
+
+__all__ = [
+    "CROSS_CANDIDATES",
+    "CROSS_EFFECTS",
+    "CURRENT_COLUMNS",
+    "CrossCandidate",
+    "CrossCompensationDiagnosis",
+    "CrossCompensationResult",
+    "CrossRecord",
+    "check_cross_effects",
+    "cross_compensation_result",
+    "cross_maneuvers",
+    "cross_record",
+    "diagnose_cross_compensation",
+    "held_out_tensor_fom",
+]
+
+#: The terms beyond Tolles-Lawson the cross's fit takes (``--effects``): a platform current's field per ampere.
+CROSS_EFFECTS = ("current",)
+
+#: The candidates the diagnosis tries.
+CROSS_CANDIDATES = CROSS_EFFECTS
+
+#: A platform current's column, the first of these a record has (A, or a throttle's fraction).
+CURRENT_COLUMNS = ("current_A", "current", "throttle")
+
+
+def check_cross_effects(names) -> tuple:
+    """``names`` checked against :data:`CROSS_EFFECTS` (a :class:`~magcal.core.errors.MagcalError` naming the known ones)."""
+    names = tuple(dict.fromkeys(str(n) for n in (names or ())))
+    unknown = [n for n in names if n not in CROSS_EFFECTS]
+    if unknown:
+        raise MagcalError(
+            f"the cross's compensation has no term {', '.join(map(repr, unknown))}; it takes {', '.join(CROSS_EFFECTS)}"
+        )
+    return names
+
+
+@dataclass
+class CrossRecord:
+    """What the cross's compensation takes from a record.
+
+    Attributes
+    ----------
+    readings_nT : numpy.ndarray, shape (4, N, 3)
+        Raw readings, each sensor in its own frame (nT).
+    sample_rate_hz : float
+    attitude_deg : numpy.ndarray, shape (N, 3), or None
+        Roll, pitch, yaw (deg, aerospace ZYX, body -> NED).
+    baseline_m : float
+    current_A : numpy.ndarray, shape (N,), or None
+        The platform's current (its column :attr:`current_column`).
+    current_column : str or None
+    source : str
+    """
+
+    readings_nT: np.ndarray
+    sample_rate_hz: float
+    attitude_deg: np.ndarray | None
+    baseline_m: float
+    current_A: np.ndarray | None = None
+    current_column: str | None = None
+    source: str = ""
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.readings_nT.shape[1])
+
+
+def _attitude_deg(dataset: Dataset) -> np.ndarray | None:
+    rotation = dataset_attitude(dataset)
+    if rotation is None:
+        return None
+    att = rotation.as_euler("ZYX", degrees=True)[:, ::-1]
+    att[:, 2] = np.mod(att[:, 2], 360.0)
+    return att
+
+
+def cross_record(dataset: Dataset, current: str | None = None) -> CrossRecord:
+    """The :class:`CrossRecord` of a dataset of four sensors with times, a baseline and (for the maneuvers) an
+    attitude; ``current`` names the current's column (default the first of :data:`CURRENT_COLUMNS` it has)."""
+    where = dataset.source or "the record"
+    if dataset.n_sensors != 4:
+        raise MagcalError(
+            f"{where}: the cross's compensation needs four sensors (s1x .. s4z); it has {dataset.n_sensors}"
+        )
+    if dataset.time_s is None:
+        raise MagcalError(f"{where}: the cross's compensation needs the samples' times (a column t, in s)")
+    if not dataset.baseline_m:
+        raise MagcalError(
+            f"{where}: the tensor needs the cross's baseline: add '# baseline_m: 0.5' (m) to the file's head"
+        )
+    if current is not None and current not in dataset.extra:
+        raise MagcalError(f"{where}: no column {current!r} for the current (--current)")
+    name = current or next((c for c in CURRENT_COLUMNS if c in dataset.extra), None)
+    values = None if name is None else np.asarray(dataset.extra[name], dtype=float)
+    return CrossRecord(
+        np.asarray(dataset.readings_nT, dtype=float),
+        sample_rate_from_times(dataset.time_s),
+        _attitude_deg(dataset),
+        float(dataset.baseline_m),
+        values,
+        name,
+        dataset.source or "",
+    )
+
+
+def cross_maneuvers(record: CrossRecord) -> list:
+    """The box's maneuvers, found in the attitude (else in sensor 1's direction)."""
+    flux = None if record.attitude_deg is not None else record.readings_nT[0]
+    return find_maneuvers(record.sample_rate_hz, attitude_deg=record.attitude_deg, flux_nT=flux)
+
+
+def _fit(record: CrossRecord, effects, field_ned_nT, mask=None, **options) -> CrossCompensation:
+    current = record.current_A if "current" in effects else None
+    if "current" in effects and current is None:
+        raise MagcalError(
+            f"{record.source or 'the record'}: the current term needs the platform's current (a column "
+            f"{', '.join(CURRENT_COLUMNS)}, or --current NAME)"
+        )
+    comp = fit_cross_compensation(
+        record.readings_nT,
+        reference="attitude" if field_ned_nT is not None else "mean",
+        field_ned_nT=field_ned_nT,
+        sample_rate_hz=record.sample_rate_hz,
+        attitude_deg=record.attitude_deg,
+        baseline_m=record.baseline_m,
+        current_A=current,
+        mask=mask,
+        **options,
+    )
+    comp.current_column = record.current_column if current is not None else None
+    return comp
+
+
+def _compensated(comp: CrossCompensation, record: CrossRecord) -> np.ndarray:
+    return comp.compensate(
+        record.readings_nT, sample_rate_hz=record.sample_rate_hz, current_A=record.current_A if comp.current else None
+    )
+
+
+@dataclass
+class CrossCompensationResult(ModeResult):
+    """The cross's compensation fitted on a record, with its FOM report: the ``cross_compensation`` mode's result.
+
+    Attributes
+    ----------
+    calibration : CrossCompensation
+    record : CrossRecord
+    fom : CrossFOMReport or None
+        The tensor and sensor FOM before (the raw readings) and after (None, with a note, without maneuvers).
+    effects : tuple of str
+    notes : list of Note
+    source : str
+    """
+
+    calibration: CrossCompensation  # type: ignore[assignment]  # a compensation, not a magnetometer's calibration
+    record: CrossRecord | None = field(repr=False, default=None)
+    fom: CrossFOMReport | None = None
+    effects: tuple = ()
+    notes: list = field(default_factory=list)
+    source: str = ""
+    validation: Any = None
+
+    mode = "cross_compensation"
+
+    @property
+    def warnings(self) -> list[str]:
+        return [note.text for note in self.notes]
+
+    def text(self) -> str:
+        """The fit per sensor, then the FOM per maneuver before and after, the components', the sensors' and the
+        improvement ratio."""
+        head = (
+            f"Cross compensation of {self.source or 'the record'}: four sensors, "
+            f"{self.record.n_samples if self.record is not None else '?'} samples; beyond TL: "
+            + (", ".join(self.effects) or "none")
+        )
+        parts = [head, self.calibration.text()]
+        if self.fom is not None:
+            parts.append(self.fom.text())
+        return "\n".join(parts) + "\n"
+
+    def to_dict(self) -> dict:
+        """``mode``, ``effects``, ``tensor_fom_nT_per_m`` (before, after, per maneuver), ``fom_nT`` (each sensor's
+        before and after), ``improvement_ratio`` and the full ``fom`` report."""
+        doc: dict = {"mode": self.mode, "source": self.source, "effects": list(self.effects)}
+        if self.fom is not None:
+            f = self.fom
+            doc["tensor_fom_nT_per_m"] = {
+                "before": f.before.fom_nT_per_m,
+                "after": f.after.fom_nT_per_m,
+                "per_maneuver": [
+                    {"heading_deg": round(m.heading_deg, 1), "kind": m.kind, "before": float(b), "after": float(a)}
+                    for m, b, a in zip(f.after.maneuvers, f.before.maneuver_nT_per_m, f.after.maneuver_nT_per_m)
+                ],
+            }
+            doc["fom_nT"] = [
+                {"sensor": k + 1, "before": b.fom_nT, "after": a.fom_nT}
+                for k, (b, a) in enumerate(zip(f.sensors_before, f.sensors_after))
+            ]
+            doc["improvement_ratio"] = float(f.improvement_ratio)
+            doc["fom"] = f.to_dict()
+        return jsonable(doc)
+
+
+def cross_compensation_result(
+    record: CrossRecord, effects=(), *, field_ned_nT=None, source: str = "", **options
+) -> CrossCompensationResult:
+    """Fit the cross's compensation (against the attitude's Earth field when ``field_ned_nT`` is given, else the
+    four's mean field) and judge it by the tensor FOM in the record's maneuvers (``options``: ``ridge``,
+    ``magnitude_passes``, ``passband_hz``, ``trim``)."""
+    effects = check_cross_effects(effects)
+    comp = _fit(record, effects, field_ned_nT, **options)
+    notes = [Note(text, UserWarning, "cross compensation") for text in comp.notes]
+    comp.notes = []
+    fom = None
+    maneuvers = cross_maneuvers(record)
+    if maneuvers:
+        fom = cross_fom_report(
+            record.readings_nT,
+            _compensated(comp, record),
+            record.baseline_m,
+            record.sample_rate_hz,
+            maneuvers=maneuvers,
+            passband_hz=comp.passband_hz,
+        )
+    else:
+        notes.append(Note("no FOM: no roll, pitch or yaw maneuver found in the attitude", UserWarning, "fom"))
+    return CrossCompensationResult(comp, record, fom, effects, notes, source or record.source)
+
+
+def held_out_tensor_fom(
+    record: CrossRecord, effects=(), maneuvers=None, *, field_ned_nT=None, also=None, also_field_ned_nT=None, **options
+) -> float:
+    """The held-out tensor FOM (nT/m) of the cross's compensation with ``effects``: on ``also`` (another flight,
+    in its own maneuvers) fitted on the whole record, else summed over the folds of ``maneuvers`` each left out of
+    its fit (as :func:`magcal.diagnosis.compensation.held_out_fom`)."""
+    if also is not None:
+        comp = _fit(record, effects, field_ned_nT, **options)
+        on = _compensated(comp, also)
+        return tensor_fom(on, also.baseline_m, cross_maneuvers(also), also.sample_rate_hz).fom_nT_per_m
+    guard = int(round(GUARD_S * record.sample_rate_hz))
+    total = 0.0
+    for held, mask in _fold_masks(record.n_samples, maneuvers, FOLDS, guard):
+        comp = _fit(record, effects, field_ned_nT, mask=mask, **options)
+        on = _compensated(comp, record)
+        total += tensor_fom(on, record.baseline_m, held, record.sample_rate_hz).fom_nT_per_m
+    return float(total)
+
+
+def _floor(compensated_nT, baseline_m, maneuvers, sample_rate_hz, draws: int = 8) -> tuple[float, float]:
+    """The sensors' white noise (nT, 1 sigma) and the mean tensor FOM (nT/m) it alone leaves in ``maneuvers``.
+
+    The noise is taken from the differences of the opposite sensors (1 - 3, 2 - 4: the Earth field's turning, common
+    to both, cancels; their noise adds in quadrature), the median over their six axes."""
+    v = np.asarray(compensated_nT, dtype=float)
+    pairs = (v[0] - v[2], v[1] - v[3])
+    sigma = float(np.median([noise_sigma_nT(d[:, k]) for d in pairs for k in range(3)]) / np.sqrt(2.0))
+    rng = np.random.default_rng(12345)
+    shape = np.shape(compensated_nT)
+    values = [
+        tensor_fom(rng.normal(0.0, sigma, shape), baseline_m, maneuvers, sample_rate_hz).fom_nT_per_m
+        for _ in range(draws)
+    ]
+    return sigma, float(np.mean(values))
+
+
+@dataclass
+class CrossCandidate:
+    """One candidate term judged by the held-out tensor FOM (nT/m)."""
+
+    name: str
+    round: int = 1
+    judged: bool = True
+    fom_before_nT_per_m: float = float("nan")
+    fom_after_nT_per_m: float = float("nan")
+    recommended: bool = False
+    evidence: str = ""
+    reason: str = ""
+
+    @property
+    def gain(self) -> float:
+        """Relative fall of the held-out tensor FOM (1 - after / before)."""
+        return float(1.0 - self.fom_after_nT_per_m / self.fom_before_nT_per_m) if self.judged else float("nan")
+
+    @property
+    def holds(self) -> bool:
+        """Whether its gain on held-out data reaches :data:`~magcal.diagnosis.compensation.MIN_GAIN`."""
+        return bool(self.judged and self.gain >= MIN_GAIN)
+
+    def to_dict(self) -> dict:
+        return jsonable(
+            {
+                "name": self.name,
+                "round": self.round,
+                "judged": self.judged,
+                "fom_before_nT_per_m": self.fom_before_nT_per_m if self.judged else None,
+                "fom_after_nT_per_m": self.fom_after_nT_per_m if self.judged else None,
+                "gain": self.gain if self.judged else None,
+                "recommended": self.recommended,
+                "evidence": self.evidence,
+                "reason": self.reason,
+            }
+        )
+
+    def text(self) -> str:
+        if not self.judged:
+            return f"  {self.name:<12} not judged: {self.reason}"
+        mark = "RECOMMENDED" if self.recommended else "no"
+        return (
+            f"  {self.name:<12} {self.fom_before_nT_per_m:9.3f} -> {self.fom_after_nT_per_m:9.3f} nT/m "
+            f"({-100 * self.gain:+.0f} %)  {mark:<11}  {self.evidence}"
+        )
+
+
+@dataclass
+class CrossCompensationDiagnosis:
+    """What :func:`diagnose_cross_compensation` found (the verdicts of
+    :data:`magcal.diagnosis.compensation.VERDICTS`)."""
+
+    verdict: str
+    summary: str
+    effects: list
+    candidates: list
+    explained_by: list
+    fom_held_out_nT_per_m: float
+    fom_final_nT_per_m: float | None
+    floor_fom_nT_per_m: float
+    noise_nT: float
+    validation: dict
+    warnings: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    result: CrossCompensation | None = field(repr=False, default=None)
+    elapsed_s: float = 0.0
+
+    mode = "cross_compensation"
+
+    @property
+    def partially_explained_by(self) -> list:
+        return []
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``magcal diagnose --mode cross_compensation --json``."""
+        return jsonable(
+            {
+                "mode": self.mode,
+                "verdict": self.verdict,
+                "summary": self.summary,
+                "effects": list(self.effects),
+                "explained_by": list(self.explained_by),
+                "candidates": [c.to_dict() for c in self.candidates],
+                "tensor_fom_held_out_nT_per_m": self.fom_held_out_nT_per_m,
+                "tensor_fom_final_nT_per_m": self.fom_final_nT_per_m,
+                "floor_tensor_fom_nT_per_m": self.floor_fom_nT_per_m,
+                "noise_nT": self.noise_nT,
+                "validation": dict(self.validation),
+                "warnings": list(self.warnings),
+                "elapsed_s": round(float(self.elapsed_s), 3),
+            }
+        )
+
+    def table(self) -> str:
+        """The verdict, the summary and the candidates, one line each."""
+        v = self.validation
+        scheme = (
+            f"{v.get('n_maneuvers', 0)} maneuvers in {FOLDS} folds, each held out of its fit"
+            if v.get("scheme") == "maneuvers"
+            else "the other flight's maneuvers, compensated by the fit of this one"
+            if v.get("scheme") == "flight"
+            else "nothing held out"
+        )
+        lines = [
+            f"verdict: {self.verdict}",
+            f"  {self.summary}",
+            f"held-out tensor FOM {self.fom_held_out_nT_per_m:.3f} nT/m ({scheme}); the sensors' noise "
+            f"{self.noise_nT:.3g} nT leaves {self.floor_fom_nT_per_m:.3f} nT/m",
+        ]
+        if self.effects:
+            lines.append(f"model effects: {', '.join(self.effects)}")
+        lines += ["", f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}  {'advice':<11}  evidence"]
+        lines += [c.text() for c in self.candidates]
+        if self.warnings:
+            lines += [""] + [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+    def text(self) -> str:
+        return self.table() + "\n"
+
+
+def _evidence(name: str, comp: CrossCompensation) -> str:
+    if name == "current":
+        k = np.array([np.linalg.norm(s.current_nT_per_A) for s in comp.sensors])
+        return "a field of " + ", ".join(f"{v:.3g}" for v in k) + " nT per ampere at sensors 1-4"
+    return ""
+
+
+def _verdict(explained, base, final, floor, scheme, effects) -> tuple[str, str]:
+    on = "on held-out maneuvers" if scheme == "maneuvers" else "on the other flight"
+    model = "Tolles-Lawson per sensor" + (" with " + ", ".join(effects) if effects else "")
+    if explained:
+        return "missing_effect", (
+            f"{model} leaves a held-out tensor FOM of {base:.3f} nT/m {on}; adding {', '.join(explained)} brings it "
+            f"to {final:.3f} nT/m (the noise's {floor:.3f} nT/m): magcal calibrate --mode cross_compensation "
+            "--effects " + ",".join(list(effects) + list(explained))
+        )
+    if base <= ADEQUATE_RATIO * floor:
+        return "adequate", (
+            f"{model} leaves a held-out tensor FOM of {base:.3f} nT/m {on}, within {ADEQUATE_RATIO}x of what the "
+            f"sensors' noise leaves ({floor:.3f} nT/m); no candidate lowers it by {100 * MIN_GAIN:.0f} %"
+        )
+    return "unexplained", (
+        f"{model} leaves a held-out tensor FOM of {base:.3f} nT/m {on}, {base / floor:.1f}x what the sensors' noise "
+        f"leaves ({floor:.3f} nT/m), and no candidate lowers it by {100 * MIN_GAIN:.0f} %: the platform has a term "
+        "none of them follows"
+    )
+
+
+def _not_judged(other, effects, pool, maneuvers, floor, sigma, base, started) -> CrossCompensationDiagnosis:
+    """The diagnosis of a record (or another flight, ``other``) with too few maneuvers to hold any out."""
+    cands = [CrossCandidate(name, judged=False, reason="nothing to judge on") for name in pool]
+    summary = (
+        f"not judged: {'the other flight' if other else 'the record'} holds {len(maneuvers)} maneuvers, too few "
+        "to hold any out; fly a full box or give another flight (--also)"
+    )
+    validation = {"scheme": "none", "folds": FOLDS, "n_maneuvers": len(maneuvers)}
+    return CrossCompensationDiagnosis(
+        "not_judged", summary, effects, cands, [], float("nan"), None, floor, sigma, validation, [], [], base,
+        _time.perf_counter() - started,
+    )  # fmt: skip
+
+
+def _unusable(name: str, record: CrossRecord) -> str:
+    if name == "current":
+        if record.current_A is None:
+            return f"the record has no current column ({', '.join(CURRENT_COLUMNS)})"
+        if np.ptp(record.current_A) == 0:
+            return f"its {record.current_column} column does not change"
+    return ""
+
+
+def diagnose_cross_compensation(
+    record: CrossRecord,
+    effects=(),
+    *,
+    field_ned_nT=None,
+    also: CrossRecord | None = None,
+    also_field_ned_nT=None,
+    **options,
+) -> CrossCompensationDiagnosis:
+    """Judge the terms beyond Tolles-Lawson (:data:`CROSS_CANDIDATES`) on the held-out tensor FOM and name those the
+    platform has (module docstring).
+
+    Parameters
+    ----------
+    record : CrossRecord
+        The compensation flight.
+    effects : sequence of str
+        Terms already in the model.
+    field_ned_nT : array_like, shape (3,) or (N, 3), optional
+        The Earth field vector (nT, NED) for the attitude reference; None: the four's mean field.
+    also : CrossRecord, optional
+        Another flight of the same platform to judge on instead of held-out maneuvers.
+    options
+        For :func:`magcal.fitting.cross_compensation.fit_cross_compensation` (``ridge``, ``magnitude_passes``...).
+    """
+    started = _time.perf_counter()
+    effects = list(check_cross_effects(effects))
+    pool = [c for c in CROSS_CANDIDATES if c not in effects]
+    maneuvers = cross_maneuvers(record)
+    on = also if also is not None else record
+    judged_maneuvers = cross_maneuvers(also) if also is not None else maneuvers
+    scheme = "flight" if also is not None else "maneuvers"
+    base = _fit(record, effects, field_ned_nT, **options)
+    state = {"fit": base}
+    sigma, floor = (
+        _floor(_compensated(base, on), on.baseline_m, judged_maneuvers, on.sample_rate_hz)
+        if judged_maneuvers
+        else (float("nan"), float("nan"))
+    )
+    validation = {"scheme": scheme, "folds": FOLDS, "n_maneuvers": len(judged_maneuvers)}
+    enough = bool(judged_maneuvers) if also is not None else len(maneuvers) >= FOLDS
+    if not enough:
+        return _not_judged(also is not None, effects, pool, judged_maneuvers, floor, sigma, base, started)
+
+    def score(names) -> float:
+        return held_out_tensor_fom(record, names, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)
+
+    unusable = {n: r for n in pool if (r := _unusable(n, record) or (_unusable(n, also) if also else ""))}
+    candidates = [CrossCandidate(n, judged=False, reason=r) for n, r in unusable.items()]
+    current = list(effects)
+    base_fom = score(current)
+    scores = {"now": base_fom}
+
+    def round_of(step: int):
+        names = [n for n in pool if n not in unusable and n not in current]
+        if not names or scores["now"] <= ADEQUATE_RATIO * floor and step > 0:
+            return None
+        trials = []
+        for name in names:
+            fit = _fit(record, current + [name], field_ned_nT, **options)
+            trials.append(
+                CrossCandidate(
+                    name, step + 1, True, scores["now"], score(current + [name]), False, _evidence(name, fit)
+                )
+            )
+        trials.sort(key=lambda c: c.fom_after_nT_per_m)
+        candidates.extend(trials)
+        return trials or None
+
+    def take(step: int, best: CrossCandidate, cands) -> None:
+        best.recommended = True
+        current.append(best.name)
+        scores["now"] = best.fom_after_nT_per_m
+        state["fit"] = _fit(record, current, field_ned_nT, **options)
+
+    forward_selection(
+        lambda: round_of(0),
+        lambda cands: next((c for c in cands if c.holds), None),
+        take,
+        lambda step, best: round_of(step + 1),
+        MAX_EFFECTS,
+    )
+    explained = current[len(effects) :]
+    final = scores["now"]
+    verdict, summary = _verdict(explained, base_fom, final, floor, scheme, effects)
+    warnings = []
+    if explained and final > ADEQUATE_RATIO * floor:
+        warnings.append(
+            f"with {', '.join(explained)} the held-out tensor FOM is {final:.3f} nT/m, still {final / floor:.1f}x "
+            "what the sensors' noise leaves: the platform has more than the candidates follow"
+        )
+    return CrossCompensationDiagnosis(
+        verdict, summary, effects, candidates, explained, base_fom, final if explained else None, floor, sigma,
+        validation, warnings, [], state["fit"], _time.perf_counter() - started,
+    )  # fmt: skip

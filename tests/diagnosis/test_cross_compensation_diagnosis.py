@@ -1,0 +1,80 @@
+"""The cross compensation's diagnosis: the hidden battery current named on held-out maneuvers or a second flight,
+nothing on a clean flight; with what it names, the second flight's tensor FOM within 1.2x of the true
+compensation's; too short a record not judged."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magcal.data.cross_flight import simulate_cross_flight
+from magcal.diagnosis.cross_compensation import (
+    CrossRecord,
+    cross_compensation_result,
+    cross_maneuvers,
+    cross_record,
+    diagnose_cross_compensation,
+    held_out_tensor_fom,
+)
+from magcal.diagnosis.cross_fom import tensor_fom
+
+
+def _record(flight, current=True) -> CrossRecord:
+    ds = flight.dataset()
+    if current:
+        ds.extra["current_A"] = flight.current_A
+    return cross_record(ds)
+
+
+@pytest.mark.parametrize(
+    ("platform", "reference", "also", "verdict", "explained"),
+    [
+        ("drone_current", "attitude", False, "missing_effect", ["current"]),
+        ("drone_current", "mean", False, "missing_effect", ["current"]),
+        ("drone_current", "attitude", True, "missing_effect", ["current"]),
+        ("drone", "attitude", False, "adequate", []),
+        ("drone", "mean", True, "adequate", []),
+        ("aircraft", "attitude", False, "adequate", []),
+    ],
+)
+def test_the_hidden_current_is_named_and_the_second_flight_reaches_the_truth(
+    platform, reference, also, verdict, explained
+):
+    first, second = simulate_cross_flight(21, platform=platform), simulate_cross_flight(22, platform=platform)
+    record, other = _record(first), _record(second)
+    ned = first.truth.field_ned_nT if reference == "attitude" else None
+    diagnosis = diagnose_cross_compensation(record, field_ned_nT=ned, also=other if also else None)
+    assert diagnosis.verdict == verdict and diagnosis.explained_by == explained
+    assert diagnosis.to_dict()["mode"] == "cross_compensation" and "verdict: " + verdict in diagnosis.text()
+    # the model the diagnosis advises, fitted on the first flight, compensates the second as the truth does
+    fit = cross_compensation_result(record, explained, field_ned_nT=ned).calibration
+    ours = fit.compensate(second.readings_nT, sample_rate_hz=10.0, current_A=second.current_A if fit.current else None)
+    maneuvers = second.truth.maneuvers
+    true = second.truth.compensated_nT(second.readings_nT)
+    fom = tensor_fom(ours, second.baseline_m, maneuvers, 10.0).fom_nT_per_m
+    assert fom <= 1.2 * tensor_fom(true, second.baseline_m, maneuvers, 10.0).fom_nT_per_m
+
+
+def test_the_current_is_not_judged_without_its_column():
+    flight = simulate_cross_flight(23, platform="drone_current")
+    diagnosis = diagnose_cross_compensation(_record(flight, current=False), field_ned_nT=flight.truth.field_ned_nT)
+    (candidate,) = diagnosis.candidates
+    assert not candidate.judged and "current" in candidate.reason
+    assert diagnosis.verdict == "unexplained"  # the current's field is left, far above the noise
+
+
+@pytest.mark.parametrize(("headings", "judged"), [([0.0], False), ([0.0, 90.0, 180.0, 270.0], True)])
+def test_too_few_maneuvers_are_not_judged(headings, judged):
+    flight = simulate_cross_flight(24, platform="drone", headings_deg=headings)
+    record = _record(flight)
+    diagnosis = diagnose_cross_compensation(record, field_ned_nT=flight.truth.field_ned_nT)
+    n = len(cross_maneuvers(record))
+    assert n == (12 if judged else 3)  # one heading: a roll, a pitch and a yaw, fewer than the four folds
+    assert (diagnosis.verdict == "not_judged") != judged
+    if judged:
+        # the held-out FOM sums every maneuver once, each by a fit that did not see it: above the in-sample one
+        in_sample = cross_compensation_result(record, field_ned_nT=flight.truth.field_ned_nT).fom.after.fom_nT_per_m
+        assert held_out_tensor_fom(record, (), cross_maneuvers(record), field_ned_nT=flight.truth.field_ned_nT) >= (
+            0.9 * in_sample
+        )
+        assert np.isfinite(diagnosis.floor_fom_nT_per_m)
