@@ -143,6 +143,46 @@ class CompensationCandidate:
         )
 
 
+def held_out_words(validation: dict) -> str:
+    """How a compensation's candidates were held out, in words: the maneuver folds, another flight, or nothing."""
+    if validation.get("scheme") == "maneuvers":
+        return f"{validation.get('n_maneuvers', 0)} maneuvers in {validation.get('folds', FOLDS)} folds, each held out of its fit"
+    if validation.get("scheme") == "flight":
+        return "the other flight's maneuvers, compensated by the fit of this one"
+    return "nothing held out"
+
+
+def diagnosis_table(diagnosis, figure: str, header: str) -> str:
+    """A compensation diagnosis's text (the scalar's or the cross's): its verdict, summary, held-out ``figure``
+    line, model, the candidates under ``header`` and the warnings."""
+    lines = [f"verdict: {diagnosis.verdict}", f"  {diagnosis.summary}", figure]
+    if diagnosis.effects:
+        lines.append(f"model effects: {', '.join(diagnosis.effects)}")
+    lines += ["", header] + [c.text() for c in diagnosis.candidates]
+    if diagnosis.warnings:
+        lines += [""] + [f"warning: {w}" for w in diagnosis.warnings]
+    return "\n".join(lines)
+
+
+def diagnosis_document(diagnosis, figures: dict) -> dict:
+    """A compensation diagnosis's JSON document: the keys every one has, and its held-out ``figures``."""
+    return jsonable(
+        {
+            "mode": diagnosis.mode,
+            "verdict": diagnosis.verdict,
+            "summary": diagnosis.summary,
+            "effects": list(diagnosis.effects),
+            "explained_by": list(diagnosis.explained_by),
+            "candidates": [c.to_dict() for c in diagnosis.candidates],
+            **figures,
+            "noise_nT": diagnosis.noise_nT,
+            "validation": dict(diagnosis.validation),
+            "warnings": list(diagnosis.warnings),
+            "elapsed_s": round(float(diagnosis.elapsed_s), 3),
+        }
+    )
+
+
 @dataclass
 class CompensationDiagnosis:
     """What :func:`diagnose_compensation` found.
@@ -198,47 +238,21 @@ class CompensationDiagnosis:
 
     def to_dict(self) -> dict:
         """The JSON document of ``magcal diagnose --mode compensation --json``."""
-        return jsonable(
-            {
-                "mode": "compensation",
-                "verdict": self.verdict,
-                "summary": self.summary,
-                "effects": list(self.effects),
-                "explained_by": list(self.explained_by),
-                "candidates": [c.to_dict() for c in self.candidates],
-                "fom_held_out_nT": self.fom_held_out_nT,
-                "fom_final_nT": self.fom_final_nT,
-                "floor_fom_nT": self.floor_fom_nT,
-                "noise_nT": self.noise_nT,
-                "validation": dict(self.validation),
-                "warnings": list(self.warnings),
-                "elapsed_s": round(float(self.elapsed_s), 3),
-            }
-        )
+        figures = {
+            "fom_held_out_nT": self.fom_held_out_nT,
+            "fom_final_nT": self.fom_final_nT,
+            "floor_fom_nT": self.floor_fom_nT,
+        }
+        return diagnosis_document(self, figures)
 
     def table(self) -> str:
         """The verdict, the summary and the candidates, one line each."""
-        v = self.validation
-        scheme = (
-            f"{v.get('n_maneuvers', 0)} maneuvers in {v.get('folds', FOLDS)} folds, each held out of its fit"
-            if v.get("scheme") == "maneuvers"
-            else "the other flight's maneuvers, compensated by the fit of this one"
-            if v.get("scheme") == "flight"
-            else "nothing held out"
+        figure = (
+            f"held-out FOM {self.fom_held_out_nT:.3f} nT ({held_out_words(self.validation)}); the scalar's noise "
+            f"{self.noise_nT:.3g} nT leaves {self.floor_fom_nT:.3f} nT"
         )
-        lines = [
-            f"verdict: {self.verdict}",
-            f"  {self.summary}",
-            f"held-out FOM {self.fom_held_out_nT:.3f} nT ({scheme}); the scalar's noise "
-            f"{self.noise_nT:.3g} nT leaves {self.floor_fom_nT:.3f} nT",
-        ]
-        if self.effects:
-            lines.append(f"model effects: {', '.join(self.effects)}")
-        lines += ["", f"  {'candidate':<22} {'held-out FOM before -> after':>30}  {'advice':<11}  evidence"]
-        lines += [c.text() for c in self.candidates]
-        if self.warnings:
-            lines += [""] + [f"warning: {w}" for w in self.warnings]
-        return "\n".join(lines)
+        header = f"  {'candidate':<22} {'held-out FOM before -> after':>30}  {'advice':<11}  evidence"
+        return diagnosis_table(self, figure, header)
 
     def text(self) -> str:
         return self.table() + "\n"

@@ -36,6 +36,9 @@ from magcal.diagnosis.compensation import (
     MAX_EFFECTS,
     MIN_GAIN,
     _fold_masks,
+    diagnosis_document,
+    diagnosis_table,
+    held_out_words,
     noise_sigma_nT,
 )
 from magcal.diagnosis.cross_fom import CrossFOMReport, cross_fom_report, tensor_fom
@@ -388,47 +391,21 @@ class CrossCompensationDiagnosis:
 
     def to_dict(self) -> dict:
         """The JSON document of ``magcal diagnose --mode cross_compensation --json``."""
-        return jsonable(
-            {
-                "mode": self.mode,
-                "verdict": self.verdict,
-                "summary": self.summary,
-                "effects": list(self.effects),
-                "explained_by": list(self.explained_by),
-                "candidates": [c.to_dict() for c in self.candidates],
-                "tensor_fom_held_out_nT_per_m": self.fom_held_out_nT_per_m,
-                "tensor_fom_final_nT_per_m": self.fom_final_nT_per_m,
-                "floor_tensor_fom_nT_per_m": self.floor_fom_nT_per_m,
-                "noise_nT": self.noise_nT,
-                "validation": dict(self.validation),
-                "warnings": list(self.warnings),
-                "elapsed_s": round(float(self.elapsed_s), 3),
-            }
-        )
+        figures = {
+            "tensor_fom_held_out_nT_per_m": self.fom_held_out_nT_per_m,
+            "tensor_fom_final_nT_per_m": self.fom_final_nT_per_m,
+            "floor_tensor_fom_nT_per_m": self.floor_fom_nT_per_m,
+        }
+        return diagnosis_document(self, figures)
 
     def table(self) -> str:
         """The verdict, the summary and the candidates, one line each."""
-        v = self.validation
-        scheme = (
-            f"{v.get('n_maneuvers', 0)} maneuvers in {FOLDS} folds, each held out of its fit"
-            if v.get("scheme") == "maneuvers"
-            else "the other flight's maneuvers, compensated by the fit of this one"
-            if v.get("scheme") == "flight"
-            else "nothing held out"
+        figure = (
+            f"held-out tensor FOM {self.fom_held_out_nT_per_m:.3f} nT/m ({held_out_words(self.validation)}); the "
+            f"sensors' noise {self.noise_nT:.3g} nT leaves {self.floor_fom_nT_per_m:.3f} nT/m"
         )
-        lines = [
-            f"verdict: {self.verdict}",
-            f"  {self.summary}",
-            f"held-out tensor FOM {self.fom_held_out_nT_per_m:.3f} nT/m ({scheme}); the sensors' noise "
-            f"{self.noise_nT:.3g} nT leaves {self.floor_fom_nT_per_m:.3f} nT/m",
-        ]
-        if self.effects:
-            lines.append(f"model effects: {', '.join(self.effects)}")
-        lines += ["", f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}  {'advice':<11}  evidence"]
-        lines += [c.text() for c in self.candidates]
-        if self.warnings:
-            lines += [""] + [f"warning: {w}" for w in self.warnings]
-        return "\n".join(lines)
+        header = f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}  {'advice':<11}  evidence"
+        return diagnosis_table(self, figure, header)
 
     def text(self) -> str:
         return self.table() + "\n"
