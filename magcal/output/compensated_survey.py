@@ -15,7 +15,6 @@ Each part holds the line's columns as magcal reads them (readings in nT) and ``<
 from __future__ import annotations
 
 import io as _io
-import logging
 import math
 import os
 import shutil
@@ -24,7 +23,6 @@ import time
 
 import numpy as np
 
-from magcal.core import leftovers
 from magcal.core.errors import MagcalError
 from magcal.data.dataset import DatasetError, dataset_columns, dataset_metadata
 from magcal.data.io import (
@@ -38,20 +36,17 @@ from magcal.data.io import (
     parse_column_mapping,
     write_csv,
 )
-from magcal.diagnosis import _parallel
 from magcal.fitting.compensation import Compensation
 from magcal.output.compensated_line import compensated_column, line_mapping, line_record
 from magcal.output.survey import (
     BLOCK_ROWS,
-    CONNECT_TIMEOUT_S,
-    FORK_SERVER_MODULES,
-    LOCAL_START_METHOD,
     Partition,
     PartitionedSummary,
     _csv_head,
     _distributed,
     _publish,
     check_workers,
+    dask_client,
     partitions,
     remove_stale,
     work_dir_prefix,
@@ -198,33 +193,6 @@ def compensate_partition(
     return out, rows
 
 
-def _client(distributed, workers, scheduler):
-    """(client, the local cluster or None, where) for ``scheduler`` or a local cluster of ``workers``."""
-    if scheduler:
-        try:
-            client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
-        except (OSError, TimeoutError) as exc:
-            raise MagcalError(
-                f"--scheduler {scheduler}: cannot reach the Dask scheduler within {CONNECT_TIMEOUT_S:g} s ({exc}); "
-                "is it running, and is the address right?"
-            ) from None
-        return client, None, f"the cluster at {scheduler}"
-    import dask
-
-    if LOCAL_START_METHOD == "forkserver":
-        _parallel.start_fork_server(FORK_SERVER_MODULES)
-    scratch = {"temporary-directory": leftovers.run_dir()}
-    with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD, **scratch}):
-        cluster = distributed.LocalCluster(
-            n_workers=int(workers),
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.CRITICAL,
-        )
-    return distributed.Client(cluster), cluster, f"a local cluster of {int(workers)} worker(s)"
-
-
 def apply_compensation_partitioned(
     compensation,
     inputs,
@@ -279,7 +247,7 @@ def apply_compensation_partitioned(
     cluster, done = None, False
     t_start = time.perf_counter()
     try:
-        client, cluster, where = _client(distributed, workers, scheduler)
+        client, cluster, where = dask_client(distributed, workers, scheduler)
         start_s = time.perf_counter() - t_start
         try:
             threads = max(1, sum(client.nthreads().values())) if scheduler else int(workers)

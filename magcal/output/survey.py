@@ -552,6 +552,35 @@ class PartitionedSummary:
         )
 
 
+def dask_client(distributed, workers, scheduler):
+    """``(client, the local cluster or None, where in words)``: a client of the Dask scheduler at ``scheduler``,
+    else of a local cluster of ``workers`` processes of one thread each, started the way that leaves nothing
+    behind (its scratch space in the run folder, which goes with the fork server, a kill too)."""
+    if scheduler:
+        try:
+            client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+        except (OSError, TimeoutError) as exc:
+            raise MagcalError(
+                f"--scheduler {scheduler}: cannot reach the Dask scheduler within {CONNECT_TIMEOUT_S:g} s ({exc}); "
+                "is it running, and is the address right?"
+            ) from None
+        return client, None, f"the cluster at {scheduler}"
+    import dask
+
+    if LOCAL_START_METHOD == "forkserver":  # one that removes the run folder as it ends, a kill too
+        _parallel.start_fork_server(FORK_SERVER_MODULES)
+    scratch = {"temporary-directory": leftovers.run_dir()}
+    with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD, **scratch}):
+        cluster = distributed.LocalCluster(
+            n_workers=int(workers),
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.CRITICAL,  # a task's error reaches the client, said once there
+        )
+    return distributed.Client(cluster), cluster, f"a local cluster of {int(workers)} worker(s)"
+
+
 # long: every argument checked before any work, then the Dask run inside one try/finally that owns the
 # temporary folder, its clean-up and the publication of the result
 def apply_partitioned(
@@ -645,32 +674,7 @@ def apply_partitioned(
     done = False
     t_start = time.perf_counter()
     try:
-        if scheduler:
-            try:
-                client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
-            except (OSError, TimeoutError) as exc:
-                raise MagcalError(
-                    f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
-                    f"{CONNECT_TIMEOUT_S:g} s ({exc}); is it running, and is the address right?"
-                ) from None
-            where = f"the cluster at {scheduler}"
-        else:
-            import dask
-
-            if LOCAL_START_METHOD == "forkserver":  # one that removes the run folder as it ends, a kill too
-                _parallel.start_fork_server(FORK_SERVER_MODULES)
-            # the scheduler's and the workers' scratch space in the run folder, which goes with the fork server
-            scratch = {"temporary-directory": leftovers.run_dir()}
-            with dask.config.set({"distributed.worker.multiprocessing-method": LOCAL_START_METHOD, **scratch}):
-                cluster = distributed.LocalCluster(
-                    n_workers=int(workers),
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address=None,
-                    silence_logs=logging.CRITICAL,  # a task's error reaches the client, said once there
-                )
-            client = distributed.Client(cluster)
-            where = f"a local cluster of {int(workers)} worker(s)"
+        client, cluster, where = dask_client(distributed, workers, scheduler)
         start_s = time.perf_counter() - t_start
         try:
             threads = max(1, sum(client.nthreads().values())) if scheduler else int(workers)
