@@ -107,6 +107,7 @@ class CompensationSession(ModelSession):
             ctrl.state.touch()
         ctrl.autosave()
         ctrl.emit(Change.COMPENSATION)
+        ctrl.emit(Change.DIAGNOSIS)  # the fit cleared the diagnosis of the one before
         ctrl.say(("the saved session's " if again else "") + fit_message(result, elapsed))
         return result
 

@@ -125,3 +125,42 @@ def test_a_flight_without_a_hidden_term_is_adequate(tmp_path):
     ctrl.compensation.fit()
     found = ctrl.step_diagnose()
     assert found.verdict == "adequate" and ctrl.advice() == [] and next_step(ctrl).key == "none"
+
+
+def test_the_survey_drone_lesson_is_solved_by_the_current_within_the_true_fom(bench):
+    """The Lessons tab opens the survey drone; Check says not yet before a fit and after the TL fit, Solved once the
+    guide's steps have added the current (the FOM within the lesson's 1.2x of the true compensation's)."""
+    lesson = get_lesson("survey-drone-current")
+    answer = lesson.answer()
+    assert answer["model"] == "compensation" and answer["effects"] == ["current"] and answer["fom_ratio"] == 1.2
+    wb = bench(store=False)
+    wb.panels.lesson_choice.value = lesson.title
+    wb.lessons.do_open_lesson(None)
+    assert wb.worker.wait(60) and wb.ctrl.state.lesson == "survey-drone-current"
+    wb.ui.wait()
+    assert wb.ctrl.model_session is wb.ctrl.compensation and wb.added["compensation"].folder.visible
+    wb.lessons.do_check_lesson(None)
+    assert "has not been fitted yet" in wb.panels.lesson_feedback.content
+    pressed = []
+    while next_step(wb.ctrl).key != "none":
+        pressed.append(next_step(wb.ctrl).key)
+        _press_next(wb)
+        if pressed[-1] == "compensation":
+            wb.lessons.do_check_lesson(None)
+            assert not wb.panels.lesson_feedback.content.startswith("Solved")
+    assert pressed == ["compensation", "diagnose", "add", "diagnose"]  # the last diagnosis: nothing more to add
+    assert wb.ctrl.compensation.diagnosis.verdict == "adequate"
+    assert wb.ctrl.compensation.result.fom_nT <= 1.2 * answer["true_fom_nT"]
+    wb.lessons.do_check_lesson(None)
+    assert wb.panels.lesson_feedback.content.startswith("Solved: your compensation model holds exactly")
+
+
+@pytest.mark.parametrize(("fom_nT", "solved"), [(0.40, True), (0.60, False)])
+def test_the_lesson_check_holds_the_fom_to_the_true_compensations(fom_nT, solved):
+    lesson = get_lesson("survey-drone-current")
+    true = lesson.answer()["true_fom_nT"]
+    result = lesson.check([], {"effects": ["current"], "fom_nT": fom_nT * true / 0.4})
+    assert result["solved"] is solved
+    if not solved:
+        assert "more than 1.2x the true compensation" in result["message"]
+    assert not lesson.check([], {"effects": ["current", "heading"], "fom_nT": true})["solved"]
