@@ -638,9 +638,10 @@ SURVEY_GUIDE = """
 A drone carrying a survey magnetometer flew its compensation box before a survey line: four headings, and on each
 three rolls of +-10 deg, three pitches of +-5 deg and three yaws of +-5 deg. Its log holds the scalar magnetometer
 (`scalar_nT`, on a boom), the fluxgate beside it (`x, y, z`, nT, the direction of the field), the attitude
-(`roll_deg, pitch_deg, yaw_deg`) and the battery's current (`current_A`). The platform's own field spoils the
-survey: Tolles-Lawson models its permanent, induced and eddy-current parts from the fluxgate's direction cosines, and
-the figure of merit (FOM: the sum of the 12 band-passed peak-to-peak values in the maneuvers) judges it.
+(`roll_deg, pitch_deg, yaw_deg`), what the battery delivers, in amperes (the column ending in `_A`), and the
+platform's temperature (`temp`: it warms through the flight). The platform's own field spoils the survey:
+Tolles-Lawson models its permanent, induced and eddy parts from the fluxgate's direction cosines, and the figure of
+merit (FOM: the sum of the 12 band-passed peak-to-peak values in the maneuvers) judges it.
 
 1. Press the first screen's **Step 1** button: the Tolles-Lawson fit. Read the status: the FOM before and after,
    the improvement ratio. Calibrate tab, *Compensation*: the band-passed scalar before and after against time,
@@ -683,6 +684,7 @@ def write_compensation_lesson():
             "pitch_deg": flight.attitude_deg[:, 1],
             "yaw_deg": flight.attitude_deg[:, 2],
             "current_A": flight.current_A,
+            "temp": flight.temperature_C,
         }
     )
     folder = HERE / "lessons" / SURVEY_SLUG
