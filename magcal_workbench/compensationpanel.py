@@ -24,7 +24,7 @@ from .markup import safe_code, safe_text
 BEFORE_COLOUR = "#ff7f0e"
 AFTER_COLOUR = "#1f77b4"
 #: Fill of the maneuvers' spans by kind.
-MANEUVER_FILL = {"roll": "rgba(44,160,44,0.12)", "pitch": "rgba(148,103,189,0.12)", "yaw": "rgba(140,86,75,0.12)"}
+MANEUVER_FILL = {"roll": "rgba(44,160,44,0.22)", "pitch": "rgba(148,103,189,0.22)", "yaw": "rgba(140,86,75,0.22)"}
 
 
 def fom_table_markdown(session: CompensationSession | None) -> str:
@@ -43,37 +43,54 @@ def fom_table_markdown(session: CompensationSession | None) -> str:
         rows.append(f"| {m.heading_deg:.0f} | {safe_text(m.kind, 20)} | {fmt(b)} | {fmt(a)} |")
     rows.append(f"| **FOM** | {len(fom.after.maneuvers)} maneuvers | **{fmt(fom.before.fom_nT)}** | "
                 f"**{fmt(fom.after.fom_nT)}** |")  # fmt: skip
-    return "\n".join(rows) + f"\n\nImprovement ratio **{fom.improvement_ratio:.3g}**"
+    return (
+        "\n".join(rows)
+        + f"\n\nImprovement ratio **{fom.improvement_ratio:.3g}**. In the plot above, the maneuvers are shaded: roll "
+        "green, pitch violet, yaw brown."
+    )
 
 
 def traces_figure(data):
-    """The band-passed scalar before and after the compensation against time, the maneuvers shaded (plotly)."""
+    """The band-passed scalar as recorded (top) and compensated (bottom, its own scale: it is far smaller) against
+    time, the maneuvers shaded by kind and each heading named once (plotly)."""
     import plotly.graph_objects as go
+    from plotly.subplots import make_subplots
 
-    fig = go.Figure()
+    fig = make_subplots(
+        rows=2,
+        cols=1,
+        shared_xaxes=True,
+        vertical_spacing=0.12,
+        subplot_titles=("recorded, band-passed (nT)", "compensated, band-passed (nT)"),
+    )
     if data is not None:
         t = data["time_s"]
+        # the traces first: a shape is put only on a subplot that holds one
+        traces = ((1, "before_nT", BEFORE_COLOUR, "recorded"), (2, "after_nT", AFTER_COLOUR, "compensated"))
+        for row, key, colour, name in traces:
+            line = {"color": colour, "width": 1}
+            fig.add_trace(go.Scattergl(x=t, y=data[key], mode="lines", line=line, name=name), row=row, col=1)
+        named = set()
         for m in data["maneuvers"]:
-            fig.add_vrect(
-                x0=float(t[m.start]),
-                x1=float(t[min(m.stop, len(t)) - 1]),
-                fillcolor=MANEUVER_FILL.get(m.kind, "rgba(0,0,0,0.08)"),
-                line_width=0,
-                annotation_text=f"{m.kind[0]}{m.heading_deg:.0f}",
-                annotation_position="top left",
-                annotation_font_size=9,
-            )
-        for key, colour, name in (("before_nT", BEFORE_COLOUR, "recorded"), ("after_nT", AFTER_COLOUR, "compensated")):
-            fig.add_trace(go.Scattergl(x=t, y=data[key], mode="lines", line={"color": colour, "width": 1}, name=name))
-        fig.update_xaxes(title_text="time (s)")
-    fig.update_yaxes(title_text="band-passed scalar (nT)")
+            x0, x1 = float(t[m.start]), float(t[min(m.stop, len(t)) - 1])
+            fill = MANEUVER_FILL.get(m.kind, "rgba(0,0,0,0.08)")
+            for row in (1, 2):
+                fig.add_vrect(x0=x0, x1=x1, fillcolor=fill, line_width=0, layer="above", row=row, col=1)
+            heading = (round(m.heading_deg / 10.0) * 10) % 360
+            if heading not in named:  # each heading named once, at its first maneuver
+                named.add(heading)
+                label = f"heading {heading:.0f}°"
+                fig.add_annotation(
+                    x=x0, y=1.0, yref="y domain", text=label, showarrow=False, xanchor="left", row=1, col=1
+                )
+        fig.update_xaxes(title_text="time (s)", row=2, col=1)
     fig.update_layout(
-        height=300,
-        margin={"l": 55, "r": 10, "t": 30, "b": 40},
-        title={"text": "the scalar band-passed, before and after; the maneuvers shaded", "font": {"size": 12}},
-        legend={"orientation": "h", "y": -0.3, "font": {"size": 10}},
+        height=380,
+        margin={"l": 45, "r": 10, "t": 30, "b": 45},
+        showlegend=False,
         template="plotly_white",
     )
+    fig.update_annotations(font_size=10)
     return fig
 
 
@@ -200,7 +217,7 @@ class CompensationPage:
                 "fluxgate's direction cosines, band-passed, with the terms beyond it the model holds; judged by "
                 "the FOM (the 12 band-passed peak-to-peak values in the maneuvers)",
             )
-            self.traces = gui.add_plotly(go.Figure(), aspect=2.2)
+            self.traces = gui.add_plotly(go.Figure(), aspect=1.4)
             self.table = gui.add_markdown("")
         self.refresh()
 

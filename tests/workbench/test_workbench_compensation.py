@@ -94,9 +94,9 @@ def test_the_loop_names_the_current_and_reaches_the_true_compensation(bench, fli
     assert [h["effects"] for h in history] == [[], ["current"]]
     assert history[1]["fom_nT"] < 0.1 * history[0]["fom_nT"]
     assert "current" in loop_text(ctrl).history(ctrl) and "current" in loop_text(ctrl).terms(ctrl)
-    # the figure: before and after traces, the 12 maneuvers shaded
+    # the figure: before and after traces, the 12 maneuvers shaded on both
     fig = traces_figure(band_passed_traces(session))
-    assert len(fig.data) == 2 and len(fig.layout.shapes) == 12
+    assert len(fig.data) == 2 and len(fig.layout.shapes) == 2 * 12
     after = np.asarray(fig.data[1].y)
     assert np.std(after) < 0.1 * np.std(np.asarray(fig.data[0].y))
 
