@@ -112,8 +112,8 @@ class CompensationSession(ModelSession):
         return result
 
     def diagnose(self, *, inputs: JobInputs | None = None):
-        """The terms beyond TL judged on held-out maneuvers (:meth:`magcal.modes.compensation.CompensationMode.
-        diagnose`); the fit runs first when there is none."""
+        """The terms beyond TL judged on held-out maneuvers (the engine's compensation mode's ``diagnose``); the fit
+        runs first when there is none."""
         if self.result is None:
             self.fit(inputs=inputs)
         ctrl = self.ctrl

@@ -103,8 +103,8 @@ LON_RANGE_DEG = (-180.0, 180.0)
 ALT_RANGE_M = (-10_000.0, 2_000_000.0)
 DATE_CHARS = 32
 
-#: The numbers of a compensation history's row (:meth:`magcal_workbench.compensationmodel.CompensationSession.
-#: history`), each finite and at least 0, or null.
+#: The numbers of a compensation history's row (``CompensationSession.history``), each finite and at least 0, or
+#: null.
 COMPENSATION_STEP_NUMBERS = ("fom_before_nT", "fom_nT", "improvement_ratio", "n_fitted", "elapsed_s")
 
 LABEL = re.compile(r"^[a-z][a-z0-9_]{0,63}(?::([0-9]{1,2}))?$")
