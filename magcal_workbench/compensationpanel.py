@@ -124,18 +124,18 @@ def candidates_markdown(ctrl) -> str:
         f"noise leaves {fmt(found.floor_fom_nT, 'nT')})",
         f"_{safe_text(found.summary, 1000)}_",
         "",
-        f"| round | term | held-out FOM nT (on {scheme}) | advised? | evidence |",
-        "|---|---|---|---|---|",
+        f"Each term refitted and judged on {scheme} (held-out FOM, nT, without → with it); its evidence under "
+        "*Candidate* below.",
+        "",
+        "| round | term | held-out FOM nT | advised? |",
+        "|---|---|---|---|",
     ]
     for c in found.candidates:
         if not c.judged:
-            lines.append(f"| - | {safe_code(c.name)} | not judged | - | {safe_text(c.reason, 200)} |")
+            lines.append(f"| - | {safe_code(c.name)} | not judged: {safe_text(c.reason, 160)} | - |")
             continue
         mark = "**advised**" if c.recommended else "no"
-        lines.append(
-            f"| {c.round} | {safe_code(c.name)} | {fmt(c.fom_before_nT)}→{fmt(c.fom_after_nT)} | {mark} | "
-            f"{safe_text(c.evidence, 200)} |"
-        )
+        lines.append(f"| {c.round} | {safe_code(c.name)} | {fmt(c.fom_before_nT)}→{fmt(c.fom_after_nT)} | {mark} |")
     lines += [f"- warning: {safe_text(w, 600)}" for w in found.warnings]
     return "\n".join(lines)
 

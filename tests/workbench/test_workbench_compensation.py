@@ -17,6 +17,7 @@ from magcal_workbench.compensationmodel import band_passed_traces
 from magcal_workbench.compensationpanel import fom_table_markdown, traces_figure
 from magcal_workbench.controller import Controller
 from magcal_workbench.dataio import load_dataset
+from magcal_workbench.figures import fmt
 from magcal_workbench.guide import next_step
 from magcal_workbench.lessons import get_lesson
 from magcal_workbench.looptext import loop_text
@@ -85,7 +86,10 @@ def test_the_loop_names_the_current_and_reaches_the_true_compensation(bench, fli
     assert session.diagnosis.explained_by == ["current"] and ctrl.advice() == ["current"]
     step = next_step(ctrl)
     assert step.key == "add" and step.effects == ("current",)
-    assert "**advised**" in loop_text(ctrl).candidates(ctrl)
+    text = loop_text(ctrl).candidates(ctrl)
+    current = next(c for c in session.diagnosis.candidates if c.name == "current")
+    assert "**advised**" in text and f"{fmt(current.fom_before_nT)}→{fmt(current.fom_after_nT)}" in text
+    assert current.fom_after_nT < 0.1 * current.fom_before_nT  # its held-out FOM, shown per candidate
 
     _press_next(wb)  # Step 3: Add the advice
     assert session.effects == ["current"]
