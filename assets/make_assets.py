@@ -26,6 +26,10 @@ Outputs (committed):
   beside an accelerometer, tumbled by hand with still moments, the magnetometer mounted ``ROLL_180_YAW_90`` and
   2 deg off it; the total-field fit leaves the 2 deg, which the tilt compensation turns into heading; the gravity
   fit finds the mounting, which is the answer (the lesson is judged on the gravity fit: ``"fit": "gravity"``).
+* ``assets/lessons/survey-drone-current/`` - a simulated compensation flight
+  (:func:`magcal.data.compensation_flight.simulate_compensation_flight`): a survey drone's scalar magnetometer beside
+  a fluxgate, flown through the box, with a field per ampere of its battery current that Tolles-Lawson does not
+  model; judged on the compensation's terms (``"model": "compensation"``) and its FOM within 1.2x the true one's.
 """
 
 from __future__ import annotations
@@ -623,6 +627,96 @@ def write_gravity_lesson():
     (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
 
 
+#: The compensation lesson: a survey drone whose battery current Tolles-Lawson does not model.
+SURVEY_SLUG = "survey-drone-current"
+SURVEY_SEED = 5353
+SURVEY_CURRENT_nT_PER_A = (1.5, -1.0, 0.8)
+SURVEY_FOM_RATIO = 1.2
+SURVEY_FORMAT = "%.10g"  # 1e-5 nT at 50 000 nT: far below the scalar's 0.02 nT noise
+SURVEY_TITLE = "A survey drone whose battery current the Tolles-Lawson fit misses"
+SURVEY_GUIDE = """
+A drone carrying a survey magnetometer flew its compensation box before a survey line: four headings, and on each
+three rolls of +-10 deg, three pitches of +-5 deg and three yaws of +-5 deg. Its log holds the scalar magnetometer
+(`scalar_nT`, on a boom), the fluxgate beside it (`x, y, z`, nT, the direction of the field), the attitude
+(`roll_deg, pitch_deg, yaw_deg`), what the battery delivers, in amperes (the column ending in `_A`), and the
+platform's temperature (`temp`: it warms through the flight). The platform's own field spoils the survey:
+Tolles-Lawson models its permanent, induced and eddy parts from the fluxgate's direction cosines, and the figure of
+merit (FOM: the sum of the 12 band-passed peak-to-peak values in the maneuvers) judges it.
+
+1. Press the first screen's **Step 1** button: the Tolles-Lawson fit. Read the status: the FOM before and after,
+   the improvement ratio. Calibrate tab, *Compensation*: the band-passed scalar before and after against time,
+   the maneuvers shaded, and the FOM table per heading and maneuver. Is what is left only at the maneuvers?
+2. **Step 2**: Diagnose. Each term beyond Tolles-Lawson is refitted with one maneuver in four held out and judged
+   by the FOM on the maneuvers its fit did not see. Which one brings the FOM down to the scalar's noise?
+3. **Step 3**: add the advice and refit. How far does the FOM fall, and how close to what the noise leaves?
+4. **Check my model** (Lessons tab).
+"""
+SURVEY_EXPLANATION = (
+    "The battery leads run past the boom: every ampere of the drone's current adds a field of (1.5, -1.0, 0.8) nT "
+    "in the body frame. The current follows the throttle, which changes in the maneuvers, so the field is in the "
+    "band the FOM measures, but it follows neither the attitude nor the rates that Tolles-Lawson's terms are made "
+    "of: the TL fit leaves it (and bends its coefficients to soak up what it can). The term current (a field per "
+    "ampere of current_A, three coefficients) follows it, and the FOM falls to what the scalar's 0.02 nT noise "
+    "leaves, as the true compensation does."
+)
+
+
+def write_compensation_lesson():
+    """The compensation lesson (``survey-drone-current``): data, guide, answer (``"model": "compensation"`` and the
+    true compensation's FOM)."""
+    import numpy as np
+    import pandas as pd
+
+    from magcal.data.compensation_flight import CompensationPlatform, simulate_compensation_flight
+    from magcal.diagnosis.fom import figure_of_merit
+    from magcal.modes import COMPENSATION
+
+    platform = CompensationPlatform(current_nT_per_A=np.array(SURVEY_CURRENT_nT_PER_A))
+    flight = simulate_compensation_flight(SURVEY_SEED, platform=platform)
+    frame = pd.DataFrame(
+        {
+            "t": flight.time_s,
+            "x": flight.flux_nT[:, 0],
+            "y": flight.flux_nT[:, 1],
+            "z": flight.flux_nT[:, 2],
+            "scalar_nT": flight.scalar_nT,
+            "roll_deg": flight.attitude_deg[:, 0],
+            "pitch_deg": flight.attitude_deg[:, 1],
+            "yaw_deg": flight.attitude_deg[:, 2],
+            "current_A": flight.current_A,
+            "temp": flight.temperature_C,
+        }
+    )
+    folder = HERE / "lessons" / SURVEY_SLUG
+    folder.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(folder / "data.csv", index=False, float_format=SURVEY_FORMAT)
+    ds = mio.read_csv(folder / "data.csv")
+    maneuvers = COMPENSATION.fit(ds).fom.after.maneuvers  # the maneuvers the page's FOM sums over
+    true_fom = figure_of_merit(flight.truth.compensated_nT(flight.scalar_nT), maneuvers, flight.sample_rate_hz)
+    (folder / "guide.md").write_text(SURVEY_GUIDE.strip() + "\n", encoding="utf-8")
+    doc = {
+        "title": SURVEY_TITLE,
+        "order": 9,
+        "data": "data.csv",
+        "guide": "guide.md",
+        "answer": {
+            "effects": ["current"],
+            "model": "compensation",
+            "true_fom_nT": round(float(true_fom.fom_nT), 4),
+            "fom_ratio": SURVEY_FOM_RATIO,
+            "explanation": SURVEY_EXPLANATION,
+        },
+        "made_by": "assets/make_assets.py",
+        "seed": SURVEY_SEED,
+        "truth": {
+            "current_nT_per_A": list(SURVEY_CURRENT_nT_PER_A),
+            "tl18": np.round(flight.truth.tl18(flight.sample_rate_hz), 4).tolist(),
+            "scalar_noise_nT": 0.02,
+        },
+    }
+    (folder / "lesson.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
 def main():
     write_demo()
     write_lessons()
@@ -630,6 +724,7 @@ def main():
     write_vehicle_lesson()
     write_drone_lesson()
     write_gravity_lesson()
+    write_compensation_lesson()
     print(f"wrote {HERE / 'demo.csv'} and {len(LESSONS)} lessons under {HERE / 'lessons'}")
     return 0
 

@@ -49,6 +49,13 @@ Opens the bundled demo in headless Chromium and saves, under ``docs/img/``:
 * ``guide-gravity.png`` - the accelerometer board after its first step, the gravity fit: the corrected cloud, the
   guide pointing to the total-field loop one choice away.
 
+``python assets/make_screenshots.py compensation`` saves the compensation on the lesson ``survey-drone-current``:
+
+* ``compensation-first.png`` - the lesson as it opens: its text, the data (a scalar magnetometer beside the
+  fluxgate) and Step 1 (the Tolles-Lawson fit);
+* ``compensation-view.png`` - after Step 1, 2 and 3: the FOM before -> after in the status, the Calibrate tab's
+  band-passed scalar before and after with the maneuvers shaded, the FOM table per heading and maneuver.
+
 ``python assets/make_screenshots.py cockpit`` saves the cockpit (issue 32):
 
 * ``cockpit-calibrate.png`` - the demo after a fit: the compact table (RMS against the floor, % within +-1/2/5 %,
@@ -420,7 +427,51 @@ def newcomer() -> int:
     return 0
 
 
+def compensation() -> int:
+    """The compensation's first screen and its view after the loop (see the module docstring)."""
+    from playwright.sync_api import sync_playwright
+
+    from magcal_workbench.app import Workbench
+    from magcal_workbench.dataio import load_dataset
+    from magcal_workbench.guide import next_step
+    from magcal_workbench.lessons import get_lesson
+
+    warnings.simplefilter("ignore")
+    OUT.mkdir(parents=True, exist_ok=True)
+    slug = "survey-drone-current"
+    lesson = get_lesson(slug)
+    ds, _ = load_dataset(lesson.data_path)
+    with sync_playwright() as p:
+        wb = Workbench(ds, host="127.0.0.1", port=0, store=None, lesson=slug)
+        try:
+            wb.lessons.show_guide(lesson)
+            browser, page = _page(p, wb)
+            time.sleep(2)
+            page.screenshot(path=str(OUT / "compensation-first.png"))
+            while next_step(wb.ctrl).key != "none":
+                page.get_by_role("button", name=next_step(wb.ctrl).label).click()
+                time.sleep(0.5)
+                wb.worker.wait(300)
+                wb.ui.wait()
+                time.sleep(2)
+            page.get_by_role("tab", name="Calibrate").click()
+            time.sleep(1)
+            page.get_by_text(
+                "Compensation (a scalar magnetometer beside a fluxgate)"
+            ).first.scroll_into_view_if_needed()
+            _scroll_panel(page, 250)
+            time.sleep(3)
+            page.screenshot(path=str(OUT / "compensation-view.png"))
+            browser.close()
+        finally:
+            wb.stop()
+    print(f"wrote compensation-first.png, compensation-view.png in {OUT}")
+    return 0
+
+
 def main() -> int:
+    if sys.argv[1:] == ["compensation"]:
+        return compensation()
     if sys.argv[1:] == ["newcomer"]:
         return newcomer()
     if sys.argv[1:] == ["vehicle"]:

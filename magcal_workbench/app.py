@@ -462,7 +462,7 @@ class Workbench:
                 self._last_progress = now  # a search reports thousands of iterations: show ten a second
                 self.panels.set_progress(*ctrl.progress)
             return
-        if kind in (Change.RESULT, Change.DATA, Change.VECTOR, Change.GRAVITY):  # the scene draws each fit's correction
+        if kind in (Change.RESULT, Change.DATA, Change.VECTOR, Change.GRAVITY, Change.COMPENSATION):  # the scene draws
             with timing.span("scene"):
                 # the gains first: a gain that changes redraws the scene (its callback) once
                 self.panels.fit_view_to_data()

@@ -186,7 +186,7 @@ class CalibrateTab:
 
         if asks(Change.RESULT, Change.SELECTION, Change.MODEL):
             self.sensors_table.content = sensors_markdown(ctrl)
-        if asks(Change.RESULT, Change.SELECTION, Change.MODEL, Change.VECTOR, Change.SETTINGS):
+        if asks(Change.RESULT, Change.SELECTION, Change.MODEL, Change.VECTOR, Change.SETTINGS, Change.COMPENSATION):
             self.history.content = loop_text(ctrl).history(ctrl)
         if asks(Change.DATA):
             self.data_info.content = data_markdown(ctrl)

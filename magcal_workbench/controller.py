@@ -38,7 +38,9 @@ from magcal.data import io as mio
 from magcal.diagnosis import start_workers
 from magcal.model import plugins
 from magcal.model.terms import EFFECTS, unknown_effect_message
+from magcal.modes import choose_mode
 
+from .compensationmodel import CompensationSession
 from .consent import full_path
 from .events import Change
 from .figures import MESSAGE_LEN, candidate_label, fmt_nT, format_number
@@ -103,6 +105,7 @@ class Controller:
         self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
         #: One model session per fit mode (:data:`magcal_workbench.modelsession.MODEL_SESSIONS`), by mode name.
+        self._mode_name: str | None = None  # the engine's choice of fit mode for the record, asked once
         self.model_sessions: dict[str, ModelSession] = {name: cls(self) for name, cls in session_kinds()}
         #: The total-field model: the fit every record allows (:mod:`.totalfield`).
         self.total_field = cast(TotalFieldSession, self.model_sessions["total_field"])
@@ -110,6 +113,8 @@ class Controller:
         self.vector = cast(VectorSession, self.model_sessions["vector"])
         #: The gravity model: a compass beside an accelerometer (:mod:`.gravitymodel`).
         self.gravity = cast(GravitySession, self.model_sessions["gravity"])
+        #: The compensation: a scalar magnetometer beside a fluxgate on a platform (:mod:`.compensationmodel`).
+        self.compensation = cast(CompensationSession, self.model_sessions["compensation"])
         # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
         # that the first Diagnose does not wait for them
         start_workers(dataset, effects=tuple(EFFECTS.values()))
@@ -131,9 +136,21 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     @property
     def model_session(self) -> ModelSession:
-        """The model Diagnose and Add work on: the vector model on a record with attitude and a field vector
-        (columns, or the location typed in the page), else the total-field model."""
+        """The model Diagnose and Add work on: the compensation on a record the engine's ``choose_mode`` gives the
+        compensation mode (a scalar magnetometer's column beside the fluxgate), the vector model on a record with
+        attitude and a field vector (columns, or the location typed in the page), else the total-field model."""
+        if self.compensation_loop():
+            return self.compensation
         return self.vector if self.vector.available else self.total_field
+
+    def compensation_loop(self) -> bool:
+        """Whether the record is a compensation flight (the engine's ``choose_mode`` names the compensation mode)."""
+        if self._mode_name is None:
+            try:
+                self._mode_name = choose_mode(self.dataset).name
+            except MagcalError:
+                self._mode_name = ""
+        return self._mode_name == "compensation"
 
     def vector_loop(self) -> bool:
         """Whether the active model session (:attr:`model_session`) is the vector model."""

@@ -42,5 +42,7 @@ class Change(StrEnum):
     VECTOR = "vector"
     #: The gravity fit (a compass beside an accelerometer) changed.
     GRAVITY = "gravity"
+    #: The compensation (a scalar magnetometer beside a fluxgate: Tolles-Lawson and beyond) changed.
+    COMPENSATION = "compensation"
     #: A new record was opened: everything is redrawn (sent by the workbench's redraw, not by the controller).
     DATA = "data"

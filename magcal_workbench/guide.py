@@ -32,7 +32,7 @@ class NextStep:
     ----------
     key : str
         ``run`` (the total-field fit), ``vector`` (the vector fit), ``gravity`` (the gravity fit, beside an
-        accelerometer), ``diagnose``, ``add`` (the advice), or ``none`` (nothing to press: at the floor, or nothing
+        accelerometer), ``compensation`` (Tolles-Lawson, a scalar beside a fluxgate), ``diagnose``, ``add`` (the advice), or ``none`` (nothing to press: at the floor, or nothing
         that holds to add).
     label : str
         The button's text (empty for ``none``).
@@ -63,9 +63,13 @@ def data_markdown(ctrl) -> str:
         channels.append("an accelerometer")
     if ds.temperature_C is not None:
         channels.append("temperature")
+    if compensation_mode(ctrl):
+        channels.append(f"a scalar magnetometer ({safe_code(ctrl.compensation.record().scalar_column)})")
     held = f", with {', '.join(channels)}" if channels else ""
     fits = ["the total-field fit"]
-    if ctrl.vector_loop():
+    if compensation_mode(ctrl):
+        fits.insert(0, "the compensation (Tolles-Lawson and beyond, judged by the FOM in the maneuvers)")
+    elif ctrl.vector_loop():
         fits.insert(0, "the vector fit (attitude and the field vector: world components, the mounting)")
     elif kind is not None:
         fits.append("the vector fit once a field vector is given (Calibrate tab: a location, or ref_n/e/d columns)")
@@ -88,10 +92,17 @@ def _source(ctrl) -> str:
     return "simulated data"
 
 
+def compensation_mode(ctrl) -> bool:
+    """Whether the record is a compensation flight: a scalar magnetometer's column beside the fluxgate (the engine's
+    choice of fit mode), whose compensation comes first."""
+    loop = getattr(ctrl, "compensation_loop", None)
+    return bool(loop is not None and loop())
+
+
 def gravity_mode(ctrl) -> bool:
     """Whether the record's first fit is the gravity fit: a magnetometer beside an accelerometer, and no attitude
     with a field vector (whose vector fit comes first)."""
-    return not ctrl.vector_loop() and has_accelerometer(ctrl.dataset)
+    return not ctrl.vector_loop() and not compensation_mode(ctrl) and has_accelerometer(ctrl.dataset)
 
 
 def _gravity_step(ctrl) -> NextStep | None:
@@ -124,7 +135,15 @@ def next_step(ctrl) -> NextStep:
     gravity = _gravity_step(ctrl)
     if gravity is not None:
         return gravity
-    if ctrl.vector_loop():
+    if compensation_mode(ctrl):
+        if ctrl.compensation.result is None:
+            return NextStep(
+                "compensation",
+                "Step 1: fit Tolles-Lawson (the compensation)",
+                "The record has a scalar magnetometer beside a fluxgate: fit the platform's permanent, induced and "
+                "eddy fields (Tolles-Lawson) and judge it by the FOM in the maneuvers.",
+            )
+    elif ctrl.vector_loop():
         vm = ctrl.vector
         if vm.result is None:
             return NextStep(

@@ -7,7 +7,9 @@ A lesson is a folder under ``assets/lessons/``::
                          a lesson of the vector model adds to its answer "mounting": the right angle
                          (firmware name) per sensor, "mounting_off_deg" and "mounting_tolerance_deg": solved by a
                          vector fit that finds them; "model": "vector" judges the vector model's effects (the
-                         loop on a vehicle) instead of the total-field model's
+                         loop on a vehicle) instead of the total-field model's; "model": "compensation" judges
+                         the compensation's terms beyond Tolles-Lawson, and with "true_fom_nT" (and "fom_ratio",
+                         1.2 by default) its FOM within that ratio of the true compensation's
     <slug>/guide.md      what to look at (never names the answer)
     <slug>/data.csv      the data (made by ``assets/make_assets.py`` from the engine's simulator)
 
@@ -69,8 +71,11 @@ class Lesson:
         right angle per sensor, ``mounting_off_deg``, ``mounting_tolerance_deg``) — show only when the user asks."""
         ans = self._doc().get("answer", {})
         out = {"effects": list(ans.get("effects", [])), "explanation": ans.get("explanation", "")}
-        if ans.get("model") == "vector":
-            out["model"] = "vector"
+        if ans.get("model") in ("vector", "compensation"):
+            out["model"] = ans["model"]
+        if ans.get("true_fom_nT") is not None:
+            out["true_fom_nT"] = float(ans["true_fom_nT"])
+            out["fom_ratio"] = float(ans.get("fom_ratio", 1.2))
         if ans.get("mounting"):
             out["mounting"] = list(ans["mounting"])
             out["mounting_off_deg"] = float(ans.get("mounting_off_deg", 0.0))
@@ -113,7 +118,8 @@ class Lesson:
         """
         answer = self.answer()
         wanted = answer["effects"]
-        on_vector = answer.get("model") == "vector"
+        judged_model = answer.get("model")  # "vector" or "compensation": that model's effects are judged
+        on_vector = judged_model is not None
         if on_vector:
             effects = (vector or {}).get("effects", [])
         have = [e.strip() for e in effects]
@@ -135,12 +141,16 @@ class Lesson:
                 missing += 1
         solved = missing == 0 and not extra
         fit = self.judged_on
+        fom_short = _fom_short(answer, vector) if solved else ""
         if on_vector and not vector:
             solved = False
             message = (
-                "Not yet: this lesson is judged on the vector model (Model tab: Diagnose and Add work on the vector "
-                "fit of these data), which has not been fitted yet."
+                f"Not yet: this lesson is judged on the {judged_model} model (Model tab: Diagnose and Add work on "
+                f"the {judged_model} fit of these data), which has not been fitted yet."
             )
+        elif fom_short:
+            solved = False
+            message = fom_short
         elif mounting == "no fit":
             message = (
                 f"Not yet: this lesson is judged on the {fit} fit (Calibrate tab, Run the {fit} fit), which has not "
@@ -161,7 +171,7 @@ class Lesson:
                 + ("vehicle" if fit == "vector" else "board")
                 + " was built with."
                 if mounting
-                else f"Solved: your {'vector ' if on_vector else ''}model holds exactly the hidden effect(s)."
+                else f"Solved: your {f'{judged_model} ' if judged_model else ''}model holds exactly the hidden effect(s)."
             )
         elif missing == 0:
             message = f"All hidden effects are in, plus {len(extra)} more than needed: {_labels(extra)}."
@@ -192,6 +202,19 @@ class Lesson:
     def _doc(self) -> dict:
         with open(self.folder / "lesson.json", encoding="utf-8") as fh:
             return json.load(fh)
+
+
+def _fom_short(answer: dict, findings) -> str:
+    """Why a compensation holding the hidden terms is not yet solved: its FOM (nT) above ``fom_ratio`` times the
+    true compensation's (``true_fom_nT``); empty when within it or when the lesson names no FOM."""
+    true = answer.get("true_fom_nT")
+    fom = (findings or {}).get("fom_nT")
+    if true is None or fom is None or fom <= answer["fom_ratio"] * true:
+        return ""
+    return (
+        f"The terms are right, but the FOM is {fom:.3g} nT, more than {answer['fom_ratio']:g}x the true "
+        f"compensation's {true:.3g} nT: check the samples kept (every maneuver should be in the fit)."
+    )
 
 
 def _labels(labels) -> str:

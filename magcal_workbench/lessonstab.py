@@ -110,11 +110,16 @@ class LessonsTab:
 
     @action
     def do_check_lesson(self, event):
-        """Compare the model (the gravity model's for a gravity lesson) with the answer, without revealing it."""
+        """Compare the model (the gravity model's for a gravity lesson, the compensation's for a compensation
+        lesson) with the answer, without revealing it."""
         ctrl = self._ctrl()
         lesson = self.current()
-        gravity = lesson.judged_on == "gravity"
-        found = self._gravity().model.lesson_findings() if gravity else ctrl.vector.lesson_findings()
+        if lesson.answer().get("model") == "compensation":
+            found = ctrl.compensation.lesson_findings()
+        elif lesson.judged_on == "gravity":
+            found = self._gravity().model.lesson_findings()
+        else:
+            found = ctrl.vector.lesson_findings()
         result = lesson.check(ctrl.state.effects, found)
         self.lesson_feedback.content = result["message"]
         ctrl.say(result["message"])

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from . import compensationpanel
 from .figures import candidate_label, fmt
 from .markup import safe_code, safe_text
 from .pending import PENDING
@@ -261,6 +262,13 @@ LOOP_TEXTS: dict[str, LoopText] = {
             + model_terms_markdown(ctrl.model_terms())
         ),
         evidence_per_candidate=True,
+    ),
+    "compensation": LoopText(
+        status=compensationpanel.status_markdown,
+        candidates=compensationpanel.candidates_markdown,
+        candidate=compensationpanel.candidate_markdown,
+        history=compensationpanel.history_markdown,
+        terms=compensationpanel.terms_markdown,
     ),
 }
 

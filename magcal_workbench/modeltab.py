@@ -224,7 +224,7 @@ class ModelTab:
             if len(data[0]):
                 self.rms_plot.data = data
                 self.rms_plot.scales = log_axis_scales(data)
-        if asks(Change.RESULT, Change.SELECTION, Change.MODEL, Change.VECTOR, Change.SETTINGS):
+        if asks(Change.RESULT, Change.SELECTION, Change.MODEL, Change.VECTOR, Change.SETTINGS, Change.COMPENSATION):
             self.model_terms.content = loop_text(ctrl).terms(ctrl)
         if asks(Change.DATA, Change.EFFECTS):
             self._refresh_catalogue(ctrl)

@@ -37,6 +37,7 @@ from typing import Any
 from magcal.core.registry import Registry
 
 from .calibratetab import CalibrateTab
+from .compensationpanel import CompensationPage
 from .filestab import FilesTab
 from .gravitypage import GravityPage
 from .lessonstab import LessonsTab
@@ -177,6 +178,14 @@ PANELS.register(
         name="gravity",
         description="the gravity model: a compass beside an accelerometer, its fit, plots and cloud",
         make=lambda c: GravityPage(ctrl=c.ctrl, steps=c.steps, server=c.server),
+    ),
+    origin="built-in",
+)
+PANELS.register(
+    PanelKind(
+        name="compensation",
+        description="the compensation: a scalar magnetometer beside a fluxgate, its fit, FOM table and traces",
+        make=lambda c: CompensationPage(ctrl=c.ctrl, steps=c.steps),
     ),
     origin="built-in",
 )

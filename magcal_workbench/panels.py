@@ -531,6 +531,7 @@ class Panels:
             "run": self.on.do_calibrate,
             "vector": self.on.do_vector_fit,
             "gravity": self.on.do_gravity_fit,
+            "compensation": self.on.do_compensation_fit,
             "diagnose": self.on.do_diagnose,
             "add": self.on.do_add_advice,
         }.get(step.key)

@@ -45,6 +45,11 @@ The fields (all written by :meth:`SessionState.to_dict`):
                     kept (read as null)
 ``calibration``     an object (checked by :meth:`magcal.calibration.calibration.Calibration.from_dict` when restored) or null
 ==================  =========================================================================================
+
+and ``compensation_fit``: the last compensation ``{"kept": packed mask of N bits, "effects": terms beyond
+Tolles-Lawson, "history": [{"step", "effects", "fom_before_nT", "fom_nT", "improvement_ratio", "n_fitted",
+"elapsed_s"}]}`` (run again when the session reopens), or null; absent in a session saved before it was kept (read
+as null).
 """
 
 from __future__ import annotations
@@ -58,6 +63,7 @@ import re
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.fitting.compensation import COMPENSATION_EFFECTS
 
 from .markup import clean_text
 from .state import (
@@ -96,6 +102,10 @@ LAT_RANGE_DEG = (-90.0, 90.0)
 LON_RANGE_DEG = (-180.0, 180.0)
 ALT_RANGE_M = (-10_000.0, 2_000_000.0)
 DATE_CHARS = 32
+
+#: The numbers of a compensation history's row (``CompensationSession.history``), each finite and at least 0, or
+#: null.
+COMPENSATION_STEP_NUMBERS = ("fom_before_nT", "fom_nT", "improvement_ratio", "n_fitted", "elapsed_s")
 
 LABEL = re.compile(r"^[a-z][a-z0-9_]{0,63}(?::([0-9]{1,2}))?$")
 SLUG = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -317,6 +327,46 @@ class _Reader:
         self.mask(f"{field}.kept", doc["kept"], n)  # checked here, unpacked when the fit runs again
         return {"kept": doc["kept"], "robust": self.boolean(f"{field}.robust", doc.get("robust", False))}
 
+    def compensation_fit(self, field, value, n):
+        """The last compensation's settings, or None (:attr:`SessionState.compensation_fit`): the samples, the terms
+        beyond Tolles-Lawson (each a known one), the FOM history's rows (numbers or null)."""
+        if value is None:
+            return None
+        doc = self.obj(field, value)
+        unknown = set(doc) - {"kept", "effects", "history"}
+        if unknown:
+            self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
+        if "kept" not in doc:
+            self.fail(f"{field}.kept", "is missing")
+        self.mask(f"{field}.kept", doc["kept"], n)
+        effects = self.compensation_terms(f"{field}.effects", doc.get("effects", []))
+        history = self.rows(f"{field}.history", doc.get("history", []), self.compensation_step)
+        return {"kept": doc["kept"], "effects": effects, "history": history}
+
+    def compensation_terms(self, field, value):
+        """Terms beyond Tolles-Lawson, each one of :data:`magcal.fitting.compensation.COMPENSATION_EFFECTS`."""
+        names = [self.text(f"{field}[{i}]", v, max_len=40) for i, v in enumerate(self.listing(field, value, 16))]
+        for i, name in enumerate(names):
+            if name not in COMPENSATION_EFFECTS:
+                self.fail(f"{field}[{i}]", f"{_show(name)} is not one of {', '.join(COMPENSATION_EFFECTS)}")
+        if len(set(names)) != len(names):
+            self.fail(field, "names a term twice")
+        return names
+
+    def compensation_step(self, field, value):
+        """One row of the compensation's history (its step, terms and FOM figures)."""
+        doc = self.obj(field, value)
+        unknown = set(doc) - set(COMPENSATION_STEP_NUMBERS) - {"step", "effects"}
+        if unknown:
+            self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
+        row = {
+            "step": self.text(f"{field}.step", doc.get("step", "")),
+            "effects": self.compensation_terms(f"{field}.effects", doc.get("effects", [])),
+        }
+        for key in COMPENSATION_STEP_NUMBERS:
+            row[key] = self.number(f"{field}.{key}", doc.get(key), 0.0, math.inf, null=True)
+        return row
+
     def vector_step(self, field, value, n_samples, n_sensors):
         """One fit of the vector model's history (:class:`~magcal_workbench.state.VectorStep`)."""
         doc = self.obj(field, value)
@@ -423,6 +473,7 @@ def read_session_document(doc, where: str = "session.json"):
     rows = r.rows("vector_history", doc.get("vector_history", []), lambda f, h: r.vector_step(f, h, n, n_sensors))
     st.vector_history = rows
     st.gravity_fit = r.gravity_fit("gravity_fit", doc.get("gravity_fit"), n)
+    st.compensation_fit = r.compensation_fit("compensation_fit", doc.get("compensation_fit"), n)
     cal = doc.get("calibration")
     st.calibration = None if cal is None else r.obj("calibration", cal)
     st.notes = list(r.notes)

@@ -412,6 +412,10 @@ class SessionState:
     gravity_fit : dict or None
         The last gravity fit's settings (``kept``: a packed mask; ``robust``), so that a reopened session runs it
         again (:meth:`magcal_workbench.gravitymodel.GravitySession.restore`); None when none was run.
+    compensation_fit : dict or None
+        The last compensation's settings (``kept``: a packed mask; ``effects``: the terms beyond Tolles-Lawson;
+        ``history``: the FOM per step), run again when the session reopens
+        (:meth:`magcal_workbench.compensationmodel.CompensationSession.restore`); None when none was run.
     """
 
     def __init__(self, n_samples: int, n_sensors: int, data_path: str | None = None, lesson: str | None = None):
@@ -437,6 +441,7 @@ class SessionState:
         # effects
         self.vector_history: list[VectorStep] = []  # the vector model's fits (world N/E/D and |B| RMS)
         self.gravity_fit: dict | None = None  # the last gravity fit's settings: kept (packed mask), robust
+        self.compensation_fit: dict | None = None  # the last compensation: kept (packed mask), effects, history
         self.version = 0  # bumped on every change; the autosave and the views compare it
         #: What bounding the session changed, to say once (the oldest steps dropped: :data:`MAX_HISTORY_ROWS`).
         self.notes: list[str] = []
@@ -549,4 +554,5 @@ class SessionState:
                 "vector_fit": None if self.vector_fit is None else dict(self.vector_fit),
                 "vector_history": [r.to_dict() for r in self.vector_history],
                 "gravity_fit": None if self.gravity_fit is None else dict(self.gravity_fit),
+                "compensation_fit": None if self.compensation_fit is None else dict(self.compensation_fit),
             }

@@ -17,8 +17,9 @@ from magcal.data.attitude import attitude_quaternions
 from . import motion
 from . import scene as scn
 from .actions import action
+from .compensationmodel import band_passed_traces
 from .gravitymodel import model_of
-from .guide import gravity_mode
+from .guide import compensation_mode, gravity_mode
 from .markup import clean_text, safe_text
 from .panels import ALL_SENSORS
 from .parts import PagePart
@@ -186,6 +187,8 @@ class SceneControl(PagePart):
         gm = model_of(ctrl)
         if gravity_mode(ctrl) and gm is not None and gm.result is not None:
             return self._gravity_drawn(gm.result)
+        if compensation_mode(ctrl) and ctrl.compensation.result is not None:
+            return self._compensation_drawn(ctrl.compensation)
         if not ctrl.vector_loop() or result is None or world is None or ned is None:
             return FitDrawn(
                 ctrl.calibration, ctrl.corrected_nT, ctrl.residual_nT, ctrl.field_nT, ctrl.floor_nT(), "total-field"
@@ -211,6 +214,24 @@ class SceneControl(PagePart):
         values = np.asarray(residual, float)[:, kept]
         values = values[np.isfinite(values)]
         return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+    def _compensation_drawn(self, session) -> FitDrawn:
+        """The compensation's drawing: the fluxgate as the compensation reads it (its own calibration and time
+        offset applied when the model holds them), coloured by the band-passed compensated scalar (nT: what the
+        FOM measures), made once per fit."""
+        key, drawn = self._vector_drawn
+        result = session.result
+        if key is not result:
+            flux = np.asarray(self.ctrl.dataset.readings_nT[0], float)
+            corrected = result.calibration.corrected_flux_nT(flux)[None]
+            traces = band_passed_traces(session)
+            if traces is None:  # no fit to draw (the key above says there is one)
+                raise MagcalError("the compensation has no fit to draw yet")
+            residual = np.asarray(traces["after_nT"], dtype=float)[None]
+            field = float(np.median(np.linalg.norm(corrected[0], axis=1)))
+            drawn = FitDrawn(None, corrected, residual, field, None, "compensation")
+            self._vector_drawn = (result, drawn)
+        return drawn
 
     def _gravity_drawn(self, result) -> FitDrawn:
         """The gravity fit's correction: the magnetometer corrected into the accelerometer's frame, its |B|
@@ -242,7 +263,9 @@ class SceneControl(PagePart):
         by = self.fit_drawn().by if live is None else "total-field"
         fitted = fitted or by != "total-field"
         title = (
-            f"|B| residual of the {by} fit"
+            "band-passed compensated scalar (compensation)"
+            if by == "compensation"
+            else f"|B| residual of the {by} fit"
             if by != "total-field"
             else "total-field residual"
             if fitted

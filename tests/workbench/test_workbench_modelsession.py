@@ -17,6 +17,7 @@ from magcal.core.errors import MagcalError
 from magcal.data.board import SWAPPED_MOUNTING, simulate_board
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
 from magcal.model.perturbations import parse_hidden
+from magcal_workbench.compensationmodel import CompensationSession
 from magcal_workbench.controller import Controller
 from magcal_workbench.gravitymodel import GravitySession
 from magcal_workbench.modelsession import MODEL_SESSIONS, MODES, ModelSession
@@ -71,8 +72,10 @@ def test_every_built_in_mode_has_one_session_class_named_as_the_engines_mode():
     assert MODEL_SESSIONS["total_field"] is TotalFieldSession
     assert MODEL_SESSIONS["vector"] is VectorSession
     assert MODEL_SESSIONS["gravity"] is GravitySession
+    assert MODEL_SESSIONS["compensation"] is CompensationSession
     ctrl = Controller(magcal.simulate_timeseries("chi2017", n_samples=200, seed=1))
-    assert list(ctrl.model_sessions)[:3] == list(MODES)
+    assert list(ctrl.model_sessions)[: len(MODES)] == list(MODES)
+    assert not ctrl.compensation.available and "scalar" in ctrl.compensation.missing()[0]
     assert all(isinstance(s, ModelSession) and s.ctrl is ctrl for s in ctrl.model_sessions.values())
     assert ctrl.model_session is ctrl.total_field  # no attitude, no field vector: the total-field loop
     assert not ctrl.gravity.available and "ax, ay, az" in ctrl.gravity.missing()[0]

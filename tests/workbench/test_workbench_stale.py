@@ -1,7 +1,7 @@
 """Opening other data leaves nothing of the old data's views: the time window and the vehicle view start anew.
 
 Each kind of data the workbench opens (the four-sensor demo, a vehicle record with attitude, a compass beside an
-accelerometer, a lesson) is opened after each other kind, with the old one's vehicle view shown and its time window
+accelerometer, a compensation flight, a lesson) is opened after each other kind, with the old one's vehicle view shown and its time window
 moved; the new data's page must then show every sample, no vehicle, and describe the new record, not the old.
 """
 
@@ -18,6 +18,7 @@ KINDS = {
     "vehicle with attitude": "drone-current",
     "compass beside an accelerometer": "tilted-compass",
     "vehicle that cannot tumble": "cannot-tumble",
+    "scalar beside a fluxgate": "survey-drone-current",
 }
 
 
