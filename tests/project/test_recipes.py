@@ -502,6 +502,7 @@ def test_recipe_panel_from_an_installed_package_is_built_and_its_button_works(tm
             "files",
             "lessons",
             "gravity",
+            "compensation",
             "toy-kept",
         ]  # the built-in ones first
         n = 120
