@@ -690,6 +690,8 @@ def _gather_fast(path, source, undo_calibration) -> dict | None:
     cols: dict[str, dict] = {name: c for name, c in decoded.items() if c is not None}
     if len(cols) < len(decoded) or ("ATT" in cols and not {"Roll", "Pitch", "Yaw"} <= set(cols["ATT"])):
         return None  # a field not decoded here, an ATT without its angles (pymavlink's reader says so)
+    if any(name in cols and not {"MagX", "MagY", "MagZ"} <= set(cols[name]) for name in ("MAG", "MAG2", "MAG3")):
+        return None  # a compass message without its field (a damaged FMT: pymavlink's reader says so)
     gathered = _new_gathered()
     gathered["seen"] = set(cols)
     mags = [(name, rows[name]) for name in ("MAG", "MAG2", "MAG3") if name in cols]
@@ -775,11 +777,17 @@ def _dataflash_message(m, gathered, undo_calibration):
         _dataflash_gps(m, gathered["gps"])
         return
     if kind == "PARM":
-        value = float(m.Value)
+        name, value = getattr(m, "Name", None), getattr(m, "Value", None)
+        if name is None or value is None:  # a PARM whose format (FMT) lacks the fields: nothing to take
+            return
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            value = float("nan")
         if bad_values(value):
-            gathered["bad_params"].append(str(m.Name))
+            gathered["bad_params"].append(str(name))
         else:
-            gathered["params"][str(m.Name)] = value
+            gathered["params"][str(name)] = value
         return
     t_us = getattr(m, "TimeUS", None)
     if t_us is None:

@@ -79,6 +79,8 @@ TAKES_NOTES = {
     "cli/calibrate:run_fit": "the command line: collects the texts it prints",
     "cli/calibrate:compass_report": "the command line: collects the texts it prints",
     "cli/diagnose:run_mode": "the command line: collects the texts it prints",
+    "cli/compensation_mode:run_cross_compensation": "the command line: collects the texts it prints",
+    "cli/compensation_mode:run_cross_compensation_diagnosis": "the command line: collects the texts it prints",
     "cli/diagnose:run_vector": "the command line: collects the texts it prints",
     "cli/fit_report:report_fit": "the command line: prints the texts it is given",
     # the one place notes become warnings, and its helpers
