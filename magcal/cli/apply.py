@@ -236,27 +236,7 @@ def _run_compensation(args, parallel) -> int:
         )
         print(partitioned.text())
         return 0
-    targets = [args.output]
-    if parallel:
-        os.makedirs(args.output, exist_ok=True)
-        stems = [os.path.splitext(os.path.basename(path))[0] for path in args.data]
-        if len(set(stems)) < len(stems):
-            raise MagcalError("the lines' file names must differ (their outputs share the folder -o)")
-        targets = [os.path.join(args.output, f"{stem}_comp.{args.format}") for stem in stems]
-    for path, target in zip(args.data, targets):
-        summary = apply_compensation_file(
-            args.calibration,
-            path,
-            target,
-            columns=args.columns,
-            units=args.units,
-            drop_bad=args.drop_bad,
-            compression=args.compression if target.endswith(".parquet") else None,
-        )
-        for note in dict.fromkeys(summary.notes):
-            print(f"magcal apply: warning: {path}: {note}", file=sys.stderr)
-        print(summary.text())
-    return 0
+    return _compensate_lines(args, parallel, apply_compensation_file)
 
 
 def _run_cross_compensation(args, parallel) -> int:
@@ -268,6 +248,12 @@ def _run_cross_compensation(args, parallel) -> int:
             "--uncertainty, --record-terms, --force, --workers and --scheduler are for a magnetometer's calibration, "
             "not the cross's compensation"
         )
+    return _compensate_lines(args, parallel, apply_cross_compensation_file)
+
+
+def _compensate_lines(args, parallel, apply_file) -> int:
+    """Each line of ``args.data`` compensated by ``apply_file`` (a scalar's or the cross's compensation) into
+    ``-o``, or into the folder ``-o`` as ``<name>_comp`` in ``--format`` when there are several."""
     targets = [args.output]
     if parallel:
         os.makedirs(args.output, exist_ok=True)
@@ -276,7 +262,7 @@ def _run_cross_compensation(args, parallel) -> int:
             raise MagcalError("the lines' file names must differ (their outputs share the folder -o)")
         targets = [os.path.join(args.output, f"{stem}_comp.{args.format}") for stem in stems]
     for path, target in zip(args.data, targets):
-        summary = apply_cross_compensation_file(
+        summary = apply_file(
             args.calibration,
             path,
             target,
