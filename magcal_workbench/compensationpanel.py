@@ -103,7 +103,7 @@ def status_markdown(ctrl, figures=None) -> str:
     result = session.result
     terms = ", ".join(result.calibration.effects) or "none"
     if result.fom is None:
-        return f"**Compensation fitted**, no maneuvers found (no FOM)  \nTerms beyond Tolles-Lawson: {terms}"
+        return f"**Compensation fitted**, no maneuvers found (no FOM)  \nTerms beyond Tolles-Lawson: {safe_text(terms)}"
     fom = result.fom
     return (
         f"**Compensation FOM: {fmt(fom.before.fom_nT)} -> {fmt(fom.after.fom_nT)} nT** (improvement ratio "
@@ -176,7 +176,9 @@ def terms_markdown(ctrl) -> str:
     if result is None:
         return "_The compensation has Tolles-Lawson's permanent, induced and eddy terms only (not fitted yet)._"
     tl = result.calibration.tl
-    lines = [f"**In the compensation:** Tolles-Lawson ({', '.join(tl.terms)}: {len(tl.labels)} coefficients)"]
+    lines = [
+        f"**In the compensation:** Tolles-Lawson ({safe_text(', '.join(tl.terms))}: {len(tl.labels)} coefficients)"
+    ]
     for name in result.calibration.effects:
         lines.append(f"- {safe_code(name)}: {safe_text(TERMS.get(name, ''), 300)}")
     return "\n".join(lines)
