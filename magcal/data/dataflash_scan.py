@@ -116,6 +116,8 @@ class Scan:
 def _dtype(fmt: Format):
     if any(c not in FIELD_TYPES for c in fmt.fields) or len(set(fmt.columns)) != len(fmt.columns):
         return None
+    if not all(fmt.columns):
+        return None  # a column without a name (a damaged FMT): NumPy would name it f0
     if len(fmt.columns) != len(fmt.fields):
         return None
     dtype = np.dtype([(col, FIELD_TYPES[c][0]) for col, c in zip(fmt.columns, fmt.fields)])
@@ -212,7 +214,9 @@ def scan(path_or_bytes) -> Scan | None:
     out = Scan(data, found, starts, types)
     # every format in force was read on the walk (pymavlink learns them there)
     fmt = out.columns("FMT", np.flatnonzero(types == FMT_TYPE))
-    return out if fmt is not None and {int(t) for t in fmt["Type"]} == set(found) else None
+    if fmt is None or "Type" not in fmt:
+        return None  # a damaged FMT that names other columns: its types cannot be learned here
+    return out if {int(t) for t in fmt["Type"]} == set(found) else None
 
 
 def _payload_bytes(fmt: Format) -> int:

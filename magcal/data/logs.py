@@ -709,10 +709,10 @@ def _gather_fast(path, source, undo_calibration) -> dict | None:
                     params_at[k + 1] = dict(gathered["params"])
     for name, _ in mags:
         _fast_mag(name, cols[name], epochs[name], params_at, gathered, undo_calibration)
-    if "ATT" in cols:
+    if cols.get("ATT"):
         att = cols["ATT"]
         gathered["att"] = np.column_stack([_seconds(att), att["Roll"], att["Pitch"], att["Yaw"]])
-    if "IMU" in cols:
+    if cols.get("IMU"):  # an IMU format of no fields holds nothing to take
         _fast_imu(cols["IMU"], gathered)
     return gathered
 

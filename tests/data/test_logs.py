@@ -427,3 +427,23 @@ def test_a_log_the_scan_cannot_follow_is_read_by_pymavlink(tmp_path, monkeypatch
     monkeypatch.setattr(logs, "_gather_pymavlink", lambda *a: calls.append(a) or real(*a))
     assert read_log(tmp_path / "g.bin").n_samples == 100 and len(calls) == 1
     assert read_log(tmp_path / "f.bin").n_samples == 100 and len(calls) == 1  # the scan read this one
+
+
+@pytest.mark.parametrize("damaged", [b"Tzpe,Length,Name", b",Length,Name"])
+def test_a_log_whose_fmt_names_other_columns_is_not_scanned(tmp_path, damaged):
+    """The FMT message's own format with its columns renamed or one unnamed (a damaged FMT): the scan cannot learn
+    the types from it and declines; the log is read by pymavlink's path or refused with a message, never a KeyError."""
+    from magcal.data import dataflash_scan
+
+    messages, *_ = ardupilot_case(n=100, compasses=1)
+    write_dataflash(tmp_path / "f.bin", messages)
+    data = (tmp_path / "f.bin").read_bytes()
+    assert b"Type,Length,Name,Format,Columns" in data
+    columns = b"Type,Length,Name,Format,Columns"
+    (tmp_path / "g.bin").write_bytes(data.replace(columns, (damaged + b",Format,Columns").ljust(len(columns), b"\0"), 1))
+    assert dataflash_scan.scan(tmp_path / "f.bin") is not None
+    assert dataflash_scan.scan(tmp_path / "g.bin") is None
+    try:
+        read_log(tmp_path / "g.bin")
+    except MagcalError as exc:
+        assert "g.bin" in str(exc)
