@@ -387,7 +387,22 @@ def _ardupilot_matrix(params, index):
     scale = float(params.get(f"COMPASS_SCALE{tag}", 0.0))
     if ARDUPILOT_SCALE_RANGE[0] <= scale <= ARDUPILOT_SCALE_RANGE[1]:
         m = m * scale
+    if not np.isfinite(m).all() or np.linalg.cond(m) > _ARDUPILOT_MAX_CONDITION:
+        raise _DamagedParameters(
+            f"the logged calibration of compass {index} (COMPASS_DIA{tag}_*, COMPASS_ODI{tag}_*) is a singular "
+            "matrix: the log's parameters are damaged and its raw field cannot be recovered; take the logged field "
+            "as it is (read_log(..., undo_calibration=False))"
+        )
     return m
+
+
+#: The largest condition number of a logged compass matrix that is undone: ArduPilot keeps DIA in 0.8-1.2 and ODI
+#: within +-0.2 (condition < 4); far beyond, the parameters were damaged.
+_ARDUPILOT_MAX_CONDITION = 1e6
+
+
+class _DamagedParameters(Exception):
+    """A log whose compass parameters cannot be undone (said with the file's name by the reader)."""
 
 
 #: The FMT message (type 128): header, Type B, Length B, Name 4s, Format 16s, Columns 64s.
@@ -540,7 +555,10 @@ def read_dataflash(path, sensors=None, name=None, undo_calibration=True, timeout
     check_regular_file(path, "file", DatasetError, source)  # a FIFO would block the checks below
     check_dataflash_formats(path, source)
     started = time.monotonic()
-    gathered = _gather_fast(path, source, undo_calibration)  # NumPy, where it gives what pymavlink would
+    try:
+        gathered = _gather_fast(path, source, undo_calibration)  # NumPy, where it gives what pymavlink would
+    except _DamagedParameters as exc:
+        raise DatasetError(f"{source}: {exc}") from None
     if gathered is not None and timeout_s is not None and time.monotonic() - started > float(timeout_s):
         raise _too_slow(source, timeout_s)
     if gathered is None:
@@ -619,6 +637,8 @@ def _gather_pymavlink(path, source, undo_calibration, timeout_s) -> dict:
                 _dataflash_message(m, gathered, undo_calibration)
     except DatasetError:
         raise
+    except _DamagedParameters as exc:
+        raise DatasetError(f"{source}: {exc}") from None
     except _Stuck as exc:
         raise too_slow() if exc.args[0] == "slow" else _looping(source, exc.args[1]) from None
     except Exception as exc:

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 import magcal
 from magcal.cli import main
+from magcal.core.errors import MagcalError
 from magcal.data.dataset import DatasetError
 from magcal.data.logs import read_log
 
@@ -440,10 +441,31 @@ def test_a_log_whose_fmt_names_other_columns_is_not_scanned(tmp_path, damaged):
     data = (tmp_path / "f.bin").read_bytes()
     assert b"Type,Length,Name,Format,Columns" in data
     columns = b"Type,Length,Name,Format,Columns"
-    (tmp_path / "g.bin").write_bytes(data.replace(columns, (damaged + b",Format,Columns").ljust(len(columns), b"\0"), 1))
+    (tmp_path / "g.bin").write_bytes(
+        data.replace(columns, (damaged + b",Format,Columns").ljust(len(columns), b"\0"), 1)
+    )
     assert dataflash_scan.scan(tmp_path / "f.bin") is not None
     assert dataflash_scan.scan(tmp_path / "g.bin") is None
     try:
         read_log(tmp_path / "g.bin")
     except MagcalError as exc:
         assert "g.bin" in str(exc)
+
+
+@pytest.mark.parametrize("reader", ["scan", "pymavlink"])
+def test_a_log_whose_compass_parameters_make_a_singular_matrix_is_refused_with_a_message(tmp_path, reader):
+    """DIA and ODI all 1 (a damaged log: ArduPilot keeps DIA near 1 and ODI within 0.2): the logged calibration
+    cannot be undone; both readers say so naming the file and the parameters, and the logged field can be read."""
+    from magcal.data import logs
+
+    messages, *_ = ardupilot_case(n=100, compasses=1)
+    damaged = [("PARM", (0, f"COMPASS_{p}_{a}".encode(), 1.0)) for p in ("DIA", "ODI") for a in "XYZ"]
+    first_mag = next(k for k, (name, _) in enumerate(messages) if name == "MAG")
+    write_dataflash(tmp_path / "f.bin", messages[:first_mag] + damaged + messages[first_mag:])
+    if reader == "pymavlink":
+        with pytest.raises(DatasetError, match=r"f\.bin: the logged calibration of compass 0 .*COMPASS_ODI_"):
+            logs._gather_pymavlink(tmp_path / "f.bin", "f.bin", True, None)
+        return
+    with pytest.raises(DatasetError, match=r"f\.bin: the logged calibration of compass 0 .*singular"):
+        read_log(tmp_path / "f.bin", name="f.bin")
+    assert read_log(tmp_path / "f.bin", undo_calibration=False, warn=False).n_samples == 100
