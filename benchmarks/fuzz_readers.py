@@ -2,7 +2,8 @@
 
 Run: ``python benchmarks/fuzz_readers.py [EXAMPLES_PER_TARGET] [WORKERS] [SELECT]`` (defaults 1000, 2 and every
 reader; SELECT is pytest's ``-k`` expression, e.g. ``template`` for the line templates alone). It runs the suite
-under pytest (``MAGCAL_FUZZ_EXAMPLES``; pytest-xdist with WORKERS processes) and prints, per reader: inputs tried,
+under pytest with fresh random examples (``MAGCAL_HYPOTHESIS_RANDOM=1``; the suite's own are fixed),
+``MAGCAL_FUZZ_EXAMPLES`` per reader, pytest-xdist with WORKERS processes, and prints, per reader: inputs tried,
 results, one-line messages, tracebacks, hangs (a case still running after the time bound), the slowest case, and
 the totals. Exit status 1 if any case gave a traceback or hung (pytest's report of it is printed too).
 """
@@ -30,6 +31,7 @@ def main() -> int:
             "MAGCAL_FUZZ_EXAMPLES": str(examples),
             "MAGCAL_FUZZ_TIME_BOUND_S": bound,
             "MAGCAL_FUZZ_REPORT": report,
+            "MAGCAL_HYPOTHESIS_RANDOM": "1",  # fresh examples each run (the suite's are fixed)
             "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
         }
         argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/data/test_io_fuzz.py"]

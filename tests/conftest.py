@@ -9,12 +9,20 @@ import importlib.metadata
 import os
 
 import pytest
+from hypothesis import settings
 
 # The suite runs in parallel processes (pytest-xdist, ``-n auto`` in pyproject.toml): one BLAS thread each, or on a
 # two-core machine the workers' BLAS threads fight over the cores (the suite then takes three times as long). This
 # module is loaded before the workers start, and they inherit the setting; an explicit value is kept.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+# Hypothesis draws the same examples on every run of the suite (derandomized): the suite judges the change at hand,
+# not the luck of a draw. The search for new failing inputs is a campaign of its own, with fresh random examples
+# each run: ``MAGCAL_HYPOTHESIS_RANDOM=1`` (benchmarks/fuzz_readers.py sets it).
+settings.register_profile("suite", derandomize=True)
+settings.register_profile("search", derandomize=False)
+settings.load_profile("search" if os.environ.get("MAGCAL_HYPOTHESIS_RANDOM") == "1" else "suite")
 
 #: The browser the end-to-end tests drive (Debian's chromium) and its flags.
 CHROMIUM = "/usr/bin/chromium"
