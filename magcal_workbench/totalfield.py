@@ -5,13 +5,13 @@ whole pipeline with the chosen method, the diagnosis of the fit and the effects 
 samples and the model of the step's :class:`~magcal_workbench.state.JobInputs`. The calibration, the corrected
 readings and the residuals of every sample are kept for the page; the history's row of each step (its RMS, the
 floor, the held-out RMS that follows in the background) goes into the session state, whose ``calibration`` and
-``history`` fields the session file keeps. The physics is the engine's: the whole fit and the diagnosis are the
-total-field fit mode's (:data:`magcal.modes.TOTAL_FIELD`, as ``magcal.calibrate(ds, mode="total_field")`` and
-``magcal.diagnose`` run them); the page's own stages, which the mode does not offer, call the fitting layer (the
-seed's ellipsoid per sensor with the rotations reset, :mod:`magcal.fitting.pipeline`; the Procrustes alignment of the
-current calibration, :func:`magcal.fitting.pipeline.align_sensors`; the maximum likelihood started from the current
-calibration, :func:`magcal.fitting.fitter.fit`; the history's held-out RMS on blocks warm-started from the fit,
-:func:`magcal.fitting.validation.validate`).
+``history`` fields the session file keeps. The physics is the engine's: the whole fit, the maximum likelihood
+started from the page's calibration (step 3, the loop's Add and Remove) and the diagnosis are the total-field fit
+mode's (:data:`magcal.modes.TOTAL_FIELD`: ``fit``, ``refine``, ``diagnose``, as ``magcal.calibrate(ds,
+mode="total_field")`` and ``magcal.diagnose`` run them); the page's own stages, which the mode does not offer, call
+the fitting layer (the seed's ellipsoid per sensor with the rotations reset, :mod:`magcal.fitting.pipeline`; the
+Procrustes alignment of the current calibration, :func:`magcal.fitting.pipeline.align_sensors`; the history's
+held-out RMS of the fit's own model on blocks warm-started from it, :func:`magcal.fitting.validation.validate`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from magcal.fitting import fitter, pipeline, validation
 from magcal.fitting.pipeline import align_sensors
 from magcal.geometry.procrustes import rotation_angle_deg
 from magcal.model import plugins
-from magcal.model.terms import Model
 from magcal.modes import TOTAL_FIELD
 
 from . import timing
@@ -324,20 +323,20 @@ class TotalFieldSession(ModelSession):
 
     def refine(self, label: str = "refine (ML)", *, inputs: JobInputs | None = None) -> StepRecord:
         """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples (both ``inputs``',
-        default those of now)."""
+        default those of now), started from the calibration on the page (the total-field mode's
+        :meth:`~magcal.modes.total_field.TotalFieldMode.refine`)."""
         ctrl = self.ctrl
         inputs = self.inputs(inputs)
         t0 = time.perf_counter()
         old, rms0, tb = self._before(inputs)
         with timing.span("fit"):
-            result = fitter.fit(
+            result = TOTAL_FIELD.refine(
                 ctrl.fit_dataset(),
-                Model.from_names(list(inputs.effects), self.dataset.n_sensors),
-                init=self._calibration,
-                loss="soft_l1" if ctrl.state.robust else "linear",
+                self._calibration,
+                effects=inputs.effects,
+                robust=ctrl.state.robust,
                 mask=inputs.kept,
                 reference_total_nT=ctrl.reference_arg,
-                warn=False,
             )
         notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result

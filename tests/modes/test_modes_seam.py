@@ -1,16 +1,19 @@
 """The fit modes' options and methods the workbench's sessions call (so that the page and ``magcal.calibrate(ds,
 mode=...)`` run one code path): the vector diagnosis of a mask of samples, the vector fit's plot data, the record's
-total field as the vector diagnosis's default, the gravity mode's separate calibrations."""
+total field as the vector diagnosis's default, the gravity mode's separate calibrations, the total-field mode's
+maximum likelihood started from a calibration."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+import magcal
 from magcal.core.errors import MagcalError
 from magcal.data.board import SWAPPED_MOUNTING, simulate_board
 from magcal.data.vehicle import simulate_vehicle, vehicle_truth
-from magcal.modes import GRAVITY, VECTOR
+from magcal.model.perturbations import parse_hidden
+from magcal.modes import GRAVITY, TOTAL_FIELD, VECTOR
 from magcal.modes.vector import field_vector
 
 
@@ -68,3 +71,18 @@ def test_the_gravity_modes_separate_calibration_is_the_total_field_fit_turned_by
     np.testing.assert_allclose(turned.sensors[0].cinv, plain.sensors[0].cinv, atol=1e-12)
     # the right angle is the truth's, which the gravity fit finds 2 deg off
     assert result.sensors[0].right_angle_text.startswith("ROLL_180_YAW_90")
+
+
+def test_the_total_field_refine_starts_from_a_calibration_and_reaches_the_fits_minimum():
+    """A temperature-driven bias hidden in the record: refined from the base model's calibration with the effect,
+    the maximum likelihood lands where the whole fit with the effect does, and finds the hidden 30 nT/degC."""
+    ds = magcal.simulate_timeseries(
+        "chi2017", n_samples=1500, seed=7, rate_hz=5.0, perturbations=[parse_hidden("temperature_bias=30", 1)]
+    )
+    base = TOTAL_FIELD.fit(ds)
+    refined = TOTAL_FIELD.refine(ds, base.calibration, effects=["temperature_bias"])
+    whole = TOTAL_FIELD.fit(ds, effects=["temperature_bias"])
+    assert refined.success and refined.rms_nT < 0.5 * base.fit.rms_nT
+    assert refined.rms_nT == pytest.approx(whole.fit.rms_nT, rel=1e-6)
+    found = refined.calibration.effect_values["temperature_bias:1"]
+    np.testing.assert_allclose(found, whole.calibration.effect_values["temperature_bias:1"], rtol=1e-4, atol=1e-3)

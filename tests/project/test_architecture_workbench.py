@@ -190,15 +190,14 @@ SEAM_ALLOWED = {
     # the maps draw the diagnosis's patterns on the sphere of directions (no fit)
     ("maps", "magcal.diagnosis.residual_patterns"): "the residual's pattern the map draws",
     ("maps", "magcal.diagnosis.candidate_patterns"): "a candidate's pattern the map draws",
-    # the total-field page's own stages, which the total-field mode does not offer (its fit is the whole pipeline):
+    # the total-field page's own stages, which the total-field mode does not offer (its fit is the whole pipeline,
+    # its refine the maximum likelihood from a calibration, its validate the base model against the effects):
     # step 1, an ellipsoid per sensor with the rotations reset
     ("totalfield", "magcal.fitting.fitter.fit_reference"): "step 1: the reference the ellipsoids are fitted to",
     ("totalfield", "magcal.fitting.pipeline.ellipsoid_step"): "step 1: an ellipsoid per sensor",
     ("totalfield", "magcal.fitting.pipeline.two_step_calibration"): "step 1: its calibration, rotations the identity",
     # step 2, the Procrustes rotations of the current calibration
     ("totalfield", "magcal.fitting.pipeline.align_sensors"): "step 2: sensors 2-4 turned into sensor 1's frame",
-    # step 3 and the loop's Add and Remove: maximum likelihood started from the calibration on the page
-    ("totalfield", "magcal.fitting.fitter.fit"): "step 3: the ML refinement from the current calibration",
     # the history's held-out RMS: the blocks scheme warm-started from the fit, in the background
     ("totalfield", "magcal.fitting.validation.split_problem"): "why a record cannot be split in blocks",
     ("totalfield", "magcal.fitting.validation.validate"): "the held-out RMS of the fit's own model on blocks",
