@@ -1,9 +1,10 @@
 """The gravity model of the opened data: the engine's gravity fit beside the separate calibrations, and
 what the page shows of them (no physics here: every heading, dip and tilt comes from the engine's calibration).
 
-:class:`GravitySession` runs :func:`magcal.fitting.gravity.fit_gravity` on the kept samples (and
-:func:`magcal.fitting.gravity.separate_calibration`: the total-field fit with the accelerometer's own, what a user
-has without the dip), keeps both calibrations' headings, dips and tilts per sample
+:class:`GravitySession` runs the engine's gravity fit mode (:data:`magcal.modes.GRAVITY`, the fit of
+``magcal.calibrate(ds, mode="gravity")``) on the kept samples, and the mode's separate calibrations beside it
+(:meth:`magcal.modes.gravity.GravityMode.separate_calibration`: the total-field fit with the accelerometer's own, what
+a user has without the dip); it keeps both calibrations' headings, dips and tilts per sample
 (:meth:`magcal.calibration.calibration.Calibration.heading`), and gives the page its table, the dip over time and
 against the tilt, the compass rose of the heading error the total-field fit leaves, and the accelerometer's cloud.
 The functions that build these are pure and tested without a browser.
@@ -17,7 +18,8 @@ import numpy as np
 
 from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data.accelerometer import accelerometer, has_accelerometer
-from magcal.fitting.gravity import HEADING_MAX_PITCH_DEG, fit_gravity, separate_calibration
+from magcal.fitting.gravity import HEADING_MAX_PITCH_DEG
+from magcal.modes import GRAVITY
 
 from .events import Change
 from .markup import safe_text
@@ -97,9 +99,9 @@ class GravitySession(ModelSession):
         t0 = time.perf_counter()
         ctrl.report_progress("gravity fit (beside the accelerometer)", None)
         try:
-            result = fit_gravity(ds, mask=kept, robust=robust)
+            result = GRAVITY.fit(ds, mask=kept, robust=robust)
             try:
-                sep = separate_calibration(ds, right_angle=result.sensors[0].right_angle, mask=kept)
+                sep = GRAVITY.separate_calibration(ds, result, mask=kept)
             except (CalibrationError, MagcalError):
                 sep = None
             heading = result.calibration.heading(ds, force=True)

@@ -5,8 +5,13 @@ whole pipeline with the chosen method, the diagnosis of the fit and the effects 
 samples and the model of the step's :class:`~magcal_workbench.state.JobInputs`. The calibration, the corrected
 readings and the residuals of every sample are kept for the page; the history's row of each step (its RMS, the
 floor, the held-out RMS that follows in the background) goes into the session state, whose ``calibration`` and
-``history`` fields the session file keeps. The physics is the engine's (:mod:`magcal.fitting.pipeline`,
-:mod:`magcal.fitting.fitter`, :mod:`magcal.fitting.validation`, :func:`magcal.diagnosis.diagnose`).
+``history`` fields the session file keeps. The physics is the engine's: the whole fit, the maximum likelihood
+started from the page's calibration (step 3, the loop's Add and Remove) and the diagnosis are the total-field fit
+mode's (:data:`magcal.modes.TOTAL_FIELD`: ``fit``, ``refine``, ``diagnose``, as ``magcal.calibrate(ds,
+mode="total_field")`` and ``magcal.diagnose`` run them); the page's own stages, which the mode does not offer, call
+the fitting layer (the seed's ellipsoid per sensor with the rotations reset, :mod:`magcal.fitting.pipeline`; the
+Procrustes alignment of the current calibration, :func:`magcal.fitting.pipeline.align_sensors`; the history's
+held-out RMS of the fit's own model on blocks warm-started from it, :func:`magcal.fitting.validation.validate`).
 """
 
 from __future__ import annotations
@@ -19,12 +24,11 @@ import numpy as np
 
 from magcal.calibration.calibration import Calibration
 from magcal.core.errors import ConvergenceWarning, MagcalError
-from magcal.diagnosis import diagnose
 from magcal.fitting import fitter, pipeline, validation
 from magcal.fitting.pipeline import align_sensors
 from magcal.geometry.procrustes import rotation_angle_deg
 from magcal.model import plugins
-from magcal.model.terms import Model
+from magcal.modes import TOTAL_FIELD
 
 from . import timing
 from .events import Change
@@ -319,20 +323,20 @@ class TotalFieldSession(ModelSession):
 
     def refine(self, label: str = "refine (ML)", *, inputs: JobInputs | None = None) -> StepRecord:
         """Step 3: maximum likelihood of the model (base + chosen effects) on the kept samples (both ``inputs``',
-        default those of now)."""
+        default those of now), started from the calibration on the page (the total-field mode's
+        :meth:`~magcal.modes.total_field.TotalFieldMode.refine`)."""
         ctrl = self.ctrl
         inputs = self.inputs(inputs)
         t0 = time.perf_counter()
         old, rms0, tb = self._before(inputs)
         with timing.span("fit"):
-            result = fitter.fit(
+            result = TOTAL_FIELD.refine(
                 ctrl.fit_dataset(),
-                Model.from_names(list(inputs.effects), self.dataset.n_sensors),
-                init=self._calibration,
-                loss="soft_l1" if ctrl.state.robust else "linear",
+                self._calibration,
+                effects=inputs.effects,
+                robust=ctrl.state.robust,
                 mask=inputs.kept,
                 reference_total_nT=ctrl.reference_arg,
-                warn=False,
             )
         notes = [n.text for n in result.notes if not n.is_a(ConvergenceWarning)]  # the status says it
         self.fit_result = result
@@ -341,8 +345,8 @@ class TotalFieldSession(ModelSession):
         return self._record(label, inputs, old, rms0, t0, tb, fit=result, notes=notes)
 
     def fit(self, method: str | None = None, *, inputs: JobInputs | None = None) -> StepRecord:
-        """The whole pipeline (:func:`magcal.fitting.pipeline.calibrate`) with the chosen method (ML, the two seed
-        steps, or a global search), on the kept samples with the model's effects (both ``inputs``', default those
+        """The whole pipeline (the total-field mode's fit, :meth:`magcal.modes.total_field.TotalFieldMode.fit`) with the
+        chosen method (ML, the two seed steps, or a global search), on the kept samples with the model's effects (both ``inputs``', default those
         of now)."""
         ctrl = self.ctrl
         inputs = self.inputs(inputs)
@@ -352,7 +356,7 @@ class TotalFieldSession(ModelSession):
         ctrl.report_progress(f"{method}: starting", 0.0)
         effects = list(inputs.effects) if method == "ml" else []
         with timing.span("fit"):
-            result = pipeline.calibrate(  # never warns: its report lines are result.remarks, its notes result.notes
+            result = TOTAL_FIELD.fit(  # never warns: its report lines are result.remarks, its notes result.notes
                 ctrl.fit_dataset(),
                 method=method,
                 effects=effects,
@@ -372,14 +376,15 @@ class TotalFieldSession(ModelSession):
 
     # --- the loop ------------------------------------------------------------------------------------------
     def diagnose(self, *, inputs: JobInputs | None = None):
-        """Rank the candidate effects for the current fit (:func:`magcal.diagnosis.diagnose`; a maximum-likelihood
-        fit of ``inputs`` runs first when there is none)."""
+        """Rank the candidate effects for the current fit (the total-field mode's diagnosis,
+        :meth:`magcal.modes.total_field.TotalFieldMode.diagnose`; a maximum-likelihood fit of ``inputs`` runs first
+        when there is none)."""
         ctrl = self.ctrl
         if self.fit_result is None:
             self.refine(inputs=inputs)
         ctrl.report_progress("diagnosing", None)
         with timing.span("diagnose"):
-            d = diagnose(
+            d = TOTAL_FIELD.diagnose(
                 ctrl.fit_dataset(), self.fit_result, progress=ctrl.report_progress, noise_nT=ctrl.state.noise_nT
             )
         self.diagnosis = d

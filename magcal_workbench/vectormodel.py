@@ -3,17 +3,16 @@ reference from a location typed in the page.
 
 A record with attitude (``qw, qx, qy, qz`` or ``roll_deg, pitch_deg, yaw_deg``) and a field vector (``ref_n, ref_e,
 ref_d`` columns, IGRF along ``lat, lon, alt_m`` columns, or IGRF at the place and date typed in the Calibrate tab)
-can be calibrated with :func:`magcal.fitting.vector.fit_vector`: the mounting into the body frame is then
-determined, and so are the world (north-east-down) components. :class:`VectorModel` belongs to one
-:class:`~magcal_workbench.controller.Controller`; it chooses the reference, runs the engine's fit on the kept
-samples, and keeps what the page shows (the comparison table, the vehicle view's vectors). The physics is the
-engine's: the fit, IGRF (:mod:`magcal.checks.reference`), the attitude (:mod:`magcal.data.attitude`), the coverage
+can be calibrated by the engine's vector fit mode (:data:`magcal.modes.VECTOR`, the same fit, diagnosis and plots' data
+as ``magcal.calibrate(ds, mode="vector")``): the mounting into the body frame is then determined, and so are the world
+(north-east-down) components. :class:`VectorModel` belongs to one :class:`~magcal_workbench.controller.Controller`; it
+chooses the reference, runs the mode's fit on the kept samples, and keeps what the page shows (the comparison table,
+the vehicle view's vectors). The physics is the engine's: the fit, IGRF (:mod:`magcal.checks.reference`), the attitude (:mod:`magcal.data.attitude`), the coverage
 check that says when a total-field fit is undetermined (:func:`magcal.checks.coverage.calibration_input_checks`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -24,9 +23,8 @@ from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_rows, attitude_source
-from magcal.diagnosis.vector import diagnose_vector, vector_evidence
-from magcal.fitting.vector import fit_vector
 from magcal.model.terms import EFFECTS
+from magcal.modes import VECTOR
 
 from .events import Change
 from .floors import VectorNoise
@@ -208,7 +206,7 @@ class VectorSession(ModelSession):
     diagnosis : magcal.diagnosis.vector.VectorDiagnosis or None
         The last diagnosis of the vector fit (:meth:`diagnose`); None after a fit.
     evidence : dict or None
-        The plot data of the last fit (:func:`magcal.diagnosis.vector.vector_evidence`: world and |B| residuals,
+        The plot data of the last fit (:meth:`magcal.modes.vector.VectorMode.evidence`: world and |B| residuals,
         the channels), every sample.
     floor_nT : float or None
         The world components' noise floor (nT) the last diagnosis found (attitude error and sensor noise): a
@@ -334,9 +332,9 @@ class VectorSession(ModelSession):
         *,
         inputs: JobInputs | None = None,
     ):
-        """The vector fit of every sensor on the kept samples (:func:`magcal.fitting.vector.fit_vector` with the
-        vector model's effects, robust loss and noise as the session says), its world components on every sample,
-        and a message with its figures. The session remembers its settings (:attr:`SessionState.vector_fit`), so
+        """The vector fit of every sensor on the kept samples (:meth:`magcal.modes.vector.VectorMode.fit`, the
+        vector fit mode's, with the vector model's effects, robust loss and noise as the session says), its world
+        components on every sample, and a message with its figures. The session remembers its settings (:attr:`SessionState.vector_fit`), so
         that it runs again when the session reopens (:meth:`restore`), and the step joins the vector model's
         history (:attr:`SessionState.vector_history`: world RMS per N, E, D and |B|).
 
@@ -384,9 +382,9 @@ class VectorSession(ModelSession):
             ref = self.reference()
             if ref is None:  # missing() said there would be one
                 raise MagcalError("no reference field vector")
-            result = fit_vector(ds, ref, effects=effects, mask=kept, robust=robust, noise_nT=noise_nT, warn=False)
+            result = VECTOR.fit(ds, reference=ref, effects=effects, mask=kept, robust=robust, noise_nT=noise_nT)
             world = result.calibration.world(ds, record_terms="apply", force=True)
-            evidence = vector_evidence(ds, ref, result.calibration)
+            evidence = VECTOR.evidence(ds, result, reference=ref)
         finally:
             ctrl.end_progress()
         with ctrl.state.lock:
@@ -453,7 +451,7 @@ class VectorSession(ModelSession):
 
     # --- the loop: diagnose, add ------------------------------------------------------------------------------
     def diagnose(self, kept: np.ndarray | None = None, *, inputs: JobInputs | None = None):
-        """Diagnose the vector fit (:func:`magcal.diagnosis.vector.diagnose_vector`): every catalogue effect the
+        """Diagnose the vector fit (the vector mode's diagnosis, :meth:`magcal.modes.vector.VectorMode.diagnose`): every catalogue effect the
         vector fit can take refitted with the vector model, judged on the world N/E/D residuals and |B| on the
         later part of the record, as ``magcal apply`` applies it. The fit runs first when there is none of the
         kept samples (``kept``, default: those of now) and settings of now. Rejected samples are left out of the
@@ -479,11 +477,10 @@ class VectorSession(ModelSession):
         ctrl.report_progress("diagnosing the vector fit", None)
         try:
             if kept.all():  # the fit on the page is the model diagnosed
-                d = diagnose_vector(ds, ref, self.result, progress=ctrl.report_progress, **options)
+                d = VECTOR.diagnose(ds, self.result, progress=ctrl.report_progress, **options)
             else:  # the rejected samples are left out of every refit too
-                sub_ref = dataclasses.replace(ref, ned_nT=np.asarray(ref.ned_nT)[kept])
-                d = diagnose_vector(
-                    ds.subset(kept), sub_ref, effects=self.effects, progress=ctrl.report_progress, **options
+                d = VECTOR.diagnose(
+                    ds, reference=ref, mask=kept, effects=self.effects, progress=ctrl.report_progress, **options
                 )
         finally:
             ctrl.end_progress()

@@ -5,7 +5,9 @@ The magnetometers and the accelerometer are fitted together so that the field's 
 every still sample (:func:`magcal.fitting.gravity.fit_gravity`), which the tilt-compensated heading needs. Held out
 with :func:`magcal.fitting.gravity.validate_gravity`; diagnosed as the total-field fit is
 (:func:`magcal.diagnosis.diagnose`), with the dip's residual as evidence beside it
-(:func:`magcal.diagnosis.gravity.dip_evidence`): a :class:`GravityDiagnosis`.
+(:func:`magcal.diagnosis.gravity.dip_evidence`): a :class:`GravityDiagnosis`. What a user has without the dip, the
+total-field fit beside the accelerometer's own, is :meth:`GravityMode.separate_calibration`
+(:func:`magcal.fitting.gravity.separate_calibration`), the workbench's baseline beside the gravity fit.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from magcal.data.accelerometer import has_accelerometer
 from magcal.data.attitude import attitude_source
 from magcal.diagnosis import Diagnosis
 from magcal.diagnosis.gravity import DipEvidence, dip_evidence
-from magcal.fitting.gravity import GravityFitResult, fit_gravity, validate_gravity
+from magcal.fitting.gravity import GravityFitResult, fit_gravity, separate_calibration, validate_gravity
 from magcal.modes.base import FIT_MODES, FitMode
 from magcal.modes.total_field import TOTAL_FIELD
 
@@ -122,6 +124,30 @@ class GravityMode(FitMode):
             accel_fit=accel_fit,
             accel_units=accel_units,
             robust=robust,
+        )
+
+    def separate_calibration(
+        self, dataset, result=None, mask=None, still=None, accel_fit="auto", reference_total_nT=None, accel_units=None
+    ):
+        """What a user gets without the dip (:func:`magcal.fitting.gravity.separate_calibration`, a
+        :class:`~magcal.calibration.calibration.Calibration`): the magnetometer's total-field fit turned by the right
+        angle the gravity fit ``result`` found for the first sensor (the identity without one), beside the
+        accelerometer's own fit; ``mask`` and the other options as for :meth:`fit`.
+
+        Raises
+        ------
+        CalibrationError, MagcalError
+            The total-field fit cannot be made on the samples (no ellipsoid), or no accelerometer columns.
+        """
+        right_angle = None if result is None else result.sensors[0].right_angle
+        return separate_calibration(
+            dataset,
+            right_angle=right_angle,
+            mask=mask,
+            still=still,
+            accel_fit=accel_fit,
+            reference_total_nT=reference_total_nT,
+            accel_units=accel_units,
         )
 
     def diagnose(self, dataset, result=None, robust=False, accel_units=None, **options) -> GravityDiagnosis:

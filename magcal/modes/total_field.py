@@ -2,14 +2,17 @@
 
 Readings turned in a uniform field are fitted so that their magnitude is the field's
 (:func:`magcal.fitting.pipeline.calibrate`: ellipsoid, Procrustes between sensors, maximum likelihood); held out
-with :func:`magcal.fitting.validation.validate_effects`, diagnosed with :func:`magcal.diagnosis.diagnose`.
+with :func:`magcal.fitting.validation.validate_effects`, diagnosed with :func:`magcal.diagnosis.diagnose`. The
+maximum likelihood alone, started from a calibration one already has, is :meth:`TotalFieldMode.refine` (the
+workbench's step 3 and its loop's Add and Remove).
 """
 
 from __future__ import annotations
 
 from magcal.diagnosis import diagnose
-from magcal.fitting import pipeline
+from magcal.fitting import fitter, pipeline
 from magcal.fitting.validation import validate_effects
+from magcal.model.terms import Model
 from magcal.modes.base import FIT_MODES, FitMode
 
 
@@ -58,6 +61,35 @@ class TotalFieldMode(FitMode):
         if mask is None:
             result.calibration.fitted_on(dataset)
         return result
+
+    def refine(self, dataset, init, effects=(), robust=False, mask=None, reference_total_nT=None) -> fitter.FitResult:
+        """The maximum likelihood of the base model and ``effects`` alone (:func:`magcal.fitting.fitter.fit`, never
+        warns: the notes are the result's), started from the calibration ``init`` rather than from the ellipsoid
+        and Procrustes steps of :meth:`fit`: a calibration refined step by step, an effect added or taken out of it.
+
+        Parameters
+        ----------
+        dataset : Dataset
+        init : Calibration
+            The start (a fit of the same record, e.g. without the effect just added).
+        effects : sequence of str
+            Effect labels beside the base terms (``"temperature_bias"``, ``"bias_drift:2"``).
+        robust : bool
+            scipy's soft-L1 loss instead of least squares.
+        mask : numpy.ndarray of bool, shape (N,), optional
+            The samples fitted (default all).
+        reference_total_nT : float or numpy.ndarray, optional
+            The field's magnitude (nT); default the record's reference (its ``ref_total`` column), else fitted.
+        """
+        return fitter.fit(
+            dataset,
+            Model.from_names(list(effects), dataset.n_sensors),
+            init=init,
+            loss="soft_l1" if robust else "linear",
+            mask=mask,
+            reference_total_nT=reference_total_nT,
+            warn=False,
+        )
 
     def validate(self, dataset, result, **options):
         """The held-out RMS of the base model and of the model with the effects

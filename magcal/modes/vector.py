@@ -3,18 +3,24 @@
 Each sensor's correction and mounting are fitted so that the corrected reading, turned by the attitude into
 north-east-down, is the field vector (:func:`magcal.fitting.vector.fit_vector`): a platform that cannot tumble (a
 vehicle, a drone) is calibrated from what it flies. Held out with :func:`magcal.fitting.vector.validate_vector`,
-diagnosed on the world components with :func:`magcal.diagnosis.vector.diagnose_vector`.
+diagnosed on the world components with :func:`magcal.diagnosis.vector.diagnose_vector`; the plots' data of any vector
+calibration of the record from :meth:`VectorMode.evidence` (:func:`magcal.diagnosis.vector.vector_evidence`). The
+workbench's vector session calls these methods, so that the page and ``magcal.calibrate(ds, mode="vector")`` run one
+code path.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
+
+import numpy as np
 
 from magcal.checks.reference import resolve_vector_reference
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_present, attitude_source
 from magcal.data.inputs import as_dataset
-from magcal.diagnosis.vector import Flight, diagnose_vector
+from magcal.diagnosis.vector import Flight, diagnose_vector, vector_evidence
 from magcal.fitting.vector import VectorFitResult, fit_vector, validate_vector
 from magcal.modes.base import FIT_MODES, FitMode
 
@@ -149,17 +155,44 @@ class VectorMode(FitMode):
             robust=robust,
         )
 
-    def diagnose(self, dataset, result=None, reference=None, also=(), **options):
+    def diagnose(self, dataset, result=None, reference=None, also=(), mask=None, reference_total_nT=None, **options):
         """:func:`magcal.diagnosis.vector.diagnose_vector` against the fit's field (else :func:`field_vector`);
         ``also``: other flights of the same vehicle (datasets with ``ref_n, ref_e, ref_d``, ``(data, reference)``
-        pairs or Flights). Options :func:`~magcal.diagnosis.vector.diagnose_vector` does not take (``workers``,
-        ``scheduler``) are not used."""
+        pairs or Flights). ``mask`` (bool, shape (N,)): the samples diagnosed, the others left out of every refit
+        (the base model plus ``effects=`` is fitted on them: give no ``result`` with it); ``reference_total_nT`` as
+        for :meth:`fit` (default the record's ``ref_total`` column). Options
+        :func:`~magcal.diagnosis.vector.diagnose_vector` does not take (``workers``, ``scheduler``) are not used.
+
+        Raises
+        ------
+        MagcalError
+            No field vector, or ``mask`` with a ``result`` (a fit of other samples than those diagnosed).
+        """
         vref = result.reference if isinstance(result, VectorFitResult) else field_vector(dataset, reference)
         if vref is None:
             raise MagcalError(f"the vector diagnosis {NEEDS_FIELD_VECTOR}")
+        total = dataset.ref_total_nT if reference_total_nT is None else reference_total_nT
+        if mask is not None:
+            if result is not None:
+                raise MagcalError(
+                    "the vector diagnosis of some samples (mask=) fits them itself: give effects=, no result"
+                )
+            keep = np.asarray(mask, dtype=bool)
+            dataset, vref = dataset.subset(keep), dataclasses.replace(vref, ned_nT=np.asarray(vref.ned_nT)[keep])
+            total = total[keep] if np.ndim(total) else total
         flights = [flight(f, i) for i, f in enumerate(also or (), 1)]
         passed = {k: v for k, v in options.items() if k in _DIAGNOSE_OPTIONS and k != "also"}
-        return diagnose_vector(dataset, vref, result=result, also=flights, **passed)
+        return diagnose_vector(dataset, vref, result=result, also=flights, reference_total_nT=total, **passed)
+
+    def evidence(self, dataset, result, reference=None, reference_total_nT=None) -> dict:
+        """The plots' data of the vector fit ``result`` on every sample of ``dataset``
+        (:func:`magcal.diagnosis.vector.vector_evidence`: the world and |B| residuals with the record-only terms
+        applied, NaN where a sample has no attitude or reference, and the channels a candidate is plotted against),
+        against ``reference`` (a field vector as for :func:`field_vector`; default the one the fit used) and
+        ``reference_total_nT`` (as for :meth:`fit`)."""
+        vref = result.reference if reference is None else field_vector(dataset, reference)
+        total = dataset.ref_total_nT if reference_total_nT is None else reference_total_nT
+        return vector_evidence(dataset, vref, result.calibration, reference_total_nT=total)
 
 
 #: The vector fit mode.

@@ -164,3 +164,147 @@ def test_the_parts_reach_through_the_workbench_no_more_than_before():
         f"instead (most: {worst})"
     )
     assert counts, "the count found no reach at all: the reader is broken"
+
+
+# --- one seam from the library to the page: fits and diagnoses through the fit modes ----------------------------
+ENGINE = PACKAGE.parent / "magcal"
+
+#: The engine's layers whose names the workbench reaches only through :mod:`magcal.modes` (a fit mode's ``fit``,
+#: ``validate``, ``diagnose`` and the options and methods it documents), so that the page and
+#: ``magcal.calibrate(ds, mode=...)`` run one code path.
+BEHIND_THE_MODES = ("magcal.fitting", "magcal.diagnosis")
+
+#: What the workbench may still use of those layers, ``(workbench module, the engine's dotted name)``, each with why.
+#: A name not here fails the rule: call the fit mode (extend its documented options when the page needs more).
+SEAM_ALLOWED = {
+    # display facts and names, no physics runs
+    ("gravitymodel", "magcal.fitting.gravity.HEADING_MAX_PITCH_DEG"): "where a heading means something (a constant)",
+    ("compensationmodel", "magcal.fitting.compensation.COMPENSATION_EFFECTS"): "the terms beyond TL, by name",
+    ("sessionfile", "magcal.fitting.compensation.COMPENSATION_EFFECTS"): "the session file's terms checked by name",
+    ("compensationmodel", "magcal.fitting.compensation.check_effects"): "terms' names checked before the mode fits",
+    ("plots", "magcal.diagnosis.vector.evidence_channel"): "the channel a candidate is plotted against (a name)",
+    # the record the compensation mode fits, made once: the page draws its band-passed traces too
+    ("compensationmodel", "magcal.fitting.compensation.compensation_record"): "the flight's record the mode fits",
+    # the diagnosis's worker processes, started when the page opens a record so that the first Diagnose is quick
+    ("controller", "magcal.diagnosis.start_workers"): "the diagnosis's pool started ahead",
+    # the maps draw the diagnosis's patterns on the sphere of directions (no fit)
+    ("maps", "magcal.diagnosis.residual_patterns"): "the residual's pattern the map draws",
+    ("maps", "magcal.diagnosis.candidate_patterns"): "a candidate's pattern the map draws",
+    # the total-field page's own stages, which the total-field mode does not offer (its fit is the whole pipeline,
+    # its refine the maximum likelihood from a calibration, its validate the base model against the effects):
+    # step 1, an ellipsoid per sensor with the rotations reset
+    ("totalfield", "magcal.fitting.fitter.fit_reference"): "step 1: the reference the ellipsoids are fitted to",
+    ("totalfield", "magcal.fitting.pipeline.ellipsoid_step"): "step 1: an ellipsoid per sensor",
+    ("totalfield", "magcal.fitting.pipeline.two_step_calibration"): "step 1: its calibration, rotations the identity",
+    # step 2, the Procrustes rotations of the current calibration
+    ("totalfield", "magcal.fitting.pipeline.align_sensors"): "step 2: sensors 2-4 turned into sensor 1's frame",
+    # the history's held-out RMS: the blocks scheme warm-started from the fit, in the background
+    ("totalfield", "magcal.fitting.validation.split_problem"): "why a record cannot be split in blocks",
+    ("totalfield", "magcal.fitting.validation.validate"): "the held-out RMS of the fit's own model on blocks",
+}
+
+
+def _is_engine_module(dotted: str) -> bool:
+    path = ENGINE.parent.joinpath(*dotted.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def _dotted(node) -> list[str] | None:
+    """``a.b.c`` of an attribute chain on a name, as ``["a", "b", "c"]``; None for any other expression."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return None
+    return [node.id, *reversed(parts)]
+
+
+def _behind(dotted: str) -> bool:
+    return any(dotted == layer or dotted.startswith(layer + ".") for layer in BEHIND_THE_MODES)
+
+
+def seam_uses(source: str) -> set[str]:
+    """The engine's names behind the modes (:data:`BEHIND_THE_MODES`) that a workbench module's ``source`` uses:
+    names it imports from them, and attributes it reaches on a module of them (``pipeline.calibrate`` after ``from
+    magcal.fitting import pipeline``, ``magcal.fitting.vector.fit_vector`` after ``import magcal``), fully dotted."""
+    tree = ast.parse(source)
+    modules: dict[str, str] = {}  # a local name -> the engine module it is bound to
+    used = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == "magcal":
+            for alias in node.names:
+                full = f"{node.module}.{alias.name}"
+                if _is_engine_module(full):
+                    modules[alias.asname or alias.name] = full
+                elif _behind(full):
+                    used.add(full)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.split(".")[0] == "magcal":
+                    local = alias.asname or alias.name.split(".")[0]
+                    modules[local] = alias.name if alias.asname else "magcal"
+    for node in ast.walk(tree):
+        parts = _dotted(node) if isinstance(node, ast.Attribute) else None
+        if not parts or parts[0] not in modules:
+            continue
+        names = modules[parts[0]].split(".") + parts[1:]
+        # the longest engine module the chain names, and the name reached on it
+        for cut in range(len(names) - 1, 0, -1):
+            if _is_engine_module(".".join(names[:cut])):
+                full = ".".join(names[: cut + 1])
+                if _behind(full) and not _is_engine_module(full):
+                    used.add(full)
+                break
+    return used
+
+
+SEAM_USES = {(m, name) for m, path in MODULES.items() for name in seam_uses(path.read_text(encoding="utf-8"))}
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_the_page_fits_and_diagnoses_through_the_fit_modes(name):
+    """A workbench module uses no fitter or diagnosis of the engine but through ``magcal.modes`` (``VECTOR.fit``,
+    ``GRAVITY.separate_calibration``, ``TOTAL_FIELD.diagnose``...), except what :data:`SEAM_ALLOWED` lists."""
+    reached = sorted(full for m, full in SEAM_USES if m == name and (m, full) not in SEAM_ALLOWED)
+    assert not reached, (
+        f"{name}.py uses {reached} of the engine's fitting or diagnosis layer: call the fit mode instead "
+        "(magcal.modes; extend its documented options when the page needs more), or add the name to SEAM_ALLOWED "
+        "with why"
+    )
+
+
+def test_the_seams_allow_list_holds_only_what_is_used():
+    """An allowed name the workbench no longer uses leaves the list (it only shrinks as the modes cover more)."""
+    stale = sorted(set(SEAM_ALLOWED) - SEAM_USES)
+    assert not stale, f"SEAM_ALLOWED lists names the workbench does not use: {stale}"
+
+
+def test_the_seam_rule_finds_a_fitter_reached_past_the_mode():
+    found = seam_uses(
+        "import magcal\n"
+        "import magcal.diagnosis.vector as dv\n"
+        "from magcal.fitting.vector import fit_vector\n"
+        "from magcal.fitting import pipeline\n"
+        "from magcal.modes import VECTOR\n"
+        "from magcal.checks.reference import parse_date\n"
+        "def f(ds):\n"
+        "    pipeline.calibrate(ds)\n"
+        "    magcal.fitting.gravity.fit_gravity(ds)\n"
+        "    dv.diagnose_vector(ds)\n"
+        "    VECTOR.fit(ds)\n"
+        "    magcal.calibrate(ds)\n"
+    )
+    assert found == {
+        "magcal.fitting.vector.fit_vector",
+        "magcal.fitting.pipeline.calibrate",
+        "magcal.fitting.gravity.fit_gravity",
+        "magcal.diagnosis.vector.diagnose_vector",
+    }
+    assert not (set(SEAM_ALLOWED) & {("vectormodel", f) for f in found})
+    with pytest.raises(AssertionError, match="call the fit mode"):
+        SEAM_USES.add(("vectormodel", "magcal.fitting.vector.fit_vector"))
+        try:
+            test_the_page_fits_and_diagnoses_through_the_fit_modes("vectormodel")
+        finally:
+            SEAM_USES.discard(("vectormodel", "magcal.fitting.vector.fit_vector"))

@@ -198,3 +198,71 @@ def test_the_panels_texts_follow_the_active_sessions_mode():
     assert plain_text.startswith("**Total-field RMS: 12.5 nT** (floor 3 nT)") and "Vector" not in plain_text
     # the vector model's figures first, the total-field fit's after it
     assert vehicle_text.index("Vector model: not fitted yet") < vehicle_text.index("Total-field RMS: 12.5 nT")
+
+
+def _same_numbers(a, b, where="calibration"):
+    """Two documents equal key by key, numbers to 1e-9 relative; the run's timing (``wall_s``) and the record a
+    calibration names (a fit of every sample knows its record, the page's fit of the kept samples does not) aside."""
+    if isinstance(a, dict):
+        skip = {"wall_s", "record"}
+        assert set(a) - skip == set(b) - skip, where
+        for key in set(a) - skip:
+            _same_numbers(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same_numbers(x, y, f"{where}[{i}]")
+    elif isinstance(a, float):
+        assert _close(a, b), f"{where}: {a!r} != {b!r}"
+    else:
+        assert a == b, where
+
+
+def _close(a, b) -> bool:
+    return bool(np.isclose(a, b, rtol=1e-9, atol=1e-12, equal_nan=True))
+
+
+@pytest.mark.parametrize(
+    "mode, effects",
+    [("vector", ()), ("vector", ("current_field",)), ("gravity", ()), ("total_field", ("temperature_bias",))],
+)
+def test_the_page_and_magcal_calibrate_make_the_same_calibration(mode, effects):
+    """The session fits through the engine's fit mode: on every sample kept, with the page's settings left as they
+    open, its calibration is ``magcal.calibrate(ds, mode=...)``'s to 1e-9."""
+    ds = {"vector": _vehicle_record, "gravity": lambda: _board_record()[0], "total_field": _total_field_record}[mode]()
+    ctrl = Controller(ds)
+    session = ctrl.model_sessions[mode]
+    if mode == "total_field":
+        ctrl.state.effects = list(effects)
+        session.fit()
+        options = {"effects": list(effects), "seed": 0}
+    elif mode == "vector":
+        session.fit(effects=list(effects))
+        options = {"effects": list(effects)}
+    else:
+        session.fit()
+        options = {}
+    library = magcal.calibrate(ds, mode=mode, warn=False, **options)
+    assert library.mode == mode and session.calibration.mode == library.calibration.mode
+    _same_numbers(session.calibration.to_dict(), library.calibration.to_dict())
+
+
+def test_the_pages_vector_diagnosis_is_magcal_diagnose_s():
+    """Diagnose on the page (every sample kept) judges the same candidates as ``magcal.diagnose`` of the same fit;
+    with samples rejected it is the diagnosis of the kept ones (the mode's ``mask=``)."""
+    ds = _vehicle_record()
+    ctrl = Controller(ds)
+    page = ctrl.vector.diagnose()
+    library = magcal.diagnose(ds, ctrl.vector.result, mode="vector", warn=False)
+    assert (
+        (page.verdict, page.explained_by)
+        == (library.verdict, library.explained_by)
+        == ("missing_effect", ["current_field"])
+    )
+    assert [(c.label, c.delta_bic) for c in page.candidates] == [(c.label, c.delta_bic) for c in library.candidates]
+    ctrl.state.selection.reject(np.arange(100, 160))
+    kept = ctrl.kept
+    page = ctrl.vector.diagnose()
+    library = magcal.diagnose(ds.subset(kept), mode="vector", warn=False)
+    assert page.result.n_samples == library.result.n_samples == int(kept.sum())
+    assert [(c.label, c.delta_bic) for c in page.candidates] == [(c.label, c.delta_bic) for c in library.candidates]
