@@ -120,11 +120,10 @@ def maneuvers_figure(session: CompensationBase | None):
     fig.update_layout(
         height=360,
         barmode="group",
-        margin={"l": 50, "r": 10, "t": 30, "b": 70},
-        yaxis={"type": "log", "title": f"per maneuver ({unit})"},
-        legend={"orientation": "h", "y": 1.12, "x": 0.0},
+        margin={"l": 50, "r": 10, "t": 20, "b": 70},
+        yaxis={"type": "log", "title": f"tensor FOM per maneuver ({unit})"},
+        legend={"orientation": "h", "y": 1.08, "x": 0.0},
         template="plotly_white",
-        title={"text": "tensor FOM per maneuver, before and after", "font": {"size": 12}},
     )
     fig.update_xaxes(tickangle=-60, tickfont={"size": 9})
     return fig

@@ -67,9 +67,9 @@ def data_markdown(ctrl) -> str:
         channels.append(f"a scalar magnetometer ({safe_code(ctrl.compensation.record().scalar_column)})")
     held = f", with {', '.join(channels)}" if channels else ""
     fits = ["the total-field fit"]
-    if compensation_mode(ctrl):
+    if compensation_mode(ctrl):  # its tabs show the compensation only: the other fits are not offered
         fom = "the FOM" if ctrl.model_session is ctrl.compensation else "the tensor FOM"
-        fits.insert(0, f"the {ctrl.model_session.words} (Tolles-Lawson and beyond, judged by {fom} in the maneuvers)")
+        fits = [f"the {ctrl.model_session.words} (Tolles-Lawson and beyond, judged by {fom} in the maneuvers)"]
     elif ctrl.vector_loop():
         fits.insert(0, "the vector fit (attitude and the field vector: world components, the mounting)")
     elif kind is not None:
