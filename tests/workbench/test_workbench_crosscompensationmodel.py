@@ -101,9 +101,17 @@ def test_the_page_shows_the_cross_and_the_demo_after_it_its_own_fits(bench, cros
     assert not wb.panels.vector_panel.folder.visible and not wb.added["gravity"].folder.visible
     assert model.mode_note.visible and not model.effects_folder.visible and not model.btn_refit.visible
 
-    wb.ctrl.cross_compensation.fit()
+    page.do_compensation_fit(None)  # the section's button: the fit in the worker
+    assert wb.worker.wait(120)
     wb.ui.wait()
-    assert page.traces.visible and "after nT/m" in page.table.content
+    assert page.traces.visible and "after nT/m" in page.table.content and not page.btn_remove.visible
+    wb.ctrl.cross_compensation.add("current")
+    wb.ui.wait()
+    assert page.btn_remove.visible and "+ current" in page.history.content
+    page.do_remove_compensation_term(None)  # the Model tab's Take out
+    assert wb.worker.wait(120)
+    wb.ui.wait()
+    assert wb.ctrl.cross_compensation.effects == [] and not page.btn_remove.visible
 
     other, _ = load_dataset(DEMO)
     wb.load(other, DEMO.read_bytes(), "demo.csv", resume=False)
