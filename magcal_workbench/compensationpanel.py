@@ -18,7 +18,7 @@ from __future__ import annotations
 from magcal.core.errors import MagcalError
 
 from .actions import action
-from .compensationmodel import CompensationBase, band_passed_traces, model_of
+from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
@@ -101,21 +101,16 @@ def traces_figure(data):
 
 
 def maneuvers_figure(session: CompensationBase | None):
-    """The FOM per maneuver before and after the compensation (bars on a log scale, the session's unit), the
-    diagnosis's noise floor dashed when there is one (plotly): the cross's figure."""
+    """The FOM per maneuver before and after the compensation (bars on a log scale, the session's unit; the
+    noise's floor is the diagnosis's, in the candidates' text) (plotly): the cross's figure."""
     import plotly.graph_objects as go
 
     fig = go.Figure()
     rows = [] if session is None else session.fom_rows()
-    if rows:
-        labels = [f"{heading:.0f}° {kind}" for heading, kind, _, _ in rows]
-        for k, (name, colour) in enumerate((("before", BEFORE_COLOUR), ("compensated", AFTER_COLOUR))):
-            values = [row[2 + k] for row in rows]
-            fig.add_trace(go.Bar(x=labels, y=values, name=name, marker_color=colour))
-        found = session.diagnosis
-        if found is not None:
-            floor = session.diagnosis_figures(found)[1] / max(len(rows), 1)
-            fig.add_hline(y=floor, line_dash="dash", line_color="#d62728", annotation_text="noise per maneuver")
+    labels = [f"{heading:.0f}° {kind}" for heading, kind, _, _ in rows]
+    for k, (name, colour) in enumerate((("before", BEFORE_COLOUR), ("compensated", AFTER_COLOUR))):
+        if rows:
+            fig.add_trace(go.Bar(x=labels, y=[row[2 + k] for row in rows], name=name, marker_color=colour))
     unit = "nT" if session is None else session.unit
     fig.update_layout(
         height=360,
@@ -131,7 +126,7 @@ def maneuvers_figure(session: CompensationBase | None):
 
 def figure_of(session: CompensationBase):
     """The section's figure for ``session`` after a fit: the scalar's traces, the cross's maneuvers."""
-    if session.mode == "compensation":
+    if isinstance(session, CompensationSession):
         return traces_figure(band_passed_traces(session))
     return maneuvers_figure(session)
 
@@ -158,9 +153,9 @@ def status_markdown(ctrl, figures=None) -> str:
 def candidates_markdown(ctrl) -> str:
     """The diagnosis's verdict and the candidates with their held-out FOM, or what to press."""
     session = model_of(ctrl)
-    found = None if session is None else session.diagnosis
-    if found is None:
+    if session is None or session.diagnosis is None:
         return "_Press Diagnose to judge the terms beyond Tolles-Lawson on held-out maneuvers._"
+    found = session.diagnosis
     unit = session.unit
     held_out, floor = session.diagnosis_figures(found)
     scheme = "held-out maneuvers" if found.validation.get("scheme") == "maneuvers" else "the other flight"
@@ -189,9 +184,9 @@ def candidates_markdown(ctrl) -> str:
 def candidate_markdown(ctrl, label: str) -> str:
     """The chosen term's evidence and what it is."""
     session = model_of(ctrl)
-    found = None if session is None else session.diagnosis
-    if found is None:
+    if session is None or session.diagnosis is None:
         return ""
+    found = session.diagnosis
     for c in found.candidates:
         if c.name == label:
             what = safe_text(session.terms.get(label, ""), 300)
@@ -204,7 +199,7 @@ def history_markdown(ctrl) -> str:
     """The compensation's fits: the terms and the FOM before -> after per step."""
     session = model_of(ctrl)
     rows = [] if session is None else session.history()
-    if not rows:
+    if session is None or not rows:
         return "_No compensation fit yet._"
     unit = session.unit
     lines = [
@@ -222,11 +217,10 @@ def history_markdown(ctrl) -> str:
 def terms_markdown(ctrl) -> str:
     """The compensation's terms: Tolles-Lawson's, and those beyond it with what each is."""
     session = model_of(ctrl)
-    result = None if session is None else session.result
-    if result is None:
+    if session is None or session.result is None:
         return "_The compensation has Tolles-Lawson's permanent, induced and eddy terms only (not fitted yet)._"
     lines = [f"**In the compensation:** {session.tl_words()}"]
-    for name in session.result_effects(result):
+    for name in session.result_effects(session.result):
         lines.append(f"- {safe_code(name)}: {safe_text(session.terms.get(name, ''), 300)}")
     return "\n".join(lines)
 

@@ -52,9 +52,12 @@ def test_the_loop_names_the_current_and_falls_to_the_floor(cross_csv):
     text = loop_text(ctrl).candidates(ctrl)
     assert "**advised**" in text and "held-out FOM nT/m" in text
     assert "nT per ampere" in loop_text(ctrl).candidate(ctrl, "current")  # its evidence
-    # the figure: the 12 maneuvers before and after, and the noise's floor per maneuver
+    # the figure: the 12 maneuvers before and after, as the table has them
     fig = maneuvers_figure(session)
-    assert len(fig.data) == 2 and all(len(trace.y) == 12 for trace in fig.data) and len(fig.layout.shapes) == 1
+    assert len(fig.data) == 2 and [list(trace.y) for trace in fig.data] == [
+        [row[2 + k] for row in session.fom_rows()] for k in (0, 1)
+    ]
+    assert sum(fig.data[1].y) < 0.1 * sum(fig.data[0].y)  # compensated: a tenth of the raw tensor, TL alone
 
     ctrl.step_add_advice()
     assert session.effects == ["current"] and session.fom_now < 1.5 * floor  # down to the noise's floor
