@@ -14,6 +14,7 @@ from __future__ import annotations
 from .actions import action
 from .events import Change
 from .looptext import HELD_OUT_NOTE, loop_text
+from .markup import safe_text
 from .panels import METHOD_LABELS, data_markdown, reference_markdown, sensors_markdown
 from .state import METHODS
 
@@ -49,8 +50,11 @@ class CalibrateTab:
         on, w = panels.on, panels.w
         state = lambda: self._ctrl().state
         configure = lambda **kw: self._ctrl().configure(**kw)
+        #: One line naming the fit mode in use and why, on a record whose mode is a compensation (else hidden).
+        self.mode_note = gui.add_markdown("", visible=False)
         self.btn_run = panels.button("Run the chosen method", on.do_calibrate, engine=True, color="blue")
-        with gui.add_folder("|B| against time", expand_by_default=True):
+        self.field_folder = gui.add_folder("|B| against time", expand_by_default=True)
+        with self.field_folder:
             # viser's client draws plotly at height = width * aspect
             self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
             self.range_from = w.slider(
@@ -88,21 +92,25 @@ class CalibrateTab:
                 hint="Leave out the samples taken while turning fast (marked red); the fit reruns",
             )
             self.range_info = gui.add_markdown("")
-        with gui.add_folder("Error histogram", expand_by_default=True):
+        self.histogram_folder = gui.add_folder("Error histogram", expand_by_default=True)
+        with self.histogram_folder:
             self.histogram_unit = w.dropdown(
                 "Error in", ("nT", "%"), initial_value="nT", hint="|B| - reference in nT or in % of the reference"
             )
             self.histogram_unit.on_update(lambda e: panels.handle(on.range_changed, e))
             self.histogram_plot = gui.add_plotly(go.Figure(), aspect=0.68)
-        with gui.add_folder("Settings", expand_by_default=True):
+        self.settings_folder = gui.add_folder("Settings", expand_by_default=True)
+        with self.settings_folder:
             self._build_settings(panels, gui, state, configure)
-        with gui.add_folder("Step by step", expand_by_default=False):
+        self.steps_folder = gui.add_folder("Step by step", expand_by_default=False)
+        with self.steps_folder:
             self.btn_ellipsoid = panels.button("1. Fit ellipsoid (per sensor)", on.do_ellipsoid, engine=True)
             self.btn_align = panels.button("2. Align sensors (Procrustes)", on.do_align, engine=True)
             self.btn_refine = panels.button("3. Refine (maximum likelihood)", on.do_refine, engine=True)
         with gui.add_folder("Data", expand_by_default=False):
             self.data_info = gui.add_markdown("")
-        with gui.add_folder("Per sensor", expand_by_default=False):
+        self.sensors_folder = gui.add_folder("Per sensor", expand_by_default=False)
+        with self.sensors_folder:
             self.sensors_table = gui.add_markdown("")
         panels.vector_panel.build_calibrate(gui)
         with gui.add_folder("Step history", expand_by_default=False):
@@ -193,3 +201,31 @@ class CalibrateTab:
         if asks(Change.MODEL, Change.DATA, Change.RESULT, Change.SETTINGS, Change.VECTOR):
             self.reference_info.content = reference_markdown(ctrl)
         self.btn_align.visible = ctrl.dataset.n_sensors > 1
+        if asks(Change.DATA):
+            self._show_mode(ctrl)
+
+    def _show_mode(self, ctrl) -> None:
+        """On a record whose fit mode is a compensation, the total-field fit's parts hidden and one line saying
+        why; on any other record, the usual tab."""
+        note = fit_mode_markdown(ctrl)
+        self.mode_note.content = note
+        self.mode_note.visible = bool(note)
+        usual = not note
+        parts = (self.btn_run, self.field_folder, self.histogram_folder, self.settings_folder, self.steps_folder)
+        for part in (*parts, self.sensors_folder):
+            part.visible = usual
+
+
+def fit_mode_markdown(ctrl) -> str:
+    """One line for a record whose fit mode (the engine's ``mode_choice``) is a compensation: the mode in use, why,
+    and that the total-field, vector and gravity fits do not apply; empty for any other record."""
+    if not ctrl.compensation_loop():
+        return ""
+    mode, notes = ctrl.fit_mode()
+    why = mode.title.split(" (", 1)[1].rstrip(")") if " (" in mode.title else mode.needs()
+    said = "".join(f" {safe_text(note.text, 300)}." for note in notes)
+    return (
+        f"**Fit mode: {safe_text(mode.label)}** (`{mode.name}`), the engine's choice for this record: {safe_text(why)}. "
+        f"The total-field, vector and gravity fits do not apply to a compensation flight, so their sections are "
+        f"not shown.{said}"
+    )

@@ -10,6 +10,7 @@ session file keeps of it (``compensation_fit``). The FOM, the maneuvers and the 
 from __future__ import annotations
 
 import time
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -28,52 +29,119 @@ from .state import MAX_HISTORY_ROWS, JobInputs, pack_mask, unpack_mask
 RESTORE_MAX_SAMPLES = 2_000_000
 
 
-def model_of(ctrl) -> CompensationSession | None:
-    """The compensation session of ``ctrl``'s data, None for a controller without one."""
+def model_of(ctrl) -> CompensationBase | None:
+    """The compensation session the page shows for ``ctrl``'s data: the active one on a compensation flight (the
+    scalar's or the cross's, as the engine's ``choose_mode`` decides), else the scalar's; None for a controller
+    without one."""
+    active = getattr(ctrl, "model_session", None)
+    if isinstance(active, CompensationBase):
+        return active
     sessions = getattr(ctrl, "model_sessions", None) or {}
     return sessions.get("compensation")
 
 
-@register_session
-class CompensationSession(ModelSession):
-    """The compensation of one controller's data (the model session of the fit mode ``"compensation"``).
+class CompensationBase(ModelSession):
+    """What a compensation's model session does whatever its sensors (the base of the scalar's
+    :class:`CompensationSession` and the cross's
+    :class:`~magcal_workbench.crosscompensationmodel.CrossCompensationSession`): the fit on the kept samples, the
+    diagnosis (the terms beyond Tolles-Lawson judged on held-out maneuvers), add and remove, the FOM per step, the
+    session file's ``compensation_fit``.
+
+    A subclass names its engine's calls (:meth:`make_record`, :meth:`check_terms`, :meth:`engine_fit`,
+    :meth:`engine_diagnose`) and how its FOM reads (:attr:`unit`, :meth:`fom_figures`, :meth:`candidate_figures`,
+    :meth:`fom_rows`); the page's texts and figures ask these, never the mode.
 
     Attributes
     ----------
-    result : magcal.fitting.compensation.CompensationResult or None
-        The last fit with its FOM before and after (:class:`magcal.diagnosis.fom.FOMReport`).
-    diagnosis : magcal.diagnosis.compensation.CompensationDiagnosis or None
+    result : object or None
+        The last fit with its FOM report (the engine's mode result).
+    diagnosis : object or None
         The last diagnosis (the terms beyond TL judged on held-out maneuvers).
     """
 
-    mode = "compensation"
-    title = "compensation model"
+    #: What the messages call it (``"compensation"``: its fit, its diagnosis).
+    words: ClassVar[str] = "compensation"
+    #: The FOM's unit: ``"nT"`` (the scalar) or ``"nT/m"`` (the cross's tensor).
+    unit: ClassVar[str] = "nT"
+    #: The Calibrate tab's section title for this compensation.
+    section_title: ClassVar[str] = "Compensation"
+    #: Whose noise sets the floor, in words.
+    noise_words: ClassVar[str] = "the noise"
+    #: What the guide says the record is and its first step does.
+    step_text: ClassVar[str] = ""
+    #: The terms beyond TL this compensation offers, with what each is (the engine's words).
+    terms: ClassVar[dict[str, str]] = {}
 
     def __init__(self, ctrl):
         super().__init__(ctrl)
-        self.result = None
-        self._record = None
+        self.result: Any = None
+        self._record: Any = None
         self._history: list[dict] = []
 
-    # --- what the data offer -------------------------------------------------------------------------------
-    def missing(self) -> list[str]:
-        """What the record lacks for a compensation (empty when it holds a scalar column beside the fluxgate)."""
-        try:
-            why = COMPENSATION.applicable(self.dataset)
-        except MagcalError as exc:
-            why = str(exc)
-        return [] if why is None else [why]
+    # --- what a subclass names -----------------------------------------------------------------------------
+    def make_record(self):
+        """The engine's record of the open data (what its fit and diagnosis take)."""
+        raise NotImplementedError
 
+    def check_terms(self, names) -> list[str]:
+        """``names`` checked against the terms the engine takes (its one-line message otherwise)."""
+        raise NotImplementedError
+
+    def engine_fit(self, names: list[str], kept: np.ndarray):
+        """The engine's fit with ``names`` beyond TL on the ``kept`` samples, with its FOM report."""
+        raise NotImplementedError
+
+    def engine_diagnose(self):
+        """The engine's diagnosis of the model's terms."""
+        raise NotImplementedError
+
+    def result_effects(self, result) -> list[str]:
+        """The terms beyond TL a fit holds."""
+        raise NotImplementedError
+
+    def fom_figures(self, result) -> tuple[float, float, float, int] | None:
+        """The FOM before and after (:attr:`unit`), the improvement ratio and the maneuvers' count; None without
+        maneuvers."""
+        raise NotImplementedError
+
+    def candidate_figures(self, candidate) -> tuple[float, float]:
+        """A judged candidate's held-out FOM before and after (:attr:`unit`)."""
+        raise NotImplementedError
+
+    def diagnosis_figures(self, found) -> tuple[float, float]:
+        """A diagnosis's held-out FOM of the model and the FOM the noise alone leaves (:attr:`unit`)."""
+        raise NotImplementedError
+
+    def fom_rows(self) -> list[tuple[float, str, float, float]]:
+        """Per maneuver of the last fit: the heading (deg), the kind, its FOM part before and after (:attr:`unit`)."""
+        raise NotImplementedError
+
+    def tl_words(self) -> str:
+        """Tolles-Lawson's part of the last fit, in words (markdown: its terms and coefficients)."""
+        raise NotImplementedError
+
+    # --- what the data offer -------------------------------------------------------------------------------
     def record(self):
-        """The engine's :class:`~magcal.fitting.compensation.CompensationRecord` of the open data (made once)."""
+        """The engine's record of the open data (made once)."""
         if self._record is None:
-            self._record = compensation_record(self.dataset)
+            self._record = self.make_record()
         return self._record
 
     @property
+    def chosen(self) -> bool:
+        """Whether the engine's choice of fit mode for the record is this compensation (the page shows it)."""
+        return getattr(self.ctrl, "model_session", None) is self
+
+    @property
     def calibration(self):
-        """The last fit's :class:`~magcal.fitting.compensation.Compensation`, or None."""
+        """The last fit's compensation, or None."""
         return None if self.result is None else self.result.calibration
+
+    @property
+    def fom_now(self) -> float | None:
+        """The last fit's FOM after (:attr:`unit`), None before a fit or without maneuvers."""
+        figures = None if self.result is None else self.fom_figures(self.result)
+        return None if figures is None else float(figures[1])
 
     # --- the loop ------------------------------------------------------------------------------------------
     def fit(self, *, inputs: JobInputs | None = None, effects=None, step: str = "", again: bool = False):
@@ -83,17 +151,17 @@ class CompensationSession(ModelSession):
         Raises
         ------
         MagcalError
-            The record has no scalar column beside the fluxgate, or the engine refuses the fit (its message).
+            The record lacks what this compensation needs, or the engine refuses the fit (its message).
         """
         if not self.available:
-            raise MagcalError("the compensation fit " + "; ".join(self.missing()))
+            raise MagcalError(f"the {self.words} fit " + "; ".join(self.missing()))
         ctrl = self.ctrl
         kept = np.asarray(ctrl.kept if inputs is None else inputs.kept, dtype=bool)
-        names = list(check_effects(self.effects if effects is None else effects))
+        names = self.check_terms(self.effects if effects is None else effects)
         t0 = time.perf_counter()
-        ctrl.report_progress("compensation fit (Tolles-Lawson" + (" + " + ", ".join(names) if names else "") + ")")
+        ctrl.report_progress(f"{self.words} fit (Tolles-Lawson" + (" + " + ", ".join(names) if names else "") + ")")
         try:
-            result = COMPENSATION.fit(self.record(), effects=names, mask=kept)
+            result = self.engine_fit(names, kept)
         finally:
             ctrl.end_progress()
         elapsed = time.perf_counter() - t0
@@ -101,32 +169,32 @@ class CompensationSession(ModelSession):
             self.result, self.diagnosis = result, None
             self._effects = names
             if not again:
-                self._history.append(_history_row(step or "Tolles-Lawson fit", result, int(kept.sum()), elapsed))
+                self._history.append(self._history_row(step or "Tolles-Lawson fit", result, int(kept.sum()), elapsed))
                 del self._history[:-MAX_HISTORY_ROWS]
             ctrl.state.compensation_fit = self.save_doc(kept)
             ctrl.state.touch()
         ctrl.autosave()
         ctrl.emit(Change.COMPENSATION)
         ctrl.emit(Change.DIAGNOSIS)  # the fit cleared the diagnosis of the one before
-        ctrl.say(("the saved session's " if again else "") + fit_message(result, elapsed))
+        ctrl.say(("the saved session's " if again else "") + self.fit_message(result, elapsed))
         return result
 
     def diagnose(self, *, inputs: JobInputs | None = None):
-        """The terms beyond TL judged on held-out maneuvers (the engine's compensation mode's ``diagnose``); the fit
-        runs first when there is none."""
+        """The terms beyond TL judged on held-out maneuvers (the engine's mode's ``diagnose``); the fit runs first
+        when there is none."""
         if self.result is None:
             self.fit(inputs=inputs)
         ctrl = self.ctrl
-        ctrl.report_progress("diagnosing the compensation (each term beyond TL on held-out maneuvers)")
+        ctrl.report_progress(f"diagnosing the {self.words} (each term beyond TL on held-out maneuvers)")
         try:
-            found = COMPENSATION.diagnose(self.record(), effects=tuple(self.effects))
+            found = self.engine_diagnose()
         finally:
             ctrl.end_progress()
         with ctrl.state.lock:
             self.diagnosis = found
             ctrl.state.touch()
         ctrl.emit(Change.DIAGNOSIS)
-        ctrl.say(f"**compensation diagnosis** ({found.elapsed_s:.1f} s): {safe_text(found.summary, 600)}")
+        ctrl.say(f"**{self.words} diagnosis** ({found.elapsed_s:.1f} s): {safe_text(found.summary, 600)}")
         return found
 
     def candidate_labels(self) -> list[str]:
@@ -134,7 +202,7 @@ class CompensationSession(ModelSession):
         found = self.diagnosis
         if found is None:
             return []
-        ranked = sorted((c for c in found.candidates if c.judged), key=lambda c: c.fom_after_nT)
+        ranked = sorted((c for c in found.candidates if c.judged), key=lambda c: self.candidate_figures(c)[1])
         labels = list(self.advice()) + [c.name for c in ranked]
         return [name for name in dict.fromkeys(labels) if name not in self.effects]
 
@@ -145,7 +213,7 @@ class CompensationSession(ModelSession):
 
     def add_all(self, labels, *, inputs: JobInputs | None = None, note: str = ""):
         """Put the terms ``labels`` into the model and refit once."""
-        names = list(check_effects(labels))
+        names = self.check_terms(labels)
         effects = list(dict.fromkeys(self.effects + names))
         step = "+ " + ", ".join(names) + (f" ({note})" if note else "")
         return self.fit(inputs=inputs, effects=effects, step=step)
@@ -155,8 +223,33 @@ class CompensationSession(ModelSession):
 
     def history(self) -> list[dict]:
         """The fits of this session (``step``, ``effects``, ``fom_before_nT``, ``fom_nT``, ``improvement_ratio``,
-        ``n_fitted``, ``elapsed_s``), oldest first."""
+        ``n_fitted``, ``elapsed_s``: the session file's keys, the FOM in :attr:`unit`), oldest first."""
         return list(self._history)
+
+    def _history_row(self, step: str, result, n_fitted: int, elapsed_s: float) -> dict:
+        figures = self.fom_figures(result)
+        before, after, ratio = (None, None, None) if figures is None else figures[:3]
+        return {
+            "step": step,
+            "effects": self.result_effects(result),
+            "fom_before_nT": None if before is None else float(before),
+            "fom_nT": None if after is None else float(after),
+            "improvement_ratio": None if ratio is None else float(ratio),
+            "n_fitted": int(n_fitted),
+            "elapsed_s": float(elapsed_s),
+        }
+
+    def fit_message(self, result, elapsed_s: float) -> str:
+        """The page's line after a fit (markdown): the terms and the FOM before -> after."""
+        terms = ", ".join(self.result_effects(result)) or "none"
+        figures = self.fom_figures(result)
+        if figures is None:
+            said = "no maneuvers found, so no FOM"
+        else:
+            before, after, ratio, n = figures
+            said = f"FOM {before:.3g} -> {after:.3g} {self.unit} (improvement ratio {ratio:.3g}, {n} maneuvers)"
+        text = f"**{self.words} fit (Tolles-Lawson; beyond it: {safe_text(terms)})** ({elapsed_s:.2f} s): {said}"
+        return text + "".join(f"  \n- {safe_text(w, 600)}" for w in result.warnings)
 
     # --- the session file ----------------------------------------------------------------------------------
     def save_doc(self, kept: np.ndarray) -> dict:
@@ -164,17 +257,18 @@ class CompensationSession(ModelSession):
         return {"kept": pack_mask(kept), "effects": list(self.effects), "history": [dict(h) for h in self._history]}
 
     def save(self) -> dict | None:
-        """The session file's ``compensation_fit``, or None before a fit."""
-        return getattr(self.ctrl.state, "compensation_fit", None)
+        """The session file's ``compensation_fit``, or None before a fit (or on a record of the other
+        compensation)."""
+        return getattr(self.ctrl.state, "compensation_fit", None) if self.chosen else None
 
     def restore(self) -> str:
         """Run the saved compensation again (its samples and terms); a note for the page when it could not."""
         saved = getattr(self.ctrl.state, "compensation_fit", None)
-        if not saved or not self.available:
+        if not saved or not self.available or not self.chosen:
             return ""
         self._history = [dict(h) for h in saved.get("history", [])]
         if self.dataset.n_samples > RESTORE_MAX_SAMPLES:
-            return "the saved session ran the compensation fit: press the Step 1 button to see it again"
+            return f"the saved session ran the {self.words} fit: press the Step 1 button to see it again"
         try:
             kept = unpack_mask(saved["kept"], self.dataset.n_samples)
             self.fit(inputs=JobInputs(kept, ()), effects=saved.get("effects", []), again=True)
@@ -182,47 +276,93 @@ class CompensationSession(ModelSession):
             with self.ctrl.state.lock:
                 self.ctrl.state.compensation_fit = None
                 self.ctrl.state.touch()
-            return f"the saved compensation could not be run again ({safe_text(str(exc), 300)}); run it again"
+            return f"the saved {self.words} could not be run again ({safe_text(str(exc), 300)}); run it again"
         return ""
 
     def forget(self) -> None:
         super().forget()
         self.result = None
-        self.ctrl.state.compensation_fit = None
+        if self.chosen:
+            self.ctrl.state.compensation_fit = None
 
     def lesson_findings(self) -> dict | None:
-        """The terms beyond TL and the FOM after (nT), None before a fit (what a lesson's check compares)."""
+        """The terms beyond TL and the FOM after (:attr:`unit`), None before a fit (what a lesson's check
+        compares)."""
         if self.result is None:
             return None
-        return {"effects": list(self.effects), "fom_nT": self.result.fom_nT}
+        return {"effects": list(self.effects), "fom_nT": self.fom_now}
 
 
-def _history_row(step: str, result, n_fitted: int, elapsed_s: float) -> dict:
-    fom = result.fom
-    return {
-        "step": step,
-        "effects": list(result.calibration.effects),
-        "fom_before_nT": None if fom is None else float(fom.before.fom_nT),
-        "fom_nT": None if fom is None else float(fom.after.fom_nT),
-        "improvement_ratio": None if fom is None else float(fom.improvement_ratio),
-        "n_fitted": int(n_fitted),
-        "elapsed_s": float(elapsed_s),
-    }
+@register_session
+class CompensationSession(CompensationBase):
+    """The compensation of a scalar magnetometer beside a fluxgate (the model session of the fit mode
+    ``"compensation"``): the engine's :data:`~magcal.modes.COMPENSATION`, its FOM in nT."""
 
+    mode = "compensation"
+    title = "compensation model"
+    unit = "nT"
+    section_title = "Compensation (a scalar magnetometer beside a fluxgate)"
+    step_text = (
+        "The record has a scalar magnetometer beside a fluxgate: fit the platform's permanent, induced and "
+        "eddy fields (Tolles-Lawson) and judge it by the FOM in the maneuvers."
+    )
+    terms = dict(COMPENSATION_EFFECTS)
+    noise_words = "the scalar's noise"
 
-def fit_message(result, elapsed_s: float) -> str:
-    """The page's line after a compensation fit (markdown): the terms and the FOM before -> after."""
-    terms = ", ".join(result.calibration.effects) or "none"
-    if result.fom is None:
-        figures = "no maneuvers found, so no FOM"
-    else:
+    def missing(self) -> list[str]:
+        """What the record lacks for a compensation (empty when it holds a scalar column beside the fluxgate)."""
+        try:
+            why = COMPENSATION.applicable(self.dataset)
+        except MagcalError as exc:
+            why = str(exc)
+        return [] if why is None else [why]
+
+    @property
+    def chosen(self) -> bool:
+        """Whether the record holds a scalar beside the fluxgate (the mode ``auto`` takes first)."""
+        return self.available
+
+    def make_record(self):
+        """The engine's :class:`~magcal.fitting.compensation.CompensationRecord` of the open data."""
+        return compensation_record(self.dataset)
+
+    def check_terms(self, names) -> list[str]:
+        return list(check_effects(names))
+
+    def engine_fit(self, names, kept):
+        return COMPENSATION.fit(self.record(), effects=names, mask=kept)
+
+    def engine_diagnose(self):
+        return COMPENSATION.diagnose(self.record(), effects=tuple(self.effects))
+
+    def result_effects(self, result) -> list[str]:
+        return list(result.calibration.effects)
+
+    def fom_figures(self, result):
         fom = result.fom
-        figures = (
-            f"FOM {fom.before.fom_nT:.3g} -> {fom.after.fom_nT:.3g} nT "
-            f"(improvement ratio {fom.improvement_ratio:.3g}, {len(fom.after.maneuvers)} maneuvers)"
-        )
-    text = f"**compensation fit (Tolles-Lawson; beyond it: {safe_text(terms)})** ({elapsed_s:.2f} s): {figures}"
-    return text + "".join(f"  \n- {safe_text(w, 600)}" for w in result.warnings)
+        if fom is None:
+            return None
+        return fom.before.fom_nT, fom.after.fom_nT, fom.improvement_ratio, len(fom.after.maneuvers)
+
+    def candidate_figures(self, candidate) -> tuple[float, float]:
+        return candidate.fom_before_nT, candidate.fom_after_nT
+
+    def diagnosis_figures(self, found) -> tuple[float, float]:
+        return found.fom_held_out_nT, found.floor_fom_nT
+
+    def fom_rows(self):
+        fom = None if self.result is None else self.result.fom
+        if fom is None:
+            return []
+        maneuvers = fom.after.maneuvers
+        return [
+            (m.heading_deg, m.kind, float(b), float(a))
+            for m, b, a in zip(maneuvers, fom.before.peak_to_peak_nT, fom.after.peak_to_peak_nT)
+        ]
+
+    def tl_words(self) -> str:
+        tl = self.result.calibration.tl
+        return f"Tolles-Lawson ({safe_text(', '.join(tl.terms))}: {len(tl.labels)} coefficients)"
 
 
 def band_passed_traces(session: CompensationSession) -> dict | None:
@@ -240,5 +380,5 @@ def band_passed_traces(session: CompensationSession) -> dict | None:
     return {"time_s": np.asarray(t, float), "before_nT": before, "after_nT": after, "maneuvers": maneuvers}
 
 
-#: The terms beyond TL the page offers, with what each is (the engine's words).
+#: The terms beyond TL the scalar's compensation offers, with what each is (the engine's words).
 TERMS = dict(COMPENSATION_EFFECTS)

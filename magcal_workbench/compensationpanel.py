@@ -1,13 +1,16 @@
-"""The compensation in the page: a scalar magnetometer beside a fluxgate, compensated by Tolles-Lawson and the terms
-beyond it, judged by the figure of merit (FOM) in the maneuvers.
+"""The compensation in the page: a scalar magnetometer beside a fluxgate, or a four-sensor cross on a moving platform,
+compensated by Tolles-Lawson and the terms beyond it, judged by the figure of merit (FOM) in the maneuvers.
 
-Calibrate tab, section *Compensation (a scalar beside a fluxgate)*: **Run the compensation fit**, the FOM before
-and after with the improvement ratio, the band-passed scalar before and after against time with the maneuvers
-marked (plotly), and the FOM table (one row per heading and maneuver). The loop's texts of the compensation mode
-(status, candidates with their held-out FOM, history, terms) are here too, for
-:data:`magcal_workbench.looptext.LOOP_TEXTS`. :class:`CompensationPage` is a panel of the recipe
-(:data:`magcal_workbench.panelkit.PANELS`) and follows the controller's events; the figures and tables are pure
-functions the tests call.
+Calibrate tab, one section titled by the compensation the engine chose for the record (*Compensation (a scalar
+magnetometer beside a fluxgate)* or *Cross compensation (four sensors on a moving platform)*): **Run the
+compensation fit**, the FOM before and after with the improvement ratio, a figure (the scalar's: the band-passed
+scalar before and after against time with the maneuvers shaded; the cross's: the tensor FOM per maneuver before and
+after) and the FOM table (one row per heading and maneuver). Model tab, section *Compensation's steps*: the FOM per
+step and **Take the last term out**. The loop's texts of both compensation modes (status, candidates with their
+held-out FOM, history, terms) are here too, for :data:`magcal_workbench.looptext.LOOP_TEXTS`; each asks the active
+session (:class:`~magcal_workbench.compensationmodel.CompensationBase`) for its figures and unit, never the mode.
+:class:`CompensationPage` is a panel of the recipe (:data:`magcal_workbench.panelkit.PANELS`) and follows the
+controller's events; the figures and tables are pure functions the tests call.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from __future__ import annotations
 from magcal.core.errors import MagcalError
 
 from .actions import action
-from .compensationmodel import TERMS, CompensationSession, band_passed_traces, model_of
+from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
@@ -27,27 +30,30 @@ AFTER_COLOUR = "#1f77b4"
 MANEUVER_FILL = {"roll": "rgba(44,160,44,0.22)", "pitch": "rgba(148,103,189,0.22)", "yaw": "rgba(140,86,75,0.22)"}
 
 
-def fom_table_markdown(session: CompensationSession | None) -> str:
-    """The FOM table: per heading and maneuver the band-passed peak-to-peak before and after (nT), the sums and
+def fom_table_markdown(session: CompensationBase | None) -> str:
+    """The FOM table: per heading and maneuver the FOM's part before and after (the session's unit), the sums and
     the improvement ratio; what to press before a fit."""
     if session is None or not session.available:
         return ""
     result = session.result
     if result is None:
         return "_Run the compensation fit (the Step 1 button) to see the FOM per maneuver._"
-    fom = result.fom
-    if fom is None:
+    figures = session.fom_figures(result)
+    if figures is None:
         return "_No maneuvers found in the record, so no FOM: " + safe_text("; ".join(result.warnings), 400) + "_"
-    rows = ["| heading deg | maneuver | before nT | after nT |", "|---|---|---|---|"]
-    for m, b, a in zip(fom.after.maneuvers, fom.before.peak_to_peak_nT, fom.after.peak_to_peak_nT):
-        rows.append(f"| {m.heading_deg:.0f} | {safe_text(m.kind, 20)} | {fmt(b)} | {fmt(a)} |")
-    rows.append(f"| **FOM** | {len(fom.after.maneuvers)} maneuvers | **{fmt(fom.before.fom_nT)}** | "
-                f"**{fmt(fom.after.fom_nT)}** |")  # fmt: skip
-    return (
-        "\n".join(rows)
-        + f"\n\nImprovement ratio **{fom.improvement_ratio:.3g}**. In the plot above, the maneuvers are shaded: roll "
-        "green, pitch violet, yaw brown."
+    before, after, ratio, n = figures
+    unit = session.unit
+    rows = [f"| heading deg | maneuver | before {unit} | after {unit} |", "|---|---|---|---|"]
+    for heading, kind, b, a in session.fom_rows():
+        rows.append(f"| {heading:.0f} | {safe_text(kind, 20)} | {fmt(b)} | {fmt(a)} |")
+    rows.append(f"| **FOM** | {n} maneuvers | **{fmt(before)}** | **{fmt(after)}** |")
+    where = (
+        "In the plot above, the maneuvers are shaded: roll green, pitch violet, yaw brown."
+        if session.mode == "compensation"
+        else "A maneuver's part is the root sum of squares of the seven tensor components' band-passed "
+        "peak-to-peak values; the FOM sums each component over the maneuvers."
     )
+    return "\n".join(rows) + f"\n\nImprovement ratio **{ratio:.3g}**. {where}"
 
 
 def traces_figure(data):
@@ -94,20 +100,52 @@ def traces_figure(data):
     return fig
 
 
-# --- the loop's texts of the compensation mode (magcal_workbench.looptext.LOOP_TEXTS) ----------------------------
+def maneuvers_figure(session: CompensationBase | None):
+    """The FOM per maneuver before and after the compensation (bars on a log scale, the session's unit; the
+    noise's floor is the diagnosis's, in the candidates' text) (plotly): the cross's figure."""
+    import plotly.graph_objects as go
+
+    fig = go.Figure()
+    rows = [] if session is None else session.fom_rows()
+    labels = [f"{heading:.0f}° {kind}" for heading, kind, _, _ in rows]
+    for k, (name, colour) in enumerate((("before", BEFORE_COLOUR), ("compensated", AFTER_COLOUR))):
+        if rows:
+            fig.add_trace(go.Bar(x=labels, y=[row[2 + k] for row in rows], name=name, marker_color=colour))
+    unit = "nT" if session is None else session.unit
+    fig.update_layout(
+        height=360,
+        barmode="group",
+        margin={"l": 50, "r": 10, "t": 20, "b": 70},
+        yaxis={"type": "log", "title": f"tensor FOM per maneuver ({unit})"},
+        legend={"orientation": "h", "y": 1.08, "x": 0.0},
+        template="plotly_white",
+    )
+    fig.update_xaxes(tickangle=-60, tickfont={"size": 9})
+    return fig
+
+
+def figure_of(session: CompensationBase):
+    """The section's figure for ``session`` after a fit: the scalar's traces, the cross's maneuvers."""
+    if isinstance(session, CompensationSession):
+        return traces_figure(band_passed_traces(session))
+    return maneuvers_figure(session)
+
+
+# --- the loop's texts of the compensation modes (magcal_workbench.looptext.LOOP_TEXTS) ----------------------------
 def status_markdown(ctrl, figures=None) -> str:
     """The status: the FOM before -> after and the improvement ratio, the terms beyond TL; what to press before."""
     session = model_of(ctrl)
     if session is None or session.result is None:
         return "_Compensation: not fitted yet (the Step 1 button fits Tolles-Lawson)._"
     result = session.result
-    terms = ", ".join(result.calibration.effects) or "none"
-    if result.fom is None:
+    terms = ", ".join(session.result_effects(result)) or "none"
+    found = session.fom_figures(result)
+    if found is None:
         return f"**Compensation fitted**, no maneuvers found (no FOM)  \nTerms beyond Tolles-Lawson: {safe_text(terms)}"
-    fom = result.fom
+    before, after, ratio, n = found
+    what = "Compensation FOM" if session.unit == "nT" else "Cross compensation, tensor FOM"
     return (
-        f"**Compensation FOM: {fmt(fom.before.fom_nT)} -> {fmt(fom.after.fom_nT)} nT** (improvement ratio "
-        f"{fom.improvement_ratio:.3g}, {len(fom.after.maneuvers)} maneuvers)  \n"
+        f"**{what}: {fmt(before)} -> {fmt(after)} {session.unit}** (improvement ratio {ratio:.3g}, {n} maneuvers)  \n"
         f"Terms beyond Tolles-Lawson: {safe_text(terms)}"
     )
 
@@ -115,19 +153,21 @@ def status_markdown(ctrl, figures=None) -> str:
 def candidates_markdown(ctrl) -> str:
     """The diagnosis's verdict and the candidates with their held-out FOM, or what to press."""
     session = model_of(ctrl)
-    found = None if session is None else session.diagnosis
-    if found is None:
+    if session is None or session.diagnosis is None:
         return "_Press Diagnose to judge the terms beyond Tolles-Lawson on held-out maneuvers._"
+    found = session.diagnosis
+    unit = session.unit
+    held_out, floor = session.diagnosis_figures(found)
     scheme = "held-out maneuvers" if found.validation.get("scheme") == "maneuvers" else "the other flight"
     lines = [
-        f"**Verdict:** {safe_code(found.verdict)} (held-out FOM {fmt(found.fom_held_out_nT, 'nT')}, the scalar's "
-        f"noise leaves {fmt(found.floor_fom_nT, 'nT')})",
+        f"**Verdict:** {safe_code(found.verdict)} (held-out FOM {fmt(held_out, unit)}, {session.noise_words} "
+        f"leaves {fmt(floor, unit)})",
         f"_{safe_text(found.summary, 1000)}_",
         "",
-        f"Each term refitted and judged on {scheme} (held-out FOM, nT, without → with it); its evidence under "
+        f"Each term refitted and judged on {scheme} (held-out FOM, {unit}, without → with it); its evidence under "
         "*Candidate* below.",
         "",
-        "| round | term | held-out FOM nT | advised? |",
+        f"| round | term | held-out FOM {unit} | advised? |",
         "|---|---|---|---|",
     ]
     for c in found.candidates:
@@ -135,7 +175,8 @@ def candidates_markdown(ctrl) -> str:
             lines.append(f"| - | {safe_code(c.name)} | not judged: {safe_text(c.reason, 160)} | - |")
             continue
         mark = "**advised**" if c.recommended else "no"
-        lines.append(f"| {c.round} | {safe_code(c.name)} | {fmt(c.fom_before_nT)}→{fmt(c.fom_after_nT)} | {mark} |")
+        before, after = session.candidate_figures(c)
+        lines.append(f"| {c.round} | {safe_code(c.name)} | {fmt(before)}→{fmt(after)} | {mark} |")
     lines += [f"- warning: {safe_text(w, 600)}" for w in found.warnings]
     return "\n".join(lines)
 
@@ -143,12 +184,12 @@ def candidates_markdown(ctrl) -> str:
 def candidate_markdown(ctrl, label: str) -> str:
     """The chosen term's evidence and what it is."""
     session = model_of(ctrl)
-    found = None if session is None else session.diagnosis
-    if found is None:
+    if session is None or session.diagnosis is None:
         return ""
+    found = session.diagnosis
     for c in found.candidates:
         if c.name == label:
-            what = safe_text(TERMS.get(label, ""), 300)
+            what = safe_text(session.terms.get(label, ""), 300)
             said = safe_text(c.evidence or c.reason, 600)
             return f"**{safe_text(label)}** ({what}): {said}"
     return ""
@@ -158,9 +199,13 @@ def history_markdown(ctrl) -> str:
     """The compensation's fits: the terms and the FOM before -> after per step."""
     session = model_of(ctrl)
     rows = [] if session is None else session.history()
-    if not rows:
+    if session is None or not rows:
         return "_No compensation fit yet._"
-    lines = ["| # | step | terms beyond TL | FOM before nT | FOM after nT | ratio |", "|---|---|---|---|---|---|"]
+    unit = session.unit
+    lines = [
+        f"| # | step | terms beyond TL | FOM before {unit} | FOM after {unit} | ratio |",
+        "|---|---|---|---|---|---|",
+    ]
     for i, r in enumerate(rows[-8:], start=max(0, len(rows) - 8)):
         lines.append(
             f"| {i} | {safe_text(r['step'], 120)} | {safe_text(', '.join(r['effects']) or 'none', 200)} | "
@@ -172,20 +217,17 @@ def history_markdown(ctrl) -> str:
 def terms_markdown(ctrl) -> str:
     """The compensation's terms: Tolles-Lawson's, and those beyond it with what each is."""
     session = model_of(ctrl)
-    result = None if session is None else session.result
-    if result is None:
+    if session is None or session.result is None:
         return "_The compensation has Tolles-Lawson's permanent, induced and eddy terms only (not fitted yet)._"
-    tl = result.calibration.tl
-    lines = [
-        f"**In the compensation:** Tolles-Lawson ({safe_text(', '.join(tl.terms))}: {len(tl.labels)} coefficients)"
-    ]
-    for name in result.calibration.effects:
-        lines.append(f"- {safe_code(name)}: {safe_text(TERMS.get(name, ''), 300)}")
+    lines = [f"**In the compensation:** {session.tl_words()}"]
+    for name in session.result_effects(session.result):
+        lines.append(f"- {safe_code(name)}: {safe_text(session.terms.get(name, ''), 300)}")
     return "\n".join(lines)
 
 
 class CompensationPage:
-    """The compensation's section, action and drawing.
+    """The compensation's sections, actions and drawing, for the compensation the engine chose for the record (the
+    scalar's or the cross's: the same widgets, titled and filled by the active session).
 
     Parameters
     ----------
@@ -198,16 +240,20 @@ class CompensationPage:
         self._ctrl, self._steps = ctrl, steps
 
     @property
-    def model(self) -> CompensationSession:
-        """The compensation session of the opened data (the controller's ``compensation``)."""
-        return self._ctrl().compensation
+    def model(self) -> CompensationBase:
+        """The compensation session of the opened data (the active one on a compensation flight, else the
+        scalar's)."""
+        session = model_of(self._ctrl())
+        if session is None:
+            raise MagcalError("the page has no compensation session")
+        return session
 
     def attach(self, panels) -> None:
-        """Build the section into the Calibrate tab."""
+        """Build the sections into the Calibrate and Model tabs."""
         import plotly.graph_objects as go
 
         gui = panels.gui
-        self.folder = panels.section("Calibrate", "Compensation (a scalar magnetometer beside a fluxgate)", True)
+        self.folder = panels.section("Calibrate", self.model.section_title, True)
         with self.folder:
             self.status = gui.add_markdown("")
             self.btn_fit = panels.button(
@@ -215,12 +261,21 @@ class CompensationPage:
                 panels.on.do_compensation_fit,
                 engine=True,
                 color="teal",
-                hint="magcal's compensation mode: Tolles-Lawson's permanent, induced and eddy terms from the "
-                "fluxgate's direction cosines, band-passed, with the terms beyond it the model holds; judged by "
-                "the FOM (the 12 band-passed peak-to-peak values in the maneuvers)",
+                hint="magcal's compensation mode: Tolles-Lawson's permanent, induced and eddy terms (per sensor on "
+                "a cross), band-passed, with the terms beyond it the model holds; judged by the FOM (the "
+                "band-passed peak-to-peak values in the maneuvers: the scalar's, or the cross's tensor)",
             )
             self.traces = gui.add_plotly(go.Figure(), aspect=1.4)
             self.table = gui.add_markdown("")
+        self.steps_folder = panels.section("Model", "Compensation's steps", True)
+        with self.steps_folder:
+            self.history = gui.add_markdown("")
+            self.btn_remove = panels.button(
+                "Take the last term out (compensation)",
+                panels.on.do_remove_compensation_term,
+                engine=True,
+                hint="Refit the compensation without the term beyond Tolles-Lawson added last",
+            )
         self.refresh()
 
     @action
@@ -228,23 +283,36 @@ class CompensationPage:
         """Calibrate tab (and the guide's Step 1): the compensation fit, in the worker."""
         session = self.model
         if not session.available:
-            raise MagcalError("the compensation fit " + "; ".join(session.missing()))
-        self._ctrl().run_step("compensation fit", lambda inputs: session.fit(inputs=inputs))
+            raise MagcalError(f"the {session.words} fit " + "; ".join(session.missing()))
+        self._ctrl().run_step(f"{session.words} fit", lambda inputs: session.fit(inputs=inputs))
+
+    @action
+    def do_remove_compensation_term(self, event):
+        """Model tab: the compensation refitted without its last term beyond TL, in the worker."""
+        session = self.model
+        if not session.effects:
+            raise MagcalError(f"the {session.title} holds no term beyond Tolles-Lawson to take out")
+        self._ctrl().run_step("take a term out", lambda inputs: session.remove(inputs=inputs))
 
     def changed(self, kind: Change) -> None:
-        """The controller's event: a new record, a fit or a diagnosis redraws the section."""
+        """The controller's event: a new record, a fit or a diagnosis redraws the sections."""
         if kind in (Change.DATA, Change.COMPENSATION, Change.SELECTION, Change.DIAGNOSIS):
             self.refresh()
 
     def refresh(self) -> None:
         if not hasattr(self, "table"):
             return
+        ctrl = self._ctrl()
         session = self.model
-        shown = session.available
-        self.folder.visible = shown
-        self.status.content = status_markdown(self._ctrl()) if shown else ""
+        shown = ctrl.compensation_loop() and session.available
+        self.folder.visible = self.steps_folder.visible = shown
+        if shown:
+            self.folder.label = session.section_title
+        self.status.content = status_markdown(ctrl) if shown else ""
         self.table.content = fom_table_markdown(session) if shown else ""
+        self.history.content = history_markdown(ctrl) if shown else ""
+        self.btn_remove.visible = shown and bool(session.effects)
         fitted = shown and session.result is not None
         self.traces.visible = fitted
         if fitted:
-            self.traces.figure = traces_figure(band_passed_traces(session))
+            self.traces.figure = figure_of(session)

@@ -38,10 +38,11 @@ from magcal.data import io as mio
 from magcal.diagnosis import start_workers
 from magcal.model import plugins
 from magcal.model.terms import EFFECTS, unknown_effect_message
-from magcal.modes import choose_mode
+from magcal.modes import mode_choice
 
-from .compensationmodel import CompensationSession
+from .compensationmodel import CompensationBase, CompensationSession
 from .consent import full_path
+from .crosscompensationmodel import CrossCompensationSession
 from .events import Change
 from .figures import MESSAGE_LEN, candidate_label, fmt_nT, format_number
 from .figures import rms as _rms
@@ -105,7 +106,7 @@ class Controller:
         self._listeners: list[Callable[[Change], None]] = []
         self._lock = threading.RLock()
         #: One model session per fit mode (:data:`magcal_workbench.modelsession.MODEL_SESSIONS`), by mode name.
-        self._mode_name: str | None = None  # the engine's choice of fit mode for the record, asked once
+        self._mode: tuple | None = None  # the engine's choice of fit mode for the record and its notes, asked once
         self.model_sessions: dict[str, ModelSession] = {name: cls(self) for name, cls in session_kinds()}
         #: The total-field model: the fit every record allows (:mod:`.totalfield`).
         self.total_field = cast(TotalFieldSession, self.model_sessions["total_field"])
@@ -115,6 +116,8 @@ class Controller:
         self.gravity = cast(GravitySession, self.model_sessions["gravity"])
         #: The compensation: a scalar magnetometer beside a fluxgate on a platform (:mod:`.compensationmodel`).
         self.compensation = cast(CompensationSession, self.model_sessions["compensation"])
+        #: The four-sensor cross's compensation on a moving platform (:mod:`.crosscompensationmodel`).
+        self.cross_compensation = cast(CrossCompensationSession, self.model_sessions["cross_compensation"])
         # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
         # that the first Diagnose does not wait for them
         start_workers(dataset, effects=tuple(EFFECTS.values()))
@@ -136,21 +139,34 @@ class Controller:
     # ------------------------------------------------------------------------------------------------------
     @property
     def model_session(self) -> ModelSession:
-        """The model Diagnose and Add work on: the compensation on a record the engine's ``choose_mode`` gives the
-        compensation mode (a scalar magnetometer's column beside the fluxgate), the vector model on a record with
-        attitude and a field vector (columns, or the location typed in the page), else the total-field model."""
-        if self.compensation_loop():
-            return self.compensation
+        """The model Diagnose and Add work on: a compensation on a record the engine's ``choose_mode`` gives a
+        compensation mode (the scalar's: a scalar magnetometer's column beside the fluxgate; the cross's: four
+        sensors flown through a compensation box), the vector model on a record with attitude and a field vector
+        (columns, or the location typed in the page), else the total-field model."""
+        chosen = self.model_sessions.get(self.fit_mode_name())
+        if isinstance(chosen, CompensationBase):
+            return chosen
         return self.vector if self.vector.available else self.total_field
 
-    def compensation_loop(self) -> bool:
-        """Whether the record is a compensation flight (the engine's ``choose_mode`` names the compensation mode)."""
-        if self._mode_name is None:
+    def fit_mode(self) -> tuple:
+        """The engine's choice of fit mode for the record (``magcal.modes.mode_choice``): ``(mode, notes)``, the
+        mode None when no mode takes the record; asked once per record."""
+        if self._mode is None:
             try:
-                self._mode_name = choose_mode(self.dataset).name
+                self._mode = mode_choice(self.dataset)
             except MagcalError:
-                self._mode_name = ""
-        return self._mode_name == "compensation"
+                self._mode = (None, [])
+        return self._mode
+
+    def fit_mode_name(self) -> str:
+        """The name of the engine's fit mode for the record (``""`` when none takes it)."""
+        mode = self.fit_mode()[0]
+        return "" if mode is None else mode.name
+
+    def compensation_loop(self) -> bool:
+        """Whether the record is a compensation flight: the engine's ``choose_mode`` names a compensation mode (the
+        scalar's or the cross's), whose session the loop works on."""
+        return isinstance(self.model_sessions.get(self.fit_mode_name()), CompensationBase)
 
     def vector_loop(self) -> bool:
         """Whether the active model session (:attr:`model_session`) is the vector model."""

@@ -130,7 +130,8 @@ class GravityPage:
         import plotly.graph_objects as go
 
         gui = panels.gui
-        with panels.section("Calibrate", "Gravity model (beside an accelerometer)", expand=True):
+        self.folder = panels.section("Calibrate", "Gravity model (beside an accelerometer)", expand=True)
+        with self.folder:
             self.info = gui.add_markdown("")
             self.btn_fit = panels.button(
                 "Run the gravity fit (beside the accelerometer)",
@@ -182,6 +183,7 @@ class GravityPage:
         if not hasattr(self, "table"):
             return
         gm = self.model
+        self.folder.visible = not self._ctrl().compensation_loop()  # a compensation flight: not this fit
         self.btn_fit.visible = gm.available
         self.info.content = "" if gm.available else table_markdown(gm)
         self.table.content = table_markdown(gm) if gm.available else ""

@@ -63,12 +63,13 @@ def data_markdown(ctrl) -> str:
         channels.append("an accelerometer")
     if ds.temperature_C is not None:
         channels.append("temperature")
-    if compensation_mode(ctrl):
+    if compensation_mode(ctrl) and ctrl.model_session is ctrl.compensation:
         channels.append(f"a scalar magnetometer ({safe_code(ctrl.compensation.record().scalar_column)})")
     held = f", with {', '.join(channels)}" if channels else ""
     fits = ["the total-field fit"]
-    if compensation_mode(ctrl):
-        fits.insert(0, "the compensation (Tolles-Lawson and beyond, judged by the FOM in the maneuvers)")
+    if compensation_mode(ctrl):  # its tabs show the compensation only: the other fits are not offered
+        fom = "the FOM" if ctrl.model_session is ctrl.compensation else "the tensor FOM"
+        fits = [f"the {ctrl.model_session.words} (Tolles-Lawson and beyond, judged by {fom} in the maneuvers)"]
     elif ctrl.vector_loop():
         fits.insert(0, "the vector fit (attitude and the field vector: world components, the mounting)")
     elif kind is not None:
@@ -93,8 +94,8 @@ def _source(ctrl) -> str:
 
 
 def compensation_mode(ctrl) -> bool:
-    """Whether the record is a compensation flight: a scalar magnetometer's column beside the fluxgate (the engine's
-    choice of fit mode), whose compensation comes first."""
+    """Whether the record is a compensation flight, the engine's choice of fit mode: a scalar magnetometer's column
+    beside the fluxgate, or a four-sensor cross flown through a compensation box; its compensation comes first."""
     loop = getattr(ctrl, "compensation_loop", None)
     return bool(loop is not None and loop())
 
@@ -136,13 +137,9 @@ def next_step(ctrl) -> NextStep:
     if gravity is not None:
         return gravity
     if compensation_mode(ctrl):
-        if ctrl.compensation.result is None:
-            return NextStep(
-                "compensation",
-                "Step 1: fit Tolles-Lawson (the compensation)",
-                "The record has a scalar magnetometer beside a fluxgate: fit the platform's permanent, induced and "
-                "eddy fields (Tolles-Lawson) and judge it by the FOM in the maneuvers.",
-            )
+        session = ctrl.model_session
+        if session.result is None:
+            return NextStep("compensation", "Step 1: fit Tolles-Lawson (the compensation)", session.step_text)
     elif ctrl.vector_loop():
         vm = ctrl.vector
         if vm.result is None:

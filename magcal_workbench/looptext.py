@@ -242,6 +242,15 @@ def _vector_candidates(ctrl) -> str:
     return vector_candidates_markdown(d, ctrl.vector.noise)
 
 
+#: The compensations' texts (the scalar's and the cross's).
+COMPENSATION_TEXTS = LoopText(
+    status=compensationpanel.status_markdown,
+    candidates=compensationpanel.candidates_markdown,
+    candidate=compensationpanel.candidate_markdown,
+    history=compensationpanel.history_markdown,
+    terms=compensationpanel.terms_markdown,
+)
+
 #: The loop's texts by fit mode's name (a mode without an entry is shown as the total-field one).
 LOOP_TEXTS: dict[str, LoopText] = {
     "total_field": LoopText(
@@ -263,13 +272,8 @@ LOOP_TEXTS: dict[str, LoopText] = {
         ),
         evidence_per_candidate=True,
     ),
-    "compensation": LoopText(
-        status=compensationpanel.status_markdown,
-        candidates=compensationpanel.candidates_markdown,
-        candidate=compensationpanel.candidate_markdown,
-        history=compensationpanel.history_markdown,
-        terms=compensationpanel.terms_markdown,
-    ),
+    "compensation": COMPENSATION_TEXTS,
+    "cross_compensation": COMPENSATION_TEXTS,  # the same texts: each asks the active session for its figures
 }
 
 

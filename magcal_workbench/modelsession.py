@@ -17,7 +17,7 @@ terms, its diagnosis, its history of fits, and what the session file keeps of it
 
 and the loop's questions the page asks without knowing the mode: ``candidate_labels()``, ``advice()``,
 ``candidate_holds(label)``, ``effects``, ``diagnosis``, ``calibration``. The mode names are the engine's fit modes'
-(``magcal.modes``: ``"total_field"``, ``"vector"``, ``"gravity"``, ``"compensation"``), so that another mode's page is one more class
+(``magcal.modes``: ``"total_field"``, ``"vector"``, ``"gravity"``, ``"compensation"``, ``"cross_compensation"``), so that another mode's page is one more class
 registered in :data:`MODEL_SESSIONS` (:func:`register_session`). The physics is the engine's: a session only chooses
 what to run on which samples and tells the controller what changed (:meth:`Controller.emit
 <magcal_workbench.controller.Controller.emit>`, a :class:`~magcal_workbench.events.Change`).
@@ -182,7 +182,7 @@ class ModelSession:
 
 
 #: The built-in fit modes' names (the engine's, ``magcal.modes``), in the order a controller makes and restores them.
-MODES = ("total_field", "vector", "gravity", "compensation")
+MODES = ("total_field", "vector", "gravity", "compensation", "cross_compensation")
 
 #: The model sessions by fit mode's name (:func:`register_session`).
 MODEL_SESSIONS: dict[str, type[ModelSession]] = {}

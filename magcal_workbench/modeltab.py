@@ -19,6 +19,7 @@ import numpy as np
 from magcal.core.errors import MagcalError
 
 from .actions import action
+from .calibratetab import fit_mode_markdown
 from .events import Change
 from .looptext import loop_text, model_terms_markdown
 from .markup import clean_text, safe_code
@@ -59,14 +60,17 @@ class ModelTab:
         """Make the widgets (in the tab being built)."""
         self.panels = panels
         on, ctrl = panels.on, self._ctrl()
-        gui.add_markdown(
+        #: One line naming the fit mode in use and why, on a record whose mode is a compensation (else hidden).
+        self.mode_note = gui.add_markdown("", visible=False)
+        self.intro = gui.add_markdown(
             "Effects beyond bias, scale, non-orthogonality and misalignment. "
             "Greyed ones need a channel the data lack (hover for the reason)."
         )
         self.effects_folder = gui.add_folder("Effects", expand_by_default=True)
         self._add_effect_boxes(ctrl.available_effects())
         self.model_terms = gui.add_markdown(model_terms_markdown(ctrl.model_terms()))
-        with gui.add_folder("Your own effects", expand_by_default=False):
+        self.own_folder = gui.add_folder("Your own effects", expand_by_default=False)
+        with self.own_folder:
             self._build_own_effects(panels, gui)
         self.btn_refit = panels.button("Refit with this model", on.do_refine, engine=True)
         self.btn_diagnose = panels.button("Diagnose", on.do_diagnose, engine=True, color="violet")
@@ -228,8 +232,24 @@ class ModelTab:
             self.model_terms.content = loop_text(ctrl).terms(ctrl)
         if asks(Change.DATA, Change.EFFECTS):
             self._refresh_catalogue(ctrl)
+        if asks(Change.DATA):
+            self._show_mode(ctrl)
         if asks(Change.DIAGNOSIS, Change.DATA):
             self._refresh_diagnosis(ctrl)
+
+    def _show_mode(self, ctrl) -> None:
+        """On a record whose fit mode is a compensation, the catalogue's effects, Refit, the total-field plot and the
+        evidence hidden (the compensation's terms, Diagnose and Add stay) and one line saying why; on any other
+        record, the usual tab."""
+        note = fit_mode_markdown(ctrl)
+        self.mode_note.content = note
+        self.mode_note.visible = bool(note)
+        usual = not note
+        parts = (self.intro, self.effects_folder, self.own_folder, self.btn_refit, self.evidence_holder)
+        for part in (*parts, self.btn_full_evidence, self.btn_evidence_png, self.btn_evidence_svg):
+            part.visible = usual
+        if not usual:
+            self.rms_plot.visible = False
 
     def _refresh_catalogue(self, ctrl) -> None:
         """The effects' boxes and the user's effects (the catalogue grew, or other data opened)."""

@@ -184,7 +184,10 @@ PANELS.register(
 PANELS.register(
     PanelKind(
         name="compensation",
-        description="the compensation: a scalar magnetometer beside a fluxgate, its fit, FOM table and traces",
+        description=(
+            "the compensation (a scalar beside a fluxgate, or a four-sensor cross on a platform): its fit, FOM "
+            "table, figure and steps"
+        ),
         make=lambda c: CompensationPage(ctrl=c.ctrl, steps=c.steps),
     ),
     origin="built-in",

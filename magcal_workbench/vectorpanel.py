@@ -296,7 +296,8 @@ class VectorPanel:
     def build_calibrate(self, gui) -> None:
         """Calibrate tab, after the total-field steps: the vector fit and the two fits side by side."""
         p = self.p
-        with gui.add_folder("Vector model (attitude-aided)", expand_by_default=True):
+        self.folder = gui.add_folder("Vector model (attitude-aided)", expand_by_default=True)
+        with self.folder:
             self.info = gui.add_markdown("")
             self.btn_vector = p._button(
                 gui,
@@ -370,6 +371,7 @@ class VectorPanel:
         if "vector" in kinds:  # a location sets the Reference field box: show it
             self.p.show_state()
         if everything or kinds & {"data", "vector", "settings"}:
+            self.folder.visible = not self.p.ctrl().compensation_loop()  # a compensation flight: not this fit
             self.info.content = availability_markdown(vm)
             self.location_info.content = location_markdown(vm)
             self.btn_vector.visible = has_attitude
@@ -378,7 +380,8 @@ class VectorPanel:
             self.table.visible = vm.available or vm.result is not None
             loop = self.p.ctrl().vector_loop()
             self.rms_plot.visible = loop
-            self.p.rms_plot.visible = not loop  # the total-field history plot: its counterpart
+            # the total-field history plot: its counterpart (neither on a compensation flight)
+            self.p.rms_plot.visible = not loop and not self.p.ctrl().compensation_loop()
             self.btn_remove.visible = loop and bool(vm.effects)
             if loop:
                 data = vector_rms_plot_data(vm)

@@ -88,15 +88,16 @@ class CrossCompensationMode(FitMode):
         return record.attitude_deg is not None and len(cross_maneuvers(record)) >= MIN_MANEUVERS
 
     def fit(
-        self, dataset, reference=None, effects=(), current=None, ridge=0.0, magnitude_passes=2
+        self, dataset, reference=None, effects=(), current=None, ridge=0.0, magnitude_passes=2, mask=None
     ) -> CrossCompensationResult:
         """The cross's compensation of a flight (a dataset or a
         :class:`~magcal.diagnosis.cross_compensation.CrossRecord`) with its tensor FOM report; ``reference``: the
-        Earth field vector (a :class:`~magcal.checks.reference.VectorReference` or nT NED), else the four's mean."""
+        Earth field vector (a :class:`~magcal.checks.reference.VectorReference` or nT NED), else the four's mean;
+        ``mask``: the samples the fit may use (bool, (N,); the FOM is taken in every maneuver)."""
         record = _record(dataset, current)
         ned = field_vector(reference, record.n_samples)
         return cross_compensation_result(
-            record, effects, field_ned_nT=ned, ridge=ridge, magnitude_passes=magnitude_passes
+            record, effects, field_ned_nT=ned, ridge=ridge, magnitude_passes=magnitude_passes, mask=mask
         )
 
     def validate(self, dataset, result, reference=None, effects=(), current=None, **options):

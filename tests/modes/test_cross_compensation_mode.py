@@ -78,3 +78,17 @@ def test_fit_validate_and_diagnose_through_the_mode(flight, effects):
     diagnosis = CROSS_COMPENSATION.diagnose(ds, result, reference=flight.truth.field_ned_nT)
     assert diagnosis.explained_by == ([] if effects else ["current"])
     assert diagnosis.verdict == ("adequate" if effects else "missing_effect")
+
+
+def test_the_fit_takes_only_the_samples_the_mask_keeps(flight):
+    """A mask leaving the first heading out of the fit changes the fit, not the maneuvers judged; a mask of another
+    length is refused in one line."""
+    ds = flight.dataset()
+    whole = CROSS_COMPENSATION.fit(ds)
+    kept = np.ones(ds.n_samples, bool)
+    kept[: ds.n_samples // 4] = False
+    part = CROSS_COMPENSATION.fit(ds, mask=kept)
+    assert len(part.fom.after.maneuvers) == len(whole.fom.after.maneuvers) == 12
+    assert part.fom.after.fom_nT_per_m != pytest.approx(whole.fom.after.fom_nT_per_m, rel=1e-6)
+    with pytest.raises(magcal.MagcalError, match="the mask has shape"):
+        CROSS_COMPENSATION.fit(ds, mask=kept[:-1])

@@ -1,0 +1,94 @@
+"""The compensation of a four-sensor cross on a moving platform: each sensor's Tolles-Lawson terms (and the platform
+current's field beyond them) fitted on a compensation flight, judged by the tensor FOM (nT/m) in the maneuvers (the
+engine's fit mode ``"cross_compensation"``, :mod:`magcal.modes.cross_compensation`).
+
+:class:`CrossCompensationSession` is the scalar's :class:`~magcal_workbench.compensationmodel.CompensationSession`
+with the cross's engine calls: the loop (fit, diagnose, add, remove, history, the session file's
+``compensation_fit``) is their base's, :class:`~magcal_workbench.compensationmodel.CompensationBase`. The fit is
+taken against the four sensors' mean field (the record's own Earth field: no field vector needed); the FOM, the
+maneuvers and the diagnosis are the engine's (:func:`magcal.diagnosis.cross_compensation.cross_compensation_result`,
+:func:`~magcal.diagnosis.cross_compensation.diagnose_cross_compensation`).
+"""
+
+from __future__ import annotations
+
+from magcal.diagnosis.cross_compensation import CROSS_EFFECTS, check_cross_effects, cross_record
+from magcal.fitting.compensation import COMPENSATION_EFFECTS
+from magcal.modes import CROSS_COMPENSATION
+
+from .compensationmodel import CompensationBase
+from .markup import safe_text
+from .modelsession import register_session
+
+#: The terms beyond TL the cross's compensation offers, with what each is (the engine's words).
+CROSS_TERMS = {name: COMPENSATION_EFFECTS[name] for name in CROSS_EFFECTS}
+
+
+@register_session
+class CrossCompensationSession(CompensationBase):
+    """The compensation of a four-sensor cross flown through a compensation box (the model session of the fit mode
+    ``"cross_compensation"``, the controller's ``cross_compensation``): the engine's
+    :data:`~magcal.modes.CROSS_COMPENSATION`, its FOM the tensor's in nT/m."""
+
+    mode = "cross_compensation"
+    title = "cross compensation model"
+    words = "cross compensation"
+    unit = "nT/m"
+    section_title = "Cross compensation (four sensors on a moving platform)"
+    step_text = (
+        "The record is a four-sensor cross flown through a compensation box: fit each sensor's platform field "
+        "(permanent, induced and eddy: Tolles-Lawson) and judge it by the tensor FOM in the maneuvers."
+    )
+    terms = CROSS_TERMS
+    noise_words = "the sensors' noise"
+
+    def missing(self) -> list[str]:
+        """What the record lacks for the cross's compensation (empty for four sensors with times and a baseline)."""
+        why = CROSS_COMPENSATION.applicable(self.dataset)
+        return [] if why is None else [why]
+
+    def make_record(self):
+        """The engine's :class:`~magcal.diagnosis.cross_compensation.CrossRecord` of the open data."""
+        return cross_record(self.dataset)
+
+    def check_terms(self, names) -> list[str]:
+        return list(check_cross_effects(names))
+
+    def engine_fit(self, names, kept):
+        return CROSS_COMPENSATION.fit(self.record(), effects=names, mask=kept)
+
+    def engine_diagnose(self):
+        return CROSS_COMPENSATION.diagnose(self.record(), effects=tuple(self.effects))
+
+    def result_effects(self, result) -> list[str]:
+        return list(result.effects)
+
+    def fom_figures(self, result):
+        fom = result.fom
+        if fom is None:
+            return None
+        return fom.before.fom_nT_per_m, fom.after.fom_nT_per_m, fom.improvement_ratio, len(fom.after.maneuvers)
+
+    def candidate_figures(self, candidate) -> tuple[float, float]:
+        return candidate.fom_before_nT_per_m, candidate.fom_after_nT_per_m
+
+    def diagnosis_figures(self, found) -> tuple[float, float]:
+        return found.fom_held_out_nT_per_m, found.floor_fom_nT_per_m
+
+    def fom_rows(self):
+        fom = None if self.result is None else self.result.fom
+        if fom is None:
+            return []
+        maneuvers = fom.after.maneuvers
+        return [
+            (m.heading_deg, m.kind, float(b), float(a))
+            for m, b, a in zip(maneuvers, fom.before.maneuver_nT_per_m, fom.after.maneuver_nT_per_m)
+        ]
+
+    def tl_words(self) -> str:
+        comp = self.result.calibration
+        return (
+            f"Tolles-Lawson per sensor (each of the {len(comp.sensors)} sensors' calibration with its permanent, "
+            f"induced and eddy terms; against the {safe_text(comp.reference, 20)} field, "
+            f"{comp.magnitude_passes} magnitude passes)"
+        )
