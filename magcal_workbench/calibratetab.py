@@ -15,6 +15,7 @@ from .actions import action
 from .events import Change
 from .looptext import HELD_OUT_NOTE, loop_text
 from .panels import METHOD_LABELS, data_markdown, reference_markdown, sensors_markdown
+from .plots import add_figure
 from .state import METHODS
 
 
@@ -52,7 +53,7 @@ class CalibrateTab:
         self.btn_run = panels.button("Run the chosen method", on.do_calibrate, engine=True, color="blue")
         with gui.add_folder("|B| against time", expand_by_default=True):
             # viser's client draws plotly at height = width * aspect
-            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
+            self.field_plot = add_figure(gui, go.Figure(), aspect=0.85)
             self.range_from = w.slider(
                 "From % of the record",
                 min=0.0,
@@ -93,7 +94,7 @@ class CalibrateTab:
                 "Error in", ("nT", "%"), initial_value="nT", hint="|B| - reference in nT or in % of the reference"
             )
             self.histogram_unit.on_update(lambda e: panels.handle(on.range_changed, e))
-            self.histogram_plot = gui.add_plotly(go.Figure(), aspect=0.68)
+            self.histogram_plot = add_figure(gui, go.Figure(), aspect=0.68)
         with gui.add_folder("Settings", expand_by_default=True):
             self._build_settings(panels, gui, state, configure)
         with gui.add_folder("Step by step", expand_by_default=False):

@@ -19,6 +19,7 @@ from .compensationmodel import TERMS, CompensationSession, band_passed_traces, m
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
+from .plots import add_figure
 
 #: Colours of the traces: the scalar as recorded, and compensated.
 BEFORE_COLOUR = "#ff7f0e"
@@ -219,7 +220,7 @@ class CompensationPage:
                 "fluxgate's direction cosines, band-passed, with the terms beyond it the model holds; judged by "
                 "the FOM (the 12 band-passed peak-to-peak values in the maneuvers)",
             )
-            self.traces = gui.add_plotly(go.Figure(), aspect=1.4)
+            self.traces = add_figure(gui, go.Figure(), aspect=1.4)
             self.table = gui.add_markdown("")
         self.refresh()
 

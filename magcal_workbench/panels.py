@@ -37,6 +37,7 @@ from .looptext import (  # the loop's texts; the names stay importable from here
     model_terms_markdown,
 )
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .plots import one_step_history
 from .qualitytab import noise_markdown, quality_markdown
 from .vectorpanel import VectorPanel
 
@@ -357,9 +358,7 @@ def rms_plot_data(ctrl):
         f = np.full_like(y, float(floor))
     elif np.isfinite(f).any():
         f = np.where(np.isfinite(f), f, f[np.isfinite(f)][0])
-    if len(x) == 1:
-        x, y, f, held = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2), np.repeat(held, 2)
-    return x, y, f, held
+    return one_step_history(x, (y, f, held), floors=(1,))  # one step: its floor spans the frame
 
 
 #: Largest default residual gain of the View tab (that of a fit near a clean sensor's noise).
