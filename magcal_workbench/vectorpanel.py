@@ -295,6 +295,19 @@ class VectorPanel:
             self.btn_forget = p._button(gui, "Forget the location", p.on.do_forget_location, engine=False)
             self.location_info = gui.add_markdown("")
 
+    def clear_location_inputs(self) -> None:
+        """The location inputs as they start (0 N, 0 E, 0 m, today): other data opened, whose location (the
+        session's, or its file's site) the next refresh shows if it has one; the old record's place is not shown as
+        the new one's."""
+        for widget, value in (
+            (self.lat, 0.0),
+            (self.lon, 0.0),
+            (self.alt, 0.0),
+            (self.date, _dt.date.today().isoformat()),
+        ):
+            if widget.value != value:
+                widget.value = value
+
     def build_calibrate(self, gui) -> None:
         """Calibrate tab, after the total-field steps: the vector fit and the two fits side by side."""
         p = self.p
