@@ -308,6 +308,10 @@ def _total_reference_markdown(ctrl) -> str:
     if state.fit_reference:
         return f"_Reference used:_ fitted (you asked to fit the field magnitude){fitted}"
     if state.reference_nT:
+        loc = ctrl.vector.location
+        if loc is not None and state.reference_nT == round(loc.total_nT, 1):  # what the location set
+            where = "the file's `# site:` line" if ctrl.vector.from_site() else "the location below"
+            return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, IGRF's |B| at {where}"
         return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, typed here"
     if ds.ref_total_nT is not None:
         return (

@@ -437,6 +437,8 @@ def test_the_vehicle_lesson_opens_with_the_files_site_as_the_reference(bench):
     assert 45_000 < total < 55_000 and ctrl.state.reference_nT == pytest.approx(total, abs=0.05)
     assert wb.panels.reference.value == pytest.approx(ctrl.state.reference_nT)
     assert "From the file's `# site:` line" in p.location_info.content
+    shown = wb.panels.reference_info.content  # the Calibrate tab's reference says where both come from
+    assert "IGRF at the file's `# site:` line" in shown and "IGRF's |B| at the file's `# site:` line" in shown
     said = ctrl.message.replace("\\", "")  # markdown escapes taken out
     assert "reference from the file's `# site:` line** (53.0 N, 4.5 E, 1500 m, 2024-06-01)" in said
     assert "type where and when" not in wb.panels.guide.content  # the guide goes on to the vector fit
@@ -444,6 +446,7 @@ def test_the_vehicle_lesson_opens_with_the_files_site_as_the_reference(bench):
     wb.vehicle.do_use_location(None)
     assert ctrl.state.location["date"] == "2014-06-01" and not ctrl.vector.from_site()
     assert "From the file's" not in p.location_info.content
+    assert "IGRF's |B| at the location below" in wb.panels.reference_info.content
     wb.vehicle.do_forget_location(None)
     wb.lessons.do_open_lesson(None)  # its saved session reopens: the student's choice holds
     assert wb.worker.wait(60)
