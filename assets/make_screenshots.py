@@ -198,7 +198,7 @@ def vehicle() -> int:
     ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
     wb = Workbench(ds, host="127.0.0.1", port=0, store=None)
     try:
-        wb.ctrl.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")  # the place and date the lesson's guide gives
+        assert wb.ctrl.vector.from_site()  # the place and date of the file's `# site:` line are the reference
         wb.ctrl.step_calibrate("ml")
         wb.ctrl.step_vector()
         with sync_playwright() as p:

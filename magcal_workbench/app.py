@@ -400,7 +400,9 @@ class Workbench:
         """The views' state that belonged to the data open before starts anew (the one place that resets it):
         the time window is off and at the start (its percentages would pick another stretch of other data, and its
         text described the old record) and the vehicle view is off (the new data may have no attitude, and the
-        cameras looked at the old body). Each widget's callback then agrees with the state set here."""
+        cameras looked at the old body), and the location inputs hold no place of the old record. Each widget's
+        callback then agrees with the state set here."""
+        self.panels.vector_panel.clear_location_inputs()
         self.window.pause()
         self.window.enabled, self.window.start_pct = False, 0.0
         self.vehicle.enabled = False

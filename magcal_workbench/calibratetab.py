@@ -16,6 +16,7 @@ from .events import Change
 from .looptext import HELD_OUT_NOTE, loop_text
 from .markup import safe_text
 from .panels import METHOD_LABELS, data_markdown, reference_markdown, sensors_markdown
+from .plots import add_figure
 from .state import METHODS
 
 
@@ -56,7 +57,7 @@ class CalibrateTab:
         self.field_folder = gui.add_folder("|B| against time", expand_by_default=True)
         with self.field_folder:
             # viser's client draws plotly at height = width * aspect
-            self.field_plot = gui.add_plotly(go.Figure(), aspect=0.85)
+            self.field_plot = add_figure(gui, go.Figure(), aspect=0.85)
             self.range_from = w.slider(
                 "From % of the record",
                 min=0.0,
@@ -98,7 +99,7 @@ class CalibrateTab:
                 "Error in", ("nT", "%"), initial_value="nT", hint="|B| - reference in nT or in % of the reference"
             )
             self.histogram_unit.on_update(lambda e: panels.handle(on.range_changed, e))
-            self.histogram_plot = gui.add_plotly(go.Figure(), aspect=0.68)
+            self.histogram_plot = add_figure(gui, go.Figure(), aspect=0.68)
         self.settings_folder = gui.add_folder("Settings", expand_by_default=True)
         with self.settings_folder:
             self._build_settings(panels, gui, state, configure)

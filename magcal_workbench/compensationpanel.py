@@ -22,6 +22,7 @@ from .compensationmodel import CompensationBase, CompensationSession, band_passe
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
+from .plots import add_figure
 
 #: Colours of the traces: the scalar as recorded, and compensated.
 BEFORE_COLOUR = "#ff7f0e"
@@ -265,7 +266,7 @@ class CompensationPage:
                 "a cross), band-passed, with the terms beyond it the model holds; judged by the FOM (the "
                 "band-passed peak-to-peak values in the maneuvers: the scalar's, or the cross's tensor)",
             )
-            self.traces = gui.add_plotly(go.Figure(), aspect=1.4)
+            self.traces = add_figure(gui, go.Figure(), aspect=1.4)
             self.table = gui.add_markdown("")
         self.steps_folder = panels.section("Model", "Compensation's steps", True)
         with self.steps_folder:

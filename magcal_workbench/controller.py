@@ -121,7 +121,8 @@ class Controller:
         # a record large enough for the diagnosis's worker processes: their fork server starts its imports now, so
         # that the first Diagnose does not wait for them
         start_workers(dataset, effects=tuple(EFFECTS.values()))
-        if not self.state.history:
+        if not self.state.history:  # a fresh session: the file's site, if it names one, is the reference
+            self.message = self.vector.take_site()
             raw = self.raw_residual_nT()
             self.state.history.append(
                 StepRecord(

@@ -10,7 +10,7 @@ from magcal.core.errors import MagcalError
 
 from .actions import action
 from .parts import PagePart
-from .plots import evidence_figure, evidence_image
+from .plots import add_figure, evidence_figure, evidence_image
 from .timewindow import sample_times
 
 #: The Model tab's plotly figure's height over its width (four panels; more make it taller).
@@ -79,7 +79,7 @@ class Evidence(PagePart):
         aspect = max(PANELS_ASPECT, 0.75 * rows)
         if self.plot is None:
             with self.panels.evidence_holder:
-                self.plot = self.server.gui.add_plotly(fig, aspect=aspect)
+                self.plot = add_figure(self.server.gui, fig, aspect=aspect)
         else:
             self.plot.figure = fig
             self.plot.aspect = aspect

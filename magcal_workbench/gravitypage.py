@@ -19,6 +19,7 @@ from magcal.core.errors import MagcalError
 from .actions import action
 from .events import Change
 from .gravitymodel import GravitySession, accel_cloud, dip_series, rose, table_markdown
+from .plots import add_figure
 from .scene import GROUP_DZ, sphere_mesh
 
 #: Colours of the page's gravity figures.
@@ -143,8 +144,8 @@ class GravityPage:
                 "gravity) is the same at every attitude; judged by the tilt-compensated heading",
             )
             self.table = gui.add_markdown("")
-            self.dip_plot = gui.add_plotly(go.Figure(), aspect=2.2)
-            self.rose_plot = gui.add_plotly(go.Figure(), aspect=1.0)
+            self.dip_plot = add_figure(gui, go.Figure(), aspect=2.2)
+            self.rose_plot = add_figure(gui, go.Figure(), aspect=1.0)
         with panels.section("View", "Accelerometer"):
             self.cloud_box = gui.add_checkbox(
                 "Show the accelerometer's cloud and sphere",

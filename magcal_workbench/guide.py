@@ -209,7 +209,11 @@ def vector_reference_markdown(ctrl) -> str:
         return ""
     vm, ds = ctrl.vector, ctrl.dataset
     if vm.location is not None:
-        where = "IGRF at the location typed below"
+        where = (
+            "IGRF at the file's `# site:` line (the location below)"
+            if vm.from_site()
+            else ("IGRF at the location typed below")
+        )
     elif any(c in ds.extra for c in VECTOR_COLUMNS):
         where = "the file's `ref_n, ref_e, ref_d` columns, per sample"
     else:

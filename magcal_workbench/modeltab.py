@@ -94,7 +94,13 @@ class ModelTab:
             series=(
                 {"label": "step"},
                 {"label": "RMS nT", "stroke": "#1f77b4", "width": 2, "points": {"show": True, "size": 6}},
-                {"label": "noise floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
+                {
+                    "label": "noise floor nT",
+                    "stroke": "#d62728",
+                    "dash": [6, 4],
+                    "width": 1.5,
+                    "points": {"show": False},
+                },
                 {
                     "label": "held-out RMS nT",
                     "stroke": "#ff7f0e",

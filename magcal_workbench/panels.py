@@ -37,6 +37,7 @@ from .looptext import (  # the loop's texts; the names stay importable from here
     model_terms_markdown,
 )
 from .markup import clean_text, hide_paths, safe_code, safe_text
+from .plots import one_step_history
 from .qualitytab import noise_markdown, quality_markdown
 from .vectorpanel import VectorPanel
 
@@ -307,6 +308,10 @@ def _total_reference_markdown(ctrl) -> str:
     if state.fit_reference:
         return f"_Reference used:_ fitted (you asked to fit the field magnitude){fitted}"
     if state.reference_nT:
+        loc = ctrl.vector.location
+        if loc is not None and state.reference_nT == round(loc.total_nT, 1):  # what the location set
+            where = "the file's `# site:` line" if ctrl.vector.from_site() else "the location below"
+            return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, IGRF's |B| at {where}"
         return f"_Reference used:_ {fmt(state.reference_nT, 'nT', 6)}, typed here"
     if ds.ref_total_nT is not None:
         return (
@@ -357,9 +362,7 @@ def rms_plot_data(ctrl):
         f = np.full_like(y, float(floor))
     elif np.isfinite(f).any():
         f = np.where(np.isfinite(f), f, f[np.isfinite(f)][0])
-    if len(x) == 1:
-        x, y, f, held = np.array([0.0, 0.0]), np.repeat(y, 2), np.repeat(f, 2), np.repeat(held, 2)
-    return x, y, f, held
+    return one_step_history(x, (y, f, held), floors=(1,))  # one step: its floor spans the frame
 
 
 #: Largest default residual gain of the View tab (that of a fit near a clean sensor's noise).

@@ -31,6 +31,19 @@ WINDOW_COLOUR = "#f5b041"
 FLOOR_COLOUR = "#d62728"
 
 
+#: The page's plotly figures are drawn with this configuration (:func:`add_figure`): no mode bar (plotly's
+#: toolbar, which shows on hover over the figure's top right and covered the titles there); drag still zooms and
+#: a double click zooms out again, the evidence has its own PNG and SVG downloads.
+PLOTLY_CONFIG = {"displayModeBar": False, "displaylogo": False}
+
+
+def add_figure(gui, figure, aspect: float, **kw):
+    """``figure`` added to ``gui`` (viser's ``add_plotly``, ``kw`` to it) at ``aspect`` with the page's
+    :data:`PLOTLY_CONFIG`: every plotly figure the page draws is added here (viser keeps the configuration with the
+    handle, for each figure assigned to it later)."""
+    return gui.add_plotly(figure, config=PLOTLY_CONFIG, aspect=aspect, **kw)
+
+
 def _decimate(n: int, kept: np.ndarray, max_points: int = MAX_POINTS) -> np.ndarray:
     idx = np.flatnonzero(kept)
     if idx.size > max_points:
@@ -894,6 +907,22 @@ def log_axis_scales(data) -> dict:
     x: dict = {"time": False}
     steps = np.asarray(data[0], float) if len(data) else np.array([])
     steps = steps[np.isfinite(steps)]
-    if steps.size:
-        x["range"] = [float(steps.min()) - 0.5, float(steps.max()) + 0.5]
+    if steps.size:  # the steps are whole numbers: the frame's edges, half a step out, are not steps of their own
+        x["range"] = [float(np.ceil(steps.min())) - 0.5, float(np.floor(steps.max())) + 0.5]
     return {"x": x, "y": y}
+
+
+def one_step_history(x, series, floors):
+    """A history plot's data for uPlot when it holds one step: uPlot draws a line between two x values, so the
+    floor of a single step would be drawn nowhere. The step stays at ``x = 0``, its figures there alone (infinite
+    at the frame's edges: the browser draws no line to and no point at an infinite value, while uPlot draws NaN as
+    the log axis's foot), and the floors (``floors``: the indices in ``series`` that are floors) span the frame,
+    from half a step before to half a step after (:func:`log_axis_scales` keeps that frame).
+    Histories of more steps are returned as they are: ``(x, *series)``."""
+    if len(x) != 1:
+        return (x, *series)
+    out = [np.array([-0.5, 0.0, 0.5])]
+    for k, values in enumerate(series):
+        v = float(np.asarray(values, dtype=float)[0])
+        out.append(np.full(3, v) if k in floors else np.array([np.inf, v, np.inf]))
+    return tuple(out)

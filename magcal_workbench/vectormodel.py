@@ -23,6 +23,7 @@ from magcal.checks.coverage import calibration_input_checks
 from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_rows, attitude_source
+from magcal.data.site import record_site
 from magcal.model.terms import EFFECTS
 from magcal.modes import VECTOR
 
@@ -287,7 +288,48 @@ class VectorSession(ModelSession):
     def available(self) -> bool:
         return not self.missing()
 
-    # --- the location typed in the page ----------------------------------------------------------------------
+    # --- the location typed in the page, or the file's site ---------------------------------------------------
+    def take_site(self) -> str:
+        """A fresh session of a record whose file names its site (the engine's
+        :func:`magcal.data.site.record_site`, from a ``# site:`` line): IGRF there (the engine's, through
+        :func:`check_location`) becomes the location, the vector reference and the scalar reference, as if typed;
+        the page's location inputs show it, to change. Called by the controller before the first history row (its
+        raw RMS then uses the same |B|). Returns the message for the page (markdown), empty without a site; a site
+        IGRF cannot take (a date beyond the model's years) is said and the record opens without it."""
+        site = record_site(self.dataset)
+        if site is None:
+            return ""
+        try:
+            loc = check_location(site.lat_deg, site.lon_deg, site.alt_m, site.date)
+        except (MagcalError, ImportError) as exc:
+            self.location_note = (
+                f"the file's `# site:` line ({safe_text(site.text(), 120)}) could not be used "
+                f"({safe_text(str(exc), 300)}); type the place and date"
+            )
+            return f"**Note:** {self.location_note}"
+        state = self.ctrl.state
+        with state.lock:
+            self.location = loc
+            self.location_note = ""
+            state.location = loc.to_dict()
+            state.reference_nT = round(loc.total_nT, 1)
+            state.fit_reference = False
+            state.touch()
+        written = self.dataset.metadata.get("site") or site.text()
+        return (
+            f"**reference from the file's `# site:` line** ({safe_text(written, 120)}): "
+            f"{safe_text(loc.text(), 400)}; the total-field fits use |B| = {loc.total_nT:.1f} nT, the vector fit the "
+            "vector. To use another place or date, change it under *Reference from a location (IGRF)* (Calibrate "
+            "tab)."
+        )
+
+    def from_site(self) -> bool:
+        """Whether the location in use is the one the file's ``# site:`` line gives."""
+        site, loc = record_site(self.dataset), self.location
+        if site is None or loc is None:
+            return False
+        return (loc.lat_deg, loc.lon_deg, loc.alt_m, loc.date) == (site.lat_deg, site.lon_deg, site.alt_m, site.date)
+
     def set_location(self, lat_deg, lon_deg, alt_m, date) -> Location:
         """Take the place and date typed in the page: IGRF there becomes the vector reference and its magnitude the
         scalar reference (the Reference field box); the session remembers the place. Raises a

@@ -18,7 +18,7 @@ from magcal.model.terms import EFFECTS
 
 from .controller import format_number
 from .markup import safe_code, safe_text
-from .plots import log_axis_scales
+from .plots import log_axis_scales, one_step_history
 from .sessionfile import ALT_RANGE_M, DATE_CHARS, LAT_RANGE_DEG, LON_RANGE_DEG
 from .vectormodel import NED
 
@@ -210,10 +210,7 @@ def vector_rms_plot_data(vm):
     world = np.array([[np.nan if v is None else v for v in r.world_rms_nT] for r in steps], dtype=float).reshape(-1, 3)
     total = np.array([np.nan if r.total_rms_nT is None else r.total_rms_nT for r in steps], dtype=float)
     floor = np.full(len(steps), np.nan if not vm.floor_nT else float(vm.floor_nT))
-    out = [x, world[:, 0], world[:, 1], world[:, 2], total, floor]
-    if len(x) == 1:  # uPlot draws one point as nothing: two at the same step
-        out = [np.array([0.0, 0.0])] + [np.repeat(a, 2) for a in out[1:]]
-    return tuple(out)
+    return one_step_history(x, (world[:, 0], world[:, 1], world[:, 2], total, floor), floors=(4,))
 
 
 def availability_markdown(vm) -> str:
@@ -245,6 +242,11 @@ def location_markdown(vm) -> str:
         if loc is not None
         else "_No location typed: the file's reference is used (or the field magnitude is fitted)._"
     )
+    if vm.from_site():
+        text += (
+            "  \n_From the file's `# site:` line._ Change the values above and press *Use this location (IGRF)* to "
+            "use another place or date, or *Forget the location*."
+        )
     if vm.location_note:
         text += f"  \n{vm.location_note}"
     return text
@@ -293,6 +295,19 @@ class VectorPanel:
             self.btn_forget = p._button(gui, "Forget the location", p.on.do_forget_location, engine=False)
             self.location_info = gui.add_markdown("")
 
+    def clear_location_inputs(self) -> None:
+        """The location inputs as they start (0 N, 0 E, 0 m, today): other data opened, whose location (the
+        session's, or its file's site) the next refresh shows if it has one; the old record's place is not shown as
+        the new one's."""
+        for widget, value in (
+            (self.lat, 0.0),
+            (self.lon, 0.0),
+            (self.alt, 0.0),
+            (self.date, _dt.date.today().isoformat()),
+        ):
+            if widget.value != value:
+                widget.value = value
+
     def build_calibrate(self, gui) -> None:
         """Calibrate tab, after the total-field steps: the vector fit and the two fits side by side."""
         p = self.p
@@ -329,7 +344,13 @@ class VectorPanel:
                 {"label": "E nT", "stroke": "#2ca02c", "width": 2, "points": {"show": True, "size": 6}},
                 {"label": "D nT", "stroke": "#9467bd", "width": 2, "points": {"show": True, "size": 6}},
                 {"label": "|B| nT", "stroke": "#ff7f0e", "width": 2, "points": {"show": True, "size": 6}},
-                {"label": "world floor nT", "stroke": "#d62728", "dash": [6, 4], "width": 1.5},
+                {
+                    "label": "world floor nT",
+                    "stroke": "#d62728",
+                    "dash": [6, 4],
+                    "width": 1.5,
+                    "points": {"show": False},
+                },
             ),
             scales={"x": {"time": False}, "y": {"distr": 3, "log": 10}},
             axes=({"label": "vector step (see the step history)", "incrs": [1, 2, 5, 10, 20, 50]}, {"label": "nT"}),

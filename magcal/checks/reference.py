@@ -503,13 +503,15 @@ def lab_field_of(path) -> np.ndarray:
 
 def record_date(dataset, date=None):
     """The date for IGRF: ``date`` when given, else the record's own (``metadata['date']``, which the flight-log
-    readers take from the GPS), else None (today).
+    readers take from the GPS, else the date of the file's ``# site:`` line, ``metadata['site_date']``), else None
+    (today).
 
     A record years old evaluated at today's date is off by the secular variation, tens of nT a year in each
     component (a 2014 flight at 2026 is hundreds of nT off)."""
     if date is not None or dataset is None:
         return date
-    found = str((getattr(dataset, "metadata", None) or {}).get("date") or "").strip()
+    metadata = getattr(dataset, "metadata", None) or {}
+    found = str(metadata.get("date") or metadata.get("site_date") or "").strip()
     if not found:
         return None
     try:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.data.site import SITE_KEYS
 
 #: Channel names a model term may require, and the Dataset attribute each one lives in.
 CHANNELS = {
@@ -288,8 +289,10 @@ def dataset_columns(dataset):
 
 
 def dataset_metadata(dataset):
-    """Metadata lines for a dataset: its metadata dict with the numeric fields and ``units: nT``."""
-    meta = {k: v for k, v in dataset.metadata.items()}
+    """Metadata lines for a dataset: its metadata dict with the numeric fields and ``units: nT``; the numbers read
+    from a ``# site:`` line (:data:`magcal.data.site.SITE_KEYS`) are left to the line, which is written."""
+    derived = SITE_KEYS if "site" in dataset.metadata else ()
+    meta = {k: v for k, v in dataset.metadata.items() if k not in derived}
     if dataset.baseline_m is not None:
         meta["baseline_m"] = repr(float(dataset.baseline_m))
     if dataset.reference_total_nT is not None:

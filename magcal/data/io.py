@@ -53,6 +53,7 @@ from magcal.data.dataset import (
     dataset_metadata,
 )
 from magcal.data.logs import is_log, read_log
+from magcal.data.site import SITE_EXAMPLE, SITE_FORM, SITE_KEYS, names_a_place, parse_site, site_metadata
 from magcal.geometry.shape import field_magnitude_nT
 
 #: Factor that turns a reading in each unit into nT (keys are lower case; ``u`` and ``µ`` both mean micro).
@@ -830,6 +831,25 @@ class CsvSource:
             self._units_line = self._lineno
         elif key == "lsb_nT":
             parse_lsb(value, where=f"{self.source}: line {self._lineno}: metadata lsb_nT")
+        elif key == "site":
+            self._read_site(value)
+
+    def _read_site(self, value):
+        """A ``# site:`` line that names a place: its numbers join the metadata (:mod:`magcal.data.site`); a
+        malformed one is said in one note naming the file and line, and the file is read without it."""
+        for name in SITE_KEYS:
+            self.metadata.pop(name, None)
+        if not names_a_place(value):
+            return  # a name in words: kept as text
+        try:
+            self.metadata.update(site_metadata(parse_site(value)))
+        except ValueError as exc:
+            self.notes.append(
+                _note(
+                    f"{self.source}: line {self._lineno}: metadata site: {shown(value)} {exc}; write it as "
+                    f"'{SITE_FORM}' (e.g. {SITE_EXAMPLE}); the file is read without the site"
+                )
+            )
 
     def _resolve_units(self, units, lsb_nT=None):
         """Set :attr:`units`, :attr:`unit_factor` (nT per unit) and :attr:`lsb_nT` (None unless counts)."""

@@ -18,10 +18,10 @@ from magcal_workbench.lessons import DEMO, get_lesson, list_lessons
 #: The records, in the order a newcomer meets them: the demo, then the lessons as the Lessons tab lists them.
 KINDS = ["demo", *(lesson.slug for lesson in list_lessons())]
 #: Where following the guide ends, when it is not "Solved" (lessons) or the floor (the demo): real data whose
-#: hidden effect the held-out judgement cannot confirm, and a vehicle whose field vector the student types.
+#: hidden effect the held-out judgement cannot confirm. (The vehicle that cannot tumble is solved: its file's
+#: `# site:` line gives the field vector.)
 ENDS = {
     "real-qmc5883l": "Verdict `unexplained`",
-    "cannot-tumble": "type where and when it was recorded",
 }
 
 

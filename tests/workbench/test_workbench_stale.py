@@ -55,3 +55,6 @@ def test_other_data_open_with_no_view_state_of_the_old(bench, first, second):
     text = wb.panels.window_info.content
     assert f"every sample shown ({new.n_samples})" in text and text != old_text
     assert "Sample" not in wb.panels.vector_panel.vehicle_info.content  # no sample of the old record named
+    vp = wb.panels.vector_panel  # the location inputs: the new record's site (its file's `# site:` line), or none
+    place = (53.0, 4.5, 1500.0, "2024-06-01") if second == "vehicle that cannot tumble" else (0.0, 0.0, 0.0)
+    assert (vp.lat.value, vp.lon.value, vp.alt.value, vp.date.value)[: len(place)] == place

@@ -257,12 +257,13 @@ def test_the_vehicle_lesson_is_solved_by_the_vector_fit_with_the_right_reference
     guide = lesson.guide()
     assert "ROLL" not in guide and "rotation 10" not in guide  # the guide never names the answer
     ctrl = Controller(ds)
-    assert not ctrl.vector.available  # the reference comes from the place and date the guide gives
+    site = (53.0, 4.5, 1500.0, "2024-06-01")  # the file's `# site:` line, which the guide's text gives too
+    assert ctrl.vector.available and ctrl.vector.from_site()  # the reference comes from the place and date
+    assert tuple(ctrl.state.location.values()) == site
     ctrl.step_calibrate("ml")
     assert ctrl.vector.scalar_row().undetermined  # the total-field fit is undetermined here
     first = lesson.check(ctrl.state.effects, ctrl.vector.lesson_findings())
     assert not first["solved"] and "vector fit" in first["message"]
-    ctrl.vector.set_location(53.0, 4.5, 1500.0, "2024-06-01")
     ctrl.step_vector()
     result = lesson.check(ctrl.state.effects, ctrl.vector.lesson_findings())
     assert result["solved"], result
@@ -418,32 +419,73 @@ def test_the_page_location_inputs_are_checked_and_set_the_reference(bench):
     assert wb.ctrl.state.location["lat_deg"] == 53.0 and p.lat.value == 90.0  # put back within range
 
 
+def test_the_vehicle_lesson_opens_with_the_files_site_as_the_reference(bench):
+    """The Lessons tab opens the lesson: the location inputs hold the file's `# site:` line, IGRF there is the
+    reference (scalar and vector), the page says where the values came from; the student may change them, and a
+    location forgotten stays forgotten when the lesson's session reopens."""
+    lesson = get_lesson("cannot-tumble")
+    wb = bench()
+    wb.panels.lesson_choice.value = lesson.title
+    wb.lessons.do_open_lesson(None)
+    assert wb.worker.wait(60)
+    wb.ui.wait()
+    ctrl, p = wb.ctrl, wb.panels.vector_panel
+    assert ctrl.state.lesson == "cannot-tumble"
+    assert (p.lat.value, p.lon.value, p.alt.value, p.date.value) == (53.0, 4.5, 1500.0, "2024-06-01")
+    assert ctrl.vector.available and ctrl.vector_loop() and ctrl.vector.reference().kind == "igrf"
+    total = ctrl.vector.location.total_nT
+    assert 45_000 < total < 55_000 and ctrl.state.reference_nT == pytest.approx(total, abs=0.05)
+    assert wb.panels.reference.value == pytest.approx(ctrl.state.reference_nT)
+    assert "From the file's `# site:` line" in p.location_info.content
+    shown = wb.panels.reference_info.content  # the Calibrate tab's reference says where both come from
+    assert "IGRF at the file's `# site:` line" in shown and "IGRF's |B| at the file's `# site:` line" in shown
+    said = ctrl.message.replace("\\", "")  # markdown escapes taken out
+    assert "reference from the file's `# site:` line** (53.0 N, 4.5 E, 1500 m, 2024-06-01)" in said
+    assert "type where and when" not in wb.panels.guide.content  # the guide goes on to the vector fit
+    p.date.value = "2014-06-01"  # the student changes the date
+    wb.vehicle.do_use_location(None)
+    assert ctrl.state.location["date"] == "2014-06-01" and not ctrl.vector.from_site()
+    assert "From the file's" not in p.location_info.content
+    assert "IGRF's |B| at the location below" in wb.panels.reference_info.content
+    wb.vehicle.do_forget_location(None)
+    wb.lessons.do_open_lesson(None)  # its saved session reopens: the student's choice holds
+    assert wb.worker.wait(60)
+    wb.ui.wait()
+    assert wb.ctrl is not ctrl and wb.ctrl.state.location is None and not wb.ctrl.vector.available
+
+
+def test_a_site_igrf_cannot_take_is_said_and_the_record_opens_without_it(tmp_path):
+    from magcal_workbench.dataio import load_dataset
+
+    ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
+    meta = dict(ds.metadata, site="53.0 N, 4.5 E, 1500 m, 1850-01-01", site_date="1850-01-01")
+    ctrl = Controller(ds.replace(metadata=meta))
+    assert ctrl.state.location is None and not ctrl.vector.available
+    assert "could not be used" in ctrl.message and "type the place and date" in ctrl.vector.location_note
+
+
 # --- in the page --------------------------------------------------------------------------------------------------
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_the_vehicle_lesson_in_the_page(browser, bench, tmp_path):
-    """In Chromium: open the lesson's data, type the place and date, run the vector fit from the page, read the
-    mounting it names, and show the vehicle view."""
+    """In Chromium: open the lesson's data, find the place and date of the file's `# site:` line in the location
+    inputs, run the vector fit from the page, read the mounting it names, and show the vehicle view."""
     from magcal_workbench.dataio import load_dataset
     from tests.workbench.test_workbench_e2e import _dismiss_toasts, _open
 
     ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
     wb = bench(ds=ds, max_points=300)  # software WebGL: a small scene keeps the page responsive
     page = _open(browser, wb)
-    page.get_by_text("Reference from a location (IGRF)").click()
+    folder = page.locator("div").filter(has_text=re.compile(r"^Reference from a location \(IGRF\)$")).first
+    folder.click()  # the folder's title (the message above names it too)
     p = wb.panels.vector_panel
-    typed = (("Latitude deg", "53", p.lat, 53.0), ("Longitude deg", "4.5", p.lon, 4.5))
-    typed += (("Altitude m", "1500", p.alt, 1500.0), ("Date", "2024-06-01", p.date, "2024-06-01"))
-    for label, text, handle, value in typed:
-        box = page.locator(f"label:text-is('{label}')").locator("xpath=ancestor::div[.//input][1]//input").first
-        box.fill(text)
-        box.press("Enter")
-        end = time.monotonic() + 20
-        while handle.value != value and time.monotonic() < end:
-            time.sleep(0.1)
-        assert handle.value == value, label
-    page.get_by_role("button", name="Use this location (IGRF)").click()
     page.wait_for_function("() => document.body.innerText.includes('Location in use')", timeout=60_000)
+    filled = (("Latitude deg", "53", p.lat, 53.0), ("Longitude deg", "4.5", p.lon, 4.5))
+    filled += (("Altitude m", "1500", p.alt, 1500.0), ("Date", "2024-06-01", p.date, "2024-06-01"))
+    for label, text, handle, value in filled:  # the file's site, shown in the inputs: nothing to type
+        box = page.locator(f"label:text-is('{label}')").locator("xpath=ancestor::div[.//input][1]//input").first
+        assert box.input_value() == text and handle.value == value, label
+    assert "From the file's # site: line" in page.inner_text("body")
     assert wb.ctrl.state.location == {"lat_deg": 53.0, "lon_deg": 4.5, "alt_m": 1500.0, "date": "2024-06-01"}
     page.get_by_role("button", name="Run the vector fit (attitude-aided)").click()
     page.wait_for_function("() => document.body.innerText.includes('deg off it')", timeout=120_000)
