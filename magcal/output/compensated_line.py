@@ -162,10 +162,9 @@ def line_mapping(compensation: Compensation, path, columns=None) -> dict | None:
 def line_record(compensation: Compensation, dataset):
     """A line's :class:`~magcal.fitting.compensation.CompensationRecord`, with the compensation's scalar and current
     columns."""
-    current = compensation.current_column if "current" in compensation.effects else None
-    if current not in dataset.extra:
-        current = None  # the compensation says which column the line lacks
-    return compensation_record(dataset, compensation.scalar_column, current)
+    wanted = compensation.current_columns if "current" in compensation.effects else ()
+    current = [c for c in wanted if c in dataset.extra]  # the compensation says which column the line lacks
+    return compensation_record(dataset, compensation.scalar_column, current or None)
 
 
 def _append_to_lines(survey_path: str, output_path: str, name: str, values) -> bool:
