@@ -100,6 +100,7 @@ __all__ = [
     "Compensation",
     "CompensationRecord",
     "CompensationResult",
+    "best_time_offset",
     "check_effects",
     "compensation_record",
     "current_labels",
@@ -107,6 +108,7 @@ __all__ = [
     "find_scalar_column",
     "fit_compensation",
     "is_compensation_document",
+    "shifted",
 ]
 
 
@@ -717,19 +719,26 @@ def _fit_fluxgate(setup: _Setup, rounds: int = 2) -> tuple[np.ndarray, np.ndarra
     return bias, matrix
 
 
+def best_time_offset(cost, max_s: float = MAX_TIME_OFFSET_S) -> float:
+    """The time offset (s) within ``+-max_s`` where ``cost(offset_s)`` is least: a grid of 11, then a bounded
+    search between the best point's neighbours (to 0.5 ms). The scalar's fluxgate offset and the cross's sensors'
+    lag are found by it."""
+    grid = np.linspace(-max_s, max_s, 11)
+    costs = [cost(offset) for offset in grid]
+    best = grid[int(np.argmin(costs))]
+    step = grid[1] - grid[0]
+    bounds = (max(-max_s, best - step), min(max_s, best + step))
+    found = optimize.minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 5e-4})
+    return float(found.x)
+
+
 def _fit_offset(setup: _Setup, bias, matrix) -> float:
     """The fluxgate's offset (s) that leaves the least band-passed residual."""
 
     def cost(offset_s):
         return float(np.sum(setup.solve(setup.trial(bias, matrix, offset_s))[3] ** 2))
 
-    grid = np.linspace(-MAX_TIME_OFFSET_S, MAX_TIME_OFFSET_S, 11)
-    costs = [cost(offset) for offset in grid]
-    best = grid[int(np.argmin(costs))]
-    step = grid[1] - grid[0]
-    bounds = (max(-MAX_TIME_OFFSET_S, best - step), min(MAX_TIME_OFFSET_S, best + step))
-    found = optimize.minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 5e-4})
-    return float(found.x)
+    return best_time_offset(cost)
 
 
 def fit_compensation(
