@@ -459,8 +459,9 @@ def diagnose_compensation(
     changed = bool(explained or grew)
     warnings = []
     if changed and current_fom > ADEQUATE_RATIO * judge.floor:
+        named = ", ".join(explained) if explained else "the current's " + ", ".join(grew)
         warnings.append(
-            f"with {', '.join(explained)} the held-out FOM is {current_fom:.3f} nT, still "
+            f"with {named} the held-out FOM is {current_fom:.3f} nT, still "
             f"{current_fom / judge.floor:.1f}x what the scalar's noise leaves: the platform has more than the "
             "candidates follow"
         )
