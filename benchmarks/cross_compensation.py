@@ -11,7 +11,9 @@ sensors, fluxgate noise 0.1 nT per axis, a 3 nT diurnal drift. Fitted on flight 
 (seed s + 100) with the box's 12 maneuvers. Before: the raw readings' tensor, and the tensor after each sensor's
 true calibration alone (the platform still in: what a ground calibration leaves); ours; the true compensation
 (the exact calibration and platform field taken out: the noise floor). Last, the drone with its battery's current
-in a loop 0.4-0.8 m from the sensors (1-5 nT/A, 8-17 A): hidden from the fit, and given to it. The tensor FOM is the root sum of squares of
+in a loop 0.4-0.8 m from the sensors (1-5 nT/A, 8-17 A): hidden from the fit, and given to it; and the aircraft
+whose four sensors are 100 ms late against the attitude (and the current): hidden, and fitted (``time_offset``).
+The diagnosis table adds the lagged aircraft. The tensor FOM is the root sum of squares of
 the seven components' FOMs (nT/m, :mod:`magcal.diagnosis.cross_fom`); a sensor's FOM is the scalar FOM of its
 total field (nT), the mean over the four shown.
 """
@@ -24,7 +26,7 @@ import numpy as np
 
 from magcal.data.cross_flight import simulate_cross_flight
 from magcal.diagnosis.cross_compensation import cross_compensation_result, cross_record, diagnose_cross_compensation
-from magcal.diagnosis.cross_fom import cross_fom_report, tensor_fom
+from magcal.diagnosis.cross_fom import cross_fom_report, sensor_fom, tensor_fom
 from magcal.fitting.cross_compensation import fit_cross_compensation
 
 CASES = [
@@ -38,14 +40,24 @@ CASES = [
     ("drone, no attitude (the four's mean)", "drone", "mean", 0.0, 2),
     ("drone + battery current, hidden", "drone_current", "attitude", 0.0, 2),
     ("drone + battery current, given", "drone_current", "attitude+current", 0.0, 2),
+    ("aircraft, sensors 100 ms late, hidden", "aircraft@0.1", "attitude", 0.0, 2),
+    ("aircraft, sensors 100 ms late, time_offset", "aircraft@0.1", "attitude+lag", 0.0, 2),
 ]
 
 
+def _platform(name):
+    """(platform, the sensors' lag in s) of a case's ``platform@lag``."""
+    platform, _, lag = name.partition("@")
+    return platform, float(lag or 0.0)
+
+
 def judged(platform, reference, attitude_noise_deg, passes, seed=1):
-    first = simulate_cross_flight(seed, platform=platform, attitude_noise_deg=attitude_noise_deg)
-    second = simulate_cross_flight(seed + 100, platform=platform, attitude_noise_deg=attitude_noise_deg)
+    platform, lag = _platform(platform)
+    kwargs = {"platform": platform, "attitude_noise_deg": attitude_noise_deg, "sensor_lag_s": lag}
+    first, second = simulate_cross_flight(seed, **kwargs), simulate_cross_flight(seed + 100, **kwargs)
     with_current = reference.endswith("+current")
-    reference = reference.removesuffix("+current")
+    with_lag = reference.endswith("+lag")
+    reference = reference.removesuffix("+current").removesuffix("+lag")
     started = time.perf_counter()
     fit = fit_cross_compensation(
         first,
@@ -53,6 +65,7 @@ def judged(platform, reference, attitude_noise_deg, passes, seed=1):
         field_ned_nT=first.truth.field_ned_nT,
         magnitude_passes=passes,
         current_A=first.current_A if with_current else None,
+        time_offset=with_lag,
     )
     elapsed = time.perf_counter() - started
     args = (second.baseline_m, second.sample_rate_hz)
@@ -110,11 +123,16 @@ def diagnosis():
     its verdict, the held-out tensor FOM of TL alone and with what it names against the noise's floor, and the
     named model's tensor FOM on the second flight over the true compensation's."""
     print("\n## The diagnosis: held-out tensor FOM (nT/m), 12 maneuvers in 4 folds; the named model on flight B\n")
-    print("| platform | seed | verdict | named | TL alone | with it | noise floor | flight B ours / true |")
-    print("|---|---|---|---|---|---|---|---|")
-    for platform in ("drone_current", "drone", "aircraft"):
+    print(
+        "| platform | seed | verdict | named | TL alone | with it | noise floor | flight B ours / true | sensors' "
+        "FOM B, ours / true |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in ("drone_current", "drone", "aircraft", "aircraft@0.1"):
+        platform, lag = _platform(name)
         for seed in (1, 2):
-            a, b = simulate_cross_flight(seed, platform=platform), simulate_cross_flight(seed + 100, platform=platform)
+            kwargs = {"platform": platform, "sensor_lag_s": lag}
+            a, b = simulate_cross_flight(seed, **kwargs), simulate_cross_flight(seed + 100, **kwargs)
             records = []
             for flight in (a, b):
                 ds = flight.dataset()
@@ -130,9 +148,12 @@ def diagnosis():
                 / tensor_fom(true, 0.5, b.truth.maneuvers, 10.0).fom_nT_per_m
             )
             final = d.fom_final_nT_per_m if d.fom_final_nT_per_m is not None else d.fom_held_out_nT_per_m
+            sensors = [np.mean([t.fom_nT for t in sensor_fom(v, b.truth.maneuvers, 10.0)]) for v in (ours, true)]
+            label = platform + (f", {lag * 1e3:.0f} ms late" if lag else "")
             print(
-                f"| {platform} | {seed} | {d.verdict} | {', '.join(d.explained_by) or '-'} | "
-                f"{d.fom_held_out_nT_per_m:.1f} | {final:.1f} | {d.floor_fom_nT_per_m:.1f} | {ratio:.3f} |"
+                f"| {label} | {seed} | {d.verdict} | {', '.join(d.explained_by) or '-'} | "
+                f"{d.fom_held_out_nT_per_m:.1f} | {final:.1f} | {d.floor_fom_nT_per_m:.1f} | {ratio:.3f} | "
+                f"{sensors[0]:.2f} / {sensors[1]:.2f} |"
             )
 
 

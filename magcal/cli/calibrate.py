@@ -51,6 +51,7 @@ from magcal.core.errors import CalibrationError, MagcalError
 from magcal.data import io
 from magcal.data.attitude import attitude_present, attitude_source
 from magcal.diagnosis.compasses import compass_consistency
+from magcal.diagnosis.cross_compensation import CROSS_EFFECTS
 from magcal.fitting.pipeline import METHODS, SEARCH_METHODS
 from magcal.fitting.search import DEFAULTS
 from magcal.fitting.vector import PLATFORM_EFFECTS, fit_vector, vector_model
@@ -294,6 +295,18 @@ def checked_effect_names(args) -> list:
     return names
 
 
+def effect_names_before_mode(args) -> list:
+    """``--effects`` checked as far as it can be before the record is read: against the catalogue for a named mode;
+    with ``--mode auto`` the mode is chosen from the record first, so a name of the cross compensation's terms
+    (:data:`magcal.diagnosis.cross_compensation.CROSS_EFFECTS`) waits for the chosen mode's check and any other
+    unknown name fails now."""
+    names = effect_names(getattr(args, "effects", None))
+    if (getattr(args, "mode", "auto") or "auto") != "auto":
+        return checked_effect_names(args)
+    check_effect_names([n for n in names if n.partition(":")[0].strip() not in CROSS_EFFECTS], "--effects")
+    return names
+
+
 def calibrate_options(args) -> dict:
     """Keyword arguments of :func:`magcal.fitting.pipeline.calibrate` from the parsed options."""
     return {
@@ -442,13 +455,14 @@ def run(args) -> int:
     if wants_cross_compensation(args):  # its --effects are its own terms too
         ds, notes = read_input(args)
         return run_cross_compensation(args, ds, notes)
-    names = checked_effect_names(args)  # before reading: an unknown name fails fast
+    effect_names_before_mode(args)  # before reading: an unknown name fails fast
     checked_noise(args)
     _platform_terms(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds)
-    if mode is CROSS_COMPENSATION:
+    if mode is CROSS_COMPENSATION:  # its --effects are checked against its own terms
         return run_cross_compensation(args, ds, notes)
+    names = checked_effect_names(args)  # the chosen mode's catalogue
     if mode is not TOTAL_FIELD:
         if mode is VECTOR:
             header, options = vector_options(args, ds, vref)

@@ -6,6 +6,7 @@ Example::
     magcal calibrate box.csv --mode compensation -o comp.json --figure fom.png   # scalar_nT beside x, y, z
     magcal calibrate Flt1002.csv                                 # MagNav.jl's names: mag_1_uc, flux_a_*, tt
     magcal calibrate Flt1002.csv --scalar mag_4_uc --fluxgate flux_d --current cur_strb
+    magcal calibrate Flt1002.csv --effects current --current cur_strb,cur_com_1   # two wires, a field each
     magcal diagnose box.csv --mode compensation                  # candidates judged on held-out maneuvers
     magcal diagnose box.csv --mode compensation --also box2.csv  # ... or on a second flight
     magcal calibrate box.csv --mode compensation --effects current,time_offset -o comp.json
@@ -67,8 +68,9 @@ def add_compensation_arguments(parser, figure: bool = True) -> None:
         "--current",
         default=None,
         metavar="NAME",
-        help="compensation mode: the current's column for the current term (default current_A, throttle, else "
-        "MagNav.jl's cur_outpwr, cur_strb, cur_com_1 ... the first the file has)",
+        help="compensation mode: the current term's column, or several comma-separated (cur_strb,cur_com_1: each "
+        "its own field per ampere); default current_A, throttle, else MagNav.jl's cur_outpwr, cur_strb, cur_com_1 "
+        "... the first the file has (magcal diagnose judges each current column the file has)",
     )
     parser.add_argument(
         "--tl-terms",
@@ -154,7 +156,7 @@ def run_compensation(args, read_input) -> int:
     print(
         f"magcal calibrate: compensation mode; scalar {record.scalar_column!r} beside the fluxgate "
         f"({', '.join(record.fluxgate_columns or ('x', 'y', 'z'))}), {record.sample_rate_hz:g} Hz"
-        + (f", current {record.current_column!r}" if record.current_column else "")
+        + (f", current {', '.join(map(repr, record.term_currents))}" if record.current_column else "")
         + f"; terms beyond TL: {', '.join(effects) or 'none'}",
         file=sys.stderr,
     )

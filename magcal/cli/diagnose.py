@@ -58,6 +58,7 @@ from magcal.cli.calibrate import (
     checked_noise,
     choose_mode,
     compass_report,
+    effect_names_before_mode,
     mode_options,
     named_error,
     read_input,
@@ -221,13 +222,14 @@ def run(args) -> int:
     if wants_cross_compensation(args):  # its --effects are its own terms too
         ds, notes = read_input(args)
         return run_cross_compensation_diagnosis(args, ds, notes, read_input)
-    names = checked_effect_names(args)
+    effect_names_before_mode(args)  # an unknown name fails before reading
     if getattr(args, "mode", "auto") != "vector":
         _start_workers_while_reading(args)
     ds, notes = read_input(args)
     mode, vref = choose_mode(args, ds, "diagnose")
-    if mode is CROSS_COMPENSATION:
+    if mode is CROSS_COMPENSATION:  # its --effects are checked against its own terms
         return run_cross_compensation_diagnosis(args, ds, notes, read_input)
+    names = checked_effect_names(args)  # the chosen mode's catalogue
     if mode is VECTOR:
         return run_vector(args, ds, vref, notes)
     if getattr(args, "also", None):

@@ -51,6 +51,10 @@ class CompensationPlatform:
         ``E``: the eddy field per body-field rate (nT per nT/s = s).
     current_nT_per_A : numpy.ndarray, shape (3,), or None
         ``k``: a field per ampere of the ``current_A`` series, hidden from the Tolles-Lawson terms.
+    currents_nT_per_A : dict, optional
+        Further currents by column name (MagNav.jl's ``cur_strb`` ...): each its own switched series
+        (:attr:`CompensationFlight.currents_A`) and its own field per ampere (nT/A, body frame; a wire's field is
+        its current times a fixed vector). A zero vector records a current whose wire is far from the sensor.
     temperature_nT_per_C : numpy.ndarray, shape (3,), or None
         ``q``: the permanent field's drift per degC of the platform's temperature away from
         :data:`REFERENCE_TEMPERATURE_C` (magnetised steel loses magnetisation as it warms), hidden from the
@@ -65,6 +69,7 @@ class CompensationPlatform:
         default_factory=lambda: np.array([[2e-4, -5e-5, 8e-5], [3e-5, 1.5e-4, -6e-5], [-4e-5, 7e-5, 2.5e-4]])
     )
     current_nT_per_A: np.ndarray | None = None
+    currents_nT_per_A: dict = field(default_factory=dict)
     temperature_nT_per_C: np.ndarray | None = None
 
 
@@ -143,6 +148,8 @@ class CompensationFlight:
     temperature_C : numpy.ndarray, shape (N,)
         The platform's temperature (degC): it warms by ``warming_C`` through the flight, with a slow swing.
     truth : CompensationTruth
+    currents_A : dict
+        The further currents by column name (A; :attr:`CompensationPlatform.currents_nT_per_A`).
     """
 
     time_s: np.ndarray
@@ -153,6 +160,7 @@ class CompensationFlight:
     current_A: np.ndarray
     temperature_C: np.ndarray
     truth: CompensationTruth
+    currents_A: dict = field(default_factory=dict)
 
 
 def _smooth_step(frac):
@@ -310,6 +318,10 @@ def simulate_compensation_flight(
     if platform.current_nT_per_A is not None:
         current = _current(n, sample_rate_hz, rng)
         platform_field = platform_field + current[:, None] * np.asarray(platform.current_nT_per_A)[None, :]
+    currents = {}
+    for j, (name, k) in enumerate(platform.currents_nT_per_A.items()):  # each wire its own switched loads
+        currents[name] = _current(n, sample_rate_hz, np.random.default_rng([seed, 7, j]))
+        platform_field = platform_field + currents[name][:, None] * np.asarray(k, dtype=float)[None, :]
     temperature = _temperature(t, warming_C, seed)
     if platform.temperature_nT_per_C is not None:
         warmer = (temperature - REFERENCE_TEMPERATURE_C)[:, None]
@@ -340,4 +352,4 @@ def simulate_compensation_flight(
     )
     attitude = attitude_fine[keep].copy()
     attitude[:, 2] = np.mod(attitude[:, 2], 360.0)
-    return CompensationFlight(t, float(sample_rate_hz), scalar, flux, attitude, current, temperature, truth)
+    return CompensationFlight(t, float(sample_rate_hz), scalar, flux, attitude, current, temperature, truth, currents)

@@ -253,6 +253,7 @@ def simulate_cross_flight(
     noise_nT: float = 0.1,
     attitude_noise_deg: float = 0.0,
     drift_nT: float = 3.0,
+    sensor_lag_s: float = 0.0,
     **box,
 ) -> CrossFlight:
     """Simulate the cross flying a compensation box, with known calibration errors and platform fields.
@@ -283,6 +284,10 @@ def simulate_cross_flight(
         White noise of each recorded attitude angle (deg, one sigma).
     drift_nT : float
         Amplitude of the slow uniform field change (nT).
+    sensor_lag_s : float
+        How late the four sensors' samples are against the attitude's and the current's (s): each reads the field
+        of ``sensor_lag_s`` earlier (the attitude through a quintic spline, so that the lag is exact to the
+        filter), hidden from the Tolles-Lawson terms.
     **box
         Passed to :func:`~magcal.data.compensation_flight.simulate_compensation_flight`: ``headings_deg``,
         ``periods_s``, ``cycles``, ``straight_s``, ``turn_s``, ``turn_bank_deg``, ``amplitudes_deg``.
@@ -304,14 +309,15 @@ def simulate_cross_flight(
     box_flight = simulate_compensation_flight(
         seed, sample_rate_hz=sample_rate_hz, field_ned_nT=field_ned_nT, platform=with_current, **box
     )
-    t, attitude = box_flight.time_s, box_flight.attitude_deg
+    t, recorded_attitude = box_flight.time_s, box_flight.attitude_deg
+    attitude = _lagged(t, recorded_attitude, sensor_lag_s)  # what the sensors felt when they were sampled
     rng = np.random.default_rng([seed, 4])
     field_ned = np.asarray(field_ned_nT, dtype=float)
     gradient = np.zeros((3, 3)) if gradient_ned_nT_per_m is None else np.asarray(gradient_ned_nT_per_m, float)
     positions = conventions.sensor_positions(baseline_m)
 
     drift_dir = rng.normal(size=3)
-    drift = drift_nT * np.sin(2 * np.pi * t / (2.5 * t[-1]) + rng.uniform(0, 2 * np.pi))
+    drift = drift_nT * np.sin(2 * np.pi * (t - sensor_lag_s) / (2.5 * t[-1]) + rng.uniform(0, 2 * np.pi))
     centre_ned = field_ned[None, :] + np.outer(drift, drift_dir / np.linalg.norm(drift_dir))
     centre = _body_field(attitude, centre_ned)
     body_to_ned = Rotation.from_euler("ZYX", attitude[:, ::-1], degrees=True)  # the sensors' offsets turn with it
@@ -320,13 +326,13 @@ def simulate_cross_flight(
 
     p, a, e = platform.sensor_fields(positions)
     k = platform.current_fields(positions)
-    current = box_flight.current_A
+    current = np.interp(t - sensor_lag_s, t, box_flight.current_A)
     platform_field = np.stack([p[i] + centre @ a[i].T + rate @ e[i].T + np.outer(current, k[i]) for i in range(4)])
     readings = np.empty_like(earth)
     for i, s in enumerate(sensors):
         readings[i] = (earth[i] + platform_field[i]) @ (s.C @ s.M).T + s.bias_nT
     readings += rng.normal(0.0, noise_nT, readings.shape)
-    recorded = attitude + rng.normal(0.0, attitude_noise_deg, attitude.shape)
+    recorded = recorded_attitude + rng.normal(0.0, attitude_noise_deg, attitude.shape)
     recorded[:, 2] = np.mod(recorded[:, 2], 360.0)
     truth = CrossTruth(
         sensors=sensors,
@@ -343,4 +349,15 @@ def simulate_cross_flight(
         gradient_ned_nT_per_m=gradient,
         maneuvers=box_flight.truth.maneuvers,
     )
-    return CrossFlight(t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth, current)
+    return CrossFlight(t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth, box_flight.current_A)
+
+
+def _lagged(time_s, attitude_deg, lag_s: float) -> np.ndarray:
+    """Roll, pitch, yaw (deg) ``lag_s`` earlier, through a quintic spline (the yaw unwrapped first)."""
+    if not lag_s:
+        return attitude_deg
+    angles = np.asarray(attitude_deg, dtype=float).copy()
+    angles[:, 2] = np.rad2deg(np.unwrap(np.deg2rad(angles[:, 2])))
+    earlier = make_interp_spline(time_s, angles, k=5, axis=0)(np.asarray(time_s) - lag_s)
+    earlier[:, 2] = np.mod(earlier[:, 2], 360.0)
+    return earlier

@@ -62,6 +62,9 @@ MIN_GAIN = 0.10
 #: Most terms the forward selection adds.
 MAX_EFFECTS = 3
 
+#: Most current columns the current term takes (each a round of its own).
+MAX_CURRENT_COLUMNS = 4
+
 #: The compensation is at its floor when its held-out FOM is within this factor of the noise's.
 ADEQUATE_RATIO = 1.3
 
@@ -102,6 +105,8 @@ class CompensationCandidate:
     evidence : str
         What its fit on the whole record found (its coefficients, the offset, the fluxgate's errors).
     reason : str
+    columns : tuple of str
+        For the current term: the current column(s) this trial adds (``cur_strb``).
     """
 
     name: str
@@ -112,6 +117,12 @@ class CompensationCandidate:
     recommended: bool = False
     evidence: str = ""
     reason: str = ""
+    columns: tuple = ()
+
+    @property
+    def label(self) -> str:
+        """The name, with the current's column(s): ``current (cur_strb)``."""
+        return f"{self.name} ({', '.join(self.columns)})" if self.columns else self.name
 
     @property
     def gain(self) -> float:
@@ -130,15 +141,16 @@ class CompensationCandidate:
                 "recommended": self.recommended,
                 "evidence": self.evidence,
                 "reason": self.reason,
+                "columns": list(self.columns),
             }
         )
 
     def text(self) -> str:
         if not self.judged:
-            return f"  {self.name:<22} not judged: {self.reason}"
+            return f"  {self.label:<22} not judged: {self.reason}"
         mark = "RECOMMENDED" if self.recommended else "no"
         return (
-            f"  {self.name:<22} {self.fom_before_nT:8.3f} -> {self.fom_after_nT:8.3f} nT ({-100 * self.gain:+.0f} %)"
+            f"  {self.label:<22} {self.fom_before_nT:8.3f} -> {self.fom_after_nT:8.3f} nT ({-100 * self.gain:+.0f} %)"
             f"  {mark:<11}  {self.evidence}"
         )
 
@@ -213,6 +225,9 @@ class CompensationDiagnosis:
     result : Compensation
         The diagnosed model fitted on the whole record.
     elapsed_s : float
+    current_columns : list of str
+        The current columns the current term takes (those whose field the held-out FOM showed), when it is in the
+        model or the advice.
     """
 
     verdict: str
@@ -229,6 +244,7 @@ class CompensationDiagnosis:
     notes: list = field(default_factory=list)
     result: Compensation | None = field(repr=False, default=None)
     elapsed_s: float = 0.0
+    current_columns: list = field(default_factory=list)
 
     mode = "compensation"
 
@@ -242,6 +258,7 @@ class CompensationDiagnosis:
             "fom_held_out_nT": self.fom_held_out_nT,
             "fom_final_nT": self.fom_final_nT,
             "floor_fom_nT": self.floor_fom_nT,
+            "current_columns": list(self.current_columns),
         }
         return diagnosis_document(self, figures)
 
@@ -300,13 +317,16 @@ def noise_floor_fom(sigma_nT: float, maneuvers, n: int, sample_rate_hz: float, d
     return float(np.mean(values))
 
 
-def _unusable(name: str, record: CompensationRecord) -> str:
-    """Why the record cannot judge a candidate ('' when it can)."""
+def _unusable(name: str, record: CompensationRecord, column: str | None = None) -> str:
+    """Why the record cannot judge a candidate ('' when it can): the current's ``column`` of it."""
     if name == "current":
-        if record.current is None:
+        every = record.all_currents
+        if not every:
             return "the record has no current_A or throttle column"
-        if np.ptp(record.current) == 0:
-            return f"its {record.current_column} column does not change"
+        if column is not None and column not in every:
+            return f"the record has no {column} column"
+        if column is not None and np.ptp(every[column]) == 0:
+            return f"its {column} column does not change"
     if name == "temperature":
         if record.temperature_C is None:
             return "the record has no temperature (temp column)"
@@ -320,9 +340,13 @@ def _evidence(name: str, comp: Compensation, record: CompensationRecord, options
     labels = comp.extra_labels
     values = dict(zip(labels, comp.extra_coefficients))
     if name == "current":
-        k = [values[f"current_{a}"] for a in "xyz"]
-        unit = "unit of throttle" if record.current_column == "throttle" else "A"
-        return f"a field of ({k[0]:+.3g}, {k[1]:+.3g}, {k[2]:+.3g}) nT per {unit} in the fluxgate's axes"
+        parts = []
+        for column, labels in _current_blocks(comp):
+            k = [values[label] for label in labels]
+            unit = "unit of throttle" if column == "throttle" else "A"
+            named = f" of {column}" if len(comp.current_columns) > 1 else ""
+            parts.append(f"({k[0]:+.3g}, {k[1]:+.3g}, {k[2]:+.3g}) nT per {unit}{named}")
+        return "a field of " + "; ".join(parts) + " in the fluxgate's axes"
     if name == "time_offset":
         late = "late" if comp.time_offset_s >= 0 else "early"
         return f"the fluxgate {abs(comp.time_offset_s) * 1e3:.0f} ms {late} against the scalar"
@@ -344,6 +368,13 @@ def _evidence(name: str, comp: Compensation, record: CompensationRecord, options
         k = [values[f"temperature_{a}"] for a in "xyz"]
         return f"a field of ({k[0]:+.3g}, {k[1]:+.3g}, {k[2]:+.3g}) nT per degC"
     return ""
+
+
+def _current_blocks(comp: Compensation):
+    """(column, its three labels) of a compensation's current term."""
+    columns = comp.current_columns or (comp.current_column or "current",)
+    labels = [label for label in comp.extra_labels if label.startswith("current_")]
+    return [(c, labels[3 * i : 3 * i + 3]) for i, c in enumerate(columns)]
 
 
 def _maneuvers(record: CompensationRecord):
@@ -386,45 +417,58 @@ def diagnose_compensation(
     pool = [c for c in check_effects(candidates if candidates is not None else CANDIDATES) if c not in effects]
     maneuvers = _maneuvers(record) if maneuvers is None else list(maneuvers)
     judge = _Judge(record, also, maneuvers, options)
+    columns = list(record.term_currents) if "current" in effects else []
     base = fit_compensation(record, effects, **options)
     judge.set_floor(base)
     if not judge.can_judge():
         cands = [CompensationCandidate(name, judged=False, reason="nothing to judge on") for name in pool]
         return CompensationDiagnosis(
             "not_judged", judge.not_judged_summary(), effects, cands, [], float("nan"), None, judge.floor,
-            judge.sigma, judge.validation("none"), [], [], base, _time.perf_counter() - started,
+            judge.sigma, judge.validation("none"), [], [], base, _time.perf_counter() - started, columns,
         )  # fmt: skip
-    judged = [
-        CompensationCandidate(name, judged=False, reason=reason) for name in pool if (reason := judge.unusable(name))
-    ]
-    open_names = [n for n in pool if not judge.unusable(n)]
+    judged, open_names, open_columns = judge.usable(pool, effects, columns)
+    initial_columns = list(columns)
     current = list(effects)
-    base_fom = current_fom = judge.score(current)
-    for round_ in range(1, MAX_EFFECTS + 1):
-        trials = sorted((judge.trial(current, name, current_fom, round_) for name in open_names), key=_after)
+    base_fom = current_fom = judge.score(current, columns)
+    for round_ in range(1, MAX_EFFECTS + MAX_CURRENT_COLUMNS):
+        added = len(current) - len(effects)
+        names = [n for n in open_names if added < MAX_EFFECTS and n not in current]
+        more = open_columns if len(columns) < MAX_CURRENT_COLUMNS else []
+        trials = [judge.trial(current, columns, name, current_fom, round_) for name in names if name != "current"]
+        if "current" in current or "current" in names:
+            trials += [judge.trial(current, columns, "current", current_fom, round_, (c,)) for c in more]
+        trials.sort(key=_after)
         judged.extend(trials)
         if not trials or trials[0].gain < MIN_GAIN:
             break
         best = trials[0]
         best.recommended = True
-        current.append(best.name)
+        if best.name not in current:
+            current.append(best.name)
+        columns += list(best.columns)
+        open_columns = [c for c in open_columns if c not in columns]
         current_fom = best.fom_after_nT
-        open_names.remove(best.name)
-        judge.set_floor(fit_compensation(record, current, **options))
-        if not open_names or current_fom <= ADEQUATE_RATIO * judge.floor:
+        open_names = [n for n in open_names if n not in current or (n == "current" and open_columns)]
+        judge.set_floor(fit_compensation(judge.taking(record, columns), current, **options))
+        if not (open_names or open_columns) or current_fom <= ADEQUATE_RATIO * judge.floor:
             break
     explained = current[len(effects) :]
-    verdict, summary = _verdict(explained, base_fom, current_fom, judge.floor, judge.scheme, effects)
+    grew = columns[len(initial_columns) :]
+    advice = columns if "current" in current and len(record.all_currents) > 1 else []
+    verdict, summary = _verdict(explained, base_fom, current_fom, judge.floor, judge.scheme, effects, advice, grew)
+    changed = bool(explained or grew)
     warnings = []
-    if explained and current_fom > ADEQUATE_RATIO * judge.floor:
+    if changed and current_fom > ADEQUATE_RATIO * judge.floor:
+        named = ", ".join(explained) if explained else "the current's " + ", ".join(grew)
         warnings.append(
-            f"with {', '.join(explained)} the held-out FOM is {current_fom:.3f} nT, still "
+            f"with {named} the held-out FOM is {current_fom:.3f} nT, still "
             f"{current_fom / judge.floor:.1f}x what the scalar's noise leaves: the platform has more than the "
             "candidates follow"
         )
     return CompensationDiagnosis(
-        verdict, summary, effects, judged, explained, base_fom, current_fom if explained else None, judge.floor,
+        verdict, summary, effects, judged, explained, base_fom, current_fom if changed else None, judge.floor,
         judge.sigma, judge.validation(judge.scheme), warnings, [], base, _time.perf_counter() - started,
+        columns if "current" in current else [],
     )  # fmt: skip
 
 
@@ -444,11 +488,16 @@ class _Judge:
         self.scheme = "flight" if also is not None else "maneuvers"
         self.sigma, self.floor = float("nan"), float("nan")
 
+    @staticmethod
+    def taking(record, columns):
+        """``record`` whose current term takes ``columns`` (as it is without any)."""
+        return record.taking_currents(columns) if columns and record is not None else record
+
     def set_floor(self, comp: Compensation) -> None:
         """The noise and the floor from a fit's compensation of the flight judged on."""
-        self.sigma = noise_sigma_nT(comp.compensate(self.judge_on))
+        on = self.taking(self.judge_on, comp.current_columns if "current" in comp.effects else ())
+        self.sigma = noise_sigma_nT(comp.compensate(on))
         if self.judged_maneuvers:
-            on = self.judge_on
             self.floor = noise_floor_fom(self.sigma, self.judged_maneuvers, on.n_samples, on.sample_rate_hz)
 
     def can_judge(self) -> bool:
@@ -466,29 +515,56 @@ class _Judge:
     def validation(self, scheme: str) -> dict:
         return {"scheme": scheme, "folds": FOLDS, "n_maneuvers": len(self.judged_maneuvers or [])}
 
-    def unusable(self, name: str) -> str:
-        return _unusable(name, self.record) or (_unusable(name, self.also) if self.also is not None else "")
+    def unusable(self, name: str, column: str | None = None) -> str:
+        also = _unusable(name, self.also, column) if self.also is not None else ""
+        return _unusable(name, self.record, column) or also
 
-    def score(self, names) -> float:
+    def usable(self, pool, effects, columns) -> tuple[list, list, list]:
+        """(the candidates not judged, with why; the names to try; the current columns to try): each current column
+        is a candidate of its own (the term takes those whose field shows), one not judged when it does not change."""
+        judged = [CompensationCandidate(n, judged=False, reason=r) for n in pool if (r := self.unusable(n))]
+        names = [n for n in pool if not self.unusable(n)]
+        wants = "current" in names or "current" in effects
+        every = [c for c in self.record.all_currents if c not in columns] if wants else []
+        judged += [
+            CompensationCandidate("current", judged=False, reason=r, columns=(c,))
+            for c in every
+            if (r := self.unusable("current", c))
+        ]
+        return judged, names, [c for c in every if not self.unusable("current", c)]
+
+    def score(self, names, columns) -> float:
+        columns = columns if "current" in names else []
         return held_out_fom(
-            self.record, names, self.maneuvers, also=self.also, also_maneuvers=self.also_maneuvers, **self.options
+            self.taking(self.record, columns),
+            names,
+            self.maneuvers,
+            also=self.taking(self.also, columns),
+            also_maneuvers=self.also_maneuvers,
+            **self.options,
         )
 
-    def trial(self, current, name, current_fom, round_) -> CompensationCandidate:
-        fom = self.score(current + [name])
-        fit = fit_compensation(self.record, current + [name], **self.options)
+    def trial(self, current, columns, name, current_fom, round_, added=()) -> CompensationCandidate:
+        names = current + [name] if name not in current else list(current)
+        with_columns = list(columns) + list(added)
+        fom = self.score(names, with_columns)
+        fit = fit_compensation(
+            self.taking(self.record, with_columns if "current" in names else []), names, **self.options
+        )
         evidence = _evidence(name, fit, self.record, self.options)
-        return CompensationCandidate(name, round_, True, current_fom, fom, False, evidence)
+        return CompensationCandidate(name, round_, True, current_fom, fom, False, evidence, columns=tuple(added))
 
 
-def _verdict(explained, base_fom, final_fom, floor, scheme, effects) -> tuple[str, str]:
+def _verdict(explained, base_fom, final_fom, floor, scheme, effects, columns=(), grew=()) -> tuple[str, str]:
     on = "on held-out maneuvers" if scheme == "maneuvers" else "on the other flight"
     model = "Tolles-Lawson" + (" with " + ", ".join(effects) if effects else "")
-    if explained:
+    if explained or grew:
+        added = list(explained) + ([f"the current's {', '.join(grew)}"] if "current" not in explained and grew else [])
         return "missing_effect", (
-            f"{model} leaves a held-out FOM of {base_fom:.3f} nT {on}; adding {', '.join(explained)} brings it to "
+            f"{model} leaves a held-out FOM of {base_fom:.3f} nT {on}; adding {', '.join(added)} brings it to "
             f"{final_fom:.3f} nT (the noise's {floor:.3f} nT): magcal calibrate --mode compensation --effects "
             + ",".join(list(effects) + list(explained))
+            + (f" --current {','.join(columns)}" if columns else "")
         )
     if base_fom <= ADEQUATE_RATIO * floor:
         return "adequate", (

@@ -11,8 +11,11 @@ The diagnosis follows the scalar compensation's (:mod:`magcal.diagnosis.compensa
 :data:`~magcal.diagnosis.compensation.FOLDS` folds, each fold's maneuvers (with a guard of
 ``GUARD_S``, 2 s) left out of the fit and the compensated tensor's band-passed
 peak-to-peak taken in them (the held-out tensor FOM, nT/m), or the fit on the whole record judged on ``also``'s
-maneuvers; candidates taken by :func:`magcal.diagnosis.selection.forward_selection` when they lower it by
-:data:`~magcal.diagnosis.compensation.MIN_GAIN`. The floor is the tensor FOM the sensors' white noise alone leaves
+maneuvers; candidates (:data:`CROSS_CANDIDATES`: the platform's current, the sensors' lag against the attitude)
+taken by :func:`magcal.diagnosis.selection.forward_selection` when they lower it, or the held-out FOM of the sensors'
+total fields, by :data:`~magcal.diagnosis.compensation.MIN_GAIN` without raising the other as much: a lag of all
+four is an eddy term to first order, which each sensor's eddy matrix takes, so the tensor barely shows it while each
+sensor's field keeps its second order. The floor is the tensor FOM the sensors' white noise alone leaves
 (its sigma from the compensated vectors' second differences). The verdicts are the scalar compensation's.
 """
 
@@ -41,7 +44,7 @@ from magcal.diagnosis.compensation import (
     held_out_words,
     noise_sigma_nT,
 )
-from magcal.diagnosis.cross_fom import CrossFOMReport, cross_fom_report, tensor_fom
+from magcal.diagnosis.cross_fom import CrossFOMReport, cross_fom_report, sensor_fom, tensor_fom
 from magcal.diagnosis.fom import find_maneuvers
 from magcal.diagnosis.selection import forward_selection
 from magcal.fitting.cross_compensation import CrossCompensation, fit_cross_compensation
@@ -61,11 +64,13 @@ __all__ = [
     "cross_maneuvers",
     "cross_record",
     "diagnose_cross_compensation",
+    "held_out_foms",
     "held_out_tensor_fom",
 ]
 
-#: The terms beyond Tolles-Lawson the cross's fit takes (``--effects``): a platform current's field per ampere.
-CROSS_EFFECTS = ("current",)
+#: The terms beyond Tolles-Lawson the cross's fit takes (``--effects``): a platform current's field per ampere, and
+#: the sensors' samples late against the attitude's (the scalar compensation's time offset, found the same way).
+CROSS_EFFECTS = ("current", "time_offset")
 
 #: The candidates the diagnosis tries.
 CROSS_CANDIDATES = CROSS_EFFECTS
@@ -162,6 +167,11 @@ def cross_maneuvers(record: CrossRecord) -> list:
 
 def _fit(record: CrossRecord, effects, field_ned_nT, mask=None, **options) -> CrossCompensation:
     current = record.current_A if "current" in effects else None
+    if "time_offset" in effects and (field_ned_nT is None or record.attitude_deg is None):
+        raise MagcalError(
+            f"{record.source or 'the record'}: the time offset term needs the attitude and the Earth field vector "
+            "(ref_n, ref_e, ref_d, --reference igrf or --reference-vector): the four's mean field lags with them"
+        )
     if "current" in effects and current is None:
         raise MagcalError(
             f"{record.source or 'the record'}: the current term needs the platform's current (a column "
@@ -176,6 +186,7 @@ def _fit(record: CrossRecord, effects, field_ned_nT, mask=None, **options) -> Cr
         baseline_m=record.baseline_m,
         current_A=current,
         mask=mask,
+        time_offset="time_offset" in effects,
         **options,
     )
     comp.current_column = record.current_column if current is not None else None
@@ -279,23 +290,39 @@ def cross_compensation_result(
     return CrossCompensationResult(comp, record, fom, effects, notes, source or record.source)
 
 
-def held_out_tensor_fom(
-    record: CrossRecord, effects=(), maneuvers=None, *, field_ned_nT=None, also=None, also_field_ned_nT=None, **options
-) -> float:
-    """The held-out tensor FOM (nT/m) of the cross's compensation with ``effects``: on ``also`` (another flight,
-    in its own maneuvers) fitted on the whole record, else summed over the folds of ``maneuvers`` each left out of
-    its fit (as :func:`magcal.diagnosis.compensation.held_out_fom`)."""
+def held_out_foms(
+    record: CrossRecord, effects=(), maneuvers=None, *, field_ned_nT=None, also=None, **options
+) -> tuple[float, float]:
+    """(the held-out tensor FOM, nT/m; the held-out FOM of the sensors' total fields, nT, the four's mean) of the
+    cross's compensation with ``effects``: on ``also`` (another flight, in its own maneuvers) fitted on the whole
+    record, else summed over the folds of ``maneuvers`` each left out of its fit (as
+    :func:`magcal.diagnosis.compensation.held_out_fom`)."""
     if also is not None:
         comp = _fit(record, effects, field_ned_nT, **options)
         on = _compensated(comp, also)
-        return tensor_fom(on, also.baseline_m, cross_maneuvers(also), also.sample_rate_hz).fom_nT_per_m
+        found = cross_maneuvers(also)
+        tensor = tensor_fom(on, also.baseline_m, found, also.sample_rate_hz).fom_nT_per_m
+        return float(tensor), _sensors_fom(on, found, also.sample_rate_hz)
     guard = int(round(GUARD_S * record.sample_rate_hz))
-    total = 0.0
+    tensor = sensors = 0.0
     for held, mask in _fold_masks(record.n_samples, maneuvers, FOLDS, guard):
         comp = _fit(record, effects, field_ned_nT, mask=mask, **options)
         on = _compensated(comp, record)
-        total += tensor_fom(on, record.baseline_m, held, record.sample_rate_hz).fom_nT_per_m
-    return float(total)
+        tensor += tensor_fom(on, record.baseline_m, held, record.sample_rate_hz).fom_nT_per_m
+        sensors += _sensors_fom(on, held, record.sample_rate_hz)
+    return float(tensor), float(sensors)
+
+
+def _sensors_fom(vectors_nT, maneuvers, sample_rate_hz) -> float:
+    """The four sensors' total-field FOM (nT), their mean."""
+    return float(np.mean([t.fom_nT for t in sensor_fom(vectors_nT, maneuvers, sample_rate_hz)]))
+
+
+def held_out_tensor_fom(
+    record: CrossRecord, effects=(), maneuvers=None, *, field_ned_nT=None, also=None, also_field_ned_nT=None, **options
+) -> float:
+    """The held-out tensor FOM (nT/m) of the cross's compensation with ``effects`` (:func:`held_out_foms`)."""
+    return held_out_foms(record, effects, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)[0]
 
 
 def _floor(compensated_nT, baseline_m, maneuvers, sample_rate_hz, draws: int = 8) -> tuple[float, float]:
@@ -317,7 +344,9 @@ def _floor(compensated_nT, baseline_m, maneuvers, sample_rate_hz, draws: int = 8
 
 @dataclass
 class CrossCandidate:
-    """One candidate term judged by the held-out tensor FOM (nT/m)."""
+    """One candidate term judged by the held-out tensor FOM (nT/m) and the held-out FOM of the sensors' total
+    fields (nT, the four's mean): a term common to the four (a lag of all four against the attitude) moves each
+    sensor's field and barely the tensor."""
 
     name: str
     round: int = 1
@@ -327,11 +356,27 @@ class CrossCandidate:
     recommended: bool = False
     evidence: str = ""
     reason: str = ""
+    sensor_fom_before_nT: float = float("nan")
+    sensor_fom_after_nT: float = float("nan")
+
+    @property
+    def tensor_gain(self) -> float:
+        """Relative fall of the held-out tensor FOM (1 - after / before)."""
+        return float(1.0 - self.fom_after_nT_per_m / self.fom_before_nT_per_m) if self.judged else float("nan")
+
+    @property
+    def sensor_gain(self) -> float:
+        """Relative fall of the held-out sensors' FOM."""
+        return float(1.0 - self.sensor_fom_after_nT / self.sensor_fom_before_nT) if self.judged else float("nan")
 
     @property
     def gain(self) -> float:
-        """Relative fall of the held-out tensor FOM (1 - after / before)."""
-        return float(1.0 - self.fom_after_nT_per_m / self.fom_before_nT_per_m) if self.judged else float("nan")
+        """The larger of the two falls, when neither figure rises by :data:`~magcal.diagnosis.compensation.MIN_GAIN`
+        or more (else the larger rise, negative)."""
+        if not self.judged:
+            return float("nan")
+        gains = (self.tensor_gain, self.sensor_gain) if np.isfinite(self.sensor_gain) else (self.tensor_gain,)
+        return float(max(gains) if min(gains) > -MIN_GAIN else min(gains))
 
     @property
     def holds(self) -> bool:
@@ -347,6 +392,8 @@ class CrossCandidate:
                 "fom_before_nT_per_m": self.fom_before_nT_per_m if self.judged else None,
                 "fom_after_nT_per_m": self.fom_after_nT_per_m if self.judged else None,
                 "gain": self.gain if self.judged else None,
+                "sensor_fom_before_nT": self.sensor_fom_before_nT if self.judged else None,
+                "sensor_fom_after_nT": self.sensor_fom_after_nT if self.judged else None,
                 "recommended": self.recommended,
                 "evidence": self.evidence,
                 "reason": self.reason,
@@ -359,7 +406,8 @@ class CrossCandidate:
         mark = "RECOMMENDED" if self.recommended else "no"
         return (
             f"  {self.name:<12} {self.fom_before_nT_per_m:9.3f} -> {self.fom_after_nT_per_m:9.3f} nT/m "
-            f"({-100 * self.gain:+.0f} %)  {mark:<11}  {self.evidence}"
+            f"({-100 * self.tensor_gain:+.0f} %), sensors {self.sensor_fom_before_nT:7.3f} -> "
+            f"{self.sensor_fom_after_nT:7.3f} nT ({-100 * self.sensor_gain:+.0f} %)  {mark:<11}  {self.evidence}"
         )
 
 
@@ -404,7 +452,10 @@ class CrossCompensationDiagnosis:
             f"held-out tensor FOM {self.fom_held_out_nT_per_m:.3f} nT/m ({held_out_words(self.validation)}); the "
             f"sensors' noise {self.noise_nT:.3g} nT leaves {self.floor_fom_nT_per_m:.3f} nT/m"
         )
-        header = f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}  {'advice':<11}  evidence"
+        header = (
+            f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}, {'the sensors held out':>34}  "
+            f"{'advice':<11}  evidence"
+        )
         return diagnosis_table(self, figure, header)
 
     def text(self) -> str:
@@ -412,6 +463,9 @@ class CrossCompensationDiagnosis:
 
 
 def _evidence(name: str, comp: CrossCompensation) -> str:
+    if name == "time_offset":
+        late = "late" if comp.time_offset_s >= 0 else "early"
+        return f"the sensors {abs(comp.time_offset_s) * 1e3:.0f} ms {late} against the attitude"
     if name == "current":
         k = np.array([np.linalg.norm(s.current_nT_per_A) for s in comp.sensors])
         return "a field of " + ", ".join(f"{v:.3g}" for v in k) + " nT per ampere at sensors 1-4"
@@ -453,7 +507,9 @@ def _not_judged(other, effects, pool, maneuvers, floor, sigma, base, started) ->
     )  # fmt: skip
 
 
-def _unusable(name: str, record: CrossRecord) -> str:
+def _unusable(name: str, record: CrossRecord, field_ned_nT=None) -> str:
+    if name == "time_offset" and (field_ned_nT is None or record.attitude_deg is None):
+        return "the sensors' lag is found against the attitude's Earth field: give the field vector (--reference igrf)"
     if name == "current":
         if record.current_A is None:
             return f"the record has no current column ({', '.join(CURRENT_COLUMNS)})"
@@ -506,35 +562,37 @@ def diagnose_cross_compensation(
     if not enough:
         return _not_judged(also is not None, effects, pool, judged_maneuvers, floor, sigma, base, started)
 
-    def score(names) -> float:
-        return held_out_tensor_fom(record, names, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)
+    def score(names) -> tuple[float, float]:
+        return held_out_foms(record, names, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)
 
-    unusable = {n: r for n in pool if (r := _unusable(n, record) or (_unusable(n, also) if also else ""))}
+    def why(name) -> str:
+        return _unusable(name, record, field_ned_nT) or (_unusable(name, also, field_ned_nT) if also else "")
+
+    unusable = {n: r for n in pool if (r := why(n))}
     candidates = [CrossCandidate(n, judged=False, reason=r) for n, r in unusable.items()]
     current = list(effects)
-    base_fom = score(current)
-    scores = {"now": base_fom}
+    base_fom, base_sensors = score(current)
+    scores = {"now": (base_fom, base_sensors)}
 
     def round_of(step: int):
         names = [n for n in pool if n not in unusable and n not in current]
-        if not names or scores["now"] <= ADEQUATE_RATIO * floor and step > 0:
+        if not names or scores["now"][0] <= ADEQUATE_RATIO * floor and step > 0:
             return None
         trials = []
         for name in names:
             fit = _fit(record, current + [name], field_ned_nT, **options)
+            (tensor, sensors), (now, now_sensors) = score(current + [name]), scores["now"]
             trials.append(
-                CrossCandidate(
-                    name, step + 1, True, scores["now"], score(current + [name]), False, _evidence(name, fit)
-                )
+                CrossCandidate(name, step + 1, True, now, tensor, False, _evidence(name, fit), "", now_sensors, sensors)
             )
-        trials.sort(key=lambda c: c.fom_after_nT_per_m)
+        trials.sort(key=lambda c: -c.gain)
         candidates.extend(trials)
         return trials or None
 
     def take(step: int, best: CrossCandidate, cands) -> None:
         best.recommended = True
         current.append(best.name)
-        scores["now"] = best.fom_after_nT_per_m
+        scores["now"] = (best.fom_after_nT_per_m, best.sensor_fom_after_nT)
         state["fit"] = _fit(record, current, field_ned_nT, **options)
 
     forward_selection(
@@ -545,7 +603,7 @@ def diagnose_cross_compensation(
         MAX_EFFECTS,
     )
     explained = current[len(effects) :]
-    final = scores["now"]
+    final = scores["now"][0]
     verdict, summary = _verdict(explained, base_fom, final, floor, scheme, effects)
     warnings = []
     if explained and final > ADEQUATE_RATIO * floor:

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -100,11 +100,15 @@ __all__ = [
     "Compensation",
     "CompensationRecord",
     "CompensationResult",
+    "best_time_offset",
     "check_effects",
     "compensation_record",
+    "current_labels",
+    "current_names",
     "find_scalar_column",
     "fit_compensation",
     "is_compensation_document",
+    "shifted",
 ]
 
 
@@ -151,8 +155,13 @@ class CompensationRecord:
     attitude_deg : numpy.ndarray, shape (N, 3), or None
         Roll, pitch, yaw (deg, aerospace ZYX), for finding the maneuvers.
     current : numpy.ndarray or None
-        The ``current_A`` (A) or ``throttle`` column.
+        The ``current_A`` (A) or ``throttle`` column: the current term's first column.
     current_column : str or None
+    more_currents : dict
+        The current term's further columns (name -> values, A): a platform's wires each carry their own current,
+        whose field at the sensor is that current times a fixed vector (one per column).
+    other_currents : dict
+        The record's current columns the term does not take (name -> values): the diagnosis's candidates.
     temperature_C : numpy.ndarray or None
     source : str
     fluxgate_columns : tuple of 3 str or None
@@ -171,10 +180,41 @@ class CompensationRecord:
     temperature_C: np.ndarray | None = None
     source: str = "the record"
     fluxgate_columns: tuple | None = None
+    more_currents: dict = field(default_factory=dict)
+    other_currents: dict = field(default_factory=dict)
 
     @property
     def n_samples(self) -> int:
         return int(self.scalar_nT.size)
+
+    @property
+    def term_currents(self) -> dict:
+        """The current term's columns, name -> values (A): the first, then the further ones."""
+        if self.current is None:
+            return {}
+        return {self.current_column or "current": self.current} | dict(self.more_currents)
+
+    @property
+    def all_currents(self) -> dict:
+        """Every current column the record holds, the term's first (name -> values)."""
+        return self.term_currents | {k: v for k, v in self.other_currents.items() if k not in self.term_currents}
+
+    def taking_currents(self, columns) -> CompensationRecord:
+        """The same record whose current term takes ``columns`` (of :attr:`all_currents`, in this order); the
+        others are left to :attr:`other_currents`."""
+        every = self.all_currents
+        missing = [c for c in columns if c not in every]
+        if missing:
+            raise MagcalError(f"{self.source}: no current column {missing[0]!r}; its currents: {', '.join(every)}")
+        names = list(dict.fromkeys(columns))
+        first = names[0] if names else None
+        return replace(
+            self,
+            current=None if first is None else every[first],
+            current_column=first,
+            more_currents={c: every[c] for c in names[1:]},
+            other_currents={c: v for c, v in every.items() if c not in names},
+        )
 
 
 def _numeric(dataset: Dataset, name: str) -> bool:
@@ -214,18 +254,31 @@ def _record_rate(dataset: Dataset, where: str) -> float:
     return rate
 
 
-def _current_column(dataset: Dataset, current: str | None, where: str) -> str | None:
-    """The current's column: ``current`` when given (an error naming the columns when absent), else the first of
-    :data:`magcal.data.flight_columns.CURRENT_COLUMNS` the dataset holds as numbers."""
-    if current is not None:
-        if not _numeric(dataset, current):
-            numeric = [k for k in dataset.extra if _numeric(dataset, k)]
-            raise MagcalError(
-                f"{where}: no column {current!r} of numbers for the current (--current); its other columns: "
-                + (", ".join(numeric) or "none")
-            )
-        return current
-    return next((name for name in CURRENT_COLUMNS if _numeric(dataset, name)), None)
+def current_names(current) -> tuple[str, ...]:
+    """The current columns a user named: ``"cur_strb"``, ``"cur_strb,cur_com_1"`` or a sequence of names; () for
+    None."""
+    if current is None:
+        return ()
+    items = [current] if isinstance(current, str) else list(current)
+    return tuple(dict.fromkeys(n.strip() for item in items for n in str(item).split(",") if n.strip()))
+
+
+def _current_columns(dataset: Dataset, current, where: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(the current term's columns, the record's other current columns): the named ones (``current``, one or
+    several; an error naming the columns when one is absent) and none other, else the first of
+    :data:`magcal.data.flight_columns.CURRENT_COLUMNS` the dataset holds as numbers and the rest of them."""
+    named = current_names(current)
+    if named:
+        for name in named:
+            if not _numeric(dataset, name):
+                numeric = [k for k in dataset.extra if _numeric(dataset, k)]
+                raise MagcalError(
+                    f"{where}: no column {name!r} of numbers for the current (--current); its other columns: "
+                    + (", ".join(numeric) or "none")
+                )
+        return named, ()
+    found = tuple(name for name in CURRENT_COLUMNS if _numeric(dataset, name))
+    return found[:1], found[1:]
 
 
 def _temperature_C(dataset: Dataset) -> np.ndarray | None:
@@ -236,7 +289,7 @@ def _temperature_C(dataset: Dataset) -> np.ndarray | None:
 
 
 def compensation_record(
-    dataset: Dataset, scalar: str | None = None, current: str | None = None, fluxgate_columns=None
+    dataset: Dataset, scalar: str | None = None, current=None, fluxgate_columns=None
 ) -> CompensationRecord:
     """The :class:`CompensationRecord` of a dataset: sensor 1's readings as the fluxgate, the scalar column
     (:func:`find_scalar_column`), the rate from the times (or a ``# sample_rate_hz:`` line), the attitude, a
@@ -246,8 +299,11 @@ def compensation_record(
     Parameters
     ----------
     dataset : Dataset
-    scalar, current : str, optional
-        The scalar's and the current's columns (found by name when not given).
+    scalar : str, optional
+        The scalar's column (found by name when not given).
+    current : str or sequence of str, optional
+        The current term's columns (``"cur_strb,cur_com_1"`` or a list: each its own field per ampere); when not
+        given, the first current column found by name, the others kept for the diagnosis.
     fluxgate_columns : sequence of 3 str, optional
         The file's columns the fluxgate was read from, when they were found by name (kept in the compensation).
 
@@ -274,7 +330,17 @@ def compensation_record(
         )
     flux = np.asarray(dataset.readings_nT[0], float)
     rate = _record_rate(dataset, where)
-    column = _current_column(dataset, current, where)
+    term, others = _current_columns(dataset, current, where)
+    currents = {c: np.asarray(dataset.extra[c], float) for c in term + others}
+    others = tuple(c for c in others if np.isfinite(currents[c]).all())  # a gappy one is no candidate
+    for c in term:
+        bad = ~np.isfinite(currents[c])
+        if bad.any():
+            raise MagcalError(
+                f"{where}: column {c} (a current) has {int(bad.sum())} missing or non-finite value(s) (first at "
+                f"data row {int(np.argmax(bad)) + 1}): fill or cut them (or read with --drop-bad)"
+            )
+    column = term[0] if term else None
     temperature = _temperature_C(dataset)
     return CompensationRecord(
         scalar_nT=y,
@@ -283,8 +349,10 @@ def compensation_record(
         scalar_column=name,
         time_s=None if dataset.time_s is None else np.asarray(dataset.time_s, float),
         attitude_deg=_attitude_deg(dataset),
-        current=None if column is None else np.asarray(dataset.extra[column], float),
+        current=None if column is None else currents[column],  # the term's first; the others below
         current_column=column,
+        more_currents={c: currents[c] for c in term[1:]},
+        other_currents={c: currents[c] for c in others},
         temperature_C=temperature,
         source=where,
         fluxgate_columns=None if fluxgate_columns is None else tuple(map(str, fluxgate_columns)),
@@ -307,20 +375,43 @@ def fluxgate_matrix(params) -> np.ndarray:
     return np.array([[1.0, 0.0, 0.0], [p[0], 1.0 + p[1], 0.0], [p[2], p[3], 1.0 + p[4]]])
 
 
-def _effect_labels(name: str) -> list[str]:
+def current_labels(columns) -> list[str]:
+    """The current term's coefficients' names: ``current_x, current_y, current_z`` for one column (or none named),
+    ``current_<column>_x`` ... for each of several."""
+    columns = tuple(columns or ())
+    if len(columns) <= 1:
+        return ["current_x", "current_y", "current_z"]
+    return [f"current_{c}_{a}" for c in columns for a in "xyz"]
+
+
+def _effect_labels(name: str, current_columns=()) -> list[str]:
+    if name == "current":
+        return current_labels(current_columns)
     return {
-        "current": ["current_x", "current_y", "current_z"],
         "heading": ["heading_cos", "heading_sin", "heading_cos2", "heading_sin2"],
         "temperature": ["temperature_x", "temperature_y", "temperature_z"],
     }.get(name, [])
 
 
-def _effect_columns(name: str, record: CompensationRecord, corrected_nT, temperature_ref_C: float) -> np.ndarray:
+def _line_currents(record: CompensationRecord, columns) -> list[np.ndarray]:
+    """The series of the current term's ``columns`` in a record (by name; one column of an older compensation, or of
+    a record whose column is named otherwise, takes the record's current)."""
+    every = record.all_currents
+    if len(columns) <= 1 and record.current is not None and (not columns or columns[0] not in every):
+        return [record.current]
+    missing = [c for c in columns if c not in every]
+    if record.current is None or missing:
+        need = ", ".join(missing or columns) or "current_A or throttle"
+        raise MagcalError(f"{record.source}: the current term needs the column(s) {need} (A)")
+    return [every[c] for c in columns]
+
+
+def _effect_columns(
+    name: str, record: CompensationRecord, corrected_nT, temperature_ref_C: float, current_columns=()
+) -> np.ndarray:
     u = corrected_nT / np.linalg.norm(corrected_nT, axis=1, keepdims=True)
     if name == "current":
-        if record.current is None:
-            raise MagcalError(f"{record.source}: the current term needs a current_A or throttle column")
-        return u * record.current[:, None]
+        return np.column_stack([u * current[:, None] for current in _line_currents(record, current_columns)])
     if name == "heading":
         h = np.arctan2(-u[:, 1], u[:, 0])
         return np.column_stack([np.cos(h), np.sin(h), np.cos(2 * h), np.sin(2 * h)])
@@ -354,6 +445,10 @@ class Compensation:
         How late the fluxgate is against the scalar: it is read ``time_offset_s`` later.
     scalar_column : str
     current_column : str or None
+        The current term's first column.
+    current_columns : tuple of str
+        Every column of the current term, each with its own field per ampere (``current_<column>_x`` ... when
+        there are several).
     temperature_ref_C : float
     sample_rate_hz : float
     fluxgate_columns : tuple of 3 str or None
@@ -372,8 +467,13 @@ class Compensation:
     temperature_ref_C: float = 0.0
     fitted: dict = field(default_factory=dict)
     fluxgate_columns: tuple | None = None
+    current_columns: tuple = ()
 
     mode = "compensation"
+
+    def __post_init__(self):
+        if not self.current_columns and self.current_column:
+            self.current_columns = (self.current_column,)
 
     @property
     def sample_rate_hz(self) -> float:
@@ -394,7 +494,9 @@ class Compensation:
         g = self.corrected_flux_nT(record.flux_nT)
         total = record.scalar_nT if self.tl.use_scalar_total else None
         parts = [design_matrix(g, self.tl.terms, total, self.tl.scale_nT)]
-        parts += [_effect_columns(name, record, g, self.temperature_ref_C) for name in self.effects]
+        parts += [
+            _effect_columns(name, record, g, self.temperature_ref_C, self.current_columns) for name in self.effects
+        ]
         return np.column_stack(parts)
 
     @property
@@ -417,10 +519,13 @@ class Compensation:
                 f"{self.sample_rate_hz:g} Hz (its eddy terms are per sample): resample the line to "
                 f"{self.sample_rate_hz:g} Hz"
             )
-        if "current" in self.effects and record.current is None:
-            raise MagcalError(
-                f"{record.source}: the compensation has a current term: the line needs its {self.current_column} column"
-            )
+        if "current" in self.effects:
+            lacks = [c for c in self.current_columns if c not in record.all_currents]
+            if record.current is None or (lacks and len(self.current_columns) > 1):
+                need = ", ".join(lacks or self.current_columns) or "current"
+                raise MagcalError(
+                    f"{record.source}: the compensation has a current term: the line needs its {need} column(s)"
+                )
         return record.scalar_nT - self.platform_field_nT(record)
 
     def to_dict(self) -> dict:
@@ -441,6 +546,7 @@ class Compensation:
                 "fluxgate": {"bias_nT": self.fluxgate_bias_nT, "matrix": self.fluxgate_matrix},
                 "time_offset_s": self.time_offset_s,
                 "current_column": self.current_column,
+                "current_columns": list(self.current_columns),
                 "temperature_ref_C": self.temperature_ref_C,
                 "fluxgate_columns": None if self.fluxgate_columns is None else list(self.fluxgate_columns),
                 "fitted": self.fitted,
@@ -457,7 +563,10 @@ class Compensation:
             effects = check_effects(doc.get("effects", ()))
             labels = list(doc.get("extra_labels", []))
             values = np.asarray(doc.get("extra_coefficients", []), float)
-            expected = [label for name in effects for label in _effect_labels(name)]
+            current_columns = tuple(map(str, doc.get("current_columns") or ()))
+            if not current_columns and doc.get("current_column"):
+                current_columns = (str(doc["current_column"]),)
+            expected = [label for name in effects for label in _effect_labels(name, current_columns)]
             if labels != expected or values.shape != (len(labels),):
                 raise MagcalError("its effects' coefficients do not match its effects")
             flux = doc.get("fluxgate") or {}
@@ -475,6 +584,7 @@ class Compensation:
                 time_offset_s=float(doc.get("time_offset_s", 0.0)),
                 scalar_column=str(doc.get("scalar_column", "scalar_nT")),
                 current_column=doc.get("current_column"),
+                current_columns=current_columns,
                 temperature_ref_C=float(doc.get("temperature_ref_C", 0.0)),
                 fitted=dict(doc.get("fitted") or {}),
                 fluxgate_columns=_fluxgate_columns(doc.get("fluxgate_columns")),
@@ -543,7 +653,8 @@ class _Setup:
             trim=self.trim,
             ridge=self.ridge,
         )
-        labels = [label for name in self.effects for label in _effect_labels(name)]
+        columns = tuple(self.record.term_currents)
+        labels = [label for name in self.effects for label in _effect_labels(name, columns)]
         return Compensation(
             tl=tl,
             effects=self.effects,
@@ -554,6 +665,7 @@ class _Setup:
             time_offset_s=float(offset_s),
             scalar_column=self.record.scalar_column,
             current_column=self.record.current_column,
+            current_columns=columns,
             temperature_ref_C=self.temperature_ref_C,
             fluxgate_columns=self.record.fluxgate_columns,
         )
@@ -607,19 +719,26 @@ def _fit_fluxgate(setup: _Setup, rounds: int = 2) -> tuple[np.ndarray, np.ndarra
     return bias, matrix
 
 
+def best_time_offset(cost, max_s: float = MAX_TIME_OFFSET_S) -> float:
+    """The time offset (s) within ``+-max_s`` where ``cost(offset_s)`` is least: a grid of 11, then a bounded
+    search between the best point's neighbours (to 0.5 ms). The scalar's fluxgate offset and the cross's sensors'
+    lag are found by it."""
+    grid = np.linspace(-max_s, max_s, 11)
+    costs = [cost(offset) for offset in grid]
+    best = grid[int(np.argmin(costs))]
+    step = grid[1] - grid[0]
+    bounds = (max(-max_s, best - step), min(max_s, best + step))
+    found = optimize.minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 5e-4})
+    return float(found.x)
+
+
 def _fit_offset(setup: _Setup, bias, matrix) -> float:
     """The fluxgate's offset (s) that leaves the least band-passed residual."""
 
     def cost(offset_s):
         return float(np.sum(setup.solve(setup.trial(bias, matrix, offset_s))[3] ** 2))
 
-    grid = np.linspace(-MAX_TIME_OFFSET_S, MAX_TIME_OFFSET_S, 11)
-    costs = [cost(offset) for offset in grid]
-    best = grid[int(np.argmin(costs))]
-    step = grid[1] - grid[0]
-    bounds = (max(-MAX_TIME_OFFSET_S, best - step), min(MAX_TIME_OFFSET_S, best + step))
-    found = optimize.minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 5e-4})
-    return float(found.x)
+    return best_time_offset(cost)
 
 
 def fit_compensation(
@@ -666,7 +785,8 @@ def fit_compensation(
     kept[trim : n - trim] = True
     if mask is not None:
         kept &= np.asarray(mask, dtype=bool)
-    width = len(term_labels(terms)) + sum(len(_effect_labels(e)) for e in effects)
+    columns = tuple(record.term_currents)
+    width = len(term_labels(terms)) + sum(len(_effect_labels(e, columns)) for e in effects)
     if kept.sum() <= 2 * width:
         raise MagcalError(f"{record.source}: {int(kept.sum())} samples are too few for {width} compensation terms")
     temperature_ref = float(np.mean(record.temperature_C)) if record.temperature_C is not None else 0.0
@@ -674,7 +794,7 @@ def fit_compensation(
     setup = _Setup(
         record, effects, terms, float(ridge), tuple(map(float, passband_hz)), order, trim, kept, y_bp, temperature_ref
     )
-    linear = tuple(e for e in effects if _effect_labels(e))
+    linear = tuple(e for e in effects if _effect_labels(e, columns))
     setup.effects = linear
     bias, matrix = np.zeros(3), np.eye(3)
     if "fluxgate_calibration" in effects:

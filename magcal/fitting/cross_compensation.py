@@ -59,6 +59,7 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import attitude as dataset_attitude
 from magcal.data.dataset import Dataset
+from magcal.fitting.compensation import best_time_offset, shifted
 from magcal.fitting.tolles_lawson import sample_rate_from_times, solve_ridge
 from magcal.model.tolles_lawson import (
     DEFAULT_PASSBAND_HZ,
@@ -244,6 +245,9 @@ class CrossCompensation:
     current_column : str or None
         The record's column the current was read from (a line's is looked up by the same name).
     notes : list of str
+    time_offset_s : float
+        How late the sensors' samples are against the attitude's (and the current's), s: a line's readings are read
+        this much later (:func:`magcal.fitting.compensation.shifted`) before their models are inverted.
     """
 
     sensors: list[SensorCompensation]
@@ -257,6 +261,7 @@ class CrossCompensation:
     current: bool = False
     current_column: str | None = None
     notes: list[str] = field(default_factory=list)
+    time_offset_s: float = 0.0
 
     def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None, current_A=None) -> np.ndarray:
         """The compensated vectors (4, N, 3) of a line (nT, body frame for an ``attitude`` fit, the four's mean
@@ -282,6 +287,7 @@ class CrossCompensation:
         if calibration is not None and not self.precalibrated:
             raise MagcalError("this compensation was fitted on raw readings: give no calibration")
         y = arrays.readings_nT if calibration is None else np.asarray(calibration.correct(arrays.readings_nT))
+        y = read_later(y, self.time_offset_s * rate)
         if self.current and current_A is None:
             raise MagcalError("this compensation was fitted with the platform's current: give the line's (current_A)")
         if current_A is not None:
@@ -325,6 +331,7 @@ class CrossCompensation:
                 "magnitude_passes": self.magnitude_passes,
                 "current": self.current,
                 "current_column": self.current_column,
+                "time_offset_s": self.time_offset_s,
                 "sensors": [s.to_dict() for s in self.sensors],
                 "notes": list(self.notes),
             }
@@ -352,6 +359,7 @@ class CrossCompensation:
             current=bool(d.get("current", False)),
             current_column=d.get("current_column"),
             notes=list(d.get("notes", [])),
+            time_offset_s=float(d.get("time_offset_s", 0.0)),
         )
 
     @classmethod
@@ -391,6 +399,10 @@ class CrossCompensation:
             off = " ".join(f"{v:8.1f}" for v in s.offset_nT)
             res = " ".join(f"{v:6.3f}" for v in s.residual_std_nT)
             lines.append(f"{k:>6} {w:14.0f} {e:11.3f} {off:>26} {res:>20}")
+        if self.time_offset_s:
+            lines.append(
+                f"the sensors' time offset {self.time_offset_s * 1e3:+.1f} ms (positive: late against the attitude)"
+            )
         if self.current:
             lines.append(
                 "field per ampere of the current (nT/A): "
@@ -423,6 +435,46 @@ def _reference_field(arrays: CrossArrays, vectors, reference: str, field_ned_nT)
             f"got shape {ned.shape}"
         )
     return reference, arrays.attitude.inv().apply(ned)
+
+
+def read_later(vectors_nT, samples: float) -> np.ndarray:
+    """Each sensor's readings (4, N, 3) read ``samples`` later (:func:`magcal.fitting.compensation.shifted`)."""
+    v = np.asarray(vectors_nT, dtype=float)
+    return v if samples == 0 else np.stack([shifted(sensor, samples) for sensor in v])
+
+
+def _sensor_fits(vectors, design, design_bp, kept, rate, passband_hz, ridge, cond) -> tuple[list, float]:
+    """Each sensor's least-squares fit on the band-passed design, and the sum of squares of their band-passed
+    residuals (nT^2)."""
+    n = design.shape[0]
+    targets = np.asarray(vectors, dtype=float).transpose(1, 0, 2).reshape(n, -1)  # the four's twelve axes
+    targets_bp = bandpass(targets, rate, passband_hz)
+    coefficients = solve_ridge(design_bp[kept], targets_bp[kept], float(ridge))  # one design for every axis
+    residual = targets_bp[kept] - design_bp[kept] @ coefficients
+    offsets = np.mean(targets[kept] - design[kept] @ coefficients, axis=0)
+    sensors = []
+    for i in range(len(vectors)):
+        c = coefficients[:, 3 * i : 3 * i + 3]
+        current = c[6] if design.shape[1] > 6 else np.zeros(3)
+        std = residual[:, 3 * i : 3 * i + 3].std(axis=0)
+        sensors.append(SensorCompensation(c[:3].T, c[3:6].T, offsets[3 * i : 3 * i + 3], std, cond, current))
+    return sensors, float(np.sum(residual**2))
+
+
+def _lag_cost(vectors, design_bp_kept, kept, rate, passband_hz, ridge):
+    """The four sensors' band-passed residual's sum of squares (nT^2) with their readings read ``tau`` (s) later:
+    the design's orthonormal basis is taken once (``|y|^2 - |Q^T y|^2``), for the search over ``tau``."""
+    q = design_bp_kept.shape[1]
+    augmented = np.vstack([design_bp_kept, np.sqrt(float(ridge)) * np.eye(q)]) if ridge > 0 else design_bp_kept
+    basis = np.linalg.qr(augmented)[0][: design_bp_kept.shape[0]]
+    n = vectors.shape[1]
+
+    def cost(tau: float) -> float:
+        later = read_later(vectors, tau * rate).transpose(1, 0, 2).reshape(n, -1)
+        targets = bandpass(later, rate, passband_hz)[kept]
+        return float(np.sum(targets**2) - np.sum((basis.T @ targets) ** 2))
+
+    return cost
 
 
 def _checked_current(current_A, n: int) -> np.ndarray:
@@ -471,6 +523,7 @@ def fit_cross_compensation(
     mask=None,
     magnitude_passes: int = 2,
     current_A=None,
+    time_offset: bool = False,
 ) -> CrossCompensation:
     """Fit the cross's compensation on a compensation flight.
 
@@ -515,6 +568,12 @@ def fit_cross_compensation(
     current_A : array_like, shape (N,), optional
         The platform's current (A), a battery's or a motor's: each sensor's field per ampere is fitted with the
         other terms (Tolles-Lawson has no such term), and a line is compensated with its own current.
+    time_offset : bool
+        Fit how late the sensors' samples are against the attitude (and the current), within
+        +-0.5 s (:data:`magcal.fitting.compensation.MAX_TIME_OFFSET_S`): the readings are read that much later before the fit, the offset found as the
+        scalar compensation's fluxgate offset is (:func:`magcal.fitting.compensation.best_time_offset`, the four
+        sensors' band-passed residual). A lag's first order is an eddy term's (``-W tau dB/dt``) and the eddy
+        matrices take it; its second order, and the current's lag, they cannot. Needs the attitude reference.
 
     Returns
     -------
@@ -535,15 +594,17 @@ def fit_cross_compensation(
     kept = _kept(design.shape[0], int(trim), mask, design.shape[1])
     design_bp = bandpass_columns(design, rate, passband_hz)
     cond = conditioning(design_bp[kept])
-    sensors = []
-    for y in vectors:
-        y_bp = bandpass(y, rate, passband_hz)
-        coefficients = np.column_stack([solve_ridge(design_bp[kept], y_bp[kept, k], float(ridge)) for k in range(3)])
-        residual = y_bp[kept] - design_bp[kept] @ coefficients
-        offset = np.mean(y[kept] - design[kept] @ coefficients, axis=0)
-        current = coefficients[6] if current_A is not None else np.zeros(3)
-        matrix, eddy = coefficients[:3].T, coefficients[3:6].T
-        sensors.append(SensorCompensation(matrix, eddy, offset, residual.std(axis=0), cond, current))
+    fits = (design, design_bp, kept, rate, passband_hz, ridge, cond)
+    offset_s = 0.0
+    if time_offset:
+        if reference != "attitude":
+            raise MagcalError(
+                "the sensors' time offset is found against the attitude: it needs reference='attitude' and the "
+                "Earth field vector (the four's mean field lags with them)"
+            )
+        offset_s = best_time_offset(_lag_cost(vectors, design_bp[kept], kept, rate, passband_hz, ridge))
+        vectors = read_later(vectors, offset_s * rate)
+    sensors, _ = _sensor_fits(vectors, *fits)
     result = CrossCompensation(
         sensors=sensors,
         reference=reference,
@@ -554,6 +615,7 @@ def fit_cross_compensation(
         precalibrated=calibration is not None,
         magnitude_passes=int(magnitude_passes),
         current=current_A is not None,
+        time_offset_s=offset_s,
     )
     current = design[:, 6] if current_A is not None else np.zeros(design.shape[0])
     for _ in range(int(magnitude_passes)):

@@ -225,14 +225,15 @@ class TLCompensation:
 
 
 def solve_ridge(design, target, ridge: float = 0.0) -> np.ndarray:
-    """Least squares ``design c = target`` (design (n, q), target (n,)), with ``ridge`` added to the normal
-    matrix's diagonal (``(D^T D + ridge I) c = D^T t``, solved as an augmented least squares)."""
+    """Least squares ``design c = target`` (design (n, q), target (n,), or (n, k) for k targets at once), with
+    ``ridge`` added to the normal matrix's diagonal (``(D^T D + ridge I) c = D^T t``, solved as an augmented least
+    squares)."""
     if ridge < 0 or not np.isfinite(ridge):
         raise MagcalError(f"the ridge must be a number >= 0, got {ridge!r}")
     if ridge > 0:
         q = design.shape[1]
         design = np.vstack([design, np.sqrt(ridge) * np.eye(q)])
-        target = np.concatenate([target, np.zeros(q)])
+        target = np.concatenate([target, np.zeros((q,) + np.shape(target)[1:])])
     return np.linalg.lstsq(design, target, rcond=None)[0]
 
 

@@ -25,14 +25,19 @@ from magcal.fitting.compensation import (
     CompensationRecord,
     CompensationResult,
     compensation_record,
+    current_names,
     find_scalar_column,
 )
 from magcal.model.tolles_lawson import DEFAULT_PASSBAND_HZ, DEFAULT_TERMS
 from magcal.modes.base import FIT_MODES, FitMode
 
 
-def _record(data, scalar) -> CompensationRecord:
-    return data if isinstance(data, CompensationRecord) else compensation_record(data, scalar)
+def _record(data, scalar, current=None) -> CompensationRecord:
+    """The record of a dataset (its current term taking ``current``: one column or several, else the first found);
+    a record as it is, its current term taking ``current`` when given."""
+    if not isinstance(data, CompensationRecord):
+        return compensation_record(data, scalar, current)
+    return data.taking_currents(current_names(current)) if current is not None else data
 
 
 class CompensationMode(FitMode):
@@ -68,27 +73,44 @@ class CompensationMode(FitMode):
         order=4,
         trim=20,
         mask=None,
+        current=None,
     ) -> CompensationResult:
         """The compensation of a flight (a :class:`~magcal.data.dataset.Dataset` or a
-        :class:`~magcal.fitting.compensation.CompensationRecord`) with its FOM table."""
-        record = _record(dataset, scalar)
+        :class:`~magcal.fitting.compensation.CompensationRecord`) with its FOM table; ``current``: the current
+        term's column(s) (``"cur_strb,cur_com_1"``, a diagnosis's ``current_columns``)."""
+        record = _record(dataset, scalar, current)
         options = {"terms": terms, "ridge": ridge, "passband_hz": passband_hz, "order": order, "trim": trim}
         return compensation_result(record, effects, mask=mask, **options)
 
-    def validate(self, dataset, result, scalar=None, effects=(), terms=DEFAULT_TERMS, ridge=0.0, **options):
+    def validate(
+        self, dataset, result, scalar=None, effects=(), terms=DEFAULT_TERMS, ridge=0.0, current=None, **options
+    ):
         """The held-out FOM of TL alone and with the effects (maneuver folds); None without effects."""
-        record = _record(dataset, scalar)
+        if current is None and result is not None and "current" in result.calibration.effects:
+            current = list(result.calibration.current_columns) or None
+        record = _record(dataset, scalar, current)
         return validate_compensation(record, effects or result.calibration.effects, terms=terms, ridge=ridge)
 
     def diagnose(
-        self, dataset, result=None, scalar=None, effects=(), also=None, terms=DEFAULT_TERMS, ridge=0.0, **options
+        self,
+        dataset,
+        result=None,
+        scalar=None,
+        effects=(),
+        also=None,
+        terms=DEFAULT_TERMS,
+        ridge=0.0,
+        current=None,
+        **options,
     ) -> CompensationDiagnosis:
         """The terms beyond TL judged on held-out maneuvers, or on ``also`` (another flight: a dataset or a
-        record)."""
-        record = _record(dataset, scalar)
+        record); each current column of the record a candidate of its own unless ``current`` names the term's."""
+        record = _record(dataset, scalar, current)
         if result is not None and not effects:
             effects = result.calibration.effects
-        other = None if also is None else _record(also[0] if isinstance(also, (list, tuple)) else also, scalar)
+            if current is None and "current" in effects and result.calibration.current_columns:
+                record = record.taking_currents(result.calibration.current_columns)  # the others stay candidates
+        other = None if also is None else _record(also[0] if isinstance(also, (list, tuple)) else also, scalar, current)
         return diagnose_compensation(record, effects, also=other, terms=terms, ridge=ridge)
 
 

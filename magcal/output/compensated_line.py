@@ -14,28 +14,21 @@ from __future__ import annotations
 
 import csv
 import io as _io
-import json
-import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.core.errors import MagcalError
-from magcal.core.files import not_regular_reason
-from magcal.data.dataset import dataset_columns, dataset_metadata
 from magcal.data.flight_columns import flight_mapping, header_names
-from magcal.data.io import (
-    atomic_write,
-    check_output_path,
-    is_parquet,
-    metadata_text,
-    parquet_table,
-    parquet_write_options,
-    parse_column_mapping,
-    read_csv,
-    write_rows,
-)
+from magcal.data.io import atomic_write, is_parquet, parse_column_mapping, read_csv
 from magcal.fitting.compensation import Compensation, compensation_record, is_compensation_document
+from magcal.output.compensated_file import (
+    DOCUMENT_MAX_BYTES,
+    LineSummary,
+    check_new_columns,
+    is_document_file,
+    prepare,
+    write_line,
+)
 
 #: The compensated scalar to 1 pT.
 COMPENSATED_FORMAT = "%.3f"
@@ -51,20 +44,13 @@ __all__ = [
 
 
 #: The largest file :func:`is_compensation_file` reads to tell (a compensation document is a few kB).
-COMPENSATION_FILE_MAX_BYTES = 16 << 20
+COMPENSATION_FILE_MAX_BYTES = DOCUMENT_MAX_BYTES
 
 
 def is_compensation_file(path) -> bool:
-    """Whether ``path`` is a JSON compensation document (``kind: "compensation"``); False for anything else,
-    including a file that is not a regular one (a FIFO would block the read), is larger than
-    :data:`COMPENSATION_FILE_MAX_BYTES` or cannot be read (the calibration reader then says why)."""
-    try:
-        if not_regular_reason(path) is not None or os.path.getsize(path) > COMPENSATION_FILE_MAX_BYTES:
-            return False
-        with open(os.fspath(path), encoding="utf-8") as fh:
-            return is_compensation_document(json.load(fh))
-    except (OSError, UnicodeDecodeError, ValueError):
-        return False
+    """Whether ``path`` is a JSON compensation document (``kind: "compensation"``); False for anything else
+    (:func:`magcal.output.compensated_file.is_document_file`)."""
+    return is_document_file(path, is_compensation_document)
 
 
 def compensated_column(compensation: Compensation) -> str:
@@ -73,13 +59,10 @@ def compensated_column(compensation: Compensation) -> str:
 
 
 @dataclass
-class CompensationSummary:
-    """What :func:`apply_compensation_file` wrote."""
+class CompensationSummary(LineSummary):
+    """What :func:`apply_compensation_file` wrote: ``column`` the compensated scalar's."""
 
-    rows: int
-    column: str
-    output_path: str
-    notes: list = field(default_factory=list)
+    column: str = ""
 
     def text(self) -> str:
         return f"wrote {self.rows} rows to {self.output_path} with {self.column} (nT)"
@@ -111,12 +94,7 @@ def apply_compensation_file(
     MagcalError
         The line lacks the scalar column, the current the compensation follows, or its rate differs.
     """
-    check_output_path(output_path, "output")
-    if not isinstance(compensation, Compensation):
-        compensation = Compensation.load(compensation)
-    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
-    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
-        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    compensation, survey_path, output_path = prepare(compensation, Compensation, survey_path, output_path)
     dataset = read_csv(
         survey_path,
         columns=line_mapping(compensation, survey_path, columns),
@@ -125,8 +103,7 @@ def apply_compensation_file(
         warn=False,
     )
     name = compensated_column(compensation)
-    if name in dataset.extra:
-        raise MagcalError(f"{survey_path}: the line already has a column {name} (is it an apply output?)")
+    check_new_columns(dataset, [name], survey_path)
     record = line_record(compensation, dataset)
     values = compensation.compensate(record)
     notes = [note.text for note in dataset.notes]
@@ -134,21 +111,8 @@ def apply_compensation_file(
     if kept_lines and not _append_to_lines(survey_path, output_path, name, values):
         kept_lines = False
     if not kept_lines:
-        columns_out = dict(dataset_columns(dataset))
-        columns_out[name] = values
-        meta = dataset_metadata(dataset) | {"magcal_columns": f"readings in nT; {name} the compensated scalar, nT"}
-        if is_parquet(output_path):
-            import pyarrow.parquet as pq
-
-            table = parquet_table(columns_out, meta)
-            with atomic_write(output_path, mode="wb", encoding=None, newline=None) as fh:
-                pq.write_table(table, fh, **parquet_write_options(table, compression))
-        else:
-            with atomic_write(output_path) as out:
-                out.write(metadata_text(meta))
-                csv.writer(out, lineterminator="\n").writerow(list(columns_out))
-                write_rows(out, columns_out)
-    return CompensationSummary(int(values.size), name, output_path, notes)
+        write_line(output_path, dataset, {name: values}, f"{name} the compensated scalar, nT", compression)
+    return CompensationSummary(int(values.size), output_path, notes, column=name)
 
 
 def line_mapping(compensation: Compensation, path, columns=None) -> dict | None:
@@ -162,10 +126,9 @@ def line_mapping(compensation: Compensation, path, columns=None) -> dict | None:
 def line_record(compensation: Compensation, dataset):
     """A line's :class:`~magcal.fitting.compensation.CompensationRecord`, with the compensation's scalar and current
     columns."""
-    current = compensation.current_column if "current" in compensation.effects else None
-    if current not in dataset.extra:
-        current = None  # the compensation says which column the line lacks
-    return compensation_record(dataset, compensation.scalar_column, current)
+    wanted = compensation.current_columns if "current" in compensation.effects else ()
+    current = [c for c in wanted if c in dataset.extra]  # the compensation says which column the line lacks
+    return compensation_record(dataset, compensation.scalar_column, current or None)
 
 
 def _append_to_lines(survey_path: str, output_path: str, name: str, values) -> bool:

@@ -13,28 +13,16 @@ invariants ``I0, I1, I2``), to CSV or Parquet by the output's name.
 
 from __future__ import annotations
 
-import csv
-import json
-import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from magcal.core import conventions
 from magcal.core.errors import MagcalError
-from magcal.data.dataset import dataset_columns, dataset_metadata
-from magcal.data.io import (
-    atomic_write,
-    check_output_path,
-    is_parquet,
-    metadata_text,
-    parquet_table,
-    parquet_write_options,
-    read_csv,
-    write_rows,
-)
+from magcal.data.io import read_csv
 from magcal.fitting.cross_compensation import CrossCompensation, is_cross_compensation_document
 from magcal.output.apply import INVARIANT_COLUMNS, TENSOR_COLUMNS, tensor_invariants
+from magcal.output.compensated_file import LineSummary, check_new_columns, is_document_file, prepare, write_line
 
 __all__ = [
     "CrossCompensationSummary",
@@ -45,14 +33,9 @@ __all__ = [
 
 
 def is_cross_compensation_file(path) -> bool:
-    """Whether ``path`` is a JSON cross compensation document; False for anything else, including a file that
-    cannot be read (the calibration reader then says why)."""
-    try:
-        with open(os.fspath(path), encoding="utf-8") as fh:
-            head = fh.read(1 << 20)
-        return is_cross_compensation_document(json.loads(head))
-    except (OSError, UnicodeDecodeError, ValueError):
-        return False
+    """Whether ``path`` is a JSON cross compensation document; False for anything else
+    (:func:`magcal.output.compensated_file.is_document_file`)."""
+    return is_document_file(path, is_cross_compensation_document)
 
 
 def compensated_columns() -> list[str]:
@@ -61,12 +44,8 @@ def compensated_columns() -> list[str]:
 
 
 @dataclass
-class CrossCompensationSummary:
+class CrossCompensationSummary(LineSummary):
     """What :func:`apply_cross_compensation_file` wrote."""
-
-    rows: int
-    output_path: str
-    notes: list = field(default_factory=list)
 
     def text(self) -> str:
         return (
@@ -113,19 +92,12 @@ def apply_cross_compensation_file(
     MagcalError
         The line lacks four sensors, the times or the current the compensation follows.
     """
-    check_output_path(output_path, "output")
-    if not isinstance(compensation, CrossCompensation):
-        compensation = CrossCompensation.load(compensation)
-    survey_path, output_path = os.fspath(survey_path), os.fspath(output_path)
-    if os.path.exists(output_path) and os.path.samefile(survey_path, output_path):
-        raise MagcalError(f"{output_path}: the output would overwrite the survey file; choose another name")
+    compensation, survey_path, output_path = prepare(compensation, CrossCompensation, survey_path, output_path)
     dataset = read_csv(survey_path, columns=columns, units=units, drop_bad=drop_bad, warn=False)
     if dataset.n_sensors != 4:
         raise MagcalError(f"{survey_path}: the cross's compensation needs four sensors (s1x .. s4z); the line has "
                           f"{dataset.n_sensors}")  # fmt: skip
-    clash = [name for name in compensated_columns() if name in dataset.extra]
-    if clash:
-        raise MagcalError(f"{survey_path}: the line already has a column {clash[0]} (is it an apply output?)")
+    check_new_columns(dataset, compensated_columns(), survey_path)
     notes = [note.text for note in dataset.notes]
     if dataset.time_s is None:
         notes.append(
@@ -142,26 +114,9 @@ def apply_cross_compensation_file(
         raise MagcalError(f"{survey_path}: the tensor needs the cross's baseline: add '# baseline_m: 0.5' (m)")
     comps = conventions.tensor_components(vectors, baseline)
     invariants = tensor_invariants(conventions.tensor_matrix(comps))
-    columns_out = dict(dataset_columns(dataset))
-    for i in range(4):
-        for k, a in enumerate("xyz"):
-            columns_out[f"s{i + 1}{a}_comp"] = vectors[i][:, k]
-    for name in TENSOR_COLUMNS:
-        columns_out[name] = np.asarray(comps[name], dtype=float)
-    for name, values in zip(INVARIANT_COLUMNS, invariants):
-        columns_out[name] = values
-    meta = dataset_metadata(dataset) | {
-        "magcal_columns": "readings in nT; s*_comp the compensated vectors, nT; G* the compensated tensor, nT/m"
-    }
-    if is_parquet(output_path):
-        import pyarrow.parquet as pq
-
-        table = parquet_table(columns_out, meta)
-        with atomic_write(output_path, mode="wb", encoding=None, newline=None) as fh:
-            pq.write_table(table, fh, **parquet_write_options(table, compression))
-    else:
-        with atomic_write(output_path) as out:
-            out.write(metadata_text(meta))
-            csv.writer(out, lineterminator="\n").writerow(list(columns_out))
-            write_rows(out, columns_out)
+    new = {f"s{i + 1}{a}_comp": vectors[i][:, k] for i in range(4) for k, a in enumerate("xyz")}
+    new |= {name: np.asarray(comps[name], dtype=float) for name in TENSOR_COLUMNS}
+    new |= dict(zip(INVARIANT_COLUMNS, invariants))
+    description = "s*_comp the compensated vectors, nT; G* the compensated tensor, nT/m"
+    write_line(output_path, dataset, new, description, compression)
     return CrossCompensationSummary(int(vectors.shape[1]), output_path, notes)

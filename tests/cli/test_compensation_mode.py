@@ -184,3 +184,29 @@ def test_magnav_test_data_through_the_command_line(tmp_path, capsys):
         else:
             assert np.std(ours - data.mag_1_c) < 0.1  # MagNav's own test of its compensation
     capsys.readouterr()
+
+
+def test_several_current_columns_are_named_with_one_option(tmp_path, capsys):
+    """``--current cur_strb,cur_com_1``: each column its own field per ampere, in the report and the document, and
+    the line compensated with both to within 1.2x of the true compensation."""
+    from tests.fitting.test_compensation_fit_currents import TWO_CURRENTS
+
+    paths = []
+    for seed in (1, 2):
+        flight = simulate_compensation_flight(seed, platform=TWO_CURRENTS)
+        frame = pd.read_csv(_write(flight, tmp_path / f"f{seed}.csv")).drop(columns="current_A")
+        frame = frame.assign(**flight.currents_A)
+        frame.to_csv(tmp_path / f"f{seed}.csv", index=False)
+        paths.append(tmp_path / f"f{seed}.csv")
+    comp, out = tmp_path / "comp.json", tmp_path / "line_comp.csv"
+    args = ["calibrate", str(paths[0]), "--effects", "current", "--current", "cur_strb,cur_com_1", "-o", str(comp)]
+    assert main(args + ["--no-validate"]) == 0
+    captured = capsys.readouterr()
+    assert "current_cur_strb_x" in captured.out and "current_cur_com_1_z" in captured.out
+    assert "current 'cur_strb', 'cur_com_1'" in captured.err
+    assert json.loads(comp.read_text())["current_columns"] == ["cur_strb", "cur_com_1"]
+    assert main(["apply", str(comp), str(paths[1]), "-o", str(out)]) == 0
+    line = simulate_compensation_flight(2, platform=TWO_CURRENTS)
+    found = find_maneuvers(10.0, attitude_deg=line.attitude_deg)
+    ours = figure_of_merit(pd.read_csv(out, comment="#")["scalar_nT_comp"].to_numpy(), found, 10.0).fom_nT
+    assert ours < 1.2 * figure_of_merit(line.truth.compensated_nT(line.scalar_nT), found, 10.0).fom_nT

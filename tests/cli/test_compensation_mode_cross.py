@@ -139,3 +139,16 @@ def test_apply_refuses_a_line_without_the_current(flights, tmp_path, capsys):
     assert main(["apply", str(comp), str(bare), "-o", str(tmp_path / "out.csv")]) != 0
     err = capsys.readouterr().err
     assert "current_A" in err and str(bare) in err
+
+
+@pytest.mark.parametrize("command", ["calibrate", "diagnose"])
+def test_auto_chooses_the_mode_before_it_checks_the_effects(flights, capsys, command):
+    """``--mode auto --effects current`` on the cross's record: the box's maneuvers choose the cross compensation,
+    whose terms hold the current (the catalogue's check would refuse it); an unknown name still fails."""
+    _, _, box_csv, _ = flights["drone_current"]
+    assert main([command, str(box_csv), "--mode", "auto", "--effects", "current", "--json", "--no-validate"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["mode"] == "cross_compensation" and doc["effects"] == ["current"]
+    assert main([command, str(box_csv), "--effects", "current,bogus"]) == 2
+    err = capsys.readouterr().err
+    assert "bogus" in err and "Traceback" not in err

@@ -75,3 +75,28 @@ def test_a_temperature_the_platform_does_not_follow_is_judged_and_not_recommende
     (candidate,) = found.candidates
     assert candidate.judged and not candidate.recommended and "per degC" in candidate.evidence
     assert found.verdict == "adequate"
+
+
+def test_the_current_term_takes_the_columns_whose_field_shows_on_held_out_maneuvers():
+    from magcal.diagnosis.fom import figure_of_merit, find_maneuvers
+    from magcal.fitting.compensation import compensation_record
+    from tests.fitting.test_compensation_fit_currents import TWO_CURRENTS, currents_dataset
+
+    first = simulate_compensation_flight(1, platform=TWO_CURRENTS)
+    second = simulate_compensation_flight(2, platform=TWO_CURRENTS)
+    record = compensation_record(currents_dataset(first))  # five current columns, two carry a field
+    found = diagnose_compensation(record, candidates=["current", "heading"])
+    assert found.explained_by == ["current"] and found.verdict == "missing_effect"
+    assert sorted(found.current_columns) == ["cur_com_1", "cur_strb"]
+    assert "--effects current --current " + ",".join(found.current_columns) in found.summary
+    judged = {c.columns[0] for c in found.candidates if c.name == "current" and c.judged}
+    assert judged == {"cur_strb", "cur_com_1", "cur_heat", "cur_flap", "cur_tank"}  # each column judged
+    assert found.to_dict()["current_columns"] == found.current_columns
+    comp = fit_compensation(record.taking_currents(found.current_columns), found.explained_by)
+    line = compensation_record(currents_dataset(second, "line.csv"), current=found.current_columns)
+    maneuvers = find_maneuvers(second.sample_rate_hz, attitude_deg=second.attitude_deg)
+    ours = figure_of_merit(comp.compensate(line), maneuvers, second.sample_rate_hz).fom_nT
+    true = figure_of_merit(second.truth.compensated_nT(second.scalar_nT), maneuvers, second.sample_rate_hz).fom_nT
+    assert ours < 1.2 * true
+    one = fit_compensation(record, ["current"])  # the first column alone (the old default) leaves the radio's field
+    assert figure_of_merit(one.compensate(line), maneuvers, second.sample_rate_hz).fom_nT > 3 * true

@@ -11,7 +11,7 @@ from magcal.core import conventions
 from magcal.core.errors import MagcalError
 from magcal.data.cross_flight import CROSS_PLATFORMS, dipole_matrix, simulate_cross_flight
 from magcal.data.lab import dipole_field_nT
-from magcal.diagnosis.cross_fom import cross_fom_report, tensor_fom
+from magcal.diagnosis.cross_fom import cross_fom_report, sensor_fom, tensor_fom
 from magcal.diagnosis.fom import Maneuver
 from magcal.fitting.cross_compensation import CrossCompensation, fit_cross_compensation
 
@@ -257,3 +257,31 @@ def test_bad_input_is_named(call, message):
     flight = simulate_cross_flight(0, platform="drone_current")
     with pytest.raises(MagcalError, match=message):
         call(flight)
+
+
+def test_the_sensors_lag_is_fitted_and_kept_in_the_document():
+    """The four 100 ms late against the attitude (and the current): the fitted offset is the lag, each sensor's
+    total field compensated to its floor (the lag's second order left without it), and a line compensated from the
+    document as from the fit."""
+    box = simulate_cross_flight(5, platform="drone_current", sensor_lag_s=0.1)
+    line = simulate_cross_flight(6, platform="drone_current", sensor_lag_s=0.1)
+    ned = box.truth.field_ned_nT
+    fit = fit_cross_compensation(box, reference="attitude", field_ned_nT=ned, current_A=box.current_A, time_offset=True)
+    assert fit.time_offset_s == pytest.approx(0.1, abs=0.005)
+    assert "time offset +100" in fit.text().replace("+99", "+100").replace("+101", "+100")
+    back = CrossCompensation.from_json(fit.to_json())
+    assert back.time_offset_s == fit.time_offset_s
+    ours = back.compensate(line, current_A=line.current_A)
+    np.testing.assert_allclose(ours, fit.compensate(line, current_A=line.current_A))
+    true = line.truth.compensated_nT(line.readings_nT)
+    plain = fit_cross_compensation(box, reference="attitude", field_ned_nT=ned, current_A=box.current_A)
+    maneuvers = line.truth.maneuvers
+
+    def sensors_fom(vectors):  # each sensor's total field: the compensated one is on the attitude's clock
+        return np.mean([t.fom_nT for t in sensor_fom(vectors, maneuvers, line.sample_rate_hz)])
+
+    floor = sensors_fom(true)
+    assert sensors_fom(ours) < 1.2 * floor
+    assert sensors_fom(plain.compensate(line, current_A=line.current_A)) > 5 * floor
+    with pytest.raises(MagcalError, match="time offset is found against the attitude"):
+        fit_cross_compensation(box, reference="mean", time_offset=True)

@@ -218,3 +218,18 @@ def test_the_registry_refuses_a_mode_without_its_needs_or_with_a_reserved_name()
     with pytest.raises(MagcalError, match="--mode's own"):
         FIT_MODES.register(Auto())
     assert "bare" not in FIT_MODES and mode_names()[0] == "auto" and mode_names()[-1] == "scalar"
+
+
+def test_the_compensation_mode_takes_the_current_columns_by_name():
+    """``current=`` names the current term's columns (one or several); a diagnosis of a fit with several keeps them
+    and judges the record's other current columns."""
+    from magcal.data.compensation_flight import simulate_compensation_flight
+    from magcal.modes.compensation import COMPENSATION
+    from tests.fitting.test_compensation_fit_currents import TWO_CURRENTS, currents_dataset
+
+    ds = currents_dataset(simulate_compensation_flight(1, platform=TWO_CURRENTS))
+    result = COMPENSATION.fit(ds, effects=("current",), current="cur_strb,cur_com_1")
+    assert result.calibration.current_columns == ("cur_strb", "cur_com_1")
+    found = COMPENSATION.diagnose(ds, result)
+    assert found.effects == ["current"] and found.current_columns[:2] == ["cur_strb", "cur_com_1"]
+    assert {c.columns[0] for c in found.candidates if c.name == "current"} == {"cur_heat", "cur_flap", "cur_tank"}
