@@ -54,6 +54,10 @@ WALKING_PERIODS_S = (1.0, 10.0)
 WALKING_FACTOR = 3.0
 WALKING_MIN_NT = 10.0
 
+#: At most this many samples (evenly spaced) enter the test: a survey's positions would otherwise cost a neighbour
+#: search per sample (0.3 s for 5000 on a busy 2-core machine, 6.7 s for 20 000).
+MAX_SAMPLES = 5_000
+
 #: The finding's text when the field looks uniform (nothing to say).
 UNIFORM_TEXT = ""
 
@@ -181,6 +185,10 @@ def field_uniformity(dataset, total_nT, fitted, sigma_total_nT, directions=None)
             use &= np.all(np.isfinite(positions), axis=1) & found[1]
         elif positions is not None:
             positions = None  # no attitude: revisits cannot be told from a misfit of the turning
+    if use.sum() > MAX_SAMPLES:  # evenly thinned: each sample's neighbours are searched one by one
+        kept = np.flatnonzero(use)
+        use = np.zeros(n, bool)
+        use[kept[np.linspace(0, len(kept) - 1, MAX_SAMPLES).astype(int)]] = True
     if use.sum() < 30:
         return Uniformity(True, "none", float("nan"), float("nan"), 0.0, 0.0, None, UNIFORM_TEXT)
     values = np.asarray(total_nT, dtype=float)[:, use].T
