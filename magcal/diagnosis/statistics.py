@@ -553,6 +553,9 @@ REVISIT_MIN_PART = 0.05
 #: in the room, passed at a walking pace, gives 0.74-0.98, a magnet carried with the sensor and moved slowly
 #: 0.11-0.29.
 REVISIT_FASTER_PART = 0.5
+#: The pace test is made when its design (revisited samples x 4 closer series) holds at most this many numbers (160
+#: MB): a longer record keeps the answer on the series' knots.
+REVISIT_MAX_ELEMENTS = 20_000_000
 #: The closer knots of that comparison: this many intervals in each of the series'.
 REVISIT_CLOSER_KNOTS = 3
 
@@ -791,7 +794,14 @@ def revisit_forms(u, r, t, time_columns, alpha=REVISIT_ALPHA, seed=0, fine_colum
     found = _compare_forms(r_w, field_w, offset_w, n_free, alpha, same_knots=True)
     faster = False
     dof_fine = n_free - 4 * k_fine
-    if fine is not None and k_fine > k and found["form"] not in ("none", "field") and dof_fine >= max(30, 4 * k_fine):
+    small = int(again.sum()) * 4 * k_fine <= REVISIT_MAX_ELEMENTS
+    if (
+        fine is not None
+        and k_fine > k
+        and found["form"] not in ("none", "field")
+        and dof_fine >= max(30, 4 * k_fine)
+        and small
+    ):
         # does the offset form need closer knots? (the closer knots' span contains the series' knots' columns)
         offset_fine = np.hstack([u[:, a : a + 1] * fine for a in range(3)])
         offset_fine_w = _within_cells(cells_in, offset_fine[again])
