@@ -15,7 +15,14 @@ from magcal.core import conventions
 from magcal.core.stats import moving_mean
 from magcal.diagnosis._fitted import _consistency_rms_per_sensor
 from magcal.diagnosis.scores import Candidate
-from magcal.diagnosis.statistics import REVISIT_CLOSER_KNOTS, cusum_test, durbin_watson, ljung_box, revisit_forms
+from magcal.diagnosis.statistics import (
+    REVISIT_CLOSER_KNOTS,
+    REVISIT_MAX_ELEMENTS,
+    cusum_test,
+    durbin_watson,
+    ljung_box,
+    revisit_forms,
+)
 from magcal.model.effects import hat_columns, series_spacing_s, step_scan, wander_knots
 from magcal.model.terms import EffectTexts
 
@@ -70,7 +77,8 @@ def revisit_words(kept, fit, directions) -> str:
         knots = wander_knots(t, series_spacing_s(kept))
         columns = hat_columns(t, knots)[:, 1:]
         finer = np.linspace(knots[0], knots[-1], REVISIT_CLOSER_KNOTS * (len(knots) - 1) + 1)
-        fine = hat_columns(t, finer)[:, 1:]
+        # the pace test's series, where its design stays small (a long record keeps the series' knots alone)
+        fine = hat_columns(t, finer)[:, 1:] if 4 * len(t) * len(finer) <= REVISIT_MAX_ELEMENTS else None
     except ValueError:
         return ""
     r = np.asarray(fit.residuals_nT, dtype=float)[:, fit.mask]
