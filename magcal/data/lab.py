@@ -34,7 +34,8 @@ def lab_truth(seed=0, field_ned_nT=(19_500.0, 600.0, 45_000.0), **options) -> Ve
 
 
 def dipole_field_nT(positions_m, where_m, moment_Am2) -> np.ndarray:
-    """The field (N, 3) in nT of a point dipole at ``where_m`` (m) of moment ``moment_Am2`` (A m^2), all NED."""
+    """The field (N, 3) in nT of a point dipole at ``where_m`` (m; (3,) or one place per position, (N, 3)) of moment
+    ``moment_Am2`` (A m^2), all NED (or all in one other frame)."""
     r = np.asarray(positions_m, dtype=float) - np.asarray(where_m, dtype=float)
     m = np.asarray(moment_Am2, dtype=float)
     dist = np.linalg.norm(r, axis=1)[:, None]
@@ -52,6 +53,8 @@ def simulate_lab(
     seed=0,
     tilt_deg=3.0,
     gradient_ned_nT_per_m=None,
+    turns=1.0,
+    carried_dipole=None,
 ):
     """A lab record: readings, optical attitude, positions; no field vector.
 
@@ -77,6 +80,14 @@ def simulate_lab(
         With ``motion="yaw"``: the tilts' amplitude (deg) about north and east.
     gradient_ned_nT_per_m : array_like, shape (3, 3), optional
         A uniform gradient of the field (nT/m, symmetric and traceless): ``B_w + G p`` at the position ``p``.
+    turns : float
+        How many times faster the hand turns the sensor than the default (two turns in yaw over the record, a few
+        swings in pitch and roll: about 30 deg/s over 60 s); 4 is a hand-held tumble of about 100 deg/s.
+    carried_dipole : tuple, optional
+        ``(start_m, end_m, moment_Am2)``: a magnet carried with the sensor (in the sensor's axes, m; its moment in
+        them, A m^2), moved in a straight line from ``start_m`` to ``end_m`` over the record (toward or away): its
+        field at the sensor is an offset in the sensor's axes that changes as the magnet is moved, not a field of
+        the lab.
 
     Returns
     -------
@@ -89,13 +100,14 @@ def simulate_lab(
     t = np.arange(n) / rate_hz
     span = n / rate_hz
     ph = rng.uniform(0, 2 * np.pi, 8)
-    yaw = 360.0 * 2 * t / span + 40.0 * np.sin(2 * np.pi * t / (span / 3.1) + ph[0])
+    turn = span / float(turns)  # the hand's motion repeats its pattern ``turns`` times faster
+    yaw = 360.0 * 2 * t / turn + 40.0 * np.sin(2 * np.pi * t / (turn / 3.1) + ph[0])
     if motion == "tumble":
-        pitch = 75.0 * np.sin(2 * np.pi * t / (span / 2.3) + ph[1])
-        roll = 180.0 * np.sin(2 * np.pi * t / (span / 1.7) + ph[2])
+        pitch = 75.0 * np.sin(2 * np.pi * t / (turn / 2.3) + ph[1])
+        roll = 180.0 * np.sin(2 * np.pi * t / (turn / 1.7) + ph[2])
     elif motion == "yaw":
-        pitch = tilt_deg * np.sin(2 * np.pi * t / (span / 2.3) + ph[1])
-        roll = tilt_deg * np.sin(2 * np.pi * t / (span / 1.7) + ph[2])
+        pitch = tilt_deg * np.sin(2 * np.pi * t / (turn / 2.3) + ph[1])
+        roll = tilt_deg * np.sin(2 * np.pi * t / (turn / 1.7) + ph[2])
     else:
         raise ValueError(f"motion must be 'tumble' or 'yaw', got {motion!r}")
     true_att = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]), degrees=True)
@@ -113,9 +125,14 @@ def simulate_lab(
         world = world + dipole_field_nT(positions, *dipole)
     if gradient_ned_nT_per_m is not None:
         world = world + positions @ np.asarray(gradient_ned_nT_per_m, dtype=float).T
+    b_body = true_att.inv().apply(world)
+    if carried_dipole is not None:
+        start, end, moment = (np.asarray(v, dtype=float) for v in carried_dipole)
+        along = (t - t[0]) / max(t[-1] - t[0], 1e-12)
+        magnet = start + along[:, None] * (end - start)  # in the sensor's axes, m
+        b_body = b_body + dipole_field_nT(np.zeros_like(magnet), magnet, moment)  # the sensor at its axes' origin
     readings = []
     for s in truth.sensors:
-        b_body = true_att.inv().apply(world)
         readings.append(b_body @ (s.matrix @ s.mounting.T).T + s.bias_nT + rng.normal(0.0, noise_nT, (n, 3)))
     q = measured.as_quat()
     ds = Dataset(

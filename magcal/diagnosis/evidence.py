@@ -15,7 +15,14 @@ from magcal.core import conventions
 from magcal.core.stats import moving_mean
 from magcal.diagnosis._fitted import _consistency_rms_per_sensor
 from magcal.diagnosis.scores import Candidate
-from magcal.diagnosis.statistics import cusum_test, durbin_watson, ljung_box, revisit_forms
+from magcal.diagnosis.statistics import (
+    REVISIT_CLOSER_KNOTS,
+    REVISIT_MAX_ELEMENTS,
+    cusum_test,
+    durbin_watson,
+    ljung_box,
+    revisit_forms,
+)
 from magcal.model.effects import hat_columns, series_spacing_s, step_scan, wander_knots
 from magcal.model.terms import EffectTexts
 
@@ -61,18 +68,23 @@ OFFSET_SIZE_WORDS = (
 
 def revisit_words(kept, fit, directions) -> str:
     """What samples revisiting one field direction say of a change in time, or "": each sensor's residuals of
-    ``fit`` against hat functions at the series' knots (:func:`~magcal.diagnosis.statistics.revisit_forms`)."""
+    ``fit`` against hat functions at the series' knots, and on knots :data:`REVISIT_CLOSER_KNOTS` times closer for
+    a change faster than them (:func:`~magcal.diagnosis.statistics.revisit_forms`)."""
     if kept.time_s is None or fit is None:
         return ""
     t = np.asarray(kept.time_s, dtype=float)
     try:
-        columns = hat_columns(t, wander_knots(t, series_spacing_s(kept)))[:, 1:]
+        knots = wander_knots(t, series_spacing_s(kept))
+        columns = hat_columns(t, knots)[:, 1:]
+        finer = np.linspace(knots[0], knots[-1], REVISIT_CLOSER_KNOTS * (len(knots) - 1) + 1)
+        # the pace test's series, where its design stays small (a long record keeps the series' knots alone)
+        fine = hat_columns(t, finer)[:, 1:] if 4 * len(t) * len(finer) <= REVISIT_MAX_ELEMENTS else None
     except ValueError:
         return ""
     r = np.asarray(fit.residuals_nT, dtype=float)[:, fit.mask]
     parts = []
     for s, u in enumerate(directions):
-        found = revisit_forms(u, r[s], t, columns) if r.shape[1] == len(t) else None
+        found = revisit_forms(u, r[s], t, columns, fine_columns=fine) if r.shape[1] == len(t) else None
         if found is not None:
             parts.append((f"sensor {s + 1}: " if len(directions) > 1 else "") + found.text())
     return "; ".join(parts)

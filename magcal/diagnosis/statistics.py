@@ -548,6 +548,16 @@ REVISIT_ALPHA = 1e-3
 #: And its least share of what both forms explain together: a change that one form follows only roughly (a smooth
 #: field between the knots of hat functions) leaves a small, significant part to the other form's freedom.
 REVISIT_MIN_PART = 0.05
+#: The change is faster than the series' knots when the offset form on closer knots explains at least this share of
+#: what the offset form on the series' knots leaves (significantly): on simulated hand-held tumbles a magnet fixed
+#: in the room, passed at a walking pace, gives 0.74-0.98, a magnet carried with the sensor and moved slowly
+#: 0.11-0.29.
+REVISIT_FASTER_PART = 0.5
+#: The pace test is made when its design (revisited samples x 4 closer series) holds at most this many numbers (160
+#: MB): a longer record keeps the answer on the series' knots.
+REVISIT_MAX_ELEMENTS = 20_000_000
+#: The closer knots of that comparison: this many intervals in each of the series'.
+REVISIT_CLOSER_KNOTS = 3
 
 
 @dataclass
@@ -577,6 +587,9 @@ class RevisitForms:
         ``field`` (the offset form adds nothing beyond it), ``offset`` (it adds a significant part beyond the
         field form, and the field form nothing beyond it), ``both``, ``none`` (neither explains the variation)
         or ``undecided`` (the offset form's part beyond the field is large but not significant).
+    faster_than_knots : bool
+        The change is faster than the series' knots: a field on closer knots explains a significant part beyond both
+        forms on them, and the forms were compared with the field on the closer knots.
     """
 
     n_samples: int
@@ -589,14 +602,21 @@ class RevisitForms:
     p_field: float
     p_offset: float
     form: str
+    faster_than_knots: bool = False
 
     def text(self) -> str:
         """The finding in words."""
         growth = ", ".join(f"{v:.3g}" for v in self.gap_rms_nT)
         edges = ", ".join(f"{v:.3g}" for v in self.gap_edges_s)
         what = {
-            "field": "the change is the same in every direction: a field that changes, not an offset",
-            "offset": "the change follows the direction: an offset that wanders, not the field",
+            "field": (
+                "the change is the same in every direction: a field that changes (in time, or with the place as the "
+                "sensor moves: a magnet or steel fixed in the room), not an offset"
+            ),
+            "offset": (
+                "the change follows the direction: an offset that wanders (the sensor's own, or a magnet or steel "
+                "carried with the sensor that was moved), not the field"
+            ),
             "both": "both a field and an offset changed",
             "none": "no change in time between the visits",
             "undecided": "either form explains the change: the revisits cannot tell a field from an offset here",
@@ -605,7 +625,14 @@ class RevisitForms:
             f"same-direction revisits ({self.n_samples} samples in {self.n_cells} cells of {REVISIT_ANGLE_DEG:g} deg): "
             f"their residuals differ by {growth} nT at time apart up to {edges} s; a field change explains "
             f"{100 * self.share_field:.0f} % of their spread, an offset wander {100 * self.share_offset:.0f} % "
-            f"({what})"
+            f"({what}"
+            + (
+                "; the change is faster than the series' knots: the forms compared on knots "
+                f"{REVISIT_CLOSER_KNOTS} times closer"
+                if self.faster_than_knots
+                else ""
+            )
+            + ")"
         )
 
 
@@ -660,12 +687,63 @@ def _revisit_gaps(cells, r, t, seed) -> tuple:
     return edges, rms
 
 
-def revisit_forms(u, r, t, time_columns, alpha=REVISIT_ALPHA, seed=0) -> RevisitForms | None:
+def _compare_forms(r_w, field_w, offset_w, n_free, alpha, same_knots) -> dict:
+    """F-tests of the field form beyond the offset form and back on the variation within the cells (``r_w`` and the
+    columns less their cell means; ``n_free`` the revisited samples less the cells) and the form they say."""
+
+    def rss(design):
+        coef, *_ = np.linalg.lstsq(design, r_w, rcond=None)
+        return float(np.sum((r_w - design @ coef) ** 2))
+
+    k_f, k_o = field_w.shape[1], offset_w.shape[1]
+    dof = n_free - k_f - k_o
+    total = float(np.sum(r_w**2))
+    rss_f, rss_o, rss_b = rss(field_w), rss(offset_w), rss(np.hstack([field_w, offset_w]))
+    s2 = rss_b / dof
+
+    def p_beyond(rss_without, extra):
+        f = (rss_without - rss_b) / extra / s2 if s2 > 0 else 0.0
+        return float(stats.f.sf(max(f, 0.0), extra, dof))
+
+    p_field, p_offset, p_any = p_beyond(rss_o, k_f), p_beyond(rss_f, k_o), p_beyond(total, k_f + k_o)
+    explained = max(total - rss_b, 1e-300)
+    offset_part, field_part = (rss_f - rss_b) / explained, (rss_o - rss_b) / explained
+    if field_part < REVISIT_MIN_PART:
+        p_field = 1.0
+    if offset_part < REVISIT_MIN_PART:
+        p_offset = 1.0
+    if p_any >= alpha:
+        form = "none"
+    elif p_field < alpha and p_offset < alpha:
+        form = "both"
+    elif p_offset < alpha:
+        form = "offset"
+    elif p_field < alpha or (same_knots and offset_part < REVISIT_MIN_PART):
+        # on the same knots an offset series can follow a field along the one direction visited at each moment, a
+        # field cannot follow an offset: when the offset's freedom adds nothing, the change is the field's (a field
+        # on closer knots can follow an offset along the path too: there it must add a part of its own)
+        form = "field"
+    else:
+        form = "undecided"
+    shares = [max(0.0, 1.0 - v / total) if total > 0 else 0.0 for v in (rss_f, rss_o, rss_b)]
+    return {"form": form, "p_field": p_field, "p_offset": p_offset, "shares": shares, "rss_both": rss_b}
+
+
+def revisit_forms(u, r, t, time_columns, alpha=REVISIT_ALPHA, seed=0, fine_columns=None) -> RevisitForms | None:
     """Tell a field that changes from an offset that wanders by the samples that revisit one field direction.
 
     The residual is split into a free constant per direction cell (any static direction pattern) and a change in
     time, fitted as a field ``g(t)`` (``time_columns``) and as an offset ``u . b(t)`` (each column times each axis
     of ``u``); F-tests of each form beyond the other, on the variation within the cells, decide.
+
+    On the same knots the offset form has three times the field form's columns, and where the direction turns
+    within a knot interval its columns follow a change faster than the knots (a field that changes with the place
+    as the sensor is carried past a magnet fixed in the room, at a walking pace) that the field's hats cannot: such
+    a field would read ``offset``. With ``fine_columns`` (the same series on closer knots, containing
+    ``time_columns``'s) the pace is tested: when the offset form on the closer knots explains at least
+    :data:`REVISIT_FASTER_PART` of what it leaves on the series' knots (significantly), the change is faster than
+    those knots, and both forms are compared on the closer ones (``faster_than_knots``). A slow change (an offset
+    that wanders, a magnet carried with the sensor and moved slowly) is judged on the series' knots.
 
     Parameters
     ----------
@@ -681,6 +759,8 @@ def revisit_forms(u, r, t, time_columns, alpha=REVISIT_ALPHA, seed=0) -> Revisit
         Significance of each form beyond the other.
     seed : int
         Seed of the draw of pairs for the drift with time (:data:`REVISIT_MAX_PAIRS`).
+    fine_columns : numpy.ndarray, shape (N, L), optional
+        The series on closer knots (L > K, spanning ``time_columns``'s columns), without its constant.
 
     Returns
     -------
@@ -689,55 +769,63 @@ def revisit_forms(u, r, t, time_columns, alpha=REVISIT_ALPHA, seed=0) -> Revisit
     """
     u, r, t = np.asarray(u, float), np.asarray(r, float), np.asarray(t, float)
     h = np.asarray(time_columns, float)
+    fine = None if fine_columns is None else np.asarray(fine_columns, float)
     ok = np.all(np.isfinite(u), axis=1) & np.isfinite(r) & np.isfinite(t) & np.all(np.isfinite(h), axis=1)
+    if fine is not None:
+        ok &= np.all(np.isfinite(fine), axis=1)
+        fine = fine[ok]
     u, r, t, h = u[ok], r[ok], t[ok], h[ok]
     k = h.shape[1] if h.ndim == 2 else 0
+    k_fine = 0 if fine is None else fine.shape[1]
     if len(r) < 2 or k == 0:
         return None
     cells = _direction_cells(u)
     count = np.bincount(cells)
     again = count[cells] > 1
     n_cells = int(np.sum(count > 1))
-    dof = int(again.sum()) - n_cells - 4 * k
-    if dof < max(30, 4 * k):
+    n_free = int(again.sum()) - n_cells
+    if n_free - 4 * k < max(30, 4 * k):
         return None
     cells_in = np.unique(cells[again], return_inverse=True)[1]
     offset = np.hstack([u[:, a : a + 1] * h for a in range(3)])
     r_w = _within_cells(cells_in, r[again])
     field_w = _within_cells(cells_in, h[again])
     offset_w = _within_cells(cells_in, offset[again])
-
-    def rss(design):
-        coef, *_ = np.linalg.lstsq(design, r_w, rcond=None)
-        return float(np.sum((r_w - design @ coef) ** 2))
-
-    total = float(np.sum(r_w**2))
-    rss_f, rss_o, rss_b = rss(field_w), rss(offset_w), rss(np.hstack([field_w, offset_w]))
-    s2 = rss_b / dof
-
-    def p_beyond(rss_without, extra):
-        f = (rss_without - rss_b) / extra / s2 if s2 > 0 else 0.0
-        return float(stats.f.sf(max(f, 0.0), extra, dof))
-
-    p_field, p_offset, p_any = p_beyond(rss_o, k), p_beyond(rss_f, 3 * k), p_beyond(total, 4 * k)
-    explained = max(total - rss_b, 1e-300)
-    offset_part, field_part = (rss_f - rss_b) / explained, (rss_o - rss_b) / explained
-    if field_part < REVISIT_MIN_PART:
-        p_field = 1.0
-    if offset_part < REVISIT_MIN_PART:
-        p_offset = 1.0
-    if p_any >= alpha:
-        form = "none"
-    elif p_field < alpha and p_offset < alpha:
-        form = "both"
-    elif p_offset < alpha:
-        form = "offset"
-    elif offset_part < REVISIT_MIN_PART:
-        # an offset series can follow a field along the one direction visited at each moment, a field cannot
-        # follow an offset: when the offset's freedom adds nothing, the change is the field's
-        form = "field"
-    else:
-        form = "undecided"
+    found = _compare_forms(r_w, field_w, offset_w, n_free, alpha, same_knots=True)
+    faster = False
+    dof_fine = n_free - 4 * k_fine
+    small = int(again.sum()) * 4 * k_fine <= REVISIT_MAX_ELEMENTS
+    if (
+        fine is not None
+        and k_fine > k
+        and found["form"] not in ("none", "field")
+        and dof_fine >= max(30, 4 * k_fine)
+        and small
+    ):
+        # does the offset form need closer knots? (the closer knots' span contains the series' knots' columns)
+        offset_fine = np.hstack([u[:, a : a + 1] * fine for a in range(3)])
+        offset_fine_w = _within_cells(cells_in, offset_fine[again])
+        closer = _compare_forms(r_w, _within_cells(cells_in, fine[again]), offset_fine_w, n_free, alpha, True)
+        rss_coarse = float(np.sum((r_w - offset_w @ np.linalg.lstsq(offset_w, r_w, rcond=None)[0]) ** 2))
+        rss_closer = float(np.sum((r_w - offset_fine_w @ np.linalg.lstsq(offset_fine_w, r_w, rcond=None)[0]) ** 2))
+        extra, dof_o = 3 * (k_fine - k), n_free - 3 * k_fine
+        f = (rss_coarse - rss_closer) / extra / (rss_closer / dof_o) if rss_closer > 0 else 0.0
+        gain = (rss_coarse - rss_closer) / max(rss_coarse, 1e-300)
+        faster = bool(stats.f.sf(max(f, 0.0), extra, dof_o) < alpha and gain >= REVISIT_FASTER_PART)
+        if faster:
+            found = closer
     edges, rms = _revisit_gaps(cells, r, t, seed)
-    share_f, share_o, share_b = (max(0.0, 1.0 - v / total) if total > 0 else 0.0 for v in (rss_f, rss_o, rss_b))
-    return RevisitForms(int(again.sum()), n_cells, edges, rms, share_f, share_o, share_b, p_field, p_offset, form)
+    share_f, share_o, share_b = found["shares"]
+    return RevisitForms(
+        int(again.sum()),
+        n_cells,
+        edges,
+        rms,
+        share_f,
+        share_o,
+        share_b,
+        found["p_field"],
+        found["p_offset"],
+        found["form"],
+        faster,
+    )

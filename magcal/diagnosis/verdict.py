@@ -63,6 +63,7 @@ from magcal.diagnosis.scores import (
 from magcal.diagnosis.selection import forward_selection
 from magcal.diagnosis.statistics import SH_MAX_SAMPLES, SHAPE_JUDGED_MIN_EIGEN, resolves_degree, sh_analysis, spectrum
 from magcal.diagnosis.structure import _describe, _structure_tests
+from magcal.diagnosis.uniformity import field_uniformity
 from magcal.fitting import validation as _validation
 from magcal.fitting.pipeline import calibrate
 from magcal.geometry.ellipsoid import WEAK_DIRECTION_SPREAD, direction_spread
@@ -1436,9 +1437,28 @@ def _diagnosis_warnings(ctx: DiagnosisContext, explained, partial) -> list:
             "motion): " + ", ".join(f"sensor {s}: {k}" for s, k in glitches)
         )
     out += ctx.validation_notes
+    uniformity = _uniformity_words(ctx)
+    if uniformity:
+        out.append(uniformity)
     if len(explained) > 1 and ctx.verdict == "missing_effect":
         out.append(f"more than one effect was needed: {', '.join(explained)} (added in that order)")
     return out
+
+
+def _uniformity_words(ctx: DiagnosisContext) -> str:
+    """(Part of :func:`_diagnosis_warnings`.) "The field is not uniform where you recorded" when the base fit's
+    total-field residual follows the record's positions rather than the field's direction
+    (:func:`magcal.diagnosis.uniformity.field_uniformity`), or ""."""
+    kept, fit0 = ctx.kept, ctx.fit0
+    if kept.time_s is None or fit0.residuals_nT.shape[1] != len(fit0.mask):
+        return ""
+    r = np.asarray(fit0.residuals_nT, dtype=float)[:, fit0.mask]
+    if r.shape[1] != kept.n_samples:
+        return ""
+    found = field_uniformity(
+        kept, r, np.ones(kept.n_samples, bool), float(ctx.noise0.sigma_nT), directions=ctx.directions[0]
+    )
+    return "" if found.uniform else found.text
 
 
 def _evidence_of(ctx: DiagnosisContext) -> dict:

@@ -2142,8 +2142,8 @@ class FieldChange(_KnotSeries):
     """The total field changes during the record faster than a drift: ``F(t) = F0 + g(t)``, ``g`` a hat-function
     series with knots every few seconds (:class:`_KnotSeries`), shared by all sensors.
 
-    A sensor carried along a path through a non-uniform field (a hand-held tumble that wanders, a vehicle nearby)
-    or a field that changes in time sees every direction scaled alike: samples revisiting the same direction
+    A sensor carried along a path through a non-uniform field (a hand-held tumble that wanders, a magnet or steel
+    fixed in the room, a vehicle nearby) or a field that changes in time sees every direction scaled alike: samples revisiting the same direction
     differ by the same amount whatever that direction, and sensors of an array see the same change. Record-only.
 
     Parameters ``g{k}_nT``: the field at knot ``k`` relative to the first knot, nT; physical range a few nT (a
@@ -2181,7 +2181,9 @@ class OffsetWander(_KnotSeries):
     """The instrument's offset wanders during the record: ``y += b(t)``, ``b`` per axis a B-spline series with
     knots every few seconds (:class:`_HatSeries`).
 
-    An offset of the sensor itself (a warm-up, a supply, a part magnetised and relaxing): in the total field it
+    An offset of the sensor itself (a warm-up, a supply, a part magnetised and relaxing), or of something magnetic
+    carried with it and moved (a magnet, steel: a hard iron that changes; a magnet fixed in the room is a field that
+    changes with the place instead, :class:`FieldChange`): in the total field it
     shows as ``u . C^-1 b(t)``, so samples revisiting the same direction differ by an amount that depends on
     the direction, and each sensor of an array wanders on its own. It belongs to the instrument, but a wander
     cannot be extrapolated to another record: record-only (the calibration keeps the record's mean offset).
@@ -2195,7 +2197,7 @@ class OffsetWander(_KnotSeries):
         "u . b(t): a field-direction pattern of degree 1 changing within seconds, its own on each sensor"
     )
     when_recording: ClassVar[str] = (
-        "the sensor's own offset wandered within seconds (warm-up, supply, a part relaxing after a field): let it settle powered before recording, keep the supply and the temperature steady, record shorter"
+        "the sensor's own offset wandered within seconds (warm-up, supply, a part relaxing after a field), or something magnetic carried with it moved (a magnet, steel, a battery shifting): let it settle powered before recording, keep the supply and the temperature steady, fasten what travels with the sensor, record shorter"
     )
     stage: ClassVar[str] = "raw"
     #: The vector calibration has its own drift terms; its diagnosis does not test this one.

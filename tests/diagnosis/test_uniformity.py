@@ -1,8 +1,9 @@
-"""A field that is not uniform where a vector record was taken: named by the diagnosis, fitted as a record-only
+"""A field that is not uniform where a record was taken: named by the diagnosis, fitted as a record-only
 gradient, never carried by apply.
 
 Simulated hand-held records under motion capture (:func:`magcal.data.lab.simulate_lab`) with a magnet (a point
-dipole 0.3 m from the path) or a uniform gradient the test sets.
+dipole 0.3 m from the path, or one carried with the sensor) or a uniform gradient the test sets; the vector fit's
+diagnosis and the total-field fit's.
 """
 
 from __future__ import annotations
@@ -12,10 +13,12 @@ import json
 import numpy as np
 import pytest
 
+from magcal.api import calibrate
 from magcal.checks.reference import resolve_vector_reference
 from magcal.cli import main
 from magcal.data.io import write_csv
 from magcal.data.lab import lab_truth, simulate_lab
+from magcal.diagnosis import diagnose
 from magcal.diagnosis.uniformity import field_uniformity
 from magcal.diagnosis.vector import diagnose_vector
 from magcal.fitting.labfield import positions_ned_m
@@ -123,3 +126,34 @@ def test_magcal_diagnose_with_the_field_fitted_names_the_magnet(tmp_path, capsys
     captured = capsys.readouterr()
     assert NAMED in captured.out + captured.err
     assert "the lab's field fitted with the calibration" in captured.out
+
+
+@pytest.mark.parametrize("magnet", ["none", "fixed", "carried"])
+def test_the_total_field_diagnosis_names_a_magnet_fixed_in_the_room_not_one_carried(magnet):
+    """A total-field fit of a record with positions: a magnet fixed beside the path makes the residual follow the
+    place (named); a magnet carried with the sensor and moved is an offset of the sensor (a residual that follows
+    the field's direction and time, not the place: not named), and neither is a clean record."""
+    truth = lab_truth(seed=22)
+    options = {
+        "none": {},
+        "fixed": {"dipole": MAGNET},
+        "carried": {"carried_dipole": ((0.10, 0.0, 0.0), (0.15, 0.0, 0.0), (0.01, 0.0, 0.0))},
+    }[magnet]
+    ds, _ = simulate_lab(truth, n=N, seed=22, **options)
+    result = calibrate(ds, mode="total_field", warn=False)
+    d = diagnose(ds, result, max_effects=0, validate=False, workers=1)
+    named = [w for w in d.warnings if NAMED in w]
+    assert bool(named) == (magnet == "fixed"), d.warnings
+    if named:
+        assert "the same field direction elsewhere" in named[0] and "turn the sensor in place" in named[0]
+        assert "--field-gradient" not in named[0]  # a vector fit's option
+
+
+def test_a_total_field_record_without_positions_is_not_judged_by_its_pace():
+    """Without positions a total-field misfit changes as fast as the turning: nothing is said."""
+    truth = lab_truth(seed=22)
+    ds, _ = simulate_lab(truth, n=N, seed=22, dipole=MAGNET)
+    blind = ds.replace(extra={})
+    u = np.tile([0.0, 0.0, 1.0], (N, 1))
+    found = field_uniformity(blind, np.ones((1, N)) * 500.0, np.ones(N, bool), truth.noise_nT, directions=u)
+    assert found.uniform and found.basis == "none" and found.text == ""

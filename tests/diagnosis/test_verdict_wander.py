@@ -27,8 +27,8 @@ SIGMA = 3.0
 TUMBLE = 5.0
 #: What the revisits say of each form (:class:`magcal.diagnosis.statistics.RevisitForms`).
 REVISIT_WORDS = {
-    "field_change": "a field that changes, not an offset",
-    "offset_wander": "an offset that wanders, not the field",
+    "field_change": "the change is the same in every direction: a field that changes",
+    "offset_wander": "the change follows the direction: an offset that wanders",
 }
 DRIFTS = {"bias_drift", "bias_step", "reference_drift", "field_change", "offset_wander", "periodic_interference"}
 
