@@ -308,4 +308,4 @@ def test_a_magnet_beside_part_of_the_path_is_not_taken_for_a_nonlinearity(peak_n
     assert "field_change" in {label.partition(":")[0] for label in d.record_holds}, d.summary
     # the same-direction revisits say it was the field, not the sensor's offset
     line = next(c.evidence for c in d.candidates if c.effect == "field_change")
-    assert "a field that changes, not an offset" in line, line
+    assert "a field that changes (" in line and "magnet or steel fixed in the room), not an offset" in line, line
