@@ -18,7 +18,7 @@ from __future__ import annotations
 from magcal.core.errors import MagcalError
 
 from .actions import action
-from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of
+from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of, split_label
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
@@ -139,7 +139,7 @@ def status_markdown(ctrl, figures=None) -> str:
     if session is None or session.result is None:
         return "_Compensation: not fitted yet (the Step 1 button fits Tolles-Lawson)._"
     result = session.result
-    terms = ", ".join(session.result_effects(result)) or "none"
+    terms = ", ".join(session.result_labels(result)) or "none"
     found = session.fom_figures(result)
     if found is None:
         return f"**Compensation fitted**, no maneuvers found (no FOM)  \nTerms beyond Tolles-Lawson: {safe_text(terms)}"
@@ -173,11 +173,13 @@ def candidates_markdown(ctrl) -> str:
     ]
     for c in found.candidates:
         if not c.judged:
-            lines.append(f"| - | {safe_code(c.name)} | not judged: {safe_text(c.reason, 160)} | - |")
+            lines.append(
+                f"| - | {safe_code(session.candidate_label(c))} | not judged: {safe_text(c.reason, 160)} | - |"
+            )
             continue
         mark = "**advised**" if c.recommended else "no"
         before, after = session.candidate_figures(c)
-        lines.append(f"| {c.round} | {safe_code(c.name)} | {fmt(before)}→{fmt(after)} | {mark} |")
+        lines.append(f"| {c.round} | {safe_code(session.candidate_label(c))} | {fmt(before)}→{fmt(after)} | {mark} |")
     lines += [f"- warning: {safe_text(w, 600)}" for w in found.warnings]
     return "\n".join(lines)
 
@@ -189,8 +191,8 @@ def candidate_markdown(ctrl, label: str) -> str:
         return ""
     found = session.diagnosis
     for c in found.candidates:
-        if c.name == label:
-            what = safe_text(session.terms.get(label, ""), 300)
+        if session.candidate_label(c) == label:
+            what = safe_text(session.terms.get(c.name, ""), 300)
             said = safe_text(c.evidence or c.reason, 600)
             return f"**{safe_text(label)}** ({what}): {said}"
     return ""
@@ -209,7 +211,7 @@ def history_markdown(ctrl) -> str:
     ]
     for i, r in enumerate(rows[-8:], start=max(0, len(rows) - 8)):
         lines.append(
-            f"| {i} | {safe_text(r['step'], 120)} | {safe_text(', '.join(r['effects']) or 'none', 200)} | "
+            f"| {i} | {safe_text(r['step'], 120)} | {safe_text(', '.join(session.row_labels(r)) or 'none', 200)} | "
             f"{fmt(r['fom_before_nT'])} | {fmt(r['fom_nT'])} | {fmt(r['improvement_ratio'], digits=3)} |"
         )
     return "\n".join(lines)
@@ -221,8 +223,9 @@ def terms_markdown(ctrl) -> str:
     if session is None or session.result is None:
         return "_The compensation has Tolles-Lawson's permanent, induced and eddy terms only (not fitted yet)._"
     lines = [f"**In the compensation:** {session.tl_words()}"]
-    for name in session.result_effects(session.result):
-        lines.append(f"- {safe_code(name)}: {safe_text(session.terms.get(name, ''), 300)}")
+    for label in session.result_labels(session.result):
+        name, _ = split_label(label)
+        lines.append(f"- {safe_code(label)}: {safe_text(session.terms.get(name, ''), 300)}")
     return "\n".join(lines)
 
 
@@ -291,7 +294,7 @@ class CompensationPage:
     def do_remove_compensation_term(self, event):
         """Model tab: the compensation refitted without its last term beyond TL, in the worker."""
         session = self.model
-        if not session.effects:
+        if not session.model_labels():
             raise MagcalError(f"the {session.title} holds no term beyond Tolles-Lawson to take out")
         self._ctrl().run_step("take a term out", lambda inputs: session.remove(inputs=inputs))
 

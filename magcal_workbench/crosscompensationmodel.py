@@ -54,7 +54,7 @@ class CrossCompensationSession(CompensationBase):
     def check_terms(self, names) -> list[str]:
         return list(check_cross_effects(names))
 
-    def engine_fit(self, names, kept):
+    def engine_fit(self, names, kept, current=None):
         return CROSS_COMPENSATION.fit(self.record(), effects=names, mask=kept)
 
     def engine_diagnose(self):
