@@ -151,6 +151,47 @@ def status_markdown(ctrl, figures=None) -> str:
     )
 
 
+def header_markdown(ctrl, n_kept: int, n_samples: int) -> str:
+    """The compact table the panel opens with, on a compensation flight: the compensation's FOM before (the raw
+    scalar, or the cross's raw tensor) and after, its improvement ratio and the floor the noise leaves (after a
+    diagnosis), in place of the total-field fit's ``|y| - F`` figures, which do not judge a compensation."""
+    session = model_of(ctrl)
+    kept = f"{n_kept} of {n_samples} samples kept"
+    if session is None or session.result is None:
+        return (
+            f"**Now**: {kept}; {session.words if session else 'compensation'} not fitted yet (the Step 1 button fits "
+            "Tolles-Lawson; its figure of merit, the FOM in the maneuvers, shows here)"
+        )
+    unit, figures = session.unit, session.fom_figures(session.result)
+    if figures is None:
+        return f"**Now**: {kept}; {session.words} fitted, no maneuvers found (no FOM)"
+    before, after, ratio, n = figures
+    what = "scalar" if unit == "nT" else "tensor"
+    rows = [
+        f"| | {what} FOM {unit} | improvement ratio |",
+        "|---|---|---|",
+        f"| raw | {fmt(before, digits=4)} | |",
+        f"| **compensated** | **{fmt(after, digits=4)}** | {ratio:.3g} |",
+    ]
+    floor = ""
+    if session.diagnosis is not None:
+        floor = f"; {session.noise_words} leaves {fmt(session.diagnosis_figures(session.diagnosis)[1], unit, 3)}"
+    return f"**Now**: {kept}; {session.words}, {n} maneuvers{floor}\n\n" + "\n".join(rows)
+
+
+def legend_title(ctrl, by: str) -> str:
+    """The scene's colour legend's title on a compensation flight (plain text): the band-passed compensated scalar
+    once the scalar's compensation is drawn (``by == "compensation"``), with its FOM; else what the colours are (the
+    raw fluxgate's ``|y| - F``), and that the compensation is judged by its FOM in the table, not by them."""
+    session = model_of(ctrl)
+    figures = None if session is None or session.result is None else session.fom_figures(session.result)
+    fom = "" if figures is None else f"FOM {fmt(figures[1], session.unit if session else '', 3)}"
+    if by == "compensation":
+        return "band-passed compensated scalar (compensation" + (f", {fom}" if fom else "") + ")"
+    judged = f"its {fom} in the table" if fom else "by its FOM once fitted"
+    return f"raw fluxgate |y| - F (not the compensation's figure: {judged})"
+
+
 def candidates_markdown(ctrl) -> str:
     """The diagnosis's verdict and the candidates with their held-out FOM, or what to press."""
     session = model_of(ctrl)
