@@ -20,6 +20,7 @@ from magcal.diagnosis.fom import figure_of_merit
 from magcal_workbench.compensationpanel import candidate_markdown, history_markdown, terms_markdown
 from magcal_workbench.controller import Controller
 from magcal_workbench.dataio import load_dataset
+from magcal_workbench.guide import next_step
 from magcal_workbench.looptext import loop_text
 from magcal_workbench.sessionfile import read_session_document
 from tests.fitting.test_compensation_fit_currents import TWO_CURRENTS
@@ -76,6 +77,8 @@ def test_each_current_column_is_a_candidate_and_add_takes_the_advised_ones(bench
     assert sorted(currents) == sorted(f"current ({c})" for c in truth.currents_A)  # five rows, each named
     assert "current" not in offered
     assert sorted(ctrl.advice()) == sorted(f"current ({c})" for c in HIDDEN)
+    step = next_step(ctrl)  # the guide's Step 3 names both columns (its one refit adds them together)
+    assert step.key == "add" and sorted(step.effects) == sorted(f"current ({c})" for c in HIDDEN)
     text = loop_text(ctrl).candidates(ctrl)
     assert all(f"`current ({c})`" in text for c in truth.currents_A)
     assert "per A" in candidate_markdown(ctrl, "current (cur_strb)")
