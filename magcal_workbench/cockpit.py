@@ -22,6 +22,7 @@ from magcal.core.errors import MagcalError
 
 from . import motion
 from .actions import action
+from .compensationpanel import header_markdown as compensation_header
 from .floors import mode_floor
 from .panels import summary_markdown
 from .parts import PagePart
@@ -168,7 +169,10 @@ class Cockpit(PagePart):
             for b in (p.btn_exclude_range, p.btn_include_range, p.btn_exclude_fast):
                 b.disabled = False
         sensors = [] if cal is None else [(c.cinv, c.bias_nT) for c in cal.sensors]
-        p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor, floor_what)
+        if live is None and self.ctrl.compensation_loop():  # judged by its FOM, not by |y| - F
+            p.summary.content = compensation_header(self.ctrl, figures["n_kept"], figures["n_samples"])
+        else:
+            p.summary.content = summary_markdown(figures, rms, floor, sensors, sensor, floor_what)
         pending = self.pending_s(record) if live is None else None
         if self._keys.get("field") != (field_key := f"{key} {pending}"):
             p.field_plot.figure = magnitude_figure(record, pending)

@@ -20,7 +20,7 @@ from magcal.model.tolles_lawson import bandpass
 from magcal.modes import COMPENSATION
 
 from .events import Change
-from .markup import safe_text
+from .markup import clean_text, safe_text
 from .modelsession import ModelSession, register_session
 from .state import MAX_HISTORY_ROWS, JobInputs, pack_mask, unpack_mask
 
@@ -77,6 +77,7 @@ class CompensationBase(ModelSession):
         self.result: Any = None
         self._record: Any = None
         self._history: list[dict] = []
+        self._current_columns: list[str] = []
 
     # --- what a subclass names -----------------------------------------------------------------------------
     def make_record(self):
@@ -87,9 +88,18 @@ class CompensationBase(ModelSession):
         """``names`` checked against the terms the engine takes (its one-line message otherwise)."""
         raise NotImplementedError
 
-    def engine_fit(self, names: list[str], kept: np.ndarray):
-        """The engine's fit with ``names`` beyond TL on the ``kept`` samples, with its FOM report."""
+    def engine_fit(self, names: list[str], kept: np.ndarray, current: list[str] | None = None):
+        """The engine's fit with ``names`` beyond TL on the ``kept`` samples (the current term taking the columns
+        ``current``, the engine's default when None), with its FOM report."""
         raise NotImplementedError
+
+    def current_choices(self) -> list[str]:
+        """The record's current columns the current term may take (empty for a compensation with one at most)."""
+        return []
+
+    def result_columns(self, result) -> list[str]:
+        """The current columns a fit's current term took (empty without it)."""
+        return []
 
     def engine_diagnose(self):
         """The engine's diagnosis of the model's terms."""
@@ -128,6 +138,61 @@ class CompensationBase(ModelSession):
         return self._record
 
     @property
+    def current_columns(self) -> list[str]:
+        """The current columns the model's current term takes, in the order added (empty without the term, or before
+        its fit when the engine chose the column)."""
+        return list(self._current_columns) if "current" in self._effects else []
+
+    def several_currents(self) -> bool:
+        """Whether the record holds more than one current column (then each is a term of its own on the page)."""
+        try:
+            return len(self.current_choices()) > 1
+        except MagcalError:
+            return False
+
+    def term_labels(self, effects, columns=()) -> list[str]:
+        """The page's names of the terms ``effects`` with the current's ``columns``: ``current (cur_strb)`` per
+        column on a record with several current columns, the engine's names otherwise."""
+        several = self.several_currents()
+        labels: list[str] = []
+        for name in effects:
+            if name == "current" and several and columns:
+                labels += [current_label(c) for c in columns]
+            else:
+                labels.append(name)
+        return labels
+
+    def model_labels(self) -> list[str]:
+        """The model's terms beyond TL as the page names them (:meth:`term_labels`)."""
+        return self.term_labels(self.effects, self.current_columns)
+
+    def candidate_label(self, candidate) -> str:
+        """A diagnosis candidate as the page names it: with its current column on a record with several."""
+        columns = tuple(getattr(candidate, "columns", ()) or ())
+        if candidate.name == "current" and columns and self.several_currents():
+            return current_label(*columns)
+        return candidate.name
+
+    def parse_labels(self, labels) -> tuple[list[str], list[str]]:
+        """The engine's terms and the current columns that the page's ``labels`` name (``current (cur_strb)``:
+        the current term taking that column; the columns checked against the record's)."""
+        names: list[str] = []
+        columns: list[str] = []
+        for label in labels:
+            name, named = split_label(str(label))
+            if named:
+                choices = self.current_choices()
+                lacks = [c for c in named if c not in choices]
+                if lacks:
+                    raise MagcalError(
+                        f"{clean_text(repr(str(label)), 80)}: the record has no current column "
+                        f"{clean_text(', '.join(lacks), 200)} (its current columns: {clean_text(', '.join(choices), 300)})"
+                    )
+                columns += [c for c in named if c not in columns]
+            names.append(name)
+        return list(dict.fromkeys(self.check_terms(names))), columns
+
+    @property
     def chosen(self) -> bool:
         """Whether the engine's choice of fit mode for the record is this compensation (the page shows it)."""
         return getattr(self.ctrl, "model_session", None) is self
@@ -144,9 +209,18 @@ class CompensationBase(ModelSession):
         return None if figures is None else float(figures[1])
 
     # --- the loop ------------------------------------------------------------------------------------------
-    def fit(self, *, inputs: JobInputs | None = None, effects=None, step: str = "", again: bool = False):
-        """The compensation (TL and the model's terms beyond it, or ``effects``) on the kept samples, its FOM before
-        and after, a history row (``step``: what changed) and a message.
+    def fit(
+        self,
+        *,
+        inputs: JobInputs | None = None,
+        effects=None,
+        step: str = "",
+        again: bool = False,
+        current: list[str] | None = None,
+    ):
+        """The compensation (TL and the model's terms beyond it, or ``effects``; the current term taking the columns
+        ``current``, default the model's) on the kept samples, its FOM before and after, a history row (``step``:
+        what changed) and a message.
 
         Raises
         ------
@@ -158,16 +232,19 @@ class CompensationBase(ModelSession):
         ctrl = self.ctrl
         kept = np.asarray(ctrl.kept if inputs is None else inputs.kept, dtype=bool)
         names = self.check_terms(self.effects if effects is None else effects)
+        columns = list(self.current_columns if current is None else current) if "current" in names else []
         t0 = time.perf_counter()
-        ctrl.report_progress(f"{self.words} fit (Tolles-Lawson" + (" + " + ", ".join(names) if names else "") + ")")
+        said = self.term_labels(names, columns)
+        ctrl.report_progress(f"{self.words} fit (Tolles-Lawson" + (" + " + ", ".join(said) if said else "") + ")")
         try:
-            result = self.engine_fit(names, kept)
+            result = self.engine_fit(names, kept, columns or None)
         finally:
             ctrl.end_progress()
         elapsed = time.perf_counter() - t0
         with ctrl.state.lock:
             self.result, self.diagnosis = result, None
             self._effects = names
+            self._current_columns = self.result_columns(result) if "current" in names else []
             if not again:
                 self._history.append(self._history_row(step or "Tolles-Lawson fit", result, int(kept.sum()), elapsed))
                 del self._history[:-MAX_HISTORY_ROWS]
@@ -198,32 +275,70 @@ class CompensationBase(ModelSession):
         return found
 
     def candidate_labels(self) -> list[str]:
-        """The advice first, then the other judged terms by their held-out FOM, none the model holds."""
+        """The advice first, then the other judged terms by their held-out FOM, none the model holds (a current
+        column each a term of its own on a record with several: ``current (cur_strb)``)."""
         found = self.diagnosis
         if found is None:
             return []
         ranked = sorted((c for c in found.candidates if c.judged), key=lambda c: self.candidate_figures(c)[1])
-        labels = list(self.advice()) + [c.name for c in ranked]
-        return [name for name in dict.fromkeys(labels) if name not in self.effects]
+        labels = list(self.advice()) + [self.candidate_label(c) for c in ranked]
+        model = self.model_labels()
+        return [label for label in dict.fromkeys(labels) if label not in model]
+
+    def advice(self) -> list[str]:
+        """What the last diagnosis advises that the model does not hold: its ``explained_by``, and on a record with
+        several current columns each column its ``current_columns`` adds (``current (cur_com_1)``)."""
+        found = self.diagnosis
+        if found is None:
+            return []
+        names = list(getattr(found, "explained_by", None) or [])
+        columns = list(getattr(found, "current_columns", None) or [])
+        if columns and self.several_currents() and "current" not in names and "current" in self.effects:
+            names.append("current")  # the model's current term takes more columns
+        model = self.model_labels()
+        return [label for label in self.term_labels(names, columns) if label not in model]
 
     def candidate_holds(self, label: str) -> bool:
         """Whether the diagnosis recommends ``label`` (its held-out FOM fell by the engine's margin)."""
         found = self.diagnosis
-        return found is not None and any(c.name == label and c.recommended for c in found.candidates)
+        if found is None:
+            return False
+        return label in self.advice() or any(
+            self.candidate_label(c) == label and c.recommended for c in found.candidates
+        )
 
     def add_all(self, labels, *, inputs: JobInputs | None = None, note: str = ""):
-        """Put the terms ``labels`` into the model and refit once."""
-        names = self.check_terms(labels)
+        """Put the terms ``labels`` into the model (``current (cur_strb)``: the current term taking that column
+        besides the model's) and refit once."""
+        names, columns = self.parse_labels(labels)
         effects = list(dict.fromkeys(self.effects + names))
-        step = "+ " + ", ".join(names) + (f" ({note})" if note else "")
-        return self.fit(inputs=inputs, effects=effects, step=step)
+        current = list(dict.fromkeys(self.current_columns + columns))
+        said = ", ".join(self.term_labels(names, columns))
+        step = "+ " + said + (f" ({note})" if note else "")
+        return self.fit(inputs=inputs, effects=effects, step=step, current=current)
+
+    def remove(self, label: str | None = None, *, inputs: JobInputs | None = None):
+        """Take ``label`` (the last of :meth:`model_labels` by default; ``current (cur_strb)`` one current column)
+        out of the model and refit."""
+        model = self.model_labels()
+        if not model:
+            raise MagcalError(f"the {self.title} holds no term beyond Tolles-Lawson")
+        label = model[-1] if label is None else label
+        if label not in model:
+            raise MagcalError(f"{clean_text(repr(str(label)), 80)} is not in the {self.title}")
+        return self._refit_without(label, inputs)
 
     def _refit_without(self, label: str, inputs: JobInputs | None):
-        return self.fit(inputs=inputs, effects=[e for e in self.effects if e != label], step=f"- {label}")
+        name, columns = split_label(label)
+        current = [c for c in self.current_columns if c not in columns]
+        drop = bool(columns) and bool(current)  # the current term stays with its other columns
+        effects = [e for e in self.effects if e != name or drop]
+        return self.fit(inputs=inputs, effects=effects, step=f"- {label}", current=current)
 
     def history(self) -> list[dict]:
-        """The fits of this session (``step``, ``effects``, ``fom_before_nT``, ``fom_nT``, ``improvement_ratio``,
-        ``n_fitted``, ``elapsed_s``: the session file's keys, the FOM in :attr:`unit`), oldest first."""
+        """The fits of this session (``step``, ``effects``, ``current_columns``, ``fom_before_nT``, ``fom_nT``,
+        ``improvement_ratio``, ``n_fitted``, ``elapsed_s``: the session file's keys, the FOM in :attr:`unit`),
+        oldest first."""
         return list(self._history)
 
     def _history_row(self, step: str, result, n_fitted: int, elapsed_s: float) -> dict:
@@ -232,6 +347,7 @@ class CompensationBase(ModelSession):
         return {
             "step": step,
             "effects": self.result_effects(result),
+            "current_columns": self.result_columns(result),
             "fom_before_nT": None if before is None else float(before),
             "fom_nT": None if after is None else float(after),
             "improvement_ratio": None if ratio is None else float(ratio),
@@ -241,7 +357,7 @@ class CompensationBase(ModelSession):
 
     def fit_message(self, result, elapsed_s: float) -> str:
         """The page's line after a fit (markdown): the terms and the FOM before -> after."""
-        terms = ", ".join(self.result_effects(result)) or "none"
+        terms = ", ".join(self.result_labels(result)) or "none"
         figures = self.fom_figures(result)
         if figures is None:
             said = "no maneuvers found, so no FOM"
@@ -251,10 +367,25 @@ class CompensationBase(ModelSession):
         text = f"**{self.words} fit (Tolles-Lawson; beyond it: {safe_text(terms)})** ({elapsed_s:.2f} s): {said}"
         return text + "".join(f"  \n- {safe_text(w, 600)}" for w in result.warnings)
 
+    def result_labels(self, result) -> list[str]:
+        """A fit's terms beyond TL as the page names them (:meth:`term_labels`)."""
+        return self.term_labels(self.result_effects(result), self.result_columns(result))
+
+    def row_labels(self, row: dict) -> list[str]:
+        """A history row's terms beyond TL as the page names them (a row of an earlier session file names no
+        current column)."""
+        return self.term_labels(row.get("effects", []), row.get("current_columns") or ())
+
     # --- the session file ----------------------------------------------------------------------------------
     def save_doc(self, kept: np.ndarray) -> dict:
-        """What the session file keeps (``compensation_fit``): the samples, the terms beyond TL, the history."""
-        return {"kept": pack_mask(kept), "effects": list(self.effects), "history": [dict(h) for h in self._history]}
+        """What the session file keeps (``compensation_fit``): the samples, the terms beyond TL, the current term's
+        columns, the history."""
+        return {
+            "kept": pack_mask(kept),
+            "effects": list(self.effects),
+            "current_columns": self.current_columns,
+            "history": [dict(h) for h in self._history],
+        }
 
     def save(self) -> dict | None:
         """The session file's ``compensation_fit``, or None before a fit (or on a record of the other
@@ -271,7 +402,8 @@ class CompensationBase(ModelSession):
             return f"the saved session ran the {self.words} fit: press the Step 1 button to see it again"
         try:
             kept = unpack_mask(saved["kept"], self.dataset.n_samples)
-            self.fit(inputs=JobInputs(kept, ()), effects=saved.get("effects", []), again=True)
+            columns = saved.get("current_columns") or None  # a file of before: the engine's first column
+            self.fit(inputs=JobInputs(kept, ()), effects=saved.get("effects", []), again=True, current=columns)
         except (MagcalError, ValueError, KeyError, TypeError) as exc:
             with self.ctrl.state.lock:
                 self.ctrl.state.compensation_fit = None
@@ -282,6 +414,7 @@ class CompensationBase(ModelSession):
     def forget(self) -> None:
         super().forget()
         self.result = None
+        self._current_columns = []
         if self.chosen:
             self.ctrl.state.compensation_fit = None
 
@@ -329,14 +462,22 @@ class CompensationSession(CompensationBase):
     def check_terms(self, names) -> list[str]:
         return list(check_effects(names))
 
-    def engine_fit(self, names, kept):
-        return COMPENSATION.fit(self.record(), effects=names, mask=kept)
+    def engine_fit(self, names, kept, current=None):
+        return COMPENSATION.fit(self.record(), effects=names, mask=kept, current=current)
 
     def engine_diagnose(self):
-        return COMPENSATION.diagnose(self.record(), effects=tuple(self.effects))
+        # the model's current columns named: the record's others stay candidates, each of its own
+        return COMPENSATION.diagnose(self.record(), effects=tuple(self.effects), current=self.current_columns or None)
+
+    def current_choices(self) -> list[str]:
+        return list(self.record().all_currents) if self.available else []
 
     def result_effects(self, result) -> list[str]:
         return list(result.calibration.effects)
+
+    def result_columns(self, result) -> list[str]:
+        comp = result.calibration
+        return list(comp.current_columns) if "current" in comp.effects else []
 
     def fom_figures(self, result):
         fom = result.fom
@@ -363,6 +504,23 @@ class CompensationSession(CompensationBase):
     def tl_words(self) -> str:
         tl = self.result.calibration.tl
         return f"Tolles-Lawson ({safe_text(', '.join(tl.terms))}: {len(tl.labels)} coefficients)"
+
+
+def current_label(*columns: str) -> str:
+    """The page's name of the current term taking ``columns``: ``current (cur_strb)`` (the engine's candidate
+    label)."""
+    return f"current ({', '.join(columns)})"
+
+
+def split_label(label: str) -> tuple[str, list[str]]:
+    """A term's name and its current columns from the page's label (``current (cur_strb)`` -> ``current``,
+    ``[cur_strb]``; ``heading`` -> ``heading``, ``[]``)."""
+    text = label.strip()
+    if text.startswith("current") and text.endswith(")") and "(" in text:
+        head, _, inside = text[:-1].partition("(")
+        if head.strip() == "current":
+            return "current", [c.strip() for c in inside.split(",") if c.strip()]
+    return text, []
 
 
 def band_passed_traces(session: CompensationSession) -> dict | None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 from magcal.core.errors import MagcalError
 
 from .actions import action
-from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of
+from .compensationmodel import CompensationBase, CompensationSession, band_passed_traces, model_of, split_label
 from .events import Change
 from .figures import fmt
 from .markup import safe_code, safe_text
@@ -139,7 +139,7 @@ def status_markdown(ctrl, figures=None) -> str:
     if session is None or session.result is None:
         return "_Compensation: not fitted yet (the Step 1 button fits Tolles-Lawson)._"
     result = session.result
-    terms = ", ".join(session.result_effects(result)) or "none"
+    terms = ", ".join(session.result_labels(result)) or "none"
     found = session.fom_figures(result)
     if found is None:
         return f"**Compensation fitted**, no maneuvers found (no FOM)  \nTerms beyond Tolles-Lawson: {safe_text(terms)}"
@@ -149,6 +149,47 @@ def status_markdown(ctrl, figures=None) -> str:
         f"**{what}: {fmt(before)} -> {fmt(after)} {session.unit}** (improvement ratio {ratio:.3g}, {n} maneuvers)  \n"
         f"Terms beyond Tolles-Lawson: {safe_text(terms)}"
     )
+
+
+def header_markdown(ctrl, n_kept: int, n_samples: int) -> str:
+    """The compact table the panel opens with, on a compensation flight: the compensation's FOM before (the raw
+    scalar, or the cross's raw tensor) and after, its improvement ratio and the floor the noise leaves (after a
+    diagnosis), in place of the total-field fit's ``|y| - F`` figures, which do not judge a compensation."""
+    session = model_of(ctrl)
+    kept = f"{n_kept} of {n_samples} samples kept"
+    if session is None or session.result is None:
+        return (
+            f"**Now**: {kept}; {session.words if session else 'compensation'} not fitted yet (the Step 1 button fits "
+            "Tolles-Lawson; its figure of merit, the FOM in the maneuvers, shows here)"
+        )
+    unit, figures = session.unit, session.fom_figures(session.result)
+    if figures is None:
+        return f"**Now**: {kept}; {session.words} fitted, no maneuvers found (no FOM)"
+    before, after, ratio, n = figures
+    what = "scalar" if unit == "nT" else "tensor"
+    rows = [
+        f"| | {what} FOM {unit} | improvement ratio |",
+        "|---|---|---|",
+        f"| raw | {fmt(before, digits=4)} | |",
+        f"| **compensated** | **{fmt(after, digits=4)}** | {ratio:.3g} |",
+    ]
+    floor = ""
+    if session.diagnosis is not None:
+        floor = f"; {session.noise_words} leaves {fmt(session.diagnosis_figures(session.diagnosis)[1], unit, 3)}"
+    return f"**Now**: {kept}; {session.words}, {n} maneuvers{floor}\n\n" + "\n".join(rows)
+
+
+def legend_title(ctrl, by: str) -> str:
+    """The scene's colour legend's title on a compensation flight (plain text): the band-passed compensated scalar
+    once the scalar's compensation is drawn (``by == "compensation"``), with its FOM; else what the colours are (the
+    raw fluxgate's ``|y| - F``), and that the compensation is judged by its FOM in the table, not by them."""
+    session = model_of(ctrl)
+    figures = None if session is None or session.result is None else session.fom_figures(session.result)
+    fom = "" if figures is None else f"FOM {fmt(figures[1], session.unit if session else '', 3)}"
+    if by == "compensation":
+        return "band-passed compensated scalar (compensation" + (f", {fom}" if fom else "") + ")"
+    judged = f"its {fom} in the table" if fom else "by its FOM once fitted"
+    return f"raw fluxgate |y| - F (not the compensation's figure: {judged})"
 
 
 def candidates_markdown(ctrl) -> str:
@@ -173,11 +214,13 @@ def candidates_markdown(ctrl) -> str:
     ]
     for c in found.candidates:
         if not c.judged:
-            lines.append(f"| - | {safe_code(c.name)} | not judged: {safe_text(c.reason, 160)} | - |")
+            lines.append(
+                f"| - | {safe_code(session.candidate_label(c))} | not judged: {safe_text(c.reason, 160)} | - |"
+            )
             continue
         mark = "**advised**" if c.recommended else "no"
         before, after = session.candidate_figures(c)
-        lines.append(f"| {c.round} | {safe_code(c.name)} | {fmt(before)}→{fmt(after)} | {mark} |")
+        lines.append(f"| {c.round} | {safe_code(session.candidate_label(c))} | {fmt(before)}→{fmt(after)} | {mark} |")
     lines += [f"- warning: {safe_text(w, 600)}" for w in found.warnings]
     return "\n".join(lines)
 
@@ -189,8 +232,8 @@ def candidate_markdown(ctrl, label: str) -> str:
         return ""
     found = session.diagnosis
     for c in found.candidates:
-        if c.name == label:
-            what = safe_text(session.terms.get(label, ""), 300)
+        if session.candidate_label(c) == label:
+            what = safe_text(session.terms.get(c.name, ""), 300)
             said = safe_text(c.evidence or c.reason, 600)
             return f"**{safe_text(label)}** ({what}): {said}"
     return ""
@@ -209,7 +252,7 @@ def history_markdown(ctrl) -> str:
     ]
     for i, r in enumerate(rows[-8:], start=max(0, len(rows) - 8)):
         lines.append(
-            f"| {i} | {safe_text(r['step'], 120)} | {safe_text(', '.join(r['effects']) or 'none', 200)} | "
+            f"| {i} | {safe_text(r['step'], 120)} | {safe_text(', '.join(session.row_labels(r)) or 'none', 200)} | "
             f"{fmt(r['fom_before_nT'])} | {fmt(r['fom_nT'])} | {fmt(r['improvement_ratio'], digits=3)} |"
         )
     return "\n".join(lines)
@@ -221,8 +264,9 @@ def terms_markdown(ctrl) -> str:
     if session is None or session.result is None:
         return "_The compensation has Tolles-Lawson's permanent, induced and eddy terms only (not fitted yet)._"
     lines = [f"**In the compensation:** {session.tl_words()}"]
-    for name in session.result_effects(session.result):
-        lines.append(f"- {safe_code(name)}: {safe_text(session.terms.get(name, ''), 300)}")
+    for label in session.result_labels(session.result):
+        name, _ = split_label(label)
+        lines.append(f"- {safe_code(label)}: {safe_text(session.terms.get(name, ''), 300)}")
     return "\n".join(lines)
 
 
@@ -291,7 +335,7 @@ class CompensationPage:
     def do_remove_compensation_term(self, event):
         """Model tab: the compensation refitted without its last term beyond TL, in the worker."""
         session = self.model
-        if not session.effects:
+        if not session.model_labels():
             raise MagcalError(f"the {session.title} holds no term beyond Tolles-Lawson to take out")
         self._ctrl().run_step("take a term out", lambda inputs: session.remove(inputs=inputs))
 

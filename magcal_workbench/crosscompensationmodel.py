@@ -5,13 +5,17 @@ engine's fit mode ``"cross_compensation"``, :mod:`magcal.modes.cross_compensatio
 :class:`CrossCompensationSession` is the scalar's :class:`~magcal_workbench.compensationmodel.CompensationSession`
 with the cross's engine calls: the loop (fit, diagnose, add, remove, history, the session file's
 ``compensation_fit``) is their base's, :class:`~magcal_workbench.compensationmodel.CompensationBase`. The fit is
-taken against the four sensors' mean field (the record's own Earth field: no field vector needed); the FOM, the
-maneuvers and the diagnosis are the engine's (:func:`magcal.diagnosis.cross_compensation.cross_compensation_result`,
+taken against the attitude's Earth field when the page has a field vector (the file's ``ref_n, ref_e, ref_d``, a
+location), as ``magcal diagnose --mode cross_compensation`` does, so that the sensors' lag (``time_offset``) is a
+candidate; else against the four sensors' mean field (the record's own Earth field: no field vector needed). The
+FOM, the maneuvers and the diagnosis are the engine's
+(:func:`magcal.diagnosis.cross_compensation.cross_compensation_result`,
 :func:`~magcal.diagnosis.cross_compensation.diagnose_cross_compensation`).
 """
 
 from __future__ import annotations
 
+from magcal.core.errors import MagcalError
 from magcal.diagnosis.cross_compensation import CROSS_EFFECTS, check_cross_effects, cross_record
 from magcal.fitting.compensation import COMPENSATION_EFFECTS
 from magcal.modes import CROSS_COMPENSATION
@@ -54,11 +58,24 @@ class CrossCompensationSession(CompensationBase):
     def check_terms(self, names) -> list[str]:
         return list(check_cross_effects(names))
 
-    def engine_fit(self, names, kept):
-        return CROSS_COMPENSATION.fit(self.record(), effects=names, mask=kept)
+    def field_reference(self):
+        """The Earth field vector the fit takes against the attitude, as ``magcal diagnose --mode
+        cross_compensation`` does: the page's vector reference (the location typed, the file's ``ref_n, ref_e,
+        ref_d``, IGRF along its ``lat, lon``; :meth:`~magcal_workbench.vectormodel.VectorSession.reference`); None
+        without the attitude or a vector (the four's mean field: the sensors' lag cannot be judged)."""
+        if self.record().attitude_deg is None:
+            return None
+        vector = getattr(self.ctrl, "vector", None)
+        try:
+            return None if vector is None else vector.reference()
+        except MagcalError:  # IGRF not installed, a damaged column: the four's mean field
+            return None
+
+    def engine_fit(self, names, kept, current=None):
+        return CROSS_COMPENSATION.fit(self.record(), reference=self.field_reference(), effects=names, mask=kept)
 
     def engine_diagnose(self):
-        return CROSS_COMPENSATION.diagnose(self.record(), effects=tuple(self.effects))
+        return CROSS_COMPENSATION.diagnose(self.record(), reference=self.field_reference(), effects=tuple(self.effects))
 
     def result_effects(self, result) -> list[str]:
         return list(result.effects)

@@ -679,8 +679,11 @@ class Panels:
             self.show_live_texts(live)  # the tabs describe the stream, not the file open before it
         elif kinds == {Change.SELECTION} and self._figures_held:
             self._figures_stale = True  # the refit that follows draws them
-        elif _asks(kinds, Change.RESULT, Change.SELECTION, Change.DATA, Change.SETTINGS, Change.MODEL, Change.VECTOR):
-            self._figures_stale = False  # (vector: the table shows the vector mode's floor; unchanged figures stay)
+        elif _asks(
+            kinds, Change.RESULT, Change.SELECTION, Change.DATA, Change.SETTINGS, Change.MODEL, Change.VECTOR
+        ) or (_asks(kinds, Change.COMPENSATION, Change.DIAGNOSIS) and self.ctrl().compensation_loop()):
+            # (vector: the table shows the vector mode's floor; a compensation: its FOM; unchanged figures stay)
+            self._figures_stale = False
             self.on.draw_cockpit()
 
     @contextmanager

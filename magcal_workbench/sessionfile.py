@@ -333,15 +333,24 @@ class _Reader:
         if value is None:
             return None
         doc = self.obj(field, value)
-        unknown = set(doc) - {"kept", "effects", "history"}
+        unknown = set(doc) - {"kept", "effects", "current_columns", "history"}
         if unknown:
             self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
         if "kept" not in doc:
             self.fail(f"{field}.kept", "is missing")
         self.mask(f"{field}.kept", doc["kept"], n)
         effects = self.compensation_terms(f"{field}.effects", doc.get("effects", []))
+        columns = self.current_columns(f"{field}.current_columns", doc.get("current_columns", []))
         history = self.rows(f"{field}.history", doc.get("history", []), self.compensation_step)
-        return {"kept": doc["kept"], "effects": effects, "history": history}
+        return {"kept": doc["kept"], "effects": effects, "current_columns": columns, "history": history}
+
+    def current_columns(self, field, value):
+        """The current columns the compensation's current term takes (a session file of before names none: the
+        engine's first column)."""
+        columns = [self.text(f"{field}[{i}]", v, max_len=200) for i, v in enumerate(self.listing(field, value, 16))]
+        if len(set(columns)) != len(columns):
+            self.fail(field, "names a column twice")
+        return columns
 
     def compensation_terms(self, field, value):
         """Terms beyond Tolles-Lawson, each one of :data:`magcal.fitting.compensation.COMPENSATION_EFFECTS`."""
@@ -356,12 +365,13 @@ class _Reader:
     def compensation_step(self, field, value):
         """One row of the compensation's history (its step, terms and FOM figures)."""
         doc = self.obj(field, value)
-        unknown = set(doc) - set(COMPENSATION_STEP_NUMBERS) - {"step", "effects"}
+        unknown = set(doc) - set(COMPENSATION_STEP_NUMBERS) - {"step", "effects", "current_columns"}
         if unknown:
             self.fail(field, f"holds unknown key(s) {_show(sorted(unknown))}")
         row = {
             "step": self.text(f"{field}.step", doc.get("step", "")),
             "effects": self.compensation_terms(f"{field}.effects", doc.get("effects", [])),
+            "current_columns": self.current_columns(f"{field}.current_columns", doc.get("current_columns", [])),
         }
         for key in COMPENSATION_STEP_NUMBERS:
             row[key] = self.number(f"{field}.{key}", doc.get(key), 0.0, math.inf, null=True)

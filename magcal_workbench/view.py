@@ -18,6 +18,7 @@ from . import motion
 from . import scene as scn
 from .actions import action
 from .compensationmodel import band_passed_traces
+from .compensationpanel import legend_title as compensation_legend_title
 from .gravitymodel import model_of
 from .guide import compensation_mode, gravity_mode
 from .markup import clean_text, safe_text
@@ -271,6 +272,8 @@ class SceneControl(PagePart):
             if fitted
             else "raw |y| - F"
         )
+        if live is None and compensation_mode(self.ctrl):
+            title = compensation_legend_title(self.ctrl, by)
         html = scn.legend_html(self.scene_view.last_limit_nT, title)
         if self.maps.patterns and live is None:
             html += scn.legend_html(

@@ -185,6 +185,11 @@ SEAM_ALLOWED = {
     ("plots", "magcal.diagnosis.vector.evidence_channel"): "the channel a candidate is plotted against (a name)",
     # the record the compensation mode fits, made once: the page draws its band-passed traces too
     ("compensationmodel", "magcal.fitting.compensation.compensation_record"): "the flight's record the mode fits",
+    # the cross's page: the same as the scalar's, by the cross's names
+    ("crosscompensationmodel", "magcal.fitting.compensation.COMPENSATION_EFFECTS"): "what each term is, in words",
+    ("crosscompensationmodel", "magcal.diagnosis.cross_compensation.CROSS_EFFECTS"): "the cross's terms, by name",
+    ("crosscompensationmodel", "magcal.diagnosis.cross_compensation.check_cross_effects"): "terms' names checked",
+    ("crosscompensationmodel", "magcal.diagnosis.cross_compensation.cross_record"): "the flight's record, made once",
     # the diagnosis's worker processes, started when the page opens a record so that the first Diagnose is quick
     ("controller", "magcal.diagnosis.start_workers"): "the diagnosis's pool started ahead",
     # the maps draw the diagnosis's patterns on the sphere of directions (no fit)

@@ -124,3 +124,35 @@ def test_the_page_shows_the_cross_and_the_demo_after_it_its_own_fits(bench, cros
     assert wb.panels.vector_panel.folder.visible and wb.added["gravity"].folder.visible
     assert model.effects_folder.visible and model.btn_refit.visible and not model.mode_note.visible
     assert wb.ctrl.model_session is wb.ctrl.total_field and wb.ctrl.cross_compensation.result is None
+
+
+def test_the_page_judges_the_sensors_lag_against_the_files_field_vector(tmp_path):
+    """The four sensors 100 ms late against the attitude, the file with its field vector (ref_n, ref_e, ref_d): the
+    page's cross takes the attitude's Earth field, as ``magcal diagnose --mode cross_compensation`` does, and its
+    diagnosis names the lag; the same file without the vector judges against the four's mean field, where the lag
+    cannot be judged and the page says why."""
+    flight = simulate_cross_flight(21, platform="aircraft", sensor_lag_s=0.1)
+    ds, _ = load_dataset(write_cross_flight(flight, tmp_path / "lagged.csv"))
+    ctrl = Controller(ds)
+    session = ctrl.cross_compensation
+    assert ctrl.model_session is session and session.field_reference() is not None
+    session.fit()
+    assert session.result.calibration.reference == "attitude"
+    found = ctrl.step_diagnose()
+    assert found.explained_by == ["time_offset"] and ctrl.advice() == ["time_offset"]
+    assert "`time_offset`" in loop_text(ctrl).candidates(ctrl)
+    assert "100 ms late" in loop_text(ctrl).candidate(ctrl, "time_offset")
+    tl_fom = session.fom_now
+    ctrl.step_add_advice()
+    assert session.effects == ["time_offset"] and session.result.calibration.time_offset_s == pytest.approx(
+        0.1, abs=0.01
+    )
+    assert session.fom_now < tl_fom
+
+    bare, _ = load_dataset(write_cross_flight(flight, tmp_path / "bare.csv", reference=False))
+    mean = Controller(bare)
+    assert mean.cross_compensation.field_reference() is None
+    mean.cross_compensation.fit()
+    assert mean.cross_compensation.result.calibration.reference == "mean"
+    lag = next(c for c in mean.step_diagnose().candidates if c.name == "time_offset")
+    assert not lag.judged and "--reference igrf" in loop_text(mean).candidates(mean)
