@@ -290,20 +290,22 @@ def igrf_place(dataset=None, lat=None, lon=None, alt_km=None, date=None) -> Igrf
         One of ``lat``, ``lon`` given without the other.
     """
     if (lat is None) != (lon is None):
-        given, missing = ("--lat", "--lon") if lon is None else ("--lon", "--lat")
-        raise MagcalError(f"{given} is given without {missing}: IGRF needs both (deg)")
-    given = [_number(name, v) for name, v in (("--lat", lat), ("--lon", lon), ("--alt-km", alt_km))]
+        said, missing = ("--lat", "--lon") if lon is None else ("--lon", "--lat")
+        raise MagcalError(f"{said} is given without {missing}: IGRF needs both (deg)")
+    km_given = _number("--alt-km", alt_km)
     if lat is not None:
-        km = 0.0 if alt_km is None else given[2]
-        return IgrfPlace(given[0], given[1], km * 1000.0, km, record_date(dataset, date))
+        km = 0.0 if km_given is None else km_given
+        lat_deg, lon_deg = _number("--lat", lat), _number("--lon", lon)
+        assert lat_deg is not None and lon_deg is not None  # both given: checked above
+        return IgrfPlace(lat_deg, lon_deg, km * 1000.0, km, record_date(dataset, date))
     site = record_site(getattr(dataset, "metadata", dataset))
     if site is None:
         return None
-    alt_m, km = (site.alt_m, site.alt_m / 1000.0) if alt_km is None else (given[2] * 1000.0, given[2])
+    alt_m, km = (site.alt_m, site.alt_m / 1000.0) if km_given is None else (km_given * 1000.0, km_given)
     return IgrfPlace(site.lat_deg, site.lon_deg, alt_m, km, site.date if date is None else date, site)
 
 
-def _number(name, value):
+def _number(name, value) -> float | None:
     """``value`` as a float (None stays None), or a :class:`MagcalError` naming the option."""
     if value is None:
         return None
