@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.checks.coverage import calibration_input_checks
-from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, parse_date, resolve_vector_reference
+from magcal.checks.reference import VECTOR_COLUMNS, igrf_ned_nT, igrf_place, parse_date, resolve_vector_reference
 from magcal.core.errors import MagcalError
 from magcal.data.attitude import attitude_rows, attitude_source
 from magcal.data.site import record_site
@@ -291,16 +291,17 @@ class VectorSession(ModelSession):
     # --- the location typed in the page, or the file's site ---------------------------------------------------
     def take_site(self) -> str:
         """A fresh session of a record whose file names its site (the engine's
-        :func:`magcal.data.site.record_site`, from a ``# site:`` line): IGRF there (the engine's, through
+        :func:`magcal.checks.reference.igrf_place`, from a ``# site:`` line, as ``--reference igrf``): IGRF there (the engine's, through
         :func:`check_location`) becomes the location, the vector reference and the scalar reference, as if typed;
         the page's location inputs show it, to change. Called by the controller before the first history row (its
         raw RMS then uses the same |B|). Returns the message for the page (markdown), empty without a site; a site
         IGRF cannot take (a date beyond the model's years) is said and the record opens without it."""
-        site = record_site(self.dataset)
-        if site is None:
+        place = igrf_place(self.dataset)  # the engine's: the place the command line's --reference igrf takes
+        if place is None or place.site is None:
             return ""
+        site = place.site
         try:
-            loc = check_location(site.lat_deg, site.lon_deg, site.alt_m, site.date)
+            loc = check_location(place.lat_deg, place.lon_deg, place.alt_m, place.date)
         except (MagcalError, ImportError) as exc:
             self.location_note = (
                 f"the file's `# site:` line ({safe_text(site.text(), 120)}) could not be used "

@@ -3,8 +3,8 @@
 Four sources, in the order :func:`resolve_reference` prefers them:
 
 1. a number given by the user (``--reference 52193``), in nT;
-2. the IGRF main field at a place and date (``--reference igrf --lat .. --lon .. --alt-km .. --date ..``,
-   computed with ``ppigrf``); it omits crustal anomalies and the daily variation (typically tens to hundreds
+2. the IGRF main field at a place and date (``--reference igrf --lat .. --lon .. --alt-km .. --date ..``, else at
+   the file's ``# site:`` line, :func:`igrf_place`; computed with ``ppigrf``); it omits crustal anomalies and the daily variation (typically tens to hundreds
    of nT), which the text says;
 3. the per-sample ``ref_total`` column of the data (e.g. a proton magnetometer), nT;
 4. the file's ``# reference_total_nT:`` metadata;
@@ -27,6 +27,7 @@ import numpy as np
 from magcal.core.errors import DataWarning, MagcalError
 from magcal.core.notes import Note
 from magcal.data.dataset import Dataset
+from magcal.data.site import Site, record_site
 from magcal.geometry.shape import field_magnitude_nT
 
 #: The Earth's field at the surface lies in this range (nT). A reference outside it is refused when another unit
@@ -226,7 +227,101 @@ def _check_plausible(value, what) -> list:
     return []
 
 
-def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0.0, date=None, check=True):
+@dataclass(frozen=True)
+class IgrfPlace:
+    """Where and when IGRF is evaluated, and who said so.
+
+    Attributes
+    ----------
+    lat_deg, lon_deg : float
+        Geodetic latitude and longitude (deg, north and east positive).
+    alt_m, alt_km : float
+        Height above the WGS84 ellipsoid, in m and in km (both kept, so that neither is a rounded copy of the
+        other: the page holds metres, the command line kilometres).
+    date : str or None
+        The date (``YYYY-MM-DD`` or a decimal year); None: today.
+    site : Site or None
+        The file's ``# site:`` line when the place is its (:func:`magcal.data.site.record_site`); None when the
+        user gave the place.
+    """
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    alt_km: float
+    date: str | None
+    site: Site | None = None
+
+    @property
+    def from_site(self) -> bool:
+        return self.site is not None
+
+    def words(self) -> str:
+        """Where the place came from: ``IGRF at the file's # site: line (53 N, 4.5 E, 1500 m, 2024-06-01)``, or
+        ``IGRF at the given place (53.0000 N, 4.5000 E, 1.5 km, 2024-06-01)``."""
+        if self.site is not None:
+            used = Site(self.lat_deg, self.lon_deg, self.alt_m, str(self.date))
+            given = (self.alt_m, self.date) != (self.site.alt_m, self.site.date)
+            return f"IGRF at the file's # site: line ({used.text()}{'; height or date given' if given else ''})"
+        when = self.date if self.date is not None else f"{_dt.date.today()} (today)"
+        return f"IGRF at the given place ({self.lat_deg:.4f} N, {self.lon_deg:.4f} E, {self.alt_km:g} km, {when})"
+
+
+def igrf_place(dataset=None, lat=None, lon=None, alt_km=None, date=None) -> IgrfPlace | None:
+    """The place and date IGRF is evaluated at: the one given (``--lat``, ``--lon``, ``--alt-km``, ``--date``),
+    else the record's ``# site:`` line (:func:`magcal.data.site.record_site`), else None. The one function the
+    command line (:func:`resolve_reference`, :func:`resolve_vector_reference`) and the workbench's location (its
+    ``take_site``) take the site through.
+
+    Parameters
+    ----------
+    dataset : Dataset or dict, optional
+        The record (its ``metadata``): its site, and its own date (:func:`record_date`).
+    lat, lon : float, optional
+        Given latitude and longitude (deg); both win over the site. One without the other is refused.
+    alt_km : float, optional
+        Given height above the ellipsoid (km); wins over the site's; without a place, 0.
+    date : str, optional
+        Given date; wins over the site's and the record's own.
+
+    Raises
+    ------
+    MagcalError
+        One of ``lat``, ``lon`` given without the other.
+    """
+    if (lat is None) != (lon is None):
+        said, missing = ("--lat", "--lon") if lon is None else ("--lon", "--lat")
+        raise MagcalError(f"{said} is given without {missing}: IGRF needs both (deg)")
+    km_given = _number("--alt-km", alt_km)
+    if lat is not None:
+        km = 0.0 if km_given is None else km_given
+        lat_deg, lon_deg = _number("--lat", lat), _number("--lon", lon)
+        assert lat_deg is not None and lon_deg is not None  # both given: checked above
+        return IgrfPlace(lat_deg, lon_deg, km * 1000.0, km, record_date(dataset, date))
+    site = record_site(getattr(dataset, "metadata", dataset))
+    if site is None:
+        return None
+    alt_m, km = (site.alt_m, site.alt_m / 1000.0) if km_given is None else (km_given * 1000.0, km_given)
+    return IgrfPlace(site.lat_deg, site.lon_deg, alt_m, km, site.date if date is None else date, site)
+
+
+def _number(name, value) -> float | None:
+    """``value`` as a float (None stays None), or a :class:`MagcalError` naming the option."""
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise MagcalError(f"{name}: {value!r} is not a number") from None
+
+
+def _unused_site(dataset) -> str:
+    """`` (the file's # site: line ... is not used)`` when the user's place wins over a site the file names."""
+    site = record_site(getattr(dataset, "metadata", None) or {}) if dataset is not None else None
+    return "" if site is None else f" (the file's # site: line, {site.text()}, is not used)"
+
+
+def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=None, date=None, check=True):
     """The reference total field and a sentence saying where it came from: the one place that decides it. What the
     checks found is in its ``notes`` (:class:`~magcal.core.errors.DataWarning` notes), never raised here.
 
@@ -235,11 +330,13 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     dataset : Dataset, optional
         Supplies the ``ref_total`` column (``ref_total_nT``) or the ``reference_total_nT`` metadata.
     reference : float, str or None
-        A number in nT, ``"igrf"`` (needs ``lat``, ``lon``; ``alt_km``, ``date`` optional), ``"column"`` (use the
+        A number in nT, ``"igrf"`` (at ``lat``, ``lon``, ``alt_km``, ``date`` when given, else at the file's
+        ``# site:`` line: :func:`igrf_place`), ``"column"`` (use the
         ``ref_total`` column), ``"fit"`` / ``"none"`` (fit the magnitude), or ``None`` (the dataset's column, else its
         metadata, else fitted).
     lat, lon, alt_km, date
-        Place (deg, deg, km above the ellipsoid) and date for IGRF.
+        Place (deg, deg, km above the ellipsoid; ``alt_km`` None: the site's, else 0) and date for IGRF; given, they
+        win over the file's ``# site:`` line.
     check : bool
         Check plausibility (refuse a value in the wrong unit, warn when far from the data). The fitters pass
         False: the user-facing checks ran once when the command or the workbench resolved the reference.
@@ -260,17 +357,23 @@ def resolve_reference(dataset=None, reference=None, lat=None, lon=None, alt_km=0
     choice = None if reference is None else str(reference).strip()
     found = []  # the checks' notes
     if choice is not None and choice.lower() == "igrf":
-        date = record_date(dataset, date)
-        if lat is None or lon is None:
+        place = igrf_place(dataset, lat, lon, alt_km, date)
+        if place is None:
             raise MagcalError(
                 "--reference igrf needs the place: --lat DEG --lon DEG (and --alt-km KM, --date YYYY-MM-DD)"
             )
-        total, comps = igrf_total_nT(lat, lon, alt_km, date)
-        when = parse_date(date if date is not None else _dt.date.today()).date()
-        text = (
-            f"IGRF main field ({comps['model']}) at {float(lat):.4f} N, {float(lon):.4f} E, {float(alt_km):g} km, "
-            f"{when}: {total:.1f} nT (inclination {comps['inclination_deg']:.2f} deg); crustal anomalies and the "
-            "daily variation (tens to hundreds of nT) are not in it"
+        total, comps = igrf_total_nT(place.lat_deg, place.lon_deg, place.alt_km, place.date)
+        when = parse_date(place.date if place.date is not None else _dt.date.today()).date()
+        if place.from_site:
+            text = f"{place.words()}, {comps['model']} main field: {total:.1f} nT"
+        else:
+            text = (
+                f"IGRF main field ({comps['model']}) at {place.lat_deg:.4f} N, {place.lon_deg:.4f} E, "
+                f"{place.alt_km:g} km, {when}: {total:.1f} nT"
+            )
+        text += (
+            f" (inclination {comps['inclination_deg']:.2f} deg); crustal anomalies and the daily variation (tens to "
+            "hundreds of nT) are not in it" + ("" if place.from_site else _unused_site(dataset))
         )
         ref = Reference(total, text, "igrf")
     elif choice is not None and choice.lower() == "column":
@@ -363,14 +466,24 @@ def add_reference_arguments(parser) -> None:
         "--reference",
         default=None,
         metavar="NT|igrf|column|fit|fitted",
-        help="reference total field: a number in nT, 'igrf' (with --lat, --lon, --alt-km, --date), "
+        help="reference total field: a number in nT, 'igrf' (at --lat, --lon, --alt-km, --date, else at the "
+        "file's '# site:' line), "
         "'column' (the file's ref_total) or 'fit'; default: the file's ref_total column or "
         "reference_total_nT line, else fitted. With the attitude (vector mode), 'fitted' fits the lab's field "
         "vector with the calibration (a constant field nobody measured: motion capture, a turntable, a coil)",
     )
-    parser.add_argument("--lat", type=float, default=None, help="geodetic latitude in degrees (for --reference igrf)")
-    parser.add_argument("--lon", type=float, default=None, help="longitude in degrees east (for --reference igrf)")
-    parser.add_argument("--alt-km", type=float, default=0.0, help="height above the WGS84 ellipsoid in km (igrf)")
+    parser.add_argument(
+        "--lat", type=float, default=None, help="geodetic latitude in degrees (igrf; wins over the # site: line)"
+    )
+    parser.add_argument(
+        "--lon", type=float, default=None, help="longitude in degrees east (igrf; wins over the # site: line)"
+    )
+    parser.add_argument(
+        "--alt-km",
+        type=float,
+        default=None,
+        help="height above the WGS84 ellipsoid in km (igrf; default: the # site: line's, else 0)",
+    )
     parser.add_argument(
         "--date",
         default=None,
@@ -522,7 +635,7 @@ def record_date(dataset, date=None):
 
 
 def resolve_vector_reference(
-    dataset, reference=None, lat=None, lon=None, alt_km=0.0, date=None, vector=None
+    dataset, reference=None, lat=None, lon=None, alt_km=None, date=None, vector=None
 ) -> VectorReference | None:
     """The reference field vector (north-east-down, nT) for every sample, and where it came from; None when the
     data and the options give none.
@@ -532,8 +645,9 @@ def resolve_vector_reference(
     dataset : Dataset
         Supplies ``ref_n, ref_e, ref_d`` (nT) or ``lat, lon, alt_m`` columns (in ``extra``).
     reference : str, optional
-        ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else along the dataset's ``lat, lon,
-        alt_m`` columns. ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
+        ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else at the file's ``# site:`` line
+        (:func:`igrf_place`, the place the workbench takes from it), else along the dataset's ``lat, lon, alt_m``
+        columns. ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
         reference of kind ``fitted``: its ``ned_nT`` is the vector given with ``vector``, else the ``ref_n, ref_e,
         ref_d`` columns' median, else NaN; :mod:`magcal.fitting.labfield`). Anything else (a number, ``column``,
         ``fit``) is a scalar reference and leaves the vector to the columns.
@@ -551,6 +665,7 @@ def resolve_vector_reference(
     n = dataset.n_samples
     where = dataset.source or "data"
     extra = dataset.extra
+    given_date = date
     date = record_date(dataset, date)
     if reference is not None and str(reference).strip().lower() == "fitted":
         return _fitted_vector_reference(dataset, vector)
@@ -562,14 +677,20 @@ def resolve_vector_reference(
             "vector",
         )
     if reference is not None and str(reference).strip().lower() == "igrf":
-        if lat is not None and lon is not None:
-            ned = igrf_ned_nT(lat, lon, alt_km or 0.0, date)[0]
-            _, comps = igrf_total_nT(lat, lon, alt_km or 0.0, date)
-            when = parse_date(date if date is not None else _dt.date.today()).date()
+        place = igrf_place(dataset, lat, lon, alt_km, given_date)
+        if place is not None:  # given, else the file's # site: line (as the workbench's location)
+            ned = igrf_ned_nT(place.lat_deg, place.lon_deg, place.alt_km, place.date)[0]
+            _, comps = igrf_total_nT(place.lat_deg, place.lon_deg, place.alt_km, place.date)
+            when = parse_date(place.date if place.date is not None else _dt.date.today()).date()
+            where_text = (
+                f"{place.words()}, {comps['model']} main field vector"
+                if place.from_site
+                else f"IGRF main field vector ({comps['model']}) at {place.lat_deg:.4f} N, {place.lon_deg:.4f} E, "
+                f"{place.alt_km:g} km, {when}"
+            )
             text = (
-                f"IGRF main field vector ({comps['model']}) at {float(lat):.4f} N, {float(lon):.4f} E, "
-                f"{float(alt_km or 0.0):g} km, {when}: N {ned[0]:.1f}, E {ned[1]:.1f}, D {ned[2]:.1f} nT; crustal "
-                "anomalies and the daily variation (tens to hundreds of nT) are not in it"
+                f"{where_text}: N {ned[0]:.1f}, E {ned[1]:.1f}, D {ned[2]:.1f} nT; crustal anomalies and the daily "
+                "variation (tens to hundreds of nT) are not in it" + ("" if place.from_site else _unused_site(dataset))
             )
             return VectorReference(np.tile(ned, (n, 1)), text, "igrf")
         if all(c in extra for c in POSITION_COLUMNS[:2]):
@@ -672,7 +793,7 @@ def vector_reference_from_args(args, dataset) -> VectorReference | None:
         reference=getattr(args, "reference", None),
         lat=getattr(args, "lat", None),
         lon=getattr(args, "lon", None),
-        alt_km=getattr(args, "alt_km", 0.0),
+        alt_km=getattr(args, "alt_km", None),
         date=getattr(args, "date", None),
         vector=getattr(args, "reference_vector", None),
     )

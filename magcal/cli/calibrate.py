@@ -517,6 +517,7 @@ def run(args) -> int:
         # every warning of the run, not only the calibration's own: reading, reference, coverage, fit
         doc["warnings"] = list(dict.fromkeys(list(notes) + list(result.remarks)))
         doc["quality"] = quality.to_dict()
+        doc["reference_source"] = reference.text  # where the reference came from, in words
         json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
         for note in result.remarks:
@@ -524,6 +525,7 @@ def run(args) -> int:
                 print(f"magcal calibrate: warning: {note}", file=sys.stderr)
     else:
         sys.stdout.write(text_report(result, source=args.data))
+        sys.stdout.write(f"\nreference: {reference.text}\n")
         sys.stdout.write("\n" + quality.section())
         if args.output:
             print(f"\nsaved the calibration to {args.output}")

@@ -34,7 +34,13 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.flight_columns import flight_mapping, header_names
 from magcal.data.io import parse_column_mapping
-from magcal.diagnosis.cross_compensation import CrossCompensationResult, check_cross_effects, cross_record
+from magcal.diagnosis.cross_compensation import (
+    LAG_FLAGS,
+    LAG_NEEDS_FIELD,
+    CrossCompensationResult,
+    check_cross_effects,
+    cross_record,
+)
 from magcal.fitting.compensation import (
     COMPENSATION_EFFECTS,
     SCALAR_COLUMNS,
@@ -271,6 +277,9 @@ def run_cross_compensation_diagnosis(args, ds, notes, read_input) -> int:
         also, _ = _cross_setup(_with_data(args, others[0]), other_ds)
     ned = field_vector(vref, record.n_samples)
     diagnosis = CROSS_COMPENSATION.diagnose(record, reference=ned, effects=effects, also=also)
+    for candidate in diagnosis.candidates:  # the engine says what the data lack; the command line, its options
+        if candidate.reason == LAG_NEEDS_FIELD:
+            candidate.reason = f"{LAG_NEEDS_FIELD}; {LAG_FLAGS}"
     for note in dict.fromkeys(list(notes) + [n.text for n in diagnosis.notes]):
         print(f"magcal diagnose: warning: {note}", file=sys.stderr)
     if getattr(args, "json", False):

@@ -683,6 +683,13 @@ class CsvSource:
     #: What a message tells the user to sort (a DataFrame's rows rather than the file).
     _sort_what = "file"
 
+    #: Where a metadata line is, in messages, when not ``line N`` (a Parquet file's schema holds no lines).
+    _metadata_in: str | None = None
+
+    def _metadata_at(self) -> str:
+        """``line 3`` (the CSV's metadata line being read), or :attr:`_metadata_in`."""
+        return self._metadata_in or f"line {self._lineno}"
+
     def _where(self, number, word=None) -> str:
         """The message's name of the row numbered ``number``: ``line 12`` (CSV), ``row 12`` (Parquet), or the
         label :attr:`_row_label` gives (a DataFrame's index)."""
@@ -786,7 +793,7 @@ class CsvSource:
                         if key in self.metadata and self.metadata[key] != value:
                             self.notes.append(
                                 _note(
-                                    f"{self.source}: line {self._lineno}: metadata {shown(key)} given twice; the "
+                                    f"{self.source}: {self._metadata_at()}: metadata {shown(key)} given twice; the "
                                     f"last value {shown(value)} is used"
                                 )
                             )
@@ -822,15 +829,15 @@ class CsvSource:
             if number is None or bad_values(number) or number < 0 or (positive and number == 0):
                 need = "a positive number" if positive else "a number >= 0"
                 raise DatasetError(
-                    f"{self.source}: line {self._lineno}: metadata {key}: {shown(value)} must be {need}"
+                    f"{self.source}: {self._metadata_at()}: metadata {key}: {shown(value)} must be {need}"
                     + (" in nT" if key.endswith("_nT") else " in m" if key.endswith("_m") else "")
                 )
         elif key == "units":
             if not is_counts(value):
-                parse_units(value, where=f"{self.source}: line {self._lineno}: metadata units")
+                parse_units(value, where=f"{self.source}: {self._metadata_at()}: metadata units")
             self._units_line = self._lineno
         elif key == "lsb_nT":
-            parse_lsb(value, where=f"{self.source}: line {self._lineno}: metadata lsb_nT")
+            parse_lsb(value, where=f"{self.source}: {self._metadata_at()}: metadata lsb_nT")
         elif key == "site":
             self._read_site(value)
 
@@ -846,7 +853,7 @@ class CsvSource:
         except ValueError as exc:
             self.notes.append(
                 _note(
-                    f"{self.source}: line {self._lineno}: metadata site: {shown(value)} {exc}; write it as "
+                    f"{self.source}: {self._metadata_at()}: metadata site: {shown(value)} {exc}; write it as "
                     f"'{SITE_FORM}' (e.g. {SITE_EXAMPLE}); the file is read without the site"
                 )
             )
@@ -2031,8 +2038,9 @@ def parquet_metadata(schema, source="Parquet file") -> dict:
     import json
 
     raw = (schema.metadata or {}).get(PARQUET_METADATA_KEY)
+    foreign = _foreign_site(schema)
     if not raw:
-        return {}
+        return foreign
     try:
         doc = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
@@ -2040,7 +2048,26 @@ def parquet_metadata(schema, source="Parquet file") -> dict:
             f"{source}: the magcal metadata in the Parquet schema is not JSON ({_one_line(exc)}); the file is "
             "damaged or was not written by magcal: write it again"
         ) from None
-    return {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+    found = {str(k): str(v) for k, v in doc.items()} if isinstance(doc, dict) else {}
+    return {**foreign, **found}  # magcal's own entry wins
+
+
+def _foreign_site(schema) -> dict:
+    """``{"site": ...}`` from a schema key-value entry ``site`` another tool wrote beside (or instead of) magcal's
+    own entry: read as a CSV's ``# site:`` line is (:mod:`magcal.data.site`); empty without one."""
+    raw = (schema.metadata or {}).get(b"site")
+    if not raw:
+        return {}
+    try:
+        return {"site": raw.decode("utf-8").strip()}
+    except UnicodeDecodeError:
+        return {}
+
+
+class _ParquetHead(CsvSource):
+    """The CSV reader over a Parquet file's metadata and header: its messages name the schema, not a line."""
+
+    _metadata_in = "Parquet schema"
 
 
 def _one_line(exc) -> str:
@@ -2144,7 +2171,7 @@ class ParquetSource:
         head = metadata_text(self.metadata) + ",".join(self.header) + "\n"
         import io as _stdio
 
-        self._csv = CsvSource(_stdio.StringIO(head), columns=columns, name=self.source)
+        self._csv = _ParquetHead(_stdio.StringIO(head), columns=columns, name=self.source)
         #: What the reader has said so far (:attr:`CsvSource.notes`).
         self.notes = self._csv.notes
         self._csv._row_word = "row"

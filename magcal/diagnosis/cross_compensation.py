@@ -55,6 +55,8 @@ __all__ = [
     "CROSS_CANDIDATES",
     "CROSS_EFFECTS",
     "CURRENT_COLUMNS",
+    "LAG_FLAGS",
+    "LAG_NEEDS_FIELD",
     "CrossCandidate",
     "CrossCompensationDiagnosis",
     "CrossCompensationResult",
@@ -507,9 +509,21 @@ def _not_judged(other, effects, pool, maneuvers, floor, sigma, base, started) ->
     )  # fmt: skip
 
 
+#: Why the lag (``time_offset``) is not judged, in the data's words (the command line adds its options: it
+#: prints :data:`LAG_FLAGS` after it; the page its location inputs).
+LAG_NEEDS_FIELD = (
+    "the sensors' lag needs the Earth's field vector: the record's attitude with ref_n/ref_e/ref_d columns, "
+    "a # site: line, or a location"
+)
+#: The command line's words for :data:`LAG_NEEDS_FIELD`: the options that give the field vector.
+LAG_FLAGS = (
+    "give --reference igrf (at --lat/--lon, the # site: line or the lat, lon columns) or --reference-vector N,E,D"
+)
+
+
 def _unusable(name: str, record: CrossRecord, field_ned_nT=None) -> str:
     if name == "time_offset" and (field_ned_nT is None or record.attitude_deg is None):
-        return "the sensors' lag is found against the attitude's Earth field: give the field vector (--reference igrf)"
+        return LAG_NEEDS_FIELD
     if name == "current":
         if record.current_A is None:
             return f"the record has no current column ({', '.join(CURRENT_COLUMNS)})"

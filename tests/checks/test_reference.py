@@ -158,3 +158,47 @@ def test_reference_check_goes_through_the_fitted_shape():
     ds = Dataset(readings_nT=y[None], source="qmc-like.csv")
     assert ref.resolve_reference(ds, "23000").notes == []
     assert _said(ref.resolve_reference(ds, "46000"), r"differs from the reference 46000 nT by -50%")
+
+
+SITE = {"site": "53.0 N, 4.5 E, 1500 m, 2024-06-01", "site_lat_deg": "53.0", "site_lon_deg": "4.5"}
+SITE |= {"site_alt_m": "1500.0", "site_date": "2024-06-01"}
+
+
+def test_igrf_place_takes_the_site_and_given_values_win(ds):
+    """:func:`igrf_place`: the file's ``# site:`` line where no place is given; given values win, each alone."""
+    sited = ds.replace(metadata={**ds.metadata, **SITE})
+    place = ref.igrf_place(sited)
+    assert place.from_site and (place.lat_deg, place.lon_deg, place.alt_m, place.date) == (
+        53.0,
+        4.5,
+        1500.0,
+        "2024-06-01",
+    )
+    assert place.alt_km == 1.5
+    assert place.words() == "IGRF at the file's # site: line (53 N, 4.5 E, 1500 m, 2024-06-01)"
+    given = ref.igrf_place(sited, lat=-30.0, lon=20.0)
+    assert not given.from_site and (given.lat_deg, given.lon_deg, given.alt_km, given.date) == (
+        -30,
+        20,
+        0,
+        "2024-06-01",
+    )
+    higher = ref.igrf_place(sited, alt_km=3.0, date="2025-01-01")
+    assert (higher.lat_deg, higher.alt_m, higher.date) == (53.0, 3000.0, "2025-01-01") and "given" in higher.words()
+    assert ref.igrf_place(ds) is None
+    with pytest.raises(MagcalError, match="--lat is given without --lon"):
+        ref.igrf_place(sited, lat=10.0)
+
+
+def test_igrf_at_the_site_equals_igrf_at_the_typed_place(ds):
+    sited = ds.replace(metadata={**ds.metadata, **SITE})
+    by_site = ref.resolve_reference(sited, "igrf")
+    typed = ref.resolve_reference(ds, "igrf", lat=53.0, lon=4.5, alt_km=1.5, date="2024-06-01")
+    assert by_site.value_nT == typed.value_nT
+    assert by_site.text.startswith("IGRF at the file's # site: line (53 N, 4.5 E, 1500 m, 2024-06-01)")
+    vec = ref.resolve_vector_reference(sited, "igrf")
+    vec_typed = ref.resolve_vector_reference(ds, "igrf", lat=53.0, lon=4.5, alt_km=1.5, date="2024-06-01")
+    assert vec.kind == "igrf" and np.array_equal(vec.ned_nT, vec_typed.ned_nT)
+    assert "# site: line" in vec.text and "# site: line" not in vec_typed.text
+    over = ref.resolve_reference(sited, "igrf", lat=-30.0, lon=20.0)
+    assert over.value_nT != typed.value_nT and "is not used" in over.text

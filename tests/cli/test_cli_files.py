@@ -1,5 +1,6 @@
 """The CLI on bad files: non-zero exit, one clear message, never a traceback; and align/apply end to end."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -150,3 +151,53 @@ def test_real_process_exits_2_without_traceback(tmp_path, files, args):
     )
     assert proc.returncode == 2
     assert "binary" in proc.stderr and "Traceback" not in proc.stderr
+
+
+SITE_LINE = "53.0 N, 4.5 E, 1500 m, 2024-06-01"
+
+
+@pytest.fixture(scope="module")
+def sited(tmp_path_factory):
+    """One record twice: with a ``# site:`` line and without; its field is IGRF's magnitude at the site."""
+    from magcal.checks.reference import igrf_total_nT
+
+    d = tmp_path_factory.mktemp("sited")
+    total, _ = igrf_total_nT(53.0, 4.5, 1.5, "2024-06-01")
+    truth = dataclasses.replace(sim.chi2017_truth(1), total_nT=total)
+    data = sim.simulate(truth, n_samples=150, noise_nT=2.0, seed=11, with_reference=False)
+    io.write_csv(d / "plain.csv", data)
+    io.write_csv(d / "sited.csv", data, metadata={"site": SITE_LINE})
+    return d
+
+
+def calibrate_json(argv, capsys):
+    code, out, err = run(["calibrate", *argv, "--json"], capsys)
+    assert code == 0, err
+    return json.loads(out), err
+
+
+def test_igrf_at_the_site_line_is_the_igrf_at_the_typed_place(sited, capsys):
+    """``--reference igrf`` without ``--lat/--lon`` takes the file's ``# site:`` line: the same calibration as
+    the place and date typed, and the output says where the reference came from."""
+    typed = ["--lat", "53", "--lon", "4.5", "--alt-km", "1.5", "--date", "2024-06-01"]
+    by_site, err = calibrate_json([sited / "sited.csv", "--reference", "igrf"], capsys)
+    by_hand, _ = calibrate_json([sited / "plain.csv", "--reference", "igrf", *typed], capsys)
+    assert by_site["reference_total_nT"] == by_hand["reference_total_nT"]
+    for a, b in zip(by_site["sensors"], by_hand["sensors"]):
+        assert np.array_equal(a["Cinv"], b["Cinv"]) and np.array_equal(a["bias_nT"], b["bias_nT"])
+    words = "IGRF at the file's # site: line (53 N, 4.5 E, 1500 m, 2024-06-01)"
+    assert words in err and words in by_site["reference_source"]
+    code, out, _ = run(["calibrate", sited / "sited.csv", "--reference", "igrf"], capsys)
+    assert code == 0 and words in out
+
+
+def test_typed_place_wins_over_the_site_line(sited, capsys):
+    typed, err = calibrate_json([sited / "sited.csv", "--reference", "igrf", "--lat", "-30", "--lon", "20"], capsys)
+    site, _ = calibrate_json([sited / "sited.csv", "--reference", "igrf"], capsys)
+    assert abs(typed["reference_total_nT"] - site["reference_total_nT"]) > 1_000  # southern Africa, not the sea
+    assert "-30.0000 N, 20.0000 E" in typed["reference_source"] and "is not used" in typed["reference_source"]
+
+
+def test_igrf_without_a_site_or_a_place_is_refused_as_before(sited, capsys):
+    code, _, err = run(["calibrate", sited / "plain.csv", "--reference", "igrf"], capsys)
+    assert_clean_failure(code, err, "--reference igrf needs the place: --lat DEG --lon DEG")

@@ -13,6 +13,7 @@ import pytest
 from magcal.cli import main
 from magcal.core import conventions
 from magcal.data.cross_flight import simulate_cross_flight
+from magcal.diagnosis.cross_compensation import LAG_FLAGS, LAG_NEEDS_FIELD
 from magcal.diagnosis.cross_fom import tensor_fom
 from magcal.output.apply import TENSOR_COLUMNS
 from tests.helpers.cross_flights import write_cross_flight
@@ -108,6 +109,16 @@ def test_diagnose_names_the_current(flights, capsys, platform, verdict, explaine
     assert doc["validation"]["scheme"] == ("flight" if also else "maneuvers")
     if explained:
         assert doc["tensor_fom_final_nT_per_m"] <= 1.3 * doc["floor_tensor_fom_nT_per_m"]
+
+
+def test_diagnose_adds_the_options_that_give_the_lag_its_field(flights, tmp_path, capsys):
+    """Without a field vector the lag is not judged: the engine's reason names what the data lack, and the
+    command line adds the options that give it."""
+    path = write_cross_flight(flights["drone"][0], tmp_path / "bare.csv", reference=False)
+    assert main(["diagnose", str(path), "--mode", "cross_compensation"]) == 0
+    out = capsys.readouterr().out
+    line = next(t for t in out.splitlines() if t.strip().startswith("time_offset"))
+    assert LAG_NEEDS_FIELD in line and LAG_FLAGS in line and "--reference igrf" in line
 
 
 @pytest.mark.parametrize(

@@ -33,6 +33,49 @@ def test_parquet_round_trip_keeps_values_channels_and_metadata(survey, tmp_path)
     assert back.reference_total_nT == ds.reference_total_nT and back.source == str(out)
 
 
+SITE_LINE = "53.0 N, 4.5 E, 1500 m, 2024-06-01"
+
+
+def test_a_site_in_the_parquet_metadata_is_read_as_the_csv_line(survey, tmp_path):
+    """A ``site`` metadata entry (magcal's own, or a schema key another tool wrote) is read by the CSV's site
+    reader: the same :class:`~magcal.data.site.Site` as the CSV's ``# site:`` line."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from magcal.data.site import parse_site, record_site
+
+    ds, _ = survey
+    csv = tmp_path / "sited.csv"
+    mio.write_csv(csv, ds, metadata={"site": SITE_LINE})
+    from_csv = record_site(mio.read_csv(csv))
+    assert from_csv == parse_site(SITE_LINE)
+    own = tmp_path / "sited.parquet"
+    mio.write_parquet(own, ds, metadata={"site": SITE_LINE})
+    back = mio.read_csv(own)
+    assert record_site(back) == from_csv and back.metadata["site"] == SITE_LINE
+    mio.write_parquet(tmp_path / "again.parquet", back)  # the keys it read go back out and read the same
+    assert record_site(mio.read_csv(tmp_path / "again.parquet")) == from_csv
+    foreign = tmp_path / "foreign.parquet"
+    table = pa.table({"s1x": np.full(5, 5e4), "s1y": np.zeros(5), "s1z": np.zeros(5)})
+    pq.write_table(table.replace_schema_metadata({b"site": SITE_LINE.encode()}), foreign)
+    assert record_site(mio.read_csv(foreign)) == from_csv
+
+
+def test_a_malformed_parquet_site_is_said_naming_the_schema_not_a_line(survey, tmp_path):
+    ds, _ = survey
+    path = tmp_path / "bad_site.parquet"
+    mio.write_parquet(path, ds, metadata={"site": "53.0 Q, 4.5 E, 1500 m, 2024-06-01"})
+    from magcal.core.errors import DataWarning
+
+    with pytest.warns(DataWarning) as said:
+        back = mio.read_csv(path)
+    text = " ".join(str(w.message) for w in said)
+    assert f"{path}: Parquet schema: metadata site:" in text and "'Q', not N or S" in text and "line" not in text
+    from magcal.data.site import record_site
+
+    assert record_site(back) is None
+
+
 def test_a_dataframe_out_and_back(survey):
     ds, _ = survey
     frame = ds.to_dataframe()
