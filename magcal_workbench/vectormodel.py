@@ -264,7 +264,7 @@ class VectorSession(ModelSession):
             ref = resolve_vector_reference(ds, "igrf", loc.lat_deg, loc.lon_deg, loc.alt_m / 1000.0, loc.date)
         elif any(c in ds.extra for c in VECTOR_COLUMNS):
             ref = resolve_vector_reference(ds)
-        elif "lat" in ds.extra and "lon" in ds.extra:
+        elif self._has_track():
             ref = resolve_vector_reference(ds, "igrf")
         else:
             ref = None
@@ -297,8 +297,8 @@ class VectorSession(ModelSession):
         raw RMS then uses the same |B|). Returns the message for the page (markdown), empty without a site; a site
         IGRF cannot take (a date beyond the model's years) is said and the record opens without it."""
         place = igrf_place(self.dataset)  # the engine's: the place the command line's --reference igrf takes
-        if place is None or place.site is None:
-            return ""
+        if place is None or place.site is None or self._has_track():
+            return ""  # a track's lat, lon columns give IGRF where each sample was taken (reference())
         site = place.site
         try:
             loc = check_location(place.lat_deg, place.lon_deg, place.alt_m, place.date)
@@ -323,6 +323,10 @@ class VectorSession(ModelSession):
             "vector. To use another place or date, change it under *Reference from a location (IGRF)* (Calibrate "
             "tab)."
         )
+
+    def _has_track(self) -> bool:
+        """Whether the record carries its position per sample (``lat``, ``lon`` columns)."""
+        return "lat" in self.dataset.extra and "lon" in self.dataset.extra
 
     def from_site(self) -> bool:
         """Whether the location in use is the one the file's ``# site:`` line gives."""

@@ -645,9 +645,9 @@ def resolve_vector_reference(
     dataset : Dataset
         Supplies ``ref_n, ref_e, ref_d`` (nT) or ``lat, lon, alt_m`` columns (in ``extra``).
     reference : str, optional
-        ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else at the file's ``# site:`` line
-        (:func:`igrf_place`, the place the workbench takes from it), else along the dataset's ``lat, lon, alt_m``
-        columns. ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
+        ``"igrf"``: the IGRF main field, at ``lat, lon, alt_km`` when given, else along the dataset's ``lat, lon,
+        alt_m`` columns (a track: the field where each sample was taken), else at the file's ``# site:`` line
+        (:func:`igrf_place`, the place the workbench takes from it). ``"fitted"``: the field is a constant of unknown vector, fitted with the calibration (a
         reference of kind ``fitted``: its ``ned_nT`` is the vector given with ``vector``, else the ``ref_n, ref_e,
         ref_d`` columns' median, else NaN; :mod:`magcal.fitting.labfield`). Anything else (a number, ``column``,
         ``fit``) is a scalar reference and leaves the vector to the columns.
@@ -677,7 +677,8 @@ def resolve_vector_reference(
             "vector",
         )
     if reference is not None and str(reference).strip().lower() == "igrf":
-        place = igrf_place(dataset, lat, lon, alt_km, given_date)
+        track = all(c in extra for c in POSITION_COLUMNS[:2])  # IGRF along it, per sample, beats one site
+        place = igrf_place(dataset, lat, lon, alt_km, given_date) if lat is not None or not track else None
         if place is not None:  # given, else the file's # site: line (as the workbench's location)
             ned = igrf_ned_nT(place.lat_deg, place.lon_deg, place.alt_km, place.date)[0]
             _, comps = igrf_total_nT(place.lat_deg, place.lon_deg, place.alt_km, place.date)

@@ -202,3 +202,18 @@ def test_igrf_at_the_site_equals_igrf_at_the_typed_place(ds):
     assert "# site: line" in vec.text and "# site: line" not in vec_typed.text
     over = ref.resolve_reference(sited, "igrf", lat=-30.0, lon=20.0)
     assert over.value_nT != typed.value_nT and "is not used" in over.text
+
+
+def test_a_track_beats_the_site_for_the_vector_reference(ds):
+    """A record with ``lat, lon`` columns and a ``# site:`` line: IGRF along the track (where each sample was
+    taken), not at the site; typed values still win over both."""
+    n = ds.n_samples
+    track = {"lat": np.linspace(-20.0, -19.0, n), "lon": np.full(n, 140.0), "alt_m": np.full(n, 300.0)}
+    tracked = ds.replace(metadata={**ds.metadata, **SITE}, extra={**ds.extra, **track})
+    along = ref.resolve_vector_reference(tracked, "igrf", date="2024-06-01")
+    plain = ref.resolve_vector_reference(ds.replace(extra={**ds.extra, **track}), "igrf", date="2024-06-01")
+    at_site = ref.resolve_vector_reference(ds.replace(metadata={**ds.metadata, **SITE}), "igrf")
+    np.testing.assert_array_equal(along.ned_nT, plain.ned_nT)
+    assert not np.allclose(along.ned_nT[0], at_site.ned_nT[0], atol=1000.0)  # 53 N against 20 S: another field
+    typed = ref.resolve_vector_reference(tracked, "igrf", lat=53.0, lon=4.5, alt_km=1.5, date="2024-06-01")
+    np.testing.assert_array_equal(typed.ned_nT, at_site.ned_nT)

@@ -464,6 +464,23 @@ def test_a_site_igrf_cannot_take_is_said_and_the_record_opens_without_it(tmp_pat
     assert "could not be used" in ctrl.message and "type the place and date" in ctrl.vector.location_note
 
 
+def test_a_record_with_a_track_keeps_igrf_along_it_over_its_site():
+    """A file with a ``# site:`` line and ``lat, lon`` columns: the page does not fill the location from the site;
+    the vector reference is IGRF along the track, as ``--reference igrf`` gives it."""
+    from magcal.checks.reference import resolve_vector_reference
+    from magcal_workbench.dataio import load_dataset
+
+    ds, _ = load_dataset(get_lesson("cannot-tumble").data_path)
+    n = ds.n_samples
+    track = {"lat": np.linspace(-20.0, -19.5, n), "lon": np.full(n, 140.0), "alt_m": np.zeros(n)}
+    ctrl = Controller(ds.replace(extra={**ds.extra, **track}))
+    assert ctrl.state.location is None and "site" not in ctrl.message
+    ref = ctrl.vector.reference()
+    expected = resolve_vector_reference(ctrl.dataset, "igrf")
+    assert ref.kind == "igrf-track" and "# site: line" not in ref.text
+    np.testing.assert_array_equal(ref.ned_nT, expected.ned_nT)
+
+
 # --- in the page --------------------------------------------------------------------------------------------------
 @pytest.mark.e2e
 @pytest.mark.slow
