@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -386,6 +386,19 @@ class CrossCandidate:
     sensor_fom_after_nT: float = float("nan")
     columns: tuple = ()
 
+    unit: ClassVar[str] = "nT/m"
+
+    @property
+    def fom_before(self) -> float:
+        """:attr:`fom_before_nT_per_m` (the held-out tensor FOM, nT/m;
+        :class:`magcal.diagnosis.fom_protocol.CandidateFOM`)."""
+        return self.fom_before_nT_per_m
+
+    @property
+    def fom_after(self) -> float:
+        """:attr:`fom_after_nT_per_m` (nT/m)."""
+        return self.fom_after_nT_per_m
+
     @property
     def label(self) -> str:
         """The name, with the current's column(s): ``current (cur_strb)``."""
@@ -466,6 +479,23 @@ class CrossCompensationDiagnosis:
     current_columns: list = field(default_factory=list)
 
     mode = "cross_compensation"
+    unit: ClassVar[str] = "nT/m"
+
+    @property
+    def fom_held_out(self) -> float:
+        """:attr:`fom_held_out_nT_per_m` (the held-out tensor FOM, nT/m;
+        :class:`magcal.diagnosis.fom_protocol.DiagnosisFOM`)."""
+        return self.fom_held_out_nT_per_m
+
+    @property
+    def fom_final(self) -> float | None:
+        """:attr:`fom_final_nT_per_m` (nT/m)."""
+        return self.fom_final_nT_per_m
+
+    @property
+    def floor_fom(self) -> float:
+        """:attr:`floor_fom_nT_per_m` (nT/m)."""
+        return self.floor_fom_nT_per_m
 
     @property
     def partially_explained_by(self) -> list:
