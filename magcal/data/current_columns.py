@@ -107,7 +107,7 @@ class CurrentTerm:
         names = list(dict.fromkeys(columns))
         first = names[0] if names else None
         return replace(
-            self,  # type: ignore[type-var]
+            self,
             **{self._CURRENT_FIELD: None if first is None else every[first]},
             current_column=first,
             more_currents={c: every[c] for c in names[1:]},

@@ -595,9 +595,9 @@ def _unusable(name: str, record: CrossRecord, field_ned_nT=None, column: str | N
     return ""
 
 
-def _taking(record: CrossRecord | None, columns) -> CrossRecord | None:
+def _taking(record: CrossRecord, columns) -> CrossRecord:
     """``record`` whose current term takes ``columns`` (as it is without any)."""
-    return record.taking_currents(columns) if columns and record is not None else record
+    return record.taking_currents(columns) if columns else record
 
 
 def diagnose_cross_compensation(
@@ -649,7 +649,12 @@ def diagnose_cross_compensation(
     def score(names, with_columns) -> tuple[float, float]:
         taken = with_columns if "current" in names else []
         return held_out_foms(
-            _taking(record, taken), names, maneuvers, field_ned_nT=field_ned_nT, also=_taking(also, taken), **options
+            _taking(record, taken),
+            names,
+            maneuvers,
+            field_ned_nT=field_ned_nT,
+            also=None if also is None else _taking(also, taken),
+            **options,
         )
 
     def why(name, column=None) -> str:
