@@ -7,7 +7,6 @@ compensation's within 1.2x; Remove takes one column out; the session file keeps 
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -21,6 +20,7 @@ from magcal_workbench.dataio import load_dataset
 from magcal_workbench.sessionfile import read_session_document
 from tests.diagnosis.test_cross_compensation_currents import HIDDEN, PLATFORM
 from tests.helpers.cross_flights import write_cross_flight
+from tests.workbench.test_workbench_compensation_currents import _click
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +35,6 @@ def flight(tmp_path_factory):
     lines += [row + "," + ",".join(f"{f.currents_A[c][i]:.9g}" for c in names) for i, row in enumerate(rows)]
     open(path, "w", encoding="utf-8").write("\n".join(lines) + "\n")
     return path, f
-
-
-def _click(wb, button):
-    button.value = True  # what a click does: the callbacks run in the worker
-    time.sleep(0.05)
-    assert wb.worker.wait(300)
-    wb.ui.wait()
 
 
 def _true_fom(flight, session) -> float:
