@@ -48,8 +48,12 @@ class CompensationBase(ModelSession):
     session file's ``compensation_fit``.
 
     A subclass names its engine's calls (:meth:`make_record`, :meth:`check_terms`, :meth:`engine_fit`,
-    :meth:`engine_diagnose`) and how its FOM reads (:attr:`unit`, :meth:`fom_figures`, :meth:`candidate_figures`,
-    :meth:`fom_rows`); the page's texts and figures ask these, never the mode.
+    :meth:`engine_diagnose`, :meth:`result_effects`) and its :attr:`unit`; the FOM reads the same for both
+    (:meth:`fom_figures`, :meth:`candidate_figures`, :meth:`diagnosis_figures`, :meth:`fom_rows`), through the
+    engine's unit-neutral FOM protocol (:mod:`magcal.diagnosis.fom_protocol`: ``fom``, ``per_maneuver``,
+    ``fom_before``, ``fom_held_out`` ...). The current term's columns are the base's too: the record's
+    ``all_currents`` are the choices, a fit's compensation's ``current_columns`` what it took. The page's texts and
+    figures ask these, never the mode.
 
     Attributes
     ----------
@@ -94,12 +98,16 @@ class CompensationBase(ModelSession):
         raise NotImplementedError
 
     def current_choices(self) -> list[str]:
-        """The record's current columns the current term may take (empty for a compensation with one at most)."""
-        return []
+        """The record's current columns the current term may take (the engine record's ``all_currents``)."""
+        return list(self.record().all_currents) if self.available else []
 
     def result_columns(self, result) -> list[str]:
-        """The current columns a fit's current term took (empty without it)."""
-        return []
+        """The current columns a fit's current term took (its compensation's ``current_columns``; empty without
+        the term)."""
+        if "current" not in self.result_effects(result):
+            return []
+        comp = result.calibration
+        return list(comp.current_columns or ([comp.current_column] if comp.current_column else []))
 
     def engine_diagnose(self):
         """The engine's diagnosis of the model's terms."""
@@ -112,19 +120,28 @@ class CompensationBase(ModelSession):
     def fom_figures(self, result) -> tuple[float, float, float, int] | None:
         """The FOM before and after (:attr:`unit`), the improvement ratio and the maneuvers' count; None without
         maneuvers."""
-        raise NotImplementedError
+        fom = result.fom
+        if fom is None:
+            return None
+        return fom.before.fom, fom.after.fom, fom.improvement_ratio, len(fom.after.maneuvers)
 
     def candidate_figures(self, candidate) -> tuple[float, float]:
         """A judged candidate's held-out FOM before and after (:attr:`unit`)."""
-        raise NotImplementedError
+        return candidate.fom_before, candidate.fom_after
 
     def diagnosis_figures(self, found) -> tuple[float, float]:
         """A diagnosis's held-out FOM of the model and the FOM the noise alone leaves (:attr:`unit`)."""
-        raise NotImplementedError
+        return found.fom_held_out, found.floor_fom
 
     def fom_rows(self) -> list[tuple[float, str, float, float]]:
         """Per maneuver of the last fit: the heading (deg), the kind, its FOM part before and after (:attr:`unit`)."""
-        raise NotImplementedError
+        fom = None if self.result is None else self.result.fom
+        if fom is None:
+            return []
+        return [
+            (m.heading_deg, m.kind, float(b), float(a))
+            for m, b, a in zip(fom.after.maneuvers, fom.before.per_maneuver, fom.after.per_maneuver)
+        ]
 
     def tl_words(self) -> str:
         """Tolles-Lawson's part of the last fit, in words (markdown: its terms and coefficients)."""
@@ -469,37 +486,8 @@ class CompensationSession(CompensationBase):
         # the model's current columns named: the record's others stay candidates, each of its own
         return COMPENSATION.diagnose(self.record(), effects=tuple(self.effects), current=self.current_columns or None)
 
-    def current_choices(self) -> list[str]:
-        return list(self.record().all_currents) if self.available else []
-
     def result_effects(self, result) -> list[str]:
         return list(result.calibration.effects)
-
-    def result_columns(self, result) -> list[str]:
-        comp = result.calibration
-        return list(comp.current_columns) if "current" in comp.effects else []
-
-    def fom_figures(self, result):
-        fom = result.fom
-        if fom is None:
-            return None
-        return fom.before.fom_nT, fom.after.fom_nT, fom.improvement_ratio, len(fom.after.maneuvers)
-
-    def candidate_figures(self, candidate) -> tuple[float, float]:
-        return candidate.fom_before_nT, candidate.fom_after_nT
-
-    def diagnosis_figures(self, found) -> tuple[float, float]:
-        return found.fom_held_out_nT, found.floor_fom_nT
-
-    def fom_rows(self):
-        fom = None if self.result is None else self.result.fom
-        if fom is None:
-            return []
-        maneuvers = fom.after.maneuvers
-        return [
-            (m.heading_deg, m.kind, float(b), float(a))
-            for m, b, a in zip(maneuvers, fom.before.peak_to_peak_nT, fom.after.peak_to_peak_nT)
-        ]
 
     def tl_words(self) -> str:
         tl = self.result.calibration.tl

@@ -72,35 +72,21 @@ class CrossCompensationSession(CompensationBase):
             return None
 
     def engine_fit(self, names, kept, current=None):
-        return CROSS_COMPENSATION.fit(self.record(), reference=self.field_reference(), effects=names, mask=kept)
+        return CROSS_COMPENSATION.fit(
+            self.record(), reference=self.field_reference(), effects=names, mask=kept, current=current
+        )
 
     def engine_diagnose(self):
-        return CROSS_COMPENSATION.diagnose(self.record(), reference=self.field_reference(), effects=tuple(self.effects))
+        # the model's current columns named: the record's others stay candidates, each of its own
+        return CROSS_COMPENSATION.diagnose(
+            self.record(),
+            reference=self.field_reference(),
+            effects=tuple(self.effects),
+            current=self.current_columns or None,
+        )
 
     def result_effects(self, result) -> list[str]:
         return list(result.effects)
-
-    def fom_figures(self, result):
-        fom = result.fom
-        if fom is None:
-            return None
-        return fom.before.fom_nT_per_m, fom.after.fom_nT_per_m, fom.improvement_ratio, len(fom.after.maneuvers)
-
-    def candidate_figures(self, candidate) -> tuple[float, float]:
-        return candidate.fom_before_nT_per_m, candidate.fom_after_nT_per_m
-
-    def diagnosis_figures(self, found) -> tuple[float, float]:
-        return found.fom_held_out_nT_per_m, found.floor_fom_nT_per_m
-
-    def fom_rows(self):
-        fom = None if self.result is None else self.result.fom
-        if fom is None:
-            return []
-        maneuvers = fom.after.maneuvers
-        return [
-            (m.heading_deg, m.kind, float(b), float(a))
-            for m, b, a in zip(maneuvers, fom.before.maneuver_nT_per_m, fom.after.maneuver_nT_per_m)
-        ]
 
     def tl_words(self) -> str:
         comp = self.result.calibration

@@ -74,7 +74,7 @@ def add_compensation_arguments(parser, figure: bool = True) -> None:
         "--current",
         default=None,
         metavar="NAME",
-        help="compensation mode: the current term's column, or several comma-separated (cur_strb,cur_com_1: each "
+        help="compensation modes: the current term's column, or several comma-separated (cur_strb,cur_com_1: each "
         "its own field per ampere); default current_A, throttle, else MagNav.jl's cur_outpwr, cur_strb, cur_com_1 "
         "... the first the file has (magcal diagnose judges each current column the file has)",
     )
@@ -247,7 +247,11 @@ def run_cross_compensation(args, ds, notes) -> int:
     print(
         f"magcal calibrate: cross compensation mode; four sensors, {record.sample_rate_hz:g} Hz, baseline "
         f"{record.baseline_m:g} m, against {_reference_words(vref, ned)}"
-        + (f", current {record.current_column!r}" if record.current_column and "current" in effects else "")
+        + (
+            f", current {', '.join(map(repr, record.term_currents))}"
+            if record.current_column and "current" in effects
+            else ""
+        )
         + f"; terms beyond TL: {', '.join(effects) or 'none'}",
         file=sys.stderr,
     )

@@ -40,6 +40,7 @@ from magcal.data.compensation_flight import (
     DEFAULT_FIELD_NED_nT,
     FlownManeuver,
     _body_field,
+    _current,
     simulate_compensation_flight,
 )
 from magcal.data.dataset import Dataset
@@ -86,6 +87,10 @@ class CrossPlatform:
         A current loop's moment per ampere (A m^2 per A: its area and orientation) of the platform's current
         (a battery's or a motor's), hidden from the Tolles-Lawson terms; none by default.
     current_at_m : numpy.ndarray, shape (3,)
+    currents_Am2_per_A : dict, optional
+        Further currents by column name (MagNav.jl's ``cur_strb`` ...): each a loop at :attr:`current_at_m` with
+        its own moment per ampere (A m^2 per A; zeros: a recorded current that carries no field at the cross) and
+        its own switched series (:attr:`CrossFlight.currents_A`).
     """
 
     permanent_Am2: np.ndarray = field(default_factory=lambda: np.array([1.2, -0.7, 1.6]))
@@ -100,6 +105,7 @@ class CrossPlatform:
     eddy_at_m: np.ndarray = field(default_factory=lambda: np.array([0.9, 0.8, 0.4]))
     current_Am2_per_A: np.ndarray | None = None
     current_at_m: np.ndarray = field(default_factory=lambda: np.array([0.2, -0.6, 0.3]))
+    currents_Am2_per_A: dict = field(default_factory=dict)
 
     def sensor_fields(self, positions_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each sensor's platform terms at ``positions_m`` (n, 3): ``p`` (n, 3) nT, ``A`` (n, 3, 3)
@@ -116,6 +122,14 @@ class CrossPlatform:
         if self.current_Am2_per_A is None:
             return np.zeros_like(pos)
         return np.array([dipole_matrix(r - self.current_at_m) @ self.current_Am2_per_A for r in pos])
+
+    def further_current_fields(self, positions_m) -> dict:
+        """Each further current's field per ampere at each sensor, name -> (n, 3) nT/A."""
+        pos = np.asarray(positions_m, dtype=float)
+        return {
+            name: np.array([dipole_matrix(r - self.current_at_m) @ np.asarray(m, dtype=float) for r in pos])
+            for name, m in self.currents_Am2_per_A.items()
+        }
 
 
 #: Named platforms: an aircraft's tail stinger (sources 1-2 m away), a drone (a battery and motors closer, but
@@ -158,6 +172,8 @@ class CrossTruth:
         ``E_i`` (s).
     current_nT_per_A : numpy.ndarray, shape (4, 3)
         Each sensor's field per ampere of the platform's current (nT/A, body frame; zeros without one).
+    currents_nT_per_A : dict
+        Each further current's field per ampere at each sensor (name -> (4, 3) nT/A, body frame).
     earth_body_nT : numpy.ndarray, shape (4, N, 3)
         The Earth field (with the drift and any gradient) at each sensor, body frame: what a perfect
         compensation returns, noise aside.
@@ -184,6 +200,7 @@ class CrossTruth:
     field_ned_series_nT: np.ndarray
     gradient_ned_nT_per_m: np.ndarray
     maneuvers: list[FlownManeuver]
+    currents_nT_per_A: dict = field(default_factory=dict)
 
     def calibrated_nT(self, readings_nT) -> np.ndarray:
         """The readings (4, N, 3) through each sensor's true calibration, ``M_i^T C_i^-1 (y_i - b_i)``: the body
@@ -213,6 +230,9 @@ class CrossFlight:
     truth : CrossTruth
     current_A : numpy.ndarray, shape (N,)
         The platform's current (A): base load and switched loads, zero without a current loop.
+    currents_A : dict
+        The further currents by column name (A; :attr:`CrossPlatform.currents_Am2_per_A`), each its own switched
+        loads.
     """
 
     time_s: np.ndarray
@@ -222,10 +242,11 @@ class CrossFlight:
     baseline_m: float
     truth: CrossTruth
     current_A: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    currents_A: dict = field(default_factory=dict)
 
     def dataset(self) -> Dataset:
         """The flight as a :class:`~magcal.data.dataset.Dataset`: the readings, the times, the recorded attitude
-        (quaternions, body -> NED) and the baseline."""
+        (quaternions, body -> NED) and the baseline, and the further currents' columns (:attr:`currents_A`)."""
         roll, pitch, yaw = self.attitude_deg.T
         return Dataset(
             self.readings_nT,
@@ -233,6 +254,7 @@ class CrossFlight:
             attitude_wxyz=euler_to_wxyz(roll, pitch, yaw),
             baseline_m=self.baseline_m,
             source="simulated cross flight",
+            extra={name: np.asarray(values) for name, values in self.currents_A.items()},
         )
 
 
@@ -328,6 +350,12 @@ def simulate_cross_flight(
     k = platform.current_fields(positions)
     current = np.interp(t - sensor_lag_s, t, box_flight.current_A)
     platform_field = np.stack([p[i] + centre @ a[i].T + rate @ e[i].T + np.outer(current, k[i]) for i in range(4)])
+    further = platform.further_current_fields(positions)
+    currents = {}
+    for j, (name, k_name) in enumerate(further.items()):  # each wire its own switched loads
+        currents[name] = _current(t.size, sample_rate_hz, np.random.default_rng([seed, 9, j]))
+        lagged = np.interp(t - sensor_lag_s, t, currents[name])
+        platform_field = platform_field + np.stack([np.outer(lagged, k_name[i]) for i in range(4)])
     readings = np.empty_like(earth)
     for i, s in enumerate(sensors):
         readings[i] = (earth[i] + platform_field[i]) @ (s.C @ s.M).T + s.bias_nT
@@ -348,8 +376,11 @@ def simulate_cross_flight(
         field_ned_series_nT=centre_ned,
         gradient_ned_nT_per_m=gradient,
         maneuvers=box_flight.truth.maneuvers,
+        currents_nT_per_A=further,
     )
-    return CrossFlight(t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth, box_flight.current_A)
+    return CrossFlight(
+        t, float(sample_rate_hz), readings, recorded, float(baseline_m), truth, box_flight.current_A, currents
+    )
 
 
 def _lagged(time_s, attitude_deg, lag_s: float) -> np.ndarray:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -123,6 +124,18 @@ class CompensationCandidate:
     def label(self) -> str:
         """The name, with the current's column(s): ``current (cur_strb)``."""
         return f"{self.name} ({', '.join(self.columns)})" if self.columns else self.name
+
+    unit: ClassVar[str] = "nT"
+
+    @property
+    def fom_before(self) -> float:
+        """:attr:`fom_before_nT` (nT; :class:`magcal.diagnosis.fom_protocol.CandidateFOM`)."""
+        return self.fom_before_nT
+
+    @property
+    def fom_after(self) -> float:
+        """:attr:`fom_after_nT` (nT)."""
+        return self.fom_after_nT
 
     @property
     def gain(self) -> float:
@@ -247,6 +260,22 @@ class CompensationDiagnosis:
     current_columns: list = field(default_factory=list)
 
     mode = "compensation"
+    unit: ClassVar[str] = "nT"
+
+    @property
+    def fom_held_out(self) -> float:
+        """:attr:`fom_held_out_nT` (nT; :class:`magcal.diagnosis.fom_protocol.DiagnosisFOM`)."""
+        return self.fom_held_out_nT
+
+    @property
+    def fom_final(self) -> float | None:
+        """:attr:`fom_final_nT` (nT)."""
+        return self.fom_final_nT
+
+    @property
+    def floor_fom(self) -> float:
+        """:attr:`floor_fom_nT` (nT)."""
+        return self.floor_fom_nT
 
     @property
     def partially_explained_by(self) -> list:

@@ -11,8 +11,9 @@ The diagnosis follows the scalar compensation's (:mod:`magcal.diagnosis.compensa
 :data:`~magcal.diagnosis.compensation.FOLDS` folds, each fold's maneuvers (with a guard of
 ``GUARD_S``, 2 s) left out of the fit and the compensated tensor's band-passed
 peak-to-peak taken in them (the held-out tensor FOM, nT/m), or the fit on the whole record judged on ``also``'s
-maneuvers; candidates (:data:`CROSS_CANDIDATES`: the platform's current, the sensors' lag against the attitude)
-taken by :func:`magcal.diagnosis.selection.forward_selection` when they lower it, or the held-out FOM of the sensors'
+maneuvers; candidates (:data:`CROSS_CANDIDATES`: the platform's current, each current column the record has its own
+candidate ``current (col)`` as in the scalar's diagnosis, and the sensors' lag against the attitude) taken one a round
+when they lower it, or the held-out FOM of the sensors'
 total fields, by :data:`~magcal.diagnosis.compensation.MIN_GAIN` without raising the other as much: a lag of all
 four is an eddy term to first order, which each sensor's eddy matrix takes, so the tensor barely shows it while each
 sensor's field keeps its second order. The floor is the tensor FOM the sensors' white noise alone leaves
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -31,11 +32,14 @@ from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.core.notes import Note
 from magcal.data.attitude import attitude as dataset_attitude
+from magcal.data.current_columns import CurrentTerm, current_columns, current_series
 from magcal.data.dataset import Dataset
+from magcal.data.flight_columns import CURRENT_COLUMNS as FLIGHT_CURRENT_COLUMNS
 from magcal.diagnosis.compensation import (
     ADEQUATE_RATIO,
     FOLDS,
     GUARD_S,
+    MAX_CURRENT_COLUMNS,
     MAX_EFFECTS,
     MIN_GAIN,
     _fold_masks,
@@ -46,7 +50,6 @@ from magcal.diagnosis.compensation import (
 )
 from magcal.diagnosis.cross_fom import CrossFOMReport, cross_fom_report, sensor_fom, tensor_fom
 from magcal.diagnosis.fom import find_maneuvers
-from magcal.diagnosis.selection import forward_selection
 from magcal.fitting.cross_compensation import CrossCompensation, fit_cross_compensation
 from magcal.fitting.result import ModeResult
 from magcal.fitting.tolles_lawson import sample_rate_from_times
@@ -77,8 +80,10 @@ CROSS_EFFECTS = ("current", "time_offset")
 #: The candidates the diagnosis tries.
 CROSS_CANDIDATES = CROSS_EFFECTS
 
-#: A platform current's column, the first of these a record has (A, or a throttle's fraction).
-CURRENT_COLUMNS = ("current_A", "current", "throttle")
+#: A platform current's columns found by name (A, or a throttle's fraction): the first the current term's, the others
+#: the diagnosis's candidates (the scalar compensation's, :data:`magcal.data.flight_columns.CURRENT_COLUMNS`, and
+#: ``current``).
+CURRENT_COLUMNS = tuple(dict.fromkeys(("current_A", "current", "throttle") + FLIGHT_CURRENT_COLUMNS))
 
 
 def check_cross_effects(names) -> tuple:
@@ -93,7 +98,7 @@ def check_cross_effects(names) -> tuple:
 
 
 @dataclass
-class CrossRecord:
+class CrossRecord(CurrentTerm):
     """What the cross's compensation takes from a record.
 
     Attributes
@@ -105,10 +110,16 @@ class CrossRecord:
         Roll, pitch, yaw (deg, aerospace ZYX, body -> NED).
     baseline_m : float
     current_A : numpy.ndarray, shape (N,), or None
-        The platform's current (its column :attr:`current_column`).
+        The platform's current (its column :attr:`current_column`): the current term's first column.
     current_column : str or None
     source : str
+    more_currents : dict
+        The current term's further columns (name -> values, A), each its own field per ampere at each sensor.
+    other_currents : dict
+        The record's current columns the term does not take (name -> values): the diagnosis's candidates.
     """
+
+    _CURRENT_FIELD = "current_A"
 
     readings_nT: np.ndarray
     sample_rate_hz: float
@@ -117,6 +128,14 @@ class CrossRecord:
     current_A: np.ndarray | None = None
     current_column: str | None = None
     source: str = ""
+    more_currents: dict = field(default_factory=dict)
+    other_currents: dict = field(default_factory=dict)
+
+    @property
+    def currents_A(self) -> np.ndarray | None:
+        """The current term's columns (N, K), A (None without a current)."""
+        term = self.term_currents
+        return np.column_stack(list(term.values())) if term else None
 
     @property
     def n_samples(self) -> int:
@@ -132,9 +151,11 @@ def _attitude_deg(dataset: Dataset) -> np.ndarray | None:
     return att
 
 
-def cross_record(dataset: Dataset, current: str | None = None) -> CrossRecord:
+def cross_record(dataset: Dataset, current=None) -> CrossRecord:
     """The :class:`CrossRecord` of a dataset of four sensors with times, a baseline and (for the maneuvers) an
-    attitude; ``current`` names the current's column (default the first of :data:`CURRENT_COLUMNS` it has)."""
+    attitude; ``current`` names the current term's columns (``"a,b"`` or a list; default the first of
+    :data:`CURRENT_COLUMNS` it has, the others kept for the diagnosis:
+    :func:`magcal.data.current_columns.current_columns`)."""
     where = dataset.source or "the record"
     if dataset.n_sensors != 4:
         raise MagcalError(
@@ -146,10 +167,10 @@ def cross_record(dataset: Dataset, current: str | None = None) -> CrossRecord:
         raise MagcalError(
             f"{where}: the tensor needs the cross's baseline: add '# baseline_m: 0.5' (m) to the file's head"
         )
-    if current is not None and current not in dataset.extra:
-        raise MagcalError(f"{where}: no column {current!r} for the current (--current)")
-    name = current or next((c for c in CURRENT_COLUMNS if c in dataset.extra), None)
-    values = None if name is None else np.asarray(dataset.extra[name], dtype=float)
+    term, others = current_columns(dataset, current, where, CURRENT_COLUMNS)
+    term_values, other_values = current_series(dataset, term, others, where)
+    name = term[0] if term else None
+    values = None if name is None else term_values[name]
     return CrossRecord(
         np.asarray(dataset.readings_nT, dtype=float),
         sample_rate_from_times(dataset.time_s),
@@ -158,6 +179,8 @@ def cross_record(dataset: Dataset, current: str | None = None) -> CrossRecord:
         values,
         name,
         dataset.source or "",
+        {c: term_values[c] for c in term[1:]},
+        other_values,
     )
 
 
@@ -168,7 +191,7 @@ def cross_maneuvers(record: CrossRecord) -> list:
 
 
 def _fit(record: CrossRecord, effects, field_ned_nT, mask=None, **options) -> CrossCompensation:
-    current = record.current_A if "current" in effects else None
+    current = record.currents_A if "current" in effects else None
     if "time_offset" in effects and (field_ned_nT is None or record.attitude_deg is None):
         raise MagcalError(
             f"{record.source or 'the record'}: the time offset term needs the attitude and the Earth field vector "
@@ -192,12 +215,15 @@ def _fit(record: CrossRecord, effects, field_ned_nT, mask=None, **options) -> Cr
         **options,
     )
     comp.current_column = record.current_column if current is not None else None
+    comp.current_columns = tuple(record.term_currents) if current is not None else ()
     return comp
 
 
 def _compensated(comp: CrossCompensation, record: CrossRecord) -> np.ndarray:
     return comp.compensate(
-        record.readings_nT, sample_rate_hz=record.sample_rate_hz, current_A=record.current_A if comp.current else None
+        record.readings_nT,
+        sample_rate_hz=record.sample_rate_hz,
+        current_A=record.all_currents if comp.current else None,
     )
 
 
@@ -360,6 +386,25 @@ class CrossCandidate:
     reason: str = ""
     sensor_fom_before_nT: float = float("nan")
     sensor_fom_after_nT: float = float("nan")
+    columns: tuple = ()
+
+    unit: ClassVar[str] = "nT/m"
+
+    @property
+    def fom_before(self) -> float:
+        """:attr:`fom_before_nT_per_m` (the held-out tensor FOM, nT/m;
+        :class:`magcal.diagnosis.fom_protocol.CandidateFOM`)."""
+        return self.fom_before_nT_per_m
+
+    @property
+    def fom_after(self) -> float:
+        """:attr:`fom_after_nT_per_m` (nT/m)."""
+        return self.fom_after_nT_per_m
+
+    @property
+    def label(self) -> str:
+        """The name, with the current's column(s): ``current (cur_strb)``."""
+        return f"{self.name} ({', '.join(self.columns)})" if self.columns else self.name
 
     @property
     def tensor_gain(self) -> float:
@@ -399,15 +444,16 @@ class CrossCandidate:
                 "recommended": self.recommended,
                 "evidence": self.evidence,
                 "reason": self.reason,
+                "columns": list(self.columns),
             }
         )
 
     def text(self) -> str:
         if not self.judged:
-            return f"  {self.name:<12} not judged: {self.reason}"
+            return f"  {self.label:<22} not judged: {self.reason}"
         mark = "RECOMMENDED" if self.recommended else "no"
         return (
-            f"  {self.name:<12} {self.fom_before_nT_per_m:9.3f} -> {self.fom_after_nT_per_m:9.3f} nT/m "
+            f"  {self.label:<22} {self.fom_before_nT_per_m:9.3f} -> {self.fom_after_nT_per_m:9.3f} nT/m "
             f"({-100 * self.tensor_gain:+.0f} %), sensors {self.sensor_fom_before_nT:7.3f} -> "
             f"{self.sensor_fom_after_nT:7.3f} nT ({-100 * self.sensor_gain:+.0f} %)  {mark:<11}  {self.evidence}"
         )
@@ -432,8 +478,26 @@ class CrossCompensationDiagnosis:
     notes: list = field(default_factory=list)
     result: CrossCompensation | None = field(repr=False, default=None)
     elapsed_s: float = 0.0
+    current_columns: list = field(default_factory=list)
 
     mode = "cross_compensation"
+    unit: ClassVar[str] = "nT/m"
+
+    @property
+    def fom_held_out(self) -> float:
+        """:attr:`fom_held_out_nT_per_m` (the held-out tensor FOM, nT/m;
+        :class:`magcal.diagnosis.fom_protocol.DiagnosisFOM`)."""
+        return self.fom_held_out_nT_per_m
+
+    @property
+    def fom_final(self) -> float | None:
+        """:attr:`fom_final_nT_per_m` (nT/m)."""
+        return self.fom_final_nT_per_m
+
+    @property
+    def floor_fom(self) -> float:
+        """:attr:`floor_fom_nT_per_m` (nT/m)."""
+        return self.floor_fom_nT_per_m
 
     @property
     def partially_explained_by(self) -> list:
@@ -445,6 +509,7 @@ class CrossCompensationDiagnosis:
             "tensor_fom_held_out_nT_per_m": self.fom_held_out_nT_per_m,
             "tensor_fom_final_nT_per_m": self.fom_final_nT_per_m,
             "floor_tensor_fom_nT_per_m": self.floor_fom_nT_per_m,
+            "current_columns": list(self.current_columns),
         }
         return diagnosis_document(self, figures)
 
@@ -455,7 +520,7 @@ class CrossCompensationDiagnosis:
             f"sensors' noise {self.noise_nT:.3g} nT leaves {self.floor_fom_nT_per_m:.3f} nT/m"
         )
         header = (
-            f"  {'candidate':<12} {'held-out tensor FOM before -> after':>36}, {'the sensors held out':>34}  "
+            f"  {'candidate':<22} {'held-out tensor FOM before -> after':>36}, {'the sensors held out':>34}  "
             f"{'advice':<11}  evidence"
         )
         return diagnosis_table(self, figure, header)
@@ -469,19 +534,27 @@ def _evidence(name: str, comp: CrossCompensation) -> str:
         late = "late" if comp.time_offset_s >= 0 else "early"
         return f"the sensors {abs(comp.time_offset_s) * 1e3:.0f} ms {late} against the attitude"
     if name == "current":
-        k = np.array([np.linalg.norm(s.current_nT_per_A) for s in comp.sensors])
-        return "a field of " + ", ".join(f"{v:.3g}" for v in k) + " nT per ampere at sensors 1-4"
+        names = comp.current_columns or (comp.current_column or "the current",)
+        parts = []
+        for j, column in enumerate(names):
+            k = np.array([np.linalg.norm(s.per_ampere[j]) for s in comp.sensors])
+            of = f" of {column}" if len(names) > 1 else ""
+            parts.append(", ".join(f"{v:.3g}" for v in k) + f" nT per ampere{of}")
+        return "a field of " + "; ".join(parts) + " at sensors 1-4"
     return ""
 
 
-def _verdict(explained, base, final, floor, scheme, effects) -> tuple[str, str]:
+def _verdict(explained, base, final, floor, scheme, effects, columns=(), grew=()) -> tuple[str, str]:
     on = "on held-out maneuvers" if scheme == "maneuvers" else "on the other flight"
     model = "Tolles-Lawson per sensor" + (" with " + ", ".join(effects) if effects else "")
-    if explained:
+    if explained or grew:
+        added = list(explained) + ([f"the current's {', '.join(grew)}"] if "current" not in explained and grew else [])
         return "missing_effect", (
-            f"{model} leaves a held-out tensor FOM of {base:.3f} nT/m {on}; adding {', '.join(explained)} brings it "
+            f"{model} leaves a held-out tensor FOM of {base:.3f} nT/m {on}; adding {', '.join(added)} brings it "
             f"to {final:.3f} nT/m (the noise's {floor:.3f} nT/m): magcal calibrate --mode cross_compensation "
-            "--effects " + ",".join(list(effects) + list(explained))
+            "--effects "
+            + ",".join(list(effects) + list(explained))
+            + (f" --current {','.join(columns)}" if columns else "")
         )
     if base <= ADEQUATE_RATIO * floor:
         return "adequate", (
@@ -521,15 +594,24 @@ LAG_FLAGS = (
 )
 
 
-def _unusable(name: str, record: CrossRecord, field_ned_nT=None) -> str:
+def _unusable(name: str, record: CrossRecord, field_ned_nT=None, column: str | None = None) -> str:
+    """Why the record cannot judge a candidate ('' when it can): the current's ``column`` of it."""
     if name == "time_offset" and (field_ned_nT is None or record.attitude_deg is None):
         return LAG_NEEDS_FIELD
     if name == "current":
-        if record.current_A is None:
-            return f"the record has no current column ({', '.join(CURRENT_COLUMNS)})"
-        if np.ptp(record.current_A) == 0:
-            return f"its {record.current_column} column does not change"
+        every = record.all_currents
+        if not every:
+            return f"the record has no current column ({', '.join(CURRENT_COLUMNS[:3])} ...)"
+        if column is not None and column not in every:
+            return f"the record has no {column} column"
+        if column is not None and np.ptp(every[column]) == 0:
+            return f"its {column} column does not change"
     return ""
+
+
+def _taking(record: CrossRecord, columns) -> CrossRecord:
+    """``record`` whose current term takes ``columns`` (as it is without any)."""
+    return record.taking_currents(columns) if columns else record
 
 
 def diagnose_cross_compensation(
@@ -565,7 +647,6 @@ def diagnose_cross_compensation(
     judged_maneuvers = cross_maneuvers(also) if also is not None else maneuvers
     scheme = "flight" if also is not None else "maneuvers"
     base = _fit(record, effects, field_ned_nT, **options)
-    state = {"fit": base}
     sigma, floor = (
         _floor(_compensated(base, on), on.baseline_m, judged_maneuvers, on.sample_rate_hz)
         if judged_maneuvers
@@ -576,56 +657,85 @@ def diagnose_cross_compensation(
     if not enough:
         return _not_judged(also is not None, effects, pool, judged_maneuvers, floor, sigma, base, started)
 
-    def score(names) -> tuple[float, float]:
-        return held_out_foms(record, names, maneuvers, field_ned_nT=field_ned_nT, also=also, **options)
+    columns = list(record.term_currents) if "current" in effects else []
+    initial_columns = list(columns)
 
-    def why(name) -> str:
-        return _unusable(name, record, field_ned_nT) or (_unusable(name, also, field_ned_nT) if also else "")
+    def score(names, with_columns) -> tuple[float, float]:
+        taken = with_columns if "current" in names else []
+        return held_out_foms(
+            _taking(record, taken),
+            names,
+            maneuvers,
+            field_ned_nT=field_ned_nT,
+            also=None if also is None else _taking(also, taken),
+            **options,
+        )
+
+    def why(name, column=None) -> str:
+        return _unusable(name, record, field_ned_nT, column) or (
+            _unusable(name, also, field_ned_nT, column) if also else ""
+        )
 
     unusable = {n: r for n in pool if (r := why(n))}
     candidates = [CrossCandidate(n, judged=False, reason=r) for n, r in unusable.items()]
+    wants = ("current" in pool and "current" not in unusable) or "current" in effects
+    every = [c for c in record.all_currents if c not in columns] if wants else []
+    candidates += [
+        CrossCandidate("current", judged=False, reason=r, columns=(c,)) for c in every if (r := why("current", c))
+    ]
+    open_columns = [c for c in every if not why("current", c)]
+    open_names = [n for n in pool if n not in unusable]
     current = list(effects)
-    base_fom, base_sensors = score(current)
-    scores = {"now": (base_fom, base_sensors)}
+    base_fom, base_sensors = score(current, columns)
+    now = (base_fom, base_sensors)
+    fit = base
 
-    def round_of(step: int):
-        names = [n for n in pool if n not in unusable and n not in current]
-        if not names or scores["now"][0] <= ADEQUATE_RATIO * floor and step > 0:
-            return None
-        trials = []
-        for name in names:
-            fit = _fit(record, current + [name], field_ned_nT, **options)
-            (tensor, sensors), (now, now_sensors) = score(current + [name]), scores["now"]
-            trials.append(
-                CrossCandidate(name, step + 1, True, now, tensor, False, _evidence(name, fit), "", now_sensors, sensors)
-            )
+    def trial(name, round_, added=()) -> CrossCandidate:
+        names = current + [name] if name not in current else list(current)
+        with_columns = columns + list(added)
+        tensor, sensors = score(names, with_columns)
+        taken = _taking(record, with_columns if "current" in names else [])
+        evidence = _evidence(name, _fit(taken, names, field_ned_nT, **options))
+        return CrossCandidate(
+            name, round_, True, now[0], tensor, False, evidence, "", now[1], sensors, columns=tuple(added)
+        )
+
+    for round_ in range(1, MAX_EFFECTS + MAX_CURRENT_COLUMNS):
+        added_terms = len(current) - len(effects)
+        names = [n for n in open_names if added_terms < MAX_EFFECTS and n not in current]
+        more = open_columns if len(columns) < MAX_CURRENT_COLUMNS else []
+        trials = [trial(name, round_) for name in names if name != "current"]
+        if "current" in current or "current" in names:
+            trials += [trial("current", round_, (c,)) for c in more]
         trials.sort(key=lambda c: -c.gain)
         candidates.extend(trials)
-        return trials or None
-
-    def take(step: int, best: CrossCandidate, cands) -> None:
+        best = next((c for c in trials if c.holds), None)
+        if best is None:
+            break
         best.recommended = True
-        current.append(best.name)
-        scores["now"] = (best.fom_after_nT_per_m, best.sensor_fom_after_nT)
-        state["fit"] = _fit(record, current, field_ned_nT, **options)
-
-    forward_selection(
-        lambda: round_of(0),
-        lambda cands: next((c for c in cands if c.holds), None),
-        take,
-        lambda step, best: round_of(step + 1),
-        MAX_EFFECTS,
-    )
+        if best.name not in current:
+            current.append(best.name)
+        columns += list(best.columns)
+        open_columns = [c for c in open_columns if c not in columns]
+        now = (best.fom_after_nT_per_m, best.sensor_fom_after_nT)
+        open_names = [n for n in open_names if n not in current or (n == "current" and open_columns)]
+        fit = _fit(_taking(record, columns if "current" in current else []), current, field_ned_nT, **options)
+        if not (open_names or open_columns) or now[0] <= ADEQUATE_RATIO * floor:
+            break
     explained = current[len(effects) :]
-    final = scores["now"][0]
-    verdict, summary = _verdict(explained, base_fom, final, floor, scheme, effects)
+    grew = columns[len(initial_columns) :]
+    final = now[0]
+    advice = columns if "current" in current and len(record.all_currents) > 1 else []
+    verdict, summary = _verdict(explained, base_fom, final, floor, scheme, effects, advice, grew)
+    changed = bool(explained or grew)
     warnings = []
-    if explained and final > ADEQUATE_RATIO * floor:
+    if changed and final > ADEQUATE_RATIO * floor:
+        named = ", ".join(explained) if explained else "the current's " + ", ".join(grew)
         warnings.append(
-            f"with {', '.join(explained)} the held-out tensor FOM is {final:.3f} nT/m, still {final / floor:.1f}x "
+            f"with {named} the held-out tensor FOM is {final:.3f} nT/m, still {final / floor:.1f}x "
             "what the sensors' noise leaves: the platform has more than the candidates follow"
         )
     return CrossCompensationDiagnosis(
-        verdict, summary, effects, candidates, explained, base_fom, final if explained else None, floor, sigma,
-        validation, warnings, [], state["fit"], _time.perf_counter() - started,
+        verdict, summary, effects, candidates, explained, base_fom, final if changed else None, floor, sigma,
+        validation, warnings, [], fit, _time.perf_counter() - started, columns if "current" in current else [],
     )  # fmt: skip

@@ -23,6 +23,7 @@ value is about five of those.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -43,10 +44,25 @@ class TensorFOMTable:
     maneuvers : list of Maneuver
     peak_to_peak_nT_per_m : numpy.ndarray, shape (n_maneuvers, 7)
         Columns in :data:`magcal.core.conventions.TENSOR_COMPONENTS` order.
+
+    The unit-neutral accessors of :class:`magcal.diagnosis.fom_protocol.FOMFigures`: :attr:`fom` is
+    :attr:`fom_nT_per_m`, :attr:`per_maneuver` is :attr:`maneuver_nT_per_m`, :attr:`unit` ``"nT/m"``.
     """
 
     maneuvers: list
     peak_to_peak_nT_per_m: np.ndarray
+
+    unit: ClassVar[str] = "nT/m"
+
+    @property
+    def fom(self) -> float:
+        """:attr:`fom_nT_per_m` (nT/m)."""
+        return self.fom_nT_per_m
+
+    @property
+    def per_maneuver(self) -> np.ndarray:
+        """:attr:`maneuver_nT_per_m` (nT/m per maneuver)."""
+        return self.maneuver_nT_per_m
 
     @property
     def component_fom_nT_per_m(self) -> dict[str, float]:
@@ -118,7 +134,8 @@ def sensor_fom(vectors_nT, maneuvers, sample_rate_hz: float, passband_hz=DEFAULT
 @dataclass
 class CrossFOMReport:
     """The cross's FOM before and after a compensation (and, when given, a reference such as the true
-    compensation's), the improvement ratio and notes."""
+    compensation's), the improvement ratio and notes (the tensor's in nT/m:
+    :class:`magcal.diagnosis.fom_protocol.FOMComparison`)."""
 
     before: TensorFOMTable
     after: TensorFOMTable
@@ -128,6 +145,8 @@ class CrossFOMReport:
     reference: TensorFOMTable | None = None
     sensors_reference: list[FOMTable] | None = None
     notes: list[str] = field(default_factory=list)
+
+    unit: ClassVar[str] = "nT/m"
 
     def to_dict(self) -> dict:
         out = {

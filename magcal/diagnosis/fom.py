@@ -21,6 +21,7 @@ direction alone cannot tell a roll from a yaw at some headings (both turn the fi
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 from scipy.ndimage import maximum_filter1d
@@ -48,14 +49,30 @@ class Maneuver:
 
 @dataclass
 class FOMTable:
-    """Peak-to-peak values (nT) of a band-passed signal per maneuver, and their sum (the FOM)."""
+    """Peak-to-peak values (nT) of a band-passed signal per maneuver, and their sum (the FOM).
+
+    The unit-neutral accessors of :class:`magcal.diagnosis.fom_protocol.FOMFigures`: :attr:`fom` is
+    :attr:`fom_nT`, :attr:`per_maneuver` is :attr:`peak_to_peak_nT`, :attr:`unit` ``"nT"``.
+    """
 
     maneuvers: list[Maneuver]
     peak_to_peak_nT: np.ndarray
 
+    unit: ClassVar[str] = "nT"
+
     @property
     def fom_nT(self) -> float:
         return float(np.sum(self.peak_to_peak_nT))
+
+    @property
+    def fom(self) -> float:
+        """:attr:`fom_nT` (nT)."""
+        return self.fom_nT
+
+    @property
+    def per_maneuver(self) -> np.ndarray:
+        """:attr:`peak_to_peak_nT` (nT per maneuver)."""
+        return np.asarray(self.peak_to_peak_nT, dtype=float)
 
     def to_dict(self) -> dict:
         return {
@@ -75,12 +92,15 @@ class FOMTable:
 
 @dataclass
 class FOMReport:
-    """The FOM before and after a compensation, and the improvement ratio."""
+    """The FOM before and after a compensation, and the improvement ratio (nT:
+    :class:`magcal.diagnosis.fom_protocol.FOMComparison`)."""
 
     before: FOMTable
     after: FOMTable
     improvement_ratio: float
     notes: list[str] = field(default_factory=list)
+
+    unit: ClassVar[str] = "nT"
 
     def to_dict(self) -> dict:
         return {

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -51,8 +51,9 @@ from magcal.calibration.calibration import write_json_atomic
 from magcal.core.errors import MagcalError
 from magcal.core.jsonable import jsonable
 from magcal.data.attitude import attitude
+from magcal.data.current_columns import CurrentTerm, current_columns, current_names, current_series
 from magcal.data.dataset import Dataset
-from magcal.data.flight_columns import ATTITUDE_COLUMNS, CURRENT_COLUMNS, TEMPERATURE_COLUMNS
+from magcal.data.flight_columns import ATTITUDE_COLUMNS, TEMPERATURE_COLUMNS
 from magcal.fitting.result import ModeResult
 from magcal.fitting.tolles_lawson import TLCompensation, sample_rate_from_times, solve_ridge
 from magcal.model.tolles_lawson import (
@@ -140,7 +141,7 @@ def check_effects(effects) -> tuple[str, ...]:
 
 
 @dataclass
-class CompensationRecord:
+class CompensationRecord(CurrentTerm):
     """What a compensation flight (or a survey line) holds for the compensation.
 
     Attributes
@@ -187,35 +188,6 @@ class CompensationRecord:
     def n_samples(self) -> int:
         return int(self.scalar_nT.size)
 
-    @property
-    def term_currents(self) -> dict:
-        """The current term's columns, name -> values (A): the first, then the further ones."""
-        if self.current is None:
-            return {}
-        return {self.current_column or "current": self.current} | dict(self.more_currents)
-
-    @property
-    def all_currents(self) -> dict:
-        """Every current column the record holds, the term's first (name -> values)."""
-        return self.term_currents | {k: v for k, v in self.other_currents.items() if k not in self.term_currents}
-
-    def taking_currents(self, columns) -> CompensationRecord:
-        """The same record whose current term takes ``columns`` (of :attr:`all_currents`, in this order); the
-        others are left to :attr:`other_currents`."""
-        every = self.all_currents
-        missing = [c for c in columns if c not in every]
-        if missing:
-            raise MagcalError(f"{self.source}: no current column {missing[0]!r}; its currents: {', '.join(every)}")
-        names = list(dict.fromkeys(columns))
-        first = names[0] if names else None
-        return replace(
-            self,
-            current=None if first is None else every[first],
-            current_column=first,
-            more_currents={c: every[c] for c in names[1:]},
-            other_currents={c: v for c, v in every.items() if c not in names},
-        )
-
 
 def _numeric(dataset: Dataset, name: str) -> bool:
     value = dataset.extra.get(name)
@@ -252,33 +224,6 @@ def _record_rate(dataset: Dataset, where: str) -> float:
             f"{where}: the compensation needs the sample rate: a time column (t, s) or a '# sample_rate_hz:' line"
         )
     return rate
-
-
-def current_names(current) -> tuple[str, ...]:
-    """The current columns a user named: ``"cur_strb"``, ``"cur_strb,cur_com_1"`` or a sequence of names; () for
-    None."""
-    if current is None:
-        return ()
-    items = [current] if isinstance(current, str) else list(current)
-    return tuple(dict.fromkeys(n.strip() for item in items for n in str(item).split(",") if n.strip()))
-
-
-def _current_columns(dataset: Dataset, current, where: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(the current term's columns, the record's other current columns): the named ones (``current``, one or
-    several; an error naming the columns when one is absent) and none other, else the first of
-    :data:`magcal.data.flight_columns.CURRENT_COLUMNS` the dataset holds as numbers and the rest of them."""
-    named = current_names(current)
-    if named:
-        for name in named:
-            if not _numeric(dataset, name):
-                numeric = [k for k in dataset.extra if _numeric(dataset, k)]
-                raise MagcalError(
-                    f"{where}: no column {name!r} of numbers for the current (--current); its other columns: "
-                    + (", ".join(numeric) or "none")
-                )
-        return named, ()
-    found = tuple(name for name in CURRENT_COLUMNS if _numeric(dataset, name))
-    return found[:1], found[1:]
 
 
 def _temperature_C(dataset: Dataset) -> np.ndarray | None:
@@ -330,16 +275,9 @@ def compensation_record(
         )
     flux = np.asarray(dataset.readings_nT[0], float)
     rate = _record_rate(dataset, where)
-    term, others = _current_columns(dataset, current, where)
-    currents = {c: np.asarray(dataset.extra[c], float) for c in term + others}
-    others = tuple(c for c in others if np.isfinite(currents[c]).all())  # a gappy one is no candidate
-    for c in term:
-        bad = ~np.isfinite(currents[c])
-        if bad.any():
-            raise MagcalError(
-                f"{where}: column {c} (a current) has {int(bad.sum())} missing or non-finite value(s) (first at "
-                f"data row {int(np.argmax(bad)) + 1}): fill or cut them (or read with --drop-bad)"
-            )
+    term, others = current_columns(dataset, current, where)
+    term_values, other_values = current_series(dataset, term, others, where)
+    currents = term_values | other_values
     column = term[0] if term else None
     temperature = _temperature_C(dataset)
     return CompensationRecord(
@@ -352,7 +290,7 @@ def compensation_record(
         current=None if column is None else currents[column],  # the term's first; the others below
         current_column=column,
         more_currents={c: currents[c] for c in term[1:]},
-        other_currents={c: currents[c] for c in others},
+        other_currents=other_values,
         temperature_C=temperature,
         source=where,
         fluxgate_columns=None if fluxgate_columns is None else tuple(map(str, fluxgate_columns)),

@@ -184,8 +184,9 @@ class SensorCompensation:
         Each axis's band-passed residual's standard deviation over the fitted samples (nT).
     conditioning : Conditioning
         Of the band-passed design (the reference's components and rates).
-    current_nT_per_A : numpy.ndarray, shape (3,)
-        ``k``: the reading per ampere of the platform's current (nT/A; zeros when the fit had no current).
+    current_nT_per_A : numpy.ndarray, shape (3,) or (K, 3)
+        ``k``: the reading per ampere of the platform's current (nT/A; zeros when the fit had no current), one row
+        per current column when the fit had several (K).
     """
 
     matrix: np.ndarray
@@ -207,6 +208,11 @@ class SensorCompensation:
             }
         )
 
+    @property
+    def per_ampere(self) -> np.ndarray:
+        """``k`` as rows, one per current column (K, 3), nT/A."""
+        return np.asarray(self.current_nT_per_A, dtype=float).reshape(-1, 3)
+
     @classmethod
     def from_dict(cls, d: dict) -> SensorCompensation:
         cond = d.get("conditioning")
@@ -216,7 +222,7 @@ class SensorCompensation:
             offset_nT=np.asarray(d["offset_nT"], dtype=float).reshape(3),
             residual_std_nT=np.asarray(d.get("residual_std_nT", [np.nan] * 3), dtype=float),
             conditioning=Conditioning.from_dict(cond) if cond else None,
-            current_nT_per_A=np.asarray(d.get("current_nT_per_A", [0.0] * 3), dtype=float).reshape(3),
+            current_nT_per_A=_per_ampere(np.asarray(d.get("current_nT_per_A", [0.0] * 3), dtype=float)),
         )
 
 
@@ -243,7 +249,11 @@ class CrossCompensation:
     current : bool
         True when the fit had the platform's current (a line then needs its current too).
     current_column : str or None
-        The record's column the current was read from (a line's is looked up by the same name).
+        The record's column the current was read from (a line's is looked up by the same name): the first of
+        :attr:`current_columns`.
+    current_columns : tuple of str
+        The record's current columns the fit took, in the order of each sensor's ``current_nT_per_A`` rows (empty
+        for one unnamed current).
     notes : list of str
     time_offset_s : float
         How late the sensors' samples are against the attitude's (and the current's), s: a line's readings are read
@@ -262,6 +272,7 @@ class CrossCompensation:
     current_column: str | None = None
     notes: list[str] = field(default_factory=list)
     time_offset_s: float = 0.0
+    current_columns: tuple = ()
 
     def compensate(self, data, *, sample_rate_hz=None, time_s=None, calibration=None, current_A=None) -> np.ndarray:
         """The compensated vectors (4, N, 3) of a line (nT, body frame for an ``attitude`` fit, the four's mean
@@ -275,8 +286,9 @@ class CrossCompensation:
             The line's rate (else the data's, else the fit's): the eddy term needs the field's rate in nT/s.
         calibration : magcal.calibration.calibration.Calibration, optional
             The calibration the fit was made after (:attr:`precalibrated`), applied to the readings first.
-        current_A : array_like, shape (N,), optional
-            The platform's current along the line (A), needed when the fit had one (:attr:`current`).
+        current_A : array_like, shape (N,) or (N, K), or dict, optional
+            The platform's current along the line (A), needed when the fit had one (:attr:`current`): one column
+            per current the fit took, or a dict of the line's columns by name (:attr:`current_columns` are taken).
         """
         arrays = cross_arrays(data, sample_rate_hz=sample_rate_hz, time_s=time_s)
         rate = arrays.sample_rate_hz or self.sample_rate_hz
@@ -291,9 +303,27 @@ class CrossCompensation:
         if self.current and current_A is None:
             raise MagcalError("this compensation was fitted with the platform's current: give the line's (current_A)")
         if current_A is not None:
-            current = _checked_current(current_A, y.shape[1])
-            y = y - np.stack([np.outer(current, s.current_nT_per_A) for s in self.sensors])
+            current = _checked_current(self._line_currents(current_A), y.shape[1])
+            y = y - self.current_field(current)
         return self.inverted(y, rate)
+
+    def _line_currents(self, current_A):
+        if not isinstance(current_A, dict):
+            return current_A
+        names = self.current_columns or (self.current_column or "current_A",)
+        missing = [c for c in names if c not in current_A]
+        if missing:
+            raise MagcalError(
+                f"the line has no current column {missing[0]!r} (the compensation took {', '.join(names)}); its "
+                "currents: " + (", ".join(current_A) or "none")
+            )
+        return np.column_stack([np.asarray(current_A[c], dtype=float) for c in names])
+
+    def current_field(self, current_A) -> np.ndarray:
+        """Each sensor's field of the platform's currents (4, N, 3), nT: ``current_A`` (N, K) A times each
+        sensor's rows of ``current_nT_per_A``."""
+        current = np.asarray(current_A, dtype=float).reshape(np.shape(current_A)[0], -1)
+        return np.stack([current @ s.per_ampere for s in self.sensors])
 
     def inverted(self, vectors_nT, sample_rate_hz: float) -> np.ndarray:
         """Each sensor's model inverted on vectors (4, N, 3) as the fit saw them (raw, or calibrated when
@@ -331,6 +361,7 @@ class CrossCompensation:
                 "magnitude_passes": self.magnitude_passes,
                 "current": self.current,
                 "current_column": self.current_column,
+                "current_columns": list(self.current_columns),
                 "time_offset_s": self.time_offset_s,
                 "sensors": [s.to_dict() for s in self.sensors],
                 "notes": list(self.notes),
@@ -358,6 +389,7 @@ class CrossCompensation:
             magnitude_passes=int(d.get("magnitude_passes", 0)),
             current=bool(d.get("current", False)),
             current_column=d.get("current_column"),
+            current_columns=tuple(map(str, d.get("current_columns") or ())),
             notes=list(d.get("notes", [])),
             time_offset_s=float(d.get("time_offset_s", 0.0)),
         )
@@ -404,10 +436,12 @@ class CrossCompensation:
                 f"the sensors' time offset {self.time_offset_s * 1e3:+.1f} ms (positive: late against the attitude)"
             )
         if self.current:
-            lines.append(
-                "field per ampere of the current (nT/A): "
-                + "; ".join(" ".join(f"{v:.3f}" for v in s.current_nT_per_A) for s in self.sensors)
-            )
+            names = self.current_columns or (self.current_column or "the current",)
+            for j, name in enumerate(names):
+                lines.append(
+                    f"field per ampere of {name} (nT/A): "
+                    + "; ".join(" ".join(f"{v:.3f}" for v in s.per_ampere[j]) for s in self.sensors)
+                )
         cond = [s.conditioning.condition_number_scaled for s in self.sensors if s.conditioning is not None]
         if cond:
             lines.append(f"condition number of the band-passed design (columns scaled) {max(cond):.3g}")
@@ -455,7 +489,7 @@ def _sensor_fits(vectors, design, design_bp, kept, rate, passband_hz, ridge, con
     sensors = []
     for i in range(len(vectors)):
         c = coefficients[:, 3 * i : 3 * i + 3]
-        current = c[6] if design.shape[1] > 6 else np.zeros(3)
+        current = _per_ampere(c[6:]) if design.shape[1] > 6 else np.zeros(3)
         std = residual[:, 3 * i : 3 * i + 3].std(axis=0)
         sensors.append(SensorCompensation(c[:3].T, c[3:6].T, offsets[3 * i : 3 * i + 3], std, cond, current))
     return sensors, float(np.sum(residual**2))
@@ -477,11 +511,21 @@ def _lag_cost(vectors, design_bp_kept, kept, rate, passband_hz, ridge):
     return cost
 
 
+def _per_ampere(rows) -> np.ndarray:
+    """A sensor's field per ampere: (3,) for one current, (K, 3) for several."""
+    k = np.asarray(rows, dtype=float).reshape(-1, 3)
+    return k[0] if k.shape[0] == 1 else k
+
+
 def _checked_current(current_A, n: int) -> np.ndarray:
+    """The currents as (N, K), A."""
     current = np.asarray(current_A, dtype=float)
-    if current.shape != (n,):
+    if current.ndim == 1:
+        current = current[:, None]
+    if current.ndim != 2 or current.shape[0] != n:
         raise MagcalError(
-            f"the current has shape {current.shape}; the readings have {n} samples: one ampere value each"
+            f"the current has shape {np.shape(current_A)}; the readings have {n} samples: one ampere value each "
+            "(a column per current)"
         )
     bad = ~np.isfinite(current)
     if bad.any():
@@ -565,9 +609,10 @@ def fit_cross_compensation(
         each taken out of every sensor as a vector field (0: none). They correct what the reference leaves in the
         field common to the four: an attitude's error (its errors-in-variables bias of each fit), a diurnal drift
         the reference lacks, and, for ``reference="mean"``, the mean sensor's own calibration, to first order.
-    current_A : array_like, shape (N,), optional
-        The platform's current (A), a battery's or a motor's: each sensor's field per ampere is fitted with the
-        other terms (Tolles-Lawson has no such term), and a line is compensated with its own current.
+    current_A : array_like, shape (N,) or (N, K), optional
+        The platform's current (A), a battery's or a motor's, or K currents (a platform's wires each carry their
+        own): each sensor's field per ampere of each is fitted with the other terms (Tolles-Lawson has no such
+        term), and a line is compensated with its own currents.
     time_offset : bool
         Fit how late the sensors' samples are against the attitude (and the current), within
         +-0.5 s (:data:`magcal.fitting.compensation.MAX_TIME_OFFSET_S`): the readings are read that much later before the fit, the offset found as the
@@ -589,7 +634,7 @@ def fit_cross_compensation(
     reference, b_ref = _reference_field(arrays, vectors, reference, field_ned_nT)
     columns = [b_ref, per_sample_difference(b_ref) * rate]
     if current_A is not None:
-        columns.append(_checked_current(current_A, b_ref.shape[0])[:, None])
+        columns.append(_checked_current(current_A, b_ref.shape[0]))
     design = np.column_stack(columns)
     kept = _kept(design.shape[0], int(trim), mask, design.shape[1])
     design_bp = bandpass_columns(design, rate, passband_hz)
@@ -617,9 +662,9 @@ def fit_cross_compensation(
         current=current_A is not None,
         time_offset_s=offset_s,
     )
-    current = design[:, 6] if current_A is not None else np.zeros(design.shape[0])
+    current = design[:, 6:] if current_A is not None else np.zeros((design.shape[0], 1))
     for _ in range(int(magnitude_passes)):
-        without_current = vectors - np.stack([np.outer(current, s.current_nT_per_A) for s in result.sensors])
+        without_current = vectors - result.current_field(current)
         common = result.inverted(without_current, rate).mean(axis=0)
         field = magnitude_pass(
             common, rate, passband_hz=passband_hz, kept=kept, current_A=None if current_A is None else current
@@ -661,8 +706,8 @@ def magnitude_pass(
         Tikhonov weight on the coefficients with the band-passed columns scaled to unit RMS, per sample: it holds
         the combinations the magnitude barely sees (a permanent field along the field moves ``|B|`` only to second
         order in the maneuvers' angles) and leaves the others.
-    current_A : array_like, shape (N,), optional
-        The platform's current (A): a field per ampere ``k`` is fitted too (columns ``u_j I``).
+    current_A : array_like, shape (N,) or (N, K), optional
+        The platform's currents (A): a field per ampere ``k`` of each is fitted too (columns ``u_j I_k``).
 
     Returns
     -------
@@ -673,21 +718,26 @@ def magnitude_pass(
     eddy_s : numpy.ndarray, shape (3, 3)
         ``E`` (s), its trace removed: ``u . (p + A B + E dB/dt)`` is the fitted signature (a constant ``|B|``
         leaves the two traces undetermined: ``u . B = |B|``, ``u . dB = d|B|``).
-    current_nT_per_A : numpy.ndarray, shape (3,)
-        ``k`` (nT/A; zeros without a current).
+    current_nT_per_A : numpy.ndarray, shape (3,) or (K, 3)
+        ``k`` (nT/A; zeros without a current), a row per current when there are several.
     """
     b = np.asarray(field_nT, dtype=float)
     magnitude = np.linalg.norm(b, axis=1)
     design = design_matrix(b, MAGNITUDE_TERMS, scale_nT=1.0)
+    n_currents = 0
     if current_A is not None:
-        design = np.column_stack([design, b / magnitude[:, None] * np.asarray(current_A, dtype=float)[:, None]])
+        currents = np.asarray(current_A, dtype=float).reshape(b.shape[0], -1)
+        n_currents = currents.shape[1]
+        u = b / magnitude[:, None]
+        design = np.column_stack([design] + [u * currents[:, [j]] for j in range(n_currents)])
     design_bp = bandpass_columns(design, sample_rate_hz, passband_hz)
     target_bp = bandpass(magnitude, sample_rate_hz, passband_hz)
     kept = np.ones(b.shape[0], dtype=bool) if kept is None else np.asarray(kept, dtype=bool)
     rms = np.sqrt(np.mean(design_bp[kept] ** 2, axis=0))
     rms = np.where(rms > 0, rms, 1.0)
     scaled = solve_ridge(design_bp[kept] / rms, target_bp[kept], float(ridge) * int(kept.sum()))
-    values = dict(zip(term_labels(MAGNITUDE_TERMS) + ["current_x", "current_y", "current_z"], scaled / rms))
+    labels = term_labels(MAGNITUDE_TERMS) + [f"current{j}_{a}" for j in range(n_currents) for a in "xyz"]
+    values = dict(zip(labels, scaled / rms))
     permanent = np.array([values[f"permanent_{a}"] for a in "xyz"])
     induced = np.zeros((3, 3))
     eddy = np.zeros((3, 3))
@@ -698,8 +748,8 @@ def magnitude_pass(
                 induced[i, j] = induced[j, i] = values.get(f"induced_{a}{c}", 0.0) / (1.0 if i == j else 2.0)
     induced -= np.trace(induced) / 3.0 * np.eye(3)
     eddy -= np.trace(eddy) / 3.0 * np.eye(3)
-    current = np.array([values.get(f"current_{a}", 0.0) for a in "xyz"])
-    return permanent, induced, eddy, current
+    current = np.array([[values[f"current{j}_{a}"] for a in "xyz"] for j in range(n_currents)])
+    return permanent, induced, eddy, _per_ampere(current) if n_currents else np.zeros(3)
 
 
 def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy, current) -> SensorCompensation:
@@ -713,5 +763,5 @@ def _with_platform_residual(sensor: SensorCompensation, permanent, induced, eddy
         offset_nT=sensor.offset_nT + matrix @ permanent,
         residual_std_nT=sensor.residual_std_nT,
         conditioning=sensor.conditioning,
-        current_nT_per_A=sensor.current_nT_per_A + matrix @ current,
+        current_nT_per_A=_per_ampere(sensor.per_ampere + np.asarray(current, dtype=float).reshape(-1, 3) @ matrix.T),
     )

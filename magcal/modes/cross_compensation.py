@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from magcal.core.errors import MagcalError
+from magcal.data.current_columns import current_names
 from magcal.data.dataset import Dataset
 from magcal.diagnosis.compensation import FOLDS
 from magcal.diagnosis.cross_compensation import (
@@ -37,7 +38,11 @@ MIN_MANEUVERS = 4
 
 
 def _record(data, current=None) -> CrossRecord:
-    return data if isinstance(data, CrossRecord) else cross_record(data, current)
+    """The record of a dataset (its current term taking ``current``: one column, several (``"a,b"`` or a list), else
+    the first found); a record as it is, its current term taking ``current`` when given."""
+    if not isinstance(data, CrossRecord):
+        return cross_record(data, current)
+    return data.taking_currents(current_names(current)) if current is not None else data
 
 
 def field_vector(reference, n: int):

@@ -57,13 +57,14 @@ class CrossCompensationSummary(LineSummary):
 def _line_current(compensation: CrossCompensation, dataset, survey_path):
     if not compensation.current:
         return None
-    name = compensation.current_column or "current_A"
-    if name not in dataset.extra:
-        raise MagcalError(
-            f"{survey_path}: the compensation follows the platform's current (column {name!r}); the line has no "
-            "such column: add it or map it with --columns"
-        )
-    return np.asarray(dataset.extra[name], dtype=float)
+    names = compensation.current_columns or (compensation.current_column or "current_A",)
+    for name in names:
+        if name not in dataset.extra:
+            raise MagcalError(
+                f"{survey_path}: the compensation follows the platform's current (column {name!r}); the line has "
+                "no such column: add it or map it with --columns"
+            )
+    return np.column_stack([np.asarray(dataset.extra[name], dtype=float) for name in names])
 
 
 def apply_cross_compensation_file(

@@ -163,3 +163,45 @@ def test_auto_chooses_the_mode_before_it_checks_the_effects(flights, capsys, com
     assert main([command, str(box_csv), "--effects", "current,bogus"]) == 2
     err = capsys.readouterr().err
     assert "bogus" in err and "Traceback" not in err
+
+
+def test_several_current_columns_are_named_with_one_option(tmp_path, capsys):
+    from tests.diagnosis.test_cross_compensation_currents import HIDDEN, PLATFORM
+
+    def written(flight, name):
+        path = write_cross_flight(flight, tmp_path / name, current=False)
+        frame = pd.read_csv(path, comment="#")
+        for column, values in flight.currents_A.items():
+            frame[column] = values
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write(f"# baseline_m: {flight.baseline_m}\n")
+            frame.to_csv(fh, index=False)
+        return path
+
+    box, line = simulate_cross_flight(34, platform=PLATFORM), simulate_cross_flight(35, platform=PLATFORM)
+    path, line_path = written(box, "box.csv"), written(line, "line.csv")
+    named = ",".join(HIDDEN)
+    out = tmp_path / "cross.json"
+    args = ["calibrate", str(path), "--mode", "cross_compensation", "--effects", "current", "--current", named]
+    assert main([*args, "-o", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["calibration"]["current_columns"] == list(HIDDEN)
+    assert np.shape(doc["calibration"]["sensors"][0]["current_nT_per_A"]) == (2, 3)
+    true = box.truth.compensated_nT(box.readings_nT)
+    floor = tensor_fom(true, box.baseline_m, box.truth.maneuvers, box.sample_rate_hz).fom_nT_per_m
+    assert doc["tensor_fom_nT_per_m"]["after"] <= 1.2 * floor
+    # a line is compensated with its own two currents, found by name
+    assert main(["apply", str(out), str(line_path), "-o", str(tmp_path / "line_comp.csv")]) == 0
+    comp = pd.read_csv(tmp_path / "line_comp.csv", comment="#")
+    ours = np.stack([comp[[f"s{i}{a}_comp" for a in "xyz"]].to_numpy() for i in range(1, 5)])
+    true_line = line.truth.compensated_nT(line.readings_nT)
+    fom = [tensor_fom(v, line.baseline_m, line.truth.maneuvers, 10.0).fom_nT_per_m for v in (ours, true_line)]
+    assert fom[0] <= 1.2 * fom[1]
+    capsys.readouterr()
+    # one of them alone leaves the other's field
+    assert main(["calibrate", str(path), "--mode", "cross_compensation", "--effects", "current", "--current",
+                 list(HIDDEN)[0], "--json"]) == 0  # fmt: skip
+    assert json.loads(capsys.readouterr().out)["tensor_fom_nT_per_m"]["after"] > 1.5 * floor
+    # a named column the file lacks: one line naming it
+    assert main([*args[:-1], "cur_strb,cur_fan"]) != 0
+    assert "cur_fan" in capsys.readouterr().err
