@@ -614,6 +614,104 @@ def _taking(record: CrossRecord, columns) -> CrossRecord:
     return record.taking_currents(columns) if columns else record
 
 
+class _Search:
+    """The forward search of :func:`diagnose_cross_compensation`: the terms and current columns taken so far, the
+    held-out (tensor, sensors') FOM they reach (nT/m, nT), and the trials of each round."""
+
+    def __init__(self, record, also, maneuvers, field_ned_nT, options, effects, base):
+        self.record, self.also, self.maneuvers = record, also, maneuvers
+        self.field_ned_nT, self.options = field_ned_nT, options
+        self.effects = list(effects)
+        self.current = list(effects)
+        self.columns = list(record.term_currents) if "current" in effects else []
+        self.initial_columns = list(self.columns)
+        self.open_names: list[str] = []
+        self.open_columns: list[str] = []
+        self.now = self.score(self.current, self.columns)
+        self.fit = base  # the fit of the model taken so far
+
+    def score(self, names, with_columns) -> tuple[float, float]:
+        """The held-out tensor and sensors' FOM of the model ``names`` with the current ``with_columns``."""
+        taken = with_columns if "current" in names else []
+        also = None if self.also is None else _taking(self.also, taken)
+        return held_out_foms(
+            _taking(self.record, taken), names, self.maneuvers, field_ned_nT=self.field_ned_nT, also=also,
+            **self.options,
+        )  # fmt: skip
+
+    def why(self, name, column=None) -> str:
+        """Why the flight (or the other flight) cannot judge ``name`` ('' when both can)."""
+        record, also, field_ned_nT = self.record, self.also, self.field_ned_nT
+        return _unusable(name, record, field_ned_nT, column) or (
+            _unusable(name, also, field_ned_nT, column) if also else ""
+        )
+
+    def unjudged(self, pool) -> list[CrossCandidate]:
+        """The candidates the flight cannot judge, with why; sets the terms and current columns still open."""
+        unusable = {n: r for n in pool if (r := self.why(n))}
+        out = [CrossCandidate(n, judged=False, reason=r) for n, r in unusable.items()]
+        wants = ("current" in pool and "current" not in unusable) or "current" in self.effects
+        every = [c for c in self.record.all_currents if c not in self.columns] if wants else []
+        out += [
+            CrossCandidate("current", judged=False, reason=r, columns=(c,))
+            for c in every
+            if (r := self.why("current", c))
+        ]
+        self.open_columns = [c for c in every if not self.why("current", c)]
+        self.open_names = [n for n in pool if n not in unusable]
+        return out
+
+    def trial(self, name, round_, added=()) -> CrossCandidate:
+        """``name`` (with the current's ``added`` columns) added to the model: its held-out FOMs and evidence."""
+        names = self.current + [name] if name not in self.current else list(self.current)
+        with_columns = self.columns + list(added)
+        tensor, sensors = self.score(names, with_columns)
+        taken = _taking(self.record, with_columns if "current" in names else [])
+        evidence = _evidence(name, _fit(taken, names, self.field_ned_nT, **self.options))
+        before = self.now
+        return CrossCandidate(
+            name, round_, True, before[0], tensor, False, evidence, "", before[1], sensors, columns=tuple(added)
+        )
+
+    def rounds(self, floor) -> list[CrossCandidate]:
+        """Add the best candidate that holds, round after round, until none holds, none is left or the tensor FOM
+        is at the floor; every trial, the taken ones marked recommended."""
+        out: list[CrossCandidate] = []
+        for round_ in range(1, MAX_EFFECTS + MAX_CURRENT_COLUMNS):
+            trials = self._trials(round_)
+            out.extend(trials)
+            best = next((c for c in trials if c.holds), None)
+            if best is None:
+                break
+            self._take(best)
+            if not (self.open_names or self.open_columns) or self.now[0] <= ADEQUATE_RATIO * floor:
+                break
+        return out
+
+    def _trials(self, round_) -> list[CrossCandidate]:
+        added_terms = len(self.current) - len(self.effects)
+        names = [n for n in self.open_names if added_terms < MAX_EFFECTS and n not in self.current]
+        more = self.open_columns if len(self.columns) < MAX_CURRENT_COLUMNS else []
+        trials = [self.trial(name, round_) for name in names if name != "current"]
+        if "current" in self.current or "current" in names:
+            trials += [self.trial("current", round_, (c,)) for c in more]
+        trials.sort(key=lambda c: -c.gain)
+        return trials
+
+    def _take(self, best: CrossCandidate) -> None:
+        best.recommended = True
+        if best.name not in self.current:
+            self.current.append(best.name)
+        self.columns += list(best.columns)
+        self.open_columns = [c for c in self.open_columns if c not in self.columns]
+        self.now = (best.fom_after_nT_per_m, best.sensor_fom_after_nT)
+        self.open_names = [
+            n for n in self.open_names if n not in self.current or (n == "current" and self.open_columns)
+        ]
+        taken = _taking(self.record, self.columns if "current" in self.current else [])
+        self.fit = _fit(taken, self.current, self.field_ned_nT, **self.options)
+
+
 def diagnose_cross_compensation(
     record: CrossRecord,
     effects=(),
@@ -657,71 +755,12 @@ def diagnose_cross_compensation(
     if not enough:
         return _not_judged(also is not None, effects, pool, judged_maneuvers, floor, sigma, base, started)
 
-    columns = list(record.term_currents) if "current" in effects else []
-    initial_columns = list(columns)
-
-    def score(names, with_columns) -> tuple[float, float]:
-        taken = with_columns if "current" in names else []
-        return held_out_foms(
-            _taking(record, taken),
-            names,
-            maneuvers,
-            field_ned_nT=field_ned_nT,
-            also=None if also is None else _taking(also, taken),
-            **options,
-        )
-
-    def why(name, column=None) -> str:
-        return _unusable(name, record, field_ned_nT, column) or (
-            _unusable(name, also, field_ned_nT, column) if also else ""
-        )
-
-    unusable = {n: r for n in pool if (r := why(n))}
-    candidates = [CrossCandidate(n, judged=False, reason=r) for n, r in unusable.items()]
-    wants = ("current" in pool and "current" not in unusable) or "current" in effects
-    every = [c for c in record.all_currents if c not in columns] if wants else []
-    candidates += [
-        CrossCandidate("current", judged=False, reason=r, columns=(c,)) for c in every if (r := why("current", c))
-    ]
-    open_columns = [c for c in every if not why("current", c)]
-    open_names = [n for n in pool if n not in unusable]
-    current = list(effects)
-    base_fom, base_sensors = score(current, columns)
-    now = (base_fom, base_sensors)
-    fit = base
-
-    def trial(name, round_, added=()) -> CrossCandidate:
-        names = current + [name] if name not in current else list(current)
-        with_columns = columns + list(added)
-        tensor, sensors = score(names, with_columns)
-        taken = _taking(record, with_columns if "current" in names else [])
-        evidence = _evidence(name, _fit(taken, names, field_ned_nT, **options))
-        return CrossCandidate(
-            name, round_, True, now[0], tensor, False, evidence, "", now[1], sensors, columns=tuple(added)
-        )
-
-    for round_ in range(1, MAX_EFFECTS + MAX_CURRENT_COLUMNS):
-        added_terms = len(current) - len(effects)
-        names = [n for n in open_names if added_terms < MAX_EFFECTS and n not in current]
-        more = open_columns if len(columns) < MAX_CURRENT_COLUMNS else []
-        trials = [trial(name, round_) for name in names if name != "current"]
-        if "current" in current or "current" in names:
-            trials += [trial("current", round_, (c,)) for c in more]
-        trials.sort(key=lambda c: -c.gain)
-        candidates.extend(trials)
-        best = next((c for c in trials if c.holds), None)
-        if best is None:
-            break
-        best.recommended = True
-        if best.name not in current:
-            current.append(best.name)
-        columns += list(best.columns)
-        open_columns = [c for c in open_columns if c not in columns]
-        now = (best.fom_after_nT_per_m, best.sensor_fom_after_nT)
-        open_names = [n for n in open_names if n not in current or (n == "current" and open_columns)]
-        fit = _fit(_taking(record, columns if "current" in current else []), current, field_ned_nT, **options)
-        if not (open_names or open_columns) or now[0] <= ADEQUATE_RATIO * floor:
-            break
+    search = _Search(record, also, maneuvers, field_ned_nT, options, effects, base)
+    candidates = search.unjudged(pool)
+    base_fom = search.now[0]
+    candidates += search.rounds(floor)
+    current, columns, now, fit = search.current, search.columns, search.now, search.fit
+    initial_columns = search.initial_columns
     explained = current[len(effects) :]
     grew = columns[len(initial_columns) :]
     final = now[0]
