@@ -39,14 +39,14 @@ __all__ = ["CrossFOMReport", "TensorFOMTable", "cross_fom_report", "sensor_fom",
 class TensorFOMTable:
     """Peak-to-peak values (nT/m) of each band-passed tensor component per maneuver.
 
+    The unit-neutral accessors of :class:`magcal.diagnosis.fom_protocol.FOMFigures`: :attr:`fom` is
+    :attr:`fom_nT_per_m`, :attr:`per_maneuver` is :attr:`maneuver_nT_per_m`, :attr:`unit` ``"nT/m"``.
+
     Attributes
     ----------
     maneuvers : list of Maneuver
     peak_to_peak_nT_per_m : numpy.ndarray, shape (n_maneuvers, 7)
         Columns in :data:`magcal.core.conventions.TENSOR_COMPONENTS` order.
-
-    The unit-neutral accessors of :class:`magcal.diagnosis.fom_protocol.FOMFigures`: :attr:`fom` is
-    :attr:`fom_nT_per_m`, :attr:`per_maneuver` is :attr:`maneuver_nT_per_m`, :attr:`unit` ``"nT/m"``.
     """
 
     maneuvers: list

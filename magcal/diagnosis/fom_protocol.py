@@ -4,24 +4,18 @@ components' sums).
 
 Each FOM object keeps its unit-named fields (``fom_nT``, ``peak_to_peak_nT``; ``fom_nT_per_m``,
 ``maneuver_nT_per_m`` ...: public and documented) and answers the same unit-neutral accessors besides, with its
-:attr:`unit`, so that a caller (the workbench's compensation sessions) reads either without knowing which:
+``unit``, so that a caller (the workbench's compensation sessions) reads either without knowing which:
 
-========================  ====================================  ==============================================
-protocol                  the scalar's (nT)                     the cross's (nT/m)
-========================  ====================================  ==============================================
-:class:`FOMFigures`       :class:`~magcal.diagnosis.fom.        :class:`~magcal.diagnosis.cross_fom.
-                          FOMTable`: ``fom`` = ``fom_nT``,      TensorFOMTable`: ``fom`` = ``fom_nT_per_m``,
-                          ``per_maneuver`` =                    ``per_maneuver`` = ``maneuver_nT_per_m``
-                          ``peak_to_peak_nT``
-:class:`FOMComparison`    :class:`~magcal.diagnosis.fom.        :class:`~magcal.diagnosis.cross_fom.
-                          FOMReport`                            CrossFOMReport`
-:class:`CandidateFOM`     ``CompensationCandidate``:            ``CrossCandidate``: ``fom_before`` =
-                          ``fom_before`` = ``fom_before_nT``    ``fom_before_nT_per_m`` (the held-out tensor FOM)
-:class:`DiagnosisFOM`     ``CompensationDiagnosis``:            ``CrossCompensationDiagnosis``:
-                          ``fom_held_out`` =                    ``fom_held_out`` = ``fom_held_out_nT_per_m``,
-                          ``fom_held_out_nT``, ``floor_fom`` =  ``floor_fom`` = ``floor_fom_nT_per_m``
-                          ``floor_fom_nT``
-========================  ====================================  ==============================================
+- :class:`FOMFigures`: :class:`~magcal.diagnosis.fom.FOMTable` (``fom`` = ``fom_nT``, ``per_maneuver`` =
+  ``peak_to_peak_nT``) and :class:`~magcal.diagnosis.cross_fom.TensorFOMTable` (``fom`` = ``fom_nT_per_m``,
+  ``per_maneuver`` = ``maneuver_nT_per_m``).
+- :class:`FOMComparison`: :class:`~magcal.diagnosis.fom.FOMReport` and
+  :class:`~magcal.diagnosis.cross_fom.CrossFOMReport`.
+- :class:`CandidateFOM`: ``CompensationCandidate`` (``fom_before`` = ``fom_before_nT``) and ``CrossCandidate``
+  (``fom_before`` = ``fom_before_nT_per_m``, the held-out tensor FOM).
+- :class:`DiagnosisFOM`: ``CompensationDiagnosis`` (``fom_held_out`` = ``fom_held_out_nT``, ``floor_fom`` =
+  ``floor_fom_nT``) and ``CrossCompensationDiagnosis`` (``fom_held_out`` = ``fom_held_out_nT_per_m``,
+  ``floor_fom`` = ``floor_fom_nT_per_m``).
 """
 
 from __future__ import annotations
